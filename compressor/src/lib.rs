@@ -1,0 +1,9 @@
+//! The offline batch compressor (paper §4): reads a volume, decorrelates colour, runs the 3D
+//! wavelet transform, selects coefficients with the energy oracle, orders them by significance
+//! with spatial clustering, quantizes and entropy-codes them into tiles and packets of the
+//! wavesplat format (`wavesplat-codec`). Work is parallel on the rayon pool; results do not
+//! depend on the number of threads.
+
+pub mod colorspace;
+pub mod phantom;
+pub mod reader;
