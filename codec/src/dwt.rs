@@ -57,7 +57,10 @@ impl Dwt1d {
 
     /// Builds (or reuses) the plan for even length `len`.
     fn plan(&mut self, len: usize) -> &LinePlan {
-        assert!(len >= 2 && len % 2 == 0, "line length {len} must be even");
+        assert!(
+            len >= 2 && len.is_multiple_of(2),
+            "line length {len} must be even"
+        );
         let (p, q) = (&self.p, &self.q);
         self.plans.entry(len).or_insert_with(|| {
             let half = len / 2;
@@ -71,8 +74,7 @@ impl Dwt1d {
                     .filter(|(i, _)| i % 2 == parity)
                     .map(|(i, c)| {
                         let k = (i / 2) % half;
-                        let angle =
-                            -2.0 * std::f64::consts::PI * (n * k) as f64 / half as f64;
+                        let angle = -2.0 * std::f64::consts::PI * (n * k) as f64 / half as f64;
                         Complex64::from_polar(*c, angle)
                     })
                     .sum()
@@ -120,7 +122,8 @@ impl Dwt1d {
         }
         plan.fft
             .process_with_scratch(&mut scratch.even, &mut scratch.fft);
-        plan.fft.process_with_scratch(&mut scratch.odd, &mut scratch.fft);
+        plan.fft
+            .process_with_scratch(&mut scratch.odd, &mut scratch.fft);
         for n in 0..h {
             let m = &plan.inverse[n];
             let (e, o) = (scratch.even[n], scratch.odd[n]);
@@ -382,7 +385,13 @@ mod tests {
     fn perfect_reconstruction_3d_all_families_and_levels() {
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(11);
         for fam in Family::ALL {
-            for dims in [[1usize, 1, 7], [5, 6, 7], [8, 8, 8], [3, 17, 4], [16, 9, 12]] {
+            for dims in [
+                [1usize, 1, 7],
+                [5, 6, 7],
+                [8, 8, 8],
+                [3, 17, 4],
+                [16, 9, 12],
+            ] {
                 let vol: Vec<f32> = (0..dims.iter().product())
                     .map(|_| rng.gen_range(-100.0..100.0))
                     .collect();

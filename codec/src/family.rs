@@ -347,8 +347,14 @@ mod tests {
                     });
                     let a = fam.phi_hat(f, kappa);
                     let b = fam.psi_hat(f, kappa);
-                    assert!((a - num_phi).norm() < 1e-9, "{fam} k={kappa} f={f}: {a} vs {num_phi}");
-                    assert!((b - num_psi).norm() < 1e-9, "{fam} k={kappa} f={f}: {b} vs {num_psi}");
+                    assert!(
+                        (a - num_phi).norm() < 1e-9,
+                        "{fam} k={kappa} f={f}: {a} vs {num_phi}"
+                    );
+                    assert!(
+                        (b - num_psi).norm() < 1e-9,
+                        "{fam} k={kappa} f={f}: {b} vs {num_psi}"
+                    );
                 }
             }
         }
@@ -359,7 +365,7 @@ mod tests {
         // Independent reference: Gauss–Legendre of ∫₀¹ e^(−sx) dx (smooth, so quadrature is
         // accurate to rounding), compared at |s| ∈ {0, 1e-12, 1e-8, 1e-4} in several directions.
         for &r in &[0.0, 1e-12, 1e-8, 1e-4, 0.49, 0.51] {
-            for &ang in &[0.0, 0.7, 1.5707963267948966, 2.0] {
+            for &ang in &[0.0, 0.7, std::f64::consts::FRAC_PI_2, 2.0] {
                 let s = Complex64::from_polar(r, ang);
                 let s = Complex64::new(s.re.abs(), s.im);
                 let reference = integrate(0.0, 1.0, 4, |x| (-s * x).exp());

@@ -299,11 +299,12 @@ impl Geometry {
     /// Support half-width (voxels) along one axis of a level-`level` φ or ψ.
     pub fn half_support_1d(&self, level: usize, wavelet: bool) -> f64 {
         let s = (1u64 << level) as f64;
-        0.5 * s * if wavelet {
-            self.family.psi_support()
-        } else {
-            self.family.phi_support()
-        }
+        0.5 * s
+            * if wavelet {
+                self.family.psi_support()
+            } else {
+                self.family.phi_support()
+            }
     }
 }
 
@@ -345,7 +346,10 @@ mod tests {
             Geometry::new([1, 1, 9], Family::Haar, 1, 0),
             Err(LayoutError::TooManyLevels { .. })
         ));
-        assert_eq!(Geometry::new([1, 1, 9], Family::Haar, 0, 0).unwrap().padded, [1, 1, 9]);
+        assert_eq!(
+            Geometry::new([1, 1, 9], Family::Haar, 0, 0).unwrap().padded,
+            [1, 1, 9]
+        );
         assert_eq!(
             g.band_index(Band { level: 1, kind: 7 }),
             Some(g.band_count() - 1)

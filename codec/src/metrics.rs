@@ -12,7 +12,11 @@
 
 /// Σ ref² and Σ (img − ref)² in f64.
 fn energies<T: Copy + Into<f64>>(reference: &[T], image: &[T]) -> (f64, f64) {
-    assert_eq!(reference.len(), image.len(), "metric inputs differ in length");
+    assert_eq!(
+        reference.len(),
+        image.len(),
+        "metric inputs differ in length"
+    );
     let mut e_ref = 0.0;
     let mut e_err = 0.0;
     for (r, i) in reference.iter().zip(image) {

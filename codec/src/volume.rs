@@ -134,7 +134,13 @@ impl Volume {
             });
         }
         let channels = (0..channel_count)
-            .map(|c| data.iter().skip(c).step_by(channel_count).copied().collect())
+            .map(|c| {
+                data.iter()
+                    .skip(c)
+                    .step_by(channel_count)
+                    .copied()
+                    .collect()
+            })
             .collect();
         Volume::new(dims, spacing, channels)
     }
@@ -260,7 +266,7 @@ mod tests {
 
     #[test]
     fn interleaving_round_trips() {
-        let data: Vec<f32> = (0..2 * 3 * 1 * 3).map(|i| i as f32).collect();
+        let data: Vec<f32> = (0..2 * 3 * 3).map(|i| i as f32).collect();
         let v = Volume::from_interleaved([2, 3, 1], [1.0; 3], 3, &data).unwrap();
         assert_eq!(v.channel(1)[0], 1.0);
         assert_eq!(v.channel(2)[1], 5.0);

@@ -1,0 +1,702 @@
+//! The `.wsp` bitstream: a versioned header, a packet directory, then self-contained packets.
+//!
+//! ```text
+//! "WSPL" | version u16 | header length u32 | header | header CRC-32
+//! packet count (varint) | packet length (varint) × count | directory CRC-32
+//! packet × count
+//! ```
+//!
+//! The header carries everything a packet needs to decode on its own: dimensions, channels,
+//! family, depth M, margin (hence the padded grid), the colour transform and importances, the
+//! coder and its Huffman tables, the quantizer bits P, the per-substream (channel, level, type)
+//! quantization parameters (w₀ and Δ of eq. 15–17), the tile size and the quality-layer score
+//! thresholds. A packet holds a run of one tile's coefficients in significance order; it starts
+//! with its tile, layer (its rank among the tile's packets), coefficient count and a summary of
+//! its energy per band, and ends with a CRC-32. Quantization chains restart in every packet (from
+//! the layer's magnitude bound), so any subset of packets decodes, and a prefix of a tile's
+//! packets holds that tile's most significant coefficients.
+//!
+//! Every read from bytes is bounds-checked and every field range-checked: truncated, corrupted,
+//! wrong-version or oversized input yields a [`FormatError`], never a panic.
+
+pub mod bytes;
+pub mod packet;
+pub mod quant;
+
+use crate::entropy::bits::{BitReader, BitWriter};
+use crate::entropy::huffman::HuffmanCode;
+use crate::entropy::EntropyError;
+use crate::family::Family;
+use crate::layout::{Band, Geometry, LayoutError, MAX_LEVELS};
+use bytes::{ByteReader, ByteWriter};
+use thiserror::Error;
+
+/// File magic.
+pub const MAGIC: &[u8; 4] = b"WSPL";
+/// Current format version.
+pub const VERSION: u16 = 1;
+/// Largest accepted header (bytes).
+pub const MAX_HEADER_BYTES: usize = 16 << 20;
+/// Largest accepted packet (bytes).
+pub const MAX_PACKET_BYTES: usize = 256 << 20;
+/// Largest number of quality layers.
+pub const MAX_LAYERS: usize = 32;
+/// Largest zero margin around the volume.
+pub const MAX_MARGIN: usize = 4096;
+
+/// Errors reading or writing the format.
+#[derive(Debug, Error, PartialEq)]
+#[non_exhaustive]
+pub enum FormatError {
+    /// Not a wavesplat file.
+    #[error("not a wavesplat file: magic bytes are {0:02x?}, expected \"WSPL\"")]
+    BadMagic(Vec<u8>),
+    /// A version this build cannot read.
+    #[error("unsupported format version {found}; this build reads version {supported}")]
+    UnsupportedVersion {
+        /// Version in the file.
+        found: u16,
+        /// Version supported.
+        supported: u16,
+    },
+    /// Input ended early.
+    #[error("truncated {what}: needed {needed} more bytes, {available} available")]
+    Truncated {
+        /// Structure being read.
+        what: &'static str,
+        /// Bytes needed.
+        needed: u64,
+        /// Bytes available.
+        available: u64,
+    },
+    /// A checksum did not match.
+    #[error("{what} checksum mismatch: stored {stored:#010x}, computed {computed:#010x}")]
+    Checksum {
+        /// Structure being checked.
+        what: &'static str,
+        /// Stored CRC.
+        stored: u32,
+        /// Computed CRC.
+        computed: u32,
+    },
+    /// A field is out of range or inconsistent.
+    #[error("invalid {what}: {detail}")]
+    Invalid {
+        /// Structure being read.
+        what: &'static str,
+        /// What was wrong.
+        detail: String,
+    },
+    /// A size limit was exceeded.
+    #[error("{what} of {size} bytes exceeds the limit of {limit}")]
+    TooLarge {
+        /// Structure.
+        what: &'static str,
+        /// Its size.
+        size: u64,
+        /// The limit.
+        limit: u64,
+    },
+    /// Entropy-coded data was malformed.
+    #[error("entropy-coded data: {0}")]
+    Entropy(#[from] EntropyError),
+    /// Geometry was invalid.
+    #[error(transparent)]
+    Layout(#[from] LayoutError),
+}
+
+pub(crate) fn invalid(what: &'static str, detail: impl Into<String>) -> FormatError {
+    FormatError::Invalid {
+        what,
+        detail: detail.into(),
+    }
+}
+
+/// How the volume's channels relate to RGB.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ColorKind {
+    /// One intensity channel; no colour transform.
+    Intensity,
+    /// RGB kept as is (importances 1, 1, 1).
+    Rgb,
+    /// NTSC YIQ (importances 4, 1.5, 0.6).
+    Yiq,
+    /// Principal components of the colour covariance (importances = |eigenvalues|).
+    Pca,
+}
+
+impl ColorKind {
+    fn code(self) -> u8 {
+        match self {
+            ColorKind::Intensity => 0,
+            ColorKind::Rgb => 1,
+            ColorKind::Yiq => 2,
+            ColorKind::Pca => 3,
+        }
+    }
+    fn from_code(c: u8) -> Option<Self> {
+        Some(match c {
+            0 => ColorKind::Intensity,
+            1 => ColorKind::Rgb,
+            2 => ColorKind::Yiq,
+            3 => ColorKind::Pca,
+            _ => return None,
+        })
+    }
+    /// Lower-case name.
+    pub fn name(self) -> &'static str {
+        match self {
+            ColorKind::Intensity => "intensity",
+            ColorKind::Rgb => "rgb",
+            ColorKind::Yiq => "yiq",
+            ColorKind::Pca => "pca",
+        }
+    }
+}
+
+/// The colour transform the channels were coded in: channel i = basis row i · (rgb − mean).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ColorInfo {
+    /// Which colour space.
+    pub kind: ColorKind,
+    /// Rows are the vectors C1..C3 in RGB (identity for intensity volumes).
+    pub basis: [[f64; 3]; 3],
+    /// Colour subtracted before projecting (zero except PCA).
+    pub mean: [f64; 3],
+    /// Importance I(C) of each channel (eq. 14, Table 2); only the first is used for intensity.
+    pub importance: [f64; 3],
+}
+
+impl ColorInfo {
+    /// The intensity (single-channel) case.
+    pub fn intensity() -> ColorInfo {
+        ColorInfo {
+            kind: ColorKind::Intensity,
+            basis: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+            mean: [0.0; 3],
+            importance: [1.0, 1.0, 1.0],
+        }
+    }
+}
+
+/// Which entropy coder the packets use.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum CoderKind {
+    /// The paper's scheme: run-length + static Huffman tables (in the header) for tags,
+    /// Huffman-coded position and value deltas, a raw sign bit.
+    Huffman,
+    /// The same syntax with an adaptive binary arithmetic (range) coder, reset per packet.
+    Range,
+}
+
+impl CoderKind {
+    /// Lower-case name.
+    pub fn name(self) -> &'static str {
+        match self {
+            CoderKind::Huffman => "huffman",
+            CoderKind::Range => "range",
+        }
+    }
+    /// Parses a name.
+    pub fn from_name(s: &str) -> Option<Self> {
+        match s {
+            "huffman" => Some(CoderKind::Huffman),
+            "range" | "arithmetic" => Some(CoderKind::Range),
+            _ => None,
+        }
+    }
+}
+
+/// Quantization parameters of one substream (channel, band): eq. 15–17.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SubstreamParams {
+    /// The exact largest magnitude w₀ in the substream.
+    pub w0: f32,
+    /// The delta factor Δ (0 when the substream has a single distinct magnitude).
+    pub delta: f32,
+}
+
+/// The four static Huffman tables of the paper's coder.
+#[derive(Debug, Clone, PartialEq)]
+pub struct HuffmanTables {
+    /// Substream id (channel × band) at the start of a run.
+    pub tag: HuffmanCode,
+    /// Run-length categories.
+    pub run: HuffmanCode,
+    /// Position-delta categories.
+    pub position: HuffmanCode,
+    /// Value-delta categories.
+    pub value: HuffmanCode,
+}
+
+/// Alphabet of the magnitude-category tables.
+pub const CATEGORY_ALPHABET: usize = 65;
+
+/// Everything a packet needs to decode, plus volume-level facts for tools.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Header {
+    /// Geometry: dims, padding, levels, family.
+    pub geometry: Geometry,
+    /// Zero margin used to build the padded grid.
+    pub margin: usize,
+    /// Voxel spacing.
+    pub spacing: [f32; 3],
+    /// Number of channels (1 or 3).
+    pub channels: usize,
+    /// Colour transform.
+    pub color: ColorInfo,
+    /// Value range of the source volume (RGB / intensity units).
+    pub value_range: [f32; 2],
+    /// Entropy coder.
+    pub coder: CoderKind,
+    /// Quantization bits P (1..=16).
+    pub bits: u8,
+    /// Tile edge length in voxels of the padded grid (a multiple of 2^M).
+    pub tile: usize,
+    /// Score upper bound of each quality layer (layer 0 first; non-increasing; may be +∞).
+    pub layer_bounds: Vec<f32>,
+    /// Per (channel, band index) parameters; `None` for substreams without coefficients.
+    pub substreams: Vec<Option<SubstreamParams>>,
+    /// Huffman tables (present iff `coder == Huffman`).
+    pub tables: Option<HuffmanTables>,
+    /// Total energy Σ E(w) of all coefficients of all channels (the denominator of Q_V).
+    pub total_energy: f64,
+    /// Number of coefficients kept in the file.
+    pub kept: u64,
+}
+
+impl Header {
+    /// Number of tiles along each axis.
+    pub fn tile_counts(&self) -> [usize; 3] {
+        let p = self.geometry.padded;
+        [
+            p[0].div_ceil(self.tile),
+            p[1].div_ceil(self.tile),
+            p[2].div_ceil(self.tile),
+        ]
+    }
+
+    /// Total number of tiles.
+    pub fn tile_count(&self) -> usize {
+        self.tile_counts().iter().product()
+    }
+
+    /// Tile origin (voxels of the padded grid) of tile `t`.
+    pub fn tile_origin(&self, t: usize) -> [usize; 3] {
+        let c = self.tile_counts();
+        [
+            (t % c[0]) * self.tile,
+            ((t / c[0]) % c[1]) * self.tile,
+            (t / (c[0] * c[1])) * self.tile,
+        ]
+    }
+
+    /// Tile containing coefficient `pos` of `band`.
+    pub fn tile_of(&self, band: Band, pos: [usize; 3]) -> usize {
+        let c = self.tile_counts();
+        let l = band.level as usize;
+        let t = [
+            (pos[0] << l) / self.tile,
+            (pos[1] << l) / self.tile,
+            (pos[2] << l) / self.tile,
+        ];
+        t[0] + c[0] * (t[1] + c[1] * t[2])
+    }
+
+    /// Number of substreams (channels × bands).
+    pub fn substream_count(&self) -> usize {
+        self.channels * self.geometry.band_count()
+    }
+
+    /// Substream id of (channel, band).
+    pub fn substream_id(&self, channel: usize, band: Band) -> usize {
+        channel * self.geometry.band_count()
+            + self
+                .geometry
+                .band_index(band)
+                .expect("band exists in this geometry")
+    }
+
+    /// Inverse of [`Header::substream_id`].
+    pub fn substream_of(&self, id: usize) -> (usize, Band) {
+        let nb = self.geometry.band_count();
+        (id / nb, self.geometry.bands()[id % nb])
+    }
+
+    /// Importance of a channel.
+    pub fn importance(&self, channel: usize) -> f64 {
+        self.color.importance[channel.min(2)]
+    }
+
+    /// Magnitude at which a substream's quantization chain starts in a packet of `layer`:
+    /// min(w₀, √(bound_layer / (‖basis‖²·I))).
+    pub fn chain_start(&self, substream: usize, layer: usize) -> f64 {
+        let Some(params) = self.substreams.get(substream).copied().flatten() else {
+            return 0.0;
+        };
+        let w0 = params.w0 as f64;
+        let (channel, band) = self.substream_of(substream);
+        let weight = self.geometry.basis_norm2(band) * self.importance(channel);
+        let bound = self.layer_bounds.get(layer).copied().unwrap_or(0.0) as f64;
+        if weight > 0.0 && bound.is_finite() {
+            w0.min((bound / weight).sqrt())
+        } else {
+            w0
+        }
+    }
+
+    fn write(&self, w: &mut ByteWriter) {
+        let g = &self.geometry;
+        for d in g.dims {
+            w.varint(d as u64);
+        }
+        for s in self.spacing {
+            w.f32(s);
+        }
+        w.u8(self.channels as u8);
+        w.u8(g.family.code());
+        w.u8(g.levels as u8);
+        w.varint(self.margin as u64);
+        w.u8(self.color.kind.code());
+        if self.channels == 3 {
+            for row in self.color.basis {
+                for v in row {
+                    w.f64(v);
+                }
+            }
+            for v in self.color.mean {
+                w.f64(v);
+            }
+        }
+        for v in &self.color.importance[..self.channels] {
+            w.f64(*v);
+        }
+        w.f32(self.value_range[0]);
+        w.f32(self.value_range[1]);
+        w.u8(match self.coder {
+            CoderKind::Huffman => 0,
+            CoderKind::Range => 1,
+        });
+        w.u8(self.bits);
+        w.varint(self.tile as u64);
+        w.u8(self.layer_bounds.len() as u8);
+        for b in &self.layer_bounds {
+            w.f32(*b);
+        }
+        // Presence bitmap, then parameters of the present substreams.
+        let mut bitmap = vec![0u8; self.substreams.len().div_ceil(8)];
+        for (i, s) in self.substreams.iter().enumerate() {
+            if s.is_some() {
+                bitmap[i / 8] |= 1 << (i % 8);
+            }
+        }
+        w.bytes(&bitmap);
+        for s in self.substreams.iter().flatten() {
+            w.f32(s.w0);
+            w.f32(s.delta);
+        }
+        w.f64(self.total_energy);
+        w.varint(self.kept);
+        if let Some(t) = &self.tables {
+            let mut bw = BitWriter::new();
+            for code in [&t.tag, &t.run, &t.position, &t.value] {
+                code.write_lengths(&mut bw);
+            }
+            let blob = bw.finish();
+            w.varint(blob.len() as u64);
+            w.bytes(&blob);
+        }
+    }
+
+    fn read(r: &mut ByteReader) -> Result<Header, FormatError> {
+        const W: &str = "header";
+        let mut dims = [0usize; 3];
+        for d in &mut dims {
+            *d = r.varint_max(1 << 24, "dimension")? as usize;
+        }
+        crate::volume::checked_voxels(dims).map_err(|e| invalid(W, e.to_string()))?;
+        let spacing = [r.f32()?, r.f32()?, r.f32()?];
+        if spacing.iter().any(|s| !(s.is_finite() && *s > 0.0)) {
+            return Err(invalid(
+                W,
+                format!("voxel spacing {spacing:?} must be positive"),
+            ));
+        }
+        let channels = r.u8()? as usize;
+        if channels != 1 && channels != 3 {
+            return Err(invalid(W, format!("{channels} channels; 1 or 3 allowed")));
+        }
+        let fam_code = r.u8()?;
+        let family = Family::from_code(fam_code)
+            .ok_or_else(|| invalid(W, format!("unknown wavelet family code {fam_code}")))?;
+        let levels = r.u8()? as usize;
+        if levels > MAX_LEVELS {
+            return Err(invalid(W, format!("{levels} levels; at most {MAX_LEVELS}")));
+        }
+        let margin = r.varint_max(MAX_MARGIN as u64, "margin")? as usize;
+        let geometry = Geometry::new(dims, family, levels, margin)?;
+        let kind_code = r.u8()?;
+        let kind = ColorKind::from_code(kind_code)
+            .ok_or_else(|| invalid(W, format!("unknown colour space code {kind_code}")))?;
+        if (kind == ColorKind::Intensity) != (channels == 1) {
+            return Err(invalid(
+                W,
+                format!("colour space {} with {channels} channels", kind.name()),
+            ));
+        }
+        let mut color = ColorInfo::intensity();
+        color.kind = kind;
+        if channels == 3 {
+            for row in &mut color.basis {
+                for v in row.iter_mut() {
+                    *v = r.f64()?;
+                }
+            }
+            for v in &mut color.mean {
+                *v = r.f64()?;
+            }
+        }
+        for v in &mut color.importance[..channels] {
+            *v = r.f64()?;
+        }
+        let all = color
+            .basis
+            .iter()
+            .flatten()
+            .chain(&color.mean)
+            .chain(&color.importance);
+        if all.clone().any(|v| !v.is_finite()) || color.importance.iter().any(|v| *v < 0.0) {
+            return Err(invalid(
+                W,
+                "colour transform has non-finite or negative values",
+            ));
+        }
+        let value_range = [r.f32()?, r.f32()?];
+        if !(value_range[0].is_finite() && value_range[1].is_finite()) {
+            return Err(invalid(W, "value range is not finite"));
+        }
+        let coder = match r.u8()? {
+            0 => CoderKind::Huffman,
+            1 => CoderKind::Range,
+            c => return Err(invalid(W, format!("unknown coder code {c}"))),
+        };
+        let bits = r.u8()?;
+        if !(1..=16).contains(&bits) {
+            return Err(invalid(
+                W,
+                format!("quantization bits P = {bits}; allowed 1..=16"),
+            ));
+        }
+        let tile = r.varint_max(1 << 24, "tile size")? as usize;
+        let block = 1usize << levels;
+        if tile < block || !tile.is_multiple_of(block) {
+            return Err(invalid(
+                W,
+                format!("tile size {tile} must be a positive multiple of 2^M = {block}"),
+            ));
+        }
+        let nl = r.u8()? as usize;
+        if nl == 0 || nl > MAX_LAYERS {
+            return Err(invalid(W, format!("{nl} layers; allowed 1..={MAX_LAYERS}")));
+        }
+        let mut layer_bounds = Vec::with_capacity(nl);
+        for _ in 0..nl {
+            let b = r.f32()?;
+            if b.is_nan() || b < 0.0 || layer_bounds.last().is_some_and(|p: &f32| b > *p) {
+                return Err(invalid(
+                    W,
+                    "layer bounds must be non-negative and non-increasing",
+                ));
+            }
+            layer_bounds.push(b);
+        }
+        let nsub = channels * geometry.band_count();
+        let bitmap = r.take(nsub.div_ceil(8))?.to_vec();
+        let mut substreams = Vec::with_capacity(nsub);
+        for i in 0..nsub {
+            if bitmap[i / 8] & (1 << (i % 8)) != 0 {
+                let (w0, delta) = (r.f32()?, r.f32()?);
+                if !(w0.is_finite() && delta.is_finite() && w0 >= 0.0 && delta >= 0.0) {
+                    return Err(invalid(W, format!("substream {i}: w0 {w0}, delta {delta}")));
+                }
+                substreams.push(Some(SubstreamParams { w0, delta }));
+            } else {
+                substreams.push(None);
+            }
+        }
+        let total_energy = r.f64()?;
+        if !(total_energy.is_finite() && total_energy >= 0.0) {
+            return Err(invalid(W, "total energy must be finite and non-negative"));
+        }
+        let kept = r.varint()?;
+        let tables = if coder == CoderKind::Huffman {
+            let n = r.varint_max(1 << 20, "table blob length")? as usize;
+            let blob = r.take(n)?;
+            let mut br = BitReader::new(blob);
+            let tag = HuffmanCode::read_lengths(&mut br, nsub)?;
+            let run = HuffmanCode::read_lengths(&mut br, CATEGORY_ALPHABET)?;
+            let position = HuffmanCode::read_lengths(&mut br, CATEGORY_ALPHABET)?;
+            let value = HuffmanCode::read_lengths(&mut br, CATEGORY_ALPHABET)?;
+            Some(HuffmanTables {
+                tag,
+                run,
+                position,
+                value,
+            })
+        } else {
+            None
+        };
+        Ok(Header {
+            geometry,
+            margin,
+            spacing,
+            channels,
+            color,
+            value_range,
+            coder,
+            bits,
+            tile,
+            layer_bounds,
+            substreams,
+            tables,
+            total_energy,
+            kept,
+        })
+    }
+}
+
+/// A parsed file: the header and the location of each packet.
+#[derive(Debug, Clone)]
+pub struct WspFile<'a> {
+    /// The header.
+    pub header: Header,
+    /// Bytes of the header section (magic to header CRC), for size reports.
+    pub header_bytes: usize,
+    /// Bytes of the packet directory.
+    pub directory_bytes: usize,
+    /// Each packet's bytes, in file order.
+    pub packets: Vec<&'a [u8]>,
+}
+
+/// Serializes the header section (magic, version, header, CRC).
+pub fn write_header_section(header: &Header) -> Vec<u8> {
+    let mut hw = ByteWriter::new();
+    header.write(&mut hw);
+    let hb = hw.into_bytes();
+    let mut w = ByteWriter::new();
+    w.bytes(MAGIC);
+    w.u16(VERSION);
+    w.u32(hb.len() as u32);
+    w.bytes(&hb);
+    w.u32(crc32fast::hash(&hb));
+    w.into_bytes()
+}
+
+/// Parses a header section, returning the header and the bytes it used.
+pub fn read_header_section(bytes: &[u8]) -> Result<(Header, usize), FormatError> {
+    let mut r = ByteReader::new(bytes, "file header");
+    let magic = r
+        .take(4)
+        .map_err(|_| FormatError::BadMagic(bytes.iter().take(4).copied().collect()))?;
+    if magic != MAGIC {
+        return Err(FormatError::BadMagic(magic.to_vec()));
+    }
+    let version = r.u16()?;
+    if version != VERSION {
+        return Err(FormatError::UnsupportedVersion {
+            found: version,
+            supported: VERSION,
+        });
+    }
+    let len = r.u32()? as usize;
+    if len > MAX_HEADER_BYTES {
+        return Err(FormatError::TooLarge {
+            what: "header",
+            size: len as u64,
+            limit: MAX_HEADER_BYTES as u64,
+        });
+    }
+    let hb = r.take(len)?;
+    let stored = r.u32()?;
+    let computed = crc32fast::hash(hb);
+    if stored != computed {
+        return Err(FormatError::Checksum {
+            what: "header",
+            stored,
+            computed,
+        });
+    }
+    let mut hr = ByteReader::new(hb, "header");
+    let header = Header::read(&mut hr)?;
+    if hr.remaining() != 0 {
+        return Err(invalid(
+            "header",
+            format!("{} unexpected trailing bytes", hr.remaining()),
+        ));
+    }
+    Ok((header, r.position()))
+}
+
+/// Writes a whole file from a header and encoded packets (see [`packet::encode_packets`]).
+pub fn write_file(header: &Header, packets: &[Vec<u8>]) -> Vec<u8> {
+    let mut out = write_header_section(header);
+    let mut d = ByteWriter::new();
+    d.varint(packets.len() as u64);
+    for p in packets {
+        d.varint(p.len() as u64);
+    }
+    let db = d.into_bytes();
+    out.extend_from_slice(&db);
+    out.extend_from_slice(&crc32fast::hash(&db).to_le_bytes());
+    for p in packets {
+        out.extend_from_slice(p);
+    }
+    out
+}
+
+/// Parses a file's header and packet directory (packets are checked when decoded).
+pub fn parse_file(bytes: &[u8]) -> Result<WspFile<'_>, FormatError> {
+    let (header, used) = read_header_section(bytes)?;
+    let rest = &bytes[used..];
+    let mut r = ByteReader::new(rest, "packet directory");
+    let max_packets = header.tile_count() as u64 * header.layer_bounds.len() as u64;
+    let count = r.varint_max(max_packets, "packet count")? as usize;
+    // Each directory entry takes at least one byte: bound the allocation by the input.
+    if count > r.remaining() {
+        return Err(FormatError::Truncated {
+            what: "packet directory",
+            needed: count as u64,
+            available: r.remaining() as u64,
+        });
+    }
+    let mut lens = Vec::with_capacity(count);
+    for _ in 0..count {
+        lens.push(r.varint_max(MAX_PACKET_BYTES as u64, "packet length")? as usize);
+    }
+    let dir_len = r.position();
+    let stored = r.u32()?;
+    let computed = crc32fast::hash(&rest[..dir_len]);
+    if stored != computed {
+        return Err(FormatError::Checksum {
+            what: "packet directory",
+            stored,
+            computed,
+        });
+    }
+    let mut packets = Vec::with_capacity(count);
+    for len in lens {
+        packets.push(r.take(len)?);
+    }
+    if r.remaining() != 0 {
+        return Err(invalid(
+            "file",
+            format!("{} trailing bytes after the last packet", r.remaining()),
+        ));
+    }
+    Ok(WspFile {
+        header,
+        header_bytes: used,
+        directory_bytes: dir_len + 4,
+        packets,
+    })
+}
