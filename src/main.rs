@@ -1,1 +1,57 @@
-fn main() {}
+//! `wavesplat`: the front door. Parses the command line and wires the libraries together; all
+//! the work lives in the crates (`wavesplat-codec`, `wavesplat-compressor`, `wavesplat-viewer`).
+
+mod commands;
+mod progress;
+
+use anyhow::Result;
+use clap::{Parser, Subcommand};
+
+/// Compression-domain volume rendering by wavelet splatting (Lippert, Gross & Kurmann, EG'97).
+///
+/// Volumes are compressed into B-spline wavelet coefficients (`compress`), inspected (`info`),
+/// decoded for checks (`decompress`) and rendered as X-ray images directly from the coefficients
+/// without expanding the volume (`render`).
+#[derive(Parser, Debug)]
+#[command(name = "wavesplat", version, about, long_about = None)]
+struct Cli {
+    /// Log filter (e.g. `info`, `debug`, `wavesplat=trace`); also read from RUST_LOG.
+    #[arg(long, global = true, default_value = "warn")]
+    log: String,
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand, Debug)]
+enum Command {
+    /// Compress a volume (raw, NIfTI or a built-in phantom) into a .wsp file.
+    Compress(commands::compress::CompressArgs),
+    /// Show a .wsp file's header, tiles, packets and size breakdown.
+    Info(commands::info::InfoArgs),
+    /// Decode a .wsp file to raw little-endian f32 (x fastest, channels interleaved).
+    Decompress(commands::decompress::DecompressArgs),
+    /// Write a built-in phantom as raw f32 or u8 (for trying the other commands).
+    Phantom(commands::phantom::PhantomArgs),
+}
+
+fn main() {
+    let cli = Cli::parse();
+    let filter = std::env::var("RUST_LOG").unwrap_or_else(|_| cli.log.clone());
+    tracing_subscriber::fmt()
+        .with_env_filter(tracing_subscriber::EnvFilter::new(filter))
+        .with_writer(std::io::stderr)
+        .init();
+    if let Err(e) = run(cli.command) {
+        eprintln!("error: {e:#}");
+        std::process::exit(1);
+    }
+}
+
+fn run(command: Command) -> Result<()> {
+    match command {
+        Command::Compress(a) => commands::compress::run(a),
+        Command::Info(a) => commands::info::run(a),
+        Command::Decompress(a) => commands::decompress::run(a),
+        Command::Phantom(a) => commands::phantom::run(a),
+    }
+}

@@ -132,7 +132,10 @@ impl Geometry {
             padded[a] = want.div_ceil(block).saturating_mul(block);
             origin[a] = (padded[a] - dims[a]) / 2;
         }
-        let voxels = padded.iter().map(|d| *d as u128).product::<u128>();
+        let voxels = padded
+            .iter()
+            .try_fold(1u128, |acc, d| acc.checked_mul(*d as u128))
+            .unwrap_or(u128::MAX);
         if voxels > crate::volume::MAX_VOXELS as u128 {
             return Err(LayoutError::TooLarge {
                 dims,

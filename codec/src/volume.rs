@@ -217,7 +217,11 @@ pub fn checked_voxels(dims: [usize; 3]) -> Result<usize, VolumeError> {
     if dims.contains(&0) {
         return Err(VolumeError::ZeroDimension(dims));
     }
-    let voxels = dims.iter().map(|d| *d as u128).product::<u128>();
+    // Checked: three usize factors can overflow even u128.
+    let voxels = dims
+        .iter()
+        .try_fold(1u128, |acc, d| acc.checked_mul(*d as u128))
+        .unwrap_or(u128::MAX);
     if voxels > MAX_VOXELS as u128 {
         return Err(VolumeError::TooLarge {
             dims,
@@ -257,6 +261,10 @@ mod tests {
         assert!(matches!(
             Volume::new([1, 1, 1], [0.0, 1.0, 1.0], vec![vec![0.0]]),
             Err(VolumeError::Spacing(_))
+        ));
+        assert!(matches!(
+            checked_voxels([usize::MAX, usize::MAX, 2]),
+            Err(VolumeError::TooLarge { .. })
         ));
         assert!(matches!(
             checked_voxels([1 << 20, 1 << 20, 4]),

@@ -5,5 +5,8 @@
 //! depend on the number of threads.
 
 pub mod colorspace;
+pub mod decode;
+pub mod encode;
+pub mod order;
 pub mod phantom;
 pub mod reader;

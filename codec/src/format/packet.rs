@@ -88,6 +88,8 @@ pub struct DecodedPacket {
     pub summary: Vec<(Band, f64)>,
     /// Coefficients (quantized values).
     pub coefficients: Vec<Coefficient>,
+    /// Where this packet's bits went (see [`SizeBreakdown`]).
+    pub breakdown: SizeBreakdown,
 }
 
 /// Syntax elements of one coefficient, after quantization.
@@ -380,6 +382,8 @@ pub fn encode_packets(header: &mut Header, inputs: &[PacketInput]) -> EncodedPac
 
 /// Reads the syntax of one packet.
 trait SyntaxSource {
+    /// Bits consumed so far (exact for Huffman, byte-granular for the range coder).
+    fn bits_read(&self) -> f64;
     fn run(&mut self) -> Result<(usize, u64), FormatError>;
     fn dpos(&mut self, level: usize, axis: usize) -> Result<i64, FormatError>;
     fn sign(&mut self) -> Result<bool, FormatError>;
@@ -395,6 +399,9 @@ struct HuffmanSource<'a> {
 }
 
 impl SyntaxSource for HuffmanSource<'_> {
+    fn bits_read(&self) -> f64 {
+        self.reader.position() as f64
+    }
     fn run(&mut self) -> Result<(usize, u64), FormatError> {
         let tag = self.tag.decode(&mut self.reader)?;
         let len = decode_unsigned(&self.run, &mut self.reader)?;
@@ -417,6 +424,9 @@ struct RangeSource<'a> {
 }
 
 impl SyntaxSource for RangeSource<'_> {
+    fn bits_read(&self) -> f64 {
+        8.0 * self.dec.bytes_read() as f64
+    }
     fn run(&mut self) -> Result<(usize, u64), FormatError> {
         let tag = self.models.tag.decode(&mut self.dec)?;
         let len = self.models.run.decode(&mut self.dec)?;
@@ -489,6 +499,10 @@ pub fn decode_packet(header: &Header, bytes: &[u8]) -> Result<DecodedPacket, For
         ));
     }
     let count = count as usize;
+    let mut breakdown = SizeBreakdown {
+        framing_bytes: (bytes.len() - plen) as u64,
+        ..SizeBreakdown::default()
+    };
     let coefficients = match header.coder {
         CoderKind::Huffman => {
             let t = header
@@ -502,14 +516,14 @@ pub fn decode_packet(header: &Header, bytes: &[u8]) -> Result<DecodedPacket, For
                 position: HuffmanDecoder::new(&t.position),
                 value: HuffmanDecoder::new(&t.value),
             };
-            decode_syntax(header, tile, layer, count, &mut src)?
+            decode_syntax(header, tile, layer, count, &mut src, &mut breakdown)?
         }
         CoderKind::Range => {
             let mut src = RangeSource {
                 dec: RangeDecoder::new(payload),
                 models: RangeModels::new(header),
             };
-            decode_syntax(header, tile, layer, count, &mut src)?
+            decode_syntax(header, tile, layer, count, &mut src, &mut breakdown)?
         }
     };
     Ok(DecodedPacket {
@@ -517,6 +531,7 @@ pub fn decode_packet(header: &Header, bytes: &[u8]) -> Result<DecodedPacket, For
         layer,
         summary,
         coefficients,
+        breakdown,
     })
 }
 
@@ -526,6 +541,7 @@ fn decode_syntax(
     layer: usize,
     count: usize,
     src: &mut impl SyntaxSource,
+    bd: &mut SizeBreakdown,
 ) -> Result<Vec<Coefficient>, FormatError> {
     const W: &str = "packet";
     let nsub = header.substream_count();
@@ -536,7 +552,9 @@ fn decode_syntax(
     let mut prev_voxel = [0i64; 3];
     let mut out = Vec::with_capacity(count);
     while out.len() < count {
+        let b0 = src.bits_read();
         let (sub, len) = src.run()?;
+        bd.tag_bits += src.bits_read() - b0;
         if sub >= nsub {
             return Err(invalid(W, format!("substream {sub} of {nsub}")));
         }
@@ -552,10 +570,11 @@ fn decode_syntax(
         let (channel, band_index) = (sub / nb, sub % nb);
         let band = bands[band_index];
         let level = band.level as usize;
-        let bd = header.geometry.band_dims(band);
+        let band_dims = header.geometry.band_dims(band);
         let chain = chains[sub]
             .get_or_insert_with(|| Chain::new(header.chain_start(sub, layer), params.delta as f64));
         for _ in 0..len {
+            let b0 = src.bits_read();
             let mut pos = [0u32; 3];
             for a in 0..3 {
                 let d = src.dpos(level, a)?;
@@ -563,7 +582,7 @@ fn decode_syntax(
                     .checked_add(d)
                     .ok_or_else(|| invalid(W, "position delta overflows"))?;
                 let lo = (origin[a] >> level) as i64;
-                let hi = ((origin[a] + header.tile) >> level).min(bd[a]) as i64;
+                let hi = ((origin[a] + header.tile) >> level).min(band_dims[a]) as i64;
                 if local < 0 || lo + local >= hi {
                     return Err(invalid(
                         W,
@@ -576,8 +595,14 @@ fn decode_syntax(
                 pos[a] = (lo + local) as u32;
                 prev_voxel[a] = local << level;
             }
+            let b1 = src.bits_read();
             let negative = src.sign()?;
+            let b2 = src.bits_read();
             let step = src.step(band_index)?;
+            let b3 = src.bits_read();
+            bd.position_bits += b1 - b0;
+            bd.sign_bits += b2 - b1;
+            bd.value_bits += b3 - b2;
             let mag = chain.decode(step)?;
             let v = if negative { -mag } else { mag } as f32;
             if !v.is_finite() {

@@ -1,0 +1,613 @@
+//! Colour-space decorrelation of RGB volumes before compression (paper §4.2, Table 2): the
+//! volume is projected onto three vectors C₁, C₂, C₃ and each gets a global importance I(C) that
+//! multiplies the wavelet energy in the significance score S = E·I (eq. 14). Three spaces: RGB
+//! (identity, importances 1, 1, 1), NTSC YIQ (importances 4, 1.5, 0.6; not orthonormal, the
+//! inverse is the exact matrix inverse) and PCA / Karhunen–Loève (eigenvectors of the 3×3 colour
+//! covariance, importances |eigenvalue|, descending). The PCA fit accumulates in f64 and always
+//! yields an orthonormal basis without NaN, also for degenerate volumes (grey: rank 1; constant:
+//! zero covariance; repeated eigenvalues). Intensity volumes skip this step.
+
+use nalgebra::{Matrix3, SymmetricEigen, Vector3};
+use thiserror::Error;
+use wavesplat_codec::volume::{Volume, VolumeError};
+
+/// Errors from the colour transform.
+#[derive(Debug, Error, PartialEq)]
+#[non_exhaustive]
+pub enum ColorError {
+    /// Colour transforms need a 3-channel (RGB) volume.
+    #[error("a colour transform needs a 3-channel (RGB) volume, got {0} channel(s)")]
+    NotRgb(usize),
+    /// The transformed samples do not form a valid volume (e.g. they overflow f32).
+    #[error("colour transform produced an invalid volume: {0}")]
+    Volume(#[from] VolumeError),
+}
+
+/// Which colour space to compress in.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default)]
+pub enum ColorSpaceKind {
+    /// No transform; importances 1, 1, 1.
+    #[default]
+    Rgb,
+    /// NTSC YIQ; importances 4 (Y), 1.5 (I), 0.6 (Q).
+    Yiq,
+    /// Principal components of the volume's colours; importances are the eigenvalues.
+    Pca,
+}
+
+impl ColorSpaceKind {
+    /// Parses `rgb`, `yiq` or `pca` (case-insensitive; `klt` and `eigen` mean PCA).
+    pub fn from_name(name: &str) -> Option<ColorSpaceKind> {
+        match name.trim().to_ascii_lowercase().as_str() {
+            "rgb" => Some(ColorSpaceKind::Rgb),
+            "yiq" => Some(ColorSpaceKind::Yiq),
+            "pca" | "klt" | "eigen" => Some(ColorSpaceKind::Pca),
+            _ => None,
+        }
+    }
+
+    /// The names accepted by [`ColorSpaceKind::from_name`] (canonical ones).
+    pub fn names() -> &'static [&'static str] {
+        &["rgb", "yiq", "pca"]
+    }
+
+    /// The canonical name.
+    pub fn name(self) -> &'static str {
+        match self {
+            ColorSpaceKind::Rgb => "rgb",
+            ColorSpaceKind::Yiq => "yiq",
+            ColorSpaceKind::Pca => "pca",
+        }
+    }
+}
+
+/// The NTSC RGB → YIQ matrix (rows Y, I, Q).
+pub const YIQ_MATRIX: [[f64; 3]; 3] = [
+    [0.299, 0.587, 0.114],
+    [0.596, -0.274, -0.322],
+    [0.211, -0.523, 0.312],
+];
+
+/// Importances of Y, I, Q (NTSC bandwidth conventions, paper Table 2).
+pub const YIQ_IMPORTANCE: [f64; 3] = [4.0, 1.5, 0.6];
+
+const IDENTITY: [[f64; 3]; 3] = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
+
+/// A fitted colour transform: `c_i = basis[i] · (rgb − mean)`, inverse
+/// `rgb = inverse_matrix() · c + mean`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ColorTransform {
+    /// Which space this is.
+    pub kind: ColorSpaceKind,
+    /// Row i is the vector Cᵢ in RGB (the projection applied to get channel i).
+    pub basis: [[f64; 3]; 3],
+    /// Colour subtracted before projecting (the colour mean for PCA, zero otherwise).
+    pub mean: [f64; 3],
+    /// Importance I(Cᵢ) of each channel (paper Table 2).
+    pub importance: [f64; 3],
+}
+
+impl ColorTransform {
+    /// The identity (RGB) transform.
+    pub fn rgb() -> ColorTransform {
+        ColorTransform {
+            kind: ColorSpaceKind::Rgb,
+            basis: IDENTITY,
+            mean: [0.0; 3],
+            importance: [1.0; 3],
+        }
+    }
+
+    /// The NTSC YIQ transform.
+    pub fn yiq() -> ColorTransform {
+        ColorTransform {
+            kind: ColorSpaceKind::Yiq,
+            basis: YIQ_MATRIX,
+            mean: [0.0; 3],
+            importance: YIQ_IMPORTANCE,
+        }
+    }
+
+    /// Fits a transform of `kind` to an RGB volume (only PCA depends on the data).
+    pub fn fit(kind: ColorSpaceKind, volume: &Volume) -> Result<ColorTransform, ColorError> {
+        if volume.channel_count() != 3 {
+            return Err(ColorError::NotRgb(volume.channel_count()));
+        }
+        Ok(match kind {
+            ColorSpaceKind::Rgb => ColorTransform::rgb(),
+            ColorSpaceKind::Yiq => ColorTransform::yiq(),
+            ColorSpaceKind::Pca => {
+                let (mean, cov) = colour_statistics(volume);
+                let (basis, importance) = pca_basis(&cov);
+                ColorTransform {
+                    kind,
+                    basis,
+                    mean,
+                    importance,
+                }
+            }
+        })
+    }
+
+    /// Projects an RGB volume into the C₁..C₃ space (3 channels, same dims and spacing).
+    pub fn forward(&self, volume: &Volume) -> Result<Volume, ColorError> {
+        if volume.channel_count() != 3 {
+            return Err(ColorError::NotRgb(volume.channel_count()));
+        }
+        apply(volume, &self.basis, self.mean, [0.0; 3])
+    }
+
+    /// Maps a volume in the C₁..C₃ space back to RGB.
+    pub fn inverse(&self, channels: &Volume) -> Result<Volume, ColorError> {
+        if channels.channel_count() != 3 {
+            return Err(ColorError::NotRgb(channels.channel_count()));
+        }
+        apply(channels, &self.inverse_matrix(), [0.0; 3], self.mean)
+    }
+
+    /// Projects one RGB colour into the C space.
+    pub fn forward_pixel(&self, rgb: [f64; 3]) -> [f64; 3] {
+        let d = [0, 1, 2].map(|j| rgb[j] - self.mean[j]);
+        mat_vec(&self.basis, d)
+    }
+
+    /// Maps one colour from the C space back to RGB (`inverse_matrix() · c + mean`).
+    pub fn inverse_pixel(&self, c: [f64; 3]) -> [f64; 3] {
+        let v = mat_vec(&self.inverse_matrix(), c);
+        [0, 1, 2].map(|j| v[j] + self.mean[j])
+    }
+
+    /// Maps a line integral of the C channels back to RGB. The projection is linear, so an
+    /// X-ray image rendered in C space equals `basis · ∫rgb − basis · mean · L`; this returns
+    /// `inverse_matrix() · c + mean · path_length`, where `path_length` is the length L of the
+    /// ray inside the volume (in the same units as the integral).
+    pub fn inverse_integral(&self, c: [f64; 3], path_length: f64) -> [f64; 3] {
+        let v = mat_vec(&self.inverse_matrix(), c);
+        [0, 1, 2].map(|j| v[j] + self.mean[j] * path_length)
+    }
+
+    /// The exact inverse of [`ColorTransform::basis`]: its transpose when the basis is
+    /// orthonormal (RGB, PCA), the general 3×3 inverse otherwise (YIQ). A singular basis (never
+    /// produced by [`ColorTransform::fit`]) gives non-finite entries.
+    pub fn inverse_matrix(&self) -> [[f64; 3]; 3] {
+        if orthonormality_error(&self.basis) <= 1e-12 {
+            return transpose(&self.basis);
+        }
+        let m = &self.basis;
+        let cof = |r0: usize, r1: usize, c0: usize, c1: usize| {
+            m[r0][c0] * m[r1][c1] - m[r0][c1] * m[r1][c0]
+        };
+        // Adjugate (transposed cofactor matrix).
+        let adj = [
+            [cof(1, 2, 1, 2), -cof(0, 2, 1, 2), cof(0, 1, 1, 2)],
+            [-cof(1, 2, 0, 2), cof(0, 2, 0, 2), -cof(0, 1, 0, 2)],
+            [cof(1, 2, 0, 1), -cof(0, 2, 0, 1), cof(0, 1, 0, 1)],
+        ];
+        let det = m[0][0] * adj[0][0] + m[0][1] * adj[1][0] + m[0][2] * adj[2][0];
+        adj.map(|row| row.map(|v| v / det))
+    }
+}
+
+fn mat_vec(m: &[[f64; 3]; 3], v: [f64; 3]) -> [f64; 3] {
+    [0, 1, 2].map(|i| m[i][0] * v[0] + m[i][1] * v[1] + m[i][2] * v[2])
+}
+
+fn transpose(m: &[[f64; 3]; 3]) -> [[f64; 3]; 3] {
+    [0, 1, 2].map(|i| [0, 1, 2].map(|j| m[j][i]))
+}
+
+/// Largest deviation of `m · mᵀ` from the identity.
+fn orthonormality_error(m: &[[f64; 3]; 3]) -> f64 {
+    let mut err: f64 = 0.0;
+    for i in 0..3 {
+        for j in 0..3 {
+            let d: f64 = (0..3).map(|k| m[i][k] * m[j][k]).sum();
+            let want = if i == j { 1.0 } else { 0.0 };
+            err = err.max((d - want).abs());
+        }
+    }
+    if err.is_nan() {
+        f64::INFINITY
+    } else {
+        err
+    }
+}
+
+/// `out_i = m[i] · (x − sub) + add_i`, per voxel, in f64.
+fn apply(
+    volume: &Volume,
+    m: &[[f64; 3]; 3],
+    sub: [f64; 3],
+    add: [f64; 3],
+) -> Result<Volume, ColorError> {
+    let n = volume.voxel_count();
+    let ch = volume.channels();
+    let mut out: Vec<Vec<f32>> = (0..3).map(|_| Vec::with_capacity(n)).collect();
+    for v in 0..n {
+        let x = [0, 1, 2].map(|j| f64::from(ch[j][v]) - sub[j]);
+        for (i, o) in out.iter_mut().enumerate() {
+            o.push((m[i][0] * x[0] + m[i][1] * x[1] + m[i][2] * x[2] + add[i]) as f32);
+        }
+    }
+    Ok(Volume::new(volume.dims(), volume.spacing(), out)?)
+}
+
+/// Colour mean and population covariance (divided by N), two-pass, accumulated in f64.
+fn colour_statistics(volume: &Volume) -> ([f64; 3], [[f64; 3]; 3]) {
+    let ch = volume.channels();
+    let n = volume.voxel_count() as f64;
+    let mean = [0, 1, 2].map(|c| ch[c].iter().map(|v| f64::from(*v)).sum::<f64>() / n);
+    let mut cov = [[0.0f64; 3]; 3];
+    for v in 0..volume.voxel_count() {
+        let d = [0, 1, 2].map(|c| f64::from(ch[c][v]) - mean[c]);
+        for i in 0..3 {
+            for j in i..3 {
+                cov[i][j] += d[i] * d[j];
+            }
+        }
+    }
+    for i in 0..3 {
+        for j in i..3 {
+            cov[i][j] /= n;
+            cov[j][i] = cov[i][j];
+        }
+    }
+    (mean, cov)
+}
+
+/// Eigen-decomposition of a covariance: rows of the returned basis are orthonormal eigenvectors
+/// sorted by eigenvalue (descending), importances are |eigenvalue| with values below the
+/// numerical noise floor set to 0. Never returns NaN.
+fn pca_basis(cov: &[[f64; 3]; 3]) -> ([[f64; 3]; 3], [f64; 3]) {
+    let finite = cov.iter().flatten().all(|v| v.is_finite());
+    let scale = cov.iter().flatten().fold(0.0f64, |a, v| a.max(v.abs()));
+    if !finite || scale == 0.0 {
+        // Constant volume (or unusable statistics): nothing to decorrelate.
+        return (IDENTITY, [0.0; 3]);
+    }
+    // Work on the normalised matrix so that tiny or huge variances behave alike.
+    let m = Matrix3::from_fn(|i, j| cov[i][j] / scale);
+    let eig = SymmetricEigen::new(m);
+    let mut pairs: Vec<(f64, Vector3<f64>)> = (0..3)
+        .map(|k| {
+            let l = eig.eigenvalues[k];
+            let v: Vector3<f64> = eig.eigenvectors.column(k).into_owned();
+            (if l.is_finite() { l } else { 0.0 }, v)
+        })
+        .collect();
+    pairs.sort_by(|a, b| b.0.total_cmp(&a.0));
+
+    let vectors: Vec<[f64; 3]> = pairs.iter().map(|(_, v)| [v[0], v[1], v[2]]).collect();
+    let basis = orthonormalize([vectors[0], vectors[1], vectors[2]]);
+
+    // Importance: the Rayleigh quotient of each final vector (equals the eigenvalue; exact
+    // for re-orthonormalised vectors too), with the noise floor removed.
+    let floor = 1e-12 * 3.0;
+    let importance = [0, 1, 2].map(|i| {
+        let b = Vector3::from(basis[i]);
+        let l = (b.transpose() * m * b)[(0, 0)].abs();
+        if l <= floor || !l.is_finite() {
+            0.0
+        } else {
+            l * scale
+        }
+    });
+    (basis, importance)
+}
+
+/// Modified Gram–Schmidt in the given order; a vector that is (nearly) dependent on the earlier
+/// ones, or not finite, is replaced by the standard basis vector with the largest residual.
+/// Signs are made deterministic (largest-magnitude component positive).
+fn orthonormalize(vs: [[f64; 3]; 3]) -> [[f64; 3]; 3] {
+    let mut out: Vec<Vector3<f64>> = Vec::with_capacity(3);
+    for v in vs {
+        let candidate = Vector3::from(v);
+        let residual = |mut w: Vector3<f64>, out: &[Vector3<f64>]| {
+            // Two passes for accuracy ("twice is enough").
+            for _ in 0..2 {
+                for u in out {
+                    w -= *u * u.dot(&w);
+                }
+            }
+            w
+        };
+        let mut w = if candidate.iter().all(|x| x.is_finite()) {
+            residual(candidate, &out)
+        } else {
+            Vector3::zeros()
+        };
+        let norm = w.norm();
+        if norm.is_nan() || norm <= 1e-6 {
+            w = (0..3)
+                .map(|k| residual(Vector3::ith(k, 1.0), &out))
+                .max_by(|a, b| a.norm().total_cmp(&b.norm()))
+                .unwrap_or_else(|| Vector3::ith(0, 1.0));
+        }
+        w /= w.norm();
+        let big = (0..3)
+            .max_by(|a, b| w[*a].abs().total_cmp(&w[*b].abs()))
+            .unwrap_or(0);
+        if w[big] < 0.0 {
+            w = -w;
+        }
+        out.push(w);
+    }
+    [0, 1, 2].map(|i| [out[i][0], out[i][1], out[i][2]])
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::{Rng, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
+
+    fn rgb_volume(dims: [usize; 3], f: impl Fn(usize) -> [f32; 3]) -> Volume {
+        let n = dims.iter().product();
+        let data: Vec<f32> = (0..n).flat_map(&f).collect();
+        Volume::from_interleaved(dims, [1.0; 3], 3, &data).unwrap()
+    }
+
+    fn random_volume(seed: u64) -> Volume {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let dims = [7, 6, 5];
+        let n: usize = dims.iter().product();
+        let data: Vec<f32> = (0..n)
+            .flat_map(|_| {
+                let a: f32 = rng.gen::<f32>() * 200.0;
+                let b: f32 = rng.gen::<f32>() * 30.0;
+                let c: f32 = rng.gen::<f32>() * 5.0;
+                [a + b, 0.5 * a - b + c, 0.2 * a + c + 10.0]
+            })
+            .collect();
+        Volume::from_interleaved(dims, [1.0; 3], 3, &data).unwrap()
+    }
+
+    fn covariance(v: &Volume) -> [[f64; 3]; 3] {
+        // Naive single-pass reference.
+        let n = v.voxel_count() as f64;
+        let mut s = [0.0f64; 3];
+        let mut ss = [[0.0f64; 3]; 3];
+        for i in 0..v.voxel_count() {
+            let x = [0, 1, 2].map(|c| f64::from(v.channel(c)[i]));
+            for a in 0..3 {
+                s[a] += x[a];
+                for b in 0..3 {
+                    ss[a][b] += x[a] * x[b];
+                }
+            }
+        }
+        [0, 1, 2].map(|a| [0, 1, 2].map(|b| ss[a][b] / n - s[a] * s[b] / (n * n)))
+    }
+
+    fn assert_orthonormal(t: &ColorTransform) {
+        let e = orthonormality_error(&t.basis);
+        assert!(e <= 1e-12, "orthonormality error {e}: {:?}", t.basis);
+    }
+
+    fn assert_no_nan(t: &ColorTransform) {
+        let all = t
+            .basis
+            .iter()
+            .flatten()
+            .chain(t.mean.iter())
+            .chain(t.importance.iter());
+        for v in all {
+            assert!(v.is_finite(), "{t:?}");
+        }
+    }
+
+    fn assert_round_trip(t: &ColorTransform, v: &Volume) {
+        let c = t.forward(v).unwrap();
+        let back = t.inverse(&c).unwrap();
+        let (lo, hi) = v.value_range();
+        let scale = lo.abs().max(hi.abs()).max(1e-30);
+        for ch in 0..3 {
+            for (a, b) in v.channel(ch).iter().zip(back.channel(ch)) {
+                assert!((a - b).abs() <= 1e-5 * scale, "{:?}: {a} vs {b}", t.kind);
+            }
+        }
+    }
+
+    #[test]
+    fn names() {
+        for n in ColorSpaceKind::names() {
+            assert_eq!(ColorSpaceKind::from_name(n).unwrap().name(), *n);
+        }
+        assert_eq!(ColorSpaceKind::from_name("PCA"), Some(ColorSpaceKind::Pca));
+        assert_eq!(ColorSpaceKind::from_name("hsv"), None);
+    }
+
+    #[test]
+    fn round_trip_every_kind() {
+        let v = random_volume(3);
+        for kind in [
+            ColorSpaceKind::Rgb,
+            ColorSpaceKind::Yiq,
+            ColorSpaceKind::Pca,
+        ] {
+            let t = ColorTransform::fit(kind, &v).unwrap();
+            assert_eq!(t.kind, kind);
+            assert_no_nan(&t);
+            assert_round_trip(&t, &v);
+            // Pixel versions agree with the matrix.
+            let p = [12.0, -3.0, 100.0];
+            let q = t.inverse_pixel(t.forward_pixel(p));
+            for j in 0..3 {
+                assert!((p[j] - q[j]).abs() < 1e-9);
+            }
+        }
+        let rgb = ColorTransform::fit(ColorSpaceKind::Rgb, &v).unwrap();
+        assert_eq!(rgb.importance, [1.0; 3]);
+        assert_eq!(rgb.forward(&v).unwrap(), v);
+        let yiq = ColorTransform::fit(ColorSpaceKind::Yiq, &v).unwrap();
+        assert_eq!(yiq.importance, [4.0, 1.5, 0.6]);
+    }
+
+    #[test]
+    fn yiq_inverse_is_exact() {
+        let t = ColorTransform::yiq();
+        let inv = t.inverse_matrix();
+        for i in 0..3 {
+            for j in 0..3 {
+                let d: f64 = (0..3).map(|k| inv[i][k] * YIQ_MATRIX[k][j]).sum();
+                let want = if i == j { 1.0 } else { 0.0 };
+                assert!((d - want).abs() < 1e-14, "{i},{j}: {d}");
+            }
+        }
+        // White maps to (1, ~0, ~0) and back.
+        let w = t.forward_pixel([1.0; 3]);
+        assert!((w[0] - 1.0).abs() < 1e-12 && w[1].abs() < 1e-12 && w[2].abs() < 1e-12);
+    }
+
+    #[test]
+    fn pca_importances_are_sorted_eigenvalues() {
+        let v = random_volume(11);
+        let t = ColorTransform::fit(ColorSpaceKind::Pca, &v).unwrap();
+        assert_orthonormal(&t);
+        assert!(t.importance[0] >= t.importance[1] && t.importance[1] >= t.importance[2]);
+        let cov = covariance(&v);
+        let scale = t.importance[0];
+        // bᵢᵀ Σ bⱼ = λᵢ δᵢⱼ: the basis diagonalises the covariance.
+        for i in 0..3 {
+            for j in 0..3 {
+                let s: f64 = (0..3)
+                    .flat_map(|a| (0..3).map(move |b| (a, b)))
+                    .map(|(a, b)| t.basis[i][a] * cov[a][b] * t.basis[j][b])
+                    .sum();
+                let want = if i == j { t.importance[i] } else { 0.0 };
+                assert!((s - want).abs() <= 1e-9 * scale, "{i},{j}: {s} vs {want}");
+            }
+        }
+        // Trace is preserved.
+        let tr = cov[0][0] + cov[1][1] + cov[2][2];
+        let sum: f64 = t.importance.iter().sum();
+        assert!((tr - sum).abs() <= 1e-9 * tr);
+        // Mean is the colour mean.
+        for c in 0..3 {
+            let m: f64 =
+                v.channel(c).iter().map(|x| f64::from(*x)).sum::<f64>() / v.voxel_count() as f64;
+            assert!((m - t.mean[c]).abs() < 1e-9 * m.abs().max(1.0));
+        }
+        // The first component carries the most variance of the forward volume.
+        let c = t.forward(&v).unwrap();
+        let var = |ch: &[f32]| {
+            let n = ch.len() as f64;
+            let m = ch.iter().map(|x| f64::from(*x)).sum::<f64>() / n;
+            ch.iter().map(|x| (f64::from(*x) - m).powi(2)).sum::<f64>() / n
+        };
+        assert!(var(c.channel(0)) >= var(c.channel(1)));
+        assert!((var(c.channel(0)) - t.importance[0]).abs() < 1e-3 * t.importance[0]);
+    }
+
+    #[test]
+    fn grey_volume_is_rank_one() {
+        let v = rgb_volume([5, 4, 3], |i| {
+            let g = (i * 37 % 251) as f32;
+            [g, g, g]
+        });
+        let t = ColorTransform::fit(ColorSpaceKind::Pca, &v).unwrap();
+        assert_no_nan(&t);
+        assert_orthonormal(&t);
+        assert!(t.importance[0] > 0.0);
+        assert_eq!(t.importance[1], 0.0);
+        assert_eq!(t.importance[2], 0.0);
+        let s = 1.0 / 3f64.sqrt();
+        for j in 0..3 {
+            assert!((t.basis[0][j] - s).abs() < 1e-12, "{:?}", t.basis);
+        }
+        assert_round_trip(&t, &v);
+    }
+
+    #[test]
+    fn constant_volume_has_zero_importances() {
+        for colour in [[0.0f32, 0.0, 0.0], [10.0, 200.0, 3.5]] {
+            let v = rgb_volume([3, 3, 3], |_| colour);
+            let t = ColorTransform::fit(ColorSpaceKind::Pca, &v).unwrap();
+            assert_no_nan(&t);
+            assert_orthonormal(&t);
+            assert_eq!(t.importance, [0.0; 3]);
+            assert_round_trip(&t, &v);
+            let c = t.forward(&v).unwrap();
+            assert_eq!(c.value_range(), (0.0, 0.0));
+        }
+        // A single voxel is constant too.
+        let v = rgb_volume([1, 1, 1], |_| [1.0, 2.0, 3.0]);
+        let t = ColorTransform::fit(ColorSpaceKind::Pca, &v).unwrap();
+        assert_eq!(t.importance, [0.0; 3]);
+        assert_orthonormal(&t);
+    }
+
+    #[test]
+    fn repeated_eigenvalues() {
+        // Full factorial design: covariance diag(4, 1, 1) in a rotated frame.
+        let q = orthonormalize([[1.0, 2.0, 2.0], [2.0, 1.0, -2.0], [2.0, -2.0, 1.0]]);
+        let mut pts = Vec::new();
+        for a in [-2.0, 2.0] {
+            for b in [-1.0, 1.0] {
+                for c in [-1.0, 1.0] {
+                    let p: [f64; 3] = [0, 1, 2].map(|j| a * q[0][j] + b * q[1][j] + c * q[2][j]);
+                    pts.push(p.map(|x| (x + 10.0) as f32));
+                }
+            }
+        }
+        let v = rgb_volume([2, 2, 2], |i| pts[i]);
+        let t = ColorTransform::fit(ColorSpaceKind::Pca, &v).unwrap();
+        assert_no_nan(&t);
+        assert_orthonormal(&t);
+        for (got, want) in t.importance.iter().zip([4.0, 1.0, 1.0]) {
+            assert!((got - want).abs() < 1e-5, "{:?}", t.importance);
+        }
+        assert_round_trip(&t, &v);
+
+        // All three equal: isotropic colours.
+        let mut pts = Vec::new();
+        for a in [-1.0f32, 1.0] {
+            for b in [-1.0, 1.0] {
+                for c in [-1.0, 1.0] {
+                    pts.push([a + 5.0, b + 5.0, c + 5.0]);
+                }
+            }
+        }
+        let v = rgb_volume([2, 2, 2], |i| pts[i]);
+        let t = ColorTransform::fit(ColorSpaceKind::Pca, &v).unwrap();
+        assert_orthonormal(&t);
+        for l in t.importance {
+            assert!((l - 1.0).abs() < 1e-9);
+        }
+    }
+
+    #[test]
+    fn orthonormalize_handles_degenerate_input() {
+        let b = orthonormalize([[1.0, 1.0, 0.0], [2.0, 2.0, 0.0], [f64::NAN, 0.0, 0.0]]);
+        assert!(orthonormality_error(&b) <= 1e-12, "{b:?}");
+        let b = orthonormalize([[0.0; 3]; 3]);
+        assert!(orthonormality_error(&b) <= 1e-12, "{b:?}");
+    }
+
+    #[test]
+    fn rejects_intensity_volumes_and_maps_integrals() {
+        let v = Volume::new([2, 1, 1], [1.0; 3], vec![vec![1.0, 2.0]]).unwrap();
+        for kind in [
+            ColorSpaceKind::Rgb,
+            ColorSpaceKind::Yiq,
+            ColorSpaceKind::Pca,
+        ] {
+            assert_eq!(
+                ColorTransform::fit(kind, &v).unwrap_err(),
+                ColorError::NotRgb(1)
+            );
+        }
+        assert!(ColorTransform::yiq().forward(&v).is_err());
+        assert!(ColorTransform::yiq().inverse(&v).is_err());
+
+        // A line integral through L voxels of constant colour maps back to L × colour.
+        let t = ColorTransform::fit(ColorSpaceKind::Pca, &random_volume(5)).unwrap();
+        let colour = [30.0, 60.0, 90.0];
+        let l = 7.0;
+        let c = t.forward_pixel(colour).map(|x| x * l);
+        let back = t.inverse_integral(c, l);
+        for j in 0..3 {
+            assert!((back[j] - colour[j] * l).abs() < 1e-9);
+        }
+    }
+}

@@ -1,0 +1,562 @@
+//! The compression pipeline (paper Fig. 10): colour transform → 3D wavelet transform per channel
+//! → oracle (score S = E·I, eq. 14; keep the most significant coefficients to meet a target) →
+//! quality layers and tiles → significance order with spatial clustering → quantization and
+//! entropy coding into packets (`wavesplat_codec::format`).
+//!
+//! A byte target is met by bisection on the number of kept coefficients, measuring the size the
+//! real encoder writes (the estimate is the written size). The encoder returns its own
+//! reconstruction (the decoder's view of every kept coefficient), so callers can check a decode
+//! bit for bit and compute Q_E without decoding.
+
+use crate::colorspace::{ColorError, ColorSpaceKind, ColorTransform};
+use crate::order::{cluster_order, Clustering, Item};
+use rayon::prelude::*;
+use thiserror::Error;
+use wavesplat_codec::dwt::{forward_3d, pad_channel, Dwt1d};
+use wavesplat_codec::family::Family;
+use wavesplat_codec::format::packet::{encode_packets, Coefficient, PacketInput, SizeBreakdown};
+use wavesplat_codec::format::quant::delta_factor;
+use wavesplat_codec::format::{
+    write_file, CoderKind, ColorInfo, ColorKind, Header, SubstreamParams, MAX_LAYERS,
+};
+use wavesplat_codec::layout::{Geometry, LayoutError};
+use wavesplat_codec::metrics::{q_e_percent, q_v_percent};
+use wavesplat_codec::volume::Volume;
+
+/// How much to keep.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Target {
+    /// Every non-zero coefficient.
+    All,
+    /// Total file size in bytes (met from below, within 2 % where the granularity allows).
+    Bytes(u64),
+    /// Fraction (0..=1] of all coefficients.
+    Fraction(f64),
+    /// Number of coefficients.
+    Coefficients(u64),
+    /// Smallest set whose energy is at least this percentage of the total (Q_V, eq. 19).
+    QvPercent(f64),
+}
+
+/// Tile size choice.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum TileChoice {
+    /// Chosen from the expected file size so packets are not dominated by framing.
+    Auto,
+    /// One tile covering the volume and one layer: the paper's single global sequence.
+    Single,
+    /// Edge length in voxels (rounded up to a multiple of 2^M).
+    Size(usize),
+}
+
+/// Options of [`compress`]. `Default` gives the recommended settings.
+#[derive(Debug, Clone, PartialEq)]
+pub struct CompressOptions {
+    /// Wavelet family.
+    pub family: Family,
+    /// Decomposition depth M (`None`: min(4, maximum)).
+    pub levels: Option<usize>,
+    /// Zero margin in voxels around the volume (`None`: family default).
+    pub margin: Option<usize>,
+    /// Colour space for 3-channel volumes.
+    pub colorspace: ColorSpaceKind,
+    /// Quantization bits P (1..=16).
+    pub bits: u8,
+    /// Entropy coder.
+    pub coder: CoderKind,
+    /// What to keep.
+    pub target: Target,
+    /// Tiling.
+    pub tile: TileChoice,
+    /// Quality layers (`None`: automatic).
+    pub layers: Option<usize>,
+    /// Spatial clustering (`None`: pure significance order).
+    pub clustering: Option<Clustering>,
+}
+
+impl Default for CompressOptions {
+    fn default() -> Self {
+        CompressOptions {
+            family: Family::Cubic,
+            levels: None,
+            margin: None,
+            colorspace: ColorSpaceKind::Pca,
+            bits: 8,
+            coder: CoderKind::Range,
+            target: Target::Fraction(0.05),
+            tile: TileChoice::Auto,
+            layers: None,
+            clustering: Some(Clustering {
+                radius: 4,
+                threshold: 0.5,
+            }),
+        }
+    }
+}
+
+/// Errors of the compressor.
+#[derive(Debug, Error)]
+#[non_exhaustive]
+pub enum CompressError {
+    /// Bad option value.
+    #[error("invalid option: {0}")]
+    InvalidOption(String),
+    /// Geometry problem (levels, size).
+    #[error(transparent)]
+    Layout(#[from] LayoutError),
+    /// Colour transform failed.
+    #[error(transparent)]
+    Color(#[from] ColorError),
+    /// The target cannot be met.
+    #[error("target of {target} bytes cannot be met: the smallest file ({minimum} bytes, header and one coefficient) is larger")]
+    TargetTooSmall {
+        /// Requested bytes.
+        target: u64,
+        /// Smallest achievable.
+        minimum: u64,
+    },
+}
+
+/// Stages reported to a progress callback.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Stage {
+    /// Colour transform.
+    Color,
+    /// Wavelet transform (channel index).
+    Transform(usize),
+    /// Scoring and sorting coefficients.
+    Sort,
+    /// Entropy coding (trial number of the rate search).
+    Encode(usize),
+}
+
+/// What the compressor measured.
+#[derive(Debug, Clone, PartialEq)]
+pub struct CompressStats {
+    /// Coefficients in the transform (all channels).
+    pub total_coefficients: u64,
+    /// Non-zero coefficients.
+    pub nonzero_coefficients: u64,
+    /// Kept coefficients.
+    pub kept: u64,
+    /// Q_V (eq. 19), percent.
+    pub q_v: f64,
+    /// Q_E (eq. 20), percent.
+    pub q_e: f64,
+    /// File size.
+    pub bytes: u64,
+    /// Where the bits went.
+    pub breakdown: SizeBreakdown,
+    /// Header section bytes.
+    pub header_bytes: u64,
+    /// Number of packets.
+    pub packets: u64,
+    /// Tile size used.
+    pub tile: usize,
+    /// Layers used.
+    pub layers: usize,
+}
+
+/// A compressed volume.
+#[derive(Debug, Clone)]
+pub struct Compressed {
+    /// The `.wsp` bytes.
+    pub bytes: Vec<u8>,
+    /// Its header.
+    pub header: Header,
+    /// Measurements.
+    pub stats: CompressStats,
+    /// The decoder's view of the kept coefficients, per packet in file order.
+    pub reconstruction: Vec<Vec<Coefficient>>,
+}
+
+/// One scored coefficient.
+#[derive(Debug, Clone, Copy)]
+struct Scored {
+    score: f64,
+    channel: u8,
+    index: u32,
+    value: f64,
+}
+
+/// The transformed, scored volume, ready to be cut at any K.
+struct Prepared {
+    geometry: Geometry,
+    margin: usize,
+    color: ColorInfo,
+    channels: usize,
+    value_range: [f32; 2],
+    spacing: [f32; 3],
+    /// Non-zero coefficients by decreasing score.
+    sorted: Vec<Scored>,
+    total_energy: f64,
+    total_coefficients: u64,
+}
+
+fn color_info(t: &ColorTransform) -> ColorInfo {
+    ColorInfo {
+        kind: match t.kind {
+            ColorSpaceKind::Rgb => ColorKind::Rgb,
+            ColorSpaceKind::Yiq => ColorKind::Yiq,
+            ColorSpaceKind::Pca => ColorKind::Pca,
+        },
+        basis: t.basis,
+        mean: t.mean,
+        importance: t.importance,
+    }
+}
+
+fn prepare(
+    volume: &Volume,
+    opts: &CompressOptions,
+    progress: &(dyn Fn(Stage, f64) + Sync),
+) -> Result<Prepared, CompressError> {
+    if !(1..=16).contains(&opts.bits) {
+        return Err(CompressError::InvalidOption(format!(
+            "quantization bits P = {}; allowed 1..=16",
+            opts.bits
+        )));
+    }
+    let dims = volume.dims();
+    let max_levels = Geometry::max_levels(dims);
+    let levels = opts.levels.unwrap_or(max_levels.min(4));
+    let margin = opts
+        .margin
+        .unwrap_or_else(|| Geometry::default_margin(opts.family, levels));
+    let geometry = Geometry::new(dims, opts.family, levels, margin)?;
+    progress(Stage::Color, 0.0);
+    let (channels, color) = if volume.channel_count() == 3 {
+        let t = ColorTransform::fit(opts.colorspace, volume)?;
+        let v = t.forward(volume)?;
+        (v.into_channels(), color_info(&t))
+    } else {
+        (volume.channels().to_vec(), ColorInfo::intensity())
+    };
+    let (lo, hi) = volume.value_range();
+    let mut planner = Dwt1d::new(opts.family);
+    let bands = geometry.bands();
+    let norms: Vec<f64> = bands.iter().map(|b| geometry.basis_norm2(*b)).collect();
+    let mut sorted = Vec::new();
+    let mut total_energy = 0.0;
+    for (c, ch) in channels.iter().enumerate() {
+        progress(Stage::Transform(c), c as f64 / channels.len() as f64);
+        let mut data = pad_channel(ch, &geometry);
+        forward_3d(&mut data, &geometry, &mut planner);
+        let importance = color.importance[c];
+        let scored: Vec<(Scored, f64)> = data
+            .par_iter()
+            .enumerate()
+            .filter(|(_, w)| **w != 0.0)
+            .map(|(i, w)| {
+                let (band, _) = geometry.locate(i);
+                let bi = geometry.band_index(band).expect("band of a located index");
+                let e = w * w * norms[bi];
+                (
+                    Scored {
+                        score: e * importance,
+                        channel: c as u8,
+                        index: i as u32,
+                        value: *w,
+                    },
+                    e,
+                )
+            })
+            .collect();
+        total_energy += scored.iter().map(|(_, e)| e).sum::<f64>();
+        sorted.extend(scored.into_iter().map(|(s, _)| s));
+    }
+    progress(Stage::Sort, 0.0);
+    // Deterministic total order: score, then channel, then index.
+    sorted.par_sort_unstable_by(|a, b| {
+        b.score
+            .total_cmp(&a.score)
+            .then(a.channel.cmp(&b.channel))
+            .then(a.index.cmp(&b.index))
+    });
+    Ok(Prepared {
+        geometry,
+        margin,
+        color,
+        channels: channels.len(),
+        value_range: [lo, hi],
+        spacing: volume.spacing(),
+        sorted,
+        total_energy,
+        total_coefficients: (geometry.coefficient_count() * channels.len()) as u64,
+    })
+}
+
+/// Picks tile size and layer count for an expected file size.
+fn choose_tiling(
+    geometry: &Geometry,
+    choice: TileChoice,
+    layers: Option<usize>,
+    expected_bytes: u64,
+) -> (usize, usize) {
+    let block = 1usize << geometry.levels;
+    let max_dim = *geometry.padded.iter().max().expect("3 dims");
+    let single = max_dim.div_ceil(block) * block;
+    let count = |t: usize| -> usize { geometry.padded.iter().map(|p| p.div_ceil(t)).product() };
+    match choice {
+        TileChoice::Single => (single, layers.unwrap_or(1)),
+        TileChoice::Size(t) => {
+            let t = t.max(1).div_ceil(block) * block;
+            (t.min(single), layers.unwrap_or(4))
+        }
+        TileChoice::Auto => {
+            // Aim for packets of ~512 bytes on average at least.
+            let budget = (expected_bytes / 512).max(1) as usize;
+            let nl = layers.unwrap_or(match budget {
+                0..=3 => 1,
+                4..=15 => 2,
+                16..=63 => 3,
+                _ => 4,
+            });
+            let tiles_budget = (budget / nl).max(1);
+            let mut t = block.max(32).next_power_of_two();
+            while t < single && count(t) > tiles_budget {
+                t *= 2;
+            }
+            (t.min(single), nl)
+        }
+    }
+}
+
+impl Prepared {
+    /// Encodes the top `k` coefficients.
+    fn encode(&self, k: usize, opts: &CompressOptions, expected_bytes: u64) -> Compressed {
+        let g = &self.geometry;
+        let kept = &self.sorted[..k];
+        let (tile, nl) = choose_tiling(g, opts.tile, opts.layers, expected_bytes);
+        let nl = nl.clamp(1, MAX_LAYERS);
+        // Layer l ends at rank k·4^(l−(L−1)): layer 0 holds the top k/4^(L−1).
+        let mut ends = Vec::with_capacity(nl);
+        for l in 0..nl {
+            let frac = 4f64.powi(l as i32 - (nl as i32 - 1));
+            ends.push(((k as f64 * frac).ceil() as usize).clamp(1.min(k), k));
+        }
+        let mut layer_bounds = Vec::with_capacity(nl);
+        let mut start = 0usize;
+        for (l, end) in ends.iter().enumerate() {
+            let bound = if l == 0 || start >= k {
+                f32::INFINITY
+            } else {
+                // Round up so the f32 bound is ≥ every score in the layer.
+                let s = kept[start].score as f32;
+                if (s as f64) < kept[start].score {
+                    s.next_up()
+                } else {
+                    s
+                }
+            };
+            layer_bounds.push(bound.min(layer_bounds.last().copied().unwrap_or(f32::INFINITY)));
+            start = (*end).max(start);
+        }
+        let nb = g.band_count();
+        let nsub = self.channels * nb;
+        // Substream parameters: w0 = largest magnitude, Δ from the sorted magnitudes (eq. 15).
+        let mut mags: Vec<Vec<f64>> = vec![Vec::new(); nsub];
+        let locate = |s: &Scored| g.locate(s.index as usize);
+        for s in kept {
+            let (band, _) = locate(s);
+            let sub = s.channel as usize * nb + g.band_index(band).expect("band");
+            mags[sub].push(s.value.abs());
+        }
+        let substreams: Vec<Option<SubstreamParams>> = mags
+            .iter()
+            .map(|m| {
+                (!m.is_empty()).then(|| SubstreamParams {
+                    w0: m[0] as f32,
+                    delta: delta_factor(m, opts.bits) as f32,
+                })
+            })
+            .collect();
+        let mut header = Header {
+            geometry: *g,
+            margin: self.margin,
+            spacing: self.spacing,
+            channels: self.channels,
+            color: self.color,
+            value_range: self.value_range,
+            coder: opts.coder,
+            bits: opts.bits,
+            tile,
+            layer_bounds,
+            substreams,
+            tables: None,
+            total_energy: self.total_energy,
+            kept: k as u64,
+        };
+        // Group by (layer, tile), keeping significance order inside each group.
+        let mut groups: std::collections::BTreeMap<(usize, usize), Vec<(Scored, Coefficient)>> =
+            Default::default();
+        let mut layer = 0usize;
+        for (rank, s) in kept.iter().enumerate() {
+            while rank >= ends[layer] {
+                layer += 1;
+            }
+            let (band, pos) = locate(s);
+            let t = header.tile_of(band, pos);
+            let c = Coefficient {
+                channel: s.channel,
+                band,
+                pos: [pos[0] as u32, pos[1] as u32, pos[2] as u32],
+                value: s.value as f32,
+            };
+            groups.entry((layer, t)).or_default().push((*s, c));
+        }
+        let inputs: Vec<PacketInput> = groups
+            .into_par_iter()
+            .map(|((layer, tile), list)| {
+                let items: Vec<Item> = list
+                    .iter()
+                    .map(|(s, c)| {
+                        let l = c.band.level as u32;
+                        Item {
+                            score: s.score,
+                            voxel: [c.pos[0] << l, c.pos[1] << l, c.pos[2] << l],
+                        }
+                    })
+                    .collect();
+                let order = cluster_order(&items, opts.clustering);
+                PacketInput {
+                    tile,
+                    layer,
+                    coefficients: order.into_iter().map(|i| list[i].1).collect(),
+                }
+            })
+            .collect();
+        let encoded = encode_packets(&mut header, &inputs);
+        let bytes = write_file(&header, &encoded.packets);
+        let header_bytes = wavesplat_codec::format::write_header_section(&header).len() as u64;
+        // Q_E over the kept coefficients (importance-free energies, eq. 20–21).
+        let q_e = q_e_percent(
+            inputs
+                .iter()
+                .zip(&encoded.reconstruction)
+                .flat_map(|(i, r)| i.coefficients.iter().zip(r))
+                .map(|(a, b)| (a.value as f64, b.value as f64, g.basis_norm2(a.band))),
+        );
+        let kept_energy: f64 = kept
+            .iter()
+            .map(|s| {
+                let (band, _) = locate(s);
+                s.value * s.value * g.basis_norm2(band)
+            })
+            .sum();
+        let stats = CompressStats {
+            total_coefficients: self.total_coefficients,
+            nonzero_coefficients: self.sorted.len() as u64,
+            kept: k as u64,
+            q_v: q_v_percent(kept_energy, self.total_energy),
+            q_e,
+            bytes: bytes.len() as u64,
+            breakdown: encoded.breakdown,
+            header_bytes,
+            packets: inputs.len() as u64,
+            tile,
+            layers: nl,
+        };
+        Compressed {
+            bytes,
+            header,
+            stats,
+            reconstruction: encoded.reconstruction,
+        }
+    }
+}
+
+/// Compresses a volume. `progress(stage, fraction)` is called as work proceeds.
+pub fn compress(
+    volume: &Volume,
+    opts: &CompressOptions,
+    progress: &(dyn Fn(Stage, f64) + Sync),
+) -> Result<Compressed, CompressError> {
+    let prepared = prepare(volume, opts, progress)?;
+    let n = prepared.sorted.len();
+    let k = match opts.target {
+        Target::All => n,
+        Target::Coefficients(c) => (c as usize).min(n),
+        Target::Fraction(f) => {
+            if !(f > 0.0 && f <= 1.0) {
+                return Err(CompressError::InvalidOption(format!(
+                    "target fraction {f}; allowed (0, 1]"
+                )));
+            }
+            ((f * prepared.total_coefficients as f64).round() as usize).min(n)
+        }
+        Target::QvPercent(q) => {
+            if !(q > 0.0 && q <= 100.0) {
+                return Err(CompressError::InvalidOption(format!(
+                    "target Q_V {q} %; allowed (0, 100]"
+                )));
+            }
+            // Energies (without importance) accumulated in score order.
+            let goal = q / 100.0 * prepared.total_energy;
+            let g = &prepared.geometry;
+            let mut acc = 0.0;
+            let mut k = n;
+            for (i, s) in prepared.sorted.iter().enumerate() {
+                let (band, _) = g.locate(s.index as usize);
+                acc += s.value * s.value * g.basis_norm2(band);
+                if acc >= goal * (1.0 - 1e-12) {
+                    k = i + 1;
+                    break;
+                }
+            }
+            k
+        }
+        Target::Bytes(b) => {
+            return compress_to_bytes(&prepared, opts, b, progress);
+        }
+    };
+    progress(Stage::Encode(0), 0.0);
+    let expected = (k as u64).saturating_mul(3).max(64);
+    Ok(prepared.encode(k, opts, expected))
+}
+
+/// Bisection on the number of kept coefficients for the largest file ≤ `target` bytes.
+fn compress_to_bytes(
+    prepared: &Prepared,
+    opts: &CompressOptions,
+    target: u64,
+    progress: &(dyn Fn(Stage, f64) + Sync),
+) -> Result<Compressed, CompressError> {
+    let n = prepared.sorted.len();
+    let mut trial = 0usize;
+    let mut run = |k: usize| {
+        trial += 1;
+        progress(Stage::Encode(trial), 0.0);
+        prepared.encode(k, opts, target)
+    };
+    let smallest = run(n.min(1));
+    if smallest.stats.bytes > target {
+        return Err(CompressError::TargetTooSmall {
+            target,
+            minimum: smallest.stats.bytes,
+        });
+    }
+    let mut best = smallest;
+    let (mut lo, mut hi) = (n.min(1), n);
+    if n > 1 {
+        let all = run(n);
+        if all.stats.bytes <= target {
+            return Ok(all);
+        }
+    }
+    // Invariant: size(lo) ≤ target < size(hi). Sizes are nearly monotone in k (the tables
+    // adapt), so keep the best feasible trial seen.
+    while hi - lo > 1 {
+        let mid = lo + (hi - lo) / 2;
+        let c = run(mid);
+        if c.stats.bytes <= target {
+            lo = mid;
+            if c.stats.kept > best.stats.kept {
+                best = c;
+            }
+        } else {
+            hi = mid;
+        }
+    }
+    Ok(best)
+}

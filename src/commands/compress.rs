@@ -1,0 +1,240 @@
+//! `wavesplat compress`: volume file or phantom in, `.wsp` out, with a summary of what was kept
+//! and where the bytes went.
+
+use crate::progress::Progress;
+use anyhow::{bail, Context, Result};
+use clap::Args;
+use std::path::PathBuf;
+use wavesplat_codec::family::Family;
+use wavesplat_codec::format::CoderKind;
+use wavesplat_codec::volume::Volume;
+use wavesplat_compressor::colorspace::ColorSpaceKind;
+use wavesplat_compressor::encode::{
+    compress, CompressOptions, Compressed, Stage, Target, TileChoice,
+};
+use wavesplat_compressor::order::Clustering;
+use wavesplat_compressor::phantom::Phantom;
+use wavesplat_compressor::reader::{read_volume, Endian, RawDtype, RawSpec};
+
+/// Arguments of `wavesplat compress`.
+#[derive(Args, Debug)]
+pub struct CompressArgs {
+    /// Input volume: .nii / .nii.gz, or raw samples (then --dims and --dtype are required).
+    /// Omit it to use --phantom.
+    pub input: Option<PathBuf>,
+    /// Output .wsp file.
+    #[arg(short, long)]
+    pub output: PathBuf,
+    /// Use a built-in phantom instead of a file: shepp-logan, spheres, rgb-head, constant,
+    /// zero, noise.
+    #[arg(long, conflicts_with = "input")]
+    pub phantom: Option<String>,
+    /// Raw input dimensions X,Y,Z (x fastest); phantom size with --phantom (default 64,64,64).
+    #[arg(long, value_parser = super::parse_dims)]
+    pub dims: Option<[usize; 3]>,
+    /// Raw sample type: u8, u16, i16, f32.
+    #[arg(long)]
+    pub dtype: Option<String>,
+    /// Raw byte order: little or big.
+    #[arg(long, default_value = "little")]
+    pub endian: String,
+    /// Raw channels: 1 (intensity) or 3 (RGB, interleaved per voxel).
+    #[arg(long, default_value_t = 1)]
+    pub channels: usize,
+    /// Wavelet family: haar, linear, cubic.
+    #[arg(long, default_value = "cubic")]
+    pub family: String,
+    /// Decomposition depth M (default: min(4, ceil(log2(smallest dimension)))).
+    #[arg(long)]
+    pub levels: Option<usize>,
+    /// Zero margin (voxels) around the volume before the periodic transform (default: 0 for
+    /// Haar, 2^(M-1) capped at 16 for the splines).
+    #[arg(long)]
+    pub margin: Option<usize>,
+    /// Colour space for RGB volumes: rgb, yiq, pca.
+    #[arg(long, default_value = "pca")]
+    pub colorspace: String,
+    /// Quantization bits P (1..=16) of the delta coder (paper eq. 15).
+    #[arg(long, default_value_t = 8)]
+    pub bits: u8,
+    /// Entropy coder: range (adaptive arithmetic) or huffman (the paper's static tables).
+    #[arg(long, default_value = "range")]
+    pub coder: String,
+    /// Keep as many coefficients as fit in this many bytes (whole file).
+    #[arg(long, group = "target")]
+    pub target_bytes: Option<u64>,
+    /// Keep this fraction (0..1] of all coefficients.
+    #[arg(long, group = "target")]
+    pub target_fraction: Option<f64>,
+    /// Keep this many coefficients.
+    #[arg(long, group = "target")]
+    pub target_coefficients: Option<u64>,
+    /// Keep the fewest coefficients whose energy is at least this percentage (Q_V, eq. 19).
+    #[arg(long, group = "target")]
+    pub target_qv: Option<f64>,
+    /// Keep every non-zero coefficient.
+    #[arg(long, group = "target")]
+    pub lossless_selection: bool,
+    /// Tile edge in voxels (rounded up to a multiple of 2^M); default: chosen from the size.
+    #[arg(long, conflicts_with = "single_sequence")]
+    pub tile: Option<usize>,
+    /// One tile and one layer: the paper's single global significance-ordered sequence.
+    #[arg(long)]
+    pub single_sequence: bool,
+    /// Number of quality layers (packets per tile); default: chosen from the size.
+    #[arg(long)]
+    pub layers: Option<usize>,
+    /// Spatial clustering radius in voxels (0 disables clustering; paper Fig. 11).
+    #[arg(long, default_value_t = 4)]
+    pub cluster_radius: u32,
+    /// A neighbour is taken next if its score is at least this fraction of the best remaining.
+    #[arg(long, default_value_t = 0.5)]
+    pub cluster_threshold: f64,
+}
+
+fn load(a: &CompressArgs) -> Result<Volume> {
+    if let Some(name) = &a.phantom {
+        let p = Phantom::from_name(name).with_context(|| {
+            format!(
+                "unknown phantom {name:?}; choose one of {:?}",
+                Phantom::names()
+            )
+        })?;
+        return Ok(p.generate(a.dims.unwrap_or([64, 64, 64])));
+    }
+    let Some(input) = &a.input else {
+        bail!("give an input file or --phantom NAME");
+    };
+    let raw = match (&a.dims, &a.dtype) {
+        (Some(d), Some(t)) => {
+            let mut spec = RawSpec::new(*d, RawDtype::from_name(t)?);
+            spec.endian = Endian::from_name(&a.endian)?;
+            spec.channels = a.channels;
+            Some(spec)
+        }
+        (None, None) => None,
+        _ => bail!("raw input needs both --dims and --dtype"),
+    };
+    read_volume(input, raw.as_ref()).with_context(|| format!("reading {}", input.display()))
+}
+
+/// Builds compressor options from the arguments.
+pub fn options(a: &CompressArgs) -> Result<CompressOptions> {
+    let family = Family::from_name(&a.family).with_context(|| {
+        format!(
+            "unknown family {:?}; choose haar, linear or cubic",
+            a.family
+        )
+    })?;
+    let colorspace = ColorSpaceKind::from_name(&a.colorspace).with_context(|| {
+        format!(
+            "unknown colour space {:?}; choose rgb, yiq or pca",
+            a.colorspace
+        )
+    })?;
+    let coder = CoderKind::from_name(&a.coder)
+        .with_context(|| format!("unknown coder {:?}; choose range or huffman", a.coder))?;
+    if !(1..=16).contains(&a.bits) {
+        bail!("--bits {}: quantization bits must be 1..=16", a.bits);
+    }
+    if !(0.0..=1.0).contains(&a.cluster_threshold) {
+        bail!(
+            "--cluster-threshold {} must be within 0..=1",
+            a.cluster_threshold
+        );
+    }
+    let target = if let Some(b) = a.target_bytes {
+        Target::Bytes(b)
+    } else if let Some(f) = a.target_fraction {
+        Target::Fraction(f)
+    } else if let Some(c) = a.target_coefficients {
+        Target::Coefficients(c)
+    } else if let Some(q) = a.target_qv {
+        Target::QvPercent(q)
+    } else if a.lossless_selection {
+        Target::All
+    } else {
+        Target::Fraction(0.05)
+    };
+    let tile = if a.single_sequence {
+        TileChoice::Single
+    } else {
+        a.tile.map_or(TileChoice::Auto, TileChoice::Size)
+    };
+    Ok(CompressOptions {
+        family,
+        levels: a.levels,
+        margin: a.margin,
+        colorspace,
+        bits: a.bits,
+        coder,
+        target,
+        tile,
+        layers: a.layers,
+        clustering: (a.cluster_radius > 0).then_some(Clustering {
+            radius: a.cluster_radius,
+            threshold: a.cluster_threshold,
+        }),
+    })
+}
+
+/// Runs the subcommand.
+pub fn run(a: CompressArgs) -> Result<()> {
+    let opts = options(&a)?;
+    let volume = load(&a)?;
+    let progress = Progress::new("compress");
+    let report = |stage: Stage, _f: f64| {
+        progress.stage(&match stage {
+            Stage::Color => "colour transform".to_string(),
+            Stage::Transform(c) => format!("wavelet transform, channel {c}"),
+            Stage::Sort => "scoring and sorting coefficients".to_string(),
+            Stage::Encode(t) => format!("entropy coding (trial {t})"),
+        })
+    };
+    let c = compress(&volume, &opts, &report).context("compressing")?;
+    progress.finish();
+    std::fs::write(&a.output, &c.bytes)
+        .with_context(|| format!("writing {}", a.output.display()))?;
+    print_summary(&volume, &c, &a.output);
+    Ok(())
+}
+
+fn print_summary(volume: &Volume, c: &Compressed, out: &std::path::Path) {
+    let s = &c.stats;
+    let d = volume.dims();
+    let u8_size = (volume.voxel_count() * volume.channel_count()) as f64;
+    println!(
+        "{}: {} bytes ({:.4} % of the {}-byte 8-bit volume, {:.4} bits/voxel)",
+        out.display(),
+        s.bytes,
+        100.0 * s.bytes as f64 / u8_size,
+        u8_size,
+        8.0 * s.bytes as f64 / volume.voxel_count() as f64
+    );
+    println!(
+        "volume {}x{}x{} x{} | {} M={} | kept {} of {} coefficients ({} non-zero)",
+        d[0],
+        d[1],
+        d[2],
+        volume.channel_count(),
+        c.header.geometry.family,
+        c.header.geometry.levels,
+        s.kept,
+        s.total_coefficients,
+        s.nonzero_coefficients
+    );
+    println!(
+        "Q_V {:.4} % (eq. 19) | Q_E {:.4} % (eq. 20) | tile {} | {} layers | {} packets",
+        s.q_v, s.q_e, s.tile, s.layers, s.packets
+    );
+    let b = &s.breakdown;
+    println!(
+        "bytes: header {} | types/depth/channel {:.0} | positions {:.0} | signs {:.0} | values {:.0} | packet framing {}",
+        s.header_bytes,
+        b.tag_bits / 8.0,
+        b.position_bits / 8.0,
+        b.sign_bits / 8.0,
+        b.value_bits / 8.0,
+        b.framing_bytes
+    );
+}

@@ -1,0 +1,42 @@
+//! `wavesplat decompress`: full decode to raw f32, for checks against the original.
+
+use anyhow::{Context, Result};
+use clap::Args;
+use std::path::PathBuf;
+
+/// Arguments of `wavesplat decompress`.
+#[derive(Args, Debug)]
+pub struct DecompressArgs {
+    /// The .wsp file.
+    pub input: PathBuf,
+    /// Output: raw little-endian f32, x fastest, channels interleaved.
+    #[arg(short, long)]
+    pub output: PathBuf,
+}
+
+/// Runs the subcommand.
+pub fn run(a: DecompressArgs) -> Result<()> {
+    let bytes =
+        std::fs::read(&a.input).with_context(|| format!("reading {}", a.input.display()))?;
+    let progress = crate::progress::Progress::new("decompress");
+    progress.stage("decoding packets and inverse transform");
+    let v = wavesplat_compressor::decode::decompress(&bytes)
+        .with_context(|| format!("decoding {}", a.input.display()))?;
+    progress.finish();
+    let out: Vec<u8> = v
+        .to_interleaved()
+        .iter()
+        .flat_map(|x| x.to_le_bytes())
+        .collect();
+    std::fs::write(&a.output, out).with_context(|| format!("writing {}", a.output.display()))?;
+    let d = v.dims();
+    println!(
+        "wrote {} ({}x{}x{}, {} channel(s), f32 LE)",
+        a.output.display(),
+        d[0],
+        d[1],
+        d[2],
+        v.channel_count()
+    );
+    Ok(())
+}

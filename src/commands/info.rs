@@ -1,0 +1,113 @@
+//! `wavesplat info`: header, tiles, packets and where the bytes went (paper Fig. 16).
+
+use anyhow::{Context, Result};
+use clap::Args;
+use std::path::PathBuf;
+use wavesplat_codec::format::packet::{decode_packet, SizeBreakdown};
+use wavesplat_codec::format::parse_file;
+
+/// Arguments of `wavesplat info`.
+#[derive(Args, Debug)]
+pub struct InfoArgs {
+    /// The .wsp file.
+    pub input: PathBuf,
+    /// Also list every packet.
+    #[arg(long)]
+    pub packets: bool,
+}
+
+/// Runs the subcommand.
+pub fn run(a: InfoArgs) -> Result<()> {
+    let bytes =
+        std::fs::read(&a.input).with_context(|| format!("reading {}", a.input.display()))?;
+    let file = parse_file(&bytes).with_context(|| format!("parsing {}", a.input.display()))?;
+    let h = &file.header;
+    let g = &h.geometry;
+    println!("file        {} ({} bytes)", a.input.display(), bytes.len());
+    println!(
+        "dims        {}x{}x{}, spacing {:?}",
+        g.dims[0], g.dims[1], g.dims[2], h.spacing
+    );
+    println!(
+        "padded      {}x{}x{} (margin {}, origin {:?}; periodic boundary on the zero-padded grid)",
+        g.padded[0], g.padded[1], g.padded[2], h.margin, g.origin
+    );
+    println!("channels    {} ({})", h.channels, h.color.kind.name());
+    if h.channels == 3 {
+        println!("importance  {:?}", h.color.importance);
+    }
+    println!(
+        "family      {} (order {}), levels M = {}",
+        g.family,
+        g.family.order(),
+        g.levels
+    );
+    println!("coder       {}, P = {} bits", h.coder.name(), h.bits);
+    println!("values      {} .. {}", h.value_range[0], h.value_range[1]);
+    println!(
+        "tiles       {} of {} voxels ({:?}), {} layers",
+        h.tile_count(),
+        h.tile,
+        h.tile_counts(),
+        h.layer_bounds.len()
+    );
+    println!(
+        "substreams  {} used of {}",
+        h.substreams.iter().filter(|s| s.is_some()).count(),
+        h.substream_count()
+    );
+    let mut total = SizeBreakdown::default();
+    let mut coefficients = 0usize;
+    for (i, p) in file.packets.iter().enumerate() {
+        let d = decode_packet(h, p).with_context(|| format!("decoding packet {i}"))?;
+        coefficients += d.coefficients.len();
+        total.tag_bits += d.breakdown.tag_bits;
+        total.position_bits += d.breakdown.position_bits;
+        total.sign_bits += d.breakdown.sign_bits;
+        total.value_bits += d.breakdown.value_bits;
+        total.framing_bytes += d.breakdown.framing_bytes;
+        if a.packets {
+            let energy: f64 = d.summary.iter().map(|(_, e)| e).sum();
+            println!(
+                "packet {i:5}  tile {:5}  layer {:2}  {:7} coefficients  {:8} bytes  energy {:.3e}",
+                d.tile,
+                d.layer,
+                d.coefficients.len(),
+                p.len(),
+                energy
+            );
+        }
+    }
+    println!(
+        "packets     {} holding {} coefficients (header says {})",
+        file.packets.len(),
+        coefficients,
+        h.kept
+    );
+    let pct = |x: f64| 100.0 * x / bytes.len() as f64;
+    println!("size breakdown (bytes, % of file):");
+    println!(
+        "  header + tables        {:9} {:6.2} %",
+        file.header_bytes,
+        pct(file.header_bytes as f64)
+    );
+    println!(
+        "  packet directory       {:9} {:6.2} %",
+        file.directory_bytes,
+        pct(file.directory_bytes as f64)
+    );
+    println!(
+        "  packet framing/summary {:9} {:6.2} %",
+        total.framing_bytes,
+        pct(total.framing_bytes as f64)
+    );
+    for (name, bits) in [
+        ("type/depth/channel", total.tag_bits),
+        ("positions", total.position_bits),
+        ("signs", total.sign_bits),
+        ("values", total.value_bits),
+    ] {
+        println!("  {name:22} {:9.0} {:6.2} %", bits / 8.0, pct(bits / 8.0));
+    }
+    Ok(())
+}
