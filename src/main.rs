@@ -25,7 +25,7 @@ struct Cli {
 #[derive(Subcommand, Debug)]
 enum Command {
     /// Compress a volume (raw, NIfTI or a built-in phantom) into a .wsp file.
-    Compress(commands::compress::CompressArgs),
+    Compress(Box<commands::compress::CompressArgs>),
     /// Show a .wsp file's header, tiles, packets and size breakdown.
     Info(commands::info::InfoArgs),
     /// Decode a .wsp file to raw little-endian f32 (x fastest, channels interleaved).
@@ -49,7 +49,7 @@ fn main() {
 
 fn run(command: Command) -> Result<()> {
     match command {
-        Command::Compress(a) => commands::compress::run(a),
+        Command::Compress(a) => commands::compress::run(*a),
         Command::Info(a) => commands::info::run(a),
         Command::Decompress(a) => commands::decompress::run(a),
         Command::Phantom(a) => commands::phantom::run(a),

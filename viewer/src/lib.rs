@@ -1,1 +1,65 @@
-//! (in progress)
+//! The wavesplat renderer (CPU): X-ray images rendered directly from decoded wavelet
+//! coefficients by wavelet splatting (Lippert, Gross & Kurmann, EG'97, §2.3 and §3).
+//!
+//! - [`camera`]: orthographic views from spherical angles, zoom/pan, depth-cue resolution;
+//! - [`footprint`]: footprints by Fourier projection-slice (rustfft), mipmapped levels;
+//! - [`splat`]: the [`Renderer`] (footprint cache, tiled rayon accumulation, multiview);
+//! - [`reference`]: the ground-truth ray caster on the reconstructed volume;
+//! - [`image`]: the [`Image`] type, PNG with window/level, raw f32 output.
+//!
+//! ```no_run
+//! use wavesplat_viewer::{Renderer, RenderOptions, View};
+//! # fn demo(coeffs: &[wavesplat_codec::format::packet::Coefficient],
+//! #         geometry: &wavesplat_codec::layout::Geometry) -> Result<(), wavesplat_viewer::RenderError> {
+//! let mut renderer = Renderer::new(RenderOptions::default());
+//! let image = renderer.render(coeffs, geometry, &View::new(0.66, 0.91, 256, 256))?;
+//! # let _ = image; Ok(()) }
+//! ```
+
+pub mod camera;
+pub mod footprint;
+pub mod image;
+pub mod reference;
+pub mod splat;
+
+pub use camera::{Camera, Cue, CueDirection, Orientation, View, ViewError};
+pub use image::{Image, ImageError};
+pub use reference::{render_reference, render_reference_camera, PaddedVolume, ReferenceOptions};
+pub use splat::{RenderOptions, RenderStats, Renderer};
+
+use thiserror::Error;
+use wavesplat_codec::layout::Band;
+
+/// Errors of the renderer.
+#[derive(Debug, Error, PartialEq)]
+#[non_exhaustive]
+pub enum RenderError {
+    /// Invalid view.
+    #[error(transparent)]
+    View(#[from] ViewError),
+    /// A coefficient's channel is out of range.
+    #[error("coefficient channel {channel} out of range (renderer has {channels} channels)")]
+    Channel {
+        /// Channel of the coefficient.
+        channel: u8,
+        /// Channels rendered.
+        channels: usize,
+    },
+    /// A band that does not exist in the geometry.
+    #[error("band {0:?} does not exist in this geometry")]
+    Band(Band),
+    /// A position outside its band.
+    #[error("position {pos:?} outside band {band:?}")]
+    Position {
+        /// Band.
+        band: Band,
+        /// Position.
+        pos: [u32; 3],
+    },
+    /// A coefficient value is NaN or infinite.
+    #[error("coefficient value is not finite")]
+    NotFinite,
+    /// Unsupported combination of options.
+    #[error("unsupported: {0}")]
+    Unsupported(&'static str),
+}

@@ -1,0 +1,348 @@
+//! Orthographic cameras and depth-cue settings: this module owns the mapping between volume
+//! coordinates (voxel (i, j, k) at (i, j, k)) and continuous screen coordinates, shared by the
+//! splat renderer and the reference ray caster so that both see exactly the same view.
+//!
+//! A view is given by spherical angles (α, β) as in §3.1 of the paper:
+//! u = (−sin α, cos α, 0), v = (−cos α sin β, −sin α sin β, cos β), view direction n = u × v
+//! (= (cos α cos β, sin α cos β, sin β)), or by an explicit orthonormal pair (u, v) (needed for
+//! the third multiview, which is not a spherical view). Screen coordinates are continuous pixel
+//! coordinates: pixel (ix, iy) covers [ix, ix+1] × [iy, iy+1], row 0 at the top. A point x maps to
+//! X = W/2 + zoom·((x − c)·u − pan_u), Y = H/2 − zoom·((x − c)·v − pan_v), with c the volume
+//! centre (dims − 1)/2, so the image is centred on the volume centre unless panned; the screen
+//! axes in volume space are therefore e_x = u and e_y = −v. `zoom` is pixels per voxel; by
+//! default it fits the volume's bounding sphere (radius |dims|/2) into the smaller image side.
+
+use thiserror::Error;
+
+/// Largest image side accepted.
+pub const MAX_IMAGE_SIDE: usize = 16384;
+
+/// Invalid view parameters.
+#[derive(Debug, Error, PartialEq)]
+#[non_exhaustive]
+pub enum ViewError {
+    /// An angle, zoom, pan or cue parameter is NaN or infinite.
+    #[error("view parameter {0} is not finite")]
+    NotFinite(&'static str),
+    /// Image size is zero or larger than [`MAX_IMAGE_SIDE`].
+    #[error("image size {width}x{height} must be within 1..={max} on each side", max = MAX_IMAGE_SIDE)]
+    BadSize {
+        /// Width.
+        width: usize,
+        /// Height.
+        height: usize,
+    },
+    /// Zoom must be positive.
+    #[error("zoom {0} must be > 0 (pixels per voxel)")]
+    BadZoom(f64),
+    /// The explicit basis is not orthonormal.
+    #[error("the explicit view basis (u, v) is not orthonormal")]
+    NotOrthonormal,
+    /// The cue extinction must be ≥ 0.
+    #[error("cue extinction k = {0} must be finite and >= 0")]
+    BadExtinction(f64),
+    /// Zero cue direction vector.
+    #[error("the cue direction vector is zero")]
+    ZeroCueDirection,
+}
+
+/// How the view is oriented.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Orientation {
+    /// Spherical angles (α, β) in radians (paper §3.1).
+    Angles {
+        /// α.
+        alpha: f64,
+        /// β.
+        beta: f64,
+    },
+    /// Explicit orthonormal screen axes (u right, v up); n = u × v.
+    Basis {
+        /// Screen right.
+        u: [f64; 3],
+        /// Screen up.
+        v: [f64; 3],
+    },
+}
+
+/// Direction of the depth-cue light.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum CueDirection {
+    /// Along the view direction n (light plane on the viewer's side): the emission–absorption
+    /// image with constant attenuation.
+    View,
+    /// Eq. 12 of the paper taken literally: L ∝ (−cos α_l cos β_l, sin α_l cos β_l, sin β_l).
+    /// (Note: eq. 12 differs from the view direction n(α, β) by the sign of x, so
+    /// (α_l, β_l) = (α, β) is *not* the view direction; use [`CueDirection::View`] for that.)
+    Angles {
+        /// α_l.
+        alpha: f64,
+        /// β_l.
+        beta: f64,
+    },
+    /// Any direction (normalised internally): the light travels along this vector.
+    Vector([f64; 3]),
+}
+
+/// Exponential depth cueing: every point is weighted by e^(−k·dist) with dist its distance from
+/// the light plane (perpendicular to L, tangent to a sphere enclosing every basis support).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Cue {
+    /// Extinction per voxel, ≥ 0.
+    pub k: f64,
+    /// Light direction.
+    pub direction: CueDirection,
+}
+
+/// What to render: orientation, image size, zoom, pan and optional depth cue.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct View {
+    /// Orientation.
+    pub orientation: Orientation,
+    /// Image width (pixels; per view for multiview).
+    pub width: usize,
+    /// Image height.
+    pub height: usize,
+    /// Pixels per voxel; `None` fits the volume's bounding sphere.
+    pub zoom: Option<f64>,
+    /// Pan (voxels along u and v) of the image centre away from the volume centre.
+    pub pan: [f64; 2],
+    /// Depth cueing.
+    pub cue: Option<Cue>,
+}
+
+impl View {
+    /// A view from spherical angles with default zoom, no pan, no cue.
+    pub fn new(alpha: f64, beta: f64, width: usize, height: usize) -> View {
+        View {
+            orientation: Orientation::Angles { alpha, beta },
+            width,
+            height,
+            zoom: None,
+            pan: [0.0; 2],
+            cue: None,
+        }
+    }
+
+    /// Same view with an explicit zoom.
+    pub fn with_zoom(mut self, zoom: f64) -> View {
+        self.zoom = Some(zoom);
+        self
+    }
+
+    /// Same view with a pan (voxels along u, v).
+    pub fn with_pan(mut self, pan: [f64; 2]) -> View {
+        self.pan = pan;
+        self
+    }
+
+    /// Same view with depth cueing.
+    pub fn with_cue(mut self, cue: Cue) -> View {
+        self.cue = Some(cue);
+        self
+    }
+}
+
+/// A resolved orthographic camera for a volume of given dimensions.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Camera {
+    /// Screen right (volume space).
+    pub u: [f64; 3],
+    /// Screen up.
+    pub v: [f64; 3],
+    /// View direction u × v (rays travel along n).
+    pub n: [f64; 3],
+    /// Width in pixels.
+    pub width: usize,
+    /// Height in pixels.
+    pub height: usize,
+    /// Pixels per voxel.
+    pub zoom: f64,
+    /// Pan in voxels along (u, v).
+    pub pan: [f64; 2],
+    /// Volume centre (dims − 1)/2.
+    pub center: [f64; 3],
+}
+
+pub(crate) fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
+    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+}
+
+pub(crate) fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+    [
+        a[1] * b[2] - a[2] * b[1],
+        a[2] * b[0] - a[0] * b[2],
+        a[0] * b[1] - a[1] * b[0],
+    ]
+}
+
+/// The screen axes (u, v) of spherical angles (α, β).
+pub fn basis_from_angles(alpha: f64, beta: f64) -> ([f64; 3], [f64; 3]) {
+    let (sa, ca) = alpha.sin_cos();
+    let (sb, cb) = beta.sin_cos();
+    ([-sa, ca, 0.0], [-ca * sb, -sa * sb, cb])
+}
+
+fn finite3(x: [f64; 3], what: &'static str) -> Result<(), ViewError> {
+    if x.iter().all(|c| c.is_finite()) {
+        Ok(())
+    } else {
+        Err(ViewError::NotFinite(what))
+    }
+}
+
+impl Camera {
+    /// Resolves `view` for a volume of dimensions `dims`, validating every parameter.
+    pub fn new(view: &View, dims: [usize; 3]) -> Result<Camera, ViewError> {
+        if view.width == 0
+            || view.height == 0
+            || view.width > MAX_IMAGE_SIDE
+            || view.height > MAX_IMAGE_SIDE
+        {
+            return Err(ViewError::BadSize {
+                width: view.width,
+                height: view.height,
+            });
+        }
+        let (u, v) = match view.orientation {
+            Orientation::Angles { alpha, beta } => {
+                if !alpha.is_finite() || !beta.is_finite() {
+                    return Err(ViewError::NotFinite("angle"));
+                }
+                basis_from_angles(alpha, beta)
+            }
+            Orientation::Basis { u, v } => {
+                finite3(u, "basis")?;
+                finite3(v, "basis")?;
+                if (dot(u, u) - 1.0).abs() > 1e-9
+                    || (dot(v, v) - 1.0).abs() > 1e-9
+                    || dot(u, v).abs() > 1e-9
+                {
+                    return Err(ViewError::NotOrthonormal);
+                }
+                (u, v)
+            }
+        };
+        if !view.pan[0].is_finite() || !view.pan[1].is_finite() {
+            return Err(ViewError::NotFinite("pan"));
+        }
+        let radius = 0.5
+            * dims
+                .iter()
+                .map(|d| (*d as f64) * (*d as f64))
+                .sum::<f64>()
+                .sqrt()
+                .max(0.5);
+        let zoom = match view.zoom {
+            Some(z) if !z.is_finite() => return Err(ViewError::NotFinite("zoom")),
+            Some(z) if z <= 0.0 => return Err(ViewError::BadZoom(z)),
+            Some(z) => z,
+            None => view.width.min(view.height) as f64 / (2.0 * radius),
+        };
+        let center = [
+            0.5 * (dims[0] as f64 - 1.0),
+            0.5 * (dims[1] as f64 - 1.0),
+            0.5 * (dims[2] as f64 - 1.0),
+        ];
+        Ok(Camera {
+            u,
+            v,
+            n: cross(u, v),
+            width: view.width,
+            height: view.height,
+            zoom,
+            pan: view.pan,
+            center,
+        })
+    }
+
+    /// Screen axis directions in volume space: (e_x, e_y) = (u, −v).
+    pub fn screen_axes(&self) -> ([f64; 3], [f64; 3]) {
+        (self.u, [-self.v[0], -self.v[1], -self.v[2]])
+    }
+
+    /// Continuous screen coordinates (X, Y) of a volume point.
+    pub fn to_screen(&self, x: [f64; 3]) -> [f64; 2] {
+        let d = [
+            x[0] - self.center[0],
+            x[1] - self.center[1],
+            x[2] - self.center[2],
+        ];
+        [
+            0.5 * self.width as f64 + self.zoom * (dot(d, self.u) - self.pan[0]),
+            0.5 * self.height as f64 - self.zoom * (dot(d, self.v) - self.pan[1]),
+        ]
+    }
+
+    /// The volume point on the plane through the volume centre seen at screen point (X, Y).
+    pub fn from_screen(&self, xs: f64, ys: f64) -> [f64; 3] {
+        let a = (xs - 0.5 * self.width as f64) / self.zoom + self.pan[0];
+        let b = self.pan[1] - (ys - 0.5 * self.height as f64) / self.zoom;
+        [
+            self.center[0] + a * self.u[0] + b * self.v[0],
+            self.center[1] + a * self.u[1] + b * self.v[1],
+            self.center[2] + a * self.u[2] + b * self.v[2],
+        ]
+    }
+}
+
+/// A resolved depth cue: unit light direction `l` and plane offset `d0` such that the distance
+/// of x from the light plane is `l·x − d0` (≥ 0 for every point of every basis support).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ResolvedCue {
+    /// Extinction per voxel.
+    pub k: f64,
+    /// Unit light direction.
+    pub l: [f64; 3],
+    /// Plane offset.
+    pub d0: f64,
+}
+
+impl ResolvedCue {
+    /// Distance of `x` from the light plane.
+    pub fn dist(&self, x: [f64; 3]) -> f64 {
+        dot(self.l, x) - self.d0
+    }
+}
+
+/// Resolves a cue for a camera and geometry: the light plane is perpendicular to L and tangent
+/// to a sphere around the volume centre that encloses every basis-function support (all periodic
+/// placements within half a padded period of the centre, plus the largest half support).
+pub fn resolve_cue(
+    cue: &Cue,
+    camera: &Camera,
+    geometry: &wavesplat_codec::layout::Geometry,
+) -> Result<ResolvedCue, ViewError> {
+    if !cue.k.is_finite() || cue.k < 0.0 {
+        return Err(ViewError::BadExtinction(cue.k));
+    }
+    let l = match cue.direction {
+        CueDirection::View => camera.n,
+        CueDirection::Angles { alpha, beta } => {
+            if !alpha.is_finite() || !beta.is_finite() {
+                return Err(ViewError::NotFinite("cue angle"));
+            }
+            let (sa, ca) = alpha.sin_cos();
+            let (sb, cb) = beta.sin_cos();
+            [-ca * cb, sa * cb, sb]
+        }
+        CueDirection::Vector(w) => {
+            finite3(w, "cue direction")?;
+            w
+        }
+    };
+    let norm = dot(l, l).sqrt();
+    if norm == 0.0 || !norm.is_finite() {
+        return Err(ViewError::ZeroCueDirection);
+    }
+    let l = [l[0] / norm, l[1] / norm, l[2] / norm];
+    let big = geometry.half_support_1d(geometry.levels, true);
+    let r2: f64 = (0..3)
+        .map(|a| {
+            let h = 0.5 * geometry.padded[a] as f64 + big + 1.0;
+            h * h
+        })
+        .sum();
+    let d0 = dot(l, camera.center) - r2.sqrt();
+    Ok(ResolvedCue { k: cue.k, l, d0 })
+}

@@ -1,0 +1,554 @@
+//! Splat footprints by Fourier projection-slice (paper §2.3): this module owns the tables that
+//! the accumulator copies into the image, one per (level, type) for a given view.
+//!
+//! The pixel-area-averaged footprint of a centred level-m basis function b in screen pixels has
+//! the 2D Fourier transform (σ, ρ in cycles per pixel)
+//! P̂(σ, ρ) = zoom² · B(zoom·(σ e_x + ρ e_y)) · sinc(σ) sinc(ρ),
+//! where B is the 3D transform of the centred basis (product over axes of the codec's 1D
+//! transforms, recentred by e^{+i2πξc}, c = j/2 for φ and (2j−1)/2 for ψ, dilated by 2^m) and
+//! the sincs are the pixel box, so a table sample is the *average over a pixel* of the line
+//! integrals — Haar's transform is not band-limited, so this and oversampling matter. The slice is
+//! sampled on a grid of spacing S/N cycles per pixel and inverse-FFT'd (rustfft, f64), giving the
+//! footprint on a grid of spacing 1/S pixel (S = subpixel phases, default 8, halved while the FFT
+//! would exceed `max_fft` per side), with period N/S pixels larger than the projected support
+//! plus margin (no wraparound); the real part is kept and the table cropped to the support.
+//!
+//! **Mipmap.** Level-M tables are computed once per view; a level-m table (r = 2^(M−m)) is
+//! derived exactly as T_m(X) = r^(−3) Σ_{a,b<r} T_M(r·X + o_a, r·Y + o_b), o_a = a − (r−1)/2
+//! pixels: the level-m basis is the level-M one shrunk by r (its projection scales by 1/r), and
+//! the integral over one level-m-scale pixel is the sum of r×r level-M-scale pixel integrals (each
+//! being the area r² times our per-area average): box filter, then subsample by r. S is kept even
+//! so the half-pixel offsets fall on the grid.
+//!
+//! **Subpixel placement.** A splat centred at continuous screen X reads, for pixel ix, the table
+//! sample nearest its exact offset ix + ½ − X, i.e. it uses the nearest of S × S phase tables (the
+//! fine table split by phase). No interpolation, hence no blur; the position error is at most
+//! 1/(2S) pixel per axis, and it is the same for every pixel of a splat (no shape distortion).
+//!
+//! **Depth cueing** (§3.2): the cued footprints use κ_a = k·L̂_a·2^m per axis (the codec cues
+//! each 1D factor relative to its support end nearest the light, so no exponent is positive);
+//! they differ per level and are computed per level, without mipmapping.
+
+use num_complex::Complex64;
+use rayon::prelude::*;
+use rustfft::FftPlanner;
+use std::f64::consts::PI;
+use wavesplat_codec::family::{box_transform, Family};
+
+/// Parameters of one footprint set (all levels and types for one view).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FootprintParams {
+    /// Wavelet family.
+    pub family: Family,
+    /// Decomposition depth M.
+    pub levels: usize,
+    /// Screen x axis in volume space (unit).
+    pub ex: [f64; 3],
+    /// Screen y axis in volume space (unit).
+    pub ey: [f64; 3],
+    /// Pixels per voxel.
+    pub zoom: f64,
+    /// Requested subpixel phases per axis (even, ≥ 2).
+    pub subpixel: usize,
+    /// Largest FFT side.
+    pub max_fft: usize,
+    /// Depth cue: extinction k and unit light direction.
+    pub cue: Option<(f64, [f64; 3])>,
+}
+
+/// A footprint on the fine grid: sample (ix, iy) is the pixel-averaged projection at offset
+/// ((ix − cx)/S, (iy − cy)/S) pixels from the basis centre.
+#[derive(Debug, Clone, PartialEq)]
+pub struct FineTable {
+    /// Subpixel phases per pixel.
+    pub s: usize,
+    /// Width.
+    pub nx: usize,
+    /// Height.
+    pub ny: usize,
+    /// Centre column.
+    pub cx: usize,
+    /// Centre row.
+    pub cy: usize,
+    /// Samples, row-major.
+    pub data: Vec<f64>,
+}
+
+impl FineTable {
+    /// Sample at signed fine indices (zero outside).
+    pub fn get(&self, ix: i64, iy: i64) -> f64 {
+        if ix < 0 || iy < 0 || ix >= self.nx as i64 || iy >= self.ny as i64 {
+            0.0
+        } else {
+            self.data[iy as usize * self.nx + ix as usize]
+        }
+    }
+
+    /// Value at a pixel offset (X, Y) from the centre (nearest sample).
+    pub fn at(&self, x: f64, y: f64) -> f64 {
+        let ix = (x * self.s as f64).round() as i64 + self.cx as i64;
+        let iy = (y * self.s as f64).round() as i64 + self.cy as i64;
+        self.get(ix, iy)
+    }
+}
+
+/// One phase of a footprint: the samples of the fine table at pixel spacing.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Phase {
+    /// Columns.
+    pub cols: usize,
+    /// Rows.
+    pub rows: usize,
+    /// Samples, row-major.
+    pub data: Vec<f32>,
+}
+
+/// A footprint ready for accumulation: S × S phase tables.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Footprint {
+    /// Subpixel phases per axis.
+    pub s: usize,
+    /// Centre column of the fine table.
+    pub cx: usize,
+    /// Centre row of the fine table.
+    pub cy: usize,
+    /// Phase (a, b) at index b·S + a: fine samples (k·S + a, l·S + b).
+    pub phases: Vec<Phase>,
+}
+
+impl Footprint {
+    /// Splits a fine table into its phases.
+    pub fn from_fine(t: &FineTable) -> Footprint {
+        let s = t.s;
+        let mut phases = Vec::with_capacity(s * s);
+        for b in 0..s {
+            for a in 0..s {
+                let cols = (t.nx + s - 1 - a) / s;
+                let rows = (t.ny + s - 1 - b) / s;
+                let mut data = Vec::with_capacity(cols * rows);
+                for l in 0..rows {
+                    for k in 0..cols {
+                        data.push(t.data[(l * s + b) * t.nx + k * s + a] as f32);
+                    }
+                }
+                phases.push(Phase { cols, rows, data });
+            }
+        }
+        Footprint {
+            s,
+            cx: t.cx,
+            cy: t.cy,
+            phases,
+        }
+    }
+
+    /// Placement along one axis of a splat centred at continuous screen coordinate `centre`:
+    /// returns (phase, first pixel) such that pixel `first + k` reads column k of the phase.
+    #[inline]
+    pub fn place(s: usize, c: usize, centre: f64) -> (usize, i64) {
+        let d = (s as f64 * (centre - 0.5)).round() as i64;
+        let t = c as i64 - d;
+        let a = t.rem_euclid(s as i64);
+        let q = (t - a) / s as i64;
+        (a as usize, -q)
+    }
+}
+
+/// The 1D transforms of a family with its wavelet filter cached and factored (the codec's
+/// `psi_hat` recomputes the filter from order-2j B-splines at every call, far too slow for
+/// millions of samples, and sums Σ q_n z^n, which cancels catastrophically near f = 0 where it
+/// vanishes like f^j). Here Q(z) = Σ q_n z^n is divided exactly by its j-fold zero at z = 1,
+/// Q(z) = (1 − z)^j P(z), and 1 − e^(−x) = x·E(x) is evaluated by the codec's stable
+/// `box_transform`; so ψ̂ keeps full relative precision down to f = 0. Same function as
+/// `Family::psi_hat` (cued relative to the support end nearest the light), checked in tests.
+#[derive(Debug, Clone)]
+pub struct Transforms {
+    family: Family,
+    /// P(z) coefficients.
+    p: Vec<f64>,
+    /// q_(N−n) = sign · q_n.
+    sign: f64,
+}
+
+impl Transforms {
+    /// Caches the factored filter of `family`.
+    pub fn new(family: Family) -> Transforms {
+        let j = family.order();
+        let mut c = family.wavelet_filter();
+        for _ in 0..j {
+            // Q = (1 − z) P: p_n = q_n + p_(n−1); the last coefficient is the remainder (≈ 0).
+            let mut acc = 0.0;
+            for v in c.iter_mut() {
+                acc += *v;
+                *v = acc;
+            }
+            c.pop();
+        }
+        Transforms {
+            family,
+            p: c,
+            sign: if family.psi_is_odd() { -1.0 } else { 1.0 },
+        }
+    }
+
+    /// The family.
+    pub fn family(&self) -> Family {
+        self.family
+    }
+
+    /// ∫ φ(x) e^(−κ(x − x_near)) e^(−i2πfx) dx (uncentred, as `Family::phi_hat`).
+    pub fn phi_hat(&self, f: f64, kappa: f64) -> Complex64 {
+        self.family.phi_hat(f, kappa)
+    }
+
+    /// ∫ ψ(x) e^(−κ(x − x_near)) e^(−i2πfx) dx (uncentred, as `Family::psi_hat`).
+    pub fn psi_hat(&self, f: f64, kappa: f64) -> Complex64 {
+        let j = self.family.order() as i32;
+        let half = self.family.phi_hat(0.5 * f, 0.5 * kappa);
+        // s/2 with s = κ + i2πf; Q evaluated at ζ = e^(−s/2) (κ ≥ 0) or, reversed, at
+        // e^(+s/2) (κ < 0), so |ζ| ≤ 1 and nothing overflows.
+        let h = Complex64::new(0.5 * kappa, PI * f);
+        let (x, pre) = if kappa >= 0.0 {
+            (h, Complex64::new(1.0, 0.0))
+        } else {
+            let n = (self.p.len() + j as usize - 1) as f64;
+            (-h, Complex64::from_polar(self.sign, -PI * f * n))
+        };
+        let zeta = (-x).exp();
+        let one_minus = x * box_transform(x);
+        let mut poly = Complex64::new(0.0, 0.0);
+        for c in self.p.iter().rev() {
+            poly = poly * zeta + *c;
+        }
+        pre * one_minus.powi(j) * poly * half * 0.5
+    }
+}
+
+/// 1D transform of the centred, level-m dilated φ or ψ at frequency ξ (cycles per voxel), with
+/// cue exponent κ (already multiplied by 2^m): 2^m · ĥ(2^m ξ, κ) · e^{+i2π 2^m ξ c}.
+pub fn axis_transform(
+    tf: &Transforms,
+    level: usize,
+    wavelet: bool,
+    xi: f64,
+    kappa: f64,
+) -> Complex64 {
+    let s = (1u64 << level) as f64;
+    let f = s * xi;
+    let j = tf.family.order() as f64;
+    let (h, c) = if wavelet {
+        (tf.psi_hat(f, kappa), 0.5 * (2.0 * j - 1.0))
+    } else {
+        (tf.phi_hat(f, kappa), 0.5 * j)
+    };
+    h * Complex64::from_polar(s, 2.0 * PI * f * c)
+}
+
+/// sin(πx)/(πx), exact at 0.
+pub fn sinc(x: f64) -> f64 {
+    if x.abs() < 1e-5 {
+        let y = PI * x;
+        1.0 - y * y / 6.0
+    } else {
+        (PI * x).sin() / (PI * x)
+    }
+}
+
+/// The 3D transform of the centred level-m basis of type `kind` at ξ (cycles per voxel), cued
+/// with κ = k·L̂·2^m per axis (zero without cue).
+pub fn basis_transform(
+    family: Family,
+    level: usize,
+    kind: u8,
+    xi: [f64; 3],
+    kappa: [f64; 3],
+) -> Complex64 {
+    let tf = Transforms::new(family);
+    (0..3)
+        .map(|a| axis_transform(&tf, level, kind & (4 >> a) != 0, xi[a], kappa[a]))
+        .product()
+}
+
+/// The pixel-averaged footprint spectrum P̂(σ, ρ) (σ, ρ in cycles per pixel).
+pub fn footprint_spectrum(
+    p: &FootprintParams,
+    level: usize,
+    kind: u8,
+    sigma: f64,
+    rho: f64,
+) -> Complex64 {
+    let xi = [
+        p.zoom * (sigma * p.ex[0] + rho * p.ey[0]),
+        p.zoom * (sigma * p.ex[1] + rho * p.ey[1]),
+        p.zoom * (sigma * p.ex[2] + rho * p.ey[2]),
+    ];
+    let kappa = cue_kappa(p, level);
+    basis_transform(p.family, level, kind, xi, kappa) * (p.zoom * p.zoom * sinc(sigma) * sinc(rho))
+}
+
+fn cue_kappa(p: &FootprintParams, level: usize) -> [f64; 3] {
+    match p.cue {
+        None => [0.0; 3],
+        Some((k, l)) => {
+            let s = (1u64 << level) as f64;
+            [k * l[0] * s, k * l[1] * s, k * l[2] * s]
+        }
+    }
+}
+
+/// Half extents (pixels) of the pixel-widened projected support of a level-m type.
+pub fn support_radius(p: &FootprintParams, level: usize, kind: u8) -> (f64, f64) {
+    let s = (1u64 << level) as f64;
+    let mut rx = 0.5;
+    let mut ry = 0.5;
+    for a in 0..3 {
+        let h = 0.5
+            * s
+            * if kind & (4 >> a) != 0 {
+                p.family.psi_support()
+            } else {
+                p.family.phi_support()
+            };
+        rx += p.zoom * h * p.ex[a].abs();
+        ry += p.zoom * h * p.ey[a].abs();
+    }
+    (rx, ry)
+}
+
+/// Smallest n ≥ m (and even) whose prime factors are 2, 3, 5.
+fn nice(m: usize) -> usize {
+    let mut n = m.max(2);
+    loop {
+        if n.is_multiple_of(2) {
+            let mut k = n;
+            for p in [2, 3, 5] {
+                while k.is_multiple_of(p) {
+                    k /= p;
+                }
+            }
+            if k == 1 {
+                return n;
+            }
+        }
+        n += 1;
+    }
+}
+
+/// FFT sizes and the subpixel factor for a level (largest type).
+fn sizes(p: &FootprintParams, level: usize) -> (usize, usize, usize) {
+    let mut rx: f64 = 0.0;
+    let mut ry: f64 = 0.0;
+    for kind in 0..8u8 {
+        let (a, b) = support_radius(p, level, kind);
+        rx = rx.max(a);
+        ry = ry.max(b);
+    }
+    let mut s = p.subpixel.max(2);
+    s += s % 2;
+    let need = |s: usize, r: f64| nice((s as f64 * (2.0 * r + 3.0)).ceil() as usize);
+    while s > 2 && need(s, rx).max(need(s, ry)) > p.max_fft.max(16) {
+        s = (s / 2).max(2);
+        s += s % 2;
+    }
+    (s, need(s, rx), need(s, ry))
+}
+
+/// Computes the fine tables of the given types at `level` by FFT (all with the same S).
+pub fn compute_fine(p: &FootprintParams, level: usize, kinds: &[u8]) -> Vec<FineTable> {
+    let (s, nx, ny) = sizes(p, level);
+    compute_fine_with(p, level, kinds, s, nx, ny)
+}
+
+fn signed(k: usize, n: usize) -> f64 {
+    if k < n / 2 {
+        k as f64
+    } else {
+        k as f64 - n as f64
+    }
+}
+
+/// As [`compute_fine`] with explicit S and FFT sizes.
+pub fn compute_fine_with(
+    p: &FootprintParams,
+    level: usize,
+    kinds: &[u8],
+    s: usize,
+    nx: usize,
+    ny: usize,
+) -> Vec<FineTable> {
+    let tf = Transforms::new(p.family);
+    let kappa = cue_kappa(p, level);
+    let nk = kinds.len();
+    // Spectra of every requested type, row-major [ky][kx], evaluated together so that the six
+    // 1D transforms per sample are shared.
+    let mut spectra: Vec<Vec<Complex64>> = vec![vec![Complex64::new(0.0, 0.0); nx * ny]; nk];
+    let rows: Vec<Vec<Vec<Complex64>>> = (0..ny)
+        .into_par_iter()
+        .map(|ky| {
+            let rho = signed(ky, ny) * s as f64 / ny as f64;
+            let mut out = vec![vec![Complex64::new(0.0, 0.0); nx]; nk];
+            for kx in 0..nx {
+                let sigma = signed(kx, nx) * s as f64 / nx as f64;
+                let mut f1 = [[Complex64::new(0.0, 0.0); 2]; 3];
+                for a in 0..3 {
+                    let xi = p.zoom * (sigma * p.ex[a] + rho * p.ey[a]);
+                    f1[a][0] = axis_transform(&tf, level, false, xi, kappa[a]);
+                    f1[a][1] = axis_transform(&tf, level, true, xi, kappa[a]);
+                }
+                let w = p.zoom * p.zoom * sinc(sigma) * sinc(rho);
+                for (t, kind) in kinds.iter().enumerate() {
+                    let bx = (kind >> 2) as usize & 1;
+                    let by = (kind >> 1) as usize & 1;
+                    let bz = *kind as usize & 1;
+                    out[t][kx] = f1[0][bx] * f1[1][by] * f1[2][bz] * w;
+                }
+            }
+            out
+        })
+        .collect();
+    for (ky, row) in rows.into_iter().enumerate() {
+        for (t, r) in row.into_iter().enumerate() {
+            spectra[t][ky * nx..(ky + 1) * nx].copy_from_slice(&r);
+        }
+    }
+    let mut planner = FftPlanner::<f64>::new();
+    let fx = planner.plan_fft_inverse(nx);
+    let fy = planner.plan_fft_inverse(ny);
+    let scale = (s * s) as f64 / (nx * ny) as f64;
+    spectra
+        .into_iter()
+        .zip(kinds)
+        .map(|(mut spec, kind)| {
+            spec.par_chunks_mut(nx).for_each(|row| fx.process(row));
+            // Transpose, transform the columns, and read back transposed.
+            let mut tr = vec![Complex64::new(0.0, 0.0); nx * ny];
+            tr.par_chunks_mut(ny).enumerate().for_each(|(x, col)| {
+                for y in 0..ny {
+                    col[y] = spec[y * nx + x];
+                }
+                fy.process(col);
+            });
+            // Crop to the support (plus one sample) with the centre at the middle.
+            let (rx, ry) = support_radius(p, level, *kind);
+            let hx = ((rx * s as f64).ceil() as usize + 1).min(nx / 2 - 1);
+            let hy = ((ry * s as f64).ceil() as usize + 1).min(ny / 2 - 1);
+            let (cw, ch) = (2 * hx + 1, 2 * hy + 1);
+            let mut data = vec![0.0; cw * ch];
+            for iy in 0..ch {
+                let oy = (iy as i64 - hy as i64).rem_euclid(ny as i64) as usize;
+                for ix in 0..cw {
+                    let ox = (ix as i64 - hx as i64).rem_euclid(nx as i64) as usize;
+                    data[iy * cw + ix] = tr[ox * ny + oy].re * scale;
+                }
+            }
+            FineTable {
+                s,
+                nx: cw,
+                ny: ch,
+                cx: hx,
+                cy: hy,
+                data,
+            }
+        })
+        .collect()
+}
+
+/// Derives the level-`level` table of `kind` from the level-`from` table (mipmap, see the module
+/// documentation for the exact scale factor r^(−3)).
+pub fn mipmap(
+    p: &FootprintParams,
+    top: &FineTable,
+    from: usize,
+    level: usize,
+    kind: u8,
+) -> FineTable {
+    let r = 1usize << (from - level);
+    let s = top.s;
+    let (rx, ry) = support_radius(p, level, kind);
+    let hx = (rx * s as f64).ceil() as usize + 1;
+    let hy = (ry * s as f64).ceil() as usize + 1;
+    let (cw, ch) = (2 * hx + 1, 2 * hy + 1);
+    // Offsets of the r sub-pixels in fine samples: S·(a − (r−1)/2), integral since S is even.
+    let offs: Vec<i64> = (0..r)
+        .map(|a| (s as i64 * (2 * a as i64 - (r as i64 - 1))) / 2)
+        .collect();
+    // Horizontal box sums on every row of the top table.
+    let mut hsum = vec![0.0f64; top.ny * cw];
+    for y in 0..top.ny {
+        for i in 0..cw {
+            let base = top.cx as i64 + r as i64 * (i as i64 - hx as i64);
+            hsum[y * cw + i] = offs.iter().map(|o| top.get(base + o, y as i64)).sum();
+        }
+    }
+    let norm = 1.0 / (r * r * r) as f64;
+    let mut data = vec![0.0; cw * ch];
+    for jy in 0..ch {
+        let base = top.cy as i64 + r as i64 * (jy as i64 - hy as i64);
+        for i in 0..cw {
+            let mut acc = 0.0;
+            for o in &offs {
+                let y = base + o;
+                if y >= 0 && (y as usize) < top.ny {
+                    acc += hsum[y as usize * cw + i];
+                }
+            }
+            data[jy * cw + i] = acc * norm;
+        }
+    }
+    FineTable {
+        s,
+        nx: cw,
+        ny: ch,
+        cx: hx,
+        cy: hy,
+        data,
+    }
+}
+
+/// All footprints of one view: index `level · 8 + kind` (levels 0..=M; level 0 unused unless
+/// M = 0).
+#[derive(Debug, Clone)]
+pub struct FootprintSet {
+    /// The parameters they were built for.
+    pub params: FootprintParams,
+    /// Tables (`None` for (level, kind) pairs that do not occur).
+    pub tables: Vec<Option<Footprint>>,
+}
+
+impl FootprintSet {
+    /// Builds every table: level M by FFT and finer levels by mipmap, or every level by FFT when
+    /// cued.
+    pub fn build(p: &FootprintParams) -> FootprintSet {
+        let m = p.levels;
+        let mut tables: Vec<Option<Footprint>> = vec![None; (m + 1) * 8];
+        let all: Vec<u8> = (0..8).collect();
+        let wavelets: Vec<u8> = (1..8).collect();
+        if p.cue.is_some() || m == 0 {
+            for level in (if m == 0 { 0 } else { 1 })..=m {
+                let kinds = if level == m { &all } else { &wavelets };
+                for (t, kind) in compute_fine(p, level, kinds).iter().zip(kinds) {
+                    tables[level * 8 + *kind as usize] = Some(Footprint::from_fine(t));
+                }
+            }
+        } else {
+            let top = compute_fine(p, m, &all);
+            for (t, kind) in top.iter().zip(&all) {
+                tables[m * 8 + *kind as usize] = Some(Footprint::from_fine(t));
+                if *kind != 0 {
+                    for level in 1..m {
+                        let f = mipmap(p, t, m, level, *kind);
+                        tables[level * 8 + *kind as usize] = Some(Footprint::from_fine(&f));
+                    }
+                }
+            }
+        }
+        FootprintSet { params: *p, tables }
+    }
+
+    /// The table of a band, if any.
+    pub fn get(&self, level: usize, kind: u8) -> Option<&Footprint> {
+        self.tables
+            .get(level * 8 + kind as usize)
+            .and_then(|t| t.as_ref())
+    }
+}

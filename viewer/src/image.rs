@@ -1,0 +1,173 @@
+//! Rendered images and their output: the [`Image`] type (f32, channels interleaved, row 0 at
+//! the top), crops and side-by-side concatenation, PNG writing with window/level (automatic
+//! from the 1st/99th percentiles by default) and the raw f32 writer used for measurements
+//! (H rows of W little-endian f32, channels interleaved).
+
+use std::io::Write;
+use std::path::Path;
+use thiserror::Error;
+
+/// Errors writing images.
+#[derive(Debug, Error)]
+#[non_exhaustive]
+pub enum ImageError {
+    /// I/O failure.
+    #[error("image I/O: {0}")]
+    Io(#[from] std::io::Error),
+    /// PNG encoder failure.
+    #[error("PNG encoding: {0}")]
+    Png(#[from] png::EncodingError),
+    /// PNG supports 1 (grey) or 3 (RGB) channels here.
+    #[error("cannot write {0} channels as PNG (1 or 3 supported)")]
+    Channels(usize),
+    /// Invalid window.
+    #[error("window [{0}, {1}] is empty or not finite")]
+    BadWindow(f64, f64),
+}
+
+/// A float image, channels interleaved, row-major, row 0 at the top.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Image {
+    /// Width.
+    pub width: usize,
+    /// Height.
+    pub height: usize,
+    /// Channels per pixel.
+    pub channels: usize,
+    /// Pixels (width · height · channels).
+    pub data: Vec<f32>,
+}
+
+impl Image {
+    /// A zero image.
+    pub fn new(width: usize, height: usize, channels: usize) -> Image {
+        Image {
+            width,
+            height,
+            channels,
+            data: vec![0.0; width * height * channels],
+        }
+    }
+
+    /// Value of channel `c` at pixel (x, y).
+    pub fn get(&self, x: usize, y: usize, c: usize) -> f32 {
+        self.data[(y * self.width + x) * self.channels + c]
+    }
+
+    /// One channel as its own image.
+    pub fn channel(&self, c: usize) -> Image {
+        Image {
+            width: self.width,
+            height: self.height,
+            channels: 1,
+            data: self
+                .data
+                .iter()
+                .skip(c)
+                .step_by(self.channels.max(1))
+                .copied()
+                .collect(),
+        }
+    }
+
+    /// The sub-image at (x0, y0) of size w × h (clipped to the image).
+    pub fn crop(&self, x0: usize, y0: usize, w: usize, h: usize) -> Image {
+        let x1 = (x0 + w).min(self.width);
+        let y1 = (y0 + h).min(self.height);
+        let (w, h) = (x1.saturating_sub(x0), y1.saturating_sub(y0));
+        let mut out = Image::new(w, h, self.channels);
+        for y in 0..h {
+            let src = ((y0 + y) * self.width + x0) * self.channels;
+            let dst = y * w * self.channels;
+            out.data[dst..dst + w * self.channels]
+                .copy_from_slice(&self.data[src..src + w * self.channels]);
+        }
+        out
+    }
+
+    /// Images of equal height and channels side by side.
+    pub fn hconcat(images: &[Image]) -> Image {
+        let height = images.iter().map(|i| i.height).max().unwrap_or(0);
+        let channels = images.iter().map(|i| i.channels).max().unwrap_or(1);
+        let width: usize = images.iter().map(|i| i.width).sum();
+        let mut out = Image::new(width, height, channels);
+        let mut x0 = 0;
+        for im in images {
+            for y in 0..im.height {
+                for x in 0..im.width {
+                    for c in 0..im.channels {
+                        out.data[((y * width) + x0 + x) * channels + c] = im.get(x, y, c);
+                    }
+                }
+            }
+            x0 += im.width;
+        }
+        out
+    }
+
+    /// The `lo`/`hi` percentiles (0..=100) of all finite samples.
+    pub fn percentiles(&self, lo: f64, hi: f64) -> (f64, f64) {
+        let mut v: Vec<f32> = self
+            .data
+            .iter()
+            .copied()
+            .filter(|x| x.is_finite())
+            .collect();
+        if v.is_empty() {
+            return (0.0, 1.0);
+        }
+        v.sort_by(|a, b| a.total_cmp(b));
+        let at = |p: f64| {
+            let i = ((p.clamp(0.0, 100.0) / 100.0) * (v.len() - 1) as f64).round() as usize;
+            v[i] as f64
+        };
+        (at(lo), at(hi))
+    }
+
+    /// Writes an 8-bit PNG (grey or RGB) mapping `window = (low, high)` to 0..255; `None`
+    /// uses the 1st and 99th percentiles.
+    pub fn write_png(&self, path: &Path, window: Option<(f64, f64)>) -> Result<(), ImageError> {
+        let colour = match self.channels {
+            1 => png::ColorType::Grayscale,
+            3 => png::ColorType::Rgb,
+            c => return Err(ImageError::Channels(c)),
+        };
+        let (mut lo, mut hi) = window.unwrap_or_else(|| self.percentiles(1.0, 99.0));
+        if window.is_some() && (!lo.is_finite() || !hi.is_finite() || hi <= lo) {
+            return Err(ImageError::BadWindow(lo, hi));
+        }
+        if hi.partial_cmp(&lo) != Some(std::cmp::Ordering::Greater) {
+            lo -= 0.5;
+            hi = lo + 1.0;
+        }
+        let bytes: Vec<u8> = self
+            .data
+            .iter()
+            .map(|x| {
+                let t = ((*x as f64 - lo) / (hi - lo)).clamp(0.0, 1.0);
+                if t.is_finite() {
+                    (t * 255.0).round() as u8
+                } else {
+                    0
+                }
+            })
+            .collect();
+        let file = std::io::BufWriter::new(std::fs::File::create(path)?);
+        let mut enc = png::Encoder::new(file, self.width as u32, self.height as u32);
+        enc.set_color(colour);
+        enc.set_depth(png::BitDepth::Eight);
+        let mut writer = enc.write_header()?;
+        writer.write_image_data(&bytes)?;
+        Ok(())
+    }
+
+    /// Writes H rows of W little-endian f32 (channels interleaved).
+    pub fn write_raw(&self, path: &Path) -> Result<(), ImageError> {
+        let mut file = std::io::BufWriter::new(std::fs::File::create(path)?);
+        for x in &self.data {
+            file.write_all(&x.to_le_bytes())?;
+        }
+        file.flush()?;
+        Ok(())
+    }
+}

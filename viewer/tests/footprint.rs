@@ -1,0 +1,218 @@
+//! Footprint tests: the slice transform near zero frequency, the FFT path against a direct
+//! projection, and the mipmap against directly computed finer levels.
+mod common;
+
+use num_complex::Complex64;
+use std::f64::consts::PI;
+use wavesplat_codec::family::Family;
+use wavesplat_viewer::camera::basis_from_angles;
+use wavesplat_viewer::footprint::{
+    basis_transform, compute_fine, compute_fine_with, mipmap, FootprintParams, Transforms,
+};
+
+fn sinc_series(f: f64) -> f64 {
+    let y = PI * f;
+    if y.abs() < 1e-3 {
+        1.0 - y * y / 6.0 + y.powi(4) / 120.0
+    } else {
+        y.sin() / y
+    }
+}
+
+/// High-precision centred Haar transforms: φ̂ = sinc(f), ψ̂ = i (πf/2) sinc²(f/2).
+fn haar_reference(level: usize, kind: u8, xi: [f64; 3]) -> Complex64 {
+    let s = (1u64 << level) as f64;
+    (0..3)
+        .map(|a| {
+            let f = s * xi[a];
+            if kind & (4 >> a) != 0 {
+                Complex64::new(0.0, s * PI * f / 2.0 * sinc_series(f / 2.0).powi(2))
+            } else {
+                Complex64::new(s * sinc_series(f), 0.0)
+            }
+        })
+        .product()
+}
+
+fn params(family: Family, levels: usize, alpha: f64, beta: f64, zoom: f64) -> FootprintParams {
+    let (u, v) = basis_from_angles(alpha, beta);
+    FootprintParams {
+        family,
+        levels,
+        ex: u,
+        ey: [-v[0], -v[1], -v[2]],
+        zoom,
+        subpixel: 8,
+        max_fft: 768,
+        cue: None,
+    }
+}
+
+/// Slice product at σ, ρ ∈ {0, 1e-12, 1e-8, 1e-4}: every Haar type and the scaling type of every
+/// family agree with closed forms evaluated without cancellation to 1e-12 relative; the linear
+/// and cubic wavelet types (whose transform vanishes like f^j at 0, and whose codec evaluation
+/// Σ q_n e^(−iπfn) cancels there) agree to 1e-12 of the scaling-type magnitude.
+#[test]
+fn slice_transform_near_zero_is_accurate() {
+    let p = params(Family::Haar, 2, 0.66, 0.91, 1.7);
+    let vals = [0.0, 1e-12, 1e-8, 1e-4];
+    for &sigma in &vals {
+        for &rho in &vals {
+            let xi = [
+                p.zoom * (sigma * p.ex[0] + rho * p.ey[0]),
+                p.zoom * (sigma * p.ex[1] + rho * p.ey[1]),
+                p.zoom * (sigma * p.ex[2] + rho * p.ey[2]),
+            ];
+            for level in 0..=2 {
+                for kind in 0..8u8 {
+                    let got = basis_transform(Family::Haar, level, kind, xi, [0.0; 3]);
+                    let want = haar_reference(level, kind, xi);
+                    let err = (got - want).norm();
+                    assert!(
+                        err <= 1e-12 * want.norm() || (want.norm() == 0.0 && err == 0.0),
+                        "haar L{level} t{kind} σ={sigma} ρ={rho}: {got} vs {want}"
+                    );
+                }
+                for family in [Family::Linear, Family::Cubic] {
+                    let j = family.order() as i32;
+                    let s = (1u64 << level) as f64;
+                    let want0: f64 = (0..3).map(|a| s * sinc_series(s * xi[a]).powi(j)).product();
+                    let got0 = basis_transform(family, level, 0, xi, [0.0; 3]);
+                    assert!((got0 - want0).norm() <= 1e-12 * want0, "{family} φφφ");
+                    for kind in 1..8u8 {
+                        let got = basis_transform(family, level, kind, xi, [0.0; 3]);
+                        // Closed form of the centred ψ at these tiny f: O(f^j), so |got| must be
+                        // at rounding level relative to the scaling type.
+                        let small = (s * xi.iter().fold(0.0f64, |m, x| m.max(x.abs()))).powi(j);
+                        assert!(
+                            got.norm() <= 1e-12 * want0 + 10.0 * small * want0,
+                            "{family} t{kind}: {got}"
+                        );
+                    }
+                }
+            }
+        }
+    }
+}
+
+#[test]
+fn cached_psi_hat_matches_codec() {
+    for family in Family::ALL {
+        let tf = Transforms::new(family);
+        for &f in &[0.0, 1e-9, 0.013, 0.37, 1.9, -2.7] {
+            for &k in &[0.0, 0.3, -0.3, 7.0, -40.0] {
+                let a = tf.psi_hat(f, k);
+                let b = family.psi_hat(f, k);
+                assert!(
+                    (a - b).norm() <= 1e-13 * (1.0 + b.norm()),
+                    "{family} f={f} κ={k}"
+                );
+            }
+        }
+    }
+}
+
+/// Pixel-averaged chord length through a cube of side 2^level centred at the origin.
+fn box_projection(p: &FootprintParams, level: usize, x: f64, y: f64, sub: usize) -> f64 {
+    let h = 0.5 * (1u64 << level) as f64;
+    let dir = {
+        let (ex, ey) = (p.ex, p.ey);
+        // n = u × v with u = ex, v = −ey.
+        let v = [-ey[0], -ey[1], -ey[2]];
+        [
+            ex[1] * v[2] - ex[2] * v[1],
+            ex[2] * v[0] - ex[0] * v[2],
+            ex[0] * v[1] - ex[1] * v[0],
+        ]
+    };
+    let mut acc = 0.0;
+    for sy in 0..sub {
+        for sx in 0..sub {
+            let px = (x - 0.5 + (sx as f64 + 0.5) / sub as f64) / p.zoom;
+            let py = (y - 0.5 + (sy as f64 + 0.5) / sub as f64) / p.zoom;
+            let o = [
+                px * p.ex[0] + py * p.ey[0],
+                px * p.ex[1] + py * p.ey[1],
+                px * p.ex[2] + py * p.ey[2],
+            ];
+            let (mut t0, mut t1) = (f64::NEG_INFINITY, f64::INFINITY);
+            for a in 0..3 {
+                if dir[a].abs() < 1e-15 {
+                    if o[a].abs() > h {
+                        t1 = t0 - 1.0;
+                    }
+                    continue;
+                }
+                let ta = (-h - o[a]) / dir[a];
+                let tb = (h - o[a]) / dir[a];
+                t0 = t0.max(ta.min(tb));
+                t1 = t1.min(ta.max(tb));
+            }
+            acc += (t1 - t0).max(0.0);
+        }
+    }
+    acc / (sub * sub) as f64
+}
+
+/// The FFT footprint of the Haar scaling function equals the direct numerical projection
+/// (pixel-averaged chord lengths, 48×48 rays per pixel) to 2e-3 of its peak.
+#[test]
+fn fft_footprint_matches_direct_projection() {
+    let p = params(Family::Haar, 1, 0.66, 0.91, 2.0);
+    let t = &compute_fine(&p, 1, &[0])[0];
+    let peak = t.data.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+    let mut worst: f64 = 0.0;
+    for iy in (0..t.ny).step_by(3) {
+        for ix in (0..t.nx).step_by(3) {
+            let x = (ix as f64 - t.cx as f64) / t.s as f64;
+            let y = (iy as f64 - t.cy as f64) / t.s as f64;
+            let direct = box_projection(&p, 1, x, y, 48);
+            worst = worst.max((t.data[iy * t.nx + ix] - direct).abs());
+        }
+    }
+    eprintln!(
+        "FFT vs direct projection: max error {:.2e} of peak {peak:.3}",
+        worst / peak
+    );
+    assert!(worst <= 2e-3 * peak, "{worst} vs peak {peak}");
+}
+
+/// Mipmapped level-m tables equal directly computed ones (3e-3 of the peak, worst Haar ψψψ; both carry the
+/// band truncation of their own FFT).
+#[test]
+fn mipmap_matches_direct_levels() {
+    for family in Family::ALL {
+        let p = params(family, 3, 0.66, 0.91, 1.5);
+        let top = compute_fine(&p, 3, &[0, 3, 5, 7]);
+        for (t, kind) in top.iter().zip([0u8, 3, 5, 7]) {
+            let kind = if kind == 0 { 1 } else { kind };
+            let t = if kind == 1 {
+                &compute_fine_with(&p, 3, &[1], t.s, 2 * (t.nx + 8), 2 * (t.ny + 8))[0]
+            } else {
+                t
+            };
+            for level in 1..3 {
+                let derived = mipmap(&p, t, 3, level, kind);
+                let direct = &compute_fine_with(&p, level, &[kind], t.s, 512, 512)[0];
+                let peak = direct.data.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+                let mut worst: f64 = 0.0;
+                for iy in 0..direct.ny {
+                    for ix in 0..direct.nx {
+                        let x = (ix as f64 - direct.cx as f64) / direct.s as f64;
+                        let y = (iy as f64 - direct.cy as f64) / direct.s as f64;
+                        worst =
+                            worst.max((derived.at(x, y) - direct.data[iy * direct.nx + ix]).abs());
+                    }
+                }
+                eprintln!(
+                    "{family} t{kind} level {level} from 3: mipmap error {:.2e} of peak",
+                    worst / peak
+                );
+                assert!(
+                    worst <= 3e-3 * peak,
+                    "{family} t{kind} L{level}: {worst} vs {peak}"
+                );
+            }
+        }
+    }
+}
