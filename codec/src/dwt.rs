@@ -8,6 +8,14 @@
 //! rounding in O(N log N). A dense Gram-matrix projection is kept in the tests as the naive
 //! reference.
 //!
+//! Voxel values are *samples* of the spline: the volume is the function
+//! f(x) = Σ c_k φ(x − k + j/2) whose values at the voxel centres are the voxels (f(k) = v_k).
+//! For Haar and linear, φ at the integers is a Kronecker delta and c = v; for the cubic family
+//! the coefficients come from the exact (periodic, FFT) B-spline interpolation prefilter
+//! ([`samples_to_coefficients`]) and samples are recovered by the 3-tap FIR
+//! ([`coefficients_to_samples`]). This keeps the energy oracle, which measures the function,
+//! in step with errors measured on voxels, and makes the X-ray of f the X-ray of the data.
+//!
 //! The 3D transform is the non-standard tensor product: per level, every x line, then every y
 //! line, then every z line of the current scaling block is split into a scaling half and a
 //! wavelet half (in place, Mallat layout; see [`crate::layout`]), then the scaling octant
@@ -305,17 +313,103 @@ pub fn crop_channel(padded: &[f64], geometry: &Geometry) -> Vec<f32> {
     out
 }
 
-/// Convenience: pads a channel and returns its coefficients (Mallat layout).
+/// Values of the centred φ at the integers, φ(d + j/2) for d = −r..=r: the FIR that samples a
+/// spline at the voxel centres. A single 1 for Haar and linear.
+pub fn interpolation_taps(family: Family) -> Vec<f64> {
+    let j = family.order() as f64;
+    let r = family.order() as i64;
+    let taps: Vec<f64> = (-r..=r).map(|d| family.phi(d as f64 + 0.5 * j)).collect();
+    let first = taps.iter().position(|t| *t != 0.0).unwrap_or(0);
+    let last = taps.iter().rposition(|t| *t != 0.0).unwrap_or(0);
+    taps[first..=last].to_vec()
+}
+
+/// Converts voxel samples (padded grid) into spline coefficients in place: the exact periodic
+/// interpolation prefilter, per axis, by division by the FIR's symbol in the DFT domain (the
+/// cubic symbol (4 + 2cos ω)/6 ≥ 1/3 never vanishes). No-op for Haar and linear.
+pub fn samples_to_coefficients(data: &mut [f64], geometry: &Geometry) {
+    let taps = interpolation_taps(geometry.family);
+    if taps.len() == 1 {
+        return;
+    }
+    let r = (taps.len() / 2) as i64;
+    for axis in 0..3 {
+        let len = geometry.padded[axis];
+        let mut planner = FftPlanner::<f64>::new();
+        let fft = planner.plan_fft_forward(len);
+        let ifft = planner.plan_fft_inverse(len);
+        let symbol: Vec<f64> = (0..len)
+            .map(|n| {
+                taps.iter()
+                    .enumerate()
+                    .map(|(i, t)| {
+                        let d = i as i64 - r;
+                        t * (2.0 * std::f64::consts::PI * (n as i64 * d) as f64 / len as f64).cos()
+                    })
+                    .sum::<f64>()
+                    * len as f64
+            })
+            .collect();
+        let op = |line: &mut [f64], s: &mut LineScratch| {
+            s.even.clear();
+            s.even.extend(line.iter().map(|v| Complex64::new(*v, 0.0)));
+            s.fft.resize(
+                fft.get_inplace_scratch_len()
+                    .max(ifft.get_inplace_scratch_len()),
+                Complex64::default(),
+            );
+            fft.process_with_scratch(&mut s.even, &mut s.fft);
+            for (c, d) in s.even.iter_mut().zip(&symbol) {
+                *c /= *d;
+            }
+            ifft.process_with_scratch(&mut s.even, &mut s.fft);
+            for (v, c) in line.iter_mut().zip(&s.even) {
+                *v = c.re;
+            }
+        };
+        for_each_line(data, geometry.padded, geometry.padded, axis, &op);
+    }
+}
+
+/// Samples the spline at the voxel centres in place (inverse of [`samples_to_coefficients`]):
+/// circular convolution with [`interpolation_taps`] along each axis. No-op for Haar and linear.
+pub fn coefficients_to_samples(data: &mut [f64], geometry: &Geometry) {
+    let taps = interpolation_taps(geometry.family);
+    if taps.len() == 1 {
+        return;
+    }
+    let r = (taps.len() / 2) as i64;
+    for axis in 0..3 {
+        let op = |line: &mut [f64], s: &mut LineScratch| {
+            let n = line.len() as i64;
+            s.real.clear();
+            s.real.extend((0..n).map(|i| {
+                taps.iter()
+                    .enumerate()
+                    .map(|(t, w)| w * line[(i + t as i64 - r).rem_euclid(n) as usize])
+                    .sum::<f64>()
+            }));
+            line.copy_from_slice(&s.real);
+        };
+        for_each_line(data, geometry.padded, geometry.padded, axis, &op);
+    }
+}
+
+/// Convenience: pads a channel (voxel samples), converts it to spline coefficients and returns
+/// its wavelet coefficients (Mallat layout).
 pub fn decompose_channel(channel: &[f32], geometry: &Geometry) -> Vec<f64> {
     let mut data = pad_channel(channel, geometry);
+    samples_to_coefficients(&mut data, geometry);
     forward_3d(&mut data, geometry, &mut Dwt1d::new(geometry.family));
     data
 }
 
-/// Convenience: reconstructs a channel (cropped to the volume) from all its coefficients.
+/// Convenience: reconstructs a channel's voxel samples (cropped to the volume) from all its
+/// wavelet coefficients.
 pub fn reconstruct_channel(coefficients: &[f64], geometry: &Geometry) -> Vec<f32> {
     let mut data = coefficients.to_vec();
     inverse_3d(&mut data, geometry, &mut Dwt1d::new(geometry.family));
+    coefficients_to_samples(&mut data, geometry);
     crop_channel(&data, geometry)
 }
 
@@ -407,12 +501,52 @@ mod tests {
                     // And in f64, without the f32 round trip:
                     let mut data = coeffs.clone();
                     inverse_3d(&mut data, &g, &mut Dwt1d::new(fam));
+                    coefficients_to_samples(&mut data, &g);
                     let padded = pad_channel(&vol, &g);
                     let e64 = rel_l2(&data, &padded);
                     assert!(e64 < 1e-12, "{fam} {dims:?} M={levels}: f64 rel L2 {e64}");
                 }
             }
         }
+    }
+
+    #[test]
+    fn interpolation_prefilter_inverts_sampling() {
+        assert_eq!(interpolation_taps(Family::Haar), vec![1.0]);
+        assert_eq!(interpolation_taps(Family::Linear), vec![1.0]);
+        let t = interpolation_taps(Family::Cubic);
+        assert_eq!(t.len(), 3);
+        assert!((t[1] - 2.0 / 3.0).abs() < 1e-15 && (t[0] - 1.0 / 6.0).abs() < 1e-15);
+        let g = Geometry::new([7, 5, 3], Family::Cubic, 0, 0).unwrap();
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
+        let v: Vec<f64> = (0..105).map(|_| rng.gen_range(-5.0..5.0)).collect();
+        let mut c = v.clone();
+        samples_to_coefficients(&mut c, &g);
+        // Independent check: the spline through c, evaluated at voxel centres, gives v.
+        let f = |x: usize, y: usize, z: usize| -> f64 {
+            let mut s = 0.0;
+            for (i, ci) in c.iter().enumerate() {
+                let (a, b, d) = (i % 7, (i / 7) % 5, i / 35);
+                let w = |p: usize, q: usize, n: usize| {
+                    // periodic distance
+                    let mut dd = p as f64 - q as f64;
+                    if dd > n as f64 / 2.0 {
+                        dd -= n as f64;
+                    }
+                    if dd < -(n as f64) / 2.0 {
+                        dd += n as f64;
+                    }
+                    Family::Cubic.phi(dd + 2.0)
+                };
+                s += ci * w(x, a, 7) * w(y, b, 5) * w(z, d, 3);
+            }
+            s
+        };
+        for (x, y, z) in [(0, 0, 0), (3, 2, 1), (6, 4, 2)] {
+            assert!((f(x, y, z) - v[x + 7 * (y + 5 * z)]).abs() < 1e-9);
+        }
+        coefficients_to_samples(&mut c, &g);
+        assert!(rel_l2(&c, &v) < 1e-13);
     }
 
     #[test]

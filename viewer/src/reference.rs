@@ -14,7 +14,7 @@ use crate::camera::{dot, resolve_cue, Camera, ResolvedCue, View};
 use crate::image::Image;
 use crate::RenderError;
 use rayon::prelude::*;
-use wavesplat_codec::dwt::{inverse_3d, pad_channel, Dwt1d};
+use wavesplat_codec::dwt::{inverse_3d, pad_channel, samples_to_coefficients, Dwt1d};
 use wavesplat_codec::family::Family;
 use wavesplat_codec::format::packet::Coefficient;
 use wavesplat_codec::layout::Geometry;
@@ -51,11 +51,19 @@ impl PaddedVolume {
         })
     }
 
-    /// Pads volume channels directly (the reference for the unmodified volume).
+    /// The spline through the voxel samples of an unmodified volume (padded, prefiltered to
+    /// spline coefficients for the cubic family).
     pub fn from_volume(channels: &[Vec<f32>], geometry: &Geometry) -> PaddedVolume {
         PaddedVolume {
             geometry: *geometry,
-            channels: channels.iter().map(|c| pad_channel(c, geometry)).collect(),
+            channels: channels
+                .iter()
+                .map(|c| {
+                    let mut d = pad_channel(c, geometry);
+                    samples_to_coefficients(&mut d, geometry);
+                    d
+                })
+                .collect(),
         }
     }
 }
