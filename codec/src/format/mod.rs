@@ -22,6 +22,7 @@
 pub mod bytes;
 pub mod packet;
 pub mod quant;
+pub mod sigmap;
 
 use crate::entropy::bits::{BitReader, BitWriter};
 use crate::entropy::huffman::HuffmanCode;
@@ -187,6 +188,9 @@ pub enum CoderKind {
     Huffman,
     /// The same syntax with an adaptive binary arithmetic (range) coder, reset per packet.
     Range,
+    /// Octree significance maps per substream + uniformly quantized magnitudes, adaptive range
+    /// coded (see [`sigmap`]); the default.
+    Sigmap,
 }
 
 impl CoderKind {
@@ -195,6 +199,7 @@ impl CoderKind {
         match self {
             CoderKind::Huffman => "huffman",
             CoderKind::Range => "range",
+            CoderKind::Sigmap => "sigmap",
         }
     }
     /// Parses a name.
@@ -202,6 +207,7 @@ impl CoderKind {
         match s {
             "huffman" => Some(CoderKind::Huffman),
             "range" | "arithmetic" => Some(CoderKind::Range),
+            "sigmap" => Some(CoderKind::Sigmap),
             _ => None,
         }
     }
@@ -255,6 +261,10 @@ pub struct Header {
     pub tile: usize,
     /// Score upper bound of each quality layer (layer 0 first; non-increasing; may be +∞).
     pub layer_bounds: Vec<f32>,
+    /// Smallest score S = E·I of a kept coefficient (rounded down); with the basis norm and the
+    /// importance it gives each substream's smallest magnitude (see
+    /// [`Header::magnitude_threshold`]).
+    pub score_threshold: f32,
     /// Per (channel, band index) parameters; `None` for substreams without coefficients.
     pub substreams: Vec<Option<SubstreamParams>>,
     /// Huffman tables (present iff `coder == Huffman`).
@@ -345,6 +355,17 @@ impl Header {
         }
     }
 
+    /// Smallest magnitude a kept coefficient of `substream` can have: √(threshold / (‖basis‖²·I)).
+    pub fn magnitude_threshold(&self, substream: usize) -> f64 {
+        let (channel, band) = self.substream_of(substream);
+        let weight = self.geometry.basis_norm2(band) * self.importance(channel);
+        if weight > 0.0 {
+            (self.score_threshold as f64 / weight).sqrt()
+        } else {
+            0.0
+        }
+    }
+
     fn write(&self, w: &mut ByteWriter) {
         let g = &self.geometry;
         for d in g.dims {
@@ -376,6 +397,7 @@ impl Header {
         w.u8(match self.coder {
             CoderKind::Huffman => 0,
             CoderKind::Range => 1,
+            CoderKind::Sigmap => 2,
         });
         w.u8(self.bits);
         w.varint(self.tile as u64);
@@ -383,6 +405,7 @@ impl Header {
         for b in &self.layer_bounds {
             w.f32(*b);
         }
+        w.f32(self.score_threshold);
         // Presence bitmap, then parameters of the present substreams.
         let mut bitmap = vec![0u8; self.substreams.len().div_ceil(8)];
         for (i, s) in self.substreams.iter().enumerate() {
@@ -478,6 +501,7 @@ impl Header {
         let coder = match r.u8()? {
             0 => CoderKind::Huffman,
             1 => CoderKind::Range,
+            2 => CoderKind::Sigmap,
             c => return Err(invalid(W, format!("unknown coder code {c}"))),
         };
         let bits = r.u8()?;
@@ -509,6 +533,13 @@ impl Header {
                 ));
             }
             layer_bounds.push(b);
+        }
+        let score_threshold = r.f32()?;
+        if !(score_threshold.is_finite() && score_threshold >= 0.0) {
+            return Err(invalid(
+                W,
+                "score threshold must be finite and non-negative",
+            ));
         }
         let nsub = channels * geometry.band_count();
         let bitmap = r.take(nsub.div_ceil(8))?.to_vec();
@@ -557,6 +588,7 @@ impl Header {
             bits,
             tile,
             layer_bounds,
+            score_threshold,
             substreams,
             tables,
             total_energy,

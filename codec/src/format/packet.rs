@@ -334,8 +334,11 @@ fn fit_tables(header: &Header, symbolized: &[Vec<Symbols>]) -> HuffmanTables {
 /// packets and stored into `header.tables`; `header.substreams` must already hold the
 /// quantization parameters of every substream that appears.
 pub fn encode_packets(header: &mut Header, inputs: &[PacketInput]) -> EncodedPackets {
-    let (symbolized, reconstruction): (Vec<_>, Vec<_>) =
-        inputs.iter().map(|p| symbolize(header, p)).unzip();
+    let (symbolized, reconstruction): (Vec<_>, Vec<_>) = if header.coder == CoderKind::Sigmap {
+        (Vec::new(), Vec::new())
+    } else {
+        inputs.iter().map(|p| symbolize(header, p)).unzip()
+    };
     let mut breakdown = SizeBreakdown::default();
     let mut packets = Vec::with_capacity(inputs.len());
     match header.coder {
@@ -355,6 +358,27 @@ pub fn encode_packets(header: &mut Header, inputs: &[PacketInput]) -> EncodedPac
                 breakdown.framing_bytes += (framed.len() - payload.len()) as u64;
                 packets.push(framed);
             }
+        }
+        CoderKind::Sigmap => {
+            header.tables = None;
+            let mut reconstruction = Vec::with_capacity(inputs.len());
+            for input in inputs {
+                let (payload, recon, bd) =
+                    super::sigmap::encode(header, input.tile, input.layer, &input.coefficients);
+                breakdown.tag_bits += bd.tag_bits;
+                breakdown.position_bits += bd.position_bits;
+                breakdown.sign_bits += bd.sign_bits;
+                breakdown.value_bits += bd.value_bits;
+                let framed = frame(header, input, &recon, &payload);
+                breakdown.framing_bytes += (framed.len() - payload.len()) as u64;
+                packets.push(framed);
+                reconstruction.push(recon);
+            }
+            return EncodedPackets {
+                packets,
+                reconstruction,
+                breakdown,
+            };
         }
         CoderKind::Range => {
             header.tables = None;
@@ -517,6 +541,9 @@ pub fn decode_packet(header: &Header, bytes: &[u8]) -> Result<DecodedPacket, For
                 value: HuffmanDecoder::new(&t.value),
             };
             decode_syntax(header, tile, layer, count, &mut src, &mut breakdown)?
+        }
+        CoderKind::Sigmap => {
+            super::sigmap::decode(header, tile, layer, count, payload, &mut breakdown)?
         }
         CoderKind::Range => {
             let mut src = RangeSource {

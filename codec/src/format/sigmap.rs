@@ -1,0 +1,361 @@
+//! The significance-map coder ([`super::CoderKind::Sigmap`]), our improvement over the paper's
+//! position-delta syntax: instead of coding each coefficient's position as a delta from the
+//! previous one, a packet codes, per substream (channel, band), *which* cells of the tile's band
+//! region hold a coefficient, by octree set partitioning with adaptive binary contexts (as in
+//! SPECK-style wavelet coders), and each coefficient's magnitude as a uniform quantization step
+//! above the layer's lower magnitude bound. Everything resets per packet, so packets stay
+//! self-contained; coefficients come out in octree order (order within a packet carries no
+//! meaning: the packet is the unit of progression).
+//!
+//! Per packet: for each substream that has parameters in the header, one adaptive "present" bit;
+//! for a present substream, the octree over its tile-local band region: every box is split at
+//! the midpoint of each axis longer than one cell, and every child gets an adaptive "occupied"
+//! bit (context: band and log2 of the child's size), except a last child implied occupied by
+//! its empty siblings. A leaf is a coefficient: sign (bypass bit) then q (adaptive
+//! exp-Golomb, context: band), reconstructed as lb + (q + ½)·Δ, where lb is the layer's lower
+//! magnitude bound of the substream and Δ its step (exact f32 bits when Δ = 0).
+
+use super::packet::{Coefficient, SizeBreakdown};
+use super::{invalid, FormatError, Header};
+use crate::entropy::range::{AdaptiveUintModel, BitModel, RangeDecoder, RangeEncoder};
+
+/// Size contexts per band (log2 of a box's cell count, clamped).
+const SIZE_CONTEXTS: usize = 48;
+
+struct Models {
+    present: Vec<BitModel>,
+    occupied: Vec<BitModel>,
+    value: Vec<AdaptiveUintModel>,
+}
+
+impl Models {
+    fn new(header: &Header) -> Models {
+        let nb = header.geometry.band_count();
+        Models {
+            present: (0..nb).map(|_| BitModel::new()).collect(),
+            occupied: (0..nb * SIZE_CONTEXTS).map(|_| BitModel::new()).collect(),
+            value: (0..nb).map(|_| AdaptiveUintModel::new()).collect(),
+        }
+    }
+}
+
+fn size_context(band: usize, cells: usize) -> usize {
+    let lg = (usize::BITS - cells.leading_zeros()) as usize;
+    band * SIZE_CONTEXTS + lg.min(SIZE_CONTEXTS - 1)
+}
+
+/// A box of the tile-local band grid: [lo, hi) per axis.
+#[derive(Clone, Copy)]
+struct Box3 {
+    lo: [u32; 3],
+    hi: [u32; 3],
+}
+
+impl Box3 {
+    fn cells(&self) -> usize {
+        (0..3).map(|a| (self.hi[a] - self.lo[a]) as usize).product()
+    }
+    fn children(&self) -> Vec<Box3> {
+        let mut splits: [Vec<(u32, u32)>; 3] = Default::default();
+        for a in 0..3 {
+            let (lo, hi) = (self.lo[a], self.hi[a]);
+            splits[a] = if hi - lo > 1 {
+                let mid = lo + (hi - lo) / 2;
+                vec![(lo, mid), (mid, hi)]
+            } else {
+                vec![(lo, hi)]
+            };
+        }
+        let mut out = Vec::with_capacity(8);
+        for z in &splits[2] {
+            for y in &splits[1] {
+                for x in &splits[0] {
+                    out.push(Box3 {
+                        lo: [x.0, y.0, z.0],
+                        hi: [x.1, y.1, z.1],
+                    });
+                }
+            }
+        }
+        out
+    }
+    fn contains(&self, p: [u32; 3]) -> bool {
+        (0..3).all(|a| p[a] >= self.lo[a] && p[a] < self.hi[a])
+    }
+}
+
+/// Lower magnitude bound and step of a substream in a layer.
+fn bounds(header: &Header, sub: usize, layer: usize) -> (f64, f64) {
+    let params = header.substreams[sub].expect("present substream");
+    let lb = if layer + 1 < header.layer_bounds.len() {
+        header.chain_start(sub, layer + 1)
+    } else {
+        header.magnitude_threshold(sub)
+    };
+    (lb.max(0.0), params.delta as f64)
+}
+
+fn region(header: &Header, tile: usize, level: u8, band_dims: [usize; 3]) -> ([u32; 3], Box3) {
+    let origin = header.tile_origin(tile);
+    let l = level as usize;
+    let mut lo = [0u32; 3];
+    let mut hi = [0u32; 3];
+    for a in 0..3 {
+        let o = origin[a] >> l;
+        let end = ((origin[a] + header.tile) >> l).min(band_dims[a]);
+        lo[a] = o as u32;
+        hi[a] = end.saturating_sub(o) as u32;
+    }
+    (lo, Box3 { lo: [0; 3], hi })
+}
+
+/// Encodes one packet's coefficients; returns payload, the decoder's reconstruction (in decode
+/// order) and the bit breakdown (model-cost estimates scaled to the payload).
+pub(crate) fn encode(
+    header: &Header,
+    tile: usize,
+    layer: usize,
+    coefficients: &[Coefficient],
+) -> (Vec<u8>, Vec<Coefficient>, SizeBreakdown) {
+    let mut enc = RangeEncoder::new();
+    let mut m = Models::new(header);
+    let nb = header.geometry.band_count();
+    let bands = header.geometry.bands();
+    let mut per_sub: Vec<Vec<&Coefficient>> = vec![Vec::new(); header.substream_count()];
+    for c in coefficients {
+        per_sub[header.substream_id(c.channel as usize, c.band)].push(c);
+    }
+    let mut recon = Vec::with_capacity(coefficients.len());
+    let mut bd = SizeBreakdown::default();
+    for (sub, list) in per_sub.iter().enumerate() {
+        if header.substreams[sub].is_none() {
+            continue;
+        }
+        let bi = sub % nb;
+        let b0 = enc.size_bytes();
+        enc.encode_bit(&mut m.present[bi], !list.is_empty());
+        bd.tag_bits += 8.0 * (enc.size_bytes() - b0) as f64;
+        if list.is_empty() {
+            continue;
+        }
+        let band = bands[bi];
+        let (origin, root) = region(header, tile, band.level, header.geometry.band_dims(band));
+        let (lb, step) = bounds(header, sub, layer);
+        let pts: Vec<([u32; 3], f32)> = list
+            .iter()
+            .map(|c| {
+                let p = [0, 1, 2].map(|a| c.pos[a] - origin[a]);
+                (p, c.value)
+            })
+            .collect();
+        let ctx = Ctx {
+            bi,
+            lb,
+            step,
+            origin,
+            channel: (sub / nb) as u8,
+            band,
+        };
+        encode_box(&mut enc, &mut m, &ctx, root, pts, &mut recon, &mut bd);
+    }
+    let payload = enc.finish();
+    (payload, recon, bd)
+}
+
+struct Ctx {
+    bi: usize,
+    lb: f64,
+    step: f64,
+    origin: [u32; 3],
+    channel: u8,
+    band: crate::layout::Band,
+}
+
+fn quantize(ctx: &Ctx, magnitude: f64) -> (u64, f64) {
+    if ctx.step > 0.0 {
+        let q = ((magnitude - ctx.lb) / ctx.step).floor().clamp(0.0, 1e15) as u64;
+        (q, ctx.lb + (q as f64 + 0.5) * ctx.step)
+    } else {
+        ((magnitude as f32).to_bits() as u64, magnitude as f32 as f64)
+    }
+}
+
+fn dequantize(ctx: &Ctx, q: u64) -> Result<f64, FormatError> {
+    if ctx.step > 0.0 {
+        if q > 1_000_000_000_000_000 {
+            return Err(invalid("packet", "quantized magnitude out of range"));
+        }
+        Ok(ctx.lb + (q as f64 + 0.5) * ctx.step)
+    } else {
+        let bits =
+            u32::try_from(q).map_err(|_| invalid("packet", "exact magnitude out of range"))?;
+        Ok(f32::from_bits(bits) as f64)
+    }
+}
+
+fn encode_box(
+    enc: &mut RangeEncoder,
+    m: &mut Models,
+    ctx: &Ctx,
+    b: Box3,
+    pts: Vec<([u32; 3], f32)>,
+    recon: &mut Vec<Coefficient>,
+    bd: &mut SizeBreakdown,
+) {
+    if b.cells() == 1 {
+        let (p, v) = pts[0];
+        let b0 = enc.size_bytes();
+        enc.encode_bypass((v < 0.0) as u64, 1);
+        let b1 = enc.size_bytes();
+        let (q, mag) = quantize(ctx, (v as f64).abs());
+        m.value[ctx.bi].encode(enc, q);
+        bd.sign_bits += 8.0 * (b1 - b0) as f64;
+        bd.value_bits += 8.0 * (enc.size_bytes() - b1) as f64;
+        let value = if v < 0.0 { -mag } else { mag } as f32;
+        recon.push(Coefficient {
+            channel: ctx.channel,
+            band: ctx.band,
+            pos: [0, 1, 2].map(|a| p[a] + ctx.origin[a]),
+            value,
+        });
+        return;
+    }
+    let children = b.children();
+    let mut parts: Vec<Vec<([u32; 3], f32)>> = vec![Vec::new(); children.len()];
+    for (p, v) in pts {
+        let i = children
+            .iter()
+            .position(|c| c.contains(p))
+            .expect("child covers point");
+        parts[i].push((p, v));
+    }
+    let n = children.len();
+    let mut any_before = false;
+    for (i, (child, part)) in children.into_iter().zip(parts).enumerate() {
+        let occupied = !part.is_empty();
+        // The last child must be occupied if all its siblings are empty: not coded.
+        if i + 1 < n || any_before {
+            let b0 = enc.size_bytes();
+            enc.encode_bit(
+                &mut m.occupied[size_context(ctx.bi, child.cells())],
+                occupied,
+            );
+            bd.position_bits += 8.0 * (enc.size_bytes() - b0) as f64;
+        }
+        any_before |= occupied;
+        if occupied {
+            encode_box(enc, m, ctx, child, part, recon, bd);
+        }
+    }
+}
+
+/// Decodes a sigmap payload of `count` coefficients.
+pub(crate) fn decode(
+    header: &Header,
+    tile: usize,
+    layer: usize,
+    count: usize,
+    payload: &[u8],
+    bd: &mut SizeBreakdown,
+) -> Result<Vec<Coefficient>, FormatError> {
+    let mut dec = RangeDecoder::new(payload);
+    let mut m = Models::new(header);
+    let nb = header.geometry.band_count();
+    let bands = header.geometry.bands();
+    let mut out = Vec::with_capacity(count);
+    for sub in 0..header.substream_count() {
+        if header.substreams[sub].is_none() {
+            continue;
+        }
+        let bi = sub % nb;
+        let b0 = dec.bytes_read();
+        let present = dec.decode_bit(&mut m.present[bi]);
+        bd.tag_bits += 8.0 * (dec.bytes_read() - b0) as f64;
+        if !present {
+            continue;
+        }
+        let band = bands[bi];
+        let (origin, root) = region(header, tile, band.level, header.geometry.band_dims(band));
+        if root.cells() == 0 {
+            return Err(invalid(
+                "packet",
+                "substream present in an empty tile region",
+            ));
+        }
+        let (lb, step) = bounds(header, sub, layer);
+        let ctx = Ctx {
+            bi,
+            lb,
+            step,
+            origin,
+            channel: (sub / nb) as u8,
+            band,
+        };
+        decode_box(&mut dec, &mut m, &ctx, root, count, &mut out, bd)?;
+    }
+    if out.len() != count {
+        return Err(invalid(
+            "packet",
+            format!(
+                "decoded {} coefficients, header of the packet says {count}",
+                out.len()
+            ),
+        ));
+    }
+    Ok(out)
+}
+
+fn decode_box(
+    dec: &mut RangeDecoder,
+    m: &mut Models,
+    ctx: &Ctx,
+    b: Box3,
+    count: usize,
+    out: &mut Vec<Coefficient>,
+    bd: &mut SizeBreakdown,
+) -> Result<(), FormatError> {
+    if out.len() >= count {
+        return Err(invalid(
+            "packet",
+            "more coefficients than the packet declares",
+        ));
+    }
+    if b.cells() == 1 {
+        let b0 = dec.bytes_read();
+        let negative = dec.decode_bypass(1) != 0;
+        let b1 = dec.bytes_read();
+        let q = m.value[ctx.bi].decode(dec)?;
+        bd.sign_bits += 8.0 * (b1 - b0) as f64;
+        bd.value_bits += 8.0 * (dec.bytes_read() - b1) as f64;
+        let mag = dequantize(ctx, q)?;
+        let value = if negative { -mag } else { mag } as f32;
+        if !value.is_finite() {
+            return Err(invalid("packet", "decoded value is not finite"));
+        }
+        out.push(Coefficient {
+            channel: ctx.channel,
+            band: ctx.band,
+            pos: [0, 1, 2].map(|a| b.lo[a] + ctx.origin[a]),
+            value,
+        });
+        return Ok(());
+    }
+    let children = b.children();
+    let n = children.len();
+    let mut any_before = false;
+    for (i, child) in children.into_iter().enumerate() {
+        let occupied = if i + 1 < n || any_before {
+            let b0 = dec.bytes_read();
+            let o = dec.decode_bit(&mut m.occupied[size_context(ctx.bi, child.cells())]);
+            bd.position_bits += 8.0 * (dec.bytes_read() - b0) as f64;
+            o
+        } else {
+            true
+        };
+        any_before |= occupied;
+        if occupied {
+            decode_box(dec, m, ctx, child, count, out, bd)?;
+        }
+    }
+    Ok(())
+}
