@@ -4,7 +4,7 @@
 //! transform.
 
 use crate::colorspace::{ColorSpaceKind, ColorTransform};
-use wavesplat_codec::dwt::{crop_channel, inverse_3d, Dwt1d};
+use wavesplat_codec::dwt::{coefficients_to_samples, crop_channel, inverse_3d, Dwt1d};
 use wavesplat_codec::format::packet::{decode_packet, Coefficient};
 use wavesplat_codec::format::{parse_file, ColorKind, FormatError, Header};
 use wavesplat_codec::volume::{Volume, VolumeError};
@@ -56,6 +56,7 @@ pub fn reconstruct(header: &Header, coefficients: &[Coefficient]) -> Result<Volu
             data[g.linear_index(k.band, pos)] = k.value as f64;
         }
         inverse_3d(&mut data, g, &mut planner);
+        coefficients_to_samples(&mut data, g);
         channels.push(crop_channel(&data, g));
     }
     let coded = Volume::new(g.dims, header.spacing, channels)?;

@@ -12,7 +12,7 @@ use crate::colorspace::{ColorError, ColorSpaceKind, ColorTransform};
 use crate::order::{cluster_order, Clustering, Item};
 use rayon::prelude::*;
 use thiserror::Error;
-use wavesplat_codec::dwt::{forward_3d, pad_channel, Dwt1d};
+use wavesplat_codec::dwt::{forward_3d, pad_channel, samples_to_coefficients, Dwt1d};
 use wavesplat_codec::family::Family;
 use wavesplat_codec::format::packet::{encode_packets, Coefficient, PacketInput, SizeBreakdown};
 use wavesplat_codec::format::quant::delta_factor;
@@ -54,9 +54,12 @@ pub enum TileChoice {
 pub struct CompressOptions {
     /// Wavelet family.
     pub family: Family,
-    /// Decomposition depth M (`None`: min(4, maximum)).
+    /// Decomposition depth M (`None`: min(6, maximum)).
     pub levels: Option<usize>,
-    /// Zero margin in voxels around the volume (`None`: family default).
+    /// Zero margin in voxels around the volume before the periodic transform (`None`: 0; the
+    /// rounding of each axis up to a multiple of 2^M already adds zeros). Volumes with content
+    /// on their faces rendered with the spline families need a margin
+    /// ([`Geometry::default_margin`]) for exact renderings near those faces.
     pub margin: Option<usize>,
     /// Colour space for 3-channel volumes.
     pub colorspace: ColorSpaceKind,
@@ -70,19 +73,22 @@ pub struct CompressOptions {
     pub tile: TileChoice,
     /// Quality layers (`None`: automatic).
     pub layers: Option<usize>,
-    /// Spatial clustering (`None`: pure significance order).
+    /// Spatial clustering (`None`: pure significance order; Huffman and range coders only).
     pub clustering: Option<Clustering>,
+    /// Quantizer step of the sigmap coder, relative to each substream's smallest kept
+    /// magnitude (1 = coefficients at the threshold are known to ±½ threshold).
+    pub step: f64,
 }
 
 impl Default for CompressOptions {
     fn default() -> Self {
         CompressOptions {
-            family: Family::Cubic,
+            family: Family::Linear,
             levels: None,
             margin: None,
             colorspace: ColorSpaceKind::Pca,
             bits: 8,
-            coder: CoderKind::Range,
+            coder: CoderKind::Sigmap,
             target: Target::Fraction(0.05),
             tile: TileChoice::Auto,
             layers: None,
@@ -90,6 +96,7 @@ impl Default for CompressOptions {
                 radius: 4,
                 threshold: 0.5,
             }),
+            step: 1.0,
         }
     }
 }
@@ -211,6 +218,12 @@ fn prepare(
     opts: &CompressOptions,
     progress: &(dyn Fn(Stage, f64) + Sync),
 ) -> Result<Prepared, CompressError> {
+    if !(opts.step.is_finite() && opts.step > 0.0 && opts.step <= 64.0) {
+        return Err(CompressError::InvalidOption(format!(
+            "quantizer step {}; allowed (0, 64]",
+            opts.step
+        )));
+    }
     if !(1..=16).contains(&opts.bits) {
         return Err(CompressError::InvalidOption(format!(
             "quantization bits P = {}; allowed 1..=16",
@@ -219,10 +232,8 @@ fn prepare(
     }
     let dims = volume.dims();
     let max_levels = Geometry::max_levels(dims);
-    let levels = opts.levels.unwrap_or(max_levels.min(4));
-    let margin = opts
-        .margin
-        .unwrap_or_else(|| Geometry::default_margin(opts.family, levels));
+    let levels = opts.levels.unwrap_or(max_levels.min(6));
+    let margin = opts.margin.unwrap_or(0);
     let geometry = Geometry::new(dims, opts.family, levels, margin)?;
     progress(Stage::Color, 0.0);
     let (channels, color) = if volume.channel_count() == 3 {
@@ -241,6 +252,7 @@ fn prepare(
     for (c, ch) in channels.iter().enumerate() {
         progress(Stage::Transform(c), c as f64 / channels.len() as f64);
         let mut data = pad_channel(ch, &geometry);
+        samples_to_coefficients(&mut data, &geometry);
         forward_3d(&mut data, &geometry, &mut planner);
         let importance = color.importance[c];
         let scored: Vec<(Scored, f64)> = data
@@ -362,12 +374,38 @@ impl Prepared {
             let sub = s.channel as usize * nb + g.band_index(band).expect("band");
             mags[sub].push(s.value.abs());
         }
+        // Smallest kept score, rounded down to f32 so every kept score is ≥ it.
+        let score_threshold = kept.last().map_or(0.0, |s| {
+            let t = s.score as f32;
+            if t as f64 > s.score {
+                t.next_down().max(0.0)
+            } else {
+                t
+            }
+        });
         let substreams: Vec<Option<SubstreamParams>> = mags
             .iter()
-            .map(|m| {
-                (!m.is_empty()).then(|| SubstreamParams {
-                    w0: m[0] as f32,
-                    delta: delta_factor(m, opts.bits) as f32,
+            .enumerate()
+            .map(|(sub, m)| {
+                (!m.is_empty()).then(|| {
+                    let delta = if opts.coder == CoderKind::Sigmap {
+                        let band = g.bands()[sub % nb];
+                        let weight = g.basis_norm2(band) * self.color.importance[sub / nb];
+                        let t = if weight > 0.0 {
+                            (score_threshold as f64 / weight).sqrt()
+                        } else {
+                            0.0
+                        };
+                        // Floor the step at 2^-30 of the largest magnitude so q stays small
+                        // even when near-zero coefficients are kept (Target::All).
+                        (opts.step * t).max(m[0] * 2f64.powi(-30))
+                    } else {
+                        delta_factor(m, opts.bits)
+                    };
+                    SubstreamParams {
+                        w0: m[0] as f32,
+                        delta: delta as f32,
+                    }
                 })
             })
             .collect();
@@ -382,6 +420,7 @@ impl Prepared {
             bits: opts.bits,
             tile,
             layer_bounds,
+            score_threshold,
             substreams,
             tables: None,
             total_energy: self.total_energy,
@@ -429,12 +468,20 @@ impl Prepared {
         let encoded = encode_packets(&mut header, &inputs);
         let bytes = write_file(&header, &encoded.packets);
         let header_bytes = wavesplat_codec::format::write_header_section(&header).len() as u64;
-        // Q_E over the kept coefficients (importance-free energies, eq. 20–21).
+        // Q_E over the kept coefficients (importance-free energies, eq. 20–21). The sigmap coder
+        // reorders coefficients within a packet, so pair exact and decoded values by address.
+        let key = |c: &Coefficient| {
+            let p = [c.pos[0] as usize, c.pos[1] as usize, c.pos[2] as usize];
+            (c.channel, g.linear_index(c.band, p))
+        };
+        let mut exact: Vec<&Coefficient> = inputs.iter().flat_map(|i| &i.coefficients).collect();
+        let mut decoded: Vec<&Coefficient> = encoded.reconstruction.iter().flatten().collect();
+        exact.sort_by_key(|c| key(c));
+        decoded.sort_by_key(|c| key(c));
         let q_e = q_e_percent(
-            inputs
+            exact
                 .iter()
-                .zip(&encoded.reconstruction)
-                .flat_map(|(i, r)| i.coefficients.iter().zip(r))
+                .zip(&decoded)
                 .map(|(a, b)| (a.value as f64, b.value as f64, g.basis_norm2(a.band))),
         );
         let kept_energy: f64 = kept
@@ -537,15 +584,26 @@ fn compress_to_bytes(
         });
     }
     let mut best = smallest;
-    let (mut lo, mut hi) = (n.min(1), n);
-    if n > 1 {
-        let all = run(n);
-        if all.stats.bytes <= target {
-            return Ok(all);
+    // Exponential search for a k whose file exceeds the target (never encodes more than about
+    // twice the coefficients that fit), then bisection. Invariant: size(lo) ≤ target < size(hi).
+    // Sizes are nearly monotone in k (the tables adapt), so keep the best feasible trial seen.
+    let mut lo = n.min(1);
+    let mut hi = n + 1;
+    let mut k = lo.max(1);
+    while k < n {
+        k = (k * 2).min(n);
+        let c = run(k);
+        if c.stats.bytes <= target {
+            lo = k;
+            best = c;
+        } else {
+            hi = k;
+            break;
         }
     }
-    // Invariant: size(lo) ≤ target < size(hi). Sizes are nearly monotone in k (the tables
-    // adapt), so keep the best feasible trial seen.
+    if hi == n + 1 {
+        return Ok(best);
+    }
     while hi - lo > 1 {
         let mid = lo + (hi - lo) / 2;
         let c = run(mid);

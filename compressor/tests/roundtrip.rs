@@ -1,0 +1,454 @@
+//! Encode → decode round trips of the whole compressor pipeline, with the error against the
+//! source checked, the decoder checked bit for bit against the encoder's own reconstruction, the
+//! metrics checked against independent computations, and degenerate and extreme inputs.
+
+use proptest::prelude::*;
+use wavesplat_codec::dwt::decompose_channel;
+use wavesplat_codec::family::Family;
+use wavesplat_codec::format::packet::{decode_packet, Coefficient};
+use wavesplat_codec::format::{parse_file, CoderKind};
+use wavesplat_codec::layout::Geometry;
+use wavesplat_codec::metrics::snr_db;
+use wavesplat_codec::volume::Volume;
+use wavesplat_compressor::colorspace::ColorSpaceKind;
+use wavesplat_compressor::decode::{decode_coefficients, decompress};
+use wavesplat_compressor::encode::{compress, CompressOptions, Compressed, Target, TileChoice};
+use wavesplat_compressor::phantom::Phantom;
+use wavesplat_compressor::reader::{decode_raw, RawDtype, RawSpec};
+
+fn run(v: &Volume, o: &CompressOptions) -> Compressed {
+    compress(v, o, &|_, _| {}).expect("compression succeeds")
+}
+
+fn rel_l2(a: &[f32], b: &[f32]) -> f64 {
+    let num: f64 = a.iter().zip(b).map(|(x, y)| ((x - y) as f64).powi(2)).sum();
+    let den: f64 = b.iter().map(|y| (*y as f64).powi(2)).sum();
+    if den == 0.0 {
+        num.sqrt()
+    } else {
+        (num / den).sqrt()
+    }
+}
+
+fn flat(v: &Volume) -> Vec<f32> {
+    v.to_interleaved()
+}
+
+#[test]
+fn all_coefficients_at_p16_reproduce_the_volume() {
+    // P = 16 and every coefficient: the only loss is the delta quantizer (Δ = largest gap / 2^16
+    // per substream) and f32 storage. Stated tolerance: relative L2 error < 1e-3.
+    let vol = Phantom::SheppLogan.generate([21, 24, 19]);
+    for family in Family::ALL {
+        for coder in [CoderKind::Huffman, CoderKind::Range, CoderKind::Sigmap] {
+            let o = CompressOptions {
+                family,
+                levels: Some(3),
+                bits: 16,
+                step: 1e-4,
+                coder,
+                target: Target::All,
+                tile: TileChoice::Size(16),
+                ..Default::default()
+            };
+            let c = run(&vol, &o);
+            let back = decompress(&c.bytes).unwrap();
+            assert_eq!(back.dims(), vol.dims());
+            let e = rel_l2(&flat(&back), &flat(&vol));
+            assert!(e < 1e-3, "{family} {coder:?}: rel L2 {e}");
+            assert!(c.stats.q_v > 99.999, "{family}: Q_V {}", c.stats.q_v);
+        }
+    }
+}
+
+#[test]
+fn decoder_matches_the_encoder_reconstruction_bit_for_bit() {
+    let vol = Phantom::Spheres.generate([20, 20, 20]);
+    for coder in [CoderKind::Huffman, CoderKind::Range, CoderKind::Sigmap] {
+        for bits in [1u8, 3, 8] {
+            let o = CompressOptions {
+                bits,
+                coder,
+                target: Target::Fraction(0.1),
+                tile: TileChoice::Size(8),
+                layers: Some(3),
+                ..Default::default()
+            };
+            let c = run(&vol, &o);
+            let file = parse_file(&c.bytes).unwrap();
+            assert_eq!(file.packets.len(), c.reconstruction.len());
+            for (p, expect) in file.packets.iter().zip(&c.reconstruction) {
+                let d = decode_packet(&file.header, p).unwrap();
+                assert_eq!(&d.coefficients, expect, "{coder:?} P={bits}");
+            }
+        }
+    }
+}
+
+/// Independent Q_V: decompose the volume directly and sum energies of the kept positions.
+#[test]
+fn q_v_and_q_e_match_independent_computations() {
+    let vol = Phantom::SheppLogan.generate([24, 24, 24]);
+    let o = CompressOptions {
+        family: Family::Linear,
+        levels: Some(2),
+        bits: 3,
+        target: Target::Fraction(0.02),
+        ..Default::default()
+    };
+    let c = run(&vol, &o);
+    let g = Geometry::new(vol.dims(), Family::Linear, 2, c.header.margin).unwrap();
+    let exact = decompose_channel(vol.channel(0), &g);
+    let total: f64 = exact
+        .iter()
+        .enumerate()
+        .map(|(i, w)| w * w * g.basis_norm2(g.locate(i).0))
+        .sum();
+    let (_, coeffs) = decode_coefficients(&c.bytes).unwrap();
+    let index = |k: &Coefficient| {
+        g.linear_index(
+            k.band,
+            [k.pos[0] as usize, k.pos[1] as usize, k.pos[2] as usize],
+        )
+    };
+    let kept: f64 = coeffs
+        .iter()
+        .map(|k| exact[index(k)].powi(2) * g.basis_norm2(k.band))
+        .sum();
+    let q_v = 100.0 * kept / total;
+    assert!((q_v - c.stats.q_v).abs() < 1e-6, "{q_v} vs {}", c.stats.q_v);
+    let residual: f64 = coeffs
+        .iter()
+        .map(|k| (exact[index(k)] - k.value as f64).powi(2) * g.basis_norm2(k.band))
+        .sum();
+    let q_e = 100.0 * residual / kept;
+    assert!(
+        (q_e - c.stats.q_e).abs() < 1e-3 * q_e.max(1e-9),
+        "{q_e} vs {}",
+        c.stats.q_e
+    );
+    // More bits, less quantization error (paper Fig. 16), for the paper's delta quantizer; a
+    // finer step, less error, for the sigmap quantizer.
+    let huff = |bits| CompressOptions {
+        bits,
+        coder: CoderKind::Huffman,
+        ..o.clone()
+    };
+    let (h3, h8) = (run(&vol, &huff(3)), run(&vol, &huff(8)));
+    assert!(
+        h8.stats.q_e < h3.stats.q_e,
+        "{} vs {}",
+        h8.stats.q_e,
+        h3.stats.q_e
+    );
+    let fine = run(
+        &vol,
+        &CompressOptions {
+            step: 0.25,
+            ..o.clone()
+        },
+    );
+    assert!(
+        fine.stats.q_e < c.stats.q_e,
+        "{} vs {}",
+        fine.stats.q_e,
+        c.stats.q_e
+    );
+}
+
+#[test]
+fn byte_targets_are_met_within_two_percent() {
+    let vol = Phantom::SheppLogan.generate([40, 40, 40]);
+    for coder in [CoderKind::Huffman, CoderKind::Range, CoderKind::Sigmap] {
+        for target in [1500u64, 6000, 25_000] {
+            let o = CompressOptions {
+                coder,
+                target: Target::Bytes(target),
+                ..Default::default()
+            };
+            let c = run(&vol, &o);
+            let size = c.bytes.len() as u64;
+            assert!(size <= target, "{coder:?}: {size} > {target}");
+            assert!(
+                size as f64 >= 0.98 * target as f64,
+                "{coder:?}: {size} < 98 % of {target}"
+            );
+        }
+    }
+    let tiny = compress(
+        &vol,
+        &CompressOptions {
+            target: Target::Bytes(10),
+            ..Default::default()
+        },
+        &|_, _| {},
+    );
+    assert!(tiny.is_err(), "a 10-byte target cannot hold a header");
+}
+
+#[test]
+fn more_bytes_give_better_images_and_volumes() {
+    let vol = Phantom::SheppLogan.generate([32, 32, 32]);
+    let mut last = f64::NEG_INFINITY;
+    for target in [1000u64, 4000, 16000, 64000] {
+        let c = run(
+            &vol,
+            &CompressOptions {
+                target: Target::Bytes(target),
+                ..Default::default()
+            },
+        );
+        let back = decompress(&c.bytes).unwrap();
+        let snr = snr_db(&flat(&vol), &flat(&back));
+        eprintln!("{target} bytes: volume SNR {snr:.2} dB");
+        assert!(snr > last, "{target} bytes: {snr} dB after {last} dB");
+        last = snr;
+    }
+}
+
+#[test]
+fn every_packet_decodes_alone_and_tile_prefixes_hold_the_most_significant() {
+    let vol = Phantom::SheppLogan.generate([32, 32, 32]);
+    let o = CompressOptions {
+        levels: Some(3),
+        target: Target::Fraction(0.05),
+        tile: TileChoice::Size(16),
+        layers: Some(4),
+        clustering: None,
+        ..Default::default()
+    };
+    let c = run(&vol, &o);
+    let file = parse_file(&c.bytes).unwrap();
+    let h = &file.header;
+    assert!(h.tile_count() > 1 && file.packets.len() > h.tile_count());
+    // Decode packets in reverse order, one at a time: each stands alone.
+    let mut per_tile: std::collections::BTreeMap<usize, Vec<(usize, f64, f64)>> =
+        Default::default();
+    for p in file.packets.iter().rev() {
+        let d = decode_packet(h, p).unwrap();
+        let score = |k: &Coefficient| {
+            (k.value as f64).powi(2) * h.geometry.basis_norm2(k.band) * h.importance(0)
+        };
+        let max = d.coefficients.iter().map(score).fold(0.0, f64::max);
+        let min = d
+            .coefficients
+            .iter()
+            .map(score)
+            .fold(f64::INFINITY, f64::min);
+        per_tile
+            .entry(d.tile)
+            .or_default()
+            .push((d.layer, max, min));
+    }
+    for (tile, mut layers) in per_tile {
+        layers.sort_by_key(|l| l.0);
+        for w in layers.windows(2) {
+            // Quantization (P = 8) can move a score by a few percent.
+            assert!(
+                w[0].2 * 1.05 >= w[1].1,
+                "tile {tile}: layer {} min {} < layer {} max {}",
+                w[0].0,
+                w[0].2,
+                w[1].0,
+                w[1].1
+            );
+        }
+    }
+}
+
+#[test]
+fn degenerate_and_extreme_volumes() {
+    let cases: Vec<(&str, Volume)> = vec![
+        ("constant", Phantom::Constant(7.5).generate([9, 10, 11])),
+        ("zero", Phantom::Zero.generate([8, 8, 8])),
+        (
+            "single voxel",
+            Volume::new([1, 1, 1], [1.0; 3], vec![vec![42.0]]).unwrap(),
+        ),
+        (
+            "1x1xN",
+            Volume::new(
+                [1, 1, 13],
+                [1.0; 3],
+                vec![(0..13).map(|i| i as f32).collect()],
+            )
+            .unwrap(),
+        ),
+        (
+            "huge values",
+            Volume::new(
+                [6, 5, 4],
+                [1.0; 3],
+                vec![(0..120).map(|i| 1e36 * (i % 7) as f32).collect()],
+            )
+            .unwrap(),
+        ),
+        (
+            "tiny values",
+            Volume::new(
+                [6, 5, 4],
+                [1.0; 3],
+                vec![(0..120).map(|i| 1e-36 * (i % 7) as f32).collect()],
+            )
+            .unwrap(),
+        ),
+    ];
+    for (name, vol) in cases {
+        for family in Family::ALL {
+            for bits in [1u8, 16] {
+                let o = CompressOptions {
+                    family,
+                    bits,
+                    step: if bits == 16 { 1e-4 } else { 1.0 },
+                    target: Target::All,
+                    ..Default::default()
+                };
+                let c = run(&vol, &o);
+                let back = decompress(&c.bytes).unwrap();
+                let b = flat(&back);
+                assert!(b.iter().all(|v| v.is_finite()), "{name} {family} P={bits}");
+                if bits == 16 {
+                    let e = rel_l2(&b, &flat(&vol));
+                    assert!(e < 1e-3, "{name} {family}: rel L2 {e}");
+                }
+            }
+        }
+    }
+}
+
+#[test]
+fn rgb_volumes_in_every_colorspace_including_degenerate_colour() {
+    let head = Phantom::RgbHead.generate([20, 20, 20]);
+    // Grey: R = G = B, rank-1 colour covariance.
+    let grey_ch = Phantom::SheppLogan
+        .generate([12, 12, 12])
+        .channel(0)
+        .to_vec();
+    let grey = Volume::new(
+        [12, 12, 12],
+        [1.0; 3],
+        vec![grey_ch.clone(), grey_ch.clone(), grey_ch],
+    )
+    .unwrap();
+    // Two channels with equal variance and no correlation: repeated eigenvalues.
+    let a: Vec<f32> = (0..1728)
+        .map(|i| if i % 2 == 0 { 10.0 } else { -10.0 })
+        .collect();
+    let b: Vec<f32> = (0..1728)
+        .map(|i| if (i / 12) % 2 == 0 { 10.0 } else { -10.0 })
+        .collect();
+    let rep = Volume::new([12, 12, 12], [1.0; 3], vec![a, b, vec![0.0; 1728]]).unwrap();
+    for (name, vol) in [("head", head), ("grey", grey), ("repeated", rep)] {
+        for cs in [
+            ColorSpaceKind::Rgb,
+            ColorSpaceKind::Yiq,
+            ColorSpaceKind::Pca,
+        ] {
+            let o = CompressOptions {
+                colorspace: cs,
+                bits: 16,
+                step: 1e-4,
+                target: Target::All,
+                family: Family::Haar,
+                ..Default::default()
+            };
+            let c = run(&vol, &o);
+            let back = decompress(&c.bytes).unwrap();
+            assert_eq!(back.channel_count(), 3);
+            let e = rel_l2(&flat(&back), &flat(&vol));
+            assert!(e < 1e-3, "{name} {cs:?}: rel L2 {e}");
+        }
+    }
+}
+
+#[test]
+fn nan_and_inf_input_is_rejected_with_a_clear_error() {
+    let mut bytes = Vec::new();
+    for v in [1.0f32, f32::NAN, 2.0, 3.0] {
+        bytes.extend_from_slice(&v.to_le_bytes());
+    }
+    let e = decode_raw(&bytes, &RawSpec::new([2, 2, 1], RawDtype::F32)).unwrap_err();
+    assert!(e.to_string().contains("non-finite"), "{e}");
+    let mut bytes = Vec::new();
+    for v in [1.0f32, 2.0, f32::INFINITY, 3.0] {
+        bytes.extend_from_slice(&v.to_le_bytes());
+    }
+    assert!(decode_raw(&bytes, &RawSpec::new([2, 2, 1], RawDtype::F32)).is_err());
+}
+
+#[test]
+fn results_do_not_depend_on_the_thread_count() {
+    let vol = Phantom::SheppLogan.generate([24, 24, 24]);
+    let o = CompressOptions {
+        target: Target::Fraction(0.05),
+        ..Default::default()
+    };
+    let one = rayon::ThreadPoolBuilder::new()
+        .num_threads(1)
+        .build()
+        .unwrap();
+    let four = rayon::ThreadPoolBuilder::new()
+        .num_threads(4)
+        .build()
+        .unwrap();
+    let a = one.install(|| run(&vol, &o)).bytes;
+    let b = four.install(|| run(&vol, &o)).bytes;
+    assert_eq!(a, b);
+}
+
+fn sample_file() -> Vec<u8> {
+    static FILE: std::sync::OnceLock<Vec<u8>> = std::sync::OnceLock::new();
+    FILE.get_or_init(|| {
+        let vol = Phantom::SheppLogan.generate([16, 16, 16]);
+        run(
+            &vol,
+            &CompressOptions {
+                target: Target::Fraction(0.1),
+                tile: TileChoice::Size(8),
+                coder: CoderKind::Huffman,
+                ..Default::default()
+            },
+        )
+        .bytes
+    })
+    .clone()
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 256, ..ProptestConfig::default() })]
+
+    #[test]
+    fn corrupted_bytes_give_errors_not_panics(flips in prop::collection::vec((any::<prop::sample::Index>(), any::<u8>()), 1..8)) {
+        let mut bytes = sample_file();
+        for (i, x) in flips {
+            let i = i.index(bytes.len());
+            bytes[i] ^= x | 1;
+        }
+        // Either the CRCs catch it or decoding fails cleanly; it must never panic.
+        let _ = decode_coefficients(&bytes);
+    }
+
+    #[test]
+    fn truncated_files_give_errors(cut in 0usize..10_000) {
+        let bytes = sample_file();
+        let cut = cut % bytes.len();
+        prop_assert!(decode_coefficients(&bytes[..cut]).is_err());
+    }
+
+    #[test]
+    fn random_bytes_give_errors(bytes in prop::collection::vec(any::<u8>(), 0..2048)) {
+        prop_assert!(decode_coefficients(&bytes).is_err());
+        let mut with_magic = b"WSPL\x01\x00".to_vec();
+        with_magic.extend_from_slice(&bytes);
+        prop_assert!(decode_coefficients(&with_magic).is_err());
+    }
+
+    #[test]
+    fn random_packets_with_valid_crc_never_panic(body in prop::collection::vec(any::<u8>(), 0..512)) {
+        let file = sample_file();
+        let parsed = parse_file(&file).unwrap();
+        let mut p = body.clone();
+        p.extend_from_slice(&crc32fast::hash(&body).to_le_bytes());
+        let _ = decode_packet(&parsed.header, &p);
+    }
+}
