@@ -1,0 +1,73 @@
+//! The cache's typed errors and their single mapping to gRPC statuses: bad input (upload, view,
+//! request shape) is `InvalidArgument`, a missing volume `NotFound`, a name clash
+//! `AlreadyExists`, storage trouble `Internal`. Messages carry the bad value and the allowed range.
+
+use thiserror::Error;
+use wavesplat_codec::format::FormatError;
+
+/// Errors of the cache library.
+#[derive(Debug, Error)]
+#[non_exhaustive]
+pub enum CacheError {
+    /// No volume with this id or name.
+    #[error("no volume {0}")]
+    NotFound(String),
+    /// A different volume already uses this name.
+    #[error("a different volume named {0:?} already exists")]
+    NameTaken(String),
+    /// The request is malformed (missing field, bad view, out-of-range value).
+    #[error("invalid request: {0}")]
+    InvalidRequest(String),
+    /// The upload is not acceptable (size, checksum, truncated, or not a valid .wsp file).
+    #[error("invalid upload: {0}")]
+    InvalidUpload(String),
+    /// The upload is not a valid .wsp file.
+    #[error("invalid .wsp file: {0}")]
+    Format(#[from] FormatError),
+    /// A size limit was exceeded.
+    #[error("{what} of {size} bytes exceeds the limit of {limit} bytes")]
+    TooLarge {
+        /// What was too large.
+        what: &'static str,
+        /// Its size.
+        size: u64,
+        /// The limit.
+        limit: u64,
+    },
+    /// The store failed.
+    #[error("storage: {0}")]
+    Storage(#[from] sled::Error),
+    /// Stored metadata could not be read back (corruption).
+    #[error("corrupt store entry: {0}")]
+    Corrupt(String),
+    /// A transport-level failure (binding, serving).
+    #[error("transport: {0}")]
+    Transport(#[from] tonic::transport::Error),
+}
+
+impl From<sled::transaction::TransactionError<CacheError>> for CacheError {
+    fn from(e: sled::transaction::TransactionError<CacheError>) -> Self {
+        match e {
+            sled::transaction::TransactionError::Abort(e) => e,
+            sled::transaction::TransactionError::Storage(e) => CacheError::Storage(e),
+        }
+    }
+}
+
+impl From<CacheError> for tonic::Status {
+    fn from(e: CacheError) -> Self {
+        let msg = e.to_string();
+        match e {
+            CacheError::NotFound(_) => tonic::Status::not_found(msg),
+            CacheError::NameTaken(_) => tonic::Status::already_exists(msg),
+            CacheError::InvalidRequest(_)
+            | CacheError::InvalidUpload(_)
+            | CacheError::Format(_)
+            | CacheError::TooLarge { .. } => tonic::Status::invalid_argument(msg),
+            CacheError::Storage(_) | CacheError::Corrupt(_) | CacheError::Transport(_) => {
+                tracing::error!(error = %msg, "internal error");
+                tonic::Status::internal(msg)
+            }
+        }
+    }
+}

@@ -1,0 +1,268 @@
+//! Domain types of the cache, independent of gRPC and sled: which volume a request names, the
+//! stored facts about a volume, and the per-packet index (tile, layer, size and energy summary)
+//! the priority math works on. Also the compact binary encoding of these records in the store
+//! (bounds-checked reads through the codec's byte reader, so a corrupt entry is an error).
+
+use crate::error::CacheError;
+use wavesplat_codec::format::bytes::{ByteReader, ByteWriter};
+use wavesplat_codec::format::Header;
+use wavesplat_codec::layout::Band;
+
+/// A volume named by id or by name.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum VolumeKey {
+    /// Store-assigned id.
+    Id(u64),
+    /// User-given name.
+    Name(String),
+}
+
+impl std::fmt::Display for VolumeKey {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            VolumeKey::Id(id) => write!(f, "with id {id}"),
+            VolumeKey::Name(n) => write!(f, "named {n:?}"),
+        }
+    }
+}
+
+/// Facts about a stored volume (the commit record of an ingest).
+#[derive(Debug, Clone, PartialEq)]
+pub struct VolumeMeta {
+    /// Store-assigned id.
+    pub id: u64,
+    /// Unique name.
+    pub name: String,
+    /// SHA-256 of the uploaded file.
+    pub sha256: [u8; 32],
+    /// Creation time (ms since the Unix epoch).
+    pub created_unix_ms: u64,
+    /// Size of the file.
+    pub file_bytes: u64,
+    /// Size of the header section.
+    pub header_bytes: u64,
+    /// Sum of packet sizes.
+    pub packet_bytes: u64,
+    /// Volume dimensions.
+    pub dims: [u32; 3],
+    /// Channels.
+    pub channels: u32,
+    /// Wavelet family name.
+    pub family: String,
+    /// Decomposition depth.
+    pub levels: u32,
+    /// Packets.
+    pub packet_count: u32,
+    /// Tiles.
+    pub tile_count: u32,
+    /// Quality layers.
+    pub layer_count: u32,
+    /// Tile edge (padded-grid voxels).
+    pub tile: u32,
+    /// Coefficients kept in the file.
+    pub coefficients: u64,
+}
+
+impl VolumeMeta {
+    /// SHA-256 as lower-case hex.
+    pub fn sha256_hex(&self) -> String {
+        hex(&self.sha256)
+    }
+
+    pub(crate) fn encode(&self) -> Vec<u8> {
+        let mut w = ByteWriter::new();
+        w.u8(1); // record version
+        w.u64(self.id);
+        w.varint(self.name.len() as u64);
+        w.bytes(self.name.as_bytes());
+        w.bytes(&self.sha256);
+        for v in [
+            self.created_unix_ms,
+            self.file_bytes,
+            self.header_bytes,
+            self.packet_bytes,
+            self.coefficients,
+        ] {
+            w.u64(v);
+        }
+        for v in [
+            self.dims[0],
+            self.dims[1],
+            self.dims[2],
+            self.channels,
+            self.levels,
+            self.packet_count,
+            self.tile_count,
+            self.layer_count,
+            self.tile,
+        ] {
+            w.u32(v);
+        }
+        w.varint(self.family.len() as u64);
+        w.bytes(self.family.as_bytes());
+        w.into_bytes()
+    }
+
+    pub(crate) fn decode(bytes: &[u8]) -> Result<VolumeMeta, CacheError> {
+        let corrupt = |e: wavesplat_codec::format::FormatError| {
+            CacheError::Corrupt(format!("volume record: {e}"))
+        };
+        let mut r = ByteReader::new(bytes, "volume record");
+        let version = r.u8().map_err(corrupt)?;
+        if version != 1 {
+            return Err(CacheError::Corrupt(format!(
+                "volume record version {version}, expected 1"
+            )));
+        }
+        let id = r.u64().map_err(corrupt)?;
+        let n = r.varint_max(4096, "name length").map_err(corrupt)? as usize;
+        let name = string(r.take(n).map_err(corrupt)?)?;
+        let mut sha256 = [0u8; 32];
+        sha256.copy_from_slice(r.take(32).map_err(corrupt)?);
+        let mut u64s = [0u64; 5];
+        for v in &mut u64s {
+            *v = r.u64().map_err(corrupt)?;
+        }
+        let mut u32s = [0u32; 9];
+        for v in &mut u32s {
+            *v = r.u32().map_err(corrupt)?;
+        }
+        let n = r.varint_max(64, "family length").map_err(corrupt)? as usize;
+        let family = string(r.take(n).map_err(corrupt)?)?;
+        Ok(VolumeMeta {
+            id,
+            name,
+            sha256,
+            created_unix_ms: u64s[0],
+            file_bytes: u64s[1],
+            header_bytes: u64s[2],
+            packet_bytes: u64s[3],
+            coefficients: u64s[4],
+            dims: [u32s[0], u32s[1], u32s[2]],
+            channels: u32s[3],
+            levels: u32s[4],
+            packet_count: u32s[5],
+            tile_count: u32s[6],
+            layer_count: u32s[7],
+            tile: u32s[8],
+            family,
+        })
+    }
+}
+
+fn string(b: &[u8]) -> Result<String, CacheError> {
+    String::from_utf8(b.to_vec()).map_err(|_| CacheError::Corrupt("non-UTF-8 string".into()))
+}
+
+/// Lower-case hex of some bytes.
+pub fn hex(bytes: &[u8]) -> String {
+    bytes.iter().map(|b| format!("{b:02x}")).collect()
+}
+
+/// What the cache knows about one packet without reading it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PacketMeta {
+    /// Tile index.
+    pub tile: u32,
+    /// Layer (rank within the tile).
+    pub layer: u32,
+    /// Size in bytes.
+    pub len: u32,
+    /// Energy Σ w²‖basis‖²·I per band (from the packet's own summary).
+    pub summary: Vec<(Band, f64)>,
+}
+
+/// A volume's decoded header and its packet index (packet id = index in file order).
+#[derive(Debug, Clone)]
+pub struct VolumeIndex {
+    /// The parsed header.
+    pub header: Header,
+    /// The header section bytes (what clients need to decode packets).
+    pub header_bytes: Vec<u8>,
+    /// Per packet, in file order.
+    pub packets: Vec<PacketMeta>,
+}
+
+/// Encodes a packet index.
+pub(crate) fn encode_packets(packets: &[PacketMeta]) -> Vec<u8> {
+    let mut w = ByteWriter::new();
+    w.varint(packets.len() as u64);
+    for p in packets {
+        w.varint(p.tile as u64);
+        w.varint(p.layer as u64);
+        w.varint(p.len as u64);
+        w.varint(p.summary.len() as u64);
+        for (band, e) in &p.summary {
+            w.u8(band.level);
+            w.u8(band.kind);
+            w.f64(*e);
+        }
+    }
+    w.into_bytes()
+}
+
+/// Decodes a packet index.
+pub(crate) fn decode_packets(bytes: &[u8]) -> Result<Vec<PacketMeta>, CacheError> {
+    let corrupt =
+        |e: wavesplat_codec::format::FormatError| CacheError::Corrupt(format!("packet index: {e}"));
+    let mut r = ByteReader::new(bytes, "packet index");
+    let n = r.varint_max(1 << 28, "packets").map_err(corrupt)? as usize;
+    let mut out = Vec::with_capacity(n.min(r.remaining()));
+    for _ in 0..n {
+        let tile = r.varint_max(u32::MAX as u64, "tile").map_err(corrupt)? as u32;
+        let layer = r.varint_max(u32::MAX as u64, "layer").map_err(corrupt)? as u32;
+        let len = r.varint_max(u32::MAX as u64, "len").map_err(corrupt)? as u32;
+        let ns = r.varint_max(1 << 16, "summary").map_err(corrupt)? as usize;
+        let mut summary = Vec::with_capacity(ns.min(r.remaining()));
+        for _ in 0..ns {
+            let level = r.u8().map_err(corrupt)?;
+            let kind = r.u8().map_err(corrupt)?;
+            let e = r.f64().map_err(corrupt)?;
+            summary.push((Band { level, kind }, e));
+        }
+        out.push(PacketMeta {
+            tile,
+            layer,
+            len,
+            summary,
+        });
+    }
+    Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn records_round_trip() {
+        let m = VolumeMeta {
+            id: 7,
+            name: "brain".into(),
+            sha256: [3; 32],
+            created_unix_ms: 1,
+            file_bytes: 2,
+            header_bytes: 3,
+            packet_bytes: 4,
+            dims: [5, 6, 7],
+            channels: 1,
+            family: "cubic".into(),
+            levels: 3,
+            packet_count: 9,
+            tile_count: 8,
+            layer_count: 2,
+            tile: 16,
+            coefficients: 100,
+        };
+        assert_eq!(VolumeMeta::decode(&m.encode()).unwrap(), m);
+        assert!(VolumeMeta::decode(&m.encode()[..20]).is_err());
+        let p = vec![PacketMeta {
+            tile: 3,
+            layer: 1,
+            len: 99,
+            summary: vec![(Band { level: 2, kind: 5 }, 1.5)],
+        }];
+        assert_eq!(decode_packets(&encode_packets(&p)).unwrap(), p);
+        assert!(decode_packets(&[0xff]).is_err());
+    }
+}
