@@ -24,14 +24,25 @@ struct Cli {
 
 #[derive(Subcommand, Debug)]
 enum Command {
+    /// Run the main job on a built-in phantom: compress, then render progressively from the
+    /// coefficient stream (quality vs bytes), multiview and depth-cued.
+    Demo(commands::demo::DemoArgs),
     /// Compress a volume (raw, NIfTI or a built-in phantom) into a .wsp file.
     Compress(Box<commands::compress::CompressArgs>),
     /// Show a .wsp file's header, tiles, packets and size breakdown.
     Info(commands::info::InfoArgs),
     /// Decode a .wsp file to raw little-endian f32 (x fastest, channels interleaved).
     Decompress(commands::decompress::DecompressArgs),
+    /// Render X-ray images directly from a .wsp file's coefficients (wavelet splatting).
+    Render(Box<commands::render::RenderArgs>),
     /// Write a built-in phantom as raw f32 or u8 (for trying the other commands).
     Phantom(commands::phantom::PhantomArgs),
+    /// Run a server (`serve cache`: the gRPC coefficient cache).
+    #[command(subcommand)]
+    Serve(commands::cache::ServeCommand),
+    /// Talk to a coefficient cache: `ingest`, `list`, `rm`.
+    #[command(subcommand)]
+    Cache(commands::cache::CacheCommand),
 }
 
 fn main() {
@@ -49,9 +60,13 @@ fn main() {
 
 fn run(command: Command) -> Result<()> {
     match command {
+        Command::Demo(a) => commands::demo::run(a),
         Command::Compress(a) => commands::compress::run(*a),
         Command::Info(a) => commands::info::run(a),
         Command::Decompress(a) => commands::decompress::run(a),
         Command::Phantom(a) => commands::phantom::run(a),
+        Command::Render(a) => commands::render::run(*a),
+        Command::Serve(c) => commands::cache::run_serve(c),
+        Command::Cache(c) => commands::cache::run(c),
     }
 }

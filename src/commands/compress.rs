@@ -42,13 +42,14 @@ pub struct CompressArgs {
     #[arg(long, default_value_t = 1)]
     pub channels: usize,
     /// Wavelet family: haar, linear, cubic.
-    #[arg(long, default_value = "cubic")]
+    #[arg(long, default_value = "linear")]
     pub family: String,
-    /// Decomposition depth M (default: min(4, ceil(log2(smallest dimension)))).
+    /// Decomposition depth M (default: min(6, ceil(log2(smallest dimension)))).
     #[arg(long)]
     pub levels: Option<usize>,
-    /// Zero margin (voxels) around the volume before the periodic transform (default: 0 for
-    /// Haar, 2^(M-1) capped at 16 for the splines).
+    /// Zero margin (voxels) around the volume before the periodic transform (default 0; the
+    /// rounding up to a multiple of 2^M adds zeros anyway). Volumes with content touching their
+    /// faces need about 2^(M-1) voxels for exact spline renderings near those faces.
     #[arg(long)]
     pub margin: Option<usize>,
     /// Colour space for RGB volumes: rgb, yiq, pca.
@@ -57,9 +58,13 @@ pub struct CompressArgs {
     /// Quantization bits P (1..=16) of the delta coder (paper eq. 15).
     #[arg(long, default_value_t = 8)]
     pub bits: u8,
-    /// Entropy coder: range (adaptive arithmetic) or huffman (the paper's static tables).
-    #[arg(long, default_value = "range")]
+    /// Entropy coder: sigmap (octree significance maps, arithmetic coded; best), range (the
+    /// paper's syntax, arithmetic coded) or huffman (the paper's syntax and static tables).
+    #[arg(long, default_value = "sigmap")]
     pub coder: String,
+    /// Quantizer step of the sigmap coder relative to each band's smallest kept magnitude.
+    #[arg(long, default_value_t = 1.0)]
+    pub step: f64,
     /// Keep as many coefficients as fit in this many bytes (whole file).
     #[arg(long, group = "target")]
     pub target_bytes: Option<u64>,
@@ -132,8 +137,12 @@ pub fn options(a: &CompressArgs) -> Result<CompressOptions> {
             a.colorspace
         )
     })?;
-    let coder = CoderKind::from_name(&a.coder)
-        .with_context(|| format!("unknown coder {:?}; choose range or huffman", a.coder))?;
+    let coder = CoderKind::from_name(&a.coder).with_context(|| {
+        format!(
+            "unknown coder {:?}; choose sigmap, range or huffman",
+            a.coder
+        )
+    })?;
     if !(1..=16).contains(&a.bits) {
         bail!("--bits {}: quantization bits must be 1..=16", a.bits);
     }
@@ -175,6 +184,7 @@ pub fn options(a: &CompressArgs) -> Result<CompressOptions> {
             radius: a.cluster_radius,
             threshold: a.cluster_threshold,
         }),
+        step: a.step,
     })
 }
 
