@@ -94,18 +94,17 @@ impl Geometry {
         m.min(MAX_LEVELS)
     }
 
-    /// Default margin (voxels of zeros on each side before rounding up) for a family: none for
-    /// Haar, whose supports never cross a period; 2^(M-1) for the splines, capped at 16.
+    /// Default margin (voxels of zeros on each side before rounding up): none for Haar, whose
+    /// supports tile the grid and never cross a period; for the splines half the support of
+    /// the coarsest wavelet, ⌈(2j − 1)·2^M / 2⌉, so that the period is at least the volume plus
+    /// that support and no two periodic images of one basis function reach the volume. That is
+    /// what makes the one-translate-per-coefficient splatting agree with the volume (measured:
+    /// linear M = 4 on 32³ with an 8-voxel margin renders at 13 dB SNR against the reference,
+    /// with this margin above 30 dB).
     pub fn default_margin(family: Family, levels: usize) -> usize {
         match family {
             Family::Haar => 0,
-            _ => {
-                if levels == 0 {
-                    0
-                } else {
-                    (1usize << (levels - 1)).min(16)
-                }
-            }
+            _ => ((2 * family.order() - 1) << levels).div_ceil(2),
         }
     }
 

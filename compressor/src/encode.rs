@@ -54,12 +54,11 @@ pub enum TileChoice {
 pub struct CompressOptions {
     /// Wavelet family.
     pub family: Family,
-    /// Decomposition depth M (`None`: min(6, maximum)).
+    /// Decomposition depth M (`None`: min(6, maximum) for Haar, min(3, maximum) for linear,
+    /// min(2, maximum) for cubic, whose coarse supports grow as (2j − 1)·2^M).
     pub levels: Option<usize>,
-    /// Zero margin in voxels around the volume before the periodic transform (`None`: 0; the
-    /// rounding of each axis up to a multiple of 2^M already adds zeros). Volumes with content
-    /// on their faces rendered with the spline families need a margin
-    /// ([`Geometry::default_margin`]) for exact renderings near those faces.
+    /// Zero margin in voxels around the volume (`None`: [`Geometry::default_margin`], what the
+    /// renderer needs to be exact).
     pub margin: Option<usize>,
     /// Colour space for 3-channel volumes.
     pub colorspace: ColorSpaceKind,
@@ -232,8 +231,16 @@ fn prepare(
     }
     let dims = volume.dims();
     let max_levels = Geometry::max_levels(dims);
-    let levels = opts.levels.unwrap_or(max_levels.min(6));
-    let margin = opts.margin.unwrap_or(0);
+    // Deeper spline decompositions wrap more of their dual tails around the period and
+    // render less exactly (see Geometry::default_margin); these depths keep ≥ 30 dB.
+    let levels = opts.levels.unwrap_or(match opts.family {
+        Family::Haar => max_levels.min(6),
+        Family::Linear => max_levels.min(3),
+        Family::Cubic => max_levels.min(2),
+    });
+    let margin = opts
+        .margin
+        .unwrap_or_else(|| Geometry::default_margin(opts.family, levels));
     let geometry = Geometry::new(dims, opts.family, levels, margin)?;
     progress(Stage::Color, 0.0);
     let (channels, color) = if volume.channel_count() == 3 {
@@ -351,17 +358,11 @@ impl Prepared {
         let mut start = 0usize;
         for (l, end) in ends.iter().enumerate() {
             let bound = if l == 0 || start >= k {
-                f32::INFINITY
+                f64::INFINITY
             } else {
-                // Round up so the f32 bound is ≥ every score in the layer.
-                let s = kept[start].score as f32;
-                if (s as f64) < kept[start].score {
-                    s.next_up()
-                } else {
-                    s
-                }
+                kept[start].score
             };
-            layer_bounds.push(bound.min(layer_bounds.last().copied().unwrap_or(f32::INFINITY)));
+            layer_bounds.push(bound.min(layer_bounds.last().copied().unwrap_or(f64::INFINITY)));
             start = (*end).max(start);
         }
         let nb = g.band_count();
@@ -374,15 +375,8 @@ impl Prepared {
             let sub = s.channel as usize * nb + g.band_index(band).expect("band");
             mags[sub].push(s.value.abs());
         }
-        // Smallest kept score, rounded down to f32 so every kept score is ≥ it.
-        let score_threshold = kept.last().map_or(0.0, |s| {
-            let t = s.score as f32;
-            if t as f64 > s.score {
-                t.next_down().max(0.0)
-            } else {
-                t
-            }
-        });
+        // Smallest kept score: every kept coefficient's magnitude is at least the threshold.
+        let score_threshold = kept.last().map_or(0.0, |s| s.score);
         let substreams: Vec<Option<SubstreamParams>> = mags
             .iter()
             .enumerate()
@@ -392,7 +386,7 @@ impl Prepared {
                         let band = g.bands()[sub % nb];
                         let weight = g.basis_norm2(band) * self.color.importance[sub / nb];
                         let t = if weight > 0.0 {
-                            (score_threshold as f64 / weight).sqrt()
+                            (score_threshold / weight).sqrt()
                         } else {
                             0.0
                         };

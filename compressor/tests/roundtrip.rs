@@ -44,6 +44,7 @@ fn all_coefficients_at_p16_reproduce_the_volume() {
             let o = CompressOptions {
                 family,
                 levels: Some(3),
+                margin: Some(2),
                 bits: 16,
                 step: 1e-4,
                 coder,

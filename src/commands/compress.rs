@@ -44,12 +44,14 @@ pub struct CompressArgs {
     /// Wavelet family: haar, linear, cubic.
     #[arg(long, default_value = "linear")]
     pub family: String,
-    /// Decomposition depth M (default: min(6, ceil(log2(smallest dimension)))).
+    /// Decomposition depth M (default: min(6, max) for Haar, 3 for linear, 2 for cubic;
+    /// max = ceil(log2(smallest dimension))).
     #[arg(long)]
     pub levels: Option<usize>,
-    /// Zero margin (voxels) around the volume before the periodic transform (default 0; the
-    /// rounding up to a multiple of 2^M adds zeros anyway). Volumes with content touching their
-    /// faces need about 2^(M-1) voxels for exact spline renderings near those faces.
+    /// Zero margin (voxels) around the volume before the periodic transform. Default: 0 for
+    /// Haar; half the coarsest wavelet support, ceil((2j-1)·2^M/2), for linear/cubic, which
+    /// renderings from the coefficients need to be exact (smaller margins compress the same data
+    /// into fewer coefficients but render wrongly near the faces).
     #[arg(long)]
     pub margin: Option<usize>,
     /// Colour space for RGB volumes: rgb, yiq, pca.

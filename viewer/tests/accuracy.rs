@@ -9,6 +9,17 @@ const VIEWS: [(f64, f64); 4] = [(0.0, 0.0), (0.66, 0.91), (2.5, 0.1), (1e-7, 1e-
 
 fn check(family: Family, levels: usize, n: usize, size: usize) {
     let (g, coeffs, _) = common::coefficients(n, family, levels);
+    check_with(family, levels, n, size, g, coeffs);
+}
+
+fn check_with(
+    family: Family,
+    levels: usize,
+    n: usize,
+    size: usize,
+    g: wavesplat_codec::layout::Geometry,
+    coeffs: Vec<wavesplat_codec::format::packet::Coefficient>,
+) {
     let vol = PaddedVolume::from_coefficients(&coeffs, &g, 1).unwrap();
     let mut r = Renderer::new(RenderOptions::default());
     for (a, b) in VIEWS {
@@ -38,4 +49,16 @@ fn linear_splats_match_reference() {
 #[test]
 fn cubic_splats_match_reference() {
     check(Family::Cubic, 2, 32, 128);
+}
+
+#[test]
+fn deep_decompositions_match_reference() {
+    // Coarse levels have footprints much larger than the image: M = 5 on 32³.
+    check(Family::Haar, 5, 32, 128);
+    // The splines need the default margin (period ≥ volume + coarsest ψ support).
+    for (family, levels) in [(Family::Linear, 3), (Family::Cubic, 2)] {
+        let margin = wavesplat_codec::layout::Geometry::default_margin(family, levels);
+        let (g, coeffs) = common::coefficients_with_margin(32, family, levels, margin);
+        check_with(family, levels, 32, 128, g, coeffs);
+    }
 }

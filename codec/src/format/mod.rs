@@ -260,11 +260,12 @@ pub struct Header {
     /// Tile edge length in voxels of the padded grid (a multiple of 2^M).
     pub tile: usize,
     /// Score upper bound of each quality layer (layer 0 first; non-increasing; may be +∞).
-    pub layer_bounds: Vec<f32>,
+    /// f64: scores are squared magnitudes times basis norms and overflow f32 for large data.
+    pub layer_bounds: Vec<f64>,
     /// Smallest score S = E·I of a kept coefficient (rounded down); with the basis norm and the
     /// importance it gives each substream's smallest magnitude (see
     /// [`Header::magnitude_threshold`]).
-    pub score_threshold: f32,
+    pub score_threshold: f64,
     /// Per (channel, band index) parameters; `None` for substreams without coefficients.
     pub substreams: Vec<Option<SubstreamParams>>,
     /// Huffman tables (present iff `coder == Huffman`).
@@ -347,7 +348,7 @@ impl Header {
         let w0 = params.w0 as f64;
         let (channel, band) = self.substream_of(substream);
         let weight = self.geometry.basis_norm2(band) * self.importance(channel);
-        let bound = self.layer_bounds.get(layer).copied().unwrap_or(0.0) as f64;
+        let bound = self.layer_bounds.get(layer).copied().unwrap_or(0.0);
         if weight > 0.0 && bound.is_finite() {
             w0.min((bound / weight).sqrt())
         } else {
@@ -360,7 +361,7 @@ impl Header {
         let (channel, band) = self.substream_of(substream);
         let weight = self.geometry.basis_norm2(band) * self.importance(channel);
         if weight > 0.0 {
-            (self.score_threshold as f64 / weight).sqrt()
+            (self.score_threshold / weight).sqrt()
         } else {
             0.0
         }
@@ -403,9 +404,9 @@ impl Header {
         w.varint(self.tile as u64);
         w.u8(self.layer_bounds.len() as u8);
         for b in &self.layer_bounds {
-            w.f32(*b);
+            w.f64(*b);
         }
-        w.f32(self.score_threshold);
+        w.f64(self.score_threshold);
         // Presence bitmap, then parameters of the present substreams.
         let mut bitmap = vec![0u8; self.substreams.len().div_ceil(8)];
         for (i, s) in self.substreams.iter().enumerate() {
@@ -525,8 +526,8 @@ impl Header {
         }
         let mut layer_bounds = Vec::with_capacity(nl);
         for _ in 0..nl {
-            let b = r.f32()?;
-            if b.is_nan() || b < 0.0 || layer_bounds.last().is_some_and(|p: &f32| b > *p) {
+            let b = r.f64()?;
+            if b.is_nan() || b < 0.0 || layer_bounds.last().is_some_and(|p: &f64| b > *p) {
                 return Err(invalid(
                     W,
                     "layer bounds must be non-negative and non-increasing",
@@ -534,7 +535,7 @@ impl Header {
             }
             layer_bounds.push(b);
         }
-        let score_threshold = r.f32()?;
+        let score_threshold = r.f64()?;
         if !(score_threshold.is_finite() && score_threshold >= 0.0) {
             return Err(invalid(
                 W,

@@ -46,14 +46,20 @@ pub fn coefficients(
     family: Family,
     levels: usize,
 ) -> (Geometry, Vec<Coefficient>, Vec<f32>) {
+    let margin = if family == Family::Haar { 0 } else { 8 };
+    let (g, list) = coefficients_with_margin(n, family, levels, margin);
+    (g, list, phantom(n, 3))
+}
+
+/// Geometry and all coefficients of the phantom with an explicit geometry margin.
+pub fn coefficients_with_margin(
+    n: usize,
+    family: Family,
+    levels: usize,
+    margin: usize,
+) -> (Geometry, Vec<Coefficient>) {
     let vol = phantom(n, 3);
-    let g = Geometry::new(
-        [n, n, n],
-        family,
-        levels,
-        if family == Family::Haar { 0 } else { 8 },
-    )
-    .unwrap();
+    let g = Geometry::new([n, n, n], family, levels, margin).unwrap();
     let coeffs = decompose_channel(&vol, &g);
     let list = (0..coeffs.len())
         .map(|i| {
@@ -66,7 +72,7 @@ pub fn coefficients(
             }
         })
         .collect();
-    (g, list, vol)
+    (g, list)
 }
 
 /// Largest |a − b| / max |b|.
