@@ -2,7 +2,10 @@
 //! tonic client and server.
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
-    let files = ["proto/wavesplat/v1/cache.proto"];
+    let files = [
+        "proto/wavesplat/v1/cache.proto",
+        "proto/wavesplat/v1/orchestrator.proto",
+    ];
     for f in &files {
         println!("cargo:rerun-if-changed={f}");
     }

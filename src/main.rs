@@ -35,14 +35,25 @@ enum Command {
     Decompress(commands::decompress::DecompressArgs),
     /// Render X-ray images directly from a .wsp file's coefficients (wavelet splatting).
     Render(Box<commands::render::RenderArgs>),
+    /// Measure compression, decoding and splatting throughput (CSV + table).
+    Bench(commands::bench::BenchArgs),
     /// Write a built-in phantom as raw f32 or u8 (for trying the other commands).
     Phantom(commands::phantom::PhantomArgs),
-    /// Run a server (`serve cache`: the gRPC coefficient cache).
+    /// Run a server (`serve cache`: the gRPC coefficient cache; `serve orchestrator`: the
+    /// batch job queue).
     #[command(subcommand)]
     Serve(commands::cache::ServeCommand),
     /// Talk to a coefficient cache: `ingest`, `list`, `rm`.
     #[command(subcommand)]
     Cache(commands::cache::CacheCommand),
+    /// Run a compression worker: lease jobs from an orchestrator, deliver to a cache.
+    Worker(commands::orchestrator::WorkerArgs),
+    /// Submit a directory of volumes to an orchestrator: `archive submit`.
+    #[command(subcommand)]
+    Archive(commands::orchestrator::ArchiveCommand),
+    /// Inspect and steer orchestrator jobs: `list`, `watch`, `cancel`, `retry`.
+    #[command(subcommand)]
+    Jobs(commands::orchestrator::JobsCommand),
 }
 
 fn main() {
@@ -65,8 +76,12 @@ fn run(command: Command) -> Result<()> {
         Command::Info(a) => commands::info::run(a),
         Command::Decompress(a) => commands::decompress::run(a),
         Command::Phantom(a) => commands::phantom::run(a),
+        Command::Bench(a) => commands::bench::run(a),
         Command::Render(a) => commands::render::run(*a),
         Command::Serve(c) => commands::cache::run_serve(c),
         Command::Cache(c) => commands::cache::run(c),
+        Command::Worker(a) => commands::orchestrator::run_worker(a),
+        Command::Archive(c) => commands::orchestrator::run_archive(c),
+        Command::Jobs(c) => commands::orchestrator::run_jobs(c),
     }
 }

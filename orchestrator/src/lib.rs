@@ -1,1 +1,99 @@
-//! (in progress)
+//! The wavesplat orchestrator: durable batch compression of a volume archive.
+//!
+//! A gRPC service (`wavesplat.v1.Orchestrator`, plus the standard health service) keeps a queue
+//! of jobs in sled — one job compresses one volume with given options and delivers the `.wsp`
+//! result to a coefficient cache. Stateless workers lease jobs, heartbeat with progress, and
+//! report a delivery or a typed failure; a lease that stops heartbeating is reclaimed and the
+//! job runs elsewhere; transient failures retry with exponential backoff up to a limit.
+//!
+//! - [`model`]: jobs, specs, states, failures (plain Rust, serialisable for the store);
+//! - [`queue`]: the queue logic with an explicit clock (unit tested without sleeping);
+//! - [`store`]: the sled layout and durability rules;
+//! - [`service`]: the tonic service; [`convert`] / [`error`]: the one place for `pb`
+//!   conversions / `tonic::Status` mapping;
+//! - [`worker`]: the worker loop; [`archive`]: scanning a directory and the raw naming
+//!   convention; [`client`]: helpers for the CLI and tests.
+//!
+//! ```no_run
+//! # async fn demo() -> Result<(), wavesplat_orchestrator::OrchestratorError> {
+//! let store = wavesplat_orchestrator::Store::open("orchestrator.db")?;
+//! let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+//! let config = wavesplat_orchestrator::ServiceConfig::default();
+//! wavesplat_orchestrator::serve(listener, store, config, async {
+//!     let _ = tokio::signal::ctrl_c().await;
+//! })
+//! .await?;
+//! # Ok(()) }
+//! ```
+
+pub mod archive;
+pub mod client;
+pub mod convert;
+pub mod error;
+pub mod model;
+pub mod queue;
+pub mod service;
+pub mod store;
+pub mod worker;
+
+pub use error::OrchestratorError;
+pub use model::{Job, JobId, JobOptions, JobSpec, JobState, TargetSpec};
+pub use queue::QueueConfig;
+pub use service::{OrchestratorService, ServiceConfig};
+pub use store::Store;
+pub use worker::WorkerConfig;
+
+use sha2::{Digest, Sha256};
+use std::future::Future;
+use std::time::Duration;
+use tokio_stream::wrappers::TcpListenerStream;
+use wavesplat_proto::pb::orchestrator_server::OrchestratorServer;
+
+/// SHA-256 of `bytes` (the identity of a source volume).
+pub fn sha256(bytes: &[u8]) -> [u8; 32] {
+    Sha256::digest(bytes).into()
+}
+
+/// Serves the orchestrator on `listener` until `shutdown` completes, then waits for in-flight
+/// requests and flushes the store. Expired leases are also reclaimed every heartbeat interval.
+pub async fn serve(
+    listener: tokio::net::TcpListener,
+    store: Store,
+    config: ServiceConfig,
+    shutdown: impl Future<Output = ()> + Send,
+) -> Result<(), OrchestratorError> {
+    let _flush = store::FlushGuard(store.clone());
+    let service = OrchestratorService::new(store, config, service::system_clock())?;
+    let (health, health_service) = tonic_health::server::health_reporter();
+    health
+        .set_serving::<OrchestratorServer<OrchestratorService>>()
+        .await;
+    let reaper = tokio::spawn({
+        let service = service.clone();
+        let every = Duration::from_millis(config.queue.heartbeat_ms.max(10));
+        async move {
+            let mut tick = tokio::time::interval(every);
+            loop {
+                tick.tick().await;
+                if let Err(e) = service.reap().await {
+                    tracing::error!(error = %e, "reclaiming expired leases");
+                }
+            }
+        }
+    });
+    let server = OrchestratorServer::new(service)
+        .max_decoding_message_size(service::CHUNK_BYTES + (1 << 20))
+        .max_encoding_message_size(service::CHUNK_BYTES + (1 << 20));
+    if let Ok(addr) = listener.local_addr() {
+        tracing::info!(%addr, "orchestrator serving");
+    }
+    let result = tonic::transport::Server::builder()
+        .add_service(health_service)
+        .add_service(server)
+        .serve_with_incoming_shutdown(TcpListenerStream::new(listener), shutdown)
+        .await;
+    reaper.abort();
+    result?;
+    tracing::info!("orchestrator stopped");
+    Ok(())
+}

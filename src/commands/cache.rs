@@ -15,6 +15,8 @@ pub const DEFAULT_URL: &str = "http://127.0.0.1:50051";
 pub enum ServeCommand {
     /// The coefficient cache (gRPC): stores .wsp volumes, streams view-dependent refinement.
     Cache(ServeCacheArgs),
+    /// The batch job orchestrator (gRPC): a durable queue of compression jobs for workers.
+    Orchestrator(super::orchestrator::ServeOrchestratorArgs),
 }
 
 /// Arguments of `wavesplat serve cache`.
@@ -88,7 +90,10 @@ fn url(u: &str) -> String {
 
 /// Runs `wavesplat serve …`.
 pub fn run_serve(cmd: ServeCommand) -> Result<()> {
-    let ServeCommand::Cache(a) = cmd;
+    let a = match cmd {
+        ServeCommand::Cache(a) => a,
+        ServeCommand::Orchestrator(a) => return super::orchestrator::run_serve(a),
+    };
     let limits = Limits {
         max_upload_bytes: a.max_upload_mib.saturating_mul(1 << 20),
         ..Limits::default()

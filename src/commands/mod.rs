@@ -1,11 +1,13 @@
 //! One module per subcommand: argument parsing (clap) into the libraries' option types, and
 //! human-readable output.
 
+pub mod bench;
 pub mod cache;
 pub mod compress;
 pub mod decompress;
 pub mod demo;
 pub mod info;
+pub mod orchestrator;
 pub mod phantom;
 pub mod render;
 

@@ -1,0 +1,274 @@
+//! The one place where wire types (`pb`) become domain types and back. Everything arriving from
+//! the network is checked here (missing fields, sizes, enum values) and reported as
+//! [`OrchestratorError::InvalidRequest`]; nothing panics on bad input.
+
+use crate::error::OrchestratorError;
+use crate::model::{
+    Delivery, Failure, FailureKind, Job, JobOptions, JobSpec, JobState, Outcome, RawLayout, Source,
+    TargetSpec,
+};
+use wavesplat_proto::pb;
+
+fn invalid(msg: impl Into<String>) -> OrchestratorError {
+    OrchestratorError::InvalidRequest(msg.into())
+}
+
+fn to_usize(v: u32) -> usize {
+    v as usize
+}
+
+/// `pb::JobSpec` → [`JobSpec`] (shape only; [`JobSpec::validate`] checks values).
+pub fn spec_from_pb(p: pb::JobSpec) -> Result<JobSpec, OrchestratorError> {
+    let source = match p.source {
+        Some(pb::job_spec::Source::Path(path)) => Source::Path(path.into()),
+        Some(pb::job_spec::Source::UploadSize(size)) => Source::Upload { size },
+        None => return Err(invalid("job spec without a source (path or upload_size)")),
+    };
+    let sha256: [u8; 32] = p.sha256.as_slice().try_into().map_err(|_| {
+        invalid(format!(
+            "sha256 of {} bytes; must be 32 bytes",
+            p.sha256.len()
+        ))
+    })?;
+    let raw = match p.raw {
+        None => None,
+        Some(r) => {
+            let dims: [u32; 3] =
+                r.dims.as_slice().try_into().map_err(|_| {
+                    invalid(format!("raw dims {:?}; need exactly 3 values", r.dims))
+                })?;
+            Some(RawLayout {
+                dims: dims.map(to_usize),
+                dtype: r.dtype,
+                big_endian: r.big_endian,
+                channels: if r.channels == 0 {
+                    1
+                } else {
+                    to_usize(r.channels)
+                },
+            })
+        }
+    };
+    let options = options_from_pb(p.options.unwrap_or_default())?;
+    Ok(JobSpec {
+        name: p.name,
+        source,
+        sha256,
+        raw,
+        options,
+    })
+}
+
+fn options_from_pb(o: pb::CompressOptions) -> Result<JobOptions, OrchestratorError> {
+    let d = JobOptions::default();
+    let or = |s: String, d: String| if s.is_empty() { d } else { s };
+    let target = match o.target.and_then(|t| t.kind) {
+        None => d.target,
+        Some(pb::target::Kind::Fraction(f)) => TargetSpec::Fraction(f),
+        Some(pb::target::Kind::Bytes(b)) => TargetSpec::Bytes(b),
+        Some(pb::target::Kind::Coefficients(c)) => TargetSpec::Coefficients(c),
+        Some(pb::target::Kind::QvPercent(q)) => TargetSpec::QvPercent(q),
+        Some(pb::target::Kind::All(_)) => TargetSpec::All,
+    };
+    Ok(JobOptions {
+        family: or(o.family, d.family),
+        levels: o.levels.map(to_usize),
+        colorspace: or(o.colorspace, d.colorspace),
+        bits: match o.bits {
+            0 => d.bits,
+            b => u8::try_from(b).map_err(|_| invalid(format!("bits {b}; allowed 1..=16")))?,
+        },
+        step: if o.step == 0.0 { d.step } else { o.step },
+        coder: or(o.coder, d.coder),
+        target,
+        tile: o.tile.map(to_usize),
+        layers: o.layers.map(to_usize),
+    })
+}
+
+fn u32_of(v: usize) -> u32 {
+    u32::try_from(v).unwrap_or(u32::MAX)
+}
+
+/// [`JobSpec`] → `pb::JobSpec`.
+pub fn spec_to_pb(s: &JobSpec) -> pb::JobSpec {
+    let o = &s.options;
+    let kind = match o.target {
+        TargetSpec::Fraction(f) => pb::target::Kind::Fraction(f),
+        TargetSpec::Bytes(b) => pb::target::Kind::Bytes(b),
+        TargetSpec::Coefficients(c) => pb::target::Kind::Coefficients(c),
+        TargetSpec::QvPercent(q) => pb::target::Kind::QvPercent(q),
+        TargetSpec::All => pb::target::Kind::All(true),
+    };
+    pb::JobSpec {
+        name: s.name.clone(),
+        source: Some(match &s.source {
+            Source::Path(p) => pb::job_spec::Source::Path(p.to_string_lossy().into_owned()),
+            Source::Upload { size } => pb::job_spec::Source::UploadSize(*size),
+        }),
+        sha256: s.sha256.to_vec(),
+        raw: s.raw.as_ref().map(|r| pb::RawLayout {
+            dims: r.dims.iter().map(|&d| u32_of(d)).collect(),
+            dtype: r.dtype.clone(),
+            big_endian: r.big_endian,
+            channels: u32_of(r.channels),
+        }),
+        options: Some(pb::CompressOptions {
+            family: o.family.clone(),
+            levels: o.levels.map(u32_of),
+            colorspace: o.colorspace.clone(),
+            bits: u32::from(o.bits),
+            step: o.step,
+            coder: o.coder.clone(),
+            target: Some(pb::Target { kind: Some(kind) }),
+            tile: o.tile.map(u32_of),
+            layers: o.layers.map(u32_of),
+        }),
+    }
+}
+
+/// [`FailureKind`] → wire enum.
+pub fn failure_kind_to_pb(k: FailureKind) -> pb::FailureKind {
+    match k {
+        FailureKind::InvalidInput => pb::FailureKind::InvalidInput,
+        FailureKind::Compress => pb::FailureKind::Compress,
+        FailureKind::SourceUnavailable => pb::FailureKind::SourceUnavailable,
+        FailureKind::CacheUnavailable => pb::FailureKind::CacheUnavailable,
+        FailureKind::CacheRejected => pb::FailureKind::CacheRejected,
+        FailureKind::LeaseExpired => pb::FailureKind::LeaseExpired,
+        FailureKind::Worker => pb::FailureKind::Worker,
+    }
+}
+
+/// Wire enum value → [`FailureKind`].
+pub fn failure_kind_from_pb(v: i32) -> Result<FailureKind, OrchestratorError> {
+    Ok(match pb::FailureKind::try_from(v) {
+        Ok(pb::FailureKind::InvalidInput) => FailureKind::InvalidInput,
+        Ok(pb::FailureKind::Compress) => FailureKind::Compress,
+        Ok(pb::FailureKind::SourceUnavailable) => FailureKind::SourceUnavailable,
+        Ok(pb::FailureKind::CacheUnavailable) => FailureKind::CacheUnavailable,
+        Ok(pb::FailureKind::CacheRejected) => FailureKind::CacheRejected,
+        Ok(pb::FailureKind::LeaseExpired) => FailureKind::LeaseExpired,
+        Ok(pb::FailureKind::Worker) => FailureKind::Worker,
+        _ => return Err(invalid(format!("failure kind {v}; allowed 1..=7"))),
+    })
+}
+
+/// A worker's `FinishRequest` outcome → [`Outcome`].
+pub fn outcome_from_pb(
+    o: Option<pb::finish_request::Outcome>,
+) -> Result<Outcome, OrchestratorError> {
+    match o {
+        Some(pb::finish_request::Outcome::Delivered(d)) => Ok(Outcome::Delivered(Delivery {
+            cache_volume_id: d.cache_volume_id,
+            output_bytes: d.output_bytes,
+            voxels: d.voxels,
+            existed: d.existed,
+        })),
+        Some(pb::finish_request::Outcome::Failure(f)) => Ok(Outcome::Failed(Failure {
+            kind: failure_kind_from_pb(f.kind)?,
+            message: f.message.chars().take(4000).collect(),
+        })),
+        None => Err(invalid("finish request without an outcome")),
+    }
+}
+
+/// [`Job`] → `pb::Job`.
+pub fn job_to_pb(j: &Job, max_attempts: u32) -> pb::Job {
+    let mut p = pb::Job {
+        id: j.id,
+        spec: Some(spec_to_pb(&j.spec)),
+        attempts: j.attempts,
+        max_attempts,
+        created_unix_ms: j.created_ms,
+        updated_unix_ms: j.updated_ms,
+        ..Default::default()
+    };
+    if let Some(f) = &j.last_failure {
+        p.failure = failure_kind_to_pb(f.kind) as i32;
+        p.error = f.message.clone();
+    }
+    let state = match &j.state {
+        JobState::Queued { not_before_ms } => {
+            p.not_before_unix_ms = *not_before_ms;
+            pb::JobState::Queued
+        }
+        JobState::Running {
+            worker,
+            lease_expires_ms,
+            progress,
+            stage,
+            ..
+        } => {
+            p.worker = worker.clone();
+            p.lease_expires_unix_ms = *lease_expires_ms;
+            p.progress = *progress;
+            p.stage = stage.clone();
+            pb::JobState::Running
+        }
+        JobState::Done { delivery, run_ms } => {
+            p.progress = 1.0;
+            p.cache_volume_id = delivery.cache_volume_id;
+            p.output_bytes = delivery.output_bytes;
+            p.voxels = delivery.voxels;
+            p.run_ms = *run_ms;
+            pb::JobState::Done
+        }
+        JobState::Failed(f) => {
+            p.failure = failure_kind_to_pb(f.kind) as i32;
+            p.error = f.message.clone();
+            pb::JobState::Failed
+        }
+        JobState::Cancelled => pb::JobState::Cancelled,
+    };
+    p.state = state as i32;
+    p
+}
+
+/// The short name of a wire job state.
+pub fn state_name(v: i32) -> &'static str {
+    match pb::JobState::try_from(v) {
+        Ok(pb::JobState::Queued) => "queued",
+        Ok(pb::JobState::Running) => "running",
+        Ok(pb::JobState::Done) => "done",
+        Ok(pb::JobState::Failed) => "failed",
+        Ok(pb::JobState::Cancelled) => "cancelled",
+        _ => "unknown",
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn spec_round_trips_and_bad_shapes_are_refused() {
+        let spec = JobSpec {
+            name: "head".into(),
+            source: Source::Path("/a/head_8x8x8_u8.raw".into()),
+            sha256: [7; 32],
+            raw: Some(RawLayout {
+                dims: [8, 8, 8],
+                dtype: "u8".into(),
+                big_endian: false,
+                channels: 3,
+            }),
+            options: JobOptions {
+                levels: Some(2),
+                target: TargetSpec::All,
+                ..JobOptions::default()
+            },
+        };
+        assert_eq!(spec_from_pb(spec_to_pb(&spec)).unwrap(), spec);
+        let mut p = spec_to_pb(&spec);
+        p.sha256 = vec![1, 2];
+        assert!(spec_from_pb(p).is_err());
+        let mut p = spec_to_pb(&spec);
+        p.raw.as_mut().unwrap().dims = vec![1, 2];
+        assert!(spec_from_pb(p).is_err());
+        let mut p = spec_to_pb(&spec);
+        p.source = None;
+        assert!(spec_from_pb(p).is_err());
+        assert!(failure_kind_from_pb(99).is_err());
+    }
+}

@@ -1,0 +1,69 @@
+//! The orchestrator's typed errors and their single mapping to gRPC statuses: bad requests are
+//! `InvalidArgument`, unknown jobs `NotFound`, actions the job's state forbids (and lost
+//! leases) `FailedPrecondition`, storage trouble `Internal`.
+
+use crate::model::JobId;
+use thiserror::Error;
+
+/// Errors of the orchestrator library.
+#[derive(Debug, Error)]
+#[non_exhaustive]
+pub enum OrchestratorError {
+    /// No job with this id.
+    #[error("no job {0}")]
+    NotFound(JobId),
+    /// The request is malformed or a value is out of range.
+    #[error("invalid request: {0}")]
+    InvalidRequest(String),
+    /// The job's state does not allow the action.
+    #[error("job {id} is {state}; {action} needs {allowed}")]
+    InvalidState {
+        /// The job.
+        id: JobId,
+        /// Its state.
+        state: &'static str,
+        /// What was asked.
+        action: &'static str,
+        /// The states that allow it.
+        allowed: &'static str,
+    },
+    /// The caller does not hold the job's lease (it expired and was reclaimed, the job was
+    /// cancelled, or the attempt is stale).
+    #[error("lease on job {id} attempt {attempt} is not held: {reason}")]
+    LeaseLost {
+        /// The job.
+        id: JobId,
+        /// The attempt claimed.
+        attempt: u32,
+        /// Why.
+        reason: String,
+    },
+    /// The store failed.
+    #[error("storage: {0}")]
+    Storage(#[from] sled::Error),
+    /// A stored record could not be read back.
+    #[error("corrupt store entry: {0}")]
+    Corrupt(String),
+    /// A transport-level failure (binding, serving).
+    #[error("transport: {0}")]
+    Transport(#[from] tonic::transport::Error),
+}
+
+impl From<OrchestratorError> for tonic::Status {
+    fn from(e: OrchestratorError) -> Self {
+        let msg = e.to_string();
+        match e {
+            OrchestratorError::NotFound(_) => tonic::Status::not_found(msg),
+            OrchestratorError::InvalidRequest(_) => tonic::Status::invalid_argument(msg),
+            OrchestratorError::InvalidState { .. } | OrchestratorError::LeaseLost { .. } => {
+                tonic::Status::failed_precondition(msg)
+            }
+            OrchestratorError::Storage(_)
+            | OrchestratorError::Corrupt(_)
+            | OrchestratorError::Transport(_) => {
+                tracing::error!(error = %msg, "internal error");
+                tonic::Status::internal(msg)
+            }
+        }
+    }
+}

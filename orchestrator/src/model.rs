@@ -1,0 +1,421 @@
+//! Domain types of the orchestrator: what a job asks for ([`JobSpec`]), where it stands
+//! ([`JobState`]) and how an attempt ended ([`Outcome`]). Plain Rust, serialisable for the
+//! store; the wire types live in `wavesplat_proto::pb` and are converted in [`crate::convert`].
+
+use crate::error::OrchestratorError;
+use serde::{Deserialize, Serialize};
+use std::path::PathBuf;
+use wavesplat_codec::family::Family;
+use wavesplat_codec::format::CoderKind;
+use wavesplat_compressor::colorspace::ColorSpaceKind;
+use wavesplat_compressor::encode::{CompressOptions, Target, TileChoice};
+use wavesplat_compressor::reader::{Endian, RawDtype, RawSpec};
+
+/// A job's id (assigned in submission order, starting at 1).
+pub type JobId = u64;
+
+/// Longest volume name (bytes), as in the cache.
+pub const MAX_NAME_BYTES: usize = 255;
+
+/// Where a job's volume comes from.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub enum Source {
+    /// A file on storage every worker can read.
+    Path(PathBuf),
+    /// Bytes uploaded with the submission and kept by the orchestrator (keyed by their hash).
+    Upload {
+        /// Size in bytes.
+        size: u64,
+    },
+}
+
+/// Layout of a headerless raw file (see [`crate::archive`] for the naming convention).
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct RawLayout {
+    /// Dimensions (x fastest).
+    pub dims: [usize; 3],
+    /// Canonical sample type name (`u8`, `u16`, `i16`, `f32`).
+    pub dtype: String,
+    /// Big-endian samples.
+    pub big_endian: bool,
+    /// 1 or 3.
+    pub channels: usize,
+}
+
+impl RawLayout {
+    /// Validates and builds the reader's spec.
+    pub fn spec(&self) -> Result<RawSpec, OrchestratorError> {
+        let dtype = RawDtype::from_name(&self.dtype).map_err(|_| {
+            OrchestratorError::InvalidRequest(format!(
+                "raw dtype {:?}; allowed {:?}",
+                self.dtype,
+                RawDtype::names()
+            ))
+        })?;
+        if self.channels != 1 && self.channels != 3 {
+            return Err(OrchestratorError::InvalidRequest(format!(
+                "raw channels {}; allowed 1 or 3",
+                self.channels
+            )));
+        }
+        if self.dims.contains(&0) {
+            return Err(OrchestratorError::InvalidRequest(format!(
+                "raw dims {:?}; each must be at least 1",
+                self.dims
+            )));
+        }
+        let mut spec = RawSpec::new(self.dims, dtype);
+        spec.endian = if self.big_endian {
+            Endian::Big
+        } else {
+            Endian::Little
+        };
+        spec.channels = self.channels;
+        Ok(spec)
+    }
+}
+
+/// How much to keep (mirrors [`Target`], serialisable).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub enum TargetSpec {
+    /// Fraction (0, 1] of all coefficients.
+    Fraction(f64),
+    /// Whole-file bytes.
+    Bytes(u64),
+    /// Number of coefficients.
+    Coefficients(u64),
+    /// Energy percentage Q_V.
+    QvPercent(f64),
+    /// Every non-zero coefficient.
+    All,
+}
+
+/// Compressor options of a job, by canonical names (validated by [`JobOptions::validate`]).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct JobOptions {
+    /// `haar`, `linear`, `cubic`.
+    pub family: String,
+    /// Decomposition depth (`None`: automatic).
+    pub levels: Option<usize>,
+    /// `rgb`, `yiq`, `pca`.
+    pub colorspace: String,
+    /// Quantization bits 1..=16.
+    pub bits: u8,
+    /// Sigmap quantizer step (> 0).
+    pub step: f64,
+    /// `sigmap`, `range`, `huffman`.
+    pub coder: String,
+    /// What to keep.
+    pub target: TargetSpec,
+    /// Tile edge (`None`: automatic).
+    pub tile: Option<usize>,
+    /// Quality layers (`None`: automatic).
+    pub layers: Option<usize>,
+}
+
+impl Default for JobOptions {
+    fn default() -> Self {
+        let d = CompressOptions::default();
+        JobOptions {
+            family: d.family.name().into(),
+            levels: None,
+            colorspace: d.colorspace.name().into(),
+            bits: d.bits,
+            step: d.step,
+            coder: d.coder.name().into(),
+            target: TargetSpec::Fraction(0.05),
+            tile: None,
+            layers: None,
+        }
+    }
+}
+
+fn invalid(msg: String) -> OrchestratorError {
+    OrchestratorError::InvalidRequest(msg)
+}
+
+impl JobOptions {
+    /// Checks every value and returns the options with canonical names.
+    pub fn validate(mut self) -> Result<JobOptions, OrchestratorError> {
+        let o = self.to_compress_options()?;
+        self.family = o.family.name().into();
+        self.colorspace = o.colorspace.name().into();
+        self.coder = o.coder.name().into();
+        Ok(self)
+    }
+
+    /// The compressor's options.
+    pub fn to_compress_options(&self) -> Result<CompressOptions, OrchestratorError> {
+        let family = Family::from_name(&self.family.to_ascii_lowercase()).ok_or_else(|| {
+            invalid(format!(
+                "family {:?}; allowed haar, linear, cubic",
+                self.family
+            ))
+        })?;
+        let colorspace = ColorSpaceKind::from_name(&self.colorspace).ok_or_else(|| {
+            invalid(format!(
+                "colour space {:?}; allowed rgb, yiq, pca",
+                self.colorspace
+            ))
+        })?;
+        let coder = CoderKind::from_name(&self.coder.to_ascii_lowercase()).ok_or_else(|| {
+            invalid(format!(
+                "coder {:?}; allowed sigmap, range, huffman",
+                self.coder
+            ))
+        })?;
+        if !(1..=16).contains(&self.bits) {
+            return Err(invalid(format!("bits {}; allowed 1..=16", self.bits)));
+        }
+        if !(self.step.is_finite() && self.step > 0.0) {
+            return Err(invalid(format!(
+                "step {}; must be finite and > 0",
+                self.step
+            )));
+        }
+        if let Some(l) = self.levels {
+            if !(1..=16).contains(&l) {
+                return Err(invalid(format!("levels {l}; allowed 1..=16")));
+            }
+        }
+        if let Some(l) = self.layers {
+            if l == 0 {
+                return Err(invalid("layers 0; must be at least 1".into()));
+            }
+        }
+        if self.tile == Some(0) {
+            return Err(invalid("tile 0; must be at least 1".into()));
+        }
+        let target = match self.target {
+            TargetSpec::Fraction(f) if f > 0.0 && f <= 1.0 => Target::Fraction(f),
+            TargetSpec::Fraction(f) => {
+                return Err(invalid(format!("target fraction {f}; allowed (0, 1]")))
+            }
+            TargetSpec::QvPercent(q) if q > 0.0 && q <= 100.0 => Target::QvPercent(q),
+            TargetSpec::QvPercent(q) => {
+                return Err(invalid(format!("target Q_V {q} %; allowed (0, 100]")))
+            }
+            TargetSpec::Bytes(b) if b > 0 => Target::Bytes(b),
+            TargetSpec::Coefficients(c) if c > 0 => Target::Coefficients(c),
+            TargetSpec::Bytes(_) | TargetSpec::Coefficients(_) => {
+                return Err(invalid(
+                    "target of 0 bytes/coefficients; must be > 0".into(),
+                ))
+            }
+            TargetSpec::All => Target::All,
+        };
+        Ok(CompressOptions {
+            family,
+            levels: self.levels,
+            colorspace,
+            bits: self.bits,
+            coder,
+            target,
+            tile: self.tile.map_or(TileChoice::Auto, TileChoice::Size),
+            layers: self.layers,
+            step: self.step,
+            ..CompressOptions::default()
+        })
+    }
+}
+
+/// Everything a worker needs to run a job.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct JobSpec {
+    /// Name of the result in the cache.
+    pub name: String,
+    /// Where the volume comes from.
+    pub source: Source,
+    /// SHA-256 of the source file.
+    pub sha256: [u8; 32],
+    /// Raw layout (`None`: NIfTI).
+    pub raw: Option<RawLayout>,
+    /// Compressor options.
+    pub options: JobOptions,
+}
+
+impl JobSpec {
+    /// Validates the spec (name, layout, options) and canonicalises option names.
+    pub fn validate(mut self) -> Result<JobSpec, OrchestratorError> {
+        if self.name.is_empty()
+            || self.name.len() > MAX_NAME_BYTES
+            || self.name.chars().any(char::is_control)
+        {
+            return Err(invalid(format!(
+                "name {:?}; must be 1..={MAX_NAME_BYTES} bytes without control characters",
+                self.name
+            )));
+        }
+        if let Some(r) = &self.raw {
+            r.spec()?;
+        }
+        if let Source::Path(p) = &self.source {
+            if p.as_os_str().is_empty() {
+                return Err(invalid("empty source path".into()));
+            }
+        }
+        self.options = self.options.validate()?;
+        Ok(self)
+    }
+
+    /// The identity of the work: content hash, layout and options (not the name, not the
+    /// source location). Two submissions with the same key are the same job.
+    pub fn dedup_key(&self) -> String {
+        let opts = serde_json::to_string(&(&self.raw, &self.options)).unwrap_or_default();
+        format!("{}|{opts}", hex(&self.sha256))
+    }
+}
+
+/// Lower-case hex of bytes.
+pub fn hex(bytes: &[u8]) -> String {
+    bytes.iter().map(|b| format!("{b:02x}")).collect()
+}
+
+/// Why an attempt failed; decides whether the job is retried.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub enum FailureKind {
+    /// Not a valid volume (size, dims, NaN, header, hash mismatch).
+    InvalidInput,
+    /// The compressor rejected the volume with these options.
+    Compress,
+    /// The source could not be read.
+    SourceUnavailable,
+    /// The cache could not be reached.
+    CacheUnavailable,
+    /// The cache refused the result.
+    CacheRejected,
+    /// The worker stopped heartbeating.
+    LeaseExpired,
+    /// Anything else.
+    Worker,
+}
+
+impl FailureKind {
+    /// Whether running the job again cannot help.
+    pub fn is_permanent(self) -> bool {
+        matches!(
+            self,
+            FailureKind::InvalidInput | FailureKind::Compress | FailureKind::CacheRejected
+        )
+    }
+
+    /// Short name.
+    pub fn name(self) -> &'static str {
+        match self {
+            FailureKind::InvalidInput => "invalid-input",
+            FailureKind::Compress => "compress",
+            FailureKind::SourceUnavailable => "source-unavailable",
+            FailureKind::CacheUnavailable => "cache-unavailable",
+            FailureKind::CacheRejected => "cache-rejected",
+            FailureKind::LeaseExpired => "lease-expired",
+            FailureKind::Worker => "worker",
+        }
+    }
+}
+
+/// A failed attempt.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Failure {
+    /// What kind.
+    pub kind: FailureKind,
+    /// The reason, for people.
+    pub message: String,
+}
+
+/// A successful delivery to the cache.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Delivery {
+    /// The volume's id in the cache.
+    pub cache_volume_id: u64,
+    /// Size of the compressed file.
+    pub output_bytes: u64,
+    /// Voxels of the source volume.
+    pub voxels: u64,
+    /// The cache already held identical content.
+    pub existed: bool,
+}
+
+/// How an attempt ended.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Outcome {
+    /// Delivered.
+    Delivered(Delivery),
+    /// Failed.
+    Failed(Failure),
+}
+
+/// Where a job stands.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub enum JobState {
+    /// Waiting for a worker, not before `not_before_ms` (retry backoff).
+    Queued {
+        /// Unix ms.
+        not_before_ms: u64,
+    },
+    /// Leased by a worker.
+    Running {
+        /// Worker identity.
+        worker: String,
+        /// Attempt number of the lease.
+        attempt: u32,
+        /// Lease expiry, unix ms.
+        lease_expires_ms: u64,
+        /// When the attempt started, unix ms.
+        started_ms: u64,
+        /// Progress 0..=1.
+        progress: f32,
+        /// Current stage.
+        stage: String,
+    },
+    /// Delivered.
+    Done {
+        /// Where it went.
+        delivery: Delivery,
+        /// Wall time of the successful attempt.
+        run_ms: u64,
+    },
+    /// Gave up.
+    Failed(Failure),
+    /// Cancelled by a user.
+    Cancelled,
+}
+
+impl JobState {
+    /// Short name: queued, running, done, failed, cancelled.
+    pub fn name(&self) -> &'static str {
+        match self {
+            JobState::Queued { .. } => "queued",
+            JobState::Running { .. } => "running",
+            JobState::Done { .. } => "done",
+            JobState::Failed(_) => "failed",
+            JobState::Cancelled => "cancelled",
+        }
+    }
+
+    /// Done, failed or cancelled.
+    pub fn is_terminal(&self) -> bool {
+        matches!(
+            self,
+            JobState::Done { .. } | JobState::Failed(_) | JobState::Cancelled
+        )
+    }
+}
+
+/// A job and its history.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Job {
+    /// Id.
+    pub id: JobId,
+    /// What to do.
+    pub spec: JobSpec,
+    /// Where it stands.
+    pub state: JobState,
+    /// Attempts started (leases granted) since submission or the last retry.
+    pub attempts: u32,
+    /// The last failure of an attempt (kept while the job is retried).
+    pub last_failure: Option<Failure>,
+    /// Unix ms.
+    pub created_ms: u64,
+    /// Unix ms.
+    pub updated_ms: u64,
+}

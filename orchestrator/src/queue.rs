@@ -1,0 +1,562 @@
+//! The job queue's logic, in memory and free of I/O: submission with de-duplication, leases
+//! with expiry, heartbeats, outcomes, retry with exponential backoff, cancellation. Time is a
+//! parameter (`now`, unix ms), so tests drive the clock directly. Every mutation returns the
+//! jobs it changed; the service persists exactly those (see [`crate::store`]).
+
+use crate::error::OrchestratorError;
+use crate::model::{Failure, FailureKind, Job, JobId, JobSpec, JobState, Outcome};
+use std::collections::{BTreeMap, HashMap};
+
+/// Timing and retry policy.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct QueueConfig {
+    /// A lease lapses this long after the last heartbeat (ms).
+    pub lease_ms: u64,
+    /// Workers heartbeat this often (ms).
+    pub heartbeat_ms: u64,
+    /// Attempts (leases) before a job fails for good.
+    pub max_attempts: u32,
+    /// Backoff before the second attempt (ms); doubles per attempt.
+    pub backoff_base_ms: u64,
+    /// Longest backoff (ms).
+    pub backoff_max_ms: u64,
+}
+
+impl Default for QueueConfig {
+    fn default() -> Self {
+        QueueConfig {
+            lease_ms: 30_000,
+            heartbeat_ms: 5_000,
+            max_attempts: 3,
+            backoff_base_ms: 2_000,
+            backoff_max_ms: 60_000,
+        }
+    }
+}
+
+impl QueueConfig {
+    /// Checks the values.
+    pub fn validate(self) -> Result<QueueConfig, OrchestratorError> {
+        if self.lease_ms == 0 || self.heartbeat_ms == 0 || self.heartbeat_ms >= self.lease_ms {
+            return Err(OrchestratorError::InvalidRequest(format!(
+                "heartbeat {} ms and lease {} ms: need 0 < heartbeat < lease",
+                self.heartbeat_ms, self.lease_ms
+            )));
+        }
+        if self.max_attempts == 0 {
+            return Err(OrchestratorError::InvalidRequest(
+                "max attempts 0; must be at least 1".into(),
+            ));
+        }
+        Ok(self)
+    }
+
+    /// Backoff after `attempts` failed attempts.
+    pub fn backoff_ms(&self, attempts: u32) -> u64 {
+        let shift = attempts.saturating_sub(1).min(30);
+        self.backoff_base_ms
+            .saturating_mul(1 << shift)
+            .min(self.backoff_max_ms)
+    }
+}
+
+/// The result of a submission.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Submitted {
+    /// The job (new or existing).
+    pub job: Job,
+    /// True if an identical job was already known.
+    pub existed: bool,
+}
+
+/// The in-memory queue (the service keeps it behind a mutex and writes changes through).
+#[derive(Debug, Clone)]
+pub struct Queue {
+    cfg: QueueConfig,
+    jobs: BTreeMap<JobId, Job>,
+    keys: HashMap<String, JobId>,
+    next_id: JobId,
+}
+
+impl Queue {
+    /// An empty queue.
+    pub fn new(cfg: QueueConfig) -> Queue {
+        Queue {
+            cfg,
+            jobs: BTreeMap::new(),
+            keys: HashMap::new(),
+            next_id: 1,
+        }
+    }
+
+    /// Rebuilds the queue from stored jobs after a restart. Running leases get a fresh
+    /// `lease_ms` of grace, since their workers could not heartbeat while we were down.
+    /// Returns the queue and the jobs it changed.
+    pub fn restore(cfg: QueueConfig, jobs: Vec<Job>, now: u64) -> (Queue, Vec<Job>) {
+        let mut q = Queue::new(cfg);
+        let mut changed = Vec::new();
+        for mut job in jobs {
+            if let JobState::Running {
+                lease_expires_ms, ..
+            } = &mut job.state
+            {
+                *lease_expires_ms = (*lease_expires_ms).max(now + cfg.lease_ms);
+                changed.push(job.clone());
+            }
+            q.next_id = q.next_id.max(job.id + 1);
+            q.keys.insert(job.spec.dedup_key(), job.id);
+            q.jobs.insert(job.id, job);
+        }
+        (q, changed)
+    }
+
+    /// The policy.
+    pub fn config(&self) -> &QueueConfig {
+        &self.cfg
+    }
+
+    /// One job.
+    pub fn get(&self, id: JobId) -> Result<&Job, OrchestratorError> {
+        self.jobs.get(&id).ok_or(OrchestratorError::NotFound(id))
+    }
+
+    /// Every job by id.
+    pub fn jobs(&self) -> impl Iterator<Item = &Job> {
+        self.jobs.values()
+    }
+
+    /// Adds a job, or returns the known one with the same content hash, layout and options.
+    pub fn submit(&mut self, spec: JobSpec, now: u64) -> Result<Submitted, OrchestratorError> {
+        let spec = spec.validate()?;
+        let key = spec.dedup_key();
+        if let Some(id) = self.keys.get(&key) {
+            if let Some(job) = self.jobs.get(id) {
+                return Ok(Submitted {
+                    job: job.clone(),
+                    existed: true,
+                });
+            }
+        }
+        let id = self.next_id;
+        self.next_id += 1;
+        let job = Job {
+            id,
+            spec,
+            state: JobState::Queued { not_before_ms: now },
+            attempts: 0,
+            last_failure: None,
+            created_ms: now,
+            updated_ms: now,
+        };
+        self.keys.insert(key, id);
+        self.jobs.insert(id, job.clone());
+        Ok(Submitted {
+            job,
+            existed: false,
+        })
+    }
+
+    /// Reclaims every lease that expired by `now`: the job is queued again with backoff, or
+    /// failed once its attempts are used up. Returns the changed jobs.
+    pub fn reap(&mut self, now: u64) -> Vec<Job> {
+        let expired: Vec<(JobId, String)> = self
+            .jobs
+            .values()
+            .filter_map(|j| match &j.state {
+                JobState::Running {
+                    lease_expires_ms,
+                    worker,
+                    ..
+                } if *lease_expires_ms <= now => Some((j.id, worker.clone())),
+                _ => None,
+            })
+            .collect();
+        let mut changed = Vec::new();
+        for (id, worker) in expired {
+            let failure = Failure {
+                kind: FailureKind::LeaseExpired,
+                message: format!("worker {worker:?} stopped heartbeating (lease expired)"),
+            };
+            tracing::warn!(job = id, %worker, "lease expired; reclaiming");
+            if let Some(job) = self.jobs.get_mut(&id) {
+                Self::fail_attempt(&self.cfg, job, failure, now);
+                changed.push(job.clone());
+            }
+        }
+        changed
+    }
+
+    fn fail_attempt(cfg: &QueueConfig, job: &mut Job, failure: Failure, now: u64) {
+        job.state = if failure.kind.is_permanent() || job.attempts >= cfg.max_attempts {
+            let mut f = failure.clone();
+            if !failure.kind.is_permanent() {
+                f.message = format!("{} (after {} attempts)", f.message, job.attempts);
+            }
+            JobState::Failed(f)
+        } else {
+            JobState::Queued {
+                not_before_ms: now + cfg.backoff_ms(job.attempts),
+            }
+        };
+        job.last_failure = Some(failure);
+        job.updated_ms = now;
+    }
+
+    /// Leases the oldest runnable job to `worker` (reclaiming expired leases first). Returns
+    /// the leased job (if any) and every job changed.
+    pub fn lease(&mut self, worker: &str, now: u64) -> (Option<Job>, Vec<Job>) {
+        let mut changed = self.reap(now);
+        let next = self.jobs.values_mut().find(
+            |j| matches!(j.state, JobState::Queued { not_before_ms } if not_before_ms <= now),
+        );
+        let Some(job) = next else {
+            return (None, changed);
+        };
+        job.attempts += 1;
+        job.state = JobState::Running {
+            worker: worker.to_string(),
+            attempt: job.attempts,
+            lease_expires_ms: now + self.cfg.lease_ms,
+            started_ms: now,
+            progress: 0.0,
+            stage: "leased".into(),
+        };
+        job.updated_ms = now;
+        let job = job.clone();
+        changed.push(job.clone());
+        (Some(job), changed)
+    }
+
+    /// Milliseconds until the next queued job becomes runnable (`None`: none queued).
+    pub fn next_runnable_in(&self, now: u64) -> Option<u64> {
+        self.jobs
+            .values()
+            .filter_map(|j| match j.state {
+                JobState::Queued { not_before_ms } => Some(not_before_ms.saturating_sub(now)),
+                _ => None,
+            })
+            .min()
+    }
+
+    fn held(&mut self, id: JobId, attempt: u32, now: u64) -> Result<&mut Job, OrchestratorError> {
+        let job = self
+            .jobs
+            .get_mut(&id)
+            .ok_or(OrchestratorError::NotFound(id))?;
+        let lost = |reason: String| OrchestratorError::LeaseLost {
+            id,
+            attempt,
+            reason,
+        };
+        match &job.state {
+            JobState::Running {
+                attempt: a,
+                lease_expires_ms,
+                ..
+            } if *a == attempt => {
+                if *lease_expires_ms <= now {
+                    Err(lost("the lease expired".into()))
+                } else {
+                    Ok(job)
+                }
+            }
+            JobState::Running { attempt: a, .. } => Err(lost(format!(
+                "the job was reclaimed and is now attempt {a}"
+            ))),
+            JobState::Cancelled => Err(lost("the job was cancelled".into())),
+            s => Err(lost(format!("the job is {}", s.name()))),
+        }
+    }
+
+    /// Extends a lease and records progress.
+    pub fn heartbeat(
+        &mut self,
+        id: JobId,
+        attempt: u32,
+        progress: f32,
+        stage: &str,
+        now: u64,
+    ) -> Result<Job, OrchestratorError> {
+        let lease_ms = self.cfg.lease_ms;
+        let job = self.held(id, attempt, now)?;
+        if let JobState::Running {
+            lease_expires_ms,
+            progress: p,
+            stage: s,
+            ..
+        } = &mut job.state
+        {
+            *lease_expires_ms = now + lease_ms;
+            *p = if progress.is_finite() {
+                progress.clamp(0.0, 1.0)
+            } else {
+                0.0
+            };
+            *s = stage.chars().take(200).collect();
+        }
+        Ok(job.clone())
+    }
+
+    /// Records the outcome of a leased attempt.
+    pub fn finish(
+        &mut self,
+        id: JobId,
+        attempt: u32,
+        outcome: Outcome,
+        now: u64,
+    ) -> Result<Job, OrchestratorError> {
+        let cfg = self.cfg;
+        let job = self.held(id, attempt, now)?;
+        let started = match job.state {
+            JobState::Running { started_ms, .. } => started_ms,
+            _ => now,
+        };
+        match outcome {
+            Outcome::Delivered(delivery) => {
+                job.state = JobState::Done {
+                    delivery,
+                    run_ms: now.saturating_sub(started),
+                };
+                job.updated_ms = now;
+            }
+            Outcome::Failed(f) => Self::fail_attempt(&cfg, job, f, now),
+        }
+        Ok(job.clone())
+    }
+
+    /// Cancels a queued or running job.
+    pub fn cancel(&mut self, id: JobId, now: u64) -> Result<Job, OrchestratorError> {
+        let job = self
+            .jobs
+            .get_mut(&id)
+            .ok_or(OrchestratorError::NotFound(id))?;
+        match job.state {
+            JobState::Queued { .. } | JobState::Running { .. } => {
+                job.state = JobState::Cancelled;
+                job.updated_ms = now;
+                Ok(job.clone())
+            }
+            _ => Err(OrchestratorError::InvalidState {
+                id,
+                state: job.state.name(),
+                action: "cancel",
+                allowed: "queued or running",
+            }),
+        }
+    }
+
+    /// Queues a failed or cancelled job again with a fresh attempt budget.
+    pub fn retry(&mut self, id: JobId, now: u64) -> Result<Job, OrchestratorError> {
+        let job = self
+            .jobs
+            .get_mut(&id)
+            .ok_or(OrchestratorError::NotFound(id))?;
+        match job.state {
+            JobState::Failed(_) | JobState::Cancelled => {
+                job.state = JobState::Queued { not_before_ms: now };
+                job.attempts = 0;
+                job.updated_ms = now;
+                Ok(job.clone())
+            }
+            _ => Err(OrchestratorError::InvalidState {
+                id,
+                state: job.state.name(),
+                action: "retry",
+                allowed: "failed or cancelled",
+            }),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::model::{Delivery, JobOptions, Source};
+
+    fn spec(n: u8) -> JobSpec {
+        JobSpec {
+            name: format!("v{n}"),
+            source: Source::Path(format!("/data/v{n}.nii").into()),
+            sha256: [n; 32],
+            raw: None,
+            options: JobOptions::default(),
+        }
+    }
+
+    fn cfg() -> QueueConfig {
+        QueueConfig {
+            lease_ms: 1000,
+            heartbeat_ms: 200,
+            max_attempts: 3,
+            backoff_base_ms: 100,
+            backoff_max_ms: 1000,
+        }
+    }
+
+    fn delivered() -> Outcome {
+        Outcome::Delivered(Delivery {
+            cache_volume_id: 1,
+            output_bytes: 10,
+            voxels: 8,
+            existed: false,
+        })
+    }
+
+    #[test]
+    fn submit_deduplicates_by_content_and_options() {
+        let mut q = Queue::new(cfg());
+        let a = q.submit(spec(1), 0).unwrap();
+        assert!(!a.existed);
+        let mut renamed = spec(1);
+        renamed.name = "other".into();
+        renamed.source = Source::Upload { size: 3 };
+        let b = q.submit(renamed, 5).unwrap();
+        assert!(b.existed);
+        assert_eq!(b.job.id, a.job.id);
+        let mut other_opts = spec(1);
+        other_opts.options.bits = 6;
+        assert!(!q.submit(other_opts, 5).unwrap().existed);
+        assert!(!q.submit(spec(2), 5).unwrap().existed);
+        let mut bad = spec(3);
+        bad.options.family = "sinc".into();
+        let e = q.submit(bad, 5).unwrap_err();
+        assert!(e.to_string().contains("sinc"), "{e}");
+    }
+
+    #[test]
+    fn lease_is_fifo_and_exclusive() {
+        let mut q = Queue::new(cfg());
+        q.submit(spec(1), 0).unwrap();
+        q.submit(spec(2), 0).unwrap();
+        let (a, _) = q.lease("w1", 10);
+        let (b, _) = q.lease("w2", 10);
+        let (c, _) = q.lease("w3", 10);
+        assert_eq!(a.unwrap().id, 1);
+        assert_eq!(b.unwrap().id, 2);
+        assert!(c.is_none());
+    }
+
+    #[test]
+    fn expired_lease_is_reclaimed_and_the_stale_worker_is_refused() {
+        let mut q = Queue::new(cfg());
+        q.submit(spec(1), 0).unwrap();
+        let (job, _) = q.lease("w1", 0);
+        let job = job.unwrap();
+        // Heartbeats keep it alive past the original expiry.
+        q.heartbeat(job.id, 1, 0.5, "transform", 900).unwrap();
+        assert!(q.reap(1500).is_empty());
+        // Silence: expired at 1900.
+        let changed = q.reap(1900);
+        assert_eq!(changed.len(), 1);
+        assert_eq!(
+            changed[0].state,
+            JobState::Queued {
+                not_before_ms: 1900 + 100
+            }
+        );
+        assert_eq!(
+            changed[0].last_failure.as_ref().unwrap().kind,
+            FailureKind::LeaseExpired
+        );
+        // Backoff: not runnable yet.
+        assert!(q.lease("w2", 1950).0.is_none());
+        let (again, _) = q.lease("w2", 2000);
+        assert_eq!(again.unwrap().attempts, 2);
+        // The old worker's heartbeat and outcome are refused.
+        assert!(matches!(
+            q.heartbeat(1, 1, 0.9, "x", 2010),
+            Err(OrchestratorError::LeaseLost { .. })
+        ));
+        assert!(q.finish(1, 1, delivered(), 2010).is_err());
+        let done = q.finish(1, 2, delivered(), 2020).unwrap();
+        assert!(matches!(done.state, JobState::Done { run_ms: 20, .. }));
+    }
+
+    #[test]
+    fn transient_failures_back_off_then_fail_with_the_reason() {
+        let mut q = Queue::new(cfg());
+        q.submit(spec(1), 0).unwrap();
+        let fail = || {
+            Outcome::Failed(Failure {
+                kind: FailureKind::CacheUnavailable,
+                message: "connection refused".into(),
+            })
+        };
+        let mut now = 0;
+        for attempt in 1..=3u32 {
+            let (j, _) = q.lease("w", now);
+            assert_eq!(j.unwrap().attempts, attempt);
+            let j = q.finish(1, attempt, fail(), now).unwrap();
+            match j.state {
+                JobState::Queued { not_before_ms } => {
+                    assert_eq!(not_before_ms - now, 100 << (attempt - 1));
+                    now = not_before_ms;
+                }
+                JobState::Failed(f) => {
+                    assert_eq!(attempt, 3);
+                    assert!(f.message.contains("connection refused"));
+                    assert!(f.message.contains("3 attempts"));
+                }
+                s => panic!("unexpected {s:?}"),
+            }
+        }
+    }
+
+    #[test]
+    fn permanent_failures_are_not_retried() {
+        let mut q = Queue::new(cfg());
+        q.submit(spec(1), 0).unwrap();
+        q.lease("w", 0);
+        let j = q
+            .finish(
+                1,
+                1,
+                Outcome::Failed(Failure {
+                    kind: FailureKind::InvalidInput,
+                    message: "NaN at voxel 3".into(),
+                }),
+                5,
+            )
+            .unwrap();
+        assert_eq!(j.state.name(), "failed");
+        // Retry queues it again with a fresh budget.
+        let j = q.retry(1, 10).unwrap();
+        assert_eq!(j.attempts, 0);
+        assert_eq!(j.state, JobState::Queued { not_before_ms: 10 });
+        assert!(q.retry(1, 10).is_err());
+    }
+
+    #[test]
+    fn cancel_stops_queued_and_running_jobs() {
+        let mut q = Queue::new(cfg());
+        q.submit(spec(1), 0).unwrap();
+        q.submit(spec(2), 0).unwrap();
+        q.lease("w", 0);
+        q.cancel(1, 1).unwrap();
+        q.cancel(2, 1).unwrap();
+        assert!(q.lease("w", 2).0.is_none());
+        let e = q.heartbeat(1, 1, 0.1, "s", 3).unwrap_err();
+        assert!(e.to_string().contains("cancelled"), "{e}");
+        assert!(q.finish(1, 1, delivered(), 3).is_err());
+        assert!(matches!(
+            q.cancel(1, 4),
+            Err(OrchestratorError::InvalidState { .. })
+        ));
+        assert!(matches!(q.get(9), Err(OrchestratorError::NotFound(9))));
+    }
+
+    #[test]
+    fn restore_keeps_states_and_gives_running_leases_grace() {
+        let mut q = Queue::new(cfg());
+        q.submit(spec(1), 0).unwrap();
+        q.submit(spec(2), 0).unwrap();
+        q.lease("w", 0);
+        let jobs: Vec<Job> = q.jobs().cloned().collect();
+        let (mut r, changed) = Queue::restore(cfg(), jobs, 5000);
+        assert_eq!(changed.len(), 1);
+        assert!(r.reap(5500).is_empty());
+        assert!(r.heartbeat(1, 1, 0.5, "s", 5600).is_ok());
+        assert_eq!(r.submit(spec(3), 5700).unwrap().job.id, 3);
+        assert!(r.submit(spec(2), 5700).unwrap().existed);
+    }
+}

@@ -1,0 +1,391 @@
+//! The tonic service: each RPC converts its request ([`crate::convert`]), runs the queue logic
+//! under one mutex, writes the changed jobs through to the [`Store`] and flushes before
+//! answering. The lock is never held across an `.await`.
+
+use crate::convert;
+use crate::error::OrchestratorError;
+use crate::model::{hex, JobState, Source};
+use crate::queue::{Queue, QueueConfig};
+use crate::store::Store;
+use std::pin::Pin;
+use std::sync::{Arc, Mutex, MutexGuard};
+use std::time::{SystemTime, UNIX_EPOCH};
+use tokio_stream::Stream;
+use tonic::{Request, Response, Status, Streaming};
+use wavesplat_proto::pb;
+use wavesplat_proto::pb::orchestrator_server::Orchestrator;
+
+/// Chunk size of source downloads.
+pub const CHUNK_BYTES: usize = 1 << 20;
+
+/// A clock giving unix milliseconds (injectable for tests).
+pub type Clock = Arc<dyn Fn() -> u64 + Send + Sync>;
+
+/// The wall clock.
+pub fn system_clock() -> Clock {
+    Arc::new(|| {
+        SystemTime::now()
+            .duration_since(UNIX_EPOCH)
+            .map_or(0, |d| d.as_millis() as u64)
+    })
+}
+
+/// Service settings.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ServiceConfig {
+    /// Lease, heartbeat and retry policy.
+    pub queue: QueueConfig,
+    /// Longest a worker waits before asking again when nothing is runnable (ms).
+    pub poll_ms: u64,
+    /// Largest accepted upload (bytes).
+    pub max_upload_bytes: u64,
+}
+
+impl Default for ServiceConfig {
+    fn default() -> Self {
+        ServiceConfig {
+            queue: QueueConfig::default(),
+            poll_ms: 1000,
+            max_upload_bytes: 1 << 30,
+        }
+    }
+}
+
+struct Shared {
+    queue: Mutex<Queue>,
+    store: Store,
+    cfg: ServiceConfig,
+    clock: Clock,
+}
+
+/// The `wavesplat.v1.Orchestrator` service.
+#[derive(Clone)]
+pub struct OrchestratorService {
+    shared: Arc<Shared>,
+}
+
+impl OrchestratorService {
+    /// Loads the queue from `store` (running leases get fresh grace) and builds the service.
+    pub fn new(
+        store: Store,
+        cfg: ServiceConfig,
+        clock: Clock,
+    ) -> Result<OrchestratorService, OrchestratorError> {
+        let queue_cfg = cfg.queue.validate()?;
+        let jobs = store.load()?;
+        let (queue, changed) = Queue::restore(queue_cfg, jobs, clock());
+        store.put(&changed)?;
+        let counts = queue.jobs().fold([0usize; 5], |mut c, j| {
+            c[match j.state {
+                JobState::Queued { .. } => 0,
+                JobState::Running { .. } => 1,
+                JobState::Done { .. } => 2,
+                JobState::Failed(_) => 3,
+                JobState::Cancelled => 4,
+            }] += 1;
+            c
+        });
+        tracing::info!(
+            queued = counts[0],
+            running = counts[1],
+            done = counts[2],
+            failed = counts[3],
+            cancelled = counts[4],
+            "queue restored"
+        );
+        Ok(OrchestratorService {
+            shared: Arc::new(Shared {
+                queue: Mutex::new(queue),
+                store,
+                cfg,
+                clock,
+            }),
+        })
+    }
+
+    fn lock(&self) -> MutexGuard<'_, Queue> {
+        // A panic while holding the lock cannot leave the queue half-updated in a way that
+        // matters more than stopping service would; keep serving.
+        self.shared.queue.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    fn now(&self) -> u64 {
+        (self.shared.clock)()
+    }
+
+    fn max_attempts(&self) -> u32 {
+        self.shared.cfg.queue.max_attempts
+    }
+
+    /// Reclaims expired leases now (the server also does this periodically).
+    pub async fn reap(&self) -> Result<usize, OrchestratorError> {
+        let changed = {
+            let mut q = self.lock();
+            let changed = q.reap(self.now());
+            self.shared.store.put(&changed)?;
+            changed
+        };
+        if !changed.is_empty() {
+            self.shared.store.flush().await?;
+        }
+        Ok(changed.len())
+    }
+
+    async fn submit_inner(
+        &self,
+        mut stream: Streaming<pb::SubmitRequest>,
+    ) -> Result<pb::SubmitResponse, Status> {
+        let first = stream
+            .message()
+            .await?
+            .ok_or_else(|| Status::invalid_argument("empty submit stream"))?;
+        let Some(pb::submit_request::Msg::Spec(spec)) = first.msg else {
+            return Err(Status::invalid_argument(
+                "the first submit message must be `spec`",
+            ));
+        };
+        let spec = convert::spec_from_pb(spec)?;
+        if let Source::Upload { size } = spec.source {
+            let limit = self.shared.cfg.max_upload_bytes;
+            if size > limit {
+                return Err(Status::invalid_argument(format!(
+                    "upload of {size} bytes exceeds the limit of {limit} bytes"
+                )));
+            }
+            let mut bytes = Vec::with_capacity(size.min(64 << 20) as usize);
+            while let Some(m) = stream.message().await? {
+                match m.msg {
+                    Some(pb::submit_request::Msg::Chunk(c)) => {
+                        if bytes.len() as u64 + c.len() as u64 > size {
+                            return Err(Status::invalid_argument(format!(
+                                "upload longer than the announced {size} bytes"
+                            )));
+                        }
+                        bytes.extend_from_slice(&c);
+                    }
+                    _ => return Err(Status::invalid_argument("a second `spec` in one upload")),
+                }
+            }
+            if bytes.len() as u64 != size {
+                return Err(Status::invalid_argument(format!(
+                    "upload truncated: {} of {size} bytes",
+                    bytes.len()
+                )));
+            }
+            let got = crate::sha256(&bytes);
+            if got != spec.sha256 {
+                return Err(Status::invalid_argument(format!(
+                    "upload checksum {} does not match the announced {}",
+                    hex(&got),
+                    hex(&spec.sha256)
+                )));
+            }
+            self.shared.store.put_blob(&spec.sha256, &bytes)?;
+        }
+        let submitted = {
+            let mut q = self.lock();
+            let s = q.submit(spec, self.now())?;
+            if !s.existed {
+                self.shared.store.put(std::slice::from_ref(&s.job))?;
+            }
+            s
+        };
+        self.shared.store.flush().await?;
+        if !submitted.existed {
+            tracing::info!(job = submitted.job.id, name = %submitted.job.spec.name, "submitted");
+        }
+        Ok(pb::SubmitResponse {
+            job: Some(convert::job_to_pb(&submitted.job, self.max_attempts())),
+            existed: submitted.existed,
+        })
+    }
+
+    async fn change(
+        &self,
+        f: impl FnOnce(&mut Queue, u64) -> Result<crate::model::Job, OrchestratorError>,
+    ) -> Result<pb::Job, Status> {
+        let job = {
+            let mut q = self.lock();
+            let job = f(&mut q, self.now())?;
+            self.shared.store.put(std::slice::from_ref(&job))?;
+            if matches!(job.state, JobState::Done { .. }) {
+                self.shared.store.release_blob(&job, q.jobs())?;
+            }
+            job
+        };
+        self.shared.store.flush().await?;
+        Ok(convert::job_to_pb(&job, self.max_attempts()))
+    }
+}
+
+type SourceStream = Pin<Box<dyn Stream<Item = Result<pb::SourceChunk, Status>> + Send>>;
+
+#[tonic::async_trait]
+impl Orchestrator for OrchestratorService {
+    async fn submit(
+        &self,
+        request: Request<Streaming<pb::SubmitRequest>>,
+    ) -> Result<Response<pb::SubmitResponse>, Status> {
+        Ok(Response::new(
+            self.submit_inner(request.into_inner()).await?,
+        ))
+    }
+
+    async fn list_jobs(
+        &self,
+        _request: Request<pb::ListJobsRequest>,
+    ) -> Result<Response<pb::ListJobsResponse>, Status> {
+        let q = self.lock();
+        let jobs = q
+            .jobs()
+            .map(|j| convert::job_to_pb(j, self.max_attempts()))
+            .collect();
+        Ok(Response::new(pb::ListJobsResponse { jobs }))
+    }
+
+    async fn get_job(&self, request: Request<pb::JobRef>) -> Result<Response<pb::Job>, Status> {
+        let q = self.lock();
+        let job = q.get(request.into_inner().id)?;
+        Ok(Response::new(convert::job_to_pb(job, self.max_attempts())))
+    }
+
+    async fn cancel_job(&self, request: Request<pb::JobRef>) -> Result<Response<pb::Job>, Status> {
+        let id = request.into_inner().id;
+        let job = self.change(|q, now| q.cancel(id, now)).await?;
+        tracing::info!(job = id, "cancelled");
+        Ok(Response::new(job))
+    }
+
+    async fn retry_job(&self, request: Request<pb::JobRef>) -> Result<Response<pb::Job>, Status> {
+        let id = request.into_inner().id;
+        let job = self.change(|q, now| q.retry(id, now)).await?;
+        tracing::info!(job = id, "queued again");
+        Ok(Response::new(job))
+    }
+
+    async fn lease(
+        &self,
+        request: Request<pb::LeaseRequest>,
+    ) -> Result<Response<pb::LeaseResponse>, Status> {
+        let worker: String = request.into_inner().worker.chars().take(200).collect();
+        let (leased, retry_after) = {
+            let mut q = self.lock();
+            let now = self.now();
+            let (job, changed) = q.lease(&worker, now);
+            self.shared.store.put(&changed)?;
+            let retry_after = q
+                .next_runnable_in(now)
+                .map_or(self.shared.cfg.poll_ms, |d| {
+                    d.clamp(1, self.shared.cfg.poll_ms)
+                });
+            (job, retry_after)
+        };
+        let Some(job) = leased else {
+            return Ok(Response::new(pb::LeaseResponse {
+                lease: None,
+                retry_after_ms: retry_after as u32,
+            }));
+        };
+        self.shared.store.flush().await?;
+        tracing::info!(job = job.id, attempt = job.attempts, %worker, "leased");
+        let cfg = &self.shared.cfg.queue;
+        Ok(Response::new(pb::LeaseResponse {
+            lease: Some(pb::Lease {
+                job_id: job.id,
+                attempt: job.attempts,
+                spec: Some(convert::spec_to_pb(&job.spec)),
+                lease_ms: cfg.lease_ms.min(u32::MAX as u64) as u32,
+                heartbeat_ms: cfg.heartbeat_ms.min(u32::MAX as u64) as u32,
+            }),
+            retry_after_ms: 0,
+        }))
+    }
+
+    async fn heartbeat(
+        &self,
+        request: Request<pb::HeartbeatRequest>,
+    ) -> Result<Response<pb::HeartbeatResponse>, Status> {
+        let r = request.into_inner();
+        let mut q = self.lock();
+        let reply = match q.heartbeat(r.job_id, r.attempt, r.progress, &r.stage, self.now()) {
+            // Not flushed: see the store's docs.
+            Ok(job) => {
+                self.shared.store.put(std::slice::from_ref(&job))?;
+                pb::HeartbeatResponse {
+                    keep_going: true,
+                    reason: String::new(),
+                }
+            }
+            Err(e @ (OrchestratorError::LeaseLost { .. } | OrchestratorError::NotFound(_))) => {
+                pb::HeartbeatResponse {
+                    keep_going: false,
+                    reason: e.to_string(),
+                }
+            }
+            Err(e) => return Err(e.into()),
+        };
+        Ok(Response::new(reply))
+    }
+
+    async fn finish(
+        &self,
+        request: Request<pb::FinishRequest>,
+    ) -> Result<Response<pb::Job>, Status> {
+        let r = request.into_inner();
+        let outcome = convert::outcome_from_pb(r.outcome)?;
+        let (id, attempt) = (r.job_id, r.attempt);
+        let job = self
+            .change(|q, now| q.finish(id, attempt, outcome, now))
+            .await?;
+        tracing::info!(
+            job = id,
+            attempt,
+            worker = %r.worker,
+            state = convert::state_name(job.state),
+            error = %job.error,
+            "attempt finished"
+        );
+        Ok(Response::new(job))
+    }
+
+    type FetchSourceStream = SourceStream;
+
+    async fn fetch_source(
+        &self,
+        request: Request<pb::FetchSourceRequest>,
+    ) -> Result<Response<Self::FetchSourceStream>, Status> {
+        let r = request.into_inner();
+        let sha = {
+            let q = self.lock();
+            let job = q.get(r.job_id)?;
+            match job.state {
+                JobState::Running { attempt, .. } if attempt == r.attempt => {}
+                _ => {
+                    return Err(OrchestratorError::LeaseLost {
+                        id: r.job_id,
+                        attempt: r.attempt,
+                        reason: format!("the job is {}", job.state.name()),
+                    }
+                    .into())
+                }
+            }
+            if !matches!(job.spec.source, Source::Upload { .. }) {
+                return Err(Status::invalid_argument(format!(
+                    "job {} reads its source from a path, not an upload",
+                    r.job_id
+                )));
+            }
+            job.spec.sha256
+        };
+        let blob = self
+            .shared
+            .store
+            .blob(&sha)?
+            .ok_or_else(|| Status::internal(format!("upload {} is missing", hex(&sha))))?;
+        let chunks: Vec<Result<pb::SourceChunk, Status>> = blob
+            .chunks(CHUNK_BYTES)
+            .map(|c| Ok(pb::SourceChunk { data: c.to_vec() }))
+            .collect();
+        Ok(Response::new(Box::pin(tokio_stream::iter(chunks))))
+    }
+}

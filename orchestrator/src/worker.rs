@@ -1,0 +1,456 @@
+//! The worker: a stateless loop that leases a job, heartbeats with progress while it reads,
+//! compresses (on its own rayon pool) and uploads the result to the cache, then reports the
+//! outcome. Every failure is classified ([`FailureKind`]) so the orchestrator knows whether a
+//! retry can help. A worker that loses its lease (expired, or the job was cancelled) discards
+//! its result; a worker killed mid-job simply stops heartbeating and the job runs elsewhere.
+//! Cache ingest is idempotent by content hash and the compressor is deterministic, so a job
+//! that ran twice lands once.
+
+use crate::convert;
+use crate::model::{Delivery, Failure, FailureKind, JobSpec, Outcome, Source};
+use crate::sha256;
+use std::future::Future;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+use thiserror::Error;
+use tonic::transport::{Channel, Endpoint};
+use tonic::Code;
+use wavesplat_codec::volume::Volume;
+use wavesplat_compressor::encode::{compress, Stage};
+use wavesplat_compressor::reader::{decode_raw, read_nifti};
+use wavesplat_proto::pb;
+use wavesplat_proto::pb::cache_client::CacheClient;
+use wavesplat_proto::pb::orchestrator_client::OrchestratorClient;
+
+/// Worker settings.
+#[derive(Debug, Clone)]
+pub struct WorkerConfig {
+    /// Orchestrator URL (`http://HOST:PORT`).
+    pub orchestrator: String,
+    /// Cache URL.
+    pub cache: String,
+    /// Compression threads (rayon pool size; 0: one per core).
+    pub threads: usize,
+    /// Identity shown in job listings.
+    pub id: String,
+    /// Stop after this many jobs (`None`: run until shut down).
+    pub max_jobs: Option<usize>,
+    /// Testing aid: pause this long after compressing, before uploading (ms).
+    pub pause_before_upload_ms: u64,
+}
+
+/// Errors that stop a worker (job failures are reported to the orchestrator instead).
+#[derive(Debug, Error)]
+#[non_exhaustive]
+pub enum WorkerError {
+    /// A URL could not be parsed.
+    #[error("invalid URL {url:?}: {source}")]
+    Url {
+        /// The URL.
+        url: String,
+        /// Why.
+        #[source]
+        source: tonic::transport::Error,
+    },
+    /// The thread pool could not be built.
+    #[error("thread pool: {0}")]
+    Pool(#[from] rayon::ThreadPoolBuildError),
+}
+
+/// A default worker identity: host name and process id.
+pub fn default_worker_id() -> String {
+    let host = std::env::var("HOSTNAME")
+        .ok()
+        .or_else(|| std::fs::read_to_string("/etc/hostname").ok())
+        .map(|h| h.trim().to_string())
+        .filter(|h| !h.is_empty())
+        .unwrap_or_else(|| "worker".into());
+    format!("{host}-{}", std::process::id())
+}
+
+fn channel(url: &str) -> Result<Channel, WorkerError> {
+    let u = if url.contains("://") {
+        url.to_string()
+    } else {
+        format!("http://{url}")
+    };
+    let ep = Endpoint::from_shared(u.clone()).map_err(|source| WorkerError::Url {
+        url: u.clone(),
+        source,
+    })?;
+    Ok(ep
+        .connect_timeout(Duration::from_secs(5))
+        .tcp_nodelay(true)
+        .connect_lazy())
+}
+
+struct Ctx {
+    cfg: WorkerConfig,
+    orch: OrchestratorClient<Channel>,
+    cache: CacheClient<Channel>,
+    pool: Arc<rayon::ThreadPool>,
+}
+
+/// Runs the worker until `shutdown` completes (checked between jobs, so a running job is
+/// finished first) or `max_jobs` jobs were run.
+pub async fn run(
+    cfg: WorkerConfig,
+    shutdown: impl Future<Output = ()> + Send,
+) -> Result<(), WorkerError> {
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(cfg.threads)
+        .thread_name(|i| format!("compress-{i}"))
+        .build()?;
+    let orch = OrchestratorClient::new(channel(&cfg.orchestrator)?)
+        .max_decoding_message_size(crate::service::CHUNK_BYTES + (1 << 20));
+    let cache = CacheClient::new(channel(&cfg.cache)?)
+        .max_decoding_message_size(64 << 20)
+        .max_encoding_message_size(8 << 20);
+    let mut ctx = Ctx {
+        cfg,
+        orch,
+        cache,
+        pool: Arc::new(pool),
+    };
+    tokio::pin!(shutdown);
+    let mut done = 0usize;
+    let mut backoff = Duration::from_millis(100);
+    tracing::info!(worker = %ctx.cfg.id, "worker started");
+    loop {
+        if ctx.cfg.max_jobs.is_some_and(|m| done >= m) {
+            break;
+        }
+        let req = pb::LeaseRequest {
+            worker: ctx.cfg.id.clone(),
+        };
+        let reply = tokio::select! {
+            _ = &mut shutdown => break,
+            r = ctx.orch.lease(req) => r,
+        };
+        let wait = match reply {
+            Err(status) => {
+                tracing::warn!(error = %status.message(), "orchestrator unreachable; retrying");
+                backoff = (backoff * 2).min(Duration::from_secs(2));
+                backoff
+            }
+            Ok(r) => {
+                backoff = Duration::from_millis(100);
+                let r = r.into_inner();
+                match r.lease {
+                    Some(lease) => {
+                        run_lease(&mut ctx, lease).await;
+                        done += 1;
+                        continue;
+                    }
+                    None => Duration::from_millis(u64::from(r.retry_after_ms.max(10))),
+                }
+            }
+        };
+        tokio::select! {
+            _ = &mut shutdown => break,
+            _ = tokio::time::sleep(wait) => {}
+        }
+    }
+    tracing::info!(worker = %ctx.cfg.id, jobs = done, "worker stopped");
+    Ok(())
+}
+
+/// Progress shared between the job and its heartbeat task.
+#[derive(Default)]
+struct Shared {
+    progress: Mutex<(f32, String)>,
+    lost: AtomicBool,
+}
+
+impl Shared {
+    fn set(&self, p: f32, stage: impl Into<String>) {
+        if let Ok(mut g) = self.progress.lock() {
+            *g = (p, stage.into());
+        }
+    }
+}
+
+fn stage_progress(stage: Stage, f: f64) -> (f32, String) {
+    let f = f.clamp(0.0, 1.0) as f32;
+    match stage {
+        Stage::Color => (0.1, "colour transform".into()),
+        Stage::Transform(c) => (0.1 + 0.4 * f, format!("wavelet transform, channel {c}")),
+        Stage::Sort => (0.5 + 0.1 * f, "scoring".into()),
+        Stage::Encode(t) => (0.6 + 0.3 * f, format!("entropy coding (trial {t})")),
+    }
+}
+
+async fn run_lease(ctx: &mut Ctx, lease: pb::Lease) {
+    let (id, attempt) = (lease.job_id, lease.attempt);
+    let spec = match lease.spec.map(convert::spec_from_pb) {
+        Some(Ok(s)) => Ok(s),
+        Some(Err(e)) => Err(e.to_string()),
+        None => Err("lease without a job spec".to_string()),
+    };
+    tracing::info!(job = id, attempt, "running");
+    let shared = Arc::new(Shared::default());
+    let heartbeat = tokio::spawn(heartbeat_loop(
+        ctx.orch.clone(),
+        id,
+        attempt,
+        ctx.cfg.id.clone(),
+        Duration::from_millis(u64::from(lease.heartbeat_ms.max(50))),
+        shared.clone(),
+    ));
+    let outcome = match spec {
+        Ok(spec) => execute(ctx, id, attempt, &spec, &shared).await,
+        Err(message) => Err(Failure {
+            kind: FailureKind::Worker,
+            message,
+        }),
+    };
+    heartbeat.abort();
+    if shared.lost.load(Ordering::SeqCst) {
+        tracing::warn!(job = id, attempt, "lease lost; result discarded");
+        return;
+    }
+    let outcome = match outcome {
+        Ok(d) => Outcome::Delivered(d),
+        Err(f) => {
+            tracing::warn!(job = id, attempt, kind = f.kind.name(), reason = %f.message, "attempt failed");
+            Outcome::Failed(f)
+        }
+    };
+    report(ctx, id, attempt, outcome).await;
+}
+
+async fn heartbeat_loop(
+    mut orch: OrchestratorClient<Channel>,
+    id: u64,
+    attempt: u32,
+    worker: String,
+    every: Duration,
+    shared: Arc<Shared>,
+) {
+    loop {
+        tokio::time::sleep(every).await;
+        let (progress, stage) = shared
+            .progress
+            .lock()
+            .map(|g| g.clone())
+            .unwrap_or_default();
+        let req = pb::HeartbeatRequest {
+            job_id: id,
+            attempt,
+            worker: worker.clone(),
+            progress,
+            stage,
+        };
+        match orch.heartbeat(req).await {
+            Ok(r) if !r.get_ref().keep_going => {
+                tracing::warn!(job = id, reason = %r.get_ref().reason, "lease lost");
+                shared.lost.store(true, Ordering::SeqCst);
+                return;
+            }
+            Ok(_) => {}
+            // The orchestrator may be restarting: keep working, keep trying.
+            Err(s) => tracing::debug!(job = id, error = %s.message(), "heartbeat failed"),
+        }
+    }
+}
+
+/// Reports an outcome, retrying while the orchestrator is unreachable (it may be restarting).
+async fn report(ctx: &mut Ctx, id: u64, attempt: u32, outcome: Outcome) {
+    let outcome = match outcome {
+        Outcome::Delivered(d) => pb::finish_request::Outcome::Delivered(pb::Delivered {
+            cache_volume_id: d.cache_volume_id,
+            output_bytes: d.output_bytes,
+            voxels: d.voxels,
+            existed: d.existed,
+        }),
+        Outcome::Failed(f) => pb::finish_request::Outcome::Failure(pb::Failure {
+            kind: convert::failure_kind_to_pb(f.kind) as i32,
+            message: f.message,
+        }),
+    };
+    let req = pb::FinishRequest {
+        job_id: id,
+        attempt,
+        worker: ctx.cfg.id.clone(),
+        outcome: Some(outcome),
+    };
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(600);
+    let mut wait = Duration::from_millis(100);
+    loop {
+        match ctx.orch.finish(req.clone()).await {
+            Ok(j) => {
+                let j = j.into_inner();
+                tracing::info!(
+                    job = id,
+                    attempt,
+                    state = convert::state_name(j.state),
+                    "reported"
+                );
+                return;
+            }
+            Err(s)
+                if matches!(
+                    s.code(),
+                    Code::FailedPrecondition | Code::NotFound | Code::InvalidArgument
+                ) =>
+            {
+                tracing::warn!(job = id, attempt, error = %s.message(), "outcome refused");
+                return;
+            }
+            Err(s) if tokio::time::Instant::now() >= deadline => {
+                tracing::error!(job = id, attempt, error = %s.message(), "giving up reporting");
+                return;
+            }
+            Err(s) => {
+                tracing::warn!(job = id, error = %s.message(), "reporting failed; retrying");
+                tokio::time::sleep(wait).await;
+                wait = (wait * 2).min(Duration::from_secs(2));
+            }
+        }
+    }
+}
+
+fn fail(kind: FailureKind, message: impl Into<String>) -> Failure {
+    Failure {
+        kind,
+        message: message.into(),
+    }
+}
+
+async fn fetch_source(
+    ctx: &mut Ctx,
+    id: u64,
+    attempt: u32,
+    spec: &JobSpec,
+) -> Result<Vec<u8>, Failure> {
+    match &spec.source {
+        Source::Path(p) => tokio::fs::read(p).await.map_err(|e| {
+            fail(
+                FailureKind::SourceUnavailable,
+                format!("cannot read {}: {e}", p.display()),
+            )
+        }),
+        Source::Upload { size } => {
+            let unavailable = |s: tonic::Status| {
+                fail(
+                    FailureKind::SourceUnavailable,
+                    format!("fetching the uploaded source: {}", s.message()),
+                )
+            };
+            let mut stream = ctx
+                .orch
+                .fetch_source(pb::FetchSourceRequest {
+                    job_id: id,
+                    attempt,
+                })
+                .await
+                .map_err(unavailable)?
+                .into_inner();
+            let mut bytes = Vec::with_capacity((*size).min(1 << 30) as usize);
+            while let Some(c) = stream.message().await.map_err(unavailable)? {
+                bytes.extend_from_slice(&c.data);
+            }
+            Ok(bytes)
+        }
+    }
+}
+
+fn decode(spec: &JobSpec, bytes: Vec<u8>) -> Result<Volume, Failure> {
+    let invalid = |e: &dyn std::fmt::Display| fail(FailureKind::InvalidInput, e.to_string());
+    match (&spec.raw, &spec.source) {
+        (Some(layout), _) => {
+            let raw = layout.spec().map_err(|e| invalid(&e))?;
+            decode_raw(&bytes, &raw).map_err(|e| invalid(&e))
+        }
+        (None, Source::Path(p)) => read_nifti(p).map_err(|e| invalid(&e)),
+        (None, Source::Upload { .. }) => {
+            let mut f = tempfile::Builder::new()
+                .suffix(".nii")
+                .tempfile()
+                .map_err(|e| fail(FailureKind::Worker, format!("temporary file: {e}")))?;
+            std::io::Write::write_all(&mut f, &bytes)
+                .map_err(|e| fail(FailureKind::Worker, format!("temporary file: {e}")))?;
+            read_nifti(f.path()).map_err(|e| invalid(&e))
+        }
+    }
+}
+
+async fn execute(
+    ctx: &mut Ctx,
+    id: u64,
+    attempt: u32,
+    spec: &JobSpec,
+    shared: &Arc<Shared>,
+) -> Result<Delivery, Failure> {
+    shared.set(0.0, "reading");
+    let bytes = fetch_source(ctx, id, attempt, spec).await?;
+    let got = sha256(&bytes);
+    if got != spec.sha256 {
+        return Err(fail(
+            FailureKind::InvalidInput,
+            format!(
+                "the source changed since submission: SHA-256 {}, submitted {}",
+                crate::model::hex(&got),
+                crate::model::hex(&spec.sha256)
+            ),
+        ));
+    }
+    let opts = spec
+        .options
+        .to_compress_options()
+        .map_err(|e| fail(FailureKind::InvalidInput, e.to_string()))?;
+    let job_spec = spec.clone();
+    let pool = ctx.pool.clone();
+    let sh = shared.clone();
+    let compressed = tokio::task::spawn_blocking(move || {
+        let volume = decode(&job_spec, bytes)?;
+        let voxels = volume.voxel_count() as u64;
+        sh.set(0.05, "compressing");
+        let progress = |stage: Stage, f: f64| {
+            let (p, s) = stage_progress(stage, f);
+            sh.set(p, s);
+        };
+        pool.install(|| compress(&volume, &opts, &progress))
+            .map(|c| (c.bytes, voxels))
+            .map_err(|e| fail(FailureKind::Compress, e.to_string()))
+    })
+    .await
+    .map_err(|e| fail(FailureKind::Worker, format!("compression task: {e}")))??;
+    let (file, voxels) = compressed;
+    if ctx.cfg.pause_before_upload_ms > 0 {
+        shared.set(0.9, "paused (testing aid)");
+        tokio::time::sleep(Duration::from_millis(ctx.cfg.pause_before_upload_ms)).await;
+    }
+    if shared.lost.load(Ordering::SeqCst) {
+        return Err(fail(FailureKind::Worker, "lease lost before upload"));
+    }
+    shared.set(0.9, "uploading");
+    let r = wavesplat_cache::client::ingest(&mut ctx.cache, &spec.name, &file)
+        .await
+        .map_err(|s| {
+            let kind = match s.code() {
+                Code::InvalidArgument | Code::AlreadyExists | Code::FailedPrecondition => {
+                    FailureKind::CacheRejected
+                }
+                _ => FailureKind::CacheUnavailable,
+            };
+            fail(
+                kind,
+                format!("cache ingest of {:?}: {}", spec.name, s.message()),
+            )
+        })?;
+    let v = r.volume.ok_or_else(|| {
+        fail(
+            FailureKind::CacheUnavailable,
+            "the cache returned no volume",
+        )
+    })?;
+    tracing::info!(job = id, name = %spec.name, cache_id = v.id, bytes = file.len(), existed = r.existed, "delivered");
+    Ok(Delivery {
+        cache_volume_id: v.id,
+        output_bytes: file.len() as u64,
+        voxels,
+        existed: r.existed,
+    })
+}

@@ -1,0 +1,146 @@
+//! `wavesplat bench`: throughput of the pipeline stages on one machine, written as CSV and a
+//! table: compression (voxels/s), packet decoding (coefficients/s) and splatting (splats/s,
+//! pixel updates/s) per family, on a phantom or a volume file. Timings are medians of repeated
+//! runs; nothing here is asserted (benchmarks are not tests).
+
+use super::render::load_coefficients;
+use anyhow::{Context, Result};
+use clap::Args;
+use std::io::Write;
+use std::path::PathBuf;
+use std::time::Instant;
+use wavesplat_codec::family::Family;
+use wavesplat_codec::format::parse_file;
+use wavesplat_compressor::encode::{compress, CompressOptions, Target};
+use wavesplat_compressor::phantom::Phantom;
+use wavesplat_compressor::reader::read_volume;
+use wavesplat_viewer::{RenderOptions, Renderer, View};
+
+/// Arguments of `wavesplat bench`.
+#[derive(Args, Debug)]
+pub struct BenchArgs {
+    /// Volume file (NIfTI); default: the Shepp–Logan phantom of --size³.
+    pub input: Option<PathBuf>,
+    /// Phantom edge length when no input is given.
+    #[arg(long, default_value_t = 128)]
+    pub size: usize,
+    /// Fraction of coefficients kept.
+    #[arg(long, default_value_t = 0.05)]
+    pub fraction: f64,
+    /// Repetitions per measurement (the median is reported).
+    #[arg(long, default_value_t = 3)]
+    pub repeat: usize,
+    /// CSV output.
+    #[arg(short, long, default_value = "bench.csv")]
+    pub output: PathBuf,
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}
+
+/// Runs the subcommand.
+pub fn run(a: BenchArgs) -> Result<()> {
+    let volume = match &a.input {
+        Some(p) => read_volume(p, None).with_context(|| format!("reading {}", p.display()))?,
+        None => Phantom::SheppLogan.generate([a.size; 3]),
+    };
+    let voxels = volume.voxel_count() as f64;
+    let threads = rayon::current_num_threads();
+    let mut csv = std::fs::File::create(&a.output)?;
+    writeln!(
+        csv,
+        "stage,family,threads,size,seconds,items,items_per_second"
+    )?;
+    println!(
+        "{} voxels, {} threads, keep {} of the coefficients, median of {}",
+        volume.voxel_count(),
+        threads,
+        a.fraction,
+        a.repeat
+    );
+    for family in Family::ALL {
+        let opts = CompressOptions {
+            family,
+            target: Target::Fraction(a.fraction),
+            ..Default::default()
+        };
+        let mut times = Vec::new();
+        let mut last = None;
+        for _ in 0..a.repeat.max(1) {
+            let t = Instant::now();
+            last = Some(compress(&volume, &opts, &|_, _| {})?);
+            times.push(t.elapsed().as_secs_f64());
+        }
+        let c = last.expect("at least one run");
+        let s = median(times);
+        writeln!(
+            csv,
+            "compress,{family},{threads},-,{s:.4},{voxels},{:.0}",
+            voxels / s
+        )?;
+        println!(
+            "{family:7} compress  {:8.3} s  {:12.0} voxels/s  ({} bytes)",
+            s,
+            voxels / s,
+            c.bytes.len()
+        );
+
+        let mut times = Vec::new();
+        let mut n = 0usize;
+        for _ in 0..a.repeat.max(1) {
+            let t = Instant::now();
+            let (_, coeffs) = load_coefficients(&c.bytes, None, None)?;
+            times.push(t.elapsed().as_secs_f64());
+            n = coeffs.len();
+        }
+        let s = median(times);
+        writeln!(
+            csv,
+            "decode,{family},{threads},-,{s:.4},{n},{:.0}",
+            n as f64 / s
+        )?;
+        println!(
+            "{family:7} decode    {:8.4} s  {:12.0} coefficients/s",
+            s,
+            n as f64 / s
+        );
+
+        let header = parse_file(&c.bytes)?.header;
+        let (_, coeffs) = load_coefficients(&c.bytes, None, None)?;
+        let mut renderer = Renderer::new(RenderOptions::default());
+        for size in [256usize, 512] {
+            let view = View::new(0.66, 0.91, size, size);
+            renderer.render(&coeffs, &header.geometry, &view)?; // footprints built once
+            let mut times = Vec::new();
+            let mut updates = 0;
+            for _ in 0..a.repeat.max(1) {
+                let t = Instant::now();
+                let (_, stats) = renderer.render_with_stats(&coeffs, &header.geometry, &view)?;
+                times.push(t.elapsed().as_secs_f64());
+                updates = stats.pixel_updates;
+            }
+            let s = median(times);
+            writeln!(
+                csv,
+                "splat,{family},{threads},{size},{s:.4},{},{:.0}",
+                coeffs.len(),
+                coeffs.len() as f64 / s
+            )?;
+            writeln!(
+                csv,
+                "pixel_updates,{family},{threads},{size},{s:.4},{updates},{:.0}",
+                updates as f64 / s
+            )?;
+            println!(
+                "{family:7} splat {size}² {:8.4} s  {:12.0} splats/s  {:12.0} pixel updates/s",
+                s,
+                coeffs.len() as f64 / s,
+                updates as f64 / s
+            );
+        }
+    }
+    println!("wrote {}", a.output.display());
+    Ok(())
+}

@@ -1,0 +1,495 @@
+//! `wavesplat serve orchestrator`, `wavesplat worker`, `wavesplat archive submit` and
+//! `wavesplat jobs list|watch|cancel|retry`. Wiring and display only: the queue, the service and
+//! the worker live in `wavesplat-orchestrator`.
+
+use anyhow::{bail, Context, Result};
+use clap::{Args, Subcommand};
+use indicatif::{MultiProgress, ProgressBar, ProgressStyle};
+use std::collections::{BTreeMap, HashSet};
+use std::io::IsTerminal;
+use std::path::PathBuf;
+use std::time::Duration;
+use tonic::transport::Channel;
+use wavesplat_orchestrator::archive;
+use wavesplat_orchestrator::client;
+use wavesplat_orchestrator::convert::state_name;
+use wavesplat_orchestrator::{JobOptions, QueueConfig, ServiceConfig, Store, TargetSpec};
+use wavesplat_proto::pb;
+use wavesplat_proto::pb::orchestrator_client::OrchestratorClient;
+
+/// Default orchestrator address.
+pub const DEFAULT_URL: &str = "http://127.0.0.1:50052";
+
+/// Arguments of `wavesplat serve orchestrator`.
+#[derive(Args, Debug)]
+pub struct ServeOrchestratorArgs {
+    /// Database directory (created if missing).
+    #[arg(long)]
+    pub db: PathBuf,
+    /// Listen address (port 0 picks a free port; the bound address is printed on stdout).
+    #[arg(long, default_value = "127.0.0.1:50052")]
+    pub addr: String,
+    /// A lease lapses this many seconds after a worker's last heartbeat; the job is then
+    /// queued again for another worker.
+    #[arg(long, default_value_t = 30.0)]
+    pub lease_secs: f64,
+    /// Heartbeat interval asked of workers, in ms (default: a quarter of the lease).
+    #[arg(long)]
+    pub heartbeat_ms: Option<u64>,
+    /// Attempts per job before it fails for good (permanent failures such as invalid input
+    /// are not retried).
+    #[arg(long, default_value_t = 3)]
+    pub max_attempts: u32,
+    /// Backoff before the second attempt, in ms; doubles per attempt, at most 60 s.
+    #[arg(long, default_value_t = 2000)]
+    pub retry_base_ms: u64,
+    /// Longest an idle worker waits before asking for work again, in ms.
+    #[arg(long, default_value_t = 1000)]
+    pub poll_ms: u64,
+    /// Largest accepted upload (`archive submit --upload`) in MiB.
+    #[arg(long, default_value_t = 1024)]
+    pub max_upload_mib: u64,
+}
+
+/// Arguments of `wavesplat worker`.
+#[derive(Args, Debug)]
+pub struct WorkerArgs {
+    /// Orchestrator URL.
+    #[arg(long, default_value = DEFAULT_URL)]
+    pub orchestrator: String,
+    /// Cache URL the results are delivered to.
+    #[arg(long, default_value = super::cache::DEFAULT_URL)]
+    pub cache: String,
+    /// Compression threads (0: one per core).
+    #[arg(long, default_value_t = 0)]
+    pub threads: usize,
+    /// Worker identity shown in job listings (default: host name and process id).
+    #[arg(long)]
+    pub id: Option<String>,
+    /// Exit after this many jobs.
+    #[arg(long)]
+    pub max_jobs: Option<usize>,
+    /// Testing aid: pause this long (ms) after compressing each volume, before uploading.
+    #[arg(long, default_value_t = 0, hide = true)]
+    pub pause_before_upload_ms: u64,
+}
+
+/// Compressor options of submitted jobs (the same meaning as in `wavesplat compress`).
+#[derive(Args, Debug, Clone)]
+pub struct JobOptionArgs {
+    /// Wavelet family: haar, linear, cubic.
+    #[arg(long, default_value = "linear")]
+    pub family: String,
+    /// Decomposition depth M (default: automatic).
+    #[arg(long)]
+    pub levels: Option<usize>,
+    /// Colour space for RGB volumes: rgb, yiq, pca.
+    #[arg(long, default_value = "pca")]
+    pub colorspace: String,
+    /// Quantization bits P (1..=16).
+    #[arg(long, default_value_t = 8)]
+    pub bits: u8,
+    /// Quantizer step of the sigmap coder.
+    #[arg(long, default_value_t = 1.0)]
+    pub step: f64,
+    /// Entropy coder: sigmap, range, huffman.
+    #[arg(long, default_value = "sigmap")]
+    pub coder: String,
+    /// Keep as many coefficients as fit in this many bytes.
+    #[arg(long, group = "target")]
+    pub target_bytes: Option<u64>,
+    /// Keep this fraction (0..1] of all coefficients (default 0.05).
+    #[arg(long, group = "target")]
+    pub target_fraction: Option<f64>,
+    /// Keep this many coefficients.
+    #[arg(long, group = "target")]
+    pub target_coefficients: Option<u64>,
+    /// Keep the fewest coefficients whose energy is at least this percentage (Q_V).
+    #[arg(long, group = "target")]
+    pub target_qv: Option<f64>,
+    /// Keep every non-zero coefficient.
+    #[arg(long, group = "target")]
+    pub lossless_selection: bool,
+    /// Tile edge in voxels (default: automatic).
+    #[arg(long)]
+    pub tile: Option<usize>,
+    /// Quality layers (default: automatic).
+    #[arg(long)]
+    pub layers: Option<usize>,
+}
+
+impl JobOptionArgs {
+    /// Validated job options.
+    pub fn options(&self) -> Result<JobOptions> {
+        let target = if let Some(b) = self.target_bytes {
+            TargetSpec::Bytes(b)
+        } else if let Some(f) = self.target_fraction {
+            TargetSpec::Fraction(f)
+        } else if let Some(c) = self.target_coefficients {
+            TargetSpec::Coefficients(c)
+        } else if let Some(q) = self.target_qv {
+            TargetSpec::QvPercent(q)
+        } else if self.lossless_selection {
+            TargetSpec::All
+        } else {
+            TargetSpec::Fraction(0.05)
+        };
+        Ok(JobOptions {
+            family: self.family.clone(),
+            levels: self.levels,
+            colorspace: self.colorspace.clone(),
+            bits: self.bits,
+            step: self.step,
+            coder: self.coder.clone(),
+            target,
+            tile: self.tile,
+            layers: self.layers,
+        }
+        .validate()?)
+    }
+}
+
+/// `wavesplat archive …`.
+#[derive(Subcommand, Debug)]
+pub enum ArchiveCommand {
+    /// Submit every supported volume under DIR as one job each, then show progress until all
+    /// are finished (unless --detach).
+    ///
+    /// Supported: NIfTI-1 (`*.nii`, `*.nii.gz`, scalar or RGB24) and headerless raw files
+    /// named `NAME_XxYxZ_DTYPE[_rgb][_be].raw` (DTYPE u8, u16, i16 or f32; `_rgb`: 3 channels
+    /// interleaved per voxel; `_be`: big-endian; x fastest), e.g. `head_256x256x128_u16.raw`.
+    /// The cache name is the relative path without extension and layout suffix (`ct/head`).
+    /// Each file is hashed (SHA-256); a file already submitted with the same options is skipped.
+    Submit(SubmitArgs),
+}
+
+/// Arguments of `wavesplat archive submit`.
+#[derive(Args, Debug)]
+pub struct SubmitArgs {
+    /// Archive directory (scanned recursively).
+    pub dir: PathBuf,
+    /// Orchestrator URL.
+    #[arg(long, default_value = DEFAULT_URL)]
+    pub orchestrator: String,
+    /// Stream each file's bytes to the orchestrator instead of passing its path (use when the
+    /// workers do not share this machine's storage).
+    #[arg(long)]
+    pub upload: bool,
+    /// Return after submitting instead of watching the jobs.
+    #[arg(long)]
+    pub detach: bool,
+    #[command(flatten)]
+    pub options: JobOptionArgs,
+}
+
+/// `wavesplat jobs …`.
+#[derive(Subcommand, Debug)]
+pub enum JobsCommand {
+    /// One line per job: id, state, name, attempts, progress, worker, error.
+    List(JobsUrl),
+    /// Show progress bars until every job is finished.
+    Watch(JobsUrl),
+    /// Cancel a queued or running job (a running worker discards its result).
+    Cancel(JobIdArgs),
+    /// Queue a failed or cancelled job again with a fresh attempt budget.
+    Retry(JobIdArgs),
+}
+
+/// Orchestrator address.
+#[derive(Args, Debug)]
+pub struct JobsUrl {
+    /// Orchestrator URL.
+    #[arg(long, default_value = DEFAULT_URL)]
+    pub orchestrator: String,
+}
+
+/// A job id.
+#[derive(Args, Debug)]
+pub struct JobIdArgs {
+    /// Job id.
+    pub id: u64,
+    #[command(flatten)]
+    pub url: JobsUrl,
+}
+
+fn runtime() -> Result<tokio::runtime::Runtime> {
+    tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .context("starting the async runtime")
+}
+
+async fn connect(url: &str) -> Result<OrchestratorClient<Channel>> {
+    client::connect(url)
+        .await
+        .with_context(|| format!("connecting to the orchestrator at {url}"))
+}
+
+/// Runs `wavesplat serve orchestrator`.
+pub fn run_serve(a: ServeOrchestratorArgs) -> Result<()> {
+    if !(a.lease_secs.is_finite() && a.lease_secs > 0.0) {
+        bail!("--lease-secs {} must be positive", a.lease_secs);
+    }
+    let lease_ms = (a.lease_secs * 1000.0).round().max(1.0) as u64;
+    let config = ServiceConfig {
+        queue: QueueConfig {
+            lease_ms,
+            heartbeat_ms: a.heartbeat_ms.unwrap_or((lease_ms / 4).max(1)),
+            max_attempts: a.max_attempts,
+            backoff_base_ms: a.retry_base_ms,
+            backoff_max_ms: 60_000.max(a.retry_base_ms),
+        }
+        .validate()?,
+        poll_ms: a.poll_ms.max(1),
+        max_upload_bytes: a.max_upload_mib.saturating_mul(1 << 20),
+    };
+    let store = Store::open(&a.db)
+        .with_context(|| format!("opening the orchestrator database {}", a.db.display()))?;
+    runtime()?.block_on(async move {
+        let listener = tokio::net::TcpListener::bind(&a.addr)
+            .await
+            .with_context(|| format!("binding {}", a.addr))?;
+        let local = listener.local_addr()?;
+        // Scripts and tests read the bound address from this line.
+        println!("listening on {local}");
+        use std::io::Write;
+        std::io::stdout().flush()?;
+        let shutdown = async {
+            let _ = tokio::signal::ctrl_c().await;
+            tracing::info!("shutting down");
+        };
+        wavesplat_orchestrator::serve(listener, store, config, shutdown).await?;
+        Ok(())
+    })
+}
+
+/// Runs `wavesplat worker`.
+pub fn run_worker(a: WorkerArgs) -> Result<()> {
+    let cfg = wavesplat_orchestrator::WorkerConfig {
+        orchestrator: a.orchestrator,
+        cache: a.cache,
+        threads: a.threads,
+        id: a
+            .id
+            .unwrap_or_else(wavesplat_orchestrator::worker::default_worker_id),
+        max_jobs: a.max_jobs,
+        pause_before_upload_ms: a.pause_before_upload_ms,
+    };
+    runtime()?.block_on(async move {
+        // SIGINT or SIGTERM (what Kubernetes and batch schedulers send): finish the current
+        // job, then stop.
+        let shutdown = async {
+            #[cfg(unix)]
+            {
+                use tokio::signal::unix::{signal, SignalKind};
+                match signal(SignalKind::terminate()) {
+                    Ok(mut term) => {
+                        tokio::select! {
+                            _ = tokio::signal::ctrl_c() => {}
+                            _ = term.recv() => {}
+                        }
+                    }
+                    Err(_) => {
+                        let _ = tokio::signal::ctrl_c().await;
+                    }
+                }
+            }
+            #[cfg(not(unix))]
+            let _ = tokio::signal::ctrl_c().await;
+            tracing::info!("finishing the current job, then stopping");
+        };
+        wavesplat_orchestrator::worker::run(cfg, shutdown).await?;
+        Ok(())
+    })
+}
+
+/// Runs `wavesplat archive …`.
+pub fn run_archive(cmd: ArchiveCommand) -> Result<()> {
+    let ArchiveCommand::Submit(a) = cmd;
+    let options = a.options.options()?;
+    let scan = archive::scan(&a.dir).with_context(|| format!("scanning {}", a.dir.display()))?;
+    for (path, why) in &scan.skipped {
+        eprintln!("skipped {}: {why}", path.display());
+    }
+    if scan.found.is_empty() {
+        bail!("no supported volumes under {}", a.dir.display());
+    }
+    runtime()?.block_on(async move {
+        let mut c = connect(&a.orchestrator).await?;
+        let mut ids = HashSet::new();
+        let (mut new, mut known) = (0, 0);
+        for f in &scan.found {
+            let (spec, bytes) = archive::job_spec(f, &options, a.upload)
+                .with_context(|| format!("reading {}", f.path.display()))?;
+            let r = client::submit(&mut c, &spec, bytes.as_deref())
+                .await
+                .with_context(|| format!("submitting {}", f.path.display()))?;
+            let job = r.job.context("the orchestrator returned no job")?;
+            let what = if r.existed {
+                known += 1;
+                "already known as"
+            } else {
+                new += 1;
+                "submitted as"
+            };
+            println!(
+                "{} {what} job {} ({})",
+                f.path.display(),
+                job.id,
+                state_name(job.state)
+            );
+            ids.insert(job.id);
+        }
+        println!("{new} submitted, {known} already known");
+        if a.detach {
+            return Ok(());
+        }
+        watch(&mut c, Some(&ids)).await
+    })
+}
+
+/// Runs `wavesplat jobs …`.
+pub fn run_jobs(cmd: JobsCommand) -> Result<()> {
+    runtime()?.block_on(async move {
+        match cmd {
+            JobsCommand::List(u) => {
+                let mut c = connect(&u.orchestrator).await?;
+                for j in client::list(&mut c).await? {
+                    println!("{}", describe(&j));
+                }
+            }
+            JobsCommand::Watch(u) => {
+                let mut c = connect(&u.orchestrator).await?;
+                watch(&mut c, None).await?;
+            }
+            JobsCommand::Cancel(a) => {
+                let mut c = connect(&a.url.orchestrator).await?;
+                let j = c
+                    .cancel_job(pb::JobRef { id: a.id })
+                    .await
+                    .with_context(|| format!("cancelling job {}", a.id))?;
+                println!("{}", describe(j.get_ref()));
+            }
+            JobsCommand::Retry(a) => {
+                let mut c = connect(&a.url.orchestrator).await?;
+                let j = c
+                    .retry_job(pb::JobRef { id: a.id })
+                    .await
+                    .with_context(|| format!("retrying job {}", a.id))?;
+                println!("{}", describe(j.get_ref()));
+            }
+        }
+        Ok(())
+    })
+}
+
+fn job_name(j: &pb::Job) -> &str {
+    j.spec.as_ref().map_or("", |s| s.name.as_str())
+}
+
+/// One tab-separated line: id, state, name, attempts, progress, worker, error.
+fn describe(j: &pb::Job) -> String {
+    format!(
+        "{}\t{}\t{}\tattempts={}/{}\tprogress={:.0}%\tworker={}\tbytes={}\terror={}",
+        j.id,
+        state_name(j.state),
+        job_name(j),
+        j.attempts,
+        j.max_attempts,
+        100.0 * j.progress,
+        j.worker,
+        j.output_bytes,
+        j.error
+    )
+}
+
+fn is_terminal(j: &pb::Job) -> bool {
+    matches!(state_name(j.state), "done" | "failed" | "cancelled")
+}
+
+/// Polls the jobs (all, or `ids`) until every one is finished: indicatif bars on a terminal
+/// (one per job and one overall), `tracing` events on state changes otherwise. Fails if any
+/// job failed.
+async fn watch(c: &mut OrchestratorClient<Channel>, ids: Option<&HashSet<u64>>) -> Result<()> {
+    let tty = std::io::stderr().is_terminal();
+    let multi = MultiProgress::new();
+    let style = ProgressStyle::with_template("{prefix:>24} [{bar:30}] {pos:>3}% {msg}")
+        .expect("valid template")
+        .progress_chars("=> ");
+    let overall = tty.then(|| {
+        let b = multi.add(ProgressBar::new(0));
+        b.set_style(
+            ProgressStyle::with_template("{prefix:>24} [{bar:30}] {pos}/{len} {msg} {elapsed}")
+                .expect("valid template")
+                .progress_chars("=> "),
+        );
+        b.set_prefix("overall");
+        b
+    });
+    let mut bars: BTreeMap<u64, ProgressBar> = BTreeMap::new();
+    let mut last: BTreeMap<u64, String> = BTreeMap::new();
+    loop {
+        let jobs: Vec<pb::Job> = client::list(c)
+            .await?
+            .into_iter()
+            .filter(|j| ids.is_none_or(|s| s.contains(&j.id)))
+            .collect();
+        let finished = jobs.iter().filter(|j| is_terminal(j)).count();
+        let failed = jobs
+            .iter()
+            .filter(|j| state_name(j.state) == "failed")
+            .count();
+        for j in &jobs {
+            let state = state_name(j.state);
+            let msg = match state {
+                "running" => format!("{} {} ({})", state, j.stage, j.worker),
+                "failed" => format!("failed: {}", j.error),
+                "queued" if !j.error.is_empty() => format!("queued (retry after: {})", j.error),
+                s => s.to_string(),
+            };
+            if tty {
+                let b = bars.entry(j.id).or_insert_with(|| {
+                    let b = multi.add(ProgressBar::new(100));
+                    b.set_style(style.clone());
+                    b.set_prefix(job_name(j).to_string());
+                    b
+                });
+                b.set_position((j.progress * 100.0).round() as u64);
+                b.set_message(msg);
+            } else if last.get(&j.id) != Some(&state.to_string()) {
+                tracing::info!(job = j.id, name = job_name(j), state, error = %j.error, "job");
+                last.insert(j.id, state.to_string());
+            }
+        }
+        if let Some(o) = &overall {
+            o.set_length(jobs.len() as u64);
+            o.set_position(finished as u64);
+            o.set_message(format!("finished, {failed} failed"));
+        }
+        if finished == jobs.len() {
+            if let Some(o) = &overall {
+                o.finish();
+            }
+            for b in bars.values() {
+                b.finish();
+            }
+            let done = jobs
+                .iter()
+                .filter(|j| state_name(j.state) == "done")
+                .count();
+            println!(
+                "{} jobs: {done} done, {failed} failed, {} cancelled",
+                jobs.len(),
+                jobs.len() - done - failed
+            );
+            for j in jobs.iter().filter(|j| state_name(j.state) == "failed") {
+                println!("failed: job {} {}: {}", j.id, job_name(j), j.error);
+            }
+            if failed > 0 {
+                bail!("{failed} job(s) failed");
+            }
+            return Ok(());
+        }
+        tokio::time::sleep(Duration::from_millis(300)).await;
+    }
+}

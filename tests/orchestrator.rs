@@ -1,0 +1,507 @@
+//! End-to-end tests of the orchestrator: the real `wavesplat` binary as cache, orchestrator and
+//! workers on loopback, sled in tempdirs, archives of small phantom volumes written as raw
+//! (naming convention) and NIfTI files. Short leases (2 s) keep the suite fast; every wait is
+//! bounded.
+
+use std::collections::HashSet;
+use std::io::{BufRead, BufReader};
+use std::path::Path;
+use std::process::{Child, Command, Output, Stdio};
+use std::time::{Duration, Instant};
+use wavesplat_cache::{ViewSpec, VolumeKey};
+use wavesplat_codec::format::packet::decode_packet;
+use wavesplat_codec::format::read_header_section;
+use wavesplat_compressor::phantom::Phantom;
+use wavesplat_orchestrator::client;
+use wavesplat_orchestrator::convert::state_name;
+use wavesplat_proto::pb;
+use wavesplat_viewer::View;
+
+const BIN: &str = env!("CARGO_BIN_EXE_wavesplat");
+const DIMS: [usize; 3] = [24, 24, 24];
+
+/// A child process, SIGKILLed when dropped.
+struct Proc {
+    child: Child,
+    addr: String,
+}
+
+impl Proc {
+    /// Starts a server and reads its bound address from the `listening on` line.
+    fn server(args: &[&str]) -> Proc {
+        let mut child = Command::new(BIN)
+            .args(args)
+            .stdout(Stdio::piped())
+            .stderr(Stdio::null())
+            .spawn()
+            .unwrap();
+        let mut line = String::new();
+        BufReader::new(child.stdout.take().unwrap())
+            .read_line(&mut line)
+            .unwrap();
+        let addr = line
+            .trim()
+            .strip_prefix("listening on ")
+            .unwrap_or_else(|| panic!("unexpected server output {line:?}"))
+            .to_string();
+        Proc { child, addr }
+    }
+
+    fn url(&self) -> String {
+        format!("http://{}", self.addr)
+    }
+
+    fn orchestrator(db: &Path, addr: &str) -> Proc {
+        Proc::server(&[
+            "serve",
+            "orchestrator",
+            "--addr",
+            addr,
+            "--db",
+            db.to_str().unwrap(),
+            "--lease-secs",
+            "2",
+            "--heartbeat-ms",
+            "300",
+            "--retry-base-ms",
+            "200",
+            "--poll-ms",
+            "100",
+        ])
+    }
+
+    fn worker(orch: &str, cache: &str, id: &str, pause_ms: u64) -> Proc {
+        let child = Command::new(BIN)
+            .args(["worker", "--orchestrator", orch, "--cache", cache])
+            .args(["--threads", "1", "--id", id])
+            .args(["--pause-before-upload-ms", &pause_ms.to_string()])
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .unwrap();
+        Proc {
+            child,
+            addr: String::new(),
+        }
+    }
+
+    /// SIGKILL: no shutdown path runs.
+    fn kill(mut self) {
+        self.child.kill().unwrap();
+        self.child.wait().unwrap();
+    }
+}
+
+impl Drop for Proc {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+fn cli(args: &[&str]) -> Output {
+    Command::new(BIN).args(args).output().unwrap()
+}
+
+fn submit(dir: &Path, orch: &str, extra: &[&str]) -> String {
+    let mut args = vec![
+        "archive",
+        "submit",
+        dir.to_str().unwrap(),
+        "--orchestrator",
+        orch,
+        "--detach",
+        "--levels",
+        "2",
+    ];
+    args.extend_from_slice(extra);
+    let out = cli(&args);
+    let stdout = String::from_utf8_lossy(&out.stdout).into_owned();
+    assert!(
+        out.status.success(),
+        "submit failed: {stdout}\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    stdout
+}
+
+fn write_f32(path: &Path, samples: &[f32]) {
+    let bytes: Vec<u8> = samples.iter().flat_map(|v| v.to_le_bytes()).collect();
+    std::fs::write(path, bytes).unwrap();
+}
+
+/// A minimal NIfTI-1 single file (float32, unit spacing).
+fn write_nifti(path: &Path, dims: [usize; 3], samples: &[f32]) {
+    let mut h = vec![0u8; 352];
+    h[0..4].copy_from_slice(&348i32.to_le_bytes());
+    let dim: [i16; 8] = [
+        3,
+        dims[0] as i16,
+        dims[1] as i16,
+        dims[2] as i16,
+        1,
+        1,
+        1,
+        1,
+    ];
+    for (i, d) in dim.iter().enumerate() {
+        h[40 + 2 * i..42 + 2 * i].copy_from_slice(&d.to_le_bytes());
+    }
+    h[70..72].copy_from_slice(&16i16.to_le_bytes()); // float32
+    h[72..74].copy_from_slice(&32i16.to_le_bytes());
+    for i in 0..8 {
+        h[76 + 4 * i..80 + 4 * i].copy_from_slice(&1f32.to_le_bytes());
+    }
+    h[108..112].copy_from_slice(&352f32.to_le_bytes());
+    h[344..348].copy_from_slice(b"n+1\0");
+    h.extend(samples.iter().flat_map(|v| v.to_le_bytes()));
+    std::fs::write(path, h).unwrap();
+}
+
+fn phantom(p: Phantom, dims: [usize; 3]) -> Vec<f32> {
+    p.generate(dims).to_interleaved()
+}
+
+fn raw_name(name: &str, dims: [usize; 3], suffix: &str) -> String {
+    format!("{name}_{}x{}x{}_{suffix}.raw", dims[0], dims[1], dims[2])
+}
+
+/// Writes `n` good volumes named `{prefix}{i}` cycling through raw scalar, raw RGB and NIfTI
+/// (depths differ, so contents differ: identical content would be one job).
+fn write_good(dir: &Path, prefix: &str, n: usize) -> Vec<String> {
+    std::fs::create_dir_all(dir).unwrap();
+    (0..n)
+        .map(|i| {
+            let name = format!("{prefix}{i}");
+            let dims = [DIMS[0], DIMS[1], DIMS[2] + 2 * i];
+            match i % 3 {
+                0 => write_f32(
+                    &dir.join(raw_name(&name, dims, "f32")),
+                    &phantom(Phantom::SheppLogan, dims),
+                ),
+                1 => {
+                    let rgb: Vec<u8> = phantom(Phantom::RgbHead, dims)
+                        .iter()
+                        .map(|v| (v.clamp(0.0, 1.0) * 255.0) as u8)
+                        .collect();
+                    std::fs::write(dir.join(raw_name(&name, dims, "u8_rgb")), rgb).unwrap();
+                }
+                _ => write_nifti(
+                    &dir.join(format!("{name}.nii")),
+                    dims,
+                    &phantom(Phantom::Spheres, dims),
+                ),
+            }
+            name
+        })
+        .collect()
+}
+
+async fn jobs(url: &str) -> Vec<pb::Job> {
+    let mut c = client::connect(url).await.unwrap();
+    client::list(&mut c).await.unwrap()
+}
+
+fn name(j: &pb::Job) -> &str {
+    &j.spec.as_ref().unwrap().name
+}
+
+/// Polls until `pred` holds for the job list, at most `secs` seconds.
+async fn wait_for(
+    url: &str,
+    secs: u64,
+    what: &str,
+    pred: impl Fn(&[pb::Job]) -> bool,
+) -> Vec<pb::Job> {
+    let end = Instant::now() + Duration::from_secs(secs);
+    loop {
+        if let Ok(mut c) = client::connect(url).await {
+            if let Ok(js) = client::list(&mut c).await {
+                if pred(&js) {
+                    return js;
+                }
+                if Instant::now() > end {
+                    let states: Vec<String> = js
+                        .iter()
+                        .map(|j| {
+                            format!("{} {} {} {}", j.id, name(j), state_name(j.state), j.error)
+                        })
+                        .collect();
+                    panic!("timed out waiting for {what}: {states:#?}");
+                }
+            }
+        }
+        assert!(Instant::now() <= end, "timed out waiting for {what}");
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+}
+
+fn all_finished(js: &[pb::Job]) -> bool {
+    !js.is_empty()
+        && js
+            .iter()
+            .all(|j| matches!(state_name(j.state), "done" | "failed" | "cancelled"))
+}
+
+/// Every volume in the cache, each streamed in full and decoded; names must be unique.
+async fn cache_volumes_decode(cache: &str) -> Vec<String> {
+    let mut c = wavesplat_cache::client::connect(cache).await.unwrap();
+    let list = c
+        .list(pb::ListRequest {})
+        .await
+        .unwrap()
+        .into_inner()
+        .volumes;
+    let mut names = Vec::new();
+    for v in list {
+        let got = wavesplat_cache::client::refine_collect(
+            &mut c,
+            &VolumeKey::Name(v.name.clone()),
+            &ViewSpec {
+                view: View::new(0.4, 0.7, 32, 32),
+                multiview: false,
+            },
+            vec![],
+            None,
+        )
+        .await
+        .unwrap();
+        assert!(got.done);
+        assert_eq!(got.packets.len(), v.packet_count as usize, "{}", v.name);
+        let (h, _) = read_header_section(got.header.as_ref().unwrap()).unwrap();
+        for p in &got.packets {
+            decode_packet(&h, &p.data).unwrap();
+        }
+        names.push(v.name);
+    }
+    let unique: HashSet<&String> = names.iter().collect();
+    assert_eq!(unique.len(), names.len(), "a volume was stored twice");
+    names.sort();
+    names
+}
+
+struct Cluster {
+    _dir: tempfile::TempDir,
+    root: std::path::PathBuf,
+    cache: Proc,
+    orch: Proc,
+}
+
+impl Cluster {
+    fn start() -> Cluster {
+        let dir = tempfile::tempdir().unwrap();
+        let root = dir.path().to_path_buf();
+        let cache = Proc::server(&[
+            "serve",
+            "cache",
+            "--addr",
+            "127.0.0.1:0",
+            "--db",
+            root.join("cache.db").to_str().unwrap(),
+        ]);
+        let orch = Proc::orchestrator(&root.join("orch.db"), "127.0.0.1:0");
+        Cluster {
+            _dir: dir,
+            root,
+            cache,
+            orch,
+        }
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn archive_is_compressed_into_the_cache_and_bad_files_fail_alone() {
+    let cl = Cluster::start();
+    let (o, c) = (cl.orch.url(), cl.cache.url());
+    // Three archives with different families / colour spaces; one is uploaded, not shared.
+    let a = cl.root.join("a");
+    let b = cl.root.join("b");
+    let u = cl.root.join("u");
+    let mut good = write_good(&a, "a", 3);
+    good.extend(write_good(&b, "b", 3));
+    good.extend(write_good(&u, "u", 2));
+    // Bad input: wrong size for the dims in the name, NaN, a garbage NIfTI.
+    std::fs::write(a.join("short_24x24x24_u8.raw"), [0u8; 100]).unwrap();
+    let mut nan = phantom(Phantom::SheppLogan, [8, 8, 8]);
+    nan[77] = f32::NAN;
+    write_f32(&b.join("nan_8x8x8_f32.raw"), &nan);
+    std::fs::write(b.join("garbage.nii"), b"not a nifti file at all").unwrap();
+
+    let _w1 = Proc::worker(&o, &c, "w1", 0);
+    let _w2 = Proc::worker(&o, &c, "w2", 0);
+    submit(&a, &o, &["--family", "haar", "--colorspace", "rgb"]);
+    submit(
+        &b,
+        &o,
+        &[
+            "--family",
+            "cubic",
+            "--colorspace",
+            "yiq",
+            "--coder",
+            "range",
+        ],
+    );
+    submit(&u, &o, &["--upload", "--colorspace", "pca"]);
+
+    let js = wait_for(&o, 45, "all jobs finished", all_finished).await;
+    assert_eq!(js.len(), good.len() + 3);
+    for j in &js {
+        let n = name(j);
+        if good.iter().any(|g| g == n) {
+            assert_eq!(state_name(j.state), "done", "{n}: {}", j.error);
+        } else {
+            assert_eq!(state_name(j.state), "failed", "{n}");
+            assert_eq!(j.failure, pb::FailureKind::InvalidInput as i32, "{n}");
+            assert_eq!(j.attempts, 1, "invalid input is not retried");
+            let want = match n {
+                "short" => "need exactly",
+                "nan" => "non-finite",
+                _ => "garbage.nii",
+            };
+            assert!(j.error.contains(want), "{n}: {}", j.error);
+        }
+    }
+    let mut want = good.clone();
+    want.sort();
+    assert_eq!(cache_volumes_decode(&c).await, want);
+
+    // Resubmitting skips everything already known.
+    let out = submit(&a, &o, &["--family", "haar", "--colorspace", "rgb"]);
+    assert!(out.contains("0 submitted, 4 already known"), "{out}");
+    // Retrying a failed job runs it again (and it fails again, for the same reason).
+    let short = js.iter().find(|j| name(j) == "short").unwrap().id;
+    let out = cli(&["jobs", "retry", &short.to_string(), "--orchestrator", &o]);
+    assert!(out.status.success());
+    let js = wait_for(&o, 20, "retried job failed again", |js| {
+        js.iter()
+            .any(|j| j.id == short && state_name(j.state) == "failed" && j.attempts == 1)
+    })
+    .await;
+    assert_eq!(js.len(), good.len() + 3);
+    // `jobs list` shows every job.
+    let out = cli(&["jobs", "list", "--orchestrator", &o]);
+    assert_eq!(
+        String::from_utf8_lossy(&out.stdout).lines().count(),
+        js.len()
+    );
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_killed_workers_lease_is_reclaimed_and_the_job_lands_once() {
+    let cl = Cluster::start();
+    let (o, c) = (cl.orch.url(), cl.cache.url());
+    let dir = cl.root.join("arch");
+    let good = write_good(&dir, "v", 3);
+    // This worker compresses, then hangs before uploading: SIGKILL it there.
+    let stuck = Proc::worker(&o, &c, "doomed", 60_000);
+    submit(&dir, &o, &[]);
+    let js = wait_for(&o, 20, "a job held by the doomed worker", |js| {
+        js.iter()
+            .any(|j| j.worker == "doomed" && j.stage.contains("paused"))
+    })
+    .await;
+    let victim = js.iter().find(|j| j.worker == "doomed").unwrap().id;
+    stuck.kill();
+    let _w = Proc::worker(&o, &c, "rescuer", 0);
+    let js = wait_for(&o, 30, "all done", |js| {
+        js.len() == 3 && js.iter().all(|j| state_name(j.state) == "done")
+    })
+    .await;
+    let v = js.iter().find(|j| j.id == victim).unwrap();
+    assert_eq!(v.attempts, 2, "reclaimed once");
+    assert!(v.error.contains("stopped heartbeating"), "{}", v.error);
+    let mut want = good;
+    want.sort();
+    assert_eq!(cache_volumes_decode(&c).await, want);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn orchestrator_restart_keeps_the_queue_and_cancel_retry_work() {
+    let mut cl = Cluster::start();
+    let c = cl.cache.url();
+    let dir = cl.root.join("arch");
+    let good = write_good(&dir, "r", 6);
+    let o = cl.orch.url();
+    submit(&dir, &o, &[]);
+    // Cancel one queued job before any worker runs.
+    let js = jobs(&o).await;
+    assert_eq!(js.len(), 6);
+    let cancelled = js[1].id;
+    let out = cli(&[
+        "jobs",
+        "cancel",
+        &cancelled.to_string(),
+        "--orchestrator",
+        &o,
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(String::from_utf8_lossy(&out.stdout).contains("cancelled"));
+
+    // A slow worker, so the run is still going when the orchestrator dies.
+    let _w = Proc::worker(&o, &c, "w", 400);
+    let before = wait_for(&o, 20, "two jobs done", |js| {
+        js.iter().filter(|j| state_name(j.state) == "done").count() >= 2
+    })
+    .await;
+    assert!(
+        !all_finished(&before),
+        "the run ended before the orchestrator was killed"
+    );
+    let addr = cl.orch.addr.clone();
+    let old = std::mem::replace(
+        &mut cl.orch,
+        Proc {
+            child: Command::new("true").spawn().unwrap(),
+            addr: String::new(),
+        },
+    );
+    old.kill();
+    // Restart on the same address (workers know only that) and the same database.
+    cl.orch = Proc::orchestrator(&cl.root.join("orch.db"), &addr);
+    let after = jobs(&o).await;
+    assert_eq!(after.len(), 6);
+    for (b, a) in before.iter().zip(&after) {
+        assert_eq!(b.id, a.id);
+        if matches!(state_name(b.state), "done" | "cancelled") {
+            assert_eq!(a.state, b.state, "job {} changed across the restart", a.id);
+        }
+    }
+    let js = wait_for(&o, 40, "the run completes", all_finished).await;
+    for j in &js {
+        let want = if j.id == cancelled {
+            "cancelled"
+        } else {
+            "done"
+        };
+        assert_eq!(state_name(j.state), want, "{}: {}", name(j), j.error);
+    }
+    // Cancelling a finished job is refused; retrying the cancelled one completes it.
+    let done = js.iter().find(|j| j.id != cancelled).unwrap().id;
+    let out = cli(&["jobs", "cancel", &done.to_string(), "--orchestrator", &o]);
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("is done"));
+    let out = cli(&[
+        "jobs",
+        "retry",
+        &cancelled.to_string(),
+        "--orchestrator",
+        &o,
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    wait_for(&o, 20, "the retried job is done", |js| {
+        js.iter().all(|j| state_name(j.state) == "done")
+    })
+    .await;
+    let mut want = good;
+    want.sort();
+    assert_eq!(cache_volumes_decode(&c).await, want);
+}
