@@ -76,9 +76,28 @@ impl Family {
         (0..=j).map(|k| binomial(j, k) / scale).collect()
     }
 
+    fn index(self) -> usize {
+        match self {
+            Family::Haar => 0,
+            Family::Linear => 1,
+            Family::Cubic => 2,
+        }
+    }
+
+    /// Filters and norms, computed once per family (the B-spline recursion behind them is
+    /// exponential in the order, and energies are needed per coefficient).
+    fn constants(self) -> &'static Constants {
+        static TABLE: std::sync::OnceLock<[Constants; 3]> = std::sync::OnceLock::new();
+        &TABLE.get_or_init(|| Family::ALL.map(Constants::compute))[self.index()]
+    }
+
     /// Two-scale coefficients q_k of ψ (k = 0..=3j−2), eq. 6:
     /// q_k = (−1)^k / 2^(j−1) Σ_{l=0..j} C(j, l) φ^[2j](k + 1 − l).
     pub fn wavelet_filter(self) -> Vec<f64> {
+        self.constants().q.clone()
+    }
+
+    fn compute_wavelet_filter(self) -> Vec<f64> {
         let j = self.order();
         let scale = 2f64.powi(j as i32 - 1);
         (0..=(3 * j - 2))
@@ -120,7 +139,8 @@ impl Family {
 
     /// ψ(x) = Σ q_k φ(2x − k).
     pub fn psi(self, x: f64) -> f64 {
-        self.wavelet_filter()
+        self.constants()
+            .q
             .iter()
             .enumerate()
             .map(|(k, q)| q * self.phi(2.0 * x - k as f64))
@@ -135,12 +155,15 @@ impl Family {
 
     /// ‖φ‖² (level 0, undilated).
     pub fn phi_norm2(self) -> f64 {
-        self.phi_autocorrelation(0)
+        self.constants().phi_norm2
     }
 
     /// ‖ψ‖² (undilated): ½ Σ q_n q_n' a(n − n') with a the autocorrelation of φ.
     pub fn psi_norm2(self) -> f64 {
-        let q = self.wavelet_filter();
+        self.constants().psi_norm2
+    }
+
+    fn compute_psi_norm2(self, q: &[f64]) -> f64 {
         let mut s = 0.0;
         for (n, qn) in q.iter().enumerate() {
             for (m, qm) in q.iter().enumerate() {
@@ -163,7 +186,7 @@ impl Family {
     /// that no factor exceeds 1).
     pub fn psi_hat(self, f: f64, kappa: f64) -> Complex64 {
         let j = self.order();
-        let q = self.wavelet_filter();
+        let q = &self.constants().q;
         let half = phi_hat_order(j, 0.5 * f, 0.5 * kappa);
         let mut acc = Complex64::new(0.0, 0.0);
         for (n, qn) in q.iter().enumerate() {
@@ -177,6 +200,24 @@ impl Family {
             acc += phase * (qn * weight);
         }
         acc * half * 0.5
+    }
+}
+
+/// Per-family constants, computed once.
+struct Constants {
+    q: Vec<f64>,
+    phi_norm2: f64,
+    psi_norm2: f64,
+}
+
+impl Constants {
+    fn compute(family: Family) -> Constants {
+        let q = family.compute_wavelet_filter();
+        Constants {
+            phi_norm2: family.phi_autocorrelation(0),
+            psi_norm2: family.compute_psi_norm2(&q),
+            q,
+        }
     }
 }
 

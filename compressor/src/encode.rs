@@ -451,7 +451,10 @@ impl Prepared {
                         }
                     })
                     .collect();
-                let order = cluster_order(&items, opts.clustering);
+                // The sigmap coder codes positions as octree maps, so the order inside a
+                // packet carries no cost and clustering is skipped.
+                let clustering = opts.clustering.filter(|_| opts.coder != CoderKind::Sigmap);
+                let order = cluster_order(&items, clustering);
                 PacketInput {
                     tile,
                     layer,

@@ -41,6 +41,9 @@ pub fn cluster_order(items: &[Item], clustering: Option<Clustering>) -> Vec<usiz
     for (i, it) in items.iter().enumerate() {
         grid.entry(key(it.voxel)).or_default().push(i);
     }
+    // Per cell, entries before the cursor are all done: the scan below never revisits them, so
+    // the ordering stays O(n · neighbourhood) even in dense cells.
+    let mut cursor: HashMap<[u32; 3], usize> = HashMap::new();
     let mut done = vec![false; n];
     let mut next_best = 0usize;
     let mut order = Vec::with_capacity(n);
@@ -67,8 +70,12 @@ pub fn cluster_order(items: &[Item], clustering: Option<Clustering>) -> Vec<usiz
                     }
                     let nk = [nk[0] as u32, nk[1] as u32, nk[2] as u32];
                     let Some(list) = grid.get(&nk) else { continue };
+                    let start = cursor.entry(nk).or_insert(0);
+                    while *start < list.len() && done[list[*start]] {
+                        *start += 1;
+                    }
                     // The first not-done entry within the radius is that cell's best.
-                    for &i in list {
+                    for &i in &list[*start..] {
                         if done[i] {
                             continue;
                         }
