@@ -9,9 +9,7 @@ use wavesplat_codec::family::Family;
 use wavesplat_codec::format::CoderKind;
 use wavesplat_codec::volume::Volume;
 use wavesplat_compressor::colorspace::ColorSpaceKind;
-use wavesplat_compressor::encode::{
-    compress, CompressOptions, Compressed, Stage, Target, TileChoice,
-};
+use wavesplat_compressor::encode::{compress, CompressOptions, Compressed, Stage, TileChoice};
 use wavesplat_compressor::order::Clustering;
 use wavesplat_compressor::phantom::Phantom;
 use wavesplat_compressor::reader::{read_volume, Endian, RawDtype, RawSpec};
@@ -67,21 +65,9 @@ pub struct CompressArgs {
     /// Quantizer step of the sigmap coder relative to each band's smallest kept magnitude.
     #[arg(long, default_value_t = 1.0)]
     pub step: f64,
-    /// Keep as many coefficients as fit in this many bytes (whole file).
-    #[arg(long, group = "target")]
-    pub target_bytes: Option<u64>,
-    /// Keep this fraction (0..1] of all coefficients.
-    #[arg(long, group = "target")]
-    pub target_fraction: Option<f64>,
-    /// Keep this many coefficients.
-    #[arg(long, group = "target")]
-    pub target_coefficients: Option<u64>,
-    /// Keep the fewest coefficients whose energy is at least this percentage (Q_V, eq. 19).
-    #[arg(long, group = "target")]
-    pub target_qv: Option<f64>,
-    /// Keep every non-zero coefficient.
-    #[arg(long, group = "target")]
-    pub lossless_selection: bool,
+    /// What to keep.
+    #[command(flatten)]
+    pub keep: super::TargetArgs,
     /// Tile edge in voxels (rounded up to a multiple of 2^M); default: chosen from the size.
     #[arg(long, conflicts_with = "single_sequence")]
     pub tile: Option<usize>,
@@ -154,19 +140,7 @@ pub fn options(a: &CompressArgs) -> Result<CompressOptions> {
             a.cluster_threshold
         );
     }
-    let target = if let Some(b) = a.target_bytes {
-        Target::Bytes(b)
-    } else if let Some(f) = a.target_fraction {
-        Target::Fraction(f)
-    } else if let Some(c) = a.target_coefficients {
-        Target::Coefficients(c)
-    } else if let Some(q) = a.target_qv {
-        Target::QvPercent(q)
-    } else if a.lossless_selection {
-        Target::All
-    } else {
-        Target::Fraction(0.05)
-    };
+    let target = a.keep.target();
     let tile = if a.single_sequence {
         TileChoice::Single
     } else {

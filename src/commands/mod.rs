@@ -12,6 +12,47 @@ pub mod phantom;
 pub mod render;
 
 use anyhow::{bail, Context, Result};
+use clap::Args;
+use wavesplat_compressor::encode::Target;
+
+/// How much of a volume to keep, shared by `compress` and `archive submit`.
+#[derive(Args, Debug, Clone)]
+pub struct TargetArgs {
+    /// Keep as many coefficients as fit in this many bytes (whole file).
+    #[arg(long, group = "target")]
+    pub target_bytes: Option<u64>,
+    /// Keep this fraction (0..1] of all coefficients (default 0.05).
+    #[arg(long, group = "target")]
+    pub target_fraction: Option<f64>,
+    /// Keep this many coefficients.
+    #[arg(long, group = "target")]
+    pub target_coefficients: Option<u64>,
+    /// Keep the fewest coefficients whose energy is at least this percentage (Q_V, eq. 19).
+    #[arg(long, group = "target")]
+    pub target_qv: Option<f64>,
+    /// Keep every non-zero coefficient.
+    #[arg(long, group = "target")]
+    pub lossless_selection: bool,
+}
+
+impl TargetArgs {
+    /// The chosen target (default: 5 % of the coefficients).
+    pub fn target(&self) -> Target {
+        if let Some(b) = self.target_bytes {
+            Target::Bytes(b)
+        } else if let Some(f) = self.target_fraction {
+            Target::Fraction(f)
+        } else if let Some(c) = self.target_coefficients {
+            Target::Coefficients(c)
+        } else if let Some(q) = self.target_qv {
+            Target::QvPercent(q)
+        } else if self.lossless_selection {
+            Target::All
+        } else {
+            Target::Fraction(0.05)
+        }
+    }
+}
 
 /// Parses `X,Y,Z` into three positive integers.
 pub fn parse_dims(s: &str) -> Result<[usize; 3]> {

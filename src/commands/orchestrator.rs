@@ -10,6 +10,7 @@ use std::io::IsTerminal;
 use std::path::PathBuf;
 use std::time::Duration;
 use tonic::transport::Channel;
+use wavesplat_compressor::encode::Target;
 use wavesplat_orchestrator::archive;
 use wavesplat_orchestrator::client;
 use wavesplat_orchestrator::convert::state_name;
@@ -95,21 +96,9 @@ pub struct JobOptionArgs {
     /// Entropy coder: sigmap, range, huffman.
     #[arg(long, default_value = "sigmap")]
     pub coder: String,
-    /// Keep as many coefficients as fit in this many bytes.
-    #[arg(long, group = "target")]
-    pub target_bytes: Option<u64>,
-    /// Keep this fraction (0..1] of all coefficients (default 0.05).
-    #[arg(long, group = "target")]
-    pub target_fraction: Option<f64>,
-    /// Keep this many coefficients.
-    #[arg(long, group = "target")]
-    pub target_coefficients: Option<u64>,
-    /// Keep the fewest coefficients whose energy is at least this percentage (Q_V).
-    #[arg(long, group = "target")]
-    pub target_qv: Option<f64>,
-    /// Keep every non-zero coefficient.
-    #[arg(long, group = "target")]
-    pub lossless_selection: bool,
+    /// What to keep.
+    #[command(flatten)]
+    pub keep: super::TargetArgs,
     /// Tile edge in voxels (default: automatic).
     #[arg(long)]
     pub tile: Option<usize>,
@@ -121,18 +110,12 @@ pub struct JobOptionArgs {
 impl JobOptionArgs {
     /// Validated job options.
     pub fn options(&self) -> Result<JobOptions> {
-        let target = if let Some(b) = self.target_bytes {
-            TargetSpec::Bytes(b)
-        } else if let Some(f) = self.target_fraction {
-            TargetSpec::Fraction(f)
-        } else if let Some(c) = self.target_coefficients {
-            TargetSpec::Coefficients(c)
-        } else if let Some(q) = self.target_qv {
-            TargetSpec::QvPercent(q)
-        } else if self.lossless_selection {
-            TargetSpec::All
-        } else {
-            TargetSpec::Fraction(0.05)
+        let target = match self.keep.target() {
+            Target::Bytes(b) => TargetSpec::Bytes(b),
+            Target::Fraction(f) => TargetSpec::Fraction(f),
+            Target::Coefficients(c) => TargetSpec::Coefficients(c),
+            Target::QvPercent(q) => TargetSpec::QvPercent(q),
+            Target::All => TargetSpec::All,
         };
         Ok(JobOptions {
             family: self.family.clone(),
