@@ -141,6 +141,118 @@ pub fn run(a: BenchArgs) -> Result<()> {
             );
         }
     }
+    paper_case(&volume, &mut csv, a.repeat.max(1))?;
+    accumulation_bandwidth(&mut csv, a.repeat.max(1))?;
     println!("wrote {}", a.output.display());
+    Ok(())
+}
+
+/// The paper's timing case (Table 4): 170 761 coefficients rendered at 160×180 (Haar, M = 3),
+/// and splats/s per level of the same set.
+fn paper_case(
+    volume: &wavesplat_codec::volume::Volume,
+    csv: &mut std::fs::File,
+    repeat: usize,
+) -> Result<()> {
+    let opts = CompressOptions {
+        family: Family::Haar,
+        levels: Some(3),
+        target: Target::Coefficients(170_761),
+        ..Default::default()
+    };
+    let c = compress(volume, &opts, &|_, _| {})?;
+    let header = parse_file(&c.bytes)?.header;
+    let (_, coeffs) = load_coefficients(&c.bytes, None, None)?;
+    let mut renderer = Renderer::new(RenderOptions::default());
+    let view = View::new(0.66, 0.91, 160, 180);
+    renderer.render(&coeffs, &header.geometry, &view)?;
+    let mut times = Vec::new();
+    for _ in 0..repeat {
+        let t = Instant::now();
+        renderer.render(&coeffs, &header.geometry, &view)?;
+        times.push(t.elapsed().as_secs_f64());
+    }
+    let s = median(times);
+    writeln!(
+        csv,
+        "paper_case,haar,{},160x180,{s:.4},{},{:.0}",
+        rayon::current_num_threads(),
+        coeffs.len(),
+        coeffs.len() as f64 / s
+    )?;
+    println!(
+        "paper case: {} Haar coefficients (M=3) at 160x180 in {:.1} ms (paper: 4.01 s on an R10000)",
+        coeffs.len(),
+        s * 1e3
+    );
+    for level in 1..=header.geometry.levels as u8 {
+        let subset: Vec<_> = coeffs
+            .iter()
+            .filter(|k| k.band.level == level)
+            .copied()
+            .collect();
+        if subset.is_empty() {
+            continue;
+        }
+        let mut times = Vec::new();
+        for _ in 0..repeat {
+            let t = Instant::now();
+            renderer.render(&subset, &header.geometry, &view)?;
+            times.push(t.elapsed().as_secs_f64());
+        }
+        let s = median(times);
+        writeln!(
+            csv,
+            "splat_level_{level},haar,{},160x180,{s:.4},{},{:.0}",
+            rayon::current_num_threads(),
+            subset.len(),
+            subset.len() as f64 / s
+        )?;
+        println!(
+            "  level {level}: {:8} splats  {:12.0} splats/s",
+            subset.len(),
+            subset.len() as f64 / s
+        );
+    }
+    Ok(())
+}
+
+/// The limit to compare splatting against: the same accumulation loop (scaled footprint rows
+/// added into an f32 tile) with no projection, binning or table lookup, single thread.
+fn accumulation_bandwidth(csv: &mut std::fs::File, repeat: usize) -> Result<()> {
+    const TILE: usize = 64;
+    for side in [4usize, 16, 48] {
+        let footprint: Vec<f32> = (0..side * side).map(|i| (i % 7) as f32 * 0.1).collect();
+        let mut tile = vec![0.0f32; TILE * TILE];
+        let splats = 2_000_000 / (side * side) * 16;
+        let mut times = Vec::new();
+        for _ in 0..repeat {
+            let t = Instant::now();
+            for n in 0..splats {
+                let (ox, oy) = ((n * 7) % (TILE - side + 1), (n * 13) % (TILE - side + 1));
+                let w = 1.0 + (n % 3) as f32;
+                for r in 0..side {
+                    let row = &mut tile[(oy + r) * TILE + ox..(oy + r) * TILE + ox + side];
+                    for (d, s) in row.iter_mut().zip(&footprint[r * side..(r + 1) * side]) {
+                        *d += w * s;
+                    }
+                }
+            }
+            times.push(t.elapsed().as_secs_f64());
+        }
+        std::hint::black_box(&tile);
+        let s = median(times);
+        let updates = (splats * side * side) as f64;
+        writeln!(
+            csv,
+            "accumulate_loop,-,1,{side}x{side},{s:.4},{updates},{:.0}",
+            updates / s
+        )?;
+        println!(
+            "accumulation loop, {side}x{side} footprints: {:12.0} pixel updates/s per core ({:.1} GB/s read+write, L1-resident tile)",
+            updates / s,
+            updates * 12.0 / s / 1e9
+        );
+    }
     Ok(())
 }
