@@ -20,7 +20,7 @@ use wavesplat_codec::volume::{checked_voxels, Volume, VolumeError, MAX_VOXELS};
 #[non_exhaustive]
 pub enum ReadError {
     /// The file could not be opened or read.
-    #[error("cannot read {}: {source}", path.display())]
+    #[error("cannot read {}", path.display())]
     Io {
         /// The file.
         path: PathBuf,
@@ -421,6 +421,11 @@ pub fn is_nifti_path(path: &Path) -> bool {
 /// `raw` spec is then ignored, the header describes the data); anything else is read as a raw
 /// volume, which requires `raw`.
 pub fn read_volume(path: &Path, raw: Option<&RawSpec>) -> Result<Volume, ReadError> {
+    // Say "not found" for a missing file rather than guessing at its format.
+    std::fs::metadata(path).map_err(|source| ReadError::Io {
+        path: path.to_path_buf(),
+        source,
+    })?;
     if is_nifti_path(path) {
         read_nifti(path)
     } else {
