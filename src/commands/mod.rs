@@ -54,6 +54,24 @@ impl TargetArgs {
     }
 }
 
+/// Binds a server's listener and prints `listening on ADDR` (scripts and tests read the bound
+/// address, e.g. for port 0, from that line).
+pub async fn bind_announced(addr: &str) -> Result<tokio::net::TcpListener> {
+    let listener = tokio::net::TcpListener::bind(addr)
+        .await
+        .with_context(|| format!("binding {addr}"))?;
+    println!("listening on {}", listener.local_addr()?);
+    use std::io::Write;
+    std::io::stdout().flush()?;
+    Ok(listener)
+}
+
+/// Resolves on Ctrl-C: the graceful-shutdown signal of the servers.
+pub async fn ctrl_c() {
+    let _ = tokio::signal::ctrl_c().await;
+    tracing::info!("shutting down");
+}
+
 /// Parses `X,Y,Z` into three positive integers.
 pub fn parse_dims(s: &str) -> Result<[usize; 3]> {
     let parts: Vec<&str> = s.split([',', 'x']).collect();

@@ -229,18 +229,8 @@ pub fn run_serve(a: ServeOrchestratorArgs) -> Result<()> {
     let store = Store::open(&a.db)
         .with_context(|| format!("opening the orchestrator database {}", a.db.display()))?;
     runtime()?.block_on(async move {
-        let listener = tokio::net::TcpListener::bind(&a.addr)
-            .await
-            .with_context(|| format!("binding {}", a.addr))?;
-        let local = listener.local_addr()?;
-        // Scripts and tests read the bound address from this line.
-        println!("listening on {local}");
-        use std::io::Write;
-        std::io::stdout().flush()?;
-        let shutdown = async {
-            let _ = tokio::signal::ctrl_c().await;
-            tracing::info!("shutting down");
-        };
+        let listener = super::bind_announced(&a.addr).await?;
+        let shutdown = super::ctrl_c();
         wavesplat_orchestrator::serve(listener, store, config, shutdown).await?;
         Ok(())
     })
