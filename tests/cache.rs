@@ -1,9 +1,10 @@
 //! End-to-end tests of the coefficient cache: a real server on loopback (in-process for the
 //! protocol tests, the real `wavesplat` binary for the SIGKILL tests), sled in a tempdir.
 
+mod common;
+
 use std::collections::HashSet;
-use std::io::{BufRead, BufReader};
-use std::process::{Child, Command, Stdio};
+use std::process::Child;
 use tonic::transport::Channel;
 use tonic::Code;
 use wavesplat_cache::client::{self, refine_collect, refine_start};
@@ -445,21 +446,9 @@ struct Process {
 
 impl Process {
     fn start(db: &std::path::Path) -> Process {
-        let mut child = Command::new(env!("CARGO_BIN_EXE_wavesplat"))
-            .args(["serve", "cache", "--addr", "127.0.0.1:0", "--db"])
-            .arg(db)
-            .stdout(Stdio::piped())
-            .stderr(Stdio::null())
-            .spawn()
-            .unwrap();
-        let mut line = String::new();
-        BufReader::new(child.stdout.take().unwrap())
-            .read_line(&mut line)
-            .unwrap();
-        let addr = line
-            .trim()
-            .strip_prefix("listening on ")
-            .unwrap_or_else(|| panic!("unexpected server output {line:?}"));
+        let db = db.to_str().expect("utf-8 temp path");
+        let (child, addr) =
+            common::spawn_server(&["serve", "cache", "--addr", "127.0.0.1:0", "--db", db]);
         Process {
             url: format!("http://{addr}"),
             child,

@@ -3,8 +3,9 @@
 //! (naming convention) and NIfTI files. Short leases (2 s) keep the suite fast; every wait is
 //! bounded.
 
+mod common;
+
 use std::collections::HashSet;
-use std::io::{BufRead, BufReader};
 use std::path::Path;
 use std::process::{Child, Command, Output, Stdio};
 use std::time::{Duration, Instant};
@@ -29,21 +30,7 @@ struct Proc {
 impl Proc {
     /// Starts a server and reads its bound address from the `listening on` line.
     fn server(args: &[&str]) -> Proc {
-        let mut child = Command::new(BIN)
-            .args(args)
-            .stdout(Stdio::piped())
-            .stderr(Stdio::null())
-            .spawn()
-            .unwrap();
-        let mut line = String::new();
-        BufReader::new(child.stdout.take().unwrap())
-            .read_line(&mut line)
-            .unwrap();
-        let addr = line
-            .trim()
-            .strip_prefix("listening on ")
-            .unwrap_or_else(|| panic!("unexpected server output {line:?}"))
-            .to_string();
+        let (child, addr) = common::spawn_server(args);
         Proc { child, addr }
     }
 
