@@ -28,18 +28,7 @@ fn bench(c: &mut Criterion) {
     let vol = volume(n);
     for family in Family::ALL {
         let g = Geometry::new([n, n, n], family, 3, 0).unwrap();
-        let co = decompose_channel(&vol, &g);
-        let coeffs: Vec<Coefficient> = (0..co.len())
-            .map(|i| {
-                let (band, pos) = g.locate(i);
-                Coefficient {
-                    channel: 0,
-                    band,
-                    pos: [pos[0] as u32, pos[1] as u32, pos[2] as u32],
-                    value: co[i] as f32,
-                }
-            })
-            .collect();
+        let coeffs = Coefficient::all_of(&g, 0, &decompose_channel(&vol, &g));
         for size in [256usize, 512] {
             let view = View::new(0.66, 0.91, size, size);
             let mut r = Renderer::new(RenderOptions::default());

@@ -39,6 +39,30 @@ pub struct Coefficient {
     pub value: f32,
 }
 
+impl Coefficient {
+    /// Every coefficient of one channel's dense (Mallat-layout) array, in array order, zeros
+    /// included: what a lossless stream of that channel would deliver.
+    pub fn all_of(
+        geometry: &crate::layout::Geometry,
+        channel: u8,
+        values: &[f64],
+    ) -> Vec<Coefficient> {
+        values
+            .iter()
+            .enumerate()
+            .map(|(i, v)| {
+                let (band, pos) = geometry.locate(i);
+                Coefficient {
+                    channel,
+                    band,
+                    pos: pos.map(|p| p as u32),
+                    value: *v as f32,
+                }
+            })
+            .collect()
+    }
+}
+
 /// A packet to encode: one tile's coefficients (exact values) in coding order.
 #[derive(Debug, Clone)]
 pub struct PacketInput {

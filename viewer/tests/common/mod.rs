@@ -60,18 +60,7 @@ pub fn coefficients_with_margin(
 ) -> (Geometry, Vec<Coefficient>) {
     let vol = phantom(n, 3);
     let g = Geometry::new([n, n, n], family, levels, margin).unwrap();
-    let coeffs = decompose_channel(&vol, &g);
-    let list = (0..coeffs.len())
-        .map(|i| {
-            let (band, pos) = g.locate(i);
-            Coefficient {
-                channel: 0,
-                band,
-                pos: [pos[0] as u32, pos[1] as u32, pos[2] as u32],
-                value: coeffs[i] as f32,
-            }
-        })
-        .collect();
+    let list = Coefficient::all_of(&g, 0, &decompose_channel(&vol, &g));
     (g, list)
 }
 
@@ -94,15 +83,5 @@ pub fn reference_options(family: Family) -> wavesplat_viewer::ReferenceOptions {
 
 /// Coefficient list of a Mallat-layout array (channel 0).
 pub fn to_coefficients(g: &Geometry, c: &[f64]) -> Vec<Coefficient> {
-    (0..c.len())
-        .map(|i| {
-            let (band, pos) = g.locate(i);
-            Coefficient {
-                channel: 0,
-                band,
-                pos: [pos[0] as u32, pos[1] as u32, pos[2] as u32],
-                value: c[i] as f32,
-            }
-        })
-        .collect()
+    Coefficient::all_of(g, 0, c)
 }
