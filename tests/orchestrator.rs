@@ -90,6 +90,18 @@ fn cli(args: &[&str]) -> Output {
     Command::new(BIN).args(args).output().unwrap()
 }
 
+/// Runs the CLI and requires success; returns its stdout.
+fn cli_ok(args: &[&str]) -> String {
+    let out = cli(args);
+    let stdout = String::from_utf8_lossy(&out.stdout).into_owned();
+    assert!(
+        out.status.success(),
+        "{args:?} failed: {stdout}\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    stdout
+}
+
 fn submit(dir: &Path, orch: &str, extra: &[&str]) -> String {
     let mut args = vec![
         "archive",
@@ -102,14 +114,7 @@ fn submit(dir: &Path, orch: &str, extra: &[&str]) -> String {
         "2",
     ];
     args.extend_from_slice(extra);
-    let out = cli(&args);
-    let stdout = String::from_utf8_lossy(&out.stdout).into_owned();
-    assert!(
-        out.status.success(),
-        "submit failed: {stdout}\n{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    stdout
+    cli_ok(&args)
 }
 
 fn write_f32(path: &Path, samples: &[f32]) {
@@ -358,8 +363,7 @@ async fn archive_is_compressed_into_the_cache_and_bad_files_fail_alone() {
     assert!(out.contains("0 submitted, 4 already known"), "{out}");
     // Retrying a failed job runs it again (and it fails again, for the same reason).
     let short = js.iter().find(|j| name(j) == "short").unwrap().id;
-    let out = cli(&["jobs", "retry", &short.to_string(), "--orchestrator", &o]);
-    assert!(out.status.success());
+    cli_ok(&["jobs", "retry", &short.to_string(), "--orchestrator", &o]);
     let js = wait_for(&o, 20, "retried job failed again", |js| {
         js.iter()
             .any(|j| j.id == short && state_name(j.state) == "failed" && j.attempts == 1)
@@ -415,19 +419,14 @@ async fn orchestrator_restart_keeps_the_queue_and_cancel_retry_work() {
     let js = jobs(&o).await;
     assert_eq!(js.len(), 6);
     let cancelled = js[1].id;
-    let out = cli(&[
+    let out = cli_ok(&[
         "jobs",
         "cancel",
         &cancelled.to_string(),
         "--orchestrator",
         &o,
     ]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    assert!(String::from_utf8_lossy(&out.stdout).contains("cancelled"));
+    assert!(out.contains("cancelled"), "{out}");
 
     // A slow worker, so the run is still going when the orchestrator dies.
     let _w = Proc::worker(&o, &c, "w", 400);
@@ -472,18 +471,13 @@ async fn orchestrator_restart_keeps_the_queue_and_cancel_retry_work() {
     let out = cli(&["jobs", "cancel", &done.to_string(), "--orchestrator", &o]);
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("is done"));
-    let out = cli(&[
+    cli_ok(&[
         "jobs",
         "retry",
         &cancelled.to_string(),
         "--orchestrator",
         &o,
     ]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
     wait_for(&o, 20, "the retried job is done", |js| {
         js.iter().all(|j| state_name(j.state) == "done")
     })
