@@ -10,6 +10,7 @@
 
 use crate::colorspace::{ColorError, ColorSpaceKind, ColorTransform};
 use crate::order::{cluster_order, Clustering, Item};
+use crate::refine::{refine, KeptValue, RefineOptions};
 use rayon::prelude::*;
 use thiserror::Error;
 use wavesplat_codec::dwt::{forward_3d, pad_channel, samples_to_coefficients, Dwt1d};
@@ -77,6 +78,9 @@ pub struct CompressOptions {
     /// Quantizer step of the sigmap coder, relative to each substream's smallest kept
     /// magnitude (1 = coefficients at the threshold are known to ±½ threshold).
     pub step: f64,
+    /// Least-squares refinement of the kept set before quantization (`None`: send the
+    /// oracle's coefficients unchanged, as the paper does). See [`crate::refine`].
+    pub refine: Option<RefineOptions>,
 }
 
 impl Default for CompressOptions {
@@ -96,6 +100,7 @@ impl Default for CompressOptions {
                 threshold: 0.5,
             }),
             step: 1.0,
+            refine: Some(RefineOptions::default()),
         }
     }
 }
@@ -132,6 +137,8 @@ pub enum Stage {
     Transform(usize),
     /// Scoring and sorting coefficients.
     Sort,
+    /// Least-squares refinement of the kept set.
+    Refine,
     /// Entropy coding (trial number of the rate search).
     Encode(usize),
 }
@@ -197,6 +204,8 @@ struct Prepared {
     sorted: Vec<Scored>,
     total_energy: f64,
     total_coefficients: u64,
+    /// The channels' voxel samples after the colour transform (for refinement).
+    samples: Vec<Vec<f32>>,
 }
 
 fn color_info(t: &ColorTransform) -> ColorInfo {
@@ -302,6 +311,7 @@ fn prepare(
         sorted,
         total_energy,
         total_coefficients: (geometry.coefficient_count() * channels.len()) as u64,
+        samples: channels,
     })
 }
 
@@ -342,6 +352,46 @@ fn choose_tiling(
 }
 
 impl Prepared {
+    /// The same volume with its top `k` replaced by their least-squares refinement (at most `k`
+    /// coefficients; the rest of the order is dropped).
+    fn refined(&self, k: usize, opts: &RefineOptions) -> Prepared {
+        let kept: Vec<KeptValue> = self.sorted[..k]
+            .iter()
+            .map(|s| KeptValue {
+                channel: s.channel,
+                index: s.index,
+                value: s.value,
+            })
+            .collect();
+        let importance = &self.color.importance[..self.channels];
+        let refined = refine(&self.geometry, &self.samples, importance, &kept, opts);
+        let g = &self.geometry;
+        let sorted = refined
+            .iter()
+            .map(|r| {
+                let (band, _) = g.locate(r.index as usize);
+                Scored {
+                    score: r.value * r.value * g.basis_norm2(band) * importance[r.channel as usize],
+                    channel: r.channel,
+                    index: r.index,
+                    value: r.value,
+                }
+            })
+            .collect();
+        Prepared {
+            geometry: self.geometry,
+            margin: self.margin,
+            color: self.color,
+            channels: self.channels,
+            value_range: self.value_range,
+            spacing: self.spacing,
+            sorted,
+            total_energy: self.total_energy,
+            total_coefficients: self.total_coefficients,
+            samples: Vec::new(),
+        }
+    }
+
     /// Encodes the top `k` coefficients.
     fn encode(&self, k: usize, opts: &CompressOptions, expected_bytes: u64) -> Compressed {
         let g = &self.geometry;
@@ -551,12 +601,74 @@ pub fn compress(
             k
         }
         Target::Bytes(b) => {
-            return compress_to_bytes(&prepared, opts, b, progress);
+            return match &opts.refine {
+                Some(r) => compress_to_bytes_refined(&prepared, opts, r, b, progress),
+                None => compress_to_bytes(&prepared, opts, b, progress),
+            };
         }
     };
+    let prepared = match &opts.refine {
+        Some(r) if k > 0 && k < n => {
+            progress(Stage::Refine, 0.0);
+            prepared.refined(k, r)
+        }
+        _ => prepared,
+    };
+    let k = k.min(prepared.sorted.len());
     progress(Stage::Encode(0), 0.0);
     let expected = (k as u64).saturating_mul(3).max(64);
     Ok(prepared.encode(k, opts, expected))
+}
+
+/// Byte target with refinement: find K for the oracle's order, refine at K, and cut the refined
+/// order to the target; while the refined set comes out more than 2 % under the target, refine
+/// again at a proportionally larger K (at most four refinements).
+fn compress_to_bytes_refined(
+    prepared: &Prepared,
+    opts: &CompressOptions,
+    refine_opts: &RefineOptions,
+    target: u64,
+    progress: &(dyn Fn(Stage, f64) + Sync),
+) -> Result<Compressed, CompressError> {
+    let plain = compress_to_bytes(prepared, opts, target, progress)?;
+    let n = prepared.sorted.len();
+    let k0 = plain.stats.kept as usize;
+    if k0 == 0 || k0 >= n {
+        return Ok(plain);
+    }
+    let mut best: Option<Compressed> = None;
+    let mut k = k0;
+    for _attempt in 0..4 {
+        progress(Stage::Refine, 0.0);
+        let refined = prepared.refined(k, refine_opts);
+        let all = refined.sorted.len();
+        if all == 0 {
+            break;
+        }
+        let whole = refined.encode(all, opts, target);
+        let candidate = if whole.stats.bytes <= target {
+            whole
+        } else {
+            compress_to_bytes(&refined, opts, target, progress)?
+        };
+        let fill = candidate.stats.bytes as f64 / target as f64;
+        let better = best
+            .as_ref()
+            .is_none_or(|b| candidate.stats.bytes > b.stats.bytes);
+        if better {
+            best = Some(candidate);
+        }
+        if fill >= 0.98 {
+            break;
+        }
+        // Under-filled: the refined set codes more cheaply than the oracle's; grow K.
+        k = ((k as f64 / fill.max(0.25)).ceil() as usize).clamp(k + 1, n);
+    }
+    // The rate search promises the target within 2 %: when refined sets never fill it (sizes
+    // are not monotone in K for the paper's coders), fall back to the oracle's coefficients.
+    Ok(best
+        .filter(|b| b.stats.bytes as f64 >= 0.98 * target as f64)
+        .unwrap_or(plain))
 }
 
 /// Bisection on the number of kept coefficients for the largest file ≤ `target` bytes.

@@ -10,3 +10,4 @@ pub mod encode;
 pub mod order;
 pub mod phantom;
 pub mod reader;
+pub mod refine;

@@ -95,6 +95,8 @@ fn q_v_and_q_e_match_independent_computations() {
         levels: Some(2),
         bits: 3,
         target: Target::Fraction(0.02),
+        // Eq. 19–20 are defined on the oracle's exact coefficients.
+        refine: None,
         ..Default::default()
     };
     let c = run(&vol, &o);

@@ -177,6 +177,7 @@ fn stage_progress(stage: Stage, f: f64) -> (f32, String) {
         Stage::Color => (0.1, "colour transform".into()),
         Stage::Transform(c) => (0.1 + 0.4 * f, format!("wavelet transform, channel {c}")),
         Stage::Sort => (0.5 + 0.1 * f, "scoring".into()),
+        Stage::Refine => (0.55, "refinement".into()),
         Stage::Encode(t) => (0.6 + 0.3 * f, format!("entropy coding (trial {t})")),
     }
 }

@@ -13,6 +13,7 @@ use wavesplat_compressor::encode::{compress, CompressOptions, Compressed, Stage,
 use wavesplat_compressor::order::Clustering;
 use wavesplat_compressor::phantom::Phantom;
 use wavesplat_compressor::reader::{read_volume, Endian, RawDtype, RawSpec};
+use wavesplat_compressor::refine::RefineOptions;
 
 /// Arguments of `wavesplat compress`.
 #[derive(Args, Debug)]
@@ -65,6 +66,14 @@ pub struct CompressArgs {
     /// Quantizer step of the sigmap coder relative to each band's smallest kept magnitude.
     #[arg(long, default_value_t = 1.0)]
     pub step: f64,
+    /// Rounds of least-squares refinement of the kept set (iterative hard thresholding with
+    /// conjugate-gradient refits; splines only). 0 refits the oracle's selection only;
+    /// --no-refine sends the oracle's exact coefficients, as the paper does.
+    #[arg(long, default_value_t = 4)]
+    pub refine_rounds: usize,
+    /// Send the oracle's coefficients unchanged (no least-squares refinement).
+    #[arg(long)]
+    pub no_refine: bool,
     /// What to keep.
     #[command(flatten)]
     pub keep: super::TargetArgs,
@@ -161,6 +170,10 @@ pub fn options(a: &CompressArgs) -> Result<CompressOptions> {
             threshold: a.cluster_threshold,
         }),
         step: a.step,
+        refine: (!a.no_refine).then_some(RefineOptions {
+            rounds: a.refine_rounds,
+            ..RefineOptions::default()
+        }),
     })
 }
 
@@ -174,6 +187,7 @@ pub fn run(a: CompressArgs) -> Result<()> {
             Stage::Color => "colour transform".to_string(),
             Stage::Transform(c) => format!("wavelet transform, channel {c}"),
             Stage::Sort => "scoring and sorting coefficients".to_string(),
+            Stage::Refine => "least-squares refinement of the kept set".to_string(),
             Stage::Encode(t) => format!("entropy coding (trial {t})"),
         })
     };

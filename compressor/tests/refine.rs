@@ -1,0 +1,152 @@
+//! Least-squares refinement of the kept set: the refit equals a dense least-squares solve, and
+//! refinement lowers the reconstruction error of the same number of coefficients.
+
+use nalgebra::{DMatrix, DVector};
+use wavesplat_codec::dwt::{
+    coefficients_to_samples, decompose_channel, inverse_3d, pad_channel, reconstruct_channel, Dwt1d,
+};
+use wavesplat_codec::family::Family;
+use wavesplat_codec::layout::Geometry;
+use wavesplat_compressor::phantom::Phantom;
+use wavesplat_compressor::refine::{refine, KeptValue, RefineOptions};
+
+/// The `k` coefficients of largest energy w²·‖b‖².
+fn top_k(g: &Geometry, coeffs: &[f64], k: usize) -> Vec<KeptValue> {
+    let mut all: Vec<(f64, usize)> = coeffs
+        .iter()
+        .enumerate()
+        .filter(|(_, w)| **w != 0.0)
+        .map(|(i, w)| (w * w * g.basis_norm2(g.locate(i).0), i))
+        .collect();
+    all.sort_by(|a, b| b.0.total_cmp(&a.0).then(a.1.cmp(&b.1)));
+    all.truncate(k);
+    all.iter()
+        .map(|(_, i)| KeptValue {
+            channel: 0,
+            index: *i as u32,
+            value: coeffs[*i],
+        })
+        .collect()
+}
+
+fn dense(g: &Geometry, kept: &[KeptValue]) -> Vec<f64> {
+    let mut c = vec![0.0; g.coefficient_count()];
+    for k in kept {
+        c[k.index as usize] = k.value;
+    }
+    c
+}
+
+fn error2(a: &[f32], b: &[f32]) -> f64 {
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| (*x as f64 - *y as f64).powi(2))
+        .sum()
+}
+
+/// With no thresholding rounds and enough CG iterations, the refitted values are the dense
+/// least-squares solution (nalgebra SVD on the explicit synthesis matrix) on the same support.
+#[test]
+fn refit_matches_dense_least_squares() {
+    for family in [Family::Linear, Family::Cubic] {
+        let dims = [8, 6, 4];
+        let vol = Phantom::SheppLogan.generate(dims);
+        let g = Geometry::new(dims, family, 1, 0).unwrap();
+        let coeffs = decompose_channel(vol.channel(0), &g);
+        let kept = top_k(&g, &coeffs, 40);
+        let opts = RefineOptions {
+            rounds: 0,
+            cg_iterations: 300,
+        };
+        let out = refine(&g, &[vol.channel(0).to_vec()], &[1.0], &kept, &opts);
+        assert!(!out.is_empty() && out.len() <= kept.len(), "{family}");
+        // Columns of R for the returned support.
+        let n = g.coefficient_count();
+        let mut planner = Dwt1d::new(family);
+        let mut r = DMatrix::<f64>::zeros(n, out.len());
+        for (col, k) in out.iter().enumerate() {
+            let mut e = vec![0.0; n];
+            e[k.index as usize] = 1.0;
+            inverse_3d(&mut e, &g, &mut planner);
+            coefficients_to_samples(&mut e, &g);
+            r.set_column(col, &DVector::from_vec(e));
+        }
+        let f = DVector::from_vec(pad_channel(vol.channel(0), &g));
+        let x = r.clone().svd(true, true).solve(&f, 1e-13).unwrap();
+        let scale = x.amax();
+        for (k, want) in out.iter().zip(x.iter()) {
+            assert!(
+                (k.value - want).abs() <= 1e-6 * scale,
+                "{family}: index {} refit {} vs dense {want}",
+                k.index,
+                k.value
+            );
+        }
+    }
+}
+
+/// Refinement never sends more coefficients than asked, keeps every value above the oracle's
+/// threshold, and reconstructs the volume better than the oracle's own K coefficients.
+#[test]
+fn refinement_beats_thresholding_at_equal_count() {
+    for family in [Family::Linear, Family::Cubic] {
+        let dims = [24, 20, 16];
+        let vol = Phantom::SheppLogan.generate(dims);
+        let margin = Geometry::default_margin(family, 2);
+        let g = Geometry::new(dims, family, 2, margin).unwrap();
+        let coeffs = decompose_channel(vol.channel(0), &g);
+        let k = g.coefficient_count() / 40;
+        let kept = top_k(&g, &coeffs, k);
+        let threshold = kept
+            .iter()
+            .map(|s| s.value * s.value * g.basis_norm2(g.locate(s.index as usize).0))
+            .fold(f64::INFINITY, f64::min);
+        let out = refine(
+            &g,
+            &[vol.channel(0).to_vec()],
+            &[1.0],
+            &kept,
+            &RefineOptions::default(),
+        );
+        assert!(out.len() <= k, "{family}: {} > {k}", out.len());
+        for s in &out {
+            let score = s.value * s.value * g.basis_norm2(g.locate(s.index as usize).0);
+            assert!(score >= threshold, "{family}: {score} < {threshold}");
+        }
+        // The oracle's own best out.len() coefficients (pruning may have dropped some).
+        let same_count = top_k(&g, &coeffs, out.len());
+        let plain = error2(
+            vol.channel(0),
+            &reconstruct_channel(&dense(&g, &same_count), &g),
+        );
+        let refined = error2(vol.channel(0), &reconstruct_channel(&dense(&g, &out), &g));
+        let gain_db = 10.0 * (plain / refined).log10();
+        eprintln!(
+            "{family}: {} of {k} kept, {gain_db:.2} dB better",
+            out.len()
+        );
+        assert!(gain_db > 0.2, "{family}: refinement gained {gain_db:.2} dB");
+    }
+}
+
+/// Haar is orthogonal within and across levels: the selection comes back unchanged.
+#[test]
+fn haar_selection_is_returned_unchanged() {
+    let dims = [16, 16, 16];
+    let vol = Phantom::SheppLogan.generate(dims);
+    let g = Geometry::new(dims, Family::Haar, 3, 0).unwrap();
+    let coeffs = decompose_channel(vol.channel(0), &g);
+    let kept = top_k(&g, &coeffs, 200);
+    let out = refine(
+        &g,
+        &[vol.channel(0).to_vec()],
+        &[1.0],
+        &kept,
+        &RefineOptions::default(),
+    );
+    let mut a: Vec<(u32, f64)> = kept.iter().map(|k| (k.index, k.value)).collect();
+    let mut b: Vec<(u32, f64)> = out.iter().map(|k| (k.index, k.value)).collect();
+    a.sort_by_key(|x| x.0);
+    b.sort_by_key(|x| x.0);
+    assert_eq!(a, b);
+}
