@@ -61,9 +61,12 @@ pub fn run(a: BenchArgs) -> Result<()> {
         a.repeat
     );
     for family in Family::ALL {
+        // Throughput of the paper's pipeline: the oracle's coefficients, no least-squares
+        // refinement (which costs ~40 extra synthesis/transpose passes; see BENCHMARKS.md).
         let opts = CompressOptions {
             family,
             target: Target::Fraction(a.fraction),
+            refine: None,
             ..Default::default()
         };
         let mut times = Vec::new();
@@ -158,6 +161,7 @@ fn paper_case(
         family: Family::Haar,
         levels: Some(3),
         target: Target::Coefficients(170_761),
+        refine: None,
         ..Default::default()
     };
     let c = compress(volume, &opts, &|_, _| {})?;
