@@ -260,11 +260,14 @@ fn for_each_line(
     }
 }
 
-/// Forward 3D non-standard transform of a padded channel, in place (Mallat layout).
-pub fn forward_3d(data: &mut [f64], geometry: &Geometry, planner: &mut Dwt1d) {
+/// Applies a line step fine to coarse: levels 1..=M, axes x, y, z, each on the current scaling
+/// block (the order of the forward transform and of the synthesis' transpose).
+fn fine_to_coarse(
+    data: &mut [f64],
+    geometry: &Geometry,
+    op: &(dyn Fn(&mut [f64], &mut LineScratch) + Sync),
+) {
     assert_eq!(data.len(), geometry.coefficient_count());
-    planner.prepare(geometry);
-    let planner = &*planner;
     let full = geometry.padded;
     for level in 1..=geometry.levels {
         let block = [
@@ -273,9 +276,16 @@ pub fn forward_3d(data: &mut [f64], geometry: &Geometry, planner: &mut Dwt1d) {
             full[2] >> (level - 1),
         ];
         for axis in 0..3 {
-            for_each_line(data, full, block, axis, &|line, s| planner.analyze(line, s));
+            for_each_line(data, full, block, axis, op);
         }
     }
+}
+
+/// Forward 3D non-standard transform of a padded channel, in place (Mallat layout).
+pub fn forward_3d(data: &mut [f64], geometry: &Geometry, planner: &mut Dwt1d) {
+    planner.prepare(geometry);
+    let planner = &*planner;
+    fine_to_coarse(data, geometry, &|line, s| planner.analyze(line, s));
 }
 
 /// Inverse 3D non-standard transform, in place: coefficients (Mallat layout) to the padded
@@ -302,23 +312,10 @@ pub fn inverse_3d(data: &mut [f64], geometry: &Geometry, planner: &mut Dwt1d) {
 /// Transpose of [`inverse_3d`], in place: padded grid to, per basis function, the inner product
 /// Σ_x data(x)·b(x) over the grid points (with `coefficients_to_samples` folded in by the caller).
 /// Used by least-squares refitting of a sparse coefficient set.
-pub fn inverse_3d_adjoint(data: &mut [f64], geometry: &Geometry, planner: &mut Dwt1d) {
-    assert_eq!(data.len(), geometry.coefficient_count());
-    planner.prepare(geometry);
-    let planner = &*planner;
-    let full = geometry.padded;
-    for level in 1..=geometry.levels {
-        let block = [
-            full[0] >> (level - 1),
-            full[1] >> (level - 1),
-            full[2] >> (level - 1),
-        ];
-        for axis in 0..3 {
-            for_each_line(data, full, block, axis, &|line, s| {
-                synthesize_adjoint_with(&planner.p, &planner.q, line, &mut s.real)
-            });
-        }
-    }
+pub fn inverse_3d_adjoint(data: &mut [f64], geometry: &Geometry, planner: &Dwt1d) {
+    fine_to_coarse(data, geometry, &|line, s| {
+        synthesize_adjoint_with(&planner.p, &planner.q, line, &mut s.real)
+    });
 }
 
 /// Copies a channel of the volume into the zero-padded grid of `geometry` (as f64).
@@ -538,7 +535,7 @@ mod tests {
                 let mut rc = c.clone();
                 inverse_3d(&mut rc, &g, &mut planner);
                 let mut rts = s.clone();
-                inverse_3d_adjoint(&mut rts, &g, &mut planner);
+                inverse_3d_adjoint(&mut rts, &g, &planner);
                 let lhs: f64 = rc.iter().zip(&s).map(|(a, b)| a * b).sum();
                 let rhs: f64 = c.iter().zip(&rts).map(|(a, b)| a * b).sum();
                 assert!(

@@ -153,7 +153,7 @@ impl<'a> Operator<'a> {
     fn adjoint(&mut self, samples: &[f64]) -> Vec<f64> {
         let mut d = samples.to_vec();
         coefficients_to_samples(&mut d, self.geometry);
-        inverse_3d_adjoint(&mut d, self.geometry, &mut self.planner);
+        inverse_3d_adjoint(&mut d, self.geometry, &self.planner);
         d
     }
 

@@ -7,6 +7,7 @@ use wavesplat_codec::dwt::{
 };
 use wavesplat_codec::family::Family;
 use wavesplat_codec::layout::Geometry;
+use wavesplat_codec::volume::Volume;
 use wavesplat_compressor::phantom::Phantom;
 use wavesplat_compressor::refine::{refine, KeptValue, RefineOptions};
 
@@ -37,6 +38,16 @@ fn dense(g: &Geometry, kept: &[KeptValue]) -> Vec<f64> {
     c
 }
 
+/// Refines a single-channel selection of `vol` with importance 1.
+fn refine_one(
+    g: &Geometry,
+    vol: &Volume,
+    kept: &[KeptValue],
+    opts: &RefineOptions,
+) -> Vec<KeptValue> {
+    refine(g, &[vol.channel(0).to_vec()], &[1.0], kept, opts)
+}
+
 fn error2(a: &[f32], b: &[f32]) -> f64 {
     a.iter()
         .zip(b)
@@ -58,7 +69,7 @@ fn refit_matches_dense_least_squares() {
             rounds: 0,
             cg_iterations: 300,
         };
-        let out = refine(&g, &[vol.channel(0).to_vec()], &[1.0], &kept, &opts);
+        let out = refine_one(&g, &vol, &kept, &opts);
         assert!(!out.is_empty() && out.len() <= kept.len(), "{family}");
         // Columns of R for the returned support.
         let n = g.coefficient_count();
@@ -101,13 +112,7 @@ fn refinement_beats_thresholding_at_equal_count() {
             .iter()
             .map(|s| s.value * s.value * g.basis_norm2(g.locate(s.index as usize).0))
             .fold(f64::INFINITY, f64::min);
-        let out = refine(
-            &g,
-            &[vol.channel(0).to_vec()],
-            &[1.0],
-            &kept,
-            &RefineOptions::default(),
-        );
+        let out = refine_one(&g, &vol, &kept, &RefineOptions::default());
         assert!(out.len() <= k, "{family}: {} > {k}", out.len());
         for s in &out {
             let score = s.value * s.value * g.basis_norm2(g.locate(s.index as usize).0);
@@ -137,13 +142,7 @@ fn haar_selection_is_returned_unchanged() {
     let g = Geometry::new(dims, Family::Haar, 3, 0).unwrap();
     let coeffs = decompose_channel(vol.channel(0), &g);
     let kept = top_k(&g, &coeffs, 200);
-    let out = refine(
-        &g,
-        &[vol.channel(0).to_vec()],
-        &[1.0],
-        &kept,
-        &RefineOptions::default(),
-    );
+    let out = refine_one(&g, &vol, &kept, &RefineOptions::default());
     let mut a: Vec<(u32, f64)> = kept.iter().map(|k| (k.index, k.value)).collect();
     let mut b: Vec<(u32, f64)> = out.iter().map(|k| (k.index, k.value)).collect();
     a.sort_by_key(|x| x.0);
