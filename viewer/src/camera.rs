@@ -286,28 +286,86 @@ impl Camera {
     }
 }
 
-/// A resolved depth cue: unit light direction `l` and plane offset `d0` such that the distance
-/// of x from the light plane is `l·x − d0` (≥ 0 for every point of every basis support).
+/// A resolved depth cue: unit light direction `l`, and per axis the data's light-facing face
+/// `planes[a]` (the low face −j/2 when l_a ≥ 0, the high face (n_a − 1) + j/2 when l_a < 0, in
+/// volume coordinates: j/2 beyond the outer voxel centres, where the order-j spline of the data
+/// ends). The attenuating medium is the data: a point behind every light-facing face has the
+/// weight e^(−k·dist(x)), dist(x) = l·x − d0 ≥ 0 with d0 = l·planes (1 at the front corner);
+/// a point in front of a face has weight 0 — the volume is zero there, but the basis functions
+/// of a periodic spline transform reach into that margin and only cancel to zero, and an
+/// exponential cue would amplify their residue by e^(+k·distance).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct ResolvedCue {
     /// Extinction per voxel.
     pub k: f64,
     /// Unit light direction.
     pub l: [f64; 3],
-    /// Plane offset.
+    /// Plane offset l·planes.
     pub d0: f64,
+    /// Light-facing face per axis (no face where l_a = 0).
+    pub planes: [f64; 3],
 }
 
 impl ResolvedCue {
-    /// Distance of `x` from the light plane.
+    /// Distance of `x` from the light plane through the front corner.
     pub fn dist(&self, x: [f64; 3]) -> f64 {
         dot(self.l, x) - self.d0
     }
+
+    /// Whether `x` lies in front of some light-facing face (outside the medium).
+    pub fn in_front(&self, x: [f64; 3]) -> bool {
+        (0..3).any(|a| {
+            (self.l[a] > 0.0 && x[a] < self.planes[a]) || (self.l[a] < 0.0 && x[a] > self.planes[a])
+        })
+    }
+
+    /// The cue weight of a point: 0 in front of the data, e^(−k·dist) behind.
+    pub fn weight(&self, x: [f64; 3]) -> f64 {
+        if self.in_front(x) {
+            0.0
+        } else {
+            (-self.k * self.dist(x).max(0.0)).exp()
+        }
+    }
+
+    /// Where a 1D support [lo, hi] along axis `a` lies relative to the light-facing face.
+    pub fn side(&self, a: usize, lo: f64, hi: f64) -> CueSide {
+        let p = self.planes[a];
+        if self.l[a] > 0.0 {
+            if hi <= p {
+                CueSide::Front
+            } else if lo >= p {
+                CueSide::Behind
+            } else {
+                CueSide::Straddle
+            }
+        } else if self.l[a] < 0.0 {
+            if lo >= p {
+                CueSide::Front
+            } else if hi <= p {
+                CueSide::Behind
+            } else {
+                CueSide::Straddle
+            }
+        } else {
+            CueSide::Behind
+        }
+    }
 }
 
-/// Resolves a cue for a camera and geometry: the light plane is perpendicular to L and tangent
-/// to a sphere around the volume centre that encloses every basis-function support (all periodic
-/// placements within half a padded period of the centre, plus the largest half support).
+/// Position of a support along one axis relative to that axis' light-facing face.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum CueSide {
+    /// Wholly in front of the face: weight 0.
+    Front,
+    /// Wholly behind it (or the light is perpendicular to the axis): exponential weight.
+    Behind,
+    /// Across the face.
+    Straddle,
+}
+
+/// Resolves a cue for a camera (whose view direction L may be) and geometry: the light-facing
+/// faces of the data and the distance offset (see [`ResolvedCue`]).
 pub fn resolve_cue(
     cue: &Cue,
     camera: &Camera,
@@ -336,13 +394,19 @@ pub fn resolve_cue(
         return Err(ViewError::ZeroCueDirection);
     }
     let l = [l[0] / norm, l[1] / norm, l[2] / norm];
-    let big = geometry.half_support_1d(geometry.levels, true);
-    let r2: f64 = (0..3)
-        .map(|a| {
-            let h = 0.5 * geometry.padded[a] as f64 + big + 1.0;
-            h * h
-        })
-        .sum();
-    let d0 = dot(l, camera.center) - r2.sqrt();
-    Ok(ResolvedCue { k: cue.k, l, d0 })
+    let half = 0.5 * geometry.family.order() as f64;
+    let mut planes = [0.0; 3];
+    for a in 0..3 {
+        planes[a] = if l[a] >= 0.0 {
+            -half
+        } else {
+            geometry.dims[a] as f64 - 1.0 + half
+        };
+    }
+    Ok(ResolvedCue {
+        k: cue.k,
+        l,
+        d0: dot(l, planes),
+        planes,
+    })
 }

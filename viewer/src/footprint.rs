@@ -26,8 +26,11 @@
 //! 1/(2S) pixel per axis, and it is the same for every pixel of a splat (no shape distortion).
 //!
 //! **Depth cueing** (§3.2): the cued footprints use κ_a = k·L̂_a·2^m per axis (the codec cues
-//! each 1D factor relative to its support end nearest the light, so no exponent is positive);
-//! they differ per level and are computed per level, without mipmapping.
+//! each 1D factor relative to its support end nearest the light, so no exponent is positive).
+//! The cue is cut at the data's light-facing faces, so a table is keyed by its three axis
+//! factors ([`AxisFactor`]: a cued level-m φ/ψ, or a level-0 φ across a face); the tables a
+//! rendering needs are built on first use, grouped by level so that each distinct 1D factor is
+//! evaluated once per FFT grid, and kept with the view's set.
 
 use num_complex::Complex64;
 use rayon::prelude::*;
@@ -506,24 +509,31 @@ pub fn mipmap(
 }
 
 /// All footprints of one view: index `level · 8 + kind` (levels 0..=M; level 0 unused unless
-/// M = 0).
-#[derive(Debug, Clone)]
+/// M = 0). With depth cueing the tables are per axis-factor triple instead, built on first use
+/// (which triples occur depends on where the coefficients lie relative to the light-facing
+/// faces) and kept here for the next rendering of the same view.
+#[derive(Debug)]
 pub struct FootprintSet {
     /// The parameters they were built for.
     pub params: FootprintParams,
-    /// Tables (`None` for (level, kind) pairs that do not occur).
+    /// Tables (`None` for (level, kind) pairs that do not occur; all `None` when cued).
     pub tables: Vec<Option<Footprint>>,
+    /// Cued tables by factor triple.
+    pub factor_tables:
+        std::sync::Mutex<std::collections::HashMap<[AxisFactor; 3], std::sync::Arc<Footprint>>>,
 }
 
 impl FootprintSet {
-    /// Builds every table: level M by FFT and finer levels by mipmap, or every level by FFT when
-    /// cued.
+    /// Builds every table: level M by FFT and finer levels by mipmap (nothing up front when
+    /// cued: see [`FootprintSet::factor_tables`]).
     pub fn build(p: &FootprintParams) -> FootprintSet {
         let m = p.levels;
         let mut tables: Vec<Option<Footprint>> = vec![None; (m + 1) * 8];
         let all: Vec<u8> = (0..8).collect();
         let wavelets: Vec<u8> = (1..8).collect();
-        if p.cue.is_some() || m == 0 {
+        if p.cue.is_some() {
+            // Built on demand per factor triple.
+        } else if m == 0 {
             for level in (if m == 0 { 0 } else { 1 })..=m {
                 let kinds = if level == m { &all } else { &wavelets };
                 for (t, kind) in compute_fine(p, level, kinds).iter().zip(kinds) {
@@ -542,7 +552,32 @@ impl FootprintSet {
                 }
             }
         }
-        FootprintSet { params: *p, tables }
+        FootprintSet {
+            params: *p,
+            tables,
+            factor_tables: Default::default(),
+        }
+    }
+
+    /// The cued tables for `keys`, computing (in parallel) and caching the missing ones.
+    pub fn factor_footprints(&self, keys: &[[AxisFactor; 3]]) -> Vec<std::sync::Arc<Footprint>> {
+        let missing: Vec<[AxisFactor; 3]> = {
+            let map = self.factor_tables.lock().unwrap_or_else(|e| e.into_inner());
+            keys.iter()
+                .filter(|k| !map.contains_key(*k))
+                .copied()
+                .collect()
+        };
+        let built: Vec<([AxisFactor; 3], Footprint)> = missing
+            .iter()
+            .zip(compute_factor_tables(&self.params, &missing))
+            .map(|(k, t)| (*k, Footprint::from_fine(&t)))
+            .collect();
+        let mut map = self.factor_tables.lock().unwrap_or_else(|e| e.into_inner());
+        for (k, f) in built {
+            map.insert(k, std::sync::Arc::new(f));
+        }
+        keys.iter().map(|k| map[k].clone()).collect()
     }
 
     /// The table of a band, if any.
@@ -550,5 +585,396 @@ impl FootprintSet {
         self.tables
             .get(level * 8 + kind as usize)
             .and_then(|t| t.as_ref())
+    }
+}
+
+/// One axis factor of a depth-cued splat, whose cue weight is cut at the data's light-facing
+/// faces (see [`crate::camera::ResolvedCue`]): a level-m φ or ψ cued from its support end
+/// nearest the light (its whole support behind the face), or a level-0 φ whose support
+/// straddles the face.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum AxisFactor {
+    /// Level-`level` φ (`wavelet` false) or ψ, cued from its support end nearest the light.
+    Basis {
+        /// Level m.
+        level: u8,
+        /// ψ rather than φ.
+        wavelet: bool,
+    },
+    /// Level-0 φ whose centre lies `offset` voxels from the face (centre minus face, volume
+    /// coordinates).
+    Straddle {
+        /// Centre minus face, in voxels.
+        offset: i8,
+    },
+}
+
+impl AxisFactor {
+    /// Half the support length in voxels.
+    pub fn half_support(self, family: Family) -> f64 {
+        match self {
+            AxisFactor::Basis { level, wavelet, .. } => {
+                0.5 * (1u64 << level) as f64
+                    * if wavelet {
+                        family.psi_support()
+                    } else {
+                        family.phi_support()
+                    }
+            }
+            AxisFactor::Straddle { .. } => 0.5 * family.phi_support(),
+        }
+    }
+
+    /// The centred 1D transform at ξ cycles per voxel, for extinction `k` per voxel and light
+    /// direction component `la` along this axis.
+    pub fn transform(self, tf: &Transforms, xi: f64, k: f64, la: f64) -> Complex64 {
+        let kl = k * la;
+        match self {
+            AxisFactor::Basis { level, wavelet } => {
+                axis_transform(tf, level as usize, wavelet, xi, kl * (1u64 << level) as f64)
+            }
+            AxisFactor::Straddle { offset } => {
+                StraddleFactor::new(tf.family(), offset, k, la).at(xi)
+            }
+        }
+    }
+}
+
+/// Gauss–Legendre nodes and weights on [−1, 1] (Newton on the Legendre recurrence).
+fn gauss_legendre(n: usize) -> Vec<(f64, f64)> {
+    (0..n)
+        .map(|i| {
+            let mut x = (PI * (i as f64 + 0.75) / (n as f64 + 0.5)).cos();
+            let mut dp = 1.0;
+            for _ in 0..100 {
+                let (mut p0, mut p1) = (1.0, x);
+                for k in 2..=n {
+                    let p2 = ((2 * k - 1) as f64 * x * p1 - (k - 1) as f64 * p0) / k as f64;
+                    p0 = p1;
+                    p1 = p2;
+                }
+                dp = n as f64 * (x * p1 - p0) / (x * x - 1.0);
+                let dx = p1 / dp;
+                x -= dx;
+                if dx.abs() < 1e-15 {
+                    break;
+                }
+            }
+            (x, 2.0 / ((1.0 - x * x) * dp * dp))
+        })
+        .collect()
+}
+
+/// One polynomial piece of a straddling factor: ∫₀^len Q(t) e^(σt) dt times a constant, with t
+/// measured from the piece's end nearest the face on the attenuated side.
+#[derive(Debug, Clone)]
+struct Piece {
+    /// Q's monomial coefficients in t.
+    q: Vec<f64>,
+    len: f64,
+    /// Position (relative to the factor's centre) where t = 0.
+    origin: f64,
+    /// +1 when u = origin + t, −1 when u = origin − t.
+    dir: f64,
+    /// On the attenuated side of the face.
+    attenuated: bool,
+}
+
+/// The transform of a level-0 φ straddling a light-facing face, prepared for many frequencies:
+/// ∫ φ_c(u) h(u) e^(−i2πξu) du with u relative to the centre, the face at u_f = −offset and
+/// h(u) = e^(−k·l_a·(u − u_f)) behind the face (u > u_f when l_a > 0, u < u_f when l_a < 0) and 0
+/// in front of it (see [`crate::camera::ResolvedCue`]). φ is a polynomial on each piece between its knots
+/// and the face, so each piece is ∫ Q(t) e^(σt) dt with Re σ ≤ 0: by the closed form
+/// [e^(σt) Σ_m (−1)^m Q⁽ᵐ⁾(t)/σ^(m+1)] when |σ|·len ≥ 1 (no cancellation there), and by
+/// 8-point Gauss–Legendre below (an entire integrand of small variation: exact to rounding).
+/// No exponent is positive, whatever k.
+#[derive(Debug, Clone)]
+pub struct StraddleFactor {
+    pieces: Vec<Piece>,
+    kl: f64,
+    uf: f64,
+}
+
+impl StraddleFactor {
+    /// Prepares the factor for `family`, centre − face = `offset`, extinction `k` per voxel and
+    /// light direction component `la` along the axis.
+    pub fn new(family: Family, offset: i8, k: f64, la: f64) -> StraddleFactor {
+        let kl = k * la;
+        let positive = la > 0.0;
+        let half = 0.5 * family.phi_support();
+        let uf = -(offset as f64);
+        let mut cuts: Vec<f64> = (0..=family.order()).map(|i| -half + i as f64).collect();
+        if uf > -half && uf < half {
+            cuts.push(uf);
+        }
+        cuts.sort_by(f64::total_cmp);
+        let deg = family.order() - 1;
+        let mut pieces = Vec::new();
+        for w in cuts.windows(2) {
+            let (a, b) = (w[0], w[1]);
+            if b - a <= 1e-12 {
+                continue;
+            }
+            let mid = 0.5 * (a + b);
+            let attenuated = if positive { mid > uf } else { mid < uf };
+            if !attenuated {
+                continue;
+            }
+            let (origin, dir) = if positive { (a, 1.0) } else { (b, -1.0) };
+            let len = b - a;
+            // Fit Q(t) = φ(origin + dir·t + half) exactly (degree ≤ 3) from deg + 1 samples
+            // strictly inside the piece (so φ's one-sided polynomial is the one sampled).
+            let ts: Vec<f64> = (0..=deg)
+                .map(|i| len * (i as f64 + 0.5) / (deg + 1) as f64)
+                .collect();
+            let vals: Vec<f64> = ts
+                .iter()
+                .map(|t| family.phi(origin + dir * t + half))
+                .collect();
+            pieces.push(Piece {
+                q: solve_vandermonde(&ts, &vals),
+                len,
+                origin,
+                dir,
+                attenuated,
+            });
+        }
+        StraddleFactor { pieces, kl, uf }
+    }
+
+    /// The transform at ξ cycles per voxel.
+    pub fn at(&self, xi: f64) -> Complex64 {
+        use std::sync::OnceLock;
+        static NODES: OnceLock<Vec<(f64, f64)>> = OnceLock::new();
+        let nodes = NODES.get_or_init(|| gauss_legendre(8));
+        let omega = 2.0 * PI * xi;
+        let mut acc = Complex64::new(0.0, 0.0);
+        for p in &self.pieces {
+            let k_att = if p.attenuated { self.kl } else { 0.0 };
+            // Constant factor at t = 0: weight e^(−kl(origin − u_f)) ≤ 1 and phase.
+            let c = Complex64::from_polar((-k_att * (p.origin - self.uf)).exp(), -omega * p.origin);
+            if c.norm() == 0.0 {
+                continue;
+            }
+            let sigma = Complex64::new(-k_att * p.dir, -omega * p.dir);
+            let integral = if sigma.norm() * p.len < 1.0 {
+                let mut sum = Complex64::new(0.0, 0.0);
+                for (x, w) in nodes {
+                    let t = 0.5 * p.len * (x + 1.0);
+                    let q = p.q.iter().rev().fold(0.0, |acc, c| acc * t + c);
+                    sum += (sigma * t).exp() * (q * w * 0.5 * p.len);
+                }
+                sum
+            } else {
+                // Σ_m (−1)^m Q^(m)(t) / σ^(m+1), at t = len (times e^(σ len)) minus at t = 0.
+                let antideriv = |t: f64| -> Complex64 {
+                    let mut deriv = p.q.clone();
+                    let mut out = Complex64::new(0.0, 0.0);
+                    let mut sp = sigma;
+                    let mut sign = 1.0;
+                    while !deriv.is_empty() {
+                        let v = deriv.iter().rev().fold(0.0, |acc, c| acc * t + c);
+                        out += sign * v / sp;
+                        sp *= sigma;
+                        sign = -sign;
+                        deriv = deriv
+                            .iter()
+                            .enumerate()
+                            .skip(1)
+                            .map(|(i, c)| c * i as f64)
+                            .collect();
+                    }
+                    out
+                };
+                (sigma * p.len).exp() * antideriv(p.len) - antideriv(0.0)
+            };
+            acc += c * integral;
+        }
+        acc
+    }
+}
+
+/// Solves the Vandermonde system Σ_j c_j t_i^j = v_i (Gaussian elimination with partial
+/// pivoting; at most 4×4 here).
+fn solve_vandermonde(ts: &[f64], vals: &[f64]) -> Vec<f64> {
+    let n = ts.len();
+    let mut m: Vec<Vec<f64>> = ts
+        .iter()
+        .zip(vals)
+        .map(|(t, v)| {
+            let mut row: Vec<f64> = (0..n).map(|j| t.powi(j as i32)).collect();
+            row.push(*v);
+            row
+        })
+        .collect();
+    for col in 0..n {
+        let piv = (col..n)
+            .max_by(|a, b| m[*a][col].abs().total_cmp(&m[*b][col].abs()))
+            .unwrap_or(col);
+        m.swap(col, piv);
+        for r in 0..n {
+            if r != col && m[col][col] != 0.0 {
+                let f = m[r][col] / m[col][col];
+                for c in col..=n {
+                    m[r][c] -= f * m[col][c];
+                }
+            }
+        }
+    }
+    (0..n)
+        .map(|i| {
+            if m[i][i] != 0.0 {
+                m[i][n] / m[i][i]
+            } else {
+                0.0
+            }
+        })
+        .collect()
+}
+
+/// The centred transform of a straddling level-0 φ at one frequency (see [`StraddleFactor`]).
+pub fn straddle_transform(family: Family, xi: f64, k: f64, la: f64, offset: i8) -> Complex64 {
+    StraddleFactor::new(family, offset, k, la).at(xi)
+}
+
+/// Highest level among a triple's factors (straddles are level 0).
+fn factor_level(factors: &[AxisFactor; 3]) -> usize {
+    factors
+        .iter()
+        .map(|f| match f {
+            AxisFactor::Basis { level, .. } => *level as usize,
+            AxisFactor::Straddle { .. } => 0,
+        })
+        .max()
+        .unwrap_or(0)
+}
+
+/// Fine tables of cued factor triples. Triples are grouped by their highest level, which fixes
+/// the FFT grid ([`sizes`] of that level, large enough for any triple of the group); per group
+/// every distinct 1D factor is evaluated once per axis on the grid and each triple's spectrum
+/// is the product of three such arrays and the pixel box.
+pub fn compute_factor_tables(p: &FootprintParams, keys: &[[AxisFactor; 3]]) -> Vec<FineTable> {
+    let tf = Transforms::new(p.family);
+    let (k, l) = p.cue.unwrap_or((0.0, [0.0; 3]));
+    let mut out: Vec<Option<FineTable>> = vec![None; keys.len()];
+    let mut levels: Vec<usize> = keys.iter().map(factor_level).collect();
+    levels.sort_unstable();
+    levels.dedup();
+    for level in levels {
+        let group: Vec<usize> = (0..keys.len())
+            .filter(|i| factor_level(&keys[*i]) == level)
+            .collect();
+        let (s, nx, ny) = sizes(p, level);
+        // Distinct factors per axis, each evaluated on the grid.
+        let mut grids: [Vec<(AxisFactor, Vec<Complex64>)>; 3] = Default::default();
+        for a in 0..3 {
+            let mut distinct: Vec<AxisFactor> = group.iter().map(|i| keys[*i][a]).collect();
+            distinct.sort_by_key(|f| format!("{f:?}"));
+            distinct.dedup();
+            grids[a] = distinct
+                .into_par_iter()
+                .map(|f| {
+                    let straddle = match f {
+                        AxisFactor::Straddle { offset } => {
+                            Some(StraddleFactor::new(p.family, offset, k, l[a]))
+                        }
+                        _ => None,
+                    };
+                    let mut g = Vec::with_capacity(nx * ny);
+                    for ky in 0..ny {
+                        let rho = signed(ky, ny) * s as f64 / ny as f64;
+                        for kx in 0..nx {
+                            let sigma = signed(kx, nx) * s as f64 / nx as f64;
+                            let xi = p.zoom * (sigma * p.ex[a] + rho * p.ey[a]);
+                            g.push(match &straddle {
+                                Some(st) => st.at(xi),
+                                None => f.transform(&tf, xi, k, l[a]),
+                            });
+                        }
+                    }
+                    (f, g)
+                })
+                .collect();
+        }
+        let pixel: Vec<f64> = (0..nx * ny)
+            .map(|i| {
+                let rho = signed(i / nx, ny) * s as f64 / ny as f64;
+                let sigma = signed(i % nx, nx) * s as f64 / nx as f64;
+                p.zoom * p.zoom * sinc(sigma) * sinc(rho)
+            })
+            .collect();
+        let tables: Vec<(usize, FineTable)> = group
+            .par_iter()
+            .map(|&i| {
+                let key = keys[i];
+                let find = |a: usize| -> &Vec<Complex64> {
+                    &grids[a]
+                        .iter()
+                        .find(|(f, _)| *f == key[a])
+                        .expect("factor grid")
+                        .1
+                };
+                let (g0, g1, g2) = (find(0), find(1), find(2));
+                let mut spec: Vec<Complex64> = (0..nx * ny)
+                    .map(|j| g0[j] * g1[j] * g2[j] * pixel[j])
+                    .collect();
+                let mut rx = 0.5;
+                let mut ry = 0.5;
+                for (a, f) in key.iter().enumerate() {
+                    let h = f.half_support(p.family);
+                    rx += p.zoom * h * p.ex[a].abs();
+                    ry += p.zoom * h * p.ey[a].abs();
+                }
+                (i, inverse_and_crop(&mut spec, s, nx, ny, rx, ry))
+            })
+            .collect();
+        for (i, t) in tables {
+            out[i] = Some(t);
+        }
+    }
+    out.into_iter()
+        .map(|t| t.expect("every key computed"))
+        .collect()
+}
+
+/// Inverse 2D FFT of a spectrum (row-major, nx × ny) and crop to radius (rx, ry) pixels.
+fn inverse_and_crop(
+    spec: &mut [Complex64],
+    s: usize,
+    nx: usize,
+    ny: usize,
+    rx: f64,
+    ry: f64,
+) -> FineTable {
+    let mut planner = FftPlanner::<f64>::new();
+    let fx = planner.plan_fft_inverse(nx);
+    let fy = planner.plan_fft_inverse(ny);
+    for row in spec.chunks_mut(nx) {
+        fx.process(row);
+    }
+    let mut col = vec![Complex64::new(0.0, 0.0); ny];
+    let scale = (s * s) as f64 / (nx * ny) as f64;
+    let hx = ((rx * s as f64).ceil() as usize + 1).min(nx / 2 - 1);
+    let hy = ((ry * s as f64).ceil() as usize + 1).min(ny / 2 - 1);
+    let (cw, ch) = (2 * hx + 1, 2 * hy + 1);
+    let mut data = vec![0.0; cw * ch];
+    for ix in 0..cw {
+        let ox = (ix as i64 - hx as i64).rem_euclid(nx as i64) as usize;
+        for (y, c) in col.iter_mut().enumerate() {
+            *c = spec[y * nx + ox];
+        }
+        fy.process(&mut col);
+        for iy in 0..ch {
+            let oy = (iy as i64 - hy as i64).rem_euclid(ny as i64) as usize;
+            data[iy * cw + ix] = col[oy].re * scale;
+        }
+    }
+    FineTable {
+        s,
+        nx: cw,
+        ny: ch,
+        cx: hx,
+        cy: hy,
+        data,
     }
 }

@@ -274,10 +274,17 @@ fn haar_ray(
             let w = match cue {
                 None => tn - t,
                 Some(c) => {
-                    let pa = [p[0] + n[0] * t, p[1] + n[1] * t, p[2] + n[2] * t];
-                    let da = c.dist(pa);
-                    let db = da + dot(c.l, n) * (tn - t);
-                    cued_segment(tn - t, da, db, c.k)
+                    // A cell lies wholly on one side of each face (faces at cell borders).
+                    let tm = 0.5 * (t + tn);
+                    let pm = [p[0] + n[0] * tm, p[1] + n[1] * tm, p[2] + n[2] * tm];
+                    if c.in_front(pm) {
+                        0.0
+                    } else {
+                        let pa = [p[0] + n[0] * t, p[1] + n[1] * t, p[2] + n[2] * t];
+                        let da = c.dist(pa);
+                        let db = da + dot(c.l, n) * (tn - t);
+                        cued_segment(tn - t, da, db, c.k)
+                    }
                 }
             };
             for (ch, a) in vol.channels.iter().zip(acc.iter_mut()) {
@@ -369,7 +376,7 @@ fn spline_ray(
         let mut weight = simpson * h / 3.0;
         if let Some(c) = cue {
             let x = [p[0] + n[0] * t, p[1] + n[1] * t, p[2] + n[2] * t];
-            weight *= (-c.k * c.dist(x).max(0.0)).exp();
+            weight *= c.weight(x);
         }
         for a in 0..3 {
             let x = q[a] + n[a] * t;

@@ -8,7 +8,9 @@
 //! binned into 64×64 screen tiles; tiles are accumulated in parallel, each with its own f32
 //! buffer, visiting its splats in input order, so the image is bit-identical for any number of
 //! threads. With depth cueing each coefficient is also multiplied by the eq. 13 distance weight
-//! e^(−k·dist(x_near)), x_near the corner of its support box nearest the light plane.
+//! e^(−k·dist(x_near)), x_near the corner of its support box nearest the light; coefficients
+//! whose support crosses a light-facing face of the data are split there (see
+//! `splat_view_cued`).
 //!
 //! **Multiview.** View 2 has screen axes (u₂, v₂) = (R₂u, R₂v) with R₂(x, y, z) = (−y, x, z), and
 //! view 3 uses R₃(x, y, z) = (z, y, −x) (the paper's §3.1 formulas). The view-k footprint of a
@@ -18,12 +20,13 @@
 //! ψ and ψ is odd about its centre (`Family::psi_is_odd`: Haar only; linear and cubic ψ are
 //! even, so no negations). The paper's Table 1 is the same rule with the inverse rotation.
 
-use crate::camera::{resolve_cue, Camera, Orientation, ResolvedCue, View};
-use crate::footprint::{Footprint, FootprintParams, FootprintSet};
+use crate::camera::{resolve_cue, Camera, CueSide, Orientation, ResolvedCue, View};
+use crate::footprint::{AxisFactor, Footprint, FootprintParams, FootprintSet};
 use crate::image::Image;
 use crate::RenderError;
 use rayon::prelude::*;
 use std::sync::Arc;
+use wavesplat_codec::dwt::{Dwt1d, LineScratch};
 use wavesplat_codec::format::packet::Coefficient;
 use wavesplat_codec::layout::Geometry;
 
@@ -97,7 +100,7 @@ pub fn check_coefficient(
 
 #[derive(Debug, Clone, Copy)]
 struct Splat {
-    table: u16,
+    table: u32,
     phase: u16,
     x0: i32,
     y0: i32,
@@ -336,10 +339,11 @@ fn splat_view(
     mv: usize,
     stats: &mut RenderStats,
 ) -> Result<Image, RenderError> {
+    if let Some(cue) = cue {
+        return splat_view_cued(coefficients, geometry, camera, cue, set, channels, stats);
+    }
     let (w, h) = (camera.width as i64, camera.height as i64);
     let odd = geometry.family.psi_is_odd();
-    let tiles_x = camera.width.div_ceil(TILE);
-    let tiles_y = camera.height.div_ceil(TILE);
     // Project every coefficient (parallel, order preserved).
     let projected: Vec<Result<Option<Splat>, RenderError>> = coefficients
         .par_iter()
@@ -360,22 +364,9 @@ fn splat_view(
             if x0 >= w || y0 >= h || x0 + ph.cols as i64 <= 0 || y0 + ph.rows as i64 <= 0 {
                 return Ok(None);
             }
-            let mut value = c.value as f64 * sign as f64;
-            if let Some(cue) = cue {
-                let mut near = [0.0; 3];
-                for ax in 0..3 {
-                    let half = geometry.half_support_1d(level, c.band.is_wavelet_along(ax));
-                    near[ax] = if cue.l[ax] >= 0.0 {
-                        centre[ax] - half
-                    } else {
-                        centre[ax] + half
-                    };
-                }
-                let d = cue.dist(near).max(0.0);
-                value *= (-cue.k * d).exp();
-            }
+            let value = c.value as f64 * sign as f64;
             Ok(Some(Splat {
-                table: table as u16,
+                table: table as u32,
                 phase: (b * fp.s + a) as u16,
                 x0: x0 as i32,
                 y0: y0 as i32,
@@ -392,10 +383,37 @@ fn splat_view(
         }
     }
     stats.splatted += splats.len();
+    let tables: Vec<&Footprint> = set
+        .tables
+        .iter()
+        .map(|t| t.as_ref().unwrap_or(&EMPTY))
+        .collect();
+    Ok(accumulate(&splats, &tables, camera, channels, stats))
+}
+
+static EMPTY: Footprint = Footprint {
+    s: 0,
+    cx: 0,
+    cy: 0,
+    phases: Vec::new(),
+};
+
+/// Bins splats into screen tiles and accumulates the tiles in parallel (each tile visits its
+/// splats in input order, so the image does not depend on the thread count).
+fn accumulate(
+    splats: &[Splat],
+    tables: &[&Footprint],
+    camera: &Camera,
+    channels: usize,
+    stats: &mut RenderStats,
+) -> Image {
+    let (w, h) = (camera.width as i64, camera.height as i64);
+    let tiles_x = camera.width.div_ceil(TILE);
+    let tiles_y = camera.height.div_ceil(TILE);
     // Bin into tiles (in input order).
     let mut bins: Vec<Vec<u32>> = vec![Vec::new(); tiles_x * tiles_y];
     for (i, s) in splats.iter().enumerate() {
-        let ph = &set.tables[s.table as usize].as_ref().expect("table").phases[s.phase as usize];
+        let ph = &tables[s.table as usize].phases[s.phase as usize];
         let tx0 = (s.x0.max(0) as usize) / TILE;
         let ty0 = (s.y0.max(0) as usize) / TILE;
         let tx1 = (((s.x0 as i64 + ph.cols as i64 - 1).min(w - 1)) as usize) / TILE;
@@ -420,8 +438,7 @@ fn splat_view(
             let mut updates = 0u64;
             for &i in bin {
                 let s = &splats[i as usize];
-                let ph =
-                    &set.tables[s.table as usize].as_ref().expect("table").phases[s.phase as usize];
+                let ph = &tables[s.table as usize].phases[s.phase as usize];
                 let xa = (s.x0 as i64).max(tx as i64);
                 let xb = (s.x0 as i64 + ph.cols as i64).min((tx + tw) as i64);
                 let ya = (s.y0 as i64).max(ty as i64);
@@ -463,5 +480,185 @@ fn splat_view(
                 .copy_from_slice(&buf[y * tw * channels..(y + 1) * tw * channels]);
         }
     }
-    Ok(image)
+    image
+}
+
+/// Level-0 expansion of the level-`level` φ (or ψ) with index 0: the B-spline coefficients
+/// a_l with b = Σ a_l φ₀(· − l), as (offset of φ₀'s centre from b's centre, a_l) — the
+/// synthesis filters applied `level` times to a unit coefficient (no wrap: the line is longer
+/// than the support).
+fn level0_expansion(geometry: &Geometry, level: usize, wavelet: bool) -> Vec<(f64, f64)> {
+    if level == 0 {
+        return vec![(0.0, 1.0)];
+    }
+    let planner = Dwt1d::new(geometry.family);
+    let per_band = 4 * geometry.family.order();
+    let len = per_band << level;
+    let mut line = vec![0.0; len];
+    line[if wavelet { per_band } else { 0 }] = 1.0;
+    let mut scratch = LineScratch::default();
+    for l in (1..=level).rev() {
+        planner.synthesize(&mut line[..len >> (l - 1)], &mut scratch);
+    }
+    let centre = geometry.raw_center_1d(level, 0, wavelet);
+    line.iter()
+        .enumerate()
+        .filter(|(_, v)| **v != 0.0)
+        .map(|(i, v)| (i as f64 - centre, *v))
+        .collect()
+}
+
+/// One cued splat before placement: factor triple, centre in volume coordinates, weighted
+/// value, channel.
+struct CuedSplat {
+    factors: [AxisFactor; 3],
+    centre: [f64; 3],
+    value: f64,
+    channel: u8,
+}
+
+/// Depth-cued projection and accumulation. The cue weight is cut at the data's light-facing
+/// faces (see [`ResolvedCue`]), which makes it a product of per-axis factors: along each axis a
+/// basis factor lies behind its face (exponential, cued from its near end), in front of it
+/// (weight 0: no splat) or across it. A coefficient with no factor across a face is one splat
+/// with the matching table. One whose support crosses a face along some axes is split there
+/// into level-0 B-splines (its exact refinement, `level0_expansion`): those wholly behind are
+/// ordinary cued factors, those in front are dropped, and the few across the face (one for
+/// linear, three for cubic, none for Haar) have their own transform
+/// ([`crate::footprint::StraddleFactor`]). Each splat carries the weight e^(−k·dist) of its
+/// support's near corner (the face itself for a straddling factor), so no exponent is
+/// positive.
+fn splat_view_cued(
+    coefficients: &[Coefficient],
+    geometry: &Geometry,
+    camera: &Camera,
+    cue: &ResolvedCue,
+    set: &FootprintSet,
+    channels: usize,
+    stats: &mut RenderStats,
+) -> Result<Image, RenderError> {
+    let (w, h) = (camera.width as i64, camera.height as i64);
+    let family = geometry.family;
+    let half0 = 0.5 * family.phi_support();
+    let expansions: Vec<[Vec<(f64, f64)>; 2]> = (0..=geometry.levels)
+        .map(|l| {
+            [
+                level0_expansion(geometry, l, false),
+                level0_expansion(geometry, l, true),
+            ]
+        })
+        .collect();
+    let near_of = |a: usize, lo: f64, hi: f64| if cue.l[a] >= 0.0 { lo } else { hi };
+    let weight_of = |near: [f64; 3]| (-cue.k * cue.dist(near).max(0.0)).exp();
+    let projected: Vec<Result<Vec<CuedSplat>, RenderError>> = coefficients
+        .par_iter()
+        .map(|c| {
+            check_coefficient(c, geometry, channels)?;
+            let level = c.band.level as usize;
+            let centre = geometry.basis_center(
+                c.band,
+                [c.pos[0] as usize, c.pos[1] as usize, c.pos[2] as usize],
+            );
+            // Per axis: the choices of (factor, centre, coefficient, near point).
+            let mut choices: [Vec<(AxisFactor, f64, f64, f64)>; 3] = Default::default();
+            for a in 0..3 {
+                let wavelet = c.band.is_wavelet_along(a);
+                let half = geometry.half_support_1d(level, wavelet);
+                let (lo, hi) = (centre[a] - half, centre[a] + half);
+                match cue.side(a, lo, hi) {
+                    CueSide::Front => return Ok(Vec::new()),
+                    CueSide::Behind => {
+                        let f = AxisFactor::Basis {
+                            level: level as u8,
+                            wavelet,
+                        };
+                        choices[a].push((f, centre[a], 1.0, near_of(a, lo, hi)));
+                        continue;
+                    }
+                    CueSide::Straddle => {}
+                }
+                for (offset, coef) in &expansions[level][wavelet as usize] {
+                    let c0 = centre[a] + offset;
+                    let (lo0, hi0) = (c0 - half0, c0 + half0);
+                    match cue.side(a, lo0, hi0) {
+                        CueSide::Front => {}
+                        CueSide::Behind => choices[a].push((
+                            AxisFactor::Basis {
+                                level: 0,
+                                wavelet: false,
+                            },
+                            c0,
+                            *coef,
+                            near_of(a, lo0, hi0),
+                        )),
+                        CueSide::Straddle => choices[a].push((
+                            AxisFactor::Straddle {
+                                offset: (c0 - cue.planes[a]).round() as i8,
+                            },
+                            c0,
+                            *coef,
+                            cue.planes[a],
+                        )),
+                    }
+                }
+            }
+            let mut out = Vec::with_capacity(choices.iter().map(Vec::len).product());
+            for x in &choices[0] {
+                for y in &choices[1] {
+                    for z in &choices[2] {
+                        let value = c.value as f64 * x.2 * y.2 * z.2 * weight_of([x.3, y.3, z.3]);
+                        if value != 0.0 {
+                            out.push(CuedSplat {
+                                factors: [x.0, y.0, z.0],
+                                centre: [x.1, y.1, z.1],
+                                value,
+                                channel: c.channel,
+                            });
+                        }
+                    }
+                }
+            }
+            Ok(out)
+        })
+        .collect();
+    let mut cued = Vec::new();
+    for p in projected {
+        cued.extend(p?);
+    }
+    // Tables for the factor triples that occur (first-use order, deterministic).
+    let mut index: std::collections::HashMap<[AxisFactor; 3], u32> = Default::default();
+    let mut keys = Vec::new();
+    let table_of: Vec<u32> = cued
+        .iter()
+        .map(|s| {
+            *index.entry(s.factors).or_insert_with(|| {
+                keys.push(s.factors);
+                (keys.len() - 1) as u32
+            })
+        })
+        .collect();
+    let footprints = set.factor_footprints(&keys);
+    let tables: Vec<&Footprint> = footprints.iter().map(|f| f.as_ref()).collect();
+    let mut splats = Vec::with_capacity(cued.len());
+    for (s, t) in cued.iter().zip(table_of) {
+        let fp = tables[t as usize];
+        let scr = camera.to_screen(s.centre);
+        let (a, x0) = Footprint::place(fp.s, fp.cx, scr[0]);
+        let (b, y0) = Footprint::place(fp.s, fp.cy, scr[1]);
+        let ph = &fp.phases[b * fp.s + a];
+        if x0 >= w || y0 >= h || x0 + ph.cols as i64 <= 0 || y0 + ph.rows as i64 <= 0 {
+            stats.skipped += 1;
+            continue;
+        }
+        splats.push(Splat {
+            table: t,
+            phase: (b * fp.s + a) as u16,
+            x0: x0 as i32,
+            y0: y0 as i32,
+            value: s.value as f32,
+            channel: s.channel,
+        });
+    }
+    stats.splatted += splats.len();
+    Ok(accumulate(&splats, &tables, camera, channels, stats))
 }

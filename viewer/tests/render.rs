@@ -31,17 +31,17 @@ fn multiview_permutations_equal_direct_views() {
     }
 }
 
-/// Depth cueing with L along the view equals the emission–absorption reference: Haar for
-/// k ∈ {0.01, 0.1, 0.5}; linear and cubic for k ∈ {0.01, 0.1}. KNOWN LIMITATION (not asserted,
-/// printed): splines at k = 0.5 fail (linear ~3 dB, cubic far below). Their basis functions
-/// reach far beyond the data towards the light (cubic M=2 ψ: 14 voxels), where their sum cancels
-/// to zero; the cue weights that region by e^(+k·Δ) relative to the data (e^7 to e^20 here), so
-/// the f32 rounding of the coefficients and the ~1e-3 footprint errors no longer cancel. Haar
-/// supports tile the data and do not have this problem.
+/// Depth cueing with L along the view equals the emission–absorption reference for every family
+/// and k ∈ {0.01, 0.1, 0.5} per voxel: SNR ≥ 30 dB (measured: Haar 40.5 / 40.7 / 38.5, linear
+/// 45.0 / 45.2 / 38.4, cubic 39.5 / 40.3 / 32.4 dB). The cue is cut at the data's light-facing
+/// faces, so what the spline supports sum to in front of the data is not amplified (before, the
+/// splines gave 2.6 dB and −50.8 dB at k = 0.5).
 #[test]
 fn depth_cue_matches_emission_absorption_reference() {
     for family in [Family::Haar, Family::Linear, Family::Cubic] {
-        let (g, coeffs, _) = common::coefficients(32, family, 2);
+        // The compressor's default margin (half the coarsest support), what files have.
+        let margin = Geometry::default_margin(family, 2);
+        let (g, coeffs) = common::coefficients_with_margin(32, family, 2, margin);
         let vol = PaddedVolume::from_coefficients(&coeffs, &g, 1).unwrap();
         let mut r = Renderer::new(RenderOptions::default());
         for &k in &[0.01, 0.1, 0.5] {
@@ -54,9 +54,7 @@ fn depth_cue_matches_emission_absorption_reference() {
                 render_reference(&vol, &view, &common::reference_options(family)).unwrap();
             let snr = snr_db(&reference.data, &img.data);
             eprintln!("{family} cue k={k}: SNR {snr:.1} dB");
-            if family == Family::Haar || k < 0.5 {
-                assert!(snr >= 30.0, "{family} k={k}: {snr}");
-            }
+            assert!(snr >= 30.0, "{family} k={k}: {snr}");
         }
     }
 }
