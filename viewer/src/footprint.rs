@@ -414,44 +414,12 @@ pub fn compute_fine_with(
             spectra[t][ky * nx..(ky + 1) * nx].copy_from_slice(&r);
         }
     }
-    let mut planner = FftPlanner::<f64>::new();
-    let fx = planner.plan_fft_inverse(nx);
-    let fy = planner.plan_fft_inverse(ny);
-    let scale = (s * s) as f64 / (nx * ny) as f64;
     spectra
-        .into_iter()
-        .zip(kinds)
+        .into_par_iter()
+        .zip(kinds.par_iter())
         .map(|(mut spec, kind)| {
-            spec.par_chunks_mut(nx).for_each(|row| fx.process(row));
-            // Transpose, transform the columns, and read back transposed.
-            let mut tr = vec![Complex64::new(0.0, 0.0); nx * ny];
-            tr.par_chunks_mut(ny).enumerate().for_each(|(x, col)| {
-                for y in 0..ny {
-                    col[y] = spec[y * nx + x];
-                }
-                fy.process(col);
-            });
-            // Crop to the support (plus one sample) with the centre at the middle.
             let (rx, ry) = support_radius(p, level, *kind);
-            let hx = ((rx * s as f64).ceil() as usize + 1).min(nx / 2 - 1);
-            let hy = ((ry * s as f64).ceil() as usize + 1).min(ny / 2 - 1);
-            let (cw, ch) = (2 * hx + 1, 2 * hy + 1);
-            let mut data = vec![0.0; cw * ch];
-            for iy in 0..ch {
-                let oy = (iy as i64 - hy as i64).rem_euclid(ny as i64) as usize;
-                for ix in 0..cw {
-                    let ox = (ix as i64 - hx as i64).rem_euclid(nx as i64) as usize;
-                    data[iy * cw + ix] = tr[ox * ny + oy].re * scale;
-                }
-            }
-            FineTable {
-                s,
-                nx: cw,
-                ny: ch,
-                cx: hx,
-                cy: hy,
-                data,
-            }
+            inverse_and_crop(&mut spec, s, nx, ny, rx, ry)
         })
         .collect()
 }
@@ -937,7 +905,8 @@ pub fn compute_factor_tables(p: &FootprintParams, keys: &[[AxisFactor; 3]]) -> V
         .collect()
 }
 
-/// Inverse 2D FFT of a spectrum (row-major, nx × ny) and crop to radius (rx, ry) pixels.
+/// Inverse 2D FFT of a spectrum (row-major, nx × ny), cropped to the support radius (rx, ry)
+/// pixels plus one sample with the centre in the middle (only the kept columns are transformed).
 fn inverse_and_crop(
     spec: &mut [Complex64],
     s: usize,
