@@ -83,6 +83,8 @@ fn options_from_pb(o: pb::CompressOptions) -> Result<JobOptions, OrchestratorErr
         target,
         tile: o.tile.map(to_usize),
         layers: o.layers.map(to_usize),
+        refine_rounds: o.refine_rounds.map(to_usize),
+        no_refine: o.no_refine,
     })
 }
 
@@ -123,6 +125,8 @@ pub fn spec_to_pb(s: &JobSpec) -> pb::JobSpec {
             target: Some(pb::Target { kind: Some(kind) }),
             tile: o.tile.map(u32_of),
             layers: o.layers.map(u32_of),
+            refine_rounds: o.refine_rounds.map(u32_of),
+            no_refine: o.no_refine,
         }),
     }
 }
@@ -256,6 +260,8 @@ mod tests {
             options: JobOptions {
                 levels: Some(2),
                 target: TargetSpec::All,
+                refine_rounds: Some(2),
+                no_refine: true,
                 ..JobOptions::default()
             },
         };

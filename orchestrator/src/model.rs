@@ -10,6 +10,7 @@ use wavesplat_codec::format::CoderKind;
 use wavesplat_compressor::colorspace::ColorSpaceKind;
 use wavesplat_compressor::encode::{CompressOptions, Target, TileChoice};
 use wavesplat_compressor::reader::{Endian, RawDtype, RawSpec};
+use wavesplat_compressor::refine::RefineOptions;
 
 /// A job's id (assigned in submission order, starting at 1).
 pub type JobId = u64;
@@ -111,6 +112,12 @@ pub struct JobOptions {
     pub tile: Option<usize>,
     /// Quality layers (`None`: automatic).
     pub layers: Option<usize>,
+    /// Rounds of least-squares refinement (`None`: the compressor's default).
+    #[serde(default)]
+    pub refine_rounds: Option<usize>,
+    /// No least-squares refinement (the oracle's coefficients, as in the paper).
+    #[serde(default)]
+    pub no_refine: bool,
 }
 
 impl Default for JobOptions {
@@ -126,6 +133,8 @@ impl Default for JobOptions {
             target: TargetSpec::Fraction(0.05),
             tile: None,
             layers: None,
+            refine_rounds: None,
+            no_refine: false,
         }
     }
 }
@@ -183,6 +192,12 @@ impl JobOptions {
                 return Err(invalid("layers 0; must be at least 1".into()));
             }
         }
+        if self.refine_rounds.is_some_and(|r| r > 64) {
+            return Err(invalid(format!(
+                "refine rounds {:?}; allowed 0..=64",
+                self.refine_rounds
+            )));
+        }
         if self.tile == Some(0) {
             return Err(invalid("tile 0; must be at least 1".into()));
         }
@@ -214,6 +229,12 @@ impl JobOptions {
             tile: self.tile.map_or(TileChoice::Auto, TileChoice::Size),
             layers: self.layers,
             step: self.step,
+            refine: (!self.no_refine).then(|| RefineOptions {
+                rounds: self
+                    .refine_rounds
+                    .unwrap_or(RefineOptions::default().rounds),
+                ..RefineOptions::default()
+            }),
             ..CompressOptions::default()
         })
     }

@@ -105,6 +105,12 @@ pub struct JobOptionArgs {
     /// Quality layers (default: automatic).
     #[arg(long)]
     pub layers: Option<usize>,
+    /// Rounds of least-squares refinement of the kept set (default 4; splines only).
+    #[arg(long)]
+    pub refine_rounds: Option<usize>,
+    /// Send the oracle's coefficients unchanged (no least-squares refinement).
+    #[arg(long)]
+    pub no_refine: bool,
 }
 
 impl JobOptionArgs {
@@ -127,6 +133,8 @@ impl JobOptionArgs {
             target,
             tile: self.tile,
             layers: self.layers,
+            refine_rounds: self.refine_rounds,
+            no_refine: self.no_refine,
         }
         .validate()?)
     }
