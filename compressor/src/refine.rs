@@ -45,7 +45,7 @@ impl Default for RefineOptions {
     fn default() -> Self {
         RefineOptions {
             rounds: 4,
-            cg_iterations: 6,
+            cg_iterations: 4,
         }
     }
 }
