@@ -168,6 +168,9 @@ pub struct CompressStats {
     pub tile: usize,
     /// Layers used.
     pub layers: usize,
+    /// The kept values are a least-squares refinement (then Q_V and Q_E are over them, not over
+    /// the transform's own coefficients as eq. 19–20 define).
+    pub refined: bool,
 }
 
 /// A compressed volume.
@@ -206,6 +209,10 @@ struct Prepared {
     total_coefficients: u64,
     /// The channels' voxel samples after the colour transform (for refinement).
     samples: Vec<Vec<f32>>,
+    /// Non-zero coefficients of the transform.
+    nonzero: u64,
+    /// `sorted` holds a refined set.
+    refined: bool,
 }
 
 fn color_info(t: &ColorTransform) -> ColorInfo {
@@ -301,6 +308,7 @@ fn prepare(
             .then(a.channel.cmp(&b.channel))
             .then(a.index.cmp(&b.index))
     });
+    let sorted_len = sorted.len() as u64;
     Ok(Prepared {
         geometry,
         margin,
@@ -312,6 +320,8 @@ fn prepare(
         total_energy,
         total_coefficients: (geometry.coefficient_count() * channels.len()) as u64,
         samples: channels,
+        nonzero: sorted_len,
+        refined: false,
     })
 }
 
@@ -389,6 +399,8 @@ impl Prepared {
             total_energy: self.total_energy,
             total_coefficients: self.total_coefficients,
             samples: Vec::new(),
+            nonzero: self.nonzero,
+            refined: true,
         }
     }
 
@@ -540,7 +552,7 @@ impl Prepared {
             .sum();
         let stats = CompressStats {
             total_coefficients: self.total_coefficients,
-            nonzero_coefficients: self.sorted.len() as u64,
+            nonzero_coefficients: self.nonzero,
             kept: k as u64,
             q_v: q_v_percent(kept_energy, self.total_energy),
             q_e,
@@ -550,6 +562,7 @@ impl Prepared {
             packets: inputs.len() as u64,
             tile,
             layers: nl,
+            refined: self.refined,
         };
         Compressed {
             bytes,

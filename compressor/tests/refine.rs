@@ -149,3 +149,29 @@ fn haar_selection_is_returned_unchanged() {
     b.sort_by_key(|x| x.0);
     assert_eq!(a, b);
 }
+
+/// The compressor reports whether the kept values were refined, and the transform's non-zero
+/// count is the same either way (not the size of the refined set).
+#[test]
+fn compress_reports_refinement() {
+    use wavesplat_compressor::encode::{compress, CompressOptions, Target};
+    let vol = Phantom::SheppLogan.generate([20, 20, 20]);
+    let run = |refine: Option<RefineOptions>| {
+        compress(
+            &vol,
+            &CompressOptions {
+                target: Target::Fraction(0.02),
+                refine,
+                ..Default::default()
+            },
+            &|_, _| {},
+        )
+        .unwrap()
+        .stats
+    };
+    let refined = run(Some(RefineOptions::default()));
+    let plain = run(None);
+    assert!(refined.refined && !plain.refined);
+    assert_eq!(refined.nonzero_coefficients, plain.nonzero_coefficients);
+    assert!(refined.kept <= plain.kept && refined.nonzero_coefficients > plain.kept);
+}

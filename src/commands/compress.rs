@@ -223,8 +223,13 @@ fn print_summary(volume: &Volume, c: &Compressed, out: &std::path::Path) {
         s.total_coefficients,
         s.nonzero_coefficients
     );
+    let over = if s.refined {
+        ", over the least-squares refined values"
+    } else {
+        ""
+    };
     println!(
-        "Q_V {:.4} % (eq. 19) | Q_E {:.4} % (eq. 20) | tile {} | {} layers | {} packets",
+        "Q_V {:.4} % (eq. 19{over}) | Q_E {:.4} % (eq. 20) | tile {} | {} layers | {} packets",
         s.q_v, s.q_e, s.tile, s.layers, s.packets
     );
     let b = &s.breakdown;
