@@ -419,20 +419,52 @@ pub fn coefficients_to_samples(data: &mut [f64], geometry: &Geometry) {
     if taps.len() == 1 {
         return;
     }
-    let r = (taps.len() / 2) as i64;
     for axis in 0..3 {
         let op = |line: &mut [f64], s: &mut LineScratch| {
-            let n = line.len() as i64;
-            s.real.clear();
-            s.real.extend((0..n).map(|i| {
-                taps.iter()
-                    .enumerate()
-                    .map(|(t, w)| w * line[(i + t as i64 - r).rem_euclid(n) as usize])
-                    .sum::<f64>()
-            }));
+            sample_with(&taps, line, &mut s.real);
             line.copy_from_slice(&s.real);
         };
         for_each_line(data, geometry.padded, geometry.padded, axis, &op);
+    }
+}
+
+/// Circular convolution of `line` with the centred `taps` into `out`.
+fn sample_with(taps: &[f64], line: &[f64], out: &mut Vec<f64>) {
+    let n = line.len() as i64;
+    let r = (taps.len() / 2) as i64;
+    out.clear();
+    out.extend((0..n).map(|i| {
+        taps.iter()
+            .enumerate()
+            .map(|(t, w)| w * line[(i + t as i64 - r).rem_euclid(n) as usize])
+            .sum::<f64>()
+    }));
+}
+
+/// One periodic line of voxel samples of the level-`level` φ (`wavelet` false) or ψ with index 0,
+/// on a line of `len` voxels (a multiple of 2^level): the unit coefficient synthesized down to
+/// level 0 and, for cubic, sampled at the voxel centres (with `sampled`; otherwise the level-0
+/// B-spline coefficients).
+pub fn unit_basis_line(
+    family: Family,
+    len: usize,
+    level: usize,
+    wavelet: bool,
+    sampled: bool,
+) -> Vec<f64> {
+    let mut line = vec![0.0; len];
+    line[if wavelet { len >> level } else { 0 }] = 1.0;
+    let planner = Dwt1d::new(family);
+    let mut scratch = LineScratch::default();
+    for l in (1..=level).rev() {
+        planner.synthesize(&mut line[..len >> (l - 1)], &mut scratch);
+    }
+    if sampled {
+        let mut out = Vec::new();
+        sample_with(&interpolation_taps(family), &line, &mut out);
+        out
+    } else {
+        line
     }
 }
 

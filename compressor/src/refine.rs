@@ -26,8 +26,7 @@
 
 use rayon::prelude::*;
 use wavesplat_codec::dwt::{
-    coefficients_to_samples, interpolation_taps, inverse_3d, inverse_3d_adjoint, pad_channel,
-    Dwt1d, LineScratch,
+    coefficients_to_samples, inverse_3d, inverse_3d_adjoint, pad_channel, unit_basis_line, Dwt1d,
 };
 use wavesplat_codec::family::Family;
 use wavesplat_codec::layout::Geometry;
@@ -74,26 +73,18 @@ fn dot(a: &[f64], b: &[f64]) -> f64 {
 
 /// Σ over the periodic 1D grid of length `n` of the squared samples of the level-`level` φ
 /// (`wavelet` false) or ψ: the 1D factor of the diagonal of RᵀR.
-fn sample_norm2_1d(family: Family, planner: &Dwt1d, n: usize, level: usize, wavelet: bool) -> f64 {
-    let mut line = vec![0.0; n];
-    let start = if wavelet { n >> level } else { 0 };
-    line[start] = 1.0;
-    let mut scratch = LineScratch::default();
-    for l in (1..=level).rev() {
-        planner.synthesize(&mut line[..n >> (l - 1)], &mut scratch);
-    }
-    let taps = interpolation_taps(family);
-    let r = (taps.len() / 2) as i64;
-    (0..n as i64)
-        .map(|i| {
-            let v: f64 = taps
-                .iter()
-                .enumerate()
-                .map(|(t, w)| w * line[(i + t as i64 - r).rem_euclid(n as i64) as usize])
-                .sum();
-            v * v
-        })
+fn sample_norm2_1d(family: Family, n: usize, level: usize, wavelet: bool) -> f64 {
+    unit_basis_line(family, n, level, wavelet, true)
+        .iter()
+        .map(|v| v * v)
         .sum()
+}
+
+/// Zeroes the entries outside `mask`.
+fn restrict(v: &mut [f64], mask: &[bool]) {
+    v.par_iter_mut()
+        .zip(mask)
+        .for_each(|(x, m)| *x = if *m { *x } else { 0.0 });
 }
 
 /// The operator R (coefficients → padded voxel samples), its transpose and the Jacobi diagonal.
@@ -118,7 +109,6 @@ impl<'a> Operator<'a> {
                     .map(|a| {
                         sample_norm2_1d(
                             geometry.family,
-                            &planner,
                             geometry.padded[a],
                             b.level as usize,
                             b.is_wavelet_along(a),
@@ -167,9 +157,7 @@ impl<'a> Operator<'a> {
         let res: Vec<f64> = target.par_iter().zip(&rc).map(|(f, r)| f - r).collect();
         let mut g = self.adjoint(&res);
         if let Some(mask) = mask {
-            g.par_iter_mut()
-                .zip(mask)
-                .for_each(|(v, m)| *v = if *m { *v } else { 0.0 });
+            restrict(&mut g, mask);
         }
         g
     }
@@ -191,9 +179,7 @@ impl<'a> Operator<'a> {
             }
             let rp = self.synthesize(&p);
             let mut ap = self.adjoint(&rp);
-            ap.par_iter_mut()
-                .zip(mask)
-                .for_each(|(v, m)| *v = if *m { *v } else { 0.0 });
+            restrict(&mut ap, mask);
             let pap = dot(&p, &ap);
             if pap <= 0.0 || !pap.is_finite() {
                 break;

@@ -26,7 +26,7 @@ use crate::image::Image;
 use crate::RenderError;
 use rayon::prelude::*;
 use std::sync::Arc;
-use wavesplat_codec::dwt::{Dwt1d, LineScratch};
+use wavesplat_codec::dwt::unit_basis_line;
 use wavesplat_codec::format::packet::Coefficient;
 use wavesplat_codec::layout::Geometry;
 
@@ -491,15 +491,8 @@ fn level0_expansion(geometry: &Geometry, level: usize, wavelet: bool) -> Vec<(f6
     if level == 0 {
         return vec![(0.0, 1.0)];
     }
-    let planner = Dwt1d::new(geometry.family);
-    let per_band = 4 * geometry.family.order();
-    let len = per_band << level;
-    let mut line = vec![0.0; len];
-    line[if wavelet { per_band } else { 0 }] = 1.0;
-    let mut scratch = LineScratch::default();
-    for l in (1..=level).rev() {
-        planner.synthesize(&mut line[..len >> (l - 1)], &mut scratch);
-    }
+    let len = (4 * geometry.family.order()) << level;
+    let line = unit_basis_line(geometry.family, len, level, wavelet, false);
     let centre = geometry.raw_center_1d(level, 0, wavelet);
     line.iter()
         .enumerate()
