@@ -5,14 +5,7 @@
 # the peers' mean Q_I of three X-ray views of the decoded volume.
 #   bash scripts/qv_table.sh
 set -euo pipefail
-ROOT="$(cd "$(dirname "$0")/.." && pwd)"
-PEERS="$ROOT/../shared/peers"
-W="$ROOT/target/release/wavesplat"
-TMP="${TMPDIR:-/tmp}/wavesplat-qv"
-export VENV="${VENV:-$TMP/peers-venv}"
-mkdir -p "$TMP"
-cargo build --release --quiet --manifest-path "$ROOT/Cargo.toml" --bin wavesplat
-[ -f "$TMP/v128.raw" ] || bash "$PEERS/run.sh" --write-v128 "$TMP/v128.raw" >/dev/null
+source "$(dirname "$0")/peers_setup.sh" qv
 echo "| family | target Q_V % | coefficients | bytes | % of u8 size | Q_I mean (paper dB) |"
 echo "|---|---|---|---|---|---|"
 for family in haar linear cubic; do

@@ -4,14 +4,7 @@
 #   bash scripts/rd_curve.sh [extra compress options...]
 # Needs ../shared beside the repository (the peers' venv is created on first use).
 set -euo pipefail
-ROOT="$(cd "$(dirname "$0")/.." && pwd)"
-PEERS="$ROOT/../shared/peers"
-W="$ROOT/target/release/wavesplat"
-TMP="${TMPDIR:-/tmp}/wavesplat-rd"
-export VENV="${VENV:-$TMP/peers-venv}"
-mkdir -p "$TMP"
-cargo build --release --quiet --manifest-path "$ROOT/Cargo.toml" --bin wavesplat
-[ -f "$TMP/v128.raw" ] || bash "$PEERS/run.sh" --write-v128 "$TMP/v128.raw" >/dev/null
+source "$(dirname "$0")/peers_setup.sh" rd
 echo "| target % | bytes | coefficients | Q_I mean (paper dB) | iSNR (dB) | PSNR (dB) | compress s |"
 echo "|---|---|---|---|---|---|---|"
 for pct in 0.07 0.15 0.5 1.25 3.0 5.85; do
