@@ -2,7 +2,8 @@
 //! offered beside Huffman coding.
 //!
 //! The coder is the LZMA-style carry-less-output range coder: a 32-bit range, a 33-bit `low`
-//! with deferred carry propagation, 12-bit probabilities in [`BitModel`] adapted by a shift, and
+//! with deferred carry propagation, 12-bit probabilities in [`BitModel`] adapted by a shift (faster
+//! for a model's first few dozen bits, so fresh per-packet models learn quickly), and
 //! bypass bits at probability ½. Two refinements keep tiny streams tiny: LZMA's always-zero first
 //! byte is not written, and [`RangeEncoder::finish`] picks the final value with the most
 //! trailing zero bits and drops trailing zero bytes, which [`RangeDecoder`] reads back as zeros
@@ -29,6 +30,8 @@ pub struct BitModel {
     p0: u16,
     /// Adaptation rate: each coded bit moves `p0` by 1/2^shift of the distance to the target.
     shift: u8,
+    /// Bits coded so far (saturating); while few, the model adapts faster than `shift`.
+    seen: u8,
 }
 
 impl Default for BitModel {
@@ -60,6 +63,7 @@ impl BitModel {
         BitModel {
             p0: (PROB_ONE / 2) as u16,
             shift,
+            seen: 0,
         }
     }
 
@@ -80,10 +84,16 @@ impl BitModel {
 
     #[inline]
     fn update(&mut self, bit: bool) {
+        // Warm-up: after n bits the step is 1/2^⌊log2(n+2)⌋ (capped at the model's shift), close
+        // to a counting estimate, so that a fresh model (every packet starts fresh) learns its
+        // probability in a few bits instead of ~2^shift.
+        let warm = (31 - (self.seen as u32 + 2).leading_zeros()) as u8;
+        self.seen = self.seen.saturating_add(1);
+        let shift = warm.min(self.shift);
         if bit {
-            self.p0 -= self.p0 >> self.shift;
+            self.p0 -= self.p0 >> shift;
         } else {
-            self.p0 += ((PROB_ONE - self.p0 as u32) >> self.shift) as u16;
+            self.p0 += ((PROB_ONE - self.p0 as u32) >> shift) as u16;
         }
     }
 }
@@ -478,6 +488,32 @@ mod tests {
     use proptest::prelude::*;
     use rand::{Rng, SeedableRng};
     use rand_chacha::ChaCha8Rng;
+
+    #[test]
+    fn fresh_models_learn_a_skewed_bit_within_a_few_dozen_bits() {
+        // A plain 1/32 step would leave p0 at 1 − ½·(31/32)^20 ≈ 0.73 after 20 zeros.
+        let mut m = BitModel::new();
+        for _ in 0..20 {
+            m.update(false);
+        }
+        assert!(m.p0() > 0.9, "p0 = {}", m.p0());
+        // Later the step settles at the model's shift, so the estimate stays stable.
+        let mut m = BitModel::new();
+        for _ in 0..1000 {
+            m.update(false);
+        }
+        let before = m.p0();
+        m.update(true);
+        assert!(before - m.p0() <= before / 32.0 + 1e-9);
+        // Probabilities stay strictly inside (0, 1) under any sequence.
+        for bit in [false, true] {
+            let mut m = BitModel::with_shift(1);
+            for _ in 0..100 {
+                m.update(bit);
+                assert!(m.p0() > 0.0 && m.p0() < 1.0);
+            }
+        }
+    }
 
     fn entropy_bits(p1: f64, n: usize) -> f64 {
         let h = -(p1 * p1.log2() + (1.0 - p1) * (1.0 - p1).log2());

@@ -10,7 +10,9 @@
 //! Per packet: for each substream that has parameters in the header, one adaptive "present" bit;
 //! for a present substream, the octree over its tile-local band region: every box is split at
 //! the midpoint of each axis longer than one cell, and every child gets an adaptive "occupied"
-//! bit (context: band and log2 of the child's size), except a last child implied occupied by
+//! bit (context: band, log2 of the child's size, and whether the same cells hold a coefficient
+//! in the parent band (same type, one level coarser) and in the cousin bands (earlier types of
+//! the same level), as coded earlier in this packet), except a last child implied occupied by
 //! its empty siblings. A leaf is a coefficient: sign (bypass bit) then q (adaptive
 //! exp-Golomb, context: band), reconstructed as lb + (q + ½)·Δ, where lb is the layer's lower
 //! magnitude bound of the substream and Δ its step (exact f32 bits when Δ = 0).
@@ -18,9 +20,13 @@
 use super::packet::{Coefficient, SizeBreakdown};
 use super::{invalid, FormatError, Header};
 use crate::entropy::range::{AdaptiveUintModel, BitModel, RangeDecoder, RangeEncoder};
+use crate::layout::Band;
 
 /// Size contexts per band (log2 of a box's cell count, clamped).
 const SIZE_CONTEXTS: usize = 48;
+
+/// States of a neighbourhood context: no such band, its region is empty, it holds a coefficient.
+const NEIGHBOUR_STATES: usize = 3;
 
 struct Models {
     present: Vec<BitModel>,
@@ -31,17 +37,150 @@ struct Models {
 impl Models {
     fn new(header: &Header) -> Models {
         let nb = header.geometry.band_count();
+        let occupied = nb * SIZE_CONTEXTS * NEIGHBOUR_STATES * NEIGHBOUR_STATES;
         Models {
             present: (0..nb).map(|_| BitModel::new()).collect(),
-            occupied: (0..nb * SIZE_CONTEXTS).map(|_| BitModel::new()).collect(),
+            occupied: (0..occupied).map(|_| BitModel::new()).collect(),
             value: (0..nb).map(|_| AdaptiveUintModel::new()).collect(),
         }
     }
 }
 
-fn size_context(band: usize, cells: usize) -> usize {
+/// The occupancy context of a box: its band, the log2 of its cell count, and the states of its
+/// parent region (same type one level coarser) and of its cousins (earlier types of the same
+/// level at the same cells), both as coded earlier in this packet.
+fn occupancy_context(band: usize, cells: usize, neighbours: (usize, usize)) -> usize {
     let lg = (usize::BITS - cells.leading_zeros()) as usize;
-    band * SIZE_CONTEXTS + lg.min(SIZE_CONTEXTS - 1)
+    ((band * SIZE_CONTEXTS + lg.min(SIZE_CONTEXTS - 1)) * NEIGHBOUR_STATES + neighbours.0)
+        * NEIGHBOUR_STATES
+        + neighbours.1
+}
+
+/// Which cells of one band's tile-local region hold a coefficient of this packet, as a 3D
+/// prefix sum so that any box is counted in O(1).
+struct SignificanceGrid {
+    dims: [usize; 3],
+    /// Origin of the region in band coordinates (the tile's corner at this level).
+    origin: [u32; 3],
+    sums: Vec<u32>,
+}
+
+impl SignificanceGrid {
+    fn new(origin: [u32; 3], dims: [usize; 3], cells: impl Iterator<Item = [u32; 3]>) -> Self {
+        let [nx, ny, nz] = dims.map(|d| d + 1);
+        let mut sums = vec![0u32; nx * ny * nz];
+        let at = |x: usize, y: usize, z: usize| x + nx * (y + ny * z);
+        for p in cells {
+            sums[at(p[0] as usize + 1, p[1] as usize + 1, p[2] as usize + 1)] = 1;
+        }
+        for z in 1..nz {
+            for y in 1..ny {
+                for x in 1..nx {
+                    let i = at(x, y, z);
+                    sums[i] = sums[i]
+                        .wrapping_add(sums[at(x - 1, y, z)])
+                        .wrapping_add(sums[at(x, y - 1, z)])
+                        .wrapping_add(sums[at(x, y, z - 1)])
+                        .wrapping_sub(sums[at(x - 1, y - 1, z)])
+                        .wrapping_sub(sums[at(x - 1, y, z - 1)])
+                        .wrapping_sub(sums[at(x, y - 1, z - 1)])
+                        .wrapping_add(sums[at(x - 1, y - 1, z - 1)]);
+                }
+            }
+        }
+        SignificanceGrid { dims, origin, sums }
+    }
+
+    /// Whether any cell of the band-coordinate box [lo, hi) (clipped to the region) is set.
+    fn any(&self, lo: [u64; 3], hi: [u64; 3]) -> bool {
+        let mut l = [0usize; 3];
+        let mut h = [0usize; 3];
+        for a in 0..3 {
+            let o = self.origin[a] as u64;
+            l[a] = lo[a].saturating_sub(o).min(self.dims[a] as u64) as usize;
+            h[a] = hi[a].saturating_sub(o).min(self.dims[a] as u64) as usize;
+            if h[a] <= l[a] {
+                return false;
+            }
+        }
+        let [nx, ny, _] = self.dims.map(|d| d + 1);
+        let s = |x: usize, y: usize, z: usize| self.sums[x + nx * (y + ny * z)];
+        let count = s(h[0], h[1], h[2])
+            .wrapping_sub(s(l[0], h[1], h[2]))
+            .wrapping_sub(s(h[0], l[1], h[2]))
+            .wrapping_sub(s(h[0], h[1], l[2]))
+            .wrapping_add(s(l[0], l[1], h[2]))
+            .wrapping_add(s(l[0], h[1], l[2]))
+            .wrapping_add(s(h[0], l[1], l[2]))
+            .wrapping_sub(s(l[0], l[1], l[2]));
+        count > 0
+    }
+}
+
+/// The significance of the bands of the current channel coded so far in this packet, indexed
+/// by band; what the occupancy and value contexts look at.
+struct Neighbourhood<'h> {
+    header: &'h Header,
+    grids: Vec<Option<SignificanceGrid>>,
+}
+
+impl<'h> Neighbourhood<'h> {
+    fn new(header: &'h Header) -> Self {
+        let nb = header.geometry.band_count();
+        Neighbourhood {
+            header,
+            grids: (0..nb).map(|_| None).collect(),
+        }
+    }
+
+    fn reset(&mut self) {
+        self.grids.iter_mut().for_each(|g| *g = None);
+    }
+
+    /// Parent and cousin states of the box [lo, hi) (tile-local) of `band` whose region starts
+    /// at `origin`.
+    fn states(&self, band: Band, origin: [u32; 3], b: &Box3) -> (usize, usize) {
+        let geometry = &self.header.geometry;
+        if band.kind == 0 {
+            return (0, 0);
+        }
+        let glo = [0, 1, 2].map(|a| (origin[a] + b.lo[a]) as u64);
+        let ghi = [0, 1, 2].map(|a| (origin[a] + b.hi[a]) as u64);
+        let parent = if (band.level as usize) < geometry.levels {
+            let pb = Band {
+                level: band.level + 1,
+                kind: band.kind,
+            };
+            let plo = glo.map(|v| v / 2);
+            let phi = ghi.map(|v| v.div_ceil(2));
+            let grid = geometry.band_index(pb).and_then(|i| self.grids[i].as_ref());
+            1 + grid.is_some_and(|g| g.any(plo, phi)) as usize
+        } else {
+            0
+        };
+        let cousin = if band.kind > 1 {
+            let any = (1..band.kind).any(|kind| {
+                geometry
+                    .band_index(Band {
+                        level: band.level,
+                        kind,
+                    })
+                    .and_then(|i| self.grids[i].as_ref())
+                    .is_some_and(|g| g.any(glo, ghi))
+            });
+            1 + any as usize
+        } else {
+            0
+        };
+        (parent, cousin)
+    }
+
+    fn record(&mut self, band: Band, origin: [u32; 3], root: &Box3, cells: &[[u32; 3]]) {
+        if let Some(i) = self.header.geometry.band_index(band) {
+            let dims = root.hi.map(|v| v as usize);
+            self.grids[i] = Some(SignificanceGrid::new(origin, dims, cells.iter().copied()));
+        }
+    }
 }
 
 /// A box of the tile-local band grid: [lo, hi) per axis.
@@ -127,7 +266,11 @@ pub(crate) fn encode(
     }
     let mut recon = Vec::with_capacity(coefficients.len());
     let mut bd = SizeBreakdown::default();
+    let mut hood = Neighbourhood::new(header);
     for (sub, list) in per_sub.iter().enumerate() {
+        if sub % nb == 0 {
+            hood.reset();
+        }
         if header.substreams[sub].is_none() {
             continue;
         }
@@ -148,6 +291,7 @@ pub(crate) fn encode(
                 (p, c.value)
             })
             .collect();
+        let cells: Vec<[u32; 3]> = pts.iter().map(|(p, _)| *p).collect();
         let ctx = Ctx {
             bi,
             lb,
@@ -155,20 +299,23 @@ pub(crate) fn encode(
             origin,
             channel: (sub / nb) as u8,
             band,
+            hood: &hood,
         };
         encode_box(&mut enc, &mut m, &ctx, root, pts, &mut recon, &mut bd);
+        hood.record(band, origin, &root, &cells);
     }
     let payload = enc.finish();
     (payload, recon, bd)
 }
 
-struct Ctx {
+struct Ctx<'a, 'h> {
     bi: usize,
     lb: f64,
     step: f64,
     origin: [u32; 3],
     channel: u8,
-    band: crate::layout::Band,
+    band: Band,
+    hood: &'a Neighbourhood<'h>,
 }
 
 fn quantize(ctx: &Ctx, magnitude: f64) -> (u64, f64) {
@@ -236,8 +383,9 @@ fn encode_box(
         // The last child must be occupied if all its siblings are empty: not coded.
         if i + 1 < n || any_before {
             let b0 = enc.size_bytes();
+            let states = ctx.hood.states(ctx.band, ctx.origin, &child);
             enc.encode_bit(
-                &mut m.occupied[size_context(ctx.bi, child.cells())],
+                &mut m.occupied[occupancy_context(ctx.bi, child.cells(), states)],
                 occupied,
             );
             bd.position_bits += 8.0 * (enc.size_bytes() - b0) as f64;
@@ -263,7 +411,11 @@ pub(crate) fn decode(
     let nb = header.geometry.band_count();
     let bands = header.geometry.bands();
     let mut out = Vec::with_capacity(count);
+    let mut hood = Neighbourhood::new(header);
     for sub in 0..header.substream_count() {
+        if sub % nb == 0 {
+            hood.reset();
+        }
         if header.substreams[sub].is_none() {
             continue;
         }
@@ -290,8 +442,15 @@ pub(crate) fn decode(
             origin,
             channel: (sub / nb) as u8,
             band,
+            hood: &hood,
         };
+        let first = out.len();
         decode_box(&mut dec, &mut m, &ctx, root, count, &mut out, bd)?;
+        let cells: Vec<[u32; 3]> = out[first..]
+            .iter()
+            .map(|c| [0, 1, 2].map(|a| c.pos[a] - origin[a]))
+            .collect();
+        hood.record(band, origin, &root, &cells);
     }
     if out.len() != count {
         return Err(invalid(
@@ -346,7 +505,9 @@ fn decode_box(
     for (i, child) in children.into_iter().enumerate() {
         let occupied = if i + 1 < n || any_before {
             let b0 = dec.bytes_read();
-            let o = dec.decode_bit(&mut m.occupied[size_context(ctx.bi, child.cells())]);
+            let states = ctx.hood.states(ctx.band, ctx.origin, &child);
+            let o =
+                dec.decode_bit(&mut m.occupied[occupancy_context(ctx.bi, child.cells(), states)]);
             bd.position_bits += 8.0 * (dec.bytes_read() - b0) as f64;
             o
         } else {
@@ -358,4 +519,40 @@ fn decode_box(
         }
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::{Rng, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
+
+    #[test]
+    fn significance_grid_counts_boxes_like_a_brute_force_scan() {
+        let mut rng = ChaCha8Rng::seed_from_u64(7);
+        for _ in 0..20 {
+            let dims = [0, 1, 2].map(|_| rng.gen_range(1..9usize));
+            let origin = [0, 1, 2].map(|_| rng.gen_range(0..5u32));
+            let cells: Vec<[u32; 3]> = (0..rng.gen_range(0..12))
+                .map(|_| [0, 1, 2].map(|a| rng.gen_range(0..dims[a] as u32)))
+                .collect();
+            let grid = SignificanceGrid::new(origin, dims, cells.iter().copied());
+            for _ in 0..200 {
+                // Boxes in band coordinates, partly or wholly outside the region.
+                let lo = [0, 1, 2].map(|_| rng.gen_range(0..14u64));
+                let hi = [0, 1, 2].map(|a| lo[a] + rng.gen_range(0..6u64));
+                let brute = cells.iter().any(|c| {
+                    (0..3).all(|a| {
+                        let g = (c[a] + origin[a]) as u64;
+                        g >= lo[a] && g < hi[a]
+                    })
+                });
+                assert_eq!(
+                    grid.any(lo, hi),
+                    brute,
+                    "{lo:?}..{hi:?} in {origin:?}+{dims:?}"
+                );
+            }
+        }
+    }
 }
