@@ -62,33 +62,64 @@ struct SignificanceGrid {
     dims: [usize; 3],
     /// Origin of the region in band coordinates (the tile's corner at this level).
     origin: [u32; 3],
+    /// The cells themselves (x fastest), for the frequent one-cell queries.
+    cells: Vec<bool>,
     sums: Vec<u32>,
 }
 
 impl SignificanceGrid {
-    fn new(origin: [u32; 3], dims: [usize; 3], cells: impl Iterator<Item = [u32; 3]>) -> Self {
+    /// The grid of `cells` (coordinates relative to `origin`); it spans only their bounding
+    /// box, since every query outside it is empty anyway.
+    fn new(origin: [u32; 3], cells: &[[u32; 3]]) -> Self {
+        let mut lo = [u32::MAX; 3];
+        let mut hi = [0u32; 3];
+        for p in cells {
+            for a in 0..3 {
+                lo[a] = lo[a].min(p[a]);
+                hi[a] = hi[a].max(p[a] + 1);
+            }
+        }
+        if cells.is_empty() {
+            lo = [0; 3];
+        }
+        let dims = [0, 1, 2].map(|a| (hi[a] - lo[a]) as usize);
+        let origin = [0, 1, 2].map(|a| origin[a] + lo[a]);
         let [nx, ny, nz] = dims.map(|d| d + 1);
         let mut sums = vec![0u32; nx * ny * nz];
+        let mut set = vec![false; dims[0] * dims[1] * dims[2]];
         let at = |x: usize, y: usize, z: usize| x + nx * (y + ny * z);
         for p in cells {
-            sums[at(p[0] as usize + 1, p[1] as usize + 1, p[2] as usize + 1)] = 1;
+            let [x, y, z] = [0, 1, 2].map(|a| (p[a] - lo[a]) as usize);
+            set[x + dims[0] * (y + dims[1] * z)] = true;
+            sums[at(x + 1, y + 1, z + 1)] = 1;
         }
+        // Separable running sums along x, then y, then z (3 adds per cell).
         for z in 1..nz {
             for y in 1..ny {
+                let row = at(0, y, z);
                 for x in 1..nx {
-                    let i = at(x, y, z);
-                    sums[i] = sums[i]
-                        .wrapping_add(sums[at(x - 1, y, z)])
-                        .wrapping_add(sums[at(x, y - 1, z)])
-                        .wrapping_add(sums[at(x, y, z - 1)])
-                        .wrapping_sub(sums[at(x - 1, y - 1, z)])
-                        .wrapping_sub(sums[at(x - 1, y, z - 1)])
-                        .wrapping_sub(sums[at(x, y - 1, z - 1)])
-                        .wrapping_add(sums[at(x - 1, y - 1, z - 1)]);
+                    sums[row + x] += sums[row + x - 1];
                 }
             }
         }
-        SignificanceGrid { dims, origin, sums }
+        for z in 1..nz {
+            for y in 1..ny {
+                let (row, prev) = (at(0, y, z), at(0, y - 1, z));
+                for x in 1..nx {
+                    sums[row + x] += sums[prev + x];
+                }
+            }
+        }
+        let slice = nx * ny;
+        for i in slice..sums.len() {
+            sums[i] += sums[i - slice];
+        }
+        SignificanceGrid {
+            dims,
+            origin,
+            cells: set,
+            sums,
+        }
     }
 
     /// Whether any cell of the band-coordinate box [lo, hi) (clipped to the region) is set.
@@ -102,6 +133,9 @@ impl SignificanceGrid {
             if h[a] <= l[a] {
                 return false;
             }
+        }
+        if (0..3).all(|a| h[a] == l[a] + 1) {
+            return self.cells[l[0] + self.dims[0] * (l[1] + self.dims[1] * l[2])];
         }
         let [nx, ny, _] = self.dims.map(|d| d + 1);
         let s = |x: usize, y: usize, z: usize| self.sums[x + nx * (y + ny * z)];
@@ -121,20 +155,29 @@ impl SignificanceGrid {
 /// by band; what the occupancy and value contexts look at.
 struct Neighbourhood<'h> {
     header: &'h Header,
+    /// Per band index: its cells, kept for the next finer level's parent queries.
     grids: Vec<Option<SignificanceGrid>>,
+    /// Per level: the union of the wavelet bands coded so far at that level.
+    cousins: Vec<Option<SignificanceGrid>>,
+    level_cells: Vec<Vec<[u32; 3]>>,
 }
 
 impl<'h> Neighbourhood<'h> {
     fn new(header: &'h Header) -> Self {
         let nb = header.geometry.band_count();
+        let nl = header.geometry.levels + 1;
         Neighbourhood {
             header,
             grids: (0..nb).map(|_| None).collect(),
+            cousins: (0..nl).map(|_| None).collect(),
+            level_cells: vec![Vec::new(); nl],
         }
     }
 
     fn reset(&mut self) {
         self.grids.iter_mut().for_each(|g| *g = None);
+        self.cousins.iter_mut().for_each(|g| *g = None);
+        self.level_cells.iter_mut().for_each(Vec::clear);
     }
 
     /// Parent and cousin states of the box [lo, hi) (tile-local) of `band` whose region starts
@@ -159,26 +202,28 @@ impl<'h> Neighbourhood<'h> {
             0
         };
         let cousin = if band.kind > 1 {
-            let any = (1..band.kind).any(|kind| {
-                geometry
-                    .band_index(Band {
-                        level: band.level,
-                        kind,
-                    })
-                    .and_then(|i| self.grids[i].as_ref())
-                    .is_some_and(|g| g.any(glo, ghi))
-            });
-            1 + any as usize
+            let union = self.cousins[band.level as usize].as_ref();
+            1 + union.is_some_and(|g| g.any(glo, ghi)) as usize
         } else {
             0
         };
         (parent, cousin)
     }
 
-    fn record(&mut self, band: Band, origin: [u32; 3], root: &Box3, cells: &[[u32; 3]]) {
-        if let Some(i) = self.header.geometry.band_index(band) {
-            let dims = root.hi.map(|v| v as usize);
-            self.grids[i] = Some(SignificanceGrid::new(origin, dims, cells.iter().copied()));
+    /// Records the cells of `band` just coded; grids nobody will query are not built.
+    fn record(&mut self, band: Band, origin: [u32; 3], cells: &[[u32; 3]]) {
+        if band.kind == 0 || cells.is_empty() {
+            return;
+        }
+        let l = band.level as usize;
+        if l > 1 {
+            if let Some(i) = self.header.geometry.band_index(band) {
+                self.grids[i] = Some(SignificanceGrid::new(origin, cells));
+            }
+        }
+        if band.kind < 7 {
+            self.level_cells[l].extend_from_slice(cells);
+            self.cousins[l] = Some(SignificanceGrid::new(origin, &self.level_cells[l]));
         }
     }
 }
@@ -194,29 +239,35 @@ impl Box3 {
     fn cells(&self) -> usize {
         (0..3).map(|a| (self.hi[a] - self.lo[a]) as usize).product()
     }
-    fn children(&self) -> Vec<Box3> {
-        let mut splits: [Vec<(u32, u32)>; 3] = Default::default();
+    /// The up to 8 children (split at the midpoint of each axis longer than one cell), in
+    /// x-fastest order, without allocating.
+    fn children(&self) -> ([Box3; 8], usize) {
+        let mut splits = [[(0u32, 0u32); 2]; 3];
+        let mut counts = [1usize; 3];
         for a in 0..3 {
             let (lo, hi) = (self.lo[a], self.hi[a]);
-            splits[a] = if hi - lo > 1 {
+            if hi - lo > 1 {
                 let mid = lo + (hi - lo) / 2;
-                vec![(lo, mid), (mid, hi)]
+                splits[a] = [(lo, mid), (mid, hi)];
+                counts[a] = 2;
             } else {
-                vec![(lo, hi)]
-            };
+                splits[a][0] = (lo, hi);
+            }
         }
-        let mut out = Vec::with_capacity(8);
-        for z in &splits[2] {
-            for y in &splits[1] {
-                for x in &splits[0] {
-                    out.push(Box3 {
+        let mut out = [*self; 8];
+        let mut n = 0;
+        for z in &splits[2][..counts[2]] {
+            for y in &splits[1][..counts[1]] {
+                for x in &splits[0][..counts[0]] {
+                    out[n] = Box3 {
                         lo: [x.0, y.0, z.0],
                         hi: [x.1, y.1, z.1],
-                    });
+                    };
+                    n += 1;
                 }
             }
         }
-        out
+        (out, n)
     }
     fn contains(&self, p: [u32; 3]) -> bool {
         (0..3).all(|a| p[a] >= self.lo[a] && p[a] < self.hi[a])
@@ -302,7 +353,7 @@ pub(crate) fn encode(
             hood: &hood,
         };
         encode_box(&mut enc, &mut m, &ctx, root, pts, &mut recon, &mut bd);
-        hood.record(band, origin, &root, &cells);
+        hood.record(band, origin, &cells);
     }
     let payload = enc.finish();
     (payload, recon, bd)
@@ -367,8 +418,9 @@ fn encode_box(
         });
         return;
     }
-    let children = b.children();
-    let mut parts: Vec<Vec<([u32; 3], f32)>> = vec![Vec::new(); children.len()];
+    let (children, n) = b.children();
+    let children = &children[..n];
+    let mut parts: Vec<Vec<([u32; 3], f32)>> = vec![Vec::new(); n];
     for (p, v) in pts {
         let i = children
             .iter()
@@ -376,9 +428,8 @@ fn encode_box(
             .expect("child covers point");
         parts[i].push((p, v));
     }
-    let n = children.len();
     let mut any_before = false;
-    for (i, (child, part)) in children.into_iter().zip(parts).enumerate() {
+    for (i, (&child, part)) in children.iter().zip(parts).enumerate() {
         let occupied = !part.is_empty();
         // The last child must be occupied if all its siblings are empty: not coded.
         if i + 1 < n || any_before {
@@ -450,7 +501,7 @@ pub(crate) fn decode(
             .iter()
             .map(|c| [0, 1, 2].map(|a| c.pos[a] - origin[a]))
             .collect();
-        hood.record(band, origin, &root, &cells);
+        hood.record(band, origin, &cells);
     }
     if out.len() != count {
         return Err(invalid(
@@ -499,10 +550,9 @@ fn decode_box(
         });
         return Ok(());
     }
-    let children = b.children();
-    let n = children.len();
+    let (children, n) = b.children();
     let mut any_before = false;
-    for (i, child) in children.into_iter().enumerate() {
+    for (i, &child) in children[..n].iter().enumerate() {
         let occupied = if i + 1 < n || any_before {
             let b0 = dec.bytes_read();
             let states = ctx.hood.states(ctx.band, ctx.origin, &child);
@@ -536,7 +586,7 @@ mod tests {
             let cells: Vec<[u32; 3]> = (0..rng.gen_range(0..12))
                 .map(|_| [0, 1, 2].map(|a| rng.gen_range(0..dims[a] as u32)))
                 .collect();
-            let grid = SignificanceGrid::new(origin, dims, cells.iter().copied());
+            let grid = SignificanceGrid::new(origin, &cells);
             for _ in 0..200 {
                 // Boxes in band coordinates, partly or wholly outside the region.
                 let lo = [0, 1, 2].map(|_| rng.gen_range(0..14u64));
