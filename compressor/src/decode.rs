@@ -4,6 +4,7 @@
 //! transform.
 
 use crate::colorspace::{ColorSpaceKind, ColorTransform};
+use rayon::prelude::*;
 use wavesplat_codec::dwt::{coefficients_to_samples, crop_channel, inverse_3d, Dwt1d};
 use wavesplat_codec::format::packet::{decode_packet, Coefficient};
 use wavesplat_codec::format::{parse_file, ColorKind, FormatError, Header};
@@ -32,16 +33,21 @@ pub enum DecodeError {
     Volume(#[from] VolumeError),
 }
 
-/// Decodes all packets of a file: the header and every coefficient (file order).
+/// Decodes all packets of a file (in parallel: each packet decodes on its own): the header and
+/// every coefficient (file order).
 pub fn decode_coefficients(bytes: &[u8]) -> Result<(Header, Vec<Coefficient>), DecodeError> {
     let file = parse_file(bytes)?;
-    let mut all = Vec::new();
-    for (index, p) in file.packets.iter().enumerate() {
-        let d = decode_packet(&file.header, p)
-            .map_err(|source| DecodeError::Packet { index, source })?;
-        all.extend(d.coefficients);
-    }
-    Ok((file.header, all))
+    let packets: Vec<Vec<Coefficient>> = file
+        .packets
+        .par_iter()
+        .enumerate()
+        .map(|(index, p)| {
+            decode_packet(&file.header, p)
+                .map(|d| d.coefficients)
+                .map_err(|source| DecodeError::Packet { index, source })
+        })
+        .collect::<Result<_, _>>()?;
+    Ok((file.header, packets.concat()))
 }
 
 /// Reconstructs the volume from a header and coefficients.

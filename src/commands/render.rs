@@ -128,25 +128,49 @@ fn inverse3(m: &[[f64; 3]; 3]) -> [[f64; 3]; 3] {
     adj.map(|row| row.map(|v| v / det))
 }
 
-/// Decodes the packets (or a prefix) of a file.
+/// Decodes the packets (or a prefix) of a file. Packets decode on their own, so they are decoded
+/// in parallel, in batches of a few per thread so that a coefficient cap stops early.
 pub fn load_coefficients(
     bytes: &[u8],
     max_coefficients: Option<usize>,
     max_bytes: Option<usize>,
 ) -> Result<(Header, Vec<Coefficient>)> {
+    use rayon::prelude::*;
     let file = parse_file(bytes)?;
     let mut used = file.header_bytes + file.directory_bytes;
-    let mut coeffs = Vec::new();
-    for (i, p) in file.packets.iter().enumerate() {
+    let mut prefix = 0usize;
+    for p in &file.packets {
         if max_bytes.is_some_and(|b| used + p.len() > b) {
             break;
         }
         used += p.len();
-        let d = decode_packet(&file.header, p).with_context(|| format!("packet {i}"))?;
-        coeffs.extend(d.coefficients);
-        if max_coefficients.is_some_and(|n| coeffs.len() >= n) {
-            break;
+        prefix += 1;
+    }
+    let batch = 4 * rayon::current_num_threads();
+    let mut coeffs = Vec::new();
+    let mut start = 0usize;
+    while start < prefix && max_coefficients.is_none_or(|n| coeffs.len() < n) {
+        let end = if max_coefficients.is_some() {
+            (start + batch).min(prefix)
+        } else {
+            prefix
+        };
+        let decoded: Vec<Vec<Coefficient>> = file.packets[start..end]
+            .par_iter()
+            .enumerate()
+            .map(|(i, p)| {
+                decode_packet(&file.header, p)
+                    .map(|d| d.coefficients)
+                    .with_context(|| format!("packet {}", start + i))
+            })
+            .collect::<Result<_>>()?;
+        for d in decoded {
+            if max_coefficients.is_some_and(|n| coeffs.len() >= n) {
+                break;
+            }
+            coeffs.extend(d);
         }
+        start = end;
     }
     if let Some(n) = max_coefficients {
         coeffs.truncate(n);
