@@ -215,6 +215,7 @@ async fn view_dependent_order_beats_global_order() {
     let fit = 64.0 / (48.0f64 * 3f64.sqrt());
     let cases = [
         ("axis-aligned (rays along x)", View::new(0.0, 0.0, 64, 64)),
+        ("oblique", View::new(0.66, 0.91, 64, 64)),
         (
             "zoomed corner (4x, panned)",
             View::new(0.0, 0.0, 64, 64)
@@ -231,17 +232,19 @@ async fn view_dependent_order_beats_global_order() {
             .await
             .unwrap();
         let order: Vec<u32> = got.packets.iter().map(|p| p.id).collect();
-        let budget = total / 4;
-        let (q_view, used_v) = q_i_after(&header, &packets, &order, budget, &view, &reference);
-        let (q_global, used_g) = q_i_after(&header, &packets, &global, budget, &view, &reference);
-        println!(
-            "{name}: after {budget} of {total} bytes: Q_I view-dependent {q_view:.2} dB \
-             ({used_v} B), global {q_global:.2} dB ({used_g} B)"
-        );
-        assert!(
-            q_view > q_global,
-            "{name}: view-dependent {q_view:.2} dB <= global {q_global:.2} dB"
-        );
+        for budget in [total / 8, total / 4, total / 2] {
+            let (q_view, used_v) = q_i_after(&header, &packets, &order, budget, &view, &reference);
+            let (q_global, used_g) =
+                q_i_after(&header, &packets, &global, budget, &view, &reference);
+            println!(
+                "{name}: after {budget} of {total} bytes: Q_I view-dependent {q_view:.2} dB \
+                 ({used_v} B), global {q_global:.2} dB ({used_g} B)"
+            );
+            assert!(
+                q_view > q_global,
+                "{name} at {budget} B: view-dependent {q_view:.2} dB <= global {q_global:.2} dB"
+            );
+        }
     }
     server.stop().await;
 }

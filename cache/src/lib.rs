@@ -4,7 +4,8 @@
 //! (view-dependent selective refinement, the paper's future work; JPIP is the model).
 //!
 //! - [`store`]: the sled layout, atomic ingest (batch + commit record), deletion, recovery;
-//! - [`priority`]: visible energy of a packet in a view (projection-slice + Parseval);
+//! - [`priority`]: visible energy of a packet in a view (projection-slice + Parseval), sent by
+//!   visible energy per byte;
 //! - [`service`]: the tonic service and the per-stream refinement session;
 //! - [`convert`] / [`error`]: the one place for `pb` conversions / `tonic::Status` mapping;
 //! - [`client`]: small async helpers used by the CLI and the tests.
