@@ -232,6 +232,25 @@ fn every_packet_decodes_alone_and_tile_prefixes_hold_the_most_significant() {
         let score = |k: &Coefficient| {
             (k.value as f64).powi(2) * h.geometry.basis_norm2(k.band) * h.importance(0)
         };
+        // The summary: per band, the energy of the packet's coefficients, to 1/16 octave.
+        let mut energy = std::collections::BTreeMap::new();
+        for k in &d.coefficients {
+            let bi = h.geometry.band_index(k.band).unwrap();
+            *energy.entry(bi).or_insert(0.0) += score(k);
+        }
+        let energy: Vec<(usize, f64)> = energy.into_iter().filter(|e| e.1 > 0.0).collect();
+        assert_eq!(d.summary.len(), energy.len());
+        let top = energy.iter().map(|e| e.1).fold(0.0, f64::max);
+        for ((band, e), (key, want)) in d.summary.iter().zip(&energy) {
+            assert_eq!(h.geometry.band_index(*band), Some(*key));
+            if *want > top * 2f64.powf(-31.0) {
+                let ratio = e / want;
+                assert!(
+                    (ratio.log2()).abs() <= 1.0 / 16.0 + 1e-9,
+                    "{key:?}: {e} vs {want}"
+                );
+            }
+        }
         let max = d.coefficients.iter().map(score).fold(0.0, f64::max);
         let min = d
             .coefficients
@@ -417,6 +436,25 @@ fn sample_file() -> Vec<u8> {
     .clone()
 }
 
+fn sample_sigmap_file() -> Vec<u8> {
+    static FILE: std::sync::OnceLock<Vec<u8>> = std::sync::OnceLock::new();
+    FILE.get_or_init(|| {
+        let vol = Phantom::SheppLogan.generate([20, 16, 12]);
+        run(
+            &vol,
+            &CompressOptions {
+                target: Target::Fraction(0.2),
+                tile: TileChoice::Size(16),
+                layers: Some(3),
+                refine: None,
+                ..Default::default()
+            },
+        )
+        .bytes
+    })
+    .clone()
+}
+
 proptest! {
     #![proptest_config(ProptestConfig { cases: 256, ..ProptestConfig::default() })]
 
@@ -441,17 +479,38 @@ proptest! {
     #[test]
     fn random_bytes_give_errors(bytes in prop::collection::vec(any::<u8>(), 0..2048)) {
         prop_assert!(decode_coefficients(&bytes).is_err());
-        let mut with_magic = b"WSPL\x01\x00".to_vec();
+        let mut with_magic = wavesplat_codec::format::MAGIC.to_vec();
+        with_magic.extend_from_slice(&wavesplat_codec::format::VERSION.to_le_bytes());
         with_magic.extend_from_slice(&bytes);
         prop_assert!(decode_coefficients(&with_magic).is_err());
     }
 
     #[test]
     fn random_packets_with_valid_crc_never_panic(body in prop::collection::vec(any::<u8>(), 0..512)) {
-        let file = sample_file();
-        let parsed = parse_file(&file).unwrap();
         let mut p = body.clone();
         p.extend_from_slice(&crc32fast::hash(&body).to_le_bytes());
-        let _ = decode_packet(&parsed.header, &p);
+        for file in [sample_file(), sample_sigmap_file()] {
+            let parsed = parse_file(&file).unwrap();
+            let _ = decode_packet(&parsed.header, &p);
+        }
+    }
+
+    #[test]
+    fn sigmap_packets_with_corrupted_payloads_never_panic(
+        which in any::<prop::sample::Index>(),
+        flips in prop::collection::vec((any::<prop::sample::Index>(), any::<u8>()), 1..6),
+    ) {
+        // Corrupt a real sigmap packet's body and fix its CRC, so the payload decoder (the
+        // octree and its context grids) sees the garbage.
+        let file = sample_sigmap_file();
+        let parsed = parse_file(&file).unwrap();
+        let packet = parsed.packets[which.index(parsed.packets.len())];
+        let mut body = packet[..packet.len() - 4].to_vec();
+        for (i, x) in flips {
+            let i = i.index(body.len());
+            body[i] ^= x | 1;
+        }
+        body.extend_from_slice(&crc32fast::hash(&body.clone()).to_le_bytes());
+        let _ = decode_packet(&parsed.header, &body);
     }
 }

@@ -10,9 +10,12 @@
 //! [`CoderKind::Range`] the same syntax elements go through adaptive binary models that reset
 //! at every packet.
 //!
-//! Framing: tile (varint), layer (u8), coefficient count (varint), energy summary (per band with
-//! energy: band index varint + i16 code of 8·log2(energy)), payload length (varint), payload,
-//! CRC-32 of everything before it.
+//! Framing: tile (varint), layer (u8), coefficient count (varint), energy summary, payload length
+//! (varint), payload, CRC-32 of everything before it. The summary is a bit mask of the bands with
+//! energy (⌈bands/8⌉ bytes, band b in bit b % 8 of byte b / 8); if any, the largest code
+//! c = round(8·log2(energy)) as i16, then per band in the mask one byte, the amount its code lies
+//! below the largest (energies more than 2^−31.9 below the packet's largest band read back as
+//! that floor, which no priority can tell apart from nothing).
 
 use super::bytes::{ByteReader, ByteWriter};
 use super::quant::Chain;
@@ -295,7 +298,7 @@ fn energy_code(e: f64) -> i16 {
     (8.0 * e.log2()).round().clamp(-32767.0, 32767.0) as i16
 }
 
-fn energy_from_code(c: i16) -> f64 {
+fn energy_from_code(c: i32) -> f64 {
     (c as f64 / 8.0).exp2()
 }
 
@@ -321,10 +324,17 @@ fn frame(header: &Header, input: &PacketInput, recon: &[Coefficient], payload: &
     w.u8(input.layer as u8);
     w.varint(input.coefficients.len() as u64);
     let summary = summarize(header, recon);
-    w.varint(summary.len() as u64);
-    for (bi, e) in summary {
-        w.varint(bi as u64);
-        w.u16(energy_code(e) as u16);
+    let nb = header.geometry.band_count();
+    let mut mask = vec![0u8; nb.div_ceil(8)];
+    for (bi, _) in &summary {
+        mask[bi / 8] |= 1 << (bi % 8);
+    }
+    mask.iter().for_each(|m| w.u8(*m));
+    if let Some(top) = summary.iter().map(|(_, e)| energy_code(*e)).max() {
+        w.u16(top as u16);
+        for (_, e) in &summary {
+            w.u8((top as i32 - energy_code(*e) as i32).clamp(0, 255) as u8);
+        }
     }
     w.varint(payload.len() as u64);
     w.bytes(payload);
@@ -524,13 +534,27 @@ pub fn decode_packet(header: &Header, bytes: &[u8]) -> Result<DecodedPacket, For
     }
     let count = r.varint()?;
     let nb = header.geometry.band_count();
-    let ns = r.varint_max(nb as u64, "summary entries")? as usize;
+    let mut present = Vec::with_capacity(nb);
+    for byte in 0..nb.div_ceil(8) {
+        let m = r.u8()?;
+        for bit in 0..8 {
+            if m & (1 << bit) != 0 {
+                let bi = 8 * byte + bit;
+                if bi >= nb {
+                    return Err(invalid(W, format!("summary names band {bi} of {nb}")));
+                }
+                present.push(bi);
+            }
+        }
+    }
     let bands = header.geometry.bands();
-    let mut summary = Vec::with_capacity(ns);
-    for _ in 0..ns {
-        let bi = r.varint_max(nb as u64 - 1, "summary band")? as usize;
-        let code = r.u16()? as i16;
-        summary.push((bands[bi], energy_from_code(code)));
+    let mut summary = Vec::with_capacity(present.len());
+    if !present.is_empty() {
+        let top = r.u16()? as i16 as i32;
+        for bi in present {
+            let code = top - r.u8()? as i32;
+            summary.push((bands[bi], energy_from_code(code)));
+        }
     }
     let plen = r.varint()? as usize;
     let payload = r.take(plen)?;
