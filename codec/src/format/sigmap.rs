@@ -56,12 +56,22 @@ fn occupancy_context(band: usize, cells: usize, neighbours: (usize, usize)) -> u
         + neighbours.1
 }
 
+/// Most cells a [`SignificanceGrid`] holds (~5 MB): larger bounding boxes are coarsened.
+const MAX_GRID_CELLS: usize = 1 << 20;
+
 /// Which cells of one band's tile-local region hold a coefficient of this packet, as a 3D
-/// prefix sum so that any box is counted in O(1).
+/// prefix sum so that any box is counted in O(1). Its memory is bounded whatever a (possibly
+/// hostile) packet holds: when the cells' bounding box exceeds [`MAX_GRID_CELLS`], the grid
+/// records 2^shift-cell blocks instead, and a box query answers for the blocks it touches
+/// (encoder and decoder build the same grid, so the contexts still agree).
 struct SignificanceGrid {
+    /// Grid size in (possibly coarsened) cells.
     dims: [usize; 3],
-    /// Origin of the region in band coordinates (the tile's corner at this level).
+    /// Bounding box of the cells, in band coordinates.
     origin: [u32; 3],
+    extent: [u64; 3],
+    /// Coarsening: a grid cell covers 2^shift band cells per axis.
+    shift: u32,
     /// The cells themselves (x fastest), for the frequent one-cell queries.
     cells: Vec<bool>,
     sums: Vec<u32>,
@@ -82,14 +92,20 @@ impl SignificanceGrid {
         if cells.is_empty() {
             lo = [0; 3];
         }
-        let dims = [0, 1, 2].map(|a| (hi[a] - lo[a]) as usize);
+        let extent = [0, 1, 2].map(|a| (hi[a] - lo[a]) as u64);
+        let mut shift = 0u32;
+        let coarse = |shift: u32| extent.map(|e| e.div_ceil(1 << shift) as usize);
+        while coarse(shift).iter().map(|d| d + 1).product::<usize>() > MAX_GRID_CELLS {
+            shift += 1;
+        }
+        let dims = coarse(shift);
         let origin = [0, 1, 2].map(|a| origin[a] + lo[a]);
         let [nx, ny, nz] = dims.map(|d| d + 1);
         let mut sums = vec![0u32; nx * ny * nz];
         let mut set = vec![false; dims[0] * dims[1] * dims[2]];
         let at = |x: usize, y: usize, z: usize| x + nx * (y + ny * z);
         for p in cells {
-            let [x, y, z] = [0, 1, 2].map(|a| (p[a] - lo[a]) as usize);
+            let [x, y, z] = [0, 1, 2].map(|a| ((p[a] - lo[a]) >> shift) as usize);
             set[x + dims[0] * (y + dims[1] * z)] = true;
             sums[at(x + 1, y + 1, z + 1)] = 1;
         }
@@ -117,6 +133,8 @@ impl SignificanceGrid {
         SignificanceGrid {
             dims,
             origin,
+            extent,
+            shift,
             cells: set,
             sums,
         }
@@ -128,11 +146,13 @@ impl SignificanceGrid {
         let mut h = [0usize; 3];
         for a in 0..3 {
             let o = self.origin[a] as u64;
-            l[a] = lo[a].saturating_sub(o).min(self.dims[a] as u64) as usize;
-            h[a] = hi[a].saturating_sub(o).min(self.dims[a] as u64) as usize;
-            if h[a] <= l[a] {
+            let lc = lo[a].saturating_sub(o).min(self.extent[a]);
+            let hc = hi[a].saturating_sub(o).min(self.extent[a]);
+            if hc <= lc {
                 return false;
             }
+            l[a] = (lc >> self.shift) as usize;
+            h[a] = (((hc - 1) >> self.shift) + 1) as usize;
         }
         if (0..3).all(|a| h[a] == l[a] + 1) {
             return self.cells[l[0] + self.dims[0] * (l[1] + self.dims[1] * l[2])];
@@ -216,6 +236,16 @@ impl<'h> Neighbourhood<'h> {
             return;
         }
         let l = band.level as usize;
+        // Only the next coarser level's bands are parents of what follows; drop the rest.
+        let geometry = &self.header.geometry;
+        for (i, b) in geometry.bands().iter().enumerate() {
+            if b.level as usize > l + 1 {
+                self.grids[i] = None;
+            }
+        }
+        for level in l + 1..self.cousins.len() {
+            self.cousins[level] = None;
+        }
         if l > 1 {
             if let Some(i) = self.header.geometry.band_index(band) {
                 self.grids[i] = Some(SignificanceGrid::new(origin, cells));
@@ -576,6 +606,27 @@ mod tests {
     use super::*;
     use rand::{Rng, SeedableRng};
     use rand_chacha::ChaCha8Rng;
+
+    #[test]
+    fn huge_bounding_boxes_are_coarsened_never_missing_a_cell() {
+        let mut rng = ChaCha8Rng::seed_from_u64(11);
+        for _ in 0..10 {
+            let side = rng.gen_range(200..5000u32);
+            let cells: Vec<[u32; 3]> = (0..rng.gen_range(2..40))
+                .map(|_| [0, 1, 2].map(|_| rng.gen_range(0..side)))
+                .collect();
+            let grid = SignificanceGrid::new([3, 5, 7], &cells);
+            assert!(grid.sums.len() <= MAX_GRID_CELLS && grid.cells.len() <= MAX_GRID_CELLS);
+            for c in &cells {
+                let g = [0, 1, 2].map(|a| (c[a] + [3, 5, 7][a]) as u64);
+                assert!(grid.any(g, g.map(|v| v + 1)), "cell {c:?} missed");
+                assert!(grid.any(g.map(|v| v.saturating_sub(9)), g.map(|v| v + 3)));
+            }
+            // Far outside the cells' bounding box nothing is set.
+            let far = [u64::from(side) + 100; 3];
+            assert!(!grid.any(far, far.map(|v| v + 50)));
+        }
+    }
 
     #[test]
     fn significance_grid_counts_boxes_like_a_brute_force_scan() {
