@@ -172,7 +172,7 @@ impl SignificanceGrid {
 }
 
 /// The significance of the bands of the current channel coded so far in this packet, indexed
-/// by band; what the occupancy and value contexts look at.
+/// by band; what the occupancy contexts look at.
 struct Neighbourhood<'h> {
     header: &'h Header,
     /// Per band index: its cells, kept for the next finer level's parent queries.
