@@ -37,17 +37,29 @@ pub enum DecodeError {
 /// every coefficient (file order).
 pub fn decode_coefficients(bytes: &[u8]) -> Result<(Header, Vec<Coefficient>), DecodeError> {
     let file = parse_file(bytes)?;
-    let packets: Vec<Vec<Coefficient>> = file
-        .packets
+    let packets = decode_packets(&file.header, &file.packets, 0)?;
+    Ok((file.header, packets.concat()))
+}
+
+/// Decodes `packets` in parallel, each on its own; the result is in input order. Errors name the
+/// packet's file index, `first_index` being that of `packets[0]`.
+pub fn decode_packets(
+    header: &Header,
+    packets: &[&[u8]],
+    first_index: usize,
+) -> Result<Vec<Vec<Coefficient>>, DecodeError> {
+    packets
         .par_iter()
         .enumerate()
-        .map(|(index, p)| {
-            decode_packet(&file.header, p)
+        .map(|(i, p)| {
+            decode_packet(header, p)
                 .map(|d| d.coefficients)
-                .map_err(|source| DecodeError::Packet { index, source })
+                .map_err(|source| DecodeError::Packet {
+                    index: first_index + i,
+                    source,
+                })
         })
-        .collect::<Result<_, _>>()?;
-    Ok((file.header, packets.concat()))
+        .collect()
 }
 
 /// Reconstructs the volume from a header and coefficients.

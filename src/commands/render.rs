@@ -5,8 +5,9 @@
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use std::path::PathBuf;
-use wavesplat_codec::format::packet::{decode_packet, Coefficient};
+use wavesplat_codec::format::packet::Coefficient;
 use wavesplat_codec::format::{parse_file, ColorKind, Header};
+use wavesplat_compressor::decode::decode_packets;
 use wavesplat_viewer::splat::multiview_cameras;
 use wavesplat_viewer::{Camera, Cue, CueDirection, Image, RenderOptions, Renderer, View};
 
@@ -135,7 +136,6 @@ pub fn load_coefficients(
     max_coefficients: Option<usize>,
     max_bytes: Option<usize>,
 ) -> Result<(Header, Vec<Coefficient>)> {
-    use rayon::prelude::*;
     let file = parse_file(bytes)?;
     let mut used = file.header_bytes + file.directory_bytes;
     let mut prefix = 0usize;
@@ -155,15 +155,7 @@ pub fn load_coefficients(
         } else {
             prefix
         };
-        let decoded: Vec<Vec<Coefficient>> = file.packets[start..end]
-            .par_iter()
-            .enumerate()
-            .map(|(i, p)| {
-                decode_packet(&file.header, p)
-                    .map(|d| d.coefficients)
-                    .with_context(|| format!("packet {}", start + i))
-            })
-            .collect::<Result<_>>()?;
+        let decoded = decode_packets(&file.header, &file.packets[start..end], start)?;
         for d in decoded {
             if max_coefficients.is_some_and(|n| coeffs.len() >= n) {
                 break;
