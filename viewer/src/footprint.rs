@@ -78,6 +78,19 @@ pub struct FineTable {
 }
 
 impl FineTable {
+    /// A table of (2·cx + 1) × (2·cy + 1) samples centred on the basis centre.
+    fn centred(s: usize, cx: usize, cy: usize, data: Vec<f64>) -> FineTable {
+        debug_assert_eq!(data.len(), (2 * cx + 1) * (2 * cy + 1));
+        FineTable {
+            s,
+            nx: 2 * cx + 1,
+            ny: 2 * cy + 1,
+            cx,
+            cy,
+            data,
+        }
+    }
+
     /// Sample at signed fine indices (zero outside).
     pub fn get(&self, ix: i64, iy: i64) -> f64 {
         if ix < 0 || iy < 0 || ix >= self.nx as i64 || iy >= self.ny as i64 {
@@ -466,14 +479,7 @@ pub fn mipmap(
             data[jy * cw + i] = acc * norm;
         }
     }
-    FineTable {
-        s,
-        nx: cw,
-        ny: ch,
-        cx: hx,
-        cy: hy,
-        data,
-    }
+    FineTable::centred(s, hx, hy, data)
 }
 
 /// All footprints of one view: index `level · 8 + kind` (levels 0..=M; level 0 unused unless
@@ -938,12 +944,5 @@ fn inverse_and_crop(
             data[iy * cw + ix] = col[oy].re * scale;
         }
     }
-    FineTable {
-        s,
-        nx: cw,
-        ny: ch,
-        cx: hx,
-        cy: hy,
-        data,
-    }
+    FineTable::centred(s, hx, hy, data)
 }

@@ -247,7 +247,7 @@ impl<'h> Neighbourhood<'h> {
             self.cousins[level] = None;
         }
         if l > 1 {
-            if let Some(i) = self.header.geometry.band_index(band) {
+            if let Some(i) = geometry.band_index(band) {
                 self.grids[i] = Some(SignificanceGrid::new(origin, cells));
             }
         }
