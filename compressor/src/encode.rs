@@ -325,6 +325,21 @@ fn prepare(
     })
 }
 
+/// Each quality layer holds this many times the coefficients of all layers before it.
+///
+/// Packets decode on their own, so a layer's significance map cannot lean on the positions of
+/// the layers before it: splitting a tile's coefficients into layers costs roughly the entropy
+/// of the partition. At the 5.85 % point of the 128³ MNI volume (146 507 coefficients, one
+/// tile of 128) two layers cost +4.6 % bytes with growth 4, +2.7 % with 8, +1.8 % with 16,
+/// and three layers with growth 16 +1.9 %; growth 16 keeps a coarse-to-fine progression
+/// (the first layer is a 1/256 preview at three layers) for a third of the cost of 4.
+pub const LAYER_GROWTH: f64 = 16.0;
+
+/// Bytes a tile should hold on average under [`TileChoice::Auto`]: a packet pays for the top
+/// of its octrees and for its adaptive models learning from scratch, ~2 % of the file at this
+/// size (tile 64 against 128 at the 5.85 % point above) and ~8 % at a quarter of it (tile 32).
+const AUTO_TILE_BYTES: u64 = 4096;
+
 /// Picks tile size and layer count for an expected file size.
 fn choose_tiling(
     geometry: &Geometry,
@@ -340,18 +355,16 @@ fn choose_tiling(
         TileChoice::Single => (single, layers.unwrap_or(1)),
         TileChoice::Size(t) => {
             let t = t.max(1).div_ceil(block) * block;
-            (t.min(single), layers.unwrap_or(4))
+            (t.min(single), layers.unwrap_or(3))
         }
         TileChoice::Auto => {
-            // Aim for packets of ~512 bytes on average at least.
-            let budget = (expected_bytes / 512).max(1) as usize;
-            let nl = layers.unwrap_or(match budget {
-                0..=3 => 1,
-                4..=15 => 2,
-                16..=63 => 3,
-                _ => 4,
+            // One layer for tiny files, a preview layer from 2 KB, three layers from 8 KB.
+            let nl = layers.unwrap_or(match expected_bytes {
+                0..2048 => 1,
+                2048..8192 => 2,
+                _ => 3,
             });
-            let tiles_budget = (budget / nl).max(1);
+            let tiles_budget = (expected_bytes / AUTO_TILE_BYTES).max(1) as usize;
             let mut t = block.max(32).next_power_of_two();
             while t < single && count(t) > tiles_budget {
                 t *= 2;
@@ -410,10 +423,11 @@ impl Prepared {
         let kept = &self.sorted[..k];
         let (tile, nl) = choose_tiling(g, opts.tile, opts.layers, expected_bytes);
         let nl = nl.clamp(1, MAX_LAYERS);
-        // Layer l ends at rank k·4^(l−(L−1)): layer 0 holds the top k/4^(L−1).
+        // Layer l ends at rank k·G^(l−(L−1)) with G = LAYER_GROWTH: layer 0 holds the top
+        // k/G^(L−1).
         let mut ends = Vec::with_capacity(nl);
         for l in 0..nl {
-            let frac = 4f64.powi(l as i32 - (nl as i32 - 1));
+            let frac = LAYER_GROWTH.powi(l as i32 - (nl as i32 - 1));
             ends.push(((k as f64 * frac).ceil() as usize).clamp(1.min(k), k));
         }
         let mut layer_bounds = Vec::with_capacity(nl);

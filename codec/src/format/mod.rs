@@ -35,7 +35,7 @@ use thiserror::Error;
 /// File magic.
 pub const MAGIC: &[u8; 4] = b"WSPL";
 /// Current format version.
-pub const VERSION: u16 = 2;
+pub const VERSION: u16 = 3;
 /// Largest accepted header (bytes).
 pub const MAX_HEADER_BYTES: usize = 16 << 20;
 /// Largest accepted packet (bytes).

@@ -29,6 +29,14 @@ use crate::entropy::huffman::{HuffmanCode, HuffmanDecoder};
 use crate::entropy::range::{AdaptiveSintModel, AdaptiveUintModel, RangeDecoder, RangeEncoder};
 use crate::layout::Band;
 
+/// Most coefficients a packet may declare per payload byte (plus one byte's worth), so that a
+/// small hostile packet cannot make the decoder allocate and loop for a huge declared count.
+/// The Huffman and range syntaxes spend at least one bit per coefficient; the sigmap coder's
+/// adaptive contexts can spend less on very regular data (and its range coder drops trailing
+/// zero bytes), so it pads its payload with zero bytes, which decode as if absent, up to this
+/// bound.
+pub(crate) const MAX_COEFFICIENTS_PER_PAYLOAD_BYTE: usize = 64;
+
 /// One coefficient: which channel and band, its position in the band grid, its value.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Coefficient {
@@ -561,10 +569,11 @@ pub fn decode_packet(header: &Header, bytes: &[u8]) -> Result<DecodedPacket, For
     if r.remaining() != 0 {
         return Err(invalid(W, "bytes after the payload"));
     }
-    // Every coefficient costs at least one bit (its sign): bound the count by the payload, and
-    // by the tile's capacity.
+    // Bound the count by the payload (the encoders guarantee it, see
+    // MAX_COEFFICIENTS_PER_PAYLOAD_BYTE), and by the tile's capacity.
     let capacity = (header.tile as u64).pow(3) * header.channels as u64;
-    if count > 8 * plen as u64 + 8 || count > capacity {
+    let per_byte = MAX_COEFFICIENTS_PER_PAYLOAD_BYTE as u64;
+    if count > per_byte * (plen as u64 + 1) || count > capacity {
         return Err(invalid(
             W,
             format!("{count} coefficients in a {plen}-byte payload (tile capacity {capacity})"),
