@@ -29,8 +29,9 @@ use crate::entropy::range::{AdaptiveUintModel, BitModel, RangeDecoder, RangeEnco
 use crate::layout::Band;
 use rustc_hash::FxHashMap;
 
-/// Size contexts per band (log2 of a box's cell count, clamped).
-const SIZE_CONTEXTS: usize = 48;
+/// Most size contexts per band (log2 of a box's cell count, clamped); a packet uses as many as
+/// its tile's largest region needs ([`Models::new`]), so small tiles set up fewer models.
+const MAX_SIZE_CONTEXTS: usize = 48;
 
 /// States of a neighbourhood context: no such band, its region is empty, it holds a coefficient.
 const NEIGHBOUR_STATES: usize = 3;
@@ -45,13 +46,19 @@ struct Models {
     sign: Vec<BitModel>,
     value: Vec<AdaptiveUintModel>,
     coded: CodedCells,
+    /// Size contexts per band: enough for the largest box of a tile region.
+    size_contexts: usize,
 }
 
 impl Models {
     fn new(header: &Header) -> Models {
         let nb = header.geometry.band_count();
-        let occupied = nb * SIZE_CONTEXTS * NEIGHBOUR_STATES * NEIGHBOUR_STATES * FACE_STATES;
+        let tile_cells = (header.tile as u128).pow(3);
+        let size_contexts =
+            ((u128::BITS - tile_cells.leading_zeros()) as usize + 1).clamp(2, MAX_SIZE_CONTEXTS);
+        let occupied = nb * size_contexts * NEIGHBOUR_STATES * NEIGHBOUR_STATES * FACE_STATES;
         Models {
+            size_contexts,
             present: (0..nb).map(|_| BitModel::new()).collect(),
             occupied: (0..occupied).map(|_| BitModel::new()).collect(),
             sign: (0..nb * SIGN_CONTEXTS).map(|_| BitModel::new()).collect(),
@@ -165,6 +172,8 @@ impl CodedCells {
             return 0;
         }
         let mut n = 0;
+        let e = self.extent.map(|v| v as usize);
+        let stride = [1, e[0], e[0] * e[1]];
         for a in 0..3 {
             if b.lo[a] == 0 {
                 continue;
@@ -172,11 +181,24 @@ impl CodedCells {
             let (u, v) = ((a + 1) % 3, (a + 2) % 3);
             let mut c = [0u32; 3];
             c[a] = b.lo[a] - 1;
-            for i in b.lo[u]..b.hi[u] {
-                c[u] = i;
-                for j in b.lo[v]..b.hi[v] {
-                    c[v] = j;
-                    n += (self.get(c) != 0) as usize;
+            if self.use_dense {
+                // Walk the face with strides: this is the coders' innermost loop.
+                c[u] = b.lo[u];
+                c[v] = b.lo[v];
+                let base = self.index(c);
+                for i in 0..(b.hi[u] - b.lo[u]) as usize {
+                    let row = base + i * stride[u];
+                    for j in 0..(b.hi[v] - b.lo[v]) as usize {
+                        n += (self.dense[row + j * stride[v]] != 0) as usize;
+                    }
+                }
+            } else {
+                for i in b.lo[u]..b.hi[u] {
+                    c[u] = i;
+                    for j in b.lo[v]..b.hi[v] {
+                        c[v] = j;
+                        n += (self.get(c) != 0) as usize;
+                    }
                 }
             }
         }
@@ -189,17 +211,25 @@ impl CodedCells {
     }
 }
 
-/// The occupancy context of a box: its band, the log2 of its cell count, the states of its
-/// parent region (same type one level coarser) and of its cousins (earlier types of the same
-/// level at the same cells), both as coded earlier in this packet, and its face state (coded
-/// cells of the same band touching its lower faces, [`CodedCells::face_state`]).
-fn occupancy_context(band: usize, cells: usize, neighbours: (usize, usize), face: usize) -> usize {
-    let lg = (usize::BITS - cells.leading_zeros()) as usize;
-    (((band * SIZE_CONTEXTS + lg.min(SIZE_CONTEXTS - 1)) * NEIGHBOUR_STATES + neighbours.0)
-        * NEIGHBOUR_STATES
-        + neighbours.1)
-        * FACE_STATES
-        + face
+impl Models {
+    /// The occupancy context of a box: its band, the log2 of its cell count, the states of its
+    /// parent region (same type one level coarser) and of its cousins (earlier types of the
+    /// same level at the same cells), both as coded earlier in this packet, and its face state
+    /// (coded cells of the same band touching its lower faces, [`CodedCells::face_state`]).
+    fn occupancy_context(
+        &self,
+        band: usize,
+        cells: usize,
+        neighbours: (usize, usize),
+        face: usize,
+    ) -> usize {
+        let lg = (usize::BITS - cells.leading_zeros()) as usize;
+        let size = lg.min(self.size_contexts - 1);
+        (((band * self.size_contexts + size) * NEIGHBOUR_STATES + neighbours.0) * NEIGHBOUR_STATES
+            + neighbours.1)
+            * FACE_STATES
+            + face
+    }
 }
 
 /// Most cells a [`SignificanceGrid`] holds (~5 MB): larger bounding boxes are coarsened.
@@ -644,10 +674,8 @@ fn encode_box(
             let b0 = enc.size_bytes();
             let states = ctx.hood.states(ctx.band, ctx.origin, &child);
             let face = m.coded.face_state(&child);
-            enc.encode_bit(
-                &mut m.occupied[occupancy_context(ctx.bi, child.cells(), states, face)],
-                occupied,
-            );
+            let oc = m.occupancy_context(ctx.bi, child.cells(), states, face);
+            enc.encode_bit(&mut m.occupied[oc], occupied);
             bd.position_bits += 8.0 * (enc.size_bytes() - b0) as f64;
         }
         any_before |= occupied;
@@ -769,9 +797,8 @@ fn decode_box(
             let b0 = dec.bytes_read();
             let states = ctx.hood.states(ctx.band, ctx.origin, &child);
             let face = m.coded.face_state(&child);
-            let o = dec.decode_bit(
-                &mut m.occupied[occupancy_context(ctx.bi, child.cells(), states, face)],
-            );
+            let oc = m.occupancy_context(ctx.bi, child.cells(), states, face);
+            let o = dec.decode_bit(&mut m.occupied[oc]);
             bd.position_bits += 8.0 * (dec.bytes_read() - b0) as f64;
             o
         } else {
