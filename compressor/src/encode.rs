@@ -643,7 +643,14 @@ pub fn compress(
     };
     let k = k.min(prepared.sorted.len());
     progress(Stage::Encode(0), 0.0);
-    let expected = (k as u64).saturating_mul(3).max(64);
+    // File size guess for the automatic tiling: measured bytes per kept coefficient are
+    // ~0.7–0.9 for the sigmap coder and 2–3 for the paper's syntaxes.
+    let per_coefficient = if opts.coder == CoderKind::Sigmap {
+        1
+    } else {
+        3
+    };
+    let expected = (k as u64).saturating_mul(per_coefficient).max(64);
     Ok(prepared.encode(k, opts, expected))
 }
 
