@@ -1,6 +1,17 @@
 //! `wavesplat`: the front door. Parses the command line and wires the libraries together; all
 //! the work lives in the crates (`wavesplat-codec`, `wavesplat-compressor`, `wavesplat-viewer`).
 
+/// `println!` for the commands' output that ends the process quietly when stdout is closed
+/// early (`wavesplat info f.wsp | head`), where `println!` panics.
+macro_rules! outln {
+    ($($arg:tt)*) => {{
+        use std::io::Write as _;
+        if let Err(e) = writeln!(std::io::stdout(), $($arg)*) {
+            $crate::stdout_failed(e);
+        }
+    }};
+}
+
 mod commands;
 mod progress;
 
@@ -84,4 +95,14 @@ fn run(command: Command) -> Result<()> {
         Command::Archive(c) => commands::orchestrator::run_archive(c),
         Command::Jobs(c) => commands::orchestrator::run_jobs(c),
     }
+}
+
+/// Ends the process after a failed write to stdout: silently (status 0) when the reader went
+/// away, as `head` does, with an error otherwise.
+pub(crate) fn stdout_failed(e: std::io::Error) -> ! {
+    if e.kind() == std::io::ErrorKind::BrokenPipe {
+        std::process::exit(0);
+    }
+    eprintln!("error: writing to stdout: {e}");
+    std::process::exit(1);
 }

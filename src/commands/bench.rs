@@ -53,7 +53,7 @@ pub fn run(a: BenchArgs) -> Result<()> {
         csv,
         "stage,family,threads,size,seconds,items,items_per_second"
     )?;
-    println!(
+    outln!(
         "{} voxels, {} threads, keep {} of the coefficients, median of {}",
         volume.voxel_count(),
         threads,
@@ -83,7 +83,7 @@ pub fn run(a: BenchArgs) -> Result<()> {
             "compress,{family},{threads},-,{s:.4},{voxels},{:.0}",
             voxels / s
         )?;
-        println!(
+        outln!(
             "{family:7} compress  {:8.3} s  {:12.0} voxels/s  ({} bytes)",
             s,
             voxels / s,
@@ -104,7 +104,7 @@ pub fn run(a: BenchArgs) -> Result<()> {
             "decode,{family},{threads},-,{s:.4},{n},{:.0}",
             n as f64 / s
         )?;
-        println!(
+        outln!(
             "{family:7} decode    {:8.4} s  {:12.0} coefficients/s",
             s,
             n as f64 / s
@@ -136,7 +136,7 @@ pub fn run(a: BenchArgs) -> Result<()> {
                 "pixel_updates,{family},{threads},{size},{s:.4},{updates},{:.0}",
                 updates as f64 / s
             )?;
-            println!(
+            outln!(
                 "{family:7} splat {size}² {:8.4} s  {:12.0} splats/s  {:12.0} pixel updates/s",
                 s,
                 coeffs.len() as f64 / s,
@@ -146,7 +146,7 @@ pub fn run(a: BenchArgs) -> Result<()> {
     }
     paper_case(&volume, &mut csv, a.repeat.max(1))?;
     accumulation_bandwidth(&mut csv, a.repeat.max(1))?;
-    println!("wrote {}", a.output.display());
+    outln!("wrote {}", a.output.display());
     Ok(())
 }
 
@@ -184,7 +184,7 @@ fn paper_case(
         coeffs.len(),
         coeffs.len() as f64 / s
     )?;
-    println!(
+    outln!(
         "paper case: {} Haar coefficients (M=3) at 160x180 in {:.1} ms (paper: 4.01 s on an R10000)",
         coeffs.len(),
         s * 1e3
@@ -212,7 +212,7 @@ fn paper_case(
             subset.len(),
             subset.len() as f64 / s
         )?;
-        println!(
+        outln!(
             "  level {level}: {:8} splats  {:12.0} splats/s",
             subset.len(),
             subset.len() as f64 / s
@@ -252,7 +252,7 @@ fn accumulation_bandwidth(csv: &mut std::fs::File, repeat: usize) -> Result<()> 
             "accumulate_loop,-,1,{side}x{side},{s:.4},{updates},{:.0}",
             updates / s
         )?;
-        println!(
+        outln!(
             "accumulation loop, {side}x{side} footprints: {:12.0} pixel updates/s per core ({:.1} GB/s read+write, L1-resident tile)",
             updates / s,
             updates * 12.0 / s / 1e9

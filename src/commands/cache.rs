@@ -133,13 +133,13 @@ pub fn run(cmd: CacheCommand) -> Result<()> {
                 } else {
                     "stored as"
                 };
-                println!("{} {what} {:?} (id {})", a.input.display(), v.name, v.id);
+                outln!("{} {what} {:?} (id {})", a.input.display(), v.name, v.id);
             }
             CacheCommand::List(a) => {
                 let mut c = connect(&a.url).await?;
                 let list = c.list(pb::ListRequest {}).await?.into_inner();
                 for v in list.volumes {
-                    println!("{}", describe(&v));
+                    outln!("{}", describe(&v));
                 }
             }
             CacheCommand::Rm(a) => {
@@ -151,7 +151,7 @@ pub fn run(cmd: CacheCommand) -> Result<()> {
                     })
                     .await
                     .with_context(|| format!("deleting {:?}", a.name))?;
-                println!("deleted {:?} (id {})", a.name, r.into_inner().id);
+                outln!("deleted {:?} (id {})", a.name, r.into_inner().id);
             }
         }
         Ok(())

@@ -203,7 +203,7 @@ fn print_summary(volume: &Volume, c: &Compressed, out: &std::path::Path) {
     let s = &c.stats;
     let d = volume.dims();
     let u8_size = (volume.voxel_count() * volume.channel_count()) as f64;
-    println!(
+    outln!(
         "{}: {} bytes ({:.4} % of the {}-byte 8-bit volume, {:.4} bits/voxel)",
         out.display(),
         s.bytes,
@@ -211,7 +211,7 @@ fn print_summary(volume: &Volume, c: &Compressed, out: &std::path::Path) {
         u8_size,
         8.0 * s.bytes as f64 / volume.voxel_count() as f64
     );
-    println!(
+    outln!(
         "volume {}x{}x{} x{} | {} M={} | kept {} of {} coefficients ({} non-zero)",
         d[0],
         d[1],
@@ -228,12 +228,16 @@ fn print_summary(volume: &Volume, c: &Compressed, out: &std::path::Path) {
     } else {
         ""
     };
-    println!(
+    outln!(
         "Q_V {:.4} % (eq. 19{over}) | Q_E {:.4} % (eq. 20) | tile {} | {} layers | {} packets",
-        s.q_v, s.q_e, s.tile, s.layers, s.packets
+        s.q_v,
+        s.q_e,
+        s.tile,
+        s.layers,
+        s.packets
     );
     let b = &s.breakdown;
-    println!(
+    outln!(
         "bytes: header {} | types/depth/channel {:.0} | positions {:.0} | signs {:.0} | values {:.0} | packet framing {}",
         s.header_bytes,
         b.tag_bits / 8.0,

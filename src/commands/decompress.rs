@@ -30,7 +30,7 @@ pub fn run(a: DecompressArgs) -> Result<()> {
         .collect();
     std::fs::write(&a.output, out).with_context(|| format!("writing {}", a.output.display()))?;
     let d = v.dims();
-    println!(
+    outln!(
         "wrote {} ({}x{}x{}, {} channel(s), f32 LE)",
         a.output.display(),
         d[0],

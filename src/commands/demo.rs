@@ -47,7 +47,7 @@ pub fn run(a: DemoArgs) -> Result<()> {
         )
     })?;
     let volume = phantom.generate([a.size; 3]);
-    println!(
+    outln!(
         "1/3 compressing the {} phantom ({}³, {} channel(s)) …",
         a.phantom,
         a.size,
@@ -61,7 +61,7 @@ pub fn run(a: DemoArgs) -> Result<()> {
     let c = compress(&volume, &opts, &|_, _| {})?;
     let wsp = a.out.join("volume.wsp");
     std::fs::write(&wsp, &c.bytes)?;
-    println!(
+    outln!(
         "    {} bytes ({:.3} % of 8-bit), {} coefficients, Q_V {:.3} %, {} packets, {:.2} s",
         c.bytes.len(),
         100.0 * c.bytes.len() as f64 / (volume.voxel_count() * volume.channel_count()) as f64,
@@ -71,7 +71,7 @@ pub fn run(a: DemoArgs) -> Result<()> {
         t.elapsed().as_secs_f64()
     );
 
-    println!("2/3 rendering progressively from the coefficient stream …");
+    outln!("2/3 rendering progressively from the coefficient stream …");
     let header = parse_file(&c.bytes)?.header;
     let mut renderer = Renderer::new(RenderOptions {
         channels: header.channels,
@@ -84,7 +84,7 @@ pub fn run(a: DemoArgs) -> Result<()> {
     let original = PaddedVolume::from_volume(volume.channels(), &header.geometry);
     let reference = render_reference(&original, &view, &ReferenceOptions::default())?;
     reference.write_png(&a.out.join("reference.png"), None)?;
-    println!(
+    outln!(
         "    reference ray caster on the original volume: {:.0} ms (reference.png)",
         t.elapsed().as_secs_f64() * 1e3
     );
@@ -100,7 +100,7 @@ pub fn run(a: DemoArgs) -> Result<()> {
         let q = q_i_paper_db(&reference.data, &img.data);
         let s = snr_db(&reference.data, &img.data);
         writeln!(csv, "{budget},{},{ms:.2},{q:.3},{s:.3}", coeffs.len())?;
-        println!(
+        outln!(
             "    {budget:>8} bytes  {:>7} coefficients  {ms:7.1} ms  Q_I {q:6.2} dB (paper units)  SNR {s:6.2} dB",
             coeffs.len()
         );
@@ -111,7 +111,7 @@ pub fn run(a: DemoArgs) -> Result<()> {
         budget = (budget * 4).min(total);
     }
 
-    println!("3/3 multiview and depth cueing …");
+    outln!("3/3 multiview and depth cueing …");
     let (mv, _) = renderer.render_multiview(&all, &header.geometry, &view)?;
     mv.write_png(&a.out.join("multiview.png"), None)?;
     let cued = renderer.render(
@@ -123,6 +123,6 @@ pub fn run(a: DemoArgs) -> Result<()> {
         }),
     )?;
     cued.write_png(&a.out.join("depth-cued.png"), None)?;
-    println!("wrote {}/{{volume.wsp, reference.png, progressive-*.png, multiview.png, depth-cued.png, progressive.csv}}", a.out.display());
+    outln!("wrote {}/{{volume.wsp, reference.png, progressive-*.png, multiview.png, depth-cued.png, progressive.csv}}", a.out.display());
     Ok(())
 }

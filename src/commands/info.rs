@@ -23,35 +23,42 @@ pub fn run(a: InfoArgs) -> Result<()> {
     let file = parse_file(&bytes).with_context(|| format!("parsing {}", a.input.display()))?;
     let h = &file.header;
     let g = &h.geometry;
-    println!("file        {} ({} bytes)", a.input.display(), bytes.len());
-    println!(
+    outln!("file        {} ({} bytes)", a.input.display(), bytes.len());
+    outln!(
         "dims        {}x{}x{}, spacing {:?}",
-        g.dims[0], g.dims[1], g.dims[2], h.spacing
+        g.dims[0],
+        g.dims[1],
+        g.dims[2],
+        h.spacing
     );
-    println!(
+    outln!(
         "padded      {}x{}x{} (margin {}, origin {:?}; periodic boundary on the zero-padded grid)",
-        g.padded[0], g.padded[1], g.padded[2], h.margin, g.origin
+        g.padded[0],
+        g.padded[1],
+        g.padded[2],
+        h.margin,
+        g.origin
     );
-    println!("channels    {} ({})", h.channels, h.color.kind.name());
+    outln!("channels    {} ({})", h.channels, h.color.kind.name());
     if h.channels == 3 {
-        println!("importance  {:?}", h.color.importance);
+        outln!("importance  {:?}", h.color.importance);
     }
-    println!(
+    outln!(
         "family      {} (order {}), levels M = {}",
         g.family,
         g.family.order(),
         g.levels
     );
-    println!("coder       {}, P = {} bits", h.coder.name(), h.bits);
-    println!("values      {} .. {}", h.value_range[0], h.value_range[1]);
-    println!(
+    outln!("coder       {}, P = {} bits", h.coder.name(), h.bits);
+    outln!("values      {} .. {}", h.value_range[0], h.value_range[1]);
+    outln!(
         "tiles       {} of {} voxels ({:?}), {} layers",
         h.tile_count(),
         h.tile,
         h.tile_counts(),
         h.layer_bounds.len()
     );
-    println!(
+    outln!(
         "substreams  {} used of {}",
         h.substreams.iter().filter(|s| s.is_some()).count(),
         h.substream_count()
@@ -68,7 +75,7 @@ pub fn run(a: InfoArgs) -> Result<()> {
         total.framing_bytes += d.breakdown.framing_bytes;
         if a.packets {
             let energy: f64 = d.summary.iter().map(|(_, e)| e).sum();
-            println!(
+            outln!(
                 "packet {i:5}  tile {:5}  layer {:2}  {:7} coefficients  {:8} bytes  energy {:.3e}",
                 d.tile,
                 d.layer,
@@ -78,25 +85,25 @@ pub fn run(a: InfoArgs) -> Result<()> {
             );
         }
     }
-    println!(
+    outln!(
         "packets     {} holding {} coefficients (header says {})",
         file.packets.len(),
         coefficients,
         h.kept
     );
     let pct = |x: f64| 100.0 * x / bytes.len() as f64;
-    println!("size breakdown (bytes, % of file):");
-    println!(
+    outln!("size breakdown (bytes, % of file):");
+    outln!(
         "  header + tables        {:9} {:6.2} %",
         file.header_bytes,
         pct(file.header_bytes as f64)
     );
-    println!(
+    outln!(
         "  packet directory       {:9} {:6.2} %",
         file.directory_bytes,
         pct(file.directory_bytes as f64)
     );
-    println!(
+    outln!(
         "  packet framing/summary {:9} {:6.2} %",
         total.framing_bytes,
         pct(total.framing_bytes as f64)
@@ -107,7 +114,7 @@ pub fn run(a: InfoArgs) -> Result<()> {
         ("signs", total.sign_bits),
         ("values", total.value_bits),
     ] {
-        println!("  {name:22} {:9.0} {:6.2} %", bits / 8.0, pct(bits / 8.0));
+        outln!("  {name:22} {:9.0} {:6.2} %", bits / 8.0, pct(bits / 8.0));
     }
     Ok(())
 }

@@ -60,7 +60,7 @@ pub async fn bind_announced(addr: &str) -> Result<tokio::net::TcpListener> {
     let listener = tokio::net::TcpListener::bind(addr)
         .await
         .with_context(|| format!("binding {addr}"))?;
-    println!("listening on {}", listener.local_addr()?);
+    outln!("listening on {}", listener.local_addr()?);
     use std::io::Write;
     std::io::stdout().flush()?;
     Ok(listener)

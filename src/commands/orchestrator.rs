@@ -313,7 +313,7 @@ pub fn run_archive(cmd: ArchiveCommand) -> Result<()> {
                 new += 1;
                 "submitted as"
             };
-            println!(
+            outln!(
                 "{} {what} job {} ({})",
                 f.path.display(),
                 job.id,
@@ -321,7 +321,7 @@ pub fn run_archive(cmd: ArchiveCommand) -> Result<()> {
             );
             ids.insert(job.id);
         }
-        println!("{new} submitted, {known} already known");
+        outln!("{new} submitted, {known} already known");
         if a.detach {
             return Ok(());
         }
@@ -336,7 +336,7 @@ pub fn run_jobs(cmd: JobsCommand) -> Result<()> {
             JobsCommand::List(u) => {
                 let mut c = connect(&u.orchestrator).await?;
                 for j in client::list(&mut c).await? {
-                    println!("{}", describe(&j));
+                    outln!("{}", describe(&j));
                 }
             }
             JobsCommand::Watch(u) => {
@@ -349,7 +349,7 @@ pub fn run_jobs(cmd: JobsCommand) -> Result<()> {
                     .cancel_job(pb::JobRef { id: a.id })
                     .await
                     .with_context(|| format!("cancelling job {}", a.id))?;
-                println!("{}", describe(j.get_ref()));
+                outln!("{}", describe(j.get_ref()));
             }
             JobsCommand::Retry(a) => {
                 let mut c = connect(&a.url.orchestrator).await?;
@@ -357,7 +357,7 @@ pub fn run_jobs(cmd: JobsCommand) -> Result<()> {
                     .retry_job(pb::JobRef { id: a.id })
                     .await
                     .with_context(|| format!("retrying job {}", a.id))?;
-                println!("{}", describe(j.get_ref()));
+                outln!("{}", describe(j.get_ref()));
             }
         }
         Ok(())
@@ -458,13 +458,13 @@ async fn watch(c: &mut OrchestratorClient<Channel>, ids: Option<&HashSet<u64>>) 
                 .iter()
                 .filter(|j| state_name(j.state) == "done")
                 .count();
-            println!(
+            outln!(
                 "{} jobs: {done} done, {failed} failed, {} cancelled",
                 jobs.len(),
                 jobs.len() - done - failed
             );
             for j in jobs.iter().filter(|j| state_name(j.state) == "failed") {
-                println!("failed: job {} {}: {}", j.id, job_name(j), j.error);
+                outln!("failed: job {} {}: {}", j.id, job_name(j), j.error);
             }
             if failed > 0 {
                 bail!("{failed} job(s) failed");

@@ -42,7 +42,7 @@ pub fn run(a: PhantomArgs) -> Result<()> {
         other => bail!("--dtype {other:?}: choose f32 or u8"),
     };
     std::fs::write(&a.output, bytes).with_context(|| format!("writing {}", a.output.display()))?;
-    println!(
+    outln!(
         "wrote {} ({}x{}x{}, {} channel(s), {})",
         a.output.display(),
         a.dims[0],

@@ -246,7 +246,7 @@ pub fn run(a: RenderArgs) -> Result<()> {
         out.write_raw(r)
             .with_context(|| format!("writing {}", r.display()))?;
     }
-    println!(
+    outln!(
         "wrote {} ({}x{}) from {} coefficients in {:.1} ms",
         a.output.display(),
         out.width,
