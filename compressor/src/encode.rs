@@ -73,6 +73,10 @@ pub struct CompressOptions {
     pub tile: TileChoice,
     /// Quality layers (`None`: automatic).
     pub layers: Option<usize>,
+    /// Each layer holds this many times the coefficients of all layers before it (> 1;
+    /// [`LAYER_GROWTH`] by default). Smaller values give a finer coarse-to-fine progression in
+    /// file order and bigger files.
+    pub layer_growth: f64,
     /// Spatial clustering (`None`: pure significance order; Huffman and range coders only).
     pub clustering: Option<Clustering>,
     /// Quantizer step of the sigmap coder, relative to each substream's smallest kept
@@ -95,6 +99,7 @@ impl Default for CompressOptions {
             target: Target::Fraction(0.05),
             tile: TileChoice::Auto,
             layers: None,
+            layer_growth: LAYER_GROWTH,
             clustering: Some(Clustering {
                 radius: 4,
                 threshold: 0.5,
@@ -333,6 +338,12 @@ fn prepare(
 /// tile of 128) two layers cost +4.6 % bytes with growth 4, +2.7 % with 8, +1.8 % with 16,
 /// and three layers with growth 16 +1.9 %; growth 16 keeps a coarse-to-fine progression
 /// (the first layer is a 1/256 preview at three layers) for a third of the cost of 4.
+///
+/// The price is a coarser progression for a reader that takes the file in order: the last layer
+/// holds 15/16 of each tile, so mid-stream a tile has either all its detail or none of it. On
+/// `wavesplat demo` the 16 KB prefix of the 33 KB file scores 41.8 dB Q_I with growth 16, 46.9
+/// with 8 (file +3 %) and 50.8 with 4 (4 layers, file +11 %). The cache's view-dependent order
+/// softens this; `--layer-growth 4` restores the fine progression where it matters more.
 pub const LAYER_GROWTH: f64 = 16.0;
 
 /// Bytes a tile should hold on average under [`TileChoice::Auto`]: a packet pays for the top
@@ -423,11 +434,11 @@ impl Prepared {
         let kept = &self.sorted[..k];
         let (tile, nl) = choose_tiling(g, opts.tile, opts.layers, expected_bytes);
         let nl = nl.clamp(1, MAX_LAYERS);
-        // Layer l ends at rank k·G^(l−(L−1)) with G = LAYER_GROWTH: layer 0 holds the top
+        // Layer l ends at rank k·G^(l−(L−1)) with G the layer growth: layer 0 holds the top
         // k/G^(L−1).
         let mut ends = Vec::with_capacity(nl);
         for l in 0..nl {
-            let frac = LAYER_GROWTH.powi(l as i32 - (nl as i32 - 1));
+            let frac = opts.layer_growth.powi(l as i32 - (nl as i32 - 1));
             ends.push(((k as f64 * frac).ceil() as usize).clamp(1.min(k), k));
         }
         let mut layer_bounds = Vec::with_capacity(nl);
@@ -593,6 +604,12 @@ pub fn compress(
     opts: &CompressOptions,
     progress: &(dyn Fn(Stage, f64) + Sync),
 ) -> Result<Compressed, CompressError> {
+    if !(opts.layer_growth.is_finite() && opts.layer_growth > 1.0) {
+        return Err(CompressError::InvalidOption(format!(
+            "layer growth {}; allowed: a finite number above 1",
+            opts.layer_growth
+        )));
+    }
     let prepared = prepare(volume, opts, progress)?;
     let n = prepared.sorted.len();
     let k = match opts.target {

@@ -279,6 +279,43 @@ fn every_packet_decodes_alone_and_tile_prefixes_hold_the_most_significant() {
 }
 
 #[test]
+fn layers_grow_by_the_layer_growth_and_bad_growth_is_rejected() {
+    let vol = Phantom::SheppLogan.generate([32, 32, 32]);
+    let k = 4000usize;
+    for growth in [4.0, 16.0] {
+        let o = CompressOptions {
+            target: Target::Coefficients(k as u64),
+            tile: TileChoice::Size(16),
+            layers: Some(3),
+            layer_growth: growth,
+            refine: None,
+            ..Default::default()
+        };
+        let c = run(&vol, &o);
+        let file = parse_file(&c.bytes).unwrap();
+        let mut per_layer = [0usize; 3];
+        for p in &file.packets {
+            let d = decode_packet(&file.header, p).unwrap();
+            per_layer[d.layer] += d.coefficients.len();
+        }
+        // Layer l ends at rank ⌈k·G^(l−2)⌉.
+        let end0 = (k as f64 / (growth * growth)).ceil() as usize;
+        let end1 = (k as f64 / growth).ceil() as usize;
+        assert_eq!(per_layer, [end0, end1 - end0, k - end1], "growth {growth}");
+    }
+    for growth in [1.0, 0.5, f64::NAN, f64::INFINITY] {
+        let o = CompressOptions {
+            layer_growth: growth,
+            ..Default::default()
+        };
+        let Err(e) = compress(&vol, &o, &|_, _| {}) else {
+            panic!("layer growth {growth} accepted");
+        };
+        assert!(e.to_string().contains("layer growth"), "{e}");
+    }
+}
+
+#[test]
 fn degenerate_and_extreme_volumes() {
     let cases: Vec<(&str, Volume)> = vec![
         ("constant", Phantom::Constant(7.5).generate([9, 10, 11])),
