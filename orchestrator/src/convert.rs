@@ -85,6 +85,7 @@ fn options_from_pb(o: pb::CompressOptions) -> Result<JobOptions, OrchestratorErr
         layers: o.layers.map(to_usize),
         refine_rounds: o.refine_rounds.map(to_usize),
         no_refine: o.no_refine,
+        layer_growth: o.layer_growth,
     })
 }
 
@@ -127,6 +128,7 @@ pub fn spec_to_pb(s: &JobSpec) -> pb::JobSpec {
             layers: o.layers.map(u32_of),
             refine_rounds: o.refine_rounds.map(u32_of),
             no_refine: o.no_refine,
+            layer_growth: o.layer_growth,
         }),
     }
 }
@@ -262,6 +264,7 @@ mod tests {
                 target: TargetSpec::All,
                 refine_rounds: Some(2),
                 no_refine: true,
+                layer_growth: Some(4.0),
                 ..JobOptions::default()
             },
         };
@@ -275,6 +278,11 @@ mod tests {
         let mut p = spec_to_pb(&spec);
         p.source = None;
         assert!(spec_from_pb(p).is_err());
+        let mut p = spec_to_pb(&spec);
+        p.options.as_mut().unwrap().layer_growth = Some(0.5);
+        // The wire form carries it; validation (on submit) refuses it.
+        let e = spec_from_pb(p).unwrap().validate().unwrap_err();
+        assert!(e.to_string().contains("layer growth"), "{e}");
         assert!(failure_kind_from_pb(99).is_err());
     }
 }

@@ -118,6 +118,9 @@ pub struct JobOptions {
     /// No least-squares refinement (the oracle's coefficients, as in the paper).
     #[serde(default)]
     pub no_refine: bool,
+    /// Layer growth (`None`: the compressor's default).
+    #[serde(default)]
+    pub layer_growth: Option<f64>,
 }
 
 impl Default for JobOptions {
@@ -135,6 +138,7 @@ impl Default for JobOptions {
             layers: None,
             refine_rounds: None,
             no_refine: false,
+            layer_growth: None,
         }
     }
 }
@@ -198,6 +202,11 @@ impl JobOptions {
                 self.refine_rounds
             )));
         }
+        if let Some(g) = self.layer_growth {
+            if !(g.is_finite() && g > 1.0) {
+                return Err(invalid(format!("layer growth {g}; must be finite and > 1")));
+            }
+        }
         if self.tile == Some(0) {
             return Err(invalid("tile 0; must be at least 1".into()));
         }
@@ -228,6 +237,9 @@ impl JobOptions {
             target,
             tile: self.tile.map_or(TileChoice::Auto, TileChoice::Size),
             layers: self.layers,
+            layer_growth: self
+                .layer_growth
+                .unwrap_or(CompressOptions::default().layer_growth),
             step: self.step,
             refine: (!self.no_refine).then(|| RefineOptions {
                 rounds: self

@@ -105,6 +105,10 @@ pub struct JobOptionArgs {
     /// Quality layers (default: automatic).
     #[arg(long)]
     pub layers: Option<usize>,
+    /// Each quality layer holds G times the coefficients of all layers before it (default 16;
+    /// 4 streams a finer progression in file order for ~8–11 % more bytes).
+    #[arg(long, value_name = "G")]
+    pub layer_growth: Option<f64>,
     /// Rounds of least-squares refinement of the kept set (default 4; splines only).
     #[arg(long)]
     pub refine_rounds: Option<usize>,
@@ -135,6 +139,7 @@ impl JobOptionArgs {
             layers: self.layers,
             refine_rounds: self.refine_rounds,
             no_refine: self.no_refine,
+            layer_growth: self.layer_growth,
         }
         .validate()?)
     }
