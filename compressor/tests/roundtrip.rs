@@ -455,6 +455,66 @@ fn results_do_not_depend_on_the_thread_count() {
     assert_eq!(a, b);
 }
 
+/// LEB128, as the packet framing writes counts.
+fn varint(mut v: u64, out: &mut Vec<u8>) {
+    loop {
+        let b = (v & 0x7f) as u8;
+        v >>= 7;
+        if v == 0 {
+            out.push(b);
+            return;
+        }
+        out.push(b | 0x80);
+    }
+}
+
+/// Splits a packet body into (tile varint + layer byte, count, rest).
+fn split_count(body: &[u8]) -> (Vec<u8>, u64, Vec<u8>) {
+    let mut i = 0;
+    while body[i] & 0x80 != 0 {
+        i += 1;
+    }
+    let head = body[..i + 2].to_vec(); // tile varint, layer byte
+    let (mut count, mut shift, mut j) = (0u64, 0, i + 2);
+    loop {
+        count |= ((body[j] & 0x7f) as u64) << shift;
+        shift += 7;
+        j += 1;
+        if body[j - 1] & 0x80 == 0 {
+            break;
+        }
+    }
+    (head, count, body[j..].to_vec())
+}
+
+#[test]
+fn declared_counts_beyond_the_tile_or_the_payload_are_refused() {
+    for file in [sample_file(), sample_sigmap_file()] {
+        let parsed = parse_file(&file).unwrap();
+        let h = &parsed.header;
+        for p in &parsed.packets {
+            let d = decode_packet(h, p).unwrap();
+            let body = &p[..p.len() - 4];
+            let (head, count, rest) = split_count(body);
+            assert_eq!(count as usize, d.coefficients.len());
+            // More coefficients than the tile has cells, and far more than the payload holds.
+            let o = h.tile_origin(d.tile);
+            let cells: u64 = (0..3)
+                .map(|a| ((o[a] + h.tile).min(h.geometry.padded[a]) - o[a]) as u64)
+                .product::<u64>()
+                * h.channels as u64;
+            for bad in [cells + 1, 1 << 40] {
+                let mut forged = head.clone();
+                varint(bad, &mut forged);
+                forged.extend_from_slice(&rest);
+                forged.extend_from_slice(&crc32fast::hash(&forged).to_le_bytes());
+                let e = decode_packet(h, &forged).unwrap_err();
+                assert!(e.to_string().contains("coefficients in a"), "{e}");
+            }
+        }
+    }
+}
+
 fn sample_file() -> Vec<u8> {
     static FILE: std::sync::OnceLock<Vec<u8>> = std::sync::OnceLock::new();
     FILE.get_or_init(|| {

@@ -37,6 +37,9 @@ use crate::layout::Band;
 /// bound.
 pub(crate) const MAX_COEFFICIENTS_PER_PAYLOAD_BYTE: usize = 64;
 
+/// Most coefficients a packet decoder reserves room for before decoding any.
+pub(crate) const INITIAL_CAPACITY: usize = 1 << 16;
+
 /// One coefficient: which channel and band, its position in the band grid, its value.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Coefficient {
@@ -569,11 +572,22 @@ pub fn decode_packet(header: &Header, bytes: &[u8]) -> Result<DecodedPacket, For
     if r.remaining() != 0 {
         return Err(invalid(W, "bytes after the payload"));
     }
-    // Bound the count by the payload (the encoders guarantee it, see
-    // MAX_COEFFICIENTS_PER_PAYLOAD_BYTE), and by the tile's capacity.
-    let capacity = (header.tile as u64).pow(3) * header.channels as u64;
-    let per_byte = MAX_COEFFICIENTS_PER_PAYLOAD_BYTE as u64;
-    if count > per_byte * (plen as u64 + 1) || count > capacity {
+    // Bound the count by the payload (the encoders guarantee it: one bit per coefficient for the
+    // paper's syntaxes, MAX_COEFFICIENTS_PER_PAYLOAD_BYTE for sigmap), and by the tile's
+    // capacity: the wavelet transform is critically sampled, so a tile holds at most as many
+    // coefficients per channel as it has voxels of the padded grid.
+    let origin = header.tile_origin(tile);
+    let capacity = (0..3)
+        .map(|a| {
+            let end = (origin[a] + header.tile).min(header.geometry.padded[a]);
+            end.saturating_sub(origin[a]) as u64
+        })
+        .fold(header.channels as u64, u64::saturating_mul);
+    let per_byte = match header.coder {
+        CoderKind::Sigmap => MAX_COEFFICIENTS_PER_PAYLOAD_BYTE as u64,
+        CoderKind::Huffman | CoderKind::Range => 8,
+    };
+    if count > per_byte.saturating_mul(plen as u64 + 1) || count > capacity {
         return Err(invalid(
             W,
             format!("{count} coefficients in a {plen}-byte payload (tile capacity {capacity})"),
@@ -634,7 +648,8 @@ fn decode_syntax(
     let origin = header.tile_origin(tile);
     let mut chains: Vec<Option<Chain>> = vec![None; nsub];
     let mut prev_voxel = [0i64; 3];
-    let mut out = Vec::with_capacity(count);
+    // The count is bounded but may still be large for a hostile packet: grow as decoded.
+    let mut out = Vec::with_capacity(count.min(INITIAL_CAPACITY));
     while out.len() < count {
         let b0 = src.bits_read();
         let (sub, len) = src.run()?;

@@ -698,7 +698,8 @@ pub(crate) fn decode(
     let mut m = Models::new(header);
     let nb = header.geometry.band_count();
     let bands = header.geometry.bands();
-    let mut out = Vec::with_capacity(count);
+    // The count is bounded but may still be large for a hostile packet: grow as decoded.
+    let mut out = Vec::with_capacity(count.min(super::packet::INITIAL_CAPACITY));
     let mut hood = Neighbourhood::new(header);
     for sub in 0..header.substream_count() {
         if sub % nb == 0 {
