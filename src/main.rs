@@ -1,8 +1,8 @@
 //! `wavesplat`: the front door. Parses the command line and wires the libraries together; all
 //! the work lives in the crates (`wavesplat-codec`, `wavesplat-compressor`, `wavesplat-viewer`).
 
-/// `println!` for the commands' output that ends the process quietly when stdout is closed
-/// early (`wavesplat info f.wsp | head`), where `println!` panics.
+/// `println!` for the commands' output that ends the process quietly (status 141, as SIGPIPE
+/// would) when stdout is closed early (`wavesplat info f.wsp | head`), where `println!` panics.
 macro_rules! outln {
     ($($arg:tt)*) => {{
         use std::io::Write as _;
@@ -97,11 +97,13 @@ fn run(command: Command) -> Result<()> {
     }
 }
 
-/// Ends the process after a failed write to stdout: silently (status 0) when the reader went
-/// away, as `head` does, with an error otherwise.
+/// Ends the process after a failed write to stdout. When the reader went away (`| head`), it
+/// ends silently with status 141, what a shell reports for a program killed by SIGPIPE: the
+/// command did not finish its work (an `archive submit` stops submitting, a `jobs watch` never
+/// reports its failures), so it must not claim success. Any other failure is an error.
 pub(crate) fn stdout_failed(e: std::io::Error) -> ! {
     if e.kind() == std::io::ErrorKind::BrokenPipe {
-        std::process::exit(0);
+        std::process::exit(141);
     }
     eprintln!("error: writing to stdout: {e}");
     std::process::exit(1);
