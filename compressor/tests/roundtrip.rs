@@ -5,6 +5,7 @@
 use proptest::prelude::*;
 use wavesplat_codec::dwt::decompose_channel;
 use wavesplat_codec::family::Family;
+use wavesplat_codec::format::bytes::{ByteReader, ByteWriter};
 use wavesplat_codec::format::packet::{decode_packet, Coefficient};
 use wavesplat_codec::format::{parse_file, CoderKind};
 use wavesplat_codec::layout::Geometry;
@@ -455,36 +456,15 @@ fn results_do_not_depend_on_the_thread_count() {
     assert_eq!(a, b);
 }
 
-/// LEB128, as the packet framing writes counts.
-fn varint(mut v: u64, out: &mut Vec<u8>) {
-    loop {
-        let b = (v & 0x7f) as u8;
-        v >>= 7;
-        if v == 0 {
-            out.push(b);
-            return;
-        }
-        out.push(b | 0x80);
-    }
-}
-
-/// Splits a packet body into (tile varint + layer byte, count, rest).
+/// Splits a packet body into (tile varint + layer byte, count, rest), with the format's own
+/// reader.
 fn split_count(body: &[u8]) -> (Vec<u8>, u64, Vec<u8>) {
-    let mut i = 0;
-    while body[i] & 0x80 != 0 {
-        i += 1;
-    }
-    let head = body[..i + 2].to_vec(); // tile varint, layer byte
-    let (mut count, mut shift, mut j) = (0u64, 0, i + 2);
-    loop {
-        count |= ((body[j] & 0x7f) as u64) << shift;
-        shift += 7;
-        j += 1;
-        if body[j - 1] & 0x80 == 0 {
-            break;
-        }
-    }
-    (head, count, body[j..].to_vec())
+    let mut r = ByteReader::new(body, "test packet");
+    r.varint().unwrap();
+    r.u8().unwrap();
+    let head = body[..r.position()].to_vec();
+    let count = r.varint().unwrap();
+    (head, count, body[r.position()..].to_vec())
 }
 
 #[test]
@@ -504,9 +484,11 @@ fn declared_counts_beyond_the_tile_or_the_payload_are_refused() {
                 .product::<u64>()
                 * h.channels as u64;
             for bad in [cells + 1, 1 << 40] {
-                let mut forged = head.clone();
-                varint(bad, &mut forged);
-                forged.extend_from_slice(&rest);
+                let mut w = ByteWriter::new();
+                w.bytes(&head);
+                w.varint(bad);
+                w.bytes(&rest);
+                let mut forged = w.into_bytes();
                 forged.extend_from_slice(&crc32fast::hash(&forged).to_le_bytes());
                 let e = decode_packet(h, &forged).unwrap_err();
                 assert!(e.to_string().contains("coefficients in a"), "{e}");
