@@ -5,10 +5,11 @@
 //! `cargo run --release -p wavesplat-cache --example view_order -- [VOLUME.nii.gz] > out.csv`
 
 use wavesplat_cache::model::PacketMeta;
-use wavesplat_cache::priority::{Priority, ViewSpec};
+use wavesplat_cache::priority::Priority;
 use wavesplat_codec::format::packet::{decode_packet, Coefficient};
 use wavesplat_codec::format::parse_file;
 use wavesplat_codec::metrics::q_i_paper_db;
+use wavesplat_codec::view::ViewSpec;
 use wavesplat_compressor::encode::{compress, CompressOptions, Target, TileChoice};
 use wavesplat_compressor::phantom::Phantom;
 use wavesplat_compressor::reader::read_volume;

@@ -4,8 +4,9 @@
 //! Chui–Wang semi-orthogonal B-spline wavelet families with their filters and closed-form
 //! Fourier transforms ([`family`]), the periodic 3D non-standard wavelet transform and the
 //! coefficient addressing ([`dwt`], [`layout`]), the entropy coders ([`entropy`]), the versioned
-//! bitstream of header, tiles and self-contained packets ([`format`]) and the quality metrics of
-//! the paper ([`metrics`]). It has no dependency on async runtimes, GPUs or RPC code; rayon is an
+//! bitstream of header, tiles and self-contained packets with their decoder ([`format`]), the view
+//! geometry that renderer, cache and client share ([`view`]: views, cameras, depth cue,
+//! multiview, visibility weights) and the quality metrics of the paper ([`metrics`]). It has no dependency on async runtimes, GPUs or RPC code; rayon is an
 //! optional feature that only changes how independent lines of the transform are scheduled.
 //!
 //! ```
@@ -14,10 +15,12 @@
 //! assert_eq!(Family::Linear.wavelet_filter().len(), 5);
 //! ```
 
+#[cfg(feature = "transform")]
 pub mod dwt;
 pub mod entropy;
 pub mod family;
 pub mod format;
 pub mod layout;
 pub mod metrics;
+pub mod view;
 pub mod volume;

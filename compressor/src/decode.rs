@@ -4,9 +4,8 @@
 //! transform.
 
 use crate::colorspace::{ColorSpaceKind, ColorTransform};
-use rayon::prelude::*;
 use wavesplat_codec::dwt::{coefficients_to_samples, crop_channel, inverse_3d, Dwt1d};
-use wavesplat_codec::format::packet::{decode_packet, Coefficient};
+use wavesplat_codec::format::packet::{decode_packets, Coefficient, PacketError};
 use wavesplat_codec::format::{parse_file, ColorKind, FormatError, Header};
 use wavesplat_codec::volume::{Volume, VolumeError};
 
@@ -17,14 +16,9 @@ pub enum DecodeError {
     /// The bitstream is malformed.
     #[error(transparent)]
     Format(#[from] FormatError),
-    /// Packet `index` is malformed.
-    #[error("packet {index}: {source}")]
-    Packet {
-        /// Packet index in the file.
-        index: usize,
-        /// What was wrong.
-        source: FormatError,
-    },
+    /// A packet is malformed.
+    #[error(transparent)]
+    Packet(#[from] PacketError),
     /// The colour transform in the header could not be inverted.
     #[error("colour transform: {0}")]
     Color(#[from] crate::colorspace::ColorError),
@@ -39,27 +33,6 @@ pub fn decode_coefficients(bytes: &[u8]) -> Result<(Header, Vec<Coefficient>), D
     let file = parse_file(bytes)?;
     let packets = decode_packets(&file.header, &file.packets, 0)?;
     Ok((file.header, packets.concat()))
-}
-
-/// Decodes `packets` in parallel, each on its own; the result is in input order. Errors name the
-/// packet's file index, `first_index` being that of `packets[0]`.
-pub fn decode_packets(
-    header: &Header,
-    packets: &[&[u8]],
-    first_index: usize,
-) -> Result<Vec<Vec<Coefficient>>, DecodeError> {
-    packets
-        .par_iter()
-        .enumerate()
-        .map(|(i, p)| {
-            decode_packet(header, p)
-                .map(|d| d.coefficients)
-                .map_err(|source| DecodeError::Packet {
-                    index: first_index + i,
-                    source,
-                })
-        })
-        .collect()
 }
 
 /// Reconstructs the volume from a header and coefficients.

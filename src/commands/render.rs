@@ -5,10 +5,10 @@
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use std::path::PathBuf;
+use wavesplat_codec::format::packet::decode_packets;
 use wavesplat_codec::format::packet::Coefficient;
 use wavesplat_codec::format::{parse_file, ColorKind, Header};
-use wavesplat_compressor::decode::decode_packets;
-use wavesplat_viewer::splat::multiview_cameras;
+use wavesplat_codec::view::multiview_cameras;
 use wavesplat_viewer::{Camera, Cue, CueDirection, Image, RenderOptions, Renderer, View};
 
 /// Arguments of `wavesplat render`.
@@ -73,60 +73,29 @@ fn pair(s: &str, what: &str) -> Result<[f64; 2]> {
     Ok([a, b])
 }
 
-/// Length of the ray through pixel (x, y) inside the volume box [−½, n − ½]³.
-fn chord(camera: &Camera, dims: [usize; 3], xs: f64, ys: f64) -> f64 {
-    let o = camera.from_screen(xs, ys);
-    let d = camera.n;
-    let (mut t0, mut t1) = (f64::NEG_INFINITY, f64::INFINITY);
-    for a in 0..3 {
-        let (lo, hi) = (-0.5, dims[a] as f64 - 0.5);
-        if d[a].abs() < 1e-15 {
-            if o[a] < lo || o[a] > hi {
-                return 0.0;
-            }
-        } else {
-            let (ta, tb) = ((lo - o[a]) / d[a], (hi - o[a]) / d[a]);
-            t0 = t0.max(ta.min(tb));
-            t1 = t1.min(ta.max(tb));
-        }
-    }
-    (t1 - t0).max(0.0)
-}
-
-/// Maps an image rendered in the coded colour space back to RGB: the projection is linear, so
-/// rgb = M⁻¹·c + mean·(path length through the volume).
-fn to_rgb(img: &Image, header: &Header, camera: &Camera) -> Image {
-    let inv = inverse3(&header.color.basis);
-    let mean = header.color.mean;
+/// Maps an image rendered in the coded colour space back to RGB (see `ColorInfo::to_rgb`).
+fn to_rgb(img: &Image, header: &Header, camera: &Camera) -> Result<Image> {
+    let inv = header
+        .color
+        .inverse_basis()
+        .context("the header's colour basis is singular")?;
+    let has_mean = header.color.mean.iter().any(|m| *m != 0.0);
     let mut out = Image::new(img.width, img.height, 3);
     for y in 0..img.height {
         for x in 0..img.width {
             let c = [0, 1, 2].map(|k| img.get(x, y, k) as f64);
-            let len = if mean.iter().any(|m| *m != 0.0) {
-                chord(camera, header.geometry.dims, x as f64 + 0.5, y as f64 + 0.5)
+            let len = if has_mean {
+                camera.chord(header.geometry.dims, x as f64 + 0.5, y as f64 + 0.5)
             } else {
                 0.0
             };
+            let rgb = header.color.to_rgb(&inv, c, len);
             for r in 0..3 {
-                let v = inv[r][0] * c[0] + inv[r][1] * c[1] + inv[r][2] * c[2] + mean[r] * len;
-                out.data[(y * img.width + x) * 3 + r] = v as f32;
+                out.data[(y * img.width + x) * 3 + r] = rgb[r] as f32;
             }
         }
     }
-    out
-}
-
-/// Inverse of a 3×3 matrix (the colour basis; YIQ is not orthonormal).
-fn inverse3(m: &[[f64; 3]; 3]) -> [[f64; 3]; 3] {
-    let c =
-        |r0: usize, r1: usize, c0: usize, c1: usize| m[r0][c0] * m[r1][c1] - m[r0][c1] * m[r1][c0];
-    let det = m[0][0] * c(1, 2, 1, 2) - m[0][1] * c(1, 2, 0, 2) + m[0][2] * c(1, 2, 0, 1);
-    let adj = [
-        [c(1, 2, 1, 2), -c(0, 2, 1, 2), c(0, 1, 1, 2)],
-        [-c(1, 2, 0, 2), c(0, 2, 0, 2), -c(0, 1, 0, 2)],
-        [c(1, 2, 0, 1), -c(0, 2, 0, 1), c(0, 1, 0, 1)],
-    ];
-    adj.map(|row| row.map(|v| v / det))
+    Ok(out)
 }
 
 /// Decodes the packets (or a prefix) of a file. Packets decode on their own, so they are decoded
@@ -233,7 +202,7 @@ pub fn run(a: RenderArgs) -> Result<()> {
             .iter()
             .zip(&cameras)
             .map(|(i, c)| to_rgb(i, &header, c))
-            .collect()
+            .collect::<Result<_>>()?
     };
     let out = if images.len() == 1 {
         images.into_iter().next().expect("one image")

@@ -37,6 +37,7 @@ use rayon::prelude::*;
 use rustfft::FftPlanner;
 use std::f64::consts::PI;
 use wavesplat_codec::family::{box_transform, Family};
+pub use wavesplat_codec::view::sinc;
 
 /// Parameters of one footprint set (all levels and types for one view).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -258,16 +259,6 @@ pub fn axis_transform(
         (tf.phi_hat(f, kappa), 0.5 * j)
     };
     h * Complex64::from_polar(s, 2.0 * PI * f * c)
-}
-
-/// sin(πx)/(πx), exact at 0.
-pub fn sinc(x: f64) -> f64 {
-    if x.abs() < 1e-5 {
-        let y = PI * x;
-        1.0 - y * y / 6.0
-    } else {
-        (PI * x).sin() / (PI * x)
-    }
 }
 
 /// The 3D transform of the centred level-m basis of type `kind` at ξ (cycles per voxel), cued
@@ -563,7 +554,7 @@ impl FootprintSet {
 }
 
 /// One axis factor of a depth-cued splat, whose cue weight is cut at the data's light-facing
-/// faces (see [`crate::camera::ResolvedCue`]): a level-m φ or ψ cued from its support end
+/// faces (see [`wavesplat_codec::view::ResolvedCue`]): a level-m φ or ψ cued from its support end
 /// nearest the light (its whole support behind the face), or a level-0 φ whose support
 /// straddles the face.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
@@ -657,7 +648,7 @@ struct Piece {
 /// The transform of a level-0 φ straddling a light-facing face, prepared for many frequencies:
 /// ∫ φ_c(u) h(u) e^(−i2πξu) du with u relative to the centre, the face at u_f = −offset and
 /// h(u) = e^(−k·l_a·(u − u_f)) behind the face (u > u_f when l_a > 0, u < u_f when l_a < 0) and 0
-/// in front of it (see [`crate::camera::ResolvedCue`]). φ is a polynomial on each piece between its knots
+/// in front of it (see [`wavesplat_codec::view::ResolvedCue`]). φ is a polynomial on each piece between its knots
 /// and the face, so each piece is ∫ Q(t) e^(σt) dt with Re σ ≤ 0: by the closed form
 /// [e^(σt) Σ_m (−1)^m Q⁽ᵐ⁾(t)/σ^(m+1)] when |σ|·len ≥ 1 (no cancellation there), and by
 /// 8-point Gauss–Legendre below (an entire integrand of small variation: exact to rounding).

@@ -1,7 +1,6 @@
 //! The wavesplat renderer (CPU): X-ray images rendered directly from decoded wavelet
 //! coefficients by wavelet splatting (Lippert, Gross & Kurmann, EG'97, §2.3 and §3).
 //!
-//! - [`camera`]: orthographic views from spherical angles, zoom/pan, depth-cue resolution;
 //! - [`footprint`]: footprints by Fourier projection-slice (rustfft), mipmapped levels;
 //! - [`splat`]: the [`Renderer`] (footprint cache, tiled rayon accumulation, multiview);
 //! - [`reference`]: the ground-truth ray caster on the reconstructed volume;
@@ -16,16 +15,17 @@
 //! # let _ = image; Ok(()) }
 //! ```
 
-pub mod camera;
 pub mod footprint;
 pub mod image;
 pub mod reference;
 pub mod splat;
 
-pub use camera::{Camera, Cue, CueDirection, Orientation, View, ViewError};
 pub use image::{Image, ImageError};
 pub use reference::{render_reference, render_reference_camera, PaddedVolume, ReferenceOptions};
 pub use splat::{RenderOptions, RenderStats, Renderer};
+pub use wavesplat_codec::view::{
+    Camera, Cue, CueDirection, Orientation, View, ViewError, ViewSpec,
+};
 
 use thiserror::Error;
 use wavesplat_codec::layout::Band;

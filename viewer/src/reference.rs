@@ -10,7 +10,6 @@
 //! with step ≤ 1/8 voxel (configurable). Each pixel averages `supersample²` rays on a uniform
 //! (midpoint) sub-grid, because splats integrate over the pixel area. Rows run on rayon.
 
-use crate::camera::{dot, resolve_cue, Camera, ResolvedCue, View};
 use crate::image::Image;
 use crate::RenderError;
 use rayon::prelude::*;
@@ -18,6 +17,7 @@ use wavesplat_codec::dwt::{inverse_3d, pad_channel, samples_to_coefficients, Dwt
 use wavesplat_codec::family::Family;
 use wavesplat_codec::format::packet::Coefficient;
 use wavesplat_codec::layout::Geometry;
+use wavesplat_codec::view::{clip_ray as clip, dot, resolve_cue, Camera, ResolvedCue, View};
 
 /// The padded reconstructed grid of every channel.
 #[derive(Debug, Clone)]
@@ -185,25 +185,6 @@ fn significant_box(vol: &PaddedVolume) -> Option<[[usize; 2]; 3]> {
         }
     }
     Some(b)
-}
-
-/// Clips the ray p + t·n to the box [lo, hi] (per axis); returns (t0, t1) or None.
-fn clip(p: [f64; 3], n: [f64; 3], lo: [f64; 3], hi: [f64; 3]) -> Option<(f64, f64)> {
-    let mut t0 = f64::NEG_INFINITY;
-    let mut t1 = f64::INFINITY;
-    for a in 0..3 {
-        if n[a].abs() < 1e-300 {
-            if p[a] < lo[a] || p[a] > hi[a] {
-                return None;
-            }
-        } else {
-            let ta = (lo[a] - p[a]) / n[a];
-            let tb = (hi[a] - p[a]) / n[a];
-            t0 = t0.max(ta.min(tb));
-            t1 = t1.min(ta.max(tb));
-        }
-    }
-    (t1 > t0).then_some((t0, t1))
 }
 
 /// ∫ over a segment of length `len` of e^(−k·d), d linear from `da` to `db` (both ≥ 0 up to

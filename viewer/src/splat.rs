@@ -20,7 +20,6 @@
 //! ψ and ψ is odd about its centre (`Family::psi_is_odd`: Haar only; linear and cubic ψ are
 //! even, so no negations). The paper's Table 1 is the same rule with the inverse rotation.
 
-use crate::camera::{resolve_cue, Camera, CueSide, Orientation, ResolvedCue, View};
 use crate::footprint::{AxisFactor, Footprint, FootprintParams, FootprintSet};
 use crate::image::Image;
 use crate::RenderError;
@@ -29,6 +28,9 @@ use std::sync::Arc;
 use wavesplat_codec::dwt::unit_basis_line;
 use wavesplat_codec::format::packet::Coefficient;
 use wavesplat_codec::layout::Geometry;
+use wavesplat_codec::view::{
+    multiview_cameras, multiview_map, resolve_cue, Camera, CueSide, ResolvedCue, View,
+};
 
 /// Screen tile side (pixels).
 pub const TILE: usize = 64;
@@ -139,43 +141,6 @@ fn key_of(p: &FootprintParams) -> CacheKey {
 pub struct Renderer {
     options: RenderOptions,
     cache: Vec<(CacheKey, Arc<FootprintSet>)>,
-}
-
-/// Multiview: for view k (0, 1, 2) and type t, the view-1 type to use and its sign.
-pub fn multiview_map(view: usize, kind: u8, psi_is_odd: bool) -> (u8, f32) {
-    let bx = (kind >> 2) & 1;
-    let by = (kind >> 1) & 1;
-    let bz = kind & 1;
-    match view {
-        1 => {
-            // b(R₂x) = β_x(−y) β_y(x) β_z(z): x factor ← β_y, y factor ← reflected β_x.
-            let t = (by << 2) | (bx << 1) | bz;
-            let neg = psi_is_odd && bx == 1;
-            (t, if neg { -1.0 } else { 1.0 })
-        }
-        2 => {
-            // b(R₃x) = β_x(z) β_y(y) β_z(−x): x factor ← reflected β_z, z factor ← β_x.
-            let t = (bz << 2) | (by << 1) | bx;
-            let neg = psi_is_odd && bz == 1;
-            (t, if neg { -1.0 } else { 1.0 })
-        }
-        _ => (kind, 1.0),
-    }
-}
-
-/// The three multiview cameras (u₁, v₁), (R₂u₁, R₂v₁), (R₃u₁, R₃v₁) for `view`.
-pub fn multiview_cameras(view: &View, dims: [usize; 3]) -> Result<[Camera; 3], RenderError> {
-    let c1 = Camera::new(view, dims)?;
-    let (u, v) = (c1.u, c1.v);
-    let r2 = |w: [f64; 3]| [-w[1], w[0], w[2]];
-    let r3 = |w: [f64; 3]| [w[2], w[1], -w[0]];
-    let mk = |u: [f64; 3], v: [f64; 3]| -> Result<Camera, RenderError> {
-        let mut vw = *view;
-        vw.orientation = Orientation::Basis { u, v };
-        vw.zoom = Some(c1.zoom);
-        Ok(Camera::new(&vw, dims)?)
-    };
-    Ok([c1, mk(r2(u), r2(v))?, mk(r3(u), r3(v))?])
 }
 
 impl Renderer {

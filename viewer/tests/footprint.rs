@@ -5,7 +5,7 @@ mod common;
 use num_complex::Complex64;
 use std::f64::consts::PI;
 use wavesplat_codec::family::Family;
-use wavesplat_viewer::camera::basis_from_angles;
+use wavesplat_codec::view::basis_from_angles;
 use wavesplat_viewer::footprint::{
     basis_transform, compute_fine, compute_fine_with, mipmap, FootprintParams, Transforms,
 };

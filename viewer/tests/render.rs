@@ -5,9 +5,9 @@ mod common;
 use wavesplat_codec::family::Family;
 use wavesplat_codec::layout::Geometry;
 use wavesplat_codec::metrics::{q_i_paper_db, snr_db};
-use wavesplat_viewer::camera::{Cue, CueDirection};
-use wavesplat_viewer::splat::multiview_cameras;
+use wavesplat_codec::view::multiview_cameras;
 use wavesplat_viewer::{render_reference, PaddedVolume, RenderOptions, Renderer, View};
+use wavesplat_viewer::{Cue, CueDirection};
 
 /// Each of the three permuted multiviews equals the same view rendered directly with its own
 /// footprints (max difference ≤ 1e-6 of the image peak; measured ~1e-7, f32 rounding).

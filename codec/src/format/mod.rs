@@ -169,6 +169,38 @@ pub struct ColorInfo {
 }
 
 impl ColorInfo {
+    /// The inverse of the colour basis (YIQ is not orthonormal): rgb = inverse · c + mean.
+    /// `None` when the basis is singular or not finite (a corrupt header).
+    pub fn inverse_basis(&self) -> Option<[[f64; 3]; 3]> {
+        let m = &self.basis;
+        let c = |r0: usize, r1: usize, c0: usize, c1: usize| {
+            m[r0][c0] * m[r1][c1] - m[r0][c1] * m[r1][c0]
+        };
+        let det = m[0][0] * c(1, 2, 1, 2) - m[0][1] * c(1, 2, 0, 2) + m[0][2] * c(1, 2, 0, 1);
+        if !det.is_finite() || det.abs() < 1e-12 {
+            return None;
+        }
+        let adj = [
+            [c(1, 2, 1, 2), -c(0, 2, 1, 2), c(0, 1, 1, 2)],
+            [-c(1, 2, 0, 2), c(0, 2, 0, 2), -c(0, 1, 0, 2)],
+            [c(1, 2, 0, 1), -c(0, 2, 0, 1), c(0, 1, 0, 1)],
+        ];
+        Some(adj.map(|row| row.map(|v| v / det)))
+    }
+
+    /// Maps a line integral of the coded channels back to RGB. The projection is linear, so
+    /// rgb = inverse · c + mean · length, with `length` the path length of the ray inside the
+    /// volume (the mean was subtracted from every voxel it crossed). Intensity passes through.
+    pub fn to_rgb(&self, inverse: &[[f64; 3]; 3], coded: [f64; 3], length: f64) -> [f64; 3] {
+        let m = self.mean;
+        [0, 1, 2].map(|r| {
+            inverse[r][0] * coded[0]
+                + inverse[r][1] * coded[1]
+                + inverse[r][2] * coded[2]
+                + m[r] * length
+        })
+    }
+
     /// The intensity (single-channel) case.
     pub fn intensity() -> ColorInfo {
         ColorInfo {

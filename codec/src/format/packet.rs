@@ -717,3 +717,40 @@ fn decode_syntax(
     }
     Ok(out)
 }
+
+/// A packet that failed to decode, with its index in the file.
+#[derive(Debug, thiserror::Error)]
+#[error("packet {index}: {source}")]
+pub struct PacketError {
+    /// Packet index in the file.
+    pub index: usize,
+    /// What was wrong.
+    #[source]
+    pub source: FormatError,
+}
+
+/// Decodes `packets`, each on its own (in parallel with the `rayon` feature); the result is in
+/// input order. Errors name the packet's file index, `first_index` being that of `packets[0]`.
+pub fn decode_packets(
+    header: &Header,
+    packets: &[&[u8]],
+    first_index: usize,
+) -> Result<Vec<Vec<Coefficient>>, PacketError> {
+    let one = |(i, p): (usize, &&[u8])| {
+        decode_packet(header, p)
+            .map(|d| d.coefficients)
+            .map_err(|source| PacketError {
+                index: first_index + i,
+                source,
+            })
+    };
+    #[cfg(feature = "rayon")]
+    {
+        use rayon::prelude::*;
+        packets.par_iter().enumerate().map(one).collect()
+    }
+    #[cfg(not(feature = "rayon"))]
+    {
+        packets.iter().enumerate().map(one).collect()
+    }
+}

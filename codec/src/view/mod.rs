@@ -1,6 +1,11 @@
-//! Orthographic cameras and depth-cue settings: this module owns the mapping between volume
-//! coordinates (voxel (i, j, k) at (i, j, k)) and continuous screen coordinates, shared by the
-//! splat renderer and the reference ray caster so that both see exactly the same view.
+//! View geometry, the vocabulary shared by the renderer, the cache and the client: what a viewer
+//! looks at ([`View`], [`ViewSpec`]) with its one validation, the orthographic [`Camera`] that
+//! maps volume coordinates (voxel (i, j, k) at (i, j, k)) to continuous screen coordinates, the
+//! depth cue resolved against the data ([`ResolvedCue`]), the three multiview cameras and type
+//! permutations (§3.1), and in [`visibility`] the per-band and per-tile weights of what a view
+//! sees of the coefficients (by which the cache ranks packets and the viewer orders its splats).
+//! The splat renderer and the reference ray caster both resolve views here, so they see exactly
+//! the same view.
 //!
 //! A view is given by spherical angles (α, β) as in §3.1 of the paper:
 //! u = (−sin α, cos α, 0), v = (−cos α sin β, −sin α sin β, cos β), view direction n = u × v
@@ -14,8 +19,18 @@
 
 use thiserror::Error;
 
-/// Largest image side accepted.
-pub const MAX_IMAGE_SIDE: usize = 16384;
+pub mod visibility;
+
+/// Largest image side accepted (per view; a multiview image is three of them side by side).
+pub const MAX_IMAGE_SIDE: usize = 8192;
+/// Largest accepted |angle| (radians) and |pan| (voxels): beyond it f64 angles lose their
+/// fractional part and a pan puts the volume astronomically far off screen.
+pub const MAX_ABS_PARAM: f64 = 1e6;
+/// Largest accepted zoom (pixels per voxel).
+pub const MAX_ZOOM: f64 = 1e4;
+/// Largest accepted depth-cue extinction (per voxel): e^(−1000) already underflows f64 after one
+/// voxel, so larger values change nothing.
+pub const MAX_CUE_K: f64 = 1e3;
 
 /// Invalid view parameters.
 #[derive(Debug, Error, PartialEq)]
@@ -24,6 +39,14 @@ pub enum ViewError {
     /// An angle, zoom, pan or cue parameter is NaN or infinite.
     #[error("view parameter {0} is not finite")]
     NotFinite(&'static str),
+    /// An angle or pan beyond [`MAX_ABS_PARAM`].
+    #[error("view parameter {what} = {value} must satisfy |{what}| <= {max}", max = MAX_ABS_PARAM)]
+    OutOfRange {
+        /// Which parameter.
+        what: &'static str,
+        /// Its value.
+        value: f64,
+    },
     /// Image size is zero or larger than [`MAX_IMAGE_SIDE`].
     #[error("image size {width}x{height} must be within 1..={max} on each side", max = MAX_IMAGE_SIDE)]
     BadSize {
@@ -32,15 +55,18 @@ pub enum ViewError {
         /// Height.
         height: usize,
     },
-    /// Zoom must be positive.
-    #[error("zoom {0} must be > 0 (pixels per voxel)")]
+    /// Zoom must be within (0, [`MAX_ZOOM`]].
+    #[error("zoom {0} must be within (0, {max}] (pixels per voxel)", max = MAX_ZOOM)]
     BadZoom(f64),
     /// The explicit basis is not orthonormal.
     #[error("the explicit view basis (u, v) is not orthonormal")]
     NotOrthonormal,
-    /// The cue extinction must be ≥ 0.
-    #[error("cue extinction k = {0} must be finite and >= 0")]
+    /// The cue extinction must be within [0, [`MAX_CUE_K`]].
+    #[error("cue extinction k = {0} must be within [0, {max}] per voxel", max = MAX_CUE_K)]
     BadExtinction(f64),
+    /// Depth cueing is not defined for multiview (the cue would rotate with each view).
+    #[error("depth cueing cannot be combined with multiview")]
+    CueWithMultiview,
     /// Zero cue direction vector.
     #[error("the cue direction vector is zero")]
     ZeroCueDirection,
@@ -164,11 +190,13 @@ pub struct Camera {
     pub center: [f64; 3],
 }
 
-pub(crate) fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
+/// Dot product.
+pub fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
     a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 }
 
-pub(crate) fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+/// Cross product.
+pub fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
     [
         a[1] * b[2] - a[2] * b[1],
         a[2] * b[0] - a[0] * b[2],
@@ -191,24 +219,30 @@ fn finite3(x: [f64; 3], what: &'static str) -> Result<(), ViewError> {
     }
 }
 
-impl Camera {
-    /// Resolves `view` for a volume of dimensions `dims`, validating every parameter.
-    pub fn new(view: &View, dims: [usize; 3]) -> Result<Camera, ViewError> {
-        if view.width == 0
-            || view.height == 0
-            || view.width > MAX_IMAGE_SIDE
-            || view.height > MAX_IMAGE_SIDE
+impl View {
+    /// Checks every parameter that does not depend on the volume: image size, finite angles,
+    /// zoom and pan within range, an orthonormal explicit basis, a valid cue. The one validation
+    /// of a view: the renderer, the cache and the client all call it.
+    pub fn validate(&self) -> Result<(), ViewError> {
+        self.basis().map(|_| ())
+    }
+
+    /// Validates and returns the screen axes (u, v).
+    fn basis(&self) -> Result<([f64; 3], [f64; 3]), ViewError> {
+        if self.width == 0
+            || self.height == 0
+            || self.width > MAX_IMAGE_SIDE
+            || self.height > MAX_IMAGE_SIDE
         {
             return Err(ViewError::BadSize {
-                width: view.width,
-                height: view.height,
+                width: self.width,
+                height: self.height,
             });
         }
-        let (u, v) = match view.orientation {
+        let (u, v) = match self.orientation {
             Orientation::Angles { alpha, beta } => {
-                if !alpha.is_finite() || !beta.is_finite() {
-                    return Err(ViewError::NotFinite("angle"));
-                }
+                bounded(alpha, "alpha")?;
+                bounded(beta, "beta")?;
                 basis_from_angles(alpha, beta)
             }
             Orientation::Basis { u, v } => {
@@ -223,9 +257,50 @@ impl Camera {
                 (u, v)
             }
         };
-        if !view.pan[0].is_finite() || !view.pan[1].is_finite() {
-            return Err(ViewError::NotFinite("pan"));
+        bounded(self.pan[0], "pan")?;
+        bounded(self.pan[1], "pan")?;
+        match self.zoom {
+            Some(z) if !z.is_finite() => return Err(ViewError::NotFinite("zoom")),
+            Some(z) if z <= 0.0 || z > MAX_ZOOM => return Err(ViewError::BadZoom(z)),
+            _ => {}
         }
+        if let Some(cue) = &self.cue {
+            if !cue.k.is_finite() || !(0.0..=MAX_CUE_K).contains(&cue.k) {
+                return Err(ViewError::BadExtinction(cue.k));
+            }
+            match cue.direction {
+                CueDirection::View => {}
+                CueDirection::Angles { alpha, beta } => {
+                    bounded(alpha, "cue angle")?;
+                    bounded(beta, "cue angle")?;
+                }
+                CueDirection::Vector(w) => {
+                    finite3(w, "cue direction")?;
+                    let n = dot(w, w).sqrt();
+                    if n == 0.0 || !n.is_finite() {
+                        return Err(ViewError::ZeroCueDirection);
+                    }
+                }
+            }
+        }
+        Ok((u, v))
+    }
+}
+
+fn bounded(x: f64, what: &'static str) -> Result<(), ViewError> {
+    if !x.is_finite() {
+        Err(ViewError::NotFinite(what))
+    } else if x.abs() > MAX_ABS_PARAM {
+        Err(ViewError::OutOfRange { what, value: x })
+    } else {
+        Ok(())
+    }
+}
+
+impl Camera {
+    /// Resolves `view` for a volume of dimensions `dims`, validating every parameter.
+    pub fn new(view: &View, dims: [usize; 3]) -> Result<Camera, ViewError> {
+        let (u, v) = view.basis()?;
         let radius = 0.5
             * dims
                 .iter()
@@ -234,8 +309,6 @@ impl Camera {
                 .sqrt()
                 .max(0.5);
         let zoom = match view.zoom {
-            Some(z) if !z.is_finite() => return Err(ViewError::NotFinite("zoom")),
-            Some(z) if z <= 0.0 => return Err(ViewError::BadZoom(z)),
             Some(z) => z,
             None => view.width.min(view.height) as f64 / (2.0 * radius),
         };
@@ -283,6 +356,135 @@ impl Camera {
             self.center[1] + a * self.u[1] + b * self.v[1],
             self.center[2] + a * self.u[2] + b * self.v[2],
         ]
+    }
+}
+
+/// Clips the ray p + t·n to the box [lo, hi] (per axis): the parameter interval (t0, t1) inside
+/// it, or `None` when the ray misses it.
+pub fn clip_ray(p: [f64; 3], n: [f64; 3], lo: [f64; 3], hi: [f64; 3]) -> Option<(f64, f64)> {
+    let mut t0 = f64::NEG_INFINITY;
+    let mut t1 = f64::INFINITY;
+    for a in 0..3 {
+        if n[a].abs() < 1e-300 {
+            if p[a] < lo[a] || p[a] > hi[a] {
+                return None;
+            }
+        } else {
+            let ta = (lo[a] - p[a]) / n[a];
+            let tb = (hi[a] - p[a]) / n[a];
+            t0 = t0.max(ta.min(tb));
+            t1 = t1.min(ta.max(tb));
+        }
+    }
+    (t1 > t0).then_some((t0, t1))
+}
+
+impl Camera {
+    /// Length of the ray through screen point (X, Y) inside the voxel box [−½, n − ½]³ of a
+    /// volume of dimensions `dims` (what a constant added to every voxel contributes to the
+    /// pixel, e.g. a colour transform's mean).
+    pub fn chord(&self, dims: [usize; 3], xs: f64, ys: f64) -> f64 {
+        let lo = [-0.5; 3];
+        let hi = [
+            dims[0] as f64 - 0.5,
+            dims[1] as f64 - 0.5,
+            dims[2] as f64 - 0.5,
+        ];
+        clip_ray(self.from_screen(xs, ys), self.n, lo, hi).map_or(0.0, |(t0, t1)| t1 - t0)
+    }
+}
+
+/// What a client looks at: a view, alone or as the first of the three multiview images.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ViewSpec {
+    /// The (first) view.
+    pub view: View,
+    /// Whether the three multiview images are rendered.
+    pub multiview: bool,
+}
+
+impl ViewSpec {
+    /// A single view.
+    pub fn single(view: View) -> ViewSpec {
+        ViewSpec {
+            view,
+            multiview: false,
+        }
+    }
+
+    /// Validates the view ([`View::validate`]); depth cueing is not defined for multiview.
+    pub fn validate(&self) -> Result<(), ViewError> {
+        self.view.validate()?;
+        if self.multiview && self.view.cue.is_some() {
+            return Err(ViewError::CueWithMultiview);
+        }
+        Ok(())
+    }
+
+    /// The cameras of the spec for a volume of dimensions `dims`: one, or the three multiview
+    /// cameras.
+    pub fn cameras(&self, dims: [usize; 3]) -> Result<Vec<Camera>, ViewError> {
+        self.validate()?;
+        if self.multiview {
+            Ok(multiview_cameras(&self.view, dims)?.to_vec())
+        } else {
+            Ok(vec![Camera::new(&self.view, dims)?])
+        }
+    }
+}
+
+/// Multiview (§3.1): for view k (0, 1, 2) and type t, the view-1 type whose footprint to use
+/// and its sign. View 2 has screen axes (u₂, v₂) = (R₂u, R₂v) with R₂(x, y, z) = (−y, x, z),
+/// view 3 uses R₃(x, y, z) = (z, y, −x). The view-k footprint of a type-t basis b_t is the
+/// view-1 footprint of b_t∘R_k: the basis of the type t' with the per-axis factors permuted
+/// (view 2 swaps x and y, view 3 swaps x and z) and, since one factor is reflected (view 2: the
+/// x factor, view 3: the z factor), negated when that factor is ψ and ψ is odd about its centre
+/// (`Family::psi_is_odd`: Haar only; linear and cubic ψ are even). The paper's Table 1 is the
+/// same rule with the inverse rotation.
+pub fn multiview_map(view: usize, kind: u8, psi_is_odd: bool) -> (u8, f32) {
+    let bx = (kind >> 2) & 1;
+    let by = (kind >> 1) & 1;
+    let bz = kind & 1;
+    match view {
+        1 => {
+            // b(R₂x) = β_x(−y) β_y(x) β_z(z): x factor ← β_y, y factor ← reflected β_x.
+            let t = (by << 2) | (bx << 1) | bz;
+            let neg = psi_is_odd && bx == 1;
+            (t, if neg { -1.0 } else { 1.0 })
+        }
+        2 => {
+            // b(R₃x) = β_x(z) β_y(y) β_z(−x): x factor ← reflected β_z, z factor ← β_x.
+            let t = (bz << 2) | (by << 1) | bx;
+            let neg = psi_is_odd && bz == 1;
+            (t, if neg { -1.0 } else { 1.0 })
+        }
+        _ => (kind, 1.0),
+    }
+}
+
+/// The three multiview cameras (u₁, v₁), (R₂u₁, R₂v₁), (R₃u₁, R₃v₁) for `view` (all with the
+/// first camera's zoom).
+pub fn multiview_cameras(view: &View, dims: [usize; 3]) -> Result<[Camera; 3], ViewError> {
+    let c1 = Camera::new(view, dims)?;
+    let (u, v) = (c1.u, c1.v);
+    let r2 = |w: [f64; 3]| [-w[1], w[0], w[2]];
+    let r3 = |w: [f64; 3]| [w[2], w[1], -w[0]];
+    let mk = |u: [f64; 3], v: [f64; 3]| -> Result<Camera, ViewError> {
+        let mut vw = *view;
+        vw.orientation = Orientation::Basis { u, v };
+        vw.zoom = Some(c1.zoom);
+        Camera::new(&vw, dims)
+    };
+    Ok([c1, mk(r2(u), r2(v))?, mk(r3(u), r3(v))?])
+}
+
+/// sin(πx)/(πx), exact at 0: the transform of a unit box, i.e. of a pixel's area.
+pub fn sinc(x: f64) -> f64 {
+    if x.abs() < 1e-5 {
+        let y = std::f64::consts::PI * x;
+        1.0 - y * y / 6.0
+    } else {
+        (std::f64::consts::PI * x).sin() / (std::f64::consts::PI * x)
     }
 }
 
@@ -369,9 +571,9 @@ pub enum CueSide {
 pub fn resolve_cue(
     cue: &Cue,
     camera: &Camera,
-    geometry: &wavesplat_codec::layout::Geometry,
+    geometry: &crate::layout::Geometry,
 ) -> Result<ResolvedCue, ViewError> {
-    if !cue.k.is_finite() || cue.k < 0.0 {
+    if !cue.k.is_finite() || !(0.0..=MAX_CUE_K).contains(&cue.k) {
         return Err(ViewError::BadExtinction(cue.k));
     }
     let l = match cue.direction {

@@ -1,0 +1,224 @@
+//! What a view sees of the coefficients, per band and per tile: the weights by which the cache
+//! ranks packets (visible energy per byte) and the viewer orders its splats (largest visible
+//! energy first).
+//!
+//! Per band, the fraction of the basis energy that survives X-ray projection (Fourier
+//! projection-slice + Parseval: ∫ over the slice plane ⊥ n of |b̂|², times the pixel-area filter,
+//! over ∫ |b̂|² in 3D; ~0 for a ψ along the view direction). Per tile and level, the part of the
+//! tile's projected box that lies on screen (0 off screen), times the squared depth-cue
+//! attenuation of the tile's nearest point. Multiview sums over its three cameras.
+
+use super::{resolve_cue, sinc, Camera, ResolvedCue, ViewError, ViewSpec};
+use crate::format::Header;
+use crate::layout::{Band, Geometry};
+
+/// Half width (cycles per voxel, level 0) and step of the slice-plane integration grid.
+const GRID_RADIUS: f64 = 3.0;
+const GRID_STEP: f64 = 1.0 / 16.0;
+
+/// Per-camera weights.
+#[derive(Debug, Clone)]
+struct CameraWeights {
+    /// Visible fraction of the basis energy per band (indexed like `Geometry::bands`).
+    band_weight: Vec<f64>,
+    /// On-screen fraction × cue attenuation² per (tile, level): index tile·(M+1) + level.
+    tile_factor: Vec<f64>,
+}
+
+/// The visibility weights of one view spec for one volume (build once per view change).
+#[derive(Debug, Clone)]
+pub struct Visibility {
+    geometry: Geometry,
+    cams: Vec<CameraWeights>,
+}
+
+impl Visibility {
+    /// Plans `spec` for the volume of `header`.
+    pub fn new(header: &Header, spec: &ViewSpec) -> Result<Visibility, ViewError> {
+        let g = header.geometry;
+        let cameras = spec.cameras(g.dims)?;
+        let mut cams = Vec::with_capacity(cameras.len());
+        for cam in &cameras {
+            let cue = match &spec.view.cue {
+                Some(c) => Some(resolve_cue(c, cam, &g)?),
+                None => None,
+            };
+            cams.push(CameraWeights {
+                band_weight: band_weights(&g, cam),
+                tile_factor: tile_factors(header, cam, cue.as_ref()),
+            });
+        }
+        Ok(Visibility { geometry: g, cams })
+    }
+
+    /// The fraction of a unit-energy coefficient's energy seen in this view when it lies in
+    /// `band` and tile `tile` (summed over the cameras; 0 for an unknown band or tile).
+    pub fn weight(&self, band: Band, tile: usize) -> f64 {
+        let Some(b) = self.geometry.band_index(band) else {
+            return 0.0;
+        };
+        let t = tile * (self.geometry.levels + 1) + band.level as usize;
+        self.cams
+            .iter()
+            .map(|c| c.band_weight[b] * c.tile_factor.get(t).copied().unwrap_or(0.0))
+            .sum()
+    }
+
+    /// Energy of a packet of tile `tile` whose summary declares `energy` per band, as seen in
+    /// this view (image energy up to a per-view constant; 0 when not finite).
+    pub fn visible_energy(&self, tile: usize, summary: &[(Band, f64)]) -> f64 {
+        let total: f64 = summary.iter().map(|(b, e)| e * self.weight(*b, tile)).sum();
+        if total.is_finite() {
+            total
+        } else {
+            0.0
+        }
+    }
+}
+
+/// Fraction of each band's basis energy left in the projection of `cam` (per voxel of depth,
+/// with the pixel-area filter): s·∫_plane |Πₐ ĥₐ(η)|² sinc²(η·u/(s z)) sinc²(η·v/(s z)) dη /
+/// Πₐ ‖hₐ‖², with ĥ the level-0 φ̂ or ψ̂, s = 2^level and z the zoom.
+pub fn band_weights(g: &Geometry, cam: &Camera) -> Vec<f64> {
+    let fam = g.family;
+    let n = (2.0 * GRID_RADIUS / GRID_STEP).round() as i64;
+    let bands = g.bands();
+    let mut acc = vec![0.0; bands.len()];
+    for i in 0..=n {
+        let sigma = -GRID_RADIUS + i as f64 * GRID_STEP;
+        for j in 0..=n {
+            let rho = -GRID_RADIUS + j as f64 * GRID_STEP;
+            let mut p = [0.0; 3];
+            let mut q = [0.0; 3];
+            for a in 0..3 {
+                let eta = sigma * cam.u[a] + rho * cam.v[a];
+                p[a] = fam.phi_hat(eta, 0.0).norm_sqr();
+                q[a] = fam.psi_hat(eta, 0.0).norm_sqr();
+            }
+            for (b, band) in bands.iter().enumerate() {
+                let s = (1u64 << band.level) as f64;
+                let prod: f64 = (0..3)
+                    .map(|a| if band.is_wavelet_along(a) { q[a] } else { p[a] })
+                    .product();
+                let pix = sinc(sigma / (s * cam.zoom)) * sinc(rho / (s * cam.zoom));
+                acc[b] += prod * pix * pix;
+            }
+        }
+    }
+    bands
+        .iter()
+        .zip(acc)
+        .map(|(band, a)| {
+            let s = (1u64 << band.level) as f64;
+            let norm: f64 = (0..3)
+                .map(|ax| {
+                    if band.is_wavelet_along(ax) {
+                        fam.psi_norm2()
+                    } else {
+                        fam.phi_norm2()
+                    }
+                })
+                .product();
+            s * a * GRID_STEP * GRID_STEP / norm
+        })
+        .collect()
+}
+
+/// Volume-space box (min, max corners) holding every basis support of level `level` whose
+/// coefficient belongs to tile `t`. Centres are placed as the renderer places them (the periodic
+/// image nearest the volume centre, `Geometry::basis_center`), so coarse bases of an edge tile
+/// may land on the other side of the volume.
+pub fn tile_box(header: &Header, t: usize, level: usize) -> ([f64; 3], [f64; 3]) {
+    let g = &header.geometry;
+    let o = header.tile_origin(t);
+    let s = 1usize << level;
+    let reach = g
+        .half_support_1d(level, true)
+        .max(g.half_support_1d(level, false));
+    let mut lo = [f64::INFINITY; 3];
+    let mut hi = [f64::NEG_INFINITY; 3];
+    for a in 0..3 {
+        let k0 = o[a].div_ceil(s);
+        let k1 = (o[a] + header.tile)
+            .div_ceil(s)
+            .min(g.padded[a].div_ceil(s));
+        let period = g.padded[a] as f64;
+        let centre = g.origin[a] as f64 + 0.5 * (g.dims[a] as f64 - 1.0);
+        for k in k0..k1.max(k0 + 1) {
+            for wavelet in [false, true] {
+                let raw = g.raw_center_1d(level, k, wavelet);
+                let c = raw - period * ((raw - centre) / period).round() - g.origin[a] as f64;
+                lo[a] = lo[a].min(c - reach);
+                hi[a] = hi[a].max(c + reach);
+            }
+        }
+    }
+    (lo, hi)
+}
+
+fn tile_factors(header: &Header, cam: &Camera, cue: Option<&ResolvedCue>) -> Vec<f64> {
+    let levels = header.geometry.levels + 1;
+    let (w, h) = (cam.width as f64, cam.height as f64);
+    let mut out = Vec::with_capacity(header.tile_count() * levels);
+    for t in 0..header.tile_count() {
+        for level in 0..levels {
+            let (lo, hi) = tile_box(header, t, level);
+            let mut x = [f64::INFINITY, f64::NEG_INFINITY];
+            let mut y = [f64::INFINITY, f64::NEG_INFINITY];
+            let mut near = f64::INFINITY;
+            for c in 0..8 {
+                let p = [
+                    if c & 1 == 0 { lo[0] } else { hi[0] },
+                    if c & 2 == 0 { lo[1] } else { hi[1] },
+                    if c & 4 == 0 { lo[2] } else { hi[2] },
+                ];
+                let sp = cam.to_screen(p);
+                x = [x[0].min(sp[0]), x[1].max(sp[0])];
+                y = [y[0].min(sp[1]), y[1].max(sp[1])];
+                if let Some(cue) = cue {
+                    near = near.min(cue.dist(p));
+                }
+            }
+            let ox = (x[1].min(w) - x[0].max(0.0)).max(0.0);
+            let oy = (y[1].min(h) - y[0].max(0.0)).max(0.0);
+            let area = ((x[1] - x[0]) * (y[1] - y[0])).max(1e-12);
+            let mut f = (ox * oy / area).min(1.0);
+            if let Some(cue) = cue {
+                let att = (-cue.k * near.max(0.0)).exp();
+                f *= att * att;
+            }
+            out.push(f);
+        }
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::family::Family;
+    use crate::view::View;
+
+    #[test]
+    fn psi_along_the_view_direction_is_invisible() {
+        let g = Geometry::new([32, 32, 32], Family::Cubic, 2, 4).unwrap();
+        // α = β = 0: n = (1, 0, 0), rays along x.
+        let cam = Camera::new(&View::new(0.0, 0.0, 64, 64), g.dims).unwrap();
+        let w = band_weights(&g, &cam);
+        let weight = |level, kind| w[g.band_index(Band { level, kind }).unwrap()];
+        // ψ along x (kind bit 4) vanishes; ψ along y survives.
+        assert!(
+            weight(1, 4) < 1e-6 * weight(1, 2),
+            "{} vs {}",
+            weight(1, 4),
+            weight(1, 2)
+        );
+        assert!(weight(2, 0) > weight(2, 2));
+        // Rays along z: now ψ along z (bit 1) vanishes and ψ along x does not.
+        let cam =
+            Camera::new(&View::new(0.0, std::f64::consts::FRAC_PI_2, 64, 64), g.dims).unwrap();
+        let w = band_weights(&g, &cam);
+        let weight = |level, kind| w[g.band_index(Band { level, kind }).unwrap()];
+        assert!(weight(1, 1) < 1e-6 * weight(1, 4));
+    }
+}
