@@ -7,15 +7,15 @@ use std::collections::HashSet;
 use std::process::Child;
 use tonic::transport::Channel;
 use tonic::Code;
-use wavesplat_cache::client::{self, refine_collect, refine_start};
-use wavesplat_cache::{Limits, Store, ViewSpec, VolumeKey};
+use wavesplat_cache::{Limits, Store};
+use wavesplat_client::{CacheClient, Packet, RefineEvent, RefineRequest, VolumeHeader, VolumeKey};
 use wavesplat_codec::format::packet::{decode_packet, Coefficient};
-use wavesplat_codec::format::read_header_section;
 use wavesplat_codec::metrics::q_i_paper_db;
+use wavesplat_codec::view::ViewSpec;
 use wavesplat_compressor::encode::{compress, CompressOptions, Target, TileChoice};
 use wavesplat_compressor::phantom::Phantom;
 use wavesplat_proto::pb;
-use wavesplat_proto::pb::cache_client::CacheClient;
+use wavesplat_proto::pb::cache_client::CacheClient as WireClient;
 use wavesplat_viewer::{RenderOptions, Renderer, View};
 
 fn test_file(dims: [usize; 3]) -> Vec<u8> {
@@ -68,8 +68,13 @@ impl TestServer {
         }
     }
 
-    async fn client(&self) -> CacheClient<Channel> {
-        client::connect(&self.url).await.unwrap()
+    async fn client(&self) -> CacheClient {
+        CacheClient::connect(&self.url).await.unwrap()
+    }
+
+    /// The generated client, for requests the domain client would never send.
+    async fn wire(&self) -> WireClient<Channel> {
+        WireClient::connect(self.url.clone()).await.unwrap()
     }
 
     async fn stop(mut self) {
@@ -87,24 +92,44 @@ fn sorted(mut c: Vec<Coefficient>) -> Vec<Coefficient> {
     c
 }
 
-fn decode_all(header: &[u8], packets: &[pb::Packet]) -> Vec<Coefficient> {
-    let (h, _) = read_header_section(header).unwrap();
+fn decode_all(header: &VolumeHeader, packets: &[Packet]) -> Vec<Coefficient> {
     packets
         .iter()
-        .flat_map(|p| decode_packet(&h, &p.data).unwrap().coefficients)
+        .flat_map(|p| decode_packet(&header.header, &p.data).unwrap().coefficients)
         .collect()
 }
 
 fn spec(view: View) -> ViewSpec {
-    ViewSpec {
-        view,
-        multiview: false,
-    }
+    ViewSpec::single(view)
 }
 
-async fn volume_names(c: &mut CacheClient<Channel>) -> Vec<String> {
-    let l = c.list(pb::ListRequest {}).await.unwrap().into_inner();
-    l.volumes.into_iter().map(|v| v.name).collect()
+fn request(key: &VolumeKey, view: View) -> RefineRequest {
+    RefineRequest::new(key.clone(), spec(view))
+}
+
+async fn volume_names(c: &mut CacheClient) -> Vec<String> {
+    c.list()
+        .await
+        .unwrap()
+        .into_iter()
+        .map(|v| v.name)
+        .collect()
+}
+
+/// The messages of an upload as the domain client sends them, for tests that corrupt them.
+fn ingest_messages(name: &str, bytes: &[u8]) -> Vec<pb::IngestRequest> {
+    use pb::ingest_request::Msg;
+    let mut out = vec![pb::IngestRequest {
+        msg: Some(Msg::Start(pb::IngestStart {
+            name: name.to_string(),
+            total_size: bytes.len() as u64,
+            sha256: wavesplat_cache::store::sha256(bytes).to_vec(),
+        })),
+    }];
+    out.extend(bytes.chunks(1 << 20).map(|c| pb::IngestRequest {
+        msg: Some(Msg::Chunk(c.to_vec())),
+    }));
+    out
 }
 
 #[tokio::test]
@@ -114,27 +139,31 @@ async fn ingest_list_stream_decode_round_trip() {
     let server = TestServer::start().await;
     let mut c = server.client().await;
 
-    let r = client::ingest(&mut c, "shepp", &bytes).await.unwrap();
+    let r = c.ingest("shepp", &bytes).await.unwrap();
     assert!(!r.existed);
-    let info = r.volume.unwrap();
-    assert_eq!(info.dims, vec![48, 48, 48]);
+    let info = r.volume;
+    assert_eq!(info.dims, [48, 48, 48]);
     assert_eq!(info.file_bytes, bytes.len() as u64);
     // Idempotent: identical content again.
-    let again = client::ingest(&mut c, "shepp", &bytes).await.unwrap();
+    let again = c.ingest("shepp", &bytes).await.unwrap();
     assert!(again.existed);
-    assert_eq!(again.volume.unwrap().id, info.id);
+    assert_eq!(again.volume.id, info.id);
     assert_eq!(volume_names(&mut c).await, vec!["shepp".to_string()]);
 
     let key = VolumeKey::Name("shepp".into());
-    let got = refine_collect(
-        &mut c,
-        &key,
-        &spec(View::new(0.66, 0.91, 64, 64)),
-        vec![],
-        None,
-    )
-    .await
-    .unwrap();
+    let header = c.header(&key).await.unwrap();
+    assert_eq!(header.info, info);
+    assert_eq!(header.header.geometry.dims, [48, 48, 48]);
+    let table = c.packet_table(&key).await.unwrap();
+    assert_eq!(table.len(), info.packet_count as usize);
+    assert_eq!(
+        table.iter().map(|p| p.bytes as u64).sum::<u64>(),
+        info.packet_bytes
+    );
+    let got = c
+        .refine_collect(request(&key, View::new(0.66, 0.91, 64, 64)), None)
+        .await
+        .unwrap();
     assert!(got.done);
     assert_eq!(got.packets.len(), info.packet_count as usize);
     let ids: HashSet<u32> = got.packets.iter().map(|p| p.id).collect();
@@ -143,28 +172,11 @@ async fn ingest_list_stream_decode_round_trip() {
     assert_eq!(sorted(have), sorted(want));
 
     // Thumbnail packets: the global-order prefix.
-    let first = c
-        .first_packets(pb::FirstPacketsRequest {
-            volume: Some(wavesplat_cache::convert::volume_ref(&key)),
-            max_bytes: 2000,
-        })
-        .await
-        .unwrap()
-        .into_inner();
-    assert!(!first.packets.is_empty());
-    assert!(first
-        .packets
-        .iter()
-        .enumerate()
-        .all(|(i, p)| p.id == i as u32));
+    let (_, first) = c.first_packets(&key, 2000).await.unwrap();
+    assert!(!first.is_empty());
+    assert!(first.iter().enumerate().all(|(i, p)| p.id == i as u32));
 
-    let d = c
-        .delete(pb::DeleteRequest {
-            volume: Some(wavesplat_cache::convert::volume_ref(&key)),
-        })
-        .await
-        .unwrap();
-    assert_eq!(d.into_inner().id, info.id);
+    assert_eq!(c.delete(&key).await.unwrap(), info.id);
     assert!(volume_names(&mut c).await.is_empty());
     server.stop().await;
 }
@@ -209,7 +221,7 @@ async fn view_dependent_order_beats_global_order() {
 
     let server = TestServer::start().await;
     let mut c = server.client().await;
-    client::ingest(&mut c, "shepp", &bytes).await.unwrap();
+    c.ingest("shepp", &bytes).await.unwrap();
     let key = VolumeKey::Name("shepp".into());
 
     let fit = 64.0 / (48.0f64 * 3f64.sqrt());
@@ -228,9 +240,7 @@ async fn view_dependent_order_beats_global_order() {
             .render(&all, &header.geometry, &view)
             .unwrap()
             .data;
-        let got = refine_collect(&mut c, &key, &spec(view), vec![], None)
-            .await
-            .unwrap();
+        let got = c.refine_collect(request(&key, view), None).await.unwrap();
         let order: Vec<u32> = got.packets.iter().map(|p| p.id).collect();
         for budget in [total / 8, total / 4, total / 2] {
             let (q_view, used_v) = q_i_after(&header, &packets, &order, budget, &view, &reference);
@@ -254,73 +264,44 @@ async fn nothing_sent_twice_across_view_change_and_reconnect() {
     let bytes = test_file([48, 48, 48]);
     let server = TestServer::start().await;
     let mut c = server.client().await;
-    let info = client::ingest(&mut c, "shepp", &bytes)
-        .await
-        .unwrap()
-        .volume
-        .unwrap();
+    let info = c.ingest("shepp", &bytes).await.unwrap().volume;
     let key = VolumeKey::Id(info.id);
-    // A small HTTP/2 window, so the client's reading pace holds the server back (the whole
-    // volume would otherwise fit in the default 64 KiB window and be sent before the view
-    // change arrives).
-    let channel = tonic::transport::Endpoint::from_shared(server.url.clone())
-        .unwrap()
-        .initial_stream_window_size(Some(1024))
-        .connect()
-        .await
-        .unwrap();
-    let mut c = CacheClient::new(channel);
-    let view_a = spec(View::new(0.0, 0.0, 64, 64));
-    let view_b = spec(View::new(1.2, 0.4, 96, 64).with_zoom(3.0));
+    let view_a = View::new(0.0, 0.0, 64, 64);
+    let view_b = View::new(1.2, 0.4, 96, 64).with_zoom(3.0);
 
-    let (tx, rx) = tokio::sync::mpsc::channel(4);
-    tx.send(refine_start(&key, &view_a, vec![], false))
+    // Pull one packet's worth at a time, so the view change reorders what follows.
+    let mut stream = c
+        .refine(request(&key, view_a).with_credit(1))
         .await
         .unwrap();
-    let mut stream = c
-        .refine(tokio_stream::wrappers::ReceiverStream::new(rx))
-        .await
-        .unwrap()
-        .into_inner();
-    let mut received: Vec<pb::Packet> = Vec::new();
+    let mut received: Vec<Packet> = Vec::new();
     let mut header = None;
     while received.len() < 20 {
-        match stream.message().await.unwrap().unwrap().msg {
-            Some(pb::refine_response::Msg::Header(h)) => header = Some(h.header),
-            Some(pb::refine_response::Msg::Packet(p)) => {
+        match stream.next().await.unwrap().unwrap() {
+            RefineEvent::Header(h) => header = Some(*h),
+            RefineEvent::Packet(p) => {
                 received.push(p);
                 if received.len() == 8 {
-                    tx.send(pb::RefineRequest {
-                        msg: Some(pb::refine_request::Msg::View(
-                            wavesplat_cache::convert::view_message(&view_b),
-                        )),
-                    })
-                    .await
-                    .unwrap();
+                    stream.control().set_view(&spec(view_b)).await.unwrap();
                 }
+                stream.control().grant(1).await.unwrap();
             }
             other => panic!("unexpected {other:?}"),
         }
     }
     drop(stream);
-    drop(tx);
-    assert!(header.is_some());
+    let header = header.expect("header sent first");
 
     // Reconnect with the client's holdings: the rest, exactly once, no header.
     let have: Vec<u32> = received.iter().map(|p| p.id).collect();
-    let (tx, rx) = tokio::sync::mpsc::channel(4);
-    tx.send(refine_start(&key, &view_b, have, true))
+    let mut stream = c
+        .refine(request(&key, view_b).holding(have, true))
         .await
         .unwrap();
-    let mut stream = c
-        .refine(tokio_stream::wrappers::ReceiverStream::new(rx))
-        .await
-        .unwrap()
-        .into_inner();
     loop {
-        match stream.message().await.unwrap().unwrap().msg {
-            Some(pb::refine_response::Msg::Packet(p)) => received.push(p),
-            Some(pb::refine_response::Msg::Done(_)) => break,
+        match stream.next().await.unwrap().unwrap() {
+            RefineEvent::Packet(p) => received.push(p),
+            RefineEvent::Done { .. } => break,
             other => panic!("unexpected {other:?}"),
         }
     }
@@ -328,29 +309,170 @@ async fn nothing_sent_twice_across_view_change_and_reconnect() {
     assert_eq!(ids.len(), received.len(), "a packet was sent twice");
     assert_eq!(ids.len(), info.packet_count as usize);
     let (_, want) = wavesplat_compressor::decode::decode_coefficients(&bytes).unwrap();
-    assert_eq!(
-        sorted(decode_all(&header.unwrap(), &received)),
-        sorted(want)
+    assert_eq!(sorted(decode_all(&header, &received)), sorted(want));
+    server.stop().await;
+}
+
+/// With credit the client pulls: a client that stops reading after its first packet has at
+/// most its credit (plus one packet) in flight, and a view change then reorders the rest.
+#[tokio::test]
+async fn credit_bounds_what_is_in_flight_and_the_view_change_reorders_the_rest() {
+    let bytes = test_file([64, 64, 64]);
+    let server = TestServer::start().await;
+    let mut c = server.client().await;
+    let info = c.ingest("big", &bytes).await.unwrap().volume;
+    let key = VolumeKey::Id(info.id);
+    let table = c.packet_table(&key).await.unwrap();
+    let largest = table.iter().map(|p| p.bytes as u64).max().unwrap();
+    let credit = 2048u64;
+    let view_a = View::new(0.0, 0.0, 64, 64);
+    // A zoomed corner: most tiles are off screen, so its order differs from view a's.
+    let view_b = View::new(0.0, 0.0, 64, 64)
+        .with_zoom(4.0)
+        .with_pan([-20.0, 20.0]);
+
+    let mut stream = c
+        .refine(request(&key, view_a).with_credit(credit))
+        .await
+        .unwrap();
+    let mut arrived = Vec::new();
+    // Read whatever the server sends without granting anything more.
+    while let Ok(Ok(Some(e))) =
+        tokio::time::timeout(std::time::Duration::from_millis(300), stream.next()).await
+    {
+        if let RefineEvent::Packet(p) = e {
+            arrived.push(p);
+        }
+    }
+    let bytes_a: u64 = arrived.iter().map(|p| p.data.len() as u64).sum();
+    assert!(!arrived.is_empty());
+    assert!(
+        bytes_a <= credit + largest,
+        "{bytes_a} bytes arrived on a credit of {credit} (largest packet {largest})"
+    );
+    assert!(arrived.len() < info.packet_count as usize);
+
+    // Change the view, then pull the rest: it comes in view b's order.
+    stream.control().set_view(&spec(view_b)).await.unwrap();
+    stream.control().grant(u64::MAX / 2).await.unwrap();
+    let mut rest = Vec::new();
+    loop {
+        match stream.next().await.unwrap().unwrap() {
+            RefineEvent::Packet(p) => rest.push(p),
+            RefineEvent::Done { .. } => break,
+            RefineEvent::Header(_) => panic!("header sent twice"),
+        }
+    }
+    assert_eq!(arrived.len() + rest.len(), info.packet_count as usize);
+    let priorities: Vec<f64> = rest.iter().map(|p| p.priority).collect();
+    assert!(
+        priorities.windows(2).all(|w| w[0] >= w[1]),
+        "not in descending priority for the new view"
     );
     server.stop().await;
 }
 
-fn refine_view(key: &VolumeKey, v: pb::ViewSpec) -> pb::RefineRequest {
-    let mut r = refine_start(key, &spec(View::new(0.0, 0.0, 8, 8)), vec![], false);
-    if let Some(pb::refine_request::Msg::Start(s)) = &mut r.msg {
-        s.view = Some(v);
+/// Dropped packets are sent again after a view change, not in the same view.
+#[tokio::test]
+async fn dropped_packets_come_back_after_a_view_change() {
+    let bytes = test_file([40, 40, 40]);
+    let server = TestServer::start().await;
+    let mut c = server.client().await;
+    let info = c.ingest("v", &bytes).await.unwrap().volume;
+    let key = VolumeKey::Id(info.id);
+    let mut stream = c
+        .refine(request(&key, View::new(0.3, 0.2, 32, 32)).with_credit(1))
+        .await
+        .unwrap();
+    let mut got = Vec::new();
+    while got.len() < 3 {
+        if let RefineEvent::Packet(p) = stream.next().await.unwrap().unwrap() {
+            got.push(p.id);
+            stream.control().grant(1).await.unwrap();
+        }
     }
-    r
+    stream
+        .control()
+        .holdings(vec![], vec![got[0]])
+        .await
+        .unwrap();
+    stream.control().grant(u64::MAX / 2).await.unwrap();
+    let mut rest = Vec::new();
+    loop {
+        match stream.next().await.unwrap().unwrap() {
+            RefineEvent::Packet(p) => rest.push(p.id),
+            RefineEvent::Done { .. } => break,
+            RefineEvent::Header(_) => panic!("header sent twice"),
+        }
+    }
+    assert!(
+        !rest.contains(&got[0]),
+        "a dropped packet came back in the same view"
+    );
+    assert_eq!(got.len() + rest.len(), info.packet_count as usize);
+    // A new view ranks it again: it is the only packet left to send.
+    stream
+        .control()
+        .set_view(&spec(View::new(1.0, 0.5, 32, 32)))
+        .await
+        .unwrap();
+    match stream.next().await.unwrap().unwrap() {
+        RefineEvent::Packet(p) => assert_eq!(p.id, got[0]),
+        other => panic!("expected the dropped packet, got {other:?}"),
+    }
+    assert!(matches!(
+        stream.next().await.unwrap().unwrap(),
+        RefineEvent::Done { .. }
+    ));
+    server.stop().await;
+}
+
+fn wire_view(v: &View) -> pb::ViewSpec {
+    let wavesplat_codec::view::Orientation::Angles { alpha, beta } = v.orientation else {
+        unreachable!("angle views only")
+    };
+    pb::ViewSpec {
+        alpha,
+        beta,
+        width: v.width as u32,
+        height: v.height as u32,
+        zoom: v.zoom.unwrap_or(0.0),
+        pan_u: v.pan[0],
+        pan_v: v.pan[1],
+        multiview: false,
+        cue: None,
+    }
+}
+
+fn volume_ref(key: &VolumeKey) -> pb::VolumeRef {
+    pb::VolumeRef {
+        key: Some(match key {
+            VolumeKey::Id(id) => pb::volume_ref::Key::Id(*id),
+            VolumeKey::Name(n) => pb::volume_ref::Key::Name(n.clone()),
+        }),
+    }
+}
+
+fn refine_view(key: &VolumeKey, v: pb::ViewSpec) -> pb::RefineRequest {
+    pb::RefineRequest {
+        msg: Some(pb::refine_request::Msg::Start(pb::RefineStart {
+            volume: Some(volume_ref(key)),
+            view: Some(v),
+            have: vec![],
+            have_header: false,
+            credit_bytes: 0,
+        })),
+    }
 }
 
 #[tokio::test]
 async fn malformed_requests_get_errors_and_leave_the_store_unchanged() {
     let bytes = test_file([24, 24, 24]);
     let server = TestServer::start().await;
-    let mut c = server.client().await;
-    client::ingest(&mut c, "ok", &bytes).await.unwrap();
+    server.client().await.ingest("ok", &bytes).await.unwrap();
+    let mut c = server.wire().await;
     let key = VolumeKey::Name("ok".into());
-    let good = wavesplat_cache::convert::view_message(&spec(View::new(0.0, 0.0, 32, 32)));
+    let good = wire_view(&View::new(0.0, 0.0, 32, 32));
 
     let refine_code = |req: pb::RefineRequest| {
         let mut c = c.clone();
@@ -403,9 +525,7 @@ async fn malformed_requests_get_errors_and_leave_the_store_unchanged() {
 
     let describe = c
         .describe(pb::DescribeRequest {
-            volume: Some(wavesplat_cache::convert::volume_ref(&VolumeKey::Name(
-                "nope".into(),
-            ))),
+            volume: Some(volume_ref(&VolumeKey::Name("nope".into()))),
         })
         .await;
     assert_eq!(describe.unwrap_err().code(), Code::NotFound);
@@ -413,22 +533,22 @@ async fn malformed_requests_get_errors_and_leave_the_store_unchanged() {
     assert_eq!(delete.unwrap_err().code(), Code::InvalidArgument);
 
     // Uploads: truncated, wrong checksum, not a .wsp file, oversized declaration, no start.
-    let mut truncated = client::ingest_messages("t", &bytes);
+    let mut truncated = ingest_messages("t", &bytes);
     truncated.pop();
-    let mut wrong_sum = client::ingest_messages("w", &bytes);
+    let mut wrong_sum = ingest_messages("w", &bytes);
     if let Some(pb::ingest_request::Msg::Start(s)) = &mut wrong_sum[0].msg {
         s.sha256[0] ^= 1;
     }
     let mut garbage_bytes = bytes.clone();
     let n = garbage_bytes.len();
     garbage_bytes[n / 2] ^= 0x55;
-    let garbage = client::ingest_messages("g", &garbage_bytes);
-    let mut oversized = client::ingest_messages("o", &bytes);
+    let garbage = ingest_messages("g", &garbage_bytes);
+    let mut oversized = ingest_messages("o", &bytes);
     if let Some(pb::ingest_request::Msg::Start(s)) = &mut oversized[0].msg {
         s.total_size = u64::MAX;
     }
-    let no_start = client::ingest_messages("n", &bytes)[1..].to_vec();
-    let bad_name = client::ingest_messages("", &bytes);
+    let no_start = ingest_messages("n", &bytes)[1..].to_vec();
+    let bad_name = ingest_messages("", &bytes);
     for (what, msgs) in [
         ("truncated", truncated),
         ("wrong checksum", wrong_sum),
@@ -440,7 +560,10 @@ async fn malformed_requests_get_errors_and_leave_the_store_unchanged() {
         let r = c.ingest(tokio_stream::iter(msgs)).await;
         assert_eq!(r.unwrap_err().code(), Code::InvalidArgument, "{what}");
     }
-    assert_eq!(volume_names(&mut c).await, vec!["ok".to_string()]);
+    assert_eq!(
+        volume_names(&mut server.client().await).await,
+        vec!["ok".to_string()]
+    );
     server.stop().await;
 }
 
@@ -475,17 +598,15 @@ impl Drop for Process {
     }
 }
 
-async fn stream_all(url: &str, name: &str) -> (Vec<u8>, Vec<pb::Packet>) {
-    let mut c = client::connect(url).await.unwrap();
-    let got = refine_collect(
-        &mut c,
-        &VolumeKey::Name(name.into()),
-        &spec(View::new(0.3, 0.2, 32, 32)),
-        vec![],
-        None,
-    )
-    .await
-    .unwrap();
+async fn stream_all(url: &str, name: &str) -> (VolumeHeader, Vec<Packet>) {
+    let mut c = CacheClient::connect(url).await.unwrap();
+    let got = c
+        .refine_collect(
+            request(&VolumeKey::Name(name.into()), View::new(0.3, 0.2, 32, 32)),
+            None,
+        )
+        .await
+        .unwrap();
     assert!(got.done);
     (got.header.unwrap(), got.packets)
 }
@@ -498,12 +619,13 @@ async fn sigkill_during_ingest_and_streaming_leaves_no_partial_volume() {
     let dir = tempfile::tempdir().unwrap();
 
     let server = Process::start(dir.path());
-    let mut c = client::connect(&server.url).await.unwrap();
-    client::ingest(&mut c, "a", &a).await.unwrap();
+    let mut c = CacheClient::connect(&server.url).await.unwrap();
+    c.ingest("a", &a).await.unwrap();
     // Start uploading b, send half of it, and kill the server mid-upload.
-    let msgs = client::ingest_messages("b", &b);
+    let msgs = ingest_messages("b", &b);
     let (tx, rx) = tokio::sync::mpsc::channel(16);
-    let mut c2 = c.clone();
+    let wire = WireClient::connect(server.url.clone()).await.unwrap();
+    let mut c2 = wire.clone();
     let upload = tokio::spawn(async move {
         c2.ingest(tokio_stream::wrappers::ReceiverStream::new(rx))
             .await
@@ -516,45 +638,39 @@ async fn sigkill_during_ingest_and_streaming_leaves_no_partial_volume() {
     .await
     .unwrap();
     // A round trip on the same connection, so the upload is in flight at the server.
-    assert_eq!(volume_names(&mut c).await, vec!["a".to_string()]);
+    let listed = wire.clone().list(pb::ListRequest {}).await.unwrap();
+    assert_eq!(listed.into_inner().volumes.len(), 1);
     server.kill();
     assert!(upload.await.unwrap().is_err());
     drop(tx);
 
     let server = Process::start(dir.path());
-    let mut c = client::connect(&server.url).await.unwrap();
+    let mut c = CacheClient::connect(&server.url).await.unwrap();
     assert_eq!(volume_names(&mut c).await, vec!["a".to_string()]);
     let (h, p) = stream_all(&server.url, "a").await;
     assert_eq!(sorted(decode_all(&h, &p)), sorted(want_a.clone()));
 
     // Kill during streaming.
-    let (tx, rx) = tokio::sync::mpsc::channel(4);
-    tx.send(refine_start(
-        &VolumeKey::Name("a".into()),
-        &spec(View::new(0.0, 0.0, 32, 32)),
-        vec![],
-        false,
-    ))
-    .await
-    .unwrap();
     let mut stream = c
-        .refine(tokio_stream::wrappers::ReceiverStream::new(rx))
+        .refine(request(
+            &VolumeKey::Name("a".into()),
+            View::new(0.0, 0.0, 32, 32),
+        ))
         .await
-        .unwrap()
-        .into_inner();
+        .unwrap();
     for _ in 0..5 {
-        stream.message().await.unwrap().unwrap();
+        stream.next().await.unwrap().unwrap();
     }
     server.kill();
     drop(stream);
 
     let server = Process::start(dir.path());
-    let mut c = client::connect(&server.url).await.unwrap();
+    let mut c = CacheClient::connect(&server.url).await.unwrap();
     assert_eq!(volume_names(&mut c).await, vec!["a".to_string()]);
     let (h, p) = stream_all(&server.url, "a").await;
     assert_eq!(sorted(decode_all(&h, &p)), sorted(want_a));
     // The store still accepts b after the crash.
-    client::ingest(&mut c, "b", &b).await.unwrap();
+    c.ingest("b", &b).await.unwrap();
     assert_eq!(
         volume_names(&mut c).await,
         vec!["a".to_string(), "b".to_string()]

@@ -9,9 +9,9 @@ use std::collections::HashSet;
 use std::path::Path;
 use std::process::{Child, Command, Output, Stdio};
 use std::time::{Duration, Instant};
-use wavesplat_cache::{ViewSpec, VolumeKey};
+use wavesplat_client::{CacheClient, RefineRequest, VolumeKey};
 use wavesplat_codec::format::packet::decode_packet;
-use wavesplat_codec::format::read_header_section;
+use wavesplat_codec::view::ViewSpec;
 use wavesplat_compressor::phantom::Phantom;
 use wavesplat_orchestrator::client;
 use wavesplat_orchestrator::convert::state_name;
@@ -237,30 +237,17 @@ fn all_finished(js: &[pb::Job]) -> bool {
 
 /// Every volume in the cache, each streamed in full and decoded; names must be unique.
 async fn cache_volumes_decode(cache: &str) -> Vec<String> {
-    let mut c = wavesplat_cache::client::connect(cache).await.unwrap();
-    let list = c
-        .list(pb::ListRequest {})
-        .await
-        .unwrap()
-        .into_inner()
-        .volumes;
+    let mut c = CacheClient::connect(cache).await.unwrap();
     let mut names = Vec::new();
-    for v in list {
-        let got = wavesplat_cache::client::refine_collect(
-            &mut c,
-            &VolumeKey::Name(v.name.clone()),
-            &ViewSpec {
-                view: View::new(0.4, 0.7, 32, 32),
-                multiview: false,
-            },
-            vec![],
-            None,
-        )
-        .await
-        .unwrap();
+    for v in c.list().await.unwrap() {
+        let request = RefineRequest::new(
+            VolumeKey::Name(v.name.clone()),
+            ViewSpec::single(View::new(0.4, 0.7, 32, 32)),
+        );
+        let got = c.refine_collect(request, None).await.unwrap();
         assert!(got.done);
         assert_eq!(got.packets.len(), v.packet_count as usize, "{}", v.name);
-        let (h, _) = read_header_section(got.header.as_ref().unwrap()).unwrap();
+        let h = got.header.unwrap().header;
         for p in &got.packets {
             decode_packet(&h, &p.data).unwrap();
         }

@@ -6,40 +6,32 @@
 //! `cargo run --release -p wavesplat-cache --example load [EDGE] [ROUNDS]`
 
 use std::time::{Duration, Instant};
-use wavesplat_cache::client::{self, refine_start};
-use wavesplat_cache::{Limits, Store, ViewSpec, VolumeKey};
+use wavesplat_cache::{Limits, Store};
+use wavesplat_client::{CacheClient, RefineEvent, RefineRequest, VolumeKey};
+use wavesplat_codec::view::ViewSpec;
 use wavesplat_compressor::encode::{compress, CompressOptions, Target, TileChoice};
 use wavesplat_compressor::phantom::Phantom;
-use wavesplat_proto::pb;
 use wavesplat_viewer::View;
 
 async fn one_stream(url: String, key: VolumeKey, i: usize) -> (Duration, u64, u64) {
-    let mut c = client::connect(&url).await.expect("connect");
-    let view = ViewSpec {
-        view: View::new(0.1 * i as f64, 0.05 * i as f64, 256, 256),
-        multiview: false,
-    };
+    let mut c = CacheClient::connect(&url).await.expect("connect");
+    let view = ViewSpec::single(View::new(0.1 * i as f64, 0.05 * i as f64, 256, 256));
     let t0 = Instant::now();
-    let (tx, rx) = tokio::sync::mpsc::channel(1);
-    tx.send(refine_start(&key, &view, vec![], false))
-        .await
-        .unwrap();
     let mut s = c
-        .refine(tokio_stream::wrappers::ReceiverStream::new(rx))
+        .refine(RefineRequest::new(key, view))
         .await
-        .expect("refine")
-        .into_inner();
+        .expect("refine");
     let mut first = None;
     let (mut packets, mut bytes) = (0u64, 0u64);
-    while let Some(m) = s.message().await.expect("stream") {
-        match m.msg {
-            Some(pb::refine_response::Msg::Packet(p)) => {
+    while let Some(e) = s.next().await.expect("stream") {
+        match e {
+            RefineEvent::Packet(p) => {
                 first.get_or_insert_with(|| t0.elapsed());
                 packets += 1;
                 bytes += p.data.len() as u64;
             }
-            Some(pb::refine_response::Msg::Done(_)) => break,
-            _ => {}
+            RefineEvent::Done { .. } => break,
+            RefineEvent::Header(_) => {}
         }
     }
     (first.unwrap_or_default(), packets, bytes)
@@ -77,12 +69,8 @@ async fn main() {
     let server = tokio::spawn(wavesplat_cache::serve(listener, store, async {
         let _ = stopped.await;
     }));
-    let mut c = client::connect(&url).await.unwrap();
-    let info = client::ingest(&mut c, "phantom", &bytes)
-        .await
-        .unwrap()
-        .volume
-        .unwrap();
+    let mut c = CacheClient::connect(&url).await.unwrap();
+    let info = c.ingest("phantom", &bytes).await.unwrap().volume;
     eprintln!(
         "volume {edge}^3: {} bytes, {} packets, {} tiles",
         info.file_bytes, info.packet_count, info.tile_count

@@ -2,10 +2,9 @@
 //! into typed values (with range checks that need no store), results are turned into messages.
 
 use crate::error::CacheError;
-use crate::model::{VolumeKey, VolumeMeta};
-use crate::priority::ViewSpec;
+use crate::model::{PacketMeta, VolumeKey, VolumeMeta};
+use wavesplat_codec::view::{Cue, CueDirection, View, ViewSpec};
 use wavesplat_proto::pb;
-use wavesplat_viewer::{Cue, CueDirection, View};
 
 /// Parses a volume reference.
 pub fn volume_key(r: Option<pb::VolumeRef>) -> Result<VolumeKey, CacheError> {
@@ -15,16 +14,6 @@ pub fn volume_key(r: Option<pb::VolumeRef>) -> Result<VolumeKey, CacheError> {
         None => Err(CacheError::InvalidRequest(
             "missing volume reference (id or name)".into(),
         )),
-    }
-}
-
-/// Builds a volume reference from a key.
-pub fn volume_ref(key: &VolumeKey) -> pb::VolumeRef {
-    pb::VolumeRef {
-        key: Some(match key {
-            VolumeKey::Id(id) => pb::volume_ref::Key::Id(*id),
-            VolumeKey::Name(n) => pb::volume_ref::Key::Name(n.clone()),
-        }),
     }
 }
 
@@ -51,41 +40,18 @@ pub fn view_spec(v: Option<pb::ViewSpec>) -> Result<ViewSpec, CacheError> {
         view,
         multiview: v.multiview,
     };
-    spec.validate()?;
+    spec.validate()
+        .map_err(|e| CacheError::InvalidRequest(e.to_string()))?;
     Ok(spec)
 }
 
-/// Builds a view message (for clients).
-pub fn view_message(spec: &ViewSpec) -> pb::ViewSpec {
-    let v = &spec.view;
-    let (alpha, beta) = match v.orientation {
-        wavesplat_viewer::Orientation::Angles { alpha, beta } => (alpha, beta),
-        // Not expressible on the wire; clients only build angle views.
-        wavesplat_viewer::Orientation::Basis { .. } => (f64::NAN, f64::NAN),
-    };
-    pb::ViewSpec {
-        alpha,
-        beta,
-        width: v.width as u32,
-        height: v.height as u32,
-        zoom: v.zoom.unwrap_or(0.0),
-        pan_u: v.pan[0],
-        pan_v: v.pan[1],
-        multiview: spec.multiview,
-        cue: v.cue.map(|c| pb::Cue {
-            k: c.k,
-            direction: Some(match c.direction {
-                CueDirection::View => pb::cue::Direction::View(true),
-                CueDirection::Angles { alpha, beta } => {
-                    pb::cue::Direction::Angles(pb::LightAngles { alpha, beta })
-                }
-                CueDirection::Vector(w) => pb::cue::Direction::Vector(pb::Vec3 {
-                    x: w[0],
-                    y: w[1],
-                    z: w[2],
-                }),
-            }),
-        }),
+/// A packet table entry.
+pub fn packet_entry(p: &PacketMeta) -> pb::PacketEntry {
+    pb::PacketEntry {
+        tile: p.tile,
+        layer: p.layer,
+        bytes: p.len,
+        energy: p.summary.iter().map(|(_, e)| e).sum(),
     }
 }
 
@@ -115,5 +81,52 @@ pub fn volume_info(m: &VolumeMeta) -> pb::VolumeInfo {
         tile: m.tile,
         coefficients: m.coefficients,
         sha256: m.sha256_hex(),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn message(alpha: f64, width: u32, zoom: f64, pan_u: f64) -> pb::ViewSpec {
+        pb::ViewSpec {
+            alpha,
+            beta: 0.0,
+            width,
+            height: 10,
+            zoom,
+            pan_u,
+            pan_v: 0.0,
+            multiview: false,
+            cue: None,
+        }
+    }
+
+    #[test]
+    fn bad_views_are_rejected() {
+        assert!(view_spec(Some(message(0.3, 10, 0.0, 0.0))).is_ok());
+        let cued = pb::ViewSpec {
+            multiview: true,
+            cue: Some(pb::Cue {
+                k: 0.1,
+                direction: None,
+            }),
+            ..message(0.0, 10, 0.0, 0.0)
+        };
+        for m in [
+            message(f64::NAN, 10, 0.0, 0.0),
+            message(1e9, 10, 0.0, 0.0),
+            message(0.0, 100_000, 0.0, 0.0),
+            message(0.0, 0, 0.0, 0.0),
+            message(0.0, 10, -1.0, 0.0),
+            message(0.0, 10, 0.0, f64::INFINITY),
+            cued,
+        ] {
+            assert!(
+                matches!(view_spec(Some(m)), Err(CacheError::InvalidRequest(_))),
+                "{m:?}"
+            );
+        }
+        assert!(view_spec(None).is_err());
     }
 }

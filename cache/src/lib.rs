@@ -4,11 +4,10 @@
 //! (view-dependent selective refinement, the paper's future work; JPIP is the model).
 //!
 //! - [`store`]: the sled layout, atomic ingest (batch + commit record), deletion, recovery;
-//! - [`priority`]: visible energy of a packet in a view (projection-slice + Parseval), sent by
-//!   visible energy per byte;
+//! - [`priority`]: the sending order, by visible energy per byte (the view's weights come from
+//!   `wavesplat_codec::view::visibility`);
 //! - [`service`]: the tonic service and the per-stream refinement session;
 //! - [`convert`] / [`error`]: the one place for `pb` conversions / `tonic::Status` mapping;
-//! - [`client`]: small async helpers used by the CLI and the tests.
 //!
 //! ```no_run
 //! # async fn demo() -> Result<(), wavesplat_cache::CacheError> {
@@ -18,7 +17,6 @@
 //! # Ok(()) }
 //! ```
 
-pub mod client;
 pub mod convert;
 pub mod error;
 pub mod model;
@@ -28,7 +26,7 @@ pub mod store;
 
 pub use error::CacheError;
 pub use model::{PacketMeta, VolumeIndex, VolumeKey, VolumeMeta};
-pub use priority::{Priority, ViewSpec};
+pub use priority::Priority;
 pub use store::{Limits, Store};
 
 use std::future::Future;
@@ -48,7 +46,8 @@ pub async fn serve(
     health
         .set_serving::<CacheServer<service::CacheService>>()
         .await;
-    let cache = CacheServer::new(service::CacheService::new(store))
+    let (stopping_tx, stopping) = tokio::sync::watch::channel(false);
+    let cache = CacheServer::new(service::CacheService::new(store, stopping))
         .max_decoding_message_size(service::MAX_CHUNK_BYTES + 1024)
         .max_encoding_message_size(
             (limits.max_packet_bytes as usize).max(service::MAX_FIRST_PACKETS_BYTES as usize)
@@ -60,7 +59,10 @@ pub async fn serve(
     tonic::transport::Server::builder()
         .add_service(health_service)
         .add_service(cache)
-        .serve_with_incoming_shutdown(TcpListenerStream::new(listener), shutdown)
+        .serve_with_incoming_shutdown(TcpListenerStream::new(listener), async move {
+            shutdown.await;
+            let _ = stopping_tx.send(true);
+        })
         .await?;
     tracing::info!("cache stopped");
     Ok(())

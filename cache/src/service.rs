@@ -1,8 +1,9 @@
 //! The gRPC `Cache` service: request handling on top of [`Store`] and [`Priority`]. Heavy work
 //! (validating and storing an upload) runs on the blocking pool. A refinement session is one
 //! task per stream that owns the unsent-packet queue: it reads client messages (view changes,
-//! holdings) and sends packets through a bounded channel, so it only produces as fast as the
-//! client consumes.
+//! holdings, credit) and sends packets through a bounded channel, so it only produces as fast as
+//! the client consumes; with a byte credit (the client pulls) it also never has more than the
+//! credit in flight, so a view change reorders everything the client has not yet asked for.
 
 use crate::convert;
 use crate::error::CacheError;
@@ -11,7 +12,7 @@ use crate::priority::Priority;
 use crate::store::{validate_name, Store};
 use std::collections::HashSet;
 use std::pin::Pin;
-use tokio::sync::mpsc;
+use tokio::sync::{mpsc, watch};
 use tokio_stream::wrappers::ReceiverStream;
 use tokio_stream::Stream;
 use tonic::{Request, Response, Status, Streaming};
@@ -29,12 +30,16 @@ pub const MAX_FIRST_PACKETS_BYTES: u64 = 16 << 20;
 #[derive(Debug, Clone)]
 pub struct CacheService {
     store: Store,
+    /// Becomes `true` when the server shuts down: open refinement streams then end (a viewer
+    /// keeps its stream open while it may still change the view, so graceful shutdown would
+    /// otherwise wait for it forever).
+    stopping: watch::Receiver<bool>,
 }
 
 impl CacheService {
-    /// A service over `store`.
-    pub fn new(store: Store) -> CacheService {
-        CacheService { store }
+    /// A service over `store` that ends its streams once `stopping` becomes `true`.
+    pub fn new(store: Store, stopping: watch::Receiver<bool>) -> CacheService {
+        CacheService { store, stopping }
     }
 }
 
@@ -144,6 +149,35 @@ impl Cache for CacheService {
         Ok(Response::new(pb::DeleteResponse { id }))
     }
 
+    async fn header(
+        &self,
+        request: Request<pb::DescribeRequest>,
+    ) -> Result<Response<pb::VolumeHeader>, Status> {
+        let key = convert::volume_key(request.into_inner().volume)?;
+        let store = self.store.clone();
+        let (meta, index) = blocking(move || {
+            let id = store.resolve(&key)?;
+            Ok((store.meta(id)?, store.index(id)?))
+        })
+        .await?;
+        Ok(Response::new(pb::VolumeHeader {
+            volume: Some(convert::volume_info(&meta)),
+            header: index.header_bytes,
+        }))
+    }
+
+    async fn packet_table(
+        &self,
+        request: Request<pb::DescribeRequest>,
+    ) -> Result<Response<pb::PacketTableResponse>, Status> {
+        let key = convert::volume_key(request.into_inner().volume)?;
+        let store = self.store.clone();
+        let index = blocking(move || store.index(store.resolve(&key)?)).await?;
+        Ok(Response::new(pb::PacketTableResponse {
+            packets: index.packets.iter().map(convert::packet_entry).collect(),
+        }))
+    }
+
     async fn first_packets(
         &self,
         request: Request<pb::FirstPacketsRequest>,
@@ -213,11 +247,11 @@ impl Cache for CacheService {
             Ok((meta, index, priority))
         })
         .await?;
-        let mut session = Session::new(self.store.clone(), meta, index);
+        let mut session = Session::new(self.store.clone(), meta, index, start.credit_bytes);
         session.hold(&start.have)?;
         session.reorder(priority);
         let (tx, rx) = mpsc::channel(STREAM_BUFFER);
-        tokio::spawn(session.run(inbound, tx, !start.have_header));
+        tokio::spawn(session.run(inbound, tx, !start.have_header, self.stopping.clone()));
         Ok(Response::new(Box::pin(ReceiverStream::new(rx))))
     }
 }
@@ -233,10 +267,12 @@ struct Session {
     queue: Vec<(f64, u32)>,
     sent: u32,
     bytes: u64,
+    /// Byte credit left, when the client pulls (`None`: no flow control).
+    credit: Option<u64>,
 }
 
 impl Session {
-    fn new(store: Store, meta: VolumeMeta, index: VolumeIndex) -> Session {
+    fn new(store: Store, meta: VolumeMeta, index: VolumeIndex, credit_bytes: u64) -> Session {
         Session {
             store,
             meta,
@@ -245,19 +281,39 @@ impl Session {
             queue: Vec::new(),
             sent: 0,
             bytes: 0,
+            credit: (credit_bytes > 0).then_some(credit_bytes),
+        }
+    }
+
+    fn check_ids(&self, ids: &[u32], what: &str) -> Result<(), CacheError> {
+        let n = self.index.packets.len();
+        match ids.iter().find(|i| **i as usize >= n) {
+            Some(bad) => Err(CacheError::InvalidRequest(format!(
+                "{what} packet id {bad} out of range 0..{n}"
+            ))),
+            None => Ok(()),
         }
     }
 
     fn hold(&mut self, ids: &[u32]) -> Result<(), CacheError> {
-        let n = self.index.packets.len();
-        if let Some(bad) = ids.iter().find(|i| **i as usize >= n) {
-            return Err(CacheError::InvalidRequest(format!(
-                "held packet id {bad} out of range 0..{n}"
-            )));
-        }
+        self.check_ids(ids, "held")?;
         self.held.extend(ids.iter().copied());
         self.queue.retain(|(_, id)| !self.held.contains(id));
         Ok(())
+    }
+
+    /// The client no longer holds `ids`; they are queued again at the next view change.
+    fn release(&mut self, ids: &[u32]) -> Result<(), CacheError> {
+        self.check_ids(ids, "dropped")?;
+        for id in ids {
+            self.held.remove(id);
+        }
+        Ok(())
+    }
+
+    /// Whether the client's credit allows another packet now.
+    fn may_send(&self) -> bool {
+        self.credit.is_none_or(|c| c > 0)
     }
 
     fn reorder(&mut self, priority: Priority) {
@@ -286,7 +342,16 @@ impl Session {
                 tracing::debug!(volume = self.meta.id, "view changed");
                 Ok(())
             }
-            Some(pb::refine_request::Msg::Holdings(h)) => Ok(self.hold(&h.have)?),
+            Some(pb::refine_request::Msg::Holdings(h)) => {
+                self.release(&h.dropped)?;
+                Ok(self.hold(&h.have)?)
+            }
+            Some(pb::refine_request::Msg::Credit(c)) => {
+                if let Some(credit) = &mut self.credit {
+                    *credit = credit.saturating_add(c.bytes);
+                }
+                Ok(())
+            }
             Some(pb::refine_request::Msg::Start(_)) | None => Err(CacheError::InvalidRequest(
                 "`start` may only be the first message".into(),
             )
@@ -303,6 +368,9 @@ impl Session {
             let data = self.store.packet(self.meta.id, id)?;
             self.sent += 1;
             self.bytes += data.len() as u64;
+            if let Some(credit) = &mut self.credit {
+                *credit = credit.saturating_sub(data.len() as u64);
+            }
             return Ok(Some(pb::Packet {
                 id,
                 tile: p.tile,
@@ -319,6 +387,7 @@ impl Session {
         mut inbound: Streaming<pb::RefineRequest>,
         tx: mpsc::Sender<Result<pb::RefineResponse, Status>>,
         send_header: bool,
+        mut stopping: watch::Receiver<bool>,
     ) {
         use pb::refine_response::Msg;
         if send_header {
@@ -334,28 +403,42 @@ impl Session {
             }
         }
         let mut inbound_open = true;
+        // `done` is announced whenever the queue runs dry; the stream stays open while the
+        // client may still send (a view change can queue dropped packets again).
+        let mut announced = false;
         loop {
             if self.queue.is_empty() {
-                let done = pb::RefineDone {
-                    sent: self.sent,
-                    bytes: self.bytes,
-                };
-                let _ = tx
-                    .send(Ok(pb::RefineResponse {
+                if !announced {
+                    let done = pb::RefineDone {
+                        sent: self.sent,
+                        bytes: self.bytes,
+                    };
+                    let msg = pb::RefineResponse {
                         msg: Some(Msg::Done(done)),
-                    }))
-                    .await;
-                tracing::debug!(volume = self.meta.id, sent = self.sent, "refinement done");
-                return;
+                    };
+                    if tx.send(Ok(msg)).await.is_err() {
+                        return;
+                    }
+                    tracing::debug!(volume = self.meta.id, sent = self.sent, "refinement done");
+                    announced = true;
+                }
+                if !inbound_open {
+                    return;
+                }
             }
             tokio::select! {
                 biased;
+                _ = async { stopping.wait_for(|s| *s).await.map(|_| ()) } => {
+                    let _ = tx.send(Err(Status::unavailable("the cache is shutting down"))).await;
+                    return;
+                }
                 msg = inbound.message(), if inbound_open => match msg {
                     Ok(Some(m)) => {
                         if let Err(status) = self.handle(m).await {
                             let _ = tx.send(Err(status)).await;
                             return;
                         }
+                        announced &= self.queue.is_empty();
                     }
                     Ok(None) => inbound_open = false,
                     Err(status) => {
@@ -363,7 +446,7 @@ impl Session {
                         return;
                     }
                 },
-                permit = tx.reserve() => {
+                permit = tx.reserve(), if self.may_send() && !self.queue.is_empty() => {
                     let Ok(permit) = permit else { return };
                     match self.next_packet() {
                         Ok(Some(p)) => permit.send(Ok(pb::RefineResponse { msg: Some(Msg::Packet(p)) })),
@@ -374,6 +457,8 @@ impl Session {
                         }
                     }
                 }
+                // Out of credit and the client can no longer grant any.
+                else => return,
             }
         }
     }

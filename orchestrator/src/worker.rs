@@ -16,11 +16,11 @@ use std::time::Duration;
 use thiserror::Error;
 use tonic::transport::{Channel, Endpoint};
 use tonic::Code;
+use wavesplat_client::CacheClient;
 use wavesplat_codec::volume::Volume;
 use wavesplat_compressor::encode::{compress, Stage};
 use wavesplat_compressor::reader::{decode_raw, read_nifti};
 use wavesplat_proto::pb;
-use wavesplat_proto::pb::cache_client::CacheClient;
 use wavesplat_proto::pb::orchestrator_client::OrchestratorClient;
 
 /// Worker settings.
@@ -56,6 +56,9 @@ pub enum WorkerError {
     /// The thread pool could not be built.
     #[error("thread pool: {0}")]
     Pool(#[from] rayon::ThreadPoolBuildError),
+    /// The cache client could not be set up.
+    #[error(transparent)]
+    Cache(#[from] wavesplat_client::ClientError),
 }
 
 /// A default worker identity: host name and process id.
@@ -88,7 +91,7 @@ fn channel(url: &str) -> Result<Channel, WorkerError> {
 struct Ctx {
     cfg: WorkerConfig,
     orch: OrchestratorClient<Channel>,
-    cache: CacheClient<Channel>,
+    cache: CacheClient,
     pool: Arc<rayon::ThreadPool>,
 }
 
@@ -104,9 +107,7 @@ pub async fn run(
         .build()?;
     let orch = OrchestratorClient::new(channel(&cfg.orchestrator)?)
         .max_decoding_message_size(crate::service::CHUNK_BYTES + (1 << 20));
-    let cache = CacheClient::new(channel(&cfg.cache)?)
-        .max_decoding_message_size(64 << 20)
-        .max_encoding_message_size(8 << 20);
+    let cache = CacheClient::connect_lazy(&cfg.cache)?;
     let mut ctx = Ctx {
         cfg,
         orch,
@@ -427,26 +428,16 @@ async fn execute(
         return Err(fail(FailureKind::Worker, "lease lost before upload"));
     }
     shared.set(0.9, "uploading");
-    let r = wavesplat_cache::client::ingest(&mut ctx.cache, &spec.name, &file)
-        .await
-        .map_err(|s| {
-            let kind = match s.code() {
-                Code::InvalidArgument | Code::AlreadyExists | Code::FailedPrecondition => {
-                    FailureKind::CacheRejected
-                }
-                _ => FailureKind::CacheUnavailable,
-            };
-            fail(
-                kind,
-                format!("cache ingest of {:?}: {}", spec.name, s.message()),
-            )
-        })?;
-    let v = r.volume.ok_or_else(|| {
-        fail(
-            FailureKind::CacheUnavailable,
-            "the cache returned no volume",
-        )
+    let r = ctx.cache.ingest(&spec.name, &file).await.map_err(|e| {
+        let kind = match e.code() {
+            Some(Code::InvalidArgument | Code::AlreadyExists | Code::FailedPrecondition) => {
+                FailureKind::CacheRejected
+            }
+            _ => FailureKind::CacheUnavailable,
+        };
+        fail(kind, format!("cache ingest of {:?}: {e}", spec.name))
     })?;
+    let v = r.volume;
     tracing::info!(job = id, name = %spec.name, cache_id = v.id, bytes = file.len(), existed = r.existed, "delivered");
     Ok(Delivery {
         cache_volume_id: v.id,

@@ -1,11 +1,13 @@
-//! `wavesplat serve cache` (run the coefficient cache) and `wavesplat cache ingest|list|rm`
-//! (talk to one). Wiring only: the server and client live in `wavesplat-cache`.
+//! `wavesplat serve cache` (run the coefficient cache) and `wavesplat cache
+//! ingest|list|show|rm` (talk to one). Wiring only: the server lives in `wavesplat-cache`, the
+//! client in `wavesplat-client`.
 
-use anyhow::{bail, Context, Result};
+use anyhow::{Context, Result};
 use clap::{Args, Subcommand};
 use std::path::PathBuf;
-use wavesplat_cache::{client, Limits, Store, VolumeKey};
-use wavesplat_proto::pb;
+use wavesplat_cache::{Limits, Store};
+use wavesplat_client::blocking::CacheClient;
+use wavesplat_client::{VolumeInfo, VolumeKey};
 
 /// Default cache address.
 pub const DEFAULT_URL: &str = "http://127.0.0.1:50051";
@@ -40,6 +42,8 @@ pub enum CacheCommand {
     Ingest(IngestArgs),
     /// List stored volumes, one per line, name first.
     List(UrlArgs),
+    /// Show a stored volume: its header, size and packet table.
+    Show(ShowArgs),
     /// Delete a volume by name.
     Rm(RmArgs),
 }
@@ -64,6 +68,18 @@ pub struct IngestArgs {
     pub url: UrlArgs,
 }
 
+/// Arguments of `wavesplat cache show`.
+#[derive(Args, Debug)]
+pub struct ShowArgs {
+    /// Volume name.
+    pub name: String,
+    /// Print only the first N rows of the packet table (0: none).
+    #[arg(long, default_value_t = usize::MAX, hide_default_value = true)]
+    pub packets: usize,
+    #[command(flatten)]
+    pub url: UrlArgs,
+}
+
 /// Arguments of `wavesplat cache rm`.
 #[derive(Args, Debug)]
 pub struct RmArgs {
@@ -78,14 +94,6 @@ fn runtime() -> Result<tokio::runtime::Runtime> {
         .enable_all()
         .build()
         .context("starting the async runtime")
-}
-
-fn url(u: &str) -> String {
-    if u.contains("://") {
-        u.to_string()
-    } else {
-        format!("http://{u}")
-    }
 }
 
 /// Runs `wavesplat serve …`.
@@ -110,65 +118,98 @@ pub fn run_serve(cmd: ServeCommand) -> Result<()> {
 
 /// Runs `wavesplat cache …`.
 pub fn run(cmd: CacheCommand) -> Result<()> {
-    runtime()?.block_on(async move {
-        match cmd {
-            CacheCommand::Ingest(a) => {
-                let bytes = std::fs::read(&a.input)
-                    .with_context(|| format!("reading {}", a.input.display()))?;
-                let name = match a.name {
-                    Some(n) => n,
-                    None => a
-                        .input
-                        .file_stem()
-                        .map(|s| s.to_string_lossy().into_owned())
-                        .context("the input has no file name; pass --name")?,
-                };
-                let mut c = connect(&a.url.url).await?;
-                let r = client::ingest(&mut c, &name, &bytes)
-                    .await
-                    .with_context(|| format!("ingesting {}", a.input.display()))?;
-                let v = r.volume.context("the cache returned no volume")?;
-                let what = if r.existed {
-                    "already stored as"
-                } else {
-                    "stored as"
-                };
-                outln!("{} {what} {:?} (id {})", a.input.display(), v.name, v.id);
-            }
-            CacheCommand::List(a) => {
-                let mut c = connect(&a.url).await?;
-                let list = c.list(pb::ListRequest {}).await?.into_inner();
-                for v in list.volumes {
-                    outln!("{}", describe(&v));
-                }
-            }
-            CacheCommand::Rm(a) => {
-                let mut c = connect(&a.url.url).await?;
-                let key = VolumeKey::Name(a.name.clone());
-                let r = c
-                    .delete(pb::DeleteRequest {
-                        volume: Some(wavesplat_cache::convert::volume_ref(&key)),
-                    })
-                    .await
-                    .with_context(|| format!("deleting {:?}", a.name))?;
-                outln!("deleted {:?} (id {})", a.name, r.into_inner().id);
+    match cmd {
+        CacheCommand::Ingest(a) => {
+            let bytes = std::fs::read(&a.input)
+                .with_context(|| format!("reading {}", a.input.display()))?;
+            let name = match a.name {
+                Some(n) => n,
+                None => a
+                    .input
+                    .file_stem()
+                    .map(|s| s.to_string_lossy().into_owned())
+                    .context("the input has no file name; pass --name")?,
+            };
+            let r = connect(&a.url.url)?
+                .ingest(&name, &bytes)
+                .with_context(|| format!("ingesting {}", a.input.display()))?;
+            let what = if r.existed {
+                "already stored as"
+            } else {
+                "stored as"
+            };
+            outln!(
+                "{} {what} {:?} (id {})",
+                a.input.display(),
+                r.volume.name,
+                r.volume.id
+            );
+        }
+        CacheCommand::List(a) => {
+            for v in connect(&a.url)?.list().context("listing the cache")? {
+                outln!("{}", describe(&v));
             }
         }
-        Ok(())
-    })
-}
-
-async fn connect(u: &str) -> Result<pb::cache_client::CacheClient<tonic::transport::Channel>> {
-    let u = url(u);
-    if u.is_empty() {
-        bail!("empty cache URL");
+        CacheCommand::Show(a) => {
+            let mut c = connect(&a.url.url)?;
+            let key = VolumeKey::Name(a.name.clone());
+            let h = c
+                .header(&key)
+                .with_context(|| format!("reading the header of {:?}", a.name))?;
+            let table = c
+                .packet_table(&key)
+                .with_context(|| format!("reading the packet table of {:?}", a.name))?;
+            let v = &h.info;
+            outln!(
+                "volume      {:?} (id {}, sha256 {})",
+                v.name,
+                v.id,
+                v.sha256
+            );
+            outln!(
+                "size        {} bytes: header {} + directory {} + packets {}",
+                v.file_bytes,
+                v.header_bytes,
+                v.file_bytes
+                    .saturating_sub(v.header_bytes)
+                    .saturating_sub(v.packet_bytes),
+                v.packet_bytes
+            );
+            super::info::print_header(&h.header);
+            outln!(
+                "packets     {} holding {} coefficients",
+                v.packet_count,
+                v.coefficients
+            );
+            if a.packets > 0 && !table.is_empty() {
+                outln!("packet   tile  layer     bytes     energy");
+                for (i, p) in table.iter().enumerate().take(a.packets) {
+                    outln!(
+                        "{i:6} {:6} {:6} {:9} {:10.3e}",
+                        p.tile,
+                        p.layer,
+                        p.bytes,
+                        p.energy
+                    );
+                }
+            }
+        }
+        CacheCommand::Rm(a) => {
+            let id = connect(&a.url.url)?
+                .delete(&VolumeKey::Name(a.name.clone()))
+                .with_context(|| format!("deleting {:?}", a.name))?;
+            outln!("deleted {:?} (id {id})", a.name);
+        }
     }
-    client::connect(&u)
-        .await
-        .with_context(|| format!("connecting to the cache at {u}"))
+    Ok(())
 }
 
-fn describe(v: &pb::VolumeInfo) -> String {
+/// Connects to the cache at `url` (`http://HOST:PORT` or `HOST:PORT`).
+pub fn connect(url: &str) -> Result<CacheClient> {
+    CacheClient::connect(url).with_context(|| format!("connecting to the cache at {url}"))
+}
+
+fn describe(v: &VolumeInfo) -> String {
     let dims: Vec<String> = v.dims.iter().map(|d| d.to_string()).collect();
     format!(
         "{}\tid={}\tdims={}\tchannels={}\tfamily={}\tlevels={}\tbytes={}\tpackets={}\ttiles={}\tlayers={}\tcoefficients={}\tcreated_ms={}",

@@ -4,7 +4,7 @@ use anyhow::{Context, Result};
 use clap::Args;
 use std::path::PathBuf;
 use wavesplat_codec::format::packet::{decode_packet, SizeBreakdown};
-use wavesplat_codec::format::parse_file;
+use wavesplat_codec::format::{parse_file, Header};
 
 /// Arguments of `wavesplat info`.
 #[derive(Args, Debug)]
@@ -22,47 +22,8 @@ pub fn run(a: InfoArgs) -> Result<()> {
         std::fs::read(&a.input).with_context(|| format!("reading {}", a.input.display()))?;
     let file = parse_file(&bytes).with_context(|| format!("parsing {}", a.input.display()))?;
     let h = &file.header;
-    let g = &h.geometry;
     outln!("file        {} ({} bytes)", a.input.display(), bytes.len());
-    outln!(
-        "dims        {}x{}x{}, spacing {:?}",
-        g.dims[0],
-        g.dims[1],
-        g.dims[2],
-        h.spacing
-    );
-    outln!(
-        "padded      {}x{}x{} (margin {}, origin {:?}; periodic boundary on the zero-padded grid)",
-        g.padded[0],
-        g.padded[1],
-        g.padded[2],
-        h.margin,
-        g.origin
-    );
-    outln!("channels    {} ({})", h.channels, h.color.kind.name());
-    if h.channels == 3 {
-        outln!("importance  {:?}", h.color.importance);
-    }
-    outln!(
-        "family      {} (order {}), levels M = {}",
-        g.family,
-        g.family.order(),
-        g.levels
-    );
-    outln!("coder       {}, P = {} bits", h.coder.name(), h.bits);
-    outln!("values      {} .. {}", h.value_range[0], h.value_range[1]);
-    outln!(
-        "tiles       {} of {} voxels ({:?}), {} layers",
-        h.tile_count(),
-        h.tile,
-        h.tile_counts(),
-        h.layer_bounds.len()
-    );
-    outln!(
-        "substreams  {} used of {}",
-        h.substreams.iter().filter(|s| s.is_some()).count(),
-        h.substream_count()
-    );
+    print_header(h);
     let mut total = SizeBreakdown::default();
     let mut coefficients = 0usize;
     for (i, p) in file.packets.iter().enumerate() {
@@ -117,4 +78,48 @@ pub fn run(a: InfoArgs) -> Result<()> {
         outln!("  {name:22} {:9.0} {:6.2} %", bits / 8.0, pct(bits / 8.0));
     }
     Ok(())
+}
+
+/// Prints a header's facts, one per line (shared by `info` and `cache show`).
+pub fn print_header(h: &Header) {
+    let g = &h.geometry;
+    outln!(
+        "dims        {}x{}x{}, spacing {:?}",
+        g.dims[0],
+        g.dims[1],
+        g.dims[2],
+        h.spacing
+    );
+    outln!(
+        "padded      {}x{}x{} (margin {}, origin {:?}; periodic boundary on the zero-padded grid)",
+        g.padded[0],
+        g.padded[1],
+        g.padded[2],
+        h.margin,
+        g.origin
+    );
+    outln!("channels    {} ({})", h.channels, h.color.kind.name());
+    if h.channels == 3 {
+        outln!("importance  {:?}", h.color.importance);
+    }
+    outln!(
+        "family      {} (order {}), levels M = {}",
+        g.family,
+        g.family.order(),
+        g.levels
+    );
+    outln!("coder       {}, P = {} bits", h.coder.name(), h.bits);
+    outln!("values      {} .. {}", h.value_range[0], h.value_range[1]);
+    outln!(
+        "tiles       {} of {} voxels ({:?}), {} layers",
+        h.tile_count(),
+        h.tile,
+        h.tile_counts(),
+        h.layer_bounds.len()
+    );
+    outln!(
+        "substreams  {} used of {}",
+        h.substreams.iter().filter(|s| s.is_some()).count(),
+        h.substream_count()
+    );
 }

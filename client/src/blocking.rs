@@ -1,0 +1,69 @@
+//! A blocking facade over [`crate::CacheClient`] for synchronous callers (command-line tools, a
+//! render loop that must not be async): each call runs on a private current-thread runtime.
+//! Streams are not offered here: a caller that must not block on the network runs the async
+//! stream on its own task (see the viewer's cache source).
+
+use crate::{
+    CacheClient as AsyncClient, ClientError, Ingested, Packet, PacketEntry, VolumeHeader,
+    VolumeInfo, VolumeKey,
+};
+use wavesplat_codec::format::Header;
+
+/// A blocking cache client.
+#[derive(Debug)]
+pub struct CacheClient {
+    runtime: tokio::runtime::Runtime,
+    inner: AsyncClient,
+}
+
+impl CacheClient {
+    /// Connects to a cache at `url`.
+    pub fn connect(url: &str) -> Result<CacheClient, ClientError> {
+        let runtime = tokio::runtime::Builder::new_current_thread()
+            .enable_all()
+            .build()
+            .map_err(|e| ClientError::Protocol(format!("cannot start a runtime: {e}")))?;
+        let inner = runtime.block_on(AsyncClient::connect(url))?;
+        Ok(CacheClient { runtime, inner })
+    }
+
+    /// Every stored volume.
+    pub fn list(&mut self) -> Result<Vec<VolumeInfo>, ClientError> {
+        self.runtime.block_on(self.inner.list())
+    }
+
+    /// One volume's facts.
+    pub fn describe(&mut self, key: &VolumeKey) -> Result<VolumeInfo, ClientError> {
+        self.runtime.block_on(self.inner.describe(key))
+    }
+
+    /// A volume's header.
+    pub fn header(&mut self, key: &VolumeKey) -> Result<VolumeHeader, ClientError> {
+        self.runtime.block_on(self.inner.header(key))
+    }
+
+    /// A volume's packet table.
+    pub fn packet_table(&mut self, key: &VolumeKey) -> Result<Vec<PacketEntry>, ClientError> {
+        self.runtime.block_on(self.inner.packet_table(key))
+    }
+
+    /// Removes a volume.
+    pub fn delete(&mut self, key: &VolumeKey) -> Result<u64, ClientError> {
+        self.runtime.block_on(self.inner.delete(key))
+    }
+
+    /// Uploads a `.wsp` file.
+    pub fn ingest(&mut self, name: &str, bytes: &[u8]) -> Result<Ingested, ClientError> {
+        self.runtime.block_on(self.inner.ingest(name, bytes))
+    }
+
+    /// The header and the first packets in file order, up to `max_bytes`.
+    pub fn first_packets(
+        &mut self,
+        key: &VolumeKey,
+        max_bytes: u64,
+    ) -> Result<(Header, Vec<Packet>), ClientError> {
+        self.runtime
+            .block_on(self.inner.first_packets(key, max_bytes))
+    }
+}

@@ -1,0 +1,420 @@
+//! The client of the wavesplat coefficient cache: everything a workstation or a worker says to
+//! a cache, in domain types. The generated gRPC types stay inside this crate ([`convert`]).
+//!
+//! - [`CacheClient`]: list and describe volumes, fetch a header (parsed and validated by the
+//!   codec), ingest a `.wsp` file, delete, and open a view-dependent refinement stream;
+//! - [`RefineStream`]: the packets of one volume in the order of the current view, pulled with a
+//!   byte credit the client renews as it consumes (so little is in flight and a view change
+//!   reorders the rest), with view changes and holdings (what the client has, what it dropped)
+//!   sent on the same stream; [`RefineControl`] is a cloneable handle for those messages;
+//! - [`blocking`]: the same calls for synchronous callers, over a private runtime.
+//!
+//! ```no_run
+//! # async fn demo() -> Result<(), wavesplat_client::ClientError> {
+//! use wavesplat_client::{CacheClient, RefineEvent, RefineRequest, VolumeKey};
+//! use wavesplat_codec::view::{View, ViewSpec};
+//! let mut cache = CacheClient::connect("http://127.0.0.1:50051").await?;
+//! let request = RefineRequest::new(VolumeKey::Name("head".into()), ViewSpec::single(View::new(0.3, 0.2, 256, 256)));
+//! let mut stream = cache.refine(request.with_credit(256 << 10)).await?;
+//! while let Some(event) = stream.next().await? {
+//!     if let RefineEvent::Packet(p) = event {
+//!         stream.control().grant(p.data.len() as u64).await?; // consumed: ask for as much again
+//!     }
+//! }
+//! # Ok(()) }
+//! ```
+
+pub mod blocking;
+pub mod convert;
+mod refine;
+
+pub use refine::{RefineControl, RefineEvent, RefineRequest, RefineStream};
+
+use sha2::{Digest, Sha256};
+use thiserror::Error;
+use tonic::transport::Channel;
+use wavesplat_codec::format::{read_header_section, FormatError, Header};
+use wavesplat_proto::pb;
+
+/// Upload chunk size.
+pub const CHUNK_BYTES: usize = 1 << 20;
+/// Largest message accepted from a cache (a packet is at most this big).
+pub const MAX_MESSAGE_BYTES: usize = 64 << 20;
+
+/// Errors of the cache client.
+#[derive(Debug, Error)]
+#[non_exhaustive]
+pub enum ClientError {
+    /// The URL is not a cache address.
+    #[error("invalid cache URL {url:?}: {reason}")]
+    Url {
+        /// The URL given.
+        url: String,
+        /// What is wrong with it.
+        reason: String,
+    },
+    /// Could not connect.
+    #[error("cannot connect to the cache at {url}: {source}")]
+    Connect {
+        /// The URL.
+        url: String,
+        /// Transport error.
+        #[source]
+        source: tonic::transport::Error,
+    },
+    /// The cache answered with an error status.
+    #[error("cache: {code:?}: {message}")]
+    Status {
+        /// gRPC status code.
+        code: tonic::Code,
+        /// The server's message.
+        message: String,
+    },
+    /// The cache sent something the protocol does not allow.
+    #[error("cache protocol: {0}")]
+    Protocol(String),
+    /// The header the cache sent does not parse.
+    #[error("the cache sent an invalid header: {0}")]
+    Header(#[from] FormatError),
+    /// The refinement stream's request side is closed (the stream ended).
+    #[error("the refinement stream is closed")]
+    Closed,
+}
+
+impl ClientError {
+    /// The gRPC status code, when the cache answered with one.
+    pub fn code(&self) -> Option<tonic::Code> {
+        match self {
+            ClientError::Status { code, .. } => Some(*code),
+            _ => None,
+        }
+    }
+}
+
+impl From<tonic::Status> for ClientError {
+    fn from(s: tonic::Status) -> Self {
+        ClientError::Status {
+            code: s.code(),
+            message: s.message().to_string(),
+        }
+    }
+}
+
+/// A volume named by the cache's id or by name.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum VolumeKey {
+    /// Cache-assigned id.
+    Id(u64),
+    /// User-given name.
+    Name(String),
+}
+
+impl std::fmt::Display for VolumeKey {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            VolumeKey::Id(id) => write!(f, "#{id}"),
+            VolumeKey::Name(n) => write!(f, "{n}"),
+        }
+    }
+}
+
+/// What the cache says about a stored volume.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct VolumeInfo {
+    /// Cache-assigned id.
+    pub id: u64,
+    /// Name.
+    pub name: String,
+    /// Volume dimensions (x, y, z).
+    pub dims: [u32; 3],
+    /// Channels.
+    pub channels: u32,
+    /// Wavelet family name.
+    pub family: String,
+    /// Decomposition depth.
+    pub levels: u32,
+    /// Size of the file.
+    pub file_bytes: u64,
+    /// Size of the header section.
+    pub header_bytes: u64,
+    /// Sum of the packet sizes.
+    pub packet_bytes: u64,
+    /// Creation time (ms since the Unix epoch).
+    pub created_unix_ms: u64,
+    /// Packets.
+    pub packet_count: u32,
+    /// Tiles.
+    pub tile_count: u32,
+    /// Quality layers.
+    pub layer_count: u32,
+    /// Tile edge (voxels of the padded grid).
+    pub tile: u32,
+    /// Coefficients in the file.
+    pub coefficients: u64,
+    /// SHA-256 of the file, lower-case hex.
+    pub sha256: String,
+}
+
+/// A volume's header: its facts, the parsed header and the header section's bytes.
+#[derive(Debug, Clone)]
+pub struct VolumeHeader {
+    /// The cache's facts.
+    pub info: VolumeInfo,
+    /// The parsed, validated header.
+    pub header: Header,
+    /// The header section as stored (magic to header CRC).
+    pub bytes: Vec<u8>,
+}
+
+/// One packet as the cache sent it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Packet {
+    /// Index of the packet in file order.
+    pub id: u32,
+    /// Tile.
+    pub tile: u32,
+    /// Quality layer.
+    pub layer: u32,
+    /// The packet's bytes (decode with `wavesplat_codec::format::packet::decode_packet`).
+    pub data: Vec<u8>,
+    /// Visible energy per byte the server ranked it by for the current view.
+    pub priority: f64,
+}
+
+/// One row of a volume's packet table (file order).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PacketEntry {
+    /// Tile.
+    pub tile: u32,
+    /// Quality layer.
+    pub layer: u32,
+    /// Size in bytes.
+    pub bytes: u32,
+    /// Energy of its coefficients.
+    pub energy: f64,
+}
+
+/// The outcome of an ingest.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Ingested {
+    /// The stored volume.
+    pub volume: VolumeInfo,
+    /// Identical content was already stored (nothing was written).
+    pub existed: bool,
+}
+
+/// An async client of one cache.
+#[derive(Debug, Clone)]
+pub struct CacheClient {
+    inner: pb::cache_client::CacheClient<Channel>,
+}
+
+impl CacheClient {
+    /// Connects to a cache at `url` (`http://HOST:PORT`, or `HOST:PORT`).
+    pub async fn connect(url: &str) -> Result<CacheClient, ClientError> {
+        let (url, endpoint) = endpoint(url)?;
+        let channel = endpoint
+            .connect()
+            .await
+            .map_err(|source| ClientError::Connect { url, source })?;
+        Ok(CacheClient::over(channel))
+    }
+
+    /// A client that connects on first use and reconnects after failures (for long-lived
+    /// callers such as workers, which may start before the cache does).
+    pub fn connect_lazy(url: &str) -> Result<CacheClient, ClientError> {
+        let (_, endpoint) = endpoint(url)?;
+        Ok(CacheClient::over(endpoint.connect_lazy()))
+    }
+
+    fn over(channel: Channel) -> CacheClient {
+        let inner = pb::cache_client::CacheClient::new(channel)
+            .max_decoding_message_size(MAX_MESSAGE_BYTES)
+            .max_encoding_message_size(CHUNK_BYTES + (1 << 20));
+        CacheClient { inner }
+    }
+
+    /// Every stored volume, ordered by name.
+    pub async fn list(&mut self) -> Result<Vec<VolumeInfo>, ClientError> {
+        let r = self.inner.list(pb::ListRequest {}).await?.into_inner();
+        r.volumes.into_iter().map(convert::volume_info).collect()
+    }
+
+    /// One volume's facts.
+    pub async fn describe(&mut self, key: &VolumeKey) -> Result<VolumeInfo, ClientError> {
+        let r = self
+            .inner
+            .describe(pb::DescribeRequest {
+                volume: Some(convert::volume_ref(key)),
+            })
+            .await?;
+        convert::volume_info(r.into_inner())
+    }
+
+    /// A volume's header (parsed and validated).
+    pub async fn header(&mut self, key: &VolumeKey) -> Result<VolumeHeader, ClientError> {
+        let r = self
+            .inner
+            .header(pb::DescribeRequest {
+                volume: Some(convert::volume_ref(key)),
+            })
+            .await?;
+        convert::volume_header(r.into_inner())
+    }
+
+    /// A volume's packet table (file order).
+    pub async fn packet_table(&mut self, key: &VolumeKey) -> Result<Vec<PacketEntry>, ClientError> {
+        let r = self
+            .inner
+            .packet_table(pb::DescribeRequest {
+                volume: Some(convert::volume_ref(key)),
+            })
+            .await?;
+        Ok(r.into_inner()
+            .packets
+            .into_iter()
+            .map(|p| PacketEntry {
+                tile: p.tile,
+                layer: p.layer,
+                bytes: p.bytes,
+                energy: p.energy,
+            })
+            .collect())
+    }
+
+    /// Removes a volume; returns its id.
+    pub async fn delete(&mut self, key: &VolumeKey) -> Result<u64, ClientError> {
+        let r = self
+            .inner
+            .delete(pb::DeleteRequest {
+                volume: Some(convert::volume_ref(key)),
+            })
+            .await?;
+        Ok(r.into_inner().id)
+    }
+
+    /// Uploads a `.wsp` file under `name` (in chunks, with its SHA-256).
+    pub async fn ingest(&mut self, name: &str, bytes: &[u8]) -> Result<Ingested, ClientError> {
+        let msgs = convert::ingest_messages(name, bytes, Sha256::digest(bytes).into());
+        let r = self
+            .inner
+            .ingest(tokio_stream::iter(msgs))
+            .await?
+            .into_inner();
+        Ok(Ingested {
+            volume: convert::volume_info(
+                r.volume
+                    .ok_or_else(|| ClientError::Protocol("ingest returned no volume".into()))?,
+            )?,
+            existed: r.existed,
+        })
+    }
+
+    /// The header and the first packets in global significance order, up to `max_bytes`.
+    pub async fn first_packets(
+        &mut self,
+        key: &VolumeKey,
+        max_bytes: u64,
+    ) -> Result<(Header, Vec<Packet>), ClientError> {
+        let r = self
+            .inner
+            .first_packets(pb::FirstPacketsRequest {
+                volume: Some(convert::volume_ref(key)),
+                max_bytes,
+            })
+            .await?
+            .into_inner();
+        let (header, _) = read_header_section(&r.header)?;
+        Ok((header, r.packets.into_iter().map(convert::packet).collect()))
+    }
+
+    /// Opens a view-dependent refinement stream.
+    pub async fn refine(&mut self, request: RefineRequest) -> Result<RefineStream, ClientError> {
+        refine::open(&mut self.inner, request).await
+    }
+
+    /// Streams packets for one view until the server is done or `max_bytes` of packet data
+    /// arrived (then the stream is dropped). No flow control: a convenience for tools and tests.
+    pub async fn refine_collect(
+        &mut self,
+        request: RefineRequest,
+        max_bytes: Option<u64>,
+    ) -> Result<Collected, ClientError> {
+        let mut stream = self.refine(request).await?;
+        let mut out = Collected::default();
+        let mut bytes = 0u64;
+        while let Some(event) = stream.next().await? {
+            match event {
+                RefineEvent::Header(h) => out.header = Some(*h),
+                RefineEvent::Packet(p) => {
+                    bytes += p.data.len() as u64;
+                    out.packets.push(p);
+                    if max_bytes.is_some_and(|m| bytes >= m) {
+                        break;
+                    }
+                }
+                RefineEvent::Done { .. } => {
+                    out.done = true;
+                    break;
+                }
+            }
+        }
+        Ok(out)
+    }
+}
+
+/// What [`CacheClient::refine_collect`] received.
+#[derive(Debug, Clone, Default)]
+pub struct Collected {
+    /// The header, if sent.
+    pub header: Option<VolumeHeader>,
+    /// Packets in arrival order.
+    pub packets: Vec<Packet>,
+    /// Whether the server said `done`.
+    pub done: bool,
+}
+
+/// The endpoint of a cache URL, with the connection settings every client uses.
+fn endpoint(url: &str) -> Result<(String, tonic::transport::Endpoint), ClientError> {
+    let url = normalise_url(url)?;
+    let endpoint = tonic::transport::Endpoint::from_shared(url.clone())
+        .map_err(|e| ClientError::Url {
+            url: url.clone(),
+            reason: e.to_string(),
+        })?
+        .connect_timeout(std::time::Duration::from_secs(5))
+        .tcp_nodelay(true);
+    Ok((url, endpoint))
+}
+
+/// `HOST:PORT` → `http://HOST:PORT`; other schemes than http(s) are refused.
+fn normalise_url(url: &str) -> Result<String, ClientError> {
+    let bad = |reason: &str| ClientError::Url {
+        url: url.to_string(),
+        reason: reason.to_string(),
+    };
+    if url.trim().is_empty() {
+        return Err(bad("empty"));
+    }
+    match url.split_once("://") {
+        None => Ok(format!("http://{url}")),
+        Some(("http" | "https", rest)) if !rest.is_empty() => Ok(url.to_string()),
+        Some(_) => Err(bad(
+            "expected http://HOST:PORT, https://HOST:PORT or HOST:PORT",
+        )),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn urls_are_normalised_or_refused() {
+        assert_eq!(normalise_url("h:1").unwrap(), "http://h:1");
+        assert_eq!(normalise_url("http://h:1").unwrap(), "http://h:1");
+        assert!(normalise_url("").is_err());
+        assert!(normalise_url("ftp://h:1").is_err());
+        assert!(normalise_url("http://").is_err());
+    }
+}

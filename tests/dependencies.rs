@@ -1,0 +1,102 @@
+//! The crate boundaries that carry the design, checked over `cargo tree`: the cache server and
+//! the cache client link the format and the protocol, never the renderer, the encoder or their
+//! heavy dependencies (FFT, PNG, GPU, windowing), so a server can run on a machine without a
+//! GPU stack and the client side can depend on the client without a cycle.
+
+use std::collections::BTreeSet;
+use std::process::Command;
+
+/// The packages (names only) in the normal-dependency tree of `package`, features as that
+/// package alone would build them.
+fn dependencies(package: &str) -> BTreeSet<String> {
+    let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
+    let out = Command::new(cargo)
+        .args([
+            "tree",
+            "--offline",
+            "-e",
+            "normal",
+            "--prefix",
+            "none",
+            "-f",
+            "{p}",
+            "-p",
+        ])
+        .arg(package)
+        .current_dir(env!("CARGO_MANIFEST_DIR"))
+        .output()
+        .expect("running cargo tree");
+    assert!(
+        out.status.success(),
+        "cargo tree -p {package} failed: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    String::from_utf8_lossy(&out.stdout)
+        .lines()
+        .filter_map(|l| l.split_whitespace().next())
+        .map(str::to_string)
+        .collect()
+}
+
+fn assert_excludes(package: &str, forbidden: &[&str]) {
+    let deps = dependencies(package);
+    assert!(
+        deps.contains(package),
+        "{package} not in its own tree: {deps:?}"
+    );
+    let found: Vec<&&str> = forbidden.iter().filter(|f| deps.contains(**f)).collect();
+    assert!(found.is_empty(), "{package} links {found:?}");
+}
+
+/// What no server and no client library may link.
+const RENDERING_AND_ENCODING: &[&str] = &[
+    "wavesplat-viewer",
+    "wavesplat-compressor",
+    "rustfft",
+    "png",
+    "wgpu",
+    "winit",
+];
+
+#[test]
+fn the_cache_server_links_neither_renderer_nor_encoder() {
+    assert_excludes(
+        "wavesplat-cache",
+        &[RENDERING_AND_ENCODING, &["wavesplat-client"]].concat(),
+    );
+}
+
+#[test]
+fn the_cache_client_links_neither_renderer_nor_encoder_nor_server() {
+    assert_excludes(
+        "wavesplat-client",
+        &[RENDERING_AND_ENCODING, &["wavesplat-cache", "sled"]].concat(),
+    );
+}
+
+#[test]
+fn the_codec_links_no_service_renderer_or_wire_protocol() {
+    // rustfft is the codec's own (the exact analysis transform), behind its `transform` feature.
+    assert_excludes(
+        "wavesplat-codec",
+        &[
+            "wavesplat-viewer",
+            "wavesplat-compressor",
+            "png",
+            "wgpu",
+            "winit",
+            "tokio",
+            "tonic",
+            "prost",
+            "wavesplat-proto",
+        ],
+    );
+}
+
+#[test]
+fn the_renderer_does_not_link_the_encoder_or_a_server() {
+    assert_excludes(
+        "wavesplat-viewer",
+        &["wavesplat-compressor", "wavesplat-cache", "sled"],
+    );
+}
