@@ -1,8 +1,13 @@
-//! The wavesplat renderer (CPU): X-ray images rendered directly from decoded wavelet
-//! coefficients by wavelet splatting (Lippert, Gross & Kurmann, EG'97, §2.3 and §3).
+//! The wavesplat renderer: X-ray images rendered directly from decoded wavelet coefficients by
+//! wavelet splatting (Lippert, Gross & Kurmann, EG'97, §2.3 and §3), never expanding the volume.
 //!
-//! - [`footprint`]: footprints by Fourier projection-slice (rustfft), mipmapped levels;
-//! - [`splat`]: the [`Renderer`] (footprint cache, tiled rayon accumulation, multiview);
+//! - [`footprint`]: footprints by Fourier projection-slice (rustfft), mipmapped levels, the
+//!   depth-cued factor tables;
+//! - [`cue`]: the depth-cue expansion of coefficients (split at the data's light-facing faces);
+//! - [`plan`]: the [`Planner`] and [`plan::ViewPlan`]: views and coefficients to splat records
+//!   in a footprint atlas;
+//! - [`backend`]: the [`AccumulationBackend`] trait that sums records, and the CPU backend;
+//! - [`splat`]: the one-shot [`Renderer`] (plan + CPU backend);
 //! - [`reference`]: the ground-truth ray caster on the reconstructed volume;
 //! - [`image`]: the [`Image`] type, PNG with window/level, raw f32 output.
 //!
@@ -15,12 +20,17 @@
 //! # let _ = image; Ok(()) }
 //! ```
 
+pub mod backend;
+pub mod cue;
 pub mod footprint;
 pub mod image;
+pub mod plan;
 pub mod reference;
 pub mod splat;
 
+pub use backend::{AccumulationBackend, BackendError, CpuBackend};
 pub use image::{Image, ImageError};
+pub use plan::{PlanOptions, Planner};
 pub use reference::{render_reference, render_reference_camera, PaddedVolume, ReferenceOptions};
 pub use splat::{RenderOptions, RenderStats, Renderer};
 pub use wavesplat_codec::view::{
@@ -62,4 +72,7 @@ pub enum RenderError {
     /// Unsupported combination of options.
     #[error("unsupported: {0}")]
     Unsupported(&'static str),
+    /// The accumulation backend failed.
+    #[error("accumulation backend: {0}")]
+    Backend(#[from] BackendError),
 }

@@ -37,7 +37,7 @@ impl PaddedVolume {
     ) -> Result<PaddedVolume, RenderError> {
         let mut data = vec![vec![0.0f64; geometry.coefficient_count()]; channels];
         for c in coefficients {
-            crate::splat::check_coefficient(c, geometry, channels)?;
+            crate::cue::check_coefficient(c, geometry, channels)?;
             let pos = [c.pos[0] as usize, c.pos[1] as usize, c.pos[2] as usize];
             data[c.channel as usize][geometry.linear_index(c.band, pos)] += c.value as f64;
         }

@@ -1,0 +1,215 @@
+//! The interface between splat planning and accumulation: the [`FootprintAtlas`] (every
+//! footprint phase of a view in one flat buffer, each with its offset and extent), the
+//! [`SplatRecord`] (one placed, weighted phase: where, which phase, how much, which channel and
+//! view) and the [`AccumulationBackend`] trait that adds records into an image. Planning
+//! (`crate::plan`) produces records; a backend only sums them, so every backend (the CPU one
+//! here, a GPU one) renders the same records into the same image up to float rounding.
+
+pub mod cpu;
+
+use crate::footprint::Footprint;
+use crate::image::Image;
+use thiserror::Error;
+
+pub use cpu::CpuBackend;
+
+/// Errors of an accumulation backend.
+#[derive(Debug, Error, PartialEq)]
+#[non_exhaustive]
+pub enum BackendError {
+    /// A record names a phase the atlas does not have.
+    #[error("splat record names phase {phase} of an atlas with {phases}")]
+    Phase {
+        /// Phase index.
+        phase: u32,
+        /// Phases in the atlas.
+        phases: usize,
+    },
+    /// A record's view or channel is outside the layout.
+    #[error("splat record for view {view}, channel {channel} outside a layout of {views} view(s) and {channels} channel(s)")]
+    Target {
+        /// View of the record.
+        view: u16,
+        /// Channel of the record.
+        channel: u16,
+        /// Views of the layout.
+        views: usize,
+        /// Channels of the layout.
+        channels: usize,
+    },
+    /// The layout is empty or too large.
+    #[error("invalid image layout: {0}")]
+    Layout(String),
+    /// A device-side failure (GPU backends).
+    #[error("device: {0}")]
+    Device(String),
+}
+
+/// The accumulation target: `views` images of `width` × `height` side by side (multiview: 3),
+/// each pixel with `channels` values.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Layout {
+    /// Width of one view.
+    pub width: usize,
+    /// Height.
+    pub height: usize,
+    /// Channels per pixel.
+    pub channels: usize,
+    /// Views side by side (1 or 3).
+    pub views: usize,
+}
+
+impl Layout {
+    /// Width of the whole target.
+    pub fn total_width(&self) -> usize {
+        self.width * self.views
+    }
+
+    /// Checks sizes (non-zero, and small enough to index with 32 bits).
+    pub fn validate(&self) -> Result<(), BackendError> {
+        let pixels = (self.total_width() as u128) * (self.height as u128) * (self.channels as u128);
+        if self.width == 0 || self.height == 0 || self.channels == 0 || self.views == 0 {
+            return Err(BackendError::Layout(format!("{self:?} has an empty side")));
+        }
+        if pixels > u32::MAX as u128 {
+            return Err(BackendError::Layout(format!(
+                "{self:?} has {pixels} values"
+            )));
+        }
+        Ok(())
+    }
+}
+
+/// One phase of a footprint in the atlas: `rows` × `cols` samples from `offset`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[repr(C)]
+pub struct PhaseRect {
+    /// First sample in [`FootprintAtlas::data`].
+    pub offset: u32,
+    /// Columns.
+    pub cols: u32,
+    /// Rows.
+    pub rows: u32,
+}
+
+/// Every footprint phase of one view, flattened: what a backend reads. Append-only while the
+/// view lasts (depth-cued tables are added as new factor triples appear), so a device copy can
+/// be extended rather than re-uploaded; [`FootprintAtlas::generation`] changes when it is
+/// replaced by a new view's atlas.
+#[derive(Debug, Clone, Default)]
+pub struct FootprintAtlas {
+    /// Samples of every phase, row-major per phase.
+    pub data: Vec<f32>,
+    /// The phases.
+    pub phases: Vec<PhaseRect>,
+    /// Identifies the view the atlas belongs to (a new atlas gets a new value).
+    pub generation: u64,
+}
+
+/// Where a footprint's phases start in the atlas and how to place it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct TableRef {
+    /// Index of the footprint's first phase.
+    pub first_phase: u32,
+    /// Subpixel phases per axis.
+    pub s: usize,
+    /// Centre column of the fine table.
+    pub cx: usize,
+    /// Centre row of the fine table.
+    pub cy: usize,
+}
+
+impl FootprintAtlas {
+    /// An empty atlas with a fresh generation.
+    pub fn new() -> FootprintAtlas {
+        use std::sync::atomic::{AtomicU64, Ordering};
+        static NEXT: AtomicU64 = AtomicU64::new(1);
+        FootprintAtlas {
+            generation: NEXT.fetch_add(1, Ordering::Relaxed),
+            ..Default::default()
+        }
+    }
+
+    /// Appends a footprint's phases; returns where they are.
+    pub fn push(&mut self, f: &Footprint) -> TableRef {
+        let first_phase = self.phases.len() as u32;
+        for p in &f.phases {
+            self.phases.push(PhaseRect {
+                offset: self.data.len() as u32,
+                cols: p.cols as u32,
+                rows: p.rows as u32,
+            });
+            self.data.extend_from_slice(&p.data);
+        }
+        TableRef {
+            first_phase,
+            s: f.s,
+            cx: f.cx,
+            cy: f.cy,
+        }
+    }
+
+    /// Bytes held.
+    pub fn bytes(&self) -> usize {
+        self.data.len() * 4 + self.phases.len() * std::mem::size_of::<PhaseRect>()
+    }
+}
+
+/// One phase of a footprint placed on the screen with a weight: pixel (x0 + k, y0 + l) of view
+/// `view` gets `value ·` sample (k, l) of the phase, in channel `channel`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+#[repr(C)]
+pub struct SplatRecord {
+    /// First column (relative to the view, may be negative).
+    pub x0: i32,
+    /// First row (may be negative).
+    pub y0: i32,
+    /// Phase index in the atlas.
+    pub phase: u32,
+    /// Weight (the coefficient, times any cue, sign or interpolation weight).
+    pub value: f32,
+    /// Channel.
+    pub channel: u16,
+    /// View (0 unless multiview).
+    pub view: u16,
+}
+
+/// Sums splat records into an image. `begin` clears and sets the target, `accumulate` adds
+/// records (in any number of calls: the image is their sum), `read` returns the image so far.
+pub trait AccumulationBackend: Send {
+    /// A short name for messages ("cpu", "gpu (lavapipe)", …).
+    fn name(&self) -> String;
+    /// Starts a new image (all zero) of `layout`.
+    fn begin(&mut self, layout: Layout) -> Result<(), BackendError>;
+    /// Adds `records`, reading footprints from `atlas`; returns the pixel updates done.
+    fn accumulate(
+        &mut self,
+        atlas: &FootprintAtlas,
+        records: &[SplatRecord],
+    ) -> Result<u64, BackendError>;
+    /// The image accumulated since `begin` (views side by side).
+    fn read(&mut self) -> Result<Image, BackendError>;
+}
+
+/// Checks a record against the atlas and the layout (what every backend must refuse).
+pub fn check_record(
+    r: &SplatRecord,
+    atlas: &FootprintAtlas,
+    layout: &Layout,
+) -> Result<(), BackendError> {
+    if r.phase as usize >= atlas.phases.len() {
+        return Err(BackendError::Phase {
+            phase: r.phase,
+            phases: atlas.phases.len(),
+        });
+    }
+    if r.view as usize >= layout.views || r.channel as usize >= layout.channels {
+        return Err(BackendError::Target {
+            view: r.view,
+            channel: r.channel,
+            views: layout.views,
+            channels: layout.channels,
+        });
+    }
+    Ok(())
+}
