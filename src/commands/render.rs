@@ -1,21 +1,36 @@
-//! `wavesplat render`: X-ray images straight from the coefficients of a `.wsp` file by wavelet
-//! splatting (the volume is never reconstructed). Optionally only a prefix of the stream (first
-//! N coefficients or B bytes), multiview, depth cueing; PNG with window/level and raw f32 out.
+//! `wavesplat render`: X-ray images straight from the coefficients of a volume, from a local
+//! `.wsp` file or from a cache, by wavelet splatting (the volume is never reconstructed). It
+//! drives the same progressive render session and frame loop as the window, headless: packets
+//! arrive in the order the cache ranks them for the view, and each frame splats what fits in its
+//! budget. Options: a byte budget, a time budget, a client memory bound, multiview, depth
+//! cueing, a per-frame record (PNG + CSV) and the quality against the full-data image.
 
 use anyhow::{bail, Context, Result};
 use clap::Args;
+use std::io::Write;
 use std::path::PathBuf;
-use wavesplat_codec::format::packet::decode_packets;
-use wavesplat_codec::format::packet::Coefficient;
-use wavesplat_codec::format::{parse_file, ColorKind, Header};
-use wavesplat_codec::view::multiview_cameras;
-use wavesplat_viewer::{Camera, Cue, CueDirection, Image, RenderOptions, Renderer, View};
+use std::time::{Duration, Instant};
+use wavesplat_client::VolumeKey;
+use wavesplat_codec::format::packet::{decode_packets, Coefficient};
+use wavesplat_codec::format::{parse_file, Header};
+use wavesplat_codec::metrics::{q_i_paper_db, snr_db};
+use wavesplat_codec::view::{Cue, CueDirection, View, ViewSpec};
+use wavesplat_viewer::session::{RenderSession, SessionOptions};
+use wavesplat_viewer::source::{CacheSource, CacheSourceOptions, FileSource, PacketSource};
+use wavesplat_viewer::{CpuBackend, FrameLoop, Image, RenderOptions, Renderer};
 
-/// Arguments of `wavesplat render`.
-#[derive(Args, Debug)]
-pub struct RenderArgs {
-    /// The .wsp file.
-    pub input: PathBuf,
+/// Where the volume comes from and how to look at it (shared by `render` and `view`).
+#[derive(Args, Debug, Clone)]
+pub struct ViewArgs {
+    /// The .wsp file (or use --cache and --volume).
+    #[arg(required_unless_present = "cache")]
+    pub input: Option<PathBuf>,
+    /// Cache URL (`http://HOST:PORT` or `HOST:PORT`) to render from, with --volume.
+    #[arg(long, requires = "volume", conflicts_with = "input")]
+    pub cache: Option<String>,
+    /// Name of the volume in the cache.
+    #[arg(long, requires = "cache")]
+    pub volume: Option<String>,
     /// Azimuth α of the view (radians, paper §3.1).
     #[arg(long, default_value_t = 0.66, allow_negative_numbers = true)]
     pub alpha: f64,
@@ -40,18 +55,57 @@ pub struct RenderArgs {
     /// Depth-cue direction α,β (default: along the view direction).
     #[arg(long, allow_negative_numbers = true)]
     pub cue_dir: Option<String>,
-    /// Render only the first N coefficients of the stream.
-    #[arg(long, conflicts_with = "bytes")]
-    pub coefficients: Option<usize>,
-    /// Render only the packets within the first B bytes of the file.
+    /// Largest memory for retained coefficients, in bytes (suffixes k, M, G); beyond it the
+    /// least visible are dropped after splatting and asked for again after a view change.
+    /// 0 keeps nothing but the footprint tables and the image (the paper's network computer).
+    #[arg(long, value_parser = parse_bytes)]
+    pub client_memory: Option<u64>,
+}
+
+/// Arguments of `wavesplat render`.
+#[derive(Args, Debug)]
+pub struct RenderArgs {
+    #[command(flatten)]
+    pub view: ViewArgs,
+    /// Use at most this many bytes of packets (the ones the cache ranks first for this view).
+    #[arg(long, value_parser = parse_bytes)]
+    pub bytes: Option<u64>,
+    /// Stop after this much time in milliseconds (default: until every packet is splatted).
     #[arg(long)]
-    pub bytes: Option<usize>,
+    pub budget_ms: Option<f64>,
+    /// Time budget of one frame in milliseconds (the loop's granularity).
+    #[arg(long, default_value_t = 16.6)]
+    pub frame_ms: f64,
+    /// Also render every coefficient of the volume and report the image's quality against it
+    /// (Q_I in the paper's units and the conventional SNR).
+    #[arg(long)]
+    pub reference: bool,
+    /// Write per-frame figures (frames.csv) and frame PNGs (1, 2, 4, 8, … and the last) here.
+    #[arg(long)]
+    pub record: Option<PathBuf>,
     /// Output PNG.
     #[arg(short, long)]
     pub output: PathBuf,
     /// Also write the image as raw f32 (H rows of W little-endian floats; RGB interleaved).
     #[arg(long)]
     pub raw: Option<PathBuf>,
+}
+
+/// Parses a byte count with an optional k/M/G suffix (powers of 1024).
+pub fn parse_bytes(s: &str) -> Result<u64, String> {
+    let t = s.trim();
+    let (num, mult) = match t.chars().last() {
+        Some('k' | 'K') => (&t[..t.len() - 1], 1u64 << 10),
+        Some('m' | 'M') => (&t[..t.len() - 1], 1 << 20),
+        Some('g' | 'G') => (&t[..t.len() - 1], 1 << 30),
+        _ => (t, 1),
+    };
+    let n: u64 = num
+        .trim()
+        .parse()
+        .map_err(|_| format!("{s:?} is not a byte count (e.g. 65536, 64k, 16M, 1G)"))?;
+    n.checked_mul(mult)
+        .ok_or_else(|| format!("{s:?} is too large"))
 }
 
 fn pair(s: &str, what: &str) -> Result<[f64; 2]> {
@@ -73,33 +127,159 @@ fn pair(s: &str, what: &str) -> Result<[f64; 2]> {
     Ok([a, b])
 }
 
-/// Maps an image rendered in the coded colour space back to RGB (see `ColorInfo::to_rgb`).
-fn to_rgb(img: &Image, header: &Header, camera: &Camera) -> Result<Image> {
-    let inv = header
-        .color
-        .inverse_basis()
-        .context("the header's colour basis is singular")?;
-    let has_mean = header.color.mean.iter().any(|m| *m != 0.0);
-    let mut out = Image::new(img.width, img.height, 3);
-    for y in 0..img.height {
-        for x in 0..img.width {
-            let c = [0, 1, 2].map(|k| img.get(x, y, k) as f64);
-            let len = if has_mean {
-                camera.chord(header.geometry.dims, x as f64 + 0.5, y as f64 + 0.5)
-            } else {
-                0.0
+impl ViewArgs {
+    /// The view spec the options describe (validated).
+    pub fn spec(&self) -> Result<ViewSpec> {
+        let (w, h) = self
+            .size
+            .split_once(['x', ','])
+            .and_then(|(w, h)| {
+                Some((
+                    w.trim().parse::<usize>().ok()?,
+                    h.trim().parse::<usize>().ok()?,
+                ))
+            })
+            .with_context(|| format!("--size must be WxH, got {:?}", self.size))?;
+        if !self.cue_k.is_finite() || self.cue_k < 0.0 {
+            bail!(
+                "--cue-k must be a finite non-negative extinction per voxel, got {}",
+                self.cue_k
+            );
+        }
+        let mut view = View::new(self.alpha, self.beta, w, h);
+        if let Some(z) = self.zoom {
+            view = view.with_zoom(z);
+        }
+        if let Some(p) = &self.pan {
+            view = view.with_pan(pair(p, "--pan")?);
+        }
+        if self.cue_k > 0.0 {
+            let direction = match &self.cue_dir {
+                Some(s) => {
+                    let [alpha, beta] = pair(s, "--cue-dir")?;
+                    CueDirection::Angles { alpha, beta }
+                }
+                None => CueDirection::View,
             };
-            let rgb = header.color.to_rgb(&inv, c, len);
-            for r in 0..3 {
-                out.data[(y * img.width + x) * 3 + r] = rgb[r] as f32;
-            }
+            view = view.with_cue(Cue {
+                k: self.cue_k,
+                direction,
+            });
+        }
+        let spec = ViewSpec {
+            view,
+            multiview: self.multiview,
+        };
+        spec.validate().context("invalid view")?;
+        Ok(spec)
+    }
+
+    /// Session settings from the options.
+    pub fn session_options(&self) -> SessionOptions {
+        SessionOptions {
+            memory_bound: self
+                .client_memory
+                .map(|b| b.min(usize::MAX as u64) as usize),
+            ..SessionOptions::default()
         }
     }
-    Ok(out)
+
+    /// A short name of the volume for messages.
+    pub fn describe(&self) -> String {
+        match (&self.input, &self.cache, &self.volume) {
+            (Some(p), _, _) => p.display().to_string(),
+            (_, Some(c), Some(v)) => format!("{v} at {c}"),
+            _ => "?".into(),
+        }
+    }
 }
 
-/// Decodes the packets (or a prefix) of a file. Packets decode on their own, so they are decoded
-/// in parallel, in batches of a few per thread so that a coefficient cap stops early.
+/// An opened volume: its header, a packet source and (for `--reference`) a way to get every
+/// coefficient.
+pub enum Opened {
+    /// A local file.
+    File {
+        /// Its packets in view order.
+        source: Box<FileSource>,
+    },
+    /// A cached volume.
+    Cache {
+        /// The cache URL.
+        url: String,
+        /// The volume.
+        key: VolumeKey,
+        /// The pulling source.
+        source: CacheSource,
+    },
+}
+
+/// Opens the volume the options name, ranked for `spec`.
+pub fn open(
+    args: &ViewArgs,
+    spec: &ViewSpec,
+    byte_budget: Option<u64>,
+) -> Result<(Header, Opened)> {
+    match (&args.input, &args.cache, &args.volume) {
+        (Some(path), _, _) => {
+            let bytes =
+                std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
+            let source = FileSource::open(bytes, spec)
+                .with_context(|| format!("reading {}", path.display()))?
+                .with_byte_budget(byte_budget);
+            Ok((
+                source.header().clone(),
+                Opened::File {
+                    source: Box::new(source),
+                },
+            ))
+        }
+        (None, Some(url), Some(name)) => {
+            let key = VolumeKey::Name(name.clone());
+            let options = CacheSourceOptions {
+                byte_budget,
+                ..CacheSourceOptions::default()
+            };
+            let (source, header) = CacheSource::open(url, key.clone(), *spec, options)
+                .with_context(|| format!("opening {name:?} at {url}"))?;
+            Ok((
+                header.header,
+                Opened::Cache {
+                    url: url.clone(),
+                    key,
+                    source,
+                },
+            ))
+        }
+        _ => bail!("give a .wsp file, or --cache URL and --volume NAME"),
+    }
+}
+
+/// Every coefficient of the volume (for the reference image): decoded from the file, or from
+/// one full stream of the cache.
+fn all_coefficients(opened: &Opened, header: &Header) -> Result<Vec<Coefficient>> {
+    match opened {
+        Opened::File { source } => Ok(load_coefficients(source.file_bytes(), None, None)?.1),
+        Opened::Cache { url, key, .. } => {
+            let runtime = tokio::runtime::Builder::new_current_thread()
+                .enable_all()
+                .build()?;
+            let packets = runtime.block_on(async {
+                let mut c = wavesplat_client::CacheClient::connect(url).await?;
+                let request = wavesplat_client::RefineRequest::new(
+                    key.clone(),
+                    ViewSpec::single(View::new(0.0, 0.0, 1, 1)),
+                );
+                c.refine_collect(request, None).await
+            })?;
+            let data: Vec<&[u8]> = packets.packets.iter().map(|p| p.data.as_slice()).collect();
+            Ok(decode_packets(header, &data, 0)?.concat())
+        }
+    }
+}
+
+/// Decodes the packets (or a prefix in file order) of a file. Packets decode on their own, so
+/// they are decoded in parallel, in batches of a few per thread so that a coefficient cap stops
+/// early.
 pub fn load_coefficients(
     bytes: &[u8],
     max_coefficients: Option<usize>,
@@ -139,89 +319,173 @@ pub fn load_coefficients(
     Ok((file.header, coeffs))
 }
 
-/// Runs the subcommand.
-pub fn run(a: RenderArgs) -> Result<()> {
-    let (w, h) = a
-        .size
-        .split_once(['x', ','])
-        .and_then(|(w, h)| {
-            Some((
-                w.trim().parse::<usize>().ok()?,
-                h.trim().parse::<usize>().ok()?,
-            ))
-        })
-        .with_context(|| format!("--size must be WxH, got {:?}", a.size))?;
-    if !a.cue_k.is_finite() || a.cue_k < 0.0 {
-        bail!(
-            "--cue-k must be a finite non-negative extinction per voxel, got {}",
-            a.cue_k
-        );
-    }
-    let bytes =
-        std::fs::read(&a.input).with_context(|| format!("reading {}", a.input.display()))?;
-    let (header, coeffs) = load_coefficients(&bytes, a.coefficients, a.bytes)
-        .with_context(|| format!("decoding {}", a.input.display()))?;
-    let mut view = View::new(a.alpha, a.beta, w, h);
-    if let Some(z) = a.zoom {
-        view = view.with_zoom(z);
-    }
-    if let Some(p) = &a.pan {
-        view = view.with_pan(pair(p, "--pan")?);
-    }
-    if a.cue_k > 0.0 {
-        let direction = match &a.cue_dir {
-            Some(s) => {
-                let [alpha, beta] = pair(s, "--cue-dir")?;
-                CueDirection::Angles { alpha, beta }
-            }
-            None => CueDirection::View,
-        };
-        view = view.with_cue(Cue {
-            k: a.cue_k,
-            direction,
-        });
-    }
-    let mut renderer = Renderer::new(RenderOptions {
+/// The image of every coefficient for `spec`, in display space (the reference of `--reference`).
+fn reference_image(opened: &Opened, header: &Header, spec: &ViewSpec) -> Result<Image> {
+    let all = all_coefficients(opened, header)?;
+    let mut r = Renderer::new(RenderOptions {
         channels: header.channels,
         ..RenderOptions::default()
     });
-    let g = &header.geometry;
-    let start = std::time::Instant::now();
-    let (image, cameras) = if a.multiview {
-        let (views, _) = renderer.render_multiview_views(&coeffs, g, &view)?;
-        (views, multiview_cameras(&view, g.dims)?.to_vec())
+    let (img, _) = r.render_spec(&all, &header.geometry, spec)?;
+    let cameras = spec.cameras(header.geometry.dims)?;
+    Ok(wavesplat_viewer::color::to_rgb(&img, header, &cameras)?)
+}
+
+/// Per-frame record: a CSV row per frame and PNGs of frames 1, 2, 4, ….
+struct Recorder {
+    dir: PathBuf,
+    csv: std::fs::File,
+    next_png: u64,
+}
+
+impl Recorder {
+    fn new(dir: &PathBuf, with_quality: bool) -> Result<Recorder> {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+        let mut csv = std::fs::File::create(dir.join("frames.csv"))?;
+        write!(
+            csv,
+            "frame,t_ms,frame_ms,packets,bytes,coefficients_held,splatted,pending,batches"
+        )?;
+        if with_quality {
+            write!(csv, ",q_i_paper_db,snr_db")?;
+        }
+        writeln!(csv)?;
+        Ok(Recorder {
+            dir: dir.clone(),
+            csv,
+            next_png: 1,
+        })
+    }
+}
+
+/// Runs the subcommand.
+pub fn run(a: RenderArgs) -> Result<()> {
+    let spec = a.view.spec()?;
+    if !(a.frame_ms.is_finite() && a.frame_ms > 0.0) {
+        bail!(
+            "--frame-ms must be a positive number of milliseconds, got {}",
+            a.frame_ms
+        );
+    }
+    if let Some(b) = a.budget_ms {
+        if !(b.is_finite() && b >= 0.0) {
+            bail!("--budget-ms must be a non-negative number of milliseconds, got {b}");
+        }
+    }
+    let (header, opened) = open(&a.view, &spec, a.bytes)?;
+    let reference = if a.reference {
+        Some(reference_image(&opened, &header, &spec).context("rendering the reference")?)
     } else {
-        let img = renderer.render(&coeffs, g, &view)?;
-        (vec![img], vec![Camera::new(&view, g.dims)?])
+        None
     };
+    let session = RenderSession::new(
+        header.clone(),
+        spec,
+        CpuBackend::new(),
+        a.view.session_options(),
+    )?;
+    let source: Box<dyn PacketSource> = match opened {
+        Opened::File { source } => source,
+        Opened::Cache { source, .. } => Box::new(source),
+    };
+    let mut frames = FrameLoop::new(session, source);
+    let mut recorder = match &a.record {
+        Some(d) => Some(Recorder::new(d, reference.is_some())?),
+        None => None,
+    };
+    let frame = Duration::from_secs_f64(a.frame_ms / 1e3);
+    let deadline = a.budget_ms.map(|b| Duration::from_secs_f64(b / 1e3));
+    let start = Instant::now();
+    let mut n = 0u64;
+    let mut idle_frames = 0u32;
+    loop {
+        let report = frames.frame(frame)?;
+        n += 1;
+        let status = frames.source_status();
+        let stats = frames.session.stats();
+        if let Some(rec) = &mut recorder {
+            let image = frames.session.image()?;
+            write!(
+                rec.csv,
+                "{n},{:.3},{:.3},{},{},{},{},{},{}",
+                start.elapsed().as_secs_f64() * 1e3,
+                report.elapsed.as_secs_f64() * 1e3,
+                status.packets,
+                status.bytes,
+                stats.coefficients_held,
+                stats.splatted_in_view,
+                report.pending,
+                report.batches
+            )?;
+            if let Some(r) = &reference {
+                write!(
+                    rec.csv,
+                    ",{:.3},{:.3}",
+                    q_i_paper_db(&r.data, &image.data),
+                    snr_db(&r.data, &image.data)
+                )?;
+            }
+            writeln!(rec.csv)?;
+            if n == rec.next_png {
+                image.write_png(&rec.dir.join(format!("frame-{n:05}.png")), None)?;
+                rec.next_png *= 2;
+            }
+        }
+        if deadline.is_some_and(|d| start.elapsed() >= d) {
+            break;
+        }
+        if report.idle() {
+            if status.done {
+                break;
+            }
+            // Waiting on the network: don't spin.
+            idle_frames += 1;
+            if !status.connected && idle_frames > 600 {
+                bail!(
+                    "the cache is unreachable: {}",
+                    status.problem.unwrap_or_default()
+                );
+            }
+            std::thread::sleep(Duration::from_millis(2));
+        } else {
+            idle_frames = 0;
+        }
+    }
     let elapsed = start.elapsed();
-    let images: Vec<Image> = if header.color.kind == ColorKind::Intensity {
-        image
-    } else {
-        image
-            .iter()
-            .zip(&cameras)
-            .map(|(i, c)| to_rgb(i, &header, c))
-            .collect::<Result<_>>()?
-    };
-    let out = if images.len() == 1 {
-        images.into_iter().next().expect("one image")
-    } else {
-        Image::hconcat(&images)
-    };
-    out.write_png(&a.output, None)
+    let image = frames.session.image()?;
+    if let Some(rec) = &recorder {
+        image.write_png(&rec.dir.join(format!("frame-{n:05}.png")), None)?;
+    }
+    image
+        .write_png(&a.output, None)
         .with_context(|| format!("writing {}", a.output.display()))?;
     if let Some(r) = &a.raw {
-        out.write_raw(r)
+        image
+            .write_raw(r)
             .with_context(|| format!("writing {}", r.display()))?;
     }
+    let status = frames.source_status();
+    let stats = frames.session.stats();
     outln!(
-        "wrote {} ({}x{}) from {} coefficients in {:.1} ms",
+        "wrote {} ({}x{}) from {}: {} packets, {} bytes received, {} coefficients held, {} splatted, {} frames in {:.1} ms ({} backend)",
         a.output.display(),
-        out.width,
-        out.height,
-        coeffs.len(),
-        elapsed.as_secs_f64() * 1e3
+        image.width,
+        image.height,
+        a.view.describe(),
+        status.packets,
+        status.bytes,
+        stats.coefficients_held,
+        stats.splatted_in_view,
+        n,
+        elapsed.as_secs_f64() * 1e3,
+        frames.session.backend_name()
     );
+    if let Some(r) = &reference {
+        outln!(
+            "quality against the full-data image: Q_I {:.2} dB (paper units), SNR {:.2} dB",
+            q_i_paper_db(&r.data, &image.data),
+            snr_db(&r.data, &image.data)
+        );
+    }
     Ok(())
 }

@@ -7,6 +7,12 @@
 //! - [`plan`]: the [`Planner`] and [`plan::ViewPlan`]: views and coefficients to splat records
 //!   in a footprint atlas;
 //! - [`backend`]: the [`AccumulationBackend`] trait that sums records, and the CPU backend;
+//! - [`session`]: the progressive [`RenderSession`]: packets in, splats by visible energy within
+//!   a time budget, view changes, a memory bound;
+//! - [`source`]: where packets come from ([`source::FileSource`], [`source::CacheSource`] over
+//!   gRPC on its own thread, pulled with credit);
+//! - [`frame`]: the frame loop: drain packets, splat within a frame's budget;
+//! - [`color`]: images in a coded colour space back to RGB;
 //! - [`splat`]: the one-shot [`Renderer`] (plan + CPU backend);
 //! - [`reference`]: the ground-truth ray caster on the reconstructed volume;
 //! - [`image`]: the [`Image`] type, PNG with window/level, raw f32 output.
@@ -21,17 +27,24 @@
 //! ```
 
 pub mod backend;
+pub mod color;
 pub mod cue;
 pub mod footprint;
+pub mod frame;
 pub mod image;
 pub mod plan;
 pub mod reference;
+pub mod session;
+pub mod source;
 pub mod splat;
 
 pub use backend::{AccumulationBackend, BackendError, CpuBackend};
+pub use frame::{FrameLoop, FrameReport};
 pub use image::{Image, ImageError};
 pub use plan::{PlanOptions, Planner};
 pub use reference::{render_reference, render_reference_camera, PaddedVolume, ReferenceOptions};
+pub use session::{RenderSession, SessionError, SessionOptions};
+pub use source::{CacheSource, FileSource, PacketSource, SourceStatus};
 pub use splat::{RenderOptions, RenderStats, Renderer};
 pub use wavesplat_codec::view::{
     Camera, Cue, CueDirection, Orientation, View, ViewError, ViewSpec,

@@ -513,9 +513,27 @@ impl SyntaxSource for RangeSource<'_> {
     }
 }
 
-/// Decodes one packet given the header. Validates framing, checksum, every index and every
-/// position; never panics on any input.
-pub fn decode_packet(header: &Header, bytes: &[u8]) -> Result<DecodedPacket, FormatError> {
+/// A packet's framing: everything but the coded coefficients (cheap to read: a viewer or a
+/// cache ranks packets by it before decoding any).
+#[derive(Debug, Clone, PartialEq)]
+pub struct PacketFraming<'a> {
+    /// Tile index.
+    pub tile: usize,
+    /// Layer.
+    pub layer: usize,
+    /// Declared coefficient count (checked against the payload size and the tile's capacity).
+    pub count: usize,
+    /// Energy per band (see [`DecodedPacket::summary`]).
+    pub summary: Vec<(Band, f64)>,
+    /// The coded coefficients.
+    pub payload: &'a [u8],
+}
+
+/// Reads and validates a packet's framing and checksum without decoding its coefficients.
+pub fn read_framing<'a>(
+    header: &Header,
+    bytes: &'a [u8],
+) -> Result<PacketFraming<'a>, FormatError> {
     const W: &str = "packet";
     if bytes.len() < 4 {
         return Err(FormatError::Truncated {
@@ -593,7 +611,26 @@ pub fn decode_packet(header: &Header, bytes: &[u8]) -> Result<DecodedPacket, For
             format!("{count} coefficients in a {plen}-byte payload (tile capacity {capacity})"),
         ));
     }
-    let count = count as usize;
+    Ok(PacketFraming {
+        tile,
+        layer,
+        count: count as usize,
+        summary,
+        payload,
+    })
+}
+
+/// Decodes one packet given the header. Validates framing, checksum, every index and every
+/// position; never panics on any input.
+pub fn decode_packet(header: &Header, bytes: &[u8]) -> Result<DecodedPacket, FormatError> {
+    let PacketFraming {
+        tile,
+        layer,
+        count,
+        summary,
+        payload,
+    } = read_framing(header, bytes)?;
+    let plen = payload.len();
     let mut breakdown = SizeBreakdown {
         framing_bytes: (bytes.len() - plen) as u64,
         ..SizeBreakdown::default()

@@ -76,6 +76,35 @@ impl Visibility {
     }
 }
 
+/// What ranks a packet: its tile, its energy summary and its size.
+#[derive(Debug, Clone, Copy)]
+pub struct PacketFacts<'a> {
+    /// Tile index.
+    pub tile: usize,
+    /// Energy per band.
+    pub summary: &'a [(Band, f64)],
+    /// Size in bytes.
+    pub bytes: usize,
+}
+
+/// Sending order of packets for a view: descending visible energy per byte (the JPIP-style
+/// rate–distortion slope), ties (including everything invisible) in file order. `packets` are in
+/// file order; the result lists their indices.
+pub fn packet_order(visibility: &Visibility, packets: &[PacketFacts<'_>]) -> Vec<u32> {
+    let mut keyed: Vec<(f64, u32)> = packets
+        .iter()
+        .enumerate()
+        .map(|(i, p)| {
+            (
+                visibility.visible_energy(p.tile, p.summary) / p.bytes.max(1) as f64,
+                i as u32,
+            )
+        })
+        .collect();
+    keyed.sort_by(|a, b| b.0.total_cmp(&a.0).then(a.1.cmp(&b.1)));
+    keyed.into_iter().map(|(_, i)| i).collect()
+}
+
 /// Fraction of each band's basis energy left in the projection of `cam` (per voxel of depth,
 /// with the pixel-area filter): s·∫_plane |Πₐ ĥₐ(η)|² sinc²(η·u/(s z)) sinc²(η·v/(s z)) dη /
 /// Πₐ ‖hₐ‖², with ĥ the level-0 φ̂ or ψ̂, s = 2^level and z the zoom.

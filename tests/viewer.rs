@@ -1,0 +1,384 @@
+//! The client side end to end: a cache on loopback (in process, sled in a tempdir), volumes
+//! rendered from it by the render session through the cache source, compared with the same
+//! volume rendered from its file; a view change and a cache restart mid-stream; the memory
+//! bound over the network; and `wavesplat render --cache` against `wavesplat render FILE`.
+
+use std::time::{Duration, Instant};
+use wavesplat_cache::{Limits, Store};
+use wavesplat_client::{CacheClient, VolumeKey};
+use wavesplat_codec::format::packet::{decode_packet, Coefficient};
+use wavesplat_codec::format::{parse_file, Header};
+use wavesplat_codec::view::{View, ViewSpec};
+use wavesplat_compressor::encode::{compress, CompressOptions, Target, TileChoice};
+use wavesplat_compressor::phantom::Phantom;
+use wavesplat_viewer::session::{RenderSession, SessionOptions, COEFFICIENT_BYTES};
+use wavesplat_viewer::source::{CacheSource, CacheSourceOptions, FileSource, PacketSource};
+use wavesplat_viewer::{CpuBackend, FrameLoop, Image, RenderOptions, Renderer};
+
+fn wsp(phantom: Phantom, n: usize) -> Vec<u8> {
+    compress(
+        &phantom.generate([n; 3]),
+        &CompressOptions {
+            target: Target::Fraction(0.08),
+            tile: TileChoice::Size(16),
+            layers: Some(3),
+            refine: None,
+            ..Default::default()
+        },
+        &|_, _| {},
+    )
+    .expect("compress")
+    .bytes
+}
+
+fn all(bytes: &[u8]) -> (Header, Vec<Coefficient>) {
+    let file = parse_file(bytes).unwrap();
+    let c = file
+        .packets
+        .iter()
+        .flat_map(|p| decode_packet(&file.header, p).unwrap().coefficients)
+        .collect();
+    (file.header, c)
+}
+
+fn full_image(header: &Header, coeffs: &[Coefficient], spec: &ViewSpec) -> Image {
+    let mut r = Renderer::new(RenderOptions {
+        channels: header.channels,
+        ..Default::default()
+    });
+    let (img, _) = r.render_spec(coeffs, &header.geometry, spec).unwrap();
+    wavesplat_viewer::color::to_rgb(&img, header, &spec.cameras(header.geometry.dims).unwrap())
+        .unwrap()
+}
+
+fn max_rel(a: &Image, b: &Image) -> f64 {
+    assert_eq!(
+        (a.width, a.height, a.channels),
+        (b.width, b.height, b.channels)
+    );
+    let m = b.data.iter().fold(0.0f64, |m, x| m.max(x.abs() as f64));
+    a.data
+        .iter()
+        .zip(&b.data)
+        .fold(0.0f64, |e, (x, y)| e.max((*x as f64 - *y as f64).abs()))
+        / m.max(1e-300)
+}
+
+/// An in-process cache on a fixed loopback address (so it can be restarted there).
+struct Server {
+    url: String,
+    addr: std::net::SocketAddr,
+    dir: std::path::PathBuf,
+    stop: Option<tokio::sync::oneshot::Sender<()>>,
+    thread: Option<std::thread::JoinHandle<()>>,
+}
+
+impl Server {
+    fn start_at(dir: &std::path::Path, addr: &str) -> Server {
+        let (tx, rx) = tokio::sync::oneshot::channel();
+        let (ready_tx, ready_rx) = std::sync::mpsc::channel();
+        let store = Store::open(dir, Limits::default()).unwrap();
+        let addr = addr.to_string();
+        let thread = std::thread::spawn(move || {
+            let rt = tokio::runtime::Builder::new_multi_thread()
+                .worker_threads(2)
+                .enable_all()
+                .build()
+                .unwrap();
+            rt.block_on(async move {
+                let listener = loop {
+                    match tokio::net::TcpListener::bind(&addr).await {
+                        Ok(l) => break l,
+                        Err(_) => tokio::time::sleep(Duration::from_millis(20)).await,
+                    }
+                };
+                ready_tx.send(listener.local_addr().unwrap()).unwrap();
+                wavesplat_cache::serve(listener, store, async {
+                    let _ = rx.await;
+                })
+                .await
+                .unwrap();
+            });
+        });
+        let addr = ready_rx.recv().unwrap();
+        Server {
+            url: format!("http://{addr}"),
+            addr,
+            dir: dir.to_path_buf(),
+            stop: Some(tx),
+            thread: Some(thread),
+        }
+    }
+
+    fn start(dir: &std::path::Path) -> Server {
+        Server::start_at(dir, "127.0.0.1:0")
+    }
+
+    fn stop(mut self) -> (std::path::PathBuf, String) {
+        let _ = self.stop.take().unwrap().send(());
+        self.thread.take().unwrap().join().unwrap();
+        (self.dir.clone(), self.addr.to_string())
+    }
+
+    fn ingest(&self, name: &str, bytes: &[u8]) {
+        let rt = tokio::runtime::Builder::new_current_thread()
+            .enable_all()
+            .build()
+            .unwrap();
+        rt.block_on(async {
+            let mut c = CacheClient::connect(&self.url).await.unwrap();
+            c.ingest(name, bytes).await.unwrap();
+        });
+    }
+}
+
+impl Drop for Server {
+    fn drop(&mut self) {
+        if let Some(s) = self.stop.take() {
+            let _ = s.send(());
+        }
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
+}
+
+/// Adds every packet the source delivers (waiting for the network) until it is done.
+fn drain<S: PacketSource + ?Sized>(
+    source: &mut S,
+    session: &mut RenderSession<CpuBackend>,
+) -> usize {
+    let start = Instant::now();
+    let mut n = 0;
+    loop {
+        match source.try_next() {
+            Some(p) => {
+                session.add_packet(p.id, &p.data).unwrap();
+                n += 1;
+            }
+            None if source.status().done => {
+                // Done is set after the last packet is queued: one more look.
+                if let Some(p) = source.try_next() {
+                    session.add_packet(p.id, &p.data).unwrap();
+                    n += 1;
+                    continue;
+                }
+                return n;
+            }
+            None => std::thread::sleep(Duration::from_millis(1)),
+        }
+        assert!(start.elapsed() < Duration::from_secs(60), "stream stalled");
+    }
+}
+
+#[test]
+fn rendering_from_the_cache_equals_rendering_from_the_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = Server::start(dir.path());
+    for (name, phantom, n) in [
+        ("shepp", Phantom::SheppLogan, 40),
+        ("rgb", Phantom::RgbHead, 32),
+    ] {
+        let bytes = wsp(phantom, n);
+        server.ingest(name, &bytes);
+        let (header, coeffs) = all(&bytes);
+        for spec in [
+            ViewSpec::single(View::new(0.66, 0.91, 80, 64)),
+            ViewSpec {
+                view: View::new(0.2, 0.1, 48, 48),
+                multiview: true,
+            },
+        ] {
+            let unlimited = SessionOptions {
+                max_batch: usize::MAX,
+                ..Default::default()
+            };
+            let mut images = Vec::new();
+            let (mut cache_source, h) = CacheSource::open(
+                &server.url,
+                VolumeKey::Name(name.into()),
+                spec,
+                CacheSourceOptions::default(),
+            )
+            .unwrap();
+            assert_eq!(h.header, header);
+            let mut file_source = FileSource::open(bytes.clone(), &spec).unwrap();
+            for source in [&mut cache_source as &mut dyn PacketSource, &mut file_source] {
+                let mut s =
+                    RenderSession::new(header.clone(), spec, CpuBackend::new(), unlimited).unwrap();
+                let got = drain(source, &mut s);
+                assert_eq!(got, file_source_count(&bytes), "{name}: packets delivered");
+                // One batch with everything: the same records in the same order.
+                s.step(Duration::from_secs(3600)).unwrap();
+                assert_eq!(s.pending(), 0);
+                images.push(s.image().unwrap());
+            }
+            let e = max_rel(&images[0], &images[1]);
+            assert!(
+                e <= 1e-6,
+                "{name} multiview={}: cache vs file {e:e}",
+                spec.multiview
+            );
+            let e = max_rel(&images[1], &full_image(&header, &coeffs, &spec));
+            assert!(e <= 1e-5, "{name}: file vs one-shot {e:e}");
+        }
+    }
+}
+
+fn file_source_count(bytes: &[u8]) -> usize {
+    parse_file(bytes).unwrap().packets.len()
+}
+
+#[test]
+fn a_view_change_and_a_cache_restart_mid_stream_lose_nothing_and_repeat_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = Server::start(dir.path());
+    let bytes = wsp(Phantom::SheppLogan, 48);
+    server.ingest("v", &bytes);
+    let (header, coeffs) = all(&bytes);
+    let total = file_source_count(&bytes);
+    let (a, b) = (
+        ViewSpec::single(View::new(0.0, 0.0, 64, 64)),
+        ViewSpec::single(View::new(1.2, 0.4, 64, 64)),
+    );
+    let options = CacheSourceOptions {
+        credit_bytes: 2048,
+        ..Default::default()
+    };
+    let (source, _) =
+        CacheSource::open(&server.url, VolumeKey::Name("v".into()), a, options).unwrap();
+    let session =
+        RenderSession::new(header.clone(), a, CpuBackend::new(), Default::default()).unwrap();
+    let mut f = FrameLoop::new(session, source);
+    let mut seen = std::collections::HashSet::new();
+    let mut take = |f: &mut FrameLoop<CpuBackend, CacheSource>, n: usize| {
+        let start = Instant::now();
+        let mut got = 0;
+        while got < n {
+            match f.source.try_next() {
+                Some(p) => {
+                    assert!(seen.insert(p.id), "packet {} received twice", p.id);
+                    f.session.add_packet(p.id, &p.data).unwrap();
+                    got += 1;
+                }
+                None if f.source.status().done && got > 0 => break,
+                None => std::thread::sleep(Duration::from_millis(1)),
+            }
+            assert!(
+                start.elapsed() < Duration::from_secs(60),
+                "stalled at {got}"
+            );
+        }
+    };
+    take(&mut f, total / 4);
+    f.set_view(b).unwrap();
+    take(&mut f, total / 4);
+    // Restart the cache on the same address: the source reconnects and resumes.
+    let (dir_path, addr) = server.stop();
+    let server = Server::start_at(&dir_path, &addr);
+    take(&mut f, total);
+    assert_eq!(seen.len(), total, "every packet exactly once");
+    assert!(f.source.status().reconnects >= 1);
+    while f.session.pending() > 0 {
+        f.session.step(Duration::from_secs(60)).unwrap();
+    }
+    let e = max_rel(
+        &f.session.image().unwrap(),
+        &full_image(&header, &coeffs, &b),
+    );
+    assert!(e <= 1e-5, "{e:e}");
+    drop(f);
+    drop(server);
+}
+
+#[test]
+fn the_memory_bound_holds_over_the_network() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = Server::start(dir.path());
+    let bytes = wsp(Phantom::SheppLogan, 56);
+    server.ingest("big", &bytes);
+    let (header, coeffs) = all(&bytes);
+    let bound = coeffs.len() * COEFFICIENT_BYTES / 5;
+    let (a, b) = (
+        ViewSpec::single(View::new(0.66, 0.91, 64, 64)),
+        ViewSpec::single(View::new(2.0, -0.3, 64, 64)),
+    );
+    let options = SessionOptions {
+        memory_bound: Some(bound),
+        transient_bytes: 32 << 10,
+        ..Default::default()
+    };
+    let (source, _) = CacheSource::open(
+        &server.url,
+        VolumeKey::Name("big".into()),
+        a,
+        CacheSourceOptions::default(),
+    )
+    .unwrap();
+    let session = RenderSession::new(header.clone(), a, CpuBackend::new(), options).unwrap();
+    let mut f = FrameLoop::new(session, source);
+    for spec in [a, b] {
+        if spec != a {
+            f.set_view(spec).unwrap();
+        }
+        let start = Instant::now();
+        loop {
+            let r = f.frame(Duration::from_millis(10)).unwrap();
+            assert!(f.session.stats().retained_bytes <= bound);
+            if r.idle() && f.source.status().done && f.source.try_next().is_none() {
+                break;
+            }
+            if r.idle() {
+                std::thread::sleep(Duration::from_millis(1));
+            }
+            assert!(start.elapsed() < Duration::from_secs(120), "stalled");
+        }
+        let e = max_rel(
+            &f.session.image().unwrap(),
+            &full_image(&header, &coeffs, &spec),
+        );
+        assert!(e <= 1e-5, "{e:e}");
+    }
+    assert!(f.session.stats().packets_dropped > 0);
+}
+
+#[test]
+fn the_render_command_gives_the_same_image_from_the_cache_and_from_the_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = Server::start(&dir.path().join("db"));
+    let bytes = wsp(Phantom::RgbHead, 32);
+    let file = dir.path().join("v.wsp");
+    std::fs::write(&file, &bytes).unwrap();
+    server.ingest("head", &bytes);
+    let bin = env!("CARGO_BIN_EXE_wavesplat");
+    let raw = |args: &[&str], out: &str| -> Vec<f32> {
+        let png = dir.path().join(format!("{out}.png"));
+        let raw = dir.path().join(format!("{out}.f32"));
+        let o = std::process::Command::new(bin)
+            .arg("render")
+            .args(args)
+            .args(["--size", "64x48", "--alpha", "0.3", "--beta", "0.2", "-o"])
+            .arg(&png)
+            .arg("--raw")
+            .arg(&raw)
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        std::fs::read(&raw)
+            .unwrap()
+            .chunks(4)
+            .map(|c| f32::from_le_bytes(c.try_into().unwrap()))
+            .collect()
+    };
+    let from_file = raw(&[file.to_str().unwrap()], "file");
+    let from_cache = raw(&["--cache", &server.url, "--volume", "head"], "cache");
+    let to_image = |d: Vec<f32>| Image {
+        width: 64,
+        height: 48,
+        channels: 3,
+        data: d,
+    };
+    let e = max_rel(&to_image(from_cache), &to_image(from_file));
+    // Frames group the splats by timing, so the sums agree to f32 rounding.
+    assert!(e <= 1e-5, "{e:e}");
+}

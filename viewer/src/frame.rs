@@ -1,0 +1,117 @@
+//! The frame loop, headless: one [`FrameLoop::frame`] per displayed frame drains the packets
+//! that arrived (as far as the session takes them), reports dropped packets back to the source,
+//! then splats as many coefficients as fit in what is left of the frame's budget, largest
+//! visible energy first, from the session's running cost estimate. A view change restarts the
+//! accumulation from the most important coefficients held and asks the source for the rest in
+//! the new order. The window and `wavesplat render` both drive this loop.
+
+use crate::backend::AccumulationBackend;
+use crate::session::{Clock, RenderSession, SessionError, StepReport, SystemClock};
+use crate::source::{PacketSource, SourceStatus};
+use std::time::Duration;
+use wavesplat_codec::view::ViewSpec;
+
+/// What one frame did.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct FrameReport {
+    /// Packets taken from the source.
+    pub packets: usize,
+    /// Coefficients splatted.
+    pub coefficients: usize,
+    /// Splat records accumulated.
+    pub records: usize,
+    /// Batches run.
+    pub batches: usize,
+    /// Batches that ended past the deadline (at most 1).
+    pub batches_past_deadline: usize,
+    /// Coefficients still queued at the end of the frame.
+    pub pending: usize,
+    /// Time the frame took.
+    pub elapsed: Duration,
+}
+
+impl FrameReport {
+    /// Whether the frame had nothing left to do (everything held is splatted).
+    pub fn idle(&self) -> bool {
+        self.pending == 0 && self.packets == 0
+    }
+}
+
+/// A session and its packet source, driven frame by frame.
+#[derive(Debug)]
+pub struct FrameLoop<B: AccumulationBackend, S: PacketSource> {
+    /// The render session.
+    pub session: RenderSession<B>,
+    /// The packet source.
+    pub source: S,
+}
+
+impl<B: AccumulationBackend, S: PacketSource> FrameLoop<B, S> {
+    /// Drives `session` with packets from `source`.
+    pub fn new(session: RenderSession<B>, source: S) -> FrameLoop<B, S> {
+        FrameLoop { session, source }
+    }
+
+    /// Changes the view (session first: it validates; then the source reorders).
+    pub fn set_view(&mut self, spec: ViewSpec) -> Result<(), SessionError> {
+        self.session.set_view(spec)?;
+        let dropped = self.session.take_dropped();
+        self.source.dropped(dropped);
+        self.source.set_view(&spec);
+        Ok(())
+    }
+
+    /// One frame of at most about `budget` with the real clock.
+    pub fn frame(&mut self, budget: Duration) -> Result<FrameReport, SessionError> {
+        self.frame_with(budget, &SystemClock::default())
+    }
+
+    /// One frame: drain arrived packets, then splat until the deadline (no batch starts after
+    /// it, so at most one ends past it).
+    pub fn frame_with(
+        &mut self,
+        budget: Duration,
+        clock: &dyn Clock,
+    ) -> Result<FrameReport, SessionError> {
+        let start = clock.now();
+        let deadline = start + budget;
+        let mut report = FrameReport::default();
+        loop {
+            while self.session.wants_packets() && clock.now() < deadline {
+                let Some(p) = self.source.try_next() else {
+                    break;
+                };
+                self.session.add_packet(p.id, &p.data)?;
+                report.packets += 1;
+            }
+            let dropped = self.session.take_dropped();
+            if !dropped.is_empty() {
+                self.source.dropped(dropped);
+            }
+            let now = clock.now();
+            if self.session.pending() == 0 || now >= deadline {
+                break;
+            }
+            let step: StepReport = self.session.step_with(deadline - now, clock)?;
+            report.coefficients += step.coefficients;
+            report.records += step.records;
+            report.batches += step.batches;
+            report.batches_past_deadline += usize::from(step.overran);
+            if step.overran || clock.now() >= deadline {
+                break;
+            }
+        }
+        let dropped = self.session.take_dropped();
+        if !dropped.is_empty() {
+            self.source.dropped(dropped);
+        }
+        report.pending = self.session.pending();
+        report.elapsed = clock.now().saturating_sub(start);
+        Ok(report)
+    }
+
+    /// The source's status.
+    pub fn source_status(&self) -> SourceStatus {
+        self.source.status()
+    }
+}

@@ -1,0 +1,638 @@
+//! The progressive render session: the engine that `wavesplat render` and `wavesplat view`
+//! drive. It holds the volume's header, the coefficients received so far (grouped by packet)
+//! and an accumulation image in some [`AccumulationBackend`].
+//!
+//! - **Adding packets** decodes them and queues their coefficients; rendering is linear, so only
+//!   new coefficients are ever splatted onto the image.
+//! - **Priority.** Queued coefficients are taken largest visible energy first: w²·‖basis‖² times
+//!   the view's visibility weight of their band and tile (`codec::view::visibility`) times the
+//!   channel's importance, bucketed by half-octaves (a bucket queue: O(1) per coefficient, no
+//!   sort on the path of a rotation). Coefficients the view cannot see at all (off-screen tiles)
+//!   are never queued.
+//! - **A view change** restarts the accumulation and queues everything held again, so the next
+//!   step draws the most important coefficients first: the image is coarse but correct at once
+//!   and never blank for long.
+//! - **Steps** take a time budget and do as much as fits, in batches sized from a running
+//!   estimate of the cost per coefficient for this backend (planning + accumulation); a step
+//!   starts no batch after its deadline, so at most one batch ends past it.
+//! - **Memory.** With a bound, retained coefficients beyond it are dropped, least visible energy
+//!   per byte first, once they have been splatted (their contribution stays in the image); the
+//!   dropped packet ids are handed to the source so the cache sends them again after a later
+//!   view change. Decoded but not yet splatted coefficients are bounded separately
+//!   ([`SessionOptions::transient_bytes`]). A bound of 0 is the paper's "network computer"
+//!   (§4): the session then keeps only the footprint tables and the image.
+
+use crate::backend::{AccumulationBackend, BackendError, SplatRecord};
+use crate::color;
+use crate::image::Image;
+use crate::plan::{PlanOptions, Planner, RenderStats, ViewPlan};
+use crate::RenderError;
+use std::collections::HashMap;
+use std::time::{Duration, Instant};
+use thiserror::Error;
+use wavesplat_codec::format::packet::{decode_packet, Coefficient};
+use wavesplat_codec::format::{FormatError, Header};
+use wavesplat_codec::view::visibility::Visibility;
+use wavesplat_codec::view::{ViewError, ViewSpec};
+
+/// Bytes a held coefficient costs (what the memory bound counts).
+pub const COEFFICIENT_BYTES: usize = std::mem::size_of::<Coefficient>();
+
+/// Errors of a render session.
+#[derive(Debug, Error)]
+#[non_exhaustive]
+pub enum SessionError {
+    /// Rendering failed (bad view, bad coefficient).
+    #[error(transparent)]
+    Render(#[from] RenderError),
+    /// A packet does not decode.
+    #[error("packet {id}: {source}")]
+    Packet {
+        /// Packet id.
+        id: u32,
+        /// Why.
+        #[source]
+        source: FormatError,
+    },
+}
+
+impl From<BackendError> for SessionError {
+    fn from(e: BackendError) -> Self {
+        SessionError::Render(RenderError::Backend(e))
+    }
+}
+
+impl From<ViewError> for SessionError {
+    fn from(e: ViewError) -> Self {
+        SessionError::Render(RenderError::View(e))
+    }
+}
+
+/// Session settings.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SessionOptions {
+    /// Footprint planning.
+    pub plan: PlanOptions,
+    /// Largest retained coefficient memory in bytes (`None`: unbounded; `Some(0)`: keep
+    /// nothing, the network computer).
+    pub memory_bound: Option<usize>,
+    /// Largest memory of decoded coefficients waiting to be splatted: the session stops asking
+    /// for packets beyond it (at least one packet is always accepted).
+    pub transient_bytes: usize,
+    /// Smallest batch (coefficients).
+    pub min_batch: usize,
+    /// Largest batch (coefficients).
+    pub max_batch: usize,
+}
+
+impl Default for SessionOptions {
+    fn default() -> Self {
+        SessionOptions {
+            plan: PlanOptions::default(),
+            memory_bound: None,
+            transient_bytes: 8 << 20,
+            min_batch: 256,
+            max_batch: 1 << 20,
+        }
+    }
+}
+
+/// A monotonic clock (injectable, so the frame budget logic can be tested without sleeping).
+pub trait Clock {
+    /// Time since an arbitrary origin.
+    fn now(&self) -> Duration;
+}
+
+/// The real clock.
+#[derive(Debug, Clone, Copy)]
+pub struct SystemClock(Instant);
+
+impl Default for SystemClock {
+    fn default() -> Self {
+        SystemClock(Instant::now())
+    }
+}
+
+impl Clock for SystemClock {
+    fn now(&self) -> Duration {
+        self.0.elapsed()
+    }
+}
+
+/// What a step did.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct StepReport {
+    /// Coefficients taken from the queue.
+    pub coefficients: usize,
+    /// Splat records accumulated.
+    pub records: usize,
+    /// Batches run.
+    pub batches: usize,
+    /// Batches started after the deadline (always 0).
+    pub started_late: usize,
+    /// Whether the last batch ended past the deadline (at most one batch does).
+    pub overran: bool,
+    /// Coefficients still queued.
+    pub remaining: usize,
+    /// Time spent.
+    pub elapsed: Duration,
+}
+
+/// Counters of a session.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct SessionStats {
+    /// Packets received.
+    pub packets_received: u64,
+    /// Bytes of packets received.
+    pub bytes_received: u64,
+    /// Coefficients received.
+    pub coefficients_received: u64,
+    /// Packets held now.
+    pub packets_held: usize,
+    /// Coefficients held now (retained and waiting).
+    pub coefficients_held: usize,
+    /// Bytes of retained (already splatted) coefficients.
+    pub retained_bytes: usize,
+    /// Bytes of coefficients waiting to be splatted.
+    pub transient_bytes: usize,
+    /// Largest retained + transient bytes seen.
+    pub peak_bytes: usize,
+    /// Coefficients splatted since the view was set.
+    pub splatted_in_view: u64,
+    /// Coefficients the view cannot see (never queued) since the view was set.
+    pub invisible_in_view: u64,
+    /// Packets dropped to stay within the memory bound.
+    pub packets_dropped: u64,
+    /// View changes.
+    pub view_changes: u64,
+}
+
+/// Bucket queue: half-octaves of visible energy.
+const BUCKETS: usize = 4400;
+const BUCKET_OFFSET: i64 = 2200;
+
+#[derive(Debug, Default)]
+struct BucketQueue {
+    buckets: Vec<Vec<(u32, u32)>>,
+    top: usize,
+    len: usize,
+}
+
+impl BucketQueue {
+    fn new() -> BucketQueue {
+        BucketQueue {
+            buckets: vec![Vec::new(); BUCKETS],
+            top: 0,
+            len: 0,
+        }
+    }
+
+    fn clear(&mut self) {
+        for b in &mut self.buckets[..=self.top] {
+            b.clear();
+        }
+        self.top = 0;
+        self.len = 0;
+    }
+
+    fn push(&mut self, bucket: usize, entry: (u32, u32)) {
+        self.buckets[bucket].push(entry);
+        self.top = self.top.max(bucket);
+        self.len += 1;
+    }
+
+    /// Up to `n` entries, highest buckets first.
+    fn pop(&mut self, n: usize, out: &mut Vec<(u32, u32)>) {
+        out.clear();
+        while out.len() < n && self.len > 0 {
+            let b = &mut self.buckets[self.top];
+            let take = (n - out.len()).min(b.len());
+            out.extend(b.drain(b.len() - take..).rev());
+            self.len -= take;
+            if b.is_empty() && self.top > 0 {
+                while self.top > 0 && self.buckets[self.top].is_empty() {
+                    self.top -= 1;
+                }
+            }
+        }
+    }
+}
+
+/// The queue bucket of a visible energy; `None` when the view cannot see it.
+fn bucket_of(energy: f64) -> Option<usize> {
+    if energy.is_nan() || energy <= 0.0 {
+        return None;
+    }
+    if energy.is_infinite() {
+        return Some(BUCKETS - 1);
+    }
+    let b = (2.0 * energy.log2()).floor() as i64 + BUCKET_OFFSET;
+    Some(b.clamp(0, BUCKETS as i64 - 1) as usize)
+}
+
+/// One packet's coefficients.
+#[derive(Debug)]
+struct Held {
+    tile: usize,
+    coefficients: Vec<Coefficient>,
+    /// Coefficients of this packet still queued in the current view.
+    queued: usize,
+    /// Size of the packet on the wire.
+    wire_bytes: usize,
+}
+
+impl Held {
+    fn bytes(&self) -> usize {
+        self.coefficients.len() * COEFFICIENT_BYTES
+    }
+}
+
+/// A progressive render session over one volume (see the module documentation).
+pub struct RenderSession<B: AccumulationBackend> {
+    header: Header,
+    options: SessionOptions,
+    planner: Planner,
+    plan: ViewPlan,
+    visibility: Visibility,
+    backend: B,
+    /// Basis norm² × importance per (channel, band index).
+    energy_scale: Vec<f64>,
+    packets: HashMap<u32, Held>,
+    queue: BucketQueue,
+    dropped: Vec<u32>,
+    stats: SessionStats,
+    /// Seconds per coefficient (planning + accumulation), running estimate.
+    cost: f64,
+    records: Vec<SplatRecord>,
+    next_local_id: u32,
+}
+
+impl<B: AccumulationBackend> std::fmt::Debug for RenderSession<B> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("RenderSession")
+            .field("backend", &self.backend.name())
+            .field("spec", &self.plan.spec)
+            .field("stats", &self.stats)
+            .finish()
+    }
+}
+
+impl<B: AccumulationBackend> RenderSession<B> {
+    /// A session for the volume of `header`, looking at `spec`, accumulating with `backend`.
+    pub fn new(
+        header: Header,
+        spec: ViewSpec,
+        backend: B,
+        options: SessionOptions,
+    ) -> Result<RenderSession<B>, SessionError> {
+        let g = header.geometry;
+        let mut planner = Planner::new(options.plan);
+        let plan = planner.plan(&g, &spec, header.channels)?;
+        let visibility = Visibility::new(&header, &spec)?;
+        let bands = g.bands();
+        let energy_scale = (0..header.channels)
+            .flat_map(|c| {
+                let importance = header.importance(c);
+                bands
+                    .iter()
+                    .map(move |b| g.basis_norm2(*b) * importance)
+                    .collect::<Vec<_>>()
+            })
+            .collect();
+        let mut s = RenderSession {
+            header,
+            options,
+            planner,
+            plan,
+            visibility,
+            backend,
+            energy_scale,
+            packets: HashMap::new(),
+            queue: BucketQueue::new(),
+            dropped: Vec::new(),
+            stats: SessionStats::default(),
+            cost: 1e-6,
+            records: Vec::new(),
+            next_local_id: u32::MAX,
+        };
+        s.backend.begin(s.plan.layout())?;
+        Ok(s)
+    }
+
+    /// The volume's header.
+    pub fn header(&self) -> &Header {
+        &self.header
+    }
+
+    /// The current view.
+    pub fn spec(&self) -> &ViewSpec {
+        &self.plan.spec
+    }
+
+    /// The resolved view (cameras, atlas).
+    pub fn plan(&self) -> &ViewPlan {
+        &self.plan
+    }
+
+    /// The backend's name.
+    pub fn backend_name(&self) -> String {
+        self.backend.name()
+    }
+
+    /// Counters.
+    pub fn stats(&self) -> SessionStats {
+        self.stats
+    }
+
+    /// Coefficients waiting to be splatted in this view.
+    pub fn pending(&self) -> usize {
+        self.queue.len
+    }
+
+    /// The running estimate of the cost of one coefficient.
+    pub fn cost_per_coefficient(&self) -> Duration {
+        Duration::from_secs_f64(self.cost)
+    }
+
+    /// Whether the session takes another packet now (the transient budget is not used up).
+    pub fn wants_packets(&self) -> bool {
+        self.stats.transient_bytes < self.options.transient_bytes.max(1)
+    }
+
+    /// Whether the memory bound is full: what is retained has reached it.
+    pub fn memory_full(&self) -> bool {
+        self.options
+            .memory_bound
+            .is_some_and(|b| self.stats.retained_bytes + COEFFICIENT_BYTES > b)
+    }
+
+    /// Packet ids dropped since the last call (to tell the source, which asks for them again
+    /// after a view change).
+    pub fn take_dropped(&mut self) -> Vec<u32> {
+        std::mem::take(&mut self.dropped)
+    }
+
+    /// Whether packet `id` is held.
+    pub fn holds(&self, id: u32) -> bool {
+        self.packets.contains_key(&id)
+    }
+
+    /// Ids of the packets held.
+    pub fn held_ids(&self) -> Vec<u32> {
+        let mut v: Vec<u32> = self.packets.keys().copied().collect();
+        v.sort_unstable();
+        v
+    }
+
+    /// Decodes and queues a packet (a packet already held is ignored).
+    pub fn add_packet(&mut self, id: u32, bytes: &[u8]) -> Result<(), SessionError> {
+        if self.packets.contains_key(&id) {
+            return Ok(());
+        }
+        let d = decode_packet(&self.header, bytes)
+            .map_err(|source| SessionError::Packet { id, source })?;
+        self.stats.packets_received += 1;
+        self.stats.bytes_received += bytes.len() as u64;
+        self.insert(id, d.tile, d.coefficients, bytes.len())
+    }
+
+    /// Queues coefficients that did not come in a packet (a local source or a test); they are
+    /// held per tile under local ids, like packets that cannot be asked for again.
+    pub fn add_coefficients(&mut self, coefficients: Vec<Coefficient>) -> Result<(), SessionError> {
+        for c in &coefficients {
+            crate::cue::check_coefficient(c, &self.header.geometry, self.header.channels)?;
+        }
+        let mut by_tile: std::collections::BTreeMap<usize, Vec<Coefficient>> = Default::default();
+        for c in coefficients {
+            let pos = [c.pos[0] as usize, c.pos[1] as usize, c.pos[2] as usize];
+            by_tile
+                .entry(self.header.tile_of(c.band, pos))
+                .or_default()
+                .push(c);
+        }
+        for (tile, cs) in by_tile {
+            let id = self.next_local_id;
+            self.next_local_id = self.next_local_id.wrapping_sub(1);
+            self.insert(id, tile, cs, 0)?;
+        }
+        Ok(())
+    }
+
+    fn insert(
+        &mut self,
+        id: u32,
+        tile: usize,
+        coefficients: Vec<Coefficient>,
+        wire_bytes: usize,
+    ) -> Result<(), SessionError> {
+        for c in &coefficients {
+            crate::cue::check_coefficient(c, &self.header.geometry, self.header.channels)?;
+        }
+        self.stats.coefficients_received += coefficients.len() as u64;
+        let mut held = Held {
+            tile,
+            coefficients,
+            queued: 0,
+            wire_bytes,
+        };
+        self.enqueue(id, &mut held);
+        let bytes = held.bytes();
+        if held.queued == 0 {
+            self.stats.retained_bytes += bytes;
+        } else {
+            self.stats.transient_bytes += bytes;
+        }
+        self.stats.packets_held += 1;
+        self.stats.coefficients_held += held.coefficients.len();
+        self.packets.insert(id, held);
+        self.note_peak();
+        self.evict();
+        Ok(())
+    }
+
+    fn note_peak(&mut self) {
+        self.stats.peak_bytes = self
+            .stats
+            .peak_bytes
+            .max(self.stats.retained_bytes + self.stats.transient_bytes);
+    }
+
+    /// Queues the visible coefficients of a held packet for the current view.
+    fn enqueue(&mut self, id: u32, held: &mut Held) {
+        let nb = self.header.geometry.band_count();
+        held.queued = 0;
+        for (i, c) in held.coefficients.iter().enumerate() {
+            let Some(b) = self.header.geometry.band_index(c.band) else {
+                continue;
+            };
+            let w = self.visibility.weight(c.band, held.tile);
+            let v = c.value as f64;
+            let e = v * v * self.energy_scale[c.channel as usize * nb + b] * w;
+            match bucket_of(e) {
+                Some(k) => {
+                    self.queue.push(k, (id, i as u32));
+                    held.queued += 1;
+                }
+                None => self.stats.invisible_in_view += 1,
+            }
+        }
+    }
+
+    /// Changes the view: restarts the accumulation and queues everything held again, largest
+    /// visible energy first.
+    pub fn set_view(&mut self, spec: ViewSpec) -> Result<(), SessionError> {
+        let plan = self
+            .planner
+            .plan(&self.header.geometry, &spec, self.header.channels)?;
+        self.visibility = Visibility::new(&self.header, &spec)?;
+        self.plan = plan;
+        self.backend.begin(self.plan.layout())?;
+        self.queue.clear();
+        self.stats.splatted_in_view = 0;
+        self.stats.invisible_in_view = 0;
+        self.stats.view_changes += 1;
+        let mut packets = std::mem::take(&mut self.packets);
+        let (mut retained, mut transient) = (0, 0);
+        for (id, held) in packets.iter_mut() {
+            self.enqueue(*id, held);
+            if held.queued == 0 {
+                retained += held.bytes();
+            } else {
+                transient += held.bytes();
+            }
+        }
+        self.packets = packets;
+        self.stats.retained_bytes = retained;
+        self.stats.transient_bytes = transient;
+        Ok(())
+    }
+
+    /// Splats queued coefficients for at most about `budget` (see [`RenderSession::step_with`]).
+    pub fn step(&mut self, budget: Duration) -> Result<StepReport, SessionError> {
+        self.step_with(budget, &SystemClock::default())
+    }
+
+    /// Splats queued coefficients, largest visible energy first, in batches sized to what is
+    /// left of `budget` by the running cost estimate; no batch starts after the deadline.
+    pub fn step_with(
+        &mut self,
+        budget: Duration,
+        clock: &dyn Clock,
+    ) -> Result<StepReport, SessionError> {
+        let start = clock.now();
+        let deadline = start + budget;
+        let mut report = StepReport::default();
+        let mut batch = Vec::new();
+        let mut coefficients = Vec::new();
+        while self.queue.len > 0 {
+            let now = clock.now();
+            if now >= deadline {
+                break;
+            }
+            let left = (deadline - now).as_secs_f64();
+            let n = ((left / self.cost.max(1e-12)) as usize)
+                .clamp(self.options.min_batch.max(1), self.options.max_batch.max(1));
+            self.queue.pop(n, &mut batch);
+            coefficients.clear();
+            coefficients.extend(
+                batch
+                    .iter()
+                    .map(|(p, i)| self.packets[p].coefficients[*i as usize]),
+            );
+            self.records.clear();
+            let mut stats = RenderStats::default();
+            self.plan
+                .splats(&coefficients, &mut self.records, &mut stats)?;
+            self.backend.accumulate(&self.plan.atlas, &self.records)?;
+            for (p, _) in &batch {
+                if let Some(h) = self.packets.get_mut(p) {
+                    h.queued -= 1;
+                    if h.queued == 0 {
+                        let b = h.bytes();
+                        self.stats.transient_bytes -= b;
+                        self.stats.retained_bytes += b;
+                    }
+                }
+            }
+            let end = clock.now();
+            let per = (end.saturating_sub(now)).as_secs_f64() / batch.len() as f64;
+            // Running estimate: quick to follow a slower backend, slower to trust a faster one.
+            self.cost = if per > self.cost {
+                0.5 * self.cost + 0.5 * per
+            } else {
+                0.8 * self.cost + 0.2 * per
+            };
+            self.stats.splatted_in_view += batch.len() as u64;
+            report.coefficients += batch.len();
+            report.records += self.records.len();
+            report.batches += 1;
+            if end > deadline {
+                report.overran = true;
+                break;
+            }
+        }
+        self.evict();
+        report.remaining = self.queue.len;
+        report.elapsed = clock.now().saturating_sub(start);
+        Ok(report)
+    }
+
+    /// Drops retained packets beyond the memory bound, least visible energy per byte first.
+    fn evict(&mut self) {
+        let Some(bound) = self.options.memory_bound else {
+            return;
+        };
+        if self.stats.retained_bytes <= bound {
+            return;
+        }
+        let mut candidates: Vec<(f64, u32)> = self
+            .packets
+            .iter()
+            .filter(|(_, h)| h.queued == 0)
+            .map(|(id, h)| {
+                let nb = self.header.geometry.band_count();
+                let e: f64 = h
+                    .coefficients
+                    .iter()
+                    .filter_map(|c| {
+                        let b = self.header.geometry.band_index(c.band)?;
+                        let v = c.value as f64;
+                        Some(
+                            v * v
+                                * self.energy_scale[c.channel as usize * nb + b]
+                                * self.visibility.weight(c.band, h.tile),
+                        )
+                    })
+                    .sum();
+                (e / h.bytes().max(1) as f64, *id)
+            })
+            .collect();
+        candidates.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+        for (_, id) in candidates {
+            if self.stats.retained_bytes <= bound {
+                break;
+            }
+            if let Some(h) = self.packets.remove(&id) {
+                self.stats.retained_bytes -= h.bytes();
+                self.stats.packets_held -= 1;
+                self.stats.coefficients_held -= h.coefficients.len();
+                self.stats.packets_dropped += 1;
+                if h.wire_bytes > 0 {
+                    self.dropped.push(id);
+                }
+            }
+        }
+    }
+
+    /// The image so far in the volume's display space (RGB for colour volumes; views side by
+    /// side).
+    pub fn image(&mut self) -> Result<Image, SessionError> {
+        let raw = self.backend.read()?;
+        Ok(color::to_rgb(&raw, &self.header, &self.plan.cameras)?)
+    }
+
+    /// The image so far in the coded channels (what the backend accumulated).
+    pub fn raw_image(&mut self) -> Result<Image, SessionError> {
+        Ok(self.backend.read()?)
+    }
+}

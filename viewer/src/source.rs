@@ -1,0 +1,545 @@
+//! Where packets come from: the [`PacketSource`] trait the frame loop polls (never blocking),
+//! a [`FileSource`] that serves a local `.wsp` file in the order the cache would send it for the
+//! current view, and a [`CacheSource`] that pulls packets from a cache over gRPC on its own
+//! thread.
+//!
+//! The cache source runs a tokio runtime on a background thread. It opens a refinement stream
+//! with a small byte credit, hands each packet to the session through a bounded queue and only
+//! then renews the credit by the packet's size, so what is in flight stays within the credit
+//! plus the queue and a view change reorders the rest within a few packets. View changes and
+//! dropped packets (the session's memory bound) go to the cache on the same stream. If the
+//! connection fails it keeps what it has, says so in its status, and reconnects with backoff,
+//! telling the cache what it holds so nothing is sent twice.
+
+use std::collections::HashSet;
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+use tokio::sync::mpsc;
+use wavesplat_client::{
+    CacheClient, ClientError, RefineEvent, RefineRequest, VolumeHeader, VolumeKey,
+};
+use wavesplat_codec::format::packet::read_framing;
+use wavesplat_codec::format::{parse_file, FormatError, Header};
+use wavesplat_codec::layout::Band;
+use wavesplat_codec::view::visibility::{packet_order, PacketFacts, Visibility};
+use wavesplat_codec::view::{ViewError, ViewSpec};
+
+/// A packet as a source delivers it.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct SourcePacket {
+    /// Index of the packet in file order.
+    pub id: u32,
+    /// Its bytes.
+    pub data: Vec<u8>,
+}
+
+/// What a source reports about itself.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct SourceStatus {
+    /// Connected (always true for a file).
+    pub connected: bool,
+    /// Everything the current view ranks has been delivered.
+    pub done: bool,
+    /// Packets delivered.
+    pub packets: u64,
+    /// Bytes delivered.
+    pub bytes: u64,
+    /// Reconnections after a failure.
+    pub reconnects: u64,
+    /// The last problem, while it lasts (e.g. "cache unreachable, retrying: …").
+    pub problem: Option<String>,
+}
+
+/// A source of packets for a render session.
+pub trait PacketSource: Send {
+    /// The next packet that has arrived, if any (never blocks).
+    fn try_next(&mut self) -> Option<SourcePacket>;
+    /// The view changed: rank what is not yet delivered for it (dropped packets become
+    /// eligible again).
+    fn set_view(&mut self, spec: &ViewSpec);
+    /// The session dropped these packets (memory bound): they may be delivered again after a
+    /// later view change.
+    fn dropped(&mut self, ids: Vec<u32>);
+    /// Status for display.
+    fn status(&self) -> SourceStatus;
+}
+
+/// Errors opening a source.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum SourceError {
+    /// The file is not a valid `.wsp` file.
+    #[error(transparent)]
+    Format(#[from] FormatError),
+    /// The view is invalid.
+    #[error(transparent)]
+    View(#[from] ViewError),
+    /// The cache could not be reached or refused.
+    #[error(transparent)]
+    Client(#[from] ClientError),
+    /// The background thread could not be started.
+    #[error("cannot start the network thread: {0}")]
+    Thread(String),
+}
+
+/// Where a packet lies in a file and what ranks it.
+#[derive(Debug, Clone)]
+struct FilePacket {
+    range: std::ops::Range<usize>,
+    tile: usize,
+    summary: Vec<(Band, f64)>,
+}
+
+/// A local `.wsp` file served packet by packet in the cache's order for the current view
+/// (visible energy per byte), optionally only up to a byte budget.
+#[derive(Debug)]
+pub struct FileSource {
+    bytes: Vec<u8>,
+    header: Header,
+    /// Byte range and framing of each packet.
+    packets: Vec<FilePacket>,
+    order: Vec<u32>,
+    cursor: usize,
+    delivered: Vec<bool>,
+    budget: Option<u64>,
+    status: SourceStatus,
+}
+
+impl FileSource {
+    /// Parses `bytes` (the whole file) and ranks its packets for `spec`.
+    pub fn open(bytes: Vec<u8>, spec: &ViewSpec) -> Result<FileSource, SourceError> {
+        let (header, ranges) = {
+            let file = parse_file(&bytes)?;
+            let base = bytes.as_ptr() as usize;
+            let ranges: Vec<std::ops::Range<usize>> = file
+                .packets
+                .iter()
+                .map(|p| {
+                    let start = p.as_ptr() as usize - base;
+                    start..start + p.len()
+                })
+                .collect();
+            (file.header, ranges)
+        };
+        let mut packets = Vec::with_capacity(ranges.len());
+        for r in ranges {
+            let f = read_framing(&header, &bytes[r.clone()])?;
+            packets.push(FilePacket {
+                range: r,
+                tile: f.tile,
+                summary: f.summary,
+            });
+        }
+        let n = packets.len();
+        let mut s = FileSource {
+            bytes,
+            header,
+            packets,
+            order: Vec::new(),
+            cursor: 0,
+            delivered: vec![false; n],
+            budget: None,
+            status: SourceStatus {
+                connected: true,
+                ..Default::default()
+            },
+        };
+        s.rank(spec)?;
+        Ok(s)
+    }
+
+    /// Delivers at most `bytes` bytes of packets (the first packet always).
+    pub fn with_byte_budget(mut self, bytes: Option<u64>) -> FileSource {
+        self.budget = bytes;
+        self
+    }
+
+    /// The file's header.
+    pub fn header(&self) -> &Header {
+        &self.header
+    }
+
+    /// The whole file.
+    pub fn file_bytes(&self) -> &[u8] {
+        &self.bytes
+    }
+
+    /// Number of packets in the file.
+    pub fn packet_count(&self) -> usize {
+        self.packets.len()
+    }
+
+    fn rank(&mut self, spec: &ViewSpec) -> Result<(), SourceError> {
+        let vis = Visibility::new(&self.header, spec)?;
+        let keyed: Vec<PacketFacts> = self
+            .packets
+            .iter()
+            .map(|p| PacketFacts {
+                tile: p.tile,
+                summary: &p.summary,
+                bytes: p.range.len(),
+            })
+            .collect();
+        self.order = packet_order(&vis, &keyed)
+            .into_iter()
+            .filter(|i| !self.delivered[*i as usize])
+            .collect();
+        self.cursor = 0;
+        self.status.done = self.order.is_empty();
+        Ok(())
+    }
+}
+
+impl PacketSource for FileSource {
+    fn try_next(&mut self) -> Option<SourcePacket> {
+        let id = *self.order.get(self.cursor)?;
+        let range = self.packets[id as usize].range.clone();
+        if self.status.packets > 0
+            && self
+                .budget
+                .is_some_and(|b| self.status.bytes + range.len() as u64 > b)
+        {
+            self.status.done = true;
+            return None;
+        }
+        self.cursor += 1;
+        self.delivered[id as usize] = true;
+        self.status.packets += 1;
+        self.status.bytes += range.len() as u64;
+        self.status.done = self.cursor >= self.order.len();
+        Some(SourcePacket {
+            id,
+            data: self.bytes[range].to_vec(),
+        })
+    }
+
+    fn set_view(&mut self, spec: &ViewSpec) {
+        // The spec was validated by the session; a failure here leaves the old order.
+        let _ = self.rank(spec);
+    }
+
+    fn dropped(&mut self, ids: Vec<u32>) {
+        for id in ids {
+            if let Some(d) = self.delivered.get_mut(id as usize) {
+                *d = false;
+            }
+        }
+    }
+
+    fn status(&self) -> SourceStatus {
+        self.status.clone()
+    }
+}
+
+/// Settings of a cache source.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct CacheSourceOptions {
+    /// Byte credit: what the cache may have in flight beyond what the session has taken.
+    pub credit_bytes: u64,
+    /// Packets queued between the network thread and the session.
+    pub queue_packets: usize,
+    /// Stop after this many bytes of packets (None: everything the view ranks).
+    pub byte_budget: Option<u64>,
+}
+
+impl Default for CacheSourceOptions {
+    fn default() -> Self {
+        CacheSourceOptions {
+            credit_bytes: 64 << 10,
+            queue_packets: 8,
+            byte_budget: None,
+        }
+    }
+}
+
+enum Control {
+    View(ViewSpec),
+    Dropped(Vec<u32>),
+}
+
+/// Packets pulled from a cache by a background thread (see the module documentation).
+#[derive(Debug)]
+pub struct CacheSource {
+    rx: mpsc::Receiver<SourcePacket>,
+    ctl: Option<mpsc::UnboundedSender<Control>>,
+    status: Arc<Mutex<SourceStatus>>,
+    thread: Option<std::thread::JoinHandle<()>>,
+}
+
+impl std::fmt::Debug for Control {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Control::View(_) => f.write_str("View"),
+            Control::Dropped(ids) => write!(f, "Dropped({})", ids.len()),
+        }
+    }
+}
+
+impl CacheSource {
+    /// Connects to the cache at `url`, fetches the header of `volume` and starts pulling its
+    /// packets in the order of `spec`.
+    pub fn open(
+        url: &str,
+        volume: VolumeKey,
+        spec: ViewSpec,
+        options: CacheSourceOptions,
+    ) -> Result<(CacheSource, VolumeHeader), SourceError> {
+        spec.validate()?;
+        let runtime = tokio::runtime::Builder::new_current_thread()
+            .enable_all()
+            .build()
+            .map_err(|e| SourceError::Thread(e.to_string()))?;
+        let (client, header) = runtime.block_on(async {
+            let mut client = CacheClient::connect(url).await?;
+            let header = client.header(&volume).await?;
+            Ok::<_, ClientError>((client, header))
+        })?;
+        let (tx, rx) = mpsc::channel(options.queue_packets.max(1));
+        let (ctl, ctl_rx) = mpsc::unbounded_channel();
+        let status = Arc::new(Mutex::new(SourceStatus {
+            connected: true,
+            ..Default::default()
+        }));
+        let task = Pull {
+            url: url.to_string(),
+            volume,
+            view: spec,
+            options,
+            held: HashSet::new(),
+            status: status.clone(),
+        };
+        let thread = std::thread::Builder::new()
+            .name("wavesplat-cache-source".into())
+            .spawn(move || runtime.block_on(task.run(client, tx, ctl_rx)))
+            .map_err(|e| SourceError::Thread(e.to_string()))?;
+        Ok((
+            CacheSource {
+                rx,
+                ctl: Some(ctl),
+                status,
+                thread: Some(thread),
+            },
+            header,
+        ))
+    }
+
+    fn send(&self, c: Control) {
+        if let Some(ctl) = &self.ctl {
+            let _ = ctl.send(c);
+        }
+    }
+}
+
+impl PacketSource for CacheSource {
+    fn try_next(&mut self) -> Option<SourcePacket> {
+        self.rx.try_recv().ok()
+    }
+
+    fn set_view(&mut self, spec: &ViewSpec) {
+        self.send(Control::View(*spec));
+    }
+
+    fn dropped(&mut self, ids: Vec<u32>) {
+        if !ids.is_empty() {
+            self.send(Control::Dropped(ids));
+        }
+    }
+
+    fn status(&self) -> SourceStatus {
+        self.status
+            .lock()
+            .map(|s| s.clone())
+            .unwrap_or_else(|e| e.into_inner().clone())
+    }
+}
+
+impl Drop for CacheSource {
+    fn drop(&mut self) {
+        // Closing the control channel ends the network task.
+        self.ctl = None;
+        self.rx.close();
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
+}
+
+/// The network task's state.
+struct Pull {
+    url: String,
+    volume: VolumeKey,
+    view: ViewSpec,
+    options: CacheSourceOptions,
+    /// Packets delivered to the session and not dropped.
+    held: HashSet<u32>,
+    status: Arc<Mutex<SourceStatus>>,
+}
+
+/// How a stream ended.
+enum Ended {
+    /// The session went away: stop.
+    Closed,
+    /// The connection failed: reconnect.
+    Failed(String),
+}
+
+impl Pull {
+    fn update(&self, f: impl FnOnce(&mut SourceStatus)) {
+        let mut s = self.status.lock().unwrap_or_else(|e| e.into_inner());
+        f(&mut s);
+    }
+
+    async fn run(
+        mut self,
+        client: CacheClient,
+        tx: mpsc::Sender<SourcePacket>,
+        mut ctl: mpsc::UnboundedReceiver<Control>,
+    ) {
+        let mut client = Some(client);
+        let mut backoff = Duration::from_millis(100);
+        loop {
+            let c = match client.take() {
+                Some(c) => c,
+                None => match CacheClient::connect(&self.url).await {
+                    Ok(c) => c,
+                    Err(e) => {
+                        self.update(|s| {
+                            s.connected = false;
+                            s.problem = Some(format!("cache unreachable, retrying: {e}"));
+                        });
+                        if self.wait(backoff, &mut ctl).await {
+                            return;
+                        }
+                        backoff = (backoff * 2).min(Duration::from_secs(2));
+                        continue;
+                    }
+                },
+            };
+            match self.stream(c, &tx, &mut ctl).await {
+                Ended::Closed => return,
+                Ended::Failed(e) => {
+                    tracing::warn!(error = %e, "cache stream failed; reconnecting");
+                    self.update(|s| {
+                        s.connected = false;
+                        s.reconnects += 1;
+                        s.problem = Some(format!("connection lost, reconnecting: {e}"));
+                    });
+                    if self.wait(backoff, &mut ctl).await {
+                        return;
+                    }
+                    backoff = (backoff * 2).min(Duration::from_secs(2));
+                }
+            }
+        }
+    }
+
+    /// Waits `d` while applying control messages; true when the session went away.
+    async fn wait(&mut self, d: Duration, ctl: &mut mpsc::UnboundedReceiver<Control>) -> bool {
+        let sleep = tokio::time::sleep(d);
+        tokio::pin!(sleep);
+        loop {
+            tokio::select! {
+                _ = &mut sleep => return false,
+                c = ctl.recv() => match c {
+                    None => return true,
+                    Some(Control::View(v)) => self.view = v,
+                    Some(Control::Dropped(ids)) => for id in ids { self.held.remove(&id); },
+                },
+            }
+        }
+    }
+
+    fn budget_left(&self) -> bool {
+        let bytes = self.status.lock().map(|s| s.bytes).unwrap_or(0);
+        self.options.byte_budget.is_none_or(|b| bytes < b)
+    }
+
+    async fn stream(
+        &mut self,
+        mut client: CacheClient,
+        tx: &mpsc::Sender<SourcePacket>,
+        ctl: &mut mpsc::UnboundedReceiver<Control>,
+    ) -> Ended {
+        let mut held: Vec<u32> = self.held.iter().copied().collect();
+        held.sort_unstable();
+        let request = RefineRequest::new(self.volume.clone(), self.view)
+            .holding(held, true)
+            .with_credit(self.options.credit_bytes.max(1));
+        let mut stream = match client.refine(request).await {
+            Ok(s) => s,
+            Err(e) => return Ended::Failed(e.to_string()),
+        };
+        self.update(|s| {
+            s.connected = true;
+            s.problem = None;
+        });
+        let mut pending: Option<SourcePacket> = None;
+        loop {
+            let want_more = pending.is_none() && self.budget_left();
+            tokio::select! {
+                biased;
+                c = ctl.recv() => match c {
+                    None => return Ended::Closed,
+                    Some(Control::View(v)) => {
+                        self.view = v;
+                        self.update(|s| s.done = false);
+                        if let Err(e) = stream.control().set_view(&v).await {
+                            return Ended::Failed(e.to_string());
+                        }
+                    }
+                    Some(Control::Dropped(ids)) => {
+                        for id in &ids {
+                            self.held.remove(id);
+                        }
+                        if let Err(e) = stream.control().holdings(Vec::new(), ids).await {
+                            return Ended::Failed(e.to_string());
+                        }
+                    }
+                },
+                permit = tx.reserve(), if pending.is_some() => {
+                    let Ok(permit) = permit else { return Ended::Closed };
+                    let p = pending.take().expect("pending packet");
+                    let len = p.data.len() as u64;
+                    self.held.insert(p.id);
+                    self.update(|s| {
+                        s.packets += 1;
+                        s.bytes += len;
+                    });
+                    permit.send(p);
+                    if !self.budget_left() {
+                        self.update(|s| s.done = true);
+                    }
+                    if let Err(e) = stream.control().grant(len).await {
+                        return Ended::Failed(e.to_string());
+                    }
+                }
+                ev = stream.next(), if want_more => match ev {
+                    Ok(Some(RefineEvent::Packet(p))) => {
+                        if !self.held.contains(&p.id) {
+                            pending = Some(SourcePacket { id: p.id, data: p.data });
+                        }
+                    }
+                    Ok(Some(RefineEvent::Done { .. })) => self.update(|s| s.done = true),
+                    Ok(Some(RefineEvent::Header(_))) => {}
+                    Ok(None) => return Ended::Failed("the cache closed the stream".into()),
+                    Err(e) => return Ended::Failed(e.to_string()),
+                },
+            }
+        }
+    }
+}
+
+impl<T: PacketSource + ?Sized> PacketSource for Box<T> {
+    fn try_next(&mut self) -> Option<SourcePacket> {
+        (**self).try_next()
+    }
+    fn set_view(&mut self, spec: &ViewSpec) {
+        (**self).set_view(spec)
+    }
+    fn dropped(&mut self, ids: Vec<u32>) {
+        (**self).dropped(ids)
+    }
+    fn status(&self) -> SourceStatus {
+        (**self).status()
+    }
+}

@@ -1,0 +1,416 @@
+//! The progressive render session and the frame loop (issues 11 and 12), on files the tests
+//! compress themselves: batches add up to the one-shot image, a view change re-splats what is
+//! held and continues, the memory bound holds (down to the network computer's zero), colour
+//! volumes come back to RGB, and the frame loop never runs more than one batch past a frame's
+//! budget, with a simulated clock (batches are counted, no wall time is asserted).
+
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Arc;
+use std::time::Duration;
+use wavesplat_codec::format::packet::Coefficient;
+use wavesplat_codec::format::{parse_file, Header};
+use wavesplat_codec::view::{View, ViewSpec};
+use wavesplat_compressor::encode::{compress, CompressOptions, Target, TileChoice};
+use wavesplat_compressor::phantom::Phantom;
+use wavesplat_viewer::backend::{
+    AccumulationBackend, BackendError, CpuBackend, FootprintAtlas, Layout, SplatRecord,
+};
+use wavesplat_viewer::session::{Clock, RenderSession, SessionOptions, COEFFICIENT_BYTES};
+use wavesplat_viewer::source::{FileSource, PacketSource, SourcePacket, SourceStatus};
+use wavesplat_viewer::{FrameLoop, Image, RenderOptions, Renderer};
+
+fn wsp(phantom: Phantom, n: usize, tile: usize) -> Vec<u8> {
+    compress(
+        &phantom.generate([n; 3]),
+        &CompressOptions {
+            target: Target::Fraction(0.08),
+            tile: TileChoice::Size(tile),
+            layers: Some(3),
+            refine: None,
+            ..Default::default()
+        },
+        &|_, _| {},
+    )
+    .expect("compress")
+    .bytes
+}
+
+fn all(bytes: &[u8]) -> (Header, Vec<Coefficient>) {
+    let file = parse_file(bytes).unwrap();
+    let c = file
+        .packets
+        .iter()
+        .flat_map(|p| {
+            wavesplat_codec::format::packet::decode_packet(&file.header, p)
+                .unwrap()
+                .coefficients
+        })
+        .collect();
+    (file.header, c)
+}
+
+/// The one-shot image of every coefficient, in display space.
+fn full_image(header: &Header, coeffs: &[Coefficient], spec: &ViewSpec) -> Image {
+    let mut r = Renderer::new(RenderOptions {
+        channels: header.channels,
+        ..Default::default()
+    });
+    let (img, _) = r.render_spec(coeffs, &header.geometry, spec).unwrap();
+    wavesplat_viewer::color::to_rgb(&img, header, &spec.cameras(header.geometry.dims).unwrap())
+        .unwrap()
+}
+
+/// Largest |a − b| over the largest |b|.
+fn max_rel(a: &Image, b: &Image) -> f64 {
+    assert_eq!(
+        (a.width, a.height, a.channels),
+        (b.width, b.height, b.channels)
+    );
+    let m = b.data.iter().fold(0.0f64, |m, x| m.max(x.abs() as f64));
+    a.data
+        .iter()
+        .zip(&b.data)
+        .fold(0.0f64, |e, (x, y)| e.max((*x as f64 - *y as f64).abs()))
+        / m.max(1e-300)
+}
+
+fn spec(alpha: f64, beta: f64) -> ViewSpec {
+    ViewSpec::single(View::new(alpha, beta, 96, 80))
+}
+
+/// Runs frames until the source is done and nothing is pending.
+fn run_to_end<B: AccumulationBackend, S: PacketSource>(f: &mut FrameLoop<B, S>) -> usize {
+    let mut frames = 0;
+    loop {
+        let r = f.frame(Duration::from_millis(50)).unwrap();
+        frames += 1;
+        assert!(r.batches_past_deadline <= 1);
+        if r.idle() && f.source.status().done {
+            return frames;
+        }
+        assert!(frames < 100_000, "no progress");
+    }
+}
+
+#[test]
+fn streaming_a_file_converges_to_the_one_shot_image() {
+    for (phantom, n) in [(Phantom::SheppLogan, 40), (Phantom::RgbHead, 32)] {
+        let bytes = wsp(phantom, n, 16);
+        let (header, coeffs) = all(&bytes);
+        for s in [
+            spec(0.66, 0.91),
+            ViewSpec {
+                view: View::new(0.3, -0.2, 64, 48),
+                multiview: true,
+            },
+        ] {
+            let source = FileSource::open(bytes.clone(), &s).unwrap();
+            let session =
+                RenderSession::new(header.clone(), s, CpuBackend::new(), Default::default())
+                    .unwrap();
+            let mut f = FrameLoop::new(session, source);
+            run_to_end(&mut f);
+            let got = f.session.image().unwrap();
+            let want = full_image(&header, &coeffs, &s);
+            let e = max_rel(&got, &want);
+            assert!(e <= 1e-5, "{phantom:?} multiview={}: {e:e}", s.multiview);
+            assert_eq!(
+                f.session.stats().coefficients_received as usize,
+                coeffs.len()
+            );
+        }
+    }
+}
+
+#[test]
+fn splatting_in_batches_equals_one_batch() {
+    let bytes = wsp(Phantom::SheppLogan, 40, 16);
+    let (header, coeffs) = all(&bytes);
+    let s = spec(0.4, 0.3);
+    let mut images = Vec::new();
+    let half = coeffs.len() / 2 + 1;
+    for (min_batch, max_batch) in [(1 << 20, 1 << 20), (half, half), (100, 100), (7, 7)] {
+        let options = SessionOptions {
+            min_batch,
+            max_batch,
+            ..Default::default()
+        };
+        let mut session =
+            RenderSession::new(header.clone(), s, CpuBackend::new(), options).unwrap();
+        session.add_coefficients(coeffs.clone()).unwrap();
+        let mut batches = 0;
+        while session.pending() > 0 {
+            batches += session.step(Duration::from_secs(60)).unwrap().batches;
+        }
+        assert!(batches >= coeffs.len() / max_batch, "{batches} batches");
+        images.push(session.image().unwrap());
+    }
+    // Equal up to f32 rounding: the sums of signed splats are only regrouped (measured:
+    // ~3e-6 of the peak for thousands of 7-coefficient batches).
+    for img in &images[1..] {
+        let e = max_rel(img, &images[0]);
+        assert!(e <= 1e-5, "batches change the image by {e:e}");
+    }
+    assert!(max_rel(&images[0], &full_image(&header, &coeffs, &s)) <= 1e-5);
+}
+
+#[test]
+fn a_view_change_mid_stream_resplats_what_is_held_and_continues() {
+    let bytes = wsp(Phantom::SheppLogan, 48, 16);
+    let (header, coeffs) = all(&bytes);
+    let (a, b) = (spec(0.0, 0.0), spec(1.1, 0.5));
+    let source = FileSource::open(bytes.clone(), &a).unwrap();
+    let total = source.packet_count();
+    let session =
+        RenderSession::new(header.clone(), a, CpuBackend::new(), Default::default()).unwrap();
+    let mut f = FrameLoop::new(session, source);
+    // Take a third of the packets and splat them.
+    let mut taken = 0;
+    while taken < total / 3 {
+        let p = f.source.try_next().unwrap();
+        f.session.add_packet(p.id, &p.data).unwrap();
+        taken += 1;
+    }
+    while f.session.pending() > 0 {
+        f.session.step(Duration::from_secs(60)).unwrap();
+    }
+    let held = f.session.stats().coefficients_held;
+    assert!(held > 0 && held < coeffs.len());
+    f.set_view(b).unwrap();
+    // Everything held is queued again (minus what the new view cannot see), nothing is lost.
+    let st = f.session.stats();
+    assert_eq!(st.coefficients_held, held);
+    assert_eq!(
+        f.session.pending() + st.invisible_in_view as usize,
+        held,
+        "held coefficients not re-queued"
+    );
+    // The first step of the new view draws the most visible ones first: a coarse image that
+    // already resembles the final one.
+    f.session.step(Duration::from_secs(60)).map(|_| ()).unwrap();
+    run_to_end(&mut f);
+    let got = f.session.image().unwrap();
+    let want = full_image(&header, &coeffs, &b);
+    let e = max_rel(&got, &want);
+    assert!(e <= 1e-5, "after the view change: {e:e}");
+    // Every packet once: the file source never delivers a packet twice unless it was dropped.
+    assert_eq!(f.source.status().packets as usize, total);
+}
+
+#[test]
+fn the_memory_bound_holds_and_the_image_still_converges() {
+    let bytes = wsp(Phantom::SheppLogan, 64, 16);
+    let (header, coeffs) = all(&bytes);
+    let total_bytes = coeffs.len() * COEFFICIENT_BYTES;
+    let (a, b) = (spec(0.66, 0.91), spec(2.0, -0.4));
+    let file = parse_file(&bytes).unwrap();
+    let largest_packet = file
+        .packets
+        .iter()
+        .map(|p| {
+            wavesplat_codec::format::packet::decode_packet(&file.header, p)
+                .unwrap()
+                .coefficients
+                .len()
+        })
+        .max()
+        .unwrap()
+        * COEFFICIENT_BYTES;
+    for bound in [total_bytes / 4, 0] {
+        let options = SessionOptions {
+            memory_bound: Some(bound),
+            transient_bytes: 64 << 10,
+            ..Default::default()
+        };
+        let source = FileSource::open(bytes.clone(), &a).unwrap();
+        let session = RenderSession::new(header.clone(), a, CpuBackend::new(), options).unwrap();
+        let mut f = FrameLoop::new(session, source);
+        let mut peak_retained = 0;
+        loop {
+            let r = f.frame(Duration::from_millis(20)).unwrap();
+            let st = f.session.stats();
+            peak_retained = peak_retained.max(st.retained_bytes);
+            assert!(
+                st.retained_bytes <= bound,
+                "retained {} > bound {bound}",
+                st.retained_bytes
+            );
+            assert!(
+                st.transient_bytes <= (64 << 10) + largest_packet,
+                "transient {}",
+                st.transient_bytes
+            );
+            if r.idle() && f.source.status().done {
+                break;
+            }
+        }
+        let st = f.session.stats();
+        assert!(st.packets_dropped > 0, "bound {bound}: nothing dropped");
+        assert!(st.coefficients_held * COEFFICIENT_BYTES <= bound);
+        // Dropped coefficients stay in the image: it is the image of everything received.
+        let e = max_rel(
+            &f.session.image().unwrap(),
+            &full_image(&header, &coeffs, &a),
+        );
+        assert!(e <= 1e-5, "bound {bound}, view a: {e:e}");
+        // After a view change, what was dropped is asked for again and the new image converges
+        // too (the network computer receives everything again).
+        f.set_view(b).unwrap();
+        run_to_end(&mut f);
+        let e = max_rel(
+            &f.session.image().unwrap(),
+            &full_image(&header, &coeffs, &b),
+        );
+        assert!(e <= 1e-5, "bound {bound}, view b: {e:e}");
+        assert!(f.session.stats().retained_bytes <= bound);
+        if bound == 0 {
+            assert_eq!(f.session.stats().coefficients_held, 0);
+            assert_eq!(peak_retained, 0);
+        }
+    }
+}
+
+/// A clock advanced by the simulated backend, not by wall time.
+#[derive(Debug, Clone, Default)]
+struct SimClock(Arc<AtomicU64>);
+
+impl SimClock {
+    fn advance(&self, d: Duration) {
+        self.0.fetch_add(d.as_nanos() as u64, Ordering::SeqCst);
+    }
+}
+
+impl Clock for SimClock {
+    fn now(&self) -> Duration {
+        Duration::from_nanos(self.0.load(Ordering::SeqCst))
+    }
+}
+
+/// The CPU backend, charging simulated time per record: `cost[i]` nanoseconds for the i-th
+/// call's records (the last value repeats), to make the backend's speed change mid-run.
+struct SimBackend {
+    inner: CpuBackend,
+    clock: SimClock,
+    cost_ns: Vec<u64>,
+    calls: usize,
+}
+
+impl AccumulationBackend for SimBackend {
+    fn name(&self) -> String {
+        "simulated".into()
+    }
+    fn begin(&mut self, layout: Layout) -> Result<(), BackendError> {
+        self.inner.begin(layout)
+    }
+    fn accumulate(
+        &mut self,
+        atlas: &FootprintAtlas,
+        records: &[SplatRecord],
+    ) -> Result<u64, BackendError> {
+        let per = self.cost_ns[self.calls.min(self.cost_ns.len() - 1)];
+        self.calls += 1;
+        self.clock
+            .advance(Duration::from_nanos(per * records.len() as u64 + 20_000));
+        self.inner.accumulate(atlas, records)
+    }
+    fn read(&mut self) -> Result<Image, BackendError> {
+        self.inner.read()
+    }
+}
+
+/// Delivers `per_frame` packets of a file per call of `tick` (a slow network), or all at once.
+struct TrickleSource {
+    inner: FileSource,
+    per_frame: usize,
+    allowance: usize,
+}
+
+impl PacketSource for TrickleSource {
+    fn try_next(&mut self) -> Option<SourcePacket> {
+        if self.allowance == 0 {
+            return None;
+        }
+        let p = self.inner.try_next()?;
+        self.allowance -= 1;
+        Some(p)
+    }
+    fn set_view(&mut self, spec: &ViewSpec) {
+        self.inner.set_view(spec)
+    }
+    fn dropped(&mut self, ids: Vec<u32>) {
+        self.inner.dropped(ids)
+    }
+    fn status(&self) -> SourceStatus {
+        self.inner.status()
+    }
+}
+
+#[test]
+fn frames_keep_refining_and_never_run_more_than_one_batch_past_the_budget() {
+    let bytes = wsp(Phantom::SheppLogan, 64, 16);
+    let (header, coeffs) = all(&bytes);
+    let s = spec(0.66, 0.91);
+    let budget = Duration::from_micros(16_600);
+    // Slow network (2 packets a frame), fast network; a backend that gets 20× slower midway.
+    for (per_frame, cost_ns) in [
+        (2usize, vec![2_000u64]),
+        (usize::MAX, vec![1_000, 1_000, 1_000, 20_000]),
+    ] {
+        let clock = SimClock::default();
+        let backend = SimBackend {
+            inner: CpuBackend::new(),
+            clock: clock.clone(),
+            cost_ns,
+            calls: 0,
+        };
+        let options = SessionOptions {
+            min_batch: 64,
+            ..Default::default()
+        };
+        let session = RenderSession::new(header.clone(), s, backend, options).unwrap();
+        let source = TrickleSource {
+            inner: FileSource::open(bytes.clone(), &s).unwrap(),
+            per_frame,
+            allowance: 0,
+        };
+        let mut f = FrameLoop::new(session, source);
+        let mut last_splatted = 0;
+        let mut frames = 0;
+        loop {
+            f.source.allowance = f.source.per_frame;
+            let start = clock.now();
+            let r = f.frame_with(budget, &clock).unwrap();
+            frames += 1;
+            // Batches are counted, not seconds: none starts late, at most one ends late.
+            assert!(r.batches_past_deadline <= 1, "frame {frames}: {r:?}");
+            if r.batches_past_deadline == 0 {
+                assert!(
+                    clock.now() - start <= budget + Duration::from_micros(1),
+                    "{r:?}"
+                );
+            }
+            let splatted = f.session.stats().splatted_in_view;
+            assert!(splatted >= last_splatted);
+            if r.pending > 0 || r.packets > 0 {
+                assert!(
+                    splatted > last_splatted || r.packets > 0,
+                    "frame {frames} stalled"
+                );
+            }
+            last_splatted = splatted;
+            if r.idle() && f.source.status().done {
+                break;
+            }
+            assert!(frames < 10_000);
+        }
+        let e = max_rel(
+            &f.session.image().unwrap(),
+            &full_image(&header, &coeffs, &s),
+        );
+        assert!(e <= 1e-5, "{e:e}");
+        assert!(
+            frames > 3,
+            "everything in {frames} frames: the budget did not bind"
+        );
+    }
+}
