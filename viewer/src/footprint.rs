@@ -58,6 +58,8 @@ pub struct FootprintParams {
     pub max_fft: usize,
     /// Depth cue: extinction k and unit light direction.
     pub cue: Option<(f64, [f64; 3])>,
+    /// Also build the tables' gradients (for [`Footprint::grad_x`] / [`Footprint::grad_y`]).
+    pub gradient: bool,
 }
 
 /// A footprint on the fine grid: sample (ix, iy) is the pixel-averaged projection at offset
@@ -101,6 +103,31 @@ impl FineTable {
         }
     }
 
+    /// The derivative along `axis` (0: x, 1: y) per pixel, by central differences on the fine
+    /// grid (spacing 1/S pixel; zero outside the table).
+    pub fn derivative(&self, axis: usize) -> FineTable {
+        let half_s = 0.5 * self.s as f64;
+        let mut data = Vec::with_capacity(self.data.len());
+        for iy in 0..self.ny as i64 {
+            for ix in 0..self.nx as i64 {
+                let (d0, d1) = if axis == 0 {
+                    (self.get(ix - 1, iy), self.get(ix + 1, iy))
+                } else {
+                    (self.get(ix, iy - 1), self.get(ix, iy + 1))
+                };
+                data.push((d1 - d0) * half_s);
+            }
+        }
+        FineTable {
+            s: self.s,
+            nx: self.nx,
+            ny: self.ny,
+            cx: self.cx,
+            cy: self.cy,
+            data,
+        }
+    }
+
     /// Value at a pixel offset (X, Y) from the centre (nearest sample).
     pub fn at(&self, x: f64, y: f64) -> f64 {
         let ix = (x * self.s as f64).round() as i64 + self.cx as i64;
@@ -131,32 +158,71 @@ pub struct Footprint {
     pub cy: usize,
     /// Phase (a, b) at index b·S + a: fine samples (k·S + a, l·S + b).
     pub phases: Vec<Phase>,
+    /// ∂/∂x of the footprint per pixel, split into phases like `phases` (empty unless the
+    /// footprint was built with gradients): a splat placed δ pixels from its exact position
+    /// adds δ times this (first-order correction of the subpixel residual).
+    pub grad_x: Vec<Phase>,
+    /// ∂/∂y likewise.
+    pub grad_y: Vec<Phase>,
+}
+
+/// Splits a fine table into its S × S phases.
+fn split_phases(t: &FineTable) -> Vec<Phase> {
+    let s = t.s;
+    let mut phases = Vec::with_capacity(s * s);
+    for b in 0..s {
+        for a in 0..s {
+            let cols = (t.nx + s - 1 - a) / s;
+            let rows = (t.ny + s - 1 - b) / s;
+            let mut data = Vec::with_capacity(cols * rows);
+            for l in 0..rows {
+                for k in 0..cols {
+                    data.push(t.data[(l * s + b) * t.nx + k * s + a] as f32);
+                }
+            }
+            phases.push(Phase { cols, rows, data });
+        }
+    }
+    phases
 }
 
 impl Footprint {
-    /// Splits a fine table into its phases.
+    /// Splits a fine table into its phases (no gradients).
     pub fn from_fine(t: &FineTable) -> Footprint {
-        let s = t.s;
-        let mut phases = Vec::with_capacity(s * s);
-        for b in 0..s {
-            for a in 0..s {
-                let cols = (t.nx + s - 1 - a) / s;
-                let rows = (t.ny + s - 1 - b) / s;
-                let mut data = Vec::with_capacity(cols * rows);
-                for l in 0..rows {
-                    for k in 0..cols {
-                        data.push(t.data[(l * s + b) * t.nx + k * s + a] as f32);
-                    }
-                }
-                phases.push(Phase { cols, rows, data });
-            }
-        }
         Footprint {
-            s,
+            s: t.s,
             cx: t.cx,
             cy: t.cy,
-            phases,
+            phases: split_phases(t),
+            grad_x: Vec::new(),
+            grad_y: Vec::new(),
         }
+    }
+
+    /// Splits a fine table and its gradient into phases.
+    pub fn with_gradient(t: &FineTable) -> Footprint {
+        Footprint {
+            grad_x: split_phases(&t.derivative(0)),
+            grad_y: split_phases(&t.derivative(1)),
+            ..Footprint::from_fine(t)
+        }
+    }
+
+    /// From a fine table, with gradients when `gradient`.
+    pub fn build(t: &FineTable, gradient: bool) -> Footprint {
+        if gradient {
+            Footprint::with_gradient(t)
+        } else {
+            Footprint::from_fine(t)
+        }
+    }
+
+    /// The subpixel residual of a placement: the exact centre minus where the chosen phase puts
+    /// it, in pixels (|residual| ≤ 1/(2S)).
+    #[inline]
+    pub fn residual(s: usize, centre: f64) -> f64 {
+        let d = (s as f64 * (centre - 0.5)).round();
+        (d / s as f64 + 0.5) - centre
     }
 
     /// Placement along one axis of a splat centred at continuous screen coordinate `centre`:
@@ -502,17 +568,17 @@ impl FootprintSet {
             for level in (if m == 0 { 0 } else { 1 })..=m {
                 let kinds = if level == m { &all } else { &wavelets };
                 for (t, kind) in compute_fine(p, level, kinds).iter().zip(kinds) {
-                    tables[level * 8 + *kind as usize] = Some(Footprint::from_fine(t));
+                    tables[level * 8 + *kind as usize] = Some(Footprint::build(t, p.gradient));
                 }
             }
         } else {
             let top = compute_fine(p, m, &all);
             for (t, kind) in top.iter().zip(&all) {
-                tables[m * 8 + *kind as usize] = Some(Footprint::from_fine(t));
+                tables[m * 8 + *kind as usize] = Some(Footprint::build(t, p.gradient));
                 if *kind != 0 {
                     for level in 1..m {
                         let f = mipmap(p, t, m, level, *kind);
-                        tables[level * 8 + *kind as usize] = Some(Footprint::from_fine(&f));
+                        tables[level * 8 + *kind as usize] = Some(Footprint::build(&f, p.gradient));
                     }
                 }
             }
@@ -536,7 +602,7 @@ impl FootprintSet {
         let built: Vec<([AxisFactor; 3], Footprint)> = missing
             .iter()
             .zip(compute_factor_tables(&self.params, &missing))
-            .map(|(k, t)| (*k, Footprint::from_fine(&t)))
+            .map(|(k, t)| (*k, Footprint::build(&t, self.params.gradient)))
             .collect();
         let mut map = self.factor_tables.lock().unwrap_or_else(|e| e.into_inner());
         for (k, f) in built {

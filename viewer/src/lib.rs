@@ -41,7 +41,7 @@ pub mod splat;
 pub use backend::{AccumulationBackend, BackendError, CpuBackend};
 pub use frame::{FrameLoop, FrameReport};
 pub use image::{Image, ImageError};
-pub use plan::{PlanOptions, Planner};
+pub use plan::{Placement, PlanOptions, Planner};
 pub use reference::{render_reference, render_reference_camera, PaddedVolume, ReferenceOptions};
 pub use session::{RenderSession, SessionError, SessionOptions};
 pub use source::{CacheSource, FileSource, PacketSource, SourceStatus};

@@ -21,9 +21,24 @@ use wavesplat_codec::format::packet::Coefficient;
 use wavesplat_codec::layout::Geometry;
 use wavesplat_codec::view::{multiview_map, resolve_cue, Camera, ResolvedCue, ViewSpec};
 
+/// How a footprint is placed at a splat's exact screen position.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Placement {
+    /// The nearest of the S × S subpixel phases (one record per splat; position error up to
+    /// 1/(2S) pixel, which adds up coherently where many centres share a phase, e.g. along the
+    /// rays of an axis-aligned view).
+    Nearest,
+    /// The nearest phase plus the first-order correction of the residual: two more records
+    /// reading the footprint's gradient tables, weighted by the residual (error second order
+    /// in 1/S; three records per splat and three times the table memory).
+    Gradient,
+}
+
 /// Planning settings.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct PlanOptions {
+    /// How footprints are placed.
+    pub placement: Placement,
     /// Subpixel phases per axis (even; position error ≤ 1/(2S) pixel).
     pub subpixel: usize,
     /// Largest FFT side for a footprint (S is halved until the footprint fits).
@@ -35,6 +50,7 @@ pub struct PlanOptions {
 impl Default for PlanOptions {
     fn default() -> Self {
         PlanOptions {
+            placement: Placement::Gradient,
             subpixel: 8,
             max_fft: 768,
             cache_size: 8,
@@ -64,7 +80,10 @@ fn key_of(p: &FootprintParams) -> CacheKey {
     let (k, l) = p.cue.unwrap_or((-1.0, [0.0; 3]));
     CacheKey {
         params: [
-            p.family.code() as u64 | ((p.levels as u64) << 8) | ((p.subpixel as u64) << 16),
+            p.family.code() as u64
+                | ((p.levels as u64) << 8)
+                | ((p.subpixel as u64) << 16)
+                | ((p.gradient as u64) << 48),
             p.ex[0].to_bits(),
             p.ex[1].to_bits(),
             p.ex[2].to_bits(),
@@ -140,6 +159,7 @@ impl Planner {
             subpixel: self.options.subpixel,
             max_fft: self.options.max_fft,
             cue: cue.map(|c| (c.k, c.l)),
+            gradient: self.options.placement == Placement::Gradient,
         };
         let set = self.footprints(&params);
         let mut atlas = FootprintAtlas::new();
@@ -186,15 +206,55 @@ pub struct ViewPlan {
     cued_tables: HashMap<[AxisFactor; 3], TableRef>,
 }
 
-/// Places a footprint centred at screen (X, Y): the record's phase and first pixel.
-fn place(t: &TableRef, scr: [f64; 2]) -> (u32, i32, i32) {
+/// Places a footprint centred at screen (X, Y) with weight `value`: the record at the nearest
+/// phase, and with gradient tables the two records correcting the residual (skipped when the
+/// residual is exactly zero). Records wholly off the screen are not produced; returns whether
+/// any part is on screen.
+fn place(
+    t: &TableRef,
+    atlas: &FootprintAtlas,
+    scr: [f64; 2],
+    value: f32,
+    channel: u16,
+    view: u16,
+    size: (usize, usize),
+    out: &mut Vec<SplatRecord>,
+) -> bool {
     let (a, x0) = Footprint::place(t.s, t.cx, scr[0]);
     let (b, y0) = Footprint::place(t.s, t.cy, scr[1]);
-    (
-        t.first_phase + (b * t.s + a) as u32,
-        x0.clamp(i32::MIN as i64, i32::MAX as i64) as i32,
-        y0.clamp(i32::MIN as i64, i32::MAX as i64) as i32,
-    )
+    let idx = (b * t.s + a) as u32;
+    let x0 = x0.clamp(i32::MIN as i64, i32::MAX as i64) as i32;
+    let y0 = y0.clamp(i32::MIN as i64, i32::MAX as i64) as i32;
+    let rect = &atlas.phases[(t.first_phase + idx) as usize];
+    let (w, h) = (size.0 as i64, size.1 as i64);
+    if (x0 as i64) >= w
+        || (y0 as i64) >= h
+        || x0 as i64 + rect.cols as i64 <= 0
+        || y0 as i64 + rect.rows as i64 <= 0
+    {
+        return false;
+    }
+    let record = |phase: u32, value: f32| SplatRecord {
+        x0,
+        y0,
+        phase,
+        value,
+        channel,
+        view,
+    };
+    out.push(record(t.first_phase + idx, value));
+    if let Some(g) = t.grad_first {
+        let ss = (t.s * t.s) as u32;
+        let dx = Footprint::residual(t.s, scr[0]);
+        let dy = Footprint::residual(t.s, scr[1]);
+        if dx != 0.0 {
+            out.push(record(g + idx, (value as f64 * dx) as f32));
+        }
+        if dy != 0.0 {
+            out.push(record(g + ss + idx, (value as f64 * dy) as f32));
+        }
+    }
+    true
 }
 
 impl ViewPlan {
@@ -206,16 +266,6 @@ impl ViewPlan {
             channels: self.channels,
             views: self.cameras.len(),
         }
-    }
-
-    /// Whether a record covers part of the screen.
-    fn on_screen(&self, r: &SplatRecord) -> bool {
-        let rect = &self.atlas.phases[r.phase as usize];
-        let (w, h) = (self.spec.view.width as i64, self.spec.view.height as i64);
-        (r.x0 as i64) < w
-            && (r.y0 as i64) < h
-            && r.x0 as i64 + rect.cols as i64 > 0
-            && r.y0 as i64 + rect.rows as i64 > 0
     }
 
     /// Appends the records of `coefficients` to `out` (each validated: an invalid coefficient
@@ -234,35 +284,36 @@ impl ViewPlan {
             return self.cued_splats(coefficients, &cue, out, stats);
         }
         let odd = self.geometry.family.psi_is_odd();
+        let size = (self.spec.view.width, self.spec.view.height);
         for (k, camera) in self.cameras.iter().enumerate() {
-            let planned: Vec<Option<SplatRecord>> = coefficients
-                .par_iter()
-                .map(|c| {
-                    let (kind, sign) = multiview_map(k, c.band.kind, odd);
-                    let t = self.tables[c.band.level as usize * 8 + kind as usize]?;
-                    let pos = [c.pos[0] as usize, c.pos[1] as usize, c.pos[2] as usize];
-                    let scr = camera.to_screen(self.geometry.basis_center(c.band, pos));
-                    let (phase, x0, y0) = place(&t, scr);
-                    let r = SplatRecord {
-                        x0,
-                        y0,
-                        phase,
-                        value: c.value * sign,
-                        channel: c.channel as u16,
-                        view: k as u16,
-                    };
-                    self.on_screen(&r).then_some(r)
+            let planned: Vec<(Vec<SplatRecord>, usize)> = coefficients
+                .par_chunks(1024)
+                .map(|chunk| {
+                    let mut out = Vec::with_capacity(chunk.len() * 3);
+                    let mut placed = 0usize;
+                    for c in chunk {
+                        let (kind, sign) = multiview_map(k, c.band.kind, odd);
+                        let Some(t) = self.tables[c.band.level as usize * 8 + kind as usize] else {
+                            continue;
+                        };
+                        let pos = [c.pos[0] as usize, c.pos[1] as usize, c.pos[2] as usize];
+                        let scr = camera.to_screen(self.geometry.basis_center(c.band, pos));
+                        let value = c.value * sign;
+                        let (channel, view) = (c.channel as u16, k as u16);
+                        if place(&t, &self.atlas, scr, value, channel, view, size, &mut out) {
+                            placed += 1;
+                        }
+                    }
+                    (out, placed)
                 })
                 .collect();
-            for r in planned {
-                match r {
-                    Some(r) => {
-                        out.push(r);
-                        stats.splatted += 1;
-                    }
-                    None => stats.skipped += 1,
-                }
+            let mut placed_here = 0;
+            for (records, placed) in planned {
+                out.extend(records);
+                placed_here += placed;
             }
+            stats.splatted += placed_here;
+            stats.skipped += coefficients.len() - placed_here;
         }
         Ok(())
     }
@@ -293,19 +344,12 @@ impl ViewPlan {
             }
         }
         let camera = &self.cameras[0];
+        let size = (self.spec.view.width, self.spec.view.height);
         for s in &cued {
             let t = self.cued_tables[&s.factors];
-            let (phase, x0, y0) = place(&t, camera.to_screen(s.centre));
-            let r = SplatRecord {
-                x0,
-                y0,
-                phase,
-                value: s.value as f32,
-                channel: s.channel as u16,
-                view: 0,
-            };
-            if self.on_screen(&r) {
-                out.push(r);
+            let scr = camera.to_screen(s.centre);
+            let value = s.value as f32;
+            if place(&t, &self.atlas, scr, value, s.channel as u16, 0, size, out) {
                 stats.splatted += 1;
             } else {
                 stats.skipped += 1;

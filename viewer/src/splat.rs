@@ -10,7 +10,7 @@
 
 use crate::backend::{AccumulationBackend, CpuBackend};
 use crate::image::Image;
-use crate::plan::{PlanOptions, Planner};
+use crate::plan::{Placement, PlanOptions, Planner};
 use crate::RenderError;
 use wavesplat_codec::format::packet::Coefficient;
 use wavesplat_codec::layout::Geometry;
@@ -23,6 +23,8 @@ pub use crate::plan::RenderStats;
 pub struct RenderOptions {
     /// Channels of the output (coefficients must have `channel < channels`).
     pub channels: usize,
+    /// How footprints are placed at exact positions.
+    pub placement: Placement,
     /// Subpixel phases per axis (even; position error ≤ 1/(2S) pixel).
     pub subpixel: usize,
     /// Largest FFT side for a footprint (S is halved until the footprint fits).
@@ -36,6 +38,7 @@ impl Default for RenderOptions {
         let p = PlanOptions::default();
         RenderOptions {
             channels: 1,
+            placement: p.placement,
             subpixel: p.subpixel,
             max_fft: p.max_fft,
             cache_size: p.cache_size,
@@ -47,6 +50,7 @@ impl RenderOptions {
     /// The planning part of the options.
     pub fn plan(&self) -> PlanOptions {
         PlanOptions {
+            placement: self.placement,
             subpixel: self.subpixel,
             max_fft: self.max_fft,
             cache_size: self.cache_size,

@@ -45,6 +45,7 @@ fn params(family: Family, levels: usize, alpha: f64, beta: f64, zoom: f64) -> Fo
         subpixel: 8,
         max_fft: 768,
         cue: None,
+        gradient: false,
     }
 }
 

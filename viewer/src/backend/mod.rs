@@ -117,6 +117,8 @@ pub struct TableRef {
     pub cx: usize,
     /// Centre row of the fine table.
     pub cy: usize,
+    /// First phase of the x gradient (the y gradient follows S² phases later), if built.
+    pub grad_first: Option<u32>,
 }
 
 impl FootprintAtlas {
@@ -130,22 +132,31 @@ impl FootprintAtlas {
         }
     }
 
-    /// Appends a footprint's phases; returns where they are.
+    /// Appends a footprint's phases (and its gradient's); returns where they are.
     pub fn push(&mut self, f: &Footprint) -> TableRef {
         let first_phase = self.phases.len() as u32;
-        for p in &f.phases {
-            self.phases.push(PhaseRect {
-                offset: self.data.len() as u32,
-                cols: p.cols as u32,
-                rows: p.rows as u32,
-            });
-            self.data.extend_from_slice(&p.data);
+        let has_gradient = !f.grad_x.is_empty() && !f.grad_y.is_empty();
+        let sets: &[&[crate::footprint::Phase]] = if has_gradient {
+            &[&f.phases, &f.grad_x, &f.grad_y]
+        } else {
+            &[&f.phases]
+        };
+        for set in sets {
+            for p in set.iter() {
+                self.phases.push(PhaseRect {
+                    offset: self.data.len() as u32,
+                    cols: p.cols as u32,
+                    rows: p.rows as u32,
+                });
+                self.data.extend_from_slice(&p.data);
+            }
         }
         TableRef {
             first_phase,
             s: f.s,
             cx: f.cx,
             cy: f.cy,
+            grad_first: has_gradient.then_some(first_phase + f.phases.len() as u32),
         }
     }
 
