@@ -619,29 +619,31 @@ impl FootprintSet {
     }
 }
 
-/// One axis factor of a depth-cued splat, whose cue weight is cut at the data's light-facing
-/// faces (see [`wavesplat_codec::view::ResolvedCue`]): a level-m φ or ψ cued from its support end
-/// nearest the light (its whole support behind the face), or a level-0 φ whose support
-/// straddles the face.
+/// One axis factor of a splat piece (see [`crate::pieces`]): a whole level-m φ or ψ, or a
+/// level-0 φ cut to part of its support (at a face of the data's box). With depth cueing each
+/// factor is cued from the end of its (kept) support nearest the light, so no exponent is
+/// positive.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
 pub enum AxisFactor {
-    /// Level-`level` φ (`wavelet` false) or ψ, cued from its support end nearest the light.
+    /// Level-`level` φ (`wavelet` false) or ψ, whole.
     Basis {
         /// Level m.
         level: u8,
         /// ψ rather than φ.
         wavelet: bool,
     },
-    /// Level-0 φ whose centre lies `offset` voxels from the face (centre minus face, volume
-    /// coordinates).
-    Straddle {
-        /// Centre minus face, in voxels.
-        offset: i8,
+    /// Level-0 φ kept on [a, b] (voxels relative to its centre; −j/2 ≤ a < b ≤ j/2, not the
+    /// whole support), zero elsewhere.
+    Cut {
+        /// Start of the kept part.
+        a: i8,
+        /// End of the kept part.
+        b: i8,
     },
 }
 
 impl AxisFactor {
-    /// Half the support length in voxels.
+    /// Half the support length in voxels (of the whole φ for a cut).
     pub fn half_support(self, family: Family) -> f64 {
         match self {
             AxisFactor::Basis { level, wavelet, .. } => {
@@ -652,7 +654,18 @@ impl AxisFactor {
                         family.phi_support()
                     }
             }
-            AxisFactor::Straddle { .. } => 0.5 * family.phi_support(),
+            AxisFactor::Cut { .. } => 0.5 * family.phi_support(),
+        }
+    }
+
+    /// The factor mirrored about its centre (what a multiview reflection makes of it), with the
+    /// sign a mirrored odd ψ takes.
+    pub fn reflected(self, psi_is_odd: bool) -> (AxisFactor, f32) {
+        match self {
+            AxisFactor::Basis { wavelet, .. } => {
+                (self, if wavelet && psi_is_odd { -1.0 } else { 1.0 })
+            }
+            AxisFactor::Cut { a, b } => (AxisFactor::Cut { a: -b, b: -a }, 1.0),
         }
     }
 
@@ -664,9 +677,7 @@ impl AxisFactor {
             AxisFactor::Basis { level, wavelet } => {
                 axis_transform(tf, level as usize, wavelet, xi, kl * (1u64 << level) as f64)
             }
-            AxisFactor::Straddle { offset } => {
-                StraddleFactor::new(tf.family(), offset, k, la).at(xi)
-            }
+            AxisFactor::Cut { a, b } => CutFactor::new(tf.family(), a, b, k, la).at(xi),
         }
     }
 }
@@ -696,8 +707,8 @@ fn gauss_legendre(n: usize) -> Vec<(f64, f64)> {
         .collect()
 }
 
-/// One polynomial piece of a straddling factor: ∫₀^len Q(t) e^(σt) dt times a constant, with t
-/// measured from the piece's end nearest the face on the attenuated side.
+/// One polynomial piece of a cut factor: ∫₀^len Q(t) e^(σt) dt times a constant, with t
+/// measured from the piece's end nearest the light.
 #[derive(Debug, Clone)]
 struct Piece {
     /// Q's monomial coefficients in t.
@@ -707,48 +718,43 @@ struct Piece {
     origin: f64,
     /// +1 when u = origin + t, −1 when u = origin − t.
     dir: f64,
-    /// On the attenuated side of the face.
-    attenuated: bool,
 }
 
-/// The transform of a level-0 φ straddling a light-facing face, prepared for many frequencies:
-/// ∫ φ_c(u) h(u) e^(−i2πξu) du with u relative to the centre, the face at u_f = −offset and
-/// h(u) = e^(−k·l_a·(u − u_f)) behind the face (u > u_f when l_a > 0, u < u_f when l_a < 0) and 0
-/// in front of it (see [`wavesplat_codec::view::ResolvedCue`]). φ is a polynomial on each piece between its knots
-/// and the face, so each piece is ∫ Q(t) e^(σt) dt with Re σ ≤ 0: by the closed form
-/// [e^(σt) Σ_m (−1)^m Q⁽ᵐ⁾(t)/σ^(m+1)] when |σ|·len ≥ 1 (no cancellation there), and by
-/// 8-point Gauss–Legendre below (an entire integrand of small variation: exact to rounding).
-/// No exponent is positive, whatever k.
+/// The transform of a level-0 φ kept on [a, b] (relative to its centre) and cued from the end of
+/// [a, b] nearest the light, prepared for many frequencies: ∫_a^b φ_c(u) h(u) e^(−i2πξu) du with
+/// h(u) = e^(−k·l_a·(u − u_ref)), u_ref = a when l_a ≥ 0 and b when l_a < 0 (so h ≤ 1). φ is a
+/// polynomial between its knots, so each piece is ∫ Q(t) e^(σt) dt with Re σ ≤ 0: by the closed
+/// form [e^(σt) Σ_m (−1)^m Q⁽ᵐ⁾(t)/σ^(m+1)] when |σ|·len ≥ 1 (no cancellation there), and by
+/// 8-point Gauss–Legendre below (an entire integrand of small variation: exact to rounding). No
+/// exponent is positive, whatever k. With k = 0 it is simply the truncated B-spline (a face of
+/// the data's box cutting it).
 #[derive(Debug, Clone)]
-pub struct StraddleFactor {
+pub struct CutFactor {
     pieces: Vec<Piece>,
     kl: f64,
-    uf: f64,
+    uref: f64,
 }
 
-impl StraddleFactor {
-    /// Prepares the factor for `family`, centre − face = `offset`, extinction `k` per voxel and
-    /// light direction component `la` along the axis.
-    pub fn new(family: Family, offset: i8, k: f64, la: f64) -> StraddleFactor {
+impl CutFactor {
+    /// Prepares the factor for `family`, kept on [a, b] (clamped to the support), extinction
+    /// `k` per voxel and light direction component `la` along the axis.
+    pub fn new(family: Family, a: i8, b: i8, k: f64, la: f64) -> CutFactor {
         let kl = k * la;
-        let positive = la > 0.0;
+        let positive = la >= 0.0;
         let half = 0.5 * family.phi_support();
-        let uf = -(offset as f64);
+        let (lo, hi) = ((a as f64).max(-half), (b as f64).min(half));
+        let uref = if positive { lo } else { hi };
         let mut cuts: Vec<f64> = (0..=family.order()).map(|i| -half + i as f64).collect();
-        if uf > -half && uf < half {
-            cuts.push(uf);
-        }
+        cuts.push(lo);
+        cuts.push(hi);
+        cuts.retain(|c| *c >= lo && *c <= hi);
         cuts.sort_by(f64::total_cmp);
+        cuts.dedup();
         let deg = family.order() - 1;
         let mut pieces = Vec::new();
         for w in cuts.windows(2) {
             let (a, b) = (w[0], w[1]);
             if b - a <= 1e-12 {
-                continue;
-            }
-            let mid = 0.5 * (a + b);
-            let attenuated = if positive { mid > uf } else { mid < uf };
-            if !attenuated {
                 continue;
             }
             let (origin, dir) = if positive { (a, 1.0) } else { (b, -1.0) };
@@ -767,10 +773,9 @@ impl StraddleFactor {
                 len,
                 origin,
                 dir,
-                attenuated,
             });
         }
-        StraddleFactor { pieces, kl, uf }
+        CutFactor { pieces, kl, uref }
     }
 
     /// The transform at ξ cycles per voxel.
@@ -781,13 +786,13 @@ impl StraddleFactor {
         let omega = 2.0 * PI * xi;
         let mut acc = Complex64::new(0.0, 0.0);
         for p in &self.pieces {
-            let k_att = if p.attenuated { self.kl } else { 0.0 };
-            // Constant factor at t = 0: weight e^(−kl(origin − u_f)) ≤ 1 and phase.
-            let c = Complex64::from_polar((-k_att * (p.origin - self.uf)).exp(), -omega * p.origin);
+            // Constant factor at t = 0: weight e^(−kl(origin − u_ref)) ≤ 1 and phase.
+            let c =
+                Complex64::from_polar((-self.kl * (p.origin - self.uref)).exp(), -omega * p.origin);
             if c.norm() == 0.0 {
                 continue;
             }
-            let sigma = Complex64::new(-k_att * p.dir, -omega * p.dir);
+            let sigma = Complex64::new(-self.kl * p.dir, -omega * p.dir);
             let integral = if sigma.norm() * p.len < 1.0 {
                 let mut sum = Complex64::new(0.0, 0.0);
                 for (x, w) in nodes {
@@ -863,24 +868,24 @@ fn solve_vandermonde(ts: &[f64], vals: &[f64]) -> Vec<f64> {
         .collect()
 }
 
-/// The centred transform of a straddling level-0 φ at one frequency (see [`StraddleFactor`]).
-pub fn straddle_transform(family: Family, xi: f64, k: f64, la: f64, offset: i8) -> Complex64 {
-    StraddleFactor::new(family, offset, k, la).at(xi)
+/// The centred transform of a level-0 φ kept on [a, b] at one frequency (see [`CutFactor`]).
+pub fn cut_transform(family: Family, xi: f64, k: f64, la: f64, a: i8, b: i8) -> Complex64 {
+    CutFactor::new(family, a, b, k, la).at(xi)
 }
 
-/// Highest level among a triple's factors (straddles are level 0).
+/// Highest level among a triple's factors (cuts are level 0).
 fn factor_level(factors: &[AxisFactor; 3]) -> usize {
     factors
         .iter()
         .map(|f| match f {
             AxisFactor::Basis { level, .. } => *level as usize,
-            AxisFactor::Straddle { .. } => 0,
+            AxisFactor::Cut { .. } => 0,
         })
         .max()
         .unwrap_or(0)
 }
 
-/// Fine tables of cued factor triples. Triples are grouped by their highest level, which fixes
+/// Fine tables of factor triples. Triples are grouped by their highest level, which fixes
 /// the FFT grid ([`sizes`] of that level, large enough for any triple of the group); per group
 /// every distinct 1D factor is evaluated once per axis on the grid and each triple's spectrum
 /// is the product of three such arrays and the pixel box.
@@ -905,9 +910,9 @@ pub fn compute_factor_tables(p: &FootprintParams, keys: &[[AxisFactor; 3]]) -> V
             grids[a] = distinct
                 .into_par_iter()
                 .map(|f| {
-                    let straddle = match f {
-                        AxisFactor::Straddle { offset } => {
-                            Some(StraddleFactor::new(p.family, offset, k, l[a]))
+                    let cut = match f {
+                        AxisFactor::Cut { a: lo, b: hi } => {
+                            Some(CutFactor::new(p.family, lo, hi, k, l[a]))
                         }
                         _ => None,
                     };
@@ -917,7 +922,7 @@ pub fn compute_factor_tables(p: &FootprintParams, keys: &[[AxisFactor; 3]]) -> V
                         for kx in 0..nx {
                             let sigma = signed(kx, nx) * s as f64 / nx as f64;
                             let xi = p.zoom * (sigma * p.ex[a] + rho * p.ey[a]);
-                            g.push(match &straddle {
+                            g.push(match &cut {
                                 Some(st) => st.at(xi),
                                 None => f.transform(&tf, xi, k, l[a]),
                             });

@@ -3,7 +3,7 @@
 //!
 //! - [`footprint`]: footprints by Fourier projection-slice (rustfft), mipmapped levels, the
 //!   depth-cued factor tables;
-//! - [`cue`]: the depth-cue expansion of coefficients (split at the data's light-facing faces);
+//! - [`pieces`]: the depth-cue expansion of coefficients (split at the data's light-facing faces);
 //! - [`plan`]: the [`Planner`] and [`plan::ViewPlan`]: views and coefficients to splat records
 //!   in a footprint atlas;
 //! - [`backend`]: the [`AccumulationBackend`] trait that sums records, and the CPU backend;
@@ -28,10 +28,10 @@
 
 pub mod backend;
 pub mod color;
-pub mod cue;
 pub mod footprint;
 pub mod frame;
 pub mod image;
+pub mod pieces;
 pub mod plan;
 pub mod reference;
 pub mod session;

@@ -2,9 +2,15 @@
 //! emission–absorption integral with constant attenuation for depth cueing) of the volume
 //! *reconstructed* from a set of coefficients.
 //!
-//! The reconstruction is the full padded grid (when coefficients are dropped the padding is no
-//! longer zero), as the function f(x) = Σ_k v_k Π_a φ^[j](x_a − (k_a − origin_a) + j/2) over all
-//! padded voxels k (Haar: unit boxes centred on the voxels). Haar rays are integrated exactly by
+//! The volume is what the splats draw: Σ_c w_c b_c with every basis function b_c taken once, at
+//! its periodic image nearest the volume centre (`Geometry::basis_center`). It is reconstructed
+//! by the codec's synthesis on a grid extended by a margin wider than any support, each
+//! coefficient moved to its nearest image there, so nothing wraps (on the padded grid itself the
+//! synthesis is periodic: with small margins the periodic reconstruction differs from the
+//! splatted function near the faces, by the tails that wrap around — a property of the boundary
+//! handling, measured in BENCHMARKS.md, not of the splats). The grid is evaluated as the
+//! function f(x) = Σ_k v_k Π_a φ^[j](x_a − (k_a − origin_a) + j/2) over its voxels k (Haar: unit
+//! boxes centred on the voxels). Haar rays are integrated exactly by
 //! voxel traversal (Amanatides–Woo), including the exact integral of the exponential cue over
 //! each voxel segment; linear and cubic rays by composite Simpson sampling of the tensor B-spline
 //! with step ≤ 1/8 voxel (configurable). Each pixel averages `supersample²` rays on a uniform
@@ -29,24 +35,49 @@ pub struct PaddedVolume {
 }
 
 impl PaddedVolume {
-    /// Reconstructs `channels` channels from a set of coefficients (missing ones are zero).
+    /// Reconstructs `channels` channels from a set of coefficients (missing ones are zero),
+    /// each basis function at its periodic image nearest the volume centre, on a grid extended
+    /// so that none wraps (see the module documentation).
     pub fn from_coefficients(
         coefficients: &[Coefficient],
         geometry: &Geometry,
         channels: usize,
     ) -> Result<PaddedVolume, RenderError> {
-        let mut data = vec![vec![0.0f64; geometry.coefficient_count()]; channels];
+        let g = geometry;
+        let block = 1usize << g.levels;
+        let reach = (0..=g.levels)
+            .flat_map(|l| [g.half_support_1d(l, false), g.half_support_1d(l, true)])
+            .fold(0.0f64, f64::max);
+        let w = ((reach.ceil() as usize + 1).div_ceil(block)) * block;
+        let extended = Geometry {
+            padded: g.padded.map(|p| p + 2 * w),
+            origin: g.origin.map(|o| o + w),
+            ..*g
+        };
+        let mut data = vec![vec![0.0f64; extended.coefficient_count()]; channels];
         for c in coefficients {
-            crate::cue::check_coefficient(c, geometry, channels)?;
-            let pos = [c.pos[0] as usize, c.pos[1] as usize, c.pos[2] as usize];
-            data[c.channel as usize][geometry.linear_index(c.band, pos)] += c.value as f64;
+            crate::pieces::check_coefficient(c, g, channels)?;
+            let level = c.band.level as usize;
+            let mut pos = [0usize; 3];
+            for a in 0..3 {
+                let k = c.pos[a] as usize;
+                let raw = g.raw_center_1d(level, k, c.band.is_wavelet_along(a));
+                let period = g.padded[a] as f64;
+                let centre = g.origin[a] as f64 + 0.5 * (g.dims[a] as f64 - 1.0);
+                // The image basis_center picks: raw − n·P; on the extended grid it sits w
+                // further on.
+                let n = ((raw - centre) / period).round() as i64;
+                let shifted = k as i64 + (w as i64 - n * g.padded[a] as i64) / (1i64 << level);
+                pos[a] = shifted as usize;
+            }
+            data[c.channel as usize][extended.linear_index(c.band, pos)] += c.value as f64;
         }
-        let mut dwt = Dwt1d::new(geometry.family);
+        let mut dwt = Dwt1d::new(g.family);
         for ch in data.iter_mut() {
-            inverse_3d(ch, geometry, &mut dwt);
+            inverse_3d(ch, &extended, &mut dwt);
         }
         Ok(PaddedVolume {
-            geometry: *geometry,
+            geometry: extended,
             channels: data,
         })
     }
@@ -109,6 +140,11 @@ pub fn render_reference_camera(
     options: &ReferenceOptions,
 ) -> Image {
     let g = &volume.geometry;
+    if g.family == Family::Haar && cue.is_none() {
+        if let Some(img) = haar_axis_exact(volume, camera) {
+            return img;
+        }
+    }
     let nch = volume.channels.len();
     let mut image = Image::new(camera.width, camera.height, nch);
     let ss = options.supersample.max(1);
@@ -155,6 +191,90 @@ pub fn render_reference_camera(
             }
         });
     image
+}
+
+/// The exact pixel-area-averaged Haar image for a view along a coordinate axis (no cue): the
+/// projection is then constant on each column of cells (their sum along the ray), so a pixel is
+/// the area-weighted sum of the column rectangles it overlaps — no supersampling error, which
+/// for box edges aligned with the pixel grid would otherwise dominate. `None` for other views.
+fn haar_axis_exact(volume: &PaddedVolume, camera: &Camera) -> Option<Image> {
+    // Within 1e-12 of an axis (≈ 1.4 µrad) a cell edge moves < 1e-3 px across the whole
+    // padded volume, far below what the supersampled path resolves.
+    let on_axis = |x: f64| x.abs() >= 1.0 - 1e-12;
+    let ray = (0..3).find(|a| on_axis(camera.n[*a]))?;
+    let ax = (0..3).find(|a| on_axis(camera.u[*a]))?;
+    let ay = (0..3).find(|a| on_axis(camera.v[*a]))?;
+    if ax == ray || ay == ray || ax == ay {
+        return None;
+    }
+    let g = &volume.geometry;
+    let nch = volume.channels.len();
+    let stride = [1usize, g.padded[0], g.padded[0] * g.padded[1]];
+    // Column sums (cells along the ray).
+    let (nx, ny) = (g.padded[ax], g.padded[ay]);
+    let mut cols = vec![0.0f64; nx * ny * nch];
+    for (c, ch) in volume.channels.iter().enumerate() {
+        for j in 0..ny {
+            for i in 0..nx {
+                let mut sum = 0.0;
+                for k in 0..g.padded[ray] {
+                    sum += ch[i * stride[ax] + j * stride[ay] + k * stride[ray]];
+                }
+                cols[(j * nx + i) * nch + c] = sum;
+            }
+        }
+    }
+    // Screen interval of cell i along a screen axis: its volume interval mapped by the camera.
+    let span = |axis: usize, i: usize, screen_x: bool| -> (f64, f64) {
+        let lo = i as f64 - g.origin[axis] as f64 - 0.5;
+        let mut p = camera.center;
+        p[axis] = lo;
+        let a = camera.to_screen(p);
+        p[axis] = lo + 1.0;
+        let b = camera.to_screen(p);
+        let (a, b) = if screen_x { (a[0], b[0]) } else { (a[1], b[1]) };
+        (a.min(b), a.max(b))
+    };
+    // Overlap lengths of each cell with each pixel along one screen axis.
+    let overlaps =
+        |axis: usize, n: usize, pixels: usize, screen_x: bool| -> Vec<Vec<(usize, f64)>> {
+            (0..n)
+                .map(|i| {
+                    let (a, b) = span(axis, i, screen_x);
+                    let first = a.floor().max(0.0) as usize;
+                    let last = (b.ceil().max(0.0) as usize).min(pixels);
+                    (first..last)
+                        .filter_map(|p| {
+                            let o = b.min(p as f64 + 1.0) - a.max(p as f64);
+                            (o > 0.0).then_some((p, o))
+                        })
+                        .collect()
+                })
+                .collect()
+        };
+    let ox = overlaps(ax, nx, camera.width, true);
+    let oy = overlaps(ay, ny, camera.height, false);
+    let mut acc = vec![0.0f64; camera.width * camera.height * nch];
+    for j in 0..ny {
+        for i in 0..nx {
+            for &(py, wy) in &oy[j] {
+                for &(px, wx) in &ox[i] {
+                    let w = wx * wy;
+                    for c in 0..nch {
+                        acc[(py * camera.width + px) * nch + c] += w * cols[(j * nx + i) * nch + c];
+                    }
+                }
+            }
+        }
+    }
+    // Inside a column the line integral is its sum (unit length per cell); a pixel averages it
+    // over its unit area, i.e. weights each column by the overlap area in pixels.
+    Some(Image {
+        width: camera.width,
+        height: camera.height,
+        channels: nch,
+        data: acc.into_iter().map(|v| v as f32).collect(),
+    })
 }
 
 /// Bounding box (inclusive voxel ranges) of the voxels of any channel above 1e-6 of the

@@ -400,7 +400,7 @@ impl<B: AccumulationBackend> RenderSession<B> {
     /// held per tile under local ids, like packets that cannot be asked for again.
     pub fn add_coefficients(&mut self, coefficients: Vec<Coefficient>) -> Result<(), SessionError> {
         for c in &coefficients {
-            crate::cue::check_coefficient(c, &self.header.geometry, self.header.channels)?;
+            crate::pieces::check_coefficient(c, &self.header.geometry, self.header.channels)?;
         }
         let mut by_tile: std::collections::BTreeMap<usize, Vec<Coefficient>> = Default::default();
         for c in coefficients {
@@ -426,7 +426,7 @@ impl<B: AccumulationBackend> RenderSession<B> {
         wire_bytes: usize,
     ) -> Result<(), SessionError> {
         for c in &coefficients {
-            crate::cue::check_coefficient(c, &self.header.geometry, self.header.channels)?;
+            crate::pieces::check_coefficient(c, &self.header.geometry, self.header.channels)?;
         }
         self.stats.coefficients_received += coefficients.len() as u64;
         let mut held = Held {

@@ -25,10 +25,12 @@ pub struct RenderOptions {
     pub channels: usize,
     /// How footprints are placed at exact positions.
     pub placement: Placement,
-    /// Subpixel phases per axis (even; position error ≤ 1/(2S) pixel).
-    pub subpixel: usize,
-    /// Largest FFT side for a footprint (S is halved until the footprint fits).
-    pub max_fft: usize,
+    /// Subpixel phases per axis (even; position error ≤ 1/(2S) pixel); `None`: the family's
+    /// default ([`crate::PlanOptions::default_subpixel`]).
+    pub subpixel: Option<usize>,
+    /// Largest FFT side for a footprint (S is halved until the footprint fits); `None`: the
+    /// family's default ([`crate::PlanOptions::default_max_fft`]).
+    pub max_fft: Option<usize>,
     /// Footprint sets kept in the planner's cache.
     pub cache_size: usize,
 }

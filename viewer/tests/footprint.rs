@@ -229,21 +229,26 @@ fn simpson(a: f64, b: f64, n: usize, f: impl Fn(f64) -> Complex64) -> Complex64 
     s * (h / 3.0)
 }
 
-/// The transform of a level-0 B-spline across a light-facing face (closed form and
-/// Gauss–Legendre on its pieces) equals brute-force Simpson integration of the cut, cued
-/// integrand, split at the knots and the face, for both light directions, stiff and vanishing
-/// extinctions, every offset that straddles and frequencies up to 9 cycles per voxel.
+/// The transform of a level-0 B-spline cut to part of its support (at a face of the data's box),
+/// cued from the kept part's end nearest the light (closed form and Gauss–Legendre on its pieces)
+/// equals brute-force Simpson integration of the cut, cued integrand, split at the knots and the
+/// cut, for both light directions, stiff and vanishing extinctions, every cut of linear and
+/// cubic, and frequencies up to 9 cycles per voxel.
 #[test]
-fn straddle_transform_matches_direct_integration() {
-    use wavesplat_viewer::footprint::straddle_transform;
+fn cut_transform_matches_direct_integration() {
+    use wavesplat_viewer::footprint::cut_transform;
     for family in [Family::Linear, Family::Cubic] {
         let half = 0.5 * family.phi_support();
-        let offsets: Vec<i8> = if family == Family::Linear {
-            vec![0]
-        } else {
-            vec![-1, 0, 1]
-        };
-        for &offset in &offsets {
+        let h = half as i8;
+        let mut cuts = Vec::new();
+        for a in -h..h {
+            for b in a + 1..=h {
+                if (a, b) != (-h, h) {
+                    cuts.push((a, b));
+                }
+            }
+        }
+        for &(ca, cb) in &cuts {
             for &(k, la) in &[
                 (0.5, 0.6),
                 (0.5, -0.6),
@@ -252,26 +257,28 @@ fn straddle_transform_matches_direct_integration() {
                 (1e3, 0.3),
             ] {
                 for &xi in &[0.0, 1e-9, 0.3, 2.7, 9.1] {
-                    let got = straddle_transform(family, xi, k, la, offset);
-                    let uf = -(offset as f64);
-                    // Each piece lies on one side of the face: classified by its midpoint.
-                    let integrand = |u: f64, behind: bool| {
-                        let w = if behind {
-                            (-k * la * (u - uf)).exp()
+                    let got = cut_transform(family, xi, k, la, ca, cb);
+                    let (lo, hi) = (ca as f64, cb as f64);
+                    let uref = if la >= 0.0 { lo } else { hi };
+                    // Each piece lies inside or outside the kept part: classified by its midpoint.
+                    let integrand = |u: f64, kept: bool| {
+                        let w = if kept {
+                            (-k * la * (u - uref)).exp()
                         } else {
                             0.0
                         };
                         Complex64::from_polar(family.phi(u + half) * w, -2.0 * PI * xi * u)
                     };
-                    let mut cuts: Vec<f64> =
+                    let mut knots: Vec<f64> =
                         (0..=family.order()).map(|i| -half + i as f64).collect();
-                    cuts.push(uf);
-                    cuts.sort_by(f64::total_cmp);
+                    knots.push(lo);
+                    knots.push(hi);
+                    knots.sort_by(f64::total_cmp);
                     let mut want = Complex64::new(0.0, 0.0);
-                    for w in cuts.windows(2) {
+                    for w in knots.windows(2) {
                         if w[1] > w[0] {
                             let mid = 0.5 * (w[0] + w[1]);
-                            let behind = if la > 0.0 { mid > uf } else { mid < uf };
+                            let behind = mid > lo && mid < hi;
                             // Enough intervals to resolve the stiffest decay (≥ 200 per e-fold).
                             let n =
                                 4000 + 2 * (100.0 * k * la.abs() * (w[1] - w[0])).ceil() as usize;
@@ -282,7 +289,7 @@ fn straddle_transform_matches_direct_integration() {
                     assert!(got.re.is_finite() && got.im.is_finite());
                     assert!(
                         err <= 1e-9 * want.norm().max(1e-3),
-                        "{family} offset {offset} k={k} la={la} xi={xi}: {got} vs {want}"
+                        "{family} cut [{ca}, {cb}] k={k} la={la} xi={xi}: {got} vs {want}"
                     );
                 }
             }

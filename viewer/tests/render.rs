@@ -70,7 +70,7 @@ fn stiff_depth_cue_stays_finite() {
             let c = wavesplat_codec::dwt::decompose_channel(&vol, &g);
             let coeffs = common::to_coefficients(&g, &c);
             let mut r = Renderer::new(RenderOptions {
-                max_fft: 512,
+                max_fft: Some(512),
                 ..RenderOptions::default()
             });
             for &k in &[1e-12, 5.0, 50.0, 1e3] {

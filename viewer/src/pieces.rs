@@ -1,13 +1,15 @@
-//! The depth-cue expansion of coefficients (paper §3.2), a planning step of its own: with the cue
-//! cut at the data's light-facing faces, the cue weight of a basis function is a product of
-//! per-axis factors. Along each axis a basis factor lies behind its face (exponential, cued from
-//! its support end nearest the light), in front of it (weight 0: no splat) or across it. A
-//! coefficient with no factor across a face becomes one cued splat with the matching table; one
-//! whose support crosses a face along some axes is split there into level-0 B-splines (its exact
-//! refinement): those wholly behind are ordinary cued factors, those in front are dropped, and
-//! the few across the face (one for linear, three for cubic, none for Haar) have their own
-//! transform (`footprint::StraddleFactor`). Each piece carries the weight e^(−k·dist) of its
-//! support's near corner (the face itself for a straddling factor), so no exponent is positive.
+//! The depth-cue expansion of coefficients into splat pieces (paper §3.2), a planning step of its
+//! own. The medium is the data: the cue is cut at the data's light-facing faces (per axis −j/2
+//! or n − 1 + j/2, where the order-j spline of the voxels ends), so the cue weight of a basis
+//! function is a product of per-axis factors. Along each axis a basis factor lies behind its
+//! face (exponential, cued from its support end nearest the light), in front of it (weight 0:
+//! no piece) or across it. A coefficient with no factor across a face is one piece with the
+//! matching table; one whose support crosses a face along some axes is split there into level-0
+//! B-splines (its exact refinement): those wholly behind are ordinary cued factors, those in
+//! front are dropped, and the few across the face (one for linear, three for cubic, none for
+//! Haar) are cut there ([`AxisFactor::Cut`]). Each piece carries the weight e^(−k·dist) of its
+//! support's corner nearest the light (the face itself for a cut factor), so no exponent is
+//! positive.
 
 use crate::footprint::AxisFactor;
 use crate::RenderError;
@@ -17,10 +19,10 @@ use wavesplat_codec::format::packet::Coefficient;
 use wavesplat_codec::layout::Geometry;
 use wavesplat_codec::view::{CueSide, ResolvedCue};
 
-/// One cued splat before placement: factor triple, centre in volume coordinates, weighted
+/// One splat piece before placement: factor triple, centre in volume coordinates, weighted
 /// value, channel.
 #[derive(Debug, Clone, PartialEq)]
-pub struct CuedSplat {
+pub struct Piece {
     /// The three axis factors (select the footprint table).
     pub factors: [AxisFactor; 3],
     /// Centre in volume coordinates.
@@ -72,27 +74,31 @@ fn level0_expansion(geometry: &Geometry, level: usize, wavelet: bool) -> Vec<(f6
         .collect()
 }
 
-/// Expands `coefficients` (already validated) into cued splats (input order; a coefficient
+/// One choice along one axis: factor, centre, expansion weight, near-light end.
+type AxisChoice = (AxisFactor, f64, f64, f64);
+
+/// Expands `coefficients` (already validated) into cued pieces (input order; a coefficient
 /// wholly in front of the data gives none).
 pub fn expand(
     coefficients: &[Coefficient],
     geometry: &Geometry,
     cue: &ResolvedCue,
     expansions: &Expansions,
-) -> Vec<CuedSplat> {
+) -> Vec<(usize, Piece)> {
     let half0 = 0.5 * geometry.family.phi_support();
+    let h0 = half0.round() as i8;
     let near_of = |a: usize, lo: f64, hi: f64| if cue.l[a] >= 0.0 { lo } else { hi };
     let weight_of = |near: [f64; 3]| (-cue.k * cue.dist(near).max(0.0)).exp();
-    let per: Vec<Vec<CuedSplat>> = coefficients
+    let per: Vec<Vec<(usize, Piece)>> = coefficients
         .par_iter()
-        .map(|c| {
+        .enumerate()
+        .map(|(i, c)| {
             let level = c.band.level as usize;
             let centre = geometry.basis_center(
                 c.band,
                 [c.pos[0] as usize, c.pos[1] as usize, c.pos[2] as usize],
             );
-            // Per axis: the choices of (factor, centre, coefficient, near point).
-            let mut choices: [Vec<(AxisFactor, f64, f64, f64)>; 3] = Default::default();
+            let mut choices: [Vec<AxisChoice>; 3] = Default::default();
             for a in 0..3 {
                 let wavelet = c.band.is_wavelet_along(a);
                 let half = geometry.half_support_1d(level, wavelet);
@@ -123,14 +129,17 @@ pub fn expand(
                             *coef,
                             near_of(a, lo0, hi0),
                         )),
-                        CueSide::Straddle => choices[a].push((
-                            AxisFactor::Straddle {
-                                offset: (c0 - cue.planes[a]).round() as i8,
-                            },
-                            c0,
-                            *coef,
-                            cue.planes[a],
-                        )),
+                        CueSide::Straddle => {
+                            // The face relative to the φ₀'s centre (an integer: faces sit at
+                            // −j/2 and n − 1 + j/2, centres at integers for the splines).
+                            let f = (cue.planes[a] - c0).round() as i8;
+                            let cut = if cue.l[a] >= 0.0 {
+                                AxisFactor::Cut { a: f, b: h0 }
+                            } else {
+                                AxisFactor::Cut { a: -h0, b: f }
+                            };
+                            choices[a].push((cut, c0, *coef, cue.planes[a]));
+                        }
                     }
                 }
             }
@@ -140,12 +149,15 @@ pub fn expand(
                     for z in &choices[2] {
                         let value = c.value as f64 * x.2 * y.2 * z.2 * weight_of([x.3, y.3, z.3]);
                         if value != 0.0 {
-                            out.push(CuedSplat {
-                                factors: [x.0, y.0, z.0],
-                                centre: [x.1, y.1, z.1],
-                                value,
-                                channel: c.channel,
-                            });
+                            out.push((
+                                i,
+                                Piece {
+                                    factors: [x.0, y.0, z.0],
+                                    centre: [x.1, y.1, z.1],
+                                    value,
+                                    channel: c.channel,
+                                },
+                            ));
                         }
                     }
                 }
