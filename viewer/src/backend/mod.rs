@@ -223,6 +223,28 @@ pub trait AccumulationBackend: Send {
     fn read(&mut self) -> Result<Image, BackendError>;
 }
 
+impl<T: AccumulationBackend + ?Sized> AccumulationBackend for Box<T> {
+    fn name(&self) -> String {
+        (**self).name()
+    }
+
+    fn begin(&mut self, layout: Layout) -> Result<(), BackendError> {
+        (**self).begin(layout)
+    }
+
+    fn accumulate(
+        &mut self,
+        atlas: &FootprintAtlas,
+        records: &[SplatRecord],
+    ) -> Result<u64, BackendError> {
+        (**self).accumulate(atlas, records)
+    }
+
+    fn read(&mut self) -> Result<Image, BackendError> {
+        (**self).read()
+    }
+}
+
 /// Checks a record against the atlas and the layout (what every backend must refuse).
 pub fn check_record(
     r: &SplatRecord,
