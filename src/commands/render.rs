@@ -15,9 +15,9 @@ use wavesplat_codec::format::packet::{decode_packets, Coefficient};
 use wavesplat_codec::format::{parse_file, Header};
 use wavesplat_codec::metrics::{q_i_paper_db, snr_db};
 use wavesplat_codec::view::{Cue, CueDirection, View, ViewSpec};
+use wavesplat_viewer::backend::{select, BackendChoice};
 use wavesplat_viewer::session::{RenderSession, SessionOptions};
 use wavesplat_viewer::source::{CacheSource, CacheSourceOptions, FileSource, PacketSource};
-use wavesplat_viewer::backend::{select, BackendChoice};
 use wavesplat_viewer::{FrameLoop, Image, RenderOptions, Renderer};
 
 /// Where the volume comes from and how to look at it (shared by `render` and `view`).

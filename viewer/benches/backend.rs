@@ -55,6 +55,13 @@ fn bench(c: &mut Criterion) {
                 let mut records = Vec::new();
                 plan.splats(&coeffs[..count], &mut records, &mut RenderStats::default())
                     .unwrap();
+                let mut probe = CpuBackend::new();
+                probe.begin(plan.layout()).unwrap();
+                let updates = probe.accumulate(&plan.atlas, &records).unwrap();
+                eprintln!(
+                    "{family} {count} coefficients at {size}²: {} records, {updates} pixel updates",
+                    records.len()
+                );
                 let mut backends: Vec<Box<dyn AccumulationBackend>> =
                     vec![Box::new(CpuBackend::new())];
                 if let Some(ctx) = &gpu {

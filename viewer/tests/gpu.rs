@@ -232,7 +232,14 @@ fn gpu_sums_are_order_and_chunk_independent() {
     let first = a.read().unwrap();
     let mut reversed = records.clone();
     reversed.reverse();
-    let mut b = GpuBackend::with_options(ctx.clone(), GpuOptions { max_chunk: 777 }).unwrap();
+    let mut b = GpuBackend::with_options(
+        ctx.clone(),
+        GpuOptions {
+            max_chunk: 777,
+            wait: false,
+        },
+    )
+    .unwrap();
     b.begin(layout).unwrap();
     // The same total in one call: same exponent, so the same integers.
     b.accumulate(&p.plan.atlas, &reversed).unwrap();
@@ -464,4 +471,53 @@ fn selection_policy() {
         }
         _ => assert_eq!(auto.backend.name(), "cpu", "{}", auto.reason),
     }
+}
+
+/// The render session drives the GPU backend through the trait (boxed, as `select` gives it):
+/// progressive frames with a small budget end on the CPU session's image.
+#[test]
+fn session_on_the_gpu_backend_matches_the_cpu_one() {
+    use std::time::Duration;
+    use wavesplat_compressor::encode::{compress, CompressOptions, Target};
+    use wavesplat_compressor::phantom::Phantom;
+    use wavesplat_viewer::session::RenderSession;
+    let Some(ctx) = gpu() else { return };
+    let bytes = compress(
+        &Phantom::SheppLogan.generate([40, 36, 44]),
+        &CompressOptions {
+            target: Target::Fraction(0.1),
+            refine: None,
+            ..Default::default()
+        },
+        &|_, _| {},
+    )
+    .unwrap()
+    .bytes;
+    let file = wavesplat_codec::format::parse_file(&bytes).unwrap();
+    let spec = ViewSpec {
+        view: View::new(0.4, 1.1, 90, 70),
+        multiview: true,
+    };
+    let gpu_backend: Box<dyn AccumulationBackend> = Box::new(GpuBackend::new(ctx).unwrap());
+    let backends: [Box<dyn AccumulationBackend>; 2] = [Box::new(CpuBackend::new()), gpu_backend];
+    let mut images = Vec::new();
+    for backend in backends {
+        let name = backend.name();
+        let mut session =
+            RenderSession::new(file.header.clone(), spec, backend, Default::default()).unwrap();
+        for (id, p) in file.packets.iter().enumerate() {
+            session.add_packet(id as u32, p).unwrap();
+        }
+        let mut frames = 0;
+        while session.pending() > 0 {
+            session.step(Duration::from_millis(5)).unwrap();
+            frames += 1;
+        }
+        eprintln!("{name}: {frames} frames");
+        assert!(frames > 1, "{name}: refinement took one frame");
+        images.push(session.image().unwrap());
+    }
+    let snr = snr_db(&images[0].data, &images[1].data);
+    eprintln!("session image, GPU vs CPU: SNR {snr:.1} dB");
+    assert!(snr >= 50.0, "{snr}");
 }

@@ -30,7 +30,14 @@
 //! colour matrix and per-pixel offset (the coded colour space back to RGB) and the
 //! window/level of [`Image::write_png`] into an `Rgba8Unorm` storage texture (views side by
 //! side as accumulated). The automatic window reads the image back and takes its percentiles
-//! on the host, exactly as `write_png`; a window that shows many frames can pass one.
+//! on the host, exactly as `write_png`; a window that shows many frames can pass one. A window
+//! builds its [`GpuContext`] with [`GpuContext::from_adapter`] (the adapter it chose for its
+//! surface) and draws the texture [`GpuBackend::display`] returns, e.g. with
+//! `wgpu::util::TextureBlitter` (the bytes are the PNG's: linear, so blit to a non-sRGB view).
+//!
+//! **Cost.** The scatter with atomics suits a GPU. On a software adapter (lavapipe) the atomics
+//! run one lane at a time, and the backend is 5–15× slower than the CPU backend on the same
+//! records (BENCHMARKS.md, issue 12): [`super::select`] does not pick it there by default.
 
 use super::{check_record, AccumulationBackend, BackendError, FootprintAtlas, Layout, SplatRecord};
 use crate::image::Image;
@@ -323,12 +330,17 @@ impl GpuContext {
 pub struct GpuOptions {
     /// Largest number of records per dispatch (further capped by the device's limits).
     pub max_chunk: usize,
+    /// `accumulate` returns only when the device has added the records (default), so a
+    /// caller that times it (the session's cost estimate) sees the real cost; `false` leaves
+    /// the work queued (it is waited for by `read` and the display pass).
+    pub wait: bool,
 }
 
 impl Default for GpuOptions {
     fn default() -> Self {
         GpuOptions {
             max_chunk: DEFAULT_CHUNK,
+            wait: true,
         }
     }
 }
@@ -1049,6 +1061,9 @@ impl AccumulationBackend for GpuBackend {
                 pass.dispatch_workgroups(gx as u32, gy as u32, 1);
             }
             self.ctx.queue.submit([encoder.finish()]);
+        }
+        if self.options.wait {
+            self.ctx.wait()?;
         }
         self.ctx.check()?;
         Ok(updates)
