@@ -15,9 +15,10 @@ use wavesplat_codec::format::packet::{decode_packets, Coefficient};
 use wavesplat_codec::format::{parse_file, Header};
 use wavesplat_codec::metrics::{q_i_paper_db, snr_db};
 use wavesplat_codec::view::{Cue, CueDirection, View, ViewSpec};
+use wavesplat_viewer::backend::{select, BackendChoice};
 use wavesplat_viewer::session::{RenderSession, SessionOptions};
 use wavesplat_viewer::source::{CacheSource, CacheSourceOptions, FileSource, PacketSource};
-use wavesplat_viewer::{CpuBackend, FrameLoop, Image, RenderOptions, Renderer};
+use wavesplat_viewer::{FrameLoop, Image, RenderOptions, Renderer};
 
 /// Where the volume comes from and how to look at it (shared by `render` and `view`).
 #[derive(Args, Debug, Clone)]
@@ -89,6 +90,12 @@ pub struct RenderArgs {
     /// Also write the image as raw f32 (H rows of W little-endian floats; RGB interleaved).
     #[arg(long)]
     pub raw: Option<PathBuf>,
+    /// Accumulate on the GPU (wgpu; WGPU_BACKEND / WGPU_ADAPTER_NAME choose the adapter).
+    #[arg(long, conflicts_with = "cpu")]
+    pub gpu: bool,
+    /// Accumulate on the CPU. Default: the GPU on a hardware adapter, else the CPU.
+    #[arg(long)]
+    pub cpu: bool,
 }
 
 /// Parses a byte count with an optional k/M/G suffix (powers of 1024).
@@ -378,10 +385,17 @@ pub fn run(a: RenderArgs) -> Result<()> {
     } else {
         None
     };
+    let choice = match (a.gpu, a.cpu) {
+        (true, _) => BackendChoice::Gpu,
+        (_, true) => BackendChoice::Cpu,
+        _ => BackendChoice::Auto,
+    };
+    let selected = select(choice).context("choosing the accumulation backend")?;
+    eprintln!("backend: {}", selected.reason);
     let session = RenderSession::new(
         header.clone(),
         spec,
-        CpuBackend::new(),
+        selected.backend,
         a.view.session_options(),
     )?;
     let source: Box<dyn PacketSource> = match opened {

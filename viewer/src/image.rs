@@ -1,6 +1,7 @@
 //! Rendered images and their output: the [`Image`] type (f32, channels interleaved, row 0 at
 //! the top), crops and side-by-side concatenation, PNG writing with window/level (automatic
-//! from the 1st/99th percentiles by default) and the raw f32 writer used for measurements
+//! from the 1st/99th percentiles by default; the same mapping to RGBA8 bytes is what a display
+//! shows) and the raw f32 writer used for measurements
 //! (H rows of W little-endian f32, channels interleaved).
 
 use std::io::Write;
@@ -124,14 +125,9 @@ impl Image {
         (at(lo), at(hi))
     }
 
-    /// Writes an 8-bit PNG (grey or RGB) mapping `window = (low, high)` to 0..255; `None`
-    /// uses the 1st and 99th percentiles.
-    pub fn write_png(&self, path: &Path, window: Option<(f64, f64)>) -> Result<(), ImageError> {
-        let colour = match self.channels {
-            1 => png::ColorType::Grayscale,
-            3 => png::ColorType::Rgb,
-            c => return Err(ImageError::Channels(c)),
-        };
+    /// The window [`Image::write_png`] uses: `window` when given (checked), else the 1st and
+    /// 99th percentiles, widened to one unit around a flat image.
+    pub fn resolve_window(&self, window: Option<(f64, f64)>) -> Result<(f64, f64), ImageError> {
         let (mut lo, mut hi) = window.unwrap_or_else(|| self.percentiles(1.0, 99.0));
         if window.is_some() && (!lo.is_finite() || !hi.is_finite() || hi <= lo) {
             return Err(ImageError::BadWindow(lo, hi));
@@ -140,18 +136,49 @@ impl Image {
             lo -= 0.5;
             hi = lo + 1.0;
         }
-        let bytes: Vec<u8> = self
-            .data
-            .iter()
-            .map(|x| {
-                let t = ((*x as f64 - lo) / (hi - lo)).clamp(0.0, 1.0);
-                if t.is_finite() {
-                    (t * 255.0).round() as u8
-                } else {
-                    0
-                }
-            })
-            .collect();
+        Ok((lo, hi))
+    }
+
+    /// A value mapped through the window `(lo, hi)` to 0..=255 (non-finite values to 0).
+    pub fn level(x: f32, (lo, hi): (f64, f64)) -> u8 {
+        let t = ((x as f64 - lo) / (hi - lo)).clamp(0.0, 1.0);
+        if t.is_finite() {
+            (t * 255.0).round() as u8
+        } else {
+            0
+        }
+    }
+
+    /// The image as RGBA8 rows (grey repeated in R, G and B; alpha 255) through a window as
+    /// [`Image::write_png`] maps it: what a display shows.
+    pub fn to_rgba8(&self, window: Option<(f64, f64)>) -> Result<Vec<u8>, ImageError> {
+        if self.channels != 1 && self.channels != 3 {
+            return Err(ImageError::Channels(self.channels));
+        }
+        let w = self.resolve_window(window)?;
+        let mut out = Vec::with_capacity(self.width * self.height * 4);
+        for px in self.data.chunks_exact(self.channels) {
+            let rgb = if self.channels == 1 {
+                [px[0]; 3]
+            } else {
+                [px[0], px[1], px[2]]
+            };
+            out.extend(rgb.map(|x| Image::level(x, w)));
+            out.push(255);
+        }
+        Ok(out)
+    }
+
+    /// Writes an 8-bit PNG (grey or RGB) mapping `window = (low, high)` to 0..255; `None`
+    /// uses the 1st and 99th percentiles.
+    pub fn write_png(&self, path: &Path, window: Option<(f64, f64)>) -> Result<(), ImageError> {
+        let colour = match self.channels {
+            1 => png::ColorType::Grayscale,
+            3 => png::ColorType::Rgb,
+            c => return Err(ImageError::Channels(c)),
+        };
+        let w = self.resolve_window(window)?;
+        let bytes: Vec<u8> = self.data.iter().map(|x| Image::level(*x, w)).collect();
         let file = std::io::BufWriter::new(std::fs::File::create(path)?);
         let mut enc = png::Encoder::new(file, self.width as u32, self.height as u32);
         enc.set_color(colour);

@@ -6,14 +6,15 @@
 //! - [`pieces`]: the depth-cue expansion of coefficients (split at the data's light-facing faces);
 //! - [`plan`]: the [`Planner`] and [`plan::ViewPlan`]: views and coefficients to splat records
 //!   in a footprint atlas;
-//! - [`backend`]: the [`AccumulationBackend`] trait that sums records, and the CPU backend;
+//! - [`backend`]: the [`AccumulationBackend`] trait that sums records, the CPU backend, the
+//!   wgpu backend with its display pass, and [`backend::select`];
 //! - [`session`]: the progressive [`RenderSession`]: packets in, splats by visible energy within
 //!   a time budget, view changes, a memory bound;
 //! - [`source`]: where packets come from ([`source::FileSource`], [`source::CacheSource`] over
 //!   gRPC on its own thread, pulled with credit);
 //! - [`frame`]: the frame loop: drain packets, splat within a frame's budget;
 //! - [`color`]: images in a coded colour space back to RGB;
-//! - [`splat`]: the one-shot [`Renderer`] (plan + CPU backend);
+//! - [`splat`]: the one-shot [`Renderer`] (plan + a backend, the CPU one by default);
 //! - [`reference`]: the ground-truth ray caster on the reconstructed volume;
 //! - [`image`]: the [`Image`] type, PNG with window/level, raw f32 output.
 //!

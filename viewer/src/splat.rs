@@ -1,5 +1,6 @@
 //! The one-shot renderer: [`Renderer`] plans a view ([`crate::plan`]) and sums the records with
-//! the CPU backend ([`crate::backend::CpuBackend`]) into a fresh image. For progressive,
+//! an accumulation backend (the CPU one, [`crate::backend::CpuBackend`], unless given another)
+//! into a fresh image. For progressive,
 //! time-budgeted rendering use [`crate::session::RenderSession`], which drives the same planner
 //! and any backend.
 //!
@@ -60,22 +61,47 @@ impl RenderOptions {
     }
 }
 
-/// The CPU splat renderer with its footprint planner.
-#[derive(Debug, Default)]
+/// The splat renderer: its footprint planner and an accumulation backend.
 pub struct Renderer {
     options: RenderOptions,
     planner: Planner,
-    backend: CpuBackend,
+    backend: Box<dyn AccumulationBackend>,
+}
+
+impl std::fmt::Debug for Renderer {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Renderer")
+            .field("options", &self.options)
+            .field("planner", &self.planner)
+            .field("backend", &self.backend.name())
+            .finish()
+    }
+}
+
+impl Default for Renderer {
+    fn default() -> Self {
+        Renderer::new(RenderOptions::default())
+    }
 }
 
 impl Renderer {
-    /// A renderer with the given options.
+    /// A renderer with the given options, accumulating on the CPU.
     pub fn new(options: RenderOptions) -> Renderer {
+        Renderer::with_backend(options, Box::new(CpuBackend::new()))
+    }
+
+    /// A renderer accumulating with `backend`.
+    pub fn with_backend(options: RenderOptions, backend: Box<dyn AccumulationBackend>) -> Renderer {
         Renderer {
             options,
             planner: Planner::new(options.plan()),
-            backend: CpuBackend::new(),
+            backend,
         }
+    }
+
+    /// The accumulation backend's name.
+    pub fn backend_name(&self) -> String {
+        self.backend.name()
     }
 
     /// The options.

@@ -2,16 +2,19 @@
 //! footprint phase of a view in one flat buffer, each with its offset and extent), the
 //! [`SplatRecord`] (one placed, weighted phase: where, which phase, how much, which channel and
 //! view) and the [`AccumulationBackend`] trait that adds records into an image. Planning
-//! (`crate::plan`) produces records; a backend only sums them, so every backend (the CPU one
-//! here, a GPU one) renders the same records into the same image up to float rounding.
+//! (`crate::plan`) produces records; a backend only sums them, so every backend (the CPU one,
+//! the wgpu one in [`gpu`]) renders the same records into the same image up to float rounding.
+//! [`select`] picks a backend for a [`BackendChoice`] and says why.
 
 pub mod cpu;
+pub mod gpu;
 
 use crate::footprint::Footprint;
 use crate::image::Image;
 use thiserror::Error;
 
 pub use cpu::CpuBackend;
+pub use gpu::{GpuBackend, GpuContext};
 
 /// Errors of an accumulation backend.
 #[derive(Debug, Error, PartialEq)]
@@ -43,6 +46,21 @@ pub enum BackendError {
     /// A device-side failure (GPU backends).
     #[error("device: {0}")]
     Device(String),
+    /// No GPU adapter could be had (GPU backends).
+    #[error("no GPU adapter: {0}")]
+    NoAdapter(String),
+    /// A record's weight is NaN or infinite.
+    #[error("splat record {index} has a weight that is not finite")]
+    NotFinite {
+        /// Index of the record in its batch.
+        index: usize,
+    },
+    /// The sums would exceed what the target can hold.
+    #[error("out of range: {0}")]
+    Range(String),
+    /// The display pass cannot show the image as asked.
+    #[error("display: {0}")]
+    Display(String),
 }
 
 /// The accumulation target: `views` images of `width` × `height` side by side (multiview: 3),
@@ -80,8 +98,9 @@ impl Layout {
     }
 }
 
-/// One phase of a footprint in the atlas: `rows` × `cols` samples from `offset`.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+/// One phase of a footprint in the atlas: `rows` × `cols` samples from `offset`. Twin of
+/// `PhaseRect` in `shaders/accumulate.wgsl`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, bytemuck::Pod, bytemuck::Zeroable)]
 #[repr(C)]
 pub struct PhaseRect {
     /// First sample in [`FootprintAtlas::data`].
@@ -167,8 +186,10 @@ impl FootprintAtlas {
 }
 
 /// One phase of a footprint placed on the screen with a weight: pixel (x0 + k, y0 + l) of view
-/// `view` gets `value ·` sample (k, l) of the phase, in channel `channel`.
-#[derive(Debug, Clone, Copy, PartialEq)]
+/// `view` gets `value ·` sample (k, l) of the phase, in channel `channel`. Twin of `Record` in
+/// `shaders/accumulate.wgsl` (which reads `channel` and `view` as one u32, channel in the low
+/// half).
+#[derive(Debug, Clone, Copy, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
 #[repr(C)]
 pub struct SplatRecord {
     /// First column (relative to the view, may be negative).
@@ -202,6 +223,28 @@ pub trait AccumulationBackend: Send {
     fn read(&mut self) -> Result<Image, BackendError>;
 }
 
+impl<T: AccumulationBackend + ?Sized> AccumulationBackend for Box<T> {
+    fn name(&self) -> String {
+        (**self).name()
+    }
+
+    fn begin(&mut self, layout: Layout) -> Result<(), BackendError> {
+        (**self).begin(layout)
+    }
+
+    fn accumulate(
+        &mut self,
+        atlas: &FootprintAtlas,
+        records: &[SplatRecord],
+    ) -> Result<u64, BackendError> {
+        (**self).accumulate(atlas, records)
+    }
+
+    fn read(&mut self) -> Result<Image, BackendError> {
+        (**self).read()
+    }
+}
+
 /// Checks a record against the atlas and the layout (what every backend must refuse).
 pub fn check_record(
     r: &SplatRecord,
@@ -223,4 +266,76 @@ pub fn check_record(
         });
     }
     Ok(())
+}
+
+/// Which accumulation backend to use.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum BackendChoice {
+    /// The faster one here: the GPU backend on a hardware adapter, else the CPU backend.
+    #[default]
+    Auto,
+    /// The CPU backend.
+    Cpu,
+    /// The GPU backend (an error when no adapter can be had).
+    Gpu,
+}
+
+/// A backend picked by [`select`], and why it was picked.
+pub struct Selected {
+    /// The backend.
+    pub backend: Box<dyn AccumulationBackend>,
+    /// One line saying which backend and why (for the user, once).
+    pub reason: String,
+}
+
+impl std::fmt::Debug for Selected {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Selected")
+            .field("backend", &self.backend.name())
+            .field("reason", &self.reason)
+            .finish()
+    }
+}
+
+/// Picks a backend. `Auto` takes the GPU backend only on a hardware adapter: a software one
+/// (Mesa's lavapipe, WARP, SwiftShader) runs the same shaders on the CPU cores that the CPU
+/// backend already uses well, and measured several times slower (BENCHMARKS.md, issue 12).
+/// `WGPU_BACKEND`, `WGPU_ADAPTER_NAME` and `WGPU_POWER_PREF` choose the adapter as in wgpu.
+pub fn select(choice: BackendChoice) -> Result<Selected, BackendError> {
+    match choice {
+        BackendChoice::Cpu => Ok(Selected {
+            backend: Box::new(CpuBackend::new()),
+            reason: "cpu backend (asked for)".into(),
+        }),
+        BackendChoice::Gpu => {
+            let backend = GpuBackend::new(GpuContext::new()?)?;
+            let reason = format!("{} (asked for)", backend.name());
+            Ok(Selected {
+                backend: Box::new(backend),
+                reason,
+            })
+        }
+        BackendChoice::Auto => match gpu::probe_adapter() {
+            Ok(info) if info.device_type != wgpu::DeviceType::Cpu => {
+                let ctx = GpuContext::new()?;
+                let backend = GpuBackend::new(ctx)?;
+                let reason = format!("{}: a hardware adapter", backend.name());
+                Ok(Selected {
+                    backend: Box::new(backend),
+                    reason,
+                })
+            }
+            Ok(info) => Ok(Selected {
+                backend: Box::new(CpuBackend::new()),
+                reason: format!(
+                    "cpu backend: the GPU adapter ({}, {:?}) is a software device, slower than the CPU backend",
+                    info.name, info.backend
+                ),
+            }),
+            Err(e) => Ok(Selected {
+                backend: Box::new(CpuBackend::new()),
+                reason: format!("cpu backend: {e}"),
+            }),
+        },
+    }
 }

@@ -1,0 +1,523 @@
+//! The wgpu backend against the CPU backend (issue 12): the same splat records, planned
+//! progressively in significance order, summed by both; images compared by the conventional
+//! SNR (10·log10). Every family, multiview, depth cueing and RGB; order and chunk independence
+//! of the fixed-point sums; the display pass against the PNG mapping; refused input.
+//!
+//! The GPU tests need an adapter (Mesa's lavapipe will do). Without one they skip with a
+//! printed reason, unless `WAVESPLAT_REQUIRE_GPU=1` (CI sets it): then they fail.
+
+use std::sync::Arc;
+use wavesplat_codec::dwt::decompose_channel;
+use wavesplat_codec::family::Family;
+use wavesplat_codec::format::packet::Coefficient;
+use wavesplat_codec::layout::Geometry;
+use wavesplat_codec::metrics::snr_db;
+use wavesplat_viewer::backend::gpu::wgpu;
+use wavesplat_viewer::backend::gpu::{AdapterRequest, ColourMap, DisplayOptions, GpuOptions};
+use wavesplat_viewer::backend::{
+    select, AccumulationBackend, BackendChoice, BackendError, CpuBackend, GpuBackend, GpuContext,
+    Layout, SplatRecord,
+};
+use wavesplat_viewer::plan::ViewPlan;
+use wavesplat_viewer::ViewSpec;
+use wavesplat_viewer::{Cue, CueDirection, Image, PlanOptions, Planner, RenderStats, View};
+
+/// The context, or `None` (with the reason printed) when there is no adapter and the
+/// environment does not require one.
+fn gpu() -> Option<Arc<GpuContext>> {
+    match GpuContext::new() {
+        Ok(ctx) => {
+            eprintln!("adapter: {:?}", ctx.info());
+            Some(ctx)
+        }
+        Err(e) => {
+            if std::env::var("WAVESPLAT_REQUIRE_GPU").as_deref() == Ok("1") {
+                panic!("WAVESPLAT_REQUIRE_GPU=1 but no GPU adapter: {e}");
+            }
+            eprintln!("skipped: {e} (set WAVESPLAT_REQUIRE_GPU=1 to fail instead)");
+            None
+        }
+    }
+}
+
+/// A deterministic hash of a voxel to [−1, 1).
+fn noise(x: usize, y: usize, z: usize, seed: u64) -> f64 {
+    let mut h = (x as u64) ^ ((y as u64) << 20) ^ ((z as u64) << 40) ^ seed.wrapping_mul(0x9e37);
+    h = h.wrapping_add(0x9e3779b97f4a7c15);
+    h = (h ^ (h >> 30)).wrapping_mul(0xbf58476d1ce4e5b9);
+    h = (h ^ (h >> 27)).wrapping_mul(0x94d049bb133111eb);
+    h ^= h >> 31;
+    (h >> 11) as f64 / (1u64 << 52) as f64 - 1.0
+}
+
+/// A textured blob with noise everywhere (non-zero faces, every coefficient non-zero).
+fn volume(dims: [usize; 3], seed: u64) -> Vec<f32> {
+    let mut out = Vec::with_capacity(dims[0] * dims[1] * dims[2]);
+    for z in 0..dims[2] {
+        for y in 0..dims[1] {
+            for x in 0..dims[0] {
+                let p = [x, y, z].map(|v| v as f64);
+                let d: f64 = (0..3)
+                    .map(|a| ((p[a] - 0.5 * dims[a] as f64) / (0.4 * dims[a] as f64)).powi(2))
+                    .sum();
+                let blob = if d < 1.0 { 2.0 * (1.0 - d) } else { 0.0 };
+                out.push((blob + 0.3 * noise(x, y, z, seed)) as f32);
+            }
+        }
+    }
+    out
+}
+
+/// Dimensions of the test volumes: 118 272 voxels, none a power of two.
+const DIMS: [usize; 3] = [56, 48, 44];
+
+/// Geometry and coefficients of `channels` volumes (channel c from seed c).
+fn coefficients(family: Family, channels: usize) -> (Geometry, Vec<Coefficient>) {
+    let g = Geometry::new(DIMS, family, 3, 0).unwrap();
+    let mut all = Vec::new();
+    for c in 0..channels {
+        let vol = volume(DIMS, c as u64);
+        all.extend(Coefficient::all_of(
+            &g,
+            c as u8,
+            &decompose_channel(&vol, &g),
+        ));
+    }
+    // Significance order, as a file or the cache delivers them.
+    all.sort_by(|a, b| b.value.abs().total_cmp(&a.value.abs()));
+    (g, all)
+}
+
+/// The planned view and its records in three progressive batches (1 %, 10 %, the rest of
+/// the coefficients); the atlas grows between batches when depth cueing adds tables.
+struct Planned {
+    plan: ViewPlan,
+    batches: Vec<(usize, Vec<SplatRecord>)>,
+}
+
+fn plan(g: &Geometry, coeffs: &[Coefficient], spec: &ViewSpec, channels: usize) -> Planned {
+    let mut planner = Planner::new(PlanOptions::default());
+    let mut plan = planner.plan(g, spec, channels).unwrap();
+    let n = coeffs.len();
+    let mut batches = Vec::new();
+    let mut start = 0;
+    for end in [n / 100, n / 10, n] {
+        let mut records = Vec::new();
+        plan.splats(
+            &coeffs[start..end],
+            &mut records,
+            &mut RenderStats::default(),
+        )
+        .unwrap();
+        batches.push((plan.atlas.data.len(), records));
+        start = end;
+    }
+    Planned { plan, batches }
+}
+
+/// Both backends over the batches (each batch sees the atlas as it was when planned; the
+/// atlas only grows, so a prefix is exactly that). Pixel update counts must agree.
+fn render_both(ctx: &Arc<GpuContext>, p: &Planned) -> (Image, Image, usize) {
+    let mut cpu = CpuBackend::new();
+    let mut gpu = GpuBackend::new(ctx.clone()).unwrap();
+    let layout = p.plan.layout();
+    cpu.begin(layout).unwrap();
+    gpu.begin(layout).unwrap();
+    let mut count = 0;
+    for (samples, records) in &p.batches {
+        let mut atlas = p.plan.atlas.clone();
+        atlas.data.truncate(*samples);
+        atlas
+            .phases
+            .retain(|r| (r.offset + r.cols * r.rows) as usize <= *samples);
+        let a = cpu.accumulate(&atlas, records).unwrap();
+        let b = gpu.accumulate(&atlas, records).unwrap();
+        assert_eq!(a, b, "pixel updates");
+        count += records.len();
+    }
+    (cpu.read().unwrap(), gpu.read().unwrap(), count)
+}
+
+fn view() -> View {
+    View::new(0.66, 0.91, 100, 84)
+}
+
+/// GPU = CPU within 50 dB for `spec` and every family; returns the SNRs.
+fn check_families(ctx: &Arc<GpuContext>, spec: &ViewSpec, channels: usize) -> Vec<f64> {
+    let mut out = Vec::new();
+    for family in Family::ALL {
+        let (g, coeffs) = coefficients(family, channels);
+        let nonzero = coeffs.iter().filter(|c| c.value != 0.0).count();
+        assert!(nonzero >= 100_000, "{nonzero} non-zero coefficients");
+        let p = plan(&g, &coeffs, spec, channels);
+        let (cpu, gpu, records) = render_both(ctx, &p);
+        assert!(records >= 100_000);
+        assert!(cpu.data.iter().any(|v| *v != 0.0));
+        let snr = snr_db(&cpu.data, &gpu.data);
+        eprintln!(
+            "{family} {}x{}x{}: {} coefficients, {records} records, GPU vs CPU SNR {snr:.1} dB",
+            cpu.width,
+            cpu.height,
+            cpu.channels,
+            coeffs.len()
+        );
+        assert!(snr >= 50.0, "{family}: {snr} dB");
+        out.push(snr);
+    }
+    out
+}
+
+/// Single view, every family: GPU = CPU ≥ 50 dB with > 10⁵ coefficients.
+#[test]
+fn gpu_matches_cpu_for_every_family() {
+    let Some(ctx) = gpu() else { return };
+    check_families(&ctx, &ViewSpec::single(view()), 1);
+}
+
+/// Multiview (three views side by side), every family.
+#[test]
+fn gpu_matches_cpu_multiview() {
+    let Some(ctx) = gpu() else { return };
+    let spec = ViewSpec {
+        view: view(),
+        multiview: true,
+    };
+    check_families(&ctx, &spec, 1);
+}
+
+/// Depth cueing (the atlas grows while the view lasts), every family.
+#[test]
+fn gpu_matches_cpu_depth_cued() {
+    let Some(ctx) = gpu() else { return };
+    let spec = ViewSpec::single(view().with_cue(Cue {
+        k: 0.08,
+        direction: CueDirection::Angles {
+            alpha: 0.3,
+            beta: 1.2,
+        },
+    }));
+    check_families(&ctx, &spec, 1);
+}
+
+/// Three channels (RGB), multiview, linear family.
+#[test]
+fn gpu_matches_cpu_rgb() {
+    let Some(ctx) = gpu() else { return };
+    let (g, coeffs) = coefficients(Family::Linear, 3);
+    let spec = ViewSpec {
+        view: View::new(1.2, 0.4, 64, 72),
+        multiview: true,
+    };
+    let p = plan(&g, &coeffs, &spec, 3);
+    let (cpu, gpu, _) = render_both(&ctx, &p);
+    for c in 0..3 {
+        let snr = snr_db(&cpu.channel(c).data, &gpu.channel(c).data);
+        eprintln!("rgb channel {c}: SNR {snr:.1} dB");
+        assert!(snr >= 50.0, "channel {c}: {snr}");
+    }
+}
+
+/// The fixed-point sums do not depend on the order of the records, on how they are cut into
+/// calls or on the dispatch chunk size: bit-identical images.
+#[test]
+fn gpu_sums_are_order_and_chunk_independent() {
+    let Some(ctx) = gpu() else { return };
+    let (g, coeffs) = coefficients(Family::Cubic, 1);
+    let p = plan(&g, &coeffs[..30_000], &ViewSpec::single(view()), 1);
+    let records: Vec<SplatRecord> = p.batches.iter().flat_map(|b| b.1.clone()).collect();
+    let layout = p.plan.layout();
+    let mut a = GpuBackend::new(ctx.clone()).unwrap();
+    a.begin(layout).unwrap();
+    a.accumulate(&p.plan.atlas, &records).unwrap();
+    let first = a.read().unwrap();
+    let mut reversed = records.clone();
+    reversed.reverse();
+    let mut b = GpuBackend::with_options(
+        ctx.clone(),
+        GpuOptions {
+            max_chunk: 777,
+            wait: false,
+        },
+    )
+    .unwrap();
+    b.begin(layout).unwrap();
+    // The same total in one call: same exponent, so the same integers.
+    b.accumulate(&p.plan.atlas, &reversed).unwrap();
+    assert_eq!(a.scale_exponent(), b.scale_exponent());
+    assert!(first.data.iter().any(|v| *v != 0.0));
+    assert_eq!(first.data, b.read().unwrap().data);
+    // `begin` clears: the same again on a reused target.
+    b.begin(layout).unwrap();
+    b.accumulate(&p.plan.atlas, &records).unwrap();
+    assert_eq!(first.data, b.read().unwrap().data);
+}
+
+/// A first batch far lighter than the next forces the sums to be rescaled (the exponent
+/// drops); the image still matches the CPU's.
+#[test]
+fn gpu_rescales_when_the_mass_grows() {
+    let Some(ctx) = gpu() else { return };
+    let (g, coeffs) = coefficients(Family::Linear, 1);
+    let p = plan(&g, &coeffs, &ViewSpec::single(view()), 1);
+    let records: Vec<SplatRecord> = p.batches.iter().flat_map(|b| b.1.clone()).collect();
+    let light: Vec<SplatRecord> = records[..2000]
+        .iter()
+        .map(|r| SplatRecord {
+            value: r.value * 1e-9,
+            ..*r
+        })
+        .collect();
+    let layout = p.plan.layout();
+    let mut cpu = CpuBackend::new();
+    let mut gpu = GpuBackend::new(ctx).unwrap();
+    cpu.begin(layout).unwrap();
+    gpu.begin(layout).unwrap();
+    for batch in [&light[..], &records[..]] {
+        cpu.accumulate(&p.plan.atlas, batch).unwrap();
+        gpu.accumulate(&p.plan.atlas, batch).unwrap();
+    }
+    let e_after_light = {
+        let mut probe = GpuBackend::new(gpu.context().clone()).unwrap();
+        probe.begin(layout).unwrap();
+        probe.accumulate(&p.plan.atlas, &light).unwrap();
+        probe.scale_exponent().unwrap()
+    };
+    assert!(gpu.scale_exponent().unwrap() < e_after_light - 20);
+    let snr = snr_db(&cpu.read().unwrap().data, &gpu.read().unwrap().data);
+    eprintln!("after a rescale: SNR {snr:.1} dB");
+    assert!(snr >= 50.0, "{snr}");
+}
+
+fn byte_diffs(a: &[u8], b: &[u8]) -> (u8, usize) {
+    assert_eq!(a.len(), b.len());
+    let max = a
+        .iter()
+        .zip(b)
+        .map(|(x, y)| x.abs_diff(*y))
+        .max()
+        .unwrap_or(0);
+    (max, a.iter().zip(b).filter(|(x, y)| x != y).count())
+}
+
+/// The display pass maps the sums as the PNG writer does: grey multiview with the automatic
+/// window, and RGB through a colour matrix and per-pixel offsets with a given window. Bytes
+/// differ by at most one level (f32 against f64 at rounding ties), rarely.
+#[test]
+fn display_matches_the_png_mapping() {
+    let Some(ctx) = gpu() else { return };
+    // Grey, multiview, automatic window.
+    let (g, coeffs) = coefficients(Family::Haar, 1);
+    let spec = ViewSpec {
+        view: view(),
+        multiview: true,
+    };
+    let p = plan(&g, &coeffs[..20_000], &spec, 1);
+    let (cpu, _, _) = render_both(&ctx, &p);
+    let mut gpu = GpuBackend::new(ctx.clone()).unwrap();
+    gpu.begin(p.plan.layout()).unwrap();
+    for (_, r) in &p.batches {
+        gpu.accumulate(&p.plan.atlas, r).unwrap();
+    }
+    let texture = gpu.display(&DisplayOptions::default()).unwrap();
+    assert_eq!((texture.width(), texture.height()), (300, 84));
+    let shown = gpu.read_display().unwrap();
+    let own = gpu.read().unwrap().to_rgba8(None).unwrap();
+    let (max, n) = byte_diffs(&shown, &own);
+    eprintln!("grey display vs its own image's PNG mapping: max {max}, {n} bytes differ");
+    assert!(max <= 1 && n * 100 <= shown.len(), "max {max}, {n} differ");
+    let reference = cpu.to_rgba8(None).unwrap();
+    let (max, n) = byte_diffs(&shown, &reference);
+    eprintln!("grey display vs the CPU backend's PNG mapping: max {max}, {n} bytes differ");
+    assert!(max <= 1 && n * 100 <= shown.len(), "max {max}, {n} differ");
+    assert!(shown
+        .chunks_exact(4)
+        .all(|px| px[3] == 255 && px[0] == px[1] && px[1] == px[2]));
+
+    // RGB through a colour matrix with offsets, given window.
+    let (g, coeffs) = coefficients(Family::Linear, 3);
+    let p = plan(&g, &coeffs[..30_000], &ViewSpec::single(view()), 3);
+    let (cpu, _, _) = render_both(&ctx, &p);
+    let mut gpu = GpuBackend::new(ctx).unwrap();
+    gpu.begin(p.plan.layout()).unwrap();
+    for (_, r) in &p.batches {
+        gpu.accumulate(&p.plan.atlas, r).unwrap();
+    }
+    let offset: Vec<f32> = (0..cpu.width * cpu.height * 3)
+        .map(|i| (i % 97) as f32 * 0.3)
+        .collect();
+    let colour = ColourMap {
+        matrix: [
+            [1.0, 0.956, 0.621],
+            [1.0, -0.272, -0.647],
+            [1.0, -1.106, 1.703],
+        ],
+        offset: Some(offset),
+    };
+    let mapped = colour.apply(&cpu).unwrap();
+    let window = mapped.percentiles(2.0, 97.0);
+    let options = DisplayOptions {
+        window: Some(window),
+        colour: Some(colour),
+    };
+    gpu.display(&options).unwrap();
+    let shown = gpu.read_display().unwrap();
+    let reference = mapped.to_rgba8(Some(window)).unwrap();
+    let (max, n) = byte_diffs(&shown, &reference);
+    eprintln!("rgb display vs CPU colour map + PNG mapping: max {max}, {n} bytes differ");
+    assert!(max <= 1 && n * 100 <= shown.len(), "max {max}, {n} differ");
+    let distinct: std::collections::BTreeSet<u8> = shown.iter().copied().collect();
+    assert!(distinct.len() > 100, "the image is not flat");
+}
+
+/// Bad input is refused with typed errors, never a panic or a device error.
+#[test]
+fn gpu_refuses_bad_input() {
+    let Some(ctx) = gpu() else { return };
+    let (g, coeffs) = coefficients(Family::Haar, 1);
+    let p = plan(&g, &coeffs[..100], &ViewSpec::single(view()), 1);
+    let atlas = &p.plan.atlas;
+    let good = p.batches[2].1[0];
+    let mut b = GpuBackend::new(ctx).unwrap();
+    assert!(matches!(
+        b.accumulate(atlas, &[good]),
+        Err(BackendError::Layout(_))
+    ));
+    assert!(matches!(b.read(), Err(BackendError::Layout(_))));
+    b.begin(p.plan.layout()).unwrap();
+    let bad_phase = SplatRecord {
+        phase: atlas.phases.len() as u32,
+        ..good
+    };
+    assert!(matches!(
+        b.accumulate(atlas, &[good, bad_phase]),
+        Err(BackendError::Phase { .. })
+    ));
+    let bad_view = SplatRecord { view: 1, ..good };
+    assert!(matches!(
+        b.accumulate(atlas, &[bad_view]),
+        Err(BackendError::Target { .. })
+    ));
+    let nan = SplatRecord {
+        value: f32::NAN,
+        ..good
+    };
+    assert_eq!(
+        b.accumulate(atlas, &[good, nan]),
+        Err(BackendError::NotFinite { index: 1 })
+    );
+    // Far off screen: nothing added, no overflow in the shader's clipping.
+    let far = [
+        SplatRecord {
+            x0: i32::MAX,
+            y0: i32::MIN,
+            ..good
+        },
+        SplatRecord {
+            x0: i32::MIN,
+            y0: i32::MAX - 3,
+            ..good
+        },
+    ];
+    assert_eq!(b.accumulate(atlas, &far).unwrap(), 0);
+    assert!(b.read().unwrap().data.iter().all(|v| *v == 0.0));
+    assert!(b
+        .begin(Layout {
+            width: 1 << 20,
+            height: 1 << 20,
+            channels: 1,
+            views: 1,
+        })
+        .is_err());
+    b.begin(Layout {
+        width: 8,
+        height: 8,
+        channels: 2,
+        views: 1,
+    })
+    .unwrap();
+    assert!(matches!(
+        b.display(&DisplayOptions::default()),
+        Err(BackendError::Display(_))
+    ));
+    // The backend still works after all that.
+    b.begin(p.plan.layout()).unwrap();
+    assert!(b.accumulate(atlas, &[good]).unwrap() > 0);
+    assert!(b.read().unwrap().data.iter().any(|v| *v != 0.0));
+}
+
+/// An adapter that does not exist is a typed error (whatever the machine has).
+#[test]
+fn missing_adapter_is_a_typed_error() {
+    let request = AdapterRequest {
+        name: Some("no such adapter 7f3a".into()),
+        ..AdapterRequest::from_env()
+    };
+    match GpuContext::request(&request) {
+        Err(BackendError::NoAdapter(m)) => assert!(m.contains("no such adapter 7f3a"), "{m}"),
+        other => panic!("expected NoAdapter, got {other:?}"),
+    }
+}
+
+/// `--cpu` gives the CPU backend; the default never picks a software adapter.
+#[test]
+fn selection_policy() {
+    let cpu = select(BackendChoice::Cpu).unwrap();
+    assert_eq!(cpu.backend.name(), "cpu");
+    let auto = select(BackendChoice::Auto).unwrap();
+    eprintln!("auto: {}", auto.reason);
+    match wavesplat_viewer::backend::gpu::probe_adapter() {
+        Ok(info) if info.device_type != wgpu::DeviceType::Cpu => {
+            assert!(auto.backend.name().starts_with("gpu"), "{}", auto.reason)
+        }
+        _ => assert_eq!(auto.backend.name(), "cpu", "{}", auto.reason),
+    }
+}
+
+/// The render session drives the GPU backend through the trait (boxed, as `select` gives it):
+/// progressive frames with a small budget end on the CPU session's image.
+#[test]
+fn session_on_the_gpu_backend_matches_the_cpu_one() {
+    use std::time::Duration;
+    use wavesplat_compressor::encode::{compress, CompressOptions, Target};
+    use wavesplat_compressor::phantom::Phantom;
+    use wavesplat_viewer::session::RenderSession;
+    let Some(ctx) = gpu() else { return };
+    let bytes = compress(
+        &Phantom::SheppLogan.generate([40, 36, 44]),
+        &CompressOptions {
+            target: Target::Fraction(0.1),
+            refine: None,
+            ..Default::default()
+        },
+        &|_, _| {},
+    )
+    .unwrap()
+    .bytes;
+    let file = wavesplat_codec::format::parse_file(&bytes).unwrap();
+    let spec = ViewSpec {
+        view: View::new(0.4, 1.1, 90, 70),
+        multiview: true,
+    };
+    let gpu_backend: Box<dyn AccumulationBackend> = Box::new(GpuBackend::new(ctx).unwrap());
+    let backends: [Box<dyn AccumulationBackend>; 2] = [Box::new(CpuBackend::new()), gpu_backend];
+    let mut images = Vec::new();
+    for backend in backends {
+        let name = backend.name();
+        let mut session =
+            RenderSession::new(file.header.clone(), spec, backend, Default::default()).unwrap();
+        for (id, p) in file.packets.iter().enumerate() {
+            session.add_packet(id as u32, p).unwrap();
+        }
+        let mut frames = 0;
+        while session.pending() > 0 {
+            session.step(Duration::from_millis(5)).unwrap();
+            frames += 1;
+        }
+        eprintln!("{name}: {frames} frames");
+        assert!(frames > 1, "{name}: refinement took one frame");
+        images.push(session.image().unwrap());
+    }
+    let snr = snr_db(&images[0].data, &images[1].data);
+    eprintln!("session image, GPU vs CPU: SNR {snr:.1} dB");
+    assert!(snr >= 50.0, "{snr}");
+}
