@@ -227,7 +227,7 @@ impl CacheClient {
     ) -> Result<CacheClient, ClientError> {
         let (url, endpoint) = endpoint(url, options)?;
         let channel = endpoint.connect().await.map_err(|e| ClientError::Connect {
-            reason: wavesplat_net::tls::describe(&e),
+            reason: wavesplat_net::tls::explain_connect_error(&url, &e),
             url,
         })?;
         Ok(CacheClient::over(channel, options))

@@ -124,6 +124,22 @@ pub fn describe(e: &(dyn std::error::Error + 'static)) -> String {
     out
 }
 
+/// Why connecting to `url` failed, for people: the causes ([`describe`]), and for an
+/// `https://` URL whose server does not answer in TLS, that likely cause in words.
+pub fn explain_connect_error(url: &str, e: &(dyn std::error::Error + 'static)) -> String {
+    let causes = describe(e);
+    if url.starts_with("https://")
+        && (causes.contains("InvalidContentType") || causes.contains("corrupt message"))
+    {
+        format!(
+            "TLS handshake failed: the server did not answer in TLS (is it serving plaintext? \
+             then use http://) ({causes})"
+        )
+    } else {
+        causes
+    }
+}
+
 /// Refuses a non-loopback `addr` without both TLS and authentication, unless `insecure`.
 pub fn check_exposure(
     addr: SocketAddr,

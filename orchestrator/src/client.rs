@@ -38,7 +38,10 @@ pub async fn connect_with(
         .endpoint(url)
         .map_err(|e| OrchestratorError::Connect(e.to_string()))?;
     let channel = ep.connect().await.map_err(|e| {
-        OrchestratorError::Connect(format!("{url}: {}", wavesplat_net::tls::describe(&e)))
+        OrchestratorError::Connect(format!(
+            "{url}: {}",
+            wavesplat_net::tls::explain_connect_error(&url, &e)
+        ))
     })?;
     Ok(client(channel, options))
 }
