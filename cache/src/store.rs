@@ -30,7 +30,7 @@ use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
 use std::time::{SystemTime, UNIX_EPOCH};
-use wavesplat_codec::format::packet::decode_packet;
+use wavesplat_codec::format::packet::{decode_packet_within, DecodeBudget};
 use wavesplat_codec::format::{parse_file, parse_prelude, read_header_section, Prelude};
 
 /// Limits applied to uploads.
@@ -48,6 +48,8 @@ pub struct Limits {
     /// of each); an upload waits until its share is free. At least `max_packet_bytes` and
     /// `max_prelude_bytes`.
     pub max_buffered_bytes: u64,
+    /// What validating one packet may cost (checked against its declared count first).
+    pub decode: DecodeBudget,
 }
 
 impl Default for Limits {
@@ -58,6 +60,10 @@ impl Default for Limits {
             max_prelude_bytes: 16 << 20,
             max_concurrent_uploads: 16,
             max_buffered_bytes: 256 << 20,
+            decode: DecodeBudget {
+                max_coefficients: 1 << 24,
+                max_bytes: 1 << 30,
+            },
         }
     }
 }
@@ -178,8 +184,9 @@ fn index_packet(
     i: usize,
     bytes: &[u8],
     offset: u64,
+    budget: &DecodeBudget,
 ) -> Result<PacketMeta, CacheError> {
-    let d = decode_packet(&prelude.header, bytes)
+    let d = decode_packet_within(&prelude.header, bytes, budget)
         .map_err(|e| CacheError::InvalidUpload(format!("packet {i}: {e}")))?;
     Ok(PacketMeta {
         tile: d.tile as u32,
@@ -203,7 +210,7 @@ pub fn index_file(bytes: &[u8], limits: &Limits) -> Result<VolumeIndex, CacheErr
     let mut offset = prelude.len() as u64;
     for (i, p) in file.packets.iter().enumerate() {
         check_packet_size(p.len(), limits)?;
-        packets.push(index_packet(&prelude, i, p, offset)?);
+        packets.push(index_packet(&prelude, i, p, offset, &limits.decode)?);
         offset += p.len() as u64;
     }
     Ok(VolumeIndex {
@@ -702,14 +709,14 @@ impl Sink {
             self.offset = p.len() as u64;
             let used = p.len();
             self.prelude = Some(p);
-            return self.feed_packets(&rest[used..]);
+            return self.feed_packets(&rest[used..], limits);
         }
-        self.feed_packets(data)
+        self.feed_packets(data, limits)
     }
 
-    fn feed_packets(&mut self, mut data: &[u8]) -> Result<(), CacheError> {
+    fn feed_packets(&mut self, mut data: &[u8], limits: &Limits) -> Result<(), CacheError> {
         while !data.is_empty() {
-            let n = self.feed_packets_some(data)?;
+            let n = self.feed_packets_some(data, limits)?;
             data = &data[n..];
         }
         Ok(())
@@ -717,7 +724,7 @@ impl Sink {
 
     /// Takes bytes of the current packet from `data`, checks the packet when complete, and
     /// returns how many bytes it took.
-    fn feed_packets_some(&mut self, data: &[u8]) -> Result<usize, CacheError> {
+    fn feed_packets_some(&mut self, data: &[u8], limits: &Limits) -> Result<usize, CacheError> {
         let Some(p) = &self.prelude else {
             return Ok(0);
         };
@@ -733,7 +740,7 @@ impl Sink {
         let take = (len - self.packet_buf.len()).min(data.len());
         self.packet_buf.extend_from_slice(&data[..take]);
         if self.packet_buf.len() == len {
-            let meta = index_packet(p, i, &self.packet_buf, self.offset)?;
+            let meta = index_packet(p, i, &self.packet_buf, self.offset, &limits.decode)?;
             self.offset += len as u64;
             self.packets.push(meta);
             self.packet_buf.clear();

@@ -98,6 +98,16 @@ pub enum FormatError {
         /// The limit.
         limit: u64,
     },
+    /// Decoding would cost more than the caller's budget allows.
+    #[error("decoding needs {need} {what}, over the budget of {budget}")]
+    OverBudget {
+        /// What is counted.
+        what: &'static str,
+        /// What the input declares it needs.
+        need: u64,
+        /// The budget.
+        budget: u64,
+    },
     /// Entropy-coded data was malformed.
     #[error("entropy-coded data: {0}")]
     Entropy(#[from] EntropyError),
