@@ -1,7 +1,8 @@
-//! The crate boundaries that carry the design, checked over `cargo tree`: the cache server and
-//! the cache client link the format and the protocol, never the renderer, the encoder or their
-//! heavy dependencies (FFT, PNG, GPU, windowing), so a server can run on a machine without a
-//! GPU stack and the client side can depend on the client without a cycle.
+//! The crate boundaries that carry the design, checked over `cargo tree`: the servers (cache,
+//! orchestrator) and the cache client link the format and the protocol, never the renderer, the
+//! encoder or their heavy dependencies (FFT, PNG, GPU, windowing), so a server can run on a
+//! machine without a GPU stack and the client side can depend on the client without a cycle.
+//! The encoder is linked by the worker (and the binary) only.
 
 use std::collections::BTreeSet;
 use std::process::Command;
@@ -63,6 +64,34 @@ fn the_cache_server_links_neither_renderer_nor_encoder() {
     assert_excludes(
         "wavesplat-cache",
         &[RENDERING_AND_ENCODING, &["wavesplat-client"]].concat(),
+    );
+}
+
+#[test]
+fn the_orchestrator_server_links_neither_renderer_nor_encoder() {
+    assert_excludes(
+        "wavesplat-orchestrator",
+        &[
+            RENDERING_AND_ENCODING,
+            &["wavesplat-worker", "wavesplat-cache"],
+        ]
+        .concat(),
+    );
+}
+
+#[test]
+fn the_worker_links_the_encoder_but_no_renderer_or_cache_server() {
+    let deps = dependencies("wavesplat-worker");
+    assert!(deps.contains("wavesplat-compressor"), "{deps:?}");
+    assert_excludes(
+        "wavesplat-worker",
+        &[
+            "wavesplat-viewer",
+            "wavesplat-cache",
+            "png",
+            "wgpu",
+            "winit",
+        ],
     );
 }
 

@@ -44,6 +44,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             tile: d.tile as u32,
             layer: d.layer as u32,
             len: p.len() as u32,
+            offset: 0,
             summary: d.summary.clone(),
         })
         .collect();

@@ -1,6 +1,7 @@
 //! The cache's typed errors and their single mapping to gRPC statuses: bad input (upload, view,
 //! request shape) is `InvalidArgument`, a missing volume `NotFound`, a name clash
-//! `AlreadyExists`, storage trouble `Internal`. Messages carry the bad value and the allowed range.
+//! `AlreadyExists`, a concurrent change `Aborted`, a limit on concurrent work `ResourceExhausted`,
+//! an abandoned request `DeadlineExceeded` / `Cancelled`, storage trouble `Internal`. Messages carry the bad value and the allowed range.
 
 use thiserror::Error;
 use wavesplat_codec::format::FormatError;
@@ -40,6 +41,27 @@ pub enum CacheError {
     /// Stored metadata could not be read back (corruption).
     #[error("corrupt store entry: {0}")]
     Corrupt(String),
+    /// A file of the store could not be read or written.
+    #[error("storage file: {0}")]
+    Io(String),
+    /// A concurrent change got in the way; the request may be repeated.
+    #[error("conflict: {0}")]
+    Conflict(String),
+    /// The client's deadline passed before the request could complete; nothing was changed.
+    #[error("deadline exceeded: {0}")]
+    DeadlineExceeded(String),
+    /// The client went away before the request could complete; nothing was changed.
+    #[error("cancelled: {0}")]
+    Cancelled(String),
+    /// A limit on concurrent work was reached (per client or for the server).
+    #[error("busy: {0}")]
+    Busy(String),
+    /// The request's credentials do not allow it.
+    #[error("permission denied: {0}")]
+    PermissionDenied(String),
+    /// The server may not run as configured (exposure without TLS and authentication).
+    #[error("{0}")]
+    Security(String),
     /// A transport-level failure (binding, serving).
     #[error("transport: {0}")]
     Transport(#[from] tonic::transport::Error),
@@ -64,7 +86,16 @@ impl From<CacheError> for tonic::Status {
             | CacheError::InvalidUpload(_)
             | CacheError::Format(_)
             | CacheError::TooLarge { .. } => tonic::Status::invalid_argument(msg),
-            CacheError::Storage(_) | CacheError::Corrupt(_) | CacheError::Transport(_) => {
+            CacheError::Conflict(_) => tonic::Status::aborted(msg),
+            CacheError::DeadlineExceeded(_) => tonic::Status::deadline_exceeded(msg),
+            CacheError::Cancelled(_) => tonic::Status::cancelled(msg),
+            CacheError::Busy(_) => tonic::Status::resource_exhausted(msg),
+            CacheError::PermissionDenied(_) => tonic::Status::permission_denied(msg),
+            CacheError::Storage(_)
+            | CacheError::Corrupt(_)
+            | CacheError::Io(_)
+            | CacheError::Security(_)
+            | CacheError::Transport(_) => {
                 tracing::error!(error = %msg, "internal error");
                 tonic::Status::internal(msg)
             }

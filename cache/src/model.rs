@@ -31,8 +31,11 @@ impl std::fmt::Display for VolumeKey {
 pub struct VolumeMeta {
     /// Store-assigned id.
     pub id: u64,
-    /// Unique name.
+    /// The name the volume was asked for by (its first name when listed by id).
     pub name: String,
+    /// Every name of the volume, in the order they were given (identical content ingested
+    /// under another name adds a name; deleting a name removes it, the last one the volume).
+    pub names: Vec<String>,
     /// SHA-256 of the uploaded file.
     pub sha256: [u8; 32],
     /// Creation time (ms since the Unix epoch).
@@ -69,12 +72,21 @@ impl VolumeMeta {
         hex(&self.sha256)
     }
 
+    /// This record as seen through one of its names.
+    pub fn named(mut self, name: &str) -> VolumeMeta {
+        name.clone_into(&mut self.name);
+        self
+    }
+
     pub(crate) fn encode(&self) -> Vec<u8> {
         let mut w = ByteWriter::new();
-        w.u8(1); // record version
+        w.u8(2); // record version
         w.u64(self.id);
-        w.varint(self.name.len() as u64);
-        w.bytes(self.name.as_bytes());
+        w.varint(self.names.len() as u64);
+        for n in &self.names {
+            w.varint(n.len() as u64);
+            w.bytes(n.as_bytes());
+        }
         w.bytes(&self.sha256);
         for v in [
             self.created_unix_ms,
@@ -109,14 +121,27 @@ impl VolumeMeta {
         };
         let mut r = ByteReader::new(bytes, "volume record");
         let version = r.u8().map_err(corrupt)?;
-        if version != 1 {
+        if version != 1 && version != 2 {
             return Err(CacheError::Corrupt(format!(
-                "volume record version {version}, expected 1"
+                "volume record version {version}, expected 1 or 2"
             )));
         }
         let id = r.u64().map_err(corrupt)?;
-        let n = r.varint_max(4096, "name length").map_err(corrupt)? as usize;
-        let name = string(r.take(n).map_err(corrupt)?)?;
+        // Version 1 has one name; version 2 a list.
+        let count = if version == 1 {
+            1
+        } else {
+            r.varint_max(1 << 20, "name count").map_err(corrupt)? as usize
+        };
+        let mut names = Vec::with_capacity(count.min(r.remaining()));
+        for _ in 0..count {
+            let n = r.varint_max(4096, "name length").map_err(corrupt)? as usize;
+            names.push(string(r.take(n).map_err(corrupt)?)?);
+        }
+        let name = names
+            .first()
+            .cloned()
+            .ok_or_else(|| CacheError::Corrupt("volume record without a name".into()))?;
         let mut sha256 = [0u8; 32];
         sha256.copy_from_slice(r.take(32).map_err(corrupt)?);
         let mut u64s = [0u64; 5];
@@ -132,6 +157,7 @@ impl VolumeMeta {
         Ok(VolumeMeta {
             id,
             name,
+            names,
             sha256,
             created_unix_ms: u64s[0],
             file_bytes: u64s[1],
@@ -168,11 +194,14 @@ pub struct PacketMeta {
     pub layer: u32,
     /// Size in bytes.
     pub len: u32,
+    /// Where it starts in the volume's data file.
+    pub offset: u64,
     /// Energy Σ w²‖basis‖²·I per band (from the packet's own summary).
     pub summary: Vec<(Band, f64)>,
 }
 
-/// A volume's decoded header and its packet index (packet id = index in file order).
+/// A volume's decoded header and its packet index (packet id = index in file order). The
+/// store's encoding of the index (with the packets' offsets) is its own tree's format.
 #[derive(Debug, Clone)]
 pub struct VolumeIndex {
     /// The parsed header.
@@ -191,6 +220,7 @@ pub(crate) fn encode_packets(packets: &[PacketMeta]) -> Vec<u8> {
         w.varint(p.tile as u64);
         w.varint(p.layer as u64);
         w.varint(p.len as u64);
+        w.varint(p.offset);
         w.varint(p.summary.len() as u64);
         for (band, e) in &p.summary {
             w.u8(band.level);
@@ -201,8 +231,12 @@ pub(crate) fn encode_packets(packets: &[PacketMeta]) -> Vec<u8> {
     w.into_bytes()
 }
 
-/// Decodes a packet index.
-pub(crate) fn decode_packets(bytes: &[u8]) -> Result<Vec<PacketMeta>, CacheError> {
+/// Decodes a packet index (`with_offsets`: the current form; without, the form of stores that
+/// kept packets in sled, read once to migrate them).
+pub(crate) fn decode_packets(
+    bytes: &[u8],
+    with_offsets: bool,
+) -> Result<Vec<PacketMeta>, CacheError> {
     let corrupt =
         |e: wavesplat_codec::format::FormatError| CacheError::Corrupt(format!("packet index: {e}"));
     let mut r = ByteReader::new(bytes, "packet index");
@@ -212,6 +246,11 @@ pub(crate) fn decode_packets(bytes: &[u8]) -> Result<Vec<PacketMeta>, CacheError
         let tile = r.varint_max(u32::MAX as u64, "tile").map_err(corrupt)? as u32;
         let layer = r.varint_max(u32::MAX as u64, "layer").map_err(corrupt)? as u32;
         let len = r.varint_max(u32::MAX as u64, "len").map_err(corrupt)? as u32;
+        let offset = if with_offsets {
+            r.varint().map_err(corrupt)?
+        } else {
+            0
+        };
         let ns = r.varint_max(1 << 16, "summary").map_err(corrupt)? as usize;
         let mut summary = Vec::with_capacity(ns.min(r.remaining()));
         for _ in 0..ns {
@@ -224,6 +263,7 @@ pub(crate) fn decode_packets(bytes: &[u8]) -> Result<Vec<PacketMeta>, CacheError
             tile,
             layer,
             len,
+            offset,
             summary,
         });
     }
@@ -239,6 +279,7 @@ mod tests {
         let m = VolumeMeta {
             id: 7,
             name: "brain".into(),
+            names: vec!["brain".into(), "copy".into()],
             sha256: [3; 32],
             created_unix_ms: 1,
             file_bytes: 2,
@@ -255,14 +296,25 @@ mod tests {
             coefficients: 100,
         };
         assert_eq!(VolumeMeta::decode(&m.encode()).unwrap(), m);
+        // A version-1 record (one name, no count) still reads.
+        let one = VolumeMeta {
+            names: vec!["brain".into()],
+            ..m.clone()
+        };
+        let mut v1 = one.encode();
+        assert_eq!((v1[0], v1[9]), (2, 1));
+        v1[0] = 1;
+        v1.remove(9);
+        assert_eq!(VolumeMeta::decode(&v1).unwrap(), one);
         assert!(VolumeMeta::decode(&m.encode()[..20]).is_err());
         let p = vec![PacketMeta {
             tile: 3,
             layer: 1,
             len: 99,
+            offset: 1234,
             summary: vec![(Band { level: 2, kind: 5 }, 1.5)],
         }];
-        assert_eq!(decode_packets(&encode_packets(&p)).unwrap(), p);
-        assert!(decode_packets(&[0xff]).is_err());
+        assert_eq!(decode_packets(&encode_packets(&p), true).unwrap(), p);
+        assert!(decode_packets(&[0xff], true).is_err());
     }
 }

@@ -7,15 +7,19 @@
 
 use crate::convert;
 use crate::error::CacheError;
-use crate::model::{VolumeIndex, VolumeMeta};
 use crate::priority::Priority;
-use crate::store::{validate_name, Store};
-use std::collections::HashSet;
+use crate::store::{validate_name, OpenVolume, Store, Upload};
+use std::collections::{HashMap, HashSet};
 use std::pin::Pin;
-use tokio::sync::{mpsc, watch};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
+use tokio::sync::{mpsc, watch, Semaphore};
 use tokio_stream::wrappers::ReceiverStream;
 use tokio_stream::Stream;
 use tonic::{Request, Response, Status, Streaming};
+use wavesplat_net::deadline::request_deadline;
+use wavesplat_net::status::client_fault;
+use wavesplat_net::Caller;
 use wavesplat_proto::pb;
 use wavesplat_proto::pb::cache_server::Cache;
 
@@ -26,6 +30,58 @@ pub const STREAM_BUFFER: usize = 4;
 /// Largest `FirstPackets` budget (bytes).
 pub const MAX_FIRST_PACKETS_BYTES: u64 = 16 << 20;
 
+/// Limits per caller (its token's identity, or its address without authentication).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Fairness {
+    /// Refinement streams one caller may have open at once.
+    pub max_streams_per_caller: usize,
+    /// Uploads one caller may have in progress at once; more wait their turn (so one caller
+    /// cannot take every upload slot).
+    pub max_uploads_per_caller: usize,
+}
+
+impl Default for Fairness {
+    fn default() -> Self {
+        Fairness {
+            max_streams_per_caller: 64,
+            max_uploads_per_caller: 4,
+        }
+    }
+}
+
+/// Open streams and upload slots per caller.
+#[derive(Debug, Default)]
+struct Open {
+    streams: HashMap<String, usize>,
+    uploads: HashMap<String, Arc<Semaphore>>,
+}
+
+/// A stream counted against its caller until dropped.
+struct Slot {
+    open: Arc<Mutex<Open>>,
+    caller: String,
+}
+
+impl Drop for Slot {
+    fn drop(&mut self) {
+        if let Ok(mut o) = self.open.lock() {
+            if let Some(n) = o.streams.get_mut(&self.caller) {
+                *n -= 1;
+                if *n == 0 {
+                    o.streams.remove(&self.caller);
+                }
+            }
+        }
+    }
+}
+
+fn caller<T>(request: &Request<T>) -> String {
+    request
+        .extensions()
+        .get::<Caller>()
+        .map_or_else(|| "unknown".to_string(), |c| c.identity.clone())
+}
+
 /// The service implementation.
 #[derive(Debug, Clone)]
 pub struct CacheService {
@@ -34,12 +90,107 @@ pub struct CacheService {
     /// keeps its stream open while it may still change the view, so graceful shutdown would
     /// otherwise wait for it forever).
     stopping: watch::Receiver<bool>,
+    /// Upload slots (`Limits::max_concurrent_uploads`).
+    uploads: Arc<Semaphore>,
+    /// Bytes uploads may hold in memory (`Limits::max_buffered_bytes`), one permit a byte.
+    buffered: Arc<Semaphore>,
+    fairness: Fairness,
+    open: Arc<Mutex<Open>>,
 }
 
 impl CacheService {
     /// A service over `store` that ends its streams once `stopping` becomes `true`.
     pub fn new(store: Store, stopping: watch::Receiver<bool>) -> CacheService {
-        CacheService { store, stopping }
+        Self::with_fairness(store, stopping, Fairness::default())
+    }
+
+    /// The same, with per-caller limits.
+    pub fn with_fairness(
+        store: Store,
+        stopping: watch::Receiver<bool>,
+        fairness: Fairness,
+    ) -> CacheService {
+        let limits = *store.limits();
+        let bytes = usize::try_from(limits.max_buffered_bytes)
+            .unwrap_or(usize::MAX)
+            .min(Semaphore::MAX_PERMITS);
+        CacheService {
+            store,
+            stopping,
+            uploads: Arc::new(Semaphore::new(limits.max_concurrent_uploads)),
+            buffered: Arc::new(Semaphore::new(bytes)),
+            fairness,
+            open: Arc::default(),
+        }
+    }
+
+    /// Counts a refinement stream against its caller, or refuses it over the caller's limit.
+    fn stream_slot<T>(&self, request: &Request<T>) -> Result<Slot, Status> {
+        let caller = caller(request);
+        let limit = self.fairness.max_streams_per_caller;
+        let mut open = self
+            .open
+            .lock()
+            .map_err(|_| Status::internal("caller table poisoned"))?;
+        let n = open.streams.entry(caller.clone()).or_insert(0);
+        if *n >= limit {
+            return Err(CacheError::Busy(format!(
+                "{caller} has {n} refinement streams open; the limit per caller is {limit}"
+            ))
+            .into());
+        }
+        *n += 1;
+        Ok(Slot {
+            open: self.open.clone(),
+            caller,
+        })
+    }
+
+    /// The caller's upload slots.
+    fn upload_slots<T>(&self, request: &Request<T>) -> Result<Arc<Semaphore>, Status> {
+        let limit = self.fairness.max_uploads_per_caller.max(1);
+        let mut open = self
+            .open
+            .lock()
+            .map_err(|_| Status::internal("caller table poisoned"))?;
+        if open.uploads.len() > 4096 {
+            open.uploads.retain(|_, s| s.available_permits() < limit);
+        }
+        Ok(open
+            .uploads
+            .entry(caller(request))
+            .or_insert_with(|| Arc::new(Semaphore::new(limit)))
+            .clone())
+    }
+}
+
+/// Reads the next message of a client stream; a message the client got wrong is its fault.
+async fn next_message<T>(s: &mut Streaming<T>) -> Result<Option<T>, Status> {
+    s.message().await.map_err(client_fault)
+}
+
+/// Set when a handler is dropped before it finished (the client went away or its deadline
+/// passed): work it handed to the blocking pool then rolls back instead of committing.
+#[derive(Default)]
+struct AbandonGuard {
+    flag: Arc<AtomicBool>,
+    disarmed: bool,
+}
+
+impl AbandonGuard {
+    fn flag(&self) -> Arc<AtomicBool> {
+        self.flag.clone()
+    }
+    fn disarm(mut self) {
+        self.disarmed = true;
+    }
+}
+
+impl Drop for AbandonGuard {
+    fn drop(&mut self) {
+        if !self.disarmed {
+            self.flag.store(true, Ordering::SeqCst);
+        }
     }
 }
 
@@ -60,8 +211,15 @@ impl Cache for CacheService {
         &self,
         request: Request<Streaming<pb::IngestRequest>>,
     ) -> Result<Response<pb::IngestResponse>, Status> {
+        // The deadline is honoured up to the commit: if it passes (or the client goes away and
+        // this handler is dropped) before, nothing is stored. A reply lost after the commit
+        // leaves the volume stored; ingest is idempotent, so repeating it returns the volume
+        // with `existed`.
+        let deadline = request_deadline(request.metadata());
+        let caller_slots = self.upload_slots(&request)?;
+        let abandoned = AbandonGuard::default();
         let mut inbound = request.into_inner();
-        let start = match inbound.message().await?.and_then(|m| m.msg) {
+        let start = match next_message(&mut inbound).await?.and_then(|m| m.msg) {
             Some(pb::ingest_request::Msg::Start(s)) => s,
             _ => {
                 return Err(CacheError::InvalidRequest(
@@ -81,37 +239,74 @@ impl Cache for CacheService {
             }
             .into());
         }
-        let total = start.total_size as usize;
-        let mut data = Vec::with_capacity(total.min(64 << 20));
-        while let Some(m) = inbound.message().await? {
-            match m.msg {
-                Some(pb::ingest_request::Msg::Chunk(c)) => {
-                    if data.len() + c.len() > total {
-                        return Err(CacheError::InvalidUpload(format!(
-                            "more data than the declared total size of {total} bytes"
-                        ))
-                        .into());
-                    }
-                    data.extend_from_slice(&c);
-                }
+        // Uploads beyond the caller's or the server's limit wait here without reading their
+        // stream (the transport's flow control holds the client back).
+        let _caller_slot = caller_slots
+            .acquire_owned()
+            .await
+            .map_err(|_| Status::unavailable("the cache is shutting down"))?;
+        let _slot = self
+            .uploads
+            .clone()
+            .acquire_owned()
+            .await
+            .map_err(|_| Status::unavailable("the cache is shutting down"))?;
+        let store = self.store.clone();
+        let name = start.name;
+        let total = start.total_size;
+        let mut upload = blocking(move || Upload::begin(&store, &name, declared, total)).await?;
+        let mut held: Option<(u64, tokio::sync::OwnedSemaphorePermit)> = None;
+        while let Some(m) = next_message(&mut inbound).await? {
+            let chunk = match m.msg {
+                Some(pb::ingest_request::Msg::Chunk(c)) => c,
                 _ => {
                     return Err(CacheError::InvalidRequest(
                         "only `chunk` messages may follow `start`".into(),
                     )
                     .into())
                 }
+            };
+            // Reserve what the upload may hold from now on before it holds it; an upload waits
+            // only while it holds no reservation, so uploads cannot starve each other.
+            let need = upload.memory_need();
+            if held.as_ref().map_or(0, |h| h.0) != need {
+                held = None;
+                if need > 0 {
+                    let permits = u32::try_from(need).unwrap_or(u32::MAX);
+                    let permit = self
+                        .buffered
+                        .clone()
+                        .acquire_many_owned(permits)
+                        .await
+                        .map_err(|_| Status::unavailable("the cache is shutting down"))?;
+                    held = Some((need, permit));
+                }
             }
+            upload = blocking(move || {
+                upload.push(&chunk)?;
+                Ok(upload)
+            })
+            .await?;
         }
-        if data.len() != total {
-            return Err(CacheError::InvalidUpload(format!(
-                "truncated upload: received {} of {total} bytes",
-                data.len()
-            ))
-            .into());
-        }
-        let store = self.store.clone();
-        let name = start.name;
-        let done = blocking(move || store.ingest(&name, &data, Some(declared))).await?;
+        drop(held);
+        let flag = abandoned.flag();
+        let done = blocking(move || {
+            upload.finish(|| {
+                if flag.load(Ordering::SeqCst) {
+                    Some(CacheError::Cancelled("the client went away".into()))
+                } else if deadline.is_some_and(|d| std::time::Instant::now() >= d) {
+                    Some(CacheError::DeadlineExceeded(
+                        "the upload was complete but its deadline passed before the commit; \
+                         nothing was stored"
+                            .into(),
+                    ))
+                } else {
+                    None
+                }
+            })
+        })
+        .await?;
+        abandoned.disarm();
         Ok(Response::new(pb::IngestResponse {
             volume: Some(convert::volume_info(&done.volume)),
             existed: done.existed,
@@ -155,14 +350,11 @@ impl Cache for CacheService {
     ) -> Result<Response<pb::VolumeHeader>, Status> {
         let key = convert::volume_key(request.into_inner().volume)?;
         let store = self.store.clone();
-        let (meta, index) = blocking(move || {
-            let id = store.resolve(&key)?;
-            Ok((store.meta(id)?, store.index(id)?))
-        })
-        .await?;
+        let (volume, name) =
+            blocking(move || Ok((store.open_volume(store.resolve(&key)?)?, key))).await?;
         Ok(Response::new(pb::VolumeHeader {
-            volume: Some(convert::volume_info(&meta)),
-            header: index.header_bytes,
+            volume: Some(convert::volume_info(&named(&volume, &name))),
+            header: volume.index.header_bytes.clone(),
         }))
     }
 
@@ -172,9 +364,14 @@ impl Cache for CacheService {
     ) -> Result<Response<pb::PacketTableResponse>, Status> {
         let key = convert::volume_key(request.into_inner().volume)?;
         let store = self.store.clone();
-        let index = blocking(move || store.index(store.resolve(&key)?)).await?;
+        let volume = blocking(move || store.open_volume(store.resolve(&key)?)).await?;
         Ok(Response::new(pb::PacketTableResponse {
-            packets: index.packets.iter().map(convert::packet_entry).collect(),
+            packets: volume
+                .index
+                .packets
+                .iter()
+                .map(convert::packet_entry)
+                .collect(),
         }))
     }
 
@@ -194,11 +391,10 @@ impl Cache for CacheService {
         }
         let store = self.store.clone();
         let resp = blocking(move || {
-            let id = store.resolve(&key)?;
-            let index = store.index(id)?;
+            let volume = store.open_volume(store.resolve(&key)?)?;
             let mut packets = Vec::new();
             let mut used = 0u64;
-            for (i, p) in index.packets.iter().enumerate() {
+            for (i, p) in volume.index.packets.iter().enumerate() {
                 if !packets.is_empty() && used + p.len as u64 > req.max_bytes {
                     break;
                 }
@@ -207,12 +403,12 @@ impl Cache for CacheService {
                     id: i as u32,
                     tile: p.tile,
                     layer: p.layer,
-                    data: store.packet(id, i as u32)?,
+                    data: volume.packet(i as u32)?,
                     priority: 0.0,
                 });
             }
             Ok(pb::FirstPacketsResponse {
-                header: index.header_bytes,
+                header: volume.index.header_bytes.clone(),
                 packets,
             })
         })
@@ -226,8 +422,9 @@ impl Cache for CacheService {
         &self,
         request: Request<Streaming<pb::RefineRequest>>,
     ) -> Result<Response<Self::RefineStream>, Status> {
+        let slot = self.stream_slot(&request)?;
         let mut inbound = request.into_inner();
-        let start = match inbound.message().await?.and_then(|m| m.msg) {
+        let start = match next_message(&mut inbound).await?.and_then(|m| m.msg) {
             Some(pb::refine_request::Msg::Start(s)) => s,
             _ => {
                 return Err(CacheError::InvalidRequest(
@@ -239,28 +436,38 @@ impl Cache for CacheService {
         let key = convert::volume_key(start.volume)?;
         let spec = convert::view_spec(start.view)?;
         let store = self.store.clone();
-        let (meta, index, priority) = blocking(move || {
-            let id = store.resolve(&key)?;
-            let meta = store.meta(id)?;
-            let index = store.index(id)?;
-            let priority = Priority::new(&index.header, &spec)?;
-            Ok((meta, index, priority))
+        let (volume, priority, name) = blocking(move || {
+            let volume = store.open_volume(store.resolve(&key)?)?;
+            let priority = Priority::new(&volume.index.header, &spec)?;
+            Ok((volume, priority, key))
         })
         .await?;
-        let mut session = Session::new(self.store.clone(), meta, index, start.credit_bytes);
+        let mut session = Session::new(volume, name, start.credit_bytes);
         session.hold(&start.have)?;
         session.reorder(priority);
         let (tx, rx) = mpsc::channel(STREAM_BUFFER);
-        tokio::spawn(session.run(inbound, tx, !start.have_header, self.stopping.clone()));
+        let stopping = self.stopping.clone();
+        tokio::spawn(async move {
+            session.run(inbound, tx, !start.have_header, stopping).await;
+            drop(slot);
+        });
         Ok(Response::new(Box::pin(ReceiverStream::new(rx))))
     }
 }
 
-/// One refinement stream's state.
+/// The record of an opened volume, named as the request named it.
+fn named(volume: &OpenVolume, key: &crate::VolumeKey) -> crate::VolumeMeta {
+    match key {
+        crate::VolumeKey::Name(n) => volume.meta.clone().named(n),
+        crate::VolumeKey::Id(_) => volume.meta.clone(),
+    }
+}
+
+/// One refinement stream's state. It holds its volume open: a deletion during the stream does
+/// not cut it short.
 struct Session {
-    store: Store,
-    meta: VolumeMeta,
-    index: VolumeIndex,
+    volume: Arc<OpenVolume>,
+    name: crate::VolumeKey,
     /// Packets the client holds or was sent.
     held: HashSet<u32>,
     /// Unsent packets, lowest priority first (the next one is popped from the end).
@@ -272,11 +479,10 @@ struct Session {
 }
 
 impl Session {
-    fn new(store: Store, meta: VolumeMeta, index: VolumeIndex, credit_bytes: u64) -> Session {
+    fn new(volume: Arc<OpenVolume>, name: crate::VolumeKey, credit_bytes: u64) -> Session {
         Session {
-            store,
-            meta,
-            index,
+            volume,
+            name,
             held: HashSet::new(),
             queue: Vec::new(),
             sent: 0,
@@ -286,7 +492,7 @@ impl Session {
     }
 
     fn check_ids(&self, ids: &[u32], what: &str) -> Result<(), CacheError> {
-        let n = self.index.packets.len();
+        let n = self.volume.index.packets.len();
         match ids.iter().find(|i| **i as usize >= n) {
             Some(bad) => Err(CacheError::InvalidRequest(format!(
                 "{what} packet id {bad} out of range 0..{n}"
@@ -319,6 +525,7 @@ impl Session {
     fn reorder(&mut self, priority: Priority) {
         let held = &self.held;
         let mut q: Vec<(f64, u32)> = self
+            .volume
             .index
             .packets
             .iter()
@@ -336,10 +543,10 @@ impl Session {
         match msg.msg {
             Some(pb::refine_request::Msg::View(v)) => {
                 let spec = convert::view_spec(Some(v))?;
-                let header = self.index.header.clone();
-                let priority = blocking(move || Priority::new(&header, &spec)).await?;
+                let volume = self.volume.clone();
+                let priority = blocking(move || Priority::new(&volume.index.header, &spec)).await?;
                 self.reorder(priority);
-                tracing::debug!(volume = self.meta.id, "view changed");
+                tracing::debug!(volume = self.volume.meta.id, "view changed");
                 Ok(())
             }
             Some(pb::refine_request::Msg::Holdings(h)) => {
@@ -364,8 +571,8 @@ impl Session {
             if !self.held.insert(id) {
                 continue;
             }
-            let p = &self.index.packets[id as usize];
-            let data = self.store.packet(self.meta.id, id)?;
+            let p = &self.volume.index.packets[id as usize];
+            let data = self.volume.packet(id)?;
             self.sent += 1;
             self.bytes += data.len() as u64;
             if let Some(credit) = &mut self.credit {
@@ -392,8 +599,8 @@ impl Session {
         use pb::refine_response::Msg;
         if send_header {
             let header = pb::VolumeHeader {
-                volume: Some(convert::volume_info(&self.meta)),
-                header: self.index.header_bytes.clone(),
+                volume: Some(convert::volume_info(&named(&self.volume, &self.name))),
+                header: self.volume.index.header_bytes.clone(),
             };
             let msg = pb::RefineResponse {
                 msg: Some(Msg::Header(header)),
@@ -419,7 +626,11 @@ impl Session {
                     if tx.send(Ok(msg)).await.is_err() {
                         return;
                     }
-                    tracing::debug!(volume = self.meta.id, sent = self.sent, "refinement done");
+                    tracing::debug!(
+                        volume = self.volume.meta.id,
+                        sent = self.sent,
+                        "refinement done"
+                    );
                     announced = true;
                 }
                 if !inbound_open {
@@ -432,7 +643,7 @@ impl Session {
                     let _ = tx.send(Err(Status::unavailable("the cache is shutting down"))).await;
                     return;
                 }
-                msg = inbound.message(), if inbound_open => match msg {
+                msg = next_message(&mut inbound), if inbound_open => match msg {
                     Ok(Some(m)) => {
                         if let Err(status) = self.handle(m).await {
                             let _ = tx.send(Err(status)).await;

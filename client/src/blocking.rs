@@ -4,8 +4,8 @@
 //! stream on its own task (see the viewer's cache source).
 
 use crate::{
-    CacheClient as AsyncClient, ClientError, Ingested, Packet, PacketEntry, VolumeHeader,
-    VolumeInfo, VolumeKey,
+    CacheClient as AsyncClient, ClientError, ConnectOptions, Ingested, Packet, PacketEntry,
+    VolumeHeader, VolumeInfo, VolumeKey,
 };
 use wavesplat_codec::format::Header;
 
@@ -19,11 +19,16 @@ pub struct CacheClient {
 impl CacheClient {
     /// Connects to a cache at `url`.
     pub fn connect(url: &str) -> Result<CacheClient, ClientError> {
+        Self::connect_with(url, &ConnectOptions::default())
+    }
+
+    /// Connects to a cache at `url` with `options` (CA, token).
+    pub fn connect_with(url: &str, options: &ConnectOptions) -> Result<CacheClient, ClientError> {
         let runtime = tokio::runtime::Builder::new_current_thread()
             .enable_all()
             .build()
             .map_err(|e| ClientError::Protocol(format!("cannot start a runtime: {e}")))?;
-        let inner = runtime.block_on(AsyncClient::connect(url))?;
+        let inner = runtime.block_on(AsyncClient::connect_with(url, options))?;
         Ok(CacheClient { runtime, inner })
     }
 

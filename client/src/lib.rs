@@ -32,8 +32,10 @@ pub use refine::{RefineControl, RefineEvent, RefineRequest, RefineStream};
 
 use sha2::{Digest, Sha256};
 use thiserror::Error;
+use tonic::service::interceptor::InterceptedService;
 use tonic::transport::Channel;
 use wavesplat_codec::format::{read_header_section, FormatError, Header};
+pub use wavesplat_net::{ConnectOptions, Credentials};
 use wavesplat_proto::pb;
 
 /// Upload chunk size.
@@ -53,14 +55,13 @@ pub enum ClientError {
         /// What is wrong with it.
         reason: String,
     },
-    /// Could not connect.
-    #[error("cannot connect to the cache at {url}: {source}")]
+    /// Could not connect (the message includes the causes: refused, TLS handshake, ...).
+    #[error("cannot connect to the cache at {url}: {reason}")]
     Connect {
         /// The URL.
         url: String,
-        /// Transport error.
-        #[source]
-        source: tonic::transport::Error,
+        /// What went wrong, with its causes.
+        reason: String,
     },
     /// The cache answered with an error status.
     #[error("cache: {code:?}: {message}")]
@@ -203,31 +204,44 @@ pub struct Ingested {
     pub existed: bool,
 }
 
+/// The transport under the generated client: a channel that adds the caller's token.
+pub type Transport = InterceptedService<Channel, Credentials>;
+
 /// An async client of one cache.
 #[derive(Debug, Clone)]
 pub struct CacheClient {
-    inner: pb::cache_client::CacheClient<Channel>,
+    inner: pb::cache_client::CacheClient<Transport>,
 }
 
 impl CacheClient {
-    /// Connects to a cache at `url` (`http://HOST:PORT`, or `HOST:PORT`).
+    /// Connects to a cache at `url` (`http://HOST:PORT`, `https://HOST:PORT` or `HOST:PORT`)
+    /// without a token, trusting the system's roots for TLS.
     pub async fn connect(url: &str) -> Result<CacheClient, ClientError> {
-        let (url, endpoint) = endpoint(url)?;
-        let channel = endpoint
-            .connect()
-            .await
-            .map_err(|source| ClientError::Connect { url, source })?;
-        Ok(CacheClient::over(channel))
+        Self::connect_with(url, &ConnectOptions::default()).await
+    }
+
+    /// Connects to a cache at `url` with `options`.
+    pub async fn connect_with(
+        url: &str,
+        options: &ConnectOptions,
+    ) -> Result<CacheClient, ClientError> {
+        let (url, endpoint) = endpoint(url, options)?;
+        let channel = endpoint.connect().await.map_err(|e| ClientError::Connect {
+            reason: wavesplat_net::tls::explain_connect_error(&url, &e),
+            url,
+        })?;
+        Ok(CacheClient::over(channel, options))
     }
 
     /// A client that connects on first use and reconnects after failures (for long-lived
     /// callers such as workers, which may start before the cache does).
-    pub fn connect_lazy(url: &str) -> Result<CacheClient, ClientError> {
-        let (_, endpoint) = endpoint(url)?;
-        Ok(CacheClient::over(endpoint.connect_lazy()))
+    pub fn connect_lazy(url: &str, options: &ConnectOptions) -> Result<CacheClient, ClientError> {
+        let (_, endpoint) = endpoint(url, options)?;
+        Ok(CacheClient::over(endpoint.connect_lazy(), options))
     }
 
-    fn over(channel: Channel) -> CacheClient {
+    fn over(channel: Channel, options: &ConnectOptions) -> CacheClient {
+        let channel = InterceptedService::new(channel, options.credentials.clone());
         let inner = pb::cache_client::CacheClient::new(channel)
             .max_decoding_message_size(MAX_MESSAGE_BYTES)
             .max_encoding_message_size(CHUNK_BYTES + (1 << 20));
@@ -375,34 +389,14 @@ pub struct Collected {
 }
 
 /// The endpoint of a cache URL, with the connection settings every client uses.
-fn endpoint(url: &str) -> Result<(String, tonic::transport::Endpoint), ClientError> {
-    let url = normalise_url(url)?;
-    let endpoint = tonic::transport::Endpoint::from_shared(url.clone())
-        .map_err(|e| ClientError::Url {
-            url: url.clone(),
-            reason: e.to_string(),
-        })?
-        .connect_timeout(std::time::Duration::from_secs(5))
-        .tcp_nodelay(true);
-    Ok((url, endpoint))
-}
-
-/// `HOST:PORT` → `http://HOST:PORT`; other schemes than http(s) are refused.
-fn normalise_url(url: &str) -> Result<String, ClientError> {
-    let bad = |reason: &str| ClientError::Url {
+fn endpoint(
+    url: &str,
+    options: &ConnectOptions,
+) -> Result<(String, tonic::transport::Endpoint), ClientError> {
+    options.endpoint(url).map_err(|e| ClientError::Url {
         url: url.to_string(),
-        reason: reason.to_string(),
-    };
-    if url.trim().is_empty() {
-        return Err(bad("empty"));
-    }
-    match url.split_once("://") {
-        None => Ok(format!("http://{url}")),
-        Some(("http" | "https", rest)) if !rest.is_empty() => Ok(url.to_string()),
-        Some(_) => Err(bad(
-            "expected http://HOST:PORT, https://HOST:PORT or HOST:PORT",
-        )),
-    }
+        reason: e.to_string(),
+    })
 }
 
 #[cfg(test)]
@@ -411,10 +405,12 @@ mod tests {
 
     #[test]
     fn urls_are_normalised_or_refused() {
-        assert_eq!(normalise_url("h:1").unwrap(), "http://h:1");
-        assert_eq!(normalise_url("http://h:1").unwrap(), "http://h:1");
-        assert!(normalise_url("").is_err());
-        assert!(normalise_url("ftp://h:1").is_err());
-        assert!(normalise_url("http://").is_err());
+        let o = ConnectOptions::default();
+        assert_eq!(endpoint("h:1", &o).unwrap().0, "http://h:1");
+        assert_eq!(endpoint("http://h:1", &o).unwrap().0, "http://h:1");
+        assert_eq!(endpoint("https://h:1", &o).unwrap().0, "https://h:1");
+        assert!(endpoint("", &o).is_err());
+        assert!(endpoint("ftp://h:1", &o).is_err());
+        assert!(endpoint("http://", &o).is_err());
     }
 }

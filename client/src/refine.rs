@@ -3,7 +3,6 @@
 
 use crate::{convert, ClientError, Packet, VolumeHeader, VolumeKey};
 use tokio::sync::mpsc;
-use tonic::transport::Channel;
 use tonic::Streaming;
 use wavesplat_codec::view::ViewSpec;
 use wavesplat_proto::pb;
@@ -142,7 +141,7 @@ impl RefineStream {
 }
 
 pub(crate) async fn open(
-    client: &mut pb::cache_client::CacheClient<Channel>,
+    client: &mut pb::cache_client::CacheClient<crate::Transport>,
     request: RefineRequest,
 ) -> Result<RefineStream, ClientError> {
     let view = convert::view_message(&request.view)

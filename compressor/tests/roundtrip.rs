@@ -593,3 +593,34 @@ proptest! {
         let _ = decode_packet(&parsed.header, &body);
     }
 }
+
+#[test]
+fn the_prelude_parses_as_the_bytes_arrive_and_junk_is_refused_at_once() {
+    use wavesplat_codec::format::parse_prelude;
+    for file in [sample_file(), sample_sigmap_file()] {
+        let whole = parse_file(&file).unwrap();
+        let prelude_len = whole.header_bytes + whole.directory_bytes;
+        for cut in 0..prelude_len {
+            assert!(
+                parse_prelude(&file[..cut]).unwrap().is_none(),
+                "prefix of {cut} bytes"
+            );
+        }
+        for cut in [prelude_len, prelude_len + 1, file.len()] {
+            let p = parse_prelude(&file[..cut]).unwrap().unwrap();
+            assert_eq!(p.len(), prelude_len);
+            assert_eq!(p.file_bytes(), file.len() as u64);
+            let lens: Vec<usize> = whole.packets.iter().map(|p| p.len()).collect();
+            assert_eq!(p.packet_lengths, lens);
+        }
+        // Junk is refused from its first byte; an absurd header length after ten.
+        assert!(parse_prelude(b"X").is_err());
+        let mut big = file[..10].to_vec();
+        big[6..10].copy_from_slice(&u32::MAX.to_le_bytes());
+        assert!(parse_prelude(&big).is_err());
+        // A corrupted directory is an error, not "need more".
+        let mut bad = file.clone();
+        bad[prelude_len - 1] ^= 0xff;
+        assert!(parse_prelude(&bad).is_err());
+    }
+}

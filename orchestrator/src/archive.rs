@@ -13,7 +13,7 @@
 //! Hidden files are ignored; `.raw` files whose name does not follow the convention, and names
 //! used twice, are reported as skipped. Other files are ignored.
 
-use crate::model::{JobOptions, JobSpec, RawLayout, Source};
+use crate::model::{JobOptions, JobSpec, RawLayout, SampleType, Source};
 use std::collections::HashSet;
 use std::path::{Path, PathBuf};
 
@@ -55,7 +55,7 @@ pub fn parse_raw_name(file_name: &str) -> Option<(String, RawLayout)> {
         parts.pop();
     }
     let dtype = parts.pop()?;
-    let dtype = wavesplat_compressor::reader::RawDtype::from_name(dtype).ok()?;
+    let dtype = SampleType::from_name(dtype)?;
     let dims_s = parts.pop()?;
     let dims: Vec<usize> = dims_s
         .split('x')
@@ -70,7 +70,7 @@ pub fn parse_raw_name(file_name: &str) -> Option<(String, RawLayout)> {
         name,
         RawLayout {
             dims,
-            dtype: dtype.name().into(),
+            dtype,
             big_endian,
             channels,
         },
@@ -181,7 +181,7 @@ mod tests {
         let (n, l) = parse_raw_name("my_head_64x32x16_u16_rgb_be.raw").unwrap();
         assert_eq!(n, "my_head");
         assert_eq!(l.dims, [64, 32, 16]);
-        assert_eq!(l.dtype, "u16");
+        assert_eq!(l.dtype, SampleType::U16);
         assert_eq!(l.channels, 3);
         assert!(l.big_endian);
         let (n, l) = parse_raw_name("a_8x8x8_f32.raw").unwrap();

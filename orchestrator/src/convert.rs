@@ -4,8 +4,8 @@
 
 use crate::error::OrchestratorError;
 use crate::model::{
-    Delivery, Failure, FailureKind, Job, JobOptions, JobSpec, JobState, Outcome, RawLayout, Source,
-    TargetSpec,
+    parse_coder, parse_colorspace, parse_family, Delivery, Failure, FailureKind, Job, JobOptions,
+    JobSpec, JobState, Outcome, RawLayout, SampleType, Source, TargetSpec,
 };
 use wavesplat_proto::pb;
 
@@ -17,7 +17,7 @@ fn to_usize(v: u32) -> usize {
     v as usize
 }
 
-/// `pb::JobSpec` → [`JobSpec`] (shape only; [`JobSpec::validate`] checks values).
+/// `pb::JobSpec` → [`JobSpec`] (shape and names; [`JobSpec::validate`] checks values).
 pub fn spec_from_pb(p: pb::JobSpec) -> Result<JobSpec, OrchestratorError> {
     let source = match p.source {
         Some(pb::job_spec::Source::Path(path)) => Source::Path(path.into()),
@@ -37,9 +37,16 @@ pub fn spec_from_pb(p: pb::JobSpec) -> Result<JobSpec, OrchestratorError> {
                 r.dims.as_slice().try_into().map_err(|_| {
                     invalid(format!("raw dims {:?}; need exactly 3 values", r.dims))
                 })?;
+            let dtype = SampleType::from_name(&r.dtype).ok_or_else(|| {
+                invalid(format!(
+                    "raw dtype {:?}; allowed {:?}",
+                    r.dtype,
+                    SampleType::names()
+                ))
+            })?;
             Some(RawLayout {
                 dims: dims.map(to_usize),
-                dtype: r.dtype,
+                dtype,
                 big_endian: r.big_endian,
                 channels: if r.channels == 0 {
                     1
@@ -61,7 +68,6 @@ pub fn spec_from_pb(p: pb::JobSpec) -> Result<JobSpec, OrchestratorError> {
 
 fn options_from_pb(o: pb::CompressOptions) -> Result<JobOptions, OrchestratorError> {
     let d = JobOptions::default();
-    let or = |s: String, d: String| if s.is_empty() { d } else { s };
     let target = match o.target.and_then(|t| t.kind) {
         None => d.target,
         Some(pb::target::Kind::Fraction(f)) => TargetSpec::Fraction(f),
@@ -71,15 +77,27 @@ fn options_from_pb(o: pb::CompressOptions) -> Result<JobOptions, OrchestratorErr
         Some(pb::target::Kind::All(_)) => TargetSpec::All,
     };
     Ok(JobOptions {
-        family: or(o.family, d.family),
+        family: if o.family.is_empty() {
+            d.family
+        } else {
+            parse_family(&o.family)?
+        },
         levels: o.levels.map(to_usize),
-        colorspace: or(o.colorspace, d.colorspace),
+        colorspace: if o.colorspace.is_empty() {
+            d.colorspace
+        } else {
+            parse_colorspace(&o.colorspace)?
+        },
         bits: match o.bits {
             0 => d.bits,
             b => u8::try_from(b).map_err(|_| invalid(format!("bits {b}; allowed 1..=16")))?,
         },
         step: if o.step == 0.0 { d.step } else { o.step },
-        coder: or(o.coder, d.coder),
+        coder: if o.coder.is_empty() {
+            d.coder
+        } else {
+            parse_coder(&o.coder)?
+        },
         target,
         tile: o.tile.map(to_usize),
         layers: o.layers.map(to_usize),
@@ -112,17 +130,17 @@ pub fn spec_to_pb(s: &JobSpec) -> pb::JobSpec {
         sha256: s.sha256.to_vec(),
         raw: s.raw.as_ref().map(|r| pb::RawLayout {
             dims: r.dims.iter().map(|&d| u32_of(d)).collect(),
-            dtype: r.dtype.clone(),
+            dtype: r.dtype.name().into(),
             big_endian: r.big_endian,
             channels: u32_of(r.channels),
         }),
         options: Some(pb::CompressOptions {
-            family: o.family.clone(),
+            family: o.family.name().into(),
             levels: o.levels.map(u32_of),
-            colorspace: o.colorspace.clone(),
+            colorspace: o.colorspace.name().into(),
             bits: u32::from(o.bits),
             step: o.step,
-            coder: o.coder.clone(),
+            coder: o.coder.name().into(),
             target: Some(pb::Target { kind: Some(kind) }),
             tile: o.tile.map(u32_of),
             layers: o.layers.map(u32_of),
@@ -165,12 +183,21 @@ pub fn outcome_from_pb(
     o: Option<pb::finish_request::Outcome>,
 ) -> Result<Outcome, OrchestratorError> {
     match o {
-        Some(pb::finish_request::Outcome::Delivered(d)) => Ok(Outcome::Delivered(Delivery {
-            cache_volume_id: d.cache_volume_id,
-            output_bytes: d.output_bytes,
-            voxels: d.voxels,
-            existed: d.existed,
-        })),
+        Some(pb::finish_request::Outcome::Delivered(d)) => {
+            if !(d.sha256.len() == 64 && d.sha256.bytes().all(|b| b.is_ascii_hexdigit())) {
+                return Err(invalid(format!(
+                    "delivered SHA-256 {:?}; expected 64 hex digits",
+                    d.sha256.chars().take(80).collect::<String>()
+                )));
+            }
+            Ok(Outcome::Delivered(Delivery {
+                cache_volume_id: d.cache_volume_id,
+                output_bytes: d.output_bytes,
+                voxels: d.voxels,
+                existed: d.existed,
+                sha256: d.sha256.to_ascii_lowercase(),
+            }))
+        }
         Some(pb::finish_request::Outcome::Failure(f)) => Ok(Outcome::Failed(Failure {
             kind: failure_kind_from_pb(f.kind)?,
             message: f.message.chars().take(4000).collect(),
@@ -255,7 +282,7 @@ mod tests {
             sha256: [7; 32],
             raw: Some(RawLayout {
                 dims: [8, 8, 8],
-                dtype: "u8".into(),
+                dtype: SampleType::U8,
                 big_endian: false,
                 channels: 3,
             }),
@@ -283,6 +310,13 @@ mod tests {
         // The wire form carries it; validation (on submit) refuses it.
         let e = spec_from_pb(p).unwrap().validate().unwrap_err();
         assert!(e.to_string().contains("layer growth"), "{e}");
+        let mut p = spec_to_pb(&spec);
+        p.options.as_mut().unwrap().family = "sinc".into();
+        let e = spec_from_pb(p).unwrap_err();
+        assert!(e.to_string().contains("sinc"), "{e}");
+        let mut p = spec_to_pb(&spec);
+        p.raw.as_mut().unwrap().dtype = "u9".into();
+        assert!(spec_from_pb(p).is_err());
         assert!(failure_kind_from_pb(99).is_err());
     }
 }

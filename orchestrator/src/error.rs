@@ -1,6 +1,7 @@
 //! The orchestrator's typed errors and their single mapping to gRPC statuses: bad requests are
 //! `InvalidArgument`, unknown jobs `NotFound`, actions the job's state forbids (and lost
-//! leases) `FailedPrecondition`, storage trouble `Internal`.
+//! leases, deliveries the cache does not confirm) `FailedPrecondition`, an unreachable cache
+//! `Unavailable`, storage trouble `Internal`.
 
 use crate::model::JobId;
 use thiserror::Error;
@@ -44,6 +45,18 @@ pub enum OrchestratorError {
     /// A stored record could not be read back.
     #[error("corrupt store entry: {0}")]
     Corrupt(String),
+    /// A service could not be reached (URL, TLS setup, connection).
+    #[error("cannot connect to {0}")]
+    Connect(String),
+    /// The server may not run as configured (exposure without TLS and authentication).
+    #[error("{0}")]
+    Security(String),
+    /// A worker's reported delivery is not what the cache holds.
+    #[error("delivery not confirmed by the cache: {0}")]
+    Unconfirmed(String),
+    /// The cache could not be asked to confirm a delivery.
+    #[error("cannot confirm the delivery with the cache: {0}")]
+    CacheUnavailable(String),
     /// A transport-level failure (binding, serving).
     #[error("transport: {0}")]
     Transport(#[from] tonic::transport::Error),
@@ -55,10 +68,14 @@ impl From<OrchestratorError> for tonic::Status {
         match e {
             OrchestratorError::NotFound(_) => tonic::Status::not_found(msg),
             OrchestratorError::InvalidRequest(_) => tonic::Status::invalid_argument(msg),
-            OrchestratorError::InvalidState { .. } | OrchestratorError::LeaseLost { .. } => {
-                tonic::Status::failed_precondition(msg)
+            OrchestratorError::InvalidState { .. }
+            | OrchestratorError::LeaseLost { .. }
+            | OrchestratorError::Unconfirmed(_) => tonic::Status::failed_precondition(msg),
+            OrchestratorError::CacheUnavailable(_) | OrchestratorError::Connect(_) => {
+                tonic::Status::unavailable(msg)
             }
             OrchestratorError::Storage(_)
+            | OrchestratorError::Security(_)
             | OrchestratorError::Corrupt(_)
             | OrchestratorError::Transport(_) => {
                 tracing::error!(error = %msg, "internal error");

@@ -11,8 +11,11 @@
 //! - [`store`]: the sled layout and durability rules;
 //! - [`service`]: the tonic service; [`convert`] / [`error`]: the one place for `pb`
 //!   conversions / `tonic::Status` mapping;
-//! - [`worker`]: the worker loop; [`archive`]: scanning a directory and the raw naming
-//!   convention; [`client`]: helpers for the CLI and tests.
+//! - [`check`]: confirming a worker's delivery with the cache before a job is done;
+//! - [`archive`]: scanning a directory and the raw naming convention; [`client`]: helpers for
+//!   the CLI, the worker and the tests.
+//!
+//! The worker lives in its own crate (`wavesplat-worker`): this one links no encoder.
 //!
 //! ```no_run
 //! # async fn demo() -> Result<(), wavesplat_orchestrator::OrchestratorError> {
@@ -27,6 +30,7 @@
 //! ```
 
 pub mod archive;
+pub mod check;
 pub mod client;
 pub mod convert;
 pub mod error;
@@ -34,19 +38,19 @@ pub mod model;
 pub mod queue;
 pub mod service;
 pub mod store;
-pub mod worker;
 
+pub use check::DeliveryCheck;
 pub use error::OrchestratorError;
 pub use model::{Job, JobId, JobOptions, JobSpec, JobState, TargetSpec};
 pub use queue::QueueConfig;
 pub use service::{OrchestratorService, ServiceConfig};
 pub use store::Store;
-pub use worker::WorkerConfig;
 
 use sha2::{Digest, Sha256};
 use std::future::Future;
 use std::time::Duration;
 use tokio_stream::wrappers::TcpListenerStream;
+use wavesplat_net::{Access, Role};
 use wavesplat_proto::pb::orchestrator_server::OrchestratorServer;
 
 /// SHA-256 of `bytes` (the identity of a source volume).
@@ -54,16 +58,61 @@ pub fn sha256(bytes: &[u8]) -> [u8; 32] {
     Sha256::digest(bytes).into()
 }
 
-/// Serves the orchestrator on `listener` until `shutdown` completes, then waits for in-flight
-/// requests and flushes the store. Expired leases are also reclaimed every heartbeat interval.
+/// How an orchestrator server runs.
+#[derive(Debug, Clone, Default)]
+pub struct ServeOptions {
+    /// TLS, tokens, and whether to allow exposure without them.
+    pub security: wavesplat_net::Security,
+    /// Confirm deliveries with this cache before marking jobs done.
+    pub delivery_check: Option<DeliveryCheck>,
+}
+
+/// The access rule of every orchestrator RPC: submitting, cancelling and retrying need
+/// `admin`; leasing, heartbeats, outcomes and uploaded sources `worker`; listing `read`;
+/// health checks are public; anything unknown needs `admin`.
+pub fn access(path: &str) -> Access {
+    match path.strip_prefix("/wavesplat.v1.Orchestrator/") {
+        Some("Submit" | "CancelJob" | "RetryJob") => Access::Role(Role::Admin),
+        Some("Lease" | "Heartbeat" | "Finish" | "FetchSource") => Access::Role(Role::Worker),
+        Some("ListJobs" | "GetJob") => Access::Role(Role::Read),
+        _ if path.starts_with("/grpc.health.v1.Health/") => Access::Public,
+        _ => Access::Role(Role::Admin),
+    }
+}
+
+/// Serves the orchestrator on `listener` (loopback, plaintext, no authentication, deliveries
+/// taken on the worker's word) until `shutdown` completes; see [`serve_with`].
 pub async fn serve(
     listener: tokio::net::TcpListener,
     store: Store,
     config: ServiceConfig,
     shutdown: impl Future<Output = ()> + Send,
 ) -> Result<(), OrchestratorError> {
+    serve_with(listener, store, config, ServeOptions::default(), shutdown).await
+}
+
+/// Serves the orchestrator on `listener` until `shutdown` completes, then waits for in-flight
+/// requests and flushes the store. Expired leases are also reclaimed every heartbeat interval.
+/// Refuses a non-loopback listener without TLS and tokens unless `options.security.insecure`.
+pub async fn serve_with(
+    listener: tokio::net::TcpListener,
+    store: Store,
+    config: ServiceConfig,
+    options: ServeOptions,
+    shutdown: impl Future<Output = ()> + Send,
+) -> Result<(), OrchestratorError> {
+    let addr = listener
+        .local_addr()
+        .map_err(|e| OrchestratorError::Connect(format!("listener address: {e}")))?;
+    options
+        .security
+        .check(addr)
+        .map_err(|e| OrchestratorError::Security(e.to_string()))?;
     let _flush = store::FlushGuard(store.clone());
-    let service = OrchestratorService::new(store, config, service::system_clock())?;
+    let mut service = OrchestratorService::new(store, config, service::system_clock())?;
+    if let Some(check) = options.delivery_check.clone() {
+        service = service.with_delivery_check(check);
+    }
     let (health, health_service) = tonic_health::server::health_reporter();
     health
         .set_serving::<OrchestratorServer<OrchestratorService>>()
@@ -84,10 +133,20 @@ pub async fn serve(
     let server = OrchestratorServer::new(service)
         .max_decoding_message_size(service::CHUNK_BYTES + (1 << 20))
         .max_encoding_message_size(service::CHUNK_BYTES + (1 << 20));
-    if let Ok(addr) = listener.local_addr() {
-        tracing::info!(%addr, "orchestrator serving");
+    let mut builder = tonic::transport::Server::builder();
+    if let Some(tls) = options.security.tls.clone() {
+        builder = builder.tls_config(tls)?;
     }
-    let result = tonic::transport::Server::builder()
+    tracing::info!(
+        %addr,
+        tls = options.security.tls.is_some(),
+        auth = options.security.tokens.is_some(),
+        checks_deliveries = options.delivery_check.is_some(),
+        "orchestrator serving"
+    );
+    let result = builder
+        .layer(wavesplat_net::status::ClientFaultLayer)
+        .layer(options.security.auth_layer(access))
         .add_service(health_service)
         .add_service(server)
         .serve_with_incoming_shutdown(TcpListenerStream::new(listener), shutdown)

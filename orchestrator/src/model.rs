@@ -3,14 +3,10 @@
 //! store; the wire types live in `wavesplat_proto::pb` and are converted in [`crate::convert`].
 
 use crate::error::OrchestratorError;
-use serde::{Deserialize, Serialize};
+use serde::{Deserialize, Deserializer, Serialize, Serializer};
 use std::path::PathBuf;
 use wavesplat_codec::family::Family;
 use wavesplat_codec::format::CoderKind;
-use wavesplat_compressor::colorspace::ColorSpaceKind;
-use wavesplat_compressor::encode::{CompressOptions, Target, TileChoice};
-use wavesplat_compressor::reader::{Endian, RawDtype, RawSpec};
-use wavesplat_compressor::refine::RefineOptions;
 
 /// A job's id (assigned in submission order, starting at 1).
 pub type JobId = u64;
@@ -30,13 +26,65 @@ pub enum Source {
     },
 }
 
+/// Sample type of a headerless raw file (the worker's reader maps it to its own type).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum SampleType {
+    /// Unsigned 8-bit.
+    U8,
+    /// Unsigned 16-bit.
+    U16,
+    /// Signed 16-bit.
+    I16,
+    /// IEEE-754 32-bit float.
+    F32,
+}
+
+impl SampleType {
+    /// Parses `u8`, `u16`, `i16` or `f32` (case-insensitive; `uint8`, `uint16`, `int16`,
+    /// `float32` and `float` too).
+    pub fn from_name(name: &str) -> Option<SampleType> {
+        match name.trim().to_ascii_lowercase().as_str() {
+            "u8" | "uint8" => Some(SampleType::U8),
+            "u16" | "uint16" => Some(SampleType::U16),
+            "i16" | "int16" => Some(SampleType::I16),
+            "f32" | "float32" | "float" => Some(SampleType::F32),
+            _ => None,
+        }
+    }
+
+    /// The canonical names.
+    pub fn names() -> &'static [&'static str] {
+        &["u8", "u16", "i16", "f32"]
+    }
+
+    /// The canonical name.
+    pub fn name(self) -> &'static str {
+        match self {
+            SampleType::U8 => "u8",
+            SampleType::U16 => "u16",
+            SampleType::I16 => "i16",
+            SampleType::F32 => "f32",
+        }
+    }
+
+    /// Bytes per sample.
+    pub fn size(self) -> usize {
+        match self {
+            SampleType::U8 => 1,
+            SampleType::U16 | SampleType::I16 => 2,
+            SampleType::F32 => 4,
+        }
+    }
+}
+
 /// Layout of a headerless raw file (see [`crate::archive`] for the naming convention).
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 pub struct RawLayout {
     /// Dimensions (x fastest).
     pub dims: [usize; 3],
-    /// Canonical sample type name (`u8`, `u16`, `i16`, `f32`).
-    pub dtype: String,
+    /// Sample type.
+    pub dtype: SampleType,
     /// Big-endian samples.
     pub big_endian: bool,
     /// 1 or 3.
@@ -44,15 +92,8 @@ pub struct RawLayout {
 }
 
 impl RawLayout {
-    /// Validates and builds the reader's spec.
-    pub fn spec(&self) -> Result<RawSpec, OrchestratorError> {
-        let dtype = RawDtype::from_name(&self.dtype).map_err(|_| {
-            OrchestratorError::InvalidRequest(format!(
-                "raw dtype {:?}; allowed {:?}",
-                self.dtype,
-                RawDtype::names()
-            ))
-        })?;
+    /// Checks the layout (channels 1 or 3, no zero dimension).
+    pub fn validate(&self) -> Result<(), OrchestratorError> {
         if self.channels != 1 && self.channels != 3 {
             return Err(OrchestratorError::InvalidRequest(format!(
                 "raw channels {}; allowed 1 or 3",
@@ -65,18 +106,11 @@ impl RawLayout {
                 self.dims
             )));
         }
-        let mut spec = RawSpec::new(self.dims, dtype);
-        spec.endian = if self.big_endian {
-            Endian::Big
-        } else {
-            Endian::Little
-        };
-        spec.channels = self.channels;
-        Ok(spec)
+        Ok(())
     }
 }
 
-/// How much to keep (mirrors [`Target`], serialisable).
+/// How much to keep (mirrors the compressor's target, serialisable).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub enum TargetSpec {
     /// Fraction (0, 1] of all coefficients.
@@ -91,21 +125,120 @@ pub enum TargetSpec {
     All,
 }
 
-/// Compressor options of a job, by canonical names (validated by [`JobOptions::validate`]).
+/// The colour space a job compresses RGB volumes in.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum ColorSpace {
+    /// RGB as is.
+    Rgb,
+    /// NTSC YIQ.
+    Yiq,
+    /// Principal components of the volume's colours.
+    Pca,
+}
+
+impl ColorSpace {
+    /// Parses `rgb`, `yiq` or `pca` (case-insensitive; `klt` and `eigen` mean PCA).
+    pub fn from_name(name: &str) -> Option<ColorSpace> {
+        match name.trim().to_ascii_lowercase().as_str() {
+            "rgb" => Some(ColorSpace::Rgb),
+            "yiq" => Some(ColorSpace::Yiq),
+            "pca" | "klt" | "eigen" => Some(ColorSpace::Pca),
+            _ => None,
+        }
+    }
+
+    /// The canonical name.
+    pub fn name(self) -> &'static str {
+        match self {
+            ColorSpace::Rgb => "rgb",
+            ColorSpace::Yiq => "yiq",
+            ColorSpace::Pca => "pca",
+        }
+    }
+}
+
+/// Parses a family name (`haar`, `linear`, `cubic`, case-insensitive).
+pub fn parse_family(name: &str) -> Result<Family, OrchestratorError> {
+    Family::from_name(&name.trim().to_ascii_lowercase())
+        .ok_or_else(|| invalid(format!("family {name:?}; allowed haar, linear, cubic")))
+}
+
+/// Parses a colour space name.
+pub fn parse_colorspace(name: &str) -> Result<ColorSpace, OrchestratorError> {
+    ColorSpace::from_name(name)
+        .ok_or_else(|| invalid(format!("colour space {name:?}; allowed rgb, yiq, pca")))
+}
+
+/// Parses a coder name (`sigmap`, `range`, `huffman`, case-insensitive).
+pub fn parse_coder(name: &str) -> Result<CoderKind, OrchestratorError> {
+    CoderKind::from_name(&name.trim().to_ascii_lowercase())
+        .ok_or_else(|| invalid(format!("coder {name:?}; allowed sigmap, range, huffman")))
+}
+
+/// Serialises the named option enums by their canonical names (the stored form of a job, and
+/// part of its identity: [`JobSpec::dedup_key`]).
+mod by_name {
+    use super::*;
+
+    pub trait Named: Copy {
+        fn canonical(self) -> &'static str;
+        fn parse(s: &str) -> Result<Self, OrchestratorError>;
+    }
+    impl Named for Family {
+        fn canonical(self) -> &'static str {
+            self.name()
+        }
+        fn parse(s: &str) -> Result<Self, OrchestratorError> {
+            parse_family(s)
+        }
+    }
+    impl Named for CoderKind {
+        fn canonical(self) -> &'static str {
+            self.name()
+        }
+        fn parse(s: &str) -> Result<Self, OrchestratorError> {
+            parse_coder(s)
+        }
+    }
+    impl Named for ColorSpace {
+        fn canonical(self) -> &'static str {
+            self.name()
+        }
+        fn parse(s: &str) -> Result<Self, OrchestratorError> {
+            parse_colorspace(s)
+        }
+    }
+
+    pub fn serialize<T: Named, S: Serializer>(v: &T, s: S) -> Result<S::Ok, S::Error> {
+        s.serialize_str(v.canonical())
+    }
+
+    pub fn deserialize<'de, T: Named, D: Deserializer<'de>>(d: D) -> Result<T, D::Error> {
+        let s = String::deserialize(d)?;
+        T::parse(&s).map_err(serde::de::Error::custom)
+    }
+}
+
+/// Compressor options of a job, in the orchestrator's own terms (the worker maps them to the
+/// compressor's options). Names are parsed on the way in; [`JobOptions::validate`] checks the
+/// numbers once, at submission.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct JobOptions {
-    /// `haar`, `linear`, `cubic`.
-    pub family: String,
+    /// Wavelet family.
+    #[serde(with = "by_name")]
+    pub family: Family,
     /// Decomposition depth (`None`: automatic).
     pub levels: Option<usize>,
-    /// `rgb`, `yiq`, `pca`.
-    pub colorspace: String,
+    /// Colour space of RGB volumes.
+    #[serde(with = "by_name")]
+    pub colorspace: ColorSpace,
     /// Quantization bits 1..=16.
     pub bits: u8,
     /// Sigmap quantizer step (> 0).
     pub step: f64,
-    /// `sigmap`, `range`, `huffman`.
-    pub coder: String,
+    /// Entropy coder.
+    #[serde(with = "by_name")]
+    pub coder: CoderKind,
     /// What to keep.
     pub target: TargetSpec,
     /// Tile edge (`None`: automatic).
@@ -124,15 +257,15 @@ pub struct JobOptions {
 }
 
 impl Default for JobOptions {
+    /// The compressor's defaults (the worker's tests check that they agree).
     fn default() -> Self {
-        let d = CompressOptions::default();
         JobOptions {
-            family: d.family.name().into(),
+            family: Family::Linear,
             levels: None,
-            colorspace: d.colorspace.name().into(),
-            bits: d.bits,
-            step: d.step,
-            coder: d.coder.name().into(),
+            colorspace: ColorSpace::Pca,
+            bits: 8,
+            step: 1.0,
+            coder: CoderKind::Sigmap,
             target: TargetSpec::Fraction(0.05),
             tile: None,
             layers: None,
@@ -148,35 +281,8 @@ fn invalid(msg: String) -> OrchestratorError {
 }
 
 impl JobOptions {
-    /// Checks every value and returns the options with canonical names.
-    pub fn validate(mut self) -> Result<JobOptions, OrchestratorError> {
-        let o = self.to_compress_options()?;
-        self.family = o.family.name().into();
-        self.colorspace = o.colorspace.name().into();
-        self.coder = o.coder.name().into();
-        Ok(self)
-    }
-
-    /// The compressor's options.
-    pub fn to_compress_options(&self) -> Result<CompressOptions, OrchestratorError> {
-        let family = Family::from_name(&self.family.to_ascii_lowercase()).ok_or_else(|| {
-            invalid(format!(
-                "family {:?}; allowed haar, linear, cubic",
-                self.family
-            ))
-        })?;
-        let colorspace = ColorSpaceKind::from_name(&self.colorspace).ok_or_else(|| {
-            invalid(format!(
-                "colour space {:?}; allowed rgb, yiq, pca",
-                self.colorspace
-            ))
-        })?;
-        let coder = CoderKind::from_name(&self.coder.to_ascii_lowercase()).ok_or_else(|| {
-            invalid(format!(
-                "coder {:?}; allowed sigmap, range, huffman",
-                self.coder
-            ))
-        })?;
+    /// Checks every value.
+    pub fn validate(self) -> Result<JobOptions, OrchestratorError> {
         if !(1..=16).contains(&self.bits) {
             return Err(invalid(format!("bits {}; allowed 1..=16", self.bits)));
         }
@@ -210,45 +316,21 @@ impl JobOptions {
         if self.tile == Some(0) {
             return Err(invalid("tile 0; must be at least 1".into()));
         }
-        let target = match self.target {
-            TargetSpec::Fraction(f) if f > 0.0 && f <= 1.0 => Target::Fraction(f),
-            TargetSpec::Fraction(f) => {
+        match self.target {
+            TargetSpec::Fraction(f) if !(f > 0.0 && f <= 1.0) => {
                 return Err(invalid(format!("target fraction {f}; allowed (0, 1]")))
             }
-            TargetSpec::QvPercent(q) if q > 0.0 && q <= 100.0 => Target::QvPercent(q),
-            TargetSpec::QvPercent(q) => {
+            TargetSpec::QvPercent(q) if !(q > 0.0 && q <= 100.0) => {
                 return Err(invalid(format!("target Q_V {q} %; allowed (0, 100]")))
             }
-            TargetSpec::Bytes(b) if b > 0 => Target::Bytes(b),
-            TargetSpec::Coefficients(c) if c > 0 => Target::Coefficients(c),
-            TargetSpec::Bytes(_) | TargetSpec::Coefficients(_) => {
+            TargetSpec::Bytes(0) | TargetSpec::Coefficients(0) => {
                 return Err(invalid(
                     "target of 0 bytes/coefficients; must be > 0".into(),
                 ))
             }
-            TargetSpec::All => Target::All,
-        };
-        Ok(CompressOptions {
-            family,
-            levels: self.levels,
-            colorspace,
-            bits: self.bits,
-            coder,
-            target,
-            tile: self.tile.map_or(TileChoice::Auto, TileChoice::Size),
-            layers: self.layers,
-            layer_growth: self
-                .layer_growth
-                .unwrap_or(CompressOptions::default().layer_growth),
-            step: self.step,
-            refine: (!self.no_refine).then(|| RefineOptions {
-                rounds: self
-                    .refine_rounds
-                    .unwrap_or(RefineOptions::default().rounds),
-                ..RefineOptions::default()
-            }),
-            ..CompressOptions::default()
-        })
+            _ => {}
+        }
+        Ok(self)
     }
 }
 
@@ -268,7 +350,7 @@ pub struct JobSpec {
 }
 
 impl JobSpec {
-    /// Validates the spec (name, layout, options) and canonicalises option names.
+    /// Validates the spec (name, layout, options).
     pub fn validate(mut self) -> Result<JobSpec, OrchestratorError> {
         if self.name.is_empty()
             || self.name.len() > MAX_NAME_BYTES
@@ -280,7 +362,7 @@ impl JobSpec {
             )));
         }
         if let Some(r) = &self.raw {
-            r.spec()?;
+            r.validate()?;
         }
         if let Source::Path(p) = &self.source {
             if p.as_os_str().is_empty() {
@@ -356,7 +438,7 @@ pub struct Failure {
 }
 
 /// A successful delivery to the cache.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 pub struct Delivery {
     /// The volume's id in the cache.
     pub cache_volume_id: u64,
@@ -366,6 +448,10 @@ pub struct Delivery {
     pub voxels: u64,
     /// The cache already held identical content.
     pub existed: bool,
+    /// SHA-256 of the delivered file, lower-case hex (empty in jobs stored before it was
+    /// recorded).
+    #[serde(default)]
+    pub sha256: String,
 }
 
 /// How an attempt ended.

@@ -399,6 +399,7 @@ mod tests {
             output_bytes: 10,
             voxels: 8,
             existed: false,
+            sha256: "ab".repeat(32),
         })
     }
 
@@ -418,9 +419,9 @@ mod tests {
         assert!(!q.submit(other_opts, 5).unwrap().existed);
         assert!(!q.submit(spec(2), 5).unwrap().existed);
         let mut bad = spec(3);
-        bad.options.family = "sinc".into();
+        bad.options.bits = 17;
         let e = q.submit(bad, 5).unwrap_err();
-        assert!(e.to_string().contains("sinc"), "{e}");
+        assert!(e.to_string().contains("bits 17"), "{e}");
     }
 
     #[test]

@@ -2,9 +2,10 @@
 //! under one mutex, writes the changed jobs through to the [`Store`] and flushes before
 //! answering. The lock is never held across an `.await`.
 
+use crate::check::DeliveryCheck;
 use crate::convert;
 use crate::error::OrchestratorError;
-use crate::model::{hex, JobState, Source};
+use crate::model::{hex, JobState, Outcome, Source};
 use crate::queue::{Queue, QueueConfig};
 use crate::store::Store;
 use std::pin::Pin;
@@ -12,6 +13,7 @@ use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{SystemTime, UNIX_EPOCH};
 use tokio_stream::Stream;
 use tonic::{Request, Response, Status, Streaming};
+use wavesplat_net::status::client_fault;
 use wavesplat_proto::pb;
 use wavesplat_proto::pb::orchestrator_server::Orchestrator;
 
@@ -62,6 +64,7 @@ struct Shared {
 #[derive(Clone)]
 pub struct OrchestratorService {
     shared: Arc<Shared>,
+    check: Option<DeliveryCheck>,
 }
 
 impl OrchestratorService {
@@ -100,7 +103,14 @@ impl OrchestratorService {
                 cfg,
                 clock,
             }),
+            check: None,
         })
+    }
+
+    /// Confirms every delivery with the cache before marking a job done.
+    pub fn with_delivery_check(mut self, check: DeliveryCheck) -> OrchestratorService {
+        self.check = Some(check);
+        self
     }
 
     fn lock(&self) -> MutexGuard<'_, Queue> {
@@ -137,7 +147,8 @@ impl OrchestratorService {
     ) -> Result<pb::SubmitResponse, Status> {
         let first = stream
             .message()
-            .await?
+            .await
+            .map_err(client_fault)?
             .ok_or_else(|| Status::invalid_argument("empty submit stream"))?;
         let Some(pb::submit_request::Msg::Spec(spec)) = first.msg else {
             return Err(Status::invalid_argument(
@@ -153,7 +164,7 @@ impl OrchestratorService {
                 )));
             }
             let mut bytes = Vec::with_capacity(size.min(64 << 20) as usize);
-            while let Some(m) = stream.message().await? {
+            while let Some(m) = stream.message().await.map_err(client_fault)? {
                 match m.msg {
                     Some(pb::submit_request::Msg::Chunk(c)) => {
                         if bytes.len() as u64 + c.len() as u64 > size {
@@ -334,6 +345,13 @@ impl Orchestrator for OrchestratorService {
         let r = request.into_inner();
         let outcome = convert::outcome_from_pb(r.outcome)?;
         let (id, attempt) = (r.job_id, r.attempt);
+        if let (Some(check), Outcome::Delivered(d)) = (&self.check, &outcome) {
+            let name = self.lock().get(id)?.spec.name.clone();
+            if let Err(e) = check.confirm(&name, d).await {
+                tracing::warn!(job = id, attempt, worker = %r.worker, error = %e, "delivery refused");
+                return Err(e.into());
+            }
+        }
         let job = self
             .change(|q, now| q.finish(id, attempt, outcome, now))
             .await?;

@@ -33,6 +33,11 @@ pub struct ServeCacheArgs {
     /// Largest accepted upload in MiB.
     #[arg(long, default_value_t = 1024)]
     pub max_upload_mib: u64,
+    /// Refinement streams one caller (token identity, or address) may have open at once.
+    #[arg(long, default_value_t = 64)]
+    pub max_streams_per_caller: usize,
+    #[command(flatten)]
+    pub security: super::security::ServerSecurityArgs,
 }
 
 /// `wavesplat cache …`: client commands.
@@ -48,12 +53,14 @@ pub enum CacheCommand {
     Rm(RmArgs),
 }
 
-/// Cache address.
+/// Cache address and how to reach it.
 #[derive(Args, Debug)]
 pub struct UrlArgs {
-    /// Cache URL (`http://HOST:PORT` or `HOST:PORT`).
+    /// Cache URL (`http://HOST:PORT`, `https://HOST:PORT` or `HOST:PORT`).
     #[arg(long = "cache", default_value = DEFAULT_URL)]
     pub url: String,
+    #[command(flatten)]
+    pub security: super::security::ClientSecurityArgs,
 }
 
 /// Arguments of `wavesplat cache ingest`.
@@ -106,12 +113,19 @@ pub fn run_serve(cmd: ServeCommand) -> Result<()> {
         max_upload_bytes: a.max_upload_mib.saturating_mul(1 << 20),
         ..Limits::default()
     };
+    let options = wavesplat_cache::ServeOptions {
+        security: a.security.security()?,
+        fairness: wavesplat_cache::service::Fairness {
+            max_streams_per_caller: a.max_streams_per_caller.max(1),
+            ..Default::default()
+        },
+    };
     let store = Store::open(&a.db, limits)
         .with_context(|| format!("opening the cache database {}", a.db.display()))?;
     runtime()?.block_on(async move {
         let listener = super::bind_announced(&a.addr).await?;
         let shutdown = super::ctrl_c();
-        wavesplat_cache::serve(listener, store, shutdown).await?;
+        wavesplat_cache::serve_with(listener, store, options, shutdown).await?;
         Ok(())
     })
 }
@@ -130,7 +144,7 @@ pub fn run(cmd: CacheCommand) -> Result<()> {
                     .map(|s| s.to_string_lossy().into_owned())
                     .context("the input has no file name; pass --name")?,
             };
-            let r = connect(&a.url.url)?
+            let r = connect(&a.url)?
                 .ingest(&name, &bytes)
                 .with_context(|| format!("ingesting {}", a.input.display()))?;
             let what = if r.existed {
@@ -146,12 +160,12 @@ pub fn run(cmd: CacheCommand) -> Result<()> {
             );
         }
         CacheCommand::List(a) => {
-            for v in connect(&a.url)?.list().context("listing the cache")? {
+            for v in connect(&a)?.list().context("listing the cache")? {
                 outln!("{}", describe(&v));
             }
         }
         CacheCommand::Show(a) => {
-            let mut c = connect(&a.url.url)?;
+            let mut c = connect(&a.url)?;
             let key = VolumeKey::Name(a.name.clone());
             let h = c
                 .header(&key)
@@ -195,7 +209,7 @@ pub fn run(cmd: CacheCommand) -> Result<()> {
             }
         }
         CacheCommand::Rm(a) => {
-            let id = connect(&a.url.url)?
+            let id = connect(&a.url)?
                 .delete(&VolumeKey::Name(a.name.clone()))
                 .with_context(|| format!("deleting {:?}", a.name))?;
             outln!("deleted {:?} (id {id})", a.name);
@@ -204,9 +218,12 @@ pub fn run(cmd: CacheCommand) -> Result<()> {
     Ok(())
 }
 
-/// Connects to the cache at `url` (`http://HOST:PORT` or `HOST:PORT`).
-pub fn connect(url: &str) -> Result<CacheClient> {
-    CacheClient::connect(url).with_context(|| format!("connecting to the cache at {url}"))
+/// Connects to the cache at `url` (`http://HOST:PORT`, `https://HOST:PORT` or `HOST:PORT`),
+/// with the CA and token of `--ca` / `--token-file` or their environment variables.
+pub fn connect(url: &UrlArgs) -> Result<CacheClient> {
+    let options = url.security.options()?;
+    CacheClient::connect_with(&url.url, &options)
+        .with_context(|| format!("connecting to the cache at {}", url.url))
 }
 
 fn describe(v: &VolumeInfo) -> String {

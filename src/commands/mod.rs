@@ -10,6 +10,7 @@ pub mod info;
 pub mod orchestrator;
 pub mod phantom;
 pub mod render;
+pub mod security;
 
 use anyhow::{bail, Context, Result};
 use clap::Args;

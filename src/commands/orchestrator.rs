@@ -1,6 +1,6 @@
 //! `wavesplat serve orchestrator`, `wavesplat worker`, `wavesplat archive submit` and
 //! `wavesplat jobs list|watch|cancel|retry`. Wiring and display only: the queue, the service and
-//! the worker live in `wavesplat-orchestrator`.
+//! archive scanning live in `wavesplat-orchestrator`, the worker in `wavesplat-worker`.
 
 use anyhow::{bail, Context, Result};
 use clap::{Args, Subcommand};
@@ -9,14 +9,13 @@ use std::collections::{BTreeMap, HashSet};
 use std::io::IsTerminal;
 use std::path::PathBuf;
 use std::time::Duration;
-use tonic::transport::Channel;
 use wavesplat_compressor::encode::Target;
 use wavesplat_orchestrator::archive;
 use wavesplat_orchestrator::client;
 use wavesplat_orchestrator::convert::state_name;
+use wavesplat_orchestrator::model;
 use wavesplat_orchestrator::{JobOptions, QueueConfig, ServiceConfig, Store, TargetSpec};
 use wavesplat_proto::pb;
-use wavesplat_proto::pb::orchestrator_client::OrchestratorClient;
 
 /// Default orchestrator address.
 pub const DEFAULT_URL: &str = "http://127.0.0.1:50052";
@@ -50,6 +49,15 @@ pub struct ServeOrchestratorArgs {
     /// Largest accepted upload (`archive submit --upload`) in MiB.
     #[arg(long, default_value_t = 1024)]
     pub max_upload_mib: u64,
+    /// Confirm each delivery with this cache (it must hold the job's name as the reported
+    /// volume and content) before marking the job done; --ca and --token-file (a `read`
+    /// token) apply to this connection.
+    #[arg(long, value_name = "URL")]
+    pub cache: Option<String>,
+    #[command(flatten)]
+    pub cache_security: super::security::ClientSecurityArgs,
+    #[command(flatten)]
+    pub security: super::security::ServerSecurityArgs,
 }
 
 /// Arguments of `wavesplat worker`.
@@ -73,6 +81,10 @@ pub struct WorkerArgs {
     /// Testing aid: pause this long (ms) after compressing each volume, before uploading.
     #[arg(long, default_value_t = 0, hide = true)]
     pub pause_before_upload_ms: u64,
+    /// CA and token for both services (the token needs `worker` at the orchestrator and
+    /// `write` at the cache).
+    #[command(flatten)]
+    pub security: super::security::ClientSecurityArgs,
 }
 
 /// Compressor options of submitted jobs (the same meaning as in `wavesplat compress`).
@@ -128,12 +140,12 @@ impl JobOptionArgs {
             Target::All => TargetSpec::All,
         };
         Ok(JobOptions {
-            family: self.family.clone(),
+            family: model::parse_family(&self.family)?,
             levels: self.levels,
-            colorspace: self.colorspace.clone(),
+            colorspace: model::parse_colorspace(&self.colorspace)?,
             bits: self.bits,
             step: self.step,
-            coder: self.coder.clone(),
+            coder: model::parse_coder(&self.coder)?,
             target,
             tile: self.tile,
             layers: self.layers,
@@ -175,6 +187,8 @@ pub struct SubmitArgs {
     #[arg(long)]
     pub detach: bool,
     #[command(flatten)]
+    pub security: super::security::ClientSecurityArgs,
+    #[command(flatten)]
     pub options: JobOptionArgs,
 }
 
@@ -191,12 +205,14 @@ pub enum JobsCommand {
     Retry(JobIdArgs),
 }
 
-/// Orchestrator address.
+/// Orchestrator address and how to reach it.
 #[derive(Args, Debug)]
 pub struct JobsUrl {
     /// Orchestrator URL.
     #[arg(long, default_value = DEFAULT_URL)]
     pub orchestrator: String,
+    #[command(flatten)]
+    pub security: super::security::ClientSecurityArgs,
 }
 
 /// A job id.
@@ -215,8 +231,11 @@ fn runtime() -> Result<tokio::runtime::Runtime> {
         .context("starting the async runtime")
 }
 
-async fn connect(url: &str) -> Result<OrchestratorClient<Channel>> {
-    client::connect(url)
+async fn connect(
+    url: &str,
+    security: &super::security::ClientSecurityArgs,
+) -> Result<client::Client> {
+    client::connect_with(url, &security.options()?)
         .await
         .with_context(|| format!("connecting to the orchestrator at {url}"))
 }
@@ -239,27 +258,37 @@ pub fn run_serve(a: ServeOrchestratorArgs) -> Result<()> {
         poll_ms: a.poll_ms.max(1),
         max_upload_bytes: a.max_upload_mib.saturating_mul(1 << 20),
     };
+    let delivery_check = match &a.cache {
+        Some(url) => Some(wavesplat_orchestrator::DeliveryCheck::new(
+            url,
+            &a.cache_security.options()?,
+        )?),
+        None => None,
+    };
+    let options = wavesplat_orchestrator::ServeOptions {
+        security: a.security.security()?,
+        delivery_check,
+    };
     let store = Store::open(&a.db)
         .with_context(|| format!("opening the orchestrator database {}", a.db.display()))?;
     runtime()?.block_on(async move {
         let listener = super::bind_announced(&a.addr).await?;
         let shutdown = super::ctrl_c();
-        wavesplat_orchestrator::serve(listener, store, config, shutdown).await?;
+        wavesplat_orchestrator::serve_with(listener, store, config, options, shutdown).await?;
         Ok(())
     })
 }
 
 /// Runs `wavesplat worker`.
 pub fn run_worker(a: WorkerArgs) -> Result<()> {
-    let cfg = wavesplat_orchestrator::WorkerConfig {
+    let cfg = wavesplat_worker::WorkerConfig {
         orchestrator: a.orchestrator,
         cache: a.cache,
         threads: a.threads,
-        id: a
-            .id
-            .unwrap_or_else(wavesplat_orchestrator::worker::default_worker_id),
+        id: a.id.unwrap_or_else(wavesplat_worker::default_worker_id),
         max_jobs: a.max_jobs,
         pause_before_upload_ms: a.pause_before_upload_ms,
+        connect: a.security.options()?,
     };
     runtime()?.block_on(async move {
         // SIGINT or SIGTERM (what Kubernetes and batch schedulers send): finish the current
@@ -284,7 +313,7 @@ pub fn run_worker(a: WorkerArgs) -> Result<()> {
             let _ = tokio::signal::ctrl_c().await;
             tracing::info!("finishing the current job, then stopping");
         };
-        wavesplat_orchestrator::worker::run(cfg, shutdown).await?;
+        wavesplat_worker::run(cfg, shutdown).await?;
         Ok(())
     })
 }
@@ -301,7 +330,7 @@ pub fn run_archive(cmd: ArchiveCommand) -> Result<()> {
         bail!("no supported volumes under {}", a.dir.display());
     }
     runtime()?.block_on(async move {
-        let mut c = connect(&a.orchestrator).await?;
+        let mut c = connect(&a.orchestrator, &a.security).await?;
         let mut ids = HashSet::new();
         let (mut new, mut known) = (0, 0);
         for f in &scan.found {
@@ -339,17 +368,17 @@ pub fn run_jobs(cmd: JobsCommand) -> Result<()> {
     runtime()?.block_on(async move {
         match cmd {
             JobsCommand::List(u) => {
-                let mut c = connect(&u.orchestrator).await?;
+                let mut c = connect(&u.orchestrator, &u.security).await?;
                 for j in client::list(&mut c).await? {
                     outln!("{}", describe(&j));
                 }
             }
             JobsCommand::Watch(u) => {
-                let mut c = connect(&u.orchestrator).await?;
+                let mut c = connect(&u.orchestrator, &u.security).await?;
                 watch(&mut c, None).await?;
             }
             JobsCommand::Cancel(a) => {
-                let mut c = connect(&a.url.orchestrator).await?;
+                let mut c = connect(&a.url.orchestrator, &a.url.security).await?;
                 let j = c
                     .cancel_job(pb::JobRef { id: a.id })
                     .await
@@ -357,7 +386,7 @@ pub fn run_jobs(cmd: JobsCommand) -> Result<()> {
                 outln!("{}", describe(j.get_ref()));
             }
             JobsCommand::Retry(a) => {
-                let mut c = connect(&a.url.orchestrator).await?;
+                let mut c = connect(&a.url.orchestrator, &a.url.security).await?;
                 let j = c
                     .retry_job(pb::JobRef { id: a.id })
                     .await
@@ -396,7 +425,7 @@ fn is_terminal(j: &pb::Job) -> bool {
 /// Polls the jobs (all, or `ids`) until every one is finished: indicatif bars on a terminal
 /// (one per job and one overall), `tracing` events on state changes otherwise. Fails if any
 /// job failed.
-async fn watch(c: &mut OrchestratorClient<Channel>, ids: Option<&HashSet<u64>>) -> Result<()> {
+async fn watch(c: &mut client::Client, ids: Option<&HashSet<u64>>) -> Result<()> {
     let tty = std::io::stderr().is_terminal();
     let multi = MultiProgress::new();
     let style = ProgressStyle::with_template("{prefix:>24} [{bar:30}] {pos:>3}% {msg}")

@@ -266,17 +266,22 @@ impl RangeEncoder {
             trailing_zeros: self.out.trailing_zeros,
         };
         self.state.clone().flush(&mut count);
-        count.len - count.trailing_zeros
+        count.len - count.trailing_zeros.min(MAX_TRIMMED_ZEROS)
     }
 
     /// Terminates the stream and returns its bytes.
     pub fn finish(mut self) -> Vec<u8> {
         self.state.flush(&mut self.out);
         let mut bytes = self.out.bytes;
-        bytes.truncate(bytes.len() - self.out.trailing_zeros);
+        bytes.truncate(bytes.len() - self.out.trailing_zeros.min(MAX_TRIMMED_ZEROS));
         bytes
     }
 }
+
+/// Most trailing zero bytes [`RangeEncoder::finish`] drops (the decoder reads them back as the
+/// zeros past the end). Bounded so that a decoder knows how far past the end a valid stream
+/// can read: [`RangeDecoder::overrun`].
+pub const MAX_TRIMMED_ZEROS: usize = 64;
 
 /// Adaptive binary range decoder over a byte slice. Bytes past the end read as zero, so it
 /// never fails; corrupt input just decodes to arbitrary bits.
@@ -322,6 +327,14 @@ impl<'a> RangeDecoder<'a> {
     /// the input length, since the encoder drops trailing zero bytes.
     pub fn bytes_read(&self) -> usize {
         self.pos
+    }
+
+    /// Whether the decoder has read further past the end than any stream [`RangeEncoder`]
+    /// wrote can need (its 4 bytes of look-ahead and the trailing zeros it drops): what it
+    /// decodes from here on is not in the data. Decoders check this to stop a hostile payload
+    /// from driving them on for free.
+    pub fn overrun(&self) -> bool {
+        self.pos > self.data.len() + 4 + MAX_TRIMMED_ZEROS
     }
 
     /// Decodes a bit coded with [`RangeEncoder::encode_bit`] and the same model state.

@@ -98,6 +98,16 @@ pub enum FormatError {
         /// The limit.
         limit: u64,
     },
+    /// Decoding would cost more than the caller's budget allows.
+    #[error("decoding needs {need} {what}, over the budget of {budget}")]
+    OverBudget {
+        /// What is counted.
+        what: &'static str,
+        /// What the input declares it needs.
+        need: u64,
+        /// The budget.
+        budget: u64,
+    },
     /// Entropy-coded data was malformed.
     #[error("entropy-coded data: {0}")]
     Entropy(#[from] EntropyError),
@@ -719,10 +729,84 @@ pub fn write_file(header: &Header, packets: &[Vec<u8>]) -> Vec<u8> {
     out
 }
 
-/// Parses a file's header and packet directory (packets are checked when decoded).
-pub fn parse_file(bytes: &[u8]) -> Result<WspFile<'_>, FormatError> {
-    let (header, used) = read_header_section(bytes)?;
-    let rest = &bytes[used..];
+/// What precedes a file's packets: the header section and the packet directory.
+#[derive(Debug, Clone)]
+pub struct Prelude {
+    /// The header.
+    pub header: Header,
+    /// Bytes of the header section (magic to header CRC).
+    pub header_bytes: usize,
+    /// Bytes of the packet directory (with its CRC).
+    pub directory_bytes: usize,
+    /// Each packet's length, in file order.
+    pub packet_lengths: Vec<usize>,
+}
+
+impl Prelude {
+    /// Bytes before the first packet.
+    pub fn len(&self) -> usize {
+        self.header_bytes + self.directory_bytes
+    }
+
+    /// Whether the prelude is empty (never: a header section has at least 14 bytes).
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// Size of the whole file the directory describes.
+    pub fn file_bytes(&self) -> u64 {
+        self.len() as u64 + self.packet_lengths.iter().map(|&l| l as u64).sum::<u64>()
+    }
+}
+
+/// Parses the header section and the packet directory from the start of a file as it arrives:
+/// `Ok(None)` means the bytes end before the directory does (call again with more); an error is
+/// final, and comes as early as the bytes allow (wrong magic after 1 byte, an oversized header
+/// length after 10).
+pub fn parse_prelude(bytes: &[u8]) -> Result<Option<Prelude>, FormatError> {
+    let n = bytes.len().min(MAGIC.len());
+    if bytes[..n] != MAGIC[..n] {
+        return Err(FormatError::BadMagic(bytes[..n].to_vec()));
+    }
+    if bytes.len() < 10 {
+        return Ok(None);
+    }
+    let mut r = ByteReader::new(&bytes[4..10], "file header");
+    let version = r.u16()?;
+    if version != VERSION {
+        return Err(FormatError::UnsupportedVersion {
+            found: version,
+            supported: VERSION,
+        });
+    }
+    let len = r.u32()? as usize;
+    if len > MAX_HEADER_BYTES {
+        return Err(FormatError::TooLarge {
+            what: "header",
+            size: len as u64,
+            limit: MAX_HEADER_BYTES as u64,
+        });
+    }
+    if bytes.len() < 14 + len {
+        return Ok(None);
+    }
+    let (header, header_bytes) = read_header_section(&bytes[..14 + len])?;
+    match read_directory(&header, &bytes[header_bytes..]) {
+        Ok((packet_lengths, directory_bytes)) => Ok(Some(Prelude {
+            header,
+            header_bytes,
+            directory_bytes,
+            packet_lengths,
+        })),
+        // The directory is read to its end: running out of bytes means "more to come".
+        Err(FormatError::Truncated { .. }) => Ok(None),
+        Err(e) => Err(e),
+    }
+}
+
+/// Reads the packet directory at the start of `rest`: the packet lengths and the directory's
+/// size with its CRC.
+fn read_directory(header: &Header, rest: &[u8]) -> Result<(Vec<usize>, usize), FormatError> {
     let mut r = ByteReader::new(rest, "packet directory");
     let max_packets = header.tile_count() as u64 * header.layer_bounds.len() as u64;
     let count = r.varint_max(max_packets, "packet count")? as usize;
@@ -748,7 +832,15 @@ pub fn parse_file(bytes: &[u8]) -> Result<WspFile<'_>, FormatError> {
             computed,
         });
     }
-    let mut packets = Vec::with_capacity(count);
+    Ok((lens, dir_len + 4))
+}
+
+/// Parses a file's header and packet directory (packets are checked when decoded).
+pub fn parse_file(bytes: &[u8]) -> Result<WspFile<'_>, FormatError> {
+    let (header, used) = read_header_section(bytes)?;
+    let (lens, directory_bytes) = read_directory(&header, &bytes[used..])?;
+    let mut r = ByteReader::new(&bytes[used + directory_bytes..], "packets");
+    let mut packets = Vec::with_capacity(lens.len());
     for len in lens {
         packets.push(r.take(len)?);
     }
@@ -761,7 +853,7 @@ pub fn parse_file(bytes: &[u8]) -> Result<WspFile<'_>, FormatError> {
     Ok(WspFile {
         header,
         header_bytes: used,
-        directory_bytes: dir_len + 4,
+        directory_bytes,
         packets,
     })
 }

@@ -115,6 +115,68 @@ pub struct EncodedPackets {
     pub breakdown: SizeBreakdown,
 }
 
+/// What decoding may cost a caller that decodes what others send: coefficients, and bytes of
+/// memory for them (and, for a whole volume, for its reconstruction). Checked against what a
+/// packet or file *declares* before anything is allocated or decoded, so a small hostile input
+/// is refused at once with an error saying what it would have cost.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct DecodeBudget {
+    /// Most coefficients one decode call may produce.
+    pub max_coefficients: u64,
+    /// Most bytes of memory one decode call may allocate for its results.
+    pub max_bytes: u64,
+}
+
+impl Default for DecodeBudget {
+    /// 256 M coefficients and 8 GiB: any volume this machine class compresses, while a
+    /// hostile file declaring far more is refused.
+    fn default() -> Self {
+        DecodeBudget {
+            max_coefficients: 1 << 28,
+            max_bytes: 8 << 30,
+        }
+    }
+}
+
+impl DecodeBudget {
+    /// No limit beyond the format's own bounds.
+    pub const UNLIMITED: DecodeBudget = DecodeBudget {
+        max_coefficients: u64::MAX,
+        max_bytes: u64::MAX,
+    };
+
+    /// Checks `count` coefficients against the budget.
+    pub fn check_coefficients(&self, count: u64) -> Result<(), FormatError> {
+        let bytes = count.saturating_mul(std::mem::size_of::<Coefficient>() as u64);
+        if count > self.max_coefficients {
+            return Err(FormatError::OverBudget {
+                what: "coefficients",
+                need: count,
+                budget: self.max_coefficients,
+            });
+        }
+        self.check_bytes(bytes)
+    }
+
+    /// Checks `bytes` of memory against the budget.
+    pub fn check_bytes(&self, bytes: u64) -> Result<(), FormatError> {
+        if bytes > self.max_bytes {
+            return Err(FormatError::OverBudget {
+                what: "bytes of memory",
+                need: bytes,
+                budget: self.max_bytes,
+            });
+        }
+        Ok(())
+    }
+}
+
+/// The coefficient count a packet declares (after checking its framing and checksum, without
+/// decoding its payload).
+pub fn declared_count(header: &Header, bytes: &[u8]) -> Result<u64, FormatError> {
+    Ok(read_framing(header, bytes)?.count as u64)
+}
+
 /// A decoded packet.
 #[derive(Debug, Clone, PartialEq)]
 pub struct DecodedPacket {
@@ -620,9 +682,19 @@ pub fn read_framing<'a>(
     })
 }
 
-/// Decodes one packet given the header. Validates framing, checksum, every index and every
-/// position; never panics on any input.
+/// Decodes one packet given the header, within the default [`DecodeBudget`]. Validates
+/// framing, checksum, every index and every position; never panics on any input.
 pub fn decode_packet(header: &Header, bytes: &[u8]) -> Result<DecodedPacket, FormatError> {
+    decode_packet_within(header, bytes, &DecodeBudget::default())
+}
+
+/// Decodes one packet given the header, refusing it before decoding if its declared count is
+/// over `budget`.
+pub fn decode_packet_within(
+    header: &Header,
+    bytes: &[u8],
+    budget: &DecodeBudget,
+) -> Result<DecodedPacket, FormatError> {
     let PacketFraming {
         tile,
         layer,
@@ -630,6 +702,7 @@ pub fn decode_packet(header: &Header, bytes: &[u8]) -> Result<DecodedPacket, For
         summary,
         payload,
     } = read_framing(header, bytes)?;
+    budget.check_coefficients(count as u64)?;
     let plen = payload.len();
     let mut breakdown = SizeBreakdown {
         framing_bytes: (bytes.len() - plen) as u64,
@@ -766,15 +839,36 @@ pub struct PacketError {
     pub source: FormatError,
 }
 
-/// Decodes `packets`, each on its own (in parallel with the `rayon` feature); the result is in
-/// input order. Errors name the packet's file index, `first_index` being that of `packets[0]`.
+/// Decodes `packets`, each on its own (in parallel with the `rayon` feature), within the
+/// default [`DecodeBudget`]; the result is in input order. Errors name the packet's file index,
+/// `first_index` being that of `packets[0]`.
 pub fn decode_packets(
     header: &Header,
     packets: &[&[u8]],
     first_index: usize,
 ) -> Result<Vec<Vec<Coefficient>>, PacketError> {
+    decode_packets_within(header, packets, first_index, &DecodeBudget::default())
+}
+
+/// [`decode_packets`] with a budget for all the packets together, checked against their
+/// declared counts before any is decoded.
+pub fn decode_packets_within(
+    header: &Header,
+    packets: &[&[u8]],
+    first_index: usize,
+    budget: &DecodeBudget,
+) -> Result<Vec<Vec<Coefficient>>, PacketError> {
+    let mut total = 0u64;
+    for (i, p) in packets.iter().enumerate() {
+        let fail = |source| PacketError {
+            index: first_index + i,
+            source,
+        };
+        total = total.saturating_add(declared_count(header, p).map_err(fail)?);
+        budget.check_coefficients(total).map_err(fail)?;
+    }
     let one = |(i, p): (usize, &&[u8])| {
-        decode_packet(header, p)
+        decode_packet_within(header, p, &DecodeBudget::UNLIMITED)
             .map(|d| d.coefficients)
             .map_err(|source| PacketError {
                 index: first_index + i,

@@ -769,6 +769,15 @@ fn decode_box(
             "more coefficients than the packet declares",
         ));
     }
+    if dec.overrun() {
+        return Err(invalid(
+            "packet",
+            format!(
+                "the payload ends after {} of {count} declared coefficients",
+                out.len()
+            ),
+        ));
+    }
     if b.cells() == 1 {
         let b0 = dec.bytes_read();
         let cell = b.lo;

@@ -1,27 +1,46 @@
-//! The worker: a stateless loop that leases a job, heartbeats with progress while it reads,
+//! The wavesplat worker: a stateless loop that leases a job, heartbeats with progress while it reads,
 //! compresses (on its own rayon pool) and uploads the result to the cache, then reports the
 //! outcome. Every failure is classified ([`FailureKind`]) so the orchestrator knows whether a
 //! retry can help. A worker that loses its lease (expired, or the job was cancelled) discards
 //! its result; a worker killed mid-job simply stops heartbeating and the job runs elsewhere.
 //! Cache ingest is idempotent by content hash and the compressor is deterministic, so a job
 //! that ran twice lands once.
+//!
+//! The worker is its own crate so that the orchestrator server links no encoder: the job's
+//! options are the orchestrator's domain types, mapped to the compressor's in [`options`].
+//!
+//! ```no_run
+//! # async fn demo() -> Result<(), wavesplat_worker::WorkerError> {
+//! let cfg = wavesplat_worker::WorkerConfig {
+//!     orchestrator: "http://127.0.0.1:50052".into(),
+//!     cache: "http://127.0.0.1:50051".into(),
+//!     threads: 2,
+//!     id: wavesplat_worker::default_worker_id(),
+//!     max_jobs: None,
+//!     pause_before_upload_ms: 0,
+//!     connect: Default::default(),
+//! };
+//! wavesplat_worker::run(cfg, async { let _ = tokio::signal::ctrl_c().await; }).await?;
+//! # Ok(()) }
+//! ```
 
-use crate::convert;
-use crate::model::{Delivery, Failure, FailureKind, JobSpec, Outcome, Source};
-use crate::sha256;
+pub mod options;
+
 use std::future::Future;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 use thiserror::Error;
-use tonic::transport::{Channel, Endpoint};
 use tonic::Code;
-use wavesplat_client::CacheClient;
+use wavesplat_client::{CacheClient, ConnectOptions};
 use wavesplat_codec::volume::Volume;
 use wavesplat_compressor::encode::{compress, Stage};
 use wavesplat_compressor::reader::{decode_raw, read_nifti};
+use wavesplat_orchestrator::client::{self, Client};
+use wavesplat_orchestrator::convert;
+use wavesplat_orchestrator::model::{Delivery, Failure, FailureKind, JobSpec, Outcome, Source};
+use wavesplat_orchestrator::sha256;
 use wavesplat_proto::pb;
-use wavesplat_proto::pb::orchestrator_client::OrchestratorClient;
 
 /// Worker settings.
 #[derive(Debug, Clone)]
@@ -38,21 +57,18 @@ pub struct WorkerConfig {
     pub max_jobs: Option<usize>,
     /// Testing aid: pause this long after compressing, before uploading (ms).
     pub pause_before_upload_ms: u64,
+    /// CA and token for both services (the token needs the `worker` role at the orchestrator
+    /// and `write` at the cache).
+    pub connect: ConnectOptions,
 }
 
 /// Errors that stop a worker (job failures are reported to the orchestrator instead).
 #[derive(Debug, Error)]
 #[non_exhaustive]
 pub enum WorkerError {
-    /// A URL could not be parsed.
-    #[error("invalid URL {url:?}: {source}")]
-    Url {
-        /// The URL.
-        url: String,
-        /// Why.
-        #[source]
-        source: tonic::transport::Error,
-    },
+    /// The orchestrator client could not be set up.
+    #[error(transparent)]
+    Orchestrator(#[from] wavesplat_orchestrator::OrchestratorError),
     /// The thread pool could not be built.
     #[error("thread pool: {0}")]
     Pool(#[from] rayon::ThreadPoolBuildError),
@@ -72,25 +88,9 @@ pub fn default_worker_id() -> String {
     format!("{host}-{}", std::process::id())
 }
 
-fn channel(url: &str) -> Result<Channel, WorkerError> {
-    let u = if url.contains("://") {
-        url.to_string()
-    } else {
-        format!("http://{url}")
-    };
-    let ep = Endpoint::from_shared(u.clone()).map_err(|source| WorkerError::Url {
-        url: u.clone(),
-        source,
-    })?;
-    Ok(ep
-        .connect_timeout(Duration::from_secs(5))
-        .tcp_nodelay(true)
-        .connect_lazy())
-}
-
 struct Ctx {
     cfg: WorkerConfig,
-    orch: OrchestratorClient<Channel>,
+    orch: Client,
     cache: CacheClient,
     pool: Arc<rayon::ThreadPool>,
 }
@@ -105,9 +105,8 @@ pub async fn run(
         .num_threads(cfg.threads)
         .thread_name(|i| format!("compress-{i}"))
         .build()?;
-    let orch = OrchestratorClient::new(channel(&cfg.orchestrator)?)
-        .max_decoding_message_size(crate::service::CHUNK_BYTES + (1 << 20));
-    let cache = CacheClient::connect_lazy(&cfg.cache)?;
+    let orch = client::connect_lazy(&cfg.orchestrator, &cfg.connect)?;
+    let cache = CacheClient::connect_lazy(&cfg.cache, &cfg.connect)?;
     let mut ctx = Ctx {
         cfg,
         orch,
@@ -223,7 +222,7 @@ async fn run_lease(ctx: &mut Ctx, lease: pb::Lease) {
 }
 
 async fn heartbeat_loop(
-    mut orch: OrchestratorClient<Channel>,
+    mut orch: Client,
     id: u64,
     attempt: u32,
     worker: String,
@@ -265,6 +264,7 @@ async fn report(ctx: &mut Ctx, id: u64, attempt: u32, outcome: Outcome) {
             output_bytes: d.output_bytes,
             voxels: d.voxels,
             existed: d.existed,
+            sha256: d.sha256,
         }),
         Outcome::Failed(f) => pb::finish_request::Outcome::Failure(pb::Failure {
             kind: convert::failure_kind_to_pb(f.kind) as i32,
@@ -362,7 +362,7 @@ fn decode(spec: &JobSpec, bytes: Vec<u8>) -> Result<Volume, Failure> {
     let invalid = |e: &dyn std::fmt::Display| fail(FailureKind::InvalidInput, e.to_string());
     match (&spec.raw, &spec.source) {
         (Some(layout), _) => {
-            let raw = layout.spec().map_err(|e| invalid(&e))?;
+            let raw = options::raw_spec(layout);
             decode_raw(&bytes, &raw).map_err(|e| invalid(&e))
         }
         (None, Source::Path(p)) => read_nifti(p).map_err(|e| invalid(&e)),
@@ -393,15 +393,12 @@ async fn execute(
             FailureKind::InvalidInput,
             format!(
                 "the source changed since submission: SHA-256 {}, submitted {}",
-                crate::model::hex(&got),
-                crate::model::hex(&spec.sha256)
+                wavesplat_orchestrator::model::hex(&got),
+                wavesplat_orchestrator::model::hex(&spec.sha256)
             ),
         ));
     }
-    let opts = spec
-        .options
-        .to_compress_options()
-        .map_err(|e| fail(FailureKind::InvalidInput, e.to_string()))?;
+    let opts = options::compress_options(&spec.options);
     let job_spec = spec.clone();
     let pool = ctx.pool.clone();
     let sh = shared.clone();
@@ -444,5 +441,6 @@ async fn execute(
         output_bytes: file.len() as u64,
         voxels,
         existed: r.existed,
+        sha256: v.sha256,
     })
 }

@@ -4,7 +4,7 @@
 //! workers, jobs, wall seconds, jobs/s, voxels/s, mean attempt time (lease → finish) and the
 //! queue overhead per job (wall × workers / jobs − mean attempt time).
 //!
-//! `cargo run --release -p wavesplat-orchestrator --example bench -- bench.csv`
+//! `cargo run --release -p wavesplat-worker --example bench -- bench.csv`
 
 use std::io::Write;
 use std::time::{Duration, Instant};
@@ -12,7 +12,8 @@ use wavesplat_compressor::phantom::Phantom;
 use wavesplat_orchestrator::archive;
 use wavesplat_orchestrator::client;
 use wavesplat_orchestrator::convert::state_name;
-use wavesplat_orchestrator::{JobOptions, QueueConfig, ServiceConfig, Store, WorkerConfig};
+use wavesplat_orchestrator::{JobOptions, QueueConfig, ServiceConfig, Store};
+use wavesplat_worker::WorkerConfig;
 
 const JOBS: usize = 20;
 
@@ -70,6 +71,7 @@ async fn run(workers: usize) -> String {
     let submitted = start.elapsed().as_secs_f64();
     for w in 0..workers {
         let cfg = WorkerConfig {
+            connect: Default::default(),
             orchestrator: orch_url.clone(),
             cache: cache_url.clone(),
             threads: 1,
@@ -77,10 +79,7 @@ async fn run(workers: usize) -> String {
             max_jobs: None,
             pause_before_upload_ms: 0,
         };
-        tokio::spawn(wavesplat_orchestrator::worker::run(
-            cfg,
-            std::future::pending(),
-        ));
+        tokio::spawn(wavesplat_worker::run(cfg, std::future::pending()));
     }
     let jobs = loop {
         let js = client::list(&mut c).await.unwrap();

@@ -1,0 +1,161 @@
+//! What a small hostile (or merely unusual) file can cost its decoder: a tiny valid file
+//! declaring a huge volume, a packet whose payload cannot hold what it declares, and a valid file
+//! of many coefficients against a caller's budget. Each is refused with an error, early, instead
+//! of an allocation that aborts the process or minutes of decoding.
+
+use rand::{Rng, SeedableRng};
+use wavesplat_codec::format::bytes::ByteWriter;
+use wavesplat_codec::format::packet::{
+    declared_count, decode_packet, decode_packet_within, decode_packets_within, DecodeBudget,
+};
+use wavesplat_codec::format::{parse_file, write_file, FormatError, Header};
+use wavesplat_codec::layout::Geometry;
+use wavesplat_compressor::decode::{decompress, decompress_within, reconstruction_bytes};
+use wavesplat_compressor::encode::{compress, CompressOptions, Target, TileChoice};
+use wavesplat_compressor::phantom::Phantom;
+
+fn sigmap_file(dims: [usize; 3], target: Target) -> Vec<u8> {
+    let vol = Phantom::SheppLogan.generate(dims);
+    compress(
+        &vol,
+        &CompressOptions {
+            target,
+            tile: TileChoice::Size(16),
+            layers: Some(2),
+            refine: None,
+            ..Default::default()
+        },
+        &|_, _| {},
+    )
+    .unwrap()
+    .bytes
+}
+
+/// `header` with its geometry grown to `dims` (no margin) and tiles of `tile` (same family and
+/// depth, so the substreams still match).
+fn grown(header: &Header, dims: [usize; 3], tile: usize) -> Header {
+    let g = &header.geometry;
+    let mut h = header.clone();
+    h.geometry = Geometry::new(dims, g.family, g.levels, 0).unwrap();
+    h.margin = 0;
+    h.tile = tile;
+    h
+}
+
+#[test]
+fn a_tiny_valid_file_declaring_a_huge_volume_is_refused_not_allocated() {
+    let file = sigmap_file([16, 16, 16], Target::Fraction(0.1));
+    let header = parse_file(&file).unwrap().header;
+    let huge = grown(&header, [1024, 1024, 2048], 16);
+    let tiny = write_file(&huge, &[]);
+    assert!(tiny.len() < 4096, "{} bytes", tiny.len());
+    let parsed = parse_file(&tiny).unwrap();
+    assert!(reconstruction_bytes(&parsed.header) > 16 << 30);
+    let e = decompress(&tiny).unwrap_err();
+    assert!(e.to_string().contains("over the budget"), "{e}");
+    // A caller may allow less, and the original still decodes within a small budget.
+    let small = DecodeBudget {
+        max_coefficients: 1 << 20,
+        max_bytes: 64 << 20,
+    };
+    assert!(decompress_within(&file, &small).is_ok());
+    let need = reconstruction_bytes(&parse_file(&file).unwrap().header);
+    let tight = DecodeBudget {
+        max_bytes: need - 1,
+        ..small
+    };
+    assert!(decompress_within(&file, &tight).is_err());
+}
+
+/// A packet of `header`'s tile 0, layer 0 declaring `count` coefficients with `payload`.
+fn forged_packet(header: &Header, count: u64, payload: &[u8]) -> Vec<u8> {
+    let mut w = ByteWriter::new();
+    w.varint(0);
+    w.u8(0);
+    w.varint(count);
+    for _ in 0..header.geometry.band_count().div_ceil(8) {
+        w.u8(0);
+    }
+    w.varint(payload.len() as u64);
+    w.bytes(payload);
+    let mut p = w.into_bytes();
+    p.extend_from_slice(&crc32fast::hash(&p).to_le_bytes());
+    p
+}
+
+#[test]
+fn a_payload_that_cannot_hold_its_declared_count_stops_where_it_ends() {
+    let file = sigmap_file([16, 16, 16], Target::Fraction(0.1));
+    let header = parse_file(&file).unwrap().header;
+    // One 1024³ tile: the declared count is bounded only by the payload (64 per byte).
+    let h = grown(&header, [1024, 1024, 1024], 1024);
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(16);
+    for len in [1usize, 100, 131 << 10] {
+        for seed in 0..3u8 {
+            let payload: Vec<u8> = (0..len).map(|_| rng.gen::<u8>() ^ seed).collect();
+            let count = 64 * (len as u64 + 1);
+            let p = forged_packet(&h, count, &payload);
+            assert_eq!(declared_count(&h, &p).unwrap(), count);
+            let e = decode_packet(&h, &p).unwrap_err();
+            let msg = e.to_string();
+            // Refused where the payload runs out (or, for a tiny one, within the few zeros a
+            // valid stream may leave implicit), not after decoding the declared count from the
+            // zeros past its end.
+            assert!(
+                msg.contains("payload ends")
+                    || msg.contains("more coefficients than")
+                    || msg.contains("header of the packet says"),
+                "{len} bytes: {msg}"
+            );
+        }
+    }
+    // Payloads that keep the octree walk going: before the guard they went on decoding the
+    // zeros past the end up to the declared 8.5 M coefficients (seconds and hundreds of MiB);
+    // now they stop at the payload's end.
+    for b in [0x55u8, 0x80, 0x7f] {
+        let payload = vec![b; 131 << 10];
+        let p = forged_packet(&h, 64 * (payload.len() as u64 + 1), &payload);
+        let msg = decode_packet(&h, &p).unwrap_err().to_string();
+        assert!(msg.contains("payload ends"), "{b:#x}: {msg}");
+    }
+}
+
+#[test]
+fn a_caller_budget_refuses_a_valid_file_before_decoding_it() {
+    // Dense, regular data: many coefficients from few bytes.
+    let file = sigmap_file([32, 32, 32], Target::All);
+    let parsed = parse_file(&file).unwrap();
+    let h = &parsed.header;
+    let total: u64 = parsed
+        .packets
+        .iter()
+        .map(|p| declared_count(h, p).unwrap())
+        .sum();
+    assert!(total > 1000);
+    let exact = DecodeBudget {
+        max_coefficients: total,
+        max_bytes: u64::MAX,
+    };
+    let all = decode_packets_within(h, &parsed.packets, 0, &exact).unwrap();
+    assert_eq!(all.iter().map(Vec::len).sum::<usize>() as u64, total);
+    let short = DecodeBudget {
+        max_coefficients: total - 1,
+        ..exact
+    };
+    let e = decode_packets_within(h, &parsed.packets, 0, &short).unwrap_err();
+    assert!(
+        matches!(e.source, FormatError::OverBudget { need, .. } if need == total),
+        "{e}"
+    );
+    // Per packet, and by bytes of memory.
+    let p = parsed.packets[0];
+    let n = declared_count(h, p).unwrap();
+    let bytes_budget = DecodeBudget {
+        max_coefficients: u64::MAX,
+        max_bytes: n * 8,
+    };
+    assert!(matches!(
+        decode_packet_within(h, p, &bytes_budget),
+        Err(FormatError::OverBudget { .. })
+    ));
+}

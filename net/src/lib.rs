@@ -1,0 +1,69 @@
+//! Plumbing every wavesplat service and client shares, so that each concern lives in one place:
+//!
+//! - [`status`]: client faults answered with client statuses — an undecodable request is
+//!   `INVALID_ARGUMENT` (tonic says `INTERNAL`), a message over the size limit
+//!   `RESOURCE_EXHAUSTED` (tonic says `OUT_OF_RANGE`);
+//! - [`deadline`]: the caller's deadline (`grpc-timeout`) as an instant a handler can honour;
+//! - [`tls`]: TLS for servers and clients, the one place a URL becomes an endpoint, and the
+//!   rule against exposing a server by accident;
+//! - [`auth`]: bearer tokens with roles (read, write, worker, admin), checked in constant time
+//!   by a layer in front of every service, and the clients' credentials.
+//!
+//! A server combines them in [`Security`].
+
+pub mod auth;
+pub mod deadline;
+pub mod status;
+pub mod tls;
+
+pub use auth::{Access, AuthLayer, Caller, Credentials, Policy, Role, Tokens};
+pub use tls::TlsError;
+
+use std::path::PathBuf;
+use std::sync::Arc;
+use tonic::transport::{Endpoint, ServerTlsConfig};
+
+/// How a client reaches a service: the CA that signs its certificate (for `https://` URLs; the
+/// system's roots without one) and the token to send.
+#[derive(Debug, Clone, Default)]
+pub struct ConnectOptions {
+    /// PEM CA certificate for `https://` URLs.
+    pub ca: Option<PathBuf>,
+    /// The token sent with every request.
+    pub credentials: Credentials,
+}
+
+impl ConnectOptions {
+    /// The endpoint of `url` ([`tls::endpoint`]) and its normalised form.
+    pub fn endpoint(&self, url: &str) -> Result<(String, Endpoint), TlsError> {
+        tls::endpoint(url, self.ca.as_deref())
+    }
+}
+
+/// How a server protects itself.
+#[derive(Debug, Clone, Default)]
+pub struct Security {
+    /// TLS settings (`None`: plaintext).
+    pub tls: Option<ServerTlsConfig>,
+    /// Accepted tokens (`None`: no authentication).
+    pub tokens: Option<Arc<Tokens>>,
+    /// Serve on a non-loopback address without TLS and authentication anyway.
+    pub insecure: bool,
+}
+
+impl Security {
+    /// Checks that serving on `addr` is allowed ([`tls::check_exposure`]).
+    pub fn check(&self, addr: std::net::SocketAddr) -> Result<(), TlsError> {
+        tls::check_exposure(
+            addr,
+            self.tls.is_some(),
+            self.tokens.is_some(),
+            self.insecure,
+        )
+    }
+
+    /// The authentication layer for a service with `policy`.
+    pub fn auth_layer(&self, policy: Policy) -> AuthLayer {
+        AuthLayer::new(self.tokens.clone(), policy)
+    }
+}

@@ -1,0 +1,192 @@
+//! Transport security: TLS (rustls, through tonic) for servers and clients, the one place that
+//! turns a URL into an endpoint, and the rule that keeps a server from being exposed by
+//! accident.
+//!
+//! - `http://HOST:PORT` (or `HOST:PORT`) is plaintext; `https://HOST:PORT` is TLS, verified
+//!   against the CA file given (`--ca`) or, without one, the system's roots. An `https://` URL
+//!   never falls back to plaintext, so against a plaintext server it fails, saying so.
+//! - A server serves TLS with a certificate chain and key in PEM ([`server_tls`]).
+//! - [`check_exposure`]: a server bound to a non-loopback address needs TLS and authentication
+//!   unless told `--insecure`.
+
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+use thiserror::Error;
+use tonic::transport::{Certificate, ClientTlsConfig, Endpoint, Identity, ServerTlsConfig};
+
+/// Errors setting up transport security.
+#[derive(Debug, Error)]
+#[non_exhaustive]
+pub enum TlsError {
+    /// A PEM file could not be read.
+    #[error("reading {what} {path}: {source}")]
+    Read {
+        /// What the file is.
+        what: &'static str,
+        /// The file.
+        path: PathBuf,
+        /// Why.
+        #[source]
+        source: std::io::Error,
+    },
+    /// The URL is not a service address.
+    #[error("invalid URL {url:?}: {reason}")]
+    Url {
+        /// The URL.
+        url: String,
+        /// What is wrong.
+        reason: String,
+    },
+    /// Serving on a reachable address without TLS and authentication.
+    #[error(
+        "refusing to serve on {addr} without {missing}: anyone who can reach it could read or \
+         change everything. Give --tls-cert/--tls-key and --tokens, bind a loopback address, \
+         or pass --insecure if the network is trusted"
+    )]
+    Exposed {
+        /// The address.
+        addr: SocketAddr,
+        /// What is missing.
+        missing: &'static str,
+    },
+}
+
+fn read(what: &'static str, path: &Path) -> Result<Vec<u8>, TlsError> {
+    std::fs::read(path).map_err(|source| TlsError::Read {
+        what,
+        path: path.to_path_buf(),
+        source,
+    })
+}
+
+/// A server's TLS settings from a PEM certificate chain and a PEM private key.
+pub fn server_tls(cert: &Path, key: &Path) -> Result<ServerTlsConfig, TlsError> {
+    let identity = Identity::from_pem(read("certificate", cert)?, read("private key", key)?);
+    Ok(ServerTlsConfig::new().identity(identity))
+}
+
+/// The endpoint of a service URL with the settings every client uses: TLS for `https://`
+/// (against the PEM CA `ca`, or the system's roots), plaintext for `http://`. Returns the
+/// normalised URL too.
+pub fn endpoint(url: &str, ca: Option<&Path>) -> Result<(String, Endpoint), TlsError> {
+    let bad = |reason: &str| TlsError::Url {
+        url: url.to_string(),
+        reason: reason.to_string(),
+    };
+    let trimmed = url.trim();
+    if trimmed.is_empty() {
+        return Err(bad("empty"));
+    }
+    let (tls, url) = match trimmed.split_once("://") {
+        None => (false, format!("http://{trimmed}")),
+        Some(("http", rest)) if !rest.is_empty() => (false, trimmed.to_string()),
+        Some(("https", rest)) if !rest.is_empty() => (true, trimmed.to_string()),
+        Some(_) => {
+            return Err(bad(
+                "expected http://HOST:PORT, https://HOST:PORT or HOST:PORT",
+            ))
+        }
+    };
+    let mut ep = Endpoint::from_shared(url.clone())
+        .map_err(|e| bad(&e.to_string()))?
+        .connect_timeout(Duration::from_secs(5))
+        .tcp_nodelay(true);
+    if tls {
+        let mut cfg = ClientTlsConfig::new().assume_http2(true);
+        cfg = match ca {
+            Some(ca) => cfg.ca_certificate(Certificate::from_pem(read("CA certificate", ca)?)),
+            None => cfg.with_native_roots(),
+        };
+        ep = ep.tls_config(cfg).map_err(|e| bad(&e.to_string()))?;
+    } else if ca.is_some() {
+        return Err(bad(
+            "a CA certificate was given for a plaintext http:// URL; use https://",
+        ));
+    }
+    Ok((url, ep))
+}
+
+/// The chain of causes of a transport error, for people (tonic's own message is only
+/// "transport error"): tells a TLS handshake that failed against a plaintext server apart from
+/// a refused connection.
+pub fn describe(e: &(dyn std::error::Error + 'static)) -> String {
+    let mut out = e.to_string();
+    let mut source = e.source();
+    while let Some(s) = source {
+        let m = s.to_string();
+        if !out.contains(&m) {
+            out.push_str(": ");
+            out.push_str(&m);
+        }
+        source = s.source();
+    }
+    out
+}
+
+/// Why connecting to `url` failed, for people: the causes ([`describe`]), and for an
+/// `https://` URL whose server does not answer in TLS, that likely cause in words.
+pub fn explain_connect_error(url: &str, e: &(dyn std::error::Error + 'static)) -> String {
+    let causes = describe(e);
+    if url.starts_with("https://")
+        && (causes.contains("InvalidContentType") || causes.contains("corrupt message"))
+    {
+        format!(
+            "TLS handshake failed: the server did not answer in TLS (is it serving plaintext? \
+             then use http://) ({causes})"
+        )
+    } else {
+        causes
+    }
+}
+
+/// Refuses a non-loopback `addr` without both TLS and authentication, unless `insecure`.
+pub fn check_exposure(
+    addr: SocketAddr,
+    tls: bool,
+    auth: bool,
+    insecure: bool,
+) -> Result<(), TlsError> {
+    if insecure || addr.ip().is_loopback() {
+        return Ok(());
+    }
+    let missing = match (tls, auth) {
+        (true, true) => return Ok(()),
+        (false, false) => "TLS and authentication",
+        (false, true) => "TLS",
+        (true, false) => "authentication",
+    };
+    Err(TlsError::Exposed { addr, missing })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn urls_pick_the_transport_and_bad_ones_are_refused() {
+        assert_eq!(endpoint("h:1", None).unwrap().0, "http://h:1");
+        assert_eq!(endpoint("http://h:1", None).unwrap().0, "http://h:1");
+        assert_eq!(endpoint("https://h:1", None).unwrap().0, "https://h:1");
+        for bad in ["", "ftp://h:1", "http://", "https://"] {
+            assert!(endpoint(bad, None).is_err(), "{bad:?}");
+        }
+        let e = endpoint("http://h:1", Some(Path::new("/nonexistent.pem"))).unwrap_err();
+        assert!(e.to_string().contains("https"), "{e}");
+        let e = endpoint("https://h:1", Some(Path::new("/nonexistent.pem"))).unwrap_err();
+        assert!(e.to_string().contains("CA certificate"), "{e}");
+    }
+
+    #[test]
+    fn exposure_needs_tls_and_auth_or_insecure() {
+        let public: SocketAddr = "0.0.0.0:1".parse().unwrap();
+        let local: SocketAddr = "127.0.0.1:1".parse().unwrap();
+        assert!(check_exposure(local, false, false, false).is_ok());
+        assert!(check_exposure(public, true, true, false).is_ok());
+        assert!(check_exposure(public, false, false, true).is_ok());
+        for (tls, auth) in [(false, false), (true, false), (false, true)] {
+            let e = check_exposure(public, tls, auth, false).unwrap_err();
+            assert!(e.to_string().contains("--insecure"), "{e}");
+        }
+    }
+}

@@ -1,0 +1,478 @@
+//! Services people can expose: TLS with certificates the test generates (rcgen), tokens with
+//! roles on every RPC, the refusal to serve a reachable address unprotected, and deliveries
+//! confirmed with the cache. In-process servers on loopback, sled in a tempdir.
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use tonic::Code;
+use wavesplat_cache::{Limits, Store};
+use wavesplat_client::{CacheClient, ConnectOptions, Credentials, RefineRequest, VolumeKey};
+use wavesplat_codec::view::{View, ViewSpec};
+use wavesplat_compressor::encode::{compress, CompressOptions, Target, TileChoice};
+use wavesplat_compressor::phantom::Phantom;
+use wavesplat_net::{Security, Tokens};
+use wavesplat_orchestrator::client::{self, Client};
+use wavesplat_orchestrator::model::{JobOptions, JobSpec, Source};
+use wavesplat_orchestrator::{DeliveryCheck, ServiceConfig};
+use wavesplat_proto::pb;
+
+const READ: &str = "0123456789abcdef-read";
+const WRITE: &str = "0123456789abcdef-write";
+const WORKER: &str = "0123456789abcdef-worker";
+const ADMIN: &str = "0123456789abcdef-admin";
+
+fn tokens() -> Arc<Tokens> {
+    Arc::new(
+        Tokens::parse(&format!(
+            "viewer read {READ}\nuploader write {WRITE}\nw1 worker,write {WORKER}\n\
+             root admin {ADMIN}\n"
+        ))
+        .unwrap(),
+    )
+}
+
+fn test_file(dims: [usize; 3]) -> Vec<u8> {
+    let vol = Phantom::SheppLogan.generate(dims);
+    compress(
+        &vol,
+        &CompressOptions {
+            target: Target::Fraction(0.05),
+            tile: TileChoice::Size(16),
+            levels: Some(2),
+            refine: None,
+            ..Default::default()
+        },
+        &|_, _| {},
+    )
+    .unwrap()
+    .bytes
+}
+
+/// A CA and a server certificate for 127.0.0.1 and localhost signed by it, as PEM files.
+struct Pki {
+    _dir: tempfile::TempDir,
+    ca: PathBuf,
+    cert: PathBuf,
+    key: PathBuf,
+}
+
+fn pki() -> Pki {
+    let dir = tempfile::tempdir().unwrap();
+    let mut ca_params = rcgen::CertificateParams::new(Vec::<String>::new()).unwrap();
+    ca_params.is_ca = rcgen::IsCa::Ca(rcgen::BasicConstraints::Unconstrained);
+    ca_params
+        .distinguished_name
+        .push(rcgen::DnType::CommonName, "wavesplat test CA");
+    let ca_key = rcgen::KeyPair::generate().unwrap();
+    let ca = ca_params.self_signed(&ca_key).unwrap();
+    let params =
+        rcgen::CertificateParams::new(vec!["127.0.0.1".to_string(), "localhost".to_string()])
+            .unwrap();
+    let key = rcgen::KeyPair::generate().unwrap();
+    let cert = params.signed_by(&key, &ca, &ca_key).unwrap();
+    let write = |name: &str, text: String| {
+        let p = dir.path().join(name);
+        std::fs::write(&p, text).unwrap();
+        p
+    };
+    Pki {
+        ca: write("ca.pem", ca.pem()),
+        cert: write("cert.pem", cert.pem()),
+        key: write("key.pem", key.serialize_pem()),
+        _dir: dir,
+    }
+}
+
+struct Cache {
+    addr: std::net::SocketAddr,
+    store: Store,
+    _dir: tempfile::TempDir,
+    stop: Option<tokio::sync::oneshot::Sender<()>>,
+    task: tokio::task::JoinHandle<()>,
+}
+
+impl Cache {
+    async fn start(security: Security) -> Cache {
+        let dir = tempfile::tempdir().unwrap();
+        let store = Store::open(dir.path(), Limits::default()).unwrap();
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let addr = listener.local_addr().unwrap();
+        let (tx, rx) = tokio::sync::oneshot::channel();
+        let served = store.clone();
+        let options = wavesplat_cache::ServeOptions {
+            security,
+            ..Default::default()
+        };
+        let task = tokio::spawn(async move {
+            wavesplat_cache::serve_with(listener, served, options, async {
+                let _ = rx.await;
+            })
+            .await
+            .unwrap();
+        });
+        Cache {
+            addr,
+            store,
+            _dir: dir,
+            stop: Some(tx),
+            task,
+        }
+    }
+
+    async fn stop(mut self) {
+        let _ = self.stop.take().unwrap().send(());
+        self.task.await.unwrap();
+    }
+}
+
+fn options(ca: Option<&Path>, token: Option<&str>) -> ConnectOptions {
+    ConnectOptions {
+        ca: ca.map(Path::to_path_buf),
+        credentials: token.map_or_else(Credentials::none, |t| Credentials::token(t).unwrap()),
+    }
+}
+
+async fn client(url: &str, ca: Option<&Path>, token: Option<&str>) -> CacheClient {
+    CacheClient::connect_with(url, &options(ca, token))
+        .await
+        .unwrap()
+}
+
+#[tokio::test]
+async fn tls_round_trip_and_every_cache_rpc_checks_its_role() {
+    let pki = pki();
+    let security = Security {
+        tls: Some(wavesplat_net::tls::server_tls(&pki.cert, &pki.key).unwrap()),
+        tokens: Some(tokens()),
+        insecure: false,
+    };
+    let cache = Cache::start(security).await;
+    let url = format!("https://127.0.0.1:{}", cache.addr.port());
+    let bytes = test_file([24, 24, 24]);
+    let key = VolumeKey::Name("v".into());
+
+    // Writing needs `write`: refused without a token, with a wrong one, and with `read`.
+    for token in [None, Some("0123456789abcdef-wrong"), Some(READ)] {
+        let mut c = client(&url, Some(&pki.ca), token).await;
+        let want = if token == Some(READ) {
+            Code::PermissionDenied
+        } else {
+            Code::Unauthenticated
+        };
+        assert_eq!(c.ingest("v", &bytes).await.unwrap_err().code(), Some(want));
+        assert_eq!(c.delete(&key).await.unwrap_err().code(), Some(want));
+        if token.is_none() {
+            assert_eq!(
+                c.list().await.unwrap_err().code(),
+                Some(Code::Unauthenticated)
+            );
+        }
+    }
+    assert!(cache.store.list().unwrap().is_empty());
+    assert_eq!(cache.store.data_bytes().unwrap(), 0);
+
+    // `write` stores; it cannot read.
+    let mut w = client(&url, Some(&pki.ca), Some(WRITE)).await;
+    w.ingest("v", &bytes).await.unwrap();
+    assert_eq!(
+        w.list().await.unwrap_err().code(),
+        Some(Code::PermissionDenied)
+    );
+
+    // `read` streams over TLS; the packets are the file's.
+    let mut r = client(&url, Some(&pki.ca), Some(READ)).await;
+    let view = ViewSpec::single(View::new(0.3, 0.2, 32, 32));
+    let got = r
+        .refine_collect(RefineRequest::new(key.clone(), view), None)
+        .await
+        .unwrap();
+    assert!(got.done);
+    let file = wavesplat_codec::format::parse_file(&bytes).unwrap();
+    assert_eq!(got.packets.len(), file.packets.len());
+    for p in &got.packets {
+        assert_eq!(p.data, file.packets[p.id as usize]);
+    }
+    // Deleting with `read` changes nothing; `admin` may do anything.
+    assert_eq!(
+        r.delete(&key).await.unwrap_err().code(),
+        Some(Code::PermissionDenied)
+    );
+    assert_eq!(cache.store.list().unwrap().len(), 1);
+    let mut a = client(&url, Some(&pki.ca), Some(ADMIN)).await;
+    a.delete(&key).await.unwrap();
+    assert!(a.list().await.unwrap().is_empty());
+
+    // Plaintext against the TLS server fails; so does TLS without the right CA.
+    let plain = format!("http://127.0.0.1:{}", cache.addr.port());
+    let mut p = client(&plain, None, Some(READ)).await;
+    assert!(p.list().await.is_err());
+    let other = pki_other();
+    let e = CacheClient::connect_with(&url, &options(Some(&other.ca), Some(READ)))
+        .await
+        .unwrap_err();
+    assert!(e.to_string().to_lowercase().contains("certificate"), "{e}");
+    cache.stop().await;
+}
+
+fn pki_other() -> Pki {
+    pki()
+}
+
+#[tokio::test]
+async fn an_https_url_against_a_plaintext_server_fails_clearly() {
+    let cache = Cache::start(Security::default()).await;
+    let pki = pki();
+    let url = format!("https://127.0.0.1:{}", cache.addr.port());
+    let e = CacheClient::connect_with(&url, &options(Some(&pki.ca), None))
+        .await
+        .unwrap_err();
+    let msg = e.to_string();
+    assert!(msg.contains(&url), "{msg}");
+    assert!(
+        msg.to_lowercase().contains("tls") || msg.to_lowercase().contains("handshake"),
+        "the error should say the TLS handshake failed: {msg}"
+    );
+    // http:// stays plaintext and works.
+    let mut c = client(
+        &format!("http://127.0.0.1:{}", cache.addr.port()),
+        None,
+        None,
+    )
+    .await;
+    assert!(c.list().await.unwrap().is_empty());
+    cache.stop().await;
+}
+
+#[tokio::test]
+async fn servers_refuse_a_reachable_address_without_tls_and_tokens() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = Store::open(dir.path(), Limits::default()).unwrap();
+    let listener = tokio::net::TcpListener::bind("0.0.0.0:0").await.unwrap();
+    let only_tokens = wavesplat_cache::ServeOptions {
+        security: Security {
+            tokens: Some(tokens()),
+            ..Default::default()
+        },
+        ..Default::default()
+    };
+    let e = wavesplat_cache::serve_with(listener, store, only_tokens, async {})
+        .await
+        .unwrap_err();
+    assert!(e.to_string().contains("--insecure"), "{e}");
+    let orch = wavesplat_orchestrator::Store::open(dir.path().join("orch")).unwrap();
+    let listener = tokio::net::TcpListener::bind("0.0.0.0:0").await.unwrap();
+    let e = wavesplat_orchestrator::serve_with(
+        listener,
+        orch,
+        ServiceConfig::default(),
+        Default::default(),
+        async {},
+    )
+    .await
+    .unwrap_err();
+    assert!(e.to_string().contains("TLS and authentication"), "{e}");
+    // --insecure says the network is trusted.
+    let store = Store::open(dir.path().join("c2"), Limits::default()).unwrap();
+    let listener = tokio::net::TcpListener::bind("0.0.0.0:0").await.unwrap();
+    let insecure = wavesplat_cache::ServeOptions {
+        security: Security {
+            insecure: true,
+            ..Default::default()
+        },
+        ..Default::default()
+    };
+    wavesplat_cache::serve_with(listener, store, insecure, async {})
+        .await
+        .unwrap();
+}
+
+async fn orch_client(url: &str, token: Option<&str>) -> Client {
+    client::connect_with(url, &options(None, token))
+        .await
+        .unwrap()
+}
+
+fn job_ref(id: u64) -> pb::JobRef {
+    pb::JobRef { id }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn every_orchestrator_rpc_checks_its_role_and_deliveries_are_confirmed() {
+    // The cache the orchestrator checks deliveries against (plaintext on loopback, tokens on).
+    let cache = Cache::start(Security {
+        tokens: Some(tokens()),
+        ..Default::default()
+    })
+    .await;
+    let cache_url = format!("http://{}", cache.addr);
+    let dir = tempfile::tempdir().unwrap();
+    let store = wavesplat_orchestrator::Store::open(dir.path()).unwrap();
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let url = format!("http://{}", listener.local_addr().unwrap());
+    let opts = wavesplat_orchestrator::ServeOptions {
+        security: Security {
+            tokens: Some(tokens()),
+            ..Default::default()
+        },
+        delivery_check: Some(DeliveryCheck::new(&cache_url, &options(None, Some(READ))).unwrap()),
+    };
+    tokio::spawn(wavesplat_orchestrator::serve_with(
+        listener,
+        store,
+        ServiceConfig::default(),
+        opts,
+        std::future::pending(),
+    ));
+    let bytes = test_file([16, 16, 16]);
+    let spec = JobSpec {
+        name: "vol".into(),
+        source: Source::Path("/nonexistent/vol_16x16x16_f32.raw".into()),
+        sha256: [9; 32],
+        raw: None,
+        options: JobOptions::default(),
+    };
+
+    // Submitting needs `admin`.
+    for (token, want) in [
+        (None, Code::Unauthenticated),
+        (Some(READ), Code::PermissionDenied),
+        (Some(WORKER), Code::PermissionDenied),
+    ] {
+        let mut c = orch_client(&url, token).await;
+        let e = client::submit(&mut c, &spec, None).await.unwrap_err();
+        assert_eq!(e.code(), want, "{token:?}");
+        assert_eq!(c.cancel_job(job_ref(1)).await.unwrap_err().code(), want);
+        assert_eq!(c.retry_job(job_ref(1)).await.unwrap_err().code(), want);
+    }
+    let mut admin = orch_client(&url, Some(ADMIN)).await;
+    assert!(client::list(&mut admin).await.unwrap().is_empty());
+    let job = client::submit(&mut admin, &spec, None)
+        .await
+        .unwrap()
+        .job
+        .unwrap();
+
+    // Leasing, heartbeats and outcomes need `worker`.
+    let lease = pb::LeaseRequest {
+        worker: "fake".into(),
+    };
+    for (token, want) in [
+        (None, Code::Unauthenticated),
+        (Some(READ), Code::PermissionDenied),
+        (Some(WRITE), Code::PermissionDenied),
+    ] {
+        let mut c = orch_client(&url, token).await;
+        assert_eq!(c.lease(lease.clone()).await.unwrap_err().code(), want);
+        let hb = pb::HeartbeatRequest {
+            job_id: job.id,
+            attempt: 1,
+            ..Default::default()
+        };
+        assert_eq!(c.heartbeat(hb).await.unwrap_err().code(), want);
+        let fin = pb::FinishRequest {
+            job_id: job.id,
+            attempt: 1,
+            ..Default::default()
+        };
+        assert_eq!(c.finish(fin).await.unwrap_err().code(), want);
+        if token.is_some() {
+            // Reading is allowed to `read` only (and admin).
+            let l = c.list_jobs(pb::ListJobsRequest {}).await;
+            assert_eq!(l.is_ok(), token == Some(READ));
+        }
+    }
+    let state = |jobs: Vec<pb::Job>| wavesplat_orchestrator::convert::state_name(jobs[0].state);
+    assert_eq!(state(client::list(&mut admin).await.unwrap()), "queued");
+
+    // A worker lease, then a made-up delivery: refused, the job stays running.
+    let mut w = orch_client(&url, Some(WORKER)).await;
+    let l = w.lease(lease).await.unwrap().into_inner().lease.unwrap();
+    let finish = |d: pb::Delivered| pb::FinishRequest {
+        job_id: l.job_id,
+        attempt: l.attempt,
+        worker: "fake".into(),
+        outcome: Some(pb::finish_request::Outcome::Delivered(d)),
+    };
+    let fake = pb::Delivered {
+        cache_volume_id: 42,
+        output_bytes: 10,
+        voxels: 10,
+        existed: false,
+        sha256: "00".repeat(32),
+    };
+    let e = w.finish(finish(fake.clone())).await.unwrap_err();
+    assert_eq!(e.code(), Code::FailedPrecondition, "{e:?}");
+    assert_eq!(state(client::list(&mut admin).await.unwrap()), "running");
+    // Real content under the job's name, but the worker lies about its id: still refused.
+    let mut cw = client(&cache_url, None, Some(WORKER)).await;
+    let stored = cw.ingest("vol", &bytes).await.unwrap().volume;
+    let lie = pb::Delivered {
+        cache_volume_id: stored.id + 1,
+        sha256: stored.sha256.clone(),
+        ..fake.clone()
+    };
+    assert_eq!(
+        w.finish(finish(lie)).await.unwrap_err().code(),
+        Code::FailedPrecondition
+    );
+    // The truth is accepted.
+    let truth = pb::Delivered {
+        cache_volume_id: stored.id,
+        sha256: stored.sha256.clone(),
+        output_bytes: bytes.len() as u64,
+        ..fake
+    };
+    w.finish(finish(truth)).await.unwrap();
+    assert_eq!(state(client::list(&mut admin).await.unwrap()), "done");
+    cache.stop().await;
+}
+
+mod common;
+
+#[test]
+fn the_binary_serves_tls_with_tokens_and_its_clients_take_the_token_from_the_environment() {
+    let pki = pki();
+    let dir = tempfile::tempdir().unwrap();
+    let tokens = dir.path().join("tokens");
+    std::fs::write(
+        &tokens,
+        format!("viewer read {READ}\nuploader write {WRITE}\n"),
+    )
+    .unwrap();
+    let wsp = dir.path().join("v.wsp");
+    std::fs::write(&wsp, test_file([16, 16, 16])).unwrap();
+    let db = dir.path().join("db");
+    let (mut child, addr) = common::spawn_server(&[
+        "serve",
+        "cache",
+        "--addr",
+        "127.0.0.1:0",
+        "--db",
+        db.to_str().unwrap(),
+        "--tls-cert",
+        pki.cert.to_str().unwrap(),
+        "--tls-key",
+        pki.key.to_str().unwrap(),
+        "--tokens",
+        tokens.to_str().unwrap(),
+    ]);
+    let url = format!("https://127.0.0.1:{}", addr.rsplit(':').next().unwrap());
+    let run = |args: &[&str], token: &str| {
+        std::process::Command::new(env!("CARGO_BIN_EXE_wavesplat"))
+            .args(args)
+            .args(["--cache", &url, "--ca", pki.ca.to_str().unwrap()])
+            .env("WAVESPLAT_TOKEN", token)
+            .output()
+            .unwrap()
+    };
+    let wsp_arg = wsp.to_str().unwrap();
+    let denied = run(&["cache", "ingest", wsp_arg], READ);
+    assert!(!denied.status.success());
+    assert!(String::from_utf8_lossy(&denied.stderr).contains("PermissionDenied"));
+    assert!(run(&["cache", "ingest", wsp_arg], WRITE).status.success());
+    let list = run(&["cache", "list"], READ);
+    assert!(list.status.success());
+    assert!(String::from_utf8_lossy(&list.stdout).starts_with("v\t"));
+    let _ = child.kill();
+    let _ = child.wait();
+}
