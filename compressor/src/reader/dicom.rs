@@ -149,6 +149,264 @@ pub fn is_dicom_file(path: &Path) -> std::io::Result<bool> {
     Ok(has_preamble(&head[..got]))
 }
 
+/// Largest nesting of sequences accepted.
+const MAX_DEPTH: usize = 32;
+
+/// Walks the element headers of a file (meta group, then the data set in its transfer
+/// syntax; into sequences, items and encapsulated fragments) and checks that every defined
+/// length fits in the bytes that remain. dicom-rs sizes its buffers by the declared length
+/// before reading, so without this walk a 1 KB file declaring a 4 GB text element allocates
+/// 4 GB. Deflated data sets are inflated first (within [`MAX_EXPANSION`]).
+fn check_lengths(path: &Path, bytes: &[u8]) -> Result<(), ReadError> {
+    let body = bytes.get(132..).unwrap_or(&[]);
+    let mut w = Walker {
+        explicit: true,
+        big: false,
+    };
+    // The meta group: explicit VR little endian, group 0002.
+    let mut pos = 0;
+    let mut ts = String::new();
+    while pos + 8 <= body.len() && u16::from_le_bytes([body[pos], body[pos + 1]]) == 0x0002 {
+        let (tag, _vr, len, hdr) = w.header(body, pos).map_err(|m| dicom_err(path, None, m))?;
+        let start = pos + hdr;
+        let len = len.ok_or_else(|| dicom_err(path, None, "undefined length in the meta group"))?;
+        let end = start
+            .checked_add(len)
+            .filter(|e| *e <= body.len())
+            .ok_or_else(|| {
+                dicom_err(
+                    path,
+                    Some(tag),
+                    format!("declares {len} bytes, {} remain", body.len() - start),
+                )
+            })?;
+        if tag == tags::TRANSFER_SYNTAX_UID {
+            ts = String::from_utf8_lossy(&body[start..end])
+                .trim_end_matches(['\0', ' '])
+                .to_string();
+        }
+        pos = end;
+    }
+    let rest = &body[pos..];
+    let inflated;
+    let data: &[u8] = match ts.as_str() {
+        "1.2.840.10008.1.2" => {
+            w.explicit = false;
+            rest
+        }
+        "1.2.840.10008.1.2.2" => {
+            w.big = true;
+            rest
+        }
+        "1.2.840.10008.1.2.1.99" => {
+            use std::io::Read;
+            let limit = rest
+                .len()
+                .saturating_mul(MAX_EXPANSION)
+                .saturating_add(1 << 20);
+            let mut out = Vec::new();
+            flate2::read::DeflateDecoder::new(rest)
+                .take(limit as u64 + 1)
+                .read_to_end(&mut out)
+                .map_err(|e| {
+                    dicom_err(path, None, format!("the deflated data set is corrupt: {e}"))
+                })?;
+            if out.len() > limit {
+                return Err(dicom_err(
+                    path,
+                    None,
+                    "the deflated data set expands beyond the limit",
+                ));
+            }
+            inflated = out;
+            &inflated
+        }
+        _ => rest,
+    };
+    w.dataset(data, 0, data.len(), 0, None)
+        .map(|_| ())
+        .map_err(|(tag, m)| dicom_err(path, tag, m))
+}
+
+struct Walker {
+    explicit: bool,
+    big: bool,
+}
+
+type WalkError = (Option<Tag>, String);
+
+impl Walker {
+    fn u16(&self, b: &[u8]) -> u16 {
+        if self.big {
+            u16::from_be_bytes([b[0], b[1]])
+        } else {
+            u16::from_le_bytes([b[0], b[1]])
+        }
+    }
+
+    fn u32(&self, b: &[u8]) -> u32 {
+        if self.big {
+            u32::from_be_bytes([b[0], b[1], b[2], b[3]])
+        } else {
+            u32::from_le_bytes([b[0], b[1], b[2], b[3]])
+        }
+    }
+
+    /// The element header at `pos`: tag, VR (explicit only), length (`None`: undefined) and
+    /// header size.
+    #[allow(clippy::type_complexity)]
+    fn header(
+        &self,
+        b: &[u8],
+        pos: usize,
+    ) -> Result<(Tag, Option<[u8; 2]>, Option<usize>, usize), String> {
+        let h = b.get(pos..pos + 8).ok_or("truncated element header")?;
+        let tag = Tag(self.u16(&h[0..2]), self.u16(&h[2..4]));
+        let undefined = |l: u32| (l != 0xFFFF_FFFF).then_some(l as usize);
+        if tag.group() == 0xFFFE || !self.explicit {
+            return Ok((tag, None, undefined(self.u32(&h[4..8])), 8));
+        }
+        let vr = [h[4], h[5]];
+        if matches!(
+            &vr,
+            b"OB"
+                | b"OD"
+                | b"OF"
+                | b"OL"
+                | b"OV"
+                | b"OW"
+                | b"SQ"
+                | b"SV"
+                | b"UC"
+                | b"UN"
+                | b"UR"
+                | b"UT"
+                | b"UV"
+        ) {
+            let l = b.get(pos + 8..pos + 12).ok_or("truncated element header")?;
+            Ok((tag, Some(vr), undefined(self.u32(l)), 12))
+        } else {
+            Ok((tag, Some(vr), Some(usize::from(self.u16(&h[6..8]))), 8))
+        }
+    }
+
+    fn is_sequence(&self, tag: Tag, vr: Option<[u8; 2]>) -> bool {
+        use dicom_core::dictionary::{DataDictionary, DataDictionaryEntry};
+        match vr {
+            Some(v) => &v == b"SQ",
+            None => dicom_dictionary_std::StandardDataDictionary
+                .by_tag(tag)
+                .is_some_and(|e| e.vr().exact() == Some(dicom_core::VR::SQ)),
+        }
+    }
+
+    /// Walks a data set in `b[pos..end]`; with `end` unknown for undefined-length items, stops
+    /// at an item delimiter. Returns the position after what it consumed.
+    fn dataset(
+        &self,
+        b: &[u8],
+        mut pos: usize,
+        end: usize,
+        depth: usize,
+        delimited: Option<()>,
+    ) -> Result<usize, WalkError> {
+        if depth > MAX_DEPTH {
+            return Err((None, format!("sequences nested deeper than {MAX_DEPTH}")));
+        }
+        while pos < end {
+            let (tag, vr, len, hdr) = self.header(&b[..end], pos).map_err(|m| (None, m))?;
+            pos += hdr;
+            if tag == Tag(0xFFFE, 0xE00D) && delimited.is_some() {
+                return Ok(pos);
+            }
+            match len {
+                Some(len) => {
+                    let stop = pos.checked_add(len).filter(|e| *e <= end).ok_or_else(|| {
+                        (
+                            Some(tag),
+                            format!("declares {len} bytes, {} remain", end - pos),
+                        )
+                    })?;
+                    if self.is_sequence(tag, vr) {
+                        self.items(b, pos, stop, depth + 1, false)?;
+                    }
+                    pos = stop;
+                }
+                None => {
+                    let fragments = tag == tags::PIXEL_DATA;
+                    if !fragments && !self.is_sequence(tag, vr) && vr != Some(*b"UN") {
+                        return Err((
+                            Some(tag),
+                            "undefined length on an element that is not a sequence".into(),
+                        ));
+                    }
+                    pos = self.items(b, pos, end, depth + 1, fragments)?;
+                }
+            }
+        }
+        if delimited.is_some() {
+            return Err((None, "an item without its delimiter".into()));
+        }
+        Ok(pos)
+    }
+
+    /// Walks the items of a sequence (or the fragments of encapsulated pixel data) in
+    /// `b[pos..end]`, up to the sequence delimiter when the sequence's length is undefined.
+    fn items(
+        &self,
+        b: &[u8],
+        mut pos: usize,
+        end: usize,
+        depth: usize,
+        fragments: bool,
+    ) -> Result<usize, WalkError> {
+        let mut count = 0usize;
+        while pos < end {
+            let h = b
+                .get(pos..pos + 8)
+                .filter(|_| pos + 8 <= end)
+                .ok_or((None, "truncated item header".to_string()))?;
+            let tag = Tag(self.u16(&h[0..2]), self.u16(&h[2..4]));
+            let len = self.u32(&h[4..8]);
+            pos += 8;
+            if tag == Tag(0xFFFE, 0xE0DD) {
+                return Ok(pos);
+            }
+            if tag != Tag(0xFFFE, 0xE000) {
+                return Err((Some(tag), "expected an item in a sequence".into()));
+            }
+            count += 1;
+            if count > (1 << 24) {
+                return Err((None, "too many items".into()));
+            }
+            if len == 0xFFFF_FFFF {
+                if fragments {
+                    return Err((
+                        Some(tags::PIXEL_DATA),
+                        "a fragment of undefined length".into(),
+                    ));
+                }
+                pos = self.dataset(b, pos, end, depth, Some(()))?;
+            } else {
+                let stop = pos
+                    .checked_add(len as usize)
+                    .filter(|e| *e <= end)
+                    .ok_or_else(|| {
+                        (
+                            None,
+                            format!("an item declares {len} bytes, {} remain", end - pos),
+                        )
+                    })?;
+                if !fragments {
+                    self.dataset(b, pos, stop, depth, None)?;
+                }
+                pos = stop;
+            }
+        }
+        Ok(pos)
+    }
+}
+
 /// Parses a file (the whole data set, or up to the pixel data), catching panics.
 fn parse(path: &Path, bytes: &[u8], pixels: bool) -> Result<DefaultDicomObject, ReadError> {
     if !has_preamble(bytes) {
@@ -158,6 +416,7 @@ fn parse(path: &Path, bytes: &[u8], pixels: bool) -> Result<DefaultDicomObject, 
             "not a DICOM file (no DICM preamble at offset 128)",
         ));
     }
+    check_lengths(path, bytes)?;
     let body = &bytes[128..];
     let result = catch_unwind(AssertUnwindSafe(|| {
         let opts = OpenFileOptions::new().read_preamble(ReadPreamble::Never);

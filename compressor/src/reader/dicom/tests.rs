@@ -7,7 +7,7 @@ use crate::reader::fixtures::{
     self, write_dicom_multiframe, write_dicom_series, DicomEncoding, DicomOptions, Layout,
 };
 use crate::reader::read_volume;
-use dicom_core::{DataElement, PrimitiveValue, VR};
+use dicom_core::{DataElement, PrimitiveValue, Tag, VR};
 use dicom_object::open_file;
 
 /// A placement that is neither axis-aligned nor at the origin (cosines exact in decimal).
@@ -473,4 +473,26 @@ fn fixtures_reject_unrepresentable_values() {
         fixtures::write_dicom_series(d.path(), &v, &DicomOptions::default());
     });
     assert!(r.is_err());
+}
+
+#[test]
+fn hostile_element_lengths_allocate_nothing_large() {
+    let dir = tempfile::tempdir().unwrap();
+    let v = volume([4, 4, 1], [1.0; 3], Layout::I16, 1.0, 0.0);
+    let files = write_dicom_series(&dir.path().join("src"), &v, &DicomOptions::default());
+    edit(&files[0], |o| {
+        o.put(DataElement::new(
+            Tag(0x0040, 0xA160),
+            VR::UT,
+            PrimitiveValue::from("ab"),
+        ));
+    });
+    let mut bytes = std::fs::read(&files[0]).unwrap();
+    let pat = [0x40, 0x00, 0x60, 0xA1, b'U', b'T', 0, 0, 2, 0, 0, 0];
+    let at = bytes.windows(pat.len()).position(|w| w == pat).unwrap();
+    bytes[at + 8..at + 12].copy_from_slice(&0xFFFF_FFF0u32.to_le_bytes());
+    let target = dir.path().join("hostile.dcm");
+    std::fs::write(&target, &bytes).unwrap();
+    let e = read_volume(&target, None).unwrap_err();
+    assert!(matches!(e, ReadError::Dicom { .. }), "{e}");
 }
