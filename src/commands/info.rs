@@ -84,12 +84,36 @@ pub fn run(a: InfoArgs) -> Result<()> {
 pub fn print_header(h: &Header) {
     let g = &h.geometry;
     outln!(
-        "dims        {}x{}x{}, spacing {:?}",
+        "dims        {}x{}x{}, spacing {} x {} x {}",
         g.dims[0],
         g.dims[1],
         g.dims[2],
-        h.spacing
+        h.spacing[0],
+        h.spacing[1],
+        h.spacing[2]
     );
+    match &h.placement {
+        Some(p) => {
+            let labels = p.axis_labels();
+            outln!(
+                "origin      ({:.3}, {:.3}, {:.3}) mm, LPS (patient position of voxel 0,0,0)",
+                p.origin[0],
+                p.origin[1],
+                p.origin[2]
+            );
+            for (a, d) in p.directions.iter().enumerate() {
+                outln!(
+                    "axis {}      ({:+.6}, {:+.6}, {:+.6}) LPS, towards {}",
+                    ["x", "y", "z"][a],
+                    d[0],
+                    d[1],
+                    d[2],
+                    labels[a]
+                );
+            }
+        }
+        None => outln!("orientation unknown (the source gave no placement in patient space)"),
+    }
     outln!(
         "padded      {}x{}x{} (margin {}, origin {:?}; periodic boundary on the zero-padded grid)",
         g.padded[0],

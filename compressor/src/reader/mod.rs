@@ -492,11 +492,11 @@ impl SourceFiles {
         out
     }
 
-    /// Parses [`SourceFiles::to_bytes`]: a bundle, or else one file whose format is sniffed
-    /// from its content. `origin` names the source in messages.
+    /// Parses [`SourceFiles::to_bytes`]: a bundle, or else one file whose format is given by
+    /// `origin`'s name or else sniffed from its content. `origin` names the source in messages.
     pub fn from_bytes(bytes: Vec<u8>, origin: &Path) -> Result<SourceFiles, ReadError> {
         if !bytes.starts_with(BUNDLE_MAGIC) {
-            let format = Format::sniff(&bytes);
+            let format = Format::from_name(origin).or_else(|| Format::sniff(&bytes));
             let name = origin
                 .file_name()
                 .map(|n| n.to_string_lossy().into_owned())
