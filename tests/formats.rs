@@ -68,7 +68,16 @@ fn ct(dims: [usize; 3], spacing: [f32; 3]) -> Volume {
 fn write_nifti(path: &Path, dims: [usize; 3], samples: &[f32]) {
     let mut h = vec![0u8; 352];
     h[0..4].copy_from_slice(&348i32.to_le_bytes());
-    let dim: [i16; 8] = [3, dims[0] as i16, dims[1] as i16, dims[2] as i16, 1, 1, 1, 1];
+    let dim: [i16; 8] = [
+        3,
+        dims[0] as i16,
+        dims[1] as i16,
+        dims[2] as i16,
+        1,
+        1,
+        1,
+        1,
+    ];
     for (i, d) in dim.iter().enumerate() {
         h[40 + 2 * i..42 + 2 * i].copy_from_slice(&d.to_le_bytes());
     }
@@ -114,10 +123,26 @@ fn write_archive(dir: &Path) -> (Vec<(String, Volume)>, Vec<(String, &'static st
     );
     good.push(("ct/enhanced".into(), v));
     let v = ct([17, 15, 11], [1.0, 1.0, 3.0]);
-    write_nrrd(dir, "nrrd_gz", &v, Layout::I16, NrrdEncoding::Gzip, false, "RAS");
+    write_nrrd(
+        dir,
+        "nrrd_gz",
+        &v,
+        Layout::I16,
+        NrrdEncoding::Gzip,
+        false,
+        "RAS",
+    );
     good.push(("nrrd_gz".into(), v));
     let v = ct([15, 17, 9], [0.5, 0.5, 1.0]);
-    write_nrrd(dir, "nrrd_det", &v, Layout::I16, NrrdEncoding::Raw, true, "LPS");
+    write_nrrd(
+        dir,
+        "nrrd_det",
+        &v,
+        Layout::I16,
+        NrrdEncoding::Raw,
+        true,
+        "LPS",
+    );
     good.push(("nrrd_det".into(), v));
     let v = ct([14, 16, 13], [0.8, 0.8, 0.8]);
     write_metaimage(dir, "mr", &v, Layout::I16, true, false);
@@ -129,8 +154,10 @@ fn write_archive(dir: &Path) -> (Vec<(String, Volume)>, Vec<(String, &'static st
     let p = Phantom::Spheres.generate(dims);
     write_nifti(&dir.join("spheres.nii"), dims, p.channel(0));
     good.push(("spheres".into(), p.clone()));
+    // Different content from the NIfTI (identical content would land once in the cache).
+    let p = Phantom::SheppLogan.generate([16, 16, 15]);
     let bytes: Vec<u8> = p.channel(0).iter().flat_map(|v| v.to_le_bytes()).collect();
-    std::fs::write(dir.join("raw_16x16x14_f32.raw"), bytes).unwrap();
+    std::fs::write(dir.join("raw_16x16x15_f32.raw"), bytes).unwrap();
     good.push(("raw".into(), p));
 
     // Unreadable: a series with a missing slice, an NRRD claiming a huge volume, a MetaImage
@@ -237,7 +264,15 @@ async fn an_archive_of_every_format_compresses_and_bad_volumes_fail_alone() {
     let (o, c) = (format!("http://{o_addr}"), format!("http://{c_addr}"));
     let _worker = Proc(
         Command::new(BIN)
-            .args(["worker", "--orchestrator", &o, "--cache", &c, "--threads", "1"])
+            .args([
+                "worker",
+                "--orchestrator",
+                &o,
+                "--cache",
+                &c,
+                "--threads",
+                "1",
+            ])
             .stdout(Stdio::null())
             .stderr(Stdio::null())
             .spawn()
@@ -247,7 +282,10 @@ async fn an_archive_of_every_format_compresses_and_bad_volumes_fail_alone() {
     let mut args = vec!["archive", "submit", archive.to_str().unwrap()];
     args.extend_from_slice(&common);
     let out = cli_ok(&args);
-    assert!(out.contains(&format!("{} submitted", good.len() + bad.len())), "{out}");
+    assert!(
+        out.contains(&format!("{} submitted", good.len() + bad.len())),
+        "{out}"
+    );
     let mut args = vec!["archive", "submit", up.to_str().unwrap(), "--upload"];
     args.extend_from_slice(&common);
     cli_ok(&args);
@@ -299,7 +337,11 @@ async fn an_archive_of_every_format_compresses_and_bad_volumes_fail_alone() {
         // Values keep their units: the CT volumes' range is in HU.
         if name.starts_with("ct/") || name.starts_with("nrrd") || name == "series" {
             let (lo, hi) = v.value_range();
-            assert!((h.value_range[0] - lo).abs() < 1e-3 && (h.value_range[1] - hi).abs() < 1e-3, "{name}: {:?}", h.value_range);
+            assert!(
+                (h.value_range[0] - lo).abs() < 1e-3 && (h.value_range[1] - hi).abs() < 1e-3,
+                "{name}: {:?}",
+                h.value_range
+            );
             assert!(lo <= -1000.0, "{name}");
         }
     }
@@ -332,29 +374,60 @@ fn compress_and_info_show_the_geometry_of_a_dicom_series() {
     ]);
     let info = cli_ok(&["info", out.to_str().unwrap()]);
     assert!(info.contains("spacing 0.7 x 0.7 x 2.5"), "{info}");
-    assert!(info.contains("origin      (-100.000, 50.500, 200.000) mm"), "{info}");
-    assert!(info.contains("axis z      (+0.000000, +0.000000, +1.000000) LPS, towards S"), "{info}");
+    assert!(
+        info.contains("origin      (-100.000, 50.500, 200.000) mm"),
+        "{info}"
+    );
+    assert!(
+        info.contains("axis z      (+0.000000, +0.000000, +1.000000) LPS, towards S"),
+        "{info}"
+    );
     assert!(info.contains("towards P"), "{info}");
     // Raw input takes --spacing; a header format refuses it.
     let raw = tmp.path().join("r.raw");
     std::fs::write(&raw, vec![7u8; 4 * 4 * 4]).unwrap();
     cli_ok(&[
-        "compress", raw.to_str().unwrap(), "-o", out.to_str().unwrap(), "--dims", "4,4,4",
-        "--dtype", "u8", "--spacing", "0.5,0.5,3", "--levels", "1",
+        "compress",
+        raw.to_str().unwrap(),
+        "-o",
+        out.to_str().unwrap(),
+        "--dims",
+        "4,4,4",
+        "--dtype",
+        "u8",
+        "--spacing",
+        "0.5,0.5,3",
+        "--levels",
+        "1",
     ]);
     let info = cli_ok(&["info", out.to_str().unwrap()]);
     assert!(info.contains("spacing 0.5 x 0.5 x 3"), "{info}");
     assert!(info.contains("orientation unknown"), "{info}");
     let e = cli(&[
-        "compress", dir.to_str().unwrap(), "-o", out.to_str().unwrap(), "--spacing", "1,1,1",
+        "compress",
+        dir.to_str().unwrap(),
+        "-o",
+        out.to_str().unwrap(),
+        "--spacing",
+        "1,1,1",
     ]);
     assert!(!e.status.success());
     // An unreadable slice: the error names the file and the problem.
-    let f = std::fs::read_dir(&dir).unwrap().next().unwrap().unwrap().path();
+    let f = std::fs::read_dir(&dir)
+        .unwrap()
+        .next()
+        .unwrap()
+        .unwrap()
+        .path();
     let mut b = vec![0u8; 128];
     b.extend_from_slice(b"DICM\x02\x00\x00\x00garbage");
     std::fs::write(&f, b).unwrap();
-    let e = cli(&["compress", dir.to_str().unwrap(), "-o", out.to_str().unwrap()]);
+    let e = cli(&[
+        "compress",
+        dir.to_str().unwrap(),
+        "-o",
+        out.to_str().unwrap(),
+    ]);
     assert!(!e.status.success());
     let msg = String::from_utf8_lossy(&e.stderr);
     let fname = f.file_name().unwrap().to_string_lossy().into_owned();

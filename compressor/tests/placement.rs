@@ -41,7 +41,11 @@ fn placement_and_spacing_round_trip() {
     assert_eq!(back.spacing(), v.spacing());
     // Without a placement the header says so.
     let plain = Phantom::Spheres.generate([8, 8, 8]);
-    assert!(parse_file(&file(&plain)).unwrap().header.placement.is_none());
+    assert!(parse_file(&file(&plain))
+        .unwrap()
+        .header
+        .placement
+        .is_none());
 }
 
 /// Rewrites the header's `i`-th f64 of the placement (0..3 origin, 3..12 directions) and fixes
@@ -87,7 +91,10 @@ fn hostile_placements_and_old_versions_are_refused() {
     assert_eq!(&old[..4], MAGIC);
     let e = read_header_section(&old).unwrap_err();
     assert!(matches!(e, FormatError::UnsupportedVersion { .. }));
-    assert!(e.to_string().contains("compress the source volume again"), "{e}");
+    assert!(
+        e.to_string().contains("compress the source volume again"),
+        "{e}"
+    );
     let mut newer = bytes;
     newer[4..6].copy_from_slice(&(VERSION + 1).to_le_bytes());
     assert!(read_header_section(&newer)

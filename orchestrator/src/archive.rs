@@ -140,8 +140,10 @@ pub fn scan(root: &Path) -> std::io::Result<Scan> {
             rel
         };
         if !names.insert(name.clone()) {
-            scan.skipped
-                .push((dir, format!("another volume already uses the name {name:?}")));
+            scan.skipped.push((
+                dir,
+                format!("another volume already uses the name {name:?}"),
+            ));
             continue;
         }
         scan.found.push(Found {
@@ -164,9 +166,11 @@ pub fn scan(root: &Path) -> std::io::Result<Scan> {
             .and_then(|p| p.strip_prefix(root).ok())
             .map(|p| p.to_string_lossy().into_owned())
             .unwrap_or_default();
-        let (base, raw) = if let Some(s) = [".nii.gz", ".nii", ".nrrd", ".nhdr", ".mha", ".mhd", ".dcm", ".dicom"]
-            .iter()
-            .find_map(|ext| lower.strip_suffix(ext))
+        let (base, raw) = if let Some(s) = [
+            ".nii.gz", ".nii", ".nrrd", ".nhdr", ".mha", ".mhd", ".dcm", ".dicom",
+        ]
+        .iter()
+        .find_map(|ext| lower.strip_suffix(ext))
         {
             (file_name[..s.len()].to_string(), None)
         } else if lower.ends_with(".raw") {

@@ -97,17 +97,17 @@ pub fn print_header(h: &Header) {
             let labels = p.axis_labels();
             outln!(
                 "origin      ({:.3}, {:.3}, {:.3}) mm, LPS (patient position of voxel 0,0,0)",
-                p.origin[0],
-                p.origin[1],
-                p.origin[2]
+                nz(p.origin[0]),
+                nz(p.origin[1]),
+                nz(p.origin[2])
             );
             for (a, d) in p.directions.iter().enumerate() {
                 outln!(
                     "axis {}      ({:+.6}, {:+.6}, {:+.6}) LPS, towards {}",
                     ["x", "y", "z"][a],
-                    d[0],
-                    d[1],
-                    d[2],
+                    nz(d[0]),
+                    nz(d[1]),
+                    nz(d[2]),
                     labels[a]
                 );
             }
@@ -146,4 +146,13 @@ pub fn print_header(h: &Header) {
         h.substreams.iter().filter(|s| s.is_some()).count(),
         h.substream_count()
     );
+}
+
+/// `x` without the sign of zero (so `-0.000000` prints as `0.000000`).
+fn nz(x: f64) -> f64 {
+    if x == 0.0 {
+        0.0
+    } else {
+        x
+    }
 }

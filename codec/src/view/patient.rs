@@ -56,7 +56,9 @@ pub enum PatientView {
 #[non_exhaustive]
 pub enum PatientViewError {
     /// The name is not one of the six.
-    #[error("unknown patient view {0:?}; choose anterior, posterior, left, right, superior or inferior")]
+    #[error(
+        "unknown patient view {0:?}; choose anterior, posterior, left, right, superior or inferior"
+    )]
     UnknownName(String),
     /// The volume has no placement, so patient directions are unknown.
     #[error("the volume's orientation in the patient is unknown (its source gave none); give the view as angles instead")]
@@ -123,7 +125,10 @@ impl PatientView {
     /// The view orientation in the volume's axis frame: the patient axes expressed in the
     /// placement's directions (re-orthonormalised, since stored directions are orthonormal
     /// only to their precision), as an explicit basis.
-    pub fn orientation(self, placement: Option<&Placement>) -> Result<Orientation, PatientViewError> {
+    pub fn orientation(
+        self,
+        placement: Option<&Placement>,
+    ) -> Result<Orientation, PatientViewError> {
         let p = placement.ok_or(PatientViewError::NoPlacement)?;
         p.validate()
             .map_err(|e| PatientViewError::BadPlacement(e.to_string()))?;
@@ -190,15 +195,30 @@ mod tests {
             (PatientView::Anterior, (-FRAC_PI_2, 0.0), [0.0, -1.0, 0.0]),
             (PatientView::Posterior, (FRAC_PI_2, 0.0), [0.0, 1.0, 0.0]),
             (PatientView::Left, (0.0, 0.0), [1.0, 0.0, 0.0]),
-            (PatientView::Right, (std::f64::consts::PI, 0.0), [-1.0, 0.0, 0.0]),
-            (PatientView::Superior, (FRAC_PI_2, FRAC_PI_2), [0.0, 0.0, 1.0]),
-            (PatientView::Inferior, (-FRAC_PI_2, -FRAC_PI_2), [0.0, 0.0, -1.0]),
+            (
+                PatientView::Right,
+                (std::f64::consts::PI, 0.0),
+                [-1.0, 0.0, 0.0],
+            ),
+            (
+                PatientView::Superior,
+                (FRAC_PI_2, FRAC_PI_2),
+                [0.0, 0.0, 1.0],
+            ),
+            (
+                PatientView::Inferior,
+                (-FRAC_PI_2, -FRAC_PI_2),
+                [0.0, 0.0, -1.0],
+            ),
         ];
         for (view, (a, b), n) in expect {
             let o = view.orientation(Some(&id)).unwrap();
             let (u, v) = basis(o);
             let (alpha, beta) = angles_of(u, v).unwrap();
-            assert!((alpha - a).abs() < 1e-9 && (beta - b).abs() < 1e-9, "{view:?}: {alpha} {beta}");
+            assert!(
+                (alpha - a).abs() < 1e-9 && (beta - b).abs() < 1e-9,
+                "{view:?}: {alpha} {beta}"
+            );
             assert!(close(normal_of(&o), n), "{view:?}");
             // The observer looks along −n: n points towards the observer.
             assert_eq!(PatientView::from_name(view.name()).unwrap(), view);

@@ -223,7 +223,7 @@ fn check_lengths(path: &Path, bytes: &[u8]) -> Result<(), ReadError> {
         }
         _ => rest,
     };
-    w.dataset(data, 0, data.len(), 0, None)
+    w.dataset(data, 0, data.len(), 0, false)
         .map(|_| ())
         .map_err(|(tag, m)| dicom_err(path, tag, m))
 }
@@ -308,7 +308,7 @@ impl Walker {
         mut pos: usize,
         end: usize,
         depth: usize,
-        delimited: Option<()>,
+        delimited: bool,
     ) -> Result<usize, WalkError> {
         if depth > MAX_DEPTH {
             return Err((None, format!("sequences nested deeper than {MAX_DEPTH}")));
@@ -316,7 +316,7 @@ impl Walker {
         while pos < end {
             let (tag, vr, len, hdr) = self.header(&b[..end], pos).map_err(|m| (None, m))?;
             pos += hdr;
-            if tag == Tag(0xFFFE, 0xE00D) && delimited.is_some() {
+            if tag == Tag(0xFFFE, 0xE00D) && delimited {
                 return Ok(pos);
             }
             match len {
@@ -344,7 +344,7 @@ impl Walker {
                 }
             }
         }
-        if delimited.is_some() {
+        if delimited {
             return Err((None, "an item without its delimiter".into()));
         }
         Ok(pos)
@@ -386,7 +386,7 @@ impl Walker {
                         "a fragment of undefined length".into(),
                     ));
                 }
-                pos = self.dataset(b, pos, end, depth, Some(()))?;
+                pos = self.dataset(b, pos, end, depth, true)?;
             } else {
                 let stop = pos
                     .checked_add(len as usize)
@@ -398,7 +398,7 @@ impl Walker {
                         )
                     })?;
                 if !fragments {
-                    self.dataset(b, pos, stop, depth, None)?;
+                    self.dataset(b, pos, stop, depth, false)?;
                 }
                 pos = stop;
             }
