@@ -441,7 +441,7 @@ fn parse(path: &Path, bytes: &[u8], pixels: bool) -> Result<DefaultDicomObject, 
     }
 }
 
-fn element<'a>(obj: &'a InMemDicomObject, tag: Tag) -> Option<&'a dicom_object::mem::InMemElement> {
+fn element(obj: &InMemDicomObject, tag: Tag) -> Option<&dicom_object::mem::InMemElement> {
     obj.element_opt(tag).ok().flatten()
 }
 
@@ -500,11 +500,7 @@ fn first_item(obj: &InMemDicomObject, seq: Tag) -> Option<&InMemDicomObject> {
 
 /// An attribute of frame `f` from the functional groups (per-frame item, then shared), or the
 /// top level.
-fn frame_attr<'a>(
-    obj: &'a InMemDicomObject,
-    frame: usize,
-    group_seq: Tag,
-) -> Vec<&'a InMemDicomObject> {
+fn frame_attr(obj: &InMemDicomObject, frame: usize, group_seq: Tag) -> Vec<&InMemDicomObject> {
     let mut out = Vec::new();
     if let Some(item) = element(obj, tags::PER_FRAME_FUNCTIONAL_GROUPS_SEQUENCE)
         .and_then(|e| e.items())
@@ -954,7 +950,7 @@ pub(crate) fn decode(src: &SourceFiles) -> Result<Volume, ReadError> {
             let c = [iop[3], iop[4], iop[5]];
             let n = normal(&iop);
             let nn = dot(n, n).sqrt();
-            if !(nn > 0.5) {
+            if nn.is_nan() || nn <= 0.5 {
                 return Err(dicom_err(
                     &first.path,
                     Some(tags::IMAGE_ORIENTATION_PATIENT),

@@ -231,6 +231,9 @@ fn inconsistent_series_are_reported() {
     expect_series_error(&d, "no DICOM files");
 }
 
+/// An edit of a fixture's data set.
+type Edit = Box<dyn Fn(&mut DefaultDicomObject)>;
+
 /// Rewrites a fixture file with `edit` applied to its data set.
 fn edit(path: &Path, edit: impl FnOnce(&mut DefaultDicomObject)) {
     let mut obj = open_file(path).unwrap();
@@ -251,7 +254,7 @@ fn expect_tag_error(dir: &Path, file: &Path, tag: &str) {
 fn bad_attributes_name_the_file_and_the_tag() {
     let root = tempfile::tempdir().unwrap();
     let o = DicomOptions::default();
-    let cases: Vec<(&str, Box<dyn Fn(&mut DefaultDicomObject)>)> = vec![
+    let cases: Vec<(&str, Edit)> = vec![
         (
             "(0028,0100) Bits Allocated",
             Box::new(|o| {
