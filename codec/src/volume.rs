@@ -1,5 +1,6 @@
 //! The volume type: any dimensions (odd and non-power-of-two included), one intensity channel or
-//! three colour channels, f32 samples, voxel spacing.
+//! three colour channels, f32 samples, voxel spacing, and (when the source says) where the voxel
+//! grid sits in the patient: its [`Placement`] (origin and axis directions in DICOM's LPS frame).
 //!
 //! Samples are stored planar (one `Vec<f32>` per channel, x fastest, then y, then z) because every
 //! stage after the colour transform works on one channel at a time. Construction validates sizes
@@ -59,6 +60,117 @@ pub enum VolumeError {
     /// Spacing must be positive and finite.
     #[error("voxel spacing must be positive and finite, got {0:?}")]
     Spacing([f32; 3]),
+    /// The placement's origin or directions are not finite, or the directions are not
+    /// orthonormal within [`PLACEMENT_TOLERANCE`].
+    #[error("volume placement: {0}")]
+    Placement(String),
+}
+
+/// How far from orthonormal the axis directions of a [`Placement`] may be (|‖dᵢ‖ − 1| and
+/// |dᵢ·dⱼ|): DICOM writes direction cosines as decimal strings of limited precision (often 6
+/// digits, sometimes fewer), so exact orthonormality cannot be required; a sheared grid is
+/// far beyond this.
+pub const PLACEMENT_TOLERANCE: f64 = 1e-3;
+
+/// Largest |origin| coordinate accepted (mm): a kilometre is beyond any scanner.
+pub const MAX_ORIGIN_MM: f64 = 1e6;
+
+/// Where the voxel grid sits in patient space, in the DICOM patient coordinate system (LPS:
+/// +x towards the patient's left, +y posterior, +z superior; millimetres). Voxel (i, j, k) is
+/// at `origin + i·sx·directions[0] + j·sy·directions[1] + k·sz·directions[2]`, with (sx, sy, sz)
+/// the volume's spacing. Readers of formats in other frames (NIfTI's RAS, NRRD's
+/// `right-anterior-superior`) convert to LPS.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Placement {
+    /// Patient position of the centre of voxel (0, 0, 0), mm.
+    pub origin: [f64; 3],
+    /// Unit direction (LPS) of each voxel axis: `directions[0]` is the direction of increasing x.
+    pub directions: [[f64; 3]; 3],
+}
+
+impl Placement {
+    /// Axis-aligned placement: voxel axes along L, P, S, voxel (0, 0, 0) at the origin.
+    pub fn identity() -> Placement {
+        Placement {
+            origin: [0.0; 3],
+            directions: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+        }
+    }
+
+    /// Checks that everything is finite, |origin| ≤ [`MAX_ORIGIN_MM`], and the directions are
+    /// orthonormal within [`PLACEMENT_TOLERANCE`] (either handedness: a mirrored grid is a
+    /// valid, if unusual, acquisition).
+    pub fn validate(&self) -> Result<(), VolumeError> {
+        let bad = |m: String| Err(VolumeError::Placement(m));
+        if self
+            .origin
+            .iter()
+            .any(|v| !v.is_finite() || v.abs() > MAX_ORIGIN_MM)
+        {
+            return bad(format!(
+                "origin {:?} must be finite and within ±{MAX_ORIGIN_MM} mm",
+                self.origin
+            ));
+        }
+        if self.directions.iter().flatten().any(|v| !v.is_finite()) {
+            return bad(format!("directions {:?} are not finite", self.directions));
+        }
+        let d = &self.directions;
+        let dot = |a: &[f64; 3], b: &[f64; 3]| a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
+        for i in 0..3 {
+            let n = dot(&d[i], &d[i]).sqrt();
+            if (n - 1.0).abs() > PLACEMENT_TOLERANCE {
+                return bad(format!(
+                    "direction of axis {i} {:?} has length {n}, expected 1 (±{PLACEMENT_TOLERANCE})",
+                    d[i]
+                ));
+            }
+            for j in i + 1..3 {
+                let c = dot(&d[i], &d[j]);
+                if c.abs() > PLACEMENT_TOLERANCE {
+                    return bad(format!(
+                        "directions of axes {i} and {j} are not orthogonal (cosine {c}; a sheared grid, e.g. a tilted gantry, is not supported)"
+                    ));
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// The patient position (LPS, mm) of voxel (i, j, k) for a grid of `spacing`.
+    pub fn position(&self, spacing: [f32; 3], ijk: [f64; 3]) -> [f64; 3] {
+        let mut p = self.origin;
+        for a in 0..3 {
+            let step = ijk[a] * f64::from(spacing[a]);
+            for (c, pc) in p.iter_mut().enumerate() {
+                *pc += step * self.directions[a][c];
+            }
+        }
+        p
+    }
+
+    /// The closest anatomical label of each axis direction, e.g. `["L", "P", "S"]` for the
+    /// identity, `["R", "A", "S"]` for a RAS-stored volume (the letter of the dominant
+    /// component; oblique axes get the dominant one too).
+    pub fn axis_labels(&self) -> [&'static str; 3] {
+        self.directions.map(|d| {
+            let (mut best, mut mag) = (0, -1.0);
+            for (c, v) in d.iter().enumerate() {
+                if v.abs() > mag {
+                    (best, mag) = (c, v.abs());
+                }
+            }
+            let pos = d[best] >= 0.0;
+            match (best, pos) {
+                (0, true) => "L",
+                (0, false) => "R",
+                (1, true) => "P",
+                (1, false) => "A",
+                (_, true) => "S",
+                (_, false) => "I",
+            }
+        })
+    }
 }
 
 /// A scalar or RGB volume with f32 samples.
@@ -67,6 +179,7 @@ pub struct Volume {
     dims: [usize; 3],
     spacing: [f32; 3],
     channels: Vec<Vec<f32>>,
+    placement: Option<Placement>,
 }
 
 impl Volume {
@@ -111,7 +224,20 @@ impl Volume {
             dims,
             spacing,
             channels,
+            placement: None,
         })
+    }
+
+    /// The same volume placed in patient space (validated by [`Placement::validate`]).
+    pub fn with_placement(mut self, placement: Placement) -> Result<Self, VolumeError> {
+        placement.validate()?;
+        self.placement = Some(placement);
+        Ok(self)
+    }
+
+    /// Where the grid sits in patient space, when the source said.
+    pub fn placement(&self) -> Option<&Placement> {
+        self.placement.as_ref()
     }
 
     /// Builds a volume from interleaved samples (x fastest, channels interleaved per voxel).
@@ -270,6 +396,43 @@ mod tests {
             checked_voxels([1 << 20, 1 << 20, 4]),
             Err(VolumeError::TooLarge { .. })
         ));
+    }
+
+    #[test]
+    fn placement_is_validated() {
+        let v = Volume::new([1, 1, 1], [1.0; 3], vec![vec![0.0]]).unwrap();
+        assert!(v.placement().is_none());
+        let p = Placement {
+            origin: [-10.0, 20.5, 3.0],
+            directions: [[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]],
+        };
+        let v = v.with_placement(p).unwrap();
+        assert_eq!(v.placement(), Some(&p));
+        assert_eq!(p.axis_labels(), ["P", "R", "S"]);
+        assert_eq!(
+            p.position([2.0, 3.0, 0.5], [1.0, 1.0, 2.0]),
+            [-10.0 - 3.0, 20.5 + 2.0, 4.0]
+        );
+        let mut bad = p;
+        bad.origin[1] = f64::NAN;
+        assert!(matches!(bad.validate(), Err(VolumeError::Placement(_))));
+        let mut bad = p;
+        bad.directions[2] = [0.0, 0.0, 0.0];
+        assert!(bad.validate().unwrap_err().to_string().contains("length"));
+        let mut bad = p;
+        bad.directions[2] = [0.0, 0.3, 0.954];
+        assert!(bad
+            .validate()
+            .unwrap_err()
+            .to_string()
+            .contains("orthogonal"));
+        let mut bad = p;
+        bad.origin[0] = 1e300;
+        assert!(bad.validate().is_err());
+        // A mirrored (left-handed) frame is valid.
+        let mut m = Placement::identity();
+        m.directions[2] = [0.0, 0.0, -1.0];
+        assert!(m.validate().is_ok());
     }
 
     #[test]

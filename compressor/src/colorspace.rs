@@ -229,7 +229,11 @@ fn apply(
             o.push((m[i][0] * x[0] + m[i][1] * x[1] + m[i][2] * x[2] + add[i]) as f32);
         }
     }
-    Ok(Volume::new(volume.dims(), volume.spacing(), out)?)
+    let out = Volume::new(volume.dims(), volume.spacing(), out)?;
+    Ok(match volume.placement() {
+        Some(p) => out.with_placement(*p)?,
+        None => out,
+    })
 }
 
 /// Colour mean and population covariance (divided by N), two-pass, accumulated in f64.

@@ -88,7 +88,10 @@ pub fn reconstruct_within(
         coefficients_to_samples(&mut data, g);
         channels.push(crop_channel(&data, g));
     }
-    let coded = Volume::new(g.dims, header.spacing, channels)?;
+    let mut coded = Volume::new(g.dims, header.spacing, channels)?;
+    if let Some(p) = header.placement {
+        coded = coded.with_placement(p)?;
+    }
     if header.channels == 1 {
         return Ok(coded);
     }

@@ -22,7 +22,7 @@ use wavesplat_codec::format::{
 };
 use wavesplat_codec::layout::{Geometry, LayoutError};
 use wavesplat_codec::metrics::{q_e_percent, q_v_percent};
-use wavesplat_codec::volume::Volume;
+use wavesplat_codec::volume::{Placement, Volume};
 
 /// How much to keep.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -208,6 +208,7 @@ struct Prepared {
     channels: usize,
     value_range: [f32; 2],
     spacing: [f32; 3],
+    placement: Option<Placement>,
     /// Non-zero coefficients by decreasing score.
     sorted: Vec<Scored>,
     total_energy: f64,
@@ -321,6 +322,7 @@ fn prepare(
         channels: channels.len(),
         value_range: [lo, hi],
         spacing: volume.spacing(),
+        placement: volume.placement().copied(),
         sorted,
         total_energy,
         total_coefficients: (geometry.coefficient_count() * channels.len()) as u64,
@@ -419,6 +421,7 @@ impl Prepared {
             channels: self.channels,
             value_range: self.value_range,
             spacing: self.spacing,
+            placement: self.placement,
             sorted,
             total_energy: self.total_energy,
             total_coefficients: self.total_coefficients,
@@ -494,6 +497,7 @@ impl Prepared {
             geometry: *g,
             margin: self.margin,
             spacing: self.spacing,
+            placement: self.placement,
             channels: self.channels,
             color: self.color,
             value_range: self.value_range,

@@ -12,10 +12,10 @@
 //! - [`service`]: the tonic service; [`convert`] / [`error`]: the one place for `pb`
 //!   conversions / `tonic::Status` mapping;
 //! - [`check`]: confirming a worker's delivery with the cache before a job is done;
-//! - [`archive`]: scanning a directory and the raw naming convention; [`client`]: helpers for
-//!   the CLI, the worker and the tests.
+//! - [`client`]: helpers for the CLI, the worker and the tests.
 //!
-//! The worker lives in its own crate (`wavesplat-worker`): this one links no encoder.
+//! The worker and archive scanning (which reads volume files to find and hash them) live in
+//! their own crate (`wavesplat-worker`): this one links no encoder and no reader.
 //!
 //! ```no_run
 //! # async fn demo() -> Result<(), wavesplat_orchestrator::OrchestratorError> {
@@ -29,7 +29,6 @@
 //! # Ok(()) }
 //! ```
 
-pub mod archive;
 pub mod check;
 pub mod client;
 pub mod convert;

@@ -78,7 +78,7 @@ impl SampleType {
     }
 }
 
-/// Layout of a headerless raw file (see [`crate::archive`] for the naming convention).
+/// Layout of a headerless raw file (see `wavesplat_worker::archive` for the naming convention).
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 pub struct RawLayout {
     /// Dimensions (x fastest).
@@ -341,9 +341,10 @@ pub struct JobSpec {
     pub name: String,
     /// Where the volume comes from.
     pub source: Source,
-    /// SHA-256 of the source file.
+    /// SHA-256 of the source: the file, or the bundle of a multi-file volume (see
+    /// `wavesplat_worker::archive::source_bytes`).
     pub sha256: [u8; 32],
-    /// Raw layout (`None`: NIfTI).
+    /// Raw layout (`None`: a format with a header — DICOM, NRRD, MetaImage, NIfTI).
     pub raw: Option<RawLayout>,
     /// Compressor options.
     pub options: JobOptions,

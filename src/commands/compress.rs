@@ -18,8 +18,9 @@ use wavesplat_compressor::refine::RefineOptions;
 /// Arguments of `wavesplat compress`.
 #[derive(Args, Debug)]
 pub struct CompressArgs {
-    /// Input volume: .nii / .nii.gz, or raw samples (then --dims and --dtype are required).
-    /// Omit it to use --phantom.
+    /// Input volume: a DICOM series directory or DICOM file, .nrrd / .nhdr, .mha / .mhd,
+    /// .nii / .nii.gz, or raw samples (then --dims and --dtype are required). Omit it to use
+    /// --phantom.
     pub input: Option<PathBuf>,
     /// Output .wsp file.
     #[arg(short, long)]
@@ -40,6 +41,9 @@ pub struct CompressArgs {
     /// Raw channels: 1 (intensity) or 3 (RGB, interleaved per voxel).
     #[arg(long, default_value_t = 1)]
     pub channels: usize,
+    /// Raw voxel spacing X,Y,Z in mm (default 1,1,1); formats with a header give their own.
+    #[arg(long, value_parser = parse_spacing)]
+    pub spacing: Option<[f32; 3]>,
     /// Wavelet family: haar, linear, cubic.
     #[arg(long, default_value = "linear")]
     pub family: String,
@@ -117,12 +121,34 @@ fn load(a: &CompressArgs) -> Result<Volume> {
             let mut spec = RawSpec::new(*d, RawDtype::from_name(t)?);
             spec.endian = Endian::from_name(&a.endian)?;
             spec.channels = a.channels;
+            if let Some(s) = a.spacing {
+                spec.spacing = s;
+            }
             Some(spec)
         }
-        (None, None) => None,
+        (None, None) => {
+            if a.spacing.is_some() {
+                bail!("--spacing applies to raw input (with --dims and --dtype); this file's header gives its spacing");
+            }
+            None
+        }
         _ => bail!("raw input needs both --dims and --dtype"),
     };
     read_volume(input, raw.as_ref()).with_context(|| format!("reading {}", input.display()))
+}
+
+/// Parses `X,Y,Z` voxel spacing (finite, positive).
+fn parse_spacing(s: &str) -> Result<[f32; 3], String> {
+    let v: Vec<f32> = s
+        .split(',')
+        .map(|t| t.trim().parse::<f32>().map_err(|e| format!("{t:?}: {e}")))
+        .collect::<Result<_, _>>()?;
+    match v.as_slice() {
+        [x, y, z] if v.iter().all(|s| s.is_finite() && *s > 0.0) => Ok([*x, *y, *z]),
+        _ => Err(format!(
+            "spacing {s:?} must be three finite positive numbers X,Y,Z"
+        )),
+    }
 }
 
 /// Builds compressor options from the arguments.

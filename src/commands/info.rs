@@ -84,12 +84,36 @@ pub fn run(a: InfoArgs) -> Result<()> {
 pub fn print_header(h: &Header) {
     let g = &h.geometry;
     outln!(
-        "dims        {}x{}x{}, spacing {:?}",
+        "dims        {}x{}x{}, spacing {} x {} x {}",
         g.dims[0],
         g.dims[1],
         g.dims[2],
-        h.spacing
+        h.spacing[0],
+        h.spacing[1],
+        h.spacing[2]
     );
+    match &h.placement {
+        Some(p) => {
+            let labels = p.axis_labels();
+            outln!(
+                "origin      ({:.3}, {:.3}, {:.3}) mm, LPS (patient position of voxel 0,0,0)",
+                nz(p.origin[0]),
+                nz(p.origin[1]),
+                nz(p.origin[2])
+            );
+            for (a, d) in p.directions.iter().enumerate() {
+                outln!(
+                    "axis {}      ({:+.6}, {:+.6}, {:+.6}) LPS, towards {}",
+                    ["x", "y", "z"][a],
+                    nz(d[0]),
+                    nz(d[1]),
+                    nz(d[2]),
+                    labels[a]
+                );
+            }
+        }
+        None => outln!("orientation unknown (the source gave no placement in patient space)"),
+    }
     outln!(
         "padded      {}x{}x{} (margin {}, origin {:?}; periodic boundary on the zero-padded grid)",
         g.padded[0],
@@ -122,4 +146,13 @@ pub fn print_header(h: &Header) {
         h.substreams.iter().filter(|s| s.is_some()).count(),
         h.substream_count()
     );
+}
+
+/// `x` without the sign of zero (so `-0.000000` prints as `0.000000`).
+fn nz(x: f64) -> f64 {
+    if x == 0.0 {
+        0.0
+    } else {
+        x
+    }
 }

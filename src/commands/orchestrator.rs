@@ -1,6 +1,7 @@
 //! `wavesplat serve orchestrator`, `wavesplat worker`, `wavesplat archive submit` and
-//! `wavesplat jobs list|watch|cancel|retry`. Wiring and display only: the queue, the service and
-//! archive scanning live in `wavesplat-orchestrator`, the worker in `wavesplat-worker`.
+//! `wavesplat jobs list|watch|cancel|retry`. Wiring and display only: the queue and the service
+//! live in `wavesplat-orchestrator`, the worker and archive scanning (which reads every volume
+//! format) in `wavesplat-worker`.
 
 use anyhow::{bail, Context, Result};
 use clap::{Args, Subcommand};
@@ -10,7 +11,7 @@ use std::io::IsTerminal;
 use std::path::PathBuf;
 use std::time::Duration;
 use wavesplat_compressor::encode::Target;
-use wavesplat_orchestrator::archive;
+use wavesplat_worker::archive;
 use wavesplat_orchestrator::client;
 use wavesplat_orchestrator::convert::state_name;
 use wavesplat_orchestrator::model;
@@ -163,11 +164,14 @@ pub enum ArchiveCommand {
     /// Submit every supported volume under DIR as one job each, then show progress until all
     /// are finished (unless --detach).
     ///
-    /// Supported: NIfTI-1 (`*.nii`, `*.nii.gz`, scalar or RGB24) and headerless raw files
-    /// named `NAME_XxYxZ_DTYPE[_rgb][_be].raw` (DTYPE u8, u16, i16 or f32; `_rgb`: 3 channels
+    /// Supported: DICOM (a directory of DICOM files is one volume, named by its path), NRRD
+    /// (`*.nrrd`, `*.nhdr` + data file), MetaImage (`*.mha`, `*.mhd` + data file), NIfTI-1
+    /// (`*.nii`, `*.nii.gz`, scalar or RGB24) and headerless raw files named
+    /// `NAME_XxYxZ_DTYPE[_rgb][_be].raw` (DTYPE u8, u16, i16 or f32; `_rgb`: 3 channels
     /// interleaved per voxel; `_be`: big-endian; x fastest), e.g. `head_256x256x128_u16.raw`.
     /// The cache name is the relative path without extension and layout suffix (`ct/head`).
-    /// Each file is hashed (SHA-256); a file already submitted with the same options is skipped.
+    /// Each volume's files are hashed (SHA-256); one already submitted with the same options is
+    /// skipped.
     Submit(SubmitArgs),
 }
 

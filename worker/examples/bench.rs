@@ -9,7 +9,7 @@
 use std::io::Write;
 use std::time::{Duration, Instant};
 use wavesplat_compressor::phantom::Phantom;
-use wavesplat_orchestrator::archive;
+use wavesplat_worker::archive;
 use wavesplat_orchestrator::client;
 use wavesplat_orchestrator::convert::state_name;
 use wavesplat_orchestrator::{JobOptions, QueueConfig, ServiceConfig, Store};

@@ -24,6 +24,7 @@
 //! # Ok(()) }
 //! ```
 
+pub mod archive;
 pub mod options;
 
 use std::future::Future;
@@ -35,7 +36,7 @@ use tonic::Code;
 use wavesplat_client::{CacheClient, ConnectOptions};
 use wavesplat_codec::volume::Volume;
 use wavesplat_compressor::encode::{compress, Stage};
-use wavesplat_compressor::reader::{decode_raw, read_nifti};
+use wavesplat_compressor::reader::{decode_raw, decode_source, SourceFiles};
 use wavesplat_orchestrator::client::{self, Client};
 use wavesplat_orchestrator::convert;
 use wavesplat_orchestrator::model::{Delivery, Failure, FailureKind, JobSpec, Outcome, Source};
@@ -327,12 +328,19 @@ async fn fetch_source(
     spec: &JobSpec,
 ) -> Result<Vec<u8>, Failure> {
     match &spec.source {
-        Source::Path(p) => tokio::fs::read(p).await.map_err(|e| {
-            fail(
-                FailureKind::SourceUnavailable,
-                format!("cannot read {}: {e}", p.display()),
-            )
-        }),
+        Source::Path(p) => {
+            let (p, raw) = (p.clone(), spec.raw.is_some());
+            tokio::task::spawn_blocking(move || {
+                crate::archive::source_bytes(&p, raw).map_err(|e| {
+                    fail(
+                        FailureKind::SourceUnavailable,
+                        format!("cannot read {}: {e}", p.display()),
+                    )
+                })
+            })
+            .await
+            .map_err(|e| fail(FailureKind::Worker, format!("reading task: {e}")))?
+        }
         Source::Upload { size } => {
             let unavailable = |s: tonic::Status| {
                 fail(
@@ -365,15 +373,14 @@ fn decode(spec: &JobSpec, bytes: Vec<u8>) -> Result<Volume, Failure> {
             let raw = options::raw_spec(layout);
             decode_raw(&bytes, &raw).map_err(|e| invalid(&e))
         }
-        (None, Source::Path(p)) => read_nifti(p).map_err(|e| invalid(&e)),
-        (None, Source::Upload { .. }) => {
-            let mut f = tempfile::Builder::new()
-                .suffix(".nii")
-                .tempfile()
-                .map_err(|e| fail(FailureKind::Worker, format!("temporary file: {e}")))?;
-            std::io::Write::write_all(&mut f, &bytes)
-                .map_err(|e| fail(FailureKind::Worker, format!("temporary file: {e}")))?;
-            read_nifti(f.path()).map_err(|e| invalid(&e))
+        // A file with a header, or a bundle of a volume's files; read from the verified bytes.
+        (None, source) => {
+            let origin = match source {
+                Source::Path(p) => p.clone(),
+                Source::Upload { .. } => std::path::PathBuf::from(&spec.name),
+            };
+            let src = SourceFiles::from_bytes(bytes, &origin).map_err(|e| invalid(&e))?;
+            decode_source(&src, None).map_err(|e| invalid(&e))
         }
     }
 }

@@ -29,13 +29,14 @@ use crate::entropy::huffman::HuffmanCode;
 use crate::entropy::EntropyError;
 use crate::family::Family;
 use crate::layout::{Band, Geometry, LayoutError, MAX_LEVELS};
+use crate::volume::Placement;
 use bytes::{ByteReader, ByteWriter};
 use thiserror::Error;
 
 /// File magic.
 pub const MAGIC: &[u8; 4] = b"WSPL";
-/// Current format version.
-pub const VERSION: u16 = 3;
+/// Current format version (4: the header carries the volume's placement in patient space).
+pub const VERSION: u16 = 4;
 /// Largest accepted header (bytes).
 pub const MAX_HEADER_BYTES: usize = 16 << 20;
 /// Largest accepted packet (bytes).
@@ -52,8 +53,9 @@ pub enum FormatError {
     /// Not a wavesplat file.
     #[error("not a wavesplat file: magic bytes are {0:02x?}, expected \"WSPL\"")]
     BadMagic(Vec<u8>),
-    /// A version this build cannot read.
-    #[error("unsupported format version {found}; this build reads version {supported}")]
+    /// A version this build cannot read (older files must be compressed again from their
+    /// source: the format keeps no reader for earlier versions).
+    #[error("unsupported format version {found}; this build reads version {supported}{}", if *found < *supported { " (the file was written by an older wavesplat: compress the source volume again)" } else { " (the file was written by a newer wavesplat)" })]
     UnsupportedVersion {
         /// Version in the file.
         found: u16,
@@ -287,8 +289,10 @@ pub struct Header {
     pub geometry: Geometry,
     /// Zero margin used to build the padded grid.
     pub margin: usize,
-    /// Voxel spacing.
+    /// Voxel spacing (mm when the source said; the units of the source otherwise).
     pub spacing: [f32; 3],
+    /// Where the voxel grid sits in patient space (DICOM LPS), when the source said.
+    pub placement: Option<Placement>,
     /// Number of channels (1 or 3).
     pub channels: usize,
     /// Colour transform.
@@ -417,6 +421,15 @@ impl Header {
         for s in self.spacing {
             w.f32(s);
         }
+        match &self.placement {
+            None => w.u8(0),
+            Some(p) => {
+                w.u8(1);
+                for v in p.origin.iter().chain(p.directions.iter().flatten()) {
+                    w.f64(*v);
+                }
+            }
+        }
         w.u8(self.channels as u8);
         w.u8(g.family.code());
         w.u8(g.levels as u8);
@@ -488,6 +501,18 @@ impl Header {
                 format!("voxel spacing {spacing:?} must be positive"),
             ));
         }
+        let placement = match r.u8()? {
+            0 => None,
+            1 => {
+                let mut p = Placement::identity();
+                for v in p.origin.iter_mut().chain(p.directions.iter_mut().flatten()) {
+                    *v = r.f64()?;
+                }
+                p.validate().map_err(|e| invalid(W, e.to_string()))?;
+                Some(p)
+            }
+            f => return Err(invalid(W, format!("placement flag {f}; 0 or 1 allowed"))),
+        };
         let channels = r.u8()? as usize;
         if channels != 1 && channels != 3 {
             return Err(invalid(W, format!("{channels} channels; 1 or 3 allowed")));
@@ -624,6 +649,7 @@ impl Header {
             geometry,
             margin,
             spacing,
+            placement,
             channels,
             color,
             value_range,

@@ -19,6 +19,7 @@
 
 use thiserror::Error;
 
+pub mod patient;
 pub mod visibility;
 
 /// Largest image side accepted (per view; a multiview image is three of them side by side).

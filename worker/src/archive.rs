@@ -2,20 +2,25 @@
 //! [`JobSpec`].
 //!
 //! Supported files:
-//! - NIfTI-1: `*.nii`, `*.nii.gz` (scalar or RGB24; the header describes the data);
+//! - DICOM: a directory holding DICOM files (files with the `DICM` preamble, whatever their
+//!   name) is one volume, a series or a multi-frame file, named by the directory's path;
+//! - NRRD (`*.nrrd`, `*.nhdr` with its data file), MetaImage (`*.mha`, `*.mhd` with its data
+//!   file), NIfTI-1 (`*.nii`, `*.nii.gz`): the header describes the data;
 //! - headerless raw, described by its name: `NAME_XxYxZ_DTYPE[_rgb][_be].raw`, e.g.
 //!   `head_256x256x128_u16.raw`, `cells_64x64x64_u8_rgb.raw`, `ct_512x512x300_i16_be.raw`.
 //!   DTYPE is `u8`, `u16`, `i16` or `f32`; `_rgb` means 3 channels interleaved per voxel;
 //!   `_be` big-endian samples (little-endian otherwise); x varies fastest.
 //!
 //! The volume's name in the cache is its path relative to the archive root without the
-//! extension and (for raw files) without the layout suffix: `ct/head_64x64x32_u8.raw` → `ct/head`.
-//! Hidden files are ignored; `.raw` files whose name does not follow the convention, and names
-//! used twice, are reported as skipped. Other files are ignored.
+//! extension and (for raw files) without the layout suffix: `ct/head_64x64x32_u8.raw` → `ct/head`,
+//! `ct/series1/` (DICOM) → `ct/series1`. Data files named by `.nhdr` / `.mhd` headers are part
+//! of their header's volume. Hidden files are ignored; `.raw` files whose name does not follow
+//! the convention, and names used twice, are reported as skipped. Other files are ignored.
 
-use crate::model::{JobOptions, JobSpec, RawLayout, SampleType, Source};
-use std::collections::HashSet;
+use wavesplat_orchestrator::model::{JobOptions, JobSpec, RawLayout, SampleType, Source};
+use std::collections::{BTreeSet, HashSet};
 use std::path::{Path, PathBuf};
+use wavesplat_compressor::reader::{dicom::is_dicom_file, Format, SourceFiles};
 
 /// A supported file.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -24,7 +29,7 @@ pub struct Found {
     pub path: PathBuf,
     /// Its name in the cache.
     pub name: String,
-    /// Raw layout (`None`: NIfTI).
+    /// Raw layout (`None`: a format with a header, or a DICOM directory).
     pub raw: Option<RawLayout>,
 }
 
@@ -100,7 +105,57 @@ pub fn scan(root: &Path) -> std::io::Result<Scan> {
     walk(root, &mut files)?;
     let mut scan = Scan::default();
     let mut names = HashSet::new();
+    // DICOM files make their directory a volume; data files of detached headers belong to
+    // their header.
+    let mut dicom_dirs = BTreeSet::new();
+    let mut taken = HashSet::new();
+    for path in &files {
+        match Format::from_name(path) {
+            Some(Format::Nrrd | Format::MetaImage) => {
+                if let Ok(src) = SourceFiles::gather(path, None) {
+                    let dir = path.parent().unwrap_or(Path::new(""));
+                    for (n, _) in src.files.iter().skip(1) {
+                        taken.insert(dir.join(n));
+                    }
+                }
+            }
+            Some(Format::Nifti) => {}
+            Some(Format::Dicom) | None => {
+                if is_dicom_file(path)? {
+                    dicom_dirs.insert(path.parent().unwrap_or(root).to_path_buf());
+                    taken.insert(path.clone());
+                }
+            }
+        }
+    }
+    for dir in dicom_dirs {
+        let rel = dir
+            .strip_prefix(root)
+            .map(|p| p.to_string_lossy().into_owned())
+            .unwrap_or_default();
+        let name = if rel.is_empty() {
+            root.file_name()
+                .map_or_else(|| "dicom".to_string(), |n| n.to_string_lossy().into_owned())
+        } else {
+            rel
+        };
+        if !names.insert(name.clone()) {
+            scan.skipped.push((
+                dir,
+                format!("another volume already uses the name {name:?}"),
+            ));
+            continue;
+        }
+        scan.found.push(Found {
+            path: dir,
+            name,
+            raw: None,
+        });
+    }
     for path in files {
+        if taken.contains(&path) {
+            continue;
+        }
         let file_name = path
             .file_name()
             .map(|n| n.to_string_lossy().into_owned())
@@ -111,9 +166,11 @@ pub fn scan(root: &Path) -> std::io::Result<Scan> {
             .and_then(|p| p.strip_prefix(root).ok())
             .map(|p| p.to_string_lossy().into_owned())
             .unwrap_or_default();
-        let (base, raw) = if let Some(s) = lower
-            .strip_suffix(".nii.gz")
-            .or_else(|| lower.strip_suffix(".nii"))
+        let (base, raw) = if let Some(s) = [
+            ".nii.gz", ".nii", ".nrrd", ".nhdr", ".mha", ".mhd", ".dcm", ".dicom",
+        ]
+        .iter()
+        .find_map(|ext| lower.strip_suffix(ext))
         {
             (file_name[..s.len()].to_string(), None)
         } else if lower.ends_with(".raw") {
@@ -142,18 +199,34 @@ pub fn scan(root: &Path) -> std::io::Result<Scan> {
         }
         scan.found.push(Found { path, name, raw });
     }
+    scan.found.sort_by(|a, b| a.path.cmp(&b.path));
     Ok(scan)
 }
 
-/// Builds the job for a found file: reads it to hash it; with `upload`, the bytes are returned
-/// to be streamed with the submission, otherwise the job names the file's absolute path
-/// (which every worker must be able to read).
+/// The bytes a job's hash covers and an upload carries: a raw file's bytes, or the volume's
+/// gathered files ([`SourceFiles::to_bytes`]: a single file's own bytes, or a bundle of a
+/// DICOM directory's files or a detached header and its data file).
+pub fn source_bytes(path: &Path, raw: bool) -> std::io::Result<Vec<u8>> {
+    if raw {
+        return std::fs::read(path);
+    }
+    SourceFiles::gather(path, None)
+        .map(|s| s.to_bytes())
+        .map_err(|e| match e {
+            wavesplat_compressor::reader::ReadError::Io { source, .. } => source,
+            e => std::io::Error::other(e.to_string()),
+        })
+}
+
+/// Builds the job for a found volume: reads it to hash it; with `upload`, the bytes are
+/// returned to be streamed with the submission, otherwise the job names the volume's absolute
+/// path (which every worker must be able to read).
 pub fn job_spec(
     found: &Found,
     options: &JobOptions,
     upload: bool,
 ) -> std::io::Result<(JobSpec, Option<Vec<u8>>)> {
-    let bytes = std::fs::read(&found.path)?;
+    let bytes = source_bytes(&found.path, found.raw.is_some())?;
     let sha256 = crate::sha256(&bytes);
     let source = if upload {
         Source::Upload {
@@ -211,12 +284,31 @@ mod tests {
             "notes.txt",
             ".hidden.nii",
             "a_2x2x2_u8.raw",
+            "ct.nrrd",
+            "mr.mha",
         ] {
             std::fs::write(r.join(f), b"x").unwrap();
         }
+        // A detached header's data file belongs to it, whatever its name.
+        std::fs::write(r.join("vol.nhdr"), "NRRD0004\ndata file: v_4x4x4_u8.raw\n").unwrap();
+        std::fs::write(r.join("v_4x4x4_u8.raw"), b"x").unwrap();
+        std::fs::write(r.join("img.mhd"), "NDims = 3\nElementDataFile = img.data\n").unwrap();
+        std::fs::write(r.join("img.data"), b"x").unwrap();
+        // DICOM files (by content) make their directory one volume.
+        std::fs::create_dir_all(r.join("study/series1")).unwrap();
+        let mut dcm = vec![0u8; 128];
+        dcm.extend_from_slice(b"DICM");
+        for f in ["IM1", "IM2", "x.dcm"] {
+            std::fs::write(r.join("study/series1").join(f), &dcm).unwrap();
+        }
+        std::fs::write(r.join("study/series1/readme.txt"), b"x").unwrap();
         let s = scan(r).unwrap();
         let names: Vec<&str> = s.found.iter().map(|f| f.name.as_str()).collect();
-        assert_eq!(names, vec!["a", "c", "sub/b"]);
+        assert_eq!(
+            names,
+            vec!["a", "c", "ct", "img", "mr", "study/series1", "sub/b", "vol"]
+        );
+        assert!(s.found.iter().any(|f| f.path == r.join("study/series1")));
         assert_eq!(s.skipped.len(), 2, "{:?}", s.skipped);
     }
 }

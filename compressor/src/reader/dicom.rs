@@ -1,0 +1,1255 @@
+//! DICOM with dicom-rs (`dicom-object` parses, `dicom-pixeldata` decodes): a series directory
+//! (one file per slice) or multi-frame files (classic, or enhanced with per-frame functional
+//! groups). Files are grouped by Series Instance UID (a directory must hold one image series),
+//! frames are sorted along the slice normal (the cross product of the Image Orientation
+//! (Patient) row and column directions) by Image Position (Patient), and the steps between them
+//! are checked: duplicates, gaps (missing slices), irregular spacing and a sheared grid (gantry
+//! tilt) are errors that name the files and positions. Samples are 8, 16 or 32 bits, signed or
+//! unsigned (Bits Stored / High Bit honoured, sign-extended), monochrome (one channel) or RGB
+//! (three), with Rescale Slope / Intercept applied per frame, so CT values are in HU.
+//!
+//! Transfer syntaxes: Implicit VR Little Endian, Explicit VR Little and Big Endian, Deflated
+//! Explicit VR Little Endian, Encapsulated Uncompressed, and the encapsulated ones
+//! dicom-pixeldata decodes in pure Rust with its `native` feature: RLE Lossless, JPEG Baseline
+//! (Process 1), JPEG Extended (Process 2 & 4), JPEG Lossless Non-Hierarchical (Process 14, and
+//! Selection Value 1). JPEG-LS, JPEG 2000 and JPEG XL need codecs this build does not enable
+//! (`charls` is C++; `openjp2` is an unsafe C translation); files using them fail with an error
+//! naming the transfer syntax.
+//!
+//! The volume's axes: x along the row direction (increasing column index), y along the column
+//! direction (increasing row index), z along the slice normal; its placement is the position of
+//! the first slice's first pixel and those three directions, in the patient frame (LPS).
+//! Untrusted input: frame sizes are checked against [`MAX_VOXELS`] and the pixel data present
+//! before decoding, encapsulated frames may not expand beyond [`MAX_EXPANSION`] × their
+//! compressed bytes, and a panic inside the DICOM crates is caught and reported as an error on
+//! the file.
+
+use std::collections::BTreeMap;
+use std::panic::{catch_unwind, AssertUnwindSafe};
+use std::path::{Path, PathBuf};
+
+use dicom_core::Tag;
+use dicom_dictionary_std::tags;
+use dicom_object::file::ReadPreamble;
+use dicom_object::{DefaultDicomObject, InMemDicomObject, OpenFileOptions};
+use dicom_pixeldata::PixelDecoder;
+use dicom_transfer_syntax_registry::{TransferSyntaxIndex, TransferSyntaxRegistry};
+use wavesplat_codec::volume::{Placement, Volume, MAX_VOXELS};
+
+use super::{voxel_count, ReadError, SourceFiles, MAX_SOURCE_FILES};
+
+/// Largest ratio of decoded to encapsulated bytes accepted for a frame (plus 1 MiB): lossless
+/// codecs on real images stay far below it; a forged header on a tiny file does not.
+pub const MAX_EXPANSION: usize = 1024;
+
+/// SOP Class UID of a DICOMDIR (Media Storage Directory Storage): skipped in series directories.
+const DICOMDIR_SOP_CLASS: &str = "1.2.840.10008.1.3.10";
+
+/// Whether `head` has the DICOM file preamble (`DICM` at offset 128).
+pub(crate) fn has_preamble(head: &[u8]) -> bool {
+    head.len() >= 132 && &head[128..132] == b"DICM"
+}
+
+/// The name of an attribute in messages, e.g. `(0028,0030) Pixel Spacing`.
+fn tag_name(tag: Tag) -> String {
+    let name = match tag {
+        tags::SERIES_INSTANCE_UID => "Series Instance UID",
+        tags::ROWS => "Rows",
+        tags::COLUMNS => "Columns",
+        tags::PIXEL_SPACING => "Pixel Spacing",
+        tags::IMAGER_PIXEL_SPACING => "Imager Pixel Spacing",
+        tags::IMAGE_ORIENTATION_PATIENT => "Image Orientation (Patient)",
+        tags::IMAGE_POSITION_PATIENT => "Image Position (Patient)",
+        tags::SLICE_THICKNESS => "Slice Thickness",
+        tags::SPACING_BETWEEN_SLICES => "Spacing Between Slices",
+        tags::NUMBER_OF_FRAMES => "Number of Frames",
+        tags::SAMPLES_PER_PIXEL => "Samples per Pixel",
+        tags::PHOTOMETRIC_INTERPRETATION => "Photometric Interpretation",
+        tags::BITS_ALLOCATED => "Bits Allocated",
+        tags::BITS_STORED => "Bits Stored",
+        tags::HIGH_BIT => "High Bit",
+        tags::PIXEL_REPRESENTATION => "Pixel Representation",
+        tags::PLANAR_CONFIGURATION => "Planar Configuration",
+        tags::RESCALE_SLOPE => "Rescale Slope",
+        tags::RESCALE_INTERCEPT => "Rescale Intercept",
+        tags::PIXEL_DATA => "Pixel Data",
+        tags::TRANSFER_SYNTAX_UID => "Transfer Syntax UID",
+        _ => "",
+    };
+    format!("({:04X},{:04X}) {name}", tag.group(), tag.element())
+        .trim_end()
+        .to_string()
+}
+
+fn dicom_err(path: &Path, tag: Option<Tag>, reason: impl Into<String>) -> ReadError {
+    ReadError::Dicom {
+        path: path.to_path_buf(),
+        tag: tag.map(tag_name),
+        reason: reason.into(),
+    }
+}
+
+/// Gathers the DICOM files directly inside `dir` (regular, non-hidden files starting with the
+/// DICOM preamble), sorted by name.
+pub(crate) fn gather_series(dir: &Path) -> Result<SourceFiles, ReadError> {
+    let mut entries: Vec<_> = std::fs::read_dir(dir)
+        .map_err(|e| ReadError::io(dir, e))?
+        .collect::<Result<_, _>>()
+        .map_err(|e| ReadError::io(dir, e))?;
+    entries.sort_by_key(|e| e.file_name());
+    let mut files = Vec::new();
+    for e in entries {
+        let name = e.file_name().to_string_lossy().into_owned();
+        let path = e.path();
+        if name.starts_with('.')
+            || !e
+                .file_type()
+                .map_err(|x| ReadError::io(&path, x))?
+                .is_file()
+        {
+            continue;
+        }
+        if !is_dicom_file(&path).map_err(|x| ReadError::io(&path, x))? {
+            continue;
+        }
+        if files.len() == MAX_SOURCE_FILES {
+            return Err(ReadError::Series {
+                path: dir.to_path_buf(),
+                reason: format!("more than {MAX_SOURCE_FILES} DICOM files"),
+            });
+        }
+        files.push((name, super::read_file(&path)?));
+    }
+    if files.is_empty() {
+        return Err(ReadError::Series {
+            path: dir.to_path_buf(),
+            reason: "no DICOM files (files with the DICM preamble) in this directory".into(),
+        });
+    }
+    Ok(SourceFiles {
+        origin: dir.to_path_buf(),
+        base: dir.to_path_buf(),
+        format: Some(super::Format::Dicom),
+        files,
+    })
+}
+
+/// Whether the file at `path` starts with the DICOM preamble (reads 132 bytes).
+pub fn is_dicom_file(path: &Path) -> std::io::Result<bool> {
+    use std::io::Read;
+    let mut head = [0u8; 132];
+    let mut f = std::fs::File::open(path)?;
+    let mut got = 0;
+    while got < head.len() {
+        match f.read(&mut head[got..])? {
+            0 => break,
+            n => got += n,
+        }
+    }
+    Ok(has_preamble(&head[..got]))
+}
+
+/// Largest nesting of sequences accepted.
+const MAX_DEPTH: usize = 32;
+
+/// Walks the element headers of a file (meta group, then the data set in its transfer
+/// syntax; into sequences, items and encapsulated fragments) and checks that every defined
+/// length fits in the bytes that remain. dicom-rs sizes its buffers by the declared length
+/// before reading, so without this walk a 1 KB file declaring a 4 GB text element allocates
+/// 4 GB. Deflated data sets are inflated first (within [`MAX_EXPANSION`]).
+fn check_lengths(path: &Path, bytes: &[u8]) -> Result<(), ReadError> {
+    let body = bytes.get(132..).unwrap_or(&[]);
+    let mut w = Walker {
+        explicit: true,
+        big: false,
+    };
+    // The meta group: explicit VR little endian, group 0002.
+    let mut pos = 0;
+    let mut ts = String::new();
+    while pos + 8 <= body.len() && u16::from_le_bytes([body[pos], body[pos + 1]]) == 0x0002 {
+        let (tag, _vr, len, hdr) = w.header(body, pos).map_err(|m| dicom_err(path, None, m))?;
+        let start = pos + hdr;
+        let len = len.ok_or_else(|| dicom_err(path, None, "undefined length in the meta group"))?;
+        let end = start
+            .checked_add(len)
+            .filter(|e| *e <= body.len())
+            .ok_or_else(|| {
+                dicom_err(
+                    path,
+                    Some(tag),
+                    format!("declares {len} bytes, {} remain", body.len() - start),
+                )
+            })?;
+        if tag == tags::TRANSFER_SYNTAX_UID {
+            ts = String::from_utf8_lossy(&body[start..end])
+                .trim_end_matches(['\0', ' '])
+                .to_string();
+        }
+        pos = end;
+    }
+    let rest = &body[pos..];
+    let inflated;
+    let data: &[u8] = match ts.as_str() {
+        "1.2.840.10008.1.2" => {
+            w.explicit = false;
+            rest
+        }
+        "1.2.840.10008.1.2.2" => {
+            w.big = true;
+            rest
+        }
+        "1.2.840.10008.1.2.1.99" => {
+            use std::io::Read;
+            let limit = rest
+                .len()
+                .saturating_mul(MAX_EXPANSION)
+                .saturating_add(1 << 20);
+            let mut out = Vec::new();
+            flate2::read::DeflateDecoder::new(rest)
+                .take(limit as u64 + 1)
+                .read_to_end(&mut out)
+                .map_err(|e| {
+                    dicom_err(path, None, format!("the deflated data set is corrupt: {e}"))
+                })?;
+            if out.len() > limit {
+                return Err(dicom_err(
+                    path,
+                    None,
+                    "the deflated data set expands beyond the limit",
+                ));
+            }
+            inflated = out;
+            &inflated
+        }
+        _ => rest,
+    };
+    w.dataset(data, 0, data.len(), 0, false)
+        .map(|_| ())
+        .map_err(|(tag, m)| dicom_err(path, tag, m))
+}
+
+struct Walker {
+    explicit: bool,
+    big: bool,
+}
+
+type WalkError = (Option<Tag>, String);
+
+impl Walker {
+    fn u16(&self, b: &[u8]) -> u16 {
+        if self.big {
+            u16::from_be_bytes([b[0], b[1]])
+        } else {
+            u16::from_le_bytes([b[0], b[1]])
+        }
+    }
+
+    fn u32(&self, b: &[u8]) -> u32 {
+        if self.big {
+            u32::from_be_bytes([b[0], b[1], b[2], b[3]])
+        } else {
+            u32::from_le_bytes([b[0], b[1], b[2], b[3]])
+        }
+    }
+
+    /// The element header at `pos`: tag, VR (explicit only), length (`None`: undefined) and
+    /// header size.
+    #[allow(clippy::type_complexity)]
+    fn header(
+        &self,
+        b: &[u8],
+        pos: usize,
+    ) -> Result<(Tag, Option<[u8; 2]>, Option<usize>, usize), String> {
+        let h = b.get(pos..pos + 8).ok_or("truncated element header")?;
+        let tag = Tag(self.u16(&h[0..2]), self.u16(&h[2..4]));
+        let undefined = |l: u32| (l != 0xFFFF_FFFF).then_some(l as usize);
+        if tag.group() == 0xFFFE || !self.explicit {
+            return Ok((tag, None, undefined(self.u32(&h[4..8])), 8));
+        }
+        let vr = [h[4], h[5]];
+        if matches!(
+            &vr,
+            b"OB"
+                | b"OD"
+                | b"OF"
+                | b"OL"
+                | b"OV"
+                | b"OW"
+                | b"SQ"
+                | b"SV"
+                | b"UC"
+                | b"UN"
+                | b"UR"
+                | b"UT"
+                | b"UV"
+        ) {
+            let l = b.get(pos + 8..pos + 12).ok_or("truncated element header")?;
+            Ok((tag, Some(vr), undefined(self.u32(l)), 12))
+        } else {
+            Ok((tag, Some(vr), Some(usize::from(self.u16(&h[6..8]))), 8))
+        }
+    }
+
+    fn is_sequence(&self, tag: Tag, vr: Option<[u8; 2]>) -> bool {
+        use dicom_core::dictionary::{DataDictionary, DataDictionaryEntry};
+        match vr {
+            Some(v) => &v == b"SQ",
+            None => dicom_dictionary_std::StandardDataDictionary
+                .by_tag(tag)
+                .is_some_and(|e| e.vr().exact() == Some(dicom_core::VR::SQ)),
+        }
+    }
+
+    /// Walks a data set in `b[pos..end]`; with `end` unknown for undefined-length items, stops
+    /// at an item delimiter. Returns the position after what it consumed.
+    fn dataset(
+        &self,
+        b: &[u8],
+        mut pos: usize,
+        end: usize,
+        depth: usize,
+        delimited: bool,
+    ) -> Result<usize, WalkError> {
+        if depth > MAX_DEPTH {
+            return Err((None, format!("sequences nested deeper than {MAX_DEPTH}")));
+        }
+        while pos < end {
+            let (tag, vr, len, hdr) = self.header(&b[..end], pos).map_err(|m| (None, m))?;
+            pos += hdr;
+            if tag == Tag(0xFFFE, 0xE00D) && delimited {
+                return Ok(pos);
+            }
+            match len {
+                Some(len) => {
+                    let stop = pos.checked_add(len).filter(|e| *e <= end).ok_or_else(|| {
+                        (
+                            Some(tag),
+                            format!("declares {len} bytes, {} remain", end - pos),
+                        )
+                    })?;
+                    if self.is_sequence(tag, vr) {
+                        self.items(b, pos, stop, depth + 1, false)?;
+                    }
+                    pos = stop;
+                }
+                None => {
+                    let fragments = tag == tags::PIXEL_DATA;
+                    if !fragments && !self.is_sequence(tag, vr) && vr != Some(*b"UN") {
+                        return Err((
+                            Some(tag),
+                            "undefined length on an element that is not a sequence".into(),
+                        ));
+                    }
+                    pos = self.items(b, pos, end, depth + 1, fragments)?;
+                }
+            }
+        }
+        if delimited {
+            return Err((None, "an item without its delimiter".into()));
+        }
+        Ok(pos)
+    }
+
+    /// Walks the items of a sequence (or the fragments of encapsulated pixel data) in
+    /// `b[pos..end]`, up to the sequence delimiter when the sequence's length is undefined.
+    fn items(
+        &self,
+        b: &[u8],
+        mut pos: usize,
+        end: usize,
+        depth: usize,
+        fragments: bool,
+    ) -> Result<usize, WalkError> {
+        let mut count = 0usize;
+        while pos < end {
+            let h = b
+                .get(pos..pos + 8)
+                .filter(|_| pos + 8 <= end)
+                .ok_or((None, "truncated item header".to_string()))?;
+            let tag = Tag(self.u16(&h[0..2]), self.u16(&h[2..4]));
+            let len = self.u32(&h[4..8]);
+            pos += 8;
+            if tag == Tag(0xFFFE, 0xE0DD) {
+                return Ok(pos);
+            }
+            if tag != Tag(0xFFFE, 0xE000) {
+                return Err((Some(tag), "expected an item in a sequence".into()));
+            }
+            count += 1;
+            if count > (1 << 24) {
+                return Err((None, "too many items".into()));
+            }
+            if len == 0xFFFF_FFFF {
+                if fragments {
+                    return Err((
+                        Some(tags::PIXEL_DATA),
+                        "a fragment of undefined length".into(),
+                    ));
+                }
+                pos = self.dataset(b, pos, end, depth, true)?;
+            } else {
+                let stop = pos
+                    .checked_add(len as usize)
+                    .filter(|e| *e <= end)
+                    .ok_or_else(|| {
+                        (
+                            None,
+                            format!("an item declares {len} bytes, {} remain", end - pos),
+                        )
+                    })?;
+                if !fragments {
+                    self.dataset(b, pos, stop, depth, false)?;
+                }
+                pos = stop;
+            }
+        }
+        Ok(pos)
+    }
+}
+
+/// Parses a file (the whole data set, or up to the pixel data), catching panics.
+fn parse(path: &Path, bytes: &[u8], pixels: bool) -> Result<DefaultDicomObject, ReadError> {
+    if !has_preamble(bytes) {
+        return Err(dicom_err(
+            path,
+            None,
+            "not a DICOM file (no DICM preamble at offset 128)",
+        ));
+    }
+    check_lengths(path, bytes)?;
+    let body = &bytes[128..];
+    let result = catch_unwind(AssertUnwindSafe(|| {
+        let opts = OpenFileOptions::new().read_preamble(ReadPreamble::Never);
+        if pixels {
+            opts.from_reader(body)
+        } else {
+            opts.read_until(tags::PIXEL_DATA).from_reader(body)
+        }
+    }));
+    match result {
+        Ok(Ok(obj)) => Ok(obj),
+        Ok(Err(e)) => Err(dicom_err(
+            path,
+            None,
+            format!("cannot parse the data set: {e}"),
+        )),
+        Err(_) => Err(dicom_err(
+            path,
+            None,
+            "the DICOM parser panicked on this file",
+        )),
+    }
+}
+
+fn element(obj: &InMemDicomObject, tag: Tag) -> Option<&dicom_object::mem::InMemElement> {
+    obj.element_opt(tag).ok().flatten()
+}
+
+fn get_str(obj: &InMemDicomObject, tag: Tag) -> Option<String> {
+    element(obj, tag)
+        .and_then(|e| e.to_str().ok())
+        .map(|s| {
+            s.trim_matches(|c: char| c == '\0' || c.is_whitespace())
+                .to_string()
+        })
+        .filter(|s| !s.is_empty())
+}
+
+fn get_floats(
+    path: &Path,
+    obj: &InMemDicomObject,
+    tag: Tag,
+) -> Result<Option<Vec<f64>>, ReadError> {
+    let Some(e) = element(obj, tag) else {
+        return Ok(None);
+    };
+    if e.value().primitive().is_some_and(|p| p.multiplicity() == 0) {
+        return Ok(None);
+    }
+    let v = e
+        .to_multi_float64()
+        .map_err(|x| dicom_err(path, Some(tag), format!("not a list of numbers: {x}")))?;
+    if v.iter().any(|x| !x.is_finite()) {
+        return Err(dicom_err(path, Some(tag), format!("{v:?} is not finite")));
+    }
+    Ok(Some(v))
+}
+
+fn get_uint(path: &Path, obj: &InMemDicomObject, tag: Tag) -> Result<Option<u32>, ReadError> {
+    let Some(e) = element(obj, tag) else {
+        return Ok(None);
+    };
+    if e.value().primitive().is_some_and(|p| p.multiplicity() == 0) {
+        return Ok(None);
+    }
+    e.to_int::<u32>()
+        .map(Some)
+        .map_err(|x| dicom_err(path, Some(tag), format!("not a non-negative integer: {x}")))
+}
+
+fn require_uint(path: &Path, obj: &InMemDicomObject, tag: Tag) -> Result<u32, ReadError> {
+    get_uint(path, obj, tag)?.ok_or_else(|| dicom_err(path, Some(tag), "missing"))
+}
+
+/// The first item of sequence `seq` in `obj`.
+fn first_item(obj: &InMemDicomObject, seq: Tag) -> Option<&InMemDicomObject> {
+    element(obj, seq)
+        .and_then(|e| e.items())
+        .and_then(|i| i.first())
+}
+
+/// An attribute of frame `f` from the functional groups (per-frame item, then shared), or the
+/// top level.
+fn frame_attr(obj: &InMemDicomObject, frame: usize, group_seq: Tag) -> Vec<&InMemDicomObject> {
+    let mut out = Vec::new();
+    if let Some(item) = element(obj, tags::PER_FRAME_FUNCTIONAL_GROUPS_SEQUENCE)
+        .and_then(|e| e.items())
+        .and_then(|i| i.get(frame))
+        .and_then(|i| first_item(i, group_seq))
+    {
+        out.push(item);
+    }
+    if let Some(item) = first_item(obj, tags::SHARED_FUNCTIONAL_GROUPS_SEQUENCE)
+        .and_then(|s| first_item(s, group_seq))
+    {
+        out.push(item);
+    }
+    out.push(obj);
+    out
+}
+
+fn floats_for_frame(
+    path: &Path,
+    obj: &InMemDicomObject,
+    frame: usize,
+    group_seq: Tag,
+    tag: Tag,
+) -> Result<Option<Vec<f64>>, ReadError> {
+    for o in frame_attr(obj, frame, group_seq) {
+        if let Some(v) = get_floats(path, o, tag)? {
+            return Ok(Some(v));
+        }
+    }
+    Ok(None)
+}
+
+/// What the reader needs of one image file (pixel data not yet decoded).
+#[derive(Debug, Clone)]
+struct Image {
+    name: String,
+    path: PathBuf,
+    series: String,
+    rows: usize,
+    cols: usize,
+    frames: usize,
+    samples: usize,
+    bits_allocated: u32,
+    bits_stored: u32,
+    signed: bool,
+    /// (row spacing, column spacing), mm.
+    pixel_spacing: Option<[f64; 2]>,
+    /// Row direction, column direction.
+    orientation: Option<[f64; 6]>,
+    /// Per frame.
+    positions: Vec<Option<[f64; 3]>>,
+    /// Per frame (slope, intercept).
+    rescale: Vec<(f64, f64)>,
+    /// Spacing Between Slices, else Slice Thickness.
+    slice_step: Option<f64>,
+    instance: i64,
+}
+
+fn read_image(
+    name: &str,
+    path: &Path,
+    obj: &DefaultDicomObject,
+) -> Result<Option<Image>, ReadError> {
+    let meta = obj.meta();
+    if meta.media_storage_sop_class_uid().trim_end_matches('\0') == DICOMDIR_SOP_CLASS {
+        return Ok(None);
+    }
+    let o: &InMemDicomObject = obj;
+    let (Some(rows), Some(cols)) = (
+        get_uint(path, o, tags::ROWS)?,
+        get_uint(path, o, tags::COLUMNS)?,
+    ) else {
+        tracing::debug!(file = %path.display(), "no Rows/Columns: not an image, skipped");
+        return Ok(None);
+    };
+    if rows == 0 || cols == 0 {
+        return Err(dicom_err(
+            path,
+            Some(if rows == 0 { tags::ROWS } else { tags::COLUMNS }),
+            "is 0",
+        ));
+    }
+    let series = get_str(o, tags::SERIES_INSTANCE_UID)
+        .ok_or_else(|| dicom_err(path, Some(tags::SERIES_INSTANCE_UID), "missing"))?;
+    let frames = get_uint(path, o, tags::NUMBER_OF_FRAMES)?
+        .unwrap_or(1)
+        .max(1) as usize;
+    let samples = get_uint(path, o, tags::SAMPLES_PER_PIXEL)?.unwrap_or(1) as usize;
+    if samples != 1 && samples != 3 {
+        return Err(dicom_err(
+            path,
+            Some(tags::SAMPLES_PER_PIXEL),
+            format!("{samples}; 1 or 3 supported"),
+        ));
+    }
+    let plane = (rows as usize) * (cols as usize);
+    let total = plane
+        .checked_mul(frames)
+        .filter(|n| *n <= MAX_VOXELS)
+        .ok_or_else(|| {
+            dicom_err(
+                path,
+                Some(tags::NUMBER_OF_FRAMES),
+                format!("{rows} rows × {cols} columns × {frames} frames exceed the {MAX_VOXELS}-voxel limit"),
+            )
+        })?;
+    let _ = total;
+    let bits_allocated = require_uint(path, o, tags::BITS_ALLOCATED)?;
+    if !matches!(bits_allocated, 8 | 16 | 32) {
+        return Err(dicom_err(
+            path,
+            Some(tags::BITS_ALLOCATED),
+            format!("{bits_allocated}; 8, 16 or 32 supported"),
+        ));
+    }
+    let bits_stored = get_uint(path, o, tags::BITS_STORED)?.unwrap_or(bits_allocated);
+    if bits_stored == 0 || bits_stored > bits_allocated {
+        return Err(dicom_err(
+            path,
+            Some(tags::BITS_STORED),
+            format!("{bits_stored} with {bits_allocated} bits allocated"),
+        ));
+    }
+    let high_bit = get_uint(path, o, tags::HIGH_BIT)?.unwrap_or(bits_stored - 1);
+    if high_bit != bits_stored - 1 {
+        return Err(dicom_err(
+            path,
+            Some(tags::HIGH_BIT),
+            format!("{high_bit} with {bits_stored} bits stored; only High Bit = Bits Stored − 1 is supported"),
+        ));
+    }
+    let signed = match get_uint(path, o, tags::PIXEL_REPRESENTATION)?.unwrap_or(0) {
+        0 => false,
+        1 => true,
+        r => {
+            return Err(dicom_err(
+                path,
+                Some(tags::PIXEL_REPRESENTATION),
+                format!("{r}; 0 or 1"),
+            ))
+        }
+    };
+    let photometric =
+        get_str(o, tags::PHOTOMETRIC_INTERPRETATION).unwrap_or_else(|| "MONOCHROME2".into());
+    let ok_photometric = match samples {
+        1 => matches!(photometric.as_str(), "MONOCHROME1" | "MONOCHROME2"),
+        _ => photometric == "RGB" || photometric.starts_with("YBR_"),
+    };
+    if !ok_photometric {
+        return Err(dicom_err(
+            path,
+            Some(tags::PHOTOMETRIC_INTERPRETATION),
+            format!("{photometric} with {samples} sample(s) per pixel; supported are MONOCHROME1/2 and RGB"),
+        ));
+    }
+    let pixel_spacing = match floats_for_frame(
+        path,
+        o,
+        0,
+        tags::PIXEL_MEASURES_SEQUENCE,
+        tags::PIXEL_SPACING,
+    )?
+    .or(get_floats(path, o, tags::IMAGER_PIXEL_SPACING)?)
+    {
+        None => None,
+        Some(v) if v.len() >= 2 && v[0] > 0.0 && v[1] > 0.0 => Some([v[0], v[1]]),
+        Some(v) => {
+            return Err(dicom_err(
+                path,
+                Some(tags::PIXEL_SPACING),
+                format!("{v:?}: two positive numbers expected"),
+            ))
+        }
+    };
+    let orientation = match floats_for_frame(
+        path,
+        o,
+        0,
+        tags::PLANE_ORIENTATION_SEQUENCE,
+        tags::IMAGE_ORIENTATION_PATIENT,
+    )? {
+        None => None,
+        Some(v) if v.len() == 6 => Some([v[0], v[1], v[2], v[3], v[4], v[5]]),
+        Some(v) => {
+            return Err(dicom_err(
+                path,
+                Some(tags::IMAGE_ORIENTATION_PATIENT),
+                format!("{v:?}: six numbers expected"),
+            ))
+        }
+    };
+    let slice_step = {
+        let mut s = None;
+        for tag in [tags::SPACING_BETWEEN_SLICES, tags::SLICE_THICKNESS] {
+            if let Some(v) = floats_for_frame(path, o, 0, tags::PIXEL_MEASURES_SEQUENCE, tag)? {
+                if let Some(x) = v.first().copied().filter(|x| *x > 0.0) {
+                    s = Some(x);
+                    break;
+                }
+            }
+        }
+        s
+    };
+    // Per-frame positions: the functional groups, or the top level for frame 0 (classic
+    // multi-frame files then step along the normal by the slice step).
+    let mut positions = Vec::with_capacity(frames.min(1 << 16));
+    for f in 0..frames {
+        let p = match floats_for_frame(
+            path,
+            o,
+            f,
+            tags::PLANE_POSITION_SEQUENCE,
+            tags::IMAGE_POSITION_PATIENT,
+        )? {
+            None => None,
+            Some(v) if v.len() == 3 => Some([v[0], v[1], v[2]]),
+            Some(v) => {
+                return Err(dicom_err(
+                    path,
+                    Some(tags::IMAGE_POSITION_PATIENT),
+                    format!("{v:?}: three numbers expected"),
+                ))
+            }
+        };
+        positions.push(p);
+    }
+    let has_per_frame = element(o, tags::PER_FRAME_FUNCTIONAL_GROUPS_SEQUENCE).is_some();
+    if frames > 1 && !has_per_frame {
+        if let (Some(p0), Some(iop)) = (positions[0], orientation) {
+            let step = slice_step.ok_or_else(|| {
+                dicom_err(
+                    path,
+                    Some(tags::SPACING_BETWEEN_SLICES),
+                    "missing: a multi-frame file without per-frame positions needs the slice step",
+                )
+            })?;
+            let n = normal(&iop);
+            for (f, p) in positions.iter_mut().enumerate() {
+                let k = f as f64 * step;
+                *p = Some([p0[0] + k * n[0], p0[1] + k * n[1], p0[2] + k * n[2]]);
+            }
+        }
+    }
+    let mut rescale = Vec::with_capacity(frames.min(1 << 16));
+    for f in 0..frames {
+        let slope = floats_for_frame(
+            path,
+            o,
+            f,
+            tags::PIXEL_VALUE_TRANSFORMATION_SEQUENCE,
+            tags::RESCALE_SLOPE,
+        )?
+        .and_then(|v| v.first().copied())
+        .unwrap_or(1.0);
+        let intercept = floats_for_frame(
+            path,
+            o,
+            f,
+            tags::PIXEL_VALUE_TRANSFORMATION_SEQUENCE,
+            tags::RESCALE_INTERCEPT,
+        )?
+        .and_then(|v| v.first().copied())
+        .unwrap_or(0.0);
+        if slope == 0.0 {
+            return Err(dicom_err(path, Some(tags::RESCALE_SLOPE), "is 0"));
+        }
+        rescale.push(if samples == 3 {
+            (1.0, 0.0)
+        } else {
+            (slope, intercept)
+        });
+    }
+    let instance = get_str(o, tags::INSTANCE_NUMBER)
+        .and_then(|s| s.parse::<i64>().ok())
+        .unwrap_or(0);
+    Ok(Some(Image {
+        name: name.to_string(),
+        path: path.to_path_buf(),
+        series,
+        rows: rows as usize,
+        cols: cols as usize,
+        frames,
+        samples,
+        bits_allocated,
+        bits_stored,
+        signed,
+        pixel_spacing,
+        orientation,
+        positions,
+        rescale,
+        slice_step,
+        instance,
+    }))
+}
+
+fn normal(iop: &[f64; 6]) -> [f64; 3] {
+    let (r, c) = ([iop[0], iop[1], iop[2]], [iop[3], iop[4], iop[5]]);
+    [
+        r[1] * c[2] - r[2] * c[1],
+        r[2] * c[0] - r[0] * c[2],
+        r[0] * c[1] - r[1] * c[0],
+    ]
+}
+
+fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
+    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+}
+
+/// One frame of the volume, in its final order.
+#[derive(Debug, Clone, Copy)]
+struct FrameRef {
+    image: usize,
+    frame: usize,
+}
+
+/// Decodes a DICOM volume (a series directory's files, or one multi-frame file).
+pub(crate) fn decode(src: &SourceFiles) -> Result<Volume, ReadError> {
+    // Pass 1: headers only.
+    let mut images = Vec::new();
+    for (name, bytes) in &src.files {
+        let path = src.path_of(name);
+        let obj = parse(&path, bytes, false)?;
+        if let Some(img) = read_image(name, &path, &obj)? {
+            images.push(img);
+        }
+    }
+    let dir = &src.origin;
+    if images.is_empty() {
+        return Err(ReadError::Series {
+            path: dir.clone(),
+            reason: "no image (no file with Rows and Columns)".into(),
+        });
+    }
+    let mut by_series: BTreeMap<&str, usize> = BTreeMap::new();
+    for i in &images {
+        *by_series.entry(i.series.as_str()).or_default() += 1;
+    }
+    if by_series.len() > 1 {
+        let list: Vec<String> = by_series
+            .iter()
+            .map(|(s, n)| format!("{s} ({n} files)"))
+            .collect();
+        return Err(ReadError::Series {
+            path: dir.clone(),
+            reason: format!(
+                "holds {} series, one volume needs one: {}; give each series its own directory",
+                by_series.len(),
+                list.join(", ")
+            ),
+        });
+    }
+    let first = images[0].clone();
+    // Consistency of the in-plane geometry and sample format.
+    for i in &images[1..] {
+        let mismatch = |tag: Tag, what: String| {
+            Err(ReadError::Series {
+                path: dir.clone(),
+                reason: format!(
+                    "{} differs between {} and {}: {what}",
+                    tag_name(tag),
+                    first.name,
+                    i.name
+                ),
+            })
+        };
+        if (i.rows, i.cols) != (first.rows, first.cols) {
+            return mismatch(
+                tags::ROWS,
+                format!(
+                    "{}×{} against {}×{}",
+                    first.rows, first.cols, i.rows, i.cols
+                ),
+            );
+        }
+        if (i.samples, i.bits_allocated, i.bits_stored, i.signed)
+            != (
+                first.samples,
+                first.bits_allocated,
+                first.bits_stored,
+                first.signed,
+            )
+        {
+            return mismatch(tags::BITS_ALLOCATED, "sample format".into());
+        }
+        let close =
+            |a: &[f64], b: &[f64], tol: f64| a.iter().zip(b).all(|(x, y)| (x - y).abs() <= tol);
+        match (&first.pixel_spacing, &i.pixel_spacing) {
+            (Some(a), Some(b)) if close(a, b, 1e-4 * a[0].max(a[1])) => {}
+            (None, None) => {}
+            (a, b) => return mismatch(tags::PIXEL_SPACING, format!("{a:?} against {b:?}")),
+        }
+        match (&first.orientation, &i.orientation) {
+            (Some(a), Some(b)) if close(a, b, 1e-4) => {}
+            (None, None) => {}
+            (a, b) => {
+                return mismatch(
+                    tags::IMAGE_ORIENTATION_PATIENT,
+                    format!("{a:?} against {b:?}"),
+                )
+            }
+        }
+    }
+
+    // Order the frames.
+    let mut frames: Vec<(FrameRef, Option<[f64; 3]>)> = Vec::new();
+    for (ii, img) in images.iter().enumerate() {
+        for f in 0..img.frames {
+            frames.push((
+                FrameRef {
+                    image: ii,
+                    frame: f,
+                },
+                img.positions[f],
+            ));
+        }
+    }
+    let nz = frames.len();
+    let plane = first.rows * first.cols;
+    let dims = [first.cols, first.rows, nz];
+    voxel_count(dims).map_err(|e| ReadError::Series {
+        path: dir.clone(),
+        reason: e.to_string(),
+    })?;
+    let with_pos = frames.iter().filter(|(_, p)| p.is_some()).count();
+    if with_pos != 0 && with_pos != nz {
+        let (missing, _) = frames
+            .iter()
+            .find(|(_, p)| p.is_none())
+            .expect("some lack a position");
+        let img = &images[missing.image];
+        return Err(dicom_err(
+            &img.path,
+            Some(tags::IMAGE_POSITION_PATIENT),
+            format!(
+                "missing for frame {} while other frames have it",
+                missing.frame
+            ),
+        ));
+    }
+    let [ps_row, ps_col] = first.pixel_spacing.unwrap_or_else(|| {
+        tracing::warn!(series = %dir.display(), "no Pixel Spacing: assuming 1 mm");
+        [1.0, 1.0]
+    });
+    let (z_step, placement) = match (first.orientation, with_pos == nz) {
+        (Some(iop), true) => {
+            let r = [iop[0], iop[1], iop[2]];
+            let c = [iop[3], iop[4], iop[5]];
+            let n = normal(&iop);
+            let nn = dot(n, n).sqrt();
+            if nn.is_nan() || nn <= 0.5 {
+                return Err(dicom_err(
+                    &first.path,
+                    Some(tags::IMAGE_ORIENTATION_PATIENT),
+                    format!("{iop:?}: row and column directions are not orthogonal unit vectors"),
+                ));
+            }
+            let n = n.map(|x| x / nn);
+            frames.sort_by(|a, b| {
+                let (pa, pb) = (
+                    a.1.expect("all have positions"),
+                    b.1.expect("all have positions"),
+                );
+                dot(pa, n)
+                    .total_cmp(&dot(pb, n))
+                    .then(images[a.0.image].instance.cmp(&images[b.0.image].instance))
+            });
+            let pos: Vec<[f64; 3]> = frames
+                .iter()
+                .map(|(_, p)| p.expect("all have positions"))
+                .collect();
+            let step = if nz >= 2 {
+                check_steps(dir, &images, &frames, &pos, n)?
+            } else {
+                first.slice_step.unwrap_or(1.0)
+            };
+            let p = Placement {
+                origin: pos[0],
+                directions: [r, c, n],
+            };
+            p.validate().map_err(|e| {
+                dicom_err(
+                    &first.path,
+                    Some(tags::IMAGE_ORIENTATION_PATIENT),
+                    e.to_string(),
+                )
+            })?;
+            (step, Some(p))
+        }
+        _ => {
+            // No geometry: order by Instance Number, then frame; no placement.
+            frames.sort_by_key(|(f, _)| (images[f.image].instance, f.image, f.frame));
+            (first.slice_step.unwrap_or(1.0), None)
+        }
+    };
+    let spacing = [ps_col as f32, ps_row as f32, z_step as f32];
+    if spacing.iter().any(|s| !(s.is_finite() && *s > 0.0)) {
+        return Err(ReadError::Series {
+            path: dir.clone(),
+            reason: format!("voxel spacing {spacing:?} is not finite and positive"),
+        });
+    }
+
+    // Pass 2: decode each file's frames into their slots.
+    let mut slot_of: Vec<Vec<usize>> = images.iter().map(|i| vec![0; i.frames]).collect();
+    for (z, (f, _)) in frames.iter().enumerate() {
+        slot_of[f.image][f.frame] = z;
+    }
+    let channels = first.samples;
+    let n = plane * nz;
+    let mut out: Vec<Vec<f32>> = Vec::with_capacity(channels);
+    for _ in 0..channels {
+        let mut c = Vec::new();
+        c.try_reserve_exact(n).map_err(|_| ReadError::Series {
+            path: dir.clone(),
+            reason: format!("cannot allocate {n} voxels"),
+        })?;
+        c.resize(n, 0.0);
+        out.push(c);
+    }
+    let by_name: BTreeMap<&str, &[u8]> = src
+        .files
+        .iter()
+        .map(|(n, b)| (n.as_str(), b.as_slice()))
+        .collect();
+    for (ii, img) in images.iter().enumerate() {
+        let obj = parse(&img.path, by_name[img.name.as_str()], true)?;
+        check_pixel_data(img, &obj)?;
+        for f in 0..img.frames {
+            let z = slot_of[ii][f];
+            decode_frame(img, &obj, f, z * plane, &mut out)?;
+        }
+    }
+    let v = Volume::new(dims, spacing, out).map_err(|e| ReadError::volume(dir, e))?;
+    match placement {
+        Some(p) => v.with_placement(p).map_err(|e| ReadError::volume(dir, e)),
+        None => Ok(v),
+    }
+}
+
+/// Checks the sorted positions: distinct, evenly spaced along the normal (reporting gaps), and
+/// stacked along it (no shear). Returns the slice step.
+fn check_steps(
+    dir: &Path,
+    images: &[Image],
+    frames: &[(FrameRef, Option<[f64; 3]>)],
+    pos: &[[f64; 3]],
+    n: [f64; 3],
+) -> Result<f64, ReadError> {
+    let label = |k: usize| {
+        let f = frames[k].0;
+        let img = &images[f.image];
+        if img.frames > 1 {
+            format!("{} frame {} at {:?}", img.name, f.frame + 1, pos[k])
+        } else {
+            format!("{} at {:?}", img.name, pos[k])
+        }
+    };
+    let nz = pos.len();
+    let d: Vec<f64> = (1..nz)
+        .map(|k| dot(pos[k], n) - dot(pos[k - 1], n))
+        .collect();
+    let total = dot(pos[nz - 1], n) - dot(pos[0], n);
+    for (k, dk) in d.iter().enumerate() {
+        if *dk <= 1e-4 {
+            return Err(ReadError::Series {
+                path: dir.to_path_buf(),
+                reason: format!("two slices at the same position along the normal: {} and {} (several acquisitions in one series?)", label(k), label(k + 1)),
+            });
+        }
+    }
+    let mut sorted = d.clone();
+    sorted.sort_by(f64::total_cmp);
+    let typical = sorted[sorted.len() / 2];
+    let tol = (0.01 * typical).max(1e-3);
+    for (k, dk) in d.iter().enumerate() {
+        if (dk - typical).abs() > tol {
+            let ratio = dk / typical;
+            let reason = if ratio > 1.5 && (ratio - ratio.round()).abs() * typical <= tol {
+                format!(
+                    "a gap: {} slice(s) missing between {} and {} ({dk:.4} mm apart, slices are {typical:.4} mm apart elsewhere)",
+                    ratio.round() as i64 - 1,
+                    label(k),
+                    label(k + 1)
+                )
+            } else {
+                format!(
+                    "irregular slice spacing: {} and {} are {dk:.4} mm apart, slices are {typical:.4} mm apart elsewhere",
+                    label(k),
+                    label(k + 1)
+                )
+            };
+            return Err(ReadError::Series {
+                path: dir.to_path_buf(),
+                reason,
+            });
+        }
+    }
+    let step = total / (nz - 1) as f64;
+    // Stacked along the normal: the mean step between neighbours has no in-plane part.
+    let delta = [0, 1, 2].map(|c| (pos[nz - 1][c] - pos[0][c]) / (nz - 1) as f64);
+    let along = dot(delta, n);
+    let lateral = [0, 1, 2].map(|c| delta[c] - along * n[c]);
+    let shear = dot(lateral, lateral).sqrt();
+    if shear > (0.01 * step).max(1e-3) {
+        return Err(ReadError::Series {
+            path: dir.to_path_buf(),
+            reason: format!(
+                "the slices are not stacked along their normal (each is shifted {shear:.4} mm sideways per {step:.4} mm step, a tilt of {:.2}°: gantry tilt or a sheared acquisition is not supported)",
+                shear.atan2(step).to_degrees()
+            ),
+        });
+    }
+    Ok(step)
+}
+
+/// Checks the transfer syntax and the pixel data's size before anything is decoded.
+fn check_pixel_data(img: &Image, obj: &DefaultDicomObject) -> Result<(), ReadError> {
+    let path = &img.path;
+    let ts_uid = obj
+        .meta()
+        .transfer_syntax()
+        .trim_end_matches('\0')
+        .to_string();
+    let ts = TransferSyntaxRegistry.get(&ts_uid).ok_or_else(|| {
+        dicom_err(
+            path,
+            Some(tags::TRANSFER_SYNTAX_UID),
+            format!("unknown transfer syntax {ts_uid}"),
+        )
+    })?;
+    if !ts.can_decode_all() {
+        return Err(dicom_err(
+            path,
+            Some(tags::TRANSFER_SYNTAX_UID),
+            format!(
+                "{} ({ts_uid}) cannot be decoded by this build; supported are the native syntaxes, deflate, RLE Lossless and JPEG baseline/extended/lossless",
+                ts.name()
+            ),
+        ));
+    }
+    let e = element(obj, tags::PIXEL_DATA)
+        .ok_or_else(|| dicom_err(path, Some(tags::PIXEL_DATA), "missing"))?;
+    let bytes_per = (img.bits_allocated / 8) as usize;
+    let frame_bytes = img.rows * img.cols * img.samples * bytes_per;
+    match e.fragments() {
+        Some(frags) => {
+            let compressed: usize = frags.iter().map(|f| f.len()).sum();
+            let limit = compressed
+                .saturating_mul(MAX_EXPANSION)
+                .saturating_add(1 << 20);
+            if frame_bytes.saturating_mul(img.frames) > limit {
+                return Err(dicom_err(
+                    path,
+                    Some(tags::PIXEL_DATA),
+                    format!(
+                        "{} frames of {frame_bytes} bytes from {compressed} encapsulated bytes: more than {MAX_EXPANSION}× expansion, the header does not match the data",
+                        img.frames
+                    ),
+                ));
+            }
+        }
+        None => {
+            let have = e.value().primitive().map_or(0, |p| p.calculate_byte_len());
+            let need = frame_bytes * img.frames;
+            if have < need {
+                return Err(dicom_err(
+                    path,
+                    Some(tags::PIXEL_DATA),
+                    format!("{have} bytes, but {} frames of {}×{} × {} sample(s) × {bytes_per} byte(s) need {need}", img.frames, img.cols, img.rows, img.samples),
+                ));
+            }
+        }
+    }
+    Ok(())
+}
+
+/// Decodes frame `f` of `obj` into the planar channels at `offset`, with the modality rescale.
+fn decode_frame(
+    img: &Image,
+    obj: &DefaultDicomObject,
+    f: usize,
+    offset: usize,
+    out: &mut [Vec<f32>],
+) -> Result<(), ReadError> {
+    let path = &img.path;
+    let decoded = catch_unwind(AssertUnwindSafe(|| obj.decode_pixel_data_frame(f as u32)))
+        .map_err(|_| {
+            dicom_err(
+                path,
+                Some(tags::PIXEL_DATA),
+                "the pixel data decoder panicked",
+            )
+        })?
+        .map_err(|e| {
+            dicom_err(
+                path,
+                Some(tags::PIXEL_DATA),
+                format!("frame {}: {e}", f + 1),
+            )
+        })?;
+    let data = decoded.data();
+    let bytes_per = (img.bits_allocated / 8) as usize;
+    let plane = img.rows * img.cols;
+    let need = plane * img.samples * bytes_per;
+    if data.len() < need {
+        return Err(dicom_err(
+            path,
+            Some(tags::PIXEL_DATA),
+            format!(
+                "frame {} decodes to {} bytes, {need} expected",
+                f + 1,
+                data.len()
+            ),
+        ));
+    }
+    let data = &data[..need];
+    // Native RGB may be planar (R plane, G plane, B plane); decoders return interleaved.
+    let planar = img.samples == 3
+        && decoded.planar_configuration() == dicom_pixeldata::PlanarConfiguration::PixelFirst;
+    let (slope, intercept) = img.rescale[f];
+    let shift = 32 - img.bits_stored;
+    let value = |s: &[u8]| -> f64 {
+        let raw: u32 = match bytes_per {
+            1 => u32::from(s[0]),
+            2 => u32::from(u16::from_ne_bytes([s[0], s[1]])),
+            _ => u32::from_ne_bytes([s[0], s[1], s[2], s[3]]),
+        };
+        // Keep the stored bits; sign-extend from Bits Stored.
+        let v = raw << shift;
+        if img.signed {
+            f64::from((v as i32) >> shift)
+        } else {
+            f64::from(v >> shift)
+        }
+    };
+    for (c, ch) in out.iter_mut().enumerate() {
+        let dst = &mut ch[offset..offset + plane];
+        for (i, d) in dst.iter_mut().enumerate() {
+            let k = if planar {
+                c * plane + i
+            } else {
+                i * img.samples + c
+            };
+            let s = &data[k * bytes_per..(k + 1) * bytes_per];
+            *d = (value(s) * slope + intercept) as f32;
+        }
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests;

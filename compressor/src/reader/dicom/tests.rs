@@ -1,0 +1,501 @@
+//! DICOM reader tests: series and multi-frame files written here with dicom-rs read back equal
+//! to their source arrays, spacing and placement; inconsistent series, missing or bad
+//! attributes, truncated and hostile files are typed errors.
+
+use super::*;
+use crate::reader::fixtures::{
+    self, write_dicom_multiframe, write_dicom_series, DicomEncoding, DicomOptions, Layout,
+};
+use crate::reader::read_volume;
+use dicom_core::{DataElement, PrimitiveValue, Tag, VR};
+use dicom_object::open_file;
+
+/// A placement that is neither axis-aligned nor at the origin (cosines exact in decimal).
+fn oblique() -> Placement {
+    Placement {
+        origin: [-120.5, 30.25, 512.0],
+        directions: [[0.6, 0.8, 0.0], [0.0, 0.0, -1.0], [-0.8, 0.6, 0.0]],
+    }
+}
+
+/// A volume whose values, stored as `(v − intercept) / slope`, fit `layout` exactly.
+fn volume(
+    dims: [usize; 3],
+    spacing: [f32; 3],
+    layout: Layout,
+    slope: f64,
+    intercept: f64,
+) -> Volume {
+    let (lo, hi) = match layout {
+        Layout::U8 => (0.0, 255.0),
+        Layout::I8 => (-128.0, 127.0),
+        Layout::U16 => (0.0, 65535.0),
+        _ => (-32768.0, 32767.0),
+    };
+    let n = dims.iter().product::<usize>();
+    let data = (0..n)
+        .map(|i| {
+            let t = (i * 7919 % 1009) as f64 / 1008.0;
+            let stored = (lo + t * (hi - lo)).round();
+            (stored * slope + intercept) as f32
+        })
+        .collect();
+    Volume::new(dims, spacing, vec![data])
+        .unwrap()
+        .with_placement(oblique())
+        .unwrap()
+}
+
+fn assert_same(back: &Volume, v: &Volume, what: &str) {
+    assert_eq!(back.dims(), v.dims(), "{what}");
+    assert_eq!(back.channels(), v.channels(), "{what}");
+    for a in 0..3 {
+        assert!(
+            (back.spacing()[a] - v.spacing()[a]).abs() <= 1e-6 * v.spacing()[a],
+            "{what}: spacing {:?} vs {:?}",
+            back.spacing(),
+            v.spacing()
+        );
+    }
+    let (b, p) = (back.placement().unwrap(), v.placement().unwrap());
+    for i in 0..3 {
+        assert!(
+            (b.origin[i] - p.origin[i]).abs() < 1e-6,
+            "{what}: {b:?} vs {p:?}"
+        );
+        for j in 0..3 {
+            assert!(
+                (b.directions[i][j] - p.directions[i][j]).abs() < 1e-9,
+                "{what}: {b:?}"
+            );
+        }
+    }
+}
+
+#[test]
+fn series_round_trip_every_layout_and_transfer_syntax() {
+    let root = tempfile::tempdir().unwrap();
+    let mut k = 0;
+    for (layout, slope, intercept) in [
+        (Layout::I16, 1.0, -1024.0),
+        (Layout::U16, 0.5, -1000.0),
+        (Layout::U8, 2.0, 0.0),
+        (Layout::I8, 1.0, 10.0),
+    ] {
+        for encoding in [
+            DicomEncoding::ExplicitLittle,
+            DicomEncoding::ImplicitLittle,
+            DicomEncoding::RleLossless,
+        ] {
+            k += 1;
+            let dir = root.path().join(format!("s{k}"));
+            let v = volume([7, 5, 6], [0.7, 0.8, 2.5], layout, slope, intercept);
+            let o = DicomOptions {
+                layout,
+                slope,
+                intercept,
+                encoding,
+                ..DicomOptions::default()
+            };
+            write_dicom_series(&dir, &v, &o);
+            let back = read_volume(&dir, None).unwrap();
+            assert_same(&back, &v, &format!("{layout:?} {encoding:?}"));
+        }
+    }
+    // CT values in HU survive: the source had −1024 .. 31743.
+    let v = volume([7, 5, 6], [0.7, 0.8, 2.5], Layout::I16, 1.0, -1024.0);
+    let (lo, hi) = v.value_range();
+    assert!(lo < -1000.0 && hi > 30000.0);
+}
+
+#[test]
+fn multiframe_round_trip_native_and_rle_and_rgb() {
+    let dir = tempfile::tempdir().unwrap();
+    for (i, encoding) in [DicomEncoding::ExplicitLittle, DicomEncoding::RleLossless]
+        .into_iter()
+        .enumerate()
+    {
+        let v = volume([9, 4, 5], [0.5, 0.5, 1.25], Layout::I16, 1.0, -1024.0);
+        let o = DicomOptions {
+            encoding,
+            intercept: -1024.0,
+            ..DicomOptions::default()
+        };
+        let path = dir.path().join(format!("mf{i}.dcm"));
+        write_dicom_multiframe(&path, &v, &o);
+        let back = read_volume(&path, None).unwrap();
+        assert_same(&back, &v, &format!("multi-frame {encoding:?}"));
+    }
+    // RGB, 8 bits.
+    let n = 4 * 3 * 2;
+    let rgb: Vec<Vec<f32>> = (0..3)
+        .map(|c| (0..n).map(|i| ((i * 11 + 70 * c) % 256) as f32).collect())
+        .collect();
+    let v = Volume::new([4, 3, 2], [1.0, 1.0, 2.0], rgb)
+        .unwrap()
+        .with_placement(oblique())
+        .unwrap();
+    let o = DicomOptions {
+        layout: Layout::U8,
+        ..DicomOptions::default()
+    };
+    let path = dir.path().join("rgb.dcm");
+    write_dicom_multiframe(&path, &v, &o);
+    assert_same(&read_volume(&path, None).unwrap(), &v, "rgb");
+}
+
+#[test]
+fn single_slice_uses_the_slice_thickness() {
+    let dir = tempfile::tempdir().unwrap();
+    let v = volume([3, 3, 1], [0.5, 0.6, 3.0], Layout::I16, 1.0, 0.0);
+    write_dicom_series(dir.path(), &v, &DicomOptions::default());
+    assert_same(&read_volume(dir.path(), None).unwrap(), &v, "one slice");
+}
+
+fn series(dir: &Path, dims: [usize; 3], o: &DicomOptions) -> (Volume, Vec<PathBuf>) {
+    let v = volume(dims, [1.0, 1.0, 2.0], o.layout, o.slope, o.intercept);
+    let files = write_dicom_series(dir, &v, o);
+    (v, files)
+}
+
+fn expect_series_error(dir: &Path, needle: &str) {
+    let e = read_volume(dir, None).unwrap_err();
+    assert!(matches!(e, ReadError::Series { .. }), "{e}");
+    assert!(e.to_string().contains(needle), "{e}");
+}
+
+#[test]
+fn inconsistent_series_are_reported() {
+    let root = tempfile::tempdir().unwrap();
+    let o = DicomOptions::default();
+
+    // Two series in one directory.
+    let d = root.path().join("two");
+    series(&d, [4, 4, 3], &o);
+    let other = DicomOptions {
+        series_uid: "1.2.3.4.5".into(),
+        ..DicomOptions::default()
+    };
+    let tmp = root.path().join("tmp");
+    let (_, files) = series(&tmp, [4, 4, 1], &other);
+    std::fs::rename(&files[0], d.join("OTHER")).unwrap();
+    expect_series_error(&d, "holds 2 series");
+
+    // A gap: one slice removed from the middle.
+    let d = root.path().join("gap");
+    let (_, files) = series(&d, [4, 4, 5], &o);
+    std::fs::remove_file(&files[2]).unwrap();
+    expect_series_error(&d, "1 slice(s) missing");
+
+    // Irregular spacing and a duplicate position: a slice of the same series moved.
+    let d = root.path().join("irregular");
+    let (_, files) = series(&d, [4, 4, 4], &o);
+    let mut obj = open_file(&files[3]).unwrap();
+    let p = oblique().position([1.0, 1.0, 2.0], [0.0, 0.0, 2.5]);
+    obj.put(DataElement::new(
+        tags::IMAGE_POSITION_PATIENT,
+        VR::DS,
+        PrimitiveValue::from(format!("{}\\{}\\{}", p[0], p[1], p[2])),
+    ));
+    obj.write_to_file(&files[3]).unwrap();
+    expect_series_error(&d, "irregular slice spacing");
+    let p = oblique().position([1.0, 1.0, 2.0], [0.0, 0.0, 1.0]);
+    obj.put(DataElement::new(
+        tags::IMAGE_POSITION_PATIENT,
+        VR::DS,
+        PrimitiveValue::from(format!("{}\\{}\\{}", p[0], p[1], p[2])),
+    ));
+    obj.write_to_file(&files[3]).unwrap();
+    expect_series_error(&d, "same position");
+
+    // Slices of different sizes.
+    let d = root.path().join("rows");
+    series(&d, [4, 4, 2], &o);
+    let (_, files) = series(&root.path().join("tmp2"), [5, 4, 1], &o);
+    std::fs::rename(&files[0], d.join("ZZZ")).unwrap();
+    expect_series_error(&d, "(0028,0010) Rows differs");
+
+    // Gantry tilt: each slice shifted sideways.
+    let d = root.path().join("tilt");
+    let tilted = DicomOptions {
+        shear: [0.0, 0.0, 0.5],
+        ..DicomOptions::default()
+    };
+    series(&d, [4, 4, 4], &tilted);
+    expect_series_error(&d, "gantry tilt");
+
+    // An empty directory and one without DICOM files.
+    let d = root.path().join("empty");
+    std::fs::create_dir(&d).unwrap();
+    std::fs::write(d.join("notes.txt"), "hello").unwrap();
+    expect_series_error(&d, "no DICOM files");
+}
+
+/// An edit of a fixture's data set.
+type Edit = Box<dyn Fn(&mut DefaultDicomObject)>;
+
+/// Rewrites a fixture file with `edit` applied to its data set.
+fn edit(path: &Path, edit: impl FnOnce(&mut DefaultDicomObject)) {
+    let mut obj = open_file(path).unwrap();
+    edit(&mut obj);
+    obj.write_to_file(path).unwrap();
+}
+
+fn expect_tag_error(dir: &Path, file: &Path, tag: &str) {
+    let e = read_volume(dir, None).unwrap_err();
+    let msg = e.to_string();
+    assert!(matches!(e, ReadError::Dicom { .. }), "{msg}");
+    assert!(msg.contains(tag), "{msg}");
+    let name = file.file_name().unwrap().to_string_lossy().into_owned();
+    assert!(msg.contains(&name), "{msg}");
+}
+
+#[test]
+fn bad_attributes_name_the_file_and_the_tag() {
+    let root = tempfile::tempdir().unwrap();
+    let o = DicomOptions::default();
+    let cases: Vec<(&str, Edit)> = vec![
+        (
+            "(0028,0100) Bits Allocated",
+            Box::new(|o| {
+                o.remove_element(tags::BITS_ALLOCATED);
+            }),
+        ),
+        (
+            "(0028,0100) Bits Allocated",
+            Box::new(|o| {
+                o.put(DataElement::new(
+                    tags::BITS_ALLOCATED,
+                    VR::US,
+                    PrimitiveValue::from(12u16),
+                ));
+            }),
+        ),
+        (
+            "(0028,0102) High Bit",
+            Box::new(|o| {
+                o.put(DataElement::new(
+                    tags::HIGH_BIT,
+                    VR::US,
+                    PrimitiveValue::from(3u16),
+                ));
+            }),
+        ),
+        (
+            "(0020,000E) Series Instance UID",
+            Box::new(|o| {
+                o.remove_element(tags::SERIES_INSTANCE_UID);
+            }),
+        ),
+        (
+            "(0020,0032) Image Position (Patient)",
+            Box::new(|o| {
+                o.remove_element(tags::IMAGE_POSITION_PATIENT);
+            }),
+        ),
+        (
+            "(0028,0030) Pixel Spacing",
+            Box::new(|o| {
+                o.put(DataElement::new(
+                    tags::PIXEL_SPACING,
+                    VR::DS,
+                    PrimitiveValue::from("0\\1"),
+                ));
+            }),
+        ),
+        (
+            "(0028,1053) Rescale Slope",
+            Box::new(|o| {
+                o.put(DataElement::new(
+                    tags::RESCALE_SLOPE,
+                    VR::DS,
+                    PrimitiveValue::from("0"),
+                ));
+            }),
+        ),
+        (
+            "(0028,1053) Rescale Slope",
+            Box::new(|o| {
+                o.put(DataElement::new(
+                    tags::RESCALE_SLOPE,
+                    VR::DS,
+                    PrimitiveValue::from("NaN"),
+                ));
+            }),
+        ),
+        (
+            "(0028,0004) Photometric Interpretation",
+            Box::new(|o| {
+                o.put(DataElement::new(
+                    tags::PHOTOMETRIC_INTERPRETATION,
+                    VR::CS,
+                    PrimitiveValue::from("PALETTE COLOR"),
+                ));
+            }),
+        ),
+        (
+            "(7FE0,0010) Pixel Data",
+            Box::new(|o| {
+                o.remove_element(tags::PIXEL_DATA);
+            }),
+        ),
+        // Hostile sizes: a header claiming a huge image on a small file.
+        (
+            "(0028,0008) Number of Frames",
+            Box::new(|o| {
+                o.put(DataElement::new(
+                    tags::ROWS,
+                    VR::US,
+                    PrimitiveValue::from(65535u16),
+                ));
+                o.put(DataElement::new(
+                    tags::COLUMNS,
+                    VR::US,
+                    PrimitiveValue::from(65535u16),
+                ));
+                o.put(DataElement::new(
+                    tags::NUMBER_OF_FRAMES,
+                    VR::IS,
+                    PrimitiveValue::from("1000"),
+                ));
+            }),
+        ),
+    ];
+    for (i, (tag, f)) in cases.into_iter().enumerate() {
+        let d = root.path().join(format!("c{i}"));
+        let (_, files) = series(&d, [4, 4, 3], &o);
+        let target = files.iter().max().unwrap().clone();
+        edit(&target, f);
+        expect_tag_error(&d, &target, tag);
+    }
+    // A header claiming more native pixel data than the file holds.
+    let d = root.path().join("short");
+    let (_, files) = series(&d, [4, 4, 1], &o);
+    edit(&files[0], |o| {
+        o.put(DataElement::new(
+            tags::ROWS,
+            VR::US,
+            PrimitiveValue::from(4096u16),
+        ));
+        o.put(DataElement::new(
+            tags::COLUMNS,
+            VR::US,
+            PrimitiveValue::from(4096u16),
+        ));
+    });
+    expect_tag_error(&d, &files[0], "(7FE0,0010) Pixel Data");
+
+    // Encapsulated frames claiming more than the expansion limit.
+    let d = root.path().join("rle");
+    let rle = DicomOptions {
+        encoding: DicomEncoding::RleLossless,
+        ..DicomOptions::default()
+    };
+    let path = d.join("mf.dcm");
+    std::fs::create_dir_all(&d).unwrap();
+    let v = volume([4, 4, 2], [1.0; 3], Layout::I16, 1.0, 0.0);
+    write_dicom_multiframe(&path, &v, &rle);
+    edit(&path, |o| {
+        o.put(DataElement::new(
+            tags::ROWS,
+            VR::US,
+            PrimitiveValue::from(30000u16),
+        ));
+        o.put(DataElement::new(
+            tags::COLUMNS,
+            VR::US,
+            PrimitiveValue::from(30000u16),
+        ));
+    });
+    let e = read_volume(&path, None).unwrap_err().to_string();
+    assert!(e.contains("expansion") || e.contains("Pixel Data"), "{e}");
+}
+
+#[test]
+fn unsupported_transfer_syntax_is_named() {
+    let dir = tempfile::tempdir().unwrap();
+    let v = volume([4, 4, 2], [1.0; 3], Layout::I16, 1.0, 0.0);
+    let o = DicomOptions {
+        encoding: DicomEncoding::RleLossless,
+        ..DicomOptions::default()
+    };
+    let path = dir.path().join("j2k.dcm");
+    write_dicom_multiframe(&path, &v, &o);
+    // Relabel the encapsulated data as JPEG 2000.
+    edit(&path, |o| {
+        o.update_meta(|m| m.transfer_syntax = "1.2.840.10008.1.2.4.90".into());
+    });
+    let e = read_volume(&path, None).unwrap_err().to_string();
+    assert!(e.contains("1.2.840.10008.1.2.4.90"), "{e}");
+    assert!(e.contains("(0002,0010)"), "{e}");
+}
+
+#[test]
+fn truncated_and_garbage_files_are_errors_not_panics() {
+    let dir = tempfile::tempdir().unwrap();
+    let v = volume([6, 5, 1], [1.0; 3], Layout::I16, 1.0, 0.0);
+    let files = write_dicom_series(&dir.path().join("src"), &v, &DicomOptions::default());
+    let good = std::fs::read(&files[0]).unwrap();
+    let target = dir.path().join("cut.dcm");
+    for cut in (132..good.len()).step_by(7) {
+        std::fs::write(&target, &good[..cut]).unwrap();
+        assert!(read_volume(&target, None).is_err(), "cut at {cut}");
+    }
+    let mut seed = 99u64;
+    for len in [0usize, 4, 16, 64, 300, 2000] {
+        let mut b = vec![0u8; 128];
+        b.extend_from_slice(b"DICM");
+        for _ in 0..len {
+            seed = seed
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            b.push((seed >> 56) as u8);
+        }
+        std::fs::write(&target, &b).unwrap();
+        assert!(read_volume(&target, None).is_err());
+        // A valid meta group followed by garbage.
+        let mut c = good[..good.len().min(400)].to_vec();
+        c.extend_from_slice(&b[132..]);
+        std::fs::write(&target, &c).unwrap();
+        assert!(read_volume(&target, None).is_err());
+    }
+    // Flipped bytes in a good file never panic (and most fail).
+    for i in (132..good.len()).step_by(13) {
+        let mut b = good.clone();
+        b[i] ^= 0xa5;
+        std::fs::write(&target, &b).unwrap();
+        let _ = read_volume(&target, None);
+    }
+}
+
+#[test]
+fn fixtures_reject_unrepresentable_values() {
+    let r = std::panic::catch_unwind(|| {
+        let v = Volume::new([1, 1, 1], [1.0; 3], vec![vec![0.5]]).unwrap();
+        let d = tempfile::tempdir().unwrap();
+        fixtures::write_dicom_series(d.path(), &v, &DicomOptions::default());
+    });
+    assert!(r.is_err());
+}
+
+#[test]
+fn hostile_element_lengths_allocate_nothing_large() {
+    let dir = tempfile::tempdir().unwrap();
+    let v = volume([4, 4, 1], [1.0; 3], Layout::I16, 1.0, 0.0);
+    let files = write_dicom_series(&dir.path().join("src"), &v, &DicomOptions::default());
+    edit(&files[0], |o| {
+        o.put(DataElement::new(
+            Tag(0x0040, 0xA160),
+            VR::UT,
+            PrimitiveValue::from("ab"),
+        ));
+    });
+    let mut bytes = std::fs::read(&files[0]).unwrap();
+    let pat = [0x40, 0x00, 0x60, 0xA1, b'U', b'T', 0, 0, 2, 0, 0, 0];
+    let at = bytes.windows(pat.len()).position(|w| w == pat).unwrap();
+    bytes[at + 8..at + 12].copy_from_slice(&0xFFFF_FFF0u32.to_le_bytes());
+    let target = dir.path().join("hostile.dcm");
+    std::fs::write(&target, &bytes).unwrap();
+    let e = read_volume(&target, None).unwrap_err();
+    assert!(matches!(e, ReadError::Dicom { .. }), "{e}");
+}

@@ -1,0 +1,578 @@
+//! MetaImage (ITK's `.mha` with the data after the header, `.mhd` with the data in the file
+//! named by `ElementDataFile`): `MET_(U)CHAR`/`SHORT`/`INT`/`LONG_LONG`, `MET_FLOAT`,
+//! `MET_DOUBLE`, 1 or 3 channels, raw or zlib-compressed (`CompressedData = True`), either
+//! byte order, `HeaderSize` (incl. -1: data at the end of the file). Spacing from
+//! `ElementSpacing` (else `ElementSize`), placement from `Offset` (or `Origin`, `Position`) and
+//! `TransformMatrix` (or `Rotation`, `Orientation`), whose rows are the axis directions in ITK's
+//! LPS frame, as ITK reads them (`AnatomicalOrientation` is informative only, and ignored as
+//! ITK ignores it).
+//!
+//! The header is parsed by hand: it is a short list of `Key = Value` lines, and there is no
+//! maintained Rust MetaImage crate.
+
+use std::path::{Path, PathBuf};
+
+use super::text::{self, grid_from_vectors, header_lines, origin3};
+use super::{
+    deinterleave, read_exact_or_truncated, voxel_count, Endian, ReadError, SampleType, SourceFiles,
+};
+use wavesplat_codec::volume::Volume;
+
+const FORMAT: &str = "MetaImage";
+
+/// Keys that may open a MetaImage header (for content sniffing).
+const FIRST_KEYS: &[&str] = &[
+    "objecttype",
+    "ndims",
+    "comment",
+    "objectsubtype",
+    "formtypename",
+];
+
+/// Whether `head` starts with a MetaImage header line (`ObjectType = …`, `NDims = …`).
+pub(crate) fn looks_like_header(head: &[u8]) -> bool {
+    let line_end = head.iter().take(256).position(|b| *b == b'\n');
+    let Some(end) = line_end else { return false };
+    let Ok(line) = std::str::from_utf8(&head[..end]) else {
+        return false;
+    };
+    match line.split_once('=') {
+        Some((k, _)) => FIRST_KEYS.contains(&k.trim().to_ascii_lowercase().as_str()),
+        None => false,
+    }
+}
+
+#[derive(Debug, Default)]
+struct Header {
+    fields: Vec<(String, String)>,
+    /// Offset of the data after the `ElementDataFile = LOCAL` line.
+    data_offset: usize,
+}
+
+impl Header {
+    fn get(&self, keys: &[&str]) -> Option<(&str, &str)> {
+        keys.iter().find_map(|k| {
+            self.fields
+                .iter()
+                .find(|(f, _)| f.eq_ignore_ascii_case(k))
+                .map(|(f, v)| (f.as_str(), v.as_str()))
+        })
+    }
+}
+
+fn bad(path: &Path, reason: impl Into<String>) -> ReadError {
+    ReadError::bad_header(path, FORMAT, reason)
+}
+
+fn parse_header(path: &Path, bytes: &[u8]) -> Result<Header, ReadError> {
+    let (lines, end, found) = header_lines(
+        bytes,
+        |l| {
+            l.split_once('=')
+                .is_some_and(|(k, _)| k.trim().eq_ignore_ascii_case("ElementDataFile"))
+        },
+        true,
+    )
+    .ok_or_else(|| bad(path, "the header is not UTF-8 text or is longer than 1 MiB"))?;
+    if !found {
+        return Err(bad(path, "no ElementDataFile line ends the header"));
+    }
+    let mut h = Header {
+        data_offset: end,
+        ..Header::default()
+    };
+    for (n, line) in lines.iter().enumerate() {
+        if line.trim().is_empty() {
+            continue;
+        }
+        let Some((k, v)) = line.split_once('=') else {
+            return Err(bad(
+                path,
+                format!("line {}: {line:?} is not `Key = Value`", n + 1),
+            ));
+        };
+        h.fields.push((k.trim().to_string(), v.trim().to_string()));
+    }
+    Ok(h)
+}
+
+fn data_file_name(path: &Path, h: &Header) -> Result<Option<String>, ReadError> {
+    let (_, v) = h
+        .get(&["ElementDataFile"])
+        .ok_or_else(|| bad(path, "no ElementDataFile"))?;
+    if v.eq_ignore_ascii_case("LOCAL") {
+        return Ok(None);
+    }
+    if v.eq_ignore_ascii_case("LIST") || v.contains('%') || v.split_whitespace().count() > 1 {
+        return Err(ReadError::unsupported(
+            path,
+            format!("ElementDataFile = {v}: only LOCAL or a single data file is supported (not LIST or a file name pattern)"),
+        ));
+    }
+    Ok(Some(v.to_string()))
+}
+
+/// The names of the data files a detached header refers to (relative to its directory).
+pub(crate) fn data_files(path: &Path, bytes: &[u8]) -> Result<Vec<String>, ReadError> {
+    let h = parse_header(path, bytes)?;
+    Ok(data_file_name(path, &h)?.into_iter().collect())
+}
+
+fn bool_field(path: &Path, h: &Header, keys: &[&str]) -> Result<Option<bool>, ReadError> {
+    match h.get(keys) {
+        None => Ok(None),
+        Some((k, v)) => match v.to_ascii_lowercase().as_str() {
+            "true" | "1" => Ok(Some(true)),
+            "false" | "0" => Ok(Some(false)),
+            _ => Err(bad(path, format!("{k} = {v:?} is not True or False"))),
+        },
+    }
+}
+
+fn numbers_field(
+    path: &Path,
+    h: &Header,
+    keys: &[&str],
+    n: usize,
+) -> Result<Option<Vec<f64>>, ReadError> {
+    match h.get(keys) {
+        None => Ok(None),
+        Some((k, v)) => match text::numbers(v) {
+            Some(x) if x.len() >= n => Ok(Some(x)),
+            _ => Err(bad(path, format!("{k} = {v:?}: {n} numbers expected"))),
+        },
+    }
+}
+
+/// Decodes a MetaImage volume from its gathered files.
+pub(crate) fn decode(src: &SourceFiles) -> Result<Volume, ReadError> {
+    let (name, header_bytes) = &src.files[0];
+    let path = src.path_of(name);
+    let h = parse_header(&path, header_bytes)?;
+    if let Some((_, t)) = h.get(&["ObjectType"]) {
+        if !t.eq_ignore_ascii_case("Image") {
+            return Err(ReadError::unsupported(
+                &path,
+                format!("ObjectType = {t}; only Image"),
+            ));
+        }
+    }
+    let ndims = match h.get(&["NDims"]) {
+        Some((_, v)) => v
+            .parse::<usize>()
+            .ok()
+            .filter(|n| (1..=3).contains(n))
+            .ok_or_else(|| bad(&path, format!("NDims = {v:?}; 1, 2 or 3 supported")))?,
+        None => return Err(bad(&path, "no NDims")),
+    };
+    let (_, dim_str) = h
+        .get(&["DimSize"])
+        .ok_or_else(|| bad(&path, "no DimSize"))?;
+    let sizes = text::sizes(dim_str)
+        .filter(|s| s.len() == ndims)
+        .ok_or_else(|| {
+            bad(
+                &path,
+                format!("DimSize = {dim_str:?}: {ndims} sizes expected"),
+            )
+        })?;
+    let mut dims = [1usize; 3];
+    for (d, s) in dims.iter_mut().zip(&sizes) {
+        *d = usize::try_from(*s).unwrap_or(usize::MAX);
+    }
+    let voxels = voxel_count(dims).map_err(|e| ReadError::volume(&path, e))?;
+    let channels = match h.get(&["ElementNumberOfChannels"]) {
+        None => 1,
+        Some((_, "1")) => 1,
+        Some((_, "3")) => 3,
+        Some((_, v)) => {
+            return Err(ReadError::unsupported(
+                &path,
+                format!("ElementNumberOfChannels = {v}; 1 or 3 supported"),
+            ))
+        }
+    };
+    let (_, ty) = h
+        .get(&["ElementType"])
+        .ok_or_else(|| bad(&path, "no ElementType"))?;
+    let sample = match ty.to_ascii_uppercase().as_str() {
+        "MET_CHAR" => SampleType::I8,
+        "MET_UCHAR" => SampleType::U8,
+        "MET_SHORT" => SampleType::I16,
+        "MET_USHORT" => SampleType::U16,
+        "MET_INT" | "MET_LONG" => SampleType::I32,
+        "MET_UINT" | "MET_ULONG" => SampleType::U32,
+        "MET_LONG_LONG" => SampleType::I64,
+        "MET_ULONG_LONG" => SampleType::U64,
+        "MET_FLOAT" => SampleType::F32,
+        "MET_DOUBLE" => SampleType::F64,
+        t => {
+            return Err(ReadError::unsupported(
+                &path,
+                format!("ElementType = {t}; supported are MET_(U)CHAR, MET_(U)SHORT, MET_(U)INT, MET_(U)LONG, MET_(U)LONG_LONG, MET_FLOAT, MET_DOUBLE"),
+            ))
+        }
+    };
+    if bool_field(&path, &h, &["BinaryData"])? == Some(false) {
+        return Err(ReadError::unsupported(
+            &path,
+            "BinaryData = False (ASCII data)",
+        ));
+    }
+    let msb = bool_field(
+        &path,
+        &h,
+        &["BinaryDataByteOrderMSB", "ElementByteOrderMSB"],
+    )?;
+    let endian = if msb == Some(true) {
+        Endian::Big
+    } else {
+        Endian::Little
+    };
+    let compressed = bool_field(&path, &h, &["CompressedData"])?.unwrap_or(false);
+
+    // Geometry.
+    let spacing = numbers_field(&path, &h, &["ElementSpacing", "ElementSize"], ndims)?;
+    let matrix = numbers_field(
+        &path,
+        &h,
+        &["TransformMatrix", "Rotation", "Orientation"],
+        ndims * ndims,
+    )?;
+    let origin = numbers_field(&path, &h, &["Offset", "Origin", "Position"], ndims)?;
+    let mut vectors = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
+    if let Some(m) = &matrix {
+        if m.len() != ndims * ndims {
+            return Err(bad(
+                &path,
+                format!(
+                    "TransformMatrix has {} numbers, {} expected",
+                    m.len(),
+                    ndims * ndims
+                ),
+            ));
+        }
+        for a in 0..ndims {
+            for c in 0..3 {
+                vectors[a][c] = if c < ndims { m[a * ndims + c] } else { 0.0 };
+            }
+        }
+    }
+    let mut steps = [1.0f64; 3];
+    if let Some(s) = &spacing {
+        if s.len() != ndims {
+            return Err(bad(
+                &path,
+                format!("ElementSpacing has {} numbers, {ndims} expected", s.len()),
+            ));
+        }
+        for a in 0..ndims {
+            if !(s[a].is_finite() && s[a] > 0.0) {
+                return Err(bad(
+                    &path,
+                    format!("ElementSpacing {s:?}: axis {a} must be finite and positive"),
+                ));
+            }
+            steps[a] = s[a];
+        }
+    }
+    for a in 0..3 {
+        for c in 0..3 {
+            vectors[a][c] *= steps[a];
+        }
+    }
+    let origin = match &origin {
+        Some(o) => {
+            let mut o3 = [0.0; 3];
+            o3[..ndims].copy_from_slice(&o[..ndims]);
+            Some(origin3(&path, FORMAT, "Offset", &o3)?)
+        }
+        None => None,
+    };
+    let geometry_given = matrix.is_some() || origin.is_some();
+    let (spacing, placement) = grid_from_vectors(
+        &path,
+        FORMAT,
+        "ElementSpacing and TransformMatrix",
+        vectors,
+        origin,
+        geometry_given.then_some([1.0, 1.0, 1.0]),
+    )?;
+
+    // Data.
+    let expected = voxels
+        .checked_mul(channels * sample.size())
+        .ok_or(ReadError::TooLarge {
+            dims,
+            channels,
+            bytes_per_sample: sample.size(),
+        })?;
+    let (data_path, data): (PathBuf, &[u8]) = match data_file_name(&path, &h)? {
+        None => (path.clone(), &header_bytes[h.data_offset..]),
+        Some(f) => {
+            let p = src.path_of(&f);
+            let b = src.get(&f).ok_or_else(|| {
+                ReadError::io(
+                    &p,
+                    std::io::Error::new(
+                        std::io::ErrorKind::NotFound,
+                        "the data file named by the MetaImage header is missing",
+                    ),
+                )
+            })?;
+            (p, b)
+        }
+    };
+    let header_size = match h.get(&["HeaderSize"]) {
+        None => 0i64,
+        Some((_, v)) => v
+            .parse::<i64>()
+            .ok()
+            .filter(|s| *s >= -1)
+            .ok_or_else(|| bad(&path, format!("HeaderSize = {v:?}; -1 or ≥ 0 expected")))?,
+    };
+    let bytes: Vec<u8>;
+    let raw: &[u8] = if compressed {
+        if header_size != 0 {
+            return Err(ReadError::unsupported(
+                &path,
+                "HeaderSize with CompressedData",
+            ));
+        }
+        let mut z = flate2::bufread::ZlibDecoder::new(data);
+        bytes = read_exact_or_truncated(&mut z, expected, &data_path, 0).map_err(|e| match e {
+            ReadError::Io { source, .. } => {
+                bad(&data_path, format!("the zlib data is corrupt: {source}"))
+            }
+            e => e,
+        })?;
+        &bytes
+    } else {
+        let skip = if header_size == -1 {
+            data.len()
+                .checked_sub(expected)
+                .ok_or(ReadError::Truncated {
+                    path: data_path.clone(),
+                    offset: 0,
+                    expected: expected as u64,
+                    actual: data.len() as u64,
+                })?
+        } else {
+            usize::try_from(header_size).unwrap_or(usize::MAX)
+        };
+        let body = data.get(skip..).unwrap_or(&[]);
+        if body.len() < expected {
+            return Err(ReadError::Truncated {
+                path: data_path,
+                offset: skip as u64,
+                expected: expected as u64,
+                actual: body.len() as u64,
+            });
+        }
+        &body[..expected]
+    };
+    let planar = deinterleave(raw, sample, endian, channels, 1.0, 0.0);
+    let v = Volume::new(dims, spacing, planar).map_err(|e| ReadError::volume(&data_path, e))?;
+    match placement {
+        Some(p) => v.with_placement(p).map_err(|e| ReadError::volume(&path, e)),
+        None => Ok(v),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::reader::fixtures::{self, Layout};
+    use crate::reader::read_volume;
+    use wavesplat_codec::volume::{Placement, VolumeError};
+
+    #[test]
+    fn round_trips_attached_detached_raw_and_compressed() {
+        let dir = tempfile::tempdir().unwrap();
+        let dims = [6, 5, 4];
+        let n = 120;
+        let p = Placement {
+            origin: [100.0, -50.5, 0.25],
+            directions: [[0.6, 0.8, 0.0], [-0.8, 0.6, 0.0], [0.0, 0.0, 1.0]],
+        };
+        for (layout, scale) in [(Layout::U8, 1.0), (Layout::I16, -7.0), (Layout::F32, 0.125)] {
+            let data: Vec<f32> = (0..n).map(|i| ((i * 13) % 97) as f32 * scale).collect();
+            let v = Volume::new(dims, [0.5, 0.75, 3.0], vec![data])
+                .unwrap()
+                .with_placement(p)
+                .unwrap();
+            for compressed in [false, true] {
+                for detached in [false, true] {
+                    let name = format!("m_{layout:?}_{compressed}_{detached}");
+                    let path = fixtures::write_metaimage(
+                        dir.path(),
+                        &name,
+                        &v,
+                        layout,
+                        compressed,
+                        detached,
+                    );
+                    let back = read_volume(&path, None).unwrap();
+                    assert_eq!(back.channel(0), v.channel(0), "{name}");
+                    assert_eq!(back.spacing(), v.spacing(), "{name}");
+                    let b = back.placement().unwrap();
+                    for i in 0..3 {
+                        assert!((b.origin[i] - p.origin[i]).abs() < 1e-9);
+                        for j in 0..3 {
+                            assert!((b.directions[i][j] - p.directions[i][j]).abs() < 1e-9);
+                        }
+                    }
+                }
+            }
+        }
+        // RGB.
+        let rgb: Vec<Vec<f32>> = (0..3)
+            .map(|c| (0..n).map(|i| ((i + 40 * c) % 256) as f32).collect())
+            .collect();
+        let v = Volume::new(dims, [1.0; 3], rgb).unwrap();
+        let path = fixtures::write_metaimage(dir.path(), "rgb", &v, Layout::U8, false, false);
+        let back = read_volume(&path, None).unwrap();
+        assert_eq!(back.channels(), v.channels());
+    }
+
+    #[test]
+    fn bad_and_hostile_headers_are_errors() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("bad.mha");
+        let base = "ObjectType = Image\nNDims = 3\nElementType = MET_UCHAR\n";
+        let cases: Vec<(String, Vec<u8>)> = vec![
+            (
+                format!("{base}DimSize = 100000 100000 100000\n"),
+                vec![0; 8],
+            ),
+            (format!("{base}DimSize = 4096 4096 100\n"), vec![0; 8]),
+            (format!("{base}DimSize = 2 0 2\n"), vec![0; 8]),
+            (format!("{base}DimSize = 2 2\n"), vec![0; 8]),
+            (
+                format!("{base}DimSize = 2 2 2\nElementSpacing = 1 0 1\n"),
+                vec![0; 8],
+            ),
+            (
+                format!("{base}DimSize = 2 2 2\nElementSpacing = 1 nan 1\n"),
+                vec![0; 8],
+            ),
+            (
+                format!("{base}DimSize = 2 2 2\nElementSpacing = 1 -1 1\n"),
+                vec![0; 8],
+            ),
+            (
+                format!("{base}DimSize = 2 2 2\nElementSpacing = 1e39 1 1\n"),
+                vec![0; 8],
+            ),
+            (
+                format!("{base}DimSize = 2 2 2\nOffset = 0 nan 0\n"),
+                vec![0; 8],
+            ),
+            (
+                format!("{base}DimSize = 2 2 2\nTransformMatrix = 1 0 0 0 1 0 0 0 0\n"),
+                vec![0; 8],
+            ),
+            (
+                format!("{base}DimSize = 2 2 2\nTransformMatrix = 1 0 0 0.5 1 0 0 0 1\n"),
+                vec![0; 8],
+            ),
+            (
+                format!("{base}DimSize = 2 2 2\nTransformMatrix = 1 0 0\n"),
+                vec![0; 8],
+            ),
+            (format!("{base}DimSize = 2 2 2\n"), vec![0; 7]),
+            (
+                format!("{base}DimSize = 2 2 2\nHeaderSize = 5\n"),
+                vec![0; 8],
+            ),
+            (
+                format!("{base}DimSize = 2 2 2\nHeaderSize = -3\n"),
+                vec![0; 8],
+            ),
+            (
+                format!("{base}DimSize = 2 2 2\nCompressedData = True\n"),
+                vec![1, 2, 3],
+            ),
+            (
+                format!("{base}DimSize = 2 2 2\nCompressedData = maybe\n"),
+                vec![0; 8],
+            ),
+            (
+                format!("{base}DimSize = 2 2 2\nElementNumberOfChannels = 4\n"),
+                vec![0; 32],
+            ),
+            (
+                "ObjectType = Image\nNDims = 3\nDimSize = 2 2 2\nElementType = MET_FLOAT_ARRAY\n"
+                    .into(),
+                vec![0; 32],
+            ),
+            (
+                "ObjectType = Image\nNDims = 4\nDimSize = 2 2 2 2\nElementType = MET_UCHAR\n"
+                    .into(),
+                vec![0; 16],
+            ),
+            (
+                "ObjectType = Image\nDimSize = 2 2 2\nElementType = MET_UCHAR\n".into(),
+                vec![0; 8],
+            ),
+            (
+                "ObjectType = Image\nNDims = 3\nElementType = MET_UCHAR\n".into(),
+                vec![0; 8],
+            ),
+            (
+                format!("{base}DimSize = 2 2 2\nthis line has no equals sign\n"),
+                vec![0; 8],
+            ),
+        ];
+        for (fields, data) in cases {
+            let mut b = format!("{fields}ElementDataFile = LOCAL\n").into_bytes();
+            b.extend_from_slice(&data);
+            std::fs::write(&p, &b).unwrap();
+            let r = read_volume(&p, None);
+            assert!(r.is_err(), "accepted: {fields}");
+            assert!(r.unwrap_err().to_string().contains("bad.mha"), "{fields}");
+        }
+        // No ElementDataFile at all; a missing detached file; a file list.
+        std::fs::write(&p, format!("{base}DimSize = 1 1 1\n")).unwrap();
+        assert!(matches!(
+            read_volume(&p, None),
+            Err(ReadError::BadHeader { .. })
+        ));
+        let h = dir.path().join("d.mhd");
+        std::fs::write(
+            &h,
+            format!("{base}DimSize = 1 1 1\nElementDataFile = gone.raw\n"),
+        )
+        .unwrap();
+        assert!(matches!(read_volume(&h, None), Err(ReadError::Io { .. })));
+        std::fs::write(
+            &h,
+            format!("{base}DimSize = 1 1 1\nElementDataFile = LIST\n"),
+        )
+        .unwrap();
+        assert!(matches!(
+            read_volume(&h, None),
+            Err(ReadError::Unsupported { .. })
+        ));
+        // NaN samples.
+        let mut b =
+            b"NDims = 1\nDimSize = 1\nElementType = MET_FLOAT\nElementDataFile = LOCAL\n".to_vec();
+        b.extend_from_slice(&f32::NAN.to_le_bytes());
+        std::fs::write(&p, &b).unwrap();
+        assert!(matches!(
+            read_volume(&p, None),
+            Err(ReadError::InvalidVolume {
+                source: VolumeError::NonFinite { .. },
+                ..
+            })
+        ));
+        // HeaderSize -1 takes the data from the end; big-endian shorts.
+        let mut b = b"NDims = 1\nDimSize = 2\nElementType = MET_SHORT\nBinaryDataByteOrderMSB = True\nHeaderSize = -1\nElementDataFile = LOCAL\nxyz".to_vec();
+        b.extend_from_slice(&(-2i16).to_be_bytes());
+        b.extend_from_slice(&300i16.to_be_bytes());
+        std::fs::write(&p, &b).unwrap();
+        let v = read_volume(&p, None).unwrap();
+        assert_eq!(v.channel(0), &[-2.0, 300.0]);
+        assert!(v.placement().is_none());
+    }
+}

@@ -1,0 +1,759 @@
+//! Volume readers for what hospitals and labs store: DICOM (a series directory, one file per
+//! slice, or multi-frame files; [`dicom`]), NRRD (attached `.nrrd` and detached `.nhdr`
+//! headers; [`nrrd`]), MetaImage (`.mha`, `.mhd` + data file; [`metaimage`]), NIfTI-1 (`.nii`,
+//! `.nii.gz`; [`nifti`]) and headerless raw files described by a [`RawSpec`] ([`raw`]). Every
+//! reader keeps the voxel spacing and, where the format says, the grid's placement in patient
+//! space (origin and axis directions, converted to DICOM's LPS frame) on the [`Volume`];
+//! values keep their units (rescaled DICOM CT is in HU).
+//!
+//! A volume's files are first gathered into [`SourceFiles`] (the bytes of every file the
+//! volume is made of, by name), then decoded from memory; the same bytes can be hashed,
+//! uploaded as one [`SourceFiles::to_bytes`] blob and decoded elsewhere
+//! ([`SourceFiles::from_bytes`], [`decode_source`]), so a worker decodes exactly what it
+//! verified. Everything read is untrusted: sizes use checked arithmetic and are validated
+//! against [`MAX_VOXELS`] and the bytes present before anything large is allocated, and every
+//! failure is a typed [`ReadError`] naming the file and the reason. [`read_volume`] is the front
+//! door for a path.
+
+pub mod dicom;
+pub mod fixtures;
+pub mod metaimage;
+pub mod nifti;
+pub mod nrrd;
+pub mod raw;
+mod text;
+
+use std::io::{self, Read};
+use std::path::{Path, PathBuf};
+
+use thiserror::Error;
+use wavesplat_codec::volume::{checked_voxels, Volume, VolumeError, MAX_VOXELS};
+
+pub use nifti::{is_nifti_path, read_nifti};
+pub use raw::{decode_raw, read_raw, Endian, RawDtype, RawSpec};
+
+/// Errors from reading a volume.
+#[derive(Debug, Error)]
+#[non_exhaustive]
+pub enum ReadError {
+    /// The file could not be opened or read.
+    #[error("cannot read {}", path.display())]
+    Io {
+        /// The file.
+        path: PathBuf,
+        /// The underlying error.
+        #[source]
+        source: io::Error,
+    },
+    /// The decoded samples do not form a valid volume (e.g. NaN or Inf in float data, or bad
+    /// spacing or placement).
+    #[error(transparent)]
+    Volume(#[from] VolumeError),
+    /// The decoded samples of a file do not form a valid volume.
+    #[error("{}: {source}", path.display())]
+    InvalidVolume {
+        /// The file.
+        path: PathBuf,
+        /// What was wrong.
+        #[source]
+        source: VolumeError,
+    },
+    /// A raw file (or buffer) does not have exactly the size its description requires.
+    #[error(
+        "{}raw data is {actual} bytes, but dims {dims:?} × {channels} channel(s) × {bytes_per_sample} byte(s) ({dtype}) need exactly {expected} bytes",
+        display_origin(path.as_deref())
+    )]
+    SizeMismatch {
+        /// The file, if the data came from one.
+        path: Option<PathBuf>,
+        /// Bytes required by the description.
+        expected: u64,
+        /// Bytes present.
+        actual: u64,
+        /// The described dimensions.
+        dims: [usize; 3],
+        /// The described channel count.
+        channels: usize,
+        /// The described sample type.
+        dtype: RawDtype,
+        /// Bytes per sample of `dtype`.
+        bytes_per_sample: usize,
+    },
+    /// The byte count of the described volume does not fit in memory addressing.
+    #[error("a volume of {dims:?} voxels × {channels} channel(s) × {bytes_per_sample} byte(s) is too large to address")]
+    TooLarge {
+        /// The described dimensions.
+        dims: [usize; 3],
+        /// The described channel count.
+        channels: usize,
+        /// Bytes per sample.
+        bytes_per_sample: usize,
+    },
+    /// Raw volumes have 1 (intensity) or 3 (interleaved RGB) channels.
+    #[error("a raw volume has 1 (intensity) or 3 (interleaved RGB) channels, got {0}")]
+    ChannelCount(usize),
+    /// An unknown raw sample type name.
+    #[error("unknown raw sample type `{0}`, expected one of u8, u16, i16, f32")]
+    UnknownDtype(String),
+    /// An unknown byte order name.
+    #[error("unknown byte order `{0}`, expected `little` (or `le`) or `big` (or `be`)")]
+    UnknownEndian(String),
+    /// The file is of no known format and no raw description was given.
+    #[error("{} is not a DICOM, NRRD, MetaImage or NIfTI file (by name or content); to read it as a headerless raw volume give its layout with --dims and --dtype", path.display())]
+    MissingRawSpec {
+        /// The file.
+        path: PathBuf,
+    },
+    /// The NIfTI header could not be parsed.
+    #[error("{} is not a readable NIfTI-1 file: {source}", path.display())]
+    Nifti {
+        /// The file.
+        path: PathBuf,
+        /// What the `nifti` crate reported.
+        #[source]
+        source: ::nifti::NiftiError,
+    },
+    /// A header field has an invalid value.
+    #[error("{}: invalid {format} header: {reason}", path.display())]
+    BadHeader {
+        /// The file.
+        path: PathBuf,
+        /// The format (`NIfTI`, `NRRD`, `MetaImage`).
+        format: &'static str,
+        /// Which field, its value and what was expected.
+        reason: String,
+    },
+    /// The file is valid but uses a feature this reader does not support.
+    #[error("{}: unsupported: {reason}", path.display())]
+    Unsupported {
+        /// The file.
+        path: PathBuf,
+        /// What is unsupported and what is.
+        reason: String,
+    },
+    /// The file ends before all voxel data its header announces.
+    #[error("{}: voxel data is truncated: the header announces {expected} bytes of voxel data after offset {offset}, but only {actual} are present", path.display())]
+    Truncated {
+        /// The file.
+        path: PathBuf,
+        /// Byte offset of the voxel data in the (decompressed) file.
+        offset: u64,
+        /// Bytes of voxel data required.
+        expected: u64,
+        /// Bytes of voxel data present.
+        actual: u64,
+    },
+    /// A DICOM file lacks an attribute, or has one this reader cannot use.
+    #[error("{}: {}{reason}", path.display(), tag.as_ref().map(|t| format!("{t}: ")).unwrap_or_default())]
+    Dicom {
+        /// The file.
+        path: PathBuf,
+        /// The attribute, as `(gggg,eeee) Name`, when one is at fault.
+        tag: Option<String>,
+        /// What is wrong.
+        reason: String,
+    },
+    /// The files of a DICOM series do not form one regular volume (several series, mismatched
+    /// slices, irregular spacing or gaps, a sheared grid).
+    #[error("{}: {reason}", path.display())]
+    Series {
+        /// The series directory (or file).
+        path: PathBuf,
+        /// What is inconsistent, with the files and values involved.
+        reason: String,
+    },
+    /// A bundle of source files (see [`SourceFiles::to_bytes`]) is malformed.
+    #[error("malformed source bundle: {0}")]
+    Bundle(String),
+}
+
+impl ReadError {
+    pub(crate) fn bad_header(path: &Path, format: &'static str, reason: impl Into<String>) -> Self {
+        ReadError::BadHeader {
+            path: path.to_path_buf(),
+            format,
+            reason: reason.into(),
+        }
+    }
+
+    pub(crate) fn unsupported(path: &Path, reason: impl Into<String>) -> Self {
+        ReadError::Unsupported {
+            path: path.to_path_buf(),
+            reason: reason.into(),
+        }
+    }
+
+    pub(crate) fn io(path: &Path, source: io::Error) -> Self {
+        ReadError::Io {
+            path: path.to_path_buf(),
+            source,
+        }
+    }
+
+    pub(crate) fn volume(path: &Path, source: VolumeError) -> Self {
+        ReadError::InvalidVolume {
+            path: path.to_path_buf(),
+            source,
+        }
+    }
+}
+
+/// Voxel count of `dims` validated by [`checked_voxels`], guarding against products too large
+/// even for its u128 arithmetic.
+fn voxel_count(dims: [usize; 3]) -> Result<usize, VolumeError> {
+    let fits = dims
+        .iter()
+        .try_fold(1usize, |acc, d| acc.checked_mul(*d))
+        .is_some();
+    if fits || dims.contains(&0) {
+        checked_voxels(dims)
+    } else {
+        Err(VolumeError::TooLarge {
+            dims,
+            voxels: u128::MAX,
+            max: MAX_VOXELS,
+        })
+    }
+}
+
+fn display_origin(path: Option<&Path>) -> String {
+    match path {
+        Some(p) => format!("{}: ", p.display()),
+        None => String::new(),
+    }
+}
+
+/// Every sample type the readers decode.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum SampleType {
+    U8,
+    I8,
+    U16,
+    I16,
+    U32,
+    I32,
+    U64,
+    I64,
+    F32,
+    F64,
+}
+
+impl SampleType {
+    pub(crate) fn size(self) -> usize {
+        match self {
+            SampleType::U8 | SampleType::I8 => 1,
+            SampleType::U16 | SampleType::I16 => 2,
+            SampleType::U32 | SampleType::I32 | SampleType::F32 => 4,
+            SampleType::U64 | SampleType::I64 | SampleType::F64 => 8,
+        }
+    }
+
+    /// Decodes one sample; `b` has exactly `self.size()` bytes.
+    fn decode(self, b: &[u8], endian: Endian) -> f64 {
+        macro_rules! num {
+            ($t:ty, $n:expr) => {{
+                let mut a = [0u8; $n];
+                a.copy_from_slice(b);
+                match endian {
+                    Endian::Little => <$t>::from_le_bytes(a),
+                    Endian::Big => <$t>::from_be_bytes(a),
+                }
+            }};
+        }
+        match self {
+            SampleType::U8 => f64::from(b[0]),
+            SampleType::I8 => f64::from(b[0] as i8),
+            SampleType::U16 => f64::from(num!(u16, 2)),
+            SampleType::I16 => f64::from(num!(i16, 2)),
+            SampleType::U32 => f64::from(num!(u32, 4)),
+            SampleType::I32 => f64::from(num!(i32, 4)),
+            SampleType::U64 => num!(u64, 8) as f64,
+            SampleType::I64 => num!(i64, 8) as f64,
+            SampleType::F32 => f64::from(num!(f32, 4)),
+            SampleType::F64 => num!(f64, 8),
+        }
+    }
+}
+
+/// Splits interleaved samples into planar channels, applying `slope * v + inter`. The caller has
+/// checked that `bytes.len()` is a whole number of voxels.
+pub(crate) fn deinterleave(
+    bytes: &[u8],
+    sample: SampleType,
+    endian: Endian,
+    channels: usize,
+    slope: f64,
+    inter: f64,
+) -> Vec<Vec<f32>> {
+    let size = sample.size();
+    let voxel_bytes = size * channels;
+    let n = bytes.len() / voxel_bytes;
+    let mut out: Vec<Vec<f32>> = (0..channels).map(|_| Vec::with_capacity(n)).collect();
+    let identity = slope == 1.0 && inter == 0.0;
+    for voxel in bytes.chunks_exact(voxel_bytes) {
+        for (c, s) in voxel.chunks_exact(size).enumerate() {
+            let v = sample.decode(s, endian);
+            let v = if identity { v } else { slope * v + inter };
+            out[c].push(v as f32);
+        }
+    }
+    out
+}
+
+/// Reads up to `expected` bytes of a (possibly gzip-compressed) stream, growing the buffer as
+/// data arrives so that a header lying about the size on a short file allocates little.
+pub(crate) fn read_exact_or_truncated(
+    stream: &mut dyn Read,
+    expected: usize,
+    path: &Path,
+    offset: u64,
+) -> Result<Vec<u8>, ReadError> {
+    let mut data = Vec::new();
+    data.try_reserve(expected.min(1 << 26)).map_err(|_| {
+        ReadError::io(
+            path,
+            io::Error::new(
+                io::ErrorKind::OutOfMemory,
+                "cannot allocate the voxel buffer",
+            ),
+        )
+    })?;
+    let got = stream
+        .take(expected as u64)
+        .read_to_end(&mut data)
+        .map_err(|e| ReadError::io(path, e))?;
+    if got != expected {
+        return Err(ReadError::Truncated {
+            path: path.to_path_buf(),
+            offset,
+            expected: expected as u64,
+            actual: got as u64,
+        });
+    }
+    Ok(data)
+}
+
+/// The file formats [`read_volume`] and [`decode_source`] understand.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum Format {
+    /// A DICOM series (a directory of slices) or multi-frame file.
+    Dicom,
+    /// NRRD, attached (`.nrrd`) or detached (`.nhdr`) header.
+    Nrrd,
+    /// MetaImage, attached (`.mha`) or detached (`.mhd`) header.
+    MetaImage,
+    /// NIfTI-1 single file (`.nii`, `.nii.gz`).
+    Nifti,
+}
+
+impl Format {
+    /// Lower-case name.
+    pub fn name(self) -> &'static str {
+        match self {
+            Format::Dicom => "dicom",
+            Format::Nrrd => "nrrd",
+            Format::MetaImage => "metaimage",
+            Format::Nifti => "nifti",
+        }
+    }
+
+    /// The format a file name says (`.dcm`, `.nrrd`/`.nhdr`, `.mha`/`.mhd`, `.nii`/`.nii.gz`,
+    /// case-insensitive), if any.
+    pub fn from_name(path: &Path) -> Option<Format> {
+        let name = path.file_name()?.to_string_lossy().to_ascii_lowercase();
+        let ext = |e: &str| name.ends_with(e);
+        if ext(".nii") || ext(".nii.gz") {
+            Some(Format::Nifti)
+        } else if ext(".nrrd") || ext(".nhdr") {
+            Some(Format::Nrrd)
+        } else if ext(".mha") || ext(".mhd") {
+            Some(Format::MetaImage)
+        } else if ext(".dcm") || ext(".dicom") {
+            Some(Format::Dicom)
+        } else {
+            None
+        }
+    }
+
+    /// The format the first bytes of a file say: the DICOM preamble (`DICM` at offset 128),
+    /// the NRRD magic (`NRRD000`), a MetaImage header line (`ObjectType =`, `NDims =`), or a
+    /// NIfTI-1 header (`sizeof_hdr` 348 and magic `n+1`; a gzip stream is taken as NIfTI).
+    pub fn sniff(head: &[u8]) -> Option<Format> {
+        if dicom::has_preamble(head) {
+            Some(Format::Dicom)
+        } else if head.starts_with(b"NRRD000") {
+            Some(Format::Nrrd)
+        } else if metaimage::looks_like_header(head) {
+            Some(Format::MetaImage)
+        } else if head.starts_with(&[0x1f, 0x8b]) || nifti::looks_like_header(head) {
+            Some(Format::Nifti)
+        } else {
+            None
+        }
+    }
+}
+
+/// Largest number of files in one volume's sources (slices of a DICOM series).
+pub const MAX_SOURCE_FILES: usize = 1 << 16;
+
+/// The bytes of every file one volume is made of, by name: one file (NIfTI, `.nrrd`, `.mha`, a
+/// multi-frame DICOM file), a header and the data files it names (`.nhdr`, `.mhd`; named as the
+/// header names them), or the files of a DICOM series directory (by file name). The first file
+/// is the primary one (the header, or the first slice).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct SourceFiles {
+    /// Where the files came from (for messages): the primary file, or the series directory.
+    pub origin: PathBuf,
+    /// The directory the file names are relative to (for messages).
+    pub base: PathBuf,
+    /// The format, when known.
+    pub format: Option<Format>,
+    /// (name, bytes); names are unique.
+    pub files: Vec<(String, Vec<u8>)>,
+}
+
+/// Magic of a multi-file bundle ([`SourceFiles::to_bytes`]).
+pub const BUNDLE_MAGIC: &[u8; 8] = b"WSPSRC1\n";
+
+impl SourceFiles {
+    /// Gathers the files of the volume at `path`: a directory is a DICOM series (every
+    /// non-hidden regular file directly inside that starts with the DICOM preamble); a
+    /// detached NRRD or MetaImage header brings the data file(s) it names (relative to the
+    /// header's directory); anything else is one file. `format` overrides detection.
+    pub fn gather(path: &Path, format: Option<Format>) -> Result<SourceFiles, ReadError> {
+        let meta = std::fs::metadata(path).map_err(|e| ReadError::io(path, e))?;
+        if meta.is_dir() {
+            return dicom::gather_series(path);
+        }
+        let bytes = read_file(path)?;
+        let format = format
+            .or_else(|| Format::from_name(path))
+            .or_else(|| Format::sniff(&bytes));
+        let name = path
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_default();
+        let mut files = vec![(name, bytes)];
+        let companions = match format {
+            Some(Format::Nrrd) => nrrd::data_files(path, &files[0].1)?,
+            Some(Format::MetaImage) => metaimage::data_files(path, &files[0].1)?,
+            _ => Vec::new(),
+        };
+        let dir = path.parent().unwrap_or(Path::new("."));
+        for c in companions {
+            if files.iter().any(|(n, _)| *n == c) {
+                continue;
+            }
+            let p = dir.join(&c);
+            files.push((c, read_file(&p)?));
+        }
+        Ok(SourceFiles {
+            origin: path.to_path_buf(),
+            base: dir.to_path_buf(),
+            format,
+            files,
+        })
+    }
+
+    /// A file by the name a header gives it.
+    pub fn get(&self, name: &str) -> Option<&[u8]> {
+        self.files
+            .iter()
+            .find(|(n, _)| n == name)
+            .map(|(_, b)| b.as_slice())
+    }
+
+    /// The path of a named file, for messages.
+    pub fn path_of(&self, name: &str) -> PathBuf {
+        self.base.join(name)
+    }
+
+    /// Serialises the files for hashing and upload: a single file is its own bytes (so its
+    /// hash is the file's); several files are a bundle: [`BUNDLE_MAGIC`], the format name
+    /// (u8 length + bytes), the file count (u32 LE), then per file its name (u16 LE length +
+    /// UTF-8) and bytes (u64 LE length + bytes), in order.
+    pub fn to_bytes(&self) -> Vec<u8> {
+        if self.files.len() == 1 {
+            return self.files[0].1.clone();
+        }
+        let total: usize = self.files.iter().map(|(n, b)| n.len() + b.len() + 10).sum();
+        let mut out = Vec::with_capacity(total + 64);
+        out.extend_from_slice(BUNDLE_MAGIC);
+        let f = self.format.map_or("", Format::name);
+        out.push(f.len() as u8);
+        out.extend_from_slice(f.as_bytes());
+        out.extend_from_slice(&(self.files.len() as u32).to_le_bytes());
+        for (name, bytes) in &self.files {
+            out.extend_from_slice(&(name.len() as u16).to_le_bytes());
+            out.extend_from_slice(name.as_bytes());
+            out.extend_from_slice(&(bytes.len() as u64).to_le_bytes());
+            out.extend_from_slice(bytes);
+        }
+        out
+    }
+
+    /// Parses [`SourceFiles::to_bytes`]: a bundle, or else one file whose format is given by
+    /// `origin`'s name or else sniffed from its content. `origin` names the source in messages.
+    pub fn from_bytes(bytes: Vec<u8>, origin: &Path) -> Result<SourceFiles, ReadError> {
+        if !bytes.starts_with(BUNDLE_MAGIC) {
+            let format = Format::from_name(origin).or_else(|| Format::sniff(&bytes));
+            let name = origin
+                .file_name()
+                .map(|n| n.to_string_lossy().into_owned())
+                .unwrap_or_default();
+            return Ok(SourceFiles {
+                origin: origin.to_path_buf(),
+                base: parent_of(origin),
+                format,
+                files: vec![(name, bytes)],
+            });
+        }
+        let bad = |m: &str| ReadError::Bundle(m.to_string());
+        let mut r = &bytes[BUNDLE_MAGIC.len()..];
+        fn take<'a>(r: &mut &'a [u8], n: usize) -> Option<&'a [u8]> {
+            if r.len() < n {
+                return None;
+            }
+            let (a, b) = r.split_at(n);
+            *r = b;
+            Some(a)
+        }
+        let flen = take(&mut r, 1).ok_or_else(|| bad("truncated format name"))?[0] as usize;
+        let fname = take(&mut r, flen).ok_or_else(|| bad("truncated format name"))?;
+        let format = match fname {
+            b"" => None,
+            b"dicom" => Some(Format::Dicom),
+            b"nrrd" => Some(Format::Nrrd),
+            b"metaimage" => Some(Format::MetaImage),
+            b"nifti" => Some(Format::Nifti),
+            _ => return Err(bad("unknown format name")),
+        };
+        let count = take(&mut r, 4).ok_or_else(|| bad("truncated file count"))?;
+        let count = u32::from_le_bytes(count.try_into().expect("4 bytes")) as usize;
+        // Each entry takes at least 10 bytes: bound the count by the input.
+        if count == 0 || count > MAX_SOURCE_FILES || count > r.len() / 10 {
+            return Err(ReadError::Bundle(format!(
+                "file count {count} is not within 1..={MAX_SOURCE_FILES} or exceeds what {} bytes can hold",
+                r.len()
+            )));
+        }
+        let mut files: Vec<(String, Vec<u8>)> = Vec::with_capacity(count);
+        for i in 0..count {
+            let nl = take(&mut r, 2).ok_or_else(|| bad("truncated name length"))?;
+            let nl = u16::from_le_bytes(nl.try_into().expect("2 bytes")) as usize;
+            let name = take(&mut r, nl).ok_or_else(|| bad("truncated name"))?;
+            let name = std::str::from_utf8(name)
+                .map_err(|_| ReadError::Bundle(format!("file {i}: name is not UTF-8")))?
+                .to_string();
+            let bl = take(&mut r, 8).ok_or_else(|| bad("truncated file length"))?;
+            let bl = u64::from_le_bytes(bl.try_into().expect("8 bytes"));
+            if bl > r.len() as u64 {
+                return Err(ReadError::Bundle(format!(
+                    "file {name:?} claims {bl} bytes, {} remain",
+                    r.len()
+                )));
+            }
+            let data = take(&mut r, bl as usize).expect("checked").to_vec();
+            if files.iter().any(|(n, _)| *n == name) {
+                return Err(ReadError::Bundle(format!("file {name:?} appears twice")));
+            }
+            files.push((name, data));
+        }
+        if !r.is_empty() {
+            return Err(ReadError::Bundle(format!(
+                "{} trailing bytes after the last file",
+                r.len()
+            )));
+        }
+        let base = if format == Some(Format::Dicom) {
+            origin.to_path_buf()
+        } else {
+            parent_of(origin)
+        };
+        Ok(SourceFiles {
+            origin: origin.to_path_buf(),
+            base,
+            format,
+            files,
+        })
+    }
+}
+
+fn parent_of(p: &Path) -> PathBuf {
+    p.parent().map(Path::to_path_buf).unwrap_or_default()
+}
+
+/// Reads a whole file, reserving its length first (so a file too large for memory is an
+/// error, not an abort).
+pub(crate) fn read_file(path: &Path) -> Result<Vec<u8>, ReadError> {
+    let mut f = std::fs::File::open(path).map_err(|e| ReadError::io(path, e))?;
+    let len = f.metadata().map_err(|e| ReadError::io(path, e))?.len();
+    let mut bytes = Vec::new();
+    bytes
+        .try_reserve_exact(usize::try_from(len).unwrap_or(usize::MAX))
+        .map_err(|_| {
+            ReadError::io(
+                path,
+                io::Error::new(
+                    io::ErrorKind::OutOfMemory,
+                    format!("cannot allocate {len} bytes"),
+                ),
+            )
+        })?;
+    f.read_to_end(&mut bytes)
+        .map_err(|e| ReadError::io(path, e))?;
+    Ok(bytes)
+}
+
+/// Decodes a volume from its gathered files, by their format (or, for an unknown format, as
+/// raw samples described by `raw`).
+pub fn decode_source(src: &SourceFiles, raw: Option<&RawSpec>) -> Result<Volume, ReadError> {
+    match src.format {
+        Some(Format::Dicom) => dicom::decode(src),
+        Some(Format::Nrrd) => nrrd::decode(src),
+        Some(Format::MetaImage) => metaimage::decode(src),
+        Some(Format::Nifti) => nifti::decode_nifti(&src.origin, &src.files[0].1),
+        None => match (raw, src.files.as_slice()) {
+            (Some(spec), [(_, bytes)]) => decode_raw(bytes, spec).map_err(|e| match e {
+                ReadError::SizeMismatch {
+                    path: None,
+                    expected,
+                    actual,
+                    dims,
+                    channels,
+                    dtype,
+                    bytes_per_sample,
+                } => ReadError::SizeMismatch {
+                    path: Some(src.origin.clone()),
+                    expected,
+                    actual,
+                    dims,
+                    channels,
+                    dtype,
+                    bytes_per_sample,
+                },
+                e => e,
+            }),
+            _ => Err(ReadError::MissingRawSpec {
+                path: src.origin.clone(),
+            }),
+        },
+    }
+}
+
+/// Reads a volume from a path: a DICOM series directory, a DICOM, NRRD, MetaImage or NIfTI
+/// file (by extension, else by content), or else a headerless raw file described by `raw`.
+/// A `raw` spec given for a file of a known format is ignored (the header describes the data).
+pub fn read_volume(path: &Path, raw: Option<&RawSpec>) -> Result<Volume, ReadError> {
+    let meta = std::fs::metadata(path).map_err(|e| ReadError::io(path, e))?;
+    if meta.is_file() && Format::from_name(path).is_none() {
+        if let Some(spec) = raw {
+            // Raw data is never sniffed: its first bytes could look like anything.
+            return read_raw(path, spec);
+        }
+    }
+    let src = SourceFiles::gather(path, None)?;
+    decode_source(&src, raw)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn formats_by_name_and_content() {
+        for (n, f) in [
+            ("a.nii", Format::Nifti),
+            ("a.NII.GZ", Format::Nifti),
+            ("a.nrrd", Format::Nrrd),
+            ("a.nhdr", Format::Nrrd),
+            ("b.mha", Format::MetaImage),
+            ("b.MHD", Format::MetaImage),
+            ("c.dcm", Format::Dicom),
+        ] {
+            assert_eq!(Format::from_name(Path::new(n)), Some(f), "{n}");
+        }
+        assert_eq!(Format::from_name(Path::new("x.raw")), None);
+        let mut dicm = vec![0u8; 128];
+        dicm.extend_from_slice(b"DICM\x02\x00");
+        assert_eq!(Format::sniff(&dicm), Some(Format::Dicom));
+        assert_eq!(
+            Format::sniff(b"NRRD0004\ntype: uint8\n"),
+            Some(Format::Nrrd)
+        );
+        assert_eq!(
+            Format::sniff(b"ObjectType = Image\nNDims = 3\n"),
+            Some(Format::MetaImage)
+        );
+        assert_eq!(
+            Format::sniff(b"NDims = 3\r\nDimSize = 1 1 1\r\n"),
+            Some(Format::MetaImage)
+        );
+        assert_eq!(Format::sniff(&[0x1f, 0x8b, 8, 0]), Some(Format::Nifti));
+        assert_eq!(Format::sniff(b"hello world"), None);
+        assert_eq!(Format::sniff(&[]), None);
+    }
+
+    #[test]
+    fn bundles_round_trip_and_reject_garbage() {
+        let src = SourceFiles {
+            origin: PathBuf::from("vol.nhdr"),
+            base: PathBuf::new(),
+            format: Some(Format::Nrrd),
+            files: vec![
+                ("vol.nhdr".into(), b"NRRD0004\n".to_vec()),
+                ("data/vol.raw".into(), vec![1, 2, 3]),
+            ],
+        };
+        let bytes = src.to_bytes();
+        assert!(bytes.starts_with(BUNDLE_MAGIC));
+        let back = SourceFiles::from_bytes(bytes.clone(), Path::new("vol.nhdr")).unwrap();
+        assert_eq!(back, src);
+        // A single file is its own bytes, sniffed on the way back.
+        let one = SourceFiles {
+            origin: PathBuf::from("a.nrrd"),
+            base: PathBuf::new(),
+            format: Some(Format::Nrrd),
+            files: vec![("a.nrrd".into(), b"NRRD0004\n".to_vec())],
+        };
+        assert_eq!(one.to_bytes(), b"NRRD0004\n");
+        assert_eq!(
+            SourceFiles::from_bytes(one.to_bytes(), Path::new("a.nrrd")).unwrap(),
+            one
+        );
+        // Every truncation, and hostile counts and lengths, are errors.
+        for cut in BUNDLE_MAGIC.len()..bytes.len() {
+            assert!(
+                SourceFiles::from_bytes(bytes[..cut].to_vec(), Path::new("x")).is_err(),
+                "cut {cut}"
+            );
+        }
+        let mut huge = BUNDLE_MAGIC.to_vec();
+        huge.extend_from_slice(&[0, 0xff, 0xff, 0xff, 0xff]);
+        huge.extend_from_slice(&[0u8; 64]);
+        assert!(matches!(
+            SourceFiles::from_bytes(huge, Path::new("x")),
+            Err(ReadError::Bundle(_))
+        ));
+        let mut long = BUNDLE_MAGIC.to_vec();
+        long.extend_from_slice(&[0, 1, 0, 0, 0, 1, 0, b'a']);
+        long.extend_from_slice(&u64::MAX.to_le_bytes());
+        long.extend_from_slice(&[0u8; 16]);
+        assert!(SourceFiles::from_bytes(long, Path::new("x")).is_err());
+        let mut trailing = bytes.clone();
+        trailing.push(0);
+        assert!(SourceFiles::from_bytes(trailing, Path::new("x")).is_err());
+    }
+
+    #[test]
+    fn unknown_files_need_a_raw_spec() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("mystery.bin");
+        std::fs::write(&p, b"0123456789").unwrap();
+        let e = read_volume(&p, None).unwrap_err();
+        assert!(matches!(e, ReadError::MissingRawSpec { .. }), "{e}");
+        assert!(e.to_string().contains("--dims"), "{e}");
+        let e = read_volume(&dir.path().join("nope"), None).unwrap_err();
+        assert!(matches!(e, ReadError::Io { .. }), "{e}");
+    }
+}

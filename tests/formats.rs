@@ -1,0 +1,435 @@
+//! End-to-end tests of the readers through the real `wavesplat` binary: an archive mixing
+//! DICOM (a series directory and a multi-frame file), NRRD (attached gzip, detached raw),
+//! MetaImage (`.mha`, `.mhd` + raw), NIfTI and raw files is compressed through the
+//! orchestrator (path sources, and a bundle upload), the unreadable volumes fail their jobs
+//! with the reason and the rest land in the cache with their spacing and placement; and
+//! `compress` + `info` show the geometry of a DICOM series.
+
+mod common;
+
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Output, Stdio};
+use std::time::{Duration, Instant};
+use wavesplat_client::{CacheClient, VolumeKey};
+use wavesplat_codec::volume::{Placement, Volume};
+use wavesplat_compressor::phantom::Phantom;
+use wavesplat_compressor::reader::fixtures::{
+    write_dicom_multiframe, write_dicom_series, write_metaimage, write_nrrd, DicomEncoding,
+    DicomOptions, Layout, NrrdEncoding,
+};
+use wavesplat_orchestrator::client;
+use wavesplat_orchestrator::convert::state_name;
+use wavesplat_proto::pb;
+
+const BIN: &str = env!("CARGO_BIN_EXE_wavesplat");
+
+/// A child process, killed when dropped.
+struct Proc(Child);
+
+impl Drop for Proc {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+fn cli(args: &[&str]) -> Output {
+    Command::new(BIN).args(args).output().unwrap()
+}
+
+fn cli_ok(args: &[&str]) -> String {
+    let out = cli(args);
+    let stdout = String::from_utf8_lossy(&out.stdout).into_owned();
+    assert!(
+        out.status.success(),
+        "{args:?} failed: {stdout}\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    stdout
+}
+
+/// An integer-valued CT-like phantom in HU (−1024 .. ~1000) placed obliquely.
+fn ct(dims: [usize; 3], spacing: [f32; 3]) -> Volume {
+    let p = Phantom::SheppLogan.generate(dims);
+    let data = p
+        .channel(0)
+        .iter()
+        .map(|v| (v * 8.0).round() - 1024.0)
+        .collect();
+    Volume::new(dims, spacing, vec![data])
+        .unwrap()
+        .with_placement(Placement {
+            origin: [-100.0, 50.5, 200.0],
+            directions: [[0.6, 0.8, 0.0], [-0.8, 0.6, 0.0], [0.0, 0.0, 1.0]],
+        })
+        .unwrap()
+}
+
+fn write_nifti(path: &Path, dims: [usize; 3], samples: &[f32]) {
+    let mut h = vec![0u8; 352];
+    h[0..4].copy_from_slice(&348i32.to_le_bytes());
+    let dim: [i16; 8] = [
+        3,
+        dims[0] as i16,
+        dims[1] as i16,
+        dims[2] as i16,
+        1,
+        1,
+        1,
+        1,
+    ];
+    for (i, d) in dim.iter().enumerate() {
+        h[40 + 2 * i..42 + 2 * i].copy_from_slice(&d.to_le_bytes());
+    }
+    h[70..72].copy_from_slice(&16i16.to_le_bytes());
+    h[72..74].copy_from_slice(&32i16.to_le_bytes());
+    for i in 0..8 {
+        h[76 + 4 * i..80 + 4 * i].copy_from_slice(&1f32.to_le_bytes());
+    }
+    h[108..112].copy_from_slice(&352f32.to_le_bytes());
+    h[344..348].copy_from_slice(b"n+1\0");
+    h.extend(samples.iter().flat_map(|v| v.to_le_bytes()));
+    std::fs::write(path, h).unwrap();
+}
+
+/// Writes the mixed archive under `dir`; returns (good volume names with their source
+/// volumes, bad volume names with a word their failure must contain).
+#[allow(clippy::type_complexity)]
+fn write_archive(dir: &Path) -> (Vec<(String, Volume)>, Vec<(String, &'static str)>) {
+    let mut good = Vec::new();
+    let v = ct([20, 18, 12], [0.7, 0.7, 2.5]);
+    write_dicom_series(
+        &dir.join("ct/series1"),
+        &v,
+        &DicomOptions {
+            intercept: -1024.0,
+            slope: 1.0,
+            layout: Layout::U16,
+            ..DicomOptions::default()
+        },
+    );
+    // Stored values are v + 1024 ≥ 0 as u16; the reader applies the intercept back.
+    good.push(("ct/series1".to_string(), v.clone()));
+    let v = ct([16, 16, 10], [0.9, 0.9, 1.5]);
+    std::fs::create_dir_all(dir.join("ct/enhanced")).unwrap();
+    write_dicom_multiframe(
+        &dir.join("ct/enhanced/mf.dcm"),
+        &v,
+        &DicomOptions {
+            encoding: DicomEncoding::RleLossless,
+            series_uid: "1.2.826.0.1.3680043.9.7433.1.2".into(),
+            ..DicomOptions::default()
+        },
+    );
+    good.push(("ct/enhanced".into(), v));
+    let v = ct([17, 15, 11], [1.0, 1.0, 3.0]);
+    write_nrrd(
+        dir,
+        "nrrd_gz",
+        &v,
+        Layout::I16,
+        NrrdEncoding::Gzip,
+        false,
+        "RAS",
+    );
+    good.push(("nrrd_gz".into(), v));
+    let v = ct([15, 17, 9], [0.5, 0.5, 1.0]);
+    write_nrrd(
+        dir,
+        "nrrd_det",
+        &v,
+        Layout::I16,
+        NrrdEncoding::Raw,
+        true,
+        "LPS",
+    );
+    good.push(("nrrd_det".into(), v));
+    let v = ct([14, 16, 13], [0.8, 0.8, 0.8]);
+    write_metaimage(dir, "mr", &v, Layout::I16, true, false);
+    good.push(("mr".into(), v));
+    let v = ct([16, 14, 12], [1.2, 1.2, 2.0]);
+    write_metaimage(dir, "mr_det", &v, Layout::F32, false, true);
+    good.push(("mr_det".into(), v));
+    let dims = [16, 16, 14];
+    let p = Phantom::Spheres.generate(dims);
+    write_nifti(&dir.join("spheres.nii"), dims, p.channel(0));
+    good.push(("spheres".into(), p.clone()));
+    // Different content from the NIfTI (identical content would land once in the cache).
+    let p = Phantom::SheppLogan.generate([16, 16, 15]);
+    let bytes: Vec<u8> = p.channel(0).iter().flat_map(|v| v.to_le_bytes()).collect();
+    std::fs::write(dir.join("raw_16x16x15_f32.raw"), bytes).unwrap();
+    good.push(("raw".into(), p));
+
+    // Unreadable: a series with a missing slice, an NRRD claiming a huge volume, a MetaImage
+    // with zero spacing.
+    let v = ct([8, 8, 6], [1.0, 1.0, 2.0]);
+    let files = write_dicom_series(
+        &dir.join("ct/gappy"),
+        &v,
+        &DicomOptions {
+            series_uid: "1.2.826.0.1.3680043.9.7433.1.3".into(),
+            intercept: -2048.0,
+            ..DicomOptions::default()
+        },
+    );
+    // Remove a middle slice (file names do not follow position; z = 3 is files[3]).
+    std::fs::remove_file(&files[3]).unwrap();
+    std::fs::write(
+        dir.join("huge.nrrd"),
+        "NRRD0004\ntype: uint8\ndimension: 3\nsizes: 100000 100000 100000\nencoding: raw\n\nxx",
+    )
+    .unwrap();
+    let mut mha = b"ObjectType = Image\nNDims = 3\nDimSize = 2 2 2\nElementSpacing = 1 0 1\nElementType = MET_UCHAR\nElementDataFile = LOCAL\n".to_vec();
+    mha.extend_from_slice(&[0; 8]);
+    std::fs::write(dir.join("flat.mha"), mha).unwrap();
+    let bad = vec![
+        ("ct/gappy".to_string(), "missing"),
+        ("huge".to_string(), "huge.nrrd"),
+        ("flat".to_string(), "ElementSpacing"),
+    ];
+    (good, bad)
+}
+
+async fn wait_all_finished(url: &str, n: usize, secs: u64) -> Vec<pb::Job> {
+    let end = Instant::now() + Duration::from_secs(secs);
+    loop {
+        if let Ok(mut c) = client::connect(url).await {
+            if let Ok(js) = client::list(&mut c).await {
+                let finished = js
+                    .iter()
+                    .filter(|j| matches!(state_name(j.state), "done" | "failed" | "cancelled"))
+                    .count();
+                if js.len() == n && finished == n {
+                    return js;
+                }
+                if Instant::now() > end {
+                    let states: Vec<String> = js
+                        .iter()
+                        .map(|j| {
+                            let name = &j.spec.as_ref().unwrap().name;
+                            format!("{} {name} {} {}", j.id, state_name(j.state), j.error)
+                        })
+                        .collect();
+                    panic!("timed out waiting for {n} finished jobs: {states:#?}");
+                }
+            }
+        }
+        assert!(Instant::now() <= end, "timed out");
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_archive_of_every_format_compresses_and_bad_volumes_fail_alone() {
+    let tmp = tempfile::tempdir().unwrap();
+    let root = tmp.path();
+    let archive = root.join("archive");
+    let (good, bad) = write_archive(&archive);
+    // A second archive, uploaded: a DICOM series travels as one bundle.
+    let up = root.join("up");
+    let v_up = ct([12, 10, 7], [0.6, 0.6, 1.2]);
+    write_dicom_series(
+        &up.join("series"),
+        &v_up,
+        &DicomOptions {
+            series_uid: "1.2.826.0.1.3680043.9.7433.1.4".into(),
+            ..DicomOptions::default()
+        },
+    );
+
+    let (c_child, c_addr) = common::spawn_server(&[
+        "serve",
+        "cache",
+        "--addr",
+        "127.0.0.1:0",
+        "--db",
+        root.join("cache.db").to_str().unwrap(),
+    ]);
+    let _cache = Proc(c_child);
+    let (o_child, o_addr) = common::spawn_server(&[
+        "serve",
+        "orchestrator",
+        "--addr",
+        "127.0.0.1:0",
+        "--db",
+        root.join("orch.db").to_str().unwrap(),
+        "--lease-secs",
+        "5",
+        "--heartbeat-ms",
+        "300",
+        "--poll-ms",
+        "100",
+    ]);
+    let _orch = Proc(o_child);
+    let (o, c) = (format!("http://{o_addr}"), format!("http://{c_addr}"));
+    let _worker = Proc(
+        Command::new(BIN)
+            .args([
+                "worker",
+                "--orchestrator",
+                &o,
+                "--cache",
+                &c,
+                "--threads",
+                "1",
+            ])
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .unwrap(),
+    );
+    let common = ["--orchestrator", &o, "--detach", "--levels", "2"];
+    let mut args = vec!["archive", "submit", archive.to_str().unwrap()];
+    args.extend_from_slice(&common);
+    let out = cli_ok(&args);
+    assert!(
+        out.contains(&format!("{} submitted", good.len() + bad.len())),
+        "{out}"
+    );
+    let mut args = vec!["archive", "submit", up.to_str().unwrap(), "--upload"];
+    args.extend_from_slice(&common);
+    cli_ok(&args);
+
+    let n = good.len() + bad.len() + 1;
+    let js = wait_all_finished(&o, n, 120).await;
+    for j in &js {
+        let name = j.spec.as_ref().unwrap().name.as_str();
+        if let Some((_, why)) = bad.iter().find(|(b, _)| b == name) {
+            assert_eq!(state_name(j.state), "failed", "{name}");
+            assert_eq!(j.failure, pb::FailureKind::InvalidInput as i32, "{name}");
+            assert!(j.error.contains(why), "{name}: {}", j.error);
+        } else {
+            assert_eq!(state_name(j.state), "done", "{name}: {}", j.error);
+        }
+    }
+
+    // The cache holds every good volume with the spacing and placement of its source.
+    let mut cache = CacheClient::connect(&c).await.unwrap();
+    let mut expect: Vec<(String, Volume)> = good.clone();
+    expect.push(("series".into(), v_up));
+    for (name, v) in &expect {
+        let h = cache
+            .header(&VolumeKey::Name(name.clone()))
+            .await
+            .unwrap_or_else(|e| panic!("{name}: {e}"))
+            .header;
+        assert_eq!(h.geometry.dims, v.dims(), "{name}");
+        for a in 0..3 {
+            assert!(
+                (h.spacing[a] - v.spacing()[a]).abs() <= 1e-5 * v.spacing()[a],
+                "{name}: {:?} vs {:?}",
+                h.spacing,
+                v.spacing()
+            );
+        }
+        match (v.placement(), h.placement) {
+            (Some(want), Some(got)) => {
+                for i in 0..3 {
+                    assert!((want.origin[i] - got.origin[i]).abs() < 1e-4, "{name}");
+                    for k in 0..3 {
+                        assert!((want.directions[i][k] - got.directions[i][k]).abs() < 1e-6);
+                    }
+                }
+            }
+            (None, None) => {}
+            (w, g) => panic!("{name}: placement {w:?} vs {g:?}"),
+        }
+        // Values keep their units: the CT volumes' range is in HU.
+        if name.starts_with("ct/") || name.starts_with("nrrd") || name == "series" {
+            let (lo, hi) = v.value_range();
+            assert!(
+                (h.value_range[0] - lo).abs() < 1e-3 && (h.value_range[1] - hi).abs() < 1e-3,
+                "{name}: {:?}",
+                h.value_range
+            );
+            assert!(lo <= -1000.0, "{name}");
+        }
+    }
+    let stored = cache.list().await.unwrap();
+    assert_eq!(stored.len(), expect.len());
+}
+
+#[test]
+fn compress_and_info_show_the_geometry_of_a_dicom_series() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("series");
+    let v = ct([16, 12, 8], [0.7, 0.7, 2.5]);
+    write_dicom_series(
+        &dir,
+        &v,
+        &DicomOptions {
+            intercept: -1024.0,
+            layout: Layout::U16,
+            ..DicomOptions::default()
+        },
+    );
+    let out: PathBuf = tmp.path().join("s.wsp");
+    cli_ok(&[
+        "compress",
+        dir.to_str().unwrap(),
+        "-o",
+        out.to_str().unwrap(),
+        "--levels",
+        "2",
+    ]);
+    let info = cli_ok(&["info", out.to_str().unwrap()]);
+    assert!(info.contains("spacing 0.7 x 0.7 x 2.5"), "{info}");
+    assert!(
+        info.contains("origin      (-100.000, 50.500, 200.000) mm"),
+        "{info}"
+    );
+    assert!(
+        info.contains("axis z      (+0.000000, +0.000000, +1.000000) LPS, towards S"),
+        "{info}"
+    );
+    assert!(info.contains("towards P"), "{info}");
+    // Raw input takes --spacing; a header format refuses it.
+    let raw = tmp.path().join("r.raw");
+    std::fs::write(&raw, vec![7u8; 4 * 4 * 4]).unwrap();
+    cli_ok(&[
+        "compress",
+        raw.to_str().unwrap(),
+        "-o",
+        out.to_str().unwrap(),
+        "--dims",
+        "4,4,4",
+        "--dtype",
+        "u8",
+        "--spacing",
+        "0.5,0.5,3",
+        "--levels",
+        "1",
+    ]);
+    let info = cli_ok(&["info", out.to_str().unwrap()]);
+    assert!(info.contains("spacing 0.5 x 0.5 x 3"), "{info}");
+    assert!(info.contains("orientation unknown"), "{info}");
+    let e = cli(&[
+        "compress",
+        dir.to_str().unwrap(),
+        "-o",
+        out.to_str().unwrap(),
+        "--spacing",
+        "1,1,1",
+    ]);
+    assert!(!e.status.success());
+    // An unreadable slice: the error names the file and the problem.
+    let f = std::fs::read_dir(&dir)
+        .unwrap()
+        .next()
+        .unwrap()
+        .unwrap()
+        .path();
+    let mut b = vec![0u8; 128];
+    b.extend_from_slice(b"DICM\x02\x00\x00\x00garbage");
+    std::fs::write(&f, b).unwrap();
+    let e = cli(&[
+        "compress",
+        dir.to_str().unwrap(),
+        "-o",
+        out.to_str().unwrap(),
+    ]);
+    assert!(!e.status.success());
+    let msg = String::from_utf8_lossy(&e.stderr);
+    let fname = f.file_name().unwrap().to_string_lossy().into_owned();
+    assert!(msg.contains(&fname), "{msg}");
+}
