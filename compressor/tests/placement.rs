@@ -1,8 +1,11 @@
 //! The volume's placement in patient space travels through the `.wsp` header: written by the
-//! encoder, validated on read, returned by the decoder; older format versions are refused with
-//! a message saying what to do.
+//! encoder, validated on read, returned by the decoder; version 3 files (before placement)
+//! still read, older versions are refused with a message saying what to do.
 
-use wavesplat_codec::format::{parse_file, read_header_section, FormatError, MAGIC, VERSION};
+use wavesplat_codec::format::{
+    parse_file, read_header_section, write_file_version, FormatError, MAGIC,
+    OLDEST_READABLE_VERSION, VERSION,
+};
 use wavesplat_codec::volume::{Placement, Volume};
 use wavesplat_compressor::decode::decompress;
 use wavesplat_compressor::encode::{compress, CompressOptions, Target};
@@ -87,7 +90,7 @@ fn hostile_placements_and_old_versions_are_refused() {
         assert!(matches!(e, FormatError::Invalid { .. }), "{i} {v}: {e}");
     }
     let mut old = bytes.clone();
-    old[4..6].copy_from_slice(&(VERSION - 1).to_le_bytes());
+    old[4..6].copy_from_slice(&(OLDEST_READABLE_VERSION - 1).to_le_bytes());
     assert_eq!(&old[..4], MAGIC);
     let e = read_header_section(&old).unwrap_err();
     assert!(matches!(e, FormatError::UnsupportedVersion { .. }));
@@ -101,4 +104,29 @@ fn hostile_placements_and_old_versions_are_refused() {
         .unwrap_err()
         .to_string()
         .contains("newer"));
+}
+
+/// A file without placement written as version 3 (what caches and archives hold from before
+/// placement existed) reads back as the same header and packets; a placed volume cannot be
+/// written as version 3 without losing its placement, so that is refused.
+#[test]
+fn version_3_files_still_read() {
+    let unplaced = Phantom::SheppLogan.generate([12, 10, 8]);
+    let bytes = file(&unplaced);
+    let parsed = parse_file(&bytes).unwrap();
+    assert!(parsed.header.placement.is_none());
+    let packets: Vec<Vec<u8>> = parsed.packets.iter().map(|p| p.to_vec()).collect();
+    let v3 = write_file_version(&parsed.header, &packets, 3).unwrap();
+    assert_eq!(u16::from_le_bytes([v3[4], v3[5]]), 3);
+    assert_ne!(v3, bytes);
+    let back = parse_file(&v3).unwrap();
+    assert_eq!(back.header, parsed.header);
+    assert_eq!(back.packets, parsed.packets);
+    assert_eq!(
+        decompress(&v3).unwrap().channels(),
+        decompress(&bytes).unwrap().channels()
+    );
+    let placed_header = parse_file(&file(&placed())).unwrap().header;
+    assert!(write_file_version(&placed_header, &packets, 3).is_err());
+    assert!(write_file_version(&parsed.header, &packets, VERSION + 1).is_err());
 }

@@ -61,6 +61,11 @@ pub struct ViewArgs {
     /// 0 keeps nothing but the footprint tables and the image (the paper's network computer).
     #[arg(long, value_parser = parse_bytes)]
     pub client_memory: Option<u64>,
+    /// Plan each new view exactly before drawing it. By default a view without cached
+    /// footprint tables is drawn at once with coarse preview tables while the exact ones are
+    /// built in the background (tens to hundreds of ms), then redrawn with them.
+    #[arg(long)]
+    pub no_preview: bool,
 }
 
 /// Arguments of `wavesplat render`.
@@ -187,6 +192,7 @@ impl ViewArgs {
             memory_bound: self
                 .client_memory
                 .map(|b| b.min(usize::MAX as u64) as usize),
+            preview: (!self.no_preview).then(SessionOptions::default_preview),
             ..SessionOptions::default()
         }
     }
@@ -379,7 +385,9 @@ pub fn run(a: RenderArgs) -> Result<()> {
             bail!("--budget-ms must be a non-negative number of milliseconds, got {b}");
         }
     }
+    let opening = Instant::now();
     let (header, opened) = open(&a.view, &spec, a.bytes)?;
+    let opened_after = opening.elapsed();
     let reference = if a.reference {
         Some(reference_image(&opened, &header, &spec).context("rendering the reference")?)
     } else {
@@ -410,6 +418,9 @@ pub fn run(a: RenderArgs) -> Result<()> {
     let frame = Duration::from_secs_f64(a.frame_ms / 1e3);
     let deadline = a.budget_ms.map(|b| Duration::from_secs_f64(b / 1e3));
     let start = Instant::now();
+    // Time from connecting (or opening the file) to the first image with anything splatted,
+    // not counting the reference rendering.
+    let mut first_image: Option<Duration> = None;
     let mut n = 0u64;
     let mut idle_frames = 0u32;
     loop {
@@ -417,6 +428,9 @@ pub fn run(a: RenderArgs) -> Result<()> {
         n += 1;
         let status = frames.source_status();
         let stats = frames.session.stats();
+        if first_image.is_none() && stats.splatted_in_view > 0 {
+            first_image = Some(opened_after + start.elapsed());
+        }
         if let Some(rec) = &mut recorder {
             let image = frames.session.image()?;
             write!(
@@ -494,6 +508,13 @@ pub fn run(a: RenderArgs) -> Result<()> {
         elapsed.as_secs_f64() * 1e3,
         frames.session.backend_name()
     );
+    if let Some(t) = first_image {
+        outln!(
+            "opened in {:.1} ms, first image {:.1} ms after opening",
+            opened_after.as_secs_f64() * 1e3,
+            t.as_secs_f64() * 1e3
+        );
+    }
     if let Some(r) = &reference {
         outln!(
             "quality against the full-data image: Q_I {:.2} dB (paper units), SNR {:.2} dB",

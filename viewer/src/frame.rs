@@ -1,5 +1,6 @@
 //! The frame loop, headless: one [`FrameLoop::frame`] per displayed frame drains the packets
-//! that arrived (as far as the session takes them), reports dropped packets back to the source,
+//! that arrived (as far as the session takes them, and in at most half the frame while there
+//! is something to splat), reports dropped packets back to the source,
 //! then splats as many coefficients as fit in what is left of the frame's budget, largest
 //! visible energy first, from the session's running cost estimate. A view change restarts the
 //! accumulation from the most important coefficients held and asks the source for the rest in
@@ -26,14 +27,17 @@ pub struct FrameReport {
     pub batches_past_deadline: usize,
     /// Coefficients still queued at the end of the frame.
     pub pending: usize,
+    /// Whether the view is drawn with its exact tables (false while a preview is shown).
+    pub exact: bool,
     /// Time the frame took.
     pub elapsed: Duration,
 }
 
 impl FrameReport {
-    /// Whether the frame had nothing left to do (everything held is splatted).
+    /// Whether the frame had nothing left to do (everything held is splatted with the view's
+    /// exact tables).
     pub fn idle(&self) -> bool {
-        self.pending == 0 && self.packets == 0
+        self.pending == 0 && self.packets == 0 && self.exact
     }
 }
 
@@ -76,8 +80,18 @@ impl<B: AccumulationBackend, S: PacketSource> FrameLoop<B, S> {
         let start = clock.now();
         let deadline = start + budget;
         let mut report = FrameReport::default();
+        self.session.poll_exact()?;
+        // Taking packets (decoding them) may use at most half of the frame while there is
+        // something to splat: the image keeps refining (and is never left blank after a view
+        // change) while a burst of packets arrives.
+        let intake_until = start + budget / 2;
         loop {
-            while self.session.wants_packets() && clock.now() < deadline {
+            let until = if self.session.pending() == 0 {
+                deadline
+            } else {
+                intake_until
+            };
+            while self.session.wants_packets() && clock.now() < until {
                 let Some(p) = self.source.try_next() else {
                     break;
                 };
@@ -106,6 +120,7 @@ impl<B: AccumulationBackend, S: PacketSource> FrameLoop<B, S> {
             self.source.dropped(dropped);
         }
         report.pending = self.session.pending();
+        report.exact = self.session.is_exact();
         report.elapsed = clock.now().saturating_sub(start);
         Ok(report)
     }

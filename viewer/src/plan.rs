@@ -169,20 +169,17 @@ impl Planner {
             return set;
         }
         let set = Arc::new(FootprintSet::build(p));
-        self.cache.push((key, set.clone()));
-        while self.cache.len() > self.options.cache_size.max(1) {
-            self.cache.remove(0);
-        }
+        self.insert(set.clone());
         set
     }
 
-    /// Resolves `spec` for `geometry` with `channels` channels.
-    pub fn plan(
-        &mut self,
+    /// The footprint parameters of `spec` for `geometry` (with its cameras and resolved cue):
+    /// what [`Planner::plan`] builds or finds tables for.
+    pub fn params(
+        &self,
         geometry: &Geometry,
         spec: &ViewSpec,
-        channels: usize,
-    ) -> Result<ViewPlan, RenderError> {
+    ) -> Result<(Vec<Camera>, Option<ResolvedCue>, FootprintParams), RenderError> {
         let cameras = spec.cameras(geometry.dims)?;
         let cue = match &spec.view.cue {
             Some(c) => Some(resolve_cue(c, &cameras[0], geometry)?),
@@ -200,6 +197,33 @@ impl Planner {
             cue: cue.map(|c| (c.k, c.l)),
             gradient: self.options.placement == Placement::Gradient,
         };
+        Ok((cameras, cue, params))
+    }
+
+    /// Whether the footprints for `p` are in the cache (planning them is then cheap).
+    pub fn is_cached(&self, p: &FootprintParams) -> bool {
+        let key = key_of(p);
+        self.cache.iter().any(|(k, _)| *k == key)
+    }
+
+    /// Puts footprints built elsewhere (e.g. on a background thread) into the cache.
+    pub fn insert(&mut self, set: Arc<FootprintSet>) {
+        let key = key_of(&set.params);
+        self.cache.retain(|(k, _)| *k != key);
+        self.cache.push((key, set));
+        while self.cache.len() > self.options.cache_size.max(1) {
+            self.cache.remove(0);
+        }
+    }
+
+    /// Resolves `spec` for `geometry` with `channels` channels.
+    pub fn plan(
+        &mut self,
+        geometry: &Geometry,
+        spec: &ViewSpec,
+        channels: usize,
+    ) -> Result<ViewPlan, RenderError> {
+        let (cameras, cue, params) = self.params(geometry, spec)?;
         let set = self.footprints(&params);
         let mut atlas = FootprintAtlas::new();
         let tables = set
@@ -243,6 +267,13 @@ pub struct ViewPlan {
     tables: Vec<Option<TableRef>>,
     /// Tables of cued pieces by factor triple.
     factor_tables: HashMap<[AxisFactor; 3], TableRef>,
+}
+
+impl ViewPlan {
+    /// The footprint tables the plan draws with (to cache them in another planner).
+    pub fn footprint_set(&self) -> Arc<FootprintSet> {
+        self.set.clone()
+    }
 }
 
 /// Places a footprint centred at screen (X, Y) with weight `value`: the record at the nearest

@@ -12,6 +12,14 @@
 //! - **A view change** restarts the accumulation and queues everything held again, so the next
 //!   step draws the most important coefficients first: the image is coarse but correct at once
 //!   and never blank for long.
+//! - **New views at once.** Exact footprint tables for a view no planner cache holds take tens
+//!   to hundreds of milliseconds (BENCHMARKS.md, issue 11), more than a frame. With
+//!   [`SessionOptions::preview`] the session then draws with cheap preview tables (nearest
+//!   phase, S = 2: a few milliseconds) while a background thread builds the exact ones; the
+//!   next step after they arrive restarts the accumulation with them. An orbiting view is
+//!   thus always drawn within its frame, and a resting one ends exact
+//!   ([`RenderSession::is_exact`]). Depth-cued views build their tables per piece on demand and
+//!   are planned exactly at once.
 //! - **Steps** take a time budget and do as much as fits, in batches sized from a running
 //!   estimate of the cost per coefficient for this backend (planning + accumulation); a step
 //!   starts no batch after its deadline, so at most one batch ends past it.
@@ -28,6 +36,7 @@ use crate::image::Image;
 use crate::plan::{PlanOptions, Planner, RenderStats, ViewPlan};
 use crate::RenderError;
 use std::collections::HashMap;
+use std::sync::mpsc::{Receiver, TryRecvError};
 use std::time::{Duration, Instant};
 use thiserror::Error;
 use wavesplat_codec::format::packet::{decode_packet, Coefficient};
@@ -83,6 +92,20 @@ pub struct SessionOptions {
     pub min_batch: usize,
     /// Largest batch (coefficients).
     pub max_batch: usize,
+    /// Planning for a new view while its exact tables are built in the background (`None`:
+    /// plan exactly before drawing; see the module documentation).
+    pub preview: Option<PlanOptions>,
+}
+
+impl SessionOptions {
+    /// The preview planning a viewer uses while it turns: nearest phase, S = 2.
+    pub fn default_preview() -> PlanOptions {
+        PlanOptions {
+            placement: crate::plan::Placement::Nearest,
+            subpixel: Some(2),
+            ..PlanOptions::default()
+        }
+    }
 }
 
 impl Default for SessionOptions {
@@ -93,6 +116,7 @@ impl Default for SessionOptions {
             transient_bytes: 8 << 20,
             min_batch: 256,
             max_batch: 1 << 20,
+            preview: None,
         }
     }
 }
@@ -165,6 +189,8 @@ pub struct SessionStats {
     pub packets_dropped: u64,
     /// View changes.
     pub view_changes: u64,
+    /// Views drawn with preview tables first (their exact tables built in the background).
+    pub previews: u64,
 }
 
 /// Bucket queue: half-octaves of visible energy.
@@ -253,6 +279,12 @@ pub struct RenderSession<B: AccumulationBackend> {
     options: SessionOptions,
     planner: Planner,
     plan: ViewPlan,
+    /// Planner of previews (`None`: previews off).
+    preview: Option<Planner>,
+    /// Whether `plan` has the exact tables (false while a preview is shown).
+    exact: bool,
+    /// Exact tables being built on a background thread, and for which parameters.
+    building: Option<Receiver<Result<ViewPlan, RenderError>>>,
     visibility: Visibility,
     backend: B,
     /// Basis norm² × importance per (channel, band index).
@@ -287,7 +319,12 @@ impl<B: AccumulationBackend> RenderSession<B> {
     ) -> Result<RenderSession<B>, SessionError> {
         let g = header.geometry;
         let mut planner = Planner::new(options.plan);
-        let plan = planner.plan(&g, &spec, header.channels)?;
+        let mut preview = options.preview.map(Planner::new);
+        let (_, _, params) = planner.params(&g, &spec)?;
+        let (plan, exact) = match &mut preview {
+            Some(p) if params.cue.is_none() => (p.plan(&g, &spec, header.channels)?, false),
+            _ => (planner.plan(&g, &spec, header.channels)?, true),
+        };
         let visibility = Visibility::new(&header, &spec)?;
         let bands = g.bands();
         let energy_scale = (0..header.channels)
@@ -304,6 +341,9 @@ impl<B: AccumulationBackend> RenderSession<B> {
             options,
             planner,
             plan,
+            preview,
+            exact,
+            building: None,
             visibility,
             backend,
             energy_scale,
@@ -316,6 +356,10 @@ impl<B: AccumulationBackend> RenderSession<B> {
             next_local_id: u32::MAX,
         };
         s.backend.begin(s.plan.layout())?;
+        if !exact {
+            s.stats.previews += 1;
+            s.build_in_background(spec);
+        }
         Ok(s)
     }
 
@@ -479,18 +523,41 @@ impl<B: AccumulationBackend> RenderSession<B> {
     }
 
     /// Changes the view: restarts the accumulation and queues everything held again, largest
-    /// visible energy first.
+    /// visible energy first. Without exact tables at hand (and with previews on) the view is
+    /// drawn with preview tables until the exact ones are built.
     pub fn set_view(&mut self, spec: ViewSpec) -> Result<(), SessionError> {
-        let plan = self
-            .planner
-            .plan(&self.header.geometry, &spec, self.header.channels)?;
-        self.visibility = Visibility::new(&self.header, &spec)?;
+        let g = self.header.geometry;
+        let (_, _, params) = self.planner.params(&g, &spec)?;
+        let visibility = Visibility::new(&self.header, &spec)?;
+        let (plan, exact) = match &mut self.preview {
+            Some(preview) if params.cue.is_none() && !self.planner.is_cached(&params) => {
+                self.stats.previews += 1;
+                (preview.plan(&g, &spec, self.header.channels)?, false)
+            }
+            _ => (self.planner.plan(&g, &spec, self.header.channels)?, true),
+        };
+        self.visibility = visibility;
+        self.exact = exact;
         self.plan = plan;
+        self.stats.view_changes += 1;
+        self.restart()?;
+        if !exact && self.building.is_none() {
+            self.build_in_background(spec);
+        }
+        Ok(())
+    }
+
+    /// Whether the current view is drawn with its exact tables (not a preview).
+    pub fn is_exact(&self) -> bool {
+        self.exact
+    }
+
+    /// Restarts the accumulation of the current plan and queues everything held again.
+    fn restart(&mut self) -> Result<(), SessionError> {
         self.backend.begin(self.plan.layout())?;
         self.queue.clear();
         self.stats.splatted_in_view = 0;
         self.stats.invisible_in_view = 0;
-        self.stats.view_changes += 1;
         let mut packets = std::mem::take(&mut self.packets);
         let (mut retained, mut transient) = (0, 0);
         for (id, held) in packets.iter_mut() {
@@ -507,6 +574,68 @@ impl<B: AccumulationBackend> RenderSession<B> {
         Ok(())
     }
 
+    /// Plans `spec` exactly on a background thread: the footprint tables and the atlas the
+    /// backend reads (copying tables into an atlas is itself too long for a frame).
+    fn build_in_background(&mut self, spec: ViewSpec) {
+        let (tx, rx) = std::sync::mpsc::channel();
+        let (options, geometry, channels) = (
+            *self.planner.options(),
+            self.header.geometry,
+            self.header.channels,
+        );
+        std::thread::spawn(move || {
+            let plan = Planner::new(options).plan(&geometry, &spec, channels);
+            // The receiver may be gone (session dropped): nothing to do then.
+            let _ = tx.send(plan);
+        });
+        self.building = Some(rx);
+    }
+
+    /// Takes an exact plan the background thread finished: installs it when it is for the
+    /// current view (restarting the accumulation), keeps its tables for later otherwise and
+    /// starts on the current view. Every step does this; call it between steps when nothing is
+    /// queued.
+    pub fn poll_exact(&mut self) -> Result<(), SessionError> {
+        let arrived = match &self.building {
+            None => return Ok(()),
+            Some(rx) => match rx.try_recv() {
+                Ok(plan) => Some(plan),
+                Err(TryRecvError::Empty) => return Ok(()),
+                // The builder thread died (it panicked): plan exactly here instead.
+                Err(TryRecvError::Disconnected) => None,
+            },
+        };
+        self.building = None;
+        let plan = match arrived {
+            Some(Ok(plan)) => {
+                self.planner.insert(plan.footprint_set());
+                Some(plan)
+            }
+            // Planning the view failed there: plan here, which reports the error.
+            Some(Err(_)) | None => None,
+        };
+        if self.exact {
+            return Ok(());
+        }
+        let spec = self.plan.spec;
+        match plan {
+            Some(plan) if plan.spec == spec => {
+                self.plan = plan;
+            }
+            Some(_) => {
+                self.build_in_background(spec);
+                return Ok(());
+            }
+            None => {
+                self.plan =
+                    self.planner
+                        .plan(&self.header.geometry, &spec, self.header.channels)?;
+            }
+        }
+        self.exact = true;
+        self.restart()
+    }
+
     /// Splats queued coefficients for at most about `budget` (see [`RenderSession::step_with`]).
     pub fn step(&mut self, budget: Duration) -> Result<StepReport, SessionError> {
         self.step_with(budget, &SystemClock::default())
@@ -521,6 +650,7 @@ impl<B: AccumulationBackend> RenderSession<B> {
     ) -> Result<StepReport, SessionError> {
         let start = clock.now();
         let deadline = start + budget;
+        self.poll_exact()?;
         let mut report = StepReport::default();
         let mut batch = Vec::new();
         let mut coefficients = Vec::new();

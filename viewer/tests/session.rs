@@ -318,11 +318,14 @@ impl AccumulationBackend for SimBackend {
     }
 }
 
-/// Delivers `per_frame` packets of a file per call of `tick` (a slow network), or all at once.
+/// Delivers `per_frame` packets of a file per frame (a slow network), or all at once; taking a
+/// packet costs `take_cost` of simulated time (decoding a burst can fill a frame).
 struct TrickleSource {
     inner: FileSource,
     per_frame: usize,
     allowance: usize,
+    clock: SimClock,
+    take_cost: Duration,
 }
 
 impl PacketSource for TrickleSource {
@@ -332,6 +335,7 @@ impl PacketSource for TrickleSource {
         }
         let p = self.inner.try_next()?;
         self.allowance -= 1;
+        self.clock.advance(self.take_cost);
         Some(p)
     }
     fn set_view(&mut self, spec: &ViewSpec) {
@@ -351,10 +355,12 @@ fn frames_keep_refining_and_never_run_more_than_one_batch_past_the_budget() {
     let (header, coeffs) = all(&bytes);
     let s = spec(0.66, 0.91);
     let budget = Duration::from_micros(16_600);
-    // Slow network (2 packets a frame), fast network; a backend that gets 20× slower midway.
-    for (per_frame, cost_ns) in [
-        (2usize, vec![2_000u64]),
-        (usize::MAX, vec![1_000, 1_000, 1_000, 20_000]),
+    // Slow network (2 packets a frame), fast network; a backend that gets 20× slower midway;
+    // a burst of packets that each take 3 ms to take in.
+    for (per_frame, cost_ns, take_ms) in [
+        (2usize, vec![2_000u64], 0),
+        (usize::MAX, vec![1_000, 1_000, 1_000, 20_000], 0),
+        (usize::MAX, vec![2_000], 3),
     ] {
         let clock = SimClock::default();
         let backend = SimBackend {
@@ -372,6 +378,8 @@ fn frames_keep_refining_and_never_run_more_than_one_batch_past_the_budget() {
             inner: FileSource::open(bytes.clone(), &s).unwrap(),
             per_frame,
             allowance: 0,
+            clock: clock.clone(),
+            take_cost: Duration::from_millis(take_ms),
         };
         let mut f = FrameLoop::new(session, source);
         let mut last_splatted = 0;
@@ -379,18 +387,26 @@ fn frames_keep_refining_and_never_run_more_than_one_batch_past_the_budget() {
         loop {
             f.source.allowance = f.source.per_frame;
             let start = clock.now();
+            let pending_before = f.session.pending();
             let r = f.frame_with(budget, &clock).unwrap();
             frames += 1;
             // Batches are counted, not seconds: none starts late, at most one ends late.
             assert!(r.batches_past_deadline <= 1, "frame {frames}: {r:?}");
+            // Likewise no packet is taken after the deadline: at most one ends past it.
             if r.batches_past_deadline == 0 {
                 assert!(
-                    clock.now() - start <= budget + Duration::from_micros(1),
+                    clock.now() - start
+                        <= budget + Duration::from_millis(take_ms) + Duration::from_micros(1),
                     "{r:?}"
                 );
             }
             let splatted = f.session.stats().splatted_in_view;
             assert!(splatted >= last_splatted);
+            // A frame that starts with something to splat splats, however many packets
+            // arrive (taking them in has at most half the frame).
+            if pending_before > 0 {
+                assert!(splatted > last_splatted, "frame {frames} stalled: {r:?}");
+            }
             if r.pending > 0 || r.packets > 0 {
                 assert!(
                     splatted > last_splatted || r.packets > 0,
@@ -413,4 +429,58 @@ fn frames_keep_refining_and_never_run_more_than_one_batch_past_the_budget() {
             "everything in {frames} frames: the budget did not bind"
         );
     }
+}
+
+/// A new view is drawn at once with preview tables, then with the exact tables built in the
+/// background; it ends on the one-shot image, and a view whose tables are cached is exact at
+/// once. On the axis too (every centre of a column shares one phase there).
+#[test]
+fn previews_are_replaced_by_exact_tables() {
+    let bytes = wsp(Phantom::SheppLogan, 40, 16);
+    let (header, coeffs) = all(&bytes);
+    let options = SessionOptions {
+        preview: Some(SessionOptions::default_preview()),
+        ..Default::default()
+    };
+    let first = spec(0.66, 0.91);
+    let mut session =
+        RenderSession::new(header.clone(), first, CpuBackend::new(), options).unwrap();
+    assert!(
+        !session.is_exact(),
+        "a first view without tables starts as a preview"
+    );
+    session.add_coefficients(coeffs.clone()).unwrap();
+    for s in [first, spec(0.0, 0.0), first] {
+        let cached_before = s == first && session.stats().view_changes > 0;
+        if s != first || cached_before {
+            session.set_view(s).unwrap();
+        }
+        if cached_before {
+            assert!(
+                session.is_exact(),
+                "tables of a view seen before are cached"
+            );
+        }
+        // The preview draws everything held without waiting for the exact tables.
+        let want = full_image(&header, &coeffs, &s);
+        let mut waited = 0;
+        loop {
+            session.step(Duration::from_millis(20)).unwrap();
+            if session.pending() == 0 && session.is_exact() {
+                break;
+            }
+            if session.pending() == 0 {
+                let preview = session.image().unwrap();
+                let snr = wavesplat_codec::metrics::snr_db(&want.data, &preview.data);
+                assert!(snr > 15.0, "preview of {s:?}: {snr:.1} dB");
+                std::thread::sleep(Duration::from_millis(5));
+                waited += 1;
+                assert!(waited < 12_000, "exact tables never arrived");
+            }
+        }
+        let got = session.image().unwrap();
+        let e = max_rel(&got, &want);
+        assert!(e <= 1e-5, "{s:?}: {e:e}");
+    }
+    assert_eq!(session.stats().previews, 2);
 }

@@ -37,6 +37,9 @@ use thiserror::Error;
 pub const MAGIC: &[u8; 4] = b"WSPL";
 /// Current format version (4: the header carries the volume's placement in patient space).
 pub const VERSION: u16 = 4;
+/// Oldest version this build reads: version 3 is version 4 without the placement (read as
+/// `None`), so archives and caches written before placement existed stay readable.
+pub const OLDEST_READABLE_VERSION: u16 = 3;
 /// Largest accepted header (bytes).
 pub const MAX_HEADER_BYTES: usize = 16 << 20;
 /// Largest accepted packet (bytes).
@@ -53,9 +56,9 @@ pub enum FormatError {
     /// Not a wavesplat file.
     #[error("not a wavesplat file: magic bytes are {0:02x?}, expected \"WSPL\"")]
     BadMagic(Vec<u8>),
-    /// A version this build cannot read (older files must be compressed again from their
-    /// source: the format keeps no reader for earlier versions).
-    #[error("unsupported format version {found}; this build reads version {supported}{}", if *found < *supported { " (the file was written by an older wavesplat: compress the source volume again)" } else { " (the file was written by a newer wavesplat)" })]
+    /// A version this build cannot read (files older than [`OLDEST_READABLE_VERSION`] must be
+    /// compressed again from their source).
+    #[error("unsupported format version {found}; this build reads versions {OLDEST_READABLE_VERSION} to {supported}{}", if *found < *supported { " (the file was written by an older wavesplat: compress the source volume again)" } else { " (the file was written by a newer wavesplat)" })]
     UnsupportedVersion {
         /// Version in the file.
         found: u16,
@@ -413,7 +416,7 @@ impl Header {
         }
     }
 
-    fn write(&self, w: &mut ByteWriter) {
+    fn write_version(&self, w: &mut ByteWriter, version: u16) {
         let g = &self.geometry;
         for d in g.dims {
             w.varint(d as u64);
@@ -422,6 +425,7 @@ impl Header {
             w.f32(s);
         }
         match &self.placement {
+            _ if version < 4 => {}
             None => w.u8(0),
             Some(p) => {
                 w.u8(1);
@@ -487,7 +491,7 @@ impl Header {
         }
     }
 
-    fn read(r: &mut ByteReader) -> Result<Header, FormatError> {
+    fn read(r: &mut ByteReader, version: u16) -> Result<Header, FormatError> {
         const W: &str = "header";
         let mut dims = [0usize; 3];
         for d in &mut dims {
@@ -501,7 +505,7 @@ impl Header {
                 format!("voxel spacing {spacing:?} must be positive"),
             ));
         }
-        let placement = match r.u8()? {
+        let placement = match if version < 4 { 0 } else { r.u8()? } {
             0 => None,
             1 => {
                 let mut p = Placement::identity();
@@ -681,12 +685,16 @@ pub struct WspFile<'a> {
 
 /// Serializes the header section (magic, version, header, CRC).
 pub fn write_header_section(header: &Header) -> Vec<u8> {
+    write_header_section_version(header, VERSION)
+}
+
+fn write_header_section_version(header: &Header, version: u16) -> Vec<u8> {
     let mut hw = ByteWriter::new();
-    header.write(&mut hw);
+    header.write_version(&mut hw, version);
     let hb = hw.into_bytes();
     let mut w = ByteWriter::new();
     w.bytes(MAGIC);
-    w.u16(VERSION);
+    w.u16(version);
     w.u32(hb.len() as u32);
     w.bytes(&hb);
     w.u32(crc32fast::hash(&hb));
@@ -703,7 +711,7 @@ pub fn read_header_section(bytes: &[u8]) -> Result<(Header, usize), FormatError>
         return Err(FormatError::BadMagic(magic.to_vec()));
     }
     let version = r.u16()?;
-    if version != VERSION {
+    if !(OLDEST_READABLE_VERSION..=VERSION).contains(&version) {
         return Err(FormatError::UnsupportedVersion {
             found: version,
             supported: VERSION,
@@ -728,7 +736,7 @@ pub fn read_header_section(bytes: &[u8]) -> Result<(Header, usize), FormatError>
         });
     }
     let mut hr = ByteReader::new(hb, "header");
-    let header = Header::read(&mut hr)?;
+    let header = Header::read(&mut hr, version)?;
     if hr.remaining() != 0 {
         return Err(invalid(
             "header",
@@ -740,7 +748,37 @@ pub fn read_header_section(bytes: &[u8]) -> Result<(Header, usize), FormatError>
 
 /// Writes a whole file from a header and encoded packets (see [`packet::encode_packets`]).
 pub fn write_file(header: &Header, packets: &[Vec<u8>]) -> Vec<u8> {
-    let mut out = write_header_section(header);
+    write_file_body(write_header_section(header), packets)
+}
+
+/// Writes a whole file in an older version of the format, for readers that have not been
+/// updated. Refuses what that version cannot hold (a placement before version 4) rather
+/// than dropping it.
+pub fn write_file_version(
+    header: &Header,
+    packets: &[Vec<u8>],
+    version: u16,
+) -> Result<Vec<u8>, FormatError> {
+    if !(OLDEST_READABLE_VERSION..=VERSION).contains(&version) {
+        return Err(FormatError::UnsupportedVersion {
+            found: version,
+            supported: VERSION,
+        });
+    }
+    if version < 4 && header.placement.is_some() {
+        return Err(invalid(
+            "header",
+            format!("format version {version} cannot hold the volume's placement"),
+        ));
+    }
+    Ok(write_file_body(
+        write_header_section_version(header, version),
+        packets,
+    ))
+}
+
+fn write_file_body(header_section: Vec<u8>, packets: &[Vec<u8>]) -> Vec<u8> {
+    let mut out = header_section;
     let mut d = ByteWriter::new();
     d.varint(packets.len() as u64);
     for p in packets {
@@ -799,7 +837,7 @@ pub fn parse_prelude(bytes: &[u8]) -> Result<Option<Prelude>, FormatError> {
     }
     let mut r = ByteReader::new(&bytes[4..10], "file header");
     let version = r.u16()?;
-    if version != VERSION {
+    if !(OLDEST_READABLE_VERSION..=VERSION).contains(&version) {
         return Err(FormatError::UnsupportedVersion {
             found: version,
             supported: VERSION,
