@@ -11,12 +11,12 @@ use std::io::IsTerminal;
 use std::path::PathBuf;
 use std::time::Duration;
 use wavesplat_compressor::encode::Target;
-use wavesplat_worker::archive;
 use wavesplat_orchestrator::client;
 use wavesplat_orchestrator::convert::state_name;
 use wavesplat_orchestrator::model;
 use wavesplat_orchestrator::{JobOptions, QueueConfig, ServiceConfig, Store, TargetSpec};
 use wavesplat_proto::pb;
+use wavesplat_worker::archive;
 
 /// Default orchestrator address.
 pub const DEFAULT_URL: &str = "http://127.0.0.1:50052";

@@ -9,10 +9,10 @@
 use std::io::Write;
 use std::time::{Duration, Instant};
 use wavesplat_compressor::phantom::Phantom;
-use wavesplat_worker::archive;
 use wavesplat_orchestrator::client;
 use wavesplat_orchestrator::convert::state_name;
 use wavesplat_orchestrator::{JobOptions, QueueConfig, ServiceConfig, Store};
+use wavesplat_worker::archive;
 use wavesplat_worker::WorkerConfig;
 
 const JOBS: usize = 20;

@@ -17,10 +17,10 @@
 //! of their header's volume. Hidden files are ignored; `.raw` files whose name does not follow
 //! the convention, and names used twice, are reported as skipped. Other files are ignored.
 
-use wavesplat_orchestrator::model::{JobOptions, JobSpec, RawLayout, SampleType, Source};
 use std::collections::{BTreeSet, HashSet};
 use std::path::{Path, PathBuf};
 use wavesplat_compressor::reader::{dicom::is_dicom_file, Format, SourceFiles};
+use wavesplat_orchestrator::model::{JobOptions, JobSpec, RawLayout, SampleType, Source};
 
 /// A supported file.
 #[derive(Debug, Clone, PartialEq, Eq)]
