@@ -78,7 +78,7 @@ async fn attempt(
                 held.insert(p.id, p.data);
                 received.fetch_add(1, Ordering::SeqCst);
                 n += 1;
-                if n % 7 == 0 {
+                if n.is_multiple_of(7) {
                     s.control().set_view(&view(i, n)).await?;
                 }
                 tokio::time::sleep(Duration::from_millis(8)).await;

@@ -971,10 +971,8 @@ impl ApplicationHandler for App {
     fn window_event(&mut self, event_loop: &ActiveEventLoop, _id: WindowId, event: WindowEvent) {
         match event {
             WindowEvent::CloseRequested => event_loop.exit(),
-            WindowEvent::Resized(size) => {
-                if size.width > 0 && size.height > 0 {
-                    self.dirty_view = true;
-                }
+            WindowEvent::Resized(size) if size.width > 0 && size.height > 0 => {
+                self.dirty_view = true;
             }
             WindowEvent::ModifiersChanged(m) => {
                 self.input(event_loop, Input::Shift(m.state().shift_key()))
