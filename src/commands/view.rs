@@ -825,13 +825,11 @@ impl App {
             self.last_report_idle = idle;
             self.last_title = Instant::now();
             let stats = frames.session.stats();
-            let state = if !status.connected {
+            let mut state = if !status.connected {
                 format!(
                     "cache unreachable, reconnecting ({})",
                     status.problem.as_deref().unwrap_or("no answer")
                 )
-            } else if frames.session.memory_full() && idle {
-                "memory bound reached".to_string()
             } else if self.converged {
                 "converged".to_string()
             } else if idle {
@@ -839,6 +837,10 @@ impl App {
             } else {
                 "refining".to_string()
             };
+            if frames.session.memory_full() {
+                // What is held stops growing here: say so rather than stall silently.
+                state.push_str(", memory bound reached");
+            }
             let (iw, ih) = self.last_image.unwrap_or((0, 0));
             g.window.set_title(&format!(
                 "wavesplat — {} — {} held, {} splatted, {} received — {:.1} ms/frame (budget {:.1}) — {}{}{} — {iw}x{ih}",
