@@ -22,7 +22,7 @@ use clap::{Parser, Subcommand};
 ///
 /// Volumes are compressed into B-spline wavelet coefficients (`compress`), inspected (`info`),
 /// decoded for checks (`decompress`) and rendered as X-ray images directly from the coefficients
-/// without expanding the volume (`render`).
+/// without expanding the volume (`render`), or in a window (`view`).
 #[derive(Parser, Debug)]
 #[command(name = "wavesplat", version, about, long_about = None)]
 struct Cli {
@@ -46,6 +46,9 @@ enum Command {
     Decompress(commands::decompress::DecompressArgs),
     /// Render X-ray images directly from a .wsp file's coefficients (wavelet splatting).
     Render(Box<commands::render::RenderArgs>),
+    /// Open a window on a volume (file or cache): drag to turn it, watch it sharpen within a
+    /// frame-time budget (H for the keys).
+    View(Box<commands::view::ViewWindowArgs>),
     /// Measure compression, decoding and splatting throughput (CSV + table).
     Bench(commands::bench::BenchArgs),
     /// Write a built-in phantom as raw f32 or u8 (for trying the other commands).
@@ -89,6 +92,7 @@ fn run(command: Command) -> Result<()> {
         Command::Phantom(a) => commands::phantom::run(a),
         Command::Bench(a) => commands::bench::run(a),
         Command::Render(a) => commands::render::run(*a),
+        Command::View(a) => commands::view::run(*a),
         Command::Serve(c) => commands::cache::run_serve(c),
         Command::Cache(c) => commands::cache::run(c),
         Command::Worker(a) => commands::orchestrator::run_worker(a),

@@ -11,6 +11,7 @@ pub mod orchestrator;
 pub mod phantom;
 pub mod render;
 pub mod security;
+pub mod view;
 
 use anyhow::{bail, Context, Result};
 use clap::Args;

@@ -117,10 +117,11 @@ impl Image {
         if v.is_empty() {
             return (0.0, 1.0);
         }
-        v.sort_by(|a, b| a.total_cmp(b));
-        let at = |p: f64| {
-            let i = ((p.clamp(0.0, 100.0) / 100.0) * (v.len() - 1) as f64).round() as usize;
-            v[i] as f64
+        // Two selections instead of a sort: the window calls this on every displayed frame.
+        let n = v.len();
+        let mut at = |p: f64| {
+            let i = ((p.clamp(0.0, 100.0) / 100.0) * (n - 1) as f64).round() as usize;
+            *v.select_nth_unstable_by(i, |a, b| a.total_cmp(b)).1 as f64
         };
         (at(lo), at(hi))
     }

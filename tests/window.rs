@@ -1,0 +1,376 @@
+//! `wavesplat view` in a real window under a virtual X server (Xvfb): it opens, renders,
+//! reacts to a synthetic drag and keys (its `--script` feeds them through the same handlers as
+//! real events), what reaches the screen (an ImageMagick `import` of the root window) shows the
+//! volume, and it closes cleanly. Without Xvfb these tests skip with a printed reason, unless
+//! `WAVESPLAT_REQUIRE_GPU=1` (CI sets it, and `.ci/run` installs Xvfb): then they fail.
+
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+use wavesplat_compressor::encode::{compress, CompressOptions, Target, TileChoice};
+use wavesplat_compressor::phantom::Phantom;
+
+const BIN: &str = env!("CARGO_BIN_EXE_wavesplat");
+
+fn required() -> bool {
+    std::env::var("WAVESPLAT_REQUIRE_GPU").as_deref() == Ok("1")
+}
+
+/// Skips (prints why and returns true) or, when required, fails.
+fn skip(reason: &str) -> bool {
+    if required() {
+        panic!("WAVESPLAT_REQUIRE_GPU=1 but {reason}");
+    }
+    eprintln!("skipped: {reason} (set WAVESPLAT_REQUIRE_GPU=1 to fail instead)");
+    true
+}
+
+fn on_path(tool: &str) -> bool {
+    std::env::var_os("PATH")
+        .is_some_and(|p| std::env::split_paths(&p).any(|d| d.join(tool).is_file()))
+}
+
+/// A private Xvfb server, stopped on drop.
+struct Xvfb {
+    child: Child,
+    display: String,
+}
+
+impl Drop for Xvfb {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+impl Xvfb {
+    /// Starts Xvfb on the first free display number from a per-process start (tests run in
+    /// parallel, and other users of the machine may run X servers too).
+    fn start() -> Option<Xvfb> {
+        if !on_path("Xvfb") {
+            return None;
+        }
+        // Tests of one process run in parallel: each takes its own range of numbers.
+        static NEXT: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
+        let turn = NEXT.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+        let first = 100 + (std::process::id() as usize % 40) * 20 + (turn % 4) * 5;
+        for n in (first..first + 5).chain(900..960) {
+            if Path::new(&format!("/tmp/.X{n}-lock")).exists()
+                || Path::new(&format!("/tmp/.X11-unix/X{n}")).exists()
+            {
+                continue;
+            }
+            let Ok(mut child) = Command::new("Xvfb")
+                .arg(format!(":{n}"))
+                .args(["-screen", "0", "640x480x24", "-nolisten", "tcp"])
+                .stdout(Stdio::null())
+                .stderr(Stdio::null())
+                .spawn()
+            else {
+                return None;
+            };
+            let deadline = Instant::now() + Duration::from_secs(15);
+            loop {
+                let alive = matches!(child.try_wait(), Ok(None));
+                if alive && Path::new(&format!("/tmp/.X11-unix/X{n}")).exists() {
+                    // The socket exists a moment before the server accepts.
+                    std::thread::sleep(Duration::from_millis(200));
+                    return Some(Xvfb {
+                        child,
+                        display: format!(":{n}"),
+                    });
+                }
+                if matches!(child.try_wait(), Ok(Some(_))) || Instant::now() > deadline {
+                    let _ = child.kill();
+                    let _ = child.wait();
+                    break; // taken meanwhile, or broken: try the next number
+                }
+                std::thread::sleep(Duration::from_millis(50));
+            }
+        }
+        None
+    }
+}
+
+fn wsp(phantom: Phantom, dims: [usize; 3]) -> Vec<u8> {
+    compress(
+        &phantom.generate(dims),
+        &CompressOptions {
+            target: Target::Fraction(0.1),
+            tile: TileChoice::Size(16),
+            layers: Some(3),
+            refine: None,
+            ..Default::default()
+        },
+        &|_, _| {},
+    )
+    .expect("compress")
+    .bytes
+}
+
+/// A PNG as 8-bit grey levels (the mean of R, G and B), with its size.
+fn grey(path: &Path) -> (usize, usize, Vec<f64>) {
+    let mut decoder =
+        png::Decoder::new(std::fs::File::open(path).unwrap_or_else(|e| panic!("{path:?}: {e}")));
+    decoder.set_transformations(png::Transformations::EXPAND | png::Transformations::STRIP_16);
+    let mut reader = decoder.read_info().unwrap();
+    let mut buf = vec![0; reader.output_buffer_size()];
+    let info = reader.next_frame(&mut buf).unwrap();
+    let channels = info.color_type.samples();
+    let (w, h) = (info.width as usize, info.height as usize);
+    let data = buf[..info.buffer_size()]
+        .chunks(channels)
+        .map(|px| match channels {
+            1 | 2 => px[0] as f64,
+            _ => (px[0] as f64 + px[1] as f64 + px[2] as f64) / 3.0,
+        })
+        .collect();
+    (w, h, data)
+}
+
+/// Mean and variance of the `w`×`h` region at the top left of an image of width `stride`.
+fn stats(data: &[f64], stride: usize, w: usize, h: usize) -> (f64, f64) {
+    let v: Vec<f64> = (0..h)
+        .flat_map(|y| data[y * stride..y * stride + w].iter().copied())
+        .collect();
+    let n = v.len() as f64;
+    let mean = v.iter().sum::<f64>() / n;
+    (
+        mean,
+        v.iter().map(|x| (x - mean) * (x - mean)).sum::<f64>() / n,
+    )
+}
+
+fn wait_for(path: &Path, child: &mut Child, what: &str) {
+    let deadline = Instant::now() + Duration::from_secs(180);
+    while !path.exists() {
+        if let Ok(Some(status)) = child.try_wait() {
+            let mut err = String::new();
+            if let Some(mut e) = child.stderr.take() {
+                let _ = std::io::Read::read_to_string(&mut e, &mut err);
+            }
+            panic!("wavesplat view exited ({status}) before {what}: {err}");
+        }
+        if Instant::now() > deadline {
+            let _ = child.kill();
+            panic!("wavesplat view did not reach {what}");
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+fn finish(mut child: Child) -> (std::process::ExitStatus, String, String) {
+    let deadline = Instant::now() + Duration::from_secs(180);
+    loop {
+        if let Ok(Some(_)) = child.try_wait() {
+            break;
+        }
+        if Instant::now() > deadline {
+            let _ = child.kill();
+            break;
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let o = child.wait_with_output().unwrap();
+    (
+        o.status,
+        String::from_utf8_lossy(&o.stdout).into_owned(),
+        String::from_utf8_lossy(&o.stderr).into_owned(),
+    )
+}
+
+fn view(display: &str, args: &[&str]) -> Command {
+    let mut c = Command::new(BIN);
+    c.arg("view")
+        .args(args)
+        .env("DISPLAY", display)
+        .env(
+            "WGPU_BACKEND",
+            std::env::var("WGPU_BACKEND").unwrap_or("vulkan".into()),
+        )
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped());
+    c
+}
+
+#[test]
+fn the_window_renders_turns_under_a_drag_and_closes_cleanly() {
+    let Some(x) = Xvfb::start() else {
+        skip("no Xvfb to open a window on");
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("head.wsp");
+    std::fs::write(&file, wsp(Phantom::SheppLogan, [40, 32, 24])).unwrap();
+    let p = |name: &str| -> PathBuf { dir.path().join(name) };
+    let s = |name: &str| p(name).to_str().unwrap().to_string();
+    let script = format!(
+        "converge; screenshot {}; signal {}; await {}; drag 40,60 130,80; converge; \
+         screenshot {}; key c; converge; screenshot {}; key m; converge; screenshot {}; wheel 3;          frames 3; key r; converge; screenshot {}; resize 200x100; converge; quit",
+        s("a.png"),
+        s("shown"),
+        s("go"),
+        s("b.png"),
+        s("cue.png"),
+        s("c.png"),
+        s("r.png"),
+    );
+    let child = view(
+        &x.display,
+        &[
+            file.to_str().unwrap(),
+            "--size",
+            "160x120",
+            "--script",
+            &script,
+            "--screenshot",
+            &s("final.png"),
+        ],
+    )
+    .spawn()
+    .unwrap();
+    let mut child = child;
+    wait_for(&p("shown"), &mut child, "its first converged image");
+    // What the X server shows: the window sits at the top left of the root window (no window
+    // manager), so its region of a root screenshot must look like the image it drew.
+    let root = if on_path("import") {
+        let o = Command::new("import")
+            .args(["-display", &x.display, "-window", "root"])
+            .arg(p("root.png"))
+            .output()
+            .unwrap();
+        assert!(
+            o.status.success(),
+            "import: {}",
+            String::from_utf8_lossy(&o.stderr)
+        );
+        Some(grey(&p("root.png")))
+    } else {
+        if required() {
+            let _ = child.kill();
+            panic!("WAVESPLAT_REQUIRE_GPU=1 but ImageMagick's import is missing");
+        }
+        eprintln!("no ImageMagick import: the screen itself is not checked");
+        None
+    };
+    std::fs::write(p("go"), b"").unwrap();
+    let (status, stdout, stderr) = finish(child);
+    assert!(
+        status.success(),
+        "exit {status}\nstdout {stdout}\nstderr {stderr}"
+    );
+    assert!(stdout.contains("converged"), "{stdout}");
+
+    let (aw, ah, a) = grey(&p("a.png"));
+    assert_eq!((aw, ah), (160, 120), "the image follows the window");
+    let (mean_a, var_a) = stats(&a, aw, aw, ah);
+    assert!(
+        var_a > 100.0,
+        "the first image shows no volume: variance {var_a}"
+    );
+    let (bw, bh, b) = grey(&p("b.png"));
+    assert_eq!((bw, bh), (aw, ah));
+    let (_, var_b) = stats(&b, bw, bw, bh);
+    assert!(var_b > 100.0, "after the drag: variance {var_b}");
+    let diff = a.iter().zip(&b).map(|(x, y)| (x - y).abs()).sum::<f64>() / a.len() as f64;
+    assert!(
+        diff > 4.0,
+        "the drag did not turn the volume: mean |a-b| = {diff}"
+    );
+    // Multiview: three views side by side in the same window.
+    let (cw, ch, c) = grey(&p("c.png"));
+    assert_eq!((cw, ch), (3 * 53, 120), "multiview layout {cw}x{ch}");
+    assert!(stats(&c, cw, cw, ch).1 > 100.0);
+    // Depth cueing (C) changes the image of the same view.
+    let (dw, dh, d) = grey(&p("cue.png"));
+    assert_eq!((dw, dh), (bw, bh));
+    let cued = b.iter().zip(&d).map(|(x, y)| (x - y).abs()).sum::<f64>() / b.len() as f64;
+    assert!(cued > 1.0, "C did not cue: mean |b-cue| = {cued}");
+    // Reset: back to the first view and layout.
+    let (rw, rh, r) = grey(&p("r.png"));
+    assert_eq!((rw, rh), (aw, ah));
+    let back = a.iter().zip(&r).map(|(x, y)| (x - y).abs()).sum::<f64>() / a.len() as f64;
+    assert!(
+        back < 1.0,
+        "R did not restore the first view: mean |a-r| = {back}"
+    );
+    // The image follows a resize; the last image is written at exit.
+    let (fw, fh, f) = grey(&p("final.png"));
+    assert_eq!((fw, fh), (200, 100));
+    assert!(stats(&f, fw, fw, fh).1 > 100.0);
+
+    if let Some((rw, rh, r)) = root {
+        assert!(rw >= aw && rh >= ah, "root {rw}x{rh}");
+        let (mean_r, var_r) = stats(&r, rw, aw, ah);
+        assert!(
+            var_r > 100.0,
+            "the screen shows no volume: variance {var_r}"
+        );
+        assert!(
+            (mean_r - mean_a).abs() < 8.0 && (var_r / var_a - 1.0).abs() < 0.2,
+            "the screen ({mean_r:.1}, {var_r:.0}) differs from the image ({mean_a:.1}, {var_a:.0})"
+        );
+    }
+}
+
+#[test]
+fn the_window_closes_after_a_set_number_of_frames_and_refuses_cueing_in_multiview() {
+    let Some(x) = Xvfb::start() else {
+        skip("no Xvfb to open a window on");
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("rgb.wsp");
+    std::fs::write(&file, wsp(Phantom::RgbHead, [24, 24, 17])).unwrap();
+    let shot = dir.path().join("last.png");
+    let child = view(
+        &x.display,
+        &[
+            file.to_str().unwrap(),
+            "--size",
+            "64x48",
+            "--multiview",
+            "--script",
+            "key c; key ]",
+            "--frame-ms",
+            "8",
+            "--exit-after-frames",
+            "12",
+            "--screenshot",
+            shot.to_str().unwrap(),
+        ],
+    )
+    .spawn()
+    .unwrap();
+    let (status, stdout, stderr) = finish(child);
+    assert!(
+        status.success(),
+        "exit {status}\nstdout {stdout}\nstderr {stderr}"
+    );
+    assert!(stdout.contains("12 frames drawn"), "{stdout}");
+    assert!(
+        stderr.contains("does not combine with multiview"),
+        "{stderr}"
+    );
+    let (w, h, img) = grey(&shot);
+    assert_eq!((w, h), (3 * 64, 48));
+    assert!(stats(&img, w, w, h).1 > 10.0, "no volume in {shot:?}");
+}
+
+#[test]
+fn without_a_display_the_window_fails_with_a_reason() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("s.wsp");
+    std::fs::write(&file, wsp(Phantom::Spheres, [16, 16, 16])).unwrap();
+    let o = Command::new(BIN)
+        .arg("view")
+        .arg(&file)
+        .env_remove("DISPLAY")
+        .env_remove("WAYLAND_DISPLAY")
+        .output()
+        .unwrap();
+    assert_eq!(o.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("error: opening the display"), "{err}");
+    assert!(!err.contains("panicked"), "{err}");
+}
