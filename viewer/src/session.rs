@@ -41,6 +41,7 @@ use std::time::{Duration, Instant};
 use thiserror::Error;
 use wavesplat_codec::format::packet::{decode_packet, Coefficient};
 use wavesplat_codec::format::{FormatError, Header};
+use wavesplat_codec::layout::Geometry;
 use wavesplat_codec::view::visibility::Visibility;
 use wavesplat_codec::view::{ViewError, ViewSpec};
 
@@ -273,6 +274,25 @@ impl Held {
     }
 }
 
+/// The exact plan of `spec` when its tables are cached, previews are off or the view is
+/// depth-cued (its tables are built per piece on demand); otherwise the preview's plan.
+/// Returns whether the plan is exact.
+fn plan_or_preview(
+    planner: &mut Planner,
+    preview: Option<&mut Planner>,
+    geometry: &Geometry,
+    spec: &ViewSpec,
+    channels: usize,
+) -> Result<(ViewPlan, bool), SessionError> {
+    let (_, _, params) = planner.params(geometry, spec)?;
+    match preview {
+        Some(p) if params.cue.is_none() && !planner.is_cached(&params) => {
+            Ok((p.plan(geometry, spec, channels)?, false))
+        }
+        _ => Ok((planner.plan(geometry, spec, channels)?, true)),
+    }
+}
+
 /// A progressive render session over one volume (see the module documentation).
 pub struct RenderSession<B: AccumulationBackend> {
     header: Header,
@@ -320,11 +340,8 @@ impl<B: AccumulationBackend> RenderSession<B> {
         let g = header.geometry;
         let mut planner = Planner::new(options.plan);
         let mut preview = options.preview.map(Planner::new);
-        let (_, _, params) = planner.params(&g, &spec)?;
-        let (plan, exact) = match &mut preview {
-            Some(p) if params.cue.is_none() => (p.plan(&g, &spec, header.channels)?, false),
-            _ => (planner.plan(&g, &spec, header.channels)?, true),
-        };
+        let (plan, exact) =
+            plan_or_preview(&mut planner, preview.as_mut(), &g, &spec, header.channels)?;
         let visibility = Visibility::new(&header, &spec)?;
         let bands = g.bands();
         let energy_scale = (0..header.channels)
@@ -526,16 +543,17 @@ impl<B: AccumulationBackend> RenderSession<B> {
     /// visible energy first. Without exact tables at hand (and with previews on) the view is
     /// drawn with preview tables until the exact ones are built.
     pub fn set_view(&mut self, spec: ViewSpec) -> Result<(), SessionError> {
-        let g = self.header.geometry;
-        let (_, _, params) = self.planner.params(&g, &spec)?;
         let visibility = Visibility::new(&self.header, &spec)?;
-        let (plan, exact) = match &mut self.preview {
-            Some(preview) if params.cue.is_none() && !self.planner.is_cached(&params) => {
-                self.stats.previews += 1;
-                (preview.plan(&g, &spec, self.header.channels)?, false)
-            }
-            _ => (self.planner.plan(&g, &spec, self.header.channels)?, true),
-        };
+        let (plan, exact) = plan_or_preview(
+            &mut self.planner,
+            self.preview.as_mut(),
+            &self.header.geometry,
+            &spec,
+            self.header.channels,
+        )?;
+        if !exact {
+            self.stats.previews += 1;
+        }
         self.visibility = visibility;
         self.exact = exact;
         self.plan = plan;

@@ -711,20 +711,8 @@ pub fn read_header_section(bytes: &[u8]) -> Result<(Header, usize), FormatError>
         return Err(FormatError::BadMagic(magic.to_vec()));
     }
     let version = r.u16()?;
-    if !(OLDEST_READABLE_VERSION..=VERSION).contains(&version) {
-        return Err(FormatError::UnsupportedVersion {
-            found: version,
-            supported: VERSION,
-        });
-    }
-    let len = r.u32()? as usize;
-    if len > MAX_HEADER_BYTES {
-        return Err(FormatError::TooLarge {
-            what: "header",
-            size: len as u64,
-            limit: MAX_HEADER_BYTES as u64,
-        });
-    }
+    check_version(version)?;
+    let len = header_length(r.u32()?)?;
     let hb = r.take(len)?;
     let stored = r.u32()?;
     let computed = crc32fast::hash(hb);
@@ -746,6 +734,31 @@ pub fn read_header_section(bytes: &[u8]) -> Result<(Header, usize), FormatError>
     Ok((header, r.position()))
 }
 
+/// Refuses a version this build cannot read.
+fn check_version(version: u16) -> Result<(), FormatError> {
+    if (OLDEST_READABLE_VERSION..=VERSION).contains(&version) {
+        Ok(())
+    } else {
+        Err(FormatError::UnsupportedVersion {
+            found: version,
+            supported: VERSION,
+        })
+    }
+}
+
+/// The header section's declared length, refused beyond [`MAX_HEADER_BYTES`].
+fn header_length(len: u32) -> Result<usize, FormatError> {
+    let len = len as usize;
+    if len > MAX_HEADER_BYTES {
+        return Err(FormatError::TooLarge {
+            what: "header",
+            size: len as u64,
+            limit: MAX_HEADER_BYTES as u64,
+        });
+    }
+    Ok(len)
+}
+
 /// Writes a whole file from a header and encoded packets (see [`packet::encode_packets`]).
 pub fn write_file(header: &Header, packets: &[Vec<u8>]) -> Vec<u8> {
     write_file_body(write_header_section(header), packets)
@@ -759,12 +772,7 @@ pub fn write_file_version(
     packets: &[Vec<u8>],
     version: u16,
 ) -> Result<Vec<u8>, FormatError> {
-    if !(OLDEST_READABLE_VERSION..=VERSION).contains(&version) {
-        return Err(FormatError::UnsupportedVersion {
-            found: version,
-            supported: VERSION,
-        });
-    }
+    check_version(version)?;
     if version < 4 && header.placement.is_some() {
         return Err(invalid(
             "header",
@@ -837,20 +845,8 @@ pub fn parse_prelude(bytes: &[u8]) -> Result<Option<Prelude>, FormatError> {
     }
     let mut r = ByteReader::new(&bytes[4..10], "file header");
     let version = r.u16()?;
-    if !(OLDEST_READABLE_VERSION..=VERSION).contains(&version) {
-        return Err(FormatError::UnsupportedVersion {
-            found: version,
-            supported: VERSION,
-        });
-    }
-    let len = r.u32()? as usize;
-    if len > MAX_HEADER_BYTES {
-        return Err(FormatError::TooLarge {
-            what: "header",
-            size: len as u64,
-            limit: MAX_HEADER_BYTES as u64,
-        });
-    }
+    check_version(version)?;
+    let len = header_length(r.u32()?)?;
     if bytes.len() < 14 + len {
         return Ok(None);
     }
