@@ -49,7 +49,8 @@ enum Command {
     /// Open a window on a volume (file or cache): drag to turn it, watch it sharpen within a
     /// frame-time budget (H for the keys).
     View(Box<commands::view::ViewWindowArgs>),
-    /// Measure compression, decoding and splatting throughput (CSV + table).
+    /// Benchmarks: `throughput` (compress, decode, splat), `refine` (frame-budgeted refinement
+    /// from a cache on loopback), `stability` (stiff and extreme numerical cases).
     Bench(commands::bench::BenchArgs),
     /// Write a built-in phantom as raw f32 or u8 (for trying the other commands).
     Phantom(commands::phantom::PhantomArgs),

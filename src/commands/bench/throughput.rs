@@ -1,9 +1,9 @@
-//! `wavesplat bench`: throughput of the pipeline stages on one machine, written as CSV and a
+//! `wavesplat bench throughput`: throughput of the pipeline stages on one machine, written as CSV and a
 //! table: compression (voxels/s), packet decoding (coefficients/s) and splatting (splats/s,
 //! pixel updates/s) per family, on a phantom or a volume file. Timings are medians of repeated
 //! runs; nothing here is asserted (benchmarks are not tests).
 
-use super::render::load_coefficients;
+use crate::commands::render::load_coefficients;
 use anyhow::{Context, Result};
 use clap::Args;
 use std::io::Write;
@@ -16,9 +16,9 @@ use wavesplat_compressor::phantom::Phantom;
 use wavesplat_compressor::reader::read_volume;
 use wavesplat_viewer::{RenderOptions, Renderer, View};
 
-/// Arguments of `wavesplat bench`.
+/// Arguments of `wavesplat bench throughput`.
 #[derive(Args, Debug)]
-pub struct BenchArgs {
+pub struct ThroughputArgs {
     /// Volume file (NIfTI); default: the Shepp–Logan phantom of --size³.
     pub input: Option<PathBuf>,
     /// Phantom edge length when no input is given.
@@ -41,7 +41,7 @@ fn median(mut v: Vec<f64>) -> f64 {
 }
 
 /// Runs the subcommand.
-pub fn run(a: BenchArgs) -> Result<()> {
+pub fn run(a: ThroughputArgs) -> Result<()> {
     let volume = match &a.input {
         Some(p) => read_volume(p, None).with_context(|| format!("reading {}", p.display()))?,
         None => Phantom::SheppLogan.generate([a.size; 3]),

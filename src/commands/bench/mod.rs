@@ -1,0 +1,30 @@
+//! `wavesplat bench`: measurements written as CSV (and plots where people would rather look):
+//! `throughput` of the pipeline stages, `refine` (framerate-constrained refinement against a
+//! cache on loopback) and `stability` (stiff and extreme numerical cases). Nothing here is
+//! asserted; the tests assert the pass/fail parts.
+
+pub mod throughput;
+
+use anyhow::Result;
+use clap::{Args, Subcommand};
+
+/// Arguments of `wavesplat bench`.
+#[derive(Args, Debug)]
+pub struct BenchArgs {
+    #[command(subcommand)]
+    pub which: BenchCommand,
+}
+
+/// The benchmarks.
+#[derive(Subcommand, Debug)]
+pub enum BenchCommand {
+    /// Throughput of compression, packet decoding and splatting per family (CSV + table).
+    Throughput(throughput::ThroughputArgs),
+}
+
+/// Runs the subcommand.
+pub fn run(a: BenchArgs) -> Result<()> {
+    match a.which {
+        BenchCommand::Throughput(t) => throughput::run(t),
+    }
+}
