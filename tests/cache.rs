@@ -424,6 +424,20 @@ async fn dropped_packets_come_back_after_a_view_change() {
         stream.next().await.unwrap().unwrap(),
         RefineEvent::Done { .. }
     ));
+    // Everything is held now: another view has nothing to send and says so at once (the
+    // viewer uses it to know a view has converged).
+    stream
+        .control()
+        .set_view(&spec(View::new(2.0, -0.5, 32, 32)))
+        .await
+        .unwrap();
+    let next = tokio::time::timeout(std::time::Duration::from_secs(10), stream.next())
+        .await
+        .expect("done is announced again after a view change");
+    assert!(
+        matches!(next.unwrap().unwrap(), RefineEvent::Done { .. }),
+        "a view with nothing to send announces done"
+    );
     server.stop().await;
 }
 

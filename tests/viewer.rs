@@ -47,8 +47,7 @@ fn full_image(header: &Header, coeffs: &[Coefficient], spec: &ViewSpec) -> Image
         ..Default::default()
     });
     let (img, _) = r.render_spec(coeffs, &header.geometry, spec).unwrap();
-    wavesplat_viewer::color::to_rgb(&img, header, &spec.cameras(header.geometry.dims).unwrap())
-        .unwrap()
+    wavesplat_viewer::color::to_rgb_for_spec(&img, header, spec).unwrap()
 }
 
 fn max_rel(a: &Image, b: &Image) -> f64 {

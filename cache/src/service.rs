@@ -645,11 +645,15 @@ impl Session {
                 }
                 msg = next_message(&mut inbound), if inbound_open => match msg {
                     Ok(Some(m)) => {
+                        // A new view is a new refinement: it is announced done again (at once
+                        // when everything was already sent), so the client knows the view has
+                        // nothing more coming.
+                        let new_view = matches!(m.msg, Some(pb::refine_request::Msg::View(_)));
                         if let Err(status) = self.handle(m).await {
                             let _ = tx.send(Err(status)).await;
                             return;
                         }
-                        announced &= self.queue.is_empty();
+                        announced &= self.queue.is_empty() && !new_view;
                     }
                     Ok(None) => inbound_open = false,
                     Err(status) => {

@@ -1,128 +1,620 @@
-//! `wavesplat demo`: the main job on a fresh machine, in one process and without a GPU. It
-//! compresses a volume (a built-in phantom by default), then renders it straight from the
-//! coefficient stream as it would arrive over the network: after growing byte budgets, each
-//! image scored against the ground truth — the reference ray caster's X-ray of the original,
-//! uncompressed volume (Q_I of eq. 18 in the paper's units and the conventional SNR) — plus a
-//! multiview and a depth-cued image. Writes PNGs and a CSV of quality against bytes and time.
+//! `wavesplat demo`: the whole system in one process, on a fresh machine without a GPU. It
+//! starts the cache, the orchestrator and a worker on loopback, submits an archive (an
+//! intensity phantom, a classified RGB phantom and any volumes given with `--volume`), waits
+//! for the compression jobs, then browses each volume from the cache with the headless viewer
+//! under a frame budget along a short path (rest, a 90° turn, rest) in three scenes (single
+//! view, multiview, depth cueing). Every frame is scored against the reference ray caster's
+//! image of the original volume; it writes frame PNGs, a CSV per run and `report.html` with
+//! charts of the error against time and bytes and a table of figures beside each.
 
-use super::render::load_coefficients;
-use anyhow::{Context, Result};
+use crate::local::LocalStack;
+use crate::report::{self, Chart, Section, Series, Table};
+use crate::scoring::{score, FrameQuality, GroundTruth};
+use anyhow::{bail, Context, Result};
 use clap::Args;
+use std::collections::HashSet;
 use std::io::Write;
-use std::path::PathBuf;
-use wavesplat_codec::format::parse_file;
-use wavesplat_codec::metrics::{q_i_paper_db, snr_db};
-use wavesplat_compressor::encode::{compress, CompressOptions, Target};
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+use wavesplat_client::VolumeKey;
+use wavesplat_codec::view::{Cue, CueDirection, View, ViewSpec};
+use wavesplat_codec::volume::Volume;
 use wavesplat_compressor::phantom::Phantom;
-use wavesplat_viewer::{
-    render_reference, Cue, CueDirection, PaddedVolume, ReferenceOptions, RenderOptions, Renderer,
-    View,
-};
+use wavesplat_orchestrator::client;
+use wavesplat_orchestrator::model::{JobOptions, TargetSpec};
+use wavesplat_viewer::backend::{select, BackendChoice};
+use wavesplat_viewer::session::{RenderSession, SessionOptions};
+use wavesplat_viewer::source::{CacheSource, CacheSourceOptions};
+use wavesplat_viewer::walk::{percentile, turn, walk, FrameSample, PathStep, WalkOptions};
+use wavesplat_viewer::{FrameLoop, ReferenceOptions};
+use wavesplat_worker::archive;
 
 /// Arguments of `wavesplat demo`.
 #[derive(Args, Debug)]
 pub struct DemoArgs {
-    /// Output directory for the .wsp, PNGs and CSV.
-    #[arg(long, default_value = "wavesplat-demo")]
-    pub out: PathBuf,
-    /// Phantom to use (shepp-logan, spheres, rgb-head, …).
-    #[arg(long, default_value = "shepp-logan")]
-    pub phantom: String,
-    /// Phantom size (cube edge in voxels).
-    #[arg(long, default_value_t = 96)]
+    /// Output directory (frames, CSVs, charts, report.html). Given explicitly, it also keeps
+    /// the services' databases (DIR/db) so the cache can be served again afterwards; by default
+    /// they live in a temporary directory and outputs go to ./wavesplat-demo.
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// Also compress and browse this volume (NIfTI, NRRD, MetaImage, a DICOM directory, or
+    /// raw named NAME_XxYxZ_DTYPE[_rgb].raw); repeatable.
+    #[arg(long = "volume")]
+    pub volumes: Vec<PathBuf>,
+    /// Edge of the built-in phantoms in voxels (the intensity phantom is X×X×(3X/4), so it is
+    /// not a cube).
+    #[arg(long, default_value_t = 80)]
     pub size: usize,
-    /// Image size (square, pixels).
-    #[arg(long, default_value_t = 256)]
+    /// Image side in pixels (per view for multiview).
+    #[arg(long, default_value_t = 192)]
     pub image: usize,
+    /// Frame budget in milliseconds.
+    #[arg(long, default_value_t = 16.6)]
+    pub frame_ms: f64,
+    /// Most frames to rest at a view waiting for convergence.
+    #[arg(long, default_value_t = 240)]
+    pub rest_frames: usize,
+    /// Compression threads of the worker (0: one per core).
+    #[arg(long, default_value_t = 0)]
+    pub threads: usize,
+}
+
+/// One browsing run: a volume, a scene, its samples and their quality.
+struct Run {
+    volume: String,
+    scene: &'static str,
+    header: wavesplat_codec::format::Header,
+    backend: String,
+    path: Vec<PathStep>,
+    samples: Vec<FrameSample>,
+    quality: Vec<Option<FrameQuality>>,
+    file_bytes: u64,
+}
+
+/// A volume of the demo archive: its name in the cache and its original samples.
+struct ArchiveVolume {
+    name: String,
+    original: Volume,
+}
+
+/// Writes `v` as raw little-endian f32 (channels interleaved) named by the raw convention.
+fn write_raw(dir: &Path, name: &str, v: &Volume) -> Result<PathBuf> {
+    let d = v.dims();
+    let rgb = if v.channel_count() == 3 { "_rgb" } else { "" };
+    let path = dir.join(format!("{name}_{}x{}x{}_f32{rgb}.raw", d[0], d[1], d[2]));
+    let channels = v.channels();
+    let mut bytes = Vec::with_capacity(v.voxel_count() * channels.len() * 4);
+    for i in 0..v.voxel_count() {
+        for c in channels {
+            bytes.extend_from_slice(&c[i].to_le_bytes());
+        }
+    }
+    std::fs::write(&path, bytes).with_context(|| format!("writing {}", path.display()))?;
+    Ok(path)
+}
+
+/// The found volumes of a `--volume` argument: the file itself, or what a directory holds.
+fn found_for(path: &Path) -> Result<Vec<archive::Found>> {
+    let meta = std::fs::metadata(path).with_context(|| format!("reading {}", path.display()))?;
+    let scan_root = if meta.is_dir() {
+        path.to_path_buf()
+    } else {
+        path.parent()
+            .filter(|p| !p.as_os_str().is_empty())
+            .unwrap_or(Path::new("."))
+            .to_path_buf()
+    };
+    let scan = archive::scan(&scan_root).with_context(|| format!("scanning {}", path.display()))?;
+    if meta.is_dir() {
+        if scan.found.is_empty() {
+            bail!("no supported volume under {}", path.display());
+        }
+        return Ok(scan.found);
+    }
+    let want = std::fs::canonicalize(path)?;
+    let hit: Vec<archive::Found> = scan
+        .found
+        .into_iter()
+        .filter(|f| std::fs::canonicalize(&f.path).is_ok_and(|p| p == want))
+        .collect();
+    if hit.is_empty() {
+        bail!(
+            "{} is not a supported volume (NIfTI, NRRD, MetaImage, DICOM, or raw named NAME_XxYxZ_DTYPE[_rgb].raw)",
+            path.display()
+        );
+    }
+    Ok(hit)
+}
+
+fn read_original(f: &archive::Found) -> Result<Volume> {
+    let raw = f.raw.as_ref().map(wavesplat_worker::options::raw_spec);
+    wavesplat_compressor::reader::read_volume(&f.path, raw.as_ref())
+        .with_context(|| format!("reading {}", f.path.display()))
 }
 
 /// Runs the subcommand.
 pub fn run(a: DemoArgs) -> Result<()> {
-    std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
-    let phantom = Phantom::from_name(&a.phantom).with_context(|| {
-        format!(
-            "unknown phantom {:?}; choose one of {:?}",
-            a.phantom,
-            Phantom::names()
-        )
-    })?;
-    let volume = phantom.generate([a.size; 3]);
-    outln!(
-        "1/3 compressing the {} phantom ({}³, {} channel(s)) …",
-        a.phantom,
-        a.size,
-        volume.channel_count()
-    );
-    let t = std::time::Instant::now();
-    let opts = CompressOptions {
-        target: Target::Fraction(0.03),
-        ..Default::default()
+    if !(a.frame_ms.is_finite() && a.frame_ms > 0.0) {
+        bail!("--frame-ms must be positive, got {}", a.frame_ms);
+    }
+    if a.size < 8 || a.size > 512 {
+        bail!("--size must be 8..=512 voxels, got {}", a.size);
+    }
+    if a.image < 16 || a.image > 2048 {
+        bail!("--image must be 16..=2048 pixels, got {}", a.image);
+    }
+    let started = Instant::now();
+    let out = a
+        .out
+        .clone()
+        .unwrap_or_else(|| PathBuf::from("wavesplat-demo"));
+    std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
+    let temp_db;
+    let db = match &a.out {
+        Some(o) => o.join("db"),
+        None => {
+            temp_db = tempfile::tempdir().context("creating a temporary directory")?;
+            temp_db.path().to_path_buf()
+        }
     };
-    let c = compress(&volume, &opts, &|_, _| {})?;
-    let wsp = a.out.join("volume.wsp");
-    std::fs::write(&wsp, &c.bytes)?;
+    let archive_dir = out.join("archive");
+    for sub in ["archive", "frames", "runs", "charts"] {
+        std::fs::create_dir_all(out.join(sub))?;
+    }
+
+    // 1. The archive: two phantoms written as raw files, plus the user's volumes.
+    let n = a.size;
+    let mut volumes = vec![
+        ArchiveVolume {
+            name: "shepp-logan".into(),
+            original: Phantom::SheppLogan.generate([n, n, (3 * n / 4).max(1)]),
+        },
+        ArchiveVolume {
+            name: "rgb-head".into(),
+            original: Phantom::RgbHead.generate([(3 * n / 4).max(1); 3]),
+        },
+    ];
+    let mut found = Vec::new();
+    for v in &volumes {
+        let p = write_raw(&archive_dir, &v.name, &v.original)?;
+        found.extend(found_for(&p)?);
+    }
+    let mut names: HashSet<String> = volumes.iter().map(|v| v.name.clone()).collect();
+    for p in &a.volumes {
+        for f in found_for(p)? {
+            if !names.insert(f.name.clone()) {
+                bail!("two volumes are called {:?}; rename one", f.name);
+            }
+            outln!("reading {} …", f.path.display());
+            volumes.push(ArchiveVolume {
+                name: f.name.clone(),
+                original: read_original(&f)?,
+            });
+            found.push(f);
+        }
+    }
+
+    // 2. Services on loopback, jobs submitted and watched.
     outln!(
-        "    {} bytes ({:.3} % of 8-bit), {} coefficients, Q_V {:.3} %, {} packets, {:.2} s",
-        c.bytes.len(),
-        100.0 * c.bytes.len() as f64 / (volume.voxel_count() * volume.channel_count()) as f64,
-        c.stats.kept,
-        c.stats.q_v,
-        c.stats.packets,
+        "1/3 starting the cache, the orchestrator and a worker on loopback (databases in {}) …",
+        db.display()
+    );
+    let stack = LocalStack::start(&db, true, a.threads)?;
+    let orchestrator = stack
+        .orchestrator_url
+        .clone()
+        .context("the orchestrator did not start")?;
+    let options = JobOptions {
+        target: TargetSpec::Fraction(0.05),
+        // Smaller tiles and a few quality layers: more, smaller packets, so the view-dependent
+        // order and the progressive refinement have something to order (+5 % bytes).
+        tile: Some(32),
+        layers: Some(4),
+        ..JobOptions::default()
+    };
+    let options = options.validate()?;
+    let t = Instant::now();
+    stack.block_on(async {
+        let mut c = client::connect(&orchestrator)
+            .await
+            .context("connecting to the local orchestrator")?;
+        let mut ids = HashSet::new();
+        for f in &found {
+            let (spec, bytes) = archive::job_spec(f, &options, false)
+                .with_context(|| format!("reading {}", f.path.display()))?;
+            let r = client::submit(&mut c, &spec, bytes.as_deref())
+                .await
+                .with_context(|| format!("submitting {}", f.path.display()))?;
+            let job = r.job.context("the orchestrator returned no job")?;
+            outln!("    submitted {} as job {}", f.name, job.id);
+            ids.insert(job.id);
+        }
+        super::orchestrator::watch(&mut c, Some(&ids)).await
+    })?;
+    outln!(
+        "    compressed {} volumes in {:.1} s",
+        found.len(),
         t.elapsed().as_secs_f64()
     );
 
-    outln!("2/3 rendering progressively from the coefficient stream …");
-    let header = parse_file(&c.bytes)?.header;
-    let mut renderer = Renderer::new(RenderOptions {
-        channels: header.channels,
-        ..RenderOptions::default()
-    });
-    let view = View::new(0.66, 0.91, a.image, a.image);
-    let (_, all) = load_coefficients(&c.bytes, None, None)?;
-    // Ground truth: exact line integrals of the original volume (same geometry and padding).
-    let t = std::time::Instant::now();
-    let original = PaddedVolume::from_volume(volume.channels(), &header.geometry);
-    let reference = render_reference(&original, &view, &ReferenceOptions::default())?;
-    reference.write_png(&a.out.join("reference.png"), None)?;
+    // 3. Browse each volume from the cache along the path, in each scene.
     outln!(
-        "    reference ray caster on the original volume: {:.0} ms (reference.png)",
-        t.elapsed().as_secs_f64() * 1e3
+        "2/3 browsing each volume from the cache (frame budget {} ms) …",
+        a.frame_ms
     );
-    let mut csv = std::fs::File::create(a.out.join("progressive.csv"))?;
-    writeln!(csv, "bytes,coefficients,render_ms,q_i_paper_db,snr_db")?;
-    let total = c.bytes.len();
-    let mut budget = 1024usize.min(total);
-    loop {
-        let (_, coeffs) = load_coefficients(&c.bytes, None, Some(budget))?;
-        let t = std::time::Instant::now();
-        let img = renderer.render(&coeffs, &header.geometry, &view)?;
-        let ms = t.elapsed().as_secs_f64() * 1e3;
-        let q = q_i_paper_db(&reference.data, &img.data);
-        let s = snr_db(&reference.data, &img.data);
-        writeln!(csv, "{budget},{},{ms:.2},{q:.3},{s:.3}", coeffs.len())?;
-        outln!(
-            "    {budget:>8} bytes  {:>7} coefficients  {ms:7.1} ms  Q_I {q:6.2} dB (paper units)  SNR {s:6.2} dB",
-            coeffs.len()
-        );
-        img.write_png(&a.out.join(format!("progressive-{budget:08}.png")), None)?;
-        if budget >= total {
-            break;
+    let frame = Duration::from_secs_f64(a.frame_ms / 1e3);
+    // Probe the adapters once: the default takes the GPU only on a hardware adapter.
+    let probe = select(BackendChoice::Auto).context("choosing the accumulation backend")?;
+    outln!("    backend: {}", probe.reason);
+    let backend = if probe.backend.name().starts_with("cpu") {
+        BackendChoice::Cpu
+    } else {
+        BackendChoice::Gpu
+    };
+    drop(probe);
+    let mut runs = Vec::new();
+    for v in &volumes {
+        let file_bytes = stack
+            .block_on(async {
+                let mut c = wavesplat_client::CacheClient::connect(&stack.cache_url).await?;
+                c.describe(&VolumeKey::Name(v.name.clone())).await
+            })
+            .with_context(|| format!("describing {}", v.name))?
+            .file_bytes;
+        let diagonal = {
+            let d = v.original.dims();
+            ((d[0] * d[0] + d[1] * d[1] + d[2] * d[2]) as f64).sqrt()
+        };
+        let base = View::new(0.66, 0.91, a.image, a.image);
+        let scenes: [(&'static str, ViewSpec); 3] = [
+            ("single", ViewSpec::single(base)),
+            (
+                "multiview",
+                ViewSpec {
+                    view: base,
+                    multiview: true,
+                },
+            ),
+            (
+                "depth-cued",
+                ViewSpec::single(base.with_cue(Cue {
+                    // Light falls to e^-3 across the volume's diagonal.
+                    k: 3.0 / diagonal,
+                    direction: CueDirection::View,
+                })),
+            ),
+        ];
+        for (scene, spec) in scenes {
+            let mut path = vec![PathStep::rest(spec, a.rest_frames)];
+            path.extend(turn(
+                spec,
+                [0.66, 0.91],
+                [std::f64::consts::FRAC_PI_2, 0.0],
+                6,
+                3,
+            ));
+            let end = path.last().expect("a turn has steps").spec;
+            path.push(PathStep::rest(end, a.rest_frames));
+            let (header, backend, samples) =
+                browse(&stack.cache_url, &v.name, spec, &path, frame, backend)
+                    .with_context(|| format!("browsing {} ({scene})", v.name))?;
+            runs.push(Run {
+                volume: v.name.clone(),
+                scene,
+                header,
+                backend,
+                path,
+                samples,
+                quality: Vec::new(),
+                file_bytes,
+            });
         }
-        budget = (budget * 4).min(total);
     }
+    stack.shutdown()?;
 
-    outln!("3/3 multiview and depth cueing …");
-    let (mv, _) = renderer.render_multiview(&all, &header.geometry, &view)?;
-    mv.write_png(&a.out.join("multiview.png"), None)?;
-    let cued = renderer.render(
-        &all,
-        &header.geometry,
-        &view.with_cue(Cue {
-            k: 0.02,
-            direction: CueDirection::View,
-        }),
+    // 4. Score, write frames, CSVs, charts and the report.
+    outln!("3/3 scoring every frame against the reference ray caster and writing the report …");
+    let mut sections = Vec::new();
+    for v in &volumes {
+        let Some(first) = runs.iter().find(|r| r.volume == v.name) else {
+            continue;
+        };
+        let truth = GroundTruth::new(&v.original, &first.header.geometry, reference_options());
+        for r in runs.iter_mut().filter(|r| r.volume == v.name) {
+            r.quality = score(&truth, &r.path, &r.samples)?;
+        }
+        sections.push(volume_section(&out, v, &runs, a.frame_ms)?);
+    }
+    let intro = format!(
+        "{} volumes compressed by the worker (linear B-spline wavelets, 5 % of the coefficients), \
+         then browsed from the cache over loopback by the headless viewer with the {} backend at a \
+         {} ms frame budget: rest at α = 0.66, β = 0.91 until converged, a 90° turn in six steps \
+         of three frames, rest again. Q_I is the paper's image quality (eq. 18) against the \
+         reference ray caster's image of the original volume for the same view; SNR the \
+         conventional one. Machine: {} threads.",
+        volumes.len(),
+        runs.first().map_or("cpu".into(), |r| r.backend.clone()),
+        a.frame_ms,
+        rayon::current_num_threads()
+    );
+    report::write_html(
+        &out.join("report.html"),
+        "wavesplat demo: browsing compressed volumes from the cache",
+        &intro,
+        &sections,
     )?;
-    cued.write_png(&a.out.join("depth-cued.png"), None)?;
-    outln!("wrote {}/{{volume.wsp, reference.png, progressive-*.png, multiview.png, depth-cued.png, progressive.csv}}", a.out.display());
+    for r in &runs {
+        let last = r.samples.last();
+        let q = r.quality.iter().rev().flatten().next();
+        outln!(
+            "    {:12} {:10} {:4} frames, {:7} bytes of {:7}, final Q_I {:6.2} dB, SNR {:6.2} dB",
+            r.volume,
+            r.scene,
+            r.samples.len(),
+            last.map_or(0, |s| s.bytes),
+            r.file_bytes,
+            q.map_or(f64::NAN, |q| q.q_i),
+            q.map_or(f64::NAN, |q| q.snr)
+        );
+    }
+    outln!(
+        "done in {:.0} s: open {}",
+        started.elapsed().as_secs_f64(),
+        out.join("report.html").display()
+    );
+    if a.out.is_some() {
+        outln!(
+            "the cache database is kept: wavesplat serve cache --db {} --addr 127.0.0.1:50051",
+            db.join("cache").display()
+        );
+    }
+    Ok(())
+}
+
+/// The reference renderer's settings for scoring: 2×2 rays per pixel and a quarter-voxel step
+/// (a quarter of the default's rays at half its samples per ray; its own error is far below
+/// the compressed images' error it scores, see BENCHMARKS.md).
+pub fn reference_options() -> ReferenceOptions {
+    ReferenceOptions {
+        supersample: 2,
+        step: 0.25,
+    }
+}
+
+/// Opens `name` at the cache and walks `path` with a fresh session on `backend`.
+fn browse(
+    url: &str,
+    name: &str,
+    spec: ViewSpec,
+    path: &[PathStep],
+    frame: Duration,
+    backend: BackendChoice,
+) -> Result<(wavesplat_codec::format::Header, String, Vec<FrameSample>)> {
+    let (source, header) = CacheSource::open(
+        url,
+        VolumeKey::Name(name.to_string()),
+        spec,
+        CacheSourceOptions::default(),
+    )?;
+    let selected = select(backend).context("choosing the accumulation backend")?;
+    let session = RenderSession::new(
+        header.header.clone(),
+        spec,
+        selected.backend,
+        SessionOptions {
+            preview: Some(SessionOptions::default_preview()),
+            ..SessionOptions::default()
+        },
+    )?;
+    let backend = session.backend_name();
+    let mut frames = FrameLoop::new(session, source);
+    let samples = walk(&mut frames, path, &WalkOptions::new(frame))?;
+    Ok((header.header, backend, samples))
+}
+
+/// Q_I of the sample `n` frames into step `step` (the last if the step had fewer).
+fn q_at(r: &Run, step: usize, n: u64) -> Option<f64> {
+    r.samples
+        .iter()
+        .zip(&r.quality)
+        .filter(|(s, _)| s.step == step && s.frame_in_step <= n)
+        .last()
+        .and_then(|(_, q)| q.map(|q| q.q_i))
+}
+
+fn fmt(x: Option<f64>, digits: usize) -> String {
+    x.filter(|v| v.is_finite())
+        .map_or("–".into(), |v| format!("{v:.digits$}"))
+}
+
+/// Writes the runs' CSVs, frame PNGs and charts of volume `v`; returns its report section.
+fn volume_section(out: &Path, v: &ArchiveVolume, runs: &[Run], frame_ms: f64) -> Result<Section> {
+    let mine: Vec<&Run> = runs.iter().filter(|r| r.volume == v.name).collect();
+    let slug = v.name.replace(['/', ' '], "_");
+    let mut table = Table {
+        head: [
+            "scene",
+            "frames",
+            "first image ms",
+            "converged ms",
+            "Q_I 1 frame",
+            "Q_I 10",
+            "Q_I 60",
+            "Q_I at rest",
+            "Q_I after turn",
+            "SNR final",
+            "bytes",
+            "of file",
+            "frame p50 ms",
+            "p95 ms",
+            "past budget",
+        ]
+        .map(String::from)
+        .to_vec(),
+        rows: Vec::new(),
+    };
+    let mut images = Vec::new();
+    let mut by_time = Vec::new();
+    let mut by_bytes = Vec::new();
+    for r in &mine {
+        let csv_path = out.join("runs").join(format!("{slug}-{}.csv", r.scene));
+        write_csv(&csv_path, r)?;
+        let turn_end = r.path.len() - 1;
+        let first_image = r
+            .samples
+            .iter()
+            .find(|s| s.splatted > 0)
+            .map(|s| s.t.as_secs_f64() * 1e3);
+        let converged = r
+            .samples
+            .iter()
+            .find(|s| s.step == 0 && s.converged)
+            .map(|s| s.t.as_secs_f64() * 1e3);
+        let times: Vec<f64> = r
+            .samples
+            .iter()
+            .map(|s| s.frame_time.as_secs_f64() * 1e3)
+            .collect();
+        let over = times.iter().filter(|t| **t > frame_ms).count();
+        let last_q = r.quality.iter().rev().flatten().next();
+        table.rows.push(vec![
+            r.scene.to_string(),
+            r.samples.len().to_string(),
+            fmt(first_image, 0),
+            fmt(converged, 0),
+            fmt(q_at(r, 0, 1), 1),
+            fmt(q_at(r, 0, 10), 1),
+            fmt(q_at(r, 0, 60), 1),
+            fmt(q_at(r, 0, u64::MAX), 1),
+            fmt(q_at(r, turn_end, u64::MAX), 1),
+            fmt(last_q.map(|q| q.snr), 1),
+            r.samples.last().map_or(0, |s| s.bytes).to_string(),
+            r.file_bytes.to_string(),
+            fmt(percentile(&times, 50.0), 1),
+            fmt(percentile(&times, 95.0), 1),
+            over.to_string(),
+        ]);
+        let pts = |x: &dyn Fn(&FrameSample) -> f64| -> Vec<(f64, f64)> {
+            r.samples
+                .iter()
+                .zip(&r.quality)
+                .filter_map(|(s, q)| q.map(|q| (x(s), q.q_i)))
+                .collect()
+        };
+        by_time.push(Series::new(r.scene, pts(&|s| s.t.as_secs_f64() * 1e3)));
+        by_bytes.push(Series::new(
+            r.scene,
+            pts(&|s| s.bytes as f64)
+                .into_iter()
+                .filter(|p| p.0 > 0.0)
+                .collect(),
+        ));
+        // Frames worth looking at: the first, the 10th, the converged rest, the turn's end and
+        // the converged end.
+        let step0: Vec<&FrameSample> = r.samples.iter().filter(|s| s.step == 0).collect();
+        let picks = [
+            ("first frame", r.samples.first()),
+            ("frame 10", step0.get(9).copied()),
+            ("at rest", step0.last().copied()),
+            (
+                "first frame after the turn",
+                r.samples.iter().find(|s| s.step == turn_end),
+            ),
+            ("converged after the turn", r.samples.last()),
+        ];
+        for (caption, s) in picks {
+            let Some(s) = s else { continue };
+            let Some(img) = &s.image else { continue };
+            let file = format!("frames/{slug}-{}-{:04}.png", r.scene, s.frame);
+            img.write_png(&out.join(&file), None)?;
+            let q = r.quality[(s.frame - 1) as usize];
+            images.push((
+                file,
+                format!(
+                    "{} {caption} (frame {}, {:.0} ms, Q_I {})",
+                    r.scene,
+                    s.frame,
+                    s.t.as_secs_f64() * 1e3,
+                    fmt(q.map(|q| q.q_i), 1)
+                ),
+            ));
+        }
+    }
+    let chart_time = format!("charts/{slug}-qi-time.png");
+    Chart {
+        title: format!("{}: Q_I against time", v.name),
+        x_label: "time since opening (ms)".into(),
+        y_label: "Q_I (dB, paper units)".into(),
+        log_x: true,
+        series: by_time,
+    }
+    .write_png(&out.join(&chart_time), 560, 360)?;
+    let chart_bytes = format!("charts/{slug}-qi-bytes.png");
+    Chart {
+        title: format!("{}: Q_I against bytes received", v.name),
+        x_label: "bytes received".into(),
+        y_label: "Q_I (dB, paper units)".into(),
+        log_x: true,
+        series: by_bytes,
+    }
+    .write_png(&out.join(&chart_bytes), 560, 360)?;
+    let d = v.original.dims();
+    Ok(Section {
+        title: format!(
+            "{} ({}×{}×{}, {} channel{})",
+            v.name,
+            d[0],
+            d[1],
+            d[2],
+            v.original.channel_count(),
+            if v.original.channel_count() == 1 {
+                ""
+            } else {
+                "s"
+            }
+        ),
+        text: format!(
+            "Compressed file: {} bytes. Each line is one scene; the dips are the 90° turn \
+             (a new view restarts accumulation from the most important coefficients held).",
+            mine.first().map_or(0, |r| r.file_bytes)
+        ),
+        charts: vec![chart_time, chart_bytes],
+        table,
+        images,
+    })
+}
+
+/// One CSV row per frame.
+fn write_csv(path: &Path, r: &Run) -> Result<()> {
+    let mut f = std::io::BufWriter::new(
+        std::fs::File::create(path).with_context(|| format!("creating {}", path.display()))?,
+    );
+    writeln!(
+        f,
+        "frame,step,t_ms,frame_ms,packets,bytes,coefficients_held,splatted,splatted_this_frame,batches,batches_past_deadline,pending,exact,converged,q_i_paper_db,snr_db"
+    )?;
+    for (s, q) in r.samples.iter().zip(&r.quality) {
+        writeln!(
+            f,
+            "{},{},{:.3},{:.3},{},{},{},{},{},{},{},{},{},{},{},{}",
+            s.frame,
+            s.step,
+            s.t.as_secs_f64() * 1e3,
+            s.frame_time.as_secs_f64() * 1e3,
+            s.packets,
+            s.bytes,
+            s.coefficients_held,
+            s.splatted,
+            s.splatted_this_frame,
+            s.batches,
+            s.batches_past_deadline,
+            s.pending,
+            s.exact,
+            s.converged,
+            fmt(q.map(|q| q.q_i), 3),
+            fmt(q.map(|q| q.snr), 3),
+        )?;
+    }
+    f.flush()?;
     Ok(())
 }

@@ -429,7 +429,7 @@ fn is_terminal(j: &pb::Job) -> bool {
 /// Polls the jobs (all, or `ids`) until every one is finished: indicatif bars on a terminal
 /// (one per job and one overall), `tracing` events on state changes otherwise. Fails if any
 /// job failed.
-async fn watch(c: &mut client::Client, ids: Option<&HashSet<u64>>) -> Result<()> {
+pub(crate) async fn watch(c: &mut client::Client, ids: Option<&HashSet<u64>>) -> Result<()> {
     let tty = std::io::stderr().is_terminal();
     let multi = MultiProgress::new();
     let style = ProgressStyle::with_template("{prefix:>24} [{bar:30}] {pos:>3}% {msg}")

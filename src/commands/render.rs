@@ -340,8 +340,9 @@ fn reference_image(opened: &Opened, header: &Header, spec: &ViewSpec) -> Result<
         ..RenderOptions::default()
     });
     let (img, _) = r.render_spec(&all, &header.geometry, spec)?;
-    let cameras = spec.cameras(header.geometry.dims)?;
-    Ok(wavesplat_viewer::color::to_rgb(&img, header, &cameras)?)
+    Ok(wavesplat_viewer::color::to_rgb_for_spec(
+        &img, header, spec,
+    )?)
 }
 
 /// Per-frame record: a CSV row per frame and PNGs of frames 1, 2, 4, ….

@@ -14,6 +14,8 @@
 //!   gRPC on its own thread, pulled with credit);
 //! - [`frame`]: the frame loop: drain packets, splat within a frame's budget;
 //! - [`color`]: images in a coded colour space back to RGB;
+//! - [`walk`]: scripted view paths through the frame loop, paced like a display, recorded per
+//!   frame (the demo and `bench refine`);
 //! - [`splat`]: the one-shot [`Renderer`] (plan + a backend, the CPU one by default);
 //! - [`reference`]: the ground-truth ray caster on the reconstructed volume;
 //! - [`image`]: the [`Image`] type, PNG with window/level, raw f32 output.
@@ -38,6 +40,7 @@ pub mod reference;
 pub mod session;
 pub mod source;
 pub mod splat;
+pub mod walk;
 
 pub use backend::{AccumulationBackend, BackendError, CpuBackend};
 pub use frame::{FrameLoop, FrameReport};

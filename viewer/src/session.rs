@@ -602,7 +602,18 @@ impl<B: AccumulationBackend> RenderSession<B> {
             self.header.channels,
         );
         std::thread::spawn(move || {
-            let plan = Planner::new(options).plan(&geometry, &spec, channels);
+            // Planning runs parallel loops; on rayon's global pool they would queue ahead of
+            // the frame thread's splat batches and stall frames (on two cores, for the whole
+            // build). A one-thread pool of its own keeps the global pool free for splatting.
+            let plan_it = || Planner::new(options).plan(&geometry, &spec, channels);
+            let plan = match rayon::ThreadPoolBuilder::new()
+                .num_threads(1)
+                .thread_name(|_| "wavesplat-planner".into())
+                .build()
+            {
+                Ok(pool) => pool.install(plan_it),
+                Err(_) => plan_it(),
+            };
             // The receiver may be gone (session dropped): nothing to do then.
             let _ = tx.send(plan);
         });
@@ -776,7 +787,12 @@ impl<B: AccumulationBackend> RenderSession<B> {
     /// side).
     pub fn image(&mut self) -> Result<Image, SessionError> {
         let raw = self.backend.read()?;
-        Ok(color::to_rgb(&raw, &self.header, &self.plan.cameras)?)
+        Ok(color::to_rgb(
+            &raw,
+            &self.header,
+            &self.plan.cameras,
+            self.plan.cue.as_ref(),
+        )?)
     }
 
     /// The image so far in the coded channels (what the backend accumulated).

@@ -240,6 +240,10 @@ pub struct CacheSourceOptions {
     pub queue_packets: usize,
     /// Stop after this many bytes of packets (None: everything the view ranks).
     pub byte_budget: Option<u64>,
+    /// Simulated link speed in bytes per second (None: as fast as the connection goes). Each
+    /// packet is handed to the session only once its bytes would have crossed a link of this
+    /// speed after the previous one: bandwidth, no latency (for benchmarks over loopback).
+    pub link_bytes_per_second: Option<u64>,
 }
 
 impl Default for CacheSourceOptions {
@@ -248,6 +252,7 @@ impl Default for CacheSourceOptions {
             credit_bytes: 64 << 10,
             queue_packets: 8,
             byte_budget: None,
+            link_bytes_per_second: None,
         }
     }
 }
@@ -307,6 +312,7 @@ impl CacheSource {
             options,
             held: HashSet::new(),
             status: status.clone(),
+            link_free: None,
         };
         let thread = std::thread::Builder::new()
             .name("wavesplat-cache-source".into())
@@ -373,6 +379,8 @@ struct Pull {
     /// Packets delivered to the session and not dropped.
     held: HashSet<u32>,
     status: Arc<Mutex<SourceStatus>>,
+    /// When the simulated link finishes carrying the last packet.
+    link_free: Option<tokio::time::Instant>,
 }
 
 /// How a stream ended.
@@ -449,6 +457,18 @@ impl Pull {
         }
     }
 
+    /// Waits until a packet of `len` bytes has crossed the simulated link (if any).
+    async fn cross_link(&mut self, len: usize) {
+        let Some(rate) = self.options.link_bytes_per_second.filter(|r| *r > 0) else {
+            return;
+        };
+        let now = tokio::time::Instant::now();
+        let begin = self.link_free.map_or(now, |f| f.max(now));
+        let arrives = begin + Duration::from_secs_f64(len as f64 / rate as f64);
+        self.link_free = Some(arrives);
+        tokio::time::sleep_until(arrives).await;
+    }
+
     fn budget_left(&self) -> bool {
         let bytes = self.status.lock().map(|s| s.bytes).unwrap_or(0);
         self.options.byte_budget.is_none_or(|b| bytes < b)
@@ -516,6 +536,7 @@ impl Pull {
                 ev = stream.next(), if want_more => match ev {
                     Ok(Some(RefineEvent::Packet(p))) => {
                         if !self.held.contains(&p.id) {
+                            self.cross_link(p.data.len()).await;
                             pending = Some(SourcePacket { id: p.id, data: p.data });
                         }
                     }

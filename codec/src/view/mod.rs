@@ -393,6 +393,41 @@ impl Camera {
         ];
         clip_ray(self.from_screen(xs, ys), self.n, lo, hi).map_or(0.0, |(t0, t1)| t1 - t0)
     }
+
+    /// The depth-cued counterpart of [`Camera::chord`]: ∫ e^(−k·dist) along the ray's path
+    /// through the voxel box, in closed form (the box lies behind every light-facing face, so
+    /// the weight there is the plain exponential of a distance linear along the ray). It is
+    /// what a constant added to every voxel contributes to a depth-cued pixel.
+    pub fn cued_chord(&self, dims: [usize; 3], xs: f64, ys: f64, cue: &ResolvedCue) -> f64 {
+        let lo = [-0.5; 3];
+        let hi = [
+            dims[0] as f64 - 0.5,
+            dims[1] as f64 - 0.5,
+            dims[2] as f64 - 0.5,
+        ];
+        let p = self.from_screen(xs, ys);
+        let Some((t0, t1)) = clip_ray(p, self.n, lo, hi) else {
+            return 0.0;
+        };
+        let at = |t: f64| {
+            [
+                p[0] + t * self.n[0],
+                p[1] + t * self.n[1],
+                p[2] + t * self.n[2],
+            ]
+        };
+        // Exponents at both ends (dist ≥ 0 inside the box; clamp rounding).
+        let a = cue.k * cue.dist(at(t0)).max(0.0);
+        let b = cue.k * cue.dist(at(t1)).max(0.0);
+        let len = t1 - t0;
+        let d = b - a;
+        // len·(e^−a − e^−b)/(b − a) = len·e^−a·(1 − e^−d)/d, with −expm1 for small d.
+        if d.abs() < 1e-12 {
+            len * (-a).exp()
+        } else {
+            len * (-a).exp() * (-(-d).exp_m1()) / d
+        }
+    }
 }
 
 /// What a client looks at: a view, alone or as the first of the three multiview images.
