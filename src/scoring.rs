@@ -65,7 +65,17 @@ pub fn score(
     path: &[PathStep],
     samples: &[FrameSample],
 ) -> Result<Vec<Option<FrameQuality>>> {
-    let mut references: HashMap<usize, Image> = HashMap::new();
+    let mut references = HashMap::new();
+    score_with(truth, path, samples, &mut references)
+}
+
+/// [`score`] with a cache of reference images by path step, kept across walks of one path.
+pub fn score_with(
+    truth: &GroundTruth,
+    path: &[PathStep],
+    samples: &[FrameSample],
+    references: &mut HashMap<usize, Image>,
+) -> Result<Vec<Option<FrameQuality>>> {
     let mut out = Vec::with_capacity(samples.len());
     for s in samples {
         let Some(img) = &s.image else {

@@ -139,6 +139,9 @@ pub struct FrameSample {
     pub splatted: u64,
     /// Coefficients splatted in this frame.
     pub splatted_this_frame: usize,
+    /// Coefficients held but not splatted because this view does not see them (zero visible
+    /// energy: work the scene leaves out).
+    pub invisible: u64,
     /// Splat batches in this frame.
     pub batches: usize,
     /// Batches that ended past the frame's deadline (at most 1).
@@ -216,6 +219,7 @@ pub fn walk<B: AccumulationBackend, S: PacketSource>(
                 coefficients_held: stats.coefficients_held,
                 splatted: stats.splatted_in_view,
                 splatted_this_frame: report.coefficients,
+                invisible: stats.invisible_in_view,
                 batches: report.batches,
                 batches_past_deadline: report.batches_past_deadline,
                 pending: report.pending,

@@ -3,6 +3,7 @@
 //! cache on loopback) and `stability` (stiff and extreme numerical cases). Nothing here is
 //! asserted; the tests assert the pass/fail parts.
 
+pub mod refine;
 pub mod throughput;
 
 use anyhow::Result;
@@ -20,11 +21,15 @@ pub struct BenchArgs {
 pub enum BenchCommand {
     /// Throughput of compression, packet decoding and splatting per family (CSV + table).
     Throughput(throughput::ThroughputArgs),
+    /// Frame-budgeted refinement from a cache on loopback: budgets × link speeds along a view
+    /// path, Q_I against time and bytes, frame-time distribution, the paper's Table 4.
+    Refine(refine::RefineArgs),
 }
 
 /// Runs the subcommand.
 pub fn run(a: BenchArgs) -> Result<()> {
     match a.which {
         BenchCommand::Throughput(t) => throughput::run(t),
+        BenchCommand::Refine(r) => refine::run(r),
     }
 }

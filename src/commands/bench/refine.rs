@@ -1,0 +1,536 @@
+//! `wavesplat bench refine`: framerate-constrained refinement against a cache on loopback. For
+//! each frame budget and simulated link speed it walks one view path (rest, a 90° turn, rest,
+//! a zoom into a corner, rest) through the frame loop and records per frame the time, the
+//! coefficients held and splatted, the bytes received and Q_I / SNR against the reference ray
+//! caster's image of the original volume for the same view. Writes `refine.csv` (every
+//! frame), `summary.csv` (per run: frame-time percentiles against the budget, Q_I after 1,
+//! 10 and 60 frames from rest and after the turn, what the scenes left out), charts, and the
+//! paper's Table 4 (`table4.csv`: coefficients, Q_V and render time for RGB, YIQ and PCA at
+//! 4.6, 9.4, 79 and 368 KB on a 128³ RGB phantom) beside the paper's figures.
+
+use crate::commands::demo::reference_options;
+use crate::commands::render::load_coefficients;
+use crate::local::LocalStack;
+use crate::report::{Chart, Series};
+use crate::scoring::{score_with, FrameQuality, GroundTruth};
+use anyhow::{bail, Context, Result};
+use clap::Args;
+use std::collections::HashMap;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+use wavesplat_client::VolumeKey;
+use wavesplat_codec::format::parse_file;
+use wavesplat_codec::view::{View, ViewSpec};
+use wavesplat_codec::volume::Volume;
+use wavesplat_compressor::colorspace::ColorSpaceKind;
+use wavesplat_compressor::encode::{compress, CompressOptions, Target, TileChoice};
+use wavesplat_compressor::phantom::Phantom;
+use wavesplat_viewer::backend::{select, BackendChoice};
+use wavesplat_viewer::session::{RenderSession, SessionOptions};
+use wavesplat_viewer::source::{CacheSource, CacheSourceOptions};
+use wavesplat_viewer::walk::{percentile, turn, walk, zoom_to, FrameSample, PathStep, WalkOptions};
+use wavesplat_viewer::{FrameLoop, RenderOptions, Renderer};
+
+/// Arguments of `wavesplat bench refine`.
+#[derive(Args, Debug)]
+pub struct RefineArgs {
+    /// Volume file (NIfTI, NRRD, MetaImage, DICOM directory); default: a Shepp–Logan phantom.
+    #[arg(long)]
+    pub volume: Option<PathBuf>,
+    /// Phantom edge when no volume is given (X×X×3X/4).
+    #[arg(long, default_value_t = 96)]
+    pub size: usize,
+    /// Image side in pixels.
+    #[arg(long, default_value_t = 256)]
+    pub image: usize,
+    /// Frame budgets in milliseconds, comma-separated.
+    #[arg(long, default_value = "8,16.6,33,100")]
+    pub budgets: String,
+    /// Link speeds in Mbit/s, comma-separated (`unlimited` or 0 for no limit).
+    #[arg(long, default_value = "unlimited,100,10,1")]
+    pub links: String,
+    /// Most frames to rest at a view waiting for convergence.
+    #[arg(long, default_value_t = 300)]
+    pub rest_frames: usize,
+    /// Skip the paper's Table 4 (twelve compressions of a 128³ RGB phantom).
+    #[arg(long)]
+    pub no_table4: bool,
+    /// Output directory.
+    #[arg(long, default_value = "bench-refine")]
+    pub out: PathBuf,
+}
+
+fn parse_list(s: &str, what: &str) -> Result<Vec<f64>> {
+    s.split(',')
+        .map(|t| {
+            let t = t.trim();
+            if t.eq_ignore_ascii_case("unlimited") || t.eq_ignore_ascii_case("inf") {
+                return Ok(0.0);
+            }
+            let v: f64 = t
+                .parse()
+                .with_context(|| format!("{what}: {t:?} is not a number"))?;
+            if !(v.is_finite() && v >= 0.0) {
+                bail!("{what}: {t:?} must be a non-negative number");
+            }
+            Ok(v)
+        })
+        .collect()
+}
+
+fn link_name(mbit: f64) -> String {
+    if mbit == 0.0 {
+        "unlimited".into()
+    } else {
+        format!("{mbit} Mbit/s")
+    }
+}
+
+/// One run: a budget, a link, its samples and their quality.
+struct Run {
+    budget_ms: f64,
+    link_mbit: f64,
+    samples: Vec<FrameSample>,
+    quality: Vec<Option<FrameQuality>>,
+}
+
+/// The benchmark's view path and the indices of its rests.
+fn view_path(dims: [usize; 3], image: usize, rest: usize) -> Result<(Vec<PathStep>, [usize; 3])> {
+    let start = ViewSpec::single(View::new(0.66, 0.91, image, image));
+    let mut path = vec![PathStep::rest(start, rest)];
+    path.extend(turn(
+        start,
+        [0.66, 0.91],
+        [std::f64::consts::FRAC_PI_2, 0.0],
+        6,
+        3,
+    ));
+    let after_turn = path.len();
+    let turned = path.last().expect("turn steps").spec;
+    path.push(PathStep::rest(turned, rest));
+    // Zoom ×4 into the corner a third of the volume off centre, up and right.
+    let fit = wavesplat_codec::view::Camera::new(&turned.view, dims)?.zoom;
+    let off = dims.iter().copied().max().unwrap_or(1) as f64 / 3.0;
+    path.extend(zoom_to(turned, dims, 4.0 * fit, [off, off], 4, 3)?);
+    let zoomed = path.last().expect("zoom steps").spec;
+    path.push(PathStep::rest(zoomed, rest));
+    let corner = path.len() - 1;
+    Ok((path, [0, after_turn, corner]))
+}
+
+/// Runs the subcommand.
+pub fn run(a: RefineArgs) -> Result<()> {
+    let budgets = parse_list(&a.budgets, "--budgets")?;
+    if budgets.iter().any(|b| *b <= 0.0) {
+        bail!("--budgets must be positive milliseconds");
+    }
+    let links = parse_list(&a.links, "--links")?;
+    std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
+    let volume: Volume = match &a.volume {
+        Some(p) => wavesplat_compressor::reader::read_volume(p, None)
+            .with_context(|| format!("reading {}", p.display()))?,
+        None => Phantom::SheppLogan.generate([a.size, a.size, (3 * a.size / 4).max(1)]),
+    };
+    let d = volume.dims();
+    outln!(
+        "compressing a {}×{}×{} volume (5 % of the coefficients, tiles of 32, 4 layers) …",
+        d[0],
+        d[1],
+        d[2]
+    );
+    let c = compress(
+        &volume,
+        &CompressOptions {
+            target: Target::Fraction(0.05),
+            tile: TileChoice::Size(32),
+            layers: Some(4),
+            ..Default::default()
+        },
+        &|_, _| {},
+    )?;
+    let header = parse_file(&c.bytes)?.header;
+    let file_bytes = c.bytes.len() as u64;
+    let db = tempfile::tempdir()?;
+    let stack = LocalStack::start(db.path(), false, 0)?;
+    stack
+        .block_on(async {
+            let mut client = wavesplat_client::CacheClient::connect(&stack.cache_url).await?;
+            client.ingest("bench", &c.bytes).await
+        })
+        .context("ingesting into the local cache")?;
+    let (path, rests) = view_path(d, a.image, a.rest_frames)?;
+    let probe = select(BackendChoice::Auto)?;
+    outln!("backend: {}", probe.reason);
+    let backend = if probe.backend.name().starts_with("cpu") {
+        BackendChoice::Cpu
+    } else {
+        BackendChoice::Gpu
+    };
+    drop(probe);
+    let truth = GroundTruth::new(&volume, &header.geometry, reference_options());
+    let mut references = HashMap::new();
+    let mut runs = Vec::new();
+    for &budget_ms in &budgets {
+        for &link_mbit in &links {
+            let t = Instant::now();
+            let options = CacheSourceOptions {
+                link_bytes_per_second: (link_mbit > 0.0)
+                    .then(|| (link_mbit * 1e6 / 8.0).round().max(1.0) as u64),
+                ..CacheSourceOptions::default()
+            };
+            let (source, _) = CacheSource::open(
+                &stack.cache_url,
+                VolumeKey::Name("bench".into()),
+                path[0].spec,
+                options,
+            )?;
+            let session = RenderSession::new(
+                header.clone(),
+                path[0].spec,
+                select(backend)?.backend,
+                SessionOptions {
+                    preview: Some(SessionOptions::default_preview()),
+                    ..SessionOptions::default()
+                },
+            )?;
+            let mut frames = FrameLoop::new(session, source);
+            let mut wo = WalkOptions::new(Duration::from_secs_f64(budget_ms / 1e3));
+            wo.stall_limit = Duration::from_secs(120);
+            let samples = walk(&mut frames, &path, &wo)?;
+            drop(frames);
+            let quality = score_with(&truth, &path, &samples, &mut references)?;
+            outln!(
+                "budget {budget_ms:>5} ms, link {:>12}: {:4} frames in {:.1} s",
+                link_name(link_mbit),
+                samples.len(),
+                t.elapsed().as_secs_f64()
+            );
+            runs.push(Run {
+                budget_ms,
+                link_mbit,
+                // Images are scored; drop them to keep memory flat across runs.
+                samples: samples
+                    .into_iter()
+                    .map(|mut s| {
+                        s.image = None;
+                        s
+                    })
+                    .collect(),
+                quality,
+            });
+        }
+    }
+    stack.shutdown()?;
+    write_frames_csv(&a.out.join("refine.csv"), &runs)?;
+    write_summary(&a.out, &runs, &rests, file_bytes)?;
+    write_charts(&a.out, &runs, &budgets, &links)?;
+    if !a.no_table4 {
+        table4(&a.out)?;
+    }
+    outln!(
+        "wrote {}/{{refine.csv, summary.csv, *.png{}}}",
+        a.out.display(),
+        if a.no_table4 { "" } else { ", table4.csv" }
+    );
+    Ok(())
+}
+
+fn q_of(q: &Option<FrameQuality>) -> f64 {
+    q.map_or(f64::NAN, |q| q.q_i)
+}
+
+fn write_frames_csv(path: &Path, runs: &[Run]) -> Result<()> {
+    let mut f = std::io::BufWriter::new(std::fs::File::create(path)?);
+    writeln!(
+        f,
+        "budget_ms,link_mbit,frame,step,t_ms,frame_ms,bytes,coefficients_held,splatted,splatted_this_frame,invisible,batches,batches_past_deadline,exact,converged,q_i_paper_db,snr_db"
+    )?;
+    for r in runs {
+        for (s, q) in r.samples.iter().zip(&r.quality) {
+            writeln!(
+                f,
+                "{},{},{},{},{:.3},{:.3},{},{},{},{},{},{},{},{},{},{:.3},{:.3}",
+                r.budget_ms,
+                r.link_mbit,
+                s.frame,
+                s.step,
+                s.t.as_secs_f64() * 1e3,
+                s.frame_time.as_secs_f64() * 1e3,
+                s.bytes,
+                s.coefficients_held,
+                s.splatted,
+                s.splatted_this_frame,
+                s.invisible,
+                s.batches,
+                s.batches_past_deadline,
+                s.exact,
+                s.converged,
+                q_of(q),
+                q.map_or(f64::NAN, |q| q.snr)
+            )?;
+        }
+    }
+    f.flush()?;
+    Ok(())
+}
+
+/// Q_I `n` frames into step `step` (its last frame if it had fewer).
+fn q_at(r: &Run, step: usize, n: u64) -> f64 {
+    r.samples
+        .iter()
+        .zip(&r.quality)
+        .filter(|(s, _)| s.step == step && s.frame_in_step <= n)
+        .last()
+        .map_or(f64::NAN, |(_, q)| q_of(q))
+}
+
+fn write_summary(out: &Path, runs: &[Run], rests: &[usize; 3], file_bytes: u64) -> Result<()> {
+    let mut f = std::fs::File::create(out.join("summary.csv"))?;
+    writeln!(
+        f,
+        "budget_ms,link_mbit,frames,frame_p50_ms,frame_p95_ms,frame_p99_ms,frames_over_budget,max_batches_past_deadline,q_i_1,q_i_10,q_i_60,q_i_rest,q_i_first_after_turn,q_i_10_after_turn,q_i_after_turn_rest,q_i_corner_rest,bytes_for_rest_view,invisible_corner,held_corner,file_bytes"
+    )?;
+    outln!(
+        "{:>7} {:>12} {:>6} {:>6} {:>6} {:>6} {:>5} {:>6} {:>6} {:>6} {:>6} {:>7} {:>7} {:>9}",
+        "budget",
+        "link",
+        "p50",
+        "p95",
+        "p99",
+        "over",
+        "Q1",
+        "Q10",
+        "Q60",
+        "Qrest",
+        "Qturn",
+        "Qturn10",
+        "Qcorner",
+        "bytes@99%"
+    );
+    for r in runs {
+        let times: Vec<f64> = r
+            .samples
+            .iter()
+            .map(|s| s.frame_time.as_secs_f64() * 1e3)
+            .collect();
+        let over = times.iter().filter(|t| **t > r.budget_ms).count();
+        let past = r
+            .samples
+            .iter()
+            .map(|s| s.batches_past_deadline)
+            .max()
+            .unwrap_or(0);
+        let [rest0, turned, corner] = *rests;
+        let q_rest = q_at(r, rest0, u64::MAX);
+        // Bytes the first view needed: received when its Q_I first came within 1 % (0.04 dB
+        // in power terms ≈ 0.1 dB) of its final value.
+        let bytes_needed = r
+            .samples
+            .iter()
+            .zip(&r.quality)
+            .filter(|(s, _)| s.step == rest0)
+            .find(|(_, q)| q_of(q) >= q_rest - 0.1)
+            .map_or(0, |(s, _)| s.bytes);
+        let corner_last = r.samples.iter().rfind(|s| s.step == corner);
+        let p = |x: f64| percentile(&times, x).unwrap_or(f64::NAN);
+        let row = [
+            p(50.0),
+            p(95.0),
+            p(99.0),
+            q_at(r, rest0, 1),
+            q_at(r, rest0, 10),
+            q_at(r, rest0, 60),
+            q_rest,
+            q_at(r, turned, 1),
+            q_at(r, turned, 10),
+            q_at(r, turned, u64::MAX),
+            q_at(r, corner, u64::MAX),
+        ];
+        writeln!(
+            f,
+            "{},{},{},{:.2},{:.2},{:.2},{over},{past},{:.2},{:.2},{:.2},{:.2},{:.2},{:.2},{:.2},{:.2},{bytes_needed},{},{},{file_bytes}",
+            r.budget_ms,
+            r.link_mbit,
+            r.samples.len(),
+            row[0],
+            row[1],
+            row[2],
+            row[3],
+            row[4],
+            row[5],
+            row[6],
+            row[7],
+            row[8],
+            row[9],
+            row[10],
+            corner_last.map_or(0, |s| s.invisible),
+            corner_last.map_or(0, |s| s.coefficients_held),
+        )?;
+        outln!(
+            "{:>7} {:>12} {:>6.1} {:>6.1} {:>6.1} {:>6} {:>5.1} {:>6.1} {:>6.1} {:>6.1} {:>6.1} {:>7.1} {:>7.1} {:>9}",
+            r.budget_ms,
+            link_name(r.link_mbit),
+            row[0],
+            row[1],
+            row[2],
+            over,
+            row[3],
+            row[4],
+            row[5],
+            row[6],
+            row[7],
+            row[8],
+            row[10],
+            bytes_needed
+        );
+    }
+    Ok(())
+}
+
+fn write_charts(out: &Path, runs: &[Run], budgets: &[f64], links: &[f64]) -> Result<()> {
+    // Q_I against time and bytes per link, at the budget nearest 16.6 ms.
+    let mid = budgets
+        .iter()
+        .copied()
+        .min_by(|a, b| (a - 16.6).abs().total_cmp(&(b - 16.6).abs()))
+        .unwrap_or(16.6);
+    let series = |x: &dyn Fn(&FrameSample) -> f64| -> Vec<Series> {
+        runs.iter()
+            .filter(|r| r.budget_ms == mid)
+            .map(|r| {
+                Series::new(
+                    link_name(r.link_mbit),
+                    r.samples
+                        .iter()
+                        .zip(&r.quality)
+                        .map(|(s, q)| (x(s), q_of(q)))
+                        .collect(),
+                )
+            })
+            .collect()
+    };
+    Chart {
+        title: format!("Q_I against time (budget {mid} ms; rest, turn, rest, zoom, rest)"),
+        x_label: "time (ms)".into(),
+        y_label: "Q_I (dB, paper units)".into(),
+        log_x: false,
+        series: series(&|s| s.t.as_secs_f64() * 1e3),
+    }
+    .write_png(&out.join("qi-time.png"), 720, 420)?;
+    Chart {
+        title: format!("Q_I against bytes received (budget {mid} ms)"),
+        x_label: "bytes received".into(),
+        y_label: "Q_I (dB, paper units)".into(),
+        log_x: true,
+        series: series(&|s| s.bytes as f64),
+    }
+    .write_png(&out.join("qi-bytes.png"), 720, 420)?;
+    // Frame-time distribution per budget (fastest link): the CDF, with the budgets marked.
+    let fastest = links.iter().copied().fold(f64::NAN, |m, l| {
+        if m.is_nan() || l == 0.0 || (m != 0.0 && l > m) {
+            l
+        } else {
+            m
+        }
+    });
+    let mut cdf = Vec::new();
+    for r in runs.iter().filter(|r| r.link_mbit == fastest) {
+        let mut t: Vec<f64> = r
+            .samples
+            .iter()
+            .map(|s| s.frame_time.as_secs_f64() * 1e3)
+            .collect();
+        t.sort_by(f64::total_cmp);
+        let n = t.len().max(1) as f64;
+        cdf.push(Series::new(
+            format!("budget {} ms", r.budget_ms),
+            t.iter()
+                .enumerate()
+                .map(|(i, v)| (v.max(0.01), (i + 1) as f64 / n))
+                .collect(),
+        ));
+        cdf.push(Series::marker(
+            format!("{} ms", r.budget_ms),
+            vec![(r.budget_ms, 0.0), (r.budget_ms, 1.0)],
+        ));
+    }
+    Chart {
+        title: "Frame time distribution against the budget".into(),
+        x_label: "frame time (ms)".into(),
+        y_label: "fraction of frames".into(),
+        log_x: true,
+        series: cdf,
+    }
+    .write_png(&out.join("frame-times.png"), 720, 420)?;
+    Ok(())
+}
+
+/// The paper's Table 4 on a 128³ RGB phantom: kept coefficients, Q_V and the one-shot render
+/// time (256², median of 3) per colour space and file size, beside the paper's figures.
+fn table4(out: &Path) -> Result<()> {
+    // (KB, [(coefficients, Q_V %)] for RGB, YIQ, PCA) from the paper.
+    const PAPER: [(f64, [(u64, f64); 3]); 4] = [
+        (4.6, [(2155, 65.38), (2175, 81.61), (2184, 85.61)]),
+        (9.4, [(4480, 82.73), (4221, 86.91), (3820, 88.27)]),
+        (79.0, [(31714, 92.14), (35655, 94.6), (30554, 94.74)]),
+        (368.0, [(170761, 96.82), (178065, 98.22), (172240, 98.47)]),
+    ];
+    outln!("Table 4 on a 128³ RGB phantom (the paper's in brackets) …");
+    let volume = Phantom::RgbHead.generate([128; 3]);
+    let mut f = std::fs::File::create(out.join("table4.csv"))?;
+    writeln!(
+        f,
+        "kbytes,colorspace,bytes,coefficients,q_v_percent,render_ms,paper_coefficients,paper_q_v_percent"
+    )?;
+    let spaces = [
+        ("RGB", ColorSpaceKind::Rgb),
+        ("YIQ", ColorSpaceKind::Yiq),
+        ("PCA", ColorSpaceKind::Pca),
+    ];
+    for (kb, paper) in PAPER {
+        let mut line = format!("{kb:>6} KB");
+        for ((name, space), (pc, pq)) in spaces.iter().zip(paper) {
+            let c = compress(
+                &volume,
+                &CompressOptions {
+                    family: wavesplat_codec::family::Family::Haar,
+                    levels: Some(3),
+                    colorspace: *space,
+                    target: Target::Bytes((kb * 1024.0) as u64),
+                    refine: None,
+                    ..Default::default()
+                },
+                &|_, _| {},
+            )?;
+            let (header, coeffs) = load_coefficients(&c.bytes, None, None)?;
+            let mut r = Renderer::new(RenderOptions {
+                channels: header.channels,
+                ..RenderOptions::default()
+            });
+            let view = View::new(0.66, 0.91, 256, 256);
+            r.render(&coeffs, &header.geometry, &view)?;
+            let mut times = Vec::new();
+            for _ in 0..3 {
+                let t = Instant::now();
+                r.render(&coeffs, &header.geometry, &view)?;
+                times.push(t.elapsed().as_secs_f64() * 1e3);
+            }
+            times.sort_by(f64::total_cmp);
+            writeln!(
+                f,
+                "{kb},{name},{},{},{:.2},{:.2},{pc},{pq}",
+                c.bytes.len(),
+                c.stats.kept,
+                c.stats.q_v,
+                times[1]
+            )?;
+            line.push_str(&format!(
+                " | {name} {:>6} ({pc:>6}) {:5.2} % ({pq:5.2}) {:6.1} ms",
+                c.stats.kept, c.stats.q_v, times[1]
+            ));
+        }
+        outln!("{line}");
+    }
+    Ok(())
+}
