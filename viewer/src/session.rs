@@ -21,8 +21,12 @@
 //!   ([`RenderSession::is_exact`]). Depth-cued views build their tables per piece on demand and
 //!   are planned exactly at once.
 //! - **Steps** take a time budget and do as much as fits, in batches sized from a running
-//!   estimate of the cost per coefficient for this backend (planning + accumulation); a step
-//!   starts no batch after its deadline, so at most one batch ends past it.
+//!   estimate of the cost for this backend (planning + accumulation) per unit of footprint
+//!   weight ([`splat_weight`]: a coefficient one level coarser, or seen at twice the zoom,
+//!   covers four times the pixels),
+//!   kept apart for preview and exact tables (their costs differ several-fold, and the first
+//!   batch after a switch must not be sized by the other's); a step starts no batch after its
+//!   deadline, so at most one batch ends past it.
 //! - **Memory.** With a bound, retained coefficients beyond it are dropped, least visible energy
 //!   per byte first, once they have been splatted (their contribution stays in the image); the
 //!   dropped packet ids are handed to the source so the cache sends them again after a later
@@ -115,7 +119,7 @@ impl Default for SessionOptions {
             plan: PlanOptions::default(),
             memory_bound: None,
             transient_bytes: 8 << 20,
-            min_batch: 256,
+            min_batch: 32,
             max_batch: 1 << 20,
             preview: None,
         }
@@ -228,21 +232,44 @@ impl BucketQueue {
         self.len += 1;
     }
 
-    /// Up to `n` entries, highest buckets first.
-    fn pop(&mut self, n: usize, out: &mut Vec<(u32, u32)>) {
+    /// Entries, highest buckets first, until their summed `weight` reaches `allowance` (at
+    /// least `min` entries, at most `max`); returns the weight taken.
+    fn pop_weighted(
+        &mut self,
+        allowance: f64,
+        (min, max): (usize, usize),
+        weight: impl Fn((u32, u32)) -> f64,
+        out: &mut Vec<(u32, u32)>,
+    ) -> f64 {
         out.clear();
-        while out.len() < n && self.len > 0 {
+        let mut taken = 0.0;
+        while self.len > 0 && out.len() < max && (out.len() < min || taken < allowance) {
             let b = &mut self.buckets[self.top];
-            let take = (n - out.len()).min(b.len());
-            out.extend(b.drain(b.len() - take..).rev());
-            self.len -= take;
+            if let Some(e) = b.pop() {
+                taken += weight(e);
+                out.push(e);
+                self.len -= 1;
+            }
             if b.is_empty() && self.top > 0 {
                 while self.top > 0 && self.buckets[self.top].is_empty() {
                     self.top -= 1;
                 }
             }
         }
+        taken
     }
+}
+
+/// The first guess of the cost per unit of splat weight, before anything was measured: on the
+/// high side, so a first batch is short rather than long.
+const INITIAL_COST_PER_WEIGHT: f64 = 2e-7;
+
+/// The relative cost of splatting a coefficient of `level` (1 = finest) at `zoom` pixels per
+/// voxel: its footprint's area in pixels, which grows fourfold per level and with the square
+/// of the zoom, plus a fixed part per coefficient (projection, binning, record).
+pub fn splat_weight(level: u8, zoom: f64) -> f64 {
+    let side = zoom.clamp(1e-3, 1e3) * 2f64.powi(i32::from(level.clamp(1, 16)) - 1);
+    side * side + 1.0
 }
 
 /// The queue bucket of a visible energy; `None` when the view cannot see it.
@@ -313,8 +340,9 @@ pub struct RenderSession<B: AccumulationBackend> {
     queue: BucketQueue,
     dropped: Vec<u32>,
     stats: SessionStats,
-    /// Seconds per coefficient (planning + accumulation), running estimate.
-    cost: f64,
+    /// Seconds per unit of splat weight (planning + accumulation), running estimates for
+    /// preview (0) and exact (1) tables.
+    cost: [f64; 2],
     records: Vec<SplatRecord>,
     next_local_id: u32,
 }
@@ -368,7 +396,7 @@ impl<B: AccumulationBackend> RenderSession<B> {
             queue: BucketQueue::new(),
             dropped: Vec::new(),
             stats: SessionStats::default(),
-            cost: 1e-6,
+            cost: [INITIAL_COST_PER_WEIGHT; 2],
             records: Vec::new(),
             next_local_id: u32::MAX,
         };
@@ -410,9 +438,10 @@ impl<B: AccumulationBackend> RenderSession<B> {
         self.queue.len
     }
 
-    /// The running estimate of the cost of one coefficient.
-    pub fn cost_per_coefficient(&self) -> Duration {
-        Duration::from_secs_f64(self.cost)
+    /// The running estimate of the cost of one unit of [`splat_weight`] with the current
+    /// tables (preview or exact).
+    pub fn cost_per_weight(&self) -> Duration {
+        Duration::from_secs_f64(self.cost[usize::from(self.exact)])
     }
 
     /// Whether the session takes another packet now (the transient budget is not used up).
@@ -689,9 +718,21 @@ impl<B: AccumulationBackend> RenderSession<B> {
                 break;
             }
             let left = (deadline - now).as_secs_f64();
-            let n = ((left / self.cost.max(1e-12)) as usize)
-                .clamp(self.options.min_batch.max(1), self.options.max_batch.max(1));
-            self.queue.pop(n, &mut batch);
+            let kind = usize::from(self.exact);
+            let packets = &self.packets;
+            let zoom = self.plan.cameras.first().map_or(1.0, |c| c.zoom);
+            let weight_of = |(p, i): (u32, u32)| {
+                packets
+                    .get(&p)
+                    .and_then(|h| h.coefficients.get(i as usize))
+                    .map_or(1.0, |c| splat_weight(c.band.level, zoom))
+            };
+            let weight = self.queue.pop_weighted(
+                left / self.cost[kind].max(1e-15),
+                (self.options.min_batch.max(1), self.options.max_batch.max(1)),
+                weight_of,
+                &mut batch,
+            );
             coefficients.clear();
             coefficients.extend(
                 batch
@@ -714,12 +755,13 @@ impl<B: AccumulationBackend> RenderSession<B> {
                 }
             }
             let end = clock.now();
-            let per = (end.saturating_sub(now)).as_secs_f64() / batch.len() as f64;
+            let per = (end.saturating_sub(now)).as_secs_f64() / weight.max(1e-9);
             // Running estimate: quick to follow a slower backend, slower to trust a faster one.
-            self.cost = if per > self.cost {
-                0.5 * self.cost + 0.5 * per
+            let c = &mut self.cost[kind];
+            *c = if per > *c {
+                0.5 * *c + 0.5 * per
             } else {
-                0.8 * self.cost + 0.2 * per
+                0.8 * *c + 0.2 * per
             };
             self.stats.splatted_in_view += batch.len() as u64;
             report.coefficients += batch.len();
