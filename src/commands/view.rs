@@ -127,8 +127,9 @@ pub fn run(a: ViewWindowArgs) -> Result<()> {
     }
     if let (Some(path), Some(frames)) = (&app.args.screenshot, app.frames.as_mut()) {
         let image = frames.session.image().context("reading the image")?;
+        let window = app.state.display_window(&image)?;
         image
-            .write_png(path, None)
+            .write_png(path, window)
             .with_context(|| format!("writing {}", path.display()))?;
     }
     if let Some(frames) = &app.frames {
@@ -165,6 +166,10 @@ struct ViewState {
     cue_k: f64,
     cue_dir: CueDirection,
     budget_ms: f64,
+    /// Display window width relative to the automatic one (1st–99th percentile).
+    contrast: f64,
+    /// Display window centre, offset from the automatic one in units of its width.
+    level: f64,
     initial: Option<Box<ViewState>>,
 }
 
@@ -186,10 +191,37 @@ impl ViewState {
             cue_k,
             cue_dir,
             budget_ms: a.frame_ms,
+            contrast: 1.0,
+            level: 0.0,
             initial: None,
         };
         s.initial = Some(Box::new(s.clone()));
         s
+    }
+
+    /// The display window (lo, hi) for `image`: the automatic one (1st and 99th percentiles)
+    /// narrowed or widened by the contrast and moved by the level; `None` while both are at
+    /// their defaults.
+    fn display_window(&self, image: &wavesplat_viewer::Image) -> Result<Option<(f64, f64)>> {
+        if self.contrast == 1.0 && self.level == 0.0 {
+            return Ok(None);
+        }
+        let (lo, hi) = image.resolve_window(None)?;
+        let width = hi - lo;
+        let centre = 0.5 * (lo + hi) + self.level * width;
+        let half = 0.5 * width * self.contrast;
+        Ok(Some((centre - half, centre + half)))
+    }
+
+    /// The next light direction for depth cueing: the view direction, then light from +x, +y
+    /// and +z of the volume.
+    fn next_cue_dir(&self) -> CueDirection {
+        match self.cue_dir {
+            CueDirection::View => CueDirection::Vector([1.0, 0.0, 0.0]),
+            CueDirection::Vector([x, _, _]) if x > 0.5 => CueDirection::Vector([0.0, 1.0, 0.0]),
+            CueDirection::Vector([_, y, _]) if y > 0.5 => CueDirection::Vector([0.0, 0.0, 1.0]),
+            _ => CueDirection::View,
+        }
     }
 
     /// The view spec for a window of `size` (physical pixels), image sides capped at `max`.
@@ -419,8 +451,10 @@ struct App {
 }
 
 const HELP: &str = "wavesplat view: left-drag rotates (alpha, beta); shift-drag pans; wheel zooms;
-  M multiview, C depth cue on/off, [ ] cue extinction down/up, + - frame budget up/down,
-  R reset the view, S screenshot (PNG), H or F1 this help, Esc or Q quit";
+  M multiview, C depth cue on/off, [ ] cue extinction down/up, D cue light direction (view,
+  +x, +y, +z), + - frame budget up/down, 1 2 display window narrower/wider, 3 4 level
+  down/up, 0 automatic window/level, R reset the view, S screenshot (PNG), H or F1 this help,
+  Esc or Q quit";
 
 impl App {
     fn fail(&mut self, event_loop: &ActiveEventLoop, e: anyhow::Error) {
@@ -617,6 +651,31 @@ impl App {
                 self.state.cue_k = (self.state.cue_k * 1.25).min(10.0);
                 self.dirty_view |= self.state.cue_on;
             }
+            KeyPress::Char('d') => {
+                self.state.cue_dir = self.state.next_cue_dir();
+                self.dirty_view |= self.state.cue_on;
+            }
+            KeyPress::Char('1') => {
+                self.state.contrast = (self.state.contrast * 0.8).max(1e-3);
+                self.dirty_image = true;
+            }
+            KeyPress::Char('2') => {
+                self.state.contrast = (self.state.contrast * 1.25).min(1e3);
+                self.dirty_image = true;
+            }
+            KeyPress::Char('3') => {
+                self.state.level = (self.state.level - 0.05).max(-10.0);
+                self.dirty_image = true;
+            }
+            KeyPress::Char('4') => {
+                self.state.level = (self.state.level + 0.05).min(10.0);
+                self.dirty_image = true;
+            }
+            KeyPress::Char('0') => {
+                self.state.contrast = 1.0;
+                self.state.level = 0.0;
+                self.dirty_image = true;
+            }
             KeyPress::Char('+' | '=') => {
                 self.state.budget_ms = (self.state.budget_ms * 1.25).min(1000.0);
             }
@@ -655,8 +714,9 @@ impl App {
             .as_mut()
             .ok_or_else(|| anyhow!("nothing is shown yet"))?;
         let image = frames.session.image().context("reading the image")?;
+        let window = self.state.display_window(&image)?;
         image
-            .write_png(path, None)
+            .write_png(path, window)
             .with_context(|| format!("writing {}", path.display()))
     }
 
@@ -771,7 +831,8 @@ impl App {
         let display_start = Instant::now();
         if self.dirty_image {
             let image = frames.session.image().context("reading the image")?;
-            let rgba = image.to_rgba8(None).context("converting the image")?;
+            let window = self.state.display_window(&image)?;
+            let rgba = image.to_rgba8(window).context("converting the image")?;
             let (w, h) = (image.width as u32, image.height as u32);
             if g.texture.as_ref().map(|(t, _)| (t.width(), t.height())) != Some((w, h)) {
                 let t = g.ctx.device().create_texture(&wgpu::TextureDescriptor {
@@ -843,7 +904,7 @@ impl App {
             }
             let (iw, ih) = self.last_image.unwrap_or((0, 0));
             g.window.set_title(&format!(
-                "wavesplat — {} — {} held, {} splatted, {} received — {:.1} ms/frame (budget {:.1}) — {}{}{} — {iw}x{ih}",
+                "wavesplat — {} — {} held, {} splatted, {} received — {:.1} ms/frame (budget {:.1}) — {}{}{}{} — {iw}x{ih}",
                 self.args.view.describe(),
                 stats.coefficients_held,
                 stats.splatted_in_view,
@@ -853,7 +914,22 @@ impl App {
                 state,
                 if self.state.multiview { " — multiview" } else { "" },
                 if self.state.cue_on {
-                    format!(" — cue k={:.4}", self.state.cue_k)
+                    let dir = match self.state.cue_dir {
+                        CueDirection::View => String::new(),
+                        CueDirection::Vector(v) => format!(" from {v:?}"),
+                        CueDirection::Angles { alpha, beta } => {
+                            format!(" from α={alpha:.2}, β={beta:.2}")
+                        }
+                    };
+                    format!(" — cue k={:.4}{dir}", self.state.cue_k)
+                } else {
+                    String::new()
+                },
+                if self.state.contrast != 1.0 || self.state.level != 0.0 {
+                    format!(
+                        " — window ×{:.2}, level {:+.2}",
+                        self.state.contrast, self.state.level
+                    )
                 } else {
                     String::new()
                 },
@@ -1049,6 +1125,82 @@ impl ApplicationHandler for App {
                 g.window.request_redraw();
             }
             event_loop.set_control_flow(ControlFlow::WaitUntil(next));
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn state() -> ViewState {
+        ViewState {
+            alpha: 0.0,
+            beta: 0.0,
+            zoom_factor: 1.0,
+            zoom_abs: None,
+            pan: [0.0; 2],
+            multiview: false,
+            cue_on: true,
+            cue_k: 0.02,
+            cue_dir: CueDirection::View,
+            budget_ms: 16.6,
+            contrast: 1.0,
+            level: 0.0,
+            initial: None,
+        }
+    }
+
+    fn ramp() -> wavesplat_viewer::Image {
+        let mut img = wavesplat_viewer::Image::new(100, 1, 1);
+        for (i, v) in img.data.iter_mut().enumerate() {
+            *v = i as f32;
+        }
+        img
+    }
+
+    #[test]
+    fn window_and_level_scale_and_move_the_automatic_window() {
+        let mut s = state();
+        let img = ramp();
+        assert_eq!(s.display_window(&img).unwrap(), None);
+        let (lo, hi) = img.resolve_window(None).unwrap();
+        s.contrast = 0.5;
+        let (a, b) = s.display_window(&img).unwrap().unwrap();
+        assert!(((b - a) - 0.5 * (hi - lo)).abs() < 1e-9);
+        assert!((0.5 * (a + b) - 0.5 * (lo + hi)).abs() < 1e-9);
+        s.level = 0.1;
+        let (c, d) = s.display_window(&img).unwrap().unwrap();
+        assert!((0.5 * (c + d) - 0.5 * (lo + hi) - 0.1 * (hi - lo)).abs() < 1e-9);
+        // A narrower window maps the same pixels to more contrast.
+        let auto = img.to_rgba8(None).unwrap();
+        let narrow = img.to_rgba8(Some((a, b))).unwrap();
+        let spread = |px: &[u8]| px[4 * 60] as i32 - px[4 * 40] as i32;
+        assert!(spread(&narrow) > spread(&auto));
+    }
+
+    #[test]
+    fn the_cue_direction_cycles_through_the_axes_and_back_to_the_view() {
+        let mut s = state();
+        let mut seen = Vec::new();
+        for _ in 0..4 {
+            s.cue_dir = s.next_cue_dir();
+            seen.push(s.cue_dir);
+        }
+        assert_eq!(
+            seen,
+            vec![
+                CueDirection::Vector([1.0, 0.0, 0.0]),
+                CueDirection::Vector([0.0, 1.0, 0.0]),
+                CueDirection::Vector([0.0, 0.0, 1.0]),
+                CueDirection::View
+            ]
+        );
+        // Every direction makes a valid depth-cued view.
+        for d in seen {
+            s.cue_dir = d;
+            let spec = s.spec(PhysicalSize::new(64, 48), 64, [16, 16, 16]).unwrap();
+            assert_eq!(spec.view.cue.map(|c| c.direction), Some(d));
         }
     }
 }
