@@ -86,6 +86,7 @@ fn main() {
                 have: vec![1, 2, 3],
                 have_header: true,
                 credit_bytes: 1 << 16,
+                visible_only: true,
             })),
         }
         .encode_to_vec(),

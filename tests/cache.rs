@@ -260,6 +260,94 @@ async fn view_dependent_order_beats_global_order() {
 }
 
 #[tokio::test]
+async fn visible_only_leaves_out_what_the_view_cannot_see_until_a_view_does() {
+    let bytes = test_file([48, 48, 48]);
+    let file = wavesplat_codec::format::parse_file(&bytes).unwrap();
+    let header = file.header.clone();
+    let all: Vec<Coefficient> = file
+        .packets
+        .iter()
+        .flat_map(|p| decode_packet(&header, p).unwrap().coefficients)
+        .collect();
+    let server = TestServer::start().await;
+    let mut c = server.client().await;
+    let info = c.ingest("shepp", &bytes).await.unwrap().volume;
+    let key = VolumeKey::Id(info.id);
+    let fit = 64.0 / (48.0f64 * 3f64.sqrt());
+    let corner = View::new(0.3, 0.2, 64, 64)
+        .with_zoom(4.0 * fit)
+        .with_pan([-14.0, 14.0]);
+    let mut stream = c
+        .refine(request(&key, corner).visible_only(true))
+        .await
+        .unwrap();
+    let mut got = Vec::new();
+    loop {
+        match stream.next().await.unwrap().unwrap() {
+            RefineEvent::Packet(p) => got.push(p),
+            RefineEvent::Done { .. } => break,
+            RefineEvent::Header(_) => {}
+        }
+    }
+    assert!(
+        !got.is_empty() && got.len() < info.packet_count as usize,
+        "a zoomed corner sees some packets, not all: got {} of {}",
+        got.len(),
+        info.packet_count
+    );
+    // Nothing left out changes the image: the packets sent draw what all of them draw.
+    let sent: Vec<Coefficient> = got
+        .iter()
+        .flat_map(|p| decode_packet(&header, &p.data).unwrap().coefficients)
+        .collect();
+    let mut r = Renderer::new(RenderOptions::default());
+    let full = r.render(&all, &header.geometry, &corner).unwrap();
+    let part = r.render(&sent, &header.geometry, &corner).unwrap();
+    let peak = full
+        .data
+        .iter()
+        .fold(0f32, |m, v| m.max(v.abs()))
+        .max(1e-30);
+    let worst = full
+        .data
+        .iter()
+        .zip(&part.data)
+        .fold(0f32, |m, (a, b)| m.max((a - b).abs()));
+    assert!(
+        worst <= 1e-5 * peak,
+        "left-out packets changed the image by {worst} (peak {peak})"
+    );
+    // A view of the whole volume sees the rest: it comes now, nothing twice.
+    stream
+        .control()
+        .set_view(&spec(View::new(0.66, 0.91, 64, 64)))
+        .await
+        .unwrap();
+    let mut rest = Vec::new();
+    loop {
+        match stream.next().await.unwrap().unwrap() {
+            RefineEvent::Packet(p) => rest.push(p.id),
+            RefineEvent::Done { .. } => break,
+            RefineEvent::Header(_) => panic!("header sent twice"),
+        }
+    }
+    let mut ids: Vec<u32> = got
+        .iter()
+        .map(|p| p.id)
+        .chain(rest.iter().copied())
+        .collect();
+    ids.sort_unstable();
+    ids.dedup();
+    assert_eq!(ids.len(), got.len() + rest.len(), "a packet was sent twice");
+    assert_eq!(
+        ids.len(),
+        info.packet_count as usize,
+        "the whole view gets everything"
+    );
+    server.stop().await;
+}
+
+#[tokio::test]
 async fn nothing_sent_twice_across_view_change_and_reconnect() {
     let bytes = test_file([48, 48, 48]);
     let server = TestServer::start().await;
@@ -475,6 +563,7 @@ fn refine_view(key: &VolumeKey, v: pb::ViewSpec) -> pb::RefineRequest {
             have: vec![],
             have_header: false,
             credit_bytes: 0,
+            visible_only: false,
         })),
     }
 }

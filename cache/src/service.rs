@@ -443,6 +443,7 @@ impl Cache for CacheService {
         })
         .await?;
         let mut session = Session::new(volume, name, start.credit_bytes);
+        session.visible_only = start.visible_only;
         session.hold(&start.have)?;
         session.reorder(priority);
         let (tx, rx) = mpsc::channel(STREAM_BUFFER);
@@ -476,6 +477,8 @@ struct Session {
     bytes: u64,
     /// Byte credit left, when the client pulls (`None`: no flow control).
     credit: Option<u64>,
+    /// Queue only what the current view sees.
+    visible_only: bool,
 }
 
 impl Session {
@@ -488,6 +491,7 @@ impl Session {
             sent: 0,
             bytes: 0,
             credit: (credit_bytes > 0).then_some(credit_bytes),
+            visible_only: false,
         }
     }
 
@@ -530,7 +534,10 @@ impl Session {
             .packets
             .iter()
             .enumerate()
-            .filter(|(i, _)| !held.contains(&(*i as u32)))
+            .filter(|(i, p)| {
+                !held.contains(&(*i as u32))
+                    && (!self.visible_only || priority.visible_energy(p) > 0.0)
+            })
             .map(|(i, p)| (priority.priority(p), i as u32))
             .collect();
         // Ascending priority, ties: later file position first, so pops give file order.

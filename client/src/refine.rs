@@ -23,6 +23,8 @@ pub struct RefineRequest {
     pub have_header: bool,
     /// Initial byte credit; 0 = no flow control (the server sends as fast as it can).
     pub credit_bytes: u64,
+    /// Only the packets the view sees (see [`RefineRequest::visible_only`]).
+    pub visible_only: bool,
 }
 
 impl RefineRequest {
@@ -34,7 +36,16 @@ impl RefineRequest {
             have: Vec::new(),
             have_header: false,
             credit_bytes: 0,
+            visible_only: false,
         }
+    }
+
+    /// Send only the packets each view sees (on screen, in a band its projection does not
+    /// cancel); the rest wait for a view that sees them, and `Done` means everything visible
+    /// was sent. What an interactive viewer wants; collecting a whole volume does not.
+    pub fn visible_only(mut self, yes: bool) -> RefineRequest {
+        self.visible_only = yes;
+        self
     }
 
     /// Pull with an initial credit of `bytes` (renew it with [`RefineControl::grant`]).
@@ -154,6 +165,7 @@ pub(crate) async fn open(
             have: request.have,
             have_header: request.have_header,
             credit_bytes: request.credit_bytes,
+            visible_only: request.visible_only,
         })),
     };
     tx.send(start).await.map_err(|_| ClientError::Closed)?;

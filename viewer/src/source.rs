@@ -244,6 +244,10 @@ pub struct CacheSourceOptions {
     /// packet is handed to the session only once its bytes would have crossed a link of this
     /// speed after the previous one: bandwidth, no latency (for benchmarks over loopback).
     pub link_bytes_per_second: Option<u64>,
+    /// Ask only for the packets the current view sees; the rest come after a view change
+    /// that sees them (default: yes; an off-screen or cancelled band is never sent for
+    /// nothing).
+    pub visible_only: bool,
 }
 
 impl Default for CacheSourceOptions {
@@ -253,6 +257,7 @@ impl Default for CacheSourceOptions {
             queue_packets: 8,
             byte_budget: None,
             link_bytes_per_second: None,
+            visible_only: true,
         }
     }
 }
@@ -484,7 +489,8 @@ impl Pull {
         held.sort_unstable();
         let request = RefineRequest::new(self.volume.clone(), self.view)
             .holding(held, true)
-            .with_credit(self.options.credit_bytes.max(1));
+            .with_credit(self.options.credit_bytes.max(1))
+            .visible_only(self.options.visible_only);
         let mut stream = match client.refine(request).await {
             Ok(s) => s,
             Err(e) => return Ended::Failed(e.to_string()),
