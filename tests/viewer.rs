@@ -257,6 +257,15 @@ fn a_view_change_and_a_cache_restart_mid_stream_lose_nothing_and_repeat_nothing(
             match f.source.try_next() {
                 Some(p) => {
                     assert!(seen.insert(p.id), "packet {} received twice", p.id);
+                    // The cache source decodes on its own thread: what it hands over is what
+                    // decoding the bytes gives.
+                    let d = decode_packet(&header, &p.data).unwrap();
+                    assert_eq!(
+                        p.decoded,
+                        Some((d.tile, d.coefficients)),
+                        "packet {} arrives decoded",
+                        p.id
+                    );
                     f.session.add_packet(p.id, &p.data).unwrap();
                     got += 1;
                 }

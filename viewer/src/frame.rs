@@ -99,7 +99,13 @@ impl<B: AccumulationBackend, S: PacketSource> FrameLoop<B, S> {
                 let Some(p) = self.source.try_next() else {
                     break;
                 };
-                self.session.add_packet(p.id, &p.data)?;
+                match p.decoded {
+                    Some((tile, coefficients)) => {
+                        self.session
+                            .add_decoded(p.id, p.data.len(), tile, coefficients)?
+                    }
+                    None => self.session.add_packet(p.id, &p.data)?,
+                }
                 report.packets += 1;
             }
             let dropped = self.session.take_dropped();

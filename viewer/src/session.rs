@@ -486,6 +486,24 @@ impl<B: AccumulationBackend> RenderSession<B> {
         self.insert(id, d.tile, d.coefficients, bytes.len())
     }
 
+    /// Takes packet `id` (of `wire_bytes` bytes) that its source already decoded into the
+    /// coefficients of `tile`: the same as [`RenderSession::add_packet`] without decoding on
+    /// this thread.
+    pub fn add_decoded(
+        &mut self,
+        id: u32,
+        wire_bytes: usize,
+        tile: usize,
+        coefficients: Vec<Coefficient>,
+    ) -> Result<(), SessionError> {
+        if self.packets.contains_key(&id) {
+            return Ok(());
+        }
+        self.stats.packets_received += 1;
+        self.stats.bytes_received += wire_bytes as u64;
+        self.insert(id, tile, coefficients, wire_bytes)
+    }
+
     /// Queues coefficients that did not come in a packet (a local source or a test); they are
     /// held per tile under local ids, like packets that cannot be asked for again.
     pub fn add_coefficients(&mut self, coefficients: Vec<Coefficient>) -> Result<(), SessionError> {

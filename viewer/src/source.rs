@@ -18,19 +18,22 @@ use tokio::sync::mpsc;
 use wavesplat_client::{
     CacheClient, ClientError, RefineEvent, RefineRequest, VolumeHeader, VolumeKey,
 };
-use wavesplat_codec::format::packet::read_framing;
+use wavesplat_codec::format::packet::{decode_packet, read_framing, Coefficient};
 use wavesplat_codec::format::{parse_file, FormatError, Header};
 use wavesplat_codec::layout::Band;
 use wavesplat_codec::view::visibility::{packet_order, PacketFacts, Visibility};
 use wavesplat_codec::view::{ViewError, ViewSpec};
 
 /// A packet as a source delivers it.
-#[derive(Debug, Clone, PartialEq, Eq)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct SourcePacket {
     /// Index of the packet in file order.
     pub id: u32,
     /// Its bytes.
     pub data: Vec<u8>,
+    /// Its tile and coefficients, when the source decoded it already (the cache source does,
+    /// on its own thread, so the frame thread only queues them).
+    pub decoded: Option<(usize, Vec<Coefficient>)>,
 }
 
 /// What a source reports about itself.
@@ -208,6 +211,7 @@ impl PacketSource for FileSource {
         self.status.bytes += range.len() as u64;
         self.status.done = self.cursor >= self.order.len();
         Some(SourcePacket {
+            decoded: None,
             id,
             data: self.bytes[range].to_vec(),
         })
@@ -318,6 +322,7 @@ impl CacheSource {
             held: HashSet::new(),
             status: status.clone(),
             link_free: None,
+            header: header.header.clone(),
         };
         let thread = std::thread::Builder::new()
             .name("wavesplat-cache-source".into())
@@ -386,6 +391,8 @@ struct Pull {
     status: Arc<Mutex<SourceStatus>>,
     /// When the simulated link finishes carrying the last packet.
     link_free: Option<tokio::time::Instant>,
+    /// The volume's header (to decode packets on this thread).
+    header: Header,
 }
 
 /// How a stream ended.
@@ -543,7 +550,12 @@ impl Pull {
                     Ok(Some(RefineEvent::Packet(p))) => {
                         if !self.held.contains(&p.id) {
                             self.cross_link(p.data.len()).await;
-                            pending = Some(SourcePacket { id: p.id, data: p.data });
+                            // Decode here, off the frame thread; a packet that fails to
+                            // decode goes on as bytes and the session reports it.
+                            let decoded = decode_packet(&self.header, &p.data)
+                                .ok()
+                                .map(|d| (d.tile, d.coefficients));
+                            pending = Some(SourcePacket { id: p.id, data: p.data, decoded });
                         }
                     }
                     Ok(Some(RefineEvent::Done { .. })) => self.update(|s| s.done = true),
