@@ -87,8 +87,8 @@ pub fn score_with(
             .iter()
             .position(|p| p.spec == path[s.step].spec)
             .unwrap_or(s.step);
-        if !references.contains_key(&key) {
-            references.insert(key, truth.image(&path[key].spec)?);
+        if let std::collections::hash_map::Entry::Vacant(v) = references.entry(key) {
+            v.insert(truth.image(&path[key].spec)?);
         }
         let r = &references[&key];
         anyhow::ensure!(
@@ -108,4 +108,18 @@ pub fn score_with(
         }));
     }
     Ok(out)
+}
+
+/// Q_I of the frame `n` frames into path step `step` (its last frame if it had fewer).
+pub fn q_i_at(
+    samples: &[FrameSample],
+    quality: &[Option<FrameQuality>],
+    step: usize,
+    n: u64,
+) -> Option<f64> {
+    samples
+        .iter()
+        .zip(quality)
+        .rfind(|(s, _)| s.step == step && s.frame_in_step <= n)
+        .and_then(|(_, q)| q.map(|q| q.q_i))
 }

@@ -9,7 +9,7 @@
 
 use crate::local::LocalStack;
 use crate::report::{self, Chart, Section, Series, Table};
-use crate::scoring::{score, FrameQuality, GroundTruth};
+use crate::scoring::{q_i_at, score, FrameQuality, GroundTruth};
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use std::collections::HashSet;
@@ -412,14 +412,8 @@ fn browse(
     Ok((header.header, backend, samples))
 }
 
-/// Q_I of the sample `n` frames into step `step` (the last if the step had fewer).
 fn q_at(r: &Run, step: usize, n: u64) -> Option<f64> {
-    r.samples
-        .iter()
-        .zip(&r.quality)
-        .filter(|(s, _)| s.step == step && s.frame_in_step <= n)
-        .last()
-        .and_then(|(_, q)| q.map(|q| q.q_i))
+    q_i_at(&r.samples, &r.quality, step, n)
 }
 
 fn fmt(x: Option<f64>, digits: usize) -> String {

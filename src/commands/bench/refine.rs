@@ -13,7 +13,7 @@ use crate::commands::demo::reference_options;
 use crate::commands::render::load_coefficients;
 use crate::local::LocalStack;
 use crate::report::{Chart, Series};
-use crate::scoring::{score_with, FrameQuality, GroundTruth};
+use crate::scoring::{q_i_at, score_with, FrameQuality, GroundTruth};
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use std::collections::HashMap;
@@ -376,14 +376,8 @@ fn write_frames_csv(path: &Path, runs: &[Run]) -> Result<()> {
     Ok(())
 }
 
-/// Q_I `n` frames into step `step` (its last frame if it had fewer).
 fn q_at(r: &Run, step: usize, n: u64) -> f64 {
-    r.samples
-        .iter()
-        .zip(&r.quality)
-        .filter(|(s, _)| s.step == step && s.frame_in_step <= n)
-        .last()
-        .map_or(f64::NAN, |(_, q)| q_of(q))
+    q_i_at(&r.samples, &r.quality, step, n).unwrap_or(f64::NAN)
 }
 
 fn write_summary(out: &Path, runs: &[Run], rests: &[usize; 3], file_bytes: u64) -> Result<()> {
