@@ -22,7 +22,7 @@ use wavesplat_codec::volume::Volume;
 use wavesplat_compressor::phantom::Phantom;
 use wavesplat_orchestrator::client;
 use wavesplat_orchestrator::model::{JobOptions, TargetSpec};
-use wavesplat_viewer::backend::{select, BackendChoice};
+use wavesplat_viewer::backend::{select, AccumulationBackend, BackendChoice};
 use wavesplat_viewer::session::{RenderSession, SessionOptions};
 use wavesplat_viewer::source::{CacheSource, CacheSourceOptions};
 use wavesplat_viewer::walk::{percentile, turn, walk, FrameSample, PathStep, WalkOptions};
@@ -381,21 +381,19 @@ pub fn reference_options() -> ReferenceOptions {
     }
 }
 
-/// Opens `name` at the cache and walks `path` with a fresh session on `backend`.
-fn browse(
+/// A frame loop fed by a cache, on whichever backend was chosen.
+pub type CacheFrameLoop = FrameLoop<Box<dyn AccumulationBackend>, CacheSource>;
+
+/// A fresh session on `backend` for `spec`, fed by the cache's stream of `name` (previews on).
+pub fn open_frame_loop(
     url: &str,
     name: &str,
     spec: ViewSpec,
-    path: &[PathStep],
-    frame: Duration,
+    options: CacheSourceOptions,
     backend: BackendChoice,
-) -> Result<(wavesplat_codec::format::Header, String, Vec<FrameSample>)> {
-    let (source, header) = CacheSource::open(
-        url,
-        VolumeKey::Name(name.to_string()),
-        spec,
-        CacheSourceOptions::default(),
-    )?;
+) -> Result<(wavesplat_codec::format::Header, CacheFrameLoop)> {
+    let (source, header) =
+        CacheSource::open(url, VolumeKey::Name(name.to_string()), spec, options)?;
     let selected = select(backend).context("choosing the accumulation backend")?;
     let session = RenderSession::new(
         header.header.clone(),
@@ -406,10 +404,23 @@ fn browse(
             ..SessionOptions::default()
         },
     )?;
-    let backend = session.backend_name();
-    let mut frames = FrameLoop::new(session, source);
+    Ok((header.header, FrameLoop::new(session, source)))
+}
+
+/// Opens `name` at the cache and walks `path` with a fresh session on `backend`.
+fn browse(
+    url: &str,
+    name: &str,
+    spec: ViewSpec,
+    path: &[PathStep],
+    frame: Duration,
+    backend: BackendChoice,
+) -> Result<(wavesplat_codec::format::Header, String, Vec<FrameSample>)> {
+    let (header, mut frames) =
+        open_frame_loop(url, name, spec, CacheSourceOptions::default(), backend)?;
+    let backend = frames.session.backend_name();
     let samples = walk(&mut frames, path, &WalkOptions::new(frame))?;
-    Ok((header.header, backend, samples))
+    Ok((header, backend, samples))
 }
 
 fn q_at(r: &Run, step: usize, n: u64) -> Option<f64> {
@@ -583,28 +594,12 @@ fn write_csv(path: &Path, r: &Run) -> Result<()> {
     let mut f = std::io::BufWriter::new(
         std::fs::File::create(path).with_context(|| format!("creating {}", path.display()))?,
     );
-    writeln!(
-        f,
-        "frame,step,t_ms,frame_ms,packets,bytes,coefficients_held,splatted,splatted_this_frame,batches,batches_past_deadline,pending,exact,converged,q_i_paper_db,snr_db"
-    )?;
+    writeln!(f, "{},q_i_paper_db,snr_db", FrameSample::CSV_COLUMNS)?;
     for (s, q) in r.samples.iter().zip(&r.quality) {
         writeln!(
             f,
-            "{},{},{:.3},{:.3},{},{},{},{},{},{},{},{},{},{},{},{}",
-            s.frame,
-            s.step,
-            s.t.as_secs_f64() * 1e3,
-            s.frame_time.as_secs_f64() * 1e3,
-            s.packets,
-            s.bytes,
-            s.coefficients_held,
-            s.splatted,
-            s.splatted_this_frame,
-            s.batches,
-            s.batches_past_deadline,
-            s.pending,
-            s.exact,
-            s.converged,
+            "{},{},{}",
+            s.csv_row(),
             fmt(q.map(|q| q.q_i), 3),
             fmt(q.map(|q| q.snr), 3),
         )?;

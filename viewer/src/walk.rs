@@ -159,6 +159,35 @@ pub struct FrameSample {
     pub image: Option<Image>,
 }
 
+impl FrameSample {
+    /// The CSV columns of [`FrameSample::csv_row`].
+    pub const CSV_COLUMNS: &'static str = "frame,step,t_ms,frame_ms,packets,bytes,coefficients_held,splatted,splatted_this_frame,invisible,batches,batches_past_deadline,pending,exact,converged,memory_full";
+
+    /// The sample's figures as one CSV row (no image), in the order of
+    /// [`FrameSample::CSV_COLUMNS`].
+    pub fn csv_row(&self) -> String {
+        format!(
+            "{},{},{:.3},{:.3},{},{},{},{},{},{},{},{},{},{},{},{}",
+            self.frame,
+            self.step,
+            self.t.as_secs_f64() * 1e3,
+            self.frame_time.as_secs_f64() * 1e3,
+            self.packets,
+            self.bytes,
+            self.coefficients_held,
+            self.splatted,
+            self.splatted_this_frame,
+            self.invisible,
+            self.batches,
+            self.batches_past_deadline,
+            self.pending,
+            self.exact,
+            self.converged,
+            self.memory_full
+        )
+    }
+}
+
 /// Walk failures.
 #[derive(Debug, thiserror::Error)]
 #[non_exhaustive]

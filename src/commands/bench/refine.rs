@@ -9,7 +9,7 @@
 //! paper's Table 4 (`table4.csv`: coefficients, Q_V and render time for RGB, YIQ and PCA at
 //! 4.6, 9.4, 79 and 368 KB on a 128³ RGB phantom) beside the paper's figures.
 
-use crate::commands::demo::reference_options;
+use crate::commands::demo::{open_frame_loop, reference_options};
 use crate::commands::render::load_coefficients;
 use crate::local::LocalStack;
 use crate::report::{Chart, Series};
@@ -20,7 +20,6 @@ use std::collections::HashMap;
 use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
-use wavesplat_client::VolumeKey;
 use wavesplat_codec::format::parse_file;
 use wavesplat_codec::view::{View, ViewSpec};
 use wavesplat_codec::volume::Volume;
@@ -28,10 +27,9 @@ use wavesplat_compressor::colorspace::ColorSpaceKind;
 use wavesplat_compressor::encode::{compress, CompressOptions, Target, TileChoice};
 use wavesplat_compressor::phantom::Phantom;
 use wavesplat_viewer::backend::{select, BackendChoice};
-use wavesplat_viewer::session::{RenderSession, SessionOptions};
-use wavesplat_viewer::source::{CacheSource, CacheSourceOptions};
+use wavesplat_viewer::source::CacheSourceOptions;
 use wavesplat_viewer::walk::{percentile, turn, walk, zoom_to, FrameSample, PathStep, WalkOptions};
-use wavesplat_viewer::{FrameLoop, RenderOptions, Renderer};
+use wavesplat_viewer::{RenderOptions, Renderer};
 
 /// Arguments of `wavesplat bench refine`.
 #[derive(Args, Debug)]
@@ -180,22 +178,8 @@ pub fn run(a: RefineArgs) -> Result<()> {
                     .then(|| (link_mbit * 1e6 / 8.0).round().max(1.0) as u64),
                 ..CacheSourceOptions::default()
             };
-            let (source, _) = CacheSource::open(
-                &stack.cache_url,
-                VolumeKey::Name("bench".into()),
-                path[0].spec,
-                options,
-            )?;
-            let session = RenderSession::new(
-                header.clone(),
-                path[0].spec,
-                select(backend)?.backend,
-                SessionOptions {
-                    preview: Some(SessionOptions::default_preview()),
-                    ..SessionOptions::default()
-                },
-            )?;
-            let mut frames = FrameLoop::new(session, source);
+            let (_, mut frames) =
+                open_frame_loop(&stack.cache_url, "bench", path[0].spec, options, backend)?;
             let mut wo = WalkOptions::new(Duration::from_secs_f64(budget_ms / 1e3));
             wo.stall_limit = Duration::from_secs(120);
             let samples = walk(&mut frames, &path, &wo)?;
@@ -293,22 +277,8 @@ fn left_out(
     )?;
     outln!("what each scene leaves out (opened straight at the view, resting until converged):");
     for (name, spec) in scenes {
-        let (source, _) = CacheSource::open(
-            url,
-            VolumeKey::Name("bench".into()),
-            spec,
-            CacheSourceOptions::default(),
-        )?;
-        let session = RenderSession::new(
-            header.clone(),
-            spec,
-            select(backend)?.backend,
-            SessionOptions {
-                preview: Some(SessionOptions::default_preview()),
-                ..SessionOptions::default()
-            },
-        )?;
-        let mut frames = FrameLoop::new(session, source);
+        let (_, mut frames) =
+            open_frame_loop(url, "bench", spec, CacheSourceOptions::default(), backend)?;
         let mut wo = WalkOptions::new(Duration::from_secs_f64(16.6e-3));
         wo.capture = false;
         let samples = walk(&mut frames, &[PathStep::rest(spec, rest)], &wo)?;
@@ -345,28 +315,17 @@ fn write_frames_csv(path: &Path, runs: &[Run]) -> Result<()> {
     let mut f = std::io::BufWriter::new(std::fs::File::create(path)?);
     writeln!(
         f,
-        "budget_ms,link_mbit,frame,step,t_ms,frame_ms,bytes,coefficients_held,splatted,splatted_this_frame,invisible,batches,batches_past_deadline,exact,converged,q_i_paper_db,snr_db"
+        "budget_ms,link_mbit,{},q_i_paper_db,snr_db",
+        FrameSample::CSV_COLUMNS
     )?;
     for r in runs {
         for (s, q) in r.samples.iter().zip(&r.quality) {
             writeln!(
                 f,
-                "{},{},{},{},{:.3},{:.3},{},{},{},{},{},{},{},{},{},{:.3},{:.3}",
+                "{},{},{},{:.3},{:.3}",
                 r.budget_ms,
                 r.link_mbit,
-                s.frame,
-                s.step,
-                s.t.as_secs_f64() * 1e3,
-                s.frame_time.as_secs_f64() * 1e3,
-                s.bytes,
-                s.coefficients_held,
-                s.splatted,
-                s.splatted_this_frame,
-                s.invisible,
-                s.batches,
-                s.batches_past_deadline,
-                s.exact,
-                s.converged,
+                s.csv_row(),
                 q_of(q),
                 q.map_or(f64::NAN, |q| q.snr)
             )?;
