@@ -4,6 +4,7 @@
 //! asserted; the tests assert the pass/fail parts.
 
 pub mod refine;
+pub mod stability;
 pub mod throughput;
 
 use anyhow::Result;
@@ -24,6 +25,9 @@ pub enum BenchCommand {
     /// Frame-budgeted refinement from a cache on loopback: budgets × link speeds along a view
     /// path, Q_I against time and bytes, frame-time distribution, the paper's Table 4.
     Refine(refine::RefineArgs),
+    /// Stiff and extreme numerical cases against the reference renderer (table + CSV; exits
+    /// non-zero when a case fails).
+    Stability(stability::StabilityArgs),
 }
 
 /// Runs the subcommand.
@@ -31,5 +35,6 @@ pub fn run(a: BenchArgs) -> Result<()> {
     match a.which {
         BenchCommand::Throughput(t) => throughput::run(t),
         BenchCommand::Refine(r) => refine::run(r),
+        BenchCommand::Stability(s) => stability::run(s),
     }
 }
