@@ -376,6 +376,37 @@ fn degenerate_and_extreme_volumes() {
     }
 }
 
+/// Lossless selection with the sigmap coder at its default step (Δ = the threshold): a
+/// substream whose magnitudes all sit within one step of its lower bound (a constant volume's
+/// single scaling coefficient, a single voxel) comes back as it was, not at 1.5 × its value
+/// (the reconstruction is capped at the substream's largest magnitude).
+#[test]
+fn lossless_selection_of_a_single_coefficient_is_exact() {
+    let cases = [
+        ("constant", Phantom::Constant(7.0).generate([16; 3])),
+        (
+            "constant 1e30",
+            Phantom::Constant(1e30).generate([8, 8, 16]),
+        ),
+        (
+            "single voxel",
+            Volume::new([1, 1, 1], [1.0; 3], vec![vec![-42.0]]).unwrap(),
+        ),
+    ];
+    for (name, vol) in cases {
+        let o = CompressOptions {
+            family: Family::Haar,
+            target: Target::All,
+            refine: None,
+            ..Default::default()
+        };
+        let c = run(&vol, &o);
+        let back = decompress(&c.bytes).unwrap();
+        let e = rel_l2(&flat(&back), &flat(&vol));
+        assert!(e < 1e-6, "{name}: rel L2 {e}");
+    }
+}
+
 #[test]
 fn rgb_volumes_in_every_colorspace_including_degenerate_colour() {
     let head = Phantom::RgbHead.generate([20, 20, 20]);

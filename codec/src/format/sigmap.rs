@@ -17,7 +17,7 @@
 //! the same band touch its lower faces), except a last child implied occupied by its empty
 //! siblings. A leaf is a coefficient: sign (adaptive, context: band and the signs of its three
 //! lower neighbours) then q (adaptive exp-Golomb, context: band), reconstructed as
-//! lb + (q + ½)·Δ, where lb is the layer's lower magnitude bound of the substream and Δ its step
+//! min(lb + (q + ½)·Δ, ub), where lb and ub are the layer's magnitude bounds of the substream and Δ its step
 //! (exact f32 bits when Δ = 0).
 //!
 //! Format version 3 added the dyadic split, the sign contexts and the face contexts; they cut
@@ -502,15 +502,21 @@ impl Box3 {
     }
 }
 
-/// Lower magnitude bound and step of a substream in a layer.
-fn bounds(header: &Header, sub: usize, layer: usize) -> (f64, f64) {
+/// Lower and upper magnitude bounds and step of a substream in a layer. The upper bound (the
+/// layer's score bound, at most the substream's largest magnitude w0) caps reconstructions:
+/// without it, magnitudes that all sit within one step of the lower bound (a single
+/// coefficient, a constant volume's one scaling coefficient, a checkerboard's equal details)
+/// came back at lb + Δ/2 = 1.5 × their value when Δ = lb, as lossless selection has it.
+fn bounds(header: &Header, sub: usize, layer: usize) -> (f64, f64, f64) {
     let params = header.substreams[sub].expect("present substream");
     let lb = if layer + 1 < header.layer_bounds.len() {
         header.chain_start(sub, layer + 1)
     } else {
         header.magnitude_threshold(sub)
     };
-    (lb.max(0.0), params.delta as f64)
+    let lb = lb.max(0.0);
+    let ub = header.chain_start(sub, layer).max(lb);
+    (lb, ub, params.delta as f64)
 }
 
 fn region(header: &Header, tile: usize, level: u8, band_dims: [usize; 3]) -> ([u32; 3], Box3) {
@@ -562,7 +568,7 @@ pub(crate) fn encode(
         }
         let band = bands[bi];
         let (origin, root) = region(header, tile, band.level, header.geometry.band_dims(band));
-        let (lb, step) = bounds(header, sub, layer);
+        let (lb, ub, step) = bounds(header, sub, layer);
         let pts: Vec<([u32; 3], f32)> = list
             .iter()
             .map(|c| {
@@ -574,6 +580,7 @@ pub(crate) fn encode(
         let ctx = Ctx {
             bi,
             lb,
+            ub,
             step,
             origin,
             channel: (sub / nb) as u8,
@@ -598,6 +605,8 @@ pub(crate) fn encode(
 struct Ctx<'a, 'h> {
     bi: usize,
     lb: f64,
+    /// Largest magnitude the substream can have in this layer (≥ lb).
+    ub: f64,
     step: f64,
     origin: [u32; 3],
     channel: u8,
@@ -605,10 +614,15 @@ struct Ctx<'a, 'h> {
     hood: &'a Neighbourhood<'h>,
 }
 
+/// The magnitude of step q: the middle of its interval, within the substream's bounds.
+fn reconstruct(ctx: &Ctx, q: u64) -> f64 {
+    (ctx.lb + (q as f64 + 0.5) * ctx.step).min(ctx.ub)
+}
+
 fn quantize(ctx: &Ctx, magnitude: f64) -> (u64, f64) {
     if ctx.step > 0.0 {
         let q = ((magnitude - ctx.lb) / ctx.step).floor().clamp(0.0, 1e15) as u64;
-        (q, ctx.lb + (q as f64 + 0.5) * ctx.step)
+        (q, reconstruct(ctx, q))
     } else {
         ((magnitude as f32).to_bits() as u64, magnitude as f32 as f64)
     }
@@ -619,7 +633,7 @@ fn dequantize(ctx: &Ctx, q: u64) -> Result<f64, FormatError> {
         if q > 1_000_000_000_000_000 {
             return Err(invalid("packet", "quantized magnitude out of range"));
         }
-        Ok(ctx.lb + (q as f64 + 0.5) * ctx.step)
+        Ok(reconstruct(ctx, q))
     } else {
         let bits =
             u32::try_from(q).map_err(|_| invalid("packet", "exact magnitude out of range"))?;
@@ -723,10 +737,11 @@ pub(crate) fn decode(
                 "substream present in an empty tile region",
             ));
         }
-        let (lb, step) = bounds(header, sub, layer);
+        let (lb, ub, step) = bounds(header, sub, layer);
         let ctx = Ctx {
             bi,
             lb,
+            ub,
             step,
             origin,
             channel: (sub / nb) as u8,
