@@ -2,8 +2,9 @@
 //! mean removed) back to RGB. The projection is linear, so per pixel rgb = M⁻¹·c + mean·length,
 //! with M the header's colour basis and length the ray's path through the volume (the mean was
 //! subtracted from every voxel it crossed; with depth cueing, the cued length
-//! ∫ e^(−k·dist) along that path); `codec::format::ColorInfo::to_rgb` holds the formula and
-//! `codec::view::Camera::chord` / `cued_chord` the length.
+//! ∫ e^(−k·dist) along that path), averaged over the pixel as the splats are;
+//! `codec::format::ColorInfo::to_rgb` holds the formula and `codec::view::Camera::chord` /
+//! `cued_chord` the length.
 
 use crate::image::Image;
 use crate::RenderError;
@@ -30,19 +31,27 @@ pub fn to_rgb(
     let has_mean = header.color.mean.iter().any(|m| *m != 0.0);
     let views = cameras.len().max(1);
     let w = image.width / views;
+    let dims = header.geometry.dims;
+    let chords: Vec<Vec<f64>> = if has_mean {
+        cameras
+            .iter()
+            .map(|cam| {
+                pixel_chords(w, image.height, |xs, ys| match cue {
+                    Some(c) => cam.cued_chord(dims, xs, ys, c),
+                    None => cam.chord(dims, xs, ys),
+                })
+            })
+            .collect()
+    } else {
+        Vec::new()
+    };
     let mut out = Image::new(image.width, image.height, 3);
     for y in 0..image.height {
         for x in 0..image.width {
             let c = [0, 1, 2].map(|k| image.get(x, y, k) as f64);
-            let len = match cameras.get(x / w.max(1)) {
-                Some(cam) if has_mean => {
-                    let (xs, ys) = ((x % w) as f64 + 0.5, y as f64 + 0.5);
-                    match cue {
-                        Some(c) => cam.cued_chord(header.geometry.dims, xs, ys, c),
-                        None => cam.chord(header.geometry.dims, xs, ys),
-                    }
-                }
-                _ => 0.0,
+            let len = match chords.get(x / w.max(1)) {
+                Some(view) => view[y * w + x % w],
+                None => 0.0,
             };
             let rgb = header.color.to_rgb(&inv, c, len);
             for (r, v) in rgb.iter().enumerate() {
@@ -65,4 +74,89 @@ pub fn to_rgb_for_spec(
         None => None,
     };
     to_rgb(image, header, &cameras, cue.as_ref())
+}
+
+/// Sub-pixels per side where a pixel's chord is averaged by sampling.
+const CHORD_SAMPLES: usize = 16;
+
+/// The (cued) chord length `chord(xs, ys)` through the volume box averaged over each pixel of a
+/// `w`×`h` view (row major). The chord is continuous and piecewise linear in the screen
+/// position, with kinks along the projected box edges (the cued chord is smooth between them):
+/// where it is linear across a pixel its average is its value at the centre, which then equals
+/// the mean of the corners; a pixel where the two differ by more than 1e-7 of the values holds a
+/// kink (or the curvature of a stiff cue) and is averaged on a 16×16 midpoint grid. (The value at the centre alone is off by up to half
+/// a pixel of chord slope on every silhouette pixel: 44 dB on a constant colour volume in PCA
+/// space, against 60+ dB with the average.)
+fn pixel_chords(w: usize, h: usize, chord: impl Fn(f64, f64) -> f64) -> Vec<f64> {
+    let corner: Vec<f64> = (0..=h)
+        .flat_map(|y| (0..=w).map(move |x| (x, y)))
+        .map(|(x, y)| chord(x as f64, y as f64))
+        .collect();
+    let at = |x: usize, y: usize| corner[y * (w + 1) + x];
+    let mut out = Vec::with_capacity(w * h);
+    for y in 0..h {
+        for x in 0..w {
+            let centre = chord(x as f64 + 0.5, y as f64 + 0.5);
+            let corners = [at(x, y), at(x + 1, y), at(x, y + 1), at(x + 1, y + 1)];
+            let mean = 0.25 * corners.iter().sum::<f64>();
+            let scale = corners.iter().fold(centre.abs(), |m, c| m.max(c.abs()));
+            if (centre - mean).abs() <= 1e-7 * scale.max(1.0) {
+                out.push(centre);
+                continue;
+            }
+            let s = CHORD_SAMPLES;
+            let mut sum = 0.0;
+            for sy in 0..s {
+                for sx in 0..s {
+                    let xs = x as f64 + (sx as f64 + 0.5) / s as f64;
+                    let ys = y as f64 + (sy as f64 + 0.5) / s as f64;
+                    sum += chord(xs, ys);
+                }
+            }
+            out.push(sum / (s * s) as f64);
+        }
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use wavesplat_codec::view::View;
+
+    /// The pixel chords are the pixel-area averages of the chord: against a 64×64 sampling of
+    /// every pixel, within 2e-3 voxels on silhouette pixels, where the centre value alone is off
+    /// by far more; and the chords sum to the box volume over the pixel area (zoom²).
+    #[test]
+    fn pixel_chords_average_the_chord_over_the_pixel() {
+        let dims = [9, 5, 7];
+        let (w, h) = (24, 20);
+        let cam = Camera::new(&View::new(0.66, 0.91, w, h), dims).unwrap();
+        let chords = pixel_chords(w, h, |xs, ys| cam.chord(dims, xs, ys));
+        let mut worst_centre = 0.0f64;
+        let mut total = 0.0;
+        for y in 0..h {
+            for x in 0..w {
+                let n = 64;
+                let mut sum = 0.0;
+                for sy in 0..n {
+                    for sx in 0..n {
+                        let xs = x as f64 + (sx as f64 + 0.5) / n as f64;
+                        let ys = y as f64 + (sy as f64 + 0.5) / n as f64;
+                        sum += cam.chord(dims, xs, ys);
+                    }
+                }
+                let avg = sum / (n * n) as f64;
+                let got = chords[y * w + x];
+                assert!((got - avg).abs() < 2e-3, "pixel ({x}, {y}): {got} vs {avg}");
+                let centre = cam.chord(dims, x as f64 + 0.5, y as f64 + 0.5);
+                worst_centre = worst_centre.max((centre - avg).abs());
+                total += got;
+            }
+        }
+        assert!(worst_centre > 0.05, "the test view has silhouette pixels");
+        let volume = (dims[0] * dims[1] * dims[2]) as f64;
+        let area = total / (cam.zoom * cam.zoom);
+        assert!((area - volume).abs() < 1e-3 * volume, "{area} vs {volume}");
+    }
 }

@@ -589,7 +589,9 @@ mod tests {
 
     /// Stiff depth cues (up to k = 1e3 per voxel, where e^(−k·t) falls by 1e-434 over one
     /// voxel) are resolved by the spline rays at the default step: the image equals one sampled
-    /// eight times finer, along the view and along an oblique light.
+    /// eight times finer within 1e-3 of its peak (the sampling error of the 1/8-voxel step across
+    /// the linear spline's kinks, 3e-4 at k = 0.5), for lights along two axes.
+    /// Before the interval cut and step cap, k = 20 and 1e3 were off by orders of magnitude.
     #[test]
     fn stiff_cue_is_resolved_at_the_default_step() {
         let n = 8;
@@ -598,18 +600,18 @@ mod tests {
         let data: Vec<f32> = (0..n * n * n)
             .map(|i| {
                 let p = [i % n, (i / n) % n, i / (n * n)].map(|x| (x as f64 - c) / 3.0);
-                (1.0 - p.iter().map(|x| x * x).sum::<f64>()).max(0.0) as f32
+                // Non-zero faces: the stiff cue sees the data at the light-facing corner.
+                (0.5 + (1.0 - p.iter().map(|x| x * x).sum::<f64>()).max(0.0)) as f32
             })
             .collect();
         let coeffs = Coefficient::all_of(&g, 0, &decompose_channel(&data, &g));
         let vol = PaddedVolume::from_coefficients(&coeffs, &g, 1).unwrap();
         for k in [0.5, 20.0, 1e3] {
+            // Lights along an axis: the light plane is a face, so a stiff cue leaves the
+            // front layer (through a corner it would leave nothing above f64's underflow).
             for direction in [
-                CueDirection::View,
-                CueDirection::Angles {
-                    alpha: 2.0,
-                    beta: -0.4,
-                },
+                CueDirection::Vector([0.0, 0.0, 1.0]),
+                CueDirection::Vector([0.0, -1.0, 0.0]),
             ] {
                 let view = View::new(0.66, 0.91, 6, 6).with_cue(Cue { k, direction });
                 let at = |step: f64| {
@@ -628,7 +630,7 @@ mod tests {
                     .iter()
                     .zip(&fine.data)
                     .fold(0.0f32, |m, (a, b)| m.max((a - b).abs()));
-                assert!(err <= 1e-4 * peak, "k={k} {direction:?}: {err} of {peak}");
+                assert!(err <= 1e-3 * peak, "k={k} {direction:?}: {err} of {peak}");
             }
         }
     }
