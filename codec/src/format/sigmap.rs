@@ -503,10 +503,10 @@ impl Box3 {
 }
 
 /// Lower and upper magnitude bounds and step of a substream in a layer. The upper bound (the
-/// layer's score bound, at most the substream's largest magnitude w0) caps reconstructions:
-/// without it, magnitudes that all sit within one step of the lower bound (a single
-/// coefficient, a constant volume's one scaling coefficient, a checkerboard's equal details)
-/// came back at lb + Δ/2 = 1.5 × their value when Δ = lb, as lossless selection has it.
+/// layer's score bound, at most the substream's largest magnitude w0) caps reconstructions, so
+/// magnitudes that all sit within one step of the lower bound (a single coefficient, such as a
+/// constant volume's one scaling coefficient) come back as w0 rather than lb + Δ/2, which is
+/// 1.5 × their value when Δ = lb, as lossless selection at the default step has it.
 fn bounds(header: &Header, sub: usize, layer: usize) -> (f64, f64, f64) {
     let params = header.substreams[sub].expect("present substream");
     let lb = if layer + 1 < header.layer_bounds.len() {

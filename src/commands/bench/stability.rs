@@ -445,13 +445,18 @@ fn cases(quick: bool) -> Vec<Case> {
                         )
                     },
                 );
-                // Deep cubic levels: the coarsest footprints exceed the default FFT side, the
+                // Deep spline levels: the coarsest footprints exceed the default FFT side, the
                 // planner halves the subpixel count S, and placement errors of up to 1/(2S)
                 // pixel cost accuracy. The same case with room for S follows.
-                if family == Family::Cubic && levels >= 4 {
+                let deep = match family {
+                    Family::Haar => false,
+                    Family::Linear => levels >= 5,
+                    Family::Cubic => levels >= 4,
+                };
+                if deep {
                     out.push(c.known_failure(
-                        "cubic M >= 4: the coarsest footprints exceed the default max_fft (768), S is halved, \
-                         placement error up to 1/(2S) px (a speed/accuracy default of the planner; passes with max_fft 4096)",
+                        "linear M >= 5, cubic M >= 4: the coarsest footprints exceed the default max_fft (768), S is halved, \
+                         placement error up to 1/(2S) px (a speed/accuracy default of the planner; see the max_fft 4096 row)",
                     ));
                     out.push(case(
                         "family-depth",
@@ -524,9 +529,13 @@ fn cases(quick: bool) -> Vec<Case> {
     }
 
     // Quantizer bits of the paper's delta chain (range coder), every coefficient kept, Haar
-    // (exact on any grid, so the quantizer is all that differs from the reference).
+    // (exact on any grid, so the quantizer is all that differs from the reference). The chain
+    // errs by at most Δ/2 = (largest gap between magnitudes)/2^(P+1) ≤ 2^-(P+1) of the largest
+    // magnitude: from P = 10 that is below 5e-4 of it, under the lossless bar, so those must
+    // match; fewer bits are not expected to be accurate but must stay finite and no worse than
+    // a black image.
     let bits: Vec<u8> = if quick {
-        vec![1, 2, 8, 16]
+        vec![1, 2, 8, 10, 16]
     } else {
         (1..=16).collect()
     };
@@ -535,7 +544,11 @@ fn cases(quick: bool) -> Vec<Case> {
             "quantizer-bits",
             format!("P={b}"),
             format!("haar, range coder, all coefficients, {n}^3, P={b}"),
-            Criterion::NoWorseThanZero,
+            if b >= 10 {
+                MATCH
+            } else {
+                Criterion::NoWorseThanZero
+            },
             move || {
                 let v = volume(cube, vec![blobs(cube, 1.0)])?;
                 let opts = CompressOptions {
