@@ -76,6 +76,9 @@ enum Criterion {
 impl Criterion {
     fn describe(&self) -> String {
         match self {
+            Criterion::Match { snr_db, max_rel } if *snr_db == f64::NEG_INFINITY => {
+                format!("finite, max_rel <= {max_rel:e}")
+            }
             Criterion::Match { snr_db, max_rel } => {
                 format!("finite, SNR >= {snr_db} dB, max_rel <= {max_rel:e}")
             }
@@ -929,7 +932,23 @@ fn measure(image: &Image, reference: &Image, scale: Option<f64>) -> (f64, f64, u
     } else {
         max_err / peak
     };
-    (max_rel, snr_db(&reference.data, &image.data), non_finite)
+    // SNR is meaningless against a black reference (−∞ for any non-zero image): NaN, written
+    // as an empty field.
+    let snr = if reference.data.iter().all(|v| *v == 0.0) {
+        f64::NAN
+    } else {
+        snr_db(&reference.data, &image.data)
+    };
+    (max_rel, snr, non_finite)
+}
+
+/// A number for the CSV: empty when not measured (NaN).
+fn csv_number(x: f64, exp: bool) -> String {
+    match (x.is_nan(), exp) {
+        (true, _) => String::new(),
+        (false, true) => format!("{x:e}"),
+        (false, false) => format!("{x}"),
+    }
 }
 
 fn panic_message(p: &(dyn std::any::Any + Send)) -> String {
@@ -974,8 +993,12 @@ fn run_case(c: &Case) -> Row {
             row.outcome = "rendered".into();
             row.pass = non_finite == 0
                 && match c.criterion {
-                    Criterion::Match { snr_db, max_rel: m } => snr >= snr_db && max_rel <= m,
-                    Criterion::NoWorseThanZero => snr >= 0.0,
+                    // No SNR against a black reference: max_rel alone decides (relative to
+                    // the case's scale, or 0 only for an exactly black image).
+                    Criterion::Match { snr_db, max_rel: m } => {
+                        (snr.is_nan() || snr >= snr_db) && max_rel <= m
+                    }
+                    Criterion::NoWorseThanZero => snr >= 0.0 || (snr.is_nan() && max_rel == 0.0),
                     Criterion::Refused => {
                         row.outcome = "accepted invalid input".into();
                         false
@@ -1081,13 +1104,13 @@ pub fn run(a: StabilityArgs) -> Result<()> {
     for r in &rows {
         writeln!(
             csv,
-            "{},{},{},{},{:e},{},{},{},{},{:.3}",
+            "{},{},{},{},{},{},{},{},{},{:.3}",
             r.category,
             csv_field(&r.name),
             csv_field(&r.params),
             csv_field(&r.outcome),
-            r.max_rel,
-            r.snr_db,
+            csv_number(r.max_rel, true),
+            csv_number(r.snr_db, false),
             r.non_finite,
             if r.excluded {
                 "excluded"
