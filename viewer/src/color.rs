@@ -84,9 +84,9 @@ const CHORD_SAMPLES: usize = 16;
 /// position, with kinks along the projected box edges (the cued chord is smooth between them):
 /// where it is linear across a pixel its average is its value at the centre, which then equals
 /// the mean of the corners; a pixel where the two differ by more than 1e-7 of the values holds a
-/// kink (or the curvature of a stiff cue) and is averaged on a 16×16 midpoint grid. (The value at the centre alone is off by up to half
-/// a pixel of chord slope on every silhouette pixel: 44 dB on a constant colour volume in PCA
-/// space, against 60+ dB with the average.)
+/// kink (or the curvature of a stiff cue) and is averaged on a 16×16 midpoint grid. (The value
+/// at the centre alone is off by up to half a pixel of chord slope on every silhouette pixel:
+/// 44 dB on a constant colour volume in PCA space, against 60+ dB with the average.)
 fn pixel_chords(w: usize, h: usize, chord: impl Fn(f64, f64) -> f64) -> Vec<f64> {
     let corner: Vec<f64> = (0..=h)
         .flat_map(|y| (0..=w).map(move |x| (x, y)))

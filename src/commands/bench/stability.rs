@@ -35,10 +35,10 @@ use wavesplat_codec::metrics::snr_db;
 use wavesplat_codec::volume::Volume;
 use wavesplat_compressor::colorspace::ColorSpaceKind;
 use wavesplat_compressor::encode::{compress, CompressOptions, Target};
-use wavesplat_viewer::color::to_rgb;
+use wavesplat_viewer::color::to_rgb_for_spec;
 use wavesplat_viewer::{
-    render_reference, Camera, Cue, CueDirection, Image, PaddedVolume, ReferenceOptions,
-    RenderOptions, Renderer, View,
+    render_reference, Cue, CueDirection, Image, PaddedVolume, ReferenceOptions, RenderOptions,
+    Renderer, View, ViewSpec,
 };
 
 /// Arguments of `wavesplat bench stability`.
@@ -261,8 +261,7 @@ fn pipeline_case(volume: &Volume, opts: &CompressOptions, view: &View) -> Result
         ..RenderOptions::default()
     });
     let coded = r.render(&coeffs, &header.geometry, view)?;
-    let camera = Camera::new(view, header.geometry.dims)?;
-    let image = to_rgb(&coded, &header, &[camera])?;
+    let image = to_rgb_for_spec(&coded, &header, &ViewSpec::single(*view))?;
     // Haar boxes are the voxels on any grid; for the splines the function of the complete
     // transform with one translate per basis function (as the renderer draws), which differs
     // from the voxel spline near the faces by the boundary handling (a property of the margin,
