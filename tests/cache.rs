@@ -510,7 +510,7 @@ async fn dropped_packets_come_back_after_a_view_change() {
     }
     assert!(matches!(
         stream.next().await.unwrap().unwrap(),
-        RefineEvent::Done { .. }
+        RefineEvent::Done { views: 1, .. }
     ));
     // Everything is held now: another view has nothing to send and says so at once (the
     // viewer uses it to know a view has converged).
@@ -523,8 +523,8 @@ async fn dropped_packets_come_back_after_a_view_change() {
         .await
         .expect("done is announced again after a view change");
     assert!(
-        matches!(next.unwrap().unwrap(), RefineEvent::Done { .. }),
-        "a view with nothing to send announces done"
+        matches!(next.unwrap().unwrap(), RefineEvent::Done { views: 2, .. }),
+        "a view with nothing to send announces done, counting the views it applied"
     );
     server.stop().await;
 }

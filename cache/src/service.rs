@@ -479,6 +479,8 @@ struct Session {
     credit: Option<u64>,
     /// Queue only what the current view sees.
     visible_only: bool,
+    /// View changes applied on this stream.
+    views: u32,
 }
 
 impl Session {
@@ -492,6 +494,7 @@ impl Session {
             bytes: 0,
             credit: (credit_bytes > 0).then_some(credit_bytes),
             visible_only: false,
+            views: 0,
         }
     }
 
@@ -553,6 +556,7 @@ impl Session {
                 let volume = self.volume.clone();
                 let priority = blocking(move || Priority::new(&volume.index.header, &spec)).await?;
                 self.reorder(priority);
+                self.views = self.views.wrapping_add(1);
                 tracing::debug!(volume = self.volume.meta.id, "view changed");
                 Ok(())
             }
@@ -626,6 +630,7 @@ impl Session {
                     let done = pb::RefineDone {
                         sent: self.sent,
                         bytes: self.bytes,
+                        views: self.views,
                     };
                     let msg = pb::RefineResponse {
                         msg: Some(Msg::Done(done)),

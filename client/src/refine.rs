@@ -76,6 +76,9 @@ pub enum RefineEvent {
         sent: u32,
         /// Bytes of packet data sent on this stream.
         bytes: u64,
+        /// View changes the server had applied when it said this: a `Done` whose count is
+        /// below the view changes sent is about an earlier view.
+        views: u32,
     },
 }
 
@@ -138,6 +141,7 @@ impl RefineStream {
                 Some(Msg::Done(d)) => RefineEvent::Done {
                     sent: d.sent,
                     bytes: d.bytes,
+                    views: d.views,
                 },
                 // An empty message from a newer server: skip it.
                 None => continue,

@@ -507,6 +507,8 @@ impl Pull {
             s.problem = None;
         });
         let mut pending: Option<SourcePacket> = None;
+        // View changes sent on this stream (each stream starts at the current view).
+        let mut views_sent: u32 = 0;
         loop {
             let want_more = pending.is_none() && self.budget_left();
             tokio::select! {
@@ -515,6 +517,7 @@ impl Pull {
                     None => return Ended::Closed,
                     Some(Control::View(v)) => {
                         self.view = v;
+                        views_sent = views_sent.wrapping_add(1);
                         self.update(|s| s.done = false);
                         if let Err(e) = stream.control().set_view(&v).await {
                             return Ended::Failed(e.to_string());
@@ -558,7 +561,13 @@ impl Pull {
                             pending = Some(SourcePacket { id: p.id, data: p.data, decoded });
                         }
                     }
-                    Ok(Some(RefineEvent::Done { .. })) => self.update(|s| s.done = true),
+                    // A `done` for a view before the last one sent is stale: the new view
+                    // has its own.
+                    Ok(Some(RefineEvent::Done { views, .. })) => {
+                        if views == views_sent {
+                            self.update(|s| s.done = true);
+                        }
+                    }
                     Ok(Some(RefineEvent::Header(_))) => {}
                     Ok(None) => return Ended::Failed("the cache closed the stream".into()),
                     Err(e) => return Ended::Failed(e.to_string()),

@@ -778,7 +778,8 @@ fn cases(quick: bool) -> Vec<Case> {
                         } else {
                             blobs(cube, 100.0).iter().map(|v| v.abs()).collect()
                         };
-                        let mut ch = vec![Vec::with_capacity(base.len()); 3];
+                        let mut ch: Vec<Vec<f32>> =
+                            (0..3).map(|_| Vec::with_capacity(base.len())).collect();
                         for v in &base {
                             for (c, x) in paint(*v).into_iter().enumerate() {
                                 ch[c].push(x);
