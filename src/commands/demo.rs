@@ -82,13 +82,11 @@ fn write_raw(dir: &Path, name: &str, v: &Volume) -> Result<PathBuf> {
     let d = v.dims();
     let rgb = if v.channel_count() == 3 { "_rgb" } else { "" };
     let path = dir.join(format!("{name}_{}x{}x{}_f32{rgb}.raw", d[0], d[1], d[2]));
-    let channels = v.channels();
-    let mut bytes = Vec::with_capacity(v.voxel_count() * channels.len() * 4);
-    for i in 0..v.voxel_count() {
-        for c in channels {
-            bytes.extend_from_slice(&c[i].to_le_bytes());
-        }
-    }
+    let bytes: Vec<u8> = v
+        .to_interleaved()
+        .iter()
+        .flat_map(|x| x.to_le_bytes())
+        .collect();
     std::fs::write(&path, bytes).with_context(|| format!("writing {}", path.display()))?;
     Ok(path)
 }
@@ -243,15 +241,7 @@ pub fn run(a: DemoArgs) -> Result<()> {
         a.frame_ms
     );
     let frame = Duration::from_secs_f64(a.frame_ms / 1e3);
-    // Probe the adapters once: the default takes the GPU only on a hardware adapter.
-    let probe = select(BackendChoice::Auto).context("choosing the accumulation backend")?;
-    outln!("    backend: {}", probe.reason);
-    let backend = if probe.backend.name().starts_with("cpu") {
-        BackendChoice::Cpu
-    } else {
-        BackendChoice::Gpu
-    };
-    drop(probe);
+    let backend = probe_backend()?;
     let mut runs = Vec::new();
     for v in &volumes {
         let file_bytes = stack
@@ -379,6 +369,18 @@ pub fn reference_options() -> ReferenceOptions {
         supersample: 2,
         step: 0.25,
     }
+}
+
+/// Probes the adapters once, says which backend the default takes (the GPU only on a hardware
+/// adapter) and returns that choice, so the sessions that follow do not probe again.
+pub fn probe_backend() -> Result<BackendChoice> {
+    let probe = select(BackendChoice::Auto).context("choosing the accumulation backend")?;
+    outln!("    backend: {}", probe.reason);
+    Ok(if probe.backend.name().starts_with("cpu") {
+        BackendChoice::Cpu
+    } else {
+        BackendChoice::Gpu
+    })
 }
 
 /// A frame loop fed by a cache, on whichever backend was chosen.

@@ -238,7 +238,7 @@ impl BucketQueue {
         &mut self,
         allowance: f64,
         (min, max): (usize, usize),
-        weight: impl Fn((u32, u32)) -> f64,
+        mut weight: impl FnMut((u32, u32)) -> f64,
         out: &mut Vec<(u32, u32)>,
     ) -> f64 {
         out.clear();
@@ -481,9 +481,7 @@ impl<B: AccumulationBackend> RenderSession<B> {
         }
         let d = decode_packet(&self.header, bytes)
             .map_err(|source| SessionError::Packet { id, source })?;
-        self.stats.packets_received += 1;
-        self.stats.bytes_received += bytes.len() as u64;
-        self.insert(id, d.tile, d.coefficients, bytes.len())
+        self.add_decoded(id, bytes.len(), d.tile, d.coefficients)
     }
 
     /// Takes packet `id` (of `wire_bytes` bytes) that its source already decoded into the
@@ -739,23 +737,19 @@ impl<B: AccumulationBackend> RenderSession<B> {
             let kind = usize::from(self.exact);
             let packets = &self.packets;
             let zoom = self.plan.cameras.first().map_or(1.0, |c| c.zoom);
-            let weight_of = |(p, i): (u32, u32)| {
-                packets
-                    .get(&p)
-                    .and_then(|h| h.coefficients.get(i as usize))
-                    .map_or(1.0, |c| splat_weight(c.band.level, zoom))
+            coefficients.clear();
+            // Each popped entry's coefficient is looked up once: queued for the batch and
+            // weighed for the allowance.
+            let take = |(p, i): (u32, u32)| {
+                let c = packets[&p].coefficients[i as usize];
+                coefficients.push(c);
+                splat_weight(c.band.level, zoom)
             };
             let weight = self.queue.pop_weighted(
                 left / self.cost[kind].max(1e-15),
                 (self.options.min_batch.max(1), self.options.max_batch.max(1)),
-                weight_of,
+                take,
                 &mut batch,
-            );
-            coefficients.clear();
-            coefficients.extend(
-                batch
-                    .iter()
-                    .map(|(p, i)| self.packets[p].coefficients[*i as usize]),
             );
             self.records.clear();
             let mut stats = RenderStats::default();

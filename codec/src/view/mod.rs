@@ -385,13 +385,17 @@ impl Camera {
     /// volume of dimensions `dims` (what a constant added to every voxel contributes to the
     /// pixel, e.g. a colour transform's mean).
     pub fn chord(&self, dims: [usize; 3], xs: f64, ys: f64) -> f64 {
+        self.clip_to_voxels(dims, xs, ys)
+            .map_or(0.0, |(_, t0, t1)| t1 - t0)
+    }
+
+    /// The ray through screen point (X, Y): its origin and the parameter interval inside the
+    /// voxel box [−½, n − ½]³, or `None` when it misses the box.
+    fn clip_to_voxels(&self, dims: [usize; 3], xs: f64, ys: f64) -> Option<([f64; 3], f64, f64)> {
         let lo = [-0.5; 3];
-        let hi = [
-            dims[0] as f64 - 0.5,
-            dims[1] as f64 - 0.5,
-            dims[2] as f64 - 0.5,
-        ];
-        clip_ray(self.from_screen(xs, ys), self.n, lo, hi).map_or(0.0, |(t0, t1)| t1 - t0)
+        let hi = dims.map(|n| n as f64 - 0.5);
+        let p = self.from_screen(xs, ys);
+        clip_ray(p, self.n, lo, hi).map(|(t0, t1)| (p, t0, t1))
     }
 
     /// The depth-cued counterpart of [`Camera::chord`]: ∫ e^(−k·dist) along the ray's path
@@ -399,14 +403,7 @@ impl Camera {
     /// the weight there is the plain exponential of a distance linear along the ray). It is
     /// what a constant added to every voxel contributes to a depth-cued pixel.
     pub fn cued_chord(&self, dims: [usize; 3], xs: f64, ys: f64, cue: &ResolvedCue) -> f64 {
-        let lo = [-0.5; 3];
-        let hi = [
-            dims[0] as f64 - 0.5,
-            dims[1] as f64 - 0.5,
-            dims[2] as f64 - 0.5,
-        ];
-        let p = self.from_screen(xs, ys);
-        let Some((t0, t1)) = clip_ray(p, self.n, lo, hi) else {
+        let Some((p, t0, t1)) = self.clip_to_voxels(dims, xs, ys) else {
             return 0.0;
         };
         let at = |t: f64| {

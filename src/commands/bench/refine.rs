@@ -9,7 +9,8 @@
 //! paper's Table 4 (`table4.csv`: coefficients, Q_V and render time for RGB, YIQ and PCA at
 //! 4.6, 9.4, 79 and 368 KB on a 128³ RGB phantom) beside the paper's figures.
 
-use crate::commands::demo::{open_frame_loop, reference_options};
+use super::throughput::median;
+use crate::commands::demo::{open_frame_loop, probe_backend, reference_options};
 use crate::commands::render::load_coefficients;
 use crate::local::LocalStack;
 use crate::report::{Chart, Series};
@@ -26,7 +27,7 @@ use wavesplat_codec::volume::Volume;
 use wavesplat_compressor::colorspace::ColorSpaceKind;
 use wavesplat_compressor::encode::{compress, CompressOptions, Target, TileChoice};
 use wavesplat_compressor::phantom::Phantom;
-use wavesplat_viewer::backend::{select, BackendChoice};
+use wavesplat_viewer::backend::BackendChoice;
 use wavesplat_viewer::source::CacheSourceOptions;
 use wavesplat_viewer::walk::{percentile, turn, walk, zoom_to, FrameSample, PathStep, WalkOptions};
 use wavesplat_viewer::{RenderOptions, Renderer};
@@ -159,14 +160,7 @@ pub fn run(a: RefineArgs) -> Result<()> {
         })
         .context("ingesting into the local cache")?;
     let (path, rests) = view_path(d, a.image, a.rest_frames)?;
-    let probe = select(BackendChoice::Auto)?;
-    outln!("backend: {}", probe.reason);
-    let backend = if probe.backend.name().starts_with("cpu") {
-        BackendChoice::Cpu
-    } else {
-        BackendChoice::Gpu
-    };
-    drop(probe);
+    let backend = probe_backend()?;
     let truth = GroundTruth::new(&volume, &header.geometry, reference_options());
     let mut references = HashMap::new();
     let mut runs = Vec::new();
@@ -570,18 +564,17 @@ fn table4(out: &Path) -> Result<()> {
                 r.render(&coeffs, &header.geometry, &view)?;
                 times.push(t.elapsed().as_secs_f64() * 1e3);
             }
-            times.sort_by(f64::total_cmp);
+            let ms = median(times);
             writeln!(
                 f,
-                "{kb},{name},{},{},{:.2},{:.2},{pc},{pq}",
+                "{kb},{name},{},{},{:.2},{ms:.2},{pc},{pq}",
                 c.bytes.len(),
                 c.stats.kept,
                 c.stats.q_v,
-                times[1]
             )?;
             line.push_str(&format!(
-                " | {name} {:>6} ({pc:>6}) {:5.2} % ({pq:5.2}) {:6.1} ms",
-                c.stats.kept, c.stats.q_v, times[1]
+                " | {name} {:>6} ({pc:>6}) {:5.2} % ({pq:5.2}) {ms:6.1} ms",
+                c.stats.kept, c.stats.q_v
             ));
         }
         outln!("{line}");
