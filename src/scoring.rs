@@ -32,7 +32,7 @@ impl GroundTruth {
     /// The reference image of `spec` (views side by side for multiview).
     pub fn image(&self, spec: &ViewSpec) -> Result<Image> {
         let g = &self.padded.geometry;
-        let cameras = spec.cameras(g.dims).context("reference cameras")?;
+        let cameras = spec.cameras(g).context("reference cameras")?;
         let cue = match &spec.view.cue {
             Some(c) => Some(resolve_cue(c, &cameras[0], g).context("reference depth cue")?),
             None => None,

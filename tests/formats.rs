@@ -316,9 +316,9 @@ async fn an_archive_of_every_format_compresses_and_bad_volumes_fail_alone() {
         assert_eq!(h.geometry.dims, v.dims(), "{name}");
         for a in 0..3 {
             assert!(
-                (h.spacing[a] - v.spacing()[a]).abs() <= 1e-5 * v.spacing()[a],
+                (h.spacing()[a] - v.spacing()[a]).abs() <= 1e-5 * v.spacing()[a],
                 "{name}: {:?} vs {:?}",
-                h.spacing,
+                h.spacing(),
                 v.spacing()
             );
         }
@@ -432,4 +432,135 @@ fn compress_and_info_show_the_geometry_of_a_dicom_series() {
     let msg = String::from_utf8_lossy(&e.stderr);
     let fname = f.file_name().unwrap().to_string_lossy().into_owned();
     assert!(msg.contains(&fname), "{msg}");
+}
+
+/// Reads a `render --raw` image (little-endian f32).
+fn read_raw_image(path: &Path) -> Vec<f32> {
+    std::fs::read(path)
+        .unwrap()
+        .chunks_exact(4)
+        .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+        .collect()
+}
+
+/// Named patient views and physical zoom through the binary: an axial NRRD series (identity
+/// placement, 0.8 × 0.8 × 2.5 mm voxels) rendered `--view anterior` is the view (α, β) =
+/// (−π/2, 0) by the table in `codec::view::patient`; `--view superior` differs from it; a
+/// file whose source gave no orientation refuses a named view with the reason; and `--zoom`
+/// is in pixels per mm: twice the zoom doubles the drawn extent.
+#[test]
+fn named_views_and_zoom_in_millimetres() {
+    let tmp = tempfile::tempdir().unwrap();
+    let v = ct([24, 20, 10], [0.8, 0.8, 2.5])
+        .with_placement(Placement::identity())
+        .unwrap();
+    let nrrd = write_nrrd(
+        tmp.path(),
+        "axial",
+        &v,
+        Layout::I16,
+        NrrdEncoding::Raw,
+        false,
+        "LPS",
+    );
+    let wsp = tmp.path().join("axial.wsp");
+    let path = |name: &str| tmp.path().join(name).to_str().unwrap().to_string();
+    cli_ok(&[
+        "compress",
+        nrrd.to_str().unwrap(),
+        "-o",
+        wsp.to_str().unwrap(),
+        "--levels",
+        "2",
+    ]);
+    let render = |extra: &[&str], name: &str| -> Vec<f32> {
+        let raw = path(&format!("{name}.raw"));
+        let png = path(&format!("{name}.png"));
+        let mut args = vec![
+            "render",
+            wsp.to_str().unwrap(),
+            "--size",
+            "48x48",
+            "--cpu",
+            "-o",
+            &png,
+            "--raw",
+            &raw,
+        ];
+        args.extend_from_slice(extra);
+        cli_ok(&args);
+        read_raw_image(Path::new(&raw))
+    };
+    let named = render(&["--view", "anterior", "--zoom", "1.2"], "anterior");
+    let angles = render(
+        &[
+            "--alpha",
+            "-1.5707963267948966",
+            "--beta",
+            "0",
+            "--zoom",
+            "1.2",
+        ],
+        "angles",
+    );
+    let peak = angles.iter().fold(0.0f32, |m, x| m.max(x.abs()));
+    assert!(peak > 0.0);
+    let diff = named
+        .iter()
+        .zip(&angles)
+        .fold(0.0f32, |m, (a, b)| m.max((a - b).abs()));
+    assert!(
+        diff <= 1e-4 * peak,
+        "anterior vs its angles: {diff} of {peak}"
+    );
+    let superior = render(&["--view", "superior", "--zoom", "1.2"], "superior");
+    let diff = superior
+        .iter()
+        .zip(&angles)
+        .fold(0.0f32, |m, (a, b)| m.max((a - b).abs()));
+    assert!(diff > 0.1 * peak, "superior equals anterior");
+    // Zoom in px/mm: the anterior image's silhouette (the air at −1024 HU fills the box; rows
+    // above 20 % of the peak, past the compression's ringing outside it) spans the volume's
+    // physical height (10 × 2.5 mm) times the zoom: 30 px at 1.2 px/mm, 15 at 0.6.
+    let rows = |img: &[f32], thr: f32| -> usize {
+        (0..48)
+            .filter(|y| img[y * 48..(y + 1) * 48].iter().any(|v| v.abs() > thr))
+            .count()
+    };
+    let zoomed = render(&["--view", "anterior", "--zoom", "0.6"], "zoomed");
+    let (tall, short) = (rows(&named, 0.2 * peak), rows(&zoomed, 0.2 * peak));
+    assert!(
+        (28..=32).contains(&tall) && (14..=17).contains(&short),
+        "rows at 1.2 px/mm {tall}, at 0.6 px/mm {short}"
+    );
+    // No orientation: a raw file refuses a named view and says why.
+    let raw = tmp.path().join("r.raw");
+    std::fs::write(&raw, vec![7u8; 8 * 8 * 8]).unwrap();
+    let unplaced = tmp.path().join("r.wsp");
+    cli_ok(&[
+        "compress",
+        raw.to_str().unwrap(),
+        "-o",
+        unplaced.to_str().unwrap(),
+        "--dims",
+        "8,8,8",
+        "--dtype",
+        "u8",
+        "--levels",
+        "1",
+    ]);
+    let out = cli(&[
+        "render",
+        unplaced.to_str().unwrap(),
+        "--view",
+        "anterior",
+        "-o",
+        &path("x.png"),
+    ]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    assert!(
+        err.contains("orientation in the patient is unknown"),
+        "{err}"
+    );
 }

@@ -50,6 +50,9 @@ pub enum LayoutError {
     /// Zero-sized volume.
     #[error("volume dimensions must be at least 1, got {0:?}")]
     Empty([usize; 3]),
+    /// A voxel spacing that is not a finite positive number.
+    #[error("voxel spacing {0:?} must be three finite positive numbers")]
+    BadSpacing([f32; 3]),
 }
 
 /// A band of coefficients: one wavelet type at one level, or the scaling type at level M.
@@ -68,8 +71,10 @@ impl Band {
     }
 }
 
-/// The geometry of one decomposed volume: original and padded sizes, depth and family.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+/// The geometry of one decomposed volume: original and padded sizes, depth and family, and the
+/// voxel spacing that places the voxel grid in physical space (cameras, footprints, depth cues
+/// and visibility all work in its units, mm for medical data).
+#[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Geometry {
     /// Original volume dimensions.
     pub dims: [usize; 3],
@@ -81,7 +86,12 @@ pub struct Geometry {
     pub levels: usize,
     /// Wavelet family.
     pub family: Family,
+    /// Distance between voxel centres along x, y, z (finite and positive; 1 when unknown).
+    pub spacing: [f32; 3],
 }
+
+// Every field compares reflexively: the spacing is validated finite (`with_spacing`).
+impl Eq for Geometry {}
 
 impl Geometry {
     /// Maximum depth for `dims`: ceil(log2(smallest dimension)), capped at [`MAX_LEVELS`].
@@ -149,7 +159,21 @@ impl Geometry {
             origin,
             levels,
             family,
+            spacing: [1.0; 3],
         })
+    }
+
+    /// The same geometry with voxel spacing `spacing` (each finite and positive).
+    pub fn with_spacing(self, spacing: [f32; 3]) -> Result<Geometry, LayoutError> {
+        if spacing.iter().any(|s| !(s.is_finite() && *s > 0.0)) {
+            return Err(LayoutError::BadSpacing(spacing));
+        }
+        Ok(Geometry { spacing, ..self })
+    }
+
+    /// The spacing in f64.
+    pub fn spacing_f64(&self) -> [f64; 3] {
+        self.spacing.map(f64::from)
     }
 
     /// Coefficients per channel (= padded voxel count).

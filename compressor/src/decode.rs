@@ -88,7 +88,7 @@ pub fn reconstruct_within(
         coefficients_to_samples(&mut data, g);
         channels.push(crop_channel(&data, g));
     }
-    let mut coded = Volume::new(g.dims, header.spacing, channels)?;
+    let mut coded = Volume::new(g.dims, header.spacing(), channels)?;
     if let Some(p) = header.placement {
         coded = coded.with_placement(p)?;
     }

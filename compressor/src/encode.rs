@@ -207,7 +207,6 @@ struct Prepared {
     color: ColorInfo,
     channels: usize,
     value_range: [f32; 2],
-    spacing: [f32; 3],
     placement: Option<Placement>,
     /// Non-zero coefficients by decreasing score.
     sorted: Vec<Scored>,
@@ -263,7 +262,8 @@ fn prepare(
     let margin = opts
         .margin
         .unwrap_or_else(|| Geometry::default_margin(opts.family, levels));
-    let geometry = Geometry::new(dims, opts.family, levels, margin)?;
+    let geometry =
+        Geometry::new(dims, opts.family, levels, margin)?.with_spacing(volume.spacing())?;
     progress(Stage::Color, 0.0);
     let (channels, color) = if volume.channel_count() == 3 {
         let t = ColorTransform::fit(opts.colorspace, volume)?;
@@ -321,7 +321,6 @@ fn prepare(
         color,
         channels: channels.len(),
         value_range: [lo, hi],
-        spacing: volume.spacing(),
         placement: volume.placement().copied(),
         sorted,
         total_energy,
@@ -420,7 +419,6 @@ impl Prepared {
             color: self.color,
             channels: self.channels,
             value_range: self.value_range,
-            spacing: self.spacing,
             placement: self.placement,
             sorted,
             total_energy: self.total_energy,
@@ -496,7 +494,6 @@ impl Prepared {
         let mut header = Header {
             geometry: *g,
             margin: self.margin,
-            spacing: self.spacing,
             placement: self.placement,
             channels: self.channels,
             color: self.color,

@@ -38,7 +38,7 @@ fn placement_and_spacing_round_trip() {
     let bytes = file(&v);
     let h = parse_file(&bytes).unwrap().header;
     assert_eq!(h.placement.as_ref(), v.placement());
-    assert_eq!(h.spacing, v.spacing());
+    assert_eq!(h.spacing(), v.spacing());
     let back = decompress(&bytes).unwrap();
     assert_eq!(back.placement(), v.placement());
     assert_eq!(back.spacing(), v.spacing());

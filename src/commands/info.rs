@@ -88,9 +88,9 @@ pub fn print_header(h: &Header) {
         g.dims[0],
         g.dims[1],
         g.dims[2],
-        h.spacing[0],
-        h.spacing[1],
-        h.spacing[2]
+        h.spacing()[0],
+        h.spacing()[1],
+        h.spacing()[2]
     );
     match &h.placement {
         Some(p) => {

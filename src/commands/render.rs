@@ -14,6 +14,7 @@ use wavesplat_client::VolumeKey;
 use wavesplat_codec::format::packet::{decode_packets, Coefficient};
 use wavesplat_codec::format::{parse_file, Header};
 use wavesplat_codec::metrics::{q_i_paper_db, snr_db};
+use wavesplat_codec::view::patient::PatientView;
 use wavesplat_codec::view::{Cue, CueDirection, View, ViewSpec};
 use wavesplat_viewer::backend::{select, BackendChoice};
 use wavesplat_viewer::session::{RenderSession, SessionOptions};
@@ -35,22 +36,32 @@ pub struct ViewArgs {
     /// Azimuth α of the view (radians, paper §3.1).
     #[arg(long, default_value_t = 0.66, allow_negative_numbers = true)]
     pub alpha: f64,
+    /// View named from the side of the patient it is seen from: anterior, posterior, left,
+    /// right, superior or inferior (radiological display: anterior shows the patient's left on
+    /// the right). Needs a volume whose source gave its orientation (DICOM, NIfTI, NRRD,
+    /// MetaImage); replaces --alpha/--beta.
+    #[arg(long, value_name = "SIDE", conflicts_with_all = ["alpha", "beta"])]
+    pub view: Option<String>,
     /// Elevation β of the view (radians).
     #[arg(long, default_value_t = 0.91, allow_negative_numbers = true)]
     pub beta: f64,
     /// Image size WxH (per view with --multiview).
     #[arg(long, default_value = "256x256")]
     pub size: String,
-    /// Pixels per voxel (default: fit the volume).
+    /// Pixels per unit of voxel spacing: per millimetre when the volume's spacing is in mm (as
+    /// DICOM, NIfTI, NRRD and MetaImage give it), per voxel for unit spacing (default: fit the
+    /// volume). Anisotropic volumes are drawn in their physical shape.
     #[arg(long)]
     pub zoom: Option<f64>,
-    /// Pan of the image centre from the volume centre, in voxels along the screen axes: X,Y.
+    /// Pan of the image centre from the volume centre, in units of spacing (mm) along the
+    /// screen axes: X,Y.
     #[arg(long, allow_negative_numbers = true)]
     pub pan: Option<String>,
     /// Three views side by side from one set of footprints (paper §3.1).
     #[arg(long)]
     pub multiview: bool,
-    /// Depth-cue extinction per voxel (paper §3.2); 0 disables.
+    /// Depth-cue extinction per unit of spacing (per mm, or per voxel for unit spacing; paper
+    /// §3.2); 0 disables.
     #[arg(long, default_value_t = 0.0)]
     pub cue_k: f64,
     /// Depth-cue direction α,β (default: along the view direction).
@@ -154,7 +165,7 @@ impl ViewArgs {
             .with_context(|| format!("--size must be WxH, got {:?}", self.size))?;
         if !self.cue_k.is_finite() || self.cue_k < 0.0 {
             bail!(
-                "--cue-k must be a finite non-negative extinction per voxel, got {}",
+                "--cue-k must be a finite non-negative extinction per unit of spacing, got {}",
                 self.cue_k
             );
         }
@@ -183,6 +194,20 @@ impl ViewArgs {
             multiview: self.multiview,
         };
         spec.validate().context("invalid view")?;
+        Ok(spec)
+    }
+
+    /// The view spec for the volume of `header`: [`ViewArgs::spec`], turned to the named
+    /// patient view (`--view`) through the volume's placement.
+    pub fn spec_for(&self, header: &Header) -> Result<ViewSpec> {
+        let mut spec = self.spec()?;
+        if let Some(name) = &self.view {
+            let side = PatientView::from_name(name)?;
+            spec.view.orientation = side
+                .orientation(header.placement.as_ref())
+                .with_context(|| format!("--view {name}"))?;
+            spec.validate().context("invalid view")?;
+        }
         Ok(spec)
     }
 
@@ -226,17 +251,18 @@ pub enum Opened {
     },
 }
 
-/// Opens the volume the options name, ranked for `spec`.
-pub fn open(
-    args: &ViewArgs,
-    spec: &ViewSpec,
-    byte_budget: Option<u64>,
-) -> Result<(Header, Opened)> {
+/// Opens the volume the options name, ranked for the view they describe; returns that view
+/// (a named patient view resolved through the volume's placement).
+pub fn open(args: &ViewArgs, byte_budget: Option<u64>) -> Result<(Header, Opened, ViewSpec)> {
     match (&args.input, &args.cache, &args.volume) {
         (Some(path), _, _) => {
             let bytes =
                 std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
-            let source = FileSource::open(bytes, spec)
+            let header = parse_file(&bytes)
+                .with_context(|| format!("reading {}", path.display()))?
+                .header;
+            let spec = args.spec_for(&header)?;
+            let source = FileSource::open(bytes, &spec)
                 .with_context(|| format!("reading {}", path.display()))?
                 .with_byte_budget(byte_budget);
             Ok((
@@ -244,15 +270,26 @@ pub fn open(
                 Opened::File {
                     source: Box::new(source),
                 },
+                spec,
             ))
         }
         (None, Some(url), Some(name)) => {
             let key = VolumeKey::Name(name.clone());
+            let spec = match &args.view {
+                // A named view needs the volume's placement before the stream starts.
+                Some(_) => {
+                    let header = wavesplat_client::blocking::CacheClient::connect(url)
+                        .and_then(|mut c| c.header(&key))
+                        .with_context(|| format!("reading the header of {name:?} at {url}"))?;
+                    args.spec_for(&header.header)?
+                }
+                None => args.spec()?,
+            };
             let options = CacheSourceOptions {
                 byte_budget,
                 ..CacheSourceOptions::default()
             };
-            let (source, header) = CacheSource::open(url, key.clone(), *spec, options)
+            let (source, header) = CacheSource::open(url, key.clone(), spec, options)
                 .with_context(|| format!("opening {name:?} at {url}"))?;
             Ok((
                 header.header,
@@ -261,6 +298,7 @@ pub fn open(
                     key,
                     source,
                 },
+                spec,
             ))
         }
         _ => bail!("give a .wsp file, or --cache URL and --volume NAME"),
@@ -374,7 +412,7 @@ impl Recorder {
 
 /// Runs the subcommand.
 pub fn run(a: RenderArgs) -> Result<()> {
-    let spec = a.view.spec()?;
+    a.view.spec()?;
     if !(a.frame_ms.is_finite() && a.frame_ms > 0.0) {
         bail!(
             "--frame-ms must be a positive number of milliseconds, got {}",
@@ -387,7 +425,7 @@ pub fn run(a: RenderArgs) -> Result<()> {
         }
     }
     let opening = Instant::now();
-    let (header, opened) = open(&a.view, &spec, a.bytes)?;
+    let (header, opened, spec) = open(&a.view, a.bytes)?;
     let opened_after = opening.elapsed();
     let reference = if a.reference {
         Some(reference_image(&opened, &header, &spec).context("rendering the reference")?)

@@ -14,7 +14,11 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 use wavesplat_codec::format::Header;
-use wavesplat_codec::view::{Camera, Cue, CueDirection, View, ViewSpec, MAX_IMAGE_SIDE};
+use wavesplat_codec::layout::Geometry;
+use wavesplat_codec::view::patient::angles_of;
+use wavesplat_codec::view::{
+    Camera, Cue, CueDirection, Orientation, View, ViewSpec, MAX_IMAGE_SIDE,
+};
 use wavesplat_viewer::backend::{
     select, AccumulationBackend, BackendChoice, GpuBackend, GpuContext,
 };
@@ -65,7 +69,7 @@ pub struct ViewWindowArgs {
 
 /// Runs the subcommand.
 pub fn run(a: ViewWindowArgs) -> Result<()> {
-    let spec = a.view.spec()?;
+    a.view.spec()?;
     if !(a.frame_ms.is_finite() && a.frame_ms > 0.0 && a.frame_ms <= 10_000.0) {
         bail!(
             "--frame-ms must be a positive number of milliseconds (at most 10000), got {}",
@@ -87,7 +91,7 @@ pub fn run(a: ViewWindowArgs) -> Result<()> {
         })?,
         None => Script::default(),
     };
-    let (header, opened) = open(&a.view, &spec, None)?;
+    let (header, opened, spec) = open(&a.view, None)?;
     let source: Box<dyn PacketSource> = match opened {
         Opened::File { source } => source,
         Opened::Cache { source, .. } => Box::new(source),
@@ -95,7 +99,7 @@ pub fn run(a: ViewWindowArgs) -> Result<()> {
     let event_loop = EventLoop::new().context(
         "opening the display (no X11 display? set DISPLAY, or use `wavesplat render` headless)",
     )?;
-    let state = ViewState::from_args(&a, &spec);
+    let state = ViewState::from_args(&a, &spec)?;
     let mut app = App {
         applied: state.clone(),
         view_size: PhysicalSize::new(0, 0),
@@ -174,15 +178,27 @@ struct ViewState {
 }
 
 impl ViewState {
-    fn from_args(a: &ViewWindowArgs, spec: &ViewSpec) -> ViewState {
+    fn from_args(a: &ViewWindowArgs, spec: &ViewSpec) -> Result<ViewState> {
         let v = &spec.view;
+        // The window turns the view by its angles; a named patient view is one when the
+        // volume's axes are the patient's up to a rotation about z (always for axial series).
+        let (alpha, beta) = match v.orientation {
+            Orientation::Angles { alpha, beta } => (alpha, beta),
+            Orientation::Basis { u, v } => angles_of(u, v).with_context(|| {
+                format!(
+                    "--view {}: in this volume's placement the named view is not a spherical \
+                     view (α, β) the window can turn; use `wavesplat render --view` for it",
+                    a.view.view.as_deref().unwrap_or("?")
+                )
+            })?,
+        };
         let (cue_k, cue_dir) = match &v.cue {
             Some(c) => (c.k, c.direction),
             None => (0.02, CueDirection::View),
         };
         let mut s = ViewState {
-            alpha: a.view.alpha,
-            beta: a.view.beta,
+            alpha,
+            beta,
             zoom_factor: 1.0,
             zoom_abs: v.zoom,
             pan: v.pan,
@@ -196,7 +212,7 @@ impl ViewState {
             initial: None,
         };
         s.initial = Some(Box::new(s.clone()));
-        s
+        Ok(s)
     }
 
     /// The display window (lo, hi) for `image`: the automatic one (1st and 99th percentiles)
@@ -225,10 +241,10 @@ impl ViewState {
     }
 
     /// The view spec for a window of `size` (physical pixels), image sides capped at `max`.
-    fn spec(&self, size: PhysicalSize<u32>, max: usize, dims: [usize; 3]) -> Result<ViewSpec> {
+    fn spec(&self, size: PhysicalSize<u32>, max: usize, geometry: &Geometry) -> Result<ViewSpec> {
         let (w, h) = image_size(size, self.multiview, max);
         let mut view = View::new(self.alpha, self.beta, w, h).with_pan(self.pan);
-        let fit = Camera::new(&View::new(0.0, 0.0, w, h), dims)?.zoom;
+        let fit = Camera::new(&View::new(0.0, 0.0, w, h), geometry)?.zoom;
         let zoom = self
             .zoom_abs
             .map_or(fit, |z| z * w as f64 / size_w(size, self.multiview));
@@ -558,7 +574,7 @@ impl App {
         );
         let spec = self
             .state
-            .spec(size_or_one(size), self.args.max_image, header.geometry.dims)?;
+            .spec(size_or_one(size), self.args.max_image, &header.geometry)?;
         let session = RenderSession::new(header, spec, backend, self.args.view.session_options())
             .context("starting the render session")?;
         let mut frames = FrameLoop::new(session, source);
@@ -799,8 +815,8 @@ impl App {
             self.dirty_view = true;
         }
         if self.dirty_view {
-            let dims = frames.session.header().geometry.dims;
-            let spec = match self.state.spec(size, self.args.max_image, dims) {
+            let geometry = frames.session.header().geometry;
+            let spec = match self.state.spec(size, self.args.max_image, &geometry) {
                 Ok(spec) => {
                     self.applied = self.state.clone();
                     spec
@@ -809,7 +825,7 @@ impl App {
                     // A view the input asked for that the renderer refuses: keep the last one.
                     eprintln!("view not changed: {e:#}");
                     self.state = self.applied.clone();
-                    self.state.spec(size, self.args.max_image, dims)?
+                    self.state.spec(size, self.args.max_image, &geometry)?
                 }
             };
             frames.set_view(spec).context("changing the view")?;
@@ -1197,9 +1213,10 @@ mod tests {
             ]
         );
         // Every direction makes a valid depth-cued view.
+        let g = Geometry::new([16, 16, 16], wavesplat_codec::family::Family::Linear, 1, 0).unwrap();
         for d in seen {
             s.cue_dir = d;
-            let spec = s.spec(PhysicalSize::new(64, 48), 64, [16, 16, 16]).unwrap();
+            let spec = s.spec(PhysicalSize::new(64, 48), 64, &g).unwrap();
             assert_eq!(spec.view.cue.map(|c| c.direction), Some(d));
         }
     }

@@ -68,7 +68,7 @@ pub fn to_rgb_for_spec(
     header: &Header,
     spec: &ViewSpec,
 ) -> Result<Image, RenderError> {
-    let cameras = spec.cameras(header.geometry.dims)?;
+    let cameras = spec.cameras(&header.geometry)?;
     let cue = match &spec.view.cue {
         Some(c) => Some(resolve_cue(c, &cameras[0], &header.geometry)?),
         None => None,
@@ -126,12 +126,28 @@ mod tests {
 
     /// The pixel chords are the pixel-area averages of the chord: against a 64×64 sampling of
     /// every pixel, within 2e-3 voxels on silhouette pixels, where the centre value alone is off
-    /// by far more; and the chords sum to the box volume over the pixel area (zoom²).
+    /// by far more; and the chords sum to the box's physical volume over the pixel area (zoom²),
+    /// for cubic and for anisotropic voxels.
     #[test]
     fn pixel_chords_average_the_chord_over_the_pixel() {
+        for spacing in [[1.0f32; 3], [0.7, 1.3, 2.5]] {
+            pixel_chords_for(spacing);
+        }
+    }
+
+    fn pixel_chords_for(spacing: [f32; 3]) {
         let dims = [9, 5, 7];
         let (w, h) = (24, 20);
-        let cam = Camera::new(&View::new(0.66, 0.91, w, h), dims).unwrap();
+        let g = wavesplat_codec::layout::Geometry::new(
+            dims,
+            wavesplat_codec::family::Family::Linear,
+            0,
+            0,
+        )
+        .unwrap()
+        .with_spacing(spacing)
+        .unwrap();
+        let cam = Camera::new(&View::new(0.66, 0.91, w, h), &g).unwrap();
         let chords = pixel_chords(w, h, |xs, ys| cam.chord(dims, xs, ys));
         let mut worst_centre = 0.0f64;
         let mut total = 0.0;
@@ -155,7 +171,9 @@ mod tests {
             }
         }
         assert!(worst_centre > 0.05, "the test view has silhouette pixels");
-        let volume = (dims[0] * dims[1] * dims[2]) as f64;
+        let volume = (0..3)
+            .map(|a| dims[a] as f64 * f64::from(spacing[a]))
+            .product::<f64>();
         let area = total / (cam.zoom * cam.zoom);
         assert!((area - volume).abs() < 1e-3 * volume, "{area} vs {volume}");
     }

@@ -3,8 +3,11 @@
 //!
 //! The pixel-area-averaged footprint of a centred level-m basis function b in screen pixels has
 //! the 2D Fourier transform (σ, ρ in cycles per pixel)
-//! P̂(σ, ρ) = zoom² · B(zoom·(σ e_x + ρ e_y)) · sinc(σ) sinc(ρ),
-//! where B is the 3D transform of the centred basis (product over axes of the codec's 1D
+//! P̂(σ, ρ) = zoom² · det S · B(zoom·(σ e_x + ρ e_y)) · sinc(σ) sinc(ρ),
+//! where e_x, e_y are the screen axes per voxel step (S·u and −S·v for the voxel spacing S: the
+//! basis drawn in physical space is b(S⁻¹y), whose projection's slice is det S · B(S·ω), so an
+//! anisotropic volume still needs one table per type, level and view), zoom is pixels per unit
+//! of spacing, and B is the 3D transform of the centred basis (product over axes of the codec's 1D
 //! transforms, recentred by e^{+i2πξc}, c = j/2 for φ and (2j−1)/2 for ψ, dilated by 2^m) and
 //! the sincs are the pixel box, so a table sample is the *average over a pixel* of the line
 //! integrals — Haar's transform is not band-limited, so this and oversampling matter. The slice is
@@ -46,17 +49,20 @@ pub struct FootprintParams {
     pub family: Family,
     /// Decomposition depth M.
     pub levels: usize,
-    /// Screen x axis in volume space (unit).
+    /// Screen x axis per voxel step, S·u (unit for unit spacing; `Camera::index_axes`).
     pub ex: [f64; 3],
-    /// Screen y axis in volume space (unit).
+    /// Screen y axis per voxel step, −S·v.
     pub ey: [f64; 3],
-    /// Pixels per voxel.
+    /// Pixels per unit of spacing.
     pub zoom: f64,
+    /// Physical volume of a voxel, det S (1 for unit spacing).
+    pub voxel_volume: f64,
     /// Requested subpixel phases per axis (even, ≥ 2).
     pub subpixel: usize,
     /// Largest FFT side.
     pub max_fft: usize,
-    /// Depth cue: extinction k and unit light direction.
+    /// Depth cue: extinction k (per unit of spacing) and the distance gradient in voxel indices
+    /// (`ResolvedCue::l`: the unit light direction for unit spacing).
     pub cue: Option<(f64, [f64; 3])>,
     /// Also build the tables' gradients (for [`Footprint::grad_x`] / [`Footprint::grad_y`]).
     pub gradient: bool,
@@ -356,7 +362,8 @@ pub fn footprint_spectrum(
         p.zoom * (sigma * p.ex[2] + rho * p.ey[2]),
     ];
     let kappa = cue_kappa(p, level);
-    basis_transform(p.family, level, kind, xi, kappa) * (p.zoom * p.zoom * sinc(sigma) * sinc(rho))
+    basis_transform(p.family, level, kind, xi, kappa)
+        * (p.zoom * p.zoom * p.voxel_volume * sinc(sigma) * sinc(rho))
 }
 
 fn cue_kappa(p: &FootprintParams, level: usize) -> [f64; 3] {
@@ -468,7 +475,7 @@ pub fn compute_fine_with(
                     f1[a][0] = axis_transform(&tf, level, false, xi, kappa[a]);
                     f1[a][1] = axis_transform(&tf, level, true, xi, kappa[a]);
                 }
-                let w = p.zoom * p.zoom * sinc(sigma) * sinc(rho);
+                let w = p.zoom * p.zoom * p.voxel_volume * sinc(sigma) * sinc(rho);
                 for (t, kind) in kinds.iter().enumerate() {
                     let bx = (kind >> 2) as usize & 1;
                     let by = (kind >> 1) as usize & 1;
@@ -936,7 +943,7 @@ pub fn compute_factor_tables(p: &FootprintParams, keys: &[[AxisFactor; 3]]) -> V
             .map(|i| {
                 let rho = signed(i / nx, ny) * s as f64 / ny as f64;
                 let sigma = signed(i % nx, nx) * s as f64 / nx as f64;
-                p.zoom * p.zoom * sinc(sigma) * sinc(rho)
+                p.zoom * p.zoom * p.voxel_volume * sinc(sigma) * sinc(rho)
             })
             .collect();
         let tables: Vec<(usize, FineTable)> = group

@@ -1,7 +1,9 @@
 //! Splat planning: from a view and coefficients to [`SplatRecord`]s in a [`FootprintAtlas`].
 //!
 //! The [`Planner`] resolves a [`ViewSpec`] into a [`ViewPlan`]: the cameras (one, or the three
-//! multiview cameras of §3.1, which share one footprint set by type permutation), the resolved
+//! multiview cameras of §3.1, which share one footprint set by type permutation when the voxel
+//! spacing is the same along the axes the permutation swaps, and have a set each otherwise:
+//! swapping two axes of differently spaced voxels is not a symmetry of the data), the resolved
 //! depth cue, and the footprint tables of the view, flattened into an atlas. Footprint sets are
 //! cached per view like RustFFT's planner caches plans. A [`ViewPlan`] turns coefficients into
 //! records: each coefficient is projected to its basis centre on the screen, the (level, type)
@@ -112,7 +114,7 @@ pub struct RenderStats {
 
 #[derive(Debug, Clone, PartialEq)]
 struct CacheKey {
-    params: [u64; 12],
+    params: [u64; 13],
 }
 
 fn key_of(p: &FootprintParams) -> CacheKey {
@@ -134,8 +136,28 @@ fn key_of(p: &FootprintParams) -> CacheKey {
             l[0].to_bits(),
             l[1].to_bits(),
             l[2].to_bits(),
+            p.voxel_volume.to_bits(),
         ],
     }
+}
+
+/// Whether the multiview cameras can draw with the first camera's tables (§3.1's type
+/// permutation): view 2 swaps the x and y factors, view 3 the x and z factors, so their spacings
+/// must agree.
+fn shares_tables(spec: &ViewSpec, spacing: [f32; 3]) -> bool {
+    !spec.multiview || (spacing[0] == spacing[1] && spacing[0] == spacing[2])
+}
+
+/// A view spec resolved for a volume: its cameras, its depth cue and the parameters of the
+/// footprint sets it draws with.
+#[derive(Debug, Clone)]
+pub struct ResolvedView {
+    /// One camera, or the three multiview cameras.
+    pub cameras: Vec<Camera>,
+    /// The resolved depth cue.
+    pub cue: Option<ResolvedCue>,
+    /// One footprint set shared by every camera, or one per camera.
+    pub footprints: Vec<FootprintParams>,
 }
 
 /// Plans views, caching footprint sets.
@@ -174,36 +196,55 @@ impl Planner {
     }
 
     /// The footprint parameters of `spec` for `geometry` (with its cameras and resolved cue):
-    /// what [`Planner::plan`] builds or finds tables for.
+    /// what [`Planner::plan`] builds or finds tables for: one set, or one per multiview camera
+    /// when they cannot share (see the module documentation).
     pub fn params(
         &self,
         geometry: &Geometry,
         spec: &ViewSpec,
-    ) -> Result<(Vec<Camera>, Option<ResolvedCue>, FootprintParams), RenderError> {
-        let cameras = spec.cameras(geometry.dims)?;
+    ) -> Result<ResolvedView, RenderError> {
+        let cameras = spec.cameras(geometry)?;
         let cue = match &spec.view.cue {
             Some(c) => Some(resolve_cue(c, &cameras[0], geometry)?),
             None => None,
         };
-        let (ex, ey) = cameras[0].screen_axes();
-        let params = FootprintParams {
-            family: geometry.family,
-            levels: geometry.levels,
-            ex,
-            ey,
-            zoom: cameras[0].zoom,
-            subpixel: self.options.subpixel_for(geometry.family),
-            max_fft: self.options.max_fft_for(geometry.family),
-            cue: cue.map(|c| (c.k, c.l)),
-            gradient: self.options.placement == Placement::Gradient,
+        let sets = if shares_tables(spec, geometry.spacing) {
+            1
+        } else {
+            cameras.len()
         };
-        Ok((cameras, cue, params))
+        let params = cameras[..sets]
+            .iter()
+            .map(|camera| {
+                let (ex, ey) = camera.index_axes();
+                FootprintParams {
+                    family: geometry.family,
+                    levels: geometry.levels,
+                    ex,
+                    ey,
+                    zoom: camera.zoom,
+                    voxel_volume: camera.voxel_volume(),
+                    subpixel: self.options.subpixel_for(geometry.family),
+                    max_fft: self.options.max_fft_for(geometry.family),
+                    cue: cue.map(|c| (c.k, c.l)),
+                    gradient: self.options.placement == Placement::Gradient,
+                }
+            })
+            .collect();
+        Ok(ResolvedView {
+            cameras,
+            cue,
+            footprints: params,
+        })
     }
 
-    /// Whether the footprints for `p` are in the cache (planning them is then cheap).
-    pub fn is_cached(&self, p: &FootprintParams) -> bool {
-        let key = key_of(p);
-        self.cache.iter().any(|(k, _)| *k == key)
+    /// Whether the footprints for every one of `params` are in the cache (planning them is
+    /// then cheap).
+    pub fn is_cached(&self, params: &[FootprintParams]) -> bool {
+        params.iter().all(|p| {
+            let key = key_of(p);
+            self.cache.iter().any(|(k, _)| *k == key)
+        })
     }
 
     /// Puts footprints built elsewhere (e.g. on a background thread) into the cache.
@@ -223,13 +264,21 @@ impl Planner {
         spec: &ViewSpec,
         channels: usize,
     ) -> Result<ViewPlan, RenderError> {
-        let (cameras, cue, params) = self.params(geometry, spec)?;
-        let set = self.footprints(&params);
+        let ResolvedView {
+            cameras,
+            cue,
+            footprints,
+        } = self.params(geometry, spec)?;
+        let sets: Vec<Arc<FootprintSet>> = footprints.iter().map(|p| self.footprints(p)).collect();
         let mut atlas = FootprintAtlas::new();
-        let tables = set
-            .tables
+        let tables = sets
             .iter()
-            .map(|t| t.as_ref().map(|f| atlas.push(f)))
+            .map(|set| {
+                set.tables
+                    .iter()
+                    .map(|t| t.as_ref().map(|f| atlas.push(f)))
+                    .collect()
+            })
             .collect();
         Ok(ViewPlan {
             geometry: *geometry,
@@ -238,10 +287,10 @@ impl Planner {
             cue,
             channels,
             expansions: cue.map(|_| Expansions::new(geometry)),
-            set,
+            factor_tables: vec![HashMap::new(); sets.len()],
+            sets,
             atlas,
             tables,
-            factor_tables: HashMap::new(),
         })
     }
 }
@@ -262,17 +311,28 @@ pub struct ViewPlan {
     /// Every footprint of the view (grows with cued factor triples).
     pub atlas: FootprintAtlas,
     expansions: Option<Expansions>,
-    set: Arc<FootprintSet>,
-    /// Uncued tables by `level · 8 + kind`.
-    tables: Vec<Option<TableRef>>,
-    /// Tables of cued pieces by factor triple.
-    factor_tables: HashMap<[AxisFactor; 3], TableRef>,
+    /// Footprint sets: one shared by every camera, or one per camera.
+    sets: Vec<Arc<FootprintSet>>,
+    /// Per set, the uncued tables by `level · 8 + kind`.
+    tables: Vec<Vec<Option<TableRef>>>,
+    /// Per set, the tables of cued pieces by factor triple.
+    factor_tables: Vec<HashMap<[AxisFactor; 3], TableRef>>,
 }
 
 impl ViewPlan {
     /// The footprint tables the plan draws with (to cache them in another planner).
-    pub fn footprint_set(&self) -> Arc<FootprintSet> {
-        self.set.clone()
+    pub fn footprint_sets(&self) -> Vec<Arc<FootprintSet>> {
+        self.sets.clone()
+    }
+
+    /// Which set camera `k` draws with, and whether it goes through the first camera's tables
+    /// by type permutation.
+    fn set_of(&self, k: usize) -> (usize, bool) {
+        if self.sets.len() == 1 {
+            (0, k > 0)
+        } else {
+            (k, false)
+        }
     }
 }
 
@@ -363,25 +423,38 @@ impl ViewPlan {
         // Tables of the factor triples that first occur (first-use order: deterministic).
         let triples: Vec<Vec<([AxisFactor; 3], f32)>> = (0..views)
             .map(|k| {
+                let (_, permuted) = self.set_of(k);
                 pieces
                     .iter()
-                    .map(|(_, p)| view_triple(&p.factors, k, odd))
+                    .map(|(_, p)| {
+                        if permuted {
+                            view_triple(&p.factors, k, odd)
+                        } else {
+                            (p.factors, 1.0)
+                        }
+                    })
                     .collect()
             })
             .collect();
-        let mut missing: Vec<[AxisFactor; 3]> = Vec::new();
-        for (t, _) in triples.iter().flatten() {
-            if !self.factor_tables.contains_key(t) && !missing.contains(t) {
-                missing.push(*t);
+        for (k, view_triples) in triples.iter().enumerate() {
+            let (set, _) = self.set_of(k);
+            let mut missing: Vec<[AxisFactor; 3]> = Vec::new();
+            for (t, _) in view_triples {
+                if !self.factor_tables[set].contains_key(t) && !missing.contains(t) {
+                    missing.push(*t);
+                }
             }
-        }
-        if !missing.is_empty() {
-            for (key, f) in missing.iter().zip(self.set.factor_footprints(&missing)) {
-                let t = self.atlas.push(&f);
-                self.factor_tables.insert(*key, t);
+            if !missing.is_empty() {
+                let built = self.sets[set].factor_footprints(&missing);
+                for (key, f) in missing.iter().zip(built) {
+                    let t = self.atlas.push(&f);
+                    self.factor_tables[set].insert(*key, t);
+                }
             }
         }
         for (k, camera) in self.cameras.iter().enumerate() {
+            let (set, permuted) = self.set_of(k);
+            let tables = &self.tables[set];
             let planned: Vec<(Vec<SplatRecord>, usize)> = coefficients
                 .par_chunks(1024)
                 .map(|chunk| {
@@ -391,8 +464,12 @@ impl ViewPlan {
                         if !whole {
                             continue;
                         }
-                        let (kind, sign) = multiview_map(k, c.band.kind, odd);
-                        let Some(t) = self.tables[c.band.level as usize * 8 + kind as usize] else {
+                        let (kind, sign) = if permuted {
+                            multiview_map(k, c.band.kind, odd)
+                        } else {
+                            (c.band.kind, 1.0)
+                        };
+                        let Some(t) = tables[c.band.level as usize * 8 + kind as usize] else {
                             continue;
                         };
                         let pos = [c.pos[0] as usize, c.pos[1] as usize, c.pos[2] as usize];
@@ -414,7 +491,7 @@ impl ViewPlan {
             // Split coefficients: placed when any piece is.
             let mut last = usize::MAX;
             for ((i, p), (triple, sign)) in pieces.iter().zip(&triples[k]) {
-                let t = self.factor_tables[triple];
+                let t = self.factor_tables[set][triple];
                 let scr = camera.to_screen(p.centre);
                 let value = (p.value * *sign as f64) as f32;
                 let on = place(

@@ -14,7 +14,10 @@
 //! voxel traversal (Amanatides–Woo), including the exact integral of the exponential cue over
 //! each voxel segment; linear and cubic rays by composite Simpson sampling of the tensor B-spline
 //! with step ≤ 1/8 voxel (configurable). Each pixel averages `supersample²` rays on a uniform
-//! (midpoint) sub-grid, because splats integrate over the pixel area. Rows run on rayon.
+//! (midpoint) sub-grid, because splats integrate over the pixel area. Rows run on rayon. Rays
+//! run through the voxel grid along the camera's index-space direction and are parameterised by
+//! physical length, so with anisotropic spacing a line integral is in the spacing's units, the
+//! same quantity the splats draw.
 
 use crate::image::Image;
 use crate::RenderError;
@@ -124,7 +127,7 @@ pub fn render_reference(
     view: &View,
     options: &ReferenceOptions,
 ) -> Result<Image, RenderError> {
-    let camera = Camera::new(view, volume.geometry.dims)?;
+    let camera = Camera::new(view, &volume.geometry)?;
     let cue = match &view.cue {
         Some(c) => Some(resolve_cue(c, &camera, &volume.geometry)?),
         None => None,
@@ -153,6 +156,10 @@ pub fn render_reference_camera(
     } else {
         0.125
     };
+    // Rays are parameterised by physical length; a step of `step` voxels along the axis the ray
+    // crosses fastest is this much length.
+    let ray = camera.ray();
+    let step = step / ray.iter().fold(0.0f64, |m, r| m.max(r.abs()));
     let width = camera.width;
     let bbox = significant_box(volume);
     image
@@ -169,13 +176,13 @@ pub fn render_reference_camera(
                         let ys = iy as f64 + (sy as f64 + 0.5) / ss as f64;
                         let p = camera.from_screen(xs, ys);
                         match g.family {
-                            Family::Haar => haar_ray(volume, p, camera.n, cue.as_ref(), &mut acc),
+                            Family::Haar => haar_ray(volume, p, ray, cue.as_ref(), &mut acc),
                             _ if bbox.is_none() => {}
                             f => spline_ray(
                                 volume,
                                 f,
                                 p,
-                                camera.n,
+                                ray,
                                 cue.as_ref(),
                                 step,
                                 bbox.unwrap_or_default(),
@@ -254,6 +261,10 @@ fn haar_axis_exact(volume: &PaddedVolume, camera: &Camera) -> Option<Image> {
         };
     let ox = overlaps(ax, nx, camera.width, true);
     let oy = overlaps(ay, ny, camera.height, false);
+    // Inside a column the line integral is its sum times the cells' length along the ray; a
+    // pixel averages it over its unit area, i.e. weights each column by the overlap area in
+    // pixels.
+    let length = camera.spacing[ray];
     let mut acc = vec![0.0f64; camera.width * camera.height * nch];
     for j in 0..ny {
         for i in 0..nx {
@@ -261,14 +272,13 @@ fn haar_axis_exact(volume: &PaddedVolume, camera: &Camera) -> Option<Image> {
                 for &(px, wx) in &ox[i] {
                     let w = wx * wy;
                     for c in 0..nch {
-                        acc[(py * camera.width + px) * nch + c] += w * cols[(j * nx + i) * nch + c];
+                        acc[(py * camera.width + px) * nch + c] +=
+                            w * length * cols[(j * nx + i) * nch + c];
                     }
                 }
             }
         }
     }
-    // Inside a column the line integral is its sum (unit length per cell); a pixel averages it
-    // over its unit area, i.e. weights each column by the overlap area in pixels.
     Some(Image {
         width: camera.width,
         height: camera.height,

@@ -311,9 +311,9 @@ fn plan_or_preview(
     spec: &ViewSpec,
     channels: usize,
 ) -> Result<(ViewPlan, bool), SessionError> {
-    let (_, _, params) = planner.params(geometry, spec)?;
+    let resolved = planner.params(geometry, spec)?;
     match preview {
-        Some(p) if params.cue.is_none() && !planner.is_cached(&params) => {
+        Some(p) if resolved.cue.is_none() && !planner.is_cached(&resolved.footprints) => {
             Ok((p.plan(geometry, spec, channels)?, false))
         }
         _ => Ok((planner.plan(geometry, spec, channels)?, true)),
@@ -682,7 +682,9 @@ impl<B: AccumulationBackend> RenderSession<B> {
         self.building = None;
         let plan = match arrived {
             Some(Ok(plan)) => {
-                self.planner.insert(plan.footprint_set());
+                for set in plan.footprint_sets() {
+                    self.planner.insert(set);
+                }
                 Some(plan)
             }
             // Planning the view failed there: plan here, which reports the error.

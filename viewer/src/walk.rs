@@ -10,6 +10,7 @@ use crate::image::Image;
 use crate::session::SessionError;
 use crate::source::PacketSource;
 use std::time::{Duration, Instant};
+use wavesplat_codec::layout::Geometry;
 use wavesplat_codec::view::{Camera, Orientation, ViewError, ViewSpec};
 
 /// One stop of a path: a view held for some frames.
@@ -63,11 +64,12 @@ pub fn turn(
         .collect()
 }
 
-/// A zoom from `spec` to `zoom` pixels per voxel and `pan` (voxels along the screen axes),
-/// geometric in zoom and linear in pan, in `steps` steps of `frames_per_step` frames.
+/// A zoom from `spec` to `zoom` pixels per unit of spacing and `pan` (units of spacing along
+/// the screen axes) for a volume of `geometry`, geometric in zoom and linear in pan, in `steps`
+/// steps of `frames_per_step` frames.
 pub fn zoom_to(
     spec: ViewSpec,
-    dims: [usize; 3],
+    geometry: &Geometry,
     zoom: f64,
     pan: [f64; 2],
     steps: usize,
@@ -76,7 +78,7 @@ pub fn zoom_to(
     let steps = steps.max(1);
     let z0 = match spec.view.zoom {
         Some(z) => z,
-        None => Camera::new(&spec.view, dims)?.zoom,
+        None => Camera::new(&spec.view, geometry)?.zoom,
     };
     let p0 = spec.view.pan;
     Ok((1..=steps)
@@ -320,7 +322,8 @@ mod tests {
     #[test]
     fn a_zoom_is_geometric_and_ends_at_the_target() {
         let s = ViewSpec::single(View::new(0.0, 0.0, 64, 64).with_zoom(1.0));
-        let z = zoom_to(s, [32, 32, 32], 4.0, [8.0, -8.0], 2, 1).unwrap();
+        let g = Geometry::new([32, 32, 32], wavesplat_codec::family::Family::Linear, 1, 0).unwrap();
+        let z = zoom_to(s, &g, 4.0, [8.0, -8.0], 2, 1).unwrap();
         assert!((z[0].spec.view.zoom.unwrap() - 2.0).abs() < 1e-12);
         assert!((z[1].spec.view.zoom.unwrap() - 4.0).abs() < 1e-12);
         assert_eq!(z[1].spec.view.pan, [8.0, -8.0]);

@@ -42,6 +42,7 @@ fn params(family: Family, levels: usize, alpha: f64, beta: f64, zoom: f64) -> Fo
         ex: u,
         ey: [-v[0], -v[1], -v[2]],
         zoom,
+        voxel_volume: 1.0,
         subpixel: 8,
         max_fft: 768,
         cue: None,

@@ -18,7 +18,7 @@ fn multiview_permutations_equal_direct_views() {
         let view = View::new(0.66, 0.91, 96, 96);
         let mut r = Renderer::new(RenderOptions::default());
         let (views, _) = r.render_multiview_views(&coeffs, &g, &view).unwrap();
-        let cams = multiview_cameras(&view, g.dims).unwrap();
+        let cams = multiview_cameras(&view, &g).unwrap();
         for k in 0..3 {
             let mut direct = Renderer::new(RenderOptions::default());
             let (img, _) = direct.render_camera(&coeffs, &g, &cams[k]).unwrap();

@@ -288,12 +288,11 @@ pub const CATEGORY_ALPHABET: usize = 65;
 /// Everything a packet needs to decode, plus volume-level facts for tools.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Header {
-    /// Geometry: dims, padding, levels, family.
+    /// Geometry: dims, padding, levels, family and voxel spacing (mm when the source said; the
+    /// units of the source otherwise).
     pub geometry: Geometry,
     /// Zero margin used to build the padded grid.
     pub margin: usize,
-    /// Voxel spacing (mm when the source said; the units of the source otherwise).
-    pub spacing: [f32; 3],
     /// Where the voxel grid sits in patient space (DICOM LPS), when the source said.
     pub placement: Option<Placement>,
     /// Number of channels (1 or 3).
@@ -326,6 +325,11 @@ pub struct Header {
 }
 
 impl Header {
+    /// Voxel spacing (the geometry's).
+    pub fn spacing(&self) -> [f32; 3] {
+        self.geometry.spacing
+    }
+
     /// Number of tiles along each axis.
     pub fn tile_counts(&self) -> [usize; 3] {
         let p = self.geometry.padded;
@@ -421,7 +425,7 @@ impl Header {
         for d in g.dims {
             w.varint(d as u64);
         }
-        for s in self.spacing {
+        for s in g.spacing {
             w.f32(s);
         }
         match &self.placement {
@@ -529,7 +533,7 @@ impl Header {
             return Err(invalid(W, format!("{levels} levels; at most {MAX_LEVELS}")));
         }
         let margin = r.varint_max(MAX_MARGIN as u64, "margin")? as usize;
-        let geometry = Geometry::new(dims, family, levels, margin)?;
+        let geometry = Geometry::new(dims, family, levels, margin)?.with_spacing(spacing)?;
         let kind_code = r.u8()?;
         let kind = ColorKind::from_code(kind_code)
             .ok_or_else(|| invalid(W, format!("unknown colour space code {kind_code}")))?;
@@ -652,7 +656,6 @@ impl Header {
         Ok(Header {
             geometry,
             margin,
-            spacing,
             placement,
             channels,
             color,

@@ -1,6 +1,7 @@
 //! View geometry, the vocabulary shared by the renderer, the cache and the client: what a viewer
 //! looks at ([`View`], [`ViewSpec`]) with its one validation, the orthographic [`Camera`] that
-//! maps volume coordinates (voxel (i, j, k) at (i, j, k)) to continuous screen coordinates, the
+//! maps volume coordinates (voxel (i, j, k) at (i, j, k)) through the voxel spacing to physical
+//! space and on to continuous screen coordinates, the
 //! depth cue resolved against the data ([`ResolvedCue`]), the three multiview cameras and type
 //! permutations (§3.1), and in [`visibility`] the per-band and per-tile weights of what a view
 //! sees of the coefficients (by which the cache ranks packets and the viewer orders its splats).
@@ -11,12 +12,20 @@
 //! u = (−sin α, cos α, 0), v = (−cos α sin β, −sin α sin β, cos β), view direction n = u × v
 //! (= (cos α cos β, sin α cos β, sin β)), or by an explicit orthonormal pair (u, v) (needed for
 //! the third multiview, which is not a spherical view). Screen coordinates are continuous pixel
-//! coordinates: pixel (ix, iy) covers [ix, ix+1] × [iy, iy+1], row 0 at the top. A point x maps to
-//! X = W/2 + zoom·((x − c)·u − pan_u), Y = H/2 − zoom·((x − c)·v − pan_v), with c the volume
-//! centre (dims − 1)/2, so the image is centred on the volume centre unless panned; the screen
-//! axes in volume space are therefore e_x = u and e_y = −v. `zoom` is pixels per voxel; by
-//! default it fits the volume's bounding sphere (radius |dims|/2) into the smaller image side.
+//! coordinates: pixel (ix, iy) covers [ix, ix+1] × [iy, iy+1], row 0 at the top.
+//!
+//! **Physical units.** The view lives in physical space (the units of the voxel spacing, mm for
+//! medical data): a voxel index point x is at y = S(x − c), S = diag(spacing), c the volume
+//! centre (dims − 1)/2, and maps to X = W/2 + zoom·(y·u − pan_u), Y = H/2 − zoom·(y·v − pan_v),
+//! so the image is centred on the volume centre unless panned. `zoom` is pixels per unit of
+//! spacing (pixels per voxel for cubic unit voxels); by default it fits the volume's physical
+//! bounding sphere (radius |S·dims|/2) into the smaller image side. Rays travel along n in
+//! physical space, which is the index-space direction S⁻¹n per unit of length
+//! ([`Camera::ray`]); a voxel step along axis a moves the image by zoom·s_a·(u_a, −v_a)
+//! ([`Camera::index_axes`]). Pan is in units of spacing and a depth-cue extinction per unit of
+//! spacing, so an anisotropic volume renders as its physical shape, never squashed.
 
+use crate::layout::Geometry;
 use thiserror::Error;
 
 pub mod patient;
@@ -27,10 +36,10 @@ pub const MAX_IMAGE_SIDE: usize = 8192;
 /// Largest accepted |angle| (radians) and |pan| (voxels): beyond it f64 angles lose their
 /// fractional part and a pan puts the volume astronomically far off screen.
 pub const MAX_ABS_PARAM: f64 = 1e6;
-/// Largest accepted zoom (pixels per voxel).
+/// Largest accepted zoom (pixels per voxel along the volume's widest-spaced axis).
 pub const MAX_ZOOM: f64 = 1e4;
-/// Largest accepted depth-cue extinction (per voxel): e^(−1000) already underflows f64 after one
-/// voxel, so larger values change nothing.
+/// Largest accepted depth-cue extinction (per unit of spacing): e^(−1000) already underflows f64
+/// after one unit, so larger values change nothing.
 pub const MAX_CUE_K: f64 = 1e3;
 
 /// Invalid view parameters.
@@ -56,14 +65,14 @@ pub enum ViewError {
         /// Height.
         height: usize,
     },
-    /// Zoom must be within (0, [`MAX_ZOOM`]].
-    #[error("zoom {0} must be within (0, {max}] (pixels per voxel)", max = MAX_ZOOM)]
+    /// Zoom must be positive and at most [`MAX_ZOOM`] pixels per voxel.
+    #[error("zoom {0} must be positive and give at most {max} pixels per voxel", max = MAX_ZOOM)]
     BadZoom(f64),
     /// The explicit basis is not orthonormal.
     #[error("the explicit view basis (u, v) is not orthonormal")]
     NotOrthonormal,
     /// The cue extinction must be within [0, [`MAX_CUE_K`]].
-    #[error("cue extinction k = {0} must be within [0, {max}] per voxel", max = MAX_CUE_K)]
+    #[error("cue extinction k = {0} must be within [0, {max}] per unit of spacing", max = MAX_CUE_K)]
     BadExtinction(f64),
     /// Depth cueing is not defined for multiview (the cue would rotate with each view).
     #[error("depth cueing cannot be combined with multiview")]
@@ -111,11 +120,11 @@ pub enum CueDirection {
     Vector([f64; 3]),
 }
 
-/// Exponential depth cueing: every point is weighted by e^(−k·dist) with dist its distance from
-/// the light plane (perpendicular to L, tangent to a sphere enclosing every basis support).
+/// Exponential depth cueing: every point is weighted by e^(−k·dist) with dist its physical
+/// distance from the light plane (see [`ResolvedCue`]).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Cue {
-    /// Extinction per voxel, ≥ 0.
+    /// Extinction per unit of spacing (per voxel for unit spacing), ≥ 0.
     pub k: f64,
     /// Light direction.
     pub direction: CueDirection,
@@ -130,9 +139,10 @@ pub struct View {
     pub width: usize,
     /// Image height.
     pub height: usize,
-    /// Pixels per voxel; `None` fits the volume's bounding sphere.
+    /// Pixels per unit of spacing (per mm for medical data); `None` fits the volume's
+    /// bounding sphere.
     pub zoom: Option<f64>,
-    /// Pan (voxels along u and v) of the image centre away from the volume centre.
+    /// Pan (units of spacing along u and v) of the image centre away from the volume centre.
     pub pan: [f64; 2],
     /// Depth cueing.
     pub cue: Option<Cue>,
@@ -157,7 +167,7 @@ impl View {
         self
     }
 
-    /// Same view with a pan (voxels along u, v).
+    /// Same view with a pan (units of spacing along u, v).
     pub fn with_pan(mut self, pan: [f64; 2]) -> View {
         self.pan = pan;
         self
@@ -170,10 +180,10 @@ impl View {
     }
 }
 
-/// A resolved orthographic camera for a volume of given dimensions.
+/// A resolved orthographic camera for a volume of given dimensions and voxel spacing.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Camera {
-    /// Screen right (volume space).
+    /// Screen right (unit, physical space aligned with the volume's axes).
     pub u: [f64; 3],
     /// Screen up.
     pub v: [f64; 3],
@@ -183,12 +193,14 @@ pub struct Camera {
     pub width: usize,
     /// Height in pixels.
     pub height: usize,
-    /// Pixels per voxel.
+    /// Pixels per unit of spacing.
     pub zoom: f64,
-    /// Pan in voxels along (u, v).
+    /// Pan in units of spacing along (u, v).
     pub pan: [f64; 2],
-    /// Volume centre (dims − 1)/2.
+    /// Volume centre (dims − 1)/2 (voxel indices).
     pub center: [f64; 3],
+    /// Voxel spacing along x, y, z.
+    pub spacing: [f64; 3],
 }
 
 /// Dot product.
@@ -262,7 +274,7 @@ impl View {
         bounded(self.pan[1], "pan")?;
         match self.zoom {
             Some(z) if !z.is_finite() => return Err(ViewError::NotFinite("zoom")),
-            Some(z) if z <= 0.0 || z > MAX_ZOOM => return Err(ViewError::BadZoom(z)),
+            Some(z) if z <= 0.0 => return Err(ViewError::BadZoom(z)),
             _ => {}
         }
         if let Some(cue) = &self.cue {
@@ -299,20 +311,29 @@ fn bounded(x: f64, what: &'static str) -> Result<(), ViewError> {
 }
 
 impl Camera {
-    /// Resolves `view` for a volume of dimensions `dims`, validating every parameter.
-    pub fn new(view: &View, dims: [usize; 3]) -> Result<Camera, ViewError> {
+    /// Resolves `view` for a volume of `geometry` (its dimensions and voxel spacing),
+    /// validating every parameter.
+    pub fn new(view: &View, geometry: &Geometry) -> Result<Camera, ViewError> {
         let (u, v) = view.basis()?;
-        let radius = 0.5
-            * dims
-                .iter()
-                .map(|d| (*d as f64) * (*d as f64))
+        let dims = geometry.dims;
+        let spacing = geometry.spacing_f64();
+        if spacing.iter().any(|s| !(s.is_finite() && *s > 0.0)) {
+            return Err(ViewError::NotFinite("spacing"));
+        }
+        let widest = spacing.iter().fold(0.0f64, |m, s| m.max(*s));
+        let radius = (0.5
+            * (0..3)
+                .map(|a| (dims[a] as f64 * spacing[a]).powi(2))
                 .sum::<f64>()
-                .sqrt()
-                .max(0.5);
+                .sqrt())
+        .max(0.5 * widest);
         let zoom = match view.zoom {
             Some(z) => z,
             None => view.width.min(view.height) as f64 / (2.0 * radius),
         };
+        if !(zoom.is_finite() && zoom > 0.0) || zoom * widest > MAX_ZOOM {
+            return Err(ViewError::BadZoom(zoom));
+        }
         let center = [
             0.5 * (dims[0] as f64 - 1.0),
             0.5 * (dims[1] as f64 - 1.0),
@@ -327,35 +348,66 @@ impl Camera {
             zoom,
             pan: view.pan,
             center,
+            spacing,
         })
     }
 
-    /// Screen axis directions in volume space: (e_x, e_y) = (u, −v).
+    /// Screen axis directions in physical space: (e_x, e_y) = (u, −v).
     pub fn screen_axes(&self) -> ([f64; 3], [f64; 3]) {
         (self.u, [-self.v[0], -self.v[1], -self.v[2]])
     }
 
-    /// Continuous screen coordinates (X, Y) of a volume point.
+    /// Screen axes per voxel step, (S·u, −S·v): a unit step along index axis a moves a point
+    /// by zoom·(S·u)_a pixels right and zoom·(−S·v)_a pixels down. Equal to
+    /// [`Camera::screen_axes`] for unit spacing.
+    pub fn index_axes(&self) -> ([f64; 3], [f64; 3]) {
+        let s = self.spacing;
+        (
+            [s[0] * self.u[0], s[1] * self.u[1], s[2] * self.u[2]],
+            [-s[0] * self.v[0], -s[1] * self.v[1], -s[2] * self.v[2]],
+        )
+    }
+
+    /// The ray direction in voxel indices per unit of physical length, S⁻¹·n: a ray p + t·ray()
+    /// through index point p has travelled t units of spacing (mm) at parameter t.
+    pub fn ray(&self) -> [f64; 3] {
+        let s = self.spacing;
+        [self.n[0] / s[0], self.n[1] / s[1], self.n[2] / s[2]]
+    }
+
+    /// Physical volume of one voxel, det S (the factor by which a footprint's integral grows
+    /// over that of the same coefficients on unit voxels).
+    pub fn voxel_volume(&self) -> f64 {
+        self.spacing.iter().product()
+    }
+
+    /// Physical offset S(x − c) of a voxel index point from the volume centre.
+    fn physical(&self, x: [f64; 3]) -> [f64; 3] {
+        [
+            self.spacing[0] * (x[0] - self.center[0]),
+            self.spacing[1] * (x[1] - self.center[1]),
+            self.spacing[2] * (x[2] - self.center[2]),
+        ]
+    }
+
+    /// Continuous screen coordinates (X, Y) of a volume point (voxel indices).
     pub fn to_screen(&self, x: [f64; 3]) -> [f64; 2] {
-        let d = [
-            x[0] - self.center[0],
-            x[1] - self.center[1],
-            x[2] - self.center[2],
-        ];
+        let d = self.physical(x);
         [
             0.5 * self.width as f64 + self.zoom * (dot(d, self.u) - self.pan[0]),
             0.5 * self.height as f64 - self.zoom * (dot(d, self.v) - self.pan[1]),
         ]
     }
 
-    /// The volume point on the plane through the volume centre seen at screen point (X, Y).
+    /// The volume point (voxel indices) on the plane through the volume centre seen at screen
+    /// point (X, Y).
     pub fn from_screen(&self, xs: f64, ys: f64) -> [f64; 3] {
         let a = (xs - 0.5 * self.width as f64) / self.zoom + self.pan[0];
         let b = self.pan[1] - (ys - 0.5 * self.height as f64) / self.zoom;
         [
-            self.center[0] + a * self.u[0] + b * self.v[0],
-            self.center[1] + a * self.u[1] + b * self.v[1],
-            self.center[2] + a * self.u[2] + b * self.v[2],
+            self.center[0] + (a * self.u[0] + b * self.v[0]) / self.spacing[0],
+            self.center[1] + (a * self.u[1] + b * self.v[1]) / self.spacing[1],
+            self.center[2] + (a * self.u[2] + b * self.v[2]) / self.spacing[2],
         ]
     }
 }
@@ -381,21 +433,22 @@ pub fn clip_ray(p: [f64; 3], n: [f64; 3], lo: [f64; 3], hi: [f64; 3]) -> Option<
 }
 
 impl Camera {
-    /// Length of the ray through screen point (X, Y) inside the voxel box [−½, n − ½]³ of a
-    /// volume of dimensions `dims` (what a constant added to every voxel contributes to the
-    /// pixel, e.g. a colour transform's mean).
+    /// Physical length of the ray through screen point (X, Y) inside the voxel box
+    /// [−½, n − ½]³ of a volume of dimensions `dims` (what a constant added to every voxel
+    /// contributes to the pixel, e.g. a colour transform's mean).
     pub fn chord(&self, dims: [usize; 3], xs: f64, ys: f64) -> f64 {
         self.clip_to_voxels(dims, xs, ys)
             .map_or(0.0, |(_, t0, t1)| t1 - t0)
     }
 
-    /// The ray through screen point (X, Y): its origin and the parameter interval inside the
-    /// voxel box [−½, n − ½]³, or `None` when it misses the box.
+    /// The ray through screen point (X, Y): its origin and the parameter interval (physical
+    /// length along [`Camera::ray`]) inside the voxel box [−½, n − ½]³, or `None` when it
+    /// misses the box.
     fn clip_to_voxels(&self, dims: [usize; 3], xs: f64, ys: f64) -> Option<([f64; 3], f64, f64)> {
         let lo = [-0.5; 3];
         let hi = dims.map(|n| n as f64 - 0.5);
         let p = self.from_screen(xs, ys);
-        clip_ray(p, self.n, lo, hi).map(|(t0, t1)| (p, t0, t1))
+        clip_ray(p, self.ray(), lo, hi).map(|(t0, t1)| (p, t0, t1))
     }
 
     /// The depth-cued counterpart of [`Camera::chord`]: ∫ e^(−k·dist) along the ray's path
@@ -406,13 +459,8 @@ impl Camera {
         let Some((p, t0, t1)) = self.clip_to_voxels(dims, xs, ys) else {
             return 0.0;
         };
-        let at = |t: f64| {
-            [
-                p[0] + t * self.n[0],
-                p[1] + t * self.n[1],
-                p[2] + t * self.n[2],
-            ]
-        };
+        let r = self.ray();
+        let at = |t: f64| [p[0] + t * r[0], p[1] + t * r[1], p[2] + t * r[2]];
         // Exponents at both ends (dist ≥ 0 inside the box; clamp rounding).
         let a = cue.k * cue.dist(at(t0)).max(0.0);
         let b = cue.k * cue.dist(at(t1)).max(0.0);
@@ -454,14 +502,14 @@ impl ViewSpec {
         Ok(())
     }
 
-    /// The cameras of the spec for a volume of dimensions `dims`: one, or the three multiview
+    /// The cameras of the spec for a volume of `geometry`: one, or the three multiview
     /// cameras.
-    pub fn cameras(&self, dims: [usize; 3]) -> Result<Vec<Camera>, ViewError> {
+    pub fn cameras(&self, geometry: &Geometry) -> Result<Vec<Camera>, ViewError> {
         self.validate()?;
         if self.multiview {
-            Ok(multiview_cameras(&self.view, dims)?.to_vec())
+            Ok(multiview_cameras(&self.view, geometry)?.to_vec())
         } else {
-            Ok(vec![Camera::new(&self.view, dims)?])
+            Ok(vec![Camera::new(&self.view, geometry)?])
         }
     }
 }
@@ -497,8 +545,8 @@ pub fn multiview_map(view: usize, kind: u8, psi_is_odd: bool) -> (u8, f32) {
 
 /// The three multiview cameras (u₁, v₁), (R₂u₁, R₂v₁), (R₃u₁, R₃v₁) for `view` (all with the
 /// first camera's zoom).
-pub fn multiview_cameras(view: &View, dims: [usize; 3]) -> Result<[Camera; 3], ViewError> {
-    let c1 = Camera::new(view, dims)?;
+pub fn multiview_cameras(view: &View, geometry: &Geometry) -> Result<[Camera; 3], ViewError> {
+    let c1 = Camera::new(view, geometry)?;
     let (u, v) = (c1.u, c1.v);
     let r2 = |w: [f64; 3]| [-w[1], w[0], w[2]];
     let r3 = |w: [f64; 3]| [w[2], w[1], -w[0]];
@@ -506,7 +554,7 @@ pub fn multiview_cameras(view: &View, dims: [usize; 3]) -> Result<[Camera; 3], V
         let mut vw = *view;
         vw.orientation = Orientation::Basis { u, v };
         vw.zoom = Some(c1.zoom);
-        Camera::new(&vw, dims)
+        Camera::new(&vw, geometry)
     };
     Ok([c1, mk(r2(u), r2(v))?, mk(r3(u), r3(v))?])
 }
@@ -521,19 +569,21 @@ pub fn sinc(x: f64) -> f64 {
     }
 }
 
-/// A resolved depth cue: unit light direction `l`, and per axis the data's light-facing face
-/// `planes[a]` (the low face −j/2 when l_a ≥ 0, the high face (n_a − 1) + j/2 when l_a < 0, in
-/// volume coordinates: j/2 beyond the outer voxel centres, where the order-j spline of the data
-/// ends). The attenuating medium is the data: a point behind every light-facing face has the
-/// weight e^(−k·dist(x)), dist(x) = l·x − d0 ≥ 0 with d0 = l·planes (1 at the front corner);
+/// A resolved depth cue: the light's distance gradient `l` in voxel indices (S·l̂ for the unit
+/// physical light direction l̂ and spacing S, so that l·x is a physical distance; l̂ itself for
+/// unit spacing), and per axis the data's light-facing face `planes[a]` (the low face −j/2 when
+/// l_a ≥ 0, the high face (n_a − 1) + j/2 when l_a < 0, in voxel indices: j/2 beyond the outer
+/// voxel centres, where the order-j spline of the data ends). The attenuating medium is the
+/// data: a point behind every light-facing face has the weight e^(−k·dist(x)),
+/// dist(x) = l·x − d0 ≥ 0 with d0 = l·planes (1 at the front corner);
 /// a point in front of a face has weight 0 — the volume is zero there, but the basis functions
 /// of a periodic spline transform reach into that margin and only cancel to zero, and an
 /// exponential cue would amplify their residue by e^(+k·distance).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct ResolvedCue {
-    /// Extinction per voxel.
+    /// Extinction per unit of spacing.
     pub k: f64,
-    /// Unit light direction.
+    /// Distance gradient in voxel indices, S·l̂ (unit for unit spacing).
     pub l: [f64; 3],
     /// Plane offset l·planes.
     pub d0: f64,
@@ -542,7 +592,7 @@ pub struct ResolvedCue {
 }
 
 impl ResolvedCue {
-    /// Distance of `x` from the light plane through the front corner.
+    /// Physical distance of `x` (voxel indices) from the light plane through the front corner.
     pub fn dist(&self, x: [f64; 3]) -> f64 {
         dot(self.l, x) - self.d0
     }
@@ -599,8 +649,9 @@ pub enum CueSide {
     Straddle,
 }
 
-/// Resolves a cue for a camera (whose view direction L may be) and geometry: the light-facing
-/// faces of the data and the distance offset (see [`ResolvedCue`]).
+/// Resolves a cue for a camera (whose view direction L may be, and whose spacing scales the
+/// distances) and geometry: the light-facing faces of the data and the distance offset (see
+/// [`ResolvedCue`]). The light direction is physical.
 pub fn resolve_cue(
     cue: &Cue,
     camera: &Camera,
@@ -628,7 +679,8 @@ pub fn resolve_cue(
     if norm == 0.0 || !norm.is_finite() {
         return Err(ViewError::ZeroCueDirection);
     }
-    let l = [l[0] / norm, l[1] / norm, l[2] / norm];
+    let s = camera.spacing;
+    let l = [s[0] * l[0] / norm, s[1] * l[1] / norm, s[2] * l[2] / norm];
     let half = 0.5 * geometry.family.order() as f64;
     let mut planes = [0.0; 3];
     for a in 0..3 {

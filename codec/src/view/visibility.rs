@@ -36,7 +36,7 @@ impl Visibility {
     /// Plans `spec` for the volume of `header`.
     pub fn new(header: &Header, spec: &ViewSpec) -> Result<Visibility, ViewError> {
         let g = header.geometry;
-        let cameras = spec.cameras(g.dims)?;
+        let cameras = spec.cameras(&g)?;
         let mut cams = Vec::with_capacity(cameras.len());
         for cam in &cameras {
             let cue = match &spec.view.cue {
@@ -105,22 +105,33 @@ pub fn packet_order(visibility: &Visibility, packets: &[PacketFacts<'_>]) -> Vec
     keyed.into_iter().map(|(_, i)| i).collect()
 }
 
-/// Fraction of each band's basis energy left in the projection of `cam` (per voxel of depth,
-/// with the pixel-area filter): s·∫_plane |Πₐ ĥₐ(η)|² sinc²(η·u/(s z)) sinc²(η·v/(s z)) dη /
-/// Πₐ ‖hₐ‖², with ĥ the level-0 φ̂ or ψ̂, s = 2^level and z the zoom.
+/// Fraction of each band's basis energy left in the projection of `cam` (per unit of depth,
+/// with the pixel-area filter): h·∫_plane |Πₐ ĥₐ(η)|² sinc²(σ/(s z)) sinc²(ρ/(s z)) dσ dρ /
+/// Πₐ ‖hₐ‖², η = (σ·S u + ρ·S v)/h, with ĥ the level-0 φ̂ or ψ̂, s = 2^level, z the zoom, S the
+/// spacing and h its smallest entry: the slice plane of the physical projection seen in index
+/// frequencies (σ, ρ in cycles per h). The grid is refined by the spacing's anisotropy (up to 4×)
+/// so that its step along every index axis stays near the unit-spacing one. The weights rank
+/// bands within one view, so constant factors (det S) are left out.
 pub fn band_weights(g: &Geometry, cam: &Camera) -> Vec<f64> {
     let fam = g.family;
-    let n = (2.0 * GRID_RADIUS / GRID_STEP).round() as i64;
+    let h = cam.spacing.iter().fold(f64::INFINITY, |m, s| m.min(*s));
+    let widest = cam.spacing.iter().fold(0.0f64, |m, s| m.max(*s));
+    let refine = (widest / h).ceil().clamp(1.0, 4.0);
+    let step = GRID_STEP / refine;
+    let su: [f64; 3] = std::array::from_fn(|a| cam.spacing[a] / h * cam.u[a]);
+    let sv: [f64; 3] = std::array::from_fn(|a| cam.spacing[a] / h * cam.v[a]);
+    let zh = cam.zoom * h;
+    let n = (2.0 * GRID_RADIUS / step).round() as i64;
     let bands = g.bands();
     let mut acc = vec![0.0; bands.len()];
     for i in 0..=n {
-        let sigma = -GRID_RADIUS + i as f64 * GRID_STEP;
+        let sigma = -GRID_RADIUS + i as f64 * step;
         for j in 0..=n {
-            let rho = -GRID_RADIUS + j as f64 * GRID_STEP;
+            let rho = -GRID_RADIUS + j as f64 * step;
             let mut p = [0.0; 3];
             let mut q = [0.0; 3];
             for a in 0..3 {
-                let eta = sigma * cam.u[a] + rho * cam.v[a];
+                let eta = sigma * su[a] + rho * sv[a];
                 p[a] = fam.phi_hat(eta, 0.0).norm_sqr();
                 q[a] = fam.psi_hat(eta, 0.0).norm_sqr();
             }
@@ -129,7 +140,7 @@ pub fn band_weights(g: &Geometry, cam: &Camera) -> Vec<f64> {
                 let prod: f64 = (0..3)
                     .map(|a| if band.is_wavelet_along(a) { q[a] } else { p[a] })
                     .product();
-                let pix = sinc(sigma / (s * cam.zoom)) * sinc(rho / (s * cam.zoom));
+                let pix = sinc(sigma / (s * zh)) * sinc(rho / (s * zh));
                 acc[b] += prod * pix * pix;
             }
         }
@@ -148,7 +159,7 @@ pub fn band_weights(g: &Geometry, cam: &Camera) -> Vec<f64> {
                     }
                 })
                 .product();
-            s * a * GRID_STEP * GRID_STEP / norm
+            s * a * step * step / norm
         })
         .collect()
 }
@@ -232,7 +243,7 @@ mod tests {
     fn psi_along_the_view_direction_is_invisible() {
         let g = Geometry::new([32, 32, 32], Family::Cubic, 2, 4).unwrap();
         // α = β = 0: n = (1, 0, 0), rays along x.
-        let cam = Camera::new(&View::new(0.0, 0.0, 64, 64), g.dims).unwrap();
+        let cam = Camera::new(&View::new(0.0, 0.0, 64, 64), &g).unwrap();
         let w = band_weights(&g, &cam);
         let weight = |level, kind| w[g.band_index(Band { level, kind }).unwrap()];
         // ψ along x (kind bit 4) vanishes; ψ along y survives.
@@ -244,8 +255,7 @@ mod tests {
         );
         assert!(weight(2, 0) > weight(2, 2));
         // Rays along z: now ψ along z (bit 1) vanishes and ψ along x does not.
-        let cam =
-            Camera::new(&View::new(0.0, std::f64::consts::FRAC_PI_2, 64, 64), g.dims).unwrap();
+        let cam = Camera::new(&View::new(0.0, std::f64::consts::FRAC_PI_2, 64, 64), &g).unwrap();
         let w = band_weights(&g, &cam);
         let weight = |level, kind| w[g.band_index(Band { level, kind }).unwrap()];
         assert!(weight(1, 1) < 1e-6 * weight(1, 4));

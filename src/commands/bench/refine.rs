@@ -22,6 +22,7 @@ use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 use wavesplat_codec::format::parse_file;
+use wavesplat_codec::layout::Geometry;
 use wavesplat_codec::view::{View, ViewSpec};
 use wavesplat_codec::volume::Volume;
 use wavesplat_compressor::colorspace::ColorSpaceKind;
@@ -95,8 +96,19 @@ struct Run {
     quality: Vec<Option<FrameQuality>>,
 }
 
+/// The volume's largest physical extent (units of spacing).
+fn widest_extent(geometry: &Geometry) -> f64 {
+    (0..3)
+        .map(|a| geometry.dims[a] as f64 * f64::from(geometry.spacing[a]))
+        .fold(1.0, f64::max)
+}
+
 /// The benchmark's view path and the indices of its rests.
-fn view_path(dims: [usize; 3], image: usize, rest: usize) -> Result<(Vec<PathStep>, [usize; 3])> {
+fn view_path(
+    geometry: &Geometry,
+    image: usize,
+    rest: usize,
+) -> Result<(Vec<PathStep>, [usize; 3])> {
     let start = ViewSpec::single(View::new(0.66, 0.91, image, image));
     let mut path = vec![PathStep::rest(start, rest)];
     path.extend(turn(
@@ -110,9 +122,9 @@ fn view_path(dims: [usize; 3], image: usize, rest: usize) -> Result<(Vec<PathSte
     let turned = path.last().expect("turn steps").spec;
     path.push(PathStep::rest(turned, rest));
     // Zoom ×4 into the corner a third of the volume off centre, up and right.
-    let fit = wavesplat_codec::view::Camera::new(&turned.view, dims)?.zoom;
-    let off = dims.iter().copied().max().unwrap_or(1) as f64 / 3.0;
-    path.extend(zoom_to(turned, dims, 4.0 * fit, [off, off], 4, 3)?);
+    let fit = wavesplat_codec::view::Camera::new(&turned.view, geometry)?.zoom;
+    let off = widest_extent(geometry) / 3.0;
+    path.extend(zoom_to(turned, geometry, 4.0 * fit, [off, off], 4, 3)?);
     let zoomed = path.last().expect("zoom steps").spec;
     path.push(PathStep::rest(zoomed, rest));
     let corner = path.len() - 1;
@@ -159,7 +171,7 @@ pub fn run(a: RefineArgs) -> Result<()> {
             client.ingest("bench", &c.bytes).await
         })
         .context("ingesting into the local cache")?;
-    let (path, rests) = view_path(d, a.image, a.rest_frames)?;
+    let (path, rests) = view_path(&header.geometry, a.image, a.rest_frames)?;
     let backend = probe_backend()?;
     let truth = GroundTruth::new(&volume, &header.geometry, reference_options());
     let mut references = HashMap::new();
@@ -238,10 +250,9 @@ fn left_out(
     image: usize,
     rest: usize,
 ) -> Result<()> {
-    let dims = header.geometry.dims;
     let oblique = View::new(0.66, 0.91, image, image);
-    let fit = wavesplat_codec::view::Camera::new(&oblique, dims)?.zoom;
-    let off = dims.iter().copied().max().unwrap_or(1) as f64 / 3.0;
+    let fit = wavesplat_codec::view::Camera::new(&oblique, &header.geometry)?.zoom;
+    let off = widest_extent(&header.geometry) / 3.0;
     let scenes = [
         ("oblique, whole volume", ViewSpec::single(oblique)),
         (
