@@ -738,7 +738,13 @@ impl<B: AccumulationBackend> RenderSession<B> {
             let left = (deadline - now).as_secs_f64();
             let kind = usize::from(self.exact);
             let packets = &self.packets;
-            let zoom = self.plan.cameras.first().map_or(1.0, |c| c.zoom);
+            // Pixels per voxel (the footprint side of a finest coefficient): the zoom per unit
+            // of spacing times the voxel's mean side.
+            let zoom = self
+                .plan
+                .cameras
+                .first()
+                .map_or(1.0, |c| c.zoom * c.voxel_volume().cbrt());
             coefficients.clear();
             // Each popped entry's coefficient is looked up once: queued for the batch and
             // weighed for the allowance.
