@@ -10,14 +10,17 @@
 //! footprint is placed at the nearest subpixel phase (see [`crate::footprint`]) and records
 //! whose box misses the screen are counted and dropped. With depth cueing the coefficients are
 //! first split into cued pieces ([`crate::pieces::expand`]) and the tables of the factor
-//! triples that occur are built on first use and appended to the atlas.
+//! triples that occur are built on first use and appended to the atlas: at once by default, or,
+//! for a frame loop that must not stall ([`ViewPlan::build_tables_in_background`]), on a thread
+//! of the plan's own while the coefficients that need them wait ([`ViewPlan::take_deferred`]).
 
 use crate::backend::{FootprintAtlas, Layout, SplatRecord, TableRef};
 use crate::footprint::{AxisFactor, Footprint, FootprintParams, FootprintSet};
 use crate::pieces::{self, check_coefficient, Expansions, Piece};
 use crate::RenderError;
 use rayon::prelude::*;
-use std::collections::HashMap;
+use std::collections::{HashMap, HashSet};
+use std::sync::mpsc::{channel, Receiver, Sender};
 use std::sync::Arc;
 use wavesplat_codec::family::Family;
 use wavesplat_codec::format::packet::Coefficient;
@@ -291,6 +294,9 @@ impl Planner {
             sets,
             atlas,
             tables,
+            builder: None,
+            deferred: Vec::new(),
+            built_inline: 0,
         })
     }
 }
@@ -317,12 +323,124 @@ pub struct ViewPlan {
     tables: Vec<Vec<Option<TableRef>>>,
     /// Per set, the tables of cued pieces by factor triple.
     factor_tables: Vec<HashMap<[AxisFactor; 3], TableRef>>,
+    /// The background builder of cued tables, when enabled.
+    builder: Option<TableBuilder>,
+    /// Indices (into the last `splats` call's coefficients) left out for want of a table.
+    deferred: Vec<usize>,
+    /// Cued tables built on the calling thread so far.
+    built_inline: usize,
+}
+
+/// A cued table request or result: footprint set index and factor triple.
+type TableKey = (usize, [AxisFactor; 3]);
+
+/// Builds cued tables on a thread of its own (a one-thread rayon pool, so its parallel loops
+/// never queue ahead of the caller's splat batches on the global pool); ends when dropped.
+#[derive(Debug)]
+struct TableBuilder {
+    requests: Sender<Vec<TableKey>>,
+    results: Receiver<Vec<(TableKey, Arc<Footprint>)>>,
+    /// Requested and not yet received.
+    pending: HashSet<TableKey>,
+}
+
+impl TableBuilder {
+    fn start(sets: Vec<Arc<FootprintSet>>) -> TableBuilder {
+        let (requests, jobs) = channel::<Vec<TableKey>>();
+        let (done, results) = channel();
+        std::thread::spawn(move || {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(1)
+                .thread_name(|_| "wavesplat-cue-tables".into())
+                .build()
+                .ok();
+            // Ends when the plan (the sender) is dropped or stops listening.
+            while let Ok(keys) = jobs.recv() {
+                let build = || {
+                    let mut out = Vec::with_capacity(keys.len());
+                    for (set, group) in group_by_set(&keys) {
+                        let tables = sets[set].factor_footprints(&group);
+                        out.extend(group.into_iter().zip(tables).map(|(t, f)| ((set, t), f)));
+                    }
+                    out
+                };
+                let built = match &pool {
+                    Some(pool) => pool.install(build),
+                    None => build(),
+                };
+                if done.send(built).is_err() {
+                    break;
+                }
+            }
+        });
+        TableBuilder {
+            requests,
+            results,
+            pending: HashSet::new(),
+        }
+    }
+}
+
+/// Triples grouped by their footprint set (in first-seen order).
+fn group_by_set(keys: &[TableKey]) -> Vec<(usize, Vec<[AxisFactor; 3]>)> {
+    let mut groups: Vec<(usize, Vec<[AxisFactor; 3]>)> = Vec::new();
+    for (set, t) in keys {
+        match groups.iter_mut().find(|(s, _)| s == set) {
+            Some((_, g)) => g.push(*t),
+            None => groups.push((*set, vec![*t])),
+        }
+    }
+    groups
 }
 
 impl ViewPlan {
     /// The footprint tables the plan draws with (to cache them in another planner).
     pub fn footprint_sets(&self) -> Vec<Arc<FootprintSet>> {
         self.sets.clone()
+    }
+
+    /// From now on, cued tables missing for a batch are built on a background thread instead of
+    /// the caller's: the coefficients that need them are left out of the batch and listed by
+    /// [`ViewPlan::take_deferred`] until [`ViewPlan::poll_tables`] has the tables. For frame
+    /// loops; a single render keeps the default (build at once, splat everything).
+    pub fn build_tables_in_background(&mut self) {
+        if self.builder.is_none() {
+            self.builder = Some(TableBuilder::start(self.sets.clone()));
+        }
+    }
+
+    /// Installs the cued tables the background builder has finished; returns how many.
+    pub fn poll_tables(&mut self) -> usize {
+        let Some(b) = &mut self.builder else {
+            return 0;
+        };
+        let mut arrived = Vec::new();
+        while let Ok(built) = b.results.try_recv() {
+            arrived.extend(built);
+        }
+        for ((set, triple), f) in &arrived {
+            b.pending.remove(&(*set, *triple));
+            let t = self.atlas.push(f);
+            self.factor_tables[*set].insert(*triple, t);
+        }
+        arrived.len()
+    }
+
+    /// Whether cued tables are being built in the background.
+    pub fn tables_pending(&self) -> bool {
+        self.builder.as_ref().is_some_and(|b| !b.pending.is_empty())
+    }
+
+    /// The indices (into the coefficients of the last [`ViewPlan::splats`] call) left out
+    /// because their cued tables are still being built (always empty unless
+    /// [`ViewPlan::build_tables_in_background`] was called).
+    pub fn take_deferred(&mut self) -> Vec<usize> {
+        std::mem::take(&mut self.deferred)
+    }
+
+    /// Cued tables built on the calling thread (inside [`ViewPlan::splats`]) so far.
+    pub fn tables_built_inline(&self) -> usize {
+        self.built_inline
     }
 
     /// Which set camera `k` draws with, and whether it goes through the first camera's tables
@@ -410,7 +528,6 @@ impl ViewPlan {
         for c in coefficients {
             check_coefficient(c, &self.geometry, self.channels)?;
         }
-        stats.coefficients += coefficients.len();
         // With a cue every coefficient is split into cued pieces; without, each is one splat.
         let whole = self.cue.is_none();
         let pieces: Vec<(usize, Piece)> = match (&self.cue, &self.expansions) {
@@ -436,22 +553,53 @@ impl ViewPlan {
                     .collect()
             })
             .collect();
+        self.deferred.clear();
+        self.poll_tables();
+        let mut waiting: HashSet<usize> = HashSet::new();
         for (k, view_triples) in triples.iter().enumerate() {
             let (set, _) = self.set_of(k);
             let mut missing: Vec<[AxisFactor; 3]> = Vec::new();
-            for (t, _) in view_triples {
-                if !self.factor_tables[set].contains_key(t) && !missing.contains(t) {
-                    missing.push(*t);
+            for ((i, _), (t, _)) in pieces.iter().zip(view_triples) {
+                if !self.factor_tables[set].contains_key(t) {
+                    if self.builder.is_some() {
+                        waiting.insert(*i);
+                    }
+                    if !missing.contains(t) {
+                        missing.push(*t);
+                    }
                 }
             }
-            if !missing.is_empty() {
-                let built = self.sets[set].factor_footprints(&missing);
-                for (key, f) in missing.iter().zip(built) {
-                    let t = self.atlas.push(&f);
-                    self.factor_tables[set].insert(*key, t);
+            if missing.is_empty() {
+                continue;
+            }
+            match &mut self.builder {
+                Some(b) => {
+                    let new: Vec<TableKey> = missing
+                        .into_iter()
+                        .map(|t| (set, t))
+                        .filter(|key| b.pending.insert(*key))
+                        .collect();
+                    // A builder that died (it panicked) leaves its coefficients waiting;
+                    // `tables_pending` stays true and the caller sees no progress.
+                    if !new.is_empty() {
+                        let _ = b.requests.send(new);
+                    }
+                }
+                None => {
+                    let built = self.sets[set].factor_footprints(&missing);
+                    self.built_inline += missing.len();
+                    for (key, f) in missing.iter().zip(built) {
+                        let t = self.atlas.push(&f);
+                        self.factor_tables[set].insert(*key, t);
+                    }
                 }
             }
         }
+        if !waiting.is_empty() {
+            self.deferred = waiting.iter().copied().collect();
+            self.deferred.sort_unstable();
+        }
+        stats.coefficients += coefficients.len() - waiting.len();
         for (k, camera) in self.cameras.iter().enumerate() {
             let (set, permuted) = self.set_of(k);
             let tables = &self.tables[set];
@@ -491,6 +639,10 @@ impl ViewPlan {
             // Split coefficients: placed when any piece is.
             let mut last = usize::MAX;
             for ((i, p), (triple, sign)) in pieces.iter().zip(&triples[k]) {
+                // A deferred coefficient is drawn whole later, when all its tables are here.
+                if waiting.contains(i) {
+                    continue;
+                }
                 let t = self.factor_tables[set][triple];
                 let scr = camera.to_screen(p.centre);
                 let value = (p.value * *sign as f64) as f32;
@@ -510,7 +662,7 @@ impl ViewPlan {
                 }
             }
             stats.splatted += placed_here;
-            stats.skipped += coefficients.len() - placed_here;
+            stats.skipped += coefficients.len() - waiting.len() - placed_here;
         }
         Ok(())
     }

@@ -316,7 +316,15 @@ fn plan_or_preview(
         Some(p) if resolved.cue.is_none() && !planner.is_cached(&resolved.footprints) => {
             Ok((p.plan(geometry, spec, channels)?, false))
         }
-        _ => Ok((planner.plan(geometry, spec, channels)?, true)),
+        _ => {
+            let mut plan = planner.plan(geometry, spec, channels)?;
+            // A cued view's tables are built per factor triple on first use; off the frame
+            // thread, so a frame never waits for them.
+            if plan.cue.is_some() {
+                plan.build_tables_in_background();
+            }
+            Ok((plan, true))
+        }
     }
 }
 
@@ -338,6 +346,8 @@ pub struct RenderSession<B: AccumulationBackend> {
     energy_scale: Vec<f64>,
     packets: HashMap<u32, Held>,
     queue: BucketQueue,
+    /// Queue entries set aside until the plan's background builder has their cued tables.
+    waiting: Vec<(u32, u32)>,
     dropped: Vec<u32>,
     stats: SessionStats,
     /// Seconds per unit of splat weight (planning + accumulation), running estimates for
@@ -394,6 +404,7 @@ impl<B: AccumulationBackend> RenderSession<B> {
             energy_scale,
             packets: HashMap::new(),
             queue: BucketQueue::new(),
+            waiting: Vec::new(),
             dropped: Vec::new(),
             stats: SessionStats::default(),
             cost: [INITIAL_COST_PER_WEIGHT; 2],
@@ -433,9 +444,10 @@ impl<B: AccumulationBackend> RenderSession<B> {
         self.stats
     }
 
-    /// Coefficients waiting to be splatted in this view.
+    /// Coefficients waiting to be splatted in this view (including those waiting for their
+    /// depth-cue tables).
     pub fn pending(&self) -> usize {
-        self.queue.len
+        self.queue.len + self.waiting.len()
     }
 
     /// The running estimate of the cost of one unit of [`splat_weight`] with the current
@@ -619,6 +631,7 @@ impl<B: AccumulationBackend> RenderSession<B> {
     fn restart(&mut self) -> Result<(), SessionError> {
         self.backend.begin(self.plan.layout())?;
         self.queue.clear();
+        self.waiting.clear();
         self.stats.splatted_in_view = 0;
         self.stats.invisible_in_view = 0;
         let mut packets = std::mem::take(&mut self.packets);
@@ -727,6 +740,7 @@ impl<B: AccumulationBackend> RenderSession<B> {
         let start = clock.now();
         let deadline = start + budget;
         self.poll_exact()?;
+        self.poll_cue_tables();
         let mut report = StepReport::default();
         let mut batch = Vec::new();
         let mut coefficients = Vec::new();
@@ -764,6 +778,12 @@ impl<B: AccumulationBackend> RenderSession<B> {
             self.plan
                 .splats(&coefficients, &mut self.records, &mut stats)?;
             self.backend.accumulate(&self.plan.atlas, &self.records)?;
+            // Coefficients whose cued tables are still being built wait (still queued) and are
+            // drawn when the tables arrive.
+            let deferred = self.plan.take_deferred();
+            for &i in deferred.iter().rev() {
+                self.waiting.push(batch.swap_remove(i));
+            }
             for (p, _) in &batch {
                 if let Some(h) = self.packets.get_mut(p) {
                     h.queued -= 1;
@@ -793,9 +813,34 @@ impl<B: AccumulationBackend> RenderSession<B> {
             }
         }
         self.evict();
-        report.remaining = self.queue.len;
+        report.remaining = self.pending();
         report.elapsed = clock.now().saturating_sub(start);
         Ok(report)
+    }
+
+    /// Installs the depth-cue tables the plan's builder finished and queues again what waited
+    /// for them (what still misses a table is set aside again by the next batch).
+    fn poll_cue_tables(&mut self) {
+        if self.plan.poll_tables() == 0 && (self.waiting.is_empty() || self.plan.tables_pending()) {
+            return;
+        }
+        let nb = self.header.geometry.band_count();
+        for (id, i) in std::mem::take(&mut self.waiting) {
+            let Some(held) = self.packets.get(&id) else {
+                continue;
+            };
+            let c = held.coefficients[i as usize];
+            let bucket = self.header.geometry.band_index(c.band).and_then(|b| {
+                let v = c.value as f64;
+                bucket_of(
+                    v * v
+                        * self.energy_scale[c.channel as usize * nb + b]
+                        * self.visibility.weight(c.band, held.tile),
+                )
+            });
+            // It was visible when queued; the same view sees it the same way.
+            self.queue.push(bucket.unwrap_or(0), (id, i));
+        }
     }
 
     /// Drops retained packets beyond the memory bound, least visible energy per byte first.

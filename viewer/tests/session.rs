@@ -483,3 +483,36 @@ fn previews_are_replaced_by_exact_tables() {
     }
     assert_eq!(session.stats().previews, 2);
 }
+
+/// A depth-cued session builds its per-piece cue tables off the frame thread: no table is built
+/// inside a batch (the coefficients that need one wait for it), every frame stays within one
+/// batch of its budget, and the session still ends on the one-shot image — for a scalar and a
+/// colour volume, with the light along the view and oblique to it.
+#[test]
+fn depth_cue_tables_are_built_off_the_frame_thread() {
+    use wavesplat_codec::view::{Cue, CueDirection};
+    for (phantom, n) in [(Phantom::SheppLogan, 32), (Phantom::RgbHead, 24)] {
+        let bytes = wsp(phantom, n, 16);
+        let (header, coeffs) = all(&bytes);
+        for direction in [CueDirection::View, CueDirection::Vector([0.4, -0.3, 0.85])] {
+            let s = ViewSpec::single(
+                View::new(0.66, 0.91, 64, 56).with_cue(Cue { k: 0.08, direction }),
+            );
+            let source = FileSource::open(bytes.clone(), &s).unwrap();
+            let session =
+                RenderSession::new(header.clone(), s, CpuBackend::new(), Default::default())
+                    .unwrap();
+            let mut f = FrameLoop::new(session, source);
+            run_to_end(&mut f);
+            assert_eq!(
+                f.session.plan().tables_built_inline(),
+                0,
+                "{phantom:?}: a cue table was built on the frame thread"
+            );
+            let got = f.session.image().unwrap();
+            let want = full_image(&header, &coeffs, &s);
+            let e = max_rel(&got, &want);
+            assert!(e <= 1e-5, "{phantom:?} {direction:?}: {e:e}");
+        }
+    }
+}
