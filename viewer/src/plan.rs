@@ -24,7 +24,7 @@ use std::sync::mpsc::{channel, Receiver, Sender};
 use std::sync::Arc;
 use wavesplat_codec::family::Family;
 use wavesplat_codec::format::packet::Coefficient;
-use wavesplat_codec::layout::Geometry;
+use wavesplat_codec::layout::{Band, Geometry};
 use wavesplat_codec::view::{multiview_map, resolve_cue, Camera, ResolvedCue, ViewSpec};
 
 /// How a footprint is placed at a splat's exact screen position.
@@ -297,6 +297,8 @@ impl Planner {
             builder: None,
             deferred: Vec::new(),
             built_inline: 0,
+            stood_in: HashSet::new(),
+            stand_ins_drawn: 0,
         })
     }
 }
@@ -329,6 +331,11 @@ pub struct ViewPlan {
     deferred: Vec<usize>,
     /// Cued tables built on the calling thread so far.
     built_inline: usize,
+    /// Coefficients (band, position, channel) drawn with a stand-in while their cued tables
+    /// are built.
+    stood_in: HashSet<(Band, [u32; 3], u8)>,
+    /// Stand-ins drawn so far.
+    stand_ins_drawn: usize,
 }
 
 /// A cued table request or result: footprint set index and factor triple.
@@ -441,6 +448,57 @@ impl ViewPlan {
     /// Cued tables built on the calling thread (inside [`ViewPlan::splats`]) so far.
     pub fn tables_built_inline(&self) -> usize {
         self.built_inline
+    }
+
+    /// Stand-ins while cued tables are built: a coefficient left waiting is drawn at once with
+    /// its uncued table weighted by the cue at its centre (a coarse image rather than none); when
+    /// it is drawn for real, its stand-in is taken back (the same record negated: accumulation
+    /// is additive, so the image ends exactly as if there had been none, up to f32 rounding).
+    fn stand_ins(
+        &mut self,
+        coefficients: &[Coefficient],
+        waiting: &HashSet<usize>,
+        out: &mut Vec<SplatRecord>,
+    ) {
+        let (Some(cue), Some(camera)) = (self.cue, self.cameras.first()) else {
+            return;
+        };
+        let size = (self.spec.view.width, self.spec.view.height);
+        for (i, c) in coefficients.iter().enumerate() {
+            let key = (c.band, c.pos, c.channel);
+            let sign = if waiting.contains(&i) {
+                if !self.stood_in.insert(key) {
+                    continue;
+                }
+                self.stand_ins_drawn += 1;
+                1.0
+            } else if self.stood_in.remove(&key) {
+                -1.0
+            } else {
+                continue;
+            };
+            let Some(t) = self.tables[0][c.band.level as usize * 8 + c.band.kind as usize] else {
+                continue;
+            };
+            let pos = [c.pos[0] as usize, c.pos[1] as usize, c.pos[2] as usize];
+            let centre = self.geometry.basis_center(c.band, pos);
+            let value = (sign * c.value as f64 * cue.weight(centre)) as f32;
+            if value != 0.0 {
+                let scr = camera.to_screen(centre);
+                place(&t, &self.atlas, scr, value, c.channel as u16, 0, size, out);
+            }
+        }
+    }
+
+    /// Stand-ins drawn so far (coefficients drawn approximately while their cued tables were
+    /// built).
+    pub fn stand_ins_drawn(&self) -> usize {
+        self.stand_ins_drawn
+    }
+
+    /// Forgets the stand-ins drawn so far (the accumulation restarted without them).
+    pub fn forget_stand_ins(&mut self) {
+        self.stood_in.clear();
     }
 
     /// Which set camera `k` draws with, and whether it goes through the first camera's tables
@@ -600,6 +658,9 @@ impl ViewPlan {
             self.deferred.sort_unstable();
         }
         stats.coefficients += coefficients.len() - waiting.len();
+        if self.builder.is_some() {
+            self.stand_ins(coefficients, &waiting, out);
+        }
         for (k, camera) in self.cameras.iter().enumerate() {
             let (set, permuted) = self.set_of(k);
             let tables = &self.tables[set];

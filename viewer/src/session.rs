@@ -630,6 +630,7 @@ impl<B: AccumulationBackend> RenderSession<B> {
     /// Restarts the accumulation of the current plan and queues everything held again.
     fn restart(&mut self) -> Result<(), SessionError> {
         self.backend.begin(self.plan.layout())?;
+        self.plan.forget_stand_ins();
         self.queue.clear();
         self.waiting.clear();
         self.stats.splatted_in_view = 0;

@@ -485,9 +485,10 @@ fn previews_are_replaced_by_exact_tables() {
 }
 
 /// A depth-cued session builds its per-piece cue tables off the frame thread: no table is built
-/// inside a batch (the coefficients that need one wait for it), every frame stays within one
-/// batch of its budget, and the session still ends on the one-shot image — for a scalar and a
-/// colour volume, with the light along the view and oblique to it.
+/// inside a batch (the coefficients that need one wait for it, drawn meanwhile by uncued
+/// stand-ins), every frame stays within one batch of its budget, and the session still ends on
+/// the one-shot image (stand-ins taken back) — for a scalar and a colour volume, with the light
+/// along the view and oblique to it.
 #[test]
 fn depth_cue_tables_are_built_off_the_frame_thread() {
     use wavesplat_codec::view::{Cue, CueDirection};
@@ -509,6 +510,9 @@ fn depth_cue_tables_are_built_off_the_frame_thread() {
                 0,
                 "{phantom:?}: a cue table was built on the frame thread"
             );
+            // Coefficients waited for their tables, drawn meanwhile by stand-ins that were
+            // taken back exactly (the image below).
+            assert!(f.session.plan().stand_ins_drawn() > 0, "{phantom:?}");
             let got = f.session.image().unwrap();
             let want = full_image(&header, &coeffs, &s);
             let e = max_rel(&got, &want);
