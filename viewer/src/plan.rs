@@ -299,6 +299,7 @@ impl Planner {
             built_inline: 0,
             stood_in: HashSet::new(),
             stand_ins_drawn: 0,
+            stand_in_tables: Vec::new(),
         })
     }
 }
@@ -336,6 +337,8 @@ pub struct ViewPlan {
     stood_in: HashSet<(Band, [u32; 3], u8)>,
     /// Stand-ins drawn so far.
     stand_ins_drawn: usize,
+    /// Uncued tables of the view for stand-ins, by `level · 8 + kind` (empty: no stand-ins).
+    stand_in_tables: Vec<Option<TableRef>>,
 }
 
 /// A cued table request or result: footprint set index and factor triple.
@@ -463,6 +466,9 @@ impl ViewPlan {
         let (Some(cue), Some(camera)) = (self.cue, self.cameras.first()) else {
             return;
         };
+        if self.stand_in_tables.is_empty() {
+            return;
+        }
         let size = (self.spec.view.width, self.spec.view.height);
         for (i, c) in coefficients.iter().enumerate() {
             let key = (c.band, c.pos, c.channel);
@@ -477,7 +483,8 @@ impl ViewPlan {
             } else {
                 continue;
             };
-            let Some(t) = self.tables[0][c.band.level as usize * 8 + c.band.kind as usize] else {
+            let Some(t) = self.stand_in_tables[c.band.level as usize * 8 + c.band.kind as usize]
+            else {
                 continue;
             };
             let pos = [c.pos[0] as usize, c.pos[1] as usize, c.pos[2] as usize];
@@ -488,6 +495,16 @@ impl ViewPlan {
                 place(&t, &self.atlas, scr, value, c.channel as u16, 0, size, out);
             }
         }
+    }
+
+    /// Gives the plan the uncued tables of its view (any placement and phases: previews do) to
+    /// draw stand-ins with while cued tables are built in the background.
+    pub fn set_stand_in_tables(&mut self, set: &FootprintSet) {
+        self.stand_in_tables = set
+            .tables
+            .iter()
+            .map(|t| t.as_ref().map(|f| self.atlas.push(f)))
+            .collect();
     }
 
     /// Stand-ins drawn so far (coefficients drawn approximately while their cued tables were

@@ -486,23 +486,30 @@ fn previews_are_replaced_by_exact_tables() {
 
 /// A depth-cued session builds its per-piece cue tables off the frame thread: no table is built
 /// inside a batch (the coefficients that need one wait for it, drawn meanwhile by uncued
-/// stand-ins), every frame stays within one batch of its budget, and the session still ends on
-/// the one-shot image (stand-ins taken back) — for a scalar and a colour volume, with the light
-/// along the view and oblique to it.
+/// stand-ins when previews are on), every frame stays within one batch of its budget, and the
+/// session still ends on the one-shot image (stand-ins taken back) — for a scalar and a colour
+/// volume, with the light along the view and oblique to it.
 #[test]
 fn depth_cue_tables_are_built_off_the_frame_thread() {
     use wavesplat_codec::view::{Cue, CueDirection};
     for (phantom, n) in [(Phantom::SheppLogan, 32), (Phantom::RgbHead, 24)] {
         let bytes = wsp(phantom, n, 16);
         let (header, coeffs) = all(&bytes);
-        for direction in [CueDirection::View, CueDirection::Vector([0.4, -0.3, 0.85])] {
+        for (direction, previews) in [
+            (CueDirection::View, true),
+            (CueDirection::Vector([0.4, -0.3, 0.85]), true),
+            (CueDirection::View, false),
+        ] {
             let s = ViewSpec::single(
                 View::new(0.66, 0.91, 64, 56).with_cue(Cue { k: 0.08, direction }),
             );
             let source = FileSource::open(bytes.clone(), &s).unwrap();
+            let options = SessionOptions {
+                preview: previews.then(SessionOptions::default_preview),
+                ..Default::default()
+            };
             let session =
-                RenderSession::new(header.clone(), s, CpuBackend::new(), Default::default())
-                    .unwrap();
+                RenderSession::new(header.clone(), s, CpuBackend::new(), options).unwrap();
             let mut f = FrameLoop::new(session, source);
             run_to_end(&mut f);
             assert_eq!(
@@ -510,9 +517,13 @@ fn depth_cue_tables_are_built_off_the_frame_thread() {
                 0,
                 "{phantom:?}: a cue table was built on the frame thread"
             );
-            // Coefficients waited for their tables, drawn meanwhile by stand-ins that were
-            // taken back exactly (the image below).
-            assert!(f.session.plan().stand_ins_drawn() > 0, "{phantom:?}");
+            // Coefficients waited for their tables, drawn meanwhile (with previews on) by
+            // stand-ins with the preview's uncued tables, taken back exactly (the image below).
+            assert_eq!(
+                f.session.plan().stand_ins_drawn() > 0,
+                previews,
+                "{phantom:?} previews {previews}"
+            );
             let got = f.session.image().unwrap();
             let want = full_image(&header, &coeffs, &s);
             let e = max_rel(&got, &want);
