@@ -52,6 +52,9 @@ pub const MAX_FILE_EXPANSION: usize = 1032;
 /// Decoded bytes allowed beyond the expansion ratios (tiny compressed frames of flat images).
 pub const EXPANSION_SLACK: usize = 1 << 20;
 
+/// Transfer Syntax UID of RLE Lossless.
+const RLE_LOSSLESS: &str = "1.2.840.10008.1.2.5";
+
 /// SOP Class UID of a DICOMDIR (Media Storage Directory Storage): skipped in series directories.
 const DICOMDIR_SOP_CLASS: &str = "1.2.840.10008.1.3.10";
 
@@ -295,8 +298,38 @@ impl Walker {
         ) {
             let l = b.get(pos + 8..pos + 12).ok_or("truncated element header")?;
             Ok((tag, Some(vr), undefined(self.u32(l)), 12))
-        } else {
+        } else if matches!(
+            &vr,
+            b"AE"
+                | b"AS"
+                | b"AT"
+                | b"CS"
+                | b"DA"
+                | b"DS"
+                | b"DT"
+                | b"FD"
+                | b"FL"
+                | b"IS"
+                | b"LO"
+                | b"LT"
+                | b"PN"
+                | b"SH"
+                | b"SL"
+                | b"SS"
+                | b"ST"
+                | b"TM"
+                | b"UI"
+                | b"UL"
+                | b"US"
+        ) {
             Ok((tag, Some(vr), Some(usize::from(self.u16(&h[6..8]))), 8))
+        } else {
+            // dicom-rs reads an unknown VR with a 4-byte length (as UN): a walk that read 2
+            // bytes would check a different length than the parser then allocates.
+            Err(format!(
+                "element {tag} has an unknown value representation {:?}",
+                String::from_utf8_lossy(&vr)
+            ))
         }
     }
 
@@ -1197,6 +1230,27 @@ fn check_pixel_data(img: &Image, obj: &DefaultDicomObject) -> Result<(), ReadErr
     let frame_bytes = img.rows * img.cols * img.samples * bytes_per;
     match e.fragments() {
         Some(frags) => {
+            // dicom-rs's RLE adapter allocates the segment count a fragment's header declares
+            // (4 bytes each) before checking it; the standard allows at most 15 in a 64-byte
+            // header.
+            if ts_uid == RLE_LOSSLESS {
+                for (i, f) in frags.iter().enumerate() {
+                    let segments = f
+                        .get(..4)
+                        .map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]));
+                    if f.len() < 64 || segments.is_none_or(|n| n > 15) {
+                        return Err(dicom_err(
+                            path,
+                            Some(tags::PIXEL_DATA),
+                            format!(
+                                "RLE fragment {} of {} bytes declares {segments:?} segments; an RLE header is 64 bytes and holds at most 15",
+                                i + 1,
+                                f.len()
+                            ),
+                        ));
+                    }
+                }
+            }
             let compressed: usize = frags.iter().map(|f| f.len()).sum();
             let limit = compressed
                 .saturating_mul(MAX_EXPANSION)

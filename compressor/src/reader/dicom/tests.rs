@@ -498,6 +498,21 @@ fn hostile_element_lengths_allocate_nothing_large() {
     std::fs::write(&target, &bytes).unwrap();
     let e = read_volume(&target, None).unwrap_err();
     assert!(matches!(e, ReadError::Dicom { .. }), "{e}");
+
+    // An unknown VR (found by the fuzzer): dicom-rs reads it with a 4-byte length, here the
+    // Pixel Spacing's length and first value bytes (~0x2E30_0008 bytes) — the length walk must
+    // not read it as a 2-byte one.
+    let mut bytes = std::fs::read(&files[0]).unwrap();
+    let pat = [0x28, 0x00, 0x30, 0x00, b'D', b'S'];
+    let at = bytes.windows(pat.len()).position(|w| w == pat).unwrap();
+    bytes[at + 4..at + 6].copy_from_slice(&[0x10, 0x00]);
+    std::fs::write(&target, &bytes).unwrap();
+    let e = read_volume(&target, None).unwrap_err();
+    assert!(matches!(e, ReadError::Dicom { .. }), "{e}");
+    assert!(
+        e.to_string().contains("unknown value representation"),
+        "{e}"
+    );
 }
 
 #[test]
