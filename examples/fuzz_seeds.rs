@@ -1,6 +1,8 @@
 //! Writes the seed corpora of the fuzz targets (`fuzz/corpus/TARGET/`) and the sample files the
 //! packet targets decode against (`fuzz/corpus/headers/CODER.wsp`): small phantoms compressed
-//! with each coder, their packets, raw and NIfTI volumes, and one message of every gRPC request.
+//! with each coder, their packets, raw and NIfTI volumes, DICOM, NRRD and MetaImage volumes (the
+//! [`SourceFiles::to_bytes`] of each: one file, or a bundle of a header and its data file or of
+//! a series' slices), and one message of every gRPC request.
 //! The corpora are kept in the repository; rerun this only to reseed.
 //!
 //! `cargo run --example fuzz_seeds`
@@ -10,6 +12,10 @@ use std::path::Path;
 use wavesplat_codec::format::{parse_file, CoderKind};
 use wavesplat_compressor::encode::{compress, CompressOptions, Target, TileChoice};
 use wavesplat_compressor::phantom::Phantom;
+use wavesplat_compressor::reader::fixtures::{
+    self, DicomEncoding, DicomOptions, Layout, NrrdEncoding,
+};
+use wavesplat_compressor::reader::{Format, SourceFiles};
 use wavesplat_proto::pb;
 
 fn put(dir: &Path, name: &str, bytes: &[u8]) {
@@ -147,5 +153,150 @@ fn main() {
         }
         .encode_to_vec(),
     );
+    readers(&root);
     println!("seeds written under {}", root.display());
+}
+
+/// Small volumes in every layout and encoding the DICOM, NRRD and MetaImage readers take.
+fn readers(root: &Path) {
+    let tmp = tempfile::tempdir().unwrap();
+    let vol = |dims: [usize; 3], scale: f32| {
+        let n: usize = dims.iter().product();
+        wavesplat_codec::volume::Volume::new(
+            dims,
+            [0.5, 0.75, 2.0],
+            vec![(0..n).map(|i| ((i * 37) % 101) as f32 * scale).collect()],
+        )
+        .unwrap()
+    };
+    let v = vol([4, 3, 2], 1.0);
+    let seed = |target: &str, name: &str, path: &Path, format: Format| {
+        let src = SourceFiles::gather(path, Some(format)).unwrap();
+        put(&root.join(target), name, &src.to_bytes());
+    };
+    for (name, layout, enc, detached) in [
+        ("raw_u8", Layout::U8, NrrdEncoding::Raw, false),
+        ("gzip_i16", Layout::I16, NrrdEncoding::Gzip, false),
+        ("ascii_f32", Layout::F32, NrrdEncoding::Ascii, false),
+        ("detached_u16", Layout::U16, NrrdEncoding::Raw, true),
+        ("detached_gzip", Layout::I8, NrrdEncoding::Gzip, true),
+    ] {
+        let p = fixtures::write_nrrd(tmp.path(), name, &v, layout, enc, detached, "RAS");
+        seed("nrrd", name, &p, Format::Nrrd);
+    }
+    for (name, layout, compressed, detached) in [
+        ("mha_u8", Layout::U8, false, false),
+        ("mha_zlib_i16", Layout::I16, true, false),
+        ("mhd_f32", Layout::F32, false, true),
+        ("mhd_zlib_u16", Layout::U16, true, true),
+    ] {
+        let p = fixtures::write_metaimage(tmp.path(), name, &v, layout, compressed, detached);
+        seed("metaimage", name, &p, Format::MetaImage);
+    }
+    for (name, layout, encoding, multiframe) in [
+        (
+            "series_i16",
+            Layout::I16,
+            DicomEncoding::ExplicitLittle,
+            false,
+        ),
+        (
+            "series_u8_implicit",
+            Layout::U8,
+            DicomEncoding::ImplicitLittle,
+            false,
+        ),
+        ("series_rle", Layout::U16, DicomEncoding::RleLossless, false),
+        (
+            "multiframe_i16",
+            Layout::I16,
+            DicomEncoding::ExplicitLittle,
+            true,
+        ),
+        (
+            "multiframe_rle",
+            Layout::I8,
+            DicomEncoding::RleLossless,
+            true,
+        ),
+    ] {
+        let o = DicomOptions {
+            layout,
+            encoding,
+            intercept: -10.0,
+            ..DicomOptions::default()
+        };
+        let v = vol([4, 3, 2], 1.0);
+        let dir = tmp.path().join(name);
+        let p = if multiframe {
+            std::fs::create_dir_all(&dir).unwrap();
+            fixtures::write_dicom_multiframe(&dir.join("mf.dcm"), &v, &o)
+        } else {
+            fixtures::write_dicom_series(&dir, &v, &o);
+            dir
+        };
+        seed("dicom", name, &p, Format::Dicom);
+    }
+    hostile(root, &tmp.path().join("series_i16"));
+}
+
+/// Small inputs whose headers declare far more than their bytes hold (`oom_*`: each made a
+/// reader allocate hundreds of MiB or more before it was fixed); the stable replay checks
+/// their heap against the targets' bound.
+fn hostile(root: &Path, series: &Path) {
+    use flate2::write::{GzEncoder, ZlibEncoder};
+    use flate2::Compression;
+    use std::io::Write;
+    let deflate = |gzip: bool, n: usize| {
+        let zeros = vec![0u8; n];
+        if gzip {
+            let mut e = GzEncoder::new(Vec::new(), Compression::best());
+            e.write_all(&zeros).unwrap();
+            e.finish().unwrap()
+        } else {
+            let mut e = ZlibEncoder::new(Vec::new(), Compression::best());
+            e.write_all(&zeros).unwrap();
+            e.finish().unwrap()
+        }
+    };
+    // 1 GiB of u8 samples declared, 64 bytes of gzip present: the buffer reserved up front was
+    // min(declared, 64 MiB).
+    let mut nrrd =
+        b"NRRD0004\ntype: uint8\ndimension: 3\nsizes: 1024 1024 1024\nencoding: gzip\n\n".to_vec();
+    nrrd.extend(deflate(true, 64));
+    put(&root.join("nrrd"), "oom_gzip_reserve", &nrrd);
+    let mut mha = b"ObjectType = Image\nNDims = 3\nDimSize = 1024 1024 1024\nElementType = MET_UCHAR\nCompressedData = True\nElementDataFile = LOCAL\n"
+        .to_vec();
+    mha.extend(deflate(false, 64));
+    put(&root.join("metaimage"), "oom_zlib_reserve", &mha);
+    let mut nii = std::fs::read(root.join("nifti/tiny.nii")).unwrap();
+    for d in 1..=3 {
+        nii[40 + 2 * d..42 + 2 * d].copy_from_slice(&1024i16.to_le_bytes());
+    }
+    put(
+        &root.join("nifti"),
+        "oom_gzip_reserve",
+        &deflate_gz_of(&nii),
+    );
+    // One slice re-declared as 46 340² 16-bit pixels (within the voxel limit): the series'
+    // voxel buffer (8 GiB of f32) was allocated before the pixel data was checked.
+    let first = std::fs::read_dir(series)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .min()
+        .unwrap();
+    let mut dcm = std::fs::read(first).unwrap();
+    for element in [0x10u8, 0x11] {
+        let tag = [0x28, 0x00, element, 0x00, b'U', b'S', 2, 0];
+        let at = dcm.windows(8).position(|w| w == tag).unwrap() + 8;
+        dcm[at..at + 2].copy_from_slice(&46340u16.to_le_bytes());
+    }
+    put(&root.join("dicom"), "oom_rows_columns", &dcm);
+}
+
+fn deflate_gz_of(bytes: &[u8]) -> Vec<u8> {
+    use std::io::Write;
+    let mut e = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::best());
+    e.write_all(bytes).unwrap();
+    e.finish().unwrap()
 }

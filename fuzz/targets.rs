@@ -1,10 +1,16 @@
 //! The fuzz targets' bodies, shared by the cargo-fuzz binaries (`fuzz_targets/`) and the stable
 //! test that replays the kept corpora (`tests/fuzz_corpus.rs`). Each takes arbitrary bytes and
 //! must return (an `Err` is fine) without panicking, hanging or allocating beyond the decode
-//! budget.
+//! budget (packets, files) or [`alloc_bound`] (the readers, measured by the including crate's
+//! `meter`, a counting global allocator: `fuzz/meter.rs` in the fuzz binaries).
 
+// Each fuzz binary uses one target of this file.
+#![allow(dead_code)]
+
+use std::path::Path;
 use wavesplat_codec::format::packet::{decode_packet_within, DecodeBudget};
 use wavesplat_codec::format::{parse_file, parse_prelude, Header};
+use wavesplat_compressor::reader::Format;
 
 /// What one fuzz input may cost: a packet of at most 1 M coefficients (24 MiB).
 pub const BUDGET: DecodeBudget = DecodeBudget {
@@ -12,12 +18,22 @@ pub const BUDGET: DecodeBudget = DecodeBudget {
     max_bytes: 64 << 20,
 };
 
+/// What one packet of a whole-file input may cost: 64 K coefficients (1.5 MiB), 128× what a
+/// seed file's packet (one 8³ tile) holds. Every parse path is still reached (a packet over the
+/// budget is refused at its header, as a larger budget would refuse a larger one), but a
+/// mutated header can no longer make one execution decode a million coefficients, which kept
+/// this target under 1 000 executions a second.
+pub const FILE_BUDGET: DecodeBudget = DecodeBudget {
+    max_coefficients: 1 << 16,
+    max_bytes: 4 << 20,
+};
+
 /// A whole file: header, directory, every packet.
 pub fn file(data: &[u8]) {
     let _ = parse_prelude(data);
     if let Ok(f) = parse_file(data) {
         for p in &f.packets {
-            let _ = decode_packet_within(&f.header, p, &BUDGET);
+            let _ = decode_packet_within(&f.header, p, &FILE_BUDGET);
         }
     }
 }
@@ -30,10 +46,14 @@ pub fn packet(header: &Header, data: &[u8]) {
 /// A raw volume: the first 8 bytes choose the layout (dims 1..=64, dtype, endianness,
 /// channels), the rest are the samples.
 pub fn raw(data: &[u8]) {
-    use wavesplat_compressor::reader::{decode_raw, Endian, RawDtype, RawSpec};
     if data.len() < 8 {
         return;
     }
+    metered(data, || raw_layout(data));
+}
+
+fn raw_layout(data: &[u8]) {
+    use wavesplat_compressor::reader::{decode_raw, Endian, RawDtype, RawSpec};
     let dims = [0, 1, 2].map(|a| 1 + (data[a] as usize % 64));
     let dtype = [RawDtype::U8, RawDtype::U16, RawDtype::I16, RawDtype::F32][data[3] as usize % 4];
     let mut spec = RawSpec::new(dims, dtype);
@@ -46,14 +66,77 @@ pub fn raw(data: &[u8]) {
     let _ = decode_raw(&data[8..], &spec);
 }
 
-/// A NIfTI-1 file (plain or gzip), through the reader's path interface.
+/// A NIfTI-1 file (plain or gzip), decoded from memory as `read_nifti` decodes a file's bytes.
 pub fn nifti(data: &[u8]) {
-    let Ok(mut f) = tempfile::Builder::new().suffix(".nii").tempfile() else {
-        return;
-    };
-    if std::io::Write::write_all(&mut f, data).is_ok() {
-        let _ = wavesplat_compressor::reader::read_nifti(f.path());
-    }
+    metered(data, || {
+        let _ = wavesplat_compressor::reader::nifti::decode_nifti(Path::new("fuzz.nii"), data);
+    });
+}
+
+/// A DICOM volume: one file (a slice or a multi-frame file), or a bundle of a series' slices
+/// (`SourceFiles::to_bytes`), decoded from memory as `read_volume` decodes what it gathered.
+///
+/// The reader catches panics inside the DICOM crates and reports them as errors (dicom-rs's
+/// RLE adapter indexes out of bounds on some malformed segment tables: corpus
+/// `caught_rle_panic`). libFuzzer's panic hook aborts on every panic, caught or not, so while
+/// this target runs, panics on its thread are not passed to the hook; one that escapes the
+/// reader still fails the run (the fuzz macro aborts on it, the stable replay's test fails).
+pub fn dicom(data: &[u8]) {
+    use std::cell::Cell;
+    thread_local!(static QUIET: Cell<bool> = const { Cell::new(false) });
+    static HOOK: std::sync::Once = std::sync::Once::new();
+    HOOK.call_once(|| {
+        let previous = std::panic::take_hook();
+        std::panic::set_hook(Box::new(move |info| {
+            if !QUIET.with(Cell::get) {
+                previous(info);
+            }
+        }));
+    });
+    QUIET.with(|q| q.set(true));
+    source(data, "series", Format::Dicom);
+    QUIET.with(|q| q.set(false));
+}
+
+/// An NRRD volume: an attached `.nrrd`, or a bundle of a detached header and its data file.
+pub fn nrrd(data: &[u8]) {
+    source(data, "fuzz.nhdr", Format::Nrrd);
+}
+
+/// A MetaImage volume: an attached `.mha`, or a bundle of a `.mhd` header and its data file.
+pub fn metaimage(data: &[u8]) {
+    source(data, "fuzz.mhd", Format::MetaImage);
+}
+
+fn source(data: &[u8], origin: &str, format: Format) {
+    use wavesplat_compressor::reader::{decode_source, SourceFiles};
+    metered(data, || {
+        if let Ok(mut src) = SourceFiles::from_bytes(data.to_vec(), Path::new(origin)) {
+            src.format = Some(format);
+            let _ = decode_source(&src, None);
+        }
+    });
+}
+
+/// Most heap a reader may hold at once for an input of `len` bytes: 16 MiB plus 8 KiB per
+/// input byte. Decoded samples come to at most ~1032× the input (deflate's limit, which also
+/// bounds DICOM's Deflated syntax; encapsulated DICOM frames are held to 1024× + 1 MiB), kept
+/// once as bytes and once as f32 (4 bytes per 8-bit sample): ~5.2 K per input byte, the rest
+/// is room for the parsers' working buffers. A header declaring more than its bytes can hold
+/// must be refused before anything that large is allocated.
+pub fn alloc_bound(len: usize) -> usize {
+    (16 << 20) + 8192 * len
+}
+
+/// Runs a reader on `data` and checks its peak heap against [`alloc_bound`].
+fn metered(data: &[u8], f: impl FnOnce()) {
+    let peak = crate::meter::peak_during(f);
+    assert!(
+        peak <= alloc_bound(data.len()),
+        "a {}-byte input took {peak} bytes of heap (bound {})",
+        data.len(),
+        alloc_bound(data.len())
+    );
 }
 
 /// Every request message of both services, decoded from the same bytes and converted to the

@@ -6,6 +6,26 @@
 #[path = "../fuzz/targets.rs"]
 mod targets;
 
+/// What the reader targets' heap bound is checked with here: a counting global allocator
+/// (process-wide, so metered runs hold a lock; the other tests of this file allocate little).
+mod meter {
+    use peak_alloc::PeakAlloc;
+    use std::sync::Mutex;
+
+    #[global_allocator]
+    static PEAK: PeakAlloc = PeakAlloc;
+    static ONE_AT_A_TIME: Mutex<()> = Mutex::new(());
+
+    /// Runs `f`; returns the peak of the live heap during it, above where it began.
+    pub fn peak_during(f: impl FnOnce()) -> usize {
+        let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+        let start = PEAK.current_usage();
+        PEAK.reset_peak_usage();
+        f();
+        PEAK.peak_usage().saturating_sub(start)
+    }
+}
+
 use std::path::{Path, PathBuf};
 use wavesplat_codec::format::parse_file;
 
@@ -33,6 +53,9 @@ fn every_kept_input_of_every_target_is_handled() {
         ("file", targets::file as fn(&[u8])),
         ("raw", targets::raw),
         ("nifti", targets::nifti),
+        ("dicom", targets::dicom),
+        ("nrrd", targets::nrrd),
+        ("metaimage", targets::metaimage),
         ("grpc", targets::grpc),
     ] {
         for (_, data) in corpus(target) {
@@ -72,4 +95,48 @@ fn the_packet_seeds_are_valid_packets_of_their_headers() {
             }
         }
     }
+}
+
+#[test]
+fn the_reader_seeds_decode_to_volumes() {
+    // So the reader targets start from inputs that reach the decoders' depths.
+    use wavesplat_compressor::reader::{decode_source, Format, SourceFiles};
+    for (target, origin, format) in [
+        ("dicom", "series", Format::Dicom),
+        ("nrrd", "fuzz.nhdr", Format::Nrrd),
+        ("metaimage", "fuzz.mhd", Format::MetaImage),
+    ] {
+        let mut seeds = 0;
+        for (p, data) in corpus(target) {
+            let name = p.file_name().unwrap().to_string_lossy().into_owned();
+            // Findings (`oom_*`, `caught_*`) are replayed above, not decoded here.
+            if ["crash", "oom", "slow", "caught"]
+                .iter()
+                .any(|p| name.starts_with(p))
+            {
+                continue;
+            }
+            let mut src = SourceFiles::from_bytes(data, Path::new(origin)).unwrap();
+            src.format = Some(format);
+            let v = decode_source(&src, None).unwrap_or_else(|e| panic!("{}: {e}", p.display()));
+            assert_eq!(v.dims(), [4, 3, 2], "{}", p.display());
+            seeds += 1;
+        }
+        assert!(seeds >= 4, "{target}: {seeds} seeds");
+    }
+}
+
+#[test]
+fn the_meter_sees_a_large_allocation() {
+    // The bound the reader targets check is only as good as the count behind it.
+    let peak = meter::peak_during(|| {
+        let v = vec![1u8; 48 << 20];
+        std::hint::black_box(&v);
+    });
+    assert!(peak >= 48 << 20, "{peak}");
+    assert!(peak > targets::alloc_bound(1024), "{peak}");
+    let small = meter::peak_during(|| {
+        std::hint::black_box(vec![0u8; 1000]);
+    });
+    assert!((1000..1 << 20).contains(&small), "{small}");
 }

@@ -2,7 +2,8 @@
 //! Shepp–Logan phantom, then rounds of 1, 32 and 64 concurrent refinement streams started at
 //! once (each a different view, each reading every packet). Prints a CSV: clients, packets/s,
 //! MB/s, first-packet latency p50/p99 (ms, from opening the stream to its first packet), wall
-//! time. No assertions; figures go to BENCHMARKS.md.
+//! time; on stderr, the CPU time of planning one view (the bulk of a session start). No
+//! assertions; figures go to BENCHMARKS.md.
 //!
 //! `cargo run --release -p wavesplat-cache --example load [EDGE] [ROUNDS]`
 
@@ -62,6 +63,25 @@ async fn main() {
     )
     .expect("compress")
     .bytes;
+    // Where a session start's CPU goes: planning its view (visibility weights, per-packet
+    // priorities), timed here without the network.
+    let header = wavesplat_codec::format::parse_file(&bytes).unwrap().header;
+    let plan = |i: usize| {
+        let view = ViewSpec::single(View::new(0.1 * i as f64, 0.05 * i as f64, 256, 256));
+        wavesplat_cache::priority::Priority::new(&header, &view).unwrap()
+    };
+    let t = Instant::now();
+    plan(0);
+    let first = t.elapsed();
+    let t = Instant::now();
+    for i in 1..=64 {
+        std::hint::black_box(plan(i));
+    }
+    eprintln!(
+        "view planning (Priority::new): first {:.2} ms (builds per-family tables), then {:.3} ms per view",
+        first.as_secs_f64() * 1e3,
+        t.elapsed().as_secs_f64() * 1e3 / 64.0
+    );
     let dir = tempfile::tempdir().unwrap();
     let store = Store::open(dir.path(), Limits::default()).unwrap();
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();

@@ -1,4 +1,6 @@
 #![no_main]
+#[path = "../meter.rs"]
+mod meter;
 #[path = "../targets.rs"]
 mod targets;
 use std::sync::OnceLock;
@@ -9,10 +11,10 @@ fn header() -> &'static Header {
     static H: OnceLock<Header> = OnceLock::new();
     H.get_or_init(|| {
         let bytes = include_bytes!("../corpus/headers/huffman.wsp");
-        parse_file(bytes).expect("the kept sample file parses").header
+        parse_file(bytes)
+            .expect("the kept sample file parses")
+            .header
     })
 }
 
-libfuzzer_sys::fuzz_target!(|data: &[u8]| {
-    targets::packet(header(), data)
-});
+libfuzzer_sys::fuzz_target!(|data: &[u8]| { targets::packet(header(), data) });

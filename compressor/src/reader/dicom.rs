@@ -19,8 +19,9 @@
 //! The volume's axes: x along the row direction (increasing column index), y along the column
 //! direction (increasing row index), z along the slice normal; its placement is the position of
 //! the first slice's first pixel and those three directions, in the patient frame (LPS).
-//! Untrusted input: frame sizes are checked against [`MAX_VOXELS`] and the pixel data present
-//! before decoding, encapsulated frames may not expand beyond [`MAX_EXPANSION`] × their
+//! Untrusted input: frame sizes are checked against [`MAX_VOXELS`], against the file's size
+//! (at most [`MAX_FILE_EXPANSION`]× it) before any per-frame work, and against the pixel data
+//! present before decoding, encapsulated frames may not expand beyond [`MAX_EXPANSION`] × their
 //! compressed bytes, and a panic inside the DICOM crates is caught and reported as an error on
 //! the file.
 
@@ -41,6 +42,18 @@ use super::{voxel_count, ReadError, SourceFiles, MAX_SOURCE_FILES};
 /// Largest ratio of decoded to encapsulated bytes accepted for a frame (plus 1 MiB): lossless
 /// codecs on real images stay far below it; a forged header on a tiny file does not.
 pub const MAX_EXPANSION: usize = 1024;
+
+/// Largest ratio of decoded sample bytes to a file's bytes accepted before anything is
+/// allocated for its frames (plus [`EXPANSION_SLACK`] per volume): deflate, which a Deflated
+/// Explicit VR file applies to the whole data set, cannot expand beyond 1032×, and encapsulated
+/// frames are held to [`MAX_EXPANSION`].
+pub const MAX_FILE_EXPANSION: usize = 1032;
+
+/// Decoded bytes allowed beyond the expansion ratios (tiny compressed frames of flat images).
+pub const EXPANSION_SLACK: usize = 1 << 20;
+
+/// Transfer Syntax UID of RLE Lossless.
+const RLE_LOSSLESS: &str = "1.2.840.10008.1.2.5";
 
 /// SOP Class UID of a DICOMDIR (Media Storage Directory Storage): skipped in series directories.
 const DICOMDIR_SOP_CLASS: &str = "1.2.840.10008.1.3.10";
@@ -285,8 +298,38 @@ impl Walker {
         ) {
             let l = b.get(pos + 8..pos + 12).ok_or("truncated element header")?;
             Ok((tag, Some(vr), undefined(self.u32(l)), 12))
-        } else {
+        } else if matches!(
+            &vr,
+            b"AE"
+                | b"AS"
+                | b"AT"
+                | b"CS"
+                | b"DA"
+                | b"DS"
+                | b"DT"
+                | b"FD"
+                | b"FL"
+                | b"IS"
+                | b"LO"
+                | b"LT"
+                | b"PN"
+                | b"SH"
+                | b"SL"
+                | b"SS"
+                | b"ST"
+                | b"TM"
+                | b"UI"
+                | b"UL"
+                | b"US"
+        ) {
             Ok((tag, Some(vr), Some(usize::from(self.u16(&h[6..8]))), 8))
+        } else {
+            // dicom-rs reads an unknown VR with a 4-byte length (as UN): a walk that read 2
+            // bytes would check a different length than the parser then allocates.
+            Err(format!(
+                "element {tag} has an unknown value representation {:?}",
+                String::from_utf8_lossy(&vr)
+            ))
         }
     }
 
@@ -559,10 +602,14 @@ struct Image {
     instance: i64,
 }
 
+/// Reads what the reader needs of an image's header; `file_len` (the file's size) bounds the
+/// frames and sample bytes it may declare, so that a small file cannot make the per-frame
+/// loops or the voxel buffer large.
 fn read_image(
     name: &str,
     path: &Path,
     obj: &DefaultDicomObject,
+    file_len: usize,
 ) -> Result<Option<Image>, ReadError> {
     let meta = obj.meta();
     if meta.media_storage_sop_class_uid().trim_end_matches('\0') == DICOMDIR_SOP_CLASS {
@@ -607,13 +654,30 @@ fn read_image(
                 format!("{rows} rows × {cols} columns × {frames} frames exceed the {MAX_VOXELS}-voxel limit"),
             )
         })?;
-    let _ = total;
     let bits_allocated = require_uint(path, o, tags::BITS_ALLOCATED)?;
     if !matches!(bits_allocated, 8 | 16 | 32) {
         return Err(dicom_err(
             path,
             Some(tags::BITS_ALLOCATED),
             format!("{bits_allocated}; 8, 16 or 32 supported"),
+        ));
+    }
+    // Every frame needs at least one byte of the file (a native sample, or an encapsulated
+    // fragment), and no transfer syntax expands the file beyond MAX_FILE_EXPANSION.
+    let declared = total
+        .saturating_mul(samples)
+        .saturating_mul(bits_allocated as usize / 8);
+    let most = file_len
+        .saturating_mul(MAX_FILE_EXPANSION)
+        .saturating_add(EXPANSION_SLACK);
+    if frames > file_len || declared > most {
+        return Err(dicom_err(
+            path,
+            Some(tags::PIXEL_DATA),
+            format!(
+                "{rows}×{cols} × {frames} frame(s) × {samples} sample(s) × {} byte(s) = {declared} bytes cannot come from a file of {file_len} bytes (at most {MAX_FILE_EXPANSION}× its size + {EXPANSION_SLACK} bytes)",
+                bits_allocated / 8
+            ),
         ));
     }
     let bits_stored = get_uint(path, o, tags::BITS_STORED)?.unwrap_or(bits_allocated);
@@ -823,7 +887,7 @@ pub(crate) fn decode(src: &SourceFiles) -> Result<Volume, ReadError> {
     for (name, bytes) in &src.files {
         let path = src.path_of(name);
         let obj = parse(&path, bytes, false)?;
-        if let Some(img) = read_image(name, &path, &obj)? {
+        if let Some(img) = read_image(name, &path, &obj, bytes.len())? {
             images.push(img);
         }
     }
@@ -1003,6 +1067,25 @@ pub(crate) fn decode(src: &SourceFiles) -> Result<Volume, ReadError> {
         });
     }
 
+    // The whole volume, too, must come from the files' bytes (one slack per volume, not per
+    // file, so that many small files cannot add up to a large buffer).
+    let file_bytes: usize = src.files.iter().map(|(_, b)| b.len()).sum();
+    let declared: usize = images
+        .iter()
+        .map(|i| i.rows * i.cols * i.frames * i.samples * (i.bits_allocated as usize / 8))
+        .fold(0usize, usize::saturating_add);
+    let most = file_bytes
+        .saturating_mul(MAX_FILE_EXPANSION)
+        .saturating_add(EXPANSION_SLACK);
+    if declared > most {
+        return Err(ReadError::Series {
+            path: dir.clone(),
+            reason: format!(
+                "the images declare {declared} bytes of samples, more than {file_bytes} bytes of files can hold (at most {MAX_FILE_EXPANSION}× + {EXPANSION_SLACK} bytes)"
+            ),
+        });
+    }
+
     // Pass 2: decode each file's frames into their slots.
     let mut slot_of: Vec<Vec<usize>> = images.iter().map(|i| vec![0; i.frames]).collect();
     for (z, (f, _)) in frames.iter().enumerate() {
@@ -1147,6 +1230,27 @@ fn check_pixel_data(img: &Image, obj: &DefaultDicomObject) -> Result<(), ReadErr
     let frame_bytes = img.rows * img.cols * img.samples * bytes_per;
     match e.fragments() {
         Some(frags) => {
+            // dicom-rs's RLE adapter allocates the segment count a fragment's header declares
+            // (4 bytes each) before checking it; the standard allows at most 15 in a 64-byte
+            // header.
+            if ts_uid == RLE_LOSSLESS {
+                for (i, f) in frags.iter().enumerate() {
+                    let segments = f
+                        .get(..4)
+                        .map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]));
+                    if f.len() < 64 || segments.is_none_or(|n| n > 15) {
+                        return Err(dicom_err(
+                            path,
+                            Some(tags::PIXEL_DATA),
+                            format!(
+                                "RLE fragment {} of {} bytes declares {segments:?} segments; an RLE header is 64 bytes and holds at most 15",
+                                i + 1,
+                                f.len()
+                            ),
+                        ));
+                    }
+                }
+            }
             let compressed: usize = frags.iter().map(|f| f.len()).sum();
             let limit = compressed
                 .saturating_mul(MAX_EXPANSION)

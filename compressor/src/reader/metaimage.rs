@@ -340,12 +340,15 @@ pub(crate) fn decode(src: &SourceFiles) -> Result<Volume, ReadError> {
             ));
         }
         let mut z = flate2::bufread::ZlibDecoder::new(data);
-        bytes = read_exact_or_truncated(&mut z, expected, &data_path, 0).map_err(|e| match e {
-            ReadError::Io { source, .. } => {
-                bad(&data_path, format!("the zlib data is corrupt: {source}"))
-            }
-            e => e,
-        })?;
+        bytes =
+            read_exact_or_truncated(&mut z, expected, data.len(), &data_path, 0).map_err(|e| {
+                match e {
+                    ReadError::Io { source, .. } => {
+                        bad(&data_path, format!("the zlib data is corrupt: {source}"))
+                    }
+                    e => e,
+                }
+            })?;
         &bytes
     } else {
         let skip = if header_size == -1 {

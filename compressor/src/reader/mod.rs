@@ -300,16 +300,27 @@ pub(crate) fn deinterleave(
     out
 }
 
-/// Reads up to `expected` bytes of a (possibly gzip-compressed) stream, growing the buffer as
-/// data arrives so that a header lying about the size on a short file allocates little.
+/// Most bytes a deflate (gzip, zlib) stream can expand one input byte to.
+pub(crate) const DEFLATE_MAX_RATIO: usize = 1032;
+
+/// Reads up to `expected` bytes of a (possibly gzip-compressed) stream made of `available`
+/// input bytes. The buffer reserved up front is what those bytes can legitimately decode to
+/// (at most [`DEFLATE_MAX_RATIO`]× them), so a header lying about the size on a short file
+/// allocates little, and a truthful one reads into an exact buffer.
 pub(crate) fn read_exact_or_truncated(
     stream: &mut dyn Read,
     expected: usize,
+    available: usize,
     path: &Path,
     offset: u64,
 ) -> Result<Vec<u8>, ReadError> {
     let mut data = Vec::new();
-    data.try_reserve(expected.min(1 << 26)).map_err(|_| {
+    let reserve = expected.min(
+        available
+            .saturating_mul(DEFLATE_MAX_RATIO)
+            .saturating_add(64),
+    );
+    data.try_reserve_exact(reserve).map_err(|_| {
         ReadError::io(
             path,
             io::Error::new(

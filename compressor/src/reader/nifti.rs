@@ -195,7 +195,7 @@ pub fn decode_nifti(path: &Path, bytes: &[u8]) -> Result<Volume, ReadError> {
     }
 
     // Voxel data: grow as data arrives, so a lying header on a short file allocates little.
-    let data = read_exact_or_truncated(&mut stream, expected, path, vox_offset)?;
+    let data = read_exact_or_truncated(&mut stream, expected, bytes.len(), path, vox_offset)?;
 
     let endian = match header.endianness {
         nifti::Endianness::Little => Endian::Little,

@@ -403,7 +403,7 @@ pub(crate) fn decode(src: &SourceFiles) -> Result<Volume, ReadError> {
                 ));
             }
             let mut stream = flate2::bufread::MultiGzDecoder::new(data);
-            bytes = read_exact_or_truncated(&mut stream, expected, &data_path, 0)
+            bytes = read_exact_or_truncated(&mut stream, expected, data.len(), &data_path, 0)
                 .map_err(|e| gzip_error(e, &data_path))?;
             &bytes
         }

@@ -498,4 +498,84 @@ fn hostile_element_lengths_allocate_nothing_large() {
     std::fs::write(&target, &bytes).unwrap();
     let e = read_volume(&target, None).unwrap_err();
     assert!(matches!(e, ReadError::Dicom { .. }), "{e}");
+
+    // An unknown VR (found by the fuzzer): dicom-rs reads it with a 4-byte length, here the
+    // Pixel Spacing's length and first value bytes (~0x2E30_0008 bytes) — the length walk must
+    // not read it as a 2-byte one.
+    let mut bytes = std::fs::read(&files[0]).unwrap();
+    let pat = [0x28, 0x00, 0x30, 0x00, b'D', b'S'];
+    let at = bytes.windows(pat.len()).position(|w| w == pat).unwrap();
+    bytes[at + 4..at + 6].copy_from_slice(&[0x10, 0x00]);
+    std::fs::write(&target, &bytes).unwrap();
+    let e = read_volume(&target, None).unwrap_err();
+    assert!(matches!(e, ReadError::Dicom { .. }), "{e}");
+    assert!(
+        e.to_string().contains("unknown value representation"),
+        "{e}"
+    );
+}
+
+#[test]
+fn a_small_file_cannot_declare_a_large_volume() {
+    // Both within MAX_VOXELS, on files of a few hundred bytes: two billion one-voxel frames
+    // (per-frame loops), and one 46 340² frame (an 8 GiB voxel buffer). Refused from the
+    // header, before either is touched.
+    let root = tempfile::tempdir().unwrap();
+    for (i, (rows, cols, frames)) in [(1u16, 1u16, "2000000000"), (46340, 46340, "1")]
+        .into_iter()
+        .enumerate()
+    {
+        let d = root.path().join(format!("c{i}"));
+        let (_, files) = series(&d, [4, 4, 1], &DicomOptions::default());
+        edit(&files[0], |o| {
+            o.put(DataElement::new(
+                tags::ROWS,
+                VR::US,
+                PrimitiveValue::from(rows),
+            ));
+            o.put(DataElement::new(
+                tags::COLUMNS,
+                VR::US,
+                PrimitiveValue::from(cols),
+            ));
+            o.put(DataElement::new(
+                tags::NUMBER_OF_FRAMES,
+                VR::IS,
+                PrimitiveValue::from(frames),
+            ));
+        });
+        let e = read_volume(&d, None).unwrap_err();
+        let msg = e.to_string();
+        assert!(matches!(e, ReadError::Dicom { .. }), "{msg}");
+        assert!(msg.contains("cannot come from a file of"), "{msg}");
+        assert!(msg.contains("(7FE0,0010) Pixel Data"), "{msg}");
+    }
+}
+
+#[test]
+fn many_small_files_cannot_add_up_to_a_large_volume() {
+    // Each 1200×1200 8-bit slice (1.44 MB) is within what one file allows (its bytes ×
+    // MAX_FILE_EXPANSION + EXPANSION_SLACK); four of them are more than the series' bytes can
+    // hold with one slack.
+    let root = tempfile::tempdir().unwrap();
+    let o = DicomOptions {
+        layout: Layout::U8,
+        ..DicomOptions::default()
+    };
+    let (_, files) = series(root.path(), [4, 4, 4], &o);
+    for f in &files {
+        edit(f, |o| {
+            o.put(DataElement::new(
+                tags::ROWS,
+                VR::US,
+                PrimitiveValue::from(1200u16),
+            ));
+            o.put(DataElement::new(
+                tags::COLUMNS,
+                VR::US,
+                PrimitiveValue::from(1200u16),
+            ));
+        });
+    }
+    expect_series_error(root.path(), "bytes of files can hold");
 }
