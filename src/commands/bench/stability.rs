@@ -427,46 +427,22 @@ fn cases(quick: bool) -> Vec<Case> {
         let max = Geometry::max_levels(dims);
         for family in Family::ALL {
             for levels in 1..=max {
-                let c = case(
-                    "family-depth",
-                    format!(
-                        "{family} M={levels}/{max} {}x{}x{}",
-                        dims[0], dims[1], dims[2]
-                    ),
-                    format!("all coefficients, default margin, view=(0.66,0.91) {side}^2"),
-                    MATCH,
-                    move || {
-                        let data = blobs(dims, 1.0);
-                        renderer_case(
-                            dims,
-                            &data,
-                            family,
-                            levels,
-                            &oblique,
-                            reference_options(family, 0.0),
-                        )
-                    },
-                );
-                // Deep spline levels: the coarsest footprints exceed the default FFT side, the
-                // planner halves the subpixel count S, and placement errors of up to 1/(2S)
-                // pixel cost accuracy. The same case with room for S follows.
-                let deep = match family {
-                    Family::Haar => false,
-                    Family::Linear => levels >= 5,
-                    Family::Cubic => levels >= 4,
-                };
-                if deep {
-                    out.push(c.known_failure(
-                        "linear M >= 5, cubic M >= 4: the coarsest footprints exceed the default max_fft (768), S is halved, \
-                         placement error up to 1/(2S) px (a speed/accuracy default of the planner; see the max_fft 4096 row)",
-                    ));
-                    out.push(case(
+                // All coefficients at an oblique view, with the planner's default largest FFT
+                // side or with `max_fft`.
+                let depth_case = |max_fft: Option<usize>| {
+                    let (name, params) = match max_fft {
+                        Some(m) => (format!(" max_fft {m}"), format!(", max_fft {m}")),
+                        None => (String::new(), String::new()),
+                    };
+                    case(
                         "family-depth",
                         format!(
-                            "{family} M={levels}/{max} {}x{}x{} max_fft 4096",
+                            "{family} M={levels}/{max} {}x{}x{}{name}",
                             dims[0], dims[1], dims[2]
                         ),
-                        format!("all coefficients, default margin, view=(0.66,0.91) {side}^2, max_fft 4096"),
+                        format!(
+                            "all coefficients, default margin, view=(0.66,0.91) {side}^2{params}"
+                        ),
                         MATCH,
                         move || {
                             let data = blobs(dims, 1.0);
@@ -478,14 +454,29 @@ fn cases(quick: bool) -> Vec<Case> {
                                 &oblique,
                                 reference_options(family, 0.0),
                                 RenderOptions {
-                                    max_fft: Some(4096),
+                                    max_fft,
                                     ..RenderOptions::default()
                                 },
                             )
                         },
+                    )
+                };
+                // Deep spline levels: the coarsest footprints exceed the default FFT side, the
+                // planner halves the subpixel count S, and placement errors of up to 1/(2S)
+                // pixel cost accuracy. The same case with room for S follows.
+                let deep = match family {
+                    Family::Haar => false,
+                    Family::Linear => levels >= 5,
+                    Family::Cubic => levels >= 4,
+                };
+                if deep {
+                    out.push(depth_case(None).known_failure(
+                        "linear M >= 5, cubic M >= 4: the coarsest footprints exceed the default max_fft (768), S is halved, \
+                         placement error up to 1/(2S) px (a speed/accuracy default of the planner; see the max_fft 4096 row)",
                     ));
+                    out.push(depth_case(Some(4096)));
                 } else {
-                    out.push(c);
+                    out.push(depth_case(None));
                 }
             }
         }
