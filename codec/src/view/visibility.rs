@@ -182,20 +182,14 @@ pub fn band_weights(g: &Geometry, cam: &Camera) -> Vec<f64> {
     bands
         .iter()
         .zip(acc)
-        .map(|(band, a)| {
-            let s = (1u64 << band.level) as f64;
-            let norm: f64 = (0..3)
-                .map(|ax| {
-                    if band.is_wavelet_along(ax) {
-                        fam.psi_norm2()
-                    } else {
-                        fam.phi_norm2()
-                    }
-                })
-                .product();
-            s * a * step * step / norm
-        })
+        .map(|(band, a)| dilation4(band) * a * step * step / g.basis_norm2(*band))
         .collect()
+}
+
+/// (2^level)⁴: the level's dilation 2^level of the slice integral over the 3D basis energy
+/// `Geometry::basis_norm2`, which carries (2^level)³.
+fn dilation4(band: &Band) -> f64 {
+    ((1u64 << band.level) as f64).powi(4)
 }
 
 /// |φ̂(η)|² and |ψ̂(η)|² (κ = 0) of one family at η = 0, h, 2h, … up to [`SPECTRUM_MAX`], for
@@ -388,18 +382,7 @@ mod tests {
         bands
             .iter()
             .zip(acc)
-            .map(|(band, a)| {
-                let norm: f64 = (0..3)
-                    .map(|ax| {
-                        if band.is_wavelet_along(ax) {
-                            fam.psi_norm2()
-                        } else {
-                            fam.phi_norm2()
-                        }
-                    })
-                    .product();
-                (1u64 << band.level) as f64 * a * step * step / norm
-            })
+            .map(|(band, a)| dilation4(band) * a * step * step / g.basis_norm2(*band))
             .collect()
     }
 
