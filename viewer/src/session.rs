@@ -583,17 +583,26 @@ impl<B: AccumulationBackend> RenderSession<B> {
             .max(self.stats.retained_bytes + self.stats.transient_bytes);
     }
 
+    /// The energy coefficient `c` of a packet of tile `tile` shows in the current view (what
+    /// orders the queue and eviction); `None` for a band the volume does not have.
+    fn visible_energy(&self, c: &Coefficient, tile: usize) -> Option<f64> {
+        let b = self.header.geometry.band_index(c.band)?;
+        let nb = self.header.geometry.band_count();
+        let v = c.value as f64;
+        Some(
+            v * v
+                * self.energy_scale[c.channel as usize * nb + b]
+                * self.visibility.weight(c.band, tile),
+        )
+    }
+
     /// Queues the visible coefficients of a held packet for the current view.
     fn enqueue(&mut self, id: u32, held: &mut Held) {
-        let nb = self.header.geometry.band_count();
         held.queued = 0;
         for (i, c) in held.coefficients.iter().enumerate() {
-            let Some(b) = self.header.geometry.band_index(c.band) else {
+            let Some(e) = self.visible_energy(c, held.tile) else {
                 continue;
             };
-            let w = self.visibility.weight(c.band, held.tile);
-            let v = c.value as f64;
-            let e = v * v * self.energy_scale[c.channel as usize * nb + b] * w;
             match bucket_of(e) {
                 Some(k) => {
                     self.queue.push(k, (id, i as u32));
@@ -833,20 +842,13 @@ impl<B: AccumulationBackend> RenderSession<B> {
         if self.plan.poll_tables() == 0 && (self.waiting.is_empty() || self.plan.tables_pending()) {
             return;
         }
-        let nb = self.header.geometry.band_count();
         for (id, i) in std::mem::take(&mut self.waiting) {
             let Some(held) = self.packets.get(&id) else {
                 continue;
             };
-            let c = held.coefficients[i as usize];
-            let bucket = self.header.geometry.band_index(c.band).and_then(|b| {
-                let v = c.value as f64;
-                bucket_of(
-                    v * v
-                        * self.energy_scale[c.channel as usize * nb + b]
-                        * self.visibility.weight(c.band, held.tile),
-                )
-            });
+            let bucket = self
+                .visible_energy(&held.coefficients[i as usize], held.tile)
+                .and_then(bucket_of);
             // It was visible when queued; the same view sees it the same way.
             self.queue.push(bucket.unwrap_or(0), (id, i));
         }
@@ -865,19 +867,10 @@ impl<B: AccumulationBackend> RenderSession<B> {
             .iter()
             .filter(|(_, h)| h.queued == 0)
             .map(|(id, h)| {
-                let nb = self.header.geometry.band_count();
                 let e: f64 = h
                     .coefficients
                     .iter()
-                    .filter_map(|c| {
-                        let b = self.header.geometry.band_index(c.band)?;
-                        let v = c.value as f64;
-                        Some(
-                            v * v
-                                * self.energy_scale[c.channel as usize * nb + b]
-                                * self.visibility.weight(c.band, h.tile),
-                        )
-                    })
+                    .filter_map(|c| self.visible_energy(c, h.tile))
                     .sum();
                 (e / h.bytes().max(1) as f64, *id)
             })
