@@ -258,10 +258,15 @@ pub fn open(args: &ViewArgs, byte_budget: Option<u64>) -> Result<(Header, Opened
         (Some(path), _, _) => {
             let bytes =
                 std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
-            let header = parse_file(&bytes)
-                .with_context(|| format!("reading {}", path.display()))?
-                .header;
-            let spec = args.spec_for(&header)?;
+            let spec = match &args.view {
+                // A named view needs the volume's placement before the source orders packets.
+                Some(_) => args.spec_for(
+                    &parse_file(&bytes)
+                        .with_context(|| format!("reading {}", path.display()))?
+                        .header,
+                )?,
+                None => args.spec()?,
+            };
             let source = FileSource::open(bytes, &spec)
                 .with_context(|| format!("reading {}", path.display()))?
                 .with_byte_budget(byte_budget);
