@@ -3,14 +3,19 @@
 //! quality layers and tiles → significance order with spatial clustering → quantization and
 //! entropy coding into packets (`wavesplat_codec::format`).
 //!
-//! A byte target is met by bisection on the number of kept coefficients, measuring the size the
-//! real encoder writes (the estimate is the written size). The encoder returns its own
+//! Coefficients are never sorted wholesale: the oracle's order is materialised only for its top
+//! candidates ([`crate::select`]). A byte target is met by a rate search on the number of kept
+//! coefficients that measures the size the real encoder writes (the estimate is the written
+//! size), interpolating log size against log count (4–8 trial encodings); with refinement the
+//! oracle's fit is refined once and the refined order is cut or extended to the target by the
+//! same search ([`compress_to_bytes`]). The encoder returns its own
 //! reconstruction (the decoder's view of every kept coefficient), so callers can check a decode
 //! bit for bit and compute Q_E without decoding.
 
 use crate::colorspace::{ColorError, ColorSpaceKind, ColorTransform};
 use crate::order::{cluster_order, Clustering, Item};
-use crate::refine::{refine, KeptValue, RefineOptions};
+use crate::refine::{refine_with, KeptValue, OracleScores, RefineOptions, Refined};
+use crate::select::{band_map, histogram, top_k, Histogram, CHUNK};
 use rayon::prelude::*;
 use thiserror::Error;
 use wavesplat_codec::dwt::{forward_3d, pad_channel, samples_to_coefficients, Dwt1d};
@@ -197,10 +202,10 @@ struct Scored {
     score: f64,
     channel: u8,
     index: u32,
-    value: f64,
+    value: f32,
 }
 
-/// The transformed, scored volume, ready to be cut at any K.
+/// The transformed volume: dense coefficients per channel and what scores them.
 struct Prepared {
     geometry: Geometry,
     margin: usize,
@@ -208,16 +213,30 @@ struct Prepared {
     channels: usize,
     value_range: [f32; 2],
     placement: Option<Placement>,
-    /// Non-zero coefficients by decreasing score.
-    sorted: Vec<Scored>,
+    /// Band index of every coefficient (one channel's grid).
+    band_of: Vec<u8>,
+    /// ‖b‖² per band index.
+    norms: Vec<f64>,
+    /// The wavelet coefficients of each channel (Mallat layout).
+    coefficients: Vec<Vec<f32>>,
+    /// Score histogram of the oracle (S = E·I).
+    histogram: Histogram,
     total_energy: f64,
     total_coefficients: u64,
-    /// The channels' voxel samples after the colour transform (for refinement).
+    /// The channels' voxel samples after the colour transform (for refinement; empty without).
     samples: Vec<Vec<f32>>,
     /// Non-zero coefficients of the transform.
     nonzero: u64,
-    /// `sorted` holds a refined set.
-    refined: bool,
+}
+
+/// Coefficients by decreasing score: a prefix of the oracle's order, or a refined set followed
+/// by the rest of the oracle's order.
+struct Ranked {
+    sorted: Vec<Scored>,
+    /// `sorted` holds every non-zero coefficient (nothing beyond it could be added).
+    complete: bool,
+    /// The first `refined` entries are least-squares refined values.
+    refined: usize,
 }
 
 fn color_info(t: &ColorTransform) -> ColorInfo {
@@ -274,61 +293,61 @@ fn prepare(
     };
     let (lo, hi) = volume.value_range();
     let mut planner = Dwt1d::new(opts.family);
-    let bands = geometry.bands();
-    let norms: Vec<f64> = bands.iter().map(|b| geometry.basis_norm2(*b)).collect();
-    let mut sorted = Vec::new();
-    let mut total_energy = 0.0;
+    let norms: Vec<f64> = geometry
+        .bands()
+        .iter()
+        .map(|b| geometry.basis_norm2(*b))
+        .collect();
+    let band_of = band_map(&geometry);
+    let mut coefficients = Vec::with_capacity(channels.len());
     for (c, ch) in channels.iter().enumerate() {
         progress(Stage::Transform(c), c as f64 / channels.len() as f64);
         let mut data = pad_channel(ch, &geometry);
         samples_to_coefficients(&mut data, &geometry);
         forward_3d(&mut data, &geometry, &mut planner);
-        let importance = color.importance[c];
-        let scored: Vec<(Scored, f64)> = data
-            .par_iter()
-            .enumerate()
-            .filter(|(_, w)| **w != 0.0)
-            .map(|(i, w)| {
-                let (band, _) = geometry.locate(i);
-                let bi = geometry.band_index(band).expect("band of a located index");
-                let e = w * w * norms[bi];
-                (
-                    Scored {
-                        score: e * importance,
-                        channel: c as u8,
-                        index: i as u32,
-                        value: *w,
-                    },
-                    e,
-                )
-            })
-            .collect();
-        total_energy += scored.iter().map(|(_, e)| e).sum::<f64>();
-        sorted.extend(scored.into_iter().map(|(s, _)| s));
+        coefficients.push(data.into_par_iter().map(|v| v as f32).collect::<Vec<f32>>());
     }
     progress(Stage::Sort, 0.0);
-    // Deterministic total order: score, then channel, then index.
-    sorted.par_sort_unstable_by(|a, b| {
-        b.score
-            .total_cmp(&a.score)
-            .then(a.channel.cmp(&b.channel))
-            .then(a.index.cmp(&b.index))
-    });
-    let sorted_len = sorted.len() as u64;
-    Ok(Prepared {
+    let n = geometry.coefficient_count();
+    // Σ w²·‖b‖² in fixed chunks (thread-count independent).
+    let per_channel = n.div_ceil(CHUNK);
+    let parts: Vec<f64> = (0..coefficients.len() * per_channel)
+        .into_par_iter()
+        .map(|job| {
+            let (c, j) = (job / per_channel, job % per_channel);
+            (j * CHUNK..((j + 1) * CHUNK).min(n))
+                .map(|i| (coefficients[c][i] as f64).powi(2) * norms[band_of[i] as usize])
+                .sum::<f64>()
+        })
+        .collect();
+    let total_energy = parts.iter().sum();
+    let mut prepared = Prepared {
         geometry,
         margin,
         color,
         channels: channels.len(),
         value_range: [lo, hi],
         placement: volume.placement().copied(),
-        sorted,
+        band_of,
+        norms,
+        coefficients,
+        histogram: Histogram::empty(),
         total_energy,
-        total_coefficients: (geometry.coefficient_count() * channels.len()) as u64,
-        samples: channels,
-        nonzero: sorted_len,
-        refined: false,
-    })
+        total_coefficients: (n * channels.len()) as u64,
+        samples: if opts.refine.is_some() {
+            channels
+        } else {
+            Vec::new()
+        },
+        nonzero: 0,
+    };
+    let histogram = {
+        let p = &prepared;
+        histogram(p.channels, n, &|c, i| p.score(c, i), &|c, i| p.energy(c, i))
+    };
+    prepared.nonzero = histogram.positive;
+    prepared.histogram = histogram;
+    Ok(prepared)
 }
 
 /// Each quality layer holds this many times the coefficients of all layers before it.
@@ -387,10 +406,47 @@ fn choose_tiling(
 }
 
 impl Prepared {
-    /// The same volume with its top `k` replaced by their least-squares refinement (at most `k`
-    /// coefficients; the rest of the order is dropped).
-    fn refined(&self, k: usize, opts: &RefineOptions) -> Prepared {
-        let kept: Vec<KeptValue> = self.sorted[..k]
+    /// The oracle's score S = E·I of coefficient `i` of channel `c` (−1 for a zero coefficient,
+    /// which is never kept).
+    fn score(&self, c: usize, i: usize) -> f64 {
+        let w = self.coefficients[c][i];
+        if w == 0.0 {
+            return -1.0;
+        }
+        (w as f64).powi(2) * self.norms[self.band_of[i] as usize] * self.color.importance[c]
+    }
+
+    /// The energy E = w²·‖b‖² (eq. 14, without importance).
+    fn energy(&self, c: usize, i: usize) -> f64 {
+        (self.coefficients[c][i] as f64).powi(2) * self.norms[self.band_of[i] as usize]
+    }
+
+    /// The oracle's top `cap` coefficients (all non-zero ones when `cap` reaches them).
+    fn ranked(&self, cap: usize) -> Ranked {
+        let n = self.geometry.coefficient_count();
+        let picks = top_k(&self.histogram, self.channels, n, cap, &|c, i| {
+            self.score(c, i)
+        });
+        let sorted: Vec<Scored> = picks
+            .into_par_iter()
+            .map(|(score, channel, index)| Scored {
+                score,
+                channel,
+                index,
+                value: self.coefficients[channel as usize][index as usize],
+            })
+            .collect();
+        Ranked {
+            complete: sorted.len() as u64 >= self.nonzero,
+            sorted,
+            refined: 0,
+        }
+    }
+
+    /// `ranked` with its top `k` replaced by their least-squares refinement (at most `k`
+    /// coefficients, all scoring at least the k-th), followed by the rest of `ranked`.
+    fn refined(&self, ranked: &Ranked, k: usize, opts: &RefineOptions) -> Ranked {
+        let kept: Vec<KeptValue> = ranked.sorted[..k]
             .iter()
             .map(|s| KeptValue {
                 channel: s.channel,
@@ -399,40 +455,67 @@ impl Prepared {
             })
             .collect();
         let importance = &self.color.importance[..self.channels];
-        let refined = refine(&self.geometry, &self.samples, importance, &kept, opts);
-        let g = &self.geometry;
-        let sorted = refined
+        let scores = |r: usize| ranked.sorted[r].score;
+        let oracle = OracleScores {
+            len: ranked.sorted.len(),
+            score: &scores,
+        };
+        let Refined {
+            values: refined,
+            rank,
+        } = refine_with(
+            &self.geometry,
+            &self.band_of,
+            &self.samples,
+            importance,
+            &kept,
+            Some(&oracle),
+            opts,
+        );
+        let count = refined.len();
+        let mut sorted: Vec<Scored> = refined
             .iter()
             .map(|r| {
-                let (band, _) = g.locate(r.index as usize);
+                let band = self.band_of[r.index as usize] as usize;
                 Scored {
-                    score: r.value * r.value * g.basis_norm2(band) * importance[r.channel as usize],
+                    score: (r.value as f64).powi(2)
+                        * self.norms[band]
+                        * importance[r.channel as usize],
                     channel: r.channel,
                     index: r.index,
                     value: r.value,
                 }
             })
             .collect();
-        Prepared {
-            geometry: self.geometry,
-            margin: self.margin,
-            color: self.color,
-            channels: self.channels,
-            value_range: self.value_range,
-            placement: self.placement,
+        // The rest of the oracle's order below the final threshold, without what the
+        // refinement picked up (iterative hard thresholding moves coefficients from beyond
+        // rank k into the set).
+        let mut picked: Vec<(u8, u32)> = refined.iter().map(|r| (r.channel, r.index)).collect();
+        picked.par_sort_unstable();
+        sorted.extend(
+            ranked.sorted[rank.max(k)..]
+                .iter()
+                .filter(|s| picked.binary_search(&(s.channel, s.index)).is_err()),
+        );
+        Ranked {
             sorted,
-            total_energy: self.total_energy,
-            total_coefficients: self.total_coefficients,
-            samples: Vec::new(),
-            nonzero: self.nonzero,
-            refined: true,
+            complete: ranked.complete,
+            refined: count,
         }
     }
 
-    /// Encodes the top `k` coefficients.
-    fn encode(&self, k: usize, opts: &CompressOptions, expected_bytes: u64) -> Compressed {
+    /// Encodes the top `k` coefficients of `ranked`. Q_E is left at NaN unless `q_e` is set
+    /// (it pairs every kept value with its decoded one, which a rate-search trial skips).
+    fn encode(
+        &self,
+        ranked: &Ranked,
+        k: usize,
+        opts: &CompressOptions,
+        expected_bytes: u64,
+        q_e: bool,
+    ) -> Compressed {
         let g = &self.geometry;
-        let kept = &self.sorted[..k];
+        let kept = &ranked.sorted[..k];
         let (tile, nl) = choose_tiling(g, opts.tile, opts.layers, expected_bytes);
         let nl = nl.clamp(1, MAX_LAYERS);
         // Layer l ends at rank k·G^(l−(L−1)) with G the layer growth: layer 0 holds the top
@@ -461,7 +544,7 @@ impl Prepared {
         for s in kept {
             let (band, _) = locate(s);
             let sub = s.channel as usize * nb + g.band_index(band).expect("band");
-            mags[sub].push(s.value.abs());
+            mags[sub].push((s.value as f64).abs());
         }
         // Smallest kept score: every kept coefficient's magnitude is at least the threshold.
         let score_threshold = kept.last().map_or(0.0, |s| s.score);
@@ -522,7 +605,7 @@ impl Prepared {
                 channel: s.channel,
                 band,
                 pos: [pos[0] as u32, pos[1] as u32, pos[2] as u32],
-                value: s.value as f32,
+                value: s.value,
             };
             groups.entry((layer, t)).or_default().push((*s, c));
         }
@@ -559,22 +642,24 @@ impl Prepared {
             let p = [c.pos[0] as usize, c.pos[1] as usize, c.pos[2] as usize];
             (c.channel, g.linear_index(c.band, p))
         };
-        let mut exact: Vec<&Coefficient> = inputs.iter().flat_map(|i| &i.coefficients).collect();
-        let mut decoded: Vec<&Coefficient> = encoded.reconstruction.iter().flatten().collect();
-        exact.sort_by_key(|c| key(c));
-        decoded.sort_by_key(|c| key(c));
-        let q_e = q_e_percent(
-            exact
-                .iter()
-                .zip(&decoded)
-                .map(|(a, b)| (a.value as f64, b.value as f64, g.basis_norm2(a.band))),
-        );
+        let q_e = if q_e {
+            let mut exact: Vec<&Coefficient> =
+                inputs.iter().flat_map(|i| &i.coefficients).collect();
+            let mut decoded: Vec<&Coefficient> = encoded.reconstruction.iter().flatten().collect();
+            exact.par_sort_unstable_by_key(|c| key(c));
+            decoded.par_sort_unstable_by_key(|c| key(c));
+            q_e_percent(
+                exact
+                    .iter()
+                    .zip(&decoded)
+                    .map(|(a, b)| (a.value as f64, b.value as f64, g.basis_norm2(a.band))),
+            )
+        } else {
+            f64::NAN
+        };
         let kept_energy: f64 = kept
             .iter()
-            .map(|s| {
-                let (band, _) = locate(s);
-                s.value * s.value * g.basis_norm2(band)
-            })
+            .map(|s| (s.value as f64).powi(2) * self.norms[self.band_of[s.index as usize] as usize])
             .sum();
         let stats = CompressStats {
             total_coefficients: self.total_coefficients,
@@ -588,7 +673,7 @@ impl Prepared {
             packets: inputs.len() as u64,
             tile,
             layers: nl,
-            refined: self.refined,
+            refined: ranked.refined > 0 && k > 0,
         };
         Compressed {
             bytes,
@@ -612,7 +697,7 @@ pub fn compress(
         )));
     }
     let prepared = prepare(volume, opts, progress)?;
-    let n = prepared.sorted.len();
+    let n = prepared.nonzero as usize;
     let k = match opts.target {
         Target::All => n,
         Target::Coefficients(c) => (c as usize).min(n),
@@ -632,12 +717,13 @@ pub fn compress(
             }
             // Energies (without importance) accumulated in score order.
             let goal = q / 100.0 * prepared.total_energy;
-            let g = &prepared.geometry;
+            let cap = prepared.histogram.count_for_energy(goal) as usize;
+            let ranked = prepared.ranked(cap);
             let mut acc = 0.0;
-            let mut k = n;
-            for (i, s) in prepared.sorted.iter().enumerate() {
-                let (band, _) = g.locate(s.index as usize);
-                acc += s.value * s.value * g.basis_norm2(band);
+            let mut k = ranked.sorted.len();
+            for (i, s) in ranked.sorted.iter().enumerate() {
+                acc += (s.value as f64).powi(2)
+                    * prepared.norms[prepared.band_of[s.index as usize] as usize];
                 if acc >= goal * (1.0 - 1e-12) {
                     k = i + 1;
                     break;
@@ -645,137 +731,217 @@ pub fn compress(
             }
             k
         }
-        Target::Bytes(b) => {
-            return match &opts.refine {
-                Some(r) => compress_to_bytes_refined(&prepared, opts, r, b, progress),
-                None => compress_to_bytes(&prepared, opts, b, progress),
-            };
-        }
+        Target::Bytes(b) => return compress_to_bytes(&prepared, opts, b, progress),
     };
-    let prepared = match &opts.refine {
+    // Refinement may select down to rank 2k (see `refine_with`).
+    let cap = if opts.refine.is_some() { 2 * k } else { k };
+    let ranked = prepared.ranked(cap);
+    let ranked = match &opts.refine {
         Some(r) if k > 0 && k < n => {
             progress(Stage::Refine, 0.0);
-            prepared.refined(k, r)
+            prepared.refined(&ranked, k, r)
         }
-        _ => prepared,
+        _ => ranked,
     };
-    let k = k.min(prepared.sorted.len());
+    let k = k.min(ranked.sorted.len());
     progress(Stage::Encode(0), 0.0);
-    // File size guess for the automatic tiling: measured bytes per kept coefficient are
-    // ~0.7–0.9 for the sigmap coder and 2–3 for the paper's syntaxes.
-    let per_coefficient = if opts.coder == CoderKind::Sigmap {
+    let expected = (k as u64)
+        .saturating_mul(bytes_per_coefficient_guess(opts.coder))
+        .max(64);
+    Ok(prepared.encode(&ranked, k, opts, expected, true))
+}
+
+/// File size guess per kept coefficient for the automatic tiling: measured bytes per kept
+/// coefficient are ~0.7–0.9 for the sigmap coder and 2–3 for the paper's syntaxes.
+fn bytes_per_coefficient_guess(coder: CoderKind) -> u64 {
+    if coder == CoderKind::Sigmap {
         1
     } else {
         3
-    };
-    let expected = (k as u64).saturating_mul(per_coefficient).max(64);
-    Ok(prepared.encode(k, opts, expected))
+    }
 }
 
-/// Byte target with refinement: find K for the oracle's order, refine at K, and cut the refined
-/// order to the target; while the refined set comes out more than 2 % under the target, refine
-/// again at a proportionally larger K (at most four refinements).
-fn compress_to_bytes_refined(
-    prepared: &Prepared,
-    opts: &CompressOptions,
-    refine_opts: &RefineOptions,
-    target: u64,
-    progress: &(dyn Fn(Stage, f64) + Sync),
-) -> Result<Compressed, CompressError> {
-    let plain = compress_to_bytes(prepared, opts, target, progress)?;
-    let n = prepared.sorted.len();
-    let k0 = plain.stats.kept as usize;
-    if k0 == 0 || k0 >= n {
-        return Ok(plain);
-    }
-    let mut best: Option<Compressed> = None;
-    let mut k = k0;
-    for _attempt in 0..4 {
-        progress(Stage::Refine, 0.0);
-        let refined = prepared.refined(k, refine_opts);
-        let all = refined.sorted.len();
-        if all == 0 {
-            break;
-        }
-        let whole = refined.encode(all, opts, target);
-        let candidate = if whole.stats.bytes <= target {
-            whole
-        } else {
-            compress_to_bytes(&refined, opts, target, progress)?
-        };
-        let fill = candidate.stats.bytes as f64 / target as f64;
-        let better = best
-            .as_ref()
-            .is_none_or(|b| candidate.stats.bytes > b.stats.bytes);
-        if better {
-            best = Some(candidate);
-        }
-        if fill >= 0.98 {
-            break;
-        }
-        // Under-filled: the refined set codes more cheaply than the oracle's; grow K.
-        k = ((k as f64 / fill.max(0.25)).ceil() as usize).clamp(k + 1, n);
-    }
-    // The rate search promises the target within 2 %: when refined sets never fill it (sizes
-    // are not monotone in K for the paper's coders), fall back to the oracle's coefficients.
-    Ok(best
-        .filter(|b| b.stats.bytes as f64 >= 0.98 * target as f64)
-        .unwrap_or(plain))
-}
-
-/// Bisection on the number of kept coefficients for the largest file ≤ `target` bytes.
+/// Byte target: the oracle's order is searched for the largest prefix that fits (on a candidate
+/// list grown 4× whenever the search runs off its end), then, with refinement, that prefix is
+/// refined once and the refined order (followed by the oracle's remaining coefficients) is cut
+/// to the target by the same search. A refinement is ~30 applications of the synthesis and
+/// its transpose; the searches only run the entropy coder.
 fn compress_to_bytes(
     prepared: &Prepared,
     opts: &CompressOptions,
     target: u64,
     progress: &(dyn Fn(Stage, f64) + Sync),
 ) -> Result<Compressed, CompressError> {
-    let n = prepared.sorted.len();
-    let mut trial = 0usize;
-    let mut run = |k: usize| {
-        trial += 1;
-        progress(Stage::Encode(trial), 0.0);
-        prepared.encode(k, opts, target)
+    let n = prepared.nonzero as usize;
+    // Candidates: 4 per target byte for the sigmap coder (it codes ~1.2–1.5 coefficients per
+    // byte on real data), 1 per byte for the paper's syntaxes.
+    let per_byte = if opts.coder == CoderKind::Sigmap {
+        4
+    } else {
+        1
     };
-    let smallest = run(n.min(1));
-    if smallest.stats.bytes > target {
-        return Err(CompressError::TargetTooSmall {
+    let mut cap = (target.saturating_mul(per_byte) as usize).clamp(1024, n.max(1));
+    let mut trials = 0usize;
+    let guess = (target / bytes_per_coefficient_guess(opts.coder)) as usize;
+    let (ranked, plain) = loop {
+        let ranked = prepared.ranked(cap);
+        let plain = fit_bytes(
+            prepared,
+            &ranked,
+            opts,
             target,
-            minimum: smallest.stats.bytes,
-        });
+            guess,
+            &mut trials,
+            progress,
+        )?;
+        let len = ranked.sorted.len();
+        if ranked.complete || (plain.stats.kept as usize) < len || cap >= n {
+            break (ranked, plain);
+        }
+        cap = cap.saturating_mul(4).min(n);
+    };
+    let k0 = plain.stats.kept as usize;
+    let Some(r) = &opts.refine else {
+        return Ok(finish(prepared, &ranked, plain));
+    };
+    if k0 == 0 || (ranked.complete && k0 >= ranked.sorted.len()) {
+        return Ok(finish(prepared, &ranked, plain));
     }
-    let mut best = smallest;
-    // Exponential search for a k whose file exceeds the target (never encodes more than about
-    // twice the coefficients that fit), then bisection. Invariant: size(lo) ≤ target < size(hi).
-    // Sizes are nearly monotone in k (the tables adapt), so keep the best feasible trial seen.
-    let mut lo = n.min(1);
-    let mut hi = n + 1;
-    let mut k = lo.max(1);
-    while k < n {
-        k = (k * 2).min(n);
+    progress(Stage::Refine, 0.0);
+    let refined = prepared.refined(&ranked, k0, r);
+    let guess = refined.refined;
+    let best = fit_bytes(
+        prepared,
+        &refined,
+        opts,
+        target,
+        guess,
+        &mut trials,
+        progress,
+    )?;
+    // The rate search promises the target within 2 %: when the refined order never fills it
+    // (sizes are not monotone in K for the paper's coders), keep the oracle's coefficients.
+    if (best.stats.bytes as f64) >= 0.98 * target as f64 || best.stats.bytes >= plain.stats.bytes {
+        Ok(finish(prepared, &refined, best))
+    } else {
+        Ok(finish(prepared, &ranked, plain))
+    }
+}
+
+/// Fills in Q_E of the chosen file (the rate search skips it).
+fn finish(prepared: &Prepared, ranked: &Ranked, mut c: Compressed) -> Compressed {
+    let k = c.stats.kept as usize;
+    let g = &prepared.geometry;
+    let key = |channel: u8, band: wavesplat_codec::layout::Band, pos: [u32; 3]| {
+        let p = [pos[0] as usize, pos[1] as usize, pos[2] as usize];
+        (channel, g.linear_index(band, p) as u32)
+    };
+    let mut exact: Vec<(u8, u32, f32)> = ranked.sorted[..k]
+        .iter()
+        .map(|s| (s.channel, s.index, s.value))
+        .collect();
+    let mut decoded: Vec<((u8, u32), f32)> = c
+        .reconstruction
+        .iter()
+        .flatten()
+        .map(|d| (key(d.channel, d.band, d.pos), d.value))
+        .collect();
+    exact.par_sort_unstable_by_key(|e| (e.0, e.1));
+    decoded.par_sort_unstable_by_key(|d| d.0);
+    c.stats.q_e = q_e_percent(exact.iter().zip(&decoded).map(|(a, b)| {
+        let norm = prepared.norms[prepared.band_of[a.1 as usize] as usize];
+        (a.2 as f64, b.1 as f64, norm)
+    }));
+    c
+}
+
+/// Largest trial files of a rate search before it settles for the best one found.
+const MAX_TRIALS: usize = 24;
+
+/// The rate search: the largest prefix of `ranked` whose file fits `target` bytes, within
+/// 0.2 % where the granularity allows. Sizes grow smoothly (about as K^0.9) with the number K
+/// of kept coefficients, so each trial interpolates log size against log K between the
+/// tightest fitting and overflowing trials (extrapolating from the one known side first), and
+/// every third step bisects to guarantee progress. Typically 4–7 trials.
+fn fit_bytes(
+    prepared: &Prepared,
+    ranked: &Ranked,
+    opts: &CompressOptions,
+    target: u64,
+    guess: usize,
+    trials: &mut usize,
+    progress: &(dyn Fn(Stage, f64) + Sync),
+) -> Result<Compressed, CompressError> {
+    let len = ranked.sorted.len();
+    let mut run = |k: usize| {
+        *trials += 1;
+        progress(Stage::Encode(*trials), 0.0);
+        prepared.encode(ranked, k, opts, target, false)
+    };
+    let goal = 0.998 * target as f64;
+    // Fitting (k, bytes) and overflowing (k, bytes) bounds.
+    let mut lo: Option<(usize, u64)> = None;
+    let mut hi: Option<(usize, u64)> = None;
+    let mut best: Option<Compressed> = None;
+    let mut k = guess.clamp(len.min(1), len);
+    for step in 0..MAX_TRIALS {
         let c = run(k);
-        if c.stats.bytes <= target {
-            lo = k;
-            best = c;
-        } else {
-            hi = k;
+        let bytes = c.stats.bytes;
+        if bytes <= target {
+            if lo.is_none_or(|(lk, _)| k > lk) {
+                lo = Some((k, bytes));
+            }
+            if best.as_ref().is_none_or(|b| bytes > b.stats.bytes) {
+                best = Some(c);
+            }
+        } else if hi.is_none_or(|(hk, _)| k < hk) {
+            hi = Some((k, bytes));
+        }
+        if best.as_ref().is_some_and(|b| b.stats.bytes as f64 >= goal) {
             break;
         }
-    }
-    if hi == n + 1 {
-        return Ok(best);
-    }
-    while hi - lo > 1 {
-        let mid = lo + (hi - lo) / 2;
-        let c = run(mid);
-        if c.stats.bytes <= target {
-            lo = mid;
-            if c.stats.kept > best.stats.kept {
-                best = c;
+        let log_k = |bytes_at: u64, k_at: usize, slope: f64| -> f64 {
+            (k_at.max(1) as f64).ln() + (goal.ln() - (bytes_at.max(1) as f64).ln()) / slope
+        };
+        let next = match (lo, hi) {
+            (Some((lk, _)), _) if lk >= len => break,
+            (_, Some((0 | 1, _))) => break,
+            (Some((lk, _)), Some((hk, _))) if hk <= lk + 1 => break,
+            (Some((lk, lb)), Some((hk, hb))) => {
+                let mid = lk + (hk - lk) / 2;
+                if step % 3 == 2 || hb <= lb {
+                    mid
+                } else {
+                    let slope = ((hb as f64).ln() - (lb.max(1) as f64).ln())
+                        / ((hk as f64).ln() - (lk.max(1) as f64).ln());
+                    let x = log_k(lb, lk, slope.clamp(0.3, 3.0)).exp().round() as usize;
+                    x.clamp(lk + 1, hk - 1)
+                }
             }
-        } else {
-            hi = mid;
+            (Some((lk, lb)), None) => {
+                let x = log_k(lb, lk, 0.9).exp().ceil() as usize;
+                x.clamp(lk + 1, len)
+            }
+            (None, Some((hk, hb))) => {
+                let x = log_k(hb, hk, 0.9).exp().floor() as usize;
+                x.clamp(1, hk - 1)
+            }
+            (None, None) => break,
+        };
+        k = next;
+    }
+    match best {
+        Some(b) => Ok(b),
+        None => {
+            let smallest = run(len.min(1));
+            if smallest.stats.bytes <= target {
+                Ok(smallest)
+            } else {
+                Err(CompressError::TargetTooSmall {
+                    target,
+                    minimum: smallest.stats.bytes,
+                })
+            }
         }
     }
-    Ok(best)
 }

@@ -11,3 +11,4 @@ pub mod order;
 pub mod phantom;
 pub mod reader;
 pub mod refine;
+mod select;

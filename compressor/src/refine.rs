@@ -15,19 +15,28 @@
 //!    voxel samples (inverse transform, then the cubic sampling FIR), by conjugate gradients on
 //!    the normal equations, Jacobi-preconditioned with the exact per-band diagonal of RᵀR;
 //! 2. iterative hard thresholding: c ← H_K(c + D⁻¹Rᵀ(f − R c)), H_K keeping the K largest by the
-//!    oracle's score, then refit; repeated `rounds` times;
+//!    oracle's score, then refit; repeated `rounds` times. When the caller passes the oracle's
+//!    order ([`refine_with`]), K grows each round by the ratio of wanted to surviving values,
+//!    so the pruned set ends near the requested size;
 //! 3. prune: refitted values whose score fell below the selection threshold are dropped and the
 //!    rest refitted (repeated while anything drops, up to three times), so every sent value lies
 //!    above its band's quantizer threshold exactly as with plain thresholding.
+//!
+//! The conjugate-gradient refit carries the full (unmasked) gradient Rᵀ(f − R c) along with its
+//! masked residual, so each iterative-hard-thresholding round reads its candidates from the refit
+//! before it instead of paying another synthesis and transpose. Everything runs in f32 on the
+//! codec's panel transforms ([`FastTransform`]) with five dense arrays per channel (target,
+//! values, gradient, search direction, work) and a mask; the K best candidates are picked by
+//! the histogram selection of [`crate::select`], never by sorting the whole grid.
 //!
 //! Sums are taken in fixed-size chunks, so the result does not depend on the thread count.
 //! Written here because no crate does sparse least squares against a custom wavelet operator;
 //! the transforms themselves are the codec's.
 
+use crate::select::{histogram, pick_order, top_k, CHUNK};
 use rayon::prelude::*;
-use wavesplat_codec::dwt::{
-    coefficients_to_samples, inverse_3d, inverse_3d_adjoint, pad_channel, unit_basis_line, Dwt1d,
-};
+use wavesplat_codec::dwt::fast::FastTransform;
+use wavesplat_codec::dwt::unit_basis_line;
 use wavesplat_codec::family::Family;
 use wavesplat_codec::layout::Geometry;
 
@@ -43,8 +52,8 @@ pub struct RefineOptions {
 impl Default for RefineOptions {
     fn default() -> Self {
         RefineOptions {
-            rounds: 4,
-            cg_iterations: 4,
+            rounds: 3,
+            cg_iterations: 2,
         }
     }
 }
@@ -57,16 +66,23 @@ pub struct KeptValue {
     /// Index in the channel's coefficient array.
     pub index: u32,
     /// Value.
-    pub value: f64,
+    pub value: f32,
 }
 
-const CHUNK: usize = 1 << 14;
+/// CG iterations between restarts from the true gradient (single precision drifts).
+const RESTART: usize = 16;
 
-fn dot(a: &[f64], b: &[f64]) -> f64 {
+/// Σ a·b in f64, in fixed chunks (thread-count independent).
+fn dot(a: &[f32], b: &[f32]) -> f64 {
     let parts: Vec<f64> = a
         .par_chunks(CHUNK)
         .zip(b.par_chunks(CHUNK))
-        .map(|(x, y)| x.iter().zip(y).map(|(u, v)| u * v).sum::<f64>())
+        .map(|(x, y)| {
+            x.iter()
+                .zip(y)
+                .map(|(u, v)| *u as f64 * *v as f64)
+                .sum::<f64>()
+        })
         .collect();
     parts.iter().sum()
 }
@@ -80,32 +96,24 @@ fn sample_norm2_1d(family: Family, n: usize, level: usize, wavelet: bool) -> f64
         .sum()
 }
 
-/// Zeroes the entries outside `mask`.
-fn restrict(v: &mut [f64], mask: &[bool]) {
-    v.par_iter_mut()
-        .zip(mask)
-        .for_each(|(x, m)| *x = if *m { *x } else { 0.0 });
-}
-
 /// The operator R (coefficients → padded voxel samples), its transpose and the Jacobi diagonal.
 struct Operator<'a> {
-    geometry: &'a Geometry,
-    planner: Dwt1d,
-    /// diag(RᵀR) per band index.
-    band_diag: Vec<f64>,
+    fast: FastTransform,
+    /// Applications of R and Rᵀ so far (each is one 3D transform).
+    applications: std::cell::Cell<usize>,
+    /// 1 / diag(RᵀR) per band index.
+    inv_diag: Vec<f32>,
     /// Band index of every coefficient.
-    band_of: Vec<u8>,
+    band_of: &'a [u8],
 }
 
 impl<'a> Operator<'a> {
-    fn new(geometry: &'a Geometry) -> Operator<'a> {
-        let mut planner = Dwt1d::new(geometry.family);
-        planner.prepare(geometry);
-        let band_diag = geometry
+    fn new(geometry: &Geometry, band_of: &'a [u8]) -> Operator<'a> {
+        let inv_diag = geometry
             .bands()
             .iter()
             .map(|b| {
-                (0..3)
+                let d: f64 = (0..3)
                     .map(|a| {
                         sample_norm2_1d(
                             geometry.family,
@@ -114,91 +122,107 @@ impl<'a> Operator<'a> {
                             b.is_wavelet_along(a),
                         )
                     })
-                    .product()
-            })
-            .collect();
-        let band_of = (0..geometry.coefficient_count())
-            .into_par_iter()
-            .map(|i| {
-                let (band, _) = geometry.locate(i);
-                geometry.band_index(band).expect("band of a located index") as u8
+                    .product();
+                (1.0 / d) as f32
             })
             .collect();
         Operator {
-            geometry,
-            planner,
-            band_diag,
+            fast: FastTransform::new(geometry),
+            applications: std::cell::Cell::new(0),
+            inv_diag,
             band_of,
         }
     }
 
-    fn synthesize(&mut self, c: &[f64]) -> Vec<f64> {
-        let mut d = c.to_vec();
-        inverse_3d(&mut d, self.geometry, &mut self.planner);
-        coefficients_to_samples(&mut d, self.geometry);
-        d
-    }
-
-    /// Rᵀ applied to samples (the sampling FIR is symmetric, so it is its own transpose).
-    fn adjoint(&mut self, samples: &[f64]) -> Vec<f64> {
-        let mut d = samples.to_vec();
-        coefficients_to_samples(&mut d, self.geometry);
-        inverse_3d_adjoint(&mut d, self.geometry, &self.planner);
-        d
-    }
-
-    fn diag(&self, i: usize) -> f64 {
-        self.band_diag[self.band_of[i] as usize]
-    }
-
-    /// Masked gradient Rᵀ(f − R c) restricted to `mask` (all of it when `mask` is `None`).
-    fn gradient(&mut self, target: &[f64], c: &[f64], mask: Option<&[bool]>) -> Vec<f64> {
-        let rc = self.synthesize(c);
-        let res: Vec<f64> = target.par_iter().zip(&rc).map(|(f, r)| f - r).collect();
-        let mut g = self.adjoint(&res);
-        if let Some(mask) = mask {
-            restrict(&mut g, mask);
-        }
-        g
+    /// `out` ← Rᵀ(f − R c).
+    fn gradient(&self, target: &[f32], c: &[f32], out: &mut [f32]) {
+        out.copy_from_slice(c);
+        self.applications.set(self.applications.get() + 2);
+        self.fast.synthesize(out);
+        out.par_iter_mut()
+            .zip(target)
+            .for_each(|(r, f)| *r = f - *r);
+        self.fast.synthesize_adjoint(out);
     }
 
     /// Preconditioned CG on RᵀR c = Rᵀf over the entries of `mask`, from the current `c`.
-    fn refit(&mut self, target: &[f64], c: &mut [f64], mask: &[bool], iterations: usize) {
-        let n = c.len();
-        let minv: Vec<f64> = (0..n)
-            .into_par_iter()
-            .map(|i| if mask[i] { 1.0 / self.diag(i) } else { 0.0 })
-            .collect();
-        let mut r = self.gradient(target, c, Some(mask));
-        let mut z: Vec<f64> = r.par_iter().zip(&minv).map(|(a, b)| a * b).collect();
-        let mut p = z.clone();
-        let mut rz = dot(&r, &z);
-        for _ in 0..iterations {
+    /// Leaves the full gradient Rᵀ(f − R c) at the final `c` in `g`; `p` and `work` are scratch.
+    fn refit(
+        &self,
+        target: &[f32],
+        c: &mut [f32],
+        mask: &[bool],
+        iterations: usize,
+        g: &mut [f32],
+        p: &mut [f32],
+        work: &mut [f32],
+    ) {
+        self.gradient(target, c, g);
+        let inv = &self.inv_diag;
+        let band_of = self.band_of;
+        // z = M⁻¹ r with r = mask ∘ g; p starts at z.
+        let precondition = |p: &mut [f32], g: &[f32], beta: f32| -> f64 {
+            let parts: Vec<f64> = p
+                .par_chunks_mut(CHUNK)
+                .zip(g.par_chunks(CHUNK))
+                .zip(mask.par_chunks(CHUNK).zip(band_of.par_chunks(CHUNK)))
+                .map(|((p, g), (m, b))| {
+                    let mut rz = 0.0f64;
+                    for i in 0..p.len() {
+                        let z = if m[i] { g[i] * inv[b[i] as usize] } else { 0.0 };
+                        rz += z as f64 * g[i] as f64;
+                        p[i] = z + beta * p[i];
+                    }
+                    rz
+                })
+                .collect();
+            parts.iter().sum()
+        };
+        let mut rz = precondition(p, g, 0.0);
+        for iteration in 0..iterations {
+            if iteration > 0 && iteration % RESTART == 0 {
+                // Long runs in single precision: replace the recurrence's drifting gradient by
+                // the true one and restart from steepest descent.
+                self.gradient(target, c, g);
+                rz = precondition(p, g, 0.0);
+            }
             if rz <= 0.0 || !rz.is_finite() {
                 break;
             }
-            let rp = self.synthesize(&p);
-            let mut ap = self.adjoint(&rp);
-            restrict(&mut ap, mask);
-            let pap = dot(&p, &ap);
+            work.copy_from_slice(p);
+            self.applications.set(self.applications.get() + 2);
+            self.fast.synthesize(work);
+            self.fast.synthesize_adjoint(work);
+            // p is zero outside the mask, so ⟨p, RᵀRp⟩ needs no masking.
+            let pap = dot(p, work);
             if pap <= 0.0 || !pap.is_finite() {
                 break;
             }
-            let alpha = rz / pap;
+            let alpha = (rz / pap) as f32;
             c.par_iter_mut()
-                .zip(r.par_iter_mut())
-                .zip(p.par_iter().zip(&ap))
-                .for_each(|((ci, ri), (pi, api))| {
+                .zip(g.par_iter_mut())
+                .zip(p.par_iter().zip(work.par_iter()))
+                .for_each(|((ci, gi), (pi, api))| {
                     *ci += alpha * pi;
-                    *ri -= alpha * api;
+                    *gi -= alpha * api;
                 });
-            z = r.par_iter().zip(&minv).map(|(a, b)| a * b).collect();
-            let rz_next = dot(&r, &z);
-            let beta = rz_next / rz;
-            rz = rz_next;
-            p.par_iter_mut()
-                .zip(&z)
-                .for_each(|(pi, zi)| *pi = zi + beta * *pi);
+            // z and the new r·z, then p = z + β p with β = rz_new / rz: computed in two steps
+            // (β needs the new sum first).
+            let rz_next = {
+                let parts: Vec<f64> = g
+                    .par_chunks(CHUNK)
+                    .zip(mask.par_chunks(CHUNK).zip(band_of.par_chunks(CHUNK)))
+                    .map(|(g, (m, b))| {
+                        (0..g.len())
+                            .filter(|i| m[*i])
+                            .map(|i| (g[i] as f64).powi(2) * inv[b[i] as usize] as f64)
+                            .sum::<f64>()
+                    })
+                    .collect();
+                parts.iter().sum::<f64>()
+            };
+            let beta = (rz_next / rz) as f32;
+            rz = precondition(p, g, beta);
         }
     }
 }
@@ -214,97 +238,182 @@ pub fn refine(
     kept: &[KeptValue],
     opts: &RefineOptions,
 ) -> Vec<KeptValue> {
+    let band_of = crate::select::band_map(geometry);
+    refine_with(geometry, &band_of, samples, importance, kept, None, opts).values
+}
+
+/// The oracle's order as refinement sees it: `score(r)` is the score of the coefficient of
+/// rank `r` (0-based, non-increasing), known for `r < len`.
+pub(crate) struct OracleScores<'a> {
+    /// Number of ranks known.
+    pub len: usize,
+    /// Score at a rank.
+    pub score: &'a (dyn Fn(usize) -> f64 + Sync),
+}
+
+/// What [`refine_with`] returns.
+pub(crate) struct Refined {
+    /// The refined set, sorted by decreasing score.
+    pub values: Vec<KeptValue>,
+    /// The oracle rank whose score was the final selection threshold: every refined value
+    /// scores at least the oracle's coefficient of this rank.
+    pub rank: usize,
+}
+
+/// [`refine`] with the band map ([`crate::select::band_map`] of `geometry`) supplied.
+///
+/// With `oracle`, the refinement aims at about `kept.len()` surviving values: a refit moves a
+/// fifth or so of a top-K set below the K-th score, so each round selects the candidates down
+/// to the oracle rank K' whose threshold is expected to leave that many standing (K' grows by
+/// the ratio of wanted to surviving values, up to twice `kept.len()`), and the final prune
+/// uses the threshold of the last K'. Without it, K' stays `kept.len()` and about four fifths
+/// survive.
+pub(crate) fn refine_with(
+    geometry: &Geometry,
+    band_of: &[u8],
+    samples: &[Vec<f32>],
+    importance: &[f64],
+    kept: &[KeptValue],
+    oracle: Option<&OracleScores>,
+    opts: &RefineOptions,
+) -> Refined {
     let k = kept.len();
     let channels = samples.len();
-    if k == 0 || geometry.family == Family::Haar {
-        // Haar is orthonormal up to per-band scale: thresholding is already optimal.
-        return sorted(geometry, importance, kept.to_vec());
-    }
     let norms: Vec<f64> = geometry
         .bands()
         .iter()
         .map(|b| geometry.basis_norm2(*b))
         .collect();
-    let mut op = Operator::new(geometry);
-    let score = |op: &Operator, c: usize, i: usize, v: f64| {
-        v * v * norms[op.band_of[i] as usize] * importance[c]
+    let score_of = |c: usize, band: u8, v: f32| {
+        let v = v as f64;
+        v * v * norms[band as usize] * importance[c]
     };
-    let threshold = kept
+    if k == 0 || geometry.family == Family::Haar {
+        // Haar is orthonormal up to per-band scale: thresholding is already optimal.
+        return Refined {
+            values: sorted(band_of, &score_of, kept.to_vec()),
+            rank: k,
+        };
+    }
+    let started = std::time::Instant::now();
+    let op = Operator::new(geometry, band_of);
+    let mut threshold = kept
         .iter()
-        .map(|s| score(&op, s.channel as usize, s.index as usize, s.value))
+        .map(|s| score_of(s.channel as usize, band_of[s.index as usize], s.value))
         .fold(f64::INFINITY, f64::min);
-    let targets: Vec<Vec<f64>> = samples.iter().map(|s| pad_channel(s, geometry)).collect();
     let n = geometry.coefficient_count();
-    let mut values = vec![vec![0.0f64; n]; channels];
+    let targets: Vec<Vec<f32>> = samples.iter().map(|s| pad_f32(s, geometry)).collect();
+    let mut values = vec![vec![0.0f32; n]; channels];
     let mut masks = vec![vec![false; n]; channels];
+    let mut grads = vec![vec![0.0f32; n]; channels];
+    let mut p = vec![0.0f32; n];
+    let mut work = vec![0.0f32; n];
     for s in kept {
         values[s.channel as usize][s.index as usize] = s.value;
         masks[s.channel as usize][s.index as usize] = true;
     }
-    for c in 0..channels {
-        op.refit(&targets[c], &mut values[c], &masks[c], opts.cg_iterations);
-    }
-    for _ in 0..opts.rounds {
-        // Candidates: one gradient step in the Jacobi metric from the current fit.
-        let mut candidates: Vec<Vec<f64>> = Vec::with_capacity(channels);
+    let refit_all = |values: &mut [Vec<f32>],
+                     masks: &[Vec<bool>],
+                     grads: &mut [Vec<f32>],
+                     p: &mut [f32],
+                     work: &mut [f32]| {
         for c in 0..channels {
-            let g = op.gradient(&targets[c], &values[c], None);
-            let cand: Vec<f64> = (0..n)
-                .into_par_iter()
-                .map(|i| values[c][i] + g[i] / op.diag(i))
-                .collect();
-            candidates.push(cand);
+            op.refit(
+                &targets[c],
+                &mut values[c],
+                &masks[c],
+                opts.cg_iterations,
+                &mut grads[c],
+                p,
+                work,
+            );
         }
-        // Keep the K best candidates over all channels (deterministic ties).
-        let mut scored: Vec<(f64, u8, u32)> = (0..channels)
-            .flat_map(|c| {
-                let op = &op;
-                let cand = &candidates[c];
-                (0..n)
-                    .filter(move |i| cand[*i] != 0.0)
-                    .map(move |i| (score(op, c, i, cand[i]), c as u8, i as u32))
+    };
+    refit_all(&mut values, &masks, &mut grads, &mut p, &mut work);
+    // Kept values whose refit scores reach the threshold (the rest will be pruned).
+    let survivors = |values: &[Vec<f32>], masks: &[Vec<bool>], threshold: f64| -> usize {
+        (0..channels)
+            .map(|c| {
+                values[c]
+                    .par_iter()
+                    .zip(masks[c].par_iter())
+                    .zip(band_of.par_iter())
+                    .filter(|((v, m), b)| **m && score_of(c, **b, **v) >= threshold)
+                    .count()
             })
-            .collect();
-        let cmp = |a: &(f64, u8, u32), b: &(f64, u8, u32)| {
-            b.0.total_cmp(&a.0).then(a.1.cmp(&b.1)).then(a.2.cmp(&b.2))
+            .sum()
+    };
+    let mut k_select = k;
+    let mut alive = survivors(&values, &masks, threshold);
+    for _ in 0..opts.rounds {
+        if let Some(o) = oracle {
+            let grow = k as f64 / alive.max(1) as f64;
+            k_select =
+                ((k_select as f64 * grow).round() as usize).clamp(k, (2 * k).min(o.len).max(k));
+            threshold = (o.score)(k_select - 1);
+        }
+        // Candidates: one gradient step in the Jacobi metric from the current fit (the refit
+        // left the gradient there). Keep the K best over all channels (deterministic ties).
+        let candidate =
+            |c: usize, i: usize| values[c][i] + grads[c][i] * op.inv_diag[band_of[i] as usize];
+        let score = |c: usize, i: usize| {
+            let v = candidate(c, i);
+            if v == 0.0 {
+                -1.0
+            } else {
+                score_of(c, band_of[i], v)
+            }
         };
-        if scored.len() > k {
-            scored.select_nth_unstable_by(k - 1, cmp);
-            scored.truncate(k);
-        }
+        let hist = histogram(channels, n, &score, &|_, _| 0.0);
+        let picks = top_k(&hist, channels, n, k_select, &score);
+        let chosen: Vec<(u8, u32, f32)> = picks
+            .iter()
+            .map(|(_, c, i)| (*c, *i, candidate(*c as usize, *i as usize)))
+            .collect();
         for c in 0..channels {
-            masks[c].iter_mut().for_each(|m| *m = false);
-            values[c].iter_mut().for_each(|v| *v = 0.0);
+            masks[c].par_iter_mut().for_each(|m| *m = false);
+            values[c].par_iter_mut().for_each(|v| *v = 0.0);
         }
-        for (_, c, i) in &scored {
-            let (c, i) = (*c as usize, *i as usize);
-            masks[c][i] = true;
-            values[c][i] = candidates[c][i];
+        for (c, i, v) in chosen {
+            masks[c as usize][i as usize] = true;
+            values[c as usize][i as usize] = v;
         }
-        for c in 0..channels {
-            op.refit(&targets[c], &mut values[c], &masks[c], opts.cg_iterations);
-        }
+        refit_all(&mut values, &masks, &mut grads, &mut p, &mut work);
+        alive = survivors(&values, &masks, threshold);
+        tracing::debug!(k, k_select, alive, "refinement round");
     }
-    // Prune values that fell below the oracle's threshold and refit the rest, until nothing
-    // falls below (at most three refits; a last prune without refit may follow).
+    // Prune values that fell below the threshold and refit the rest, until nothing falls
+    // below (at most three refits; a last prune without refit may follow).
     for pass in 0..4 {
         let mut pruned = false;
         for c in 0..channels {
-            for i in 0..n {
-                if masks[c][i] && score(&op, c, i, values[c][i]) < threshold {
-                    masks[c][i] = false;
-                    values[c][i] = 0.0;
-                    pruned = true;
-                }
-            }
+            let dropped: usize = values[c]
+                .par_iter_mut()
+                .zip(masks[c].par_iter_mut())
+                .zip(band_of.par_iter())
+                .map(|((v, m), b)| {
+                    if *m && score_of(c, *b, *v) < threshold {
+                        *m = false;
+                        *v = 0.0;
+                        1
+                    } else {
+                        0
+                    }
+                })
+                .sum();
+            pruned |= dropped > 0;
         }
         if !pruned || pass == 3 {
             break;
         }
-        for c in 0..channels {
-            op.refit(&targets[c], &mut values[c], &masks[c], opts.cg_iterations);
-        }
+        refit_all(&mut values, &masks, &mut grads, &mut p, &mut work);
     }
+    tracing::debug!(
+        kept = k,
+        transforms = op.applications.get(),
+        seconds = started.elapsed().as_secs_f64(),
+        "refinement"
+    );
     let out: Vec<KeptValue> = (0..channels)
         .flat_map(|c| {
             let (m, v) = (&masks[c], &values[c]);
@@ -315,19 +424,47 @@ pub fn refine(
             })
         })
         .collect();
-    sorted(geometry, importance, out)
+    Refined {
+        values: sorted(band_of, &score_of, out),
+        rank: k_select,
+    }
 }
 
-fn sorted(geometry: &Geometry, importance: &[f64], mut list: Vec<KeptValue>) -> Vec<KeptValue> {
-    let key = |s: &KeptValue| {
-        let (band, _) = geometry.locate(s.index as usize);
-        s.value * s.value * geometry.basis_norm2(band) * importance[s.channel as usize]
-    };
-    let mut keyed: Vec<(f64, KeptValue)> = list.drain(..).map(|s| (key(&s), s)).collect();
-    keyed.par_sort_unstable_by(|a, b| {
-        b.0.total_cmp(&a.0)
-            .then(a.1.channel.cmp(&b.1.channel))
-            .then(a.1.index.cmp(&b.1.index))
-    });
-    keyed.into_iter().map(|(_, s)| s).collect()
+/// Copies a channel into the zero-padded grid of `geometry`, in f32.
+pub(crate) fn pad_f32(channel: &[f32], geometry: &Geometry) -> Vec<f32> {
+    let [nx, ny, nz] = geometry.dims;
+    let [px, py, _] = geometry.padded;
+    let [ox, oy, oz] = geometry.origin;
+    let mut out = vec![0.0f32; geometry.coefficient_count()];
+    for z in 0..nz {
+        for y in 0..ny {
+            let src = nx * (y + ny * z);
+            let dst = ox + px * ((oy + y) + py * (oz + z));
+            out[dst..dst + nx].copy_from_slice(&channel[src..src + nx]);
+        }
+    }
+    out
+}
+
+fn sorted(
+    band_of: &[u8],
+    score_of: &(dyn Fn(usize, u8, f32) -> f64 + Sync),
+    list: Vec<KeptValue>,
+) -> Vec<KeptValue> {
+    let mut keyed: Vec<((f64, u8, u32), f32)> = list
+        .into_iter()
+        .map(|s| {
+            let score = score_of(s.channel as usize, band_of[s.index as usize], s.value);
+            ((score, s.channel, s.index), s.value)
+        })
+        .collect();
+    keyed.par_sort_unstable_by(|a, b| pick_order(&a.0, &b.0));
+    keyed
+        .into_iter()
+        .map(|((_, channel, index), value)| KeptValue {
+            channel,
+            index,
+            value,
+        })
+        .collect()
 }

@@ -25,7 +25,7 @@ fn top_k(g: &Geometry, coeffs: &[f64], k: usize) -> Vec<KeptValue> {
         .map(|(_, i)| KeptValue {
             channel: 0,
             index: *i as u32,
-            value: coeffs[*i],
+            value: coeffs[*i] as f32,
         })
         .collect()
 }
@@ -33,7 +33,7 @@ fn top_k(g: &Geometry, coeffs: &[f64], k: usize) -> Vec<KeptValue> {
 fn dense(g: &Geometry, kept: &[KeptValue]) -> Vec<f64> {
     let mut c = vec![0.0; g.coefficient_count()];
     for k in kept {
-        c[k.index as usize] = k.value;
+        c[k.index as usize] = k.value as f64;
     }
     c
 }
@@ -84,14 +84,26 @@ fn refit_matches_dense_least_squares() {
         }
         let f = DVector::from_vec(pad_channel(vol.channel(0), &g));
         let x = r.clone().svd(true, true).solve(&f, 1e-13).unwrap();
-        let scale = x.amax();
-        for (k, want) in out.iter().zip(x.iter()) {
-            assert!(
-                (k.value - want).abs() <= 1e-6 * scale,
-                "{family}: index {} refit {} vs dense {want}",
-                k.index,
-                k.value
-            );
+        // The refinement runs in single precision: its fit must be as good as the dense
+        // solution's (to f32 accuracy), and for the well-conditioned linear family so must
+        // the values (the cubic normal equations are too ill-conditioned for f32 values).
+        let got = DVector::from_iterator(out.len(), out.iter().map(|k| k.value as f64));
+        let best = (&f - &r * &x).norm_squared();
+        let fit = (&f - &r * &got).norm_squared();
+        assert!(
+            fit <= best * (1.0 + 1e-4) + 1e-9 * f.norm_squared(),
+            "{family}: residual {fit} vs dense {best}"
+        );
+        if family == Family::Linear {
+            let scale = x.amax();
+            for (k, want) in out.iter().zip(x.iter()) {
+                assert!(
+                    (k.value as f64 - want).abs() <= 2e-5 * scale,
+                    "{family}: index {} refit {} vs dense {want}",
+                    k.index,
+                    k.value
+                );
+            }
         }
     }
 }
@@ -110,12 +122,12 @@ fn refinement_beats_thresholding_at_equal_count() {
         let kept = top_k(&g, &coeffs, k);
         let threshold = kept
             .iter()
-            .map(|s| s.value * s.value * g.basis_norm2(g.locate(s.index as usize).0))
+            .map(|s| (s.value as f64).powi(2) * g.basis_norm2(g.locate(s.index as usize).0))
             .fold(f64::INFINITY, f64::min);
         let out = refine_one(&g, &vol, &kept, &RefineOptions::default());
         assert!(out.len() <= k, "{family}: {} > {k}", out.len());
         for s in &out {
-            let score = s.value * s.value * g.basis_norm2(g.locate(s.index as usize).0);
+            let score = (s.value as f64).powi(2) * g.basis_norm2(g.locate(s.index as usize).0);
             assert!(score >= threshold, "{family}: {score} < {threshold}");
         }
         // The oracle's own best out.len() coefficients (pruning may have dropped some).
@@ -143,8 +155,8 @@ fn haar_selection_is_returned_unchanged() {
     let coeffs = decompose_channel(vol.channel(0), &g);
     let kept = top_k(&g, &coeffs, 200);
     let out = refine_one(&g, &vol, &kept, &RefineOptions::default());
-    let mut a: Vec<(u32, f64)> = kept.iter().map(|k| (k.index, k.value)).collect();
-    let mut b: Vec<(u32, f64)> = out.iter().map(|k| (k.index, k.value)).collect();
+    let mut a: Vec<(u32, f32)> = kept.iter().map(|k| (k.index, k.value)).collect();
+    let mut b: Vec<(u32, f32)> = out.iter().map(|k| (k.index, k.value)).collect();
     a.sort_by_key(|x| x.0);
     b.sort_by_key(|x| x.0);
     assert_eq!(a, b);

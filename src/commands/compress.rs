@@ -73,7 +73,7 @@ pub struct CompressArgs {
     /// Rounds of least-squares refinement of the kept set (iterative hard thresholding with
     /// conjugate-gradient refits; splines only). 0 refits the oracle's selection only;
     /// --no-refine sends the oracle's exact coefficients, as the paper does.
-    #[arg(long, default_value_t = 4)]
+    #[arg(long, default_value_t = 3)]
     pub refine_rounds: usize,
     /// Send the oracle's coefficients unchanged (no least-squares refinement).
     #[arg(long)]

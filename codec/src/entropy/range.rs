@@ -259,6 +259,16 @@ impl RangeEncoder {
         }
     }
 
+    /// Information spent so far in bits, fractional: 8 per byte out or waiting for a carry,
+    /// minus log2 of the range left (up to a constant). Differences measure what the symbols
+    /// between two calls cost, cheaply enough to call per symbol (size breakdowns); use
+    /// [`RangeEncoder::size_bytes`] for the exact length.
+    #[inline]
+    pub fn bits_spent(&self) -> f64 {
+        let st = &self.state;
+        8.0 * (self.out.bytes.len() as u64 + st.cache_size) as f64 - (st.range as f32).log2() as f64
+    }
+
     /// Exact number of bytes [`RangeEncoder::finish`] would return if called now.
     pub fn size_bytes(&self) -> usize {
         let mut count = Count {

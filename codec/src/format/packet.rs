@@ -345,24 +345,24 @@ struct RangeSink {
 
 impl SyntaxSink for RangeSink {
     fn run(&mut self, substream: usize, length: u64) {
-        let b0 = self.enc.size_bytes();
+        let b0 = self.enc.bits_spent();
         self.models.tag.encode(&mut self.enc, substream as u64);
         self.models.run.encode(&mut self.enc, length - 1);
-        self.breakdown.tag_bits += 8.0 * (self.enc.size_bytes() - b0) as f64;
+        self.breakdown.tag_bits += self.enc.bits_spent() - b0;
     }
     fn coefficient(&mut self, level: usize, band: usize, s: &Symbols) {
-        let b0 = self.enc.size_bytes();
+        let b0 = self.enc.bits_spent();
         for (a, d) in s.dpos.iter().enumerate() {
             self.models.position[level][a].encode(&mut self.enc, *d);
         }
-        let b1 = self.enc.size_bytes();
+        let b1 = self.enc.bits_spent();
         self.enc.encode_bypass(s.negative as u64, 1);
-        let b2 = self.enc.size_bytes();
+        let b2 = self.enc.bits_spent();
         self.models.value[band].encode(&mut self.enc, s.step);
-        let b3 = self.enc.size_bytes();
-        self.breakdown.position_bits += 8.0 * (b1 - b0) as f64;
-        self.breakdown.sign_bits += 8.0 * (b2 - b1) as f64;
-        self.breakdown.value_bits += 8.0 * (b3 - b2) as f64;
+        let b3 = self.enc.bits_spent();
+        self.breakdown.position_bits += b1 - b0;
+        self.breakdown.sign_bits += b2 - b1;
+        self.breakdown.value_bits += b3 - b2;
     }
 }
 
@@ -469,9 +469,19 @@ pub fn encode_packets(header: &mut Header, inputs: &[PacketInput]) -> EncodedPac
         CoderKind::Sigmap => {
             header.tables = None;
             let mut reconstruction = Vec::with_capacity(inputs.len());
-            for input in inputs {
-                let (payload, recon, bd) =
-                    super::sigmap::encode(header, input.tile, input.layer, &input.coefficients);
+            // Packets are independent: code them in parallel, keep them in input order.
+            let code = |input: &PacketInput| {
+                super::sigmap::encode(header, input.tile, input.layer, &input.coefficients)
+            };
+            #[cfg(feature = "rayon")]
+            let coded: Vec<_> = {
+                use rayon::prelude::*;
+                inputs.par_iter().map(code).collect()
+            };
+            #[cfg(not(feature = "rayon"))]
+            let coded: Vec<_> = inputs.iter().map(code).collect();
+            let header = &*header;
+            for (input, (payload, recon, bd)) in inputs.iter().zip(coded) {
                 breakdown.tag_bits += bd.tag_bits;
                 breakdown.position_bits += bd.position_bits;
                 breakdown.sign_bits += bd.sign_bits;

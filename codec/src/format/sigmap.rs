@@ -560,9 +560,9 @@ pub(crate) fn encode(
             continue;
         }
         let bi = sub % nb;
-        let b0 = enc.size_bytes();
+        let b0 = enc.bits_spent();
         enc.encode_bit(&mut m.present[bi], !list.is_empty());
-        bd.tag_bits += 8.0 * (enc.size_bytes() - b0) as f64;
+        bd.tag_bits += enc.bits_spent() - b0;
         if list.is_empty() {
             continue;
         }
@@ -652,15 +652,15 @@ fn encode_box(
 ) {
     if b.cells() == 1 {
         let (p, v) = pts[0];
-        let b0 = enc.size_bytes();
+        let b0 = enc.bits_spent();
         let negative = v < 0.0;
         enc.encode_bit(&mut m.sign[m.coded.sign_context(ctx.bi, p)], negative);
         m.coded.insert(p, negative);
-        let b1 = enc.size_bytes();
+        let b1 = enc.bits_spent();
         let (q, mag) = quantize(ctx, (v as f64).abs());
         m.value[ctx.bi].encode(enc, q);
-        bd.sign_bits += 8.0 * (b1 - b0) as f64;
-        bd.value_bits += 8.0 * (enc.size_bytes() - b1) as f64;
+        bd.sign_bits += b1 - b0;
+        bd.value_bits += enc.bits_spent() - b1;
         let value = if v < 0.0 { -mag } else { mag } as f32;
         recon.push(Coefficient {
             channel: ctx.channel,
@@ -685,12 +685,12 @@ fn encode_box(
         let occupied = !part.is_empty();
         // The last child must be occupied if all its siblings are empty: not coded.
         if i + 1 < n || any_before {
-            let b0 = enc.size_bytes();
+            let b0 = enc.bits_spent();
             let states = ctx.hood.states(ctx.band, ctx.origin, &child);
             let face = m.coded.face_state(&child);
             let oc = m.occupancy_context(ctx.bi, child.cells(), states, face);
             enc.encode_bit(&mut m.occupied[oc], occupied);
-            bd.position_bits += 8.0 * (enc.size_bytes() - b0) as f64;
+            bd.position_bits += enc.bits_spent() - b0;
         }
         any_before |= occupied;
         if occupied {

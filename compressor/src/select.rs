@@ -1,0 +1,264 @@
+//! Picking the most significant coefficients without sorting them all: this module owns the
+//! per-coefficient band map and the exact top-K selection the oracle and the refinement use.
+//!
+//! A volume of 512³ voxels has ~150 M coefficients per channel, of which a byte target keeps a
+//! few hundred thousand. Sorting every (score, channel, index) triple would cost 24 bytes and a
+//! full sort per coefficient; instead one parallel pass builds a histogram of the scores over
+//! the high bits of their f32 representation (monotone in the score), the bin where the top K
+//! end is found from the counts, and a second pass collects only the coefficients at or above
+//! that bin, which are then sorted. The result is exactly the top K under the total order
+//! (score descending, then channel, then index), so it does not depend on the thread count.
+
+use rayon::prelude::*;
+use wavesplat_codec::layout::Geometry;
+
+/// Coefficients per parallel work item (fixed, so that sums do not depend on the thread count).
+pub(crate) const CHUNK: usize = 1 << 16;
+
+/// Histogram bins: the top 16 bits of a positive f32 (sign bit clear).
+const BINS: usize = 1 << 16;
+
+/// The band index ([`Geometry::bands`] order) of every coefficient of one channel, one byte each.
+pub(crate) fn band_map(geometry: &Geometry) -> Vec<u8> {
+    let m = geometry.levels;
+    let p = geometry.padded;
+    // Per axis and coordinate: the finest level whose upper half holds it (M + 1: none).
+    let axis_level: Vec<Vec<u8>> = (0..3)
+        .map(|a| {
+            (0..p[a])
+                .map(|c| {
+                    (1..=m)
+                        .find(|l| c >= p[a] >> l)
+                        .map_or(m as u8 + 1, |l| l as u8)
+                })
+                .collect()
+        })
+        .collect();
+    let plane = p[0] * p[1];
+    let mut out = vec![0u8; geometry.coefficient_count()];
+    out.par_chunks_mut(plane).enumerate().for_each(|(z, s)| {
+        let lz = axis_level[2][z];
+        for y in 0..p[1] {
+            let ly = axis_level[1][y];
+            for x in 0..p[0] {
+                let lx = axis_level[0][x];
+                let level = lx.min(ly).min(lz);
+                s[x + p[0] * y] = if level as usize > m {
+                    0
+                } else {
+                    let kind = ((lx == level) as usize) << 2
+                        | ((ly == level) as usize) << 1
+                        | (lz == level) as usize;
+                    (1 + (m - level as usize) * 7 + kind - 1) as u8
+                };
+            }
+        }
+    });
+    out
+}
+
+/// A selected coefficient: score, channel, index.
+pub(crate) type Pick = (f64, u8, u32);
+
+/// The total order of picks: score descending, then channel, then index.
+pub(crate) fn pick_order(a: &Pick, b: &Pick) -> std::cmp::Ordering {
+    b.0.total_cmp(&a.0).then(a.1.cmp(&b.1)).then(a.2.cmp(&b.2))
+}
+
+fn bin(score: f64) -> usize {
+    // Scores are ≥ 0 here (+0.0 has bits 0); the bits of a non-negative f32 grow with it.
+    ((score as f32).to_bits() >> 15) as usize
+}
+
+/// Counts (and sums of `energy`) per score bin over every selectable coefficient.
+/// Counts are exact; the per-bin energies are summed in a thread-dependent order and only guide
+/// how many coefficients to collect ([`Histogram::count_for_energy`]).
+pub(crate) struct Histogram {
+    counts: Vec<u64>,
+    energies: Vec<f64>,
+    /// Selectable coefficients (score ≥ 0).
+    pub positive: u64,
+}
+
+/// One pass over `n` coefficients of each of `channels` channels: `score(c, i)` (negative:
+/// never selected, e.g. a zero coefficient) and `energy(c, i)`.
+pub(crate) fn histogram(
+    channels: usize,
+    n: usize,
+    score: &(dyn Fn(usize, usize) -> f64 + Sync),
+    energy: &(dyn Fn(usize, usize) -> f64 + Sync),
+) -> Histogram {
+    let chunks = n.div_ceil(CHUNK);
+    let jobs = channels * chunks;
+    // A few accumulators per thread, not one per chunk (each is ~0.8 MB).
+    let min_len = (jobs / (4 * rayon::current_num_threads())).max(1);
+    let (counts, energies) = (0..jobs)
+        .into_par_iter()
+        .with_min_len(min_len)
+        .fold(
+            || (vec![0u64; BINS], vec![0.0f64; BINS]),
+            |(mut counts, mut energies), job| {
+                let (c, chunk) = (job / chunks, job % chunks);
+                for i in chunk * CHUNK..((chunk + 1) * CHUNK).min(n) {
+                    let s = score(c, i);
+                    if s >= 0.0 {
+                        let b = bin(s);
+                        counts[b] += 1;
+                        energies[b] += energy(c, i);
+                    }
+                }
+                (counts, energies)
+            },
+        )
+        .reduce(
+            || (vec![0u64; BINS], vec![0.0f64; BINS]),
+            |(mut c1, mut e1), (c2, e2)| {
+                for b in 0..BINS {
+                    c1[b] += c2[b];
+                    e1[b] += e2[b];
+                }
+                (c1, e1)
+            },
+        );
+    let positive = counts.iter().sum();
+    Histogram {
+        counts,
+        energies,
+        positive,
+    }
+}
+
+impl Histogram {
+    /// A histogram of nothing.
+    pub(crate) fn empty() -> Histogram {
+        Histogram {
+            counts: vec![0; BINS],
+            energies: vec![0.0; BINS],
+            positive: 0,
+        }
+    }
+
+    /// The lowest bin that must be collected for the top `k`.
+    fn cut_for_count(&self, k: u64) -> usize {
+        let mut acc = 0u64;
+        for b in (0..BINS).rev() {
+            acc += self.counts[b];
+            if acc >= k {
+                return b;
+            }
+        }
+        0
+    }
+
+    /// The number of coefficients to collect so that the top ones reach `goal` energy: down to
+    /// the bin where the energy accumulated from the top reaches it, and one occupied bin more
+    /// (the per-bin sums are approximate).
+    pub(crate) fn count_for_energy(&self, goal: f64) -> u64 {
+        let (mut acc, mut count) = (0.0, 0u64);
+        let mut reached = false;
+        for b in (0..BINS).rev() {
+            if reached && self.counts[b] > 0 {
+                return count + self.counts[b];
+            }
+            acc += self.energies[b];
+            count += self.counts[b];
+            reached |= acc >= goal * (1.0 - 1e-9);
+        }
+        count
+    }
+}
+
+/// The top `k` selectable coefficients (score ≥ 0), sorted by [`pick_order`] (fewer when fewer
+/// are selectable). `hist` must come from [`histogram`] with the same `score`.
+pub(crate) fn top_k(
+    hist: &Histogram,
+    channels: usize,
+    n: usize,
+    k: usize,
+    score: &(dyn Fn(usize, usize) -> f64 + Sync),
+) -> Vec<Pick> {
+    if k == 0 {
+        return Vec::new();
+    }
+    let cut = hist.cut_for_count(k as u64);
+    let chunks = n.div_ceil(CHUNK);
+    let parts: Vec<Vec<Pick>> = (0..channels * chunks)
+        .into_par_iter()
+        .map(|job| {
+            let (c, chunk) = (job / chunks, job % chunks);
+            let mut out = Vec::new();
+            for i in chunk * CHUNK..((chunk + 1) * CHUNK).min(n) {
+                let s = score(c, i);
+                if s >= 0.0 && bin(s) >= cut {
+                    out.push((s, c as u8, i as u32));
+                }
+            }
+            out
+        })
+        .collect();
+    let mut picks: Vec<Pick> = Vec::with_capacity(parts.iter().map(Vec::len).sum());
+    for p in parts {
+        picks.extend(p);
+    }
+    if picks.len() > k {
+        picks.select_nth_unstable_by(k - 1, pick_order);
+        picks.truncate(k);
+    }
+    picks.par_sort_unstable_by(pick_order);
+    picks
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::{Rng, SeedableRng};
+    use wavesplat_codec::family::Family;
+
+    #[test]
+    fn band_map_agrees_with_locate() {
+        for (dims, levels) in [([5usize, 6, 7], 1usize), ([16, 9, 12], 2), ([1, 1, 9], 0)] {
+            let g = Geometry::new(dims, Family::Linear, levels, 3).unwrap();
+            let map = band_map(&g);
+            for (i, b) in map.iter().enumerate() {
+                let (band, _) = g.locate(i);
+                assert_eq!(*b as usize, g.band_index(band).unwrap(), "{dims:?} {i}");
+            }
+        }
+    }
+
+    #[test]
+    fn top_k_equals_a_full_sort() {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
+        let n = 3 * CHUNK + 17;
+        // Few distinct values: many ties, resolved by channel and index.
+        let values: Vec<Vec<f64>> = (0..2)
+            .map(|_| (0..n).map(|_| rng.gen_range(0..50) as f64 * 0.25).collect())
+            .collect();
+        let score = |c: usize, i: usize| {
+            let v = values[c][i];
+            if v == 0.0 {
+                -1.0
+            } else {
+                v * v
+            }
+        };
+        let hist = histogram(2, n, &score, &|c, i| values[c][i]);
+        let mut all: Vec<Pick> = (0..2)
+            .flat_map(|c| (0..n).map(move |i| (c, i)))
+            .filter(|(c, i)| score(*c, *i) >= 0.0)
+            .map(|(c, i)| (score(c, i), c as u8, i as u32))
+            .collect();
+        all.sort_by(pick_order);
+        assert_eq!(hist.positive as usize, all.len());
+        for k in [1usize, 7, 1000, 50_000, all.len(), all.len() + 5] {
+            let got = top_k(&hist, 2, n, k, &score);
+            assert_eq!(got, all[..k.min(all.len())].to_vec(), "k = {k}");
+        }
+        // The energy cut covers the goal.
+        let total: f64 = all.iter().map(|p| p.0.sqrt()).sum();
+        let goal = 0.5 * total;
+        let count = hist.count_for_energy(goal) as usize;
+        let picked: f64 = all[..count].iter().map(|p| p.0.sqrt()).sum();
+        assert!(picked >= goal);
+    }
+}
