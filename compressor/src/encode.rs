@@ -14,7 +14,7 @@
 
 use crate::colorspace::{ColorError, ColorSpaceKind, ColorTransform};
 use crate::order::{cluster_order, Clustering, Item};
-use crate::refine::{refine_with, KeptValue, OracleScores, RefineOptions, Refined};
+use crate::refine::{pad_f32, refine_with, KeptValue, OracleScores, RefineOptions, Refined};
 use crate::select::{band_map, histogram, top_k, Histogram, CHUNK};
 use rayon::prelude::*;
 use thiserror::Error;
@@ -90,6 +90,8 @@ pub struct CompressOptions {
     /// Least-squares refinement of the kept set before quantization (`None`: send the
     /// oracle's coefficients unchanged, as the paper does). See [`crate::refine`].
     pub refine: Option<RefineOptions>,
+    /// Refuse to start when [`memory_estimate`] exceeds this many bytes (`None`: no limit).
+    pub memory_limit: Option<u64>,
 }
 
 impl Default for CompressOptions {
@@ -111,6 +113,7 @@ impl Default for CompressOptions {
             }),
             step: 1.0,
             refine: Some(RefineOptions::default()),
+            memory_limit: None,
         }
     }
 }
@@ -135,6 +138,18 @@ pub enum CompressError {
         target: u64,
         /// Smallest achievable.
         minimum: u64,
+    },
+    /// The volume needs more working memory than the configured limit.
+    #[error(
+        "compressing needs about {needed} bytes of memory ({detail}); the limit is {limit} bytes"
+    )]
+    MemoryLimit {
+        /// Estimated peak ([`memory_estimate`]).
+        needed: u64,
+        /// The configured limit.
+        limit: u64,
+        /// What dominates the estimate.
+        detail: String,
     },
 }
 
@@ -223,8 +238,9 @@ struct Prepared {
     histogram: Histogram,
     total_energy: f64,
     total_coefficients: u64,
-    /// The channels' voxel samples after the colour transform (for refinement; empty without).
-    samples: Vec<Vec<f32>>,
+    /// The channels' voxel samples after the colour transform on the padded grid (for
+    /// refinement; empty without).
+    targets: Vec<Vec<f32>>,
     /// Non-zero coefficients of the transform.
     nonzero: u64,
 }
@@ -284,13 +300,14 @@ fn prepare(
     let geometry =
         Geometry::new(dims, opts.family, levels, margin)?.with_spacing(volume.spacing())?;
     progress(Stage::Color, 0.0);
-    let (channels, color) = if volume.channel_count() == 3 {
+    let (transformed, color) = if volume.channel_count() == 3 {
         let t = ColorTransform::fit(opts.colorspace, volume)?;
         let v = t.forward(volume)?;
-        (v.into_channels(), color_info(&t))
+        (Some(v.into_channels()), color_info(&t))
     } else {
-        (volume.channels().to_vec(), ColorInfo::intensity())
+        (None, ColorInfo::intensity())
     };
+    let channels: &[Vec<f32>] = transformed.as_deref().unwrap_or(volume.channels());
     let (lo, hi) = volume.value_range();
     let mut planner = Dwt1d::new(opts.family);
     let norms: Vec<f64> = geometry
@@ -334,8 +351,8 @@ fn prepare(
         histogram: Histogram::empty(),
         total_energy,
         total_coefficients: (n * channels.len()) as u64,
-        samples: if opts.refine.is_some() {
-            channels
+        targets: if opts.refine.is_some() {
+            channels.iter().map(|c| pad_f32(c, &geometry)).collect()
         } else {
             Vec::new()
         },
@@ -466,7 +483,7 @@ impl Prepared {
         } = refine_with(
             &self.geometry,
             &self.band_of,
-            &self.samples,
+            &self.targets,
             importance,
             &kept,
             Some(&oracle),
@@ -684,12 +701,79 @@ impl Prepared {
     }
 }
 
+/// The peak memory [`compress`] needs for a volume of `dims` × `channels` with `opts`, in bytes,
+/// counting the input volume (f32 samples) and, per coefficient of the padded grid: the f64
+/// transform of one channel (8 B), the f32 coefficients (4 B per channel), the band map (1 B)
+/// and, with refinement, the padded targets, values, gradients and mask (13 B per channel)
+/// plus two work arrays (8 B); then the candidate list and the encoder's per-coefficient
+/// copies (~200 B per candidate). Measured peaks stay below it (BENCHMARKS.md, issue 14).
+pub fn memory_estimate(
+    dims: [usize; 3],
+    channels: usize,
+    opts: &CompressOptions,
+) -> Result<(u64, String), CompressError> {
+    let levels = opts.levels.unwrap_or(match opts.family {
+        Family::Haar => Geometry::max_levels(dims).min(6),
+        Family::Linear => Geometry::max_levels(dims).min(3),
+        Family::Cubic => Geometry::max_levels(dims).min(2),
+    });
+    let margin = opts
+        .margin
+        .unwrap_or_else(|| Geometry::default_margin(opts.family, levels));
+    let g = Geometry::new(dims, opts.family, levels, margin)?;
+    let n = g.coefficient_count() as u64;
+    let v = dims.iter().map(|d| *d as u64).product::<u64>();
+    let c = channels as u64;
+    let input = 4 * v * c;
+    let colour = if channels == 3 { 4 * v * c } else { 0 };
+    let refining = opts.refine.is_some() && opts.family != Family::Haar;
+    // Held from the transform to the end: coefficients, band map, padded targets.
+    let persistent = 4 * n * c + n + if refining { 4 * n * c } else { 0 };
+    let all = n * c;
+    let candidates = match opts.target {
+        Target::Bytes(b) => b.saturating_mul(4).min(all),
+        Target::Fraction(f) => ((2.0 * f * all as f64) as u64).min(all),
+        Target::Coefficients(k) => k.saturating_mul(2).min(all),
+        Target::All | Target::QvPercent(_) => all,
+    };
+    // The oracle's and the refined candidate lists (24 B each).
+    let lists = candidates.saturating_mul(48);
+    let prepare = colour + 8 * n + (32 << 20);
+    let refine = if refining { 9 * n * c + 8 * n } else { 0 };
+    // Packet inputs, clustering items, reconstruction and Q_E pairs per kept coefficient.
+    let encode = (candidates / 2).saturating_mul(150);
+    // The binary, the thread pool and small tables: ~30 MB measured on a 128³ volume.
+    let base = 64 << 20;
+    let total = base + input + persistent + prepare.max(lists + refine.max(encode));
+    let detail = format!(
+        "{} coefficients per channel on the padded {}x{}x{} grid, {} channel(s){}",
+        n,
+        g.padded[0],
+        g.padded[1],
+        g.padded[2],
+        channels,
+        if refining { ", refined" } else { "" }
+    );
+    Ok((total, detail))
+}
+
 /// Compresses a volume. `progress(stage, fraction)` is called as work proceeds.
 pub fn compress(
     volume: &Volume,
     opts: &CompressOptions,
     progress: &(dyn Fn(Stage, f64) + Sync),
 ) -> Result<Compressed, CompressError> {
+    let (needed, detail) = memory_estimate(volume.dims(), volume.channel_count(), opts)?;
+    tracing::debug!(bytes = needed, detail, "memory estimate");
+    if let Some(limit) = opts.memory_limit {
+        if needed > limit {
+            return Err(CompressError::MemoryLimit {
+                needed,
+                limit,
+                detail,
+            });
+        }
+    }
     if !(opts.layer_growth.is_finite() && opts.layer_growth > 1.0) {
         return Err(CompressError::InvalidOption(format!(
             "layer growth {}; allowed: a finite number above 1",
@@ -780,7 +864,9 @@ fn compress_to_bytes(
     } else {
         1
     };
-    let mut cap = (target.saturating_mul(per_byte) as usize).clamp(1024, n.max(1));
+    let mut cap = (target.saturating_mul(per_byte) as usize)
+        .max(1024)
+        .min(n.max(1));
     let mut trials = 0usize;
     let guess = (target / bytes_per_coefficient_guess(opts.coder)) as usize;
     let (ranked, plain) = loop {

@@ -4,7 +4,8 @@
 //! seeded ChaCha generator), works for any dimensions (1×1×1, odd, non-power-of-two), maps the
 //! box to the normalised cube [-1, 1]³ axis by axis (so anisotropic boxes stretch the shapes),
 //! samples at voxel centres, has unit spacing, and uses the 0..=255 scale of 8-bit data
-//! ([`PHANTOM_MAX`]) so that metrics resemble those of real volumes.
+//! ([`PHANTOM_MAX`]) so that metrics resemble those of real volumes, except the CT body, which
+//! uses Hounsfield units (air −1000) like a real CT.
 
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -30,6 +31,11 @@ pub enum Phantom {
     Constant(f32),
     /// All zero. Intensity.
     Zero,
+    /// A CT-like body in Hounsfield units: air at −1000 outside an elliptic body that runs
+    /// through the whole z range (the first and last slices cut through it, as in a real CT),
+    /// fat −90, soft tissue 40, two lungs −820, a vertebra 700, ribs 900, seeded noise (σ 12 in
+    /// the body, 4 in air). Intensity, negative values.
+    Ct,
     /// Independent uniform noise in [0, 255) from a ChaCha8 generator with this seed, in
     /// storage order. Intensity.
     Noise {
@@ -262,6 +268,47 @@ impl Phantom {
                 vec![vec![v; n]]
             }
             Phantom::Zero => vec![vec![0.0; n]],
+            Phantom::Ct => {
+                let lungs = [-0.38, 0.38].map(|x| {
+                    Compiled::new(&Ellipsoid {
+                        value: -820.0,
+                        axes: [0.28, 0.38, 1.6],
+                        centre: [x, -0.05, 0.0],
+                        euler_deg: [0.0; 3],
+                    })
+                });
+                let hu = fill(dims, |p| {
+                    let [x, y, z] = p;
+                    let ellipse = |a: f64, b: f64| (x / a).powi(2) + (y / (b + 0.05 * z)).powi(2);
+                    let mut v = -1000.0;
+                    if ellipse(0.85, 0.62) <= 1.0 {
+                        v = -90.0;
+                    }
+                    if ellipse(0.78, 0.55) <= 1.0 {
+                        v = 40.0;
+                        if ellipse(0.74, 0.51) > 1.0 && (9.0 * y.atan2(x) + 6.0 * z).cos() > 0.55 {
+                            v = 900.0;
+                        }
+                    }
+                    if lungs.iter().any(|l| l.contains(p)) {
+                        v = -820.0;
+                    }
+                    if (x / 0.09).powi(2) + ((y - 0.42) / 0.09).powi(2) <= 1.0 {
+                        v = 700.0;
+                    }
+                    v as f32
+                });
+                let mut rng = ChaCha8Rng::seed_from_u64(14);
+                vec![hu
+                    .into_iter()
+                    .map(|v| {
+                        let sigma = if v > -950.0 { 12.0 } else { 4.0 };
+                        // Sum of uniforms: a cheap, deterministic near-Gaussian.
+                        let g: f32 = (0..4).map(|_| rng.gen::<f32>() - 0.5).sum::<f32>() * 1.73;
+                        (v + sigma * g).round()
+                    })
+                    .collect()]
+            }
             Phantom::Noise { seed } => {
                 let mut rng = ChaCha8Rng::seed_from_u64(seed);
                 vec![(0..n).map(|_| rng.gen::<f32>() * PHANTOM_MAX).collect()]
@@ -271,7 +318,7 @@ impl Phantom {
     }
 
     /// Parses a phantom name (case-insensitive, `_` and `-` interchangeable): `shepp-logan`,
-    /// `spheres`, `rgb-head`, `constant` (value 128; `constant:V` for another value), `zero`,
+    /// `spheres`, `rgb-head`, `constant` (value 128; `constant:V` for another value), `zero`, `ct`,
     /// `noise` (seed 0; `noise:SEED` for another seed).
     pub fn from_name(name: &str) -> Option<Phantom> {
         let name = name.trim().to_ascii_lowercase().replace('_', "-");
@@ -284,6 +331,7 @@ impl Phantom {
             ("spheres", None) => Some(Phantom::Spheres),
             ("rgb-head" | "rgbhead", None) => Some(Phantom::RgbHead),
             ("zero" | "zeros", None) => Some(Phantom::Zero),
+            ("ct", None) => Some(Phantom::Ct),
             ("constant", None) => Some(Phantom::Constant(128.0)),
             ("constant", Some(a)) => a
                 .parse::<f32>()
@@ -304,6 +352,7 @@ impl Phantom {
             "rgb-head",
             "constant",
             "zero",
+            "ct",
             "noise",
         ]
     }
@@ -339,8 +388,14 @@ mod tests {
                 assert_eq!(v.dims(), dims);
                 assert_eq!(v.channel_count(), p.channel_count());
                 let (lo, hi) = v.value_range();
+                // The CT body is in Hounsfield units (air −1000, bone 900, plus noise).
+                let range = if p == Phantom::Ct {
+                    -1100.0..=1100.0
+                } else {
+                    0.0..=PHANTOM_MAX
+                };
                 assert!(
-                    lo >= 0.0 && hi <= PHANTOM_MAX,
+                    range.contains(&lo) && range.contains(&hi),
                     "{name} {dims:?}: {lo}..{hi}"
                 );
             }

@@ -239,7 +239,8 @@ pub fn refine(
     opts: &RefineOptions,
 ) -> Vec<KeptValue> {
     let band_of = crate::select::band_map(geometry);
-    refine_with(geometry, &band_of, samples, importance, kept, None, opts).values
+    let targets: Vec<Vec<f32>> = samples.iter().map(|s| pad_f32(s, geometry)).collect();
+    refine_with(geometry, &band_of, &targets, importance, kept, None, opts).values
 }
 
 /// The oracle's order as refinement sees it: `score(r)` is the score of the coefficient of
@@ -260,7 +261,8 @@ pub(crate) struct Refined {
     pub rank: usize,
 }
 
-/// [`refine`] with the band map ([`crate::select::band_map`] of `geometry`) supplied.
+/// [`refine`] with the band map ([`crate::select::band_map`] of `geometry`) supplied and the
+/// samples already padded ([`pad_f32`]).
 ///
 /// With `oracle`, the refinement aims at about `kept.len()` surviving values: a refit moves a
 /// fifth or so of a top-K set below the K-th score, so each round selects the candidates down
@@ -271,14 +273,14 @@ pub(crate) struct Refined {
 pub(crate) fn refine_with(
     geometry: &Geometry,
     band_of: &[u8],
-    samples: &[Vec<f32>],
+    targets: &[Vec<f32>],
     importance: &[f64],
     kept: &[KeptValue],
     oracle: Option<&OracleScores>,
     opts: &RefineOptions,
 ) -> Refined {
     let k = kept.len();
-    let channels = samples.len();
+    let channels = targets.len();
     let norms: Vec<f64> = geometry
         .bands()
         .iter()
@@ -302,7 +304,6 @@ pub(crate) fn refine_with(
         .map(|s| score_of(s.channel as usize, band_of[s.index as usize], s.value))
         .fold(f64::INFINITY, f64::min);
     let n = geometry.coefficient_count();
-    let targets: Vec<Vec<f32>> = samples.iter().map(|s| pad_f32(s, geometry)).collect();
     let mut values = vec![vec![0.0f32; n]; channels];
     let mut masks = vec![vec![false; n]; channels];
     let mut grads = vec![vec![0.0f32; n]; channels];

@@ -72,12 +72,20 @@ pub struct CompressArgs {
     pub step: f64,
     /// Rounds of least-squares refinement of the kept set (iterative hard thresholding with
     /// conjugate-gradient refits; splines only). 0 refits the oracle's selection only;
-    /// --no-refine sends the oracle's exact coefficients, as the paper does.
-    #[arg(long, default_value_t = 3)]
-    pub refine_rounds: usize,
+    /// --no-refine sends the oracle's exact coefficients, as the paper does. Default: the
+    /// library's (`RefineOptions::default`).
+    #[arg(long)]
+    pub refine_rounds: Option<usize>,
+    /// Conjugate-gradient iterations per refit of the refinement. Default: the library's.
+    #[arg(long)]
+    pub refine_iterations: Option<usize>,
     /// Send the oracle's coefficients unchanged (no least-squares refinement).
     #[arg(long)]
     pub no_refine: bool,
+    /// Refuse volumes whose estimated working memory exceeds this (bytes, or with a K, M or G
+    /// suffix: `8G`), with a clear error instead of running out of memory.
+    #[arg(long, value_parser = parse_bytes)]
+    pub memory_limit: Option<u64>,
     /// What to keep.
     #[command(flatten)]
     pub keep: super::TargetArgs,
@@ -202,11 +210,32 @@ pub fn options(a: &CompressArgs) -> Result<CompressOptions> {
             threshold: a.cluster_threshold,
         }),
         step: a.step,
-        refine: (!a.no_refine).then_some(RefineOptions {
-            rounds: a.refine_rounds,
-            ..RefineOptions::default()
+        refine: (!a.no_refine).then(|| {
+            let d = RefineOptions::default();
+            RefineOptions {
+                rounds: a.refine_rounds.unwrap_or(d.rounds),
+                cg_iterations: a.refine_iterations.unwrap_or(d.cg_iterations),
+            }
         }),
+        memory_limit: a.memory_limit,
     })
+}
+
+/// Parses a byte count with an optional K, M or G suffix (powers of 1024).
+fn parse_bytes(s: &str) -> Result<u64, String> {
+    let t = s.trim();
+    let (digits, shift) = match t.chars().last().map(|c| c.to_ascii_uppercase()) {
+        Some('K') => (&t[..t.len() - 1], 10),
+        Some('M') => (&t[..t.len() - 1], 20),
+        Some('G') => (&t[..t.len() - 1], 30),
+        _ => (t, 0),
+    };
+    let n: u64 = digits
+        .trim()
+        .parse()
+        .map_err(|_| format!("{s:?} is not a byte count (e.g. 512M, 8G)"))?;
+    n.checked_mul(1u64 << shift)
+        .ok_or_else(|| format!("{s:?} is too large"))
 }
 
 /// Runs the subcommand.

@@ -8,7 +8,7 @@ use wavesplat_compressor::phantom::Phantom;
 /// Arguments of `wavesplat phantom`.
 #[derive(Args, Debug)]
 pub struct PhantomArgs {
-    /// Phantom: shepp-logan, spheres, rgb-head, constant, zero, noise.
+    /// Phantom: shepp-logan, spheres, rgb-head, constant, zero, ct, noise.
     #[arg(default_value = "shepp-logan")]
     pub name: String,
     /// Dimensions X,Y,Z.

@@ -215,8 +215,9 @@ impl LineScratch {
 }
 
 /// Applies `op` to every line along `axis` of the block `block` (a corner of the array of
-/// dimensions `full`, x fastest): gathers the lines, transforms them (in parallel with the
-/// `rayon` feature), scatters them back.
+/// dimensions `full`, x fastest): gathers batches of lines, transforms them (in parallel with
+/// the `rayon` feature), scatters them back. The batch buffer is bounded (~32 MB), not a copy
+/// of the block.
 fn for_each_line(
     data: &mut [f64],
     full: [usize; 3],
@@ -224,6 +225,7 @@ fn for_each_line(
     axis: usize,
     op: &(dyn Fn(&mut [f64], &mut LineScratch) + Sync),
 ) {
+    const BATCH_ELEMENTS: usize = 1 << 22;
     let len = block[axis];
     let stride = [1, full[0], full[0] * full[1]];
     let others: Vec<usize> = (0..3).filter(|a| *a != axis).collect();
@@ -233,32 +235,39 @@ fn for_each_line(
         let (u, v) = (i % block[a0], i / block[a0]);
         u * stride[a0] + v * stride[a1]
     };
-    let mut lines = vec![0.0f64; count * len];
-    for (i, line) in lines.chunks_mut(len).enumerate() {
-        let b = base(i);
-        for (t, v) in line.iter_mut().enumerate() {
-            *v = data[b + t * stride[axis]];
+    let batch = (BATCH_ELEMENTS / len.max(1)).clamp(1, count.max(1));
+    let mut lines = vec![0.0f64; batch.min(count) * len];
+    let mut first = 0;
+    while first < count {
+        let n = batch.min(count - first);
+        let lines = &mut lines[..n * len];
+        for (i, line) in lines.chunks_mut(len).enumerate() {
+            let b = base(first + i);
+            for (t, v) in line.iter_mut().enumerate() {
+                *v = data[b + t * stride[axis]];
+            }
         }
-    }
-    #[cfg(feature = "rayon")]
-    {
-        use rayon::prelude::*;
-        lines
-            .par_chunks_mut(len)
-            .for_each_init(LineScratch::default, |s, line| op(line, s));
-    }
-    #[cfg(not(feature = "rayon"))]
-    {
-        let mut s = LineScratch::default();
-        for line in lines.chunks_mut(len) {
-            op(line, &mut s);
+        #[cfg(feature = "rayon")]
+        {
+            use rayon::prelude::*;
+            lines
+                .par_chunks_mut(len)
+                .for_each_init(LineScratch::default, |s, line| op(line, s));
         }
-    }
-    for (i, line) in lines.chunks(len).enumerate() {
-        let b = base(i);
-        for (t, v) in line.iter().enumerate() {
-            data[b + t * stride[axis]] = *v;
+        #[cfg(not(feature = "rayon"))]
+        {
+            let mut s = LineScratch::default();
+            for line in lines.chunks_mut(len) {
+                op(line, &mut s);
+            }
         }
+        for (i, line) in lines.chunks(len).enumerate() {
+            let b = base(first + i);
+            for (t, v) in line.iter().enumerate() {
+                data[b + t * stride[axis]] = *v;
+            }
+        }
+        first += n;
     }
 }
 
