@@ -7,14 +7,14 @@
 //! candidates ([`crate::select`]). A byte target is met by a rate search on the number of kept
 //! coefficients that measures the size the real encoder writes (the estimate is the written
 //! size), interpolating log size against log count (4–8 trial encodings); with refinement the
-//! oracle's fit is refined once and the refined order is cut or extended to the target by the
-//! same search ([`compress_to_bytes`]). The encoder returns its own
+//! number of coefficients handed to the refinement is searched the same way on whole refined
+//! sets, at most three refinements ([`refine_to_bytes`]). The encoder returns its own
 //! reconstruction (the decoder's view of every kept coefficient), so callers can check a decode
 //! bit for bit and compute Q_E without decoding.
 
 use crate::colorspace::{ColorError, ColorSpaceKind, ColorTransform};
 use crate::order::{cluster_order, Clustering, Item};
-use crate::refine::{pad_f32, refine_with, KeptValue, OracleScores, RefineOptions, Refined};
+use crate::refine::{pad_f32, refine_with, KeptValue, RefineOptions};
 use crate::select::{band_map, histogram, top_k, Histogram, CHUNK};
 use rayon::prelude::*;
 use thiserror::Error;
@@ -472,21 +472,12 @@ impl Prepared {
             })
             .collect();
         let importance = &self.color.importance[..self.channels];
-        let scores = |r: usize| ranked.sorted[r].score;
-        let oracle = OracleScores {
-            len: ranked.sorted.len(),
-            score: &scores,
-        };
-        let Refined {
-            values: refined,
-            rank,
-        } = refine_with(
+        let refined = refine_with(
             &self.geometry,
             &self.band_of,
             &self.targets,
             importance,
             &kept,
-            Some(&oracle),
             opts,
         );
         let count = refined.len();
@@ -504,13 +495,12 @@ impl Prepared {
                 }
             })
             .collect();
-        // The rest of the oracle's order below the final threshold, without what the
-        // refinement picked up (iterative hard thresholding moves coefficients from beyond
-        // rank k into the set).
+        // The rest of the oracle's order, without what the refinement picked up (iterative
+        // hard thresholding moves coefficients from beyond rank k into the set).
         let mut picked: Vec<(u8, u32)> = refined.iter().map(|r| (r.channel, r.index)).collect();
         picked.par_sort_unstable();
         sorted.extend(
-            ranked.sorted[rank.max(k)..]
+            ranked.sorted[k..]
                 .iter()
                 .filter(|s| picked.binary_search(&(s.channel, s.index)).is_err()),
         );
@@ -817,9 +807,7 @@ pub fn compress(
         }
         Target::Bytes(b) => return compress_to_bytes(&prepared, opts, b, progress),
     };
-    // Refinement may select down to rank 2k (see `refine_with`).
-    let cap = if opts.refine.is_some() { 2 * k } else { k };
-    let ranked = prepared.ranked(cap);
+    let ranked = prepared.ranked(k);
     let ranked = match &opts.refine {
         Some(r) if k > 0 && k < n => {
             progress(Stage::Refine, 0.0);
@@ -846,10 +834,8 @@ fn bytes_per_coefficient_guess(coder: CoderKind) -> u64 {
 }
 
 /// Byte target: the oracle's order is searched for the largest prefix that fits (on a candidate
-/// list grown 4× whenever the search runs off its end), then, with refinement, that prefix is
-/// refined once and the refined order (followed by the oracle's remaining coefficients) is cut
-/// to the target by the same search. A refinement is ~30 applications of the synthesis and
-/// its transpose; the searches only run the entropy coder.
+/// list grown 4× whenever the search runs off its end); with refinement, [`refine_to_bytes`]
+/// starts from that prefix's size.
 fn compress_to_bytes(
     prepared: &Prepared,
     opts: &CompressOptions,
@@ -893,25 +879,136 @@ fn compress_to_bytes(
     if k0 == 0 || (ranked.complete && k0 >= ranked.sorted.len()) {
         return Ok(finish(prepared, &ranked, plain));
     }
-    progress(Stage::Refine, 0.0);
-    let refined = prepared.refined(&ranked, k0, r);
-    let guess = refined.refined;
-    let best = fit_bytes(
+    refine_to_bytes(
         prepared,
-        &refined,
+        ranked,
+        plain,
+        r,
         opts,
         target,
-        guess,
         &mut trials,
         progress,
-    )?;
-    // The rate search promises the target within 2 %: when the refined order never fills it
-    // (sizes are not monotone in K for the paper's coders), keep the oracle's coefficients.
-    if (best.stats.bytes as f64) >= 0.98 * target as f64 || best.stats.bytes >= plain.stats.bytes {
-        Ok(finish(prepared, &refined, best))
-    } else {
-        Ok(finish(prepared, &ranked, plain))
+    )
+}
+
+/// Refinements a byte target may run (each is ~30 applications of the synthesis and its
+/// transpose; the rate searches between them only run the entropy coder).
+const MAX_REFINEMENTS: usize = 3;
+
+/// The byte target's refinement: a refined set codes at a different size from the oracle's
+/// prefix it came from (usually smaller: refitted values are smaller), and neither cutting it
+/// to the target nor topping it up with unrefined values is as good as refining a set of the
+/// right size. So the set size K is searched: the refined set of K is encoded whole, and K is
+/// moved by a secant step on log size against log K until a whole set fills 98.5–100 % of the
+/// target, for at most [`MAX_REFINEMENTS`] refinements. If none does, the fullest candidate is
+/// kept: a whole set, the overflowing set cut to the target, or (last resort) the last set
+/// topped up with the oracle's next coefficients; the unrefined file when it is fuller than all.
+#[allow(clippy::too_many_arguments)]
+fn refine_to_bytes(
+    prepared: &Prepared,
+    ranked: Ranked,
+    plain: Compressed,
+    r: &RefineOptions,
+    opts: &CompressOptions,
+    target: u64,
+    trials: &mut usize,
+    progress: &(dyn Fn(Stage, f64) + Sync),
+) -> Result<Compressed, CompressError> {
+    let n = prepared.nonzero as usize;
+    let goal = 0.99 * target as f64;
+    // (K, bytes of the whole refined set of K), by K.
+    let mut sizes: Vec<(usize, u64)> = Vec::new();
+    let mut best: Option<(Compressed, Ranked)> = None;
+    let fuller = |best: &Option<(Compressed, Ranked)>, c: &Compressed| {
+        best.as_ref()
+            .is_none_or(|(b, _)| c.stats.bytes > b.stats.bytes)
+    };
+    let mut k = plain.stats.kept as usize;
+    // The oracle's order, grown when K needs more candidates (`ranked` stays `plain`'s).
+    let mut candidates: Option<Ranked> = None;
+    for attempt in 0..MAX_REFINEMENTS {
+        // The refinement reads the top K; the last attempt may top up from the next K/4.
+        let wanted = (k + k / 4).min(n);
+        let source = candidates.as_ref().unwrap_or(&ranked);
+        if source.sorted.len() < wanted && !source.complete {
+            candidates = Some(prepared.ranked(wanted));
+        }
+        let source = candidates.as_ref().unwrap_or(&ranked);
+        progress(Stage::Refine, attempt as f64 / MAX_REFINEMENTS as f64);
+        let refined = prepared.refined(source, k.min(source.sorted.len()), r);
+        let count = refined.refined;
+        if count == 0 {
+            break;
+        }
+        *trials += 1;
+        progress(Stage::Encode(*trials), 0.0);
+        let whole = prepared.encode(&refined, count, opts, target, false);
+        let bytes = whole.stats.bytes;
+        tracing::debug!(k, count, bytes, target, "refined set encoded whole");
+        sizes.push((k, bytes));
+        let last = attempt + 1 == MAX_REFINEMENTS;
+        let candidate = if bytes <= target {
+            if (bytes as f64) < 0.985 * target as f64 && last {
+                // Out of refinements: top the set up with the oracle's next coefficients.
+                fit_bytes(prepared, &refined, opts, target, count, trials, progress)?
+            } else {
+                whole
+            }
+        } else {
+            fit_bytes(prepared, &refined, opts, target, count, trials, progress)?
+        };
+        if fuller(&best, &candidate) {
+            best = Some((candidate, refined));
+        }
+        if bytes <= target && (bytes as f64) >= 0.985 * target as f64 {
+            break;
+        }
+        let next = next_set_size(&sizes, goal, n);
+        if sizes.iter().any(|&(sk, _)| sk == next) {
+            break;
+        }
+        k = next;
     }
+    match best {
+        Some((b, refined))
+            if b.stats.bytes as f64 >= 0.98 * target as f64
+                || b.stats.bytes >= plain.stats.bytes =>
+        {
+            Ok(finish(prepared, &refined, b))
+        }
+        _ => Ok(finish(prepared, &ranked, plain)),
+    }
+}
+
+/// The next refined-set size for a byte goal from the sizes of whole refined sets tried so far:
+/// a secant step on log bytes against log K between the tightest sets below and above the
+/// goal, or from the nearest one with the usual slope (file size grows about as K^0.9).
+fn next_set_size(sizes: &[(usize, u64)], goal: f64, n: usize) -> usize {
+    let below = sizes
+        .iter()
+        .filter(|&&(_, b)| (b as f64) <= goal)
+        .max_by_key(|&&(k, _)| k)
+        .copied();
+    let above = sizes
+        .iter()
+        .filter(|&&(_, b)| (b as f64) > goal)
+        .min_by_key(|&&(k, _)| k)
+        .copied();
+    let step = |(k, b): (usize, u64), slope: f64| -> f64 {
+        ((k.max(1) as f64).ln() + (goal.ln() - (b.max(1) as f64).ln()) / slope).exp()
+    };
+    let k = match (below, above) {
+        (Some((lk, lb)), Some((hk, hb))) if hk > lk + 1 && hb > lb => {
+            let slope = ((hb as f64).ln() - (lb.max(1) as f64).ln())
+                / ((hk as f64).ln() - (lk.max(1) as f64).ln());
+            (step((lk, lb), slope.clamp(0.3, 3.0)).round() as usize).clamp(lk + 1, hk - 1)
+        }
+        (Some(p), Some(_)) => p.0,
+        (Some(p), None) => (step(p, 0.9).ceil() as usize).max(p.0 + 1),
+        (None, Some(p)) => (step(p, 0.9).floor() as usize).clamp(1, p.0.saturating_sub(1).max(1)),
+        (None, None) => 1,
+    };
+    k.clamp(1, n.max(1))
 }
 
 /// Fills in Q_E of the chosen file (the rate search skips it).

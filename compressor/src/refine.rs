@@ -15,9 +15,7 @@
 //!    voxel samples (inverse transform, then the cubic sampling FIR), by conjugate gradients on
 //!    the normal equations, Jacobi-preconditioned with the exact per-band diagonal of RᵀR;
 //! 2. iterative hard thresholding: c ← H_K(c + D⁻¹Rᵀ(f − R c)), H_K keeping the K largest by the
-//!    oracle's score, then refit; repeated `rounds` times. When the caller passes the oracle's
-//!    order ([`refine_with`]), K grows each round by the ratio of wanted to surviving values,
-//!    so the pruned set ends near the requested size;
+//!    oracle's score, then refit; repeated `rounds` times;
 //! 3. prune: refitted values whose score fell below the selection threshold are dropped and the
 //!    rest refitted (repeated while anything drops, up to three times), so every sent value lies
 //!    above its band's quantizer threshold exactly as with plain thresholding.
@@ -240,45 +238,22 @@ pub fn refine(
 ) -> Vec<KeptValue> {
     let band_of = crate::select::band_map(geometry);
     let targets: Vec<Vec<f32>> = samples.iter().map(|s| pad_f32(s, geometry)).collect();
-    refine_with(geometry, &band_of, &targets, importance, kept, None, opts).values
-}
-
-/// The oracle's order as refinement sees it: `score(r)` is the score of the coefficient of
-/// rank `r` (0-based, non-increasing), known for `r < len`.
-pub(crate) struct OracleScores<'a> {
-    /// Number of ranks known.
-    pub len: usize,
-    /// Score at a rank.
-    pub score: &'a (dyn Fn(usize) -> f64 + Sync),
-}
-
-/// What [`refine_with`] returns.
-pub(crate) struct Refined {
-    /// The refined set, sorted by decreasing score.
-    pub values: Vec<KeptValue>,
-    /// The oracle rank whose score was the final selection threshold: every refined value
-    /// scores at least the oracle's coefficient of this rank.
-    pub rank: usize,
+    refine_with(geometry, &band_of, &targets, importance, kept, opts)
 }
 
 /// [`refine`] with the band map ([`crate::select::band_map`] of `geometry`) supplied and the
 /// samples already padded ([`pad_f32`]).
 ///
-/// With `oracle`, the refinement aims at about `kept.len()` surviving values: a refit moves a
-/// fifth or so of a top-K set below the K-th score, so each round selects the candidates down
-/// to the oracle rank K' whose threshold is expected to leave that many standing (K' grows by
-/// the ratio of wanted to surviving values, up to twice `kept.len()`), and the final prune
-/// uses the threshold of the last K'. Without it, K' stays `kept.len()` and about four fifths
-/// survive.
+/// A refit moves a fifth or so of a top-K set below the K-th score, so about four fifths of
+/// `kept` survive the prune (a byte target grows K until the survivors fill it).
 pub(crate) fn refine_with(
     geometry: &Geometry,
     band_of: &[u8],
     targets: &[Vec<f32>],
     importance: &[f64],
     kept: &[KeptValue],
-    oracle: Option<&OracleScores>,
     opts: &RefineOptions,
-) -> Refined {
+) -> Vec<KeptValue> {
     let k = kept.len();
     let channels = targets.len();
     let norms: Vec<f64> = geometry
@@ -292,14 +267,11 @@ pub(crate) fn refine_with(
     };
     if k == 0 || geometry.family == Family::Haar {
         // Haar is orthonormal up to per-band scale: thresholding is already optimal.
-        return Refined {
-            values: sorted(band_of, &score_of, kept.to_vec()),
-            rank: k,
-        };
+        return sorted(band_of, &score_of, kept.to_vec());
     }
     let started = std::time::Instant::now();
     let op = Operator::new(geometry, band_of);
-    let mut threshold = kept
+    let threshold = kept
         .iter()
         .map(|s| score_of(s.channel as usize, band_of[s.index as usize], s.value))
         .fold(f64::INFINITY, f64::min);
@@ -344,15 +316,7 @@ pub(crate) fn refine_with(
             })
             .sum()
     };
-    let mut k_select = k;
-    let mut alive = survivors(&values, &masks, threshold);
     for _ in 0..opts.rounds {
-        if let Some(o) = oracle {
-            let grow = k as f64 / alive.max(1) as f64;
-            k_select =
-                ((k_select as f64 * grow).round() as usize).clamp(k, (2 * k).min(o.len).max(k));
-            threshold = (o.score)(k_select - 1);
-        }
         // Candidates: one gradient step in the Jacobi metric from the current fit (the refit
         // left the gradient there). Keep the K best over all channels (deterministic ties).
         let candidate =
@@ -366,7 +330,7 @@ pub(crate) fn refine_with(
             }
         };
         let hist = histogram(channels, n, &score, &|_, _| 0.0);
-        let picks = top_k(&hist, channels, n, k_select, &score);
+        let picks = top_k(&hist, channels, n, k, &score);
         let chosen: Vec<(u8, u32, f32)> = picks
             .iter()
             .map(|(_, c, i)| (*c, *i, candidate(*c as usize, *i as usize)))
@@ -380,8 +344,8 @@ pub(crate) fn refine_with(
             values[c as usize][i as usize] = v;
         }
         refit_all(&mut values, &masks, &mut grads, &mut p, &mut work);
-        alive = survivors(&values, &masks, threshold);
-        tracing::debug!(k, k_select, alive, "refinement round");
+        let alive = survivors(&values, &masks, threshold);
+        tracing::debug!(k, alive, "refinement round");
     }
     // Prune values that fell below the threshold and refit the rest, until nothing falls
     // below (at most three refits; a last prune without refit may follow).
@@ -425,10 +389,7 @@ pub(crate) fn refine_with(
             })
         })
         .collect();
-    Refined {
-        values: sorted(band_of, &score_of, out),
-        rank: k_select,
-    }
+    sorted(band_of, &score_of, out)
 }
 
 /// Copies a channel into the zero-padded grid of `geometry`, in f32.
