@@ -1,11 +1,16 @@
 //! Colour-space decorrelation of RGB volumes before compression (paper §4.2, Table 2): the
 //! volume is projected onto three vectors C₁, C₂, C₃ and each gets a global importance I(C) that
 //! multiplies the wavelet energy in the significance score S = E·I (eq. 14). Three spaces: RGB
-//! (identity, importances 1, 1, 1), NTSC YIQ (importances 4, 1.5, 0.6; not orthonormal, the
-//! inverse is the exact matrix inverse) and PCA / Karhunen–Loève (eigenvectors of the 3×3 colour
-//! covariance, importances |eigenvalue|, descending). The PCA fit accumulates in f64 and always
-//! yields an orthonormal basis without NaN, also for degenerate volumes (grey: rank 1; constant:
-//! zero covariance; repeated eigenvalues). Intensity volumes skip this step.
+//! (identity), NTSC YIQ (not orthonormal, the inverse is the exact matrix inverse) and PCA /
+//! Karhunen–Loève (eigenvectors of the 3×3 matrix of colour second moments, descending). The
+//! importances are the weights that make S measure the error in RGB: an error e in channel Cᵢ
+//! comes back as e times column i of the inverse, so Iᵢ is that column's squared norm (1 for
+//! the orthonormal RGB and PCA bases; the paper's perceptual YIQ weights 4, 1.5, 0.6 lose
+//! 1.4 dB Q_I on a classified RGB volume, see BENCHMARKS.md). No colour mean is subtracted: it
+//! would turn a black background into a constant that costs coefficients along every face.
+//! The PCA fit accumulates in f64 and always yields an orthonormal basis without NaN, also for
+//! degenerate volumes (grey: rank 1; black: zero moments; repeated eigenvalues). Intensity
+//! volumes skip this step.
 
 use nalgebra::{Matrix3, SymmetricEigen, Vector3};
 use thiserror::Error;
@@ -29,9 +34,10 @@ pub enum ColorSpaceKind {
     /// No transform; importances 1, 1, 1.
     #[default]
     Rgb,
-    /// NTSC YIQ; importances 4 (Y), 1.5 (I), 0.6 (Q).
+    /// NTSC YIQ; importances are the channels' RGB error weights.
     Yiq,
-    /// Principal components of the volume's colours; importances are the eigenvalues.
+    /// Principal components of the volume's colours (second moments about zero); importances 1
+    /// (0 for a component without energy).
     Pca,
 }
 
@@ -68,8 +74,9 @@ pub const YIQ_MATRIX: [[f64; 3]; 3] = [
     [0.211, -0.523, 0.312],
 ];
 
-/// Importances of Y, I, Q (NTSC bandwidth conventions, paper Table 2).
-pub const YIQ_IMPORTANCE: [f64; 3] = [4.0, 1.5, 0.6];
+/// The paper's perceptual importances of Y, I, Q (NTSC bandwidth conventions, Table 2); the
+/// compressor uses the RGB error weights instead ([`ColorTransform::yiq`]).
+pub const YIQ_PAPER_IMPORTANCE: [f64; 3] = [4.0, 1.5, 0.6];
 
 const IDENTITY: [[f64; 3]; 3] = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
 
@@ -81,7 +88,8 @@ pub struct ColorTransform {
     pub kind: ColorSpaceKind,
     /// Row i is the vector Cᵢ in RGB (the projection applied to get channel i).
     pub basis: [[f64; 3]; 3],
-    /// Colour subtracted before projecting (the colour mean for PCA, zero otherwise).
+    /// Colour subtracted before projecting (zero for every transform [`ColorTransform::fit`]
+    /// builds; kept in the format for transforms about another origin).
     pub mean: [f64; 3],
     /// Importance I(Cᵢ) of each channel (paper Table 2).
     pub importance: [f64; 3],
@@ -98,14 +106,16 @@ impl ColorTransform {
         }
     }
 
-    /// The NTSC YIQ transform.
+    /// The NTSC YIQ transform, with the RGB error weights of its channels as importances.
     pub fn yiq() -> ColorTransform {
-        ColorTransform {
+        let mut t = ColorTransform {
             kind: ColorSpaceKind::Yiq,
             basis: YIQ_MATRIX,
             mean: [0.0; 3],
-            importance: YIQ_IMPORTANCE,
-        }
+            importance: [1.0; 3],
+        };
+        t.importance = rgb_error_weights(&t.inverse_matrix());
+        t
     }
 
     /// Fits a transform of `kind` to an RGB volume (only PCA depends on the data).
@@ -117,12 +127,14 @@ impl ColorTransform {
             ColorSpaceKind::Rgb => ColorTransform::rgb(),
             ColorSpaceKind::Yiq => ColorTransform::yiq(),
             ColorSpaceKind::Pca => {
-                let (mean, cov) = colour_statistics(volume);
-                let (basis, importance) = pca_basis(&cov);
+                let (basis, energy) = pca_basis(&second_moments(volume));
+                // Orthonormal: every channel's error comes back to RGB at weight 1; a channel
+                // with no energy (beyond rounding) is never worth a coefficient.
+                let importance = energy.map(|e| if e > 0.0 { 1.0 } else { 0.0 });
                 ColorTransform {
                     kind,
                     basis,
-                    mean,
+                    mean: [0.0; 3],
                     importance,
                 }
             }
@@ -236,37 +248,43 @@ fn apply(
     })
 }
 
-/// Colour mean and population covariance (divided by N), two-pass, accumulated in f64.
-fn colour_statistics(volume: &Volume) -> ([f64; 3], [[f64; 3]; 3]) {
+/// Squared column norms of a colour transform's inverse: the weight at which an error in each
+/// channel comes back to RGB (for uncorrelated channel errors, the RGB squared error is
+/// Σᵢ ‖column i‖² eᵢ²).
+fn rgb_error_weights(inverse: &[[f64; 3]; 3]) -> [f64; 3] {
+    [0, 1, 2].map(|i| (0..3).map(|r| inverse[r][i] * inverse[r][i]).sum())
+}
+
+/// Colour second moments about zero, E[x xᵀ] (divided by N), accumulated in f64.
+fn second_moments(volume: &Volume) -> [[f64; 3]; 3] {
     let ch = volume.channels();
     let n = volume.voxel_count() as f64;
-    let mean = [0, 1, 2].map(|c| ch[c].iter().map(|v| f64::from(*v)).sum::<f64>() / n);
-    let mut cov = [[0.0f64; 3]; 3];
+    let mut m = [[0.0f64; 3]; 3];
     for v in 0..volume.voxel_count() {
-        let d = [0, 1, 2].map(|c| f64::from(ch[c][v]) - mean[c]);
+        let x = [0, 1, 2].map(|c| f64::from(ch[c][v]));
         for i in 0..3 {
             for j in i..3 {
-                cov[i][j] += d[i] * d[j];
+                m[i][j] += x[i] * x[j];
             }
         }
     }
     for i in 0..3 {
         for j in i..3 {
-            cov[i][j] /= n;
-            cov[j][i] = cov[i][j];
+            m[i][j] /= n;
+            m[j][i] = m[i][j];
         }
     }
-    (mean, cov)
+    m
 }
 
-/// Eigen-decomposition of a covariance: rows of the returned basis are orthonormal eigenvectors
-/// sorted by eigenvalue (descending), importances are |eigenvalue| with values below the
-/// numerical noise floor set to 0. Never returns NaN.
+/// Eigen-decomposition of a symmetric positive semi-definite 3×3 matrix: rows of the returned
+/// basis are orthonormal eigenvectors sorted by eigenvalue (descending), with the eigenvalues
+/// (values below the numerical noise floor set to 0). Never returns NaN.
 fn pca_basis(cov: &[[f64; 3]; 3]) -> ([[f64; 3]; 3], [f64; 3]) {
     let finite = cov.iter().flatten().all(|v| v.is_finite());
     let scale = cov.iter().flatten().fold(0.0f64, |a, v| a.max(v.abs()));
     if !finite || scale == 0.0 {
-        // Constant volume (or unusable statistics): nothing to decorrelate.
+        // Black volume (or unusable statistics): nothing to decorrelate.
         return (IDENTITY, [0.0; 3]);
     }
     // Work on the normalised matrix so that tiny or huge variances behave alike.
@@ -284,10 +302,10 @@ fn pca_basis(cov: &[[f64; 3]; 3]) -> ([[f64; 3]; 3], [f64; 3]) {
     let vectors: Vec<[f64; 3]> = pairs.iter().map(|(_, v)| [v[0], v[1], v[2]]).collect();
     let basis = orthonormalize([vectors[0], vectors[1], vectors[2]]);
 
-    // Importance: the Rayleigh quotient of each final vector (equals the eigenvalue; exact
-    // for re-orthonormalised vectors too), with the noise floor removed.
+    // The Rayleigh quotient of each final vector (equals the eigenvalue; exact for
+    // re-orthonormalised vectors too), with the noise floor removed.
     let floor = 1e-12 * 3.0;
-    let importance = [0, 1, 2].map(|i| {
+    let energy = [0, 1, 2].map(|i| {
         let b = Vector3::from(basis[i]);
         let l = (b.transpose() * m * b)[(0, 0)].abs();
         if l <= floor || !l.is_finite() {
@@ -296,7 +314,7 @@ fn pca_basis(cov: &[[f64; 3]; 3]) -> ([[f64; 3]; 3], [f64; 3]) {
             l * scale
         }
     });
-    (basis, importance)
+    (basis, energy)
 }
 
 /// Modified Gram–Schmidt in the given order; a vector that is (nearly) dependent on the earlier
@@ -366,21 +384,19 @@ mod tests {
         Volume::from_interleaved(dims, [1.0; 3], 3, &data).unwrap()
     }
 
-    fn covariance(v: &Volume) -> [[f64; 3]; 3] {
-        // Naive single-pass reference.
+    fn moments(v: &Volume) -> [[f64; 3]; 3] {
+        // Naive reference (every pair, no symmetry).
         let n = v.voxel_count() as f64;
-        let mut s = [0.0f64; 3];
         let mut ss = [[0.0f64; 3]; 3];
         for i in 0..v.voxel_count() {
             let x = [0, 1, 2].map(|c| f64::from(v.channel(c)[i]));
             for a in 0..3 {
-                s[a] += x[a];
                 for b in 0..3 {
                     ss[a][b] += x[a] * x[b];
                 }
             }
         }
-        [0, 1, 2].map(|a| [0, 1, 2].map(|b| ss[a][b] / n - s[a] * s[b] / (n * n)))
+        ss.map(|row| row.map(|x| x / n))
     }
 
     fn assert_orthonormal(t: &ColorTransform) {
@@ -444,7 +460,44 @@ mod tests {
         assert_eq!(rgb.importance, [1.0; 3]);
         assert_eq!(rgb.forward(&v).unwrap(), v);
         let yiq = ColorTransform::fit(ColorSpaceKind::Yiq, &v).unwrap();
-        assert_eq!(yiq.importance, [4.0, 1.5, 0.6]);
+        assert_eq!(yiq, ColorTransform::yiq());
+        let pca = ColorTransform::fit(ColorSpaceKind::Pca, &v).unwrap();
+        assert_eq!(pca.importance, [1.0; 3]);
+        assert_eq!(pca.mean, [0.0; 3]);
+    }
+
+    #[test]
+    fn importances_weigh_channel_errors_as_they_return_to_rgb() {
+        // An error e in channel i alone comes back to RGB with squared norm I_i e².
+        let v = random_volume(5);
+        for kind in [
+            ColorSpaceKind::Rgb,
+            ColorSpaceKind::Yiq,
+            ColorSpaceKind::Pca,
+        ] {
+            let t = ColorTransform::fit(kind, &v).unwrap();
+            let p = [40.0, 120.0, 7.0];
+            let c = t.forward_pixel(p);
+            for i in 0..3 {
+                let e = 0.25;
+                let mut ce = c;
+                ce[i] += e;
+                let back = t.inverse_pixel(ce);
+                let err2: f64 = (0..3).map(|j| (back[j] - p[j]).powi(2)).sum();
+                let want = t.importance[i] * e * e;
+                assert!(
+                    (err2 - want).abs() <= 1e-9 * want,
+                    "{kind:?} {i}: {err2} vs {want}"
+                );
+            }
+        }
+        // YIQ's Q channel comes back much stronger than its Y channel.
+        let yiq = ColorTransform::yiq();
+        assert!(
+            yiq.importance[2] > yiq.importance[0],
+            "{:?}",
+            yiq.importance
+        );
     }
 
     #[test]
@@ -464,43 +517,67 @@ mod tests {
     }
 
     #[test]
-    fn pca_importances_are_sorted_eigenvalues() {
+    fn pca_diagonalises_the_colour_moments() {
         let v = random_volume(11);
         let t = ColorTransform::fit(ColorSpaceKind::Pca, &v).unwrap();
         assert_orthonormal(&t);
-        assert!(t.importance[0] >= t.importance[1] && t.importance[1] >= t.importance[2]);
-        let cov = covariance(&v);
-        let scale = t.importance[0];
-        // bᵢᵀ Σ bⱼ = λᵢ δᵢⱼ: the basis diagonalises the covariance.
+        let m = moments(&v);
+        let (basis, energy) = pca_basis(&second_moments(&v));
+        assert_eq!(basis, t.basis);
+        assert!(energy[0] >= energy[1] && energy[1] >= energy[2] && energy[2] > 0.0);
+        let scale = energy[0];
+        // bᵢᵀ M bⱼ = λᵢ δᵢⱼ: the basis diagonalises the second moments.
         for i in 0..3 {
             for j in 0..3 {
                 let s: f64 = (0..3)
                     .flat_map(|a| (0..3).map(move |b| (a, b)))
-                    .map(|(a, b)| t.basis[i][a] * cov[a][b] * t.basis[j][b])
+                    .map(|(a, b)| t.basis[i][a] * m[a][b] * t.basis[j][b])
                     .sum();
-                let want = if i == j { t.importance[i] } else { 0.0 };
+                let want = if i == j { energy[i] } else { 0.0 };
                 assert!((s - want).abs() <= 1e-9 * scale, "{i},{j}: {s} vs {want}");
             }
         }
         // Trace is preserved.
-        let tr = cov[0][0] + cov[1][1] + cov[2][2];
-        let sum: f64 = t.importance.iter().sum();
+        let tr = m[0][0] + m[1][1] + m[2][2];
+        let sum: f64 = energy.iter().sum();
         assert!((tr - sum).abs() <= 1e-9 * tr);
-        // Mean is the colour mean.
-        for c in 0..3 {
-            let m: f64 =
-                v.channel(c).iter().map(|x| f64::from(*x)).sum::<f64>() / v.voxel_count() as f64;
-            assert!((m - t.mean[c]).abs() < 1e-9 * m.abs().max(1.0));
-        }
-        // The first component carries the most variance of the forward volume.
+        // The forward channels are uncorrelated about zero and the first carries the most
+        // energy (its mean square is λ₁).
         let c = t.forward(&v).unwrap();
-        let var = |ch: &[f32]| {
-            let n = ch.len() as f64;
-            let m = ch.iter().map(|x| f64::from(*x)).sum::<f64>() / n;
-            ch.iter().map(|x| (f64::from(*x) - m).powi(2)).sum::<f64>() / n
+        let dot = |a: &[f32], b: &[f32]| {
+            a.iter()
+                .zip(b)
+                .map(|(x, y)| f64::from(*x) * f64::from(*y))
+                .sum::<f64>()
+                / a.len() as f64
         };
-        assert!(var(c.channel(0)) >= var(c.channel(1)));
-        assert!((var(c.channel(0)) - t.importance[0]).abs() < 1e-3 * t.importance[0]);
+        for i in 0..3 {
+            for j in 0..i {
+                assert!(dot(c.channel(i), c.channel(j)).abs() < 1e-4 * scale);
+            }
+        }
+        assert!(dot(c.channel(0), c.channel(0)) >= dot(c.channel(1), c.channel(1)));
+        assert!((dot(c.channel(0), c.channel(0)) - energy[0]).abs() < 1e-4 * energy[0]);
+    }
+
+    #[test]
+    fn black_background_stays_zero() {
+        // A classified volume: most voxels black, a few painted. The colour mean is not
+        // subtracted, so black maps to zero in every channel.
+        let v = rgb_volume([6, 5, 4], |i| match i % 7 {
+            0 => [200.0, 60.0, 50.0],
+            1 => [90.0, 40.0, 30.0],
+            2 => [120.0, 180.0, 255.0],
+            _ => [0.0, 0.0, 0.0],
+        });
+        let t = ColorTransform::fit(ColorSpaceKind::Pca, &v).unwrap();
+        let c = t.forward(&v).unwrap();
+        for i in (0..v.voxel_count()).filter(|i| i % 7 > 2) {
+            for ch in 0..3 {
+                assert_eq!(c.channel(ch)[i], 0.0);
+            }
+        }
+        assert_round_trip(&t, &v);
     }
 
     #[test]
@@ -512,9 +589,7 @@ mod tests {
         let t = ColorTransform::fit(ColorSpaceKind::Pca, &v).unwrap();
         assert_no_nan(&t);
         assert_orthonormal(&t);
-        assert!(t.importance[0] > 0.0);
-        assert_eq!(t.importance[1], 0.0);
-        assert_eq!(t.importance[2], 0.0);
+        assert_eq!(t.importance, [1.0, 0.0, 0.0]);
         let s = 1.0 / 3f64.sqrt();
         for j in 0..3 {
             assert!((t.basis[0][j] - s).abs() < 1e-12, "{:?}", t.basis);
@@ -523,34 +598,48 @@ mod tests {
     }
 
     #[test]
-    fn constant_volume_has_zero_importances() {
-        for colour in [[0.0f32, 0.0, 0.0], [10.0, 200.0, 3.5]] {
-            let v = rgb_volume([3, 3, 3], |_| colour);
+    fn constant_volumes() {
+        // Black: nothing to decorrelate, nothing worth a coefficient.
+        let v = rgb_volume([3, 3, 3], |_| [0.0; 3]);
+        let t = ColorTransform::fit(ColorSpaceKind::Pca, &v).unwrap();
+        assert_no_nan(&t);
+        assert_orthonormal(&t);
+        assert_eq!(t.importance, [0.0; 3]);
+        assert_eq!(t.forward(&v).unwrap().value_range(), (0.0, 0.0));
+        // One colour (also a single voxel): rank one, all of it in the first channel.
+        for (dims, colour) in [
+            ([3, 3, 3], [10.0f32, 200.0, 3.5]),
+            ([1, 1, 1], [1.0, 2.0, 3.0]),
+        ] {
+            let v = rgb_volume(dims, |_| colour);
             let t = ColorTransform::fit(ColorSpaceKind::Pca, &v).unwrap();
             assert_no_nan(&t);
             assert_orthonormal(&t);
-            assert_eq!(t.importance, [0.0; 3]);
+            assert_eq!(t.importance, [1.0, 0.0, 0.0]);
             assert_round_trip(&t, &v);
             let c = t.forward(&v).unwrap();
-            assert_eq!(c.value_range(), (0.0, 0.0));
+            let norm = colour.iter().map(|x| x * x).sum::<f32>().sqrt();
+            for &x in c.channel(0) {
+                assert!((x - norm).abs() <= 1e-5 * norm, "{x} vs {norm}");
+            }
+            for ch in 1..3 {
+                for &x in c.channel(ch) {
+                    assert!(x.abs() <= 1e-5 * norm, "{x}");
+                }
+            }
         }
-        // A single voxel is constant too.
-        let v = rgb_volume([1, 1, 1], |_| [1.0, 2.0, 3.0]);
-        let t = ColorTransform::fit(ColorSpaceKind::Pca, &v).unwrap();
-        assert_eq!(t.importance, [0.0; 3]);
-        assert_orthonormal(&t);
     }
 
     #[test]
     fn repeated_eigenvalues() {
-        // Full factorial design: covariance diag(4, 1, 1) in a rotated frame.
+        // Full factorial design about zero: second moments diag(4, 1, 1) in a rotated frame.
         let q = orthonormalize([[1.0, 2.0, 2.0], [2.0, 1.0, -2.0], [2.0, -2.0, 1.0]]);
         let mut pts = Vec::new();
         for a in [-2.0, 2.0] {
             for b in [-1.0, 1.0] {
                 for c in [-1.0, 1.0] {
                     let p: [f64; 3] = [0, 1, 2].map(|j| a * q[0][j] + b * q[1][j] + c * q[2][j]);
-                    pts.push(p.map(|x| (x + 10.0) as f32));
+                    pts.push(p.map(|x| x as f32));
                 }
             }
         }
@@ -558,8 +647,10 @@ mod tests {
         let t = ColorTransform::fit(ColorSpaceKind::Pca, &v).unwrap();
         assert_no_nan(&t);
         assert_orthonormal(&t);
-        for (got, want) in t.importance.iter().zip([4.0, 1.0, 1.0]) {
-            assert!((got - want).abs() < 1e-5, "{:?}", t.importance);
+        assert_eq!(t.importance, [1.0; 3]);
+        let (_, energy) = pca_basis(&second_moments(&v));
+        for (got, want) in energy.iter().zip([4.0, 1.0, 1.0]) {
+            assert!((got - want).abs() < 1e-5, "{energy:?}");
         }
         assert_round_trip(&t, &v);
 
@@ -568,14 +659,15 @@ mod tests {
         for a in [-1.0f32, 1.0] {
             for b in [-1.0, 1.0] {
                 for c in [-1.0, 1.0] {
-                    pts.push([a + 5.0, b + 5.0, c + 5.0]);
+                    pts.push([a, b, c]);
                 }
             }
         }
         let v = rgb_volume([2, 2, 2], |i| pts[i]);
         let t = ColorTransform::fit(ColorSpaceKind::Pca, &v).unwrap();
         assert_orthonormal(&t);
-        for l in t.importance {
+        let (_, energy) = pca_basis(&second_moments(&v));
+        for l in energy {
             assert!((l - 1.0).abs() < 1e-9);
         }
     }

@@ -135,9 +135,10 @@ pub enum ColorKind {
     Intensity,
     /// RGB kept as is (importances 1, 1, 1).
     Rgb,
-    /// NTSC YIQ (importances 4, 1.5, 0.6).
+    /// NTSC YIQ (the importances are stored in the header; the compressor writes each
+    /// channel's RGB error weight).
     Yiq,
-    /// Principal components of the colour covariance (importances = |eigenvalues|).
+    /// Principal components of the colours (importances stored in the header).
     Pca,
 }
 
