@@ -899,8 +899,8 @@ const MAX_REFINEMENTS: usize = 3;
 /// prefix it came from (usually smaller: refitted values are smaller), and neither cutting it
 /// to the target nor topping it up with unrefined values is as good as refining a set of the
 /// right size. So the set size K is searched: the refined set of K is encoded whole, and K is
-/// moved by a secant step on log size against log K until a whole set fills 98.5–100 % of the
-/// target, for at most [`MAX_REFINEMENTS`] refinements. If none does, the fullest candidate is
+/// moved by a secant step on log size against log K ([`next_set_size`]) until a whole set fills
+/// 98.5–100 % of the target, for at most [`MAX_REFINEMENTS`] refinements. If none does, the fullest candidate is
 /// kept: a whole set, the overflowing set cut to the target, or (last resort) the last set
 /// topped up with the oracle's next coefficients; the unrefined file when it is fuller than all.
 #[allow(clippy::too_many_arguments)]
@@ -980,9 +980,13 @@ fn refine_to_bytes(
     }
 }
 
+/// Growth of a whole refined set's file size with K (log–log slope): about 1, since a refined
+/// set keeps a steady ~4/5 of K (measured on the MNI volume between K = 157 k and 192 k: 1.04).
+const REFINED_SLOPE: f64 = 1.0;
+
 /// The next refined-set size for a byte goal from the sizes of whole refined sets tried so far:
 /// a secant step on log bytes against log K between the tightest sets below and above the
-/// goal, or from the nearest one with the usual slope (file size grows about as K^0.9).
+/// goal, or from the nearest one with [`REFINED_SLOPE`].
 fn next_set_size(sizes: &[(usize, u64)], goal: f64, n: usize) -> usize {
     let below = sizes
         .iter()
@@ -1004,8 +1008,8 @@ fn next_set_size(sizes: &[(usize, u64)], goal: f64, n: usize) -> usize {
             (step((lk, lb), slope.clamp(0.3, 3.0)).round() as usize).clamp(lk + 1, hk - 1)
         }
         (Some(p), Some(_)) => p.0,
-        (Some(p), None) => (step(p, 0.9).ceil() as usize).max(p.0 + 1),
-        (None, Some(p)) => (step(p, 0.9).floor() as usize).clamp(1, p.0.saturating_sub(1).max(1)),
+        (Some(p), None) => (step(p, REFINED_SLOPE).ceil() as usize).max(p.0 + 1),
+        (None, Some(p)) => (step(p, REFINED_SLOPE).floor() as usize).clamp(1, p.0.saturating_sub(1).max(1)),
         (None, None) => 1,
     };
     k.clamp(1, n.max(1))
