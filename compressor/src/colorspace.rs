@@ -6,8 +6,11 @@
 //! importances are the weights that make S measure the error in RGB: an error e in channel Cᵢ
 //! comes back as e times column i of the inverse, so Iᵢ is that column's squared norm (1 for
 //! the orthonormal RGB and PCA bases; the paper's perceptual YIQ weights 4, 1.5, 0.6 lose
-//! 1.4 dB Q_I on a classified RGB volume, see BENCHMARKS.md). No colour mean is subtracted: it
-//! would turn a black background into a constant that costs coefficients along every face.
+//! 1.4 dB Q_I on a classified RGB volume, see BENCHMARKS.md). The colour subtracted before
+//! projecting is the median colour of the volume's faces ([`face_median`]), not the mean: the
+//! wavelet grid is zero-padded, so whatever value the faces keep becomes a step along every
+//! face that costs coefficients at every level (a black background stays zero, air at −1000 HU
+//! becomes zero); intensity volumes get the same offset (`codec::format::ColorInfo::mean`).
 //! The PCA fit accumulates in f64 and always yields an orthonormal basis without NaN, also for
 //! degenerate volumes (grey: rank 1; black: zero moments; repeated eigenvalues). Intensity
 //! volumes skip this step.
@@ -88,8 +91,8 @@ pub struct ColorTransform {
     pub kind: ColorSpaceKind,
     /// Row i is the vector Cᵢ in RGB (the projection applied to get channel i).
     pub basis: [[f64; 3]; 3],
-    /// Colour subtracted before projecting (zero for every transform [`ColorTransform::fit`]
-    /// builds; kept in the format for transforms about another origin).
+    /// Colour subtracted before projecting: the faces' median colour ([`ColorTransform::fit`];
+    /// zero for the fixed [`ColorTransform::rgb`] and [`ColorTransform::yiq`]).
     pub mean: [f64; 3],
     /// Importance I(Cᵢ) of each channel (paper Table 2).
     pub importance: [f64; 3],
@@ -118,23 +121,31 @@ impl ColorTransform {
         t
     }
 
-    /// Fits a transform of `kind` to an RGB volume (only PCA depends on the data).
+    /// Fits a transform of `kind` to an RGB volume: the origin is the faces' median colour, and
+    /// PCA's basis depends on the data.
     pub fn fit(kind: ColorSpaceKind, volume: &Volume) -> Result<ColorTransform, ColorError> {
         if volume.channel_count() != 3 {
             return Err(ColorError::NotRgb(volume.channel_count()));
         }
+        let mean = face_colour(volume);
         Ok(match kind {
-            ColorSpaceKind::Rgb => ColorTransform::rgb(),
-            ColorSpaceKind::Yiq => ColorTransform::yiq(),
+            ColorSpaceKind::Rgb => ColorTransform {
+                mean,
+                ..ColorTransform::rgb()
+            },
+            ColorSpaceKind::Yiq => ColorTransform {
+                mean,
+                ..ColorTransform::yiq()
+            },
             ColorSpaceKind::Pca => {
-                let (basis, energy) = pca_basis(&second_moments(volume));
+                let (basis, energy) = pca_basis(&second_moments(volume, mean));
                 // Orthonormal: every channel's error comes back to RGB at weight 1; a channel
                 // with no energy (beyond rounding) is never worth a coefficient.
                 let importance = energy.map(|e| if e > 0.0 { 1.0 } else { 0.0 });
                 ColorTransform {
                     kind,
                     basis,
-                    mean: [0.0; 3],
+                    mean,
                     importance,
                 }
             }
@@ -255,13 +266,58 @@ fn rgb_error_weights(inverse: &[[f64; 3]; 3]) -> [f64; 3] {
     [0, 1, 2].map(|i| (0..3).map(|r| inverse[r][i] * inverse[r][i]).sum())
 }
 
-/// Colour second moments about zero, E[x xᵀ] (divided by N), accumulated in f64.
-fn second_moments(volume: &Volume) -> [[f64; 3]; 3] {
+/// The median of a channel's samples on the six faces of its volume (the lower middle value of
+/// an even count, so it is one of the samples: a face of air at exactly −1000 gives −1000).
+/// This is what the compressor subtracts before the transform, so that the faces end near zero
+/// on the zero-padded wavelet grid.
+pub fn face_median(channel: &[f32], dims: [usize; 3]) -> f64 {
+    let [nx, ny, nz] = dims;
+    if channel.len() != nx * ny * nz || channel.is_empty() {
+        return 0.0;
+    }
+    let at = |x: usize, y: usize, z: usize| channel[(z * ny + y) * nx + x];
+    let mut face: Vec<f32> = Vec::new();
+    for z in [0, nz - 1] {
+        for y in 0..ny {
+            for x in 0..nx {
+                face.push(at(x, y, z));
+            }
+        }
+    }
+    for z in 0..nz {
+        for y in [0, ny - 1] {
+            for x in 0..nx {
+                face.push(at(x, y, z));
+            }
+        }
+        for y in 0..ny {
+            for x in [0, nx - 1] {
+                face.push(at(x, y, z));
+            }
+        }
+    }
+    let mid = (face.len() - 1) / 2;
+    let (_, m, _) = face.select_nth_unstable_by(mid, f32::total_cmp);
+    let m = f64::from(*m);
+    if m.is_finite() {
+        m
+    } else {
+        0.0
+    }
+}
+
+/// [`face_median`] of each colour channel.
+fn face_colour(volume: &Volume) -> [f64; 3] {
+    [0, 1, 2].map(|c| face_median(volume.channel(c), volume.dims()))
+}
+
+/// Colour second moments about `origin`, E[(x − o)(x − o)ᵀ] (divided by N), in f64.
+fn second_moments(volume: &Volume, origin: [f64; 3]) -> [[f64; 3]; 3] {
     let ch = volume.channels();
     let n = volume.voxel_count() as f64;
     let mut m = [[0.0f64; 3]; 3];
     for v in 0..volume.voxel_count() {
-        let x = [0, 1, 2].map(|c| f64::from(ch[c][v]));
+        let x = [0, 1, 2].map(|c| f64::from(ch[c][v]) - origin[c]);
         for i in 0..3 {
             for j in i..3 {
                 m[i][j] += x[i] * x[j];
@@ -384,12 +440,12 @@ mod tests {
         Volume::from_interleaved(dims, [1.0; 3], 3, &data).unwrap()
     }
 
-    fn moments(v: &Volume) -> [[f64; 3]; 3] {
+    fn moments(v: &Volume, origin: [f64; 3]) -> [[f64; 3]; 3] {
         // Naive reference (every pair, no symmetry).
         let n = v.voxel_count() as f64;
         let mut ss = [[0.0f64; 3]; 3];
         for i in 0..v.voxel_count() {
-            let x = [0, 1, 2].map(|c| f64::from(v.channel(c)[i]));
+            let x = [0, 1, 2].map(|c| f64::from(v.channel(c)[i]) - origin[c]);
             for a in 0..3 {
                 for b in 0..3 {
                     ss[a][b] += x[a] * x[b];
@@ -456,14 +512,52 @@ mod tests {
                 assert!((p[j] - q[j]).abs() < 1e-9);
             }
         }
+        let origin = face_colour(&v);
+        assert!(origin.iter().all(|o| *o > 0.0), "{origin:?}");
         let rgb = ColorTransform::fit(ColorSpaceKind::Rgb, &v).unwrap();
         assert_eq!(rgb.importance, [1.0; 3]);
-        assert_eq!(rgb.forward(&v).unwrap(), v);
+        assert_eq!(rgb.mean, origin);
+        let shifted = rgb.forward(&v).unwrap();
+        for c in 0..3 {
+            for (a, b) in v.channel(c).iter().zip(shifted.channel(c)) {
+                assert!((f64::from(*a) - origin[c] - f64::from(*b)).abs() < 1e-4);
+            }
+        }
         let yiq = ColorTransform::fit(ColorSpaceKind::Yiq, &v).unwrap();
-        assert_eq!(yiq, ColorTransform::yiq());
+        assert_eq!(yiq.basis, YIQ_MATRIX);
+        assert_eq!(yiq.importance, ColorTransform::yiq().importance);
+        assert_eq!(yiq.mean, origin);
         let pca = ColorTransform::fit(ColorSpaceKind::Pca, &v).unwrap();
         assert_eq!(pca.importance, [1.0; 3]);
-        assert_eq!(pca.mean, [0.0; 3]);
+        assert_eq!(pca.mean, origin);
+    }
+
+    #[test]
+    fn face_median_reads_only_the_faces() {
+        // 5×4×3 (x fastest): 54 face voxels, 6 interior ones (z = 1, 0 < y < 3, 0 < x < 4).
+        // Six face voxels hold 9.0, the rest 1.0; interior voxels hold 1000 and must not count.
+        let dims = [5, 4, 3];
+        let index = |x: usize, y: usize, z: usize| (z * 4 + y) * 5 + x;
+        let mut ch = vec![1.0f32; 60];
+        for i in [0, 7, 13, 20, 44, 59] {
+            ch[i] = 9.0;
+        }
+        for y in 1..3 {
+            for x in 1..4 {
+                ch[index(x, y, 1)] = 1000.0;
+            }
+        }
+        assert_eq!(face_median(&ch, dims), 1.0);
+        // Only interior voxels differ: the faces decide.
+        let mut air = vec![-1000.0f32; 60];
+        air[index(2, 2, 1)] = 40.0;
+        assert_eq!(face_median(&air, dims), -1000.0);
+        // A single voxel is its own face; an empty or mis-sized channel gives 0.
+        assert_eq!(face_median(&[7.5], [1, 1, 1]), 7.5);
+        assert_eq!(face_median(&[], [0, 1, 1]), 0.0);
+        assert_eq!(face_median(&[1.0, 2.0], [3, 1, 1]), 0.0);
+        // Even count: the lower middle sample.
+        assert_eq!(face_median(&[4.0, 2.0], [2, 1, 1]), 2.0);
     }
 
     #[test]
@@ -521,8 +615,9 @@ mod tests {
         let v = random_volume(11);
         let t = ColorTransform::fit(ColorSpaceKind::Pca, &v).unwrap();
         assert_orthonormal(&t);
-        let m = moments(&v);
-        let (basis, energy) = pca_basis(&second_moments(&v));
+        let m = moments(&v, t.mean);
+        assert_eq!(t.mean, face_colour(&v));
+        let (basis, energy) = pca_basis(&second_moments(&v, t.mean));
         assert_eq!(basis, t.basis);
         assert!(energy[0] >= energy[1] && energy[1] >= energy[2] && energy[2] > 0.0);
         let scale = energy[0];
@@ -541,7 +636,8 @@ mod tests {
         let tr = m[0][0] + m[1][1] + m[2][2];
         let sum: f64 = energy.iter().sum();
         assert!((tr - sum).abs() <= 1e-9 * tr);
-        // The forward channels are uncorrelated about zero and the first carries the most
+        // The forward channels are uncorrelated about zero (the origin subtracted) and the
+        // first carries the most
         // energy (its mean square is λ₁).
         let c = t.forward(&v).unwrap();
         let dot = |a: &[f32], b: &[f32]| {
@@ -599,41 +695,58 @@ mod tests {
 
     #[test]
     fn constant_volumes() {
-        // Black: nothing to decorrelate, nothing worth a coefficient.
-        let v = rgb_volume([3, 3, 3], |_| [0.0; 3]);
-        let t = ColorTransform::fit(ColorSpaceKind::Pca, &v).unwrap();
-        assert_no_nan(&t);
-        assert_orthonormal(&t);
-        assert_eq!(t.importance, [0.0; 3]);
-        assert_eq!(t.forward(&v).unwrap().value_range(), (0.0, 0.0));
-        // One colour (also a single voxel): rank one, all of it in the first channel.
+        // Any one colour (black, a colour, a single voxel) is the faces' colour: it is the
+        // origin, every coded channel is zero and nothing is worth a coefficient.
         for (dims, colour) in [
-            ([3, 3, 3], [10.0f32, 200.0, 3.5]),
+            ([3, 3, 3], [0.0f32; 3]),
+            ([3, 3, 3], [10.0, 200.0, 3.5]),
             ([1, 1, 1], [1.0, 2.0, 3.0]),
         ] {
             let v = rgb_volume(dims, |_| colour);
             let t = ColorTransform::fit(ColorSpaceKind::Pca, &v).unwrap();
             assert_no_nan(&t);
             assert_orthonormal(&t);
-            assert_eq!(t.importance, [1.0, 0.0, 0.0]);
+            assert_eq!(t.importance, [0.0; 3]);
+            assert_eq!(t.mean, colour.map(f64::from));
+            assert_eq!(t.forward(&v).unwrap().value_range(), (0.0, 0.0));
             assert_round_trip(&t, &v);
-            let c = t.forward(&v).unwrap();
-            let norm = colour.iter().map(|x| x * x).sum::<f32>().sqrt();
-            for &x in c.channel(0) {
-                assert!((x - norm).abs() <= 1e-5 * norm, "{x} vs {norm}");
-            }
-            for ch in 1..3 {
-                for &x in c.channel(ch) {
-                    assert!(x.abs() <= 1e-5 * norm, "{x}");
-                }
-            }
         }
+        // One colour inside black faces: rank one, all of it in the first channel.
+        let colour = [10.0f32, 200.0, 3.5];
+        let v = rgb_volume([3, 3, 3], |i| if i == 13 { colour } else { [0.0; 3] });
+        let t = ColorTransform::fit(ColorSpaceKind::Pca, &v).unwrap();
+        assert_eq!(t.mean, [0.0; 3]);
+        assert_eq!(t.importance, [1.0, 0.0, 0.0]);
+        let c = t.forward(&v).unwrap();
+        let norm = colour.iter().map(|x| x * x).sum::<f32>().sqrt();
+        assert!((c.channel(0)[13] - norm).abs() <= 1e-5 * norm);
+        for ch in 1..3 {
+            assert!(c.channel(ch)[13].abs() <= 1e-5 * norm);
+        }
+        assert_round_trip(&t, &v);
     }
 
     #[test]
     fn repeated_eigenvalues() {
-        // Full factorial design about zero: second moments diag(4, 1, 1) in a rotated frame.
+        // Second moments diag(4, 1, 1) in a rotated frame, and isotropic ones.
         let q = orthonormalize([[1.0, 2.0, 2.0], [2.0, 1.0, -2.0], [2.0, -2.0, 1.0]]);
+        let m: [[f64; 3]; 3] = [0, 1, 2].map(|a| {
+            [0, 1, 2].map(|b| (0..3).map(|k| [4.0, 1.0, 1.0][k] * q[k][a] * q[k][b]).sum())
+        });
+        let (basis, energy) = pca_basis(&m);
+        assert!(orthonormality_error(&basis) <= 1e-12, "{basis:?}");
+        for (got, want) in energy.iter().zip([4.0, 1.0, 1.0]) {
+            assert!((got - want).abs() < 1e-9, "{energy:?}");
+        }
+        // The leading vector is q₀ up to sign.
+        let d: f64 = (0..3).map(|j| basis[0][j] * q[0][j]).sum();
+        assert!((d.abs() - 1.0).abs() < 1e-9);
+        let (basis, energy) = pca_basis(&IDENTITY);
+        assert!(orthonormality_error(&basis) <= 1e-12);
+        for l in energy {
+            assert!((l - 1.0).abs() < 1e-12);
+        }
+        // Through a volume: a factorial design about black faces round-trips.
         let mut pts = Vec::new();
         for a in [-2.0, 2.0] {
             for b in [-1.0, 1.0] {
@@ -647,29 +760,7 @@ mod tests {
         let t = ColorTransform::fit(ColorSpaceKind::Pca, &v).unwrap();
         assert_no_nan(&t);
         assert_orthonormal(&t);
-        assert_eq!(t.importance, [1.0; 3]);
-        let (_, energy) = pca_basis(&second_moments(&v));
-        for (got, want) in energy.iter().zip([4.0, 1.0, 1.0]) {
-            assert!((got - want).abs() < 1e-5, "{energy:?}");
-        }
         assert_round_trip(&t, &v);
-
-        // All three equal: isotropic colours.
-        let mut pts = Vec::new();
-        for a in [-1.0f32, 1.0] {
-            for b in [-1.0, 1.0] {
-                for c in [-1.0, 1.0] {
-                    pts.push([a, b, c]);
-                }
-            }
-        }
-        let v = rgb_volume([2, 2, 2], |i| pts[i]);
-        let t = ColorTransform::fit(ColorSpaceKind::Pca, &v).unwrap();
-        assert_orthonormal(&t);
-        let (_, energy) = pca_basis(&second_moments(&v));
-        for l in energy {
-            assert!((l - 1.0).abs() < 1e-9);
-        }
     }
 
     #[test]

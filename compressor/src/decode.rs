@@ -93,7 +93,20 @@ pub fn reconstruct_within(
         coded = coded.with_placement(p)?;
     }
     if header.channels == 1 {
-        return Ok(coded);
+        let offset = header.color.mean[0];
+        if offset == 0.0 {
+            return Ok(coded);
+        }
+        let values: Vec<f32> = coded
+            .channel(0)
+            .iter()
+            .map(|v| (f64::from(*v) + offset) as f32)
+            .collect();
+        let mut out = Volume::new(g.dims, header.spacing(), vec![values])?;
+        if let Some(p) = header.placement {
+            out = out.with_placement(p)?;
+        }
+        return Ok(out);
     }
     let t = ColorTransform {
         kind: match header.color.kind {

@@ -12,7 +12,7 @@
 //! reconstruction (the decoder's view of every kept coefficient), so callers can check a decode
 //! bit for bit and compute Q_E without decoding.
 
-use crate::colorspace::{ColorError, ColorSpaceKind, ColorTransform};
+use crate::colorspace::{face_median, ColorError, ColorSpaceKind, ColorTransform};
 use crate::order::{cluster_order, Clustering, Item};
 use crate::refine::{pad_f32, refine_with, KeptValue, RefineOptions};
 use crate::select::{band_map, histogram, top_k, Histogram, CHUNK};
@@ -305,7 +305,19 @@ fn prepare(
         let v = t.forward(volume)?;
         (Some(v.into_channels()), color_info(&t))
     } else {
-        (None, ColorInfo::intensity())
+        // The faces' median is subtracted (see `crate::colorspace`): the padded grid is zero,
+        // so a face of air at −1000 would otherwise be a step along the whole face.
+        let offset = face_median(volume.channel(0), dims);
+        let mut color = ColorInfo::intensity();
+        color.mean[0] = offset;
+        let shifted = (offset != 0.0).then(|| {
+            vec![volume
+                .channel(0)
+                .par_iter()
+                .map(|v| (f64::from(*v) - offset) as f32)
+                .collect::<Vec<f32>>()]
+        });
+        (shifted, color)
     };
     let channels: &[Vec<f32>] = transformed.as_deref().unwrap_or(volume.channels());
     let (lo, hi) = volume.value_range();
@@ -1009,7 +1021,9 @@ fn next_set_size(sizes: &[(usize, u64)], goal: f64, n: usize) -> usize {
         }
         (Some(p), Some(_)) => p.0,
         (Some(p), None) => (step(p, REFINED_SLOPE).ceil() as usize).max(p.0 + 1),
-        (None, Some(p)) => (step(p, REFINED_SLOPE).floor() as usize).clamp(1, p.0.saturating_sub(1).max(1)),
+        (None, Some(p)) => {
+            (step(p, REFINED_SLOPE).floor() as usize).clamp(1, p.0.saturating_sub(1).max(1))
+        }
         (None, None) => 1,
     };
     k.clamp(1, n.max(1))

@@ -125,6 +125,15 @@ pub fn print_header(h: &Header) {
     outln!("channels    {} ({})", h.channels, h.color.kind.name());
     if h.channels == 3 {
         outln!("importance  {:?}", h.color.importance);
+        outln!(
+            "origin      {:?} (colour subtracted before the projection: the faces' median)",
+            h.color.mean
+        );
+    } else if h.color.mean[0] != 0.0 {
+        outln!(
+            "offset      {} (subtracted from every voxel before the transform: the faces' median)",
+            h.color.mean[0]
+        );
     }
     outln!(
         "family      {} (order {}), levels M = {}",

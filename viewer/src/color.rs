@@ -1,10 +1,11 @@
-//! Display colour: images rendered in a volume's coded colour space (YIQ, PCA or RGB with a
-//! mean removed) back to RGB. The projection is linear, so per pixel rgb = M⁻¹·c + mean·length,
-//! with M the header's colour basis and length the ray's path through the volume (the mean was
-//! subtracted from every voxel it crossed; with depth cueing, the cued length
-//! ∫ e^(−k·dist) along that path), averaged over the pixel as the splats are;
-//! `codec::format::ColorInfo::to_rgb` holds the formula and `codec::view::Camera::chord` /
-//! `cued_chord` the length.
+//! Display values: images rendered in a volume's coded channels back to what the volume holds.
+//! The coding is affine per voxel — an offset (an intensity volume's face median, a colour
+//! volume's origin colour) subtracted, then for colour a linear projection (YIQ, PCA, RGB) — so
+//! per pixel value = M⁻¹·c + offset·length, with M the header's colour basis (identity for
+//! intensity) and length the ray's path through the volume (the offset was subtracted from every
+//! voxel it crossed; with depth cueing, the cued length ∫ e^(−k·dist) along that path),
+//! averaged over the pixel as the splats are; `codec::format::ColorInfo::to_rgb` holds the
+//! formula and `codec::view::Camera::chord` / `cued_chord` the length.
 
 use crate::image::Image;
 use crate::RenderError;
@@ -12,14 +13,18 @@ use wavesplat_codec::format::{ColorKind, Header};
 use wavesplat_codec::view::{resolve_cue, Camera, ResolvedCue, ViewSpec};
 
 /// Converts `image` (views side by side, one camera each, rendered with depth cue `cue` if
-/// any) to RGB; intensity images pass through unchanged.
+/// any) to display values: RGB for a colour volume, the intensity plus its offset's share for
+/// an intensity volume (unchanged when the offset is zero).
 pub fn to_rgb(
     image: &Image,
     header: &Header,
     cameras: &[Camera],
     cue: Option<&ResolvedCue>,
 ) -> Result<Image, RenderError> {
-    if header.color.kind == ColorKind::Intensity || image.channels != 3 {
+    let intensity = header.color.kind == ColorKind::Intensity;
+    let channels = if intensity { 1 } else { 3 };
+    let has_mean = header.color.mean[..channels].iter().any(|m| *m != 0.0);
+    if image.channels != channels || (intensity && !has_mean) {
         return Ok(image.clone());
     }
     let inv = header
@@ -28,7 +33,6 @@ pub fn to_rgb(
         .ok_or(RenderError::Unsupported(
             "the header's colour basis is singular",
         ))?;
-    let has_mean = header.color.mean.iter().any(|m| *m != 0.0);
     let views = cameras.len().max(1);
     let w = image.width / views;
     let dims = header.geometry.dims;
@@ -45,17 +49,23 @@ pub fn to_rgb(
     } else {
         Vec::new()
     };
-    let mut out = Image::new(image.width, image.height, 3);
+    let mut out = Image::new(image.width, image.height, channels);
     for y in 0..image.height {
         for x in 0..image.width {
-            let c = [0, 1, 2].map(|k| image.get(x, y, k) as f64);
+            let c = [0, 1, 2].map(|k| {
+                if k < channels {
+                    image.get(x, y, k) as f64
+                } else {
+                    0.0
+                }
+            });
             let len = match chords.get(x / w.max(1)) {
                 Some(view) => view[y * w + x % w],
                 None => 0.0,
             };
             let rgb = header.color.to_rgb(&inv, c, len);
-            for (r, v) in rgb.iter().enumerate() {
-                out.data[(y * image.width + x) * 3 + r] = *v as f32;
+            for (r, v) in rgb.iter().take(channels).enumerate() {
+                out.data[(y * image.width + x) * channels + r] = *v as f32;
             }
         }
     }

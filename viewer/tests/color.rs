@@ -84,3 +84,67 @@ fn coded_colour_spaces_come_back_to_the_same_rgb_with_and_without_depth_cueing()
         }
     }
 }
+
+/// An intensity volume whose faces are air at −1000 is coded with that offset removed (the
+/// header's `color.mean[0]`); its images must come back to the original's, the offset entering
+/// each pixel as its (cued) path length through the voxel box, views on and off the axes.
+#[test]
+fn an_intensity_offset_comes_back_as_the_path_length() {
+    for (dims, alpha, beta, k) in [
+        ([22, 20, 14], 0.4, 0.7, None),
+        ([22, 20, 14], 0.0, 0.0, None),
+        ([22, 20, 14], 0.4, 0.7, Some(0.08)),
+        ([15, 18, 17], std::f64::consts::FRAC_PI_2, 0.01, Some(0.3)),
+    ] {
+        let volume = Phantom::Ct.generate(dims);
+        let c = compress(
+            &volume,
+            &CompressOptions {
+                target: Target::All,
+                bits: 16,
+                refine: None,
+                ..Default::default()
+            },
+            &|_, _| {},
+        )
+        .expect("compress");
+        let file = parse_file(&c.bytes).unwrap();
+        let offset = file.header.color.mean[0];
+        assert!(
+            offset < -900.0,
+            "the CT phantom's faces are air: offset {offset}"
+        );
+        let coeffs: Vec<_> = file
+            .packets
+            .iter()
+            .flat_map(|p| {
+                wavesplat_codec::format::packet::decode_packet(&file.header, p)
+                    .unwrap()
+                    .coefficients
+            })
+            .collect();
+        let mut view = View::new(alpha, beta, 48, 40);
+        if let Some(k) = k {
+            view = view.with_cue(Cue {
+                k,
+                direction: CueDirection::View,
+            });
+        }
+        let spec = ViewSpec::single(view);
+        let mut r = Renderer::new(RenderOptions::default());
+        let (raw, _) = r
+            .render_spec(&coeffs, &file.header.geometry, &spec)
+            .unwrap();
+        let img = to_rgb_for_spec(&raw, &file.header, &spec).unwrap();
+        assert_eq!(img.channels, 1);
+        let truth = PaddedVolume::from_volume(volume.channels(), &file.header.geometry);
+        let reference = render_reference(&truth, &view, &ReferenceOptions::default()).unwrap();
+        let snr = snr_db(&reference.data, &img.data);
+        let without = snr_db(&reference.data, &raw.data);
+        assert!(
+            snr >= 20.0 && snr > without + 10.0,
+            "{dims:?} ({alpha}, {beta}) cue {k:?}: SNR {snr:.1} dB with the offset, \
+             {without:.1} without"
+        );
+    }
+}

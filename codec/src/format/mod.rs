@@ -35,10 +35,12 @@ use thiserror::Error;
 
 /// File magic.
 pub const MAGIC: &[u8; 4] = b"WSPL";
-/// Current format version (4: the header carries the volume's placement in patient space).
-pub const VERSION: u16 = 4;
+/// Current format version (4: the header carries the volume's placement in patient space; 5:
+/// an intensity volume's offset, the value subtracted before the transform).
+pub const VERSION: u16 = 5;
 /// Oldest version this build reads: version 3 is version 4 without the placement (read as
-/// `None`), so archives and caches written before placement existed stay readable.
+/// `None`), version 4 is version 5 without an intensity offset (read as 0), so archives and
+/// caches written before stay readable.
 pub const OLDEST_READABLE_VERSION: u16 = 3;
 /// Largest accepted header (bytes).
 pub const MAX_HEADER_BYTES: usize = 16 << 20;
@@ -178,7 +180,8 @@ pub struct ColorInfo {
     pub kind: ColorKind,
     /// Rows are the vectors C1..C3 in RGB (identity for intensity volumes).
     pub basis: [[f64; 3]; 3],
-    /// Colour subtracted before projecting (zero except PCA).
+    /// Colour subtracted before projecting; for an intensity volume, `mean[0]` is the value
+    /// subtracted from every voxel (its faces' median), the others zero.
     pub mean: [f64; 3],
     /// Importance I(C) of each channel (eq. 14, Table 2); only the first is used for intensity.
     pub importance: [f64; 3],
@@ -206,7 +209,8 @@ impl ColorInfo {
 
     /// Maps a line integral of the coded channels back to RGB. The projection is linear, so
     /// rgb = inverse · c + mean · length, with `length` the path length of the ray inside the
-    /// volume (the mean was subtracted from every voxel it crossed). Intensity passes through.
+    /// volume (the mean was subtracted from every voxel it crossed). For intensity (identity
+    /// basis) the first entry is the intensity integral, c₀ + offset · length.
     pub fn to_rgb(&self, inverse: &[[f64; 3]; 3], coded: [f64; 3], length: f64) -> [f64; 3] {
         let m = self.mean;
         [0, 1, 2].map(|r| {
@@ -453,6 +457,8 @@ impl Header {
             for v in self.color.mean {
                 w.f64(v);
             }
+        } else if version >= 5 {
+            w.f64(self.color.mean[0]);
         }
         for v in &self.color.importance[..self.channels] {
             w.f64(*v);
@@ -555,6 +561,8 @@ impl Header {
             for v in &mut color.mean {
                 *v = r.f64()?;
             }
+        } else if version >= 5 {
+            color.mean[0] = r.f64()?;
         }
         for v in &mut color.importance[..channels] {
             *v = r.f64()?;
@@ -769,8 +777,8 @@ pub fn write_file(header: &Header, packets: &[Vec<u8>]) -> Vec<u8> {
 }
 
 /// Writes a whole file in an older version of the format, for readers that have not been
-/// updated. Refuses what that version cannot hold (a placement before version 4) rather
-/// than dropping it.
+/// updated. Refuses what that version cannot hold (a placement before version 4, an intensity
+/// offset before version 5) rather than dropping it.
 pub fn write_file_version(
     header: &Header,
     packets: &[Vec<u8>],
@@ -781,6 +789,12 @@ pub fn write_file_version(
         return Err(invalid(
             "header",
             format!("format version {version} cannot hold the volume's placement"),
+        ));
+    }
+    if version < 5 && header.channels == 1 && header.color.mean[0] != 0.0 {
+        return Err(invalid(
+            "header",
+            format!("format version {version} cannot hold an intensity offset"),
         ));
     }
     Ok(write_file_body(
