@@ -46,8 +46,11 @@ fn a_short_demo_compresses_browses_scores_and_reports() {
             "24",
             "--image",
             "48",
+            // A rest ends when the view converges; the cap only guards against a hang. A
+            // depth-cued view's tables are built on a background thread whose progress per
+            // frame depends on the machine's load (a loaded debug build needed over 150).
             "--rest-frames",
-            "150",
+            "2000",
         ])
         .env("WGPU_BACKEND", "vulkan")
         .output()
