@@ -90,11 +90,12 @@ impl BitModel {
         let warm = (31 - (self.seen as u32 + 2).leading_zeros()) as u8;
         self.seen = self.seen.saturating_add(1);
         let shift = warm.min(self.shift);
-        if bit {
-            self.p0 -= self.p0 >> shift;
-        } else {
-            self.p0 += ((PROB_ONE - self.p0 as u32) >> shift) as u16;
-        }
+        // Both moves computed, one kept: the decoded bit is as unpredictable as the data, so a
+        // select is cheaper than a branch.
+        let p0 = self.p0 as u32;
+        let down = p0 - (p0 >> shift);
+        let up = p0 + ((PROB_ONE - p0) >> shift);
+        self.p0 = if bit { down } else { up } as u16;
     }
 }
 
@@ -351,14 +352,11 @@ impl<'a> RangeDecoder<'a> {
     #[inline]
     pub fn decode_bit(&mut self, model: &mut BitModel) -> bool {
         let bound = (self.range >> PROB_BITS) * model.p0 as u32;
-        let bit = if self.code < bound {
-            self.range = bound;
-            false
-        } else {
-            self.code -= bound;
-            self.range -= bound;
-            true
-        };
+        // Branch-free: the bit is as unpredictable as the data.
+        let bit = self.code >= bound;
+        let taken = if bit { bound } else { 0 };
+        self.code -= taken;
+        self.range = if bit { self.range - bound } else { bound };
         model.update(bit);
         self.normalize();
         bit

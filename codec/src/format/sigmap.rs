@@ -74,7 +74,8 @@ const FACE_STATES: usize = 4;
 /// Largest box (in cells) whose lower faces are looked at; larger boxes use face state 0.
 const FACE_CONTEXT_MAX_CELLS: usize = 64;
 
-/// Largest band region held as a dense grid (1 byte per cell); larger regions use a hash map.
+/// Largest band region held densely (a quarter byte per cell in [`CodedCells`], about a byte per
+/// cell in a [`Pyramid`]); larger regions use a hash map or a [`SignificanceGrid`].
 const DENSE_MAX_CELLS: usize = 1 << 22;
 
 /// The coefficients of the substream being coded, by tile-local cell: 0 = none, 1 = positive,
@@ -88,17 +89,63 @@ const DENSE_MAX_CELLS: usize = 1 << 22;
 /// contexts save a third of the sign bits (5–6 % of the file) and the face contexts a further
 /// 4–5 %.
 ///
-/// Regions up to [`DENSE_MAX_CELLS`] are a dense grid (lookups are the inner loop of both
-/// coders); larger ones, which a big single tile or a hostile header can declare, a hash map
-/// whose size follows the coefficients actually coded. Both answer the same.
+/// Regions up to [`DENSE_MAX_CELLS`] are dense bit sets in 4×4×4-cell bricks (one `u64` of
+/// "coded" bits and one of "negative" bits per brick, x fastest inside a brick): an octree box
+/// of up to 64 cells is a dyadic cube of edge ≤ 4 and lies in one brick, so each of its lower
+/// faces is one masked population count (lookups are the inner loop of both coders). Larger
+/// regions, which a big single tile or a hostile header can declare, use a hash map whose size
+/// follows the coefficients actually coded. Both answer the same.
 #[derive(Default)]
 struct CodedCells {
     extent: [u32; 3],
-    dense: Vec<u8>,
-    /// Dense indices set since the last reset, to clear only those.
+    /// Bricks per axis.
+    bricks: [usize; 3],
+    coded: Vec<u64>,
+    negative: Vec<u64>,
+    /// Bricks set since the last reset, to clear only those.
     touched: Vec<usize>,
     sparse: FxHashMap<[u32; 3], u8>,
     use_dense: bool,
+}
+
+/// Bit masks of a brick selecting the cells whose x (y, z) is in a 4-bit set, by that set.
+static BRICK: [[u64; 16]; 3] = [
+    brick_masks(0x1111_1111_1111_1111, 1),
+    brick_masks(0x000F_000F_000F_000F, 4),
+    brick_masks(0xFFFF, 16),
+];
+
+const fn brick_masks(plane: u64, stride: u32) -> [u64; 16] {
+    let mut out = [0u64; 16];
+    let mut set = 0;
+    while set < 16 {
+        let mut i = 0;
+        while i < 4 {
+            if set & (1 << i) != 0 {
+                out[set] |= plane << (i * stride);
+            }
+            i += 1;
+        }
+        set += 1;
+    }
+    out
+}
+
+/// The set bits of three words: one population count in SWAR steps (the baseline x86-64 target
+/// has no popcount instruction, and the three counts share the final multiply).
+#[inline(always)]
+fn count_ones3(w: [u64; 3]) -> usize {
+    const M1: u64 = 0x5555_5555_5555_5555;
+    const M2: u64 = 0x3333_3333_3333_3333;
+    const M4: u64 = 0x0F0F_0F0F_0F0F_0F0F;
+    let nibbles = |x: u64| {
+        let x = x - ((x >> 1) & M1);
+        (x & M2) + ((x >> 2) & M2)
+    };
+    // Each nibble holds at most 3 · 4 = 12, each byte then at most 24.
+    let sum = nibbles(w[0]) + nibbles(w[1]) + nibbles(w[2]);
+    let bytes = (sum & M4) + ((sum >> 4) & M4);
+    (bytes.wrapping_mul(0x0101_0101_0101_0101) >> 56) as usize
 }
 
 impl CodedCells {
@@ -109,40 +156,49 @@ impl CodedCells {
 
     fn reset_with_limit(&mut self, extent: [u32; 3], dense_max: usize) {
         for &i in &self.touched {
-            self.dense[i] = 0;
+            self.coded[i] = 0;
+            self.negative[i] = 0;
         }
         self.touched.clear();
         self.sparse.clear();
         self.extent = extent;
         let cells = extent.iter().map(|&e| e as usize).product::<usize>();
         self.use_dense = cells <= dense_max;
-        if self.use_dense && self.dense.len() < cells {
-            self.dense.resize(cells, 0);
+        self.bricks = extent.map(|e| (e as usize).div_ceil(4));
+        let bricks = self.bricks.iter().product::<usize>();
+        if self.use_dense && self.coded.len() < bricks {
+            self.coded.resize(bricks, 0);
+            self.negative.resize(bricks, 0);
         }
+    }
+
+    /// The brick of a cell and the cell's bit in it.
+    #[inline]
+    fn locate(&self, c: [u32; 3]) -> (usize, u32) {
+        let b = self.bricks;
+        let i = (c[0] >> 2) as usize + b[0] * ((c[1] >> 2) as usize + b[1] * (c[2] >> 2) as usize);
+        (i, (c[0] & 3) | (c[1] & 3) << 2 | (c[2] & 3) << 4)
     }
 
     fn insert(&mut self, cell: [u32; 3], negative: bool) {
-        let state = 1 + negative as u8;
         if self.use_dense {
-            let i = self.index(cell);
-            self.dense[i] = state;
-            self.touched.push(i);
+            let (i, bit) = self.locate(cell);
+            if self.coded[i] == 0 {
+                self.touched.push(i);
+            }
+            self.coded[i] |= 1 << bit;
+            self.negative[i] = (self.negative[i] & !(1 << bit)) | (negative as u64) << bit;
         } else {
-            self.sparse.insert(cell, state);
+            self.sparse.insert(cell, 1 + negative as u8);
         }
-    }
-
-    #[inline]
-    fn index(&self, c: [u32; 3]) -> usize {
-        let e = self.extent.map(|v| v as usize);
-        c[0] as usize + e[0] * (c[1] as usize + e[1] * c[2] as usize)
     }
 
     /// The state of a cell inside the region.
     #[inline]
     fn get(&self, cell: [u32; 3]) -> u8 {
         if self.use_dense {
-            self.dense[self.index(cell)]
+            let (i, bit) = self.locate(cell);
+            (((self.coded[i] >> bit) & 1) + ((self.negative[i] >> bit) & 1)) as u8
         } else {
             self.sparse.get(&cell).copied().unwrap_or(0)
         }
@@ -150,6 +206,7 @@ impl CodedCells {
 
     /// The sign context of `cell` in band index `band`: each lower neighbour absent, positive
     /// or negative.
+    #[inline]
     fn sign_context(&self, band: usize, cell: [u32; 3]) -> usize {
         let mut state = 0;
         for a in 0..3 {
@@ -165,34 +222,48 @@ impl CodedCells {
         band * SIGN_CONTEXTS + state
     }
 
-    /// The face state of a box: how many coded cells touch its three lower faces (0, 1, 2–3,
-    /// 4+); 0 for boxes above [`FACE_CONTEXT_MAX_CELLS`].
-    fn face_state(&self, b: &Box3) -> usize {
-        if b.cells() > FACE_CONTEXT_MAX_CELLS {
+    /// The face state of a box of `cells` cells: how many coded cells touch its three lower
+    /// faces (0, 1, 2–3, 4+); 0 for boxes above [`FACE_CONTEXT_MAX_CELLS`].
+    #[inline(always)]
+    fn face_state(&self, b: &Box3, cells: usize) -> usize {
+        if cells > FACE_CONTEXT_MAX_CELLS {
             return 0;
         }
-        let mut n = 0;
-        let e = self.extent.map(|v| v as usize);
-        let stride = [1, e[0], e[0] * e[1]];
-        for a in 0..3 {
-            if b.lo[a] == 0 {
-                continue;
-            }
-            let (u, v) = ((a + 1) % 3, (a + 2) % 3);
-            let mut c = [0u32; 3];
-            c[a] = b.lo[a] - 1;
-            if self.use_dense {
-                // Walk the face with strides: this is the coders' innermost loop.
-                c[u] = b.lo[u];
-                c[v] = b.lo[v];
-                let base = self.index(c);
-                for i in 0..(b.hi[u] - b.lo[u]) as usize {
-                    let row = base + i * stride[u];
-                    for j in 0..(b.hi[v] - b.lo[v]) as usize {
-                        n += (self.dense[row + j * stride[v]] != 0) as usize;
-                    }
+        let n = if self.use_dense && b.scale <= 4 {
+            // A cube of edge ≤ 4 at a multiple of its edge: inside one brick. Its lower face
+            // along an axis is the box's first plane moved one cell down: in the same brick,
+            // or, at the brick's edge, the last plane of the brick below.
+            let lo = [b.lo[0] & 3, b.lo[1] & 3, b.lo[2] & 3];
+            let span = |a: usize| (((1u32 << (b.hi[a] - b.lo[a])) - 1) << lo[a]) as usize;
+            let span = [span(0), span(1), span(2)];
+            let cube = BRICK[0][span[0]] & BRICK[1][span[1]] & BRICK[2][span[2]];
+            let (i, _) = self.locate(b.lo);
+            let stride = [1, self.bricks[0], self.bricks[0] * self.bricks[1]];
+            let mut faces = [0u64; 3];
+            for a in 0..3 {
+                if b.lo[a] == 0 {
+                    continue;
                 }
-            } else {
+                let plane = BRICK[a][1 << lo[a]];
+                let first = cube & plane;
+                let shift = 1 << (2 * a);
+                let (word, face) = if lo[a] > 0 {
+                    (self.coded[i], first >> shift)
+                } else {
+                    (self.coded[i - stride[a]], first << (3 * shift))
+                };
+                faces[a] = word & face;
+            }
+            count_ones3(faces)
+        } else {
+            let mut n = 0;
+            for a in 0..3 {
+                if b.lo[a] == 0 {
+                    continue;
+                }
+                let (u, v) = ((a + 1) % 3, (a + 2) % 3);
+                let mut c = [0u32; 3];
+                c[a] = b.lo[a] - 1;
                 for i in b.lo[u]..b.hi[u] {
                     c[u] = i;
                     for j in b.lo[v]..b.hi[v] {
@@ -201,7 +272,8 @@ impl CodedCells {
                     }
                 }
             }
-        }
+            n
+        };
         match n {
             0 => 0,
             1 => 1,
@@ -347,26 +419,131 @@ impl SignificanceGrid {
     }
 }
 
+/// Whether a [`SignificanceGrid`] over cells with bounding box [lo, hi) would be coarsened.
+fn coarsened(lo: [u32; 3], hi: [u32; 3]) -> bool {
+    (0..3)
+        .map(|a| (hi[a] - lo[a]) as u128 + 1)
+        .product::<u128>()
+        > MAX_GRID_CELLS as u128
+}
+
+/// The exact occupancy of a set of cells of one tile-local band region, for the only queries
+/// the octree makes of it: does any cell of the dyadic cube of edge 2^k at `lo` hold a
+/// coefficient? Level k holds one byte per such cube (level 0 the cells), so a query is one
+/// lookup and an insertion marks at most one byte per level; a set grows cell by cell, unlike
+/// a [`SignificanceGrid`], which is rebuilt over its whole bounding box. It answers what an
+/// uncoarsened [`SignificanceGrid`] answers for an octree box: a box is its dyadic cube
+/// clipped to the region, and no cell lies outside the region.
+struct Pyramid {
+    /// Per level: its size in cubes, and where it starts in `bytes`.
+    levels: Vec<([usize; 3], usize)>,
+    bytes: Vec<u8>,
+}
+
+impl Pyramid {
+    fn new(extent: [u32; 3]) -> Pyramid {
+        let mut levels = Vec::new();
+        let mut total = 0usize;
+        for k in 0..u32::BITS {
+            let d = extent.map(|e| (e as usize).div_ceil(1 << k).max(1));
+            levels.push((d, total));
+            total += d[0] * d[1] * d[2];
+            if d == [1, 1, 1] {
+                break;
+            }
+        }
+        Pyramid {
+            levels,
+            bytes: vec![0; total],
+        }
+    }
+
+    fn insert(&mut self, p: [u32; 3]) {
+        for (k, &(d, offset)) in self.levels.iter().enumerate() {
+            let q = [
+                (p[0] >> k) as usize,
+                (p[1] >> k) as usize,
+                (p[2] >> k) as usize,
+            ];
+            let i = offset + q[0] + d[0] * (q[1] + d[1] * q[2]);
+            if self.bytes[i] != 0 {
+                // Every coarser cube holding this one is already marked.
+                break;
+            }
+            self.bytes[i] = 1;
+        }
+    }
+
+    /// Whether any cell of the cube of edge 2^k at `lo` (a multiple of 2^k) is in the set.
+    #[inline]
+    fn cube(&self, k: u32, lo: [u32; 3]) -> bool {
+        let top = self.levels.len() - 1;
+        let shr = |v: u32| v.checked_shr(k).unwrap_or(0) as usize;
+        let q = [shr(lo[0]), shr(lo[1]), shr(lo[2])];
+        let (d, offset) = self.levels[(k as usize).min(top)];
+        if (0..3).any(|a| q[a] >= d[a]) {
+            return false;
+        }
+        self.bytes[offset + q[0] + d[0] * (q[1] + d[1] * q[2])] != 0
+    }
+}
+
+/// The cells of one band (or of a level's cousin bands) coded so far: a [`Pyramid`] when its
+/// answers are those of the [`SignificanceGrid`] the format defines the contexts by (the grid
+/// is not coarsened, the region is small enough to hold densely and, for a parent, its region
+/// halves the finer level's), the grid itself otherwise.
+enum CellSet {
+    Exact(Pyramid),
+    Grid(SignificanceGrid),
+}
+
+/// A level's band region in the tile: origin (band coordinates) and extent in cells.
+#[derive(Clone, Copy)]
+struct Region {
+    origin: [u32; 3],
+    extent: [u32; 3],
+}
+
 /// The significance of the bands of the current channel coded so far in this packet, indexed
 /// by band; what the occupancy contexts look at.
 struct Neighbourhood<'h> {
     header: &'h Header,
+    /// Per level: the tile's band region.
+    regions: Vec<Region>,
     /// Per band index: its cells, kept for the next finer level's parent queries.
-    grids: Vec<Option<SignificanceGrid>>,
+    grids: Vec<Option<CellSet>>,
     /// Per level: the union of the wavelet bands coded so far at that level.
-    cousins: Vec<Option<SignificanceGrid>>,
+    cousins: Vec<Option<CellSet>>,
     level_cells: Vec<Vec<[u32; 3]>>,
+    /// Per level: the bounding box [lo, hi) of `level_cells`.
+    level_bounds: Vec<([u32; 3], [u32; 3])>,
 }
 
 impl<'h> Neighbourhood<'h> {
-    fn new(header: &'h Header) -> Self {
-        let nb = header.geometry.band_count();
-        let nl = header.geometry.levels + 1;
+    fn new(header: &'h Header, tile: usize) -> Self {
+        let g = &header.geometry;
+        let nb = g.band_count();
+        let nl = g.levels + 1;
+        let regions = (0..nl)
+            .map(|l| {
+                let band = Band {
+                    level: l as u8,
+                    kind: 1,
+                };
+                let (origin, root) = region(header, tile, l as u8, g.band_dims(band));
+                Region {
+                    origin,
+                    extent: root.hi,
+                }
+            })
+            .collect();
         Neighbourhood {
             header,
+            regions,
             grids: (0..nb).map(|_| None).collect(),
             cousins: (0..nl).map(|_| None).collect(),
             level_cells: vec![Vec::new(); nl],
+            level_bounds: vec![([u32::MAX; 3], [0; 3]); nl],
         }
     }
 
@@ -374,36 +551,67 @@ impl<'h> Neighbourhood<'h> {
         self.grids.iter_mut().for_each(|g| *g = None);
         self.cousins.iter_mut().for_each(|g| *g = None);
         self.level_cells.iter_mut().for_each(Vec::clear);
+        self.level_bounds
+            .iter_mut()
+            .for_each(|b| *b = ([u32::MAX; 3], [0; 3]));
     }
 
-    /// Parent and cousin states of the box [lo, hi) (tile-local) of `band` whose region starts
-    /// at `origin`.
-    fn states(&self, band: Band, origin: [u32; 3], b: &Box3) -> (usize, usize) {
-        let geometry = &self.header.geometry;
+    /// Parent and cousin states of the box `b` (tile-local) of band index `bi`, whose region
+    /// starts at `origin`.
+    #[inline]
+    fn states(&self, bi: usize, band: Band, origin: [u32; 3], b: &Box3) -> (usize, usize) {
         if band.kind == 0 {
             return (0, 0);
         }
-        let glo = [0, 1, 2].map(|a| (origin[a] + b.lo[a]) as u64);
-        let ghi = [0, 1, 2].map(|a| (origin[a] + b.hi[a]) as u64);
-        let parent = if (band.level as usize) < geometry.levels {
-            let pb = Band {
-                level: band.level + 1,
-                kind: band.kind,
+        let k = b.scale.trailing_zeros();
+        let glo = || [0, 1, 2].map(|a| (origin[a] + b.lo[a]) as u64);
+        let ghi = || [0, 1, 2].map(|a| (origin[a] + b.hi[a]) as u64);
+        let parent = if (band.level as usize) < self.header.geometry.levels {
+            // The parent band (same type, one level coarser) comes 7 band indices earlier.
+            let occupied = match &self.grids[bi - 7] {
+                None => false,
+                // The box's parent cells are the cube of half its edge at half its corner.
+                Some(CellSet::Exact(p)) => p.cube(
+                    k.saturating_sub(1),
+                    [b.lo[0] >> 1, b.lo[1] >> 1, b.lo[2] >> 1],
+                ),
+                Some(CellSet::Grid(g)) => g.any(glo().map(|v| v / 2), ghi().map(|v| v.div_ceil(2))),
             };
-            let plo = glo.map(|v| v / 2);
-            let phi = ghi.map(|v| v.div_ceil(2));
-            let grid = geometry.band_index(pb).and_then(|i| self.grids[i].as_ref());
-            1 + grid.is_some_and(|g| g.any(plo, phi)) as usize
+            1 + occupied as usize
         } else {
             0
         };
         let cousin = if band.kind > 1 {
-            let union = self.cousins[band.level as usize].as_ref();
-            1 + union.is_some_and(|g| g.any(glo, ghi)) as usize
+            let occupied = match &self.cousins[band.level as usize] {
+                None => false,
+                Some(CellSet::Exact(p)) => p.cube(k, b.lo),
+                Some(CellSet::Grid(g)) => g.any(glo(), ghi()),
+            };
+            1 + occupied as usize
         } else {
             0
         };
         (parent, cousin)
+    }
+
+    /// Whether a set of level `l` with bounding box [lo, hi) can be held as a [`Pyramid`]:
+    /// its grid would not be coarsened, its region is small enough, and (for a parent set) the
+    /// finer level's region maps onto it by halving, so that the halved box is the parent cube.
+    fn exact(&self, l: usize, lo: [u32; 3], hi: [u32; 3], parent: bool) -> bool {
+        let r = self.regions[l];
+        let cells: u128 = r.extent.iter().map(|&e| e as u128).product();
+        if coarsened(lo, hi) || cells > DENSE_MAX_CELLS as u128 {
+            return false;
+        }
+        if parent {
+            let Some(child) = l.checked_sub(1).map(|c| self.regions[c]) else {
+                return false;
+            };
+            return (0..3).all(|a| {
+                child.origin[a] == 2 * r.origin[a] && child.extent[a].div_ceil(2) >= r.extent[a]
+            });
+        }
+        true
     }
 
     /// Records the cells of `band` just coded; grids nobody will query are not built.
@@ -422,14 +630,50 @@ impl<'h> Neighbourhood<'h> {
         for level in l + 1..self.cousins.len() {
             self.cousins[level] = None;
         }
+        let (mut lo, mut hi) = ([u32::MAX; 3], [0u32; 3]);
+        for p in cells {
+            for a in 0..3 {
+                lo[a] = lo[a].min(p[a]);
+                hi[a] = hi[a].max(p[a] + 1);
+            }
+        }
         if l > 1 {
             if let Some(i) = geometry.band_index(band) {
-                self.grids[i] = Some(SignificanceGrid::new(origin, cells));
+                let set = if self.exact(l, lo, hi, true) {
+                    let mut p = Pyramid::new(self.regions[l].extent);
+                    cells.iter().for_each(|c| p.insert(*c));
+                    CellSet::Exact(p)
+                } else {
+                    CellSet::Grid(SignificanceGrid::new(origin, cells))
+                };
+                self.grids[i] = Some(set);
             }
         }
         if band.kind < 7 {
             self.level_cells[l].extend_from_slice(cells);
-            self.cousins[l] = Some(SignificanceGrid::new(origin, &self.level_cells[l]));
+            let bounds = &mut self.level_bounds[l];
+            for a in 0..3 {
+                bounds.0[a] = bounds.0[a].min(lo[a]);
+                bounds.1[a] = bounds.1[a].max(hi[a]);
+            }
+            let (lo, hi) = *bounds;
+            let set = if self.exact(l, lo, hi, false) {
+                match self.cousins[l].take() {
+                    // The union only grows: add the new cells.
+                    Some(CellSet::Exact(mut p)) => {
+                        cells.iter().for_each(|c| p.insert(*c));
+                        CellSet::Exact(p)
+                    }
+                    _ => {
+                        let mut p = Pyramid::new(self.regions[l].extent);
+                        self.level_cells[l].iter().for_each(|c| p.insert(*c));
+                        CellSet::Exact(p)
+                    }
+                }
+            } else {
+                CellSet::Grid(SignificanceGrid::new(origin, &self.level_cells[l]))
+            };
+            self.cousins[l] = Some(set);
         }
     }
 }
@@ -456,14 +700,18 @@ impl Box3 {
             scale: longest.next_power_of_two(),
         }
     }
+    #[inline]
     fn cells(&self) -> usize {
-        (0..3).map(|a| (self.hi[a] - self.lo[a]) as usize).product()
+        (self.hi[0] - self.lo[0]) as usize
+            * (self.hi[1] - self.lo[1]) as usize
+            * (self.hi[2] - self.lo[2]) as usize
     }
     /// The up to 8 children of the dyadic cube (halved on each axis that reaches past its
     /// middle; children wholly outside the region do not exist), in x-fastest order, without
     /// allocating. Halves the scale until some axis splits, so a box of several cells always
     /// has at least two children. Children come in Morton order: a cell's lower neighbours
     /// (−1 along any axis) are always visited before it.
+    #[inline(always)]
     fn children(&self) -> ([Box3; 8], usize) {
         let mut splits = [[(0u32, 0u32); 2]; 3];
         let mut counts = [1usize; 3];
@@ -551,7 +799,7 @@ pub(crate) fn encode(
     }
     let mut recon = Vec::with_capacity(coefficients.len());
     let mut bd = SizeBreakdown::default();
-    let mut hood = Neighbourhood::new(header);
+    let mut hood = Neighbourhood::new(header, tile);
     for (sub, list) in per_sub.iter().enumerate() {
         if sub % nb == 0 {
             hood.reset();
@@ -686,9 +934,10 @@ fn encode_box(
         // The last child must be occupied if all its siblings are empty: not coded.
         if i + 1 < n || any_before {
             let b0 = enc.bits_spent();
-            let states = ctx.hood.states(ctx.band, ctx.origin, &child);
-            let face = m.coded.face_state(&child);
-            let oc = m.occupancy_context(ctx.bi, child.cells(), states, face);
+            let states = ctx.hood.states(ctx.bi, ctx.band, ctx.origin, &child);
+            let cells = child.cells();
+            let face = m.coded.face_state(&child, cells);
+            let oc = m.occupancy_context(ctx.bi, cells, states, face);
             enc.encode_bit(&mut m.occupied[oc], occupied);
             bd.position_bits += enc.bits_spent() - b0;
         }
@@ -697,6 +946,15 @@ fn encode_box(
             encode_box(enc, m, ctx, child, part, recon, bd);
         }
     }
+}
+
+/// Payload bytes read per kind of syntax element while decoding.
+#[derive(Default)]
+struct Spent {
+    tag: usize,
+    position: usize,
+    sign: usize,
+    value: usize,
 }
 
 /// Decodes a sigmap payload of `count` coefficients.
@@ -714,7 +972,8 @@ pub(crate) fn decode(
     let bands = header.geometry.bands();
     // The count is bounded but may still be large for a hostile packet: grow as decoded.
     let mut out = Vec::with_capacity(count.min(super::packet::INITIAL_CAPACITY));
-    let mut hood = Neighbourhood::new(header);
+    let mut hood = Neighbourhood::new(header, tile);
+    let mut spent = Spent::default();
     for sub in 0..header.substream_count() {
         if sub % nb == 0 {
             hood.reset();
@@ -725,7 +984,7 @@ pub(crate) fn decode(
         let bi = sub % nb;
         let b0 = dec.bytes_read();
         let present = dec.decode_bit(&mut m.present[bi]);
-        bd.tag_bits += 8.0 * (dec.bytes_read() - b0) as f64;
+        spent.tag += dec.bytes_read() - b0;
         if !present {
             continue;
         }
@@ -750,13 +1009,18 @@ pub(crate) fn decode(
         };
         let first = out.len();
         m.coded.reset(root.hi);
-        decode_box(&mut dec, &mut m, &ctx, root, count, &mut out, bd)?;
+        decode_box(&mut dec, &mut m, &ctx, root, count, &mut out, &mut spent)?;
         let cells: Vec<[u32; 3]> = out[first..]
             .iter()
             .map(|c| [0, 1, 2].map(|a| c.pos[a] - origin[a]))
             .collect();
         hood.record(band, origin, &cells);
     }
+    // Sums of whole bytes, as the per-symbol sums were: the same f64 values.
+    bd.tag_bits += 8.0 * spent.tag as f64;
+    bd.position_bits += 8.0 * spent.position as f64;
+    bd.sign_bits += 8.0 * spent.sign as f64;
+    bd.value_bits += 8.0 * spent.value as f64;
     if out.len() != count {
         return Err(invalid(
             "packet",
@@ -776,7 +1040,7 @@ fn decode_box(
     b: Box3,
     count: usize,
     out: &mut Vec<Coefficient>,
-    bd: &mut SizeBreakdown,
+    spent: &mut Spent,
 ) -> Result<(), FormatError> {
     if out.len() >= count {
         return Err(invalid(
@@ -800,8 +1064,8 @@ fn decode_box(
         m.coded.insert(cell, negative);
         let b1 = dec.bytes_read();
         let q = m.value[ctx.bi].decode(dec)?;
-        bd.sign_bits += 8.0 * (b1 - b0) as f64;
-        bd.value_bits += 8.0 * (dec.bytes_read() - b1) as f64;
+        spent.sign += b1 - b0;
+        spent.value += dec.bytes_read() - b1;
         let mag = dequantize(ctx, q)?;
         let value = if negative { -mag } else { mag } as f32;
         if !value.is_finite() {
@@ -810,7 +1074,11 @@ fn decode_box(
         out.push(Coefficient {
             channel: ctx.channel,
             band: ctx.band,
-            pos: [0, 1, 2].map(|a| b.lo[a] + ctx.origin[a]),
+            pos: [
+                b.lo[0] + ctx.origin[0],
+                b.lo[1] + ctx.origin[1],
+                b.lo[2] + ctx.origin[2],
+            ],
             value,
         });
         return Ok(());
@@ -820,18 +1088,19 @@ fn decode_box(
     for (i, &child) in children[..n].iter().enumerate() {
         let occupied = if i + 1 < n || any_before {
             let b0 = dec.bytes_read();
-            let states = ctx.hood.states(ctx.band, ctx.origin, &child);
-            let face = m.coded.face_state(&child);
-            let oc = m.occupancy_context(ctx.bi, child.cells(), states, face);
+            let states = ctx.hood.states(ctx.bi, ctx.band, ctx.origin, &child);
+            let cells = child.cells();
+            let face = m.coded.face_state(&child, cells);
+            let oc = m.occupancy_context(ctx.bi, cells, states, face);
             let o = dec.decode_bit(&mut m.occupied[oc]);
-            bd.position_bits += 8.0 * (dec.bytes_read() - b0) as f64;
+            spent.position += dec.bytes_read() - b0;
             o
         } else {
             true
         };
         any_before |= occupied;
         if occupied {
-            decode_box(dec, m, ctx, child, count, out, bd)?;
+            decode_box(dec, m, ctx, child, count, out, spent)?;
         }
     }
     Ok(())
@@ -967,7 +1236,10 @@ mod tests {
                 let want = inserted.get(&c).map_or(0, |&n| 1 + n as u8);
                 assert_eq!(dense.get(c), want, "round {round}");
                 assert_eq!(dense.sign_context(3, c), sparse.sign_context(3, c));
-                assert_eq!(dense.face_state(&b), sparse.face_state(&b));
+                assert_eq!(
+                    dense.face_state(&b, b.cells()),
+                    sparse.face_state(&b, b.cells())
+                );
                 // Brute force: coded cells just below one of the box's lower faces.
                 let touching = inserted
                     .keys()
@@ -989,7 +1261,12 @@ mod tests {
                         _ => 3,
                     }
                 };
-                assert_eq!(dense.face_state(&b), expected, "{b:?}", b = (lo, hi));
+                assert_eq!(
+                    dense.face_state(&b, b.cells()),
+                    expected,
+                    "{b:?}",
+                    b = (lo, hi)
+                );
             }
         }
         // A reset forgets every cell.
