@@ -449,6 +449,10 @@ impl AdaptiveUintModel {
             ctx = 2 * ctx + bit as usize;
         }
         let rest = k - modeled;
+        if k < 64 {
+            // x < 2^(k+1) fits a u64 (and is at least 1).
+            return Ok((((ctx as u64) << rest) | dec.decode_bypass(rest)) - 1);
+        }
         let x = ((ctx as u128) << rest) | dec.decode_bypass(rest) as u128;
         u64::try_from(x - 1).map_err(|_| {
             EntropyError::out_of_range("decoded integer", (x - 1) as i128, 0, u64::MAX)

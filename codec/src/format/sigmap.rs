@@ -173,7 +173,7 @@ impl CodedCells {
     }
 
     /// The brick of a cell and the cell's bit in it.
-    #[inline]
+    #[inline(always)]
     fn locate(&self, c: [u32; 3]) -> (usize, u32) {
         let b = self.bricks;
         let i = (c[0] >> 2) as usize + b[0] * ((c[1] >> 2) as usize + b[1] * (c[2] >> 2) as usize);
@@ -194,7 +194,7 @@ impl CodedCells {
     }
 
     /// The state of a cell inside the region.
-    #[inline]
+    #[inline(always)]
     fn get(&self, cell: [u32; 3]) -> u8 {
         if self.use_dense {
             let (i, bit) = self.locate(cell);
@@ -206,18 +206,39 @@ impl CodedCells {
 
     /// The sign context of `cell` in band index `band`: each lower neighbour absent, positive
     /// or negative.
-    #[inline]
+    #[inline(always)]
     fn sign_context(&self, band: usize, cell: [u32; 3]) -> usize {
         let mut state = 0;
-        for a in 0..3 {
-            let s = if cell[a] == 0 {
-                0
-            } else {
-                let mut below = cell;
-                below[a] -= 1;
-                self.get(below) as usize
-            };
-            state = state * 3 + s;
+        if self.use_dense {
+            // The neighbour one cell down an axis: in the same brick, or at the brick's lower
+            // edge the far plane of the brick below.
+            let (i, bit) = self.locate(cell);
+            let stride = [1, self.bricks[0], self.bricks[0] * self.bricks[1]];
+            for a in 0..3 {
+                let s = if cell[a] == 0 {
+                    0
+                } else {
+                    let step = 1u32 << (2 * a);
+                    let (j, nbit) = if cell[a] & 3 != 0 {
+                        (i, bit - step)
+                    } else {
+                        (i - stride[a], bit + 3 * step)
+                    };
+                    ((self.coded[j] >> nbit) & 1) + ((self.negative[j] >> nbit) & 1)
+                };
+                state = state * 3 + s as usize;
+            }
+        } else {
+            for a in 0..3 {
+                let s = if cell[a] == 0 {
+                    0
+                } else {
+                    let mut below = cell;
+                    below[a] -= 1;
+                    self.get(below) as usize
+                };
+                state = state * 3 + s;
+            }
         }
         band * SIGN_CONTEXTS + state
     }
@@ -497,6 +518,43 @@ enum CellSet {
     Grid(SignificanceGrid),
 }
 
+/// The parent and cousin sets of one band, as coded so far: `None` where the band has none
+/// (state 0), `Some(None)` where that set is still empty.
+struct Relatives<'a> {
+    parent: Option<Option<&'a CellSet>>,
+    cousin: Option<Option<&'a CellSet>>,
+}
+
+impl Relatives<'_> {
+    /// Parent and cousin states of the box `b` (tile-local) of a band whose region starts at
+    /// `origin`: 0 no such band, 1 nothing there, 2 a coefficient there.
+    #[inline(always)]
+    fn states(&self, origin: [u32; 3], b: &Box3) -> (usize, usize) {
+        let k = b.scale.trailing_zeros();
+        let glo = || [0, 1, 2].map(|a| (origin[a] + b.lo[a]) as u64);
+        let ghi = || [0, 1, 2].map(|a| (origin[a] + b.hi[a]) as u64);
+        let parent = match self.parent {
+            None => 0,
+            Some(None) => 1,
+            // The box's parent cells are the cube of half its edge at half its corner.
+            Some(Some(CellSet::Exact(p))) => {
+                1 + p.cube(k.saturating_sub(1), [b.lo[0] >> 1, b.lo[1] >> 1, b.lo[2] >> 1])
+                    as usize
+            }
+            Some(Some(CellSet::Grid(g))) => {
+                1 + g.any(glo().map(|v| v / 2), ghi().map(|v| v.div_ceil(2))) as usize
+            }
+        };
+        let cousin = match self.cousin {
+            None => 0,
+            Some(None) => 1,
+            Some(Some(CellSet::Exact(p))) => 1 + p.cube(k, b.lo) as usize,
+            Some(Some(CellSet::Grid(g))) => 1 + g.any(glo(), ghi()) as usize,
+        };
+        (parent, cousin)
+    }
+}
+
 /// A level's band region in the tile: origin (band coordinates) and extent in cells.
 #[derive(Clone, Copy)]
 struct Region {
@@ -556,42 +614,20 @@ impl<'h> Neighbourhood<'h> {
             .for_each(|b| *b = ([u32::MAX; 3], [0; 3]));
     }
 
-    /// Parent and cousin states of the box `b` (tile-local) of band index `bi`, whose region
-    /// starts at `origin`.
-    #[inline]
-    fn states(&self, bi: usize, band: Band, origin: [u32; 3], b: &Box3) -> (usize, usize) {
+    /// The sets the occupancy contexts of band index `bi` look at.
+    fn relatives(&self, bi: usize, band: Band) -> Relatives<'_> {
         if band.kind == 0 {
-            return (0, 0);
+            return Relatives {
+                parent: None,
+                cousin: None,
+            };
         }
-        let k = b.scale.trailing_zeros();
-        let glo = || [0, 1, 2].map(|a| (origin[a] + b.lo[a]) as u64);
-        let ghi = || [0, 1, 2].map(|a| (origin[a] + b.hi[a]) as u64);
-        let parent = if (band.level as usize) < self.header.geometry.levels {
+        Relatives {
             // The parent band (same type, one level coarser) comes 7 band indices earlier.
-            let occupied = match &self.grids[bi - 7] {
-                None => false,
-                // The box's parent cells are the cube of half its edge at half its corner.
-                Some(CellSet::Exact(p)) => p.cube(
-                    k.saturating_sub(1),
-                    [b.lo[0] >> 1, b.lo[1] >> 1, b.lo[2] >> 1],
-                ),
-                Some(CellSet::Grid(g)) => g.any(glo().map(|v| v / 2), ghi().map(|v| v.div_ceil(2))),
-            };
-            1 + occupied as usize
-        } else {
-            0
-        };
-        let cousin = if band.kind > 1 {
-            let occupied = match &self.cousins[band.level as usize] {
-                None => false,
-                Some(CellSet::Exact(p)) => p.cube(k, b.lo),
-                Some(CellSet::Grid(g)) => g.any(glo(), ghi()),
-            };
-            1 + occupied as usize
-        } else {
-            0
-        };
-        (parent, cousin)
+            parent: ((band.level as usize) < self.header.geometry.levels)
+                .then(|| self.grids[bi - 7].as_ref()),
+            cousin: (band.kind > 1).then(|| self.cousins[band.level as usize].as_ref()),
+        }
     }
 
     /// Whether a set of level `l` with bounding box [lo, hi) can be held as a [`Pyramid`]:
@@ -833,7 +869,7 @@ pub(crate) fn encode(
             origin,
             channel: (sub / nb) as u8,
             band,
-            hood: &hood,
+            relatives: hood.relatives(bi, band),
         };
         m.coded.reset(root.hi);
         encode_box(&mut enc, &mut m, &ctx, root, pts, &mut recon, &mut bd);
@@ -850,7 +886,7 @@ pub(crate) fn encode(
     (payload, recon, bd)
 }
 
-struct Ctx<'a, 'h> {
+struct Ctx<'a> {
     bi: usize,
     lb: f64,
     /// Largest magnitude the substream can have in this layer (≥ lb).
@@ -859,7 +895,7 @@ struct Ctx<'a, 'h> {
     origin: [u32; 3],
     channel: u8,
     band: Band,
-    hood: &'a Neighbourhood<'h>,
+    relatives: Relatives<'a>,
 }
 
 /// The magnitude of step q: the middle of its interval, within the substream's bounds.
@@ -934,7 +970,7 @@ fn encode_box(
         // The last child must be occupied if all its siblings are empty: not coded.
         if i + 1 < n || any_before {
             let b0 = enc.bits_spent();
-            let states = ctx.hood.states(ctx.bi, ctx.band, ctx.origin, &child);
+            let states = ctx.relatives.states(ctx.origin, &child);
             let cells = child.cells();
             let face = m.coded.face_state(&child, cells);
             let oc = m.occupancy_context(ctx.bi, cells, states, face);
@@ -1005,7 +1041,7 @@ pub(crate) fn decode(
             origin,
             channel: (sub / nb) as u8,
             band,
-            hood: &hood,
+            relatives: hood.relatives(bi, band),
         };
         let first = out.len();
         m.coded.reset(root.hi);
@@ -1088,7 +1124,7 @@ fn decode_box(
     for (i, &child) in children[..n].iter().enumerate() {
         let occupied = if i + 1 < n || any_before {
             let b0 = dec.bytes_read();
-            let states = ctx.hood.states(ctx.bi, ctx.band, ctx.origin, &child);
+            let states = ctx.relatives.states(ctx.origin, &child);
             let cells = child.cells();
             let face = m.coded.face_state(&child, cells);
             let oc = m.occupancy_context(ctx.bi, cells, states, face);
