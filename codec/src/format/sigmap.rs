@@ -538,8 +538,10 @@ impl Relatives<'_> {
             Some(None) => 1,
             // The box's parent cells are the cube of half its edge at half its corner.
             Some(Some(CellSet::Exact(p))) => {
-                1 + p.cube(k.saturating_sub(1), [b.lo[0] >> 1, b.lo[1] >> 1, b.lo[2] >> 1])
-                    as usize
+                1 + p.cube(
+                    k.saturating_sub(1),
+                    [b.lo[0] >> 1, b.lo[1] >> 1, b.lo[2] >> 1],
+                ) as usize
             }
             Some(Some(CellSet::Grid(g))) => {
                 1 + g.any(glo().map(|v| v / 2), ghi().map(|v| v.div_ceil(2))) as usize
@@ -1315,5 +1317,112 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// Every box of the octree over a region (the coders query their children), in order.
+    fn boxes(b: Box3, out: &mut Vec<Box3>) {
+        out.push(b);
+        if b.cells() > 1 {
+            let (children, n) = b.children();
+            for c in &children[..n] {
+                boxes(*c, out);
+            }
+        }
+    }
+
+    fn random_cells(rng: &mut ChaCha8Rng, extent: [u32; 3], n: usize) -> Vec<[u32; 3]> {
+        (0..n)
+            .map(|_| extent.map(|e| rng.gen_range(0..e)))
+            .collect()
+    }
+
+    #[test]
+    fn pyramids_answer_octree_boxes_as_the_grid_does() {
+        let mut rng = ChaCha8Rng::seed_from_u64(17);
+        for round in 0..40 {
+            let extent = [0, 1, 2].map(|_| rng.gen_range(1..40u32));
+            let origin = [0, 1, 2].map(|_| rng.gen_range(0..9u32) * 2);
+            let n = rng.gen_range(0..(round % 5) * 30 + 2);
+            let cells = random_cells(&mut rng, extent, n);
+            let grid = SignificanceGrid::new(origin, &cells);
+            assert_eq!(grid.shift, 0);
+            let mut pyramid = Pyramid::new(extent);
+            cells.iter().for_each(|c| pyramid.insert(*c));
+            let mut all = Vec::new();
+            boxes(Box3::root(extent), &mut all);
+            for b in &all {
+                let glo = [0, 1, 2].map(|a| (origin[a] + b.lo[a]) as u64);
+                let ghi = [0, 1, 2].map(|a| (origin[a] + b.hi[a]) as u64);
+                let k = b.scale.trailing_zeros();
+                assert_eq!(
+                    pyramid.cube(k, b.lo),
+                    grid.any(glo, ghi),
+                    "{extent:?} {:?}",
+                    b.lo
+                );
+            }
+            // As a parent: the finer level's region is twice this one (plus up to a cell).
+            let child_extent = [0, 1, 2].map(|a| 2 * extent[a] - rng.gen_range(0..2u32));
+            let child_origin = origin.map(|o| 2 * o);
+            let mut all = Vec::new();
+            boxes(Box3::root(child_extent), &mut all);
+            for b in &all {
+                let plo = [0, 1, 2].map(|a| (child_origin[a] + b.lo[a]) as u64 / 2);
+                let phi = [0, 1, 2].map(|a| ((child_origin[a] + b.hi[a]) as u64).div_ceil(2));
+                let k = b.scale.trailing_zeros();
+                let half = [b.lo[0] >> 1, b.lo[1] >> 1, b.lo[2] >> 1];
+                assert_eq!(
+                    pyramid.cube(k.saturating_sub(1), half),
+                    grid.any(plo, phi),
+                    "parent of {:?} in {child_extent:?}",
+                    b.lo
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn brick_face_counts_match_the_map_on_octree_boxes() {
+        let mut rng = ChaCha8Rng::seed_from_u64(23);
+        let mut dense = CodedCells::default();
+        let mut sparse = CodedCells::default();
+        for _ in 0..30 {
+            let extent = [0, 1, 2].map(|_| rng.gen_range(1..30u32));
+            dense.reset(extent);
+            sparse.reset_with_limit(extent, 0);
+            let cells: usize = extent.iter().map(|&e| e as usize).product();
+            let n = rng.gen_range(0..=cells);
+            for c in random_cells(&mut rng, extent, n) {
+                let negative = rng.gen_bool(0.4);
+                dense.insert(c, negative);
+                sparse.insert(c, negative);
+            }
+            let mut all = Vec::new();
+            boxes(Box3::root(extent), &mut all);
+            for b in &all {
+                assert_eq!(
+                    dense.face_state(b, b.cells()),
+                    sparse.face_state(b, b.cells()),
+                    "{:?}..{:?} in {extent:?}",
+                    b.lo,
+                    b.hi
+                );
+                if b.cells() == 1 {
+                    assert_eq!(dense.sign_context(2, b.lo), sparse.sign_context(2, b.lo));
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn three_word_population_count() {
+        let mut rng = ChaCha8Rng::seed_from_u64(29);
+        for _ in 0..1000 {
+            let w: [u64; 3] = [rng.gen(), rng.gen(), rng.gen()];
+            let w = w.map(|v| v >> rng.gen_range(0..64));
+            let want: u32 = w.iter().map(|v| v.count_ones()).sum();
+            assert_eq!(count_ones3(w), want as usize);
+        }
+        assert_eq!(count_ones3([u64::MAX; 3]), 192);
     }
 }
