@@ -87,7 +87,7 @@ impl BitModel {
         // Warm-up: after n bits the step is 1/2^⌊log2(n+2)⌋ (capped at the model's shift), close
         // to a counting estimate, so that a fresh model (every packet starts fresh) learns its
         // probability in a few bits instead of ~2^shift.
-        let warm = (31 - (self.seen as u32 + 2).leading_zeros()) as u8;
+        let warm = WARM_SHIFT[self.seen as usize];
         self.seen = self.seen.saturating_add(1);
         let shift = warm.min(self.shift);
         // Both moves computed, one kept: the decoded bit is as unpredictable as the data, so a
@@ -98,6 +98,17 @@ impl BitModel {
         self.p0 = if bit { down } else { up } as u16;
     }
 }
+
+/// ⌊log2(n + 2)⌋ for every count n a [`BitModel`] holds: its warm-up shift after n bits.
+static WARM_SHIFT: [u8; 256] = {
+    let mut t = [0u8; 256];
+    let mut n = 0;
+    while n < 256 {
+        t[n] = (31 - (n as u32 + 2).leading_zeros()) as u8;
+        n += 1;
+    }
+    t
+};
 
 /// Destination of the encoder's bytes: a buffer, or a counter for size queries.
 trait ByteOut {
