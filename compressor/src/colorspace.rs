@@ -12,7 +12,7 @@
 //! face that costs coefficients at every level (a black background stays zero, air at −1000 HU
 //! becomes zero); intensity volumes get the same offset (`codec::format::ColorInfo::mean`).
 //! The PCA fit accumulates in f64 and always yields an orthonormal basis without NaN, also for
-//! degenerate volumes (grey: rank 1; black: zero moments; repeated eigenvalues). Intensity
+//! degenerate volumes (grey: rank 1; one colour: zero moments; repeated eigenvalues). Intensity
 //! volumes skip this step.
 
 use nalgebra::{Matrix3, SymmetricEigen, Vector3};
@@ -34,13 +34,13 @@ pub enum ColorError {
 /// Which colour space to compress in.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default)]
 pub enum ColorSpaceKind {
-    /// No transform; importances 1, 1, 1.
+    /// No projection (the origin colour is still subtracted); importances 1, 1, 1.
     #[default]
     Rgb,
     /// NTSC YIQ; importances are the channels' RGB error weights.
     Yiq,
-    /// Principal components of the volume's colours (second moments about zero); importances 1
-    /// (0 for a component without energy).
+    /// Principal components of the volume's colours (second moments about the faces' median
+    /// colour); importances 1 (0 for a component without energy).
     Pca,
 }
 

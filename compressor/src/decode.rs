@@ -1,7 +1,7 @@
 //! Full decompression back to a volume, for checks and metrics (the viewer never does this: it
 //! renders from the coefficients). Decodes every packet, places the coefficients in per-channel
 //! coefficient arrays, runs the inverse 3D transform, crops the padding and undoes the colour
-//! transform. Every entry point has a `_within` form taking a [`DecodeBudget`]: what the file
+//! transform (or adds an intensity volume's offset back). Every entry point has a `_within` form taking a [`DecodeBudget`]: what the file
 //! declares (coefficients, the reconstruction's memory) is checked against it before anything is
 //! allocated, so a tiny file declaring a huge volume is an error, not an abort.
 

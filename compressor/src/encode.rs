@@ -6,7 +6,7 @@
 //! Coefficients are never sorted wholesale: the oracle's order is materialised only for its top
 //! candidates ([`crate::select`]). A byte target is met by a rate search on the number of kept
 //! coefficients that measures the size the real encoder writes (the estimate is the written
-//! size), interpolating log size against log count (4–8 trial encodings); with refinement the
+//! size), interpolating log size against log count (typically 4–7 trial encodings); with refinement the
 //! number of coefficients handed to the refinement is searched the same way on whole refined
 //! sets, at most three refinements ([`refine_to_bytes`]). The encoder returns its own
 //! reconstruction (the decoder's view of every kept coefficient), so callers can check a decode
@@ -40,7 +40,8 @@ pub enum Target {
     Fraction(f64),
     /// Number of coefficients.
     Coefficients(u64),
-    /// Smallest set whose energy is at least this percentage of the total (Q_V, eq. 19).
+    /// Smallest set whose energy is at least this percentage of the total (Q_V, eq. 19), the
+    /// energy of the coded channels (after the colour transform or intensity offset).
     QvPercent(f64),
 }
 
@@ -307,17 +308,23 @@ fn prepare(
     } else {
         // The faces' median is subtracted (see `crate::colorspace`): the padded grid is zero,
         // so a face of air at −1000 would otherwise be a step along the whole face.
+        // Samples near ±f32::MAX on both sides of the offset could overflow when shifted;
+        // such a volume is coded without one.
         let offset = face_median(volume.channel(0), dims);
+        let shifted = (offset != 0.0)
+            .then(|| {
+                volume
+                    .channel(0)
+                    .par_iter()
+                    .map(|v| (f64::from(*v) - offset) as f32)
+                    .collect::<Vec<f32>>()
+            })
+            .filter(|s| s.par_iter().all(|v| v.is_finite()));
         let mut color = ColorInfo::intensity();
-        color.mean[0] = offset;
-        let shifted = (offset != 0.0).then(|| {
-            vec![volume
-                .channel(0)
-                .par_iter()
-                .map(|v| (f64::from(*v) - offset) as f32)
-                .collect::<Vec<f32>>()]
-        });
-        (shifted, color)
+        if shifted.is_some() {
+            color.mean[0] = offset;
+        }
+        (shifted.map(|s| vec![s]), color)
     };
     let channels: &[Vec<f32>] = transformed.as_deref().unwrap_or(volume.channels());
     let (lo, hi) = volume.value_range();
@@ -727,7 +734,8 @@ pub fn memory_estimate(
     let v = dims.iter().map(|d| *d as u64).product::<u64>();
     let c = channels as u64;
     let input = 4 * v * c;
-    let colour = if channels == 3 { 4 * v * c } else { 0 };
+    // The colour transform's output, or an intensity volume's shifted copy (its offset).
+    let colour = 4 * v * c;
     let refining = opts.refine.is_some() && opts.family != Family::Haar;
     // Held from the transform to the end: coefficients, band map, padded targets.
     let persistent = 4 * n * c + n + if refining { 4 * n * c } else { 0 };
@@ -912,9 +920,10 @@ const MAX_REFINEMENTS: usize = 3;
 /// to the target nor topping it up with unrefined values is as good as refining a set of the
 /// right size. So the set size K is searched: the refined set of K is encoded whole, and K is
 /// moved by a secant step on log size against log K ([`next_set_size`]) until a whole set fills
-/// 98.5–100 % of the target, for at most [`MAX_REFINEMENTS`] refinements. If none does, the fullest candidate is
-/// kept: a whole set, the overflowing set cut to the target, or (last resort) the last set
-/// topped up with the oracle's next coefficients; the unrefined file when it is fuller than all.
+/// 98.5–100 % of the target, for at most [`MAX_REFINEMENTS`] refinements. Otherwise the fullest
+/// candidate is kept (a whole set, an overflowing set cut to the target, or on the last
+/// attempt the set topped up with the oracle's next coefficients), unless it fills less than
+/// 98 % of the target and less than the unrefined file, which is then kept instead.
 #[allow(clippy::too_many_arguments)]
 fn refine_to_bytes(
     prepared: &Prepared,
@@ -962,12 +971,16 @@ fn refine_to_bytes(
         let candidate = if bytes <= target {
             if (bytes as f64) < 0.985 * target as f64 && last {
                 // Out of refinements: top the set up with the oracle's next coefficients.
-                fit_bytes(prepared, &refined, opts, target, count, trials, progress)?
+                fit_bytes(prepared, &refined, opts, target, count, trials, progress)
             } else {
-                whole
+                Ok(whole)
             }
         } else {
-            fit_bytes(prepared, &refined, opts, target, count, trials, progress)?
+            fit_bytes(prepared, &refined, opts, target, count, trials, progress)
+        };
+        // A refined set that cannot be cut to the target leaves the oracle's file standing.
+        let Ok(candidate) = candidate else {
+            break;
         };
         if fuller(&best, &candidate) {
             best = Some((candidate, refined));

@@ -21,55 +21,123 @@ pub fn to_rgb(
     cameras: &[Camera],
     cue: Option<&ResolvedCue>,
 ) -> Result<Image, RenderError> {
-    let intensity = header.color.kind == ColorKind::Intensity;
-    let channels = if intensity { 1 } else { 3 };
-    let has_mean = header.color.mean[..channels].iter().any(|m| *m != 0.0);
-    if image.channels != channels || (intensity && !has_mean) {
-        return Ok(image.clone());
-    }
-    let inv = header
-        .color
-        .inverse_basis()
-        .ok_or(RenderError::Unsupported(
-            "the header's colour basis is singular",
-        ))?;
-    let views = cameras.len().max(1);
-    let w = image.width / views;
-    let dims = header.geometry.dims;
-    let chords: Vec<Vec<f64>> = if has_mean {
-        cameras
-            .iter()
-            .map(|cam| {
-                pixel_chords(w, image.height, |xs, ys| match cue {
-                    Some(c) => cam.cued_chord(dims, xs, ys, c),
-                    None => cam.chord(dims, xs, ys),
+    let lengths = PathLengths::new(header, cameras, cue, image.width, image.height);
+    lengths.apply(image, header)
+}
+
+/// The path length through the voxel box of every pixel of an image (views side by side), for
+/// one view: what an offset or origin colour contributes per pixel. Computing it samples every
+/// silhouette pixel, so a session keeps it while the view and the image size stay the same
+/// ([`PathLengths::matches`]).
+#[derive(Debug, Clone)]
+pub struct PathLengths {
+    cameras: Vec<Camera>,
+    cue: Option<ResolvedCue>,
+    width: usize,
+    height: usize,
+    /// Per view, the pixels' (cued) path lengths, row-major; empty when nothing was subtracted.
+    lengths: Vec<Vec<f64>>,
+}
+
+impl PathLengths {
+    /// The path lengths `header`'s offset needs (none when it subtracted nothing).
+    pub fn new(
+        header: &Header,
+        cameras: &[Camera],
+        cue: Option<&ResolvedCue>,
+        width: usize,
+        height: usize,
+    ) -> PathLengths {
+        let views = cameras.len().max(1);
+        let w = width / views;
+        let dims = header.geometry.dims;
+        let lengths = if has_offset(header) {
+            cameras
+                .iter()
+                .map(|cam| {
+                    pixel_chords(w, height, |xs, ys| match cue {
+                        Some(c) => cam.cued_chord(dims, xs, ys, c),
+                        None => cam.chord(dims, xs, ys),
+                    })
                 })
-            })
-            .collect()
-    } else {
-        Vec::new()
-    };
-    let mut out = Image::new(image.width, image.height, channels);
-    for y in 0..image.height {
-        for x in 0..image.width {
-            let c = [0, 1, 2].map(|k| {
-                if k < channels {
-                    image.get(x, y, k) as f64
-                } else {
-                    0.0
-                }
-            });
-            let len = match chords.get(x / w.max(1)) {
-                Some(view) => view[y * w + x % w],
-                None => 0.0,
-            };
-            let rgb = header.color.to_rgb(&inv, c, len);
-            for (r, v) in rgb.iter().take(channels).enumerate() {
-                out.data[(y * image.width + x) * channels + r] = *v as f32;
-            }
+                .collect()
+        } else {
+            Vec::new()
+        };
+        PathLengths {
+            cameras: cameras.to_vec(),
+            cue: cue.copied(),
+            width,
+            height,
+            lengths,
         }
     }
-    Ok(out)
+
+    /// Whether these lengths are the ones for this view and image size.
+    pub fn matches(
+        &self,
+        cameras: &[Camera],
+        cue: Option<&ResolvedCue>,
+        width: usize,
+        height: usize,
+    ) -> bool {
+        self.cameras == cameras
+            && self.cue.as_ref() == cue
+            && self.width == width
+            && self.height == height
+    }
+
+    /// `image` in display values ([`to_rgb`]) with these lengths.
+    pub fn apply(&self, image: &Image, header: &Header) -> Result<Image, RenderError> {
+        let intensity = header.color.kind == ColorKind::Intensity;
+        let channels = if intensity { 1 } else { 3 };
+        if image.channels != channels || (intensity && !has_offset(header)) {
+            return Ok(image.clone());
+        }
+        if (image.width, image.height) != (self.width, self.height) {
+            return Err(RenderError::Unsupported(
+                "path lengths computed for another image size",
+            ));
+        }
+        let inv = header
+            .color
+            .inverse_basis()
+            .ok_or(RenderError::Unsupported(
+                "the header's colour basis is singular",
+            ))?;
+        let w = image.width / self.cameras.len().max(1);
+        let mut out = Image::new(image.width, image.height, channels);
+        for y in 0..image.height {
+            for x in 0..image.width {
+                let c = [0, 1, 2].map(|k| {
+                    if k < channels {
+                        image.get(x, y, k) as f64
+                    } else {
+                        0.0
+                    }
+                });
+                let len = match self.lengths.get(x / w.max(1)) {
+                    Some(view) => view[y * w + x % w],
+                    None => 0.0,
+                };
+                let rgb = header.color.to_rgb(&inv, c, len);
+                for (r, v) in rgb.iter().take(channels).enumerate() {
+                    out.data[(y * image.width + x) * channels + r] = *v as f32;
+                }
+            }
+        }
+        Ok(out)
+    }
+}
+
+/// Whether the header's coding subtracted anything per voxel (an offset or origin colour).
+fn has_offset(header: &Header) -> bool {
+    let channels = if header.color.kind == ColorKind::Intensity {
+        1
+    } else {
+        3
+    };
+    header.color.mean[..channels].iter().any(|m| *m != 0.0)
 }
 
 /// [`to_rgb`] for an image rendered for `spec`: its cameras and its resolved depth cue.

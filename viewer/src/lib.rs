@@ -13,7 +13,8 @@
 //! - [`source`]: where packets come from ([`source::FileSource`], [`source::CacheSource`] over
 //!   gRPC on its own thread, pulled with credit);
 //! - [`frame`]: the frame loop: drain packets, splat within a frame's budget;
-//! - [`color`]: images in a coded colour space back to RGB;
+//! - [`color`]: images in the coded channels back to display values (RGB; an intensity
+//!   volume's offset × path length);
 //! - [`walk`]: scripted view paths through the frame loop, paced like a display, recorded per
 //!   frame (the demo and `bench refine`);
 //! - [`splat`]: the one-shot [`Renderer`] (plan + a backend, the CPU one by default);

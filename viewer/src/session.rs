@@ -356,6 +356,8 @@ pub struct RenderSession<B: AccumulationBackend> {
     queue: BucketQueue,
     /// Queue entries set aside until the plan's background builder has their cued tables.
     waiting: Vec<(u32, u32)>,
+    /// Per-pixel path lengths of the last displayed view (kept while the view stays).
+    path_lengths: Option<color::PathLengths>,
     dropped: Vec<u32>,
     stats: SessionStats,
     /// Seconds per unit of splat weight (planning + accumulation), running estimates for
@@ -413,6 +415,7 @@ impl<B: AccumulationBackend> RenderSession<B> {
             packets: HashMap::new(),
             queue: BucketQueue::new(),
             waiting: Vec::new(),
+            path_lengths: None,
             dropped: Vec::new(),
             stats: SessionStats::default(),
             cost: [INITIAL_COST_PER_WEIGHT; 2],
@@ -896,12 +899,14 @@ impl<B: AccumulationBackend> RenderSession<B> {
     /// side).
     pub fn image(&mut self) -> Result<Image, SessionError> {
         let raw = self.backend.read()?;
-        Ok(color::to_rgb(
-            &raw,
-            &self.header,
-            &self.plan.cameras,
-            self.plan.cue.as_ref(),
-        )?)
+        let (cameras, cue) = (&self.plan.cameras, self.plan.cue.as_ref());
+        let lengths = match self.path_lengths.take() {
+            Some(l) if l.matches(cameras, cue, raw.width, raw.height) => l,
+            _ => color::PathLengths::new(&self.header, cameras, cue, raw.width, raw.height),
+        };
+        let image = lengths.apply(&raw, &self.header);
+        self.path_lengths = Some(lengths);
+        Ok(image?)
     }
 
     /// The image so far in the coded channels (what the backend accumulated).

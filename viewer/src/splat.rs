@@ -114,7 +114,8 @@ impl Renderer {
         &mut self.planner
     }
 
-    /// Renders the coefficients for `view`.
+    /// Renders the coefficients for `view`, in the coded channels (before a colour transform
+    /// is undone or an offset added back: [`crate::color::to_rgb_for_spec`]).
     pub fn render(
         &mut self,
         coefficients: &[Coefficient],

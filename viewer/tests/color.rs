@@ -11,7 +11,10 @@ use wavesplat_compressor::colorspace::ColorSpaceKind;
 use wavesplat_compressor::encode::{compress, CompressOptions, Target};
 use wavesplat_compressor::phantom::Phantom;
 use wavesplat_viewer::color::to_rgb_for_spec;
-use wavesplat_viewer::{render_reference, PaddedVolume, ReferenceOptions, RenderOptions, Renderer};
+use wavesplat_viewer::{
+    render_reference, render_reference_camera, PaddedVolume, ReferenceOptions, RenderOptions,
+    Renderer,
+};
 
 fn snr_against_reference(space: ColorSpaceKind, cue_k: Option<f64>, dims: [usize; 3]) -> f64 {
     let volume = Phantom::RgbHead.generate(dims);
@@ -145,6 +148,63 @@ fn an_intensity_offset_comes_back_as_the_path_length() {
             snr >= 20.0 && snr > without + 10.0,
             "{dims:?} ({alpha}, {beta}) cue {k:?}: SNR {snr:.1} dB with the offset, \
              {without:.1} without"
+        );
+    }
+}
+
+/// The offset in the three multiview images side by side: each image adds its own camera's
+/// path lengths.
+#[test]
+fn an_intensity_offset_in_multiview_images() {
+    let volume = Phantom::Ct.generate([18, 16, 14]);
+    let c = compress(
+        &volume,
+        &CompressOptions {
+            target: Target::All,
+            bits: 16,
+            refine: None,
+            ..Default::default()
+        },
+        &|_, _| {},
+    )
+    .expect("compress");
+    let file = parse_file(&c.bytes).unwrap();
+    assert!(file.header.color.mean[0] < -900.0);
+    let coeffs: Vec<_> = file
+        .packets
+        .iter()
+        .flat_map(|p| {
+            wavesplat_codec::format::packet::decode_packet(&file.header, p)
+                .unwrap()
+                .coefficients
+        })
+        .collect();
+    let view = View::new(0.3, 0.5, 32, 28);
+    let spec = ViewSpec {
+        view,
+        multiview: true,
+    };
+    let mut r = Renderer::new(RenderOptions::default());
+    let (raw, _) = r
+        .render_spec(&coeffs, &file.header.geometry, &spec)
+        .unwrap();
+    let img = to_rgb_for_spec(&raw, &file.header, &spec).unwrap();
+    assert_eq!((img.width, img.height), (3 * 32, 28));
+    let truth = PaddedVolume::from_volume(volume.channels(), &file.header.geometry);
+    let cameras = wavesplat_codec::view::multiview_cameras(&view, &file.header.geometry).unwrap();
+    for (i, cam) in cameras.iter().enumerate() {
+        let reference = render_reference_camera(&truth, cam, None, &ReferenceOptions::default());
+        let part = |im: &wavesplat_viewer::image::Image| -> Vec<f32> {
+            (0..28)
+                .flat_map(|y| (0..32).map(move |x| (x, y)))
+                .map(|(x, y)| im.get(i * 32 + x, y, 0))
+                .collect()
+        };
+        let snr = snr_db(&reference.data, &part(&img));
+        let without = snr_db(&reference.data, &part(&raw));
+        assert!(
+            snr >= 20.0 && snr > without + 10.0,
+            "multiview image {i}: SNR {snr:.1} dB with the offset, {without:.1} without"
         );
     }
 }

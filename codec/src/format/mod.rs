@@ -135,7 +135,7 @@ pub(crate) fn invalid(what: &'static str, detail: impl Into<String>) -> FormatEr
 pub enum ColorKind {
     /// One intensity channel; no colour transform.
     Intensity,
-    /// RGB kept as is (importances 1, 1, 1).
+    /// RGB channels, only the origin colour subtracted (importances 1, 1, 1).
     Rgb,
     /// NTSC YIQ (the importances are stored in the header; the compressor writes each
     /// channel's RGB error weight).

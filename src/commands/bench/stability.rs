@@ -265,19 +265,34 @@ fn pipeline_case(volume: &Volume, opts: &CompressOptions, view: &View) -> Result
     // Haar boxes are the voxels on any grid; for the splines the function of the complete
     // transform with one translate per basis function (as the renderer draws), which differs
     // from the voxel spline near the faces by the boundary handling (a property of the margin,
-    // measured in BENCHMARKS.md, not of the numerics judged here).
+    // measured in BENCHMARKS.md, not of the numerics judged here). The file codes an intensity
+    // volume less its offset and draws the offset as offset × the box's path length, so the
+    // spline reference is the complete transform of the volume less the offset, with the
+    // offset's path lengths added the same way.
     let g = &header.geometry;
-    let original = if g.family == Family::Haar || volume.channel_count() != 1 {
-        PaddedVolume::from_volume(volume.channels(), g)
-    } else {
-        let exact = Coefficient::all_of(g, 0, &decompose_channel(volume.channel(0), g));
+    let spline_intensity = g.family != Family::Haar && volume.channel_count() == 1;
+    let original = if spline_intensity {
+        let offset = header.color.mean[0];
+        let shifted: Vec<f32> = volume
+            .channel(0)
+            .iter()
+            .map(|v| (f64::from(*v) - offset) as f32)
+            .collect();
+        let exact = Coefficient::all_of(g, 0, &decompose_channel(&shifted, g));
         PaddedVolume::from_coefficients(&exact, g, 1)?
+    } else {
+        PaddedVolume::from_volume(volume.channels(), g)
     };
     let reference = render_reference(
         &original,
         view,
         &reference_options(header.geometry.family, 0.0),
     )?;
+    let reference = if spline_intensity {
+        to_rgb_for_spec(&reference, &header, &ViewSpec::single(*view))?
+    } else {
+        reference
+    };
     Ok(Outcome::Images {
         image,
         reference,
