@@ -632,13 +632,17 @@ impl<'h> Neighbourhood<'h> {
         }
     }
 
-    /// Whether a set of level `l` with bounding box [lo, hi) can be held as a [`Pyramid`]:
-    /// its grid would not be coarsened, its region is small enough, and (for a parent set) the
-    /// finer level's region maps onto it by halving, so that the halved box is the parent cube.
-    fn exact(&self, l: usize, lo: [u32; 3], hi: [u32; 3], parent: bool) -> bool {
+    /// Whether a set of `count` cells of level `l` with bounding box [lo, hi) is held as a
+    /// [`Pyramid`]: its grid would not be coarsened, its region is small enough, the set is
+    /// dense enough to pay for a region-sized pyramid (at least one cell per 4×4×4 brick of the
+    /// region: a sparse set's grid is sized by its bounding box, so a small packet does not
+    /// allocate and clear its whole region), and (for a parent set) the finer level's region
+    /// maps onto it by halving, so that the halved box is the parent cube. Both forms answer
+    /// the same queries identically.
+    fn exact(&self, l: usize, lo: [u32; 3], hi: [u32; 3], count: usize, parent: bool) -> bool {
         let r = self.regions[l];
         let cells: u128 = r.extent.iter().map(|&e| e as u128).product();
-        if coarsened(lo, hi) || cells > DENSE_MAX_CELLS as u128 {
+        if coarsened(lo, hi) || cells > DENSE_MAX_CELLS as u128 || (count as u128) * 64 < cells {
             return false;
         }
         if parent {
@@ -677,7 +681,7 @@ impl<'h> Neighbourhood<'h> {
         }
         if l > 1 {
             if let Some(i) = geometry.band_index(band) {
-                let set = if self.exact(l, lo, hi, true) {
+                let set = if self.exact(l, lo, hi, cells.len(), true) {
                     let mut p = Pyramid::new(self.regions[l].extent);
                     cells.iter().for_each(|c| p.insert(*c));
                     CellSet::Exact(p)
@@ -695,7 +699,7 @@ impl<'h> Neighbourhood<'h> {
                 bounds.1[a] = bounds.1[a].max(hi[a]);
             }
             let (lo, hi) = *bounds;
-            let set = if self.exact(l, lo, hi, false) {
+            let set = if self.exact(l, lo, hi, self.level_cells[l].len(), false) {
                 match self.cousins[l].take() {
                     // The union only grows: add the new cells.
                     Some(CellSet::Exact(mut p)) => {
