@@ -634,15 +634,15 @@ impl<'h> Neighbourhood<'h> {
 
     /// Whether a set of `count` cells of level `l` with bounding box [lo, hi) is held as a
     /// [`Pyramid`]: its grid would not be coarsened, its region is small enough, the set is
-    /// dense enough to pay for a region-sized pyramid (at least one cell per 4×4×4 brick of the
-    /// region: a sparse set's grid is sized by its bounding box, so a small packet does not
-    /// allocate and clear its whole region), and (for a parent set) the finer level's region
+    /// dense enough to pay for a region-sized pyramid (at least one cell per 8×8×8 block of the
+    /// region, so at most ~512 bytes per cell: a sparse set's grid is sized by its bounding
+    /// box, so a small packet does not allocate and clear its whole region), and (for a parent set) the finer level's region
     /// maps onto it by halving, so that the halved box is the parent cube. Both forms answer
     /// the same queries identically.
     fn exact(&self, l: usize, lo: [u32; 3], hi: [u32; 3], count: usize, parent: bool) -> bool {
         let r = self.regions[l];
         let cells: u128 = r.extent.iter().map(|&e| e as u128).product();
-        if coarsened(lo, hi) || cells > DENSE_MAX_CELLS as u128 || (count as u128) * 64 < cells {
+        if coarsened(lo, hi) || cells > DENSE_MAX_CELLS as u128 || (count as u128) * 512 < cells {
             return false;
         }
         if parent {
