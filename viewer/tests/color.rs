@@ -4,9 +4,11 @@
 //! RGB volume. The mean's contribution to a cued pixel is the cued path length, not the plain
 //! one: this is the test that catches the difference.
 
-use wavesplat_codec::format::parse_file;
+use wavesplat_codec::format::packet::{decode_packet, Coefficient};
+use wavesplat_codec::format::{parse_file, Header};
 use wavesplat_codec::metrics::snr_db;
 use wavesplat_codec::view::{Cue, CueDirection, View, ViewSpec};
+use wavesplat_codec::volume::Volume;
 use wavesplat_compressor::colorspace::ColorSpaceKind;
 use wavesplat_compressor::encode::{compress, CompressOptions, Target};
 use wavesplat_compressor::phantom::Phantom;
@@ -16,10 +18,11 @@ use wavesplat_viewer::{
     Renderer,
 };
 
-fn snr_against_reference(space: ColorSpaceKind, cue_k: Option<f64>, dims: [usize; 3]) -> f64 {
-    let volume = Phantom::RgbHead.generate(dims);
+/// `volume` compressed whole (every coefficient, 16 bits, no refinement) in `space`: the
+/// file's header and every decoded coefficient.
+fn compress_all(volume: &Volume, space: ColorSpaceKind) -> (Header, Vec<Coefficient>) {
     let c = compress(
-        &volume,
+        volume,
         &CompressOptions {
             colorspace: space,
             target: Target::All,
@@ -31,15 +34,17 @@ fn snr_against_reference(space: ColorSpaceKind, cue_k: Option<f64>, dims: [usize
     )
     .expect("compress");
     let file = parse_file(&c.bytes).unwrap();
-    let coeffs: Vec<_> = file
+    let coeffs = file
         .packets
         .iter()
-        .flat_map(|p| {
-            wavesplat_codec::format::packet::decode_packet(&file.header, p)
-                .unwrap()
-                .coefficients
-        })
+        .flat_map(|p| decode_packet(&file.header, p).unwrap().coefficients)
         .collect();
+    (file.header, coeffs)
+}
+
+fn snr_against_reference(space: ColorSpaceKind, cue_k: Option<f64>, dims: [usize; 3]) -> f64 {
+    let volume = Phantom::RgbHead.generate(dims);
+    let (header, coeffs) = compress_all(&volume, space);
     let mut view = View::new(0.4, 0.7, 48, 40);
     if let Some(k) = cue_k {
         view = view.with_cue(Cue {
@@ -52,11 +57,9 @@ fn snr_against_reference(space: ColorSpaceKind, cue_k: Option<f64>, dims: [usize
         channels: 3,
         ..Default::default()
     });
-    let (raw, _) = r
-        .render_spec(&coeffs, &file.header.geometry, &spec)
-        .unwrap();
-    let img = to_rgb_for_spec(&raw, &file.header, &spec).unwrap();
-    let truth = PaddedVolume::from_volume(volume.channels(), &file.header.geometry);
+    let (raw, _) = r.render_spec(&coeffs, &header.geometry, &spec).unwrap();
+    let img = to_rgb_for_spec(&raw, &header, &spec).unwrap();
+    let truth = PaddedVolume::from_volume(volume.channels(), &header.geometry);
     let reference = render_reference(&truth, &view, &ReferenceOptions::default()).unwrap();
     assert!(img.data.iter().all(|v| v.is_finite()));
     snr_db(&reference.data, &img.data)
@@ -100,32 +103,12 @@ fn an_intensity_offset_comes_back_as_the_path_length() {
         ([15, 18, 17], std::f64::consts::FRAC_PI_2, 0.01, Some(0.3)),
     ] {
         let volume = Phantom::Ct.generate(dims);
-        let c = compress(
-            &volume,
-            &CompressOptions {
-                target: Target::All,
-                bits: 16,
-                refine: None,
-                ..Default::default()
-            },
-            &|_, _| {},
-        )
-        .expect("compress");
-        let file = parse_file(&c.bytes).unwrap();
-        let offset = file.header.color.mean[0];
+        let (header, coeffs) = compress_all(&volume, ColorSpaceKind::Pca);
+        let offset = header.color.mean[0];
         assert!(
             offset < -900.0,
             "the CT phantom's faces are air: offset {offset}"
         );
-        let coeffs: Vec<_> = file
-            .packets
-            .iter()
-            .flat_map(|p| {
-                wavesplat_codec::format::packet::decode_packet(&file.header, p)
-                    .unwrap()
-                    .coefficients
-            })
-            .collect();
         let mut view = View::new(alpha, beta, 48, 40);
         if let Some(k) = k {
             view = view.with_cue(Cue {
@@ -135,12 +118,10 @@ fn an_intensity_offset_comes_back_as_the_path_length() {
         }
         let spec = ViewSpec::single(view);
         let mut r = Renderer::new(RenderOptions::default());
-        let (raw, _) = r
-            .render_spec(&coeffs, &file.header.geometry, &spec)
-            .unwrap();
-        let img = to_rgb_for_spec(&raw, &file.header, &spec).unwrap();
+        let (raw, _) = r.render_spec(&coeffs, &header.geometry, &spec).unwrap();
+        let img = to_rgb_for_spec(&raw, &header, &spec).unwrap();
         assert_eq!(img.channels, 1);
-        let truth = PaddedVolume::from_volume(volume.channels(), &file.header.geometry);
+        let truth = PaddedVolume::from_volume(volume.channels(), &header.geometry);
         let reference = render_reference(&truth, &view, &ReferenceOptions::default()).unwrap();
         let snr = snr_db(&reference.data, &img.data);
         let without = snr_db(&reference.data, &raw.data);
@@ -157,41 +138,19 @@ fn an_intensity_offset_comes_back_as_the_path_length() {
 #[test]
 fn an_intensity_offset_in_multiview_images() {
     let volume = Phantom::Ct.generate([18, 16, 14]);
-    let c = compress(
-        &volume,
-        &CompressOptions {
-            target: Target::All,
-            bits: 16,
-            refine: None,
-            ..Default::default()
-        },
-        &|_, _| {},
-    )
-    .expect("compress");
-    let file = parse_file(&c.bytes).unwrap();
-    assert!(file.header.color.mean[0] < -900.0);
-    let coeffs: Vec<_> = file
-        .packets
-        .iter()
-        .flat_map(|p| {
-            wavesplat_codec::format::packet::decode_packet(&file.header, p)
-                .unwrap()
-                .coefficients
-        })
-        .collect();
+    let (header, coeffs) = compress_all(&volume, ColorSpaceKind::Pca);
+    assert!(header.color.mean[0] < -900.0);
     let view = View::new(0.3, 0.5, 32, 28);
     let spec = ViewSpec {
         view,
         multiview: true,
     };
     let mut r = Renderer::new(RenderOptions::default());
-    let (raw, _) = r
-        .render_spec(&coeffs, &file.header.geometry, &spec)
-        .unwrap();
-    let img = to_rgb_for_spec(&raw, &file.header, &spec).unwrap();
+    let (raw, _) = r.render_spec(&coeffs, &header.geometry, &spec).unwrap();
+    let img = to_rgb_for_spec(&raw, &header, &spec).unwrap();
     assert_eq!((img.width, img.height), (3 * 32, 28));
-    let truth = PaddedVolume::from_volume(volume.channels(), &file.header.geometry);
-    let cameras = wavesplat_codec::view::multiview_cameras(&view, &file.header.geometry).unwrap();
+    let truth = PaddedVolume::from_volume(volume.channels(), &header.geometry);
+    let cameras = wavesplat_codec::view::multiview_cameras(&view, &header.geometry).unwrap();
     for (i, cam) in cameras.iter().enumerate() {
         let reference = render_reference_camera(&truth, cam, None, &ReferenceOptions::default());
         let part = |im: &wavesplat_viewer::image::Image| -> Vec<f32> {
