@@ -77,6 +77,12 @@ pub fn reconstruct_within(
     budget.check_bytes(reconstruction_bytes(header))?;
     let g = &header.geometry;
     let mut planner = Dwt1d::new(g.family);
+    // An intensity volume was coded less its offset (zero for files without one).
+    let offset = if header.channels == 1 {
+        header.color.mean[0]
+    } else {
+        0.0
+    };
     let mut channels = Vec::with_capacity(header.channels);
     for c in 0..header.channels {
         let mut data = vec![0.0f64; g.coefficient_count()];
@@ -86,27 +92,20 @@ pub fn reconstruct_within(
         }
         inverse_3d(&mut data, g, &mut planner);
         coefficients_to_samples(&mut data, g);
-        channels.push(crop_channel(&data, g));
+        let mut samples = crop_channel(&data, g);
+        if offset != 0.0 {
+            samples
+                .iter_mut()
+                .for_each(|v| *v = (f64::from(*v) + offset) as f32);
+        }
+        channels.push(samples);
     }
     let mut coded = Volume::new(g.dims, header.spacing(), channels)?;
     if let Some(p) = header.placement {
         coded = coded.with_placement(p)?;
     }
     if header.channels == 1 {
-        let offset = header.color.mean[0];
-        if offset == 0.0 {
-            return Ok(coded);
-        }
-        let values: Vec<f32> = coded
-            .channel(0)
-            .iter()
-            .map(|v| (f64::from(*v) + offset) as f32)
-            .collect();
-        let mut out = Volume::new(g.dims, header.spacing(), vec![values])?;
-        if let Some(p) = header.placement {
-            out = out.with_placement(p)?;
-        }
-        return Ok(out);
+        return Ok(coded);
     }
     let t = ColorTransform {
         kind: match header.color.kind {

@@ -34,7 +34,7 @@
 use crate::select::{histogram, pick_order, top_k, CHUNK};
 use rayon::prelude::*;
 use wavesplat_codec::dwt::fast::FastTransform;
-use wavesplat_codec::dwt::unit_basis_line;
+use wavesplat_codec::dwt::{pad_channel_as, unit_basis_line};
 use wavesplat_codec::family::Family;
 use wavesplat_codec::layout::Geometry;
 
@@ -394,18 +394,7 @@ pub(crate) fn refine_with(
 
 /// Copies a channel into the zero-padded grid of `geometry`, in f32.
 pub(crate) fn pad_f32(channel: &[f32], geometry: &Geometry) -> Vec<f32> {
-    let [nx, ny, nz] = geometry.dims;
-    let [px, py, _] = geometry.padded;
-    let [ox, oy, oz] = geometry.origin;
-    let mut out = vec![0.0f32; geometry.coefficient_count()];
-    for z in 0..nz {
-        for y in 0..ny {
-            let src = nx * (y + ny * z);
-            let dst = ox + px * ((oy + y) + py * (oz + z));
-            out[dst..dst + nx].copy_from_slice(&channel[src..src + nx]);
-        }
-    }
-    out
+    pad_channel_as(channel, geometry, |v| v)
 }
 
 fn sorted(

@@ -9,7 +9,7 @@
 
 use crate::image::Image;
 use crate::RenderError;
-use wavesplat_codec::format::{ColorKind, Header};
+use wavesplat_codec::format::Header;
 use wavesplat_codec::view::{resolve_cue, Camera, ResolvedCue, ViewSpec};
 
 /// Converts `image` (views side by side, one camera each, rendered with depth cue `cue` if
@@ -89,9 +89,9 @@ impl PathLengths {
 
     /// `image` in display values ([`to_rgb`]) with these lengths.
     pub fn apply(&self, image: &Image, header: &Header) -> Result<Image, RenderError> {
-        let intensity = header.color.kind == ColorKind::Intensity;
-        let channels = if intensity { 1 } else { 3 };
-        if image.channels != channels || (intensity && !has_offset(header)) {
+        // The header's channel count is 1 exactly for intensity (checked on read).
+        let channels = header.channels;
+        if image.channels != channels || (channels == 1 && !has_offset(header)) {
             return Ok(image.clone());
         }
         if (image.width, image.height) != (self.width, self.height) {
@@ -132,12 +132,9 @@ impl PathLengths {
 
 /// Whether the header's coding subtracted anything per voxel (an offset or origin colour).
 fn has_offset(header: &Header) -> bool {
-    let channels = if header.color.kind == ColorKind::Intensity {
-        1
-    } else {
-        3
-    };
-    header.color.mean[..channels].iter().any(|m| *m != 0.0)
+    header.color.mean[..header.channels.min(3)]
+        .iter()
+        .any(|m| *m != 0.0)
 }
 
 /// [`to_rgb`] for an image rendered for `spec`: its cameras and its resolved depth cue.

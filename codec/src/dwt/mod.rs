@@ -331,16 +331,26 @@ pub fn inverse_3d_adjoint(data: &mut [f64], geometry: &Geometry, planner: &Dwt1d
 
 /// Copies a channel of the volume into the zero-padded grid of `geometry` (as f64).
 pub fn pad_channel(channel: &[f32], geometry: &Geometry) -> Vec<f64> {
+    pad_channel_as(channel, geometry, f64::from)
+}
+
+/// Copies a channel of the volume into the zero-padded grid of `geometry`, each sample
+/// converted by `convert` (`f64::from` for [`pad_channel`]; the identity for f32 work).
+pub fn pad_channel_as<T: Copy + Default>(
+    channel: &[f32],
+    geometry: &Geometry,
+    convert: impl Fn(f32) -> T,
+) -> Vec<T> {
     let [nx, ny, nz] = geometry.dims;
     let [px, py, _] = geometry.padded;
     let [ox, oy, oz] = geometry.origin;
-    let mut out = vec![0.0; geometry.coefficient_count()];
+    let mut out = vec![T::default(); geometry.coefficient_count()];
     for z in 0..nz {
         for y in 0..ny {
             let src = nx * (y + ny * z);
             let dst = ox + px * ((oy + y) + py * (oz + z));
-            for x in 0..nx {
-                out[dst + x] = channel[src + x] as f64;
+            for (o, v) in out[dst..dst + nx].iter_mut().zip(&channel[src..src + nx]) {
+                *o = convert(*v);
             }
         }
     }
