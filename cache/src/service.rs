@@ -4,6 +4,9 @@
 //! holdings, credit) and sends packets through a bounded channel, so it only produces as fast as
 //! the client consumes; with a byte credit (the client pulls) it also never has more than the
 //! credit in flight, so a view change reorders everything the client has not yet asked for.
+//! A session does not wait for its view's plan to start: it sends the header and the first
+//! packets in file order (the global significance order) while the plan runs on a bounded
+//! pool, then the rest in the view's order.
 
 use crate::convert;
 use crate::error::CacheError;
@@ -17,6 +20,7 @@ use tokio::sync::{mpsc, watch, Semaphore};
 use tokio_stream::wrappers::ReceiverStream;
 use tokio_stream::Stream;
 use tonic::{Request, Response, Status, Streaming};
+use wavesplat_codec::view::ViewSpec;
 use wavesplat_net::deadline::request_deadline;
 use wavesplat_net::status::client_fault;
 use wavesplat_net::Caller;
@@ -29,6 +33,10 @@ pub const MAX_CHUNK_BYTES: usize = 4 << 20;
 pub const STREAM_BUFFER: usize = 4;
 /// Largest `FirstPackets` budget (bytes).
 pub const MAX_FIRST_PACKETS_BYTES: u64 = 16 << 20;
+/// While a new stream's view is being planned it sends packets in file order, up to this
+/// share of the volume's bytes (1/64; always at least one packet): the coarse start every view
+/// needs, small enough that a view whose plan differs much from the global order loses little.
+const UNPLANNED_SHARE: u64 = 64;
 
 /// Limits per caller (its token's identity, or its address without authentication).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -96,6 +104,9 @@ pub struct CacheService {
     buffered: Arc<Semaphore>,
     fairness: Fairness,
     open: Arc<Mutex<Open>>,
+    /// View plans running at once (one per core): a burst of session starts finishes its plans
+    /// in arrival order rather than all of them together, late.
+    planners: Arc<Semaphore>,
 }
 
 impl CacheService {
@@ -121,6 +132,9 @@ impl CacheService {
             buffered: Arc::new(Semaphore::new(bytes)),
             fairness,
             open: Arc::default(),
+            planners: Arc::new(Semaphore::new(
+                std::thread::available_parallelism().map_or(2, |n| n.get()),
+            )),
         }
     }
 
@@ -165,8 +179,24 @@ impl CacheService {
 }
 
 /// Reads the next message of a client stream; a message the client got wrong is its fault.
-async fn next_message<T>(s: &mut Streaming<T>) -> Result<Option<T>, Status> {
-    s.message().await.map_err(client_fault)
+async fn next_message<T>(
+    s: &mut (impl Stream<Item = Result<T, Status>> + Unpin),
+) -> Result<Option<T>, Status> {
+    use tokio_stream::StreamExt;
+    s.next().await.transpose().map_err(client_fault)
+}
+
+/// Plans `spec` for `volume` on the blocking pool, once one of `planners`' permits is free.
+async fn plan(
+    planners: Arc<Semaphore>,
+    volume: Arc<OpenVolume>,
+    spec: ViewSpec,
+) -> Result<Priority, Status> {
+    let _permit = planners
+        .acquire_owned()
+        .await
+        .map_err(|_| Status::internal("the planner pool is closed"))?;
+    blocking(move || Priority::new(&volume.index.header, &spec)).await
 }
 
 /// Set when a handler is dropped before it finished (the client went away or its deadline
@@ -436,20 +466,27 @@ impl Cache for CacheService {
         let key = convert::volume_key(start.volume)?;
         let spec = convert::view_spec(start.view)?;
         let store = self.store.clone();
-        let (volume, priority, name) = blocking(move || {
+        let (volume, name) = blocking(move || {
             let volume = store.open_volume(store.resolve(&key)?)?;
-            let priority = Priority::new(&volume.index.header, &spec)?;
-            Ok((volume, priority, key))
+            Ok((volume, key))
         })
         .await?;
-        let mut session = Session::new(volume, name, start.credit_bytes);
+        let mut session = Session::new(
+            volume.clone(),
+            name,
+            start.credit_bytes,
+            self.planners.clone(),
+        );
         session.visible_only = start.visible_only;
         session.hold(&start.have)?;
-        session.reorder(priority);
+        session.unplanned();
+        let planning = tokio::spawn(plan(self.planners.clone(), volume, spec));
         let (tx, rx) = mpsc::channel(STREAM_BUFFER);
         let stopping = self.stopping.clone();
         tokio::spawn(async move {
-            session.run(inbound, tx, !start.have_header, stopping).await;
+            session
+                .run(inbound, planning, tx, !start.have_header, stopping)
+                .await;
             drop(slot);
         });
         Ok(Response::new(Box::pin(ReceiverStream::new(rx))))
@@ -481,10 +518,19 @@ struct Session {
     visible_only: bool,
     /// View changes applied on this stream.
     views: u32,
+    /// Bytes the stream may still send in file order before its view is planned (`None`: the
+    /// queue is in the view's order).
+    unplanned: Option<u64>,
+    planners: Arc<Semaphore>,
 }
 
 impl Session {
-    fn new(volume: Arc<OpenVolume>, name: crate::VolumeKey, credit_bytes: u64) -> Session {
+    fn new(
+        volume: Arc<OpenVolume>,
+        name: crate::VolumeKey,
+        credit_bytes: u64,
+        planners: Arc<Semaphore>,
+    ) -> Session {
         Session {
             volume,
             name,
@@ -495,7 +541,34 @@ impl Session {
             credit: (credit_bytes > 0).then_some(credit_bytes),
             visible_only: false,
             views: 0,
+            unplanned: None,
+            planners,
         }
+    }
+
+    /// Queues the packets not held in file order, to send while the view is planned: up to
+    /// 1/[`UNPLANNED_SHARE`] of the volume's bytes, nothing for a visible-only stream (it may
+    /// not send what the view cannot see, which only the plan knows).
+    fn unplanned(&mut self) {
+        let packets = &self.volume.index.packets;
+        let total: u64 = packets.iter().map(|p| u64::from(p.len)).sum();
+        self.unplanned = Some(if self.visible_only {
+            0
+        } else {
+            (total / UNPLANNED_SHARE).max(1)
+        });
+        let held = &self.held;
+        // Pops come from the end: file order is the reversed ids.
+        self.queue = (0..packets.len() as u32)
+            .rev()
+            .filter(|i| !held.contains(i))
+            .map(|i| (0.0, i))
+            .collect();
+    }
+
+    /// Whether the queue may be sent from now: planned, or within the unplanned budget.
+    fn may_send_queued(&self) -> bool {
+        !self.queue.is_empty() && self.unplanned.is_none_or(|b| b > 0)
     }
 
     fn check_ids(&self, ids: &[u32], what: &str) -> Result<(), CacheError> {
@@ -546,6 +619,7 @@ impl Session {
         // Ascending priority, ties: later file position first, so pops give file order.
         q.sort_by(|a, b| a.0.total_cmp(&b.0).then(b.1.cmp(&a.1)));
         self.queue = q;
+        self.unplanned = None;
     }
 
     /// Handles a client message; `Err` ends the stream with that status.
@@ -553,8 +627,7 @@ impl Session {
         match msg.msg {
             Some(pb::refine_request::Msg::View(v)) => {
                 let spec = convert::view_spec(Some(v))?;
-                let volume = self.volume.clone();
-                let priority = blocking(move || Priority::new(&volume.index.header, &spec)).await?;
+                let priority = plan(self.planners.clone(), self.volume.clone(), spec).await?;
                 self.reorder(priority);
                 self.views = self.views.wrapping_add(1);
                 tracing::debug!(volume = self.volume.meta.id, "view changed");
@@ -589,6 +662,9 @@ impl Session {
             if let Some(credit) = &mut self.credit {
                 *credit = credit.saturating_sub(data.len() as u64);
             }
+            if let Some(budget) = &mut self.unplanned {
+                *budget = budget.saturating_sub(data.len() as u64);
+            }
             return Ok(Some(pb::Packet {
                 id,
                 tile: p.tile,
@@ -600,9 +676,13 @@ impl Session {
         Ok(None)
     }
 
+    /// Serves the stream: the header (unless the client has it), then packets as the client
+    /// takes them; `planning` yields the plan of the starting view (until it does, the queue is
+    /// the unplanned one and `done` is not announced).
     async fn run(
         mut self,
-        mut inbound: Streaming<pb::RefineRequest>,
+        mut inbound: impl Stream<Item = Result<pb::RefineRequest, Status>> + Unpin,
+        mut planning: tokio::task::JoinHandle<Result<Priority, Status>>,
         tx: mpsc::Sender<Result<pb::RefineResponse, Status>>,
         send_header: bool,
         mut stopping: watch::Receiver<bool>,
@@ -621,11 +701,12 @@ impl Session {
             }
         }
         let mut inbound_open = true;
+        let mut planned = false;
         // `done` is announced whenever the queue runs dry; the stream stays open while the
         // client may still send (a view change can queue dropped packets again).
         let mut announced = false;
         loop {
-            if self.queue.is_empty() {
+            if self.queue.is_empty() && planned {
                 if !announced {
                     let done = pb::RefineDone {
                         sent: self.sent,
@@ -655,6 +736,16 @@ impl Session {
                     let _ = tx.send(Err(Status::unavailable("the cache is shutting down"))).await;
                     return;
                 }
+                plan = &mut planning, if !planned => {
+                    planned = true;
+                    match plan.map_err(|e| Status::internal(format!("planning failed: {e}"))) {
+                        Ok(Ok(priority)) => self.reorder(priority),
+                        Ok(Err(status)) | Err(status) => {
+                            let _ = tx.send(Err(status)).await;
+                            return;
+                        }
+                    }
+                }
                 msg = next_message(&mut inbound), if inbound_open => match msg {
                     Ok(Some(m)) => {
                         // A new view is a new refinement: it is announced done again (at once
@@ -665,6 +756,11 @@ impl Session {
                             let _ = tx.send(Err(status)).await;
                             return;
                         }
+                        if new_view && !planned {
+                            // The new view's plan replaced the starting one's.
+                            planning.abort();
+                            planned = true;
+                        }
                         announced &= self.queue.is_empty() && !new_view;
                     }
                     Ok(None) => inbound_open = false,
@@ -673,7 +769,7 @@ impl Session {
                         return;
                     }
                 },
-                permit = tx.reserve(), if self.may_send() && !self.queue.is_empty() => {
+                permit = tx.reserve(), if self.may_send() && self.may_send_queued() => {
                     let Ok(permit) = permit else { return };
                     match self.next_packet() {
                         Ok(Some(p)) => permit.send(Ok(pb::RefineResponse { msg: Some(Msg::Packet(p)) })),
@@ -688,5 +784,174 @@ impl Session {
                 else => return,
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::Limits;
+    use pb::refine_response::Msg;
+    use std::time::Duration;
+
+    fn open_test_volume(dir: &std::path::Path) -> Arc<OpenVolume> {
+        use wavesplat_compressor::encode::{compress, CompressOptions, Target, TileChoice};
+        let vol = wavesplat_compressor::phantom::Phantom::SheppLogan.generate([32, 32, 32]);
+        let bytes = compress(
+            &vol,
+            &CompressOptions {
+                target: Target::Fraction(0.1),
+                tile: TileChoice::Size(8),
+                layers: Some(3),
+                levels: Some(2),
+                ..Default::default()
+            },
+            &|_, _| {},
+        )
+        .unwrap()
+        .bytes;
+        let store = Store::open(dir, Limits::default()).unwrap();
+        let id = store.ingest("v", &bytes, None).unwrap().volume.id;
+        store.open_volume(id).unwrap()
+    }
+
+    /// Runs a session whose plan is `planning`, with a client that sends nothing more; returns
+    /// what arrives until `quiet` passes without a message.
+    async fn serve(
+        volume: &Arc<OpenVolume>,
+        visible_only: bool,
+        planning: tokio::task::JoinHandle<Result<Priority, Status>>,
+    ) -> (
+        tokio::task::JoinHandle<()>,
+        mpsc::Receiver<Result<pb::RefineResponse, Status>>,
+    ) {
+        let planners = Arc::new(Semaphore::new(1));
+        let mut session = Session::new(volume.clone(), crate::VolumeKey::Id(1), 0, planners);
+        session.visible_only = visible_only;
+        session.unplanned();
+        let (tx, rx) = mpsc::channel(STREAM_BUFFER);
+        let (_stop_tx, stopping) = watch::channel(false);
+        let inbound = tokio_stream::pending::<Result<pb::RefineRequest, Status>>();
+        let task = tokio::spawn(async move {
+            let _keep = _stop_tx;
+            session.run(inbound, planning, tx, true, stopping).await;
+        });
+        (task, rx)
+    }
+
+    async fn drain(
+        rx: &mut mpsc::Receiver<Result<pb::RefineResponse, Status>>,
+        quiet: Duration,
+    ) -> Vec<Msg> {
+        let mut got = Vec::new();
+        while let Ok(Some(m)) = tokio::time::timeout(quiet, rx.recv()).await {
+            got.push(m.expect("no error").msg.expect("a message"));
+            if matches!(got.last(), Some(Msg::Done(_))) {
+                break;
+            }
+        }
+        got
+    }
+
+    fn packets(msgs: &[Msg]) -> Vec<&pb::Packet> {
+        msgs.iter()
+            .filter_map(|m| match m {
+                Msg::Packet(p) => Some(p),
+                _ => None,
+            })
+            .collect()
+    }
+
+    #[tokio::test]
+    async fn a_stream_sends_its_first_packets_before_its_view_is_planned() {
+        let dir = tempfile::tempdir().unwrap();
+        let volume = open_test_volume(dir.path());
+        let index = &volume.index.packets;
+        let total: u64 = index.iter().map(|p| u64::from(p.len)).sum();
+        let largest = index.iter().map(|p| u64::from(p.len)).max().unwrap();
+        assert!(index.len() > 64, "{} packets", index.len());
+
+        // A plan that never comes: the header, then file order within the unplanned budget,
+        // and no `done` (the view's own order has not been sent).
+        let (task, mut rx) = serve(&volume, false, tokio::spawn(std::future::pending())).await;
+        let got = drain(&mut rx, Duration::from_millis(300)).await;
+        assert!(matches!(got.first(), Some(Msg::Header(_))), "header first");
+        let early = packets(&got);
+        assert!(!early.is_empty(), "nothing sent before the plan");
+        let ids: Vec<u32> = early.iter().map(|p| p.id).collect();
+        assert_eq!(
+            ids,
+            (0..ids.len() as u32).collect::<Vec<_>>(),
+            "not file order"
+        );
+        let bytes: u64 = early.iter().map(|p| p.data.len() as u64).sum();
+        assert!(
+            bytes <= total / UNPLANNED_SHARE + largest,
+            "{bytes} bytes unplanned of {total}"
+        );
+        assert!(early.len() < index.len());
+        assert!(
+            !got.iter().any(|m| matches!(m, Msg::Done(_))),
+            "done before the plan"
+        );
+        task.abort();
+
+        // Once the plan arrives, the rest follows in the view's descending priority, each
+        // packet once.
+        let spec = ViewSpec::single(wavesplat_codec::view::View::new(0.7, 0.4, 48, 48));
+        let planned = Priority::new(&volume.index.header, &spec).unwrap();
+        let (gate_tx, gate_rx) = tokio::sync::oneshot::channel::<()>();
+        let planning = tokio::spawn(async move {
+            let _ = gate_rx.await;
+            Ok(planned)
+        });
+        let (_task, mut rx) = serve(&volume, false, planning).await;
+        let mut got = drain(&mut rx, Duration::from_millis(300)).await;
+        let early = packets(&got).len();
+        gate_tx.send(()).unwrap();
+        got.extend(drain(&mut rx, Duration::from_secs(10)).await);
+        assert!(
+            matches!(got.last(), Some(Msg::Done(_))),
+            "no done after the plan"
+        );
+        let all = packets(&got);
+        let mut ids: Vec<u32> = all.iter().map(|p| p.id).collect();
+        let rest: Vec<f64> = all[early..].iter().map(|p| p.priority).collect();
+        assert!(
+            rest.windows(2).all(|w| w[0] >= w[1]),
+            "planned packets not in descending priority"
+        );
+        ids.sort_unstable();
+        assert_eq!(
+            ids,
+            (0..index.len() as u32).collect::<Vec<_>>(),
+            "each packet once"
+        );
+    }
+
+    #[tokio::test]
+    async fn a_visible_only_stream_sends_nothing_before_its_view_is_planned() {
+        let dir = tempfile::tempdir().unwrap();
+        let volume = open_test_volume(dir.path());
+        let (task, mut rx) = serve(&volume, true, tokio::spawn(std::future::pending())).await;
+        let got = drain(&mut rx, Duration::from_millis(300)).await;
+        assert_eq!(got.len(), 1, "{} messages", got.len());
+        assert!(matches!(got[0], Msg::Header(_)));
+        task.abort();
+    }
+
+    #[tokio::test]
+    async fn a_view_the_planner_refuses_ends_the_stream_with_its_status() {
+        let dir = tempfile::tempdir().unwrap();
+        let volume = open_test_volume(dir.path());
+        let planning =
+            tokio::spawn(async { Err(Status::invalid_argument("the view cannot be planned")) });
+        let (_task, mut rx) = serve(&volume, true, planning).await;
+        let mut last = None;
+        while let Ok(Some(m)) = tokio::time::timeout(Duration::from_secs(10), rx.recv()).await {
+            last = Some(m);
+        }
+        let status = last.expect("a message").expect_err("an error last");
+        assert_eq!(status.code(), tonic::Code::InvalidArgument);
     }
 }
