@@ -333,6 +333,27 @@ impl Walker {
         }
     }
 
+    /// The size of one value of a binary VR of fixed size (`None`: text, bytes, sequences).
+    /// dicom-rs reads `length / size` values and then counts the whole length as read, so a
+    /// length that is not a multiple (an AT of 6 bytes) leaves its stream misaligned and the
+    /// next "element header" it reads is value bytes: a 1.7 KB file made it reserve 1.5 GB.
+    fn value_size(&self, tag: Tag, vr: Option<[u8; 2]>) -> Option<usize> {
+        use dicom_core::dictionary::{DataDictionary, DataDictionaryEntry};
+        use dicom_core::VR;
+        let vr = match vr {
+            Some(v) => VR::from_binary(v)?,
+            None => dicom_dictionary_std::StandardDataDictionary
+                .by_tag(tag)
+                .and_then(|e| e.vr().exact())?,
+        };
+        match vr {
+            VR::SS | VR::US | VR::OW => Some(2),
+            VR::AT | VR::FL | VR::SL | VR::UL | VR::OF | VR::OL => Some(4),
+            VR::FD | VR::SV | VR::UV | VR::OD | VR::OV => Some(8),
+            _ => None,
+        }
+    }
+
     fn is_sequence(&self, tag: Tag, vr: Option<[u8; 2]>) -> bool {
         use dicom_core::dictionary::{DataDictionary, DataDictionaryEntry};
         match vr {
@@ -364,6 +385,12 @@ impl Walker {
             }
             match len {
                 Some(len) => {
+                    if let Some(size) = self.value_size(tag, vr).filter(|s| len % s != 0) {
+                        return Err((
+                            Some(tag),
+                            format!("a value of {len} bytes is not a whole number of {size}-byte values"),
+                        ));
+                    }
                     let stop = pos.checked_add(len).filter(|e| *e <= end).ok_or_else(|| {
                         (
                             Some(tag),

@@ -513,6 +513,33 @@ fn hostile_element_lengths_allocate_nothing_large() {
         e.to_string().contains("unknown value representation"),
         "{e}"
     );
+
+    // A binary value whose length is not a whole number of values (found by the fuzzer: an AT
+    // of 6 bytes): dicom-rs reads one tag, counts six bytes and goes on two bytes early, so
+    // the walk must refuse what the parser would misalign on.
+    for (vr, size) in [(VR::AT, 4u16), (VR::FD, 8), (VR::US, 2)] {
+        edit(&files[0], |o| {
+            let value = match vr {
+                VR::AT => {
+                    PrimitiveValue::Tags([Tag(0x0020, 0x0032), Tag(0x0020, 0x0037)][..].into())
+                }
+                VR::FD => PrimitiveValue::F64([1.5, 2.5][..].into()),
+                _ => PrimitiveValue::U16([7, 9][..].into()),
+            };
+            o.put(DataElement::new(Tag(0x0083, 0x0032), vr, value));
+        });
+        let mut bytes = std::fs::read(&files[0]).unwrap();
+        let name = vr.to_string();
+        let mut pat = vec![0x83, 0x00, 0x32, 0x00];
+        pat.extend_from_slice(name.as_bytes());
+        pat.extend_from_slice(&(2 * size).to_le_bytes());
+        let at = bytes.windows(pat.len()).position(|w| w == pat).unwrap();
+        // One byte short of two values, the byte moved into the next element's place.
+        bytes[at + 6..at + 8].copy_from_slice(&(2 * size - 1).to_le_bytes());
+        std::fs::write(&target, &bytes).unwrap();
+        let e = read_volume(&target, None).unwrap_err();
+        assert!(e.to_string().contains("not a whole number"), "{vr}: {e}");
+    }
 }
 
 #[test]
