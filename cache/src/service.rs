@@ -104,8 +104,10 @@ pub struct CacheService {
     buffered: Arc<Semaphore>,
     fairness: Fairness,
     open: Arc<Mutex<Open>>,
-    /// View plans running at once (one per core): a burst of session starts finishes its plans
-    /// in arrival order rather than all of them together, late.
+    /// View plans running at once (one per two cores, at least one): a burst of session starts
+    /// finishes its plans in arrival order rather than all of them together, late, and leaves
+    /// the other cores to the streams that are sending (with one planner per core, 64 starts
+    /// on two cores had a first-packet p99 of 40–57 ms; with one, 23–28 ms: BENCHMARKS.md).
     planners: Arc<Semaphore>,
 }
 
@@ -133,7 +135,7 @@ impl CacheService {
             fairness,
             open: Arc::default(),
             planners: Arc::new(Semaphore::new(
-                std::thread::available_parallelism().map_or(2, |n| n.get()),
+                std::thread::available_parallelism().map_or(1, |n| (n.get() / 2).max(1)),
             )),
         }
     }
