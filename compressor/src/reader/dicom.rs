@@ -176,10 +176,29 @@ fn check_lengths(path: &Path, bytes: &[u8]) -> Result<(), ReadError> {
         explicit: true,
         big: false,
     };
-    // The meta group: explicit VR little endian, group 0002.
-    let mut pos = 0;
+    // The meta group: explicit VR little endian, read as dicom-rs reads it: a group length
+    // (0002,0000) first, then whole elements (of any group) until that many bytes are read.
+    // Where the data set starts must agree with the parser's, or the walk checks other
+    // "elements" than the parser reads (a group length past a run of zeroed elements made
+    // dicom-rs read a 1.3 GB value the walk never saw).
+    let (tag, _, len, hdr) = w.header(body, 0).map_err(|m| dicom_err(path, None, m))?;
+    let group_length = match (tag, len) {
+        (Tag(0x0002, 0x0000), Some(4)) => body
+            .get(hdr..hdr + 4)
+            .map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]) as usize)
+            .ok_or_else(|| dicom_err(path, Some(tag), "truncated group length"))?,
+        _ => {
+            return Err(dicom_err(
+                path,
+                Some(tag),
+                "the file meta group does not start with its group length (0002,0000)",
+            ))
+        }
+    };
+    let meta_start = hdr + 4;
+    let mut pos = meta_start;
     let mut ts = String::new();
-    while pos + 8 <= body.len() && u16::from_le_bytes([body[pos], body[pos + 1]]) == 0x0002 {
+    while pos - meta_start < group_length {
         let (tag, _vr, len, hdr) = w.header(body, pos).map_err(|m| dicom_err(path, None, m))?;
         let start = pos + hdr;
         let len = len.ok_or_else(|| dicom_err(path, None, "undefined length in the meta group"))?;

@@ -543,6 +543,36 @@ fn hostile_element_lengths_allocate_nothing_large() {
 }
 
 #[test]
+fn the_length_walk_reads_the_meta_group_by_its_group_length() {
+    // dicom-rs reads the meta group by its group length (0002,0000), whatever groups the
+    // elements in it belong to; the walk must start the data set where the parser does.
+    let dir = tempfile::tempdir().unwrap();
+    let v = volume([4, 4, 1], [1.0; 3], Layout::I16, 1.0, 0.0);
+    let files = write_dicom_series(&dir.path().join("src"), &v, &DicomOptions::default());
+    let bytes = std::fs::read(&files[0]).unwrap();
+    assert_eq!(
+        &bytes[132..136],
+        &[2, 0, 0, 0],
+        "the group length comes first"
+    );
+    let target = dir.path().join("edited.dcm");
+    // Without its group length, the meta group cannot be read as dicom-rs reads it.
+    let mut no_length = bytes.clone();
+    no_length[134] = 1;
+    std::fs::write(&target, &no_length).unwrap();
+    let e = read_volume(&target, None).unwrap_err();
+    assert!(e.to_string().contains("group length"), "{e}");
+    // A group length 8 bytes short ends the meta group inside its last element for the
+    // parser; the walk must read on to the element's end as the parser does, and agree.
+    let group = u32::from_le_bytes(bytes[140..144].try_into().unwrap());
+    let mut short = bytes.clone();
+    short[140..144].copy_from_slice(&(group - 8).to_le_bytes());
+    std::fs::write(&target, &short).unwrap();
+    let read = read_volume(&target, None);
+    assert!(read.is_ok(), "{:?}", read.err());
+}
+
+#[test]
 fn a_small_file_cannot_declare_a_large_volume() {
     // Both within MAX_VOXELS, on files of a few hundred bytes: two billion one-voxel frames
     // (per-frame loops), and one 46 340² frame (an 8 GiB voxel buffer). Refused from the
