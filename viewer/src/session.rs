@@ -358,6 +358,10 @@ pub struct RenderSession<B: AccumulationBackend> {
     waiting: Vec<(u32, u32)>,
     /// Per-pixel path lengths of the last displayed view (kept while the view stays).
     path_lengths: Option<color::PathLengths>,
+    /// The preview's last image and how many coefficients it had drawn, shown after the exact
+    /// tables arrived until they have drawn as many: a switch from preview to exact tables
+    /// restarts the accumulation, which would otherwise dip to a coarser image for a few frames.
+    shown_preview: Option<(Image, u64)>,
     dropped: Vec<u32>,
     stats: SessionStats,
     /// Seconds per unit of splat weight (planning + accumulation), running estimates for
@@ -416,6 +420,7 @@ impl<B: AccumulationBackend> RenderSession<B> {
             queue: BucketQueue::new(),
             waiting: Vec::new(),
             path_lengths: None,
+            shown_preview: None,
             dropped: Vec::new(),
             stats: SessionStats::default(),
             cost: [INITIAL_COST_PER_WEIGHT; 2],
@@ -649,6 +654,7 @@ impl<B: AccumulationBackend> RenderSession<B> {
 
     /// Restarts the accumulation of the current plan and queues everything held again.
     fn restart(&mut self) -> Result<(), SessionError> {
+        self.shown_preview = None;
         self.backend.begin(self.plan.layout())?;
         self.plan.forget_stand_ins();
         self.queue.clear();
@@ -742,8 +748,16 @@ impl<B: AccumulationBackend> RenderSession<B> {
                         .plan(&self.header.geometry, &spec, self.header.channels)?;
             }
         }
+        // What the preview shows now (the backend still holds it; the exact plan has the same
+        // cameras) stays on screen until the exact tables catch up.
+        let preview = match self.stats.splatted_in_view {
+            0 => None,
+            n => Some((self.image()?, n)),
+        };
         self.exact = true;
-        self.restart()
+        self.restart()?;
+        self.shown_preview = preview;
+        Ok(())
     }
 
     /// Splats queued coefficients for at most about `budget` (see [`RenderSession::step_with`]).
@@ -897,7 +911,16 @@ impl<B: AccumulationBackend> RenderSession<B> {
 
     /// The image so far in the volume's display space (RGB for colour volumes; views side by
     /// side).
+    ///
+    /// Right after a preview is replaced by the exact tables, this is the preview's last image
+    /// until the exact tables have drawn as many coefficients (or everything queued).
     pub fn image(&mut self) -> Result<Image, SessionError> {
+        if let Some((image, drawn)) = &self.shown_preview {
+            if self.stats.splatted_in_view < *drawn && self.pending() > 0 {
+                return Ok(image.clone());
+            }
+            self.shown_preview = None;
+        }
         let raw = self.backend.read()?;
         let (cameras, cue) = (&self.plan.cameras, self.plan.cue.as_ref());
         let lengths = match self.path_lengths.take() {

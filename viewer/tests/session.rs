@@ -484,6 +484,54 @@ fn previews_are_replaced_by_exact_tables() {
     assert_eq!(session.stats().previews, 2);
 }
 
+/// The switch from a preview to the exact tables restarts the accumulation, but the preview's
+/// image stays on screen until the exact tables have drawn as many coefficients: the image never
+/// falls back to a coarser one on the way, and ends on the one-shot image.
+#[test]
+fn the_preview_stays_on_screen_until_the_exact_tables_catch_up() {
+    let bytes = wsp(Phantom::SheppLogan, 40, 16);
+    let (header, coeffs) = all(&bytes);
+    let options = SessionOptions {
+        preview: Some(SessionOptions::default_preview()),
+        ..Default::default()
+    };
+    let s = ViewSpec::single(View::new(0.66, 0.91, 160, 144));
+    let mut session = RenderSession::new(header.clone(), s, CpuBackend::new(), options).unwrap();
+    session.add_coefficients(coeffs.clone()).unwrap();
+    while session.pending() > 0 && !session.is_exact() {
+        session.step(Duration::from_millis(50)).unwrap();
+    }
+    assert!(
+        !session.is_exact(),
+        "the exact tables came before the preview had drawn everything (the test needs them later)"
+    );
+    let preview = session.image().unwrap();
+    let mut waited = 0;
+    while !session.is_exact() {
+        session.poll_exact().unwrap();
+        std::thread::sleep(Duration::from_millis(5));
+        waited += 1;
+        assert!(waited < 12_000, "exact tables never arrived");
+    }
+    assert!(
+        session.pending() > 0,
+        "the exact tables restart the accumulation"
+    );
+    let mut steps = 0;
+    while session.pending() > 0 {
+        let shown = session.image().unwrap();
+        assert!(
+            shown.data == preview.data,
+            "step {steps}: a partial exact image replaced the complete preview"
+        );
+        session.step(Duration::from_micros(300)).unwrap();
+        steps += 1;
+    }
+    assert!(steps > 1, "the exact tables drew everything at once");
+    let e = max_rel(&session.image().unwrap(), &full_image(&header, &coeffs, &s));
+    assert!(e <= 1e-5, "{e:e}");
+}
+
 /// A depth-cued session builds its per-piece cue tables off the frame thread: no table is built
 /// inside a batch (the coefficients that need one wait for it, drawn meanwhile by uncued
 /// stand-ins when previews are on), every frame stays within one batch of its budget, and the
