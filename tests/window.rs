@@ -374,3 +374,63 @@ fn without_a_display_the_window_fails_with_a_reason() {
     assert!(err.contains("error: opening the display"), "{err}");
     assert!(!err.contains("panicked"), "{err}");
 }
+
+/// A lost graphics device (destroyed by the script, as a driver reset would lose it): the
+/// window recreates its context, the session draws what it holds again, and the image comes
+/// back the same — with the CPU backend (only the display is recreated) and with the GPU one
+/// (the accumulation too).
+#[test]
+fn the_window_recovers_from_a_lost_graphics_device() {
+    let Some(x) = Xvfb::start() else {
+        skip("no Xvfb to open a window on");
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("head.wsp");
+    std::fs::write(&file, wsp(Phantom::SheppLogan, [24, 20, 16])).unwrap();
+    for backend in ["--cpu", "--gpu"] {
+        let p = |name: &str| -> PathBuf { dir.path().join(format!("{backend}-{name}")) };
+        let s = |name: &str| p(name).to_str().unwrap().to_string();
+        let script = format!(
+            "converge; screenshot {}; lose-device; frames 3; converge; screenshot {}; quit",
+            s("before.png"),
+            s("after.png"),
+        );
+        let child = view(
+            &x.display,
+            &[
+                file.to_str().unwrap(),
+                backend,
+                "--size",
+                "96x80",
+                "--script",
+                &script,
+            ],
+        )
+        .spawn()
+        .unwrap();
+        let (status, stdout, stderr) = finish(child);
+        assert!(
+            status.success(),
+            "{backend}: exit {status}\nstdout {stdout}\nstderr {stderr}"
+        );
+        assert!(
+            stderr.contains("graphics device lost") && stderr.contains("recovered"),
+            "{backend}: {stderr}"
+        );
+        assert!(
+            !stderr.contains("cannot be reopened"),
+            "{backend}: fell back to the CPU: {stderr}"
+        );
+        let (w, h, a) = grey(&p("before.png"));
+        let (w2, h2, b) = grey(&p("after.png"));
+        assert_eq!((w, h), (w2, h2));
+        let (_, var_b) = stats(&b, w, w, h);
+        assert!(var_b > 100.0, "{backend}: no volume after the recovery");
+        let diff = a.iter().zip(&b).map(|(x, y)| (x - y).abs()).sum::<f64>() / a.len() as f64;
+        assert!(
+            diff < 1.0,
+            "{backend}: the image changed across the recovery: mean |a-b| = {diff}"
+        );
+    }
+}

@@ -62,7 +62,8 @@ pub struct ViewWindowArgs {
     /// `;` or new lines, or `@FILE`. Commands: `frames N`, `converge`, `drag X0,Y0 X1,Y1
     /// [shift]`, `wheel LINES`, `key K` (a letter, `+`, `-`, `[`, `]`, `esc`, `f1`),
     /// `resize WxH`, `screenshot PATH`, `signal PATH` (create the file), `await PATH` (wait
-    /// until it exists), `quit`.
+    /// until it exists), `lose-device` (destroy the graphics device, as a driver reset would
+    /// lose it: the window recreates it), `quit`.
     #[arg(long)]
     pub script: Option<String>,
 }
@@ -107,6 +108,9 @@ pub fn run(a: ViewWindowArgs) -> Result<()> {
         args: a,
         pending: Some((header, source)),
         gfx: None,
+        display: None,
+        gpu_backend: false,
+        recoveries: 0,
         frames: None,
         script,
         error: None,
@@ -327,6 +331,7 @@ enum Command {
     Screenshot(PathBuf),
     Signal(PathBuf),
     Await(PathBuf),
+    LoseDevice,
     Quit,
 }
 
@@ -416,6 +421,7 @@ impl Script {
                 "signal" => Command::Signal(one()?.into()),
                 "await" => Command::Await(one()?.into()),
                 "quit" => Command::Quit,
+                "lose-device" => Command::LoseDevice,
                 _ => bail!("script: unknown command {verb:?} in {raw:?}"),
             };
             commands.push_back(c);
@@ -449,6 +455,12 @@ struct App {
     view_size: PhysicalSize<u32>,
     pending: Option<(Header, Box<dyn PacketSource>)>,
     gfx: Option<Gfx>,
+    /// The display connection a new graphics context is made on after a lost device.
+    display: Option<winit::event_loop::OwnedDisplayHandle>,
+    /// Whether the session accumulates on the window's device (recreated with it).
+    gpu_backend: bool,
+    /// Lost devices recovered from.
+    recoveries: u32,
     frames: Option<Frames>,
     script: Script,
     error: Option<anyhow::Error>,
@@ -465,6 +477,9 @@ struct App {
     last_draw: Instant,
     last_image: Option<(usize, usize)>,
 }
+
+/// Lost graphics devices a window recreates before it gives up.
+const MAX_RECOVERIES: u32 = 8;
 
 const HELP: &str = "wavesplat view: left-drag rotates (alpha, beta); shift-drag pans; wheel zooms;
   M multiview, C depth cue on/off, [ ] cue extinction down/up, D cue light direction (view,
@@ -492,51 +507,16 @@ impl App {
                 )
                 .context("creating the window")?,
         );
-        let instance =
-            wgpu::Instance::new(wgpu::InstanceDescriptor::new_with_display_handle_from_env(
-                Box::new(event_loop.owned_display_handle()),
-            ));
-        let surface = instance
-            .create_surface(window.clone())
-            .context("creating a wgpu surface for the window")?;
-        let adapter = pollster::block_on(instance.request_adapter(&wgpu::RequestAdapterOptions {
-            power_preference: wgpu::PowerPreference::from_env().unwrap_or_default(),
-            compatible_surface: Some(&surface),
-            ..Default::default()
-        }))
-        .context("no graphics adapter can draw to this window (WGPU_BACKEND chooses the API)")?;
-        let ctx =
-            GpuContext::from_adapter(instance, adapter).context("opening the graphics device")?;
+        let display = event_loop.owned_display_handle();
+        let Gfx {
+            surface,
+            config,
+            blitter,
+            ctx,
+            ..
+        } = open_display(&display, window.clone())?;
+        self.display = Some(display);
         let size = window.inner_size();
-        let caps = surface.get_capabilities(ctx.adapter());
-        let format = caps
-            .formats
-            .iter()
-            .copied()
-            .find(|f| !f.is_srgb())
-            .or_else(|| caps.formats.first().copied())
-            .ok_or_else(|| anyhow!("the surface offers no texture format"))?;
-        let config = wgpu::SurfaceConfiguration {
-            usage: wgpu::TextureUsages::RENDER_ATTACHMENT,
-            format,
-            width: size.width.max(1),
-            height: size.height.max(1),
-            present_mode: wgpu::PresentMode::AutoVsync,
-            desired_maximum_frame_latency: 2,
-            alpha_mode: caps
-                .alpha_modes
-                .first()
-                .copied()
-                .unwrap_or(wgpu::CompositeAlphaMode::Auto),
-            view_formats: vec![],
-            ..surface
-                .get_default_config(ctx.adapter(), size.width.max(1), size.height.max(1))
-                .ok_or_else(|| anyhow!("the surface is not supported by the adapter"))?
-        };
-        if size.width > 0 && size.height > 0 {
-            surface.configure(ctx.device(), &config);
-        }
-        let blitter = wgpu::util::TextureBlitter::new(ctx.device(), format);
         let (header, source) = self
             .pending
             .take()
@@ -566,6 +546,12 @@ impl App {
                 let s = select(choice).context("choosing the accumulation backend")?;
                 (s.backend, s.reason)
             }
+        };
+        // Only `--cpu` and the software-adapter default draw on the CPU.
+        self.gpu_backend = match choice {
+            BackendChoice::Gpu => true,
+            BackendChoice::Auto => !ctx.is_software(),
+            _ => false,
         };
         eprintln!(
             "backend: {reason}; display on {} ({:?})",
@@ -794,15 +780,79 @@ impl App {
                     }
                 }
                 Command::Quit => event_loop.exit(),
+                Command::LoseDevice => {
+                    if let Some(g) = &self.gfx {
+                        g.ctx.lose_device();
+                    }
+                }
             }
             self.script.commands.pop_front();
         }
         Ok(())
     }
 
+    /// One displayed frame; a lost graphics device (found before the frame or by its failure)
+    /// is recreated and the frame skipped.
+    fn redraw(&mut self) -> Result<()> {
+        let lost = |app: &App| app.gfx.as_ref().is_some_and(|g| g.ctx.is_lost());
+        if lost(self) {
+            return self.recover();
+        }
+        match self.redraw_once() {
+            Err(e) if lost(self) => {
+                tracing::warn!("a frame failed on a lost graphics device: {e:#}");
+                self.recover()
+            }
+            other => other,
+        }
+    }
+
+    /// Recreates the graphics context on the same window after the device was lost, and the
+    /// accumulation backend with it when it was on that device (on the CPU backend if the GPU
+    /// one cannot be had again); the session keeps what it holds and draws it again.
+    fn recover(&mut self) -> Result<()> {
+        let (Some(old), Some(display)) = (self.gfx.take(), self.display.clone()) else {
+            return Ok(());
+        };
+        self.recoveries += 1;
+        if self.recoveries > MAX_RECOVERIES {
+            bail!(
+                "the graphics device ({}) was lost {} times; giving up",
+                old.ctx.info().name,
+                self.recoveries
+            );
+        }
+        eprintln!(
+            "graphics device lost ({}); recreating it",
+            old.ctx.info().name
+        );
+        let window = old.window.clone();
+        drop(old);
+        let g = open_display(&display, window).context("recreating the graphics device")?;
+        if let (true, Some(frames)) = (self.gpu_backend, self.frames.as_mut()) {
+            let backend: Box<dyn AccumulationBackend> = match GpuBackend::new(g.ctx.clone()) {
+                Ok(b) => Box::new(b),
+                Err(e) => {
+                    eprintln!("the GPU backend cannot be reopened ({e}); drawing on the CPU");
+                    self.gpu_backend = false;
+                    Box::new(CpuBackend::new())
+                }
+            };
+            frames
+                .session
+                .replace_backend(backend)
+                .context("drawing again on the new backend")?;
+        }
+        eprintln!("recovered: display on {}", g.ctx.info().name);
+        self.gfx = Some(g);
+        self.dirty_image = true;
+        self.converged = false;
+        Ok(())
+    }
+
     /// One displayed frame: apply a view change, run the frame loop within what the budget
     /// leaves after the display's own cost, upload the image when it changed, present it.
-    fn redraw(&mut self) -> Result<()> {
+    fn redraw_once(&mut self) -> Result<()> {
         let (Some(g), Some(frames)) = (self.gfx.as_mut(), self.frames.as_mut()) else {
             return Ok(());
         };
@@ -918,6 +968,12 @@ impl App {
                 // What is held stops growing here: say so rather than stall silently.
                 state.push_str(", memory bound reached");
             }
+            if self.recoveries > 0 {
+                state.push_str(&format!(
+                    ", recovered from {} lost graphics device(s)",
+                    self.recoveries
+                ));
+            }
             let (iw, ih) = self.last_image.unwrap_or((0, 0));
             g.window.set_title(&format!(
                 "wavesplat — {} — {} held, {} splatted, {} received — {:.1} ms/frame (budget {:.1}) — {}{}{}{} — {iw}x{ih}",
@@ -960,6 +1016,65 @@ impl App {
         }
         Ok(())
     }
+}
+
+/// Opens a graphics context that can draw to `window` and configures the window's surface on
+/// it (at start, and again after the device was lost).
+fn open_display(
+    display: &winit::event_loop::OwnedDisplayHandle,
+    window: Arc<Window>,
+) -> Result<Gfx> {
+    let instance = wgpu::Instance::new(wgpu::InstanceDescriptor::new_with_display_handle_from_env(
+        Box::new(display.clone()),
+    ));
+    let surface = instance
+        .create_surface(window.clone())
+        .context("creating a wgpu surface for the window")?;
+    let adapter = pollster::block_on(instance.request_adapter(&wgpu::RequestAdapterOptions {
+        power_preference: wgpu::PowerPreference::from_env().unwrap_or_default(),
+        compatible_surface: Some(&surface),
+        ..Default::default()
+    }))
+    .context("no graphics adapter can draw to this window (WGPU_BACKEND chooses the API)")?;
+    let ctx = GpuContext::from_adapter(instance, adapter).context("opening the graphics device")?;
+    let size = window.inner_size();
+    let caps = surface.get_capabilities(ctx.adapter());
+    let format = caps
+        .formats
+        .iter()
+        .copied()
+        .find(|f| !f.is_srgb())
+        .or_else(|| caps.formats.first().copied())
+        .ok_or_else(|| anyhow!("the surface offers no texture format"))?;
+    let config = wgpu::SurfaceConfiguration {
+        usage: wgpu::TextureUsages::RENDER_ATTACHMENT,
+        format,
+        width: size.width.max(1),
+        height: size.height.max(1),
+        present_mode: wgpu::PresentMode::AutoVsync,
+        desired_maximum_frame_latency: 2,
+        alpha_mode: caps
+            .alpha_modes
+            .first()
+            .copied()
+            .unwrap_or(wgpu::CompositeAlphaMode::Auto),
+        view_formats: vec![],
+        ..surface
+            .get_default_config(ctx.adapter(), size.width.max(1), size.height.max(1))
+            .ok_or_else(|| anyhow!("the surface is not supported by the adapter"))?
+    };
+    if size.width > 0 && size.height > 0 {
+        surface.configure(ctx.device(), &config);
+    }
+    let blitter = wgpu::util::TextureBlitter::new(ctx.device(), format);
+    Ok(Gfx {
+        surface,
+        config,
+        blitter,
+        texture: None,
+        ctx,
+        window,
+    })
 }
 
 fn size_or_one(s: PhysicalSize<u32>) -> PhysicalSize<u32> {

@@ -647,6 +647,16 @@ impl<B: AccumulationBackend> RenderSession<B> {
         Ok(())
     }
 
+    /// Replaces the accumulation backend (a window whose graphics device was lost opens a new
+    /// one) and draws everything held again on it; returns the old backend. The running cost
+    /// estimates start over: the new backend's speed is not the old one's.
+    pub fn replace_backend(&mut self, backend: B) -> Result<B, SessionError> {
+        let old = std::mem::replace(&mut self.backend, backend);
+        self.cost = [INITIAL_COST_PER_WEIGHT; 2];
+        self.restart()?;
+        Ok(old)
+    }
+
     /// Whether the current view is drawn with its exact tables (not a preview).
     pub fn is_exact(&self) -> bool {
         self.exact

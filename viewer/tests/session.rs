@@ -664,3 +664,38 @@ fn busy_frames_stay_within_their_budget_at_p95_when_batch_costs_are_noisy() {
         );
     }
 }
+
+/// A new backend (a window's after its graphics device was lost) gets everything held drawn
+/// again: the session restarts on it and ends on the one-shot image.
+#[test]
+fn a_replaced_backend_is_drawn_again_from_what_is_held() {
+    let bytes = wsp(Phantom::SheppLogan, 32, 16);
+    let (header, coeffs) = all(&bytes);
+    let s = spec(0.3, 0.7);
+    let mut session = RenderSession::new(
+        header.clone(),
+        s,
+        CpuBackend::new(),
+        SessionOptions::default(),
+    )
+    .unwrap();
+    session.add_coefficients(coeffs.clone()).unwrap();
+    while session.pending() > 0 {
+        session.step(Duration::from_millis(50)).unwrap();
+    }
+    let drawn = session.stats().splatted_in_view;
+    assert!(drawn > 0);
+    let old = session.replace_backend(CpuBackend::new()).unwrap();
+    drop(old);
+    assert_eq!(session.stats().splatted_in_view, 0);
+    assert_eq!(
+        session.pending() as u64,
+        drawn,
+        "everything held is queued again"
+    );
+    while session.pending() > 0 {
+        session.step(Duration::from_millis(50)).unwrap();
+    }
+    let e = max_rel(&session.image().unwrap(), &full_image(&header, &coeffs, &s));
+    assert!(e <= 1e-5, "{e:e}");
+}

@@ -105,6 +105,8 @@ pub struct GpuContext {
     queue: wgpu::Queue,
     info: wgpu::AdapterInfo,
     fault: Arc<Mutex<Option<String>>>,
+    /// Set when the device is lost, for any reason (a driver reset, or `destroy`).
+    lost: Arc<std::sync::atomic::AtomicBool>,
 }
 
 /// Which adapter to ask wgpu for.
@@ -202,7 +204,10 @@ impl GpuContext {
             }
         }));
         let f = fault.clone();
+        let lost = Arc::new(std::sync::atomic::AtomicBool::new(false));
+        let l = lost.clone();
         device.set_device_lost_callback(move |reason, message| {
+            l.store(true, std::sync::atomic::Ordering::SeqCst);
             if reason != wgpu::DeviceLostReason::Destroyed {
                 tracing::error!("wgpu device lost: {message}");
                 if let Ok(mut slot) = f.lock() {
@@ -223,6 +228,7 @@ impl GpuContext {
             queue,
             info,
             fault,
+            lost,
         }))
     }
 
@@ -254,6 +260,18 @@ impl GpuContext {
     /// Whether the adapter is a software device running on the CPU (lavapipe, WARP, …).
     pub fn is_software(&self) -> bool {
         self.info.device_type == wgpu::DeviceType::Cpu
+    }
+
+    /// Whether the device is lost (or reported an error): nothing drawn on it shows any
+    /// more, and a window recreates its context.
+    pub fn is_lost(&self) -> bool {
+        self.lost.load(std::sync::atomic::Ordering::SeqCst) || self.check().is_err()
+    }
+
+    /// Destroys the device, as a driver reset would lose it (for tests of recovery).
+    pub fn lose_device(&self) {
+        self.device.destroy();
+        let _ = self.device.poll(wgpu::PollType::Poll);
     }
 
     /// The first device error wgpu reported, if any (the context is unusable after one).
