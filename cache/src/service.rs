@@ -759,8 +759,9 @@ impl Session {
                             return;
                         }
                         if new_view && !planned {
-                            // The new view's plan replaced the starting one's.
-                            planning.abort();
+                            // The new view's plan replaced the starting one's, which is left to
+                            // finish unread (aborting it would free its planner slot while its
+                            // blocking work still ran).
                             planned = true;
                         }
                         announced &= self.queue.is_empty() && !new_view;
