@@ -508,13 +508,8 @@ impl App {
                 .context("creating the window")?,
         );
         let display = event_loop.owned_display_handle();
-        let Gfx {
-            surface,
-            config,
-            blitter,
-            ctx,
-            ..
-        } = open_display(&display, window.clone())?;
+        let g = open_display(&display, window.clone())?;
+        let ctx = g.ctx.clone();
         self.display = Some(display);
         let size = window.inner_size();
         let (header, source) = self
@@ -566,14 +561,7 @@ impl App {
         let mut frames = FrameLoop::new(session, source);
         frames.set_view(spec).context("setting the view")?;
         self.frames = Some(frames);
-        self.gfx = Some(Gfx {
-            surface,
-            config,
-            blitter,
-            texture: None,
-            ctx,
-            window,
-        });
+        self.gfx = Some(g);
         self.view_size = size;
         self.dirty_view = false;
         Ok(())

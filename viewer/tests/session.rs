@@ -285,13 +285,45 @@ impl Clock for SimClock {
     }
 }
 
-/// The CPU backend, charging simulated time per record: `cost[i]` nanoseconds for the i-th
-/// call's records (the last value repeats), to make the backend's speed change mid-run.
+/// The CPU backend, charging simulated time per record: `cost()` gives each call's nanoseconds
+/// per record (to make the backend's speed change mid-run, or vary from call to call).
 struct SimBackend {
     inner: CpuBackend,
     clock: SimClock,
-    cost_ns: Vec<u64>,
-    calls: usize,
+    cost: Box<dyn FnMut() -> f64 + Send>,
+}
+
+impl SimBackend {
+    /// `cost_ns[i]` nanoseconds per record for the i-th call (the last value repeats).
+    fn stepped(clock: &SimClock, cost_ns: Vec<u64>) -> SimBackend {
+        let mut calls = 0;
+        SimBackend {
+            inner: CpuBackend::new(),
+            clock: clock.clone(),
+            cost: Box::new(move || {
+                let c = cost_ns[calls.min(cost_ns.len() - 1)];
+                calls += 1;
+                c as f64
+            }),
+        }
+    }
+
+    /// `ns_per_record` times a factor up to 3× either way (log-uniform, a fixed pseudo-random
+    /// sequence from `seed`): a backend whose running estimate is always somewhat wrong.
+    fn noisy(clock: &SimClock, ns_per_record: f64, seed: u64) -> SimBackend {
+        let mut state = seed;
+        SimBackend {
+            inner: CpuBackend::new(),
+            clock: clock.clone(),
+            cost: Box::new(move || {
+                state = state
+                    .wrapping_mul(6_364_136_223_846_793_005)
+                    .wrapping_add(1_442_695_040_888_963_407);
+                let u = (state >> 11) as f64 / (1u64 << 53) as f64;
+                ns_per_record * 3f64.powf(2.0 * u - 1.0)
+            }),
+        }
+    }
 }
 
 impl AccumulationBackend for SimBackend {
@@ -306,10 +338,8 @@ impl AccumulationBackend for SimBackend {
         atlas: &FootprintAtlas,
         records: &[SplatRecord],
     ) -> Result<u64, BackendError> {
-        let per = self.cost_ns[self.calls.min(self.cost_ns.len() - 1)];
-        self.calls += 1;
-        self.clock
-            .advance(Duration::from_nanos(per * records.len() as u64 + 20_000));
+        let ns = (self.cost)() * records.len() as f64 + 20_000.0;
+        self.clock.advance(Duration::from_nanos(ns as u64));
         self.inner.accumulate(atlas, records)
     }
     fn read(&mut self) -> Result<Image, BackendError> {
@@ -362,12 +392,7 @@ fn frames_keep_refining_and_never_run_more_than_one_batch_past_the_budget() {
         (usize::MAX, vec![2_000], 3),
     ] {
         let clock = SimClock::default();
-        let backend = SimBackend {
-            inner: CpuBackend::new(),
-            clock: clock.clone(),
-            cost_ns,
-            calls: 0,
-        };
+        let backend = SimBackend::stepped(&clock, cost_ns);
         let options = SessionOptions {
             min_batch: 64,
             ..Default::default()
@@ -580,43 +605,6 @@ fn depth_cue_tables_are_built_off_the_frame_thread() {
     }
 }
 
-/// The CPU backend, charging simulated time per record with a cost that varies from call to
-/// call by up to 3× either way (log-uniform, a fixed pseudo-random sequence): a backend whose
-/// running estimate is always somewhat wrong.
-struct NoisyBackend {
-    inner: CpuBackend,
-    clock: SimClock,
-    ns_per_record: f64,
-    state: u64,
-}
-
-impl AccumulationBackend for NoisyBackend {
-    fn name(&self) -> String {
-        "noisy".into()
-    }
-    fn begin(&mut self, layout: Layout) -> Result<(), BackendError> {
-        self.inner.begin(layout)
-    }
-    fn accumulate(
-        &mut self,
-        atlas: &FootprintAtlas,
-        records: &[SplatRecord],
-    ) -> Result<u64, BackendError> {
-        self.state = self
-            .state
-            .wrapping_mul(6_364_136_223_846_793_005)
-            .wrapping_add(1_442_695_040_888_963_407);
-        let u = (self.state >> 11) as f64 / (1u64 << 53) as f64;
-        let factor = 3f64.powf(2.0 * u - 1.0);
-        let ns = self.ns_per_record * factor * records.len() as f64 + 20_000.0;
-        self.clock.advance(Duration::from_nanos(ns as u64));
-        self.inner.accumulate(atlas, records)
-    }
-    fn read(&mut self) -> Result<Image, BackendError> {
-        self.inner.read()
-    }
-}
-
 /// With a backend whose batch costs the estimate cannot predict, the loop's correction of its
 /// fill keeps the frames that had more to do within their budget at p95 (the issue's
 /// requirement), for budgets of 8, 16.6 and 33 ms.
@@ -628,13 +616,8 @@ fn busy_frames_stay_within_their_budget_at_p95_when_batch_costs_are_noisy() {
     for budget_us in [8_000u64, 16_600, 33_000] {
         let budget = Duration::from_micros(budget_us);
         let clock = SimClock::default();
-        let backend = NoisyBackend {
-            inner: CpuBackend::new(),
-            clock: clock.clone(),
-            // About a thousand records a frame at every budget.
-            ns_per_record: budget_us as f64,
-            state: budget_us,
-        };
+        // About a thousand records a frame at every budget.
+        let backend = SimBackend::noisy(&clock, budget_us as f64, budget_us);
         // Small batches, so the first ones (sized by the estimate's first guess, made for the
         // real CPU backend) cannot take the whole volume at once.
         let options = SessionOptions {
