@@ -402,6 +402,14 @@ impl Walker {
             if tag == Tag(0xFFFE, 0xE00D) && delimited {
                 return Ok(pos);
             }
+            // Item and sequence delimiters end what the parser is in, whatever the walk thinks
+            // it is in: one where the walk would read an ordinary element makes the two part.
+            if tag.group() == 0xFFFE {
+                return Err((
+                    Some(tag),
+                    "an item or sequence delimiter where an element belongs".into(),
+                ));
+            }
             match len {
                 Some(len) => {
                     if let Some(size) = self.value_size(tag, vr).filter(|s| len % s != 0) {
@@ -417,7 +425,13 @@ impl Walker {
                         )
                     })?;
                     if self.is_sequence(tag, vr) {
-                        self.items(b, pos, stop, depth + 1, false)?;
+                        let after = self.items(b, pos, stop, depth + 1, false)?;
+                        if after != stop {
+                            return Err((
+                                Some(tag),
+                                "a sequence delimiter inside a sequence of defined length".into(),
+                            ));
+                        }
                     }
                     pos = stop;
                 }
