@@ -506,6 +506,11 @@ pub fn run(a: RenderArgs) -> Result<()> {
         if deadline.is_some_and(|d| start.elapsed() >= d) {
             break;
         }
+        if report.pending == 0 && report.packets == 0 && !report.exact {
+            // Only the background planner has work (the preview is drawn): wait for it, up to a
+            // frame, rather than spin on a core it needs.
+            frames.session.wait_exact(frame)?;
+        }
         if report.idle() {
             if status.done {
                 break;

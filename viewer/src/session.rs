@@ -720,13 +720,30 @@ impl<B: AccumulationBackend> RenderSession<B> {
     /// starts on the current view. Every step does this; call it between steps when nothing is
     /// queued.
     pub fn poll_exact(&mut self) -> Result<(), SessionError> {
-        let arrived = match &self.building {
-            None => return Ok(()),
-            Some(rx) => match rx.try_recv() {
+        self.take_exact(None)
+    }
+
+    /// Like [`RenderSession::poll_exact`], but waits up to `timeout` for the exact plan being
+    /// built: a caller with nothing else to do (a preview fully drawn, no packets) blocks here
+    /// instead of spinning on a core the builder needs.
+    pub fn wait_exact(&mut self, timeout: Duration) -> Result<(), SessionError> {
+        self.take_exact(Some(timeout))
+    }
+
+    fn take_exact(&mut self, wait: Option<Duration>) -> Result<(), SessionError> {
+        use std::sync::mpsc::RecvTimeoutError;
+        let arrived = match (&self.building, wait) {
+            (None, _) => return Ok(()),
+            (Some(rx), None) => match rx.try_recv() {
                 Ok(plan) => Some(plan),
                 Err(TryRecvError::Empty) => return Ok(()),
                 // The builder thread died (it panicked): plan exactly here instead.
                 Err(TryRecvError::Disconnected) => None,
+            },
+            (Some(rx), Some(timeout)) => match rx.recv_timeout(timeout) {
+                Ok(plan) => Some(plan),
+                Err(RecvTimeoutError::Timeout) => return Ok(()),
+                Err(RecvTimeoutError::Disconnected) => None,
             },
         };
         self.building = None;

@@ -682,3 +682,36 @@ fn a_replaced_backend_is_drawn_again_from_what_is_held() {
     let e = max_rel(&session.image().unwrap(), &full_image(&header, &coeffs, &s));
     assert!(e <= 1e-5, "{e:e}");
 }
+
+/// A caller with nothing to do while the exact tables are built waits for them instead of
+/// polling: `wait_exact` returns as soon as they are installed (or after its timeout).
+#[test]
+fn waiting_for_the_exact_tables_installs_them_when_they_arrive() {
+    let bytes = wsp(Phantom::SheppLogan, 32, 16);
+    let (header, coeffs) = all(&bytes);
+    let options = SessionOptions {
+        preview: Some(SessionOptions::default_preview()),
+        ..Default::default()
+    };
+    let s = spec(0.4, 1.1);
+    let mut session = RenderSession::new(header.clone(), s, CpuBackend::new(), options).unwrap();
+    assert!(!session.is_exact());
+    // A zero timeout returns at once whatever the builder does.
+    session.wait_exact(Duration::ZERO).unwrap();
+    let mut waits = 0;
+    while !session.is_exact() {
+        session.wait_exact(Duration::from_secs(60)).unwrap();
+        waits += 1;
+        assert!(waits < 5, "the exact tables never came");
+    }
+    assert!(
+        waits <= 1,
+        "one wait takes the tables when they arrive: {waits}"
+    );
+    session.add_coefficients(coeffs.clone()).unwrap();
+    while session.pending() > 0 {
+        session.step(Duration::from_millis(50)).unwrap();
+    }
+    let e = max_rel(&session.image().unwrap(), &full_image(&header, &coeffs, &s));
+    assert!(e <= 1e-5, "{e:e}");
+}
