@@ -107,7 +107,7 @@ pub struct CacheService {
     /// View plans running at once (one per two cores, at least one): a burst of session starts
     /// finishes its plans in arrival order rather than all of them together, late, and leaves
     /// the other cores to the streams that are sending (with one planner per core, 64 starts
-    /// on two cores had a first-packet p99 of 40–57 ms; with one, 23–28 ms: BENCHMARKS.md).
+    /// on two cores had a first-packet p99 of 40–58 ms; with one, 20–30 ms: BENCHMARKS.md).
     planners: Arc<Semaphore>,
 }
 
@@ -553,11 +553,10 @@ impl Session {
     /// not send what the view cannot see, which only the plan knows).
     fn unplanned(&mut self) {
         let packets = &self.volume.index.packets;
-        let total: u64 = packets.iter().map(|p| u64::from(p.len)).sum();
         self.unplanned = Some(if self.visible_only {
             0
         } else {
-            (total / UNPLANNED_SHARE).max(1)
+            (self.volume.meta.packet_bytes / UNPLANNED_SHARE).max(1)
         });
         let held = &self.held;
         // Pops come from the end: file order is the reversed ids.
