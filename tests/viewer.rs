@@ -338,11 +338,7 @@ fn the_memory_bound_holds_over_the_network() {
                 // taken in, not dropped).
                 match f.source.try_next() {
                     None => break,
-                    Some(p) => match p.decoded {
-                        Some((tile, c)) => f.session.add_decoded(p.id, p.data.len(), tile, c),
-                        None => f.session.add_packet(p.id, &p.data),
-                    }
-                    .unwrap(),
+                    Some(p) => f.session.add_from_source(p).unwrap(),
                 }
             }
             if r.idle() {

@@ -521,33 +521,35 @@ impl App {
             (_, true) => BackendChoice::Cpu,
             _ => BackendChoice::Auto,
         };
-        let (backend, reason): (Box<dyn AccumulationBackend>, String) = match choice {
-            BackendChoice::Gpu => (
-                Box::new(GpuBackend::new(ctx.clone()).context("opening the GPU backend")?),
-                "gpu backend (asked for) on the window's adapter".into(),
-            ),
-            BackendChoice::Auto if !ctx.is_software() => (
-                Box::new(GpuBackend::new(ctx.clone()).context("opening the GPU backend")?),
-                format!("gpu backend: {} is a hardware adapter", ctx.info().name),
-            ),
-            BackendChoice::Auto => (
-                Box::new(CpuBackend::new()),
-                format!(
-                    "cpu backend: the adapter ({}) is a software device, slower than the CPU backend",
-                    ctx.info().name
-                ),
-            ),
-            _ => {
-                let s = select(choice).context("choosing the accumulation backend")?;
-                (s.backend, s.reason)
-            }
-        };
-        // Only `--cpu` and the software-adapter default draw on the CPU.
+        // The window's device accumulates unless `--cpu` says otherwise or, by default, the
+        // adapter is a software one (slower than the CPU backend).
         self.gpu_backend = match choice {
             BackendChoice::Gpu => true,
             BackendChoice::Auto => !ctx.is_software(),
             _ => false,
         };
+        let (backend, reason): (Box<dyn AccumulationBackend>, String) =
+            match (choice, self.gpu_backend) {
+                (BackendChoice::Gpu, _) => (
+                    Box::new(GpuBackend::new(ctx.clone()).context("opening the GPU backend")?),
+                    "gpu backend (asked for) on the window's adapter".into(),
+                ),
+                (_, true) => (
+                    Box::new(GpuBackend::new(ctx.clone()).context("opening the GPU backend")?),
+                    format!("gpu backend: {} is a hardware adapter", ctx.info().name),
+                ),
+                (BackendChoice::Auto, false) => (
+                    Box::new(CpuBackend::new()),
+                    format!(
+                        "cpu backend: the adapter ({}) is a software device, slower than the CPU backend",
+                        ctx.info().name
+                    ),
+                ),
+                _ => {
+                    let s = select(choice).context("choosing the accumulation backend")?;
+                    (s.backend, s.reason)
+                }
+            };
         eprintln!(
             "backend: {reason}; display on {} ({:?})",
             ctx.info().name,

@@ -124,13 +124,7 @@ impl<B: AccumulationBackend, S: PacketSource> FrameLoop<B, S> {
                 let Some(p) = self.source.try_next() else {
                     break;
                 };
-                match p.decoded {
-                    Some((tile, coefficients)) => {
-                        self.session
-                            .add_decoded(p.id, p.data.len(), tile, coefficients)?
-                    }
-                    None => self.session.add_packet(p.id, &p.data)?,
-                }
+                self.session.add_from_source(p)?;
                 report.packets += 1;
             }
             let dropped = self.session.take_dropped();

@@ -38,6 +38,7 @@ use crate::backend::{AccumulationBackend, BackendError, SplatRecord};
 use crate::color;
 use crate::image::Image;
 use crate::plan::{PlanOptions, Planner, RenderStats, ViewPlan};
+use crate::source::SourcePacket;
 use crate::RenderError;
 use std::collections::HashMap;
 use std::sync::mpsc::{Receiver, TryRecvError};
@@ -510,6 +511,14 @@ impl<B: AccumulationBackend> RenderSession<B> {
         let d = decode_packet(&self.header, bytes)
             .map_err(|source| SessionError::Packet { id, source })?;
         self.add_decoded(id, bytes.len(), d.tile, d.coefficients)
+    }
+
+    /// Takes a packet as its source handed it over: already decoded, or as bytes.
+    pub fn add_from_source(&mut self, p: SourcePacket) -> Result<(), SessionError> {
+        match p.decoded {
+            Some((tile, coefficients)) => self.add_decoded(p.id, p.data.len(), tile, coefficients),
+            None => self.add_packet(p.id, &p.data),
+        }
     }
 
     /// Takes packet `id` (of `wire_bytes` bytes) that its source already decoded into the
