@@ -2,7 +2,9 @@
 """Volumes unlike the skull-stripped MNI brain, and their scoring against SPERR at equal bytes.
 
   testset.py make OUTDIR [--only NAME,...]     write the volumes (raw, x fastest) + manifest.tsv
-  testset.py ct OUT.raw NX NY NZ               one CT-like i16 volume (memory benchmarks)
+  testset.py ct OUT.raw NX NY NZ [--u16]       one CT-like i16 volume (memory benchmarks);
+                                               --u16: the same + 1024 (air at 24) as u16
+  testset.py ct-rgb OUT.raw NX NY NZ           its tissue classes painted as colours (u8 RGB)
   testset.py qi OUTDIR NAME DECODED.f32        Q_I and PSNR of a decoded f32 volume only
   testset.py score OUTDIR NAME DECODED.f32 BYTES
         Q_I (paper dB, mean of the peers' three X-ray views, per channel then averaged), PSNR
@@ -38,7 +40,8 @@ def ct_like(shape, seed=1):
     x = (np.arange(nx) - nx / 2 + 0.5) / (nx / 2)
     y = (np.arange(ny) - ny / 2 + 0.5) / (ny / 2)
     z = (np.arange(nz) - nz / 2 + 0.5) / (nz / 2)
-    X, Y, Z = np.meshgrid(x, y, z, indexing="ij")
+    # Sparse grids broadcast: a 512³ volume needs no three dense coordinate arrays.
+    X, Y, Z = np.meshgrid(x, y, z, indexing="ij", sparse=True)
     body = (X / 0.85) ** 2 + (Y / (0.62 + 0.05 * Z)) ** 2 <= 1
     inner = (X / 0.78) ** 2 + (Y / (0.55 + 0.05 * Z)) ** 2 <= 1
     v = np.full(shape, -1000.0, np.float32)
@@ -48,7 +51,7 @@ def ct_like(shape, seed=1):
         lung = ((X - sx) / 0.28) ** 2 + ((Y + 0.05) / 0.38) ** 2 + (Z / 1.6) ** 2 <= 1
         v[lung] = -820.0
     vert = (X / 0.09) ** 2 + ((Y - 0.42) / 0.09) ** 2 <= 1
-    v[vert] = 700.0
+    v[np.broadcast_to(vert, shape)] = 700.0
     ring = inner & ~((X / 0.74) ** 2 + (Y / (0.51 + 0.05 * Z)) ** 2 <= 1)
     rib = ring & (np.cos(9 * np.arctan2(Y, X) + 6 * Z) > 0.55)
     v[rib] = 900.0
@@ -65,6 +68,14 @@ def classified_rgb(m):
     palette = np.array([[0, 0, 0], [90, 40, 30], [200, 60, 50], [230, 190, 90],
                         [250, 240, 230], [120, 180, 255]], np.uint8)
     return palette[classes]  # (x, y, z, 3)
+
+
+def classified_ct_rgb(v):
+    """A CT-like volume's classes (air, lung, fat, soft tissue, bone) painted as colours."""
+    classes = np.digitize(v, [-900, -300, 0, 300])
+    palette = np.array([[0, 0, 0], [70, 90, 140], [230, 200, 120], [200, 70, 60],
+                        [245, 245, 235]], np.uint8)
+    return palette[classes]
 
 
 def volumes(only=None):
@@ -188,7 +199,13 @@ def main():
         make(sys.argv[2], only)
     elif cmd == "ct":
         nx, ny, nz = (int(v) for v in sys.argv[3:6])
-        write_raw(ct_like((nx, ny, nz)), sys.argv[2])
+        v = ct_like((nx, ny, nz))
+        if "--u16" in sys.argv:
+            v = (v.astype(np.int32) + 1024).astype(np.uint16)
+        write_raw(v, sys.argv[2])
+    elif cmd == "ct-rgb":
+        nx, ny, nz = (int(v) for v in sys.argv[3:6])
+        write_raw(classified_ct_rgb(ct_like((nx, ny, nz))), sys.argv[2])
     elif cmd == "qi":
         ref, _ = load(sys.argv[2], sys.argv[3])
         dec = np.fromfile(sys.argv[4], dtype="<f4").reshape(
