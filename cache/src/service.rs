@@ -961,18 +961,15 @@ mod tests {
         assert!(large.index.packets.len() > CHEAP_PLAN_PACKETS);
         let spec = ViewSpec::single(wavesplat_codec::view::View::new(0.7, 0.4, 48, 48));
         let busy = Arc::new(Semaphore::new(0));
-        let planned = tokio::time::timeout(
-            Duration::from_secs(10),
-            plan(busy.clone(), small, spec.clone()),
-        )
-        .await;
+        let planned =
+            tokio::time::timeout(Duration::from_secs(10), plan(busy.clone(), small, spec)).await;
         assert!(
             matches!(planned, Ok(Ok(_))),
             "the small volume's plan waited"
         );
         let waiting = tokio::time::timeout(
             Duration::from_millis(300),
-            plan(busy.clone(), large.clone(), spec.clone()),
+            plan(busy.clone(), large.clone(), spec),
         )
         .await;
         assert!(
