@@ -73,6 +73,21 @@ fn max_rel(a: &Image, b: &Image) -> f64 {
         / m.max(1e-300)
 }
 
+/// A session on the `n`³ Shepp–Logan file (tiles of 16) that draws `view` with preview
+/// tables while its exact ones are built, with the file's header and every coefficient.
+fn preview_session(
+    n: usize,
+    view: ViewSpec,
+) -> (Header, Vec<Coefficient>, RenderSession<CpuBackend>) {
+    let (header, coeffs) = all(&wsp(Phantom::SheppLogan, n, 16));
+    let options = SessionOptions {
+        preview: Some(SessionOptions::default_preview()),
+        ..Default::default()
+    };
+    let session = RenderSession::new(header.clone(), view, CpuBackend::new(), options).unwrap();
+    (header, coeffs, session)
+}
+
 fn spec(alpha: f64, beta: f64) -> ViewSpec {
     ViewSpec::single(View::new(alpha, beta, 96, 80))
 }
@@ -460,15 +475,8 @@ fn frames_keep_refining_and_never_run_more_than_one_batch_past_the_budget() {
 /// once. On the axis too (every centre of a column shares one phase there).
 #[test]
 fn previews_are_replaced_by_exact_tables() {
-    let bytes = wsp(Phantom::SheppLogan, 40, 16);
-    let (header, coeffs) = all(&bytes);
-    let options = SessionOptions {
-        preview: Some(SessionOptions::default_preview()),
-        ..Default::default()
-    };
     let first = spec(0.66, 0.91);
-    let mut session =
-        RenderSession::new(header.clone(), first, CpuBackend::new(), options).unwrap();
+    let (header, coeffs, mut session) = preview_session(40, first);
     assert!(
         !session.is_exact(),
         "a first view without tables starts as a preview"
@@ -514,14 +522,8 @@ fn previews_are_replaced_by_exact_tables() {
 /// falls back to a coarser one on the way, and ends on the one-shot image.
 #[test]
 fn the_preview_stays_on_screen_until_the_exact_tables_catch_up() {
-    let bytes = wsp(Phantom::SheppLogan, 40, 16);
-    let (header, coeffs) = all(&bytes);
-    let options = SessionOptions {
-        preview: Some(SessionOptions::default_preview()),
-        ..Default::default()
-    };
     let s = ViewSpec::single(View::new(0.66, 0.91, 160, 144));
-    let mut session = RenderSession::new(header.clone(), s, CpuBackend::new(), options).unwrap();
+    let (header, coeffs, mut session) = preview_session(40, s);
     session.add_coefficients(coeffs.clone()).unwrap();
     while session.pending() > 0 && !session.is_exact() {
         session.step(Duration::from_millis(50)).unwrap();
@@ -687,14 +689,8 @@ fn a_replaced_backend_is_drawn_again_from_what_is_held() {
 /// polling: `wait_exact` returns as soon as they are installed (or after its timeout).
 #[test]
 fn waiting_for_the_exact_tables_installs_them_when_they_arrive() {
-    let bytes = wsp(Phantom::SheppLogan, 32, 16);
-    let (header, coeffs) = all(&bytes);
-    let options = SessionOptions {
-        preview: Some(SessionOptions::default_preview()),
-        ..Default::default()
-    };
     let s = spec(0.4, 1.1);
-    let mut session = RenderSession::new(header.clone(), s, CpuBackend::new(), options).unwrap();
+    let (header, coeffs, mut session) = preview_session(32, s);
     assert!(!session.is_exact());
     // A zero timeout returns at once whatever the builder does.
     session.wait_exact(Duration::ZERO).unwrap();
