@@ -982,7 +982,8 @@ fn refine_to_bytes(
         let close = close_to_target(bytes, target);
         let candidate = if bytes <= target {
             if (bytes as f64) < 0.985 * target as f64 && (last || close) {
-                // Out of refinements: top the set up with the oracle's next coefficients.
+                // Close to the target, or out of refinements: top the set up with the oracle's
+                // next coefficients.
                 fit_bytes(prepared, &refined, opts, target, count, trials, progress)
             } else {
                 Ok(whole)
