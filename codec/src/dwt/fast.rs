@@ -16,14 +16,13 @@ use super::interpolation_taps;
 use crate::family::Family;
 use crate::layout::Geometry;
 use std::collections::HashMap;
+use std::sync::Mutex;
 
 /// A periodic filter bank for one line length: `out[dst] += weight · in[src]` for every entry.
 #[derive(Debug, Clone)]
 struct Taps {
     /// (dst, src, weight), sorted by dst.
     list: Vec<(u32, u32, f32)>,
-    /// Per output row, the start of its taps in `list` (n + 1 entries).
-    starts: Vec<u32>,
 }
 
 impl Taps {
@@ -72,54 +71,166 @@ impl Taps {
 
     fn sorted(mut list: Vec<(u32, u32, f32)>) -> Taps {
         list.sort_by_key(|(d, s, _)| (*d, *s));
-        let rows = list.last().map_or(0, |t| t.0 as usize + 1);
-        let mut starts = vec![0u32; rows + 1];
-        for &(d, _, _) in &list {
-            starts[d as usize + 1] += 1;
-        }
-        for r in 0..rows {
-            starts[r + 1] += starts[r];
-        }
-        Taps { list, starts }
-    }
-
-    /// Applies the bank to one contiguous line (gather form: each output accumulates its taps
-    /// in a register).
-    fn apply_line(&self, line: &mut [f32], out: &mut Vec<f32>) {
-        out.clear();
-        out.extend(self.starts.windows(2).map(|w| {
-            self.list[w[0] as usize..w[1] as usize]
-                .iter()
-                .map(|&(_, s, w)| w * line[s as usize])
-                .sum::<f32>()
-        }));
-        line.copy_from_slice(&out[..line.len()]);
+        Taps { list }
     }
 
     /// Applies the bank to a panel: `n` rows of `width` samples, row t at `data[t·stride..]`;
-    /// `out` is scratch. Each output row is written by its first tap and accumulated by the
-    /// others (taps are sorted by output row).
+    /// `out` is scratch.
     fn apply(&self, data: &mut [f32], n: usize, width: usize, stride: usize, out: &mut Vec<f32>) {
-        out.clear();
+        // Every output row is written by its first tap, so stale contents need no clearing.
         out.resize(n * width, 0.0);
+        self.apply_into(data, n, width, stride, out);
+        for t in 0..n {
+            data[t * stride..t * stride + width].copy_from_slice(&out[t * width..(t + 1) * width]);
+        }
+    }
+
+    /// The bank from a panel `src` (`n` rows of `width` samples at stride `stride`) into the
+    /// contiguous rows of `out` (`n · width` samples). Each output row is written by its first
+    /// tap and accumulated by the others (taps are sorted by output row; every row has one).
+    fn apply_into(&self, src: &[f32], n: usize, width: usize, stride: usize, out: &mut [f32]) {
+        debug_assert_eq!(out.len(), n * width);
         let mut last = u32::MAX;
         for &(d, s, w) in &self.list {
             let (row, s) = (d as usize, s as usize);
-            let src = &data[s * stride..s * stride + width];
+            let from = &src[s * stride..s * stride + width];
             let dst = &mut out[row * width..(row + 1) * width];
             if d != last {
-                for (o, v) in dst.iter_mut().zip(src) {
+                for (o, v) in dst.iter_mut().zip(from) {
                     *o = w * v;
                 }
                 last = d;
             } else {
-                for (o, v) in dst.iter_mut().zip(src) {
+                for (o, v) in dst.iter_mut().zip(from) {
                     *o += w * v;
                 }
             }
         }
-        for t in 0..n {
-            data[t * stride..t * stride + width].copy_from_slice(&out[t * width..(t + 1) * width]);
+    }
+}
+
+/// The x-axis kernels: the same filter banks as [`Taps`] for one contiguous line, in polyphase
+/// form. A synthesis output c0[2m + e] is a short convolution of c1 and of d1 with the phase
+/// e of p and q (p[2t + e], q[2t + e]); an adjoint output c1[k] or d1[k] a short correlation
+/// of the even and odd samples of c0 with those phases; the sampling FIR a plain circular
+/// convolution. With the periodic wrap copied into a halo before the line, every inner loop
+/// is an axpy over contiguous memory that the compiler vectorizes, where the per-output tap
+/// list of [`Taps`] would gather one scalar at a time (the x pass was ~30 % of a refinement).
+#[derive(Debug, Clone)]
+struct LineBank {
+    /// p[2t + e] for e = 0, 1.
+    p: [Vec<f32>; 2],
+    /// q[2t + e] for e = 0, 1.
+    q: [Vec<f32>; 2],
+    /// Halo of the two-scale banks: the longest phase minus one.
+    halo: usize,
+    /// The centred sampling FIR (one tap of 1 for Haar and linear).
+    sampling: Vec<f32>,
+}
+
+/// Per-thread buffers of the line kernels.
+#[derive(Debug, Default)]
+struct LineScratch {
+    a: Vec<f32>,
+    b: Vec<f32>,
+    even: Vec<f32>,
+    odd: Vec<f32>,
+}
+
+/// `ext` ← the periodic extension of `src` from index −`halo` to `src.len() + after` − 1.
+fn periodic_extension(ext: &mut Vec<f32>, src: &[f32], halo: usize, after: usize) {
+    let h = src.len();
+    ext.clear();
+    // (i − halo) mod h, kept non-negative by adding a multiple of h.
+    ext.extend((0..halo).map(|i| src[(i + h * halo - halo) % h]));
+    ext.extend_from_slice(src);
+    ext.extend((0..after).map(|i| src[i % h]));
+}
+
+/// out[m] += Σ_t w[t] · src[base + m − t] for m < out.len() (a convolution; `base` ≥ the
+/// filter length − 1).
+fn convolve_into(out: &mut [f32], src: &[f32], w: &[f32], base: usize) {
+    for (t, wt) in w.iter().enumerate() {
+        let s = &src[base - t..base - t + out.len()];
+        for (o, v) in out.iter_mut().zip(s) {
+            *o += wt * v;
+        }
+    }
+}
+
+/// out[m] += Σ_t w[t] · src[m + t] for m < out.len() (a correlation).
+fn correlate_into(out: &mut [f32], src: &[f32], w: &[f32]) {
+    for (t, wt) in w.iter().enumerate() {
+        let s = &src[t..t + out.len()];
+        for (o, v) in out.iter_mut().zip(s) {
+            *o += wt * v;
+        }
+    }
+}
+
+impl LineBank {
+    fn new(p: &[f64], q: &[f64], sampling: &[f64]) -> LineBank {
+        let phase = |f: &[f64], e: usize| -> Vec<f32> {
+            f.iter().skip(e).step_by(2).map(|v| *v as f32).collect()
+        };
+        let p = [phase(p, 0), phase(p, 1)];
+        let q = [phase(q, 0), phase(q, 1)];
+        let halo = p.iter().chain(&q).map(Vec::len).max().unwrap_or(1).max(1) - 1;
+        LineBank {
+            p,
+            q,
+            halo,
+            sampling: sampling.iter().map(|v| *v as f32).collect(),
+        }
+    }
+
+    /// Synthesis of one line in place: [c1 | d1] → c0[(2k + i) mod n] += c1[k] p[i] + d1[k] q[i].
+    fn synthesize(&self, line: &mut [f32], s: &mut LineScratch) {
+        let h = line.len() / 2;
+        periodic_extension(&mut s.a, &line[..h], self.halo, 0);
+        periodic_extension(&mut s.b, &line[h..], self.halo, 0);
+        for (e, out) in [&mut s.even, &mut s.odd].into_iter().enumerate() {
+            out.clear();
+            out.resize(h, 0.0);
+            convolve_into(out, &s.a, &self.p[e], self.halo);
+            convolve_into(out, &s.b, &self.q[e], self.halo);
+        }
+        for (pair, (e, o)) in line.chunks_exact_mut(2).zip(s.even.iter().zip(&s.odd)) {
+            pair[0] = *e;
+            pair[1] = *o;
+        }
+    }
+
+    /// Transpose of [`LineBank::synthesize`]: c1[k] = Σ_i c0[(2k + i) mod n] p[i], d1 likewise.
+    fn adjoint(&self, line: &mut [f32], s: &mut LineScratch) {
+        let h = line.len() / 2;
+        s.even.clear();
+        s.odd.clear();
+        s.even.extend(line.iter().step_by(2));
+        s.odd.extend(line.iter().skip(1).step_by(2));
+        periodic_extension(&mut s.a, &s.even, 0, self.halo);
+        periodic_extension(&mut s.b, &s.odd, 0, self.halo);
+        line.fill(0.0);
+        let (c1, d1) = line.split_at_mut(h);
+        correlate_into(c1, &s.a, &self.p[0]);
+        correlate_into(c1, &s.b, &self.p[1]);
+        correlate_into(d1, &s.a, &self.q[0]);
+        correlate_into(d1, &s.b, &self.q[1]);
+    }
+
+    /// The centred sampling FIR along one line, circularly.
+    fn sample(&self, line: &mut [f32], s: &mut LineScratch) {
+        let r = self.sampling.len() / 2;
+        periodic_extension(&mut s.a, line, r, r);
+        line.fill(0.0);
+        correlate_into(line, &s.a, &self.sampling);
+    }
+
+    fn apply(&self, kind: Kind, line: &mut [f32], s: &mut LineScratch) {
+        match kind {
+            Kind::Synthesis => self.synthesize(line, s),
+            Kind::Adjoint => self.adjoint(line, s),
+            Kind::Sampling => self.sample(line, s),
         }
     }
 }
@@ -136,11 +247,17 @@ enum Kind {
 pub struct FastTransform {
     family: Family,
     geometry: Geometry,
+    /// Panel banks for the y and z axes, by kind and line length.
     banks: HashMap<(Kind, usize), Taps>,
+    /// Line kernels for the x axis (any length).
+    lines: LineBank,
+    /// The z axis's batch buffers (gathered panels, filtered panels), kept between passes so
+    /// that each pass does not map and fault in fresh pages.
+    z_buffers: Mutex<(Vec<f32>, Vec<f32>)>,
 }
 
-/// Elements of the z-axis batch buffer (16 MB of f32).
-const BATCH_ELEMENTS: usize = 1 << 22;
+/// Elements of each of the two z-axis batch buffers (8 MB of f32 each).
+const BATCH_ELEMENTS: usize = 1 << 21;
 
 impl FastTransform {
     /// Plans the transforms of `geometry`.
@@ -172,6 +289,8 @@ impl FastTransform {
             family,
             geometry: *geometry,
             banks,
+            lines: LineBank::new(&p, &q, &taps),
+            z_buffers: Mutex::new((Vec::new(), Vec::new())),
         }
     }
 
@@ -244,13 +363,14 @@ impl FastTransform {
             0 | 1 => {
                 // Every x and y line lies in one z slab.
                 // Lines along x are contiguous rows.
-                let slab = |s: &mut [f32], out: &mut Vec<f32>| {
+                let slab = |s: &mut [f32], scratch: &mut (Vec<f32>, LineScratch)| {
                     if axis == 0 {
                         for y in 0..block[1] {
-                            taps.apply_line(&mut s[y * full[0]..y * full[0] + n], out);
+                            let line = &mut s[y * full[0]..y * full[0] + n];
+                            self.lines.apply(kind, line, &mut scratch.1);
                         }
                     } else {
-                        taps.apply(s, n, block[0], full[0], out);
+                        taps.apply(s, n, block[0], full[0], &mut scratch.0);
                     }
                 };
                 #[cfg(feature = "rayon")]
@@ -258,11 +378,11 @@ impl FastTransform {
                     use rayon::prelude::*;
                     data.par_chunks_mut(plane)
                         .take(block[2])
-                        .for_each_init(Vec::new, |scratch, s| slab(s, scratch));
+                        .for_each_init(Default::default, |scratch, s| slab(s, scratch));
                 }
                 #[cfg(not(feature = "rayon"))]
                 {
-                    let mut scratch = Vec::new();
+                    let mut scratch = Default::default();
                     for s in data.chunks_mut(plane).take(block[2]) {
                         slab(s, &mut scratch);
                     }
@@ -274,36 +394,43 @@ impl FastTransform {
                 let width = block[0];
                 let per_y = block[2] * width;
                 let batch = (BATCH_ELEMENTS / per_y.max(1)).clamp(1, block[1]);
-                let mut buffer = vec![0.0f32; batch * per_y];
+                let mut buffers = self.z_buffers.lock().unwrap_or_else(|e| e.into_inner());
+                let (gathered, filtered) = &mut *buffers;
+                gathered.resize(batch * per_y, 0.0);
+                filtered.resize(batch * per_y, 0.0);
                 let mut y0 = 0;
                 while y0 < block[1] {
                     let rows = batch.min(block[1] - y0);
-                    let buf = &mut buffer[..rows * per_y];
                     let shared = &*data;
-                    let gather = |i: usize, panel: &mut [f32], out: &mut Vec<f32>| {
+                    let gather = |i: usize, panel: &mut [f32], out: &mut [f32]| {
                         let y = y0 + i;
                         for z in 0..block[2] {
                             let src = z * plane + y * full[0];
                             panel[z * width..(z + 1) * width]
                                 .copy_from_slice(&shared[src..src + width]);
                         }
-                        taps.apply(panel, n, width, width, out);
+                        taps.apply_into(panel, n, width, width, out);
                     };
+                    let (input, output) =
+                        (&mut gathered[..rows * per_y], &mut filtered[..rows * per_y]);
                     #[cfg(feature = "rayon")]
                     {
                         use rayon::prelude::*;
-                        buf.par_chunks_mut(per_y)
+                        input
+                            .par_chunks_mut(per_y)
+                            .zip(output.par_chunks_mut(per_y))
                             .enumerate()
-                            .for_each_init(Vec::new, |out, (i, panel)| gather(i, panel, out));
+                            .for_each(|(i, (panel, out))| gather(i, panel, out));
                     }
                     #[cfg(not(feature = "rayon"))]
+                    for (i, (panel, out)) in input
+                        .chunks_mut(per_y)
+                        .zip(output.chunks_mut(per_y))
+                        .enumerate()
                     {
-                        let mut out = Vec::new();
-                        for (i, panel) in buf.chunks_mut(per_y).enumerate() {
-                            gather(i, panel, &mut out);
-                        }
+                        gather(i, panel, out);
                     }
-                    let buf = &*buf;
+                    let buf = &*output;
                     let scatter = |z: usize, s: &mut [f32]| {
                         for i in 0..rows {
                             let y = y0 + i;
