@@ -17,8 +17,9 @@
 //! 2. iterative hard thresholding: c ← H_K(c + D⁻¹Rᵀ(f − R c)), H_K keeping the K largest by the
 //!    oracle's score, then refit; repeated `rounds` times;
 //! 3. prune: refitted values whose score fell below the selection threshold are dropped and the
-//!    rest refitted (repeated while anything drops, up to three times), so every sent value lies
-//!    above its band's quantizer threshold exactly as with plain thresholding.
+//!    rest refitted (repeated while anything drops, up to [`PRUNE_REFITS`] times, then a last
+//!    prune), so every sent value lies above its band's quantizer threshold exactly as with
+//!    plain thresholding.
 //!
 //! The conjugate-gradient refit carries the full (unmasked) gradient Rᵀ(f − R c) along with its
 //! masked residual, so each iterative-hard-thresholding round reads its candidates from the refit
@@ -69,6 +70,11 @@ pub struct KeptValue {
 
 /// CG iterations between restarts from the true gradient (single precision drifts).
 const RESTART: usize = 16;
+
+/// Refits after prunes. Each refit after the first drops only a few hundredths of the set; a
+/// third refit (12 of 42 transforms with it) moved Q_I by 0.01 dB on average over the test
+/// set (worst 0.08 dB, within what neighbouring set sizes give) at 13 % of the CPU.
+const PRUNE_REFITS: usize = 2;
 
 /// Σ a·b in f64, in fixed chunks (thread-count independent).
 fn dot(a: &[f32], b: &[f32]) -> f64 {
@@ -348,8 +354,8 @@ pub(crate) fn refine_with(
         tracing::debug!(k, alive, "refinement round");
     }
     // Prune values that fell below the threshold and refit the rest, until nothing falls
-    // below (at most three refits; a last prune without refit may follow).
-    for pass in 0..4 {
+    // below (at most PRUNE_REFITS refits; a last prune without refit may follow).
+    for pass in 0..=PRUNE_REFITS {
         let mut pruned = false;
         for c in 0..channels {
             let dropped: usize = values[c]
@@ -368,7 +374,7 @@ pub(crate) fn refine_with(
                 .sum();
             pruned |= dropped > 0;
         }
-        if !pruned || pass == 3 {
+        if !pruned || pass == PRUNE_REFITS {
             break;
         }
         refit_all(&mut values, &masks, &mut grads, &mut p, &mut work);
