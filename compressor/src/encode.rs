@@ -914,7 +914,7 @@ fn compress_to_bytes(
     )
 }
 
-/// Refinements a byte target may run (each is ~30 applications of the synthesis and its
+/// Refinements a byte target may run (each is ~36 applications of the synthesis and its
 /// transpose; the rate searches between them only run the entropy coder).
 const MAX_REFINEMENTS: usize = 3;
 

@@ -72,8 +72,9 @@ pub struct KeptValue {
 const RESTART: usize = 16;
 
 /// Refits after prunes. Each refit after the first drops only a few hundredths of the set; a
-/// third refit (12 of 42 transforms with it) moved Q_I by 0.01 dB on average over the test
-/// set (worst 0.08 dB, within what neighbouring set sizes give) at 13 % of the CPU.
+/// third one (6 of the 42 transforms a refinement ran with it) moved Q_I by 0.01 dB on average
+/// over the test set (worst 0.08 dB, within what neighbouring set sizes give) for 13 % of the
+/// CPU.
 const PRUNE_REFITS: usize = 2;
 
 /// Σ a·b in f64, in fixed chunks (thread-count independent).
