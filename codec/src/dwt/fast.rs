@@ -1,13 +1,14 @@
 //! Single-precision synthesis, its transpose and the spline sampling FIR, for the compressor's
 //! least-squares refinement (dozens of applications per compression) and for full decodes.
 //!
-//! Each 1D step is a periodic filter bank, written as a list of (output row, input row, weight)
-//! taps for one line length ([`Taps`]); the same list serves every line of that length. Lines
-//! along y and z are processed as *panels*: all the x samples of a row of the block move
-//! together, so the inner loop is an axpy over contiguous x (vectorized by the compiler), and no
-//! copy of the whole array is ever made. Lines along x are single rows and use the same taps
-//! with a width of one. Memory traffic is one read and one write of the block per axis; the
-//! extra memory is a few rows per thread plus a bounded batch buffer for the z axis.
+//! Each 1D step is a periodic filter bank. Along y and z it is a list of (output row, input
+//! row, weight) taps for one line length ([`Taps`]), applied to *panels*: all the x samples of
+//! a row of the block move together, so the inner loop is an axpy over contiguous x (vectorized
+//! by the compiler), and no copy of the whole array is ever made. Along x, where a line is one
+//! contiguous row, the same banks run in polyphase form ([`LineBank`]): short convolutions of
+//! each half of the line with the even and odd taps, over a halo holding the periodic wrap.
+//! Memory traffic is about one read and one write of the block per axis; the extra memory is a
+//! few rows per thread plus two bounded batch buffers for the z axis.
 //!
 //! The f64 routines of [`super`] stay the reference: tests compare both. Results do not depend
 //! on the thread count (each line is computed the same way whatever thread runs it).
