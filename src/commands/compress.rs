@@ -263,13 +263,15 @@ pub fn run(a: CompressArgs) -> Result<()> {
 fn print_summary(volume: &Volume, c: &Compressed, out: &std::path::Path) {
     let s = &c.stats;
     let d = volume.dims();
-    let u8_size = (volume.voxel_count() * volume.channel_count()) as f64;
+    // The source's sample width is gone after reading (samples are f32), so the ratio is to
+    // one byte per sample: a 16-bit volume's own ratio is half of it.
+    let samples = (volume.voxel_count() * volume.channel_count()) as f64;
     outln!(
-        "{}: {} bytes ({:.4} % of the {}-byte 8-bit volume, {:.4} bits/voxel)",
+        "{}: {} bytes ({:.4} % of {} samples at one byte each, {:.4} bits/voxel)",
         out.display(),
         s.bytes,
-        100.0 * s.bytes as f64 / u8_size,
-        u8_size,
+        100.0 * s.bytes as f64 / samples,
+        samples,
         8.0 * s.bytes as f64 / volume.voxel_count() as f64
     );
     outln!(
