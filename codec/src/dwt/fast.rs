@@ -268,7 +268,8 @@ impl FastTransform {
         let taps = interpolation_taps(family);
         let mut banks = HashMap::new();
         for level in 1..=geometry.levels {
-            for a in 0..3 {
+            // The x axis runs on `LineBank`, which serves every length.
+            for a in 1..3 {
                 let n = geometry.padded[a] >> (level - 1);
                 banks
                     .entry((Kind::Synthesis, n))
@@ -279,7 +280,7 @@ impl FastTransform {
             }
         }
         if taps.len() > 1 {
-            for a in 0..3 {
+            for a in 1..3 {
                 let n = geometry.padded[a];
                 banks
                     .entry((Kind::Sampling, n))
@@ -358,21 +359,20 @@ impl FastTransform {
     fn pass(&self, data: &mut [f32], block: [usize; 3], axis: usize, kind: Kind) {
         let full = self.geometry.padded;
         let n = block[axis];
-        let taps = &self.banks[&(kind, n)];
         let plane = full[0] * full[1];
         match axis {
             0 | 1 => {
-                // Every x and y line lies in one z slab.
-                // Lines along x are contiguous rows.
-                let slab = |s: &mut [f32], scratch: &mut (Vec<f32>, LineScratch)| {
-                    if axis == 0 {
+                // Every x and y line lies in one z slab. Lines along x are contiguous rows (the
+                // line kernels); lines along y are a panel (the bank of their length).
+                let panel_taps = (axis == 1).then(|| &self.banks[&(kind, n)]);
+                let slab = |s: &mut [f32], scratch: &mut (Vec<f32>, LineScratch)| match panel_taps {
+                    None => {
                         for y in 0..block[1] {
                             let line = &mut s[y * full[0]..y * full[0] + n];
                             self.lines.apply(kind, line, &mut scratch.1);
                         }
-                    } else {
-                        taps.apply(s, n, block[0], full[0], &mut scratch.0);
                     }
+                    Some(taps) => taps.apply(s, n, block[0], full[0], &mut scratch.0),
                 };
                 #[cfg(feature = "rayon")]
                 {
@@ -392,6 +392,7 @@ impl FastTransform {
             _ => {
                 // z lines: gather batches of y rows into panels (z rows of x samples), filter
                 // them, scatter them back. Both halves split the work disjointly.
+                let taps = &self.banks[&(kind, n)];
                 let width = block[0];
                 let per_y = block[2] * width;
                 let batch = (BATCH_ELEMENTS / per_y.max(1)).clamp(1, block[1]);
