@@ -131,7 +131,7 @@ struct LineBank {
 
 /// Per-thread buffers of the line kernels.
 #[derive(Debug, Default)]
-struct LineScratch {
+struct LineBuffers {
     a: Vec<f32>,
     b: Vec<f32>,
     even: Vec<f32>,
@@ -186,7 +186,7 @@ impl LineBank {
     }
 
     /// Synthesis of one line in place: [c1 | d1] → c0[(2k + i) mod n] += c1[k] p[i] + d1[k] q[i].
-    fn synthesize(&self, line: &mut [f32], s: &mut LineScratch) {
+    fn synthesize(&self, line: &mut [f32], s: &mut LineBuffers) {
         let h = line.len() / 2;
         periodic_extension(&mut s.a, &line[..h], self.halo, 0);
         periodic_extension(&mut s.b, &line[h..], self.halo, 0);
@@ -203,7 +203,7 @@ impl LineBank {
     }
 
     /// Transpose of [`LineBank::synthesize`]: c1[k] = Σ_i c0[(2k + i) mod n] p[i], d1 likewise.
-    fn adjoint(&self, line: &mut [f32], s: &mut LineScratch) {
+    fn adjoint(&self, line: &mut [f32], s: &mut LineBuffers) {
         let h = line.len() / 2;
         s.even.clear();
         s.odd.clear();
@@ -220,14 +220,14 @@ impl LineBank {
     }
 
     /// The centred sampling FIR along one line, circularly.
-    fn sample(&self, line: &mut [f32], s: &mut LineScratch) {
+    fn sample(&self, line: &mut [f32], s: &mut LineBuffers) {
         let r = self.sampling.len() / 2;
         periodic_extension(&mut s.a, line, r, r);
         line.fill(0.0);
         correlate_into(line, &s.a, &self.sampling);
     }
 
-    fn apply(&self, kind: Kind, line: &mut [f32], s: &mut LineScratch) {
+    fn apply(&self, kind: Kind, line: &mut [f32], s: &mut LineBuffers) {
         match kind {
             Kind::Synthesis => self.synthesize(line, s),
             Kind::Adjoint => self.adjoint(line, s),
@@ -365,7 +365,7 @@ impl FastTransform {
                 // Every x and y line lies in one z slab. Lines along x are contiguous rows (the
                 // line kernels); lines along y are a panel (the bank of their length).
                 let panel_taps = (axis == 1).then(|| &self.banks[&(kind, n)]);
-                let slab = |s: &mut [f32], scratch: &mut (Vec<f32>, LineScratch)| match panel_taps {
+                let slab = |s: &mut [f32], scratch: &mut (Vec<f32>, LineBuffers)| match panel_taps {
                     None => {
                         for y in 0..block[1] {
                             let line = &mut s[y * full[0]..y * full[0] + n];
