@@ -1,5 +1,19 @@
-//! The depth-cue expansion of coefficients into splat pieces (paper §3.2), a planning step of its
-//! own. The medium is the data: the cue is cut at the data's light-facing faces (per axis −j/2
+//! The expansions of coefficients into splat pieces, a planning step of its own: clipping to the
+//! volume's box when periodic images of the basis functions reach it ([`BoxClip`]), and the
+//! depth-cue expansion (paper §3.2, [`expand`]).
+//!
+//! **Clipping.** The decomposition is periodic on the padded grid. When that grid leaves less
+//! room around the volume than the coarsest support (a small or zero margin), a basis function
+//! reaches the volume with more than one periodic image, and the one-image-per-coefficient
+//! splatting would draw parts of it outside the volume and miss its wrapped parts. The volume
+//! is then drawn as what it is: the spline of the level-0 coefficients of the periodic
+//! reconstruction that lie in the box. Along each axis every image of a basis function that
+//! reaches the box is kept whole when all its level-0 B-splines lie in the box, dropped when
+//! none does, and otherwise split by the two-scale relation into φ one level finer, each tested
+//! again (coincident pieces merged). Every piece is then a whole φ or ψ at some level: no cut
+//! factor is needed, and every piece lies behind the depth cue's planes.
+//!
+//! **Depth cue (no clipping).** The medium is the data: the cue is cut at the data's light-facing faces (per axis −j/2
 //! or n − 1 + j/2, where the order-j spline of the voxels ends), so the cue weight of a basis
 //! function is a product of per-axis factors. Along each axis a basis factor lies behind its
 //! face (exponential, cued from its support end nearest the light), in front of it (weight 0:
@@ -168,6 +182,203 @@ pub fn expand(
     per.into_iter().flatten().collect()
 }
 
+/// Whether `geometry` needs clipping to its box: some axis leaves less room around the volume
+/// than [`Geometry::default_margin`] on each side, so periodic images of one basis function can
+/// reach the volume.
+pub fn clips_to_box(geometry: &Geometry) -> bool {
+    let room = 2 * Geometry::default_margin(geometry.family, geometry.levels);
+    geometry.family != wavesplat_codec::family::Family::Haar
+        && (0..3).any(|a| geometry.padded[a] < geometry.dims[a].saturating_add(room))
+}
+
+/// How one coefficient is drawn after clipping.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Clipped {
+    /// Whole, with its band's table, at this centre (volume coordinates): one image wholly in
+    /// the box along every axis, and no cue.
+    Whole([f64; 3]),
+    /// As pieces (listed separately), or not at all when none reaches the box.
+    Split,
+}
+
+/// One axis entry of a clipped coefficient: φ (or ψ at the coefficient's own level) at a level,
+/// centre, weight.
+type AxisPiece = (u8, bool, f64, f64);
+
+/// The two-scale relations and supports that clipping to the box needs, for one geometry.
+#[derive(Debug, Clone)]
+pub struct BoxClip {
+    geometry: Geometry,
+    /// Per level l ≥ 1 (index l): [φ_l, ψ_l] as (offset of a φ_(l−1) centre from the level-l
+    /// centre, weight).
+    relations: Vec<[Vec<(f64, f64)>; 2]>,
+    /// Per level: [φ, ψ] distance from the centre to the farthest level-0 B-spline of its
+    /// expansion.
+    reach: Vec<[f64; 2]>,
+}
+
+impl BoxClip {
+    /// The relations for `geometry`.
+    pub fn new(geometry: &Geometry) -> BoxClip {
+        let family = geometry.family;
+        // The level-1 relation, in level-0 units; level l scales its offsets by 2^(l−1).
+        let len = 8 * family.order() + 8;
+        let one: [Vec<(f64, f64)>; 2] = [false, true].map(|wavelet| {
+            let line = unit_basis_line(family, len, 1, wavelet, false);
+            let centre = geometry.raw_center_1d(1, 0, wavelet);
+            line.iter()
+                .enumerate()
+                .filter(|(_, v)| **v != 0.0)
+                .map(|(i, v)| (i as f64 - centre, *v))
+                .collect()
+        });
+        let mut relations = vec![[Vec::new(), Vec::new()]];
+        let mut reach = vec![[0.0, 0.0]];
+        for l in 1..=geometry.levels {
+            let s = (1u64 << (l - 1)) as f64;
+            let rel = one.clone().map(|taps| {
+                taps.into_iter()
+                    .map(|(o, w)| (o * s, w))
+                    .collect::<Vec<_>>()
+            });
+            let r = rel
+                .clone()
+                .map(|taps| taps.iter().fold(0.0f64, |m, (o, _)| m.max(o.abs())) + reach[l - 1][0]);
+            relations.push(rel);
+            reach.push(r);
+        }
+        BoxClip {
+            geometry: *geometry,
+            relations,
+            reach,
+        }
+    }
+
+    /// The pieces along axis `a` of the level-`level` φ or ψ whose raw (unwrapped, padded-grid)
+    /// centre is `raw`: every periodic image reaching the box, clipped (merged, non-zero).
+    fn axis(&self, a: usize, level: usize, wavelet: bool, raw: f64) -> Vec<AxisPiece> {
+        let g = &self.geometry;
+        let n = g.dims[a] as f64;
+        let period = g.padded[a] as f64;
+        let centre = raw - g.origin[a] as f64;
+        let r = self.reach[level][wavelet as usize];
+        let first = ((-r - centre) / period).floor() as i64;
+        let last = ((n - 1.0 + r - centre) / period).ceil() as i64;
+        let mut out = Vec::new();
+        for m in first..=last {
+            self.split(level, wavelet, centre + m as f64 * period, 1.0, n, &mut out);
+        }
+        out.sort_by(|x, y| (x.0, x.1).cmp(&(y.0, y.1)).then(x.2.total_cmp(&y.2)));
+        let mut merged: Vec<AxisPiece> = Vec::with_capacity(out.len());
+        for p in out {
+            match merged.last_mut() {
+                Some(q) if q.0 == p.0 && q.1 == p.1 && (q.2 - p.2).abs() < 1e-9 => q.3 += p.3,
+                _ => merged.push(p),
+            }
+        }
+        merged.retain(|p| p.3 != 0.0);
+        merged
+    }
+
+    fn split(&self, level: usize, wavelet: bool, c: f64, w: f64, n: f64, out: &mut Vec<AxisPiece>) {
+        const EPS: f64 = 1e-9;
+        let r = self.reach[level][wavelet as usize];
+        if c + r < -EPS || c - r > n - 1.0 + EPS {
+            return;
+        }
+        if c - r >= -EPS && c + r <= n - 1.0 + EPS {
+            out.push((level as u8, wavelet, c, w));
+            return;
+        }
+        // Straddles a face (level ≥ 1: a level-0 B-spline is either in or out).
+        for (offset, weight) in &self.relations[level][wavelet as usize] {
+            self.split(level - 1, false, c + offset, w * weight, n, out);
+        }
+    }
+
+    /// Clips `coefficients` (already validated) to the box: per coefficient whether it is drawn
+    /// whole (and where) or as pieces, and the pieces (input order). With a cue every
+    /// coefficient becomes pieces, each weighted by the cue at its support's corner nearest the
+    /// light (see [`expand`]); all of them lie behind the cue's planes.
+    pub fn clip(
+        &self,
+        coefficients: &[Coefficient],
+        cue: Option<&ResolvedCue>,
+    ) -> (Vec<Clipped>, Vec<(usize, Piece)>) {
+        let g = &self.geometry;
+        let per: Vec<(Clipped, Vec<(usize, Piece)>)> = coefficients
+            .par_iter()
+            .enumerate()
+            .map(|(i, c)| {
+                let level = c.band.level as usize;
+                let axes: [Vec<AxisPiece>; 3] = [0, 1, 2].map(|a| {
+                    let wavelet = c.band.is_wavelet_along(a);
+                    let raw = g.raw_center_1d(level, c.pos[a] as usize, wavelet);
+                    self.axis(a, level, wavelet, raw)
+                });
+                if axes.iter().any(Vec::is_empty) {
+                    return (Clipped::Split, Vec::new());
+                }
+                let whole = |p: &Vec<AxisPiece>, a: usize| {
+                    p.len() == 1
+                        && p[0].0 as usize == level
+                        && p[0].1 == c.band.is_wavelet_along(a)
+                        && p[0].3 == 1.0
+                };
+                if cue.is_none() && (0..3).all(|a| whole(&axes[a], a)) {
+                    return (
+                        Clipped::Whole([axes[0][0].2, axes[1][0].2, axes[2][0].2]),
+                        Vec::new(),
+                    );
+                }
+                let support = |p: &AxisPiece| g.half_support_1d(p.0 as usize, p.1);
+                let mut out = Vec::with_capacity(axes.iter().map(Vec::len).product());
+                for x in &axes[0] {
+                    for y in &axes[1] {
+                        for z in &axes[2] {
+                            let centre = [x.2, y.2, z.2];
+                            let weight = match cue {
+                                None => 1.0,
+                                Some(cue) => {
+                                    let mut near = [0.0; 3];
+                                    for (a, p) in [x, y, z].into_iter().enumerate() {
+                                        let h = support(p);
+                                        near[a] = if cue.l[a] >= 0.0 { p.2 - h } else { p.2 + h };
+                                    }
+                                    (-cue.k * cue.dist(near).max(0.0)).exp()
+                                }
+                            };
+                            let value = c.value as f64 * x.3 * y.3 * z.3 * weight;
+                            if value != 0.0 {
+                                out.push((
+                                    i,
+                                    Piece {
+                                        factors: [x, y, z].map(|p| AxisFactor::Basis {
+                                            level: p.0,
+                                            wavelet: p.1,
+                                        }),
+                                        centre,
+                                        value,
+                                        channel: c.channel,
+                                    },
+                                ));
+                            }
+                        }
+                    }
+                }
+                (Clipped::Split, out)
+            })
+            .collect();
+        let mut clipped = Vec::with_capacity(per.len());
+        let mut pieces = Vec::new();
+        for (c, p) in per {
+            clipped.push(c);
+            pieces.extend(p);
+        }
+        (clipped, pieces)
+    }
+}
+
 /// Checks a coefficient addresses an existing band position and channel and is finite.
 pub(crate) fn check_coefficient(
     c: &Coefficient,
@@ -194,4 +405,62 @@ pub(crate) fn check_coefficient(
         return Err(RenderError::NotFinite);
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use wavesplat_codec::family::Family;
+
+    /// Along one axis, the clipped pieces of every basis function sum to its periodic level-0
+    /// expansion (the codec's synthesis, shifted: the transform is shift-invariant) restricted
+    /// to the box, and draw nothing outside it: for a box with no margin, one narrower than its
+    /// period and one much narrower than the coarsest support.
+    #[test]
+    fn clipped_pieces_sum_to_the_periodic_expansion_inside_the_box() {
+        for family in [Family::Linear, Family::Cubic] {
+            for (n, levels) in [(16usize, 3usize), (13, 3), (5, 3), (16, 4)] {
+                let g = Geometry::new([n, 16, 16], family, levels, 0).unwrap();
+                let clip = BoxClip::new(&g);
+                let period = g.padded[0];
+                for level in 1..=g.levels {
+                    for wavelet in [false, true] {
+                        let base = unit_basis_line(family, period, level, wavelet, false);
+                        for k in 0..period >> level {
+                            let mut want = vec![0.0f64; n];
+                            for (i, w) in want.iter_mut().enumerate() {
+                                let p = i + g.origin[0];
+                                *w = base[(p + period - (k << level) % period) % period];
+                            }
+                            let mut got = vec![0.0f64; n];
+                            let raw = g.raw_center_1d(level, k, wavelet);
+                            for (l, wv, c, weight) in clip.axis(0, level, wavelet, raw) {
+                                let (l, long) = (l as usize, 64 * family.order() << level);
+                                let line = unit_basis_line(family, long, l, wv, false);
+                                let c0 = g.raw_center_1d(l, 0, wv);
+                                for (t, v) in line.iter().enumerate().filter(|(_, v)| **v != 0.0) {
+                                    let at = c + (t as f64 - c0);
+                                    let i = at.round() as i64;
+                                    assert!((at - i as f64).abs() < 1e-9);
+                                    assert!(
+                                        (0..n as i64).contains(&i),
+                                        "{family} n={n} l={level} ψ={wavelet} k={k}: tap at {i}"
+                                    );
+                                    got[i as usize] += weight * v;
+                                }
+                            }
+                            for i in 0..n {
+                                assert!(
+                                    (got[i] - want[i]).abs() < 1e-12,
+                                    "{family} n={n} l={level} ψ={wavelet} k={k} i={i}: {} vs {}",
+                                    got[i],
+                                    want[i]
+                                );
+                            }
+                        }
+                    }
+                }
+            }
+        }
+    }
 }

@@ -8,15 +8,17 @@
 //! cached per view like RustFFT's planner caches plans. A [`ViewPlan`] turns coefficients into
 //! records: each coefficient is projected to its basis centre on the screen, the (level, type)
 //! footprint is placed at the nearest subpixel phase (see [`crate::footprint`]) and records
-//! whose box misses the screen are counted and dropped. With depth cueing the coefficients are
-//! first split into cued pieces ([`crate::pieces::expand`]) and the tables of the factor
-//! triples that occur are built on first use and appended to the atlas: at once by default, or,
+//! whose box misses the screen are counted and dropped. When the geometry's periodic images
+//! reach the volume, coefficients are first clipped to its box ([`crate::pieces::BoxClip`]):
+//! those wholly inside stay one splat, the others become pieces. With depth cueing the
+//! coefficients are split into cued pieces ([`crate::pieces::expand`], or the clip's pieces
+//! with their cue weights). The tables of the factor triples that occur are built on first use and appended to the atlas: at once by default, or,
 //! for a frame loop that must not stall ([`ViewPlan::build_tables_in_background`]), on a thread
 //! of the plan's own while the coefficients that need them wait ([`ViewPlan::take_deferred`]).
 
 use crate::backend::{FootprintAtlas, Layout, SplatRecord, TableRef};
 use crate::footprint::{AxisFactor, Footprint, FootprintParams, FootprintSet};
-use crate::pieces::{self, check_coefficient, Expansions, Piece};
+use crate::pieces::{self, check_coefficient, BoxClip, Clipped, Expansions, Piece};
 use crate::RenderError;
 use rayon::prelude::*;
 use std::collections::{HashMap, HashSet};
@@ -290,6 +292,7 @@ impl Planner {
             cue,
             channels,
             expansions: cue.map(|_| Expansions::new(geometry)),
+            clip: pieces::clips_to_box(geometry).then(|| BoxClip::new(geometry)),
             factor_tables: vec![HashMap::new(); sets.len()],
             sets,
             atlas,
@@ -320,6 +323,8 @@ pub struct ViewPlan {
     /// Every footprint of the view (grows with cued factor triples).
     pub atlas: FootprintAtlas,
     expansions: Option<Expansions>,
+    /// Clipping to the box, when the geometry's periodic images reach the volume.
+    clip: Option<BoxClip>,
     /// Footprint sets: one shared by every camera, or one per camera.
     sets: Vec<Arc<FootprintSet>>,
     /// Per set, the uncued tables by `level · 8 + kind`.
@@ -340,6 +345,9 @@ pub struct ViewPlan {
     /// Uncued tables of the view for stand-ins, by `level · 8 + kind` (empty: no stand-ins).
     stand_in_tables: Vec<Option<TableRef>>,
 }
+
+/// Coefficients per parallel planning task.
+const CHUNK: usize = 1024;
 
 /// A cued table request or result: footprint set index and factor triple.
 type TableKey = (usize, [AxisFactor; 3]);
@@ -434,6 +442,12 @@ impl ViewPlan {
             self.factor_tables[*set].insert(*triple, t);
         }
         arrived.len()
+    }
+
+    /// Whether coefficients are clipped to the volume's box (see [`crate::pieces`]): the view
+    /// then draws pieces with factor tables even without a cue.
+    pub fn clips(&self) -> bool {
+        self.clip.is_some()
     }
 
     /// Whether cued tables are being built in the background.
@@ -603,12 +617,21 @@ impl ViewPlan {
         for c in coefficients {
             check_coefficient(c, &self.geometry, self.channels)?;
         }
-        // With a cue every coefficient is split into cued pieces; without, each is one splat.
+        // Clipped to the box, a coefficient is one splat where it lies wholly inside and pieces
+        // elsewhere; unclipped, with a cue every coefficient is split into cued pieces and
+        // without one each is one splat at its image nearest the volume centre.
+        let (clipped, pieces): (Option<Vec<Clipped>>, Vec<(usize, Piece)>) =
+            match (&self.clip, &self.cue, &self.expansions) {
+                (Some(b), cue, _) => {
+                    let (c, p) = b.clip(coefficients, cue.as_ref());
+                    (Some(c), p)
+                }
+                (None, Some(cue), Some(e)) => {
+                    (None, pieces::expand(coefficients, &self.geometry, cue, e))
+                }
+                _ => (None, Vec::new()),
+            };
         let whole = self.cue.is_none();
-        let pieces: Vec<(usize, Piece)> = match (&self.cue, &self.expansions) {
-            (Some(cue), Some(e)) => pieces::expand(coefficients, &self.geometry, cue, e),
-            _ => Vec::new(),
-        };
         let odd = self.geometry.family.psi_is_odd();
         let size = (self.spec.view.width, self.spec.view.height);
         let views = self.cameras.len();
@@ -681,15 +704,23 @@ impl ViewPlan {
         for (k, camera) in self.cameras.iter().enumerate() {
             let (set, permuted) = self.set_of(k);
             let tables = &self.tables[set];
+            let clipped = clipped.as_deref();
             let planned: Vec<(Vec<SplatRecord>, usize)> = coefficients
-                .par_chunks(1024)
-                .map(|chunk| {
+                .par_chunks(CHUNK)
+                .enumerate()
+                .map(|(ci, chunk)| {
                     let mut out = Vec::with_capacity(chunk.len() * 3);
                     let mut placed = 0usize;
-                    for c in chunk {
-                        if !whole {
-                            continue;
-                        }
+                    for (j, c) in chunk.iter().enumerate() {
+                        let centre = match clipped.map(|cl| cl[ci * CHUNK + j]) {
+                            Some(Clipped::Whole(centre)) => centre,
+                            Some(Clipped::Split) => continue,
+                            None if whole => {
+                                let pos = [c.pos[0] as usize, c.pos[1] as usize, c.pos[2] as usize];
+                                self.geometry.basis_center(c.band, pos)
+                            }
+                            None => continue,
+                        };
                         let (kind, sign) = if permuted {
                             multiview_map(k, c.band.kind, odd)
                         } else {
@@ -698,8 +729,7 @@ impl ViewPlan {
                         let Some(t) = tables[c.band.level as usize * 8 + kind as usize] else {
                             continue;
                         };
-                        let pos = [c.pos[0] as usize, c.pos[1] as usize, c.pos[2] as usize];
-                        let scr = camera.to_screen(self.geometry.basis_center(c.band, pos));
+                        let scr = camera.to_screen(centre);
                         let value = c.value * sign;
                         let (channel, view) = (c.channel as u16, k as u16);
                         if place(&t, &self.atlas, scr, value, channel, view, size, &mut out) {

@@ -2,7 +2,11 @@
 //! emission–absorption integral with constant attenuation for depth cueing) of the volume
 //! *reconstructed* from a set of coefficients.
 //!
-//! The volume is what the splats draw: Σ_c w_c b_c with every basis function b_c taken once, at
+//! When periodic images of the basis functions reach the volume (a small or zero margin, see
+//! [`crate::pieces`]), the volume is the periodic reconstruction's spline restricted to the
+//! level-0 coefficients in the box: the codec's periodic synthesis on the padded grid, the box
+//! then copied into a zero-margined grid. Otherwise the volume is what the splats draw:
+//! Σ_c w_c b_c with every basis function b_c taken once, at
 //! its periodic image nearest the volume centre (`Geometry::basis_center`). It is reconstructed
 //! by the codec's synthesis on a grid extended by a margin wider than any support, each
 //! coefficient moved to its nearest image there, so nothing wraps (on the padded grid itself the
@@ -47,6 +51,20 @@ impl PaddedVolume {
         channels: usize,
     ) -> Result<PaddedVolume, RenderError> {
         let g = geometry;
+        if crate::pieces::clips_to_box(g) {
+            // The periodic reconstruction, restricted to the box (what clipped splats draw).
+            let mut data = vec![vec![0.0f64; g.coefficient_count()]; channels];
+            for c in coefficients {
+                crate::pieces::check_coefficient(c, g, channels)?;
+                let pos = c.pos.map(|p| p as usize);
+                data[c.channel as usize][g.linear_index(c.band, pos)] += c.value as f64;
+            }
+            let mut dwt = Dwt1d::new(g.family);
+            for ch in data.iter_mut() {
+                inverse_3d(ch, g, &mut dwt);
+            }
+            return Ok(boxed(&data, g));
+        }
         let block = 1usize << g.levels;
         let reach = (0..=g.levels)
             .flat_map(|l| [g.half_support_1d(l, false), g.half_support_1d(l, true)])
@@ -88,17 +106,55 @@ impl PaddedVolume {
     /// The spline through the voxel samples of an unmodified volume (padded, prefiltered to
     /// spline coefficients for the cubic family).
     pub fn from_volume(channels: &[Vec<f32>], geometry: &Geometry) -> PaddedVolume {
+        let channels: Vec<Vec<f64>> = channels
+            .iter()
+            .map(|c| {
+                let mut d = pad_channel(c, geometry);
+                samples_to_coefficients(&mut d, geometry);
+                d
+            })
+            .collect();
+        if crate::pieces::clips_to_box(geometry) {
+            return boxed(&channels, geometry);
+        }
         PaddedVolume {
             geometry: *geometry,
-            channels: channels
-                .iter()
-                .map(|c| {
-                    let mut d = pad_channel(c, geometry);
-                    samples_to_coefficients(&mut d, geometry);
-                    d
-                })
-                .collect(),
+            channels,
         }
+    }
+}
+
+/// The box of padded grids (spline coefficients on `geometry`'s padded grid) copied into a
+/// grid with a zero margin wider than a level-0 B-spline's support, so that the spline of the
+/// box's coefficients is evaluated whole and nothing outside the box contributes.
+fn boxed(channels: &[Vec<f64>], geometry: &Geometry) -> PaddedVolume {
+    let g = geometry;
+    let w = g.family.order() + 2;
+    let out = Geometry {
+        padded: g.dims.map(|d| d + 2 * w),
+        origin: [w; 3],
+        ..*g
+    };
+    let [px, py, _] = g.padded;
+    let [qx, qy, _] = out.padded;
+    let [nx, ny, nz] = g.dims;
+    let channels = channels
+        .iter()
+        .map(|src| {
+            let mut dst = vec![0.0f64; out.padded.iter().product()];
+            for z in 0..nz {
+                for y in 0..ny {
+                    let s = g.origin[0] + px * (g.origin[1] + y + py * (g.origin[2] + z));
+                    let d = w + qx * (w + y + qy * (w + z));
+                    dst[d..d + nx].copy_from_slice(&src[s..s + nx]);
+                }
+            }
+            dst
+        })
+        .collect();
+    PaddedVolume {
+        geometry: out,
+        channels,
     }
 }
 
