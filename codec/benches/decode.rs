@@ -140,7 +140,7 @@ fn make_file(coder: CoderKind, g: &Geometry, kept: &[Scored]) -> (Header, Vec<Ve
         .collect();
     let mut header = Header {
         geometry: *g,
-        margin: Geometry::default_margin(g.family, g.levels),
+        margin: Geometry::separating_margin(g.family, g.levels),
         placement: None,
         channels: 1,
         color: ColorInfo::intensity(),
@@ -192,7 +192,7 @@ fn bench(c: &mut Criterion) {
         DIMS,
         family,
         levels,
-        Geometry::default_margin(family, levels),
+        Geometry::separating_margin(family, levels),
     )
     .unwrap();
     let w = decompose_channel(&phantom(), &g);

@@ -5,10 +5,11 @@
 //! of 2^M (plus an optional margin, centred) so that every level halves every axis. The boundary
 //! treatment is **periodic on the zero-padded grid**: every basis function is an exact translate
 //! of the dilated mother function (so 8 footprints per level suffice), and the decomposition is
-//! the exact orthogonal projection onto V and W of the periodic spline space. The renderer places
-//! each coefficient at the translate nearest the volume centre; for Haar, whose supports tile the
-//! grid, this is exact; for the spline families the dual tails that wrap around the period are
-//! the only approximation, and the margin (`Geometry::margin`) pushes them away from the data.
+//! the exact orthogonal projection onto V and W of the periodic spline space. The volume is the
+//! spline of the reconstruction's level-0 coefficients inside the box; a renderer places each
+//! coefficient at the translate nearest the volume centre when the margin separates the periodic
+//! images ([`Geometry::separating_margin`]), and clips the translates that reach the box
+//! otherwise.
 //!
 //! Bands are `(level, type)` pairs: types 1..=7 at levels 1..=M are wavelets, type 0 at level M
 //! is the scaling function. A type's bits say which axes carry ψ: bit 2 (value 4) = x,
@@ -104,14 +105,13 @@ impl Geometry {
         m.min(MAX_LEVELS)
     }
 
-    /// Default margin (voxels of zeros on each side before rounding up): none for Haar, whose
-    /// supports tile the grid and never cross a period; for the splines half the support of
-    /// the coarsest wavelet, ⌈(2j − 1)·2^M / 2⌉, so that the period is at least the volume plus
-    /// that support and no two periodic images of one basis function reach the volume. That is
-    /// what makes the one-translate-per-coefficient splatting agree with the volume (measured:
-    /// linear M = 4 on 32³ with an 8-voxel margin renders at 13 dB SNR against the reference,
-    /// with this margin above 30 dB).
-    pub fn default_margin(family: Family, levels: usize) -> usize {
+    /// The separating margin (voxels of zeros on each side before rounding up): none for Haar,
+    /// whose supports tile the grid and never cross a period; for the splines half the support
+    /// of the coarsest wavelet, ⌈(2j − 1)·2^M / 2⌉, so that the period is at least the volume
+    /// plus that support and no two periodic images of one basis function reach the volume.
+    /// With less, the renderer clips basis functions to the volume's box; the compressor's
+    /// default is no margin (the zeros cost coefficients where structure crosses the faces).
+    pub fn separating_margin(family: Family, levels: usize) -> usize {
         match family {
             Family::Haar => 0,
             _ => ((2 * family.order() - 1) << levels).div_ceil(2),

@@ -64,8 +64,10 @@ pub struct CompressOptions {
     /// Decomposition depth M (`None`: min(6, maximum) for Haar, min(3, maximum) for linear,
     /// min(2, maximum) for cubic, whose coarse supports grow as (2j − 1)·2^M).
     pub levels: Option<usize>,
-    /// Zero margin in voxels around the volume (`None`: [`Geometry::default_margin`], what the
-    /// renderer needs to be exact).
+    /// Zero margin in voxels around the volume (`None`: none. The renderer clips basis functions
+    /// to the volume's box when the margin is below [`Geometry::separating_margin`], so every
+    /// margin renders exactly; zeros around data that does not fall to zero at its faces cost
+    /// coefficients).
     pub margin: Option<usize>,
     /// Colour space for 3-channel volumes.
     pub colorspace: ColorSpaceKind,
@@ -288,16 +290,14 @@ fn prepare(
     }
     let dims = volume.dims();
     let max_levels = Geometry::max_levels(dims);
-    // Deeper spline decompositions wrap more of their dual tails around the period and
-    // render less exactly (see Geometry::default_margin); these depths keep ≥ 30 dB.
+    // Deeper spline decompositions have wider supports: more coefficients cross the faces,
+    // each drawn as clipped pieces.
     let levels = opts.levels.unwrap_or(match opts.family {
         Family::Haar => max_levels.min(6),
         Family::Linear => max_levels.min(3),
         Family::Cubic => max_levels.min(2),
     });
-    let margin = opts
-        .margin
-        .unwrap_or_else(|| Geometry::default_margin(opts.family, levels));
+    let margin = opts.margin.unwrap_or(0);
     let geometry =
         Geometry::new(dims, opts.family, levels, margin)?.with_spacing(volume.spacing())?;
     progress(Stage::Color, 0.0);
@@ -726,9 +726,7 @@ pub fn memory_estimate(
         Family::Linear => Geometry::max_levels(dims).min(3),
         Family::Cubic => Geometry::max_levels(dims).min(2),
     });
-    let margin = opts
-        .margin
-        .unwrap_or_else(|| Geometry::default_margin(opts.family, levels));
+    let margin = opts.margin.unwrap_or(0);
     let g = Geometry::new(dims, opts.family, levels, margin)?;
     let n = g.coefficient_count() as u64;
     let v = dims.iter().map(|d| *d as u64).product::<u64>();

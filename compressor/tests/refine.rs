@@ -115,7 +115,7 @@ fn refinement_beats_thresholding_at_equal_count() {
     for family in [Family::Linear, Family::Cubic] {
         let dims = [24, 20, 16];
         let vol = Phantom::SheppLogan.generate(dims);
-        let margin = Geometry::default_margin(family, 2);
+        let margin = Geometry::separating_margin(family, 2);
         let g = Geometry::new(dims, family, 2, margin).unwrap();
         let coeffs = decompose_channel(vol.channel(0), &g);
         let k = g.coefficient_count() / 40;

@@ -51,10 +51,10 @@ pub struct CompressArgs {
     /// max = ceil(log2(smallest dimension))).
     #[arg(long)]
     pub levels: Option<usize>,
-    /// Zero margin (voxels) around the volume before the periodic transform. Default: 0 for
-    /// Haar; half the coarsest wavelet support, ceil((2j-1)·2^M/2), for linear/cubic, which
-    /// renderings from the coefficients need to be exact (smaller margins compress the same data
-    /// into fewer coefficients but render wrongly near the faces).
+    /// Zero margin (voxels) around the volume before the periodic transform. Default: 0. Every
+    /// margin renders exactly (below half the coarsest wavelet support, ceil((2j-1)·2^M/2), the
+    /// viewer clips basis functions to the volume's box); zeros around data that does not fall
+    /// to zero at its faces cost coefficients.
     #[arg(long)]
     pub margin: Option<usize>,
     /// Colour space for RGB volumes: rgb, yiq, pca.

@@ -183,10 +183,10 @@ pub fn expand(
 }
 
 /// Whether `geometry` needs clipping to its box: some axis leaves less room around the volume
-/// than [`Geometry::default_margin`] on each side, so periodic images of one basis function can
+/// than [`Geometry::separating_margin`] on each side, so periodic images of one basis function can
 /// reach the volume.
 pub fn clips_to_box(geometry: &Geometry) -> bool {
-    let room = 2 * Geometry::default_margin(geometry.family, geometry.levels);
+    let room = 2 * Geometry::separating_margin(geometry.family, geometry.levels);
     geometry.family != wavesplat_codec::family::Family::Haar
         && (0..3).any(|a| geometry.padded[a] < geometry.dims[a].saturating_add(room))
 }

@@ -40,7 +40,7 @@ fn multiview_permutations_equal_direct_views() {
 fn depth_cue_matches_emission_absorption_reference() {
     for family in [Family::Haar, Family::Linear, Family::Cubic] {
         // The compressor's default margin (half the coarsest support), what files have.
-        let margin = Geometry::default_margin(family, 2);
+        let margin = Geometry::separating_margin(family, 2);
         let (g, coeffs) = common::coefficients_with_margin(32, family, 2, margin);
         let vol = PaddedVolume::from_coefficients(&coeffs, &g, 1).unwrap();
         let mut r = Renderer::new(RenderOptions::default());

@@ -85,7 +85,7 @@ fn anisotropic_volumes_match_the_reference() {
     for spacing in [[1.0f32, 1.0, 3.0], [0.8, 1.1, 2.5]] {
         let samples = sample(dims, spacing, |p| ellipsoids(p, 12.0));
         for (family, levels) in [(Family::Haar, 2), (Family::Linear, 2), (Family::Cubic, 2)] {
-            let margin = Geometry::default_margin(family, levels);
+            let margin = Geometry::separating_margin(family, levels);
             let (g, coeffs) = decompose(&samples, dims, spacing, family, levels, margin);
             let vol = PaddedVolume::from_coefficients(&coeffs, &g, 1).unwrap();
             let options = common::reference_options(family);
@@ -187,7 +187,7 @@ fn anisotropic_and_cubic_samplings_render_the_same_image() {
     let cubic = ([36usize, 32, 34], [1.0f32; 3]);
     let render = |(dims, spacing): ([usize; 3], [f32; 3]), view: &View| {
         let samples = sample(dims, spacing, gaussians);
-        let margin = Geometry::default_margin(family, 2);
+        let margin = Geometry::separating_margin(family, 2);
         let (g, coeffs) = decompose(&samples, dims, spacing, family, 2, margin);
         let mut r = Renderer::new(RenderOptions::default());
         let img = r.render(&coeffs, &g, view).unwrap();

@@ -236,7 +236,7 @@ fn renderer_case_with(
         dims,
         family,
         levels,
-        Geometry::default_margin(family, levels),
+        Geometry::separating_margin(family, levels),
     )?;
     let coeffs = Coefficient::all_of(&g, 0, &decompose_channel(data, &g));
     let vol = PaddedVolume::from_coefficients(&coeffs, &g, 1)?;
@@ -312,7 +312,7 @@ fn cue_case(dims: [usize; 3], data: &[f32], family: Family, view: &View) -> Resu
         bail!("a renderer case renders");
     };
     let plain = View { cue: None, ..*view };
-    let g = Geometry::new(dims, family, 2, Geometry::default_margin(family, 2))?;
+    let g = Geometry::new(dims, family, 2, Geometry::separating_margin(family, 2))?;
     let coeffs = Coefficient::all_of(&g, 0, &decompose_channel(data, &g));
     let vol = PaddedVolume::from_coefficients(&coeffs, &g, 1)?;
     let uncued = render_reference(&vol, &plain, &reference_options(family, 0.0))?;
