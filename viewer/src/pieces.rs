@@ -296,6 +296,29 @@ impl BoxClip {
         }
     }
 
+    /// The summed `weight` of the levels of a coefficient's pieces (each piece weighs as its
+    /// coarsest factor, which sets its footprint's size; a coefficient wholly inside the box
+    /// weighs `weight(level)`, one wholly outside nothing): what drawing it costs.
+    pub fn weigh(&self, c: &Coefficient, weight: impl Fn(u8) -> f64) -> f64 {
+        let level = c.band.level as usize;
+        let axes: [Vec<AxisPiece>; 3] = [0, 1, 2].map(|a| {
+            let wavelet = c.band.is_wavelet_along(a);
+            let raw = self
+                .geometry
+                .raw_center_1d(level, c.pos[a] as usize, wavelet);
+            self.axis(a, level, wavelet, raw)
+        });
+        let mut total = 0.0;
+        for x in &axes[0] {
+            for y in &axes[1] {
+                for z in &axes[2] {
+                    total += weight(x.0.max(y.0).max(z.0));
+                }
+            }
+        }
+        total
+    }
+
     /// Clips `coefficients` (already validated) to the box: per coefficient whether it is drawn
     /// whole (and where) or as pieces, and the pieces (input order). With a cue every
     /// coefficient becomes pieces, each weighted by the cue at its support's corner nearest the

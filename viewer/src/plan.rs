@@ -55,6 +55,10 @@ pub struct PlanOptions {
     pub max_fft: Option<usize>,
     /// Footprint sets kept in the planner's cache.
     pub cache_size: usize,
+    /// Clip coefficients to the volume's box when periodic images reach it (exact; see
+    /// [`crate::pieces`]). Off, each coefficient is one splat at its image nearest the volume
+    /// centre: what a preview draws (no factor tables to wait for).
+    pub clip: bool,
 }
 
 impl PlanOptions {
@@ -100,6 +104,7 @@ impl Default for PlanOptions {
             subpixel: None,
             max_fft: None,
             cache_size: 8,
+            clip: true,
         }
     }
 }
@@ -292,7 +297,8 @@ impl Planner {
             cue,
             channels,
             expansions: cue.map(|_| Expansions::new(geometry)),
-            clip: pieces::clips_to_box(geometry).then(|| BoxClip::new(geometry)),
+            clip: (self.options.clip && pieces::clips_to_box(geometry))
+                .then(|| BoxClip::new(geometry)),
             factor_tables: vec![HashMap::new(); sets.len()],
             sets,
             atlas,
@@ -442,6 +448,15 @@ impl ViewPlan {
             self.factor_tables[*set].insert(*triple, t);
         }
         arrived.len()
+    }
+
+    /// The relative cost of drawing `c` in this view, given the cost `weight(level)` of one
+    /// splat of a level: one splat, or with clipping the sum over its pieces.
+    pub fn weigh(&self, c: &Coefficient, weight: impl Fn(u8) -> f64) -> f64 {
+        match &self.clip {
+            Some(b) if c.band.level as usize <= self.geometry.levels => b.weigh(c, weight),
+            _ => weight(c.band.level),
+        }
     }
 
     /// Whether coefficients are clipped to the volume's box (see [`crate::pieces`]): the view

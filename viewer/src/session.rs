@@ -104,11 +104,14 @@ pub struct SessionOptions {
 }
 
 impl SessionOptions {
-    /// The preview planning a viewer uses while it turns: nearest phase, S = 2.
+    /// The preview planning a viewer uses while it turns: nearest phase, S = 2, every
+    /// coefficient one splat (no clipping to the box).
     pub fn default_preview() -> PlanOptions {
         PlanOptions {
             placement: crate::plan::Placement::Nearest,
             subpixel: Some(2),
+            // Each coefficient one splat: a preview never waits for factor tables.
+            clip: false,
             ..PlanOptions::default()
         }
     }
@@ -261,8 +264,9 @@ impl BucketQueue {
     }
 }
 
-/// The first guess of the cost per unit of splat weight, before anything was measured: on the
-/// high side, so a first batch is short rather than long.
+/// The first guess of the cost per unit of splat weight, before anything was measured (only
+/// reported: the first batch with a new backend or tables is a probe of `min_batch`
+/// coefficients, whose time becomes the estimate).
 const INITIAL_COST_PER_WEIGHT: f64 = 2e-7;
 
 /// The relative cost of splatting a coefficient of `level` (1 = finest) at `zoom` pixels per
@@ -368,6 +372,8 @@ pub struct RenderSession<B: AccumulationBackend> {
     /// Seconds per unit of splat weight (planning + accumulation), running estimates for
     /// preview (0) and exact (1) tables.
     cost: [f64; 2],
+    /// Whether `cost` has been measured (per table kind, as `cost`).
+    measured: [bool; 2],
     records: Vec<SplatRecord>,
     next_local_id: u32,
 }
@@ -425,6 +431,7 @@ impl<B: AccumulationBackend> RenderSession<B> {
             dropped: Vec::new(),
             stats: SessionStats::default(),
             cost: [INITIAL_COST_PER_WEIGHT; 2],
+            measured: [false; 2],
             records: Vec::new(),
             next_local_id: u32::MAX,
         };
@@ -662,6 +669,7 @@ impl<B: AccumulationBackend> RenderSession<B> {
     pub fn replace_backend(&mut self, backend: B) -> Result<B, SessionError> {
         let old = std::mem::replace(&mut self.backend, backend);
         self.cost = [INITIAL_COST_PER_WEIGHT; 2];
+        self.measured = [false; 2];
         self.restart()?;
         Ok(old)
     }
@@ -833,13 +841,21 @@ impl<B: AccumulationBackend> RenderSession<B> {
             coefficients.clear();
             // Each popped entry's coefficient is looked up once: queued for the batch and
             // weighed for the allowance.
+            let plan = &self.plan;
             let take = |(p, i): (u32, u32)| {
                 let c = packets[&p].coefficients[i as usize];
                 coefficients.push(c);
-                splat_weight(c.band.level, zoom)
+                plan.weigh(&c, |level| splat_weight(level, zoom))
+            };
+            // Until a batch has been timed, one of `min_batch` coefficients: a guess would be
+            // too long on a slow backend and too short on a fast one.
+            let allowance = if self.measured[kind] {
+                left / self.cost[kind].max(1e-15)
+            } else {
+                0.0
             };
             let weight = self.queue.pop_weighted(
-                left / self.cost[kind].max(1e-15),
+                allowance,
                 (self.options.min_batch.max(1), self.options.max_batch.max(1)),
                 take,
                 &mut batch,
@@ -852,6 +868,15 @@ impl<B: AccumulationBackend> RenderSession<B> {
             // Coefficients whose cued tables are still being built wait (still queued) and are
             // drawn when the tables arrive.
             let deferred = self.plan.take_deferred();
+            // What waits was not drawn: its weight is not part of what was timed.
+            let waiting_weight: f64 = deferred
+                .iter()
+                .map(|&i| {
+                    self.plan
+                        .weigh(&coefficients[i], |level| splat_weight(level, zoom))
+                })
+                .sum();
+            let weight = (weight - waiting_weight).max(0.0);
             for &i in deferred.iter().rev() {
                 self.waiting.push(batch.swap_remove(i));
             }
@@ -866,10 +891,24 @@ impl<B: AccumulationBackend> RenderSession<B> {
                 }
             }
             let end = clock.now();
-            let per = (end.saturating_sub(now)).as_secs_f64() / weight.max(1e-9);
+            let per = if weight > 0.0 {
+                (end.saturating_sub(now)).as_secs_f64() / weight
+            } else {
+                0.0
+            };
             // Running estimate: quick to follow a slower backend, slower to trust a faster one.
             let c = &mut self.cost[kind];
-            *c = if per > *c {
+            *c = if !self.measured[kind] {
+                // A probe that drew nothing (all waiting for tables) measured nothing.
+                self.measured[kind] = per > 0.0 && !self.records.is_empty();
+                if self.measured[kind] {
+                    per
+                } else {
+                    *c
+                }
+            } else if per == 0.0 {
+                *c
+            } else if per > *c {
                 0.5 * *c + 0.5 * per
             } else {
                 0.8 * *c + 0.2 * per

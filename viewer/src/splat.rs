@@ -57,6 +57,7 @@ impl RenderOptions {
             subpixel: self.subpixel,
             max_fft: self.max_fft,
             cache_size: self.cache_size,
+            clip: true,
         }
     }
 }

@@ -612,7 +612,9 @@ fn depth_cue_tables_are_built_off_the_frame_thread() {
 /// requirement), for budgets of 8, 16.6 and 33 ms.
 #[test]
 fn busy_frames_stay_within_their_budget_at_p95_when_batch_costs_are_noisy() {
-    let bytes = wsp(Phantom::SheppLogan, 64, 16);
+    // 80³: several hundred busy frames at every budget, so the first frames (before the fill's
+    // correction has seen any) do not decide the p95.
+    let bytes = wsp(Phantom::SheppLogan, 80, 16);
     let (header, _) = all(&bytes);
     let s = spec(0.66, 0.91);
     for budget_us in [8_000u64, 16_600, 33_000] {
@@ -641,6 +643,7 @@ fn busy_frames_stay_within_their_budget_at_p95_when_batch_costs_are_noisy() {
                 break;
             }
         }
+        eprintln!("{budget_us} µs: {over} of {busy} busy frames past the budget");
         assert!(busy >= 150, "{budget_us} µs: only {busy} busy frames");
         assert!(
             over * 20 <= busy,
