@@ -306,6 +306,38 @@ pub fn face_median(channel: &[f32], dims: [usize; 3]) -> f64 {
     }
 }
 
+/// How much structure a channel's faces carry: the RMS of the face samples' deviation from
+/// their median over the RMS of every sample's deviation from it (0 for faces that are
+/// constant; near 1 where the volume is cut through its content). 0 for an empty or constant
+/// channel.
+pub fn face_activity(channel: &[f32], dims: [usize; 3]) -> f64 {
+    let [nx, ny, nz] = dims;
+    if channel.len() != nx * ny * nz || channel.is_empty() {
+        return 0.0;
+    }
+    let m = face_median(channel, dims);
+    let on_face = |i: usize| {
+        let (x, y, z) = (i % nx, (i / nx) % ny, i / (nx * ny));
+        x == 0 || y == 0 || z == 0 || x + 1 == nx || y + 1 == ny || z + 1 == nz
+    };
+    let (mut face, mut faces, mut all) = (0.0f64, 0usize, 0.0f64);
+    for (i, v) in channel.iter().enumerate() {
+        let d = f64::from(*v) - m;
+        if !d.is_finite() {
+            continue;
+        }
+        all += d * d;
+        if on_face(i) {
+            face += d * d;
+            faces += 1;
+        }
+    }
+    if all <= 0.0 || faces == 0 {
+        return 0.0;
+    }
+    ((face / faces as f64) / (all / channel.len() as f64)).sqrt()
+}
+
 /// [`face_median`] of each colour channel.
 fn face_colour(volume: &Volume) -> [f64; 3] {
     [0, 1, 2].map(|c| face_median(volume.channel(c), volume.dims()))

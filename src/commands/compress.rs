@@ -51,10 +51,11 @@ pub struct CompressArgs {
     /// max = ceil(log2(smallest dimension))).
     #[arg(long)]
     pub levels: Option<usize>,
-    /// Zero margin (voxels) around the volume before the periodic transform. Default: 0. Every
-    /// margin renders exactly (below half the coarsest wavelet support, ceil((2j-1)·2^M/2), the
-    /// viewer clips basis functions to the volume's box); zeros around data that does not fall
-    /// to zero at its faces cost coefficients.
+    /// Zero margin (voxels) around the volume before the periodic transform. Default: none when
+    /// the data's faces cut through its content (zeros against them cost coefficients), else
+    /// half the coarsest wavelet support, ceil((2j-1)·2^M/2). Every margin renders exactly
+    /// (below that one the viewer clips basis functions to the volume's box, at some cost in
+    /// render time).
     #[arg(long)]
     pub margin: Option<usize>,
     /// Colour space for RGB volumes: rgb, yiq, pca.

@@ -559,6 +559,19 @@ pub struct FootprintSet {
     /// Cued tables by factor triple.
     pub factor_tables:
         std::sync::Mutex<std::collections::HashMap<[AxisFactor; 3], std::sync::Arc<Footprint>>>,
+    /// The 1D factor transforms on the frequency grids of the factor tables, kept for the next
+    /// triples of the same view (evaluating them is most of a table's cost).
+    factor_grids: FactorGrids,
+}
+
+/// Per (FFT grid level, axis, factor): the factor's transform on that level's frequency grid;
+/// per level: the pixel box's.
+#[derive(Debug, Default)]
+pub struct FactorGrids {
+    factors: std::sync::Mutex<
+        std::collections::HashMap<(usize, usize, AxisFactor), std::sync::Arc<Vec<Complex64>>>,
+    >,
+    pixel: std::sync::Mutex<std::collections::HashMap<usize, std::sync::Arc<Vec<f64>>>>,
 }
 
 impl FootprintSet {
@@ -594,6 +607,7 @@ impl FootprintSet {
             params: *p,
             tables,
             factor_tables: Default::default(),
+            factor_grids: FactorGrids::default(),
         }
     }
 
@@ -608,7 +622,11 @@ impl FootprintSet {
         };
         let built: Vec<([AxisFactor; 3], Footprint)> = missing
             .iter()
-            .zip(compute_factor_tables(&self.params, &missing))
+            .zip(compute_factor_tables_with(
+                &self.params,
+                &missing,
+                &self.factor_grids,
+            ))
             .map(|(k, t)| (*k, Footprint::build(&t, self.params.gradient)))
             .collect();
         let mut map = self.factor_tables.lock().unwrap_or_else(|e| e.into_inner());
@@ -897,6 +915,15 @@ fn factor_level(factors: &[AxisFactor; 3]) -> usize {
 /// every distinct 1D factor is evaluated once per axis on the grid and each triple's spectrum
 /// is the product of three such arrays and the pixel box.
 pub fn compute_factor_tables(p: &FootprintParams, keys: &[[AxisFactor; 3]]) -> Vec<FineTable> {
+    compute_factor_tables_with(p, keys, &FactorGrids::default())
+}
+
+/// [`compute_factor_tables`] with the factor and pixel grids taken from (and added to) `grids`.
+pub fn compute_factor_tables_with(
+    p: &FootprintParams,
+    keys: &[[AxisFactor; 3]],
+    cache: &FactorGrids,
+) -> Vec<FineTable> {
     let tf = Transforms::new(p.family);
     let (k, l) = p.cue.unwrap_or((0.0, [0.0; 3]));
     let mut out: Vec<Option<FineTable>> = vec![None; keys.len()];
@@ -908,13 +935,19 @@ pub fn compute_factor_tables(p: &FootprintParams, keys: &[[AxisFactor; 3]]) -> V
             .filter(|i| factor_level(&keys[*i]) == level)
             .collect();
         let (s, nx, ny) = sizes(p, level);
-        // Distinct factors per axis, each evaluated on the grid.
-        let mut grids: [Vec<(AxisFactor, Vec<Complex64>)>; 3] = Default::default();
+        // Distinct factors per axis, each evaluated on the grid once per view.
+        let mut grids: [Vec<(AxisFactor, std::sync::Arc<Vec<Complex64>>)>; 3] = Default::default();
         for a in 0..3 {
             let mut distinct: Vec<AxisFactor> = group.iter().map(|i| keys[*i][a]).collect();
             distinct.sort_by_key(|f| format!("{f:?}"));
             distinct.dedup();
-            grids[a] = distinct
+            let (known, new): (Vec<AxisFactor>, Vec<AxisFactor>) = {
+                let map = cache.factors.lock().unwrap_or_else(|e| e.into_inner());
+                distinct
+                    .into_iter()
+                    .partition(|f| map.contains_key(&(level, a, *f)))
+            };
+            let fresh: Vec<(AxisFactor, std::sync::Arc<Vec<Complex64>>)> = new
                 .into_par_iter()
                 .map(|f| {
                     let cut = match f {
@@ -935,17 +968,38 @@ pub fn compute_factor_tables(p: &FootprintParams, keys: &[[AxisFactor; 3]]) -> V
                             });
                         }
                     }
-                    (f, g)
+                    (f, std::sync::Arc::new(g))
                 })
                 .collect();
+            let mut map = cache.factors.lock().unwrap_or_else(|e| e.into_inner());
+            for (f, g) in fresh {
+                map.insert((level, a, f), g);
+            }
+            grids[a] = known
+                .into_iter()
+                .chain(group.iter().map(|i| keys[*i][a]))
+                .filter_map(|f| map.get(&(level, a, f)).map(|g| (f, g.clone())))
+                .collect();
+            grids[a].sort_by_key(|(f, _)| format!("{f:?}"));
+            grids[a].dedup_by(|x, y| x.0 == y.0);
         }
-        let pixel: Vec<f64> = (0..nx * ny)
-            .map(|i| {
-                let rho = signed(i / nx, ny) * s as f64 / ny as f64;
-                let sigma = signed(i % nx, nx) * s as f64 / nx as f64;
-                p.zoom * p.zoom * p.voxel_volume * sinc(sigma) * sinc(rho)
+        let pixel = cache
+            .pixel
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .entry(level)
+            .or_insert_with(|| {
+                std::sync::Arc::new(
+                    (0..nx * ny)
+                        .map(|i| {
+                            let rho = signed(i / nx, ny) * s as f64 / ny as f64;
+                            let sigma = signed(i % nx, nx) * s as f64 / nx as f64;
+                            p.zoom * p.zoom * p.voxel_volume * sinc(sigma) * sinc(rho)
+                        })
+                        .collect(),
+                )
             })
-            .collect();
+            .clone();
         let tables: Vec<(usize, FineTable)> = group
             .par_iter()
             .map(|&i| {

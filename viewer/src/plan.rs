@@ -388,10 +388,16 @@ impl TableBuilder {
                     }
                     out
                 };
+                let started = std::time::Instant::now();
                 let built = match &pool {
                     Some(pool) => pool.install(build),
                     None => build(),
                 };
+                tracing::debug!(
+                    tables = built.len(),
+                    ms = started.elapsed().as_secs_f64() * 1e3,
+                    "built factor tables in the background"
+                );
                 if done.send(built).is_err() {
                     break;
                 }
@@ -699,6 +705,12 @@ impl ViewPlan {
                     }
                 }
                 None => {
+                    tracing::debug!(
+                        set,
+                        tables = missing.len(),
+                        pieces = pieces.len(),
+                        "building factor tables inline"
+                    );
                     let built = self.sets[set].factor_footprints(&missing);
                     self.built_inline += missing.len();
                     for (key, f) in missing.iter().zip(built) {

@@ -155,32 +155,35 @@ fn clipped_pieces_carry_the_depth_cue() {
     }
 }
 
-/// The three multiview cameras of a clipped volume, each against its own reference image.
+/// The three multiview cameras of a clipped volume, each against its own reference image: a
+/// non-cubic box, and a cubic one padded to the next multiple of 2^M (the box off the padded
+/// grid's origin).
 #[test]
 fn clipped_multiview_matches_each_camera() {
-    let (g, data) = tight([20, 16, 12], Family::Cubic, 2);
-    let coeffs = all_coefficients(&g, &data);
-    let truth = PaddedVolume::from_volume(&[data], &g);
-    let spec = ViewSpec {
-        view: View::new(0.4, 0.3, 48, 48),
-        multiview: true,
-    };
-    let mut r = Renderer::new(RenderOptions::default());
-    let (img, _) = r.render_spec(&coeffs, &g, &spec).unwrap();
-    let cameras = spec.cameras(&g).unwrap();
-    for (k, camera) in cameras.iter().enumerate() {
-        let reference = render_reference_camera(
-            &truth,
-            camera,
-            None,
-            &common::reference_options(Family::Cubic),
-        );
-        let got: Vec<f32> = (0..48)
-            .flat_map(|y| (0..48).map(move |x| (x, y)))
-            .map(|(x, y)| img.get(k * 48 + x, y, 0))
-            .collect();
-        let snr = snr_db(&reference.data, &got);
-        assert!(snr >= 50.0, "camera {k}: {snr:.1} dB");
+    for (dims, family, levels) in [
+        ([20, 16, 12], Family::Cubic, 2),
+        ([30, 30, 30], Family::Linear, 3),
+    ] {
+        let (g, data) = tight(dims, family, levels);
+        let coeffs = all_coefficients(&g, &data);
+        let truth = PaddedVolume::from_volume(&[data], &g);
+        let spec = ViewSpec {
+            view: View::new(0.4, 0.3, 48, 48),
+            multiview: true,
+        };
+        let mut r = Renderer::new(RenderOptions::default());
+        let (img, _) = r.render_spec(&coeffs, &g, &spec).unwrap();
+        let cameras = spec.cameras(&g).unwrap();
+        for (k, camera) in cameras.iter().enumerate() {
+            let reference =
+                render_reference_camera(&truth, camera, None, &common::reference_options(family));
+            let got: Vec<f32> = (0..48)
+                .flat_map(|y| (0..48).map(move |x| (x, y)))
+                .map(|(x, y)| img.get(k * 48 + x, y, 0))
+                .collect();
+            let snr = snr_db(&reference.data, &got);
+            assert!(snr >= 50.0, "{dims:?} {family}: camera {k}: {snr:.1} dB");
+        }
     }
 }
 
