@@ -316,20 +316,33 @@ pub fn face_activity(channel: &[f32], dims: [usize; 3]) -> f64 {
         return 0.0;
     }
     let m = face_median(channel, dims);
-    let on_face = |i: usize| {
-        let (x, y, z) = (i % nx, (i / nx) % ny, i / (nx * ny));
-        x == 0 || y == 0 || z == 0 || x + 1 == nx || y + 1 == ny || z + 1 == nz
-    };
-    let (mut face, mut faces, mut all) = (0.0f64, 0usize, 0.0f64);
-    for (i, v) in channel.iter().enumerate() {
-        let d = f64::from(*v) - m;
-        if !d.is_finite() {
-            continue;
+    let sq = |v: f32| {
+        let d = f64::from(v) - m;
+        if d.is_finite() {
+            d * d
+        } else {
+            0.0
         }
-        all += d * d;
-        if on_face(i) {
-            face += d * d;
-            faces += 1;
+    };
+    let all: f64 = channel.iter().map(|v| sq(*v)).sum();
+    // Each face voxel once: the z faces whole, then the y and x faces of the slices between.
+    let at = |x: usize, y: usize, z: usize| channel[(z * ny + y) * nx + x];
+    let (mut face, mut faces) = (0.0f64, 0usize);
+    let mut add = |v: f32| {
+        face += sq(v);
+        faces += 1;
+    };
+    for z in 0..nz {
+        let whole = z == 0 || z + 1 == nz;
+        for y in 0..ny {
+            if whole || y == 0 || y + 1 == ny {
+                (0..nx).for_each(|x| add(at(x, y, z)));
+            } else {
+                add(at(0, y, z));
+                if nx > 1 {
+                    add(at(nx - 1, y, z));
+                }
+            }
         }
     }
     if all <= 0.0 || faces == 0 {
@@ -562,6 +575,38 @@ mod tests {
         let pca = ColorTransform::fit(ColorSpaceKind::Pca, &v).unwrap();
         assert_eq!(pca.importance, [1.0; 3]);
         assert_eq!(pca.mean, origin);
+    }
+
+    #[test]
+    fn face_activity_separates_flat_faces_from_cut_ones() {
+        let dims = [9, 7, 5];
+        let n = 9 * 7 * 5;
+        let interior = |i: usize| {
+            let (x, y, z) = (i % 9, (i / 9) % 7, i / 63);
+            x > 0 && y > 0 && z > 0 && x < 8 && y < 6 && z < 4
+        };
+        // Constant faces around anything: 0 (whatever the constant).
+        let flat: Vec<f32> = (0..n)
+            .map(|i| {
+                if interior(i) {
+                    (i % 7) as f32 * 30.0
+                } else {
+                    -1000.0
+                }
+            })
+            .collect();
+        assert_eq!(face_activity(&flat, dims), 0.0);
+        // The same pattern everywhere: the faces carry what the inside does (near 1).
+        let cut: Vec<f32> = (0..n).map(|i| (i % 7) as f32 * 30.0).collect();
+        let a = face_activity(&cut, dims);
+        assert!((0.8..1.25).contains(&a), "{a}");
+        // Degenerate: constant, empty, a line of voxels (all faces), a NaN ignored.
+        assert_eq!(face_activity(&vec![3.0; n], dims), 0.0);
+        assert_eq!(face_activity(&[], [0, 1, 1]), 0.0);
+        assert!((face_activity(&[0.0, 5.0, 1.0, 9.0], [1, 1, 4]) - 1.0).abs() < 1e-12);
+        let mut with_nan = cut.clone();
+        with_nan[40] = f32::NAN;
+        assert!(face_activity(&with_nan, dims).is_finite());
     }
 
     #[test]
