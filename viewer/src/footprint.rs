@@ -564,13 +564,14 @@ pub struct FootprintSet {
     factor_grids: FactorGrids,
 }
 
+/// A factor's transform on a level's frequency grid.
+type FactorGrid = std::sync::Arc<Vec<Complex64>>;
+
 /// Per (FFT grid level, axis, factor): the factor's transform on that level's frequency grid;
 /// per level: the pixel box's.
 #[derive(Debug, Default)]
 pub struct FactorGrids {
-    factors: std::sync::Mutex<
-        std::collections::HashMap<(usize, usize, AxisFactor), std::sync::Arc<Vec<Complex64>>>,
-    >,
+    factors: std::sync::Mutex<std::collections::HashMap<(usize, usize, AxisFactor), FactorGrid>>,
     pixel: std::sync::Mutex<std::collections::HashMap<usize, std::sync::Arc<Vec<f64>>>>,
 }
 
@@ -936,7 +937,7 @@ pub fn compute_factor_tables_with(
             .collect();
         let (s, nx, ny) = sizes(p, level);
         // Distinct factors per axis, each evaluated on the grid once per view.
-        let mut grids: [Vec<(AxisFactor, std::sync::Arc<Vec<Complex64>>)>; 3] = Default::default();
+        let mut grids: [Vec<(AxisFactor, FactorGrid)>; 3] = Default::default();
         for a in 0..3 {
             let mut distinct: Vec<AxisFactor> = group.iter().map(|i| keys[*i][a]).collect();
             distinct.sort_by_key(|f| format!("{f:?}"));
@@ -947,7 +948,7 @@ pub fn compute_factor_tables_with(
                     .into_iter()
                     .partition(|f| map.contains_key(&(level, a, *f)))
             };
-            let fresh: Vec<(AxisFactor, std::sync::Arc<Vec<Complex64>>)> = new
+            let fresh: Vec<(AxisFactor, FactorGrid)> = new
                 .into_par_iter()
                 .map(|f| {
                     let cut = match f {

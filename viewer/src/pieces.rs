@@ -458,7 +458,7 @@ mod tests {
                             let mut got = vec![0.0f64; n];
                             let raw = g.raw_center_1d(level, k, wavelet);
                             for (l, wv, c, weight) in clip.axis(0, level, wavelet, raw) {
-                                let (l, long) = (l as usize, 64 * family.order() << level);
+                                let (l, long) = (l as usize, (64 * family.order()) << level);
                                 let line = unit_basis_line(family, long, l, wv, false);
                                 let c0 = g.raw_center_1d(l, 0, wv);
                                 for (t, v) in line.iter().enumerate().filter(|(_, v)| **v != 0.0) {
