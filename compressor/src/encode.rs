@@ -36,8 +36,7 @@ pub enum Target {
     All,
     /// Total file size in bytes (met from below, within 2 % where the granularity allows).
     Bytes(u64),
-    /// Coefficients as a fraction (0..=1] of the volume's samples (voxels × channels; the
-    /// padding to a multiple of 2^M and any margin do not count).
+    /// Fraction (0..=1] of all coefficients.
     Fraction(f64),
     /// Number of coefficients.
     Coefficients(u64),
@@ -241,8 +240,6 @@ struct Prepared {
     histogram: Histogram,
     total_energy: f64,
     total_coefficients: u64,
-    /// The volume's samples (voxels × channels): what a fraction target is a fraction of.
-    samples: u64,
     /// The channels' voxel samples after the colour transform on the padded grid (for
     /// refinement; empty without).
     targets: Vec<Vec<f32>>,
@@ -397,7 +394,6 @@ fn prepare(
         histogram: Histogram::empty(),
         total_energy,
         total_coefficients: (n * channels.len()) as u64,
-        samples: (dims.iter().product::<usize>() * channels.len()) as u64,
         targets: if opts.refine.is_some() {
             channels.iter().map(|c| pad_f32(c, &geometry)).collect()
         } else {
@@ -771,7 +767,7 @@ pub fn memory_estimate(
     let all = n * c;
     let candidates = match opts.target {
         Target::Bytes(b) => b.saturating_mul(4).min(all),
-        Target::Fraction(f) => ((2.0 * f * (v * c) as f64) as u64).min(all),
+        Target::Fraction(f) => ((2.0 * f * all as f64) as u64).min(all),
         Target::Coefficients(k) => k.saturating_mul(2).min(all),
         Target::All | Target::QvPercent(_) => all,
     };
@@ -833,7 +829,7 @@ pub fn compress(
                     "target fraction {f}; allowed (0, 1]"
                 )));
             }
-            ((f * prepared.samples as f64).round() as usize).min(n)
+            ((f * prepared.total_coefficients as f64).round() as usize).min(n)
         }
         Target::QvPercent(q) => {
             if !(q > 0.0 && q <= 100.0) {

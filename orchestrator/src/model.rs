@@ -113,7 +113,7 @@ impl RawLayout {
 /// How much to keep (mirrors the compressor's target, serialisable).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub enum TargetSpec {
-    /// Coefficients as a fraction (0, 1] of the volume's samples (voxels × channels).
+    /// Fraction (0, 1] of all coefficients.
     Fraction(f64),
     /// Whole-file bytes.
     Bytes(u64),

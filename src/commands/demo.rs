@@ -203,9 +203,7 @@ pub fn run(a: DemoArgs) -> Result<()> {
         .clone()
         .context("the orchestrator did not start")?;
     let options = JobOptions {
-        // Coefficients for 12 % of the samples: about 46 k for the intensity phantom, as many
-        // as 5 % of the padded grid kept when fractions counted the margin.
-        target: TargetSpec::Fraction(0.12),
+        target: TargetSpec::Fraction(0.05),
         // Smaller tiles and a few quality layers: more, smaller packets, so the view-dependent
         // order and the progressive refinement have something to order (+5 % bytes).
         tile: Some(32),

@@ -23,8 +23,7 @@ pub struct TargetArgs {
     /// Keep as many coefficients as fit in this many bytes (whole file).
     #[arg(long, group = "target")]
     pub target_bytes: Option<u64>,
-    /// Keep this many coefficients, as a fraction (0..1] of the volume's samples (voxels ×
-    /// channels; default 0.05).
+    /// Keep this fraction (0..1] of all coefficients (default 0.05).
     #[arg(long, group = "target")]
     pub target_fraction: Option<f64>,
     /// Keep this many coefficients.
@@ -39,7 +38,7 @@ pub struct TargetArgs {
 }
 
 impl TargetArgs {
-    /// The chosen target (default: coefficients for 5 % of the samples).
+    /// The chosen target (default: 5 % of the coefficients).
     pub fn target(&self) -> Target {
         if let Some(b) = self.target_bytes {
             Target::Bytes(b)

@@ -24,7 +24,7 @@ pub struct ThroughputArgs {
     /// Phantom edge length when no input is given.
     #[arg(long, default_value_t = 128)]
     pub size: usize,
-    /// Coefficients kept, as a fraction of the volume's samples.
+    /// Fraction of coefficients kept.
     #[arg(long, default_value_t = 0.05)]
     pub fraction: f64,
     /// Repetitions per measurement (the median is reported).
