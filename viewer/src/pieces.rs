@@ -13,17 +13,16 @@
 //! again (coincident pieces merged). Every piece is then a whole φ or ψ at some level: no cut
 //! factor is needed, and every piece lies behind the depth cue's planes.
 //!
-//! **Depth cue (no clipping).** The medium is the data: the cue is cut at the data's light-facing faces (per axis −j/2
-//! or n − 1 + j/2, where the order-j spline of the voxels ends), so the cue weight of a basis
-//! function is a product of per-axis factors. Along each axis a basis factor lies behind its
-//! face (exponential, cued from its support end nearest the light), in front of it (weight 0:
-//! no piece) or across it. A coefficient with no factor across a face is one piece with the
-//! matching table; one whose support crosses a face along some axes is split there into level-0
-//! B-splines (its exact refinement): those wholly behind are ordinary cued factors, those in
-//! front are dropped, and the few across the face (one for linear, three for cubic, none for
-//! Haar) are cut there ([`AxisFactor::Cut`]). Each piece carries the weight e^(−k·dist) of its
-//! support's corner nearest the light (the face itself for a cut factor), so no exponent is
-//! positive.
+//! **Depth cue (no clipping).** The medium is the data: the cue is cut at the data's light-facing
+//! faces (per axis −j/2 or n − 1 + j/2, where the order-j spline of the voxels ends), so the cue
+//! weight of a basis function is a product of per-axis factors. Along each axis a basis factor lies
+//! behind its face (exponential, cued from its support end nearest the light), in front of it
+//! (weight 0: no piece) or across it. A coefficient with no factor across a face is one piece with
+//! the matching table; one whose support crosses a face along some axes is split there into level-0
+//! B-splines (its exact refinement): those wholly behind are ordinary cued factors, those in front
+//! are dropped, and the few across the face (one for linear, three for cubic, none for Haar) are
+//! cut there ([`AxisFactor::Cut`]). Each piece carries the weight e^(−k·dist) of its support's
+//! corner nearest the light (the face itself for a cut factor), so no exponent is positive.
 
 use crate::footprint::AxisFactor;
 use crate::RenderError;

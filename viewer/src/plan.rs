@@ -7,14 +7,15 @@
 //! depth cue, and the footprint tables of the view, flattened into an atlas. Footprint sets are
 //! cached per view like RustFFT's planner caches plans. A [`ViewPlan`] turns coefficients into
 //! records: each coefficient is projected to its basis centre on the screen, the (level, type)
-//! footprint is placed at the nearest subpixel phase (see [`crate::footprint`]) and records
-//! whose box misses the screen are counted and dropped. When the geometry's periodic images
-//! reach the volume, coefficients are first clipped to its box ([`crate::pieces::BoxClip`]):
-//! those wholly inside stay one splat, the others become pieces. With depth cueing the
-//! coefficients are split into cued pieces ([`crate::pieces::expand`], or the clip's pieces
-//! with their cue weights). The tables of the factor triples that occur are built on first use and appended to the atlas: at once by default, or,
-//! for a frame loop that must not stall ([`ViewPlan::build_tables_in_background`]), on a thread
-//! of the plan's own while the coefficients that need them wait ([`ViewPlan::take_deferred`]).
+//! footprint is placed at the nearest subpixel phase (see [`crate::footprint`]) and records whose
+//! box misses the screen are counted and dropped. When the geometry's periodic images reach the
+//! volume, coefficients are first clipped to its box ([`crate::pieces::BoxClip`]): those wholly
+//! inside stay one splat, the others become pieces. With depth cueing the coefficients are split
+//! into cued pieces ([`crate::pieces::expand`], or the clip's pieces with their cue weights). The
+//! tables of the factor triples that occur are built on first use and appended to the atlas: at
+//! once by default, or, for a frame loop that must not stall
+//! ([`ViewPlan::build_tables_in_background`]), on a thread of the plan's own while the coefficients
+//! that need them wait ([`ViewPlan::take_deferred`]).
 
 use crate::backend::{FootprintAtlas, Layout, SplatRecord, TableRef};
 use crate::footprint::{AxisFactor, Footprint, FootprintParams, FootprintSet};

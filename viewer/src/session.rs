@@ -323,9 +323,9 @@ fn plan_or_preview(
         }
         _ => {
             let mut plan = planner.plan(geometry, spec, channels)?;
-            // A cued (or clipped) view's tables are built per factor triple on first use; off the frame
-            // thread, so a frame never waits for them, and what waits is drawn meanwhile with
-            // the preview's uncued tables (cheap to build here).
+            // A cued (or clipped) view's tables are built per factor triple on first use, off
+            // the frame thread, so a frame never waits for them; what waits for a cued table is
+            // drawn meanwhile with the preview's uncued tables (cheap to build here).
             if plan.cue.is_some() || plan.clips() {
                 plan.build_tables_in_background();
                 if let Some(p) = preview {
