@@ -792,6 +792,11 @@ impl<B: AccumulationBackend> RenderSession<B> {
                         .plan(&self.header.geometry, &spec, self.header.channels)?;
             }
         }
+        // A clipped view's pieces need factor tables: built off the frame thread, as in
+        // `plan_or_preview` (a cued view never comes through a preview).
+        if self.plan.clips() {
+            self.plan.build_tables_in_background();
+        }
         // What the preview shows now (the backend still holds it; the exact plan has the same
         // cameras) stays on screen until the exact tables catch up.
         let preview = match self.stats.splatted_in_view {

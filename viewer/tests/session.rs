@@ -136,6 +136,79 @@ fn streaming_a_file_converges_to_the_one_shot_image() {
     }
 }
 
+/// A volume whose faces cut through its content is compressed without a margin, so the session
+/// clips its coefficients to the box: the pieces' tables are built off the frame thread (with
+/// and without previews, single view, multiview and depth-cued), and the session still ends on
+/// the one-shot image.
+#[test]
+fn a_volume_without_margin_streams_clipped_to_the_one_shot_image() {
+    use wavesplat_codec::view::{Cue, CueDirection};
+    // A CT slab: air around a body that runs through the first and last slice.
+    let volume = Phantom::Ct.generate([40, 32, 12]);
+    let bytes = compress(
+        &volume,
+        &CompressOptions {
+            target: Target::Fraction(0.1),
+            tile: TileChoice::Size(16),
+            layers: Some(3),
+            refine: None,
+            ..Default::default()
+        },
+        &|_, _| {},
+    )
+    .expect("compress")
+    .bytes;
+    let (header, coeffs) = all(&bytes);
+    assert_eq!(header.margin, 0, "the slab's faces call for no margin");
+    for (s, previews) in [
+        (spec(0.66, 0.91), true),
+        (spec(0.66, 0.91), false),
+        (
+            ViewSpec {
+                view: View::new(0.3, -0.2, 64, 48),
+                multiview: true,
+            },
+            true,
+        ),
+        (
+            ViewSpec::single(View::new(0.4, 0.2, 64, 56).with_cue(Cue {
+                k: 0.1,
+                direction: CueDirection::View,
+            })),
+            true,
+        ),
+    ] {
+        let options = SessionOptions {
+            preview: previews.then(SessionOptions::default_preview),
+            ..Default::default()
+        };
+        let source = FileSource::open(bytes.clone(), &s).unwrap();
+        let session = RenderSession::new(header.clone(), s, CpuBackend::new(), options).unwrap();
+        let mut f = FrameLoop::new(session, source);
+        // Paced like a display: a frame with nothing to draw (everything left waits for its
+        // tables) returns at once, so the loop sleeps before the next.
+        let mut frames = 0;
+        loop {
+            let r = f.frame(Duration::from_millis(50)).unwrap();
+            assert!(r.batches_past_deadline <= 1, "{r:?}");
+            if r.idle() && f.source.status().done && f.session.is_exact() {
+                break;
+            }
+            if r.coefficients == 0 {
+                std::thread::sleep(Duration::from_millis(2));
+            }
+            frames += 1;
+            assert!(frames < 20_000, "no progress: {r:?}");
+        }
+        assert!(f.session.plan().clips(), "{s:?}");
+        assert_eq!(f.session.plan().tables_built_inline(), 0, "{s:?}");
+        let got = f.session.image().unwrap();
+        let want = full_image(&header, &coeffs, &s);
+        let e = max_rel(&got, &want);
+        assert!(e <= 1e-5, "{s:?} previews {previews}: {e:e}");
+    }
+}
+
 #[test]
 fn splatting_in_batches_equals_one_batch() {
     let bytes = wsp(Phantom::SheppLogan, 40, 16);
