@@ -942,11 +942,13 @@ pub fn compute_factor_tables_with(
             let mut distinct: Vec<AxisFactor> = group.iter().map(|i| keys[*i][a]).collect();
             distinct.sort_by_key(|f| format!("{f:?}"));
             distinct.dedup();
-            let (known, new): (Vec<AxisFactor>, Vec<AxisFactor>) = {
+            let new: Vec<AxisFactor> = {
                 let map = cache.factors.lock().unwrap_or_else(|e| e.into_inner());
                 distinct
-                    .into_iter()
-                    .partition(|f| map.contains_key(&(level, a, *f)))
+                    .iter()
+                    .filter(|f| !map.contains_key(&(level, a, **f)))
+                    .copied()
+                    .collect()
             };
             let fresh: Vec<(AxisFactor, FactorGrid)> = new
                 .into_par_iter()
@@ -976,13 +978,10 @@ pub fn compute_factor_tables_with(
             for (f, g) in fresh {
                 map.insert((level, a, f), g);
             }
-            grids[a] = known
+            grids[a] = distinct
                 .into_iter()
-                .chain(group.iter().map(|i| keys[*i][a]))
-                .filter_map(|f| map.get(&(level, a, f)).map(|g| (f, g.clone())))
+                .map(|f| (f, map[&(level, a, f)].clone()))
                 .collect();
-            grids[a].sort_by_key(|(f, _)| format!("{f:?}"));
-            grids[a].dedup_by(|x, y| x.0 == y.0);
         }
         let pixel = cache
             .pixel

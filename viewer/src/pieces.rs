@@ -100,8 +100,8 @@ pub fn expand(
 ) -> Vec<(usize, Piece)> {
     let half0 = 0.5 * geometry.family.phi_support();
     let h0 = half0.round() as i8;
-    let near_of = |a: usize, lo: f64, hi: f64| if cue.l[a] >= 0.0 { lo } else { hi };
-    let weight_of = |near: [f64; 3]| (-cue.k * cue.dist(near).max(0.0)).exp();
+    let near_of = |a: usize, lo: f64, hi: f64| near_end(cue, a, lo, hi);
+    let weight_of = |near: [f64; 3]| near_weight(cue, near);
     let per: Vec<Vec<(usize, Piece)>> = coefficients
         .par_iter()
         .enumerate()
@@ -179,6 +179,20 @@ pub fn expand(
         })
         .collect();
     per.into_iter().flatten().collect()
+}
+
+/// The end of the support [lo, hi] along axis `a` nearest the light.
+fn near_end(cue: &ResolvedCue, a: usize, lo: f64, hi: f64) -> f64 {
+    if cue.l[a] >= 0.0 {
+        lo
+    } else {
+        hi
+    }
+}
+
+/// The cue weight e^(−k·dist) at a piece's corner nearest the light (never above 1).
+fn near_weight(cue: &ResolvedCue, near: [f64; 3]) -> f64 {
+    (-cue.k * cue.dist(near).max(0.0)).exp()
 }
 
 /// Whether `geometry` needs clipping to its box: some axis leaves less room around the volume
@@ -279,6 +293,18 @@ impl BoxClip {
         merged
     }
 
+    /// The pieces of coefficient `c` along each axis.
+    fn axes(&self, c: &Coefficient) -> [Vec<AxisPiece>; 3] {
+        let level = c.band.level as usize;
+        [0, 1, 2].map(|a| {
+            let wavelet = c.band.is_wavelet_along(a);
+            let raw = self
+                .geometry
+                .raw_center_1d(level, c.pos[a] as usize, wavelet);
+            self.axis(a, level, wavelet, raw)
+        })
+    }
+
     fn split(&self, level: usize, wavelet: bool, c: f64, w: f64, n: f64, out: &mut Vec<AxisPiece>) {
         const EPS: f64 = 1e-9;
         let r = self.reach[level][wavelet as usize];
@@ -299,14 +325,7 @@ impl BoxClip {
     /// coarsest factor, which sets its footprint's size; a coefficient wholly inside the box
     /// weighs `weight(level)`, one wholly outside nothing): what drawing it costs.
     pub fn weigh(&self, c: &Coefficient, weight: impl Fn(u8) -> f64) -> f64 {
-        let level = c.band.level as usize;
-        let axes: [Vec<AxisPiece>; 3] = [0, 1, 2].map(|a| {
-            let wavelet = c.band.is_wavelet_along(a);
-            let raw = self
-                .geometry
-                .raw_center_1d(level, c.pos[a] as usize, wavelet);
-            self.axis(a, level, wavelet, raw)
-        });
+        let axes = self.axes(c);
         let mut total = 0.0;
         for x in &axes[0] {
             for y in &axes[1] {
@@ -333,11 +352,7 @@ impl BoxClip {
             .enumerate()
             .map(|(i, c)| {
                 let level = c.band.level as usize;
-                let axes: [Vec<AxisPiece>; 3] = [0, 1, 2].map(|a| {
-                    let wavelet = c.band.is_wavelet_along(a);
-                    let raw = g.raw_center_1d(level, c.pos[a] as usize, wavelet);
-                    self.axis(a, level, wavelet, raw)
-                });
+                let axes = self.axes(c);
                 if axes.iter().any(Vec::is_empty) {
                     return (Clipped::Split, Vec::new());
                 }
@@ -365,9 +380,9 @@ impl BoxClip {
                                     let mut near = [0.0; 3];
                                     for (a, p) in [x, y, z].into_iter().enumerate() {
                                         let h = support(p);
-                                        near[a] = if cue.l[a] >= 0.0 { p.2 - h } else { p.2 + h };
+                                        near[a] = near_end(cue, a, p.2 - h, p.2 + h);
                                     }
-                                    (-cue.k * cue.dist(near).max(0.0)).exp()
+                                    near_weight(cue, near)
                                 }
                             };
                             let value = c.value as f64 * x.3 * y.3 * z.3 * weight;

@@ -828,6 +828,7 @@ impl<B: AccumulationBackend> RenderSession<B> {
         let mut report = StepReport::default();
         let mut batch = Vec::new();
         let mut coefficients = Vec::new();
+        let mut weights: Vec<f64> = Vec::new();
         while self.queue.len > 0 {
             let now = clock.now();
             if now >= deadline {
@@ -844,13 +845,16 @@ impl<B: AccumulationBackend> RenderSession<B> {
                 .first()
                 .map_or(1.0, |c| c.zoom * c.voxel_volume().cbrt());
             coefficients.clear();
+            weights.clear();
             // Each popped entry's coefficient is looked up once: queued for the batch and
-            // weighed for the allowance.
+            // weighed for the allowance (the weight kept for the timing below).
             let plan = &self.plan;
             let take = |(p, i): (u32, u32)| {
                 let c = packets[&p].coefficients[i as usize];
                 coefficients.push(c);
-                plan.weigh(&c, |level| splat_weight(level, zoom))
+                let w = plan.weigh(&c, |level| splat_weight(level, zoom));
+                weights.push(w);
+                w
             };
             // Until a batch has been timed, one of `min_batch` coefficients: a guess would be
             // too long on a slow backend and too short on a fast one.
@@ -874,13 +878,7 @@ impl<B: AccumulationBackend> RenderSession<B> {
             // drawn when the tables arrive.
             let deferred = self.plan.take_deferred();
             // What waits was not drawn: its weight is not part of what was timed.
-            let waiting_weight: f64 = deferred
-                .iter()
-                .map(|&i| {
-                    self.plan
-                        .weigh(&coefficients[i], |level| splat_weight(level, zoom))
-                })
-                .sum();
+            let waiting_weight: f64 = deferred.iter().map(|&i| weights[i]).sum();
             let weight = (weight - waiting_weight).max(0.0);
             for &i in deferred.iter().rev() {
                 self.waiting.push(batch.swap_remove(i));

@@ -10,6 +10,7 @@ use std::time::Duration;
 use wavesplat_codec::format::packet::Coefficient;
 use wavesplat_codec::format::{parse_file, Header};
 use wavesplat_codec::view::{View, ViewSpec};
+use wavesplat_codec::volume::Volume;
 use wavesplat_compressor::encode::{compress, CompressOptions, Target, TileChoice};
 use wavesplat_compressor::phantom::Phantom;
 use wavesplat_viewer::backend::{
@@ -20,10 +21,15 @@ use wavesplat_viewer::source::{FileSource, PacketSource, SourcePacket, SourceSta
 use wavesplat_viewer::{FrameLoop, Image, RenderOptions, Renderer};
 
 fn wsp(phantom: Phantom, n: usize, tile: usize) -> Vec<u8> {
+    wsp_of(&phantom.generate([n; 3]), 0.08, tile)
+}
+
+/// `volume` compressed to `fraction` of its coefficients, tiles of `tile`, three layers.
+fn wsp_of(volume: &Volume, fraction: f64, tile: usize) -> Vec<u8> {
     compress(
-        &phantom.generate([n; 3]),
+        volume,
         &CompressOptions {
-            target: Target::Fraction(0.08),
+            target: Target::Fraction(fraction),
             tile: TileChoice::Size(tile),
             layers: Some(3),
             refine: None,
@@ -144,20 +150,7 @@ fn streaming_a_file_converges_to_the_one_shot_image() {
 fn a_volume_without_margin_streams_clipped_to_the_one_shot_image() {
     use wavesplat_codec::view::{Cue, CueDirection};
     // A CT slab: air around a body that runs through the first and last slice.
-    let volume = Phantom::Ct.generate([40, 32, 12]);
-    let bytes = compress(
-        &volume,
-        &CompressOptions {
-            target: Target::Fraction(0.1),
-            tile: TileChoice::Size(16),
-            layers: Some(3),
-            refine: None,
-            ..Default::default()
-        },
-        &|_, _| {},
-    )
-    .expect("compress")
-    .bytes;
+    let bytes = wsp_of(&Phantom::Ct.generate([40, 32, 12]), 0.1, 16);
     let (header, coeffs) = all(&bytes);
     assert_eq!(header.margin, 0, "the slab's faces call for no margin");
     for (s, previews) in [
