@@ -18,6 +18,7 @@ use crate::refine::{pad_f32, refine_with, KeptValue, RefineOptions};
 use crate::select::{band_map, histogram, top_k, Histogram, CHUNK};
 use rayon::prelude::*;
 use thiserror::Error;
+use wavesplat_codec::dwt::fast::FastTransform;
 use wavesplat_codec::dwt::{forward_3d, pad_channel, samples_to_coefficients, Dwt1d};
 use wavesplat_codec::family::Family;
 use wavesplat_codec::format::packet::{encode_packets, Coefficient, PacketInput, SizeBreakdown};
@@ -61,8 +62,8 @@ pub enum TileChoice {
 pub struct CompressOptions {
     /// Wavelet family.
     pub family: Family,
-    /// Decomposition depth M (`None`: min(6, maximum) for Haar, min(3, maximum) for linear,
-    /// min(2, maximum) for cubic, whose coarse supports grow as (2j − 1)·2^M).
+    /// Decomposition depth M (`None`: [`default_levels`]; a byte target compares it with one
+    /// level less, see [`depth_candidates`]).
     pub levels: Option<usize>,
     /// Zero margin in voxels around the volume (`None`: [`default_margin`]). Every margin renders
     /// exactly: below [`Geometry::separating_margin`] the renderer clips basis functions to the
@@ -243,6 +244,9 @@ struct Prepared {
     /// The channels' voxel samples after the colour transform on the padded grid (for
     /// refinement; empty without).
     targets: Vec<Vec<f32>>,
+    /// The three axis X-ray views of each coded channel on the volume's box (for
+    /// [`Prepared::view_error`]; empty when no depths are compared).
+    views: Vec<[Vec<f64>; 3]>,
     /// Non-zero coefficients of the transform.
     nonzero: u64,
 }
@@ -293,9 +297,88 @@ fn color_info(t: &ColorTransform) -> ColorInfo {
     }
 }
 
+/// The channels the transform codes: an RGB volume in its colour space, an intensity volume
+/// less its faces' median (`None`: the volume's own channels), with the header's colour info.
+fn coded_channels(
+    volume: &Volume,
+    opts: &CompressOptions,
+) -> Result<(Option<Vec<Vec<f32>>>, ColorInfo), CompressError> {
+    if volume.channel_count() == 3 {
+        let t = ColorTransform::fit(opts.colorspace, volume)?;
+        let v = t.forward(volume)?;
+        return Ok((Some(v.into_channels()), color_info(&t)));
+    }
+    // The faces' median is subtracted (see `crate::colorspace`): the padded grid is zero, so a
+    // face of air at −1000 would otherwise be a step along the whole face. Samples near
+    // ±f32::MAX on both sides of the offset could overflow when shifted; such a volume is
+    // coded without one.
+    let dims = volume.dims();
+    let offset = face_median(volume.channel(0), dims);
+    let shifted = (offset != 0.0)
+        .then(|| {
+            volume
+                .channel(0)
+                .par_iter()
+                .map(|v| (f64::from(*v) - offset) as f32)
+                .collect::<Vec<f32>>()
+        })
+        .filter(|s| s.par_iter().all(|v| v.is_finite()));
+    let mut color = ColorInfo::intensity();
+    if shifted.is_some() {
+        color.mean[0] = offset;
+    }
+    Ok((shifted.map(|s| vec![s]), color))
+}
+
+/// The three axis X-ray views of a channel on its box (sums along x, along y, along z; f64).
+fn axis_views(dims: [usize; 3], at: &(dyn Fn(usize, usize, usize) -> f64 + Sync)) -> [Vec<f64>; 3] {
+    let [nx, ny, nz] = dims;
+    // Along x and along y: each slice z owns its row of both images.
+    let (along_x, along_y): (Vec<Vec<f64>>, Vec<Vec<f64>>) = (0..nz)
+        .into_par_iter()
+        .map(|z| {
+            let mut rows = vec![0.0; ny];
+            let mut cols = vec![0.0; nx];
+            for (y, row) in rows.iter_mut().enumerate() {
+                for (x, col) in cols.iter_mut().enumerate() {
+                    let d = at(x, y, z);
+                    *row += d;
+                    *col += d;
+                }
+            }
+            (rows, cols)
+        })
+        .unzip();
+    // Along z: slices summed in fixed groups, then in order (thread-count independent).
+    let along_z = (0..nz)
+        .collect::<Vec<_>>()
+        .par_chunks(8)
+        .map(|zs| {
+            let mut img = vec![0.0; nx * ny];
+            for &z in zs {
+                for y in 0..ny {
+                    for x in 0..nx {
+                        img[x + nx * y] += at(x, y, z);
+                    }
+                }
+            }
+            img
+        })
+        .collect::<Vec<_>>()
+        .into_iter()
+        .reduce(|mut a, b| {
+            a.iter_mut().zip(&b).for_each(|(a, b)| *a += b);
+            a
+        })
+        .unwrap_or_else(|| vec![0.0; nx * ny]);
+    [along_x.concat(), along_y.concat(), along_z]
+}
+
 fn prepare(
     volume: &Volume,
     opts: &CompressOptions,
+    with_views: bool,
+    with_targets: bool,
     progress: &(dyn Fn(Stage, f64) + Sync),
 ) -> Result<Prepared, CompressError> {
     if !(opts.step.is_finite() && opts.step > 0.0 && opts.step <= 64.0) {
@@ -311,45 +394,14 @@ fn prepare(
         )));
     }
     let dims = volume.dims();
-    let max_levels = Geometry::max_levels(dims);
-    // Deeper spline decompositions have wider supports: more coefficients cross the faces,
-    // each drawn as clipped pieces.
-    let levels = opts.levels.unwrap_or(match opts.family {
-        Family::Haar => max_levels.min(6),
-        Family::Linear => max_levels.min(3),
-        Family::Cubic => max_levels.min(2),
-    });
+    let levels = opts.levels.unwrap_or(default_levels(dims, opts.family));
     let margin = opts
         .margin
         .unwrap_or_else(|| default_margin(volume, opts.family, levels));
     let geometry =
         Geometry::new(dims, opts.family, levels, margin)?.with_spacing(volume.spacing())?;
     progress(Stage::Color, 0.0);
-    let (transformed, color) = if volume.channel_count() == 3 {
-        let t = ColorTransform::fit(opts.colorspace, volume)?;
-        let v = t.forward(volume)?;
-        (Some(v.into_channels()), color_info(&t))
-    } else {
-        // The faces' median is subtracted (see `crate::colorspace`): the padded grid is zero,
-        // so a face of air at −1000 would otherwise be a step along the whole face.
-        // Samples near ±f32::MAX on both sides of the offset could overflow when shifted;
-        // such a volume is coded without one.
-        let offset = face_median(volume.channel(0), dims);
-        let shifted = (offset != 0.0)
-            .then(|| {
-                volume
-                    .channel(0)
-                    .par_iter()
-                    .map(|v| (f64::from(*v) - offset) as f32)
-                    .collect::<Vec<f32>>()
-            })
-            .filter(|s| s.par_iter().all(|v| v.is_finite()));
-        let mut color = ColorInfo::intensity();
-        if shifted.is_some() {
-            color.mean[0] = offset;
-        }
-        (shifted.map(|s| vec![s]), color)
-    };
+    let (transformed, color) = coded_channels(volume, opts)?;
     let channels: &[Vec<f32>] = transformed.as_deref().unwrap_or(volume.channels());
     let (lo, hi) = volume.value_range();
     let mut planner = Dwt1d::new(opts.family);
@@ -394,7 +446,20 @@ fn prepare(
         histogram: Histogram::empty(),
         total_energy,
         total_coefficients: (n * channels.len()) as u64,
-        targets: if opts.refine.is_some() {
+        views: if with_views {
+            channels
+                .iter()
+                .map(|ch| {
+                    let at = |x: usize, y: usize, z: usize| {
+                        f64::from(ch[x + dims[0] * (y + dims[1] * z)])
+                    };
+                    axis_views(dims, &at)
+                })
+                .collect()
+        } else {
+            Vec::new()
+        },
+        targets: if opts.refine.is_some() && with_targets {
             channels.iter().map(|c| pad_f32(c, &geometry)).collect()
         } else {
             Vec::new()
@@ -479,6 +544,43 @@ impl Prepared {
     /// The energy E = w²·‖b‖² (eq. 14, without importance).
     fn energy(&self, c: usize, i: usize) -> f64 {
         (self.coefficients[c][i] as f64).powi(2) * self.norms[self.band_of[i] as usize]
+    }
+
+    /// How far a file's three axis X-ray views lie from the volume's: the mean over the views
+    /// of ln Σ_c I_c·‖P_v f_c − P_v R ĉ_c‖², with f_c the channel's samples (after the colour
+    /// transform or offset; their views are [`Prepared::views`]), ĉ_c the file's decoded
+    /// coefficients, R the synthesis to samples, P_v the sum along axis v over the volume's box
+    /// and I_c the channel's importance. The log-mean follows Q_I, which averages the views in
+    /// dB.
+    fn view_error(&self, file: &Compressed) -> f64 {
+        let g = &self.geometry;
+        let fast = FastTransform::new(g);
+        let [px, py, _] = g.padded;
+        let [ox, oy, oz] = g.origin;
+        let mut energy = [0.0f64; 3];
+        for (c, target) in self.views.iter().enumerate() {
+            let mut r = vec![0.0f32; g.coefficient_count()];
+            for k in file.reconstruction.iter().flatten() {
+                if k.channel as usize == c {
+                    let pos = [k.pos[0] as usize, k.pos[1] as usize, k.pos[2] as usize];
+                    r[g.linear_index(k.band, pos)] = k.value;
+                }
+            }
+            fast.synthesize(&mut r);
+            let at = |x: usize, y: usize, z: usize| {
+                f64::from(r[(ox + x) + px * ((oy + y) + py * (oz + z))])
+            };
+            let decoded = axis_views(g.dims, &at);
+            let w = self.color.importance[c];
+            for ((e, t), d) in energy.iter_mut().zip(target).zip(&decoded) {
+                *e += w * t.iter().zip(d).map(|(t, d)| (t - d).powi(2)).sum::<f64>();
+            }
+        }
+        energy
+            .iter()
+            .map(|e| (e + f64::MIN_POSITIVE).ln())
+            .sum::<f64>()
+            / 3.0
     }
 
     /// The oracle's top `cap` coefficients (all non-zero ones when `cap` reaches them).
@@ -739,17 +841,14 @@ impl Prepared {
 /// transform of one channel (8 B), the f32 coefficients (4 B per channel), the band map (1 B)
 /// and, with refinement, the padded targets, values, gradients and mask (13 B per channel)
 /// plus two work arrays (8 B); then the candidate list and the encoder's per-coefficient
-/// copies (~200 B per candidate). Measured peaks stay below it (BENCHMARKS.md, issue 14).
+/// copies (~200 B per candidate). A byte target that compares two depths holds two
+/// transforms at once. Measured peaks stay below it (BENCHMARKS.md, issue 14).
 pub fn memory_estimate(
     dims: [usize; 3],
     channels: usize,
     opts: &CompressOptions,
 ) -> Result<(u64, String), CompressError> {
-    let levels = opts.levels.unwrap_or(match opts.family {
-        Family::Haar => Geometry::max_levels(dims).min(6),
-        Family::Linear => Geometry::max_levels(dims).min(3),
-        Family::Cubic => Geometry::max_levels(dims).min(2),
-    });
+    let levels = opts.levels.unwrap_or(default_levels(dims, opts.family));
     // The larger grid of the two defaults (see `default_margin`): an upper bound.
     let margin = opts
         .margin
@@ -764,6 +863,16 @@ pub fn memory_estimate(
     let refining = opts.refine.is_some() && opts.family != Family::Haar;
     // Held from the transform to the end: coefficients, band map, padded targets.
     let persistent = 4 * n * c + n + if refining { 4 * n * c } else { 0 };
+    // A byte target without a given depth compares two ([`depth_candidates`]): both
+    // transforms are held while the second one is scored (without padded targets; the
+    // shallower grid is never the larger one), and the scoring synthesizes one channel.
+    let comparing =
+        matches!(opts.target, Target::Bytes(_)) && depth_candidates(dims, opts).len() > 1;
+    let held = if comparing {
+        persistent.max(2 * (4 * n * c + n) + 4 * n)
+    } else {
+        persistent
+    };
     let all = n * c;
     let candidates = match opts.target {
         Target::Bytes(b) => b.saturating_mul(4).min(all),
@@ -782,7 +891,7 @@ pub fn memory_estimate(
     let encode = (candidates / 2).saturating_mul(150);
     // The binary, the thread pool and small tables: ~30 MB measured on a 128³ volume.
     let base = 64 << 20;
-    let total = base + input + persistent + prepare.max(lists + refine.max(encode));
+    let total = base + input + held + prepare.max(lists + refine.max(encode));
     let detail = format!(
         "{} coefficients per channel on the padded {}x{}x{} grid, {} channel(s){}",
         n,
@@ -818,7 +927,10 @@ pub fn compress(
             opts.layer_growth
         )));
     }
-    let prepared = prepare(volume, opts, progress)?;
+    if let Target::Bytes(b) = opts.target {
+        return compress_to_bytes(volume, opts, b, progress);
+    }
+    let prepared = prepare(volume, opts, false, true, progress)?;
     let n = prepared.nonzero as usize;
     let k = match opts.target {
         Target::All => n,
@@ -853,7 +965,7 @@ pub fn compress(
             }
             k
         }
-        Target::Bytes(b) => return compress_to_bytes(&prepared, opts, b, progress),
+        Target::Bytes(b) => return compress_to_bytes(volume, opts, b, progress),
     };
     let ranked = prepared.ranked(k);
     let ranked = match &opts.refine {
@@ -881,15 +993,126 @@ fn bytes_per_coefficient_guess(coder: CoderKind) -> u64 {
     }
 }
 
-/// Byte target: the oracle's order is searched for the largest prefix that fits (on a candidate
-/// list grown 4× whenever the search runs off its end); with refinement, [`refine_to_bytes`]
-/// starts from that prefix's size.
+/// The decomposition depth M when none is given: min(6, maximum) for Haar, min(3, maximum)
+/// for linear, min(2, maximum) for cubic (whose coarse supports grow as (2j − 1)·2^M). A byte
+/// target also tries one level less ([`depth_candidates`]).
+pub fn default_levels(dims: [usize; 3], family: Family) -> usize {
+    let max_levels = Geometry::max_levels(dims);
+    match family {
+        Family::Haar => max_levels.min(6),
+        Family::Linear => max_levels.min(3),
+        Family::Cubic => max_levels.min(2),
+    }
+}
+
+/// The depths a byte target compares when none is given: the family's default
+/// ([`default_levels`]) and, when it is at least 2, one level less. Which one codes a volume
+/// better depends on the rate and on the data: on the test set (BENCHMARKS.md, issue 14) the
+/// shallower depth gains 0.5–1.3 dB Q_I at 1.25–5.85 % on most volumes and loses up to 38 dB
+/// at 0.07 % (a coarse band too large to afford), while a CT volume keeps preferring the
+/// deeper one at every rate; a deeper one than the default never won.
+fn depth_candidates(dims: [usize; 3], opts: &CompressOptions) -> Vec<usize> {
+    match opts.levels {
+        Some(m) => vec![m],
+        None => {
+            let d = default_levels(dims, opts.family);
+            if d >= 2 {
+                vec![d, d - 1]
+            } else {
+                vec![d]
+            }
+        }
+    }
+}
+
+/// Byte target. Per candidate depth ([`depth_candidates`]) the oracle's order is searched for
+/// the largest prefix that fits ([`oracle_to_bytes`]) and that file's three axis X-ray views
+/// are compared with the volume's ([`Prepared::view_error`]); the depth whose views come closer
+/// is kept (the default on a tie). The oracle's ranking of depths predicted the refined
+/// files' ranking at every point measured (BENCHMARKS.md), at the cost of one more oracle
+/// pass. With refinement, [`refine_to_bytes`] then starts from the chosen prefix's size.
 fn compress_to_bytes(
-    prepared: &Prepared,
+    volume: &Volume,
     opts: &CompressOptions,
     target: u64,
     progress: &(dyn Fn(Stage, f64) + Sync),
 ) -> Result<Compressed, CompressError> {
+    let depths = depth_candidates(volume.dims(), opts);
+    let comparing = depths.len() > 1;
+    let mut trials = 0usize;
+    let mut best: Option<(f64, Prepared, Ranked, Compressed)> = None;
+    for &m in &depths {
+        let o = CompressOptions {
+            levels: Some(m),
+            ..opts.clone()
+        };
+        // Compared depths hold no padded targets (the scoring needs only the views): two
+        // transforms are held at once, and the winner's targets are built afterwards.
+        let prepared = prepare(volume, &o, comparing, !comparing, progress)?;
+        let (ranked, plain) = oracle_to_bytes(&prepared, &o, target, &mut trials, progress)?;
+        if !comparing {
+            best = Some((0.0, prepared, ranked, plain));
+            break;
+        }
+        let error = prepared.view_error(&plain);
+        tracing::debug!(
+            levels = m,
+            bytes = plain.stats.bytes,
+            kept = plain.stats.kept,
+            view_error = error,
+            "depth candidate"
+        );
+        if best.as_ref().is_none_or(|b| error < b.0) {
+            best = Some((error, prepared, ranked, plain));
+        }
+    }
+    let Some((_, mut prepared, ranked, plain)) = best else {
+        return Err(CompressError::InvalidOption(
+            "no decomposition depth to try".to_string(),
+        ));
+    };
+    prepared.views = Vec::new();
+    if comparing && opts.refine.is_some() {
+        let (transformed, _) = coded_channels(volume, opts)?;
+        let channels: &[Vec<f32>] = transformed.as_deref().unwrap_or(volume.channels());
+        prepared.targets = channels
+            .iter()
+            .map(|c| pad_f32(c, &prepared.geometry))
+            .collect();
+    }
+    let opts = &CompressOptions {
+        levels: Some(prepared.geometry.levels),
+        ..opts.clone()
+    };
+    let n = prepared.nonzero as usize;
+    let k0 = plain.stats.kept as usize;
+    let Some(r) = &opts.refine else {
+        return Ok(finish(&prepared, &ranked, plain));
+    };
+    if k0 == 0 || (ranked.complete && k0 >= ranked.sorted.len()) || n == 0 {
+        return Ok(finish(&prepared, &ranked, plain));
+    }
+    refine_to_bytes(
+        &prepared,
+        ranked,
+        plain,
+        r,
+        opts,
+        target,
+        &mut trials,
+        progress,
+    )
+}
+
+/// The oracle's order searched for the largest prefix that fits `target` bytes, on a candidate
+/// list grown 4× whenever the search runs off its end.
+fn oracle_to_bytes(
+    prepared: &Prepared,
+    opts: &CompressOptions,
+    target: u64,
+    trials: &mut usize,
+    progress: &(dyn Fn(Stage, f64) + Sync),
+) -> Result<(Ranked, Compressed), CompressError> {
     let n = prepared.nonzero as usize;
     // Candidates: 4 per target byte for the sigmap coder (it codes ~1.2–1.5 coefficients per
     // byte on real data), 1 per byte for the paper's syntaxes.
@@ -901,42 +1124,16 @@ fn compress_to_bytes(
     let mut cap = (target.saturating_mul(per_byte) as usize)
         .max(1024)
         .min(n.max(1));
-    let mut trials = 0usize;
     let guess = (target / bytes_per_coefficient_guess(opts.coder)) as usize;
-    let (ranked, plain) = loop {
+    loop {
         let ranked = prepared.ranked(cap);
-        let plain = fit_bytes(
-            prepared,
-            &ranked,
-            opts,
-            target,
-            guess,
-            &mut trials,
-            progress,
-        )?;
+        let plain = fit_bytes(prepared, &ranked, opts, target, guess, trials, progress)?;
         let len = ranked.sorted.len();
         if ranked.complete || (plain.stats.kept as usize) < len || cap >= n {
-            break (ranked, plain);
+            return Ok((ranked, plain));
         }
         cap = cap.saturating_mul(4).min(n);
-    };
-    let k0 = plain.stats.kept as usize;
-    let Some(r) = &opts.refine else {
-        return Ok(finish(prepared, &ranked, plain));
-    };
-    if k0 == 0 || (ranked.complete && k0 >= ranked.sorted.len()) {
-        return Ok(finish(prepared, &ranked, plain));
     }
-    refine_to_bytes(
-        prepared,
-        ranked,
-        plain,
-        r,
-        opts,
-        target,
-        &mut trials,
-        progress,
-    )
 }
 
 /// Refinements a byte target may run (each is ~36 applications of the synthesis and its
@@ -1253,6 +1450,29 @@ mod tests {
         assert!(close_to_target(98_000, t) && close_to_target(101_000, t));
         assert!(!close_to_target(97_999, t) && !close_to_target(101_001, t));
         assert!(!close_to_target(0, t));
+    }
+
+    #[test]
+    fn a_byte_target_compares_the_default_depth_with_one_less_unless_given() {
+        let bytes = |levels| CompressOptions {
+            target: Target::Bytes(1000),
+            levels,
+            ..Default::default()
+        };
+        assert_eq!(depth_candidates([64, 64, 64], &bytes(None)), vec![3, 2]);
+        assert_eq!(depth_candidates([64, 64, 64], &bytes(Some(4))), vec![4]);
+        // Two slices allow one level: nothing shallower to try.
+        assert_eq!(depth_candidates([64, 64, 2], &bytes(None)), vec![1]);
+        assert_eq!(depth_candidates([1, 1, 40], &bytes(None)), vec![0]);
+        let cubic = CompressOptions {
+            family: Family::Cubic,
+            ..bytes(None)
+        };
+        assert_eq!(depth_candidates([64, 64, 64], &cubic), vec![2, 1]);
+        // Comparing holds two transforms: the estimate covers them.
+        let (one, _) = memory_estimate([64, 64, 64], 1, &bytes(Some(3))).unwrap();
+        let (two, _) = memory_estimate([64, 64, 64], 1, &bytes(None)).unwrap();
+        assert!(two > one, "{two} <= {one}");
     }
 
     #[test]

@@ -3,12 +3,13 @@
 //! faces), a wide 16-bit range, anisotropic boxes and RGB. Round trips, perfect reconstruction,
 //! bit-exact decoding, thread-count independence and byte targets on each; and the memory cap.
 
+use wavesplat_codec::family::Family;
 use wavesplat_codec::format::packet::decode_packet;
 use wavesplat_codec::format::parse_file;
 use wavesplat_codec::volume::Volume;
 use wavesplat_compressor::decode::decompress;
 use wavesplat_compressor::encode::{
-    compress, memory_estimate, CompressError, CompressOptions, Target, TileChoice,
+    compress, default_levels, memory_estimate, CompressError, CompressOptions, Target, TileChoice,
 };
 use wavesplat_compressor::phantom::Phantom;
 
@@ -247,4 +248,92 @@ fn a_constant_added_to_the_volume_costs_nothing() {
         assert!(bytes.abs_diff(bytes0) <= bytes0 / 50, "{add}: {errors:?}");
         assert!(err <= err0 * 1.05 + 1e-6, "{add}: {errors:?}");
     }
+}
+
+/// The mean over the three axis X-ray views (sums along x, y and z, every channel) of the log
+/// of the view's squared error, in f64 on the decoded volume: computed here independently of
+/// the compressor's own scoring.
+fn log_view_error(original: &Volume, decoded: &Volume) -> f64 {
+    let [nx, ny, nz] = original.dims();
+    let mut energy = [0.0f64; 3];
+    for c in 0..original.channel_count() {
+        let (a, b) = (original.channel(c), decoded.channel(c));
+        let mut views = [
+            vec![0.0f64; ny * nz],
+            vec![0.0; nx * nz],
+            vec![0.0; nx * ny],
+        ];
+        for z in 0..nz {
+            for y in 0..ny {
+                for x in 0..nx {
+                    let i = original.index(x, y, z);
+                    let d = f64::from(a[i]) - f64::from(b[i]);
+                    views[0][y + ny * z] += d;
+                    views[1][x + nx * z] += d;
+                    views[2][x + nx * y] += d;
+                }
+            }
+        }
+        for (e, v) in energy.iter_mut().zip(&views) {
+            *e += v.iter().map(|p| p * p).sum::<f64>();
+        }
+    }
+    energy
+        .iter()
+        .map(|e| (e + f64::MIN_POSITIVE).ln())
+        .sum::<f64>()
+        / 3.0
+}
+
+/// Without a given depth, a byte target codes at whichever of the family's default depth and
+/// one level less brings the X-ray views closer to the volume's: the file is the one forced
+/// to that depth, and no worse than the one forced to the other (without refinement, so the
+/// compared files are the files). A low rate (0.2 % of the samples' bytes, at least 200 bytes)
+/// and a high one (15 %) on every archive volume; each depth wins somewhere, so the choice
+/// follows the data rather than a constant.
+#[test]
+fn a_byte_target_keeps_the_depth_whose_views_come_closer() {
+    let mut wins = [0usize; 2];
+    for (name, vol) in archive() {
+        let samples = (vol.voxel_count() * vol.channel_count()) as f64;
+        for pct in [0.2, 15.0] {
+            let target = ((samples * pct / 100.0) as u64).max(200);
+            let opts = |levels| CompressOptions {
+                target: Target::Bytes(target),
+                levels,
+                refine: None,
+                ..Default::default()
+            };
+            let Ok(auto) = compress(&vol, &opts(None), &|_, _| {}) else {
+                continue;
+            };
+            let depth = auto.header.geometry.levels;
+            let deeper = default_levels(vol.dims(), Family::Linear);
+            if deeper < 2 {
+                assert_eq!(depth, deeper, "{name} {pct} %");
+                continue;
+            }
+            let forced: Vec<_> = [deeper, deeper - 1]
+                .iter()
+                .map(|m| compress(&vol, &opts(Some(*m)), &|_, _| {}).unwrap())
+                .collect();
+            let chosen = forced
+                .iter()
+                .position(|f| f.bytes == auto.bytes)
+                .unwrap_or_else(|| panic!("{name} {pct} %: M = {depth} is neither forced file"));
+            let errors: Vec<f64> = forced
+                .iter()
+                .map(|f| log_view_error(&vol, &decompress(&f.bytes).unwrap()))
+                .collect();
+            assert!(
+                errors[chosen] <= errors[1 - chosen] + 1e-3,
+                "{name} {pct} %: chose M = {depth}, view errors {errors:?}"
+            );
+            wins[chosen] += 1;
+        }
+    }
+    assert!(
+        wins[0] > 0 && wins[1] > 0,
+        "deeper / shallower wins {wins:?}"
+    );
 }

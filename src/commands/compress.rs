@@ -48,7 +48,9 @@ pub struct CompressArgs {
     #[arg(long, default_value = "linear")]
     pub family: String,
     /// Decomposition depth M (default: min(6, max) for Haar, 3 for linear, 2 for cubic;
-    /// max = ceil(log2(smallest dimension))).
+    /// max = ceil(log2(smallest dimension))). With --target-bytes and no depth given, that
+    /// default and one level less are both tried and the one whose X-ray views of the volume
+    /// come out closer is kept (the shallower one usually wins at higher rates).
     #[arg(long)]
     pub levels: Option<usize>,
     /// Zero margin (voxels) around the volume before the periodic transform. Default: none when
