@@ -297,12 +297,15 @@ fn color_info(t: &ColorTransform) -> ColorInfo {
     }
 }
 
+/// Sample arrays, one per channel.
+type Channels = Vec<Vec<f32>>;
+
 /// The channels the transform codes: an RGB volume in its colour space, an intensity volume
 /// less its faces' median (`None`: the volume's own channels), with the header's colour info.
 fn coded_channels(
     volume: &Volume,
     opts: &CompressOptions,
-) -> Result<(Option<Vec<Vec<f32>>>, ColorInfo), CompressError> {
+) -> Result<(Option<Channels>, ColorInfo), CompressError> {
     if volume.channel_count() == 3 {
         let t = ColorTransform::fit(opts.colorspace, volume)?;
         let v = t.forward(volume)?;
