@@ -169,6 +169,9 @@ pub enum Stage {
     Refine,
     /// Entropy coding (trial number of the rate search).
     Encode(usize),
+    /// A byte target tries this decomposition depth ([`depth_candidates`]); the stages above
+    /// then run again for it.
+    Depth(usize),
 }
 
 /// What the compressor measured.
@@ -1051,6 +1054,9 @@ fn compress_to_bytes(
         };
         // Compared depths hold no padded targets (the scoring needs only the views): two
         // transforms are held at once, and the winner's targets are built afterwards.
+        if comparing {
+            progress(Stage::Depth(m), 0.0);
+        }
         let prepared = prepare(volume, &o, comparing, !comparing, progress)?;
         let (ranked, plain) = oracle_to_bytes(&prepared, &o, target, &mut trials, progress)?;
         if !comparing {

@@ -253,6 +253,7 @@ pub fn run(a: CompressArgs) -> Result<()> {
             Stage::Sort => "scoring and sorting coefficients".to_string(),
             Stage::Refine => "least-squares refinement of the kept set".to_string(),
             Stage::Encode(t) => format!("entropy coding (trial {t})"),
+            Stage::Depth(m) => format!("trying decomposition depth M = {m}"),
         })
     };
     let c = compress(&volume, &opts, &report).context("compressing")?;

@@ -165,9 +165,11 @@ struct Shared {
 }
 
 impl Shared {
+    /// Reports a stage; the fraction never goes back (the compressor's stages repeat: a byte
+    /// target's rate trials, a second decomposition depth).
     fn set(&self, p: f32, stage: impl Into<String>) {
         if let Ok(mut g) = self.progress.lock() {
-            *g = (p, stage.into());
+            *g = (g.0.max(p), stage.into());
         }
     }
 }
@@ -180,6 +182,7 @@ fn stage_progress(stage: Stage, f: f64) -> (f32, String) {
         Stage::Sort => (0.5 + 0.1 * f, "scoring".into()),
         Stage::Refine => (0.55, "refinement".into()),
         Stage::Encode(t) => (0.6 + 0.3 * f, format!("entropy coding (trial {t})")),
+        Stage::Depth(m) => (0.05, format!("trying decomposition depth M = {m}")),
     }
 }
 
@@ -450,4 +453,31 @@ async fn execute(
         existed: r.existed,
         sha256: v.sha256,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn reported_progress_never_goes_back_when_stages_repeat() {
+        let shared = Shared::default();
+        let mut seen = Vec::new();
+        for (stage, f) in [
+            (Stage::Depth(3), 0.0),
+            (Stage::Transform(0), 0.5),
+            (Stage::Encode(2), 1.0),
+            (Stage::Depth(2), 0.0),
+            (Stage::Transform(0), 0.0),
+            (Stage::Refine, 0.0),
+            (Stage::Encode(5), 1.0),
+        ] {
+            let (p, s) = stage_progress(stage, f);
+            shared.set(p, s);
+            seen.push(shared.progress.lock().unwrap().clone());
+        }
+        assert!(seen.windows(2).all(|w| w[1].0 >= w[0].0), "{seen:?}");
+        assert_eq!(seen[3].1, "trying decomposition depth M = 2");
+        assert!((seen[6].0 - 0.9).abs() < 1e-6, "{seen:?}");
+    }
 }
