@@ -1047,6 +1047,7 @@ fn compress_to_bytes(
     let comparing = depths.len() > 1;
     let mut trials = 0usize;
     let mut best: Option<(f64, Prepared, Ranked, Compressed)> = None;
+    let mut too_small: Option<CompressError> = None;
     for &m in &depths {
         let o = CompressOptions {
             levels: Some(m),
@@ -1058,7 +1059,27 @@ fn compress_to_bytes(
             progress(Stage::Depth(m), 0.0);
         }
         let prepared = prepare(volume, &o, comparing, !comparing, progress)?;
-        let (ranked, plain) = oracle_to_bytes(&prepared, &o, target, &mut trials, progress)?;
+        // A target too small for one depth may fit the other (their headers and coarse bands
+        // differ); it is an error only when it fits neither.
+        let (ranked, plain) = match oracle_to_bytes(&prepared, &o, target, &mut trials, progress) {
+            Ok(found) => found,
+            Err(e @ CompressError::TargetTooSmall { .. }) if comparing => {
+                tracing::debug!(levels = m, error = %e, "depth candidate does not fit");
+                // The error names the smallest file of any depth.
+                let smaller = |a: &CompressError, b: &CompressError| match (a, b) {
+                    (
+                        CompressError::TargetTooSmall { minimum: x, .. },
+                        CompressError::TargetTooSmall { minimum: y, .. },
+                    ) => x < y,
+                    _ => false,
+                };
+                if too_small.as_ref().is_none_or(|t| smaller(&e, t)) {
+                    too_small = Some(e);
+                }
+                continue;
+            }
+            Err(e) => return Err(e),
+        };
         if !comparing {
             best = Some((0.0, prepared, ranked, plain));
             break;
@@ -1076,9 +1097,9 @@ fn compress_to_bytes(
         }
     }
     let Some((_, mut prepared, ranked, plain)) = best else {
-        return Err(CompressError::InvalidOption(
-            "no decomposition depth to try".to_string(),
-        ));
+        return Err(too_small.unwrap_or_else(|| {
+            CompressError::InvalidOption("no decomposition depth to try".to_string())
+        }));
     };
     prepared.views = Vec::new();
     if comparing && opts.refine.is_some() {

@@ -337,3 +337,31 @@ fn a_byte_target_keeps_the_depth_whose_views_come_closer() {
         "deeper / shallower wins {wins:?}"
     );
 }
+
+/// A byte target that only one of the compared depths can meet is met at that depth; one that
+/// neither can meet is refused naming the smallest file of either.
+#[test]
+fn a_target_too_small_for_one_depth_is_met_at_the_other() {
+    let vol = shepp([30, 28, 26], 1.0, 0.0);
+    let minimum = |levels| {
+        let o = CompressOptions {
+            target: Target::Bytes(1),
+            levels,
+            ..Default::default()
+        };
+        match compress(&vol, &o, &|_, _| {}) {
+            Err(CompressError::TargetTooSmall { minimum, .. }) => minimum,
+            other => panic!("M = {levels:?}: {:?}", other.map(|c| c.bytes.len())),
+        }
+    };
+    let (m3, m2) = (minimum(Some(3)), minimum(Some(2)));
+    assert_ne!(m3, m2, "the depths' smallest files differ");
+    assert_eq!(minimum(None), m3.min(m2));
+    let o = CompressOptions {
+        target: Target::Bytes(m3.min(m2)),
+        ..Default::default()
+    };
+    let c = compress(&vol, &o, &|_, _| {}).unwrap();
+    assert!(c.bytes.len() as u64 <= m3.min(m2));
+    assert_eq!(c.header.geometry.levels, if m2 < m3 { 2 } else { 3 });
+}
