@@ -1110,16 +1110,11 @@ fn compress_to_bytes(
             .map(|c| pad_f32(c, &prepared.geometry))
             .collect();
     }
-    let opts = &CompressOptions {
-        levels: Some(prepared.geometry.levels),
-        ..opts.clone()
-    };
-    let n = prepared.nonzero as usize;
     let k0 = plain.stats.kept as usize;
     let Some(r) = &opts.refine else {
         return Ok(finish(&prepared, &ranked, plain));
     };
-    if k0 == 0 || (ranked.complete && k0 >= ranked.sorted.len()) || n == 0 {
+    if k0 == 0 || (ranked.complete && k0 >= ranked.sorted.len()) {
         return Ok(finish(&prepared, &ranked, plain));
     }
     refine_to_bytes(

@@ -94,6 +94,18 @@ fn preview_session(
     (header, coeffs, session)
 }
 
+/// A frame loop drawing `spec` from the file `bytes` on the CPU backend.
+fn file_loop(
+    bytes: &[u8],
+    header: &Header,
+    spec: ViewSpec,
+    options: SessionOptions,
+) -> FrameLoop<CpuBackend, FileSource> {
+    let source = FileSource::open(bytes.to_vec(), &spec).unwrap();
+    let session = RenderSession::new(header.clone(), spec, CpuBackend::new(), options).unwrap();
+    FrameLoop::new(session, source)
+}
+
 fn spec(alpha: f64, beta: f64) -> ViewSpec {
     ViewSpec::single(View::new(alpha, beta, 96, 80))
 }
@@ -124,11 +136,7 @@ fn streaming_a_file_converges_to_the_one_shot_image() {
                 multiview: true,
             },
         ] {
-            let source = FileSource::open(bytes.clone(), &s).unwrap();
-            let session =
-                RenderSession::new(header.clone(), s, CpuBackend::new(), Default::default())
-                    .unwrap();
-            let mut f = FrameLoop::new(session, source);
+            let mut f = file_loop(&bytes, &header, s, Default::default());
             run_to_end(&mut f);
             let got = f.session.image().unwrap();
             let want = full_image(&header, &coeffs, &s);
@@ -175,9 +183,7 @@ fn a_volume_without_margin_streams_clipped_to_the_one_shot_image() {
             preview: previews.then(SessionOptions::default_preview),
             ..Default::default()
         };
-        let source = FileSource::open(bytes.clone(), &s).unwrap();
-        let session = RenderSession::new(header.clone(), s, CpuBackend::new(), options).unwrap();
-        let mut f = FrameLoop::new(session, source);
+        let mut f = file_loop(&bytes, &header, s, options);
         // Paced like a display: a frame with nothing to draw (everything left waits for its
         // tables) returns at once, so the loop sleeps before the next.
         let mut frames = 0;
@@ -239,11 +245,8 @@ fn a_view_change_mid_stream_resplats_what_is_held_and_continues() {
     let bytes = wsp(Phantom::SheppLogan, 48, 16);
     let (header, coeffs) = all(&bytes);
     let (a, b) = (spec(0.0, 0.0), spec(1.1, 0.5));
-    let source = FileSource::open(bytes.clone(), &a).unwrap();
-    let total = source.packet_count();
-    let session =
-        RenderSession::new(header.clone(), a, CpuBackend::new(), Default::default()).unwrap();
-    let mut f = FrameLoop::new(session, source);
+    let mut f = file_loop(&bytes, &header, a, Default::default());
+    let total = f.source.packet_count();
     // Take a third of the packets and splat them.
     let mut taken = 0;
     while taken < total / 3 {
@@ -302,9 +305,7 @@ fn the_memory_bound_holds_and_the_image_still_converges() {
             transient_bytes: 64 << 10,
             ..Default::default()
         };
-        let source = FileSource::open(bytes.clone(), &a).unwrap();
-        let session = RenderSession::new(header.clone(), a, CpuBackend::new(), options).unwrap();
-        let mut f = FrameLoop::new(session, source);
+        let mut f = file_loop(&bytes, &header, a, options);
         let mut peak_retained = 0;
         loop {
             let r = f.frame(Duration::from_millis(20)).unwrap();
@@ -644,14 +645,11 @@ fn depth_cue_tables_are_built_off_the_frame_thread() {
             let s = ViewSpec::single(
                 View::new(0.66, 0.91, 64, 56).with_cue(Cue { k: 0.08, direction }),
             );
-            let source = FileSource::open(bytes.clone(), &s).unwrap();
             let options = SessionOptions {
                 preview: previews.then(SessionOptions::default_preview),
                 ..Default::default()
             };
-            let session =
-                RenderSession::new(header.clone(), s, CpuBackend::new(), options).unwrap();
-            let mut f = FrameLoop::new(session, source);
+            let mut f = file_loop(&bytes, &header, s, options);
             run_to_end(&mut f);
             assert_eq!(
                 f.session.plan().tables_built_inline(),
