@@ -243,9 +243,57 @@ pub fn refine(
     kept: &[KeptValue],
     opts: &RefineOptions,
 ) -> Vec<KeptValue> {
+    refine_extended(geometry, samples, importance, kept, opts, 0).kept
+}
+
+/// [`refine`], also returning up to `extension` coefficients that would join the refined set
+/// next ([`Refined::extension`]).
+pub fn refine_extended(
+    geometry: &Geometry,
+    samples: &[Vec<f32>],
+    importance: &[f64],
+    kept: &[KeptValue],
+    opts: &RefineOptions,
+    extension: usize,
+) -> Refined {
     let band_of = crate::select::band_map(geometry);
     let targets: Vec<Vec<f32>> = samples.iter().map(|s| pad_f32(s, geometry)).collect();
-    refine_with(geometry, &band_of, &targets, importance, kept, opts)
+    refine_with(
+        geometry,
+        &band_of,
+        &targets,
+        importance,
+        kept,
+        opts,
+        Output::Set { extension },
+    )
+}
+
+/// How far [`refine_with`] goes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum Output {
+    /// Only the first refit of the given set, to count its survivors (a byte target's
+    /// estimate of what a refinement of that size keeps): `kept` and `extension` stay empty.
+    Pilot,
+    /// The whole refinement, with up to `extension` coefficients that would join it next.
+    Set { extension: usize },
+}
+
+/// A refinement's result ([`refine_extended`]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Refined {
+    /// The refined set, by decreasing score (as [`refine`] returns it).
+    pub kept: Vec<KeptValue>,
+    /// The coefficients that would join the set next, by decreasing score, each scoring below
+    /// every value of `kept`: outside the set, the value one gradient step in the Jacobi metric
+    /// gives from the final fit (the candidate an iterative-hard-thresholding round would
+    /// read), so it fills what the refined values leave unexplained instead of repeating what
+    /// they already carry, as the exact (oracle) value would.
+    pub extension: Vec<KeptValue>,
+    /// How many of the given set's values still reach its smallest score after the first
+    /// refit: about 0.95–1.05 times the size of the final set (BENCHMARKS.md, "One refinement
+    /// per byte target").
+    pub first_survivors: usize,
 }
 
 /// [`refine`] with the band map ([`crate::select::band_map`] of `geometry`) supplied and the
@@ -260,7 +308,8 @@ pub(crate) fn refine_with(
     importance: &[f64],
     kept: &[KeptValue],
     opts: &RefineOptions,
-) -> Vec<KeptValue> {
+    output: Output,
+) -> Refined {
     let k = kept.len();
     let channels = targets.len();
     let norms: Vec<f64> = geometry
@@ -274,7 +323,11 @@ pub(crate) fn refine_with(
     };
     if k == 0 || geometry.family == Family::Haar {
         // Haar is orthonormal up to per-band scale: thresholding is already optimal.
-        return sorted(band_of, &score_of, kept.to_vec());
+        return Refined {
+            kept: sorted(band_of, &score_of, kept.to_vec()),
+            extension: Vec::new(),
+            first_survivors: k,
+        };
     }
     let started = std::time::Instant::now();
     let op = Operator::new(geometry, band_of);
@@ -323,6 +376,17 @@ pub(crate) fn refine_with(
             })
             .sum()
     };
+    let first_survivors = survivors(&values, &masks, threshold);
+    let extension = match output {
+        Output::Pilot => {
+            return Refined {
+                kept: Vec::new(),
+                extension: Vec::new(),
+                first_survivors,
+            }
+        }
+        Output::Set { extension } => extension,
+    };
     for _ in 0..opts.rounds {
         // Candidates: one gradient step in the Jacobi metric from the current fit (the refit
         // left the gradient there). Keep the K best over all channels (deterministic ties).
@@ -356,6 +420,9 @@ pub(crate) fn refine_with(
     }
     // Prune values that fell below the threshold and refit the rest, until nothing falls
     // below (at most PRUNE_REFITS refits; a last prune without refit may follow).
+    // Whether the gradient in `grads` is that of the final values (a last prune without refit
+    // leaves it stale).
+    let mut gradient_current = true;
     for pass in 0..=PRUNE_REFITS {
         let mut pruned = false;
         for c in 0..channels {
@@ -375,7 +442,11 @@ pub(crate) fn refine_with(
                 .sum();
             pruned |= dropped > 0;
         }
-        if !pruned || pass == PRUNE_REFITS {
+        if !pruned {
+            break;
+        }
+        if pass == PRUNE_REFITS {
+            gradient_current = false;
             break;
         }
         refit_all(&mut values, &masks, &mut grads, &mut p, &mut work);
@@ -396,7 +467,60 @@ pub(crate) fn refine_with(
             })
         })
         .collect();
-    sorted(band_of, &score_of, out)
+    let kept = sorted(band_of, &score_of, out);
+    if extension == 0 || kept.is_empty() {
+        return Refined {
+            kept,
+            extension: Vec::new(),
+            first_survivors,
+        };
+    }
+    if !gradient_current {
+        for c in 0..channels {
+            op.refit(
+                &targets[c],
+                &mut values[c],
+                &masks[c],
+                0,
+                &mut grads[c],
+                &mut p,
+                &mut work,
+            );
+        }
+    }
+    // Outside the set, scoring below its smallest score (so the set followed by the extension
+    // stays in decreasing score order, which the encoder's quantizer threshold relies on).
+    let floor = kept
+        .last()
+        .map(|s| score_of(s.channel as usize, band_of[s.index as usize], s.value))
+        .unwrap_or(f64::INFINITY);
+    let candidate = |c: usize, i: usize| grads[c][i] * op.inv_diag[band_of[i] as usize];
+    let score = |c: usize, i: usize| {
+        let v = candidate(c, i);
+        if masks[c][i] || v == 0.0 || !v.is_finite() {
+            return -1.0;
+        }
+        let s = score_of(c, band_of[i], v);
+        if s < floor {
+            s
+        } else {
+            -1.0
+        }
+    };
+    let hist = histogram(channels, n, &score, &|_, _| 0.0);
+    let extension = top_k(&hist, channels, n, extension, &score)
+        .into_iter()
+        .map(|(_, c, i)| KeptValue {
+            channel: c,
+            index: i,
+            value: candidate(c as usize, i as usize),
+        })
+        .collect();
+    Refined {
+        kept,
+        extension,
+        first_survivors,
+    }
 }
 
 /// Copies a channel into the zero-padded grid of `geometry`, in f32.
