@@ -9,7 +9,8 @@ use wavesplat_codec::format::parse_file;
 use wavesplat_codec::volume::Volume;
 use wavesplat_compressor::decode::decompress;
 use wavesplat_compressor::encode::{
-    compress, default_levels, memory_estimate, CompressError, CompressOptions, Target, TileChoice,
+    compress, default_levels, memory_estimate, worth_going_shallower, CompressError,
+    CompressOptions, Compressed, Target, TileChoice,
 };
 use wavesplat_compressor::phantom::Phantom;
 
@@ -286,14 +287,18 @@ fn log_view_error(original: &Volume, decoded: &Volume) -> f64 {
 }
 
 /// Without a given depth, a byte target codes at whichever of the family's default depth and
-/// one level less brings the X-ray views closer to the volume's: the file is the one forced
-/// to that depth, and no worse than the one forced to the other (without refinement, so the
-/// compared files are the files). A low rate (0.2 % of the samples' bytes, at least 200 bytes)
-/// and a high one (15 %) on every archive volume; each depth wins somewhere, so the choice
-/// follows the data rather than a constant.
+/// one level less brings the X-ray views closer to the volume's, and goes on to shallower
+/// depths while the shallowest wins and its file affords the next coarse band
+/// ([`worth_going_shallower`]): the file is the one forced to that depth, and no worse than
+/// the one forced to any depth the rule compared (without refinement, so the compared files
+/// are the files). A low rate (0.2 % of the samples' bytes, at least 200 bytes) and a high one
+/// (15 %) on every archive volume; each of the first two depths wins somewhere, so the choice
+/// follows the data rather than a constant, and somewhere a third depth is compared.
 #[test]
 fn a_byte_target_keeps_the_depth_whose_views_come_closer() {
-    let mut wins = [0usize; 2];
+    let mut wins = std::collections::BTreeMap::<usize, usize>::new();
+    // Points where a depth below the first two was compared.
+    let mut descended = 0;
     for (name, vol) in archive() {
         let samples = (vol.voxel_count() * vol.channel_count()) as f64;
         for pct in [0.2, 15.0] {
@@ -308,33 +313,67 @@ fn a_byte_target_keeps_the_depth_whose_views_come_closer() {
                 continue;
             };
             let depth = auto.header.geometry.levels;
-            let deeper = default_levels(vol.dims(), Family::Linear);
-            if deeper < 2 {
-                assert_eq!(depth, deeper, "{name} {pct} %");
+            let deepest = default_levels(vol.dims(), Family::Linear);
+            if deepest < 2 {
+                assert_eq!(depth, deepest, "{name} {pct} %");
                 continue;
             }
-            let forced: Vec<_> = [deeper, deeper - 1]
-                .iter()
-                .map(|m| compress(&vol, &opts(Some(*m)), &|_, _| {}).unwrap())
+            // Forced files from the default depth down, each the oracle's file at that depth.
+            let forced: Vec<(usize, Compressed)> = (1..=deepest)
+                .rev()
+                .filter_map(|m| Some((m, compress(&vol, &opts(Some(m)), &|_, _| {}).ok()?)))
                 .collect();
-            let chosen = forced
+            let error = |m: usize| {
+                let (_, f) = forced.iter().find(|(fm, _)| *fm == m).unwrap();
+                log_view_error(&vol, &decompress(&f.bytes).unwrap())
+            };
+            let (_, same) = forced
                 .iter()
-                .position(|f| f.bytes == auto.bytes)
-                .unwrap_or_else(|| panic!("{name} {pct} %: M = {depth} is neither forced file"));
-            let errors: Vec<f64> = forced
-                .iter()
-                .map(|f| log_view_error(&vol, &decompress(&f.bytes).unwrap()))
-                .collect();
+                .find(|(m, _)| *m == depth)
+                .unwrap_or_else(|| panic!("{name} {pct} %: M = {depth} was not forced"));
+            assert_eq!(same.bytes, auto.bytes, "{name} {pct} %: M = {depth}");
+            // The depths the rule compared: the default and one less, every depth down to the
+            // chosen one (each won while it was the shallowest), and one below the chosen one
+            // when its file affords that depth's coarse band.
+            let mut compared: Vec<usize> = (depth..=deepest).collect();
+            compared.push(deepest - 1);
+            if depth < deepest
+                && worth_going_shallower(
+                    same.stats.kept,
+                    vol.channel_count(),
+                    &same.header.geometry,
+                )
+            {
+                compared.push(depth - 1);
+            }
+            if compared.iter().any(|m| *m + 1 < deepest) {
+                descended += 1;
+            }
             assert!(
-                errors[chosen] <= errors[1 - chosen] + 1e-3,
-                "{name} {pct} %: chose M = {depth}, view errors {errors:?}"
+                compared.contains(&depth),
+                "{name} {pct} %: M = {depth} not compared"
             );
-            wins[chosen] += 1;
+            for m in compared
+                .iter()
+                .filter(|m| forced.iter().any(|(fm, _)| fm == *m))
+            {
+                assert!(
+                    error(depth) <= error(*m) + 1e-3,
+                    "{name} {pct} %: chose M = {depth} ({}), M = {m} has {}",
+                    error(depth),
+                    error(*m)
+                );
+            }
+            *wins.entry(depth).or_default() += 1;
         }
     }
     assert!(
-        wins[0] > 0 && wins[1] > 0,
-        "deeper / shallower wins {wins:?}"
+        wins.get(&3).is_some_and(|w| *w > 0) && wins.get(&2).is_some_and(|w| *w > 0),
+        "wins by depth {wins:?}"
+    );
+    assert!(
+        descended > 0,
+        "no point compared a third depth; wins {wins:?}"
     );
 }
 
