@@ -64,7 +64,7 @@ pub struct CompressOptions {
     /// Wavelet family.
     pub family: Family,
     /// Decomposition depth M (`None`: [`default_levels`]; a byte target compares it with one
-    /// level less, see [`depth_candidates`]).
+    /// level less, and shallower ones at high rates, see [`depth_candidates`]).
     pub levels: Option<usize>,
     /// Zero margin in voxels around the volume (`None`: [`default_margin`]). Every margin renders
     /// exactly: below [`Geometry::separating_margin`] the renderer clips basis functions to the

@@ -50,7 +50,9 @@ pub struct CompressArgs {
     /// Decomposition depth M (default: min(6, max) for Haar, 3 for linear, 2 for cubic;
     /// max = ceil(log2(smallest dimension))). With --target-bytes and no depth given, that
     /// default and one level less are both tried and the one whose X-ray views of the volume
-    /// come out closer is kept (the shallower one usually wins at higher rates).
+    /// come out closer is kept (the shallower one usually wins at higher rates); one level
+    /// less again is tried while the shallowest wins and the file nearly affords its coarse
+    /// band (M = 1 at ~1 bit per voxel).
     #[arg(long)]
     pub levels: Option<usize>,
     /// Zero margin (voxels) around the volume before the periodic transform. Default: none when
