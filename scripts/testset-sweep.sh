@@ -21,8 +21,8 @@ while IFS=$'\t' read -r name dims dt ch _; do
       --log wavesplat_compressor=debug 2>"$O.log" >/dev/null
     tries=$(sed 's/\x1b\[[0-9;]*m//g' "$O.log" | grep 'refined set encoded whole' \
       | sed 's/.*k=\([0-9]*\) count=\([0-9]*\) bytes=\([0-9]*\).*/\1:\2:\3/' | tr '\n' ' ' || true)
-    depths=$(sed 's/\x1b\[[0-9;]*m//g' "$O.log" | grep 'depth candidate' \
-      | sed 's/.*levels=\([0-9]*\).*view_error=\([0-9.]\{1,6\}\).*/M\1:\2/' | tr '\n' ' ' || true)
+    depths=$(sed 's/\x1b\[[0-9;]*m//g' "$O.log" | grep 'depth candidate levels=' \
+      | sed 's/.*levels=\([0-9]*\).*view_error=\(-\{0,1\}[0-9.]\{1,6\}\).*/M\1:\2/' | tr '\n' ' ' || true)
     "$BIN" decompress "$O.wsp" -o "$O.f32" >/dev/null
     q=$("$PY" "$HERE/testset.py" qi "$D" "$name" "$O.f32" | tr '\n' ' ')
     echo "$TAG $name $pct target $bytes got $(stat -c %s "$O.wsp") cpu_wall $(cat "$O.time") | $q| $depths| $tries"

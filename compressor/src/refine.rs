@@ -19,7 +19,9 @@
 //! 3. prune: refitted values whose score fell below the selection threshold are dropped and the
 //!    rest refitted (repeated while anything drops, up to [`PRUNE_REFITS`] times, then a last
 //!    prune), so every sent value lies above its band's quantizer threshold exactly as with
-//!    plain thresholding.
+//!    plain thresholding;
+//! 4. on request, the extension: the best coefficients outside the set, valued one gradient
+//!    step from its fit ([`Refined::extension`]), for a byte target to top the set up with.
 //!
 //! The conjugate-gradient refit carries the full (unmasked) gradient Rᵀ(f − R c) along with its
 //! masked residual, so each iterative-hard-thresholding round reads its candidates from the refit
@@ -273,7 +275,8 @@ pub fn refine_extended(
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub(crate) enum Output {
     /// Only the first refit of the given set, to count its survivors (a byte target's
-    /// estimate of what a refinement of that size keeps): `kept` and `extension` stay empty.
+    /// estimate of what a refinement of that size keeps): `kept` and `extension` stay empty
+    /// (for Haar, which needs no refit, `kept` is the given set and every value survives).
     Pilot,
     /// The whole refinement, with up to `extension` coefficients that would join it next.
     Set { extension: usize },
