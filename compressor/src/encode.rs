@@ -633,19 +633,10 @@ impl Prepared {
     /// its fit, see [`Refined::extension`]), then by the rest of `ranked` that scores below
     /// them.
     fn refined(&self, ranked: &Ranked, k: usize, opts: &RefineOptions, extension: usize) -> Ranked {
-        let kept = ranked.top_values(k);
         let importance = &self.color.importance[..self.channels];
         let Refined {
             kept, extension, ..
-        } = refine_with(
-            &self.geometry,
-            &self.band_of,
-            &self.targets,
-            importance,
-            &kept,
-            opts,
-            Output::Set { extension },
-        );
+        } = self.refine_top(ranked, k, opts, Output::Set { extension });
         let count = kept.len();
         let scored = |r: &KeptValue| {
             let band = self.band_of[r.index as usize] as usize;
@@ -678,18 +669,27 @@ impl Prepared {
     /// How many of the top `k` of `ranked` reach the k-th score after one refit
     /// ([`Output::Pilot`]).
     fn pilot(&self, ranked: &Ranked, k: usize, opts: &RefineOptions) -> usize {
-        let kept = ranked.top_values(k);
-        let importance = &self.color.importance[..self.channels];
+        self.refine_top(ranked, k, opts, Output::Pilot)
+            .first_survivors
+    }
+
+    /// [`refine_with`] on the top `k` of `ranked`, against this volume's padded targets.
+    fn refine_top(
+        &self,
+        ranked: &Ranked,
+        k: usize,
+        opts: &RefineOptions,
+        output: Output,
+    ) -> Refined {
         refine_with(
             &self.geometry,
             &self.band_of,
             &self.targets,
-            importance,
-            &kept,
+            &self.color.importance[..self.channels],
+            &ranked.top_values(k),
             opts,
-            Output::Pilot,
+            output,
         )
-        .first_survivors
     }
 
     /// Encodes the top `k` coefficients of `ranked`. Q_E is left at NaN unless `q_e` is set
