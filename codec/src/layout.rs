@@ -118,6 +118,17 @@ impl Geometry {
         }
     }
 
+    /// Whether images of this geometry are clipped to the volume's box: some axis leaves less
+    /// room around the volume than [`Geometry::separating_margin`] on each side, so periodic
+    /// images of one basis function can reach the volume (never for Haar). Then nothing the
+    /// coefficients put outside the box is ever drawn; otherwise splats are drawn whole,
+    /// margin included.
+    pub fn clips_to_box(&self) -> bool {
+        let room = 2 * Geometry::separating_margin(self.family, self.levels);
+        self.family != Family::Haar
+            && (0..3).any(|a| self.padded[a] < self.dims[a].saturating_add(room))
+    }
+
     /// Builds the geometry, padding each axis to `roundup(dim + 2·margin, 2^levels)` with the
     /// volume centred (the extra voxel of an odd split goes after the volume).
     pub fn new(

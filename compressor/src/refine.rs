@@ -10,7 +10,9 @@
 //! thresholding gives 22.3 / 19.9 dB volume SNR, a refit of the values 22.6 / 22.1 dB, and four
 //! rounds of iterative hard thresholding with refits 22.9 / 23.3 dB.
 //!
-//! Algorithm (all on the padded voxel grid, per channel weighted by its colour importance):
+//! Algorithm (on the padded voxel grid, per channel weighted by its colour importance; where
+//! the renderer clips to the volume's box, [`Geometry::clips_to_box`], the residual counts only
+//! the samples inside it, since nothing outside is ever drawn):
 //! 1. refit: minimise ‖f − R c‖² over the values of the kept set S, where R is the synthesis to
 //!    voxel samples (inverse transform, then the cubic sampling FIR), by conjugate gradients on
 //!    the normal equations, Jacobi-preconditioned with the exact per-band diagonal of RᵀR;
@@ -112,6 +114,35 @@ struct Operator<'a> {
     inv_diag: Vec<f32>,
     /// Band index of every coefficient.
     band_of: &'a [u8],
+    /// The samples the residual counts: the volume's box on the padded grid when the renderer
+    /// clips to it (then nothing outside is ever drawn), else `None` (the whole grid).
+    seen: Option<SeenBox>,
+}
+
+/// The volume's box on the padded grid: row length, rows per plane, and per axis its start and
+/// end (exclusive).
+#[derive(Debug, Clone, Copy)]
+struct SeenBox {
+    padded: [usize; 3],
+    lo: [usize; 3],
+    hi: [usize; 3],
+}
+
+impl SeenBox {
+    /// Zeroes `r` outside the box.
+    fn restrict(&self, r: &mut [f32]) {
+        let [px, py, _] = self.padded;
+        let (lo, hi) = (self.lo, self.hi);
+        r.par_chunks_mut(px).enumerate().for_each(|(row, line)| {
+            let (y, z) = (row % py, row / py);
+            if y < lo[1] || y >= hi[1] || z < lo[2] || z >= hi[2] {
+                line.fill(0.0);
+            } else {
+                line[..lo[0]].fill(0.0);
+                line[hi[0]..].fill(0.0);
+            }
+        });
+    }
 }
 
 impl<'a> Operator<'a> {
@@ -133,11 +164,17 @@ impl<'a> Operator<'a> {
                 (1.0 / d) as f32
             })
             .collect();
+        let seen = geometry.clips_to_box().then(|| SeenBox {
+            padded: geometry.padded,
+            lo: geometry.origin,
+            hi: std::array::from_fn(|a| geometry.origin[a] + geometry.dims[a]),
+        });
         Operator {
             fast: FastTransform::new(geometry),
             applications: std::cell::Cell::new(0),
             inv_diag,
             band_of,
+            seen,
         }
     }
 
@@ -149,6 +186,9 @@ impl<'a> Operator<'a> {
         out.par_iter_mut()
             .zip(target)
             .for_each(|(r, f)| *r = f - *r);
+        if let Some(b) = &self.seen {
+            b.restrict(out);
+        }
         self.fast.synthesize_adjoint(out);
     }
 
@@ -199,6 +239,9 @@ impl<'a> Operator<'a> {
             work.copy_from_slice(p);
             self.applications.set(self.applications.get() + 2);
             self.fast.synthesize(work);
+            if let Some(b) = &self.seen {
+                b.restrict(work);
+            }
             self.fast.synthesize_adjoint(work);
             // p is zero outside the mask, so ⟨p, RᵀRp⟩ needs no masking.
             let pap = dot(p, work);

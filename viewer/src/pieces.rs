@@ -195,13 +195,10 @@ fn near_weight(cue: &ResolvedCue, near: [f64; 3]) -> f64 {
     (-cue.k * cue.dist(near).max(0.0)).exp()
 }
 
-/// Whether `geometry` needs clipping to its box: some axis leaves less room around the volume
-/// than [`Geometry::separating_margin`] on each side, so periodic images of one basis function can
-/// reach the volume.
+/// Whether `geometry` needs clipping to its box ([`Geometry::clips_to_box`]: the codec owns
+/// the rule, which the compressor's refinement follows too).
 pub fn clips_to_box(geometry: &Geometry) -> bool {
-    let room = 2 * Geometry::separating_margin(geometry.family, geometry.levels);
-    geometry.family != wavesplat_codec::family::Family::Haar
-        && (0..3).any(|a| geometry.padded[a] < geometry.dims[a].saturating_add(room))
+    geometry.clips_to_box()
 }
 
 /// How one coefficient is drawn after clipping.
