@@ -319,7 +319,7 @@ pub fn refine_extended(
 pub(crate) enum Output {
     /// Only the first refit of the given set, to count its survivors (a byte target's
     /// estimate of what a refinement of that size keeps): `kept` and `extension` stay empty
-    /// (for Haar, which needs no refit, `kept` is the given set and every value survives).
+    /// (for Haar, which needs no refit, every value survives).
     Pilot,
     /// The whole refinement, with up to `extension` coefficients that would join it next.
     Set { extension: usize },
@@ -369,6 +369,13 @@ pub(crate) fn refine_with(
     };
     if k == 0 || geometry.family == Family::Haar {
         // Haar is orthonormal up to per-band scale: thresholding is already optimal.
+        if output == Output::Pilot {
+            return Refined {
+                kept: Vec::new(),
+                extension: Vec::new(),
+                first_survivors: k,
+            };
+        }
         return Refined {
             kept: sorted(band_of, &score_of, kept.to_vec()),
             extension: Vec::new(),
@@ -523,15 +530,7 @@ pub(crate) fn refine_with(
     }
     if !gradient_current {
         for c in 0..channels {
-            op.refit(
-                &targets[c],
-                &mut values[c],
-                &masks[c],
-                0,
-                &mut grads[c],
-                &mut p,
-                &mut work,
-            );
+            op.gradient(&targets[c], &values[c], &mut grads[c]);
         }
     }
     // Outside the set, scoring below its smallest score (so the set followed by the extension
