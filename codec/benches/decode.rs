@@ -154,6 +154,7 @@ fn make_file(coder: CoderKind, g: &Geometry, kept: &[Scored]) -> (Header, Vec<Ve
         tables: None,
         total_energy: 1.0,
         kept: k as u64,
+        version: wavesplat_codec::format::VERSION,
     };
     let mut groups: std::collections::BTreeMap<(usize, usize), Vec<Coefficient>> =
         Default::default();

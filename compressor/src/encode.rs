@@ -778,6 +778,7 @@ impl Prepared {
             tables: None,
             total_energy: self.total_energy,
             kept: k as u64,
+            version: wavesplat_codec::format::VERSION,
         };
         // Group by (layer, tile), keeping significance order inside each group.
         let mut groups: std::collections::BTreeMap<(usize, usize), Vec<(Scored, Coefficient)>> =

@@ -1,10 +1,12 @@
 //! The volume's placement in patient space travels through the `.wsp` header: written by the
-//! encoder, validated on read, returned by the decoder; version 3 files (before placement)
-//! still read, older versions are refused with a message saying what to do.
+//! encoder, validated on read, returned by the decoder; version 3 files (before placement) and
+//! version 5 sigmap packets (before the magnitude contexts) still read, older versions are
+//! refused with a message saying what to do.
 
+use wavesplat_codec::format::packet::{decode_packet, encode_packets, Coefficient, PacketInput};
 use wavesplat_codec::format::{
     parse_file, read_header_section, write_file_version, FormatError, MAGIC,
-    OLDEST_READABLE_VERSION, VERSION,
+    MAGNITUDE_CONTEXTS_VERSION, OLDEST_READABLE_VERSION, VERSION,
 };
 use wavesplat_codec::volume::{Placement, Volume};
 use wavesplat_compressor::decode::decompress;
@@ -30,6 +32,35 @@ fn file(v: &Volume) -> Vec<u8> {
         ..CompressOptions::default()
     };
     compress(v, &opts, &|_, _| {}).unwrap().bytes
+}
+
+/// Every packet's decoded coefficients, in file order.
+fn decoded(bytes: &[u8]) -> Vec<(usize, usize, Vec<Coefficient>)> {
+    let f = parse_file(bytes).unwrap();
+    f.packets
+        .iter()
+        .map(|p| {
+            let d = decode_packet(&f.header, p).unwrap();
+            (d.tile, d.layer, d.coefficients)
+        })
+        .collect()
+}
+
+/// The file `bytes` written as format `version`, its packets coded again in that version's
+/// syntax from their decoded coefficients (which quantize back to the same values).
+fn rewritten(bytes: &[u8], version: u16) -> Vec<u8> {
+    let mut header = parse_file(bytes).unwrap().header;
+    header.version = version;
+    let inputs: Vec<PacketInput> = decoded(bytes)
+        .into_iter()
+        .map(|(tile, layer, coefficients)| PacketInput {
+            tile,
+            layer,
+            coefficients,
+        })
+        .collect();
+    let packets = encode_packets(&mut header, &inputs).packets;
+    write_file_version(&header, &packets, version).unwrap()
 }
 
 #[test]
@@ -116,17 +147,53 @@ fn version_3_files_still_read() {
     let parsed = parse_file(&bytes).unwrap();
     assert!(parsed.header.placement.is_none());
     let packets: Vec<Vec<u8>> = parsed.packets.iter().map(|p| p.to_vec()).collect();
-    let v3 = write_file_version(&parsed.header, &packets, 3).unwrap();
+    let v3 = rewritten(&bytes, 3);
     assert_eq!(u16::from_le_bytes([v3[4], v3[5]]), 3);
-    assert_ne!(v3, bytes);
     let back = parse_file(&v3).unwrap();
-    assert_eq!(back.header, parsed.header);
-    assert_eq!(back.packets, parsed.packets);
+    assert_eq!(back.header.version, 3);
+    assert_eq!(
+        back.header,
+        wavesplat_codec::format::Header {
+            version: 3,
+            ..parsed.header.clone()
+        }
+    );
+    assert_eq!(decoded(&v3), decoded(&bytes));
     assert_eq!(
         decompress(&v3).unwrap().channels(),
         decompress(&bytes).unwrap().channels()
     );
-    let placed_header = parse_file(&file(&placed())).unwrap().header;
+    let mut placed_header = parse_file(&file(&placed())).unwrap().header;
+    placed_header.version = 3;
     assert!(write_file_version(&placed_header, &packets, 3).is_err());
     assert!(write_file_version(&parsed.header, &packets, VERSION + 1).is_err());
+}
+
+/// Sigmap packets of version 5 (each magnitude coded in its band's context only) still decode,
+/// to the same coefficients as this version's packets of the same file, on an intensity head,
+/// a CT-like body and a colour volume; packets coded with the magnitude contexts cannot be
+/// written under a version whose readers do not know them.
+#[test]
+fn version_5_sigmap_packets_still_decode() {
+    for v in [
+        Phantom::SheppLogan.generate([20, 18, 16]),
+        Phantom::Ct.generate([24, 20, 12]),
+        Phantom::RgbHead.generate([16, 16, 16]),
+    ] {
+        let bytes = file(&v);
+        let parsed = parse_file(&bytes).unwrap();
+        assert_eq!(parsed.header.version, VERSION);
+        const { assert!(VERSION >= MAGNITUDE_CONTEXTS_VERSION) };
+        let v5 = rewritten(&bytes, 5);
+        assert_eq!(parse_file(&v5).unwrap().header.version, 5);
+        assert_ne!(parse_file(&v5).unwrap().packets, parsed.packets);
+        assert_eq!(decoded(&v5), decoded(&bytes));
+        assert_eq!(
+            decompress(&v5).unwrap().channels(),
+            decompress(&bytes).unwrap().channels()
+        );
+        let packets: Vec<Vec<u8>> = parsed.packets.iter().map(|p| p.to_vec()).collect();
+        let e = write_file_version(&parsed.header, &packets, 5).unwrap_err();
+        assert!(e.to_string().contains("magnitude contexts"), "{e}");
+    }
 }

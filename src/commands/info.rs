@@ -141,7 +141,12 @@ pub fn print_header(h: &Header) {
         g.family.order(),
         g.levels
     );
-    outln!("coder       {}, P = {} bits", h.coder.name(), h.bits);
+    outln!(
+        "coder       {}, P = {} bits (format version {})",
+        h.coder.name(),
+        h.bits,
+        h.version
+    );
     outln!("values      {} .. {}", h.value_range[0], h.value_range[1]);
     outln!(
         "tiles       {} of {} voxels ({:?}), {} layers",

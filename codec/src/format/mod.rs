@@ -36,10 +36,15 @@ use thiserror::Error;
 /// File magic.
 pub const MAGIC: &[u8; 4] = b"WSPL";
 /// Current format version (4: the header carries the volume's placement in patient space; 5:
-/// an intensity volume's offset, the value subtracted before the transform).
-pub const VERSION: u16 = 5;
+/// an intensity volume's offset, the value subtracted before the transform; 6: the sigmap
+/// coder codes each magnitude in the context of its lower neighbours' magnitudes).
+pub const VERSION: u16 = 6;
+
+/// First version whose sigmap packets use the neighbour magnitude contexts ([`sigmap`]).
+pub const MAGNITUDE_CONTEXTS_VERSION: u16 = 6;
 /// Oldest version this build reads: version 3 is version 4 without the placement (read as
-/// `None`), version 4 is version 5 without an intensity offset (read as 0), so archives and
+/// `None`), version 4 is version 5 without an intensity offset (read as 0), version 5 is
+/// version 6 with each sigmap magnitude coded in its band's context only, so archives and
 /// caches written before stay readable.
 pub const OLDEST_READABLE_VERSION: u16 = 3;
 /// Largest accepted header (bytes).
@@ -327,6 +332,10 @@ pub struct Header {
     pub total_energy: f64,
     /// Number of coefficients kept in the file.
     pub kept: u64,
+    /// The format version the packets are coded in: [`VERSION`] for what this build writes,
+    /// the file's for what it reads (the sigmap coder's syntax depends on it, see
+    /// [`MAGNITUDE_CONTEXTS_VERSION`]).
+    pub version: u16,
 }
 
 impl Header {
@@ -678,6 +687,7 @@ impl Header {
             tables,
             total_energy,
             kept,
+            version,
         })
     }
 }
@@ -789,6 +799,18 @@ pub fn write_file_version(
         return Err(invalid(
             "header",
             format!("format version {version} cannot hold the volume's placement"),
+        ));
+    }
+    if header.coder == CoderKind::Sigmap
+        && (version >= MAGNITUDE_CONTEXTS_VERSION) != (header.version >= MAGNITUDE_CONTEXTS_VERSION)
+    {
+        return Err(invalid(
+            "header",
+            format!(
+                "sigmap packets coded for format version {} do not decode as version {version} \
+                 (the magnitude contexts differ): encode them with that version",
+                header.version
+            ),
         ));
     }
     if version < 5 && header.channels == 1 && header.color.mean[0] != 0.0 {
