@@ -513,6 +513,22 @@ fn prepare(
 /// softens this; `--layer-growth 4` restores the fine progression where it matters more.
 pub const LAYER_GROWTH: f64 = 16.0;
 
+/// Expected file size from which [`TileChoice::Auto`] splits the coefficients into two quality
+/// layers (one below it). A layer buys a coarse preview of the whole volume before the rest of
+/// the file arrives, and costs rate: each layer's packets code their own significance maps
+/// (the partition between layers is paid in positions) and learn their models afresh, which
+/// the tighter magnitude bounds per layer do not pay back. At equal bytes, one layer against
+/// three (growth 16) gained Q_I on every volume of the test set at every size from 0.07 % to
+/// 5.85 %: +0.3 to +1.5 dB below 10 KB, +0.2 to +0.7 dB at 10–220 KB, +0.05 to +0.5 dB at
+/// 40 KB–1 MB; two layers gained about half as much (BENCHMARKS.md, "Quality layers cost
+/// rate"). Below this size the whole file crosses a 100 Mbit/s link in about 40 ms, a few
+/// frames, so a preview layer is not worth that much; the view-dependent order of a tiled
+/// file's packets still gives a spatial progression.
+const AUTO_TWO_LAYERS_BYTES: u64 = 512 << 10;
+
+/// Expected file size from which [`TileChoice::Auto`] uses three quality layers.
+const AUTO_THREE_LAYERS_BYTES: u64 = 4 << 20;
+
 /// Bytes a tile should hold on average under [`TileChoice::Auto`]: a packet pays for the top
 /// of its octrees and for its adaptive models learning from scratch, ~2 % of the file at this
 /// size (tile 64 against 128 at the 5.85 % point above) and ~8 % at a quarter of it (tile 32).
@@ -536,10 +552,9 @@ fn choose_tiling(
             (t.min(single), layers.unwrap_or(3))
         }
         TileChoice::Auto => {
-            // One layer for tiny files, a preview layer from 2 KB, three layers from 8 KB.
             let nl = layers.unwrap_or(match expected_bytes {
-                0..2048 => 1,
-                2048..8192 => 2,
+                0..AUTO_TWO_LAYERS_BYTES => 1,
+                AUTO_TWO_LAYERS_BYTES..AUTO_THREE_LAYERS_BYTES => 2,
                 _ => 3,
             });
             let tiles_budget = (expected_bytes / AUTO_TILE_BYTES).max(1) as usize;
@@ -1582,6 +1597,27 @@ fn fit_bytes(
 mod tests {
     use super::*;
     use crate::phantom::Phantom;
+
+    /// Automatic tiling keeps files below [`AUTO_TWO_LAYERS_BYTES`] to one quality layer, then
+    /// two, then three; an explicit layer count always wins, and explicit tiles keep three.
+    #[test]
+    fn automatic_layers_follow_the_expected_size() {
+        let g = Geometry::new([200, 230, 190], Family::Linear, 3, 0).unwrap();
+        let layers = |choice, layers, bytes| choose_tiling(&g, choice, layers, bytes).1;
+        for bytes in [0, 900, 9_000, 100_000, AUTO_TWO_LAYERS_BYTES - 1] {
+            assert_eq!(layers(TileChoice::Auto, None, bytes), 1, "{bytes}");
+        }
+        assert_eq!(layers(TileChoice::Auto, None, AUTO_TWO_LAYERS_BYTES), 2);
+        assert_eq!(
+            layers(TileChoice::Auto, None, AUTO_THREE_LAYERS_BYTES - 1),
+            2
+        );
+        assert_eq!(layers(TileChoice::Auto, None, AUTO_THREE_LAYERS_BYTES), 3);
+        assert_eq!(layers(TileChoice::Auto, None, u64::MAX), 3);
+        assert_eq!(layers(TileChoice::Auto, Some(4), 900), 4);
+        assert_eq!(layers(TileChoice::Size(64), None, 900), 3);
+        assert_eq!(layers(TileChoice::Single, None, 1 << 30), 1);
+    }
 
     /// Volumes whose faces are flat (zero, a constant, an offset head, the RGB phantom's black
     /// background) get the separating margin; slabs cut through a head or a body get none; an

@@ -316,6 +316,60 @@ fn layers_grow_by_the_layer_growth_and_bad_growth_is_rejected() {
     }
 }
 
+/// Quality layers cost rate: at the same coefficients, a file split into layers is larger than
+/// one that is not (each layer's packets code their own significance maps and learn their
+/// models afresh), on heads, a CT-like body cut by its faces, a thin slab and colour; this is
+/// why the automatic layering keeps small files to one layer. The automatic choice gives a
+/// small file one layer.
+#[test]
+fn quality_layers_cost_bytes_at_the_same_coefficients() {
+    let head = Phantom::SheppLogan.generate([40, 40, 40]);
+    let slab = Volume::new(
+        [40, 40, 6],
+        [1.0; 3],
+        vec![head.channel(0)[40 * 40 * 17..40 * 40 * 23].to_vec()],
+    )
+    .unwrap();
+    let volumes = [
+        ("shepp-logan", head),
+        ("ct", Phantom::Ct.generate([48, 40, 24])),
+        ("slab", slab),
+        ("spheres", Phantom::Spheres.generate([36, 28, 20])),
+        ("rgb", Phantom::RgbHead.generate([28, 28, 28])),
+    ];
+    for (name, vol) in &volumes {
+        let sized = |layers: Option<usize>, fraction: f64| {
+            let o = CompressOptions {
+                target: Target::Fraction(fraction),
+                layers,
+                refine: None,
+                ..Default::default()
+            };
+            run(vol, &o)
+        };
+        for fraction in [0.02, 0.1] {
+            let one = sized(Some(1), fraction);
+            let three = sized(Some(3), fraction);
+            assert_eq!(one.stats.kept, three.stats.kept, "{name}");
+            assert!(
+                one.stats.bytes < three.stats.bytes,
+                "{name} {fraction}: one layer {} B, three layers {} B",
+                one.stats.bytes,
+                three.stats.bytes
+            );
+        }
+        let auto = sized(None, 0.1);
+        let file = parse_file(&auto.bytes).unwrap();
+        assert!(auto.stats.bytes < 64 << 10);
+        assert!(
+            file.packets
+                .iter()
+                .all(|p| decode_packet(&file.header, p).unwrap().layer == 0),
+            "{name}"
+        );
+    }
+}
+
 #[test]
 fn degenerate_and_extreme_volumes() {
     let cases: Vec<(&str, Volume)> = vec![
