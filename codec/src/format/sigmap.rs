@@ -227,7 +227,8 @@ impl CodedCells {
                 plane[i] = (plane[i] & !(1 << bit)) | (((class >> k) & 1) as u64) << bit;
             }
         } else {
-            self.sparse.insert(cell, (1 + negative as u8) | (class << 2));
+            self.sparse
+                .insert(cell, (1 + negative as u8) | (class << 2));
         }
     }
 
