@@ -86,7 +86,7 @@ impl Models {
 }
 
 /// Value contexts per band: the summed magnitude classes of the three lower neighbours
-/// ([`CodedCells::value_context`]).
+/// ([`CodedCells::leaf_contexts`]).
 const VALUE_CONTEXTS: usize = 8;
 
 /// The magnitude class of a quantized magnitude q, as its neighbours' value contexts read it:
