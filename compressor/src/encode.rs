@@ -520,9 +520,10 @@ pub const LAYER_GROWTH: f64 = 16.0;
 /// the tighter magnitude bounds per layer do not pay back. At equal bytes, one layer against
 /// three (growth 16) gained Q_I on every volume of the test set at every size from 0.07 % to
 /// 5.85 %: +0.3 to +2.6 dB below 10 KB, +0.02 to +0.7 dB at 10–220 KB, +0.05 to +0.5 dB at
-/// 0.35–1 MB; two layers gained less (BENCHMARKS.md, "Quality layers cost rate"). Below this size the whole file crosses a 100 Mbit/s link in about 40 ms, a few
-/// frames, so a preview layer is not worth that much; the view-dependent order of a tiled
-/// file's packets still gives a spatial progression.
+/// 0.35–1 MB; two layers gained less (BENCHMARKS.md, "Quality layers cost rate"). Below this
+/// size the whole file crosses a 100 Mbit/s link in about 40 ms, a few frames, so a preview
+/// layer is not worth that much; the view-dependent order of a tiled file's packets still
+/// gives a spatial progression.
 const AUTO_TWO_LAYERS_BYTES: u64 = 512 << 10;
 
 /// Expected file size from which [`TileChoice::Auto`] uses three quality layers.

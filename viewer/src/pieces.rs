@@ -195,12 +195,6 @@ fn near_weight(cue: &ResolvedCue, near: [f64; 3]) -> f64 {
     (-cue.k * cue.dist(near).max(0.0)).exp()
 }
 
-/// Whether `geometry` needs clipping to its box ([`Geometry::clips_to_box`]: the codec owns
-/// the rule, which the compressor's refinement follows too).
-pub fn clips_to_box(geometry: &Geometry) -> bool {
-    geometry.clips_to_box()
-}
-
 /// How one coefficient is drawn after clipping.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum Clipped {

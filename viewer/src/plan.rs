@@ -298,8 +298,7 @@ impl Planner {
             cue,
             channels,
             expansions: cue.map(|_| Expansions::new(geometry)),
-            clip: (self.options.clip && pieces::clips_to_box(geometry))
-                .then(|| BoxClip::new(geometry)),
+            clip: (self.options.clip && geometry.clips_to_box()).then(|| BoxClip::new(geometry)),
             factor_tables: vec![HashMap::new(); sets.len()],
             sets,
             atlas,

@@ -51,7 +51,7 @@ impl PaddedVolume {
         channels: usize,
     ) -> Result<PaddedVolume, RenderError> {
         let g = geometry;
-        if crate::pieces::clips_to_box(g) {
+        if g.clips_to_box() {
             // The periodic reconstruction, restricted to the box (what clipped splats draw).
             let mut data = vec![vec![0.0f64; g.coefficient_count()]; channels];
             for c in coefficients {
@@ -114,7 +114,7 @@ impl PaddedVolume {
                 d
             })
             .collect();
-        if crate::pieces::clips_to_box(geometry) {
+        if geometry.clips_to_box() {
             return boxed(&channels, geometry);
         }
         PaddedVolume {

@@ -12,7 +12,6 @@ use wavesplat_codec::format::packet::Coefficient;
 use wavesplat_codec::layout::Geometry;
 use wavesplat_codec::metrics::snr_db;
 use wavesplat_codec::view::{Cue, CueDirection, ViewSpec};
-use wavesplat_viewer::pieces::clips_to_box;
 use wavesplat_viewer::{
     render_reference, render_reference_camera, PaddedVolume, RenderOptions, Renderer, View,
 };
@@ -47,7 +46,7 @@ fn body(dims: [usize; 3], offset: f32) -> Vec<f32> {
 fn tight(dims: [usize; 3], family: Family, levels: usize) -> (Geometry, Vec<f32>) {
     let g = Geometry::new(dims, family, levels, 0).unwrap();
     assert!(
-        clips_to_box(&g),
+        g.clips_to_box(),
         "{dims:?} {family} M={levels} needs clipping"
     );
     (g, body(dims, 3.0))
