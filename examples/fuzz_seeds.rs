@@ -27,6 +27,7 @@ fn main() {
     let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("fuzz/corpus");
     for (coder, name) in [
         (CoderKind::Sigmap, "sigmap"),
+        (CoderKind::Fast, "fast"),
         (CoderKind::Range, "range"),
         (CoderKind::Huffman, "huffman"),
     ] {

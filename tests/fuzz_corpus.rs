@@ -63,7 +63,7 @@ fn every_kept_input_of_every_target_is_handled() {
             total += 1;
         }
     }
-    for coder in ["sigmap", "range", "huffman"] {
+    for coder in ["sigmap", "fast", "range", "huffman"] {
         let bytes = std::fs::read(
             Path::new(env!("CARGO_MANIFEST_DIR")).join(format!("fuzz/corpus/headers/{coder}.wsp")),
         )
@@ -80,7 +80,7 @@ fn every_kept_input_of_every_target_is_handled() {
 #[test]
 fn the_packet_seeds_are_valid_packets_of_their_headers() {
     // So the fuzzer starts from inputs that reach the decoders' depths.
-    for coder in ["sigmap", "range", "huffman"] {
+    for coder in ["sigmap", "fast", "range", "huffman"] {
         let bytes = std::fs::read(
             Path::new(env!("CARGO_MANIFEST_DIR")).join(format!("fuzz/corpus/headers/{coder}.wsp")),
         )

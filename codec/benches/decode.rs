@@ -125,7 +125,7 @@ fn make_file(coder: CoderKind, g: &Geometry, kept: &[Scored]) -> (Header, Vec<Ve
         .enumerate()
         .map(|(b, m)| {
             (!m.is_empty()).then(|| {
-                let delta = if coder == CoderKind::Sigmap {
+                let delta = if coder.quantizes_by_threshold() {
                     let t = (score_threshold / g.basis_norm2(g.bands()[b])).sqrt();
                     t.max(m[0] * 2f64.powi(-30))
                 } else {
@@ -152,6 +152,7 @@ fn make_file(coder: CoderKind, g: &Geometry, kept: &[Scored]) -> (Header, Vec<Ve
         score_threshold,
         substreams,
         tables: None,
+        fast_tables: None,
         total_energy: 1.0,
         kept: k as u64,
         version: wavesplat_codec::format::VERSION,
@@ -172,7 +173,7 @@ fn make_file(coder: CoderKind, g: &Geometry, kept: &[Scored]) -> (Header, Vec<Ve
     let inputs: Vec<PacketInput> = groups
         .into_iter()
         .map(|((layer, tile), mut coefficients)| {
-            if coder != CoderKind::Sigmap {
+            if !coder.quantizes_by_threshold() {
                 coefficients.sort_by_key(|c| morton(c.pos.map(|p| p << c.band.level)));
             }
             PacketInput {
@@ -226,20 +227,42 @@ fn bench(c: &mut Criterion) {
             }
         })
         .collect();
-    for coder in [CoderKind::Sigmap, CoderKind::Range, CoderKind::Huffman] {
+    for coder in [
+        CoderKind::Sigmap,
+        CoderKind::Fast,
+        CoderKind::Range,
+        CoderKind::Huffman,
+    ] {
         let (header, packets) = make_file(coder, &g, &kept);
         let bytes: usize = packets.iter().map(Vec::len).sum();
-        let decoded: usize = packets
-            .iter()
-            .map(|p| decode_packet(&header, p).unwrap().coefficients.len())
-            .sum();
+        let mut decoded = 0;
+        let mut spent = [0.0f64; 4];
+        for p in &packets {
+            let d = decode_packet(&header, p).unwrap();
+            decoded += d.coefficients.len();
+            let b = d.breakdown;
+            for (s, v) in
+                spent
+                    .iter_mut()
+                    .zip([b.tag_bits, b.position_bits, b.sign_bits, b.value_bits])
+            {
+                *s += v;
+            }
+        }
         assert_eq!(decoded, kept.len());
+        let per = spent.map(|s| s / decoded as f64);
         eprintln!(
-            "{}: {} coefficients in {} packets, {} bytes",
+            "{}: {} coefficients in {} packets, {} bytes (header {} bytes); bits per \
+             coefficient: tags {:.3}, positions {:.3}, signs {:.3}, values {:.3}",
             coder.name(),
             decoded,
             packets.len(),
-            bytes
+            bytes,
+            wavesplat_codec::format::write_header_section(&header).len(),
+            per[0],
+            per[1],
+            per[2],
+            per[3]
         );
         let mut group = c.benchmark_group("decode");
         group.throughput(Throughput::Elements(decoded as u64));

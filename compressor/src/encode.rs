@@ -756,7 +756,7 @@ impl Prepared {
             .enumerate()
             .map(|(sub, m)| {
                 (!m.is_empty()).then(|| {
-                    let delta = if opts.coder == CoderKind::Sigmap {
+                    let delta = if opts.coder.quantizes_by_threshold() {
                         let band = g.bands()[sub % nb];
                         let weight = g.basis_norm2(band) * self.color.importance[sub / nb];
                         let t = if weight > 0.0 {
@@ -791,6 +791,7 @@ impl Prepared {
             score_threshold,
             substreams,
             tables: None,
+            fast_tables: None,
             total_energy: self.total_energy,
             kept: k as u64,
             version: wavesplat_codec::format::VERSION,
@@ -828,7 +829,9 @@ impl Prepared {
                     .collect();
                 // The sigmap coder codes positions as octree maps, so the order inside a
                 // packet carries no cost and clustering is skipped.
-                let clustering = opts.clustering.filter(|_| opts.coder != CoderKind::Sigmap);
+                let clustering = opts
+                    .clustering
+                    .filter(|_| !opts.coder.quantizes_by_threshold());
                 let order = cluster_order(&items, clustering);
                 PacketInput {
                     tile,
@@ -1039,7 +1042,7 @@ pub fn compress(
 /// File size guess per kept coefficient for the automatic tiling: measured bytes per kept
 /// coefficient are ~0.7–0.9 for the sigmap coder and 2–3 for the paper's syntaxes.
 fn bytes_per_coefficient_guess(coder: CoderKind) -> u64 {
-    if coder == CoderKind::Sigmap {
+    if coder.quantizes_by_threshold() {
         1
     } else {
         3
@@ -1227,7 +1230,7 @@ fn oracle_to_bytes(
     let n = prepared.nonzero as usize;
     // Candidates: 4 per target byte for the sigmap coder (it codes ~1.2–1.5 coefficients per
     // byte on real data), 1 per byte for the paper's syntaxes.
-    let per_byte = if opts.coder == CoderKind::Sigmap {
+    let per_byte = if opts.coder.quantizes_by_threshold() {
         4
     } else {
         1

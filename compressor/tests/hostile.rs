@@ -166,3 +166,56 @@ fn a_caller_budget_refuses_a_valid_file_before_decoding_it() {
         Err(FormatError::OverBudget { .. })
     ));
 }
+
+#[test]
+fn fast_coder_packets_of_garbage_or_flipped_bits_are_refused_or_decode_whole() {
+    let vol = Phantom::SheppLogan.generate([24, 20, 16]);
+    let file = compress(
+        &vol,
+        &CompressOptions {
+            coder: wavesplat_codec::format::CoderKind::Fast,
+            target: Target::Fraction(0.2),
+            tile: TileChoice::Size(16),
+            layers: Some(2),
+            refine: None,
+            ..Default::default()
+        },
+        &|_, _| {},
+    )
+    .unwrap()
+    .bytes;
+    let parsed = parse_file(&file).unwrap();
+    let h = &parsed.header;
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(21);
+    let mut refused = 0;
+    for packet in &parsed.packets {
+        let declared = declared_count(h, packet).unwrap() as usize;
+        for _ in 0..60 {
+            // Flip one bit of the body and fix the checksum, so the decoder sees it.
+            let mut p = packet.to_vec();
+            let body = p.len() - 4;
+            let bit = rng.gen_range(0..8 * body);
+            p[bit / 8] ^= 1 << (bit % 8);
+            let crc = crc32fast::hash(&p[..body]).to_le_bytes();
+            p[body..].copy_from_slice(&crc);
+            match decode_packet(h, &p) {
+                Ok(d) => assert_eq!(
+                    d.coefficients.len(),
+                    declared_count(h, &p).unwrap() as usize
+                ),
+                Err(_) => refused += 1,
+            }
+        }
+        assert!(declared > 0);
+    }
+    assert!(refused > 0, "no flipped packet was refused");
+    // Garbage in one 1024³ tile: the count is bounded by 8 per payload byte.
+    let big = grown(h, [1024, 1024, 1024], 1024);
+    for len in [1usize, 7, 100, 64 << 10] {
+        for seed in 0..3u8 {
+            let payload: Vec<u8> = (0..len).map(|_| rng.gen::<u8>() ^ seed).collect();
+            let p = forged_packet(&big, 8 * (len as u64 + 1), &payload);
+            assert!(decode_packet(&big, &p).is_err(), "{len} bytes decoded");
+        }
+    }
+}

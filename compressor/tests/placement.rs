@@ -197,3 +197,29 @@ fn version_5_sigmap_packets_still_decode() {
         assert!(e.to_string().contains("magnitude contexts"), "{e}");
     }
 }
+
+#[test]
+fn fast_coder_files_are_not_written_in_versions_before_it() {
+    let v = Phantom::SheppLogan.generate([20, 18, 16]);
+    let bytes = compress(
+        &v,
+        &CompressOptions {
+            coder: wavesplat_codec::format::CoderKind::Fast,
+            target: Target::Fraction(0.1),
+            ..Default::default()
+        },
+        &|_, _| {},
+    )
+    .unwrap()
+    .bytes;
+    let parsed = parse_file(&bytes).unwrap();
+    assert_eq!(
+        parsed.header.coder,
+        wavesplat_codec::format::CoderKind::Fast
+    );
+    let packets: Vec<Vec<u8>> = parsed.packets.iter().map(|p| p.to_vec()).collect();
+    let e = write_file_version(&parsed.header, &packets, VERSION - 1).unwrap_err();
+    assert!(e.to_string().contains("no fast coder"), "{e}");
+    let same = write_file_version(&parsed.header, &packets, VERSION).unwrap();
+    assert_eq!(parse_file(&same).unwrap().header, parsed.header);
+}

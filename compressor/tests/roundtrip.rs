@@ -41,7 +41,12 @@ fn all_coefficients_at_p16_reproduce_the_volume() {
     // per substream) and f32 storage. Stated tolerance: relative L2 error < 1e-3.
     let vol = Phantom::SheppLogan.generate([21, 24, 19]);
     for family in Family::ALL {
-        for coder in [CoderKind::Huffman, CoderKind::Range, CoderKind::Sigmap] {
+        for coder in [
+            CoderKind::Huffman,
+            CoderKind::Range,
+            CoderKind::Sigmap,
+            CoderKind::Fast,
+        ] {
             let o = CompressOptions {
                 family,
                 levels: Some(3),
@@ -66,7 +71,12 @@ fn all_coefficients_at_p16_reproduce_the_volume() {
 #[test]
 fn decoder_matches_the_encoder_reconstruction_bit_for_bit() {
     let vol = Phantom::Spheres.generate([20, 20, 20]);
-    for coder in [CoderKind::Huffman, CoderKind::Range, CoderKind::Sigmap] {
+    for coder in [
+        CoderKind::Huffman,
+        CoderKind::Range,
+        CoderKind::Sigmap,
+        CoderKind::Fast,
+    ] {
         for bits in [1u8, 3, 8] {
             let o = CompressOptions {
                 bits,
@@ -163,7 +173,12 @@ fn q_v_and_q_e_match_independent_computations() {
 #[test]
 fn byte_targets_are_met_within_two_percent() {
     let vol = Phantom::SheppLogan.generate([40, 40, 40]);
-    for coder in [CoderKind::Huffman, CoderKind::Range, CoderKind::Sigmap] {
+    for coder in [
+        CoderKind::Huffman,
+        CoderKind::Range,
+        CoderKind::Sigmap,
+        CoderKind::Fast,
+    ] {
         for target in [1500u64, 6000, 25_000] {
             let o = CompressOptions {
                 coder,

@@ -169,10 +169,13 @@ pub fn parse_colorspace(name: &str) -> Result<ColorSpace, OrchestratorError> {
         .ok_or_else(|| invalid(format!("colour space {name:?}; allowed rgb, yiq, pca")))
 }
 
-/// Parses a coder name (`sigmap`, `range`, `huffman`, case-insensitive).
+/// Parses a coder name (`sigmap`, `fast`, `range`, `huffman`, case-insensitive).
 pub fn parse_coder(name: &str) -> Result<CoderKind, OrchestratorError> {
-    CoderKind::from_name(&name.trim().to_ascii_lowercase())
-        .ok_or_else(|| invalid(format!("coder {name:?}; allowed sigmap, range, huffman")))
+    CoderKind::from_name(&name.trim().to_ascii_lowercase()).ok_or_else(|| {
+        invalid(format!(
+            "coder {name:?}; allowed sigmap, fast, range, huffman"
+        ))
+    })
 }
 
 /// Serialises the named option enums by their canonical names (the stored form of a job, and

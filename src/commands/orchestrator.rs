@@ -106,7 +106,7 @@ pub struct JobOptionArgs {
     /// Quantizer step of the sigmap coder.
     #[arg(long, default_value_t = 1.0)]
     pub step: f64,
-    /// Entropy coder: sigmap, range, huffman.
+    /// Entropy coder: sigmap, fast, range, huffman (see `compress --help`).
     #[arg(long, default_value = "sigmap")]
     pub coder: String,
     /// What to keep.

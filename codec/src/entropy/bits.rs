@@ -176,6 +176,13 @@ impl<'a> BitReader<'a> {
         }
         let byte = (self.pos / 8) as usize;
         let offset = (self.pos % 8) as u32;
+        // Fast path: the window lies in one 8-byte load.
+        if n + offset <= 64 {
+            if let Some(chunk) = self.data.get(byte..byte + 8) {
+                let word = u64::from_be_bytes(chunk.try_into().expect("8 bytes")) << offset;
+                return word >> (64 - n);
+            }
+        }
         let mut buf = [0u8; 16];
         match self.data.get(byte..byte + 16) {
             Some(chunk) => buf.copy_from_slice(chunk),
@@ -221,6 +228,112 @@ impl<'a> BitReader<'a> {
     pub fn align_to_byte(&mut self) {
         let aligned = self.pos.div_ceil(8) * 8;
         self.pos = aligned.min(self.data.len() as u64 * 8).max(self.pos);
+    }
+}
+
+/// Reads an MSB-first bit stream through a 64-bit buffer refilled eight bytes at a time, for
+/// hot decoding loops: no bounds check per read, at the price of the caller refilling before
+/// it peeks. Bits past the end read as zero; [`WordReader::overrun`] tells whether any were
+/// consumed, which decoders check to stop on truncated or hostile input.
+#[derive(Debug, Clone)]
+pub struct WordReader<'a> {
+    data: &'a [u8],
+    /// Next byte to load (may pass the end: those bytes read as zero).
+    next: usize,
+    /// Buffered bits, the next one most significant; the bits after the valid ones are zero
+    /// or the stream's own next bits.
+    buf: u64,
+    /// Valid bits in `buf`.
+    bits: u32,
+}
+
+impl<'a> WordReader<'a> {
+    /// Most bits [`WordReader::peek`] holds after a refill.
+    pub const PEEK_BITS: u32 = 57;
+
+    /// A reader positioned at the first bit of `data`.
+    pub fn new(data: &'a [u8]) -> Self {
+        let mut r = WordReader {
+            data,
+            next: 0,
+            buf: 0,
+            bits: 0,
+        };
+        r.refill();
+        r
+    }
+
+    /// Tops the buffer up to at least [`WordReader::PEEK_BITS`] valid bits.
+    #[inline(always)]
+    pub fn refill(&mut self) {
+        if self.bits >= Self::PEEK_BITS {
+            return;
+        }
+        if let Some(chunk) = self.data.get(self.next..self.next + 8) {
+            let word = u64::from_be_bytes(chunk.try_into().expect("8 bytes"));
+            // The loaded bits past the whole bytes taken are the stream's own next bits, so
+            // OR-ing them in again on the next refill changes nothing.
+            self.buf |= word >> self.bits;
+            let bytes = (64 - self.bits) / 8;
+            self.next += bytes as usize;
+            self.bits += 8 * bytes;
+        } else {
+            self.refill_at_end();
+        }
+    }
+
+    #[cold]
+    fn refill_at_end(&mut self) {
+        while self.bits <= 56 {
+            let byte = self.data.get(self.next).copied().unwrap_or(0);
+            self.buf |= (byte as u64) << (56 - self.bits);
+            self.next += 1;
+            self.bits += 8;
+        }
+    }
+
+    /// The buffered bits, the next one most significant (valid: at least
+    /// [`WordReader::PEEK_BITS`] after a refill).
+    #[inline(always)]
+    pub fn peek(&self) -> u64 {
+        self.buf
+    }
+
+    /// Skips `n` ≤ [`WordReader::PEEK_BITS`] bits of a refilled buffer.
+    #[inline(always)]
+    pub fn consume(&mut self, n: u32) {
+        debug_assert!(n <= self.bits && n < 64);
+        self.buf <<= n;
+        self.bits -= n;
+    }
+
+    /// Reads `n` ≤ [`WordReader::PEEK_BITS`] bits as an unsigned integer, first bit most
+    /// significant.
+    #[inline(always)]
+    pub fn get_bits(&mut self, n: u32) -> u64 {
+        debug_assert!(n <= Self::PEEK_BITS);
+        if n == 0 {
+            return 0;
+        }
+        self.refill();
+        let v = self.buf >> (64 - n);
+        self.consume(n);
+        v
+    }
+
+    /// Number of bits consumed so far (past the end too).
+    pub fn position(&self) -> u64 {
+        self.next as u64 * 8 - self.bits as u64
+    }
+
+    /// Whether bits past the end of the data were consumed.
+    pub fn overrun(&self) -> bool {
+        self.position() > self.data.len() as u64 * 8
+    }
+
+    /// Bits left before the end of the data (0 once past it).
+    pub fn bits_remaining(&self) -> u64 {
+        (self.data.len() as u64 * 8).saturating_sub(self.position())
     }
 }
 
@@ -285,6 +398,27 @@ mod tests {
     }
 
     proptest! {
+        #[test]
+        fn word_reader_reads_what_the_bit_reader_reads(
+            bytes in proptest::collection::vec(any::<u8>(), 0..40),
+            widths in proptest::collection::vec(0u32..=57, 0..60)
+        ) {
+            let mut slow = BitReader::new(&bytes);
+            let mut fast = WordReader::new(&bytes);
+            for n in widths {
+                // Both read zeros past the end.
+                let expected = slow.peek_bits(n);
+                prop_assert_eq!(fast.get_bits(n), expected);
+                if slow.consume(n).is_err() {
+                    prop_assert!(fast.overrun());
+                    break;
+                }
+                prop_assert!(!fast.overrun());
+                prop_assert_eq!(fast.position(), slow.position());
+                prop_assert_eq!(fast.bits_remaining(), slow.bits_remaining());
+            }
+        }
+
         #[test]
         fn writer_reader_and_counter_agree(
             fields in proptest::collection::vec((any::<u64>(), 0u32..=64), 0..64)

@@ -428,6 +428,38 @@ impl HuffmanDecoder {
         Ok((entry >> 5) as usize)
     }
 
+    /// Decodes the symbol at the top of `window` (the next input bits, first bit most
+    /// significant, at least [`HuffmanDecoder::max_length`] of them valid): its symbol and code
+    /// length, or `None` if the bits start no codeword. For readers that keep their own bit
+    /// buffer.
+    #[inline]
+    pub fn decode_window(&self, window: u64) -> Option<(usize, u32)> {
+        let entry = self.table[(window >> (64 - self.table_bits)) as usize];
+        let len = entry & 31;
+        if len != 0 {
+            return Some(((entry >> 5) as usize, len));
+        }
+        self.decode_window_long(window)
+    }
+
+    /// Slow path of [`HuffmanDecoder::decode_window`].
+    fn decode_window_long(&self, window: u64) -> Option<(usize, u32)> {
+        for len in self.table_bits + 1..=self.max_len {
+            let code = (window >> (64 - len)) as u32;
+            let offset = code.wrapping_sub(self.first[len as usize]);
+            if offset < self.count[len as usize] {
+                let symbol = self.sorted[(self.base[len as usize] + offset) as usize];
+                return Some((symbol as usize, len));
+            }
+        }
+        None
+    }
+
+    /// The longest code length.
+    pub fn max_length(&self) -> u32 {
+        self.max_len
+    }
+
     /// Slow path of [`HuffmanDecoder::decode`]: codes longer than the table, or invalid input.
     fn decode_long(&self, reader: &mut BitReader) -> Result<usize, EntropyError> {
         let window = reader.peek_bits(self.max_len);
@@ -529,9 +561,14 @@ mod tests {
         let header = r.position();
         let dec = HuffmanDecoder::new(&read);
         let mut r2 = r.clone();
+        let mut r3 = r.clone();
         for &s in symbols {
             assert_eq!(dec.decode(&mut r).unwrap(), s);
             assert_eq!(dec.decode_canonical(&mut r2).unwrap(), s);
+            let window = r3.peek_bits(64);
+            let (symbol, len) = dec.decode_window(window).unwrap();
+            assert_eq!((symbol, len), (s, code.cost_bits(s)));
+            r3.consume(len).unwrap();
         }
         assert_eq!(r.position() - header, expected);
         assert_eq!(r2.position(), r.position());

@@ -441,13 +441,14 @@ fn fit_tables(header: &Header, symbolized: &[Vec<Symbols>]) -> HuffmanTables {
 /// packets and stored into `header.tables`; `header.substreams` must already hold the
 /// quantization parameters of every substream that appears.
 pub fn encode_packets(header: &mut Header, inputs: &[PacketInput]) -> EncodedPackets {
-    let (symbolized, reconstruction): (Vec<_>, Vec<_>) = if header.coder == CoderKind::Sigmap {
+    let (symbolized, reconstruction): (Vec<_>, Vec<_>) = if header.coder.quantizes_by_threshold() {
         (Vec::new(), Vec::new())
     } else {
         inputs.iter().map(|p| symbolize(header, p)).unzip()
     };
     let mut breakdown = SizeBreakdown::default();
     let mut packets = Vec::with_capacity(inputs.len());
+    header.fast_tables = None;
     match header.coder {
         CoderKind::Huffman => {
             let tables = fit_tables(header, &symbolized);
@@ -490,6 +491,21 @@ pub fn encode_packets(header: &mut Header, inputs: &[PacketInput]) -> EncodedPac
                 breakdown.framing_bytes += (framed.len() - payload.len()) as u64;
                 packets.push(framed);
                 reconstruction.push(recon);
+            }
+            return EncodedPackets {
+                packets,
+                reconstruction,
+                breakdown,
+            };
+        }
+        CoderKind::Fast => {
+            header.tables = None;
+            let (payloads, reconstruction, bd) = super::fast::encode_packets(header, inputs);
+            breakdown = bd;
+            for ((input, payload), recon) in inputs.iter().zip(payloads).zip(&reconstruction) {
+                let framed = frame(header, input, recon, &payload);
+                breakdown.framing_bytes += (framed.len() - payload.len()) as u64;
+                packets.push(framed);
             }
             return EncodedPackets {
                 packets,
@@ -675,7 +691,7 @@ pub fn read_framing<'a>(
         .fold(header.channels as u64, u64::saturating_mul);
     let per_byte = match header.coder {
         CoderKind::Sigmap => MAX_COEFFICIENTS_PER_PAYLOAD_BYTE as u64,
-        CoderKind::Huffman | CoderKind::Range => 8,
+        CoderKind::Huffman | CoderKind::Range | CoderKind::Fast => 8,
     };
     if count > per_byte.saturating_mul(plen as u64 + 1) || count > capacity {
         return Err(invalid(
@@ -735,6 +751,9 @@ pub fn decode_packet_within(
         }
         CoderKind::Sigmap => {
             super::sigmap::decode(header, tile, layer, count, payload, &mut breakdown)?
+        }
+        CoderKind::Fast => {
+            super::fast::decode(header, tile, layer, count, payload, &mut breakdown)?
         }
         CoderKind::Range => {
             let mut src = RangeSource {

@@ -896,24 +896,82 @@ impl Box3 {
     }
 }
 
-/// Lower and upper magnitude bounds and step of a substream in a layer. The upper bound (the
+/// A substream's magnitude quantizer in one layer: lower and upper magnitude bounds and step. The upper bound (the
 /// layer's score bound, at most the substream's largest magnitude w0) caps reconstructions, so
 /// magnitudes that all sit within one step of the lower bound (a single coefficient, such as a
 /// constant volume's one scaling coefficient) come back as w0 rather than lb + Δ/2, which is
 /// 1.5 × their value when Δ = lb, as lossless selection at the default step has it.
-fn bounds(header: &Header, sub: usize, layer: usize) -> (f64, f64, f64) {
-    let params = header.substreams[sub].expect("present substream");
-    let lb = if layer + 1 < header.layer_bounds.len() {
-        header.chain_start(sub, layer + 1)
-    } else {
-        header.magnitude_threshold(sub)
-    };
-    let lb = lb.max(0.0);
-    let ub = header.chain_start(sub, layer).max(lb);
-    (lb, ub, params.delta as f64)
+#[derive(Debug, Clone, Copy)]
+pub(super) struct Quantizer {
+    lb: f64,
+    /// Largest magnitude the substream can have in this layer (≥ lb).
+    ub: f64,
+    step: f64,
+}
+
+impl Quantizer {
+    /// The quantizer of substream `sub` in `layer`.
+    pub(super) fn of(header: &Header, sub: usize, layer: usize) -> Quantizer {
+        let params = header.substreams[sub].expect("present substream");
+        let lb = if layer + 1 < header.layer_bounds.len() {
+            header.chain_start(sub, layer + 1)
+        } else {
+            header.magnitude_threshold(sub)
+        };
+        let lb = lb.max(0.0);
+        let ub = header.chain_start(sub, layer).max(lb);
+        Quantizer {
+            lb,
+            ub,
+            step: params.delta as f64,
+        }
+    }
+
+    /// The magnitude of step q: the middle of its interval, within the substream's bounds.
+    #[inline]
+    fn reconstruct(&self, q: u64) -> f64 {
+        (self.lb + (q as f64 + 0.5) * self.step).min(self.ub)
+    }
+
+    /// The step of a magnitude and its reconstruction (the exact f32 bits when Δ = 0).
+    pub(super) fn quantize(&self, magnitude: f64) -> (u64, f64) {
+        if self.step > 0.0 {
+            let q = ((magnitude - self.lb) / self.step).floor().clamp(0.0, 1e15) as u64;
+            (q, self.reconstruct(q))
+        } else {
+            ((magnitude as f32).to_bits() as u64, magnitude as f32 as f64)
+        }
+    }
+
+    /// The magnitude of a decoded step, refusing steps no encoder writes.
+    #[inline]
+    pub(super) fn dequantize(&self, q: u64) -> Result<f64, FormatError> {
+        if self.step > 0.0 {
+            if q > 1_000_000_000_000_000 {
+                return Err(invalid("packet", "quantized magnitude out of range"));
+            }
+            Ok(self.reconstruct(q))
+        } else {
+            let bits =
+                u32::try_from(q).map_err(|_| invalid("packet", "exact magnitude out of range"))?;
+            Ok(f32::from_bits(bits) as f64)
+        }
+    }
 }
 
 fn region(header: &Header, tile: usize, level: u8, band_dims: [usize; 3]) -> ([u32; 3], Box3) {
+    let (origin, extent) = region_extent(header, tile, level, band_dims);
+    (origin, Box3::root(extent))
+}
+
+/// A tile's region of a band of `level`: its origin in band cells and its extent (0 along an
+/// axis where the tile holds none of the band).
+pub(super) fn region_extent(
+    header: &Header,
+    tile: usize,
+    level: u8,
+    band_dims: [usize; 3],
+) -> ([u32; 3], [u32; 3]) {
     let origin = header.tile_origin(tile);
     let l = level as usize;
     let mut lo = [0u32; 3];
@@ -924,7 +982,7 @@ fn region(header: &Header, tile: usize, level: u8, band_dims: [usize; 3]) -> ([u
         lo[a] = o as u32;
         hi[a] = end.saturating_sub(o) as u32;
     }
-    (lo, Box3::root(hi))
+    (lo, hi)
 }
 
 /// Encodes one packet's coefficients; returns payload, the decoder's reconstruction (in decode
@@ -962,7 +1020,7 @@ pub(crate) fn encode(
         }
         let band = bands[bi];
         let (origin, root) = region(header, tile, band.level, header.geometry.band_dims(band));
-        let (lb, ub, step) = bounds(header, sub, layer);
+        let quant = Quantizer::of(header, sub, layer);
         let pts: Vec<([u32; 3], f32)> = list
             .iter()
             .map(|c| {
@@ -973,9 +1031,7 @@ pub(crate) fn encode(
         let cells: Vec<[u32; 3]> = pts.iter().map(|(p, _)| *p).collect();
         let ctx = Ctx {
             bi,
-            lb,
-            ub,
-            step,
+            quant,
             origin,
             channel: (sub / nb) as u8,
             band,
@@ -998,41 +1054,11 @@ pub(crate) fn encode(
 
 struct Ctx<'a> {
     bi: usize,
-    lb: f64,
-    /// Largest magnitude the substream can have in this layer (≥ lb).
-    ub: f64,
-    step: f64,
+    quant: Quantizer,
     origin: [u32; 3],
     channel: u8,
     band: Band,
     relatives: Relatives<'a>,
-}
-
-/// The magnitude of step q: the middle of its interval, within the substream's bounds.
-fn reconstruct(ctx: &Ctx, q: u64) -> f64 {
-    (ctx.lb + (q as f64 + 0.5) * ctx.step).min(ctx.ub)
-}
-
-fn quantize(ctx: &Ctx, magnitude: f64) -> (u64, f64) {
-    if ctx.step > 0.0 {
-        let q = ((magnitude - ctx.lb) / ctx.step).floor().clamp(0.0, 1e15) as u64;
-        (q, reconstruct(ctx, q))
-    } else {
-        ((magnitude as f32).to_bits() as u64, magnitude as f32 as f64)
-    }
-}
-
-fn dequantize(ctx: &Ctx, q: u64) -> Result<f64, FormatError> {
-    if ctx.step > 0.0 {
-        if q > 1_000_000_000_000_000 {
-            return Err(invalid("packet", "quantized magnitude out of range"));
-        }
-        Ok(reconstruct(ctx, q))
-    } else {
-        let bits =
-            u32::try_from(q).map_err(|_| invalid("packet", "exact magnitude out of range"))?;
-        Ok(f32::from_bits(bits) as f64)
-    }
 }
 
 fn encode_box(
@@ -1051,7 +1077,7 @@ fn encode_box(
         let (sc, vc) = m.leaf_contexts(ctx.bi, p);
         enc.encode_bit(&mut m.sign[sc], negative);
         let b1 = enc.bits_spent();
-        let (q, mag) = quantize(ctx, (v as f64).abs());
+        let (q, mag) = ctx.quant.quantize((v as f64).abs());
         m.value[vc].encode(enc, q);
         m.coded.insert(p, negative, magnitude_class(q));
         bd.sign_bits += b1 - b0;
@@ -1143,12 +1169,10 @@ pub(crate) fn decode(
                 "substream present in an empty tile region",
             ));
         }
-        let (lb, ub, step) = bounds(header, sub, layer);
+        let quant = Quantizer::of(header, sub, layer);
         let ctx = Ctx {
             bi,
-            lb,
-            ub,
-            step,
+            quant,
             origin,
             channel: (sub / nb) as u8,
             band,
@@ -1214,7 +1238,7 @@ fn decode_box(
         m.coded.insert(cell, negative, magnitude_class(q));
         spent.sign += b1 - b0;
         spent.value += dec.bytes_read() - b1;
-        let mag = dequantize(ctx, q)?;
+        let mag = ctx.quant.dequantize(q)?;
         let value = if negative { -mag } else { mag } as f32;
         if !value.is_finite() {
             return Err(invalid("packet", "decoded value is not finite"));

@@ -689,9 +689,14 @@ fn cases(quick: bool) -> Vec<Case> {
 
     // Constant volumes (including zero, 1e30 and a single voxel) through every coder.
     let coders: &[CoderKind] = if quick {
-        &[CoderKind::Sigmap, CoderKind::Range]
+        &[CoderKind::Sigmap, CoderKind::Fast, CoderKind::Range]
     } else {
-        &[CoderKind::Sigmap, CoderKind::Range, CoderKind::Huffman]
+        &[
+            CoderKind::Sigmap,
+            CoderKind::Fast,
+            CoderKind::Range,
+            CoderKind::Huffman,
+        ]
     };
     for &coder in coders {
         for (label, value) in [("zero", 0.0f32), ("7", 7.0), ("1e30", 1e30)] {
