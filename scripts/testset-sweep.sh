@@ -4,10 +4,12 @@
 # Q_I / PSNR of the decoded volume, the depths compared (M:view error of the oracle's file) and
 # each refinement the byte search ran (K:kept:bytes of the whole refined set).
 #
-#   scripts/testset-sweep.sh WAVESPLAT_BINARY TESTSET_DIR [TAG]    (PY= the peers' venv python)
+#   scripts/testset-sweep.sh WAVESPLAT_BINARY TESTSET_DIR [TAG]    (PY= the peers' venv python;
+#   ARGS= further compress options, e.g. ARGS="--coder fast")
 set -euo pipefail
 BIN=$1; D=$2; TAG=${3:-run}
 PY=${PY:-python3}
+read -r -a EXTRA <<< "${ARGS:-}"
 HERE=$(cd "$(dirname "$0")" && pwd)
 TMP=$(mktemp -d); trap 'rm -rf "$TMP"' EXIT
 while IFS=$'\t' read -r name dims dt ch _; do
@@ -18,7 +20,7 @@ while IFS=$'\t' read -r name dims dt ch _; do
     O=$TMP/$name
     /usr/bin/time -f "%U %e" -o "$O.time" "$BIN" compress "$D/$name.raw" --dims "$dims" \
       --dtype "$dt" --channels "$ch" --target-bytes "$bytes" -o "$O.wsp" \
-      --log wavesplat_compressor=debug 2>"$O.log" >/dev/null
+      --log wavesplat_compressor=debug "${EXTRA[@]}" 2>"$O.log" >/dev/null
     tries=$(sed 's/\x1b\[[0-9;]*m//g' "$O.log" | grep 'refined set encoded whole' \
       | sed 's/.*k=\([0-9]*\) count=\([0-9]*\) bytes=\([0-9]*\).*/\1:\2:\3/' | tr '\n' ' ' || true)
     depths=$(sed 's/\x1b\[[0-9;]*m//g' "$O.log" | grep 'depth candidate levels=' \
