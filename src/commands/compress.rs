@@ -69,9 +69,10 @@ pub struct CompressArgs {
     #[arg(long, default_value_t = 8)]
     pub bits: u8,
     /// Entropy coder: sigmap (octree significance maps, arithmetic coded; smallest files),
-    /// fast (the same maps with static Huffman tables: decodes several times faster, files a
-    /// few percent larger), range (the paper's syntax, arithmetic coded) or huffman (the
-    /// paper's syntax and static tables).
+    /// fast (the same maps and contexts with static Huffman tables: packets decode ~3.5×
+    /// faster, for ~9 % more bytes at the same coefficients, ~1.5 dB less Q_I at the same
+    /// bytes), range (the paper's syntax, arithmetic coded) or huffman (the paper's syntax and
+    /// static tables).
     #[arg(long, default_value = "sigmap")]
     pub coder: String,
     /// Quantizer step of the sigmap coder relative to each band's smallest kept magnitude.
