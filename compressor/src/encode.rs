@@ -942,8 +942,15 @@ pub fn memory_estimate(
     let lists = candidates.saturating_mul(104);
     let prepare = colour + 8 * n + (32 << 20);
     let refine = if refining { 9 * n * c + 8 * n } else { 0 };
-    // Packet inputs, clustering items, reconstruction and Q_E pairs per kept coefficient.
-    let encode = (candidates / 2).saturating_mul(150);
+    // Packet inputs, clustering items, reconstruction and Q_E pairs per kept coefficient; the
+    // fast coder also holds every packet's symbols (8 B, about 1.3 per coefficient) while it
+    // fits its tables.
+    let per_kept = if opts.coder == CoderKind::Fast {
+        161
+    } else {
+        150
+    };
+    let encode = (candidates / 2).saturating_mul(per_kept);
     // The binary, the thread pool and small tables: ~30 MB measured on a 128³ volume.
     let base = 64 << 20;
     let total = base + input + held + prepare.max(lists + refine.max(encode));

@@ -19,8 +19,8 @@
 //! node of 2×2×2 cells uses one of [`LEAF_MASK_TABLES`] tables, chosen by how many coded cells
 //! of the substream touch its three lower faces; larger nodes share one table. A node of 2×2×2
 //! cells is followed by its coefficients in bit order: for each, its step symbol from the value
-//! table chosen by the magnitude classes of its three lower neighbours (the sigmap coder's value
-//! context), then its sign in the sign stream (context: band and the signs of its three lower
+//! table chosen by the mean bit length of its coded lower neighbours' steps (`value_table`),
+//! then its sign in the sign stream (context: band and the signs of its three lower
 //! neighbours, as the sigmap coder). A step symbol is q itself for q < 14, otherwise 13 + e
 //! followed by the e − 1 low bits of q − 13, which has e bits. Steps and reconstruction are the
 //! sigmap coder's ([`super::sigmap`]). The tables live in the header ([`FastTables`]), fitted
@@ -51,7 +51,7 @@ pub const LEAF_MASK_TABLES: usize = 4;
 /// Mask tables: the leaf tables, then one for larger nodes.
 pub const MASK_TABLES: usize = LEAF_MASK_TABLES + 1;
 /// Value tables: no coded lower neighbour, or 1 + the mean magnitude class of those coded
-/// ([`value_table`]). (Separate tables for the finest and the coarser bands saved 0.15 % on
+/// (`value_table`). (Separate tables for the finest and the coarser bands saved 0.15 % on
 /// the decode bench's file, less than their header cost on small files.)
 pub const VALUE_TABLES: usize = 16;
 /// Sign contexts per band: each of the three lower neighbours is absent, positive or negative.
@@ -184,7 +184,6 @@ fn root_log(extent: [u32; 3]) -> u32 {
     let side = extent.iter().copied().max().unwrap_or(1).max(2);
     u32::BITS - (side - 1).leading_zeros()
 }
-
 
 thread_local! {
     /// A decoding or encoding thread's brick directory, kept between packets so that a packet
@@ -432,20 +431,51 @@ impl Drop for CellMap {
     }
 }
 
-/// One prefix-coded element of a packet's syntax, before the tables are fitted.
+/// One prefix-coded element of a packet's syntax, before the tables are fitted, packed in
+/// 8 bytes (the encoder holds a whole file's, one or two per coefficient): bits 0–1 the kind
+/// (present bit, mask, step), then the present bit, or the table in bits 2–5 and the mask in
+/// bits 8–15, or the table in bits 2–5, the step symbol in bits 8–13 and its raw bits from bit
+/// 14 (at most 49 of them, as many as [`raw_bits`] says).
 #[derive(Debug, Clone, Copy)]
-enum Symbol {
-    Present(bool),
-    Mask {
-        table: u8,
-        mask: u8,
-    },
-    Step {
-        table: u8,
-        symbol: u8,
-        raw: u64,
-        raw_bits: u8,
-    },
+struct Symbol(u64);
+
+const _: () = assert!(MASK_TABLES <= 16 && VALUE_TABLES <= 16 && VALUE_ALPHABET <= 64);
+
+impl Symbol {
+    const PRESENT: u64 = 0;
+    const MASK: u64 = 1;
+    const STEP: u64 = 2;
+
+    fn present(present: bool) -> Symbol {
+        Symbol(Self::PRESENT | (present as u64) << 2)
+    }
+    fn mask(table: usize, mask: u8) -> Symbol {
+        Symbol(Self::MASK | (table as u64) << 2 | (mask as u64) << 8)
+    }
+    fn step(table: usize, symbol: usize, raw: u64) -> Symbol {
+        debug_assert!(raw < 1 << raw_bits(symbol));
+        Symbol(Self::STEP | (table as u64) << 2 | (symbol as u64) << 8 | raw << 14)
+    }
+    fn kind(self) -> u64 {
+        self.0 & 3
+    }
+    fn table(self) -> usize {
+        (self.0 >> 2 & 15) as usize
+    }
+    fn mask_bits(self) -> usize {
+        (self.0 >> 8 & 0xFF) as usize
+    }
+    fn step_symbol(self) -> usize {
+        (self.0 >> 8 & 63) as usize
+    }
+    fn raw(self) -> u64 {
+        self.0 >> 14
+    }
+}
+
+/// How many raw bits follow a step symbol.
+fn raw_bits(symbol: usize) -> u32 {
+    (symbol as u32).saturating_sub(DIRECT_STEPS as u32)
 }
 
 /// Symbol counts per table, over all packets.
@@ -462,13 +492,11 @@ impl Frequencies {
         }
     }
     fn add(&mut self, symbols: &[Symbol]) {
-        for s in symbols {
-            match *s {
-                Symbol::Present(_) => {}
-                Symbol::Mask { table, mask } => self.mask[table as usize][mask as usize] += 1,
-                Symbol::Step { table, symbol, .. } => {
-                    self.value[table as usize][symbol as usize] += 1
-                }
+        for &s in symbols {
+            match s.kind() {
+                Symbol::MASK => self.mask[s.table()][s.mask_bits()] += 1,
+                Symbol::STEP => self.value[s.table()][s.step_symbol()] += 1,
+                _ => {}
             }
         }
     }
@@ -513,10 +541,7 @@ impl PacketCoder {
         } else {
             self.map.face_table(o)
         };
-        self.symbols.push(Symbol::Mask {
-            table: table as u8,
-            mask,
-        });
+        self.symbols.push(Symbol::mask(table, mask));
         if log > 1 {
             let mut start = 0;
             while start < pts.len() {
@@ -531,13 +556,8 @@ impl PacketCoder {
             let negative = value < 0.0;
             let (q, magnitude) = s.quant.quantize((value as f64).abs());
             let (sc, vc) = self.map.leaf_contexts(cell);
-            let (symbol, raw, raw_bits) = step_symbol(q);
-            self.symbols.push(Symbol::Step {
-                table: vc as u8,
-                symbol: symbol as u8,
-                raw,
-                raw_bits: raw_bits as u8,
-            });
+            let (symbol, raw, _) = step_symbol(q);
+            self.symbols.push(Symbol::step(vc, symbol, raw));
             self.signs
                 .encode_bit(&mut self.sign_models[s.bi * SIGN_CONTEXTS + sc], negative);
             self.map.insert(cell, negative, q);
@@ -597,7 +617,7 @@ fn symbolize(header: &Header, input: &PacketInput) -> Symbolized {
         if header.substreams[sub].is_none() {
             continue;
         }
-        coder.symbols.push(Symbol::Present(!list.is_empty()));
+        coder.symbols.push(Symbol::present(!list.is_empty()));
         if list.is_empty() {
             continue;
         }
@@ -655,26 +675,22 @@ pub(crate) fn encode_packets(
     for p in symbolized {
         let mut w = BitWriter::with_capacity(p.symbols.len());
         for s in p.symbols {
-            match s {
-                Symbol::Present(present) => {
-                    w.put_bit(present);
+            match s.kind() {
+                Symbol::MASK => {
+                    let code = &tables.mask[s.table()];
+                    code.encode(s.mask_bits(), &mut w);
+                    bd.position_bits += code.cost_bits(s.mask_bits()) as f64;
+                }
+                Symbol::STEP => {
+                    let code = &tables.value[s.table()];
+                    let (symbol, n) = (s.step_symbol(), raw_bits(s.step_symbol()));
+                    code.encode(symbol, &mut w);
+                    w.put_bits(s.raw(), n);
+                    bd.value_bits += (code.cost_bits(symbol) + n) as f64;
+                }
+                _ => {
+                    w.put_bit(s.0 >> 2 & 1 != 0);
                     bd.tag_bits += 1.0;
-                }
-                Symbol::Mask { table, mask } => {
-                    let code = &tables.mask[table as usize];
-                    code.encode(mask as usize, &mut w);
-                    bd.position_bits += code.cost_bits(mask as usize) as f64;
-                }
-                Symbol::Step {
-                    table,
-                    symbol,
-                    raw,
-                    raw_bits,
-                } => {
-                    let code = &tables.value[table as usize];
-                    code.encode(symbol as usize, &mut w);
-                    w.put_bits(raw, raw_bits as u32);
-                    bd.value_bits += (code.cost_bits(symbol as usize) + raw_bits as u32) as f64;
                 }
             }
         }
@@ -905,6 +921,15 @@ mod tests {
         for q in qs {
             let (symbol, raw, raw_bits) = step_symbol(q);
             assert!(symbol < VALUE_ALPHABET, "q {q}");
+            assert_eq!(super::raw_bits(symbol), raw_bits);
+            for table in [0, VALUE_TABLES - 1] {
+                let packed = Symbol::step(table, symbol, raw);
+                assert_eq!(packed.kind(), Symbol::STEP);
+                assert_eq!(
+                    (packed.table(), packed.step_symbol(), packed.raw()),
+                    (table, symbol, raw)
+                );
+            }
             let symbol = symbol as u64;
             let back = if symbol < DIRECT_STEPS {
                 assert_eq!(raw_bits, 0);
