@@ -8,17 +8,23 @@ use wavesplat_codec::format::bytes::ByteWriter;
 use wavesplat_codec::format::packet::{
     declared_count, decode_packet, decode_packet_within, decode_packets_within, DecodeBudget,
 };
-use wavesplat_codec::format::{parse_file, write_file, FormatError, Header};
+use wavesplat_codec::format::{parse_file, write_file, CoderKind, FormatError, Header};
 use wavesplat_codec::layout::Geometry;
 use wavesplat_compressor::decode::{decompress, decompress_within, reconstruction_bytes};
 use wavesplat_compressor::encode::{compress, CompressOptions, Target, TileChoice};
 use wavesplat_compressor::phantom::Phantom;
 
 fn sigmap_file(dims: [usize; 3], target: Target) -> Vec<u8> {
+    coded_file(CoderKind::Sigmap, dims, target)
+}
+
+/// A Shepp–Logan phantom of `dims` coded with `coder`: 16-voxel tiles, two layers.
+fn coded_file(coder: CoderKind, dims: [usize; 3], target: Target) -> Vec<u8> {
     let vol = Phantom::SheppLogan.generate(dims);
     compress(
         &vol,
         &CompressOptions {
+            coder,
             target,
             tile: TileChoice::Size(16),
             layers: Some(2),
@@ -169,21 +175,7 @@ fn a_caller_budget_refuses_a_valid_file_before_decoding_it() {
 
 #[test]
 fn fast_coder_packets_of_garbage_or_flipped_bits_are_refused_or_decode_whole() {
-    let vol = Phantom::SheppLogan.generate([24, 20, 16]);
-    let file = compress(
-        &vol,
-        &CompressOptions {
-            coder: wavesplat_codec::format::CoderKind::Fast,
-            target: Target::Fraction(0.2),
-            tile: TileChoice::Size(16),
-            layers: Some(2),
-            refine: None,
-            ..Default::default()
-        },
-        &|_, _| {},
-    )
-    .unwrap()
-    .bytes;
+    let file = coded_file(CoderKind::Fast, [24, 20, 16], Target::Fraction(0.2));
     let parsed = parse_file(&file).unwrap();
     let h = &parsed.header;
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(21);
