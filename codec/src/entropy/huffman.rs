@@ -429,9 +429,9 @@ impl HuffmanDecoder {
     }
 
     /// Decodes the symbol at the top of `window` (the next input bits, first bit most
-    /// significant, at least [`HuffmanDecoder::max_length`] of them valid): its symbol and code
-    /// length, or `None` if the bits start no codeword. For readers that keep their own bit
-    /// buffer.
+    /// significant, at least as many of them valid as the code's longest codeword, at most
+    /// [`MAX_CODE_LEN`]): its symbol and code length, or `None` if the bits start no codeword.
+    /// For readers that keep their own bit buffer.
     #[inline]
     pub fn decode_window(&self, window: u64) -> Option<(usize, u32)> {
         let entry = self.table[(window >> (64 - self.table_bits)) as usize];
@@ -442,7 +442,8 @@ impl HuffmanDecoder {
         self.decode_window_long(window)
     }
 
-    /// Slow path of [`HuffmanDecoder::decode_window`].
+    /// Slow path of [`HuffmanDecoder::decode_window`] and [`HuffmanDecoder::decode`]: codes
+    /// longer than the table, compared with the first canonical code of each length.
     fn decode_window_long(&self, window: u64) -> Option<(usize, u32)> {
         for len in self.table_bits + 1..=self.max_len {
             let code = (window >> (64 - len)) as u32;
@@ -455,23 +456,15 @@ impl HuffmanDecoder {
         None
     }
 
-    /// The longest code length.
-    pub fn max_length(&self) -> u32 {
-        self.max_len
-    }
-
     /// Slow path of [`HuffmanDecoder::decode`]: codes longer than the table, or invalid input.
     fn decode_long(&self, reader: &mut BitReader) -> Result<usize, EntropyError> {
-        let window = reader.peek_bits(self.max_len);
-        for len in self.table_bits + 1..=self.max_len {
-            let code = (window >> (self.max_len - len)) as u32;
-            let offset = code.wrapping_sub(self.first[len as usize]);
-            if offset < self.count[len as usize] {
+        match self.decode_window_long(reader.peek_bits(64)) {
+            Some((symbol, len)) => {
                 reader.consume(len)?;
-                return Ok(self.sorted[(self.base[len as usize] + offset) as usize] as usize);
+                Ok(symbol)
             }
+            None => self.invalid(reader),
         }
-        self.invalid(reader)
     }
 
     fn invalid(&self, reader: &BitReader) -> Result<usize, EntropyError> {
