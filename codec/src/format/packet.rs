@@ -437,6 +437,32 @@ fn fit_tables(header: &Header, symbolized: &[Vec<Symbols>]) -> HuffmanTables {
     }
 }
 
+/// Frames coded payloads (in input order) into packets, adding their framing bytes to
+/// `breakdown`.
+fn frame_all(
+    header: &Header,
+    inputs: &[PacketInput],
+    payloads: Vec<Vec<u8>>,
+    reconstruction: Vec<Vec<Coefficient>>,
+    mut breakdown: SizeBreakdown,
+) -> EncodedPackets {
+    let packets = inputs
+        .iter()
+        .zip(&payloads)
+        .zip(&reconstruction)
+        .map(|((input, payload), recon)| {
+            let framed = frame(header, input, recon, payload);
+            breakdown.framing_bytes += (framed.len() - payload.len()) as u64;
+            framed
+        })
+        .collect();
+    EncodedPackets {
+        packets,
+        reconstruction,
+        breakdown,
+    }
+}
+
 /// Quantizes and entropy-codes packets. For the Huffman coder the tables are fitted to these
 /// packets and stored into `header.tables`; `header.substreams` must already hold the
 /// quantization parameters of every substream that appears.
@@ -481,37 +507,21 @@ pub fn encode_packets(header: &mut Header, inputs: &[PacketInput]) -> EncodedPac
             };
             #[cfg(not(feature = "rayon"))]
             let coded: Vec<_> = inputs.iter().map(code).collect();
-            let header = &*header;
-            for (input, (payload, recon, bd)) in inputs.iter().zip(coded) {
+            let mut payloads = Vec::with_capacity(inputs.len());
+            for (payload, recon, bd) in coded {
                 breakdown.tag_bits += bd.tag_bits;
                 breakdown.position_bits += bd.position_bits;
                 breakdown.sign_bits += bd.sign_bits;
                 breakdown.value_bits += bd.value_bits;
-                let framed = frame(header, input, &recon, &payload);
-                breakdown.framing_bytes += (framed.len() - payload.len()) as u64;
-                packets.push(framed);
+                payloads.push(payload);
                 reconstruction.push(recon);
             }
-            return EncodedPackets {
-                packets,
-                reconstruction,
-                breakdown,
-            };
+            return frame_all(header, inputs, payloads, reconstruction, breakdown);
         }
         CoderKind::Fast => {
             header.tables = None;
             let (payloads, reconstruction, bd) = super::fast::encode_packets(header, inputs);
-            breakdown = bd;
-            for ((input, payload), recon) in inputs.iter().zip(payloads).zip(&reconstruction) {
-                let framed = frame(header, input, recon, &payload);
-                breakdown.framing_bytes += (framed.len() - payload.len()) as u64;
-                packets.push(framed);
-            }
-            return EncodedPackets {
-                packets,
-                reconstruction,
-                breakdown,
-            };
+            return frame_all(header, inputs, payloads, reconstruction, bd);
         }
         CoderKind::Range => {
             header.tables = None;
