@@ -827,8 +827,8 @@ impl Prepared {
                         }
                     })
                     .collect();
-                // The sigmap coder codes positions as octree maps, so the order inside a
-                // packet carries no cost and clustering is skipped.
+                // The sigmap and fast coders code positions as octree maps, so the order
+                // inside a packet carries no cost and clustering is skipped.
                 let clustering = opts
                     .clustering
                     .filter(|_| !opts.coder.quantizes_by_threshold());
@@ -1047,7 +1047,8 @@ pub fn compress(
 }
 
 /// File size guess per kept coefficient for the automatic tiling: measured bytes per kept
-/// coefficient are ~0.7–0.9 for the sigmap coder and 2–3 for the paper's syntaxes.
+/// coefficient are ~0.7–0.9 for the sigmap coder (~0.1 more for the fast coder) and 2–3 for
+/// the paper's syntaxes.
 fn bytes_per_coefficient_guess(coder: CoderKind) -> u64 {
     if coder.quantizes_by_threshold() {
         1
@@ -1235,8 +1236,8 @@ fn oracle_to_bytes(
     progress: &(dyn Fn(Stage, f64) + Sync),
 ) -> Result<(Ranked, Compressed), CompressError> {
     let n = prepared.nonzero as usize;
-    // Candidates: 4 per target byte for the sigmap coder (it codes ~1.2–1.5 coefficients per
-    // byte on real data), 1 per byte for the paper's syntaxes.
+    // Candidates: 4 per target byte for the sigmap and fast coders (they code ~1.1–1.5
+    // coefficients per byte on real data), 1 per byte for the paper's syntaxes.
     let per_byte = if opts.coder.quantizes_by_threshold() {
         4
     } else {

@@ -117,9 +117,10 @@ impl FastTables {
 
 /// The magnitude class of a step, as its neighbours' contexts read it: its bit length (0 for
 /// q = 0), at most 31. Logarithmic, so that the contexts follow the scale of the magnitudes,
-/// which grows with the rate (a few steps at 0.1 % of the sample bytes, thousands at 5 %).
+/// which grows with the rate (a few steps at 0.1 % of the sample bytes, thousands at 5 %); the
+/// sigmap coder's classes are coarser (0, 1, 2–4, 5 and above).
 #[inline(always)]
-fn magnitude_class(q: u64) -> u8 {
+fn bit_length_class(q: u64) -> u8 {
     (u64::BITS - q.leading_zeros()).min(31) as u8
 }
 
@@ -137,18 +138,32 @@ fn value_table(n: usize, sum: usize) -> usize {
     1 + mean.min(VALUE_TABLES - 2)
 }
 
-/// The step symbol of q and the raw bits that follow it.
-fn step_symbol(q: u64) -> (usize, u64, u32) {
+/// The step symbol of q and the raw bits that follow it (as many as [`raw_bits`] says).
+fn step_symbol(q: u64) -> (usize, u64) {
     if q < DIRECT_STEPS {
-        (q as usize, 0, 0)
+        (q as usize, 0)
     } else {
         let r = q - DIRECT_STEPS + 1;
         let e = u64::BITS - r.leading_zeros();
         (
             (DIRECT_STEPS - 1) as usize + e as usize,
             r & ((1u64 << (e - 1)) - 1),
-            e - 1,
         )
+    }
+}
+
+/// How many raw bits follow a step symbol.
+fn raw_bits(symbol: usize) -> u32 {
+    (symbol as u32).saturating_sub(DIRECT_STEPS as u32)
+}
+
+/// The step q of a step symbol and its raw bits: the inverse of [`step_symbol`].
+#[inline(always)]
+fn step_of(symbol: usize, raw: u64) -> u64 {
+    if (symbol as u64) < DIRECT_STEPS {
+        symbol as u64
+    } else {
+        (1u64 << raw_bits(symbol) | raw) + DIRECT_STEPS - 1
     }
 }
 
@@ -238,10 +253,7 @@ impl CellMap {
 
     /// Empties the map for a region of `extent` cells.
     fn reset(&mut self, extent: [u32; 3]) {
-        for &i in &self.used {
-            self.directory[i as usize] = 0;
-        }
-        self.used.clear();
+        self.clear_directory();
         self.bricks.truncate(64);
         self.sparse.clear();
         let bricks = extent.map(|e| e.div_ceil(4) as usize);
@@ -251,6 +263,14 @@ impl CellMap {
             self.directory.resize(count, 0);
         }
         self.stride = [bricks[0], bricks[0] * bricks[1]];
+    }
+
+    /// Zeroes the directory entries in use, so that the directory is all empty again.
+    fn clear_directory(&mut self) {
+        for &i in &self.used {
+            self.directory[i as usize] = 0;
+        }
+        self.used.clear();
     }
 
     /// Directory index of the brick holding `c`.
@@ -272,7 +292,7 @@ impl CellMap {
 
     #[inline(always)]
     fn insert(&mut self, c: [u32; 3], negative: bool, q: u64) {
-        let v = 1 | (negative as u8) << 1 | magnitude_class(q) << 2;
+        let v = 1 | (negative as u8) << 1 | bit_length_class(q) << 2;
         if self.use_directory {
             let b = self.brick(c);
             let mut slot = self.directory[b] as usize;
@@ -418,9 +438,7 @@ impl CellMap {
 
 impl Drop for CellMap {
     fn drop(&mut self) {
-        for &i in &self.used {
-            self.directory[i as usize] = 0;
-        }
+        self.clear_directory();
         let directory = std::mem::take(&mut self.directory);
         BRICK_SCRATCH.with(|s| {
             let mut s = s.borrow_mut();
@@ -471,11 +489,6 @@ impl Symbol {
     fn raw(self) -> u64 {
         self.0 >> 14
     }
-}
-
-/// How many raw bits follow a step symbol.
-fn raw_bits(symbol: usize) -> u32 {
-    (symbol as u32).saturating_sub(DIRECT_STEPS as u32)
 }
 
 /// Symbol counts per table, over all packets.
@@ -556,7 +569,7 @@ impl PacketCoder {
             let negative = value < 0.0;
             let (q, magnitude) = s.quant.quantize((value as f64).abs());
             let (sc, vc) = self.map.leaf_contexts(cell);
-            let (symbol, raw, _) = step_symbol(q);
+            let (symbol, raw) = step_symbol(q);
             self.symbols.push(Symbol::step(vc, symbol, raw));
             self.signs
                 .encode_bit(&mut self.sign_models[s.bi * SIGN_CONTEXTS + sc], negative);
@@ -605,6 +618,13 @@ fn symbolize(header: &Header, input: &PacketInput) -> Symbolized {
         recon: Vec::with_capacity(input.coefficients.len()),
     };
     for (sub, list) in per_sub.iter().enumerate() {
+        if header.substreams[sub].is_none() {
+            continue;
+        }
+        coder.symbols.push(Symbol::present(!list.is_empty()));
+        if list.is_empty() {
+            continue;
+        }
         let bi = sub % nb;
         let band = bands[bi];
         let channel = (sub / nb) as u8;
@@ -614,13 +634,6 @@ fn symbolize(header: &Header, input: &PacketInput) -> Symbolized {
             band.level,
             header.geometry.band_dims(band),
         );
-        if header.substreams[sub].is_none() {
-            continue;
-        }
-        coder.symbols.push(Symbol::present(!list.is_empty()));
-        if list.is_empty() {
-            continue;
-        }
         let log = root_log(extent);
         let mut pts: Vec<Keyed> = list
             .iter()
@@ -790,15 +803,8 @@ impl PacketDecoder<'_> {
                 .decode_window(self.reader.peek())
                 .ok_or_else(|| self.not_a_codeword())?;
             self.reader.consume(len);
-            let symbol = symbol as u64;
-            let q = if symbol < DIRECT_STEPS {
-                symbol
-            } else {
-                // symbol < 64, so e ≤ 50 and the raw bits fit.
-                let e = (symbol - (DIRECT_STEPS - 1)) as u32;
-                let raw = self.reader.get_bits(e - 1);
-                (1u64 << (e - 1) | raw) + DIRECT_STEPS - 1
-            };
+            // symbol < 64, so at most 49 raw bits: they fit a refilled buffer.
+            let q = step_of(symbol, self.reader.get_bits(raw_bits(symbol)));
             let negative = self
                 .signs
                 .decode_bit(&mut self.sign_models[s.bi * SIGN_CONTEXTS + sc]);
@@ -855,18 +861,18 @@ pub(crate) fn decode(
     };
     let mut present_bits = 0u64;
     for sub in 0..header.substream_count() {
+        if header.substreams[sub].is_none() {
+            continue;
+        }
+        present_bits += 1;
+        if d.reader.get_bits(1) == 0 {
+            continue;
+        }
         let bi = sub % nb;
         let band = bands[bi];
         let channel = (sub / nb) as u8;
         let (origin, extent) =
             region_extent(header, tile, band.level, header.geometry.band_dims(band));
-        let present = header.substreams[sub].is_some() && {
-            present_bits += 1;
-            d.reader.get_bits(1) != 0
-        };
-        if !present {
-            continue;
-        }
         if extent.contains(&0) {
             return Err(invalid(
                 "packet",
@@ -919,9 +925,17 @@ mod tests {
         qs.extend((14..50).map(|b| 1u64 << b));
         qs.extend([u32::MAX as u64, 1_000_000_000_000_000]);
         for q in qs {
-            let (symbol, raw, raw_bits) = step_symbol(q);
+            let (symbol, raw) = step_symbol(q);
             assert!(symbol < VALUE_ALPHABET, "q {q}");
-            assert_eq!(super::raw_bits(symbol), raw_bits);
+            // q < 14 is its own symbol; above, q − 13 has e bits and e − 1 of them follow.
+            let expected_raw_bits = if q < DIRECT_STEPS {
+                0
+            } else {
+                u64::BITS - (q - (DIRECT_STEPS - 1)).leading_zeros() - 1
+            };
+            assert_eq!(raw_bits(symbol), expected_raw_bits, "q {q}");
+            assert!(raw < 1 << expected_raw_bits);
+            assert_eq!(step_of(symbol, raw), q);
             for table in [0, VALUE_TABLES - 1] {
                 let packed = Symbol::step(table, symbol, raw);
                 assert_eq!(packed.kind(), Symbol::STEP);
@@ -930,17 +944,6 @@ mod tests {
                     (table, symbol, raw)
                 );
             }
-            let symbol = symbol as u64;
-            let back = if symbol < DIRECT_STEPS {
-                assert_eq!(raw_bits, 0);
-                symbol
-            } else {
-                let e = (symbol - (DIRECT_STEPS - 1)) as u32;
-                assert_eq!(raw_bits, e - 1);
-                assert!(raw < 1 << raw_bits);
-                (1u64 << (e - 1) | raw) + DIRECT_STEPS - 1
-            };
-            assert_eq!(back, q);
         }
     }
 

@@ -19,8 +19,8 @@
 //! siblings. A leaf is a coefficient: sign (adaptive, context: band and the signs of its three
 //! lower neighbours) then q (adaptive exp-Golomb, context: band and the magnitude classes of
 //! its three lower neighbours, from format version 6; band only before), reconstructed as
-//! min(lb + (q + ½)·Δ, ub), where lb and ub are the layer's magnitude bounds of the substream and Δ its step
-//! (exact f32 bits when Δ = 0).
+//! min(lb + (q + ½)·Δ, ub), where lb and ub are the layer's magnitude bounds of the substream
+//! and Δ its step (exact f32 bits when Δ = 0).
 //!
 //! Format version 3 added the dyadic split, the sign contexts and the face contexts; they cut
 //! the file by ~12 % at equal coefficients on the 128³ MNI volume (1.25 % and 5.85 % points).
@@ -896,11 +896,12 @@ impl Box3 {
     }
 }
 
-/// A substream's magnitude quantizer in one layer: lower and upper magnitude bounds and step. The upper bound (the
-/// layer's score bound, at most the substream's largest magnitude w0) caps reconstructions, so
-/// magnitudes that all sit within one step of the lower bound (a single coefficient, such as a
-/// constant volume's one scaling coefficient) come back as w0 rather than lb + Δ/2, which is
-/// 1.5 × their value when Δ = lb, as lossless selection at the default step has it.
+/// A substream's magnitude quantizer in one layer: lower and upper magnitude bounds and step.
+/// The upper bound (the layer's score bound, at most the substream's largest magnitude w0)
+/// caps reconstructions, so magnitudes that all sit within one step of the lower bound (a
+/// single coefficient, such as a constant volume's one scaling coefficient) come back as w0
+/// rather than lb + Δ/2, which is 1.5 × their value when Δ = lb, as lossless selection at the
+/// default step has it. Shared by the sigmap and fast coders.
 #[derive(Debug, Clone, Copy)]
 pub(super) struct Quantizer {
     lb: f64,
