@@ -4,26 +4,53 @@
 
 use crate::error::OrchestratorError;
 use crate::model::Delivery;
+use tokio::sync::OnceCell;
 use wavesplat_client::{CacheClient, VolumeKey};
 use wavesplat_net::ConnectOptions;
 
-/// A connection to the cache deliveries are checked against.
+/// A connection to the cache deliveries are checked against. Made before any async runtime
+/// exists (the server's arguments are read first): the URL, CA and token are checked at once,
+/// the connection is opened on the first check, inside the server's runtime.
 #[derive(Debug, Clone)]
 pub struct DeliveryCheck {
-    cache: CacheClient,
+    url: String,
+    options: ConnectOptions,
+    cache: std::sync::Arc<OnceCell<CacheClient>>,
 }
 
 impl DeliveryCheck {
     /// Checks against the cache at `url` (connected on first use; needs the `read` role).
+    /// Fails at once on a malformed URL or an unreadable CA file.
     pub fn new(url: &str, options: &ConnectOptions) -> Result<DeliveryCheck, OrchestratorError> {
-        let cache = CacheClient::connect_lazy(url, options)
+        options
+            .endpoint(url)
             .map_err(|e| OrchestratorError::Connect(e.to_string()))?;
-        Ok(DeliveryCheck { cache })
+        Ok(DeliveryCheck {
+            url: url.to_string(),
+            options: options.clone(),
+            cache: std::sync::Arc::new(OnceCell::new()),
+        })
+    }
+
+    /// The cache URL deliveries are checked against.
+    pub fn url(&self) -> &str {
+        &self.url
+    }
+
+    async fn client(&self) -> Result<CacheClient, OrchestratorError> {
+        let client = self
+            .cache
+            .get_or_try_init(|| async {
+                CacheClient::connect_lazy(&self.url, &self.options)
+                    .map_err(|e| OrchestratorError::Connect(e.to_string()))
+            })
+            .await?;
+        Ok(client.clone())
     }
 
     /// Whether the cache holds `name` as the delivered volume.
     pub async fn confirm(&self, name: &str, d: &Delivery) -> Result<(), OrchestratorError> {
-        let mut cache = self.cache.clone();
+        let mut cache = self.client().await?;
         match cache.describe(&VolumeKey::Name(name.to_string())).await {
             Ok(v) if v.id == d.cache_volume_id && v.sha256 == d.sha256 => Ok(()),
             Ok(v) => Err(OrchestratorError::Unconfirmed(format!(
@@ -36,5 +63,18 @@ impl DeliveryCheck {
             ),
             Err(e) => Err(OrchestratorError::CacheUnavailable(e.to_string())),
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The server reads its arguments, and so makes its check, before its runtime starts.
+    #[test]
+    fn a_check_is_made_outside_any_async_runtime() {
+        let check = DeliveryCheck::new("http://127.0.0.1:1", &ConnectOptions::default()).unwrap();
+        assert_eq!(check.url(), "http://127.0.0.1:1");
+        assert!(DeliveryCheck::new("ftp://x", &ConnectOptions::default()).is_err());
     }
 }
