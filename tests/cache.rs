@@ -780,3 +780,56 @@ async fn sigkill_during_ingest_and_streaming_leaves_no_partial_volume() {
     );
     server.kill();
 }
+
+#[tokio::test]
+async fn an_empty_request_mid_stream_is_answered_with_what_was_wrong() {
+    let server = TestServer::start().await;
+    server
+        .client()
+        .await
+        .ingest("ok", &test_file([24, 24, 24]))
+        .await
+        .unwrap();
+    let mut c = server.wire().await;
+    let key = VolumeKey::Name("ok".into());
+    let start = refine_view(&key, wire_view(&View::new(0.0, 0.0, 32, 32)));
+    let empty = pb::RefineRequest { msg: None };
+    let mut s = c
+        .refine(tokio_stream::iter(vec![start, empty]))
+        .await
+        .unwrap()
+        .into_inner();
+    let status = loop {
+        match s.message().await {
+            Ok(Some(_)) => continue,
+            Ok(None) => panic!("the stream ended without an error"),
+            Err(e) => break e,
+        }
+    };
+    assert_eq!(status.code(), Code::InvalidArgument);
+    assert!(status.message().contains("empty"), "{}", status.message());
+    assert!(!status.message().contains("`start` may only"), "{status:?}");
+    server.stop().await;
+}
+
+#[tokio::test]
+async fn a_file_whose_packets_do_not_hold_what_its_header_declares_is_refused() {
+    let bytes = test_file([24, 24, 24]);
+    let file = wavesplat_codec::format::parse_file(&bytes).unwrap();
+    assert!(file.header.kept > 0);
+    // The header of a real file with no packet at all, and with its last packet missing.
+    let empty = wavesplat_codec::format::write_file(&file.header, &[]);
+    let packets: Vec<Vec<u8>> = file.packets.iter().map(|p| p.to_vec()).collect();
+    let short = wavesplat_codec::format::write_file(&file.header, &packets[..packets.len() - 1]);
+    let server = TestServer::start().await;
+    let mut c = server.client().await;
+    for (name, b) in [("empty", &empty), ("short", &short)] {
+        let e = c.ingest(name, b).await.unwrap_err();
+        assert_eq!(e.code(), Some(Code::InvalidArgument), "{name}: {e}");
+        assert!(e.to_string().contains("declares"), "{name}: {e}");
+    }
+    assert!(c.list().await.unwrap().is_empty());
+    // The whole file is accepted.
+    c.ingest("whole", &bytes).await.unwrap();
+    server.stop().await;
+}

@@ -179,22 +179,33 @@ fn now_ms() -> u64 {
 }
 
 /// Checks one packet and returns its index entry.
+/// Decodes packet `i` and returns its index entry and the number of coefficients it holds.
 fn index_packet(
     prelude: &Prelude,
     i: usize,
     bytes: &[u8],
     offset: u64,
     budget: &DecodeBudget,
-) -> Result<PacketMeta, CacheError> {
+) -> Result<(PacketMeta, u64), CacheError> {
     let d = decode_packet_within(&prelude.header, bytes, budget)
         .map_err(|e| CacheError::InvalidUpload(format!("packet {i}: {e}")))?;
-    Ok(PacketMeta {
-        tile: d.tile as u32,
-        layer: d.layer as u32,
-        len: bytes.len() as u32,
-        offset,
-        summary: d.summary,
-    })
+    let held = d.coefficients.len() as u64;
+    Ok((
+        PacketMeta {
+            tile: d.tile as u32,
+            layer: d.layer as u32,
+            len: bytes.len() as u32,
+            offset,
+            summary: d.summary,
+        },
+        held,
+    ))
+}
+
+/// Refuses a file whose packets do not hold the coefficients its header declares.
+fn check_kept(prelude: &Prelude, held: u64) -> Result<(), CacheError> {
+    wavesplat_codec::format::check_kept(&prelude.header, held)
+        .map_err(|e| CacheError::InvalidUpload(e.to_string()))
 }
 
 /// Validates a whole file: parses it, decodes every packet, and builds its index.
@@ -208,11 +219,15 @@ pub fn index_file(bytes: &[u8], limits: &Limits) -> Result<VolumeIndex, CacheErr
     };
     let mut packets = Vec::with_capacity(file.packets.len());
     let mut offset = prelude.len() as u64;
+    let mut held = 0u64;
     for (i, p) in file.packets.iter().enumerate() {
         check_packet_size(p.len(), limits)?;
-        packets.push(index_packet(&prelude, i, p, offset, &limits.decode)?);
+        let (meta, n) = index_packet(&prelude, i, p, offset, &limits.decode)?;
+        packets.push(meta);
+        held += n;
         offset += p.len() as u64;
     }
+    check_kept(&prelude, held)?;
     Ok(VolumeIndex {
         header_bytes: bytes[..file.header_bytes].to_vec(),
         header: file.header,
@@ -660,6 +675,8 @@ struct Sink {
     header_bytes: Vec<u8>,
     packet_buf: Vec<u8>,
     packets: Vec<PacketMeta>,
+    /// Coefficients the packets so far hold.
+    held: u64,
     offset: u64,
     kept: bool,
 }
@@ -740,9 +757,10 @@ impl Sink {
         let take = (len - self.packet_buf.len()).min(data.len());
         self.packet_buf.extend_from_slice(&data[..take]);
         if self.packet_buf.len() == len {
-            let meta = index_packet(p, i, &self.packet_buf, self.offset, &limits.decode)?;
+            let (meta, held) = index_packet(p, i, &self.packet_buf, self.offset, &limits.decode)?;
             self.offset += len as u64;
             self.packets.push(meta);
+            self.held += held;
             self.packet_buf.clear();
         }
         // Progress: bytes taken, or (a packet of zero bytes) the packet count advanced.
@@ -802,6 +820,7 @@ impl Upload {
                 header_bytes: Vec::new(),
                 packet_buf: Vec::new(),
                 packets: Vec::new(),
+                held: 0,
                 offset: 0,
                 kept: false,
             })
@@ -890,6 +909,7 @@ impl Upload {
                         "the upload ends inside its header, directory or a packet".into(),
                     ));
                 };
+                check_kept(&prelude, s.held)?;
                 s.file.sync_all().map_err(|e| io("syncing an upload", e))?;
                 let id = s.id;
                 let path = store.file_path(id, "wsp");

@@ -43,8 +43,9 @@ pub fn decode_coefficients_within(
     budget: &DecodeBudget,
 ) -> Result<(Header, Vec<Coefficient>), DecodeError> {
     let file = parse_file(bytes)?;
-    let packets = decode_packets_within(&file.header, &file.packets, 0, budget)?;
-    Ok((file.header, packets.concat()))
+    let packets = decode_packets_within(&file.header, &file.packets, 0, budget)?.concat();
+    wavesplat_codec::format::check_kept(&file.header, packets.len() as u64)?;
+    Ok((file.header, packets))
 }
 
 /// Bytes of memory [`reconstruct`] allocates for the volume of `header`: one channel's

@@ -16,7 +16,7 @@ use std::sync::{Arc, Mutex};
 use std::time::Duration;
 use tokio::sync::mpsc;
 use wavesplat_client::{
-    CacheClient, ClientError, RefineEvent, RefineRequest, VolumeHeader, VolumeKey,
+    CacheClient, ClientError, ConnectOptions, RefineEvent, RefineRequest, VolumeHeader, VolumeKey,
 };
 use wavesplat_codec::format::packet::{decode_packet, read_framing, Coefficient};
 use wavesplat_codec::format::{parse_file, FormatError, Header};
@@ -49,6 +49,9 @@ pub struct SourceStatus {
     pub bytes: u64,
     /// Reconnections after a failure.
     pub reconnects: u64,
+    /// Packets the cache sent although they were held (stays 0: a stream starts with the
+    /// holdings, also after a reconnection); such packets are not delivered again.
+    pub resent: u64,
     /// The last problem, while it lasts (e.g. "cache unreachable, retrying: …").
     pub problem: Option<String>,
 }
@@ -113,6 +116,7 @@ impl FileSource {
     pub fn open(bytes: Vec<u8>, spec: &ViewSpec) -> Result<FileSource, SourceError> {
         let (header, ranges) = {
             let file = parse_file(&bytes)?;
+            file.check_packets()?;
             let base = bytes.as_ptr() as usize;
             let ranges: Vec<std::ops::Range<usize>> = file
                 .packets
@@ -290,10 +294,22 @@ impl std::fmt::Debug for Control {
 }
 
 impl CacheSource {
-    /// Connects to the cache at `url`, fetches the header of `volume` and starts pulling its
-    /// packets in the order of `spec`.
+    /// Connects to the cache at `url` (plaintext or TLS by its scheme, no token), fetches the
+    /// header of `volume` and starts pulling its packets in the order of `spec`.
     pub fn open(
         url: &str,
+        volume: VolumeKey,
+        spec: ViewSpec,
+        options: CacheSourceOptions,
+    ) -> Result<(CacheSource, VolumeHeader), SourceError> {
+        CacheSource::open_with(url, &ConnectOptions::default(), volume, spec, options)
+    }
+
+    /// [`CacheSource::open`] with a CA and a token (`connect`), used for the first connection
+    /// and every reconnection.
+    pub fn open_with(
+        url: &str,
+        connect: &ConnectOptions,
         volume: VolumeKey,
         spec: ViewSpec,
         options: CacheSourceOptions,
@@ -304,7 +320,7 @@ impl CacheSource {
             .build()
             .map_err(|e| SourceError::Thread(e.to_string()))?;
         let (client, header) = runtime.block_on(async {
-            let mut client = CacheClient::connect(url).await?;
+            let mut client = CacheClient::connect_with(url, connect).await?;
             let header = client.header(&volume).await?;
             Ok::<_, ClientError>((client, header))
         })?;
@@ -316,6 +332,7 @@ impl CacheSource {
         }));
         let task = Pull {
             url: url.to_string(),
+            connect: connect.clone(),
             volume,
             view: spec,
             options,
@@ -383,6 +400,8 @@ impl Drop for CacheSource {
 /// The network task's state.
 struct Pull {
     url: String,
+    /// CA and token for every (re)connection.
+    connect: ConnectOptions,
     volume: VolumeKey,
     view: ViewSpec,
     options: CacheSourceOptions,
@@ -420,7 +439,7 @@ impl Pull {
         loop {
             let c = match client.take() {
                 Some(c) => c,
-                None => match CacheClient::connect(&self.url).await {
+                None => match CacheClient::connect_with(&self.url, &self.connect).await {
                     Ok(c) => c,
                     Err(e) => {
                         self.update(|s| {
@@ -559,6 +578,8 @@ impl Pull {
                                 .ok()
                                 .map(|d| (d.tile, d.coefficients));
                             pending = Some(SourcePacket { id: p.id, data: p.data, decoded });
+                        } else {
+                            self.update(|s| s.resent += 1);
                         }
                     }
                     // A `done` for a view before the last one sent is stale: the new view
