@@ -44,11 +44,13 @@ pub struct ServeOptions {
     pub fairness: service::Fairness,
 }
 
-/// The access rule of every cache RPC: reading needs `read`, changing needs `write`; health
-/// checks are public; anything unknown needs `admin`.
+/// The access rule of every cache RPC: reading needs `read`, adding a volume `ingest` (which
+/// `write` implies), deleting `write`; health checks are public; anything unknown needs
+/// `admin`.
 pub fn access(path: &str) -> Access {
     match path.strip_prefix("/wavesplat.v1.Cache/") {
-        Some("Ingest" | "Delete") => Access::Role(Role::Write),
+        Some("Ingest") => Access::Role(Role::Ingest),
+        Some("Delete") => Access::Role(Role::Write),
         Some("List" | "Describe" | "FirstPackets" | "Header" | "PacketTable" | "Refine") => {
             Access::Role(Role::Read)
         }

@@ -656,8 +656,14 @@ impl Session {
                 }
                 Ok(())
             }
-            Some(pb::refine_request::Msg::Start(_)) | None => Err(CacheError::InvalidRequest(
-                "`start` may only be the first message".into(),
+            Some(pb::refine_request::Msg::Start(_)) => Err(CacheError::InvalidRequest(
+                "`start` may only be the first message of a stream".into(),
+            )
+            .into()),
+            None => Err(CacheError::InvalidRequest(
+                "an empty RefineRequest: a message after `start` carries a view, holdings or \
+                 credit"
+                    .into(),
             )
             .into()),
         }

@@ -1,8 +1,9 @@
 //! Authentication by bearer tokens with roles, and the access rule of every RPC.
 //!
 //! A token file has one token a line: `IDENTITY ROLES SECRET`, ROLES comma-separated from
-//! `read` (list, describe, stream), `write` (ingest, delete), `worker` (lease, heartbeat,
-//! finish) and `admin` (submit, cancel, retry; implies every other role). Blank lines and `#`
+//! `read` (list, describe, stream), `ingest` (add volumes, nothing else: what a worker needs at
+//! the cache), `write` (ingest and delete), `worker` (lease, heartbeat, finish) and `admin`
+//! (submit, cancel, retry; implies every other role). Blank lines and `#`
 //! comments are ignored. Secrets are at least 16 bytes; only their SHA-256 is kept, and a
 //! presented token is compared with every known one in constant time ([`subtle`]), so neither
 //! the position of the first differing byte nor which token matched shows in the timing.
@@ -61,7 +62,9 @@ pub enum AuthError {
 pub enum Role {
     /// List, describe, read headers and packets, stream; list and watch jobs.
     Read,
-    /// Ingest and delete volumes.
+    /// Add volumes (idempotent by content), nothing else: a worker's role at the cache.
+    Ingest,
+    /// Ingest and delete volumes (implies `ingest`).
     Write,
     /// Lease jobs, heartbeat, report outcomes, fetch uploaded sources.
     Worker,
@@ -74,6 +77,7 @@ impl Role {
     pub fn from_name(name: &str) -> Option<Role> {
         match name.trim().to_ascii_lowercase().as_str() {
             "read" => Some(Role::Read),
+            "ingest" => Some(Role::Ingest),
             "write" => Some(Role::Write),
             "worker" => Some(Role::Worker),
             "admin" => Some(Role::Admin),
@@ -85,6 +89,7 @@ impl Role {
     pub fn name(self) -> &'static str {
         match self {
             Role::Read => "read",
+            Role::Ingest => "ingest",
             Role::Write => "write",
             Role::Worker => "worker",
             Role::Admin => "admin",
@@ -97,7 +102,18 @@ impl Role {
             Role::Write => 2,
             Role::Worker => 4,
             Role::Admin => 8,
+            Role::Ingest => 16,
         }
+    }
+
+    /// The bits of the roles that grant this one: itself, `admin`, and for `ingest` also
+    /// `write`.
+    fn granted_by(self) -> u8 {
+        let implied = match self {
+            Role::Ingest => Role::Write.bit(),
+            _ => 0,
+        };
+        self.bit() | implied | Role::Admin.bit()
     }
 }
 
@@ -114,13 +130,13 @@ impl Caller {
     pub fn unrestricted(identity: String) -> Caller {
         Caller {
             identity,
-            roles: 0xf,
+            roles: 0x1f,
         }
     }
 
     /// Whether the caller may act in `role`.
     pub fn has(&self, role: Role) -> bool {
-        self.roles & (role.bit() | Role::Admin.bit()) != 0
+        self.roles & role.granted_by() != 0
     }
 }
 
@@ -160,7 +176,9 @@ impl Tokens {
             let mut bits = 0;
             for r in roles.split(',') {
                 let role = Role::from_name(r).ok_or_else(|| {
-                    syntax(format!("role {r:?}; allowed read, write, worker, admin"))
+                    syntax(format!(
+                        "role {r:?}; allowed read, ingest, write, worker, admin"
+                    ))
                 })?;
                 bits |= role.bit();
             }
@@ -407,10 +425,24 @@ mod tests {
         assert!(v.has(Role::Read) && !v.has(Role::Write) && !v.has(Role::Admin));
         let o = t.authenticate("0123456789abcdef-ops").unwrap();
         assert!(o.has(Role::Write) && o.has(Role::Worker) && !o.has(Role::Read));
+        // `write` implies `ingest`; `ingest` grants nothing else.
+        assert!(o.has(Role::Ingest));
+        let i = Tokens::parse("w worker,ingest 0123456789abcdef-w")
+            .unwrap()
+            .authenticate("0123456789abcdef-w")
+            .unwrap();
+        assert!(i.has(Role::Ingest) && i.has(Role::Worker));
+        assert!(!i.has(Role::Write) && !i.has(Role::Read) && !i.has(Role::Admin));
         let r = t.authenticate("0123456789abcdef-root").unwrap();
-        assert!([Role::Read, Role::Write, Role::Worker, Role::Admin]
-            .iter()
-            .all(|&x| r.has(x)));
+        assert!([
+            Role::Read,
+            Role::Ingest,
+            Role::Write,
+            Role::Worker,
+            Role::Admin
+        ]
+        .iter()
+        .all(|&x| r.has(x)));
         for bad in [
             "",
             "0123456789abcdef-viewe",

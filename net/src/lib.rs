@@ -6,7 +6,7 @@
 //! - [`deadline`]: the caller's deadline (`grpc-timeout`) as an instant a handler can honour;
 //! - [`tls`]: TLS for servers and clients, the one place a URL becomes an endpoint, and the
 //!   rule against exposing a server by accident;
-//! - [`auth`]: bearer tokens with roles (read, write, worker, admin), checked in constant time
+//! - [`auth`]: bearer tokens with roles (read, ingest, write, worker, admin), checked in constant time
 //!   by a layer in front of every service, and the clients' credentials.
 //!
 //! A server combines them in [`Security`].
@@ -62,8 +62,54 @@ impl Security {
         )
     }
 
+    /// What an operator should be told, once at start, about serving on `addr` with these
+    /// settings: nothing with TLS and tokens; otherwise who can read or change what.
+    pub fn warnings(&self, addr: std::net::SocketAddr) -> Vec<String> {
+        let tls = self.tls.is_some();
+        let auth = self.tokens.is_some();
+        let reach = if addr.ip().is_loopback() {
+            "anyone with an account on this machine".to_string()
+        } else {
+            format!("anyone who can reach {addr}")
+        };
+        match (tls, auth) {
+            (true, true) => Vec::new(),
+            (false, false) => vec![format!(
+                "warning: serving plaintext without tokens: {reach} can read and change \
+                 everything (give --tls-cert/--tls-key and --tokens; see the README's \
+                 \"Securing the services\")"
+            )],
+            (false, true) => vec![format!(
+                "warning: tokens are required but travel in plaintext: {reach} on the path can \
+                 read them and the data (give --tls-cert/--tls-key)"
+            )],
+            (true, false) => vec![format!(
+                "warning: serving TLS without tokens: {reach} can read and change everything \
+                 (give --tokens)"
+            )],
+        }
+    }
+
     /// The authentication layer for a service with `policy`.
     pub fn auth_layer(&self, policy: Policy) -> AuthLayer {
         AuthLayer::new(self.tokens.clone(), policy)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn unprotected_servers_are_warned_about_and_protected_ones_not() {
+        let addr: std::net::SocketAddr = "127.0.0.1:1".parse().unwrap();
+        assert_eq!(Security::default().warnings(addr).len(), 1);
+        let plain_tokens = Security {
+            tokens: Some(Arc::new(Tokens::parse("a read 0123456789abcdef").unwrap())),
+            ..Default::default()
+        };
+        let w = plain_tokens.warnings(addr);
+        assert_eq!(w.len(), 1);
+        assert!(w[0].contains("plaintext"), "{w:?}");
     }
 }

@@ -140,6 +140,57 @@ pub fn explain_connect_error(url: &str, e: &(dyn std::error::Error + 'static)) -
     }
 }
 
+/// How long [`speaks_tls`] waits for the server's first bytes.
+const PROBE_TIMEOUT: Duration = Duration::from_secs(2);
+
+/// Whether the server at `url` (a plaintext `http://` or bare URL) answers in TLS: sends the
+/// HTTP/2 connection preface, as a plaintext gRPC client does, and looks at the first bytes
+/// back. A TLS server answers bytes it cannot parse with a TLS alert record (content type 21,
+/// version 3.x); a plaintext HTTP/2 server with a SETTINGS frame. Written here because no
+/// library tells these apart after the fact: the gRPC client only reports "h2 protocol
+/// error" or "transport error".
+pub async fn speaks_tls(url: &str) -> bool {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let Some(authority) = url
+        .trim()
+        .strip_prefix("http://")
+        .or_else(|| (!url.contains("://")).then_some(url.trim()))
+    else {
+        return false;
+    };
+    let authority = authority.split('/').next().unwrap_or(authority);
+    let probe = async {
+        let mut s = tokio::net::TcpStream::connect(authority).await.ok()?;
+        s.write_all(b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n")
+            .await
+            .ok()?;
+        let mut first = [0u8; 3];
+        s.read_exact(&mut first).await.ok()?;
+        Some(first)
+    };
+    match tokio::time::timeout(PROBE_TIMEOUT, probe).await {
+        Ok(Some([content_type, 3, _])) => matches!(content_type, 21 | 22),
+        _ => false,
+    }
+}
+
+/// A status of a call to `url` explained for people: a plaintext client whose call failed at
+/// the transport (tonic says "h2 protocol error" or "transport error") against a server that
+/// speaks TLS is told to use `https://` and `--ca`. Other statuses are returned unchanged.
+pub async fn explain_status(url: &str, status: tonic::Status) -> tonic::Status {
+    let transport = matches!(
+        status.code(),
+        tonic::Code::Unknown | tonic::Code::Internal | tonic::Code::Unavailable
+    );
+    if url.trim().starts_with("https://") || !transport || !speaks_tls(url).await {
+        return status;
+    }
+    tonic::Status::unavailable(format!(
+        "the server at {url} speaks TLS: use https:// and --ca (the call failed: {})",
+        status.message()
+    ))
+}
+
 /// Refuses a non-loopback `addr` without both TLS and authentication, unless `insecure`.
 pub fn check_exposure(
     addr: SocketAddr,
