@@ -50,7 +50,7 @@ pub enum ViewError {
     #[error("view parameter {0} is not finite")]
     NotFinite(&'static str),
     /// An angle or pan beyond [`MAX_ABS_PARAM`].
-    #[error("view parameter {what} = {value} must satisfy |{what}| <= {max}", max = MAX_ABS_PARAM)]
+    #[error("view parameter {what} = {} must satisfy |{what}| <= {max}", Readable(*.value), max = Readable(MAX_ABS_PARAM))]
     OutOfRange {
         /// Which parameter.
         what: &'static str,
@@ -66,13 +66,13 @@ pub enum ViewError {
         height: usize,
     },
     /// Zoom must be positive and at most [`MAX_ZOOM`] pixels per voxel.
-    #[error("zoom {0} must be positive and give at most {max} pixels per voxel", max = MAX_ZOOM)]
+    #[error("zoom {} must be positive and give at most {max} pixels per voxel", Readable(*.0), max = Readable(MAX_ZOOM))]
     BadZoom(f64),
     /// The explicit basis is not orthonormal.
     #[error("the explicit view basis (u, v) is not orthonormal")]
     NotOrthonormal,
     /// The cue extinction must be within [0, [`MAX_CUE_K`]].
-    #[error("cue extinction k = {0} must be within [0, {max}] per unit of spacing", max = MAX_CUE_K)]
+    #[error("cue extinction k = {} must be within [0, {max}] per unit of spacing", Readable(*.0), max = Readable(MAX_CUE_K))]
     BadExtinction(f64),
     /// Depth cueing is not defined for multiview (the cue would rotate with each view).
     #[error("depth cueing cannot be combined with multiview")]
@@ -80,6 +80,23 @@ pub enum ViewError {
     /// Zero cue direction vector.
     #[error("the cue direction vector is zero")]
     ZeroCueDirection,
+}
+
+/// A number as people read it in a message: plain for ordinary magnitudes, in scientific
+/// notation for huge or tiny ones (Rust's `Display` for `f64` never uses an exponent, so
+/// `1e300` would print as 301 digits).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Readable(pub f64);
+
+impl std::fmt::Display for Readable {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let a = self.0.abs();
+        if self.0.is_finite() && a != 0.0 && !(1e-4..1e6).contains(&a) {
+            write!(f, "{:e}", self.0)
+        } else {
+            write!(f, "{}", self.0)
+        }
+    }
 }
 
 /// How the view is oriented.
@@ -696,4 +713,19 @@ pub fn resolve_cue(
         d0: dot(l, planes),
         planes,
     })
+}
+
+#[cfg(test)]
+mod readable_tests {
+    use super::*;
+
+    #[test]
+    fn huge_and_tiny_values_are_written_with_an_exponent() {
+        assert_eq!(Readable(1e300).to_string(), "1e300");
+        assert_eq!(Readable(-2.5e-9).to_string(), "-2.5e-9");
+        assert_eq!(Readable(0.66).to_string(), "0.66");
+        assert_eq!(Readable(0.0).to_string(), "0");
+        let e = bounded(1e300, "alpha").unwrap_err().to_string();
+        assert!(e.len() < 80 && e.contains("1e300"), "{e}");
+    }
 }
