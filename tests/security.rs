@@ -24,7 +24,7 @@ const ADMIN: &str = "0123456789abcdef-admin";
 fn tokens() -> Arc<Tokens> {
     Arc::new(
         Tokens::parse(&format!(
-            "viewer read {READ}\nuploader write {WRITE}\nw1 worker,write {WORKER}\n\
+            "viewer read {READ}\nuploader write {WRITE}\nw1 worker,ingest {WORKER}\n\
              root admin {ADMIN}\n"
         ))
         .unwrap(),
@@ -406,6 +406,10 @@ async fn every_orchestrator_rpc_checks_its_role_and_deliveries_are_confirmed() {
     // Real content under the job's name, but the worker lies about its id: still refused.
     let mut cw = client(&cache_url, None, Some(WORKER)).await;
     let stored = cw.ingest("vol", &bytes).await.unwrap().volume;
+    // A worker's token adds content and nothing else: it cannot delete.
+    let e = cw.delete(&VolumeKey::Name("vol".into())).await.unwrap_err();
+    assert_eq!(e.code(), Some(Code::PermissionDenied), "{e}");
+    assert_eq!(cache.store.list().unwrap().len(), 1);
     let lie = pb::Delivered {
         cache_volume_id: stored.id + 1,
         sha256: stored.sha256.clone(),
@@ -475,4 +479,318 @@ fn the_binary_serves_tls_with_tokens_and_its_clients_take_the_token_from_the_env
     assert!(String::from_utf8_lossy(&list.stdout).starts_with("v\t"));
     let _ = child.kill();
     let _ = child.wait();
+}
+
+fn wavesplat(args: &[&str], token: Option<&str>) -> std::process::Output {
+    let mut c = std::process::Command::new(env!("CARGO_BIN_EXE_wavesplat"));
+    c.args(args)
+        .env_remove("WAVESPLAT_TOKEN")
+        .env_remove("WAVESPLAT_CA");
+    if let Some(t) = token {
+        c.env("WAVESPLAT_TOKEN", t);
+    }
+    c.output().unwrap()
+}
+
+fn stderr(o: &std::process::Output) -> String {
+    String::from_utf8_lossy(&o.stderr).into_owned()
+}
+
+/// The orchestrator reads its arguments (and makes its delivery check) before its runtime
+/// starts; it used to exit 101 ("there is no reactor running") and so never checked anything.
+#[test]
+fn the_orchestrator_binary_with_a_cache_url_starts_and_refuses_unconfirmed_deliveries() {
+    let dir = tempfile::tempdir().unwrap();
+    let db = dir.path().join("orch");
+    let (mut child, addr) = common::spawn_server(&[
+        "serve",
+        "orchestrator",
+        "--db",
+        db.to_str().unwrap(),
+        "--addr",
+        "127.0.0.1:0",
+        "--cache",
+        "http://127.0.0.1:1",
+    ]);
+    let url = format!("http://{addr}");
+    let rt = tokio::runtime::Runtime::new().unwrap();
+    rt.block_on(async {
+        let mut c = orch_client(&url, None).await;
+        let spec = JobSpec {
+            name: "vol".into(),
+            source: Source::Path("/nonexistent/vol_16x16x16_f32.raw".into()),
+            sha256: [9; 32],
+            raw: None,
+            options: JobOptions::default(),
+        };
+        client::submit(&mut c, &spec, None).await.unwrap();
+        let l = c
+            .lease(pb::LeaseRequest { worker: "w".into() })
+            .await
+            .unwrap()
+            .into_inner()
+            .lease
+            .unwrap();
+        let made_up = pb::FinishRequest {
+            job_id: l.job_id,
+            attempt: l.attempt,
+            worker: "w".into(),
+            outcome: Some(pb::finish_request::Outcome::Delivered(pb::Delivered {
+                cache_volume_id: 424242,
+                output_bytes: 10,
+                voxels: 10,
+                existed: false,
+                sha256: "00".repeat(32),
+            })),
+        };
+        // The cache cannot confirm it (it is unreachable): the job is not done.
+        assert!(c.finish(made_up).await.is_err());
+        let jobs = client::list(&mut c).await.unwrap();
+        assert_eq!(
+            wavesplat_orchestrator::convert::state_name(jobs[0].state),
+            "running"
+        );
+    });
+    let _ = child.kill();
+    let _ = child.wait();
+}
+
+fn token_tokens_file(dir: &Path) -> PathBuf {
+    let tokens = dir.join("tokens");
+    std::fs::write(
+        &tokens,
+        format!("viewer read {READ}\nuploader write {WRITE}\nw1 worker,ingest {WORKER}\n"),
+    )
+    .unwrap();
+    tokens
+}
+
+/// `render --cache` and `view --cache` present a token like every other client command
+/// (`WAVESPLAT_TOKEN` or `--token-file`) and take `--ca` for https:// URLs.
+#[test]
+fn render_from_a_cache_with_tokens_takes_the_token_and_the_ca() {
+    let pki = pki();
+    let dir = tempfile::tempdir().unwrap();
+    let tokens = token_tokens_file(dir.path());
+    let wsp = dir.path().join("v.wsp");
+    std::fs::write(&wsp, test_file([16, 16, 16])).unwrap();
+    let db = dir.path().join("db");
+    let (mut child, addr) = common::spawn_server(&[
+        "serve",
+        "cache",
+        "--addr",
+        "127.0.0.1:0",
+        "--db",
+        db.to_str().unwrap(),
+        "--tls-cert",
+        pki.cert.to_str().unwrap(),
+        "--tls-key",
+        pki.key.to_str().unwrap(),
+        "--tokens",
+        tokens.to_str().unwrap(),
+    ]);
+    let url = format!("https://127.0.0.1:{}", addr.rsplit(':').next().unwrap());
+    let ca = pki.ca.to_str().unwrap();
+    let ingest = wavesplat(
+        &[
+            "cache",
+            "ingest",
+            wsp.to_str().unwrap(),
+            "--cache",
+            &url,
+            "--ca",
+            ca,
+        ],
+        Some(WORKER),
+    );
+    assert!(ingest.status.success(), "{}", stderr(&ingest));
+    let out = dir.path().join("out.png");
+    let render = |token: Option<&str>, extra: &[&str]| {
+        let mut args = vec![
+            "render",
+            "--cache",
+            &url,
+            "--volume",
+            "v",
+            "--ca",
+            ca,
+            "--size",
+            "32x32",
+            "-o",
+            out.to_str().unwrap(),
+        ];
+        args.extend_from_slice(extra);
+        wavesplat(&args, token)
+    };
+    let none = render(None, &[]);
+    assert!(!none.status.success());
+    assert!(
+        stderr(&none).contains("Unauthenticated"),
+        "{}",
+        stderr(&none)
+    );
+    let ok = render(Some(READ), &[]);
+    assert!(ok.status.success(), "{}", stderr(&ok));
+    assert!(out.exists());
+    let token_file = dir.path().join("viewer.token");
+    std::fs::write(&token_file, format!("{READ}\n")).unwrap();
+    let from_file = render(None, &["--token-file", token_file.to_str().unwrap()]);
+    assert!(from_file.status.success(), "{}", stderr(&from_file));
+    // `view` takes the same flags (parsing only: no display here).
+    let help = wavesplat(&["view", "--help"], None);
+    let help = String::from_utf8_lossy(&help.stdout);
+    assert!(
+        help.contains("--token-file") && help.contains("--ca"),
+        "{help}"
+    );
+    // A worker's token (`ingest`) cannot delete through the CLI either.
+    let rm = wavesplat(
+        &["cache", "rm", "v", "--cache", &url, "--ca", ca],
+        Some(WORKER),
+    );
+    assert!(!rm.status.success());
+    assert!(stderr(&rm).contains("PermissionDenied"), "{}", stderr(&rm));
+    let _ = child.kill();
+    let _ = child.wait();
+}
+
+/// A file whose header declares coefficients its packets do not hold renders or decompresses
+/// to nothing: refused, saying so.
+#[test]
+fn render_and_decompress_refuse_a_file_without_the_packets_its_header_declares() {
+    let bytes = test_file([16, 16, 16]);
+    let file = wavesplat_codec::format::parse_file(&bytes).unwrap();
+    let empty = wavesplat_codec::format::write_file(&file.header, &[]);
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("empty.wsp");
+    std::fs::write(&path, &empty).unwrap();
+    let p = path.to_str().unwrap();
+    let png = dir.path().join("x.png");
+    for args in [
+        vec!["render", p, "-o", png.to_str().unwrap()],
+        vec![
+            "decompress",
+            p,
+            "-o",
+            dir.path().join("x.f32").to_str().unwrap(),
+        ],
+    ] {
+        let o = wavesplat(&args, None);
+        assert!(!o.status.success(), "{args:?}");
+        assert!(stderr(&o).contains("declares"), "{args:?}: {}", stderr(&o));
+    }
+    assert!(!png.exists());
+}
+
+/// What an operator is told at start: a warning, once, for each unprotected setting.
+#[test]
+fn servers_warn_once_at_start_when_unprotected() {
+    let dir = tempfile::tempdir().unwrap();
+    let tokens = token_tokens_file(dir.path());
+    let db = dir.path().join("a");
+    let (child, _) = common::spawn_server_with_stderr(&[
+        "serve",
+        "cache",
+        "--addr",
+        "127.0.0.1:0",
+        "--db",
+        db.to_str().unwrap(),
+    ]);
+    let err = common::stop_and_read_stderr(child);
+    assert_eq!(err.matches("warning:").count(), 1, "{err}");
+    assert!(err.contains("without tokens"), "{err}");
+    let db = dir.path().join("b");
+    let (child, _) = common::spawn_server_with_stderr(&[
+        "serve",
+        "orchestrator",
+        "--addr",
+        "127.0.0.1:0",
+        "--db",
+        db.to_str().unwrap(),
+        "--tokens",
+        tokens.to_str().unwrap(),
+    ]);
+    let err = common::stop_and_read_stderr(child);
+    assert_eq!(err.matches("warning:").count(), 1, "{err}");
+    assert!(err.contains("plaintext"), "{err}");
+}
+
+/// A refused exposure is refused before anything is bound or announced.
+#[test]
+fn an_exposed_address_is_refused_before_listening() {
+    let dir = tempfile::tempdir().unwrap();
+    for service in ["cache", "orchestrator"] {
+        let db = dir.path().join(service);
+        let o = wavesplat(
+            &[
+                "serve",
+                service,
+                "--addr",
+                "0.0.0.0:0",
+                "--db",
+                db.to_str().unwrap(),
+            ],
+            None,
+        );
+        assert!(!o.status.success());
+        let out = String::from_utf8_lossy(&o.stdout);
+        assert!(!out.contains("listening on"), "{service}: {out}");
+        assert!(stderr(&o).contains("refusing"), "{}", stderr(&o));
+    }
+}
+
+/// A plaintext client against a TLS server is told what to do.
+#[test]
+fn a_plaintext_client_against_a_tls_server_is_told_to_use_https() {
+    let pki = pki();
+    let dir = tempfile::tempdir().unwrap();
+    let tokens = token_tokens_file(dir.path());
+    let db = dir.path().join("db");
+    let (mut child, addr) = common::spawn_server(&[
+        "serve",
+        "cache",
+        "--addr",
+        "127.0.0.1:0",
+        "--db",
+        db.to_str().unwrap(),
+        "--tls-cert",
+        pki.cert.to_str().unwrap(),
+        "--tls-key",
+        pki.key.to_str().unwrap(),
+        "--tokens",
+        tokens.to_str().unwrap(),
+    ]);
+    let plain = format!("http://{addr}");
+    let o = wavesplat(&["cache", "list", "--cache", &plain], Some(READ));
+    assert!(!o.status.success());
+    assert!(
+        stderr(&o).contains("speaks TLS: use https:// and --ca"),
+        "{}",
+        stderr(&o)
+    );
+    let _ = child.kill();
+    let _ = child.wait();
+}
+
+/// Values far out of range are echoed readably, not as hundreds of digits.
+#[test]
+fn huge_view_values_are_echoed_readably() {
+    let dir = tempfile::tempdir().unwrap();
+    let wsp = dir.path().join("v.wsp");
+    std::fs::write(&wsp, test_file([16, 16, 16])).unwrap();
+    let o = wavesplat(
+        &[
+            "render",
+            wsp.to_str().unwrap(),
+            "--alpha",
+            "1e300",
+            "-o",
+            dir.path().join("x.png").to_str().unwrap(),
+        ],
+        None,
+    );
+    assert!(!o.status.success());
+    let e = stderr(&o);
+    assert!(e.contains("1e300"), "{e}");
+    assert!(!e.contains("0000000000"), "{e}");
 }

@@ -211,6 +211,8 @@ pub type Transport = InterceptedService<Channel, Credentials>;
 #[derive(Debug, Clone)]
 pub struct CacheClient {
     inner: pb::cache_client::CacheClient<Transport>,
+    /// The URL, for explaining transport failures (a plaintext URL against a TLS server).
+    url: std::sync::Arc<str>,
 }
 
 impl CacheClient {
@@ -228,29 +230,43 @@ impl CacheClient {
         let (url, endpoint) = endpoint(url, options)?;
         let channel = endpoint.connect().await.map_err(|e| ClientError::Connect {
             reason: wavesplat_net::tls::explain_connect_error(&url, &e),
-            url,
+            url: url.clone(),
         })?;
-        Ok(CacheClient::over(channel, options))
+        Ok(CacheClient::over(channel, &url, options))
     }
 
     /// A client that connects on first use and reconnects after failures (for long-lived
     /// callers such as workers, which may start before the cache does).
     pub fn connect_lazy(url: &str, options: &ConnectOptions) -> Result<CacheClient, ClientError> {
-        let (_, endpoint) = endpoint(url, options)?;
-        Ok(CacheClient::over(endpoint.connect_lazy(), options))
+        let (url, endpoint) = endpoint(url, options)?;
+        Ok(CacheClient::over(endpoint.connect_lazy(), &url, options))
     }
 
-    fn over(channel: Channel, options: &ConnectOptions) -> CacheClient {
+    /// The result of a call, its failure explained ([`wavesplat_net::tls::explain_status`]).
+    async fn checked<T>(&self, r: Result<T, tonic::Status>) -> Result<T, ClientError> {
+        match r {
+            Ok(t) => Ok(t),
+            Err(s) => Err(wavesplat_net::tls::explain_status(&self.url, s)
+                .await
+                .into()),
+        }
+    }
+
+    fn over(channel: Channel, url: &str, options: &ConnectOptions) -> CacheClient {
         let channel = InterceptedService::new(channel, options.credentials.clone());
         let inner = pb::cache_client::CacheClient::new(channel)
             .max_decoding_message_size(MAX_MESSAGE_BYTES)
             .max_encoding_message_size(CHUNK_BYTES + (1 << 20));
-        CacheClient { inner }
+        CacheClient {
+            inner,
+            url: url.into(),
+        }
     }
 
     /// Every stored volume, ordered by name.
     pub async fn list(&mut self) -> Result<Vec<VolumeInfo>, ClientError> {
-        let r = self.inner.list(pb::ListRequest {}).await?.into_inner();
+        let r = self.inner.list(pb::ListRequest {}).await;
+        let r = self.checked(r).await?.into_inner();
         r.volumes.into_iter().map(convert::volume_info).collect()
     }
 
@@ -261,7 +277,8 @@ impl CacheClient {
             .describe(pb::DescribeRequest {
                 volume: Some(convert::volume_ref(key)),
             })
-            .await?;
+            .await;
+        let r = self.checked(r).await?;
         convert::volume_info(r.into_inner())
     }
 
@@ -272,7 +289,8 @@ impl CacheClient {
             .header(pb::DescribeRequest {
                 volume: Some(convert::volume_ref(key)),
             })
-            .await?;
+            .await;
+        let r = self.checked(r).await?;
         convert::volume_header(r.into_inner())
     }
 
@@ -283,7 +301,8 @@ impl CacheClient {
             .packet_table(pb::DescribeRequest {
                 volume: Some(convert::volume_ref(key)),
             })
-            .await?;
+            .await;
+        let r = self.checked(r).await?;
         Ok(r.into_inner()
             .packets
             .into_iter()
@@ -303,18 +322,16 @@ impl CacheClient {
             .delete(pb::DeleteRequest {
                 volume: Some(convert::volume_ref(key)),
             })
-            .await?;
+            .await;
+        let r = self.checked(r).await?;
         Ok(r.into_inner().id)
     }
 
     /// Uploads a `.wsp` file under `name` (in chunks, with its SHA-256).
     pub async fn ingest(&mut self, name: &str, bytes: &[u8]) -> Result<Ingested, ClientError> {
         let msgs = convert::ingest_messages(name, bytes, Sha256::digest(bytes).into());
-        let r = self
-            .inner
-            .ingest(tokio_stream::iter(msgs))
-            .await?
-            .into_inner();
+        let r = self.inner.ingest(tokio_stream::iter(msgs)).await;
+        let r = self.checked(r).await?.into_inner();
         Ok(Ingested {
             volume: convert::volume_info(
                 r.volume
@@ -336,15 +353,21 @@ impl CacheClient {
                 volume: Some(convert::volume_ref(key)),
                 max_bytes,
             })
-            .await?
-            .into_inner();
+            .await;
+        let r = self.checked(r).await?.into_inner();
         let (header, _) = read_header_section(&r.header)?;
         Ok((header, r.packets.into_iter().map(convert::packet).collect()))
     }
 
     /// Opens a view-dependent refinement stream.
     pub async fn refine(&mut self, request: RefineRequest) -> Result<RefineStream, ClientError> {
-        refine::open(&mut self.inner, request).await
+        match refine::open(&mut self.inner, request).await {
+            Err(ClientError::Status { code, message }) => Err(self
+                .checked::<()>(Err(tonic::Status::new(code, message)))
+                .await
+                .unwrap_err()),
+            r => r,
+        }
     }
 
     /// Streams packets for one view until the server is done or `max_bytes` of packet data

@@ -123,7 +123,7 @@ pub fn run_serve(cmd: ServeCommand) -> Result<()> {
     let store = Store::open(&a.db, limits)
         .with_context(|| format!("opening the cache database {}", a.db.display()))?;
     runtime()?.block_on(async move {
-        let listener = super::bind_announced(&a.addr).await?;
+        let listener = super::bind_announced(&a.addr, &options.security).await?;
         let shutdown = super::ctrl_c();
         wavesplat_cache::serve_with(listener, store, options, shutdown).await?;
         Ok(())

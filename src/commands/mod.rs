@@ -57,12 +57,29 @@ impl TargetArgs {
 }
 
 /// Binds a server's listener and prints `listening on ADDR` (scripts and tests read the bound
-/// address, e.g. for port 0, from that line).
-pub async fn bind_announced(addr: &str) -> Result<tokio::net::TcpListener> {
-    let listener = tokio::net::TcpListener::bind(addr)
+/// address, e.g. for port 0, from that line). The exposure rule is checked on every address
+/// `addr` resolves to before anything is bound or printed, and what the operator should know
+/// about the server's protection is said once on stderr.
+pub async fn bind_announced(
+    addr: &str,
+    security: &wavesplat_net::Security,
+) -> Result<tokio::net::TcpListener> {
+    let candidates: Vec<std::net::SocketAddr> = tokio::net::lookup_host(addr)
+        .await
+        .with_context(|| format!("resolving the listen address {addr:?} (HOST:PORT)"))?
+        .collect();
+    for a in &candidates {
+        security.check(*a)?;
+    }
+    let listener = tokio::net::TcpListener::bind(&candidates[..])
         .await
         .with_context(|| format!("binding {addr}"))?;
-    outln!("listening on {}", listener.local_addr()?);
+    let bound = listener.local_addr()?;
+    security.check(bound)?;
+    for w in security.warnings(bound) {
+        eprintln!("{w}");
+    }
+    outln!("listening on {bound}");
     use std::io::Write;
     std::io::stdout().flush()?;
     Ok(listener)

@@ -83,7 +83,7 @@ pub struct WorkerArgs {
     #[arg(long, default_value_t = 0, hide = true)]
     pub pause_before_upload_ms: u64,
     /// CA and token for both services (the token needs `worker` at the orchestrator and
-    /// `write` at the cache).
+    /// `ingest` at the cache).
     #[command(flatten)]
     pub security: super::security::ClientSecurityArgs,
 }
@@ -244,6 +244,19 @@ async fn connect(
         .with_context(|| format!("connecting to the orchestrator at {url}"))
 }
 
+/// `e` with what a failure at the transport means, when it does: a plaintext URL against a
+/// server that speaks TLS ([`wavesplat_net::tls::explain_status`]).
+async fn explain(url: &str, e: anyhow::Error) -> anyhow::Error {
+    let Some(s) = e.chain().find_map(|c| c.downcast_ref::<tonic::Status>()) else {
+        return e;
+    };
+    let explained = wavesplat_net::tls::explain_status(url, s.clone()).await;
+    if explained.message() == s.message() {
+        return e;
+    }
+    e.context(explained.message().to_string())
+}
+
 /// Runs `wavesplat serve orchestrator`.
 pub fn run_serve(a: ServeOrchestratorArgs) -> Result<()> {
     if !(a.lease_secs.is_finite() && a.lease_secs > 0.0) {
@@ -276,7 +289,7 @@ pub fn run_serve(a: ServeOrchestratorArgs) -> Result<()> {
     let store = Store::open(&a.db)
         .with_context(|| format!("opening the orchestrator database {}", a.db.display()))?;
     runtime()?.block_on(async move {
-        let listener = super::bind_announced(&a.addr).await?;
+        let listener = super::bind_announced(&a.addr, &options.security).await?;
         let shutdown = super::ctrl_c();
         wavesplat_orchestrator::serve_with(listener, store, config, options, shutdown).await?;
         Ok(())
@@ -333,12 +346,22 @@ pub fn run_archive(cmd: ArchiveCommand) -> Result<()> {
     if scan.found.is_empty() {
         bail!("no supported volumes under {}", a.dir.display());
     }
+    let url = a.orchestrator.clone();
     runtime()?.block_on(async move {
+        match submit_all(a, &scan, &options).await {
+            Err(e) => Err(explain(&url, e).await),
+            ok => ok,
+        }
+    })
+}
+
+async fn submit_all(a: SubmitArgs, scan: &archive::Scan, options: &JobOptions) -> Result<()> {
+    {
         let mut c = connect(&a.orchestrator, &a.security).await?;
         let mut ids = HashSet::new();
         let (mut new, mut known) = (0, 0);
         for f in &scan.found {
-            let (spec, bytes) = archive::job_spec(f, &options, a.upload)
+            let (spec, bytes) = archive::job_spec(f, options, a.upload)
                 .with_context(|| format!("reading {}", f.path.display()))?;
             let r = client::submit(&mut c, &spec, bytes.as_deref())
                 .await
@@ -364,12 +387,25 @@ pub fn run_archive(cmd: ArchiveCommand) -> Result<()> {
             return Ok(());
         }
         watch(&mut c, Some(&ids)).await
-    })
+    }
 }
 
 /// Runs `wavesplat jobs …`.
 pub fn run_jobs(cmd: JobsCommand) -> Result<()> {
+    let url = match &cmd {
+        JobsCommand::List(u) | JobsCommand::Watch(u) => u.orchestrator.clone(),
+        JobsCommand::Cancel(a) | JobsCommand::Retry(a) => a.url.orchestrator.clone(),
+    };
     runtime()?.block_on(async move {
+        match jobs(cmd).await {
+            Err(e) => Err(explain(&url, e).await),
+            ok => ok,
+        }
+    })
+}
+
+async fn jobs(cmd: JobsCommand) -> Result<()> {
+    {
         match cmd {
             JobsCommand::List(u) => {
                 let mut c = connect(&u.orchestrator, &u.security).await?;
@@ -399,7 +435,7 @@ pub fn run_jobs(cmd: JobsCommand) -> Result<()> {
             }
         }
         Ok(())
-    })
+    }
 }
 
 fn job_name(j: &pb::Job) -> &str {

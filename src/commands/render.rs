@@ -27,12 +27,17 @@ pub struct ViewArgs {
     /// The .wsp file (or use --cache and --volume).
     #[arg(required_unless_present = "cache")]
     pub input: Option<PathBuf>,
-    /// Cache URL (`http://HOST:PORT` or `HOST:PORT`) to render from, with --volume.
+    /// Cache URL (`https://HOST:PORT` for TLS, `http://HOST:PORT` or `HOST:PORT` for
+    /// plaintext) to render from, with --volume; --ca and --token-file (or WAVESPLAT_CA and
+    /// WAVESPLAT_TOKEN, a `read` token) say how to reach it.
     #[arg(long, requires = "volume", conflicts_with = "input")]
     pub cache: Option<String>,
     /// Name of the volume in the cache.
     #[arg(long, requires = "cache")]
     pub volume: Option<String>,
+    /// CA and token for --cache.
+    #[command(flatten)]
+    pub security: super::security::ClientSecurityArgs,
     /// Azimuth α of the view (radians, paper §3.1).
     #[arg(long, default_value_t = 0.66, allow_negative_numbers = true)]
     pub alpha: f64,
@@ -244,6 +249,8 @@ pub enum Opened {
     Cache {
         /// The cache URL.
         url: String,
+        /// CA and token.
+        connect: wavesplat_client::ConnectOptions,
         /// The volume.
         key: VolumeKey,
         /// The pulling source.
@@ -280,12 +287,14 @@ pub fn open(args: &ViewArgs, byte_budget: Option<u64>) -> Result<(Header, Opened
         }
         (None, Some(url), Some(name)) => {
             let key = VolumeKey::Name(name.clone());
+            let connect = args.security.options()?;
             let spec = match &args.view {
                 // A named view needs the volume's placement before the stream starts.
                 Some(_) => {
-                    let header = wavesplat_client::blocking::CacheClient::connect(url)
-                        .and_then(|mut c| c.header(&key))
-                        .with_context(|| format!("reading the header of {name:?} at {url}"))?;
+                    let header =
+                        wavesplat_client::blocking::CacheClient::connect_with(url, &connect)
+                            .and_then(|mut c| c.header(&key))
+                            .with_context(|| format!("reading the header of {name:?} at {url}"))?;
                     args.spec_for(&header.header)?
                 }
                 None => args.spec()?,
@@ -294,12 +303,14 @@ pub fn open(args: &ViewArgs, byte_budget: Option<u64>) -> Result<(Header, Opened
                 byte_budget,
                 ..CacheSourceOptions::default()
             };
-            let (source, header) = CacheSource::open(url, key.clone(), spec, options)
-                .with_context(|| format!("opening {name:?} at {url}"))?;
+            let (source, header) =
+                CacheSource::open_with(url, &connect, key.clone(), spec, options)
+                    .with_context(|| format!("opening {name:?} at {url}"))?;
             Ok((
                 header.header,
                 Opened::Cache {
                     url: url.clone(),
+                    connect,
                     key,
                     source,
                 },
@@ -315,12 +326,14 @@ pub fn open(args: &ViewArgs, byte_budget: Option<u64>) -> Result<(Header, Opened
 fn all_coefficients(opened: &Opened, header: &Header) -> Result<Vec<Coefficient>> {
     match opened {
         Opened::File { source } => Ok(load_coefficients(source.file_bytes(), None, None)?.1),
-        Opened::Cache { url, key, .. } => {
+        Opened::Cache {
+            url, connect, key, ..
+        } => {
             let runtime = tokio::runtime::Builder::new_current_thread()
                 .enable_all()
                 .build()?;
             let packets = runtime.block_on(async {
-                let mut c = wavesplat_client::CacheClient::connect(url).await?;
+                let mut c = wavesplat_client::CacheClient::connect_with(url, connect).await?;
                 let request = wavesplat_client::RefineRequest::new(
                     key.clone(),
                     ViewSpec::single(View::new(0.0, 0.0, 1, 1)),
@@ -466,7 +479,10 @@ pub fn run(a: RenderArgs) -> Result<()> {
     // not counting the reference rendering.
     let mut first_image: Option<Duration> = None;
     let mut n = 0u64;
-    let mut idle_frames = 0u32;
+    // How long the cache may stay unreachable before the render gives up (a restarting cache
+    // takes seconds; the stream resumes with what the viewer holds).
+    const PATIENCE: Duration = Duration::from_secs(30);
+    let mut unreachable_since: Option<Instant> = None;
     loop {
         let report = frames.frame(frame)?;
         n += 1;
@@ -516,16 +532,18 @@ pub fn run(a: RenderArgs) -> Result<()> {
                 break;
             }
             // Waiting on the network: don't spin.
-            idle_frames += 1;
-            if !status.connected && idle_frames > 600 {
+            if status.connected {
+                unreachable_since = None;
+            } else if unreachable_since.get_or_insert_with(Instant::now).elapsed() > PATIENCE {
                 bail!(
-                    "the cache is unreachable: {}",
+                    "the cache has been unreachable for {} s: {}",
+                    PATIENCE.as_secs(),
                     status.problem.unwrap_or_default()
                 );
             }
             std::thread::sleep(Duration::from_millis(2));
         } else {
-            idle_frames = 0;
+            unreachable_since = None;
         }
     }
     let elapsed = start.elapsed();
@@ -557,6 +575,13 @@ pub fn run(a: RenderArgs) -> Result<()> {
         elapsed.as_secs_f64() * 1e3,
         frames.session.backend_name()
     );
+    if a.view.cache.is_some() {
+        outln!(
+            "cache stream: {} reconnections, {} packets sent again",
+            status.reconnects,
+            status.resent
+        );
+    }
     if let Some(t) = first_image {
         outln!(
             "opened in {:.1} ms, first image {:.1} ms after opening",

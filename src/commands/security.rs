@@ -25,7 +25,7 @@ pub struct ServerSecurityArgs {
     #[arg(long, requires = "tls_cert", value_name = "PEM")]
     pub tls_key: Option<PathBuf>,
     /// Require tokens from this file: one `IDENTITY ROLES SECRET` a line, roles from read,
-    /// write, worker, admin (default: the file named by WAVESPLAT_TOKENS_FILE, else none).
+    /// ingest, write, worker, admin (default: the file named by WAVESPLAT_TOKENS_FILE, else none).
     #[arg(long, value_name = "FILE")]
     pub tokens: Option<PathBuf>,
     /// Serve on a non-loopback address without TLS and tokens (trusted networks only).

@@ -59,7 +59,7 @@ pub struct WorkerConfig {
     /// Testing aid: pause this long after compressing, before uploading (ms).
     pub pause_before_upload_ms: u64,
     /// CA and token for both services (the token needs the `worker` role at the orchestrator
-    /// and `write` at the cache).
+    /// and `ingest` at the cache).
     pub connect: ConnectOptions,
 }
 
