@@ -1,22 +1,45 @@
 //! Bounded load test on loopback: one in-process cache (sled in a tempdir) holding a
 //! Shepp–Logan phantom, then rounds of 1, 32 and 64 concurrent refinement streams started at
-//! once (each a different view, each reading every packet). Prints a CSV: clients, packets/s,
-//! MB/s, first-packet latency p50/p99 (ms, from opening the stream to its first packet), wall
-//! time; on stderr, the CPU time of planning one view (the bulk of a session start). No
-//! assertions; figures go to BENCHMARKS.md.
+//! once (each a different view, each reading every packet), first in plaintext without tokens,
+//! then over TLS with tokens (a CA and certificate made here with rcgen, a `read` token), on
+//! the same store in the same process. Prints a CSV: transport, clients, packets/s, MB/s,
+//! connect p50/p99 (TCP, and for TLS the handshake), first-packet latency p50/p99 (ms, from
+//! opening the stream to its first packet) and from the start of connecting, wall time; on
+//! stderr, the CPU time of planning one view (the bulk of a session start). No assertions;
+//! figures go to BENCHMARKS.md.
 //!
 //! `cargo run --release -p wavesplat-cache --example load [EDGE] [ROUNDS]`
 
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 use wavesplat_cache::{Limits, Store};
-use wavesplat_client::{CacheClient, RefineEvent, RefineRequest, VolumeKey};
+use wavesplat_client::{
+    CacheClient, ConnectOptions, Credentials, RefineEvent, RefineRequest, VolumeKey,
+};
 use wavesplat_codec::view::ViewSpec;
 use wavesplat_compressor::encode::{compress, CompressOptions, Target, TileChoice};
 use wavesplat_compressor::phantom::Phantom;
+use wavesplat_net::{Security, Tokens};
 use wavesplat_viewer::View;
 
-async fn one_stream(url: String, key: VolumeKey, i: usize) -> (Duration, u64, u64) {
-    let mut c = CacheClient::connect(&url).await.expect("connect");
+const READ_TOKEN: &str = "0123456789abcdef-load-read";
+
+/// One stream's times: connecting, first packet after opening the stream, first packet after
+/// starting to connect; and its packets and bytes.
+struct StreamTimes {
+    connect: Duration,
+    first: Duration,
+    first_from_connect: Duration,
+    packets: u64,
+    bytes: u64,
+}
+
+async fn one_stream(url: String, options: ConnectOptions, key: VolumeKey, i: usize) -> StreamTimes {
+    let t_connect = Instant::now();
+    let mut c = CacheClient::connect_with(&url, &options)
+        .await
+        .expect("connect");
+    let connect = t_connect.elapsed();
     let view = ViewSpec::single(View::new(0.1 * i as f64, 0.05 * i as f64, 256, 256));
     let t0 = Instant::now();
     let mut s = c
@@ -28,7 +51,7 @@ async fn one_stream(url: String, key: VolumeKey, i: usize) -> (Duration, u64, u6
     while let Some(e) = s.next().await.expect("stream") {
         match e {
             RefineEvent::Packet(p) => {
-                first.get_or_insert_with(|| t0.elapsed());
+                first.get_or_insert_with(|| (t0.elapsed(), t_connect.elapsed()));
                 packets += 1;
                 bytes += p.data.len() as u64;
             }
@@ -36,7 +59,38 @@ async fn one_stream(url: String, key: VolumeKey, i: usize) -> (Duration, u64, u6
             RefineEvent::Header(_) => {}
         }
     }
-    (first.unwrap_or_default(), packets, bytes)
+    let (first, first_from_connect) = first.unwrap_or_default();
+    StreamTimes {
+        connect,
+        first,
+        first_from_connect,
+        packets,
+        bytes,
+    }
+}
+
+/// A CA and a certificate for 127.0.0.1 signed by it, written into `dir`; returns the CA's
+/// path and the server's TLS settings.
+fn pki(dir: &std::path::Path) -> (std::path::PathBuf, tonic::transport::ServerTlsConfig) {
+    let mut ca_params = rcgen::CertificateParams::new(Vec::<String>::new()).unwrap();
+    ca_params.is_ca = rcgen::IsCa::Ca(rcgen::BasicConstraints::Unconstrained);
+    let ca_key = rcgen::KeyPair::generate().unwrap();
+    let ca = ca_params.self_signed(&ca_key).unwrap();
+    let params = rcgen::CertificateParams::new(vec!["127.0.0.1".to_string()]).unwrap();
+    let key = rcgen::KeyPair::generate().unwrap();
+    let cert = params.signed_by(&key, &ca, &ca_key).unwrap();
+    let (ca_path, cert_path, key_path) = (
+        dir.join("ca.pem"),
+        dir.join("cert.pem"),
+        dir.join("key.pem"),
+    );
+    std::fs::write(&ca_path, ca.pem()).unwrap();
+    std::fs::write(&cert_path, cert.pem()).unwrap();
+    std::fs::write(&key_path, key.serialize_pem()).unwrap();
+    (
+        ca_path,
+        wavesplat_net::tls::server_tls(&cert_path, &key_path).unwrap(),
+    )
 }
 
 fn percentile(sorted: &[Duration], p: f64) -> f64 {
@@ -83,60 +137,108 @@ async fn main() {
         t.elapsed().as_secs_f64() * 1e3 / 64.0
     );
     let dir = tempfile::tempdir().unwrap();
-    let store = Store::open(dir.path(), Limits::default()).unwrap();
-    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
-    let url = format!("http://{}", listener.local_addr().unwrap());
-    let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
-    let options = wavesplat_cache::ServeOptions {
-        fairness: wavesplat_cache::service::Fairness {
-            max_streams_per_caller: 1024,
-            ..Default::default()
-        },
-        ..Default::default()
-    };
-    let server = tokio::spawn(wavesplat_cache::serve_with(
-        listener,
-        store,
-        options,
-        async {
-            let _ = stopped.await;
-        },
-    ));
-    let mut c = CacheClient::connect(&url).await.unwrap();
-    let info = c.ingest("phantom", &bytes).await.unwrap().volume;
-    eprintln!(
-        "volume {edge}^3: {} bytes, {} packets, {} tiles",
-        info.file_bytes, info.packet_count, info.tile_count
+    let store = Store::open(dir.path().join("db"), Limits::default()).unwrap();
+    let (ca, tls) = pki(dir.path());
+    let tokens = Arc::new(
+        Tokens::parse(&format!(
+            "load read {READ_TOKEN}\nadmin admin 0123456789abcdef-load-admin\n"
+        ))
+        .unwrap(),
     );
     println!(
-        "clients,rounds,packets_per_s,mb_per_s,first_packet_p50_ms,first_packet_p99_ms,wall_s"
+        "transport,clients,rounds,packets_per_s,mb_per_s,connect_p50_ms,connect_p99_ms,first_packet_p50_ms,first_packet_p99_ms,first_from_connect_p99_ms,wall_s"
     );
-    for clients in [1usize, 32, 64] {
-        let mut firsts = Vec::new();
-        let (mut packets, mut total) = (0u64, 0u64);
-        let t0 = Instant::now();
-        for _ in 0..rounds {
-            let tasks: Vec<_> = (0..clients)
-                .map(|i| tokio::spawn(one_stream(url.clone(), VolumeKey::Id(info.id), i)))
-                .collect();
-            for t in tasks {
-                let (f, p, b) = t.await.unwrap();
-                firsts.push(f);
-                packets += p;
-                total += b;
+    let mut id = None;
+    for (transport, security, options) in [
+        ("plaintext", Security::default(), ConnectOptions::default()),
+        (
+            "tls+tokens",
+            Security {
+                tls: Some(tls),
+                tokens: Some(tokens),
+                insecure: false,
+            },
+            ConnectOptions {
+                ca: Some(ca.clone()),
+                credentials: Credentials::token(READ_TOKEN).unwrap(),
+            },
+        ),
+    ] {
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let port = listener.local_addr().unwrap().port();
+        let url = match transport {
+            "plaintext" => format!("http://127.0.0.1:{port}"),
+            _ => format!("https://127.0.0.1:{port}"),
+        };
+        let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
+        let serve_options = wavesplat_cache::ServeOptions {
+            security,
+            fairness: wavesplat_cache::service::Fairness {
+                max_streams_per_caller: 1024,
+                ..Default::default()
+            },
+        };
+        let server = tokio::spawn(wavesplat_cache::serve_with(
+            listener,
+            store.clone(),
+            serve_options,
+            async {
+                let _ = stopped.await;
+            },
+        ));
+        let volume = match id {
+            Some(id) => id,
+            None => {
+                let mut c = CacheClient::connect(&url).await.unwrap();
+                let info = c.ingest("phantom", &bytes).await.unwrap().volume;
+                eprintln!(
+                    "volume {edge}^3: {} bytes, {} packets, {} tiles",
+                    info.file_bytes, info.packet_count, info.tile_count
+                );
+                *id.insert(info.id)
             }
+        };
+        for clients in [1usize, 32, 64] {
+            let (mut connects, mut firsts, mut from_connect) = (Vec::new(), Vec::new(), Vec::new());
+            let (mut packets, mut total) = (0u64, 0u64);
+            let t0 = Instant::now();
+            for _ in 0..rounds {
+                let tasks: Vec<_> = (0..clients)
+                    .map(|i| {
+                        tokio::spawn(one_stream(
+                            url.clone(),
+                            options.clone(),
+                            VolumeKey::Id(volume),
+                            i,
+                        ))
+                    })
+                    .collect();
+                for t in tasks {
+                    let s = t.await.unwrap();
+                    connects.push(s.connect);
+                    firsts.push(s.first);
+                    from_connect.push(s.first_from_connect);
+                    packets += s.packets;
+                    total += s.bytes;
+                }
+            }
+            let wall = t0.elapsed().as_secs_f64();
+            connects.sort();
+            firsts.sort();
+            from_connect.sort();
+            println!(
+                "{transport},{clients},{rounds},{:.0},{:.2},{:.2},{:.2},{:.2},{:.2},{:.2},{:.3}",
+                packets as f64 / wall,
+                total as f64 / wall / 1e6,
+                percentile(&connects, 0.5),
+                percentile(&connects, 0.99),
+                percentile(&firsts, 0.5),
+                percentile(&firsts, 0.99),
+                percentile(&from_connect, 0.99),
+                wall
+            );
         }
-        let wall = t0.elapsed().as_secs_f64();
-        firsts.sort();
-        println!(
-            "{clients},{rounds},{:.0},{:.2},{:.2},{:.2},{:.3}",
-            packets as f64 / wall,
-            total as f64 / wall / 1e6,
-            percentile(&firsts, 0.5),
-            percentile(&firsts, 0.99),
-            wall
-        );
+        let _ = stop.send(());
+        server.await.unwrap().unwrap();
     }
-    let _ = stop.send(());
-    server.await.unwrap().unwrap();
 }
