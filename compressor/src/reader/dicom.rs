@@ -8,6 +8,14 @@
 //! unsigned (Bits Stored / High Bit honoured, sign-extended), monochrome (one channel) or RGB
 //! (three), with Rescale Slope / Intercept applied per frame, so CT values are in HU.
 //!
+//! RT Dose grids place their frames by Grid Frame Offset Vector (relative to Image Position
+//! (Patient), or absolute z for axial grids) and their values are scaled by Dose Grid Scaling
+//! (so they are in Dose Units, Gy). Multi-frame files whose frames step through time (a
+//! Frame Increment Pointer to Frame Time and the like) and series whose slices repeat at
+//! several time points are refused as time series. Attributes written with VR UN are read as
+//! the VR the standard dictionary gives them; 32-bit samples in big-endian files are put back
+//! in order from the units dicom-rs reads them in.
+//!
 //! Transfer syntaxes: Implicit VR Little Endian, Explicit VR Little and Big Endian, Deflated
 //! Explicit VR Little Endian, Encapsulated Uncompressed, and the encapsulated ones
 //! dicom-pixeldata decodes in pure Rust with its `native` feature: RLE Lossless, JPEG Baseline
@@ -76,6 +84,9 @@ fn tag_name(tag: Tag) -> String {
         tags::SLICE_THICKNESS => "Slice Thickness",
         tags::SPACING_BETWEEN_SLICES => "Spacing Between Slices",
         tags::NUMBER_OF_FRAMES => "Number of Frames",
+        tags::FRAME_INCREMENT_POINTER => "Frame Increment Pointer",
+        tags::GRID_FRAME_OFFSET_VECTOR => "Grid Frame Offset Vector",
+        tags::DOSE_GRID_SCALING => "Dose Grid Scaling",
         tags::SAMPLES_PER_PIXEL => "Samples per Pixel",
         tags::PHOTOMETRIC_INTERPRETATION => "Photometric Interpretation",
         tags::BITS_ALLOCATED => "Bits Allocated",
@@ -530,7 +541,10 @@ fn parse(path: &Path, bytes: &[u8], pixels: bool) -> Result<DefaultDicomObject, 
         }
     }));
     match result {
-        Ok(Ok(obj)) => Ok(obj),
+        Ok(Ok(mut obj)) => {
+            known_vrs(&mut obj);
+            Ok(obj)
+        }
         Ok(Err(e)) => Err(dicom_err(
             path,
             None,
@@ -544,13 +558,119 @@ fn parse(path: &Path, bytes: &[u8], pixels: bool) -> Result<DefaultDicomObject, 
     }
 }
 
+/// Replaces the top-level elements written as `UN` whose attributes the standard dictionary
+/// knows by their standard VR ([`value_element`]), so that the pixel data decoder, which reads
+/// Rows, Columns, Bits Allocated and the rest itself, sees them too.
+fn known_vrs(obj: &mut DefaultDicomObject) {
+    let unknown: Vec<Tag> = obj
+        .iter()
+        .filter(|e| e.header().vr == dicom_core::VR::UN)
+        .map(|e| e.header().tag)
+        .collect();
+    for tag in unknown {
+        let fixed = match value_element(obj, tag) {
+            Some(std::borrow::Cow::Owned(e)) => e,
+            _ => continue,
+        };
+        obj.put(fixed);
+    }
+}
+
 fn element(obj: &InMemDicomObject, tag: Tag) -> Option<&dicom_object::mem::InMemElement> {
     obj.element_opt(tag).ok().flatten()
 }
 
+/// The element `tag` of `obj` with the value representation its attribute has: an element
+/// written as `UN` (unknown) by a toolkit that did not know it, but whose attribute the
+/// standard dictionary knows as a text or binary number VR, is decoded again as that VR (its
+/// bytes are the Implicit VR Little Endian encoding, PS3.5 §6.2.2). Read as `UN`, a decimal
+/// string such as Image Orientation (Patient) `1.0\0.0\…` would give the ASCII codes of its
+/// characters as numbers.
+fn value_element(
+    obj: &InMemDicomObject,
+    tag: Tag,
+) -> Option<std::borrow::Cow<'_, dicom_object::mem::InMemElement>> {
+    use dicom_core::dictionary::{DataDictionary, VirtualVr};
+    use dicom_core::VR;
+    let e = element(obj, tag)?;
+    if e.vr() != VR::UN {
+        return Some(std::borrow::Cow::Borrowed(e));
+    }
+    let Some(entry) = dicom_dictionary_std::StandardDataDictionary.by_tag(tag) else {
+        return Some(std::borrow::Cow::Borrowed(e));
+    };
+    let VirtualVr::Exact(vr) = entry.vr else {
+        return Some(std::borrow::Cow::Borrowed(e));
+    };
+    let bytes = e.value().primitive()?.to_bytes();
+    let value = reinterpret(&bytes, vr)?;
+    Some(std::borrow::Cow::Owned(
+        dicom_object::mem::InMemElement::new(tag, vr, value),
+    ))
+}
+
+/// `bytes` (Implicit VR Little Endian) as a value of `vr`, for the text and number VRs the
+/// reader uses; `None` for others.
+fn reinterpret(bytes: &[u8], vr: dicom_core::VR) -> Option<dicom_core::PrimitiveValue> {
+    use dicom_core::{PrimitiveValue, VR};
+    let unit = match vr {
+        VR::US | VR::SS => 2,
+        VR::UL | VR::SL | VR::FL => 4,
+        VR::FD => 8,
+        _ => 1,
+    };
+    if !bytes.len().is_multiple_of(unit) {
+        return None;
+    }
+    let words = |n: usize| bytes.chunks_exact(n);
+    Some(match vr {
+        VR::DS
+        | VR::IS
+        | VR::CS
+        | VR::LO
+        | VR::SH
+        | VR::UI
+        | VR::DA
+        | VR::TM
+        | VR::DT
+        | VR::PN
+        | VR::ST
+        | VR::LT
+        | VR::UT
+        | VR::AS => {
+            let text = std::str::from_utf8(bytes).ok()?;
+            let text = text.trim_end_matches(['\0', ' ']);
+            PrimitiveValue::Strs(text.split('\\').map(|p| p.trim().to_string()).collect())
+        }
+        VR::US => PrimitiveValue::U16(words(2).map(|c| u16::from_le_bytes([c[0], c[1]])).collect()),
+        VR::SS => PrimitiveValue::I16(words(2).map(|c| i16::from_le_bytes([c[0], c[1]])).collect()),
+        VR::UL => PrimitiveValue::U32(
+            words(4)
+                .map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+                .collect(),
+        ),
+        VR::SL => PrimitiveValue::I32(
+            words(4)
+                .map(|c| i32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+                .collect(),
+        ),
+        VR::FL => PrimitiveValue::F32(
+            words(4)
+                .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+                .collect(),
+        ),
+        VR::FD => PrimitiveValue::F64(
+            words(8)
+                .map(|c| f64::from_le_bytes(c.try_into().expect("8 bytes")))
+                .collect(),
+        ),
+        _ => return None,
+    })
+}
+
 fn get_str(obj: &InMemDicomObject, tag: Tag) -> Option<String> {
-    element(obj, tag)
-        .and_then(|e| e.to_str().ok())
+    value_element(obj, tag)
+        .and_then(|e| e.to_str().ok().map(|s| s.into_owned()))
         .map(|s| {
             s.trim_matches(|c: char| c == '\0' || c.is_whitespace())
                 .to_string()
@@ -563,7 +683,7 @@ fn get_floats(
     obj: &InMemDicomObject,
     tag: Tag,
 ) -> Result<Option<Vec<f64>>, ReadError> {
-    let Some(e) = element(obj, tag) else {
+    let Some(e) = value_element(obj, tag) else {
         return Ok(None);
     };
     if e.value().primitive().is_some_and(|p| p.multiplicity() == 0) {
@@ -579,7 +699,7 @@ fn get_floats(
 }
 
 fn get_uint(path: &Path, obj: &InMemDicomObject, tag: Tag) -> Result<Option<u32>, ReadError> {
-    let Some(e) = element(obj, tag) else {
+    let Some(e) = value_element(obj, tag) else {
         return Ok(None);
     };
     if e.value().primitive().is_some_and(|p| p.multiplicity() == 0) {
@@ -660,6 +780,10 @@ struct Image {
     /// Spacing Between Slices, else Slice Thickness.
     slice_step: Option<f64>,
     instance: i64,
+    /// When the image was taken in a time series: Temporal Position Identifier, else Trigger
+    /// Time (named by `time_attribute`).
+    time: Option<String>,
+    time_attribute: &'static str,
 }
 
 /// Reads what the reader needs of an image's header; `file_len` (the file's size) bounds the
@@ -852,22 +976,46 @@ fn read_image(
         positions.push(p);
     }
     let has_per_frame = element(o, tags::PER_FRAME_FUNCTIONAL_GROUPS_SEQUENCE).is_some();
+    let grid_offsets = get_floats(path, o, tags::GRID_FRAME_OFFSET_VECTOR)?;
+    if frames > 1 && !has_per_frame && grid_offsets.is_none() {
+        refuse_time_series(path, o, frames)?;
+    }
     if frames > 1 && !has_per_frame {
         if let (Some(p0), Some(iop)) = (positions[0], orientation) {
-            let step = slice_step.ok_or_else(|| {
-                dicom_err(
-                    path,
-                    Some(tags::SPACING_BETWEEN_SLICES),
-                    "missing: a multi-frame file without per-frame positions needs the slice step",
-                )
-            })?;
             let n = normal(&iop);
-            for (f, p) in positions.iter_mut().enumerate() {
-                let k = f as f64 * step;
+            let offsets = match &grid_offsets {
+                Some(g) => grid_frame_offsets(path, g, frames, p0, n)?,
+                None => {
+                    let step = slice_step.ok_or_else(|| {
+                        dicom_err(
+                            path,
+                            Some(tags::SPACING_BETWEEN_SLICES),
+                            "missing: a multi-frame file without per-frame positions needs the \
+                             slice step (or, for RT Dose, Grid Frame Offset Vector (3004,000C))",
+                        )
+                    })?;
+                    (0..frames).map(|f| f as f64 * step).collect()
+                }
+            };
+            for (p, k) in positions.iter_mut().zip(offsets) {
                 *p = Some([p0[0] + k * n[0], p0[1] + k * n[1], p0[2] + k * n[2]]);
             }
         }
     }
+    // RT Dose: stored values × Dose Grid Scaling are the dose (in Dose Units, Gy or relative).
+    let dose_scaling = match get_floats(path, o, tags::DOSE_GRID_SCALING)? {
+        None => 1.0,
+        Some(v) => match v.first().copied() {
+            Some(x) if x > 0.0 => x,
+            _ => {
+                return Err(dicom_err(
+                    path,
+                    Some(tags::DOSE_GRID_SCALING),
+                    format!("{v:?}: one positive number expected"),
+                ))
+            }
+        },
+    };
     let mut rescale = Vec::with_capacity(frames.min(1 << 16));
     for f in 0..frames {
         let slope = floats_for_frame(
@@ -894,12 +1042,22 @@ fn read_image(
         rescale.push(if samples == 3 {
             (1.0, 0.0)
         } else {
-            (slope, intercept)
+            (slope * dose_scaling, intercept * dose_scaling)
         });
     }
     let instance = get_str(o, tags::INSTANCE_NUMBER)
         .and_then(|s| s.parse::<i64>().ok())
         .unwrap_or(0);
+    let (time, time_attribute) = [
+        (
+            tags::TEMPORAL_POSITION_IDENTIFIER,
+            "Temporal Position Identifier (0020,0100)",
+        ),
+        (tags::TRIGGER_TIME, "Trigger Time (0018,1060)"),
+    ]
+    .into_iter()
+    .find_map(|(t, name)| get_str(o, t).map(|v| (Some(v), name)))
+    .unwrap_or((None, ""));
     Ok(Some(Image {
         name: name.to_string(),
         path: path.to_path_buf(),
@@ -917,7 +1075,89 @@ fn read_image(
         rescale,
         slice_step,
         instance,
+        time,
+        time_attribute,
     }))
+}
+
+/// The offsets along the slice normal of an RT Dose grid's frames from Grid Frame Offset
+/// Vector (PS3.3 C.8.8.3.2): relative to Image Position (Patient) when its first value is 0,
+/// otherwise the frames' z coordinates, which only an axial grid may use.
+fn grid_frame_offsets(
+    path: &Path,
+    g: &[f64],
+    frames: usize,
+    p0: [f64; 3],
+    n: [f64; 3],
+) -> Result<Vec<f64>, ReadError> {
+    let err = |reason: String| dicom_err(path, Some(tags::GRID_FRAME_OFFSET_VECTOR), reason);
+    if g.len() != frames {
+        return Err(err(format!("{} values for {frames} frames", g.len())));
+    }
+    if g[0] == 0.0 {
+        return Ok(g.to_vec());
+    }
+    let axial = n[0].abs() < 1e-6 && n[1].abs() < 1e-6 && (n[2].abs() - 1.0).abs() < 1e-6;
+    if !axial {
+        return Err(err(format!(
+            "absolute offsets (first value {}) need an axial grid; this one's normal is {n:?}",
+            g[0]
+        )));
+    }
+    if (g[0] - p0[2]).abs() > 1e-3 * g[0].abs().max(1.0) {
+        return Err(err(format!(
+            "absolute offsets start at z = {}, but Image Position (Patient) is at z = {}",
+            g[0], p0[2]
+        )));
+    }
+    Ok(g.iter().map(|z| (z - p0[2]) * n[2]).collect())
+}
+
+/// Attributes that make a multi-frame image's frames instants of one acquisition over time
+/// (cine, gated) rather than slices of a volume.
+const TEMPORAL_ATTRIBUTES: [(Tag, &str); 5] = [
+    (tags::FRAME_TIME, "Frame Time"),
+    (tags::FRAME_TIME_VECTOR, "Frame Time Vector"),
+    (tags::TRIGGER_TIME, "Trigger Time"),
+    (tags::ACTUAL_FRAME_DURATION, "Actual Frame Duration"),
+    (tags::TIME_SLOT_VECTOR, "Time Slot Vector"),
+];
+
+/// Refuses a multi-frame file without per-frame positions whose frames step through time
+/// (its Frame Increment Pointer names a time attribute, or it gives a frame time and nothing
+/// that places the frames in space): stacking time as depth would draw a cine loop as a
+/// volume.
+fn refuse_time_series(path: &Path, o: &InMemDicomObject, frames: usize) -> Result<(), ReadError> {
+    let pointers: Vec<Tag> =
+        match element(o, tags::FRAME_INCREMENT_POINTER).and_then(|e| e.value().primitive()) {
+            Some(dicom_core::PrimitiveValue::Tags(t)) => t.to_vec(),
+            _ => Vec::new(),
+        };
+    let by_pointer = TEMPORAL_ATTRIBUTES
+        .iter()
+        .find(|(t, _)| pointers.contains(t));
+    let present = TEMPORAL_ATTRIBUTES
+        .iter()
+        .find(|(t, _)| element(o, *t).is_some());
+    let spatial_pointer = pointers
+        .iter()
+        .any(|t| !TEMPORAL_ATTRIBUTES.iter().any(|(x, _)| x == t));
+    let (tag, name, how) = match (by_pointer, present) {
+        (Some((t, n)), _) => (*t, *n, "its Frame Increment Pointer (0028,0009) names"),
+        (None, Some((t, n))) if !spatial_pointer => (*t, *n, "it has"),
+        _ => return Ok(()),
+    };
+    Err(dicom_err(
+        path,
+        Some(tags::FRAME_INCREMENT_POINTER),
+        format!(
+            "a time series, not a volume: {frames} frames of one slice over time ({how} {name} \
+             ({:04X},{:04X}) and no frame has a position of its own). wavesplat reads volumes; \
+             export one time point as its own series, or a volume's slices",
+            tag.group(),
+            tag.element()
+        ),
+    ))
 }
 
 fn normal(iop: &[f64; 6]) -> [f64; 3] {
@@ -1208,9 +1448,29 @@ fn check_steps(
     let total = dot(pos[nz - 1], n) - dot(pos[0], n);
     for (k, dk) in d.iter().enumerate() {
         if *dk <= 1e-4 {
+            let (a, b) = (&images[frames[k].0.image], &images[frames[k + 1].0.image]);
+            let times: std::collections::BTreeSet<&str> =
+                images.iter().filter_map(|i| i.time.as_deref()).collect();
+            let reason = match (&a.time, &b.time) {
+                (Some(ta), Some(tb)) if ta != tb => format!(
+                    "a time series (4D), not a volume: the same slices at {} time points ({} \
+                     {ta} and {tb} at one position: {} and {}). wavesplat reads volumes: give \
+                     each time point its own directory",
+                    times.len(),
+                    a.time_attribute,
+                    label(k),
+                    label(k + 1)
+                ),
+                _ => format!(
+                    "two slices at the same position along the normal: {} and {} (several \
+                     acquisitions in one series?)",
+                    label(k),
+                    label(k + 1)
+                ),
+            };
             return Err(ReadError::Series {
                 path: dir.to_path_buf(),
-                reason: format!("two slices at the same position along the normal: {} and {} (several acquisitions in one series?)", label(k), label(k + 1)),
+                reason,
             });
         }
     }
@@ -1341,6 +1601,70 @@ fn check_pixel_data(img: &Image, obj: &DefaultDicomObject) -> Result<(), ReadErr
     Ok(())
 }
 
+/// Transfer Syntax UID of Explicit VR Big Endian (retired, still written by some toolkits).
+const EXPLICIT_VR_BIG_ENDIAN: &str = "1.2.840.10008.1.2.2";
+
+/// A frame's native samples as host-order integers of the sample size. dicom-rs hands native
+/// pixel data over as the host-order bytes of the units the element was read in: 16-bit words
+/// for OW, 32-bit for OL, bytes in file order for OB. In a little-endian file that is the
+/// samples' order whatever the unit; in a big-endian one a 32-bit sample read as two OW words
+/// has its high word first, and 16- or 32-bit samples read as OB bytes are big-endian, so
+/// those are put back together here (they came out as other numbers, silently, before).
+fn native_order<'a>(
+    img: &Image,
+    obj: &DefaultDicomObject,
+    data: &'a [u8],
+) -> Result<std::borrow::Cow<'a, [u8]>, ReadError> {
+    use dicom_core::PrimitiveValue;
+    use std::borrow::Cow;
+    let ts = obj.meta().transfer_syntax().trim_end_matches('\0');
+    let bytes_per = (img.bits_allocated / 8) as usize;
+    if ts != EXPLICIT_VR_BIG_ENDIAN {
+        return Ok(Cow::Borrowed(data));
+    }
+    let Some(p) = element(obj, tags::PIXEL_DATA).and_then(|e| e.value().primitive()) else {
+        return Ok(Cow::Borrowed(data));
+    };
+    let unit = match p {
+        PrimitiveValue::U8(_) => 1,
+        PrimitiveValue::U16(_) | PrimitiveValue::I16(_) => 2,
+        PrimitiveValue::U32(_) | PrimitiveValue::I32(_) | PrimitiveValue::F32(_) => 4,
+        _ => 0,
+    };
+    match (unit, bytes_per) {
+        (a, b) if a == b => Ok(Cow::Borrowed(data)),
+        (1, 2) => Ok(Cow::Owned(
+            data.chunks_exact(2)
+                .flat_map(|c| u16::from_be_bytes([c[0], c[1]]).to_ne_bytes())
+                .collect(),
+        )),
+        (1, 4) => Ok(Cow::Owned(
+            data.chunks_exact(4)
+                .flat_map(|c| u32::from_be_bytes([c[0], c[1], c[2], c[3]]).to_ne_bytes())
+                .collect(),
+        )),
+        (2, 4) => Ok(Cow::Owned(
+            data.chunks_exact(4)
+                .flat_map(|c| {
+                    let high = u16::from_ne_bytes([c[0], c[1]]);
+                    let low = u16::from_ne_bytes([c[2], c[3]]);
+                    ((u32::from(high) << 16) | u32::from(low)).to_ne_bytes()
+                })
+                .collect(),
+        )),
+        _ => Err(dicom_err(
+            &img.path,
+            Some(tags::PIXEL_DATA),
+            format!(
+                "{}-bit samples stored in {}-bit units in an Explicit VR Big Endian file: this \
+                 layout is not supported (its byte order is ambiguous)",
+                img.bits_allocated,
+                unit * 8
+            ),
+        )),
+    }
+}
+
 /// Decodes frame `f` of `obj` into the planar channels at `offset`, with the modality rescale.
 fn decode_frame(
     img: &Image,
@@ -1380,7 +1704,8 @@ fn decode_frame(
             ),
         ));
     }
-    let data = &data[..need];
+    let data = native_order(img, obj, &data[..need])?;
+    let data = &data[..];
     // Native RGB may be planar (R plane, G plane, B plane); decoders return interleaved.
     let planar = img.samples == 3
         && decoded.planar_configuration() == dicom_pixeldata::PlanarConfiguration::PixelFirst;

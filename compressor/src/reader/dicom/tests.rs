@@ -636,3 +636,242 @@ fn many_small_files_cannot_add_up_to_a_large_volume() {
     }
     expect_series_error(root.path(), "bytes of files can hold");
 }
+
+/// An RT Dose grid as a treatment planning system writes one: a classic multi-frame object
+/// whose frames are placed by Grid Frame Offset Vector, 32-bit unsigned samples scaled by Dose
+/// Grid Scaling, saved in transfer syntax `ts`.
+fn rt_dose(path: &Path, ts: &str, stored: &[u32], dims: [usize; 3], offsets: &[f64]) {
+    use dicom_dictionary_std::uids;
+    use dicom_object::FileMetaTableBuilder;
+    let e = |tag, vr, v: PrimitiveValue| DataElement::new(tag, vr, v);
+    let text = |s: &str| PrimitiveValue::from(s.to_string());
+    let offsets: Vec<String> = offsets.iter().map(|x| x.to_string()).collect();
+    let obj = InMemDicomObject::from_element_iter([
+        e(tags::SOP_CLASS_UID, VR::UI, text(uids::RT_DOSE_STORAGE)),
+        e(
+            tags::SOP_INSTANCE_UID,
+            VR::UI,
+            text("1.2.826.0.1.3680043.9.7433.9.1"),
+        ),
+        e(tags::MODALITY, VR::CS, text("RTDOSE")),
+        e(
+            tags::SERIES_INSTANCE_UID,
+            VR::UI,
+            text("1.2.826.0.1.3680043.9.7433.9"),
+        ),
+        e(tags::SAMPLES_PER_PIXEL, VR::US, PrimitiveValue::from(1u16)),
+        e(
+            tags::PHOTOMETRIC_INTERPRETATION,
+            VR::CS,
+            text("MONOCHROME2"),
+        ),
+        e(tags::NUMBER_OF_FRAMES, VR::IS, text(&dims[2].to_string())),
+        e(
+            tags::FRAME_INCREMENT_POINTER,
+            VR::AT,
+            PrimitiveValue::Tags(vec![tags::GRID_FRAME_OFFSET_VECTOR].into()),
+        ),
+        e(tags::ROWS, VR::US, PrimitiveValue::from(dims[1] as u16)),
+        e(tags::COLUMNS, VR::US, PrimitiveValue::from(dims[0] as u16)),
+        e(tags::BITS_ALLOCATED, VR::US, PrimitiveValue::from(32u16)),
+        e(tags::BITS_STORED, VR::US, PrimitiveValue::from(32u16)),
+        e(tags::HIGH_BIT, VR::US, PrimitiveValue::from(31u16)),
+        e(
+            tags::PIXEL_REPRESENTATION,
+            VR::US,
+            PrimitiveValue::from(0u16),
+        ),
+        e(tags::PIXEL_SPACING, VR::DS, text("2.5\\2")),
+        e(tags::IMAGE_POSITION_PATIENT, VR::DS, text("-10\\20.5\\30")),
+        e(
+            tags::IMAGE_ORIENTATION_PATIENT,
+            VR::DS,
+            text("1\\0\\0\\0\\1\\0"),
+        ),
+        e(
+            tags::GRID_FRAME_OFFSET_VECTOR,
+            VR::DS,
+            PrimitiveValue::Strs(offsets.into()),
+        ),
+        e(tags::DOSE_UNITS, VR::CS, text("GY")),
+        e(tags::DOSE_GRID_SCALING, VR::DS, text("1e-05")),
+        e(
+            tags::PIXEL_DATA,
+            VR::OW,
+            PrimitiveValue::U32(stored.to_vec().into()),
+        ),
+    ]);
+    obj.with_meta(FileMetaTableBuilder::new().transfer_syntax(ts))
+        .unwrap()
+        .write_to_file(path)
+        .unwrap();
+}
+
+/// 32-bit samples of a big-endian file were read without putting their 16-bit halves back in
+/// order (795 000 came out as 561 512 460); RT Dose grids were refused for want of Spacing
+/// Between Slices and their values not scaled to Gy.
+#[test]
+fn rt_dose_grids_read_in_gray_in_either_byte_order() {
+    let dims = [4, 3, 5];
+    let n: usize = dims.iter().product();
+    let stored: Vec<u32> = (0..n as u32).map(|i| 795_000 + i * 7_919).collect();
+    let dir = tempfile::tempdir().unwrap();
+    for (name, ts, offsets) in [
+        (
+            "le-relative",
+            "1.2.840.10008.1.2.1",
+            vec![0.0, 3.0, 6.0, 9.0, 12.0],
+        ),
+        (
+            "be-relative",
+            "1.2.840.10008.1.2.2",
+            vec![0.0, 3.0, 6.0, 9.0, 12.0],
+        ),
+        (
+            "be-absolute",
+            "1.2.840.10008.1.2.2",
+            vec![30.0, 33.0, 36.0, 39.0, 42.0],
+        ),
+    ] {
+        let path = dir.path().join(format!("{name}.dcm"));
+        rt_dose(&path, ts, &stored, dims, &offsets);
+        let raw = std::fs::read(&path).unwrap();
+        let want = if ts.ends_with(".2") {
+            795_000u32.to_be_bytes()
+        } else {
+            795_000u32.to_le_bytes()
+        };
+        assert!(
+            raw.windows(4).any(|w| w == want),
+            "{name}: the writer did not store the first sample in the file's byte order"
+        );
+        let v = read_volume(&path, None).unwrap_or_else(|e| panic!("{name}: {e}"));
+        assert_eq!(v.dims(), dims, "{name}");
+        assert_eq!(v.spacing(), [2.0, 2.5, 3.0], "{name}");
+        let p = v.placement().unwrap();
+        assert_eq!(p.origin, [-10.0, 20.5, 30.0], "{name}");
+        for (i, (&got, &s)) in v.channel(0).iter().zip(&stored).enumerate() {
+            let gy = f64::from(s) * 1e-5;
+            assert!(
+                (f64::from(got) - gy).abs() <= 1e-6 * gy,
+                "{name}: voxel {i} is {got} Gy, stored {s} × 1e-5 = {gy}"
+            );
+        }
+    }
+    // Offsets that do not match the frames are refused, naming the attribute.
+    let path = dir.path().join("short.dcm");
+    rt_dose(&path, "1.2.840.10008.1.2.1", &stored, dims, &[0.0, 3.0]);
+    let e = read_volume(&path, None).unwrap_err().to_string();
+    assert!(e.contains("(3004,000C)") && e.contains("5 frames"), "{e}");
+}
+
+/// An attribute written with VR UN by a toolkit that did not know it is read as the VR the
+/// standard gives it: Image Orientation (Patient) was taken as the ASCII codes of its text.
+#[test]
+fn attributes_written_as_unknown_vr_are_read_as_their_standard_vr() {
+    let v = volume([6, 5, 4], [0.8, 0.8, 2.0], Layout::I16, 1.0, -1024.0);
+    let dir = tempfile::tempdir().unwrap();
+    let o = DicomOptions {
+        intercept: -1024.0,
+        ..Default::default()
+    };
+    let files = write_dicom_series(dir.path(), &v, &o);
+    for f in &files {
+        let mut obj = open_file(f).unwrap();
+        for tag in [tags::IMAGE_ORIENTATION_PATIENT, tags::ROWS] {
+            let e = obj.element(tag).unwrap();
+            let mut bytes = match tag {
+                tags::ROWS => e.to_int::<u16>().unwrap().to_le_bytes().to_vec(),
+                _ => e.to_str().unwrap().as_bytes().to_vec(),
+            };
+            if bytes.len() % 2 == 1 {
+                bytes.push(b' ');
+            }
+            obj.put(DataElement::new(
+                tag,
+                VR::UN,
+                PrimitiveValue::U8(bytes.into()),
+            ));
+        }
+        obj.write_to_file(f).unwrap();
+        let back = open_file(f).unwrap();
+        assert_eq!(
+            back.element(tags::IMAGE_ORIENTATION_PATIENT).unwrap().vr(),
+            VR::UN,
+            "the file must hold the attribute as UN for this test to mean anything"
+        );
+    }
+    assert_same(&read_volume(dir.path(), None).unwrap(), &v, "UN attributes");
+}
+
+/// A cine (one slice over time) is not a volume: refused, saying what it is.
+#[test]
+fn temporal_multiframe_files_are_refused_as_time_series() {
+    let v = volume([8, 8, 6], [1.0, 1.0, 5.0], Layout::U16, 1.0, 0.0);
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("cine.dcm");
+    let o = DicomOptions {
+        layout: Layout::U16,
+        ..Default::default()
+    };
+    write_dicom_multiframe(&path, &v, &o);
+    // Make it what an MR cine looks like: no per-frame positions, frames stepped by time.
+    let mut obj = open_file(&path).unwrap();
+    obj.remove_element(tags::PER_FRAME_FUNCTIONAL_GROUPS_SEQUENCE);
+    obj.put(DataElement::new(
+        tags::IMAGE_POSITION_PATIENT,
+        VR::DS,
+        PrimitiveValue::from("0\\0\\0".to_string()),
+    ));
+    obj.put(DataElement::new(
+        tags::FRAME_INCREMENT_POINTER,
+        VR::AT,
+        PrimitiveValue::Tags(vec![tags::FRAME_TIME].into()),
+    ));
+    obj.put(DataElement::new(
+        tags::FRAME_TIME,
+        VR::DS,
+        PrimitiveValue::from("33.3".to_string()),
+    ));
+    obj.write_to_file(&path).unwrap();
+    let e = read_volume(&path, None).unwrap_err().to_string();
+    assert!(e.contains("time series") && e.contains("Frame Time"), "{e}");
+}
+
+/// A 4D series (the same slices at several time points) is refused as a time series, not as
+/// a pile of duplicate slices.
+#[test]
+fn series_of_several_time_points_are_refused_as_time_series() {
+    let v = volume([6, 5, 3], [1.0, 1.0, 2.0], Layout::U16, 1.0, 0.0);
+    let dir = tempfile::tempdir().unwrap();
+    let o = DicomOptions {
+        layout: Layout::U16,
+        ..Default::default()
+    };
+    let first = write_dicom_series(&dir.path().join("t1"), &v, &o);
+    let second = write_dicom_series(&dir.path().join("t2"), &v, &o);
+    let series = dir.path().join("4d");
+    std::fs::create_dir_all(&series).unwrap();
+    for (t, files) in [(1, &first), (2, &second)] {
+        for (i, f) in files.iter().enumerate() {
+            let mut obj = open_file(f).unwrap();
+            obj.put(DataElement::new(
+                tags::TEMPORAL_POSITION_IDENTIFIER,
+                VR::IS,
+                PrimitiveValue::from(t.to_string()),
+            ));
+            obj.put(DataElement::new(
+                tags::SOP_INSTANCE_UID,
+                VR::UI,
+                PrimitiveValue::from(format!("1.2.826.0.1.3680043.9.7433.4.{t}.{i}")),
+            ));
+            obj.write_to_file(series.join(format!("t{t}-{i}.dcm")))
+                .unwrap();
+        }
+    }
+    let e = read_volume(&series, None).unwrap_err().to_string();
+    assert!(
+        e.contains("time series") && e.contains("2 time points") && e.contains("(0020,0100)"),
+        "{e}"
+    );
+}
