@@ -1601,6 +1601,103 @@ fn check_pixel_data(img: &Image, obj: &DefaultDicomObject) -> Result<(), ReadErr
     Ok(())
 }
 
+/// The JPEG transfer syntaxes whose colour rule [`adobe_rgb_jpeg_frame`] corrects.
+const JPEG_LOSSY: [&str; 2] = ["1.2.840.10008.1.2.4.50", "1.2.840.10008.1.2.4.51"];
+
+/// What a JPEG stream's markers say about its colour: (a JFIF marker, the Adobe marker's
+/// transform flag), read up to the first scan.
+fn jpeg_colour_markers(jpeg: &[u8]) -> (bool, Option<u8>) {
+    let (mut jfif, mut adobe) = (false, None);
+    let mut i = 2; // after SOI
+    while i + 4 <= jpeg.len() && jpeg[i] == 0xFF {
+        let marker = jpeg[i + 1];
+        if marker == 0xFF {
+            i += 1; // fill byte
+            continue;
+        }
+        if marker == 0xDA || marker == 0xD9 {
+            break; // start of scan, end of image
+        }
+        let len = usize::from(u16::from_be_bytes([jpeg[i + 2], jpeg[i + 3]]));
+        let payload = jpeg.get(i + 4..i + 2 + len).unwrap_or(&[]);
+        match marker {
+            0xE0 if payload.starts_with(b"JFIF\0") => jfif = true,
+            0xEE if payload.starts_with(b"Adobe") && payload.len() >= 12 => {
+                adobe = Some(payload[11])
+            }
+            _ => {}
+        }
+        i += 2 + len;
+    }
+    (jfif, adobe)
+}
+
+/// Frame `f` of a lossy JPEG colour image decoded with libjpeg's colour rule, when it differs
+/// from the one dicom-pixeldata's decoder applies: without a JFIF marker, an Adobe marker's
+/// transform flag says whether the components are RGB (0) or YCbCr (1), whatever their
+/// component ids. jpeg-decoder looks at the ids first, so an RGB image with ids 1, 2, 3 and
+/// the Adobe flag 0 came out as if it were YCbCr (other colours, silently). `None`: the
+/// general path decodes it.
+fn adobe_rgb_jpeg_frame(
+    img: &Image,
+    obj: &DefaultDicomObject,
+    f: usize,
+) -> Result<Option<Vec<u8>>, ReadError> {
+    let ts = obj.meta().transfer_syntax().trim_end_matches('\0');
+    if img.samples != 3 || img.bits_allocated != 8 || !JPEG_LOSSY.contains(&ts) {
+        return Ok(None);
+    }
+    let Some(fragments) = element(obj, tags::PIXEL_DATA).and_then(|e| e.fragments()) else {
+        return Ok(None);
+    };
+    let frame: Vec<u8> = if img.frames == 1 {
+        fragments.iter().flatten().copied().collect()
+    } else if fragments.len() == img.frames {
+        fragments[f].clone()
+    } else {
+        return Ok(None);
+    };
+    let transform = match jpeg_colour_markers(&frame) {
+        (false, Some(0)) => jpeg_decoder::ColorTransform::RGB,
+        (false, Some(_)) => jpeg_decoder::ColorTransform::YCbCr,
+        _ => return Ok(None),
+    };
+    let mut decoder = jpeg_decoder::Decoder::new(&frame[..]);
+    decoder.set_color_transform(transform);
+    let pixels = catch_unwind(AssertUnwindSafe(|| decoder.decode()))
+        .map_err(|_| {
+            dicom_err(
+                &img.path,
+                Some(tags::PIXEL_DATA),
+                "the JPEG decoder panicked",
+            )
+        })?
+        .map_err(|e| {
+            dicom_err(
+                &img.path,
+                Some(tags::PIXEL_DATA),
+                format!("frame {}: {e}", f + 1),
+            )
+        })?;
+    let info = decoder.info();
+    match info {
+        Some(i) if usize::from(i.width) == img.cols && usize::from(i.height) == img.rows => {
+            Ok(Some(pixels))
+        }
+        _ => Err(dicom_err(
+            &img.path,
+            Some(tags::PIXEL_DATA),
+            format!(
+                "frame {}: the JPEG stream is {:?}, Rows × Columns say {}×{}",
+                f + 1,
+                info.map(|i| (i.width, i.height)),
+                img.cols,
+                img.rows
+            ),
+        )),
+    }
+}
+
 /// Transfer Syntax UID of Explicit VR Big Endian (retired, still written by some toolkits).
 const EXPLICIT_VR_BIG_ENDIAN: &str = "1.2.840.10008.1.2.2";
 
@@ -1674,6 +1771,9 @@ fn decode_frame(
     out: &mut [Vec<f32>],
 ) -> Result<(), ReadError> {
     let path = &img.path;
+    if let Some(rgb) = adobe_rgb_jpeg_frame(img, obj, f)? {
+        return store_samples(img, f, offset, out, &rgb, false);
+    }
     let decoded = catch_unwind(AssertUnwindSafe(|| obj.decode_pixel_data_frame(f as u32)))
         .map_err(|_| {
             dicom_err(
@@ -1690,12 +1790,31 @@ fn decode_frame(
             )
         })?;
     let data = decoded.data();
+    let need = img.rows * img.cols * img.samples * (img.bits_allocated / 8) as usize;
+    // A short frame is reported by `store_samples`.
+    let data = native_order(img, obj, data.get(..need).unwrap_or(data))?;
+    // Native RGB may be planar (R plane, G plane, B plane); decoders return interleaved.
+    let planar = img.samples == 3
+        && decoded.planar_configuration() == dicom_pixeldata::PlanarConfiguration::PixelFirst;
+    store_samples(img, f, offset, out, &data, planar)
+}
+
+/// Stores frame `f`'s decoded samples (`data`, host order, interleaved or `planar`) into the
+/// planar channels at `offset`, with the modality rescale.
+fn store_samples(
+    img: &Image,
+    f: usize,
+    offset: usize,
+    out: &mut [Vec<f32>],
+    data: &[u8],
+    planar: bool,
+) -> Result<(), ReadError> {
     let bytes_per = (img.bits_allocated / 8) as usize;
     let plane = img.rows * img.cols;
     let need = plane * img.samples * bytes_per;
     if data.len() < need {
         return Err(dicom_err(
-            path,
+            &img.path,
             Some(tags::PIXEL_DATA),
             format!(
                 "frame {} decodes to {} bytes, {need} expected",
@@ -1704,11 +1823,6 @@ fn decode_frame(
             ),
         ));
     }
-    let data = native_order(img, obj, &data[..need])?;
-    let data = &data[..];
-    // Native RGB may be planar (R plane, G plane, B plane); decoders return interleaved.
-    let planar = img.samples == 3
-        && decoded.planar_configuration() == dicom_pixeldata::PlanarConfiguration::PixelFirst;
     let (slope, intercept) = img.rescale[f];
     let shift = 32 - img.bits_stored;
     let value = |s: &[u8]| -> f64 {

@@ -875,3 +875,118 @@ fn series_of_several_time_points_are_refused_as_time_series() {
         "{e}"
     );
 }
+
+/// A baseline JPEG of `rgb` (w × h, interleaved) whose components are the RGB values
+/// themselves (no colour transform), component ids 1, 2, 3, marked by an Adobe APP14 segment
+/// with transform flag 0 and no JFIF segment: how some toolkits write lossy RGB.
+fn adobe_rgb_jpeg(rgb: &[u8], w: u16, h: u16) -> Vec<u8> {
+    let mut out = Vec::new();
+    let mut enc = jpeg_encoder::Encoder::new(&mut out, 100);
+    enc.set_sampling_factor(jpeg_encoder::SamplingFactor::R_4_4_4);
+    // "Adobe", version 100, flags 0 and 0, transform 0 (the components are RGB).
+    let adobe = [b"Adobe".as_slice(), &[0, 100, 0, 0, 0, 0, 0]].concat();
+    enc.add_app_segment(14, adobe).unwrap();
+    // Ycbcr input is coded as given: the components are R, G and B.
+    enc.encode(rgb, w, h, jpeg_encoder::ColorType::Ycbcr)
+        .unwrap();
+    // Drop the JFIF segment (APP0 right after SOI): with it, libjpeg too would read YCbCr.
+    assert_eq!(&out[2..4], &[0xFF, 0xE0]);
+    let len = usize::from(u16::from_be_bytes([out[4], out[5]]));
+    out.drain(2..4 + len);
+    // Component ids 1, 2, 3 (the encoder writes 0, 1, 2) in the frame and scan headers.
+    let mut i = 2;
+    while out[i] == 0xFF && out[i + 1] != 0xD9 {
+        let marker = out[i + 1];
+        let len = usize::from(u16::from_be_bytes([out[i + 2], out[i + 3]]));
+        let (first, count, stride) = match marker {
+            0xC0 => (i + 4 + 6, out[i + 4 + 5], 3),
+            0xDA => (i + 4 + 1, out[i + 4], 2),
+            _ => (0, 0, 0),
+        };
+        for k in 0..usize::from(count) {
+            out[first + k * stride] += 1;
+        }
+        if marker == 0xDA {
+            break;
+        }
+        i += 2 + len;
+    }
+    assert_eq!(jpeg_colour_markers(&out), (false, Some(0)));
+    out
+}
+
+#[test]
+fn lossy_rgb_jpeg_with_an_adobe_marker_keeps_its_colours() {
+    use dicom_core::value::PixelFragmentSequence;
+    use dicom_dictionary_std::uids;
+    use dicom_object::FileMetaTableBuilder;
+    let (w, h) = (16u16, 12u16);
+    let rgb: Vec<u8> = (0..usize::from(w) * usize::from(h))
+        .flat_map(|i| {
+            let (x, y) = (i % usize::from(w), i / usize::from(w));
+            [(40 + 12 * x) as u8, (200 - 10 * y) as u8, 90u8]
+        })
+        .collect();
+    let mut jpeg = adobe_rgb_jpeg(&rgb, w, h);
+    if jpeg.len() % 2 == 1 {
+        jpeg.push(0);
+    }
+    let e = |tag, vr, v: PrimitiveValue| DataElement::new(tag, vr, v);
+    let text = |s: &str| PrimitiveValue::from(s.to_string());
+    let mut obj = InMemDicomObject::from_element_iter([
+        e(
+            tags::SOP_CLASS_UID,
+            VR::UI,
+            text(uids::SECONDARY_CAPTURE_IMAGE_STORAGE),
+        ),
+        e(
+            tags::SOP_INSTANCE_UID,
+            VR::UI,
+            text("1.2.826.0.1.3680043.9.7433.8.1"),
+        ),
+        e(
+            tags::SERIES_INSTANCE_UID,
+            VR::UI,
+            text("1.2.826.0.1.3680043.9.7433.8"),
+        ),
+        e(tags::SAMPLES_PER_PIXEL, VR::US, PrimitiveValue::from(3u16)),
+        e(tags::PHOTOMETRIC_INTERPRETATION, VR::CS, text("RGB")),
+        e(
+            tags::PLANAR_CONFIGURATION,
+            VR::US,
+            PrimitiveValue::from(0u16),
+        ),
+        e(tags::ROWS, VR::US, PrimitiveValue::from(h)),
+        e(tags::COLUMNS, VR::US, PrimitiveValue::from(w)),
+        e(tags::BITS_ALLOCATED, VR::US, PrimitiveValue::from(8u16)),
+        e(tags::BITS_STORED, VR::US, PrimitiveValue::from(8u16)),
+        e(tags::HIGH_BIT, VR::US, PrimitiveValue::from(7u16)),
+        e(
+            tags::PIXEL_REPRESENTATION,
+            VR::US,
+            PrimitiveValue::from(0u16),
+        ),
+    ]);
+    obj.put(DataElement::new(
+        tags::PIXEL_DATA,
+        VR::OB,
+        dicom_core::DicomValue::from(PixelFragmentSequence::new(Vec::<u32>::new(), vec![jpeg])),
+    ));
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("adobe-rgb.dcm");
+    obj.with_meta(FileMetaTableBuilder::new().transfer_syntax(uids::JPEG_BASELINE8_BIT))
+        .unwrap()
+        .write_to_file(&path)
+        .unwrap();
+    let v = read_volume(&path, None).unwrap();
+    assert_eq!(v.dims(), [usize::from(w), usize::from(h), 1]);
+    let mut worst = 0.0f32;
+    for (i, px) in rgb.chunks_exact(3).enumerate() {
+        for c in 0..3 {
+            worst = worst.max((v.channel(c)[i] - f32::from(px[c])).abs());
+        }
+    }
+    // Quality 100 at 4:4:4: a few levels of rounding; read as YCbCr the colours are off by
+    // tens to hundreds of levels.
+    assert!(worst <= 4.0, "largest colour error {worst} levels");
+}
