@@ -18,10 +18,11 @@
 //!
 //! Transfer syntaxes: Implicit VR Little Endian, Explicit VR Little and Big Endian, Deflated
 //! Explicit VR Little Endian, Encapsulated Uncompressed, and the encapsulated ones
-//! dicom-pixeldata decodes in pure Rust with its `native` feature: RLE Lossless, JPEG Baseline
-//! (Process 1), JPEG Extended (Process 2 & 4), JPEG Lossless Non-Hierarchical (Process 14, and
-//! Selection Value 1). JPEG-LS, JPEG 2000 and JPEG XL need codecs this build does not enable
-//! (`charls` is C++; `openjp2` is an unsafe C translation); files using them fail with an error
+//! dicom-pixeldata decodes: RLE Lossless, JPEG Baseline (Process 1), JPEG Extended (Process 2 &
+//! 4), JPEG Lossless Non-Hierarchical (Process 14, and Selection Value 1) in pure Rust; JPEG-LS
+//! (lossless and near-lossless) through CharLS (`charls`, built from source with cmake); JPEG
+//! 2000 (lossless and lossy, and High-Throughput JPEG 2000) through OpenJPEG's Rust port
+//! (`openjp2`). JPEG XL needs a codec this build does not enable; such files fail with an error
 //! naming the transfer syntax.
 //!
 //! The volume's axes: x along the row direction (increasing column index), y along the column
@@ -1539,7 +1540,7 @@ fn check_pixel_data(img: &Image, obj: &DefaultDicomObject) -> Result<(), ReadErr
             path,
             Some(tags::TRANSFER_SYNTAX_UID),
             format!(
-                "{} ({ts_uid}) cannot be decoded by this build; supported are the native syntaxes, deflate, RLE Lossless and JPEG baseline/extended/lossless",
+                "{} ({ts_uid}) cannot be decoded by this build; supported are the native syntaxes, deflate, RLE Lossless, JPEG baseline/extended/lossless, JPEG-LS and JPEG 2000 (with High-Throughput JPEG 2000)",
                 ts.name()
             ),
         ));
