@@ -785,6 +785,8 @@ struct Image {
     /// Time (named by `time_attribute`).
     time: Option<String>,
     time_attribute: &'static str,
+    /// Photometric Interpretation as the file states it.
+    photometric: String,
 }
 
 /// Reads what the reader needs of an image's header; `file_len` (the file's size) bounds the
@@ -896,13 +898,16 @@ fn read_image(
         get_str(o, tags::PHOTOMETRIC_INTERPRETATION).unwrap_or_else(|| "MONOCHROME2".into());
     let ok_photometric = match samples {
         1 => matches!(photometric.as_str(), "MONOCHROME1" | "MONOCHROME2"),
-        _ => photometric == "RGB" || photometric.starts_with("YBR_"),
+        _ => matches!(
+            photometric.as_str(),
+            "RGB" | "YBR_FULL" | "YBR_FULL_422" | "YBR_ICT" | "YBR_RCT"
+        ),
     };
     if !ok_photometric {
         return Err(dicom_err(
             path,
             Some(tags::PHOTOMETRIC_INTERPRETATION),
-            format!("{photometric} with {samples} sample(s) per pixel; supported are MONOCHROME1/2 and RGB"),
+            format!("{photometric} with {samples} sample(s) per pixel; supported are MONOCHROME1/2, RGB, YBR_FULL, YBR_FULL_422 and (JPEG 2000) YBR_ICT/YBR_RCT"),
         ));
     }
     let pixel_spacing = match floats_for_frame(
@@ -1078,6 +1083,7 @@ fn read_image(
         instance,
         time,
         time_attribute,
+        photometric,
     }))
 }
 
@@ -1548,7 +1554,7 @@ fn check_pixel_data(img: &Image, obj: &DefaultDicomObject) -> Result<(), ReadErr
     let e = element(obj, tags::PIXEL_DATA)
         .ok_or_else(|| dicom_err(path, Some(tags::PIXEL_DATA), "missing"))?;
     let bytes_per = (img.bits_allocated / 8) as usize;
-    let frame_bytes = img.rows * img.cols * img.samples * bytes_per;
+    let frame_bytes = native_frame_bytes(img);
     match e.fragments() {
         Some(frags) => {
             // dicom-rs's RLE adapter allocates the segment count a fragment's header declares
@@ -1775,6 +1781,9 @@ fn decode_frame(
     if let Some(rgb) = adobe_rgb_jpeg_frame(img, obj, f)? {
         return store_samples(img, f, offset, out, &rgb, false);
     }
+    if let Some(rgb) = native_ybr_422_frame(img, obj, f)? {
+        return store_samples(img, f, offset, out, &rgb, false);
+    }
     let decoded = catch_unwind(AssertUnwindSafe(|| obj.decode_pixel_data_frame(f as u32)))
         .map_err(|_| {
             dicom_err(
@@ -1797,7 +1806,152 @@ fn decode_frame(
     // Native RGB may be planar (R plane, G plane, B plane); decoders return interleaved.
     let planar = img.samples == 3
         && decoded.planar_configuration() == dicom_pixeldata::PlanarConfiguration::PixelFirst;
-    store_samples(img, f, offset, out, &data, planar)
+    match ybr_full_to_rgb(img, obj, &data, planar)? {
+        Some(rgb) => store_samples(img, f, offset, out, &rgb, false),
+        None => store_samples(img, f, offset, out, &data, planar),
+    }
+}
+
+/// Bytes of one frame of native pixel data: YBR_FULL_422 holds two luminance samples and one
+/// pair of chrominance samples for every two pixels.
+fn native_frame_bytes(img: &Image) -> usize {
+    let bytes_per = (img.bits_allocated / 8) as usize;
+    let samples = if img.photometric == "YBR_FULL_422" {
+        2
+    } else {
+        img.samples
+    };
+    img.rows * img.cols * samples * bytes_per
+}
+
+/// Whether `obj`'s pixel data is encapsulated and its codec leaves the colour space as it is
+/// (RLE, JPEG-LS): then, as in native data, YBR_FULL samples are still Y, Cb, Cr.
+fn colour_untouched_by_codec(obj: &DefaultDicomObject) -> bool {
+    let ts = obj.meta().transfer_syntax().trim_end_matches('\0');
+    let encapsulated = element(obj, tags::PIXEL_DATA).is_some_and(|e| e.fragments().is_some());
+    !encapsulated
+        || ts == RLE_LOSSLESS
+        || ts == "1.2.840.10008.1.2.4.80"
+        || ts == "1.2.840.10008.1.2.4.81"
+}
+
+/// One full-range Y, Cb, Cr triple (PS3.3 C.7.6.3.1.2, the ITU-R BT.601 matrix without
+/// head- and footroom) as R, G, B, rounded and clamped to the sample range as other readers
+/// (pydicom, dicom-rs's image conversion) do; `half` is the chrominance zero (128 or 32768).
+fn ybr_full_pixel(y: f64, cb: f64, cr: f64, half: f64) -> [f64; 3] {
+    let (cb, cr) = (cb - half, cr - half);
+    let max = 2.0 * half - 1.0;
+    let c = |v: f64| (v + 0.5).floor().clamp(0.0, max);
+    [
+        c(y + 1.402 * cr),
+        c(y - (0.114 * 1.772 / 0.587) * cb - (0.299 * 1.402 / 0.587) * cr),
+        c(y + 1.772 * cb),
+    ]
+}
+
+/// Interleaved RGB samples (host order) from 8- or 16-bit Y, Cb, Cr triples.
+fn ybr_triples_to_rgb(bytes_per: usize, ybr: impl Iterator<Item = [f64; 3]>) -> Vec<u8> {
+    let half = if bytes_per == 1 { 128.0 } else { 32768.0 };
+    let mut out = Vec::new();
+    for [y, cb, cr] in ybr {
+        for v in ybr_full_pixel(y, cb, cr, half) {
+            match bytes_per {
+                1 => out.push(v as u8),
+                _ => out.extend_from_slice(&(v as u16).to_ne_bytes()),
+            }
+        }
+    }
+    out
+}
+
+fn sample_at(data: &[u8], bytes_per: usize, k: usize) -> f64 {
+    match bytes_per {
+        1 => f64::from(data[k]),
+        _ => f64::from(u16::from_ne_bytes([data[2 * k], data[2 * k + 1]])),
+    }
+}
+
+/// A frame of YBR_FULL samples the codec did not convert (native, RLE, JPEG-LS) as RGB; `None`
+/// for RGB, or where the decoder already converted (lossy JPEG, JPEG 2000). Before, such
+/// frames were stored as if Y, Cb and Cr were R, G and B.
+fn ybr_full_to_rgb(
+    img: &Image,
+    obj: &DefaultDicomObject,
+    data: &[u8],
+    planar: bool,
+) -> Result<Option<Vec<u8>>, ReadError> {
+    if img.samples != 3 || img.photometric != "YBR_FULL" || !colour_untouched_by_codec(obj) {
+        return Ok(None);
+    }
+    let bytes_per = (img.bits_allocated / 8) as usize;
+    if bytes_per > 2 || img.signed {
+        return Err(dicom_err(
+            &img.path,
+            Some(tags::PHOTOMETRIC_INTERPRETATION),
+            format!(
+                "YBR_FULL with {} {}-bit samples: only unsigned 8- and 16-bit are supported",
+                if img.signed { "signed" } else { "unsigned" },
+                img.bits_allocated
+            ),
+        ));
+    }
+    let plane = img.rows * img.cols;
+    if data.len() < 3 * plane * bytes_per {
+        return Ok(None); // reported as a short frame
+    }
+    let at = |i: usize, c: usize| {
+        let k = if planar { c * plane + i } else { 3 * i + c };
+        sample_at(data, bytes_per, k)
+    };
+    Ok(Some(ybr_triples_to_rgb(
+        bytes_per,
+        (0..plane).map(|i| [at(i, 0), at(i, 1), at(i, 2)]),
+    )))
+}
+
+/// Frame `f` of native YBR_FULL_422 pixel data (Y1 Y2 Cb Cr for each pair of pixels along a
+/// row) as RGB. dicom-pixeldata sizes native frames as three samples a pixel, so these frames
+/// are cut from the pixel data here. `None` for anything else.
+fn native_ybr_422_frame(
+    img: &Image,
+    obj: &DefaultDicomObject,
+    f: usize,
+) -> Result<Option<Vec<u8>>, ReadError> {
+    if img.samples != 3 || img.photometric != "YBR_FULL_422" {
+        return Ok(None);
+    }
+    let Some(p) = element(obj, tags::PIXEL_DATA).and_then(|e| e.value().primitive()) else {
+        return Ok(None); // encapsulated: the JPEG decoder converts
+    };
+    let bytes_per = (img.bits_allocated / 8) as usize;
+    let err = |reason: String| dicom_err(&img.path, Some(tags::PHOTOMETRIC_INTERPRETATION), reason);
+    if bytes_per > 2 || img.signed || img.cols % 2 == 1 {
+        return Err(err(format!(
+            "native YBR_FULL_422 with {} columns of {}-bit {} samples: only even widths of \
+             unsigned 8- or 16-bit samples are supported",
+            img.cols,
+            img.bits_allocated,
+            if img.signed { "signed" } else { "unsigned" }
+        )));
+    }
+    let all = p.to_bytes();
+    let size = native_frame_bytes(img);
+    let Some(frame) = all.get(f * size..(f + 1) * size) else {
+        return Err(err(format!(
+            "frame {} lies beyond the {} bytes of pixel data",
+            f + 1,
+            all.len()
+        )));
+    };
+    let pairs = img.rows * img.cols / 2;
+    Ok(Some(ybr_triples_to_rgb(
+        bytes_per,
+        (0..pairs).flat_map(|q| {
+            let s = |j: usize| sample_at(frame, bytes_per, 4 * q + j);
+            let (cb, cr) = (s(2), s(3));
+            [[s(0), cb, cr], [s(1), cb, cr]]
+        }),
+    )))
 }
 
 /// Stores frame `f`'s decoded samples (`data`, host order, interleaved or `planar`) into the

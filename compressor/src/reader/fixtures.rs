@@ -400,12 +400,16 @@ fn image_base(v: &Volume, o: &DicomOptions, sop_uid: &str, frames: usize) -> InM
     obj
 }
 
-fn pixel_element(frames: Vec<Vec<u8>>, o: &DicomOptions) -> DataElement<InMemDicomObject> {
+fn pixel_element(
+    frames: Vec<Vec<u8>>,
+    o: &DicomOptions,
+    samples: usize,
+) -> DataElement<InMemDicomObject> {
     match o.encoding {
         DicomEncoding::RleLossless => {
             let fragments: Vec<Vec<u8>> = frames
                 .iter()
-                .map(|f| rle_frame(f, o.layout.bytes()))
+                .map(|f| rle_frame(f, o.layout.bytes(), samples))
                 .collect();
             DataElement::new(
                 tags::PIXEL_DATA,
@@ -431,14 +435,15 @@ fn pixel_element(frames: Vec<Vec<u8>>, o: &DicomOptions) -> DataElement<InMemDic
     }
 }
 
-/// One RLE Lossless frame (PS3.5 Annex G): a segment per byte plane (most significant first),
-/// each PackBits-coded as literal runs of at most 128 bytes.
-fn rle_frame(frame: &[u8], bytes_per_sample: usize) -> Vec<u8> {
-    let n = frame.len() / bytes_per_sample;
+/// One RLE Lossless frame (PS3.5 Annex G) of interleaved samples: a segment per sample and
+/// byte plane (each sample's most significant first), each PackBits-coded as literal runs of
+/// at most 128 bytes.
+fn rle_frame(frame: &[u8], bytes_per_sample: usize, samples: usize) -> Vec<u8> {
+    let n = frame.len() / (bytes_per_sample * samples);
     let mut segments = Vec::new();
-    for plane in (0..bytes_per_sample).rev() {
+    for (c, plane) in (0..samples).flat_map(|c| (0..bytes_per_sample).rev().map(move |p| (c, p))) {
         let data: Vec<u8> = (0..n)
-            .map(|i| frame[i * bytes_per_sample + plane])
+            .map(|i| frame[(i * samples + c) * bytes_per_sample + plane])
             .collect();
         let mut seg = Vec::new();
         for chunk in data.chunks(128) {
@@ -516,7 +521,11 @@ pub fn write_dicom_series(dir: &Path, v: &Volume, o: &DicomOptions) -> Vec<PathB
             VR::DS,
             ds_list(&[r[0][0], r[0][1], r[0][2], r[1][0], r[1][1], r[1][2]]),
         ));
-        obj.put(pixel_element(vec![frame_bytes(v, o, z)], o));
+        obj.put(pixel_element(
+            vec![frame_bytes(v, o, z)],
+            o,
+            v.channel_count(),
+        ));
         // Names that do not sort by position.
         let path = dir.join(format!("IM{:04}", (z * 7919) % 10007));
         save(obj, o, &path);
@@ -575,7 +584,7 @@ pub fn write_dicom_multiframe(path: &Path, v: &Volume, o: &DicomOptions) -> Path
         .collect();
     obj.put(seq(tags::PER_FRAME_FUNCTIONAL_GROUPS_SEQUENCE, per_frame));
     let frames: Vec<Vec<u8>> = (0..nz).map(|z| frame_bytes(v, o, z)).collect();
-    obj.put(pixel_element(frames, o));
+    obj.put(pixel_element(frames, o, v.channel_count()));
     save(obj, o, path);
     path.to_path_buf()
 }

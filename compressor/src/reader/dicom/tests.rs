@@ -1172,3 +1172,122 @@ fn jpeg_2000_series_coded_by_openjpeg_read_back() {
         }
     }
 }
+
+/// Full-range Y, Cb, Cr of an RGB colour (PS3.3 C.7.6.3.1.2), rounded to 8 bits: the forward
+/// transform, written out here independently of the reader's inverse.
+fn ybr_full(rgb: [f64; 3]) -> [f32; 3] {
+    let [r, g, b] = rgb;
+    let q = |v: f64| v.round().clamp(0.0, 255.0) as f32;
+    [
+        q(0.299 * r + 0.587 * g + 0.114 * b),
+        q(-0.168736 * r - 0.331264 * g + 0.5 * b + 128.0),
+        q(0.5 * r - 0.418688 * g - 0.081312 * b + 128.0),
+    ]
+}
+
+/// YBR_FULL in native and RLE files, and native YBR_FULL_422 (refused before), read as RGB:
+/// the samples were stored as if Y, Cb and Cr were R, G and B.
+#[test]
+fn ybr_full_and_ybr_full_422_read_as_rgb() {
+    let dims = [8, 6, 2];
+    let n: usize = dims.iter().product();
+    // Colours constant over each horizontal pair, so 4:2:2 loses nothing.
+    let rgb: Vec<[f64; 3]> = (0..n)
+        .map(|i| {
+            let (x, y, z) = (
+                i % dims[0] / 2,
+                i / dims[0] % dims[1],
+                i / (dims[0] * dims[1]),
+            );
+            [
+                (30 + 50 * x) as f64,
+                (220 - 30 * y) as f64,
+                (60 + 100 * z) as f64,
+            ]
+        })
+        .collect();
+    let ybr: Vec<[f32; 3]> = rgb.iter().map(|c| ybr_full(*c)).collect();
+    let channels: Vec<Vec<f32>> = (0..3).map(|c| ybr.iter().map(|p| p[c]).collect()).collect();
+    let stored = Volume::new(dims, [1.0, 1.0, 2.0], channels)
+        .unwrap()
+        .with_placement(oblique())
+        .unwrap();
+    let check = |back: &Volume, what: &str| {
+        let mut worst = 0f64;
+        for (i, c) in rgb.iter().enumerate() {
+            for k in 0..3 {
+                worst = worst.max((f64::from(back.channel(k)[i]) - c[k]).abs());
+            }
+        }
+        // 8-bit Y, Cb, Cr round each colour by up to ~1.5 levels.
+        assert!(worst <= 2.0, "{what}: largest colour error {worst} levels");
+    };
+    for (what, encoding) in [
+        ("native", DicomEncoding::ExplicitLittle),
+        ("RLE", DicomEncoding::RleLossless),
+    ] {
+        let dir = tempfile::tempdir().unwrap();
+        let o = DicomOptions {
+            layout: Layout::U8,
+            encoding,
+            ..DicomOptions::default()
+        };
+        for f in write_dicom_series(dir.path(), &stored, &o) {
+            edit(&f, |o| {
+                o.put(DataElement::new(
+                    tags::PHOTOMETRIC_INTERPRETATION,
+                    VR::CS,
+                    PrimitiveValue::from("YBR_FULL".to_string()),
+                ));
+            });
+        }
+        check(
+            &read_volume(dir.path(), None).unwrap_or_else(|e| panic!("{what}: {e}")),
+            what,
+        );
+    }
+    // Native 4:2:2: Y1 Y2 Cb Cr for each pair of pixels along a row.
+    let dir = tempfile::tempdir().unwrap();
+    let o = DicomOptions {
+        layout: Layout::U8,
+        ..DicomOptions::default()
+    };
+    let files = write_dicom_series(dir.path(), &stored, &o);
+    for f in &files {
+        let z = {
+            let obj = open_file(f).unwrap();
+            let p = obj
+                .element(tags::IMAGE_POSITION_PATIENT)
+                .unwrap()
+                .to_multi_float64()
+                .unwrap();
+            let pl = stored.placement().unwrap();
+            let d: f64 = (0..3)
+                .map(|k| (p[k] - pl.origin[k]) * pl.directions[2][k])
+                .sum();
+            (d / 2.0).round() as usize
+        };
+        let plane = dims[0] * dims[1];
+        let mut packed = Vec::new();
+        for q in 0..plane / 2 {
+            let (a, b) = (ybr[z * plane + 2 * q], ybr[z * plane + 2 * q + 1]);
+            packed.extend_from_slice(&[a[0] as u8, b[0] as u8, a[1] as u8, a[2] as u8]);
+        }
+        edit(f, |o| {
+            o.put(DataElement::new(
+                tags::PHOTOMETRIC_INTERPRETATION,
+                VR::CS,
+                PrimitiveValue::from("YBR_FULL_422".to_string()),
+            ));
+            o.put(DataElement::new(
+                tags::PIXEL_DATA,
+                VR::OB,
+                PrimitiveValue::U8(packed.clone().into()),
+            ));
+        });
+    }
+    check(
+        &read_volume(dir.path(), None).unwrap(),
+        "native YBR_FULL_422",
+    );
+}
