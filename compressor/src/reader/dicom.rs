@@ -1784,6 +1784,9 @@ fn decode_frame(
     if let Some(rgb) = native_ybr_422_frame(img, obj, f)? {
         return store_samples(img, f, offset, out, &rgb, false);
     }
+    if let Some(samples) = rle_32_bit_frame(img, obj, f)? {
+        return store_samples(img, f, offset, out, &samples, false);
+    }
     let decoded = catch_unwind(AssertUnwindSafe(|| obj.decode_pixel_data_frame(f as u32)))
         .map_err(|_| {
             dicom_err(
@@ -1793,10 +1796,17 @@ fn decode_frame(
             )
         })?
         .map_err(|e| {
+            // The decoders' own reasons are in the error's sources.
+            let mut reason = e.to_string();
+            let mut source = std::error::Error::source(&e);
+            while let Some(s) = source {
+                reason.push_str(&format!(": {s}"));
+                source = s.source();
+            }
             dicom_err(
                 path,
                 Some(tags::PIXEL_DATA),
-                format!("frame {}: {e}", f + 1),
+                format!("frame {}: {reason}", f + 1),
             )
         })?;
     let data = decoded.data();
@@ -1810,6 +1820,113 @@ fn decode_frame(
         Some(rgb) => store_samples(img, f, offset, out, &rgb, false),
         None => store_samples(img, f, offset, out, &data, planar),
     }
+}
+
+/// Frame `f` of RLE Lossless pixel data with 32-bit samples (an RT Dose grid, typically) as
+/// host-order samples. dicom-rs's RLE decoder handles 8 and 16 bits only; RLE is PackBits per
+/// byte plane (PS3.5 Annex G), decoded here. `None` for anything else.
+fn rle_32_bit_frame(
+    img: &Image,
+    obj: &DefaultDicomObject,
+    f: usize,
+) -> Result<Option<Vec<u8>>, ReadError> {
+    let ts = obj.meta().transfer_syntax().trim_end_matches('\0');
+    if ts != RLE_LOSSLESS || img.bits_allocated != 32 {
+        return Ok(None);
+    }
+    let err = |reason: String| {
+        dicom_err(
+            &img.path,
+            Some(tags::PIXEL_DATA),
+            format!("frame {}: {reason}", f + 1),
+        )
+    };
+    let Some(fragments) = element(obj, tags::PIXEL_DATA).and_then(|e| e.fragments()) else {
+        return Err(err("RLE Lossless without encapsulated fragments".into()));
+    };
+    let frame: Vec<u8> = if img.frames == 1 {
+        fragments.iter().flatten().copied().collect()
+    } else if fragments.len() == img.frames {
+        fragments[f].clone()
+    } else {
+        return Err(err(format!(
+            "{} fragments for {} frames: one fragment a frame expected",
+            fragments.len(),
+            img.frames
+        )));
+    };
+    let n = img.rows * img.cols;
+    let segments = img.samples * 4;
+    let word = |i: usize| {
+        frame
+            .get(4 * i..4 * i + 4)
+            .map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]) as usize)
+    };
+    if frame.len() < 64 || word(0) != Some(segments) {
+        return Err(err(format!(
+            "the RLE header declares {:?} segments; {} samples of 4 bytes need {segments}",
+            word(0),
+            img.samples
+        )));
+    }
+    let mut planes = Vec::with_capacity(segments);
+    for s in 0..segments {
+        let start = word(1 + s).unwrap_or(usize::MAX);
+        let end = if s + 1 < segments {
+            word(2 + s).unwrap_or(usize::MAX)
+        } else {
+            frame.len()
+        };
+        let Some(coded) = frame.get(start..end).filter(|_| start >= 64) else {
+            return Err(err(format!(
+                "RLE segment {} at bytes {start}..{end}",
+                s + 1
+            )));
+        };
+        planes.push(packbits(coded, n).ok_or_else(|| {
+            err(format!(
+                "RLE segment {} does not decode to {n} bytes",
+                s + 1
+            ))
+        })?);
+    }
+    let mut out = Vec::with_capacity(n * segments);
+    for i in 0..n {
+        for c in 0..img.samples {
+            // Segments run from each sample's most significant byte to its least.
+            let p = &planes[4 * c..4 * c + 4];
+            let v = u32::from_be_bytes([p[0][i], p[1][i], p[2][i], p[3][i]]);
+            out.extend_from_slice(&v.to_ne_bytes());
+        }
+    }
+    Ok(Some(out))
+}
+
+/// PackBits (the RLE of PS3.5 G.3.1): `n` bytes, or `None` if the data holds fewer.
+fn packbits(coded: &[u8], n: usize) -> Option<Vec<u8>> {
+    let mut out = Vec::with_capacity(n);
+    let mut i = 0;
+    while out.len() < n && i < coded.len() {
+        let h = coded[i] as i8;
+        i += 1;
+        match h {
+            0.. => {
+                let len = h as usize + 1;
+                out.extend_from_slice(coded.get(i..i + len)?);
+                i += len;
+            }
+            -127..=-1 => {
+                let b = *coded.get(i)?;
+                i += 1;
+                out.extend(std::iter::repeat_n(b, (1 - h as isize) as usize));
+            }
+            _ => {} // -128: no operation
+        }
+    }
+    (out.len() >= n).then(|| {
+        out.truncate(n);
+        out
+    })
 }
 
 /// Bytes of one frame of native pixel data: YBR_FULL_422 holds two luminance samples and one

@@ -438,7 +438,7 @@ fn pixel_element(
 /// One RLE Lossless frame (PS3.5 Annex G) of interleaved samples: a segment per sample and
 /// byte plane (each sample's most significant first), each PackBits-coded as literal runs of
 /// at most 128 bytes.
-fn rle_frame(frame: &[u8], bytes_per_sample: usize, samples: usize) -> Vec<u8> {
+pub fn rle_frame(frame: &[u8], bytes_per_sample: usize, samples: usize) -> Vec<u8> {
     let n = frame.len() / (bytes_per_sample * samples);
     let mut segments = Vec::new();
     for (c, plane) in (0..samples).flat_map(|c| (0..bytes_per_sample).rev().map(move |p| (c, p))) {

@@ -695,12 +695,33 @@ fn rt_dose(path: &Path, ts: &str, stored: &[u32], dims: [usize; 3], offsets: &[f
         ),
         e(tags::DOSE_UNITS, VR::CS, text("GY")),
         e(tags::DOSE_GRID_SCALING, VR::DS, text("1e-05")),
-        e(
+    ]);
+    let mut obj = obj;
+    if ts == "1.2.840.10008.1.2.5" {
+        // RLE Lossless, a fragment a frame.
+        let plane = dims[0] * dims[1];
+        let fragments: Vec<Vec<u8>> = stored
+            .chunks(plane)
+            .map(|f| {
+                let bytes: Vec<u8> = f.iter().flat_map(|v| v.to_le_bytes()).collect();
+                fixtures::rle_frame(&bytes, 4, 1)
+            })
+            .collect();
+        obj.put(DataElement::new(
+            tags::PIXEL_DATA,
+            VR::OB,
+            dicom_core::DicomValue::from(dicom_core::value::PixelFragmentSequence::new(
+                Vec::<u32>::new(),
+                fragments,
+            )),
+        ));
+    } else {
+        obj.put(e(
             tags::PIXEL_DATA,
             VR::OW,
             PrimitiveValue::U32(stored.to_vec().into()),
-        ),
-    ]);
+        ));
+    }
     obj.with_meta(FileMetaTableBuilder::new().transfer_syntax(ts))
         .unwrap()
         .write_to_file(path)
@@ -709,7 +730,8 @@ fn rt_dose(path: &Path, ts: &str, stored: &[u32], dims: [usize; 3], offsets: &[f
 
 /// 32-bit samples of a big-endian file were read without putting their 16-bit halves back in
 /// order (795 000 came out as 561 512 460); RT Dose grids were refused for want of Spacing
-/// Between Slices and their values not scaled to Gy.
+/// Between Slices and their values not scaled to Gy; 32-bit RLE was refused ("Could not
+/// decode pixel data").
 #[test]
 fn rt_dose_grids_read_in_gray_in_either_byte_order() {
     let dims = [4, 3, 5];
@@ -732,6 +754,7 @@ fn rt_dose_grids_read_in_gray_in_either_byte_order() {
             "1.2.840.10008.1.2.2",
             vec![30.0, 33.0, 36.0, 39.0, 42.0],
         ),
+        ("rle", "1.2.840.10008.1.2.5", vec![0.0, 3.0, 6.0, 9.0, 12.0]),
     ] {
         let path = dir.path().join(format!("{name}.dcm"));
         rt_dose(&path, ts, &stored, dims, &offsets);
@@ -742,7 +765,7 @@ fn rt_dose_grids_read_in_gray_in_either_byte_order() {
             795_000u32.to_le_bytes()
         };
         assert!(
-            raw.windows(4).any(|w| w == want),
+            name == "rle" || raw.windows(4).any(|w| w == want),
             "{name}: the writer did not store the first sample in the file's byte order"
         );
         let v = read_volume(&path, None).unwrap_or_else(|e| panic!("{name}: {e}"));
@@ -1290,4 +1313,14 @@ fn ybr_full_and_ybr_full_422_read_as_rgb() {
         &read_volume(dir.path(), None).unwrap(),
         "native YBR_FULL_422",
     );
+}
+
+#[test]
+fn packbits_decodes_literal_and_replicate_runs() {
+    // PS3.5 G.3.1: n ≥ 0 copies n + 1 bytes, −127 ≤ n ≤ −1 repeats the next byte 1 − n
+    // times, −128 does nothing.
+    let coded = [2, 10, 11, 12, 0xFE, 7, 0x80, 0, 9];
+    assert_eq!(packbits(&coded, 7).unwrap(), vec![10, 11, 12, 7, 7, 7, 9]);
+    assert_eq!(packbits(&coded, 8), None);
+    assert_eq!(packbits(&[5, 1, 2], 3), None);
 }
