@@ -41,13 +41,15 @@ enum Command {
     /// Run the main job on a built-in phantom: compress, then render progressively from the
     /// coefficient stream (quality vs bytes), multiview and depth-cued.
     Demo(commands::demo::DemoArgs),
-    /// Compress a volume (raw, NIfTI or a built-in phantom) into a .wsp file.
+    /// Compress a volume (DICOM series or multi-frame file, NIfTI, NRRD, MetaImage, raw, or a
+    /// built-in phantom) into a .wsp file.
     Compress(Box<commands::compress::CompressArgs>),
     /// Show a .wsp file's header, tiles, packets and size breakdown.
     Info(commands::info::InfoArgs),
     /// Decode a .wsp file to raw little-endian f32 (x fastest, channels interleaved).
     Decompress(commands::decompress::DecompressArgs),
-    /// Render X-ray images directly from a .wsp file's coefficients (wavelet splatting).
+    /// Render X-ray images directly from a .wsp file's or a cache's coefficients (wavelet
+    /// splatting).
     Render(Box<commands::render::RenderArgs>),
     /// Open a window on a volume (file or cache): drag to turn it, watch it sharpen within a
     /// frame-time budget (H for the keys).
@@ -61,7 +63,7 @@ enum Command {
     /// batch job queue).
     #[command(subcommand)]
     Serve(commands::cache::ServeCommand),
-    /// Talk to a coefficient cache: `ingest`, `list`, `rm`.
+    /// Talk to a coefficient cache: `ingest`, `list`, `show`, `rm`.
     #[command(subcommand)]
     Cache(commands::cache::CacheCommand),
     /// Run a compression worker: lease jobs from an orchestrator, deliver to a cache.

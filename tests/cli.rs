@@ -1,6 +1,8 @@
 //! Command-line behaviour of the real `wavesplat` binary that users meet in shells: output into a
 //! pipe whose reader has gone away (`wavesplat info f.wsp | head -1`) ends without a panic and
-//! with the status a shell gives a program killed by SIGPIPE.
+//! with the status a shell gives a program killed by SIGPIPE; first-hour mistakes (a compressed
+//! file to compress, a volume to render, a missing output directory, a database in use) are
+//! explained; help says what the commands take.
 
 use std::process::{Command, Stdio};
 
@@ -57,4 +59,160 @@ fn output_into_a_closed_pipe_ends_quietly_with_the_sigpipe_status() {
     let (code, stderr) = run_into_closed_pipe(&["info", wsp_s]);
     assert_eq!(code, Some(141), "info into a closed pipe: {stderr}");
     assert!(!stderr.contains("panicked"), "{stderr}");
+}
+
+fn run(args: &[&str]) -> std::process::Output {
+    Command::new(BIN)
+        .args(args)
+        .output()
+        .expect("run wavesplat")
+}
+
+fn err(o: &std::process::Output) -> String {
+    String::from_utf8_lossy(&o.stderr).into_owned()
+}
+
+fn out(o: &std::process::Output) -> String {
+    String::from_utf8_lossy(&o.stdout).into_owned()
+}
+
+/// A small compressed phantom and its raw source in `dir`.
+fn phantom_files(dir: &std::path::Path) -> (String, String) {
+    let raw = dir.join("p.raw").to_str().unwrap().to_string();
+    let wsp = dir.join("p.wsp").to_str().unwrap().to_string();
+    assert!(
+        run(&["phantom", "spheres", "--dims", "16,16,16", "-o", &raw])
+            .status
+            .success()
+    );
+    let c = run(&[
+        "compress", &raw, "--dims", "16,16,16", "--dtype", "f32", "-o", &wsp,
+    ]);
+    assert!(c.status.success(), "{}", err(&c));
+    // What the fraction counts is printed as a percentage of all coefficients.
+    assert!(out(&c).contains(" %; "), "{}", out(&c));
+    (raw, wsp)
+}
+
+/// Errors people meet in their first hour say what is wrong and what to do.
+#[test]
+fn first_hour_mistakes_are_explained() {
+    let dir = tempfile::tempdir().unwrap();
+    let (raw, wsp) = phantom_files(dir.path());
+    let o = dir.path().join("o.wsp");
+    let o = o.to_str().unwrap();
+
+    // Compressing a compressed file.
+    let e = run(&["compress", &wsp, "-o", o]);
+    assert!(!e.status.success());
+    assert!(err(&e).contains("already a compressed"), "{}", err(&e));
+
+    // A negative fraction reaches the validation instead of clap's "unexpected argument '-0'".
+    let e = run(&[
+        "compress",
+        &raw,
+        "--dims",
+        "16,16,16",
+        "--dtype",
+        "f32",
+        "--target-fraction",
+        "-0.5",
+        "-o",
+        o,
+    ]);
+    assert!(!e.status.success());
+    assert!(
+        err(&e).contains("-0.5") && err(&e).contains("(0, 1]"),
+        "{}",
+        err(&e)
+    );
+
+    // An output directory that does not exist is refused before any work.
+    let e = run(&["render", &wsp, "-o", "/nonexistent-dir/a.png"]);
+    assert!(!e.status.success());
+    assert!(err(&e).contains("does not exist"), "{}", err(&e));
+
+    // A volume that is not compressed, given to info, render or decompress.
+    std::fs::write(
+        dir.path().join("head.dcm"),
+        [vec![0u8; 128], b"DICM".to_vec(), vec![0u8; 64]].concat(),
+    )
+    .unwrap();
+    let dcm = dir.path().join("head.dcm");
+    for cmd in ["info", "render", "decompress"] {
+        let mut args = vec![cmd, dcm.to_str().unwrap()];
+        if cmd != "info" {
+            args.extend(["-o", o]);
+        }
+        let e = run(&args);
+        assert!(!e.status.success(), "{cmd}");
+        assert!(
+            err(&e).contains("DICOM volume, not a compressed one") && err(&e).contains("compress"),
+            "{cmd}: {}",
+            err(&e)
+        );
+    }
+    // Raw samples: not a wavesplat file, compress them first.
+    let e = run(&["info", &raw]);
+    assert!(err(&e).contains("not a wavesplat file"), "{}", err(&e));
+}
+
+/// A second server on a database another process holds says so, once.
+#[test]
+fn a_database_in_use_is_named() {
+    let dir = tempfile::tempdir().unwrap();
+    let db = dir.path().join("db");
+    let mut first = Command::new(BIN)
+        .args([
+            "serve",
+            "cache",
+            "--addr",
+            "127.0.0.1:0",
+            "--db",
+            db.to_str().unwrap(),
+        ])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let mut line = String::new();
+    std::io::BufRead::read_line(
+        &mut std::io::BufReader::new(first.stdout.take().unwrap()),
+        &mut line,
+    )
+    .unwrap();
+    assert!(line.starts_with("listening on"), "{line}");
+    let second = run(&[
+        "serve",
+        "cache",
+        "--addr",
+        "127.0.0.1:0",
+        "--db",
+        db.to_str().unwrap(),
+    ]);
+    let _ = first.kill();
+    let _ = first.wait();
+    assert!(!second.status.success());
+    let e = err(&second);
+    assert!(e.contains("in use by another process"), "{e}");
+    assert_eq!(e.matches("in use").count(), 1, "{e}");
+    assert!(!e.contains("WouldBlock"), "{e}");
+}
+
+/// Help that was stale: what compress reads, what cache does, what bench throughput reads,
+/// and how α and β turn the volume.
+#[test]
+fn help_says_what_the_commands_take() {
+    let top = out(&run(&["--help"]));
+    assert!(top.contains("DICOM") && top.contains("NRRD"), "{top}");
+    assert!(top.contains("`show`"), "{top}");
+    let bench = out(&run(&["bench", "throughput", "--help"]));
+    assert!(bench.contains("NRRD") && bench.contains("DICOM"), "{bench}");
+    let render = out(&run(&["render", "--help"]));
+    assert!(
+        render.contains("y–z plane") && render.contains("--token-file"),
+        "{render}"
+    );
+    let compress = out(&run(&["compress", "--help"]));
+    assert!(compress.contains("padded grid"), "{compress}");
 }

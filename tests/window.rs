@@ -1,8 +1,9 @@
 //! `wavesplat view` in a real window under a virtual X server (Xvfb): it opens, renders,
 //! reacts to a synthetic drag and keys (its `--script` feeds them through the same handlers as
 //! real events), what reaches the screen (an ImageMagick `import` of the root window) shows the
-//! volume, and it closes cleanly. Without Xvfb these tests skip with a printed reason, unless
-//! `WAVESPLAT_REQUIRE_GPU=1` (CI sets it, and `.ci/run` installs Xvfb): then they fail.
+//! volume, and it closes cleanly. Without Xvfb, or without a graphics driver for the window
+//! (Mesa's Vulkan driver), these tests skip with a printed reason, unless
+//! `WAVESPLAT_REQUIRE_GPU=1` (CI sets it, and `.ci/run` installs both): then they fail.
 
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
@@ -179,6 +180,41 @@ fn finish(mut child: Child) -> (std::process::ExitStatus, String, String) {
     )
 }
 
+/// A private Xvfb on which a wgpu surface can be made, or `None` after [`skip`]ping with the
+/// reason: no Xvfb, or no graphics driver for the window (Xvfb without Mesa's Vulkan driver
+/// fails at "creating a wgpu surface").
+fn display_for_window() -> Option<Xvfb> {
+    let Some(x) = Xvfb::start() else {
+        skip("no Xvfb to open a window on");
+        return None;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("probe.wsp");
+    std::fs::write(&file, wsp(Phantom::SheppLogan, [8, 8, 8])).unwrap();
+    let child = view(
+        &x.display,
+        &[
+            file.to_str().unwrap(),
+            "--size",
+            "16x16",
+            "--exit-after-frames",
+            "1",
+        ],
+    )
+    .spawn()
+    .unwrap();
+    let (status, _, err) = finish(child);
+    if !status.success() && (err.contains("wgpu surface") || err.contains("adapter")) {
+        let reason = err.lines().last().unwrap_or("").to_string();
+        skip(&format!(
+            "no graphics driver for a window on Xvfb ({reason}); apt-get install \
+             mesa-vulkan-drivers"
+        ));
+        return None;
+    }
+    Some(x)
+}
+
 fn view(display: &str, args: &[&str]) -> Command {
     let mut c = Command::new(BIN);
     c.arg("view")
@@ -195,8 +231,7 @@ fn view(display: &str, args: &[&str]) -> Command {
 
 #[test]
 fn the_window_renders_turns_under_a_drag_and_closes_cleanly() {
-    let Some(x) = Xvfb::start() else {
-        skip("no Xvfb to open a window on");
+    let Some(x) = display_for_window() else {
         return;
     };
     let dir = tempfile::tempdir().unwrap();
@@ -315,8 +350,7 @@ fn the_window_renders_turns_under_a_drag_and_closes_cleanly() {
 
 #[test]
 fn the_window_closes_after_a_set_number_of_frames_and_refuses_cueing_in_multiview() {
-    let Some(x) = Xvfb::start() else {
-        skip("no Xvfb to open a window on");
+    let Some(x) = display_for_window() else {
         return;
     };
     let dir = tempfile::tempdir().unwrap();
@@ -381,8 +415,7 @@ fn without_a_display_the_window_fails_with_a_reason() {
 /// (the accumulation too).
 #[test]
 fn the_window_recovers_from_a_lost_graphics_device() {
-    let Some(x) = Xvfb::start() else {
-        skip("no Xvfb to open a window on");
+    let Some(x) = display_for_window() else {
         return;
     };
     let dir = tempfile::tempdir().unwrap();

@@ -120,8 +120,7 @@ pub fn run_serve(cmd: ServeCommand) -> Result<()> {
             ..Default::default()
         },
     };
-    let store = Store::open(&a.db, limits)
-        .with_context(|| format!("opening the cache database {}", a.db.display()))?;
+    let store = Store::open(&a.db, limits).map_err(|e| super::database_error(e, &a.db, "cache"))?;
     runtime()?.block_on(async move {
         let listener = super::bind_announced(&a.addr, &options.security).await?;
         let shutdown = super::ctrl_c();
@@ -134,8 +133,7 @@ pub fn run_serve(cmd: ServeCommand) -> Result<()> {
 pub fn run(cmd: CacheCommand) -> Result<()> {
     match cmd {
         CacheCommand::Ingest(a) => {
-            let bytes = std::fs::read(&a.input)
-                .with_context(|| format!("reading {}", a.input.display()))?;
+            let bytes = super::read_wsp(&a.input)?;
             let name = match a.name {
                 Some(n) => n,
                 None => a

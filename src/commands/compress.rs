@@ -132,6 +132,18 @@ fn load(a: &CompressArgs) -> Result<Volume> {
     let Some(input) = &a.input else {
         bail!("give an input file or --phantom NAME");
     };
+    let mut head = [0u8; 4];
+    if std::fs::File::open(input)
+        .and_then(|mut f| std::io::Read::read_exact(&mut f, &mut head))
+        .is_ok()
+        && &head == wavesplat_codec::format::MAGIC
+    {
+        bail!(
+            "{} is already a compressed wavesplat volume: render, view, info or decompress it \
+             (compress reads DICOM, NIfTI, NRRD, MetaImage and raw volumes)",
+            input.display()
+        );
+    }
     let raw = match (&a.dims, &a.dtype) {
         (Some(d), Some(t)) => {
             let mut spec = RawSpec::new(*d, RawDtype::from_name(t)?);
@@ -249,6 +261,7 @@ fn parse_bytes(s: &str) -> Result<u64, String> {
 /// Runs the subcommand.
 pub fn run(a: CompressArgs) -> Result<()> {
     let opts = options(&a)?;
+    super::check_output(&a.output)?;
     let volume = load(&a)?;
     let progress = Progress::new("compress");
     let report = |stage: Stage, _f: f64| {
@@ -284,7 +297,7 @@ fn print_summary(volume: &Volume, c: &Compressed, out: &std::path::Path) {
         8.0 * s.bytes as f64 / volume.voxel_count() as f64
     );
     outln!(
-        "volume {}x{}x{} x{} | {} M={} | kept {} of {} coefficients ({} non-zero)",
+        "volume {}x{}x{} x{} | {} M={} | kept {} of {} coefficients ({:.3} %; {} non-zero)",
         d[0],
         d[1],
         d[2],
@@ -293,6 +306,7 @@ fn print_summary(volume: &Volume, c: &Compressed, out: &std::path::Path) {
         c.header.geometry.levels,
         s.kept,
         s.total_coefficients,
+        100.0 * s.kept as f64 / (s.total_coefficients as f64).max(1.0),
         s.nonzero_coefficients
     );
     let over = if s.refined {

@@ -16,8 +16,8 @@ pub struct DecompressArgs {
 
 /// Runs the subcommand.
 pub fn run(a: DecompressArgs) -> Result<()> {
-    let bytes =
-        std::fs::read(&a.input).with_context(|| format!("reading {}", a.input.display()))?;
+    super::check_output(&a.output)?;
+    let bytes = super::read_wsp(&a.input)?;
     let progress = crate::progress::Progress::new("decompress");
     progress.stage("decoding packets and inverse transform");
     let v = wavesplat_compressor::decode::decompress(&bytes)

@@ -18,8 +18,7 @@ pub struct InfoArgs {
 
 /// Runs the subcommand.
 pub fn run(a: InfoArgs) -> Result<()> {
-    let bytes =
-        std::fs::read(&a.input).with_context(|| format!("reading {}", a.input.display()))?;
+    let bytes = super::read_wsp(&a.input)?;
     let file = parse_file(&bytes).with_context(|| format!("parsing {}", a.input.display()))?;
     let h = &file.header;
     outln!("file        {} ({} bytes)", a.input.display(), bytes.len());

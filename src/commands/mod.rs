@@ -23,14 +23,17 @@ pub struct TargetArgs {
     /// Keep as many coefficients as fit in this many bytes (whole file).
     #[arg(long, group = "target")]
     pub target_bytes: Option<u64>,
-    /// Keep this fraction (0..1] of all coefficients (default 0.05).
-    #[arg(long, group = "target")]
+    /// Keep this fraction (0..1] of all coefficients: every wavelet coefficient of the padded
+    /// grid, all channels (default 0.05). It is the selection's target; least-squares
+    /// refinement then drops the few whose refitted value is zero, so the count `compress`
+    /// prints as kept can be slightly lower.
+    #[arg(long, group = "target", allow_negative_numbers = true)]
     pub target_fraction: Option<f64>,
     /// Keep this many coefficients.
     #[arg(long, group = "target")]
     pub target_coefficients: Option<u64>,
     /// Keep the fewest coefficients whose energy is at least this percentage (Q_V, eq. 19).
-    #[arg(long, group = "target")]
+    #[arg(long, group = "target", allow_negative_numbers = true)]
     pub target_qv: Option<f64>,
     /// Keep every non-zero coefficient.
     #[arg(long, group = "target")]
@@ -54,6 +57,79 @@ impl TargetArgs {
             Target::Fraction(0.05)
         }
     }
+}
+
+/// The error of opening a server's database at `path`: sled's lock held by another process
+/// (its raw `WouldBlock`) said in words.
+pub fn database_error(
+    e: impl std::error::Error + Send + Sync + 'static,
+    path: &std::path::Path,
+    what: &str,
+) -> anyhow::Error {
+    let text = format!("{e:?} {e}");
+    if text.contains("WouldBlock") || text.contains("temporarily unavailable") {
+        anyhow::anyhow!(
+            "the {what} database {} is in use by another process (is a {what} already running \
+             on it?)",
+            path.display()
+        )
+    } else {
+        anyhow::Error::new(e).context(format!("opening the {what} database {}", path.display()))
+    }
+}
+
+/// Checks, before any work, that the file `path` can be created: its directory exists.
+pub fn check_output(path: &std::path::Path) -> Result<()> {
+    let dir = match path.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d,
+        _ => return Ok(()),
+    };
+    if !dir.is_dir() {
+        bail!(
+            "cannot write {}: the directory {} does not exist",
+            path.display(),
+            dir.display()
+        );
+    }
+    Ok(())
+}
+
+/// Reads a compressed volume (`.wsp`). A file that is not one is refused saying what it is:
+/// a volume in a format `compress` reads is a volume to compress first.
+pub fn read_wsp(path: &std::path::Path) -> Result<Vec<u8>> {
+    if path.is_dir() {
+        bail!(
+            "{} is a directory; a .wsp file was expected (a DICOM series directory is a \
+             volume to compress first: wavesplat compress {} -o volume.wsp)",
+            path.display(),
+            path.display()
+        );
+    }
+    let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
+    if !bytes.starts_with(wavesplat_codec::format::MAGIC) {
+        let format = wavesplat_compressor::reader::Format::sniff(&bytes)
+            .or_else(|| wavesplat_compressor::reader::Format::from_name(path));
+        if let Some(f) = format {
+            bail!(
+                "{} is a {} volume, not a compressed one: compress it first \
+                 (wavesplat compress {} -o volume.wsp)",
+                path.display(),
+                match f {
+                    wavesplat_compressor::reader::Format::Dicom => "DICOM",
+                    wavesplat_compressor::reader::Format::Nrrd => "NRRD",
+                    wavesplat_compressor::reader::Format::MetaImage => "MetaImage",
+                    wavesplat_compressor::reader::Format::Nifti => "NIfTI",
+                },
+                path.display()
+            );
+        }
+        bail!(
+            "{} is not a wavesplat file (.wsp: it starts with \"WSPL\"); raw samples and other \
+             volumes are compressed first (wavesplat compress FILE -o volume.wsp)",
+            path.display()
+        );
+    }
+    Ok(bytes)
 }
 
 /// Binds a server's listener and prints `listening on ADDR` (scripts and tests read the bound

@@ -286,8 +286,7 @@ pub fn run_serve(a: ServeOrchestratorArgs) -> Result<()> {
         security: a.security.security()?,
         delivery_check,
     };
-    let store = Store::open(&a.db)
-        .with_context(|| format!("opening the orchestrator database {}", a.db.display()))?;
+    let store = Store::open(&a.db).map_err(|e| super::database_error(e, &a.db, "orchestrator"))?;
     runtime()?.block_on(async move {
         let listener = super::bind_announced(&a.addr, &options.security).await?;
         let shutdown = super::ctrl_c();

@@ -38,7 +38,10 @@ pub struct ViewArgs {
     /// CA and token for --cache.
     #[command(flatten)]
     pub security: super::security::ClientSecurityArgs,
-    /// Azimuth α of the view (radians, paper §3.1).
+    /// Azimuth α of the view (radians, paper §3.1). At α = β = 0 the rays run along the
+    /// volume's x axis and the image shows its y–z plane, y to the right, z up; α turns the
+    /// view about z (α = π/2: along y, x to the left), β tilts it towards z (β = π/2: along z,
+    /// seen from above).
     #[arg(long, default_value_t = 0.66, allow_negative_numbers = true)]
     pub alpha: f64,
     /// View named from the side of the patient it is seen from: anterior, posterior, left,
@@ -263,8 +266,7 @@ pub enum Opened {
 pub fn open(args: &ViewArgs, byte_budget: Option<u64>) -> Result<(Header, Opened, ViewSpec)> {
     match (&args.input, &args.cache, &args.volume) {
         (Some(path), _, _) => {
-            let bytes =
-                std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
+            let bytes = super::read_wsp(path)?;
             let spec = match &args.view {
                 // A named view needs the volume's placement before the source orders packets.
                 Some(_) => args.spec_for(
@@ -431,6 +433,10 @@ impl Recorder {
 /// Runs the subcommand.
 pub fn run(a: RenderArgs) -> Result<()> {
     a.view.spec()?;
+    super::check_output(&a.output)?;
+    if let Some(r) = &a.raw {
+        super::check_output(r)?;
+    }
     if !(a.frame_ms.is_finite() && a.frame_ms > 0.0) {
         bail!(
             "--frame-ms must be a positive number of milliseconds, got {}",

@@ -19,7 +19,8 @@ use wavesplat_viewer::{RenderOptions, Renderer, View};
 /// Arguments of `wavesplat bench throughput`.
 #[derive(Args, Debug)]
 pub struct ThroughputArgs {
-    /// Volume file (NIfTI); default: the Shepp–Logan phantom of --size³.
+    /// Volume file (NIfTI, NRRD, MetaImage, DICOM directory or file); default: the Shepp–Logan
+    /// phantom of --size³.
     pub input: Option<PathBuf>,
     /// Phantom edge length when no input is given.
     #[arg(long, default_value_t = 128)]
