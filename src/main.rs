@@ -29,8 +29,10 @@ use clap::{Parser, Subcommand};
 #[derive(Parser, Debug)]
 #[command(name = "wavesplat", version, about, long_about = None)]
 struct Cli {
-    /// Log filter (e.g. `info`, `debug`, `wavesplat=trace`); also read from RUST_LOG.
-    #[arg(long, global = true, default_value = "warn")]
+    /// Log filter (e.g. `info`, `debug`, `wavesplat=trace`); also read from RUST_LOG. The
+    /// default shows warnings, but of the windowing library (winit) only errors: its warnings
+    /// are about the display server, not about anything a user can act on.
+    #[arg(long, global = true, default_value = "warn,winit=error")]
     log: String,
     #[command(subcommand)]
     command: Command,

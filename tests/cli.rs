@@ -4,6 +4,8 @@
 //! file to compress, a volume to render, a missing output directory, a database in use) are
 //! explained; help says what the commands take.
 
+mod common;
+
 use std::process::{Command, Stdio};
 
 const BIN: &str = env!("CARGO_BIN_EXE_wavesplat");
@@ -162,26 +164,14 @@ fn first_hour_mistakes_are_explained() {
 fn a_database_in_use_is_named() {
     let dir = tempfile::tempdir().unwrap();
     let db = dir.path().join("db");
-    let mut first = Command::new(BIN)
-        .args([
-            "serve",
-            "cache",
-            "--addr",
-            "127.0.0.1:0",
-            "--db",
-            db.to_str().unwrap(),
-        ])
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .unwrap();
-    let mut line = String::new();
-    std::io::BufRead::read_line(
-        &mut std::io::BufReader::new(first.stdout.take().unwrap()),
-        &mut line,
-    )
-    .unwrap();
-    assert!(line.starts_with("listening on"), "{line}");
+    let (mut first, _) = common::spawn_server(&[
+        "serve",
+        "cache",
+        "--addr",
+        "127.0.0.1:0",
+        "--db",
+        db.to_str().unwrap(),
+    ]);
     let second = run(&[
         "serve",
         "cache",

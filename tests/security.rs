@@ -433,20 +433,10 @@ async fn every_orchestrator_rpc_checks_its_role_and_deliveries_are_confirmed() {
 
 mod common;
 
-#[test]
-fn the_binary_serves_tls_with_tokens_and_its_clients_take_the_token_from_the_environment() {
-    let pki = pki();
-    let dir = tempfile::tempdir().unwrap();
-    let tokens = dir.path().join("tokens");
-    std::fs::write(
-        &tokens,
-        format!("viewer read {READ}\nuploader write {WRITE}\n"),
-    )
-    .unwrap();
-    let wsp = dir.path().join("v.wsp");
-    std::fs::write(&wsp, test_file([16, 16, 16])).unwrap();
-    let db = dir.path().join("db");
-    let (mut child, addr) = common::spawn_server(&[
+/// Starts `wavesplat serve cache` on loopback with TLS from `pki` and the tokens of `tokens`;
+/// returns the child and the server's https:// URL.
+fn spawn_tls_cache(pki: &Pki, tokens: &Path, db: &Path) -> (std::process::Child, String) {
+    let (child, addr) = common::spawn_server(&[
         "serve",
         "cache",
         "--addr",
@@ -460,7 +450,24 @@ fn the_binary_serves_tls_with_tokens_and_its_clients_take_the_token_from_the_env
         "--tokens",
         tokens.to_str().unwrap(),
     ]);
-    let url = format!("https://127.0.0.1:{}", addr.rsplit(':').next().unwrap());
+    let port = addr.rsplit(':').next().unwrap();
+    (child, format!("https://127.0.0.1:{port}"))
+}
+
+#[test]
+fn the_binary_serves_tls_with_tokens_and_its_clients_take_the_token_from_the_environment() {
+    let pki = pki();
+    let dir = tempfile::tempdir().unwrap();
+    let tokens = dir.path().join("tokens");
+    std::fs::write(
+        &tokens,
+        format!("viewer read {READ}\nuploader write {WRITE}\n"),
+    )
+    .unwrap();
+    let wsp = dir.path().join("v.wsp");
+    std::fs::write(&wsp, test_file([16, 16, 16])).unwrap();
+    let db = dir.path().join("db");
+    let (mut child, url) = spawn_tls_cache(&pki, &tokens, &db);
     let run = |args: &[&str], token: &str| {
         std::process::Command::new(env!("CARGO_BIN_EXE_wavesplat"))
             .args(args)
@@ -575,21 +582,7 @@ fn render_from_a_cache_with_tokens_takes_the_token_and_the_ca() {
     let wsp = dir.path().join("v.wsp");
     std::fs::write(&wsp, test_file([16, 16, 16])).unwrap();
     let db = dir.path().join("db");
-    let (mut child, addr) = common::spawn_server(&[
-        "serve",
-        "cache",
-        "--addr",
-        "127.0.0.1:0",
-        "--db",
-        db.to_str().unwrap(),
-        "--tls-cert",
-        pki.cert.to_str().unwrap(),
-        "--tls-key",
-        pki.key.to_str().unwrap(),
-        "--tokens",
-        tokens.to_str().unwrap(),
-    ]);
-    let url = format!("https://127.0.0.1:{}", addr.rsplit(':').next().unwrap());
+    let (mut child, url) = spawn_tls_cache(&pki, &tokens, &db);
     let ca = pki.ca.to_str().unwrap();
     let ingest = wavesplat(
         &[
@@ -746,21 +739,8 @@ fn a_plaintext_client_against_a_tls_server_is_told_to_use_https() {
     let dir = tempfile::tempdir().unwrap();
     let tokens = token_tokens_file(dir.path());
     let db = dir.path().join("db");
-    let (mut child, addr) = common::spawn_server(&[
-        "serve",
-        "cache",
-        "--addr",
-        "127.0.0.1:0",
-        "--db",
-        db.to_str().unwrap(),
-        "--tls-cert",
-        pki.cert.to_str().unwrap(),
-        "--tls-key",
-        pki.key.to_str().unwrap(),
-        "--tokens",
-        tokens.to_str().unwrap(),
-    ]);
-    let plain = format!("http://{addr}");
+    let (mut child, url) = spawn_tls_cache(&pki, &tokens, &db);
+    let plain = url.replace("https://", "http://");
     let o = wavesplat(&["cache", "list", "--cache", &plain], Some(READ));
     assert!(!o.status.success());
     assert!(

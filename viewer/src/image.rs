@@ -127,14 +127,17 @@ impl Image {
     }
 
     /// The window [`Image::write_png`] uses: `window` when given (checked), else the 1st and
-    /// 99th percentiles, widened to one unit around a flat image.
+    /// 99th percentiles; a flat image (an empty view, nothing splatted yet) gets the unit above
+    /// its value, so it shows black rather than mid-grey.
     pub fn resolve_window(&self, window: Option<(f64, f64)>) -> Result<(f64, f64), ImageError> {
         let (mut lo, mut hi) = window.unwrap_or_else(|| self.percentiles(1.0, 99.0));
         if window.is_some() && (!lo.is_finite() || !hi.is_finite() || hi <= lo) {
             return Err(ImageError::BadWindow(lo, hi));
         }
         if hi.partial_cmp(&lo) != Some(std::cmp::Ordering::Greater) {
-            lo -= 0.5;
+            if !lo.is_finite() {
+                lo = 0.0;
+            }
             hi = lo + 1.0;
         }
         Ok((lo, hi))
@@ -197,5 +200,33 @@ impl Image {
         }
         file.flush()?;
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod window_tests {
+    use super::*;
+
+    #[test]
+    fn an_empty_view_shows_black_and_a_window_maps_its_ends() {
+        let empty = Image {
+            width: 4,
+            height: 2,
+            channels: 1,
+            data: vec![0.0; 8],
+        };
+        let rgba = empty.to_rgba8(None).unwrap();
+        assert!(rgba
+            .chunks_exact(4)
+            .all(|p| p[0] == 0 && p[1] == 0 && p[2] == 0 && p[3] == 255));
+        let ramp = Image {
+            width: 101,
+            height: 1,
+            channels: 1,
+            data: (0..101).map(|i| i as f32).collect(),
+        };
+        let rgba = ramp.to_rgba8(None).unwrap();
+        assert_eq!(rgba[0], 0);
+        assert_eq!(rgba[100 * 4], 255);
     }
 }

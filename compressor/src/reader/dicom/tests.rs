@@ -1074,6 +1074,22 @@ fn jpeg_ls_series_read_back_lossless_and_near_lossless() {
     }
 }
 
+/// Which slice of `v` the series file `f` holds (the fixtures shuffle the file names): its
+/// Image Position (Patient) along the slice normal, in slice steps.
+fn slice_of(f: &Path, v: &Volume) -> usize {
+    let obj = open_file(f).unwrap();
+    let p = obj
+        .element(tags::IMAGE_POSITION_PATIENT)
+        .unwrap()
+        .to_multi_float64()
+        .unwrap();
+    let pl = v.placement().unwrap();
+    let d: f64 = (0..3)
+        .map(|k| (p[k] - pl.origin[k]) * pl.directions[2][k])
+        .sum();
+    (d / f64::from(v.spacing()[2])).round() as usize
+}
+
 /// `opj_compress` (OpenJPEG's command-line encoder, Debian's `libopenjp2-tools`): the test's
 /// independent JPEG 2000 encoder. Missing, the test says so and passes only when
 /// `WAVESPLAT_REQUIRE_REFERENCE_TOOLS` is unset (CI sets it, with the package installed).
@@ -1118,16 +1134,7 @@ fn jpeg_2000_series_coded_by_openjpeg_read_back() {
         let mut reference = vec![0f32; v.voxel_count()];
         for (z, f) in write_dicom_series(&series, &v, &o).iter().enumerate() {
             // The slice as a 16-bit PGM (big-endian samples), coded by opj_compress.
-            let obj = open_file(f).unwrap();
-            let z_of = {
-                let ipp = obj.element(tags::IMAGE_POSITION_PATIENT).unwrap();
-                let p = ipp.to_multi_float64().unwrap();
-                let pl = v.placement().unwrap();
-                let d: f64 = (0..3)
-                    .map(|k| (p[k] - pl.origin[k]) * pl.directions[2][k])
-                    .sum();
-                (d / 2.0).round() as usize
-            };
+            let z_of = slice_of(f, &v);
             let mut pgm = format!("P5\n{} {}\n65535\n", dims[0], dims[1]).into_bytes();
             for x in &v.channel(0)[z_of * plane..(z_of + 1) * plane] {
                 pgm.extend_from_slice(&(*x as u16).to_be_bytes());
@@ -1281,19 +1288,7 @@ fn ybr_full_and_ybr_full_422_read_as_rgb() {
     };
     let files = write_dicom_series(dir.path(), &stored, &o);
     for f in &files {
-        let z = {
-            let obj = open_file(f).unwrap();
-            let p = obj
-                .element(tags::IMAGE_POSITION_PATIENT)
-                .unwrap()
-                .to_multi_float64()
-                .unwrap();
-            let pl = stored.placement().unwrap();
-            let d: f64 = (0..3)
-                .map(|k| (p[k] - pl.origin[k]) * pl.directions[2][k])
-                .sum();
-            (d / 2.0).round() as usize
-        };
+        let z = slice_of(f, &stored);
         let plane = dims[0] * dims[1];
         let mut packed = Vec::new();
         for q in 0..plane / 2 {
