@@ -58,37 +58,52 @@ pub struct FrameQuality {
     pub snr: f64,
 }
 
-/// Scores every captured frame of a walk against the reference of its step's view; frames
-/// without an image get None.
-pub fn score(
-    truth: &GroundTruth,
-    path: &[PathStep],
-    samples: &[FrameSample],
-) -> Result<Vec<Option<FrameQuality>>> {
-    let mut references = HashMap::new();
-    score_with(truth, path, samples, &mut references)
-}
-
-/// [`score`] with a cache of reference images by path step, kept across walks of one path.
+/// Q_I and SNR of every sampled frame against the reference image of its view, with a cache
+/// of reference images by path step, kept across walks of one path.
 pub fn score_with(
     truth: &GroundTruth,
     path: &[PathStep],
     samples: &[FrameSample],
     references: &mut HashMap<usize, Image>,
 ) -> Result<Vec<Option<FrameQuality>>> {
+    score_reporting(truth, path, samples, references, &mut |_, _| {})
+}
+
+/// The path step whose reference image sample `s` is scored against: steps with equal views
+/// share one.
+fn reference_key(path: &[PathStep], s: &FrameSample) -> usize {
+    path.iter()
+        .position(|p| p.spec == path[s.step].spec)
+        .unwrap_or(s.step)
+}
+
+/// [`score_with`], calling `report(done, needed)` after each reference image it ray casts (the
+/// slow part: seconds each for the demo's volumes).
+pub fn score_reporting(
+    truth: &GroundTruth,
+    path: &[PathStep],
+    samples: &[FrameSample],
+    references: &mut HashMap<usize, Image>,
+    report: &mut dyn FnMut(usize, usize),
+) -> Result<Vec<Option<FrameQuality>>> {
+    let needed: std::collections::HashSet<usize> = samples
+        .iter()
+        .filter(|s| s.image.is_some())
+        .map(|s| reference_key(path, s))
+        .filter(|k| !references.contains_key(k))
+        .collect();
+    let (needed, mut done) = (needed.len(), 0);
     let mut out = Vec::with_capacity(samples.len());
     for s in samples {
         let Some(img) = &s.image else {
             out.push(None);
             continue;
         };
-        // Steps with equal views share one reference.
-        let key = path
-            .iter()
-            .position(|p| p.spec == path[s.step].spec)
-            .unwrap_or(s.step);
+        let key = reference_key(path, s);
         if let std::collections::hash_map::Entry::Vacant(v) = references.entry(key) {
             v.insert(truth.image(&path[key].spec)?);
+            done += 1;
+            report(done, needed);
         }
         let r = &references[&key];
         anyhow::ensure!(

@@ -52,9 +52,16 @@ fn a_short_demo_compresses_browses_scores_and_reports() {
             "--rest-frames",
             "2000",
         ])
+        .args(["--log", "wavesplat=info"])
         .env("WGPU_BACKEND", "vulkan")
         .output()
         .expect("run the demo");
+    // Progress for every phase: each walk and each reference image, as structured events
+    // (the test's stderr is no terminal).
+    let stderr = String::from_utf8_lossy(&result.stderr);
+    for phase in ["walk 1 of 6", "walk 6 of 6", "reference image 1 of"] {
+        assert!(stderr.contains(phase), "no progress {phase:?} in: {stderr}");
+    }
     let stdout = String::from_utf8_lossy(&result.stdout);
     assert!(
         result.status.success(),

@@ -9,10 +9,10 @@
 
 use crate::local::LocalStack;
 use crate::report::{self, Chart, Section, Series, Table};
-use crate::scoring::{q_i_at, score, FrameQuality, GroundTruth};
+use crate::scoring::{q_i_at, score_reporting, FrameQuality, GroundTruth};
 use anyhow::{bail, Context, Result};
 use clap::Args;
-use std::collections::HashSet;
+use std::collections::{HashMap, HashSet};
 use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
@@ -243,6 +243,8 @@ pub fn run(a: DemoArgs) -> Result<()> {
     let frame = Duration::from_secs_f64(a.frame_ms / 1e3);
     let backend = probe_backend()?;
     let mut runs = Vec::new();
+    let progress = crate::progress::Progress::new("demo");
+    let total_runs = volumes.len() * 3;
     for v in &volumes {
         let file_bytes = stack
             .block_on(async {
@@ -285,6 +287,11 @@ pub fn run(a: DemoArgs) -> Result<()> {
             ));
             let end = path.last().expect("a turn has steps").spec;
             path.push(PathStep::rest(end, a.rest_frames));
+            progress.stage(&format!(
+                "browsing {} ({scene}), walk {} of {total_runs}",
+                v.name,
+                runs.len() + 1
+            ));
             let (header, backend, samples) =
                 browse(&stack.cache_url, &v.name, spec, &path, frame, backend)
                     .with_context(|| format!("browsing {} ({scene})", v.name))?;
@@ -311,10 +318,21 @@ pub fn run(a: DemoArgs) -> Result<()> {
         };
         let truth = GroundTruth::new(&v.original, &first.header.geometry, reference_options());
         for r in runs.iter_mut().filter(|r| r.volume == v.name) {
-            r.quality = score(&truth, &r.path, &r.samples)?;
+            let what = format!("scoring {} ({})", r.volume, r.scene);
+            progress.stage(&format!("{what}: ray casting the references"));
+            r.quality = score_reporting(
+                &truth,
+                &r.path,
+                &r.samples,
+                &mut HashMap::new(),
+                &mut |done, needed| {
+                    progress.stage(&format!("{what}: reference image {done} of {needed}"))
+                },
+            )?;
         }
         sections.push(volume_section(&out, v, &runs, a.frame_ms)?);
     }
+    progress.finish();
     let intro = format!(
         "{} volumes compressed by the worker (linear B-spline wavelets, 5 % of the coefficients), \
          then browsed from the cache over loopback by the headless viewer with the {} backend at a \
