@@ -74,6 +74,49 @@ pub struct Chart {
     pub series: Vec<Series>,
 }
 
+/// An axis value as people write it: whole numbers without ".0", thousands and millions as
+/// "20 k" and "1.5 M", at most three significant digits.
+pub fn axis_label(v: f64) -> String {
+    if !v.is_finite() {
+        return String::new();
+    }
+    let (scaled, suffix) = match v.abs() {
+        a if a >= 1e6 => (v / 1e6, " M"),
+        a if a >= 1e4 => (v / 1e3, " k"),
+        _ => (v, ""),
+    };
+    let digits = if scaled == 0.0 {
+        0
+    } else {
+        (2 - scaled.abs().log10().floor() as i32).clamp(0, 6) as usize
+    };
+    let text = format!("{scaled:.digits$}");
+    let text = if text.contains('.') {
+        text.trim_end_matches('0').trim_end_matches('.').to_string()
+    } else {
+        text
+    };
+    let text = if text == "-0" { "0".to_string() } else { text };
+    format!("{text}{suffix}")
+}
+
+/// A log axis labels only 1, 2 and 5 times a power of ten, so that labels cannot run into
+/// each other ("3000.04000.05000.0").
+fn log_axis_label(v: f64) -> String {
+    if !(v.is_finite() && v > 0.0) {
+        return String::new();
+    }
+    let mantissa = v / 10f64.powf(v.log10().floor());
+    if [1.0, 2.0, 5.0, 10.0]
+        .iter()
+        .any(|m| (mantissa - m).abs() < 1e-6 * m)
+    {
+        axis_label(v)
+    } else {
+        String::new()
+    }
+}
+
 fn range(values: impl Iterator<Item = f64>, log: bool) -> Option<(f64, f64)> {
     let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
     for v in values.filter(|v| v.is_finite() && (!log || *v > 0.0)) {
@@ -130,6 +173,11 @@ impl Chart {
             RGBColor(227, 119, 194),
             RGBColor(127, 127, 127),
         ];
+        let x_format = if self.log_x {
+            log_axis_label
+        } else {
+            axis_label
+        };
         macro_rules! draw {
             ($chart:expr) => {{
                 let mut chart = $chart;
@@ -137,6 +185,8 @@ impl Chart {
                     .configure_mesh()
                     .x_desc(self.x_label.as_str())
                     .y_desc(self.y_label.as_str())
+                    .x_label_formatter(&|x| x_format(*x))
+                    .y_label_formatter(&|y| axis_label(*y))
                     .label_style((FONT, 13))
                     .light_line_style(RGBColor(235, 235, 235))
                     .draw()
@@ -340,6 +390,26 @@ mod tests {
         .write_png(&p, 100, 80)
         .unwrap();
         assert!(p.exists());
+    }
+
+    #[test]
+    fn axis_labels_read_as_people_write_numbers() {
+        for (v, want) in [
+            (0.0, "0"),
+            (45.0, "45"),
+            (65.5, "65.5"),
+            (0.01, "0.01"),
+            (1000.0, "1000"),
+            (20_000.0, "20 k"),
+            (1_500_000.0, "1.5 M"),
+            (-2.0, "-2"),
+            (0.123456, "0.123"),
+        ] {
+            assert_eq!(axis_label(v), want, "{v}");
+        }
+        assert_eq!(log_axis_label(3000.0), "");
+        assert_eq!(log_axis_label(5000.0), "5000");
+        assert_eq!(log_axis_label(100.0), "100");
     }
 
     #[test]

@@ -481,6 +481,7 @@ fn volume_section(out: &Path, v: &ArchiveVolume, runs: &[Run], frame_ms: f64) ->
     let mut images = Vec::new();
     let mut by_time = Vec::new();
     let mut by_bytes = Vec::new();
+    let mut by_frame = Vec::new();
     for r in &mine {
         let csv_path = out.join("runs").join(format!("{slug}-{}.csv", r.scene));
         write_csv(&csv_path, r)?;
@@ -534,6 +535,7 @@ fn volume_section(out: &Path, v: &ArchiveVolume, runs: &[Run], frame_ms: f64) ->
                 .filter(|p| p.0 > 0.0)
                 .collect(),
         ));
+        by_frame.push(Series::new(r.scene, pts(&|s| s.frame as f64)));
         // Frames worth looking at: the first, the 10th, the converged rest, the turn's end and
         // the converged end.
         let step0: Vec<&FrameSample> = r.samples.iter().filter(|s| s.step == 0).collect();
@@ -575,12 +577,27 @@ fn volume_section(out: &Path, v: &ArchiveVolume, runs: &[Run], frame_ms: f64) ->
     }
     .write_png(&out.join(&chart_time), 560, 360)?;
     let chart_bytes = format!("charts/{slug}-qi-bytes.png");
+    // Over a fast link every byte can arrive with the first frames: Q_I against bytes is then
+    // a vertical line, and Q_I against frames says what the bytes cannot.
+    let distinct_bytes: HashSet<u64> = by_bytes
+        .iter()
+        .flat_map(|s| s.points.iter().map(|p| p.0.to_bits()))
+        .collect();
+    let (title, x_label, series) = if distinct_bytes.len() >= 4 {
+        ("Q_I against bytes received", "bytes received", by_bytes)
+    } else {
+        (
+            "Q_I against frames (every byte arrived within the first frames)",
+            "frame",
+            by_frame,
+        )
+    };
     Chart {
-        title: format!("{}: Q_I against bytes received", v.name),
-        x_label: "bytes received".into(),
+        title: format!("{}: {title}", v.name),
+        x_label: x_label.into(),
         y_label: "Q_I (dB, paper units)".into(),
         log_x: true,
-        series: by_bytes,
+        series,
     }
     .write_png(&out.join(&chart_bytes), 560, 360)?;
     let d = v.original.dims();
