@@ -12,7 +12,9 @@
 //! (Patient), or absolute z for axial grids) and their values are scaled by Dose Grid Scaling
 //! (so they are in Dose Units, Gy). Multi-frame files whose frames step through time (a
 //! Frame Increment Pointer to Frame Time and the like) and series whose slices repeat at
-//! several time points are refused as time series. Attributes written with VR UN are read as
+//! several time points are refused as time series. Colour: RGB, YBR_FULL and YBR_FULL_422
+//! (converted to RGB where the codec did not), and PALETTE COLOR (the palette applied, giving
+//! RGB; segmented palettes are refused). Attributes written with VR UN are read as
 //! the VR the standard dictionary gives them; 32-bit samples in big-endian files are put back
 //! in order from the units dicom-rs reads them in.
 //!
@@ -787,6 +789,102 @@ struct Image {
     time_attribute: &'static str,
     /// Photometric Interpretation as the file states it.
     photometric: String,
+    /// The colour palette of a PALETTE COLOR image.
+    palette: Option<std::sync::Arc<Palette>>,
+}
+
+impl Image {
+    /// Channels of the volume: three for a palette image (its colours), else the samples.
+    fn channels(&self) -> usize {
+        if self.palette.is_some() {
+            3
+        } else {
+            self.samples
+        }
+    }
+}
+
+/// A PALETTE COLOR image's lookup tables: per colour, the first stored value mapped and the
+/// entries (PS3.3 C.7.6.3.1.5).
+#[derive(Debug, Clone, PartialEq)]
+struct Palette {
+    tables: [(i64, Vec<f32>); 3],
+}
+
+impl Palette {
+    /// The colour of stored value `v`: values below the first mapped one take the first entry,
+    /// values past the last the last.
+    fn colour(&self, c: usize, v: f64) -> f32 {
+        let (first, t) = &self.tables[c];
+        let i = (v as i64 - first).clamp(0, t.len() as i64 - 1);
+        t[i as usize]
+    }
+}
+
+/// Reads the red, green and blue palette tables (descriptor: entries (0 for 65536), first
+/// mapped value, bits per entry; data: one 16-bit word an entry). Segmented palettes are
+/// refused, naming them.
+fn read_palette(path: &Path, o: &InMemDicomObject) -> Result<Palette, ReadError> {
+    use dicom_core::PrimitiveValue;
+    let colours = [
+        (
+            tags::RED_PALETTE_COLOR_LOOKUP_TABLE_DESCRIPTOR,
+            tags::RED_PALETTE_COLOR_LOOKUP_TABLE_DATA,
+            tags::SEGMENTED_RED_PALETTE_COLOR_LOOKUP_TABLE_DATA,
+        ),
+        (
+            tags::GREEN_PALETTE_COLOR_LOOKUP_TABLE_DESCRIPTOR,
+            tags::GREEN_PALETTE_COLOR_LOOKUP_TABLE_DATA,
+            tags::SEGMENTED_GREEN_PALETTE_COLOR_LOOKUP_TABLE_DATA,
+        ),
+        (
+            tags::BLUE_PALETTE_COLOR_LOOKUP_TABLE_DESCRIPTOR,
+            tags::BLUE_PALETTE_COLOR_LOOKUP_TABLE_DATA,
+            tags::SEGMENTED_BLUE_PALETTE_COLOR_LOOKUP_TABLE_DATA,
+        ),
+    ];
+    let mut tables: Vec<(i64, Vec<f32>)> = Vec::with_capacity(3);
+    for (descriptor, data, segmented) in colours {
+        if element(o, segmented).is_some() {
+            return Err(dicom_err(
+                path,
+                Some(segmented),
+                "a segmented palette: not supported (only plain lookup tables are)",
+            ));
+        }
+        let d = element(o, descriptor)
+            .and_then(|e| e.to_multi_int::<i64>().ok())
+            .filter(|d| d.len() == 3)
+            .ok_or_else(|| dicom_err(path, Some(descriptor), "missing or not three numbers"))?;
+        let entries = if d[0] == 0 { 65536 } else { d[0] as usize };
+        // The first mapped value is US or SS as the pixels are; a negative one read as US wraps.
+        let first = if d[1] > 32767 && d[1] <= 65535 {
+            d[1] - 65536
+        } else {
+            d[1]
+        };
+        let words: Vec<f32> = match element(o, data).and_then(|e| e.value().primitive()) {
+            Some(PrimitiveValue::U16(w)) => w.iter().map(|x| f32::from(*x)).collect(),
+            Some(PrimitiveValue::U8(b)) if b.len() == entries => {
+                b.iter().map(|x| f32::from(*x)).collect()
+            }
+            Some(PrimitiveValue::U8(b)) => b
+                .chunks_exact(2)
+                .map(|c| f32::from(u16::from_le_bytes([c[0], c[1]])))
+                .collect(),
+            _ => return Err(dicom_err(path, Some(data), "missing or not 16-bit words")),
+        };
+        if words.len() < entries {
+            return Err(dicom_err(
+                path,
+                Some(data),
+                format!("{} entries, the descriptor declares {entries}", words.len()),
+            ));
+        }
+        tables.push((first, words[..entries].to_vec()));
+    }
+    let [r, g, b]: [(i64, Vec<f32>); 3] = tables.try_into().expect("three colours");
+    Ok(Palette { tables: [r, g, b] })
 }
 
 /// Reads what the reader needs of an image's header; `file_len` (the file's size) bounds the
@@ -897,7 +995,10 @@ fn read_image(
     let photometric =
         get_str(o, tags::PHOTOMETRIC_INTERPRETATION).unwrap_or_else(|| "MONOCHROME2".into());
     let ok_photometric = match samples {
-        1 => matches!(photometric.as_str(), "MONOCHROME1" | "MONOCHROME2"),
+        1 => matches!(
+            photometric.as_str(),
+            "MONOCHROME1" | "MONOCHROME2" | "PALETTE COLOR"
+        ),
         _ => matches!(
             photometric.as_str(),
             "RGB" | "YBR_FULL" | "YBR_FULL_422" | "YBR_ICT" | "YBR_RCT"
@@ -907,9 +1008,14 @@ fn read_image(
         return Err(dicom_err(
             path,
             Some(tags::PHOTOMETRIC_INTERPRETATION),
-            format!("{photometric} with {samples} sample(s) per pixel; supported are MONOCHROME1/2, RGB, YBR_FULL, YBR_FULL_422 and (JPEG 2000) YBR_ICT/YBR_RCT"),
+            format!("{photometric} with {samples} sample(s) per pixel; supported are MONOCHROME1/2 and PALETTE COLOR (one sample), RGB, YBR_FULL, YBR_FULL_422 and (JPEG 2000) YBR_ICT/YBR_RCT (three)"),
         ));
     }
+    let palette = if photometric == "PALETTE COLOR" {
+        Some(std::sync::Arc::new(read_palette(path, o)?))
+    } else {
+        None
+    };
     let pixel_spacing = match floats_for_frame(
         path,
         o,
@@ -1084,6 +1190,7 @@ fn read_image(
         time,
         time_attribute,
         photometric,
+        palette,
     }))
 }
 
@@ -1398,7 +1505,7 @@ pub(crate) fn decode(src: &SourceFiles) -> Result<Volume, ReadError> {
     for (z, (f, _)) in frames.iter().enumerate() {
         slot_of[f.image][f.frame] = z;
     }
-    let channels = first.samples;
+    let channels = first.channels();
     let n = plane * nz;
     let mut out: Vec<Vec<f32>> = Vec::with_capacity(channels);
     for _ in 0..channels {
@@ -2111,6 +2218,15 @@ fn store_samples(
             f64::from(v >> shift)
         }
     };
+    if let Some(palette) = &img.palette {
+        for (c, ch) in out.iter_mut().enumerate() {
+            let dst = &mut ch[offset..offset + plane];
+            for (i, d) in dst.iter_mut().enumerate() {
+                *d = palette.colour(c, value(&data[i * bytes_per..(i + 1) * bytes_per]));
+            }
+        }
+        return Ok(());
+    }
     for (c, ch) in out.iter_mut().enumerate() {
         let dst = &mut ch[offset..offset + plane];
         for (i, d) in dst.iter_mut().enumerate() {

@@ -329,7 +329,7 @@ fn bad_attributes_name_the_file_and_the_tag() {
                 o.put(DataElement::new(
                     tags::PHOTOMETRIC_INTERPRETATION,
                     VR::CS,
-                    PrimitiveValue::from("PALETTE COLOR"),
+                    PrimitiveValue::from("HSV"),
                 ));
             }),
         ),
@@ -1331,7 +1331,7 @@ const PYDICOM_READER: &str = r#"
 import sys
 import numpy as np
 import pydicom
-from pydicom.pixel_data_handlers.util import convert_color_space
+from pydicom.pixel_data_handlers.util import apply_color_lut, convert_color_space
 out, paths = sys.argv[1], sys.argv[2:]
 slices = []
 for p in paths:
@@ -1342,8 +1342,10 @@ for p in paths:
     pi = str(ds.PhotometricInterpretation)
     if spp == 3 and pi.startswith("YBR_FULL"):
         a = convert_color_space(a, pi, "RGB")
+    if pi == "PALETTE COLOR":
+        a, spp = apply_color_lut(a, ds), 3
     a = a.astype(np.float64)
-    if "RescaleSlope" in ds:
+    if "RescaleSlope" in ds and pi != "PALETTE COLOR":
         a = a * float(ds.RescaleSlope) + float(ds.RescaleIntercept)
     if "DoseGridScaling" in ds:
         a = a * float(ds.DoseGridScaling)
@@ -1464,4 +1466,76 @@ fn series_values_agree_with_pydicom() {
         assert_same(&back, &v, what);
         check_against_pydicom(&files, &back, 0.0, what);
     }
+}
+
+/// PALETTE COLOR images (refused before) read as the palette's RGB, as pydicom applies it.
+#[test]
+fn palette_colour_series_read_as_their_colours() {
+    let dims = [7, 5, 3];
+    let v = volume(dims, [1.0, 1.0, 2.0], Layout::U8, 1.0, 0.0);
+    let dir = tempfile::tempdir().unwrap();
+    let o = DicomOptions {
+        layout: Layout::U8,
+        ..Default::default()
+    };
+    let files = write_dicom_series(dir.path(), &v, &o);
+    // 200 entries from stored value 20: values below take the first entry, above the last.
+    let (entries, first) = (200usize, 20u16);
+    let table = |c: usize| -> Vec<u16> {
+        (0..entries)
+            .map(|i| ((i * (97 + 31 * c) + 1000 * c) % 65536) as u16)
+            .collect()
+    };
+    for f in &files {
+        edit(f, |o| {
+            o.put(DataElement::new(
+                tags::PHOTOMETRIC_INTERPRETATION,
+                VR::CS,
+                PrimitiveValue::from("PALETTE COLOR".to_string()),
+            ));
+            o.remove_element(tags::RESCALE_SLOPE);
+            o.remove_element(tags::RESCALE_INTERCEPT);
+            for (c, (d, t)) in [
+                (
+                    tags::RED_PALETTE_COLOR_LOOKUP_TABLE_DESCRIPTOR,
+                    tags::RED_PALETTE_COLOR_LOOKUP_TABLE_DATA,
+                ),
+                (
+                    tags::GREEN_PALETTE_COLOR_LOOKUP_TABLE_DESCRIPTOR,
+                    tags::GREEN_PALETTE_COLOR_LOOKUP_TABLE_DATA,
+                ),
+                (
+                    tags::BLUE_PALETTE_COLOR_LOOKUP_TABLE_DESCRIPTOR,
+                    tags::BLUE_PALETTE_COLOR_LOOKUP_TABLE_DATA,
+                ),
+            ]
+            .into_iter()
+            .enumerate()
+            {
+                o.put(DataElement::new(
+                    d,
+                    VR::US,
+                    PrimitiveValue::U16(vec![entries as u16, first, 16].into()),
+                ));
+                o.put(DataElement::new(
+                    t,
+                    VR::OW,
+                    PrimitiveValue::U16(table(c).into()),
+                ));
+            }
+        });
+    }
+    let back = read_volume(dir.path(), None).unwrap();
+    assert_eq!(back.channel_count(), 3);
+    for (i, stored) in v.channel(0).iter().enumerate() {
+        let k = (*stored as i64 - i64::from(first)).clamp(0, entries as i64 - 1) as usize;
+        for c in 0..3 {
+            assert_eq!(
+                back.channel(c)[i],
+                f32::from(table(c)[k]),
+                "voxel {i} colour {c}"
+            );
+        }
+    }
+    check_against_pydicom(&files, &back, 0.0, "PALETTE COLOR");
 }
