@@ -6,7 +6,8 @@
 //! are checked: duplicates, gaps (missing slices), irregular spacing and a sheared grid (gantry
 //! tilt) are errors that name the files and positions. Samples are 8, 16 or 32 bits, signed or
 //! unsigned (Bits Stored / High Bit honoured, sign-extended), monochrome (one channel) or RGB
-//! (three), with Rescale Slope / Intercept applied per frame, so CT values are in HU.
+//! (three), with Rescale Slope / Intercept applied per frame, so CT values are in HU; 1-bit
+//! masks read as 0 and 1.
 //!
 //! RT Dose grids place their frames by Grid Frame Offset Vector (relative to Image Position
 //! (Patient), or absolute z for axial grids) and their values are scaled by Dose Grid Scaling
@@ -824,7 +825,7 @@ impl Palette {
 /// Reads the red, green and blue palette tables (descriptor: entries (0 for 65536), first
 /// mapped value, bits per entry; data: one 16-bit word an entry). Segmented palettes are
 /// refused, naming them.
-fn read_palette(path: &Path, o: &InMemDicomObject) -> Result<Palette, ReadError> {
+fn read_palette(path: &Path, o: &InMemDicomObject, signed: bool) -> Result<Palette, ReadError> {
     use dicom_core::PrimitiveValue;
     let colours = [
         (
@@ -857,8 +858,9 @@ fn read_palette(path: &Path, o: &InMemDicomObject) -> Result<Palette, ReadError>
             .filter(|d| d.len() == 3)
             .ok_or_else(|| dicom_err(path, Some(descriptor), "missing or not three numbers"))?;
         let entries = if d[0] == 0 { 65536 } else { d[0] as usize };
-        // The first mapped value is US or SS as the pixels are; a negative one read as US wraps.
-        let first = if d[1] > 32767 && d[1] <= 65535 {
+        // The first mapped value is US or SS as the pixels are: signed pixels' negative first
+        // value read as US wraps.
+        let first = if signed && d[1] > 32767 && d[1] <= 65535 {
             d[1] - 65536
         } else {
             d[1]
@@ -940,18 +942,22 @@ fn read_image(
             )
         })?;
     let bits_allocated = require_uint(path, o, tags::BITS_ALLOCATED)?;
-    if !matches!(bits_allocated, 8 | 16 | 32) {
+    if !matches!(bits_allocated, 1 | 8 | 16 | 32) || bits_allocated == 1 && samples != 1 {
         return Err(dicom_err(
             path,
             Some(tags::BITS_ALLOCATED),
-            format!("{bits_allocated}; 8, 16 or 32 supported"),
+            format!(
+                "{bits_allocated} with {samples} sample(s) per pixel; 8, 16 or 32 supported, \
+                 and 1 (a bit mask) with one sample"
+            ),
         ));
     }
     // Every frame needs at least one byte of the file (a native sample, or an encapsulated
     // fragment), and no transfer syntax expands the file beyond MAX_FILE_EXPANSION.
     let declared = total
         .saturating_mul(samples)
-        .saturating_mul(bits_allocated as usize / 8);
+        .saturating_mul(bits_allocated as usize)
+        .div_ceil(8);
     let most = file_len
         .saturating_mul(MAX_FILE_EXPANSION)
         .saturating_add(EXPANSION_SLACK);
@@ -1012,7 +1018,7 @@ fn read_image(
         ));
     }
     let palette = if photometric == "PALETTE COLOR" {
-        Some(std::sync::Arc::new(read_palette(path, o)?))
+        Some(std::sync::Arc::new(read_palette(path, o, signed)?))
     } else {
         None
     };
@@ -1702,7 +1708,11 @@ fn check_pixel_data(img: &Image, obj: &DefaultDicomObject) -> Result<(), ReadErr
         }
         None => {
             let have = e.value().primitive().map_or(0, |p| p.calculate_byte_len());
-            let need = frame_bytes * img.frames;
+            let need = if img.bits_allocated == 1 {
+                (img.rows * img.cols * img.frames).div_ceil(8)
+            } else {
+                frame_bytes * img.frames
+            };
             if have < need {
                 return Err(dicom_err(
                     path,
@@ -1885,6 +1895,9 @@ fn decode_frame(
     out: &mut [Vec<f32>],
 ) -> Result<(), ReadError> {
     let path = &img.path;
+    if img.bits_allocated == 1 {
+        return decode_bit_frame(img, obj, f, offset, out);
+    }
     if let Some(rgb) = adobe_rgb_jpeg_frame(img, obj, f)? {
         return store_samples(img, f, offset, out, &rgb, false);
     }
@@ -2046,6 +2059,44 @@ fn native_frame_bytes(img: &Image) -> usize {
         img.samples
     };
     img.rows * img.cols * samples * bytes_per
+}
+
+/// Frame `f` of a 1-bit image (a mask) into channel 0 at `offset`, as 0 and 1 through the
+/// rescale. The bits of all frames run on without padding, least significant bit first
+/// (PS3.5 8.1.1); dicom-pixeldata cuts frames at byte boundaries, so they are read here.
+fn decode_bit_frame(
+    img: &Image,
+    obj: &DefaultDicomObject,
+    f: usize,
+    offset: usize,
+    out: &mut [Vec<f32>],
+) -> Result<(), ReadError> {
+    let err = |reason: String| dicom_err(&img.path, Some(tags::PIXEL_DATA), reason);
+    let ts = obj.meta().transfer_syntax().trim_end_matches('\0');
+    if ts == EXPLICIT_VR_BIG_ENDIAN {
+        return Err(err(
+            "1-bit samples in an Explicit VR Big Endian file are not supported".into(),
+        ));
+    }
+    let Some(p) = element(obj, tags::PIXEL_DATA).and_then(|e| e.value().primitive()) else {
+        return Err(err("1-bit samples must be native (not encapsulated)".into()));
+    };
+    let bytes = p.to_bytes();
+    let plane = img.rows * img.cols;
+    let (slope, intercept) = img.rescale[f];
+    for (i, d) in out[0][offset..offset + plane].iter_mut().enumerate() {
+        let k = f * plane + i;
+        let byte = bytes.get(k / 8).ok_or_else(|| {
+            err(format!(
+                "{} bytes hold fewer than {} bits",
+                bytes.len(),
+                k + 1
+            ))
+        })?;
+        let bit = f64::from((byte >> (k % 8)) & 1);
+        *d = (bit * slope + intercept) as f32;
+    }
+    Ok(())
 }
 
 /// Whether `obj`'s pixel data is encapsulated and its codec leaves the colour space as it is

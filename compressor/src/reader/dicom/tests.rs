@@ -1539,3 +1539,88 @@ fn palette_colour_series_read_as_their_colours() {
     }
     check_against_pydicom(&files, &back, 0.0, "PALETTE COLOR");
 }
+
+/// 1-bit masks (refused before) read as 0 and 1, their bits running on across frames without
+/// padding, as pydicom reads them.
+#[test]
+fn one_bit_masks_read_as_zero_and_one() {
+    // 5 × 3 pixels: 15 bits a frame, so frames 2 and 3 start inside a byte.
+    let dims = [5, 3, 3];
+    let n: usize = dims.iter().product();
+    let bits: Vec<u8> = (0..n).map(|i| u8::from((i * 7919) % 5 < 2)).collect();
+    let v = Volume::new(
+        dims,
+        [1.0, 1.0, 2.0],
+        vec![bits.iter().map(|b| f32::from(*b)).collect()],
+    )
+    .unwrap()
+    .with_placement(oblique())
+    .unwrap();
+    let mut packed = vec![0u8; n.div_ceil(8)];
+    for (k, b) in bits.iter().enumerate() {
+        packed[k / 8] |= b << (k % 8);
+    }
+    if packed.len() % 2 == 1 {
+        packed.push(0);
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("mask.dcm");
+    let o = DicomOptions {
+        layout: Layout::U8,
+        ..Default::default()
+    };
+    write_dicom_multiframe(&path, &v, &o);
+    // A classic multi-frame file (what pydicom's check places by Image Position and the
+    // slice step), 1 bit a sample.
+    let p = v.placement().unwrap();
+    edit(&path, |obj| {
+        obj.remove_element(tags::PER_FRAME_FUNCTIONAL_GROUPS_SEQUENCE);
+        obj.remove_element(tags::SHARED_FUNCTIONAL_GROUPS_SEQUENCE);
+        obj.remove_element(tags::RESCALE_SLOPE);
+        obj.remove_element(tags::RESCALE_INTERCEPT);
+        let ds = |v: &[f64]| {
+            PrimitiveValue::from(
+                v.iter()
+                    .map(|x| x.to_string())
+                    .collect::<Vec<_>>()
+                    .join("\\"),
+            )
+        };
+        let d = p.directions;
+        obj.put(DataElement::new(
+            tags::IMAGE_POSITION_PATIENT,
+            VR::DS,
+            ds(&p.origin),
+        ));
+        obj.put(DataElement::new(
+            tags::IMAGE_ORIENTATION_PATIENT,
+            VR::DS,
+            ds(&[d[0][0], d[0][1], d[0][2], d[1][0], d[1][1], d[1][2]]),
+        ));
+        obj.put(DataElement::new(
+            tags::PIXEL_SPACING,
+            VR::DS,
+            ds(&[1.0, 1.0]),
+        ));
+        obj.put(DataElement::new(
+            tags::SPACING_BETWEEN_SLICES,
+            VR::DS,
+            ds(&[2.0]),
+        ));
+        for (tag, value) in [
+            (tags::BITS_ALLOCATED, 1u16),
+            (tags::BITS_STORED, 1),
+            (tags::HIGH_BIT, 0),
+        ] {
+            obj.put(DataElement::new(tag, VR::US, PrimitiveValue::from(value)));
+        }
+        obj.put(DataElement::new(
+            tags::PIXEL_DATA,
+            VR::OB,
+            PrimitiveValue::U8(packed.clone().into()),
+        ));
+    });
+    let back = read_volume(&path, None).unwrap();
+    assert_eq!(back.channel(0), v.channel(0));
+    check_against_pydicom(std::slice::from_ref(&path), &back, 0.0, "1-bit mask");
+}
