@@ -312,10 +312,28 @@ fn the_window_renders_turns_under_a_drag_and_closes_cleanly() {
         diff > 4.0,
         "the drag did not turn the volume: mean |a-b| = {diff}"
     );
-    // Multiview: three views side by side in the same window.
+    // Multiview in a 160×120 window: three 80×60 panels in a 2×2 grid (a row of three would
+    // give each view a 53-pixel width), the fourth cell empty.
     let (cw, ch, c) = grey(&p("c.png"));
-    assert_eq!((cw, ch), (3 * 53, 120), "multiview layout {cw}x{ch}");
-    assert!(stats(&c, cw, cw, ch).1 > 100.0);
+    assert_eq!((cw, ch), (160, 120), "multiview layout {cw}x{ch}");
+    let quadrant = |qx: usize, qy: usize| -> Vec<f64> {
+        (0..60)
+            .flat_map(|y| (0..80).map(move |x| (qy * 60 + y) * 160 + qx * 80 + x))
+            .map(|i| c[i])
+            .collect()
+    };
+    for (qx, qy) in [(0, 0), (1, 0), (0, 1)] {
+        let q = quadrant(qx, qy);
+        assert!(
+            stats(&q, 80, 80, 60).1 > 100.0,
+            "panel ({qx}, {qy}) is empty"
+        );
+    }
+    // The empty cell holds no image: flat (the level of zero under the panels' window).
+    assert!(
+        stats(&quadrant(1, 1), 80, 80, 60).1 < 1.0,
+        "the empty cell is not flat"
+    );
     // Depth cueing (C) changes the image of the same view.
     let (dw, dh, d) = grey(&p("cue.png"));
     assert_eq!((dw, dh), (bw, bh));

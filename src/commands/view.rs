@@ -136,7 +136,7 @@ pub fn run(a: ViewWindowArgs) -> Result<()> {
     if let (Some(path), Some(frames)) = (&app.args.screenshot, app.frames.as_mut()) {
         let image = frames.session.image().context("reading the image")?;
         let window = app.state.display_window(&image)?;
-        image
+        arrange(image, grid(app.view_size, app.state.multiview))
             .write_png(path, window)
             .with_context(|| format!("writing {}", path.display()))?;
     }
@@ -268,8 +268,58 @@ impl ViewState {
     }
 }
 
+/// Columns and rows of multiview's three panels in a window of `size`: a row, a column or a
+/// 2×2 grid (one cell empty), whichever gives the panels the longest short side, so that the
+/// views fill the window's shape (three thin strips in a square window left each volume a
+/// third of its width). A tie keeps the row.
+fn panel_grid(size: PhysicalSize<u32>) -> (usize, usize) {
+    let (w, h) = (f64::from(size.width.max(1)), f64::from(size.height.max(1)));
+    let side = |(c, r): (usize, usize)| (w / c as f64).min(h / r as f64);
+    [(2, 2), (1, 3), (3, 1)]
+        .into_iter()
+        .max_by(|a, b| side(*a).total_cmp(&side(*b)))
+        .expect("three layouts")
+}
+
+/// The panel grid of a view: one cell, or multiview's [`panel_grid`].
+fn grid(size: PhysicalSize<u32>, multiview: bool) -> (usize, usize) {
+    if multiview {
+        panel_grid(size)
+    } else {
+        (1, 1)
+    }
+}
+
+/// Multiview's image (three panels side by side, as the renderer makes it) laid out as `cols`
+/// × `rows` panels for the window; an empty cell is black.
+fn arrange(
+    image: wavesplat_viewer::Image,
+    (cols, rows): (usize, usize),
+) -> wavesplat_viewer::Image {
+    if cols * rows == 1 || cols == 3 {
+        return image;
+    }
+    let (pw, ph, c) = (image.width / 3, image.height, image.channels);
+    let width = cols * pw;
+    let mut data = vec![0.0f32; width * rows * ph * c];
+    for k in 0..3 {
+        let (cx, cy) = (k % cols, k / cols);
+        for y in 0..ph {
+            let src = (y * image.width + k * pw) * c;
+            let dst = ((cy * ph + y) * width + cx * pw) * c;
+            data[dst..dst + pw * c].copy_from_slice(&image.data[src..src + pw * c]);
+        }
+    }
+    wavesplat_viewer::Image {
+        width,
+        height: rows * ph,
+        channels: c,
+        data,
+    }
+}
+
 fn size_w(size: PhysicalSize<u32>, multiview: bool) -> f64 {
-    let w = size.width as f64 / if multiview { 3.0 } else { 1.0 };
+    let w = f64::from(size.width) / grid(size, multiview).0 as f64;
     w.max(1.0)
 }
 
@@ -277,7 +327,7 @@ fn size_w(size: PhysicalSize<u32>, multiview: bool) -> f64 {
 /// so no side exceeds `max`.
 fn image_size(size: PhysicalSize<u32>, multiview: bool, max: usize) -> (usize, usize) {
     let w = size_w(size, multiview);
-    let h = (size.height as f64).max(1.0);
+    let h = (f64::from(size.height) / grid(size, multiview).1 as f64).max(1.0);
     let scale = (max as f64 / w).min(max as f64 / h).min(1.0);
     (
         ((w * scale).round() as usize).clamp(1, max),
@@ -707,7 +757,7 @@ impl App {
             .ok_or_else(|| anyhow!("nothing is shown yet"))?;
         let image = frames.session.image().context("reading the image")?;
         let window = self.state.display_window(&image)?;
-        image
+        arrange(image, grid(self.view_size, self.state.multiview))
             .write_png(path, window)
             .with_context(|| format!("writing {}", path.display()))
     }
@@ -888,6 +938,7 @@ impl App {
         if self.dirty_image {
             let image = frames.session.image().context("reading the image")?;
             let window = self.state.display_window(&image)?;
+            let image = arrange(image, grid(self.view_size, self.state.multiview));
             let rgba = image.to_rgba8(window).context("converting the image")?;
             let (w, h) = (image.width as u32, image.height as u32);
             if g.texture.as_ref().map(|(t, _)| (t.width(), t.height())) != Some((w, h)) {
@@ -1324,5 +1375,35 @@ mod tests {
             let spec = s.spec(PhysicalSize::new(64, 48), 64, &g).unwrap();
             assert_eq!(spec.view.cue.map(|c| c.direction), Some(d));
         }
+    }
+
+    #[test]
+    fn multiview_panels_take_the_window_shape() {
+        assert_eq!(panel_grid(PhysicalSize::new(256, 256)), (2, 2));
+        assert_eq!(panel_grid(PhysicalSize::new(768, 256)), (3, 1));
+        assert_eq!(panel_grid(PhysicalSize::new(200, 800)), (1, 3));
+        // In a square window each panel is half the window, not a third of its width.
+        assert_eq!(
+            image_size(PhysicalSize::new(256, 256), true, 1024),
+            (128, 128)
+        );
+        assert_eq!(
+            image_size(PhysicalSize::new(256, 256), false, 1024),
+            (256, 256)
+        );
+        // Three 2×1 panels (values 1, 2, 3) laid out as a 2×2 grid: the fourth cell black.
+        let strip = wavesplat_viewer::Image {
+            width: 6,
+            height: 1,
+            channels: 1,
+            data: vec![1.0, 1.0, 2.0, 2.0, 3.0, 3.0],
+        };
+        let g = arrange(strip.clone(), (2, 2));
+        assert_eq!((g.width, g.height), (4, 2));
+        assert_eq!(g.data, vec![1.0, 1.0, 2.0, 2.0, 3.0, 3.0, 0.0, 0.0]);
+        let c = arrange(strip.clone(), (1, 3));
+        assert_eq!((c.width, c.height), (2, 3));
+        assert_eq!(c.data, vec![1.0, 1.0, 2.0, 2.0, 3.0, 3.0]);
+        assert_eq!(arrange(strip.clone(), (3, 1)).data, strip.data);
     }
 }
