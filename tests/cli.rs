@@ -164,22 +164,16 @@ fn first_hour_mistakes_are_explained() {
 fn a_database_in_use_is_named() {
     let dir = tempfile::tempdir().unwrap();
     let db = dir.path().join("db");
-    let (mut first, _) = common::spawn_server(&[
+    let args = [
         "serve",
         "cache",
         "--addr",
         "127.0.0.1:0",
         "--db",
         db.to_str().unwrap(),
-    ]);
-    let second = run(&[
-        "serve",
-        "cache",
-        "--addr",
-        "127.0.0.1:0",
-        "--db",
-        db.to_str().unwrap(),
-    ]);
+    ];
+    let (mut first, _) = common::spawn_server(&args);
+    let second = run(&args);
     let _ = first.kill();
     let _ = first.wait();
     assert!(!second.status.success());

@@ -170,8 +170,8 @@ impl Net {
         child
     }
 
-    /// Starts a server on `host` and waits for its `listening on` line; returns the child and
-    /// what it wrote on stderr before (the start-up warnings).
+    /// Starts a server on `host` and waits for its `listening on` line (its stderr goes to
+    /// `dir/NAME.log`).
     fn serve(
         &mut self,
         host: &str,

@@ -178,7 +178,6 @@ fn now_ms() -> u64 {
         .unwrap_or(0)
 }
 
-/// Checks one packet and returns its index entry.
 /// Decodes packet `i` and returns its index entry and the number of coefficients it holds.
 fn index_packet(
     prelude: &Prelude,

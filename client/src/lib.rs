@@ -242,13 +242,24 @@ impl CacheClient {
         Ok(CacheClient::over(endpoint.connect_lazy(), &url, options))
     }
 
-    /// The result of a call, its failure explained ([`wavesplat_net::tls::explain_status`]).
+    /// The result of a call, its failure explained ([`CacheClient::explained`]).
     async fn checked<T>(&self, r: Result<T, tonic::Status>) -> Result<T, ClientError> {
         match r {
             Ok(t) => Ok(t),
-            Err(s) => Err(wavesplat_net::tls::explain_status(&self.url, s)
-                .await
-                .into()),
+            Err(s) => Err(self.explained(s.into()).await),
+        }
+    }
+
+    /// A failed call's error, a status from the transport explained for this client's URL
+    /// ([`wavesplat_net::tls::explain_status`]: a plaintext URL against a TLS server).
+    async fn explained(&self, e: ClientError) -> ClientError {
+        match e {
+            ClientError::Status { code, message } => {
+                wavesplat_net::tls::explain_status(&self.url, tonic::Status::new(code, message))
+                    .await
+                    .into()
+            }
+            e => e,
         }
     }
 
@@ -362,11 +373,8 @@ impl CacheClient {
     /// Opens a view-dependent refinement stream.
     pub async fn refine(&mut self, request: RefineRequest) -> Result<RefineStream, ClientError> {
         match refine::open(&mut self.inner, request).await {
-            Err(ClientError::Status { code, message }) => Err(self
-                .checked::<()>(Err(tonic::Status::new(code, message)))
-                .await
-                .unwrap_err()),
-            r => r,
+            Err(e) => Err(self.explained(e).await),
+            ok => ok,
         }
     }
 

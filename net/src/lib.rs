@@ -6,8 +6,8 @@
 //! - [`deadline`]: the caller's deadline (`grpc-timeout`) as an instant a handler can honour;
 //! - [`tls`]: TLS for servers and clients, the one place a URL becomes an endpoint, and the
 //!   rule against exposing a server by accident;
-//! - [`auth`]: bearer tokens with roles (read, ingest, write, worker, admin), checked in constant time
-//!   by a layer in front of every service, and the clients' credentials.
+//! - [`auth`]: bearer tokens with roles (read, ingest, write, worker, admin), checked in
+//!   constant time by a layer in front of every service, and the clients' credentials.
 //!
 //! A server combines them in [`Security`].
 

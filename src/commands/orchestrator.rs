@@ -355,38 +355,36 @@ pub fn run_archive(cmd: ArchiveCommand) -> Result<()> {
 }
 
 async fn submit_all(a: SubmitArgs, scan: &archive::Scan, options: &JobOptions) -> Result<()> {
-    {
-        let mut c = connect(&a.orchestrator, &a.security).await?;
-        let mut ids = HashSet::new();
-        let (mut new, mut known) = (0, 0);
-        for f in &scan.found {
-            let (spec, bytes) = archive::job_spec(f, options, a.upload)
-                .with_context(|| format!("reading {}", f.path.display()))?;
-            let r = client::submit(&mut c, &spec, bytes.as_deref())
-                .await
-                .with_context(|| format!("submitting {}", f.path.display()))?;
-            let job = r.job.context("the orchestrator returned no job")?;
-            let what = if r.existed {
-                known += 1;
-                "already known as"
-            } else {
-                new += 1;
-                "submitted as"
-            };
-            outln!(
-                "{} {what} job {} ({})",
-                f.path.display(),
-                job.id,
-                state_name(job.state)
-            );
-            ids.insert(job.id);
-        }
-        outln!("{new} submitted, {known} already known");
-        if a.detach {
-            return Ok(());
-        }
-        watch(&mut c, Some(&ids)).await
+    let mut c = connect(&a.orchestrator, &a.security).await?;
+    let mut ids = HashSet::new();
+    let (mut new, mut known) = (0, 0);
+    for f in &scan.found {
+        let (spec, bytes) = archive::job_spec(f, options, a.upload)
+            .with_context(|| format!("reading {}", f.path.display()))?;
+        let r = client::submit(&mut c, &spec, bytes.as_deref())
+            .await
+            .with_context(|| format!("submitting {}", f.path.display()))?;
+        let job = r.job.context("the orchestrator returned no job")?;
+        let what = if r.existed {
+            known += 1;
+            "already known as"
+        } else {
+            new += 1;
+            "submitted as"
+        };
+        outln!(
+            "{} {what} job {} ({})",
+            f.path.display(),
+            job.id,
+            state_name(job.state)
+        );
+        ids.insert(job.id);
     }
+    outln!("{new} submitted, {known} already known");
+    if a.detach {
+        return Ok(());
+    }
+    watch(&mut c, Some(&ids)).await
 }
 
 /// Runs `wavesplat jobs …`.
@@ -404,37 +402,35 @@ pub fn run_jobs(cmd: JobsCommand) -> Result<()> {
 }
 
 async fn jobs(cmd: JobsCommand) -> Result<()> {
-    {
-        match cmd {
-            JobsCommand::List(u) => {
-                let mut c = connect(&u.orchestrator, &u.security).await?;
-                for j in client::list(&mut c).await? {
-                    outln!("{}", describe(&j));
-                }
-            }
-            JobsCommand::Watch(u) => {
-                let mut c = connect(&u.orchestrator, &u.security).await?;
-                watch(&mut c, None).await?;
-            }
-            JobsCommand::Cancel(a) => {
-                let mut c = connect(&a.url.orchestrator, &a.url.security).await?;
-                let j = c
-                    .cancel_job(pb::JobRef { id: a.id })
-                    .await
-                    .with_context(|| format!("cancelling job {}", a.id))?;
-                outln!("{}", describe(j.get_ref()));
-            }
-            JobsCommand::Retry(a) => {
-                let mut c = connect(&a.url.orchestrator, &a.url.security).await?;
-                let j = c
-                    .retry_job(pb::JobRef { id: a.id })
-                    .await
-                    .with_context(|| format!("retrying job {}", a.id))?;
-                outln!("{}", describe(j.get_ref()));
+    match cmd {
+        JobsCommand::List(u) => {
+            let mut c = connect(&u.orchestrator, &u.security).await?;
+            for j in client::list(&mut c).await? {
+                outln!("{}", describe(&j));
             }
         }
-        Ok(())
+        JobsCommand::Watch(u) => {
+            let mut c = connect(&u.orchestrator, &u.security).await?;
+            watch(&mut c, None).await?;
+        }
+        JobsCommand::Cancel(a) => {
+            let mut c = connect(&a.url.orchestrator, &a.url.security).await?;
+            let j = c
+                .cancel_job(pb::JobRef { id: a.id })
+                .await
+                .with_context(|| format!("cancelling job {}", a.id))?;
+            outln!("{}", describe(j.get_ref()));
+        }
+        JobsCommand::Retry(a) => {
+            let mut c = connect(&a.url.orchestrator, &a.url.security).await?;
+            let j = c
+                .retry_job(pb::JobRef { id: a.id })
+                .await
+                .with_context(|| format!("retrying job {}", a.id))?;
+            outln!("{}", describe(j.get_ref()));
+        }
     }
+    Ok(())
 }
 
 fn job_name(j: &pb::Job) -> &str {

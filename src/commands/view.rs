@@ -291,7 +291,7 @@ fn grid(size: PhysicalSize<u32>, multiview: bool) -> (usize, usize) {
 }
 
 /// Multiview's image (three panels side by side, as the renderer makes it) laid out as `cols`
-/// × `rows` panels for the window; an empty cell is black.
+/// × `rows` panels for the window; an empty cell holds zeros (the panels' background).
 fn arrange(
     image: wavesplat_viewer::Image,
     (cols, rows): (usize, usize),
@@ -1391,7 +1391,7 @@ mod tests {
             image_size(PhysicalSize::new(256, 256), false, 1024),
             (256, 256)
         );
-        // Three 2×1 panels (values 1, 2, 3) laid out as a 2×2 grid: the fourth cell black.
+        // Three 2×1 panels (values 1, 2, 3) laid out as a 2×2 grid: the fourth cell zeros.
         let strip = wavesplat_viewer::Image {
             width: 6,
             height: 1,

@@ -19,7 +19,7 @@ use wavesplat_client::{
     CacheClient, ClientError, ConnectOptions, RefineEvent, RefineRequest, VolumeHeader, VolumeKey,
 };
 use wavesplat_codec::format::packet::{decode_packet, read_framing, Coefficient};
-use wavesplat_codec::format::{parse_file, FormatError, Header};
+use wavesplat_codec::format::{check_kept, parse_file, FormatError, Header};
 use wavesplat_codec::layout::Band;
 use wavesplat_codec::view::visibility::{packet_order, PacketFacts, Visibility};
 use wavesplat_codec::view::{ViewError, ViewSpec};
@@ -116,7 +116,6 @@ impl FileSource {
     pub fn open(bytes: Vec<u8>, spec: &ViewSpec) -> Result<FileSource, SourceError> {
         let (header, ranges) = {
             let file = parse_file(&bytes)?;
-            file.check_packets()?;
             let base = bytes.as_ptr() as usize;
             let ranges: Vec<std::ops::Range<usize>> = file
                 .packets
@@ -129,14 +128,19 @@ impl FileSource {
             (file.header, ranges)
         };
         let mut packets = Vec::with_capacity(ranges.len());
+        let mut held = 0u64;
         for r in ranges {
             let f = read_framing(&header, &bytes[r.clone()])?;
+            held = held.saturating_add(f.count as u64);
             packets.push(FilePacket {
                 range: r,
                 tile: f.tile,
                 summary: f.summary,
             });
         }
+        // The packets must hold what the header declares: missing or cut packets would
+        // otherwise render as a blank or partial image.
+        check_kept(&header, held)?;
         let n = packets.len();
         let mut s = FileSource {
             bytes,

@@ -741,26 +741,6 @@ pub struct WspFile<'a> {
     pub packets: Vec<&'a [u8]>,
 }
 
-impl WspFile<'_> {
-    /// Reads every packet's framing (checksum, tile, layer, declared count) and checks that the
-    /// packets hold the coefficients the header declares ([`check_kept`]): a file whose
-    /// packets are missing or cut would otherwise render as a blank or partial image.
-    pub fn check_packets(&self) -> Result<(), FormatError> {
-        let mut held = 0u64;
-        for (i, p) in self.packets.iter().enumerate() {
-            let f = packet::read_framing(&self.header, p).map_err(|e| match e {
-                FormatError::Invalid { what, detail } => FormatError::Invalid {
-                    what,
-                    detail: format!("packet {i}: {detail}"),
-                },
-                e => e,
-            })?;
-            held = held.saturating_add(f.count as u64);
-        }
-        check_kept(&self.header, held)
-    }
-}
-
 /// Checks that a whole file's packets, holding `held` coefficients in all, hold what the header
 /// declares (`Header::kept`).
 pub fn check_kept(header: &Header, held: u64) -> Result<(), FormatError> {
