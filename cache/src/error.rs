@@ -1,7 +1,8 @@
 //! The cache's typed errors and their single mapping to gRPC statuses: bad input (upload, view,
 //! request shape) is `InvalidArgument`, a missing volume `NotFound`, a name clash
 //! `AlreadyExists`, a concurrent change `Aborted`, a limit on concurrent work `ResourceExhausted`,
-//! an abandoned request `DeadlineExceeded` / `Cancelled`, storage trouble `Internal`. Messages carry the bad value and the allowed range.
+//! an abandoned request `DeadlineExceeded` / `Cancelled`, an object store that fails or cannot
+//! be reached `Unavailable` (the client may retry), storage trouble `Internal`. Messages carry the bad value and the allowed range.
 
 use thiserror::Error;
 use wavesplat_codec::format::FormatError;
@@ -44,6 +45,9 @@ pub enum CacheError {
     /// A file of the store could not be read or written.
     #[error("storage file: {0}")]
     Io(String),
+    /// The object store failed or could not be reached; the request may be repeated.
+    #[error("object store: {0}")]
+    Bucket(String),
     /// A concurrent change got in the way; the request may be repeated.
     #[error("conflict: {0}")]
     Conflict(String),
@@ -87,6 +91,10 @@ impl From<CacheError> for tonic::Status {
             | CacheError::Format(_)
             | CacheError::TooLarge { .. } => tonic::Status::invalid_argument(msg),
             CacheError::Conflict(_) => tonic::Status::aborted(msg),
+            CacheError::Bucket(_) => {
+                tracing::warn!(error = %msg, "object store unavailable");
+                tonic::Status::unavailable(msg)
+            }
             CacheError::DeadlineExceeded(_) => tonic::Status::deadline_exceeded(msg),
             CacheError::Cancelled(_) => tonic::Status::cancelled(msg),
             CacheError::Busy(_) => tonic::Status::resource_exhausted(msg),

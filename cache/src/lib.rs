@@ -5,8 +5,8 @@
 //!
 //! - [`store`]: metadata in sled, each volume's bytes in a file; streamed, incrementally
 //!   validated, atomic ingest (commit record), names, deletion, recovery;
-//! - [`priority`]: the sending order, by visible energy per byte (the view's weights come from
-//!   `wavesplat_codec::view::visibility`);
+//! - the sending order, by visible energy per byte, is [`Priority`] from
+//!   `wavesplat_codec::view::priority`, which range-request readers share;
 //! - [`service`]: the tonic service and the per-stream refinement session;
 //! - [`convert`] / [`error`]: the one place for `pb` conversions / `tonic::Status` mapping;
 //!
@@ -18,16 +18,16 @@
 //! # Ok(()) }
 //! ```
 
+pub mod bucket;
 pub mod convert;
 pub mod error;
 pub mod model;
-pub mod priority;
 pub mod service;
 pub mod store;
 
 pub use error::CacheError;
 pub use model::{PacketMeta, VolumeIndex, VolumeKey, VolumeMeta};
-pub use priority::Priority;
+pub use wavesplat_codec::view::priority::Priority;
 pub use store::{Limits, Store};
 
 use std::future::Future;

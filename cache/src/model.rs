@@ -6,7 +6,6 @@
 use crate::error::CacheError;
 use wavesplat_codec::format::bytes::{ByteReader, ByteWriter};
 use wavesplat_codec::format::Header;
-use wavesplat_codec::layout::Band;
 
 /// A volume named by id or by name.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -185,20 +184,7 @@ pub fn hex(bytes: &[u8]) -> String {
     bytes.iter().map(|b| format!("{b:02x}")).collect()
 }
 
-/// What the cache knows about one packet without reading it.
-#[derive(Debug, Clone, PartialEq)]
-pub struct PacketMeta {
-    /// Tile index.
-    pub tile: u32,
-    /// Layer (rank within the tile).
-    pub layer: u32,
-    /// Size in bytes.
-    pub len: u32,
-    /// Where it starts in the volume's data file.
-    pub offset: u64,
-    /// Energy Σ w²‖basis‖²·I per band (from the packet's own summary).
-    pub summary: Vec<(Band, f64)>,
-}
+pub use wavesplat_codec::format::index::PacketMeta;
 
 /// A volume's decoded header and its packet index (packet id = index in file order). The
 /// store's encoding of the index (with the packets' offsets) is its own tree's format.
@@ -214,21 +200,7 @@ pub struct VolumeIndex {
 
 /// Encodes a packet index.
 pub(crate) fn encode_packets(packets: &[PacketMeta]) -> Vec<u8> {
-    let mut w = ByteWriter::new();
-    w.varint(packets.len() as u64);
-    for p in packets {
-        w.varint(p.tile as u64);
-        w.varint(p.layer as u64);
-        w.varint(p.len as u64);
-        w.varint(p.offset);
-        w.varint(p.summary.len() as u64);
-        for (band, e) in &p.summary {
-            w.u8(band.level);
-            w.u8(band.kind);
-            w.f64(*e);
-        }
-    }
-    w.into_bytes()
+    wavesplat_codec::format::index::encode_packets(packets)
 }
 
 /// Decodes a packet index (`with_offsets`: the current form; without, the form of stores that
@@ -237,42 +209,14 @@ pub(crate) fn decode_packets(
     bytes: &[u8],
     with_offsets: bool,
 ) -> Result<Vec<PacketMeta>, CacheError> {
-    let corrupt =
-        |e: wavesplat_codec::format::FormatError| CacheError::Corrupt(format!("packet index: {e}"));
-    let mut r = ByteReader::new(bytes, "packet index");
-    let n = r.varint_max(1 << 28, "packets").map_err(corrupt)? as usize;
-    let mut out = Vec::with_capacity(n.min(r.remaining()));
-    for _ in 0..n {
-        let tile = r.varint_max(u32::MAX as u64, "tile").map_err(corrupt)? as u32;
-        let layer = r.varint_max(u32::MAX as u64, "layer").map_err(corrupt)? as u32;
-        let len = r.varint_max(u32::MAX as u64, "len").map_err(corrupt)? as u32;
-        let offset = if with_offsets {
-            r.varint().map_err(corrupt)?
-        } else {
-            0
-        };
-        let ns = r.varint_max(1 << 16, "summary").map_err(corrupt)? as usize;
-        let mut summary = Vec::with_capacity(ns.min(r.remaining()));
-        for _ in 0..ns {
-            let level = r.u8().map_err(corrupt)?;
-            let kind = r.u8().map_err(corrupt)?;
-            let e = r.f64().map_err(corrupt)?;
-            summary.push((Band { level, kind }, e));
-        }
-        out.push(PacketMeta {
-            tile,
-            layer,
-            len,
-            offset,
-            summary,
-        });
-    }
-    Ok(out)
+    wavesplat_codec::format::index::decode_packets(bytes, with_offsets)
+        .map_err(|e| CacheError::Corrupt(format!("packet index: {e}")))
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use wavesplat_codec::layout::Band;
 
     #[test]
     fn records_round_trip() {

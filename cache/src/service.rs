@@ -10,7 +10,7 @@
 
 use crate::convert;
 use crate::error::CacheError;
-use crate::priority::Priority;
+use wavesplat_codec::view::priority::Priority;
 use crate::store::{validate_name, OpenVolume, Store, Upload};
 use std::collections::{HashMap, HashSet};
 use std::pin::Pin;
@@ -210,7 +210,11 @@ async fn plan(
                 .map_err(|_| Status::internal("the planner pool is closed"))?,
         )
     };
-    blocking(move || Priority::new(&volume.index.header, &spec)).await
+    blocking(move || {
+        Priority::new(&volume.index.header, &spec)
+            .map_err(|e| CacheError::InvalidRequest(e.to_string()))
+    })
+    .await
 }
 
 /// Set when a handler is dropped before it finished (the client went away or its deadline
@@ -669,13 +673,17 @@ impl Session {
         }
     }
 
-    fn next_packet(&mut self) -> Result<Option<pb::Packet>, CacheError> {
+    async fn next_packet(&mut self) -> Result<Option<pb::Packet>, CacheError> {
         while let Some((priority, id)) = self.queue.pop() {
-            if !self.held.insert(id) {
+            if self.held.contains(&id) {
                 continue;
             }
+            // Read before marking it held: a read that fails (a bucket gone for a moment) ends
+            // the stream with an error, and the client's holdings on its next stream say what
+            // it has.
+            let data = self.volume.read_packet(id).await?.to_vec();
+            self.held.insert(id);
             let p = &self.volume.index.packets[id as usize];
-            let data = self.volume.packet(id)?;
             self.sent += 1;
             self.bytes += data.len() as u64;
             if let Some(credit) = &mut self.credit {
@@ -791,7 +799,7 @@ impl Session {
                 },
                 permit = tx.reserve(), if self.may_send() && self.may_send_queued() => {
                     let Ok(permit) = permit else { return };
-                    match self.next_packet() {
+                    match self.next_packet().await {
                         Ok(Some(p)) => permit.send(Ok(pb::RefineResponse { msg: Some(Msg::Packet(p)) })),
                         Ok(None) => {}
                         Err(e) => {

@@ -18,6 +18,7 @@
 //! concurrent or repeated identical ingests all succeed. Deletion commits the removal of the
 //! records first, then drops the data.
 
+use crate::bucket::Bucket;
 use crate::error::CacheError;
 use crate::model::{
     decode_packets, encode_packets, PacketMeta, VolumeIndex, VolumeKey, VolumeMeta,
@@ -90,23 +91,68 @@ pub struct OpenVolume {
     pub meta: VolumeMeta,
     /// Header and packet index.
     pub index: VolumeIndex,
-    file: File,
+    data: VolumeData,
+}
+
+/// Where an open volume's packets are read from.
+#[derive(Debug)]
+enum VolumeData {
+    /// The node's own file.
+    File(File),
+    /// An object in a bucket (`wsp_offset`: where the `.wsp` starts in it).
+    Bucket {
+        bucket: Arc<Bucket>,
+        sha256: [u8; 32],
+        wsp_offset: u64,
+    },
 }
 
 impl OpenVolume {
-    /// One packet's bytes.
-    pub fn packet(&self, packet: u32) -> Result<Vec<u8>, CacheError> {
-        let p = self.index.packets.get(packet as usize).ok_or_else(|| {
+    fn entry(&self, packet: u32) -> Result<&PacketMeta, CacheError> {
+        self.index.packets.get(packet as usize).ok_or_else(|| {
             CacheError::NotFound(format!("packet {packet} of volume {}", self.meta.id))
-        })?;
+        })
+    }
+
+    /// One packet's bytes, from a blocking thread.
+    pub fn packet(&self, packet: u32) -> Result<Vec<u8>, CacheError> {
+        match &self.data {
+            VolumeData::File(file) => self.read_file(file, packet),
+            VolumeData::Bucket { bucket, .. } => {
+                Ok(bucket.wait(self.read_packet(packet))?.to_vec())
+            }
+        }
+    }
+
+    fn read_file(&self, file: &File, packet: u32) -> Result<Vec<u8>, CacheError> {
+        let p = self.entry(packet)?;
         let mut buf = vec![0u8; p.len as usize];
-        read_at(&self.file, &mut buf, p.offset).map_err(|e| {
+        read_at(file, &mut buf, p.offset).map_err(|e| {
             CacheError::Corrupt(format!(
                 "reading packet {packet} of volume {}: {e}",
                 self.meta.id
             ))
         })?;
         Ok(buf)
+    }
+
+    /// One packet's bytes, from an async task (a local file is read in place: one positioned
+    /// read of a packet).
+    pub async fn read_packet(&self, packet: u32) -> Result<bytes::Bytes, CacheError> {
+        match &self.data {
+            VolumeData::File(file) => Ok(self.read_file(file, packet)?.into()),
+            VolumeData::Bucket {
+                bucket,
+                sha256,
+                wsp_offset,
+            } => {
+                let p = self.entry(packet)?;
+                let start = wsp_offset + p.offset;
+                bucket
+                    .read(sha256, (self.meta.id, packet), start..start + p.len as u64)
+                    .await
+            }
+        }
     }
 }
 
@@ -142,6 +188,9 @@ pub struct Store {
     files: Arc<PathBuf>,
     limits: Limits,
     open: Arc<Mutex<HashMap<u64, Arc<OpenVolume>>>>,
+    /// The object store volumes live in, when not in this node's files (sled then holds
+    /// nothing; `files` holds uploads in progress).
+    bucket: Option<Arc<Bucket>>,
 }
 
 fn id_from(bytes: &[u8]) -> Result<u64, CacheError> {
@@ -279,6 +328,7 @@ impl Store {
             files: Arc::new(files),
             limits,
             open: Arc::new(Mutex::new(HashMap::new())),
+            bucket: None,
         };
         store.migrate_sled_packets()?;
         let removed = store.collect_garbage()?;
@@ -286,6 +336,33 @@ impl Store {
             tracing::warn!(removed, "removed data of interrupted ingests or deletions");
         }
         Ok(store)
+    }
+
+    /// Opens a node over the object store at `url` (see [`crate::bucket`]): volumes and names
+    /// live there, shared by every node over the same store; `path` holds only this node's
+    /// uploads in progress. `read_cache_bytes` bounds the node's memory cache of packets. Must be
+    /// called within a tokio runtime; checks that the store answers.
+    pub async fn open_bucket(
+        path: impl AsRef<Path>,
+        url: &str,
+        limits: Limits,
+        read_cache_bytes: u64,
+    ) -> Result<Store, CacheError> {
+        let bucket = Bucket::open(url, read_cache_bytes)?;
+        bucket.probe().await?;
+        let path = path.as_ref().to_path_buf();
+        tokio::task::spawn_blocking(move || {
+            let mut store = Store::open(&path, limits)?;
+            store.bucket = Some(Arc::new(bucket));
+            Ok(store)
+        })
+        .await
+        .map_err(|e| CacheError::Io(format!("opening the node's directory: {e}")))?
+    }
+
+    /// The object store's URL, when volumes live in one.
+    pub fn bucket_url(&self) -> Option<&str> {
+        self.bucket.as_deref().map(Bucket::url)
     }
 
     /// The upload limits.
@@ -386,6 +463,9 @@ impl Store {
 
     /// Resolves a key to an id.
     pub fn resolve(&self, key: &VolumeKey) -> Result<u64, CacheError> {
+        if let Some(b) = &self.bucket {
+            return Ok(crate::bucket::content_id(&b.wait(b.locate(key))?));
+        }
         let id = match key {
             VolumeKey::Id(id) => *id,
             VolumeKey::Name(name) => match self.names.get(name.as_bytes())? {
@@ -402,6 +482,9 @@ impl Store {
 
     /// Whether content with this SHA-256 is stored.
     pub fn has_content(&self, sha256: &[u8; 32]) -> Result<bool, CacheError> {
+        if let Some(b) = &self.bucket {
+            return b.wait(b.has_content(sha256));
+        }
         Ok(self.hashes.contains_key(sha256)?)
     }
 
@@ -498,6 +581,9 @@ impl Store {
 
     /// One volume's record.
     pub fn meta(&self, id: u64) -> Result<VolumeMeta, CacheError> {
+        if let Some(b) = &self.bucket {
+            return b.wait(b.describe(&VolumeKey::Id(id)));
+        }
         match self.volumes.get(id.to_be_bytes())? {
             Some(v) => VolumeMeta::decode(&v),
             None => Err(CacheError::NotFound(VolumeKey::Id(id).to_string())),
@@ -506,6 +592,9 @@ impl Store {
 
     /// Describes a volume (named as `key` names it).
     pub fn describe(&self, key: &VolumeKey) -> Result<VolumeMeta, CacheError> {
+        if let Some(b) = &self.bucket {
+            return b.wait(b.describe(key));
+        }
         let meta = self.meta(self.resolve(key)?)?;
         Ok(match key {
             VolumeKey::Name(n) => meta.named(n),
@@ -515,6 +604,9 @@ impl Store {
 
     /// Every volume under each of its names, ordered by name.
     pub fn list(&self) -> Result<Vec<VolumeMeta>, CacheError> {
+        if let Some(b) = &self.bucket {
+            return b.wait(b.list());
+        }
         let mut out = Vec::new();
         let mut metas: HashMap<u64, VolumeMeta> = HashMap::new();
         for kv in self.names.iter() {
@@ -536,6 +628,11 @@ impl Store {
     /// Deletes a name (the volume goes with its last name) or, by id, the volume with all its
     /// names; returns the volume's id.
     pub fn delete(&self, key: &VolumeKey) -> Result<u64, CacheError> {
+        if let Some(b) = &self.bucket {
+            let id = b.wait(b.delete(key))?;
+            self.forget(id);
+            return Ok(id);
+        }
         let meta = self.describe(key)?;
         let id = meta.id.to_be_bytes();
         let remove: Vec<String> = match key {
@@ -585,6 +682,25 @@ impl Store {
     /// Opens a volume for reading (cached: the header is parsed and the index decoded once per
     /// volume, not per request).
     pub fn open_volume(&self, id: u64) -> Result<Arc<OpenVolume>, CacheError> {
+        if let Some(b) = &self.bucket {
+            // Whether the volume still exists is the bucket's to say (another node may have
+            // deleted it); the parsed head is cached by content.
+            let meta = b.wait(b.describe(&VolumeKey::Id(id)))?;
+            let v = b.wait(b.open_volume(&meta.sha256))?;
+            return Ok(Arc::new(OpenVolume {
+                meta,
+                index: VolumeIndex {
+                    header: v.head.header.clone(),
+                    header_bytes: v.head.header_bytes.clone(),
+                    packets: v.head.packets.clone(),
+                },
+                data: VolumeData::Bucket {
+                    bucket: b.clone(),
+                    sha256: v.sha256,
+                    wsp_offset: v.head.wsp_offset,
+                },
+            }));
+        }
         if let Some(v) = self.open.lock().ok().and_then(|o| o.get(&id).cloned()) {
             return Ok(v);
         }
@@ -610,7 +726,7 @@ impl Store {
                 header_bytes,
                 packets,
             },
-            file,
+            data: VolumeData::File(file),
         });
         if let Ok(mut open) = self.open.lock() {
             if open.len() >= OPEN_VOLUMES {
@@ -633,6 +749,9 @@ impl Store {
 
     /// Bytes of volume data on disk (finished and unfinished files), for tests and reports.
     pub fn data_bytes(&self) -> Result<u64, CacheError> {
+        if let Some(b) = &self.bucket {
+            return b.wait(b.data_bytes());
+        }
         let mut total = 0;
         for e in std::fs::read_dir(&*self.files).map_err(|e| io("listing volume files", e))? {
             let meta = e
@@ -799,7 +918,11 @@ impl Upload {
         }
         // A name taken by other content is refused before any byte is read (the commit checks
         // again).
-        if let Some(id) = store.names.get(name.as_bytes())? {
+        if let Some(b) = &store.bucket {
+            if b.wait(b.name_target(name))?.is_some_and(|sha| sha != declared) {
+                return Err(CacheError::NameTaken(name.to_string()));
+            }
+        } else if let Some(id) = store.names.get(name.as_bytes())? {
             if store.meta(id_from(&id)?)?.sha256 != declared {
                 return Err(CacheError::NameTaken(name.to_string()));
             }
@@ -889,6 +1012,9 @@ impl Upload {
             )));
         }
         let store = self.store.clone();
+        if let Some(b) = store.bucket.clone() {
+            return self.finish_in_bucket(&b, hash, abandon);
+        }
         let meta = match self.sink.take() {
             None => {
                 if let Some(e) = abandon() {
@@ -928,23 +1054,16 @@ impl Upload {
                     store.remove_data(id)?;
                     return Err(e);
                 }
-                let h = &prelude.header;
-                VolumeMeta {
+                volume_meta(
                     id,
-                    file_bytes: self.total,
-                    header_bytes: prelude.header_bytes as u64,
-                    packet_bytes: s.packets.iter().map(|p| p.len as u64).sum(),
-                    dims: h.geometry.dims.map(|d| d as u32),
-                    channels: h.channels as u32,
-                    family: h.geometry.family.name().to_string(),
-                    levels: h.geometry.levels as u32,
-                    packet_count: s.packets.len() as u32,
-                    tile_count: h.tile_count() as u32,
-                    layer_count: h.layer_bounds.len() as u32,
-                    tile: h.tile as u32,
-                    coefficients: h.kept,
-                    ..blank_meta(&self.name, hash)
-                }
+                    vec![self.name.clone()],
+                    hash,
+                    now_ms(),
+                    self.total,
+                    &prelude.header,
+                    prelude.header_bytes,
+                    &s.packets,
+                )
             }
         };
         let fresh = meta.id != u64::MAX;
@@ -972,6 +1091,79 @@ impl Upload {
                 Err(e)
             }
         }
+    }
+}
+
+impl Upload {
+    /// The end of an upload into a bucket: the validated file in the indexed layout, written once
+    /// per content, then the name (see [`Bucket::commit`]).
+    fn finish_in_bucket(
+        mut self,
+        bucket: &Bucket,
+        hash: [u8; 32],
+        abandon: impl Fn() -> Option<CacheError>,
+    ) -> Result<Ingested, CacheError> {
+        let object = match self.sink.take() {
+            None => None,
+            Some(mut s) => {
+                let complete = s
+                    .prelude
+                    .as_ref()
+                    .is_some_and(|p| s.packets.len() == p.packet_lengths.len());
+                let Some(prelude) = s.prelude.take().filter(|_| complete) else {
+                    return Err(CacheError::InvalidUpload(
+                        "the upload ends inside its header, directory or a packet".into(),
+                    ));
+                };
+                check_kept(&prelude, s.held)?;
+                let mut object =
+                    wavesplat_codec::format::index::indexed_prefix(self.total, &s.packets);
+                let file = std::fs::read(&s.part).map_err(|e| io("reading an upload back", e))?;
+                object.extend_from_slice(&file);
+                Some(bytes::Bytes::from(object))
+            }
+        };
+        if let Some(e) = abandon() {
+            return Err(e);
+        }
+        let existed = bucket.wait(bucket.commit(&self.name, &hash, object))?;
+        let volume = bucket.wait(bucket.describe(&VolumeKey::Name(self.name.clone())))?;
+        tracing::info!(id = volume.id, name = %self.name, bytes = self.total, existed, bucket = %bucket.url(), "ingested volume");
+        Ok(Ingested { volume, existed })
+    }
+}
+
+/// A volume's record from its header and index.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn volume_meta(
+    id: u64,
+    names: Vec<String>,
+    sha256: [u8; 32],
+    created_unix_ms: u64,
+    file_bytes: u64,
+    header: &wavesplat_codec::format::Header,
+    header_bytes: usize,
+    packets: &[PacketMeta],
+) -> VolumeMeta {
+    let h = header;
+    VolumeMeta {
+        id,
+        name: names.first().cloned().unwrap_or_default(),
+        names,
+        sha256,
+        created_unix_ms,
+        file_bytes,
+        header_bytes: header_bytes as u64,
+        packet_bytes: packets.iter().map(|p| p.len as u64).sum(),
+        dims: h.geometry.dims.map(|d| d as u32),
+        channels: h.channels as u32,
+        family: h.geometry.family.name().to_string(),
+        levels: h.geometry.levels as u32,
+        packet_count: packets.len() as u32,
+        tile_count: h.tile_count() as u32,
+        layer_count: h.layer_bounds.len() as u32,
+        tile: h.tile as u32,
+        coefficients: h.kept,
     }
 }
 

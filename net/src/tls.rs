@@ -241,3 +241,10 @@ mod tests {
         }
     }
 }
+
+/// Makes ring the process's TLS crypto provider (once; later calls do nothing). HTTP clients that
+/// bring no provider of their own (the object-store client) need one installed; tonic's TLS uses
+/// ring too, so the process has one provider.
+pub fn install_crypto_provider() {
+    let _ = rustls::crypto::ring::default_provider().install_default();
+}

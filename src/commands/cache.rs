@@ -24,9 +24,21 @@ pub enum ServeCommand {
 /// Arguments of `wavesplat serve cache`.
 #[derive(Args, Debug)]
 pub struct ServeCacheArgs {
-    /// Database directory (created if missing).
+    /// Database directory (created if missing). With `--store`, only this node's own state:
+    /// uploads in progress.
     #[arg(long)]
     pub db: PathBuf,
+    /// Keep volumes in an object store shared by any number of cache nodes instead of in
+    /// `--db`: `s3://BUCKET/PREFIX` (S3 or a compatible store; endpoint, region and credentials
+    /// from the standard variables: AWS_ENDPOINT_URL, AWS_REGION, AWS_ACCESS_KEY_ID,
+    /// AWS_SECRET_ACCESS_KEY, and AWS_ALLOW_HTTP=true for a plain-http endpoint) or
+    /// `file:///PATH` (a shared file system). Nodes over one store serve the same volumes and
+    /// hold nothing another node needs.
+    #[arg(long, value_name = "URL")]
+    pub store: Option<String>,
+    /// With `--store`: memory this node may use to keep packets it read from the store, in MiB.
+    #[arg(long, default_value_t = 256, value_name = "MIB")]
+    pub read_cache_mib: u64,
     /// Listen address (port 0 picks a free port; the bound address is printed on stdout).
     #[arg(long, default_value = "127.0.0.1:50051")]
     pub addr: String,
@@ -120,8 +132,21 @@ pub fn run_serve(cmd: ServeCommand) -> Result<()> {
             ..Default::default()
         },
     };
-    let store = Store::open(&a.db, limits).map_err(|e| super::database_error(e, &a.db, "cache"))?;
-    runtime()?.block_on(async move {
+    let rt = runtime()?;
+    let store = match &a.store {
+        None => {
+            Store::open(&a.db, limits).map_err(|e| super::database_error(e, &a.db, "cache"))?
+        }
+        Some(url) => rt
+            .block_on(Store::open_bucket(
+                &a.db,
+                url,
+                limits,
+                a.read_cache_mib.saturating_mul(1 << 20),
+            ))
+            .with_context(|| format!("opening the object store {url}"))?,
+    };
+    rt.block_on(async move {
         let listener = super::bind_announced(&a.addr, &options.security).await?;
         let shutdown = super::ctrl_c();
         wavesplat_cache::serve_with(listener, store, options, shutdown).await?;

@@ -21,6 +21,7 @@
 
 pub mod bytes;
 pub mod fast;
+pub mod index;
 pub mod packet;
 pub mod quant;
 pub mod sigmap;

@@ -29,6 +29,7 @@ use crate::layout::Geometry;
 use thiserror::Error;
 
 pub mod patient;
+pub mod priority;
 pub mod visibility;
 
 /// Largest image side accepted (per view; a multiview image is three of them side by side).

@@ -8,11 +8,10 @@
 //! oblique and zoomed views of two Shepp–Logan volumes, e.g. axis 38.7 against 35.3 and 36.0 dB
 //! at a quarter of the bytes.)
 
-use crate::error::CacheError;
-use crate::model::PacketMeta;
-use wavesplat_codec::format::Header;
-use wavesplat_codec::view::visibility::Visibility;
-use wavesplat_codec::view::ViewSpec;
+use crate::format::index::PacketMeta;
+use crate::format::Header;
+use crate::view::visibility::Visibility;
+use crate::view::{ViewError, ViewSpec};
 
 /// Priorities of a volume's packets in one view (build once per view change).
 #[derive(Debug, Clone)]
@@ -22,10 +21,10 @@ pub struct Priority {
 
 impl Priority {
     /// Plans `spec` for the volume of `header`.
-    pub fn new(header: &Header, spec: &ViewSpec) -> Result<Priority, CacheError> {
-        let visibility =
-            Visibility::new(header, spec).map_err(|e| CacheError::InvalidRequest(e.to_string()))?;
-        Ok(Priority { visibility })
+    pub fn new(header: &Header, spec: &ViewSpec) -> Result<Priority, ViewError> {
+        Ok(Priority {
+            visibility: Visibility::new(header, spec)?,
+        })
     }
 
     /// Energy of the packet as seen in this view (image energy up to a per-view constant).

@@ -1,0 +1,306 @@
+//! The packet index and the indexed layout a volume is stored and published in.
+//!
+//! A `.wsp` file's directory holds only packet lengths; where each packet's tile and layer are and
+//! how much energy it carries per band (what a view-dependent sender plans with) is known only by
+//! decoding the packets. The index ([`PacketMeta`] per packet) records those facts once, at
+//! ingest. The **indexed layout** (`.wspx`) puts the index in front of the unchanged `.wsp`
+//! bytes, so a reader that fetches byte ranges (an object store, a web server, a CDN) has the
+//! header and the whole index after one request (two when they exceed the first request's size)
+//! and then fetches exactly the packets it wants:
+//!
+//! ```text
+//! "WSPX" | layout version u16 | .wsp length u64 | index length u32 | index CRC-32
+//! index: packet count (varint), per packet tile, layer, length, offset in the .wsp (varints),
+//!        summary count (varint) and per band level u8, type u8, energy f64
+//! the .wsp file, byte for byte
+//! ```
+//!
+//! Every read is bounds-checked and the index is checked against the `.wsp` it fronts: packets lie
+//! after the header, inside the file, without overlapping.
+
+use crate::format::bytes::{ByteReader, ByteWriter};
+use crate::format::{read_header_section, FormatError, Header, MAGIC};
+use crate::layout::Band;
+
+/// Magic bytes of the indexed layout.
+pub const INDEXED_MAGIC: &[u8; 4] = b"WSPX";
+/// The indexed layout's version.
+pub const INDEXED_VERSION: u16 = 1;
+/// Bytes before the index: magic, version, `.wsp` length, index length, index CRC.
+pub const INDEXED_HEAD_BYTES: usize = 4 + 2 + 8 + 4 + 4;
+/// Largest index accepted (bytes).
+pub const MAX_INDEX_BYTES: u32 = 256 << 20;
+
+/// What a sender knows about one packet without reading it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PacketMeta {
+    /// Tile index.
+    pub tile: u32,
+    /// Layer (rank within the tile).
+    pub layer: u32,
+    /// Size in bytes.
+    pub len: u32,
+    /// Where it starts in the `.wsp` file.
+    pub offset: u64,
+    /// Energy Σ w²‖basis‖²·I per band (from the packet's own summary).
+    pub summary: Vec<(Band, f64)>,
+}
+
+/// Encodes a packet index.
+pub fn encode_packets(packets: &[PacketMeta]) -> Vec<u8> {
+    let mut w = ByteWriter::new();
+    w.varint(packets.len() as u64);
+    for p in packets {
+        w.varint(p.tile as u64);
+        w.varint(p.layer as u64);
+        w.varint(p.len as u64);
+        w.varint(p.offset);
+        w.varint(p.summary.len() as u64);
+        for (band, e) in &p.summary {
+            w.u8(band.level);
+            w.u8(band.kind);
+            w.f64(*e);
+        }
+    }
+    w.into_bytes()
+}
+
+/// Decodes a packet index (`with_offsets`: the current form; without, a form without offsets
+/// that old cache stores kept).
+pub fn decode_packets(bytes: &[u8], with_offsets: bool) -> Result<Vec<PacketMeta>, FormatError> {
+    let mut r = ByteReader::new(bytes, "packet index");
+    let n = r.varint_max(1 << 28, "packets")? as usize;
+    let mut out = Vec::with_capacity(n.min(r.remaining()));
+    for _ in 0..n {
+        let tile = r.varint_max(u32::MAX as u64, "tile")? as u32;
+        let layer = r.varint_max(u32::MAX as u64, "layer")? as u32;
+        let len = r.varint_max(u32::MAX as u64, "len")? as u32;
+        let offset = if with_offsets { r.varint()? } else { 0 };
+        let ns = r.varint_max(1 << 16, "summary")? as usize;
+        let mut summary = Vec::with_capacity(ns.min(r.remaining()));
+        for _ in 0..ns {
+            let level = r.u8()?;
+            let kind = r.u8()?;
+            let e = r.f64()?;
+            summary.push((Band { level, kind }, e));
+        }
+        out.push(PacketMeta {
+            tile,
+            layer,
+            len,
+            offset,
+            summary,
+        });
+    }
+    if r.remaining() != 0 {
+        return Err(invalid(format!(
+            "{} bytes after the last packet entry",
+            r.remaining()
+        )));
+    }
+    Ok(out)
+}
+
+fn invalid(detail: String) -> FormatError {
+    FormatError::Invalid {
+        what: "indexed layout",
+        detail,
+    }
+}
+
+/// The bytes in front of a `.wsp` file of `wsp_bytes` bytes in the indexed layout: the head and
+/// the index.
+pub fn indexed_prefix(wsp_bytes: u64, packets: &[PacketMeta]) -> Vec<u8> {
+    let index = encode_packets(packets);
+    let mut out = Vec::with_capacity(INDEXED_HEAD_BYTES + index.len());
+    out.extend_from_slice(INDEXED_MAGIC);
+    out.extend_from_slice(&INDEXED_VERSION.to_le_bytes());
+    out.extend_from_slice(&wsp_bytes.to_le_bytes());
+    out.extend_from_slice(&(index.len() as u32).to_le_bytes());
+    out.extend_from_slice(&crc32fast::hash(&index).to_le_bytes());
+    out.extend_from_slice(&index);
+    out
+}
+
+/// An indexed volume's header and index, read from the start of its object.
+#[derive(Debug, Clone)]
+pub struct IndexedHead {
+    /// The parsed `.wsp` header.
+    pub header: Header,
+    /// The `.wsp` header section's bytes (what a packet decoder needs).
+    pub header_bytes: Vec<u8>,
+    /// Per packet, in file order; offsets are within the `.wsp`.
+    pub packets: Vec<PacketMeta>,
+    /// Where the `.wsp` starts in the object (add it to a packet's offset).
+    pub wsp_offset: u64,
+    /// Length of the `.wsp`.
+    pub wsp_bytes: u64,
+}
+
+impl IndexedHead {
+    /// Bytes of the whole object.
+    pub fn object_bytes(&self) -> u64 {
+        self.wsp_offset + self.wsp_bytes
+    }
+
+    /// Packet `i`'s byte range in the object.
+    pub fn packet_range(&self, i: usize) -> Option<std::ops::Range<u64>> {
+        let p = self.packets.get(i)?;
+        let start = self.wsp_offset + p.offset;
+        Some(start..start + p.len as u64)
+    }
+}
+
+/// What reading the start of an object gave.
+#[derive(Debug, Clone)]
+pub enum HeadRead {
+    /// The first `n` bytes of the object are needed (more than were given).
+    Need(usize),
+    /// The header and index.
+    Indexed(IndexedHead),
+}
+
+/// Reads an indexed volume's head from the first bytes of its object: the header and index, or
+/// how many bytes from the start are needed for them.
+pub fn read_indexed_head(bytes: &[u8]) -> Result<HeadRead, FormatError> {
+    let n = bytes.len().min(4);
+    if bytes[..n] != INDEXED_MAGIC[..n] {
+        return Err(if bytes[..n] == MAGIC[..n] {
+            invalid(
+                "a plain .wsp file, not the indexed layout (`wavesplat publish` writes it)".into(),
+            )
+        } else {
+            FormatError::BadMagic(bytes[..n].to_vec())
+        });
+    }
+    if bytes.len() < INDEXED_HEAD_BYTES {
+        return Ok(HeadRead::Need(INDEXED_HEAD_BYTES));
+    }
+    let mut r = ByteReader::new(&bytes[4..INDEXED_HEAD_BYTES], "indexed layout head");
+    let version = r.u16()?;
+    if version != INDEXED_VERSION {
+        return Err(FormatError::UnsupportedVersion {
+            found: version,
+            supported: INDEXED_VERSION,
+        });
+    }
+    let wsp_bytes = r.u64()?;
+    let index_len = r.u32()?;
+    let stored = r.u32()?;
+    if index_len > MAX_INDEX_BYTES {
+        return Err(invalid(format!(
+            "an index of {index_len} bytes (at most {MAX_INDEX_BYTES})"
+        )));
+    }
+    let wsp_offset = INDEXED_HEAD_BYTES + index_len as usize;
+    // The .wsp header section: magic, version u16, length u32, header, CRC.
+    let section_start = wsp_offset;
+    if bytes.len() < section_start + 10 {
+        return Ok(HeadRead::Need(section_start + 10 + 4096));
+    }
+    let len_bytes: [u8; 4] = bytes[section_start + 6..section_start + 10]
+        .try_into()
+        .map_err(|_| invalid("header length".into()))?;
+    let section = 14usize.saturating_add(u32::from_le_bytes(len_bytes) as usize);
+    if section as u64 > wsp_bytes {
+        return Err(invalid(format!(
+            "a header section of {section} bytes in a .wsp of {wsp_bytes}"
+        )));
+    }
+    let need = section_start + section;
+    if bytes.len() < need {
+        return Ok(HeadRead::Need(need));
+    }
+    let index = &bytes[INDEXED_HEAD_BYTES..wsp_offset];
+    let computed = crc32fast::hash(index);
+    if computed != stored {
+        return Err(FormatError::Checksum {
+            what: "packet index",
+            stored,
+            computed,
+        });
+    }
+    let packets = decode_packets(index, true)?;
+    let (header, header_len) = read_header_section(&bytes[section_start..need])?;
+    check_packets(&packets, header_len as u64, wsp_bytes)?;
+    Ok(HeadRead::Indexed(IndexedHead {
+        header,
+        header_bytes: bytes[section_start..section_start + header_len].to_vec(),
+        packets,
+        wsp_offset: wsp_offset as u64,
+        wsp_bytes,
+    }))
+}
+
+/// Checks that packets lie after the header, inside the file, in order and without overlap.
+fn check_packets(packets: &[PacketMeta], header_len: u64, wsp_bytes: u64) -> Result<(), FormatError> {
+    let mut end = header_len;
+    for (i, p) in packets.iter().enumerate() {
+        let stop = p.offset.checked_add(p.len as u64);
+        match stop {
+            Some(stop) if p.offset >= end && stop <= wsp_bytes => end = stop,
+            _ => {
+                return Err(invalid(format!(
+                    "packet {i} at {}..+{} does not follow packet {} or leaves the .wsp of {wsp_bytes} bytes",
+                    p.offset,
+                    p.len,
+                    i.saturating_sub(1)
+                )))
+            }
+        }
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn index_round_trips_and_rejects_junk() {
+        let p = vec![PacketMeta {
+            tile: 3,
+            layer: 1,
+            len: 99,
+            offset: 1234,
+            summary: vec![(Band { level: 2, kind: 5 }, 1.5)],
+        }];
+        assert_eq!(decode_packets(&encode_packets(&p), true).unwrap(), p);
+        assert!(decode_packets(&[0xff], true).is_err());
+        let mut trailing = encode_packets(&p);
+        trailing.push(0);
+        assert!(decode_packets(&trailing, true).is_err());
+    }
+
+    #[test]
+    fn packets_must_lie_in_order_inside_the_file() {
+        let at = |offset, len| PacketMeta {
+            tile: 0,
+            layer: 0,
+            len,
+            offset,
+            summary: vec![],
+        };
+        assert!(check_packets(&[at(20, 10), at(30, 5)], 20, 35).is_ok());
+        assert!(check_packets(&[at(10, 10)], 20, 35).is_err(), "inside the header");
+        assert!(check_packets(&[at(20, 10), at(25, 5)], 20, 35).is_err(), "overlap");
+        assert!(check_packets(&[at(30, 10)], 20, 35).is_err(), "past the end");
+        assert!(check_packets(&[at(u64::MAX, 10)], 20, 35).is_err(), "overflow");
+    }
+
+    #[test]
+    fn head_asks_for_what_it_lacks_and_refuses_plain_files() {
+        assert!(matches!(read_indexed_head(b"WS"), Ok(HeadRead::Need(n)) if n == INDEXED_HEAD_BYTES));
+        let e = read_indexed_head(b"WSPL\x07\x00").unwrap_err().to_string();
+        assert!(e.contains("wavesplat publish"), "{e}");
+        assert!(matches!(read_indexed_head(b"GIF8"), Err(FormatError::BadMagic(_))));
+        let prefix = indexed_prefix(100, &[]);
+        assert!(matches!(read_indexed_head(&prefix), Ok(HeadRead::Need(_))));
+        let mut bad = prefix.clone();
+        bad[4] = 9;
+        assert!(matches!(
+            read_indexed_head(&bad),
+            Err(FormatError::UnsupportedVersion { found: 9, .. })
+        ));
+    }
+}
