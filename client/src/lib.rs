@@ -83,6 +83,26 @@ pub enum ClientError {
 }
 
 impl ClientError {
+    /// Whether the node failed (unreachable, unavailable, overloaded, an internal error), as
+    /// opposed to answering about the request (not found, refused), which another node over the
+    /// same store would answer too.
+    pub fn is_node_failure(&self) -> bool {
+        use tonic::Code;
+        match self {
+            ClientError::Connect { .. } => true,
+            ClientError::Status { code, .. } => matches!(
+                code,
+                Code::Unavailable
+                    | Code::Unknown
+                    | Code::Internal
+                    | Code::Cancelled
+                    | Code::DeadlineExceeded
+                    | Code::ResourceExhausted
+            ),
+            _ => false,
+        }
+    }
+
     /// The gRPC status code, when the cache answered with one.
     pub fn code(&self) -> Option<tonic::Code> {
         match self {

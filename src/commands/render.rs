@@ -29,7 +29,9 @@ pub struct ViewArgs {
     pub input: Option<PathBuf>,
     /// Cache URL (`https://HOST:PORT` for TLS, `http://HOST:PORT` or `HOST:PORT` for
     /// plaintext) to render from, with --volume; --ca and --token-file (or WAVESPLAT_CA and
-    /// WAVESPLAT_TOKEN, a `read` token) say how to reach it.
+    /// WAVESPLAT_TOKEN, a `read` token) say how to reach it. Several nodes over one store,
+    /// comma-separated (`https://c1:50051,https://c2:50051`): the stream continues on the next
+    /// node when one fails, and nothing is sent twice.
     #[arg(long, requires = "volume", conflicts_with = "input")]
     pub cache: Option<String>,
     /// Name of the volume in the cache.
@@ -293,8 +295,9 @@ pub fn open(args: &ViewArgs, byte_budget: Option<u64>) -> Result<(Header, Opened
             let spec = match &args.view {
                 // A named view needs the volume's placement before the stream starts.
                 Some(_) => {
+                    let first = url.split(',').next().unwrap_or(url);
                     let header =
-                        wavesplat_client::blocking::CacheClient::connect_with(url, &connect)
+                        wavesplat_client::blocking::CacheClient::connect_with(first, &connect)
                             .and_then(|mut c| c.header(&key))
                             .with_context(|| format!("reading the header of {name:?} at {url}"))?;
                     args.spec_for(&header.header)?
@@ -335,7 +338,8 @@ fn all_coefficients(opened: &Opened, header: &Header) -> Result<Vec<Coefficient>
                 .enable_all()
                 .build()?;
             let packets = runtime.block_on(async {
-                let mut c = wavesplat_client::CacheClient::connect_with(url, connect).await?;
+                let first = url.split(',').next().unwrap_or(url);
+                let mut c = wavesplat_client::CacheClient::connect_with(first, connect).await?;
                 let request = wavesplat_client::RefineRequest::new(
                     key.clone(),
                     ViewSpec::single(View::new(0.0, 0.0, 1, 1)),

@@ -310,7 +310,9 @@ impl CacheSource {
     }
 
     /// [`CacheSource::open`] with a CA and a token (`connect`), used for the first connection
-    /// and every reconnection.
+    /// and every reconnection. `url` may name several cache nodes over one store,
+    /// comma-separated: the first that answers is used, and when its stream fails the source
+    /// continues on the next one with what it holds, so nothing is sent twice.
     pub fn open_with(
         url: &str,
         connect: &ConnectOptions,
@@ -319,14 +321,38 @@ impl CacheSource {
         options: CacheSourceOptions,
     ) -> Result<(CacheSource, VolumeHeader), SourceError> {
         spec.validate()?;
+        let urls: Vec<String> = url
+            .split(',')
+            .map(str::trim)
+            .filter(|u| !u.is_empty())
+            .map(str::to_string)
+            .collect();
         let runtime = tokio::runtime::Builder::new_current_thread()
             .enable_all()
             .build()
             .map_err(|e| SourceError::Thread(e.to_string()))?;
-        let (client, header) = runtime.block_on(async {
-            let mut client = CacheClient::connect_with(url, connect).await?;
-            let header = client.header(&volume).await?;
-            Ok::<_, ClientError>((client, header))
+        let (client, header, node) = runtime.block_on(async {
+            let mut last = None;
+            for (i, u) in urls.iter().enumerate() {
+                let attempt = async {
+                    let mut client = CacheClient::connect_with(u, connect).await?;
+                    let header = client.header(&volume).await?;
+                    Ok::<_, ClientError>((client, header))
+                };
+                match attempt.await {
+                    Ok((c, h)) => return Ok((c, h, i)),
+                    // A node that answers that the volume is missing speaks for the store.
+                    Err(e) if urls.len() == 1 || !e.is_node_failure() => return Err(e),
+                    Err(e) => {
+                        tracing::warn!(node = %u, error = %e, "cache node unavailable; trying the next");
+                        last = Some(e);
+                    }
+                }
+            }
+            Err(last.unwrap_or_else(|| ClientError::Url {
+                url: String::new(),
+                reason: "no cache URL given".into(),
+            }))
         })?;
         let (tx, rx) = mpsc::channel(options.queue_packets.max(1));
         let (ctl, ctl_rx) = mpsc::unbounded_channel();
@@ -335,7 +361,8 @@ impl CacheSource {
             ..Default::default()
         }));
         let task = Pull {
-            url: url.to_string(),
+            urls,
+            node,
             connect: connect.clone(),
             volume,
             view: spec,
@@ -403,7 +430,10 @@ impl Drop for CacheSource {
 
 /// The network task's state.
 struct Pull {
-    url: String,
+    /// The cache nodes, tried in turn.
+    urls: Vec<String>,
+    /// The node in use.
+    node: usize,
     /// CA and token for every (re)connection.
     connect: ConnectOptions,
     volume: VolumeKey,
@@ -443,13 +473,16 @@ impl Pull {
         loop {
             let c = match client.take() {
                 Some(c) => c,
-                None => match CacheClient::connect_with(&self.url, &self.connect).await {
+                None => match CacheClient::connect_with(&self.urls[self.node], &self.connect).await {
                     Ok(c) => c,
                     Err(e) => {
                         self.update(|s| {
                             s.connected = false;
                             s.problem = Some(format!("cache unreachable, retrying: {e}"));
                         });
+                        if self.next_node() {
+                            continue;
+                        }
                         if self.wait(backoff, &mut ctl).await {
                             return;
                         }
@@ -467,6 +500,9 @@ impl Pull {
                         s.reconnects += 1;
                         s.problem = Some(format!("connection lost, reconnecting: {e}"));
                     });
+                    if self.next_node() {
+                        continue;
+                    }
                     if self.wait(backoff, &mut ctl).await {
                         return;
                     }
@@ -474,6 +510,17 @@ impl Pull {
                 }
             }
         }
+    }
+
+    /// Moves on to the next cache node; true when there is another one to try at once (after a
+    /// round of all of them, the caller backs off).
+    fn next_node(&mut self) -> bool {
+        if self.urls.len() < 2 {
+            return false;
+        }
+        self.node = (self.node + 1) % self.urls.len();
+        tracing::warn!(node = %self.urls[self.node], "continuing on another cache node");
+        self.node != 0
     }
 
     /// Waits `d` while applying control messages; true when the session went away.
