@@ -122,7 +122,7 @@ async fn main() {
     let header = wavesplat_codec::format::parse_file(&bytes).unwrap().header;
     let plan = |i: usize| {
         let view = ViewSpec::single(View::new(0.1 * i as f64, 0.05 * i as f64, 256, 256));
-        wavesplat_cache::priority::Priority::new(&header, &view).unwrap()
+        wavesplat_cache::Priority::new(&header, &view).unwrap()
     };
     let t = Instant::now();
     plan(0);

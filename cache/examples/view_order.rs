@@ -5,7 +5,7 @@
 //! `cargo run --release -p wavesplat-cache --example view_order -- [VOLUME.nii.gz] > out.csv`
 
 use wavesplat_cache::model::PacketMeta;
-use wavesplat_cache::priority::Priority;
+use wavesplat_cache::Priority;
 use wavesplat_codec::format::packet::{decode_packet, Coefficient};
 use wavesplat_codec::format::parse_file;
 use wavesplat_codec::metrics::q_i_paper_db;

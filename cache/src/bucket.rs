@@ -38,6 +38,13 @@ const LIST_CONCURRENCY: usize = 16;
 /// Parsed heads kept per node.
 const HEADS_KEPT: usize = 256;
 
+/// One request to the store may take this long (a packet is at most 16 MiB: 3.2 MB/s).
+const REQUEST_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(5);
+/// Connecting to the store may take this long.
+const CONNECT_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(3);
+/// A failing request is retried for this long at most.
+const RETRY_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(4);
+
 /// Magic of a name record.
 const NAME_MAGIC: &[u8; 4] = b"WSPN";
 
@@ -59,11 +66,14 @@ pub struct Bucket {
     prefix: ObjectPath,
     url: String,
     runtime: tokio::runtime::Handle,
-    /// Name records by (location, ETag): immutable once written.
-    names: Mutex<HashMap<String, (Option<String>, [u8; 32])>>,
+    /// Name records by location, with their ETag: immutable once written.
+    names: Mutex<HashMap<String, NameRecord>>,
     heads: Mutex<lru::LruCache<[u8; 32], Arc<BucketVolume>>>,
     packets: Mutex<PacketCache>,
 }
+
+/// A name object's ETag and the content it points at.
+type NameRecord = (Option<String>, [u8; 32]);
 
 /// Packet bytes by (volume id, packet), least recently used dropped first, bounded in bytes.
 #[derive(Debug)]
@@ -107,7 +117,7 @@ fn hex(bytes: &[u8]) -> String {
 }
 
 fn unhex(s: &str) -> Option<Vec<u8>> {
-    if s.len() % 2 != 0 {
+    if !s.len().is_multiple_of(2) {
         return None;
     }
     (0..s.len())
@@ -195,7 +205,10 @@ impl Bucket {
         let path = self.name_path(name);
         match self.store.get(&path).await {
             Ok(r) => {
-                let bytes = r.bytes().await.map_err(|e| self.failed("reading", &path, e))?;
+                let bytes = r
+                    .bytes()
+                    .await
+                    .map_err(|e| self.failed("reading", &path, e))?;
                 Ok(Some(parse_name_record(&bytes, name)?))
             }
             Err(object_store::Error::NotFound { .. }) => Ok(None),
@@ -216,8 +229,12 @@ impl Bucket {
             .await
             .map_err(|e| self.failed("listing", &dir, e))?;
         for o in listed {
-            let Some(file) = o.location.filename() else { continue };
-            let Some(stem) = file.strip_suffix(".wspx") else { continue };
+            let Some(file) = o.location.filename() else {
+                continue;
+            };
+            let Some(stem) = file.strip_suffix(".wspx") else {
+                continue;
+            };
             if !stem.starts_with(lead) {
                 continue;
             }
@@ -297,7 +314,12 @@ impl Bucket {
 
     /// Opens a volume: its head from the node's cache or the bucket (one or two ranged reads).
     pub async fn open_volume(&self, sha256: &[u8; 32]) -> Result<Arc<BucketVolume>, CacheError> {
-        if let Some(v) = self.heads.lock().ok().and_then(|mut h| h.get(sha256).cloned()) {
+        if let Some(v) = self
+            .heads
+            .lock()
+            .ok()
+            .and_then(|mut h| h.get(sha256).cloned())
+        {
             return Ok(v);
         }
         let path = self.volume_path(sha256);
@@ -349,7 +371,7 @@ impl Bucket {
         }
         let v = Arc::new(BucketVolume {
             sha256: *sha256,
-            head: Arc::new(head),
+            head: Arc::from(head),
             created_unix_ms,
         });
         if let Ok(mut h) = self.heads.lock() {
@@ -461,7 +483,11 @@ impl Bucket {
         let record = name_record(sha256);
         match self
             .store
-            .put_opts(&path, PutPayload::from(record), PutOptions::from(PutMode::Create))
+            .put_opts(
+                &path,
+                PutPayload::from(record),
+                PutOptions::from(PutMode::Create),
+            )
             .await
         {
             Ok(_) => {}
@@ -494,7 +520,11 @@ impl Bucket {
         let path = self.volume_path(sha256);
         match self
             .store
-            .put_opts(&path, PutPayload::from(object), PutOptions::from(PutMode::Create))
+            .put_opts(
+                &path,
+                PutPayload::from(object),
+                PutOptions::from(PutMode::Create),
+            )
             .await
         {
             Ok(_) => Ok(true),
@@ -591,8 +621,28 @@ fn object_store_for(url: &str) -> Result<(Arc<dyn ObjectStore>, ObjectPath), Cac
     let bad = |e: object_store::Error| CacheError::Bucket(format!("store {url}: {e}"));
     match parsed.scheme() {
         "s3" | "s3a" => {
+            use object_store::aws::AmazonS3ConfigKey;
+            use object_store::ClientConfigKey;
+            // A store that stops answering surfaces within seconds as `Unavailable` to the
+            // client (which resumes, on this node or another) rather than after the library's
+            // default of minutes of retries.
             let store = object_store::aws::AmazonS3Builder::from_env()
                 .with_url(url)
+                // As configuration keys: `with_client_options` would drop what the `AWS_*`
+                // variables set (AWS_ALLOW_HTTP among them).
+                .with_config(
+                    AmazonS3ConfigKey::Client(ClientConfigKey::Timeout),
+                    format!("{}s", REQUEST_TIMEOUT.as_secs()),
+                )
+                .with_config(
+                    AmazonS3ConfigKey::Client(ClientConfigKey::ConnectTimeout),
+                    format!("{}s", CONNECT_TIMEOUT.as_secs()),
+                )
+                .with_retry(object_store::RetryConfig {
+                    max_retries: 2,
+                    retry_timeout: RETRY_TIMEOUT,
+                    ..Default::default()
+                })
                 .build()
                 .map_err(bad)?;
             let prefix = ObjectPath::parse(parsed.path().trim_matches('/')).map_err(|e| {
@@ -605,7 +655,10 @@ fn object_store_for(url: &str) -> Result<(Arc<dyn ObjectStore>, ObjectPath), Cac
                 CacheError::InvalidRequest(format!("store URL {url:?}: not a local path"))
             })?;
             std::fs::create_dir_all(&dir).map_err(|e| {
-                CacheError::Io(format!("creating the store directory {}: {e}", dir.display()))
+                CacheError::Io(format!(
+                    "creating the store directory {}: {e}",
+                    dir.display()
+                ))
             })?;
             let store = object_store::local::LocalFileSystem::new_with_prefix(&dir).map_err(bad)?;
             Ok((Arc::new(store), ObjectPath::default()))

@@ -27,8 +27,8 @@ pub mod store;
 
 pub use error::CacheError;
 pub use model::{PacketMeta, VolumeIndex, VolumeKey, VolumeMeta};
-pub use wavesplat_codec::view::priority::Priority;
 pub use store::{Limits, Store};
+pub use wavesplat_codec::view::priority::Priority;
 
 use std::future::Future;
 use tokio_stream::wrappers::TcpListenerStream;

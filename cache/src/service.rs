@@ -10,7 +10,6 @@
 
 use crate::convert;
 use crate::error::CacheError;
-use wavesplat_codec::view::priority::Priority;
 use crate::store::{validate_name, OpenVolume, Store, Upload};
 use std::collections::{HashMap, HashSet};
 use std::pin::Pin;
@@ -20,6 +19,7 @@ use tokio::sync::{mpsc, watch, Semaphore};
 use tokio_stream::wrappers::ReceiverStream;
 use tokio_stream::Stream;
 use tonic::{Request, Response, Status, Streaming};
+use wavesplat_codec::view::priority::Priority;
 use wavesplat_codec::view::ViewSpec;
 use wavesplat_net::deadline::request_deadline;
 use wavesplat_net::status::client_fault;

@@ -919,7 +919,9 @@ impl Upload {
         // A name taken by other content is refused before any byte is read (the commit checks
         // again).
         if let Some(b) = &store.bucket {
-            if b.wait(b.name_target(name))?.is_some_and(|sha| sha != declared) {
+            if b.wait(b.name_target(name))?
+                .is_some_and(|sha| sha != declared)
+            {
                 return Err(CacheError::NameTaken(name.to_string()));
             }
         } else if let Some(id) = store.names.get(name.as_bytes())? {

@@ -210,6 +210,13 @@ pub fn check_exposure(
     Err(TlsError::Exposed { addr, missing })
 }
 
+/// Makes ring the process's TLS crypto provider (once; later calls do nothing). HTTP clients that
+/// bring no provider of their own (the object-store client) need one installed; tonic's TLS uses
+/// ring too, so the process has one provider.
+pub fn install_crypto_provider() {
+    let _ = rustls::crypto::ring::default_provider().install_default();
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -240,11 +247,4 @@ mod tests {
             assert!(e.to_string().contains("--insecure"), "{e}");
         }
     }
-}
-
-/// Makes ring the process's TLS crypto provider (once; later calls do nothing). HTTP clients that
-/// bring no provider of their own (the object-store client) need one installed; tonic's TLS uses
-/// ring too, so the process has one provider.
-pub fn install_crypto_provider() {
-    let _ = rustls::crypto::ring::default_provider().install_default();
 }

@@ -134,9 +134,7 @@ pub fn run_serve(cmd: ServeCommand) -> Result<()> {
     };
     let rt = runtime()?;
     let store = match &a.store {
-        None => {
-            Store::open(&a.db, limits).map_err(|e| super::database_error(e, &a.db, "cache"))?
-        }
+        None => Store::open(&a.db, limits).map_err(|e| super::database_error(e, &a.db, "cache"))?,
         Some(url) => rt
             .block_on(Store::open_bucket(
                 &a.db,

@@ -196,7 +196,11 @@ impl Net {
     }
 
     /// Runs `f` on a thread inside `host`'s network namespace (its sockets are that host's).
-    pub fn on_host<T: Send + 'static>(&self, host: &str, f: impl FnOnce() -> T + Send + 'static) -> T {
+    pub fn on_host<T: Send + 'static>(
+        &self,
+        host: &str,
+        f: impl FnOnce() -> T + Send + 'static,
+    ) -> T {
         let path = format!("/var/run/netns/{}", self.ns(host));
         std::thread::spawn(move || {
             let ns = std::fs::File::open(&path).unwrap();
@@ -231,4 +235,3 @@ impl Drop for Net {
             .output();
     }
 }
-

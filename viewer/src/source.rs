@@ -473,7 +473,8 @@ impl Pull {
         loop {
             let c = match client.take() {
                 Some(c) => c,
-                None => match CacheClient::connect_with(&self.urls[self.node], &self.connect).await {
+                None => match CacheClient::connect_with(&self.urls[self.node], &self.connect).await
+                {
                     Ok(c) => c,
                     Err(e) => {
                         self.update(|s| {

@@ -157,7 +157,7 @@ pub enum HeadRead {
     /// The first `n` bytes of the object are needed (more than were given).
     Need(usize),
     /// The header and index.
-    Indexed(IndexedHead),
+    Indexed(Box<IndexedHead>),
 }
 
 /// Reads an indexed volume's head from the first bytes of its object: the header and index, or
@@ -223,17 +223,21 @@ pub fn read_indexed_head(bytes: &[u8]) -> Result<HeadRead, FormatError> {
     let packets = decode_packets(index, true)?;
     let (header, header_len) = read_header_section(&bytes[section_start..need])?;
     check_packets(&packets, header_len as u64, wsp_bytes)?;
-    Ok(HeadRead::Indexed(IndexedHead {
+    Ok(HeadRead::Indexed(Box::new(IndexedHead {
         header,
         header_bytes: bytes[section_start..section_start + header_len].to_vec(),
         packets,
         wsp_offset: wsp_offset as u64,
         wsp_bytes,
-    }))
+    })))
 }
 
 /// Checks that packets lie after the header, inside the file, in order and without overlap.
-fn check_packets(packets: &[PacketMeta], header_len: u64, wsp_bytes: u64) -> Result<(), FormatError> {
+fn check_packets(
+    packets: &[PacketMeta],
+    header_len: u64,
+    wsp_bytes: u64,
+) -> Result<(), FormatError> {
     let mut end = header_len;
     for (i, p) in packets.iter().enumerate() {
         let stop = p.offset.checked_add(p.len as u64);
@@ -282,18 +286,35 @@ mod tests {
             summary: vec![],
         };
         assert!(check_packets(&[at(20, 10), at(30, 5)], 20, 35).is_ok());
-        assert!(check_packets(&[at(10, 10)], 20, 35).is_err(), "inside the header");
-        assert!(check_packets(&[at(20, 10), at(25, 5)], 20, 35).is_err(), "overlap");
-        assert!(check_packets(&[at(30, 10)], 20, 35).is_err(), "past the end");
-        assert!(check_packets(&[at(u64::MAX, 10)], 20, 35).is_err(), "overflow");
+        assert!(
+            check_packets(&[at(10, 10)], 20, 35).is_err(),
+            "inside the header"
+        );
+        assert!(
+            check_packets(&[at(20, 10), at(25, 5)], 20, 35).is_err(),
+            "overlap"
+        );
+        assert!(
+            check_packets(&[at(30, 10)], 20, 35).is_err(),
+            "past the end"
+        );
+        assert!(
+            check_packets(&[at(u64::MAX, 10)], 20, 35).is_err(),
+            "overflow"
+        );
     }
 
     #[test]
     fn head_asks_for_what_it_lacks_and_refuses_plain_files() {
-        assert!(matches!(read_indexed_head(b"WS"), Ok(HeadRead::Need(n)) if n == INDEXED_HEAD_BYTES));
+        assert!(
+            matches!(read_indexed_head(b"WS"), Ok(HeadRead::Need(n)) if n == INDEXED_HEAD_BYTES)
+        );
         let e = read_indexed_head(b"WSPL\x07\x00").unwrap_err().to_string();
         assert!(e.contains("wavesplat publish"), "{e}");
-        assert!(matches!(read_indexed_head(b"GIF8"), Err(FormatError::BadMagic(_))));
+        assert!(matches!(
+            read_indexed_head(b"GIF8"),
+            Err(FormatError::BadMagic(_))
+        ));
         let prefix = indexed_prefix(100, &[]);
         assert!(matches!(read_indexed_head(&prefix), Ok(HeadRead::Need(_))));
         let mut bad = prefix.clone();
