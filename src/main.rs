@@ -50,6 +50,9 @@ enum Command {
     Info(commands::info::InfoArgs),
     /// Decode a .wsp file to raw little-endian f32 (x fastest, channels interleaved).
     Decompress(commands::decompress::DecompressArgs),
+    /// Write a .wsp file in the indexed layout for a web server, CDN or bucket: `render` and
+    /// `view` then browse it by range requests (`render https://HOST/vol.wspx`).
+    Publish(commands::publish::PublishArgs),
     /// Render X-ray images directly from a .wsp file's or a cache's coefficients (wavelet
     /// splatting).
     Render(Box<commands::render::RenderArgs>),
@@ -97,6 +100,7 @@ fn run(command: Command) -> Result<()> {
         Command::Compress(a) => commands::compress::run(*a),
         Command::Info(a) => commands::info::run(a),
         Command::Decompress(a) => commands::decompress::run(a),
+        Command::Publish(a) => commands::publish::run(a),
         Command::Phantom(a) => commands::phantom::run(a),
         Command::Bench(a) => commands::bench::run(a),
         Command::Render(a) => commands::render::run(*a),

@@ -1119,7 +1119,7 @@ impl Upload {
                 };
                 check_kept(&prelude, s.held)?;
                 let mut object =
-                    wavesplat_codec::format::index::indexed_prefix(self.total, &s.packets);
+                    wavesplat_codec::format::index::indexed_prefix(self.total, &s.packets)?;
                 let file = std::fs::read(&s.part).map_err(|e| io("reading an upload back", e))?;
                 object.extend_from_slice(&file);
                 Some(bytes::Bytes::from(object))

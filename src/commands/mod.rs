@@ -9,6 +9,7 @@ pub mod demo;
 pub mod info;
 pub mod orchestrator;
 pub mod phantom;
+pub mod publish;
 pub mod render;
 pub mod security;
 pub mod view;

@@ -17,6 +17,7 @@ use wavesplat_codec::metrics::{q_i_paper_db, snr_db};
 use wavesplat_codec::view::patient::PatientView;
 use wavesplat_codec::view::{Cue, CueDirection, View, ViewSpec};
 use wavesplat_viewer::backend::{select, BackendChoice};
+use wavesplat_viewer::remote::{fetch_wsp, is_remote, RangeSource, RangeSourceOptions};
 use wavesplat_viewer::session::{RenderSession, SessionOptions};
 use wavesplat_viewer::source::{CacheSource, CacheSourceOptions, FileSource, PacketSource};
 use wavesplat_viewer::{FrameLoop, Image, RenderOptions, Renderer};
@@ -24,7 +25,10 @@ use wavesplat_viewer::{FrameLoop, Image, RenderOptions, Renderer};
 /// Where the volume comes from and how to look at it (shared by `render` and `view`).
 #[derive(Args, Debug, Clone)]
 pub struct ViewArgs {
-    /// The .wsp file (or use --cache and --volume).
+    /// The .wsp file (or use --cache and --volume), or the URL of a published volume
+    /// (`https://HOST/PATH/vol.wspx` from any web server or CDN, `s3://BUCKET/KEY` with the
+    /// AWS_* variables) to browse by range requests with no wavesplat server (`wavesplat
+    /// publish` writes that layout; a plain .wsp URL works too, fetched whole in file order).
     #[arg(required_unless_present = "cache")]
     pub input: Option<PathBuf>,
     /// Cache URL (`https://HOST:PORT` for TLS, `http://HOST:PORT` or `HOST:PORT` for
@@ -250,6 +254,13 @@ pub enum Opened {
         /// Its packets in view order.
         source: Box<FileSource>,
     },
+    /// A published volume read by range requests.
+    Remote {
+        /// Its URL.
+        url: String,
+        /// The fetching source.
+        source: RangeSource,
+    },
     /// A cached volume.
     Cache {
         /// The cache URL.
@@ -267,6 +278,22 @@ pub enum Opened {
 /// (a named patient view resolved through the volume's placement).
 pub fn open(args: &ViewArgs, byte_budget: Option<u64>) -> Result<(Header, Opened, ViewSpec)> {
     match (&args.input, &args.cache, &args.volume) {
+        (Some(path), _, _) if path.to_str().is_some_and(is_remote) => {
+            let url = path.to_str().unwrap_or_default().to_string();
+            let (mut source, header) =
+                RangeSource::open(&url, args.spec()?, RangeSourceOptions::default())
+                    .with_context(|| format!("opening {url}"))?;
+            let spec = match &args.view {
+                // A named view needs the volume's placement, which came with the head.
+                Some(_) => {
+                    let spec = args.spec_for(&header)?;
+                    source.set_view(&spec);
+                    spec
+                }
+                None => args.spec()?,
+            };
+            Ok((header, Opened::Remote { url, source }, spec))
+        }
         (Some(path), _, _) => {
             let bytes = super::read_wsp(path)?;
             let spec = match &args.view {
@@ -331,6 +358,7 @@ pub fn open(args: &ViewArgs, byte_budget: Option<u64>) -> Result<(Header, Opened
 fn all_coefficients(opened: &Opened, header: &Header) -> Result<Vec<Coefficient>> {
     match opened {
         Opened::File { source } => Ok(load_coefficients(source.file_bytes(), None, None)?.1),
+        Opened::Remote { url, .. } => Ok(load_coefficients(&fetch_wsp(url)?, None, None)?.1),
         Opened::Cache {
             url, connect, key, ..
         } => {
@@ -475,6 +503,7 @@ pub fn run(a: RenderArgs) -> Result<()> {
     )?;
     let source: Box<dyn PacketSource> = match opened {
         Opened::File { source } => source,
+        Opened::Remote { source, .. } => Box::new(source),
         Opened::Cache { source, .. } => Box::new(source),
     };
     let mut frames = FrameLoop::new(session, source);
@@ -528,6 +557,9 @@ pub fn run(a: RenderArgs) -> Result<()> {
                 image.write_png(&rec.dir.join(format!("frame-{n:05}.png")), None)?;
                 rec.next_png *= 2;
             }
+        }
+        if let Some(f) = &status.failed {
+            bail!("{f}");
         }
         if deadline.is_some_and(|d| start.elapsed() >= d) {
             break;
@@ -585,6 +617,16 @@ pub fn run(a: RenderArgs) -> Result<()> {
         elapsed.as_secs_f64() * 1e3,
         frames.session.backend_name()
     );
+    if status.object_bytes > 0 {
+        outln!(
+            "range requests: {} ({} before the first packet), {} of {} bytes fetched ({:.1} %)",
+            status.requests,
+            status.requests_before_first_packet,
+            status.received_bytes,
+            status.object_bytes,
+            100.0 * status.received_bytes as f64 / status.object_bytes as f64
+        );
+    }
     if a.view.cache.is_some() {
         outln!(
             "cache stream: {} reconnections, {} packets sent again",

@@ -95,6 +95,7 @@ pub fn run(a: ViewWindowArgs) -> Result<()> {
     let (header, opened, spec) = open(&a.view, None)?;
     let source: Box<dyn PacketSource> = match opened {
         Opened::File { source } => source,
+        Opened::Remote { source, .. } => Box::new(source),
         Opened::Cache { source, .. } => Box::new(source),
     };
     let event_loop = EventLoop::new().context(

@@ -38,6 +38,7 @@ pub mod image;
 pub mod pieces;
 pub mod plan;
 pub mod reference;
+pub mod remote;
 pub mod session;
 pub mod source;
 pub mod splat;

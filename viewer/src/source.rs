@@ -54,6 +54,17 @@ pub struct SourceStatus {
     pub resent: u64,
     /// The last problem, while it lasts (e.g. "cache unreachable, retrying: …").
     pub problem: Option<String>,
+    /// Why the source stopped for good (bytes that cannot be the volume's); nothing more comes.
+    pub failed: Option<String>,
+    /// Requests made (range sources: the head's included).
+    pub requests: u64,
+    /// Requests made before the first packet's bytes arrived (range sources).
+    pub requests_before_first_packet: u64,
+    /// Bytes received over the network (range sources: the head's and coalescing gaps
+    /// included).
+    pub received_bytes: u64,
+    /// Size of the whole object (range sources).
+    pub object_bytes: u64,
 }
 
 /// A source of packets for a render session.
@@ -83,6 +94,9 @@ pub enum SourceError {
     /// The cache could not be reached or refused.
     #[error(transparent)]
     Client(#[from] ClientError),
+    /// A volume browsed by range requests could not be read.
+    #[error("{0}")]
+    Remote(String),
     /// The background thread could not be started.
     #[error("cannot start the network thread: {0}")]
     Thread(String),

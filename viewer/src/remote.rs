@@ -1,0 +1,628 @@
+//! Browsing a published volume by byte ranges, with no wavesplat server: a [`RangeSource`] reads
+//! a volume in the indexed layout (`wavesplat publish`, or the objects cache nodes keep in a
+//! bucket) from any HTTP server, CDN or S3-compatible bucket.
+//!
+//! The header and the packet index come in one request (two when they are larger than the first
+//! request's 64 KiB). The packets the current view sees are then requested in the order the
+//! cache would send them (visible energy per byte, `codec::view::visibility::packet_order`), the
+//! next few in the order whose bytes neighbour each other coalesced into one range, at most
+//! [`RangeSourceOptions::in_flight`] requests at once. A view change reorders what is not yet
+//! requested. Every range is checked: its length, then each packet's framing and CRC as it is
+//! decoded on the network thread; a server that returns less than asked or altered bytes stops
+//! the source with an error that says so ([`SourceStatus::failed`]).
+//!
+//! The object-store client (`object_store`, as the cache uses) gives S3 signing and HTTP range
+//! requests with retries; its HTTP store speaks plain GET with `Range` to any web server.
+
+use crate::source::{PacketSource, SourceError, SourcePacket, SourceStatus};
+use bytes::Bytes;
+use futures_util::stream::FuturesUnordered;
+use futures_util::StreamExt;
+use object_store::path::Path as ObjectPath;
+use object_store::{ObjectStore, ObjectStoreExt};
+use std::collections::HashSet;
+use std::ops::Range;
+use std::sync::{Arc, Mutex};
+use tokio::sync::mpsc;
+use wavesplat_codec::format::index::{read_indexed_head, HeadRead, IndexedHead, PacketMeta};
+use wavesplat_codec::format::packet::decode_packet;
+use wavesplat_codec::format::{parse_prelude, FormatError, Header};
+use wavesplat_codec::view::priority::Priority;
+use wavesplat_codec::view::visibility::{packet_order, PacketFacts, Visibility};
+use wavesplat_codec::view::ViewSpec;
+
+/// Bytes asked for first: most heads fit.
+const FIRST_BYTES: u64 = 64 << 10;
+
+/// Settings of a range source.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct RangeSourceOptions {
+    /// Requests in flight at once.
+    pub in_flight: usize,
+    /// Largest coalesced request (bytes); a larger packet is requested alone.
+    pub max_request_bytes: u64,
+    /// How far down the sending order to look for neighbours of the packet at its head.
+    pub lookahead: usize,
+    /// Request only what the current view sees (as the cache does).
+    pub visible_only: bool,
+    /// Packets decoded and queued for the session ahead of it.
+    pub queue_packets: usize,
+}
+
+impl Default for RangeSourceOptions {
+    fn default() -> Self {
+        RangeSourceOptions {
+            in_flight: 4,
+            max_request_bytes: 512 << 10,
+            lookahead: 64,
+            visible_only: true,
+            queue_packets: 16,
+        }
+    }
+}
+
+enum Control {
+    View(ViewSpec),
+    Dropped(Vec<u32>),
+}
+
+/// Packets fetched by range on a background thread (see the module documentation).
+#[derive(Debug)]
+pub struct RangeSource {
+    rx: mpsc::Receiver<SourcePacket>,
+    ctl: Option<mpsc::UnboundedSender<Control>>,
+    shared: Arc<Mutex<Shared>>,
+    thread: Option<std::thread::JoinHandle<()>>,
+}
+
+#[derive(Debug, Default)]
+struct Shared {
+    status: SourceStatus,
+}
+
+/// The object store and the object's path a URL names: `http(s)://host/dir/file` (any web
+/// server or CDN; plain GET with `Range`) or `s3://bucket/key` (endpoint, region and credentials
+/// from the `AWS_*` variables).
+fn store_for(url: &str) -> Result<(Arc<dyn ObjectStore>, ObjectPath), SourceError> {
+    let parsed = url::Url::parse(url).map_err(|e| SourceError::Remote(format!("{url}: {e}")))?;
+    let bad = |e: object_store::Error| SourceError::Remote(format!("{url}: {e}"));
+    match parsed.scheme() {
+        "http" | "https" => {
+            let (dir, file) = match url.rfind('/') {
+                Some(i) if i + 1 < url.len() && i > parsed.scheme().len() + 2 => {
+                    (&url[..=i], &url[i + 1..])
+                }
+                _ => return Err(SourceError::Remote(format!("{url}: no file name"))),
+            };
+            let store = object_store::http::HttpBuilder::new()
+                .with_url(dir)
+                .with_client_options(object_store::ClientOptions::new().with_allow_http(true))
+                .build()
+                .map_err(bad)?;
+            let path = ObjectPath::from_url_path(file)
+                .map_err(|e| SourceError::Remote(format!("{url}: file name: {e}")))?;
+            Ok((Arc::new(store), path))
+        }
+        "s3" | "s3a" => {
+            let store = object_store::aws::AmazonS3Builder::from_env()
+                .with_url(url)
+                .build()
+                .map_err(bad)?;
+            let path = ObjectPath::from_url_path(parsed.path())
+                .map_err(|e| SourceError::Remote(format!("{url}: key: {e}")))?;
+            Ok((Arc::new(store), path))
+        }
+        other => Err(SourceError::Remote(format!(
+            "{url}: scheme {other:?}; use http(s)://… or s3://bucket/key"
+        ))),
+    }
+}
+
+/// The `.wsp` bytes of the volume at `url` (the whole object, without the index in front when
+/// it is in the indexed layout): for a reference render of everything.
+pub fn fetch_wsp(url: &str) -> Result<Vec<u8>, SourceError> {
+    wavesplat_net::tls::install_crypto_provider();
+    let (store, path) = store_for(url)?;
+    let runtime = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .map_err(|e| SourceError::Thread(e.to_string()))?;
+    let bytes = runtime
+        .block_on(async { store.get(&path).await?.bytes().await })
+        .map_err(|e| SourceError::Remote(format!("reading {url}: {e}")))?;
+    if !bytes.starts_with(wavesplat_codec::format::index::INDEXED_MAGIC) {
+        return Ok(bytes.to_vec());
+    }
+    match read_indexed_head(&bytes).map_err(|e| SourceError::Remote(format!("{url}: {e}")))? {
+        HeadRead::Indexed(h) if h.object_bytes() == bytes.len() as u64 => {
+            Ok(bytes[h.wsp_offset as usize..].to_vec())
+        }
+        _ => Err(SourceError::Remote(format!(
+            "{url}: the object does not hold what its head describes"
+        ))),
+    }
+}
+
+/// Whether `s` names a volume to browse by range requests rather than a local file.
+pub fn is_remote(s: &str) -> bool {
+    ["http://", "https://", "s3://", "s3a://"]
+        .iter()
+        .any(|p| s.starts_with(p))
+}
+
+/// The volume's head as read: the indexed layout, or a plain `.wsp` (header and directory only:
+/// packets are then requested in file order, all of them).
+struct Head {
+    /// The object's first bytes as read for the head (packets inside them need no request).
+    first: Bytes,
+    header: Header,
+    packets: Vec<PacketMeta>,
+    /// Where packet offsets start in the object.
+    base: u64,
+    object_bytes: u64,
+    indexed: bool,
+}
+
+async fn read_head(
+    store: &dyn ObjectStore,
+    path: &ObjectPath,
+    url: &str,
+    shared: &Mutex<Shared>,
+) -> Result<Head, SourceError> {
+    let failed = |e: object_store::Error| SourceError::Remote(format!("reading {url}: {e}"));
+    let first = store
+        .get_opts(
+            path,
+            object_store::GetOptions {
+                range: Some(object_store::GetRange::Bounded(0..FIRST_BYTES)),
+                ..Default::default()
+            },
+        )
+        .await
+        .map_err(failed)?;
+    let object_bytes = first.meta.size;
+    let mut bytes = first.bytes().await.map_err(failed)?.to_vec();
+    count(shared, bytes.len() as u64);
+    let corrupt = |e: FormatError| SourceError::Remote(format!("{url}: {e}"));
+    if bytes.starts_with(wavesplat_codec::format::MAGIC) {
+        // A plain .wsp: header and directory, packets in file order.
+        loop {
+            if let Some(p) = parse_prelude(&bytes).map_err(corrupt)? {
+                let mut offset = p.len() as u64;
+                let packets = p
+                    .packet_lengths
+                    .iter()
+                    .map(|&len| {
+                        let m = PacketMeta {
+                            tile: 0,
+                            layer: 0,
+                            len: len as u32,
+                            offset,
+                            summary: Vec::new(),
+                        };
+                        offset += len as u64;
+                        m
+                    })
+                    .collect();
+                if p.file_bytes() != object_bytes {
+                    return Err(SourceError::Remote(format!(
+                        "{url} holds {object_bytes} bytes, its directory describes {}",
+                        p.file_bytes()
+                    )));
+                }
+                return Ok(Head {
+                    first: Bytes::from(bytes),
+                    header: p.header,
+                    packets,
+                    base: 0,
+                    object_bytes,
+                    indexed: false,
+                });
+            }
+            if bytes.len() as u64 >= object_bytes {
+                return Err(SourceError::Remote(format!(
+                    "{url} ends inside its header or directory"
+                )));
+            }
+            let end = (bytes.len() as u64 * 2).min(object_bytes);
+            let more = store
+                .get_range(path, bytes.len() as u64..end)
+                .await
+                .map_err(failed)?;
+            count(shared, more.len() as u64);
+            bytes.extend_from_slice(&more);
+        }
+    }
+    let head: IndexedHead = loop {
+        match read_indexed_head(&bytes).map_err(corrupt)? {
+            HeadRead::Indexed(h) => break *h,
+            HeadRead::Need(n) if n as u64 > object_bytes || n <= bytes.len() => {
+                return Err(SourceError::Remote(format!(
+                    "{url} ends inside its head ({object_bytes} bytes)"
+                )))
+            }
+            HeadRead::Need(n) => {
+                let more = store
+                    .get_range(path, bytes.len() as u64..n as u64)
+                    .await
+                    .map_err(failed)?;
+                count(shared, more.len() as u64);
+                bytes.extend_from_slice(&more);
+            }
+        }
+    };
+    if head.object_bytes() != object_bytes {
+        return Err(SourceError::Remote(format!(
+            "{url} holds {object_bytes} bytes, its head describes {}: truncated or not this volume",
+            head.object_bytes()
+        )));
+    }
+    Ok(Head {
+        first: Bytes::from(bytes),
+        header: head.header,
+        packets: head.packets,
+        base: head.wsp_offset,
+        object_bytes,
+        indexed: true,
+    })
+}
+
+fn count(shared: &Mutex<Shared>, bytes: u64) {
+    let mut s = shared.lock().unwrap_or_else(|e| e.into_inner());
+    s.status.requests += 1;
+    s.status.received_bytes += bytes;
+}
+
+impl RangeSource {
+    /// Reads the head of the volume at `url` and starts fetching the packets `spec` sees.
+    pub fn open(
+        url: &str,
+        spec: ViewSpec,
+        options: RangeSourceOptions,
+    ) -> Result<(RangeSource, Header), SourceError> {
+        spec.validate()?;
+        wavesplat_net::tls::install_crypto_provider();
+        let (store, path) = store_for(url)?;
+        let runtime = tokio::runtime::Builder::new_current_thread()
+            .enable_all()
+            .build()
+            .map_err(|e| SourceError::Thread(e.to_string()))?;
+        let shared = Arc::new(Mutex::new(Shared {
+            status: SourceStatus {
+                connected: true,
+                ..Default::default()
+            },
+        }));
+        let head = runtime.block_on(read_head(store.as_ref(), &path, url, &shared))?;
+        if !head.indexed {
+            tracing::warn!(
+                %url,
+                "a plain .wsp: every packet is fetched in file order (`wavesplat publish` writes \
+                 the indexed layout, which lets a view fetch only what it sees)"
+            );
+        }
+        shared
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .status
+            .object_bytes = head.object_bytes;
+        let header = head.header.clone();
+        let (tx, rx) = mpsc::channel(options.queue_packets.max(1));
+        let (ctl, ctl_rx) = mpsc::unbounded_channel();
+        let mut fetch = Fetch {
+            url: url.to_string(),
+            store,
+            path,
+            options,
+            requested: HashSet::new(),
+            queue: Vec::new(),
+            shared: shared.clone(),
+            head,
+        };
+        fetch.plan(&spec)?;
+        let thread = std::thread::Builder::new()
+            .name("wavesplat-range-source".into())
+            .spawn(move || runtime.block_on(fetch.run(tx, ctl_rx)))
+            .map_err(|e| SourceError::Thread(e.to_string()))?;
+        Ok((
+            RangeSource {
+                rx,
+                ctl: Some(ctl),
+                shared,
+                thread: Some(thread),
+            },
+            header,
+        ))
+    }
+
+    fn send(&self, c: Control) {
+        if let Some(ctl) = &self.ctl {
+            let _ = ctl.send(c);
+        }
+    }
+}
+
+impl PacketSource for RangeSource {
+    fn try_next(&mut self) -> Option<SourcePacket> {
+        self.rx.try_recv().ok()
+    }
+
+    fn set_view(&mut self, spec: &ViewSpec) {
+        self.send(Control::View(*spec));
+    }
+
+    fn dropped(&mut self, ids: Vec<u32>) {
+        if !ids.is_empty() {
+            self.send(Control::Dropped(ids));
+        }
+    }
+
+    fn status(&self) -> SourceStatus {
+        self.shared
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .status
+            .clone()
+    }
+}
+
+impl Drop for RangeSource {
+    fn drop(&mut self) {
+        self.ctl = None;
+        self.rx.close();
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
+}
+
+/// The network task's state.
+struct Fetch {
+    url: String,
+    store: Arc<dyn ObjectStore>,
+    path: ObjectPath,
+    options: RangeSourceOptions,
+    /// Packets requested (and not dropped by the session since).
+    requested: HashSet<u32>,
+    /// Packets still to request, in sending order.
+    queue: Vec<u32>,
+    shared: Arc<Mutex<Shared>>,
+    head: Head,
+}
+
+/// One coalesced request: its byte range in the object and the packets in it.
+struct Request {
+    range: Range<u64>,
+    packets: Vec<u32>,
+    /// Inside the bytes read with the head: no request needed.
+    local: bool,
+}
+
+impl Fetch {
+    fn update(&self, f: impl FnOnce(&mut Shared)) {
+        let mut s = self.shared.lock().unwrap_or_else(|e| e.into_inner());
+        f(&mut s);
+    }
+
+    /// Orders what is not yet requested for `spec` (only what it sees, when asked and the
+    /// index says).
+    fn plan(&mut self, spec: &ViewSpec) -> Result<(), SourceError> {
+        let packets = &self.head.packets;
+        if !self.head.indexed {
+            self.queue = (0..packets.len() as u32)
+                .filter(|i| !self.requested.contains(i))
+                .collect();
+            return Ok(());
+        }
+        let vis = Visibility::new(&self.head.header, spec)?;
+        let facts: Vec<PacketFacts> = packets
+            .iter()
+            .map(|p| PacketFacts {
+                tile: p.tile as usize,
+                summary: &p.summary,
+                bytes: p.len as usize,
+            })
+            .collect();
+        let priority = Priority::new(&self.head.header, spec)?;
+        self.queue = packet_order(&vis, &facts)
+            .into_iter()
+            .filter(|i| !self.requested.contains(i))
+            .filter(|&i| {
+                !self.options.visible_only || priority.visible_energy(&packets[i as usize]) > 0.0
+            })
+            .collect();
+        Ok(())
+    }
+
+    /// Takes the next request off the queue: its head packet, grown over the packets next to
+    /// it in the file (ids are file order and packets are contiguous) that are among the next
+    /// few in the sending order, so nothing is fetched that the view does not want.
+    fn next_request(&mut self) -> Option<Request> {
+        let first = *self.queue.first()?;
+        let look = self.queue.len().min(self.options.lookahead.max(1));
+        let wanted: std::collections::HashMap<u32, usize> = self.queue[..look]
+            .iter()
+            .enumerate()
+            .map(|(k, &id)| (id, k))
+            .collect();
+        let len = |i: u32| self.head.packets[i as usize].len as u64;
+        let (mut lo, mut hi) = (first, first);
+        let mut bytes = len(first);
+        loop {
+            let right = hi.checked_add(1).filter(|r| {
+                wanted.contains_key(r) && bytes + len(*r) <= self.options.max_request_bytes
+            });
+            let left = lo.checked_sub(1).filter(|l| {
+                wanted.contains_key(l) && bytes + len(*l) <= self.options.max_request_bytes
+            });
+            match (right, left) {
+                (Some(r), _) => {
+                    hi = r;
+                    bytes += len(r);
+                }
+                (None, Some(l)) => {
+                    lo = l;
+                    bytes += len(l);
+                }
+                (None, None) => break,
+            }
+        }
+        let packets: Vec<u32> = (lo..=hi).collect();
+        let mut taken: Vec<usize> = packets.iter().map(|id| wanted[id]).collect();
+        taken.sort_unstable();
+        for k in taken.into_iter().rev() {
+            self.queue.remove(k);
+        }
+        for &p in &packets {
+            self.requested.insert(p);
+        }
+        let start = self.head.base + self.head.packets[lo as usize].offset;
+        let last = &self.head.packets[hi as usize];
+        let end = self.head.base + last.offset + last.len as u64;
+        Some(Request {
+            local: end <= self.head.first.len() as u64,
+            range: start..end,
+            packets,
+        })
+    }
+
+    fn apply(&mut self, c: Control) {
+        match c {
+            Control::View(spec) => {
+                if let Err(e) = self.plan(&spec) {
+                    tracing::warn!(error = %e, "planning a view for range requests");
+                }
+            }
+            Control::Dropped(ids) => {
+                for id in ids {
+                    self.requested.remove(&id);
+                }
+            }
+        }
+    }
+
+    async fn run(
+        mut self,
+        tx: mpsc::Sender<SourcePacket>,
+        mut ctl: mpsc::UnboundedReceiver<Control>,
+    ) {
+        let mut flight = FuturesUnordered::new();
+        let mut first_packet = true;
+        loop {
+            while flight.len() < self.options.in_flight.max(1) {
+                let Some(req) = self.next_request() else {
+                    break;
+                };
+                let store = self.store.clone();
+                let path = self.path.clone();
+                let first = self.head.first.clone();
+                flight.push(async move {
+                    let got = if req.local {
+                        Ok(first.slice(req.range.start as usize..req.range.end as usize))
+                    } else {
+                        store.get_range(&path, req.range.clone()).await
+                    };
+                    (req, got)
+                });
+            }
+            let idle = flight.is_empty();
+            self.update(|s| s.status.done = idle && self.queue.is_empty());
+            tokio::select! {
+                c = ctl.recv() => match c {
+                    Some(c) => self.apply(c),
+                    None => return,
+                },
+                Some((req, got)) = flight.next(), if !idle => {
+                    match self.deliver(req, got, &tx, &mut first_packet).await {
+                        Ok(true) => {}
+                        Ok(false) => return,
+                        Err(e) => {
+                            tracing::error!(url = %self.url, error = %e, "range source stopped");
+                            self.update(|s| {
+                                s.status.connected = false;
+                                s.status.problem = Some(e.clone());
+                                s.status.failed = Some(e);
+                            });
+                            return;
+                        }
+                    }
+                }
+            }
+        }
+    }
+
+    /// Checks a response, decodes its packets and hands them on; false when the session went
+    /// away, an error when the server's bytes cannot be this volume's.
+    async fn deliver(
+        &mut self,
+        req: Request,
+        got: Result<Bytes, object_store::Error>,
+        tx: &mpsc::Sender<SourcePacket>,
+        first_packet: &mut bool,
+    ) -> Result<bool, String> {
+        let data =
+            got.map_err(|e| format!("fetching bytes {:?} of {}: {e}", req.range, self.url))?;
+        let want = req.range.end - req.range.start;
+        self.update(|s| {
+            if !req.local {
+                s.status.requests += 1;
+                s.status.received_bytes += data.len() as u64;
+            }
+            if *first_packet {
+                s.status.requests_before_first_packet = s.status.requests;
+            }
+        });
+        *first_packet = false;
+        if data.len() as u64 != want {
+            return Err(format!(
+                "{} answered {} bytes for the range {:?} of {want}: truncated or changed on the server",
+                self.url,
+                data.len(),
+                req.range
+            ));
+        }
+        for id in req.packets {
+            let p = &self.head.packets[id as usize];
+            let start = (self.head.base + p.offset - req.range.start) as usize;
+            let bytes = data[start..start + p.len as usize].to_vec();
+            let d = decode_packet(&self.head.header, &bytes)
+                .map_err(|e| format!("packet {id} of {}: {e}", self.url))?;
+            if self.head.indexed && (d.tile as u32 != p.tile || d.layer as u32 != p.layer) {
+                return Err(format!(
+                    "packet {id} of {} is tile {} layer {}, its index says tile {} layer {}",
+                    self.url, d.tile, d.layer, p.tile, p.layer
+                ));
+            }
+            let len = bytes.len() as u64;
+            let packet = SourcePacket {
+                id,
+                data: bytes,
+                decoded: Some((d.tile, d.coefficients)),
+            };
+            if tx.send(packet).await.is_err() {
+                return Ok(false);
+            }
+            self.update(|s| {
+                s.status.packets += 1;
+                s.status.bytes += len;
+            });
+        }
+        Ok(true)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn remote_names_are_recognised() {
+        assert!(is_remote("https://cdn.example/a/v.wspx"));
+        assert!(is_remote("s3://bucket/v.wspx"));
+        assert!(!is_remote("v.wspx"));
+        assert!(!is_remote("/data/http://x"));
+        assert!(store_for("http://host/").is_err(), "no file name");
+        assert!(store_for("ftp://host/v.wspx").is_err());
+        assert!(store_for("http://host/dir/v.wspx").is_ok());
+    }
+}
