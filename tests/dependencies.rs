@@ -129,3 +129,12 @@ fn the_renderer_does_not_link_the_encoder_or_a_server() {
         &["wavesplat-compressor", "wavesplat-cache", "sled"],
     );
 }
+
+#[test]
+fn the_object_store_clients_bring_no_second_crypto_provider() {
+    // tonic's TLS uses ring; a second provider (aws-lc-rs, the object-store client's default)
+    // would make rustls refuse to pick one at run time.
+    for package in ["wavesplat-cache", "wavesplat-viewer", "wavesplat"] {
+        assert_excludes(package, &["aws-lc-rs", "aws-lc-sys"]);
+    }
+}

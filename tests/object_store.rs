@@ -5,7 +5,8 @@
 //!
 //! What it checks, in order: an ingest through node 1 is listed and streamed by node 2; 16
 //! concurrent ingests of one volume through both nodes store one object; a delete through node 2
-//! is seen by node 1; a render from a node equals the local file's; node 1 SIGKILLed mid-stream
+//! is seen by node 1; a worker delivers through node 1 and the orchestrator confirms the
+//! delivery through node 2; a render from a node equals the local file's; node 1 SIGKILLed mid-stream
 //! and the render finishes on node 2 with nothing sent twice and the same image; the bucket
 //! server stopped mid-stream gives a clear error and a resumed stream with the same image; a
 //! cold node with an empty read cache serves correctly.
@@ -377,6 +378,62 @@ fn cache_nodes_share_one_bucket_across_hosts() {
         1,
         "the twin's object went with its last name: {volumes:?}"
     );
+
+    // The orchestrator checks deliveries through node 2; a worker delivers through node 1.
+    let orch = net.serve(
+        "node2",
+        &node2_dir,
+        "orchestrator",
+        &[
+            "serve",
+            "orchestrator",
+            "--db",
+            "orch",
+            "--addr",
+            "0.0.0.0:50060",
+            "--cache",
+            "http://node2:50051",
+            "--insecure",
+        ],
+        None,
+    );
+    net.keep(orch);
+    let archive = viewer_dir.join("archive");
+    std::fs::create_dir_all(&archive).unwrap();
+    let raw: Vec<u8> = (0..24 * 20 * 16).map(|i| ((i * 7) % 251) as u8).collect();
+    std::fs::write(archive.join("head_24x20x16_u8.raw"), raw).unwrap();
+    cli(
+        &net,
+        &[
+            "archive",
+            "submit",
+            archive.to_str().unwrap(),
+            "--orchestrator",
+            "http://node2:50060",
+            "--detach",
+        ],
+    );
+    cli(
+        &net,
+        &[
+            "worker",
+            "--orchestrator",
+            "http://node2:50060",
+            "--cache",
+            "http://node1:50051",
+            "--threads",
+            "1",
+            "--max-jobs",
+            "1",
+        ],
+    );
+    let jobs = cli(
+        &net,
+        &["jobs", "list", "--orchestrator", "http://node2:50060"],
+    );
+    assert!(jobs.contains("done"), "{jobs}");
+    let listed = cli(&net, &["cache", "list", "--cache", "http://node2:50051"]);
+    assert!(listed.contains("head\t"), "{listed}");
 
     // The local file's image, the reference for every render below.
     let render_args = |out: &str, extra: &[&str]| -> Vec<String> {

@@ -13,7 +13,9 @@
 //! A volume's id is the first 63 bits of its SHA-256, the same on every node. Names are read
 //! from the bucket on every lookup (a delete on one node is seen by the others at once); what a
 //! node keeps is only a cache of immutable facts: parsed heads and name records by ETag, and a
-//! bounded memory cache of packet bytes. A cold node serves from the bucket alone.
+//! bounded memory cache of packet bytes. A cold node serves from the bucket alone. Unlike the
+//! embedded store, a stream whose volume another node deletes ends (not found) at the first
+//! packet it has to read from the bucket.
 //!
 //! The object-store client is async; the store's methods are called on blocking threads (the
 //! service's `blocking`), which wait on the runtime's handle. Packet reads on the refinement
@@ -69,6 +71,9 @@ pub struct Bucket {
     /// Name records by location, with their ETag: immutable once written.
     names: Mutex<HashMap<String, NameRecord>>,
     heads: Mutex<lru::LruCache<[u8; 32], Arc<BucketVolume>>>,
+    /// Content hashes by id, as this node has seen them (the mapping never changes; whether the
+    /// content still exists is asked of the store).
+    ids: Mutex<HashMap<u64, [u8; 32]>>,
     packets: Mutex<PacketCache>,
 }
 
@@ -143,6 +148,7 @@ impl Bucket {
             url: url.to_string(),
             runtime,
             names: Mutex::new(HashMap::new()),
+            ids: Mutex::new(HashMap::new()),
             heads: Mutex::new(lru::LruCache::new(
                 NonZeroUsize::new(HEADS_KEPT).expect("non-zero"),
             )),
@@ -216,8 +222,19 @@ impl Bucket {
         }
     }
 
-    /// The content hash of the volume with this id, if stored.
-    async fn content_of_id(&self, id: u64) -> Result<Option<[u8; 32]>, CacheError> {
+    fn remember(&self, sha256: &[u8; 32]) {
+        if let Ok(mut ids) = self.ids.lock() {
+            ids.insert(content_id(sha256), *sha256);
+        }
+    }
+
+    /// The content hash of the volume with this id, if stored: one HEAD request when this node
+    /// has seen the id, else a listing of the volumes.
+    pub async fn content_of_id(&self, id: u64) -> Result<Option<[u8; 32]>, CacheError> {
+        let known = self.ids.lock().ok().and_then(|ids| ids.get(&id).copied());
+        if let Some(sha) = known {
+            return Ok(self.has_content(&sha).await?.then_some(sha));
+        }
         let dir = self.path("volumes");
         // Every hash of this id starts with these hex digits (the id is the first 63 bits).
         let lead = hex(&(id << 1).to_be_bytes());
@@ -240,6 +257,7 @@ impl Bucket {
             }
             if let Some(sha) = unhex(stem).and_then(|v| <[u8; 32]>::try_from(v).ok()) {
                 if content_id(&sha) == id {
+                    self.remember(&sha);
                     return Ok(Some(sha));
                 }
             }
@@ -276,6 +294,7 @@ impl Bucket {
                 }
                 match self.name_target(&name).await? {
                     Some(sha) => {
+                        self.remember(&sha);
                         if let Ok(mut m) = self.names.lock() {
                             m.insert(key, (o.e_tag.clone(), sha));
                         }
@@ -299,6 +318,9 @@ impl Bucket {
             VolumeKey::Name(n) => self.name_target(n).await?,
             VolumeKey::Id(id) => self.content_of_id(*id).await?,
         };
+        if let Some(sha) = &found {
+            self.remember(sha);
+        }
         found.ok_or_else(|| CacheError::NotFound(key.to_string()))
     }
 
@@ -389,6 +411,12 @@ impl Bucket {
             .filter(|(_, s)| s == sha256)
             .map(|(n, _)| n)
             .collect())
+    }
+
+    /// The record of an opened volume for streaming: its facts without its list of names (which
+    /// would cost a listing of all names per stream).
+    pub fn stream_meta(&self, v: &BucketVolume) -> VolumeMeta {
+        meta_of(v, Vec::new())
     }
 
     /// The record of a volume seen through `key` (with every name it has).

@@ -684,9 +684,12 @@ impl Store {
     pub fn open_volume(&self, id: u64) -> Result<Arc<OpenVolume>, CacheError> {
         if let Some(b) = &self.bucket {
             // Whether the volume still exists is the bucket's to say (another node may have
-            // deleted it); the parsed head is cached by content.
-            let meta = b.wait(b.describe(&VolumeKey::Id(id)))?;
-            let v = b.wait(b.open_volume(&meta.sha256))?;
+            // deleted it): one HEAD request; the parsed head is cached by content.
+            let sha = b
+                .wait(b.content_of_id(id))?
+                .ok_or_else(|| CacheError::NotFound(VolumeKey::Id(id).to_string()))?;
+            let v = b.wait(b.open_volume(&sha))?;
+            let meta = b.stream_meta(&v);
             return Ok(Arc::new(OpenVolume {
                 meta,
                 index: VolumeIndex {

@@ -404,9 +404,25 @@ impl Fetch {
         f(&mut s);
     }
 
+    /// Whether packet `i` lies inside the bytes read with the head.
+    fn is_local(&self, i: u32) -> bool {
+        let p = &self.head.packets[i as usize];
+        self.head.base + p.offset + p.len as u64 <= self.head.first.len() as u64
+    }
+
     /// Orders what is not yet requested for `spec` (only what it sees, when asked and the
-    /// index says).
+    /// index says). Packets that came with the head go first, in that order: they cost no
+    /// request, and being the start of the file they are its most significant packets, so the
+    /// first image needs no round trip after the head's.
     fn plan(&mut self, spec: &ViewSpec) -> Result<(), SourceError> {
+        self.plan_remote(spec)?;
+        let (local, remote): (Vec<u32>, Vec<u32>) =
+            self.queue.iter().partition(|&&i| self.is_local(i));
+        self.queue = local.into_iter().chain(remote).collect();
+        Ok(())
+    }
+
+    fn plan_remote(&mut self, spec: &ViewSpec) -> Result<(), SourceError> {
         let packets = &self.head.packets;
         if !self.head.indexed {
             self.queue = (0..packets.len() as u32)
@@ -446,6 +462,12 @@ impl Fetch {
             .map(|(k, &id)| (id, k))
             .collect();
         let len = |i: u32| self.head.packets[i as usize].len as u64;
+        // Packets that came with the head are not mixed with ones still to fetch.
+        let local = self.is_local(first);
+        let wanted: std::collections::HashMap<u32, usize> = wanted
+            .into_iter()
+            .filter(|(id, _)| self.is_local(*id) == local)
+            .collect();
         let (mut lo, mut hi) = (first, first);
         let mut bytes = len(first);
         loop {

@@ -10,7 +10,7 @@
 
 use crate::format::index::PacketMeta;
 use crate::format::Header;
-use crate::view::visibility::Visibility;
+use crate::view::visibility::{packet_order, PacketFacts, Visibility};
 use crate::view::{ViewError, ViewSpec};
 
 /// Priorities of a volume's packets in one view (build once per view change).
@@ -37,14 +37,17 @@ impl Priority {
         self.visible_energy(p) / f64::from(p.len.max(1))
     }
 
-    /// Packet ids of `packets` in sending order (highest priority first; ties in file order).
+    /// Packet ids of `packets` in sending order (highest priority first; ties in file order):
+    /// [`packet_order`], which file and range readers use too.
     pub fn order(&self, packets: &[PacketMeta]) -> Vec<u32> {
-        let mut keyed: Vec<(f64, u32)> = packets
+        let facts: Vec<PacketFacts> = packets
             .iter()
-            .enumerate()
-            .map(|(i, p)| (self.priority(p), i as u32))
+            .map(|p| PacketFacts {
+                tile: p.tile as usize,
+                summary: &p.summary,
+                bytes: p.len as usize,
+            })
             .collect();
-        keyed.sort_by(|a, b| b.0.total_cmp(&a.0).then(a.1.cmp(&b.1)));
-        keyed.into_iter().map(|(_, i)| i).collect()
+        packet_order(&self.visibility, &facts)
     }
 }
