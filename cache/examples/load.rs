@@ -8,6 +8,11 @@
 //! stderr, the CPU time of planning one view (the bulk of a session start). No assertions;
 //! figures go to BENCHMARKS.md.
 //!
+//! With `WAVESPLAT_LOAD_STORE=s3://BUCKET/PREFIX` (and the `AWS_*` variables), two more rows
+//! sets: one node over that object store, then two nodes over it with the clients alternating
+//! between them (in this process, on the same cores: what the bucket path costs a node, not how
+//! nodes scale).
+//!
 //! `cargo run --release -p wavesplat-cache --example load [EDGE] [ROUNDS]`
 
 use std::sync::Arc;
@@ -149,10 +154,16 @@ async fn main() {
         "transport,clients,rounds,packets_per_s,mb_per_s,connect_p50_ms,connect_p99_ms,first_packet_p50_ms,first_packet_p99_ms,first_from_connect_p99_ms,wall_s"
     );
     let mut id = None;
-    for (transport, security, options) in [
-        ("plaintext", Security::default(), ConnectOptions::default()),
+    let mut configurations = vec![
+        (
+            "plaintext",
+            vec![store.clone()],
+            Security::default(),
+            ConnectOptions::default(),
+        ),
         (
             "tls+tokens",
+            vec![store.clone()],
             Security {
                 tls: Some(tls),
                 tokens: Some(tokens),
@@ -163,36 +174,69 @@ async fn main() {
                 credentials: Credentials::token(READ_TOKEN).unwrap(),
             },
         ),
-    ] {
-        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
-        let port = listener.local_addr().unwrap().port();
-        let url = match transport {
-            "plaintext" => format!("http://127.0.0.1:{port}"),
-            _ => format!("https://127.0.0.1:{port}"),
+    ];
+    if let Ok(url) = std::env::var("WAVESPLAT_LOAD_STORE") {
+        let node = |n: &str| {
+            let path = dir.path().join(n);
+            let url = url.clone();
+            async move {
+                Store::open_bucket(path, &url, Limits::default(), 256 << 20)
+                    .await
+                    .unwrap()
+            }
         };
-        let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
-        let serve_options = wavesplat_cache::ServeOptions {
-            security,
-            fairness: wavesplat_cache::service::Fairness {
-                max_streams_per_caller: 1024,
-                ..Default::default()
-            },
-        };
-        let server = tokio::spawn(wavesplat_cache::serve_with(
-            listener,
-            store.clone(),
-            serve_options,
-            async {
-                let _ = stopped.await;
-            },
+        let one = node("node1").await;
+        let two = node("node2").await;
+        configurations.push((
+            "bucket-1-node",
+            vec![one.clone()],
+            Security::default(),
+            ConnectOptions::default(),
         ));
-        let volume = match id {
-            Some(id) => id,
-            None => {
-                let mut c = CacheClient::connect(&url).await.unwrap();
+        configurations.push((
+            "bucket-2-nodes",
+            vec![one, two],
+            Security::default(),
+            ConnectOptions::default(),
+        ));
+    }
+    for (transport, nodes, security, options) in configurations {
+        let mut urls = Vec::new();
+        let mut servers = Vec::new();
+        for node in nodes {
+            let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+            let port = listener.local_addr().unwrap().port();
+            urls.push(match transport {
+                "tls+tokens" => format!("https://127.0.0.1:{port}"),
+                _ => format!("http://127.0.0.1:{port}"),
+            });
+            let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
+            let serve_options = wavesplat_cache::ServeOptions {
+                security: security.clone(),
+                fairness: wavesplat_cache::service::Fairness {
+                    max_streams_per_caller: 1024,
+                    ..Default::default()
+                },
+            };
+            let server = tokio::spawn(wavesplat_cache::serve_with(
+                listener,
+                node,
+                serve_options,
+                async {
+                    let _ = stopped.await;
+                },
+            ));
+            servers.push((stop, server));
+        }
+        // Ingest is idempotent by content; the TLS rows read what the plaintext rows ingested
+        // (their token may only read).
+        let volume = match (transport, id) {
+            ("tls+tokens", Some(id)) => id,
+            _ => {
+                let mut c = CacheClient::connect_with(&urls[0], &options).await.unwrap();
                 let info = c.ingest("phantom", &bytes).await.unwrap().volume;
                 eprintln!(
-                    "volume {edge}^3: {} bytes, {} packets, {} tiles",
+                    "{transport}: volume {edge}^3: {} bytes, {} packets, {} tiles",
                     info.file_bytes, info.packet_count, info.tile_count
                 );
                 *id.insert(info.id)
@@ -206,7 +250,7 @@ async fn main() {
                 let tasks: Vec<_> = (0..clients)
                     .map(|i| {
                         tokio::spawn(one_stream(
-                            url.clone(),
+                            urls[i % urls.len()].clone(),
                             options.clone(),
                             VolumeKey::Id(volume),
                             i,
@@ -238,7 +282,9 @@ async fn main() {
                 wall
             );
         }
-        let _ = stop.send(());
-        server.await.unwrap().unwrap();
+        for (stop, server) in servers {
+            let _ = stop.send(());
+            server.await.unwrap().unwrap();
+        }
     }
 }

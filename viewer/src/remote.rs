@@ -84,6 +84,7 @@ struct Shared {
 /// server or CDN; plain GET with `Range`) or `s3://bucket/key` (endpoint, region and credentials
 /// from the `AWS_*` variables).
 fn store_for(url: &str) -> Result<(Arc<dyn ObjectStore>, ObjectPath), SourceError> {
+    wavesplat_net::tls::install_crypto_provider();
     let parsed = url::Url::parse(url).map_err(|e| SourceError::Remote(format!("{url}: {e}")))?;
     let bad = |e: object_store::Error| SourceError::Remote(format!("{url}: {e}"));
     match parsed.scheme() {
@@ -121,7 +122,6 @@ fn store_for(url: &str) -> Result<(Arc<dyn ObjectStore>, ObjectPath), SourceErro
 /// The `.wsp` bytes of the volume at `url` (the whole object, without the index in front when
 /// it is in the indexed layout): for a reference render of everything.
 pub fn fetch_wsp(url: &str) -> Result<Vec<u8>, SourceError> {
-    wavesplat_net::tls::install_crypto_provider();
     let (store, path) = store_for(url)?;
     let runtime = tokio::runtime::Builder::new_current_thread()
         .enable_all()
@@ -281,7 +281,6 @@ impl RangeSource {
         options: RangeSourceOptions,
     ) -> Result<(RangeSource, Header), SourceError> {
         spec.validate()?;
-        wavesplat_net::tls::install_crypto_provider();
         let (store, path) = store_for(url)?;
         let runtime = tokio::runtime::Builder::new_current_thread()
             .enable_all()
@@ -636,6 +635,106 @@ impl Fetch {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use wavesplat_codec::view::View;
+
+    /// A fetch over a published phantom (no network: planning and coalescing only).
+    fn fetch(first_bytes: usize) -> Fetch {
+        use wavesplat_compressor::encode::{compress, CompressOptions, Target, TileChoice};
+        let wsp = compress(
+            &wavesplat_compressor::phantom::Phantom::SheppLogan.generate([48, 48, 48]),
+            &CompressOptions {
+                target: Target::Fraction(0.2),
+                tile: TileChoice::Size(8),
+                refine: None,
+                ..Default::default()
+            },
+            &|_, _| {},
+        )
+        .unwrap()
+        .bytes;
+        let object = wavesplat_codec::format::index::indexed_layout(&wsp).unwrap();
+        let HeadRead::Indexed(h) = read_indexed_head(&object).unwrap() else {
+            panic!("head incomplete")
+        };
+        Fetch {
+            url: "test".into(),
+            store: Arc::new(object_store::memory::InMemory::new()),
+            path: ObjectPath::from("v.wspx"),
+            options: RangeSourceOptions::default(),
+            requested: HashSet::new(),
+            queue: Vec::new(),
+            shared: Arc::new(Mutex::new(Shared::default())),
+            head: Head {
+                first: Bytes::copy_from_slice(&object[..first_bytes.min(object.len())]),
+                object_bytes: h.object_bytes(),
+                header: h.header,
+                packets: h.packets,
+                base: h.wsp_offset,
+                indexed: true,
+            },
+        }
+    }
+
+    #[test]
+    fn a_corner_asks_for_less_and_a_view_change_reorders_only_what_is_left() {
+        let mut f = fetch(0);
+        let n = f.head.packets.len();
+        let whole = ViewSpec::single(View::new(0.3, 0.2, 64, 64));
+        f.plan(&whole).unwrap();
+        assert_eq!(f.queue.len(), n, "the whole volume is in view");
+        let mut corner_view = View::new(0.0, 0.0, 64, 64);
+        corner_view.zoom = Some(6.0);
+        corner_view.pan = [20.0, 20.0];
+        let corner = ViewSpec::single(corner_view);
+        f.plan(&corner).unwrap();
+        assert!(
+            f.queue.len() < n * 3 / 4,
+            "{} of {n} for a corner",
+            f.queue.len()
+        );
+        // Requests are runs of neighbouring packets, each wanted, none twice.
+        let mut seen = HashSet::new();
+        let first = f.next_request().unwrap();
+        for w in first.packets.windows(2) {
+            assert_eq!(w[1], w[0] + 1);
+        }
+        let p = &f.head.packets;
+        assert_eq!(
+            first.range.start,
+            f.head.base + p[first.packets[0] as usize].offset
+        );
+        seen.extend(first.packets.iter().copied());
+        // Back to the whole view: what was requested is not asked again, the rest is.
+        f.plan(&whole).unwrap();
+        assert_eq!(f.queue.len(), n - seen.len());
+        assert!(f.queue.iter().all(|i| !seen.contains(i)));
+        // A dropped packet may be asked for again after the next view change.
+        let dropped = first.packets[0];
+        f.apply(Control::Dropped(vec![dropped]));
+        f.plan(&whole).unwrap();
+        assert!(f.queue.contains(&dropped));
+    }
+
+    #[test]
+    fn packets_that_came_with_the_head_go_first_and_alone() {
+        let mut f = fetch(usize::MAX);
+        let end = f.head.base + f.head.packets[3].offset + f.head.packets[3].len as u64;
+        f.head.first = f.head.first.slice(..end as usize);
+        f.plan(&ViewSpec::single(View::new(0.3, 0.2, 64, 64)))
+            .unwrap();
+        assert!(f.queue[..4].iter().all(|&i| i < 4), "{:?}", &f.queue[..6]);
+        let r = f.next_request().unwrap();
+        assert!(
+            r.local && r.packets.iter().all(|&i| i < 4),
+            "{:?}",
+            r.packets
+        );
+        let mut next = f.next_request().unwrap();
+        while next.local {
+            next = f.next_request().unwrap();
+        }
+        assert!(next.packets.iter().all(|&i| i >= 4));
+    }
 
     #[test]
     fn remote_names_are_recognised() {
