@@ -14,6 +14,7 @@
 mod common;
 
 use common::netns::Net;
+use common::{read_f32, text, wait_for_bytes};
 use std::path::Path;
 use std::process::Output;
 use std::time::{Duration, Instant};
@@ -60,15 +61,6 @@ fn secret(what: &str) -> String {
         .unwrap()
         .as_nanos();
     format!("{what}-{nanos:x}-{:x}", std::process::id())
-}
-
-fn text(o: &Output) -> String {
-    format!(
-        "status {:?}\nstdout: {}\nstderr: {}",
-        o.status.code(),
-        String::from_utf8_lossy(&o.stdout),
-        String::from_utf8_lossy(&o.stderr)
-    )
 }
 
 fn scaled(p: Phantom, dims: [usize; 3], scale: f32) -> Volume {
@@ -142,14 +134,6 @@ fn jobs(o: &Output) -> Vec<(u64, String, String, String, String)> {
                 field("error="),
             )
         })
-        .collect()
-}
-
-fn read_f32(path: &Path) -> Vec<f32> {
-    std::fs::read(path)
-        .unwrap()
-        .chunks_exact(4)
-        .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
         .collect()
 }
 
@@ -545,25 +529,7 @@ fn the_readme_secure_deployment_runs_across_hosts() {
         Some(&viewer),
     );
     // Wait for the first bytes, then kill the cache.
-    let csv = viewer_dir.join("record").join("frames.csv");
-    let waited = Instant::now();
-    let received = loop {
-        let bytes = std::fs::read_to_string(&csv)
-            .unwrap_or_default()
-            .lines()
-            .skip(1)
-            .filter_map(|l| l.split(',').nth(4)?.parse::<u64>().ok())
-            .max()
-            .unwrap_or(0);
-        if bytes > 0 {
-            break bytes;
-        }
-        assert!(
-            waited.elapsed() < Duration::from_secs(60),
-            "no bytes reached the viewer"
-        );
-        std::thread::sleep(Duration::from_millis(5));
-    };
+    let received = wait_for_bytes(&viewer_dir);
     assert!(
         received < browse.len() as u64 / 2,
         "half the file ({received} of {} bytes) arrived before the cache was killed",

@@ -18,9 +18,10 @@
 mod common;
 
 use common::netns::Net;
+use common::{read_f32, relative_difference, text, wait_for_bytes};
 use std::io::Read;
 use std::path::Path;
-use std::process::{Child, Command, Output};
+use std::process::{Child, Command};
 use std::time::{Duration, Instant};
 use wavesplat_codec::volume::Volume;
 use wavesplat_compressor::encode::{compress, CompressOptions, Target, TileChoice};
@@ -31,31 +32,6 @@ const HOSTS: [&str; 4] = ["bucket", "node1", "node2", "viewer"];
 const KEY_ID: &str = "wavesplat-test";
 const SECRET: &str = "wavesplat-test-secret-key";
 const STORE: &str = "s3://archive/volumes-v1";
-
-fn text(o: &Output) -> String {
-    format!(
-        "status {:?}\nstdout:\n{}\nstderr:\n{}",
-        o.status,
-        String::from_utf8_lossy(&o.stdout),
-        String::from_utf8_lossy(&o.stderr)
-    )
-}
-
-fn read_f32(path: &Path) -> Vec<f32> {
-    std::fs::read(path)
-        .unwrap()
-        .chunks_exact(4)
-        .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
-        .collect()
-}
-
-/// The largest difference of two images relative to the first's peak.
-fn relative_difference(a: &[f32], b: &[f32]) -> f32 {
-    assert_eq!(a.len(), b.len());
-    let peak = a.iter().fold(0f32, |m, x| m.max(x.abs()));
-    assert!(peak > 0.0);
-    a.iter().zip(b).fold(0f32, |m, (x, y)| m.max((x - y).abs())) / peak
-}
 
 /// Whether `weed` runs here.
 fn have_weed() -> bool {
@@ -177,30 +153,6 @@ fn node_args<'a>(db: &'a str, addr: &'a str, read_cache: &'a str) -> Vec<&'a str
         read_cache,
         "--insecure",
     ]
-}
-
-/// Waits until the render recording in `dir/record` has received some bytes, and returns how
-/// many.
-fn wait_for_bytes(dir: &Path) -> u64 {
-    let csv = dir.join("record").join("frames.csv");
-    let waited = Instant::now();
-    loop {
-        let bytes = std::fs::read_to_string(&csv)
-            .unwrap_or_default()
-            .lines()
-            .skip(1)
-            .filter_map(|l| l.split(',').nth(4)?.parse::<u64>().ok())
-            .max()
-            .unwrap_or(0);
-        if bytes > 0 {
-            return bytes;
-        }
-        assert!(
-            waited.elapsed() < Duration::from_secs(60),
-            "no bytes reached the viewer"
-        );
-        std::thread::sleep(Duration::from_millis(5));
-    }
 }
 
 /// Waits for a spawned render and returns its stdout (asserting it succeeded).

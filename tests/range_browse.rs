@@ -7,6 +7,9 @@
 //! Needs `nginx` on the PATH (Debian's package). Without it the test says so and passes unless
 //! WAVESPLAT_REQUIRE_OBJECT_STORE=1 (set by `.ci/run`, which installs it).
 
+mod common;
+
+use common::{read_f32, relative_difference, text};
 use std::path::Path;
 use std::process::{Child, Command, Output, Stdio};
 use std::time::{Duration, Instant};
@@ -14,23 +17,6 @@ use wavesplat_compressor::encode::{compress, CompressOptions, Target, TileChoice
 use wavesplat_compressor::phantom::Phantom;
 
 const BIN: &str = env!("CARGO_BIN_EXE_wavesplat");
-
-fn text(o: &Output) -> String {
-    format!(
-        "status {:?}\nstdout:\n{}\nstderr:\n{}",
-        o.status,
-        String::from_utf8_lossy(&o.stdout),
-        String::from_utf8_lossy(&o.stderr)
-    )
-}
-
-fn read_f32(path: &Path) -> Vec<f32> {
-    std::fs::read(path)
-        .unwrap()
-        .chunks_exact(4)
-        .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
-        .collect()
-}
 
 /// nginx serving `root` on a free loopback port; killed on drop.
 struct WebServer {
@@ -112,13 +98,6 @@ fn range_line(out: &Output) -> (u64, u64, u64, u64) {
         .filter_map(|s| s.parse().ok())
         .collect();
     (nums[0], nums[1], nums[2], nums[3])
-}
-
-fn relative_difference(a: &[f32], b: &[f32]) -> f32 {
-    assert_eq!(a.len(), b.len());
-    let peak = a.iter().fold(0f32, |m, x| m.max(x.abs()));
-    assert!(peak > 0.0);
-    a.iter().zip(b).fold(0f32, |m, (x, y)| m.max((x - y).abs())) / peak
 }
 
 #[test]

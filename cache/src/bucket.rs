@@ -239,12 +239,7 @@ impl Bucket {
         // Every hash of this id starts with these hex digits (the id is the first 63 bits).
         let lead = hex(&(id << 1).to_be_bytes());
         let lead = &lead[..15];
-        let listed: Vec<_> = self
-            .store
-            .list(Some(&dir))
-            .try_collect()
-            .await
-            .map_err(|e| self.failed("listing", &dir, e))?;
+        let listed = self.list_under(&dir).await?;
         for o in listed {
             let Some(file) = o.location.filename() else {
                 continue;
@@ -265,15 +260,22 @@ impl Bucket {
         Ok(None)
     }
 
+    /// Every object under `dir`.
+    async fn list_under(
+        &self,
+        dir: &ObjectPath,
+    ) -> Result<Vec<object_store::ObjectMeta>, CacheError> {
+        self.store
+            .list(Some(dir))
+            .try_collect()
+            .await
+            .map_err(|e| self.failed("listing", dir, e))
+    }
+
     /// Every name with the content it points at, ordered by name.
     async fn all_names(&self) -> Result<Vec<(String, [u8; 32])>, CacheError> {
         let dir = self.path("names");
-        let listed: Vec<_> = self
-            .store
-            .list(Some(&dir))
-            .try_collect()
-            .await
-            .map_err(|e| self.failed("listing", &dir, e))?;
+        let listed = self.list_under(&dir).await?;
         let mut out: Vec<(String, [u8; 32])> = futures_util::stream::iter(listed)
             .map(|o| async move {
                 let Some(name) = o
@@ -508,23 +510,10 @@ impl Bucket {
             ));
         }
         let path = self.name_path(name);
-        let record = name_record(sha256);
-        match self
-            .store
-            .put_opts(
-                &path,
-                PutPayload::from(record),
-                PutOptions::from(PutMode::Create),
-            )
-            .await
+        if !self.create(&path, Bytes::from(name_record(sha256))).await?
+            && self.name_target(name).await? != Some(*sha256)
         {
-            Ok(_) => {}
-            Err(object_store::Error::AlreadyExists { .. }) => {
-                if self.name_target(name).await? != Some(*sha256) {
-                    return Err(CacheError::NameTaken(name.to_string()));
-                }
-            }
-            Err(e) => return Err(self.failed("writing", &path, e)),
+            return Err(CacheError::NameTaken(name.to_string()));
         }
         if !self.has_content(sha256).await? {
             match &object {
@@ -545,19 +534,24 @@ impl Bucket {
 
     /// Writes a volume object unless it exists; true if this call wrote it.
     async fn put_volume(&self, sha256: &[u8; 32], object: Bytes) -> Result<bool, CacheError> {
-        let path = self.volume_path(sha256);
+        self.create(&self.volume_path(sha256), object).await
+    }
+
+    /// Writes an object with `If-None-Match: *`; true if this call wrote it, false if it
+    /// existed.
+    async fn create(&self, path: &ObjectPath, data: Bytes) -> Result<bool, CacheError> {
         match self
             .store
             .put_opts(
-                &path,
-                PutPayload::from(object),
+                path,
+                PutPayload::from(data),
                 PutOptions::from(PutMode::Create),
             )
             .await
         {
             Ok(_) => Ok(true),
             Err(object_store::Error::AlreadyExists { .. }) => Ok(false),
-            Err(e) => Err(self.failed("writing", &path, e)),
+            Err(e) => Err(self.failed("writing", path, e)),
         }
     }
 
@@ -594,12 +588,7 @@ impl Bucket {
     /// Bytes of all volume objects.
     pub async fn data_bytes(&self) -> Result<u64, CacheError> {
         let dir = self.path("volumes");
-        let listed: Vec<_> = self
-            .store
-            .list(Some(&dir))
-            .try_collect()
-            .await
-            .map_err(|e| self.failed("listing", &dir, e))?;
+        let listed = self.list_under(&dir).await?;
         Ok(listed.iter().map(|o| o.size).sum())
     }
 }

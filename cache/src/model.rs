@@ -216,7 +216,6 @@ pub(crate) fn decode_packets(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use wavesplat_codec::layout::Band;
 
     #[test]
     fn records_round_trip() {
@@ -251,14 +250,7 @@ mod tests {
         v1.remove(9);
         assert_eq!(VolumeMeta::decode(&v1).unwrap(), one);
         assert!(VolumeMeta::decode(&m.encode()[..20]).is_err());
-        let p = vec![PacketMeta {
-            tile: 3,
-            layer: 1,
-            len: 99,
-            offset: 1234,
-            summary: vec![(Band { level: 2, kind: 5 }, 1.5)],
-        }];
-        assert_eq!(decode_packets(&encode_packets(&p), true).unwrap(), p);
+        // The packet index's encoding is the codec's (tested there); a corrupt one is an error.
         assert!(decode_packets(&[0xff], true).is_err());
     }
 }

@@ -811,6 +811,21 @@ impl Drop for Sink {
 }
 
 impl Sink {
+    /// The prelude of a complete upload whose packets hold what its header declares.
+    fn complete(&mut self) -> Result<Prelude, CacheError> {
+        let complete = self
+            .prelude
+            .as_ref()
+            .is_some_and(|p| self.packets.len() == p.packet_lengths.len());
+        let Some(prelude) = self.prelude.take().filter(|_| complete) else {
+            return Err(CacheError::InvalidUpload(
+                "the upload ends inside its header, directory or a packet".into(),
+            ));
+        };
+        check_kept(&prelude, self.held)?;
+        Ok(prelude)
+    }
+
     /// Validates the next bytes of the file.
     fn feed(&mut self, data: &[u8], total: u64, limits: &Limits) -> Result<(), CacheError> {
         if self.prelude.is_none() {
@@ -1030,16 +1045,7 @@ impl Upload {
                 meta
             }
             Some(mut s) => {
-                let complete = s
-                    .prelude
-                    .as_ref()
-                    .is_some_and(|p| s.packets.len() == p.packet_lengths.len());
-                let Some(prelude) = s.prelude.take().filter(|_| complete) else {
-                    return Err(CacheError::InvalidUpload(
-                        "the upload ends inside its header, directory or a packet".into(),
-                    ));
-                };
-                check_kept(&prelude, s.held)?;
+                let prelude = s.complete()?;
                 s.file.sync_all().map_err(|e| io("syncing an upload", e))?;
                 let id = s.id;
                 let path = store.file_path(id, "wsp");
@@ -1111,16 +1117,7 @@ impl Upload {
         let object = match self.sink.take() {
             None => None,
             Some(mut s) => {
-                let complete = s
-                    .prelude
-                    .as_ref()
-                    .is_some_and(|p| s.packets.len() == p.packet_lengths.len());
-                let Some(prelude) = s.prelude.take().filter(|_| complete) else {
-                    return Err(CacheError::InvalidUpload(
-                        "the upload ends inside its header, directory or a packet".into(),
-                    ));
-                };
-                check_kept(&prelude, s.held)?;
+                s.complete()?;
                 let mut object =
                     wavesplat_codec::format::index::indexed_prefix(self.total, &s.packets)?;
                 let file = std::fs::read(&s.part).map_err(|e| io("reading an upload back", e))?;

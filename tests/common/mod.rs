@@ -48,3 +48,54 @@ fn spawn(args: &[&str], stderr: Stdio) -> (Child, String) {
         .to_string();
     (child, addr)
 }
+
+/// A finished command's status and output, for assertion messages.
+pub fn text(o: &std::process::Output) -> String {
+    format!(
+        "status {:?}\nstdout:\n{}\nstderr:\n{}",
+        o.status.code(),
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr)
+    )
+}
+
+/// A raw little-endian f32 image as `render --raw` writes it.
+pub fn read_f32(path: &std::path::Path) -> Vec<f32> {
+    std::fs::read(path)
+        .unwrap()
+        .chunks_exact(4)
+        .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+        .collect()
+}
+
+/// The largest difference of two images relative to the first's peak (which must be > 0).
+pub fn relative_difference(a: &[f32], b: &[f32]) -> f32 {
+    assert_eq!(a.len(), b.len());
+    let peak = a.iter().fold(0f32, |m, x| m.max(x.abs()));
+    assert!(peak > 0.0);
+    a.iter().zip(b).fold(0f32, |m, (x, y)| m.max((x - y).abs())) / peak
+}
+
+/// Waits until a render recording into `dir/record` has received some bytes (its frames.csv's
+/// byte column), and returns how many.
+pub fn wait_for_bytes(dir: &std::path::Path) -> u64 {
+    let csv = dir.join("record").join("frames.csv");
+    let waited = std::time::Instant::now();
+    loop {
+        let bytes = std::fs::read_to_string(&csv)
+            .unwrap_or_default()
+            .lines()
+            .skip(1)
+            .filter_map(|l| l.split(',').nth(4)?.parse::<u64>().ok())
+            .max()
+            .unwrap_or(0);
+        if bytes > 0 {
+            return bytes;
+        }
+        assert!(
+            waited.elapsed() < std::time::Duration::from_secs(60),
+            "no bytes reached the viewer"
+        );
+        std::thread::sleep(std::time::Duration::from_millis(5));
+    }
+}

@@ -28,7 +28,6 @@ use wavesplat_codec::format::index::{read_indexed_head, HeadRead, IndexedHead, P
 use wavesplat_codec::format::packet::decode_packet;
 use wavesplat_codec::format::{parse_prelude, FormatError, Header};
 use wavesplat_codec::view::priority::Priority;
-use wavesplat_codec::view::visibility::{packet_order, PacketFacts, Visibility};
 use wavesplat_codec::view::ViewSpec;
 
 /// Bytes asked for first: most heads fit.
@@ -429,17 +428,9 @@ impl Fetch {
                 .collect();
             return Ok(());
         }
-        let vis = Visibility::new(&self.head.header, spec)?;
-        let facts: Vec<PacketFacts> = packets
-            .iter()
-            .map(|p| PacketFacts {
-                tile: p.tile as usize,
-                summary: &p.summary,
-                bytes: p.len as usize,
-            })
-            .collect();
         let priority = Priority::new(&self.head.header, spec)?;
-        self.queue = packet_order(&vis, &facts)
+        self.queue = priority
+            .order(packets)
             .into_iter()
             .filter(|i| !self.requested.contains(i))
             .filter(|&i| {
