@@ -13,6 +13,9 @@
 //! between them (in this process, on the same cores: what the bucket path costs a node, not how
 //! nodes scale).
 //!
+//! With `WAVESPLAT_LOAD_URLS=http://A,http://B`, only rows against those nodes (started
+//! elsewhere, e.g. each pinned to a core with `taskset`), the clients alternating between them.
+//!
 //! `cargo run --release -p wavesplat-cache --example load [EDGE] [ROUNDS]`
 
 use std::sync::Arc;
@@ -154,6 +157,7 @@ async fn main() {
         "transport,clients,rounds,packets_per_s,mb_per_s,connect_p50_ms,connect_p99_ms,first_packet_p50_ms,first_packet_p99_ms,first_from_connect_p99_ms,wall_s"
     );
     let mut id = None;
+    let mut external: Vec<String> = Vec::new();
     let mut configurations = vec![
         (
             "plaintext",
@@ -200,8 +204,19 @@ async fn main() {
             ConnectOptions::default(),
         ));
     }
+    if let Ok(list) = std::env::var("WAVESPLAT_LOAD_URLS") {
+        // Nodes started elsewhere (e.g. pinned to cores with taskset): plaintext rows only.
+        configurations.clear();
+        configurations.push((
+            "external",
+            Vec::new(),
+            Security::default(),
+            ConnectOptions::default(),
+        ));
+        external = list.split(',').map(str::to_string).collect();
+    }
     for (transport, nodes, security, options) in configurations {
-        let mut urls = Vec::new();
+        let mut urls = external.clone();
         let mut servers = Vec::new();
         for node in nodes {
             let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();

@@ -175,7 +175,7 @@ struct ViewState {
     cue_k: f64,
     cue_dir: CueDirection,
     budget_ms: f64,
-    /// Display window width relative to the automatic one (1st–99th percentile).
+    /// Display window width relative to the automatic one (`Image::auto_window`).
     contrast: f64,
     /// Display window centre, offset from the automatic one in units of its width.
     level: f64,
@@ -220,7 +220,7 @@ impl ViewState {
         Ok(s)
     }
 
-    /// The display window (lo, hi) for `image`: the automatic one (1st and 99th percentiles)
+    /// The display window (lo, hi) for `image`: the automatic one (`Image::auto_window`)
     /// narrowed or widened by the contrast and moved by the level; `None` while both are at
     /// their defaults.
     fn display_window(&self, image: &wavesplat_viewer::Image) -> Result<Option<(f64, f64)>> {

@@ -1,6 +1,6 @@
 //! Rendered images and their output: the [`Image`] type (f32, channels interleaved, row 0 at
 //! the top), crops and side-by-side concatenation, PNG writing with window/level (automatic
-//! from the 1st/99th percentiles by default; the same mapping to RGBA8 bytes is what a display
+//! from the percentiles of the image's foreground by default; the same mapping to RGBA8 bytes is what a display
 //! shows) and the raw f32 writer used for measurements
 //! (H rows of W little-endian f32, channels interleaved).
 
@@ -126,11 +126,40 @@ impl Image {
         (at(lo), at(hi))
     }
 
-    /// The window [`Image::write_png`] uses: `window` when given (checked), else the 1st and
-    /// 99th percentiles; a flat image (an empty view, nothing splatted yet) gets the unit above
-    /// its value, so it shows black rather than mid-grey.
+    /// The automatic window: the 2nd and 99.5th percentiles of the image's foreground, the
+    /// pixels more than 5 % of the way from the background (the 1st percentile of all pixels)
+    /// to the brightest (the 99.9th). A projection is mostly background, so percentiles of all
+    /// pixels put the window's top inside the object and show it as a saturated blob; over the
+    /// foreground the object's own range fills the grey scale and the background stays black.
+    /// An image with almost no foreground (< 0.5 % of its pixels) falls back to the 1st and 99th
+    /// percentiles of all pixels.
+    pub fn auto_window(&self) -> (f64, f64) {
+        let (background, top) = self.percentiles(1.0, 99.9);
+        let cut = background + 0.05 * (top - background);
+        let mut foreground: Vec<f32> = self
+            .data
+            .iter()
+            .copied()
+            .filter(|x| x.is_finite() && f64::from(*x) > cut)
+            .collect();
+        if foreground.len() * 200 < self.data.len().max(1) {
+            return self.percentiles(1.0, 99.0);
+        }
+        let n = foreground.len();
+        let mut at = |p: f64| {
+            let i = ((p / 100.0) * (n - 1) as f64).round() as usize;
+            *foreground
+                .select_nth_unstable_by(i, |a, b| a.total_cmp(b))
+                .1 as f64
+        };
+        (at(2.0), at(99.5))
+    }
+
+    /// The window [`Image::write_png`] uses: `window` when given (checked), else
+    /// [`Image::auto_window`]; a flat image (an empty view, nothing splatted yet) gets the unit
+    /// above its value, so it shows black rather than mid-grey.
     pub fn resolve_window(&self, window: Option<(f64, f64)>) -> Result<(f64, f64), ImageError> {
-        let (mut lo, mut hi) = window.unwrap_or_else(|| self.percentiles(1.0, 99.0));
+        let (mut lo, mut hi) = window.unwrap_or_else(|| self.auto_window());
         if window.is_some() && (!lo.is_finite() || !hi.is_finite() || hi <= lo) {
             return Err(ImageError::BadWindow(lo, hi));
         }
@@ -174,7 +203,7 @@ impl Image {
     }
 
     /// Writes an 8-bit PNG (grey or RGB) mapping `window = (low, high)` to 0..255; `None`
-    /// uses the 1st and 99th percentiles.
+    /// uses [`Image::auto_window`].
     pub fn write_png(&self, path: &Path, window: Option<(f64, f64)>) -> Result<(), ImageError> {
         let colour = match self.channels {
             1 => png::ColorType::Grayscale,
@@ -228,5 +257,63 @@ mod window_tests {
         let rgba = ramp.to_rgba8(None).unwrap();
         assert_eq!(rgba[0], 0);
         assert_eq!(rgba[100 * 4], 255);
+    }
+
+    /// A projection of a ball on a large background: the dome's values crowd near its top.
+    fn dome(n: usize) -> Image {
+        let c = (n as f32 - 1.0) / 2.0;
+        let r = n as f32 / 4.0;
+        let data = (0..n * n)
+            .map(|i| {
+                let (x, y) = ((i % n) as f32 - c, (i / n) as f32 - c);
+                let d2 = r * r - x * x - y * y;
+                if d2 > 0.0 {
+                    1000.0 * d2.sqrt()
+                } else {
+                    0.0
+                }
+            })
+            .collect();
+        Image {
+            width: n,
+            height: n,
+            channels: 1,
+            data,
+        }
+    }
+
+    #[test]
+    fn the_automatic_window_spreads_the_object_not_the_background() {
+        let img = dome(200);
+        let (lo, hi) = img.resolve_window(None).unwrap();
+        let max = img.data.iter().fold(0f32, |m, &x| m.max(x)) as f64;
+        assert!(lo > 0.0 && hi <= max, "({lo}, {hi}) for values 0..{max}");
+        let inside: Vec<u8> = img
+            .data
+            .iter()
+            .filter(|&&x| x > 0.0)
+            .map(|&x| Image::level(x, (lo, hi)))
+            .collect();
+        let saturated = inside.iter().filter(|&&v| v == 255).count();
+        assert!(
+            saturated * 100 <= inside.len(),
+            "{saturated} of {} object pixels saturated",
+            inside.len()
+        );
+        // The object's median is mid-grey, not near white; the background stays black.
+        let mut sorted = inside.clone();
+        sorted.sort_unstable();
+        let median = sorted[sorted.len() / 2];
+        assert!((96..=224).contains(&median), "median grey {median}");
+        assert_eq!(Image::level(0.0, (lo, hi)), 0);
+        // With (almost) no foreground: all pixels' 1st and 99th percentiles.
+        let mut speck = Image {
+            width: 100,
+            height: 100,
+            channels: 1,
+            data: vec![0.0; 10_000],
+        };
+        speck.data[5] = 1.0;
+        assert_eq!(speck.auto_window(), speck.percentiles(1.0, 99.0));
     }
 }

@@ -400,7 +400,7 @@ struct Display {
 /// How the display pass maps the image to colours.
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct DisplayOptions {
-    /// Values mapped to 0 and 255 (`None`: the 1st and 99th percentiles, as `write_png`).
+    /// Values mapped to 0 and 255 (`None`: `Image::auto_window`, as `write_png`).
     pub window: Option<(f64, f64)>,
     /// Colour transform of a 3-channel image (`None`: channels shown as they are).
     pub colour: Option<ColourMap>,
