@@ -50,7 +50,8 @@ http { access_log off; server { listen 10.210.0.2:8080; root $OUT/www; } }
 NGX
 run_s nginx -c "$OUT/nginx.conf" -p "$OUT" &
 rm -rf "$OUT/weed"; mkdir -p "$OUT/weed"
-run_s weed mini -dir="$OUT/weed" -bucket=archive -admin.ui=false -webdav=false >"$OUT/weed.log" 2>&1 &
+mkdir -p "$OUT/weed-tmp"   # its unix sockets, apart from any other SeaweedFS's
+TMPDIR="$OUT/weed-tmp" run_s weed mini -dir="$OUT/weed" -bucket=archive -admin.ui=false -webdav=false >"$OUT/weed.log" 2>&1 &
 for _ in $(seq 120); do
   run_s curl -s -o /dev/null http://127.0.0.1:8333/ && break; sleep 0.5
 done

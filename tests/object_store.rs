@@ -99,7 +99,12 @@ fn start_bucket(net: &mut Net, dir: &Path) -> Child {
         .append(true)
         .open(dir.join("weed.log"))
         .unwrap();
+    // weed puts unix sockets named by port in the temporary directory, which network
+    // namespaces share: its own keeps it apart from any other SeaweedFS on the machine.
+    let sockets = dir.join("tmp");
+    std::fs::create_dir_all(&sockets).unwrap();
     let child = cmd
+        .env("TMPDIR", &sockets)
         .env("AWS_ACCESS_KEY_ID", KEY_ID)
         .env("AWS_SECRET_ACCESS_KEY", SECRET)
         .stdout(log.try_clone().unwrap())
