@@ -339,15 +339,22 @@ impl Camera {
             return Err(ViewError::NotFinite("spacing"));
         }
         let widest = spacing.iter().fold(0.0f64, |m, s| m.max(*s));
-        let radius = (0.5
-            * (0..3)
-                .map(|a| (dims[a] as f64 * spacing[a]).powi(2))
+        // The default fits the ellipsoid inscribed in the volume's box as this view projects
+        // it, plus the reach of the splines (two voxels): an axis view shows the whole box
+        // filling the shorter side, and an oblique one shows what a head or a body in the box
+        // occupies rather than the box's empty corners (a bounding sphere left a head at a third
+        // of the image). `--zoom` sets it.
+        let half_extent = |w: [f64; 3]| {
+            0.5 * (0..3)
+                .map(|a| (w[a] * dims[a] as f64 * spacing[a]).powi(2))
                 .sum::<f64>()
-                .sqrt())
-        .max(0.5 * widest);
+                .sqrt()
+                + 2.0 * widest
+        };
         let zoom = match view.zoom {
             Some(z) => z,
-            None => view.width.min(view.height) as f64 / (2.0 * radius),
+            None => (view.width as f64 / (2.0 * half_extent(u)))
+                .min(view.height as f64 / (2.0 * half_extent(v))),
         };
         if !(zoom.is_finite() && zoom > 0.0) || zoom * widest > MAX_ZOOM {
             return Err(ViewError::BadZoom(zoom));
