@@ -212,7 +212,8 @@ impl ViewArgs {
     }
 
     /// The view spec for the volume of `header`: [`ViewArgs::spec`], turned to the named
-    /// patient view (`--view`) through the volume's placement.
+    /// patient view (`--view`) through the volume's placement, and without `--zoom` zoomed to
+    /// fit the volume ([`Camera::fitting_zoom`]; for a multiview, the tightest of its panels).
     pub fn spec_for(&self, header: &Header) -> Result<ViewSpec> {
         let mut spec = self.spec()?;
         if let Some(name) = &self.view {
@@ -220,8 +221,18 @@ impl ViewArgs {
             spec.view.orientation = side
                 .orientation(header.placement.as_ref())
                 .with_context(|| format!("--view {name}"))?;
-            spec.validate().context("invalid view")?;
         }
+        if self.zoom.is_none() {
+            let g = &header.geometry;
+            let fit = spec
+                .cameras(g)
+                .context("invalid view")?
+                .iter()
+                .map(|c| c.fitting_zoom(g))
+                .fold(f64::INFINITY, f64::min);
+            spec.view = spec.view.with_zoom(fit);
+        }
+        spec.validate().context("invalid view")?;
         Ok(spec)
     }
 
@@ -280,31 +291,25 @@ pub fn open(args: &ViewArgs, byte_budget: Option<u64>) -> Result<(Header, Opened
     match (&args.input, &args.cache, &args.volume) {
         (Some(path), _, _) if path.to_str().is_some_and(is_remote) => {
             let url = path.to_str().unwrap_or_default().to_string();
+            let first = args.spec()?;
             let (mut source, header) =
-                RangeSource::open(&url, args.spec()?, RangeSourceOptions::default())
+                RangeSource::open(&url, first, RangeSourceOptions::default())
                     .with_context(|| format!("opening {url}"))?;
-            let spec = match &args.view {
-                // A named view needs the volume's placement, which came with the head.
-                Some(_) => {
-                    let spec = args.spec_for(&header)?;
-                    source.set_view(&spec);
-                    spec
-                }
-                None => args.spec()?,
-            };
+            // A named view and the fitting zoom need the volume, which came with the head.
+            let spec = args.spec_for(&header)?;
+            if spec != first {
+                source.set_view(&spec);
+            }
             Ok((header, Opened::Remote { url, source }, spec))
         }
         (Some(path), _, _) => {
             let bytes = super::read_wsp(path)?;
-            let spec = match &args.view {
-                // A named view needs the volume's placement before the source orders packets.
-                Some(_) => args.spec_for(
-                    &parse_file(&bytes)
-                        .with_context(|| format!("reading {}", path.display()))?
-                        .header,
-                )?,
-                None => args.spec()?,
-            };
+            // A named view and the fitting zoom need the volume before packets are ordered.
+            let spec = args.spec_for(
+                &parse_file(&bytes)
+                    .with_context(|| format!("reading {}", path.display()))?
+                    .header,
+            )?;
             let source = FileSource::open(bytes, &spec)
                 .with_context(|| format!("reading {}", path.display()))?
                 .with_byte_budget(byte_budget);
@@ -319,25 +324,20 @@ pub fn open(args: &ViewArgs, byte_budget: Option<u64>) -> Result<(Header, Opened
         (None, Some(url), Some(name)) => {
             let key = VolumeKey::Name(name.clone());
             let connect = args.security.options()?;
-            let spec = match &args.view {
-                // A named view needs the volume's placement before the stream starts.
-                Some(_) => {
-                    let first = url.split(',').next().unwrap_or(url);
-                    let header =
-                        wavesplat_client::blocking::CacheClient::connect_with(first, &connect)
-                            .and_then(|mut c| c.header(&key))
-                            .with_context(|| format!("reading the header of {name:?} at {url}"))?;
-                    args.spec_for(&header.header)?
-                }
-                None => args.spec()?,
-            };
             let options = CacheSourceOptions {
                 byte_budget,
                 ..CacheSourceOptions::default()
             };
-            let (source, header) =
-                CacheSource::open_with(url, &connect, key.clone(), spec, options)
+            let first = args.spec()?;
+            let (mut source, header) =
+                CacheSource::open_with(url, &connect, key.clone(), first, options)
                     .with_context(|| format!("opening {name:?} at {url}"))?;
+            // A named view and the fitting zoom need the volume's header, which the stream
+            // brought: the view is changed on the same stream before its first frame.
+            let spec = args.spec_for(&header.header)?;
+            if spec != first {
+                source.set_view(&spec);
+            }
             Ok((
                 header.header,
                 Opened::Cache {

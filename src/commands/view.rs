@@ -205,7 +205,8 @@ impl ViewState {
             alpha,
             beta,
             zoom_factor: 1.0,
-            zoom_abs: v.zoom,
+            // Only a zoom given on the command line is absolute (the spec's is the fitted one).
+            zoom_abs: a.view.zoom,
             pan: v.pan,
             multiview: spec.multiview,
             cue_on: v.cue.is_some(),
@@ -249,7 +250,8 @@ impl ViewState {
     fn spec(&self, size: PhysicalSize<u32>, max: usize, geometry: &Geometry) -> Result<ViewSpec> {
         let (w, h) = image_size(size, self.multiview, max);
         let mut view = View::new(self.alpha, self.beta, w, h).with_pan(self.pan);
-        let fit = Camera::new(&View::new(0.0, 0.0, w, h), geometry)?.zoom;
+        // Fitted once, to the axis view, so the scale stays while the volume turns.
+        let fit = Camera::new(&View::new(0.0, 0.0, w, h), geometry)?.fitting_zoom(geometry);
         let zoom = self
             .zoom_abs
             .map_or(fit, |z| z * w as f64 / size_w(size, self.multiview));

@@ -339,22 +339,17 @@ impl Camera {
             return Err(ViewError::NotFinite("spacing"));
         }
         let widest = spacing.iter().fold(0.0f64, |m, s| m.max(*s));
-        // The default fits the ellipsoid inscribed in the volume's box as this view projects
-        // it, plus the reach of the splines (two voxels): an axis view shows the whole box
-        // filling the shorter side, and an oblique one shows what a head or a body in the box
-        // occupies rather than the box's empty corners (a bounding sphere left a head at a third
-        // of the image). `--zoom` sets it.
-        let half_extent = |w: [f64; 3]| {
-            0.5 * (0..3)
-                .map(|a| (w[a] * dims[a] as f64 * spacing[a]).powi(2))
+        // The library's default fits the volume's bounding sphere: every view of it, at any
+        // angle, on screen at one scale. The commands fit tighter ([`Camera::fitting_zoom`]).
+        let radius = (0.5
+            * (0..3)
+                .map(|a| (dims[a] as f64 * spacing[a]).powi(2))
                 .sum::<f64>()
-                .sqrt()
-                + 2.0 * widest
-        };
+                .sqrt())
+        .max(0.5 * widest);
         let zoom = match view.zoom {
             Some(z) => z,
-            None => (view.width as f64 / (2.0 * half_extent(u)))
-                .min(view.height as f64 / (2.0 * half_extent(v))),
+            None => view.width.min(view.height) as f64 / (2.0 * radius),
         };
         if !(zoom.is_finite() && zoom > 0.0) || zoom * widest > MAX_ZOOM {
             return Err(ViewError::BadZoom(zoom));
@@ -375,6 +370,25 @@ impl Camera {
             center,
             spacing,
         })
+    }
+
+    /// The zoom that fits the ellipsoid inscribed in the volume's box, as this camera projects
+    /// it, into its image, plus the reach of the splines (two voxels): an axis view shows the
+    /// whole box filling the shorter side; an oblique one shows what a head or a body in the
+    /// box occupies, the box's empty corners possibly off screen. What `render` and `view` use
+    /// when no zoom is given (the bounding sphere left a head at a third of the image).
+    pub fn fitting_zoom(&self, geometry: &Geometry) -> f64 {
+        let dims = geometry.dims;
+        let widest = self.spacing.iter().fold(0.0f64, |m, s| m.max(*s));
+        let half_extent = |w: [f64; 3]| {
+            0.5 * (0..3)
+                .map(|a| (w[a] * dims[a] as f64 * self.spacing[a]).powi(2))
+                .sum::<f64>()
+                .sqrt()
+                + 2.0 * widest
+        };
+        (self.width as f64 / (2.0 * half_extent(self.u)))
+            .min(self.height as f64 / (2.0 * half_extent(self.v)))
     }
 
     /// Screen axis directions in physical space: (e_x, e_y) = (u, −v).
