@@ -751,3 +751,44 @@ mod readable_tests {
         assert!(e.len() < 80 && e.contains("1e300"), "{e}");
     }
 }
+
+#[cfg(test)]
+mod fitting_tests {
+    use super::*;
+    use crate::family::Family;
+
+    #[test]
+    fn the_fitting_zoom_fills_an_axis_view_and_is_tighter_than_the_sphere() {
+        let g = crate::layout::Geometry::new([40, 60, 20], Family::Linear, 2, 0).unwrap();
+        let axis = Camera::new(&View::new(0.0, 0.0, 256, 128), &g).unwrap();
+        let fit = axis.fitting_zoom(&g);
+        // The axis view's screen axes are two of the volume's: the box (+2 voxels per side)
+        // fills one image side exactly and fits the other.
+        let (ex, ey) = axis.screen_axes();
+        let extent = |e: [f64; 3]| (0..3).map(|a| e[a].abs() * g.dims[a] as f64).sum::<f64>();
+        let (w, h) = (extent(ex) + 4.0, extent(ey) + 4.0);
+        let expected = (256.0 / w).min(128.0 / h);
+        assert!(
+            (fit - expected).abs() < 1e-9 * expected,
+            "{fit} vs {expected}"
+        );
+        assert!(
+            fit > axis.zoom,
+            "tighter than the bounding sphere's {}",
+            axis.zoom
+        );
+        // Oblique views fit at least as tightly as the sphere, and every fit is finite.
+        for (a, b) in [
+            (0.66, 0.91),
+            (1.0, -0.3),
+            (0.0, std::f64::consts::FRAC_PI_2),
+        ] {
+            let c = Camera::new(&View::new(a, b, 64, 64), &g).unwrap();
+            let z = c.fitting_zoom(&g);
+            assert!(z.is_finite() && z >= c.zoom, "({a}, {b}): {z} < {}", c.zoom);
+        }
+        let voxel = crate::layout::Geometry::new([1, 1, 1], Family::Haar, 0, 0).unwrap();
+        let c = Camera::new(&View::new(0.3, 0.2, 32, 32), &voxel).unwrap();
+        assert!(c.fitting_zoom(&voxel).is_finite());
+    }
+}
