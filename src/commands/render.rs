@@ -64,7 +64,9 @@ pub struct ViewArgs {
     pub size: String,
     /// Pixels per unit of voxel spacing: per millimetre when the volume's spacing is in mm (as
     /// DICOM, NIfTI, NRRD and MetaImage give it), per voxel for unit spacing (default: fit the
-    /// volume). Anisotropic volumes are drawn in their physical shape.
+    /// volume: the ellipsoid inscribed in its box fills the image, so an axis view shows the
+    /// whole box and an oblique one what a head or body occupies). Anisotropic volumes are
+    /// drawn in their physical shape.
     #[arg(long)]
     pub zoom: Option<f64>,
     /// Pan of the image centre from the volume centre, in units of spacing (mm) along the
