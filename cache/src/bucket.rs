@@ -47,6 +47,9 @@ const CONNECT_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(3);
 /// A failing request is retried for this long at most.
 const RETRY_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(4);
 
+/// A cold node reads a volume's packets in one request up to this size (see [`Bucket::read`]).
+pub const WHOLE_READ_BYTES: u64 = 8 << 20;
+
 /// Magic of a name record.
 const NAME_MAGIC: &[u8; 4] = b"WSPN";
 
@@ -555,16 +558,62 @@ impl Bucket {
         }
     }
 
-    /// Bytes `range` of a volume object, through the node's packet cache under `key`.
+    /// Packet `packet` of a volume object (its index `packets`, the `.wsp` at `wsp_offset`),
+    /// through the node's packet cache. A miss on a volume whose packets together take at most
+    /// [`WHOLE_READ_BYTES`] and a quarter of the cache reads all its packets in one request (a
+    /// cold node would otherwise make a request per packet); otherwise just this packet's range.
     pub async fn read(
         &self,
         sha256: &[u8; 32],
-        key: (u64, u32),
-        range: Range<u64>,
+        id: u64,
+        packet: u32,
+        packets: &[PacketMeta],
+        wsp_offset: u64,
     ) -> Result<Bytes, CacheError> {
-        if let Some(b) = self.packets.lock().ok().and_then(|mut c| c.get(key)) {
+        let cached = |c: &mut PacketCache| c.get((id, packet));
+        if let Some(b) = self.packets.lock().ok().and_then(|mut c| cached(&mut c)) {
             return Ok(b);
         }
+        let p = packets
+            .get(packet as usize)
+            .ok_or_else(|| CacheError::NotFound(format!("packet {packet} of volume {id}")))?;
+        let (first, last) = match (packets.first(), packets.last()) {
+            (Some(f), Some(l)) => (f, l),
+            _ => {
+                return Err(CacheError::NotFound(format!(
+                    "packet {packet} of volume {id}"
+                )))
+            }
+        };
+        let all = first.offset..last.offset + last.len as u64;
+        let limit = self.packets.lock().map(|c| c.limit).unwrap_or(0);
+        let whole = all.end - all.start <= WHOLE_READ_BYTES.min(limit / 4);
+        let range = if whole {
+            wsp_offset + all.start..wsp_offset + all.end
+        } else {
+            wsp_offset + p.offset..wsp_offset + p.offset + p.len as u64
+        };
+        let data = self.read_range(sha256, range.clone()).await?;
+        if !whole {
+            if let Ok(mut c) = self.packets.lock() {
+                c.put((id, packet), data.clone());
+            }
+            return Ok(data);
+        }
+        let slice = |m: &PacketMeta| {
+            let start = (m.offset - all.start) as usize;
+            data.slice(start..start + m.len as usize)
+        };
+        if let Ok(mut c) = self.packets.lock() {
+            for (i, m) in packets.iter().enumerate() {
+                c.put((id, i as u32), slice(m));
+            }
+        }
+        Ok(slice(p))
+    }
+
+    /// Bytes `range` of a volume object, checked to be all of them.
+    async fn read_range(&self, sha256: &[u8; 32], range: Range<u64>) -> Result<Bytes, CacheError> {
         let path = self.volume_path(sha256);
         let want = range.end - range.start;
         let data = self
@@ -578,9 +627,6 @@ impl Bucket {
                 self.url,
                 data.len()
             )));
-        }
-        if let Ok(mut c) = self.packets.lock() {
-            c.put(key, data.clone());
         }
         Ok(data)
     }

@@ -146,10 +146,14 @@ impl OpenVolume {
                 sha256,
                 wsp_offset,
             } => {
-                let p = self.entry(packet)?;
-                let start = wsp_offset + p.offset;
                 bucket
-                    .read(sha256, (self.meta.id, packet), start..start + p.len as u64)
+                    .read(
+                        sha256,
+                        self.meta.id,
+                        packet,
+                        &self.index.packets,
+                        *wsp_offset,
+                    )
                     .await
             }
         }
