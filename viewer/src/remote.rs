@@ -14,7 +14,7 @@
 //! The object-store client (`object_store`, as the cache uses) gives S3 signing and HTTP range
 //! requests with retries; its HTTP store speaks plain GET with `Range` to any web server.
 
-use crate::source::{PacketSource, SourceError, SourcePacket, SourceStatus};
+use crate::source::{Control, Feed, PacketSource, SourceError, SourcePacket, SourceStatus};
 use bytes::Bytes;
 use futures_util::stream::FuturesUnordered;
 use futures_util::StreamExt;
@@ -60,23 +60,10 @@ impl Default for RangeSourceOptions {
     }
 }
 
-enum Control {
-    View(ViewSpec),
-    Dropped(Vec<u32>),
-}
-
 /// Packets fetched by range on a background thread (see the module documentation).
 #[derive(Debug)]
 pub struct RangeSource {
-    rx: mpsc::Receiver<SourcePacket>,
-    ctl: Option<mpsc::UnboundedSender<Control>>,
-    shared: Arc<Mutex<Shared>>,
-    thread: Option<std::thread::JoinHandle<()>>,
-}
-
-#[derive(Debug, Default)]
-struct Shared {
-    status: SourceStatus,
+    feed: Feed,
 }
 
 /// The object store and the object's path a URL names: `http(s)://host/dir/file` (any web
@@ -166,7 +153,7 @@ async fn read_head(
     store: &dyn ObjectStore,
     path: &ObjectPath,
     url: &str,
-    shared: &Mutex<Shared>,
+    status: &Mutex<SourceStatus>,
 ) -> Result<Head, SourceError> {
     let failed = |e: object_store::Error| SourceError::Remote(format!("reading {url}: {e}"));
     let first = store
@@ -181,7 +168,7 @@ async fn read_head(
         .map_err(failed)?;
     let object_bytes = first.meta.size;
     let mut bytes = first.bytes().await.map_err(failed)?.to_vec();
-    count(shared, bytes.len() as u64);
+    count(status, bytes.len() as u64);
     let corrupt = |e: FormatError| SourceError::Remote(format!("{url}: {e}"));
     if bytes.starts_with(wavesplat_codec::format::MAGIC) {
         // A plain .wsp: header and directory, packets in file order.
@@ -228,7 +215,7 @@ async fn read_head(
                 .get_range(path, bytes.len() as u64..end)
                 .await
                 .map_err(failed)?;
-            count(shared, more.len() as u64);
+            count(status, more.len() as u64);
             bytes.extend_from_slice(&more);
         }
     }
@@ -245,7 +232,7 @@ async fn read_head(
                     .get_range(path, bytes.len() as u64..n as u64)
                     .await
                     .map_err(failed)?;
-                count(shared, more.len() as u64);
+                count(status, more.len() as u64);
                 bytes.extend_from_slice(&more);
             }
         }
@@ -266,10 +253,10 @@ async fn read_head(
     })
 }
 
-fn count(shared: &Mutex<Shared>, bytes: u64) {
-    let mut s = shared.lock().unwrap_or_else(|e| e.into_inner());
-    s.status.requests += 1;
-    s.status.received_bytes += bytes;
+fn count(status: &Mutex<SourceStatus>, bytes: u64) {
+    let mut s = status.lock().unwrap_or_else(|e| e.into_inner());
+    s.requests += 1;
+    s.received_bytes += bytes;
 }
 
 impl RangeSource {
@@ -285,13 +272,11 @@ impl RangeSource {
             .enable_all()
             .build()
             .map_err(|e| SourceError::Thread(e.to_string()))?;
-        let shared = Arc::new(Mutex::new(Shared {
-            status: SourceStatus {
-                connected: true,
-                ..Default::default()
-            },
+        let status = Arc::new(Mutex::new(SourceStatus {
+            connected: true,
+            ..Default::default()
         }));
-        let head = runtime.block_on(read_head(store.as_ref(), &path, url, &shared))?;
+        let head = runtime.block_on(read_head(store.as_ref(), &path, url, &status))?;
         if !head.indexed {
             tracing::warn!(
                 %url,
@@ -299,14 +284,11 @@ impl RangeSource {
                  the indexed layout, which lets a view fetch only what it sees)"
             );
         }
-        shared
+        status
             .lock()
             .unwrap_or_else(|e| e.into_inner())
-            .status
             .object_bytes = head.object_bytes;
         let header = head.header.clone();
-        let (tx, rx) = mpsc::channel(options.queue_packets.max(1));
-        let (ctl, ctl_rx) = mpsc::unbounded_channel();
         let mut fetch = Fetch {
             url: url.to_string(),
             store,
@@ -314,63 +296,36 @@ impl RangeSource {
             options,
             requested: HashSet::new(),
             queue: Vec::new(),
-            shared: shared.clone(),
+            status: status.clone(),
             head,
         };
         fetch.plan(&spec)?;
-        let thread = std::thread::Builder::new()
-            .name("wavesplat-range-source".into())
-            .spawn(move || runtime.block_on(fetch.run(tx, ctl_rx)))
-            .map_err(|e| SourceError::Thread(e.to_string()))?;
-        Ok((
-            RangeSource {
-                rx,
-                ctl: Some(ctl),
-                shared,
-                thread: Some(thread),
-            },
-            header,
-        ))
-    }
-
-    fn send(&self, c: Control) {
-        if let Some(ctl) = &self.ctl {
-            let _ = ctl.send(c);
-        }
+        let feed = Feed::start(
+            "wavesplat-range-source",
+            runtime,
+            options.queue_packets,
+            status,
+            move |tx, ctl| fetch.run(tx, ctl),
+        )?;
+        Ok((RangeSource { feed }, header))
     }
 }
 
 impl PacketSource for RangeSource {
     fn try_next(&mut self) -> Option<SourcePacket> {
-        self.rx.try_recv().ok()
+        self.feed.try_next()
     }
 
     fn set_view(&mut self, spec: &ViewSpec) {
-        self.send(Control::View(*spec));
+        self.feed.set_view(spec);
     }
 
     fn dropped(&mut self, ids: Vec<u32>) {
-        if !ids.is_empty() {
-            self.send(Control::Dropped(ids));
-        }
+        self.feed.dropped(ids);
     }
 
     fn status(&self) -> SourceStatus {
-        self.shared
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
-            .status
-            .clone()
-    }
-}
-
-impl Drop for RangeSource {
-    fn drop(&mut self) {
-        self.ctl = None;
-        self.rx.close();
-        if let Some(t) = self.thread.take() {
-            let _ = t.join();
-        }
+        self.feed.status()
     }
 }
 
@@ -384,7 +339,7 @@ struct Fetch {
     requested: HashSet<u32>,
     /// Packets still to request, in sending order.
     queue: Vec<u32>,
-    shared: Arc<Mutex<Shared>>,
+    status: Arc<Mutex<SourceStatus>>,
     head: Head,
 }
 
@@ -397,8 +352,8 @@ struct Request {
 }
 
 impl Fetch {
-    fn update(&self, f: impl FnOnce(&mut Shared)) {
-        let mut s = self.shared.lock().unwrap_or_else(|e| e.into_inner());
+    fn update(&self, f: impl FnOnce(&mut SourceStatus)) {
+        let mut s = self.status.lock().unwrap_or_else(|e| e.into_inner());
         f(&mut s);
     }
 
@@ -538,7 +493,7 @@ impl Fetch {
                 });
             }
             let idle = flight.is_empty();
-            self.update(|s| s.status.done = idle && self.queue.is_empty());
+            self.update(|s| s.done = idle && self.queue.is_empty());
             tokio::select! {
                 c = ctl.recv() => match c {
                     Some(c) => self.apply(c),
@@ -551,9 +506,9 @@ impl Fetch {
                         Err(e) => {
                             tracing::error!(url = %self.url, error = %e, "range source stopped");
                             self.update(|s| {
-                                s.status.connected = false;
-                                s.status.problem = Some(e.clone());
-                                s.status.failed = Some(e);
+                                s.connected = false;
+                                s.problem = Some(e.clone());
+                                s.failed = Some(e);
                             });
                             return;
                         }
@@ -577,11 +532,11 @@ impl Fetch {
         let want = req.range.end - req.range.start;
         self.update(|s| {
             if !req.local {
-                s.status.requests += 1;
-                s.status.received_bytes += data.len() as u64;
+                s.requests += 1;
+                s.received_bytes += data.len() as u64;
             }
             if *first_packet {
-                s.status.requests_before_first_packet = s.status.requests;
+                s.requests_before_first_packet = s.requests;
             }
         });
         *first_packet = false;
@@ -615,8 +570,8 @@ impl Fetch {
                 return Ok(false);
             }
             self.update(|s| {
-                s.status.packets += 1;
-                s.status.bytes += len;
+                s.packets += 1;
+                s.bytes += len;
             });
         }
         Ok(true)
@@ -654,7 +609,7 @@ mod tests {
             options: RangeSourceOptions::default(),
             requested: HashSet::new(),
             queue: Vec::new(),
-            shared: Arc::new(Mutex::new(Shared::default())),
+            status: Arc::new(Mutex::new(SourceStatus::default())),
             head: Head {
                 first: Bytes::copy_from_slice(&object[..first_bytes.min(object.len())]),
                 object_bytes: h.object_bytes(),

@@ -288,18 +288,100 @@ impl Default for CacheSourceOptions {
     }
 }
 
-enum Control {
+/// What the session tells a network source's thread.
+pub(crate) enum Control {
+    /// The view changed.
     View(ViewSpec),
+    /// The session dropped these packets.
     Dropped(Vec<u32>),
+}
+
+/// The session's end of a source fed by a network thread (the cache's, the range reader's):
+/// packets arrive on a bounded channel, view changes and dropped packets go back on another,
+/// and the thread's status is shared. Dropping it closes the control channel, which ends the
+/// thread's task, and joins the thread.
+#[derive(Debug)]
+pub(crate) struct Feed {
+    rx: mpsc::Receiver<SourcePacket>,
+    ctl: Option<mpsc::UnboundedSender<Control>>,
+    status: Arc<Mutex<SourceStatus>>,
+    thread: Option<std::thread::JoinHandle<()>>,
+}
+
+impl Feed {
+    /// Runs `task` (given the packet sender and the control receiver) on a thread named
+    /// `name`, on `runtime`, with a queue of `queue` packets; `status` is what it reports.
+    pub(crate) fn start<F>(
+        name: &str,
+        runtime: tokio::runtime::Runtime,
+        queue: usize,
+        status: Arc<Mutex<SourceStatus>>,
+        task: impl FnOnce(mpsc::Sender<SourcePacket>, mpsc::UnboundedReceiver<Control>) -> F
+            + Send
+            + 'static,
+    ) -> Result<Feed, SourceError>
+    where
+        F: std::future::Future<Output = ()>,
+    {
+        let (tx, rx) = mpsc::channel(queue.max(1));
+        let (ctl, ctl_rx) = mpsc::unbounded_channel();
+        let thread = std::thread::Builder::new()
+            .name(name.into())
+            .spawn(move || runtime.block_on(task(tx, ctl_rx)))
+            .map_err(|e| SourceError::Thread(e.to_string()))?;
+        Ok(Feed {
+            rx,
+            ctl: Some(ctl),
+            status,
+            thread: Some(thread),
+        })
+    }
+
+    fn send(&self, c: Control) {
+        if let Some(ctl) = &self.ctl {
+            let _ = ctl.send(c);
+        }
+    }
+}
+
+impl PacketSource for Feed {
+    fn try_next(&mut self) -> Option<SourcePacket> {
+        self.rx.try_recv().ok()
+    }
+
+    fn set_view(&mut self, spec: &ViewSpec) {
+        self.send(Control::View(*spec));
+    }
+
+    fn dropped(&mut self, ids: Vec<u32>) {
+        if !ids.is_empty() {
+            self.send(Control::Dropped(ids));
+        }
+    }
+
+    fn status(&self) -> SourceStatus {
+        self.status
+            .lock()
+            .map(|s| s.clone())
+            .unwrap_or_else(|e| e.into_inner().clone())
+    }
+}
+
+impl Drop for Feed {
+    fn drop(&mut self) {
+        // Closing the control channel ends the network task.
+        self.ctl = None;
+        self.rx.close();
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
 }
 
 /// Packets pulled from a cache by a background thread (see the module documentation).
 #[derive(Debug)]
 pub struct CacheSource {
-    rx: mpsc::Receiver<SourcePacket>,
-    ctl: Option<mpsc::UnboundedSender<Control>>,
-    status: Arc<Mutex<SourceStatus>>,
-    thread: Option<std::thread::JoinHandle<()>>,
+    feed: Feed,
 }
 
 impl std::fmt::Debug for Control {
@@ -368,8 +450,6 @@ impl CacheSource {
                 reason: "no cache URL given".into(),
             }))
         })?;
-        let (tx, rx) = mpsc::channel(options.queue_packets.max(1));
-        let (ctl, ctl_rx) = mpsc::unbounded_channel();
         let status = Arc::new(Mutex::new(SourceStatus {
             connected: true,
             ..Default::default()
@@ -386,59 +466,32 @@ impl CacheSource {
             link_free: None,
             header: header.header.clone(),
         };
-        let thread = std::thread::Builder::new()
-            .name("wavesplat-cache-source".into())
-            .spawn(move || runtime.block_on(task.run(client, tx, ctl_rx)))
-            .map_err(|e| SourceError::Thread(e.to_string()))?;
-        Ok((
-            CacheSource {
-                rx,
-                ctl: Some(ctl),
-                status,
-                thread: Some(thread),
-            },
-            header,
-        ))
-    }
-
-    fn send(&self, c: Control) {
-        if let Some(ctl) = &self.ctl {
-            let _ = ctl.send(c);
-        }
+        let feed = Feed::start(
+            "wavesplat-cache-source",
+            runtime,
+            options.queue_packets,
+            status,
+            move |tx, ctl| task.run(client, tx, ctl),
+        )?;
+        Ok((CacheSource { feed }, header))
     }
 }
 
 impl PacketSource for CacheSource {
     fn try_next(&mut self) -> Option<SourcePacket> {
-        self.rx.try_recv().ok()
+        self.feed.try_next()
     }
 
     fn set_view(&mut self, spec: &ViewSpec) {
-        self.send(Control::View(*spec));
+        self.feed.set_view(spec);
     }
 
     fn dropped(&mut self, ids: Vec<u32>) {
-        if !ids.is_empty() {
-            self.send(Control::Dropped(ids));
-        }
+        self.feed.dropped(ids);
     }
 
     fn status(&self) -> SourceStatus {
-        self.status
-            .lock()
-            .map(|s| s.clone())
-            .unwrap_or_else(|e| e.into_inner().clone())
-    }
-}
-
-impl Drop for CacheSource {
-    fn drop(&mut self) {
-        // Closing the control channel ends the network task.
-        self.ctl = None;
-        self.rx.close();
-        if let Some(t) = self.thread.take() {
-            let _ = t.join();
-        }
+        self.feed.status()
     }
 }
 
