@@ -692,10 +692,12 @@ impl Store {
             let sha = b
                 .wait(b.content_of_id(id))?
                 .ok_or_else(|| CacheError::NotFound(VolumeKey::Id(id).to_string()))?;
+            if let Some(v) = self.open.lock().ok().and_then(|o| o.get(&id).cloned()) {
+                return Ok(v);
+            }
             let v = b.wait(b.open_volume(&sha))?;
-            let meta = b.stream_meta(&v);
-            return Ok(Arc::new(OpenVolume {
-                meta,
+            let opened = Arc::new(OpenVolume {
+                meta: b.stream_meta(&v),
                 index: VolumeIndex {
                     header: v.head.header.clone(),
                     header_bytes: v.head.header_bytes.clone(),
@@ -706,7 +708,9 @@ impl Store {
                     sha256: v.sha256,
                     wsp_offset: v.head.wsp_offset,
                 },
-            }));
+            });
+            self.keep_open(id, &opened);
+            return Ok(opened);
         }
         if let Some(v) = self.open.lock().ok().and_then(|o| o.get(&id).cloned()) {
             return Ok(v);
@@ -735,18 +739,23 @@ impl Store {
             },
             data: VolumeData::File(file),
         });
+        // Only while still committed (a deletion may have raced this open).
+        if self.volumes.contains_key(key)? {
+            self.keep_open(id, &v);
+        }
+        Ok(v)
+    }
+
+    /// Keeps an opened volume for the next request (at most [`OPEN_VOLUMES`]).
+    fn keep_open(&self, id: u64, v: &Arc<OpenVolume>) {
         if let Ok(mut open) = self.open.lock() {
             if open.len() >= OPEN_VOLUMES {
                 if let Some(k) = open.keys().next().copied() {
                     open.remove(&k);
                 }
             }
-            // Only while still committed (a deletion may have raced this open).
-            if self.volumes.contains_key(key)? {
-                open.insert(id, v.clone());
-            }
+            open.insert(id, v.clone());
         }
-        Ok(v)
     }
 
     /// One packet's bytes.
