@@ -22,7 +22,7 @@
 //! stream's task are async ([`Bucket::read`]).
 
 use crate::error::CacheError;
-use crate::model::{PacketMeta, VolumeKey, VolumeMeta};
+use crate::model::{hex, PacketMeta, VolumeKey, VolumeMeta};
 use bytes::Bytes;
 use futures_util::{StreamExt, TryStreamExt};
 use object_store::path::Path as ObjectPath;
@@ -31,10 +31,8 @@ use std::collections::HashMap;
 use std::num::NonZeroUsize;
 use std::ops::Range;
 use std::sync::{Arc, Mutex};
-use wavesplat_codec::format::index::{read_indexed_head, HeadRead, IndexedHead};
+use wavesplat_codec::format::index::{read_indexed_head, HeadRead, IndexedHead, HEAD_READ_BYTES};
 
-/// Bytes asked for first when a volume's head is read: most heads fit.
-const FIRST_HEAD_BYTES: u64 = 64 << 10;
 /// Name records fetched at once when listing.
 const LIST_CONCURRENCY: usize = 16;
 /// Parsed heads kept per node.
@@ -118,10 +116,6 @@ pub fn content_id(sha256: &[u8; 32]) -> u64 {
     let mut b = [0u8; 8];
     b.copy_from_slice(&sha256[..8]);
     u64::from_be_bytes(b) >> 1
-}
-
-fn hex(bytes: &[u8]) -> String {
-    crate::model::hex(bytes)
 }
 
 fn unhex(s: &str) -> Option<Vec<u8>> {
@@ -355,7 +349,7 @@ impl Bucket {
             .get_opts(
                 &path,
                 object_store::GetOptions {
-                    range: Some(object_store::GetRange::Bounded(0..FIRST_HEAD_BYTES)),
+                    range: Some(object_store::GetRange::Bounded(0..HEAD_READ_BYTES)),
                     ..Default::default()
                 },
             )

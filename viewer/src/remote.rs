@@ -24,14 +24,13 @@ use std::collections::HashSet;
 use std::ops::Range;
 use std::sync::{Arc, Mutex};
 use tokio::sync::mpsc;
-use wavesplat_codec::format::index::{read_indexed_head, HeadRead, IndexedHead, PacketMeta};
+use wavesplat_codec::format::index::{
+    read_indexed_head, HeadRead, IndexedHead, PacketMeta, HEAD_READ_BYTES,
+};
 use wavesplat_codec::format::packet::decode_packet;
 use wavesplat_codec::format::{parse_prelude, FormatError, Header};
 use wavesplat_codec::view::priority::Priority;
 use wavesplat_codec::view::ViewSpec;
-
-/// Bytes asked for first: most heads fit.
-const FIRST_BYTES: u64 = 64 << 10;
 
 /// Settings of a range source.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -160,7 +159,7 @@ async fn read_head(
         .get_opts(
             path,
             object_store::GetOptions {
-                range: Some(object_store::GetRange::Bounded(0..FIRST_BYTES)),
+                range: Some(object_store::GetRange::Bounded(0..HEAD_READ_BYTES)),
                 ..Default::default()
             },
         )

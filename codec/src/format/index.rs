@@ -32,6 +32,9 @@ pub const INDEXED_MAGIC: &[u8; 4] = b"WSPX";
 pub const INDEXED_VERSION: u16 = 1;
 /// Bytes before the index: magic, version, `.wsp` length, index length, index CRC.
 pub const INDEXED_HEAD_BYTES: usize = 4 + 2 + 8 + 4 + 4;
+/// What a range reader asks for first: the head, the index and the `.wsp` header of most
+/// volumes fit (the rest comes in a second request, [`HeadRead::Need`]).
+pub const HEAD_READ_BYTES: u64 = 64 << 10;
 /// Largest index accepted (bytes).
 pub const MAX_INDEX_BYTES: u32 = 256 << 20;
 
