@@ -238,6 +238,22 @@ impl ViewArgs {
         Ok(spec)
     }
 
+    /// For a source opened with `first` before the volume was known (a cache stream, range
+    /// requests): the view for the volume ([`ViewArgs::spec_for`]: a named view, the fitting
+    /// zoom), handed to the source when it differs, before the first frame.
+    fn respec(
+        &self,
+        header: &Header,
+        first: ViewSpec,
+        source: &mut dyn PacketSource,
+    ) -> Result<ViewSpec> {
+        let spec = self.spec_for(header)?;
+        if spec != first {
+            source.set_view(&spec);
+        }
+        Ok(spec)
+    }
+
     /// Session settings from the options.
     pub fn session_options(&self) -> SessionOptions {
         SessionOptions {
@@ -297,11 +313,7 @@ pub fn open(args: &ViewArgs, byte_budget: Option<u64>) -> Result<(Header, Opened
             let (mut source, header) =
                 RangeSource::open(&url, first, RangeSourceOptions::default())
                     .with_context(|| format!("opening {url}"))?;
-            // A named view and the fitting zoom need the volume, which came with the head.
-            let spec = args.spec_for(&header)?;
-            if spec != first {
-                source.set_view(&spec);
-            }
+            let spec = args.respec(&header, first, &mut source)?;
             Ok((header, Opened::Remote { url, source }, spec))
         }
         (Some(path), _, _) => {
@@ -334,12 +346,7 @@ pub fn open(args: &ViewArgs, byte_budget: Option<u64>) -> Result<(Header, Opened
             let (mut source, header) =
                 CacheSource::open_with(url, &connect, key.clone(), first, options)
                     .with_context(|| format!("opening {name:?} at {url}"))?;
-            // A named view and the fitting zoom need the volume's header, which the stream
-            // brought: the view is changed on the same stream before its first frame.
-            let spec = args.spec_for(&header.header)?;
-            if spec != first {
-                source.set_view(&spec);
-            }
+            let spec = args.respec(&header.header, first, &mut source)?;
             Ok((
                 header.header,
                 Opened::Cache {
