@@ -192,19 +192,21 @@ fn inconsistent_series_are_reported() {
     let (_, files) = series(&d, [4, 4, 4], &o);
     let mut obj = open_file(&files[3]).unwrap();
     let p = oblique().position([1.0, 1.0, 2.0], [0.0, 0.0, 2.5]);
-    obj.put(DataElement::new(
+    set(
+        &mut obj,
         tags::IMAGE_POSITION_PATIENT,
         VR::DS,
         PrimitiveValue::from(format!("{}\\{}\\{}", p[0], p[1], p[2])),
-    ));
+    );
     obj.write_to_file(&files[3]).unwrap();
     expect_series_error(&d, "irregular slice spacing");
     let p = oblique().position([1.0, 1.0, 2.0], [0.0, 0.0, 1.0]);
-    obj.put(DataElement::new(
+    set(
+        &mut obj,
         tags::IMAGE_POSITION_PATIENT,
         VR::DS,
         PrimitiveValue::from(format!("{}\\{}\\{}", p[0], p[1], p[2])),
-    ));
+    );
     obj.write_to_file(&files[3]).unwrap();
     expect_series_error(&d, "same position");
 
@@ -233,6 +235,14 @@ fn inconsistent_series_are_reported() {
 
 /// An edit of a fixture's data set.
 type Edit = Box<dyn Fn(&mut DefaultDicomObject)>;
+
+/// Puts an element into a data set (replacing one with its tag).
+fn set<V>(o: &mut InMemDicomObject, tag: Tag, vr: VR, value: V)
+where
+    V: Into<dicom_core::value::Value<InMemDicomObject, dicom_core::value::InMemFragment>>,
+{
+    o.put(DataElement::new(tag, vr, value));
+}
 
 /// Rewrites a fixture file with `edit` applied to its data set.
 fn edit(path: &Path, edit: impl FnOnce(&mut DefaultDicomObject)) {
@@ -264,21 +274,13 @@ fn bad_attributes_name_the_file_and_the_tag() {
         (
             "(0028,0100) Bits Allocated",
             Box::new(|o| {
-                o.put(DataElement::new(
-                    tags::BITS_ALLOCATED,
-                    VR::US,
-                    PrimitiveValue::from(12u16),
-                ));
+                set(o, tags::BITS_ALLOCATED, VR::US, PrimitiveValue::from(12u16));
             }),
         ),
         (
             "(0028,0102) High Bit",
             Box::new(|o| {
-                o.put(DataElement::new(
-                    tags::HIGH_BIT,
-                    VR::US,
-                    PrimitiveValue::from(3u16),
-                ));
+                set(o, tags::HIGH_BIT, VR::US, PrimitiveValue::from(3u16));
             }),
         ),
         (
@@ -296,41 +298,30 @@ fn bad_attributes_name_the_file_and_the_tag() {
         (
             "(0028,0030) Pixel Spacing",
             Box::new(|o| {
-                o.put(DataElement::new(
-                    tags::PIXEL_SPACING,
-                    VR::DS,
-                    PrimitiveValue::from("0\\1"),
-                ));
+                set(o, tags::PIXEL_SPACING, VR::DS, PrimitiveValue::from("0\\1"));
             }),
         ),
         (
             "(0028,1053) Rescale Slope",
             Box::new(|o| {
-                o.put(DataElement::new(
-                    tags::RESCALE_SLOPE,
-                    VR::DS,
-                    PrimitiveValue::from("0"),
-                ));
+                set(o, tags::RESCALE_SLOPE, VR::DS, PrimitiveValue::from("0"));
             }),
         ),
         (
             "(0028,1053) Rescale Slope",
             Box::new(|o| {
-                o.put(DataElement::new(
-                    tags::RESCALE_SLOPE,
-                    VR::DS,
-                    PrimitiveValue::from("NaN"),
-                ));
+                set(o, tags::RESCALE_SLOPE, VR::DS, PrimitiveValue::from("NaN"));
             }),
         ),
         (
             "(0028,0004) Photometric Interpretation",
             Box::new(|o| {
-                o.put(DataElement::new(
+                set(
+                    o,
                     tags::PHOTOMETRIC_INTERPRETATION,
                     VR::CS,
                     PrimitiveValue::from("HSV"),
-                ));
+                );
             }),
         ),
         (
@@ -343,21 +334,14 @@ fn bad_attributes_name_the_file_and_the_tag() {
         (
             "(0028,0008) Number of Frames",
             Box::new(|o| {
-                o.put(DataElement::new(
-                    tags::ROWS,
-                    VR::US,
-                    PrimitiveValue::from(65535u16),
-                ));
-                o.put(DataElement::new(
-                    tags::COLUMNS,
-                    VR::US,
-                    PrimitiveValue::from(65535u16),
-                ));
-                o.put(DataElement::new(
+                set(o, tags::ROWS, VR::US, PrimitiveValue::from(65535u16));
+                set(o, tags::COLUMNS, VR::US, PrimitiveValue::from(65535u16));
+                set(
+                    o,
                     tags::NUMBER_OF_FRAMES,
                     VR::IS,
                     PrimitiveValue::from("1000"),
-                ));
+                );
             }),
         ),
     ];
@@ -372,16 +356,8 @@ fn bad_attributes_name_the_file_and_the_tag() {
     let d = root.path().join("short");
     let (_, files) = series(&d, [4, 4, 1], &o);
     edit(&files[0], |o| {
-        o.put(DataElement::new(
-            tags::ROWS,
-            VR::US,
-            PrimitiveValue::from(4096u16),
-        ));
-        o.put(DataElement::new(
-            tags::COLUMNS,
-            VR::US,
-            PrimitiveValue::from(4096u16),
-        ));
+        set(o, tags::ROWS, VR::US, PrimitiveValue::from(4096u16));
+        set(o, tags::COLUMNS, VR::US, PrimitiveValue::from(4096u16));
     });
     expect_tag_error(&d, &files[0], "(7FE0,0010) Pixel Data");
 
@@ -396,16 +372,8 @@ fn bad_attributes_name_the_file_and_the_tag() {
     let v = volume([4, 4, 2], [1.0; 3], Layout::I16, 1.0, 0.0);
     write_dicom_multiframe(&path, &v, &rle);
     edit(&path, |o| {
-        o.put(DataElement::new(
-            tags::ROWS,
-            VR::US,
-            PrimitiveValue::from(30000u16),
-        ));
-        o.put(DataElement::new(
-            tags::COLUMNS,
-            VR::US,
-            PrimitiveValue::from(30000u16),
-        ));
+        set(o, tags::ROWS, VR::US, PrimitiveValue::from(30000u16));
+        set(o, tags::COLUMNS, VR::US, PrimitiveValue::from(30000u16));
     });
     let e = read_volume(&path, None).unwrap_err().to_string();
     assert!(e.contains("expansion") || e.contains("Pixel Data"), "{e}");
@@ -484,11 +452,7 @@ fn hostile_element_lengths_allocate_nothing_large() {
     let v = volume([4, 4, 1], [1.0; 3], Layout::I16, 1.0, 0.0);
     let files = write_dicom_series(&dir.path().join("src"), &v, &DicomOptions::default());
     edit(&files[0], |o| {
-        o.put(DataElement::new(
-            Tag(0x0040, 0xA160),
-            VR::UT,
-            PrimitiveValue::from("ab"),
-        ));
+        set(o, Tag(0x0040, 0xA160), VR::UT, PrimitiveValue::from("ab"));
     });
     let mut bytes = std::fs::read(&files[0]).unwrap();
     let pat = [0x40, 0x00, 0x60, 0xA1, b'U', b'T', 0, 0, 2, 0, 0, 0];
@@ -526,7 +490,7 @@ fn hostile_element_lengths_allocate_nothing_large() {
                 VR::FD => PrimitiveValue::F64([1.5, 2.5][..].into()),
                 _ => PrimitiveValue::U16([7, 9][..].into()),
             };
-            o.put(DataElement::new(Tag(0x0083, 0x0032), vr, value));
+            set(o, Tag(0x0083, 0x0032), vr, value);
         });
         let mut bytes = std::fs::read(&files[0]).unwrap();
         let name = vr.to_string();
@@ -585,21 +549,14 @@ fn a_small_file_cannot_declare_a_large_volume() {
         let d = root.path().join(format!("c{i}"));
         let (_, files) = series(&d, [4, 4, 1], &DicomOptions::default());
         edit(&files[0], |o| {
-            o.put(DataElement::new(
-                tags::ROWS,
-                VR::US,
-                PrimitiveValue::from(rows),
-            ));
-            o.put(DataElement::new(
-                tags::COLUMNS,
-                VR::US,
-                PrimitiveValue::from(cols),
-            ));
-            o.put(DataElement::new(
+            set(o, tags::ROWS, VR::US, PrimitiveValue::from(rows));
+            set(o, tags::COLUMNS, VR::US, PrimitiveValue::from(cols));
+            set(
+                o,
                 tags::NUMBER_OF_FRAMES,
                 VR::IS,
                 PrimitiveValue::from(frames),
-            ));
+            );
         });
         let e = read_volume(&d, None).unwrap_err();
         let msg = e.to_string();
@@ -622,16 +579,8 @@ fn many_small_files_cannot_add_up_to_a_large_volume() {
     let (_, files) = series(root.path(), [4, 4, 4], &o);
     for f in &files {
         edit(f, |o| {
-            o.put(DataElement::new(
-                tags::ROWS,
-                VR::US,
-                PrimitiveValue::from(1200u16),
-            ));
-            o.put(DataElement::new(
-                tags::COLUMNS,
-                VR::US,
-                PrimitiveValue::from(1200u16),
-            ));
+            set(o, tags::ROWS, VR::US, PrimitiveValue::from(1200u16));
+            set(o, tags::COLUMNS, VR::US, PrimitiveValue::from(1200u16));
         });
     }
     expect_series_error(root.path(), "bytes of files can hold");
@@ -707,14 +656,15 @@ fn rt_dose(path: &Path, ts: &str, stored: &[u32], dims: [usize; 3], offsets: &[f
                 fixtures::rle_frame(&bytes, 4, 1)
             })
             .collect();
-        obj.put(DataElement::new(
+        set(
+            &mut obj,
             tags::PIXEL_DATA,
             VR::OB,
             dicom_core::DicomValue::from(dicom_core::value::PixelFragmentSequence::new(
                 Vec::<u32>::new(),
                 fragments,
             )),
-        ));
+        );
     } else {
         obj.put(e(
             tags::PIXEL_DATA,
@@ -813,11 +763,7 @@ fn attributes_written_as_unknown_vr_are_read_as_their_standard_vr() {
             if bytes.len() % 2 == 1 {
                 bytes.push(b' ');
             }
-            obj.put(DataElement::new(
-                tag,
-                VR::UN,
-                PrimitiveValue::U8(bytes.into()),
-            ));
+            set(&mut obj, tag, VR::UN, PrimitiveValue::U8(bytes.into()));
         }
         obj.write_to_file(f).unwrap();
         let back = open_file(f).unwrap();
@@ -844,21 +790,24 @@ fn temporal_multiframe_files_are_refused_as_time_series() {
     // Make it what an MR cine looks like: no per-frame positions, frames stepped by time.
     let mut obj = open_file(&path).unwrap();
     obj.remove_element(tags::PER_FRAME_FUNCTIONAL_GROUPS_SEQUENCE);
-    obj.put(DataElement::new(
+    set(
+        &mut obj,
         tags::IMAGE_POSITION_PATIENT,
         VR::DS,
         PrimitiveValue::from("0\\0\\0".to_string()),
-    ));
-    obj.put(DataElement::new(
+    );
+    set(
+        &mut obj,
         tags::FRAME_INCREMENT_POINTER,
         VR::AT,
         PrimitiveValue::Tags(vec![tags::FRAME_TIME].into()),
-    ));
-    obj.put(DataElement::new(
+    );
+    set(
+        &mut obj,
         tags::FRAME_TIME,
         VR::DS,
         PrimitiveValue::from("33.3".to_string()),
-    ));
+    );
     obj.write_to_file(&path).unwrap();
     let e = read_volume(&path, None).unwrap_err().to_string();
     assert!(e.contains("time series") && e.contains("Frame Time"), "{e}");
@@ -881,16 +830,18 @@ fn series_of_several_time_points_are_refused_as_time_series() {
     for (t, files) in [(1, &first), (2, &second)] {
         for (i, f) in files.iter().enumerate() {
             let mut obj = open_file(f).unwrap();
-            obj.put(DataElement::new(
+            set(
+                &mut obj,
                 tags::TEMPORAL_POSITION_IDENTIFIER,
                 VR::IS,
                 PrimitiveValue::from(t.to_string()),
-            ));
-            obj.put(DataElement::new(
+            );
+            set(
+                &mut obj,
                 tags::SOP_INSTANCE_UID,
                 VR::UI,
                 PrimitiveValue::from(format!("1.2.826.0.1.3680043.9.7433.4.{t}.{i}")),
-            ));
+            );
             obj.write_to_file(series.join(format!("t{t}-{i}.dcm")))
                 .unwrap();
         }
@@ -993,11 +944,12 @@ fn lossy_rgb_jpeg_with_an_adobe_marker_keeps_its_colours() {
             PrimitiveValue::from(0u16),
         ),
     ]);
-    obj.put(DataElement::new(
+    set(
+        &mut obj,
         tags::PIXEL_DATA,
         VR::OB,
         dicom_core::DicomValue::from(PixelFragmentSequence::new(Vec::<u32>::new(), vec![jpeg])),
-    ));
+    );
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("adobe-rgb.dcm");
     obj.with_meta(FileMetaTableBuilder::new().transfer_syntax(uids::JPEG_BASELINE8_BIT))
@@ -1184,14 +1136,15 @@ fn jpeg_2000_series_coded_by_openjpeg_read_back() {
                 j2k.push(0);
             }
             edit(f, |o| {
-                o.put(DataElement::new(
+                set(
+                    o,
                     tags::PIXEL_DATA,
                     VR::OB,
                     dicom_core::DicomValue::from(PixelFragmentSequence::new(
                         Vec::<u32>::new(),
                         vec![j2k.clone()],
                     )),
-                ));
+                );
                 o.update_meta(|m| m.transfer_syntax = ts.into());
             });
         }
@@ -1268,11 +1221,12 @@ fn ybr_full_and_ybr_full_422_read_as_rgb() {
         let files = write_dicom_series(dir.path(), &stored, &o);
         for f in &files {
             edit(f, |o| {
-                o.put(DataElement::new(
+                set(
+                    o,
                     tags::PHOTOMETRIC_INTERPRETATION,
                     VR::CS,
                     PrimitiveValue::from("YBR_FULL".to_string()),
-                ));
+                );
             });
         }
         let back = read_volume(dir.path(), None).unwrap_or_else(|e| panic!("{what}: {e}"));
@@ -1296,16 +1250,18 @@ fn ybr_full_and_ybr_full_422_read_as_rgb() {
             packed.extend_from_slice(&[a[0] as u8, b[0] as u8, a[1] as u8, a[2] as u8]);
         }
         edit(f, |o| {
-            o.put(DataElement::new(
+            set(
+                o,
                 tags::PHOTOMETRIC_INTERPRETATION,
                 VR::CS,
                 PrimitiveValue::from("YBR_FULL_422".to_string()),
-            ));
-            o.put(DataElement::new(
+            );
+            set(
+                o,
                 tags::PIXEL_DATA,
                 VR::OB,
                 PrimitiveValue::U8(packed.clone().into()),
-            ));
+            );
         });
     }
     let back = read_volume(dir.path(), None).unwrap();
@@ -1488,11 +1444,12 @@ fn palette_colour_series_read_as_their_colours() {
     };
     for f in &files {
         edit(f, |o| {
-            o.put(DataElement::new(
+            set(
+                o,
                 tags::PHOTOMETRIC_INTERPRETATION,
                 VR::CS,
                 PrimitiveValue::from("PALETTE COLOR".to_string()),
-            ));
+            );
             o.remove_element(tags::RESCALE_SLOPE);
             o.remove_element(tags::RESCALE_INTERCEPT);
             for (c, (d, t)) in [
@@ -1512,16 +1469,13 @@ fn palette_colour_series_read_as_their_colours() {
             .into_iter()
             .enumerate()
             {
-                o.put(DataElement::new(
+                set(
+                    o,
                     d,
                     VR::US,
                     PrimitiveValue::U16(vec![entries as u16, first, 16].into()),
-                ));
-                o.put(DataElement::new(
-                    t,
-                    VR::OW,
-                    PrimitiveValue::U16(table(c).into()),
-                ));
+                );
+                set(o, t, VR::OW, PrimitiveValue::U16(table(c).into()));
             }
         });
     }
@@ -1587,38 +1541,28 @@ fn one_bit_masks_read_as_zero_and_one() {
             )
         };
         let d = p.directions;
-        obj.put(DataElement::new(
-            tags::IMAGE_POSITION_PATIENT,
-            VR::DS,
-            ds(&p.origin),
-        ));
-        obj.put(DataElement::new(
+        set(obj, tags::IMAGE_POSITION_PATIENT, VR::DS, ds(&p.origin));
+        set(
+            obj,
             tags::IMAGE_ORIENTATION_PATIENT,
             VR::DS,
             ds(&[d[0][0], d[0][1], d[0][2], d[1][0], d[1][1], d[1][2]]),
-        ));
-        obj.put(DataElement::new(
-            tags::PIXEL_SPACING,
-            VR::DS,
-            ds(&[1.0, 1.0]),
-        ));
-        obj.put(DataElement::new(
-            tags::SPACING_BETWEEN_SLICES,
-            VR::DS,
-            ds(&[2.0]),
-        ));
+        );
+        set(obj, tags::PIXEL_SPACING, VR::DS, ds(&[1.0, 1.0]));
+        set(obj, tags::SPACING_BETWEEN_SLICES, VR::DS, ds(&[2.0]));
         for (tag, value) in [
             (tags::BITS_ALLOCATED, 1u16),
             (tags::BITS_STORED, 1),
             (tags::HIGH_BIT, 0),
         ] {
-            obj.put(DataElement::new(tag, VR::US, PrimitiveValue::from(value)));
+            set(obj, tag, VR::US, PrimitiveValue::from(value));
         }
-        obj.put(DataElement::new(
+        set(
+            obj,
             tags::PIXEL_DATA,
             VR::OB,
             PrimitiveValue::U8(packed.clone().into()),
-        ));
+        );
     });
     let back = read_volume(&path, None).unwrap();
     assert_eq!(back.channel(0), v.channel(0));
