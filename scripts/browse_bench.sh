@@ -3,7 +3,7 @@
 # cache on 127.0.0.1, and renders an axis-aligned, an oblique and a zoomed-corner view from the
 # cache with the progressive session at a 16.6 ms frame budget, recording per frame the time,
 # the bytes received and Q_I against the image of all the data. Prints, per view, the time from
-# connecting to the first image, Q_I (paper units, against the image of all the data: the
+# the request (client start-up included) to the first image, Q_I (paper units, against the image of all the data: the
 # splats' own error is not in it) when growing shares of the bytes had arrived and at fixed
 # times, when everything had arrived and when the image had converged; the per-frame CSVs stay
 # in OUT/VIEW/frames.csv and the PNGs of frames 1, 2, 4, … beside them.

@@ -7,8 +7,9 @@
 #   - a cache node over an S3 bucket (serve cache --store s3://…, SeaweedFS on the server host),
 #   - range requests to a web server (nginx) serving the published .wspx,
 #   - range requests to the bucket directly (s3://…),
-# RUNS times each, printing per source: opened (ms), first image after opening (ms), requests
-# before the first packet (range sources), converged (ms after opening), bytes received.
+# RUNS times each, printing per source, in ms after the request (the render command's start,
+# client start-up included): opened, first image, converged; and the requests before the first
+# packet (range sources) and the bytes received.
 #   sudo bash scripts/link_bench.sh [OUT_DIR] [RATE] [RTT_MS] [RUNS]
 set -euo pipefail
 ROOT="$(cd "$(dirname "$0")/.." && pwd)"
@@ -16,7 +17,7 @@ OUT="${1:-$ROOT/out/link}"
 RATE="${2:-30mbit}"
 RTT="${3:-30}"
 RUNS="${4:-3}"
-BIN="$ROOT/target/release/wavesplat"
+BIN="${WAVESPLAT_BIN:-$ROOT/target/release/wavesplat}"   # another build to compare
 VOL="$ROOT/../shared/data/mni152_t1_1mm.nii.gz"
 [ -x "$BIN" ] || (cd "$ROOT" && cargo build --release -q)
 mkdir -p "$OUT/www" "$OUT/weed"
@@ -71,7 +72,7 @@ for p in 50051 50052 8080 8333; do
 done
 sleep 1
 echo "file: $(stat -c %s "$OUT/mni.wsp") bytes (.wspx $(stat -c %s "$OUT/www/mni.wspx")), link $RATE, ${RTT} ms round trip"
-echo "| source | opened (ms) | first image after opening (ms) | requests before the first packet | converged after opening (ms) | bytes received |"
+echo "| source | opened (ms) | first image (ms) | requests before the first packet | converged (ms) | bytes received |"
 echo "|---|---|---|---|---|---|"
 measure() {  # name, render source arguments...
   local name=$1; shift
@@ -82,7 +83,7 @@ measure() {  # name, render source arguments...
     local opened first total req bytes
     opened=$(echo "$log" | sed -n 's/^opened in \([0-9.]*\) ms.*/\1/p')
     first=$(echo "$log" | sed -n 's/.*first image \([0-9.]*\) ms.*/\1/p')
-    total=$(echo "$log" | sed -n 's/.* frames in \([0-9.]*\) ms.*/\1/p')
+    total=$(echo "$log" | sed -n 's/.* done \([0-9.]*\) ms.*/\1/p')
     bytes=$(echo "$log" | sed -n 's/.* packets, \([0-9]*\) bytes received.*/\1/p')
     req=$(echo "$log" | sed -n 's/^range requests: [0-9]* (\([0-9]*\) before.*/\1/p')
     echo "| $name #$i | $opened | $first | ${req:--} | $total | $bytes |"

@@ -120,12 +120,19 @@ impl<B: AccumulationBackend, S: PacketSource> FrameLoop<B, S> {
             } else {
                 intake_until.min(splat_deadline)
             };
+            // While the view is still blank, the first packet that queues anything is splatted
+            // before another is taken: a packet takes milliseconds to decode, and the first
+            // image should not wait for the ones after it.
+            let blank = self.session.stats().splatted_in_view == 0;
             while self.session.wants_packets() && clock.now() < until {
                 let Some(p) = self.source.try_next() else {
                     break;
                 };
                 self.session.add_from_source(p)?;
                 report.packets += 1;
+                if blank && self.session.pending() > 0 {
+                    break;
+                }
             }
             let dropped = self.session.take_dropped();
             if !dropped.is_empty() {

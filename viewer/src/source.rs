@@ -16,7 +16,8 @@ use std::sync::{Arc, Mutex};
 use std::time::Duration;
 use tokio::sync::mpsc;
 use wavesplat_client::{
-    CacheClient, ClientError, ConnectOptions, RefineEvent, RefineRequest, VolumeHeader, VolumeKey,
+    CacheClient, ClientError, ConnectOptions, RefineEvent, RefineRequest, RefineStream,
+    VolumeHeader, VolumeKey,
 };
 use wavesplat_codec::format::packet::{decode_packet, read_framing, Coefficient};
 use wavesplat_codec::format::{check_kept, parse_file, FormatError, Header};
@@ -427,16 +428,28 @@ impl CacheSource {
             .enable_all()
             .build()
             .map_err(|e| SourceError::Thread(e.to_string()))?;
-        let (client, header, node) = runtime.block_on(async {
+        let (client, stream, header, node) = runtime.block_on(async {
             let mut last = None;
             for (i, u) in urls.iter().enumerate() {
+                // The stream brings the header as its first message, so opening costs one
+                // round trip after connecting, not a header request and then a stream.
                 let attempt = async {
                     let mut client = CacheClient::connect_with(u, connect).await?;
-                    let header = client.header(&volume).await?;
-                    Ok::<_, ClientError>((client, header))
+                    let mut stream = client
+                        .refine(stream_request(&volume, spec, Vec::new(), false, &options))
+                        .await?;
+                    match stream.next().await? {
+                        Some(RefineEvent::Header(h)) => Ok::<_, ClientError>((client, stream, *h)),
+                        Some(_) => Err(ClientError::Protocol(
+                            "the stream did not begin with the volume's header".into(),
+                        )),
+                        None => Err(ClientError::Protocol(
+                            "the stream ended before the volume's header".into(),
+                        )),
+                    }
                 };
                 match attempt.await {
-                    Ok((c, h)) => return Ok((c, h, i)),
+                    Ok((c, s, h)) => return Ok((c, s, h, i)),
                     // A node that answers that the volume is missing speaks for the store.
                     Err(e) if urls.len() == 1 || !e.is_node_failure() => return Err(e),
                     Err(e) => {
@@ -471,7 +484,7 @@ impl CacheSource {
             runtime,
             options.queue_packets,
             status,
-            move |tx, ctl| task.run(client, tx, ctl),
+            move |tx, ctl| task.run(client, Some(stream), tx, ctl),
         )?;
         Ok((CacheSource { feed }, header))
     }
@@ -493,6 +506,21 @@ impl PacketSource for CacheSource {
     fn status(&self) -> SourceStatus {
         self.feed.status()
     }
+}
+
+/// The request that opens a stream of `volume` for `view`, holding `held` (and the header if
+/// `have_header`), with the source's credit and visibility settings.
+fn stream_request(
+    volume: &VolumeKey,
+    view: ViewSpec,
+    held: Vec<u32>,
+    have_header: bool,
+    options: &CacheSourceOptions,
+) -> RefineRequest {
+    RefineRequest::new(volume.clone(), view)
+        .holding(held, have_header)
+        .with_credit(options.credit_bytes.max(1))
+        .visible_only(options.visible_only)
 }
 
 /// The network task's state.
@@ -529,9 +557,12 @@ impl Pull {
         f(&mut s);
     }
 
+    /// Streams until the session goes away, starting with `opened` (a stream already open on
+    /// `client`, its header taken) and reconnecting when a stream fails.
     async fn run(
         mut self,
         client: CacheClient,
+        mut opened: Option<RefineStream>,
         tx: mpsc::Sender<SourcePacket>,
         mut ctl: mpsc::UnboundedReceiver<Control>,
     ) {
@@ -559,7 +590,7 @@ impl Pull {
                     }
                 },
             };
-            match self.stream(c, &tx, &mut ctl).await {
+            match self.stream(c, opened.take(), &tx, &mut ctl).await {
                 Ended::Closed => return,
                 Ended::Failed(e) => {
                     tracing::warn!(error = %e, "cache stream failed; reconnecting");
@@ -624,21 +655,26 @@ impl Pull {
         self.options.byte_budget.is_none_or(|b| bytes < b)
     }
 
+    /// Runs one stream: `opened` if given (opened for the current view while connecting),
+    /// else a new one on `client` that resumes with what the session holds.
     async fn stream(
         &mut self,
         mut client: CacheClient,
+        opened: Option<RefineStream>,
         tx: &mpsc::Sender<SourcePacket>,
         ctl: &mut mpsc::UnboundedReceiver<Control>,
     ) -> Ended {
-        let mut held: Vec<u32> = self.held.iter().copied().collect();
-        held.sort_unstable();
-        let request = RefineRequest::new(self.volume.clone(), self.view)
-            .holding(held, true)
-            .with_credit(self.options.credit_bytes.max(1))
-            .visible_only(self.options.visible_only);
-        let mut stream = match client.refine(request).await {
-            Ok(s) => s,
-            Err(e) => return Ended::Failed(e.to_string()),
+        let mut stream = match opened {
+            Some(s) => s,
+            None => {
+                let mut held: Vec<u32> = self.held.iter().copied().collect();
+                held.sort_unstable();
+                let request = stream_request(&self.volume, self.view, held, true, &self.options);
+                match client.refine(request).await {
+                    Ok(s) => s,
+                    Err(e) => return Ended::Failed(e.to_string()),
+                }
+            }
         };
         self.update(|s| {
             s.connected = true;

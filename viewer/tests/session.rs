@@ -537,6 +537,41 @@ fn frames_keep_refining_and_never_run_more_than_one_batch_past_the_budget() {
     }
 }
 
+/// A blank view is drawn from its first packet: when every packet is there at once and each
+/// takes 5 ms to take in (a third of the frame), the first frame splats the first packet before
+/// it takes more, instead of spending the frame on intake and showing nothing.
+#[test]
+fn the_first_frame_splats_its_first_packet_before_taking_more() {
+    let bytes = wsp(Phantom::SheppLogan, 64, 16);
+    let s = spec(0.66, 0.91);
+    let budget = Duration::from_micros(16_600);
+    let clock = SimClock::default();
+    let backend = SimBackend::stepped(&clock, vec![2_000]);
+    let options = SessionOptions {
+        min_batch: 64,
+        ..Default::default()
+    };
+    let (header, _) = all(&bytes);
+    let session = RenderSession::new(header, s, backend, options).unwrap();
+    let source = TrickleSource {
+        inner: FileSource::open(bytes, &s).unwrap(),
+        per_frame: usize::MAX,
+        allowance: usize::MAX,
+        clock: clock.clone(),
+        take_cost: Duration::from_millis(5),
+    };
+    let total = source.inner.packet_count();
+    assert!(total > 4, "the test needs several packets: {total}");
+    let mut f = FrameLoop::new(session, source);
+    let first = f.frame_with(budget, &clock).unwrap();
+    assert!(first.packets >= 1, "{first:?}");
+    assert!(
+        first.coefficients > 0,
+        "the first frame drew nothing: {first:?}"
+    );
+    assert!(f.session.stats().splatted_in_view > 0);
+}
+
 /// A new view is drawn at once with preview tables, then with the exact tables built in the
 /// background; it ends on the one-shot image, and a view whose tables are cached is exact at
 /// once. On the axis too (every centre of a column shares one phase there).
