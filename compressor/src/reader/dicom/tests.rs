@@ -1042,23 +1042,157 @@ fn slice_of(f: &Path, v: &Volume) -> usize {
     (d / f64::from(v.spacing()[2])).round() as usize
 }
 
-/// `opj_compress` (OpenJPEG's command-line encoder, Debian's `libopenjp2-tools`): the test's
-/// independent JPEG 2000 encoder. Missing, the test says so and passes only when
-/// `WAVESPLAT_REQUIRE_REFERENCE_TOOLS` is unset (CI sets it, with the package installed).
-fn opj_compress() -> Option<&'static str> {
-    let found = std::process::Command::new("opj_compress")
-        .arg("-h")
-        .output()
-        .is_ok();
+/// A reference coder's command `tool` (from the Debian package `package`), if installed.
+/// Missing, the test says so and passes only when `WAVESPLAT_REQUIRE_REFERENCE_TOOLS` is unset
+/// (CI sets it, with the package installed).
+fn reference_tool(tool: &'static str, package: &str) -> Option<&'static str> {
+    // Both coders print their usage and exit non-zero without arguments: being found is enough.
+    let found = std::process::Command::new(tool).output().is_ok();
     if !found {
         assert!(
             std::env::var_os("WAVESPLAT_REQUIRE_REFERENCE_TOOLS").is_none(),
-            "opj_compress is missing (apt-get install libopenjp2-tools)"
+            "{tool} is missing (apt-get install {package})"
         );
-        eprintln!("skipped: opj_compress missing (apt-get install libopenjp2-tools)");
+        eprintln!("skipped: {tool} missing (apt-get install {package})");
         return None;
     }
-    Some("opj_compress")
+    Some(tool)
+}
+
+/// `opj_compress` (OpenJPEG's command-line encoder, Debian's `libopenjp2-tools`): the test's
+/// independent JPEG 2000 encoder.
+fn opj_compress() -> Option<&'static str> {
+    reference_tool("opj_compress", "libopenjp2-tools")
+}
+
+/// Runs a reference coder, failing the test with its error output.
+fn run_tool(tool: &str, args: &[&str]) {
+    let out = std::process::Command::new(tool)
+        .args(args)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{tool} {args:?}: {}{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
+
+/// The samples of a 16-bit binary PGM (big-endian), the last `n`.
+fn pgm_samples(pgm: &[u8], n: usize) -> Vec<f32> {
+    pgm[pgm.len() - 2 * n..]
+        .chunks_exact(2)
+        .map(|b| f32::from(u16::from_be_bytes([b[0], b[1]])))
+        .collect()
+}
+
+/// High-Throughput JPEG 2000 (lossless, lossless RPCL and lossy), coded by OpenJPH
+/// (`ojph_compress`, Debian's `openjph-tools`, a coder independent of the OpenJPEG port that
+/// decodes it here) from the slices' samples and wrapped into the series' files: read back
+/// sample for sample as OpenJPH's own decoder (`ojph_expand`) reads them, and lossless equal
+/// to the source.
+#[test]
+fn high_throughput_jpeg_2000_coded_by_openjph_reads_back() {
+    use dicom_core::value::PixelFragmentSequence;
+    let Some(tool) = reference_tool("ojph_compress", "openjph-tools") else {
+        return;
+    };
+    // Not a power of two, and more than two decompositions' worth of samples.
+    let dims = [37, 29, 3];
+    let v = volume(dims, [0.7, 0.7, 2.0], Layout::U16, 1.0, 0.0);
+    let o = DicomOptions {
+        layout: Layout::U16,
+        ..Default::default()
+    };
+    let plane = dims[0] * dims[1];
+    for (name, ts, args) in [
+        (
+            "lossless",
+            "1.2.840.10008.1.2.4.201",
+            vec!["-reversible", "true"],
+        ),
+        (
+            "lossless RPCL",
+            "1.2.840.10008.1.2.4.202",
+            vec!["-reversible", "true", "-prog_order", "RPCL"],
+        ),
+        ("lossy", "1.2.840.10008.1.2.4.203", vec!["-qstep", "0.02"]),
+    ] {
+        let dir = tempfile::tempdir().unwrap();
+        let series = dir.path().join("series");
+        let mut reference = vec![0f32; v.voxel_count()];
+        for (z, f) in write_dicom_series(&series, &v, &o).iter().enumerate() {
+            let z_of = slice_of(f, &v);
+            let mut pgm = format!("P5\n{} {}\n65535\n", dims[0], dims[1]).into_bytes();
+            for x in &v.channel(0)[z_of * plane..(z_of + 1) * plane] {
+                pgm.extend_from_slice(&(*x as u16).to_be_bytes());
+            }
+            let (src, dst, decoded) = (
+                dir.path().join(format!("{z}.pgm")),
+                dir.path().join(format!("{z}.j2c")),
+                dir.path().join(format!("{z}-decoded.pgm")),
+            );
+            std::fs::write(&src, pgm).unwrap();
+            let (src, dst, decoded) = (
+                src.to_str().unwrap(),
+                dst.to_str().unwrap(),
+                decoded.to_str().unwrap(),
+            );
+            let mut coder_args = vec!["-i", src, "-o", dst, "-num_decomps", "2"];
+            coder_args.extend(&args);
+            run_tool(tool, &coder_args);
+            // What OpenJPH's own decoder makes of it: the reference for the lossy case.
+            run_tool("ojph_expand", &["-i", dst, "-o", decoded]);
+            reference[z_of * plane..(z_of + 1) * plane]
+                .copy_from_slice(&pgm_samples(&std::fs::read(decoded).unwrap(), plane));
+            let mut j2c = std::fs::read(dst).unwrap();
+            if j2c.len() % 2 == 1 {
+                j2c.push(0);
+            }
+            edit(f, |o| {
+                set(
+                    o,
+                    tags::PIXEL_DATA,
+                    VR::OB,
+                    dicom_core::DicomValue::from(PixelFragmentSequence::new(
+                        Vec::<u32>::new(),
+                        vec![j2c.clone()],
+                    )),
+                );
+                o.update_meta(|m| m.transfer_syntax = ts.into());
+            });
+        }
+        let back = read_volume(&series, None).unwrap_or_else(|e| panic!("{name}: {e}"));
+        if args.contains(&"-reversible") {
+            assert_same(&back, &v, name);
+            assert_eq!(back.channel(0), &reference[..], "{name}");
+        } else {
+            assert_ne!(back.channel(0), v.channel(0), "{name} should be lossy");
+            // The irreversible wavelet is floating point, and each decoder computes and rounds
+            // it its own way (OpenJPH and the OpenJPEG port differ by up to 2 of 65 535 on
+            // about half of the samples here): they must agree to 1 % of the coding error.
+            let worst = back
+                .channel(0)
+                .iter()
+                .zip(&reference)
+                .map(|(a, b)| (a - b).abs())
+                .fold(0f32, f32::max);
+            let coding = reference
+                .iter()
+                .zip(v.channel(0))
+                .map(|(a, b)| (a - b).abs())
+                .fold(0f32, f32::max);
+            assert!(
+                coding > 100.0,
+                "{name}: the coding error {coding} is too small to test"
+            );
+            assert!(
+                worst <= 0.01 * coding,
+                "{name}: differs from OpenJPH's decoder by {worst}, coding error {coding}"
+            );
+        }
+    }
 }
 
 /// JPEG 2000, lossless and lossy, coded by OpenJPEG's own encoder from the slices' samples and
@@ -1091,47 +1225,26 @@ fn jpeg_2000_series_coded_by_openjpeg_read_back() {
             for x in &v.channel(0)[z_of * plane..(z_of + 1) * plane] {
                 pgm.extend_from_slice(&(*x as u16).to_be_bytes());
             }
-            let (src, dst) = (
+            let (src, dst, decoded) = (
                 dir.path().join(format!("{z}.pgm")),
                 dir.path().join(format!("{z}.j2k")),
+                dir.path().join(format!("{z}-decoded.pgm")),
             );
             std::fs::write(&src, pgm).unwrap();
-            let out = std::process::Command::new(tool)
-                // Two resolution levels: the default six need images of at least 32².
-                .args([
-                    "-i",
-                    src.to_str().unwrap(),
-                    "-o",
-                    dst.to_str().unwrap(),
-                    "-n",
-                    "2",
-                ])
-                .args(&args)
-                .output()
-                .unwrap();
-            assert!(
-                out.status.success(),
-                "{}",
-                String::from_utf8_lossy(&out.stderr)
+            let (src, dst, decoded) = (
+                src.to_str().unwrap(),
+                dst.to_str().unwrap(),
+                decoded.to_str().unwrap(),
             );
+            // Two resolution levels: the default six need images of at least 32².
+            let mut coder_args = vec!["-i", src, "-o", dst, "-n", "2"];
+            coder_args.extend(&args);
+            run_tool(tool, &coder_args);
             // What OpenJPEG's own decoder makes of it: the reference for the lossy case.
-            let decoded = dir.path().join(format!("{z}-decoded.pgm"));
-            let out = std::process::Command::new("opj_decompress")
-                .args(["-i", dst.to_str().unwrap(), "-o", decoded.to_str().unwrap()])
-                .output()
-                .unwrap();
-            assert!(
-                out.status.success(),
-                "{}",
-                String::from_utf8_lossy(&out.stderr)
-            );
-            let pgm = std::fs::read(&decoded).unwrap();
-            let samples = &pgm[pgm.len() - 2 * plane..];
+            run_tool("opj_decompress", &["-i", dst, "-o", decoded]);
             reference[z_of * plane..(z_of + 1) * plane]
-                .iter_mut()
-                .zip(samples.chunks_exact(2))
-                .for_each(|(r, b)| *r = f32::from(u16::from_be_bytes([b[0], b[1]])));
-            let mut j2k = std::fs::read(&dst).unwrap();
+                .copy_from_slice(&pgm_samples(&std::fs::read(decoded).unwrap(), plane));
+            let mut j2k = std::fs::read(dst).unwrap();
             if j2k.len() % 2 == 1 {
                 j2k.push(0);
             }
