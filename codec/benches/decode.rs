@@ -149,6 +149,7 @@ fn make_file(coder: CoderKind, g: &Geometry, kept: &[Scored]) -> (Header, Vec<Ve
         bits: 8,
         tile: TILE,
         layer_bounds,
+        coarse_layer: false,
         score_threshold,
         substreams,
         tables: None,

@@ -80,12 +80,18 @@ pub struct CompressOptions {
     pub target: Target,
     /// Tiling.
     pub tile: TileChoice,
-    /// Quality layers (`None`: automatic).
+    /// Score layers, after the coarse layer (`None`: automatic).
     pub layers: Option<usize>,
     /// Each layer holds this many times the coefficients of all layers before it (> 1;
     /// [`LAYER_GROWTH`] by default). Smaller values give a finer coarse-to-fine progression in
     /// file order and bigger files.
     pub layer_growth: f64,
+    /// Put each tile's scaling band (the coarsest) in a layer of its own, ahead of the score
+    /// layers ([`Header::coarse_layer`]), so that a stream's first packets draw a coarse
+    /// picture of the whole volume. Only where that picture is coarse and there is a whole to
+    /// draw before the rest: at depths of [`COARSE_LAYER_MIN_LEVELS`] or more and with two
+    /// tiles or more (not with [`TileChoice::Single`], the paper's single sequence).
+    pub coarse_layer: bool,
     /// Spatial clustering (`None`: pure significance order; Huffman and range coders only).
     pub clustering: Option<Clustering>,
     /// Quantizer step of the sigmap coder, relative to each substream's smallest kept
@@ -111,6 +117,7 @@ impl Default for CompressOptions {
             tile: TileChoice::Auto,
             layers: None,
             layer_growth: LAYER_GROWTH,
+            coarse_layer: true,
             clustering: Some(Clustering {
                 radius: 4,
                 threshold: 0.5,
@@ -198,8 +205,10 @@ pub struct CompressStats {
     pub packets: u64,
     /// Tile size used.
     pub tile: usize,
-    /// Layers used.
+    /// Layers used, the coarse layer included.
     pub layers: usize,
+    /// Whether layer 0 is the coarse layer ([`Header::coarse_layer`]).
+    pub coarse_layer: bool,
     /// The kept values are a least-squares refinement (then Q_V and Q_E are over them, not over
     /// the transform's own coefficients as eq. 19–20 define).
     pub refined: bool,
@@ -526,6 +535,12 @@ pub const LAYER_GROWTH: f64 = 16.0;
 /// gives a spatial progression.
 const AUTO_TWO_LAYERS_BYTES: u64 = 512 << 10;
 
+/// Shallowest decomposition that gets a coarse layer ([`CompressOptions::coarse_layer`]). At
+/// M = 1 the scaling band is an eighth of the voxels and most of a file: not a coarse picture,
+/// and its one quantizer range over every score cost the test set's 5.85 % points 3 % of their
+/// coefficients (−1.3 dB Q_I) where the score layers' tighter ranges did not (BENCHMARKS.md).
+pub const COARSE_LAYER_MIN_LEVELS: usize = 2;
+
 /// Expected file size from which [`TileChoice::Auto`] uses three quality layers.
 const AUTO_THREE_LAYERS_BYTES: u64 = 4 << 20;
 
@@ -720,21 +735,34 @@ impl Prepared {
         let g = &self.geometry;
         let kept = &ranked.sorted[..k];
         let (tile, nl) = choose_tiling(g, opts.tile, opts.layers, expected_bytes);
-        let nl = nl.clamp(1, MAX_LAYERS);
-        // Layer l ends at rank k·G^(l−(L−1)) with G the layer growth: layer 0 holds the top
-        // k/G^(L−1).
+        let tiles: usize = g.padded.iter().map(|p| p.div_ceil(tile)).product();
+        let coarse_layer = opts.coarse_layer
+            && g.levels >= COARSE_LAYER_MIN_LEVELS
+            && tiles >= 2
+            && !matches!(opts.tile, TileChoice::Single);
+        // The score layers (after the coarse layer, when there is one).
+        let nl = nl.clamp(1, MAX_LAYERS - usize::from(coarse_layer));
+        let first_score_layer = usize::from(coarse_layer);
+        let locate = |s: &Scored| g.locate(s.index as usize);
+        let in_coarse_layer = |s: &Scored| coarse_layer && locate(s).0.kind == 0;
+        // What the score layers split: the kept coefficients outside the coarse layer, in
+        // significance order.
+        let ranked_rest: Vec<&Scored> = kept.iter().filter(|s| !in_coarse_layer(s)).collect();
+        let kr = ranked_rest.len();
+        // Score layer l ends at rank k·G^(l−(L−1)) with G the layer growth: layer 0 holds the
+        // top k/G^(L−1).
         let mut ends = Vec::with_capacity(nl);
         for l in 0..nl {
             let frac = opts.layer_growth.powi(l as i32 - (nl as i32 - 1));
-            ends.push(((k as f64 * frac).ceil() as usize).clamp(1.min(k), k));
+            ends.push(((kr as f64 * frac).ceil() as usize).clamp(1.min(kr), kr));
         }
-        let mut layer_bounds = Vec::with_capacity(nl);
+        let mut layer_bounds = vec![f64::INFINITY; first_score_layer];
         let mut start = 0usize;
         for (l, end) in ends.iter().enumerate() {
-            let bound = if l == 0 || start >= k {
+            let bound = if l == 0 || start >= kr {
                 f64::INFINITY
             } else {
-                kept[start].score
+                ranked_rest[start].score
             };
             layer_bounds.push(bound.min(layer_bounds.last().copied().unwrap_or(f64::INFINITY)));
             start = (*end).max(start);
@@ -743,7 +771,6 @@ impl Prepared {
         let nsub = self.channels * nb;
         // Substream parameters: w0 = largest magnitude, Δ from the sorted magnitudes (eq. 15).
         let mut mags: Vec<Vec<f64>> = vec![Vec::new(); nsub];
-        let locate = |s: &Scored| g.locate(s.index as usize);
         for s in kept {
             let (band, _) = locate(s);
             let sub = s.channel as usize * nb + g.band_index(band).expect("band");
@@ -788,6 +815,7 @@ impl Prepared {
             bits: opts.bits,
             tile,
             layer_bounds,
+            coarse_layer,
             score_threshold,
             substreams,
             tables: None,
@@ -799,11 +827,18 @@ impl Prepared {
         // Group by (layer, tile), keeping significance order inside each group.
         let mut groups: std::collections::BTreeMap<(usize, usize), Vec<(Scored, Coefficient)>> =
             Default::default();
-        let mut layer = 0usize;
-        for (rank, s) in kept.iter().enumerate() {
-            while rank >= ends[layer] {
-                layer += 1;
-            }
+        let mut score_layer = 0usize;
+        let mut rank = 0usize;
+        for s in kept {
+            let layer = if in_coarse_layer(s) {
+                0
+            } else {
+                while rank >= ends[score_layer] {
+                    score_layer += 1;
+                }
+                rank += 1;
+                first_score_layer + score_layer
+            };
             let (band, pos) = locate(s);
             let t = header.tile_of(band, pos);
             let c = Coefficient {
@@ -879,7 +914,8 @@ impl Prepared {
             header_bytes,
             packets: inputs.len() as u64,
             tile,
-            layers: nl,
+            layers: nl + first_score_layer,
+            coarse_layer,
             refined: ranked.refined > 0 && k > 0,
         };
         Compressed {

@@ -5,8 +5,9 @@
 
 use wavesplat_codec::format::packet::{decode_packet, encode_packets, Coefficient, PacketInput};
 use wavesplat_codec::format::{
-    parse_file, read_header_section, write_file_version, FormatError, MAGIC,
-    MAGNITUDE_CONTEXTS_VERSION, OLDEST_READABLE_VERSION, VERSION,
+    parse_file, read_header_section, write_file, write_file_version, FormatError,
+    COARSE_LAYER_VERSION, FAST_CODER_VERSION, MAGIC, MAGNITUDE_CONTEXTS_VERSION,
+    OLDEST_READABLE_VERSION, VERSION,
 };
 use wavesplat_codec::volume::{Placement, Volume};
 use wavesplat_compressor::decode::decompress;
@@ -25,10 +26,13 @@ fn placed() -> Volume {
         .unwrap()
 }
 
+/// `v` compressed without the coarse layer (version 8), so that it can be written in the
+/// versions before it.
 fn file(v: &Volume) -> Vec<u8> {
     let opts = CompressOptions {
         target: Target::Fraction(0.3),
         refine: None,
+        coarse_layer: false,
         ..CompressOptions::default()
     };
     compress(v, &opts, &|_, _| {}).unwrap().bytes
@@ -218,8 +222,42 @@ fn fast_coder_files_are_not_written_in_versions_before_it() {
         wavesplat_codec::format::CoderKind::Fast
     );
     let packets: Vec<Vec<u8>> = parsed.packets.iter().map(|p| p.to_vec()).collect();
-    let e = write_file_version(&parsed.header, &packets, VERSION - 1).unwrap_err();
+    let e = write_file_version(&parsed.header, &packets, FAST_CODER_VERSION - 1).unwrap_err();
     assert!(e.to_string().contains("no fast coder"), "{e}");
     let same = write_file_version(&parsed.header, &packets, VERSION).unwrap();
     assert_eq!(parse_file(&same).unwrap().header, parsed.header);
+}
+
+/// A file with the coarse layer reads back with it; it is not written in a version before the
+/// coarse layer (whose readers would take layer 0 for a score layer and quantize it wrongly),
+/// and a header that claims a coarse layer with one layer only is refused on read.
+#[test]
+fn coarse_layer_files_are_not_written_in_versions_before_it() {
+    let v = Phantom::SheppLogan.generate([20, 18, 16]);
+    let bytes = compress(
+        &v,
+        &CompressOptions {
+            target: Target::Fraction(0.1),
+            tile: wavesplat_compressor::encode::TileChoice::Size(8),
+            ..Default::default()
+        },
+        &|_, _| {},
+    )
+    .unwrap()
+    .bytes;
+    let parsed = parse_file(&bytes).unwrap();
+    assert!(parsed.header.coarse_layer);
+    assert!(parsed.header.layer_bounds.len() >= 2);
+    let packets: Vec<Vec<u8>> = parsed.packets.iter().map(|p| p.to_vec()).collect();
+    let e = write_file_version(&parsed.header, &packets, COARSE_LAYER_VERSION - 1).unwrap_err();
+    assert!(e.to_string().contains("no coarse layer"), "{e}");
+    let same = write_file_version(&parsed.header, &packets, VERSION).unwrap();
+    assert_eq!(parse_file(&same).unwrap().header, parsed.header);
+    let mut one_layer = parsed.header.clone();
+    one_layer.layer_bounds.truncate(1);
+    let e = parse_file(&write_file(&one_layer, &[])).unwrap_err();
+    assert!(
+        e.to_string().contains("coarse layer needs two layers"),
+        "{e}"
+    );
 }

@@ -103,7 +103,8 @@ pub struct CompressArgs {
     /// One tile and one layer: the paper's single global significance-ordered sequence.
     #[arg(long)]
     pub single_sequence: bool,
-    /// Number of quality layers (packets per tile); default: chosen from the size.
+    /// Number of score layers (packets per tile, after the coarse layer); default: chosen from
+    /// the size.
     #[arg(long)]
     pub layers: Option<usize>,
     /// Each quality layer holds G times the coefficients of all layers before it (G > 1). The
@@ -111,6 +112,11 @@ pub struct CompressArgs {
     /// order for ~8–11 % more bytes.
     #[arg(long, value_name = "G", default_value_t = wavesplat_compressor::encode::LAYER_GROWTH)]
     pub layer_growth: f64,
+    /// Leave out the coarse layer. By default each tile's coarsest band (the scaling band) is a
+    /// layer of its own, sent first, so that a stream's first packets draw a coarse picture of
+    /// the whole volume; this writes the score layers alone, as format version 7 did.
+    #[arg(long)]
+    pub no_coarse_layer: bool,
     /// Spatial clustering radius in voxels (0 disables clustering; paper Fig. 11).
     #[arg(long, default_value_t = 4)]
     pub cluster_radius: u32,
@@ -225,6 +231,7 @@ pub fn options(a: &CompressArgs) -> Result<CompressOptions> {
         tile,
         layers: a.layers,
         layer_growth: a.layer_growth,
+        coarse_layer: !a.no_coarse_layer,
         clustering: (a.cluster_radius > 0).then_some(Clustering {
             radius: a.cluster_radius,
             threshold: a.cluster_threshold,
@@ -314,8 +321,13 @@ fn print_summary(volume: &Volume, c: &Compressed, out: &std::path::Path) {
     } else {
         ""
     };
+    let coarse = if s.coarse_layer {
+        " (the first the coarse layer)"
+    } else {
+        ""
+    };
     outln!(
-        "Q_V {:.4} % (eq. 19{over}) | Q_E {:.4} % (eq. 20) | tile {} | {} layers | {} packets",
+        "Q_V {:.4} % (eq. 19{over}) | Q_E {:.4} % (eq. 20) | tile {} | {} layers{coarse} | {} packets",
         s.q_v,
         s.q_e,
         s.tile,

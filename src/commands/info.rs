@@ -148,11 +148,16 @@ pub fn print_header(h: &Header) {
     );
     outln!("values      {} .. {}", h.value_range[0], h.value_range[1]);
     outln!(
-        "tiles       {} of {} voxels ({:?}), {} layers",
+        "tiles       {} of {} voxels ({:?}), {} layers{}",
         h.tile_count(),
         h.tile,
         h.tile_counts(),
-        h.layer_bounds.len()
+        h.layer_bounds.len(),
+        if h.coarse_layer {
+            " (the first the coarse layer: each tile's scaling band)"
+        } else {
+            ""
+        }
     );
     outln!(
         "substreams  {} used of {}",

@@ -40,8 +40,11 @@ pub const MAGIC: &[u8; 4] = b"WSPL";
 /// Current format version (4: the header carries the volume's placement in patient space; 5:
 /// an intensity volume's offset, the value subtracted before the transform; 6: the sigmap
 /// coder codes each magnitude in the context of its lower neighbours' magnitudes; 7: the fast
-/// coder, [`CoderKind::Fast`]).
-pub const VERSION: u16 = 7;
+/// coder, [`CoderKind::Fast`]; 8: the coarse layer, [`Header::coarse_layer`]).
+pub const VERSION: u16 = 8;
+
+/// First version with the coarse layer ([`Header::coarse_layer`]).
+pub const COARSE_LAYER_VERSION: u16 = 8;
 
 /// First version with the fast coder ([`fast`]).
 pub const FAST_CODER_VERSION: u16 = 7;
@@ -337,7 +340,14 @@ pub struct Header {
     pub tile: usize,
     /// Score upper bound of each quality layer (layer 0 first; non-increasing; may be +∞).
     /// f64: scores are squared magnitudes times basis norms and overflow f32 for large data.
+    /// With [`Header::coarse_layer`], entry 0 is +∞ and the score layers are 1, 2, ….
     pub layer_bounds: Vec<f64>,
+    /// Layer 0 holds each tile's scaling band (the coarsest, φφφ at level M), whatever the
+    /// coefficients' scores, and the later layers split the other bands by score: the first
+    /// packets of a stream then draw a coarse picture of the whole volume rather than its
+    /// largest coefficients, which are sparse fine splats. Version 8 and later; needs at least
+    /// two layers.
+    pub coarse_layer: bool,
     /// Smallest score S = E·I of a kept coefficient (rounded down); with the basis norm and the
     /// importance it gives each substream's smallest magnitude (see
     /// [`Header::magnitude_threshold`]).
@@ -506,6 +516,9 @@ impl Header {
         for b in &self.layer_bounds {
             w.f64(*b);
         }
+        if version >= COARSE_LAYER_VERSION {
+            w.u8(u8::from(self.coarse_layer));
+        }
         w.f64(self.score_threshold);
         // Presence bitmap, then parameters of the present substreams.
         let mut bitmap = vec![0u8; self.substreams.len().div_ceil(8)];
@@ -657,6 +670,24 @@ impl Header {
             }
             layer_bounds.push(b);
         }
+        let coarse_layer = if version >= COARSE_LAYER_VERSION {
+            match r.u8()? {
+                0 => false,
+                1 if nl >= 2 && geometry.levels > 0 => true,
+                1 => {
+                    return Err(invalid(
+                        W,
+                        format!(
+                            "a coarse layer needs two layers or more and a decomposition;                              {nl} layers, M = {}",
+                            geometry.levels
+                        ),
+                    ))
+                }
+                v => return Err(invalid(W, format!("coarse layer flag {v}; allowed 0 or 1"))),
+            }
+        } else {
+            false
+        };
         let score_threshold = r.f64()?;
         if !(score_threshold.is_finite() && score_threshold >= 0.0) {
             return Err(invalid(
@@ -718,6 +749,7 @@ impl Header {
             bits,
             tile,
             layer_bounds,
+            coarse_layer,
             score_threshold,
             substreams,
             tables,
@@ -874,6 +906,14 @@ pub fn write_file_version(
         return Err(invalid(
             "header",
             format!("format version {version} has no fast coder"),
+        ));
+    }
+    if version < COARSE_LAYER_VERSION && header.coarse_layer {
+        return Err(invalid(
+            "header",
+            format!(
+                "format version {version} has no coarse layer: compress with --no-coarse-layer"
+            ),
         ));
     }
     if version < 5 && header.channels == 1 && header.color.mean[0] != 0.0 {

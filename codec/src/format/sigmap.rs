@@ -914,7 +914,8 @@ impl Quantizer {
     /// The quantizer of substream `sub` in `layer`.
     pub(super) fn of(header: &Header, sub: usize, layer: usize) -> Quantizer {
         let params = header.substreams[sub].expect("present substream");
-        let lb = if layer + 1 < header.layer_bounds.len() {
+        // The coarse layer holds its band's coefficients of every score: down to the threshold.
+        let lb = if layer + 1 < header.layer_bounds.len() && !(header.coarse_layer && layer == 0) {
             header.chain_start(sub, layer + 1)
         } else {
             header.magnitude_threshold(sub)
