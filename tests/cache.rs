@@ -19,6 +19,11 @@ use wavesplat_proto::pb::cache_client::CacheClient as WireClient;
 use wavesplat_viewer::{RenderOptions, Renderer, View};
 
 fn test_file(dims: [usize; 3]) -> Vec<u8> {
+    test_file_with(dims, true)
+}
+
+/// `test_file`, with or without the coarse layer.
+fn test_file_with(dims: [usize; 3], coarse_layer: bool) -> Vec<u8> {
     let vol = Phantom::SheppLogan.generate(dims);
     compress(
         &vol,
@@ -30,6 +35,7 @@ fn test_file(dims: [usize; 3]) -> Vec<u8> {
             // The oracle's own coefficients: the ordering tests compare packet orders, and a
             // least-squares refit is tuned for the whole set rather than for its prefixes.
             refine: None,
+            coarse_layer,
             ..Default::default()
         },
         &|_, _| {},
@@ -208,7 +214,11 @@ fn q_i_after(
 
 #[tokio::test]
 async fn view_dependent_order_beats_global_order() {
-    let bytes = test_file([48, 48, 48]);
+    // The file's order is its global significance order only without the coarse layer: with
+    // it, the file sends every tile's scaling band first, and for the whole oblique view that
+    // order comes within 0.3 dB of the view's, ahead at half the bytes (44.84 against 44.58
+    // dB); the view's order still wins at an eighth of them by 4–5 dB.
+    let bytes = test_file_with([48, 48, 48], false);
     let file = wavesplat_codec::format::parse_file(&bytes).unwrap();
     let header = file.header.clone();
     let packets: Vec<Vec<u8>> = file.packets.iter().map(|p| p.to_vec()).collect();
