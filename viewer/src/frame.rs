@@ -115,24 +115,23 @@ impl<B: AccumulationBackend, S: PacketSource> FrameLoop<B, S> {
         // change) while a burst of packets arrives.
         let intake_until = start + budget / 2;
         loop {
-            let until = if self.session.pending() == 0 {
-                splat_deadline
-            } else {
-                intake_until.min(splat_deadline)
-            };
-            // While the view is still blank, the first packet that queues anything is splatted
-            // before another is taken: a packet takes milliseconds to decode, and the first
-            // image should not wait for the ones after it.
-            let blank = self.session.stats().splatted_in_view == 0;
-            while self.session.wants_packets() && clock.now() < until {
+            // The limit is checked before each packet: once anything is queued, taking more
+            // stops at half the frame, so a first frame whose packets are slow to take (a
+            // file's, decoded here, 5–13 ms each) still splats the first of them.
+            while self.session.wants_packets() {
+                let until = if self.session.pending() == 0 {
+                    splat_deadline
+                } else {
+                    intake_until.min(splat_deadline)
+                };
+                if clock.now() >= until {
+                    break;
+                }
                 let Some(p) = self.source.try_next() else {
                     break;
                 };
                 self.session.add_from_source(p)?;
                 report.packets += 1;
-                if blank && self.session.pending() > 0 {
-                    break;
-                }
             }
             let dropped = self.session.take_dropped();
             if !dropped.is_empty() {
