@@ -458,6 +458,10 @@ impl Fetch {
                 if let Err(e) = self.plan(&spec) {
                     tracing::warn!(error = %e, "planning a view for range requests");
                 }
+                self.update(|s| {
+                    s.done = false;
+                    s.views_applied += 1;
+                });
             }
             Control::Dropped(ids) => {
                 for id in ids {

@@ -66,6 +66,9 @@ pub struct SourceStatus {
     pub received_bytes: u64,
     /// Size of the whole object (range sources).
     pub object_bytes: u64,
+    /// View changes the network thread has applied (sources fed by one): its `done` is about
+    /// the last of them, so a view change it has not applied yet is not done.
+    pub views_applied: u64,
 }
 
 /// A source of packets for a render session.
@@ -307,6 +310,8 @@ pub(crate) struct Feed {
     ctl: Option<mpsc::UnboundedSender<Control>>,
     status: Arc<Mutex<SourceStatus>>,
     thread: Option<std::thread::JoinHandle<()>>,
+    /// View changes sent to the thread (see [`SourceStatus::views_applied`]).
+    views_sent: u64,
 }
 
 impl Feed {
@@ -335,6 +340,7 @@ impl Feed {
             ctl: Some(ctl),
             status,
             thread: Some(thread),
+            views_sent: 0,
         })
     }
 
@@ -351,6 +357,7 @@ impl PacketSource for Feed {
     }
 
     fn set_view(&mut self, spec: &ViewSpec) {
+        self.views_sent += 1;
         self.send(Control::View(*spec));
     }
 
@@ -361,10 +368,17 @@ impl PacketSource for Feed {
     }
 
     fn status(&self) -> SourceStatus {
-        self.status
+        let mut s = self
+            .status
             .lock()
             .map(|s| s.clone())
-            .unwrap_or_else(|e| e.into_inner().clone())
+            .unwrap_or_else(|e| e.into_inner().clone());
+        // Until the thread has applied the last view change, its `done` is about an earlier
+        // view (a session that read it would stop with the new view unfinished).
+        if s.views_applied < self.views_sent {
+            s.done = false;
+        }
+        s
     }
 }
 
@@ -631,7 +645,10 @@ impl Pull {
                 _ = &mut sleep => return false,
                 c = ctl.recv() => match c {
                     None => return true,
-                    Some(Control::View(v)) => self.view = v,
+                    Some(Control::View(v)) => {
+                        self.view = v;
+                        self.update(|s| s.views_applied += 1);
+                    }
                     Some(Control::Dropped(ids)) => for id in ids { self.held.remove(&id); },
                 },
             }
@@ -692,7 +709,10 @@ impl Pull {
                     Some(Control::View(v)) => {
                         self.view = v;
                         views_sent = views_sent.wrapping_add(1);
-                        self.update(|s| s.done = false);
+                        self.update(|s| {
+                            s.done = false;
+                            s.views_applied += 1;
+                        });
                         if let Err(e) = stream.control().set_view(&v).await {
                             return Ended::Failed(e.to_string());
                         }
@@ -765,5 +785,58 @@ impl<T: PacketSource + ?Sized> PacketSource for Box<T> {
     }
     fn status(&self) -> SourceStatus {
         (**self).status()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use wavesplat_codec::view::View;
+
+    /// A fed source is not done after a view change until its thread has applied it: a thread
+    /// that said `done` for the old view and has not yet read the change must not end the new
+    /// view (a render once stopped there with the new view unfinished, under load).
+    #[test]
+    fn a_view_change_is_not_done_before_the_thread_applies_it() {
+        let runtime = tokio::runtime::Builder::new_current_thread()
+            .build()
+            .unwrap();
+        let status = Arc::new(Mutex::new(SourceStatus::default()));
+        let (go_tx, go_rx) = std::sync::mpsc::channel::<()>();
+        let shared = status.clone();
+        let mut feed = Feed::start(
+            "test-feed",
+            runtime,
+            1,
+            status,
+            move |_tx, mut ctl| async move {
+                shared.lock().unwrap().done = true;
+                // Hold the change back until the test says so, then apply it (done again).
+                let _ = tokio::task::spawn_blocking(move || go_rx.recv()).await;
+                if let Some(Control::View(_)) = ctl.recv().await {
+                    let mut s = shared.lock().unwrap();
+                    s.views_applied += 1;
+                    s.done = true;
+                }
+                while ctl.recv().await.is_some() {}
+            },
+        )
+        .unwrap();
+        let until = |f: &Feed, done: bool| {
+            for _ in 0..2000 {
+                if f.status().done == done {
+                    return true;
+                }
+                std::thread::sleep(Duration::from_millis(1));
+            }
+            false
+        };
+        assert!(until(&feed, true), "the first view is done");
+        feed.set_view(&ViewSpec::single(View::new(1.0, 0.5, 8, 8)));
+        let early = feed.status().done;
+        // Let the thread go before asserting, so that a failure does not leave it waiting.
+        go_tx.send(()).unwrap();
+        assert!(!early, "done before the change was applied");
+        assert!(until(&feed, true), "the applied change is done");
     }
 }
