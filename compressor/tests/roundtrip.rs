@@ -336,13 +336,9 @@ fn layers_grow_by_the_layer_growth_and_bad_growth_is_rejected() {
     }
 }
 
-/// Quality layers cost rate: at the same coefficients, a file split into layers is larger than
-/// one that is not (each layer's packets code their own significance maps and learn their
-/// models afresh), on heads, a CT-like body cut by its faces, a thin slab and colour; this is
-/// why the automatic layering keeps small files to one layer. The automatic choice gives a
-/// small file one layer.
-#[test]
-fn quality_layers_cost_bytes_at_the_same_coefficients() {
+/// The layering tests' volumes: a head, a CT-like body cut by its faces, a thin slab,
+/// spheres and colour.
+fn layer_test_volumes() -> Vec<(&'static str, Volume)> {
     let head = Phantom::SheppLogan.generate([40, 40, 40]);
     let slab = Volume::new(
         [40, 40, 6],
@@ -350,14 +346,23 @@ fn quality_layers_cost_bytes_at_the_same_coefficients() {
         vec![head.channel(0)[40 * 40 * 17..40 * 40 * 23].to_vec()],
     )
     .unwrap();
-    let volumes = [
+    vec![
         ("shepp-logan", head),
         ("ct", Phantom::Ct.generate([48, 40, 24])),
         ("slab", slab),
         ("spheres", Phantom::Spheres.generate([36, 28, 20])),
         ("rgb", Phantom::RgbHead.generate([28, 28, 28])),
-    ];
-    for (name, vol) in &volumes {
+    ]
+}
+
+/// Quality layers cost rate: at the same coefficients, a file split into layers is larger than
+/// one that is not (each layer's packets code their own significance maps and learn their
+/// models afresh), on heads, a CT-like body cut by its faces, a thin slab and colour; this is
+/// why the automatic layering keeps small files to one layer. The automatic choice gives a
+/// small file one layer.
+#[test]
+fn quality_layers_cost_bytes_at_the_same_coefficients() {
+    for (name, vol) in &layer_test_volumes() {
         let sized = |layers: Option<usize>, fraction: f64| {
             let o = CompressOptions {
                 target: Target::Fraction(fraction),
@@ -394,23 +399,10 @@ fn quality_layers_cost_bytes_at_the_same_coefficients() {
 /// The coarse layer (format version 8): layer 0 of every tile holds exactly that tile's
 /// scaling-band coefficients and the later layers none of them; the file decodes to the same
 /// coefficients as the file without it (one score layer: the same quantizers) and costs few
-/// bytes (the bands are coded apart anyway: a packet's framing and little else), on
-/// heads, a CT-like body, a thin slab and colour, with one score layer and with three.
+/// bytes (the bands are coded apart anyway: a packet's framing and little else), on the
+/// layering tests' volumes, with one score layer and with three.
 #[test]
 fn the_coarse_layer_holds_each_tiles_scaling_band() {
-    let head = Phantom::SheppLogan.generate([40, 40, 40]);
-    let slab = Volume::new(
-        [40, 40, 6],
-        [1.0; 3],
-        vec![head.channel(0)[40 * 40 * 17..40 * 40 * 23].to_vec()],
-    )
-    .unwrap();
-    let volumes = [
-        ("shepp-logan", head),
-        ("ct", Phantom::Ct.generate([48, 40, 24])),
-        ("slab", slab),
-        ("rgb", Phantom::RgbHead.generate([28, 28, 28])),
-    ];
     let sorted = |bytes: &[u8]| {
         let f = parse_file(bytes).unwrap();
         let mut all: Vec<Coefficient> = f
@@ -421,7 +413,7 @@ fn the_coarse_layer_holds_each_tiles_scaling_band() {
         all.sort_by_key(|c| (c.channel, c.band.level, c.band.kind, c.pos));
         all
     };
-    for (name, vol) in &volumes {
+    for (name, vol) in &layer_test_volumes() {
         for score_layers in [1, 3] {
             let with = |coarse_layer: bool| {
                 run(

@@ -1087,6 +1087,70 @@ fn pgm_samples(pgm: &[u8], n: usize) -> Vec<f32> {
         .collect()
 }
 
+/// Writes `v` (16-bit, one channel) as a DICOM series in `dir`/series, each slice coded by a
+/// reference coder and wrapped as one fragment with transfer syntax `ts`: the slice goes to
+/// the coder as a 16-bit PGM (`coder` plus `args`, its input after `-i`, its output, named
+/// `*.ext`, after `-o`), and the coder's own decoder (`decoder -i CODED -o OUT.pgm`) gives
+/// the reference samples. Returns the series directory and the reference samples.
+fn series_coded_by(
+    dir: &Path,
+    v: &Volume,
+    (coder, args, ext): (&str, &[&str], &str),
+    decoder: &str,
+    ts: &str,
+) -> (PathBuf, Vec<f32>) {
+    use dicom_core::value::PixelFragmentSequence;
+    let dims = v.dims();
+    let plane = dims[0] * dims[1];
+    let o = DicomOptions {
+        layout: Layout::U16,
+        ..Default::default()
+    };
+    let series = dir.join("series");
+    let mut reference = vec![0f32; v.voxel_count()];
+    for (z, f) in write_dicom_series(&series, v, &o).iter().enumerate() {
+        let z_of = slice_of(f, v);
+        let mut pgm = format!("P5\n{} {}\n65535\n", dims[0], dims[1]).into_bytes();
+        for x in &v.channel(0)[z_of * plane..(z_of + 1) * plane] {
+            pgm.extend_from_slice(&(*x as u16).to_be_bytes());
+        }
+        let (src, dst, decoded) = (
+            dir.join(format!("{z}.pgm")),
+            dir.join(format!("{z}.{ext}")),
+            dir.join(format!("{z}-decoded.pgm")),
+        );
+        std::fs::write(&src, pgm).unwrap();
+        let (src, dst, decoded) = (
+            src.to_str().unwrap(),
+            dst.to_str().unwrap(),
+            decoded.to_str().unwrap(),
+        );
+        let mut coder_args = vec!["-i", src, "-o", dst];
+        coder_args.extend(args);
+        run_tool(coder, &coder_args);
+        run_tool(decoder, &["-i", dst, "-o", decoded]);
+        reference[z_of * plane..(z_of + 1) * plane]
+            .copy_from_slice(&pgm_samples(&std::fs::read(decoded).unwrap(), plane));
+        let mut coded = std::fs::read(dst).unwrap();
+        if coded.len() % 2 == 1 {
+            coded.push(0);
+        }
+        edit(f, |o| {
+            set(
+                o,
+                tags::PIXEL_DATA,
+                VR::OB,
+                dicom_core::DicomValue::from(PixelFragmentSequence::new(
+                    Vec::<u32>::new(),
+                    vec![coded.clone()],
+                )),
+            );
+            o.update_meta(|m| m.transfer_syntax = ts.into());
+        });
+    }
+    (series, reference)
+}
+
 /// High-Throughput JPEG 2000 (lossless, lossless RPCL and lossy), coded by OpenJPH
 /// (`ojph_compress`, Debian's `openjph-tools`, a coder independent of the OpenJPEG port that
 /// decodes it here) from the slices' samples and wrapped into the series' files: read back
@@ -1094,18 +1158,11 @@ fn pgm_samples(pgm: &[u8], n: usize) -> Vec<f32> {
 /// to the source.
 #[test]
 fn high_throughput_jpeg_2000_coded_by_openjph_reads_back() {
-    use dicom_core::value::PixelFragmentSequence;
     let Some(tool) = reference_tool("ojph_compress", "openjph-tools") else {
         return;
     };
     // Not a power of two, and more than two decompositions' worth of samples.
-    let dims = [37, 29, 3];
-    let v = volume(dims, [0.7, 0.7, 2.0], Layout::U16, 1.0, 0.0);
-    let o = DicomOptions {
-        layout: Layout::U16,
-        ..Default::default()
-    };
-    let plane = dims[0] * dims[1];
+    let v = volume([37, 29, 3], [0.7, 0.7, 2.0], Layout::U16, 1.0, 0.0);
     for (name, ts, args) in [
         (
             "lossless",
@@ -1120,49 +1177,15 @@ fn high_throughput_jpeg_2000_coded_by_openjph_reads_back() {
         ("lossy", "1.2.840.10008.1.2.4.203", vec!["-qstep", "0.02"]),
     ] {
         let dir = tempfile::tempdir().unwrap();
-        let series = dir.path().join("series");
-        let mut reference = vec![0f32; v.voxel_count()];
-        for (z, f) in write_dicom_series(&series, &v, &o).iter().enumerate() {
-            let z_of = slice_of(f, &v);
-            let mut pgm = format!("P5\n{} {}\n65535\n", dims[0], dims[1]).into_bytes();
-            for x in &v.channel(0)[z_of * plane..(z_of + 1) * plane] {
-                pgm.extend_from_slice(&(*x as u16).to_be_bytes());
-            }
-            let (src, dst, decoded) = (
-                dir.path().join(format!("{z}.pgm")),
-                dir.path().join(format!("{z}.j2c")),
-                dir.path().join(format!("{z}-decoded.pgm")),
-            );
-            std::fs::write(&src, pgm).unwrap();
-            let (src, dst, decoded) = (
-                src.to_str().unwrap(),
-                dst.to_str().unwrap(),
-                decoded.to_str().unwrap(),
-            );
-            let mut coder_args = vec!["-i", src, "-o", dst, "-num_decomps", "2"];
-            coder_args.extend(&args);
-            run_tool(tool, &coder_args);
-            // What OpenJPH's own decoder makes of it: the reference for the lossy case.
-            run_tool("ojph_expand", &["-i", dst, "-o", decoded]);
-            reference[z_of * plane..(z_of + 1) * plane]
-                .copy_from_slice(&pgm_samples(&std::fs::read(decoded).unwrap(), plane));
-            let mut j2c = std::fs::read(dst).unwrap();
-            if j2c.len() % 2 == 1 {
-                j2c.push(0);
-            }
-            edit(f, |o| {
-                set(
-                    o,
-                    tags::PIXEL_DATA,
-                    VR::OB,
-                    dicom_core::DicomValue::from(PixelFragmentSequence::new(
-                        Vec::<u32>::new(),
-                        vec![j2c.clone()],
-                    )),
-                );
-                o.update_meta(|m| m.transfer_syntax = ts.into());
-            });
-        }
+        let mut coder_args = vec!["-num_decomps", "2"];
+        coder_args.extend(&args);
+        let (series, reference) = series_coded_by(
+            dir.path(),
+            &v,
+            (tool, &coder_args, "j2c"),
+            "ojph_expand",
+            ts,
+        );
         let back = read_volume(&series, None).unwrap_or_else(|e| panic!("{name}: {e}"));
         if args.contains(&"-reversible") {
             assert_same(&back, &v, name);
@@ -1200,67 +1223,25 @@ fn high_throughput_jpeg_2000_coded_by_openjph_reads_back() {
 /// (`opj_decompress`) reads them, and lossless equal to the source.
 #[test]
 fn jpeg_2000_series_coded_by_openjpeg_read_back() {
-    use dicom_core::value::PixelFragmentSequence;
     let Some(tool) = opj_compress() else {
         return;
     };
-    let dims = [14, 11, 3];
-    let v = volume(dims, [0.7, 0.7, 2.0], Layout::U16, 1.0, 0.0);
-    let o = DicomOptions {
-        layout: Layout::U16,
-        ..Default::default()
-    };
-    let plane = dims[0] * dims[1];
+    let v = volume([14, 11, 3], [0.7, 0.7, 2.0], Layout::U16, 1.0, 0.0);
     for (name, ts, args) in [
         ("lossless", "1.2.840.10008.1.2.4.90", vec![]),
         ("lossy", "1.2.840.10008.1.2.4.91", vec!["-r", "8"]),
     ] {
         let dir = tempfile::tempdir().unwrap();
-        let series = dir.path().join("series");
-        let mut reference = vec![0f32; v.voxel_count()];
-        for (z, f) in write_dicom_series(&series, &v, &o).iter().enumerate() {
-            // The slice as a 16-bit PGM (big-endian samples), coded by opj_compress.
-            let z_of = slice_of(f, &v);
-            let mut pgm = format!("P5\n{} {}\n65535\n", dims[0], dims[1]).into_bytes();
-            for x in &v.channel(0)[z_of * plane..(z_of + 1) * plane] {
-                pgm.extend_from_slice(&(*x as u16).to_be_bytes());
-            }
-            let (src, dst, decoded) = (
-                dir.path().join(format!("{z}.pgm")),
-                dir.path().join(format!("{z}.j2k")),
-                dir.path().join(format!("{z}-decoded.pgm")),
-            );
-            std::fs::write(&src, pgm).unwrap();
-            let (src, dst, decoded) = (
-                src.to_str().unwrap(),
-                dst.to_str().unwrap(),
-                decoded.to_str().unwrap(),
-            );
-            // Two resolution levels: the default six need images of at least 32².
-            let mut coder_args = vec!["-i", src, "-o", dst, "-n", "2"];
-            coder_args.extend(&args);
-            run_tool(tool, &coder_args);
-            // What OpenJPEG's own decoder makes of it: the reference for the lossy case.
-            run_tool("opj_decompress", &["-i", dst, "-o", decoded]);
-            reference[z_of * plane..(z_of + 1) * plane]
-                .copy_from_slice(&pgm_samples(&std::fs::read(decoded).unwrap(), plane));
-            let mut j2k = std::fs::read(dst).unwrap();
-            if j2k.len() % 2 == 1 {
-                j2k.push(0);
-            }
-            edit(f, |o| {
-                set(
-                    o,
-                    tags::PIXEL_DATA,
-                    VR::OB,
-                    dicom_core::DicomValue::from(PixelFragmentSequence::new(
-                        Vec::<u32>::new(),
-                        vec![j2k.clone()],
-                    )),
-                );
-                o.update_meta(|m| m.transfer_syntax = ts.into());
-            });
-        }
+        // Two resolution levels: the default six need images of at least 32².
+        let mut coder_args = vec!["-n", "2"];
+        coder_args.extend(&args);
+        let (series, reference) = series_coded_by(
+            dir.path(),
+            &v,
+            (tool, &coder_args, "j2k"),
+            "opj_decompress",
+            ts,
+        );
         let back = read_volume(&series, None).unwrap_or_else(|e| panic!("{name}: {e}"));
         // Every sample as OpenJPEG's decoder gives it; lossless, also the source's.
         assert_eq!(back.channel(0), &reference[..], "{name}");
