@@ -571,15 +571,9 @@ impl Bucket {
         let p = packets
             .get(packet as usize)
             .ok_or_else(|| CacheError::NotFound(format!("packet {packet} of volume {id}")))?;
-        let (first, last) = match (packets.first(), packets.last()) {
-            (Some(f), Some(l)) => (f, l),
-            _ => {
-                return Err(CacheError::NotFound(format!(
-                    "packet {packet} of volume {id}"
-                )))
-            }
-        };
-        let all = first.offset..last.offset + last.len as u64;
+        // `packets` holds `p`, so it has a first and a last packet.
+        let last = &packets[packets.len() - 1];
+        let all = packets[0].offset..last.offset + last.len as u64;
         let limit = self.packets.lock().map(|c| c.limit).unwrap_or(0);
         let whole = all.end - all.start <= WHOLE_READ_BYTES.min(limit / 4);
         let range = if whole {
