@@ -625,6 +625,17 @@ impl Pull {
         }
     }
 
+    /// Takes the session's new view: the next stream starts at it, and it is not done until
+    /// the cache says so (a `done` of the view before must not end it, also while
+    /// reconnecting).
+    fn apply_view(&mut self, v: ViewSpec) {
+        self.view = v;
+        self.update(|s| {
+            s.done = false;
+            s.views_applied += 1;
+        });
+    }
+
     /// Moves on to the next cache node; true when there is another one to try at once (after a
     /// round of all of them, the caller backs off).
     fn next_node(&mut self) -> bool {
@@ -645,10 +656,7 @@ impl Pull {
                 _ = &mut sleep => return false,
                 c = ctl.recv() => match c {
                     None => return true,
-                    Some(Control::View(v)) => {
-                        self.view = v;
-                        self.update(|s| s.views_applied += 1);
-                    }
+                    Some(Control::View(v)) => self.apply_view(v),
                     Some(Control::Dropped(ids)) => for id in ids { self.held.remove(&id); },
                 },
             }
@@ -707,12 +715,8 @@ impl Pull {
                 c = ctl.recv() => match c {
                     None => return Ended::Closed,
                     Some(Control::View(v)) => {
-                        self.view = v;
+                        self.apply_view(v);
                         views_sent = views_sent.wrapping_add(1);
-                        self.update(|s| {
-                            s.done = false;
-                            s.views_applied += 1;
-                        });
                         if let Err(e) = stream.control().set_view(&v).await {
                             return Ended::Failed(e.to_string());
                         }
