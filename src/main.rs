@@ -13,10 +13,7 @@ macro_rules! outln {
 }
 
 mod commands;
-mod local;
 mod progress;
-mod report;
-mod scoring;
 
 use anyhow::Result;
 use clap::{Parser, Subcommand};

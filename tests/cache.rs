@@ -4,7 +4,6 @@
 mod common;
 
 use std::collections::HashSet;
-use std::process::Child;
 use tonic::transport::Channel;
 use tonic::Code;
 use wavesplat_cache::{Limits, Store};
@@ -14,6 +13,7 @@ use wavesplat_codec::metrics::q_i_paper_db;
 use wavesplat_codec::view::ViewSpec;
 use wavesplat_compressor::encode::{compress, CompressOptions, Target, TileChoice};
 use wavesplat_compressor::phantom::Phantom;
+use wavesplat_harness::process::ServerProcess;
 use wavesplat_proto::pb;
 use wavesplat_proto::pb::cache_client::CacheClient as WireClient;
 use wavesplat_viewer::{RenderOptions, Renderer, View};
@@ -681,34 +681,13 @@ async fn malformed_requests_get_errors_and_leave_the_store_unchanged() {
 }
 
 /// The real binary, serving on 127.0.0.1:0 (the bound address is read from its stdout).
-struct Process {
-    child: Child,
-    url: String,
-}
-
-impl Process {
-    fn start(db: &std::path::Path) -> Process {
-        let db = db.to_str().expect("utf-8 temp path");
-        let (child, addr) =
-            common::spawn_server(&["serve", "cache", "--addr", "127.0.0.1:0", "--db", db]);
-        Process {
-            url: format!("http://{addr}"),
-            child,
-        }
-    }
-
-    fn kill(mut self) {
-        // SIGKILL: no shutdown path runs.
-        self.child.kill().unwrap();
-        self.child.wait().unwrap();
-    }
-}
-
-impl Drop for Process {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
+fn start_process(db: &std::path::Path) -> ServerProcess {
+    let db = db.to_str().expect("utf-8 temp path");
+    ServerProcess::spawn(
+        std::path::Path::new(env!("CARGO_BIN_EXE_wavesplat")),
+        &["serve", "cache", "--addr", "127.0.0.1:0", "--db", db],
+    )
+    .unwrap()
 }
 
 async fn stream_all(url: &str, name: &str) -> (VolumeHeader, Vec<Packet>) {
@@ -731,13 +710,13 @@ async fn sigkill_during_ingest_and_streaming_leaves_no_partial_volume() {
     let (_, want_a) = wavesplat_compressor::decode::decode_coefficients(&a).unwrap();
     let dir = tempfile::tempdir().unwrap();
 
-    let server = Process::start(dir.path());
-    let mut c = CacheClient::connect(&server.url).await.unwrap();
+    let server = start_process(dir.path());
+    let mut c = CacheClient::connect(&server.url()).await.unwrap();
     c.ingest("a", &a).await.unwrap();
     // Start uploading b, send half of it, and kill the server mid-upload.
     let msgs = ingest_messages("b", &b);
     let (tx, rx) = tokio::sync::mpsc::channel(16);
-    let wire = WireClient::connect(server.url.clone()).await.unwrap();
+    let wire = WireClient::connect(server.url()).await.unwrap();
     let mut c2 = wire.clone();
     let upload = tokio::spawn(async move {
         c2.ingest(tokio_stream::wrappers::ReceiverStream::new(rx))
@@ -757,10 +736,10 @@ async fn sigkill_during_ingest_and_streaming_leaves_no_partial_volume() {
     assert!(upload.await.unwrap().is_err());
     drop(tx);
 
-    let server = Process::start(dir.path());
-    let mut c = CacheClient::connect(&server.url).await.unwrap();
+    let server = start_process(dir.path());
+    let mut c = CacheClient::connect(&server.url()).await.unwrap();
     assert_eq!(volume_names(&mut c).await, vec!["a".to_string()]);
-    let (h, p) = stream_all(&server.url, "a").await;
+    let (h, p) = stream_all(&server.url(), "a").await;
     assert_eq!(sorted(decode_all(&h, &p)), sorted(want_a.clone()));
 
     // Kill during streaming.
@@ -777,10 +756,10 @@ async fn sigkill_during_ingest_and_streaming_leaves_no_partial_volume() {
     server.kill();
     drop(stream);
 
-    let server = Process::start(dir.path());
-    let mut c = CacheClient::connect(&server.url).await.unwrap();
+    let server = start_process(dir.path());
+    let mut c = CacheClient::connect(&server.url()).await.unwrap();
     assert_eq!(volume_names(&mut c).await, vec!["a".to_string()]);
-    let (h, p) = stream_all(&server.url, "a").await;
+    let (h, p) = stream_all(&server.url(), "a").await;
     assert_eq!(sorted(decode_all(&h, &p)), sorted(want_a));
     // The store still accepts b after the crash.
     c.ingest("b", &b).await.unwrap();

@@ -124,10 +124,33 @@ fn the_codec_links_no_service_renderer_or_wire_protocol() {
 
 #[test]
 fn the_renderer_does_not_link_the_encoder_or_a_server() {
+    // Nor, without its `window` feature, the windowing library: a headless user or another
+    // front-end gets the window's state, input and script without winit.
     assert_excludes(
         "wavesplat-viewer",
-        &["wavesplat-compressor", "wavesplat-cache", "sled"],
+        &[
+            "wavesplat-compressor",
+            "wavesplat-cache",
+            "sled",
+            "winit",
+            "wavesplat-harness",
+        ],
     );
+}
+
+#[test]
+fn only_the_binary_and_the_tests_link_the_harness() {
+    for package in [
+        "wavesplat-cache",
+        "wavesplat-orchestrator",
+        "wavesplat-worker",
+        "wavesplat-client",
+        "wavesplat-compressor",
+        "wavesplat-net",
+    ] {
+        assert_excludes(package, &["wavesplat-harness"]);
+    }
+    assert!(dependencies("wavesplat").contains("wavesplat-harness"));
 }
 
 #[test]

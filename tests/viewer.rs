@@ -4,13 +4,14 @@
 //! bound over the network; and `wavesplat render --cache` against `wavesplat render FILE`.
 
 use std::time::{Duration, Instant};
-use wavesplat_cache::{Limits, Store};
+use wavesplat_cache::Limits;
 use wavesplat_client::{CacheClient, VolumeKey};
 use wavesplat_codec::format::packet::{decode_packet, Coefficient};
 use wavesplat_codec::format::{parse_file, Header};
 use wavesplat_codec::view::{View, ViewSpec};
 use wavesplat_compressor::encode::{compress, CompressOptions, Target, TileChoice};
 use wavesplat_compressor::phantom::Phantom;
+use wavesplat_harness::LocalCache;
 use wavesplat_viewer::session::{RenderSession, SessionOptions, COEFFICIENT_BYTES};
 use wavesplat_viewer::source::{CacheSource, CacheSourceOptions, FileSource, PacketSource};
 use wavesplat_viewer::{CpuBackend, FrameLoop, Image, RenderOptions, Renderer};
@@ -63,83 +64,16 @@ fn max_rel(a: &Image, b: &Image) -> f64 {
         / m.max(1e-300)
 }
 
-/// An in-process cache on a fixed loopback address (so it can be restarted there).
-struct Server {
-    url: String,
-    addr: std::net::SocketAddr,
-    dir: std::path::PathBuf,
-    stop: Option<tokio::sync::oneshot::Sender<()>>,
-    thread: Option<std::thread::JoinHandle<()>>,
-}
-
-impl Server {
-    fn start_at(dir: &std::path::Path, addr: &str) -> Server {
-        let (tx, rx) = tokio::sync::oneshot::channel();
-        let (ready_tx, ready_rx) = std::sync::mpsc::channel();
-        let store = Store::open(dir, Limits::default()).unwrap();
-        let addr = addr.to_string();
-        let thread = std::thread::spawn(move || {
-            let rt = tokio::runtime::Builder::new_multi_thread()
-                .worker_threads(2)
-                .enable_all()
-                .build()
-                .unwrap();
-            rt.block_on(async move {
-                let listener = loop {
-                    match tokio::net::TcpListener::bind(&addr).await {
-                        Ok(l) => break l,
-                        Err(_) => tokio::time::sleep(Duration::from_millis(20)).await,
-                    }
-                };
-                ready_tx.send(listener.local_addr().unwrap()).unwrap();
-                wavesplat_cache::serve(listener, store, async {
-                    let _ = rx.await;
-                })
-                .await
-                .unwrap();
-            });
-        });
-        let addr = ready_rx.recv().unwrap();
-        Server {
-            url: format!("http://{addr}"),
-            addr,
-            dir: dir.to_path_buf(),
-            stop: Some(tx),
-            thread: Some(thread),
-        }
-    }
-
-    fn start(dir: &std::path::Path) -> Server {
-        Server::start_at(dir, "127.0.0.1:0")
-    }
-
-    fn stop(mut self) -> (std::path::PathBuf, String) {
-        let _ = self.stop.take().unwrap().send(());
-        self.thread.take().unwrap().join().unwrap();
-        (self.dir.clone(), self.addr.to_string())
-    }
-
-    fn ingest(&self, name: &str, bytes: &[u8]) {
-        let rt = tokio::runtime::Builder::new_current_thread()
-            .enable_all()
-            .build()
-            .unwrap();
-        rt.block_on(async {
-            let mut c = CacheClient::connect(&self.url).await.unwrap();
-            c.ingest(name, bytes).await.unwrap();
-        });
-    }
-}
-
-impl Drop for Server {
-    fn drop(&mut self) {
-        if let Some(s) = self.stop.take() {
-            let _ = s.send(());
-        }
-        if let Some(t) = self.thread.take() {
-            let _ = t.join();
-        }
-    }
+/// Adds `bytes` as `name` to the cache at `url`.
+fn ingest(url: &str, name: &str, bytes: &[u8]) {
+    let rt = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .unwrap();
+    rt.block_on(async {
+        let mut c = CacheClient::connect(url).await.unwrap();
+        c.ingest(name, bytes).await.unwrap();
+    });
 }
 
 /// Adds every packet the source delivers (waiting for the network) until it is done.
@@ -173,13 +107,13 @@ fn drain<S: PacketSource + ?Sized>(
 #[test]
 fn rendering_from_the_cache_equals_rendering_from_the_file() {
     let dir = tempfile::tempdir().unwrap();
-    let server = Server::start(dir.path());
+    let server = LocalCache::start(dir.path()).unwrap();
     for (name, phantom, n) in [
         ("shepp", Phantom::SheppLogan, 40),
         ("rgb", Phantom::RgbHead, 32),
     ] {
         let bytes = wsp(phantom, n);
-        server.ingest(name, &bytes);
+        ingest(&server.url, name, &bytes);
         let (header, coeffs) = all(&bytes);
         for spec in [
             ViewSpec::single(View::new(0.66, 0.91, 80, 64)),
@@ -231,9 +165,9 @@ fn file_source_count(bytes: &[u8]) -> usize {
 #[test]
 fn a_view_change_and_a_cache_restart_mid_stream_lose_nothing_and_repeat_nothing() {
     let dir = tempfile::tempdir().unwrap();
-    let server = Server::start(dir.path());
+    let server = LocalCache::start(dir.path()).unwrap();
     let bytes = wsp(Phantom::SheppLogan, 48);
-    server.ingest("v", &bytes);
+    ingest(&server.url, "v", &bytes);
     let (header, coeffs) = all(&bytes);
     let total = file_source_count(&bytes);
     let (a, b) = (
@@ -282,8 +216,9 @@ fn a_view_change_and_a_cache_restart_mid_stream_lose_nothing_and_repeat_nothing(
     f.set_view(b).unwrap();
     take(&mut f, total / 4);
     // Restart the cache on the same address: the source reconnects and resumes.
-    let (dir_path, addr) = server.stop();
-    let server = Server::start_at(&dir_path, &addr);
+    let (dir_path, addr) = (server.dir().to_path_buf(), server.addr.to_string());
+    server.stop().unwrap();
+    let server = LocalCache::start_with(&dir_path, &addr, Limits::default()).unwrap();
     take(&mut f, total);
     assert_eq!(seen.len(), total, "every packet exactly once");
     assert!(f.source.status().reconnects >= 1);
@@ -302,9 +237,9 @@ fn a_view_change_and_a_cache_restart_mid_stream_lose_nothing_and_repeat_nothing(
 #[test]
 fn the_memory_bound_holds_over_the_network() {
     let dir = tempfile::tempdir().unwrap();
-    let server = Server::start(dir.path());
+    let server = LocalCache::start(dir.path()).unwrap();
     let bytes = wsp(Phantom::SheppLogan, 56);
-    server.ingest("big", &bytes);
+    ingest(&server.url, "big", &bytes);
     let (header, coeffs) = all(&bytes);
     let bound = coeffs.len() * COEFFICIENT_BYTES / 5;
     let (a, b) = (
@@ -358,11 +293,11 @@ fn the_memory_bound_holds_over_the_network() {
 #[test]
 fn the_render_command_gives_the_same_image_from_the_cache_and_from_the_file() {
     let dir = tempfile::tempdir().unwrap();
-    let server = Server::start(&dir.path().join("db"));
+    let server = LocalCache::start(&dir.path().join("db")).unwrap();
     let bytes = wsp(Phantom::RgbHead, 32);
     let file = dir.path().join("v.wsp");
     std::fs::write(&file, &bytes).unwrap();
-    server.ingest("head", &bytes);
+    ingest(&server.url, "head", &bytes);
     let bin = env!("CARGO_BIN_EXE_wavesplat");
     let raw = |args: &[&str], out: &str| -> Vec<f32> {
         let png = dir.path().join(format!("{out}.png"));

@@ -7,9 +7,6 @@
 //! image of the original volume; it writes frame PNGs, a CSV per run and `report.html` with
 //! charts of the error against time and bytes and a table of figures beside each.
 
-use crate::local::LocalStack;
-use crate::report::{self, Chart, Section, Series, Table};
-use crate::scoring::{q_i_at, score_reporting, FrameQuality, GroundTruth};
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use std::collections::{HashMap, HashSet};
@@ -20,13 +17,13 @@ use wavesplat_client::VolumeKey;
 use wavesplat_codec::view::{Cue, CueDirection, View, ViewSpec};
 use wavesplat_codec::volume::Volume;
 use wavesplat_compressor::phantom::Phantom;
+use wavesplat_harness::browse::{browse, probe_backend, reference_options};
+use wavesplat_harness::report::{self, Chart, Section, Series, Table};
+use wavesplat_harness::scoring::{q_i_at, score_reporting, FrameQuality, GroundTruth};
+use wavesplat_harness::LocalStack;
 use wavesplat_orchestrator::client;
 use wavesplat_orchestrator::model::{JobOptions, TargetSpec};
-use wavesplat_viewer::backend::{select, AccumulationBackend, BackendChoice};
-use wavesplat_viewer::session::{RenderSession, SessionOptions};
-use wavesplat_viewer::source::{CacheSource, CacheSourceOptions};
-use wavesplat_viewer::walk::{percentile, turn, walk, FrameSample, PathStep, WalkOptions};
-use wavesplat_viewer::{FrameLoop, ReferenceOptions};
+use wavesplat_viewer::walk::{percentile, turn, FrameSample, PathStep};
 use wavesplat_worker::archive;
 
 /// Arguments of `wavesplat demo`.
@@ -241,7 +238,8 @@ pub fn run(a: DemoArgs) -> Result<()> {
         a.frame_ms
     );
     let frame = Duration::from_secs_f64(a.frame_ms / 1e3);
-    let backend = probe_backend()?;
+    let (backend, reason) = probe_backend()?;
+    outln!("    backend: {reason}");
     let mut runs = Vec::new();
     let progress = crate::progress::Progress::new("demo");
     let total_runs = volumes.len() * 3;
@@ -377,70 +375,6 @@ pub fn run(a: DemoArgs) -> Result<()> {
         );
     }
     Ok(())
-}
-
-/// The reference renderer's settings for scoring: 2×2 rays per pixel and a quarter-voxel step
-/// (a quarter of the default's rays at half its samples per ray; its own error is far below
-/// the compressed images' error it scores, see BENCHMARKS.md).
-pub fn reference_options() -> ReferenceOptions {
-    ReferenceOptions {
-        supersample: 2,
-        step: 0.25,
-    }
-}
-
-/// Probes the adapters once, says which backend the default takes (the GPU only on a hardware
-/// adapter) and returns that choice, so the sessions that follow do not probe again.
-pub fn probe_backend() -> Result<BackendChoice> {
-    let probe = select(BackendChoice::Auto).context("choosing the accumulation backend")?;
-    outln!("    backend: {}", probe.reason);
-    Ok(if probe.backend.name().starts_with("cpu") {
-        BackendChoice::Cpu
-    } else {
-        BackendChoice::Gpu
-    })
-}
-
-/// A frame loop fed by a cache, on whichever backend was chosen.
-pub type CacheFrameLoop = FrameLoop<Box<dyn AccumulationBackend>, CacheSource>;
-
-/// A fresh session on `backend` for `spec`, fed by the cache's stream of `name` (previews on).
-pub fn open_frame_loop(
-    url: &str,
-    name: &str,
-    spec: ViewSpec,
-    options: CacheSourceOptions,
-    backend: BackendChoice,
-) -> Result<(wavesplat_codec::format::Header, CacheFrameLoop)> {
-    let (source, header) =
-        CacheSource::open(url, VolumeKey::Name(name.to_string()), spec, options)?;
-    let selected = select(backend).context("choosing the accumulation backend")?;
-    let session = RenderSession::new(
-        header.header.clone(),
-        spec,
-        selected.backend,
-        SessionOptions {
-            preview: Some(SessionOptions::default_preview()),
-            ..SessionOptions::default()
-        },
-    )?;
-    Ok((header.header, FrameLoop::new(session, source)))
-}
-
-/// Opens `name` at the cache and walks `path` with a fresh session on `backend`.
-fn browse(
-    url: &str,
-    name: &str,
-    spec: ViewSpec,
-    path: &[PathStep],
-    frame: Duration,
-    backend: BackendChoice,
-) -> Result<(wavesplat_codec::format::Header, String, Vec<FrameSample>)> {
-    let (header, mut frames) =
-        open_frame_loop(url, name, spec, CacheSourceOptions::default(), backend)?;
-    let backend = frames.session.backend_name();
-    let samples = walk(&mut frames, path, &WalkOptions::new(frame))?;
-    Ok((header, backend, samples))
 }
 
 fn q_at(r: &Run, step: usize, n: u64) -> Option<f64> {

@@ -10,17 +10,15 @@ use clap::Args;
 use std::io::Write;
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
-use wavesplat_client::VolumeKey;
-use wavesplat_codec::format::packet::{decode_packets, Coefficient};
-use wavesplat_codec::format::{parse_file, Header};
+use wavesplat_codec::format::Header;
 use wavesplat_codec::metrics::{q_i_paper_db, snr_db};
 use wavesplat_codec::view::patient::PatientView;
-use wavesplat_codec::view::{Cue, CueDirection, View, ViewSpec};
+use wavesplat_codec::view::{Cue, CueDirection, ViewSpec};
 use wavesplat_viewer::backend::{select, BackendChoice};
-use wavesplat_viewer::remote::{fetch_wsp, is_remote, RangeSource, RangeSourceOptions};
+use wavesplat_viewer::open::{Opened, ViewRequest, VolumeLocation};
+use wavesplat_viewer::remote::is_remote;
 use wavesplat_viewer::session::{RenderSession, SessionOptions};
-use wavesplat_viewer::source::{CacheSource, CacheSourceOptions, FileSource, PacketSource};
-use wavesplat_viewer::{FrameLoop, Image, RenderOptions, Renderer};
+use wavesplat_viewer::FrameLoop;
 
 /// Where the volume comes from and how to look at it (shared by `render` and `view`).
 #[derive(Args, Debug, Clone)]
@@ -167,9 +165,9 @@ fn pair(s: &str, what: &str) -> Result<[f64; 2]> {
 }
 
 impl ViewArgs {
-    /// The view spec the options describe (validated).
-    pub fn spec(&self) -> Result<ViewSpec> {
-        let (w, h) = self
+    /// What the options ask to see, parsed and checked.
+    pub fn request(&self) -> Result<ViewRequest> {
+        let (width, height) = self
             .size
             .split_once(['x', ','])
             .and_then(|(w, h)| {
@@ -185,14 +183,7 @@ impl ViewArgs {
                 self.cue_k
             );
         }
-        let mut view = View::new(self.alpha, self.beta, w, h);
-        if let Some(z) = self.zoom {
-            view = view.with_zoom(z);
-        }
-        if let Some(p) = &self.pan {
-            view = view.with_pan(pair(p, "--pan")?);
-        }
-        if self.cue_k > 0.0 {
+        let cue = if self.cue_k > 0.0 {
             let direction = match &self.cue_dir {
                 Some(s) => {
                     let [alpha, beta] = pair(s, "--cue-dir")?;
@@ -200,58 +191,59 @@ impl ViewArgs {
                 }
                 None => CueDirection::View,
             };
-            view = view.with_cue(Cue {
+            Some(Cue {
                 k: self.cue_k,
                 direction,
-            });
-        }
-        let spec = ViewSpec {
-            view,
-            multiview: self.multiview,
+            })
+        } else {
+            None
         };
-        spec.validate().context("invalid view")?;
-        Ok(spec)
+        let side = match &self.view {
+            Some(name) => Some(PatientView::from_name(name).context("--view")?),
+            None => None,
+        };
+        let pan = match &self.pan {
+            Some(p) => Some(pair(p, "--pan")?),
+            None => None,
+        };
+        Ok(ViewRequest {
+            alpha: self.alpha,
+            beta: self.beta,
+            side,
+            width,
+            height,
+            zoom: self.zoom,
+            pan,
+            multiview: self.multiview,
+            cue,
+        })
     }
 
-    /// The view spec for the volume of `header`: [`ViewArgs::spec`], turned to the named
-    /// patient view (`--view`) through the volume's placement, and without `--zoom` zoomed to
-    /// fit the volume ([`Camera::fitting_zoom`]; for a multiview, the tightest of its panels).
-    pub fn spec_for(&self, header: &Header) -> Result<ViewSpec> {
-        let mut spec = self.spec()?;
-        if let Some(name) = &self.view {
-            let side = PatientView::from_name(name)?;
-            spec.view.orientation = side
-                .orientation(header.placement.as_ref())
-                .with_context(|| format!("--view {name}"))?;
-        }
-        if self.zoom.is_none() {
-            let g = &header.geometry;
-            let fit = spec
-                .cameras(g)
-                .context("invalid view")?
-                .iter()
-                .map(|c| c.fitting_zoom(g))
-                .fold(f64::INFINITY, f64::min);
-            spec.view = spec.view.with_zoom(fit);
-        }
-        spec.validate().context("invalid view")?;
-        Ok(spec)
+    /// The view spec the options describe (validated), before the volume is known.
+    pub fn spec(&self) -> Result<ViewSpec> {
+        Ok(self.request()?.spec()?)
     }
 
-    /// For a source opened with `first` before the volume was known (a cache stream, range
-    /// requests): the view for the volume ([`ViewArgs::spec_for`]: a named view, the fitting
-    /// zoom), handed to the source when it differs, before the first frame.
-    fn respec(
-        &self,
-        header: &Header,
-        first: ViewSpec,
-        source: &mut dyn PacketSource,
-    ) -> Result<ViewSpec> {
-        let spec = self.spec_for(header)?;
-        if spec != first {
-            source.set_view(&spec);
+    /// Where the volume is: a file (read here, with advice when it is not a `.wsp`), a
+    /// published URL or a cache.
+    pub fn location(&self) -> Result<VolumeLocation> {
+        match (&self.input, &self.cache, &self.volume) {
+            (Some(path), _, _) if path.to_str().is_some_and(is_remote) => {
+                Ok(VolumeLocation::Published {
+                    url: path.to_str().unwrap_or_default().to_string(),
+                })
+            }
+            (Some(path), _, _) => Ok(VolumeLocation::File {
+                path: path.clone(),
+                bytes: super::read_wsp(path)?,
+            }),
+            (None, Some(urls), Some(name)) => Ok(VolumeLocation::Cache {
+                urls: urls.clone(),
+                connect: self.security.options()?,
+                name: name.clone(),
+            }),
+            _ => bail!("give a .wsp file, or --cache URL and --volume NAME"),
         }
-        Ok(spec)
     }
 
     /// Session settings from the options.
@@ -275,172 +267,14 @@ impl ViewArgs {
     }
 }
 
-/// An opened volume: its header, a packet source and (for `--reference`) a way to get every
-/// coefficient.
-pub enum Opened {
-    /// A local file.
-    File {
-        /// Its packets in view order.
-        source: Box<FileSource>,
-    },
-    /// A published volume read by range requests.
-    Remote {
-        /// Its URL.
-        url: String,
-        /// The fetching source.
-        source: RangeSource,
-    },
-    /// A cached volume.
-    Cache {
-        /// The cache URL.
-        url: String,
-        /// CA and token.
-        connect: wavesplat_client::ConnectOptions,
-        /// The volume.
-        key: VolumeKey,
-        /// The pulling source.
-        source: CacheSource,
-    },
-}
-
 /// Opens the volume the options name, ranked for the view they describe; returns that view
 /// (a named patient view resolved through the volume's placement).
 pub fn open(args: &ViewArgs, byte_budget: Option<u64>) -> Result<(Header, Opened, ViewSpec)> {
-    match (&args.input, &args.cache, &args.volume) {
-        (Some(path), _, _) if path.to_str().is_some_and(is_remote) => {
-            let url = path.to_str().unwrap_or_default().to_string();
-            let first = args.spec()?;
-            let (mut source, header) =
-                RangeSource::open(&url, first, RangeSourceOptions::default())
-                    .with_context(|| format!("opening {url}"))?;
-            let spec = args.respec(&header, first, &mut source)?;
-            Ok((header, Opened::Remote { url, source }, spec))
-        }
-        (Some(path), _, _) => {
-            let bytes = super::read_wsp(path)?;
-            // A named view and the fitting zoom need the volume before packets are ordered.
-            let spec = args.spec_for(
-                &parse_file(&bytes)
-                    .with_context(|| format!("reading {}", path.display()))?
-                    .header,
-            )?;
-            let source = FileSource::open(bytes, &spec)
-                .with_context(|| format!("reading {}", path.display()))?
-                .with_byte_budget(byte_budget);
-            Ok((
-                source.header().clone(),
-                Opened::File {
-                    source: Box::new(source),
-                },
-                spec,
-            ))
-        }
-        (None, Some(url), Some(name)) => {
-            let key = VolumeKey::Name(name.clone());
-            let connect = args.security.options()?;
-            let options = CacheSourceOptions {
-                byte_budget,
-                ..CacheSourceOptions::default()
-            };
-            let first = args.spec()?;
-            let (mut source, header) =
-                CacheSource::open_with(url, &connect, key.clone(), first, options)
-                    .with_context(|| format!("opening {name:?} at {url}"))?;
-            let spec = args.respec(&header.header, first, &mut source)?;
-            Ok((
-                header.header,
-                Opened::Cache {
-                    url: url.clone(),
-                    connect,
-                    key,
-                    source,
-                },
-                spec,
-            ))
-        }
-        _ => bail!("give a .wsp file, or --cache URL and --volume NAME"),
-    }
-}
-
-/// Every coefficient of the volume (for the reference image): decoded from the file, or from
-/// one full stream of the cache.
-fn all_coefficients(opened: &Opened, header: &Header) -> Result<Vec<Coefficient>> {
-    match opened {
-        Opened::File { source } => Ok(load_coefficients(source.file_bytes(), None, None)?.1),
-        Opened::Remote { url, .. } => Ok(load_coefficients(&fetch_wsp(url)?, None, None)?.1),
-        Opened::Cache {
-            url, connect, key, ..
-        } => {
-            let runtime = tokio::runtime::Builder::new_current_thread()
-                .enable_all()
-                .build()?;
-            let packets = runtime.block_on(async {
-                let first = url.split(',').next().unwrap_or(url);
-                let mut c = wavesplat_client::CacheClient::connect_with(first, connect).await?;
-                let request = wavesplat_client::RefineRequest::new(
-                    key.clone(),
-                    ViewSpec::single(View::new(0.0, 0.0, 1, 1)),
-                );
-                c.refine_collect(request, None).await
-            })?;
-            let data: Vec<&[u8]> = packets.packets.iter().map(|p| p.data.as_slice()).collect();
-            Ok(decode_packets(header, &data, 0)?.concat())
-        }
-    }
-}
-
-/// Decodes the packets (or a prefix in file order) of a file. Packets decode on their own, so
-/// they are decoded in parallel, in batches of a few per thread so that a coefficient cap stops
-/// early.
-pub fn load_coefficients(
-    bytes: &[u8],
-    max_coefficients: Option<usize>,
-    max_bytes: Option<usize>,
-) -> Result<(Header, Vec<Coefficient>)> {
-    let file = parse_file(bytes)?;
-    let mut used = file.header_bytes + file.directory_bytes;
-    let mut prefix = 0usize;
-    for p in &file.packets {
-        if max_bytes.is_some_and(|b| used + p.len() > b) {
-            break;
-        }
-        used += p.len();
-        prefix += 1;
-    }
-    let batch = 4 * rayon::current_num_threads();
-    let mut coeffs = Vec::new();
-    let mut start = 0usize;
-    while start < prefix && max_coefficients.is_none_or(|n| coeffs.len() < n) {
-        let end = if max_coefficients.is_some() {
-            (start + batch).min(prefix)
-        } else {
-            prefix
-        };
-        let decoded = decode_packets(&file.header, &file.packets[start..end], start)?;
-        for d in decoded {
-            if max_coefficients.is_some_and(|n| coeffs.len() >= n) {
-                break;
-            }
-            coeffs.extend(d);
-        }
-        start = end;
-    }
-    if let Some(n) = max_coefficients {
-        coeffs.truncate(n);
-    }
-    Ok((file.header, coeffs))
-}
-
-/// The image of every coefficient for `spec`, in display space (the reference of `--reference`).
-fn reference_image(opened: &Opened, header: &Header, spec: &ViewSpec) -> Result<Image> {
-    let all = all_coefficients(opened, header)?;
-    let mut r = Renderer::new(RenderOptions {
-        channels: header.channels,
-        ..RenderOptions::default()
-    });
-    let (img, _) = r.render_spec(&all, &header.geometry, spec)?;
-    Ok(wavesplat_viewer::color::to_rgb_for_spec(
-        &img, header, spec,
+    let request = args.request()?;
+    Ok(wavesplat_viewer::open::open(
+        &args.location()?,
+        &request,
+        byte_budget,
     )?)
 }
 
@@ -496,7 +330,11 @@ pub fn run(a: RenderArgs) -> Result<()> {
     let opened_after = request.elapsed();
     let reference_started = Instant::now();
     let reference = if a.reference {
-        Some(reference_image(&opened, &header, &spec).context("rendering the reference")?)
+        Some(
+            opened
+                .reference_image(&header, &spec)
+                .context("rendering the reference")?,
+        )
     } else {
         None
     };
@@ -515,12 +353,7 @@ pub fn run(a: RenderArgs) -> Result<()> {
         selected.backend,
         a.view.session_options(),
     )?;
-    let source: Box<dyn PacketSource> = match opened {
-        Opened::File { source } => source,
-        Opened::Remote { source, .. } => Box::new(source),
-        Opened::Cache { source, .. } => Box::new(source),
-    };
-    let mut frames = FrameLoop::new(session, source);
+    let mut frames = FrameLoop::new(session, opened.into_source());
     let mut recorder = match &a.record {
         Some(d) => Some(Recorder::new(d, reference.is_some())?),
         None => None,

@@ -35,6 +35,7 @@ pub mod color;
 pub mod footprint;
 pub mod frame;
 pub mod image;
+pub mod open;
 pub mod pieces;
 pub mod plan;
 pub mod reference;
@@ -43,6 +44,7 @@ pub mod session;
 pub mod source;
 pub mod splat;
 pub mod walk;
+pub mod window;
 
 pub use backend::{AccumulationBackend, BackendError, CpuBackend};
 pub use frame::{FrameLoop, FrameReport};

@@ -10,11 +10,6 @@
 //! 4.6, 9.4, 79 and 368 KB on a 128³ RGB phantom) beside the paper's figures.
 
 use super::throughput::median;
-use crate::commands::demo::{open_frame_loop, probe_backend, reference_options};
-use crate::commands::render::load_coefficients;
-use crate::local::LocalStack;
-use crate::report::{Chart, Series};
-use crate::scoring::{q_i_at, score_with, FrameQuality, GroundTruth};
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use std::collections::HashMap;
@@ -28,7 +23,12 @@ use wavesplat_codec::volume::Volume;
 use wavesplat_compressor::colorspace::ColorSpaceKind;
 use wavesplat_compressor::encode::{compress, CompressOptions, Target, TileChoice};
 use wavesplat_compressor::phantom::Phantom;
+use wavesplat_harness::browse::{open_frame_loop, probe_backend, reference_options};
+use wavesplat_harness::report::{Chart, Series};
+use wavesplat_harness::scoring::{q_i_at, score_with, FrameQuality, GroundTruth};
+use wavesplat_harness::LocalStack;
 use wavesplat_viewer::backend::BackendChoice;
+use wavesplat_viewer::open::load_coefficients;
 use wavesplat_viewer::source::CacheSourceOptions;
 use wavesplat_viewer::walk::{percentile, turn, walk, zoom_to, FrameSample, PathStep, WalkOptions};
 use wavesplat_viewer::{RenderOptions, Renderer};
@@ -172,7 +172,8 @@ pub fn run(a: RefineArgs) -> Result<()> {
         })
         .context("ingesting into the local cache")?;
     let (path, rests) = view_path(&header.geometry, a.image, a.rest_frames)?;
-    let backend = probe_backend()?;
+    let (backend, reason) = probe_backend()?;
+    outln!("    backend: {reason}");
     let truth = GroundTruth::new(&volume, &header.geometry, reference_options());
     let mut references = HashMap::new();
     let mut runs = Vec::new();

@@ -3,7 +3,6 @@
 //! pixel updates/s) per family, on a phantom or a volume file. Timings are medians of repeated
 //! runs; nothing here is asserted (benchmarks are not tests).
 
-use crate::commands::render::load_coefficients;
 use anyhow::{Context, Result};
 use clap::Args;
 use std::io::Write;
@@ -14,6 +13,7 @@ use wavesplat_codec::format::parse_file;
 use wavesplat_compressor::encode::{compress, CompressOptions, Target};
 use wavesplat_compressor::phantom::Phantom;
 use wavesplat_compressor::reader::read_volume;
+use wavesplat_viewer::open::load_coefficients;
 use wavesplat_viewer::{RenderOptions, Renderer, View};
 
 /// Arguments of `wavesplat bench throughput`.

@@ -1,0 +1,397 @@
+//! Opening a volume for viewing, the one way `render`, `view` and the benches do it: a
+//! `ViewRequest` (angles or a named patient side, image size, zoom or the fitting zoom, pan,
+//! multiview, depth cue) becomes the `ViewSpec` for the volume once its header is known; a
+//! `VolumeLocation` (a `.wsp` file's bytes, a published volume's URL, or a cache and a volume
+//! name) becomes a packet source ranked for that view (`open` → `Opened`). It also owns getting
+//! every coefficient of an opened volume and the image they draw (the reference of `render
+//! --reference`), and decoding a file's packets in parallel (`load_coefficients`).
+
+use crate::remote::{fetch_wsp, RangeSource, RangeSourceOptions};
+use crate::source::{CacheSource, CacheSourceOptions, FileSource, PacketSource, SourceError};
+use crate::{Image, RenderError, RenderOptions, Renderer};
+use std::path::PathBuf;
+use thiserror::Error;
+use wavesplat_client::{ConnectOptions, VolumeKey};
+use wavesplat_codec::format::packet::{decode_packets, Coefficient, PacketError};
+use wavesplat_codec::format::{parse_file, FormatError, Header};
+use wavesplat_codec::view::patient::{PatientView, PatientViewError};
+use wavesplat_codec::view::{Cue, View, ViewError, ViewSpec};
+
+/// Why a volume could not be opened, or its reference drawn.
+#[derive(Debug, Error)]
+pub enum OpenError {
+    /// The volume's source failed (file, range requests or cache).
+    #[error("opening {what}")]
+    Source {
+        /// The volume, in words.
+        what: String,
+        /// Why.
+        #[source]
+        source: SourceError,
+    },
+    /// The file is not a valid `.wsp` file.
+    #[error("reading {what}")]
+    Format {
+        /// The volume, in words.
+        what: String,
+        /// Why.
+        #[source]
+        source: FormatError,
+    },
+    /// A packet could not be decoded.
+    #[error("decoding a packet")]
+    Packet(#[from] PacketError),
+    /// The view is invalid.
+    #[error("invalid view")]
+    View(#[from] ViewError),
+    /// A named patient view cannot be resolved for this volume.
+    #[error("the {side} view")]
+    Patient {
+        /// The side asked for.
+        side: String,
+        /// Why.
+        #[source]
+        source: PatientViewError,
+    },
+    /// The cache failed while every coefficient was fetched.
+    #[error("fetching every coefficient from the cache")]
+    Client(#[from] wavesplat_client::ClientError),
+    /// Drawing the reference image failed.
+    #[error(transparent)]
+    Render(#[from] RenderError),
+    /// The async runtime for the cache could not be started.
+    #[error("starting an async runtime: {0}")]
+    Runtime(#[from] std::io::Error),
+}
+
+/// How to look at a volume, before the volume is known: what a user asks for.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ViewRequest {
+    /// Azimuth α (radians).
+    pub alpha: f64,
+    /// Elevation β (radians).
+    pub beta: f64,
+    /// A view named from the side of the patient; replaces α and β once the volume's placement
+    /// is known.
+    pub side: Option<PatientView>,
+    /// Image width (per view with multiview).
+    pub width: usize,
+    /// Image height.
+    pub height: usize,
+    /// Pixels per unit of spacing; `None`: fit the volume ([`Camera::fitting_zoom`]).
+    ///
+    /// [`Camera::fitting_zoom`]: wavesplat_codec::view::Camera::fitting_zoom
+    pub zoom: Option<f64>,
+    /// Pan of the image centre in units of spacing along the screen axes.
+    pub pan: Option<[f64; 2]>,
+    /// Three views side by side.
+    pub multiview: bool,
+    /// Depth cueing.
+    pub cue: Option<Cue>,
+}
+
+impl ViewRequest {
+    /// The view spec the request describes, before the volume is known (validated).
+    pub fn spec(&self) -> Result<ViewSpec, OpenError> {
+        let mut view = View::new(self.alpha, self.beta, self.width, self.height);
+        if let Some(z) = self.zoom {
+            view = view.with_zoom(z);
+        }
+        if let Some(p) = self.pan {
+            view = view.with_pan(p);
+        }
+        if let Some(c) = self.cue {
+            view = view.with_cue(c);
+        }
+        let spec = ViewSpec {
+            view,
+            multiview: self.multiview,
+        };
+        spec.validate()?;
+        Ok(spec)
+    }
+
+    /// The view spec for the volume of `header`: [`ViewRequest::spec`], turned to the named
+    /// patient side through the volume's placement, and without a zoom zoomed to fit the
+    /// volume (for a multiview, the tightest of its panels).
+    pub fn spec_for(&self, header: &Header) -> Result<ViewSpec, OpenError> {
+        let mut spec = self.spec()?;
+        if let Some(side) = self.side {
+            spec.view.orientation =
+                side.orientation(header.placement.as_ref())
+                    .map_err(|e| OpenError::Patient {
+                        side: side.name().to_string(),
+                        source: e,
+                    })?;
+        }
+        if self.zoom.is_none() {
+            let g = &header.geometry;
+            let fit = spec
+                .cameras(g)?
+                .iter()
+                .map(|c| c.fitting_zoom(g))
+                .fold(f64::INFINITY, f64::min);
+            spec.view = spec.view.with_zoom(fit);
+        }
+        spec.validate()?;
+        Ok(spec)
+    }
+
+    /// For a source opened with `first` before the volume was known (a cache stream, range
+    /// requests): the view for the volume, handed to the source when it differs, before the
+    /// first frame.
+    fn respec(
+        &self,
+        header: &Header,
+        first: ViewSpec,
+        source: &mut dyn PacketSource,
+    ) -> Result<ViewSpec, OpenError> {
+        let spec = self.spec_for(header)?;
+        if spec != first {
+            source.set_view(&spec);
+        }
+        Ok(spec)
+    }
+}
+
+/// Where a volume is.
+#[derive(Debug, Clone)]
+pub enum VolumeLocation {
+    /// A `.wsp` file, already read (the caller reads it, with its own advice for files that
+    /// are not `.wsp`).
+    File {
+        /// Its path, for messages.
+        path: PathBuf,
+        /// Its bytes.
+        bytes: Vec<u8>,
+    },
+    /// A published volume read by range requests (`https://…`, `s3://…`).
+    Published {
+        /// Its URL.
+        url: String,
+    },
+    /// A volume in a cache.
+    Cache {
+        /// The cache's URL, or several nodes' comma-separated.
+        urls: String,
+        /// CA and token.
+        connect: ConnectOptions,
+        /// The volume's name.
+        name: String,
+    },
+}
+
+impl VolumeLocation {
+    /// A short name of the volume for messages.
+    pub fn describe(&self) -> String {
+        match self {
+            VolumeLocation::File { path, .. } => path.display().to_string(),
+            VolumeLocation::Published { url } => url.clone(),
+            VolumeLocation::Cache { urls, name, .. } => format!("{name} at {urls}"),
+        }
+    }
+}
+
+/// An opened volume: a packet source and what is needed to get every coefficient.
+pub enum Opened {
+    /// A local file.
+    File {
+        /// Its packets in view order.
+        source: Box<FileSource>,
+    },
+    /// A published volume read by range requests.
+    Remote {
+        /// Its URL.
+        url: String,
+        /// The fetching source.
+        source: RangeSource,
+    },
+    /// A cached volume.
+    Cache {
+        /// The cache URL(s).
+        url: String,
+        /// CA and token.
+        connect: ConnectOptions,
+        /// The volume.
+        key: VolumeKey,
+        /// The pulling source.
+        source: CacheSource,
+    },
+}
+
+impl Opened {
+    /// The packet source, for a frame loop.
+    pub fn into_source(self) -> Box<dyn PacketSource> {
+        match self {
+            Opened::File { source } => source,
+            Opened::Remote { source, .. } => Box::new(source),
+            Opened::Cache { source, .. } => Box::new(source),
+        }
+    }
+
+    /// Every coefficient of the volume: decoded from the file, or from one full stream of the
+    /// cache.
+    pub fn all_coefficients(&self, header: &Header) -> Result<Vec<Coefficient>, OpenError> {
+        match self {
+            Opened::File { source } => Ok(load_coefficients(source.file_bytes(), None, None)?.1),
+            Opened::Remote { url, .. } => {
+                let bytes = fetch_wsp(url).map_err(|source| OpenError::Source {
+                    what: url.clone(),
+                    source,
+                })?;
+                Ok(load_coefficients(&bytes, None, None)?.1)
+            }
+            Opened::Cache {
+                url, connect, key, ..
+            } => {
+                let runtime = tokio::runtime::Builder::new_current_thread()
+                    .enable_all()
+                    .build()?;
+                let packets = runtime.block_on(async {
+                    let first = url.split(',').next().unwrap_or(url);
+                    let mut c = wavesplat_client::CacheClient::connect_with(first, connect).await?;
+                    let request = wavesplat_client::RefineRequest::new(
+                        key.clone(),
+                        ViewSpec::single(View::new(0.0, 0.0, 1, 1)),
+                    );
+                    c.refine_collect(request, None).await
+                })?;
+                let data: Vec<&[u8]> = packets.packets.iter().map(|p| p.data.as_slice()).collect();
+                Ok(decode_packets(header, &data, 0)?.concat())
+            }
+        }
+    }
+
+    /// The image of every coefficient for `spec`, in display space.
+    pub fn reference_image(&self, header: &Header, spec: &ViewSpec) -> Result<Image, OpenError> {
+        let all = self.all_coefficients(header)?;
+        let mut r = Renderer::new(RenderOptions {
+            channels: header.channels,
+            ..RenderOptions::default()
+        });
+        let (img, _) = r.render_spec(&all, &header.geometry, spec)?;
+        Ok(crate::color::to_rgb_for_spec(&img, header, spec)?)
+    }
+}
+
+/// Opens the volume at `location`, ranked for the view `request` describes; returns its header,
+/// the opened source and that view (a named patient side resolved through the volume's
+/// placement, the fitting zoom). `byte_budget` caps the packets' bytes (file and cache).
+pub fn open(
+    location: &VolumeLocation,
+    request: &ViewRequest,
+    byte_budget: Option<u64>,
+) -> Result<(Header, Opened, ViewSpec), OpenError> {
+    let what = location.describe();
+    let failed = |source| OpenError::Source {
+        what: what.clone(),
+        source,
+    };
+    match location {
+        VolumeLocation::Published { url } => {
+            let first = request.spec()?;
+            let (mut source, header) =
+                RangeSource::open(url, first, RangeSourceOptions::default()).map_err(failed)?;
+            let spec = request.respec(&header, first, &mut source)?;
+            Ok((
+                header,
+                Opened::Remote {
+                    url: url.clone(),
+                    source,
+                },
+                spec,
+            ))
+        }
+        VolumeLocation::File { path, bytes } => {
+            // A named view and the fitting zoom need the volume before packets are ordered.
+            let header = parse_file(bytes)
+                .map_err(|source| OpenError::Format {
+                    what: path.display().to_string(),
+                    source,
+                })?
+                .header;
+            let spec = request.spec_for(&header)?;
+            let source = FileSource::open(bytes.clone(), &spec)
+                .map_err(failed)?
+                .with_byte_budget(byte_budget);
+            Ok((
+                source.header().clone(),
+                Opened::File {
+                    source: Box::new(source),
+                },
+                spec,
+            ))
+        }
+        VolumeLocation::Cache {
+            urls,
+            connect,
+            name,
+        } => {
+            let key = VolumeKey::Name(name.clone());
+            let options = CacheSourceOptions {
+                byte_budget,
+                ..CacheSourceOptions::default()
+            };
+            let first = request.spec()?;
+            let (mut source, header) =
+                CacheSource::open_with(urls, connect, key.clone(), first, options)
+                    .map_err(failed)?;
+            let spec = request.respec(&header.header, first, &mut source)?;
+            Ok((
+                header.header,
+                Opened::Cache {
+                    url: urls.clone(),
+                    connect: connect.clone(),
+                    key,
+                    source,
+                },
+                spec,
+            ))
+        }
+    }
+}
+
+/// Decodes the packets (or a prefix in file order) of a file. Packets decode on their own, so
+/// they are decoded in parallel, in batches of a few per thread so that a coefficient cap stops
+/// early.
+pub fn load_coefficients(
+    bytes: &[u8],
+    max_coefficients: Option<usize>,
+    max_bytes: Option<usize>,
+) -> Result<(Header, Vec<Coefficient>), OpenError> {
+    let file = parse_file(bytes).map_err(|source| OpenError::Format {
+        what: "the file".into(),
+        source,
+    })?;
+    let mut used = file.header_bytes + file.directory_bytes;
+    let mut prefix = 0usize;
+    for p in &file.packets {
+        if max_bytes.is_some_and(|b| used + p.len() > b) {
+            break;
+        }
+        used += p.len();
+        prefix += 1;
+    }
+    let batch = 4 * rayon::current_num_threads();
+    let mut coeffs = Vec::new();
+    let mut start = 0usize;
+    while start < prefix && max_coefficients.is_none_or(|n| coeffs.len() < n) {
+        let end = if max_coefficients.is_some() {
+            (start + batch).min(prefix)
+        } else {
+            prefix
+        };
+        let decoded = decode_packets(&file.header, &file.packets[start..end], start)?;
+        for d in decoded {
+            if max_coefficients.is_some_and(|n| coeffs.len() >= n) {
+                break;
+            }
+            coeffs.extend(d);
+        }
+        start = end;
+    }
+    if let Some(n) = max_coefficients {
+        coeffs.truncate(n);
+    }
+    Ok((file.header, coeffs))
+}
