@@ -115,7 +115,8 @@ struct FilePacket {
 }
 
 /// A local `.wsp` file served packet by packet in the cache's order for the current view
-/// (visible energy per byte), optionally only up to a byte budget.
+/// (visible energy per byte), optionally only up to a byte budget, each packet decoded as it
+/// is handed over (every source hands the session decoded packets).
 #[derive(Debug)]
 pub struct FileSource {
     bytes: Vec<u8>,
@@ -236,11 +237,14 @@ impl PacketSource for FileSource {
         self.status.packets += 1;
         self.status.bytes += range.len() as u64;
         self.status.done = self.cursor >= self.order.len();
-        Some(SourcePacket {
-            decoded: None,
-            id,
-            data: self.bytes[range].to_vec(),
-        })
+        let data = self.bytes[range].to_vec();
+        // Decoded here, as the network sources decode on their threads, so the session takes
+        // every source's packets one way. A packet that does not decode goes on as bytes: the
+        // session then reports the error with the packet's id.
+        let decoded = decode_packet(&self.header, &data)
+            .ok()
+            .map(|d| (d.tile, d.coefficients));
+        Some(SourcePacket { id, data, decoded })
     }
 
     fn set_view(&mut self, spec: &ViewSpec) {
