@@ -27,8 +27,8 @@
 //! by the encoder to all of a file's packets, as the paper's coder does; packets stay
 //! self-contained given the header.
 
-use super::packet::{Coefficient, PacketInput, SizeBreakdown};
-use super::sigmap::{region_extent, Quantizer};
+use super::coefficient::{region_extent, Coefficient, PacketInput, SizeBreakdown};
+use super::quant::Quantizer;
 use super::{invalid, FormatError, Header};
 use crate::entropy::bits::{BitReader, BitSink, BitWriter, WordReader};
 use crate::entropy::huffman::{HuffmanCode, HuffmanDecoder};
@@ -856,7 +856,7 @@ pub(crate) fn decode(
         tables: &tables.decoders,
         count,
         // The count is bounded but may still be large for a hostile packet: grow as decoded.
-        out: Vec::with_capacity(count.min(super::packet::INITIAL_CAPACITY)),
+        out: Vec::with_capacity(count.min(super::coefficient::INITIAL_CAPACITY)),
         position_bits: 0,
     };
     let mut present_bits = 0u64;

@@ -20,9 +20,11 @@
 //! wrong-version or oversized input yields a [`FormatError`], never a panic.
 
 pub mod bytes;
+mod coefficient;
 pub mod fast;
 pub mod index;
 pub mod packet;
+mod paper;
 pub mod quant;
 pub mod sigmap;
 

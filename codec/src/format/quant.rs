@@ -1,12 +1,15 @@
-//! The paper's quantizer (eq. 15–17): per substream (channel, level, type) the magnitudes, in
+//! The quantizers. The paper's (eq. 15–17), `Chain`: per substream (channel, level, type) the magnitudes, in
 //! coding order, are coded as integer steps δ of the delta factor Δ from the previous
 //! *reconstructed* magnitude (closed loop, so errors do not accumulate down the sequence).
 //!
 //! The chain accumulates the integer sum K of the steps and reconstructs |w̃| = start − K·Δ, so
 //! encoder and decoder agree bit for bit. Steps are signed, because spatial clustering breaks the
 //! monotone order. Δ = 0 (a single coefficient, or equal magnitudes) codes every step as 0.
+//!
+//! The threshold quantizer of the sigmap and fast coders, `Quantizer`: uniform steps above a
+//! substream's lower magnitude bound in a layer, capped by its upper one.
 
-use super::{invalid, FormatError};
+use super::{invalid, FormatError, Header};
 
 /// Largest |K| a chain may reach (keeps start − K·Δ exact in the integer part).
 const MAX_STEPS: i64 = 1 << 52;
@@ -101,5 +104,70 @@ mod tests {
         let mut c = Chain::new(1.0, 1e-3);
         assert!(c.decode(i64::MAX).is_err());
         assert!(c.decode(MAX_STEPS + 1).is_err());
+    }
+}
+
+/// A substream's magnitude quantizer in one layer: lower and upper magnitude bounds and step.
+/// The upper bound (the layer's score bound, at most the substream's largest magnitude w0)
+/// caps reconstructions, so magnitudes that all sit within one step of the lower bound (a
+/// single coefficient, such as a constant volume's one scaling coefficient) come back as w0
+/// rather than lb + Δ/2, which is 1.5 × their value when Δ = lb, as lossless selection at the
+/// default step has it. Shared by the sigmap and fast coders.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct Quantizer {
+    lb: f64,
+    /// Largest magnitude the substream can have in this layer (≥ lb).
+    ub: f64,
+    step: f64,
+}
+
+impl Quantizer {
+    /// The quantizer of substream `sub` in `layer`.
+    pub(crate) fn of(header: &Header, sub: usize, layer: usize) -> Quantizer {
+        let params = header.substreams[sub].expect("present substream");
+        // The coarse layer holds its band's coefficients of every score: down to the threshold.
+        let lb = if layer + 1 < header.layer_bounds.len() && !(header.coarse_layer && layer == 0) {
+            header.chain_start(sub, layer + 1)
+        } else {
+            header.magnitude_threshold(sub)
+        };
+        let lb = lb.max(0.0);
+        let ub = header.chain_start(sub, layer).max(lb);
+        Quantizer {
+            lb,
+            ub,
+            step: params.delta as f64,
+        }
+    }
+
+    /// The magnitude of step q: the middle of its interval, within the substream's bounds.
+    #[inline]
+    fn reconstruct(&self, q: u64) -> f64 {
+        (self.lb + (q as f64 + 0.5) * self.step).min(self.ub)
+    }
+
+    /// The step of a magnitude and its reconstruction (the exact f32 bits when Δ = 0).
+    pub(crate) fn quantize(&self, magnitude: f64) -> (u64, f64) {
+        if self.step > 0.0 {
+            let q = ((magnitude - self.lb) / self.step).floor().clamp(0.0, 1e15) as u64;
+            (q, self.reconstruct(q))
+        } else {
+            ((magnitude as f32).to_bits() as u64, magnitude as f32 as f64)
+        }
+    }
+
+    /// The magnitude of a decoded step, refusing steps no encoder writes.
+    #[inline]
+    pub(crate) fn dequantize(&self, q: u64) -> Result<f64, FormatError> {
+        if self.step > 0.0 {
+            if q > 1_000_000_000_000_000 {
+                return Err(invalid("packet", "quantized magnitude out of range"));
+            }
+            Ok(self.reconstruct(q))
+        } else {
+            let bits =
+                u32::try_from(q).map_err(|_| invalid("packet", "exact magnitude out of range"))?;
+            Ok(f32::from_bits(bits) as f64)
+        }
     }
 }

@@ -31,7 +31,8 @@
 //! neighbours by them (−2.0 % and a further −0.75 % of the decode bench's file at equal
 //! coefficients; magnitudes take half or more of a file).
 
-use super::packet::{Coefficient, SizeBreakdown};
+use super::coefficient::{region_extent, Coefficient, SizeBreakdown};
+use super::quant::Quantizer;
 use super::{invalid, FormatError, Header};
 use crate::entropy::range::{AdaptiveUintModel, BitModel, RangeDecoder, RangeEncoder};
 use crate::layout::Band;
@@ -896,95 +897,9 @@ impl Box3 {
     }
 }
 
-/// A substream's magnitude quantizer in one layer: lower and upper magnitude bounds and step.
-/// The upper bound (the layer's score bound, at most the substream's largest magnitude w0)
-/// caps reconstructions, so magnitudes that all sit within one step of the lower bound (a
-/// single coefficient, such as a constant volume's one scaling coefficient) come back as w0
-/// rather than lb + Δ/2, which is 1.5 × their value when Δ = lb, as lossless selection at the
-/// default step has it. Shared by the sigmap and fast coders.
-#[derive(Debug, Clone, Copy)]
-pub(super) struct Quantizer {
-    lb: f64,
-    /// Largest magnitude the substream can have in this layer (≥ lb).
-    ub: f64,
-    step: f64,
-}
-
-impl Quantizer {
-    /// The quantizer of substream `sub` in `layer`.
-    pub(super) fn of(header: &Header, sub: usize, layer: usize) -> Quantizer {
-        let params = header.substreams[sub].expect("present substream");
-        // The coarse layer holds its band's coefficients of every score: down to the threshold.
-        let lb = if layer + 1 < header.layer_bounds.len() && !(header.coarse_layer && layer == 0) {
-            header.chain_start(sub, layer + 1)
-        } else {
-            header.magnitude_threshold(sub)
-        };
-        let lb = lb.max(0.0);
-        let ub = header.chain_start(sub, layer).max(lb);
-        Quantizer {
-            lb,
-            ub,
-            step: params.delta as f64,
-        }
-    }
-
-    /// The magnitude of step q: the middle of its interval, within the substream's bounds.
-    #[inline]
-    fn reconstruct(&self, q: u64) -> f64 {
-        (self.lb + (q as f64 + 0.5) * self.step).min(self.ub)
-    }
-
-    /// The step of a magnitude and its reconstruction (the exact f32 bits when Δ = 0).
-    pub(super) fn quantize(&self, magnitude: f64) -> (u64, f64) {
-        if self.step > 0.0 {
-            let q = ((magnitude - self.lb) / self.step).floor().clamp(0.0, 1e15) as u64;
-            (q, self.reconstruct(q))
-        } else {
-            ((magnitude as f32).to_bits() as u64, magnitude as f32 as f64)
-        }
-    }
-
-    /// The magnitude of a decoded step, refusing steps no encoder writes.
-    #[inline]
-    pub(super) fn dequantize(&self, q: u64) -> Result<f64, FormatError> {
-        if self.step > 0.0 {
-            if q > 1_000_000_000_000_000 {
-                return Err(invalid("packet", "quantized magnitude out of range"));
-            }
-            Ok(self.reconstruct(q))
-        } else {
-            let bits =
-                u32::try_from(q).map_err(|_| invalid("packet", "exact magnitude out of range"))?;
-            Ok(f32::from_bits(bits) as f64)
-        }
-    }
-}
-
 fn region(header: &Header, tile: usize, level: u8, band_dims: [usize; 3]) -> ([u32; 3], Box3) {
     let (origin, extent) = region_extent(header, tile, level, band_dims);
     (origin, Box3::root(extent))
-}
-
-/// A tile's region of a band of `level`: its origin in band cells and its extent (0 along an
-/// axis where the tile holds none of the band).
-pub(super) fn region_extent(
-    header: &Header,
-    tile: usize,
-    level: u8,
-    band_dims: [usize; 3],
-) -> ([u32; 3], [u32; 3]) {
-    let origin = header.tile_origin(tile);
-    let l = level as usize;
-    let mut lo = [0u32; 3];
-    let mut hi = [0u32; 3];
-    for a in 0..3 {
-        let o = origin[a] >> l;
-        let end = ((origin[a] + header.tile) >> l).min(band_dims[a]);
-        lo[a] = o as u32;
-        hi[a] = end.saturating_sub(o) as u32;
-    }
-    (lo, hi)
 }
 
 /// Encodes one packet's coefficients; returns payload, the decoder's reconstruction (in decode
@@ -1046,7 +961,7 @@ pub(crate) fn encode(
     let mut payload = enc.finish();
     // Keep the count within what the packet reader accepts for this payload size; the range
     // decoder reads missing bytes as zeros, so the padding decodes as if absent.
-    let per_byte = super::packet::MAX_COEFFICIENTS_PER_PAYLOAD_BYTE;
+    let per_byte = super::coefficient::MAX_COEFFICIENTS_PER_PAYLOAD_BYTE;
     let min_len = coefficients.len().div_ceil(per_byte).saturating_sub(1);
     if payload.len() < min_len {
         payload.resize(min_len, 0);
@@ -1146,7 +1061,7 @@ pub(crate) fn decode(
     let nb = header.geometry.band_count();
     let bands = header.geometry.bands();
     // The count is bounded but may still be large for a hostile packet: grow as decoded.
-    let mut out = Vec::with_capacity(count.min(super::packet::INITIAL_CAPACITY));
+    let mut out = Vec::with_capacity(count.min(super::coefficient::INITIAL_CAPACITY));
     let mut hood = Neighbourhood::new(header, tile);
     let mut spent = Spent::default();
     for sub in 0..header.substream_count() {
