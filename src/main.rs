@@ -64,7 +64,7 @@ enum Command {
     /// Run a server (`serve cache`: the gRPC coefficient cache; `serve orchestrator`: the
     /// batch job queue).
     #[command(subcommand)]
-    Serve(commands::cache::ServeCommand),
+    Serve(commands::serve::ServeCommand),
     /// Talk to a coefficient cache: `ingest`, `list`, `show`, `rm`.
     #[command(subcommand)]
     Cache(commands::cache::CacheCommand),
@@ -102,7 +102,7 @@ fn run(command: Command) -> Result<()> {
         Command::Bench(a) => commands::bench::run(a),
         Command::Render(a) => commands::render::run(*a),
         Command::View(a) => commands::view::run(*a),
-        Command::Serve(c) => commands::cache::run_serve(c),
+        Command::Serve(c) => commands::serve::run(c),
         Command::Cache(c) => commands::cache::run(c),
         Command::Worker(a) => commands::orchestrator::run_worker(a),
         Command::Archive(c) => commands::orchestrator::run_archive(c),

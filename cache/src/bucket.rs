@@ -631,7 +631,7 @@ impl Bucket {
 fn meta_of(v: &BucketVolume, names: Vec<String>) -> VolumeMeta {
     let h = &v.head;
     let packets: &[PacketMeta] = &h.packets;
-    crate::store::volume_meta(
+    VolumeMeta::from_header(
         content_id(&v.sha256),
         names,
         v.sha256,

@@ -66,6 +66,40 @@ pub struct VolumeMeta {
 }
 
 impl VolumeMeta {
+    /// A volume's record from its header and index.
+    #[allow(clippy::too_many_arguments)]
+    pub(crate) fn from_header(
+        id: u64,
+        names: Vec<String>,
+        sha256: [u8; 32],
+        created_unix_ms: u64,
+        file_bytes: u64,
+        header: &wavesplat_codec::format::Header,
+        header_bytes: usize,
+        packets: &[PacketMeta],
+    ) -> VolumeMeta {
+        let h = header;
+        VolumeMeta {
+            id,
+            name: names.first().cloned().unwrap_or_default(),
+            names,
+            sha256,
+            created_unix_ms,
+            file_bytes,
+            header_bytes: header_bytes as u64,
+            packet_bytes: packets.iter().map(|p| p.len as u64).sum(),
+            dims: h.geometry.dims.map(|d| d as u32),
+            channels: h.channels as u32,
+            family: h.geometry.family.name().to_string(),
+            levels: h.geometry.levels as u32,
+            packet_count: packets.len() as u32,
+            tile_count: h.tile_count() as u32,
+            layer_count: h.layer_bounds.len() as u32,
+            tile: h.tile as u32,
+            coefficients: h.kept,
+        }
+    }
+
     /// SHA-256 as lower-case hex.
     pub fn sha256_hex(&self) -> String {
         hex(&self.sha256)

@@ -1078,7 +1078,7 @@ impl Upload {
                     store.remove_data(id)?;
                     return Err(e);
                 }
-                volume_meta(
+                VolumeMeta::from_header(
                     id,
                     vec![self.name.clone()],
                     hash,
@@ -1145,40 +1145,6 @@ impl Upload {
         let volume = bucket.wait(bucket.describe(&VolumeKey::Name(self.name.clone())))?;
         tracing::info!(id = volume.id, name = %self.name, bytes = self.total, existed, bucket = %bucket.url(), "ingested volume");
         Ok(Ingested { volume, existed })
-    }
-}
-
-/// A volume's record from its header and index.
-#[allow(clippy::too_many_arguments)]
-pub(crate) fn volume_meta(
-    id: u64,
-    names: Vec<String>,
-    sha256: [u8; 32],
-    created_unix_ms: u64,
-    file_bytes: u64,
-    header: &wavesplat_codec::format::Header,
-    header_bytes: usize,
-    packets: &[PacketMeta],
-) -> VolumeMeta {
-    let h = header;
-    VolumeMeta {
-        id,
-        name: names.first().cloned().unwrap_or_default(),
-        names,
-        sha256,
-        created_unix_ms,
-        file_bytes,
-        header_bytes: header_bytes as u64,
-        packet_bytes: packets.iter().map(|p| p.len as u64).sum(),
-        dims: h.geometry.dims.map(|d| d as u32),
-        channels: h.channels as u32,
-        family: h.geometry.family.name().to_string(),
-        levels: h.geometry.levels as u32,
-        packet_count: packets.len() as u32,
-        tile_count: h.tile_count() as u32,
-        layer_count: h.layer_bounds.len() as u32,
-        tile: h.tile as u32,
-        coefficients: h.kept,
     }
 }
 

@@ -1,9 +1,9 @@
 //! The orchestrator's typed errors and their single mapping to gRPC statuses: bad requests are
 //! `InvalidArgument`, unknown jobs `NotFound`, actions the job's state forbids (and lost
 //! leases, deliveries the cache does not confirm) `FailedPrecondition`, an unreachable cache
-//! `Unavailable`, storage trouble `Internal`.
+//! `Unavailable`, storage trouble `Internal`. Jobs are named by their id (`model::JobId`, a
+//! `u64`), so this module needs nothing from the others.
 
-use crate::model::JobId;
 use thiserror::Error;
 
 /// Errors of the orchestrator library.
@@ -12,7 +12,7 @@ use thiserror::Error;
 pub enum OrchestratorError {
     /// No job with this id.
     #[error("no job {0}")]
-    NotFound(JobId),
+    NotFound(u64),
     /// The request is malformed or a value is out of range.
     #[error("invalid request: {0}")]
     InvalidRequest(String),
@@ -20,7 +20,7 @@ pub enum OrchestratorError {
     #[error("job {id} is {state}; {action} needs {allowed}")]
     InvalidState {
         /// The job.
-        id: JobId,
+        id: u64,
         /// Its state.
         state: &'static str,
         /// What was asked.
@@ -33,7 +33,7 @@ pub enum OrchestratorError {
     #[error("lease on job {id} attempt {attempt} is not held: {reason}")]
     LeaseLost {
         /// The job.
-        id: JobId,
+        id: u64,
         /// The attempt claimed.
         attempt: u32,
         /// Why.

@@ -9,18 +9,6 @@ use wavesplat_cache::{Limits, Store};
 use wavesplat_client::blocking::CacheClient;
 use wavesplat_client::{VolumeInfo, VolumeKey};
 
-/// Default cache address.
-pub const DEFAULT_URL: &str = "http://127.0.0.1:50051";
-
-/// `wavesplat serve …`: run a service.
-#[derive(Subcommand, Debug)]
-pub enum ServeCommand {
-    /// The coefficient cache (gRPC): stores .wsp volumes, streams view-dependent refinement.
-    Cache(ServeCacheArgs),
-    /// The batch job orchestrator (gRPC): a durable queue of compression jobs for workers.
-    Orchestrator(super::orchestrator::ServeOrchestratorArgs),
-}
-
 /// Arguments of `wavesplat serve cache`.
 #[derive(Args, Debug)]
 pub struct ServeCacheArgs {
@@ -69,7 +57,7 @@ pub enum CacheCommand {
 #[derive(Args, Debug)]
 pub struct UrlArgs {
     /// Cache URL (`http://HOST:PORT`, `https://HOST:PORT` or `HOST:PORT`).
-    #[arg(long = "cache", default_value = DEFAULT_URL)]
+    #[arg(long = "cache", default_value = super::DEFAULT_CACHE_URL)]
     pub url: String,
     #[command(flatten)]
     pub security: super::security::ClientSecurityArgs,
@@ -115,12 +103,8 @@ fn runtime() -> Result<tokio::runtime::Runtime> {
         .context("starting the async runtime")
 }
 
-/// Runs `wavesplat serve …`.
-pub fn run_serve(cmd: ServeCommand) -> Result<()> {
-    let a = match cmd {
-        ServeCommand::Cache(a) => a,
-        ServeCommand::Orchestrator(a) => return super::orchestrator::run_serve(a),
-    };
+/// Runs `wavesplat serve cache`.
+pub fn run_serve(a: ServeCacheArgs) -> Result<()> {
     let limits = Limits {
         max_upload_bytes: a.max_upload_mib.saturating_mul(1 << 20),
         ..Limits::default()

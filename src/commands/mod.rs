@@ -12,11 +12,18 @@ pub mod phantom;
 pub mod publish;
 pub mod render;
 pub mod security;
+pub mod serve;
 pub mod view;
 
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use wavesplat_compressor::encode::Target;
+
+/// The cache's default address.
+pub const DEFAULT_CACHE_URL: &str = "http://127.0.0.1:50051";
+
+/// The orchestrator's default address.
+pub const DEFAULT_ORCHESTRATOR_URL: &str = "http://127.0.0.1:50052";
 
 /// How much of a volume to keep, shared by `compress` and `archive submit`.
 #[derive(Args, Debug, Clone)]

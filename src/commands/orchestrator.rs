@@ -18,9 +18,6 @@ use wavesplat_orchestrator::{JobOptions, QueueConfig, ServiceConfig, Store, Targ
 use wavesplat_proto::pb;
 use wavesplat_worker::archive;
 
-/// Default orchestrator address.
-pub const DEFAULT_URL: &str = "http://127.0.0.1:50052";
-
 /// Arguments of `wavesplat serve orchestrator`.
 #[derive(Args, Debug)]
 pub struct ServeOrchestratorArgs {
@@ -65,10 +62,10 @@ pub struct ServeOrchestratorArgs {
 #[derive(Args, Debug)]
 pub struct WorkerArgs {
     /// Orchestrator URL.
-    #[arg(long, default_value = DEFAULT_URL)]
+    #[arg(long, default_value = super::DEFAULT_ORCHESTRATOR_URL)]
     pub orchestrator: String,
     /// Cache URL the results are delivered to.
-    #[arg(long, default_value = super::cache::DEFAULT_URL)]
+    #[arg(long, default_value = super::DEFAULT_CACHE_URL)]
     pub cache: String,
     /// Compression threads (0: one per core).
     #[arg(long, default_value_t = 0)]
@@ -181,7 +178,7 @@ pub struct SubmitArgs {
     /// Archive directory (scanned recursively).
     pub dir: PathBuf,
     /// Orchestrator URL.
-    #[arg(long, default_value = DEFAULT_URL)]
+    #[arg(long, default_value = super::DEFAULT_ORCHESTRATOR_URL)]
     pub orchestrator: String,
     /// Stream each file's bytes to the orchestrator instead of passing its path (use when the
     /// workers do not share this machine's storage).
@@ -213,7 +210,7 @@ pub enum JobsCommand {
 #[derive(Args, Debug)]
 pub struct JobsUrl {
     /// Orchestrator URL.
-    #[arg(long, default_value = DEFAULT_URL)]
+    #[arg(long, default_value = super::DEFAULT_ORCHESTRATOR_URL)]
     pub orchestrator: String,
     #[command(flatten)]
     pub security: super::security::ClientSecurityArgs,
