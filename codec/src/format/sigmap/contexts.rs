@@ -1,0 +1,104 @@
+//! The sigmap coder's adaptive models (`Models`: presence, occupancy, sign and magnitude models
+//! of a packet, fresh in every packet) and the context index of each decision: occupancy by
+//! band, box size, the parent's and cousins' significance and the face state; signs and
+//! magnitudes by the coded cells' lower neighbours.
+
+use super::super::Header;
+use super::cells::{CodedCells, FACE_STATES, NEIGHBOUR_STATES, SIGN_CONTEXTS, VALUE_CONTEXTS};
+use super::octree::Box3;
+use crate::entropy::range::{AdaptiveUintModel, BitModel};
+
+/// Most size contexts per band (log2 of a box's cell count, clamped); a packet uses as many as
+/// its tile's largest region needs ([`Models::new`]), so small tiles set up fewer models.
+const MAX_SIZE_CONTEXTS: usize = 48;
+
+/// The adaptive models of a packet, and the cells coded so far in the current substream.
+pub(super) struct Models {
+    pub(super) present: Vec<BitModel>,
+    pub(super) occupied: Vec<BitModel>,
+    pub(super) sign: Vec<BitModel>,
+    pub(super) value: Vec<AdaptiveUintModel>,
+    pub(super) coded: CodedCells,
+    /// Size contexts per band: enough for the largest box of a tile region.
+    pub(super) size_contexts: usize,
+    /// Value contexts per band: [`VALUE_CONTEXTS`], or 1 in files before
+    /// [`super::MAGNITUDE_CONTEXTS_VERSION`].
+    pub(super) value_contexts: usize,
+}
+
+impl Models {
+    pub(super) fn new(header: &Header) -> Models {
+        let nb = header.geometry.band_count();
+        let tile_cells = (header.tile as u128).pow(3);
+        let size_contexts =
+            ((u128::BITS - tile_cells.leading_zeros()) as usize + 1).clamp(2, MAX_SIZE_CONTEXTS);
+        let occupied = nb * size_contexts * NEIGHBOUR_STATES * NEIGHBOUR_STATES * FACE_STATES;
+        let value_contexts = if header.version >= super::super::MAGNITUDE_CONTEXTS_VERSION {
+            VALUE_CONTEXTS
+        } else {
+            1
+        };
+        Models {
+            size_contexts,
+            value_contexts,
+            present: (0..nb).map(|_| BitModel::new()).collect(),
+            occupied: (0..occupied).map(|_| BitModel::new()).collect(),
+            sign: (0..nb * SIGN_CONTEXTS).map(|_| BitModel::new()).collect(),
+            value: vec![AdaptiveUintModel::new(); nb * value_contexts],
+            coded: CodedCells::default(),
+        }
+    }
+}
+
+impl Models {
+    /// The sign and value models of a coefficient at `cell` of band index `band`
+    /// ([`CodedCells::leaf_contexts`]; files before [`super::MAGNITUDE_CONTEXTS_VERSION`] have one
+    /// value model per band).
+    #[inline(always)]
+    pub(super) fn leaf_contexts(&self, band: usize, cell: [u32; 3]) -> (usize, usize) {
+        let (sign, value) = self.coded.leaf_contexts(band, cell);
+        if self.value_contexts == 1 {
+            (sign, band)
+        } else {
+            (sign, value)
+        }
+    }
+
+    /// The face state of a box of `cells` cells ([`CodedCells::face_state`]). From
+    /// [`super::MAGNITUDE_CONTEXTS_VERSION`] a single cell's state weighs its coded lower
+    /// neighbours by their magnitude classes instead of counting them (the sum of
+    /// [`CodedCells::leaf_contexts`]: 0, 1, 2–3, 4 and above), since a cell beside large
+    /// coefficients is likelier to hold one.
+    #[inline(always)]
+    pub(super) fn face_state(&self, b: &Box3, cells: usize) -> usize {
+        if cells == 1 && self.value_contexts != 1 {
+            match self.coded.leaf_contexts(0, b.lo).1 {
+                0 => 0,
+                1 => 1,
+                2 | 3 => 2,
+                _ => 3,
+            }
+        } else {
+            self.coded.face_state(b, cells)
+        }
+    }
+
+    /// The occupancy context of a box: its band, the log2 of its cell count, the states of its
+    /// parent region (same type one level coarser) and of its cousins (earlier types of the
+    /// same level at the same cells), both as coded earlier in this packet, and its face state
+    /// (coded cells of the same band touching its lower faces, [`CodedCells::face_state`]).
+    pub(super) fn occupancy_context(
+        &self,
+        band: usize,
+        cells: usize,
+        neighbours: (usize, usize),
+        face: usize,
+    ) -> usize {
+        let lg = (usize::BITS - cells.leading_zeros()) as usize;
+        let size = lg.min(self.size_contexts - 1);
+        (((band * self.size_contexts + size) * NEIGHBOUR_STATES + neighbours.0) * NEIGHBOUR_STATES
+            + neighbours.1)
+            * FACE_STATES
+            + face
+    }
+}

@@ -1,0 +1,396 @@
+//! The prepared encoder: from a `Prepared` volume and a number of coefficients to a file — the
+//! oracle's top set (or a refined one), layers and tiles, clustering order, quantization and
+//! coding — and the error of the X-ray views by which depths are compared; `finish` fills in
+//! Q_E of the chosen file.
+
+use super::options::{CompressOptions, CompressStats, Compressed, TileChoice};
+use super::prepare::{
+    axis_views, choose_tiling, Prepared, Ranked, Scored, COARSE_LAYER_MIN_LEVELS,
+};
+use crate::order::{cluster_order, Item};
+use crate::refine::{refine_with, KeptValue, Output, RefineOptions, Refined};
+use crate::select::top_k;
+use rayon::prelude::*;
+use wavesplat_codec::dwt::fast::FastTransform;
+use wavesplat_codec::format::packet::{encode_packets, Coefficient, PacketInput};
+use wavesplat_codec::format::quant::delta_factor;
+use wavesplat_codec::format::{write_file, Header, SubstreamParams, MAX_LAYERS};
+use wavesplat_codec::metrics::{q_e_percent, q_v_percent};
+
+impl Prepared {
+    /// The oracle's score S = E·I of coefficient `i` of channel `c` (−1 for a zero coefficient,
+    /// which is never kept).
+    pub(super) fn score(&self, c: usize, i: usize) -> f64 {
+        let w = self.coefficients[c][i];
+        if w == 0.0 {
+            return -1.0;
+        }
+        (w as f64).powi(2) * self.norms[self.band_of[i] as usize] * self.color.importance[c]
+    }
+
+    /// The energy E = w²·‖b‖² (eq. 14, without importance).
+    pub(super) fn energy(&self, c: usize, i: usize) -> f64 {
+        (self.coefficients[c][i] as f64).powi(2) * self.norms[self.band_of[i] as usize]
+    }
+
+    /// How far a file's three axis X-ray views lie from the volume's: the mean over the views
+    /// of ln Σ_c I_c·‖P_v f_c − P_v R ĉ_c‖², with f_c the channel's samples (after the colour
+    /// transform or offset; their views are [`Prepared::views`]), ĉ_c the file's decoded
+    /// coefficients, R the synthesis to samples, P_v the sum along axis v over the volume's box
+    /// and I_c the channel's importance. The log-mean follows Q_I, which averages the views in
+    /// dB.
+    pub(super) fn view_error(&self, file: &Compressed) -> f64 {
+        let g = &self.geometry;
+        let fast = FastTransform::new(g);
+        let [px, py, _] = g.padded;
+        let [ox, oy, oz] = g.origin;
+        let mut energy = [0.0f64; 3];
+        for (c, target) in self.views.iter().enumerate() {
+            let mut r = vec![0.0f32; g.coefficient_count()];
+            for k in file.reconstruction.iter().flatten() {
+                if k.channel as usize == c {
+                    let pos = [k.pos[0] as usize, k.pos[1] as usize, k.pos[2] as usize];
+                    r[g.linear_index(k.band, pos)] = k.value;
+                }
+            }
+            fast.synthesize(&mut r);
+            let at = |x: usize, y: usize, z: usize| {
+                f64::from(r[(ox + x) + px * ((oy + y) + py * (oz + z))])
+            };
+            let decoded = axis_views(g.dims, &at);
+            let w = self.color.importance[c];
+            for ((e, t), d) in energy.iter_mut().zip(target).zip(&decoded) {
+                *e += w * t.iter().zip(d).map(|(t, d)| (t - d).powi(2)).sum::<f64>();
+            }
+        }
+        energy
+            .iter()
+            .map(|e| (e + f64::MIN_POSITIVE).ln())
+            .sum::<f64>()
+            / 3.0
+    }
+
+    /// The oracle's top `cap` coefficients (all non-zero ones when `cap` reaches them).
+    pub(super) fn ranked(&self, cap: usize) -> Ranked {
+        let n = self.geometry.coefficient_count();
+        let picks = top_k(&self.histogram, self.channels, n, cap, &|c, i| {
+            self.score(c, i)
+        });
+        let sorted: Vec<Scored> = picks
+            .into_par_iter()
+            .map(|(score, channel, index)| Scored {
+                score,
+                channel,
+                index,
+                value: self.coefficients[channel as usize][index as usize],
+            })
+            .collect();
+        Ranked {
+            complete: sorted.len() as u64 >= self.nonzero,
+            sorted,
+            refined: 0,
+        }
+    }
+
+    /// `ranked` with its top `k` replaced by their least-squares refinement (at most `k`
+    /// coefficients, all scoring at least the k-th), followed by up to `extension`
+    /// coefficients that would join the refined set next (their values one gradient step from
+    /// its fit, see [`Refined::extension`]), then by the rest of `ranked` that scores below
+    /// them.
+    pub(super) fn refined(
+        &self,
+        ranked: &Ranked,
+        k: usize,
+        opts: &RefineOptions,
+        extension: usize,
+    ) -> Ranked {
+        let importance = &self.color.importance[..self.channels];
+        let Refined {
+            kept, extension, ..
+        } = self.refine_top(ranked, k, opts, Output::Set { extension });
+        let count = kept.len();
+        let scored = |r: &KeptValue| {
+            let band = self.band_of[r.index as usize] as usize;
+            Scored {
+                score: (r.value as f64).powi(2) * self.norms[band] * importance[r.channel as usize],
+                channel: r.channel,
+                index: r.index,
+                value: r.value,
+            }
+        };
+        let mut sorted: Vec<Scored> = kept.iter().chain(&extension).map(scored).collect();
+        // The rest of the oracle's order, without what the refinement picked up (iterative
+        // hard thresholding moves coefficients from beyond rank k into the set) and below the
+        // last score so far (the order must stay decreasing).
+        let mut picked: Vec<(u8, u32)> = sorted.iter().map(|r| (r.channel, r.index)).collect();
+        picked.par_sort_unstable();
+        let floor = sorted.last().map_or(f64::INFINITY, |s| s.score);
+        sorted.extend(
+            ranked.sorted[k..].iter().filter(|s| {
+                s.score <= floor && picked.binary_search(&(s.channel, s.index)).is_err()
+            }),
+        );
+        Ranked {
+            sorted,
+            complete: ranked.complete,
+            refined: count,
+        }
+    }
+
+    /// How many of the top `k` of `ranked` reach the k-th score after one refit
+    /// ([`Output::Pilot`]).
+    pub(super) fn pilot(&self, ranked: &Ranked, k: usize, opts: &RefineOptions) -> usize {
+        self.refine_top(ranked, k, opts, Output::Pilot)
+            .first_survivors
+    }
+
+    /// [`refine_with`] on the top `k` of `ranked`, against this volume's padded targets.
+    fn refine_top(
+        &self,
+        ranked: &Ranked,
+        k: usize,
+        opts: &RefineOptions,
+        output: Output,
+    ) -> Refined {
+        refine_with(
+            &self.geometry,
+            &self.band_of,
+            &self.targets,
+            &self.color.importance[..self.channels],
+            &ranked.top_values(k),
+            opts,
+            output,
+        )
+    }
+
+    /// Encodes the top `k` coefficients of `ranked`. Q_E is left at NaN unless `q_e` is set
+    /// (it pairs every kept value with its decoded one, which a rate-search trial skips).
+    pub(super) fn encode(
+        &self,
+        ranked: &Ranked,
+        k: usize,
+        opts: &CompressOptions,
+        expected_bytes: u64,
+        q_e: bool,
+    ) -> Compressed {
+        let g = &self.geometry;
+        let kept = &ranked.sorted[..k];
+        let (tile, nl) = choose_tiling(g, opts.tile, opts.layers, expected_bytes);
+        let tiles: usize = g.padded.iter().map(|p| p.div_ceil(tile)).product();
+        let coarse_layer = opts.coarse_layer
+            && g.levels >= COARSE_LAYER_MIN_LEVELS
+            && tiles >= 2
+            && !matches!(opts.tile, TileChoice::Single);
+        // The score layers (after the coarse layer, when there is one).
+        let nl = nl.clamp(1, MAX_LAYERS - usize::from(coarse_layer));
+        let first_score_layer = usize::from(coarse_layer);
+        let locate = |s: &Scored| g.locate(s.index as usize);
+        let in_coarse_layer = |s: &Scored| coarse_layer && locate(s).0.kind == 0;
+        // What the score layers split: the kept coefficients outside the coarse layer, in
+        // significance order.
+        let ranked_rest: Vec<&Scored> = kept.iter().filter(|s| !in_coarse_layer(s)).collect();
+        let kr = ranked_rest.len();
+        // Score layer l ends at rank k·G^(l−(L−1)) with G the layer growth: layer 0 holds the
+        // top k/G^(L−1).
+        let mut ends = Vec::with_capacity(nl);
+        for l in 0..nl {
+            let frac = opts.layer_growth.powi(l as i32 - (nl as i32 - 1));
+            ends.push(((kr as f64 * frac).ceil() as usize).clamp(1.min(kr), kr));
+        }
+        let mut layer_bounds = vec![f64::INFINITY; first_score_layer];
+        let mut start = 0usize;
+        for (l, end) in ends.iter().enumerate() {
+            let bound = if l == 0 || start >= kr {
+                f64::INFINITY
+            } else {
+                ranked_rest[start].score
+            };
+            layer_bounds.push(bound.min(layer_bounds.last().copied().unwrap_or(f64::INFINITY)));
+            start = (*end).max(start);
+        }
+        let nb = g.band_count();
+        let nsub = self.channels * nb;
+        // Substream parameters: w0 = largest magnitude, Δ from the sorted magnitudes (eq. 15).
+        let mut mags: Vec<Vec<f64>> = vec![Vec::new(); nsub];
+        for s in kept {
+            let (band, _) = locate(s);
+            let sub = s.channel as usize * nb + g.band_index(band).expect("band");
+            mags[sub].push((s.value as f64).abs());
+        }
+        // Smallest kept score: every kept coefficient's magnitude is at least the threshold.
+        let score_threshold = kept.last().map_or(0.0, |s| s.score);
+        let substreams: Vec<Option<SubstreamParams>> = mags
+            .iter()
+            .enumerate()
+            .map(|(sub, m)| {
+                (!m.is_empty()).then(|| {
+                    let delta = if opts.coder.quantizes_by_threshold() {
+                        let band = g.bands()[sub % nb];
+                        let weight = g.basis_norm2(band) * self.color.importance[sub / nb];
+                        let t = if weight > 0.0 {
+                            (score_threshold / weight).sqrt()
+                        } else {
+                            0.0
+                        };
+                        // Floor the step at 2^-30 of the largest magnitude so q stays small
+                        // even when near-zero coefficients are kept (Target::All).
+                        (opts.step * t).max(m[0] * 2f64.powi(-30))
+                    } else {
+                        delta_factor(m, opts.bits)
+                    };
+                    SubstreamParams {
+                        w0: m[0] as f32,
+                        delta: delta as f32,
+                    }
+                })
+            })
+            .collect();
+        let mut header = Header {
+            geometry: *g,
+            margin: self.margin,
+            placement: self.placement,
+            channels: self.channels,
+            color: self.color,
+            value_range: self.value_range,
+            coder: opts.coder,
+            bits: opts.bits,
+            tile,
+            layer_bounds,
+            coarse_layer,
+            score_threshold,
+            substreams,
+            tables: None,
+            fast_tables: None,
+            total_energy: self.total_energy,
+            kept: k as u64,
+            version: wavesplat_codec::format::VERSION,
+        };
+        // Group by (layer, tile), keeping significance order inside each group.
+        let mut groups: std::collections::BTreeMap<(usize, usize), Vec<(Scored, Coefficient)>> =
+            Default::default();
+        let mut score_layer = 0usize;
+        let mut rank = 0usize;
+        for s in kept {
+            let layer = if in_coarse_layer(s) {
+                0
+            } else {
+                while rank >= ends[score_layer] {
+                    score_layer += 1;
+                }
+                rank += 1;
+                first_score_layer + score_layer
+            };
+            let (band, pos) = locate(s);
+            let t = header.tile_of(band, pos);
+            let c = Coefficient {
+                channel: s.channel,
+                band,
+                pos: [pos[0] as u32, pos[1] as u32, pos[2] as u32],
+                value: s.value,
+            };
+            groups.entry((layer, t)).or_default().push((*s, c));
+        }
+        let inputs: Vec<PacketInput> = groups
+            .into_par_iter()
+            .map(|((layer, tile), list)| {
+                let items: Vec<Item> = list
+                    .iter()
+                    .map(|(s, c)| {
+                        let l = c.band.level as u32;
+                        Item {
+                            score: s.score,
+                            voxel: [c.pos[0] << l, c.pos[1] << l, c.pos[2] << l],
+                        }
+                    })
+                    .collect();
+                // The sigmap and fast coders code positions as octree maps, so the order
+                // inside a packet carries no cost and clustering is skipped.
+                let clustering = opts
+                    .clustering
+                    .filter(|_| !opts.coder.quantizes_by_threshold());
+                let order = cluster_order(&items, clustering);
+                PacketInput {
+                    tile,
+                    layer,
+                    coefficients: order.into_iter().map(|i| list[i].1).collect(),
+                }
+            })
+            .collect();
+        let encoded = encode_packets(&mut header, &inputs);
+        let bytes = write_file(&header, &encoded.packets);
+        let header_bytes = wavesplat_codec::format::write_header_section(&header).len() as u64;
+        // Q_E over the kept coefficients (importance-free energies, eq. 20–21). The sigmap coder
+        // reorders coefficients within a packet, so pair exact and decoded values by address.
+        let key = |c: &Coefficient| {
+            let p = [c.pos[0] as usize, c.pos[1] as usize, c.pos[2] as usize];
+            (c.channel, g.linear_index(c.band, p))
+        };
+        let q_e = if q_e {
+            let mut exact: Vec<&Coefficient> =
+                inputs.iter().flat_map(|i| &i.coefficients).collect();
+            let mut decoded: Vec<&Coefficient> = encoded.reconstruction.iter().flatten().collect();
+            exact.par_sort_unstable_by_key(|c| key(c));
+            decoded.par_sort_unstable_by_key(|c| key(c));
+            q_e_percent(
+                exact
+                    .iter()
+                    .zip(&decoded)
+                    .map(|(a, b)| (a.value as f64, b.value as f64, g.basis_norm2(a.band))),
+            )
+        } else {
+            f64::NAN
+        };
+        let kept_energy: f64 = kept
+            .iter()
+            .map(|s| (s.value as f64).powi(2) * self.norms[self.band_of[s.index as usize] as usize])
+            .sum();
+        let stats = CompressStats {
+            total_coefficients: self.total_coefficients,
+            nonzero_coefficients: self.nonzero,
+            kept: k as u64,
+            q_v: q_v_percent(kept_energy, self.total_energy),
+            q_e,
+            bytes: bytes.len() as u64,
+            breakdown: encoded.breakdown,
+            header_bytes,
+            packets: inputs.len() as u64,
+            tile,
+            layers: nl + first_score_layer,
+            coarse_layer,
+            refined: ranked.refined > 0 && k > 0,
+        };
+        Compressed {
+            bytes,
+            header,
+            stats,
+            reconstruction: encoded.reconstruction,
+        }
+    }
+}
+
+/// Fills in Q_E of the chosen file (the rate search skips it).
+pub(super) fn finish(prepared: &Prepared, ranked: &Ranked, mut c: Compressed) -> Compressed {
+    let k = c.stats.kept as usize;
+    let g = &prepared.geometry;
+    let key = |channel: u8, band: wavesplat_codec::layout::Band, pos: [u32; 3]| {
+        let p = [pos[0] as usize, pos[1] as usize, pos[2] as usize];
+        (channel, g.linear_index(band, p) as u32)
+    };
+    let mut exact: Vec<(u8, u32, f32)> = ranked.sorted[..k]
+        .iter()
+        .map(|s| (s.channel, s.index, s.value))
+        .collect();
+    let mut decoded: Vec<((u8, u32), f32)> = c
+        .reconstruction
+        .iter()
+        .flatten()
+        .map(|d| (key(d.channel, d.band, d.pos), d.value))
+        .collect();
+    exact.par_sort_unstable_by_key(|e| (e.0, e.1));
+    decoded.par_sort_unstable_by_key(|d| d.0);
+    c.stats.q_e = q_e_percent(exact.iter().zip(&decoded).map(|(a, b)| {
+        let norm = prepared.norms[prepared.band_of[a.1 as usize] as usize];
+        (a.2 as f64, b.1 as f64, norm)
+    }));
+    c
+}

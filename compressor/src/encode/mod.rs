@@ -1,0 +1,264 @@
+//! The compression pipeline (paper Fig. 10): colour transform → 3D wavelet transform per channel
+//! → oracle (score S = E·I, eq. 14; keep the most significant coefficients to meet a target) →
+//! quality layers and tiles → significance order with spatial clustering → quantization and
+//! entropy coding into packets (`wavesplat_codec::format`).
+//!
+//! Coefficients are never sorted wholesale: the oracle's order is materialised only for its top
+//! candidates ([`crate::select`]). A byte target is met by a rate search on the number of kept
+//! coefficients that measures the size the real encoder writes (the estimate is the written
+//! size), interpolating log size against log count (typically 3–7 trial encodings); with
+//! refinement, one refit of the oracle's set predicts the size of the set to refine, and the
+//! refined set is topped up or cut to the target (a second or third refinement only when it
+//! lands more than 3 % off, `rate::refine_to_bytes`). The encoder returns its own
+//! reconstruction (the decoder's view of every kept coefficient), so callers can check a decode
+//! bit for bit and compute Q_E without decoding.
+//!
+//! Its parts, each a module of its own: `options` (what is asked and returned), `prepare` (the
+//! transform and the oracle), `encoder` (a prepared volume to a file), `memory` (the estimate
+//! and cap) and `rate` (the byte target: depth, refined set size, rate search).
+
+mod encoder;
+mod memory;
+mod options;
+mod prepare;
+mod rate;
+
+pub use memory::memory_estimate;
+pub use options::{
+    default_levels, CompressError, CompressOptions, CompressStats, Compressed, Stage, Target,
+    TileChoice, LAYER_GROWTH,
+};
+use prepare::prepare;
+pub use prepare::{default_margin, COARSE_LAYER_MIN_LEVELS, STRUCTURED_FACES};
+pub use rate::worth_going_shallower;
+use rate::{bytes_per_coefficient_guess, compress_to_bytes};
+use wavesplat_codec::volume::Volume;
+
+/// Compresses a volume. `progress(stage, fraction)` is called as work proceeds.
+pub fn compress(
+    volume: &Volume,
+    opts: &CompressOptions,
+    progress: &(dyn Fn(Stage, f64) + Sync),
+) -> Result<Compressed, CompressError> {
+    let (needed, detail) = memory_estimate(volume.dims(), volume.channel_count(), opts)?;
+    tracing::debug!(bytes = needed, detail, "memory estimate");
+    if let Some(limit) = opts.memory_limit {
+        if needed > limit {
+            return Err(CompressError::MemoryLimit {
+                needed,
+                limit,
+                detail,
+            });
+        }
+    }
+    if !(opts.layer_growth.is_finite() && opts.layer_growth > 1.0) {
+        return Err(CompressError::InvalidOption(format!(
+            "layer growth {}; allowed: a finite number above 1",
+            opts.layer_growth
+        )));
+    }
+    if let Target::Bytes(b) = opts.target {
+        return compress_to_bytes(volume, opts, b, progress);
+    }
+    let prepared = prepare(volume, opts, false, true, progress)?;
+    let n = prepared.nonzero as usize;
+    let k = match opts.target {
+        Target::All => n,
+        Target::Coefficients(c) => (c as usize).min(n),
+        Target::Fraction(f) => {
+            if !(f > 0.0 && f <= 1.0) {
+                return Err(CompressError::InvalidOption(format!(
+                    "target fraction {f}; allowed (0, 1]"
+                )));
+            }
+            ((f * prepared.total_coefficients as f64).round() as usize).min(n)
+        }
+        Target::QvPercent(q) => {
+            if !(q > 0.0 && q <= 100.0) {
+                return Err(CompressError::InvalidOption(format!(
+                    "target Q_V {q} %; allowed (0, 100]"
+                )));
+            }
+            // Energies (without importance) accumulated in score order.
+            let goal = q / 100.0 * prepared.total_energy;
+            let cap = prepared.histogram.count_for_energy(goal) as usize;
+            let ranked = prepared.ranked(cap);
+            let mut acc = 0.0;
+            let mut k = ranked.sorted.len();
+            for (i, s) in ranked.sorted.iter().enumerate() {
+                acc += (s.value as f64).powi(2)
+                    * prepared.norms[prepared.band_of[s.index as usize] as usize];
+                if acc >= goal * (1.0 - 1e-12) {
+                    k = i + 1;
+                    break;
+                }
+            }
+            k
+        }
+        Target::Bytes(b) => return compress_to_bytes(volume, opts, b, progress),
+    };
+    let ranked = prepared.ranked(k);
+    let ranked = match &opts.refine {
+        Some(r) if k > 0 && k < n => {
+            progress(Stage::Refine, 0.0);
+            // The refined set is the file: nothing tops it up.
+            prepared.refined(&ranked, k, r, 0)
+        }
+        _ => ranked,
+    };
+    let k = k.min(ranked.sorted.len());
+    progress(Stage::Encode(0), 0.0);
+    let expected = (k as u64)
+        .saturating_mul(bytes_per_coefficient_guess(opts.coder))
+        .max(64);
+    Ok(prepared.encode(&ranked, k, opts, expected, true))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::prepare::{choose_tiling, AUTO_THREE_LAYERS_BYTES, AUTO_TWO_LAYERS_BYTES};
+    use super::rate::{
+        close_to_target, depth_candidates, next_set_size, predicted_set_size, PILOT_KEEP,
+        REFINED_SIZE_SLOPE,
+    };
+    use super::*;
+    use crate::colorspace::face_activity;
+    use crate::phantom::Phantom;
+    use wavesplat_codec::family::Family;
+    use wavesplat_codec::layout::Geometry;
+
+    /// Automatic tiling keeps files below [`AUTO_TWO_LAYERS_BYTES`] to one quality layer, then
+    /// two, then three; an explicit layer count always wins, and explicit tiles keep three.
+    #[test]
+    fn automatic_layers_follow_the_expected_size() {
+        let g = Geometry::new([200, 230, 190], Family::Linear, 3, 0).unwrap();
+        let layers = |choice, layers, bytes| choose_tiling(&g, choice, layers, bytes).1;
+        for bytes in [0, 900, 9_000, 100_000, AUTO_TWO_LAYERS_BYTES - 1] {
+            assert_eq!(layers(TileChoice::Auto, None, bytes), 1, "{bytes}");
+        }
+        assert_eq!(layers(TileChoice::Auto, None, AUTO_TWO_LAYERS_BYTES), 2);
+        assert_eq!(
+            layers(TileChoice::Auto, None, AUTO_THREE_LAYERS_BYTES - 1),
+            2
+        );
+        assert_eq!(layers(TileChoice::Auto, None, AUTO_THREE_LAYERS_BYTES), 3);
+        assert_eq!(layers(TileChoice::Auto, None, u64::MAX), 3);
+        assert_eq!(layers(TileChoice::Auto, Some(4), 900), 4);
+        assert_eq!(layers(TileChoice::Size(64), None, 900), 3);
+        assert_eq!(layers(TileChoice::Single, None, 1 << 30), 1);
+    }
+
+    /// Volumes whose faces are flat (zero, a constant, an offset head, the RGB phantom's black
+    /// background) get the separating margin; slabs cut through a head or a body get none; an
+    /// explicit margin always wins.
+    #[test]
+    fn the_default_margin_follows_what_the_faces_carry() {
+        let sep = Geometry::separating_margin(Family::Linear, 3);
+        let flat = [
+            Phantom::SheppLogan.generate([40, 36, 30]),
+            Phantom::Zero.generate([16, 16, 16]),
+            Phantom::Constant(-1000.0).generate([16, 8, 4]),
+            Phantom::RgbHead.generate([24, 24, 24]),
+        ];
+        for v in &flat {
+            assert_eq!(default_margin(v, Family::Linear, 3), sep, "{:?}", v.dims());
+        }
+        // Every 8th slice of a Shepp–Logan head, then 8 slices through its middle: faces cut
+        // through the head.
+        let head = Phantom::SheppLogan.generate([48, 48, 48]);
+        let slab: Vec<f32> = head.channel(0)[48 * 48 * 20..48 * 48 * 28].to_vec();
+        let slab = Volume::new([48, 48, 8], [1.0; 3], vec![slab]).unwrap();
+        assert!(face_activity(slab.channel(0), slab.dims()) > STRUCTURED_FACES);
+        assert_eq!(default_margin(&slab, Family::Linear, 3), 0);
+        assert_eq!(
+            default_margin(&Phantom::Ct.generate([40, 32, 24]), Family::Cubic, 2),
+            0
+        );
+        let explicit = CompressOptions {
+            margin: Some(5),
+            target: Target::Fraction(0.2),
+            ..Default::default()
+        };
+        let c = compress(&slab, &explicit, &|_, _| {}).unwrap();
+        assert_eq!(c.header.margin, 5);
+        let c = compress(&slab, &CompressOptions::default(), &|_, _| {}).unwrap();
+        assert_eq!(c.header.margin, 0);
+    }
+
+    #[test]
+    fn a_refined_set_close_to_the_target_ends_the_search() {
+        let t = 100_000;
+        assert!(close_to_target(t, t));
+        assert!(close_to_target(97_000, t) && close_to_target(103_000, t));
+        assert!(!close_to_target(96_999, t) && !close_to_target(103_001, t));
+        assert!(!close_to_target(0, t));
+    }
+
+    #[test]
+    fn a_byte_target_compares_the_default_depth_with_one_less_unless_given() {
+        let bytes = |levels| CompressOptions {
+            target: Target::Bytes(1000),
+            levels,
+            ..Default::default()
+        };
+        assert_eq!(depth_candidates([64, 64, 64], &bytes(None)), vec![3, 2]);
+        assert_eq!(depth_candidates([64, 64, 64], &bytes(Some(4))), vec![4]);
+        // Two slices allow one level: nothing shallower to try.
+        assert_eq!(depth_candidates([64, 64, 2], &bytes(None)), vec![1]);
+        assert_eq!(depth_candidates([1, 1, 40], &bytes(None)), vec![0]);
+        let cubic = CompressOptions {
+            family: Family::Cubic,
+            ..bytes(None)
+        };
+        assert_eq!(depth_candidates([64, 64, 64], &cubic), vec![2, 1]);
+        // Comparing holds two transforms: the estimate covers them.
+        let (one, _) = memory_estimate([64, 64, 64], 1, &bytes(Some(3))).unwrap();
+        let (two, _) = memory_estimate([64, 64, 64], 1, &bytes(None)).unwrap();
+        assert!(two > one, "{two} <= {one}");
+    }
+
+    /// The first refined-set size falls back to the oracle's when the pilot tells nothing,
+    /// grows as fewer of the oracle's set survive its refit (at most 2×) and as the target
+    /// grows against the oracle's file, inverts its own size model, and stays within the
+    /// non-zero count.
+    #[test]
+    fn the_first_refined_set_size_follows_the_pilots_survivors() {
+        let n = 1_000_000;
+        assert_eq!(predicted_set_size(1000, 0, 900, 1000, n), 1000);
+        assert_eq!(predicted_set_size(1000, 1000, 0, 1000, n), 1000);
+        assert_eq!(predicted_set_size(0, 1000, 0, 1000, n), 1);
+        let all_survive = predicted_set_size(1000, 1000, 1000, 1000, n);
+        assert_eq!(all_survive, (1000.0 / PILOT_KEEP).round() as usize);
+        let fewer = predicted_set_size(1000, 1000, 800, 1000, n);
+        assert!(fewer > all_survive, "{fewer} <= {all_survive}");
+        let larger_target = predicted_set_size(1000, 1000, 800, 1100, n);
+        assert!(larger_target > fewer, "{larger_target} <= {fewer}");
+        let kept = PILOT_KEEP * 0.8 * larger_target as f64;
+        let bytes = 1000.0 * (kept / 1000.0).powf(REFINED_SIZE_SLOPE);
+        assert!((bytes / 1100.0 - 1.0).abs() < 0.005, "{bytes}");
+        // A pilot keeping almost nothing is trusted only down to half.
+        assert_eq!(predicted_set_size(1000, 1000, 10, 1000, n), 2000);
+        assert_eq!(predicted_set_size(1000, 1000, 800, 1000, 1100), 1100);
+    }
+
+    #[test]
+    fn the_set_size_search_steps_towards_the_goal_and_never_repeats_a_size() {
+        let n = 1_000_000;
+        // One set below the goal: grow K by the byte ratio (slope 1), at least by one.
+        assert!((1250..=1251).contains(&next_set_size(&[(1000, 800)], 1000.0, n)));
+        assert_eq!(next_set_size(&[(1000, 999)], 1000.0, n), 1002);
+        // One above: shrink, never to the same K or below 1.
+        assert!((499..=500).contains(&next_set_size(&[(1000, 2000)], 1000.0, n)));
+        assert_eq!(next_set_size(&[(1, 5000)], 1000.0, n), 1);
+        // A bracket: the secant on log–log lands strictly inside it.
+        let k = next_set_size(&[(1000, 800), (2000, 1600)], 1000.0, n);
+        assert!((1249..=1251).contains(&k), "{k}");
+        let k = next_set_size(&[(1000, 900), (1010, 1100)], 1000.0, n);
+        assert!(k > 1000 && k < 1010, "{k}");
+        // Adjacent sizes leave nothing between them: the lower one is returned (already tried,
+        // which ends the search).
+        assert_eq!(next_set_size(&[(1000, 900), (1001, 1100)], 1000.0, n), 1000);
+        // Never beyond the candidates.
+        assert_eq!(next_set_size(&[(900_000, 100)], 1000.0, n), n);
+    }
+}

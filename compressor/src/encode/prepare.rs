@@ -1,0 +1,356 @@
+//! Preparation: the colour transform, padding and spline prefilter, the 3D transform per
+//! channel, the oracle's scores and their histogram, the targets and axis views refinement and
+//! the depth choice need (`Prepared`); the default margin and the automatic tiling and layering.
+
+use super::options::{default_levels, CompressError, CompressOptions, Stage, TileChoice};
+use crate::colorspace::{face_activity, face_median, ColorSpaceKind, ColorTransform};
+use crate::refine::{pad_f32, KeptValue};
+use crate::select::{band_map, histogram, Histogram, CHUNK};
+use rayon::prelude::*;
+use wavesplat_codec::dwt::{forward_3d, pad_channel, samples_to_coefficients, Dwt1d};
+use wavesplat_codec::family::Family;
+use wavesplat_codec::format::{ColorInfo, ColorKind};
+use wavesplat_codec::layout::Geometry;
+use wavesplat_codec::volume::{Placement, Volume};
+
+/// One scored coefficient.
+#[derive(Debug, Clone, Copy)]
+pub(super) struct Scored {
+    pub(super) score: f64,
+    pub(super) channel: u8,
+    pub(super) index: u32,
+    pub(super) value: f32,
+}
+
+/// The transformed volume: dense coefficients per channel and what scores them.
+pub(super) struct Prepared {
+    pub(super) geometry: Geometry,
+    pub(super) margin: usize,
+    pub(super) color: ColorInfo,
+    pub(super) channels: usize,
+    pub(super) value_range: [f32; 2],
+    pub(super) placement: Option<Placement>,
+    /// Band index of every coefficient (one channel's grid).
+    pub(super) band_of: Vec<u8>,
+    /// ‖b‖² per band index.
+    pub(super) norms: Vec<f64>,
+    /// The wavelet coefficients of each channel (Mallat layout).
+    pub(super) coefficients: Vec<Vec<f32>>,
+    /// Score histogram of the oracle (S = E·I).
+    pub(super) histogram: Histogram,
+    pub(super) total_energy: f64,
+    pub(super) total_coefficients: u64,
+    /// The channels' voxel samples after the colour transform on the padded grid (for
+    /// refinement; empty without).
+    pub(super) targets: Vec<Vec<f32>>,
+    /// The three axis X-ray views of each coded channel on the volume's box (for
+    /// [`Prepared::view_error`]; empty when no depths are compared).
+    pub(super) views: Vec<[Vec<f64>; 3]>,
+    /// Non-zero coefficients of the transform.
+    pub(super) nonzero: u64,
+}
+
+/// Coefficients by decreasing score: a prefix of the oracle's order, or a refined set followed
+/// by its extension and the part of the oracle's order that scores below both.
+pub(super) struct Ranked {
+    pub(super) sorted: Vec<Scored>,
+    /// The oracle's order this came from holds every non-zero coefficient (nothing beyond it
+    /// could be added).
+    pub(super) complete: bool,
+    /// The first `refined` entries are least-squares refined values.
+    pub(super) refined: usize,
+}
+
+impl Ranked {
+    /// The first `k` entries as refinement input.
+    pub(super) fn top_values(&self, k: usize) -> Vec<KeptValue> {
+        self.sorted[..k]
+            .iter()
+            .map(|s| KeptValue {
+                channel: s.channel,
+                index: s.index,
+                value: s.value,
+            })
+            .collect()
+    }
+}
+
+/// Face activity ([`face_activity`]) above which a volume's faces count as cut through its
+/// content: between the two groups the test set (`scripts/testset.py`) shows, faces constant
+/// up to noise (the MNI variants, the RGB phantoms: 0.00–0.03) and faces cutting through the
+/// content (a cropped head 0.19, slabs and CT through the body 0.68–0.93).
+pub const STRUCTURED_FACES: f64 = 0.1;
+
+/// The margin when none is given. Where any channel's faces carry structure
+/// ([`STRUCTURED_FACES`]), none: zeros around data that does not fall to zero at its faces cost
+/// coefficients (2.6–13.7 dB Q_I on the test set's slabs and CT, BENCHMARKS.md), and the
+/// renderer clips the basis functions that cross the faces. Where the faces are flat, the
+/// separating margin ([`Geometry::separating_margin`]): it costs at most ~0.7 dB there, and
+/// every coefficient stays one splat (clipped pieces cost the viewer 2.6–4.4× the render time
+/// of a CT volume).
+pub fn default_margin(volume: &Volume, family: Family, levels: usize) -> usize {
+    let structured = (0..volume.channel_count())
+        .any(|c| face_activity(volume.channel(c), volume.dims()) > STRUCTURED_FACES);
+    if structured {
+        0
+    } else {
+        Geometry::separating_margin(family, levels)
+    }
+}
+
+fn color_info(t: &ColorTransform) -> ColorInfo {
+    ColorInfo {
+        kind: match t.kind {
+            ColorSpaceKind::Rgb => ColorKind::Rgb,
+            ColorSpaceKind::Yiq => ColorKind::Yiq,
+            ColorSpaceKind::Pca => ColorKind::Pca,
+        },
+        basis: t.basis,
+        mean: t.mean,
+        importance: t.importance,
+    }
+}
+
+/// Sample arrays, one per channel.
+type Channels = Vec<Vec<f32>>;
+
+/// The channels the transform codes: an RGB volume in its colour space, an intensity volume
+/// less its faces' median (`None`: the volume's own channels), with the header's colour info.
+pub(super) fn coded_channels(
+    volume: &Volume,
+    opts: &CompressOptions,
+) -> Result<(Option<Channels>, ColorInfo), CompressError> {
+    if volume.channel_count() == 3 {
+        let t = ColorTransform::fit(opts.colorspace, volume)?;
+        let v = t.forward(volume)?;
+        return Ok((Some(v.into_channels()), color_info(&t)));
+    }
+    // The faces' median is subtracted (see `crate::colorspace`): the padded grid is zero, so a
+    // face of air at −1000 would otherwise be a step along the whole face. Samples near
+    // ±f32::MAX on both sides of the offset could overflow when shifted; such a volume is
+    // coded without one.
+    let dims = volume.dims();
+    let offset = face_median(volume.channel(0), dims);
+    let shifted = (offset != 0.0)
+        .then(|| {
+            volume
+                .channel(0)
+                .par_iter()
+                .map(|v| (f64::from(*v) - offset) as f32)
+                .collect::<Vec<f32>>()
+        })
+        .filter(|s| s.par_iter().all(|v| v.is_finite()));
+    let mut color = ColorInfo::intensity();
+    if shifted.is_some() {
+        color.mean[0] = offset;
+    }
+    Ok((shifted.map(|s| vec![s]), color))
+}
+
+/// The three axis X-ray views of a channel on its box (sums along x, along y, along z; f64).
+pub(super) fn axis_views(
+    dims: [usize; 3],
+    at: &(dyn Fn(usize, usize, usize) -> f64 + Sync),
+) -> [Vec<f64>; 3] {
+    let [nx, ny, nz] = dims;
+    // Along x and along y: each slice z owns its row of both images.
+    let (along_x, along_y): (Vec<Vec<f64>>, Vec<Vec<f64>>) = (0..nz)
+        .into_par_iter()
+        .map(|z| {
+            let mut rows = vec![0.0; ny];
+            let mut cols = vec![0.0; nx];
+            for (y, row) in rows.iter_mut().enumerate() {
+                for (x, col) in cols.iter_mut().enumerate() {
+                    let d = at(x, y, z);
+                    *row += d;
+                    *col += d;
+                }
+            }
+            (rows, cols)
+        })
+        .unzip();
+    // Along z: slices summed in fixed groups, then in order (thread-count independent).
+    let along_z = (0..nz)
+        .collect::<Vec<_>>()
+        .par_chunks(8)
+        .map(|zs| {
+            let mut img = vec![0.0; nx * ny];
+            for &z in zs {
+                for y in 0..ny {
+                    for x in 0..nx {
+                        img[x + nx * y] += at(x, y, z);
+                    }
+                }
+            }
+            img
+        })
+        .collect::<Vec<_>>()
+        .into_iter()
+        .reduce(|mut a, b| {
+            a.iter_mut().zip(&b).for_each(|(a, b)| *a += b);
+            a
+        })
+        .unwrap_or_else(|| vec![0.0; nx * ny]);
+    [along_x.concat(), along_y.concat(), along_z]
+}
+
+pub(super) fn prepare(
+    volume: &Volume,
+    opts: &CompressOptions,
+    with_views: bool,
+    with_targets: bool,
+    progress: &(dyn Fn(Stage, f64) + Sync),
+) -> Result<Prepared, CompressError> {
+    if !(opts.step.is_finite() && opts.step > 0.0 && opts.step <= 64.0) {
+        return Err(CompressError::InvalidOption(format!(
+            "quantizer step {}; allowed (0, 64]",
+            opts.step
+        )));
+    }
+    if !(1..=16).contains(&opts.bits) {
+        return Err(CompressError::InvalidOption(format!(
+            "quantization bits P = {}; allowed 1..=16",
+            opts.bits
+        )));
+    }
+    let dims = volume.dims();
+    let levels = opts.levels.unwrap_or(default_levels(dims, opts.family));
+    let margin = opts
+        .margin
+        .unwrap_or_else(|| default_margin(volume, opts.family, levels));
+    let geometry =
+        Geometry::new(dims, opts.family, levels, margin)?.with_spacing(volume.spacing())?;
+    progress(Stage::Color, 0.0);
+    let (transformed, color) = coded_channels(volume, opts)?;
+    let channels: &[Vec<f32>] = transformed.as_deref().unwrap_or(volume.channels());
+    let (lo, hi) = volume.value_range();
+    let mut planner = Dwt1d::new(opts.family);
+    let norms: Vec<f64> = geometry
+        .bands()
+        .iter()
+        .map(|b| geometry.basis_norm2(*b))
+        .collect();
+    let band_of = band_map(&geometry);
+    let mut coefficients = Vec::with_capacity(channels.len());
+    for (c, ch) in channels.iter().enumerate() {
+        progress(Stage::Transform(c), c as f64 / channels.len() as f64);
+        let mut data = pad_channel(ch, &geometry);
+        samples_to_coefficients(&mut data, &geometry);
+        forward_3d(&mut data, &geometry, &mut planner);
+        coefficients.push(data.into_par_iter().map(|v| v as f32).collect::<Vec<f32>>());
+    }
+    progress(Stage::Sort, 0.0);
+    let n = geometry.coefficient_count();
+    // Σ w²·‖b‖² in fixed chunks (thread-count independent).
+    let per_channel = n.div_ceil(CHUNK);
+    let parts: Vec<f64> = (0..coefficients.len() * per_channel)
+        .into_par_iter()
+        .map(|job| {
+            let (c, j) = (job / per_channel, job % per_channel);
+            (j * CHUNK..((j + 1) * CHUNK).min(n))
+                .map(|i| (coefficients[c][i] as f64).powi(2) * norms[band_of[i] as usize])
+                .sum::<f64>()
+        })
+        .collect();
+    let total_energy = parts.iter().sum();
+    let mut prepared = Prepared {
+        geometry,
+        margin,
+        color,
+        channels: channels.len(),
+        value_range: [lo, hi],
+        placement: volume.placement().copied(),
+        band_of,
+        norms,
+        coefficients,
+        histogram: Histogram::empty(),
+        total_energy,
+        total_coefficients: (n * channels.len()) as u64,
+        views: if with_views {
+            channels
+                .iter()
+                .map(|ch| {
+                    let at = |x: usize, y: usize, z: usize| {
+                        f64::from(ch[x + dims[0] * (y + dims[1] * z)])
+                    };
+                    axis_views(dims, &at)
+                })
+                .collect()
+        } else {
+            Vec::new()
+        },
+        targets: if opts.refine.is_some() && with_targets {
+            channels.iter().map(|c| pad_f32(c, &geometry)).collect()
+        } else {
+            Vec::new()
+        },
+        nonzero: 0,
+    };
+    let histogram = {
+        let p = &prepared;
+        histogram(p.channels, n, &|c, i| p.score(c, i), &|c, i| p.energy(c, i))
+    };
+    prepared.nonzero = histogram.positive;
+    prepared.histogram = histogram;
+    Ok(prepared)
+}
+
+/// Expected file size from which [`TileChoice::Auto`] splits the coefficients into two quality
+/// layers (one below it). A layer buys a coarse preview of the whole volume before the rest of
+/// the file arrives, and costs rate: each layer's packets code their own significance maps
+/// (the partition between layers is paid in positions) and learn their models afresh, which
+/// the tighter magnitude bounds per layer do not pay back. At equal bytes, one layer against
+/// three (growth 16) gained Q_I on every volume of the test set at every size from 0.07 % to
+/// 5.85 %: +0.3 to +2.6 dB below 10 KB, +0.02 to +0.7 dB at 10–220 KB, +0.05 to +0.5 dB at
+/// 0.35–1 MB; two layers gained less (BENCHMARKS.md, "Quality layers cost rate"). Below this
+/// size the whole file crosses a 100 Mbit/s link in about 40 ms, a few frames, so a preview
+/// layer is not worth that much; the view-dependent order of a tiled file's packets still
+/// gives a spatial progression.
+pub(super) const AUTO_TWO_LAYERS_BYTES: u64 = 512 << 10;
+
+/// Shallowest decomposition that gets a coarse layer ([`CompressOptions::coarse_layer`]). At
+/// M = 1 the scaling band is an eighth of the voxels and most of a file: not a coarse picture,
+/// and its one quantizer range over every score cost the test set's 5.85 % points 3 % of their
+/// coefficients (−1.3 dB Q_I) where the score layers' tighter ranges did not (BENCHMARKS.md).
+pub const COARSE_LAYER_MIN_LEVELS: usize = 2;
+
+/// Expected file size from which [`TileChoice::Auto`] uses three quality layers.
+pub(super) const AUTO_THREE_LAYERS_BYTES: u64 = 4 << 20;
+
+/// Bytes a tile should hold on average under [`TileChoice::Auto`]: a packet pays for the top
+/// of its octrees and for its adaptive models learning from scratch, ~2 % of the file at this
+/// size (tile 64 against 128 at the 5.85 % point above) and ~8 % at a quarter of it (tile 32).
+const AUTO_TILE_BYTES: u64 = 4096;
+
+/// Picks tile size and layer count for an expected file size.
+pub(super) fn choose_tiling(
+    geometry: &Geometry,
+    choice: TileChoice,
+    layers: Option<usize>,
+    expected_bytes: u64,
+) -> (usize, usize) {
+    let block = 1usize << geometry.levels;
+    let max_dim = *geometry.padded.iter().max().expect("3 dims");
+    let single = max_dim.div_ceil(block) * block;
+    let count = |t: usize| -> usize { geometry.padded.iter().map(|p| p.div_ceil(t)).product() };
+    match choice {
+        TileChoice::Single => (single, layers.unwrap_or(1)),
+        TileChoice::Size(t) => {
+            let t = t.max(1).div_ceil(block) * block;
+            (t.min(single), layers.unwrap_or(3))
+        }
+        TileChoice::Auto => {
+            let nl = layers.unwrap_or(match expected_bytes {
+                0..AUTO_TWO_LAYERS_BYTES => 1,
+                AUTO_TWO_LAYERS_BYTES..AUTO_THREE_LAYERS_BYTES => 2,
+                _ => 3,
+            });
+            let tiles_budget = (expected_bytes / AUTO_TILE_BYTES).max(1) as usize;
+            let mut t = block.max(32).next_power_of_two();
+            while t < single && count(t) > tiles_budget {
+                t *= 2;
+            }
+            (t.min(single), nl)
+        }
+    }
+}

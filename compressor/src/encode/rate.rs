@@ -1,0 +1,537 @@
+//! Meeting a byte target: the decomposition depth (the default and shallower ones, compared by
+//! their X-ray views), the refined set's size predicted from one refit and topped up or cut,
+//! and the rate search on the number of kept coefficients against the size the real encoder
+//! writes.
+
+use super::encoder::finish;
+use super::options::{default_levels, CompressError, CompressOptions, Compressed, Stage};
+use super::prepare::{coded_channels, prepare, Prepared, Ranked};
+use crate::refine::{pad_f32, RefineOptions};
+use wavesplat_codec::format::CoderKind;
+use wavesplat_codec::layout::Geometry;
+use wavesplat_codec::volume::Volume;
+
+/// File size guess per kept coefficient for the automatic tiling: measured bytes per kept
+/// coefficient are ~0.7–0.9 for the sigmap coder (~0.1 more for the fast coder) and 2–3 for
+/// the paper's syntaxes.
+pub(super) fn bytes_per_coefficient_guess(coder: CoderKind) -> u64 {
+    if coder.quantizes_by_threshold() {
+        1
+    } else {
+        3
+    }
+}
+
+/// The depths a byte target compares first when none is given: the family's default
+/// ([`default_levels`]) and, when it is at least 2, one level less (then shallower ones while
+/// the shallowest wins and its file affords the next coarse band, [`worth_going_shallower`]). Which one codes a volume
+/// better depends on the rate and on the data: on the test set (BENCHMARKS.md, issue 14) the
+/// shallower depth gains 0.5–1.3 dB Q_I at 1.25–5.85 % on most volumes and loses up to 38 dB
+/// at 0.07 % (a coarse band too large to afford), while a CT volume keeps preferring the
+/// deeper one at every rate; a deeper one than the default never won.
+pub(super) fn depth_candidates(dims: [usize; 3], opts: &CompressOptions) -> Vec<usize> {
+    match opts.levels {
+        Some(m) => vec![m],
+        None => {
+            let d = default_levels(dims, opts.family);
+            if d >= 2 {
+                vec![d, d - 1]
+            } else {
+                vec![d]
+            }
+        }
+    }
+}
+
+/// A byte target whose file at depth M keeps at least this share of the coefficients the
+/// coarse band of depth M − 1 would hold (per channel) tries M − 1 too: a band 8× larger
+/// than M's only pays once the budget nearly affords it. On the test set at M = 2 against
+/// M = 1 (refined files, Q_I): the MNI volume plus an offset and its 16-bit variant at 5.85 %
+/// (ratio 1.0) gain 2.0–2.1 dB at M = 1; the slabs and aniso at 5.85 % (0.65) lose 0.5–2.3 dB,
+/// the RGB phantom at 5.85 % (0.57) 0.4 dB (and its oracle files' views ranked M = 1 first),
+/// the first two at 1.25 % (0.24) 1.3 dB, the MNI volume at 1.25 % (0.12) 6 dB.
+const SHALLOWER_KEPT: f64 = 0.8;
+
+/// Whether a file of `kept` coefficients over `channels` at `geometry`'s depth M makes depth
+/// M − 1 worth a try ([`SHALLOWER_KEPT`]; never below M = 1).
+pub fn worth_going_shallower(kept: u64, channels: usize, geometry: &Geometry) -> bool {
+    let m = geometry.levels;
+    if m < 2 || channels == 0 {
+        return false;
+    }
+    // The coarse band of M − 1 on this grid (the shallower grid is at most this large).
+    let coarse = geometry.coefficient_count() as f64 / 8f64.powi(m as i32 - 1);
+    kept as f64 / channels as f64 >= SHALLOWER_KEPT * coarse
+}
+
+/// Byte target. Per candidate depth ([`depth_candidates`]) the oracle's order is searched for
+/// the largest prefix that fits ([`oracle_to_bytes`]) and that file's three axis X-ray views
+/// are compared with the volume's ([`Prepared::view_error`]); the depth whose views come closer
+/// is kept (the default on a tie); while the shallowest depth compared wins and its file
+/// affords the next coarse band ([`worth_going_shallower`]), one level less is compared too.
+/// The oracle's ranking of depths predicted the refined files' ranking at all but one point
+/// measured (BENCHMARKS.md), at the cost of one more oracle pass per depth. With refinement,
+/// [`refine_to_bytes`] then starts from the chosen prefix's size.
+pub(super) fn compress_to_bytes(
+    volume: &Volume,
+    opts: &CompressOptions,
+    target: u64,
+    progress: &(dyn Fn(Stage, f64) + Sync),
+) -> Result<Compressed, CompressError> {
+    let depths = depth_candidates(volume.dims(), opts);
+    let comparing = depths.len() > 1;
+    let mut trials = 0usize;
+    let mut best: Option<(f64, Prepared, Ranked, Compressed)> = None;
+    let mut too_small: Option<CompressError> = None;
+    let mut depths = depths;
+    let mut next = 0;
+    while next < depths.len() {
+        let m = depths[next];
+        next += 1;
+        let o = CompressOptions {
+            levels: Some(m),
+            ..opts.clone()
+        };
+        // Compared depths hold no padded targets (the scoring needs only the views): two
+        // transforms are held at once, and the winner's targets are built afterwards.
+        if comparing {
+            progress(Stage::Depth(m), 0.0);
+        }
+        let prepared = prepare(volume, &o, comparing, !comparing, progress)?;
+        // A target too small for one depth may fit the other (their headers and coarse bands
+        // differ); it is an error only when it fits neither.
+        let (ranked, plain) = match oracle_to_bytes(&prepared, &o, target, &mut trials, progress) {
+            Ok(found) => found,
+            Err(e @ CompressError::TargetTooSmall { .. }) if comparing => {
+                tracing::debug!(levels = m, error = %e, "depth candidate does not fit");
+                // The error names the smallest file of any depth.
+                let smaller = |a: &CompressError, b: &CompressError| match (a, b) {
+                    (
+                        CompressError::TargetTooSmall { minimum: x, .. },
+                        CompressError::TargetTooSmall { minimum: y, .. },
+                    ) => x < y,
+                    _ => false,
+                };
+                if too_small.as_ref().is_none_or(|t| smaller(&e, t)) {
+                    too_small = Some(e);
+                }
+                continue;
+            }
+            Err(e) => return Err(e),
+        };
+        if !comparing {
+            best = Some((0.0, prepared, ranked, plain));
+            break;
+        }
+        let error = prepared.view_error(&plain);
+        tracing::debug!(
+            levels = m,
+            bytes = plain.stats.bytes,
+            kept = plain.stats.kept,
+            view_error = error,
+            "depth candidate"
+        );
+        if best.as_ref().is_none_or(|b| error < b.0) {
+            best = Some((error, prepared, ranked, plain));
+        }
+        // The shallowest depth so far won: one level less may be better still, when its
+        // coarse band is affordable.
+        if next == depths.len() {
+            if let Some((_, p, _, c)) = &best {
+                if p.geometry.levels == m
+                    && worth_going_shallower(c.stats.kept, p.channels, &p.geometry)
+                {
+                    depths.push(m - 1);
+                }
+            }
+        }
+    }
+    let Some((_, mut prepared, ranked, plain)) = best else {
+        return Err(too_small.unwrap_or_else(|| {
+            CompressError::InvalidOption("no decomposition depth to try".to_string())
+        }));
+    };
+    prepared.views = Vec::new();
+    if comparing && opts.refine.is_some() {
+        let (transformed, _) = coded_channels(volume, opts)?;
+        let channels: &[Vec<f32>] = transformed.as_deref().unwrap_or(volume.channels());
+        prepared.targets = channels
+            .iter()
+            .map(|c| pad_f32(c, &prepared.geometry))
+            .collect();
+    }
+    let k0 = plain.stats.kept as usize;
+    let Some(r) = &opts.refine else {
+        return Ok(finish(&prepared, &ranked, plain));
+    };
+    if k0 == 0 || (ranked.complete && k0 >= ranked.sorted.len()) {
+        return Ok(finish(&prepared, &ranked, plain));
+    }
+    refine_to_bytes(
+        &prepared,
+        ranked,
+        plain,
+        r,
+        opts,
+        target,
+        &mut trials,
+        progress,
+    )
+}
+
+/// The oracle's order searched for the largest prefix that fits `target` bytes, on a candidate
+/// list grown 4× whenever the search runs off its end.
+fn oracle_to_bytes(
+    prepared: &Prepared,
+    opts: &CompressOptions,
+    target: u64,
+    trials: &mut usize,
+    progress: &(dyn Fn(Stage, f64) + Sync),
+) -> Result<(Ranked, Compressed), CompressError> {
+    let n = prepared.nonzero as usize;
+    // Candidates: 4 per target byte for the sigmap and fast coders (they code ~1.1–1.5
+    // coefficients per byte on real data), 1 per byte for the paper's syntaxes.
+    let per_byte = if opts.coder.quantizes_by_threshold() {
+        4
+    } else {
+        1
+    };
+    let mut cap = (target.saturating_mul(per_byte) as usize)
+        .max(1024)
+        .min(n.max(1));
+    let guess = (target / bytes_per_coefficient_guess(opts.coder)) as usize;
+    loop {
+        let ranked = prepared.ranked(cap);
+        let search = RateSearch {
+            target,
+            guess,
+            known: None,
+        };
+        let plain = fit_bytes(prepared, &ranked, opts, search, trials, progress)?;
+        let len = ranked.sorted.len();
+        if ranked.complete || (plain.stats.kept as usize) < len || cap >= n {
+            return Ok((ranked, plain));
+        }
+        cap = cap.saturating_mul(4).min(n);
+    }
+}
+
+/// Refinements a byte target may run (each is ~36 applications of the synthesis and its
+/// transpose; the rate searches between them only run the entropy coder).
+const MAX_REFINEMENTS: usize = 3;
+
+/// A whole refined set this close to the target ends the search: one below it is topped up
+/// with the coefficients that would join it next ([`Refined::extension`]), one above it cut to
+/// the target. Measured on the MNI volume at 1.25 % against a set refined to fill the target
+/// (Q_I 91.80): topping up 1.8 % or 5 % of the bytes gave 91.84 and 91.74, cutting 4 % 91.78
+/// (8 %: 91.70, 13 %: 91.57); on mni-offset at 5.85 % a 4.4 % cut lost 0.17 dB. Another
+/// refinement costs as much as the first.
+const CLOSE_BELOW: f64 = 0.97;
+const CLOSE_ABOVE: f64 = 1.03;
+
+/// The byte target's refinement: a refined set codes at a different size from the oracle's
+/// prefix it came from (usually smaller: refitted values are smaller and about a fifth of them
+/// are pruned), and neither cutting it to the target nor topping it up by much is as good as
+/// refining a set of the right size. So the size K of the first set comes from one refit of
+/// the oracle's set ([`predicted_set_size`]), the refined set of K is encoded whole, and
+/// while it misses the target by more than [`CLOSE_BELOW`]–[`CLOSE_ABOVE`], K is moved by a
+/// secant step on log size against log K ([`next_set_size`]), for at most
+/// [`MAX_REFINEMENTS`] refinements. A set within that window is topped up or cut to the target
+/// (unless it already fills 98.5–100 %). Otherwise the fullest candidate is kept (a whole set,
+/// an overflowing set cut to the target, or on the last attempt the set topped up), unless it
+/// fills less than 98 % of the target and less than the unrefined file, which is then kept
+/// instead.
+#[allow(clippy::too_many_arguments)]
+fn refine_to_bytes(
+    prepared: &Prepared,
+    ranked: Ranked,
+    plain: Compressed,
+    r: &RefineOptions,
+    opts: &CompressOptions,
+    target: u64,
+    trials: &mut usize,
+    progress: &(dyn Fn(Stage, f64) + Sync),
+) -> Result<Compressed, CompressError> {
+    let n = prepared.nonzero as usize;
+    let goal = 0.99 * target as f64;
+    // (K, bytes of the whole refined set of K), by K.
+    let mut sizes: Vec<(usize, u64)> = Vec::new();
+    let mut best: Option<(Compressed, Ranked)> = None;
+    let fuller = |best: &Option<(Compressed, Ranked)>, c: &Compressed| {
+        best.as_ref()
+            .is_none_or(|(b, _)| c.stats.bytes > b.stats.bytes)
+    };
+    let k0 = plain.stats.kept as usize;
+    progress(Stage::Refine, 0.0);
+    let mut k = predicted_set_size(
+        k0,
+        plain.stats.bytes,
+        prepared.pilot(&ranked, k0, r),
+        target,
+        n,
+    );
+
+    // The oracle's order, grown when K needs more candidates (`ranked` stays `plain`'s).
+    let mut candidates: Option<Ranked> = None;
+    for attempt in 0..MAX_REFINEMENTS {
+        // The refinement reads the top K; the oracle's order beyond its extension follows.
+        let wanted = (k + k / 4).min(n);
+        let source = candidates.as_ref().unwrap_or(&ranked);
+        if source.sorted.len() < wanted && !source.complete {
+            candidates = Some(prepared.ranked(wanted));
+        }
+        let source = candidates.as_ref().unwrap_or(&ranked);
+        progress(Stage::Refine, attempt as f64 / MAX_REFINEMENTS as f64);
+        let k_set = k.min(source.sorted.len());
+        let refined = prepared.refined(source, k_set, r, k_set.div_ceil(4));
+        let count = refined.refined;
+        if count == 0 {
+            break;
+        }
+        *trials += 1;
+        progress(Stage::Encode(*trials), 0.0);
+        let whole = prepared.encode(&refined, count, opts, target, false);
+        let bytes = whole.stats.bytes;
+        tracing::debug!(k, count, bytes, target, "refined set encoded whole");
+        sizes.push((k, bytes));
+        let last = attempt + 1 == MAX_REFINEMENTS;
+        let close = close_to_target(bytes, target);
+        // Close to the target, or out of refinements: top the set up with the coefficients
+        // that would join it next, or cut it to the target.
+        let fit = |whole: Compressed, trials: &mut usize| {
+            let search = RateSearch {
+                target,
+                guess: count,
+                known: Some(whole),
+            };
+            fit_bytes(prepared, &refined, opts, search, trials, progress)
+        };
+        let candidate = if bytes <= target {
+            if (bytes as f64) < 0.985 * target as f64 && (last || close) {
+                fit(whole, trials)
+            } else {
+                Ok(whole)
+            }
+        } else {
+            fit(whole, trials)
+        };
+        // A refined set that cannot be cut to the target leaves the oracle's file standing.
+        let Ok(candidate) = candidate else {
+            break;
+        };
+        if fuller(&best, &candidate) {
+            best = Some((candidate, refined));
+        }
+        if close {
+            break;
+        }
+        let next = next_set_size(&sizes, goal, n);
+        if sizes.iter().any(|&(sk, _)| sk == next) {
+            break;
+        }
+        k = next;
+    }
+    match best {
+        Some((b, refined))
+            if b.stats.bytes as f64 >= 0.98 * target as f64
+                || b.stats.bytes >= plain.stats.bytes =>
+        {
+            Ok(finish(prepared, &refined, b))
+        }
+        _ => Ok(finish(prepared, &ranked, plain)),
+    }
+}
+
+/// The final refined set's size over the survivors of its first refit ([`Prepared::pilot`]),
+/// at the larger K the prediction moves to: 0.95–1.05 around it over the test set's volumes
+/// and sizes, a little above 1 on average, so the first set tends to overshoot (cutting costs
+/// less than topping up; BENCHMARKS.md, "One refinement per byte target").
+pub(super) const PILOT_KEEP: f64 = 1.0;
+
+/// Log–log slope of a file's size against its number of coefficients, as fitted to the
+/// refined sets of the test set (the oracle's prefixes grow a little faster, ~0.9).
+pub(super) const REFINED_SIZE_SLOPE: f64 = 0.85;
+
+/// The first refined-set size a byte target tries: the oracle's prefix of `k0` coefficients
+/// fills `bytes0`; a refinement of K keeps about PILOT_KEEP·`survivors`/`k0`·K of them, whose
+/// file is about `bytes0`·(kept/`k0`)^REFINED_SIZE_SLOPE. Solved for `target` (BENCHMARKS.md,
+/// "One refinement per byte target", for where it lands).
+pub(super) fn predicted_set_size(
+    k0: usize,
+    bytes0: u64,
+    survivors: usize,
+    target: u64,
+    n: usize,
+) -> usize {
+    if k0 == 0 || survivors == 0 || bytes0 == 0 {
+        return k0.clamp(1, n.max(1));
+    }
+    // A pilot keeping less than half (never seen: 0.80–0.99 on the test set) is not trusted
+    // further: the candidate lists stay within what `memory_estimate` counts.
+    let keep = (PILOT_KEEP * survivors as f64 / k0 as f64).max(0.5);
+    let grow = (target as f64 / bytes0 as f64).powf(1.0 / REFINED_SIZE_SLOPE);
+    ((k0 as f64 * grow / keep).round() as usize).clamp(1, n.max(1))
+}
+
+/// Whether a whole refined set of `bytes` ends the search for a `target` (see [`CLOSE_BELOW`]).
+pub(super) fn close_to_target(bytes: u64, target: u64) -> bool {
+    let (b, t) = (bytes as f64, target as f64);
+    b >= CLOSE_BELOW * t && b <= CLOSE_ABOVE * t
+}
+
+/// Growth of a whole refined set's file size with K (log–log slope): about 1, since a refined
+/// set keeps a steady ~4/5 of K (measured on the MNI volume between K = 157 k and 192 k: 1.04).
+const REFINED_SLOPE: f64 = 1.0;
+
+/// The next refined-set size for a byte goal from the sizes of whole refined sets tried so far:
+/// a secant step on log bytes against log K between the tightest sets below and above the
+/// goal, or from the nearest one with [`REFINED_SLOPE`].
+pub(super) fn next_set_size(sizes: &[(usize, u64)], goal: f64, n: usize) -> usize {
+    let below = sizes
+        .iter()
+        .filter(|&&(_, b)| (b as f64) <= goal)
+        .max_by_key(|&&(k, _)| k)
+        .copied();
+    let above = sizes
+        .iter()
+        .filter(|&&(_, b)| (b as f64) > goal)
+        .min_by_key(|&&(k, _)| k)
+        .copied();
+    let step = |(k, b): (usize, u64), slope: f64| -> f64 {
+        ((k.max(1) as f64).ln() + (goal.ln() - (b.max(1) as f64).ln()) / slope).exp()
+    };
+    let k = match (below, above) {
+        (Some((lk, lb)), Some((hk, hb))) if hk > lk + 1 && hb > lb => {
+            let slope = ((hb as f64).ln() - (lb.max(1) as f64).ln())
+                / ((hk as f64).ln() - (lk.max(1) as f64).ln());
+            (step((lk, lb), slope.clamp(0.3, 3.0)).round() as usize).clamp(lk + 1, hk - 1)
+        }
+        (Some(p), Some(_)) => p.0,
+        (Some(p), None) => (step(p, REFINED_SLOPE).ceil() as usize).max(p.0 + 1),
+        (None, Some(p)) => {
+            (step(p, REFINED_SLOPE).floor() as usize).clamp(1, p.0.saturating_sub(1).max(1))
+        }
+        (None, None) => 1,
+    };
+    k.clamp(1, n.max(1))
+}
+
+/// Largest trial files of a rate search before it settles for the best one found.
+const MAX_TRIALS: usize = 24;
+
+/// How full a file the rate search settles for: the target to 0.2 % where the granularity
+/// allows.
+const FILE_FILL: f64 = 0.998;
+
+/// What a rate search ([`fit_bytes`]) looks for and where it starts.
+struct RateSearch {
+    /// Bytes the file may take.
+    pub(super) target: u64,
+    /// Prefix length of the first trial.
+    pub(super) guess: usize,
+    /// A file of this ranking already encoded (its prefix length is its kept count): it
+    /// counts as the first trial.
+    pub(super) known: Option<Compressed>,
+}
+
+/// The rate search: the largest prefix of `ranked` whose file fits `target` bytes, stopping
+/// at the first that fills [`FILE_FILL`] of it. Sizes grow smoothly (about as K^0.9) with the
+/// number K of kept coefficients, so each trial interpolates log size against log K between
+/// the tightest fitting and overflowing trials (extrapolating from the one known side first),
+/// and every third step bisects to guarantee progress. Typically 3–7 trials.
+fn fit_bytes(
+    prepared: &Prepared,
+    ranked: &Ranked,
+    opts: &CompressOptions,
+    search: RateSearch,
+    trials: &mut usize,
+    progress: &(dyn Fn(Stage, f64) + Sync),
+) -> Result<Compressed, CompressError> {
+    let RateSearch {
+        target,
+        guess,
+        mut known,
+    } = search;
+    let len = ranked.sorted.len();
+    let mut run = |k: usize| {
+        *trials += 1;
+        progress(Stage::Encode(*trials), 0.0);
+        prepared.encode(ranked, k, opts, target, false)
+    };
+    let goal = FILE_FILL * target as f64;
+    // Steps aim at the middle of the accepted sizes: aiming at its lower edge, the secant
+    // creeps up on it a few coefficients at a time.
+    let aim = (1.0 + FILE_FILL) / 2.0 * target as f64;
+    // Fitting (k, bytes) and overflowing (k, bytes) bounds.
+    let mut lo: Option<(usize, u64)> = None;
+    let mut hi: Option<(usize, u64)> = None;
+    let mut best: Option<Compressed> = None;
+    let mut k = guess.clamp(len.min(1), len);
+    for step in 0..MAX_TRIALS {
+        let c = match known.take() {
+            Some(c) if (c.stats.kept as usize) <= len => {
+                k = c.stats.kept as usize;
+                c
+            }
+            _ => run(k),
+        };
+        let bytes = c.stats.bytes;
+        tracing::trace!(k, bytes, target, "rate search trial");
+        if bytes <= target {
+            if lo.is_none_or(|(lk, _)| k > lk) {
+                lo = Some((k, bytes));
+            }
+            if best.as_ref().is_none_or(|b| bytes > b.stats.bytes) {
+                best = Some(c);
+            }
+        } else if hi.is_none_or(|(hk, _)| k < hk) {
+            hi = Some((k, bytes));
+        }
+        if best.as_ref().is_some_and(|b| b.stats.bytes as f64 >= goal) {
+            break;
+        }
+        let log_k = |bytes_at: u64, k_at: usize, slope: f64| -> f64 {
+            (k_at.max(1) as f64).ln() + (aim.ln() - (bytes_at.max(1) as f64).ln()) / slope
+        };
+        let next = match (lo, hi) {
+            (Some((lk, _)), _) if lk >= len => break,
+            (_, Some((0 | 1, _))) => break,
+            (Some((lk, _)), Some((hk, _))) if hk <= lk + 1 => break,
+            (Some((lk, lb)), Some((hk, hb))) => {
+                let mid = lk + (hk - lk) / 2;
+                if step % 3 == 2 || hb <= lb {
+                    mid
+                } else {
+                    let slope = ((hb as f64).ln() - (lb.max(1) as f64).ln())
+                        / ((hk as f64).ln() - (lk.max(1) as f64).ln());
+                    let x = log_k(lb, lk, slope.clamp(0.3, 3.0)).exp().round() as usize;
+                    x.clamp(lk + 1, hk - 1)
+                }
+            }
+            (Some((lk, lb)), None) => {
+                let x = log_k(lb, lk, 0.9).exp().ceil() as usize;
+                x.clamp(lk + 1, len)
+            }
+            (None, Some((hk, hb))) => {
+                let x = log_k(hb, hk, 0.9).exp().floor() as usize;
+                x.clamp(1, hk - 1)
+            }
+            (None, None) => break,
+        };
+        k = next;
+    }
+    match best {
+        Some(b) => Ok(b),
+        None => {
+            let smallest = run(len.min(1));
+            if smallest.stats.bytes <= target {
+                Ok(smallest)
+            } else {
+                Err(CompressError::TargetTooSmall {
+                    target,
+                    minimum: smallest.stats.bytes,
+                })
+            }
+        }
+    }
+}
