@@ -38,12 +38,21 @@
 //! **Cost.** The scatter with atomics suits a GPU. On a software adapter (lavapipe) the atomics
 //! run one lane at a time, and the backend is 5–15× slower than the CPU backend on the same
 //! records (BENCHMARKS.md, issue 12): [`super::select`] does not pick it there by default.
+//!
+//! Its parts: `context` (adapter, device and queue, and device loss), `display` (the display
+//! pass: sums to an RGBA8 texture with window/level and the colour inverse); this module holds
+//! the accumulation.
+
+mod context;
+mod display;
 
 use super::{check_record, AccumulationBackend, BackendError, FootprintAtlas, Layout, SplatRecord};
 use crate::image::Image;
 use bytemuck::{Pod, Zeroable};
-use std::sync::{Arc, Mutex};
-
+pub use context::{probe_adapter, AdapterRequest, GpuContext};
+use display::Display;
+pub use display::{ColourMap, DisplayOptions};
+use std::sync::Arc;
 /// The wgpu this backend is built on (a window must use the same version).
 pub use wgpu;
 
@@ -73,274 +82,6 @@ struct AccumulateParams {
     groups_x: u32,
     scale: f32,
     pad: u32,
-}
-
-/// Uniform of the display pass. Twin of `DisplayUniform` in `shaders/display.wgsl`.
-#[repr(C)]
-#[derive(Debug, Clone, Copy, Pod, Zeroable)]
-struct DisplayUniform {
-    total_width: u32,
-    height: u32,
-    channels: u32,
-    flags: u32,
-    inv_scale: f32,
-    low: f32,
-    inv_range: f32,
-    pad: f32,
-    matrix: [[f32; 4]; 3],
-}
-
-fn device_error(what: &str, e: impl std::fmt::Display) -> BackendError {
-    BackendError::Device(format!("{what}: {e}"))
-}
-
-/// The wgpu instance, adapter, device and queue a [`GpuBackend`] runs on. Device errors that
-/// wgpu reports outside a call (validation, loss) are kept and returned by the next call of
-/// every backend on this context instead of panicking.
-#[derive(Debug)]
-pub struct GpuContext {
-    instance: wgpu::Instance,
-    adapter: wgpu::Adapter,
-    device: wgpu::Device,
-    queue: wgpu::Queue,
-    info: wgpu::AdapterInfo,
-    fault: Arc<Mutex<Option<String>>>,
-    /// Set when the device is lost, for any reason (a driver reset, or `destroy`).
-    lost: Arc<std::sync::atomic::AtomicBool>,
-}
-
-/// Which adapter to ask wgpu for.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub struct AdapterRequest {
-    /// Backends to look on.
-    pub backends: wgpu::Backends,
-    /// Take the first adapter whose name contains this (any case).
-    pub name: Option<String>,
-    /// Power preference when no name is given.
-    pub power: wgpu::PowerPreference,
-}
-
-impl AdapterRequest {
-    /// From the environment as wgpu reads it: `WGPU_BACKEND` (e.g. `vulkan`, `gl`; default
-    /// all), `WGPU_ADAPTER_NAME`, `WGPU_POWER_PREF`.
-    pub fn from_env() -> AdapterRequest {
-        AdapterRequest {
-            backends: wgpu::Backends::from_env().unwrap_or(wgpu::Backends::all()),
-            name: std::env::var("WGPU_ADAPTER_NAME").ok(),
-            power: wgpu::PowerPreference::from_env().unwrap_or_default(),
-        }
-    }
-
-    fn instance(&self) -> wgpu::Instance {
-        let mut desc = wgpu::InstanceDescriptor::new_without_display_handle_from_env();
-        desc.backends = self.backends;
-        wgpu::Instance::new(desc)
-    }
-
-    /// The adapter, or [`BackendError::NoAdapter`] saying what was looked for.
-    fn adapter(&self, instance: &wgpu::Instance) -> Result<wgpu::Adapter, BackendError> {
-        if let Some(name) = &self.name {
-            let want = name.to_lowercase();
-            let adapters = pollster::block_on(instance.enumerate_adapters(self.backends));
-            let names: Vec<String> = adapters.iter().map(|a| a.get_info().name).collect();
-            return adapters
-                .into_iter()
-                .find(|a| a.get_info().name.to_lowercase().contains(&want))
-                .ok_or_else(|| {
-                    BackendError::NoAdapter(format!(
-                        "no adapter named like {name:?} among {names:?} (backends {:?})",
-                        self.backends
-                    ))
-                });
-        }
-        pollster::block_on(instance.request_adapter(&wgpu::RequestAdapterOptions {
-            power_preference: self.power,
-            ..Default::default()
-        }))
-        .map_err(|e| BackendError::NoAdapter(format!("{e} (backends {:?})", self.backends)))
-    }
-}
-
-/// The adapter [`GpuContext::new`] would take, without opening a device.
-pub fn probe_adapter() -> Result<wgpu::AdapterInfo, BackendError> {
-    let request = AdapterRequest::from_env();
-    Ok(request.adapter(&request.instance())?.get_info())
-}
-
-impl GpuContext {
-    /// A headless context on the adapter wgpu finds (`WGPU_BACKEND`, `WGPU_ADAPTER_NAME` and
-    /// `WGPU_POWER_PREF` honoured); [`BackendError::NoAdapter`] when there is none.
-    pub fn new() -> Result<Arc<GpuContext>, BackendError> {
-        GpuContext::request(&AdapterRequest::from_env())
-    }
-
-    /// A headless context on the adapter `request` names.
-    pub fn request(request: &AdapterRequest) -> Result<Arc<GpuContext>, BackendError> {
-        let instance = request.instance();
-        let adapter = request.adapter(&instance)?;
-        GpuContext::from_adapter(instance, adapter)
-    }
-
-    /// A context on `adapter` of `instance` (a window passes the adapter it chose for its
-    /// surface). The device gets the adapter's limits and no optional feature.
-    pub fn from_adapter(
-        instance: wgpu::Instance,
-        adapter: wgpu::Adapter,
-    ) -> Result<Arc<GpuContext>, BackendError> {
-        let info = adapter.get_info();
-        let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
-            label: Some("wavesplat"),
-            required_features: wgpu::Features::empty(),
-            required_limits: adapter.limits(),
-            ..Default::default()
-        }))
-        .map_err(|e| device_error("requesting a device", e))?;
-        let fault = Arc::new(Mutex::new(None::<String>));
-        let f = fault.clone();
-        device.on_uncaptured_error(Arc::new(move |e: wgpu::Error| {
-            tracing::error!("wgpu: {e}");
-            if let Ok(mut slot) = f.lock() {
-                slot.get_or_insert_with(|| e.to_string());
-            }
-        }));
-        let f = fault.clone();
-        let lost = Arc::new(std::sync::atomic::AtomicBool::new(false));
-        let l = lost.clone();
-        device.set_device_lost_callback(move |reason, message| {
-            l.store(true, std::sync::atomic::Ordering::SeqCst);
-            if reason != wgpu::DeviceLostReason::Destroyed {
-                tracing::error!("wgpu device lost: {message}");
-                if let Ok(mut slot) = f.lock() {
-                    slot.get_or_insert_with(|| format!("device lost: {message}"));
-                }
-            }
-        });
-        tracing::info!(
-            "wgpu adapter: {} ({:?}, {:?})",
-            info.name,
-            info.backend,
-            info.device_type
-        );
-        Ok(Arc::new(GpuContext {
-            instance,
-            adapter,
-            device,
-            queue,
-            info,
-            fault,
-            lost,
-        }))
-    }
-
-    /// The instance (a window creates its surface from it).
-    pub fn instance(&self) -> &wgpu::Instance {
-        &self.instance
-    }
-
-    /// The adapter.
-    pub fn adapter(&self) -> &wgpu::Adapter {
-        &self.adapter
-    }
-
-    /// The device.
-    pub fn device(&self) -> &wgpu::Device {
-        &self.device
-    }
-
-    /// The queue.
-    pub fn queue(&self) -> &wgpu::Queue {
-        &self.queue
-    }
-
-    /// What the adapter is.
-    pub fn info(&self) -> &wgpu::AdapterInfo {
-        &self.info
-    }
-
-    /// Whether the adapter is a software device running on the CPU (lavapipe, WARP, …).
-    pub fn is_software(&self) -> bool {
-        self.info.device_type == wgpu::DeviceType::Cpu
-    }
-
-    /// Whether the device is lost (or reported an error): nothing drawn on it shows any
-    /// more, and a window recreates its context.
-    pub fn is_lost(&self) -> bool {
-        self.lost.load(std::sync::atomic::Ordering::SeqCst) || self.check().is_err()
-    }
-
-    /// Destroys the device, as a driver reset would lose it (for tests of recovery).
-    pub fn lose_device(&self) {
-        self.device.destroy();
-        let _ = self.device.poll(wgpu::PollType::Poll);
-    }
-
-    /// The first device error wgpu reported, if any (the context is unusable after one).
-    fn check(&self) -> Result<(), BackendError> {
-        match self.fault.lock() {
-            Ok(slot) => match slot.as_ref() {
-                Some(m) => Err(BackendError::Device(m.clone())),
-                None => Ok(()),
-            },
-            Err(_) => Err(BackendError::Device("error state poisoned".into())),
-        }
-    }
-
-    /// Blocks until the queue is idle.
-    fn wait(&self) -> Result<(), BackendError> {
-        self.device
-            .poll(wgpu::PollType::wait_indefinitely())
-            .map_err(|e| device_error("waiting for the queue", e))?;
-        self.check()
-    }
-
-    fn buffer(&self, label: &str, size: u64, usage: wgpu::BufferUsages) -> wgpu::Buffer {
-        self.device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some(label),
-            size,
-            usage,
-            mapped_at_creation: false,
-        })
-    }
-
-    /// Copies `size` bytes of `source` to the host.
-    fn read_buffer(&self, source: &wgpu::Buffer, size: u64) -> Result<Vec<u8>, BackendError> {
-        let staging = self.buffer(
-            "wavesplat readback",
-            size,
-            wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
-        );
-        let mut encoder = self
-            .device
-            .create_command_encoder(&wgpu::CommandEncoderDescriptor::default());
-        encoder.copy_buffer_to_buffer(source, 0, &staging, 0, size);
-        self.queue.submit([encoder.finish()]);
-        self.map_read(&staging)
-    }
-
-    /// Maps a MAP_READ buffer after the queue is idle and copies it out.
-    fn map_read(&self, staging: &wgpu::Buffer) -> Result<Vec<u8>, BackendError> {
-        let slice = staging.slice(..);
-        let (tx, rx) = std::sync::mpsc::channel();
-        slice.map_async(wgpu::MapMode::Read, move |r| {
-            let _ = tx.send(r);
-        });
-        self.wait()?;
-        rx.recv()
-            .map_err(|e| device_error("mapping a buffer", e))?
-            .map_err(|e| device_error("mapping a buffer", e))?;
-        let bytes = slice
-            .get_mapped_range()
-            .map_err(|e| device_error("reading a mapped buffer", e))?
-            .to_vec();
-        staging.unmap();
-        Ok(bytes)
-    }
-
-    /// Largest storage buffer binding this device allows (bytes).
-    fn max_binding(&self) -> u64 {
-        let l = self.device.limits();
-        l.max_storage_buffer_binding_size.min(l.max_buffer_size)
-    }
 }
 
 /// Settings of a [`GpuBackend`].
@@ -388,67 +129,6 @@ struct Target {
     exp: Option<i32>,
     /// Σ |value| · max|phase| since `begin`: bounds every pixel's |sum|.
     mass: f64,
-}
-
-/// The display pass's texture and what it needs.
-#[derive(Debug)]
-struct Display {
-    texture: wgpu::Texture,
-    size: (u32, u32),
-}
-
-/// How the display pass maps the image to colours.
-#[derive(Debug, Clone, Default, PartialEq)]
-pub struct DisplayOptions {
-    /// Values mapped to 0 and 255 (`None`: `Image::auto_window`, as `write_png`).
-    pub window: Option<(f64, f64)>,
-    /// Colour transform of a 3-channel image (`None`: channels shown as they are).
-    pub colour: Option<ColourMap>,
-}
-
-/// A colour transform applied before the window: `rgb = matrix · c + offset(pixel)`.
-#[derive(Debug, Clone, PartialEq)]
-pub struct ColourMap {
-    /// Row-major 3×3 matrix.
-    pub matrix: [[f32; 3]; 3],
-    /// Per-pixel RGB offsets of the whole target (total width × height × 3), e.g. the colour
-    /// mean times the ray's chord through the volume; `None`: no offset.
-    pub offset: Option<Vec<f32>>,
-}
-
-impl ColourMap {
-    /// The host twin of the display pass's colour transform (for the automatic window and
-    /// for tests).
-    pub fn apply(&self, image: &Image) -> Result<Image, BackendError> {
-        let pixels = image.width * image.height;
-        if image.channels != 3 {
-            return Err(BackendError::Display(format!(
-                "a colour map needs 3 channels, the image has {}",
-                image.channels
-            )));
-        }
-        if let Some(o) = &self.offset {
-            if o.len() != pixels * 3 {
-                return Err(BackendError::Display(format!(
-                    "colour offsets hold {} values for {} pixels",
-                    o.len(),
-                    pixels
-                )));
-            }
-        }
-        let mut out = image.clone();
-        for (p, px) in out.data.chunks_exact_mut(3).enumerate() {
-            let c = [px[0], px[1], px[2]];
-            for r in 0..3 {
-                let m = self.matrix[r];
-                px[r] = m[0] * c[0]
-                    + m[1] * c[1]
-                    + m[2] * c[2]
-                    + self.offset.as_ref().map_or(0.0, |o| o[3 * p + r]);
-            }
-        }
-        Ok(out)
-    }
 }
 
 /// Accumulates splat records on a wgpu device (see the module doc).
@@ -501,13 +181,13 @@ impl GpuBackend {
         let accumulate = pipeline(
             &ctx,
             "wavesplat accumulate",
-            include_str!("shaders/accumulate.wgsl"),
+            include_str!("../shaders/accumulate.wgsl"),
             "accumulate",
         );
         let display = pipeline(
             &ctx,
             "wavesplat display",
-            include_str!("shaders/display.wgsl"),
+            include_str!("../shaders/display.wgsl"),
             "display",
         );
         let params = ctx.buffer(
@@ -687,210 +367,6 @@ impl GpuBackend {
         t.exp = Some(exp);
         t.mass = total;
         Ok(())
-    }
-
-    /// The display texture (`Rgba8Unorm`, total width × height, views side by side) from the
-    /// image accumulated so far; also usable as a texture binding (a window draws it).
-    pub fn display(&mut self, options: &DisplayOptions) -> Result<&wgpu::Texture, BackendError> {
-        self.ctx.check()?;
-        let layout = self
-            .target
-            .as_ref()
-            .ok_or_else(|| BackendError::Layout("display before begin".into()))?
-            .layout;
-        let channels = layout.channels;
-        if channels != 1 && channels != 3 {
-            return Err(BackendError::Display(format!(
-                "{channels} channels (1 or 3 can be shown)"
-            )));
-        }
-        let (w, h) = (layout.total_width() as u32, layout.height as u32);
-        let max_side = self.ctx.device.limits().max_texture_dimension_2d;
-        if w > max_side || h > max_side {
-            return Err(BackendError::Display(format!(
-                "{w}x{h} exceeds the device's texture limit of {max_side}"
-            )));
-        }
-        if let Some(c) = &options.colour {
-            if channels != 3 {
-                return Err(BackendError::Display(format!(
-                    "a colour map needs 3 channels, the image has {channels}"
-                )));
-            }
-            if let Some(o) = &c.offset {
-                if o.len() != w as usize * h as usize * 3 {
-                    return Err(BackendError::Display(format!(
-                        "colour offsets hold {} values for {w}x{h} pixels",
-                        o.len()
-                    )));
-                }
-            }
-        }
-        let window = match options.window {
-            Some(win) => Image::new(1, 1, 1)
-                .resolve_window(Some(win))
-                .map_err(|e| BackendError::Display(e.to_string()))?,
-            None => {
-                let mut image = self.read()?;
-                if let Some(c) = &options.colour {
-                    image = c.apply(&image)?;
-                }
-                image
-                    .resolve_window(None)
-                    .map_err(|e| BackendError::Display(e.to_string()))?
-            }
-        };
-        let t = self.target.as_ref().expect("checked above");
-        let mut matrix = [[0.0f32; 4]; 3];
-        let mut flags = 0;
-        if let Some(c) = &options.colour {
-            flags |= 1;
-            for r in 0..3 {
-                matrix[r][..3].copy_from_slice(&c.matrix[r]);
-            }
-            if c.offset.is_some() {
-                flags |= 2;
-            }
-        }
-        let uniform = DisplayUniform {
-            total_width: w,
-            height: h,
-            channels: channels as u32,
-            flags,
-            inv_scale: 2f32.powi(-t.exp.unwrap_or(0)),
-            low: window.0 as f32,
-            inv_range: (1.0 / (window.1 - window.0)) as f32,
-            pad: 0.0,
-            matrix,
-        };
-        let ub = self.ctx.buffer(
-            "wavesplat display params",
-            std::mem::size_of::<DisplayUniform>() as u64,
-            wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
-        );
-        self.ctx
-            .queue
-            .write_buffer(&ub, 0, bytemuck::bytes_of(&uniform));
-        let offsets: &[f32] = options
-            .colour
-            .as_ref()
-            .and_then(|c| c.offset.as_deref())
-            .unwrap_or(&[0.0]);
-        let ob = self.ctx.buffer(
-            "wavesplat colour offsets",
-            (offsets.len() * 4) as u64,
-            STORAGE,
-        );
-        self.ctx
-            .queue
-            .write_buffer(&ob, 0, bytemuck::cast_slice(offsets));
-        if self.shown.as_ref().is_none_or(|d| d.size != (w, h)) {
-            let texture = self.ctx.device.create_texture(&wgpu::TextureDescriptor {
-                label: Some("wavesplat display"),
-                size: wgpu::Extent3d {
-                    width: w,
-                    height: h,
-                    depth_or_array_layers: 1,
-                },
-                mip_level_count: 1,
-                sample_count: 1,
-                dimension: wgpu::TextureDimension::D2,
-                format: wgpu::TextureFormat::Rgba8Unorm,
-                usage: wgpu::TextureUsages::STORAGE_BINDING
-                    | wgpu::TextureUsages::TEXTURE_BINDING
-                    | wgpu::TextureUsages::COPY_SRC,
-                view_formats: &[],
-            });
-            self.shown = Some(Display {
-                texture,
-                size: (w, h),
-            });
-        }
-        let shown = self.shown.as_ref().expect("created above");
-        let view = shown
-            .texture
-            .create_view(&wgpu::TextureViewDescriptor::default());
-        let bind = self
-            .ctx
-            .device
-            .create_bind_group(&wgpu::BindGroupDescriptor {
-                label: Some("wavesplat display"),
-                layout: &self.display.get_bind_group_layout(0),
-                entries: &[
-                    wgpu::BindGroupEntry {
-                        binding: 0,
-                        resource: ub.as_entire_binding(),
-                    },
-                    wgpu::BindGroupEntry {
-                        binding: 1,
-                        resource: t.sums.as_entire_binding(),
-                    },
-                    wgpu::BindGroupEntry {
-                        binding: 2,
-                        resource: ob.as_entire_binding(),
-                    },
-                    wgpu::BindGroupEntry {
-                        binding: 3,
-                        resource: wgpu::BindingResource::TextureView(&view),
-                    },
-                ],
-            });
-        let mut encoder = self
-            .ctx
-            .device
-            .create_command_encoder(&wgpu::CommandEncoderDescriptor::default());
-        {
-            let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor::default());
-            pass.set_pipeline(&self.display);
-            pass.set_bind_group(0, &bind, &[]);
-            pass.dispatch_workgroups(w.div_ceil(8), h.div_ceil(8), 1);
-        }
-        self.ctx.queue.submit([encoder.finish()]);
-        self.ctx.check()?;
-        Ok(&shown.texture)
-    }
-
-    /// The display texture's pixels (RGBA8 rows, no padding), after [`GpuBackend::display`].
-    pub fn read_display(&mut self) -> Result<Vec<u8>, BackendError> {
-        let shown = self
-            .shown
-            .as_ref()
-            .ok_or_else(|| BackendError::Display("read_display before display".into()))?;
-        let (w, h) = shown.size;
-        let row = w as u64 * 4;
-        let padded = row.next_multiple_of(wgpu::COPY_BYTES_PER_ROW_ALIGNMENT as u64);
-        let staging = self.ctx.buffer(
-            "wavesplat display readback",
-            padded * h as u64,
-            wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
-        );
-        let mut encoder = self
-            .ctx
-            .device
-            .create_command_encoder(&wgpu::CommandEncoderDescriptor::default());
-        encoder.copy_texture_to_buffer(
-            shown.texture.as_image_copy(),
-            wgpu::TexelCopyBufferInfo {
-                buffer: &staging,
-                layout: wgpu::TexelCopyBufferLayout {
-                    offset: 0,
-                    bytes_per_row: Some(padded as u32),
-                    rows_per_image: Some(h),
-                },
-            },
-            wgpu::Extent3d {
-                width: w,
-                height: h,
-                depth_or_array_layers: 1,
-            },
-        );
-        self.ctx.queue.submit([encoder.finish()]);
-        let bytes = self.ctx.map_read(&staging)?;
-        Ok(bytes
-            .chunks_exact(padded as usize)
-            .flat_map(|r| &r[..row as usize])
-            .copied()
-            .collect())
     }
 }
 
@@ -1107,6 +583,7 @@ impl AccumulationBackend for GpuBackend {
 
 #[cfg(test)]
 mod tests {
+    use super::display::DisplayUniform;
     use super::*;
     use std::mem::{offset_of, size_of};
 
@@ -1114,7 +591,7 @@ mod tests {
     fn twins() -> Vec<(&'static str, &'static str, usize, Vec<usize>)> {
         vec![
             (
-                include_str!("shaders/accumulate.wgsl"),
+                include_str!("../shaders/accumulate.wgsl"),
                 "Record",
                 size_of::<SplatRecord>(),
                 vec![
@@ -1126,13 +603,13 @@ mod tests {
                 ],
             ),
             (
-                include_str!("shaders/accumulate.wgsl"),
+                include_str!("../shaders/accumulate.wgsl"),
                 "PhaseRect",
                 size_of::<super::super::PhaseRect>(),
                 vec![0, 4, 8],
             ),
             (
-                include_str!("shaders/accumulate.wgsl"),
+                include_str!("../shaders/accumulate.wgsl"),
                 "Params",
                 size_of::<AccumulateParams>(),
                 vec![
@@ -1147,7 +624,7 @@ mod tests {
                 ],
             ),
             (
-                include_str!("shaders/display.wgsl"),
+                include_str!("../shaders/display.wgsl"),
                 "DisplayUniform",
                 size_of::<DisplayUniform>(),
                 vec![
