@@ -17,60 +17,30 @@
 //! under a new name adds the name, under a name it already has returns it unchanged, so
 //! concurrent or repeated identical ingests all succeed. Deletion commits the removal of the
 //! records first, then drops the data.
+//!
+//! Its parts: `validate` (the limits, names and the checks an upload's bytes pass), `upload`
+//! (a volume streamed to disk and validated as it arrives), `volume` (an opened volume: parsed
+//! header, index and file, read by ranges); this module holds the store's records.
+
+mod upload;
+mod validate;
+mod volume;
 
 use crate::bucket::Bucket;
 use crate::error::CacheError;
-use crate::model::{
-    decode_packets, encode_packets, PacketMeta, VolumeIndex, VolumeKey, VolumeMeta,
-};
-use sha2::{Digest, Sha256};
+use crate::model::{decode_packets, encode_packets, VolumeIndex, VolumeKey, VolumeMeta};
 use sled::transaction::{ConflictableTransactionError, TransactionError, Transactional};
 use std::collections::HashMap;
 use std::fs::File;
-use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
 use std::time::{SystemTime, UNIX_EPOCH};
-use wavesplat_codec::format::packet::{decode_packet_within, DecodeBudget};
-use wavesplat_codec::format::{parse_file, parse_prelude, read_header_section, Prelude};
+pub use upload::Upload;
+pub use validate::{index_file, sha256, validate_name, Limits, MAX_NAME_BYTES};
+pub use volume::OpenVolume;
+use volume::VolumeData;
+use wavesplat_codec::format::read_header_section;
 
-/// Limits applied to uploads.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct Limits {
-    /// Largest accepted upload (bytes).
-    pub max_upload_bytes: u64,
-    /// Largest accepted packet (bytes); bounds every streamed message.
-    pub max_packet_bytes: u64,
-    /// Largest header section plus packet directory (bytes).
-    pub max_prelude_bytes: u64,
-    /// Uploads validated at once; more wait their turn.
-    pub max_concurrent_uploads: usize,
-    /// Bytes all uploads together may hold in memory (the prelude, then the largest packet,
-    /// of each); an upload waits until its share is free. At least `max_packet_bytes` and
-    /// `max_prelude_bytes`.
-    pub max_buffered_bytes: u64,
-    /// What validating one packet may cost (checked against its declared count first).
-    pub decode: DecodeBudget,
-}
-
-impl Default for Limits {
-    fn default() -> Self {
-        Limits {
-            max_upload_bytes: 1 << 30,
-            max_packet_bytes: 16 << 20,
-            max_prelude_bytes: 16 << 20,
-            max_concurrent_uploads: 16,
-            max_buffered_bytes: 256 << 20,
-            decode: DecodeBudget {
-                max_coefficients: 1 << 24,
-                max_bytes: 1 << 30,
-            },
-        }
-    }
-}
-
-/// Longest volume name (bytes).
-pub const MAX_NAME_BYTES: usize = 255;
 /// Volumes whose index and open file are kept in memory.
 const OPEN_VOLUMES: usize = 256;
 
@@ -82,102 +52,6 @@ pub struct Ingested {
     /// True if identical content was already stored (nothing written; the name was added to
     /// it if new).
     pub existed: bool,
-}
-
-/// A stored volume opened for reading: its record, header and index, and its data file.
-#[derive(Debug)]
-pub struct OpenVolume {
-    /// The record.
-    pub meta: VolumeMeta,
-    /// Header and packet index.
-    pub index: VolumeIndex,
-    data: VolumeData,
-}
-
-/// Where an open volume's packets are read from.
-#[derive(Debug)]
-enum VolumeData {
-    /// The node's own file.
-    File(File),
-    /// An object in a bucket (`wsp_offset`: where the `.wsp` starts in it).
-    Bucket {
-        bucket: Arc<Bucket>,
-        sha256: [u8; 32],
-        wsp_offset: u64,
-    },
-}
-
-impl OpenVolume {
-    fn entry(&self, packet: u32) -> Result<&PacketMeta, CacheError> {
-        self.index.packets.get(packet as usize).ok_or_else(|| {
-            CacheError::NotFound(format!("packet {packet} of volume {}", self.meta.id))
-        })
-    }
-
-    /// One packet's bytes, from a blocking thread.
-    pub fn packet(&self, packet: u32) -> Result<Vec<u8>, CacheError> {
-        match &self.data {
-            VolumeData::File(file) => self.read_file(file, packet),
-            VolumeData::Bucket { bucket, .. } => {
-                Ok(bucket.wait(self.read_packet(packet))?.to_vec())
-            }
-        }
-    }
-
-    fn read_file(&self, file: &File, packet: u32) -> Result<Vec<u8>, CacheError> {
-        let p = self.entry(packet)?;
-        let mut buf = vec![0u8; p.len as usize];
-        read_at(file, &mut buf, p.offset).map_err(|e| {
-            CacheError::Corrupt(format!(
-                "reading packet {packet} of volume {}: {e}",
-                self.meta.id
-            ))
-        })?;
-        Ok(buf)
-    }
-
-    /// One packet's bytes, from an async task (a local file is read in place: one positioned
-    /// read of a packet).
-    pub async fn read_packet(&self, packet: u32) -> Result<bytes::Bytes, CacheError> {
-        match &self.data {
-            VolumeData::File(file) => Ok(self.read_file(file, packet)?.into()),
-            VolumeData::Bucket {
-                bucket,
-                sha256,
-                wsp_offset,
-            } => {
-                bucket
-                    .read(
-                        sha256,
-                        self.meta.id,
-                        packet,
-                        &self.index.packets,
-                        *wsp_offset,
-                    )
-                    .await
-            }
-        }
-    }
-}
-
-#[cfg(unix)]
-fn read_at(file: &File, buf: &mut [u8], offset: u64) -> std::io::Result<()> {
-    std::os::unix::fs::FileExt::read_exact_at(file, buf, offset)
-}
-
-#[cfg(windows)]
-fn read_at(file: &File, mut buf: &mut [u8], mut offset: u64) -> std::io::Result<()> {
-    use std::os::windows::fs::FileExt;
-    while !buf.is_empty() {
-        match file.seek_read(buf, offset)? {
-            0 => return Err(std::io::ErrorKind::UnexpectedEof.into()),
-            n => {
-                buf = &mut buf[n..];
-                offset += n as u64;
-            }
-        }
-    }
-    Ok(())
 }
 
 /// Handle to the store; cheap to clone.
@@ -205,21 +79,6 @@ fn id_from(bytes: &[u8]) -> Result<u64, CacheError> {
     Ok(u64::from_be_bytes(b))
 }
 
-/// Checks a volume name: 1..=255 bytes, no control characters.
-pub fn validate_name(name: &str) -> Result<(), CacheError> {
-    if name.is_empty() || name.len() > MAX_NAME_BYTES || name.chars().any(char::is_control) {
-        return Err(CacheError::InvalidRequest(format!(
-            "volume name {name:?} must be 1..={MAX_NAME_BYTES} bytes without control characters"
-        )));
-    }
-    Ok(())
-}
-
-/// SHA-256 of some bytes.
-pub fn sha256(bytes: &[u8]) -> [u8; 32] {
-    Sha256::digest(bytes).into()
-}
-
 fn io(what: &str, e: std::io::Error) -> CacheError {
     CacheError::Io(format!("{what}: {e}"))
 }
@@ -229,73 +88,6 @@ fn now_ms() -> u64 {
         .duration_since(UNIX_EPOCH)
         .map(|d| d.as_millis() as u64)
         .unwrap_or(0)
-}
-
-/// Decodes packet `i` and returns its index entry and the number of coefficients it holds.
-fn index_packet(
-    prelude: &Prelude,
-    i: usize,
-    bytes: &[u8],
-    offset: u64,
-    budget: &DecodeBudget,
-) -> Result<(PacketMeta, u64), CacheError> {
-    let d = decode_packet_within(&prelude.header, bytes, budget)
-        .map_err(|e| CacheError::InvalidUpload(format!("packet {i}: {e}")))?;
-    let held = d.coefficients.len() as u64;
-    Ok((
-        PacketMeta {
-            tile: d.tile as u32,
-            layer: d.layer as u32,
-            len: bytes.len() as u32,
-            offset,
-            summary: d.summary,
-        },
-        held,
-    ))
-}
-
-/// Refuses a file whose packets do not hold the coefficients its header declares.
-fn check_kept(prelude: &Prelude, held: u64) -> Result<(), CacheError> {
-    wavesplat_codec::format::check_kept(&prelude.header, held)
-        .map_err(|e| CacheError::InvalidUpload(e.to_string()))
-}
-
-/// Validates a whole file: parses it, decodes every packet, and builds its index.
-pub fn index_file(bytes: &[u8], limits: &Limits) -> Result<VolumeIndex, CacheError> {
-    let file = parse_file(bytes)?;
-    let prelude = Prelude {
-        header: file.header.clone(),
-        header_bytes: file.header_bytes,
-        directory_bytes: file.directory_bytes,
-        packet_lengths: file.packets.iter().map(|p| p.len()).collect(),
-    };
-    let mut packets = Vec::with_capacity(file.packets.len());
-    let mut offset = prelude.len() as u64;
-    let mut held = 0u64;
-    for (i, p) in file.packets.iter().enumerate() {
-        check_packet_size(p.len(), limits)?;
-        let (meta, n) = index_packet(&prelude, i, p, offset, &limits.decode)?;
-        packets.push(meta);
-        held += n;
-        offset += p.len() as u64;
-    }
-    check_kept(&prelude, held)?;
-    Ok(VolumeIndex {
-        header_bytes: bytes[..file.header_bytes].to_vec(),
-        header: file.header,
-        packets,
-    })
-}
-
-fn check_packet_size(len: usize, limits: &Limits) -> Result<(), CacheError> {
-    if len as u64 > limits.max_packet_bytes {
-        return Err(CacheError::TooLarge {
-            what: "packet",
-            size: len as u64,
-            limit: limits.max_packet_bytes,
-        });
-    }
-    Ok(())
 }
 
 /// How a commit ended.
@@ -785,391 +577,6 @@ impl Store {
     }
 }
 
-/// An upload in progress: bytes are hashed, written to a file and validated as they arrive.
-/// Dropping it before [`Upload::finish`] removes what it wrote.
-#[derive(Debug)]
-pub struct Upload {
-    store: Store,
-    name: String,
-    declared: [u8; 32],
-    total: u64,
-    received: u64,
-    hasher: Sha256,
-    /// `None` when the declared content is already stored: the bytes are only hashed.
-    sink: Option<Sink>,
-}
-
-#[derive(Debug)]
-struct Sink {
-    id: u64,
-    part: PathBuf,
-    file: File,
-    prelude_buf: Vec<u8>,
-    prelude: Option<Prelude>,
-    header_bytes: Vec<u8>,
-    packet_buf: Vec<u8>,
-    packets: Vec<PacketMeta>,
-    /// Coefficients the packets so far hold.
-    held: u64,
-    offset: u64,
-    kept: bool,
-}
-
-impl Drop for Sink {
-    fn drop(&mut self) {
-        if !self.kept {
-            let _ = std::fs::remove_file(&self.part);
-        }
-    }
-}
-
-impl Sink {
-    /// The prelude of a complete upload whose packets hold what its header declares.
-    fn complete(&mut self) -> Result<Prelude, CacheError> {
-        let complete = self
-            .prelude
-            .as_ref()
-            .is_some_and(|p| self.packets.len() == p.packet_lengths.len());
-        let Some(prelude) = self.prelude.take().filter(|_| complete) else {
-            return Err(CacheError::InvalidUpload(
-                "the upload ends inside its header, directory or a packet".into(),
-            ));
-        };
-        check_kept(&prelude, self.held)?;
-        Ok(prelude)
-    }
-
-    /// Validates the next bytes of the file.
-    fn feed(&mut self, data: &[u8], total: u64, limits: &Limits) -> Result<(), CacheError> {
-        if self.prelude.is_none() {
-            self.prelude_buf.extend_from_slice(data);
-            let Some(p) = parse_prelude(&self.prelude_buf)? else {
-                if self.prelude_buf.len() as u64 > limits.max_prelude_bytes {
-                    return Err(CacheError::TooLarge {
-                        what: "header and packet directory",
-                        size: self.prelude_buf.len() as u64,
-                        limit: limits.max_prelude_bytes,
-                    });
-                }
-                return Ok(());
-            };
-            if p.len() as u64 > limits.max_prelude_bytes {
-                return Err(CacheError::TooLarge {
-                    what: "header and packet directory",
-                    size: p.len() as u64,
-                    limit: limits.max_prelude_bytes,
-                });
-            }
-            if p.file_bytes() != total {
-                return Err(CacheError::InvalidUpload(format!(
-                    "the packet directory describes a file of {} bytes, the upload declares {total}",
-                    p.file_bytes()
-                )));
-            }
-            for &len in &p.packet_lengths {
-                check_packet_size(len, limits)?;
-            }
-            let rest = std::mem::take(&mut self.prelude_buf);
-            self.header_bytes = rest[..p.header_bytes].to_vec();
-            self.packets.reserve_exact(p.packet_lengths.len());
-            self.offset = p.len() as u64;
-            let used = p.len();
-            self.prelude = Some(p);
-            return self.feed_packets(&rest[used..], limits);
-        }
-        self.feed_packets(data, limits)
-    }
-
-    fn feed_packets(&mut self, mut data: &[u8], limits: &Limits) -> Result<(), CacheError> {
-        while !data.is_empty() {
-            let n = self.feed_packets_some(data, limits)?;
-            data = &data[n..];
-        }
-        Ok(())
-    }
-
-    /// Takes bytes of the current packet from `data`, checks the packet when complete, and
-    /// returns how many bytes it took.
-    fn feed_packets_some(&mut self, data: &[u8], limits: &Limits) -> Result<usize, CacheError> {
-        let Some(p) = &self.prelude else {
-            return Ok(0);
-        };
-        let i = self.packets.len();
-        let Some(&len) = p.packet_lengths.get(i) else {
-            return Err(CacheError::InvalidUpload(
-                "bytes after the last packet".into(),
-            ));
-        };
-        if self.packet_buf.is_empty() {
-            self.packet_buf.reserve_exact(len);
-        }
-        let take = (len - self.packet_buf.len()).min(data.len());
-        self.packet_buf.extend_from_slice(&data[..take]);
-        if self.packet_buf.len() == len {
-            let (meta, held) = index_packet(p, i, &self.packet_buf, self.offset, &limits.decode)?;
-            self.offset += len as u64;
-            self.packets.push(meta);
-            self.held += held;
-            self.packet_buf.clear();
-        }
-        // Progress: bytes taken, or (a packet of zero bytes) the packet count advanced.
-        Ok(take)
-    }
-
-    /// The bytes this upload may hold in memory from now on.
-    fn memory_need(&self, total: u64, limits: &Limits) -> u64 {
-        match &self.prelude {
-            None => total.min(limits.max_prelude_bytes),
-            Some(p) => p.packet_lengths[self.packets.len()..]
-                .iter()
-                .copied()
-                .max()
-                .unwrap_or(0) as u64,
-        }
-    }
-}
-
-impl Upload {
-    /// Starts an upload of `total` bytes under `name` whose SHA-256 is declared to be
-    /// `declared`.
-    pub fn begin(
-        store: &Store,
-        name: &str,
-        declared: [u8; 32],
-        total: u64,
-    ) -> Result<Upload, CacheError> {
-        validate_name(name)?;
-        let limit = store.limits.max_upload_bytes;
-        if total > limit {
-            return Err(CacheError::TooLarge {
-                what: "upload",
-                size: total,
-                limit,
-            });
-        }
-        // A name taken by other content is refused before any byte is read (the commit checks
-        // again).
-        if let Some(b) = &store.bucket {
-            if b.wait(b.name_target(name))?
-                .is_some_and(|sha| sha != declared)
-            {
-                return Err(CacheError::NameTaken(name.to_string()));
-            }
-        } else if let Some(id) = store.names.get(name.as_bytes())? {
-            if store.meta(id_from(&id)?)?.sha256 != declared {
-                return Err(CacheError::NameTaken(name.to_string()));
-            }
-        }
-        let sink = if store.has_content(&declared)? {
-            None
-        } else {
-            let id = store.db.generate_id()?;
-            let part = store.file_path(id, "part");
-            let file = File::create(&part).map_err(|e| io("creating an upload file", e))?;
-            Some(Sink {
-                id,
-                part,
-                file,
-                prelude_buf: Vec::new(),
-                prelude: None,
-                header_bytes: Vec::new(),
-                packet_buf: Vec::new(),
-                packets: Vec::new(),
-                held: 0,
-                offset: 0,
-                kept: false,
-            })
-        };
-        Ok(Upload {
-            store: store.clone(),
-            name: name.to_string(),
-            declared,
-            total,
-            received: 0,
-            hasher: Sha256::new(),
-            sink,
-        })
-    }
-
-    /// The bytes this upload may hold in memory until it ends or its next phase (the prelude,
-    /// then the largest packet still to come); 0 when it only hashes.
-    pub fn memory_need(&self) -> u64 {
-        self.sink
-            .as_ref()
-            .map_or(0, |s| s.memory_need(self.total, &self.store.limits))
-    }
-
-    /// Bytes received so far.
-    pub fn received(&self) -> u64 {
-        self.received
-    }
-
-    /// Takes the next bytes of the file.
-    pub fn push(&mut self, chunk: &[u8]) -> Result<(), CacheError> {
-        if self.received + chunk.len() as u64 > self.total {
-            return Err(CacheError::InvalidUpload(format!(
-                "more data than the declared total size of {} bytes",
-                self.total
-            )));
-        }
-        self.hasher.update(chunk);
-        self.received += chunk.len() as u64;
-        if let Some(s) = &mut self.sink {
-            s.file
-                .write_all(chunk)
-                .map_err(|e| io("writing an upload", e))?;
-            s.feed(chunk, self.total, &self.store.limits)?;
-        }
-        Ok(())
-    }
-
-    /// Checks the upload is complete and matches its checksum, then stores it. `abandon` is
-    /// asked last, before the commit: `Some(error)` (the client gave up or its deadline
-    /// passed) rolls the upload back.
-    pub fn finish(
-        mut self,
-        abandon: impl Fn() -> Option<CacheError>,
-    ) -> Result<Ingested, CacheError> {
-        if self.received != self.total {
-            return Err(CacheError::InvalidUpload(format!(
-                "truncated upload: received {} of {} bytes",
-                self.received, self.total
-            )));
-        }
-        let hash: [u8; 32] = std::mem::take(&mut self.hasher).finalize().into();
-        if hash != self.declared {
-            return Err(CacheError::InvalidUpload(format!(
-                "checksum mismatch: declared SHA-256 {}, received content has {}",
-                crate::model::hex(&self.declared),
-                crate::model::hex(&hash)
-            )));
-        }
-        let store = self.store.clone();
-        if let Some(b) = store.bucket.clone() {
-            return self.finish_in_bucket(&b, hash, abandon);
-        }
-        let meta = match self.sink.take() {
-            None => {
-                if let Some(e) = abandon() {
-                    return Err(e);
-                }
-                let mut meta = blank_meta(&self.name, hash);
-                meta.id = u64::MAX;
-                meta
-            }
-            Some(mut s) => {
-                let prelude = s.complete()?;
-                s.file.sync_all().map_err(|e| io("syncing an upload", e))?;
-                let id = s.id;
-                let path = store.file_path(id, "wsp");
-                std::fs::rename(&s.part, &path).map_err(|e| io("storing an upload", e))?;
-                s.kept = true;
-                if let Ok(dir) = File::open(&*store.files) {
-                    let _ = dir.sync_all();
-                }
-                store
-                    .headers
-                    .insert(id.to_be_bytes(), std::mem::take(&mut s.header_bytes))?;
-                store
-                    .index
-                    .insert(id.to_be_bytes(), encode_packets(&s.packets))?;
-                store.db.flush()?;
-                if let Some(e) = abandon() {
-                    store.remove_data(id)?;
-                    return Err(e);
-                }
-                VolumeMeta::from_header(
-                    id,
-                    vec![self.name.clone()],
-                    hash,
-                    now_ms(),
-                    self.total,
-                    &prelude.header,
-                    prelude.header_bytes,
-                    &s.packets,
-                )
-            }
-        };
-        let fresh = meta.id != u64::MAX;
-        match store.commit(&meta, fresh) {
-            Ok(Committed::New) => {
-                tracing::info!(id = meta.id, name = %meta.name, bytes = self.total, "ingested volume");
-                Ok(Ingested {
-                    volume: meta,
-                    existed: false,
-                })
-            }
-            Ok(Committed::Existing(id)) => {
-                if fresh {
-                    store.remove_data(meta.id)?;
-                }
-                Ok(Ingested {
-                    volume: store.meta(id)?.named(&self.name),
-                    existed: true,
-                })
-            }
-            Err(e) => {
-                if fresh {
-                    store.remove_data(meta.id)?;
-                }
-                Err(e)
-            }
-        }
-    }
-}
-
-impl Upload {
-    /// The end of an upload into a bucket: the validated file in the indexed layout, written once
-    /// per content, then the name (see [`Bucket::commit`]).
-    fn finish_in_bucket(
-        mut self,
-        bucket: &Bucket,
-        hash: [u8; 32],
-        abandon: impl Fn() -> Option<CacheError>,
-    ) -> Result<Ingested, CacheError> {
-        let object = match self.sink.take() {
-            None => None,
-            Some(mut s) => {
-                s.complete()?;
-                let mut object =
-                    wavesplat_codec::format::index::indexed_prefix(self.total, &s.packets)?;
-                let file = std::fs::read(&s.part).map_err(|e| io("reading an upload back", e))?;
-                object.extend_from_slice(&file);
-                Some(bytes::Bytes::from(object))
-            }
-        };
-        if let Some(e) = abandon() {
-            return Err(e);
-        }
-        let existed = bucket.wait(bucket.commit(&self.name, &hash, object))?;
-        let volume = bucket.wait(bucket.describe(&VolumeKey::Name(self.name.clone())))?;
-        tracing::info!(id = volume.id, name = %self.name, bytes = self.total, existed, bucket = %bucket.url(), "ingested volume");
-        Ok(Ingested { volume, existed })
-    }
-}
-
-fn blank_meta(name: &str, sha256: [u8; 32]) -> VolumeMeta {
-    VolumeMeta {
-        id: 0,
-        name: name.to_string(),
-        names: vec![name.to_string()],
-        sha256,
-        created_unix_ms: now_ms(),
-        file_bytes: 0,
-        header_bytes: 0,
-        packet_bytes: 0,
-        dims: [0; 3],
-        channels: 0,
-        family: String::new(),
-        levels: 0,
-        packet_count: 0,
-        tile_count: 0,
-        layer_count: 0,
-        tile: 0,
-        coefficients: 0,
-    }
-}
-
 /// Flushes the store when the last server handle goes away.
 #[derive(Debug)]
 pub struct FlushGuard(pub Store);
@@ -1184,7 +591,9 @@ impl Drop for FlushGuard {
 
 #[cfg(test)]
 mod tests {
+    use super::upload::blank_meta;
     use super::*;
+    use wavesplat_codec::format::parse_file;
 
     fn test_file() -> Vec<u8> {
         use wavesplat_compressor::encode::{compress, CompressOptions, Target, TileChoice};

@@ -1,0 +1,302 @@
+//! Splat footprints by Fourier projection-slice (paper §2.3): this module owns the tables that
+//! the accumulator copies into the image, one per (level, type) for a given view.
+//!
+//! The pixel-area-averaged footprint of a centred level-m basis function b in screen pixels has
+//! the 2D Fourier transform (σ, ρ in cycles per pixel)
+//! P̂(σ, ρ) = zoom² · det S · B(zoom·(σ e_x + ρ e_y)) · sinc(σ) sinc(ρ),
+//! where e_x, e_y are the screen axes per voxel step (S·u and −S·v for the voxel spacing S: the
+//! basis drawn in physical space is b(S⁻¹y), whose projection's slice is det S · B(S·ω), so an
+//! anisotropic volume still needs one table per type, level and view), zoom is pixels per unit
+//! of spacing, and B is the 3D transform of the centred basis (product over axes of the codec's 1D
+//! transforms, recentred by e^{+i2πξc}, c = j/2 for φ and (2j−1)/2 for ψ, dilated by 2^m) and
+//! the sincs are the pixel box, so a table sample is the *average over a pixel* of the line
+//! integrals — Haar's transform is not band-limited, so this and oversampling matter. The slice is
+//! sampled on a grid of spacing S/N cycles per pixel and inverse-FFT'd (rustfft, f64), giving the
+//! footprint on a grid of spacing 1/S pixel (S = subpixel phases, default 8, halved while the FFT
+//! would exceed `max_fft` per side), with period N/S pixels larger than the projected support
+//! plus margin (no wraparound); the real part is kept and the table cropped to the support.
+//!
+//! **Mipmap.** Level-M tables are computed once per view; a level-m table (r = 2^(M−m)) is
+//! derived exactly as T_m(X) = r^(−3) Σ_{a,b<r} T_M(r·X + o_a, r·Y + o_b), o_a = a − (r−1)/2
+//! pixels: the level-m basis is the level-M one shrunk by r (its projection scales by 1/r), and
+//! the integral over one level-m-scale pixel is the sum of r×r level-M-scale pixel integrals (each
+//! being the area r² times our per-area average): box filter, then subsample by r. S is kept even
+//! so the half-pixel offsets fall on the grid.
+//!
+//! **Subpixel placement.** A splat centred at continuous screen X reads, for pixel ix, the table
+//! sample nearest its exact offset ix + ½ − X, i.e. it uses the nearest of S × S phase tables (the
+//! fine table split by phase). No interpolation, hence no blur; the position error is at most
+//! 1/(2S) pixel per axis, and it is the same for every pixel of a splat (no shape distortion).
+//!
+//! **Depth cueing** (§3.2): the cued footprints use κ_a = k·L̂_a·2^m per axis (the codec cues
+//! each 1D factor relative to its support end nearest the light, so no exponent is positive).
+//! The cue is cut at the data's light-facing faces, so a table is keyed by its three axis
+//! factors ([`AxisFactor`]: a cued level-m φ/ψ, or a level-0 φ across a face); the tables a
+//! rendering needs are built on first use, grouped by level so that each distinct 1D factor is
+//! evaluated once per FFT grid, and kept with the view's set.
+
+//!
+//! Its parts: this module holds the tables (`FineTable`, `Footprint` and its phase tables, the
+//! mipmap); `slice` computes them by Fourier projection-slice; `factor` owns the axis factors of
+//! depth-cued and cut pieces and their tables; `set` holds a view's tables.
+
+mod factor;
+mod set;
+mod slice;
+
+pub use factor::{
+    compute_factor_tables, compute_factor_tables_with, cut_transform, AxisFactor, CutFactor,
+    FactorGrids,
+};
+pub use set::FootprintSet;
+pub use slice::{
+    axis_transform, basis_transform, compute_fine, compute_fine_with, footprint_spectrum,
+    support_radius, Transforms,
+};
+use wavesplat_codec::family::Family;
+pub use wavesplat_codec::view::sinc;
+/// Parameters of one footprint set (all levels and types for one view).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FootprintParams {
+    /// Wavelet family.
+    pub family: Family,
+    /// Decomposition depth M.
+    pub levels: usize,
+    /// Screen x axis per voxel step, S·u (unit for unit spacing; `Camera::index_axes`).
+    pub ex: [f64; 3],
+    /// Screen y axis per voxel step, −S·v.
+    pub ey: [f64; 3],
+    /// Pixels per unit of spacing.
+    pub zoom: f64,
+    /// Physical volume of a voxel, det S (1 for unit spacing).
+    pub voxel_volume: f64,
+    /// Requested subpixel phases per axis (even, ≥ 2).
+    pub subpixel: usize,
+    /// Largest FFT side.
+    pub max_fft: usize,
+    /// Depth cue: extinction k (per unit of spacing) and the distance gradient in voxel indices
+    /// (`ResolvedCue::l`: the unit light direction for unit spacing).
+    pub cue: Option<(f64, [f64; 3])>,
+    /// Also build the tables' gradients (for [`Footprint::grad_x`] / [`Footprint::grad_y`]).
+    pub gradient: bool,
+}
+
+/// A footprint on the fine grid: sample (ix, iy) is the pixel-averaged projection at offset
+/// ((ix − cx)/S, (iy − cy)/S) pixels from the basis centre.
+#[derive(Debug, Clone, PartialEq)]
+pub struct FineTable {
+    /// Subpixel phases per pixel.
+    pub s: usize,
+    /// Width.
+    pub nx: usize,
+    /// Height.
+    pub ny: usize,
+    /// Centre column.
+    pub cx: usize,
+    /// Centre row.
+    pub cy: usize,
+    /// Samples, row-major.
+    pub data: Vec<f64>,
+}
+
+impl FineTable {
+    /// A table of (2·cx + 1) × (2·cy + 1) samples centred on the basis centre.
+    fn centred(s: usize, cx: usize, cy: usize, data: Vec<f64>) -> FineTable {
+        debug_assert_eq!(data.len(), (2 * cx + 1) * (2 * cy + 1));
+        FineTable {
+            s,
+            nx: 2 * cx + 1,
+            ny: 2 * cy + 1,
+            cx,
+            cy,
+            data,
+        }
+    }
+
+    /// Sample at signed fine indices (zero outside).
+    pub fn get(&self, ix: i64, iy: i64) -> f64 {
+        if ix < 0 || iy < 0 || ix >= self.nx as i64 || iy >= self.ny as i64 {
+            0.0
+        } else {
+            self.data[iy as usize * self.nx + ix as usize]
+        }
+    }
+
+    /// The derivative along `axis` (0: x, 1: y) per pixel, by central differences on the fine
+    /// grid (spacing 1/S pixel; zero outside the table).
+    pub fn derivative(&self, axis: usize) -> FineTable {
+        let half_s = 0.5 * self.s as f64;
+        let mut data = Vec::with_capacity(self.data.len());
+        for iy in 0..self.ny as i64 {
+            for ix in 0..self.nx as i64 {
+                let (d0, d1) = if axis == 0 {
+                    (self.get(ix - 1, iy), self.get(ix + 1, iy))
+                } else {
+                    (self.get(ix, iy - 1), self.get(ix, iy + 1))
+                };
+                data.push((d1 - d0) * half_s);
+            }
+        }
+        FineTable {
+            s: self.s,
+            nx: self.nx,
+            ny: self.ny,
+            cx: self.cx,
+            cy: self.cy,
+            data,
+        }
+    }
+
+    /// Value at a pixel offset (X, Y) from the centre (nearest sample).
+    pub fn at(&self, x: f64, y: f64) -> f64 {
+        let ix = (x * self.s as f64).round() as i64 + self.cx as i64;
+        let iy = (y * self.s as f64).round() as i64 + self.cy as i64;
+        self.get(ix, iy)
+    }
+}
+
+/// One phase of a footprint: the samples of the fine table at pixel spacing.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Phase {
+    /// Columns.
+    pub cols: usize,
+    /// Rows.
+    pub rows: usize,
+    /// Samples, row-major.
+    pub data: Vec<f32>,
+}
+
+/// A footprint ready for accumulation: S × S phase tables.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Footprint {
+    /// Subpixel phases per axis.
+    pub s: usize,
+    /// Centre column of the fine table.
+    pub cx: usize,
+    /// Centre row of the fine table.
+    pub cy: usize,
+    /// Phase (a, b) at index b·S + a: fine samples (k·S + a, l·S + b).
+    pub phases: Vec<Phase>,
+    /// ∂/∂x of the footprint per pixel, split into phases like `phases` (empty unless the
+    /// footprint was built with gradients): a splat placed δ pixels from its exact position
+    /// adds δ times this (first-order correction of the subpixel residual).
+    pub grad_x: Vec<Phase>,
+    /// ∂/∂y likewise.
+    pub grad_y: Vec<Phase>,
+}
+
+/// Splits a fine table into its S × S phases.
+fn split_phases(t: &FineTable) -> Vec<Phase> {
+    let s = t.s;
+    let mut phases = Vec::with_capacity(s * s);
+    for b in 0..s {
+        for a in 0..s {
+            let cols = (t.nx + s - 1 - a) / s;
+            let rows = (t.ny + s - 1 - b) / s;
+            let mut data = Vec::with_capacity(cols * rows);
+            for l in 0..rows {
+                for k in 0..cols {
+                    data.push(t.data[(l * s + b) * t.nx + k * s + a] as f32);
+                }
+            }
+            phases.push(Phase { cols, rows, data });
+        }
+    }
+    phases
+}
+
+impl Footprint {
+    /// Splits a fine table into its phases (no gradients).
+    pub fn from_fine(t: &FineTable) -> Footprint {
+        Footprint {
+            s: t.s,
+            cx: t.cx,
+            cy: t.cy,
+            phases: split_phases(t),
+            grad_x: Vec::new(),
+            grad_y: Vec::new(),
+        }
+    }
+
+    /// Splits a fine table and its gradient into phases.
+    pub fn with_gradient(t: &FineTable) -> Footprint {
+        Footprint {
+            grad_x: split_phases(&t.derivative(0)),
+            grad_y: split_phases(&t.derivative(1)),
+            ..Footprint::from_fine(t)
+        }
+    }
+
+    /// From a fine table, with gradients when `gradient`.
+    pub fn build(t: &FineTable, gradient: bool) -> Footprint {
+        if gradient {
+            Footprint::with_gradient(t)
+        } else {
+            Footprint::from_fine(t)
+        }
+    }
+
+    /// The subpixel residual of a placement: the exact centre minus where the chosen phase puts
+    /// it, in pixels (|residual| ≤ 1/(2S)).
+    #[inline]
+    pub fn residual(s: usize, centre: f64) -> f64 {
+        let d = (s as f64 * (centre - 0.5)).round();
+        (d / s as f64 + 0.5) - centre
+    }
+
+    /// Placement along one axis of a splat centred at continuous screen coordinate `centre`:
+    /// returns (phase, first pixel) such that pixel `first + k` reads column k of the phase.
+    #[inline]
+    pub fn place(s: usize, c: usize, centre: f64) -> (usize, i64) {
+        let d = (s as f64 * (centre - 0.5)).round() as i64;
+        let t = c as i64 - d;
+        let a = t.rem_euclid(s as i64);
+        let q = (t - a) / s as i64;
+        (a as usize, -q)
+    }
+}
+
+/// Derives the level-`level` table of `kind` from the level-`from` table (mipmap, see the module
+/// documentation for the exact scale factor r^(−3)).
+pub fn mipmap(
+    p: &FootprintParams,
+    top: &FineTable,
+    from: usize,
+    level: usize,
+    kind: u8,
+) -> FineTable {
+    let r = 1usize << (from - level);
+    let s = top.s;
+    let (rx, ry) = support_radius(p, level, kind);
+    let hx = (rx * s as f64).ceil() as usize + 1;
+    let hy = (ry * s as f64).ceil() as usize + 1;
+    let (cw, ch) = (2 * hx + 1, 2 * hy + 1);
+    // Offsets of the r sub-pixels in fine samples: S·(a − (r−1)/2), integral since S is even.
+    let offs: Vec<i64> = (0..r)
+        .map(|a| (s as i64 * (2 * a as i64 - (r as i64 - 1))) / 2)
+        .collect();
+    // Horizontal box sums on every row of the top table.
+    let mut hsum = vec![0.0f64; top.ny * cw];
+    for y in 0..top.ny {
+        for i in 0..cw {
+            let base = top.cx as i64 + r as i64 * (i as i64 - hx as i64);
+            hsum[y * cw + i] = offs.iter().map(|o| top.get(base + o, y as i64)).sum();
+        }
+    }
+    let norm = 1.0 / (r * r * r) as f64;
+    let mut data = vec![0.0; cw * ch];
+    for jy in 0..ch {
+        let base = top.cy as i64 + r as i64 * (jy as i64 - hy as i64);
+        for i in 0..cw {
+            let mut acc = 0.0;
+            for o in &offs {
+                let y = base + o;
+                if y >= 0 && (y as usize) < top.ny {
+                    acc += hsum[y as usize * cw + i];
+                }
+            }
+            data[jy * cw + i] = acc * norm;
+        }
+    }
+    FineTable::centred(s, hx, hy, data)
+}

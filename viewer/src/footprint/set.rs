@@ -1,0 +1,96 @@
+//! A view's footprint set: its tables by (level, type), built at the coarsest level and
+//! mipmapped down, and the factor tables of cued and cut pieces kept with it.
+
+use super::factor::{compute_factor_tables_with, AxisFactor, FactorGrids};
+use super::mipmap;
+use super::slice::compute_fine;
+use super::Footprint;
+use super::FootprintParams;
+
+/// All footprints of one view: index `level · 8 + kind` (levels 0..=M; level 0 unused unless
+/// M = 0). With depth cueing the tables are per axis-factor triple instead, built on first use
+/// (which triples occur depends on where the coefficients lie relative to the light-facing
+/// faces) and kept here for the next rendering of the same view.
+#[derive(Debug)]
+pub struct FootprintSet {
+    /// The parameters they were built for.
+    pub params: FootprintParams,
+    /// Tables (`None` for (level, kind) pairs that do not occur; all `None` when cued).
+    pub tables: Vec<Option<Footprint>>,
+    /// Cued tables by factor triple.
+    pub factor_tables:
+        std::sync::Mutex<std::collections::HashMap<[AxisFactor; 3], std::sync::Arc<Footprint>>>,
+    /// The 1D factor transforms on the frequency grids of the factor tables, kept for the next
+    /// triples of the same view (evaluating them is most of a table's cost).
+    factor_grids: FactorGrids,
+}
+
+impl FootprintSet {
+    /// Builds every table: level M by FFT and finer levels by mipmap (nothing up front when
+    /// cued: see [`FootprintSet::factor_tables`]).
+    pub fn build(p: &FootprintParams) -> FootprintSet {
+        let m = p.levels;
+        let mut tables: Vec<Option<Footprint>> = vec![None; (m + 1) * 8];
+        let all: Vec<u8> = (0..8).collect();
+        let wavelets: Vec<u8> = (1..8).collect();
+        if p.cue.is_some() {
+            // Built on demand per factor triple.
+        } else if m == 0 {
+            for level in (if m == 0 { 0 } else { 1 })..=m {
+                let kinds = if level == m { &all } else { &wavelets };
+                for (t, kind) in compute_fine(p, level, kinds).iter().zip(kinds) {
+                    tables[level * 8 + *kind as usize] = Some(Footprint::build(t, p.gradient));
+                }
+            }
+        } else {
+            let top = compute_fine(p, m, &all);
+            for (t, kind) in top.iter().zip(&all) {
+                tables[m * 8 + *kind as usize] = Some(Footprint::build(t, p.gradient));
+                if *kind != 0 {
+                    for level in 1..m {
+                        let f = mipmap(p, t, m, level, *kind);
+                        tables[level * 8 + *kind as usize] = Some(Footprint::build(&f, p.gradient));
+                    }
+                }
+            }
+        }
+        FootprintSet {
+            params: *p,
+            tables,
+            factor_tables: Default::default(),
+            factor_grids: FactorGrids::default(),
+        }
+    }
+
+    /// The cued tables for `keys`, computing (in parallel) and caching the missing ones.
+    pub fn factor_footprints(&self, keys: &[[AxisFactor; 3]]) -> Vec<std::sync::Arc<Footprint>> {
+        let missing: Vec<[AxisFactor; 3]> = {
+            let map = self.factor_tables.lock().unwrap_or_else(|e| e.into_inner());
+            keys.iter()
+                .filter(|k| !map.contains_key(*k))
+                .copied()
+                .collect()
+        };
+        let built: Vec<([AxisFactor; 3], Footprint)> = missing
+            .iter()
+            .zip(compute_factor_tables_with(
+                &self.params,
+                &missing,
+                &self.factor_grids,
+            ))
+            .map(|(k, t)| (*k, Footprint::build(&t, self.params.gradient)))
+            .collect();
+        let mut map = self.factor_tables.lock().unwrap_or_else(|e| e.into_inner());
+        for (k, f) in built {
+            map.insert(k, std::sync::Arc::new(f));
+        }
+        keys.iter().map(|k| map[k].clone()).collect()
+    }
+
+    /// The table of a band, if any.
+    pub fn get(&self, level: usize, kind: u8) -> Option<&Footprint> {
+        self.tables
+            .get(level * 8 + kind as usize)
+            .and_then(|t| t.as_ref())
+    }
+}

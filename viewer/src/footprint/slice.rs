@@ -1,0 +1,306 @@
+//! The Fourier projection-slice: a basis function's 3D transform sampled on the view's slice,
+//! depth-cued per axis, times the pixel box, inverse-FFT'd and cropped to its support, for every
+//! (level, type) of a view; grid sizes and support radii.
+
+use super::FineTable;
+use super::FootprintParams;
+use num_complex::Complex64;
+use rayon::prelude::*;
+use rustfft::FftPlanner;
+use std::f64::consts::PI;
+use wavesplat_codec::family::{box_transform, Family};
+use wavesplat_codec::view::sinc;
+
+/// The 1D transforms of a family with its wavelet filter cached and factored (the codec's
+/// `psi_hat` recomputes the filter from order-2j B-splines at every call, far too slow for
+/// millions of samples, and sums Σ q_n z^n, which cancels catastrophically near f = 0 where it
+/// vanishes like f^j). Here Q(z) = Σ q_n z^n is divided exactly by its j-fold zero at z = 1,
+/// Q(z) = (1 − z)^j P(z), and 1 − e^(−x) = x·E(x) is evaluated by the codec's stable
+/// `box_transform`; so ψ̂ keeps full relative precision down to f = 0. Same function as
+/// `Family::psi_hat` (cued relative to the support end nearest the light), checked in tests.
+#[derive(Debug, Clone)]
+pub struct Transforms {
+    family: Family,
+    /// P(z) coefficients.
+    p: Vec<f64>,
+    /// q_(N−n) = sign · q_n.
+    sign: f64,
+}
+
+impl Transforms {
+    /// Caches the factored filter of `family`.
+    pub fn new(family: Family) -> Transforms {
+        let j = family.order();
+        let mut c = family.wavelet_filter();
+        for _ in 0..j {
+            // Q = (1 − z) P: p_n = q_n + p_(n−1); the last coefficient is the remainder (≈ 0).
+            let mut acc = 0.0;
+            for v in c.iter_mut() {
+                acc += *v;
+                *v = acc;
+            }
+            c.pop();
+        }
+        Transforms {
+            family,
+            p: c,
+            sign: if family.psi_is_odd() { -1.0 } else { 1.0 },
+        }
+    }
+
+    /// The family.
+    pub fn family(&self) -> Family {
+        self.family
+    }
+
+    /// ∫ φ(x) e^(−κ(x − x_near)) e^(−i2πfx) dx (uncentred, as `Family::phi_hat`).
+    pub fn phi_hat(&self, f: f64, kappa: f64) -> Complex64 {
+        self.family.phi_hat(f, kappa)
+    }
+
+    /// ∫ ψ(x) e^(−κ(x − x_near)) e^(−i2πfx) dx (uncentred, as `Family::psi_hat`).
+    pub fn psi_hat(&self, f: f64, kappa: f64) -> Complex64 {
+        let j = self.family.order() as i32;
+        let half = self.family.phi_hat(0.5 * f, 0.5 * kappa);
+        // s/2 with s = κ + i2πf; Q evaluated at ζ = e^(−s/2) (κ ≥ 0) or, reversed, at
+        // e^(+s/2) (κ < 0), so |ζ| ≤ 1 and nothing overflows.
+        let h = Complex64::new(0.5 * kappa, PI * f);
+        let (x, pre) = if kappa >= 0.0 {
+            (h, Complex64::new(1.0, 0.0))
+        } else {
+            let n = (self.p.len() + j as usize - 1) as f64;
+            (-h, Complex64::from_polar(self.sign, -PI * f * n))
+        };
+        let zeta = (-x).exp();
+        let one_minus = x * box_transform(x);
+        let mut poly = Complex64::new(0.0, 0.0);
+        for c in self.p.iter().rev() {
+            poly = poly * zeta + *c;
+        }
+        pre * one_minus.powi(j) * poly * half * 0.5
+    }
+}
+
+/// 1D transform of the centred, level-m dilated φ or ψ at frequency ξ (cycles per voxel), with
+/// cue exponent κ (already multiplied by 2^m): 2^m · ĥ(2^m ξ, κ) · e^{+i2π 2^m ξ c}.
+pub fn axis_transform(
+    tf: &Transforms,
+    level: usize,
+    wavelet: bool,
+    xi: f64,
+    kappa: f64,
+) -> Complex64 {
+    let s = (1u64 << level) as f64;
+    let f = s * xi;
+    let j = tf.family.order() as f64;
+    let (h, c) = if wavelet {
+        (tf.psi_hat(f, kappa), 0.5 * (2.0 * j - 1.0))
+    } else {
+        (tf.phi_hat(f, kappa), 0.5 * j)
+    };
+    h * Complex64::from_polar(s, 2.0 * PI * f * c)
+}
+
+/// The 3D transform of the centred level-m basis of type `kind` at ξ (cycles per voxel), cued
+/// with κ = k·L̂·2^m per axis (zero without cue).
+pub fn basis_transform(
+    family: Family,
+    level: usize,
+    kind: u8,
+    xi: [f64; 3],
+    kappa: [f64; 3],
+) -> Complex64 {
+    let tf = Transforms::new(family);
+    (0..3)
+        .map(|a| axis_transform(&tf, level, kind & (4 >> a) != 0, xi[a], kappa[a]))
+        .product()
+}
+
+/// The pixel-averaged footprint spectrum P̂(σ, ρ) (σ, ρ in cycles per pixel).
+pub fn footprint_spectrum(
+    p: &FootprintParams,
+    level: usize,
+    kind: u8,
+    sigma: f64,
+    rho: f64,
+) -> Complex64 {
+    let xi = [
+        p.zoom * (sigma * p.ex[0] + rho * p.ey[0]),
+        p.zoom * (sigma * p.ex[1] + rho * p.ey[1]),
+        p.zoom * (sigma * p.ex[2] + rho * p.ey[2]),
+    ];
+    let kappa = cue_kappa(p, level);
+    basis_transform(p.family, level, kind, xi, kappa)
+        * (p.zoom * p.zoom * p.voxel_volume * sinc(sigma) * sinc(rho))
+}
+
+fn cue_kappa(p: &FootprintParams, level: usize) -> [f64; 3] {
+    match p.cue {
+        None => [0.0; 3],
+        Some((k, l)) => {
+            let s = (1u64 << level) as f64;
+            [k * l[0] * s, k * l[1] * s, k * l[2] * s]
+        }
+    }
+}
+
+/// Half extents (pixels) of the pixel-widened projected support of a level-m type.
+pub fn support_radius(p: &FootprintParams, level: usize, kind: u8) -> (f64, f64) {
+    let s = (1u64 << level) as f64;
+    let mut rx = 0.5;
+    let mut ry = 0.5;
+    for a in 0..3 {
+        let h = 0.5
+            * s
+            * if kind & (4 >> a) != 0 {
+                p.family.psi_support()
+            } else {
+                p.family.phi_support()
+            };
+        rx += p.zoom * h * p.ex[a].abs();
+        ry += p.zoom * h * p.ey[a].abs();
+    }
+    (rx, ry)
+}
+
+/// Smallest n ≥ m (and even) whose prime factors are 2, 3, 5.
+fn nice(m: usize) -> usize {
+    let mut n = m.max(2);
+    loop {
+        if n.is_multiple_of(2) {
+            let mut k = n;
+            for p in [2, 3, 5] {
+                while k.is_multiple_of(p) {
+                    k /= p;
+                }
+            }
+            if k == 1 {
+                return n;
+            }
+        }
+        n += 1;
+    }
+}
+
+/// FFT sizes and the subpixel factor for a level (largest type).
+pub(super) fn sizes(p: &FootprintParams, level: usize) -> (usize, usize, usize) {
+    let mut rx: f64 = 0.0;
+    let mut ry: f64 = 0.0;
+    for kind in 0..8u8 {
+        let (a, b) = support_radius(p, level, kind);
+        rx = rx.max(a);
+        ry = ry.max(b);
+    }
+    let mut s = p.subpixel.max(2);
+    s += s % 2;
+    let need = |s: usize, r: f64| nice((s as f64 * (2.0 * r + 3.0)).ceil() as usize);
+    while s > 2 && need(s, rx).max(need(s, ry)) > p.max_fft.max(16) {
+        s = (s / 2).max(2);
+        s += s % 2;
+    }
+    (s, need(s, rx), need(s, ry))
+}
+
+/// Computes the fine tables of the given types at `level` by FFT (all with the same S).
+pub fn compute_fine(p: &FootprintParams, level: usize, kinds: &[u8]) -> Vec<FineTable> {
+    let (s, nx, ny) = sizes(p, level);
+    compute_fine_with(p, level, kinds, s, nx, ny)
+}
+
+pub(super) fn signed(k: usize, n: usize) -> f64 {
+    if k < n / 2 {
+        k as f64
+    } else {
+        k as f64 - n as f64
+    }
+}
+
+/// As [`compute_fine`] with explicit S and FFT sizes.
+pub fn compute_fine_with(
+    p: &FootprintParams,
+    level: usize,
+    kinds: &[u8],
+    s: usize,
+    nx: usize,
+    ny: usize,
+) -> Vec<FineTable> {
+    let tf = Transforms::new(p.family);
+    let kappa = cue_kappa(p, level);
+    let nk = kinds.len();
+    // Spectra of every requested type, row-major [ky][kx], evaluated together so that the six
+    // 1D transforms per sample are shared.
+    let mut spectra: Vec<Vec<Complex64>> = vec![vec![Complex64::new(0.0, 0.0); nx * ny]; nk];
+    let rows: Vec<Vec<Vec<Complex64>>> = (0..ny)
+        .into_par_iter()
+        .map(|ky| {
+            let rho = signed(ky, ny) * s as f64 / ny as f64;
+            let mut out = vec![vec![Complex64::new(0.0, 0.0); nx]; nk];
+            for kx in 0..nx {
+                let sigma = signed(kx, nx) * s as f64 / nx as f64;
+                let mut f1 = [[Complex64::new(0.0, 0.0); 2]; 3];
+                for a in 0..3 {
+                    let xi = p.zoom * (sigma * p.ex[a] + rho * p.ey[a]);
+                    f1[a][0] = axis_transform(&tf, level, false, xi, kappa[a]);
+                    f1[a][1] = axis_transform(&tf, level, true, xi, kappa[a]);
+                }
+                let w = p.zoom * p.zoom * p.voxel_volume * sinc(sigma) * sinc(rho);
+                for (t, kind) in kinds.iter().enumerate() {
+                    let bx = (kind >> 2) as usize & 1;
+                    let by = (kind >> 1) as usize & 1;
+                    let bz = *kind as usize & 1;
+                    out[t][kx] = f1[0][bx] * f1[1][by] * f1[2][bz] * w;
+                }
+            }
+            out
+        })
+        .collect();
+    for (ky, row) in rows.into_iter().enumerate() {
+        for (t, r) in row.into_iter().enumerate() {
+            spectra[t][ky * nx..(ky + 1) * nx].copy_from_slice(&r);
+        }
+    }
+    spectra
+        .into_par_iter()
+        .zip(kinds.par_iter())
+        .map(|(mut spec, kind)| {
+            let (rx, ry) = support_radius(p, level, *kind);
+            inverse_and_crop(&mut spec, s, nx, ny, rx, ry)
+        })
+        .collect()
+}
+
+/// Inverse 2D FFT of a spectrum (row-major, nx × ny), cropped to the support radius (rx, ry)
+/// pixels plus one sample with the centre in the middle (only the kept columns are transformed).
+pub(super) fn inverse_and_crop(
+    spec: &mut [Complex64],
+    s: usize,
+    nx: usize,
+    ny: usize,
+    rx: f64,
+    ry: f64,
+) -> FineTable {
+    let mut planner = FftPlanner::<f64>::new();
+    let fx = planner.plan_fft_inverse(nx);
+    let fy = planner.plan_fft_inverse(ny);
+    for row in spec.chunks_mut(nx) {
+        fx.process(row);
+    }
+    let mut col = vec![Complex64::new(0.0, 0.0); ny];
+    let scale = (s * s) as f64 / (nx * ny) as f64;
+    let hx = ((rx * s as f64).ceil() as usize + 1).min(nx / 2 - 1);
+    let hy = ((ry * s as f64).ceil() as usize + 1).min(ny / 2 - 1);
+    let (cw, ch) = (2 * hx + 1, 2 * hy + 1);
+    let mut data = vec![0.0; cw * ch];
+    for ix in 0..cw {
+        let ox = (ix as i64 - hx as i64).rem_euclid(nx as i64) as usize;
+        for (y, c) in col.iter_mut().enumerate() {
+            *c = spec[y * nx + ox];
+        }
+        fy.process(&mut col);
+        for iy in 0..ch {
+            let oy = (iy as i64 - hy as i64).rem_euclid(ny as i64) as usize;
+            data[iy * cw + ix] = col[oy].re * scale;
+        }
+    }
+    FineTable::centred(s, hx, hy, data)
+}
