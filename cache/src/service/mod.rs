@@ -7,11 +7,17 @@
 //! A session does not wait for its view's plan to start: it sends the header and the first
 //! packets in file order (the global significance order) while the plan runs on a bounded
 //! pool, then the rest in the view's order.
+//!
+//! This module holds the service and its requests; `session` holds a refinement stream's state
+//! and loop, and the planning of its view on the planner pool.
+
+mod session;
 
 use crate::convert;
 use crate::error::CacheError;
 use crate::store::{validate_name, OpenVolume, Store, Upload};
-use std::collections::{HashMap, HashSet};
+use session::{plan, Session};
+use std::collections::HashMap;
 use std::pin::Pin;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
@@ -19,8 +25,6 @@ use tokio::sync::{mpsc, watch, Semaphore};
 use tokio_stream::wrappers::ReceiverStream;
 use tokio_stream::Stream;
 use tonic::{Request, Response, Status, Streaming};
-use wavesplat_codec::view::priority::Priority;
-use wavesplat_codec::view::ViewSpec;
 use wavesplat_net::deadline::request_deadline;
 use wavesplat_net::status::client_fault;
 use wavesplat_net::Caller;
@@ -187,34 +191,6 @@ async fn next_message<T>(
 ) -> Result<Option<T>, Status> {
     use tokio_stream::StreamExt;
     s.next().await.transpose().map_err(client_fault)
-}
-
-/// Volumes with at most this many packets plan in well under a millisecond (0.37 ms at 180
-/// packets): their plans skip the planner pool, whose queue would cost more than the plan.
-const CHEAP_PLAN_PACKETS: usize = 512;
-
-/// Plans `spec` for `volume` on the blocking pool, once one of `planners`' permits is free
-/// (at once for a small volume, [`CHEAP_PLAN_PACKETS`]).
-async fn plan(
-    planners: Arc<Semaphore>,
-    volume: Arc<OpenVolume>,
-    spec: ViewSpec,
-) -> Result<Priority, Status> {
-    let _permit = if volume.index.packets.len() <= CHEAP_PLAN_PACKETS {
-        None
-    } else {
-        Some(
-            planners
-                .acquire_owned()
-                .await
-                .map_err(|_| Status::internal("the planner pool is closed"))?,
-        )
-    };
-    blocking(move || {
-        Priority::new(&volume.index.header, &spec)
-            .map_err(|e| CacheError::InvalidRequest(e.to_string()))
-    })
-    .await
 }
 
 /// Set when a handler is dropped before it finished (the client went away or its deadline
@@ -519,308 +495,15 @@ fn named(volume: &OpenVolume, key: &crate::VolumeKey) -> crate::VolumeMeta {
     }
 }
 
-/// One refinement stream's state. It holds its volume open: a deletion during the stream does
-/// not cut it short.
-struct Session {
-    volume: Arc<OpenVolume>,
-    name: crate::VolumeKey,
-    /// Packets the client holds or was sent.
-    held: HashSet<u32>,
-    /// Unsent packets, lowest priority first (the next one is popped from the end).
-    queue: Vec<(f64, u32)>,
-    sent: u32,
-    bytes: u64,
-    /// Byte credit left, when the client pulls (`None`: no flow control).
-    credit: Option<u64>,
-    /// Queue only what the current view sees.
-    visible_only: bool,
-    /// View changes applied on this stream.
-    views: u32,
-    /// Bytes the stream may still send in file order before its view is planned (`None`: the
-    /// queue is in the view's order).
-    unplanned: Option<u64>,
-    planners: Arc<Semaphore>,
-}
-
-impl Session {
-    fn new(
-        volume: Arc<OpenVolume>,
-        name: crate::VolumeKey,
-        credit_bytes: u64,
-        planners: Arc<Semaphore>,
-    ) -> Session {
-        Session {
-            volume,
-            name,
-            held: HashSet::new(),
-            queue: Vec::new(),
-            sent: 0,
-            bytes: 0,
-            credit: (credit_bytes > 0).then_some(credit_bytes),
-            visible_only: false,
-            views: 0,
-            unplanned: None,
-            planners,
-        }
-    }
-
-    /// Queues the packets not held in file order, to send while the view is planned: up to
-    /// 1/[`UNPLANNED_SHARE`] of the volume's bytes, nothing for a visible-only stream (it may
-    /// not send what the view cannot see, which only the plan knows).
-    fn unplanned(&mut self) {
-        let packets = &self.volume.index.packets;
-        self.unplanned = Some(if self.visible_only {
-            0
-        } else {
-            (self.volume.meta.packet_bytes / UNPLANNED_SHARE).max(1)
-        });
-        let held = &self.held;
-        // Pops come from the end: file order is the reversed ids.
-        self.queue = (0..packets.len() as u32)
-            .rev()
-            .filter(|i| !held.contains(i))
-            .map(|i| (0.0, i))
-            .collect();
-    }
-
-    /// Whether the queue may be sent from now: planned, or within the unplanned budget.
-    fn may_send_queued(&self) -> bool {
-        !self.queue.is_empty() && self.unplanned.is_none_or(|b| b > 0)
-    }
-
-    fn check_ids(&self, ids: &[u32], what: &str) -> Result<(), CacheError> {
-        let n = self.volume.index.packets.len();
-        match ids.iter().find(|i| **i as usize >= n) {
-            Some(bad) => Err(CacheError::InvalidRequest(format!(
-                "{what} packet id {bad} out of range 0..{n}"
-            ))),
-            None => Ok(()),
-        }
-    }
-
-    fn hold(&mut self, ids: &[u32]) -> Result<(), CacheError> {
-        self.check_ids(ids, "held")?;
-        self.held.extend(ids.iter().copied());
-        self.queue.retain(|(_, id)| !self.held.contains(id));
-        Ok(())
-    }
-
-    /// The client no longer holds `ids`; they are queued again at the next view change.
-    fn release(&mut self, ids: &[u32]) -> Result<(), CacheError> {
-        self.check_ids(ids, "dropped")?;
-        for id in ids {
-            self.held.remove(id);
-        }
-        Ok(())
-    }
-
-    /// Whether the client's credit allows another packet now.
-    fn may_send(&self) -> bool {
-        self.credit.is_none_or(|c| c > 0)
-    }
-
-    fn reorder(&mut self, priority: Priority) {
-        let held = &self.held;
-        let mut q: Vec<(f64, u32)> = self
-            .volume
-            .index
-            .packets
-            .iter()
-            .enumerate()
-            .filter(|(i, p)| {
-                !held.contains(&(*i as u32))
-                    && (!self.visible_only || priority.visible_energy(p) > 0.0)
-            })
-            .map(|(i, p)| (priority.priority(p), i as u32))
-            .collect();
-        // Ascending priority, ties: later file position first, so pops give file order.
-        q.sort_by(|a, b| a.0.total_cmp(&b.0).then(b.1.cmp(&a.1)));
-        self.queue = q;
-        self.unplanned = None;
-    }
-
-    /// Handles a client message; `Err` ends the stream with that status.
-    async fn handle(&mut self, msg: pb::RefineRequest) -> Result<(), Status> {
-        match msg.msg {
-            Some(pb::refine_request::Msg::View(v)) => {
-                let spec = convert::view_spec(Some(v))?;
-                let priority = plan(self.planners.clone(), self.volume.clone(), spec).await?;
-                self.reorder(priority);
-                self.views = self.views.wrapping_add(1);
-                tracing::debug!(volume = self.volume.meta.id, "view changed");
-                Ok(())
-            }
-            Some(pb::refine_request::Msg::Holdings(h)) => {
-                self.release(&h.dropped)?;
-                Ok(self.hold(&h.have)?)
-            }
-            Some(pb::refine_request::Msg::Credit(c)) => {
-                if let Some(credit) = &mut self.credit {
-                    *credit = credit.saturating_add(c.bytes);
-                }
-                Ok(())
-            }
-            Some(pb::refine_request::Msg::Start(_)) => Err(CacheError::InvalidRequest(
-                "`start` may only be the first message of a stream".into(),
-            )
-            .into()),
-            None => Err(CacheError::InvalidRequest(
-                "an empty RefineRequest: a message after `start` carries a view, holdings or \
-                 credit"
-                    .into(),
-            )
-            .into()),
-        }
-    }
-
-    async fn next_packet(&mut self) -> Result<Option<pb::Packet>, CacheError> {
-        while let Some((priority, id)) = self.queue.pop() {
-            if self.held.contains(&id) {
-                continue;
-            }
-            // Read before marking it held: a read that fails (a bucket gone for a moment) ends
-            // the stream with an error, and the client's holdings on its next stream say what
-            // it has.
-            let data = self.volume.read_packet(id).await?.to_vec();
-            self.held.insert(id);
-            let p = &self.volume.index.packets[id as usize];
-            self.sent += 1;
-            self.bytes += data.len() as u64;
-            if let Some(credit) = &mut self.credit {
-                *credit = credit.saturating_sub(data.len() as u64);
-            }
-            if let Some(budget) = &mut self.unplanned {
-                *budget = budget.saturating_sub(data.len() as u64);
-            }
-            return Ok(Some(pb::Packet {
-                id,
-                tile: p.tile,
-                layer: p.layer,
-                data,
-                priority,
-            }));
-        }
-        Ok(None)
-    }
-
-    /// Serves the stream: the header (unless the client has it), then packets as the client
-    /// takes them; `planning` yields the plan of the starting view (until it does, the queue is
-    /// the unplanned one and `done` is not announced).
-    async fn run(
-        mut self,
-        mut inbound: impl Stream<Item = Result<pb::RefineRequest, Status>> + Unpin,
-        mut planning: tokio::task::JoinHandle<Result<Priority, Status>>,
-        tx: mpsc::Sender<Result<pb::RefineResponse, Status>>,
-        send_header: bool,
-        mut stopping: watch::Receiver<bool>,
-    ) {
-        use pb::refine_response::Msg;
-        if send_header {
-            let header = pb::VolumeHeader {
-                volume: Some(convert::volume_info(&named(&self.volume, &self.name))),
-                header: self.volume.index.header_bytes.clone(),
-            };
-            let msg = pb::RefineResponse {
-                msg: Some(Msg::Header(header)),
-            };
-            if tx.send(Ok(msg)).await.is_err() {
-                return;
-            }
-        }
-        let mut inbound_open = true;
-        let mut planned = false;
-        // `done` is announced whenever the queue runs dry; the stream stays open while the
-        // client may still send (a view change can queue dropped packets again).
-        let mut announced = false;
-        loop {
-            if self.queue.is_empty() && planned {
-                if !announced {
-                    let done = pb::RefineDone {
-                        sent: self.sent,
-                        bytes: self.bytes,
-                        views: self.views,
-                    };
-                    let msg = pb::RefineResponse {
-                        msg: Some(Msg::Done(done)),
-                    };
-                    if tx.send(Ok(msg)).await.is_err() {
-                        return;
-                    }
-                    tracing::debug!(
-                        volume = self.volume.meta.id,
-                        sent = self.sent,
-                        "refinement done"
-                    );
-                    announced = true;
-                }
-                if !inbound_open {
-                    return;
-                }
-            }
-            tokio::select! {
-                biased;
-                _ = async { stopping.wait_for(|s| *s).await.map(|_| ()) } => {
-                    let _ = tx.send(Err(Status::unavailable("the cache is shutting down"))).await;
-                    return;
-                }
-                plan = &mut planning, if !planned => {
-                    planned = true;
-                    match plan.map_err(|e| Status::internal(format!("planning failed: {e}"))) {
-                        Ok(Ok(priority)) => self.reorder(priority),
-                        Ok(Err(status)) | Err(status) => {
-                            let _ = tx.send(Err(status)).await;
-                            return;
-                        }
-                    }
-                }
-                msg = next_message(&mut inbound), if inbound_open => match msg {
-                    Ok(Some(m)) => {
-                        // A new view is a new refinement: it is announced done again (at once
-                        // when everything was already sent), so the client knows the view has
-                        // nothing more coming.
-                        let new_view = matches!(m.msg, Some(pb::refine_request::Msg::View(_)));
-                        if let Err(status) = self.handle(m).await {
-                            let _ = tx.send(Err(status)).await;
-                            return;
-                        }
-                        if new_view && !planned {
-                            // The new view's plan replaced the starting one's, which is left to
-                            // finish unread (aborting it would free its planner slot while its
-                            // blocking work still ran).
-                            planned = true;
-                        }
-                        announced &= self.queue.is_empty() && !new_view;
-                    }
-                    Ok(None) => inbound_open = false,
-                    Err(status) => {
-                        tracing::debug!(%status, "refinement client went away");
-                        return;
-                    }
-                },
-                permit = tx.reserve(), if self.may_send() && self.may_send_queued() => {
-                    let Ok(permit) = permit else { return };
-                    match self.next_packet().await {
-                        Ok(Some(p)) => permit.send(Ok(pb::RefineResponse { msg: Some(Msg::Packet(p)) })),
-                        Ok(None) => {}
-                        Err(e) => {
-                            permit.send(Err(e.into()));
-                            return;
-                        }
-                    }
-                }
-                // Out of credit and the client can no longer grant any.
-                else => return,
-            }
-        }
-    }
-}
-
 #[cfg(test)]
 mod tests {
+    use super::session::CHEAP_PLAN_PACKETS;
     use super::*;
     use crate::Limits;
     use pb::refine_response::Msg;
     use std::time::Duration;
+    use wavesplat_codec::view::priority::Priority;
+    use wavesplat_codec::view::ViewSpec;
 
     fn open_test_volume(dir: &std::path::Path) -> Arc<OpenVolume> {
         open_test_volume_tiled(dir, 8)
