@@ -7,23 +7,7 @@ use crate::error::CacheError;
 use wavesplat_codec::format::bytes::{ByteReader, ByteWriter};
 use wavesplat_codec::format::Header;
 
-/// A volume named by id or by name.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub enum VolumeKey {
-    /// Store-assigned id.
-    Id(u64),
-    /// User-given name.
-    Name(String),
-}
-
-impl std::fmt::Display for VolumeKey {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        match self {
-            VolumeKey::Id(id) => write!(f, "with id {id}"),
-            VolumeKey::Name(n) => write!(f, "named {n:?}"),
-        }
-    }
-}
+pub use wavesplat_net::VolumeKey;
 
 /// Facts about a stored volume (the commit record of an ingest).
 #[derive(Debug, Clone, PartialEq)]

@@ -35,7 +35,7 @@ use thiserror::Error;
 use tonic::service::interceptor::InterceptedService;
 use tonic::transport::Channel;
 use wavesplat_codec::format::{read_header_section, FormatError, Header};
-pub use wavesplat_net::{ConnectOptions, Credentials};
+pub use wavesplat_net::{ConnectOptions, Credentials, VolumeKey};
 use wavesplat_proto::pb;
 
 /// Upload chunk size.
@@ -117,24 +117,6 @@ impl From<tonic::Status> for ClientError {
         ClientError::Status {
             code: s.code(),
             message: s.message().to_string(),
-        }
-    }
-}
-
-/// A volume named by the cache's id or by name.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub enum VolumeKey {
-    /// Cache-assigned id.
-    Id(u64),
-    /// User-given name.
-    Name(String),
-}
-
-impl std::fmt::Display for VolumeKey {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        match self {
-            VolumeKey::Id(id) => write!(f, "#{id}"),
-            VolumeKey::Name(n) => write!(f, "{n}"),
         }
     }
 }

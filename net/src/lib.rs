@@ -7,7 +7,8 @@
 //! - [`tls`]: TLS for servers and clients, the one place a URL becomes an endpoint, and the
 //!   rule against exposing a server by accident;
 //! - [`auth`]: bearer tokens with roles (read, ingest, write, worker, admin), checked in
-//!   constant time by a layer in front of every service, and the clients' credentials.
+//!   constant time by a layer in front of every service, and the clients' credentials;
+//! - [`volume`]: how services and clients name a volume (`VolumeKey`: an id or a name).
 //!
 //! A server combines them in [`Security`].
 
@@ -15,9 +16,11 @@ pub mod auth;
 pub mod deadline;
 pub mod status;
 pub mod tls;
+pub mod volume;
 
 pub use auth::{Access, AuthLayer, Caller, Credentials, Policy, Role, Tokens};
 pub use tls::TlsError;
+pub use volume::VolumeKey;
 
 use std::path::PathBuf;
 use std::sync::Arc;
