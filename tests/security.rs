@@ -13,7 +13,7 @@ use wavesplat_compressor::phantom::Phantom;
 use wavesplat_net::{Security, Tokens};
 use wavesplat_orchestrator::client::{self, Client};
 use wavesplat_orchestrator::model::{JobOptions, JobSpec, Source};
-use wavesplat_orchestrator::{DeliveryCheck, ServiceConfig};
+use wavesplat_orchestrator::{DeliveryCheck, ServiceOptions};
 use wavesplat_proto::pb;
 
 const READ: &str = "0123456789abcdef-read";
@@ -264,7 +264,7 @@ async fn servers_refuse_a_reachable_address_without_tls_and_tokens() {
     let e = wavesplat_orchestrator::serve_with(
         listener,
         orch,
-        ServiceConfig::default(),
+        ServiceOptions::default(),
         Default::default(),
         async {},
     )
@@ -319,7 +319,7 @@ async fn every_orchestrator_rpc_checks_its_role_and_deliveries_are_confirmed() {
     tokio::spawn(wavesplat_orchestrator::serve_with(
         listener,
         store,
-        ServiceConfig::default(),
+        ServiceOptions::default(),
         opts,
         std::future::pending(),
     ));

@@ -76,7 +76,7 @@ impl LocalStack {
                 )?),
                 ..Default::default()
             };
-            let config = wavesplat_orchestrator::service::ServiceConfig {
+            let config = wavesplat_orchestrator::service::ServiceOptions {
                 poll_ms: 200,
                 ..Default::default()
             };
@@ -88,7 +88,7 @@ impl LocalStack {
                         .context("the orchestrator server failed")
                 }
             }));
-            let cfg = wavesplat_worker::WorkerConfig {
+            let cfg = wavesplat_worker::WorkerOptions {
                 orchestrator: url.clone(),
                 cache: cache_url.clone(),
                 threads,

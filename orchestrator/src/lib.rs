@@ -21,7 +21,7 @@
 //! # async fn demo() -> Result<(), wavesplat_orchestrator::OrchestratorError> {
 //! let store = wavesplat_orchestrator::Store::open("orchestrator.db")?;
 //! let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
-//! let config = wavesplat_orchestrator::ServiceConfig::default();
+//! let config = wavesplat_orchestrator::ServiceOptions::default();
 //! wavesplat_orchestrator::serve(listener, store, config, async {
 //!     let _ = tokio::signal::ctrl_c().await;
 //! })
@@ -41,8 +41,8 @@ pub mod store;
 pub use check::DeliveryCheck;
 pub use error::OrchestratorError;
 pub use model::{Job, JobId, JobOptions, JobSpec, JobState, TargetSpec};
-pub use queue::QueueConfig;
-pub use service::{OrchestratorService, ServiceConfig};
+pub use queue::QueueOptions;
+pub use service::{OrchestratorService, ServiceOptions};
 pub use store::Store;
 
 use sha2::{Digest, Sha256};
@@ -84,7 +84,7 @@ pub fn access(path: &str) -> Access {
 pub async fn serve(
     listener: tokio::net::TcpListener,
     store: Store,
-    config: ServiceConfig,
+    config: ServiceOptions,
     shutdown: impl Future<Output = ()> + Send,
 ) -> Result<(), OrchestratorError> {
     serve_with(listener, store, config, ServeOptions::default(), shutdown).await
@@ -96,7 +96,7 @@ pub async fn serve(
 pub async fn serve_with(
     listener: tokio::net::TcpListener,
     store: Store,
-    config: ServiceConfig,
+    config: ServiceOptions,
     options: ServeOptions,
     shutdown: impl Future<Output = ()> + Send,
 ) -> Result<(), OrchestratorError> {

@@ -9,7 +9,7 @@ use std::collections::{BTreeMap, HashMap};
 
 /// Timing and retry policy.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct QueueConfig {
+pub struct QueueOptions {
     /// A lease lapses this long after the last heartbeat (ms).
     pub lease_ms: u64,
     /// Workers heartbeat this often (ms).
@@ -22,9 +22,9 @@ pub struct QueueConfig {
     pub backoff_max_ms: u64,
 }
 
-impl Default for QueueConfig {
+impl Default for QueueOptions {
     fn default() -> Self {
-        QueueConfig {
+        QueueOptions {
             lease_ms: 30_000,
             heartbeat_ms: 5_000,
             max_attempts: 3,
@@ -34,9 +34,9 @@ impl Default for QueueConfig {
     }
 }
 
-impl QueueConfig {
+impl QueueOptions {
     /// Checks the values.
-    pub fn validate(self) -> Result<QueueConfig, OrchestratorError> {
+    pub fn validate(self) -> Result<QueueOptions, OrchestratorError> {
         if self.lease_ms == 0 || self.heartbeat_ms == 0 || self.heartbeat_ms >= self.lease_ms {
             return Err(OrchestratorError::InvalidRequest(format!(
                 "heartbeat {} ms and lease {} ms: need 0 < heartbeat < lease",
@@ -72,7 +72,7 @@ pub struct Submitted {
 /// The in-memory queue (the service keeps it behind a mutex and writes changes through).
 #[derive(Debug, Clone)]
 pub struct Queue {
-    cfg: QueueConfig,
+    cfg: QueueOptions,
     jobs: BTreeMap<JobId, Job>,
     keys: HashMap<String, JobId>,
     next_id: JobId,
@@ -80,7 +80,7 @@ pub struct Queue {
 
 impl Queue {
     /// An empty queue.
-    pub fn new(cfg: QueueConfig) -> Queue {
+    pub fn new(cfg: QueueOptions) -> Queue {
         Queue {
             cfg,
             jobs: BTreeMap::new(),
@@ -92,7 +92,7 @@ impl Queue {
     /// Rebuilds the queue from stored jobs after a restart. Running leases get a fresh
     /// `lease_ms` of grace, since their workers could not heartbeat while we were down.
     /// Returns the queue and the jobs it changed.
-    pub fn restore(cfg: QueueConfig, jobs: Vec<Job>, now: u64) -> (Queue, Vec<Job>) {
+    pub fn restore(cfg: QueueOptions, jobs: Vec<Job>, now: u64) -> (Queue, Vec<Job>) {
         let mut q = Queue::new(cfg);
         let mut changed = Vec::new();
         for mut job in jobs {
@@ -111,7 +111,7 @@ impl Queue {
     }
 
     /// The policy.
-    pub fn config(&self) -> &QueueConfig {
+    pub fn config(&self) -> &QueueOptions {
         &self.cfg
     }
 
@@ -186,7 +186,7 @@ impl Queue {
         changed
     }
 
-    fn fail_attempt(cfg: &QueueConfig, job: &mut Job, failure: Failure, now: u64) {
+    fn fail_attempt(cfg: &QueueOptions, job: &mut Job, failure: Failure, now: u64) {
         job.state = if failure.kind.is_permanent() || job.attempts >= cfg.max_attempts {
             let mut f = failure.clone();
             if !failure.kind.is_permanent() {
@@ -383,8 +383,8 @@ mod tests {
         }
     }
 
-    fn cfg() -> QueueConfig {
-        QueueConfig {
+    fn cfg() -> QueueOptions {
+        QueueOptions {
             lease_ms: 1000,
             heartbeat_ms: 200,
             max_attempts: 3,

@@ -6,7 +6,7 @@ use crate::check::DeliveryCheck;
 use crate::convert;
 use crate::error::OrchestratorError;
 use crate::model::{hex, JobState, Outcome, Source};
-use crate::queue::{Queue, QueueConfig};
+use crate::queue::{Queue, QueueOptions};
 use crate::store::Store;
 use std::pin::Pin;
 use std::sync::{Arc, Mutex, MutexGuard};
@@ -34,19 +34,19 @@ pub fn system_clock() -> Clock {
 
 /// Service settings.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct ServiceConfig {
+pub struct ServiceOptions {
     /// Lease, heartbeat and retry policy.
-    pub queue: QueueConfig,
+    pub queue: QueueOptions,
     /// Longest a worker waits before asking again when nothing is runnable (ms).
     pub poll_ms: u64,
     /// Largest accepted upload (bytes).
     pub max_upload_bytes: u64,
 }
 
-impl Default for ServiceConfig {
+impl Default for ServiceOptions {
     fn default() -> Self {
-        ServiceConfig {
-            queue: QueueConfig::default(),
+        ServiceOptions {
+            queue: QueueOptions::default(),
             poll_ms: 1000,
             max_upload_bytes: 1 << 30,
         }
@@ -56,7 +56,7 @@ impl Default for ServiceConfig {
 struct Shared {
     queue: Mutex<Queue>,
     store: Store,
-    cfg: ServiceConfig,
+    cfg: ServiceOptions,
     clock: Clock,
 }
 
@@ -71,7 +71,7 @@ impl OrchestratorService {
     /// Loads the queue from `store` (running leases get fresh grace) and builds the service.
     pub fn new(
         store: Store,
-        cfg: ServiceConfig,
+        cfg: ServiceOptions,
         clock: Clock,
     ) -> Result<OrchestratorService, OrchestratorError> {
         let queue_cfg = cfg.queue.validate()?;

@@ -14,7 +14,7 @@ use wavesplat_compressor::encode::Target;
 use wavesplat_orchestrator::client;
 use wavesplat_orchestrator::convert::state_name;
 use wavesplat_orchestrator::model;
-use wavesplat_orchestrator::{JobOptions, QueueConfig, ServiceConfig, Store, TargetSpec};
+use wavesplat_orchestrator::{JobOptions, QueueOptions, ServiceOptions, Store, TargetSpec};
 use wavesplat_proto::pb;
 use wavesplat_worker::archive;
 
@@ -260,8 +260,8 @@ pub fn run_serve(a: ServeOrchestratorArgs) -> Result<()> {
         bail!("--lease-secs {} must be positive", a.lease_secs);
     }
     let lease_ms = (a.lease_secs * 1000.0).round().max(1.0) as u64;
-    let config = ServiceConfig {
-        queue: QueueConfig {
+    let config = ServiceOptions {
+        queue: QueueOptions {
             lease_ms,
             heartbeat_ms: a.heartbeat_ms.unwrap_or((lease_ms / 4).max(1)),
             max_attempts: a.max_attempts,
@@ -294,7 +294,7 @@ pub fn run_serve(a: ServeOrchestratorArgs) -> Result<()> {
 
 /// Runs `wavesplat worker`.
 pub fn run_worker(a: WorkerArgs) -> Result<()> {
-    let cfg = wavesplat_worker::WorkerConfig {
+    let cfg = wavesplat_worker::WorkerOptions {
         orchestrator: a.orchestrator,
         cache: a.cache,
         threads: a.threads,

@@ -13,7 +13,7 @@ use wavesplat_codec::format::packet::Coefficient;
 use wavesplat_codec::layout::Geometry;
 use wavesplat_codec::metrics::snr_db;
 use wavesplat_viewer::backend::gpu::wgpu;
-use wavesplat_viewer::backend::gpu::{AdapterRequest, ColourMap, DisplayOptions, GpuOptions};
+use wavesplat_viewer::backend::gpu::{AdapterRequest, ColorMap, DisplayOptions, GpuOptions};
 use wavesplat_viewer::backend::{
     select, AccumulationBackend, BackendChoice, BackendError, CpuBackend, GpuBackend, GpuContext,
     Layout, SplatRecord,
@@ -345,7 +345,7 @@ fn display_matches_the_png_mapping() {
     let offset: Vec<f32> = (0..cpu.width * cpu.height * 3)
         .map(|i| (i % 97) as f32 * 0.3)
         .collect();
-    let colour = ColourMap {
+    let colour = ColorMap {
         matrix: [
             [1.0, 0.956, 0.621],
             [1.0, -0.272, -0.647],

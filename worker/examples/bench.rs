@@ -11,9 +11,9 @@ use std::time::{Duration, Instant};
 use wavesplat_compressor::phantom::Phantom;
 use wavesplat_orchestrator::client;
 use wavesplat_orchestrator::convert::state_name;
-use wavesplat_orchestrator::{JobOptions, QueueConfig, ServiceConfig, Store};
+use wavesplat_orchestrator::{JobOptions, QueueOptions, ServiceOptions, Store};
 use wavesplat_worker::archive;
-use wavesplat_worker::WorkerConfig;
+use wavesplat_worker::WorkerOptions;
 
 const JOBS: usize = 20;
 
@@ -40,14 +40,14 @@ async fn run(workers: usize) -> String {
     let store = Store::open(dir.path().join("orch")).unwrap();
     let ol = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
     let orch_url = format!("http://{}", ol.local_addr().unwrap());
-    let config = ServiceConfig {
-        queue: QueueConfig {
+    let config = ServiceOptions {
+        queue: QueueOptions {
             lease_ms: 10_000,
             heartbeat_ms: 1_000,
-            ..QueueConfig::default()
+            ..QueueOptions::default()
         },
         poll_ms: 20,
-        ..ServiceConfig::default()
+        ..ServiceOptions::default()
     };
     tokio::spawn(wavesplat_orchestrator::serve(
         ol,
@@ -70,7 +70,7 @@ async fn run(workers: usize) -> String {
     }
     let submitted = start.elapsed().as_secs_f64();
     for w in 0..workers {
-        let cfg = WorkerConfig {
+        let cfg = WorkerOptions {
             connect: Default::default(),
             orchestrator: orch_url.clone(),
             cache: cache_url.clone(),

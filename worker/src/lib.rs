@@ -11,7 +11,7 @@
 //!
 //! ```no_run
 //! # async fn demo() -> Result<(), wavesplat_worker::WorkerError> {
-//! let cfg = wavesplat_worker::WorkerConfig {
+//! let cfg = wavesplat_worker::WorkerOptions {
 //!     orchestrator: "http://127.0.0.1:50052".into(),
 //!     cache: "http://127.0.0.1:50051".into(),
 //!     threads: 2,
@@ -45,7 +45,7 @@ use wavesplat_proto::pb;
 
 /// Worker settings.
 #[derive(Debug, Clone)]
-pub struct WorkerConfig {
+pub struct WorkerOptions {
     /// Orchestrator URL (`http://HOST:PORT`).
     pub orchestrator: String,
     /// Cache URL.
@@ -90,7 +90,7 @@ pub fn default_worker_id() -> String {
 }
 
 struct Ctx {
-    cfg: WorkerConfig,
+    cfg: WorkerOptions,
     orch: Client,
     cache: CacheClient,
     pool: Arc<rayon::ThreadPool>,
@@ -99,7 +99,7 @@ struct Ctx {
 /// Runs the worker until `shutdown` completes (checked between jobs, so a running job is
 /// finished first) or `max_jobs` jobs were run.
 pub async fn run(
-    cfg: WorkerConfig,
+    cfg: WorkerOptions,
     shutdown: impl Future<Output = ()> + Send,
 ) -> Result<(), WorkerError> {
     let pool = rayon::ThreadPoolBuilder::new()

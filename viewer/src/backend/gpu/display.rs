@@ -36,12 +36,12 @@ pub struct DisplayOptions {
     /// Values mapped to 0 and 255 (`None`: `Image::auto_window`, as `write_png`).
     pub window: Option<(f64, f64)>,
     /// Colour transform of a 3-channel image (`None`: channels shown as they are).
-    pub colour: Option<ColourMap>,
+    pub colour: Option<ColorMap>,
 }
 
 /// A colour transform applied before the window: `rgb = matrix · c + offset(pixel)`.
 #[derive(Debug, Clone, PartialEq)]
-pub struct ColourMap {
+pub struct ColorMap {
     /// Row-major 3×3 matrix.
     pub matrix: [[f32; 3]; 3],
     /// Per-pixel RGB offsets of the whole target (total width × height × 3), e.g. the colour
@@ -49,7 +49,7 @@ pub struct ColourMap {
     pub offset: Option<Vec<f32>>,
 }
 
-impl ColourMap {
+impl ColorMap {
     /// The host twin of the display pass's colour transform (for the automatic window and
     /// for tests).
     pub fn apply(&self, image: &Image) -> Result<Image, BackendError> {

@@ -51,7 +51,7 @@ use crate::image::Image;
 use bytemuck::{Pod, Zeroable};
 pub use context::{probe_adapter, AdapterRequest, GpuContext};
 use display::Display;
-pub use display::{ColourMap, DisplayOptions};
+pub use display::{ColorMap, DisplayOptions};
 use std::sync::Arc;
 /// The wgpu this backend is built on (a window must use the same version).
 pub use wgpu;
