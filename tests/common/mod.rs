@@ -49,10 +49,8 @@ pub fn read_f32(path: &std::path::Path) -> Vec<f32> {
 
 /// The largest difference of two images relative to the first's peak (which must be > 0).
 pub fn relative_difference(a: &[f32], b: &[f32]) -> f32 {
-    assert_eq!(a.len(), b.len());
-    let peak = a.iter().fold(0f32, |m, x| m.max(x.abs()));
-    assert!(peak > 0.0);
-    a.iter().zip(b).fold(0f32, |m, (x, y)| m.max((x - y).abs())) / peak
+    assert!(a.iter().any(|x| *x != 0.0), "a black first image");
+    wavesplat_viewer::image::max_relative_difference(b, a) as f32
 }
 
 /// Waits until a render recording into `dir/record` has received some bytes (its frames.csv's

@@ -2,7 +2,8 @@
 //! the top), crops and side-by-side concatenation, PNG writing with window/level (automatic
 //! from the percentiles of the image's foreground by default; the same mapping to RGBA8 bytes is what a display
 //! shows) and the raw f32 writer used for measurements
-//! (H rows of W little-endian f32, channels interleaved).
+//! (H rows of W little-endian f32, channels interleaved); and the one measure by which the
+//! tests compare an image with its reference ([`max_relative_difference`]).
 
 use std::io::Write;
 use std::path::Path;
@@ -24,6 +25,19 @@ pub enum ImageError {
     /// Invalid window.
     #[error("window [{0}, {1}] is empty or not finite")]
     BadWindow(f64, f64),
+}
+
+/// The largest |image − reference| over the largest |reference| (samples of equal count, in the
+/// same order): 0 for identical images, ∞-free for a black reference (the denominator is at
+/// least 1e-300).
+pub fn max_relative_difference(image: &[f32], reference: &[f32]) -> f64 {
+    assert_eq!(image.len(), reference.len(), "images of different sizes");
+    let peak = reference.iter().fold(0.0f64, |m, x| m.max(x.abs() as f64));
+    image
+        .iter()
+        .zip(reference)
+        .fold(0.0f64, |e, (x, y)| e.max((*x as f64 - *y as f64).abs()))
+        / peak.max(1e-300)
 }
 
 /// A float image, channels interleaved, row-major, row 0 at the top.

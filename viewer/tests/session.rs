@@ -65,18 +65,13 @@ fn full_image(header: &Header, coeffs: &[Coefficient], spec: &ViewSpec) -> Image
     wavesplat_viewer::color::to_rgb_for_spec(&img, header, spec).unwrap()
 }
 
-/// Largest |a − b| over the largest |b|.
+/// Largest |a − b| over the largest |b|, for images of one shape.
 fn max_rel(a: &Image, b: &Image) -> f64 {
     assert_eq!(
         (a.width, a.height, a.channels),
         (b.width, b.height, b.channels)
     );
-    let m = b.data.iter().fold(0.0f64, |m, x| m.max(x.abs() as f64));
-    a.data
-        .iter()
-        .zip(&b.data)
-        .fold(0.0f64, |e, (x, y)| e.max((*x as f64 - *y as f64).abs()))
-        / m.max(1e-300)
+    wavesplat_viewer::image::max_relative_difference(&a.data, &b.data)
 }
 
 /// A session on the `n`³ Shepp–Logan file (tiles of 16) that draws `view` with preview

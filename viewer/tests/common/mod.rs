@@ -66,11 +66,7 @@ pub fn coefficients_with_margin(
 
 /// Largest |a − b| / max |b|.
 pub fn max_rel(a: &[f32], b: &[f32]) -> f64 {
-    let m = b.iter().fold(0.0f64, |m, x| m.max(x.abs() as f64));
-    a.iter()
-        .zip(b)
-        .fold(0.0f64, |e, (x, y)| e.max((*x as f64 - *y as f64).abs()))
-        / m.max(1e-300)
+    wavesplat_viewer::image::max_relative_difference(a, b)
 }
 
 /// Reference options: 8×8 rays per pixel for Haar (axis-aligned box edges), 3×3 for splines.
