@@ -11,7 +11,9 @@
 
 pub mod browse;
 pub mod cluster;
+pub mod demo;
 pub mod process;
+pub mod refine;
 pub mod report;
 pub mod scoring;
 pub mod stability;
