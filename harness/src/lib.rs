@@ -5,9 +5,10 @@
 //! started as a server, its address read from its first line), `browse` (a frame loop fed by a
 //! cache: the demo's and `bench refine`'s sessions, the backend probe, the scoring renderer's
 //! settings), `scoring` (reference images of the original volume per view of a walk, Q_I and
-//! SNR per frame), `report` (PNG charts and the offline `report.html`) and `stability` (the stiff
-//! and extreme numerical cases). Errors are `anyhow`: this crate sits at the binary's and the
-//! tests' edge, where errors are reported, not matched on.
+//! SNR per frame), `report` (PNG charts and the offline `report.html`), `stability` (the stiff
+//! and extreme numerical cases), `demo` (the demo's archive and report sections) and `refine`
+//! (`bench refine`'s view path, records, CSV and charts). Errors are `anyhow`: this crate sits
+//! at the binary's and the tests' edge, where errors are reported, not matched on.
 
 pub mod browse;
 pub mod cluster;
