@@ -706,4 +706,28 @@ mod tests {
         let status = last.expect("a message").expect_err("an error last");
         assert_eq!(status.code(), tonic::Code::InvalidArgument);
     }
+
+    /// A packet the client drops before the stream's first plan arrives stays out of that view:
+    /// the plan's arrival is no view change (the end-to-end test
+    /// `dropped_packets_come_back_after_a_view_change` saw it sent again when the plan came
+    /// after the drop). The next view change queues it again.
+    #[tokio::test]
+    async fn a_packet_dropped_before_the_first_plan_stays_out_of_that_view() {
+        let dir = tempfile::tempdir().unwrap();
+        let volume = open_test_volume(dir.path());
+        let planners = Arc::new(Semaphore::new(1));
+        let mut session = Session::new(volume.clone(), crate::VolumeKey::Id(1), 0, planners);
+        session.unplanned();
+        let first = session.queue.last().expect("packets in file order").1;
+        session.hold(&[first]).unwrap();
+        session.release(&[first]).unwrap();
+        let spec = ViewSpec::single(wavesplat_codec::view::View::new(0.7, 0.4, 48, 48));
+        let priority = Priority::new(&volume.index.header, &spec).unwrap();
+        session.reorder(priority.clone());
+        assert!(!session.queue.iter().any(|(_, id)| *id == first));
+        assert_eq!(session.queue.len(), volume.index.packets.len() - 1);
+        session.change_view(priority);
+        assert!(session.queue.iter().any(|(_, id)| *id == first));
+        assert_eq!(session.queue.len(), volume.index.packets.len());
+    }
 }

@@ -51,6 +51,9 @@ pub(super) struct Session {
     pub(super) name: crate::VolumeKey,
     /// Packets the client holds or was sent.
     pub(super) held: HashSet<u32>,
+    /// Packets the client dropped since the last view change: queued again only by the next
+    /// one (not by the first plan of the same view arriving after the drop).
+    pub(super) released: HashSet<u32>,
     /// Unsent packets, lowest priority first (the next one is popped from the end).
     pub(super) queue: Vec<(f64, u32)>,
     pub(super) sent: u32,
@@ -78,6 +81,7 @@ impl Session {
             volume,
             name,
             held: HashSet::new(),
+            released: HashSet::new(),
             queue: Vec::new(),
             sent: 0,
             bytes: 0,
@@ -131,12 +135,20 @@ impl Session {
     }
 
     /// The client no longer holds `ids`; they are queued again at the next view change.
-    fn release(&mut self, ids: &[u32]) -> Result<(), CacheError> {
+    pub(super) fn release(&mut self, ids: &[u32]) -> Result<(), CacheError> {
         self.check_ids(ids, "dropped")?;
         for id in ids {
             self.held.remove(id);
+            self.released.insert(*id);
         }
         Ok(())
+    }
+
+    /// The client changed the view: what it dropped may be sent again, in the new order.
+    pub(super) fn change_view(&mut self, priority: Priority) {
+        self.released.clear();
+        self.reorder(priority);
+        self.views = self.views.wrapping_add(1);
     }
 
     /// Whether the client's credit allows another packet now.
@@ -144,8 +156,9 @@ impl Session {
         self.credit.is_none_or(|c| c > 0)
     }
 
-    fn reorder(&mut self, priority: Priority) {
-        let held = &self.held;
+    /// Queues what the client neither holds nor dropped in this view, in `priority`'s order.
+    pub(super) fn reorder(&mut self, priority: Priority) {
+        let (held, released) = (&self.held, &self.released);
         let mut q: Vec<(f64, u32)> = self
             .volume
             .index
@@ -154,6 +167,7 @@ impl Session {
             .enumerate()
             .filter(|(i, p)| {
                 !held.contains(&(*i as u32))
+                    && !released.contains(&(*i as u32))
                     && (!self.visible_only || priority.visible_energy(p) > 0.0)
             })
             .map(|(i, p)| (priority.priority(p), i as u32))
@@ -170,8 +184,7 @@ impl Session {
             Some(pb::refine_request::Msg::View(v)) => {
                 let spec = convert::view_spec(Some(v))?;
                 let priority = plan(self.planners.clone(), self.volume.clone(), spec).await?;
-                self.reorder(priority);
-                self.views = self.views.wrapping_add(1);
+                self.change_view(priority);
                 tracing::debug!(volume = self.volume.meta.id, "view changed");
                 Ok(())
             }
