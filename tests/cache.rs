@@ -6,7 +6,6 @@ mod common;
 use std::collections::HashSet;
 use tonic::transport::Channel;
 use tonic::Code;
-use wavesplat_cache::{Limits, Store};
 use wavesplat_client::{CacheClient, Packet, RefineEvent, RefineRequest, VolumeHeader, VolumeKey};
 use wavesplat_codec::format::packet::{decode_packet, Coefficient};
 use wavesplat_codec::metrics::q_i_paper_db;
@@ -14,6 +13,7 @@ use wavesplat_codec::view::ViewSpec;
 use wavesplat_compressor::encode::{compress, CompressOptions, Target, TileChoice};
 use wavesplat_compressor::phantom::Phantom;
 use wavesplat_harness::process::ServerProcess;
+use wavesplat_harness::LocalCache;
 use wavesplat_proto::pb;
 use wavesplat_proto::pb::cache_client::CacheClient as WireClient;
 use wavesplat_viewer::{RenderOptions, Renderer, View};
@@ -44,33 +44,21 @@ fn test_file_with(dims: [usize; 3], coarse_layer: bool) -> Vec<u8> {
     .bytes
 }
 
-/// An in-process server on 127.0.0.1:0 with its store in a tempdir.
+/// An in-process cache (the harness's `LocalCache`) with its store in a tempdir.
 struct TestServer {
     url: String,
+    node: LocalCache,
     _dir: tempfile::TempDir,
-    stop: Option<tokio::sync::oneshot::Sender<()>>,
-    task: tokio::task::JoinHandle<()>,
 }
 
 impl TestServer {
     async fn start() -> TestServer {
         let dir = tempfile::tempdir().unwrap();
-        let store = Store::open(dir.path(), Limits::default()).unwrap();
-        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
-        let url = format!("http://{}", listener.local_addr().unwrap());
-        let (tx, rx) = tokio::sync::oneshot::channel();
-        let task = tokio::spawn(async move {
-            wavesplat_cache::serve(listener, store, async {
-                let _ = rx.await;
-            })
-            .await
-            .unwrap();
-        });
+        let node = LocalCache::start(dir.path()).unwrap();
         TestServer {
-            url,
+            url: node.url.clone(),
+            node,
             _dir: dir,
-            stop: Some(tx),
-            task,
         }
     }
 
@@ -83,9 +71,8 @@ impl TestServer {
         WireClient::connect(self.url.clone()).await.unwrap()
     }
 
-    async fn stop(mut self) {
-        let _ = self.stop.take().unwrap().send(());
-        self.task.await.unwrap();
+    async fn stop(self) {
+        self.node.stop_async().await.unwrap();
     }
 }
 

@@ -12,6 +12,7 @@ use wavesplat_client::{CacheClient, RefineRequest, VolumeKey};
 use wavesplat_codec::view::{View, ViewSpec};
 use wavesplat_compressor::encode::{compress, CompressOptions, Target, TileChoice};
 use wavesplat_compressor::phantom::Phantom;
+use wavesplat_harness::LocalCache;
 use wavesplat_proto::pb;
 use wavesplat_proto::pb::cache_client::CacheClient as WireClient;
 
@@ -33,35 +34,23 @@ fn test_file(dims: [usize; 3], fraction: f64) -> Vec<u8> {
     .bytes
 }
 
+/// An in-process cache (the harness's `LocalCache`) with its store in a tempdir.
 struct TestServer {
     url: String,
     store: Store,
+    node: LocalCache,
     dir: tempfile::TempDir,
-    stop: Option<tokio::sync::oneshot::Sender<()>>,
-    task: tokio::task::JoinHandle<()>,
 }
 
 impl TestServer {
     async fn start(limits: Limits) -> TestServer {
         let dir = tempfile::tempdir().unwrap();
-        let store = Store::open(dir.path(), limits).unwrap();
-        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
-        let url = format!("http://{}", listener.local_addr().unwrap());
-        let (tx, rx) = tokio::sync::oneshot::channel();
-        let served = store.clone();
-        let task = tokio::spawn(async move {
-            wavesplat_cache::serve(listener, served, async {
-                let _ = rx.await;
-            })
-            .await
-            .unwrap();
-        });
+        let node = LocalCache::start_with(dir.path(), "127.0.0.1:0", limits).unwrap();
         TestServer {
-            url,
-            store,
+            url: node.url.clone(),
+            store: node.store.clone(),
+            node,
             dir,
-            stop: Some(tx),
-            task,
         }
     }
 
@@ -73,9 +62,8 @@ impl TestServer {
         WireClient::connect(self.url.clone()).await.unwrap()
     }
 
-    async fn stop(mut self) {
-        let _ = self.stop.take().unwrap().send(());
-        self.task.await.unwrap();
+    async fn stop(self) {
+        self.node.stop_async().await.unwrap();
     }
 }
 

@@ -241,6 +241,22 @@ impl LocalCache {
         self.stop_now()
     }
 
+    /// [`LocalCache::stop`] from async code: waits for the node's thread without blocking the
+    /// caller's runtime, so clients on that runtime can finish their streams while the node
+    /// shuts down gracefully.
+    pub async fn stop_async(mut self) -> Result<()> {
+        if let Some(s) = self.stop.take() {
+            let _ = s.send(());
+        }
+        let Some(thread) = self.thread.take() else {
+            return Ok(());
+        };
+        match tokio::task::spawn_blocking(move || thread.join()).await {
+            Ok(Ok(r)) => r,
+            _ => Err(anyhow::anyhow!("the cache's thread panicked")),
+        }
+    }
+
     fn stop_now(&mut self) -> Result<()> {
         if let Some(s) = self.stop.take() {
             let _ = s.send(());
@@ -255,6 +271,16 @@ impl LocalCache {
 
 impl Drop for LocalCache {
     fn drop(&mut self) {
+        if tokio::runtime::Handle::try_current().is_ok() {
+            // Dropped on an async runtime (an async test that failed before its stop): joining
+            // here could wait on clients only this runtime drives. Stop the node and let its
+            // thread end on its own.
+            if let Some(s) = self.stop.take() {
+                let _ = s.send(());
+            }
+            self.thread.take();
+            return;
+        }
         if let Err(e) = self.stop_now() {
             tracing::warn!(error = %e, "stopping the local cache");
         }
