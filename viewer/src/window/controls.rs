@@ -417,6 +417,103 @@ impl Controls {
     }
 }
 
+/// What the window's title reports besides the state the user controls.
+#[derive(Debug, Clone, PartialEq)]
+pub struct TitleFacts<'a> {
+    /// The volume in words.
+    pub volume: &'a str,
+    /// Coefficients the session holds.
+    pub held: usize,
+    /// Coefficients splatted in this view.
+    pub splatted: u64,
+    /// Bytes received.
+    pub bytes: u64,
+    /// Average time of a displayed frame.
+    pub frame_ms: f64,
+    /// Whether the source reaches its server.
+    pub connected: bool,
+    /// The source's problem while it lasts.
+    pub problem: Option<&'a str>,
+    /// Whether the view has converged.
+    pub converged: bool,
+    /// Whether the last frame had nothing to do.
+    pub idle: bool,
+    /// Whether the client memory bound stops the session from holding more.
+    pub memory_full: bool,
+    /// Lost graphics devices recovered from.
+    pub recoveries: u32,
+    /// The image's size in pixels.
+    pub image: (usize, usize),
+}
+
+/// A byte count for people: B, kB or MB.
+pub fn human_bytes(b: u64) -> String {
+    match b {
+        0..=9_999 => format!("{b} B"),
+        10_000..=9_999_999 => format!("{:.1} kB", b as f64 / 1e3),
+        _ => format!("{:.1} MB", b as f64 / 1e6),
+    }
+}
+
+impl ViewState {
+    /// The window's title and, on its own, the session's state in words ("refining",
+    /// "converged", …).
+    pub fn title(&self, f: &TitleFacts) -> (String, String) {
+        let mut state = if !f.connected {
+            format!(
+                "cache unreachable, reconnecting ({})",
+                f.problem.unwrap_or("no answer")
+            )
+        } else if f.converged {
+            "converged".to_string()
+        } else if f.idle {
+            "waiting for data".to_string()
+        } else {
+            "refining".to_string()
+        };
+        if f.memory_full {
+            // What is held stops growing here: say so rather than stall silently.
+            state.push_str(", memory bound reached");
+        }
+        if f.recoveries > 0 {
+            state.push_str(&format!(
+                ", recovered from {} lost graphics device(s)",
+                f.recoveries
+            ));
+        }
+        let cue = if self.cue_on {
+            let dir = match self.cue_dir {
+                CueDirection::View => String::new(),
+                CueDirection::Vector(v) => format!(" from {v:?}"),
+                CueDirection::Angles { alpha, beta } => format!(" from α={alpha:.2}, β={beta:.2}"),
+            };
+            format!(" — cue k={:.4}{dir}", self.cue_k)
+        } else {
+            String::new()
+        };
+        let window = if self.contrast != 1.0 || self.level != 0.0 {
+            format!(" — window ×{:.2}, level {:+.2}", self.contrast, self.level)
+        } else {
+            String::new()
+        };
+        let (iw, ih) = f.image;
+        let title = format!(
+            "wavesplat — {} — {} held, {} splatted, {} received — {:.1} ms/frame (budget {:.1}) — {}{}{}{} — {iw}x{ih}",
+            f.volume,
+            f.held,
+            f.splatted,
+            human_bytes(f.bytes),
+            f.frame_ms,
+            self.budget_ms,
+            state,
+            if self.multiview { " — multiview" } else { "" },
+            cue,
+            window,
+        );
+        (title, state)
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -607,5 +704,68 @@ mod tests {
         );
         assert_eq!(wrap(std::f64::consts::PI), std::f64::consts::PI);
         assert!((wrap(-std::f64::consts::PI) - std::f64::consts::PI).abs() < 1e-12);
+    }
+
+    #[test]
+    fn the_title_says_what_the_session_does_and_what_the_user_set() {
+        let s = state();
+        let facts = TitleFacts {
+            volume: "head.wsp",
+            held: 1200,
+            splatted: 800,
+            bytes: 12_345,
+            frame_ms: 16.04,
+            connected: true,
+            problem: None,
+            converged: false,
+            idle: false,
+            memory_full: false,
+            recoveries: 0,
+            image: (64, 48),
+        };
+        let (title, state) = s.title(&facts);
+        assert_eq!(state, "refining");
+        assert!(title.starts_with("wavesplat — head.wsp — 1200 held, 800 splatted, 12.3 kB received — 16.0 ms/frame (budget 16.6) — refining"), "{title}");
+        assert!(
+            title.contains(" — cue k=0.0200") && title.ends_with(" — 64x48"),
+            "{title}"
+        );
+        assert!(
+            !title.contains("multiview") && !title.contains("window ×"),
+            "{title}"
+        );
+        let (_, state) = s.title(&TitleFacts {
+            converged: true,
+            memory_full: true,
+            ..facts.clone()
+        });
+        assert_eq!(state, "converged, memory bound reached");
+        let (_, state) = s.title(&TitleFacts {
+            idle: true,
+            recoveries: 2,
+            ..facts.clone()
+        });
+        assert_eq!(
+            state,
+            "waiting for data, recovered from 2 lost graphics device(s)"
+        );
+        let (_, state) = s.title(&TitleFacts {
+            connected: false,
+            problem: Some("refused"),
+            ..facts.clone()
+        });
+        assert_eq!(state, "cache unreachable, reconnecting (refused)");
+        let mut set = s.clone();
+        set.multiview = true;
+        set.cue_on = false;
+        set.contrast = 0.8;
+        let (title, _) = set.title(&facts);
+        assert!(
+            title.contains(" — multiview") && title.contains(" — window ×0.80, level +0.00"),
+            "{title}"
+        );
+        assert!(!title.contains("cue"), "{title}");
+        assert_eq!(human_bytes(9_999), "9999 B");
+        assert_eq!(human_bytes(25_000_000), "25.0 MB");
     }
 }

@@ -11,7 +11,9 @@ pub mod script;
 #[cfg(feature = "window")]
 mod shell;
 
-pub use controls::{Controls, Input, KeyPress, Reaction, ViewState, WindowSize, HELP};
+pub use controls::{
+    human_bytes, Controls, Input, KeyPress, Reaction, TitleFacts, ViewState, WindowSize, HELP,
+};
 pub use script::{Command, Script};
 #[cfg(feature = "window")]
 pub use shell::{run, WindowOptions, WindowOutcome};

@@ -7,7 +7,7 @@
 //! session's state. What the user controls and the script live in `controls` and `script`.
 
 use super::controls::{
-    arrange, grid, Controls, Input, KeyPress, Reaction, ViewState, WindowSize, HELP,
+    arrange, grid, Controls, Input, KeyPress, Reaction, TitleFacts, ViewState, WindowSize, HELP,
 };
 use super::script::{Command, Script};
 use super::{Context, Result, WindowError};
@@ -19,7 +19,7 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 use wavesplat_codec::format::Header;
-use wavesplat_codec::view::{CueDirection, ViewSpec};
+use wavesplat_codec::view::ViewSpec;
 use winit::application::ApplicationHandler;
 use winit::dpi::PhysicalSize;
 use winit::event::{ElementState, MouseButton, MouseScrollDelta, WindowEvent};
@@ -564,60 +564,21 @@ impl App {
             self.last_report_idle = idle;
             self.last_title = Instant::now();
             let stats = frames.session.stats();
-            let mut state = if !status.connected {
-                format!(
-                    "cache unreachable, reconnecting ({})",
-                    status.problem.as_deref().unwrap_or("no answer")
-                )
-            } else if self.converged {
-                "converged".to_string()
-            } else if idle {
-                "waiting for data".to_string()
-            } else {
-                "refining".to_string()
-            };
-            if frames.session.memory_full() {
-                // What is held stops growing here: say so rather than stall silently.
-                state.push_str(", memory bound reached");
-            }
-            if self.recoveries > 0 {
-                state.push_str(&format!(
-                    ", recovered from {} lost graphics device(s)",
-                    self.recoveries
-                ));
-            }
-            let (iw, ih) = self.last_image.unwrap_or((0, 0));
-            g.window.set_title(&format!(
-                "wavesplat — {} — {} held, {} splatted, {} received — {:.1} ms/frame (budget {:.1}) — {}{}{}{} — {iw}x{ih}",
-                self.options.title,
-                stats.coefficients_held,
-                stats.splatted_in_view,
-                human_bytes(status.bytes),
-                self.frame_ms_avg,
-                self.controls.state.budget_ms,
-                state,
-                if self.controls.state.multiview { " — multiview" } else { "" },
-                if self.controls.state.cue_on {
-                    let dir = match self.controls.state.cue_dir {
-                        CueDirection::View => String::new(),
-                        CueDirection::Vector(v) => format!(" from {v:?}"),
-                        CueDirection::Angles { alpha, beta } => {
-                            format!(" from α={alpha:.2}, β={beta:.2}")
-                        }
-                    };
-                    format!(" — cue k={:.4}{dir}", self.controls.state.cue_k)
-                } else {
-                    String::new()
-                },
-                if self.controls.state.contrast != 1.0 || self.controls.state.level != 0.0 {
-                    format!(
-                        " — window ×{:.2}, level {:+.2}",
-                        self.controls.state.contrast, self.controls.state.level
-                    )
-                } else {
-                    String::new()
-                },
-            ));
+            let (title, state) = self.controls.state.title(&TitleFacts {
+                volume: &self.options.title,
+                held: stats.coefficients_held,
+                splatted: stats.splatted_in_view,
+                bytes: status.bytes,
+                frame_ms: self.frame_ms_avg,
+                connected: status.connected,
+                problem: status.problem.as_deref(),
+                converged: self.converged,
+                idle,
+                memory_full: frames.session.memory_full(),
+                recoveries: self.recoveries,
+                image: self.last_image.unwrap_or((0, 0)),
+            });
+            g.window.set_title(&title);
             tracing::debug!(
                 "frame {}: {:.1} ms, {} coefficients, {}",
                 self.drawn,
@@ -689,14 +650,6 @@ fn open_display(
         ctx,
         window,
     })
-}
-
-fn human_bytes(b: u64) -> String {
-    match b {
-        0..=9_999 => format!("{b} B"),
-        10_000..=9_999_999 => format!("{:.1} kB", b as f64 / 1e3),
-        _ => format!("{:.1} MB", b as f64 / 1e6),
-    }
 }
 
 /// Draws the image texture over the whole surface and presents it, reconfiguring the surface
