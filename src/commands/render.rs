@@ -10,12 +10,11 @@ use clap::Args;
 use std::io::Write;
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
-use wavesplat_codec::format::Header;
 use wavesplat_codec::metrics::{q_i_paper_db, snr_db};
 use wavesplat_codec::view::patient::PatientView;
-use wavesplat_codec::view::{Cue, CueDirection, ViewSpec};
+use wavesplat_codec::view::{Cue, CueDirection};
 use wavesplat_viewer::backend::{select, BackendChoice};
-use wavesplat_viewer::open::{Opened, ViewRequest, VolumeLocation};
+use wavesplat_viewer::open::{open, ViewRequest, VolumeLocation};
 use wavesplat_viewer::remote::is_remote;
 use wavesplat_viewer::session::{RenderSession, SessionOptions};
 use wavesplat_viewer::FrameLoop;
@@ -219,11 +218,6 @@ impl ViewArgs {
         })
     }
 
-    /// The view spec the options describe (validated), before the volume is known.
-    pub fn spec(&self) -> Result<ViewSpec> {
-        Ok(self.request()?.spec()?)
-    }
-
     /// Where the volume is: a file (read here, with advice when it is not a `.wsp`), a
     /// published URL or a cache.
     pub fn location(&self) -> Result<VolumeLocation> {
@@ -256,26 +250,6 @@ impl ViewArgs {
             ..SessionOptions::default()
         }
     }
-
-    /// A short name of the volume for messages.
-    pub fn describe(&self) -> String {
-        match (&self.input, &self.cache, &self.volume) {
-            (Some(p), _, _) => p.display().to_string(),
-            (_, Some(c), Some(v)) => format!("{v} at {c}"),
-            _ => "?".into(),
-        }
-    }
-}
-
-/// Opens the volume the options name, ranked for the view they describe; returns that view
-/// (a named patient view resolved through the volume's placement).
-pub fn open(args: &ViewArgs, byte_budget: Option<u64>) -> Result<(Header, Opened, ViewSpec)> {
-    let request = args.request()?;
-    Ok(wavesplat_viewer::open::open(
-        &args.location()?,
-        &request,
-        byte_budget,
-    )?)
 }
 
 /// Per-frame record: a CSV row per frame and PNGs of frames 1, 2, 4, ….
@@ -307,7 +281,8 @@ impl Recorder {
 
 /// Runs the subcommand.
 pub fn run(a: RenderArgs) -> Result<()> {
-    a.view.spec()?;
+    let view = a.view.request()?;
+    view.spec()?;
     super::check_output(&a.output)?;
     if let Some(r) = &a.raw {
         super::check_output(r)?;
@@ -326,7 +301,9 @@ pub fn run(a: RenderArgs) -> Result<()> {
     // The times printed count from here (the request), session start-up included and the
     // reference rendering left out.
     let request = Instant::now();
-    let (header, opened, spec) = open(&a.view, a.bytes)?;
+    let location = a.view.location()?;
+    let volume = location.describe();
+    let (header, opened, spec) = open(location, &view, a.bytes)?;
     let opened_after = request.elapsed();
     let reference_started = Instant::now();
     let reference = if a.reference {
@@ -455,7 +432,7 @@ pub fn run(a: RenderArgs) -> Result<()> {
         a.output.display(),
         image.width,
         image.height,
-        a.view.describe(),
+        volume,
         status.packets,
         status.bytes,
         stats.coefficients_held,

@@ -2,12 +2,13 @@
 //! `.wsp` file, a published URL or a cache. This module parses the arguments, opens the volume
 //! the way `render` does, hands both to the window and prints what it did when it closes.
 
-use super::render::{open, ViewArgs};
+use super::render::ViewArgs;
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use std::path::PathBuf;
 use wavesplat_codec::view::MAX_IMAGE_SIDE;
 use wavesplat_viewer::backend::BackendChoice;
+use wavesplat_viewer::open::open;
 use wavesplat_viewer::window::{self, Script, ViewState, WindowOptions};
 
 /// Arguments of `wavesplat view`.
@@ -71,9 +72,16 @@ pub fn run(a: ViewWindowArgs) -> Result<()> {
         })?,
         None => Script::default(),
     };
-    let (header, opened, spec) = open(&a.view, None)?;
+    let location = a.view.location()?;
+    let title = location.describe();
+    let (header, opened, spec) = open(location, &request, None)?;
+    // The window turns a view by its angles: a named patient view must be one.
+    let state = ViewState::new(&spec, request.zoom, a.frame_ms);
+    let state = match &a.view.view {
+        Some(side) => state.with_context(|| format!("--view {side}"))?,
+        None => state?,
+    };
     let options = WindowOptions {
-        frame_ms: a.frame_ms,
         max_image: a.max_image,
         backend: match (a.gpu, a.cpu) {
             (true, _) => BackendChoice::Gpu,
@@ -84,19 +92,14 @@ pub fn run(a: ViewWindowArgs) -> Result<()> {
             request.width.min(u32::MAX as usize) as u32,
             request.height.min(u32::MAX as usize) as u32,
         ),
-        zoom: a.view.zoom,
         session: a.view.session_options(),
         shot_dir: a.shot_dir,
         screenshot: a.screenshot,
         exit_after_frames: a.exit_after_frames,
         script,
-        title: a.view.describe(),
+        title,
     };
-    // The window turns a view by its angles: a named patient view must be one.
-    if let Some(side) = &a.view.view {
-        ViewState::new(&spec, a.view.zoom, a.frame_ms).with_context(|| format!("--view {side}"))?;
-    }
-    let outcome = window::run(header, opened.into_source(), &spec, options)?;
+    let outcome = window::run(header, opened.into_source(), state, options)?;
     outln!(
         "view: {} frames drawn, {} coefficients held, {} splatted, {} bytes received, {}",
         outcome.drawn,

@@ -276,9 +276,10 @@ impl Opened {
 
 /// Opens the volume at `location`, ranked for the view `request` describes; returns its header,
 /// the opened source and that view (a named patient side resolved through the volume's
-/// placement, the fitting zoom). `byte_budget` caps the packets' bytes (file and cache).
+/// placement, the fitting zoom). `byte_budget` caps the packets' bytes (file and cache). A
+/// file's bytes move into its source.
 pub fn open(
-    location: &VolumeLocation,
+    location: VolumeLocation,
     request: &ViewRequest,
     byte_budget: Option<u64>,
 ) -> Result<(Header, Opened, ViewSpec), OpenError> {
@@ -291,27 +292,20 @@ pub fn open(
         VolumeLocation::Published { url } => {
             let first = request.spec()?;
             let (mut source, header) =
-                RangeSource::open(url, first, RangeSourceOptions::default()).map_err(failed)?;
+                RangeSource::open(&url, first, RangeSourceOptions::default()).map_err(failed)?;
             let spec = request.respec(&header, first, &mut source)?;
-            Ok((
-                header,
-                Opened::Remote {
-                    url: url.clone(),
-                    source,
-                },
-                spec,
-            ))
+            Ok((header, Opened::Remote { url, source }, spec))
         }
         VolumeLocation::File { path, bytes } => {
             // A named view and the fitting zoom need the volume before packets are ordered.
-            let header = parse_file(bytes)
+            let header = parse_file(&bytes)
                 .map_err(|source| OpenError::Format {
                     what: path.display().to_string(),
                     source,
                 })?
                 .header;
             let spec = request.spec_for(&header)?;
-            let source = FileSource::open(bytes.clone(), &spec)
+            let source = FileSource::open(bytes, &spec)
                 .map_err(failed)?
                 .with_byte_budget(byte_budget);
             Ok((
@@ -327,21 +321,21 @@ pub fn open(
             connect,
             name,
         } => {
-            let key = VolumeKey::Name(name.clone());
+            let key = VolumeKey::Name(name);
             let options = CacheSourceOptions {
                 byte_budget,
                 ..CacheSourceOptions::default()
             };
             let first = request.spec()?;
             let (mut source, header) =
-                CacheSource::open_with(urls, connect, key.clone(), first, options)
+                CacheSource::open_with(&urls, &connect, key.clone(), first, options)
                     .map_err(failed)?;
             let spec = request.respec(&header.header, first, &mut source)?;
             Ok((
                 header.header,
                 Opened::Cache {
-                    url: urls.clone(),
-                    connect: connect.clone(),
+                    url: urls,
+                    connect,
                     key,
                     source,
                 },

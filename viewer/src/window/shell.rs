@@ -19,7 +19,6 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 use wavesplat_codec::format::Header;
-use wavesplat_codec::view::ViewSpec;
 use winit::application::ApplicationHandler;
 use winit::dpi::PhysicalSize;
 use winit::event::{ElementState, MouseButton, MouseScrollDelta, WindowEvent};
@@ -37,16 +36,12 @@ macro_rules! fail {
 /// How the window runs.
 #[derive(Debug)]
 pub struct WindowOptions {
-    /// The frame budget in milliseconds at start.
-    pub frame_ms: f64,
     /// The largest image side (per view); the image follows the window up to this.
     pub max_image: usize,
     /// The accumulation backend: `Auto` takes the window's device unless it is a software one.
     pub backend: BackendChoice,
     /// The window's inner size at start, per view.
     pub window_size: (u32, u32),
-    /// A zoom the user gave (pixels per unit of spacing); `None`: fit the volume.
-    pub zoom: Option<f64>,
     /// The render session's settings.
     pub session: SessionOptions,
     /// Where S saves screenshots.
@@ -76,22 +71,23 @@ pub struct WindowOutcome {
     pub converged: bool,
 }
 
-/// Opens a window on the volume of `header`, fed by `source`, starting at `spec`, and runs it
-/// until it is closed (or the script or `exit_after_frames` ends it).
+/// Opens a window on the volume of `header`, fed by `source`, starting at `state` (its view and
+/// frame budget: [`ViewState::new`]), and runs it until it is closed (or the script or
+/// `exit_after_frames` ends it).
 pub fn run(
     header: Header,
     source: Box<dyn PacketSource>,
-    spec: &ViewSpec,
-    options: WindowOptions,
+    state: ViewState,
+    mut options: WindowOptions,
 ) -> Result<WindowOutcome> {
-    let state = ViewState::new(spec, options.zoom, options.frame_ms)?;
+    let script = std::mem::take(&mut options.script);
     let event_loop = EventLoop::new().context(
         "opening the display (no X11 display? set DISPLAY, or use `wavesplat render` headless)",
     )?;
     let mut app = App {
         controls: Controls::new(state),
         view_size: PhysicalSize::new(0, 0),
-        script: Script::default(),
+        script,
         options,
         pending: Some((header, source)),
         gfx: None,
@@ -110,22 +106,14 @@ pub fn run(
         last_draw: Instant::now(),
         last_image: None,
     };
-    app.script = std::mem::take(&mut app.options.script);
     event_loop
         .run_app(&mut app)
         .context("running the window's event loop")?;
     if let Some(e) = app.error.take() {
         return Err(e);
     }
-    if let (Some(path), Some(frames)) = (&app.options.screenshot, app.frames.as_mut()) {
-        let image = frames.session.image().context("reading the image")?;
-        let window = app.controls.state.display_window(&image)?;
-        arrange(
-            image,
-            grid(window_size(app.view_size), app.controls.state.multiview),
-        )
-        .write_png(path, window)
-        .with_context(|| format!("writing {}", path.display()))?;
+    if let (Some(path), true) = (app.options.screenshot.clone(), app.frames.is_some()) {
+        app.screenshot(&path)?;
     }
     let mut outcome = WindowOutcome {
         drawn: app.drawn,
