@@ -245,28 +245,31 @@ impl LocalCache {
     /// caller's runtime, so clients on that runtime can finish their streams while the node
     /// shuts down gracefully.
     pub async fn stop_async(mut self) -> Result<()> {
-        if let Some(s) = self.stop.take() {
-            let _ = s.send(());
-        }
-        let Some(thread) = self.thread.take() else {
+        let Some(thread) = self.signal_stop() else {
             return Ok(());
         };
         match tokio::task::spawn_blocking(move || thread.join()).await {
-            Ok(Ok(r)) => r,
-            _ => Err(anyhow::anyhow!("the cache's thread panicked")),
+            Ok(joined) => outcome(joined),
+            Err(_) => Err(anyhow::anyhow!("the cache's thread could not be joined")),
         }
     }
 
-    fn stop_now(&mut self) -> Result<()> {
+    /// Tells the server to stop; returns its thread unless that was done before.
+    fn signal_stop(&mut self) -> Option<std::thread::JoinHandle<Result<()>>> {
         if let Some(s) = self.stop.take() {
             let _ = s.send(());
         }
-        match self.thread.take().map(|t| t.join()) {
-            Some(Ok(r)) => r,
-            Some(Err(_)) => Err(anyhow::anyhow!("the cache's thread panicked")),
-            None => Ok(()),
-        }
+        self.thread.take()
     }
+
+    fn stop_now(&mut self) -> Result<()> {
+        self.signal_stop().map_or(Ok(()), |t| outcome(t.join()))
+    }
+}
+
+/// The node's result from its joined thread.
+fn outcome(joined: std::thread::Result<Result<()>>) -> Result<()> {
+    joined.unwrap_or_else(|_| Err(anyhow::anyhow!("the cache's thread panicked")))
 }
 
 impl Drop for LocalCache {
@@ -275,10 +278,7 @@ impl Drop for LocalCache {
             // Dropped on an async runtime (an async test that failed before its stop): joining
             // here could wait on clients only this runtime drives. Stop the node and let its
             // thread end on its own.
-            if let Some(s) = self.stop.take() {
-                let _ = s.send(());
-            }
-            self.thread.take();
+            self.signal_stop();
             return;
         }
         if let Err(e) = self.stop_now() {
