@@ -458,10 +458,7 @@ impl Fetch {
                 if let Err(e) = self.plan(&spec) {
                     tracing::warn!(error = %e, "planning a view for range requests");
                 }
-                self.update(|s| {
-                    s.done = false;
-                    s.views_applied += 1;
-                });
+                self.update(SourceStatus::view_applied);
             }
             Control::Dropped(ids) => {
                 for id in ids {

@@ -71,6 +71,14 @@ pub struct SourceStatus {
     pub views_applied: u64,
 }
 
+impl SourceStatus {
+    /// A network thread took the session's new view: nothing of it is done yet.
+    pub fn view_applied(&mut self) {
+        self.done = false;
+        self.views_applied += 1;
+    }
+}
+
 /// A source of packets for a render session.
 pub trait PacketSource: Send {
     /// The next packet that has arrived, if any (never blocks).
@@ -634,10 +642,7 @@ impl Pull {
     /// reconnecting).
     fn apply_view(&mut self, v: ViewSpec) {
         self.view = v;
-        self.update(|s| {
-            s.done = false;
-            s.views_applied += 1;
-        });
+        self.update(SourceStatus::view_applied);
     }
 
     /// Moves on to the next cache node; true when there is another one to try at once (after a
