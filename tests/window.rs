@@ -485,3 +485,92 @@ fn the_window_recovers_from_a_lost_graphics_device() {
         );
     }
 }
+
+/// With the GPU backend the window shows the image the display pass made on the device (no
+/// image crosses the bus): what the X server shows is, pixel for pixel, the screenshot the
+/// host makes of the same state (the session's image, the 2×2 multiview grid, the window
+/// narrowed by the contrast key), as it is with the CPU backend, whose image is uploaded.
+#[test]
+fn the_screen_shows_the_device_image_of_the_gpu_backend() {
+    let Some(x) = display_for_window() else {
+        return;
+    };
+    if !on_path("import") {
+        assert!(
+            !required(),
+            "WAVESPLAT_REQUIRE_GPU=1 but ImageMagick's import is missing"
+        );
+        eprintln!("skipped: no ImageMagick import to read the screen");
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("ct.wsp");
+    std::fs::write(&file, wsp(Phantom::Ct, [40, 32, 24])).unwrap();
+    for (backend, shown_by) in [
+        ("--gpu", "made there by the display pass"),
+        ("--cpu", "uploaded from the host"),
+    ] {
+        let p = |name: &str| -> PathBuf { dir.path().join(format!("{backend}-{name}")) };
+        let s = |name: &str| p(name).to_str().unwrap().to_string();
+        let script = format!(
+            "key m; key 1; converge; frames 3; screenshot {}; signal {}; await {}; quit",
+            s("shot.png"),
+            s("shown"),
+            s("go"),
+        );
+        let mut child = view(
+            &x.display,
+            &[
+                file.to_str().unwrap(),
+                backend,
+                "--size",
+                "120x90",
+                "--script",
+                &script,
+            ],
+        )
+        .spawn()
+        .unwrap();
+        wait_for(&p("shown"), &mut child, "its converged image");
+        let o = Command::new("import")
+            .args(["-display", &x.display, "-window", "root"])
+            .arg(p("root.png"))
+            .output()
+            .unwrap();
+        std::fs::write(p("go"), b"").unwrap();
+        let (status, stdout, stderr) = finish(child);
+        assert!(
+            o.status.success(),
+            "import: {}",
+            String::from_utf8_lossy(&o.stderr)
+        );
+        assert!(
+            status.success(),
+            "{backend}: exit {status}\nstdout {stdout}\nstderr {stderr}"
+        );
+        assert!(stderr.contains(shown_by), "{backend}: {stderr}");
+        let (w, h, shot) = grey(&p("shot.png"));
+        assert_eq!(
+            (w, h),
+            (120, 90),
+            "{backend}: multiview 2x2 of 60x45 panels"
+        );
+        assert!(stats(&shot, w, w, h).1 > 100.0, "{backend}: no volume");
+        let (rw, _, root) = grey(&p("root.png"));
+        let mut worst = 0.0f64;
+        let mut total = 0.0;
+        for y in 0..h {
+            for x in 0..w {
+                let d = (root[y * rw + x] - shot[y * w + x]).abs();
+                worst = worst.max(d);
+                total += d;
+            }
+        }
+        let mean = total / (w * h) as f64;
+        eprintln!("{backend}: screen vs screenshot: max {worst}, mean {mean:.3}");
+        assert!(
+            worst <= 1.0 && mean < 0.05,
+            "{backend}: the screen differs from the screenshot: max {worst}, mean {mean}"
+        );
+    }
+}

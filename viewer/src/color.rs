@@ -7,8 +7,10 @@
 //! averaged over the pixel as the splats are; `codec::format::ColorInfo::to_rgb` holds the
 //! formula and `codec::view::Camera::chord` / `cued_chord` the length.
 
+use crate::backend::gpu::ColorMap;
 use crate::image::Image;
 use crate::RenderError;
+use std::sync::Arc;
 use wavesplat_codec::format::Header;
 use wavesplat_codec::view::{resolve_cue, Camera, ResolvedCue, ViewSpec};
 
@@ -127,6 +129,48 @@ impl PathLengths {
             }
         }
         Ok(out)
+    }
+}
+
+impl PathLengths {
+    /// The display pass's twin of [`PathLengths::apply`] for `header`: the inverse colour
+    /// basis as the matrix and `mean · length` as the per-pixel offsets; `None` when the image
+    /// is shown as accumulated (an intensity volume with nothing subtracted).
+    pub fn color_map(&self, header: &Header) -> Result<Option<ColorMap>, RenderError> {
+        let channels = header.channels;
+        let offsets = has_offset(header);
+        if channels == 1 && !offsets {
+            return Ok(None);
+        }
+        let matrix = if channels == 3 {
+            let inv = header
+                .color
+                .inverse_basis()
+                .ok_or(RenderError::Unsupported(
+                    "the header's colour basis is singular",
+                ))?;
+            Some(inv.map(|row| row.map(|v| v as f32)))
+        } else {
+            None
+        };
+        let offset = if offsets {
+            let w = self.width / self.cameras.len().max(1);
+            let mean = header.color.mean;
+            let mut out = Vec::with_capacity(self.width * self.height * channels);
+            for y in 0..self.height {
+                for x in 0..self.width {
+                    let len = match self.lengths.get(x / w.max(1)) {
+                        Some(view) => view[y * w + x % w],
+                        None => 0.0,
+                    };
+                    out.extend(mean[..channels].iter().map(|m| (m * len) as f32));
+                }
+            }
+            Some(Arc::from(out))
+        } else {
+            None
+        };
+        Ok(Some(ColorMap { matrix, offset }))
     }
 }
 

@@ -34,6 +34,7 @@
 //!   ([`SessionOptions::transient_bytes`]). A bound of 0 is the paper's "network computer"
 //!   (§4): the session then keeps only the footprint tables and the image.
 
+use crate::backend::gpu::{ColorMap, DisplayOptions};
 use crate::backend::{AccumulationBackend, BackendError, SplatRecord};
 use crate::color;
 use crate::image::Image;
@@ -363,6 +364,9 @@ pub struct RenderSession<B: AccumulationBackend> {
     waiting: Vec<(u32, u32)>,
     /// Per-pixel path lengths of the last displayed view (kept while the view stays).
     path_lengths: Option<color::PathLengths>,
+    /// The display pass's colour map for those lengths (`Some(None)`: shown as accumulated;
+    /// `None`: not made yet).
+    device_colour: Option<Option<ColorMap>>,
     /// The preview's last image and how many coefficients it had drawn, shown after the exact
     /// tables arrived until they have drawn as many: a switch from preview to exact tables
     /// restarts the accumulation, which would otherwise dip to a coarser image for a few frames.
@@ -427,6 +431,7 @@ impl<B: AccumulationBackend> RenderSession<B> {
             queue: BucketQueue::new(),
             waiting: Vec::new(),
             path_lengths: None,
+            device_colour: None,
             shown_preview: None,
             dropped: Vec::new(),
             stats: SessionStats::default(),
@@ -993,21 +998,75 @@ impl<B: AccumulationBackend> RenderSession<B> {
     /// Right after a preview is replaced by the exact tables, this is the preview's last image
     /// until the exact tables have drawn as many coefficients (or everything queued).
     pub fn image(&mut self) -> Result<Image, SessionError> {
-        if let Some((image, drawn)) = &self.shown_preview {
+        if self.showing_preview() {
+            return Ok(self.shown_preview.as_ref().expect("shown").0.clone());
+        }
+        let raw = self.backend.read()?;
+        self.lengths_for(raw.width, raw.height);
+        let lengths = self.path_lengths.as_ref().expect("made above");
+        Ok(lengths.apply(&raw, &self.header)?)
+    }
+
+    /// The image so far as the GPU backend shows it on the device it accumulated on (no image
+    /// crosses the bus): [`RenderSession::image`]'s values through `window` (given the
+    /// automatic window, it returns the one to show), its views in `grid` panels (columns,
+    /// rows) ([`crate::backend::gpu::GpuBackend::display`]). `None` when the backend accumulates on the host, or
+    /// while the preview's last image is what [`RenderSession::image`] shows: show that then.
+    pub fn device_display(
+        &mut self,
+        window: impl FnOnce((f64, f64)) -> (f64, f64),
+        grid: (usize, usize),
+    ) -> Result<Option<&wgpu::Texture>, SessionError> {
+        if self.showing_preview() || self.backend.gpu().is_none() {
+            return Ok(None);
+        }
+        let layout = self.plan.layout();
+        self.lengths_for(layout.total_width(), layout.height);
+        if self.device_colour.is_none() {
+            let lengths = self.path_lengths.as_ref().expect("made above");
+            self.device_colour = Some(lengths.color_map(&self.header)?);
+        }
+        let colour = self.device_colour.clone().flatten();
+        let gpu = self.backend.gpu().expect("checked above");
+        let auto = gpu.auto_window(colour.as_ref())?;
+        let options = DisplayOptions {
+            window: Some(window(auto)),
+            colour,
+            grid: Some(grid),
+        };
+        Ok(Some(gpu.display(&options)?))
+    }
+
+    /// Whether [`RenderSession::image`] shows the preview's last image now: until the exact
+    /// tables have drawn as many coefficients as it had, or everything queued.
+    fn showing_preview(&mut self) -> bool {
+        if let Some((_, drawn)) = &self.shown_preview {
             if self.stats.splatted_in_view < *drawn && self.pending() > 0 {
-                return Ok(image.clone());
+                return true;
             }
             self.shown_preview = None;
         }
-        let raw = self.backend.read()?;
+        false
+    }
+
+    /// Makes `path_lengths` those of the current view for an image of `width` × `height` (kept
+    /// while the view and the size stay).
+    fn lengths_for(&mut self, width: usize, height: usize) {
         let (cameras, cue) = (&self.plan.cameras, self.plan.cue.as_ref());
-        let lengths = match self.path_lengths.take() {
-            Some(l) if l.matches(cameras, cue, raw.width, raw.height) => l,
-            _ => color::PathLengths::new(&self.header, cameras, cue, raw.width, raw.height),
-        };
-        let image = lengths.apply(&raw, &self.header);
-        self.path_lengths = Some(lengths);
-        Ok(image?)
+        let kept = self
+            .path_lengths
+            .as_ref()
+            .is_some_and(|l| l.matches(cameras, cue, width, height));
+        if !kept {
+            self.path_lengths = Some(color::PathLengths::new(
+                &self.header,
+                cameras,
+                cue,
+                width,
+                height,
+            ));
+            self.device_colour = None;
+        }
     }
 
     /// The image so far in the coded channels (what the backend accumulated).

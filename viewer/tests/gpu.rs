@@ -346,18 +346,19 @@ fn display_matches_the_png_mapping() {
         .map(|i| (i % 97) as f32 * 0.3)
         .collect();
     let colour = ColorMap {
-        matrix: [
+        matrix: Some([
             [1.0, 0.956, 0.621],
             [1.0, -0.272, -0.647],
             [1.0, -1.106, 1.703],
-        ],
-        offset: Some(offset),
+        ]),
+        offset: Some(offset.into()),
     };
     let mapped = colour.apply(&cpu).unwrap();
     let window = mapped.percentiles(2.0, 97.0);
     let options = DisplayOptions {
         window: Some(window),
         colour: Some(colour),
+        grid: None,
     };
     gpu.display(&options).unwrap();
     let shown = gpu.read_display().unwrap();
@@ -367,6 +368,114 @@ fn display_matches_the_png_mapping() {
     assert!(max <= 1 && n * 100 <= shown.len(), "max {max}, {n} differ");
     let distinct: std::collections::BTreeSet<u8> = shown.iter().copied().collect();
     assert!(distinct.len() > 100, "the image is not flat");
+}
+
+/// The display pass lays multiview's three panels out as a window does (2×2 with an empty
+/// cell, a column, a row) as `arrange` + the PNG mapping do on the host, and refuses a grid
+/// that cannot hold the views or a colour map that does not fit the image.
+#[test]
+fn display_lays_views_out_in_a_grid() {
+    use wavesplat_viewer::window::controls::arrange;
+    let Some(ctx) = gpu() else { return };
+    let (g, coeffs) = coefficients(Family::Linear, 1);
+    let spec = ViewSpec {
+        view: view(),
+        multiview: true,
+    };
+    let p = plan(&g, &coeffs[..20_000], &spec, 1);
+    let mut gpu = GpuBackend::new(ctx).unwrap();
+    gpu.begin(p.plan.layout()).unwrap();
+    for (_, r) in &p.batches {
+        gpu.accumulate(&p.plan.atlas, r).unwrap();
+    }
+    let image = gpu.read().unwrap();
+    let window = image.percentiles(1.0, 99.0);
+    for grid in [(2, 2), (1, 3), (3, 1)] {
+        let options = DisplayOptions {
+            window: Some(window),
+            colour: None,
+            grid: Some(grid),
+        };
+        let texture = gpu.display(&options).unwrap();
+        let size = (texture.width() as usize, texture.height() as usize);
+        let shown = gpu.read_display().unwrap();
+        let reference = arrange(image.clone(), grid);
+        assert_eq!(size, (reference.width, reference.height), "{grid:?}");
+        let (max, n) = byte_diffs(&shown, &reference.to_rgba8(Some(window)).unwrap());
+        eprintln!("grid {grid:?}: max {max}, {n} bytes differ");
+        assert!(
+            max <= 1 && n * 100 <= shown.len(),
+            "{grid:?}: max {max}, {n} differ"
+        );
+    }
+    for grid in [(1, 2), (2, 1), (0, 3)] {
+        let options = DisplayOptions {
+            window: Some(window),
+            colour: None,
+            grid: Some(grid),
+        };
+        assert!(
+            matches!(gpu.display(&options), Err(BackendError::Display(_))),
+            "{grid:?}"
+        );
+    }
+    let bad = [
+        ColorMap {
+            matrix: Some([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]),
+            offset: None,
+        },
+        ColorMap {
+            matrix: None,
+            offset: Some(vec![0.0; 7].into()),
+        },
+    ];
+    for colour in bad {
+        let options = DisplayOptions {
+            colour: Some(colour),
+            ..Default::default()
+        };
+        assert!(matches!(
+            gpu.display(&options),
+            Err(BackendError::Display(_))
+        ));
+    }
+}
+
+/// The automatic window from the device's samples is the host's `auto_window` of the shown
+/// values: exactly (to f32 rounding) in an image of up to `MAX_WINDOW_SAMPLES` pixels, and
+/// within 1 % of its width from every n-th pixel of a larger one; a flat (empty) image gets the
+/// host's black window too.
+#[test]
+fn auto_window_from_device_samples_matches_the_host() {
+    use wavesplat_viewer::backend::gpu::MAX_WINDOW_SAMPLES;
+    let Some(ctx) = gpu() else { return };
+    let (g, coeffs) = coefficients(Family::Linear, 1);
+    let mut gpu = GpuBackend::new(ctx).unwrap();
+    for (w, h, exact) in [(200, 150, true), (330, 270, false)] {
+        assert_eq!(w * h <= MAX_WINDOW_SAMPLES, exact);
+        let spec = ViewSpec::single(View::new(0.5, 0.3, w, h));
+        let p = plan(&g, &coeffs[..30_000], &spec, 1);
+        gpu.begin(p.plan.layout()).unwrap();
+        let empty = gpu.auto_window(None).unwrap();
+        assert_eq!(empty, gpu.read().unwrap().resolve_window(None).unwrap());
+        for (_, r) in &p.batches {
+            gpu.accumulate(&p.plan.atlas, r).unwrap();
+        }
+        let offsets: Vec<f32> = (0..w * h).map(|i| (i % 13) as f32 * 0.05).collect();
+        let colour = ColorMap {
+            matrix: None,
+            offset: Some(offsets.into()),
+        };
+        let host = colour.apply(&gpu.read().unwrap()).unwrap();
+        let (lo, hi) = host.resolve_window(None).unwrap();
+        let (dlo, dhi) = gpu.auto_window(Some(&colour)).unwrap();
+        let tolerance = if exact { 1e-5 } else { 1e-2 } * (hi - lo);
+        eprintln!("{w}x{h}: host ({lo}, {hi}), device samples ({dlo}, {dhi})");
+        assert!(
+            (dlo - lo).abs() <= tolerance && (dhi - hi).abs() <= tolerance,
+            "{w}x{h}: host ({lo}, {hi}), device ({dlo}, {dhi})"
+        );
+    }
 }
 
 /// Bad input is refused with typed errors, never a panic or a device error.
@@ -520,4 +629,112 @@ fn session_on_the_gpu_backend_matches_the_cpu_one() {
     let snr = snr_db(&images[0].data, &images[1].data);
     eprintln!("session image, GPU vs CPU: SNR {snr:.1} dB");
     assert!(snr >= 50.0, "{snr}");
+}
+
+/// What a window shows with the GPU backend, made on the device (`device_display`), against
+/// what it showed before, made on the host (the session's image, `arrange`, the window): an
+/// intensity volume with an offset (air at −1000 times the path length), a colour volume (the
+/// inverse basis and the origin colour), multiview in a 2×2 grid, the automatic window narrowed
+/// and moved as the contrast and level keys do. A host backend has no device image.
+#[test]
+fn session_device_display_matches_the_host_path() {
+    use std::time::Duration;
+    use wavesplat_compressor::encode::{compress, CompressOptions, Target};
+    use wavesplat_compressor::phantom::Phantom;
+    use wavesplat_viewer::session::RenderSession;
+    use wavesplat_viewer::window::controls::arrange;
+    let Some(ctx) = gpu() else { return };
+    let adjust = |(lo, hi): (f64, f64)| {
+        let (c, w) = (0.5 * (lo + hi) + 0.1 * (hi - lo), 0.35 * (hi - lo));
+        (c - w, c + w)
+    };
+    // The RGB head on a coloured background, so that its origin colour is not black.
+    let dims = [36, 40, 30];
+    let head = Phantom::RgbHead.generate(dims);
+    let background = [40.0, 70.0, 20.0];
+    let rgb = wavesplat_codec::volume::Volume::new(
+        dims,
+        head.spacing(),
+        (0..3)
+            .map(|c| head.channel(c).iter().map(|v| v + background[c]).collect())
+            .collect(),
+    )
+    .unwrap();
+    let ct = Phantom::Ct.generate(dims);
+    let cases = [
+        ("ct", &ct, false, (1, 1), false),
+        ("ct", &ct, true, (2, 2), true),
+        ("rgb", &rgb, false, (1, 1), true),
+        ("rgb", &rgb, true, (1, 3), false),
+    ];
+    for (phantom, volume, multiview, grid, narrowed) in cases {
+        let bytes = compress(
+            volume,
+            &CompressOptions {
+                target: Target::Fraction(0.1),
+                refine: None,
+                ..Default::default()
+            },
+            &|_, _| {},
+        )
+        .unwrap()
+        .bytes;
+        let file = wavesplat_codec::format::parse_file(&bytes).unwrap();
+        let mean = file.header.color.mean;
+        assert!(
+            mean.iter().any(|m| *m != 0.0),
+            "{phantom}: no offset to show"
+        );
+        let spec = ViewSpec {
+            view: View::new(0.4, 1.1, 64, 52),
+            multiview,
+        };
+        let backend: Box<dyn AccumulationBackend> = Box::new(GpuBackend::new(ctx.clone()).unwrap());
+        let mut session =
+            RenderSession::new(file.header.clone(), spec, backend, Default::default()).unwrap();
+        for (id, p) in file.packets.iter().enumerate() {
+            session.add_packet(id as u32, p).unwrap();
+        }
+        while session.pending() > 0 {
+            session.step(Duration::from_millis(20)).unwrap();
+        }
+        let host = session.image().unwrap();
+        let window = match narrowed {
+            true => adjust(host.resolve_window(None).unwrap()),
+            false => host.resolve_window(None).unwrap(),
+        };
+        let reference = arrange(host, grid);
+        let texture = session
+            .device_display(|auto| if narrowed { adjust(auto) } else { auto }, grid)
+            .unwrap()
+            .expect("the GPU backend shows on the device")
+            .clone();
+        assert_eq!(
+            (texture.width() as usize, texture.height() as usize),
+            (reference.width, reference.height)
+        );
+        let shown = ctx.read_rgba8(&texture).unwrap();
+        let (max, n) = byte_diffs(&shown, &reference.to_rgba8(Some(window)).unwrap());
+        eprintln!("{phantom}, multiview {multiview}, grid {grid:?}: max {max}, {n} bytes differ");
+        assert!(max <= 1 && n * 100 <= shown.len(), "max {max}, {n} differ");
+        let distinct: std::collections::BTreeSet<u8> = shown.iter().copied().collect();
+        assert!(distinct.len() > 30, "the image is not flat");
+    }
+    let cpu: Box<dyn AccumulationBackend> = Box::new(CpuBackend::new());
+    let bytes = compress(
+        &Phantom::Ct.generate([20, 20, 20]),
+        &CompressOptions::default(),
+        &|_, _| {},
+    )
+    .unwrap()
+    .bytes;
+    let file = wavesplat_codec::format::parse_file(&bytes).unwrap();
+    let mut session = RenderSession::new(
+        file.header,
+        ViewSpec::single(View::new(0.0, 0.0, 16, 16)),
+        cpu,
+        Default::default(),
+    )
+    .unwrap();
+    assert!(session.device_display(|w| w, (1, 1)).unwrap().is_none());
 }

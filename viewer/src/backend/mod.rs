@@ -221,6 +221,11 @@ pub trait AccumulationBackend: Send {
     ) -> Result<u64, BackendError>;
     /// The image accumulated since `begin` (views side by side).
     fn read(&mut self) -> Result<Image, BackendError>;
+    /// The GPU backend, whose image can be shown where it was accumulated
+    /// ([`gpu::GpuBackend::display`]); `None` for one that accumulates on the host.
+    fn gpu(&mut self) -> Option<&mut gpu::GpuBackend> {
+        None
+    }
 }
 
 impl<T: AccumulationBackend + ?Sized> AccumulationBackend for Box<T> {
@@ -242,6 +247,10 @@ impl<T: AccumulationBackend + ?Sized> AccumulationBackend for Box<T> {
 
     fn read(&mut self) -> Result<Image, BackendError> {
         (**self).read()
+    }
+
+    fn gpu(&mut self) -> Option<&mut gpu::GpuBackend> {
+        (**self).gpu()
     }
 }
 

@@ -102,13 +102,19 @@ impl ViewState {
         if self.contrast == 1.0 && self.level == 0.0 {
             return Ok(None);
         }
-        let (lo, hi) = image
+        let auto = image
             .resolve_window(None)
             .context("the image's display window")?;
+        Ok(Some(self.shown_window(auto)))
+    }
+
+    /// The window shown for an image whose automatic window is `(lo, hi)`: its centre moved by
+    /// the level and its width scaled by the contrast.
+    pub fn shown_window(&self, (lo, hi): (f64, f64)) -> (f64, f64) {
         let width = hi - lo;
         let centre = 0.5 * (lo + hi) + self.level * width;
         let half = 0.5 * width * self.contrast;
-        Ok(Some((centre - half, centre + half)))
+        (centre - half, centre + half)
     }
 
     /// The next light direction for depth cueing: the view direction, then light from +x, +y

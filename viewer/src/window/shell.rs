@@ -1,6 +1,7 @@
 //! The winit 0.30 front-end of the window: the application handler, a wgpu surface on the
-//! adapter it chose (the GPU accumulation backend shares that device when it is chosen), onto
-//! which each frame's image is uploaded and blitted with `wgpu::util::TextureBlitter`; surface
+//! adapter it chose (the GPU accumulation backend shares that device when it is chosen, and its
+//! display pass then makes the texture drawn, so no image crosses the bus; a host image — the
+//! CPU backend's, a preview's — is uploaded), blitted with `wgpu::util::TextureBlitter`; surface
 //! upkeep (resize, minimise, lost or outdated surfaces); a lost device (a driver reset; the
 //! script's `lose-device` destroys it) recreated on the same window, with the backend when it
 //! was on that device, the session drawing what it holds again; the title showing the
@@ -137,7 +138,10 @@ struct Gfx {
     surface: wgpu::Surface<'static>,
     config: wgpu::SurfaceConfiguration,
     blitter: wgpu::util::TextureBlitter,
+    /// The texture drawn: the display pass's, or `uploaded`.
     texture: Option<(wgpu::Texture, wgpu::TextureView)>,
+    /// The texture host images are uploaded to (kept while the size stays).
+    uploaded: Option<wgpu::Texture>,
     ctx: Arc<GpuContext>,
     window: Arc<Window>,
 }
@@ -235,9 +239,14 @@ impl App {
                 }
             };
         eprintln!(
-            "backend: {reason}; display on {} ({:?})",
+            "backend: {reason}; display on {} ({:?}), {}",
             ctx.info().name,
-            ctx.info().backend
+            ctx.info().backend,
+            if self.gpu_backend && !g.config.format.is_srgb() {
+                "the image made there by the display pass"
+            } else {
+                "the image uploaded from the host"
+            }
         );
         let spec = self.controls.state.spec(
             window_size(size).at_least_one(),
@@ -492,49 +501,28 @@ impl App {
         }
         let display_start = Instant::now();
         if self.controls.image_changed {
-            let image = frames.session.image().context("reading the image")?;
-            let window = self.controls.state.display_window(&image)?;
-            let image = arrange(
-                image,
-                grid(window_size(self.view_size), self.controls.state.multiview),
-            );
-            let rgba = image.to_rgba8(window).context("converting the image")?;
-            let (w, h) = (image.width as u32, image.height as u32);
-            if g.texture.as_ref().map(|(t, _)| (t.width(), t.height())) != Some((w, h)) {
-                let t = g.ctx.device().create_texture(&wgpu::TextureDescriptor {
-                    label: Some("wavesplat view image"),
-                    size: wgpu::Extent3d {
-                        width: w,
-                        height: h,
-                        depth_or_array_layers: 1,
-                    },
-                    mip_level_count: 1,
-                    sample_count: 1,
-                    dimension: wgpu::TextureDimension::D2,
-                    format: if g.config.format.is_srgb() {
-                        wgpu::TextureFormat::Rgba8UnormSrgb
-                    } else {
-                        wgpu::TextureFormat::Rgba8Unorm
-                    },
-                    usage: wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_DST,
-                    view_formats: &[],
-                });
-                let v = t.create_view(&wgpu::TextureViewDescriptor::default());
-                g.texture = Some((t, v));
-            }
-            if let Some((t, _)) = &g.texture {
-                g.ctx.queue().write_texture(
-                    t.as_image_copy(),
-                    &rgba,
-                    wgpu::TexelCopyBufferLayout {
-                        offset: 0,
-                        bytes_per_row: Some(4 * w),
-                        rows_per_image: Some(h),
-                    },
-                    t.size(),
-                );
-            }
-            self.last_image = Some((image.width, image.height));
+            let panels = grid(window_size(self.view_size), self.controls.state.multiview);
+            let state = &self.controls.state;
+            // The GPU backend's image is shown where it was accumulated; the host's image (the
+            // CPU backend's, a preview's, or any on an sRGB-only surface) is uploaded.
+            let on_device = match self.gpu_backend && !g.config.format.is_srgb() {
+                true => frames
+                    .session
+                    .device_display(|auto| state.shown_window(auto), panels)
+                    .context("showing the image")?
+                    .cloned(),
+                false => None,
+            };
+            let (w, h) = match on_device {
+                Some(t) => {
+                    let v = t.create_view(&wgpu::TextureViewDescriptor::default());
+                    let size = (t.width(), t.height());
+                    g.texture = Some((t, v));
+                    size
+                }
+                None => upload(g, frames, state, panels)?,
+            };
+            self.last_image = Some((w as usize, h as usize));
             self.controls.image_changed = false;
         }
         present(g, size)?;
@@ -577,6 +565,55 @@ impl App {
         }
         Ok(())
     }
+}
+
+/// Uploads the session's host image, arranged in `panels` and mapped through the state's
+/// window, to the texture the window draws; returns its size.
+fn upload(
+    g: &mut Gfx,
+    frames: &mut Frames,
+    state: &ViewState,
+    panels: (usize, usize),
+) -> Result<(u32, u32)> {
+    let image = frames.session.image().context("reading the image")?;
+    let window = state.display_window(&image)?;
+    let image = arrange(image, panels);
+    let rgba = image.to_rgba8(window).context("converting the image")?;
+    let (w, h) = (image.width as u32, image.height as u32);
+    if g.uploaded.as_ref().map(|t| (t.width(), t.height())) != Some((w, h)) {
+        g.uploaded = Some(g.ctx.device().create_texture(&wgpu::TextureDescriptor {
+            label: Some("wavesplat view image"),
+            size: wgpu::Extent3d {
+                width: w,
+                height: h,
+                depth_or_array_layers: 1,
+            },
+            mip_level_count: 1,
+            sample_count: 1,
+            dimension: wgpu::TextureDimension::D2,
+            format: if g.config.format.is_srgb() {
+                wgpu::TextureFormat::Rgba8UnormSrgb
+            } else {
+                wgpu::TextureFormat::Rgba8Unorm
+            },
+            usage: wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_DST,
+            view_formats: &[],
+        }));
+    }
+    let t = g.uploaded.clone().expect("made above");
+    g.ctx.queue().write_texture(
+        t.as_image_copy(),
+        &rgba,
+        wgpu::TexelCopyBufferLayout {
+            offset: 0,
+            bytes_per_row: Some(4 * w),
+            rows_per_image: Some(h),
+        },
+        t.size(),
+    );
+    let v = t.create_view(&wgpu::TextureViewDescriptor::default());
+    g.texture = Some((t, v));
+    Ok((w, h))
 }
 
 /// Opens a graphics context that can draw to `window` and configures the window's surface on
@@ -635,6 +672,7 @@ fn open_display(
         config,
         blitter,
         texture: None,
+        uploaded: None,
         ctx,
         window,
     })

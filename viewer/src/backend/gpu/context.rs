@@ -255,6 +255,47 @@ impl GpuContext {
         Ok(bytes)
     }
 
+    /// The pixels of an RGBA8 `texture` of this device (rows without padding): what a
+    /// display texture shows.
+    pub fn read_rgba8(&self, texture: &wgpu::Texture) -> Result<Vec<u8>, BackendError> {
+        if texture.format().block_copy_size(None) != Some(4) {
+            return Err(BackendError::Display(format!(
+                "{:?} is not a 4-byte-per-pixel format",
+                texture.format()
+            )));
+        }
+        let (w, h) = (texture.width(), texture.height());
+        let row = w as u64 * 4;
+        let padded = row.next_multiple_of(wgpu::COPY_BYTES_PER_ROW_ALIGNMENT as u64);
+        let staging = self.buffer(
+            "wavesplat display readback",
+            padded * h as u64,
+            wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+        );
+        let mut encoder = self
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor::default());
+        encoder.copy_texture_to_buffer(
+            texture.as_image_copy(),
+            wgpu::TexelCopyBufferInfo {
+                buffer: &staging,
+                layout: wgpu::TexelCopyBufferLayout {
+                    offset: 0,
+                    bytes_per_row: Some(padded as u32),
+                    rows_per_image: Some(h),
+                },
+            },
+            texture.size(),
+        );
+        self.queue.submit([encoder.finish()]);
+        let bytes = self.map_read(&staging)?;
+        Ok(bytes
+            .chunks_exact(padded as usize)
+            .flat_map(|r| &r[..row as usize])
+            .copied()
+            .collect())
+    }
+
     /// Largest storage buffer binding this device allows (bytes).
     pub(super) fn max_binding(&self) -> u64 {
         let l = self.device.limits();

@@ -27,13 +27,14 @@
 //! format support, and it rounds like the CPU path rather than better.
 //!
 //! **Display.** `shaders/display.wgsl` converts the sums to floats, applies an optional 3×3
-//! colour matrix and per-pixel offset (the coded colour space back to RGB) and the
-//! window/level of [`Image::write_png`] into an `Rgba8Unorm` storage texture (views side by
-//! side as accumulated). The automatic window reads the image back and takes its percentiles
-//! on the host, exactly as `write_png`; a window that shows many frames can pass one. A window
-//! builds its [`GpuContext`] with [`GpuContext::from_adapter`] (the adapter it chose for its
-//! surface) and draws the texture [`GpuBackend::display`] returns, e.g. with
-//! `wgpu::util::TextureBlitter` (the bytes are the PNG's: linear, so blit to a non-sRGB view).
+//! colour matrix and per-pixel offset (the coded values back to what the volume holds) and the
+//! window/level of [`Image::write_png`] into an `Rgba8Unorm` storage texture, the views laid out
+//! side by side or in a grid of panels. The automatic window takes the percentiles of
+//! `write_png` on the host, from at most [`MAX_WINDOW_SAMPLES`] values the device picks out (all
+//! of a smaller image), so showing a frame moves no image across the bus. A window builds its
+//! [`GpuContext`] with [`GpuContext::from_adapter`] (the adapter it chose for its surface) and
+//! draws the texture [`GpuBackend::display`] returns, e.g. with `wgpu::util::TextureBlitter`
+//! (the bytes are the PNG's: linear, so blit to a non-sRGB view).
 //!
 //! **Cost.** The scatter with atomics suits a GPU. On a software adapter (lavapipe) the atomics
 //! run one lane at a time, and the backend is 5–15× slower than the CPU backend on the same
@@ -50,8 +51,8 @@ use super::{check_record, AccumulationBackend, BackendError, FootprintAtlas, Lay
 use crate::image::Image;
 use bytemuck::{Pod, Zeroable};
 pub use context::{probe_adapter, AdapterRequest, GpuContext};
-use display::Display;
-pub use display::{ColorMap, DisplayOptions};
+pub use display::{ColorMap, DisplayOptions, MAX_WINDOW_SAMPLES};
+use display::{Display, Offsets};
 use std::sync::Arc;
 /// The wgpu this backend is built on (a window must use the same version).
 pub use wgpu;
@@ -138,12 +139,15 @@ pub struct GpuBackend {
     options: GpuOptions,
     accumulate: wgpu::ComputePipeline,
     display: wgpu::ComputePipeline,
+    /// The display pass's `sample` entry point (the automatic window's values).
+    sample: wgpu::ComputePipeline,
     params: wgpu::Buffer,
     records: wgpu::Buffer,
     records_capacity: usize,
     atlas: DeviceAtlas,
     target: Option<Target>,
     shown: Option<Display>,
+    offsets: Option<Offsets>,
 }
 
 fn pipeline(ctx: &GpuContext, label: &str, source: &str, entry: &str) -> wgpu::ComputePipeline {
@@ -190,6 +194,12 @@ impl GpuBackend {
             include_str!("../shaders/display.wgsl"),
             "display",
         );
+        let sample = pipeline(
+            &ctx,
+            "wavesplat display samples",
+            include_str!("../shaders/display.wgsl"),
+            "sample",
+        );
         let params = ctx.buffer(
             "wavesplat params",
             std::mem::size_of::<AccumulateParams>() as u64,
@@ -215,12 +225,14 @@ impl GpuBackend {
             options,
             accumulate,
             display,
+            sample,
             params,
             records,
             records_capacity,
             atlas,
             target: None,
             shown: None,
+            offsets: None,
         })
     }
 
@@ -563,6 +575,10 @@ impl AccumulationBackend for GpuBackend {
         Ok(updates)
     }
 
+    fn gpu(&mut self) -> Option<&mut GpuBackend> {
+        Some(self)
+    }
+
     fn read(&mut self) -> Result<Image, BackendError> {
         self.ctx.check()?;
         let t = self
@@ -635,7 +651,15 @@ mod tests {
                     offset_of!(DisplayUniform, inv_scale),
                     offset_of!(DisplayUniform, low),
                     offset_of!(DisplayUniform, inv_range),
+                    offset_of!(DisplayUniform, view_width),
+                    offset_of!(DisplayUniform, cols),
+                    offset_of!(DisplayUniform, out_width),
+                    offset_of!(DisplayUniform, out_height),
+                    offset_of!(DisplayUniform, stride),
+                    offset_of!(DisplayUniform, samples),
                     offset_of!(DisplayUniform, pad),
+                    offset_of!(DisplayUniform, pad) + 4,
+                    offset_of!(DisplayUniform, pad) + 8,
                     offset_of!(DisplayUniform, matrix),
                     offset_of!(DisplayUniform, matrix) + 16,
                     offset_of!(DisplayUniform, matrix) + 32,
