@@ -13,7 +13,6 @@ macro_rules! outln {
 }
 
 mod commands;
-mod progress;
 
 use anyhow::Result;
 use clap::{Parser, Subcommand};
@@ -114,6 +113,20 @@ fn run(command: Command) -> Result<()> {
 /// ends silently with status 141, what a shell reports for a program killed by SIGPIPE: the
 /// command did not finish its work (an `archive submit` stops submitting, a `jobs watch` never
 /// reports its failures), so it must not claim success. Any other failure is an error.
+/// Standard output for the libraries' reports: a closed pipe or a failed write ends the
+/// process as [`outln!`] does.
+pub(crate) struct Stdout;
+
+impl std::io::Write for Stdout {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        std::io::stdout().write(buf).or_else(|e| stdout_failed(e))
+    }
+
+    fn flush(&mut self) -> std::io::Result<()> {
+        std::io::stdout().flush().or_else(|e| stdout_failed(e))
+    }
+}
+
 pub(crate) fn stdout_failed(e: std::io::Error) -> ! {
     if e.kind() == std::io::ErrorKind::BrokenPipe {
         std::process::exit(141);

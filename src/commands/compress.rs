@@ -1,7 +1,6 @@
 //! `wavesplat compress`: volume file or phantom in, `.wsp` out, with a summary of what was kept
 //! and where the bytes went.
 
-use crate::progress::Progress;
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use std::path::PathBuf;
@@ -14,6 +13,7 @@ use wavesplat_compressor::order::Clustering;
 use wavesplat_compressor::phantom::Phantom;
 use wavesplat_compressor::reader::{read_volume, Endian, RawDtype, RawSpec};
 use wavesplat_compressor::refine::RefineOptions;
+use wavesplat_harness::console::Progress;
 
 /// Arguments of `wavesplat compress`.
 #[derive(Args, Debug)]
@@ -92,7 +92,7 @@ pub struct CompressArgs {
     pub no_refine: bool,
     /// Refuse volumes whose estimated working memory exceeds this (bytes, or with a K, M or G
     /// suffix: `8G`), with a clear error instead of running out of memory.
-    #[arg(long, value_parser = parse_bytes)]
+    #[arg(long, value_parser = super::parse_bytes)]
     pub memory_limit: Option<u64>,
     /// What to keep.
     #[command(flatten)]
@@ -246,23 +246,6 @@ pub fn options(a: &CompressArgs) -> Result<CompressOptions> {
         }),
         memory_limit: a.memory_limit,
     })
-}
-
-/// Parses a byte count with an optional K, M or G suffix (powers of 1024).
-fn parse_bytes(s: &str) -> Result<u64, String> {
-    let t = s.trim();
-    let (digits, shift) = match t.chars().last().map(|c| c.to_ascii_uppercase()) {
-        Some('K') => (&t[..t.len() - 1], 10),
-        Some('M') => (&t[..t.len() - 1], 20),
-        Some('G') => (&t[..t.len() - 1], 30),
-        _ => (t, 0),
-    };
-    let n: u64 = digits
-        .trim()
-        .parse()
-        .map_err(|_| format!("{s:?} is not a byte count (e.g. 512M, 8G)"))?;
-    n.checked_mul(1u64 << shift)
-        .ok_or_else(|| format!("{s:?} is too large"))
 }
 
 /// Runs the subcommand.

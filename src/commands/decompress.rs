@@ -18,7 +18,7 @@ pub struct DecompressArgs {
 pub fn run(a: DecompressArgs) -> Result<()> {
     super::check_output(&a.output)?;
     let bytes = super::read_wsp(&a.input)?;
-    let progress = crate::progress::Progress::new("decompress");
+    let progress = wavesplat_harness::console::Progress::new("decompress");
     progress.stage("decoding packets and inverse transform");
     let v = wavesplat_compressor::decode::decompress(&bytes)
         .with_context(|| format!("decoding {}", a.input.display()))?;

@@ -17,7 +17,7 @@ use wavesplat_viewer::backend::{select, BackendChoice};
 use wavesplat_viewer::open::{open, ViewRequest, VolumeLocation};
 use wavesplat_viewer::remote::is_remote;
 use wavesplat_viewer::session::{RenderSession, SessionOptions};
-use wavesplat_viewer::FrameLoop;
+use wavesplat_viewer::{FrameLoop, RunToEnd};
 
 /// Where the volume comes from and how to look at it (shared by `render` and `view`).
 #[derive(Args, Debug, Clone)]
@@ -83,7 +83,7 @@ pub struct ViewArgs {
     /// Largest memory for retained coefficients, in bytes (suffixes k, M, G); beyond it the
     /// least visible are dropped after splatting and asked for again after a view change.
     /// 0 keeps nothing but the footprint tables and the image (the paper's network computer).
-    #[arg(long, value_parser = parse_bytes)]
+    #[arg(long, value_parser = super::parse_bytes)]
     pub client_memory: Option<u64>,
     /// Plan each new view exactly before drawing it. By default a view without cached
     /// footprint tables is drawn at once with coarse preview tables while the exact ones are
@@ -98,7 +98,7 @@ pub struct RenderArgs {
     #[command(flatten)]
     pub view: ViewArgs,
     /// Use at most this many bytes of packets (the ones the cache ranks first for this view).
-    #[arg(long, value_parser = parse_bytes)]
+    #[arg(long, value_parser = super::parse_bytes)]
     pub bytes: Option<u64>,
     /// Stop after this much time in milliseconds (default: until every packet is splatted).
     #[arg(long)]
@@ -125,23 +125,6 @@ pub struct RenderArgs {
     /// Accumulate on the CPU. Default: the GPU on a hardware adapter, else the CPU.
     #[arg(long)]
     pub cpu: bool,
-}
-
-/// Parses a byte count with an optional k/M/G suffix (powers of 1024).
-pub fn parse_bytes(s: &str) -> Result<u64, String> {
-    let t = s.trim();
-    let (num, mult) = match t.chars().last() {
-        Some('k' | 'K') => (&t[..t.len() - 1], 1u64 << 10),
-        Some('m' | 'M') => (&t[..t.len() - 1], 1 << 20),
-        Some('g' | 'G') => (&t[..t.len() - 1], 1 << 30),
-        _ => (t, 1),
-    };
-    let n: u64 = num
-        .trim()
-        .parse()
-        .map_err(|_| format!("{s:?} is not a byte count (e.g. 65536, 64k, 16M, 1G)"))?;
-    n.checked_mul(mult)
-        .ok_or_else(|| format!("{s:?} is too large"))
 }
 
 fn pair(s: &str, what: &str) -> Result<[f64; 2]> {
@@ -335,83 +318,48 @@ pub fn run(a: RenderArgs) -> Result<()> {
         Some(d) => Some(Recorder::new(d, reference.is_some())?),
         None => None,
     };
-    let frame = Duration::from_secs_f64(a.frame_ms / 1e3);
-    let deadline = a.budget_ms.map(|b| Duration::from_secs_f64(b / 1e3));
-    let start = Instant::now();
-    // Time from the request to the end of the first frame with anything splatted.
-    let mut first_image: Option<Duration> = None;
-    let mut n = 0u64;
-    // How long the cache may stay unreachable before the render gives up (a restarting cache
-    // takes seconds; the stream resumes with what the viewer holds).
-    const PATIENCE: Duration = Duration::from_secs(30);
-    let mut unreachable_since: Option<Instant> = None;
-    loop {
-        let report = frames.frame(frame)?;
-        n += 1;
-        let status = frames.source_status();
-        let stats = frames.session.stats();
-        if first_image.is_none() && stats.splatted_in_view > 0 {
-            first_image = Some(since_request());
-        }
-        if let Some(rec) = &mut recorder {
-            let image = frames.session.image()?;
+    let run = RunToEnd {
+        frame: Duration::from_secs_f64(a.frame_ms / 1e3),
+        deadline: a.budget_ms.map(|b| Duration::from_secs_f64(b / 1e3)),
+        // A restarting cache takes seconds; the stream resumes with what the viewer holds.
+        patience: Duration::from_secs(30),
+    };
+    let run_started = since_request();
+    let outcome = frames.run_to_end(&run, |frames, n, report, at| -> Result<()> {
+        let Some(rec) = &mut recorder else {
+            return Ok(());
+        };
+        let image = frames.session.image()?;
+        let (status, stats) = (frames.source_status(), frames.session.stats());
+        write!(
+            rec.csv,
+            "{n},{:.3},{:.3},{},{},{},{},{},{}",
+            at.as_secs_f64() * 1e3,
+            report.elapsed.as_secs_f64() * 1e3,
+            status.packets,
+            status.bytes,
+            stats.coefficients_held,
+            stats.splatted_in_view,
+            report.pending,
+            report.batches
+        )?;
+        if let Some(r) = &reference {
             write!(
                 rec.csv,
-                "{n},{:.3},{:.3},{},{},{},{},{},{}",
-                start.elapsed().as_secs_f64() * 1e3,
-                report.elapsed.as_secs_f64() * 1e3,
-                status.packets,
-                status.bytes,
-                stats.coefficients_held,
-                stats.splatted_in_view,
-                report.pending,
-                report.batches
+                ",{:.3},{:.3}",
+                q_i_paper_db(&r.data, &image.data),
+                snr_db(&r.data, &image.data)
             )?;
-            if let Some(r) = &reference {
-                write!(
-                    rec.csv,
-                    ",{:.3},{:.3}",
-                    q_i_paper_db(&r.data, &image.data),
-                    snr_db(&r.data, &image.data)
-                )?;
-            }
-            writeln!(rec.csv)?;
-            if n == rec.next_png {
-                image.write_png(&rec.dir.join(format!("frame-{n:05}.png")), None)?;
-                rec.next_png *= 2;
-            }
         }
-        if let Some(f) = &status.failed {
-            bail!("{f}");
+        writeln!(rec.csv)?;
+        if n == rec.next_png {
+            image.write_png(&rec.dir.join(format!("frame-{n:05}.png")), None)?;
+            rec.next_png *= 2;
         }
-        if deadline.is_some_and(|d| start.elapsed() >= d) {
-            break;
-        }
-        if report.pending == 0 && report.packets == 0 && !report.exact {
-            // Only the background planner has work (the preview is drawn): wait for it, up to a
-            // frame, rather than spin on a core it needs.
-            frames.session.wait_exact(frame)?;
-        }
-        if report.idle() {
-            if status.done {
-                break;
-            }
-            // Waiting on the network: don't spin.
-            if status.connected {
-                unreachable_since = None;
-            } else if unreachable_since.get_or_insert_with(Instant::now).elapsed() > PATIENCE {
-                bail!(
-                    "the cache has been unreachable for {} s: {}",
-                    PATIENCE.as_secs(),
-                    status.problem.unwrap_or_default()
-                );
-            }
-            std::thread::sleep(Duration::from_millis(2));
-        } else {
-            unreachable_since = None;
-        }
-    }
-    let elapsed = start.elapsed();
+        Ok(())
+    })?;
+    let (n, elapsed) = (outcome.frames, outcome.elapsed);
+    let first_image = outcome.first_image.map(|t| run_started + t);
     let done_after = since_request();
     let image = frames.session.image()?;
     if let Some(rec) = &recorder {

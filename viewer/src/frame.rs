@@ -4,7 +4,8 @@
 //! then splats as many coefficients as fit in what is left of the frame's budget, largest
 //! visible energy first, from the session's running cost estimate. A view change restarts the
 //! accumulation from the most important coefficients held and asks the source for the rest in
-//! the new order. The window and `wavesplat render` both drive this loop.
+//! the new order. The window drives this loop frame by frame; [`FrameLoop::run_to_end`] runs it
+//! until everything arrived is drawn (what `wavesplat render` does).
 //!
 //! Batches are planned to end by a share of the budget (the *fill*) that the loop corrects
 //! after every frame that used its share: down by a fifth when the frame ran past its budget,
@@ -15,8 +16,52 @@
 use crate::backend::AccumulationBackend;
 use crate::session::{Clock, RenderSession, SessionError, StepReport, SystemClock};
 use crate::source::{PacketSource, SourceStatus};
-use std::time::Duration;
+use std::time::{Duration, Instant};
+use thiserror::Error;
 use wavesplat_codec::view::ViewSpec;
+
+/// How [`FrameLoop::run_to_end`] runs.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct RunToEnd {
+    /// Each frame's budget.
+    pub frame: Duration,
+    /// Stop after this long even if more is to come (`None`: when the source is done and
+    /// everything it sent is drawn with the exact tables).
+    pub deadline: Option<Duration>,
+    /// How long the source may stay unreachable before the run gives up (a restarting cache
+    /// takes seconds; its stream resumes with what the viewer holds).
+    pub patience: Duration,
+}
+
+/// What [`FrameLoop::run_to_end`] did.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct RunOutcome {
+    /// Frames run.
+    pub frames: u64,
+    /// Time from the start of the run to its end.
+    pub elapsed: Duration,
+    /// Time from the start to the end of the first frame with anything splatted.
+    pub first_image: Option<Duration>,
+}
+
+/// Why a run stopped before its end.
+#[derive(Debug, Error)]
+pub enum RunError {
+    /// The session refused a packet or a step.
+    #[error(transparent)]
+    Session(#[from] SessionError),
+    /// The source failed for good.
+    #[error("{0}")]
+    SourceFailed(String),
+    /// The source stayed unreachable longer than the run's patience.
+    #[error("the cache has been unreachable for {} s: {problem}", .patience.as_secs())]
+    Unreachable {
+        /// The patience that ran out.
+        patience: Duration,
+        /// The source's last problem.
+        problem: String,
+    },
+}
 
 /// What one frame did.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
@@ -167,6 +212,65 @@ impl<B: AccumulationBackend, S: PacketSource> FrameLoop<B, S> {
         }
         self.fill = self.fill.clamp(FILL_RANGE.0, FILL_RANGE.1);
         Ok(report)
+    }
+
+    /// Runs frames until the source is done and everything it sent is drawn with the exact
+    /// tables (or `run.deadline`), calling `on_frame` after each with the frame's number
+    /// (from 1), its report and the time since the run started. A frame with nothing to splat
+    /// waits for the background planner (up to a frame) or the network (2 ms) instead of
+    /// spinning on a core they need.
+    pub fn run_to_end<E: From<RunError>>(
+        &mut self,
+        run: &RunToEnd,
+        mut on_frame: impl FnMut(&mut Self, u64, &FrameReport, Duration) -> Result<(), E>,
+    ) -> Result<RunOutcome, E> {
+        let start = Instant::now();
+        let mut outcome = RunOutcome {
+            frames: 0,
+            elapsed: Duration::ZERO,
+            first_image: None,
+        };
+        let mut unreachable_since: Option<Instant> = None;
+        loop {
+            let report = self.frame(run.frame).map_err(RunError::from)?;
+            outcome.frames += 1;
+            if outcome.first_image.is_none() && self.session.stats().splatted_in_view > 0 {
+                outcome.first_image = Some(start.elapsed());
+            }
+            on_frame(self, outcome.frames, &report, start.elapsed())?;
+            let status = self.source_status();
+            if let Some(f) = status.failed {
+                return Err(RunError::SourceFailed(f).into());
+            }
+            if run.deadline.is_some_and(|d| start.elapsed() >= d) {
+                break;
+            }
+            if report.pending == 0 && report.packets == 0 && !report.exact {
+                // Only the background planner has work (the preview is drawn).
+                self.session.wait_exact(run.frame).map_err(RunError::from)?;
+            }
+            if report.idle() {
+                if status.done {
+                    break;
+                }
+                if status.connected {
+                    unreachable_since = None;
+                } else if unreachable_since.get_or_insert_with(Instant::now).elapsed()
+                    > run.patience
+                {
+                    return Err(RunError::Unreachable {
+                        patience: run.patience,
+                        problem: status.problem.unwrap_or_default(),
+                    }
+                    .into());
+                }
+                std::thread::sleep(Duration::from_millis(2));
+            } else {
+                unreachable_since = None;
+            }
+        }
+        outcome.elapsed = start.elapsed();
+        Ok(outcome)
     }
 
     /// The source's status.

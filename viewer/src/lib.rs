@@ -47,7 +47,7 @@ pub mod walk;
 pub mod window;
 
 pub use backend::{AccumulationBackend, BackendError, CpuBackend};
-pub use frame::{FrameLoop, FrameReport};
+pub use frame::{FrameLoop, FrameReport, RunError, RunOutcome, RunToEnd};
 pub use image::{Image, ImageError};
 pub use plan::{Placement, PlanOptions, Planner};
 pub use reference::{render_reference, render_reference_camera, PaddedVolume, ReferenceOptions};

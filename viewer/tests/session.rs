@@ -880,3 +880,98 @@ fn waiting_for_the_exact_tables_installs_them_when_they_arrive() {
     let e = max_rel(&session.image().unwrap(), &full_image(&header, &coeffs, &s));
     assert!(e <= 1e-5, "{e:e}");
 }
+
+/// A source that delivers a file's packets, then reports what the test sets: a failure, or a
+/// lost connection that never comes back.
+struct EndingSource {
+    inner: FileSource,
+    failed: Option<String>,
+    unreachable: bool,
+}
+
+impl PacketSource for EndingSource {
+    fn try_next(&mut self) -> Option<SourcePacket> {
+        self.inner.try_next()
+    }
+    fn set_view(&mut self, spec: &ViewSpec) {
+        self.inner.set_view(spec)
+    }
+    fn dropped(&mut self, ids: Vec<u32>) {
+        self.inner.dropped(ids)
+    }
+    fn status(&self) -> SourceStatus {
+        let mut s = self.inner.status();
+        if self.unreachable {
+            s.connected = false;
+            s.done = false;
+            s.problem = Some("cache unreachable, retrying".into());
+        }
+        s.failed = self.failed.clone();
+        s
+    }
+}
+
+/// `run_to_end` (what `wavesplat render` runs) ends on the one-shot image once the file is
+/// drawn, calls back once per frame it counts, and stops with a typed error when the source
+/// fails or stays unreachable past the patience; a deadline ends it early.
+#[test]
+fn run_to_end_draws_everything_and_stops_on_a_failed_or_lost_source() {
+    use wavesplat_viewer::{RunError, RunToEnd};
+    let bytes = wsp(Phantom::SheppLogan, 40, 16);
+    let (header, coeffs) = all(&bytes);
+    let s = spec(0.66, 0.91);
+    let run = RunToEnd {
+        frame: Duration::from_millis(20),
+        deadline: None,
+        patience: Duration::from_millis(50),
+    };
+    let mut f = file_loop(&bytes, &header, s, SessionOptions::default());
+    let mut called = 0u64;
+    let outcome = f
+        .run_to_end(&run, |_, n, report, _| -> Result<(), RunError> {
+            called += 1;
+            assert_eq!(n, called);
+            assert!(report.batches_past_deadline <= 1);
+            Ok(())
+        })
+        .unwrap();
+    assert_eq!(outcome.frames, called);
+    assert!(outcome.first_image.is_some_and(|t| t <= outcome.elapsed));
+    assert!(f.source_status().done && f.session.pending() == 0);
+    let err = max_rel(
+        &f.session.image().unwrap(),
+        &full_image(&header, &coeffs, &s),
+    );
+    assert!(err < 1e-4, "{err}");
+
+    let ending = |failed: Option<String>, unreachable: bool| {
+        let session =
+            RenderSession::new(header.clone(), s, CpuBackend::new(), Default::default()).unwrap();
+        let source = EndingSource {
+            inner: FileSource::open(bytes.clone(), &s).unwrap(),
+            failed,
+            unreachable,
+        };
+        FrameLoop::new(session, source)
+    };
+    let mut f = ending(Some("packet 3 is not this volume's".into()), false);
+    let e = f.run_to_end(&run, |_, _, _, _| Ok(())).unwrap_err();
+    assert!(
+        matches!(&e, RunError::SourceFailed(m) if m.contains("packet 3")),
+        "{e}"
+    );
+    let mut f = ending(None, true);
+    let e = f.run_to_end(&run, |_, _, _, _| Ok(())).unwrap_err();
+    assert!(matches!(e, RunError::Unreachable { .. }), "{e}");
+    assert!(e.to_string().contains("cache unreachable"), "{e}");
+
+    let mut f = ending(None, true);
+    let early = RunToEnd {
+        deadline: Some(Duration::ZERO),
+        ..run
+    };
+    let outcome = f
+        .run_to_end(&early, |_, _, _, _| Ok::<_, RunError>(()))
+        .unwrap();
+    assert_eq!(outcome.frames, 1);
+}

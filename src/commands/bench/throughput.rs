@@ -1,20 +1,12 @@
-//! `wavesplat bench throughput`: throughput of the pipeline stages on one machine, written as CSV and a
-//! table: compression (voxels/s), packet decoding (coefficients/s) and splatting (splats/s,
-//! pixel updates/s) per family, on a phantom or a volume file. Timings are medians of repeated
-//! runs; nothing here is asserted (benchmarks are not tests).
+//! `wavesplat bench throughput`: arguments and wiring; the benchmark is
+//! `wavesplat_harness::throughput`.
 
 use anyhow::{Context, Result};
 use clap::Args;
-use std::io::Write;
 use std::path::PathBuf;
-use std::time::Instant;
-use wavesplat_codec::family::Family;
-use wavesplat_codec::format::parse_file;
-use wavesplat_compressor::encode::{compress, CompressOptions, Target};
 use wavesplat_compressor::phantom::Phantom;
 use wavesplat_compressor::reader::read_volume;
-use wavesplat_viewer::open::load_coefficients;
-use wavesplat_viewer::{RenderOptions, Renderer, View};
+use wavesplat_harness::throughput::{run as bench, ThroughputBench};
 
 /// Arguments of `wavesplat bench throughput`.
 #[derive(Args, Debug)]
@@ -36,229 +28,17 @@ pub struct ThroughputArgs {
     pub output: PathBuf,
 }
 
-/// The median of `v` (the upper one for an even count).
-pub fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(f64::total_cmp);
-    v[v.len() / 2]
-}
-
 /// Runs the subcommand.
 pub fn run(a: ThroughputArgs) -> Result<()> {
     let volume = match &a.input {
         Some(p) => read_volume(p, None).with_context(|| format!("reading {}", p.display()))?,
         None => Phantom::SheppLogan.generate([a.size; 3]),
     };
-    let voxels = volume.voxel_count() as f64;
-    let threads = rayon::current_num_threads();
-    let mut csv = std::fs::File::create(&a.output)?;
-    writeln!(
-        csv,
-        "stage,family,threads,size,seconds,items,items_per_second"
-    )?;
-    outln!(
-        "{} voxels, {} threads, keep {} of the coefficients, median of {}",
-        volume.voxel_count(),
-        threads,
-        a.fraction,
-        a.repeat
-    );
-    for family in Family::ALL {
-        // Throughput of the paper's pipeline: the oracle's coefficients, no least-squares
-        // refinement (which costs ~40 extra synthesis/transpose passes; see BENCHMARKS.md).
-        let opts = CompressOptions {
-            family,
-            target: Target::Fraction(a.fraction),
-            refine: None,
-            ..Default::default()
-        };
-        let mut times = Vec::new();
-        let mut last = None;
-        for _ in 0..a.repeat.max(1) {
-            let t = Instant::now();
-            last = Some(compress(&volume, &opts, &|_, _| {})?);
-            times.push(t.elapsed().as_secs_f64());
-        }
-        let c = last.expect("at least one run");
-        let s = median(times);
-        writeln!(
-            csv,
-            "compress,{family},{threads},-,{s:.4},{voxels},{:.0}",
-            voxels / s
-        )?;
-        outln!(
-            "{family:7} compress  {:8.3} s  {:12.0} voxels/s  ({} bytes)",
-            s,
-            voxels / s,
-            c.bytes.len()
-        );
-
-        let mut times = Vec::new();
-        let mut n = 0usize;
-        for _ in 0..a.repeat.max(1) {
-            let t = Instant::now();
-            let (_, coeffs) = load_coefficients(&c.bytes, None, None)?;
-            times.push(t.elapsed().as_secs_f64());
-            n = coeffs.len();
-        }
-        let s = median(times);
-        writeln!(
-            csv,
-            "decode,{family},{threads},-,{s:.4},{n},{:.0}",
-            n as f64 / s
-        )?;
-        outln!(
-            "{family:7} decode    {:8.4} s  {:12.0} coefficients/s",
-            s,
-            n as f64 / s
-        );
-
-        let header = parse_file(&c.bytes)?.header;
-        let (_, coeffs) = load_coefficients(&c.bytes, None, None)?;
-        let mut renderer = Renderer::new(RenderOptions::default());
-        for size in [256usize, 512] {
-            let view = View::new(0.66, 0.91, size, size);
-            renderer.render(&coeffs, &header.geometry, &view)?; // footprints built once
-            let mut times = Vec::new();
-            let mut updates = 0;
-            for _ in 0..a.repeat.max(1) {
-                let t = Instant::now();
-                let (_, stats) = renderer.render_with_stats(&coeffs, &header.geometry, &view)?;
-                times.push(t.elapsed().as_secs_f64());
-                updates = stats.pixel_updates;
-            }
-            let s = median(times);
-            writeln!(
-                csv,
-                "splat,{family},{threads},{size},{s:.4},{},{:.0}",
-                coeffs.len(),
-                coeffs.len() as f64 / s
-            )?;
-            writeln!(
-                csv,
-                "pixel_updates,{family},{threads},{size},{s:.4},{updates},{:.0}",
-                updates as f64 / s
-            )?;
-            outln!(
-                "{family:7} splat {size}² {:8.4} s  {:12.0} splats/s  {:12.0} pixel updates/s",
-                s,
-                coeffs.len() as f64 / s,
-                updates as f64 / s
-            );
-        }
-    }
-    paper_case(&volume, &mut csv, a.repeat.max(1))?;
-    accumulation_bandwidth(&mut csv, a.repeat.max(1))?;
-    outln!("wrote {}", a.output.display());
-    Ok(())
-}
-
-/// The paper's timing case (Table 4): 170 761 coefficients rendered at 160×180 (Haar, M = 3),
-/// and splats/s per level of the same set.
-fn paper_case(
-    volume: &wavesplat_codec::volume::Volume,
-    csv: &mut std::fs::File,
-    repeat: usize,
-) -> Result<()> {
-    let opts = CompressOptions {
-        family: Family::Haar,
-        levels: Some(3),
-        target: Target::Coefficients(170_761),
-        refine: None,
-        ..Default::default()
+    let settings = ThroughputBench {
+        volume,
+        fraction: a.fraction,
+        repeat: a.repeat,
+        output: a.output,
     };
-    let c = compress(volume, &opts, &|_, _| {})?;
-    let header = parse_file(&c.bytes)?.header;
-    let (_, coeffs) = load_coefficients(&c.bytes, None, None)?;
-    let mut renderer = Renderer::new(RenderOptions::default());
-    let view = View::new(0.66, 0.91, 160, 180);
-    renderer.render(&coeffs, &header.geometry, &view)?;
-    let mut times = Vec::new();
-    for _ in 0..repeat {
-        let t = Instant::now();
-        renderer.render(&coeffs, &header.geometry, &view)?;
-        times.push(t.elapsed().as_secs_f64());
-    }
-    let s = median(times);
-    writeln!(
-        csv,
-        "paper_case,haar,{},160x180,{s:.4},{},{:.0}",
-        rayon::current_num_threads(),
-        coeffs.len(),
-        coeffs.len() as f64 / s
-    )?;
-    outln!(
-        "paper case: {} Haar coefficients (M=3) at 160x180 in {:.1} ms (paper: 4.01 s on an R10000)",
-        coeffs.len(),
-        s * 1e3
-    );
-    for level in 1..=header.geometry.levels as u8 {
-        let subset: Vec<_> = coeffs
-            .iter()
-            .filter(|k| k.band.level == level)
-            .copied()
-            .collect();
-        if subset.is_empty() {
-            continue;
-        }
-        let mut times = Vec::new();
-        for _ in 0..repeat {
-            let t = Instant::now();
-            renderer.render(&subset, &header.geometry, &view)?;
-            times.push(t.elapsed().as_secs_f64());
-        }
-        let s = median(times);
-        writeln!(
-            csv,
-            "splat_level_{level},haar,{},160x180,{s:.4},{},{:.0}",
-            rayon::current_num_threads(),
-            subset.len(),
-            subset.len() as f64 / s
-        )?;
-        outln!(
-            "  level {level}: {:8} splats  {:12.0} splats/s",
-            subset.len(),
-            subset.len() as f64 / s
-        );
-    }
-    Ok(())
-}
-
-/// The limit to compare splatting against: the same accumulation loop (scaled footprint rows
-/// added into an f32 tile) with no projection, binning or table lookup, single thread.
-fn accumulation_bandwidth(csv: &mut std::fs::File, repeat: usize) -> Result<()> {
-    const TILE: usize = 64;
-    for side in [4usize, 16, 48] {
-        let footprint: Vec<f32> = (0..side * side).map(|i| (i % 7) as f32 * 0.1).collect();
-        let mut tile = vec![0.0f32; TILE * TILE];
-        let splats = 2_000_000 / (side * side) * 16;
-        let mut times = Vec::new();
-        for _ in 0..repeat {
-            let t = Instant::now();
-            for n in 0..splats {
-                let (ox, oy) = ((n * 7) % (TILE - side + 1), (n * 13) % (TILE - side + 1));
-                let w = 1.0 + (n % 3) as f32;
-                for r in 0..side {
-                    let row = &mut tile[(oy + r) * TILE + ox..(oy + r) * TILE + ox + side];
-                    for (d, s) in row.iter_mut().zip(&footprint[r * side..(r + 1) * side]) {
-                        *d += w * s;
-                    }
-                }
-            }
-            times.push(t.elapsed().as_secs_f64());
-        }
-        std::hint::black_box(&tile);
-        let s = median(times);
-        let updates = (splats * side * side) as f64;
-        writeln!(
-            csv,
-            "accumulate_loop,-,1,{side}x{side},{s:.4},{updates},{:.0}",
-            updates / s
-        )?;
-        outln!(
-            "accumulation loop, {side}x{side} footprints: {:12.0} pixel updates/s per core ({:.1} GB/s read+write, L1-resident tile)",
-            updates / s,
-            updates * 12.0 / s / 1e9
-        );
-    }
-    Ok(())
+    bench(&settings, &mut crate::Stdout)
 }
