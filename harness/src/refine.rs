@@ -389,7 +389,7 @@ fn left_out(
             last.invisible,
             last.t.as_secs_f64() * 1e3
         )?;
-        writeln!(say, 
+        writeln!(say,
             "  {name:34} {:>4}/{total_packets} packets, {:>7}/{file_bytes} bytes ({:4.1} % left out), {:>7} coefficients splatted, {:>6} held but invisible, converged {}, {:.0} ms",
             last.packets,
             last.bytes,
@@ -494,7 +494,7 @@ fn write_summary(
             corner_last.map_or(0, |s| s.invisible),
             corner_last.map_or(0, |s| s.coefficients_held),
         )?;
-        writeln!(say, 
+        writeln!(say,
             "{:>7} {:>12} {:>6.1} {:>6.1} {:>6.1} {:>6} {:>5.1} {:>6.1} {:>6.1} {:>6.1} {:>6.1} {:>7.1} {:>7.1} {:>9}",
             r.budget_ms,
             link_name(r.link_mbit),

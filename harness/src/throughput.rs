@@ -178,7 +178,7 @@ fn paper_case(
         coeffs.len(),
         coeffs.len() as f64 / s
     )?;
-    writeln!(say, 
+    writeln!(say,
         "paper case: {} Haar coefficients (M=3) at 160x180 in {:.1} ms (paper: 4.01 s on an R10000)",
         coeffs.len(),
         s * 1e3
@@ -251,7 +251,7 @@ fn accumulation_bandwidth(
             "accumulate_loop,-,1,{side}x{side},{s:.4},{updates},{:.0}",
             updates / s
         )?;
-        writeln!(say, 
+        writeln!(say,
             "accumulation loop, {side}x{side} footprints: {:12.0} pixel updates/s per core ({:.1} GB/s read+write, L1-resident tile)",
             updates / s,
             updates * 12.0 / s / 1e9
