@@ -237,6 +237,7 @@ fn gpu_sums_are_order_and_chunk_independent() {
         GpuOptions {
             max_chunk: 777,
             wait: false,
+            max_atlas_binding: None,
         },
     )
     .unwrap();
@@ -476,6 +477,76 @@ fn auto_window_from_device_samples_matches_the_host() {
             "{w}x{h}: host ({lo}, {hi}), device ({dlo}, {dhi})"
         );
     }
+}
+
+/// An atlas larger than what the device binds at once is read a window at a time (a 128 MB
+/// binding limit is reached by a 160×120 multiview of a small volume): with windows of 64 KB
+/// the sums are the very integers of one binding, for a multiview and a depth-cued view whose
+/// atlas grows between batches; a table longer than half a window is refused, not misread.
+#[test]
+fn atlas_windows_give_the_sums_of_one_binding() {
+    let Some(ctx) = gpu() else { return };
+    let (g, coeffs) = coefficients(Family::Linear, 1);
+    let cued = View::new(0.4, 0.7, 72, 64).with_cue(Cue {
+        k: 0.03,
+        direction: CueDirection::View,
+    });
+    for spec in [
+        ViewSpec {
+            view: view(),
+            multiview: true,
+        },
+        ViewSpec::single(cued),
+    ] {
+        let p = plan(&g, &coeffs[..30_000], &spec, 1);
+        let bytes = p.plan.atlas.data.len() * 4;
+        assert!(
+            bytes > 8 * 65_536,
+            "atlas of {bytes} bytes: no windows to test"
+        );
+        let images: Vec<Image> = [None, Some(65_536)]
+            .into_iter()
+            .map(|max_atlas_binding| {
+                let options = GpuOptions {
+                    max_atlas_binding,
+                    ..GpuOptions::default()
+                };
+                let mut gpu = GpuBackend::with_options(ctx.clone(), options).unwrap();
+                gpu.begin(p.plan.layout()).unwrap();
+                for (samples, records) in &p.batches {
+                    let mut atlas = p.plan.atlas.clone();
+                    atlas.data.truncate(*samples);
+                    atlas
+                        .phases
+                        .retain(|r| (r.offset + r.cols * r.rows) as usize <= *samples);
+                    gpu.accumulate(&atlas, records).unwrap();
+                }
+                gpu.read().unwrap()
+            })
+            .collect();
+        assert_eq!(images[0].data, images[1].data, "{spec:?}");
+        assert!(images[0].data.iter().any(|v| *v != 0.0));
+    }
+    let p = plan(&g, &coeffs[..2_000], &ViewSpec::single(view()), 1);
+    let longest = p
+        .plan
+        .atlas
+        .phases
+        .iter()
+        .map(|r| r.cols * r.rows)
+        .max()
+        .unwrap() as u64;
+    let options = GpuOptions {
+        max_atlas_binding: Some((longest * 4).next_power_of_two() / 2),
+        ..GpuOptions::default()
+    };
+    let mut gpu = GpuBackend::with_options(ctx, options).unwrap();
+    gpu.begin(p.plan.layout()).unwrap();
+    let all: Vec<SplatRecord> = p.batches.iter().flat_map(|(_, r)| r.clone()).collect();
+    assert!(matches!(
+        gpu.accumulate(&p.plan.atlas, &all),
+        Err(BackendError::Range(_))
+    ));
 }
 
 /// Bad input is refused with typed errors, never a panic or a device error.

@@ -4,7 +4,9 @@
 //!
 //! **Data flow.** The [`FootprintAtlas`] is uploaded once per generation and extended in place
 //! as it grows (depth-cued tables are appended while a view lasts); the buffers double when
-//! they fill. Records are streamed into a buffer in chunks that respect the device's binding
+//! they fill. An atlas larger than the device binds at once (lavapipe binds 128 MB; a 160×120
+//! multiview of a small volume needs 135 MB) is bound a window at a time, the records grouped
+//! by the window their table lies in (windows of the binding limit, every half window). Records are streamed into a buffer in chunks that respect the device's binding
 //! size and dispatch limits, and a compute shader (`shaders/accumulate.wgsl`) adds each
 //! record's clipped footprint box into the target: a workgroup of 64 invocations takes 8
 //! records, 8 invocations per record striding over its pixels.
@@ -82,7 +84,7 @@ struct AccumulateParams {
     count: u32,
     groups_x: u32,
     scale: f32,
-    pad: u32,
+    atlas_base: u32,
 }
 
 /// Settings of a [`GpuBackend`].
@@ -94,6 +96,9 @@ pub struct GpuOptions {
     /// caller that times it (the session's cost estimate) sees the real cost; `false` leaves
     /// the work queued (it is waited for by `read` and the display pass).
     pub wait: bool,
+    /// Largest window of the atlas bound at once, in bytes (`None`: the device's binding
+    /// limit; a smaller one tests the windows on any device).
+    pub max_atlas_binding: Option<u64>,
 }
 
 impl Default for GpuOptions {
@@ -101,6 +106,7 @@ impl Default for GpuOptions {
         GpuOptions {
             max_chunk: DEFAULT_CHUNK,
             wait: true,
+            max_atlas_binding: None,
         }
     }
 }
@@ -289,33 +295,38 @@ impl GpuBackend {
             let s = &atlas.data[p.offset as usize..end as usize];
             a.peak.push(s.iter().fold(0.0f32, |m, x| m.max(x.abs())));
         }
-        let max = self.ctx.max_binding();
-        let upload = |buffer: &mut wgpu::Buffer, done: usize, bytes: &[u8], unit: usize, label| {
-            let need = bytes.len() as u64;
-            if need > max {
-                return Err(BackendError::Range(format!(
-                    "{label} of {need} bytes exceeds the device's binding limit of {max}"
-                )));
-            }
-            let from = if need > buffer.size() {
-                let size = need.next_power_of_two().min(max).max(need);
-                *buffer = self.ctx.buffer(label, size.max(4096), STORAGE);
-                0
-            } else {
-                done * unit
+        // The samples are bound a window at a time (see `accumulate`): their buffer may grow to
+        // the device's buffer limit; the phases are bound whole.
+        let binding = self.ctx.max_binding();
+        let buffer_limit = self.ctx.device.limits().max_buffer_size;
+        let upload =
+            |buffer: &mut wgpu::Buffer, done: usize, bytes: &[u8], unit: usize, max: u64, label| {
+                let need = bytes.len() as u64;
+                if need > max {
+                    return Err(BackendError::Range(format!(
+                        "{label} of {need} bytes exceeds the device's limit of {max}"
+                    )));
+                }
+                let from = if need > buffer.size() {
+                    let size = need.next_power_of_two().min(max).max(need);
+                    *buffer = self.ctx.buffer(label, size.max(4096), STORAGE);
+                    0
+                } else {
+                    done * unit
+                };
+                if from < bytes.len() {
+                    self.ctx
+                        .queue
+                        .write_buffer(buffer, from as u64, &bytes[from..]);
+                }
+                Ok(())
             };
-            if from < bytes.len() {
-                self.ctx
-                    .queue
-                    .write_buffer(buffer, from as u64, &bytes[from..]);
-            }
-            Ok(())
-        };
         upload(
             &mut a.data,
             a.data_len,
             bytemuck::cast_slice(&atlas.data),
             4,
+            buffer_limit,
             "wavesplat atlas",
         )?;
         upload(
@@ -323,11 +334,57 @@ impl GpuBackend {
             a.phases_len,
             bytemuck::cast_slice(&atlas.phases),
             std::mem::size_of::<super::PhaseRect>(),
+            binding,
             "wavesplat phases",
         )?;
         a.data_len = atlas.data.len();
         a.phases_len = atlas.phases.len();
         Ok(())
+    }
+
+    /// The records grouped by the window of the atlas they read, as (first sample, samples,
+    /// records): one window holding the whole atlas when it fits the binding limit (or
+    /// `max_atlas_binding`), else windows of that size starting every half window, each record
+    /// in the one that starts at or before its table by less than half a window (so a table
+    /// up to half a window long lies inside). The sums are integers, so the order the groups
+    /// are added in changes nothing.
+    fn atlas_windows<'r>(
+        &self,
+        atlas: &FootprintAtlas,
+        records: &'r [SplatRecord],
+    ) -> Result<Vec<(u64, u64, std::borrow::Cow<'r, [SplatRecord]>)>, BackendError> {
+        let len = self.atlas.data_len as u64;
+        let align =
+            (u64::from(self.ctx.device.limits().min_storage_buffer_offset_alignment) / 4).max(1);
+        let limit = self
+            .options
+            .max_atlas_binding
+            .unwrap_or(u64::MAX)
+            .min(self.ctx.max_binding());
+        let window = (limit / 4 / align * align).max(2 * align);
+        if len <= window {
+            return Ok(vec![(0, len, records.into())]);
+        }
+        let step = window / 2 / align * align;
+        let mut groups: std::collections::BTreeMap<u64, Vec<SplatRecord>> = Default::default();
+        for r in records {
+            let rect = &atlas.phases[r.phase as usize];
+            let start = u64::from(rect.offset);
+            let end = start + u64::from(rect.cols) * u64::from(rect.rows);
+            let base = start / step * step;
+            if end > base + window {
+                return Err(BackendError::Range(format!(
+                    "a footprint table of {} samples does not fit the device's atlas window of \
+                     {window} samples",
+                    end - start
+                )));
+            }
+            groups.entry(base).or_default().push(*r);
+        }
+        Ok(groups
+            .into_iter()
+            .map(|(base, g)| (base, window.min(len - base), g.into()))
+            .collect())
     }
 
     /// Raises the mass by `mass`, choosing or lowering the exponent so that no sum can
@@ -502,71 +559,78 @@ impl AccumulationBackend for GpuBackend {
                 STORAGE,
             );
         }
-        let bind = self
-            .ctx
-            .device
-            .create_bind_group(&wgpu::BindGroupDescriptor {
-                label: Some("wavesplat accumulate"),
-                layout: &self.accumulate.get_bind_group_layout(0),
-                entries: &[
-                    wgpu::BindGroupEntry {
-                        binding: 0,
-                        resource: self.params.as_entire_binding(),
-                    },
-                    wgpu::BindGroupEntry {
-                        binding: 1,
-                        resource: self.records.as_entire_binding(),
-                    },
-                    wgpu::BindGroupEntry {
-                        binding: 2,
-                        resource: self.atlas.phases.as_entire_binding(),
-                    },
-                    wgpu::BindGroupEntry {
-                        binding: 3,
-                        resource: self.atlas.data.as_entire_binding(),
-                    },
-                    wgpu::BindGroupEntry {
-                        binding: 4,
-                        resource: t.sums.as_entire_binding(),
-                    },
-                ],
-            });
         let max_dim = self
             .ctx
             .device
             .limits()
             .max_compute_workgroups_per_dimension as usize;
-        for part in records.chunks(chunk) {
-            let groups = part.len().div_ceil(RECORDS_PER_GROUP);
-            let gx = groups.min(max_dim);
-            let gy = groups.div_ceil(gx);
-            let params = AccumulateParams {
-                width: layout.width as u32,
-                height: layout.height as u32,
-                channels: layout.channels as u32,
-                total_width: layout.total_width() as u32,
-                count: part.len() as u32,
-                groups_x: gx as u32,
-                scale: 2f32.powi(exp),
-                pad: 0,
-            };
-            self.ctx
-                .queue
-                .write_buffer(&self.params, 0, bytemuck::bytes_of(&params));
-            self.ctx
-                .queue
-                .write_buffer(&self.records, 0, bytemuck::cast_slice(part));
-            let mut encoder = self
+        for (base, samples, group) in self.atlas_windows(atlas, records)? {
+            let bind = self
                 .ctx
                 .device
-                .create_command_encoder(&wgpu::CommandEncoderDescriptor::default());
-            {
-                let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor::default());
-                pass.set_pipeline(&self.accumulate);
-                pass.set_bind_group(0, &bind, &[]);
-                pass.dispatch_workgroups(gx as u32, gy as u32, 1);
+                .create_bind_group(&wgpu::BindGroupDescriptor {
+                    label: Some("wavesplat accumulate"),
+                    layout: &self.accumulate.get_bind_group_layout(0),
+                    entries: &[
+                        wgpu::BindGroupEntry {
+                            binding: 0,
+                            resource: self.params.as_entire_binding(),
+                        },
+                        wgpu::BindGroupEntry {
+                            binding: 1,
+                            resource: self.records.as_entire_binding(),
+                        },
+                        wgpu::BindGroupEntry {
+                            binding: 2,
+                            resource: self.atlas.phases.as_entire_binding(),
+                        },
+                        wgpu::BindGroupEntry {
+                            binding: 3,
+                            resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+                                buffer: &self.atlas.data,
+                                offset: base * 4,
+                                size: std::num::NonZeroU64::new(samples.max(1) * 4),
+                            }),
+                        },
+                        wgpu::BindGroupEntry {
+                            binding: 4,
+                            resource: t.sums.as_entire_binding(),
+                        },
+                    ],
+                });
+            for part in group.chunks(chunk) {
+                let groups = part.len().div_ceil(RECORDS_PER_GROUP);
+                let gx = groups.min(max_dim);
+                let gy = groups.div_ceil(gx);
+                let params = AccumulateParams {
+                    width: layout.width as u32,
+                    height: layout.height as u32,
+                    channels: layout.channels as u32,
+                    total_width: layout.total_width() as u32,
+                    count: part.len() as u32,
+                    groups_x: gx as u32,
+                    scale: 2f32.powi(exp),
+                    atlas_base: base as u32,
+                };
+                self.ctx
+                    .queue
+                    .write_buffer(&self.params, 0, bytemuck::bytes_of(&params));
+                self.ctx
+                    .queue
+                    .write_buffer(&self.records, 0, bytemuck::cast_slice(part));
+                let mut encoder = self
+                    .ctx
+                    .device
+                    .create_command_encoder(&wgpu::CommandEncoderDescriptor::default());
+                {
+                    let mut pass =
+                        encoder.begin_compute_pass(&wgpu::ComputePassDescriptor::default());
+                    pass.set_pipeline(&self.accumulate);
+                    pass.set_bind_group(0, &bind, &[]);
+                    pass.dispatch_workgroups(gx as u32, gy as u32, 1);
+                }
+                self.ctx.queue.submit([encoder.finish()]);
             }
-            self.ctx.queue.submit([encoder.finish()]);
         }
         if self.options.wait {
             self.ctx.wait()?;
@@ -636,7 +700,7 @@ mod tests {
                     offset_of!(AccumulateParams, count),
                     offset_of!(AccumulateParams, groups_x),
                     offset_of!(AccumulateParams, scale),
-                    offset_of!(AccumulateParams, pad),
+                    offset_of!(AccumulateParams, atlas_base),
                 ],
             ),
             (

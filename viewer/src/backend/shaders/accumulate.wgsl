@@ -33,7 +33,9 @@ struct Params {
     count: u32,
     groups_x: u32,
     scale: f32,
-    pad: u32,
+    // The first atlas sample the bound `atlas` window holds (phase offsets are the whole
+    // atlas's).
+    atlas_base: u32,
 }
 
 @group(0) @binding(0) var<uniform> params: Params;
@@ -83,7 +85,7 @@ fn accumulate(
     for (var i = lane; i < n; i += LANES) {
         let dx = i % cw;
         let dy = i / cw;
-        let s = atlas[rect.offset + (l0 + dy) * rect.cols + k0 + dx];
+        let s = atlas[rect.offset - params.atlas_base + (l0 + dy) * rect.cols + k0 + dx];
         // The product rounds as the CPU's does; the power-of-two scale is exact.
         let t = round(r.value * s * params.scale);
         if t == 0.0 {
