@@ -176,6 +176,9 @@ fn pipeline(ctx: &GpuContext, label: &str, source: &str, entry: &str) -> wgpu::C
 
 const STORAGE: wgpu::BufferUsages = wgpu::BufferUsages::STORAGE.union(wgpu::BufferUsages::COPY_DST);
 
+/// A window of the atlas bound for some records: its first sample, its samples, the records.
+type AtlasWindow<'r> = (u64, u64, std::borrow::Cow<'r, [SplatRecord]>);
+
 impl GpuBackend {
     /// A backend on `ctx` with default options.
     pub fn new(ctx: Arc<GpuContext>) -> Result<GpuBackend, BackendError> {
@@ -352,7 +355,7 @@ impl GpuBackend {
         &self,
         atlas: &FootprintAtlas,
         records: &'r [SplatRecord],
-    ) -> Result<Vec<(u64, u64, std::borrow::Cow<'r, [SplatRecord]>)>, BackendError> {
+    ) -> Result<Vec<AtlasWindow<'r>>, BackendError> {
         let len = self.atlas.data_len as u64;
         let align =
             (u64::from(self.ctx.device.limits().min_storage_buffer_offset_alignment) / 4).max(1);
