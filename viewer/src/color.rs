@@ -101,12 +101,7 @@ impl PathLengths {
                 "path lengths computed for another image size",
             ));
         }
-        let inv = header
-            .color
-            .inverse_basis()
-            .ok_or(RenderError::Unsupported(
-                "the header's colour basis is singular",
-            ))?;
+        let inv = inverse_basis(header)?;
         let w = image.width / self.cameras.len().max(1);
         let mut out = Image::new(image.width, image.height, channels);
         for y in 0..image.height {
@@ -143,13 +138,7 @@ impl PathLengths {
             return Ok(None);
         }
         let matrix = if channels == 3 {
-            let inv = header
-                .color
-                .inverse_basis()
-                .ok_or(RenderError::Unsupported(
-                    "the header's colour basis is singular",
-                ))?;
-            Some(inv.map(|row| row.map(|v| v as f32)))
+            Some(inverse_basis(header)?.map(|row| row.map(|v| v as f32)))
         } else {
             None
         };
@@ -172,6 +161,13 @@ impl PathLengths {
         };
         Ok(Some(ColorMap { matrix, offset }))
     }
+}
+
+/// The inverse of the header's colour basis (refused when singular).
+fn inverse_basis(header: &Header) -> Result<[[f64; 3]; 3], RenderError> {
+    header.color.inverse_basis().ok_or(RenderError::Unsupported(
+        "the header's colour basis is singular",
+    ))
 }
 
 /// Whether the header's coding subtracted anything per voxel (an offset or origin colour).

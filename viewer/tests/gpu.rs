@@ -115,6 +115,16 @@ fn plan(g: &Geometry, coeffs: &[Coefficient], spec: &ViewSpec, channels: usize) 
     Planned { plan, batches }
 }
 
+/// A GPU backend that has accumulated every batch of `p` (with the whole atlas).
+fn accumulated(ctx: &Arc<GpuContext>, p: &Planned) -> GpuBackend {
+    let mut gpu = GpuBackend::new(ctx.clone()).unwrap();
+    gpu.begin(p.plan.layout()).unwrap();
+    for (_, r) in &p.batches {
+        gpu.accumulate(&p.plan.atlas, r).unwrap();
+    }
+    gpu
+}
+
 /// Both backends over the batches (each batch sees the atlas as it was when planned; the
 /// atlas only grows, so a prefix is exactly that). Pixel update counts must agree.
 fn render_both(ctx: &Arc<GpuContext>, p: &Planned) -> (Image, Image, usize) {
@@ -314,11 +324,7 @@ fn display_matches_the_png_mapping() {
     };
     let p = plan(&g, &coeffs[..20_000], &spec, 1);
     let (cpu, _, _) = render_both(&ctx, &p);
-    let mut gpu = GpuBackend::new(ctx.clone()).unwrap();
-    gpu.begin(p.plan.layout()).unwrap();
-    for (_, r) in &p.batches {
-        gpu.accumulate(&p.plan.atlas, r).unwrap();
-    }
+    let mut gpu = accumulated(&ctx, &p);
     let texture = gpu.display(&DisplayOptions::default()).unwrap();
     assert_eq!((texture.width(), texture.height()), (300, 84));
     let shown = gpu.read_display().unwrap();
@@ -338,11 +344,7 @@ fn display_matches_the_png_mapping() {
     let (g, coeffs) = coefficients(Family::Linear, 3);
     let p = plan(&g, &coeffs[..30_000], &ViewSpec::single(view()), 3);
     let (cpu, _, _) = render_both(&ctx, &p);
-    let mut gpu = GpuBackend::new(ctx).unwrap();
-    gpu.begin(p.plan.layout()).unwrap();
-    for (_, r) in &p.batches {
-        gpu.accumulate(&p.plan.atlas, r).unwrap();
-    }
+    let mut gpu = accumulated(&ctx, &p);
     let offset: Vec<f32> = (0..cpu.width * cpu.height * 3)
         .map(|i| (i % 97) as f32 * 0.3)
         .collect();
@@ -384,11 +386,7 @@ fn display_lays_views_out_in_a_grid() {
         multiview: true,
     };
     let p = plan(&g, &coeffs[..20_000], &spec, 1);
-    let mut gpu = GpuBackend::new(ctx).unwrap();
-    gpu.begin(p.plan.layout()).unwrap();
-    for (_, r) in &p.batches {
-        gpu.accumulate(&p.plan.atlas, r).unwrap();
-    }
+    let mut gpu = accumulated(&ctx, &p);
     let image = gpu.read().unwrap();
     let window = image.percentiles(1.0, 99.0);
     for grid in [(2, 2), (1, 3), (3, 1)] {

@@ -212,6 +212,39 @@ impl GpuBackend {
         ub
     }
 
+    /// The bind group of a display entry point: the uniform, the sums, the offsets and the
+    /// entry point's output.
+    fn bind_display(
+        &self,
+        pipeline: &wgpu::ComputePipeline,
+        uniform: &wgpu::Buffer,
+        offsets: &wgpu::Buffer,
+        output: wgpu::BindGroupEntry,
+    ) -> wgpu::BindGroup {
+        let t = self.target.as_ref().expect("checked by display_inputs");
+        self.ctx
+            .device
+            .create_bind_group(&wgpu::BindGroupDescriptor {
+                label: Some("wavesplat display"),
+                layout: &pipeline.get_bind_group_layout(0),
+                entries: &[
+                    wgpu::BindGroupEntry {
+                        binding: 0,
+                        resource: uniform.as_entire_binding(),
+                    },
+                    wgpu::BindGroupEntry {
+                        binding: 1,
+                        resource: t.sums.as_entire_binding(),
+                    },
+                    wgpu::BindGroupEntry {
+                        binding: 2,
+                        resource: offsets.as_entire_binding(),
+                    },
+                    output,
+                ],
+            })
+    }
+
     /// The automatic window ([`Image::resolve_window`] of `None`) of the image as the display
     /// pass shows it through `colour`: computed from every pixel of an image up to
     /// [`MAX_WINDOW_SAMPLES`] pixels, else from every n-th; only those values leave the device.
@@ -235,32 +268,15 @@ impl GpuBackend {
             bytes,
             wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
         );
-        let t = self.target.as_ref().expect("checked by display_inputs");
-        let bind = self
-            .ctx
-            .device
-            .create_bind_group(&wgpu::BindGroupDescriptor {
-                label: Some("wavesplat window samples"),
-                layout: &self.sample.get_bind_group_layout(0),
-                entries: &[
-                    wgpu::BindGroupEntry {
-                        binding: 0,
-                        resource: ub.as_entire_binding(),
-                    },
-                    wgpu::BindGroupEntry {
-                        binding: 1,
-                        resource: t.sums.as_entire_binding(),
-                    },
-                    wgpu::BindGroupEntry {
-                        binding: 2,
-                        resource: ob.as_entire_binding(),
-                    },
-                    wgpu::BindGroupEntry {
-                        binding: 4,
-                        resource: out.as_entire_binding(),
-                    },
-                ],
-            });
+        let bind = self.bind_display(
+            &self.sample,
+            &ub,
+            &ob,
+            wgpu::BindGroupEntry {
+                binding: 4,
+                resource: out.as_entire_binding(),
+            },
+        );
         let mut encoder = self
             .ctx
             .device
@@ -345,36 +361,19 @@ impl GpuBackend {
                 size: (w, oh),
             });
         }
-        let t = self.target.as_ref().expect("checked by display_inputs");
         let shown = self.shown.as_ref().expect("created above");
         let view = shown
             .texture
             .create_view(&wgpu::TextureViewDescriptor::default());
-        let bind = self
-            .ctx
-            .device
-            .create_bind_group(&wgpu::BindGroupDescriptor {
-                label: Some("wavesplat display"),
-                layout: &self.display.get_bind_group_layout(0),
-                entries: &[
-                    wgpu::BindGroupEntry {
-                        binding: 0,
-                        resource: ub.as_entire_binding(),
-                    },
-                    wgpu::BindGroupEntry {
-                        binding: 1,
-                        resource: t.sums.as_entire_binding(),
-                    },
-                    wgpu::BindGroupEntry {
-                        binding: 2,
-                        resource: ob.as_entire_binding(),
-                    },
-                    wgpu::BindGroupEntry {
-                        binding: 3,
-                        resource: wgpu::BindingResource::TextureView(&view),
-                    },
-                ],
-            });
+        let bind = self.bind_display(
+            &self.display,
+            &ub,
+            &ob,
+            wgpu::BindGroupEntry {
+                binding: 3,
+                resource: wgpu::BindingResource::TextureView(&view),
+            },
+        );
         let mut encoder = self
             .ctx
             .device
