@@ -102,7 +102,6 @@ impl PathLengths {
             ));
         }
         let inv = inverse_basis(header)?;
-        let w = image.width / self.cameras.len().max(1);
         let mut out = Image::new(image.width, image.height, channels);
         for y in 0..image.height {
             for x in 0..image.width {
@@ -113,11 +112,7 @@ impl PathLengths {
                         0.0
                     }
                 });
-                let len = match self.lengths.get(x / w.max(1)) {
-                    Some(view) => view[y * w + x % w],
-                    None => 0.0,
-                };
-                let rgb = header.color.to_rgb(&inv, c, len);
+                let rgb = header.color.to_rgb(&inv, c, self.length_at(x, y));
                 for (r, v) in rgb.iter().take(channels).enumerate() {
                     out.data[(y * image.width + x) * channels + r] = *v as f32;
                 }
@@ -128,6 +123,15 @@ impl PathLengths {
 }
 
 impl PathLengths {
+    /// The path length of pixel (`x`, `y`) of the whole image (0 when nothing was subtracted).
+    fn length_at(&self, x: usize, y: usize) -> f64 {
+        let w = (self.width / self.cameras.len().max(1)).max(1);
+        match self.lengths.get(x / w) {
+            Some(view) => view[y * w + x % w],
+            None => 0.0,
+        }
+    }
+
     /// The display pass's twin of [`PathLengths::apply`] for `header`: the inverse colour
     /// basis as the matrix and `mean · length` as the per-pixel offsets; `None` when the image
     /// is shown as accumulated (an intensity volume with nothing subtracted).
@@ -143,15 +147,11 @@ impl PathLengths {
             None
         };
         let offset = if offsets {
-            let w = self.width / self.cameras.len().max(1);
             let mean = header.color.mean;
             let mut out = Vec::with_capacity(self.width * self.height * channels);
             for y in 0..self.height {
                 for x in 0..self.width {
-                    let len = match self.lengths.get(x / w.max(1)) {
-                        Some(view) => view[y * w + x % w],
-                        None => 0.0,
-                    };
+                    let len = self.length_at(x, y);
                     out.extend(mean[..channels].iter().map(|m| (m * len) as f32));
                 }
             }

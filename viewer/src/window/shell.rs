@@ -242,7 +242,7 @@ impl App {
             "backend: {reason}; display on {} ({:?}), {}",
             ctx.info().name,
             ctx.info().backend,
-            if self.gpu_backend && !g.config.format.is_srgb() {
+            if shown_on_device(self.gpu_backend, &g) {
                 "the image made there by the display pass"
             } else {
                 "the image uploaded from the host"
@@ -503,9 +503,8 @@ impl App {
         if self.controls.image_changed {
             let panels = grid(window_size(self.view_size), self.controls.state.multiview);
             let state = &self.controls.state;
-            // The GPU backend's image is shown where it was accumulated; the host's image (the
-            // CPU backend's, a preview's, or any on an sRGB-only surface) is uploaded.
-            let on_device = match self.gpu_backend && !g.config.format.is_srgb() {
+            // A host image (the CPU backend's, a preview's) is uploaded.
+            let on_device = match shown_on_device(self.gpu_backend, g) {
                 true => frames
                     .session
                     .device_display(|auto| state.shown_window(auto), panels)
@@ -565,6 +564,13 @@ impl App {
         }
         Ok(())
     }
+}
+
+/// Whether the window draws the display pass's texture: the GPU backend's image, shown where
+/// it was accumulated. Not on an sRGB-only surface: the pass writes linear `Rgba8Unorm`, which
+/// such a surface would brighten (host images are uploaded as sRGB there).
+fn shown_on_device(gpu_backend: bool, g: &Gfx) -> bool {
+    gpu_backend && !g.config.format.is_srgb()
 }
 
 /// Uploads the session's host image, arranged in `panels` and mapped through the state's

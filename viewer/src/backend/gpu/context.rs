@@ -237,7 +237,7 @@ impl GpuContext {
     }
 
     /// Maps a MAP_READ buffer after the queue is idle and copies it out.
-    pub(super) fn map_read(&self, staging: &wgpu::Buffer) -> Result<Vec<u8>, BackendError> {
+    fn map_read(&self, staging: &wgpu::Buffer) -> Result<Vec<u8>, BackendError> {
         let slice = staging.slice(..);
         let (tx, rx) = std::sync::mpsc::channel();
         slice.map_async(wgpu::MapMode::Read, move |r| {

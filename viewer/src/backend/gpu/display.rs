@@ -180,7 +180,7 @@ impl GpuBackend {
     fn offsets_buffer(&mut self, colour: Option<&ColorMap>) -> wgpu::Buffer {
         let Some(values) = colour.and_then(|c| c.offset.as_ref()) else {
             // Bound but not read (flag bit 1 clear).
-            return self.ctx.buffer("wavesplat no offsets", 16, STORAGE);
+            return self.no_offsets.clone();
         };
         if let Some(o) = &self.offsets {
             if Arc::ptr_eq(&o.values, values) {
@@ -263,11 +263,6 @@ impl GpuBackend {
             bytes,
             wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
         );
-        let staging = self.ctx.buffer(
-            "wavesplat window samples readback",
-            bytes,
-            wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
-        );
         let bind = self.bind_display(
             &self.sample,
             &ub,
@@ -287,9 +282,8 @@ impl GpuBackend {
             pass.set_bind_group(0, &bind, &[]);
             pass.dispatch_workgroups((samples as u32).div_ceil(64), 1, 1);
         }
-        encoder.copy_buffer_to_buffer(&out, 0, &staging, 0, bytes);
         self.ctx.queue.submit([encoder.finish()]);
-        let read = self.ctx.map_read(&staging)?;
+        let read = self.ctx.read_buffer(&out, bytes)?;
         let mut image = Image::new(samples, 1, channels);
         image.data = bytemuck::pod_collect_to_vec(&read);
         image

@@ -154,6 +154,8 @@ pub struct GpuBackend {
     target: Option<Target>,
     shown: Option<Display>,
     offsets: Option<Offsets>,
+    /// Bound as the display pass's offsets when a colour map has none.
+    no_offsets: wgpu::Buffer,
 }
 
 fn pipeline(ctx: &GpuContext, label: &str, source: &str, entry: &str) -> wgpu::ComputePipeline {
@@ -228,6 +230,7 @@ impl GpuBackend {
             phases_len: 0,
             peak: Vec::new(),
         };
+        let no_offsets = ctx.buffer("wavesplat no offsets", 16, STORAGE);
         ctx.check()?;
         Ok(GpuBackend {
             ctx,
@@ -242,6 +245,7 @@ impl GpuBackend {
             target: None,
             shown: None,
             offsets: None,
+            no_offsets,
         })
     }
 
