@@ -36,9 +36,12 @@ struct LinePlan {
     half: usize,
     fft: Arc<dyn Fft<f64>>,
     ifft: Arc<dyn Fft<f64>>,
-    /// Per frequency n: the inverse of [[Pe, Qe], [Po, Qo]], row-major, divided by `half`
-    /// (folding in the inverse FFT's normalization).
-    inverse: Vec<[Complex64; 4]>,
+    /// Per frequency n, the analysis in the spectrum of the line read as complex pairs
+    /// (Z = E + i·O, E and O the spectra of its even and odd samples): the spectrum of
+    /// (scaling + i·wavelet) is α[n]·Z[n] + β[n]·conj(Z[−n]). With [[a, b], [c, d]] the inverse
+    /// of the polyphase matrix [[Pe, Qe], [Po, Qo]] divided by `half` (folding in the inverse
+    /// FFT's normalization): α = (a + d + i(c − b))/2, β = (a − d + i(b + c))/2.
+    alpha_beta: Vec<(Complex64, Complex64)>,
 }
 
 /// A planner for 1D transforms of one family; plans are built once per line length.
@@ -89,20 +92,22 @@ impl Dwt1d {
                     })
                     .sum()
             };
-            let inverse = (0..half)
+            let i = Complex64::i();
+            let alpha_beta = (0..half)
                 .map(|n| {
                     let (pe, qe) = (symbol(p, 0, n), symbol(q, 0, n));
                     let (po, qo) = (symbol(p, 1, n), symbol(q, 1, n));
                     let det = pe * qo - qe * po;
                     let s = 1.0 / (det * half as f64);
-                    [qo * s, -qe * s, -po * s, pe * s]
+                    let [a, b, c, d] = [qo * s, -qe * s, -po * s, pe * s];
+                    ((a + d + i * (c - b)) * 0.5, (a - d + i * (b + c)) * 0.5)
                 })
                 .collect();
             LinePlan {
                 half,
                 fft,
                 ifft,
-                inverse,
+                alpha_beta,
             }
         })
     }
@@ -119,6 +124,11 @@ impl Dwt1d {
 
     /// One analysis step in place: `line` (even length, prepared) becomes
     /// `[scaling coefficients | wavelet coefficients]`.
+    ///
+    /// The even and odd samples are real, so one complex FFT of the line read as complex pairs
+    /// (even + i·odd) carries both their spectra, and since the scaling and wavelet halves
+    /// come out real, one inverse FFT of (scaling + i·wavelet) returns both: two FFTs of half
+    /// the line's length per step instead of four.
     pub fn analyze(&self, line: &mut [f64], scratch: &mut LineScratch) {
         let plan = self
             .plans
@@ -126,27 +136,21 @@ impl Dwt1d {
             .expect("Dwt1d::prepare was not called for this length");
         let h = plan.half;
         scratch.resize(h, plan.fft.get_inplace_scratch_len());
-        for k in 0..h {
-            scratch.even[k] = Complex64::new(line[2 * k], 0.0);
-            scratch.odd[k] = Complex64::new(line[2 * k + 1], 0.0);
+        let (pairs, halves) = (&mut scratch.even, &mut scratch.odd);
+        for (z, pair) in pairs.iter_mut().zip(line.chunks_exact(2)) {
+            *z = Complex64::new(pair[0], pair[1]);
         }
-        plan.fft
-            .process_with_scratch(&mut scratch.even, &mut scratch.fft);
-        plan.fft
-            .process_with_scratch(&mut scratch.odd, &mut scratch.fft);
-        for n in 0..h {
-            let m = &plan.inverse[n];
-            let (e, o) = (scratch.even[n], scratch.odd[n]);
-            scratch.even[n] = m[0] * e + m[1] * o;
-            scratch.odd[n] = m[2] * e + m[3] * o;
+        plan.fft.process_with_scratch(pairs, &mut scratch.fft);
+        let ab = &plan.alpha_beta;
+        halves[0] = ab[0].0 * pairs[0] + ab[0].1 * pairs[0].conj();
+        for n in 1..h {
+            halves[n] = ab[n].0 * pairs[n] + ab[n].1 * pairs[h - n].conj();
         }
-        plan.ifft
-            .process_with_scratch(&mut scratch.even, &mut scratch.fft);
-        plan.ifft
-            .process_with_scratch(&mut scratch.odd, &mut scratch.fft);
-        for k in 0..h {
-            line[k] = scratch.even[k].re;
-            line[h + k] = scratch.odd[k].re;
+        plan.ifft.process_with_scratch(halves, &mut scratch.fft);
+        let (c1, d1) = line.split_at_mut(h);
+        for ((c, d), v) in c1.iter_mut().zip(d1).zip(halves.iter()) {
+            *c = v.re;
+            *d = v.im;
         }
     }
 
@@ -214,10 +218,45 @@ impl LineScratch {
     }
 }
 
+/// Elements of each of the z axis's two batch buffers (8 MB of f64 each).
+const BATCH_ELEMENTS: usize = 1 << 20;
+
+/// Runs `f(state, i, chunk)` on the first `count` chunks of `size` elements of `data` (on the
+/// rayon pool with the `rayon` feature; each worker's `state` starts from `init`).
+fn for_each_chunk<T: Send, S>(
+    data: &mut [T],
+    size: usize,
+    count: usize,
+    init: impl Fn() -> S + Sync + Send,
+    f: impl Fn(&mut S, usize, &mut [T]) + Sync + Send,
+) {
+    #[cfg(feature = "rayon")]
+    {
+        use rayon::prelude::*;
+        data.par_chunks_mut(size)
+            .take(count)
+            .enumerate()
+            .for_each_init(init, |s, (i, chunk)| f(s, i, chunk));
+    }
+    #[cfg(not(feature = "rayon"))]
+    {
+        let mut s = init();
+        for (i, chunk) in data.chunks_mut(size).take(count).enumerate() {
+            f(&mut s, i, chunk);
+        }
+    }
+}
+
 /// Applies `op` to every line along `axis` of the block `block` (a corner of the array of
-/// dimensions `full`, x fastest): gathers batches of lines, transforms them (in parallel with
-/// the `rayon` feature), scatters them back. The batch buffer is bounded (~32 MB), not a copy
-/// of the block.
+/// dimensions `full`, x fastest). Each line is handed to `op` contiguous:
+/// - x lines are rows of the array, transformed where they lie;
+/// - y lines of one z slab are gathered into a panel (one line per x) that stays in the
+///   core's cache, transformed, and put back, slab by slab;
+/// - z lines are gathered per y row from every slab (one line per x), transformed and turned
+///   back into rows in a bounded batch buffer, then each slab takes its rows back.
+///
+/// Every line is computed the same way whatever thread runs it, so the result does not depend
+/// on the thread count.
 fn for_each_line(
     data: &mut [f64],
     full: [usize; 3],
@@ -225,49 +264,104 @@ fn for_each_line(
     axis: usize,
     op: &(dyn Fn(&mut [f64], &mut LineScratch) + Sync),
 ) {
-    const BATCH_ELEMENTS: usize = 1 << 22;
     let len = block[axis];
-    let stride = [1, full[0], full[0] * full[1]];
-    let others: Vec<usize> = (0..3).filter(|a| *a != axis).collect();
-    let (a0, a1) = (others[0], others[1]);
-    let count = block[a0] * block[a1];
-    let base = |i: usize| -> usize {
-        let (u, v) = (i % block[a0], i / block[a0]);
-        u * stride[a0] + v * stride[a1]
-    };
-    let batch = (BATCH_ELEMENTS / len.max(1)).clamp(1, count.max(1));
-    let mut lines = vec![0.0f64; batch.min(count) * len];
-    let mut first = 0;
-    while first < count {
-        let n = batch.min(count - first);
-        let lines = &mut lines[..n * len];
-        for (i, line) in lines.chunks_mut(len).enumerate() {
-            let b = base(first + i);
-            for (t, v) in line.iter_mut().enumerate() {
-                *v = data[b + t * stride[axis]];
+    let (row, plane) = (full[0], full[0] * full[1]);
+    let width = block[0];
+    match axis {
+        0 => for_each_chunk(data, plane, block[2], LineScratch::default, |s, _, slab| {
+            for y in 0..block[1] {
+                op(&mut slab[y * row..y * row + len], s);
+            }
+        }),
+        1 => for_each_chunk(
+            data,
+            plane,
+            block[2],
+            <(LineScratch, Vec<f64>)>::default,
+            |(s, lines), _, slab| {
+                lines.resize(width * len, 0.0);
+                for y in 0..len {
+                    for (x, v) in slab[y * row..y * row + width].iter().enumerate() {
+                        lines[x * len + y] = *v;
+                    }
+                }
+                for line in lines.chunks_mut(len) {
+                    op(line, s);
+                }
+                for y in 0..len {
+                    for (x, v) in slab[y * row..y * row + width].iter_mut().enumerate() {
+                        *v = lines[x * len + y];
+                    }
+                }
+            },
+        ),
+        _ => {
+            let per_y = width * len;
+            let batch = (BATCH_ELEMENTS / per_y.max(1)).clamp(1, block[1].max(1));
+            let mut lines = vec![0.0f64; batch * per_y];
+            let mut rows = vec![0.0f64; batch * per_y];
+            let mut y0 = 0;
+            while y0 < block[1] {
+                let count = batch.min(block[1] - y0);
+                let shared = &*data;
+                // One y row: its z lines gathered (one per x), transformed, and laid out as
+                // the rows its slabs take back (z-major).
+                let one_row =
+                    |s: &mut LineScratch, i: usize, lines: &mut [f64], rows: &mut [f64]| {
+                        let y = y0 + i;
+                        for z in 0..len {
+                            let src = &shared[z * plane + y * row..z * plane + y * row + width];
+                            for (x, v) in src.iter().enumerate() {
+                                lines[x * len + z] = *v;
+                            }
+                        }
+                        for line in lines.chunks_mut(len) {
+                            op(line, s);
+                        }
+                        for (x, line) in lines.chunks(len).enumerate() {
+                            for (z, v) in line.iter().enumerate() {
+                                rows[z * width + x] = *v;
+                            }
+                        }
+                    };
+                let (lines, rows) = (&mut lines[..count * per_y], &mut rows[..count * per_y]);
+                #[cfg(feature = "rayon")]
+                {
+                    use rayon::prelude::*;
+                    lines
+                        .par_chunks_mut(per_y)
+                        .zip(rows.par_chunks_mut(per_y))
+                        .enumerate()
+                        .for_each_init(LineScratch::default, |s, (i, (l, r))| one_row(s, i, l, r));
+                }
+                #[cfg(not(feature = "rayon"))]
+                {
+                    let mut s = LineScratch::default();
+                    for (i, (l, r)) in lines
+                        .chunks_mut(per_y)
+                        .zip(rows.chunks_mut(per_y))
+                        .enumerate()
+                    {
+                        one_row(&mut s, i, l, r);
+                    }
+                }
+                let rows = &*rows;
+                for_each_chunk(
+                    data,
+                    plane,
+                    len,
+                    || (),
+                    |_, z, slab| {
+                        for i in 0..count {
+                            let at = (y0 + i) * row;
+                            let from = i * per_y + z * width;
+                            slab[at..at + width].copy_from_slice(&rows[from..from + width]);
+                        }
+                    },
+                );
+                y0 += count;
             }
         }
-        #[cfg(feature = "rayon")]
-        {
-            use rayon::prelude::*;
-            lines
-                .par_chunks_mut(len)
-                .for_each_init(LineScratch::default, |s, line| op(line, s));
-        }
-        #[cfg(not(feature = "rayon"))]
-        {
-            let mut s = LineScratch::default();
-            for line in lines.chunks_mut(len) {
-                op(line, &mut s);
-            }
-        }
-        for (i, line) in lines.chunks(len).enumerate() {
-            let b = base(first + i);
-            for (t, v) in line.iter().enumerate() {
-                data[b + t * stride[axis]] = *v;
-            }
-        }
-        first += n;
     }
 }
 
@@ -344,7 +438,11 @@ pub fn pad_channel_as<T: Copy + Default>(
     let [nx, ny, nz] = geometry.dims;
     let [px, py, _] = geometry.padded;
     let [ox, oy, oz] = geometry.origin;
-    let mut out = vec![T::default(); geometry.coefficient_count()];
+    // Written out in full rather than allocated zeroed: zeroed pages are mapped lazily, first
+    // to the shared zero page on a read, and the transform's first write to each of them
+    // then cost a copy-on-write fault and a TLB shootdown across the pool's threads.
+    let mut out = Vec::with_capacity(geometry.coefficient_count());
+    out.resize(geometry.coefficient_count(), T::default());
     for z in 0..nz {
         for y in 0..ny {
             let src = nx * (y + ny * z);
