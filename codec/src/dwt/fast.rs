@@ -8,7 +8,8 @@
 //! contiguous row, the same banks run in polyphase form ([`LineBank`]): short convolutions of
 //! each half of the line with the even and odd taps, over a halo holding the periodic wrap.
 //! Memory traffic is about one read and one write of the block per axis; the extra memory is a
-//! few rows per thread plus two bounded batch buffers for the z axis.
+//! few rows per thread plus one bounded batch buffer for the z axis (its bank reads the
+//! array in place).
 //!
 //! The f64 routines of [`super`] stay the reference: tests compare both. Results do not depend
 //! on the thread count (each line is computed the same way whatever thread runs it).
@@ -252,12 +253,12 @@ pub struct FastTransform {
     banks: HashMap<(Kind, usize), Taps>,
     /// Line kernels for the x axis (any length).
     lines: LineBank,
-    /// The z axis's batch buffers (gathered panels, filtered panels), kept between passes so
-    /// that each pass does not map and fault in fresh pages.
-    z_buffers: Mutex<(Vec<f32>, Vec<f32>)>,
+    /// The z axis's batch buffer (filtered panels), kept between passes so that each pass
+    /// does not map and fault in fresh pages.
+    z_buffers: Mutex<Vec<f32>>,
 }
 
-/// Elements of each of the two z-axis batch buffers (8 MB of f32 each).
+/// Elements of the z axis's batch buffer (8 MB of f32).
 const BATCH_ELEMENTS: usize = 1 << 21;
 
 impl FastTransform {
@@ -292,7 +293,7 @@ impl FastTransform {
             geometry: *geometry,
             banks,
             lines: LineBank::new(&p, &q, &taps),
-            z_buffers: Mutex::new((Vec::new(), Vec::new())),
+            z_buffers: Mutex::new(Vec::new()),
         }
     }
 
@@ -390,47 +391,36 @@ impl FastTransform {
                 }
             }
             _ => {
-                // z lines: gather batches of y rows into panels (z rows of x samples), filter
-                // them, scatter them back. Both halves split the work disjointly.
+                // z lines: the bank reads each y row's panel (z rows of x samples, one plane
+                // apart) straight from the array into a batch buffer, whose rows the slabs then
+                // take back. Both halves split the work disjointly.
                 let taps = &self.banks[&(kind, n)];
                 let width = block[0];
                 let per_y = block[2] * width;
                 let batch = (BATCH_ELEMENTS / per_y.max(1)).clamp(1, block[1]);
                 let mut buffers = self.z_buffers.lock().unwrap_or_else(|e| e.into_inner());
-                let (gathered, filtered) = &mut *buffers;
-                gathered.resize(batch * per_y, 0.0);
+                let filtered = &mut *buffers;
                 filtered.resize(batch * per_y, 0.0);
                 let mut y0 = 0;
                 while y0 < block[1] {
                     let rows = batch.min(block[1] - y0);
                     let shared = &*data;
-                    let gather = |i: usize, panel: &mut [f32], out: &mut [f32]| {
+                    let filter = |i: usize, out: &mut [f32]| {
                         let y = y0 + i;
-                        for z in 0..block[2] {
-                            let src = z * plane + y * full[0];
-                            panel[z * width..(z + 1) * width]
-                                .copy_from_slice(&shared[src..src + width]);
-                        }
-                        taps.apply_into(panel, n, width, width, out);
+                        taps.apply_into(&shared[y * full[0]..], n, width, plane, out);
                     };
-                    let (input, output) =
-                        (&mut gathered[..rows * per_y], &mut filtered[..rows * per_y]);
+                    let output = &mut filtered[..rows * per_y];
                     #[cfg(feature = "rayon")]
                     {
                         use rayon::prelude::*;
-                        input
+                        output
                             .par_chunks_mut(per_y)
-                            .zip(output.par_chunks_mut(per_y))
                             .enumerate()
-                            .for_each(|(i, (panel, out))| gather(i, panel, out));
+                            .for_each(|(i, out)| filter(i, out));
                     }
                     #[cfg(not(feature = "rayon"))]
-                    for (i, (panel, out)) in input
-                        .chunks_mut(per_y)
-                        .zip(output.chunks_mut(per_y))
-                        .enumerate()
-                    {
-                        gather(i, panel, out);
+                    for (i, out) in output.chunks_mut(per_y).enumerate() {
+                        filter(i, out);
                     }
                     let buf = &*output;
                     let scatter = |z: usize, s: &mut [f32]| {
