@@ -81,21 +81,6 @@ const RESTART: usize = 16;
 /// CPU.
 const PRUNE_REFITS: usize = 2;
 
-/// Σ a·b in f64, in fixed chunks (thread-count independent).
-fn dot(a: &[f32], b: &[f32]) -> f64 {
-    let parts: Vec<f64> = a
-        .par_chunks(CHUNK)
-        .zip(b.par_chunks(CHUNK))
-        .map(|(x, y)| {
-            x.iter()
-                .zip(y)
-                .map(|(u, v)| *u as f64 * *v as f64)
-                .sum::<f64>()
-        })
-        .collect();
-    parts.iter().sum()
-}
-
 /// Σ over the periodic 1D grid of length `n` of the squared samples of the level-`level` φ
 /// (`wavelet` false) or ψ: the 1D factor of the diagonal of RᵀR.
 fn sample_norm2_1d(family: Family, n: usize, level: usize, wavelet: bool) -> f64 {
@@ -192,8 +177,15 @@ impl<'a> Operator<'a> {
         self.fast.synthesize_adjoint(out);
     }
 
-    /// Preconditioned CG on RᵀR c = Rᵀf over the entries of `mask`, from the current `c`.
-    /// Leaves the full gradient Rᵀ(f − R c) at the final `c` in `g`; `p` and `work` are scratch.
+    /// Preconditioned CG on RᵀR c = Rᵀf over the entries of `mask`, from the current `c`
+    /// (zero outside the mask). Leaves the full gradient Rᵀ(f − R c) at the final `c` in `g`;
+    /// `p` and `work` are scratch.
+    ///
+    /// The set is ~2 % of the grid, and c and the search direction p are zero outside it, so
+    /// everything but the transforms and the full gradient's update runs over the set's
+    /// indices alone (listed per [`CHUNK`], so every sum adds the same terms in the same order
+    /// as a pass over the whole grid would, and the result does not depend on the thread count).
+    #[allow(clippy::too_many_arguments)]
     fn refit(
         &self,
         target: &[f32],
@@ -204,19 +196,24 @@ impl<'a> Operator<'a> {
         p: &mut [f32],
         work: &mut [f32],
     ) {
+        let set: Vec<Vec<u32>> = mask
+            .par_chunks(CHUNK)
+            .map(|m| (0..m.len() as u32).filter(|i| m[*i as usize]).collect())
+            .collect();
         self.gradient(target, c, g);
         let inv = &self.inv_diag;
         let band_of = self.band_of;
-        // z = M⁻¹ r with r = mask ∘ g; p starts at z.
+        // z = M⁻¹ r with r = mask ∘ g; p ← z + β p over the set (zero elsewhere); returns r·z.
         let precondition = |p: &mut [f32], g: &[f32], beta: f32| -> f64 {
             let parts: Vec<f64> = p
                 .par_chunks_mut(CHUNK)
                 .zip(g.par_chunks(CHUNK))
-                .zip(mask.par_chunks(CHUNK).zip(band_of.par_chunks(CHUNK)))
-                .map(|((p, g), (m, b))| {
+                .zip(band_of.par_chunks(CHUNK).zip(set.par_iter()))
+                .map(|((p, g), (b, set))| {
                     let mut rz = 0.0f64;
-                    for i in 0..p.len() {
-                        let z = if m[i] { g[i] * inv[b[i] as usize] } else { 0.0 };
+                    for &i in set {
+                        let i = i as usize;
+                        let z = g[i] * inv[b[i] as usize];
                         rz += z as f64 * g[i] as f64;
                         p[i] = z + beta * p[i];
                     }
@@ -225,6 +222,7 @@ impl<'a> Operator<'a> {
                 .collect();
             parts.iter().sum()
         };
+        p.par_iter_mut().for_each(|v| *v = 0.0);
         let mut rz = precondition(p, g, 0.0);
         for iteration in 0..iterations {
             if iteration > 0 && iteration % RESTART == 0 {
@@ -236,35 +234,54 @@ impl<'a> Operator<'a> {
             if rz <= 0.0 || !rz.is_finite() {
                 break;
             }
-            work.copy_from_slice(p);
+            // work ← p (zero outside the set), then RᵀR p; with it ⟨p, RᵀRp⟩ over the set.
+            work.par_chunks_mut(CHUNK)
+                .zip(p.par_chunks(CHUNK).zip(set.par_iter()))
+                .for_each(|(w, (p, set))| {
+                    w.fill(0.0);
+                    for &i in set {
+                        w[i as usize] = p[i as usize];
+                    }
+                });
             self.applications.set(self.applications.get() + 2);
             self.fast.synthesize(work);
             if let Some(b) = &self.seen {
                 b.restrict(work);
             }
             self.fast.synthesize_adjoint(work);
-            // p is zero outside the mask, so ⟨p, RᵀRp⟩ needs no masking.
-            let pap = dot(p, work);
+            let pap: f64 = {
+                let parts: Vec<f64> = p
+                    .par_chunks(CHUNK)
+                    .zip(work.par_chunks(CHUNK).zip(set.par_iter()))
+                    .map(|(p, (w, set))| {
+                        set.iter()
+                            .map(|&i| p[i as usize] as f64 * w[i as usize] as f64)
+                            .sum::<f64>()
+                    })
+                    .collect();
+                parts.iter().sum()
+            };
             if pap <= 0.0 || !pap.is_finite() {
                 break;
             }
             let alpha = (rz / pap) as f32;
-            // The step, and in the same pass the new r·z = Σ over the mask of g²·D⁻¹ (β needs
-            // that sum before p can be updated).
+            // The step (the gradient everywhere, c over the set), and in the same pass the new
+            // r·z = Σ over the set of g²·D⁻¹ (β needs that sum before p can be updated).
             let rz_next: f64 = {
                 let parts: Vec<f64> = c
                     .par_chunks_mut(CHUNK)
                     .zip(g.par_chunks_mut(CHUNK))
                     .zip(p.par_chunks(CHUNK).zip(work.par_chunks(CHUNK)))
-                    .zip(mask.par_chunks(CHUNK).zip(band_of.par_chunks(CHUNK)))
-                    .map(|(((c, g), (p, ap)), (m, b))| {
+                    .zip(band_of.par_chunks(CHUNK).zip(set.par_iter()))
+                    .map(|(((c, g), (p, ap)), (b, set))| {
+                        for (g, ap) in g.iter_mut().zip(ap.iter()) {
+                            *g -= alpha * ap;
+                        }
                         let mut rz = 0.0f64;
-                        for i in 0..c.len() {
+                        for &i in set {
+                            let i = i as usize;
                             c[i] += alpha * p[i];
-                            g[i] -= alpha * ap[i];
-                            if m[i] {
-                                rz += (g[i] as f64).powi(2) * inv[b[i] as usize] as f64;
-                            }
+                            rz += (g[i] as f64).powi(2) * inv[b[i] as usize] as f64;
                         }
                         rz
                     })

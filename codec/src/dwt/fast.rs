@@ -25,7 +25,12 @@ use std::sync::Mutex;
 struct Taps {
     /// (dst, src, weight), sorted by dst.
     list: Vec<(u32, u32, f32)>,
+    /// Per output row: the row and the range of its taps in `list`.
+    rows: Vec<(usize, std::ops::Range<usize>)>,
 }
+
+/// Samples of an output row that [`Taps::apply_into`] sums over all its taps at once.
+const LANES: usize = 16;
 
 impl Taps {
     /// Synthesis c0[(2k + i) mod n] += c1[k] p[i] + d1[k] q[i].
@@ -73,7 +78,14 @@ impl Taps {
 
     fn sorted(mut list: Vec<(u32, u32, f32)>) -> Taps {
         list.sort_by_key(|(d, s, _)| (*d, *s));
-        Taps { list }
+        let mut rows: Vec<(usize, std::ops::Range<usize>)> = Vec::new();
+        for (i, (d, _, _)) in list.iter().enumerate() {
+            match rows.last_mut() {
+                Some((row, range)) if *row == *d as usize => range.end = i + 1,
+                _ => rows.push((*d as usize, i..i + 1)),
+            }
+        }
+        Taps { list, rows }
     }
 
     /// Applies the bank to a panel: `n` rows of `width` samples, row t at `data[t·stride..]`;
@@ -88,24 +100,36 @@ impl Taps {
     }
 
     /// The bank from a panel `src` (`n` rows of `width` samples at stride `stride`) into the
-    /// contiguous rows of `out` (`n · width` samples). Each output row is written by its first
-    /// tap and accumulated by the others (taps are sorted by output row; every row has one).
+    /// contiguous rows of `out` (`n · width` samples). Each output row is summed over all its
+    /// taps [`LANES`] samples at a time in registers, then stored once (every row has a tap).
+    /// The taps are added in list order starting from zero, so the sums are the same as one
+    /// axpy per tap.
     fn apply_into(&self, src: &[f32], n: usize, width: usize, stride: usize, out: &mut [f32]) {
         debug_assert_eq!(out.len(), n * width);
-        let mut last = u32::MAX;
-        for &(d, s, w) in &self.list {
-            let (row, s) = (d as usize, s as usize);
-            let from = &src[s * stride..s * stride + width];
+        for (row, range) in &self.rows {
+            let taps = &self.list[range.clone()];
             let dst = &mut out[row * width..(row + 1) * width];
-            if d != last {
-                for (o, v) in dst.iter_mut().zip(from) {
-                    *o = w * v;
+            let mut x = 0;
+            while x + LANES <= width {
+                let mut acc = [0.0f32; LANES];
+                for &(_, s, w) in taps {
+                    let at = s as usize * stride + x;
+                    let from: &[f32; LANES] = src[at..at + LANES]
+                        .try_into()
+                        .expect("a slice of LANES samples");
+                    for (a, v) in acc.iter_mut().zip(from) {
+                        *a += w * v;
+                    }
                 }
-                last = d;
-            } else {
-                for (o, v) in dst.iter_mut().zip(from) {
-                    *o += w * v;
+                dst[x..x + LANES].copy_from_slice(&acc);
+                x += LANES;
+            }
+            for (i, d) in dst.iter_mut().enumerate().skip(x) {
+                let mut a = 0.0f32;
+                for &(_, s, w) in taps {
+                    a += w * src[s as usize * stride + i];
                 }
+                *d = a;
             }
         }
     }
@@ -308,9 +332,8 @@ impl FastTransform {
         assert_eq!(data.len(), self.geometry.coefficient_count());
         for level in (1..=self.geometry.levels).rev() {
             let block = self.block(level);
-            for axis in (0..3).rev() {
-                self.pass(data, block, axis, Kind::Synthesis);
-            }
+            self.pass(data, block, 2, Kind::Synthesis);
+            self.slab_pass(data, block, &[1, 0], Kind::Synthesis);
         }
     }
 
@@ -320,9 +343,8 @@ impl FastTransform {
         assert_eq!(data.len(), self.geometry.coefficient_count());
         for level in 1..=self.geometry.levels {
             let block = self.block(level);
-            for axis in 0..3 {
-                self.pass(data, block, axis, Kind::Adjoint);
-            }
+            self.slab_pass(data, block, &[0, 1], Kind::Adjoint);
+            self.pass(data, block, 2, Kind::Adjoint);
         }
     }
 
@@ -334,9 +356,8 @@ impl FastTransform {
             return;
         }
         let full = self.geometry.padded;
-        for axis in 0..3 {
-            self.pass(data, full, axis, Kind::Sampling);
-        }
+        self.slab_pass(data, full, &[0, 1], Kind::Sampling);
+        self.pass(data, full, 2, Kind::Sampling);
     }
 
     /// Synthesis to voxel samples (inverse, then sampling): the operator R of refinement.
@@ -356,40 +377,51 @@ impl FastTransform {
         [0, 1, 2].map(|a| full[a] >> (level - 1))
     }
 
-    /// Applies bank `kind` along `axis` to every line of the corner block `block`.
+    /// Applies bank `kind` along the in-plane `axes` (0: x, 1: y; in that order) to every line
+    /// of the corner block `block`, one z slab at a time: every x and y line lies in one slab,
+    /// so a slab takes all its passes while it is in the core's cache (one sweep over the
+    /// array instead of one per axis). Lines along x are contiguous rows (the line kernels);
+    /// lines along y are a panel (the bank of their length).
+    fn slab_pass(&self, data: &mut [f32], block: [usize; 3], axes: &[usize], kind: Kind) {
+        let full = self.geometry.padded;
+        let plane = full[0] * full[1];
+        let y_taps = axes.contains(&1).then(|| &self.banks[&(kind, block[1])]);
+        let slab = |s: &mut [f32], scratch: &mut (Vec<f32>, LineBuffers)| {
+            for &axis in axes {
+                match (axis, y_taps) {
+                    (1, Some(taps)) => taps.apply(s, block[1], block[0], full[0], &mut scratch.0),
+                    _ => {
+                        for y in 0..block[1] {
+                            let line = &mut s[y * full[0]..y * full[0] + block[0]];
+                            self.lines.apply(kind, line, &mut scratch.1);
+                        }
+                    }
+                }
+            }
+        };
+        #[cfg(feature = "rayon")]
+        {
+            use rayon::prelude::*;
+            data.par_chunks_mut(plane)
+                .take(block[2])
+                .for_each_init(Default::default, |scratch, s| slab(s, scratch));
+        }
+        #[cfg(not(feature = "rayon"))]
+        {
+            let mut scratch = Default::default();
+            for s in data.chunks_mut(plane).take(block[2]) {
+                slab(s, &mut scratch);
+            }
+        }
+    }
+
+    /// Applies bank `kind` along z to every line of the corner block `block`.
     fn pass(&self, data: &mut [f32], block: [usize; 3], axis: usize, kind: Kind) {
         let full = self.geometry.padded;
         let n = block[axis];
         let plane = full[0] * full[1];
         match axis {
-            0 | 1 => {
-                // Every x and y line lies in one z slab. Lines along x are contiguous rows (the
-                // line kernels); lines along y are a panel (the bank of their length).
-                let panel_taps = (axis == 1).then(|| &self.banks[&(kind, n)]);
-                let slab = |s: &mut [f32], scratch: &mut (Vec<f32>, LineBuffers)| match panel_taps {
-                    None => {
-                        for y in 0..block[1] {
-                            let line = &mut s[y * full[0]..y * full[0] + n];
-                            self.lines.apply(kind, line, &mut scratch.1);
-                        }
-                    }
-                    Some(taps) => taps.apply(s, n, block[0], full[0], &mut scratch.0),
-                };
-                #[cfg(feature = "rayon")]
-                {
-                    use rayon::prelude::*;
-                    data.par_chunks_mut(plane)
-                        .take(block[2])
-                        .for_each_init(Default::default, |scratch, s| slab(s, scratch));
-                }
-                #[cfg(not(feature = "rayon"))]
-                {
-                    let mut scratch = Default::default();
-                    for s in data.chunks_mut(plane).take(block[2]) {
-                        slab(s, &mut scratch);
-                    }
-                }
-            }
+            0 | 1 => self.slab_pass(data, block, &[axis], kind),
             _ => {
                 // z lines: the bank reads each y row's panel (z rows of x samples, one plane
                 // apart) straight from the array into a batch buffer, whose rows the slabs then
