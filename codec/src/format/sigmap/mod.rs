@@ -88,7 +88,7 @@ pub(crate) fn encode(
         let band = bands[bi];
         let (origin, root) = region(header, tile, band.level, header.geometry.band_dims(band));
         let quant = Quantizer::of(header, sub, layer);
-        let pts: Vec<([u32; 3], f32)> = list
+        let mut pts: Vec<([u32; 3], f32)> = list
             .iter()
             .map(|c| {
                 let p = [0, 1, 2].map(|a| c.pos[a] - origin[a]);
@@ -105,7 +105,7 @@ pub(crate) fn encode(
             relatives: hood.relatives(bi, band),
         };
         m.coded.reset(root.hi);
-        encode_box(&mut enc, &mut m, &ctx, root, pts, &mut recon, &mut bd);
+        encode_box(&mut enc, &mut m, &ctx, root, &mut pts, &mut recon, &mut bd);
         hood.record(band, origin, &cells);
     }
     let mut payload = enc.finish();
@@ -128,12 +128,15 @@ struct Ctx<'a> {
     relatives: Relatives<'a>,
 }
 
+/// Codes the points of box `b` (any order: each ends in a leaf of its own, and leaves are
+/// coded in the boxes' order). They are grouped by child in place, so the recursion allocates
+/// nothing.
 fn encode_box(
     enc: &mut RangeEncoder,
     m: &mut Models,
     ctx: &Ctx,
     b: Box3,
-    pts: Vec<([u32; 3], f32)>,
+    pts: &mut [([u32; 3], f32)],
     recon: &mut Vec<Coefficient>,
     bd: &mut SizeBreakdown,
 ) {
@@ -160,16 +163,50 @@ fn encode_box(
     }
     let (children, n) = b.children();
     let children = &children[..n];
-    let mut parts: Vec<Vec<([u32; 3], f32)>> = vec![Vec::new(); n];
-    for (p, v) in pts {
-        let i = children
-            .iter()
-            .position(|c| c.contains(p))
-            .expect("child covers point");
-        parts[i].push((p, v));
+    // The children are the cells of a grid split at most once per axis (x fastest): a point's
+    // child follows from which side of each split it lies on.
+    let first = children[0];
+    let mut split = [(u32::MAX, 0usize); 3];
+    let mut stride = 1;
+    for a in 0..3 {
+        if first.hi[a] < b.hi[a] {
+            split[a] = (first.hi[a], stride);
+            stride *= 2;
+        }
     }
+    let child_of = |p: [u32; 3]| -> usize {
+        (0..3)
+            .filter(|a| p[*a] >= split[*a].0)
+            .map(|a| split[a].1)
+            .sum()
+    };
+    // Group the points by child in place (an 8-bucket American flag sort): bounds[i] ..
+    // bounds[i + 1] holds child i's points.
+    let mut bounds = [0usize; 9];
+    for (p, _) in pts.iter() {
+        bounds[child_of(*p) + 1] += 1;
+    }
+    for i in 0..n {
+        bounds[i + 1] += bounds[i];
+    }
+    let mut next = bounds;
+    for i in 0..n {
+        while next[i] < bounds[i + 1] {
+            let j = child_of(pts[next[i]].0);
+            if j == i {
+                next[i] += 1;
+            } else {
+                pts.swap(next[i], next[j]);
+                next[j] += 1;
+            }
+        }
+    }
+    debug_assert!((0..n).all(|i| pts[bounds[i]..bounds[i + 1]]
+        .iter()
+        .all(|(p, _)| children[i].contains(*p))));
     let mut any_before = false;
-    for (i, (&child, part)) in children.iter().zip(parts).enumerate() {
+    for (i, &child) in children.iter().enumerate() {
+        let part = &mut pts[bounds[i]..bounds[i + 1]];
         let occupied = !part.is_empty();
         // The last child must be occupied if all its siblings are empty: not coded.
         if i + 1 < n || any_before {
