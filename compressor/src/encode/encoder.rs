@@ -184,11 +184,21 @@ impl Prepared {
         // The score layers (after the coarse layer, when there is one).
         let nl = nl.clamp(1, MAX_LAYERS - usize::from(coarse_layer));
         let first_score_layer = usize::from(coarse_layer);
-        let locate = |s: &Scored| g.locate(s.index as usize);
-        let in_coarse_layer = |s: &Scored| coarse_layer && locate(s).0.kind == 0;
+        // Band and position of every kept coefficient, found once (a rate search encodes
+        // prefixes of one ranking many times, and each pass below needs them).
+        let located: Vec<(wavesplat_codec::layout::Band, [usize; 3])> = kept
+            .par_iter()
+            .map(|s| g.locate(s.index as usize))
+            .collect();
+        let in_coarse_layer = |i: usize| coarse_layer && located[i].0.kind == 0;
         // What the score layers split: the kept coefficients outside the coarse layer, in
         // significance order.
-        let ranked_rest: Vec<&Scored> = kept.iter().filter(|s| !in_coarse_layer(s)).collect();
+        let ranked_rest: Vec<&Scored> = kept
+            .iter()
+            .enumerate()
+            .filter(|(i, _)| !in_coarse_layer(*i))
+            .map(|(_, s)| s)
+            .collect();
         let kr = ranked_rest.len();
         // Score layer l ends at rank k·G^(l−(L−1)) with G the layer growth: layer 0 holds the
         // top k/G^(L−1).
@@ -212,8 +222,7 @@ impl Prepared {
         let nsub = self.channels * nb;
         // Substream parameters: w0 = largest magnitude, Δ from the sorted magnitudes (eq. 15).
         let mut mags: Vec<Vec<f64>> = vec![Vec::new(); nsub];
-        for s in kept {
-            let (band, _) = locate(s);
+        for (s, &(band, _)) in kept.iter().zip(&located) {
             let sub = s.channel as usize * nb + g.band_index(band).expect("band");
             mags[sub].push((s.value as f64).abs());
         }
@@ -270,8 +279,8 @@ impl Prepared {
             Default::default();
         let mut score_layer = 0usize;
         let mut rank = 0usize;
-        for s in kept {
-            let layer = if in_coarse_layer(s) {
+        for (i, s) in kept.iter().enumerate() {
+            let layer = if in_coarse_layer(i) {
                 0
             } else {
                 while rank >= ends[score_layer] {
@@ -280,7 +289,7 @@ impl Prepared {
                 rank += 1;
                 first_score_layer + score_layer
             };
-            let (band, pos) = locate(s);
+            let (band, pos) = located[i];
             let t = header.tile_of(band, pos);
             let c = Coefficient {
                 channel: s.channel,
