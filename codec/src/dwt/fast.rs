@@ -14,7 +14,7 @@
 //! The f64 routines of [`super`] stay the reference: tests compare both. Results do not depend
 //! on the thread count (each line is computed the same way whatever thread runs it).
 
-use super::interpolation_taps;
+use super::{for_each_chunk, interpolation_taps};
 use crate::family::Family;
 use crate::layout::Geometry;
 use std::collections::HashMap;
@@ -332,7 +332,7 @@ impl FastTransform {
         assert_eq!(data.len(), self.geometry.coefficient_count());
         for level in (1..=self.geometry.levels).rev() {
             let block = self.block(level);
-            self.pass(data, block, 2, Kind::Synthesis);
+            self.z_pass(data, block, Kind::Synthesis);
             self.slab_pass(data, block, &[1, 0], Kind::Synthesis);
         }
     }
@@ -344,7 +344,7 @@ impl FastTransform {
         for level in 1..=self.geometry.levels {
             let block = self.block(level);
             self.slab_pass(data, block, &[0, 1], Kind::Adjoint);
-            self.pass(data, block, 2, Kind::Adjoint);
+            self.z_pass(data, block, Kind::Adjoint);
         }
     }
 
@@ -357,7 +357,7 @@ impl FastTransform {
         }
         let full = self.geometry.padded;
         self.slab_pass(data, full, &[0, 1], Kind::Sampling);
-        self.pass(data, full, 2, Kind::Sampling);
+        self.z_pass(data, full, Kind::Sampling);
     }
 
     /// Synthesis to voxel samples (inverse, then sampling): the operator R of refinement.
@@ -386,7 +386,7 @@ impl FastTransform {
         let full = self.geometry.padded;
         let plane = full[0] * full[1];
         let y_taps = axes.contains(&1).then(|| &self.banks[&(kind, block[1])]);
-        let slab = |s: &mut [f32], scratch: &mut (Vec<f32>, LineBuffers)| {
+        let slab = |scratch: &mut (Vec<f32>, LineBuffers), _: usize, s: &mut [f32]| {
             for &axis in axes {
                 match (axis, y_taps) {
                     (1, Some(taps)) => taps.apply(s, block[1], block[0], full[0], &mut scratch.0),
@@ -399,85 +399,53 @@ impl FastTransform {
                 }
             }
         };
-        #[cfg(feature = "rayon")]
-        {
-            use rayon::prelude::*;
-            data.par_chunks_mut(plane)
-                .take(block[2])
-                .for_each_init(Default::default, |scratch, s| slab(s, scratch));
-        }
-        #[cfg(not(feature = "rayon"))]
-        {
-            let mut scratch = Default::default();
-            for s in data.chunks_mut(plane).take(block[2]) {
-                slab(s, &mut scratch);
-            }
-        }
+        for_each_chunk(data, plane, block[2], Default::default, slab);
     }
 
-    /// Applies bank `kind` along z to every line of the corner block `block`.
-    fn pass(&self, data: &mut [f32], block: [usize; 3], axis: usize, kind: Kind) {
+    /// Applies bank `kind` along z to every line of the corner block `block`: the bank reads
+    /// each y row's panel (z rows of x samples, one plane apart) straight from the array into
+    /// a batch buffer, whose rows the slabs then take back. Both halves split the work
+    /// disjointly.
+    fn z_pass(&self, data: &mut [f32], block: [usize; 3], kind: Kind) {
         let full = self.geometry.padded;
-        let n = block[axis];
+        let n = block[2];
         let plane = full[0] * full[1];
-        match axis {
-            0 | 1 => self.slab_pass(data, block, &[axis], kind),
-            _ => {
-                // z lines: the bank reads each y row's panel (z rows of x samples, one plane
-                // apart) straight from the array into a batch buffer, whose rows the slabs then
-                // take back. Both halves split the work disjointly.
-                let taps = &self.banks[&(kind, n)];
-                let width = block[0];
-                let per_y = block[2] * width;
-                let batch = (BATCH_ELEMENTS / per_y.max(1)).clamp(1, block[1]);
-                let mut buffers = self.z_buffers.lock().unwrap_or_else(|e| e.into_inner());
-                let filtered = &mut *buffers;
-                filtered.resize(batch * per_y, 0.0);
-                let mut y0 = 0;
-                while y0 < block[1] {
-                    let rows = batch.min(block[1] - y0);
-                    let shared = &*data;
-                    let filter = |i: usize, out: &mut [f32]| {
+        let taps = &self.banks[&(kind, n)];
+        let width = block[0];
+        let per_y = n * width;
+        let batch = (BATCH_ELEMENTS / per_y.max(1)).clamp(1, block[1]);
+        let mut buffers = self.z_buffers.lock().unwrap_or_else(|e| e.into_inner());
+        let filtered = &mut *buffers;
+        filtered.resize(batch * per_y, 0.0);
+        let mut y0 = 0;
+        while y0 < block[1] {
+            let rows = batch.min(block[1] - y0);
+            let shared = &*data;
+            for_each_chunk(
+                filtered,
+                per_y,
+                rows,
+                || (),
+                |_, i, out| {
+                    let y = y0 + i;
+                    taps.apply_into(&shared[y * full[0]..], n, width, plane, out);
+                },
+            );
+            let buf = &filtered[..rows * per_y];
+            for_each_chunk(
+                data,
+                plane,
+                n,
+                || (),
+                |_, z, s| {
+                    for i in 0..rows {
                         let y = y0 + i;
-                        taps.apply_into(&shared[y * full[0]..], n, width, plane, out);
-                    };
-                    let output = &mut filtered[..rows * per_y];
-                    #[cfg(feature = "rayon")]
-                    {
-                        use rayon::prelude::*;
-                        output
-                            .par_chunks_mut(per_y)
-                            .enumerate()
-                            .for_each(|(i, out)| filter(i, out));
+                        let src = i * per_y + z * width;
+                        s[y * full[0]..y * full[0] + width].copy_from_slice(&buf[src..src + width]);
                     }
-                    #[cfg(not(feature = "rayon"))]
-                    for (i, out) in output.chunks_mut(per_y).enumerate() {
-                        filter(i, out);
-                    }
-                    let buf = &*output;
-                    let scatter = |z: usize, s: &mut [f32]| {
-                        for i in 0..rows {
-                            let y = y0 + i;
-                            let src = i * per_y + z * width;
-                            s[y * full[0]..y * full[0] + width]
-                                .copy_from_slice(&buf[src..src + width]);
-                        }
-                    };
-                    #[cfg(feature = "rayon")]
-                    {
-                        use rayon::prelude::*;
-                        data.par_chunks_mut(plane)
-                            .take(block[2])
-                            .enumerate()
-                            .for_each(|(z, s)| scatter(z, s));
-                    }
-                    #[cfg(not(feature = "rayon"))]
-                    for (z, s) in data.chunks_mut(plane).take(block[2]).enumerate() {
-                        scatter(z, s);
-                    }
-                    y0 += rows;
-                }
-            }
+                },
+            );
+            y0 += rows;
         }
     }
 }
