@@ -15,8 +15,8 @@ use wavesplat_codec::metrics::snr_db;
 use wavesplat_viewer::backend::gpu::wgpu;
 use wavesplat_viewer::backend::gpu::{AdapterRequest, ColorMap, DisplayOptions, GpuOptions};
 use wavesplat_viewer::backend::{
-    select, AccumulationBackend, BackendChoice, BackendError, CpuBackend, GpuBackend, GpuContext,
-    Layout, SplatRecord,
+    select, AccumulationBackend, BackendChoice, BackendError, CpuBackend, FootprintAtlas,
+    GpuBackend, GpuContext, Layout, SplatRecord,
 };
 use wavesplat_viewer::plan::ViewPlan;
 use wavesplat_viewer::ViewSpec;
@@ -95,6 +95,19 @@ struct Planned {
     batches: Vec<(usize, Vec<SplatRecord>)>,
 }
 
+impl Planned {
+    /// The atlas as a batch planned with `samples` of it saw it (the atlas only grows, so a
+    /// prefix is exactly that).
+    fn atlas_for(&self, samples: usize) -> FootprintAtlas {
+        let mut atlas = self.plan.atlas.clone();
+        atlas.data.truncate(samples);
+        atlas
+            .phases
+            .retain(|r| (r.offset + r.cols * r.rows) as usize <= samples);
+        atlas
+    }
+}
+
 fn plan(g: &Geometry, coeffs: &[Coefficient], spec: &ViewSpec, channels: usize) -> Planned {
     let mut planner = Planner::new(PlanOptions::default());
     let mut plan = planner.plan(g, spec, channels).unwrap();
@@ -135,11 +148,7 @@ fn render_both(ctx: &Arc<GpuContext>, p: &Planned) -> (Image, Image, usize) {
     gpu.begin(layout).unwrap();
     let mut count = 0;
     for (samples, records) in &p.batches {
-        let mut atlas = p.plan.atlas.clone();
-        atlas.data.truncate(*samples);
-        atlas
-            .phases
-            .retain(|r| (r.offset + r.cols * r.rows) as usize <= *samples);
+        let atlas = p.atlas_for(*samples);
         let a = cpu.accumulate(&atlas, records).unwrap();
         let b = gpu.accumulate(&atlas, records).unwrap();
         assert_eq!(a, b, "pixel updates");
@@ -512,12 +521,7 @@ fn atlas_windows_give_the_sums_of_one_binding() {
                 let mut gpu = GpuBackend::with_options(ctx.clone(), options).unwrap();
                 gpu.begin(p.plan.layout()).unwrap();
                 for (samples, records) in &p.batches {
-                    let mut atlas = p.plan.atlas.clone();
-                    atlas.data.truncate(*samples);
-                    atlas
-                        .phases
-                        .retain(|r| (r.offset + r.cols * r.rows) as usize <= *samples);
-                    gpu.accumulate(&atlas, records).unwrap();
+                    gpu.accumulate(&p.atlas_for(*samples), records).unwrap();
                 }
                 gpu.read().unwrap()
             })
