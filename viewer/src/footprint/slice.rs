@@ -262,41 +262,43 @@ pub fn compute_fine_with(
     // Spectra of every requested type, row-major [ky][kx], evaluated together so that the six
     // 1D transforms per sample are shared.
     let mut spectra: Vec<Vec<Complex64>> = vec![vec![Complex64::new(0.0, 0.0); nx * ny]; nk];
-    let rows: Vec<Vec<Vec<Complex64>>> = (0..ny)
-        .into_par_iter()
-        .map(|ky| {
-            let rho = signed(ky, ny) * s as f64 / ny as f64;
-            let mut out = vec![vec![Complex64::new(0.0, 0.0); nx]; nk];
-            for kx in 0..nx {
-                let sigma = signed(kx, nx) * s as f64 / nx as f64;
-                let mut f1 = [[Complex64::new(0.0, 0.0); 2]; 3];
-                for a in 0..3 {
-                    let xi = p.zoom * (sigma * p.ex[a] + rho * p.ey[a]);
-                    f1[a] = if kappa[a] == 0.0 {
-                        axis_transforms_uncued(&tf, level, xi)
-                    } else {
-                        [
-                            axis_transform(&tf, level, false, xi, kappa[a]),
-                            axis_transform(&tf, level, true, xi, kappa[a]),
-                        ]
-                    };
-                }
-                let w = p.zoom * p.zoom * p.voxel_volume * sinc(sigma) * sinc(rho);
-                for (t, kind) in kinds.iter().enumerate() {
-                    let bx = (kind >> 2) as usize & 1;
-                    let by = (kind >> 1) as usize & 1;
-                    let bz = *kind as usize & 1;
-                    out[t][kx] = f1[0][bx] * f1[1][by] * f1[2][bz] * w;
-                }
-            }
-            out
-        })
-        .collect();
-    for (ky, row) in rows.into_iter().enumerate() {
-        for (t, r) in row.into_iter().enumerate() {
-            spectra[t][ky * nx..(ky + 1) * nx].copy_from_slice(&r);
+    // Row ky of every type, for the row's task to fill in place.
+    let mut rows: Vec<Vec<&mut [Complex64]>> = (0..ny).map(|_| Vec::with_capacity(nk)).collect();
+    for spectrum in spectra.iter_mut() {
+        for (row, slice) in rows.iter_mut().zip(spectrum.chunks_mut(nx)) {
+            row.push(slice);
         }
     }
+    // The pixel box's transform along each screen axis.
+    let sinc_x: Vec<f64> = (0..nx)
+        .map(|kx| sinc(signed(kx, nx) * s as f64 / nx as f64))
+        .collect();
+    rows.into_par_iter().enumerate().for_each(|(ky, mut out)| {
+        let rho = signed(ky, ny) * s as f64 / ny as f64;
+        let sinc_rho = sinc(rho);
+        for kx in 0..nx {
+            let sigma = signed(kx, nx) * s as f64 / nx as f64;
+            let mut f1 = [[Complex64::new(0.0, 0.0); 2]; 3];
+            for a in 0..3 {
+                let xi = p.zoom * (sigma * p.ex[a] + rho * p.ey[a]);
+                f1[a] = if kappa[a] == 0.0 {
+                    axis_transforms_uncued(&tf, level, xi)
+                } else {
+                    [
+                        axis_transform(&tf, level, false, xi, kappa[a]),
+                        axis_transform(&tf, level, true, xi, kappa[a]),
+                    ]
+                };
+            }
+            let w = p.zoom * p.zoom * p.voxel_volume * sinc_x[kx] * sinc_rho;
+            for (t, kind) in kinds.iter().enumerate() {
+                let bx = (kind >> 2) as usize & 1;
+                let by = (kind >> 1) as usize & 1;
+                let bz = *kind as usize & 1;
+                out[t][kx] = f1[0][bx] * f1[1][by] * f1[2][bz] * w;
+            }
+        }
+    });
     spectra
         .into_par_iter()
         .zip(kinds.par_iter())
@@ -320,9 +322,9 @@ pub(super) fn inverse_and_crop(
     let mut planner = FftPlanner::<f64>::new();
     let fx = planner.plan_fft_inverse(nx);
     let fy = planner.plan_fft_inverse(ny);
-    for row in spec.chunks_mut(nx) {
-        fx.process(row);
-    }
+    // Every row in one call (one scratch buffer for all of them).
+    fx.process(spec);
+    let mut scratch = vec![Complex64::new(0.0, 0.0); fy.get_inplace_scratch_len()];
     let mut col = vec![Complex64::new(0.0, 0.0); ny];
     let scale = (s * s) as f64 / (nx * ny) as f64;
     let hx = ((rx * s as f64).ceil() as usize + 1).min(nx / 2 - 1);
@@ -334,7 +336,7 @@ pub(super) fn inverse_and_crop(
         for (y, c) in col.iter_mut().enumerate() {
             *c = spec[y * nx + ox];
         }
-        fy.process(&mut col);
+        fy.process_with_scratch(&mut col, &mut scratch);
         for iy in 0..ch {
             let oy = (iy as i64 - hy as i64).rem_euclid(ny as i64) as usize;
             data[iy * cw + ix] = col[oy].re * scale;
