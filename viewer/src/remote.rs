@@ -14,7 +14,9 @@
 //! The object-store client (`object_store`, as the cache uses) gives S3 signing and HTTP range
 //! requests with retries; its HTTP store speaks plain GET with `Range` to any web server.
 
-use crate::source::{Control, Feed, PacketSource, SourceError, SourcePacket, SourceStatus};
+use crate::source::{
+    Control, Feed, PacketSender, PacketSource, SourceError, SourcePacket, SourceStatus,
+};
 use bytes::Bytes;
 use futures_util::stream::FuturesUnordered;
 use futures_util::StreamExt;
@@ -43,8 +45,9 @@ pub struct RangeSourceOptions {
     pub lookahead: usize,
     /// Request only what the current view sees (as the cache does).
     pub visible_only: bool,
-    /// Packets decoded and queued for the session ahead of it.
-    pub queue_packets: usize,
+    /// Bytes of packets decoded and queued for the session ahead of it (a packet larger than
+    /// this passes alone).
+    pub queue_bytes: u64,
 }
 
 impl Default for RangeSourceOptions {
@@ -54,7 +57,7 @@ impl Default for RangeSourceOptions {
             max_request_bytes: 512 << 10,
             lookahead: 64,
             visible_only: true,
-            queue_packets: 16,
+            queue_bytes: 256 << 10,
         }
     }
 }
@@ -302,7 +305,7 @@ impl RangeSource {
         let feed = Feed::start(
             "wavesplat-range-source",
             runtime,
-            options.queue_packets,
+            options.queue_bytes,
             status,
             move |tx, ctl| fetch.run(tx, ctl),
         )?;
@@ -468,11 +471,7 @@ impl Fetch {
         }
     }
 
-    async fn run(
-        mut self,
-        tx: mpsc::Sender<SourcePacket>,
-        mut ctl: mpsc::UnboundedReceiver<Control>,
-    ) {
+    async fn run(mut self, tx: PacketSender, mut ctl: mpsc::UnboundedReceiver<Control>) {
         let mut flight = FuturesUnordered::new();
         let mut first_packet = true;
         loop {
@@ -524,7 +523,7 @@ impl Fetch {
         &mut self,
         req: Request,
         got: Result<Bytes, object_store::Error>,
-        tx: &mpsc::Sender<SourcePacket>,
+        tx: &PacketSender,
         first_packet: &mut bool,
     ) -> Result<bool, String> {
         let data =

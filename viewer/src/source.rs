@@ -14,7 +14,7 @@
 use std::collections::HashSet;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
-use tokio::sync::mpsc;
+use tokio::sync::{mpsc, OwnedSemaphorePermit, Semaphore};
 use wavesplat_client::{
     CacheClient, ClientError, ConnectOptions, RefineEvent, RefineRequest, RefineStream,
     VolumeHeader, VolumeKey,
@@ -278,8 +278,10 @@ impl PacketSource for FileSource {
 pub struct CacheSourceOptions {
     /// Byte credit: what the cache may have in flight beyond what the session has taken.
     pub credit_bytes: u64,
-    /// Packets queued between the network thread and the session.
-    pub queue_packets: usize,
+    /// Bytes of packets queued between the network thread and the session (a packet larger
+    /// than this passes alone). In bytes, not packets: a queue of a few packets throttled a
+    /// file of small packets to a few packets per frame, however fast the link.
+    pub queue_bytes: u64,
     /// Stop after this many bytes of packets (None: everything the view ranks).
     pub byte_budget: Option<u64>,
     /// Simulated link speed in bytes per second (None: as fast as the connection goes). Each
@@ -296,7 +298,7 @@ impl Default for CacheSourceOptions {
     fn default() -> Self {
         CacheSourceOptions {
             credit_bytes: 64 << 10,
-            queue_packets: 8,
+            queue_bytes: 64 << 10,
             byte_budget: None,
             link_bytes_per_second: None,
             visible_only: true,
@@ -318,7 +320,10 @@ pub(crate) enum Control {
 /// thread's task, and joins the thread.
 #[derive(Debug)]
 pub(crate) struct Feed {
-    rx: mpsc::Receiver<SourcePacket>,
+    rx: mpsc::UnboundedReceiver<(SourcePacket, OwnedSemaphorePermit)>,
+    /// The queue's room in bytes (closed when the feed is dropped, so that a task waiting
+    /// for room ends).
+    room: Arc<Semaphore>,
     ctl: Option<mpsc::UnboundedSender<Control>>,
     status: Arc<Mutex<SourceStatus>>,
     thread: Option<std::thread::JoinHandle<()>>,
@@ -326,29 +331,86 @@ pub(crate) struct Feed {
     views_sent: u64,
 }
 
+/// The network thread's end of a feed's queue: packets wait for the session there up to a
+/// byte bound (a packet larger than the bound passes alone, when the queue is empty).
+#[derive(Debug, Clone)]
+pub(crate) struct PacketSender {
+    tx: mpsc::UnboundedSender<(SourcePacket, OwnedSemaphorePermit)>,
+    room: Arc<Semaphore>,
+    bound: u32,
+}
+
+/// The session went away.
+#[derive(Debug)]
+pub(crate) struct QueueClosed;
+
+/// Room reserved in the queue for one packet.
+#[derive(Debug)]
+pub(crate) struct QueueSlot {
+    tx: mpsc::UnboundedSender<(SourcePacket, OwnedSemaphorePermit)>,
+    permit: OwnedSemaphorePermit,
+}
+
+impl PacketSender {
+    /// Waits until the queue has room for a packet of `bytes` bytes.
+    pub(crate) async fn reserve(&self, bytes: usize) -> Result<QueueSlot, QueueClosed> {
+        let need = (bytes.min(self.bound as usize) as u32).max(1);
+        let permit = self
+            .room
+            .clone()
+            .acquire_many_owned(need)
+            .await
+            .map_err(|_| QueueClosed)?;
+        Ok(QueueSlot {
+            tx: self.tx.clone(),
+            permit,
+        })
+    }
+
+    /// Waits for room, then queues `packet`.
+    pub(crate) async fn send(&self, packet: SourcePacket) -> Result<(), QueueClosed> {
+        self.reserve(packet.data.len()).await?.send(packet)
+    }
+}
+
+impl QueueSlot {
+    /// Queues `packet` in the room reserved (freed when the session takes it).
+    pub(crate) fn send(self, packet: SourcePacket) -> Result<(), QueueClosed> {
+        self.tx.send((packet, self.permit)).map_err(|_| QueueClosed)
+    }
+}
+
 impl Feed {
     /// Runs `task` (given the packet sender and the control receiver) on a thread named
-    /// `name`, on `runtime`, with a queue of `queue` packets; `status` is what it reports.
+    /// `name`, on `runtime`, with a queue of `queue_bytes` bytes of packets; `status` is what
+    /// it reports.
     pub(crate) fn start<F>(
         name: &str,
         runtime: tokio::runtime::Runtime,
-        queue: usize,
+        queue_bytes: u64,
         status: Arc<Mutex<SourceStatus>>,
-        task: impl FnOnce(mpsc::Sender<SourcePacket>, mpsc::UnboundedReceiver<Control>) -> F
-            + Send
-            + 'static,
+        task: impl FnOnce(PacketSender, mpsc::UnboundedReceiver<Control>) -> F + Send + 'static,
     ) -> Result<Feed, SourceError>
     where
         F: std::future::Future<Output = ()>,
     {
-        let (tx, rx) = mpsc::channel(queue.max(1));
+        let bound =
+            queue_bytes.clamp(1, Semaphore::MAX_PERMITS.min(u32::MAX as usize) as u64) as u32;
+        let room = Arc::new(Semaphore::new(bound as usize));
+        let (tx, rx) = mpsc::unbounded_channel();
+        let sender = PacketSender {
+            tx,
+            room: room.clone(),
+            bound,
+        };
         let (ctl, ctl_rx) = mpsc::unbounded_channel();
         let thread = std::thread::Builder::new()
             .name(name.into())
-            .spawn(move || runtime.block_on(task(tx, ctl_rx)))
+            .spawn(move || runtime.block_on(task(sender, ctl_rx)))
             .map_err(|e| SourceError::Thread(e.to_string()))?;
         Ok(Feed {
             rx,
+            room,
             ctl: Some(ctl),
             status,
             thread: Some(thread),
@@ -365,7 +427,8 @@ impl Feed {
 
 impl PacketSource for Feed {
     fn try_next(&mut self) -> Option<SourcePacket> {
-        self.rx.try_recv().ok()
+        // Dropping the permit gives the packet's room back.
+        self.rx.try_recv().ok().map(|(packet, _room)| packet)
     }
 
     fn set_view(&mut self, spec: &ViewSpec) {
@@ -398,6 +461,7 @@ impl Drop for Feed {
     fn drop(&mut self) {
         // Closing the control channel ends the network task.
         self.ctl = None;
+        self.room.close();
         self.rx.close();
         if let Some(t) = self.thread.take() {
             let _ = t.join();
@@ -508,7 +572,7 @@ impl CacheSource {
         let feed = Feed::start(
             "wavesplat-cache-source",
             runtime,
-            options.queue_packets,
+            options.queue_bytes,
             status,
             move |tx, ctl| task.run(client, Some(stream), tx, ctl),
         )?;
@@ -589,7 +653,7 @@ impl Pull {
         mut self,
         client: CacheClient,
         mut opened: Option<RefineStream>,
-        tx: mpsc::Sender<SourcePacket>,
+        tx: PacketSender,
         mut ctl: mpsc::UnboundedReceiver<Control>,
     ) {
         let mut client = Some(client);
@@ -681,7 +745,12 @@ impl Pull {
         let begin = self.link_free.map_or(now, |f| f.max(now));
         let arrives = begin + Duration::from_secs_f64(len as f64 / rate as f64);
         self.link_free = Some(arrives);
-        tokio::time::sleep_until(arrives).await;
+        // Timers tick in milliseconds: a sleep for each small packet capped a link at about
+        // a packet per millisecond, whatever its speed. A packet due within a tick goes at
+        // once; the link's clock still advances by each packet, so the rate holds.
+        if arrives > now + Duration::from_millis(1) {
+            tokio::time::sleep_until(arrives).await;
+        }
     }
 
     fn budget_left(&self) -> bool {
@@ -695,7 +764,7 @@ impl Pull {
         &mut self,
         mut client: CacheClient,
         opened: Option<RefineStream>,
-        tx: &mpsc::Sender<SourcePacket>,
+        tx: &PacketSender,
         ctl: &mut mpsc::UnboundedReceiver<Control>,
     ) -> Ended {
         let mut stream = match opened {
@@ -719,6 +788,7 @@ impl Pull {
         let mut views_sent: u32 = 0;
         loop {
             let want_more = pending.is_none() && self.budget_left();
+            let pending_bytes = pending.as_ref().map_or(0, |p| p.data.len());
             tokio::select! {
                 biased;
                 c = ctl.recv() => match c {
@@ -739,8 +809,8 @@ impl Pull {
                         }
                     }
                 },
-                permit = tx.reserve(), if pending.is_some() => {
-                    let Ok(permit) = permit else { return Ended::Closed };
+                slot = tx.reserve(pending_bytes), if pending.is_some() => {
+                    let Ok(slot) = slot else { return Ended::Closed };
                     let p = pending.take().expect("pending packet");
                     let len = p.data.len() as u64;
                     self.held.insert(p.id);
@@ -748,7 +818,9 @@ impl Pull {
                         s.packets += 1;
                         s.bytes += len;
                     });
-                    permit.send(p);
+                    if slot.send(p).is_err() {
+                        return Ended::Closed;
+                    }
                     if !self.budget_left() {
                         self.update(|s| s.done = true);
                     }
