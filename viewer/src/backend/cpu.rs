@@ -146,6 +146,41 @@ fn groups(
     out
 }
 
+/// Adds `N` records' samples into the tile buffer: `rows` rows of `n` pixels, row `y` at
+/// buffer index `row(y).0` (channel stride `channels`) and sample offset `row(y).1` in each
+/// member's table. Each pixel takes the members' products in order, d + v₀a + v₁b + …, which
+/// rounds exactly as one sweep per record.
+fn sweep<const N: usize>(
+    buf: &mut [f32],
+    channels: usize,
+    n: usize,
+    rows: usize,
+    row: impl Fn(usize) -> (usize, usize),
+    members: [(&[f32], f32); N],
+) {
+    for y in 0..rows {
+        let (d, s) = row(y);
+        let samples = members.map(|(t, _)| &t[s..s + n]);
+        let values = members.map(|(_, v)| v);
+        let sum = |d: &mut f32, i: usize| {
+            let mut acc = *d;
+            for k in 0..N {
+                acc += values[k] * samples[k][i];
+            }
+            *d = acc;
+        };
+        if channels == 1 {
+            for (i, d) in buf[d..d + n].iter_mut().enumerate() {
+                sum(d, i);
+            }
+        } else {
+            for i in 0..n {
+                sum(&mut buf[d + i * channels], i);
+            }
+        }
+    }
+}
+
 /// Adds `records` (already checked) into `image`; returns the pixel updates (one per record
 /// and covered pixel).
 fn accumulate(
@@ -214,63 +249,18 @@ fn accumulate(
                     (&atlas.data[off..off + span], members[k].value)
                 };
                 let dst0 = ((ya as usize - ty) * tw + (xa as usize - tx)) * channels + ch;
-                let row_dst = |y: usize| dst0 + y * tw * channels;
+                let row = |y: usize| (dst0 + y * tw * channels, y * cols);
                 match members.len() {
-                    1 => {
-                        let (s0, v0) = table(0);
-                        for y in 0..rows {
-                            let s0 = &s0[y * cols..y * cols + n];
-                            let d = row_dst(y);
-                            if channels == 1 {
-                                for (d, a) in buf[d..d + n].iter_mut().zip(s0) {
-                                    *d += v0 * a;
-                                }
-                            } else {
-                                for (k, a) in s0.iter().enumerate() {
-                                    buf[d + k * channels] += v0 * a;
-                                }
-                            }
-                        }
-                    }
-                    2 => {
-                        let ((s0, v0), (s1, v1)) = (table(0), table(1));
-                        for y in 0..rows {
-                            let s0 = &s0[y * cols..y * cols + n];
-                            let s1 = &s1[y * cols..y * cols + n];
-                            let d = row_dst(y);
-                            if channels == 1 {
-                                for ((d, a), b) in buf[d..d + n].iter_mut().zip(s0).zip(s1) {
-                                    *d = *d + v0 * a + v1 * b;
-                                }
-                            } else {
-                                for (k, (a, b)) in s0.iter().zip(s1).enumerate() {
-                                    let d = &mut buf[d + k * channels];
-                                    *d = *d + v0 * a + v1 * b;
-                                }
-                            }
-                        }
-                    }
-                    _ => {
-                        let ((s0, v0), (s1, v1), (s2, v2)) = (table(0), table(1), table(2));
-                        for y in 0..rows {
-                            let s0 = &s0[y * cols..y * cols + n];
-                            let s1 = &s1[y * cols..y * cols + n];
-                            let s2 = &s2[y * cols..y * cols + n];
-                            let d = row_dst(y);
-                            if channels == 1 {
-                                for (((d, a), b), c) in
-                                    buf[d..d + n].iter_mut().zip(s0).zip(s1).zip(s2)
-                                {
-                                    *d = *d + v0 * a + v1 * b + v2 * c;
-                                }
-                            } else {
-                                for (k, ((a, b), c)) in s0.iter().zip(s1).zip(s2).enumerate() {
-                                    let d = &mut buf[d + k * channels];
-                                    *d = *d + v0 * a + v1 * b + v2 * c;
-                                }
-                            }
-                        }
-                    }
+                    1 => sweep(&mut buf, channels, n, rows, row, [table(0)]),
+                    2 => sweep(&mut buf, channels, n, rows, row, [table(0), table(1)]),
+                    _ => sweep(
+                        &mut buf,
+                        channels,
+                        n,
+                        rows,
+                        row,
+                        [table(0), table(1), table(2)],
+                    ),
                 }
                 updates += (members.len() * n * rows) as u64;
             }
