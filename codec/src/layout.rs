@@ -322,15 +322,19 @@ impl Geometry {
     /// Centre of a basis function in the coordinates of the original volume (voxel (i, j, k) at
     /// (i, j, k)), choosing among its periodic images the one nearest the volume centre.
     pub fn basis_center(&self, band: Band, pos: [usize; 3]) -> [f64; 3] {
-        let mut out = [0.0; 3];
-        for a in 0..3 {
-            let raw = self.raw_center_1d(band.level as usize, pos[a], band.is_wavelet_along(a));
-            let period = self.padded[a] as f64;
-            let centre = self.origin[a] as f64 + 0.5 * (self.dims[a] as f64 - 1.0);
-            let wrapped = raw - period * ((raw - centre) / period).round();
-            out[a] = wrapped - self.origin[a] as f64;
-        }
-        out
+        std::array::from_fn(|a| {
+            self.basis_center_along(a, band.level as usize, pos[a], band.is_wavelet_along(a))
+        })
+    }
+
+    /// One coordinate of [`Geometry::basis_center`]: along axis `a`, of the level-`level` φ
+    /// (or ψ when `wavelet`) at position `k`.
+    pub fn basis_center_along(&self, a: usize, level: usize, k: usize, wavelet: bool) -> f64 {
+        let raw = self.raw_center_1d(level, k, wavelet);
+        let period = self.padded[a] as f64;
+        let centre = self.origin[a] as f64 + 0.5 * (self.dims[a] as f64 - 1.0);
+        let wrapped = raw - period * ((raw - centre) / period).round();
+        wrapped - self.origin[a] as f64
     }
 
     /// Support half-width (voxels) along one axis of a level-`level` φ or ψ.

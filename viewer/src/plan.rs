@@ -309,6 +309,7 @@ impl Planner {
             stood_in: HashSet::new(),
             stand_ins_drawn: 0,
             stand_in_tables: Vec::new(),
+            centres: Centres::new(geometry),
         })
     }
 }
@@ -350,10 +351,50 @@ pub struct ViewPlan {
     stand_ins_drawn: usize,
     /// Uncued tables of the view for stand-ins, by `level · 8 + kind` (empty: no stand-ins).
     stand_in_tables: Vec<Option<TableRef>>,
+    /// Basis centres by band and position.
+    centres: Centres,
 }
 
 /// Coefficients per parallel planning task.
 const CHUNK: usize = 1024;
+
+/// [`Geometry::basis_center`] tabulated per axis, level and φ/ψ by position, so that planning a
+/// coefficient looks its centre up instead of computing it (a division and a `round` per axis,
+/// the largest share of the per-coefficient work); the values are the same f64s.
+#[derive(Debug, Clone)]
+struct Centres {
+    /// By `(level · 2 + wavelet) · 3 + axis`: the centre of each position of that band axis.
+    along: Vec<Vec<f64>>,
+}
+
+impl Centres {
+    fn new(geometry: &Geometry) -> Centres {
+        let levels = geometry.levels;
+        let mut along = Vec::with_capacity((levels + 1) * 6);
+        for level in 0..=levels {
+            for wavelet in [false, true] {
+                for a in 0..3 {
+                    let n = geometry.padded[a] >> level;
+                    along.push(
+                        (0..n)
+                            .map(|k| geometry.basis_center_along(a, level, k, wavelet))
+                            .collect(),
+                    );
+                }
+            }
+        }
+        Centres { along }
+    }
+
+    /// The centre of a coefficient already checked against the geometry (`check_coefficient`).
+    #[inline]
+    fn of(&self, band: Band, pos: [u32; 3]) -> [f64; 3] {
+        std::array::from_fn(|a| {
+            let wavelet = band.is_wavelet_along(a) as usize;
+            self.along[(band.level as usize * 2 + wavelet) * 3 + a][pos[a] as usize]
+        })
+    }
+}
 
 /// A cued table request or result: footprint set index and factor triple.
 type TableKey = (usize, [AxisFactor; 3]);
@@ -578,8 +619,8 @@ fn place(
     size: (usize, usize),
     out: &mut Vec<SplatRecord>,
 ) -> bool {
-    let (a, x0) = Footprint::place(t.s, t.cx, scr[0]);
-    let (b, y0) = Footprint::place(t.s, t.cy, scr[1]);
+    let (a, x0, dx) = Footprint::place_with_residual(t.s, t.cx, scr[0]);
+    let (b, y0, dy) = Footprint::place_with_residual(t.s, t.cy, scr[1]);
     let idx = (b * t.s + a) as u32;
     let x0 = x0.clamp(i32::MIN as i64, i32::MAX as i64) as i32;
     let y0 = y0.clamp(i32::MIN as i64, i32::MAX as i64) as i32;
@@ -603,8 +644,6 @@ fn place(
     out.push(record(t.first_phase + idx, value));
     if let Some(g) = t.grad_first {
         let ss = (t.s * t.s) as u32;
-        let dx = Footprint::residual(t.s, scr[0]);
-        let dy = Footprint::residual(t.s, scr[1]);
         if dx != 0.0 {
             out.push(record(g + idx, (value as f64 * dx) as f32));
         }
@@ -742,10 +781,7 @@ impl ViewPlan {
                         let centre = match clipped.map(|cl| cl[ci * CHUNK + j]) {
                             Some(Clipped::Whole(centre)) => centre,
                             Some(Clipped::Split) => continue,
-                            None if whole => {
-                                let pos = [c.pos[0] as usize, c.pos[1] as usize, c.pos[2] as usize];
-                                self.geometry.basis_center(c.band, pos)
-                            }
+                            None if whole => self.centres.of(c.band, c.pos),
                             None => continue,
                         };
                         let (kind, sign) = if permuted {
@@ -817,5 +853,38 @@ fn view_triple(f: &[AxisFactor; 3], k: usize, psi_is_odd: bool) -> ([AxisFactor;
             ([rz, f[1], f[0]], s)
         }
         _ => (*f, 1.0),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The tabulated centres are `Geometry::basis_center`'s values, bit for bit, for every
+    /// position of every band: odd, thin and margined grids, each family.
+    #[test]
+    fn centre_tables_equal_basis_centres() {
+        for (dims, family, levels, margin) in [
+            ([13, 8, 5], Family::Linear, 2, 3),
+            ([1, 1, 1], Family::Haar, 0, 0),
+            ([30, 23, 17], Family::Cubic, 2, 8),
+            ([64, 4, 9], Family::Haar, 2, 0),
+        ] {
+            let g = Geometry::new(dims, family, levels, margin).unwrap();
+            let centres = Centres::new(&g);
+            for band in g.bands() {
+                let bd = g.band_dims(band);
+                for z in 0..bd[2] {
+                    for y in 0..bd[1] {
+                        for x in 0..bd[0] {
+                            let pos = [x as u32, y as u32, z as u32];
+                            let want = g.basis_center(band, [x, y, z]);
+                            let got = centres.of(band, pos);
+                            assert_eq!(got.map(f64::to_bits), want.map(f64::to_bits));
+                        }
+                    }
+                }
+            }
+        }
     }
 }

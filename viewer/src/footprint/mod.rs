@@ -264,11 +264,18 @@ impl Footprint {
     /// returns (phase, first pixel) such that pixel `first + k` reads column k of the phase.
     #[inline]
     pub fn place(s: usize, c: usize, centre: f64) -> (usize, i64) {
-        let d = (s as f64 * (centre - 0.5)).round() as i64;
-        let t = c as i64 - d;
+        let (a, first, _) = Footprint::place_with_residual(s, c, centre);
+        (a, first)
+    }
+
+    /// [`Footprint::place`] and [`Footprint::residual`] at once (they share their rounding).
+    #[inline]
+    pub fn place_with_residual(s: usize, c: usize, centre: f64) -> (usize, i64, f64) {
+        let d = (s as f64 * (centre - 0.5)).round();
+        let t = c as i64 - d as i64;
         let a = t.rem_euclid(s as i64);
         let q = (t - a) / s as i64;
-        (a as usize, -q)
+        (a as usize, -q, (d / s as f64 + 0.5) - centre)
     }
 }
 
