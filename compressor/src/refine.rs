@@ -470,7 +470,7 @@ pub(crate) fn refine_with(
                 score_of(c, band_of[i], v)
             }
         };
-        let hist = histogram(channels, n, &score, &|_, _| 0.0);
+        let hist = histogram(channels, n, &score, None::<&fn(usize, usize) -> f64>);
         let picks = top_k(&hist, channels, n, k, &score);
         let chosen: Vec<(u8, u32, f32)> = picks
             .iter()
@@ -569,7 +569,7 @@ pub(crate) fn refine_with(
             -1.0
         }
     };
-    let hist = histogram(channels, n, &score, &|_, _| 0.0);
+    let hist = histogram(channels, n, &score, None::<&fn(usize, usize) -> f64>);
     let extension = top_k(&hist, channels, n, extension, &score)
         .into_iter()
         .map(|(_, c, i)| KeptValue {

@@ -81,41 +81,58 @@ pub(crate) struct Histogram {
 }
 
 /// One pass over `n` coefficients of each of `channels` channels: `score(c, i)` (negative:
-/// never selected, e.g. a zero coefficient) and `energy(c, i)`.
-pub(crate) fn histogram(
-    channels: usize,
-    n: usize,
-    score: &(dyn Fn(usize, usize) -> f64 + Sync),
-    energy: &(dyn Fn(usize, usize) -> f64 + Sync),
-) -> Histogram {
+/// never selected, e.g. a zero coefficient) and, when given, `energy(c, i)` (without it the
+/// per-bin energies stay empty and [`Histogram::count_for_energy`] must not be asked). Generic
+/// rather than `dyn`, so that the closures are inlined into the pass over every coefficient.
+pub(crate) fn histogram<S, E>(channels: usize, n: usize, score: &S, energy: Option<&E>) -> Histogram
+where
+    S: Fn(usize, usize) -> f64 + Sync,
+    E: Fn(usize, usize) -> f64 + Sync,
+{
     let chunks = n.div_ceil(CHUNK);
     let jobs = channels * chunks;
+    let energy_bins = if energy.is_some() { BINS } else { 0 };
     // A few accumulators per thread, not one per chunk (each is ~0.8 MB).
     let min_len = (jobs / (4 * rayon::current_num_threads())).max(1);
     let (counts, energies) = (0..jobs)
         .into_par_iter()
         .with_min_len(min_len)
         .fold(
-            || (vec![0u64; BINS], vec![0.0f64; BINS]),
+            || (vec![0u64; BINS], vec![0.0f64; energy_bins]),
             |(mut counts, mut energies), job| {
                 let (c, chunk) = (job / chunks, job % chunks);
-                for i in chunk * CHUNK..((chunk + 1) * CHUNK).min(n) {
-                    let s = score(c, i);
-                    if s >= 0.0 {
-                        let b = bin(s);
-                        counts[b] += 1;
-                        energies[b] += energy(c, i);
+                let range = chunk * CHUNK..((chunk + 1) * CHUNK).min(n);
+                match energy {
+                    Some(energy) => {
+                        for i in range {
+                            let s = score(c, i);
+                            if s >= 0.0 {
+                                let b = bin(s);
+                                counts[b] += 1;
+                                energies[b] += energy(c, i);
+                            }
+                        }
+                    }
+                    None => {
+                        for i in range {
+                            let s = score(c, i);
+                            if s >= 0.0 {
+                                counts[bin(s)] += 1;
+                            }
+                        }
                     }
                 }
                 (counts, energies)
             },
         )
         .reduce(
-            || (vec![0u64; BINS], vec![0.0f64; BINS]),
+            || (vec![0u64; BINS], vec![0.0f64; energy_bins]),
             |(mut c1, mut e1), (c2, e2)| {
-                for b in 0..BINS {
-                    c1[b] += c2[b];
-                    e1[b] += e2[b];
+                for (a, b) in c1.iter_mut().zip(&c2) {
+                    *a += b;
+                }
+                for (a, b) in e1.iter_mut().zip(&e2) {
+                    *a += b;
                 }
                 (c1, e1)
             },
@@ -160,7 +177,8 @@ impl Histogram {
             if reached && self.counts[b] > 0 {
                 return count + self.counts[b];
             }
-            acc += self.energies[b];
+            // A histogram without energies collects everything.
+            acc += self.energies.get(b).copied().unwrap_or(0.0);
             count += self.counts[b];
             reached |= acc >= goal * (1.0 - 1e-9);
         }
@@ -170,13 +188,16 @@ impl Histogram {
 
 /// The top `k` selectable coefficients (score ≥ 0), sorted by [`pick_order`] (fewer when fewer
 /// are selectable). `hist` must come from [`histogram`] with the same `score`.
-pub(crate) fn top_k(
+pub(crate) fn top_k<S>(
     hist: &Histogram,
     channels: usize,
     n: usize,
     k: usize,
-    score: &(dyn Fn(usize, usize) -> f64 + Sync),
-) -> Vec<Pick> {
+    score: &S,
+) -> Vec<Pick>
+where
+    S: Fn(usize, usize) -> f64 + Sync,
+{
     if k == 0 {
         return Vec::new();
     }
@@ -242,7 +263,7 @@ mod tests {
                 v * v
             }
         };
-        let hist = histogram(2, n, &score, &|c, i| values[c][i]);
+        let hist = histogram(2, n, &score, Some(&|c: usize, i: usize| values[c][i]));
         let mut all: Vec<Pick> = (0..2)
             .flat_map(|c| (0..n).map(move |i| (c, i)))
             .filter(|(c, i)| score(*c, *i) >= 0.0)
@@ -250,9 +271,13 @@ mod tests {
             .collect();
         all.sort_by(pick_order);
         assert_eq!(hist.positive as usize, all.len());
+        // Without energies (the refinement's picks) the counts, and so the picks, are the same.
+        let counts_only = histogram(2, n, &score, None::<&fn(usize, usize) -> f64>);
+        assert_eq!(counts_only.positive, hist.positive);
         for k in [1usize, 7, 1000, 50_000, all.len(), all.len() + 5] {
             let got = top_k(&hist, 2, n, k, &score);
             assert_eq!(got, all[..k.min(all.len())].to_vec(), "k = {k}");
+            assert_eq!(top_k(&counts_only, 2, n, k, &score), got, "k = {k}");
         }
         // The energy cut covers the goal.
         let total: f64 = all.iter().map(|p| p.0.sqrt()).sum();

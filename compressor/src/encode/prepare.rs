@@ -288,7 +288,12 @@ pub(super) fn prepare(
     };
     let histogram = {
         let p = &prepared;
-        histogram(p.channels, n, &|c, i| p.score(c, i), &|c, i| p.energy(c, i))
+        histogram(
+            p.channels,
+            n,
+            &|c, i| p.score(c, i),
+            Some(&|c: usize, i: usize| p.energy(c, i)),
+        )
     };
     prepared.nonzero = histogram.positive;
     prepared.histogram = histogram;
