@@ -286,7 +286,9 @@ pub struct CacheSourceOptions {
     pub byte_budget: Option<u64>,
     /// Simulated link speed in bytes per second (None: as fast as the connection goes). Each
     /// packet is handed to the session only once its bytes would have crossed a link of this
-    /// speed after the previous one: bandwidth, no latency (for benchmarks over loopback).
+    /// speed after the previous one: bandwidth, no latency (for benchmarks over loopback). The
+    /// link carries up to `credit_bytes` ahead while the source's thread decodes, as a real one
+    /// does.
     pub link_bytes_per_second: Option<u64>,
     /// Ask only for the packets the current view sees; the rest come after a view change
     /// that sees them (default: yes; an off-screen or cancelled band is never sent for
@@ -742,7 +744,8 @@ impl Pull {
             return;
         };
         let now = tokio::time::Instant::now();
-        let begin = self.link_free.map_or(now, |f| f.max(now));
+        let window = Duration::from_secs_f64(self.options.credit_bytes as f64 / rate as f64);
+        let begin = link_start(self.link_free, now, window);
         let arrives = begin + Duration::from_secs_f64(len as f64 / rate as f64);
         self.link_free = Some(arrives);
         // Timers tick in milliseconds: a sleep for each small packet capped a link at about
@@ -858,6 +861,23 @@ impl Pull {
     }
 }
 
+/// When a packet starts across the simulated link: when the link came free (`free`) if this
+/// thread asks for it no later than the credit window's crossing time (`window`) after that,
+/// else now. A real link keeps carrying the bytes the cache has credit for while the receiving
+/// thread decodes the previous packet, so a thread that comes back a little late finds the
+/// packet already across; one that comes back later than a window's worth of bytes found the
+/// link idle (the cache had nothing it could send), and the packet starts now.
+fn link_start(
+    free: Option<tokio::time::Instant>,
+    now: tokio::time::Instant,
+    window: Duration,
+) -> tokio::time::Instant {
+    match free {
+        Some(f) if f + window >= now => f,
+        _ => now,
+    }
+}
+
 impl<T: PacketSource + ?Sized> PacketSource for Box<T> {
     fn try_next(&mut self) -> Option<SourcePacket> {
         (**self).try_next()
@@ -877,6 +897,24 @@ impl<T: PacketSource + ?Sized> PacketSource for Box<T> {
 mod tests {
     use super::*;
     use wavesplat_codec::view::View;
+
+    /// The simulated link runs on while the thread decodes, by up to a credit window: a packet
+    /// asked for late but within the window starts when the link came free, one asked for
+    /// after a longer pause starts when asked, and a busy link delays it.
+    #[test]
+    fn the_link_carries_a_credit_window_ahead_of_a_busy_thread() {
+        let now = tokio::time::Instant::now();
+        let ms = Duration::from_millis;
+        let window = ms(50);
+        assert_eq!(link_start(None, now, window), now);
+        // Busy until later: the packet waits for the link.
+        assert_eq!(link_start(Some(now + ms(30)), now, window), now + ms(30));
+        // Came free 20 ms ago, thread busy: the packet crossed meanwhile.
+        assert_eq!(link_start(Some(now - ms(20)), now, window), now - ms(20));
+        assert_eq!(link_start(Some(now - ms(50)), now, window), now - ms(50));
+        // Idle for longer than a window: nothing was in flight, it starts now.
+        assert_eq!(link_start(Some(now - ms(51)), now, window), now);
+    }
 
     /// A fed source is not done after a view change until its thread has applied it: a thread
     /// that said `done` for the old view and has not yet read the change must not end the new
