@@ -205,6 +205,58 @@ fn byte_targets_are_met_within_two_percent() {
     assert!(tiny.is_err(), "a 10-byte target cannot hold a header");
 }
 
+/// A target larger than the file of every non-zero coefficient goes to a finer quantizer. A
+/// single slice gets no transform (every sample is a coefficient); with tissue values of 40 and
+/// more around a zero background, as in a skull-stripped MRI slice, the default step (the
+/// smallest kept magnitude) is 40 grey levels, and the whole selection used to code in a
+/// fraction of a larger target. The target is filled now, the image gets better with every
+/// step up, and a target no step can fill still gives a file within it.
+#[test]
+fn bytes_beyond_every_coefficient_go_to_a_finer_quantizer() {
+    let (nx, ny) = (48usize, 40usize);
+    let slice: Vec<f32> = (0..nx * ny)
+        .map(|i| {
+            let (x, y) = ((i % nx) as f64 - 23.5, (i / nx) as f64 - 19.5);
+            if (x / 21.0).powi(2) + (y / 17.0).powi(2) <= 1.0 {
+                (40.0 + 100.0 * (1.0 + (0.7 * x).sin() * (0.45 * y).cos())).round() as f32
+            } else {
+                0.0
+            }
+        })
+        .collect();
+    let vol = Volume::new([nx, ny, 1], [1.0; 3], vec![slice]).unwrap();
+    let snr = |c: &Compressed| snr_db(&flat(&vol), &flat(&decompress(&c.bytes).unwrap()));
+    for coder in [CoderKind::Sigmap, CoderKind::Fast] {
+        let with = |target| CompressOptions {
+            coder,
+            target,
+            ..Default::default()
+        };
+        let every = run(&vol, &with(Target::All));
+        let all = every.bytes.len() as u64;
+        let mut last = snr(&every);
+        for (target, fill) in [(all + all / 2, 0.9), (2 * all, 0.9), (1000 * all, 0.0)] {
+            let c = run(&vol, &with(Target::Bytes(target)));
+            let size = c.bytes.len() as u64;
+            assert_eq!(
+                c.stats.kept, every.stats.kept,
+                "{coder:?}: the same coefficients"
+            );
+            assert!(size <= target, "{coder:?}: {size} > {target}");
+            assert!(
+                size as f64 >= fill * target as f64,
+                "{coder:?}: {size} of {target} bytes (every coefficient at the default step: {all})"
+            );
+            let now = snr(&c);
+            assert!(
+                now > last + 1.0,
+                "{coder:?} {target} B: {now:.2} dB after {last:.2}"
+            );
+            last = now;
+        }
+    }
+}
+
 #[test]
 fn more_bytes_give_better_images_and_volumes() {
     let vol = Phantom::SheppLogan.generate([32, 32, 32]);

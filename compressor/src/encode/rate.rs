@@ -161,10 +161,23 @@ pub(super) fn compress_to_bytes(
             .collect();
     }
     let k0 = plain.stats.kept as usize;
+    // Every non-zero coefficient fits: what is left of the target goes to a finer quantizer.
+    if k0 > 0 && ranked.complete && k0 >= ranked.sorted.len() {
+        let plain = finer_steps_to_bytes(
+            &prepared,
+            &ranked,
+            plain,
+            opts,
+            target,
+            &mut trials,
+            progress,
+        );
+        return Ok(finish(&prepared, &ranked, plain));
+    }
     let Some(r) = &opts.refine else {
         return Ok(finish(&prepared, &ranked, plain));
     };
-    if k0 == 0 || (ranked.complete && k0 >= ranked.sorted.len()) {
+    if k0 == 0 {
         return Ok(finish(&prepared, &ranked, plain));
     }
     refine_to_bytes(
@@ -177,6 +190,84 @@ pub(super) fn compress_to_bytes(
         &mut trials,
         progress,
     )
+}
+
+/// Finest quantizer step the search below tries, relative to the one `--step` gives.
+const FINEST_STEP: f64 = 1.0 / 65536.0;
+
+/// Step-search encodings after the halvings: each bisects the ratio between the finest step
+/// that fits and the coarsest that does not (log scale), so four of them land within 2^(1/16)
+/// of the step that fills the target.
+const STEP_BISECTIONS: usize = 4;
+
+/// When a file keeps every non-zero coefficient (`plain`: all of `ranked`) and still falls short
+/// of `target`, the bytes left go to a finer quantizer: the step (relative to each band's
+/// smallest kept magnitude, `--step`) is halved while the file fits, then bisected between the
+/// last fitting and the first overflowing step. Without this the file stopped where the
+/// selection ran out, with the quantizer's error of up to half the smallest coefficient on every
+/// value (a single slice at 20 % of its bytes came out at 5 % and 29 dB PSNR). Returns the
+/// fullest file that fits (`plain` when none of the finer ones does).
+fn finer_steps_to_bytes(
+    prepared: &Prepared,
+    ranked: &Ranked,
+    plain: Compressed,
+    opts: &CompressOptions,
+    target: u64,
+    trials: &mut usize,
+    progress: &(dyn Fn(Stage, f64) + Sync),
+) -> Compressed {
+    if !opts.coder.quantizes_by_threshold() || !leaves_room(plain.stats.bytes, target) {
+        return plain;
+    }
+    let k = plain.stats.kept as usize;
+    let mut run = |step: f64| {
+        *trials += 1;
+        progress(Stage::Encode(*trials), 0.0);
+        let o = CompressOptions {
+            step,
+            ..opts.clone()
+        };
+        prepared.encode(ranked, k, &o, target, false)
+    };
+    // (step, file) that fits, and the coarsest step found to overflow.
+    let mut fits = (opts.step, plain);
+    let mut overflows: Option<f64> = None;
+    let mut step = opts.step;
+    while step > opts.step * FINEST_STEP {
+        step /= 2.0;
+        let c = run(step);
+        tracing::debug!(step, bytes = c.stats.bytes, target, "finer quantizer");
+        if c.stats.bytes > target {
+            overflows = Some(step);
+            break;
+        }
+        fits = (step, c);
+        if !leaves_room(fits.1.stats.bytes, target) {
+            return fits.1;
+        }
+    }
+    let Some(mut over) = overflows else {
+        return fits.1;
+    };
+    for _ in 0..STEP_BISECTIONS {
+        let step = (fits.0 * over).sqrt();
+        let c = run(step);
+        tracing::debug!(step, bytes = c.stats.bytes, target, "finer quantizer");
+        if c.stats.bytes > target {
+            over = step;
+        } else {
+            fits = (step, c);
+            if !leaves_room(fits.1.stats.bytes, target) {
+                break;
+            }
+        }
+    }
+    fits.1
+}
+
+/// Whether a file of `bytes` leaves more than 3 % of `target` unused.
+fn leaves_room(bytes: u64, target: u64) -> bool {
+    (bytes as f64) < CLOSE_BELOW * target as f64
 }
 
 /// The oracle's order searched for the largest prefix that fits `target` bytes, on a candidate
