@@ -2,6 +2,8 @@
 """Volumes unlike the skull-stripped MNI brain, and their scoring against SPERR at equal bytes.
 
   testset.py make OUTDIR [--only NAME,...]     write the volumes (raw, x fastest) + manifest.tsv
+                                               (the thin slabs slab1, slab2, slab4, slab8 only
+                                               when named)
   testset.py ct OUT.raw NX NY NZ [--u16]       one CT-like i16 volume (memory benchmarks);
                                                --u16: the same + 1024 (air at 24) as u16
   testset.py ct-rgb OUT.raw NX NY NZ           its tissue classes painted as colours (u8 RGB)
@@ -78,12 +80,23 @@ def classified_ct_rgb(v):
     return palette[classes]
 
 
+# Thin slabs (1 to 8 axial slices of MNI), made only when named with --only: the depth of the
+# transform is limited by the thinnest axis, and these measure what that costs against SPERR,
+# whose levels are per axis.
+THIN = {f"slab{n}": n for n in (1, 2, 4, 8)}
+
+
 def volumes(only=None):
     """(name, array (x, y, z[, 3]), dtype tag, description)."""
     want = lambda n: only is None or n in only  # noqa: E731
     out = []
     m = mni() if any(want(n) for n in ("mni-offset", "slab16", "slab32", "aniso",
-                                       "wide16", "mni-rgb")) else None
+                                       "wide16", "mni-rgb")) \
+        or any(n in THIN for n in (only or ())) else None
+    for name, n in THIN.items():
+        if only is not None and name in only:
+            out.append((name, m[:, :, 98 - n // 2:98 - n // 2 + n].astype(np.uint8), "u8",
+                        f"{n} axial slice(s) of MNI across the head"))
     if want("mni-offset"):
         out.append(("mni-offset", (m + 100).astype(np.uint16), "u16",
                     "MNI + 100: every face non-zero"))
