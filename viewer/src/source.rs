@@ -11,7 +11,7 @@
 //! connection fails it keeps what it has, says so in its status, and reconnects with backoff,
 //! telling the cache what it holds so nothing is sent twice.
 
-use std::collections::HashSet;
+use std::collections::{HashMap, HashSet};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 use tokio::sync::{mpsc, OwnedSemaphorePermit, Semaphore};
@@ -123,8 +123,9 @@ struct FilePacket {
 }
 
 /// A local `.wsp` file served packet by packet in the cache's order for the current view
-/// (visible energy per byte), optionally only up to a byte budget, each packet decoded as it
-/// is handed over (every source hands the session decoded packets).
+/// (visible energy per byte), optionally only up to a byte budget, each packet decoded when it
+/// is handed over, together with the next few in parallel (every source hands the session
+/// decoded packets).
 #[derive(Debug)]
 pub struct FileSource {
     bytes: Vec<u8>,
@@ -136,7 +137,13 @@ pub struct FileSource {
     delivered: Vec<bool>,
     budget: Option<u64>,
     status: SourceStatus,
+    /// Packets decoded ahead of their delivery, by id (`None`: it did not decode).
+    ahead: HashMap<u32, Option<(usize, Vec<Coefficient>)>>,
 }
+
+/// Packets a file source decodes at once, in parallel, when the next one is not decoded yet:
+/// per thread of the pool, so that every core decodes while the frame thread takes packets.
+const DECODE_AHEAD_PER_THREAD: usize = 2;
 
 impl FileSource {
     /// Parses `bytes` (the whole file) and ranks its packets for `spec`.
@@ -181,6 +188,7 @@ impl FileSource {
                 connected: true,
                 ..Default::default()
             },
+            ahead: HashMap::new(),
         };
         s.rank(spec)?;
         Ok(s)
@@ -205,6 +213,30 @@ impl FileSource {
     /// Number of packets in the file.
     pub fn packet_count(&self) -> usize {
         self.packets.len()
+    }
+
+    /// Decodes the packet at the cursor and the next ones in order (those not decoded yet),
+    /// [`DECODE_AHEAD_PER_THREAD`] per thread of the pool, in parallel.
+    fn decode_ahead(&mut self) {
+        use rayon::prelude::*;
+        let n = DECODE_AHEAD_PER_THREAD * rayon::current_num_threads();
+        // The cursor has moved past the packet being delivered.
+        let next: Vec<u32> = self.order[self.cursor - 1..]
+            .iter()
+            .copied()
+            .filter(|id| !self.ahead.contains_key(id))
+            .take(n)
+            .collect();
+        let (header, bytes, packets) = (&self.header, &self.bytes, &self.packets);
+        let decoded: Vec<_> = next
+            .par_iter()
+            .map(|&id| {
+                let data = &bytes[packets[id as usize].range.clone()];
+                let d = decode_packet(header, data).ok();
+                (id, d.map(|d| (d.tile, d.coefficients)))
+            })
+            .collect();
+        self.ahead.extend(decoded);
     }
 
     fn rank(&mut self, spec: &ViewSpec) -> Result<(), SourceError> {
@@ -247,11 +279,13 @@ impl PacketSource for FileSource {
         self.status.done = self.cursor >= self.order.len();
         let data = self.bytes[range].to_vec();
         // Decoded here, as the network sources decode on their threads, so the session takes
-        // every source's packets one way. A packet that does not decode goes on as bytes: the
-        // session then reports the error with the packet's id.
-        let decoded = decode_packet(&self.header, &data)
-            .ok()
-            .map(|d| (d.tile, d.coefficients));
+        // every source's packets one way: this one and the next few in order at once, in
+        // parallel. A packet that does not decode goes on as bytes: the session then reports
+        // the error with the packet's id.
+        if !self.ahead.contains_key(&id) {
+            self.decode_ahead();
+        }
+        let decoded = self.ahead.remove(&id).flatten();
         Some(SourcePacket { id, data, decoded })
     }
 

@@ -275,6 +275,55 @@ fn a_view_change_mid_stream_resplats_what_is_held_and_continues() {
     assert_eq!(f.source.status().packets as usize, total);
 }
 
+/// A file source decodes a few packets ahead, in parallel: every packet it hands over carries
+/// its bytes and exactly what decoding it alone gives, each once in the order of its view, also
+/// after a view change, and a dropped packet once more.
+#[test]
+fn a_file_source_hands_over_each_packet_decoded_as_alone() {
+    let bytes = wsp(Phantom::SheppLogan, 48, 16);
+    let file = parse_file(&bytes).unwrap();
+    let alone: Vec<(usize, Vec<Coefficient>)> = file
+        .packets
+        .iter()
+        .map(|p| {
+            let d = wavesplat_codec::format::packet::decode_packet(&file.header, p).unwrap();
+            (d.tile, d.coefficients)
+        })
+        .collect();
+    let total = alone.len();
+    assert!(total > 8, "enough packets to decode ahead: {total}");
+    let (a, b) = (spec(0.0, 0.0), spec(1.1, 0.5));
+    let mut source = FileSource::open(bytes.clone(), &a).unwrap();
+    let check = |p: &SourcePacket| {
+        let id = p.id as usize;
+        assert_eq!(p.decoded.as_ref(), Some(&alone[id]), "packet {id}");
+        assert_eq!(p.data, file.packets[id], "packet {id}");
+    };
+    let mut seen = Vec::new();
+    for _ in 0..total / 3 {
+        let p = source.try_next().unwrap();
+        check(&p);
+        seen.push(p.id);
+    }
+    // A view change reorders what is left; a dropped packet comes again.
+    source.set_view(&b);
+    source.dropped(vec![seen[0]]);
+    source.set_view(&b);
+    let mut again = 0;
+    while let Some(p) = source.try_next() {
+        check(&p);
+        if p.id == seen[0] {
+            again += 1;
+        } else {
+            assert!(!seen.contains(&p.id), "packet {} twice", p.id);
+            seen.push(p.id);
+        }
+    }
+    assert_eq!(again, 1);
+    seen.sort_unstable();
+    assert_eq!(seen, (0..total as u32).collect::<Vec<_>>());
+}
+
 #[test]
 fn the_memory_bound_holds_and_the_image_still_converges() {
     let bytes = wsp(Phantom::SheppLogan, 64, 16);
