@@ -28,7 +28,8 @@ pub const DEFAULT_ORCHESTRATOR_URL: &str = "http://127.0.0.1:50052";
 /// How much of a volume to keep, shared by `compress` and `archive submit`.
 #[derive(Args, Debug, Clone)]
 pub struct TargetArgs {
-    /// Keep as many coefficients as fit in this many bytes (whole file).
+    /// Keep as many coefficients as fit in this many bytes (whole file); when every non-zero
+    /// coefficient fits, the bytes left refine the quantizer (sigmap and fast coders).
     #[arg(long, group = "target")]
     pub target_bytes: Option<u64>,
     /// Keep this fraction (0..1] of all coefficients: every wavelet coefficient of the padded
