@@ -254,6 +254,9 @@ impl FileSource {
             .into_iter()
             .filter(|i| !self.delivered[*i as usize])
             .collect();
+        // What was decoded for the old order may come much later now: let it go, so that the
+        // source never holds more than one parallel round of decoded packets.
+        self.ahead.clear();
         self.cursor = 0;
         self.status.done = self.order.is_empty();
         Ok(())
