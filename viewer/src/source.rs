@@ -138,11 +138,14 @@ pub struct FileSource {
     budget: Option<u64>,
     status: SourceStatus,
     /// Packets decoded ahead of their delivery, by id (`None`: it did not decode).
-    ahead: HashMap<u32, Option<(usize, Vec<Coefficient>)>>,
+    ahead: HashMap<u32, Decoded>,
 }
 
+/// A packet's tile and coefficients, `None` when it did not decode.
+type Decoded = Option<(usize, Vec<Coefficient>)>;
+
 /// Packets a file source decodes at once, in parallel, when the next one is not decoded yet:
-/// per thread of the pool, so that every core decodes while the frame thread takes packets.
+/// per core, so that every core decodes while the frame thread takes packets.
 const DECODE_AHEAD_PER_THREAD: usize = 2;
 
 impl FileSource {
@@ -216,26 +219,47 @@ impl FileSource {
     }
 
     /// Decodes the packet at the cursor and the next ones in order (those not decoded yet),
-    /// [`DECODE_AHEAD_PER_THREAD`] per thread of the pool, in parallel.
+    /// [`DECODE_AHEAD_PER_THREAD`] per core, in parallel: on this thread and scoped threads of
+    /// its own, not on the rayon pool, whose threads the background planner may hold for the
+    /// length of a table build (a frame thread waiting for them would stall).
     fn decode_ahead(&mut self) {
-        use rayon::prelude::*;
-        let n = DECODE_AHEAD_PER_THREAD * rayon::current_num_threads();
+        let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
         // The cursor has moved past the packet being delivered.
         let next: Vec<u32> = self.order[self.cursor - 1..]
             .iter()
             .copied()
             .filter(|id| !self.ahead.contains_key(id))
-            .take(n)
+            .take(DECODE_AHEAD_PER_THREAD * threads)
             .collect();
         let (header, bytes, packets) = (&self.header, &self.bytes, &self.packets);
-        let decoded: Vec<_> = next
-            .par_iter()
-            .map(|&id| {
-                let data = &bytes[packets[id as usize].range.clone()];
-                let d = decode_packet(header, data).ok();
-                (id, d.map(|d| (d.tile, d.coefficients)))
-            })
-            .collect();
+        let decode = |ids: &[u32]| -> Vec<(u32, Decoded)> {
+            ids.iter()
+                .map(|&id| {
+                    let data = &bytes[packets[id as usize].range.clone()];
+                    let d = decode_packet(header, data).ok();
+                    (id, d.map(|d| (d.tile, d.coefficients)))
+                })
+                .collect()
+        };
+        // Packet i goes to thread i mod threads: the one needed now to this thread, first.
+        let share =
+            |t: usize| -> Vec<u32> { next.iter().copied().skip(t).step_by(threads).collect() };
+        let decoded = std::thread::scope(|scope| {
+            let helpers: Vec<_> = (1..threads.min(next.len()))
+                .map(|t| {
+                    let ids = share(t);
+                    scope.spawn(move || decode(&ids))
+                })
+                .collect();
+            let mut all = decode(&share(0));
+            for h in helpers {
+                // A decoder that panicked leaves its packets to be decoded again when asked.
+                if let Ok(d) = h.join() {
+                    all.extend(d);
+                }
+            }
+            all
+        });
         self.ahead.extend(decoded);
     }
 
