@@ -102,23 +102,13 @@ where
             |(mut counts, mut energies), job| {
                 let (c, chunk) = (job / chunks, job % chunks);
                 let range = chunk * CHUNK..((chunk + 1) * CHUNK).min(n);
-                match energy {
-                    Some(energy) => {
-                        for i in range {
-                            let s = score(c, i);
-                            if s >= 0.0 {
-                                let b = bin(s);
-                                counts[b] += 1;
-                                energies[b] += energy(c, i);
-                            }
-                        }
-                    }
-                    None => {
-                        for i in range {
-                            let s = score(c, i);
-                            if s >= 0.0 {
-                                counts[bin(s)] += 1;
-                            }
+                for i in range {
+                    let s = score(c, i);
+                    if s >= 0.0 {
+                        let b = bin(s);
+                        counts[b] += 1;
+                        if let Some(energy) = energy {
+                            energies[b] += energy(c, i);
                         }
                     }
                 }

@@ -252,14 +252,6 @@ impl Footprint {
         }
     }
 
-    /// The subpixel residual of a placement: the exact centre minus where the chosen phase puts
-    /// it, in pixels (|residual| ≤ 1/(2S)).
-    #[inline]
-    pub fn residual(s: usize, centre: f64) -> f64 {
-        let d = (s as f64 * (centre - 0.5)).round();
-        (d / s as f64 + 0.5) - centre
-    }
-
     /// Placement along one axis of a splat centred at continuous screen coordinate `centre`:
     /// returns (phase, first pixel) such that pixel `first + k` reads column k of the phase.
     #[inline]
@@ -268,7 +260,8 @@ impl Footprint {
         (a, first)
     }
 
-    /// [`Footprint::place`] and [`Footprint::residual`] at once (they share their rounding).
+    /// [`Footprint::place`] and the subpixel residual of that placement: the exact centre minus
+    /// where the chosen phase puts it, in pixels (|residual| ≤ 1/(2S)).
     #[inline]
     pub fn place_with_residual(s: usize, c: usize, centre: f64) -> (usize, i64, f64) {
         let d = (s as f64 * (centre - 0.5)).round();
