@@ -200,3 +200,38 @@ fn help_says_what_the_commands_take() {
     let compress = out(&run(&["compress", "--help"]));
     assert!(compress.contains("padded grid"), "{compress}");
 }
+
+/// `bench refine` runs on the backend asked for (so one machine's GPU and CPU figures come from
+/// the same command) and refuses both at once.
+#[test]
+fn bench_refine_takes_the_backend_asked_for() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let out_dir = dir.path().join("refine");
+    let o = run(&[
+        "bench",
+        "refine",
+        "--cpu",
+        "--size",
+        "16",
+        "--image",
+        "32",
+        "--budgets",
+        "8",
+        "--links",
+        "unlimited",
+        "--rest-frames",
+        "20",
+        "--no-table4",
+        "--out",
+        out_dir.to_str().expect("utf-8 path"),
+    ]);
+    assert!(o.status.success(), "{}", err(&o));
+    let said = out(&o);
+    assert!(said.contains("backend: cpu backend (asked for)"), "{said}");
+    let summary = std::fs::read_to_string(out_dir.join("summary.csv")).expect("summary.csv");
+    assert_eq!(summary.lines().count(), 2, "{summary}");
+
+    let both = run(&["bench", "refine", "--cpu", "--gpu"]);
+    assert_eq!(both.status.code(), Some(2));
+    assert!(err(&both).contains("cannot be used with"), "{}", err(&both));
+}

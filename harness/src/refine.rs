@@ -26,7 +26,7 @@ use wavesplat_codec::volume::Volume;
 use wavesplat_compressor::colorspace::ColorSpaceKind;
 use wavesplat_compressor::encode::{compress, CompressOptions, Target, TileChoice};
 use wavesplat_compressor::phantom::Phantom;
-use wavesplat_viewer::backend::BackendChoice;
+use wavesplat_viewer::backend::{select, BackendChoice};
 use wavesplat_viewer::open::load_coefficients;
 use wavesplat_viewer::source::CacheSourceOptions;
 use wavesplat_viewer::walk::{percentile, turn, walk, zoom_to, FrameSample, PathStep, WalkOptions};
@@ -220,6 +220,8 @@ pub struct RefineBench {
     pub table4: bool,
     /// Output directory (created).
     pub out: PathBuf,
+    /// Accumulation backend; `Auto` takes the GPU only on a hardware adapter.
+    pub backend: BackendChoice,
 }
 
 /// Runs `bench refine` (see the module doc), writing its files under `bench.out` and its
@@ -255,7 +257,15 @@ pub fn run(bench: &RefineBench, say: &mut dyn Write) -> Result<()> {
         })
         .context("ingesting into the local cache")?;
     let (path, rests) = view_path(&header.geometry, bench.image, bench.rest_frames)?;
-    let (backend, reason) = probe_backend()?;
+    let (backend, reason) = match bench.backend {
+        BackendChoice::Auto => probe_backend()?,
+        BackendChoice::Cpu => (BackendChoice::Cpu, "cpu backend (asked for)".to_string()),
+        BackendChoice::Gpu => {
+            // Opened once here so that a missing adapter fails before the runs, with its name.
+            let selected = select(BackendChoice::Gpu).context("opening the GPU backend")?;
+            (BackendChoice::Gpu, selected.reason)
+        }
+    };
     writeln!(say, "    backend: {reason}")?;
     let truth = GroundTruth::new(volume, &header.geometry, reference_options());
     let mut references = HashMap::new();
