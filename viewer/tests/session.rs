@@ -868,6 +868,155 @@ fn busy_frames_stay_within_their_budget_at_p95_when_batch_costs_are_noisy() {
     }
 }
 
+/// Packets held from before a view change, queued again to be drawn anew, do not count against
+/// the bound on newly taken coefficients: the stream goes on coming in while they are drawn
+/// again. (Counting them held back the rest of a cache's stream after every turn and every
+/// switch to exact tables, a few packets a frame, until they were drawn again.)
+#[test]
+fn packets_drawn_again_after_a_view_change_do_not_hold_back_new_ones() {
+    let bytes = wsp(Phantom::SheppLogan, 48, 16);
+    let file = parse_file(&bytes).unwrap();
+    assert!(file.packets.len() >= 8, "{} packets", file.packets.len());
+    let (a, b) = (spec(0.66, 0.91), spec(1.3, 0.2));
+    let bound = 4 << 10;
+    let options = SessionOptions {
+        transient_bytes: bound,
+        ..Default::default()
+    };
+    let mut session =
+        RenderSession::new(file.header.clone(), a, CpuBackend::new(), options).unwrap();
+    let half = file.packets.len() / 2;
+    for (id, p) in file.packets[..half].iter().enumerate() {
+        assert!(session.wants_packets(), "packet {id}");
+        session.add_packet(id as u32, p).unwrap();
+        while session.pending() > 0 {
+            session.step(Duration::from_secs(1)).unwrap();
+        }
+    }
+    assert_eq!(session.stats().transient_bytes, 0);
+    session.set_view(b).unwrap();
+    // Everything held waits to be drawn again, well past the bound on new coefficients.
+    assert!(
+        session.stats().transient_bytes > 2 * bound,
+        "{:?}",
+        session.stats()
+    );
+    assert!(session.wants_packets(), "a view change stopped the stream");
+    // New packets are still bounded: taken until they pass the bound, then not until drawn.
+    let mut taken = 0;
+    for (id, p) in file.packets.iter().enumerate().skip(half) {
+        if !session.wants_packets() {
+            break;
+        }
+        session.add_packet(id as u32, p).unwrap();
+        taken += 1;
+    }
+    assert!(
+        taken >= 1 && half + taken < file.packets.len(),
+        "took {taken}"
+    );
+    assert!(
+        !session.wants_packets(),
+        "new packets past the bound were still taken"
+    );
+    while session.pending() > 0 {
+        session.step(Duration::from_secs(1)).unwrap();
+    }
+    assert!(
+        session.wants_packets(),
+        "drawn packets still held the stream back"
+    );
+}
+
+/// A simulated backend that keeps its own copy of the tables (as the GPU backend does): the
+/// first sight of a new atlas costs `upload` of simulated time, in `prepare` or, when that was
+/// not called, in `accumulate`.
+struct UploadingBackend {
+    inner: SimBackend,
+    clock: SimClock,
+    upload: Duration,
+    synced: Option<u64>,
+}
+
+impl UploadingBackend {
+    fn sync(&mut self, atlas: &FootprintAtlas) {
+        if self.synced != Some(atlas.generation) {
+            self.synced = Some(atlas.generation);
+            self.clock.advance(self.upload);
+        }
+    }
+}
+
+impl AccumulationBackend for UploadingBackend {
+    fn name(&self) -> String {
+        "simulated, uploading".into()
+    }
+    fn begin(&mut self, layout: Layout) -> Result<(), BackendError> {
+        self.inner.begin(layout)
+    }
+    fn prepare(&mut self, atlas: &FootprintAtlas) -> Result<(), BackendError> {
+        self.sync(atlas);
+        Ok(())
+    }
+    fn accumulate(
+        &mut self,
+        atlas: &FootprintAtlas,
+        records: &[SplatRecord],
+    ) -> Result<u64, BackendError> {
+        self.sync(atlas);
+        self.inner.accumulate(atlas, records)
+    }
+    fn read(&mut self) -> Result<Image, BackendError> {
+        self.inner.read()
+    }
+}
+
+/// A new view's tables reach an uploading backend before the session sizes and times a batch:
+/// the upload takes from the frame's budget instead of running past it, and the running
+/// estimate, which measures splatting alone, keeps the next frame's batches as large as before.
+#[test]
+fn a_new_views_table_upload_is_not_charged_to_the_splats() {
+    let bytes = wsp(Phantom::SheppLogan, 64, 16);
+    let (header, _) = all(&bytes);
+    let budget = Duration::from_micros(16_600);
+    let (a, b) = (spec(0.66, 0.91), spec(1.3, 0.2));
+    let clock = SimClock::default();
+    let backend = UploadingBackend {
+        inner: SimBackend::stepped(&clock, vec![2_000]),
+        clock: clock.clone(),
+        upload: Duration::from_millis(9),
+        synced: None,
+    };
+    let options = SessionOptions {
+        min_batch: 64,
+        ..Default::default()
+    };
+    let session = RenderSession::new(header, a, backend, options).unwrap();
+    let mut f = FrameLoop::new(session, FileSource::open(bytes, &a).unwrap());
+    // Busy frames at the first view until the fill and the estimate have settled.
+    let mut before = 0;
+    for _ in 0..4 {
+        let r = f.frame_with(budget, &clock).unwrap();
+        assert!(r.pending > 0, "the volume must outlast these frames: {r:?}");
+        before = r.coefficients;
+    }
+    assert!(before > 0);
+    f.set_view(b).unwrap();
+    let turned = f.frame_with(budget, &clock).unwrap();
+    assert!(
+        turned.elapsed <= budget,
+        "the frame that uploaded the new view's tables ran past its budget: {turned:?}"
+    );
+    let next = f.frame_with(budget, &clock).unwrap();
+    assert!(next.pending > 0, "{next:?}");
+    assert!(
+        2 * next.coefficients >= before,
+        "the upload was charged to the splats: {} coefficients a frame before the turn, {} after",
+        before,
+        next.coefficients
+    );
+}
+
 /// A new backend (a window's after its graphics device was lost) gets everything held drawn
 /// again: the session restarts on it and ends on the one-shot image.
 #[test]

@@ -221,6 +221,14 @@ pub trait AccumulationBackend: Send {
     ) -> Result<u64, BackendError>;
     /// The image accumulated since `begin` (views side by side).
     fn read(&mut self) -> Result<Image, BackendError>;
+    /// Brings whatever the backend keeps of `atlas` up to date ahead of `accumulate` (the GPU
+    /// backend uploads new tables and scans their peaks here). A session calls it before it
+    /// sizes and times a batch, so that a new view's upload is neither charged to the splats
+    /// nor spent past the frame's deadline; `accumulate` still does it when it was not called.
+    fn prepare(&mut self, atlas: &FootprintAtlas) -> Result<(), BackendError> {
+        let _ = atlas;
+        Ok(())
+    }
     /// The GPU backend, whose image can be shown where it was accumulated
     /// ([`gpu::GpuBackend::display`]); `None` for one that accumulates on the host.
     fn gpu(&mut self) -> Option<&mut gpu::GpuBackend> {
@@ -247,6 +255,10 @@ impl<T: AccumulationBackend + ?Sized> AccumulationBackend for Box<T> {
 
     fn read(&mut self) -> Result<Image, BackendError> {
         (**self).read()
+    }
+
+    fn prepare(&mut self, atlas: &FootprintAtlas) -> Result<(), BackendError> {
+        (**self).prepare(atlas)
     }
 
     fn gpu(&mut self) -> Option<&mut gpu::GpuBackend> {

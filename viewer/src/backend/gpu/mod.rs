@@ -646,6 +646,11 @@ impl AccumulationBackend for GpuBackend {
         Ok(updates)
     }
 
+    fn prepare(&mut self, atlas: &FootprintAtlas) -> Result<(), BackendError> {
+        self.ctx.check()?;
+        self.sync_atlas(atlas)
+    }
+
     fn gpu(&mut self) -> Option<&mut GpuBackend> {
         Some(self)
     }
