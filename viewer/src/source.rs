@@ -11,6 +11,7 @@
 //! connection fails it keeps what it has, says so in its status, and reconnects with backoff,
 //! telling the cache what it holds so nothing is sent twice.
 
+use futures_util::stream::{FuturesOrdered, StreamExt};
 use std::collections::{HashMap, HashSet};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
@@ -516,6 +517,13 @@ impl PacketSource for Feed {
         if s.views_applied < self.views_sent {
             s.done = false;
         }
+        // Nor is it done while packets it delivered wait in the queue: the thread marks
+        // `done` after queuing the last one (read after the status, so a `done` seen here
+        // sees that packet), and a frame that found the queue empty a moment before would
+        // otherwise take the view for converged with them untaken.
+        if !self.rx.is_empty() {
+            s.done = false;
+        }
         s
     }
 }
@@ -630,7 +638,7 @@ impl CacheSource {
             held: HashSet::new(),
             status: status.clone(),
             link_free: None,
-            header: header.header.clone(),
+            header: Arc::new(header.header.clone()),
         };
         let feed = Feed::start(
             "wavesplat-cache-source",
@@ -692,8 +700,8 @@ struct Pull {
     status: Arc<Mutex<SourceStatus>>,
     /// When the simulated link finishes carrying the last packet.
     link_free: Option<tokio::time::Instant>,
-    /// The volume's header (to decode packets on this thread).
-    header: Header,
+    /// The volume's header (to decode packets off the runtime's thread).
+    header: Arc<Header>,
 }
 
 /// How a stream ended.
@@ -818,8 +826,15 @@ impl Pull {
     }
 
     fn budget_left(&self) -> bool {
+        self.budget_left_beyond(0)
+    }
+
+    /// Whether the byte budget has room beyond what was delivered and `in_flight` more bytes.
+    fn budget_left_beyond(&self, in_flight: u64) -> bool {
         let bytes = self.status.lock().map(|s| s.bytes).unwrap_or(0);
-        self.options.byte_budget.is_none_or(|b| bytes < b)
+        self.options
+            .byte_budget
+            .is_none_or(|b| bytes + in_flight < b)
     }
 
     /// Runs one stream: `opened` if given (opened for the current view while connecting),
@@ -847,17 +862,34 @@ impl Pull {
             s.connected = true;
             s.problem = None;
         });
+        // Packets are decoded on the blocking pool, several at once, and handed over in the
+        // order they came: one thread decoding them in turn carried ~3 M coefficients/s, less
+        // than a 20 Mbit/s link brings (BENCHMARKS.md, "A real GPU").
+        let mut decoding: FuturesOrdered<tokio::task::JoinHandle<SourcePacket>> =
+            FuturesOrdered::new();
+        let parallel = std::thread::available_parallelism().map_or(2, |n| n.get().clamp(1, 16));
+        // The next decoded packet, waiting for room in the session's queue.
         let mut pending: Option<SourcePacket> = None;
+        // Bytes received and not yet handed over (decoding or pending).
+        let mut in_flight: u64 = 0;
         // View changes sent on this stream (each stream starts at the current view).
         let mut views_sent: u32 = 0;
+        // The cache said the current view is done; it is, once what it sent is handed over.
+        let mut done_after_delivery = false;
         loop {
-            let want_more = pending.is_none() && self.budget_left();
+            if done_after_delivery && pending.is_none() && decoding.is_empty() {
+                done_after_delivery = false;
+                self.update(|s| s.done = true);
+            }
+            let want_more = decoding.len() + usize::from(pending.is_some()) < parallel
+                && self.budget_left_beyond(in_flight);
             let pending_bytes = pending.as_ref().map_or(0, |p| p.data.len());
             tokio::select! {
                 biased;
                 c = ctl.recv() => match c {
                     None => return Ended::Closed,
                     Some(Control::View(v)) => {
+                        done_after_delivery = false;
                         self.apply_view(v);
                         views_sent = views_sent.wrapping_add(1);
                         if let Err(e) = stream.control().set_view(&v).await {
@@ -877,6 +909,7 @@ impl Pull {
                     let Ok(slot) = slot else { return Ended::Closed };
                     let p = pending.take().expect("pending packet");
                     let len = p.data.len() as u64;
+                    in_flight = in_flight.saturating_sub(len);
                     self.held.insert(p.id);
                     self.update(|s| {
                         s.packets += 1;
@@ -892,16 +925,27 @@ impl Pull {
                         return Ended::Failed(e.to_string());
                     }
                 }
+                decoded = decoding.next(), if pending.is_none() && !decoding.is_empty() => {
+                    match decoded {
+                        Some(Ok(p)) => pending = Some(p),
+                        Some(Err(e)) => return Ended::Failed(format!("decoding a packet: {e}")),
+                        None => {}
+                    }
+                }
                 ev = stream.next(), if want_more => match ev {
                     Ok(Some(RefineEvent::Packet(p))) => {
                         if !self.held.contains(&p.id) {
                             self.cross_link(p.data.len()).await;
-                            // Decode here, off the frame thread; a packet that fails to
-                            // decode goes on as bytes and the session reports it.
-                            let decoded = decode_packet(&self.header, &p.data)
-                                .ok()
-                                .map(|d| (d.tile, d.coefficients));
-                            pending = Some(SourcePacket { id: p.id, data: p.data, decoded });
+                            in_flight += p.data.len() as u64;
+                            // Decoded off the frame thread; a packet that fails to decode
+                            // goes on as bytes and the session reports it.
+                            let header = Arc::clone(&self.header);
+                            decoding.push_back(tokio::task::spawn_blocking(move || {
+                                let decoded = decode_packet(&header, &p.data)
+                                    .ok()
+                                    .map(|d| (d.tile, d.coefficients));
+                                SourcePacket { id: p.id, data: p.data, decoded }
+                            }));
                         } else {
                             self.update(|s| s.resent += 1);
                         }
@@ -910,7 +954,7 @@ impl Pull {
                     // has its own.
                     Ok(Some(RefineEvent::Done { views, .. })) => {
                         if views == views_sent {
-                            self.update(|s| s.done = true);
+                            done_after_delivery = true;
                         }
                     }
                     Ok(Some(RefineEvent::Header(_))) => {}
@@ -958,6 +1002,39 @@ impl<T: PacketSource + ?Sized> PacketSource for Box<T> {
 mod tests {
     use super::*;
     use wavesplat_codec::view::View;
+
+    /// A feed whose thread has queued its last packet and said it is done is not done to the
+    /// session until that packet is taken.
+    #[test]
+    fn a_feed_is_not_done_while_its_queue_holds_packets() {
+        let runtime = tokio::runtime::Builder::new_current_thread()
+            .build()
+            .expect("runtime");
+        let status = Arc::new(Mutex::new(SourceStatus::default()));
+        let shared = status.clone();
+        let (queued_tx, queued_rx) = std::sync::mpsc::channel();
+        let mut feed = Feed::start("test-feed", runtime, 1 << 16, status, move |tx, mut ctl| {
+            async move {
+                let packet = SourcePacket {
+                    id: 7,
+                    data: vec![0; 16],
+                    decoded: None,
+                };
+                if tx.send(packet).await.is_ok() {
+                    shared.lock().expect("status").done = true;
+                    let _ = queued_tx.send(());
+                }
+                // Runs until the feed is dropped.
+                while ctl.recv().await.is_some() {}
+            }
+        })
+        .expect("feed");
+        queued_rx.recv().expect("the packet was queued");
+        assert!(!feed.status().done, "done with a packet still queued");
+        let p = feed.try_next().expect("the queued packet");
+        assert_eq!(p.id, 7);
+        assert!(feed.status().done);
+    }
 
     /// The simulated link runs on while the thread decodes, by up to a credit window: a packet
     /// asked for late but within the window starts when the link came free, one asked for
