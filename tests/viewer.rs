@@ -326,3 +326,50 @@ fn the_render_command_gives_the_same_image_from_the_cache_and_from_the_file() {
     // Frames group the splats by timing, so the sums agree to f32 rounding.
     assert!(e <= 1e-5, "{e:e}");
 }
+
+/// A cache source with a byte budget stops within it, in order, and is done; a view set after
+/// the budget is spent is done too (nothing more will come), instead of waiting for a `done`
+/// from a stream it no longer reads.
+#[test]
+fn a_byte_budget_ends_the_stream_and_a_later_view_change_is_done_at_once() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = LocalCache::start(dir.path()).unwrap();
+    let bytes = wsp(Phantom::SheppLogan, 48);
+    ingest(&server.url, "v", &bytes);
+    let total_bytes: u64 = parse_file(&bytes)
+        .unwrap()
+        .packets
+        .iter()
+        .map(|p| p.len() as u64)
+        .sum();
+    let budget = total_bytes / 4;
+    let a = ViewSpec::single(View::new(0.3, 0.2, 64, 64));
+    let options = CacheSourceOptions {
+        credit_bytes: 2048,
+        byte_budget: Some(budget),
+        ..Default::default()
+    };
+    let (mut source, header) =
+        CacheSource::open(&server.url, VolumeKey::Name("v".into()), a, options).unwrap();
+    let mut session =
+        RenderSession::new(header.header, a, CpuBackend::new(), Default::default()).unwrap();
+    let n = drain(&mut source, &mut session);
+    let status = source.status();
+    assert!(n > 0 && status.done, "{status:?}");
+    assert!(
+        status.bytes <= budget + 2048,
+        "{} bytes for a budget of {budget}",
+        status.bytes
+    );
+    source.set_view(&ViewSpec::single(View::new(1.2, 0.4, 64, 64)));
+    let start = Instant::now();
+    while !source.status().done {
+        assert!(
+            start.elapsed() < Duration::from_secs(10),
+            "a view set after the budget was spent never finished: {:?}",
+            source.status()
+        );
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    assert!(source.try_next().is_none());
+}

@@ -590,8 +590,13 @@ impl<B: AccumulationBackend> RenderSession<B> {
                 .push(c);
         }
         for (tile, cs) in by_tile {
-            let id = self.next_local_id;
-            self.next_local_id = self.next_local_id.wrapping_sub(1);
+            // Local ids count down from u32::MAX; one a packet already holds is skipped (a
+            // replaced entry would leave its bytes counted).
+            let mut id = self.next_local_id;
+            while self.packets.contains_key(&id) {
+                id = id.wrapping_sub(1);
+            }
+            self.next_local_id = id.wrapping_sub(1);
             self.insert(id, tile, cs, 0)?;
         }
         Ok(())

@@ -704,6 +704,11 @@ struct Pull {
     header: Arc<Header>,
 }
 
+/// A packet on its way to the session: crossing the simulated link, then decoding.
+type Decoding = std::pin::Pin<
+    Box<dyn std::future::Future<Output = Result<SourcePacket, tokio::task::JoinError>> + Send>,
+>;
+
 /// How a stream ended.
 enum Ended {
     /// The session went away: stop.
@@ -807,11 +812,10 @@ impl Pull {
         }
     }
 
-    /// Waits until a packet of `len` bytes has crossed the simulated link (if any).
-    async fn cross_link(&mut self, len: usize) {
-        let Some(rate) = self.options.link_bytes_per_second.filter(|r| *r > 0) else {
-            return;
-        };
+    /// When a packet of `len` bytes read now has crossed the simulated link; `None` without
+    /// a link or when it is due within a timer tick.
+    fn link_arrival(&mut self, len: usize) -> Option<tokio::time::Instant> {
+        let rate = self.options.link_bytes_per_second.filter(|r| *r > 0)?;
         let now = tokio::time::Instant::now();
         let window = Duration::from_secs_f64(self.options.credit_bytes as f64 / rate as f64);
         let begin = link_start(self.link_free, now, window);
@@ -820,9 +824,7 @@ impl Pull {
         // Timers tick in milliseconds: a sleep for each small packet capped a link at about
         // a packet per millisecond, whatever its speed. A packet due within a tick goes at
         // once; the link's clock still advances by each packet, so the rate holds.
-        if arrives > now + Duration::from_millis(1) {
-            tokio::time::sleep_until(arrives).await;
-        }
+        (arrives > now + Duration::from_millis(1)).then_some(arrives)
     }
 
     fn budget_left(&self) -> bool {
@@ -865,8 +867,7 @@ impl Pull {
         // Packets are decoded on the blocking pool, several at once, and handed over in the
         // order they came: one thread decoding them in turn carried ~3 M coefficients/s, less
         // than a 20 Mbit/s link brings (BENCHMARKS.md, "A real GPU").
-        let mut decoding: FuturesOrdered<tokio::task::JoinHandle<SourcePacket>> =
-            FuturesOrdered::new();
+        let mut decoding: FuturesOrdered<Decoding> = FuturesOrdered::new();
         let parallel = std::thread::available_parallelism().map_or(2, |n| n.get().clamp(1, 16));
         // The next decoded packet, waiting for room in the session's queue.
         let mut pending: Option<SourcePacket> = None;
@@ -877,7 +878,12 @@ impl Pull {
         // The cache said the current view is done; it is, once what it sent is handed over.
         let mut done_after_delivery = false;
         loop {
-            if done_after_delivery && pending.is_none() && decoding.is_empty() {
+            // Done once everything received is handed over: when the cache said so, or when
+            // the byte budget is spent (also for a view set after it was).
+            if pending.is_none()
+                && decoding.is_empty()
+                && (done_after_delivery || !self.budget_left())
+            {
                 done_after_delivery = false;
                 self.update(|s| s.done = true);
             }
@@ -918,9 +924,6 @@ impl Pull {
                     if slot.send(p).is_err() {
                         return Ended::Closed;
                     }
-                    if !self.budget_left() {
-                        self.update(|s| s.done = true);
-                    }
                     if let Err(e) = stream.control().grant(len).await {
                         return Ended::Failed(e.to_string());
                     }
@@ -928,23 +931,38 @@ impl Pull {
                 decoded = decoding.next(), if pending.is_none() && !decoding.is_empty() => {
                     match decoded {
                         Some(Ok(p)) => pending = Some(p),
-                        Some(Err(e)) => return Ended::Failed(format!("decoding a packet: {e}")),
+                        // A decoder that panicked: asking for the packet again would repeat
+                        // it, so the source stops and says why.
+                        Some(Err(e)) => {
+                            self.update(|s| {
+                                s.problem = Some(format!("decoding a packet failed: {e}"));
+                            });
+                            return Ended::Closed;
+                        }
                         None => {}
                     }
                 }
                 ev = stream.next(), if want_more => match ev {
                     Ok(Some(RefineEvent::Packet(p))) => {
                         if !self.held.contains(&p.id) {
-                            self.cross_link(p.data.len()).await;
                             in_flight += p.data.len() as u64;
-                            // Decoded off the frame thread; a packet that fails to decode
-                            // goes on as bytes and the session reports it.
+                            // It crosses the simulated link (if any) and is decoded off this
+                            // loop, so packets that arrived before it are handed over
+                            // meanwhile; a packet that fails to decode goes on as bytes and
+                            // the session reports it.
+                            let arrives = self.link_arrival(p.data.len());
                             let header = Arc::clone(&self.header);
-                            decoding.push_back(tokio::task::spawn_blocking(move || {
-                                let decoded = decode_packet(&header, &p.data)
-                                    .ok()
-                                    .map(|d| (d.tile, d.coefficients));
-                                SourcePacket { id: p.id, data: p.data, decoded }
+                            decoding.push_back(Box::pin(async move {
+                                if let Some(t) = arrives {
+                                    tokio::time::sleep_until(t).await;
+                                }
+                                tokio::task::spawn_blocking(move || {
+                                    let decoded = decode_packet(&header, &p.data)
+                                        .ok()
+                                        .map(|d| (d.tile, d.coefficients));
+                                    SourcePacket { id: p.id, data: p.data, decoded }
+                                })
+                                .await
                             }));
                         } else {
                             self.update(|s| s.resent += 1);
