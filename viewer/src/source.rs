@@ -866,9 +866,11 @@ impl Pull {
         });
         // Packets are decoded on the blocking pool, several at once, and handed over in the
         // order they came: one thread decoding them in turn carried ~3 M coefficients/s, less
-        // than a 20 Mbit/s link brings (BENCHMARKS.md, "A real GPU").
+        // than a 20 Mbit/s link brings (BENCHMARKS.md, "A real GPU"). Half the cores at most:
+        // the rest splat, and on two cores a second decoder slowed the session's refinement.
         let mut decoding: FuturesOrdered<Decoding> = FuturesOrdered::new();
-        let parallel = std::thread::available_parallelism().map_or(2, |n| n.get().clamp(1, 16));
+        let parallel =
+            std::thread::available_parallelism().map_or(1, |n| (n.get() / 2).clamp(1, 8));
         // The next decoded packet, waiting for room in the session's queue.
         let mut pending: Option<SourcePacket> = None;
         // Bytes received and not yet handed over (decoding or pending).
