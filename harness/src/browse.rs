@@ -24,10 +24,11 @@ pub fn reference_options() -> ReferenceOptions {
     }
 }
 
-/// Probes the adapters once and returns the backend the default takes (the GPU only on a
-/// hardware adapter) with the reason in words, so the sessions that follow do not probe again.
-pub fn probe_backend() -> Result<(BackendChoice, String)> {
-    let probe = select(BackendChoice::Auto).context("choosing the accumulation backend")?;
+/// Opens the backend `choice` asks for once (`Auto`: the GPU only on a hardware adapter) and
+/// returns which one it is with the reason in words, so that the sessions that follow do not
+/// probe again and a GPU asked for but missing fails before them.
+pub fn probe_backend(choice: BackendChoice) -> Result<(BackendChoice, String)> {
+    let probe = select(choice).context("choosing the accumulation backend")?;
     let choice = if probe.backend.name().starts_with("cpu") {
         BackendChoice::Cpu
     } else {

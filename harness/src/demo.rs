@@ -22,6 +22,7 @@ use wavesplat_codec::volume::Volume;
 use wavesplat_compressor::phantom::Phantom;
 use wavesplat_orchestrator::client;
 use wavesplat_orchestrator::model::{JobOptions, TargetSpec};
+use wavesplat_viewer::backend::BackendChoice;
 use wavesplat_viewer::walk::{percentile, turn, FrameSample, PathStep};
 use wavesplat_worker::archive;
 
@@ -161,7 +162,7 @@ pub fn run(demo: &Demo, say: &mut (dyn Write + Send)) -> Result<()> {
         demo.frame_ms
     )?;
     let frame = Duration::from_secs_f64(demo.frame_ms / 1e3);
-    let (backend, reason) = probe_backend()?;
+    let (backend, reason) = probe_backend(BackendChoice::Auto)?;
     writeln!(say, "    backend: {reason}")?;
     let mut runs = Vec::new();
     let progress = crate::console::Progress::new("demo");

@@ -26,7 +26,7 @@ use wavesplat_codec::volume::Volume;
 use wavesplat_compressor::colorspace::ColorSpaceKind;
 use wavesplat_compressor::encode::{compress, CompressOptions, Target, TileChoice};
 use wavesplat_compressor::phantom::Phantom;
-use wavesplat_viewer::backend::{select, BackendChoice};
+use wavesplat_viewer::backend::BackendChoice;
 use wavesplat_viewer::open::load_coefficients;
 use wavesplat_viewer::source::CacheSourceOptions;
 use wavesplat_viewer::walk::{percentile, turn, walk, zoom_to, FrameSample, PathStep, WalkOptions};
@@ -257,15 +257,7 @@ pub fn run(bench: &RefineBench, say: &mut dyn Write) -> Result<()> {
         })
         .context("ingesting into the local cache")?;
     let (path, rests) = view_path(&header.geometry, bench.image, bench.rest_frames)?;
-    let (backend, reason) = match bench.backend {
-        BackendChoice::Auto => probe_backend()?,
-        BackendChoice::Cpu => (BackendChoice::Cpu, "cpu backend (asked for)".to_string()),
-        BackendChoice::Gpu => {
-            // Opened once here so that a missing adapter fails before the runs, with its name.
-            let selected = select(BackendChoice::Gpu).context("opening the GPU backend")?;
-            (BackendChoice::Gpu, selected.reason)
-        }
-    };
+    let (backend, reason) = probe_backend(bench.backend)?;
     writeln!(say, "    backend: {reason}")?;
     let truth = GroundTruth::new(volume, &header.geometry, reference_options());
     let mut references = HashMap::new();

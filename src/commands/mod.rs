@@ -18,6 +18,7 @@ pub mod view;
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use wavesplat_compressor::encode::Target;
+use wavesplat_viewer::backend::BackendChoice;
 
 /// The cache's default address.
 pub const DEFAULT_CACHE_URL: &str = "http://127.0.0.1:50051";
@@ -209,4 +210,31 @@ pub fn parse_bytes(s: &str) -> Result<u64, String> {
         .map_err(|_| format!("{s:?} is not a byte count (e.g. 65536, 64k, 512M, 8G)"))?;
     n.checked_mul(mult)
         .ok_or_else(|| format!("{s:?} is too large"))
+}
+
+/// The accumulation backend flags of `render` and `bench refine`.
+#[derive(Args, Debug, Clone, Copy)]
+pub struct BackendArgs {
+    /// Accumulate on the GPU (wgpu; WGPU_BACKEND / WGPU_ADAPTER_NAME choose the adapter).
+    #[arg(long, conflicts_with = "cpu")]
+    pub gpu: bool,
+    /// Accumulate on the CPU. Default: the GPU on a hardware adapter, else the CPU.
+    #[arg(long)]
+    pub cpu: bool,
+}
+
+impl BackendArgs {
+    /// The backend the flags ask for.
+    pub fn choice(self) -> BackendChoice {
+        backend_choice(self.gpu, self.cpu)
+    }
+}
+
+/// `--gpu`, `--cpu` or neither (the default: the GPU on a hardware adapter).
+pub fn backend_choice(gpu: bool, cpu: bool) -> BackendChoice {
+    match (gpu, cpu) {
+        (true, _) => BackendChoice::Gpu,
+        (_, true) => BackendChoice::Cpu,
+        _ => BackendChoice::Auto,
+    }
 }

@@ -13,7 +13,7 @@ use std::time::{Duration, Instant};
 use wavesplat_codec::metrics::{q_i_paper_db, snr_db};
 use wavesplat_codec::view::patient::PatientView;
 use wavesplat_codec::view::{Cue, CueDirection};
-use wavesplat_viewer::backend::{select, BackendChoice};
+use wavesplat_viewer::backend::select;
 use wavesplat_viewer::open::{open, ViewRequest, VolumeLocation};
 use wavesplat_viewer::remote::is_remote;
 use wavesplat_viewer::session::{RenderSession, SessionOptions};
@@ -119,12 +119,8 @@ pub struct RenderArgs {
     /// Also write the image as raw f32 (H rows of W little-endian floats; RGB interleaved).
     #[arg(long)]
     pub raw: Option<PathBuf>,
-    /// Accumulate on the GPU (wgpu; WGPU_BACKEND / WGPU_ADAPTER_NAME choose the adapter).
-    #[arg(long, conflicts_with = "cpu")]
-    pub gpu: bool,
-    /// Accumulate on the CPU. Default: the GPU on a hardware adapter, else the CPU.
-    #[arg(long)]
-    pub cpu: bool,
+    #[command(flatten)]
+    pub backend: super::BackendArgs,
 }
 
 fn pair(s: &str, what: &str) -> Result<[f64; 2]> {
@@ -300,12 +296,7 @@ pub fn run(a: RenderArgs) -> Result<()> {
     };
     let reference_took = reference_started.elapsed();
     let since_request = || request.elapsed().saturating_sub(reference_took);
-    let choice = match (a.gpu, a.cpu) {
-        (true, _) => BackendChoice::Gpu,
-        (_, true) => BackendChoice::Cpu,
-        _ => BackendChoice::Auto,
-    };
-    let selected = select(choice).context("choosing the accumulation backend")?;
+    let selected = select(a.backend.choice()).context("choosing the accumulation backend")?;
     eprintln!("backend: {}", selected.reason);
     let session = RenderSession::new(
         header.clone(),

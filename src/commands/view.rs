@@ -7,7 +7,6 @@ use anyhow::{bail, Context, Result};
 use clap::Args;
 use std::path::PathBuf;
 use wavesplat_codec::view::MAX_IMAGE_SIDE;
-use wavesplat_viewer::backend::BackendChoice;
 use wavesplat_viewer::open::open;
 use wavesplat_viewer::window::{self, Script, ViewState, WindowOptions};
 
@@ -83,11 +82,7 @@ pub fn run(a: ViewWindowArgs) -> Result<()> {
     };
     let options = WindowOptions {
         max_image: a.max_image,
-        backend: match (a.gpu, a.cpu) {
-            (true, _) => BackendChoice::Gpu,
-            (_, true) => BackendChoice::Cpu,
-            _ => BackendChoice::Auto,
-        },
+        backend: super::backend_choice(a.gpu, a.cpu),
         window_size: (
             request.width.min(u32::MAX as usize) as u32,
             request.height.min(u32::MAX as usize) as u32,

@@ -7,7 +7,6 @@ use std::path::PathBuf;
 use wavesplat_codec::volume::Volume;
 use wavesplat_compressor::phantom::Phantom;
 use wavesplat_harness::refine::{run as bench, RefineBench};
-use wavesplat_viewer::backend::BackendChoice;
 /// Arguments of `wavesplat bench refine`.
 #[derive(Args, Debug)]
 pub struct RefineArgs {
@@ -35,12 +34,8 @@ pub struct RefineArgs {
     /// Output directory.
     #[arg(long, default_value = "bench-refine")]
     pub out: PathBuf,
-    /// Accumulate on the GPU (wgpu; WGPU_BACKEND / WGPU_ADAPTER_NAME choose the adapter).
-    #[arg(long, conflicts_with = "cpu")]
-    pub gpu: bool,
-    /// Accumulate on the CPU. Default: the GPU on a hardware adapter, else the CPU.
-    #[arg(long)]
-    pub cpu: bool,
+    #[command(flatten)]
+    pub backend: super::super::BackendArgs,
 }
 
 fn parse_list(s: &str, what: &str) -> Result<Vec<f64>> {
@@ -81,11 +76,7 @@ pub fn run(a: RefineArgs) -> Result<()> {
         rest_frames: a.rest_frames,
         table4: !a.no_table4,
         out: a.out,
-        backend: match (a.gpu, a.cpu) {
-            (true, _) => BackendChoice::Gpu,
-            (_, true) => BackendChoice::Cpu,
-            _ => BackendChoice::Auto,
-        },
+        backend: a.backend.choice(),
     };
     bench(&settings, &mut crate::Stdout)
 }
