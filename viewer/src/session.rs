@@ -281,6 +281,14 @@ pub fn splat_weight(level: u8, zoom: f64) -> f64 {
     side * side + 1.0
 }
 
+/// A coefficient's visible energy from its squared value and its band's (energy scale,
+/// visibility weight), multiplied in that order.
+#[inline]
+fn energy(c: &Coefficient, (scale, weight): (f64, f64)) -> f64 {
+    let v = c.value as f64;
+    v * v * scale * weight
+}
+
 /// The queue bucket of a visible energy; `None` when the view cannot see it.
 #[inline]
 fn bucket_of(energy: f64) -> Option<usize> {
@@ -324,6 +332,16 @@ struct Held {
 impl Held {
     fn bytes(&self) -> usize {
         self.coefficients.len() * COEFFICIENT_BYTES
+    }
+
+    /// Marks the packet as no longer waiting since it was taken; returns the bytes that leave
+    /// `RenderSession::fresh_bytes` (0 when it was not fresh).
+    fn settle(&mut self) -> usize {
+        if std::mem::take(&mut self.fresh) {
+            self.bytes()
+        } else {
+            0
+        }
     }
 }
 
@@ -647,39 +665,38 @@ impl<B: AccumulationBackend> RenderSession<B> {
     /// The energy coefficient `c` of a packet of tile `tile` shows in the current view (what
     /// orders the queue and eviction); `None` for a band the volume does not have.
     fn visible_energy(&self, c: &Coefficient, tile: usize) -> Option<f64> {
+        self.energy_factors(c, tile).map(|f| energy(c, f))
+    }
+
+    /// The energy scale of `c`'s channel and band and the view's visibility weight of its
+    /// band in tile `tile`: what `energy` multiplies its squared value by.
+    fn energy_factors(&self, c: &Coefficient, tile: usize) -> Option<(f64, f64)> {
         let b = self.header.geometry.band_index(c.band)?;
         let nb = self.header.geometry.band_count();
-        let v = c.value as f64;
-        Some(
-            v * v
-                * self.energy_scale[c.channel as usize * nb + b]
-                * self.visibility.weight(c.band, tile),
-        )
+        Some((
+            self.energy_scale[c.channel as usize * nb + b],
+            self.visibility.weight(c.band, tile),
+        ))
     }
 
     /// Queues the visible coefficients of a held packet for the current view.
     fn enqueue(&mut self, id: u32, held: &mut Held) {
         held.queued = 0;
-        let nb = self.header.geometry.band_count();
-        // A packet's coefficients come substream by substream (channel, band): the band's
-        // energy scale and visibility weight are looked up once per run of them, and the
-        // energy is the product `visible_energy` forms, in the same order.
-        let mut run: Option<((u8, Band), f64, f64)> = None;
+        // A packet's coefficients come substream by substream (channel, band): the factors of
+        // `visible_energy` are looked up once per run of them.
+        let mut run: Option<((u8, Band), (f64, f64))> = None;
         for (i, c) in held.coefficients.iter().enumerate() {
-            let (scale, weight) = match run {
-                Some((key, scale, weight)) if key == (c.channel, c.band) => (scale, weight),
+            let factors = match run {
+                Some((key, factors)) if key == (c.channel, c.band) => factors,
                 _ => {
-                    let Some(b) = self.header.geometry.band_index(c.band) else {
+                    let Some(factors) = self.energy_factors(c, held.tile) else {
                         continue;
                     };
-                    let scale = self.energy_scale[c.channel as usize * nb + b];
-                    let weight = self.visibility.weight(c.band, held.tile);
-                    run = Some(((c.channel, c.band), scale, weight));
-                    (scale, weight)
+                    run = Some(((c.channel, c.band), factors));
+                    factors
                 }
             };
-            let v = c.value as f64;
-            let e = v * v * scale * weight;
+            let e = energy(c, factors);
             match bucket_of(e) {
                 Some(k) => {
                     self.queue.push(k, (id, i as u32));
@@ -748,10 +765,7 @@ impl<B: AccumulationBackend> RenderSession<B> {
             if held.queued == 0 {
                 retained += held.bytes();
                 // Invisible in this view: nothing of it waits any more.
-                if held.fresh {
-                    held.fresh = false;
-                    self.fresh_bytes -= held.bytes();
-                }
+                self.fresh_bytes -= held.settle();
             } else {
                 transient += held.bytes();
             }
@@ -952,10 +966,7 @@ impl<B: AccumulationBackend> RenderSession<B> {
                         let b = h.bytes();
                         self.stats.transient_bytes -= b;
                         self.stats.retained_bytes += b;
-                        if h.fresh {
-                            h.fresh = false;
-                            self.fresh_bytes -= b;
-                        }
+                        self.fresh_bytes -= h.settle();
                     }
                 }
             }

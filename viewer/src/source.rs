@@ -33,8 +33,8 @@ pub struct SourcePacket {
     pub id: u32,
     /// Its bytes.
     pub data: Vec<u8>,
-    /// Its tile and coefficients, when the source decoded it already (the cache source does,
-    /// on its own thread, so the frame thread only queues them).
+    /// Its tile and coefficients, when the source decoded it already (the file and cache
+    /// sources do, off the frame thread or ahead of it, so the frame thread only queues them).
     pub decoded: Option<(usize, Vec<Coefficient>)>,
 }
 
@@ -145,6 +145,14 @@ pub struct FileSource {
 /// A packet's tile and coefficients, `None` when it did not decode.
 type Decoded = Option<(usize, Vec<Coefficient>)>;
 
+/// Decodes a packet for the session; one that fails to decode goes on as bytes and the session
+/// reports it.
+fn decode_for_session(header: &Header, data: &[u8]) -> Decoded {
+    decode_packet(header, data)
+        .ok()
+        .map(|d| (d.tile, d.coefficients))
+}
+
 /// Packets a file source decodes at once, in parallel, when the next one is not decoded yet:
 /// per core, so that every core decodes while the frame thread takes packets.
 const DECODE_AHEAD_PER_THREAD: usize = 2;
@@ -237,8 +245,7 @@ impl FileSource {
             ids.iter()
                 .map(|&id| {
                     let data = &bytes[packets[id as usize].range.clone()];
-                    let d = decode_packet(header, data).ok();
-                    (id, d.map(|d| (d.tile, d.coefficients)))
+                    (id, decode_for_session(header, data))
                 })
                 .collect()
         };
@@ -959,9 +966,7 @@ impl Pull {
                                     tokio::time::sleep_until(t).await;
                                 }
                                 tokio::task::spawn_blocking(move || {
-                                    let decoded = decode_packet(&header, &p.data)
-                                        .ok()
-                                        .map(|d| (d.tile, d.coefficients));
+                                    let decoded = decode_for_session(&header, &p.data);
                                     SourcePacket { id: p.id, data: p.data, decoded }
                                 })
                                 .await
