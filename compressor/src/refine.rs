@@ -114,19 +114,21 @@ struct SeenBox {
 }
 
 impl SeenBox {
-    /// Zeroes `r` outside the box.
-    fn restrict(&self, r: &mut [f32]) {
-        let [px, py, _] = self.padded;
-        let (lo, hi) = (self.lo, self.hi);
-        r.par_chunks_mut(px).enumerate().for_each(|(row, line)| {
-            let (y, z) = (row % py, row / py);
-            if y < lo[1] || y >= hi[1] || z < lo[2] || z >= hi[2] {
-                line.fill(0.0);
+    /// Whether row `y` of plane `z` crosses the box; then its samples `lo[0]..hi[0]` lie in it.
+    fn row_inside(&self, y: usize, z: usize) -> bool {
+        (self.lo[1]..self.hi[1]).contains(&y) && (self.lo[2]..self.hi[2]).contains(&z)
+    }
+
+    /// Zeroes the samples of plane `z` (rows of `padded[0]`) outside the box.
+    fn restrict_plane(&self, z: usize, plane: &mut [f32]) {
+        for (y, line) in plane.chunks_mut(self.padded[0]).enumerate() {
+            if self.row_inside(y, z) {
+                line[..self.lo[0]].fill(0.0);
+                line[self.hi[0]..].fill(0.0);
             } else {
-                line[..lo[0]].fill(0.0);
-                line[hi[0]..].fill(0.0);
+                line.fill(0.0);
             }
-        });
+        }
     }
 }
 
@@ -165,16 +167,29 @@ impl<'a> Operator<'a> {
 
     /// `out` ← Rᵀ(f − R c).
     fn gradient(&self, target: &[f32], c: &[f32], out: &mut [f32]) {
-        out.copy_from_slice(c);
+        out.par_iter_mut().zip(c).for_each(|(o, c)| *o = *c);
         self.applications.set(self.applications.get() + 2);
-        self.fast.synthesize(out);
-        out.par_iter_mut()
-            .zip(target)
-            .for_each(|(r, f)| *r = f - *r);
-        if let Some(b) = &self.seen {
-            b.restrict(out);
-        }
-        self.fast.synthesize_adjoint(out);
+        let plane = self.fast.geometry().padded[0] * self.fast.geometry().padded[1];
+        // The residual f − R c, counted only inside the box when the renderer clips to it.
+        let seen = &self.seen;
+        self.fast.normal_with(out, &|z, r| {
+            let f = &target[z * plane..(z + 1) * plane];
+            r.iter_mut().zip(f).for_each(|(r, f)| *r = f - *r);
+            if let Some(b) = seen {
+                b.restrict_plane(z, r);
+            }
+        });
+    }
+
+    /// `data` ← RᵀR `data`, with R's samples restricted to the box when the renderer clips.
+    fn normal(&self, data: &mut [f32]) {
+        self.applications.set(self.applications.get() + 2);
+        let seen = &self.seen;
+        self.fast.normal_with(data, &|z, r| {
+            if let Some(b) = seen {
+                b.restrict_plane(z, r);
+            }
+        });
     }
 
     /// Preconditioned CG on RᵀR c = Rᵀf over the entries of `mask`, from the current `c`
@@ -243,12 +258,7 @@ impl<'a> Operator<'a> {
                         w[i as usize] = p[i as usize];
                     }
                 });
-            self.applications.set(self.applications.get() + 2);
-            self.fast.synthesize(work);
-            if let Some(b) = &self.seen {
-                b.restrict(work);
-            }
-            self.fast.synthesize_adjoint(work);
+            self.normal(work);
             let pap: f64 = {
                 let parts: Vec<f64> = p
                     .par_chunks(CHUNK)
@@ -328,6 +338,7 @@ pub fn refine_extended(
         kept,
         opts,
         Output::Set { extension },
+        &Scratch::default(),
     )
 }
 
@@ -359,11 +370,13 @@ pub struct Refined {
     pub first_survivors: usize,
 }
 
-/// [`refine`] with the band map ([`crate::select::band_map`] of `geometry`) supplied and the
-/// samples already padded ([`pad_f32`]).
+/// [`refine`] with the band map ([`crate::select::band_map`] of `geometry`) supplied, the
+/// samples already padded ([`pad_f32`]) and its dense arrays taken from (and given back to)
+/// `scratch`.
 ///
 /// A refit moves a fifth or so of a top-K set below the K-th score, so about four fifths of
 /// `kept` survive the prune (a byte target grows K until the survivors fill it).
+#[allow(clippy::too_many_arguments)]
 pub(crate) fn refine_with(
     geometry: &Geometry,
     band_of: &[u8],
@@ -372,6 +385,7 @@ pub(crate) fn refine_with(
     kept: &[KeptValue],
     opts: &RefineOptions,
     output: Output,
+    scratch: &Scratch,
 ) -> Refined {
     let k = kept.len();
     let channels = targets.len();
@@ -406,11 +420,15 @@ pub(crate) fn refine_with(
         .map(|s| score_of(s.channel as usize, band_of[s.index as usize], s.value))
         .fold(f64::INFINITY, f64::min);
     let n = geometry.coefficient_count();
-    let mut values: Vec<Vec<f32>> = (0..channels).map(|_| written(n, 0.0)).collect();
-    let mut masks: Vec<Vec<bool>> = (0..channels).map(|_| written(n, false)).collect();
-    let mut grads: Vec<Vec<f32>> = (0..channels).map(|_| written(n, 0.0)).collect();
-    let mut p = written(n, 0.0f32);
-    let mut work = written(n, 0.0f32);
+    let mut arrays = Arrays::take(scratch, channels, n);
+    let Arrays {
+        values,
+        masks,
+        grads,
+        p,
+        work,
+        ..
+    } = &mut arrays;
     for s in kept {
         values[s.channel as usize][s.index as usize] = s.value;
         masks[s.channel as usize][s.index as usize] = true;
@@ -432,7 +450,7 @@ pub(crate) fn refine_with(
             );
         }
     };
-    refit_all(&mut values, &masks, &mut grads, &mut p, &mut work);
+    refit_all(values, masks, grads, p, work);
     // Kept values whose refit scores reach the threshold (the rest will be pruned).
     let survivors = |values: &[Vec<f32>], masks: &[Vec<bool>], threshold: f64| -> usize {
         (0..channels)
@@ -446,7 +464,7 @@ pub(crate) fn refine_with(
             })
             .sum()
     };
-    let first_survivors = survivors(&values, &masks, threshold);
+    let first_survivors = survivors(values, masks, threshold);
     let extension = match output {
         Output::Pilot => {
             return Refined {
@@ -484,8 +502,8 @@ pub(crate) fn refine_with(
             masks[c as usize][i as usize] = true;
             values[c as usize][i as usize] = v;
         }
-        refit_all(&mut values, &masks, &mut grads, &mut p, &mut work);
-        let alive = survivors(&values, &masks, threshold);
+        refit_all(values, masks, grads, p, work);
+        let alive = survivors(values, masks, threshold);
         tracing::debug!(k, alive, "refinement round");
     }
     // Prune values that fell below the threshold and refit the rest, until nothing falls
@@ -519,7 +537,7 @@ pub(crate) fn refine_with(
             gradient_current = false;
             break;
         }
-        refit_all(&mut values, &masks, &mut grads, &mut p, &mut work);
+        refit_all(values, masks, grads, p, work);
     }
     tracing::debug!(
         kept = k,
@@ -589,11 +607,113 @@ pub(crate) fn refine_with(
 /// mapped lazily: a read before the first write maps the shared zero page, and the write then
 /// costs a copy-on-write fault and a TLB shootdown across the pool's threads, per page. The
 /// refinement's arrays are read before they are written (a search direction, a mask); on the
-/// MNI grid those faults were ~8 % of a compression's samples.
-pub(crate) fn written<T: Clone>(n: usize, value: T) -> Vec<T> {
+/// MNI grid those faults were ~8 % of a compression's samples. The pages are written by the
+/// pool's threads together (each first write of a page is a fault the kernel serves).
+pub(crate) fn written<T: Clone + Send + Sync>(n: usize, value: T) -> Vec<T> {
     let mut v = Vec::with_capacity(n);
-    v.resize(n, value);
+    v.par_extend(rayon::iter::repeat_n(value, n));
     v
+}
+
+/// Dense grid-sized arrays kept from one refinement (or view comparison) to the next on the
+/// same grid. A byte target runs a pilot refit, one to three refinements and a view comparison
+/// per depth, each needing five to six arrays of the padded grid (51 MB each on the MNI
+/// volume); freed in between, every one came back as fresh pages whose first writes were
+/// kernel faults (~100 ms of one thread per refinement on the MNI volume).
+#[derive(Debug, Default)]
+pub(crate) struct Scratch {
+    floats: std::sync::Mutex<Vec<Vec<f32>>>,
+    flags: std::sync::Mutex<Vec<Vec<bool>>>,
+}
+
+impl Scratch {
+    /// An array of `n` copies of `value`: a kept one of that length refilled, else a new one.
+    pub(crate) fn floats(&self, n: usize, value: f32) -> Vec<f32> {
+        Scratch::take(&self.floats, n, value)
+    }
+
+    /// [`Scratch::floats`] for flags.
+    pub(crate) fn flags(&self, n: usize, value: bool) -> Vec<bool> {
+        Scratch::take(&self.flags, n, value)
+    }
+
+    /// Keeps arrays for a later [`Scratch::floats`].
+    pub(crate) fn keep_floats(&self, arrays: impl IntoIterator<Item = Vec<f32>>) {
+        lock(&self.floats).extend(arrays);
+    }
+
+    /// Keeps arrays for a later [`Scratch::flags`].
+    pub(crate) fn keep_flags(&self, arrays: impl IntoIterator<Item = Vec<bool>>) {
+        lock(&self.flags).extend(arrays);
+    }
+
+    /// Drops every kept array.
+    pub(crate) fn clear(&self) {
+        lock(&self.floats).clear();
+        lock(&self.flags).clear();
+    }
+
+    fn take<T: Copy + Send + Sync>(
+        pool: &std::sync::Mutex<Vec<Vec<T>>>,
+        n: usize,
+        value: T,
+    ) -> Vec<T> {
+        let kept = {
+            let mut pool = lock(pool);
+            let at = pool.iter().position(|v| v.len() == n);
+            at.map(|i| pool.swap_remove(i))
+        };
+        match kept {
+            Some(mut v) => {
+                v.par_iter_mut().for_each(|x| *x = value);
+                v
+            }
+            None => written(n, value),
+        }
+    }
+}
+
+/// The refinement's dense arrays, taken from a [`Scratch`] and given back to it when dropped.
+struct Arrays<'s> {
+    scratch: &'s Scratch,
+    /// Values per channel (zero outside the set).
+    values: Vec<Vec<f32>>,
+    /// The set per channel.
+    masks: Vec<Vec<bool>>,
+    /// The full gradient Rᵀ(f − R c) per channel.
+    grads: Vec<Vec<f32>>,
+    /// The search direction.
+    p: Vec<f32>,
+    /// Work array of the transforms.
+    work: Vec<f32>,
+}
+
+impl<'s> Arrays<'s> {
+    fn take(scratch: &'s Scratch, channels: usize, n: usize) -> Arrays<'s> {
+        Arrays {
+            scratch,
+            values: (0..channels).map(|_| scratch.floats(n, 0.0)).collect(),
+            masks: (0..channels).map(|_| scratch.flags(n, false)).collect(),
+            grads: (0..channels).map(|_| scratch.floats(n, 0.0)).collect(),
+            p: scratch.floats(n, 0.0),
+            work: scratch.floats(n, 0.0),
+        }
+    }
+}
+
+impl Drop for Arrays<'_> {
+    fn drop(&mut self) {
+        let floats = std::mem::take(&mut self.values)
+            .into_iter()
+            .chain(std::mem::take(&mut self.grads))
+            .chain([std::mem::take(&mut self.p), std::mem::take(&mut self.work)]);
+        self.scratch.keep_floats(floats);
+        self.scratch.keep_flags(std::mem::take(&mut self.masks));
+    }
+}
+
+fn lock<T>(m: &std::sync::Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|e| e.into_inner())
 }
 
 /// Copies a channel into the zero-padded grid of `geometry`, in f32.

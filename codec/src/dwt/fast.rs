@@ -7,9 +7,12 @@
 //! by the compiler), and no copy of the whole array is ever made. Along x, where a line is one
 //! contiguous row, the same banks run in polyphase form ([`LineBank`]): short convolutions of
 //! each half of the line with the even and odd taps, over a halo holding the periodic wrap.
-//! Memory traffic is about one read and one write of the block per axis; the extra memory is a
-//! few rows per thread plus one bounded batch buffer for the z axis (its bank reads the
-//! array in place).
+//! Along z, each y row's panel (its z rows, one plane apart) is filtered into a per-thread
+//! buffer and written straight back. Memory traffic is about one read and one write of the
+//! block per axis, less where consecutive in-plane steps share a sweep (a level's x and y
+//! passes, the sampling after the finest level, and the caller's step between a synthesis and
+//! its adjoint in [`FastTransform::normal_with`]); the extra memory is a few rows and one z
+//! panel per thread.
 //!
 //! The f64 routines of [`super`] stay the reference: tests compare both. Results do not depend
 //! on the thread count (each line is computed the same way whatever thread runs it).
@@ -18,7 +21,6 @@ use super::{for_each_chunk, interpolation_taps};
 use crate::family::Family;
 use crate::layout::Geometry;
 use std::collections::HashMap;
-use std::sync::Mutex;
 
 /// A periodic filter bank for one line length: `out[dst] += weight · in[src]` for every entry.
 #[derive(Debug, Clone)]
@@ -29,7 +31,10 @@ struct Taps {
     rows: Vec<(usize, std::ops::Range<usize>)>,
 }
 
-/// Samples of an output row that [`Taps::apply_into`] sums over all its taps at once.
+/// y rows that one z panel takes together where they are contiguous (a whole-row block).
+const Z_ROWS: usize = 2;
+
+/// Samples of an output row that [`Taps::apply_from`] sums over all its taps at once.
 const LANES: usize = 16;
 
 impl Taps {
@@ -93,28 +98,26 @@ impl Taps {
     fn apply(&self, data: &mut [f32], n: usize, width: usize, stride: usize, out: &mut Vec<f32>) {
         // Every output row is written by its first tap, so stale contents need no clearing.
         out.resize(n * width, 0.0);
-        self.apply_into(data, n, width, stride, out);
+        self.apply_from(|t| &data[t * stride..], width, out);
         for t in 0..n {
             data[t * stride..t * stride + width].copy_from_slice(&out[t * width..(t + 1) * width]);
         }
     }
 
-    /// The bank from a panel `src` (`n` rows of `width` samples at stride `stride`) into the
-    /// contiguous rows of `out` (`n · width` samples). Each output row is summed over all its
-    /// taps [`LANES`] samples at a time in registers, then stored once (every row has a tap).
-    /// The taps are added in list order starting from zero, so the sums are the same as one
-    /// axpy per tap.
-    fn apply_into(&self, src: &[f32], n: usize, width: usize, stride: usize, out: &mut [f32]) {
-        debug_assert_eq!(out.len(), n * width);
-        for (row, range) in &self.rows {
+    /// The bank from a panel whose row t starts at `row(t)` (at least `width` samples) into
+    /// the contiguous rows of `out` (`width` samples per output row). Each output row is
+    /// summed over all its taps [`LANES`] samples at a time in registers, then stored once
+    /// (every row has a tap). The taps are added in list order starting from zero, so the
+    /// sums are the same as one axpy per tap.
+    fn apply_from<'a>(&self, row: impl Fn(usize) -> &'a [f32], width: usize, out: &mut [f32]) {
+        for (dst_row, range) in &self.rows {
             let taps = &self.list[range.clone()];
-            let dst = &mut out[row * width..(row + 1) * width];
+            let dst = &mut out[dst_row * width..(dst_row + 1) * width];
             let mut x = 0;
             while x + LANES <= width {
                 let mut acc = [0.0f32; LANES];
                 for &(_, s, w) in taps {
-                    let at = s as usize * stride + x;
-                    let from: &[f32; LANES] = src[at..at + LANES]
+                    let from: &[f32; LANES] = row(s as usize)[x..x + LANES]
                         .try_into()
                         .expect("a slice of LANES samples");
                     for (a, v) in acc.iter_mut().zip(from) {
@@ -127,7 +130,7 @@ impl Taps {
             for (i, d) in dst.iter_mut().enumerate().skip(x) {
                 let mut a = 0.0f32;
                 for &(_, s, w) in taps {
-                    a += w * src[s as usize * stride + i];
+                    a += w * row(s as usize)[i];
                 }
                 *d = a;
             }
@@ -173,24 +176,65 @@ fn periodic_extension(ext: &mut Vec<f32>, src: &[f32], halo: usize, after: usize
     ext.extend((0..after).map(|i| src[i % h]));
 }
 
-/// out[m] += Σ_t w[t] · src[base + m − t] for m < out.len() (a convolution; `base` ≥ the
-/// filter length − 1).
-fn convolve_into(out: &mut [f32], src: &[f32], w: &[f32], base: usize) {
-    for (t, wt) in w.iter().enumerate() {
-        let s = &src[base - t..base - t + out.len()];
-        for (o, v) in out.iter_mut().zip(s) {
-            *o += wt * v;
+/// out[m] ← Σ_t wa[t] · a[base + m − t] + Σ_t wb[t] · b[base + m − t] for m < out.len() (two
+/// convolutions summed; `base` ≥ either filter's length − 1). Each output sums its terms in
+/// that order from zero, [`LANES`] outputs at a time in registers: the same sums as one axpy
+/// per tap into a zeroed `out`, with one store per output instead of one per tap.
+fn convolve2(out: &mut [f32], a: &[f32], wa: &[f32], b: &[f32], wb: &[f32], base: usize) {
+    let mut m = 0;
+    while m + LANES <= out.len() {
+        let mut acc = [0.0f32; LANES];
+        for (src, w) in [(a, wa), (b, wb)] {
+            for (t, wt) in w.iter().enumerate() {
+                let s: &[f32; LANES] = src[base + m - t..base + m - t + LANES]
+                    .try_into()
+                    .expect("a slice of LANES samples");
+                for (x, v) in acc.iter_mut().zip(s) {
+                    *x += wt * v;
+                }
+            }
         }
+        out[m..m + LANES].copy_from_slice(&acc);
+        m += LANES;
+    }
+    for (i, o) in out.iter_mut().enumerate().skip(m) {
+        let mut x = 0.0f32;
+        for (src, w) in [(a, wa), (b, wb)] {
+            for (t, wt) in w.iter().enumerate() {
+                x += wt * src[base + i - t];
+            }
+        }
+        *o = x;
     }
 }
 
-/// out[m] += Σ_t w[t] · src[m + t] for m < out.len() (a correlation).
-fn correlate_into(out: &mut [f32], src: &[f32], w: &[f32]) {
-    for (t, wt) in w.iter().enumerate() {
-        let s = &src[t..t + out.len()];
-        for (o, v) in out.iter_mut().zip(s) {
-            *o += wt * v;
+/// out[m] ← Σ_t wa[t] · a[m + t] + Σ_t wb[t] · b[m + t] for m < out.len() (two correlations
+/// summed), in that order from zero, [`LANES`] outputs at a time as in [`convolve2`].
+fn correlate2(out: &mut [f32], a: &[f32], wa: &[f32], b: &[f32], wb: &[f32]) {
+    let mut m = 0;
+    while m + LANES <= out.len() {
+        let mut acc = [0.0f32; LANES];
+        for (src, w) in [(a, wa), (b, wb)] {
+            for (t, wt) in w.iter().enumerate() {
+                let s: &[f32; LANES] = src[m + t..m + t + LANES]
+                    .try_into()
+                    .expect("a slice of LANES samples");
+                for (x, v) in acc.iter_mut().zip(s) {
+                    *x += wt * v;
+                }
+            }
         }
+        out[m..m + LANES].copy_from_slice(&acc);
+        m += LANES;
+    }
+    for (i, o) in out.iter_mut().enumerate().skip(m) {
+        let mut x = 0.0f32;
+        for (src, w) in [(a, wa), (b, wb)] {
+            for (t, wt) in w.iter().enumerate() {
+                x += wt * src[i + t];
+            }
+        }
+        *o = x;
     }
 }
 
@@ -216,10 +260,8 @@ impl LineBank {
         periodic_extension(&mut s.a, &line[..h], self.halo, 0);
         periodic_extension(&mut s.b, &line[h..], self.halo, 0);
         for (e, out) in [&mut s.even, &mut s.odd].into_iter().enumerate() {
-            out.clear();
             out.resize(h, 0.0);
-            convolve_into(out, &s.a, &self.p[e], self.halo);
-            convolve_into(out, &s.b, &self.q[e], self.halo);
+            convolve2(out, &s.a, &self.p[e], &s.b, &self.q[e], self.halo);
         }
         for (pair, (e, o)) in line.chunks_exact_mut(2).zip(s.even.iter().zip(&s.odd)) {
             pair[0] = *e;
@@ -232,24 +274,22 @@ impl LineBank {
         let h = line.len() / 2;
         s.even.clear();
         s.odd.clear();
-        s.even.extend(line.iter().step_by(2));
-        s.odd.extend(line.iter().skip(1).step_by(2));
+        for pair in line.chunks_exact(2) {
+            s.even.push(pair[0]);
+            s.odd.push(pair[1]);
+        }
         periodic_extension(&mut s.a, &s.even, 0, self.halo);
         periodic_extension(&mut s.b, &s.odd, 0, self.halo);
-        line.fill(0.0);
         let (c1, d1) = line.split_at_mut(h);
-        correlate_into(c1, &s.a, &self.p[0]);
-        correlate_into(c1, &s.b, &self.p[1]);
-        correlate_into(d1, &s.a, &self.q[0]);
-        correlate_into(d1, &s.b, &self.q[1]);
+        correlate2(c1, &s.a, &self.p[0], &s.b, &self.p[1]);
+        correlate2(d1, &s.a, &self.q[0], &s.b, &self.q[1]);
     }
 
     /// The centred sampling FIR along one line, circularly.
     fn sample(&self, line: &mut [f32], s: &mut LineBuffers) {
         let r = self.sampling.len() / 2;
         periodic_extension(&mut s.a, line, r, r);
-        line.fill(0.0);
-        correlate_into(line, &s.a, &self.sampling);
+        correlate2(line, &s.a, &self.sampling, &[], &[]);
     }
 
     fn apply(&self, kind: Kind, line: &mut [f32], s: &mut LineBuffers) {
@@ -259,6 +299,24 @@ impl LineBank {
             Kind::Sampling => self.sample(line, s),
         }
     }
+}
+
+/// One pass of a transform over a corner block of the padded grid.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Pass {
+    /// A bank along z.
+    Z([usize; 3], Kind),
+    /// A step within each z plane.
+    Plane([usize; 3], PlaneStep),
+}
+
+/// A step within one z plane.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum PlaneStep {
+    /// A bank along x (0) or y (1).
+    Axis(usize, Kind),
+    /// The caller's step between a synthesis and its adjoint ([`FastTransform::normal_with`]).
+    Between,
 }
 
 /// Which filter bank.
@@ -277,13 +335,7 @@ pub struct FastTransform {
     banks: HashMap<(Kind, usize), Taps>,
     /// Line kernels for the x axis (any length).
     lines: LineBank,
-    /// The z axis's batch buffer (filtered panels), kept between passes so that each pass
-    /// does not map and fault in fresh pages.
-    z_buffers: Mutex<Vec<f32>>,
 }
-
-/// Elements of the z axis's batch buffer (8 MB of f32).
-const BATCH_ELEMENTS: usize = 1 << 21;
 
 impl FastTransform {
     /// Plans the transforms of `geometry`.
@@ -317,7 +369,6 @@ impl FastTransform {
             geometry: *geometry,
             banks,
             lines: LineBank::new(&p, &q, &taps),
-            z_buffers: Mutex::new(Vec::new()),
         }
     }
 
@@ -330,46 +381,114 @@ impl FastTransform {
     /// f32 twin of [`super::inverse_3d`].
     pub fn inverse(&self, data: &mut [f32]) {
         assert_eq!(data.len(), self.geometry.coefficient_count());
-        for level in (1..=self.geometry.levels).rev() {
-            let block = self.block(level);
-            self.z_pass(data, block, Kind::Synthesis);
-            self.slab_pass(data, block, &[1, 0], Kind::Synthesis);
-        }
+        let mut passes = Vec::new();
+        self.push_inverse(&mut passes);
+        self.run(data, &passes, &|_, _| {});
     }
 
     /// Transpose of [`FastTransform::inverse`], in place: the f32 twin of
     /// [`super::inverse_3d_adjoint`].
     pub fn inverse_adjoint(&self, data: &mut [f32]) {
         assert_eq!(data.len(), self.geometry.coefficient_count());
-        for level in 1..=self.geometry.levels {
-            let block = self.block(level);
-            self.slab_pass(data, block, &[0, 1], Kind::Adjoint);
-            self.z_pass(data, block, Kind::Adjoint);
-        }
+        let mut passes = Vec::new();
+        self.push_inverse_adjoint(&mut passes);
+        self.run(data, &passes, &|_, _| {});
     }
 
     /// Samples the spline at the voxel centres in place (symmetric, so also its own transpose):
     /// the f32 twin of [`super::coefficients_to_samples`]. No-op for Haar and linear.
     pub fn coefficients_to_samples(&self, data: &mut [f32]) {
         assert_eq!(data.len(), self.geometry.coefficient_count());
-        if interpolation_taps(self.family).len() == 1 {
-            return;
-        }
-        let full = self.geometry.padded;
-        self.slab_pass(data, full, &[0, 1], Kind::Sampling);
-        self.z_pass(data, full, Kind::Sampling);
+        let mut passes = Vec::new();
+        self.push_sampling(&mut passes);
+        self.run(data, &passes, &|_, _| {});
     }
 
     /// Synthesis to voxel samples (inverse, then sampling): the operator R of refinement.
     pub fn synthesize(&self, data: &mut [f32]) {
-        self.inverse(data);
-        self.coefficients_to_samples(data);
+        assert_eq!(data.len(), self.geometry.coefficient_count());
+        let mut passes = Vec::new();
+        self.push_inverse(&mut passes);
+        self.push_sampling(&mut passes);
+        self.run(data, &passes, &|_, _| {});
     }
 
     /// Rᵀ: the transpose of [`FastTransform::synthesize`].
     pub fn synthesize_adjoint(&self, data: &mut [f32]) {
-        self.coefficients_to_samples(data);
-        self.inverse_adjoint(data);
+        assert_eq!(data.len(), self.geometry.coefficient_count());
+        let mut passes = Vec::new();
+        self.push_sampling(&mut passes);
+        self.push_inverse_adjoint(&mut passes);
+        self.run(data, &passes, &|_, _| {});
+    }
+
+    /// Rᵀ h(R x) in place: [`FastTransform::synthesize`], then `between(z, plane)` on every z
+    /// plane of the samples (`plane`: the padded grid's plane z, rows of x), then
+    /// [`FastTransform::synthesize_adjoint`]. The result is the same, bit for bit, as the three
+    /// run one after the other; but the synthesis's last in-plane passes, `between` and the
+    /// adjoint's first in-plane passes take each plane in one sweep while it is in the core's
+    /// cache, instead of one sweep over the whole array each.
+    pub fn normal_with(&self, data: &mut [f32], between: &(dyn Fn(usize, &mut [f32]) + Sync)) {
+        assert_eq!(data.len(), self.geometry.coefficient_count());
+        let mut passes = Vec::new();
+        self.push_inverse(&mut passes);
+        self.push_sampling(&mut passes);
+        passes.push(Pass::Plane(self.geometry.padded, PlaneStep::Between));
+        self.push_sampling(&mut passes);
+        self.push_inverse_adjoint(&mut passes);
+        self.run(data, &passes, between);
+    }
+
+    fn push_inverse(&self, passes: &mut Vec<Pass>) {
+        for level in (1..=self.geometry.levels).rev() {
+            let block = self.block(level);
+            passes.push(Pass::Z(block, Kind::Synthesis));
+            passes.push(Pass::Plane(block, PlaneStep::Axis(1, Kind::Synthesis)));
+            passes.push(Pass::Plane(block, PlaneStep::Axis(0, Kind::Synthesis)));
+        }
+    }
+
+    fn push_inverse_adjoint(&self, passes: &mut Vec<Pass>) {
+        for level in 1..=self.geometry.levels {
+            let block = self.block(level);
+            passes.push(Pass::Plane(block, PlaneStep::Axis(0, Kind::Adjoint)));
+            passes.push(Pass::Plane(block, PlaneStep::Axis(1, Kind::Adjoint)));
+            passes.push(Pass::Z(block, Kind::Adjoint));
+        }
+    }
+
+    fn push_sampling(&self, passes: &mut Vec<Pass>) {
+        if interpolation_taps(self.family).len() == 1 {
+            return;
+        }
+        let full = self.geometry.padded;
+        passes.push(Pass::Plane(full, PlaneStep::Axis(0, Kind::Sampling)));
+        passes.push(Pass::Plane(full, PlaneStep::Axis(1, Kind::Sampling)));
+        passes.push(Pass::Z(full, Kind::Sampling));
+    }
+
+    /// Runs `passes` in order; consecutive in-plane steps on the same block share one sweep.
+    fn run(&self, data: &mut [f32], passes: &[Pass], between: &(dyn Fn(usize, &mut [f32]) + Sync)) {
+        let mut i = 0;
+        while i < passes.len() {
+            match passes[i] {
+                Pass::Z(block, kind) => {
+                    self.z_pass(data, block, kind);
+                    i += 1;
+                }
+                Pass::Plane(block, _) => {
+                    let mut steps = Vec::new();
+                    while let Some(Pass::Plane(b, step)) = passes.get(i) {
+                        if *b != block {
+                            break;
+                        }
+                        steps.push(*step);
+                        i += 1;
+                    }
+                    self.slab_pass(data, block, &steps, between);
+                }
+            }
+        }
     }
 
     fn block(&self, level: usize) -> [usize; 3] {
@@ -377,76 +496,83 @@ impl FastTransform {
         [0, 1, 2].map(|a| full[a] >> (level - 1))
     }
 
-    /// Applies bank `kind` along the in-plane `axes` (0: x, 1: y; in that order) to every line
-    /// of the corner block `block`, one z slab at a time: every x and y line lies in one slab,
-    /// so a slab takes all its passes while it is in the core's cache (one sweep over the
-    /// array instead of one per axis). Lines along x are contiguous rows (the line kernels);
-    /// lines along y are a panel (the bank of their length).
-    fn slab_pass(&self, data: &mut [f32], block: [usize; 3], axes: &[usize], kind: Kind) {
+    /// Applies the in-plane `steps` in order to the corner block `block`, one z slab at a time:
+    /// every x and y line lies in one slab, so a slab takes all its steps while it is in the
+    /// core's cache (one sweep over the array instead of one per step). Lines along x are
+    /// contiguous rows (the line kernels); lines along y are a panel (the bank of their
+    /// length); [`PlaneStep::Between`] hands the slab to `between`.
+    fn slab_pass(
+        &self,
+        data: &mut [f32],
+        block: [usize; 3],
+        steps: &[PlaneStep],
+        between: &(dyn Fn(usize, &mut [f32]) + Sync),
+    ) {
         let full = self.geometry.padded;
         let plane = full[0] * full[1];
-        let y_taps = axes.contains(&1).then(|| &self.banks[&(kind, block[1])]);
-        let slab = |scratch: &mut (Vec<f32>, LineBuffers), _: usize, s: &mut [f32]| {
-            for &axis in axes {
-                match (axis, y_taps) {
-                    (1, Some(taps)) => taps.apply(s, block[1], block[0], full[0], &mut scratch.0),
-                    _ => {
+        let slab = |scratch: &mut (Vec<f32>, LineBuffers), z: usize, s: &mut [f32]| {
+            for step in steps {
+                match *step {
+                    PlaneStep::Axis(1, kind) => self.banks[&(kind, block[1])].apply(
+                        s,
+                        block[1],
+                        block[0],
+                        full[0],
+                        &mut scratch.0,
+                    ),
+                    PlaneStep::Axis(_, kind) => {
                         for y in 0..block[1] {
                             let line = &mut s[y * full[0]..y * full[0] + block[0]];
                             self.lines.apply(kind, line, &mut scratch.1);
                         }
                     }
+                    PlaneStep::Between => between(z, s),
                 }
             }
         };
         for_each_chunk(data, plane, block[2], Default::default, slab);
     }
 
-    /// Applies bank `kind` along z to every line of the corner block `block`: the bank reads
-    /// each y row's panel (z rows of x samples, one plane apart) straight from the array into
-    /// a batch buffer, whose rows the slabs then take back. Both halves split the work
-    /// disjointly.
+    /// Applies bank `kind` along z to every line of the corner block `block`, in place: the
+    /// lines of one y row form a panel (z rows of x samples, one plane apart) that depends on
+    /// nothing else, so each panel is filtered from the array into a per-thread buffer (it
+    /// stays in the core's cache) and written straight back to the rows it was read from.
     fn z_pass(&self, data: &mut [f32], block: [usize; 3], kind: Kind) {
         let full = self.geometry.padded;
         let n = block[2];
-        let plane = full[0] * full[1];
         let taps = &self.banks[&(kind, n)];
-        let width = block[0];
-        let per_y = n * width;
-        let batch = (BATCH_ELEMENTS / per_y.max(1)).clamp(1, block[1]);
-        let mut buffers = self.z_buffers.lock().unwrap_or_else(|e| e.into_inner());
-        let filtered = &mut *buffers;
-        filtered.resize(batch * per_y, 0.0);
-        let mut y0 = 0;
-        while y0 < block[1] {
-            let rows = batch.min(block[1] - y0);
-            let shared = &*data;
-            for_each_chunk(
-                filtered,
-                per_y,
-                rows,
-                || (),
-                |_, i, out| {
-                    let y = y0 + i;
-                    taps.apply_into(&shared[y * full[0]..], n, width, plane, out);
-                },
-            );
-            let buf = &filtered[..rows * per_y];
-            for_each_chunk(
-                data,
-                plane,
-                n,
-                || (),
-                |_, z, s| {
-                    for i in 0..rows {
-                        let y = y0 + i;
-                        let src = i * per_y + z * width;
-                        s[y * full[0]..y * full[0] + width].copy_from_slice(&buf[src..src + width]);
-                    }
-                },
-            );
-            y0 += rows;
+        // Where the block spans whole rows, Z_ROWS consecutive y rows are contiguous in every
+        // plane and form one wider panel row (longer runs of memory per plane).
+        let rows_per_panel = if block[0] == full[0] { Z_ROWS } else { 1 };
+        let run = rows_per_panel * full[0];
+        let panel_count = block[1].div_ceil(rows_per_panel);
+        // Each panel as n disjoint row borrows, one per z plane.
+        let mut panels: Vec<Vec<&mut [f32]>> =
+            (0..panel_count).map(|_| Vec::with_capacity(n)).collect();
+        for slab in data.chunks_mut(full[0] * full[1]).take(n) {
+            let rows = slab[..block[1] * full[0]].chunks_mut(run);
+            for (panel, row) in panels.iter_mut().zip(rows) {
+                let width = row
+                    .len()
+                    .min(if rows_per_panel == 1 { block[0] } else { run });
+                panel.push(&mut row[..width]);
+            }
         }
+        for_each_chunk(
+            &mut panels,
+            1,
+            panel_count,
+            Vec::new,
+            |out: &mut Vec<f32>, _, panel| {
+                let rows = &mut panel[0];
+                let width = rows[0].len();
+                out.resize(n * width, 0.0);
+                taps.apply_from(|t| &*rows[t], width, out);
+                for (r, o) in rows.iter_mut().zip(out.chunks_exact(width)) {
+                    r.copy_from_slice(o);
+                }
+            },
+        );
     }
 }
 
@@ -497,6 +623,49 @@ mod tests {
                     fast.synthesize_adjoint(&mut got);
                     let e = rel_l2(&got, &want);
                     assert!(e < 1e-6, "{fam} {dims:?} M={levels}: adjoint {e}");
+                }
+            }
+        }
+    }
+
+    /// The fused normal operator is the synthesis, the step between and the adjoint run one
+    /// after the other, bit for bit, for every family, thin and odd grids and every depth
+    /// (including none, where only the sampling or nothing surrounds the step).
+    #[test]
+    fn normal_with_equals_the_three_passes_bit_for_bit() {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(29);
+        for fam in Family::ALL {
+            for dims in [[1usize, 1, 9], [5, 6, 7], [16, 9, 12], [20, 2, 33]] {
+                for levels in 0..=Geometry::max_levels(dims).min(3) {
+                    let g = Geometry::new(dims, fam, levels, 1).unwrap();
+                    let n = g.coefficient_count();
+                    let plane = g.padded[0] * g.padded[1];
+                    let x: Vec<f32> = (0..n).map(|_| rng.gen_range(-1.0..1.0)).collect();
+                    let f: Vec<f32> = (0..n).map(|_| rng.gen_range(-1.0..1.0)).collect();
+                    let fast = FastTransform::new(&g);
+                    // A step that depends on the plane and the position within it.
+                    let step = |z: usize, r: &mut [f32]| {
+                        for (i, v) in r.iter_mut().enumerate() {
+                            *v = if (i + z).is_multiple_of(3) {
+                                0.0
+                            } else {
+                                f[z * plane + i] - *v
+                            };
+                        }
+                    };
+                    let mut want = x.clone();
+                    fast.synthesize(&mut want);
+                    want.chunks_mut(plane)
+                        .enumerate()
+                        .for_each(|(z, r)| step(z, r));
+                    fast.synthesize_adjoint(&mut want);
+                    let mut got = x.clone();
+                    fast.normal_with(&mut got, &step);
+                    let same = got
+                        .iter()
+                        .zip(&want)
+                        .all(|(a, b)| a.to_bits() == b.to_bits());
+                    assert!(same, "{fam} {dims:?} M={levels}");
                 }
             }
         }

@@ -160,6 +160,7 @@ impl Prepared {
             &ranked.top_values(k),
             opts,
             output,
+            &self.scratch,
         )
     }
 

@@ -4,7 +4,7 @@
 
 use super::options::{default_levels, CompressError, CompressOptions, Stage, TileChoice};
 use crate::colorspace::{face_activity, face_median, ColorSpaceKind, ColorTransform};
-use crate::refine::{pad_f32, KeptValue};
+use crate::refine::{pad_f32, KeptValue, Scratch};
 use crate::select::{band_map, histogram, Histogram, CHUNK};
 use rayon::prelude::*;
 use wavesplat_codec::dwt::{forward_3d, pad_channel, samples_to_coefficients, Dwt1d};
@@ -48,6 +48,9 @@ pub(super) struct Prepared {
     pub(super) views: Vec<[Vec<f64>; 3]>,
     /// Non-zero coefficients of the transform.
     pub(super) nonzero: u64,
+    /// Grid-sized arrays the refinements and view comparisons on this grid pass on to each
+    /// other (fresh ones would fault in their pages every time).
+    pub(super) scratch: Scratch,
 }
 
 /// Coefficients by decreasing score: a prefix of the oracle's order, or a refined set followed
@@ -150,7 +153,7 @@ pub(super) fn coded_channels(
 /// The three axis X-ray views of a channel on its box (sums along x, along y, along z; f64).
 pub(super) fn axis_views(
     dims: [usize; 3],
-    at: &(dyn Fn(usize, usize, usize) -> f64 + Sync),
+    at: &(impl Fn(usize, usize, usize) -> f64 + Sync),
 ) -> [Vec<f64>; 3] {
     let [nx, ny, nz] = dims;
     // Along x and along y: each slice z owns its row of both images.
@@ -285,6 +288,7 @@ pub(super) fn prepare(
             Vec::new()
         },
         nonzero: 0,
+        scratch: Scratch::default(),
     };
     let histogram = {
         let p = &prepared;

@@ -422,6 +422,8 @@ fn refine_to_bytes(
         }
         k = next;
     }
+    // The refinements' arrays are not needed for the final file.
+    prepared.scratch.clear();
     match best {
         Some((b, refined))
             if b.stats.bytes as f64 >= 0.98 * target as f64
@@ -611,6 +613,8 @@ fn fit_bytes(
         };
         k = next;
     }
+    // The refinements' arrays are not needed for the final file.
+    prepared.scratch.clear();
     match best {
         Some(b) => Ok(b),
         None => {
