@@ -430,28 +430,46 @@ pub fn pad_channel(channel: &[f32], geometry: &Geometry) -> Vec<f64> {
 
 /// Copies a channel of the volume into the zero-padded grid of `geometry`, each sample
 /// converted by `convert` (`f64::from` for [`pad_channel`]; the identity for f32 work).
-pub fn pad_channel_as<T: Copy + Default>(
+pub fn pad_channel_as<T: Copy + Default + Send + Sync>(
     channel: &[f32],
     geometry: &Geometry,
-    convert: impl Fn(f32) -> T,
+    convert: impl Fn(f32) -> T + Sync + Send,
 ) -> Vec<T> {
     let [nx, ny, nz] = geometry.dims;
     let [px, py, _] = geometry.padded;
     let [ox, oy, oz] = geometry.origin;
     // Written out in full rather than allocated zeroed: zeroed pages are mapped lazily, first
     // to the shared zero page on a read, and the transform's first write to each of them
-    // then cost a copy-on-write fault and a TLB shootdown across the pool's threads.
-    let mut out = Vec::with_capacity(geometry.coefficient_count());
-    out.resize(geometry.coefficient_count(), T::default());
-    for z in 0..nz {
-        for y in 0..ny {
-            let src = nx * (y + ny * z);
-            let dst = ox + px * ((oy + y) + py * (oz + z));
-            for (o, v) in out[dst..dst + nx].iter_mut().zip(&channel[src..src + nx]) {
-                *o = convert(*v);
-            }
-        }
+    // then cost a copy-on-write fault and a TLB shootdown across the pool's threads. The
+    // planes are written by the pool's threads together.
+    let n = geometry.coefficient_count();
+    let mut out: Vec<T> = Vec::with_capacity(n);
+    #[cfg(feature = "rayon")]
+    {
+        use rayon::prelude::*;
+        out.par_extend(rayon::iter::repeat_n(T::default(), n));
     }
+    #[cfg(not(feature = "rayon"))]
+    out.resize(n, T::default());
+    let plane = px * py;
+    for_each_chunk(
+        &mut out,
+        plane,
+        n / plane.max(1),
+        || (),
+        |_, pz, slab| {
+            let Some(z) = pz.checked_sub(oz).filter(|z| *z < nz) else {
+                return;
+            };
+            for y in 0..ny {
+                let src = nx * (y + ny * z);
+                let dst = ox + px * (oy + y);
+                for (o, v) in slab[dst..dst + nx].iter_mut().zip(&channel[src..src + nx]) {
+                    *o = convert(*v);
+                }
+            }
+        },
+    );
     out
 }
 

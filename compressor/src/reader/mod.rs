@@ -285,19 +285,22 @@ pub(crate) fn deinterleave(
     slope: f64,
     inter: f64,
 ) -> Vec<Vec<f32>> {
+    use rayon::prelude::*;
     let size = sample.size();
     let voxel_bytes = size * channels;
-    let n = bytes.len() / voxel_bytes;
-    let mut out: Vec<Vec<f32>> = (0..channels).map(|_| Vec::with_capacity(n)).collect();
     let identity = slope == 1.0 && inter == 0.0;
-    for voxel in bytes.chunks_exact(voxel_bytes) {
-        for (c, s) in voxel.chunks_exact(size).enumerate() {
-            let v = sample.decode(s, endian);
-            let v = if identity { v } else { slope * v + inter };
-            out[c].push(v as f32);
-        }
-    }
-    out
+    (0..channels)
+        .map(|c| {
+            bytes
+                .par_chunks_exact(voxel_bytes)
+                .map(|voxel| {
+                    let v = sample.decode(&voxel[c * size..(c + 1) * size], endian);
+                    let v = if identity { v } else { slope * v + inter };
+                    v as f32
+                })
+                .collect()
+        })
+        .collect()
 }
 
 /// Most bytes a deflate (gzip, zlib) stream can expand one input byte to.
