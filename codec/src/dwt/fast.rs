@@ -272,11 +272,16 @@ impl LineBank {
     /// Transpose of [`LineBank::synthesize`]: c1[k] = Σ_i c0[(2k + i) mod n] p[i], d1 likewise.
     fn adjoint(&self, line: &mut [f32], s: &mut LineBuffers) {
         let h = line.len() / 2;
-        s.even.clear();
-        s.odd.clear();
-        for pair in line.chunks_exact(2) {
-            s.even.push(pair[0]);
-            s.odd.push(pair[1]);
+        s.even.resize(h, 0.0);
+        s.odd.resize(h, 0.0);
+        for ((e, o), pair) in s
+            .even
+            .iter_mut()
+            .zip(s.odd.iter_mut())
+            .zip(line.chunks_exact(2))
+        {
+            *e = pair[0];
+            *o = pair[1];
         }
         periodic_extension(&mut s.a, &s.even, 0, self.halo);
         periodic_extension(&mut s.b, &s.odd, 0, self.halo);
@@ -562,12 +567,18 @@ impl FastTransform {
             &mut panels,
             1,
             panel_count,
-            Vec::new,
-            |out: &mut Vec<f32>, _, panel| {
+            <(Vec<f32>, Vec<f32>)>::default,
+            |(input, out): &mut (Vec<f32>, Vec<f32>), _, panel| {
                 let rows = &mut panel[0];
                 let width = rows[0].len();
+                // The panel gathered first: row copies stream from memory, where the bank's
+                // reads of several rows at once stalled on each first touch.
+                input.clear();
+                for r in rows.iter() {
+                    input.extend_from_slice(r);
+                }
                 out.resize(n * width, 0.0);
-                taps.apply_from(|t| &*rows[t], width, out);
+                taps.apply_from(|t| &input[t * width..], width, out);
                 for (r, o) in rows.iter_mut().zip(out.chunks_exact(width)) {
                     r.copy_from_slice(o);
                 }
