@@ -36,7 +36,9 @@
 //! Written here because no crate does sparse least squares against a custom wavelet operator;
 //! the transforms themselves are the codec's.
 
-use crate::select::{histogram, pick_order, top_k, CHUNK};
+use crate::select::{
+    histogram, pick_order, score_bin, top_k, top_k_from_floor, BINS_PER_OCTAVE, CHUNK,
+};
 use rayon::prelude::*;
 use wavesplat_codec::dwt::fast::FastTransform;
 use wavesplat_codec::dwt::{pad_channel_as, unit_basis_line};
@@ -475,6 +477,7 @@ pub(crate) fn refine_with(
         }
         Output::Set { extension } => extension,
     };
+    let mut floor_bin = score_bin(threshold).saturating_sub(BINS_PER_OCTAVE);
     for _ in 0..opts.rounds {
         // Candidates: one gradient step in the Jacobi metric from the current fit (the refit
         // left the gradient there). Keep the K best over all channels (deterministic ties).
@@ -488,8 +491,16 @@ pub(crate) fn refine_with(
                 score_of(c, band_of[i], v)
             }
         };
-        let hist = histogram(channels, n, &score, None::<&fn(usize, usize) -> f64>);
-        let picks = top_k(&hist, channels, n, k, &score);
+        // One pass from a floor an octave below the last cut (the oracle's threshold at
+        // first): the same picks as the histogram's two passes, which run when it declines.
+        let picks =
+            top_k_from_floor(channels, n, k, floor_bin, 4 * k, &score).unwrap_or_else(|| {
+                let hist = histogram(channels, n, &score, None::<&fn(usize, usize) -> f64>);
+                top_k(&hist, channels, n, k, &score)
+            });
+        if let Some(last) = picks.last() {
+            floor_bin = score_bin(last.0).saturating_sub(BINS_PER_OCTAVE);
+        }
         let chosen: Vec<(u8, u32, f32)> = picks
             .iter()
             .map(|(_, c, i)| (*c, *i, candidate(*c as usize, *i as usize)))

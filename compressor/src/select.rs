@@ -219,6 +219,71 @@ where
     picks
 }
 
+/// Histogram bins per halving of the score (the f32 mantissa bits a bin keeps).
+pub(crate) const BINS_PER_OCTAVE: usize = 128;
+
+/// The top `k` selectable coefficients as [`top_k`] returns them, in one pass instead of two,
+/// when a floor on their scores is known: every coefficient whose score bin is at least
+/// `floor_bin` is collected, and when at least `k` are, the top `k` of those are the top `k`
+/// of all (every coefficient left out scores lower than each collected one). Returns `None`
+/// (the caller runs [`histogram`] and [`top_k`]) when fewer than `k` reach the floor, or when
+/// more than `limit` do (the floor was too low to be worth collecting from).
+pub(crate) fn top_k_from_floor<S>(
+    channels: usize,
+    n: usize,
+    k: usize,
+    floor_bin: usize,
+    limit: usize,
+    score: &S,
+) -> Option<Vec<Pick>>
+where
+    S: Fn(usize, usize) -> f64 + Sync,
+{
+    use std::sync::atomic::{AtomicUsize, Ordering};
+    if k == 0 {
+        return Some(Vec::new());
+    }
+    let collected = AtomicUsize::new(0);
+    let chunks = n.div_ceil(CHUNK);
+    let parts: Vec<Vec<Pick>> = (0..channels * chunks)
+        .into_par_iter()
+        .map(|job| {
+            if collected.load(Ordering::Relaxed) > limit {
+                return Vec::new();
+            }
+            let (c, chunk) = (job / chunks, job % chunks);
+            let mut out = Vec::new();
+            for i in chunk * CHUNK..((chunk + 1) * CHUNK).min(n) {
+                let s = score(c, i);
+                if s >= 0.0 && bin(s) >= floor_bin {
+                    out.push((s, c as u8, i as u32));
+                }
+            }
+            collected.fetch_add(out.len(), Ordering::Relaxed);
+            out
+        })
+        .collect();
+    let total = collected.into_inner();
+    if total < k || total > limit {
+        return None;
+    }
+    let mut picks: Vec<Pick> = Vec::with_capacity(total);
+    for p in parts {
+        picks.extend(p);
+    }
+    if picks.len() > k {
+        picks.select_nth_unstable_by(k - 1, pick_order);
+        picks.truncate(k);
+    }
+    picks.par_sort_unstable_by(pick_order);
+    Some(picks)
+}
+
+/// The histogram bin of a score (for a floor to pass to [`top_k_from_floor`]).
+pub(crate) fn score_bin(score: f64) -> usize {
+    bin(score.max(0.0))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -275,5 +340,54 @@ mod tests {
         let count = hist.count_for_energy(goal) as usize;
         let picked: f64 = all[..count].iter().map(|p| p.0.sqrt()).sum();
         assert!(picked >= goal);
+    }
+
+    /// From any floor, the one-pass selection returns exactly the two-pass top K, or declines.
+    #[test]
+    fn top_k_from_a_floor_equals_top_k_or_declines() {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
+        let n = 2 * CHUNK + 301;
+        let values: Vec<Vec<f64>> = (0..2)
+            .map(|_| {
+                (0..n)
+                    .map(|_| rng.gen_range(0..400) as f64 * rng.gen_range(0.0..1.0f64).powi(4))
+                    .collect()
+            })
+            .collect();
+        let score = |c: usize, i: usize| {
+            let v = values[c][i];
+            if v == 0.0 {
+                -1.0
+            } else {
+                v * v
+            }
+        };
+        let hist = histogram(2, n, &score, None::<&fn(usize, usize) -> f64>);
+        for k in [1usize, 50, 5000, 60_000] {
+            let want = top_k(&hist, 2, n, k, &score);
+            let kth = want.last().map_or(0.0, |p| p.0);
+            let mut answered = 0;
+            for octaves in [0usize, 1, 3, 40] {
+                for floor in [
+                    score_bin(kth) + 1,
+                    score_bin(kth).saturating_sub(octaves * BINS_PER_OCTAVE),
+                ] {
+                    match top_k_from_floor(2, n, k, floor, 4 * n, &score) {
+                        Some(got) => {
+                            assert_eq!(got, want, "k = {k}, floor {floor}");
+                            answered += 1;
+                        }
+                        // Declining is right only when fewer than k reach the floor.
+                        None => assert!(floor > score_bin(kth), "k = {k}, floor {floor}"),
+                    }
+                }
+            }
+            assert!(answered > 0);
+            // A limit below what the floor collects declines.
+            assert_eq!(
+                top_k_from_floor(2, n, k, 0, k.saturating_sub(1), &score),
+                None
+            );
+        }
     }
 }
