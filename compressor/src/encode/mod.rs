@@ -28,7 +28,7 @@ pub use options::{
     default_levels, CompressError, CompressOptions, CompressStats, Compressed, Stage, Target,
     TileChoice, LAYER_GROWTH,
 };
-use prepare::prepare;
+use prepare::{code, prepare};
 pub use prepare::{default_margin, COARSE_LAYER_MIN_LEVELS, STRUCTURED_FACES};
 pub use rate::worth_going_shallower;
 use rate::{bytes_per_coefficient_guess, compress_to_bytes};
@@ -60,7 +60,9 @@ pub fn compress(
     if let Target::Bytes(b) = opts.target {
         return compress_to_bytes(volume, opts, b, progress);
     }
-    let prepared = prepare(volume, opts, false, true, progress)?;
+    let coded = code(volume, opts, false, progress)?;
+    let prepared = prepare(volume, opts, &coded, true, progress)?;
+    drop(coded);
     let n = prepared.nonzero as usize;
     let k = match opts.target {
         Target::All => n,

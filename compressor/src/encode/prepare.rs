@@ -92,8 +92,17 @@ pub const STRUCTURED_FACES: f64 = 0.1;
 /// every coefficient stays one splat (clipped pieces cost the viewer 2.6–4.4× the render time
 /// of a CT volume).
 pub fn default_margin(volume: &Volume, family: Family, levels: usize) -> usize {
-    let structured = (0..volume.channel_count())
-        .any(|c| face_activity(volume.channel(c), volume.dims()) > STRUCTURED_FACES);
+    margin_for_faces(faces_structured(volume), family, levels)
+}
+
+/// Whether any channel's faces carry structure ([`STRUCTURED_FACES`]).
+fn faces_structured(volume: &Volume) -> bool {
+    (0..volume.channel_count())
+        .any(|c| face_activity(volume.channel(c), volume.dims()) > STRUCTURED_FACES)
+}
+
+/// [`default_margin`] once the faces are known.
+fn margin_for_faces(structured: bool, family: Family, levels: usize) -> usize {
     if structured {
         0
     } else {
@@ -197,10 +206,60 @@ pub(super) fn axis_views(
     [along_x.concat(), along_y.concat(), along_z]
 }
 
-pub(super) fn prepare(
+/// What every decomposition depth of one volume shares: the coded channels (`None`: the
+/// volume's own), the header's colour info, whether its faces carry structure and, for a depth
+/// comparison, the channels' axis views ([`Prepared::views`]). Computed once per compression, not once per depth compared.
+pub(super) struct Coded {
+    pub(super) transformed: Option<Channels>,
+    pub(super) color: ColorInfo,
+    pub(super) views: Vec<[Vec<f64>; 3]>,
+    /// Whether the volume's faces carry structure (the default margin, [`default_margin`]).
+    pub(super) structured_faces: bool,
+}
+
+impl Coded {
+    /// The channels the transform codes.
+    pub(super) fn channels<'a>(&'a self, volume: &'a Volume) -> &'a [Vec<f32>] {
+        self.transformed.as_deref().unwrap_or(volume.channels())
+    }
+}
+
+/// [`coded_channels`], with the axis views when `with_views`.
+pub(super) fn code(
     volume: &Volume,
     opts: &CompressOptions,
     with_views: bool,
+    progress: &(dyn Fn(Stage, f64) + Sync),
+) -> Result<Coded, CompressError> {
+    progress(Stage::Color, 0.0);
+    let (transformed, color) = coded_channels(volume, opts)?;
+    let mut coded = Coded {
+        transformed,
+        color,
+        views: Vec::new(),
+        structured_faces: opts.margin.is_none() && faces_structured(volume),
+    };
+    if with_views {
+        let dims = volume.dims();
+        coded.views = coded
+            .channels(volume)
+            .iter()
+            .map(|ch| {
+                let at =
+                    |x: usize, y: usize, z: usize| f64::from(ch[x + dims[0] * (y + dims[1] * z)]);
+                axis_views(dims, &at)
+            })
+            .collect();
+    }
+    Ok(coded)
+}
+
+/// One depth's decomposition of the `coded` channels of `volume` (with the padded targets of
+/// the refinement when `with_targets`), scored for the oracle.
+pub(super) fn prepare(
+    volume: &Volume,
+    opts: &CompressOptions,
+    coded: &Coded,
     with_targets: bool,
     progress: &(dyn Fn(Stage, f64) + Sync),
 ) -> Result<Prepared, CompressError> {
@@ -220,12 +279,11 @@ pub(super) fn prepare(
     let levels = opts.levels.unwrap_or(default_levels(dims, opts.family));
     let margin = opts
         .margin
-        .unwrap_or_else(|| default_margin(volume, opts.family, levels));
+        .unwrap_or_else(|| margin_for_faces(coded.structured_faces, opts.family, levels));
     let geometry =
         Geometry::new(dims, opts.family, levels, margin)?.with_spacing(volume.spacing())?;
-    progress(Stage::Color, 0.0);
-    let (transformed, color) = coded_channels(volume, opts)?;
-    let channels: &[Vec<f32>] = transformed.as_deref().unwrap_or(volume.channels());
+    let channels = coded.channels(volume);
+    let color = coded.color;
     let (lo, hi) = volume.value_range();
     let mut planner = Dwt1d::new(opts.family);
     let norms: Vec<f64> = geometry
@@ -269,19 +327,7 @@ pub(super) fn prepare(
         histogram: Histogram::empty(),
         total_energy,
         total_coefficients: (n * channels.len()) as u64,
-        views: if with_views {
-            channels
-                .iter()
-                .map(|ch| {
-                    let at = |x: usize, y: usize, z: usize| {
-                        f64::from(ch[x + dims[0] * (y + dims[1] * z)])
-                    };
-                    axis_views(dims, &at)
-                })
-                .collect()
-        } else {
-            Vec::new()
-        },
+        views: coded.views.clone(),
         targets: if opts.refine.is_some() && with_targets {
             channels.iter().map(|c| pad_f32(c, &geometry)).collect()
         } else {

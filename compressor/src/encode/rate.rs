@@ -5,7 +5,7 @@
 
 use super::encoder::finish;
 use super::options::{default_levels, CompressError, CompressOptions, Compressed, Stage};
-use super::prepare::{coded_channels, prepare, Prepared, Ranked};
+use super::prepare::{code, prepare, Prepared, Ranked};
 use crate::refine::{pad_f32, RefineOptions};
 use wavesplat_codec::format::CoderKind;
 use wavesplat_codec::layout::Geometry;
@@ -85,6 +85,8 @@ pub(super) fn compress_to_bytes(
     let mut too_small: Option<CompressError> = None;
     let mut depths = depths;
     let mut next = 0;
+    // The coded channels and their views, shared by the depths compared.
+    let coded = code(volume, opts, comparing, progress)?;
     while next < depths.len() {
         let m = depths[next];
         next += 1;
@@ -97,7 +99,7 @@ pub(super) fn compress_to_bytes(
         if comparing {
             progress(Stage::Depth(m), 0.0);
         }
-        let prepared = prepare(volume, &o, comparing, !comparing, progress)?;
+        let prepared = prepare(volume, &o, &coded, !comparing, progress)?;
         // A target too small for one depth may fit the other (their headers and coarse bands
         // differ); it is an error only when it fits neither.
         let (ranked, plain) = match oracle_to_bytes(&prepared, &o, target, &mut trials, progress) {
@@ -153,13 +155,13 @@ pub(super) fn compress_to_bytes(
     };
     prepared.views = Vec::new();
     if comparing && opts.refine.is_some() {
-        let (transformed, _) = coded_channels(volume, opts)?;
-        let channels: &[Vec<f32>] = transformed.as_deref().unwrap_or(volume.channels());
-        prepared.targets = channels
+        prepared.targets = coded
+            .channels(volume)
             .iter()
             .map(|c| pad_f32(c, &prepared.geometry))
             .collect();
     }
+    drop(coded);
     let k0 = plain.stats.kept as usize;
     // Every non-zero coefficient fits: what is left of the target goes to a finer quantizer.
     if k0 > 0 && ranked.complete && k0 >= ranked.sorted.len() {
