@@ -20,6 +20,7 @@
 use super::{for_each_chunk, interpolation_taps};
 use crate::family::Family;
 use crate::layout::Geometry;
+use multiversion::multiversion;
 use std::collections::HashMap;
 
 /// A periodic filter bank for one line length: `out[dst] += weight · in[src]` for every entry.
@@ -110,30 +111,43 @@ impl Taps {
     /// (every row has a tap). The taps are added in list order starting from zero, so the
     /// sums are the same as one axpy per tap.
     fn apply_from<'a>(&self, row: impl Fn(usize) -> &'a [f32], width: usize, out: &mut [f32]) {
-        for (dst_row, range) in &self.rows {
-            let taps = &self.list[range.clone()];
-            let dst = &mut out[dst_row * width..(dst_row + 1) * width];
-            let mut x = 0;
-            while x + LANES <= width {
-                let mut acc = [0.0f32; LANES];
-                for &(_, s, w) in taps {
-                    let from: &[f32; LANES] = row(s as usize)[x..x + LANES]
-                        .try_into()
-                        .expect("a slice of LANES samples");
-                    for (a, v) in acc.iter_mut().zip(from) {
-                        *a += w * v;
-                    }
+        apply_taps(&self.rows, &self.list, row, width, out);
+    }
+}
+
+/// [`Taps::apply_from`]'s loop, a free function so that it can be compiled per target (see
+/// [`convolve2`]).
+#[multiversion(targets("x86_64+avx2"))]
+fn apply_taps<'a>(
+    rows: &[(usize, std::ops::Range<usize>)],
+    list: &[(u32, u32, f32)],
+    row: impl Fn(usize) -> &'a [f32],
+    width: usize,
+    out: &mut [f32],
+) {
+    for (dst_row, range) in rows {
+        let taps = &list[range.clone()];
+        let dst = &mut out[dst_row * width..(dst_row + 1) * width];
+        let mut x = 0;
+        while x + LANES <= width {
+            let mut acc = [0.0f32; LANES];
+            for &(_, s, w) in taps {
+                let from: &[f32; LANES] = row(s as usize)[x..x + LANES]
+                    .try_into()
+                    .expect("a slice of LANES samples");
+                for (a, v) in acc.iter_mut().zip(from) {
+                    *a += w * v;
                 }
-                dst[x..x + LANES].copy_from_slice(&acc);
-                x += LANES;
             }
-            for (i, d) in dst.iter_mut().enumerate().skip(x) {
-                let mut a = 0.0f32;
-                for &(_, s, w) in taps {
-                    a += w * row(s as usize)[i];
-                }
-                *d = a;
+            dst[x..x + LANES].copy_from_slice(&acc);
+            x += LANES;
+        }
+        for (i, d) in dst.iter_mut().enumerate().skip(x) {
+            let mut a = 0.0f32;
+            for &(_, s, w) in taps {
+                a += w * row(s as usize)[i];
             }
+            *d = a;
         }
     }
 }
@@ -180,6 +194,12 @@ fn periodic_extension(ext: &mut Vec<f32>, src: &[f32], halo: usize, after: usize
 /// convolutions summed; `base` ≥ either filter's length − 1). Each output sums its terms in
 /// that order from zero, [`LANES`] outputs at a time in registers: the same sums as one axpy
 /// per tap into a zeroed `out`, with one store per output instead of one per tap.
+///
+/// The kernels are compiled twice, for baseline x86-64 (SSE2) and for AVX2, and the CPU's
+/// features pick one at run time. Both do the same IEEE operations on every sample in the same
+/// order (Rust never fuses a multiply and an add), so the results are the same bit for bit;
+/// AVX2 only does eight lanes per instruction instead of four.
+#[multiversion(targets("x86_64+avx2"))]
 fn convolve2(out: &mut [f32], a: &[f32], wa: &[f32], b: &[f32], wb: &[f32], base: usize) {
     let mut m = 0;
     while m + LANES <= out.len() {
@@ -209,7 +229,9 @@ fn convolve2(out: &mut [f32], a: &[f32], wa: &[f32], b: &[f32], wb: &[f32], base
 }
 
 /// out[m] ← Σ_t wa[t] · a[m + t] + Σ_t wb[t] · b[m + t] for m < out.len() (two correlations
-/// summed), in that order from zero, [`LANES`] outputs at a time as in [`convolve2`].
+/// summed), in that order from zero, [`LANES`] outputs at a time as in [`convolve2`] (and
+/// compiled per target as it is).
+#[multiversion(targets("x86_64+avx2"))]
 fn correlate2(out: &mut [f32], a: &[f32], wa: &[f32], b: &[f32], wb: &[f32]) {
     let mut m = 0;
     while m + LANES <= out.len() {
@@ -679,6 +701,86 @@ mod tests {
                     assert!(same, "{fam} {dims:?} M={levels}");
                 }
             }
+        }
+    }
+
+    /// The kernels (whichever clone the CPU picks, AVX2 on most machines) give the same bits
+    /// as plain loops that add the same terms in the same order, one sample at a time.
+    #[test]
+    fn kernels_equal_plain_loops_bit_for_bit() {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(41);
+        let mut random =
+            |n: usize| -> Vec<f32> { (0..n).map(|_| rng.gen_range(-1.0..1.0)).collect() };
+        for len in [1usize, 7, 16, 33, 112, 130] {
+            let (wa, wb) = (random(5), random(3));
+            let (a, b) = (random(len + 8), random(len + 8));
+            let base = 4;
+            let mut got = vec![0.0f32; len];
+            convolve2(&mut got, &a, &wa, &b, &wb, base);
+            let want: Vec<f32> = (0..len)
+                .map(|m| {
+                    let mut x = 0.0f32;
+                    for (t, w) in wa.iter().enumerate() {
+                        x += w * a[base + m - t];
+                    }
+                    for (t, w) in wb.iter().enumerate() {
+                        x += w * b[base + m - t];
+                    }
+                    x
+                })
+                .collect();
+            assert!(
+                got.iter()
+                    .zip(&want)
+                    .all(|(g, w)| g.to_bits() == w.to_bits()),
+                "convolve {len}"
+            );
+            correlate2(&mut got, &a, &wa, &b, &wb);
+            let want: Vec<f32> = (0..len)
+                .map(|m| {
+                    let mut x = 0.0f32;
+                    for (t, w) in wa.iter().enumerate() {
+                        x += w * a[m + t];
+                    }
+                    for (t, w) in wb.iter().enumerate() {
+                        x += w * b[m + t];
+                    }
+                    x
+                })
+                .collect();
+            assert!(
+                got.iter()
+                    .zip(&want)
+                    .all(|(g, w)| g.to_bits() == w.to_bits()),
+                "correlate {len}"
+            );
+            // A panel bank: 6 rows of `len` samples at stride len + 3.
+            let (p, q) = (random(3), random(5));
+            let taps = Taps::synthesis(
+                &p.iter().map(|v| *v as f64).collect::<Vec<_>>(),
+                &q.iter().map(|v| *v as f64).collect::<Vec<_>>(),
+                6,
+            );
+            let stride = len + 3;
+            let src = random(6 * stride);
+            let mut got = vec![0.0f32; 6 * len];
+            taps.apply_from(|t| &src[t * stride..], len, &mut got);
+            let mut want = vec![0.0f32; 6 * len];
+            for (row, range) in &taps.rows {
+                for x in 0..len {
+                    let mut acc = 0.0f32;
+                    for &(_, s, w) in &taps.list[range.clone()] {
+                        acc += w * src[s as usize * stride + x];
+                    }
+                    want[row * len + x] = acc;
+                }
+            }
+            assert!(
+                got.iter()
+                    .zip(&want)
+                    .all(|(g, w)| g.to_bits() == w.to_bits()),
+                "taps {len}"
+            );
         }
     }
 }
