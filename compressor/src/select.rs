@@ -192,21 +192,49 @@ where
         return Vec::new();
     }
     let cut = hist.cut_for_count(k as u64);
+    let parts = collect_from(channels, n, cut, usize::MAX, score).0;
+    best_of(parts, k)
+}
+
+/// Every selectable coefficient whose score bin is at least `floor_bin`, per chunk, and how
+/// many there are. Once more than `limit` are collected the remaining chunks collect nothing
+/// (the count then exceeds `limit`).
+fn collect_from<S>(
+    channels: usize,
+    n: usize,
+    floor_bin: usize,
+    limit: usize,
+    score: &S,
+) -> (Vec<Vec<Pick>>, usize)
+where
+    S: Fn(usize, usize) -> f64 + Sync,
+{
+    use std::sync::atomic::{AtomicUsize, Ordering};
+    let collected = AtomicUsize::new(0);
     let chunks = n.div_ceil(CHUNK);
     let parts: Vec<Vec<Pick>> = (0..channels * chunks)
         .into_par_iter()
         .map(|job| {
+            if collected.load(Ordering::Relaxed) > limit {
+                return Vec::new();
+            }
             let (c, chunk) = (job / chunks, job % chunks);
             let mut out = Vec::new();
             for i in chunk * CHUNK..((chunk + 1) * CHUNK).min(n) {
                 let s = score(c, i);
-                if s >= 0.0 && bin(s) >= cut {
+                if s >= 0.0 && bin(s) >= floor_bin {
                     out.push((s, c as u8, i as u32));
                 }
             }
+            collected.fetch_add(out.len(), Ordering::Relaxed);
             out
         })
         .collect();
+    (parts, collected.into_inner())
+}
+
+/// The top `k` of the collected `parts`, sorted by [`pick_order`].
+fn best_of(parts: Vec<Vec<Pick>>, k: usize) -> Vec<Pick> {
     let mut picks: Vec<Pick> = Vec::with_capacity(parts.iter().map(Vec::len).sum());
     for p in parts {
         picks.extend(p);
@@ -239,44 +267,14 @@ pub(crate) fn top_k_from_floor<S>(
 where
     S: Fn(usize, usize) -> f64 + Sync,
 {
-    use std::sync::atomic::{AtomicUsize, Ordering};
     if k == 0 {
         return Some(Vec::new());
     }
-    let collected = AtomicUsize::new(0);
-    let chunks = n.div_ceil(CHUNK);
-    let parts: Vec<Vec<Pick>> = (0..channels * chunks)
-        .into_par_iter()
-        .map(|job| {
-            if collected.load(Ordering::Relaxed) > limit {
-                return Vec::new();
-            }
-            let (c, chunk) = (job / chunks, job % chunks);
-            let mut out = Vec::new();
-            for i in chunk * CHUNK..((chunk + 1) * CHUNK).min(n) {
-                let s = score(c, i);
-                if s >= 0.0 && bin(s) >= floor_bin {
-                    out.push((s, c as u8, i as u32));
-                }
-            }
-            collected.fetch_add(out.len(), Ordering::Relaxed);
-            out
-        })
-        .collect();
-    let total = collected.into_inner();
+    let (parts, total) = collect_from(channels, n, floor_bin, limit, score);
     if total < k || total > limit {
         return None;
     }
-    let mut picks: Vec<Pick> = Vec::with_capacity(total);
-    for p in parts {
-        picks.extend(p);
-    }
-    if picks.len() > k {
-        picks.select_nth_unstable_by(k - 1, pick_order);
-        picks.truncate(k);
-    }
-    picks.par_sort_unstable_by(pick_order);
-    Some(picks)
+    Some(best_of(parts, k))
 }
 
 /// The histogram bin of a score (for a floor to pass to [`top_k_from_floor`]).
@@ -302,6 +300,18 @@ mod tests {
         }
     }
 
+    /// The score v² of every non-zero value, −1 (never selected) for a zero.
+    fn squared_scores(values: &[Vec<f64>]) -> impl Fn(usize, usize) -> f64 + Sync + '_ {
+        |c: usize, i: usize| {
+            let v = values[c][i];
+            if v == 0.0 {
+                -1.0
+            } else {
+                v * v
+            }
+        }
+    }
+
     #[test]
     fn top_k_equals_a_full_sort() {
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
@@ -310,14 +320,7 @@ mod tests {
         let values: Vec<Vec<f64>> = (0..2)
             .map(|_| (0..n).map(|_| rng.gen_range(0..50) as f64 * 0.25).collect())
             .collect();
-        let score = |c: usize, i: usize| {
-            let v = values[c][i];
-            if v == 0.0 {
-                -1.0
-            } else {
-                v * v
-            }
-        };
+        let score = squared_scores(&values);
         let hist = histogram(2, n, &score, Some(&|c: usize, i: usize| values[c][i]));
         let mut all: Vec<Pick> = (0..2)
             .flat_map(|c| (0..n).map(move |i| (c, i)))
@@ -354,14 +357,7 @@ mod tests {
                     .collect()
             })
             .collect();
-        let score = |c: usize, i: usize| {
-            let v = values[c][i];
-            if v == 0.0 {
-                -1.0
-            } else {
-                v * v
-            }
-        };
+        let score = squared_scores(&values);
         let hist = histogram(2, n, &score, None::<&fn(usize, usize) -> f64>);
         for k in [1usize, 50, 5000, 60_000] {
             let want = top_k(&hist, 2, n, k, &score);

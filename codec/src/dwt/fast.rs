@@ -116,7 +116,7 @@ impl Taps {
 }
 
 /// [`Taps::apply_from`]'s loop, a free function so that it can be compiled per target (see
-/// [`convolve2`]).
+/// [`filter2`]).
 #[multiversion(targets("x86_64+avx2"))]
 fn apply_taps<'a>(
     rows: &[(usize, std::ops::Range<usize>)],
@@ -191,54 +191,35 @@ fn periodic_extension(ext: &mut Vec<f32>, src: &[f32], halo: usize, after: usize
 }
 
 /// out[m] ← Σ_t wa[t] · a[base + m − t] + Σ_t wb[t] · b[base + m − t] for m < out.len() (two
-/// convolutions summed; `base` ≥ either filter's length − 1). Each output sums its terms in
-/// that order from zero, [`LANES`] outputs at a time in registers: the same sums as one axpy
-/// per tap into a zeroed `out`, with one store per output instead of one per tap.
-///
-/// The kernels are compiled twice, for baseline x86-64 (SSE2) and for AVX2, and the CPU's
-/// features pick one at run time. Both do the same IEEE operations on every sample in the same
-/// order (Rust never fuses a multiply and an add), so the results are the same bit for bit;
-/// AVX2 only does eight lanes per instruction instead of four.
-#[multiversion(targets("x86_64+avx2"))]
+/// convolutions summed; `base` ≥ either filter's length − 1), in that order from zero (see
+/// [`filter2`]).
 fn convolve2(out: &mut [f32], a: &[f32], wa: &[f32], b: &[f32], wb: &[f32], base: usize) {
-    let mut m = 0;
-    while m + LANES <= out.len() {
-        let mut acc = [0.0f32; LANES];
-        for (src, w) in [(a, wa), (b, wb)] {
-            for (t, wt) in w.iter().enumerate() {
-                let s: &[f32; LANES] = src[base + m - t..base + m - t + LANES]
-                    .try_into()
-                    .expect("a slice of LANES samples");
-                for (x, v) in acc.iter_mut().zip(s) {
-                    *x += wt * v;
-                }
-            }
-        }
-        out[m..m + LANES].copy_from_slice(&acc);
-        m += LANES;
-    }
-    for (i, o) in out.iter_mut().enumerate().skip(m) {
-        let mut x = 0.0f32;
-        for (src, w) in [(a, wa), (b, wb)] {
-            for (t, wt) in w.iter().enumerate() {
-                x += wt * src[base + i - t];
-            }
-        }
-        *o = x;
-    }
+    filter2(out, [(a, wa), (b, wb)], |m, t| base + m - t);
 }
 
 /// out[m] ← Σ_t wa[t] · a[m + t] + Σ_t wb[t] · b[m + t] for m < out.len() (two correlations
-/// summed), in that order from zero, [`LANES`] outputs at a time as in [`convolve2`] (and
-/// compiled per target as it is).
-#[multiversion(targets("x86_64+avx2"))]
+/// summed), in that order from zero (see [`filter2`]).
 fn correlate2(out: &mut [f32], a: &[f32], wa: &[f32], b: &[f32], wb: &[f32]) {
+    filter2(out, [(a, wa), (b, wb)], |m, t| m + t);
+}
+
+/// out[m] ← Σ over the two (source, weights) pairs in order, Σ_t w[t] · source[at(m, t)],
+/// each output's terms added in that order from zero, [`LANES`] outputs at a time in
+/// registers: the same sums as one axpy per tap into a zeroed `out`, with one store per output
+/// instead of one per tap. `at(m, t) + i` must be `at(m + i, t)`.
+///
+/// Compiled twice, for baseline x86-64 (SSE2) and for AVX2, and the CPU's features pick one at
+/// run time. Both do the same IEEE operations on every sample in the same order (Rust never
+/// fuses a multiply and an add), so the results are the same bit for bit; AVX2 only does eight
+/// lanes per instruction instead of four.
+#[multiversion(targets("x86_64+avx2"))]
+fn filter2(out: &mut [f32], pairs: [(&[f32], &[f32]); 2], at: impl Fn(usize, usize) -> usize) {
     let mut m = 0;
     while m + LANES <= out.len() {
         let mut acc = [0.0f32; LANES];
-        for (src, w) in [(a, wa), (b, wb)] {
+        for (src, w) in pairs {
             for (t, wt) in w.iter().enumerate() {
-                let s: &[f32; LANES] = src[m + t..m + t + LANES]
+                let s: &[f32; LANES] = src[at(m, t)..at(m, t) + LANES]
                     .try_into()
                     .expect("a slice of LANES samples");
                 for (x, v) in acc.iter_mut().zip(s) {
@@ -251,9 +232,9 @@ fn correlate2(out: &mut [f32], a: &[f32], wa: &[f32], b: &[f32], wb: &[f32]) {
     }
     for (i, o) in out.iter_mut().enumerate().skip(m) {
         let mut x = 0.0f32;
-        for (src, w) in [(a, wa), (b, wb)] {
+        for (src, w) in pairs {
             for (t, wt) in w.iter().enumerate() {
-                x += wt * src[i + t];
+                x += wt * src[at(i, t)];
             }
         }
         *o = x;
