@@ -615,8 +615,6 @@ fn fit_bytes(
         };
         k = next;
     }
-    // The refinements' arrays are not needed for the final file.
-    prepared.scratch.clear();
     match best {
         Some(b) => Ok(b),
         None => {
