@@ -7,8 +7,8 @@
 //! by the compiler), and no copy of the whole array is ever made. Along x, where a line is one
 //! contiguous row, the same banks run in polyphase form ([`LineBank`]): short convolutions of
 //! each half of the line with the even and odd taps, over a halo holding the periodic wrap.
-//! Along z, each y row's panel (its z rows, one plane apart) is filtered into a per-thread
-//! buffer and written straight back. Memory traffic is about one read and one write of the
+//! Along z, each panel (the z rows of one or two y rows, one plane apart) is gathered into a
+//! per-thread buffer, filtered and written straight back. Memory traffic is about one read and one write of the
 //! block per axis, less where consecutive in-plane steps share a sweep (a level's x and y
 //! passes, the sampling after the finest level, and the caller's step between a synthesis and
 //! its adjoint in [`FastTransform::normal_with`]); the extra memory is a few rows and one z
@@ -388,7 +388,6 @@ impl FastTransform {
     /// Coefficients (Mallat layout) to the padded grid of spline coefficients, in place: the
     /// f32 twin of [`super::inverse_3d`].
     pub fn inverse(&self, data: &mut [f32]) {
-        assert_eq!(data.len(), self.geometry.coefficient_count());
         let mut passes = Vec::new();
         self.push_inverse(&mut passes);
         self.run(data, &passes, &|_, _| {});
@@ -397,7 +396,6 @@ impl FastTransform {
     /// Transpose of [`FastTransform::inverse`], in place: the f32 twin of
     /// [`super::inverse_3d_adjoint`].
     pub fn inverse_adjoint(&self, data: &mut [f32]) {
-        assert_eq!(data.len(), self.geometry.coefficient_count());
         let mut passes = Vec::new();
         self.push_inverse_adjoint(&mut passes);
         self.run(data, &passes, &|_, _| {});
@@ -406,7 +404,6 @@ impl FastTransform {
     /// Samples the spline at the voxel centres in place (symmetric, so also its own transpose):
     /// the f32 twin of [`super::coefficients_to_samples`]. No-op for Haar and linear.
     pub fn coefficients_to_samples(&self, data: &mut [f32]) {
-        assert_eq!(data.len(), self.geometry.coefficient_count());
         let mut passes = Vec::new();
         self.push_sampling(&mut passes);
         self.run(data, &passes, &|_, _| {});
@@ -414,7 +411,6 @@ impl FastTransform {
 
     /// Synthesis to voxel samples (inverse, then sampling): the operator R of refinement.
     pub fn synthesize(&self, data: &mut [f32]) {
-        assert_eq!(data.len(), self.geometry.coefficient_count());
         let mut passes = Vec::new();
         self.push_inverse(&mut passes);
         self.push_sampling(&mut passes);
@@ -423,7 +419,6 @@ impl FastTransform {
 
     /// Rᵀ: the transpose of [`FastTransform::synthesize`].
     pub fn synthesize_adjoint(&self, data: &mut [f32]) {
-        assert_eq!(data.len(), self.geometry.coefficient_count());
         let mut passes = Vec::new();
         self.push_sampling(&mut passes);
         self.push_inverse_adjoint(&mut passes);
@@ -437,7 +432,6 @@ impl FastTransform {
     /// adjoint's first in-plane passes take each plane in one sweep while it is in the core's
     /// cache, instead of one sweep over the whole array each.
     pub fn normal_with(&self, data: &mut [f32], between: &(dyn Fn(usize, &mut [f32]) + Sync)) {
-        assert_eq!(data.len(), self.geometry.coefficient_count());
         let mut passes = Vec::new();
         self.push_inverse(&mut passes);
         self.push_sampling(&mut passes);
@@ -477,6 +471,7 @@ impl FastTransform {
 
     /// Runs `passes` in order; consecutive in-plane steps on the same block share one sweep.
     fn run(&self, data: &mut [f32], passes: &[Pass], between: &(dyn Fn(usize, &mut [f32]) + Sync)) {
+        assert_eq!(data.len(), self.geometry.coefficient_count());
         let mut i = 0;
         while i < passes.len() {
             match passes[i] {
@@ -560,9 +555,12 @@ impl FastTransform {
         for slab in data.chunks_mut(full[0] * full[1]).take(n) {
             let rows = slab[..block[1] * full[0]].chunks_mut(run);
             for (panel, row) in panels.iter_mut().zip(rows) {
-                let width = row
-                    .len()
-                    .min(if rows_per_panel == 1 { block[0] } else { run });
+                // A whole run of rows, or the block's part of one row.
+                let width = if rows_per_panel == 1 {
+                    block[0]
+                } else {
+                    row.len()
+                };
                 panel.push(&mut row[..width]);
             }
         }

@@ -208,7 +208,8 @@ pub(super) fn axis_views(
 
 /// What every decomposition depth of one volume shares: the coded channels (`None`: the
 /// volume's own), the header's colour info, whether its faces carry structure and, for a depth
-/// comparison, the channels' axis views ([`Prepared::views`]). Computed once per compression, not once per depth compared.
+/// comparison, the channels' axis views ([`Prepared::views`]). Computed once per compression,
+/// not once per depth compared.
 pub(super) struct Coded {
     pub(super) transformed: Option<Channels>,
     pub(super) color: ColorInfo,
