@@ -5,8 +5,9 @@
 # draws from them (single view, multiview, depth cue, clipped margins, every family) and every
 # volume `decompress` decodes from them must be byte-identical, and `bench stability --quick`
 # (the one-shot renderer against the reference ray caster on stiff cases) must give the same
-# errors. The renders use exact tables from the start and one long frame (`--no-preview
-# --frame-ms 60000`): a progressive render splats in batches that follow the clock, and f32
+# errors. A render of a whole local file is one pass (`open::draw_whole_file`); the flags
+# below (`--no-preview --frame-ms 60000`: exact tables from the start, one long frame) make
+# builds before it render in one batch too: a progressive render splats in batches that follow the clock, and f32
 # sums in another order differ in the last bits (~1e-6 of the peak, measured between two runs
 # of one build), so only the one-batch render is bit-reproducible. A depth-cued view draws
 # coefficients whose cut tables are still being built with stand-ins first (even then), so

@@ -1,7 +1,8 @@
 //! The client side end to end: a cache on loopback (in process, sled in a tempdir), volumes
 //! rendered from it by the render session through the cache source, compared with the same
 //! volume rendered from its file; a view change and a cache restart mid-stream; the memory
-//! bound over the network; and `wavesplat render --cache` against `wavesplat render FILE`.
+//! bound over the network; and `wavesplat render --cache` against `wavesplat render FILE` (one
+//! pass) and `wavesplat render FILE --progressive` (the frame loop).
 
 use std::time::{Duration, Instant};
 use wavesplat_cache::Limits;
@@ -295,7 +296,7 @@ fn the_render_command_gives_the_same_image_from_the_cache_and_from_the_file() {
     std::fs::write(&file, &bytes).unwrap();
     ingest(&server.url, "head", &bytes);
     let bin = env!("CARGO_BIN_EXE_wavesplat");
-    let raw = |args: &[&str], out: &str| -> Vec<f32> {
+    let raw = |args: &[&str], out: &str| -> (Vec<f32>, String) {
         let png = dir.path().join(format!("{out}.png"));
         let raw = dir.path().join(format!("{out}.f32"));
         let o = std::process::Command::new(bin)
@@ -308,22 +309,31 @@ fn the_render_command_gives_the_same_image_from_the_cache_and_from_the_file() {
             .output()
             .unwrap();
         assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-        std::fs::read(&raw)
+        let data = std::fs::read(&raw)
             .unwrap()
             .chunks(4)
             .map(|c| f32::from_le_bytes(c.try_into().unwrap()))
-            .collect()
+            .collect();
+        (data, String::from_utf8_lossy(&o.stdout).into_owned())
     };
-    let from_file = raw(&[file.to_str().unwrap()], "file");
-    let from_cache = raw(&["--cache", &server.url, "--volume", "head"], "cache");
+    // A whole local file is drawn in one pass; --progressive takes the frame loop, as the
+    // cache's stream always does.
+    let (from_file, said) = raw(&[file.to_str().unwrap()], "file");
+    assert!(said.contains("in one pass"), "{said}");
+    let (progressive, said) = raw(&[file.to_str().unwrap(), "--progressive"], "frames");
+    assert!(said.contains("frames in"), "{said}");
+    let (from_cache, _) = raw(&["--cache", &server.url, "--volume", "head"], "cache");
     let to_image = |d: Vec<f32>| Image {
         width: 64,
         height: 48,
         channels: 3,
         data: d,
     };
-    let e = max_rel(&to_image(from_cache), &to_image(from_file));
+    let from_file = to_image(from_file);
     // Frames group the splats by timing, so the sums agree to f32 rounding.
+    let e = max_rel(&to_image(from_cache), &from_file);
+    assert!(e <= 1e-5, "{e:e}");
+    let e = max_rel(&to_image(progressive), &from_file);
     assert!(e <= 1e-5, "{e:e}");
 }
 

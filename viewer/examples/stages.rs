@@ -6,12 +6,13 @@
 //! planned by a fresh planner, records made, records accumulated); planning alone for a new
 //! view (a planner cache miss, as on each step of an orbit) and for a cached one; and, for a
 //! planned view, making the records and accumulating them, with pixel updates per second (one
-//! update per record and covered pixel). Last, a hash of the image's bits, to show that two
+//! update per record and covered pixel); the whole path again as the one call `render` makes for
+//! a whole local file (`open::draw_whole_file`: decoding and planning together). Last, a hash of the image's bits, to show that two
 //! builds draw the same image. The figures are in BENCHMARKS.md ("Bytes to image").
 use std::time::Instant;
 use wavesplat_codec::view::ViewSpec;
 use wavesplat_viewer::backend::AccumulationBackend;
-use wavesplat_viewer::open::load_coefficients;
+use wavesplat_viewer::open::{draw_whole_file, load_coefficients};
 use wavesplat_viewer::{CpuBackend, PlanOptions, Planner, RenderStats, View};
 
 fn median(mut v: Vec<f64>) -> f64 {
@@ -69,6 +70,29 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     println!(
         "bytes to exact image: {:.1} ms (decode {decode:.1}, plan {plan:.1}, records {record:.1}, accumulate {accumulate:.1})",
         median(whole)
+    );
+
+    // The same path as one call: decoding and planning together, then the splatting.
+    let mut backend = CpuBackend::new();
+    let mut runs = Vec::with_capacity(repeat);
+    for _ in 0..repeat {
+        let t = Instant::now();
+        let w = draw_whole_file(&bytes, &spec, &mut backend)?;
+        runs.push((ms(t), w));
+    }
+    let whole_ms = median(runs.iter().map(|(t, _)| *t).collect());
+    let together = median(
+        runs.iter()
+            .map(|(_, w)| w.decode_and_plan.as_secs_f64() * 1e3)
+            .collect(),
+    );
+    let splat = median(
+        runs.iter()
+            .map(|(_, w)| w.splat.as_secs_f64() * 1e3)
+            .collect(),
+    );
+    println!(
+        "one pass (draw_whole_file): {whole_ms:.1} ms (decode and plan together {together:.1}, splat {splat:.1})"
     );
 
     let (header, coefficients) = load_coefficients(&bytes, None, None)?;

@@ -145,6 +145,56 @@ fn streaming_a_file_converges_to_the_one_shot_image() {
     }
 }
 
+/// A whole file drawn in one pass (`open::draw_whole_file`, what `render FILE` does) ends on
+/// the frame loop's image and the one-shot renderer's: an intensity volume with an offset, a
+/// colour volume, a slab clipped to its box (no margin), single, multiview, on the axis and
+/// depth-cued views.
+#[test]
+fn a_whole_file_drawn_in_one_pass_equals_the_frame_loops_image() {
+    use wavesplat_codec::view::{Cue, CueDirection};
+    use wavesplat_viewer::open::draw_whole_file;
+    let cued = |v: View| {
+        ViewSpec::single(v.with_cue(Cue {
+            k: 0.08,
+            direction: CueDirection::View,
+        }))
+    };
+    let files = [
+        ("Shepp-Logan", wsp(Phantom::SheppLogan, 40, 16)),
+        ("RGB head", wsp(Phantom::RgbHead, 24, 16)),
+        (
+            "CT slab",
+            wsp_of(&Phantom::Ct.generate([40, 32, 12]), 0.1, 16),
+        ),
+    ];
+    for (name, bytes) in &files {
+        let (header, coeffs) = all(bytes);
+        for s in [
+            spec(0.66, 0.91),
+            spec(0.0, 0.0),
+            ViewSpec {
+                view: View::new(0.3, -0.2, 64, 48),
+                multiview: true,
+            },
+            cued(View::new(0.4, 0.2, 64, 56)),
+        ] {
+            let whole = draw_whole_file(bytes, &s, &mut CpuBackend::new()).unwrap();
+            assert_eq!(whole.coefficients, coeffs.len(), "{name}");
+            assert_eq!(whole.packets, parse_file(bytes).unwrap().packets.len());
+            let mut f = file_loop(bytes, &header, s, Default::default());
+            run_to_end(&mut f);
+            let frames = f.session.image().unwrap();
+            let e = max_rel(&whole.image, &frames);
+            assert!(e <= 1e-5, "{name} {s:?}: against the frame loop {e:e}");
+            let e = max_rel(&whole.image, &full_image(&header, &coeffs, &s));
+            assert!(
+                e <= 1e-5,
+                "{name} {s:?}: against the one-shot renderer {e:e}"
+            );
+        }
+    }
+}
+
 /// A volume whose faces cut through its content is compressed without a margin, so the session
 /// clips its coefficients to the box: the pieces' tables are built off the frame thread (with
 /// and without previews, single view, multiview and depth-cued), and the session still ends on
