@@ -148,8 +148,9 @@ fn groups(
 
 /// Adds `N` records' samples into the tile buffer: `rows` rows of `n` pixels, row `y` at
 /// buffer index `row(y).0` (channel stride `channels`) and sample offset `row(y).1` in each
-/// member's table. Each pixel takes the members' products in order, d + v₀a + v₁b + …, which
-/// rounds exactly as one sweep per record.
+/// member's table (the tables run on past the group's last sample, to the atlas's end). Each
+/// pixel takes the members' products in order, d + v₀a + v₁b + …, which rounds exactly as one
+/// sweep per record.
 fn sweep<const N: usize>(
     buf: &mut [f32],
     channels: usize,
@@ -158,25 +159,61 @@ fn sweep<const N: usize>(
     row: impl Fn(usize) -> (usize, usize),
     members: [(&[f32], f32); N],
 ) {
+    let values = members.map(|(_, v)| v);
     for y in 0..rows {
         let (d, s) = row(y);
-        let samples = members.map(|(t, _)| &t[s..s + n]);
-        let values = members.map(|(_, v)| v);
-        let sum = |d: &mut f32, i: usize| {
-            let mut acc = *d;
-            for k in 0..N {
-                acc += values[k] * samples[k][i];
-            }
-            *d = acc;
-        };
+        let samples = members.map(|(t, _)| &t[s..]);
         if channels == 1 {
-            for (i, d) in buf[d..d + n].iter_mut().enumerate() {
-                sum(d, i);
-            }
+            sweep_row(&mut buf[d..], n, samples, values);
         } else {
             for i in 0..n {
-                sum(&mut buf[d + i * channels], i);
+                let d = &mut buf[d + i * channels];
+                let mut acc = *d;
+                for k in 0..N {
+                    acc += values[k] * samples[k][i];
+                }
+                *d = acc;
             }
+        }
+    }
+}
+
+/// One row of [`sweep`] for a single-channel tile: `n` pixels from `dst[0]` on, four at a time.
+/// Footprint rows are short (~12 pixels for a linear 256² view), so the last 1–3 pixels would
+/// cost as much as the rest one at a time; where the buffer and the tables run on for four more
+/// values they are summed as four, the lanes past the row adding 0.0. That leaves those pixels
+/// bit for bit as they were: a tile starts at +0.0 and a sum is −0.0 only when both terms are,
+/// so no pixel holds −0.0, and x + 0.0 = x for every other x (NaN stays NaN).
+#[inline(always)]
+fn sweep_row<const N: usize>(dst: &mut [f32], n: usize, src: [&[f32]; N], values: [f32; N]) {
+    let lanes = |dst: &mut [f32], at: usize, live: usize| {
+        let mut acc: [f32; 4] = dst[at..at + 4].try_into().expect("four");
+        for k in 0..N {
+            let s: &[f32; 4] = src[k][at..at + 4].try_into().expect("four");
+            for l in 0..4 {
+                let p = values[k] * s[l];
+                acc[l] += if l < live { p } else { 0.0 };
+            }
+        }
+        dst[at..at + 4].copy_from_slice(&acc);
+    };
+    let full = n / 4 * 4;
+    for at in (0..full).step_by(4) {
+        lanes(dst, at, 4);
+    }
+    let rest = n - full;
+    if rest == 0 {
+        return;
+    }
+    if dst.len() >= full + 4 && src.iter().all(|t| t.len() >= full + 4) {
+        lanes(dst, full, rest);
+    } else {
+        for i in full..n {
+            let mut acc = dst[i];
+            for k in 0..N {
+                acc += values[k] * src[k][i];
+            }
+            dst[i] = acc;
         }
     }
 }
@@ -243,10 +280,9 @@ fn accumulate(
                 // Each member's samples from the group's first covered row and column on.
                 let start = (ya - r.y0 as i64) as usize * cols + (xa - x0) as usize;
                 let rows = (yb - ya) as usize;
-                let span = (rows - 1) * cols + n;
                 let table = |k: usize| {
                     let off = atlas.phases[members[k].phase as usize].offset as usize + start;
-                    (&atlas.data[off..off + span], members[k].value)
+                    (&atlas.data[off..], members[k].value)
                 };
                 let dst0 = ((ya as usize - ty) * tw + (xa as usize - tx)) * channels + ch;
                 let row = |y: usize| (dst0 + y * tw * channels, y * cols);
