@@ -282,6 +282,7 @@ impl Planner {
         } = self.params(geometry, spec)?;
         let sets: Vec<Arc<FootprintSet>> = footprints.iter().map(|p| self.footprints(p)).collect();
         let mut atlas = FootprintAtlas::new();
+        atlas.reserve_for(sets.iter().flat_map(|set| set.tables.iter().flatten()));
         let tables = sets
             .iter()
             .map(|set| {

@@ -151,6 +151,25 @@ impl FootprintAtlas {
         }
     }
 
+    /// Room for `footprints` to be pushed without the atlas growing (and copying) on the way.
+    pub fn reserve_for<'a>(&mut self, footprints: impl IntoIterator<Item = &'a Footprint>) {
+        let (mut phases, mut samples) = (0usize, 0usize);
+        for f in footprints {
+            let has_gradient = !f.grad_x.is_empty() && !f.grad_y.is_empty();
+            let sets: &[&[crate::footprint::Phase]] = if has_gradient {
+                &[&f.phases, &f.grad_x, &f.grad_y]
+            } else {
+                &[&f.phases]
+            };
+            for set in sets {
+                phases += set.len();
+                samples += set.iter().map(|p| p.data.len()).sum::<usize>();
+            }
+        }
+        self.phases.reserve(phases);
+        self.data.reserve(samples);
+    }
+
     /// Appends a footprint's phases (and its gradient's); returns where they are.
     pub fn push(&mut self, f: &Footprint) -> TableRef {
         let first_phase = self.phases.len() as u32;
