@@ -519,22 +519,24 @@ mod tests {
     use wavesplat_compressor::encode::{compress, CompressOptions, Target, TileChoice};
     use wavesplat_compressor::phantom::Phantom;
 
+    /// The `n`³ Shepp–Logan phantom at a tenth of its coefficients, tiles of `tile`.
+    fn shepp_logan(n: usize, tile: usize) -> Vec<u8> {
+        let options = CompressOptions {
+            target: Target::Fraction(0.1),
+            tile: TileChoice::Size(tile),
+            refine: None,
+            ..Default::default()
+        };
+        compress(&Phantom::SheppLogan.generate([n; 3]), &options, &|_, _| {})
+            .expect("compress")
+            .bytes
+    }
+
     /// Batches of any size, cutting packets or gathering them, draw the same image (up to the
     /// order of f32 additions) from the same coefficients.
     #[test]
     fn the_batch_size_does_not_change_the_image() {
-        let bytes = compress(
-            &Phantom::SheppLogan.generate([24; 3]),
-            &CompressOptions {
-                target: Target::Fraction(0.1),
-                tile: TileChoice::Size(8),
-                refine: None,
-                ..Default::default()
-            },
-            &|_, _| {},
-        )
-        .expect("compress")
-        .bytes;
+        let bytes = shepp_logan(24, 8);
         let spec = ViewSpec::single(View::new(0.4, 0.3, 40, 36));
         let draw = |batch| {
             draw_whole_file_in_batches(&bytes, &spec, &mut CpuBackend::new(), batch).unwrap()
@@ -569,17 +571,7 @@ mod tests {
             draw_whole_file(b"not a volume", &spec, &mut backend),
             Err(OpenError::Format { .. })
         ));
-        let bytes = compress(
-            &Phantom::SheppLogan.generate([16; 3]),
-            &CompressOptions {
-                target: Target::Fraction(0.1),
-                refine: None,
-                ..Default::default()
-            },
-            &|_, _| {},
-        )
-        .expect("compress")
-        .bytes;
+        let bytes = shepp_logan(16, 16);
         assert!(draw_whole_file(&bytes[..bytes.len() - 3], &spec, &mut backend).is_err());
     }
 }

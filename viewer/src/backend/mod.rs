@@ -140,6 +140,20 @@ pub struct TableRef {
     pub grad_first: Option<u32>,
 }
 
+/// Whether a footprint carries gradient tables (both of them).
+fn has_gradient(f: &Footprint) -> bool {
+    !f.grad_x.is_empty() && !f.grad_y.is_empty()
+}
+
+/// A footprint's phase tables in the order the atlas stores them: its phases, then its
+/// gradient's when it has one.
+fn stored_sets(f: &Footprint) -> impl Iterator<Item = &[crate::footprint::Phase]> {
+    let sets = if has_gradient(f) { 3 } else { 1 };
+    [&f.phases[..], &f.grad_x[..], &f.grad_y[..]]
+        .into_iter()
+        .take(sets)
+}
+
 impl FootprintAtlas {
     /// An empty atlas with a fresh generation.
     pub fn new() -> FootprintAtlas {
@@ -154,17 +168,9 @@ impl FootprintAtlas {
     /// Room for `footprints` to be pushed without the atlas growing (and copying) on the way.
     pub fn reserve_for<'a>(&mut self, footprints: impl IntoIterator<Item = &'a Footprint>) {
         let (mut phases, mut samples) = (0usize, 0usize);
-        for f in footprints {
-            let has_gradient = !f.grad_x.is_empty() && !f.grad_y.is_empty();
-            let sets: &[&[crate::footprint::Phase]] = if has_gradient {
-                &[&f.phases, &f.grad_x, &f.grad_y]
-            } else {
-                &[&f.phases]
-            };
-            for set in sets {
-                phases += set.len();
-                samples += set.iter().map(|p| p.data.len()).sum::<usize>();
-            }
+        for set in footprints.into_iter().flat_map(stored_sets) {
+            phases += set.len();
+            samples += set.iter().map(|p| p.data.len()).sum::<usize>();
         }
         self.phases.reserve(phases);
         self.data.reserve(samples);
@@ -173,28 +179,20 @@ impl FootprintAtlas {
     /// Appends a footprint's phases (and its gradient's); returns where they are.
     pub fn push(&mut self, f: &Footprint) -> TableRef {
         let first_phase = self.phases.len() as u32;
-        let has_gradient = !f.grad_x.is_empty() && !f.grad_y.is_empty();
-        let sets: &[&[crate::footprint::Phase]] = if has_gradient {
-            &[&f.phases, &f.grad_x, &f.grad_y]
-        } else {
-            &[&f.phases]
-        };
-        for set in sets {
-            for p in set.iter() {
-                self.phases.push(PhaseRect {
-                    offset: self.data.len() as u32,
-                    cols: p.cols as u32,
-                    rows: p.rows as u32,
-                });
-                self.data.extend_from_slice(&p.data);
-            }
+        for p in stored_sets(f).flatten() {
+            self.phases.push(PhaseRect {
+                offset: self.data.len() as u32,
+                cols: p.cols as u32,
+                rows: p.rows as u32,
+            });
+            self.data.extend_from_slice(&p.data);
         }
         TableRef {
             first_phase,
             s: f.s,
             cx: f.cx,
             cy: f.cy,
-            grad_first: has_gradient.then_some(first_phase + f.phases.len() as u32),
+            grad_first: has_gradient(f).then_some(first_phase + f.phases.len() as u32),
         }
     }
 
