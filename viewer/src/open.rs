@@ -574,4 +574,31 @@ mod tests {
         let bytes = shepp_logan(16, 16);
         assert!(draw_whole_file(&bytes[..bytes.len() - 3], &spec, &mut backend).is_err());
     }
+
+    /// Flipped bytes anywhere in a file (header, directory, packets) give an error or an image,
+    /// never a panic, and never a non-finite image.
+    #[test]
+    fn corrupted_files_are_refused_or_drawn_never_a_panic() {
+        let bytes = shepp_logan(16, 8);
+        let spec = ViewSpec::single(View::new(0.4, 0.3, 24, 24));
+        let mut state = 0x9e37_79b9_7f4a_7c15u64;
+        let (mut refused, mut drawn) = (0, 0);
+        for _ in 0..120 {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            let mut bad = bytes.clone();
+            let at = (state % bad.len() as u64) as usize;
+            bad[at] ^= 1 << (state >> 61);
+            match draw_whole_file(&bad, &spec, &mut CpuBackend::new()) {
+                Ok(w) => {
+                    assert!(w.image.data.iter().all(|v| v.is_finite()), "byte {at}");
+                    drawn += 1;
+                }
+                Err(_) => refused += 1,
+            }
+        }
+        // The file carries checksums: most flips are caught before anything is drawn.
+        assert!(refused > 0, "{refused} refused, {drawn} drawn");
+    }
 }
