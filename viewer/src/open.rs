@@ -13,7 +13,7 @@ use std::path::PathBuf;
 use thiserror::Error;
 use wavesplat_client::{ConnectOptions, VolumeKey};
 use wavesplat_codec::format::packet::{decode_packets, Coefficient, PacketError};
-use wavesplat_codec::format::{parse_file, FormatError, Header};
+use wavesplat_codec::format::{check_kept, parse_file, FormatError, Header};
 use wavesplat_codec::view::patient::{PatientView, PatientViewError};
 use wavesplat_codec::view::{Cue, View, ViewError, ViewSpec};
 
@@ -466,13 +466,18 @@ fn draw_whole_file_in_batches(
         (decoded, plan)
     });
     let (decoded, mut plan) = (decoded?, plan?);
+    // As a file source does: missing or cut packets would draw a partial image.
+    let coefficients: usize = decoded.iter().map(Vec::len).sum();
+    check_kept(header, coefficients as u64).map_err(|source| OpenError::Format {
+        what: "the file".into(),
+        source,
+    })?;
     let decode_and_plan = start.elapsed();
     let splat_start = std::time::Instant::now();
     backend.begin(plan.layout()).map_err(RenderError::Backend)?;
     let mut stats = crate::RenderStats::default();
     let mut records = Vec::new();
     let mut batch: Vec<Coefficient> = Vec::new();
-    let mut coefficients = 0usize;
     let mut flush = |batch: &[Coefficient], stats: &mut crate::RenderStats| {
         records.clear();
         plan.splats(batch, &mut records, stats)?;
@@ -482,7 +487,6 @@ fn draw_whole_file_in_batches(
         Ok::<(), RenderError>(())
     };
     for packet in &decoded {
-        coefficients += packet.len();
         if !batch.is_empty() && batch.len() + packet.len() > batch_size {
             flush(&batch, &mut stats)?;
             batch.clear();
@@ -561,8 +565,8 @@ mod tests {
         }
     }
 
-    /// Bytes that are not a `.wsp` file, and a file cut short, are refused with the format
-    /// error, not drawn.
+    /// Bytes that are not a `.wsp` file, a file cut short and one missing a packet are refused
+    /// with the format error, not drawn.
     #[test]
     fn bytes_that_are_not_a_whole_file_are_refused() {
         let spec = ViewSpec::single(View::new(0.4, 0.3, 16, 16));
@@ -573,6 +577,23 @@ mod tests {
         ));
         let bytes = shepp_logan(16, 16);
         assert!(draw_whole_file(&bytes[..bytes.len() - 3], &spec, &mut backend).is_err());
+        // A well-formed file whose last packet is gone holds fewer coefficients than its
+        // header declares.
+        let file = parse_file(&bytes).unwrap();
+        let kept: Vec<Vec<u8>> = file.packets[..file.packets.len() - 1]
+            .iter()
+            .map(|p| p.to_vec())
+            .collect();
+        let short = wavesplat_codec::format::write_file(&file.header, &kept);
+        match draw_whole_file(&short, &spec, &mut backend) {
+            Err(OpenError::Format { source, .. }) => {
+                assert!(
+                    source.to_string().contains("packets are missing"),
+                    "{source}"
+                )
+            }
+            other => panic!("a file missing a packet was not refused: {other:?}"),
+        }
     }
 
     /// Flipped bytes anywhere in a file (header, directory, packets) give an error or an image,
