@@ -390,14 +390,6 @@ pub fn load_coefficients(
     Ok((file.header, coeffs))
 }
 
-/// Coefficients splatted per batch by [`draw_whole_file`]: bounds its records (three per
-/// coefficient with gradient placement, more for clipped or cued pieces) whatever the file's
-/// size, and the record and batch buffers are reused, so their pages are faulted in once. A
-/// one-shot `render` is cold (every page fresh): on two cores MNI at 1.25 % (165 k
-/// coefficients, 256²) was done 50 ms after the request in batches of 2^16, 56 ms in one
-/// batch; MNI at 5 % (639 k, 512²) 245 ms against 254 (2^14) and 284 (2^20).
-const WHOLE_FILE_BATCH: usize = 1 << 16;
-
 /// What [`draw_whole_file`] drew, and where its time went.
 #[derive(Debug, Clone)]
 pub struct WholeFileImage {
@@ -420,7 +412,7 @@ pub struct WholeFileImage {
 /// Draws every coefficient of a `.wsp` file's bytes for `spec` with `backend`, at once: the
 /// packets are decoded on the rayon pool while the view's exact footprint tables are planned from
 /// a thread of their own (neither needs the other), then everything is splatted in batches of up to
-/// [`WHOLE_FILE_BATCH`] coefficients. This is what a one-shot render of a whole local file
+/// [`crate::plan::SPLAT_BATCH`] coefficients. This is what a one-shot render of a whole local file
 /// needs: a frame loop ([`crate::FrameLoop`]) would decode on its own thread, plan before
 /// drawing and splat in batches sized to a frame, leaving a core idle much of the time. The
 /// image equals the frame loop's final one up to the order of f32 additions (a test compares
@@ -430,7 +422,7 @@ pub fn draw_whole_file(
     spec: &ViewSpec,
     backend: &mut dyn crate::AccumulationBackend,
 ) -> Result<WholeFileImage, OpenError> {
-    draw_whole_file_in_batches(bytes, spec, backend, WHOLE_FILE_BATCH)
+    draw_whole_file_in_batches(bytes, spec, backend, crate::plan::SPLAT_BATCH)
 }
 
 /// [`draw_whole_file`] with batches of up to `batch` coefficients (at least 1).
@@ -476,33 +468,13 @@ fn draw_whole_file_in_batches(
     let splat_start = std::time::Instant::now();
     backend.begin(plan.layout()).map_err(RenderError::Backend)?;
     let mut stats = crate::RenderStats::default();
-    let mut records = Vec::new();
-    let mut batch: Vec<Coefficient> = Vec::new();
-    let mut flush = |batch: &[Coefficient], stats: &mut crate::RenderStats| {
-        records.clear();
-        plan.splats(batch, &mut records, stats)?;
-        stats.pixel_updates += backend
-            .accumulate(&plan.atlas, &records)
-            .map_err(RenderError::Backend)?;
-        Ok::<(), RenderError>(())
-    };
-    for packet in &decoded {
-        if !batch.is_empty() && batch.len() + packet.len() > batch_size {
-            flush(&batch, &mut stats)?;
-            batch.clear();
-        }
-        if packet.len() >= batch_size {
-            // A packet that fills a batch alone is splatted from where it lies.
-            for part in packet.chunks(batch_size) {
-                flush(part, &mut stats)?;
-            }
-        } else {
-            batch.extend_from_slice(packet);
-        }
-    }
-    if !batch.is_empty() {
-        flush(&batch, &mut stats)?;
-    }
+    plan.splat_in_batches(
+        decoded.iter().map(Vec::as_slice),
+        backend,
+        batch_size,
+        &mut crate::plan::SplatBuffers::default(),
+        &mut stats,
+    )?;
     let raw = backend.read().map_err(RenderError::Backend)?;
     let image = crate::color::to_rgb(&raw, header, &plan.cameras, plan.cue.as_ref())?;
     Ok(WholeFileImage {

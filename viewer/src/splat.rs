@@ -11,7 +11,7 @@
 
 use crate::backend::{AccumulationBackend, CpuBackend};
 use crate::image::Image;
-use crate::plan::{Placement, PlanOptions, Planner};
+use crate::plan::{Placement, PlanOptions, Planner, SplatBuffers, SPLAT_BATCH};
 use crate::RenderError;
 use wavesplat_codec::format::packet::Coefficient;
 use wavesplat_codec::layout::Geometry;
@@ -67,6 +67,8 @@ pub struct Renderer {
     options: RenderOptions,
     planner: Planner,
     backend: Box<dyn AccumulationBackend>,
+    /// Kept between renders, so that their pages are faulted in once.
+    buffers: SplatBuffers,
 }
 
 impl std::fmt::Debug for Renderer {
@@ -97,6 +99,7 @@ impl Renderer {
             options,
             planner: Planner::new(options.plan()),
             backend,
+            buffers: SplatBuffers::default(),
         }
     }
 
@@ -144,11 +147,15 @@ impl Renderer {
         spec: &ViewSpec,
     ) -> Result<(Image, RenderStats), RenderError> {
         let mut plan = self.planner.plan(geometry, spec, self.options.channels)?;
-        let mut records = Vec::new();
         let mut stats = RenderStats::default();
-        plan.splats(coefficients, &mut records, &mut stats)?;
         self.backend.begin(plan.layout())?;
-        stats.pixel_updates = self.backend.accumulate(&plan.atlas, &records)?;
+        plan.splat_in_batches(
+            [coefficients],
+            self.backend.as_mut(),
+            SPLAT_BATCH,
+            &mut self.buffers,
+            &mut stats,
+        )?;
         Ok((self.backend.read()?, stats))
     }
 

@@ -147,22 +147,28 @@ fn groups(
 }
 
 /// Adds `N` records' samples into the tile buffer: `rows` rows of `n` pixels, row `y` at
-/// buffer index `row(y).0` (channel stride `channels`) and sample offset `row(y).1` in each
-/// member's table (the tables run on past the group's last sample, to the atlas's end). Each
-/// pixel takes the members' products in order, d + v₀a + v₁b + …, which rounds exactly as one
-/// sweep per record.
+/// buffer index `dst0 + y · stride` (channel stride `channels`) and sample offset `y · cols` in
+/// each member's table (the tables run on past the group's last sample, to the atlas's end).
+/// Each pixel takes the members' products in order, d + v₀a + v₁b + …, which rounds exactly as
+/// one sweep per record.
+#[allow(clippy::too_many_arguments)] // the group's geometry, spelled out for the hot loop
 fn sweep<const N: usize>(
     buf: &mut [f32],
     channels: usize,
     n: usize,
     rows: usize,
-    row: impl Fn(usize) -> (usize, usize),
+    (dst0, stride): (usize, usize),
+    cols: usize,
     members: [(&[f32], f32); N],
 ) {
     let values = members.map(|(_, v)| v);
+    let tables = members.map(|(t, _)| t);
+    if channels == 1 && sweep_quads(buf, n, rows, (dst0, stride), cols, tables, values) {
+        return;
+    }
     for y in 0..rows {
-        let (d, s) = row(y);
-        let samples = members.map(|(t, _)| &t[s..]);
+        let (d, s) = (dst0 + y * stride, y * cols);
+        let samples = tables.map(|t| &t[s..]);
         if channels == 1 {
             sweep_row(&mut buf[d..], n, samples, values);
         } else {
@@ -176,6 +182,72 @@ fn sweep<const N: usize>(
             }
         }
     }
+}
+
+/// [`sweep`] of a single-channel tile where every row may be read and written as whole quads
+/// (the last row, which reaches furthest into the tile buffer and into each table, has room
+/// for its last quad); returns false, having done nothing, where it may not. Each row is cut
+/// into quads once (`as_chunks`, so the loop over them needs no bounds checks), and a row's
+/// last 1–3 pixels are summed as a quad whose lanes past the row add +0.0: the products there
+/// are masked to zero bits, which leaves those pixels bit for bit as they were (a tile starts at
+/// +0.0 and a sum is −0.0 only when both terms are, so no pixel holds −0.0, and x + 0.0 = x for
+/// every other x). The mask is one `and` per lane; a select by lane index compiled to scalar
+/// multiplies and shuffles.
+#[inline(always)]
+fn sweep_quads<const N: usize>(
+    buf: &mut [f32],
+    n: usize,
+    rows: usize,
+    (dst0, stride): (usize, usize),
+    cols: usize,
+    tables: [&[f32]; N],
+    values: [f32; N],
+) -> bool {
+    if rows == 0 || n == 0 {
+        return true;
+    }
+    let whole = n / 4;
+    let rest = n % 4;
+    let padded = (whole + usize::from(rest > 0)) * 4;
+    let last = rows - 1;
+    if dst0 + last * stride + padded > buf.len()
+        || tables.iter().any(|t| last * cols + padded > t.len())
+    {
+        return false;
+    }
+    // Opaque to the optimizer, which would otherwise turn each masked lane back into a branch
+    // around a scalar load and multiply.
+    let mask: [u32; 4] =
+        std::hint::black_box(std::array::from_fn(|l| if l < rest { u32::MAX } else { 0 }));
+    for y in 0..rows {
+        let d = dst0 + y * stride;
+        let s = y * cols;
+        let (dst, _) = buf[d..d + padded].as_chunks_mut::<4>();
+        let src = tables.map(|t| t[s..s + padded].as_chunks::<4>().0);
+        let (body, tail) = dst.split_at_mut(whole);
+        let src_body = src.map(|q| &q[..body.len()]);
+        for (i, quad) in body.iter_mut().enumerate() {
+            let mut acc = *quad;
+            for k in 0..N {
+                let q = &src_body[k][i];
+                for l in 0..4 {
+                    acc[l] += values[k] * q[l];
+                }
+            }
+            *quad = acc;
+        }
+        if let Some(quad) = tail.first_mut() {
+            let mut acc = *quad;
+            for k in 0..N {
+                let q = &src[k][whole];
+                for l in 0..4 {
+                    acc[l] += f32::from_bits((values[k] * q[l]).to_bits() & mask[l]);
+                }
+            }
+            *quad = acc;
+        }
+    }
+    true
 }
 
 /// One row of [`sweep`] for a single-channel tile: `n` pixels from `dst[0]` on, four at a time.
@@ -285,16 +357,17 @@ fn accumulate(
                     (&atlas.data[off..], members[k].value)
                 };
                 let dst0 = ((ya as usize - ty) * tw + (xa as usize - tx)) * channels + ch;
-                let row = |y: usize| (dst0 + y * tw * channels, y * cols);
+                let row = (dst0, tw * channels);
                 match members.len() {
-                    1 => sweep(&mut buf, channels, n, rows, row, [table(0)]),
-                    2 => sweep(&mut buf, channels, n, rows, row, [table(0), table(1)]),
+                    1 => sweep(&mut buf, channels, n, rows, row, cols, [table(0)]),
+                    2 => sweep(&mut buf, channels, n, rows, row, cols, [table(0), table(1)]),
                     _ => sweep(
                         &mut buf,
                         channels,
                         n,
                         rows,
                         row,
+                        cols,
                         [table(0), table(1), table(2)],
                     ),
                 }
