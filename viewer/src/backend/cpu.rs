@@ -225,16 +225,32 @@ fn sweep_quads<const N: usize>(
         let (dst, _) = buf[d..d + padded].as_chunks_mut::<4>();
         let src = tables.map(|t| t[s..s + padded].as_chunks::<4>().0);
         let (body, tail) = dst.split_at_mut(whole);
-        let src_body = src.map(|q| &q[..body.len()]);
-        for (i, quad) in body.iter_mut().enumerate() {
-            let mut acc = *quad;
-            for k in 0..N {
-                let q = &src_body[k][i];
-                for l in 0..4 {
-                    acc[l] += values[k] * q[l];
+        if whole >= 4 {
+            // A long row as one run of pixels, vectorized along the run (quad by quad, the
+            // optimizer vectorizes across every four quads, transposing them: 30 % slower for
+            // a cubic 512² view).
+            let body = body.as_flattened_mut();
+            let src_body = src.map(|q| &q[..whole].as_flattened()[..body.len()]);
+            for (i, pixel) in body.iter_mut().enumerate() {
+                let mut acc = *pixel;
+                for k in 0..N {
+                    acc += values[k] * src_body[k][i];
                 }
+                *pixel = acc;
             }
-            *quad = acc;
+        } else {
+            // A short row quad by quad: one vector operation per member and quad.
+            let src_body = src.map(|q| &q[..body.len()]);
+            for (i, quad) in body.iter_mut().enumerate() {
+                let mut acc = *quad;
+                for k in 0..N {
+                    let q = &src_body[k][i];
+                    for l in 0..4 {
+                        acc[l] += values[k] * q[l];
+                    }
+                }
+                *quad = acc;
+            }
         }
         if let Some(quad) = tail.first_mut() {
             let mut acc = *quad;
