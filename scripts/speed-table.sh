@@ -59,6 +59,10 @@ field() { echo "$tp" | awk -v k="$1" -v c="$2" 'index($0, k) == 1 {print $c}'; }
 dec=$(field "linear decode" 5)
 lin=$(field "linear splat 256" 8)
 cub=$(field "cubic splat 512" 8)
+# the accumulation loop over each view's own footprints (the figure after "loop's")
+view_ceil() { echo "$tp" | awk -v k="$1" 'index($0, k) == 1 {for (i = 1; i < NF; i++) if ($i == "loop'"'"'s") print $(i + 1)}'; }
+lin_ceil=$(view_ceil "linear splat 256")
+cub_ceil=$(view_ceil "cubic splat 512")
 ceil16=$(field "accumulation loop, 16x16" 5)
 ceil48=$(field "accumulation loop, 48x48" 5)
 threads=$(echo "$tp" | sed -n 's/.* voxels, \([0-9]*\) threads.*/\1/p')
@@ -74,4 +78,4 @@ echo "| file → 256² image, \`render --cpu\`, process start to PNG (s) | one p
 echo "| the same, done after the request (ms) | one pass $one_done; --progressive $prog_done | |"
 echo "| bytes in memory → exact 256² image (ms, median of 15) | stages $inproc; one pass $onepass | |"
 echo "| decode, default coder (M coefficients/s) | $core per core (one thread); $(echo "$dec / 1000000" | bc -l | xargs printf '%.1f') on $threads threads (MNI 5 %) | |"
-echo "| splat, linear 256² / cubic 512² (G pixel updates/s per core, MNI 5 %) | $(g "$lin / $threads") / $(g "$cub / $threads") | ceiling 16² $(g "$ceil16"), 48² $(g "$ceil48") per core: cubic at $(ratio "$cub / $threads" "$ceil48") of 48², linear at $(ratio "$lin / $threads" "$ceil16") of 16² |"
+echo "| splat, linear 256² / cubic 512² (G pixel updates/s per core, MNI 5 %) | $(g "$lin / $threads") / $(g "$cub / $threads") | ceiling 16² $(g "$ceil16"), 48² $(g "$ceil48") per core: cubic at $(ratio "$cub / $threads" "$ceil48") of 48², linear at $(ratio "$lin / $threads" "$ceil16") of 16²; the loop over each view's own footprints $(g "$lin_ceil") / $(g "$cub_ceil"): $(ratio "$lin / $threads" "$lin_ceil") / $(ratio "$cub / $threads" "$cub_ceil") of it |"

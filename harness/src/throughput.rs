@@ -1,6 +1,8 @@
 //! `bench throughput`: throughput of the pipeline stages on one machine, written as CSV and a
 //! table: compression (voxels/s), packet decoding (coefficients/s) and splatting (splats/s,
-//! pixel updates/s) per family, the paper's timing case, and the accumulation loop's ceiling.
+//! pixel updates/s, and the share of the accumulation loop's speed over the same view's own
+//! footprints) per family, the paper's timing case, and the accumulation loop's ceiling at
+//! fixed footprint sizes.
 //! Timings are medians of repeated runs; nothing here is asserted (benchmarks are not tests).
 
 use anyhow::Result;
@@ -8,11 +10,14 @@ use std::io::Write;
 use std::path::PathBuf;
 use std::time::Instant;
 use wavesplat_codec::family::Family;
+use wavesplat_codec::format::packet::Coefficient;
 use wavesplat_codec::format::parse_file;
+use wavesplat_codec::layout::Geometry;
+use wavesplat_codec::view::ViewSpec;
 use wavesplat_codec::volume::Volume;
 use wavesplat_compressor::encode::{compress, CompressOptions, Target};
 use wavesplat_viewer::open::load_coefficients;
-use wavesplat_viewer::{RenderOptions, Renderer, View};
+use wavesplat_viewer::{PlanOptions, Planner, RenderOptions, RenderStats, Renderer, View};
 
 /// What `bench throughput` measures.
 pub struct ThroughputBench {
@@ -117,6 +122,7 @@ pub fn run(bench: &ThroughputBench, say: &mut dyn Write) -> Result<()> {
                 updates = stats.pixel_updates;
             }
             let s = median(times);
+            let ceiling = view_ceiling(&coeffs, &header.geometry, &view, bench.repeat.max(1))?;
             writeln!(
                 csv,
                 "splat,{family},{threads},{size},{s:.4},{},{:.0}",
@@ -125,15 +131,23 @@ pub fn run(bench: &ThroughputBench, say: &mut dyn Write) -> Result<()> {
             )?;
             writeln!(
                 csv,
+                "accumulate_loop_view,{family},1,{size},{:.4},{},{:.0}",
+                ceiling.seconds, ceiling.updates, ceiling.per_second
+            )?;
+            writeln!(
+                csv,
                 "pixel_updates,{family},{threads},{size},{s:.4},{updates},{:.0}",
                 updates as f64 / s
             )?;
             writeln!(
                 say,
-                "{family:7} splat {size}² {:8.4} s  {:12.0} splats/s  {:12.0} pixel updates/s",
+                "{family:7} splat {size}² {:8.4} s  {:12.0} splats/s  {:12.0} pixel updates/s \
+                 ({:.0} % of the loop's {:.0} per core at this view's footprints)",
                 s,
                 coeffs.len() as f64 / s,
-                updates as f64 / s
+                updates as f64 / s,
+                100.0 * updates as f64 / s / threads as f64 / ceiling.per_second,
+                ceiling.per_second
             )?;
         }
     }
@@ -214,6 +228,87 @@ fn paper_case(
         )?;
     }
     Ok(())
+}
+
+/// The accumulation loop's speed on one view's own footprints.
+struct ViewCeiling {
+    seconds: f64,
+    updates: u64,
+    per_second: f64,
+}
+
+/// Records of one view sampled for [`view_ceiling`]: enough to hold every common footprint
+/// shape in proportion, few enough for the loop to run from the first-level cache's
+/// neighbourhood like [`accumulation_bandwidth`]'s single footprint does not.
+const CEILING_SAMPLE: usize = 4096;
+
+/// The limit of one view's splatting: [`accumulation_bandwidth`]'s loop (scaled footprint rows
+/// added into a 64×64 f32 tile, one record at a time, single thread) run over the view's own
+/// footprint tables: every k-th record of the view (their phases, sizes and weights, clipped
+/// to the tile), each at an offset that keeps it inside the tile. A footprint of 7 × 7 pixels
+/// (a linear 256² view of the MRI at its finest level) costs per row what one of 48 × 48 does,
+/// so the fixed-size ceilings above flatter small views; this one has the view's shapes and no
+/// projection, binning, grouping or clipping.
+fn view_ceiling(
+    coefficients: &[Coefficient],
+    geometry: &Geometry,
+    view: &View,
+    repeat: usize,
+) -> Result<ViewCeiling> {
+    const TILE: usize = 64;
+    let mut plan =
+        Planner::new(PlanOptions::default()).plan(geometry, &ViewSpec::single(*view), 1)?;
+    let mut records = Vec::new();
+    plan.splats(coefficients, &mut records, &mut RenderStats::default())?;
+    let step = records.len().div_ceil(CEILING_SAMPLE).max(1);
+    // (table offset, columns, rows, weight) of the sampled records, clipped to the tile.
+    let sample: Vec<(usize, usize, usize, usize, f32)> = records
+        .iter()
+        .step_by(step)
+        .map(|r| {
+            let rect = plan.atlas.phases[r.phase as usize];
+            let cols = (rect.cols as usize).min(TILE);
+            let rows = (rect.rows as usize).min(TILE);
+            (
+                rect.offset as usize,
+                rect.cols as usize,
+                cols,
+                rows,
+                r.value,
+            )
+        })
+        .collect();
+    let updates_per_pass: u64 = sample.iter().map(|s| (s.2 * s.3) as u64).sum();
+    let passes = (20_000_000 / updates_per_pass.max(1)).max(1) as usize;
+    let mut tile = vec![0.0f32; TILE * TILE];
+    // A ceiling is what the loop can reach: the fastest of at least three runs (the pool's
+    // threads, just done splatting, can still hold a core for the first).
+    let mut times = Vec::new();
+    for _ in 0..repeat.max(3) {
+        let t = Instant::now();
+        for pass in 0..passes {
+            for (n, &(offset, stride, cols, rows, w)) in sample.iter().enumerate() {
+                let k = n + pass;
+                let (ox, oy) = ((k * 7) % (TILE - cols + 1), (k * 13) % (TILE - rows + 1));
+                for r in 0..rows {
+                    let row = &mut tile[(oy + r) * TILE + ox..(oy + r) * TILE + ox + cols];
+                    let src = &plan.atlas.data[offset + r * stride..offset + r * stride + cols];
+                    for (d, s) in row.iter_mut().zip(src) {
+                        *d += w * s;
+                    }
+                }
+            }
+        }
+        times.push(t.elapsed().as_secs_f64());
+    }
+    std::hint::black_box(&tile);
+    let seconds = times.into_iter().fold(f64::INFINITY, f64::min);
+    let updates = updates_per_pass * passes as u64;
+    Ok(ViewCeiling {
+        seconds,
+        updates,
+        per_second: updates as f64 / seconds,
+    })
 }
 
 /// The limit to compare splatting against: the same accumulation loop (scaled footprint rows
