@@ -314,12 +314,18 @@ fn the_render_command_gives_the_same_image_from_the_cache_and_from_the_file() {
             .chunks(4)
             .map(|c| f32::from_le_bytes(c.try_into().unwrap()))
             .collect();
-        (data, String::from_utf8_lossy(&o.stdout).into_owned())
+        let said = String::from_utf8_lossy(&o.stdout).into_owned();
+        (data, said + &String::from_utf8_lossy(&o.stderr))
     };
-    // A whole local file is drawn in one pass; --progressive takes the frame loop, as the
-    // cache's stream always does.
+    // A whole local file is drawn in one pass, and (no backend asked for) on the CPU without
+    // probing for a GPU: the render is done before a device would be open. --progressive
+    // takes the frame loop, as the cache's stream always does.
     let (from_file, said) = raw(&[file.to_str().unwrap()], "file");
     assert!(said.contains("in one pass"), "{said}");
+    assert!(
+        said.contains("drawn on the CPU before a GPU device would be open"),
+        "{said}"
+    );
     let (progressive, said) = raw(&[file.to_str().unwrap(), "--progressive"], "frames");
     assert!(said.contains("frames in"), "{said}");
     let (from_cache, _) = raw(&["--cache", &server.url, "--volume", "head"], "cache");

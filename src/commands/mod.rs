@@ -218,7 +218,9 @@ pub struct BackendArgs {
     /// Accumulate on the GPU (wgpu; WGPU_BACKEND / WGPU_ADAPTER_NAME choose the adapter).
     #[arg(long, conflicts_with = "cpu")]
     pub gpu: bool,
-    /// Accumulate on the CPU. Default: the GPU on a hardware adapter, else the CPU.
+    /// Accumulate on the CPU. Default: the GPU on a hardware adapter, else the CPU; `render`
+    /// of a whole local file small enough to be drawn before a GPU device would be open (kept
+    /// coefficients × pixels / 256² up to a million per core) uses the CPU without probing.
     #[arg(long)]
     pub cpu: bool,
 }

@@ -14,7 +14,9 @@ use wavesplat_codec::metrics::{q_i_paper_db, snr_db};
 use wavesplat_codec::view::patient::PatientView;
 use wavesplat_codec::view::{Cue, CueDirection};
 use wavesplat_viewer::backend::select;
-use wavesplat_viewer::open::{draw_whole_file, open, Opened, ViewRequest, VolumeLocation};
+use wavesplat_viewer::open::{
+    draw_whole_file, one_pass_backend, open, Opened, ViewRequest, VolumeLocation,
+};
 use wavesplat_viewer::remote::is_remote;
 use wavesplat_viewer::session::{RenderSession, SessionOptions};
 use wavesplat_viewer::{FrameLoop, Image, RunToEnd};
@@ -303,13 +305,24 @@ pub fn run(a: RenderArgs) -> Result<()> {
     };
     let reference_took = reference_started.elapsed();
     let since_request = || request.elapsed().saturating_sub(reference_took);
-    let mut selected = select(a.backend.choice()).context("choosing the accumulation backend")?;
-    eprintln!("backend: {}", selected.reason);
     let one_pass = !a.progressive
         && a.bytes.is_none()
         && a.budget_ms.is_none()
         && a.record.is_none()
-        && a.view.client_memory.is_none();
+        && a.view.client_memory.is_none()
+        && matches!(opened, Opened::File { .. });
+    let (choice, why) = if one_pass {
+        one_pass_backend(
+            a.backend.choice(),
+            &header,
+            &spec,
+            rayon::current_num_threads(),
+        )
+    } else {
+        (a.backend.choice(), None)
+    };
+    let mut selected = select(choice).context("choosing the accumulation backend")?;
+    eprintln!("backend: {}", why.unwrap_or(selected.reason));
     if let (true, Opened::File { source }) = (one_pass, &opened) {
         let whole = draw_whole_file(source.file_bytes(), &spec, &mut selected.backend)
             .with_context(|| format!("rendering {volume}"))?;

@@ -409,6 +409,50 @@ pub struct WholeFileImage {
     pub splat: std::time::Duration,
 }
 
+/// Work of a one-pass render, in coefficients times pixels over 256², per pool thread, up to
+/// which [`one_pass_backend`] draws on the CPU whatever a GPU might do. Measured: opening an
+/// H200 and building its pipelines took ~170 ms before the first splat, while the CPU backend
+/// drew MNI at 1.25 % (165 k coefficients at 256²: 0.16 M) whole in 70 ms on 16 cores and 50 ms
+/// on 2; MNI at 5 % at 512² (2.6 M) took ~270 ms on 2 cores, about half of it accumulation,
+/// the only part a GPU takes over (decoding and planning stay on the CPU). So below ~1 M per
+/// thread the CPU is done before a device would be open; far above it a GPU can win.
+pub const ONE_PASS_CPU_WORK_PER_THREAD: f64 = 1.0e6;
+
+/// The backend a one-pass render ([`draw_whole_file`]) of `header`'s file at `spec` should ask
+/// for: `choice` itself, except that [`BackendChoice::Auto`] becomes [`BackendChoice::Cpu`]
+/// when the work (kept coefficients × pixels / 256²) is at most
+/// [`ONE_PASS_CPU_WORK_PER_THREAD`] per thread of `threads`, so that such a render neither
+/// opens a device nor probes for one (probing Mesa's software adapter alone took 30–270 ms on
+/// the 2-core machine, against 50 ms for the whole render of MNI at 1.25 %). Returns the
+/// choice and, when it changed, why.
+pub fn one_pass_backend(
+    choice: crate::backend::BackendChoice,
+    header: &Header,
+    spec: &ViewSpec,
+    threads: usize,
+) -> (crate::backend::BackendChoice, Option<String>) {
+    use crate::backend::BackendChoice;
+    if choice != BackendChoice::Auto {
+        return (choice, None);
+    }
+    let views = if spec.multiview { 3.0 } else { 1.0 };
+    let pixels = spec.view.width as f64 * spec.view.height as f64 * views;
+    let work = header.kept as f64 * pixels / 65536.0;
+    if work <= ONE_PASS_CPU_WORK_PER_THREAD * threads.max(1) as f64 {
+        let why = format!(
+            "cpu backend: {} coefficients at {}x{}{} are drawn on the CPU before a GPU device \
+             would be open (--gpu to use one)",
+            header.kept,
+            spec.view.width,
+            spec.view.height,
+            if spec.multiview { " (three views)" } else { "" }
+        );
+        (BackendChoice::Cpu, Some(why))
+    } else {
+        (choice, None)
+    }
+}
+
 /// Draws every coefficient of a `.wsp` file's bytes for `spec` with `backend`, at once: the
 /// packets are decoded on the rayon pool while the view's exact footprint tables are planned from
 /// a thread of their own (neither needs the other), then everything is splatted in batches of up to
@@ -506,6 +550,40 @@ mod tests {
         compress(&Phantom::SheppLogan.generate([n; 3]), &options, &|_, _| {})
             .expect("compress")
             .bytes
+    }
+
+    /// Auto becomes the CPU for a one-pass render whose work (kept coefficients × pixels /
+    /// 256²) is within a million per thread, three views counting three times; beyond it, and
+    /// for a backend asked for, the choice stands.
+    #[test]
+    fn a_small_one_pass_render_takes_the_cpu_without_probing() {
+        use crate::backend::BackendChoice::{Auto, Cpu, Gpu};
+        let mut header = parse_file(&shepp_logan(16, 8)).unwrap().header;
+        let at = |size: usize, multiview: bool| ViewSpec {
+            view: View::new(0.4, 0.3, size, size),
+            multiview,
+        };
+        header.kept = 1_000_000;
+        let (choice, why) = one_pass_backend(Auto, &header, &at(256, false), 1);
+        assert_eq!(choice, Cpu);
+        assert!(why.unwrap().contains("1000000 coefficients at 256x256"));
+        // Just past a million on one thread; within it on two.
+        assert_eq!(one_pass_backend(Auto, &header, &at(257, false), 1).0, Auto);
+        assert_eq!(one_pass_backend(Auto, &header, &at(257, false), 2).0, Cpu);
+        // Three views are three times the pixels.
+        assert_eq!(one_pass_backend(Auto, &header, &at(256, true), 2).0, Auto);
+        assert_eq!(one_pass_backend(Auto, &header, &at(256, true), 3).0, Cpu);
+        // Asked for, a backend is kept whatever the size.
+        assert_eq!(
+            one_pass_backend(Gpu, &header, &at(16, false), 8),
+            (Gpu, None)
+        );
+        header.kept = u64::MAX;
+        assert_eq!(
+            one_pass_backend(Cpu, &header, &at(4096, true), 1),
+            (Cpu, None)
+        );
+        assert_eq!(one_pass_backend(Auto, &header, &at(4096, true), 64).0, Auto);
     }
 
     /// Batches of any size, cutting packets or gathering them, draw the same image (up to the
