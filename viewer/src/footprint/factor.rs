@@ -337,18 +337,20 @@ pub fn compute_factor_tables_with(
                         }
                         _ => None,
                     };
-                    let mut g = Vec::with_capacity(nx * ny);
-                    for ky in 0..ny {
+                    // Row by row on the pool: a view's first cued batch brings only a few
+                    // new factors, too few to keep the cores busy one factor each.
+                    let mut g = vec![Complex64::new(0.0, 0.0); nx * ny];
+                    g.par_chunks_mut(nx).enumerate().for_each(|(ky, row)| {
                         let rho = signed(ky, ny) * s as f64 / ny as f64;
-                        for kx in 0..nx {
+                        for (kx, v) in row.iter_mut().enumerate() {
                             let sigma = signed(kx, nx) * s as f64 / nx as f64;
                             let xi = p.zoom * (sigma * p.ex[a] + rho * p.ey[a]);
-                            g.push(match &cut {
+                            *v = match &cut {
                                 Some(st) => st.at(xi),
                                 None => f.transform(&tf, xi, k, l[a]),
-                            });
+                            };
                         }
-                    }
+                    });
                     (f, std::sync::Arc::new(g))
                 })
                 .collect();
@@ -369,6 +371,7 @@ pub fn compute_factor_tables_with(
             .or_insert_with(|| {
                 std::sync::Arc::new(
                     (0..nx * ny)
+                        .into_par_iter()
                         .map(|i| {
                             let rho = signed(i / nx, ny) * s as f64 / ny as f64;
                             let sigma = signed(i % nx, nx) * s as f64 / nx as f64;
