@@ -885,13 +885,20 @@ impl ViewPlan {
             stats.pixel_updates += backend.accumulate(&plan.atlas, records)?;
             Ok(())
         };
-        for run in runs {
+        let mut runs = runs.into_iter().peekable();
+        while let Some(run) = runs.next() {
             if !batch.is_empty() && batch.len() + run.len() > batch_size {
                 flush(self, batch, stats)?;
                 batch.clear();
             }
-            if run.len() >= batch_size {
-                // A run that fills a batch alone is splatted from where it lies.
+            // A run that fills a batch alone, or that no following run joins (the last one, or
+            // one whose successor would not fit beside it: the one-shot renderer's single
+            // run), is splatted from where it lies instead of being copied into the batch.
+            let alone = batch.is_empty()
+                && runs
+                    .peek()
+                    .is_none_or(|next| run.len() + next.len() > batch_size);
+            if run.len() >= batch_size || alone {
                 for part in run.chunks(batch_size) {
                     flush(self, part, stats)?;
                 }

@@ -289,11 +289,13 @@ pub(crate) fn round_half_away(x: f64) -> f64 {
     if x.is_nan() || x.abs() >= INTEGRAL {
         return x;
     }
-    let t = x as i64 as f64; // toward zero, exact below 2^52
-    let f = x - t; // exact: t and x share every bit above the binary point
-                   // Without branches (which way a centre rounds is as good as random): the step away from
-                   // zero, and the sign of x for a zero result (−0.3 rounds to −0.0; every other result
-                   // already has the sign of x).
+    // Toward zero, exact below 2^52.
+    let t = x as i64 as f64;
+    // Exact: t and x share every bit above the binary point.
+    let f = x - t;
+    // Without branches (which way a centre rounds is as good as random): the step away from
+    // zero, and the sign of x for a zero result (−0.3 rounds to −0.0; every other result
+    // already has the sign of x).
     let up = f64::from(u8::from(f >= 0.5));
     let down = f64::from(u8::from(f <= -0.5));
     (t + up - down).copysign(x)
