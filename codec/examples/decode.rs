@@ -15,22 +15,33 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let bytes = std::fs::read(path)?;
     let file = parse_file(&bytes)?;
     let mut times = Vec::with_capacity(repeat);
-    let mut count = 0usize;
-    let mut checksum = 0f64;
+    let mut decoded = Vec::with_capacity(file.packets.len());
     for _ in 0..repeat {
+        decoded.clear();
         let t = Instant::now();
-        count = 0;
         for p in &file.packets {
-            let d = decode_packet(&file.header, p)?;
-            count += d.coefficients.len();
-            checksum += d.coefficients.iter().map(|c| c.value as f64).sum::<f64>();
+            decoded.push(decode_packet(&file.header, p)?);
         }
         times.push(t.elapsed().as_secs_f64());
+    }
+    // Order, positions and value bits of the last run: any change in what is decoded changes
+    // the hash (FNV-1a over each coefficient's fields).
+    let mut count = 0usize;
+    let mut hash = 0xcbf2_9ce4_8422_2325u64;
+    for c in decoded.iter().flat_map(|d| &d.coefficients) {
+        count += 1;
+        for word in [c.channel.into(), c.band.level.into(), c.band.kind.into()]
+            .into_iter()
+            .chain(c.pos)
+            .chain([c.value.to_bits()])
+        {
+            hash = (hash ^ u64::from(word)).wrapping_mul(0x100_0000_01b3);
+        }
     }
     times.sort_by(f64::total_cmp);
     let median = times[times.len() / 2];
     println!(
-        "{count} coefficients in {} packets: min {:.2} ms, median {:.2} ms, {:.1} M coefficients/s on one thread (checksum {checksum:.6e})",
+        "{count} coefficients in {} packets: min {:.2} ms, median {:.2} ms, {:.1} M coefficients/s on one thread (hash {hash:016x})",
         file.packets.len(),
         times[0] * 1e3,
         median * 1e3,

@@ -27,13 +27,33 @@ pub(super) fn magnitude_class(q: u64) -> u8 {
     }
 }
 
+/// A single cell's three lower neighbours as its contexts read them
+/// ([`CodedCells::neighbours`]).
+#[derive(Clone, Copy, Debug)]
+pub(super) struct Neighbours {
+    /// Absent, positive or negative, for x, y and z: `0..SIGN_CONTEXTS`.
+    pub(super) signs: usize,
+    /// The summed magnitude classes, bucketed: `0..VALUE_CONTEXTS`.
+    pub(super) magnitudes: usize,
+    /// How many are coded: 0–3.
+    pub(super) coded: usize,
+}
+
 /// Occupancy states of a box's lower faces: no coded cell, one, two or three, four or more.
 pub(super) const FACE_STATES: usize = 4;
+
+/// The face state of `n` coded cells (or of a single cell's weighed neighbours): 0, 1, 2–3,
+/// 4 and above. A table, since the count is as unpredictable as the data.
+#[inline(always)]
+pub(super) fn face_state_of_count(n: usize) -> usize {
+    const STATE: [u8; 8] = [0, 1, 2, 2, 3, 3, 3, 3];
+    STATE[n.min(7)] as usize
+}
 
 /// Largest box (in cells) whose lower faces are looked at; larger boxes use face state 0.
 pub(super) const FACE_CONTEXT_MAX_CELLS: usize = 64;
 
-/// Largest band region held densely (a quarter byte per cell in [`CodedCells`], about a byte per
+/// Largest band region held densely (1⅛ bytes per cell in [`CodedCells`], about a byte per
 /// cell in a [`Pyramid`]); larger regions use a hash map or a [`SignificanceGrid`].
 pub(super) const DENSE_MAX_CELLS: usize = 1 << 22;
 
@@ -48,10 +68,11 @@ pub(super) const DENSE_MAX_CELLS: usize = 1 << 22;
 /// contexts save a third of the sign bits (5–6 % of the file) and the face contexts a further
 /// 4–5 %.
 ///
-/// Regions up to [`DENSE_MAX_CELLS`] are dense bit sets in 4×4×4-cell bricks (one `u64` of
-/// "coded" bits and one of "negative" bits per brick, x fastest inside a brick): an octree box
-/// of up to 64 cells is a dyadic cube of edge ≤ 4 and lies in one brick, so each of its lower
-/// faces is one masked population count (lookups are the inner loop of both coders). Larger
+/// Regions up to [`DENSE_MAX_CELLS`] are held densely twice: as bit sets in 4×4×4-cell bricks
+/// (one `u64` of "coded" bits per brick, x fastest inside a brick), where an octree box of up
+/// to 64 cells is a dyadic cube of edge ≤ 4 inside one brick, so each of its lower faces is
+/// one masked population count; and as a byte per cell (state and magnitude class), where a
+/// leaf's three lower neighbours are three loads (lookups are the inner loop of both coders). Larger
 /// regions, which a big single tile or a hostile header can declare, use a hash map whose size
 /// follows the coefficients actually coded. Both answer the same.
 #[derive(Default)]
@@ -60,11 +81,19 @@ pub(super) struct CodedCells {
     /// Bricks per axis.
     pub(super) bricks: [usize; 3],
     pub(super) coded: Vec<u64>,
-    pub(super) negative: Vec<u64>,
-    /// The two bits of each coded cell's magnitude class ([`magnitude_class`]).
-    pub(super) class: [Vec<u64>; 2],
+    /// What a leaf's contexts read of each cell, one byte per cell on the region's grid
+    /// padded by one empty plane below each axis (so a cell's lower neighbours are three loads
+    /// at fixed offsets, with no test for the region's edge): bits 0–1 the cell's state (0
+    /// none, 1 positive, 2 negative), bits 2–4 what the value context adds for it (0 none, else
+    /// 1 + its magnitude class). Its byte per cell costs twice the bricks' bits, and saves the
+    /// leaf's three neighbour lookups a branch and four words each.
+    pub(super) leaf: Vec<u8>,
+    /// Strides of `leaf` along y and z (x is 1).
+    pub(super) leaf_stride: [usize; 2],
     /// Bricks set since the last reset, to clear only those.
     pub(super) touched: Vec<usize>,
+    /// `leaf` bytes set since the last reset.
+    pub(super) touched_leaf: Vec<usize>,
     pub(super) sparse: FxHashMap<[u32; 3], u8>,
     pub(super) use_dense: bool,
 }
@@ -118,22 +147,30 @@ impl CodedCells {
     pub(super) fn reset_with_limit(&mut self, extent: [u32; 3], dense_max: usize) {
         for &i in &self.touched {
             self.coded[i] = 0;
-            self.negative[i] = 0;
-            self.class[0][i] = 0;
-            self.class[1][i] = 0;
+        }
+        for &i in &self.touched_leaf {
+            self.leaf[i] = 0;
         }
         self.touched.clear();
+        self.touched_leaf.clear();
         self.sparse.clear();
         self.extent = extent;
         let cells = extent.iter().map(|&e| e as usize).product::<usize>();
         self.use_dense = cells <= dense_max;
         self.bricks = extent.map(|e| (e as usize).div_ceil(4));
-        let bricks = self.bricks.iter().product::<usize>();
-        if self.use_dense && self.coded.len() < bricks {
-            self.coded.resize(bricks, 0);
-            self.negative.resize(bricks, 0);
-            self.class[0].resize(bricks, 0);
-            self.class[1].resize(bricks, 0);
+        if self.use_dense {
+            // Every word and byte is zero here, so a larger array may be a fresh one: the
+            // allocator hands out zeroed pages without writing them.
+            let bricks = self.bricks.iter().product::<usize>();
+            if self.coded.len() < bricks {
+                self.coded = vec![0; bricks];
+            }
+            let padded = extent.map(|e| e as usize + 1);
+            self.leaf_stride = [padded[0], padded[0] * padded[1]];
+            let bytes = padded.iter().product::<usize>();
+            if self.leaf.len() < bytes {
+                self.leaf = vec![0; bytes];
+            }
         }
     }
 
@@ -145,6 +182,13 @@ impl CodedCells {
         (i, (c[0] & 3) | (c[1] & 3) << 2 | (c[2] & 3) << 4)
     }
 
+    /// A cell's byte in `leaf`.
+    #[inline(always)]
+    fn leaf_index(&self, c: [u32; 3]) -> usize {
+        let [sy, sz] = self.leaf_stride;
+        (c[0] as usize + 1) + sy * (c[1] as usize + 1) + sz * (c[2] as usize + 1)
+    }
+
     pub(super) fn insert(&mut self, cell: [u32; 3], negative: bool, class: u8) {
         if self.use_dense {
             let (i, bit) = self.locate(cell);
@@ -152,10 +196,9 @@ impl CodedCells {
                 self.touched.push(i);
             }
             self.coded[i] |= 1 << bit;
-            self.negative[i] = (self.negative[i] & !(1 << bit)) | (negative as u64) << bit;
-            for (k, plane) in self.class.iter_mut().enumerate() {
-                plane[i] = (plane[i] & !(1 << bit)) | (((class >> k) & 1) as u64) << bit;
-            }
+            let j = self.leaf_index(cell);
+            self.leaf[j] = (1 + negative as u8) | (1 + class) << 2;
+            self.touched_leaf.push(j);
         } else {
             self.sparse
                 .insert(cell, (1 + negative as u8) | (class << 2));
@@ -166,8 +209,7 @@ impl CodedCells {
     #[inline(always)]
     pub(super) fn get(&self, cell: [u32; 3]) -> u8 {
         if self.use_dense {
-            let (i, bit) = self.locate(cell);
-            (((self.coded[i] >> bit) & 1) + ((self.negative[i] >> bit) & 1)) as u8
+            self.leaf[self.leaf_index(cell)] & 3
         } else {
             self.sparse.get(&cell).map_or(0, |v| v & 3)
         }
@@ -186,38 +228,35 @@ impl CodedCells {
     }
 
     /// The sign and value contexts of `cell` in band index `band`, from its three lower
-    /// neighbours: the sign context says whether each is absent, positive or negative; the
-    /// value context sums 0 (absent) or 1 + its magnitude class over them, bucketed. One pass
-    /// serves both, since both read the same neighbours.
-    #[inline(always)]
+    /// neighbours ([`CodedCells::neighbours`]).
+    #[cfg(test)]
     pub(super) fn leaf_contexts(&self, band: usize, cell: [u32; 3]) -> (usize, usize) {
+        let n = self.neighbours(cell);
+        (
+            band * SIGN_CONTEXTS + n.signs,
+            band * VALUE_CONTEXTS + n.magnitudes,
+        )
+    }
+
+    /// What the contexts of a single cell read of its three lower neighbours, in one pass:
+    /// whether each is absent, positive or negative (the sign context); the sum over them of
+    /// 0 (absent) or 1 + its magnitude class, bucketed (the value context); and how many are
+    /// coded (a single cell's face count).
+    #[inline(always)]
+    pub(super) fn neighbours(&self, cell: [u32; 3]) -> Neighbours {
         let mut state = 0;
         let mut sum = 0;
+        let mut count = 0;
         if self.use_dense {
-            // The neighbour one cell down an axis: in the same brick, or at the brick's lower
-            // edge the far plane of the brick below.
-            let (i, bit) = self.locate(cell);
-            let stride = [1, self.bricks[0], self.bricks[0] * self.bricks[1]];
-            for a in 0..3 {
-                let (s, m) = if cell[a] == 0 {
-                    (0, 0)
-                } else {
-                    let step = 1u32 << (2 * a);
-                    let (j, nbit) = if cell[a] & 3 != 0 {
-                        (i, bit - step)
-                    } else {
-                        (i - stride[a], bit + 3 * step)
-                    };
-                    let coded = (self.coded[j] >> nbit) & 1;
-                    let class =
-                        ((self.class[0][j] >> nbit) & 1) | ((self.class[1][j] >> nbit) & 1) << 1;
-                    (
-                        coded + ((self.negative[j] >> nbit) & 1),
-                        coded * (1 + class),
-                    )
-                };
-                state = state * 3 + s as usize;
-                sum += m as usize;
+            // The lower neighbours lie one byte, one row and one plane back; below the
+            // region's lower faces they are the padding's empty cells.
+            let i = self.leaf_index(cell);
+            let [sy, sz] = self.leaf_stride;
+            for j in [i - 1, i - sy, i - sz] {
+                let v = self.leaf[j];
+                state = state * 3 + (v & 3) as usize;
+                sum += (v >> 2) as usize;
+                count += (v != 0) as usize;
             }
         } else {
             for a in 0..3 {
@@ -232,13 +271,15 @@ impl CodedCells {
                 };
                 state = state * 3 + s;
                 sum += m;
+                count += (s != 0) as usize;
             }
         }
         const BUCKET: [usize; 13] = [0, 1, 2, 3, 4, 5, 5, 6, 6, 6, 7, 7, 7];
-        (
-            band * SIGN_CONTEXTS + state,
-            band * VALUE_CONTEXTS + BUCKET[sum],
-        )
+        Neighbours {
+            signs: state,
+            magnitudes: BUCKET[sum],
+            coded: count,
+        }
     }
 
     /// The face state of a box of `cells` cells: how many coded cells touch its three lower
@@ -260,18 +301,22 @@ impl CodedCells {
             let stride = [1, self.bricks[0], self.bricks[0] * self.bricks[1]];
             let mut faces = [0u64; 3];
             for a in 0..3 {
-                if b.lo[a] == 0 {
-                    continue;
-                }
+                // Selected by masks rather than branches: which case holds follows the
+                // octree's data-dependent descent.
                 let plane = BRICK[a][1 << lo[a]];
                 let first = cube & plane;
                 let shift = 1 << (2 * a);
-                let (word, face) = if lo[a] > 0 {
-                    (self.coded[i], first >> shift)
+                let inside = lo[a] > 0;
+                let below = (!inside && b.lo[a] > 0) as usize;
+                let word = self.coded[i - below * stride[a]];
+                let face = if inside {
+                    first >> shift
                 } else {
-                    (self.coded[i - stride[a]], first << (3 * shift))
+                    first << (3 * shift)
                 };
-                faces[a] = word & face;
+                // No face below the region's lower edge.
+                let keep = ((b.lo[a] > 0) as u64).wrapping_neg();
+                faces[a] = word & face & keep;
             }
             count_ones3(faces)
         } else {
@@ -293,11 +338,6 @@ impl CodedCells {
             }
             n
         };
-        match n {
-            0 => 0,
-            1 => 1,
-            2..=3 => 2,
-            _ => 3,
-        }
+        face_state_of_count(n)
     }
 }

@@ -4,13 +4,26 @@
 //! magnitudes by the coded cells' lower neighbours.
 
 use super::super::Header;
-use super::cells::{CodedCells, FACE_STATES, NEIGHBOUR_STATES, SIGN_CONTEXTS, VALUE_CONTEXTS};
+use super::cells::{
+    face_state_of_count, CodedCells, FACE_STATES, NEIGHBOUR_STATES, SIGN_CONTEXTS, VALUE_CONTEXTS,
+};
 use super::octree::Box3;
 use crate::entropy::range::{AdaptiveUintModel, BitModel};
 
 /// Most size contexts per band (log2 of a box's cell count, clamped); a packet uses as many as
 /// its tile's largest region needs ([`Models::new`]), so small tiles set up fewer models.
 const MAX_SIZE_CONTEXTS: usize = 48;
+
+/// The models of a single cell ([`Models::cell_contexts`]).
+#[derive(Clone, Copy, Debug)]
+pub(super) struct CellContexts {
+    /// Its occupancy's face state.
+    pub(super) face: usize,
+    /// Its sign model.
+    pub(super) sign: usize,
+    /// Its value model.
+    pub(super) value: usize,
+}
 
 /// The adaptive models of a packet, and the cells coded so far in the current substream.
 pub(super) struct Models {
@@ -51,16 +64,27 @@ impl Models {
 }
 
 impl Models {
-    /// The sign and value models of a coefficient at `cell` of band index `band`
-    /// ([`CodedCells::leaf_contexts`]; files before [`super::MAGNITUDE_CONTEXTS_VERSION`] have one
-    /// value model per band).
+    /// The contexts of a single cell at `cell` of band index `band`, from one look at its lower
+    /// neighbours: its occupancy's face state ([`Models::face_state`]) and, when it holds a
+    /// coefficient, its sign and value models ([`CodedCells::leaf_contexts`]; files before
+    /// [`super::MAGNITUDE_CONTEXTS_VERSION`] have one value model per band). Nothing is coded
+    /// between a cell's occupancy and its leaf, so one look serves both.
     #[inline(always)]
-    pub(super) fn leaf_contexts(&self, band: usize, cell: [u32; 3]) -> (usize, usize) {
-        let (sign, value) = self.coded.leaf_contexts(band, cell);
-        if self.value_contexts == 1 {
-            (sign, band)
+    pub(super) fn cell_contexts(&self, band: usize, cell: [u32; 3]) -> CellContexts {
+        let n = self.coded.neighbours(cell);
+        let weighed = if self.value_contexts == 1 {
+            n.coded
         } else {
-            (sign, value)
+            n.magnitudes
+        };
+        CellContexts {
+            face: face_state_of_count(weighed),
+            sign: band * SIGN_CONTEXTS + n.signs,
+            value: if self.value_contexts == 1 {
+                band
+            } else {
+                band * VALUE_CONTEXTS + n.magnitudes
+            },
         }
     }
 
@@ -68,16 +92,11 @@ impl Models {
     /// [`super::MAGNITUDE_CONTEXTS_VERSION`] a single cell's state weighs its coded lower
     /// neighbours by their magnitude classes instead of counting them (the sum of
     /// [`CodedCells::leaf_contexts`]: 0, 1, 2–3, 4 and above), since a cell beside large
-    /// coefficients is likelier to hold one.
+    /// coefficients is likelier to hold one ([`Models::cell_contexts`]).
     #[inline(always)]
     pub(super) fn face_state(&self, b: &Box3, cells: usize) -> usize {
-        if cells == 1 && self.value_contexts != 1 {
-            match self.coded.leaf_contexts(0, b.lo).1 {
-                0 => 0,
-                1 => 1,
-                2 | 3 => 2,
-                _ => 3,
-            }
+        if cells == 1 {
+            self.cell_contexts(0, b.lo).face
         } else {
             self.coded.face_state(b, cells)
         }

@@ -49,7 +49,7 @@ use super::{invalid, FormatError, Header};
 use crate::entropy::range::{RangeDecoder, RangeEncoder};
 use crate::layout::Band;
 use cells::magnitude_class;
-use contexts::Models;
+use contexts::{CellContexts, Models};
 use neighbourhood::{Neighbourhood, Relatives};
 use octree::{region, Box3};
 /// Encodes one packet's coefficients; returns payload, the decoder's reconstruction (in decode
@@ -141,24 +141,8 @@ fn encode_box(
     bd: &mut SizeBreakdown,
 ) {
     if b.cells() == 1 {
-        let (p, v) = pts[0];
-        let b0 = enc.bits_spent();
-        let negative = v < 0.0;
-        let (sc, vc) = m.leaf_contexts(ctx.bi, p);
-        enc.encode_bit(&mut m.sign[sc], negative);
-        let b1 = enc.bits_spent();
-        let (q, mag) = ctx.quant.quantize((v as f64).abs());
-        m.value[vc].encode(enc, q);
-        m.coded.insert(p, negative, magnitude_class(q));
-        bd.sign_bits += b1 - b0;
-        bd.value_bits += enc.bits_spent() - b1;
-        let value = if v < 0.0 { -mag } else { mag } as f32;
-        recon.push(Coefficient {
-            channel: ctx.channel,
-            band: ctx.band,
-            pos: [0, 1, 2].map(|a| p[a] + ctx.origin[a]),
-            value,
-        });
+        let cell = m.cell_contexts(ctx.bi, b.lo);
+        encode_leaf(enc, m, ctx, pts[0], cell, recon, bd);
         return;
     }
     let (children, n) = b.children();
@@ -208,21 +192,57 @@ fn encode_box(
     for (i, &child) in children.iter().enumerate() {
         let part = &mut pts[bounds[i]..bounds[i + 1]];
         let occupied = !part.is_empty();
+        let cells = child.cells();
+        let single = (cells == 1).then(|| m.cell_contexts(ctx.bi, child.lo));
         // The last child must be occupied if all its siblings are empty: not coded.
         if i + 1 < n || any_before {
             let b0 = enc.bits_spent();
             let states = ctx.relatives.states(ctx.origin, &child);
-            let cells = child.cells();
-            let face = m.face_state(&child, cells);
+            let face = match single {
+                Some(cell) => cell.face,
+                None => m.face_state(&child, cells),
+            };
             let oc = m.occupancy_context(ctx.bi, cells, states, face);
             enc.encode_bit(&mut m.occupied[oc], occupied);
             bd.position_bits += enc.bits_spent() - b0;
         }
         any_before |= occupied;
         if occupied {
-            encode_box(enc, m, ctx, child, part, recon, bd);
+            match single {
+                Some(cell) => encode_leaf(enc, m, ctx, part[0], cell, recon, bd),
+                None => encode_box(enc, m, ctx, child, part, recon, bd),
+            }
         }
     }
+}
+
+/// Codes the coefficient `(p, v)` of a single cell whose contexts are `cell`: its sign, then
+/// its quantized magnitude.
+fn encode_leaf(
+    enc: &mut RangeEncoder,
+    m: &mut Models,
+    ctx: &Ctx,
+    (p, v): ([u32; 3], f32),
+    cell: CellContexts,
+    recon: &mut Vec<Coefficient>,
+    bd: &mut SizeBreakdown,
+) {
+    let b0 = enc.bits_spent();
+    let negative = v < 0.0;
+    enc.encode_bit(&mut m.sign[cell.sign], negative);
+    let b1 = enc.bits_spent();
+    let (q, mag) = ctx.quant.quantize((v as f64).abs());
+    m.value[cell.value].encode(enc, q);
+    m.coded.insert(p, negative, magnitude_class(q));
+    bd.sign_bits += b1 - b0;
+    bd.value_bits += enc.bits_spent() - b1;
+    let value = if v < 0.0 { -mag } else { mag } as f32;
+    recon.push(Coefficient {
+        channel: ctx.channel,
+        band: ctx.band,
+        pos: [0, 1, 2].map(|a| p[a] + ctx.origin[a]),
+        value,
+    });
 }
 
 /// Payload bytes read per kind of syntax element while decoding.
@@ -317,6 +337,50 @@ fn decode_box(
     out: &mut Vec<Coefficient>,
     spent: &mut Spent,
 ) -> Result<(), FormatError> {
+    check_room(dec, count, out)?;
+    if b.cells() == 1 {
+        let cell = m.cell_contexts(ctx.bi, b.lo);
+        return decode_leaf(dec, m, ctx, b.lo, cell, out, spent);
+    }
+    let (children, n) = b.children();
+    let mut any_before = false;
+    for (i, &child) in children[..n].iter().enumerate() {
+        let cells = child.cells();
+        // A single cell's contexts serve its occupancy and its leaf (nothing is decoded
+        // between the two); its leaf is decoded here, without a call of its own.
+        let single = (cells == 1).then(|| m.cell_contexts(ctx.bi, child.lo));
+        let occupied = if i + 1 < n || any_before {
+            let b0 = dec.bytes_read();
+            let states = ctx.relatives.states(ctx.origin, &child);
+            let face = match single {
+                Some(cell) => cell.face,
+                None => m.face_state(&child, cells),
+            };
+            let oc = m.occupancy_context(ctx.bi, cells, states, face);
+            let o = dec.decode_bit(&mut m.occupied[oc]);
+            spent.position += dec.bytes_read() - b0;
+            o
+        } else {
+            true
+        };
+        any_before |= occupied;
+        if occupied {
+            match single {
+                Some(cell) => {
+                    check_room(dec, count, out)?;
+                    decode_leaf(dec, m, ctx, child.lo, cell, out, spent)?;
+                }
+                None => decode_box(dec, m, ctx, child, count, out, spent)?,
+            }
+        }
+    }
+    Ok(())
+}
+
+/// Stops a packet that decodes more coefficients than it declares, or reads on past its
+/// payload, before it decodes another box.
+#[inline(always)]
+fn check_room(dec: &RangeDecoder, count: usize, out: &[Coefficient]) -> Result<(), FormatError> {
     if out.len() >= count {
         return Err(invalid(
             "packet",
@@ -332,53 +396,44 @@ fn decode_box(
             ),
         ));
     }
-    if b.cells() == 1 {
-        let b0 = dec.bytes_read();
-        let cell = b.lo;
-        let (sc, vc) = m.leaf_contexts(ctx.bi, cell);
-        let negative = dec.decode_bit(&mut m.sign[sc]);
-        let b1 = dec.bytes_read();
-        let q = m.value[vc].decode(dec)?;
-        m.coded.insert(cell, negative, magnitude_class(q));
-        spent.sign += b1 - b0;
-        spent.value += dec.bytes_read() - b1;
-        let mag = ctx.quant.dequantize(q)?;
-        let value = if negative { -mag } else { mag } as f32;
-        if !value.is_finite() {
-            return Err(invalid("packet", "decoded value is not finite"));
-        }
-        out.push(Coefficient {
-            channel: ctx.channel,
-            band: ctx.band,
-            pos: [
-                b.lo[0] + ctx.origin[0],
-                b.lo[1] + ctx.origin[1],
-                b.lo[2] + ctx.origin[2],
-            ],
-            value,
-        });
-        return Ok(());
+    Ok(())
+}
+
+/// Decodes the coefficient of the single cell `at` whose contexts are `cell`: its sign, then
+/// its quantized magnitude.
+#[inline(always)]
+fn decode_leaf(
+    dec: &mut RangeDecoder,
+    m: &mut Models,
+    ctx: &Ctx,
+    at: [u32; 3],
+    cell: CellContexts,
+    out: &mut Vec<Coefficient>,
+    spent: &mut Spent,
+) -> Result<(), FormatError> {
+    let b0 = dec.bytes_read();
+    let negative = dec.decode_bit(&mut m.sign[cell.sign]);
+    let b1 = dec.bytes_read();
+    let q = m.value[cell.value].decode(dec)?;
+    m.coded.insert(at, negative, magnitude_class(q));
+    spent.sign += b1 - b0;
+    spent.value += dec.bytes_read() - b1;
+    let mag = ctx.quant.dequantize(q)?;
+    // −mag, by flipping the sign bit as negation does, without a branch on the sign.
+    let value = f64::from_bits(mag.to_bits() ^ (u64::from(negative) << 63)) as f32;
+    if !value.is_finite() {
+        return Err(invalid("packet", "decoded value is not finite"));
     }
-    let (children, n) = b.children();
-    let mut any_before = false;
-    for (i, &child) in children[..n].iter().enumerate() {
-        let occupied = if i + 1 < n || any_before {
-            let b0 = dec.bytes_read();
-            let states = ctx.relatives.states(ctx.origin, &child);
-            let cells = child.cells();
-            let face = m.face_state(&child, cells);
-            let oc = m.occupancy_context(ctx.bi, cells, states, face);
-            let o = dec.decode_bit(&mut m.occupied[oc]);
-            spent.position += dec.bytes_read() - b0;
-            o
-        } else {
-            true
-        };
-        any_before |= occupied;
-        if occupied {
-            decode_box(dec, m, ctx, child, count, out, spent)?;
-        }
-    }
+    out.push(Coefficient {
+        channel: ctx.channel,
+        band: ctx.band,
+        pos: [
+            at[0] + ctx.origin[0],
+            at[1] + ctx.origin[1],
+            at[2] + ctx.origin[2],
+        ],
+        value,
+    });
     Ok(())
 }
 
