@@ -22,7 +22,7 @@ use crate::footprint::{AxisFactor, Footprint, FootprintParams, FootprintSet};
 use crate::pieces::{self, check_coefficient, BoxClip, Clipped, Expansions, Piece};
 use crate::RenderError;
 use rayon::prelude::*;
-use std::collections::{HashMap, HashSet};
+use rustc_hash::{FxHashMap as HashMap, FxHashSet as HashSet};
 use std::sync::mpsc::{channel, Receiver, Sender};
 use std::sync::Arc;
 use wavesplat_codec::family::Family;
@@ -300,14 +300,14 @@ impl Planner {
             channels,
             expansions: cue.map(|_| Expansions::new(geometry)),
             clip: (self.options.clip && geometry.clips_to_box()).then(|| BoxClip::new(geometry)),
-            factor_tables: vec![HashMap::new(); sets.len()],
+            factor_tables: vec![HashMap::default(); sets.len()],
             sets,
             atlas,
             tables,
             builder: None,
             deferred: Vec::new(),
             built_inline: 0,
-            stood_in: HashSet::new(),
+            stood_in: HashSet::default(),
             stand_ins_drawn: 0,
             stand_in_tables: Vec::new(),
             centres: Centres::new(geometry),
@@ -448,7 +448,7 @@ impl TableBuilder {
         TableBuilder {
             requests,
             results,
-            pending: HashSet::new(),
+            pending: HashSet::default(),
         }
     }
 }
@@ -714,7 +714,7 @@ impl ViewPlan {
             .collect();
         self.deferred.clear();
         self.poll_tables();
-        let mut waiting: HashSet<usize> = HashSet::new();
+        let mut waiting: HashSet<usize> = HashSet::default();
         for (k, view_triples) in triples.iter().enumerate() {
             let (set, _) = self.set_of(k);
             let mut missing: Vec<[AxisFactor; 3]> = Vec::new();
@@ -808,29 +808,54 @@ impl ViewPlan {
                 out.extend(records);
                 placed_here += placed;
             }
-            // Split coefficients: placed when any piece is.
+            // Split coefficients: placed when any piece is. A coefficient's pieces are
+            // consecutive; chunks of pieces are placed on the pool and their records appended
+            // in order (the same records in the same order as one pass would make), each
+            // chunk counting the coefficients it placed and the first and last of them, so a
+            // coefficient whose pieces straddle two chunks counts once.
+            let factor_tables = &self.factor_tables[set];
+            let atlas = &self.atlas;
+            let waiting = &waiting;
+            let placed_pieces: Vec<PlacedPieces> = pieces
+                .par_chunks(CHUNK)
+                .zip(triples[k].par_chunks(CHUNK))
+                .map(|(chunk, chunk_triples)| {
+                    let mut records = Vec::with_capacity(chunk.len() * 3);
+                    let mut placed = 0usize;
+                    let mut ends: Option<(usize, usize)> = None;
+                    for ((i, p), (triple, sign)) in chunk.iter().zip(chunk_triples) {
+                        // A deferred coefficient is drawn whole later, when all its tables
+                        // are here.
+                        if waiting.contains(i) {
+                            continue;
+                        }
+                        let t = factor_tables[triple];
+                        let scr = camera.to_screen(p.centre);
+                        let value = (p.value * *sign as f64) as f32;
+                        let on = place(
+                            &t,
+                            atlas,
+                            scr,
+                            value,
+                            p.channel as u16,
+                            k as u16,
+                            size,
+                            &mut records,
+                        );
+                        if on && ends.is_none_or(|(_, last)| *i != last) {
+                            placed += 1;
+                            ends = Some((ends.map_or(*i, |(first, _)| first), *i));
+                        }
+                    }
+                    (records, placed, ends)
+                })
+                .collect();
             let mut last = usize::MAX;
-            for ((i, p), (triple, sign)) in pieces.iter().zip(&triples[k]) {
-                // A deferred coefficient is drawn whole later, when all its tables are here.
-                if waiting.contains(i) {
-                    continue;
-                }
-                let t = self.factor_tables[set][triple];
-                let scr = camera.to_screen(p.centre);
-                let value = (p.value * *sign as f64) as f32;
-                let on = place(
-                    &t,
-                    &self.atlas,
-                    scr,
-                    value,
-                    p.channel as u16,
-                    k as u16,
-                    size,
-                    out,
-                );
-                if on && *i != last {
-                    placed_here += 1;
-                    last = *i;
+            for (records, placed, ends) in placed_pieces {
+                out.extend(records);
+                if let Some((first, end)) = ends {
+                    placed_here += placed - usize::from(first == last);
+                    last = end;
                 }
             }
             stats.splatted += placed_here;
@@ -913,6 +938,10 @@ impl ViewPlan {
         Ok(())
     }
 }
+
+/// The records of a chunk of cued pieces, how many coefficients they placed, and the first and
+/// last of those (input indices).
+type PlacedPieces = (Vec<SplatRecord>, usize, Option<(usize, usize)>);
 
 /// A piece's factor triple as seen in multiview view `k` through the first view's tables (the
 /// triple counterpart of `codec::view::multiview_map`): view 2 takes (y, reflected x, z), view 3

@@ -219,3 +219,34 @@ fn png_and_raw_output() {
     assert!(img.write_png(&dir.join("b.png"), Some((1.0, 1.0))).is_err());
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// A depth-cued view splits coefficients into pieces and places the pieces in chunks on the
+/// pool; a coefficient counts as splatted once when any of its pieces reaches the screen, also
+/// when its pieces straddle two chunks. The count over all coefficients equals the sum of the
+/// counts over groups of them rendered alone (groups of 37, so the chunk boundaries of the whole
+/// fall inside groups), zoomed in so that some coefficients miss the screen.
+#[test]
+fn cued_pieces_count_each_coefficient_once() {
+    let (g, coeffs, _) = common::coefficients(24, Family::Linear, 2);
+    let mut view = View::new(0.66, 0.91, 64, 64).with_cue(Cue {
+        k: 0.05,
+        direction: CueDirection::View,
+    });
+    view.zoom = Some(6.0);
+    view.pan = [20.0, -10.0];
+    let mut r = Renderer::new(RenderOptions::default());
+    let (_, whole) = r.render_with_stats(&coeffs, &g, &view).unwrap();
+    let mut splatted = 0;
+    let mut skipped = 0;
+    for group in coeffs.chunks(37) {
+        let (_, part) = r.render_with_stats(group, &g, &view).unwrap();
+        splatted += part.splatted;
+        skipped += part.skipped;
+    }
+    assert!(
+        whole.splatted > 0 && whole.skipped > 0,
+        "the view shows some coefficients and misses others: {whole:?}"
+    );
+    assert!(coeffs.len() > 4 * 1024, "pieces span several chunks");
+    assert_eq!((whole.splatted, whole.skipped), (splatted, skipped));
+}

@@ -3,7 +3,9 @@
 //! quadrature transforms of cut factors, and the tables of factor triples, grouped by level so
 //! each distinct factor is evaluated once per FFT grid.
 
-use super::slice::{axis_transform, inverse_and_crop, signed, sizes, Transforms};
+use super::slice::{
+    axis_transform, first_mirrored_row, inverse_and_crop, mirror_column, signed, sizes, Transforms,
+};
 use super::FineTable;
 use super::FootprintParams;
 use num_complex::Complex64;
@@ -27,7 +29,7 @@ pub struct FactorGrids {
 /// level-0 φ cut to part of its support (at a face of the data's box). With depth cueing each
 /// factor is cued from the end of its (kept) support nearest the light, so no exponent is
 /// positive.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
 pub enum AxisFactor {
     /// Level-`level` φ (`wavelet` false) or ψ, whole.
     Basis {
@@ -115,14 +117,24 @@ fn gauss_legendre(n: usize) -> Vec<(f64, f64)> {
 /// measured from the piece's end nearest the light.
 #[derive(Debug, Clone)]
 struct Piece {
-    /// Q's monomial coefficients in t.
-    q: Vec<f64>,
+    /// Q's monomial coefficients in t (degree ≤ 3): the first `terms` of them.
+    q: [f64; 4],
+    terms: usize,
     len: f64,
     /// Position (relative to the factor's centre) where t = 0.
     origin: f64,
     /// +1 when u = origin + t, −1 when u = origin − t.
     dir: f64,
+    /// The constant factor's magnitude e^(−kl(origin − u_ref)) (its phase follows ξ).
+    weight: f64,
+    /// Per Gauss–Legendre node: t, the real part's e^(Re σ · t) (σ's real part does not depend
+    /// on ξ), and Q(t)·w·len/2. What [`CutFactor::at`] computes at every frequency from the
+    /// same operands, computed once.
+    nodes: [(f64, f64, f64); GAUSS_NODES],
 }
+
+/// Gauss–Legendre nodes of a cut factor's short pieces.
+const GAUSS_NODES: usize = 8;
 
 /// The transform of a level-0 φ kept on [a, b] (relative to its centre) and cued from the end of
 /// [a, b] nearest the light, prepared for many frequencies: ∫_a^b φ_c(u) h(u) e^(−i2πξu) du with
@@ -136,7 +148,6 @@ struct Piece {
 pub struct CutFactor {
     pieces: Vec<Piece>,
     kl: f64,
-    uref: f64,
 }
 
 impl CutFactor {
@@ -172,57 +183,70 @@ impl CutFactor {
                 .iter()
                 .map(|t| family.phi(origin + dir * t + half))
                 .collect();
+            let coefficients = solve_vandermonde(&ts, &vals);
+            debug_assert!(coefficients.len() <= 4, "B-splines here are at most cubic");
+            let terms = coefficients.len().min(4);
+            let mut q = [0.0; 4];
+            q[..terms].copy_from_slice(&coefficients[..terms]);
+            let horner = |t: f64| q[..terms].iter().rev().fold(0.0, |acc, c| acc * t + c);
+            let sigma_re = -kl * dir;
+            let nodes = gauss_nodes().map(|(x, w)| {
+                let t = 0.5 * len * (x + 1.0);
+                (t, (sigma_re * t).exp(), horner(t) * w * 0.5 * len)
+            });
             pieces.push(Piece {
-                q: solve_vandermonde(&ts, &vals),
+                q,
+                terms,
                 len,
                 origin,
                 dir,
+                weight: (-kl * (origin - uref)).exp(),
+                nodes,
             });
         }
-        CutFactor { pieces, kl, uref }
+        CutFactor { pieces, kl }
     }
 
     /// The transform at ξ cycles per voxel.
     pub fn at(&self, xi: f64) -> Complex64 {
-        use std::sync::OnceLock;
-        static NODES: OnceLock<Vec<(f64, f64)>> = OnceLock::new();
-        let nodes = NODES.get_or_init(|| gauss_legendre(8));
         let omega = 2.0 * PI * xi;
         let mut acc = Complex64::new(0.0, 0.0);
         for p in &self.pieces {
-            // Constant factor at t = 0: weight e^(−kl(origin − u_ref)) ≤ 1 and phase.
-            let c =
-                Complex64::from_polar((-self.kl * (p.origin - self.uref)).exp(), -omega * p.origin);
-            if c.norm() == 0.0 {
+            // Constant factor at t = 0: weight e^(−kl(origin − u_ref)) ≤ 1 and phase. It is
+            // zero exactly when its weight is (its larger part keeps at least 0.7 of it).
+            if p.weight == 0.0 {
                 continue;
             }
+            let c = Complex64::from_polar(p.weight, -omega * p.origin);
             let sigma = Complex64::new(-self.kl * p.dir, -omega * p.dir);
             let integral = if sigma.norm() * p.len < 1.0 {
                 let mut sum = Complex64::new(0.0, 0.0);
-                for (x, w) in nodes {
-                    let t = 0.5 * p.len * (x + 1.0);
-                    let q = p.q.iter().rev().fold(0.0, |acc, c| acc * t + c);
-                    sum += (sigma * t).exp() * (q * w * 0.5 * p.len);
+                for &(t, real, qw) in &p.nodes {
+                    // e^(σt), as `Complex64::exp` forms it, from the node's real part.
+                    let e = if real.is_finite() {
+                        let im = sigma.im * t;
+                        Complex64::new(real * im.cos(), real * im.sin())
+                    } else {
+                        (sigma * t).exp()
+                    };
+                    sum += e * qw;
                 }
                 sum
             } else {
                 // Σ_m (−1)^m Q^(m)(t) / σ^(m+1), at t = len (times e^(σ len)) minus at t = 0.
                 let antideriv = |t: f64| -> Complex64 {
-                    let mut deriv = p.q.clone();
+                    let mut deriv = p.q;
                     let mut out = Complex64::new(0.0, 0.0);
                     let mut sp = sigma;
                     let mut sign = 1.0;
-                    while !deriv.is_empty() {
-                        let v = deriv.iter().rev().fold(0.0, |acc, c| acc * t + c);
+                    for terms in (1..=p.terms).rev() {
+                        let v = deriv[..terms].iter().rev().fold(0.0, |acc, c| acc * t + c);
                         out += sign * v / sp;
                         sp *= sigma;
                         sign = -sign;
-                        deriv = deriv
-                            .iter()
-                            .enumerate()
-                            .skip(1)
-                            .map(|(i, c)| c * i as f64)
-                            .collect();
+                        for i in 1..terms {
+                            deriv[i - 1] = deriv[i] * i as f64;
+                        }
                     }
                     out
                 };
@@ -232,6 +256,17 @@ impl CutFactor {
         }
         acc
     }
+}
+
+/// The Gauss–Legendre nodes and weights of a cut factor's short pieces, computed once.
+fn gauss_nodes() -> [(f64, f64); GAUSS_NODES] {
+    use std::sync::OnceLock;
+    static NODES: OnceLock<[(f64, f64); GAUSS_NODES]> = OnceLock::new();
+    *NODES.get_or_init(|| {
+        let mut nodes = [(0.0, 0.0); GAUSS_NODES];
+        nodes.copy_from_slice(&gauss_legendre(GAUSS_NODES));
+        nodes
+    })
 }
 
 /// Solves the Vandermonde system Σ_j c_j t_i^j = v_i (Gaussian elimination with partial
@@ -318,7 +353,7 @@ pub fn compute_factor_tables_with(
         let mut grids: [Vec<(AxisFactor, FactorGrid)>; 3] = Default::default();
         for a in 0..3 {
             let mut distinct: Vec<AxisFactor> = group.iter().map(|i| keys[*i][a]).collect();
-            distinct.sort_by_key(|f| format!("{f:?}"));
+            distinct.sort_unstable();
             distinct.dedup();
             let new: Vec<AxisFactor> = {
                 let map = cache.factors.lock().unwrap_or_else(|e| e.into_inner());
@@ -337,17 +372,39 @@ pub fn compute_factor_tables_with(
                         }
                         _ => None,
                     };
-                    // Row by row on the pool: a view's first cued batch brings only a few
-                    // new factors, too few to keep the cores busy one factor each.
-                    let mut g = vec![Complex64::new(0.0, 0.0); nx * ny];
-                    g.par_chunks_mut(nx).enumerate().for_each(|(ky, row)| {
+                    let xi_at = |kx: usize, ky: usize| {
                         let rho = signed(ky, ny) * s as f64 / ny as f64;
+                        let sigma = signed(kx, nx) * s as f64 / nx as f64;
+                        p.zoom * (sigma * p.ex[a] + rho * p.ey[a])
+                    };
+                    let eval = |xi: f64| match &cut {
+                        Some(st) => st.at(xi),
+                        None => f.transform(&tf, xi, k, l[a]),
+                    };
+                    // Row by row on the pool: a view's first cued batch brings only a few
+                    // new factors, too few to keep the cores busy one factor each. A factor
+                    // is a real function, so its transform at −ξ is the conjugate of that at ξ,
+                    // and in the floating point too, up to a zero's sign
+                    // (`conjugate_symmetry_is_exact` in tests/footprint.rs): the rows
+                    // of negative frequency ρ whose mirror row is on the grid are filled from
+                    // it, halving the evaluations.
+                    let head = first_mirrored_row(ny);
+                    let mut g = vec![Complex64::new(0.0, 0.0); nx * ny];
+                    let (first, rest) = g.split_at_mut(head.min(ny) * nx);
+                    first.par_chunks_mut(nx).enumerate().for_each(|(ky, row)| {
                         for (kx, v) in row.iter_mut().enumerate() {
-                            let sigma = signed(kx, nx) * s as f64 / nx as f64;
-                            let xi = p.zoom * (sigma * p.ex[a] + rho * p.ey[a]);
-                            *v = match &cut {
-                                Some(st) => st.at(xi),
-                                None => f.transform(&tf, xi, k, l[a]),
+                            *v = eval(xi_at(kx, ky));
+                        }
+                    });
+                    let first = &*first;
+                    rest.par_chunks_mut(nx).enumerate().for_each(|(i, row)| {
+                        let ky = head + i;
+                        let mirror = &first[(ny - ky) * nx..(ny - ky + 1) * nx];
+                        for (kx, v) in row.iter_mut().enumerate() {
+                            // A column whose mirror is off the grid (Nyquist) is evaluated.
+                            *v = match mirror_column(kx, nx) {
+                                Some(mx) => mirror[mx].conj(),
+                                None => eval(xi_at(kx, ky)),
                             };
                         }
                     });

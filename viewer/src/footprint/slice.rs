@@ -247,6 +247,23 @@ pub(super) fn signed(k: usize, n: usize) -> f64 {
     }
 }
 
+/// The first row of an `n`-row frequency grid (rows at [`signed`] frequencies) whose mirror row,
+/// at the negated frequency, is an earlier row: rows from here on can be filled from their
+/// mirrors, since the spectra here are of real functions (conjugate-symmetric). Row 0 is its
+/// own mirror and an even grid's Nyquist row has none, so they and the rows of positive
+/// frequency come before it.
+pub(super) fn first_mirrored_row(n: usize) -> usize {
+    (n - n / 2 + 1).min(n)
+}
+
+/// The column at the negated frequency of column `k` of an `n`-column grid, when the grid has
+/// one.
+#[inline]
+pub(super) fn mirror_column(k: usize, n: usize) -> Option<usize> {
+    let m = (n - k) % n;
+    (signed(m, n) == -signed(k, n)).then_some(m)
+}
+
 /// As [`compute_fine`] with explicit S and FFT sizes.
 pub fn compute_fine_with(
     p: &FootprintParams,
@@ -262,9 +279,18 @@ pub fn compute_fine_with(
     // Spectra of every requested type, row-major [ky][kx], evaluated together so that the six
     // 1D transforms per sample are shared.
     let mut spectra: Vec<Vec<Complex64>> = vec![vec![Complex64::new(0.0, 0.0); nx * ny]; nk];
+    // The spectra are of real functions (products of real factors' transforms and the pixel
+    // box's), so the rows of negative frequency whose mirror is on the grid are the mirror
+    // rows' conjugates, the same numbers as evaluating them (see `compute_factor_tables`):
+    // evaluated are the rows before `head`.
+    let head = first_mirrored_row(ny);
+    let (mut first, mut rest): (Vec<&mut [Complex64]>, Vec<&mut [Complex64]>) = spectra
+        .iter_mut()
+        .map(|spectrum| spectrum.split_at_mut(head * nx))
+        .unzip();
     // Row ky of every type, for the row's task to fill in place.
-    let mut rows: Vec<Vec<&mut [Complex64]>> = (0..ny).map(|_| Vec::with_capacity(nk)).collect();
-    for spectrum in spectra.iter_mut() {
+    let mut rows: Vec<Vec<&mut [Complex64]>> = (0..head).map(|_| Vec::with_capacity(nk)).collect();
+    for spectrum in first.iter_mut() {
         for (row, slice) in rows.iter_mut().zip(spectrum.chunks_mut(nx)) {
             row.push(slice);
         }
@@ -273,32 +299,66 @@ pub fn compute_fine_with(
     let sinc_x: Vec<f64> = (0..nx)
         .map(|kx| sinc(signed(kx, nx) * s as f64 / nx as f64))
         .collect();
-    rows.into_par_iter().enumerate().for_each(|(ky, mut out)| {
-        let rho = signed(ky, ny) * s as f64 / ny as f64;
-        let sinc_rho = sinc(rho);
-        for kx in 0..nx {
-            let sigma = signed(kx, nx) * s as f64 / nx as f64;
-            let mut f1 = [[Complex64::new(0.0, 0.0); 2]; 3];
-            for a in 0..3 {
-                let xi = p.zoom * (sigma * p.ex[a] + rho * p.ey[a]);
-                f1[a] = if kappa[a] == 0.0 {
-                    axis_transforms_uncued(&tf, level, xi)
-                } else {
-                    [
-                        axis_transform(&tf, level, false, xi, kappa[a]),
-                        axis_transform(&tf, level, true, xi, kappa[a]),
-                    ]
-                };
+    // Columns `columns` of row ky, for every type.
+    let row_of =
+        |ky: usize, columns: &mut dyn Iterator<Item = usize>, out: &mut [&mut [Complex64]]| {
+            let rho = signed(ky, ny) * s as f64 / ny as f64;
+            let sinc_rho = sinc(rho);
+            for kx in columns {
+                let sigma = signed(kx, nx) * s as f64 / nx as f64;
+                let mut f1 = [[Complex64::new(0.0, 0.0); 2]; 3];
+                for a in 0..3 {
+                    let xi = p.zoom * (sigma * p.ex[a] + rho * p.ey[a]);
+                    f1[a] = if kappa[a] == 0.0 {
+                        axis_transforms_uncued(&tf, level, xi)
+                    } else {
+                        [
+                            axis_transform(&tf, level, false, xi, kappa[a]),
+                            axis_transform(&tf, level, true, xi, kappa[a]),
+                        ]
+                    };
+                }
+                let w = p.zoom * p.zoom * p.voxel_volume * sinc_x[kx] * sinc_rho;
+                for (t, kind) in kinds.iter().enumerate() {
+                    let bx = (kind >> 2) as usize & 1;
+                    let by = (kind >> 1) as usize & 1;
+                    let bz = *kind as usize & 1;
+                    out[t][kx] = f1[0][bx] * f1[1][by] * f1[2][bz] * w;
+                }
             }
-            let w = p.zoom * p.zoom * p.voxel_volume * sinc_x[kx] * sinc_rho;
-            for (t, kind) in kinds.iter().enumerate() {
-                let bx = (kind >> 2) as usize & 1;
-                let by = (kind >> 1) as usize & 1;
-                let bz = *kind as usize & 1;
-                out[t][kx] = f1[0][bx] * f1[1][by] * f1[2][bz] * w;
-            }
+        };
+    rows.into_par_iter()
+        .enumerate()
+        .for_each(|(ky, mut out)| row_of(ky, &mut (0..nx), &mut out));
+    // The mirrored rows; a column without a mirror (Nyquist) is evaluated.
+    let mut mirrored: Vec<Vec<&mut [Complex64]>> =
+        (head..ny).map(|_| Vec::with_capacity(nk)).collect();
+    for spectrum in rest.iter_mut() {
+        for (row, slice) in mirrored.iter_mut().zip(spectrum.chunks_mut(nx)) {
+            row.push(slice);
         }
-    });
+    }
+    let first: Vec<&[Complex64]> = first.iter().map(|f| &**f).collect();
+    let unmirrored: Vec<usize> = (0..nx)
+        .filter(|&kx| mirror_column(kx, nx).is_none())
+        .collect();
+    mirrored
+        .into_par_iter()
+        .enumerate()
+        .for_each(|(i, mut out)| {
+            let ky = head + i;
+            row_of(ky, &mut unmirrored.iter().copied(), &mut out);
+            let my = ny - ky;
+            for (t, row) in out.iter_mut().enumerate() {
+                let mirror = &first[t][my * nx..(my + 1) * nx];
+                for (kx, v) in row.iter_mut().enumerate() {
+                    if let Some(mx) = mirror_column(kx, nx) {
+                        *v = mirror[mx].conj();
+                    }
+                }
+            }
+        });
+    drop(rest);
     spectra
         .into_par_iter()
         .zip(kinds.par_iter())
