@@ -102,75 +102,82 @@ pub fn expand(
     let h0 = half0.round() as i8;
     let near_of = |a: usize, lo: f64, hi: f64| near_end(cue, a, lo, hi);
     let weight_of = |near: [f64; 3]| near_weight(cue, near);
+    // In chunks on the pool, each with one output vector and one set of choice vectors
+    // (a vector per coefficient and axis made allocation most of the expansion).
     let per: Vec<Vec<(usize, Piece)>> = coefficients
-        .par_iter()
+        .par_chunks(EXPAND_CHUNK)
         .enumerate()
-        .map(|(i, c)| {
-            let level = c.band.level as usize;
-            let centre = geometry.basis_center(
-                c.band,
-                [c.pos[0] as usize, c.pos[1] as usize, c.pos[2] as usize],
-            );
+        .map(|(chunk_index, chunk)| {
+            let mut out = Vec::with_capacity(2 * chunk.len());
             let mut choices: [Vec<AxisChoice>; 3] = Default::default();
-            for a in 0..3 {
-                let wavelet = c.band.is_wavelet_along(a);
-                let half = geometry.half_support_1d(level, wavelet);
-                let (lo, hi) = (centre[a] - half, centre[a] + half);
-                match cue.side(a, lo, hi) {
-                    CueSide::Front => return Vec::new(),
-                    CueSide::Behind => {
-                        let f = AxisFactor::Basis {
-                            level: level as u8,
-                            wavelet,
-                        };
-                        choices[a].push((f, centre[a], 1.0, near_of(a, lo, hi)));
-                        continue;
-                    }
-                    CueSide::Straddle => {}
-                }
-                for (offset, coef) in &expansions.levels[level][wavelet as usize] {
-                    let c0 = centre[a] + offset;
-                    let (lo0, hi0) = (c0 - half0, c0 + half0);
-                    match cue.side(a, lo0, hi0) {
-                        CueSide::Front => {}
-                        CueSide::Behind => choices[a].push((
-                            AxisFactor::Basis {
-                                level: 0,
-                                wavelet: false,
-                            },
-                            c0,
-                            *coef,
-                            near_of(a, lo0, hi0),
-                        )),
-                        CueSide::Straddle => {
-                            // The face relative to the φ₀'s centre (an integer: faces sit at
-                            // −j/2 and n − 1 + j/2, centres at integers for the splines).
-                            let f = (cue.planes[a] - c0).round() as i8;
-                            let cut = if cue.l[a] >= 0.0 {
-                                AxisFactor::Cut { a: f, b: h0 }
-                            } else {
-                                AxisFactor::Cut { a: -h0, b: f }
+            'coefficients: for (j, c) in chunk.iter().enumerate() {
+                let i = chunk_index * EXPAND_CHUNK + j;
+                let level = c.band.level as usize;
+                let centre = geometry.basis_center(
+                    c.band,
+                    [c.pos[0] as usize, c.pos[1] as usize, c.pos[2] as usize],
+                );
+                choices.iter_mut().for_each(Vec::clear);
+                for a in 0..3 {
+                    let wavelet = c.band.is_wavelet_along(a);
+                    let half = geometry.half_support_1d(level, wavelet);
+                    let (lo, hi) = (centre[a] - half, centre[a] + half);
+                    match cue.side(a, lo, hi) {
+                        CueSide::Front => continue 'coefficients,
+                        CueSide::Behind => {
+                            let f = AxisFactor::Basis {
+                                level: level as u8,
+                                wavelet,
                             };
-                            choices[a].push((cut, c0, *coef, cue.planes[a]));
+                            choices[a].push((f, centre[a], 1.0, near_of(a, lo, hi)));
+                            continue;
+                        }
+                        CueSide::Straddle => {}
+                    }
+                    for (offset, coef) in &expansions.levels[level][wavelet as usize] {
+                        let c0 = centre[a] + offset;
+                        let (lo0, hi0) = (c0 - half0, c0 + half0);
+                        match cue.side(a, lo0, hi0) {
+                            CueSide::Front => {}
+                            CueSide::Behind => choices[a].push((
+                                AxisFactor::Basis {
+                                    level: 0,
+                                    wavelet: false,
+                                },
+                                c0,
+                                *coef,
+                                near_of(a, lo0, hi0),
+                            )),
+                            CueSide::Straddle => {
+                                // The face relative to the φ₀'s centre (an integer: faces sit at
+                                // −j/2 and n − 1 + j/2, centres at integers for the splines).
+                                let f = (cue.planes[a] - c0).round() as i8;
+                                let cut = if cue.l[a] >= 0.0 {
+                                    AxisFactor::Cut { a: f, b: h0 }
+                                } else {
+                                    AxisFactor::Cut { a: -h0, b: f }
+                                };
+                                choices[a].push((cut, c0, *coef, cue.planes[a]));
+                            }
                         }
                     }
                 }
-            }
-            let mut out = Vec::with_capacity(choices.iter().map(Vec::len).product());
-            for x in &choices[0] {
-                for y in &choices[1] {
-                    for z in &choices[2] {
-                        let value = c.value as f64 * x.2 * y.2 * z.2 * weight_of([x.3, y.3, z.3]);
-                        if value != 0.0 {
-                            out.push((
-                                i,
-                                Piece {
-                                    factors: [x.0, y.0, z.0],
-                                    centre: [x.1, y.1, z.1],
-                                    value,
-                                    channel: c.channel,
-                                },
-                            ));
+                for x in &choices[0] {
+                    for y in &choices[1] {
+                        for z in &choices[2] {
+                            let value =
+                                c.value as f64 * x.2 * y.2 * z.2 * weight_of([x.3, y.3, z.3]);
+                            if value != 0.0 {
+                                out.push((
+                                    i,
+                                    Piece {
+                                        factors: [x.0, y.0, z.0],
+                                        centre: [x.1, y.1, z.1],
+                                        value,
+                                        channel: c.channel,
+                                    },
+                                ));
+                            }
                         }
                     }
                 }
@@ -178,8 +185,11 @@ pub fn expand(
             out
         })
         .collect();
-    per.into_iter().flatten().collect()
+    per.concat()
 }
+
+/// Coefficients expanded into pieces per task of [`expand`].
+const EXPAND_CHUNK: usize = 1024;
 
 /// The end of the support [lo, hi] along axis `a` nearest the light.
 fn near_end(cue: &ResolvedCue, a: usize, lo: f64, hi: f64) -> f64 {
