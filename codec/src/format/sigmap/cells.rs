@@ -72,9 +72,9 @@ pub(super) const DENSE_MAX_CELLS: usize = 1 << 22;
 /// (one `u64` of "coded" bits per brick, x fastest inside a brick), where an octree box of up
 /// to 64 cells is a dyadic cube of edge ≤ 4 inside one brick, so each of its lower faces is
 /// one masked population count; and as a byte per cell (state and magnitude class), where a
-/// leaf's three lower neighbours are three loads (lookups are the inner loop of both coders). Larger
-/// regions, which a big single tile or a hostile header can declare, use a hash map whose size
-/// follows the coefficients actually coded. Both answer the same.
+/// leaf's three lower neighbours are three loads (lookups are the inner loop of both coders).
+/// Larger regions, which a big single tile or a hostile header can declare, use a hash map
+/// whose size follows the coefficients actually coded. Both answer the same.
 #[derive(Default)]
 pub(super) struct CodedCells {
     pub(super) extent: [u32; 3],
@@ -85,8 +85,9 @@ pub(super) struct CodedCells {
     /// padded by one empty plane below each axis (so a cell's lower neighbours are three loads
     /// at fixed offsets, with no test for the region's edge): bits 0–1 the cell's state (0
     /// none, 1 positive, 2 negative), bits 2–4 what the value context adds for it (0 none, else
-    /// 1 + its magnitude class). Its byte per cell costs twice the bricks' bits, and saves the
-    /// leaf's three neighbour lookups a branch and four words each.
+    /// 1 + its magnitude class). With the bricks that is 1⅛ bytes per cell, against half a
+    /// byte for the sign and class bit planes it replaced, and each of a leaf's three
+    /// neighbour lookups is one load instead of a branch and four words.
     pub(super) leaf: Vec<u8>,
     /// Strides of `leaf` along y and z (x is 1).
     pub(super) leaf_stride: [usize; 2],
