@@ -300,36 +300,36 @@ pub fn compute_fine_with(
         .map(|kx| sinc(signed(kx, nx) * s as f64 / nx as f64))
         .collect();
     // Columns `columns` of row ky, for every type.
-    let row_of =
-        |ky: usize, columns: &mut dyn Iterator<Item = usize>, out: &mut [&mut [Complex64]]| {
-            let rho = signed(ky, ny) * s as f64 / ny as f64;
-            let sinc_rho = sinc(rho);
-            for kx in columns {
-                let sigma = signed(kx, nx) * s as f64 / nx as f64;
-                let mut f1 = [[Complex64::new(0.0, 0.0); 2]; 3];
-                for a in 0..3 {
-                    let xi = p.zoom * (sigma * p.ex[a] + rho * p.ey[a]);
-                    f1[a] = if kappa[a] == 0.0 {
-                        axis_transforms_uncued(&tf, level, xi)
-                    } else {
-                        [
-                            axis_transform(&tf, level, false, xi, kappa[a]),
-                            axis_transform(&tf, level, true, xi, kappa[a]),
-                        ]
-                    };
-                }
-                let w = p.zoom * p.zoom * p.voxel_volume * sinc_x[kx] * sinc_rho;
-                for (t, kind) in kinds.iter().enumerate() {
-                    let bx = (kind >> 2) as usize & 1;
-                    let by = (kind >> 1) as usize & 1;
-                    let bz = *kind as usize & 1;
-                    out[t][kx] = f1[0][bx] * f1[1][by] * f1[2][bz] * w;
-                }
+    let every_column: Vec<usize> = (0..nx).collect();
+    let row_of = |ky: usize, columns: &[usize], out: &mut [&mut [Complex64]]| {
+        let rho = signed(ky, ny) * s as f64 / ny as f64;
+        let sinc_rho = sinc(rho);
+        for &kx in columns {
+            let sigma = signed(kx, nx) * s as f64 / nx as f64;
+            let mut f1 = [[Complex64::new(0.0, 0.0); 2]; 3];
+            for a in 0..3 {
+                let xi = p.zoom * (sigma * p.ex[a] + rho * p.ey[a]);
+                f1[a] = if kappa[a] == 0.0 {
+                    axis_transforms_uncued(&tf, level, xi)
+                } else {
+                    [
+                        axis_transform(&tf, level, false, xi, kappa[a]),
+                        axis_transform(&tf, level, true, xi, kappa[a]),
+                    ]
+                };
             }
-        };
+            let w = p.zoom * p.zoom * p.voxel_volume * sinc_x[kx] * sinc_rho;
+            for (t, kind) in kinds.iter().enumerate() {
+                let bx = (kind >> 2) as usize & 1;
+                let by = (kind >> 1) as usize & 1;
+                let bz = *kind as usize & 1;
+                out[t][kx] = f1[0][bx] * f1[1][by] * f1[2][bz] * w;
+            }
+        }
+    };
     rows.into_par_iter()
         .enumerate()
-        .for_each(|(ky, mut out)| row_of(ky, &mut (0..nx), &mut out));
+        .for_each(|(ky, mut out)| row_of(ky, &every_column, &mut out));
     // The mirrored rows; a column without a mirror (Nyquist) is evaluated.
     let mut mirrored: Vec<Vec<&mut [Complex64]>> =
         (head..ny).map(|_| Vec::with_capacity(nk)).collect();
@@ -347,7 +347,7 @@ pub fn compute_fine_with(
         .enumerate()
         .for_each(|(i, mut out)| {
             let ky = head + i;
-            row_of(ky, &mut unmirrored.iter().copied(), &mut out);
+            row_of(ky, &unmirrored, &mut out);
             let my = ny - ky;
             for (t, row) in out.iter_mut().enumerate() {
                 let mirror = &first[t][my * nx..(my + 1) * nx];
