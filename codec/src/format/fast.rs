@@ -809,11 +809,7 @@ impl PacketDecoder<'_> {
                 .signs
                 .decode_bit(&mut self.sign_models[s.bi * SIGN_CONTEXTS + sc]);
             self.map.insert(cell, negative, q);
-            let magnitude = s.quant.dequantize(q)?;
-            let value = if negative { -magnitude } else { magnitude } as f32;
-            if !value.is_finite() {
-                return Err(invalid("packet", "decoded value is not finite"));
-            }
+            let value = s.quant.signed_value(q, negative)?;
             self.out.push(Coefficient {
                 channel: s.channel,
                 band: s.band,

@@ -156,6 +156,20 @@ impl Quantizer {
         }
     }
 
+    /// The value of a decoded step and sign, refusing steps no encoder writes and values
+    /// that are not finite.
+    #[inline]
+    pub(crate) fn signed_value(&self, q: u64, negative: bool) -> Result<f32, FormatError> {
+        let magnitude = self.dequantize(q)?;
+        // −magnitude, by flipping the sign bit as negation does, without a branch on the sign
+        // (as unpredictable as the data).
+        let value = f64::from_bits(magnitude.to_bits() ^ (u64::from(negative) << 63)) as f32;
+        if !value.is_finite() {
+            return Err(invalid("packet", "decoded value is not finite"));
+        }
+        Ok(value)
+    }
+
     /// The magnitude of a decoded step, refusing steps no encoder writes.
     #[inline]
     pub(crate) fn dequantize(&self, q: u64) -> Result<f64, FormatError> {

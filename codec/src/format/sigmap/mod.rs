@@ -418,12 +418,7 @@ fn decode_leaf(
     m.coded.insert(at, negative, magnitude_class(q));
     spent.sign += b1 - b0;
     spent.value += dec.bytes_read() - b1;
-    let mag = ctx.quant.dequantize(q)?;
-    // −mag, by flipping the sign bit as negation does, without a branch on the sign.
-    let value = f64::from_bits(mag.to_bits() ^ (u64::from(negative) << 63)) as f32;
-    if !value.is_finite() {
-        return Err(invalid("packet", "decoded value is not finite"));
-    }
+    let value = ctx.quant.signed_value(q, negative)?;
     out.push(Coefficient {
         channel: ctx.channel,
         band: ctx.band,
