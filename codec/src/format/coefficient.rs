@@ -31,6 +31,28 @@ pub struct Coefficient {
 }
 
 impl Coefficient {
+    /// The coefficient of `value` at `cell` of a tile's band region whose first cell is
+    /// `origin` (the coders work in tile-local cells; a coefficient's position is global).
+    #[inline]
+    pub(crate) fn in_region(
+        channel: u8,
+        band: Band,
+        origin: [u32; 3],
+        cell: [u32; 3],
+        value: f32,
+    ) -> Coefficient {
+        Coefficient {
+            channel,
+            band,
+            pos: [
+                cell[0] + origin[0],
+                cell[1] + origin[1],
+                cell[2] + origin[2],
+            ],
+            value,
+        }
+    }
+
     /// Every coefficient of one channel's dense (Mallat-layout) array, in array order, zeros
     /// included: what a lossless stream of that channel would deliver.
     pub fn all_of(

@@ -574,12 +574,10 @@ impl PacketCoder {
             self.signs
                 .encode_bit(&mut self.sign_models[s.bi * SIGN_CONTEXTS + sc], negative);
             self.map.insert(cell, negative, q);
-            self.recon.push(Coefficient {
-                channel: s.channel,
-                band: s.band,
-                pos: [0, 1, 2].map(|a| cell[a] + s.origin[a]),
-                value: if negative { -magnitude } else { magnitude } as f32,
-            });
+            let value = if negative { -magnitude } else { magnitude } as f32;
+            self.recon.push(Coefficient::in_region(
+                s.channel, s.band, s.origin, cell, value,
+            ));
         }
     }
 }
@@ -810,16 +808,9 @@ impl PacketDecoder<'_> {
                 .decode_bit(&mut self.sign_models[s.bi * SIGN_CONTEXTS + sc]);
             self.map.insert(cell, negative, q);
             let value = s.quant.signed_value(q, negative)?;
-            self.out.push(Coefficient {
-                channel: s.channel,
-                band: s.band,
-                pos: [
-                    cell[0] + s.origin[0],
-                    cell[1] + s.origin[1],
-                    cell[2] + s.origin[2],
-                ],
-                value,
-            });
+            self.out.push(Coefficient::in_region(
+                s.channel, s.band, s.origin, cell, value,
+            ));
         }
         Ok(())
     }

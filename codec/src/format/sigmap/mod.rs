@@ -237,12 +237,13 @@ fn encode_leaf(
     bd.sign_bits += b1 - b0;
     bd.value_bits += enc.bits_spent() - b1;
     let value = if v < 0.0 { -mag } else { mag } as f32;
-    recon.push(Coefficient {
-        channel: ctx.channel,
-        band: ctx.band,
-        pos: [0, 1, 2].map(|a| p[a] + ctx.origin[a]),
+    recon.push(Coefficient::in_region(
+        ctx.channel,
+        ctx.band,
+        ctx.origin,
+        p,
         value,
-    });
+    ));
 }
 
 /// Payload bytes read per kind of syntax element while decoding.
@@ -419,16 +420,13 @@ fn decode_leaf(
     spent.sign += b1 - b0;
     spent.value += dec.bytes_read() - b1;
     let value = ctx.quant.signed_value(q, negative)?;
-    out.push(Coefficient {
-        channel: ctx.channel,
-        band: ctx.band,
-        pos: [
-            at[0] + ctx.origin[0],
-            at[1] + ctx.origin[1],
-            at[2] + ctx.origin[2],
-        ],
+    out.push(Coefficient::in_region(
+        ctx.channel,
+        ctx.band,
+        ctx.origin,
+        at,
         value,
-    });
+    ));
     Ok(())
 }
 
