@@ -3,9 +3,7 @@
 //! quadrature transforms of cut factors, and the tables of factor triples, grouped by level so
 //! each distinct factor is evaluated once per FFT grid.
 
-use super::slice::{
-    axis_transform, first_mirrored_row, inverse_and_crop, mirror_column, signed, sizes, Transforms,
-};
+use super::slice::{axis_transform, inverse_and_crop, signed, sizes, MirroredGrid, Transforms};
 use super::FineTable;
 use super::FootprintParams;
 use num_complex::Complex64;
@@ -349,6 +347,7 @@ pub fn compute_factor_tables_with(
             .filter(|i| factor_level(&keys[*i]) == level)
             .collect();
         let (s, nx, ny) = sizes(p, level);
+        let mirrored = MirroredGrid::new(nx, ny);
         // Distinct factors per axis, each evaluated on the grid once per view.
         let mut grids: [Vec<(AxisFactor, FactorGrid)>; 3] = Default::default();
         for a in 0..3 {
@@ -372,42 +371,24 @@ pub fn compute_factor_tables_with(
                         }
                         _ => None,
                     };
-                    let xi_at = |kx: usize, ky: usize| {
-                        let rho = signed(ky, ny) * s as f64 / ny as f64;
-                        let sigma = signed(kx, nx) * s as f64 / nx as f64;
-                        p.zoom * (sigma * p.ex[a] + rho * p.ey[a])
-                    };
-                    let eval = |xi: f64| match &cut {
-                        Some(st) => st.at(xi),
-                        None => f.transform(&tf, xi, k, l[a]),
-                    };
                     // Row by row on the pool: a view's first cued batch brings only a few
                     // new factors, too few to keep the cores busy one factor each. A factor
-                    // is a real function, so its transform at −ξ is the conjugate of that at ξ,
-                    // and in the floating point too, up to a zero's sign
-                    // (`conjugate_symmetry_is_exact` in tests/footprint.rs): the rows
-                    // of negative frequency ρ whose mirror row is on the grid are filled from
-                    // it, halving the evaluations.
-                    let head = first_mirrored_row(ny);
+                    // is a real function: the rows of negative frequency ρ whose mirror row
+                    // is on the grid are filled from it ([`MirroredGrid`]), halving the
+                    // evaluations.
                     let mut g = vec![Complex64::new(0.0, 0.0); nx * ny];
-                    let (first, rest) = g.split_at_mut(head.min(ny) * nx);
-                    first.par_chunks_mut(nx).enumerate().for_each(|(ky, row)| {
-                        for (kx, v) in row.iter_mut().enumerate() {
-                            *v = eval(xi_at(kx, ky));
-                        }
-                    });
-                    let first = &*first;
-                    rest.par_chunks_mut(nx).enumerate().for_each(|(i, row)| {
-                        let ky = head + i;
-                        let mirror = &first[(ny - ky) * nx..(ny - ky + 1) * nx];
-                        for (kx, v) in row.iter_mut().enumerate() {
-                            // A column whose mirror is off the grid (Nyquist) is evaluated.
-                            *v = match mirror_column(kx, nx) {
-                                Some(mx) => mirror[mx].conj(),
-                                None => eval(xi_at(kx, ky)),
+                    g.par_chunks_mut(nx).enumerate().for_each(|(ky, row)| {
+                        let rho = signed(ky, ny) * s as f64 / ny as f64;
+                        for &kx in mirrored.columns(ky) {
+                            let sigma = signed(kx, nx) * s as f64 / nx as f64;
+                            let xi = p.zoom * (sigma * p.ex[a] + rho * p.ey[a]);
+                            row[kx] = match &cut {
+                                Some(st) => st.at(xi),
+                                None => f.transform(&tf, xi, k, l[a]),
                             };
                         }
                     });
+                    mirrored.fill_mirrored_rows(&mut g);
                     (f, std::sync::Arc::new(g))
                 })
                 .collect();

@@ -252,16 +252,71 @@ pub(super) fn signed(k: usize, n: usize) -> f64 {
 /// mirrors, since the spectra here are of real functions (conjugate-symmetric). Row 0 is its
 /// own mirror and an even grid's Nyquist row has none, so they and the rows of positive
 /// frequency come before it.
-pub(super) fn first_mirrored_row(n: usize) -> usize {
+fn first_mirrored_row(n: usize) -> usize {
     (n - n / 2 + 1).min(n)
 }
 
 /// The column at the negated frequency of column `k` of an `n`-column grid, when the grid has
 /// one.
 #[inline]
-pub(super) fn mirror_column(k: usize, n: usize) -> Option<usize> {
+fn mirror_column(k: usize, n: usize) -> Option<usize> {
     let m = (n - k) % n;
     (signed(m, n) == -signed(k, n)).then_some(m)
+}
+
+/// The columns of a frequency grid's row to evaluate for the spectrum of a real function, by
+/// row (`columns[0]` for the rows before [`first_mirrored_row`], `columns[1]` after it): every
+/// column, and in the mirrored rows only those without a mirror (Nyquist);
+/// [`fill_mirrored_rows`] fills the rest. A factor is a real function, so its transform at −ξ
+/// is the conjugate of that at ξ, and in the floating point too, up to a zero's sign
+/// (`conjugate_symmetry_is_exact` in tests/footprint.rs); products of such transforms too.
+pub(super) struct MirroredGrid {
+    nx: usize,
+    ny: usize,
+    head: usize,
+    every: Vec<usize>,
+    unmirrored: Vec<usize>,
+}
+
+impl MirroredGrid {
+    /// The plan of an `nx` × `ny` grid.
+    pub(super) fn new(nx: usize, ny: usize) -> MirroredGrid {
+        MirroredGrid {
+            nx,
+            ny,
+            head: first_mirrored_row(ny),
+            every: (0..nx).collect(),
+            unmirrored: (0..nx)
+                .filter(|&kx| mirror_column(kx, nx).is_none())
+                .collect(),
+        }
+    }
+
+    /// The columns of row `ky` to evaluate.
+    pub(super) fn columns(&self, ky: usize) -> &[usize] {
+        if ky < self.head {
+            &self.every
+        } else {
+            &self.unmirrored
+        }
+    }
+
+    /// Fills the columns of the mirrored rows that [`MirroredGrid::columns`] left out (row-major
+    /// `grid`), as the conjugates of their mirrors.
+    pub(super) fn fill_mirrored_rows(&self, grid: &mut [Complex64]) {
+        let (nx, ny) = (self.nx, self.ny);
+        let (first, rest) = grid.split_at_mut(self.head * nx);
+        let first = &*first;
+        rest.par_chunks_mut(nx).enumerate().for_each(|(i, row)| {
+            let my = ny - (self.head + i);
+            let mirror = &first[my * nx..(my + 1) * nx];
+            for (kx, v) in row.iter_mut().enumerate() {
+                if let Some(mx) = mirror_column(kx, nx) {
+                    *v = mirror[mx].conj();
+                }
+            }
+        });
+    }
 }
 
 /// As [`compute_fine`] with explicit S and FFT sizes.
@@ -280,17 +335,11 @@ pub fn compute_fine_with(
     // 1D transforms per sample are shared.
     let mut spectra: Vec<Vec<Complex64>> = vec![vec![Complex64::new(0.0, 0.0); nx * ny]; nk];
     // The spectra are of real functions (products of real factors' transforms and the pixel
-    // box's), so the rows of negative frequency whose mirror is on the grid are the mirror
-    // rows' conjugates, the same numbers as evaluating them (see `compute_factor_tables`):
-    // evaluated are the rows before `head`.
-    let head = first_mirrored_row(ny);
-    let (mut first, mut rest): (Vec<&mut [Complex64]>, Vec<&mut [Complex64]>) = spectra
-        .iter_mut()
-        .map(|spectrum| spectrum.split_at_mut(head * nx))
-        .unzip();
+    // box's): the mirrored rows are filled from their mirrors ([`MirroredGrid`]).
+    let mirrored = MirroredGrid::new(nx, ny);
     // Row ky of every type, for the row's task to fill in place.
-    let mut rows: Vec<Vec<&mut [Complex64]>> = (0..head).map(|_| Vec::with_capacity(nk)).collect();
-    for spectrum in first.iter_mut() {
+    let mut rows: Vec<Vec<&mut [Complex64]>> = (0..ny).map(|_| Vec::with_capacity(nk)).collect();
+    for spectrum in spectra.iter_mut() {
         for (row, slice) in rows.iter_mut().zip(spectrum.chunks_mut(nx)) {
             row.push(slice);
         }
@@ -299,12 +348,10 @@ pub fn compute_fine_with(
     let sinc_x: Vec<f64> = (0..nx)
         .map(|kx| sinc(signed(kx, nx) * s as f64 / nx as f64))
         .collect();
-    // Columns `columns` of row ky, for every type.
-    let every_column: Vec<usize> = (0..nx).collect();
-    let row_of = |ky: usize, columns: &[usize], out: &mut [&mut [Complex64]]| {
+    rows.into_par_iter().enumerate().for_each(|(ky, mut out)| {
         let rho = signed(ky, ny) * s as f64 / ny as f64;
         let sinc_rho = sinc(rho);
-        for &kx in columns {
+        for &kx in mirrored.columns(ky) {
             let sigma = signed(kx, nx) * s as f64 / nx as f64;
             let mut f1 = [[Complex64::new(0.0, 0.0); 2]; 3];
             for a in 0..3 {
@@ -326,39 +373,10 @@ pub fn compute_fine_with(
                 out[t][kx] = f1[0][bx] * f1[1][by] * f1[2][bz] * w;
             }
         }
-    };
-    rows.into_par_iter()
-        .enumerate()
-        .for_each(|(ky, mut out)| row_of(ky, &every_column, &mut out));
-    // The mirrored rows; a column without a mirror (Nyquist) is evaluated.
-    let mut mirrored: Vec<Vec<&mut [Complex64]>> =
-        (head..ny).map(|_| Vec::with_capacity(nk)).collect();
-    for spectrum in rest.iter_mut() {
-        for (row, slice) in mirrored.iter_mut().zip(spectrum.chunks_mut(nx)) {
-            row.push(slice);
-        }
+    });
+    for spectrum in spectra.iter_mut() {
+        mirrored.fill_mirrored_rows(spectrum);
     }
-    let first: Vec<&[Complex64]> = first.iter().map(|f| &**f).collect();
-    let unmirrored: Vec<usize> = (0..nx)
-        .filter(|&kx| mirror_column(kx, nx).is_none())
-        .collect();
-    mirrored
-        .into_par_iter()
-        .enumerate()
-        .for_each(|(i, mut out)| {
-            let ky = head + i;
-            row_of(ky, &unmirrored, &mut out);
-            let my = ny - ky;
-            for (t, row) in out.iter_mut().enumerate() {
-                let mirror = &first[t][my * nx..(my + 1) * nx];
-                for (kx, v) in row.iter_mut().enumerate() {
-                    if let Some(mx) = mirror_column(kx, nx) {
-                        *v = mirror[mx].conj();
-                    }
-                }
-            }
-        });
-    drop(rest);
     spectra
         .into_par_iter()
         .zip(kinds.par_iter())
