@@ -50,7 +50,9 @@ pub use backend::{AccumulationBackend, BackendError, CpuBackend};
 pub use frame::{FrameLoop, FrameReport, RunError, RunOutcome, RunToEnd};
 pub use image::{Image, ImageError};
 pub use plan::{Placement, PlanOptions, Planner};
-pub use reference::{render_reference, render_reference_camera, PaddedVolume, ReferenceOptions};
+pub use reference::{
+    render_reference, render_reference_camera, spline_axis_exact, PaddedVolume, ReferenceOptions,
+};
 pub use session::{RenderSession, SessionError, SessionOptions};
 pub use source::{CacheSource, FileSource, PacketSource, SourceStatus};
 pub use splat::{RenderOptions, RenderStats, Renderer};
