@@ -130,10 +130,10 @@ const SAMPLES_PER_DEVIATION: f64 = 2.0;
 /// more stays there; its tables are a few pixels wide, so S² phases are cheap).
 const MAX_MINIFIED_SUBPIXEL: usize = 64;
 
-/// The S that puts at least [`SAMPLES_PER_DEVIATION`] samples in a standard deviation of the
+/// The S that puts at least `SAMPLES_PER_DEVIATION` (2) samples in a standard deviation of the
 /// narrowest footprint of `family` in a view with screen axes `ex`, `ey` per voxel step at
 /// `zoom`: a power of two (placing a record then takes a mask and a shift instead of two
-/// divisions, `Footprint::place_with_residual`), at most [`MAX_MINIFIED_SUBPIXEL`]; 2 when
+/// divisions, `Footprint::place_with_residual`), at most `MAX_MINIFIED_SUBPIXEL` (64); 2 when
 /// that width is not a positive number.
 pub fn minified_subpixel(family: Family, zoom: f64, ex: [f64; 3], ey: [f64; 3]) -> usize {
     let deviation = (family.order() as f64 / 12.0).sqrt();

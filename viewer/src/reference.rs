@@ -13,7 +13,7 @@
 //! synthesis is periodic: with small margins the periodic reconstruction differs from the
 //! splatted function near the faces, by the tails that wrap around — a property of the boundary
 //! handling, measured in BENCHMARKS.md, not of the splats). The grid is evaluated as the
-//! function f(x) = Σ_k v_k Π_a φ^[j](x_a − (k_a − origin_a) + j/2) over its voxels k (Haar: unit
+//! function f(x) = Σ_k v_k Π_a φ^\[j\](x_a − (k_a − origin_a) + j/2) over its voxels k (Haar: unit
 //! boxes centred on the voxels). Haar rays are integrated exactly by
 //! voxel traversal (Amanatides–Woo), including the exact integral of the exponential cue over
 //! each voxel segment; linear and cubic rays by composite Simpson sampling of the tensor B-spline
