@@ -126,14 +126,15 @@ impl PlanOptions {
 /// (linear) and 0.44 (cubic) pixels per voxel up on the axes, less obliquely.
 const SAMPLES_PER_DEVIATION: f64 = 2.0;
 
-/// Most phases per axis [`minified_subpixel`] asks for (a view of ~20 voxels per pixel and
-/// more stays there; its tables are a few pixels wide, so S² phases are cheap).
-const MAX_MINIFIED_SUBPIXEL: usize = 64;
+/// Most phases per axis [`minified_subpixel`] asks for: S = 32 holds the linear family's axis
+/// views at 64 dB at 0.13 pixels per voxel; S = 64 would plan a 256³ volume's 48² thumbnail in
+/// about four times as long again (S² phases per table).
+const MAX_MINIFIED_SUBPIXEL: usize = 32;
 
 /// The S that puts at least `SAMPLES_PER_DEVIATION` (2) samples in a standard deviation of the
 /// narrowest footprint of `family` in a view with screen axes `ex`, `ey` per voxel step at
 /// `zoom`: a power of two (placing a record then takes a mask and a shift instead of two
-/// divisions, `Footprint::place_with_residual`), at most `MAX_MINIFIED_SUBPIXEL` (64); 2 when
+/// divisions, `Footprint::place_with_residual`), at most `MAX_MINIFIED_SUBPIXEL` (32); 2 when
 /// that width is not a positive number.
 pub fn minified_subpixel(family: Family, zoom: f64, ex: [f64; 3], ey: [f64; 3]) -> usize {
     let deviation = (family.order() as f64 / 12.0).sqrt();
@@ -1051,9 +1052,9 @@ mod tests {
             };
             assert_eq!(asked.subpixel_for_view(family, 0.01, axis.0, axis.1), 2);
         }
-        // Linear axis views: 16 at 0.45 pixels per voxel (55 dB at 8), 64 at 0.13 (36 dB at 8).
+        // Linear axis views: 16 at 0.45 pixels per voxel (55 dB at 8), 32 at 0.13 (36 dB at 8).
         assert_eq!(minified_subpixel(Family::Linear, 0.45, axis.0, axis.1), 16);
-        assert_eq!(minified_subpixel(Family::Linear, 0.13, axis.0, axis.1), 64);
+        assert_eq!(minified_subpixel(Family::Linear, 0.13, axis.0, axis.1), 32);
     }
 
     /// The tabulated centres are `Geometry::basis_center`'s values, bit for bit, for every

@@ -147,11 +147,9 @@ fn has_gradient(f: &Footprint) -> bool {
 
 /// A footprint's phase tables in the order the atlas stores them: its phases, then its
 /// gradient's when it has one.
-fn stored_sets(f: &Footprint) -> impl Iterator<Item = &[crate::footprint::Phase]> {
+fn stored_sets(f: &Footprint) -> impl Iterator<Item = &crate::footprint::Phases> {
     let sets = if has_gradient(f) { 3 } else { 1 };
-    [&f.phases[..], &f.grad_x[..], &f.grad_y[..]]
-        .into_iter()
-        .take(sets)
+    [&f.phases, &f.grad_x, &f.grad_y].into_iter().take(sets)
 }
 
 impl FootprintAtlas {
@@ -170,7 +168,7 @@ impl FootprintAtlas {
         let (mut phases, mut samples) = (0usize, 0usize);
         for set in footprints.into_iter().flat_map(stored_sets) {
             phases += set.len();
-            samples += set.iter().map(|p| p.data.len()).sum::<usize>();
+            samples += set.data.len();
         }
         self.phases.reserve(phases);
         self.data.reserve(samples);
@@ -179,13 +177,14 @@ impl FootprintAtlas {
     /// Appends a footprint's phases (and its gradient's); returns where they are.
     pub fn push(&mut self, f: &Footprint) -> TableRef {
         let first_phase = self.phases.len() as u32;
-        for p in stored_sets(f).flatten() {
-            self.phases.push(PhaseRect {
-                offset: self.data.len() as u32,
+        for set in stored_sets(f) {
+            let base = self.data.len();
+            self.phases.extend(set.rects.iter().map(|p| PhaseRect {
+                offset: (base + p.offset) as u32,
                 cols: p.cols as u32,
                 rows: p.rows as u32,
-            });
-            self.data.extend_from_slice(&p.data);
+            }));
+            self.data.extend_from_slice(&set.data);
         }
         TableRef {
             first_phase,

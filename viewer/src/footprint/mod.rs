@@ -171,15 +171,44 @@ impl FineTable {
     }
 }
 
-/// One phase of a footprint: the samples of the fine table at pixel spacing.
-#[derive(Debug, Clone, PartialEq)]
+/// One phase of a footprint: where its samples (the fine table's at pixel spacing, row-major)
+/// lie in its [`Phases`] buffer.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Phase {
+    /// First sample in [`Phases::data`].
+    pub offset: usize,
     /// Columns.
     pub cols: usize,
     /// Rows.
     pub rows: usize,
-    /// Samples, row-major.
+}
+
+/// The S × S phases of one fine table, their samples in one buffer (a view minified far gets
+/// S = 32 and a thousand phases per table: one allocation each cost a third of its planning).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Phases {
+    /// The phases, phase (a, b) at index b·S + a.
+    pub rects: Vec<Phase>,
+    /// Every phase's samples, phase after phase.
     pub data: Vec<f32>,
+}
+
+impl Phases {
+    /// Number of phases.
+    pub fn len(&self) -> usize {
+        self.rects.len()
+    }
+
+    /// Whether there are none.
+    pub fn is_empty(&self) -> bool {
+        self.rects.is_empty()
+    }
+
+    /// The samples of phase `i`.
+    pub fn samples(&self, i: usize) -> &[f32] {
+        let r = &self.rects[i];
+        &self.data[r.offset..r.offset + r.cols * r.rows]
+    }
 }
 
 /// A footprint ready for accumulation: S × S phase tables.
@@ -192,33 +221,36 @@ pub struct Footprint {
     /// Centre row of the fine table.
     pub cy: usize,
     /// Phase (a, b) at index b·S + a: fine samples (k·S + a, l·S + b).
-    pub phases: Vec<Phase>,
+    pub phases: Phases,
     /// ∂/∂x of the footprint per pixel, split into phases like `phases` (empty unless the
     /// footprint was built with gradients): a splat placed δ pixels from its exact position
     /// adds δ times this (first-order correction of the subpixel residual).
-    pub grad_x: Vec<Phase>,
+    pub grad_x: Phases,
     /// ∂/∂y likewise.
-    pub grad_y: Vec<Phase>,
+    pub grad_y: Phases,
 }
 
 /// Splits a fine table into its S × S phases.
-fn split_phases(t: &FineTable) -> Vec<Phase> {
+fn split_phases(t: &FineTable) -> Phases {
     let s = t.s;
-    let mut phases = Vec::with_capacity(s * s);
+    let mut rects = Vec::with_capacity(s * s);
+    let mut data = Vec::with_capacity(t.data.len());
     for b in 0..s {
         for a in 0..s {
             let cols = (t.nx + s - 1 - a) / s;
             let rows = (t.ny + s - 1 - b) / s;
-            let mut data = Vec::with_capacity(cols * rows);
+            rects.push(Phase {
+                offset: data.len(),
+                cols,
+                rows,
+            });
             for l in 0..rows {
-                for k in 0..cols {
-                    data.push(t.data[(l * s + b) * t.nx + k * s + a] as f32);
-                }
+                let row = &t.data[(l * s + b) * t.nx..];
+                data.extend((0..cols).map(|k| row[k * s + a] as f32));
             }
-            phases.push(Phase { cols, rows, data });
         }
     }
-    phases
+    Phases { rects, data }
 }
 
 impl Footprint {
@@ -229,8 +261,8 @@ impl Footprint {
             cx: t.cx,
             cy: t.cy,
             phases: split_phases(t),
-            grad_x: Vec::new(),
-            grad_y: Vec::new(),
+            grad_x: Phases::default(),
+            grad_y: Phases::default(),
         }
     }
 
