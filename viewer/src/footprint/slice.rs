@@ -449,7 +449,7 @@ pub(super) fn inverse_and_crop(
     // The Hermitian part of output column `ox` at every row, added to `col` times `weight`
     // (1 or i).
     let add_column = |col: &mut [Complex64], ox: usize, weight: Complex64| {
-        let sign = if ox % 2 == 0 { 1.0 } else { -1.0 };
+        let sign = if ox.is_multiple_of(2) { 1.0 } else { -1.0 };
         for m in 0..=half {
             let v = spec[m * nx + ox];
             let mirror = (ny - m) % ny;
