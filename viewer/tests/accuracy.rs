@@ -102,18 +102,43 @@ fn noise_volume(n: usize) -> Vec<f32> {
         .collect()
 }
 
+/// Geometry (M = 2, margin 8), every coefficient and the reconstructed volume of the noise
+/// volume of side `n`.
+fn noise_coefficients(n: usize, family: Family) -> (Geometry, Vec<Coefficient>, PaddedVolume) {
+    let g = Geometry::new([n, n, n], family, 2, 8).unwrap();
+    let vol = noise_volume(n);
+    let coeffs = Coefficient::all_of(&g, 0, &wavesplat_codec::dwt::decompose_channel(&vol, &g));
+    let pv = PaddedVolume::from_coefficients(&coeffs, &g, 1).unwrap();
+    (g, coeffs, pv)
+}
+
+/// Renders `view` and asserts ≥ [`REQUIRED_DB`] against the reference of 16×16 rays per pixel
+/// (exact on the axes); `what` names the case.
+fn assert_splats_match_rays(
+    r: &mut Renderer,
+    (g, coeffs, pv): (&Geometry, &[Coefficient], &PaddedVolume),
+    view: &View,
+    what: &str,
+) {
+    let img = r.render(coeffs, g, view).unwrap();
+    let options = ReferenceOptions {
+        supersample: 16,
+        step: 0.125,
+    };
+    let reference = render_reference(pv, view, &options).unwrap();
+    let snr = snr_db(&reference.data, &img.data);
+    eprintln!("{what}: SNR {snr:.1} dB");
+    assert!(snr >= REQUIRED_DB, "{what}: {snr:.2} dB");
+}
+
 /// Voxel-scale white noise (what an MRI's texture is at the finest level, where the linear and
 /// cubic footprints have their sharpest kinks) on the three axes and obliquely, at sizes where
 /// a pixel is about a voxel and where it is not: ≥ 50 dB against exact line integrals on the
 /// axes (`spline_axis_exact`) and a reference of 16×16 rays per pixel obliquely.
 #[test]
 fn voxel_scale_noise_matches_reference() {
-    let n = 32;
-    let vol = noise_volume(n);
     for family in [Family::Linear, Family::Cubic] {
-        let g = Geometry::new([n, n, n], family, 2, 8).unwrap();
-        let coeffs = Coefficient::all_of(&g, 0, &wavesplat_codec::dwt::decompose_channel(&vol, &g));
-        let pv = PaddedVolume::from_coefficients(&coeffs, &g, 1).unwrap();
+        let (g, coeffs, pv) = noise_coefficients(32, family);
         let mut r = Renderer::new(RenderOptions::default());
         for (a, b, size) in [
             (0.0, 0.0, 32),
@@ -123,18 +148,8 @@ fn voxel_scale_noise_matches_reference() {
             (0.66, 0.91, 45),
         ] {
             let view = View::new(a, b, size, size);
-            let img = r.render(&coeffs, &g, &view).unwrap();
-            let options = ReferenceOptions {
-                supersample: 16,
-                step: 0.125,
-            };
-            let reference = render_reference(&pv, &view, &options).unwrap();
-            let snr = snr_db(&reference.data, &img.data);
-            eprintln!("noise {family} ({a},{b}) {size}²: SNR {snr:.1} dB");
-            assert!(
-                snr >= REQUIRED_DB,
-                "noise {family} ({a},{b}) {size}²: {snr:.2} dB"
-            );
+            let what = format!("noise {family} ({a},{b}) {size}²");
+            assert_splats_match_rays(&mut r, (&g, &coeffs, &pv), &view, &what);
         }
     }
 }
@@ -150,12 +165,9 @@ fn voxel_scale_noise_matches_reference() {
 #[test]
 fn axis_views_match_exact_line_integrals_at_every_scale() {
     let n = 24;
-    let vol = noise_volume(n);
     let half_pi = FRAC_PI_2;
     for family in [Family::Linear, Family::Cubic] {
-        let g = Geometry::new([n, n, n], family, 2, 8).unwrap();
-        let coeffs = Coefficient::all_of(&g, 0, &wavesplat_codec::dwt::decompose_channel(&vol, &g));
-        let pv = PaddedVolume::from_coefficients(&coeffs, &g, 1).unwrap();
+        let (g, coeffs, pv) = noise_coefficients(n, family);
         let mut r = Renderer::new(RenderOptions::default());
         let mut worst = f64::INFINITY;
         for (a, b) in [(0.0, 0.0), (half_pi, 0.0), (0.0, half_pi), (0.0, -half_pi)] {
@@ -189,11 +201,8 @@ fn axis_views_match_exact_line_integrals_at_every_scale() {
 #[test]
 fn minified_views_off_the_axes_match_reference() {
     let n = 24;
-    let vol = noise_volume(n);
     for family in [Family::Linear, Family::Cubic] {
-        let g = Geometry::new([n, n, n], family, 2, 8).unwrap();
-        let coeffs = Coefficient::all_of(&g, 0, &wavesplat_codec::dwt::decompose_channel(&vol, &g));
-        let pv = PaddedVolume::from_coefficients(&coeffs, &g, 1).unwrap();
+        let (g, coeffs, pv) = noise_coefficients(n, family);
         let mut r = Renderer::new(RenderOptions::default());
         for (a, b, zoom) in [
             (1e-4, -1e-4, 0.2),
@@ -203,18 +212,8 @@ fn minified_views_off_the_axes_match_reference() {
         ] {
             let size = ((n as f64 + 6.0) * zoom * 1.8).ceil() as usize;
             let view = View::new(a, b, size, size).with_zoom(zoom);
-            let img = r.render(&coeffs, &g, &view).unwrap();
-            let options = ReferenceOptions {
-                supersample: 16,
-                step: 0.125,
-            };
-            let reference = render_reference(&pv, &view, &options).unwrap();
-            let snr = snr_db(&reference.data, &img.data);
-            eprintln!("minified {family} ({a},{b}) zoom {zoom}: SNR {snr:.1} dB");
-            assert!(
-                snr >= REQUIRED_DB,
-                "{family} ({a},{b}) zoom {zoom}: {snr:.2} dB"
-            );
+            let what = format!("minified {family} ({a},{b}) zoom {zoom}");
+            assert_splats_match_rays(&mut r, (&g, &coeffs, &pv), &view, &what);
         }
     }
 }
