@@ -21,7 +21,8 @@
 //! (midpoint) sub-grid, because splats integrate over the pixel area. Rows run on rayon. Rays
 //! run through the voxel grid along the camera's index-space direction and are parameterised by
 //! physical length, so with anisotropic spacing a line integral is in the spacing's units, the
-//! same quantity the splats draw.
+//! same quantity the splats draw. Views along an axis without a cue need no rays: their image
+//! is computed in closed form for every family ([`spline_axis_exact`]).
 
 use crate::image::Image;
 use crate::RenderError;
@@ -198,13 +199,8 @@ pub fn render_reference_camera(
     cue: Option<ResolvedCue>,
     options: &ReferenceOptions,
 ) -> Image {
-    let g = &volume.geometry;
     if cue.is_none() {
-        let exact = match g.family {
-            Family::Haar => haar_axis_exact(volume, camera),
-            _ => spline_axis_exact(volume, camera),
-        };
-        if let Some(img) = exact {
+        if let Some(img) = spline_axis_exact(volume, camera) {
             return img;
         }
     }
@@ -270,85 +266,6 @@ fn render_rays(
             }
         });
     image
-}
-
-/// The exact pixel-area-averaged Haar image for a view along a coordinate axis (no cue): the
-/// projection is then constant on each column of cells (their sum along the ray), so a pixel is
-/// the area-weighted sum of the column rectangles it overlaps — no supersampling error, which
-/// for box edges aligned with the pixel grid would otherwise dominate. `None` for other views.
-fn haar_axis_exact(volume: &PaddedVolume, camera: &Camera) -> Option<Image> {
-    let (ray, ax, ay) = axis_view(camera)?;
-    let g = &volume.geometry;
-    let nch = volume.channels.len();
-    let stride = [1usize, g.padded[0], g.padded[0] * g.padded[1]];
-    // Column sums (cells along the ray).
-    let (nx, ny) = (g.padded[ax], g.padded[ay]);
-    let mut cols = vec![0.0f64; nx * ny * nch];
-    for (c, ch) in volume.channels.iter().enumerate() {
-        for j in 0..ny {
-            for i in 0..nx {
-                let mut sum = 0.0;
-                for k in 0..g.padded[ray] {
-                    sum += ch[i * stride[ax] + j * stride[ay] + k * stride[ray]];
-                }
-                cols[(j * nx + i) * nch + c] = sum;
-            }
-        }
-    }
-    // Screen interval of cell i along a screen axis: its volume interval mapped by the camera.
-    let span = |axis: usize, i: usize, screen_x: bool| -> (f64, f64) {
-        let lo = i as f64 - g.origin[axis] as f64 - 0.5;
-        let mut p = camera.center;
-        p[axis] = lo;
-        let a = camera.to_screen(p);
-        p[axis] = lo + 1.0;
-        let b = camera.to_screen(p);
-        let (a, b) = if screen_x { (a[0], b[0]) } else { (a[1], b[1]) };
-        (a.min(b), a.max(b))
-    };
-    // Overlap lengths of each cell with each pixel along one screen axis.
-    let overlaps =
-        |axis: usize, n: usize, pixels: usize, screen_x: bool| -> Vec<Vec<(usize, f64)>> {
-            (0..n)
-                .map(|i| {
-                    let (a, b) = span(axis, i, screen_x);
-                    let first = a.floor().max(0.0) as usize;
-                    let last = (b.ceil().max(0.0) as usize).min(pixels);
-                    (first..last)
-                        .filter_map(|p| {
-                            let o = b.min(p as f64 + 1.0) - a.max(p as f64);
-                            (o > 0.0).then_some((p, o))
-                        })
-                        .collect()
-                })
-                .collect()
-        };
-    let ox = overlaps(ax, nx, camera.width, true);
-    let oy = overlaps(ay, ny, camera.height, false);
-    // Inside a column the line integral is its sum times the cells' length along the ray; a
-    // pixel averages it over its unit area, i.e. weights each column by the overlap area in
-    // pixels.
-    let length = camera.spacing[ray];
-    let mut acc = vec![0.0f64; camera.width * camera.height * nch];
-    for j in 0..ny {
-        for i in 0..nx {
-            for &(py, wy) in &oy[j] {
-                for &(px, wx) in &ox[i] {
-                    let w = wx * wy;
-                    for c in 0..nch {
-                        acc[(py * camera.width + px) * nch + c] +=
-                            w * length * cols[(j * nx + i) * nch + c];
-                    }
-                }
-            }
-        }
-    }
-    Some(Image {
-        width: camera.width,
-        height: camera.height,
-        channels: nch,
-        data: acc.into_iter().map(|v| v as f32).collect(),
-    })
 }
 
 /// The axes of a view along a coordinate axis: (ray, screen x, screen y) as volume axes, or
@@ -438,13 +355,14 @@ fn axis_weights(
         .collect()
 }
 
-/// The exact pixel-area-averaged image of a linear or cubic (any B-spline) volume for a view
-/// along a coordinate axis (no cue): the line integral of each voxel's spline along the ray is
-/// its integral, 1 voxel, so the projection is the column sums' 2-D spline, and a pixel's
+/// The exact pixel-area-averaged image of a volume of any family (Haar's box is the order-1
+/// B-spline) for a view along a coordinate axis (no cue): the line integral of each voxel's
+/// spline along the ray is its integral, 1 voxel, so the projection is the column sums' 2-D spline, and a pixel's
 /// average of it is separable: Σ over columns of the sum times the two screen axes' averages of
 /// the splines over the pixel (closed-form antiderivatives, [`cardinal_bspline_integral`]). No
 /// ray sampling and no supersampling: the ground truth the splats are held to on the axes,
-/// where their sampling errors line up with the pixel grid. `None` for other views.
+/// where their sampling errors line up with the pixel grid (and Haar's box edges with the
+/// pixels' edges, which rays resolve only slowly). `None` for other views.
 pub fn spline_axis_exact(volume: &PaddedVolume, camera: &Camera) -> Option<Image> {
     let (ray, ax, ay) = axis_view(camera)?;
     let g = &volume.geometry;
@@ -811,6 +729,85 @@ mod tests {
     use wavesplat_codec::dwt::decompose_channel;
     use wavesplat_codec::view::{Cue, CueDirection};
 
+    /// The Haar axis image as the reference first computed it, independently of the B-spline
+    /// closed form: the projection is constant on each column of cells (their sum along the ray),
+    /// so a pixel is the area-weighted sum of the column rectangles it overlaps, mapped to the
+    /// screen by the camera. `None` for other views.
+    fn haar_overlap_areas(volume: &PaddedVolume, camera: &Camera) -> Option<Image> {
+        let (ray, ax, ay) = axis_view(camera)?;
+        let g = &volume.geometry;
+        let nch = volume.channels.len();
+        let stride = [1usize, g.padded[0], g.padded[0] * g.padded[1]];
+        // Column sums (cells along the ray).
+        let (nx, ny) = (g.padded[ax], g.padded[ay]);
+        let mut cols = vec![0.0f64; nx * ny * nch];
+        for (c, ch) in volume.channels.iter().enumerate() {
+            for j in 0..ny {
+                for i in 0..nx {
+                    let mut sum = 0.0;
+                    for k in 0..g.padded[ray] {
+                        sum += ch[i * stride[ax] + j * stride[ay] + k * stride[ray]];
+                    }
+                    cols[(j * nx + i) * nch + c] = sum;
+                }
+            }
+        }
+        // Screen interval of cell i along a screen axis: its volume interval mapped by the camera.
+        let span = |axis: usize, i: usize, screen_x: bool| -> (f64, f64) {
+            let lo = i as f64 - g.origin[axis] as f64 - 0.5;
+            let mut p = camera.center;
+            p[axis] = lo;
+            let a = camera.to_screen(p);
+            p[axis] = lo + 1.0;
+            let b = camera.to_screen(p);
+            let (a, b) = if screen_x { (a[0], b[0]) } else { (a[1], b[1]) };
+            (a.min(b), a.max(b))
+        };
+        // Overlap lengths of each cell with each pixel along one screen axis.
+        let overlaps =
+            |axis: usize, n: usize, pixels: usize, screen_x: bool| -> Vec<Vec<(usize, f64)>> {
+                (0..n)
+                    .map(|i| {
+                        let (a, b) = span(axis, i, screen_x);
+                        let first = a.floor().max(0.0) as usize;
+                        let last = (b.ceil().max(0.0) as usize).min(pixels);
+                        (first..last)
+                            .filter_map(|p| {
+                                let o = b.min(p as f64 + 1.0) - a.max(p as f64);
+                                (o > 0.0).then_some((p, o))
+                            })
+                            .collect()
+                    })
+                    .collect()
+            };
+        let ox = overlaps(ax, nx, camera.width, true);
+        let oy = overlaps(ay, ny, camera.height, false);
+        // Inside a column the line integral is its sum times the cells' length along the ray; a
+        // pixel averages it over its unit area, i.e. weights each column by the overlap area in
+        // pixels.
+        let length = camera.spacing[ray];
+        let mut acc = vec![0.0f64; camera.width * camera.height * nch];
+        for j in 0..ny {
+            for i in 0..nx {
+                for &(py, wy) in &oy[j] {
+                    for &(px, wx) in &ox[i] {
+                        let w = wx * wy;
+                        for c in 0..nch {
+                            acc[(py * camera.width + px) * nch + c] +=
+                                w * length * cols[(j * nx + i) * nch + c];
+                        }
+                    }
+                }
+            }
+        }
+        Some(Image {
+            width: camera.width,
+            height: camera.height,
+            channels: nch,
+            data: acc.into_iter().map(|v| v as f32).collect(),
+        })
+    }
+
     /// The closed-form B-spline against the cubic weights of the Simpson path (which evaluate
     /// φ(u + i) by the usual polynomial pieces): the same values, and splines of every order
     /// sum to one over the integer translates and integrate to one.
@@ -851,7 +848,7 @@ mod tests {
     /// pixel is a tenth of that at 4², and within 1e-4 of the peak; not fourfold per doubling,
     /// since a spline's kink at a fixed distance from a sub-cell edge common to both grids
     /// errs the same at S and 2S), which it would not if the closed form were off by any shift
-    /// or scale. For Haar it also equals the box path's overlap areas.
+    /// or scale. For Haar it also equals the cells' overlap areas computed on the screen.
     #[test]
     fn exact_axis_images_are_what_the_rays_converge_to() {
         let n = 10;
@@ -881,7 +878,7 @@ mod tests {
                 let peak = exact.data.iter().fold(0.0f32, |m, v| m.max(v.abs()));
                 assert!(peak > 1.0, "{family} ({alpha},{beta}): peak {peak}");
                 if family == Family::Haar {
-                    let boxes = haar_axis_exact(&vol, &camera).unwrap();
+                    let boxes = haar_overlap_areas(&vol, &camera).unwrap();
                     for (a, b) in exact.data.iter().zip(&boxes.data) {
                         assert!((a - b).abs() <= 1e-5 * peak, "{a} vs {b}");
                     }
