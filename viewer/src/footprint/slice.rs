@@ -264,9 +264,9 @@ fn mirror_column(k: usize, n: usize) -> Option<usize> {
     (signed(m, n) == -signed(k, n)).then_some(m)
 }
 
-/// The columns of a frequency grid's row to evaluate for the spectrum of a real function, by
-/// row (`columns[0]` for the rows before [`first_mirrored_row`], `columns[1]` after it): every
-/// column, and in the mirrored rows only those without a mirror (Nyquist);
+/// The columns of a frequency grid's row to evaluate for the spectrum of a real function: every
+/// column in the rows before [`first_mirrored_row`], and in the mirrored rows after it only
+/// those without a mirror (Nyquist);
 /// [`fill_mirrored_rows`] fills the rest. A factor is a real function, so its transform at −ξ
 /// is the conjugate of that at ξ, and in the floating point too, up to a zero's sign
 /// (`conjugate_symmetry_is_exact` in tests/footprint.rs); products of such transforms too.
@@ -387,6 +387,44 @@ pub fn compute_fine_with(
         .collect()
 }
 
+/// The crop of an inverse transform: the support radius (rx, ry) pixels plus one sample each
+/// side, centred, at S samples per pixel, and the scale of the unnormalized inverse FFTs.
+struct Crop {
+    hx: usize,
+    hy: usize,
+    scale: f64,
+}
+
+impl Crop {
+    fn new(s: usize, nx: usize, ny: usize, rx: f64, ry: f64) -> Crop {
+        Crop {
+            hx: ((rx * s as f64).ceil() as usize + 1).min(nx / 2 - 1),
+            hy: ((ry * s as f64).ceil() as usize + 1).min(ny / 2 - 1),
+            scale: (s * s) as f64 / (nx * ny) as f64,
+        }
+    }
+
+    /// Columns and rows kept.
+    fn size(&self) -> (usize, usize) {
+        (2 * self.hx + 1, 2 * self.hy + 1)
+    }
+
+    /// The grid column of kept column `i` (the centre at column 0, wrapped).
+    fn column(&self, i: usize, nx: usize) -> usize {
+        (i as i64 - self.hx as i64).rem_euclid(nx as i64) as usize
+    }
+
+    /// The grid row of kept row `i`.
+    fn row(&self, i: usize, ny: usize) -> usize {
+        (i as i64 - self.hy as i64).rem_euclid(ny as i64) as usize
+    }
+
+    /// The table of the kept samples.
+    fn table(&self, s: usize, data: Vec<f64>) -> FineTable {
+        FineTable::centred(s, self.hx, self.hy, data)
+    }
+}
+
 /// The real part of the inverse 2D FFT of a spectrum (row-major, nx × ny, rows at [`signed`]
 /// frequencies), cropped to the support radius (rx, ry) pixels plus one sample with the centre
 /// in the middle.
@@ -439,10 +477,8 @@ pub(super) fn inverse_and_crop(
         .collect();
     // Every transformed row in one call (one scratch buffer for all of them).
     fx.process(&mut spec[..(half + 1) * nx]);
-    let scale = (s * s) as f64 / (nx * ny) as f64;
-    let hx = ((rx * s as f64).ceil() as usize + 1).min(nx / 2 - 1);
-    let hy = ((ry * s as f64).ceil() as usize + 1).min(ny / 2 - 1);
-    let (cw, ch) = (2 * hx + 1, 2 * hy + 1);
+    let crop = Crop::new(s, nx, ny, rx, ry);
+    let (cw, ch) = crop.size();
     let mut data = vec![0.0; cw * ch];
     let mut scratch = vec![zero; fy.get_inplace_scratch_len()];
     let mut col = vec![zero; ny];
@@ -464,28 +500,27 @@ pub(super) fn inverse_and_crop(
             }
         }
     };
-    let origin = |i: usize, h: usize, n: usize| (i as i64 - h as i64).rem_euclid(n as i64) as usize;
     for first in (0..cw).step_by(2) {
         col.fill(zero);
-        add_column(&mut col, origin(first, hx, nx), Complex64::new(1.0, 0.0));
+        add_column(&mut col, crop.column(first, nx), Complex64::new(1.0, 0.0));
         let second = first + 1 < cw;
         if second {
             add_column(
                 &mut col,
-                origin(first + 1, hx, nx),
+                crop.column(first + 1, nx),
                 Complex64::new(0.0, 1.0),
             );
         }
         fy.process_with_scratch(&mut col, &mut scratch);
         for iy in 0..ch {
-            let v = col[origin(iy, hy, ny)];
-            data[iy * cw + first] = v.re * scale;
+            let v = col[crop.row(iy, ny)];
+            data[iy * cw + first] = v.re * crop.scale;
             if second {
-                data[iy * cw + first + 1] = v.im * scale;
+                data[iy * cw + first + 1] = v.im * crop.scale;
             }
         }
     }
-    FineTable::centred(s, hx, hy, data)
+    crop.table(s, data)
 }
 
 /// [`inverse_and_crop`] the long way: every row and kept column transformed in full, the real
@@ -501,24 +536,21 @@ fn inverse_in_full(
     let mut planner = FftPlanner::<f64>::new();
     let (fx, fy) = (planner.plan_fft_inverse(nx), planner.plan_fft_inverse(ny));
     fx.process(spec);
-    let scale = (s * s) as f64 / (nx * ny) as f64;
-    let hx = ((rx * s as f64).ceil() as usize + 1).min(nx / 2 - 1);
-    let hy = ((ry * s as f64).ceil() as usize + 1).min(ny / 2 - 1);
-    let (cw, ch) = (2 * hx + 1, 2 * hy + 1);
+    let crop = Crop::new(s, nx, ny, rx, ry);
+    let (cw, ch) = crop.size();
     let mut data = vec![0.0; cw * ch];
     let mut col = vec![Complex64::new(0.0, 0.0); ny];
     for ix in 0..cw {
-        let ox = (ix as i64 - hx as i64).rem_euclid(nx as i64) as usize;
+        let ox = crop.column(ix, nx);
         for (y, c) in col.iter_mut().enumerate() {
             *c = spec[y * nx + ox];
         }
         fy.process(&mut col);
         for iy in 0..ch {
-            let oy = (iy as i64 - hy as i64).rem_euclid(ny as i64) as usize;
-            data[iy * cw + ix] = col[oy].re * scale;
+            data[iy * cw + ix] = col[crop.row(iy, ny)].re * crop.scale;
         }
     }
-    FineTable::centred(s, hx, hy, data)
+    crop.table(s, data)
 }
 
 #[cfg(test)]
