@@ -46,7 +46,7 @@ fn main() {
                     ),
                 ];
                 for (name, options) in variants {
-                    let mut atlas_mb = 0.0;
+                    let (mut atlas_mb, mut subpixel) = (0.0, 0);
                     let mut times: Vec<f64> = (0..5)
                         .map(|i| {
                             let spec = ViewSpec {
@@ -63,14 +63,16 @@ fn main() {
                             let plan = planner.plan(&g, &spec, 1).expect("plan");
                             let ms = t.elapsed().as_secs_f64() * 1e3;
                             atlas_mb = plan.atlas.data.len() as f64 * 4.0 / 1e6;
+                            let camera = &plan.cameras[0];
+                            let (ex, ey) = camera.index_axes();
+                            subpixel = options.subpixel_for_view(family, camera.zoom, ex, ey);
                             ms
                         })
                         .collect();
                     times.sort_by(f64::total_cmp);
                     let ms = times[2];
                     println!(
-                        "{family},{levels},{size},{name},{},{ms:.2},{:.2},{atlas_mb:.1}",
-                        options.subpixel_for(family),
+                        "{family},{levels},{size},{name},{subpixel},{ms:.2},{:.2},{atlas_mb:.1}",
                         ms / 16.6
                     );
                 }

@@ -91,13 +91,6 @@ impl PlanOptions {
             .unwrap_or_else(|| Self::default_max_fft(family))
     }
 
-    /// The subpixel phases used for `family` at any scale: the requested ones, else the
-    /// family's default.
-    pub fn subpixel_for(&self, family: Family) -> usize {
-        self.subpixel
-            .unwrap_or_else(|| Self::default_subpixel(family))
-    }
-
     /// The subpixel phases used for `family` in a view with screen axes `ex`, `ey` per voxel
     /// step (`Camera::index_axes`) at `zoom` pixels per unit of spacing: the requested ones,
     /// else the family's default raised for minified views ([`minified_subpixel`]).

@@ -203,12 +203,6 @@ impl Phases {
     pub fn is_empty(&self) -> bool {
         self.rects.is_empty()
     }
-
-    /// The samples of phase `i`.
-    pub fn samples(&self, i: usize) -> &[f32] {
-        let r = &self.rects[i];
-        &self.data[r.offset..r.offset + r.cols * r.rows]
-    }
 }
 
 /// A footprint ready for accumulation: S × S phase tables.
