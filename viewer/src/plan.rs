@@ -163,6 +163,9 @@ pub struct RenderStats {
     pub splatted: usize,
     /// Splats skipped because their footprint misses the screen.
     pub skipped: usize,
+    /// Splats left out because their footprint vanishes in this view (a ψ along the direction
+    /// of a view along an axis: [`crate::footprint::VANISHING`]), summed over views.
+    pub vanished: usize,
     /// Pixel updates performed.
     pub pixel_updates: u64,
 }
@@ -818,12 +821,12 @@ impl ViewPlan {
             let (set, permuted) = self.set_of(k);
             let tables = &self.tables[set];
             let clipped = clipped.as_deref();
-            let planned: Vec<(Vec<SplatRecord>, usize)> = coefficients
+            let planned: Vec<(Vec<SplatRecord>, usize, usize)> = coefficients
                 .par_chunks(CHUNK)
                 .enumerate()
                 .map(|(ci, chunk)| {
                     let mut out = Vec::with_capacity(chunk.len() * 3);
-                    let mut placed = 0usize;
+                    let (mut placed, mut vanished) = (0usize, 0usize);
                     for (j, c) in chunk.iter().enumerate() {
                         let centre = match clipped.map(|cl| cl[ci * CHUNK + j]) {
                             Some(Clipped::Whole(centre)) => centre,
@@ -836,7 +839,10 @@ impl ViewPlan {
                         } else {
                             (c.band.kind, 1.0)
                         };
+                        // Every (level, kind) of a checked coefficient has a table unless
+                        // its footprint vanishes in this view.
                         let Some(t) = tables[c.band.level as usize * 8 + kind as usize] else {
+                            vanished += 1;
                             continue;
                         };
                         let scr = camera.to_screen(centre);
@@ -846,13 +852,14 @@ impl ViewPlan {
                             placed += 1;
                         }
                     }
-                    (out, placed)
+                    (out, placed, vanished)
                 })
                 .collect();
-            let mut placed_here = 0;
-            for (records, placed) in planned {
+            let (mut placed_here, mut vanished_here) = (0, 0);
+            for (records, placed, vanished) in planned {
                 out.extend(records);
                 placed_here += placed;
+                vanished_here += vanished;
             }
             // Split coefficients: placed when any piece is. A coefficient's pieces are
             // consecutive; chunks of pieces are placed on the pool and their records appended
@@ -905,7 +912,8 @@ impl ViewPlan {
                 }
             }
             stats.splatted += placed_here;
-            stats.skipped += coefficients.len() - waiting.len() - placed_here;
+            stats.vanished += vanished_here;
+            stats.skipped += coefficients.len() - waiting.len() - placed_here - vanished_here;
         }
         Ok(())
     }

@@ -48,7 +48,7 @@ pub use factor::{
     compute_factor_tables, compute_factor_tables_with, cut_transform, AxisFactor, CutFactor,
     FactorGrids,
 };
-pub use set::FootprintSet;
+pub use set::{FootprintSet, VANISHING};
 pub use slice::{
     axis_transform, basis_transform, compute_fine, compute_fine_with, footprint_spectrum,
     support_radius, Transforms,
@@ -111,6 +111,11 @@ impl FineTable {
             cy,
             data,
         }
+    }
+
+    /// The largest magnitude of its samples (0 for an empty table; NaN samples are skipped).
+    pub fn peak(&self) -> f64 {
+        self.data.iter().fold(0.0, |m: f64, v| m.max(v.abs()))
     }
 
     /// Sample at signed fine indices (zero outside).

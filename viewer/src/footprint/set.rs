@@ -4,8 +4,21 @@
 use super::factor::{compute_factor_tables_with, AxisFactor, FactorGrids};
 use super::mipmap;
 use super::slice::compute_fine;
+use super::FineTable;
 use super::Footprint;
 use super::FootprintParams;
+
+/// A band's table whose peak is at most this fraction of the largest peak of the view's tables
+/// is left out, and its coefficients with it. On a view along an axis the four wavelet types
+/// with ψ along that axis project to zero (∫ψ = 0: their computed tables are rounding noise,
+/// ~1e-17 of the peak), so an axis view splats 3 of the 7 wavelet types. A coefficient left out
+/// changes a pixel by at most this fraction of what a coefficient of the same magnitude adds
+/// through the largest table: ~100 dB below the f32 image's rounding. Off an axis, a ψ along
+/// the view direction projects to a small odd function that the exact image needs, and its
+/// table stays while it is larger than that: at 1e-7 rad from an axis a Haar table still peaks
+/// at ~3e-8 of the largest and is kept; the smoother families' fall with the square of the
+/// angle or faster and are left out there.
+pub const VANISHING: f64 = 1e-12;
 
 /// All footprints of one view: index `level · 8 + kind` (levels 0..=M; level 0 unused unless
 /// M = 0). With depth cueing the tables are per axis-factor triple instead, built on first use
@@ -15,7 +28,8 @@ use super::FootprintParams;
 pub struct FootprintSet {
     /// The parameters they were built for.
     pub params: FootprintParams,
-    /// Tables (`None` for (level, kind) pairs that do not occur; all `None` when cued).
+    /// Tables (`None` for (level, kind) pairs that do not occur or whose projection vanishes in
+    /// this view, see [`VANISHING`]; all `None` when cued).
     pub tables: Vec<Option<Footprint>>,
     /// Cued tables by factor triple.
     pub factor_tables:
@@ -44,7 +58,14 @@ impl FootprintSet {
             }
         } else {
             let top = compute_fine(p, m, &all);
+            let floor = VANISHING * top.iter().map(FineTable::peak).fold(0.0, f64::max);
             for (t, kind) in top.iter().zip(&all) {
+                if t.peak() <= floor {
+                    // A ψ along the view direction integrates to zero along every ray: its
+                    // splats would add nothing, and neither would those of the finer levels,
+                    // whose tables are this one's box sums.
+                    continue;
+                }
                 tables[m * 8 + *kind as usize] = Some(Footprint::build(t, p.gradient));
                 if *kind != 0 {
                     // Each level from the one above it (r = 2): the same box sums as from
