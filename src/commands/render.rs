@@ -330,7 +330,7 @@ pub fn run(a: RenderArgs) -> Result<()> {
         let image = &whole.image;
         write_outputs(image, &a)?;
         outln!(
-            "wrote {} ({}x{}) from {}: {} packets, {} bytes, {} coefficients splatted in one pass ({} backend)",
+            "wrote {} ({}x{}) from {}: {} packets, {} bytes, {} coefficients splatted in one pass ({} backend){}",
             a.output.display(),
             image.width,
             image.height,
@@ -338,7 +338,8 @@ pub fn run(a: RenderArgs) -> Result<()> {
             whole.packets,
             whole.bytes,
             whole.coefficients,
-            selected.backend.name()
+            selected.backend.name(),
+            left_out(whole.stats.vanished)
         );
         outln!(
             "opened in {:.1} ms, done {:.1} ms after the request (start-up included; decoding and planning together {:.1} ms, splatting {:.1} ms)",
@@ -475,5 +476,16 @@ fn report_quality(reference: Option<&Image>, image: &Image) {
             q_i_paper_db(&r.data, &image.data),
             snr_db(&r.data, &image.data)
         );
+    }
+}
+
+/// What a render summary says of the splats left out because their footprints vanish (a ψ along
+/// the direction of a view along an axis integrates to zero), summed over the views: nothing
+/// when there are none.
+fn left_out(vanished: usize) -> String {
+    if vanished == 0 {
+        String::new()
+    } else {
+        format!("; {vanished} splats left out (seen along an axis, the wavelets along it project to zero)")
     }
 }
