@@ -672,11 +672,16 @@ fn place(
     let (a, x0, dx) = Footprint::place_with_residual(t.s, t.cx, scr[0]);
     let (b, y0, dy) = Footprint::place_with_residual(t.s, t.cy, scr[1]);
     let idx = (b * t.s + a) as u32;
-    let x0 = x0.clamp(i32::MIN as i64, i32::MAX as i64) as i32;
-    let y0 = y0.clamp(i32::MIN as i64, i32::MAX as i64) as i32;
-    let rect = &atlas.phases[(t.first_phase + idx) as usize];
+    let phase = (t.first_phase + idx) as usize;
+    // The phase keeps a box of its samples (`footprint::TRIM`); its gradient phases the same.
+    let [ox, oy] = atlas.origins.get(phase).copied().unwrap_or([0, 0]);
+    let x0 = (x0 + ox as i64).clamp(i32::MIN as i64, i32::MAX as i64) as i32;
+    let y0 = (y0 + oy as i64).clamp(i32::MIN as i64, i32::MAX as i64) as i32;
+    let rect = &atlas.phases[phase];
     let (w, h) = (size.0 as i64, size.1 as i64);
-    if (x0 as i64) >= w
+    if rect.cols == 0
+        || rect.rows == 0
+        || (x0 as i64) >= w
         || (y0 as i64) >= h
         || x0 as i64 + rect.cols as i64 <= 0
         || y0 as i64 + rect.rows as i64 <= 0

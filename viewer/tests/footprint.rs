@@ -394,3 +394,76 @@ mod conjugate_symmetry {
         }
     }
 }
+
+/// The phases keep a box of their samples (`footprint::TRIM`): for every family on an axis, a
+/// few degrees off and obliquely, with and without gradients, each phase's kept samples are
+/// the fine table's at the phase's grid points from its box's corner on, everything outside
+/// the box is at most TRIM of its table's peak, a footprint and its two gradients share each
+/// box, and obliquely the boxes leave samples out (the cubic family's most).
+#[test]
+fn phases_keep_every_sample_above_the_trim() {
+    use wavesplat_viewer::footprint::{FineTable, Footprint, Phases, TRIM};
+    // Every sample of phase (a, b) of `t`, kept or not, against what `phases` holds.
+    let check = |t: &FineTable, phases: &Phases, what: &str| -> (usize, usize) {
+        let (s, floor) = (t.s, TRIM * t.peak());
+        let (mut kept, mut all) = (0, 0);
+        for b in 0..s {
+            for a in 0..s {
+                let p = phases.rects[b * s + a];
+                let cols = (t.nx + s - 1 - a) / s;
+                let rows = (t.ny + s - 1 - b) / s;
+                for l in 0..rows {
+                    for k in 0..cols {
+                        let v = t.data[(l * s + b) * t.nx + k * s + a];
+                        all += 1;
+                        let inside = (p.x0..p.x0 + p.cols).contains(&k)
+                            && (p.y0..p.y0 + p.rows).contains(&l);
+                        if inside {
+                            kept += 1;
+                            let got = phases.data[p.offset + (l - p.y0) * p.cols + (k - p.x0)];
+                            assert_eq!(got, v as f32, "{what}: phase ({a},{b}) sample ({k},{l})");
+                        } else {
+                            assert!(
+                                v.abs() <= floor,
+                                "{what}: ({a},{b}) ({k},{l}) {v:e} left out"
+                            );
+                        }
+                    }
+                }
+            }
+        }
+        (kept, all)
+    };
+    for family in [Family::Haar, Family::Linear, Family::Cubic] {
+        for (alpha, beta) in [(0.0, 0.0), (0.05, 0.02), (0.66, 0.91)] {
+            let p = params(family, 2, alpha, beta, 1.3);
+            for t in compute_fine(&p, 1, &[1, 3, 7]) {
+                let what = format!("{family} ({alpha},{beta})");
+                let plain = Footprint::build(&t, false);
+                let (kept, all) = check(&t, &plain.phases, &what);
+                let f = Footprint::build(&t, true);
+                for (g, p) in f.phases.rects.iter().zip(&plain.phases.rects) {
+                    let inside = g.cols * g.rows > 0
+                        && (g.x0 <= p.x0
+                            && g.y0 <= p.y0
+                            && p.x0 + p.cols <= g.x0 + g.cols
+                            && p.y0 + p.rows <= g.y0 + g.rows);
+                    assert!(p.cols * p.rows == 0 || inside, "{what}: {g:?} holds {p:?}");
+                }
+                let gx = t.derivative(0);
+                let gy = t.derivative(1);
+                check(&t, &f.phases, &what);
+                check(&gx, &f.grad_x, &format!("{what} ∂x"));
+                check(&gy, &f.grad_y, &format!("{what} ∂y"));
+                for (i, r) in f.phases.rects.iter().enumerate() {
+                    for g in [&f.grad_x.rects[i], &f.grad_y.rects[i]] {
+                        assert_eq!((g.x0, g.y0, g.cols, g.rows), (r.x0, r.y0, r.cols, r.rows));
+                    }
+                }
+                if (alpha, beta) == (0.66, 0.91) && family == Family::Cubic {
+                    assert!(kept * 10 < all * 8, "{what}: kept {kept} of {all}");
+                }
+            }
+        }
+    }
+}

@@ -121,6 +121,10 @@ pub struct FootprintAtlas {
     pub data: Vec<f32>,
     /// The phases.
     pub phases: Vec<PhaseRect>,
+    /// Per phase, the first column and row it keeps of the whole phase
+    /// ([`crate::footprint::Phase`]): a splat of it starts that many pixels right of and below
+    /// where the whole phase would (host only; a backend reads the records, which carry it).
+    pub origins: Vec<[u32; 2]>,
     /// Identifies the view the atlas belongs to (a new atlas gets a new value).
     pub generation: u64,
 }
@@ -171,6 +175,7 @@ impl FootprintAtlas {
             samples += set.data.len();
         }
         self.phases.reserve(phases);
+        self.origins.reserve(phases);
         self.data.reserve(samples);
     }
 
@@ -184,6 +189,8 @@ impl FootprintAtlas {
                 cols: p.cols as u32,
                 rows: p.rows as u32,
             }));
+            self.origins
+                .extend(set.rects.iter().map(|p| [p.x0 as u32, p.y0 as u32]));
             self.data.extend_from_slice(&set.data);
         }
         TableRef {

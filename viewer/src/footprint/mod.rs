@@ -177,15 +177,20 @@ impl FineTable {
 }
 
 /// One phase of a footprint: where its samples (the fine table's at pixel spacing, row-major)
-/// lie in its [`Phases`] buffer.
+/// lie in its [`Phases`] buffer, and which of them it keeps: the box from column `x0` and row
+/// `y0` of the whole phase that holds every sample above [`TRIM`] of the table's peak.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Phase {
     /// First sample in [`Phases::data`].
     pub offset: usize,
-    /// Columns.
+    /// Columns kept.
     pub cols: usize,
-    /// Rows.
+    /// Rows kept.
     pub rows: usize,
+    /// First column kept (of the whole phase, whose column 0 is the table's first).
+    pub x0: usize,
+    /// First row kept.
+    pub y0: usize,
 }
 
 /// The S × S phases of one fine table, their samples in one buffer (a view minified far gets
@@ -229,27 +234,82 @@ pub struct Footprint {
     pub grad_y: Phases,
 }
 
-/// Splits a fine table into its S × S phases.
-fn split_phases(t: &FineTable) -> Phases {
-    let s = t.s;
-    let mut rects = Vec::with_capacity(s * s);
-    let mut data = Vec::with_capacity(t.data.len());
+/// A table's samples at most this fraction of its peak are left out of its phases where they
+/// border them: each phase keeps the smallest box of its samples that holds every larger one.
+/// The footprints are compactly supported, but their computed tables carry tails of rounding
+/// and of the pixel filter's spectrum far below that, and a phase's rectangle has corners
+/// beyond an oblique footprint's hexagonal support: at 1e-6 a linear 256² view's finest
+/// tables lose ~20 % of their samples and a cubic one's ~50 %, each sample that many fewer
+/// pixel updates per splat. A sample left out changes its pixel by at most this fraction of
+/// what the splat's largest sample adds, far below the tables' own error against exact line
+/// integrals (60–80 dB on the MRI): the MRI's images with and without the trim differ at
+/// 155–208 dB, at the f32 sums' rounding.
+pub const TRIM: f64 = 1e-6;
+
+/// Splits fine tables of one footprint (the table, or the table and its two gradients) into
+/// their S × S phases, phase (a, b) at index b·S + a, each phase cut to the smallest box of its
+/// samples that holds every sample above [`TRIM`] of its table's peak in any of the tables (a
+/// footprint and its gradients share each box, so their records cover the same pixels and are
+/// summed in one sweep); a phase with none keeps nothing. Finding a box reads only what it
+/// leaves out and one sample more per row and side (rows from the top and the bottom until one
+/// holds a sample above the floor, then each row's ends inwards), so that cutting costs less
+/// than the copy it saves.
+fn split_phases(tables: &[&FineTable]) -> Vec<Phases> {
+    let t0 = tables[0];
+    let s = t0.s;
+    let floors: Vec<f64> = tables.iter().map(|t| TRIM * t.peak()).collect();
+    let mut out: Vec<Phases> = tables
+        .iter()
+        .map(|t| Phases {
+            rects: Vec::with_capacity(s * s),
+            data: Vec::with_capacity(t.data.len()),
+        })
+        .collect();
     for b in 0..s {
         for a in 0..s {
-            let cols = (t.nx + s - 1 - a) / s;
-            let rows = (t.ny + s - 1 - b) / s;
-            rects.push(Phase {
-                offset: data.len(),
-                cols,
-                rows,
-            });
-            for l in 0..rows {
-                let row = &t.data[(l * s + b) * t.nx..];
-                data.extend((0..cols).map(|k| row[k * s + a] as f32));
+            let cols = (t0.nx + s - 1 - a) / s;
+            let rows = (t0.ny + s - 1 - b) / s;
+            let (mut k0, mut k1, mut l0, mut l1) = (cols, 0, rows, 0);
+            for (t, &floor) in tables.iter().zip(&floors) {
+                // Row l of the phase: its sample k is row(l)[k·S].
+                let row = |l: usize| &t.data[(l * s + b) * t.nx + a..];
+                let above = |k: usize, l: usize| row(l)[k * s].abs() > floor;
+                let occupied =
+                    |l: usize| row(l).iter().step_by(s).take(cols).any(|v| v.abs() > floor);
+                let Some(top) = (0..rows).find(|&l| occupied(l)) else {
+                    continue;
+                };
+                let bottom = (top..rows).rev().find(|&l| occupied(l)).unwrap_or(top);
+                l0 = l0.min(top);
+                l1 = l1.max(bottom + 1);
+                for l in top..=bottom {
+                    if let Some(k) = (0..k0.min(cols)).find(|&k| above(k, l)) {
+                        k0 = k;
+                    }
+                    if let Some(k) = (k1..cols).rev().find(|&k| above(k, l)) {
+                        k1 = k + 1;
+                    }
+                }
+            }
+            if k0 >= k1 || l0 >= l1 {
+                (k0, k1, l0, l1) = (0, 0, 0, 0);
+            }
+            for (phases, t) in out.iter_mut().zip(tables) {
+                phases.rects.push(Phase {
+                    offset: phases.data.len(),
+                    cols: k1 - k0,
+                    rows: l1 - l0,
+                    x0: k0,
+                    y0: l0,
+                });
+                for l in l0..l1 {
+                    let row = &t.data[(l * s + b) * t.nx..];
+                    phases.data.extend((k0..k1).map(|k| row[k * s + a] as f32));
+                }
             }
         }
     }
-    Phases { rects, data }
+    out
 }
 
 impl Footprint {
@@ -259,18 +319,26 @@ impl Footprint {
             s: t.s,
             cx: t.cx,
             cy: t.cy,
-            phases: split_phases(t),
+            phases: split_phases(&[t]).pop().unwrap_or_default(),
             grad_x: Phases::default(),
             grad_y: Phases::default(),
         }
     }
 
-    /// Splits a fine table and its gradient into phases.
+    /// Splits a fine table and its gradient into phases (each phase and its two gradient
+    /// phases cut to one box).
     pub fn with_gradient(t: &FineTable) -> Footprint {
+        let (gx, gy) = (t.derivative(0), t.derivative(1));
+        let [phases, grad_x, grad_y]: [Phases; 3] = split_phases(&[t, &gx, &gy])
+            .try_into()
+            .expect("three tables give three phase sets");
         Footprint {
-            grad_x: split_phases(&t.derivative(0)),
-            grad_y: split_phases(&t.derivative(1)),
-            ..Footprint::from_fine(t)
+            s: t.s,
+            cx: t.cx,
+            cy: t.cy,
+            phases,
+            grad_x,
+            grad_y,
         }
     }
 
