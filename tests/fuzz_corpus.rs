@@ -143,15 +143,23 @@ fn the_reader_seeds_decode_to_volumes() {
 #[test]
 fn the_meter_sees_a_large_allocation() {
     let _serial = meter::serial();
-    // The bound the reader targets check is only as good as the count behind it.
+    // The bound the reader targets check is only as good as the count behind it. The count is
+    // the whole process's, and the test harness's own thread allocates and frees (the results
+    // of the tests before) while a test of this file measures: a measure can come out a little
+    // lower than what was allocated (seen: 48 MiB measured as 24 bytes less), so the checks
+    // allow that much.
+    const HARNESS_SLACK: usize = 64 << 10;
     let peak = meter::peak_during(|| {
         let v = vec![1u8; 48 << 20];
         std::hint::black_box(&v);
     });
-    assert!(peak >= 48 << 20, "{peak}");
+    assert!(peak + HARNESS_SLACK >= 48 << 20, "{peak}");
     assert!(peak > targets::alloc_bound(1024), "{peak}");
     let small = meter::peak_during(|| {
-        std::hint::black_box(vec![0u8; 1000]);
+        std::hint::black_box(vec![0u8; 256 << 10]);
     });
-    assert!((1000..1 << 20).contains(&small), "{small}");
+    assert!(
+        ((256 << 10) - HARNESS_SLACK..1 << 20).contains(&small),
+        "{small}"
+    );
 }
