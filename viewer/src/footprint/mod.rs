@@ -254,7 +254,7 @@ pub const TRIM: f64 = 1e-6;
 /// leaves out and one sample more per row and side (rows from the top and the bottom until one
 /// holds a sample above the floor, then each row's ends inwards), so that cutting costs less
 /// than the copy it saves.
-fn split_phases(tables: &[&FineTable]) -> Vec<Phases> {
+fn split_phases<'t>(tables: &[&'t FineTable]) -> Vec<Phases> {
     let t0 = tables[0];
     let s = t0.s;
     let floors: Vec<f64> = tables.iter().map(|t| TRIM * t.peak()).collect();
@@ -269,13 +269,19 @@ fn split_phases(tables: &[&FineTable]) -> Vec<Phases> {
         for a in 0..s {
             let cols = (t0.nx + s - 1 - a) / s;
             let rows = (t0.ny + s - 1 - b) / s;
+            // Row l of the phase in table t: its sample k is row(t, l)[k·S].
+            let row =
+                |t: &'t FineTable, l: usize| -> &'t [f64] { &t.data[(l * s + b) * t.nx + a..] };
             let (mut k0, mut k1, mut l0, mut l1) = (cols, 0, rows, 0);
-            for (t, &floor) in tables.iter().zip(&floors) {
-                // Row l of the phase: its sample k is row(l)[k·S].
-                let row = |l: usize| &t.data[(l * s + b) * t.nx + a..];
-                let above = |k: usize, l: usize| row(l)[k * s].abs() > floor;
-                let occupied =
-                    |l: usize| row(l).iter().step_by(s).take(cols).any(|v| v.abs() > floor);
+            for (&t, &floor) in tables.iter().zip(&floors) {
+                let above = |k: usize, l: usize| row(t, l)[k * s].abs() > floor;
+                let occupied = |l: usize| {
+                    row(t, l)
+                        .iter()
+                        .step_by(s)
+                        .take(cols)
+                        .any(|v| v.abs() > floor)
+                };
                 let Some(top) = (0..rows).find(|&l| occupied(l)) else {
                     continue;
                 };
@@ -294,7 +300,7 @@ fn split_phases(tables: &[&FineTable]) -> Vec<Phases> {
             if k0 >= k1 || l0 >= l1 {
                 (k0, k1, l0, l1) = (0, 0, 0, 0);
             }
-            for (phases, t) in out.iter_mut().zip(tables) {
+            for (phases, &t) in out.iter_mut().zip(tables) {
                 phases.rects.push(Phase {
                     offset: phases.data.len(),
                     cols: k1 - k0,
@@ -303,8 +309,8 @@ fn split_phases(tables: &[&FineTable]) -> Vec<Phases> {
                     y0: l0,
                 });
                 for l in l0..l1 {
-                    let row = &t.data[(l * s + b) * t.nx..];
-                    phases.data.extend((k0..k1).map(|k| row[k * s + a] as f32));
+                    let row = row(t, l);
+                    phases.data.extend((k0..k1).map(|k| row[k * s] as f32));
                 }
             }
         }

@@ -58,9 +58,10 @@ impl FootprintSet {
             }
         } else {
             let top = compute_fine(p, m, &all);
-            let floor = VANISHING * top.iter().map(FineTable::peak).fold(0.0, f64::max);
-            for (t, kind) in top.iter().zip(&all) {
-                if t.peak() <= floor {
+            let peaks: Vec<f64> = top.iter().map(FineTable::peak).collect();
+            let floor = VANISHING * peaks.iter().copied().fold(0.0, f64::max);
+            for ((t, kind), &peak) in top.iter().zip(&all).zip(&peaks) {
+                if peak <= floor {
                     // A ψ along the view direction integrates to zero along every ray: its
                     // splats would add nothing, and neither would those of the finer levels,
                     // whose tables are this one's box sums.
