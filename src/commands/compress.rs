@@ -318,13 +318,16 @@ fn print_summary(volume: &Volume, c: &Compressed, out: &std::path::Path) {
         s.packets
     );
     let b = &s.breakdown;
+    // The coders' estimates, in bytes; a part of a tiny stream can come out a hair below zero
+    // (the f32 logarithm of the range coder's estimate), which would print as "-0".
+    let bytes = |bits: f64| (bits / 8.0).max(0.0);
     outln!(
         "bytes: header {} | types/depth/channel {:.0} | positions {:.0} | signs {:.0} | values {:.0} | packet framing {}",
         s.header_bytes,
-        b.tag_bits / 8.0,
-        b.position_bits / 8.0,
-        b.sign_bits / 8.0,
-        b.value_bits / 8.0,
+        bytes(b.tag_bits),
+        bytes(b.position_bits),
+        bytes(b.sign_bits),
+        bytes(b.value_bits),
         b.framing_bytes
     );
 }
