@@ -6,7 +6,8 @@
 use rand::{Rng, SeedableRng};
 use wavesplat_codec::format::bytes::ByteWriter;
 use wavesplat_codec::format::packet::{
-    declared_count, decode_packet, decode_packet_within, decode_packets_within, DecodeBudget,
+    declared_count, decode_packet, decode_packet_within, decode_packets_within, read_framing,
+    DecodeBudget,
 };
 use wavesplat_codec::format::{parse_file, write_file, CoderKind, FormatError, Header};
 use wavesplat_codec::layout::Geometry;
@@ -210,4 +211,52 @@ fn fast_coder_packets_of_garbage_or_flipped_bits_are_refused_or_decode_whole() {
             assert!(decode_packet(&big, &p).is_err(), "{len} bytes decoded");
         }
     }
+}
+
+/// A decoding thread hands its coded cells and pyramid buffers from one packet to the next
+/// (they are region-sized, and fresh ones cost page faults). What one packet leaves in them
+/// must not reach the next: each packet of a file, decoded on one thread after the others in
+/// either order, and after a cut copy of a packet that failed halfway, equals the same packet
+/// decoded alone on a fresh thread.
+#[test]
+fn packets_decode_the_same_after_any_other_on_the_same_thread() {
+    let bytes = sigmap_file([40, 33, 29], Target::Fraction(0.2));
+    let file = parse_file(&bytes).unwrap();
+    let h = &file.header;
+    assert!(file.packets.len() >= 8, "{} packets", file.packets.len());
+    let alone: Vec<_> = file
+        .packets
+        .iter()
+        .map(|p| {
+            std::thread::scope(|s| {
+                s.spawn(|| decode_packet(h, p).unwrap().coefficients)
+                    .join()
+                    .unwrap()
+            })
+        })
+        .collect();
+    let mut orders: Vec<Vec<usize>> = vec![(0..file.packets.len()).collect()];
+    orders.push(orders[0].iter().rev().copied().collect());
+    std::thread::scope(|s| {
+        s.spawn(|| {
+            for order in &orders {
+                for &i in order {
+                    let p = file.packets[i];
+                    // A packet cut in the middle of its payload: decoding fails partway
+                    // (or, for a tiny one, decodes what is left), leaving cells behind.
+                    let payload = read_framing(h, p).unwrap().payload;
+                    let cut = forged_packet(
+                        h,
+                        declared_count(h, p).unwrap(),
+                        &payload[..payload.len() / 2],
+                    );
+                    let _ = decode_packet(h, &cut);
+                    let got = decode_packet(h, p).unwrap().coefficients;
+                    assert_eq!(got, alone[i], "packet {i}");
+                }
+            }
+        })
+        .join()
+        .unwrap()
+    });
 }

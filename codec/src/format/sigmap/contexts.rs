@@ -58,8 +58,27 @@ impl Models {
             occupied: (0..occupied).map(|_| BitModel::new()).collect(),
             sign: (0..nb * SIGN_CONTEXTS).map(|_| BitModel::new()).collect(),
             value: vec![AdaptiveUintModel::new(); nb * value_contexts],
-            coded: CodedCells::default(),
+            coded: SPARE_CELLS
+                .try_with(|c| c.take())
+                .ok()
+                .flatten()
+                .unwrap_or_default(),
         }
+    }
+}
+
+thread_local! {
+    /// The coded cells of this thread's last packet, handed to the next: their dense arrays
+    /// are region-sized, and every packet's fresh ones cost a page fault per 4 KiB (the
+    /// `CodedCells::reset` before each use clears what the last packet set).
+    static SPARE_CELLS: std::cell::Cell<Option<CodedCells>> = const { std::cell::Cell::new(None) };
+}
+
+impl Drop for Models {
+    fn drop(&mut self) {
+        let coded = std::mem::take(&mut self.coded);
+        // During the thread's exit the spare is gone: the cells are simply freed.
+        let _ = SPARE_CELLS.try_with(|c| c.set(Some(coded)));
     }
 }
 

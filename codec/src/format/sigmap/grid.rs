@@ -138,6 +138,56 @@ pub(super) struct Pyramid {
     pub(super) bytes: Vec<u8>,
 }
 
+thread_local! {
+    /// Byte buffers of this thread's dropped pyramids, at most [`SPARE_PYRAMIDS`] of them.
+    /// Every packet builds its own region-sized pyramids; a buffer fresh from the allocator
+    /// cost a page fault per 4 KiB on top of its clearing (most of a decoding thread's page
+    /// faults), and a reused one costs only the clearing.
+    static SPARE_BYTES: std::cell::RefCell<Vec<Vec<u8>>> = const {
+        std::cell::RefCell::new(Vec::new())
+    };
+}
+
+/// Most spare pyramid buffers a thread keeps (a packet holds a few at a time: the parent
+/// level's bands and a level's cousin union).
+const SPARE_PYRAMIDS: usize = 16;
+
+/// `n` zero bytes, in a spare buffer that holds them when this thread has one.
+fn zeroed(n: usize) -> Vec<u8> {
+    let spare = SPARE_BYTES
+        .try_with(|s| {
+            let mut s = s.borrow_mut();
+            let i = s.iter().position(|b| b.capacity() >= n)?;
+            Some(s.swap_remove(i))
+        })
+        .ok()
+        .flatten();
+    match spare {
+        Some(mut b) => {
+            b.clear();
+            b.resize(n, 0);
+            b
+        }
+        None => vec![0; n],
+    }
+}
+
+impl Drop for Pyramid {
+    fn drop(&mut self) {
+        let bytes = std::mem::take(&mut self.bytes);
+        if bytes.capacity() == 0 {
+            return;
+        }
+        // During the thread's exit the spares are gone: the buffer is simply freed.
+        let _ = SPARE_BYTES.try_with(|s| {
+            let mut s = s.borrow_mut();
+            if s.len() < SPARE_PYRAMIDS {
+                s.push(bytes);
+            }
+        });
+    }
+}
+
 impl Pyramid {
     pub(super) fn new(extent: [u32; 3]) -> Pyramid {
         let mut levels = Vec::new();
@@ -152,7 +202,7 @@ impl Pyramid {
         }
         Pyramid {
             levels,
-            bytes: vec![0; total],
+            bytes: zeroed(total),
         }
     }
 
