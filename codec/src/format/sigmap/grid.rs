@@ -139,10 +139,11 @@ pub(super) struct Pyramid {
 }
 
 thread_local! {
-    /// Byte buffers of this thread's dropped pyramids, at most [`SPARE_PYRAMIDS`] of them.
-    /// Every packet builds its own region-sized pyramids; a buffer fresh from the allocator
-    /// cost a page fault per 4 KiB on top of its clearing (most of a decoding thread's page
-    /// faults), and a reused one costs only the clearing.
+    /// Byte buffers of this thread's dropped pyramids, the largest that fit in
+    /// [`SPARE_PYRAMIDS`] buffers and [`SPARE_PYRAMID_BYTES`]. Every packet builds its own
+    /// region-sized pyramids; a buffer fresh from the allocator cost a page fault per 4 KiB on
+    /// top of its clearing (most of a decoding thread's page faults), and a reused one costs
+    /// only the clearing.
     static SPARE_BYTES: std::cell::RefCell<Vec<Vec<u8>>> = const {
         std::cell::RefCell::new(Vec::new())
     };
@@ -151,6 +152,11 @@ thread_local! {
 /// Most spare pyramid buffers a thread keeps (a packet holds a few at a time: the parent
 /// level's bands and a level's cousin union).
 const SPARE_PYRAMIDS: usize = 16;
+
+/// Most bytes a thread keeps in spare pyramid buffers. A pyramid of the largest dense region
+/// is ~4.8 MB; a 128-voxel tile's finest region's ~0.3 MB. Beyond this, what a large or
+/// hostile packet allocated is freed as before, not held by the thread.
+const SPARE_PYRAMID_BYTES: usize = 16 << 20;
 
 /// `n` zero bytes, in a spare buffer that holds them when this thread has one.
 fn zeroed(n: usize) -> Vec<u8> {
@@ -181,8 +187,14 @@ impl Drop for Pyramid {
         // During the thread's exit the spares are gone: the buffer is simply freed.
         let _ = SPARE_BYTES.try_with(|s| {
             let mut s = s.borrow_mut();
-            if s.len() < SPARE_PYRAMIDS {
-                s.push(bytes);
+            s.push(bytes);
+            // The smallest go first, so that small buffers do not crowd out the large ones
+            // the next packet's regions need.
+            while s.len() > SPARE_PYRAMIDS
+                || s.iter().map(Vec::capacity).sum::<usize>() > SPARE_PYRAMID_BYTES
+            {
+                let smallest = (0..s.len()).min_by_key(|&i| s[i].capacity()).unwrap_or(0);
+                s.swap_remove(smallest);
             }
         });
     }
