@@ -4,8 +4,10 @@
 # use): compression to 1.25 % of the bytes, decompression, `render` from process start to the
 # PNG (one pass and --progressive), bytes in memory to the exact image (`stages`), decoding per
 # core (codec's `decode` example, one thread) and on the pool, and splat accumulation against
-# the same-loop ceiling (`bench throughput`). Prints a markdown table; REPEAT runs each (min and
-# median). Run it on a quiet machine: every figure is wall time.
+# the same-loop ceiling (`bench throughput`), the last byte and convergence of a 10 Mbit/s session
+# (`bench refine`), and compression of the test set's thin MR slab and RGB volume against SPERR
+# (`testset.py`, written once). Prints a markdown table; REPEAT runs each (min and median). Run it
+# on a quiet machine: every figure is wall time.
 #   bash scripts/speed-table.sh [REPEAT]
 set -euo pipefail
 source "$(dirname "$0")/peers_setup.sh" speed
@@ -69,13 +71,59 @@ threads=$(echo "$tp" | sed -n 's/.* voxels, \([0-9]*\) threads.*/\1/p')
 g() { echo "($1) / 1000000000" | bc -l | xargs printf '%.2f'; }
 ratio() { echo "($1) / ($2)" | bc -l | xargs printf '%.2f'; }
 
+# The issue's link row: MNI at 5 % over a simulated 10 Mbit/s link, 16.6 ms frames; the last
+# byte the session takes and its first converged frame, from the step opened at rest (step 0).
+"$W" bench refine --volume "$VOL" --budgets 16.6 --links 10 --no-table4 --cpu --out "$TMP/refine" >/dev/null 2>&1
+link=$(awk -F, 'NR > 1 && $4 == 0 {if ($8 > mb) {mb = $8; tb = $5} if ($17 == "true" && !c) c = $5}
+  END {printf "last byte %.0f ms, converged %.0f ms (%.0f ms later; %d bytes)", tb, c, c - tb, mb}' "$TMP/refine/refine.csv")
+
+# The other volumes of the compression row: the test set's 16-slice MR slab and its RGB volume
+# at 1.25 % of their sample bytes, against SPERR at the same bytes (per channel, one rate).
+TS="$TMP/testset"
+for v in slab16 mni-rgb; do
+  grep -q "^$v	" "$TS/manifest.tsv" 2>/dev/null || "$VENV/bin/python" "$ROOT/scripts/testset.py" make "$TS" --only "$v" >/dev/null
+done
+others=""
+while IFS=$'\t' read -r name dims dt ch _; do
+  case $name in slab16|mni-rgb) ;; *) continue ;; esac
+  target=$(( $(echo "$dims" | tr ',' '*') * ch * 125 / 10000 ))
+  t=$(for _ in $(seq "$N"); do seconds "$W" compress "$TS/$name.raw" --dims "$dims" --dtype "$dt" \
+      --channels "$ch" --target-bytes "$target" -o "$TMP/$name.wsp"; done | stats)
+  "$W" decompress "$TMP/$name.wsp" -o "$TMP/$name.f32" >/dev/null
+  q=$("$VENV/bin/python" "$ROOT/scripts/testset.py" qi "$TS" "$name" "$TMP/$name.f32" | awk '{print $2}')
+  s=$("$VENV/bin/python" - "$ROOT/scripts" "$TS" "$name" "$target" "$N" <<'EOF'
+import sys, time
+sys.path.insert(0, sys.argv[1])
+import numpy as np, testset, peers
+ref, _ = testset.load(sys.argv[2], sys.argv[3])
+target, n = int(sys.argv[4]), int(sys.argv[5])
+comp, decomp = peers.h5_codec(lambda r: peers.hdf5plugin.Sperr(rate=r, swap=True), ref.shape[:3])
+chans = [np.ascontiguousarray(ref[..., c]) for c in range(ref.shape[3])]
+size_of = lambda r: sum(len(comp(x, r)[0]) for x in chans)
+rate, size, _ = peers.fit(size_of, target, 2.0**-16, 16.0, guesses=[target * 8 / ref.size])
+ts = []
+for _ in range(n):
+    t = time.perf_counter()
+    blobs = [comp(x, rate)[0] for x in chans]
+    ts.append(time.perf_counter() - t)
+dec = np.stack([decomp(b, rate)[0] for b in blobs], axis=-1)
+q, _ = testset.qi_psnr(ref, dec)
+print(f"{min(ts):.3g} / {sorted(ts)[(len(ts) - 1) // 2]:.3g} s ({size} bytes), Q_I {q:.2f} dB")
+EOF
+)
+  others="$others| compress $name ($dims x$ch) to 1.25 %, defaults (s) | $t, Q_I $q dB | SPERR $s |
+"
+done < "$TS/manifest.tsv"
+
 echo "MNI 1.25 %: wavesplat $bytes bytes, SPERR $sperr_bytes bytes; $(nproc) cores; min / median of $N"
 echo
 echo "| row | wavesplat | reference |"
 echo "|---|---|---|"
 echo "| compress MNI to 1.25 %, defaults (s) | $comp | SPERR $sperr_comp (one thread) |"
+printf '%s' "$others"
 echo "| file → 256² image, \`render --cpu\`, process start to PNG (s) | one pass $one; --progressive $prog | SPERR decompress alone $sperr_dec |"
 echo "| the same, done after the request (ms) | one pass $one_done; --progressive $prog_done | |"
 echo "| bytes in memory → exact 256² image (ms, median of 15) | stages $inproc; one pass $onepass | |"
+echo "| MNI 5 % over 10 Mbit/s, 16.6 ms frames (\`bench refine\`) | $link | |"
 echo "| decode, default coder (M coefficients/s) | $core per core (one thread); $(echo "$dec / 1000000" | bc -l | xargs printf '%.1f') on $threads threads (MNI 5 %) | |"
 echo "| splat, linear 256² / cubic 512² (G pixel updates/s per core, MNI 5 %) | $(g "$lin / $threads") / $(g "$cub / $threads") | ceiling 16² $(g "$ceil16"), 48² $(g "$ceil48") per core: cubic at $(ratio "$cub / $threads" "$ceil48") of 48², linear at $(ratio "$lin / $threads" "$ceil16") of 16²; the loop over each view's own footprints $(g "$lin_ceil") / $(g "$cub_ceil"): $(ratio "$lin / $threads" "$lin_ceil") / $(ratio "$cub / $threads" "$cub_ceil") of it |"

@@ -87,7 +87,10 @@ pub struct CompressArgs {
     /// Conjugate-gradient iterations per refit of the refinement. Default: the library's.
     #[arg(long)]
     pub refine_iterations: Option<usize>,
-    /// Send the oracle's coefficients unchanged (no least-squares refinement).
+    /// Send the oracle's coefficients unchanged (no least-squares refinement): several times
+    /// faster to compress, for less X-ray quality (MNI at 1.25 %: 0.86 instead of 1.7 s,
+    /// 0.46 s with --levels 2; 89.5 instead of 92.3 dB Q_I). --refine-rounds 0 keeps most of
+    /// the refinement's gain (92.1 dB) in 1.4 s.
     #[arg(long)]
     pub no_refine: bool,
     /// Refuse volumes whose estimated working memory exceeds this (bytes, or with a K, M or G
