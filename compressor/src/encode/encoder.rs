@@ -8,7 +8,7 @@ use super::prepare::{
     axis_views, choose_tiling, Prepared, Ranked, Scored, COARSE_LAYER_MIN_LEVELS,
 };
 use crate::order::{cluster_order, Item};
-use crate::refine::{refine_with, written, KeptValue, Output, RefineOptions, Refined};
+use crate::refine::{refine_with, KeptValue, Output, RefineOptions, Refined};
 use crate::select::top_k;
 use rayon::prelude::*;
 use wavesplat_codec::dwt::fast::FastTransform;
@@ -46,7 +46,9 @@ impl Prepared {
         let [ox, oy, oz] = g.origin;
         let mut energy = [0.0f64; 3];
         for (c, target) in self.views.iter().enumerate() {
-            let mut r = written(g.coefficient_count(), 0.0f32);
+            // The grid goes back to the depth's scratch, for the next channel and this depth's
+            // refinement (a fresh one of the MNI volume, 51 MB, costs ~10 ms of page faults).
+            let mut r = self.scratch.floats(g.coefficient_count(), 0.0f32);
             for k in file.reconstruction.iter().flatten() {
                 if k.channel as usize == c {
                     let pos = [k.pos[0] as usize, k.pos[1] as usize, k.pos[2] as usize];
@@ -62,6 +64,7 @@ impl Prepared {
             for ((e, t), d) in energy.iter_mut().zip(target).zip(&decoded) {
                 *e += w * t.iter().zip(d).map(|(t, d)| (t - d).powi(2)).sum::<f64>();
             }
+            self.scratch.keep_floats([r]);
         }
         energy
             .iter()
