@@ -164,8 +164,7 @@ pub(super) fn coded_channels(
 /// One pass reads each sample once: slices are taken in fixed groups of eight, each group
 /// summing its slices' rows (along x) and columns (along y) and its part of the z view; the
 /// groups' z views are then added in order, so every sum adds the same terms in the same order
-/// whatever the thread count. Rows are summed two at a time, interleaved, so that the two
-/// running sums' additions overlap (each row still adds its samples in x order).
+/// whatever the thread count.
 pub(super) fn axis_views(
     dims: [usize; 3],
     at: &(impl Fn(usize, usize, usize) -> f64 + Sync),
@@ -184,25 +183,8 @@ pub(super) fn axis_views(
                 .map(|&z| {
                     let mut rows = vec![0.0; ny];
                     let mut cols = vec![0.0; nx];
-                    let mut y = 0;
-                    while y + 2 <= ny {
-                        let (first, second) = img[nx * y..nx * (y + 2)].split_at_mut(nx);
-                        let (mut a, mut b) = (0.0, 0.0);
-                        for x in 0..nx {
-                            let (d, e) = (at(x, y, z), at(x, y + 1, z));
-                            a += d;
-                            b += e;
-                            cols[x] += d;
-                            cols[x] += e;
-                            first[x] += d;
-                            second[x] += e;
-                        }
-                        rows[y] = a;
-                        rows[y + 1] = b;
-                        y += 2;
-                    }
-                    if y < ny {
-                        let line = &mut img[nx * y..nx * (y + 1)];
+                    // (`max(1)`: a volume without columns has no lines, not chunks of zero.)
+                    for (y, line) in img.chunks_mut(nx.max(1)).enumerate() {
                         let mut a = 0.0;
                         for x in 0..nx {
                             let d = at(x, y, z);
@@ -497,6 +479,7 @@ mod tests {
             [4, 9, 24],
             [31, 2, 1],
             [3, 3, 0],
+            [0, 4, 2],
         ];
         for dims in shapes {
             let [nx, ny, nz] = dims;
