@@ -34,19 +34,13 @@ row m2r0 --levels 2 --refine-rounds 0
 row nr --no-refine
 row m2nr --levels 2 --no-refine
 row m3nr --levels 3 --no-refine
-"$VENV/bin/python" - "$PEERS" "$TARGET" "$N" <<'EOF'
-import sys, time
+"$VENV/bin/python" - "$ROOT/scripts" "$TARGET" "$N" <<'EOF'
+import sys
 sys.path.insert(0, sys.argv[1])
-import peers
+import testset
+from testset import peers
 ref = peers.load_full()
-x = ref.astype("float32")
-target, n = int(sys.argv[2]), int(sys.argv[3])
-comp, decomp = peers.h5_codec(lambda r: peers.hdf5plugin.Sperr(rate=r, swap=True), x.shape)
-rate, size, _ = peers.fit(lambda r: len(comp(x, r)[0]), target, 2.0**-16, 16.0,
-                          guesses=[target * 8 / x.size])
-ts = []
-for _ in range(n):
-    t = time.perf_counter(); blob, _ = comp(x, rate); ts.append(time.perf_counter() - t)
-m = peers.metrics(ref, peers.views(ref), decomp(blob, rate)[0])
-print(f"| SPERR (one thread, same run) | {min(ts):.2f} | {len(blob)} | {m['qi_mean']:.2f} |")
+size, _, dec, ts, _ = testset.sperr_timed([ref.astype("float32")], int(sys.argv[2]), int(sys.argv[3]))
+m = peers.metrics(ref, peers.views(ref), dec[0])
+print(f"| SPERR (one thread, same run) | {min(ts):.2f} | {size} | {m['qi_mean']:.2f} |")
 EOF

@@ -26,23 +26,15 @@ seconds() { local s e; s=$(date +%s.%N); "$@" >/dev/null 2>&1; e=$(date +%s.%N);
 
 comp=$(for _ in $(seq "$N"); do seconds "$W" compress "$VOL" -o "$F" --target-bytes "$TARGET"; done | stats)
 bytes=$(stat -c %s "$F")
-sperr=$("$VENV/bin/python" - "$PEERS" "$VOL" "$bytes" "$N" <<'EOF'
-import sys, time
+sperr=$("$VENV/bin/python" - "$ROOT/scripts" "$VOL" "$bytes" "$N" <<'EOF'
+import sys
 sys.path.insert(0, sys.argv[1])
-import numpy as np, nibabel as nib, peers
+import numpy as np, nibabel as nib, testset
 v = np.asarray(nib.load(sys.argv[2]).dataobj).astype(np.float32)
 x = np.ascontiguousarray(v.transpose(2, 1, 0))
-target, n = int(sys.argv[3]), int(sys.argv[4])
-comp, decomp = peers.h5_codec(lambda r: peers.hdf5plugin.Sperr(rate=r, swap=True), x.shape)
-rate, size, _ = peers.fit(lambda r: len(comp(x, r)[0]), target, 2.0**-16, 16.0,
-                          guesses=[target * 8 / x.size])
-blob, _ = comp(x, rate)
-ct, dt = [], []
-for _ in range(n):
-    t = time.perf_counter(); comp(x, rate); ct.append(time.perf_counter() - t)
-    dt.append(decomp(blob, rate)[1])
+size, _, _, ct, dt = testset.sperr_timed([x], int(sys.argv[3]), int(sys.argv[4]))
 st = lambda a: f"{min(a):.3g} / {sorted(a)[(len(a) - 1) // 2]:.3g}"
-print(f"{len(blob)}|{st(ct)}|{st(dt)}")
+print(f"{size}|{st(ct)}|{st(dt)}")
 EOF
 )
 IFS='|' read -r sperr_bytes sperr_comp sperr_dec <<<"$sperr"
@@ -92,22 +84,13 @@ while IFS=$'\t' read -r name dims dt ch _; do
   "$W" decompress "$TMP/$name.wsp" -o "$TMP/$name.f32" >/dev/null
   q=$("$VENV/bin/python" "$ROOT/scripts/testset.py" qi "$TS" "$name" "$TMP/$name.f32" | awk '{print $2}')
   s=$("$VENV/bin/python" - "$ROOT/scripts" "$TS" "$name" "$target" "$N" <<'EOF'
-import sys, time
+import sys
 sys.path.insert(0, sys.argv[1])
-import numpy as np, testset, peers
+import numpy as np, testset
 ref, _ = testset.load(sys.argv[2], sys.argv[3])
-target, n = int(sys.argv[4]), int(sys.argv[5])
-comp, decomp = peers.h5_codec(lambda r: peers.hdf5plugin.Sperr(rate=r, swap=True), ref.shape[:3])
 chans = [np.ascontiguousarray(ref[..., c]) for c in range(ref.shape[3])]
-size_of = lambda r: sum(len(comp(x, r)[0]) for x in chans)
-rate, size, _ = peers.fit(size_of, target, 2.0**-16, 16.0, guesses=[target * 8 / ref.size])
-ts = []
-for _ in range(n):
-    t = time.perf_counter()
-    blobs = [comp(x, rate)[0] for x in chans]
-    ts.append(time.perf_counter() - t)
-dec = np.stack([decomp(b, rate)[0] for b in blobs], axis=-1)
-q, _ = testset.qi_psnr(ref, dec)
+size, _, dec, ts, _ = testset.sperr_timed(chans, int(sys.argv[4]), int(sys.argv[5]))
+q, _ = testset.qi_psnr(ref, np.stack(dec, axis=-1))
 print(f"{min(ts):.3g} / {sorted(ts)[(len(ts) - 1) // 2]:.3g} s ({size} bytes), Q_I {q:.2f} dB")
 EOF
 )

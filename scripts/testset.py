@@ -20,6 +20,7 @@ sample, u16/i16: 2; RGB: 3 samples per voxel).
 import math
 import os
 import sys
+import time
 
 import numpy as np
 
@@ -176,20 +177,33 @@ def qi_psnr(ref, dec):
     return float(np.mean(qis)), psnr
 
 
+def sperr_timed(chans, target, repeat=0, factors=(1.0,)):
+    """SPERR on each array of `chans` (one HDF5 chunk each) at one rate, the largest total
+    <= target bytes (the search starts at target·8/samples times each of `factors`); then
+    `repeat` timed compressions and decompressions of all of them (decompression timed inside
+    the HDF5 read). Returns (size, status, decoded arrays, compression seconds per repeat,
+    decompression seconds per repeat)."""
+    comp, decomp = peers.h5_codec(lambda r: peers.hdf5plugin.Sperr(rate=r, swap=True),
+                                  chans[0].shape)
+    nvox = sum(x.size for x in chans)
+    rate, size, status = peers.fit(lambda r: sum(len(comp(x, r)[0]) for x in chans), target,
+                                   2.0 ** -16, 16.0, guesses=[target * 8 / nvox * f for f in factors])
+    blobs = [comp(x, rate)[0] for x in chans]
+    ctimes, dtimes = [], []
+    for _ in range(repeat):
+        t = time.perf_counter()
+        [comp(x, rate) for x in chans]
+        ctimes.append(time.perf_counter() - t)
+        dtimes.append(sum(decomp(b, rate)[1] for b in blobs))
+    decoded = [decomp(b, rate)[0] for b in blobs]
+    return size, status, decoded, ctimes, dtimes
+
+
 def sperr_at(ref, target):
     """SPERR on each channel with one rate, the largest total <= target bytes."""
-    shape = ref.shape[:3]
-    comp, decomp = peers.h5_codec(lambda r: peers.hdf5plugin.Sperr(rate=r, swap=True), shape)
     chans = [np.ascontiguousarray(ref[..., c]) for c in range(ref.shape[3])]
-
-    def size_of(rate):
-        return sum(len(comp(x, rate)[0]) for x in chans)
-
-    nvox = ref.size
-    rate, size, status = peers.fit(size_of, target, 2.0 ** -16, 16.0,
-                                   guesses=[target * 8 / nvox * f for f in (1.0, 0.97, 0.9)])
-    dec = np.stack([decomp(comp(x, rate)[0], rate)[0] for x in chans], axis=-1)
-    return size, status, dec
+    size, status, dec, _, _ = sperr_timed(chans, target, factors=(1.0, 0.97, 0.9))
+    return size, status, np.stack(dec, axis=-1)
 
 
 def score(outdir, name, decoded, nbytes):
