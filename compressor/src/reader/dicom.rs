@@ -23,7 +23,8 @@
 //! Explicit VR Little Endian, Encapsulated Uncompressed, and the encapsulated ones
 //! dicom-pixeldata decodes: RLE Lossless, JPEG Baseline (Process 1), JPEG Extended (Process 2 &
 //! 4), JPEG Lossless Non-Hierarchical (Process 14, and Selection Value 1) in pure Rust; JPEG-LS
-//! (lossless and near-lossless) through CharLS (`charls`, built from source with cmake); JPEG
+//! (lossless and near-lossless) through CharLS (`charls`, built from source with cmake) when
+//! the default-off `jpeg-ls` feature is on, refused naming the feature otherwise; JPEG
 //! 2000 (lossless and lossy, and High-Throughput JPEG 2000) through OpenJPEG's Rust port
 //! (`openjp2`). JPEG XL needs a codec this build does not enable; such files fail with an error
 //! naming the transfer syntax.
@@ -66,6 +67,10 @@ pub const EXPANSION_SLACK: usize = 1 << 20;
 
 /// Transfer Syntax UID of RLE Lossless.
 const RLE_LOSSLESS: &str = "1.2.840.10008.1.2.5";
+
+/// Transfer Syntax UIDs of JPEG-LS, lossless and near-lossless.
+const JPEG_LS_LOSSLESS: &str = "1.2.840.10008.1.2.4.80";
+const JPEG_LS_NEAR_LOSSLESS: &str = "1.2.840.10008.1.2.4.81";
 
 /// SOP Class UID of a DICOMDIR (Media Storage Directory Storage): skipped in series directories.
 const DICOMDIR_SOP_CLASS: &str = "1.2.840.10008.1.3.10";
@@ -1647,6 +1652,16 @@ fn check_pixel_data(img: &Image, obj: &DefaultDicomObject) -> Result<(), ReadErr
         .transfer_syntax()
         .trim_end_matches('\0')
         .to_string();
+    let jpeg_ls = ts_uid == JPEG_LS_LOSSLESS || ts_uid == JPEG_LS_NEAR_LOSSLESS;
+    if jpeg_ls && !cfg!(feature = "jpeg-ls") {
+        return Err(dicom_err(
+            path,
+            Some(tags::TRANSFER_SYNTAX_UID),
+            format!(
+                "JPEG-LS ({ts_uid}) needs CharLS, which this build leaves out: rebuild with `--features jpeg-ls` (needs cmake and a C++ compiler), or transcode the series to another syntax"
+            ),
+        ));
+    }
     let ts = TransferSyntaxRegistry.get(&ts_uid).ok_or_else(|| {
         dicom_err(
             path,
@@ -1659,7 +1674,7 @@ fn check_pixel_data(img: &Image, obj: &DefaultDicomObject) -> Result<(), ReadErr
             path,
             Some(tags::TRANSFER_SYNTAX_UID),
             format!(
-                "{} ({ts_uid}) cannot be decoded by this build; supported are the native syntaxes, deflate, RLE Lossless, JPEG baseline/extended/lossless, JPEG-LS and JPEG 2000 (with High-Throughput JPEG 2000)",
+                "{} ({ts_uid}) cannot be decoded by this build; supported are the native syntaxes, deflate, RLE Lossless, JPEG baseline/extended/lossless, JPEG 2000 (with High-Throughput JPEG 2000) and, with the `jpeg-ls` feature, JPEG-LS",
                 ts.name()
             ),
         ));
@@ -2104,10 +2119,7 @@ fn decode_bit_frame(
 fn colour_untouched_by_codec(obj: &DefaultDicomObject) -> bool {
     let ts = obj.meta().transfer_syntax().trim_end_matches('\0');
     let encapsulated = element(obj, tags::PIXEL_DATA).is_some_and(|e| e.fragments().is_some());
-    !encapsulated
-        || ts == RLE_LOSSLESS
-        || ts == "1.2.840.10008.1.2.4.80"
-        || ts == "1.2.840.10008.1.2.4.81"
+    !encapsulated || ts == RLE_LOSSLESS || ts == JPEG_LS_LOSSLESS || ts == JPEG_LS_NEAR_LOSSLESS
 }
 
 /// One full-range Y, Cb, Cr triple (PS3.3 C.7.6.3.1.2, the ITU-R BT.601 matrix without

@@ -969,8 +969,76 @@ fn lossy_rgb_jpeg_with_an_adobe_marker_keeps_its_colours() {
     assert!(worst <= 4.0, "largest colour error {worst} levels");
 }
 
+/// Without the `jpeg-ls` feature a JPEG-LS file is refused before decoding, naming the
+/// feature that reads it (not a panic, not a generic "cannot be decoded").
+#[cfg(not(feature = "jpeg-ls"))]
+#[test]
+fn jpeg_ls_without_the_feature_is_refused_naming_it() {
+    use dicom_core::value::PixelFragmentSequence;
+    use dicom_dictionary_std::uids;
+    use dicom_object::FileMetaTableBuilder;
+    let e = |tag, vr, v: PrimitiveValue| DataElement::new(tag, vr, v);
+    let text = |s: &str| PrimitiveValue::from(s.to_string());
+    let mut obj = InMemDicomObject::from_element_iter([
+        e(
+            tags::SOP_CLASS_UID,
+            VR::UI,
+            text(uids::SECONDARY_CAPTURE_IMAGE_STORAGE),
+        ),
+        e(
+            tags::SOP_INSTANCE_UID,
+            VR::UI,
+            text("1.2.826.0.1.3680043.9.7433.9.1"),
+        ),
+        e(
+            tags::SERIES_INSTANCE_UID,
+            VR::UI,
+            text("1.2.826.0.1.3680043.9.7433.9"),
+        ),
+        e(tags::SAMPLES_PER_PIXEL, VR::US, PrimitiveValue::from(1u16)),
+        e(
+            tags::PHOTOMETRIC_INTERPRETATION,
+            VR::CS,
+            text("MONOCHROME2"),
+        ),
+        e(tags::ROWS, VR::US, PrimitiveValue::from(4u16)),
+        e(tags::COLUMNS, VR::US, PrimitiveValue::from(4u16)),
+        e(tags::BITS_ALLOCATED, VR::US, PrimitiveValue::from(16u16)),
+        e(tags::BITS_STORED, VR::US, PrimitiveValue::from(12u16)),
+        e(tags::HIGH_BIT, VR::US, PrimitiveValue::from(11u16)),
+        e(
+            tags::PIXEL_REPRESENTATION,
+            VR::US,
+            PrimitiveValue::from(0u16),
+        ),
+    ]);
+    // A JPEG-LS start-of-image and end-of-image: never decoded, the syntax is refused first.
+    let stream = vec![0xFF, 0xD8, 0xFF, 0xF7, 0xFF, 0xD9];
+    set(
+        &mut obj,
+        tags::PIXEL_DATA,
+        VR::OB,
+        dicom_core::DicomValue::from(PixelFragmentSequence::new(Vec::<u32>::new(), vec![stream])),
+    );
+    let dir = tempfile::tempdir().unwrap();
+    for ts in [uids::JPEGLS_LOSSLESS, uids::JPEGLS_NEAR_LOSSLESS] {
+        let path = dir.path().join("jpeg-ls.dcm");
+        obj.clone()
+            .with_meta(FileMetaTableBuilder::new().transfer_syntax(ts))
+            .unwrap()
+            .write_to_file(&path)
+            .unwrap();
+        let err = read_volume(&path, None).unwrap_err().to_string();
+        assert!(
+            err.contains("JPEG-LS") && err.contains("--features jpeg-ls"),
+            "{ts}: {err}"
+        );
+    }
+}
+
 /// JPEG-LS, the commonest lossless syntax of hospital archives after JPEG lossless: a series
 /// transcoded by dicom-rs (CharLS) reads back exactly, and near-lossless within its NEAR.
+#[cfg(feature = "jpeg-ls")]
 #[test]
 fn jpeg_ls_series_read_back_lossless_and_near_lossless() {
     use dicom_pixeldata::Transcode;
