@@ -63,7 +63,7 @@ impl Xvfb {
             }
             let Ok(mut child) = Command::new("Xvfb")
                 .arg(format!(":{n}"))
-                .args(["-screen", "0", "640x480x24", "-nolisten", "tcp"])
+                .args(["-screen", "0", "1024x768x24", "-nolisten", "tcp"])
                 .stdout(Stdio::null())
                 .stderr(Stdio::null())
                 .spawn()
@@ -364,6 +364,60 @@ fn the_window_renders_turns_under_a_drag_and_closes_cleanly() {
             "the screen ({mean_r:.1}, {var_r:.0}) differs from the image ({mean_a:.1}, {var_a:.0})"
         );
     }
+}
+
+/// At a workstation's window size on the CPU backend, a resting view gets the frame: the
+/// 96³ phantom at 800×600 converges with most of the time spent refining (where showing a
+/// large image on a software device left each 16.6 ms frame about a millisecond of splatting,
+/// and convergence took ~90 s), and the window says how it got there.
+#[test]
+fn a_resting_window_at_800x600_gives_refinement_the_frame() {
+    let Some(x) = display_for_window() else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("phantom.wsp");
+    std::fs::write(&file, wsp(Phantom::SheppLogan, [96, 96, 72])).unwrap();
+    let child = view(
+        &x.display,
+        &[
+            file.to_str().unwrap(),
+            "--size",
+            "800x600",
+            "--cpu",
+            "--script",
+            "converge; quit",
+        ],
+    )
+    .spawn()
+    .unwrap();
+    let (status, stdout, stderr) = finish(child);
+    assert!(
+        status.success(),
+        "exit {status}\nstdout {stdout}\nstderr {stderr}"
+    );
+    assert!(stdout.contains(", converged"), "{stdout}");
+    // "view: the last view converged 1.23 s after it changed, 87 % of that refining, 9 images shown"
+    let line = stdout
+        .lines()
+        .find(|l| l.contains("the last view converged"))
+        .unwrap_or_else(|| panic!("no convergence line in {stdout}"));
+    let number_before = |word: &str| -> f64 {
+        let head = &line[..line
+            .find(word)
+            .unwrap_or_else(|| panic!("{word} in {line}"))];
+        head.split_whitespace()
+            .last()
+            .and_then(|w| w.parse().ok())
+            .unwrap_or_else(|| panic!("a number before {word} in {line}"))
+    };
+    let share = number_before("% of that refining");
+    let shown = number_before("images shown");
+    assert!(
+        share >= 60.0,
+        "refinement had only {share} % of the time to convergence: {line}"
+    );
+    assert!(shown >= 1.0, "{line}");
 }
 
 #[test]

@@ -107,5 +107,14 @@ pub fn run(a: ViewWindowArgs) -> Result<()> {
             "refining"
         }
     );
+    if let Some(c) = outcome.last_convergence {
+        // What a user (and the window's test) reads to see that refinement had the time.
+        outln!(
+            "view: the last view converged {:.2} s after it changed, {:.0} % of that refining, {} images shown",
+            c.elapsed.as_secs_f64(),
+            100.0 * c.refining.as_secs_f64() / c.elapsed.as_secs_f64().max(1e-9),
+            c.shown
+        );
+    }
     Ok(())
 }

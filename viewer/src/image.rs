@@ -40,6 +40,11 @@ pub fn max_relative_difference(image: &[f32], reference: &[f32]) -> f64 {
         / peak.max(1e-300)
 }
 
+/// Pixels the automatic window is computed from on every image a display shows: every one in
+/// an image up to this size, else every n-th (row-major), enough for its percentiles to within
+/// a fraction of a grey level ([`Image::sampled_window`]; the GPU display pass picks the same).
+pub const MAX_WINDOW_SAMPLES: usize = 1 << 16;
+
 /// A float image, channels interleaved, row-major, row 0 at the top.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Image {
@@ -186,6 +191,36 @@ impl Image {
         Ok((lo, hi))
     }
 
+    /// The automatic window ([`Image::resolve_window`] of `None`) from every n-th pixel of an
+    /// image larger than [`MAX_WINDOW_SAMPLES`] pixels (all of a smaller one): what a display
+    /// computes for every image it shows, where the selections over all of a workstation-sized
+    /// image would cost tens of milliseconds of the frame.
+    pub fn sampled_window(&self) -> (f64, f64) {
+        let pixels = self.width * self.height;
+        let stride = pixels.div_ceil(MAX_WINDOW_SAMPLES).max(1);
+        let window = if stride == 1 {
+            self.resolve_window(None)
+        } else {
+            let c = self.channels.max(1);
+            let data: Vec<f32> = self
+                .data
+                .chunks_exact(c)
+                .step_by(stride)
+                .flatten()
+                .copied()
+                .collect();
+            Image {
+                width: data.len() / c,
+                height: 1,
+                channels: c,
+                data,
+            }
+            .resolve_window(None)
+        };
+        // Without a window given, resolving never fails.
+        window.unwrap_or((0.0, 1.0))
+    }
+
     /// A value mapped through the window `(lo, hi)` to 0..=255 (non-finite values to 0).
     pub fn level(x: f32, (lo, hi): (f64, f64)) -> u8 {
         let t = ((x as f64 - lo) / (hi - lo)).clamp(0.0, 1.0);
@@ -249,6 +284,42 @@ impl Image {
 #[cfg(test)]
 mod window_tests {
     use super::*;
+
+    /// The sampled window of a workstation-sized image (a projection: a bright disc on a dark
+    /// background, with a NaN) is within a grey level of the window over every pixel, and a
+    /// small image's is exactly that window.
+    #[test]
+    fn the_sampled_window_matches_the_full_one_within_a_grey_level() {
+        let (w, h) = (1920, 1080);
+        let mut data: Vec<f32> = (0..w * h)
+            .map(|i| {
+                let (x, y) = ((i % w) as f32 - 960.0, (i / w) as f32 - 540.0);
+                let r2 = (x * x + y * y) / (400.0 * 400.0);
+                0.01 + (1.0 - r2).max(0.0).sqrt() * (1.0 + 0.3 * (x / 37.0).sin())
+            })
+            .collect();
+        data[12345] = f32::NAN;
+        let big = Image {
+            width: w,
+            height: h,
+            channels: 1,
+            data,
+        };
+        let (lo, hi) = big.resolve_window(None).unwrap();
+        let (a, b) = big.sampled_window();
+        let level = (hi - lo) / 255.0;
+        assert!(
+            (a - lo).abs() < level && (b - hi).abs() < level,
+            "sampled ({a}, {b}) against ({lo}, {hi})"
+        );
+        let small = Image {
+            width: 200,
+            height: 100,
+            channels: 3,
+            data: (0..200 * 100 * 3).map(|i| (i % 977) as f32).collect(),
+        };
+        assert_eq!(small.sampled_window(), small.resolve_window(None).unwrap());
+    }
 
     #[test]
     fn an_empty_view_shows_black_and_a_window_maps_its_ends() {

@@ -95,17 +95,16 @@ impl ViewState {
         Ok(s)
     }
 
-    /// The display window (lo, hi) for `image`: the automatic one (`Image::auto_window`)
-    /// narrowed or widened by the contrast and moved by the level; `None` while both are at
-    /// their defaults.
-    pub fn display_window(&self, image: &Image) -> Result<Option<(f64, f64)>> {
+    /// The display window (lo, hi) for `image`: the automatic one, from a sample of its pixels
+    /// as the GPU display pass computes it ([`Image::sampled_window`]: every image shown needs
+    /// one, and the selections over all pixels of a large window cost tens of ms), narrowed or
+    /// widened by the contrast and moved by the level.
+    pub fn display_window(&self, image: &Image) -> (f64, f64) {
+        let auto = image.sampled_window();
         if self.contrast == 1.0 && self.level == 0.0 {
-            return Ok(None);
+            return auto;
         }
-        let auto = image
-            .resolve_window(None)
-            .context("the image's display window")?;
-        Ok(Some(self.shown_window(auto)))
+        self.shown_window(auto)
     }
 
     /// The window shown for an image whose automatic window is `(lo, hi)`: its centre moved by
@@ -315,6 +314,12 @@ impl Controls {
         }
     }
 
+    /// Whether the user is in the middle of an interaction (a button held on the view): the
+    /// view does not count as resting then, so frames keep to their budget.
+    pub fn interacting(&self) -> bool {
+        self.input.dragging
+    }
+
     /// Applies one input event (real or scripted); `zoom` is the current view's pixels per unit
     /// of spacing (a shift-drag pans by the distance under the cursor).
     pub fn apply(&mut self, input: Input, zoom: f64) -> Reaction {
@@ -450,6 +455,9 @@ pub struct TitleFacts<'a> {
     pub recoveries: u32,
     /// The image's size in pixels.
     pub image: (usize, usize),
+    /// While the view rests and refines: about how often the image is shown (refinement gets
+    /// the time between, so the display rate drops while it converges).
+    pub rest_display_ms: Option<f64>,
 }
 
 /// A byte count for people: B, kB or MB.
@@ -474,6 +482,8 @@ impl ViewState {
             "converged".to_string()
         } else if f.idle {
             "waiting for data".to_string()
+        } else if let Some(ms) = f.rest_display_ms {
+            format!("refining at rest, image every ~{ms:.0} ms")
         } else {
             "refining".to_string()
         };
@@ -554,14 +564,15 @@ mod tests {
     fn window_and_level_scale_and_move_the_automatic_window() {
         let mut s = state();
         let img = ramp();
-        assert_eq!(s.display_window(&img).unwrap(), None);
         let (lo, hi) = img.resolve_window(None).unwrap();
+        // A small image's window is computed from every pixel.
+        assert_eq!(s.display_window(&img), (lo, hi));
         s.contrast = 0.5;
-        let (a, b) = s.display_window(&img).unwrap().unwrap();
+        let (a, b) = s.display_window(&img);
         assert!(((b - a) - 0.5 * (hi - lo)).abs() < 1e-9);
         assert!((0.5 * (a + b) - 0.5 * (lo + hi)).abs() < 1e-9);
         s.level = 0.1;
-        let (c, d) = s.display_window(&img).unwrap().unwrap();
+        let (c, d) = s.display_window(&img);
         assert!((0.5 * (c + d) - 0.5 * (lo + hi) - 0.1 * (hi - lo)).abs() < 1e-9);
         // A narrower window maps the same pixels to more contrast.
         let auto = img.to_rgba8(None).unwrap();
@@ -728,6 +739,7 @@ mod tests {
             memory_full: false,
             recoveries: 0,
             image: (64, 48),
+            rest_display_ms: None,
         };
         let (title, state) = s.title(&facts);
         assert_eq!(state, "refining");
@@ -746,6 +758,11 @@ mod tests {
             ..facts.clone()
         });
         assert_eq!(state, "converged, memory bound reached");
+        let (_, state) = s.title(&TitleFacts {
+            rest_display_ms: Some(120.4),
+            ..facts.clone()
+        });
+        assert_eq!(state, "refining at rest, image every ~120 ms");
         let (_, state) = s.title(&TitleFacts {
             idle: true,
             recoveries: 2,

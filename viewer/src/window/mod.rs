@@ -16,7 +16,7 @@ pub use controls::{
 };
 pub use script::{Command, Script};
 #[cfg(feature = "window")]
-pub use shell::{run, WindowOptions, WindowOutcome};
+pub use shell::{run, Convergence, WindowOptions, WindowOutcome};
 
 use thiserror::Error;
 

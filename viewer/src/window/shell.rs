@@ -15,7 +15,7 @@ use super::{Context, Result, WindowError};
 use crate::backend::{select, AccumulationBackend, BackendChoice, GpuBackend, GpuContext};
 use crate::session::{RenderSession, SessionOptions};
 use crate::source::PacketSource;
-use crate::{CpuBackend, FrameLoop};
+use crate::{CpuBackend, FrameLoop, FrameReport};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -70,6 +70,40 @@ pub struct WindowOutcome {
     pub bytes: u64,
     /// Whether the last view had converged.
     pub converged: bool,
+    /// How the last view that converged got there.
+    pub last_convergence: Option<Convergence>,
+}
+
+/// How a view converged: from the change that made it (a new view, a resize) to the frame that
+/// drew everything held with the exact tables and the source done.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Convergence {
+    /// Time from the view change to convergence.
+    pub elapsed: Duration,
+    /// Of that, the time the frame loop had (packet intake and splatting); the rest went to
+    /// showing images and to the window's event loop.
+    pub refining: Duration,
+    /// Images shown meanwhile.
+    pub shown: u64,
+}
+
+/// How long after its last change a view counts as resting (and no button is held): from
+/// then on refinement gets the frame, and the image is shown less often.
+const REST_AFTER: Duration = Duration::from_millis(150);
+/// While the view rests, refinement runs this many times as long as showing an image takes
+/// between two images shown, within [`REST_SLICE_MS`]: showing costs at most a fifth of the
+/// time however large the window (on a software device a 1920×1080 image costs tens of ms),
+/// and input waits at most the upper bound.
+const REST_SLICE_PER_DISPLAY: f64 = 4.0;
+const REST_SLICE_MS: (f64, f64) = (100.0, 250.0);
+
+/// The refinement time between two images shown while the view rests, for a display that
+/// costs `display_ms` and a frame budget of `budget_ms`.
+fn rest_slice(display_ms: f64, budget_ms: f64) -> Duration {
+    let ms = (REST_SLICE_PER_DISPLAY * display_ms)
+        .clamp(REST_SLICE_MS.0, REST_SLICE_MS.1)
+        .max(budget_ms);
+    Duration::from_secs_f64(ms / 1e3)
 }
 
 /// Opens a window on the volume of `header`, fed by `source`, starting at `state` (its view and
@@ -106,6 +140,11 @@ pub fn run(
         last_report_idle: false,
         last_draw: Instant::now(),
         last_image: None,
+        last_view_change: Instant::now(),
+        view_refining: Duration::ZERO,
+        view_shown: 0,
+        last_convergence: None,
+        rest_display_ms: None,
     };
     event_loop
         .run_app(&mut app)
@@ -122,6 +161,7 @@ pub fn run(
         splatted_in_view: 0,
         bytes: 0,
         converged: app.converged,
+        last_convergence: app.last_convergence,
     };
     if let Some(frames) = &app.frames {
         let stats = frames.session.stats();
@@ -174,6 +214,15 @@ struct App {
     last_report_idle: bool,
     last_draw: Instant,
     last_image: Option<(usize, usize)>,
+    /// When the view last changed (a new view, a resize).
+    last_view_change: Instant,
+    /// Time the frame loop had since then, and images shown since then.
+    view_refining: Duration,
+    view_shown: u64,
+    /// How the last view that converged got there.
+    last_convergence: Option<Convergence>,
+    /// While the view rests and refines: about how often an image is shown.
+    rest_display_ms: Option<f64>,
 }
 
 /// Lost graphics devices a window recreates before it gives up.
@@ -261,6 +310,7 @@ impl App {
         self.gfx = Some(g);
         self.view_size = size;
         self.controls.view_changed = false;
+        self.last_view_change = Instant::now();
         Ok(())
     }
 
@@ -309,7 +359,7 @@ impl App {
             .as_mut()
             .ok_or_else(|| WindowError::Invalid("nothing is shown yet".into()))?;
         let image = frames.session.image().context("reading the image")?;
-        let window = self.controls.state.display_window(&image)?;
+        let window = Some(self.controls.state.display_window(&image));
         arrange(
             image,
             grid(window_size(self.view_size), self.controls.state.multiview),
@@ -488,15 +538,64 @@ impl App {
             self.controls.view_changed = false;
             self.controls.image_changed = true;
             self.converged = false;
+            self.last_view_change = Instant::now();
+            self.view_refining = Duration::ZERO;
+            self.view_shown = 0;
         }
-        let budget_ms = (self.controls.state.budget_ms - self.display_ms_avg).max(1.0);
-        let report = frames
-            .frame(Duration::from_secs_f64(budget_ms / 1e3))
+        // While the user interacts, a frame's splatting gets what the budget leaves after
+        // showing the image, so frames keep to the budget.
+        let budget_ms = self.controls.state.budget_ms;
+        let refine_start = Instant::now();
+        let mut report = frames
+            .frame(Duration::from_secs_f64(
+                (budget_ms - self.display_ms_avg).max(1.0) / 1e3,
+            ))
             .context("rendering a frame")?;
+        let mut changed = report.coefficients > 0 || report.packets > 0;
+        // When the view rests, refinement gets the frame: frames of the full budget run back
+        // to back for a slice several times the display's cost before the image is shown
+        // again (a lower display rate while converging; the title says so), instead of a
+        // frame's leftover after showing a large image on a software device.
+        let resting = !self.controls.interacting() && self.last_view_change.elapsed() >= REST_AFTER;
+        self.rest_display_ms = None;
+        if resting && !report.idle() && (report.coefficients > 0 || report.packets > 0) {
+            let slice = rest_slice(self.display_ms_avg, budget_ms);
+            let full = Duration::from_secs_f64(budget_ms / 1e3);
+            while refine_start.elapsed() < slice {
+                let r = frames.frame(full).context("rendering a frame")?;
+                changed |= r.coefficients > 0 || r.packets > 0;
+                let waiting = r.coefficients == 0 && r.packets == 0;
+                report = FrameReport {
+                    packets: report.packets + r.packets,
+                    coefficients: report.coefficients + r.coefficients,
+                    records: report.records + r.records,
+                    batches: report.batches + r.batches,
+                    batches_past_deadline: report.batches_past_deadline + r.batches_past_deadline,
+                    elapsed: report.elapsed + r.elapsed,
+                    ..r
+                };
+                if report.idle() || waiting {
+                    // Nothing to draw until the planner or the source delivers: show what
+                    // there is rather than spin.
+                    break;
+                }
+            }
+            self.rest_display_ms =
+                Some(refine_start.elapsed().as_secs_f64() * 1e3 + self.display_ms_avg);
+        }
+        self.view_refining += refine_start.elapsed();
         let status = frames.source_status();
         let idle = report.idle();
+        let was_converged = self.converged;
         self.converged = idle && status.done;
-        if report.coefficients > 0 || report.packets > 0 {
+        if self.converged && !was_converged {
+            self.last_convergence = Some(Convergence {
+                elapsed: self.last_view_change.elapsed(),
+                refining: self.view_refining,
+                shown: self.view_shown + 1,
+            });
+        }
+        if changed {
             self.controls.image_changed = true;
         }
         let display_start = Instant::now();
@@ -524,8 +623,17 @@ impl App {
             self.last_image = Some((w as usize, h as usize));
             self.controls.image_changed = false;
         }
+        let present_start = Instant::now();
         present(g, size)?;
         let display_ms = display_start.elapsed().as_secs_f64() * 1e3;
+        tracing::trace!(
+            refine_ms = display_start.duration_since(start).as_secs_f64() * 1e3,
+            display_ms,
+            present_ms = present_start.elapsed().as_secs_f64() * 1e3,
+            coefficients = report.coefficients,
+            pending = report.pending,
+            "image shown"
+        );
         let frame_ms = start.elapsed().as_secs_f64() * 1e3;
         self.display_ms_avg = 0.8 * self.display_ms_avg + 0.2 * display_ms.min(1e3);
         self.frame_ms_avg = if self.drawn == 0 {
@@ -534,6 +642,7 @@ impl App {
             0.9 * self.frame_ms_avg + 0.1 * frame_ms
         };
         self.drawn += 1;
+        self.view_shown += 1;
         self.last_draw = Instant::now();
         if idle != self.last_report_idle || self.last_title.elapsed() > Duration::from_millis(250) {
             self.last_report_idle = idle;
@@ -552,6 +661,7 @@ impl App {
                 memory_full: frames.session.memory_full(),
                 recoveries: self.recoveries,
                 image: self.last_image.unwrap_or((0, 0)),
+                rest_display_ms: self.rest_display_ms,
             });
             g.window.set_title(&title);
             tracing::debug!(
@@ -582,7 +692,7 @@ fn upload(
     panels: (usize, usize),
 ) -> Result<(u32, u32)> {
     let image = frames.session.image().context("reading the image")?;
-    let window = state.display_window(&image)?;
+    let window = Some(state.display_window(&image));
     let image = arrange(image, panels);
     let rgba = image.to_rgba8(window).context("converting the image")?;
     let (w, h) = (image.width as u32, image.height as u32);

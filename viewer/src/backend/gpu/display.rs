@@ -12,9 +12,7 @@ use crate::image::Image;
 use bytemuck::{Pod, Zeroable};
 use std::sync::Arc;
 
-/// Pixels the automatic window is computed from: every one in an image up to this size, else
-/// every n-th (row-major), enough for its percentiles to within a fraction of a grey level.
-pub const MAX_WINDOW_SAMPLES: usize = 1 << 16;
+pub use crate::image::MAX_WINDOW_SAMPLES;
 
 /// Uniform of the display pass. Twin of `DisplayUniform` in `shaders/display.wgsl`.
 #[repr(C)]
