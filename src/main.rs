@@ -17,6 +17,9 @@ mod commands;
 use anyhow::Result;
 use clap::{Parser, Subcommand};
 
+/// The log filter when neither `--log` nor RUST_LOG says otherwise.
+const DEFAULT_LOG: &str = "warn,winit=error";
+
 /// Compression-domain volume rendering by wavelet splatting (Lippert, Gross & Kurmann, EG'97).
 ///
 /// Volumes are compressed into B-spline wavelet coefficients (`compress`), inspected (`info`),
@@ -28,7 +31,7 @@ struct Cli {
     /// Log filter (e.g. `info`, `debug`, `wavesplat=trace`); also read from RUST_LOG. The
     /// default shows warnings, but of the windowing library (winit) only errors: its warnings
     /// are about the display server, not about anything a user can act on.
-    #[arg(long, global = true, default_value = "warn,winit=error")]
+    #[arg(long, global = true, default_value = DEFAULT_LOG)]
     log: String,
     #[command(subcommand)]
     command: Command,
@@ -78,15 +81,44 @@ enum Command {
 }
 
 fn main() {
+    quiet_vulkan_device_select();
     let cli = Cli::parse();
-    let filter = std::env::var("RUST_LOG").unwrap_or_else(|_| cli.log.clone());
+    let mut filter = std::env::var("RUST_LOG").unwrap_or_else(|_| cli.log.clone());
+    if filter == DEFAULT_LOG && matches!(cli.command, Command::Worker(_)) {
+        // A worker's log is its record of work: each job's outcome (running, delivered,
+        // failed) at info, which the default filter would hide.
+        filter = format!("{DEFAULT_LOG},wavesplat_worker=info");
+    }
+    // Colour only on a terminal, and never where NO_COLOR asks for none (no-color.org): logs
+    // going to files and pipes (a worker's) stay plain text.
+    let colour = std::io::IsTerminal::is_terminal(&std::io::stderr())
+        && std::env::var_os("NO_COLOR").is_none_or(|v| v.is_empty());
     tracing_subscriber::fmt()
         .with_env_filter(tracing_subscriber::EnvFilter::new(filter))
         .with_writer(std::io::stderr)
+        .with_ansi(colour)
         .init();
     if let Err(e) = run(cli.command) {
         eprintln!("error: {e:#}");
         std::process::exit(1);
+    }
+}
+
+/// Mesa's Vulkan device-select layer (an implicit layer every Vulkan program loads on Linux)
+/// tries a Wayland connection while wgpu looks for an adapter, and libwayland prints "error:
+/// XDG_RUNTIME_DIR is invalid or not set in the environment" twice where there is no session
+/// directory (a server, a container, a CI runner): it reads as our failure. Without such a
+/// directory there is no compositor whose GPU the layer could prefer, so it is turned off
+/// (`NODEVICE_SELECT`), unless the user chose a device through it (`MESA_VK_DEVICE_SELECT`) or
+/// set the switch themselves. Runs first in `main`, before any thread exists.
+fn quiet_vulkan_device_select() {
+    let runtime_dir_ok = std::env::var_os("XDG_RUNTIME_DIR")
+        .is_some_and(|d| !d.is_empty() && std::path::Path::new(&d).is_dir());
+    if !runtime_dir_ok
+        && std::env::var_os("NODEVICE_SELECT").is_none()
+        && std::env::var_os("MESA_VK_DEVICE_SELECT").is_none()
+    {
+        std::env::set_var("NODEVICE_SELECT", "1");
     }
 }
 

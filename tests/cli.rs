@@ -235,3 +235,77 @@ fn bench_refine_takes_the_backend_asked_for() {
     assert_eq!(both.status.code(), Some(2));
     assert!(err(&both).contains("cannot be used with"), "{}", err(&both));
 }
+
+/// Negative pairs parse: `--pan -40,30` and `--cue-dir -1.2,0.3` are values, not flags, and
+/// the pan moves the picture (the image differs from the centred one).
+#[test]
+fn negative_pairs_parse_as_values() {
+    let dir = tempfile::tempdir().unwrap();
+    let (_, wsp) = phantom_files(dir.path());
+    let png = |name: &str| dir.path().join(name).to_str().unwrap().to_string();
+    let centred = run(&[
+        "render",
+        &wsp,
+        "--cpu",
+        "--size",
+        "32x32",
+        "-o",
+        &png("c.png"),
+    ]);
+    assert!(centred.status.success(), "{}", err(&centred));
+    let panned = run(&[
+        "render",
+        &wsp,
+        "--cpu",
+        "--size",
+        "32x32",
+        "--pan",
+        "-4,3",
+        "--cue-k",
+        "0.05",
+        "--cue-dir",
+        "-1.2,-0.3",
+        "-o",
+        &png("p.png"),
+    ]);
+    assert!(panned.status.success(), "{}", err(&panned));
+    let a = std::fs::read(png("c.png")).unwrap();
+    let b = std::fs::read(png("p.png")).unwrap();
+    assert_ne!(a, b, "the pan and the cue change the picture");
+}
+
+/// Logs carry no ANSI colour codes into files and pipes (a worker's log file), nor where
+/// `NO_COLOR` asks for none.
+#[test]
+fn logs_into_a_pipe_have_no_colour_codes() {
+    let dir = tempfile::tempdir().unwrap();
+    let missing = dir.path().join("missing.wsp");
+    let o = Command::new(BIN)
+        .args(["--log", "debug", "info", missing.to_str().unwrap()])
+        .output()
+        .expect("run wavesplat");
+    let e = err(&o);
+    assert!(!o.status.success());
+    assert!(!e.contains('\u{1b}'), "escape codes in a pipe: {e:?}");
+}
+
+/// A command that probes for a GPU prints nothing about the session's runtime directory where
+/// there is none (Mesa's device-select layer and libwayland did, twice, reading as a failure).
+#[test]
+fn probing_for_a_gpu_without_a_runtime_directory_prints_no_error() {
+    let dir = tempfile::tempdir().unwrap();
+    let (_, wsp) = phantom_files(dir.path());
+    let png = dir.path().join("g.png");
+    let o = Command::new(BIN)
+        .args(["render", &wsp, "--progressive", "--size", "32x32", "-o"])
+        .arg(&png)
+        .env_remove("XDG_RUNTIME_DIR")
+        .env_remove("NODEVICE_SELECT")
+        .env_remove("WAYLAND_DISPLAY")
+        .output()
+        .expect("run wavesplat");
+    assert!(o.status.success(), "{}", err(&o));
+    let e = err(&o);
+    assert!(!e.contains("XDG_RUNTIME_DIR"), "{e}");
+    assert!(!e.contains("error"), "{e}");
+}

@@ -58,12 +58,27 @@ impl Proc {
     }
 
     fn worker(orch: &str, cache: &str, id: &str, pause_ms: u64) -> Proc {
+        Proc::worker_logging_to(orch, cache, id, pause_ms, None)
+    }
+
+    /// A worker whose log (stderr, a file as a service manager would keep it) goes to `log`.
+    fn worker_logging_to(
+        orch: &str,
+        cache: &str,
+        id: &str,
+        pause_ms: u64,
+        log: Option<&Path>,
+    ) -> Proc {
+        let stderr = match log {
+            Some(p) => Stdio::from(std::fs::File::create(p).unwrap()),
+            None => Stdio::null(),
+        };
         let child = Command::new(BIN)
             .args(["worker", "--orchestrator", orch, "--cache", cache])
             .args(["--threads", "1", "--id", id])
             .args(["--pause-before-upload-ms", &pause_ms.to_string()])
             .stdout(Stdio::null())
-            .stderr(Stdio::null())
+            .stderr(stderr)
             .spawn()
             .unwrap();
         Proc {
@@ -306,8 +321,9 @@ async fn archive_is_compressed_into_the_cache_and_bad_files_fail_alone() {
     write_f32(&b.join("nan_8x8x8_f32.raw"), &nan);
     std::fs::write(b.join("garbage.nii"), b"not a nifti file at all").unwrap();
 
-    let _w1 = Proc::worker(&o, &c, "w1", 0);
-    let _w2 = Proc::worker(&o, &c, "w2", 0);
+    let logs = [cl.root.join("w1.log"), cl.root.join("w2.log")];
+    let _w1 = Proc::worker_logging_to(&o, &c, "w1", 0, Some(&logs[0]));
+    let _w2 = Proc::worker_logging_to(&o, &c, "w2", 0, Some(&logs[1]));
     submit(&a, &o, &["--family", "haar", "--colorspace", "rgb"]);
     submit(
         &b,
@@ -344,6 +360,21 @@ async fn archive_is_compressed_into_the_cache_and_bad_files_fail_alone() {
     let mut want = good.clone();
     want.sort();
     assert_eq!(cache_volumes_decode(&c).await, want);
+    // The workers' logs (files, not terminals) record each job's outcome, in plain text.
+    let log: String = logs
+        .iter()
+        .map(|p| std::fs::read_to_string(p).unwrap())
+        .collect();
+    assert!(
+        !log.contains('\u{1b}'),
+        "colour codes in a log file: {log:?}"
+    );
+    assert_eq!(
+        log.matches("delivered").count(),
+        good.len(),
+        "one delivery line per good job: {log}"
+    );
+    assert!(log.matches("attempt failed").count() >= 3, "{log}");
 
     // Resubmitting skips everything already known.
     let out = submit(&a, &o, &["--family", "haar", "--colorspace", "rgb"]);

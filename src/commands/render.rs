@@ -70,7 +70,7 @@ pub struct ViewArgs {
     pub zoom: Option<f64>,
     /// Pan of the image centre from the volume centre, in units of spacing (mm) along the
     /// screen axes: X,Y.
-    #[arg(long, allow_negative_numbers = true)]
+    #[arg(long, allow_hyphen_values = true)]
     pub pan: Option<String>,
     /// Three views side by side from one set of footprints (paper §3.1).
     #[arg(long)]
@@ -80,7 +80,7 @@ pub struct ViewArgs {
     #[arg(long, default_value_t = 0.0)]
     pub cue_k: f64,
     /// Depth-cue direction α,β (default: along the view direction).
-    #[arg(long, allow_negative_numbers = true)]
+    #[arg(long, allow_hyphen_values = true)]
     pub cue_dir: Option<String>,
     /// Largest memory for retained coefficients, in bytes (suffixes k, M, G); beyond it the
     /// least visible are dropped after splatting and asked for again after a view change.
