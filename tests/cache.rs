@@ -354,7 +354,8 @@ async fn nothing_sent_twice_across_view_change_and_reconnect() {
     let view_a = View::new(0.0, 0.0, 64, 64);
     let view_b = View::new(1.2, 0.4, 96, 64).with_zoom(3.0);
 
-    // Pull one packet's worth at a time, so the view change reorders what follows.
+    // Pull one packet at a time (a credit of one byte, renewed by each packet's size: the
+    // server sends while the credit is positive), so the view change reorders what follows.
     let mut stream = c
         .refine(request(&key, view_a).with_credit(1))
         .await
@@ -365,11 +366,12 @@ async fn nothing_sent_twice_across_view_change_and_reconnect() {
         match stream.next().await.unwrap().unwrap() {
             RefineEvent::Header(h) => header = Some(*h),
             RefineEvent::Packet(p) => {
+                let len = p.data.len() as u64;
                 received.push(p);
                 if received.len() == 8 {
                     stream.control().set_view(&spec(view_b)).await.unwrap();
                 }
-                stream.control().grant(1).await.unwrap();
+                stream.control().grant(len).await.unwrap();
             }
             other => panic!("unexpected {other:?}"),
         }
@@ -473,7 +475,8 @@ async fn dropped_packets_come_back_after_a_view_change() {
     while got.len() < 3 {
         if let RefineEvent::Packet(p) = stream.next().await.unwrap().unwrap() {
             got.push(p.id);
-            stream.control().grant(1).await.unwrap();
+            // What it took, so one packet at a time (the credit stays at one byte).
+            stream.control().grant(p.data.len() as u64).await.unwrap();
         }
     }
     stream
@@ -807,5 +810,240 @@ async fn a_file_whose_packets_do_not_hold_what_its_header_declares_is_refused() 
     assert!(c.list().await.unwrap().is_empty());
     // The whole file is accepted.
     c.ingest("whole", &bytes).await.unwrap();
+    server.stop().await;
+}
+
+/// Reads `stream` until `quiet` passes without a message, appending the packets to `got`;
+/// returns whether `done` arrived. An error or the end of the stream fails the test.
+async fn read_until_quiet(
+    stream: &mut tonic::Streaming<pb::RefineResponse>,
+    got: &mut Vec<pb::Packet>,
+    quiet: std::time::Duration,
+) -> bool {
+    use pb::refine_response::Msg;
+    let mut done = false;
+    loop {
+        match tokio::time::timeout(quiet, stream.message()).await {
+            Err(_) => return done,
+            Ok(Ok(Some(m))) => match m.msg {
+                Some(Msg::Packet(p)) => got.push(p),
+                Some(Msg::Done(_)) => done = true,
+                Some(Msg::Header(_)) => {}
+                None => panic!("an empty response"),
+            },
+            Ok(Ok(None)) => panic!("the stream ended"),
+            Ok(Err(e)) => panic!("the stream failed: {e:?}"),
+        }
+    }
+}
+
+/// The proto's flow-control promise, from what arrived on a stream granted `granted` bytes in
+/// all: every packet was sent while the credit was positive, i.e. the bytes before the last
+/// packet are below the credit (so at most the last packet overshoots it).
+fn assert_within_credit(got: &[pb::Packet], granted: u64, when: &str) {
+    let total: u64 = got.iter().map(|p| p.data.len() as u64).sum();
+    let last = got.last().map_or(0, |p| p.data.len() as u64);
+    assert!(
+        total - last < granted,
+        "{when}: {} packets, {total} bytes (last {last}) on a credit of {granted}",
+        got.len()
+    );
+}
+
+/// A raw client (the generated one: the domain client always renews by what it took) that
+/// grants 13 bytes in all — 1 at the start, then 1 byte twelve times — gets one packet, not one
+/// per grant: the first packet's overshoot is owed and paid back from later grants. A grant that
+/// only pays the debt sends nothing; one byte more sends exactly one packet; a window sends
+/// what fits plus at most one packet; and everything arrives once the credit covers it.
+#[tokio::test]
+async fn a_stream_sends_at_most_one_packet_beyond_the_credit_granted() {
+    use std::time::Duration;
+    let bytes = test_file([48, 48, 48]);
+    let server = TestServer::start().await;
+    let info = server
+        .client()
+        .await
+        .ingest("v", &bytes)
+        .await
+        .unwrap()
+        .volume;
+    let key = VolumeKey::Id(info.id);
+    let quiet = Duration::from_secs(1);
+    let credit = |bytes: u64| pb::RefineRequest {
+        msg: Some(pb::refine_request::Msg::Credit(pb::Credit { bytes })),
+    };
+    let mut start = refine_view(&key, wire_view(&View::new(0.3, 0.2, 32, 32)));
+    if let Some(pb::refine_request::Msg::Start(s)) = &mut start.msg {
+        s.credit_bytes = 1;
+    }
+    let (tx, rx) = tokio::sync::mpsc::channel(64);
+    tx.send(start).await.unwrap();
+    let mut stream = server
+        .wire()
+        .await
+        .refine(tokio_stream::wrappers::ReceiverStream::new(rx))
+        .await
+        .unwrap()
+        .into_inner();
+    let mut got = Vec::new();
+    let mut granted = 1u64;
+
+    // One byte of credit: one packet, then nothing.
+    read_until_quiet(&mut stream, &mut got, quiet).await;
+    assert_eq!(got.len(), 1, "{} packets on a credit of 1 byte", got.len());
+    let first = got[0].data.len() as u64;
+    assert!(first > 13, "a first packet of {first} bytes");
+    // Twelve grants of one byte: 13 bytes in all, still in debt.
+    for _ in 0..12 {
+        tx.send(credit(1)).await.unwrap();
+        granted += 1;
+    }
+    read_until_quiet(&mut stream, &mut got, quiet).await;
+    assert_eq!(
+        got.len(),
+        1,
+        "{} packets on a credit of 13 bytes",
+        got.len()
+    );
+
+    // The debt paid back exactly: the credit is zero, not positive, so nothing is sent.
+    tx.send(credit(first - granted)).await.unwrap();
+    granted = first;
+    read_until_quiet(&mut stream, &mut got, quiet).await;
+    assert_eq!(got.len(), 1, "a packet sent on a credit of zero");
+
+    // One byte more: exactly one packet.
+    tx.send(credit(1)).await.unwrap();
+    granted += 1;
+    read_until_quiet(&mut stream, &mut got, quiet).await;
+    assert_eq!(
+        got.len(),
+        2,
+        "one byte of credit sent {} packets",
+        got.len() - 1
+    );
+    assert_within_credit(&got, granted, "one byte after the debt");
+
+    // A window of a quarter of the volume: what fits, plus at most one packet.
+    let window = info.packet_bytes / 4;
+    tx.send(credit(window)).await.unwrap();
+    granted += window;
+    read_until_quiet(&mut stream, &mut got, quiet).await;
+    assert!(got.len() > 2, "nothing sent on a window of {window} bytes");
+    assert!(got.len() < info.packet_count as usize, "everything sent");
+    assert_within_credit(&got, granted, "a window");
+
+    // Enough for everything: the rest, each packet once, then `done`.
+    tx.send(credit(u64::MAX / 2)).await.unwrap();
+    assert!(
+        read_until_quiet(&mut stream, &mut got, quiet).await,
+        "no done"
+    );
+    let ids: HashSet<u32> = got.iter().map(|p| p.id).collect();
+    assert_eq!(ids.len(), got.len(), "a packet was sent twice");
+    assert_eq!(ids.len(), info.packet_count as usize);
+    server.stop().await;
+}
+
+/// A codec whose requests are raw message bytes (whatever the test wants on the wire) and
+/// whose responses are the Refine stream's.
+#[derive(Debug, Clone, Copy, Default)]
+struct RawRequests;
+
+/// [`RawRequests`]' encoder: writes each item's bytes as they are.
+#[derive(Debug, Clone, Copy, Default)]
+struct RawEncoder;
+
+impl tonic::codec::Encoder for RawEncoder {
+    type Item = Vec<u8>;
+    type Error = tonic::Status;
+
+    fn encode(
+        &mut self,
+        item: Vec<u8>,
+        dst: &mut tonic::codec::EncodeBuf<'_>,
+    ) -> Result<(), tonic::Status> {
+        use prost::bytes::BufMut;
+        dst.put_slice(&item);
+        Ok(())
+    }
+}
+
+impl tonic::codec::Codec for RawRequests {
+    type Encode = Vec<u8>;
+    type Decode = pb::RefineResponse;
+    type Encoder = RawEncoder;
+    type Decoder = tonic_prost::ProstDecoder<pb::RefineResponse>;
+
+    fn encoder(&mut self) -> RawEncoder {
+        RawEncoder
+    }
+
+    fn decoder(&mut self) -> Self::Decoder {
+        tonic_prost::ProstDecoder::default()
+    }
+}
+
+/// A Refine stream whose message after `start` cannot be decoded, or is over the server's
+/// message-size limit, ends with the client fault's status — never with OK and no `done`.
+#[tokio::test]
+async fn a_malformed_message_mid_stream_ends_the_stream_with_an_error() {
+    use prost::Message;
+    let server = TestServer::start().await;
+    server
+        .client()
+        .await
+        .ingest("ok", &test_file([24, 24, 24]))
+        .await
+        .unwrap();
+    let key = VolumeKey::Name("ok".into());
+    let start = refine_view(&key, wire_view(&View::new(0.0, 0.0, 32, 32))).encode_to_vec();
+    // Not a RefineRequest: field 1 (`start`, a message) as a varint.
+    let garbage = vec![0x08, 0x07, 0xff, 0xff, 0xff];
+    assert!(pb::RefineRequest::decode(&garbage[..]).is_err());
+    // A valid message of ~5 MiB: over the server's 4 MiB limit.
+    let oversized = pb::RefineRequest {
+        msg: Some(pb::refine_request::Msg::Holdings(pb::Holdings {
+            have: vec![0; 5 << 20],
+            dropped: vec![],
+        })),
+    }
+    .encode_to_vec();
+    let mut wrong = Vec::new();
+    for (what, bad, code) in [
+        ("undecodable", garbage, Code::InvalidArgument),
+        ("oversized", oversized, Code::ResourceExhausted),
+    ] {
+        let channel = Channel::from_shared(server.url.clone())
+            .unwrap()
+            .connect()
+            .await
+            .unwrap();
+        let mut grpc = tonic::client::Grpc::new(channel);
+        grpc.ready().await.unwrap();
+        let messages = tokio_stream::iter(vec![start.clone(), bad]);
+        let mut stream = grpc
+            .streaming(
+                tonic::Request::new(messages),
+                http::uri::PathAndQuery::from_static("/wavesplat.v1.Cache/Refine"),
+                RawRequests,
+            )
+            .await
+            .unwrap()
+            .into_inner();
+        let ended = loop {
+            match tokio::time::timeout(std::time::Duration::from_secs(30), stream.message()).await {
+                Err(_) => break "neither ended nor failed".to_string(),
+                Ok(Ok(Some(_))) => continue,
+                Ok(Ok(None)) => break "ended without an error".to_string(),
+                Ok(Err(e)) if e.code() == code => break String::new(),
+                Ok(Err(e)) => break format!("failed with {e:?}, not {code:?}"),
+            }
+        };
+        if !ended.is_empty() {
+            wrong.push(format!("{what}: the stream {ended}"));
+        }
+    }
+    assert!(wrong.is_empty(), "{wrong:#?}");
     server.stop().await;
 }

@@ -113,7 +113,9 @@ impl RefineControl {
         .await
     }
 
-    /// Adds `bytes` to the stream's credit.
+    /// Adds `bytes` to the stream's credit. The server sends while the credit is positive and
+    /// counts each packet's whole size, so the last packet's overshoot is owed: renew by what
+    /// was consumed (a grant that only pays the debt back sends nothing).
     pub async fn grant(&self, bytes: u64) -> Result<(), ClientError> {
         self.send(pb::refine_request::Msg::Credit(pb::Credit { bytes }))
             .await

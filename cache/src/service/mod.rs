@@ -3,7 +3,9 @@
 //! task per stream that owns the unsent-packet queue: it reads client messages (view changes,
 //! holdings, credit) and sends packets through a bounded channel, so it only produces as fast as
 //! the client consumes; with a byte credit (the client pulls) it also never has more than the
-//! credit in flight, so a view change reorders everything the client has not yet asked for.
+//! credit in flight (plus the one packet that may overshoot it, paid back from later grants), so
+//! a view change reorders everything the client has not yet asked for. A request that does not
+//! decode, or is over the message-size limit, ends the stream with the client fault's status.
 //! A session does not wait for its view's plan to start: it sends the header and the first
 //! packets in file order (the global significance order) while the plan runs on a bounded
 //! pool, then the rest in the view's order.

@@ -44,6 +44,11 @@ pub(super) async fn plan(
     .await
 }
 
+/// A byte count from the wire as a signed credit (larger ones are as good as unbounded).
+fn credit_i64(bytes: u64) -> i64 {
+    i64::try_from(bytes).unwrap_or(i64::MAX)
+}
+
 /// One refinement stream's state. It holds its volume open: a deletion during the stream does
 /// not cut it short.
 pub(super) struct Session {
@@ -58,8 +63,11 @@ pub(super) struct Session {
     pub(super) queue: Vec<(f64, u32)>,
     pub(super) sent: u32,
     pub(super) bytes: u64,
-    /// Byte credit left, when the client pulls (`None`: no flow control).
-    pub(super) credit: Option<u64>,
+    /// Byte credit, when the client pulls (`None`: no flow control): what it granted less what
+    /// was sent. A packet goes out only while it is positive and its whole size is counted, so
+    /// the credit turns negative by the last packet's overshoot, which later grants pay back
+    /// before anything more is sent: at most one packet beyond what the client granted.
+    pub(super) credit: Option<i64>,
     /// Queue only what the current view sees.
     pub(super) visible_only: bool,
     /// View changes applied on this stream.
@@ -85,7 +93,7 @@ impl Session {
             queue: Vec::new(),
             sent: 0,
             bytes: 0,
-            credit: (credit_bytes > 0).then_some(credit_bytes),
+            credit: (credit_bytes > 0).then(|| credit_i64(credit_bytes)),
             visible_only: false,
             views: 0,
             unplanned: None,
@@ -194,7 +202,7 @@ impl Session {
             }
             Some(pb::refine_request::Msg::Credit(c)) => {
                 if let Some(credit) = &mut self.credit {
-                    *credit = credit.saturating_add(c.bytes);
+                    *credit = credit.saturating_add(credit_i64(c.bytes));
                 }
                 Ok(())
             }
@@ -225,7 +233,8 @@ impl Session {
             self.sent += 1;
             self.bytes += data.len() as u64;
             if let Some(credit) = &mut self.credit {
-                *credit = credit.saturating_sub(data.len() as u64);
+                // Not forgiven below zero: the overshoot is owed.
+                *credit = credit.saturating_sub(credit_i64(data.len() as u64));
             }
             if let Some(budget) = &mut self.unplanned {
                 *budget = budget.saturating_sub(data.len() as u64);
@@ -330,8 +339,12 @@ impl Session {
                         announced &= self.queue.is_empty() && !new_view;
                     }
                     Ok(None) => inbound_open = false,
+                    // A message that does not decode or is over the size limit (a client
+                    // status from `next_message`), or a client that went away (nobody to
+                    // tell): the stream ends with that status, never as if it were complete.
                     Err(status) => {
-                        tracing::debug!(%status, "refinement client went away");
+                        tracing::debug!(%status, "reading a refinement request failed");
+                        let _ = tx.send(Err(status)).await;
                         return;
                     }
                 },
