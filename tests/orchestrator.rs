@@ -504,3 +504,54 @@ async fn orchestrator_restart_keeps_the_queue_and_cancel_retry_work() {
     want.sort();
     assert_eq!(cache_volumes_decode(&c).await, want);
 }
+
+/// The README's second submit (the same archive, other options): without a new name each job
+/// fails saying how to keep both; with `--name-suffix` every volume lands beside the first, and
+/// a retried job shows no stale error while it waits.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_same_archive_with_other_options_lands_under_a_suffix() {
+    let cl = Cluster::start();
+    let (o, c) = (cl.orch.url(), cl.cache.url());
+    let a = cl.root.join("a");
+    let good = write_good(&a, "s", 2);
+    submit(&a, &o, &[]);
+    let _w = Proc::worker(&o, &c, "w", 0);
+    wait_for(&o, 45, "the first submission done", all_finished).await;
+    submit(&a, &o, &["--family", "cubic"]);
+    let js = wait_for(&o, 45, "the clashing submission finished", |js| {
+        js.len() == 2 * good.len() && all_finished(js)
+    })
+    .await;
+    let failed: Vec<&pb::Job> = js
+        .iter()
+        .filter(|j| state_name(j.state) == "failed")
+        .collect();
+    assert_eq!(failed.len(), good.len(), "{js:?}");
+    for j in &failed {
+        assert!(j.error.contains("--name-suffix"), "{}", j.error);
+    }
+    let out = cli_ok(&[
+        "jobs",
+        "retry",
+        &failed[0].id.to_string(),
+        "--orchestrator",
+        &o,
+    ]);
+    assert!(
+        !out.contains("already has"),
+        "a retried job keeps its old error: {out}"
+    );
+    submit(&a, &o, &["--family", "cubic", "--name-suffix", "_cubic"]);
+    wait_for(&o, 60, "the suffixed submission done", |js| {
+        js.len() == 3 * good.len()
+            && js.iter().filter(|j| state_name(j.state) == "done").count() == 2 * good.len()
+            && all_finished(js)
+    })
+    .await;
+    let mut want: Vec<String> = good
+        .iter()
+        .flat_map(|g| [g.clone(), format!("{g}_cubic")])
+        .collect();
+    want.sort();
+    assert_eq!(cache_volumes_decode(&c).await, want);
+}

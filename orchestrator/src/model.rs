@@ -377,11 +377,13 @@ impl JobSpec {
         Ok(self)
     }
 
-    /// The identity of the work: content hash, layout and options (not the name, not the
-    /// source location). Two submissions with the same key are the same job.
+    /// The identity of the work: content hash, layout, options and the name it is delivered
+    /// under (not the source location: the same file uploaded or read from another path is the
+    /// same job). Two submissions with the same key are the same job; the same content under a
+    /// new name (`archive submit --name-suffix`) is a new delivery.
     pub fn dedup_key(&self) -> String {
         let opts = serde_json::to_string(&(&self.raw, &self.options)).unwrap_or_default();
-        format!("{}|{opts}", hex(&self.sha256))
+        format!("{}|{opts}|{}", hex(&self.sha256), self.name)
     }
 }
 

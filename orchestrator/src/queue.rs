@@ -125,7 +125,8 @@ impl Queue {
         self.jobs.values()
     }
 
-    /// Adds a job, or returns the known one with the same content hash, layout and options.
+    /// Adds a job, or returns the known one with the same content hash, layout, options and
+    /// name.
     pub fn submit(&mut self, spec: JobSpec, now: u64) -> Result<Submitted, OrchestratorError> {
         let spec = spec.validate()?;
         let key = spec.dedup_key();
@@ -355,6 +356,9 @@ impl Queue {
             JobState::Failed(_) | JobState::Cancelled => {
                 job.state = JobState::Queued { not_before_ms: now };
                 job.attempts = 0;
+                // The old failure is history: a retried job shows no error until it fails
+                // again (with the reason of that attempt).
+                job.last_failure = None;
                 job.updated_ms = now;
                 Ok(job.clone())
             }
@@ -404,16 +408,19 @@ mod tests {
     }
 
     #[test]
-    fn submit_deduplicates_by_content_and_options() {
+    fn submit_deduplicates_by_content_options_and_name() {
         let mut q = Queue::new(cfg());
         let a = q.submit(spec(1), 0).unwrap();
         assert!(!a.existed);
-        let mut renamed = spec(1);
-        renamed.name = "other".into();
-        renamed.source = Source::Upload { size: 3 };
-        let b = q.submit(renamed, 5).unwrap();
+        let mut moved = spec(1);
+        moved.source = Source::Upload { size: 3 };
+        let b = q.submit(moved.clone(), 5).unwrap();
         assert!(b.existed);
         assert_eq!(b.job.id, a.job.id);
+        // The same content delivered under another name is another job.
+        let mut renamed = moved;
+        renamed.name = "other".into();
+        assert!(!q.submit(renamed, 5).unwrap().existed);
         let mut other_opts = spec(1);
         other_opts.options.bits = 6;
         assert!(!q.submit(other_opts, 5).unwrap().existed);
@@ -524,6 +531,7 @@ mod tests {
         let j = q.retry(1, 10).unwrap();
         assert_eq!(j.attempts, 0);
         assert_eq!(j.state, JobState::Queued { not_before_ms: 10 });
+        assert_eq!(j.last_failure, None, "a retried job keeps no old error");
         assert!(q.retry(1, 10).is_err());
     }
 

@@ -117,7 +117,7 @@ pub struct JobOptionArgs {
     /// 4 streams a finer progression in file order for ~8–11 % more bytes).
     #[arg(long, value_name = "G")]
     pub layer_growth: Option<f64>,
-    /// Rounds of least-squares refinement of the kept set (default 4; splines only).
+    /// Rounds of least-squares refinement of the kept set (default 3; splines only).
     #[arg(long)]
     pub refine_rounds: Option<usize>,
     /// Send the oracle's coefficients unchanged (no least-squares refinement).
@@ -185,6 +185,14 @@ pub struct SubmitArgs {
     /// Return after submitting instead of watching the jobs.
     #[arg(long)]
     pub detach: bool,
+    /// Put this before every volume's name in the cache (e.g. `study2/`), so the same files
+    /// compressed again with other options land beside the first ones instead of failing on
+    /// names already taken.
+    #[arg(long, default_value = "")]
+    pub name_prefix: String,
+    /// Put this after every volume's name in the cache (e.g. `_cubic` for `--family cubic`).
+    #[arg(long, default_value = "")]
+    pub name_suffix: String,
     #[command(flatten)]
     pub security: super::security::ClientSecurityArgs,
     #[command(flatten)]
@@ -354,6 +362,10 @@ async fn submit_all(a: SubmitArgs, scan: &archive::Scan, options: &JobOptions) -
     let mut ids = HashSet::new();
     let (mut new, mut known) = (0, 0);
     for f in &scan.found {
+        let f = &archive::Found {
+            name: format!("{}{}{}", a.name_prefix, f.name, a.name_suffix),
+            ..f.clone()
+        };
         let (spec, bytes) = archive::job_spec(f, options, a.upload)
             .with_context(|| format!("reading {}", f.path.display()))?;
         let r = client::submit(&mut c, &spec, bytes.as_deref())

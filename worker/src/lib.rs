@@ -436,10 +436,20 @@ async fn execute(
     }
     shared.set(0.9, "uploading");
     let r = ctx.cache.ingest(&spec.name, &file).await.map_err(|e| {
+        if e.code() == Some(Code::AlreadyExists) {
+            // The same files compressed again with other options: say what to do.
+            return fail(
+                FailureKind::CacheRejected,
+                format!(
+                    "the cache already has a volume named {:?} with other content: submit with \
+                     --name-suffix (e.g. _cubic) or --name-prefix to keep both, or remove it \
+                     first (wavesplat cache rm {})",
+                    spec.name, spec.name
+                ),
+            );
+        }
         let kind = match e.code() {
-            Some(Code::InvalidArgument | Code::AlreadyExists | Code::FailedPrecondition) => {
-                FailureKind::CacheRejected
-            }
+            Some(Code::InvalidArgument | Code::FailedPrecondition) => FailureKind::CacheRejected,
             _ => FailureKind::CacheUnavailable,
         };
         fail(kind, format!("cache ingest of {:?}: {e}", spec.name))
