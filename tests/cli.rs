@@ -278,14 +278,17 @@ fn negative_pairs_parse_as_values() {
 /// `NO_COLOR` asks for none.
 #[test]
 fn logs_into_a_pipe_have_no_colour_codes() {
-    let dir = tempfile::tempdir().unwrap();
-    let missing = dir.path().join("missing.wsp");
+    // A client connecting to a closed port logs its connection attempts at trace level.
+    let closed = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let url = format!("http://{}", closed.local_addr().unwrap());
+    drop(closed);
     let o = Command::new(BIN)
-        .args(["--log", "debug", "info", missing.to_str().unwrap()])
+        .args(["--log", "trace", "cache", "list", "--cache", &url])
         .output()
         .expect("run wavesplat");
     let e = err(&o);
     assert!(!o.status.success());
+    assert!(e.contains("TRACE"), "no log lines to check: {e}");
     assert!(!e.contains('\u{1b}'), "escape codes in a pipe: {e:?}");
 }
 
@@ -308,4 +311,75 @@ fn probing_for_a_gpu_without_a_runtime_directory_prints_no_error() {
     let e = err(&o);
     assert!(!e.contains("XDG_RUNTIME_DIR"), "{e}");
     assert!(!e.contains("error"), "{e}");
+}
+
+/// Help states the library's defaults (a stale "4 rounds" stayed after the default changed),
+/// names every phantom, and a raw file named by the archive's convention compresses without
+/// --dims and --dtype, as `archive submit` reads it.
+#[test]
+fn help_states_the_defaults_and_raw_names_carry_their_layout() {
+    let rounds = wavesplat_compressor::refine::RefineOptions::default().rounds;
+    for args in [
+        &["compress", "--help"][..],
+        &["archive", "submit", "--help"][..],
+    ] {
+        let o = run(args);
+        let text = out(&o);
+        assert!(
+            text.contains(&format!("(default {rounds}")),
+            "{args:?} does not state {rounds} rounds: {text}"
+        );
+        assert!(!text.contains("RefineOptions"), "{args:?}: {text}");
+    }
+    let help = out(&run(&["compress", "--help"]));
+    for name in wavesplat_compressor::phantom::Phantom::names() {
+        assert!(help.contains(name), "compress --help omits {name}");
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let raw = dir.path().join("head_20x16x12_f32.raw");
+    let raw_s = raw.to_str().unwrap();
+    let made = run(&["phantom", "shepp-logan", "--dims", "20,16,12", "-o", raw_s]);
+    assert!(made.status.success(), "{}", err(&made));
+    let wsp = dir.path().join("head.wsp");
+    let c = run(&["compress", raw_s, "-o", wsp.to_str().unwrap()]);
+    assert!(c.status.success(), "{}", err(&c));
+    let info = run(&["info", wsp.to_str().unwrap()]);
+    assert!(
+        out(&info).contains("20x16x12") || out(&info).contains("20 x 16 x 12"),
+        "{}",
+        out(&info)
+    );
+}
+
+/// A `.wspx` written by `publish` is a file `info`, `render` and `decompress` read as they
+/// read the `.wsp` inside it; a cut one is refused saying so.
+#[test]
+fn a_published_file_reads_locally() {
+    let dir = tempfile::tempdir().unwrap();
+    let (_, wsp) = phantom_files(dir.path());
+    let wspx = dir.path().join("p.wspx");
+    let wspx_s = wspx.to_str().unwrap();
+    let p = run(&["publish", &wsp, "-o", wspx_s]);
+    assert!(p.status.success(), "{}", err(&p));
+    let a = run(&["info", &wsp]);
+    let b = run(&["info", wspx_s]);
+    assert!(b.status.success(), "{}", err(&b));
+    assert_eq!(out(&a), out(&b).replace(wspx_s, &wsp));
+    let png = dir.path().join("x.png");
+    let r = run(&[
+        "render",
+        wspx_s,
+        "--cpu",
+        "--size",
+        "24x24",
+        "-o",
+        png.to_str().unwrap(),
+    ]);
+    assert!(r.status.success(), "{}", err(&r));
+    let bytes = std::fs::read(&wspx).unwrap();
+    let cut = dir.path().join("cut.wspx");
+    std::fs::write(&cut, &bytes[..bytes.len() - 7]).unwrap();
+    let c = run(&["info", cut.to_str().unwrap()]);
+    assert!(!c.status.success());
+    assert!(err(&c).contains("cut short"), "{}", err(&c));
 }

@@ -19,14 +19,15 @@ use wavesplat_harness::console::Progress;
 #[derive(Args, Debug)]
 pub struct CompressArgs {
     /// Input volume: a DICOM series directory or DICOM file, .nrrd / .nhdr, .mha / .mhd,
-    /// .nii / .nii.gz, or raw samples (then --dims and --dtype are required). Omit it to use
-    /// --phantom.
+    /// .nii / .nii.gz, or raw samples: named `NAME_XxYxZ_DTYPE[_rgb][_be].raw` as `archive
+    /// submit` reads them (e.g. `head_256x256x128_u16.raw`), or any name with --dims and
+    /// --dtype. Omit it to use --phantom.
     pub input: Option<PathBuf>,
     /// Output .wsp file.
     #[arg(short, long)]
     pub output: PathBuf,
     /// Use a built-in phantom instead of a file: shepp-logan, spheres, rgb-head, constant,
-    /// zero, noise.
+    /// zero, ct, noise.
     #[arg(long, conflicts_with = "input")]
     pub phantom: Option<String>,
     /// Raw input dimensions X,Y,Z (x fastest); phantom size with --phantom (default 64,64,64).
@@ -80,11 +81,10 @@ pub struct CompressArgs {
     pub step: f64,
     /// Rounds of least-squares refinement of the kept set (iterative hard thresholding with
     /// conjugate-gradient refits; splines only). 0 refits the oracle's selection only;
-    /// --no-refine sends the oracle's exact coefficients, as the paper does. Default: the
-    /// library's (`RefineOptions::default`).
+    /// --no-refine sends the oracle's exact coefficients, as the paper does (default 3).
     #[arg(long)]
     pub refine_rounds: Option<usize>,
-    /// Conjugate-gradient iterations per refit of the refinement. Default: the library's.
+    /// Conjugate-gradient iterations per refit of the refinement (default 2).
     #[arg(long)]
     pub refine_iterations: Option<usize>,
     /// Send the oracle's coefficients unchanged (no least-squares refinement): several times
@@ -164,10 +164,27 @@ fn load(a: &CompressArgs) -> Result<Volume> {
             Some(spec)
         }
         (None, None) => {
-            if a.spacing.is_some() {
-                bail!("--spacing applies to raw input (with --dims and --dtype); this file's header gives its spacing");
+            // A raw file named by the archive's convention (`NAME_XxYxZ_DTYPE[_rgb][_be].raw`)
+            // is read as `archive submit` reads it.
+            let named = input
+                .file_name()
+                .and_then(|n| n.to_str())
+                .and_then(wavesplat_worker::archive::parse_raw_name);
+            match named {
+                Some((_, layout)) => {
+                    let mut spec = wavesplat_worker::options::raw_spec(&layout);
+                    if let Some(s) = a.spacing {
+                        spec.spacing = s;
+                    }
+                    Some(spec)
+                }
+                None => {
+                    if a.spacing.is_some() {
+                        bail!("--spacing applies to raw input (with --dims and --dtype); this file's header gives its spacing");
+                    }
+                    None
+                }
             }
-            None
         }
         _ => bail!("raw input needs both --dims and --dtype"),
     };
@@ -302,10 +319,15 @@ fn print_summary(volume: &Volume, c: &Compressed, out: &std::path::Path) {
         100.0 * s.kept as f64 / (s.total_coefficients as f64).max(1.0),
         s.nonzero_coefficients
     );
-    let over = if s.refined {
-        ", over the least-squares refined values"
-    } else {
-        ""
+    let over = match (s.refined, s.q_v > 100.0) {
+        // Eq. 19 over refitted values is no share of the original energy: the refit moves the
+        // left-out coefficients' energy into the kept ones, and can pass 100 %.
+        (true, true) => {
+            ", over the least-squares refined values: above 100 % because the refit puts the \
+             left-out coefficients' energy into the kept ones"
+        }
+        (true, false) => ", over the least-squares refined values",
+        _ => "",
     };
     let coarse = if s.coarse_layer {
         " (the first the coarse layer)"

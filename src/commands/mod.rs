@@ -104,9 +104,40 @@ pub fn check_output(path: &std::path::Path) -> Result<()> {
     Ok(())
 }
 
-/// Reads a compressed volume (`.wsp`). A file that is not one is refused saying what it is:
-/// a volume in a format `compress` reads is a volume to compress first.
+/// Reads a compressed volume: a `.wsp`, or the indexed layout `publish` writes (`.wspx`: its
+/// index checked, the unchanged `.wsp` behind it returned). A file that is neither is refused
+/// saying what it is: a volume in a format `compress` reads is a volume to compress first.
 pub fn read_wsp(path: &std::path::Path) -> Result<Vec<u8>> {
+    let bytes = read_wsp_or_indexed(path)?;
+    if !bytes.starts_with(wavesplat_codec::format::index::INDEXED_MAGIC) {
+        return Ok(bytes);
+    }
+    use wavesplat_codec::format::index::{read_indexed_head, HeadRead};
+    let head = match read_indexed_head(&bytes)
+        .with_context(|| format!("reading the index of {}", path.display()))?
+    {
+        HeadRead::Indexed(h) => h,
+        HeadRead::Need(n) => bail!(
+            "{} is cut short: its indexed layout needs at least {n} bytes, the file has {}",
+            path.display(),
+            bytes.len()
+        ),
+    };
+    if head.object_bytes() != bytes.len() as u64 {
+        bail!(
+            "{} is {} bytes where its index says {} (an index of {} and a .wsp of {}): cut \
+             short or extended",
+            path.display(),
+            bytes.len(),
+            head.object_bytes(),
+            head.wsp_offset,
+            head.wsp_bytes
+        );
+    }
+    Ok(bytes[head.wsp_offset as usize..].to_vec())
+}
+
+fn read_wsp_or_indexed(path: &std::path::Path) -> Result<Vec<u8>> {
     if path.is_dir() {
         bail!(
             "{} is a directory; a .wsp file was expected (a DICOM series directory is a \
@@ -116,7 +147,9 @@ pub fn read_wsp(path: &std::path::Path) -> Result<Vec<u8>> {
         );
     }
     let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
-    if !bytes.starts_with(wavesplat_codec::format::MAGIC) {
+    if !bytes.starts_with(wavesplat_codec::format::MAGIC)
+        && !bytes.starts_with(wavesplat_codec::format::index::INDEXED_MAGIC)
+    {
         let format = wavesplat_compressor::reader::Format::sniff(&bytes)
             .or_else(|| wavesplat_compressor::reader::Format::from_name(path));
         if let Some(f) = format {
@@ -134,8 +167,9 @@ pub fn read_wsp(path: &std::path::Path) -> Result<Vec<u8>> {
             );
         }
         bail!(
-            "{} is not a wavesplat file (.wsp: it starts with \"WSPL\"); raw samples and other \
-             volumes are compressed first (wavesplat compress FILE -o volume.wsp)",
+            "{} is not a wavesplat file (.wsp starts with \"WSPL\", .wspx with \"WSPX\"); raw \
+             samples and other volumes are compressed first (wavesplat compress FILE -o \
+             volume.wsp)",
             path.display()
         );
     }
