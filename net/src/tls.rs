@@ -8,6 +8,9 @@
 //! - A server serves TLS with a certificate chain and key in PEM ([`server_tls`]).
 //! - [`check_exposure`]: a server bound to a non-loopback address needs TLS and authentication
 //!   unless told `--insecure`.
+//! - [`explain_connect_error`], [`explain_status`]: a client's transport failure in words — a
+//!   TLS server reached in plaintext, a plaintext server reached over TLS, or a web server that
+//!   is no wavesplat service (a published volume is browsed by its URL instead).
 
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
@@ -125,15 +128,22 @@ pub fn describe(e: &(dyn std::error::Error + 'static)) -> String {
 }
 
 /// Why connecting to `url` failed, for people: the causes ([`describe`]), and for an
-/// `https://` URL whose server does not answer in TLS, that likely cause in words.
+/// `https://` URL whose server does not answer in TLS, or refuses HTTP/2 in the handshake (a web
+/// server), that likely cause in words.
 pub fn explain_connect_error(url: &str, e: &(dyn std::error::Error + 'static)) -> String {
     let causes = describe(e);
-    if url.starts_with("https://")
-        && (causes.contains("InvalidContentType") || causes.contains("corrupt message"))
-    {
+    if !url.starts_with("https://") {
+        causes
+    } else if causes.contains("InvalidContentType") || causes.contains("corrupt message") {
         format!(
             "TLS handshake failed: the server did not answer in TLS (is it serving plaintext? \
              then use http://) ({causes})"
+        )
+    } else if causes.contains("NoApplicationProtocol") {
+        format!(
+            "the server at {url} is not a wavesplat cache or orchestrator (it refused HTTP/2, \
+             which gRPC needs: a web server?); for a published .wspx use render or view with \
+             its URL ({causes})"
         )
     } else {
         causes
@@ -143,52 +153,112 @@ pub fn explain_connect_error(url: &str, e: &(dyn std::error::Error + 'static)) -
 /// How long [`speaks_tls`] waits for the server's first bytes.
 const PROBE_TIMEOUT: Duration = Duration::from_secs(2);
 
-/// Whether the server at `url` (a plaintext `http://` or bare URL) answers in TLS: sends the
-/// HTTP/2 connection preface, as a plaintext gRPC client does, and looks at the first bytes
-/// back. A TLS server answers bytes it cannot parse with a TLS alert record (content type 21,
-/// version 3.x); a plaintext HTTP/2 server with a SETTINGS frame. Written here because no
-/// library tells these apart after the fact: the gRPC client only reports "h2 protocol
-/// error" or "transport error".
-pub async fn speaks_tls(url: &str) -> bool {
+/// What a server answered a plaintext gRPC client's first bytes with.
+#[derive(Debug, Clone, PartialEq, Eq)]
+enum Answer {
+    /// A TLS alert: the server speaks TLS.
+    Tls,
+    /// An HTTP/1 status line (a web server): the line.
+    Http1(String),
+}
+
+/// What the server at `url` (a plaintext `http://` or bare URL) answers: sends the HTTP/2
+/// connection preface, as a plaintext gRPC client does, and looks at the first bytes back. A TLS
+/// server answers bytes it cannot parse with a TLS alert record (content type 21, version 3.x);
+/// an HTTP/1 server (a web server) with a status line ("HTTP/1.1 400 Bad Request"); a plaintext
+/// HTTP/2 server with a SETTINGS frame. Written here because no library tells these apart after
+/// the fact: the gRPC client only reports "h2 protocol error" or "transport error".
+async fn probe(url: &str) -> Option<Answer> {
     use tokio::io::{AsyncReadExt, AsyncWriteExt};
-    let Some(authority) = url
+    let authority = url
         .trim()
         .strip_prefix("http://")
-        .or_else(|| (!url.contains("://")).then_some(url.trim()))
-    else {
-        return false;
-    };
+        .or_else(|| (!url.contains("://")).then_some(url.trim()))?;
     let authority = authority.split('/').next().unwrap_or(authority);
     let probe = async {
         let mut s = tokio::net::TcpStream::connect(authority).await.ok()?;
         s.write_all(b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n")
             .await
             .ok()?;
-        let mut first = [0u8; 3];
-        s.read_exact(&mut first).await.ok()?;
+        let mut first = Vec::new();
+        let mut buf = [0u8; 128];
+        // A status line is short; a TLS record's header is 5 bytes.
+        while first.len() < 3 || (first.starts_with(b"HTTP/") && !first.contains(&b'\n')) {
+            let n = s.read(&mut buf).await.ok()?;
+            if n == 0 || first.len() >= 256 {
+                break;
+            }
+            first.extend_from_slice(&buf[..n]);
+        }
         Some(first)
     };
-    match tokio::time::timeout(PROBE_TIMEOUT, probe).await {
-        Ok(Some([content_type, 3, _])) => matches!(content_type, 21 | 22),
-        _ => false,
+    let first = tokio::time::timeout(PROBE_TIMEOUT, probe).await.ok()??;
+    match first.as_slice() {
+        [21 | 22, 3, ..] => Some(Answer::Tls),
+        line if line.starts_with(b"HTTP/1") => {
+            let line = String::from_utf8_lossy(line);
+            let line = line.lines().next().unwrap_or_default().trim();
+            Some(Answer::Http1(line.chars().take(80).collect()))
+        }
+        _ => None,
     }
+}
+
+/// Whether the server at `url` (a plaintext `http://` or bare URL) answers in TLS: it answers
+/// the HTTP/2 connection preface with a TLS alert.
+pub async fn speaks_tls(url: &str) -> bool {
+    probe(url).await == Some(Answer::Tls)
 }
 
 /// A status of a call to `url` explained for people: a plaintext client whose call failed at
 /// the transport (tonic says "h2 protocol error" or "transport error") against a server that
-/// speaks TLS is told to use `https://` and `--ca`. Other statuses are returned unchanged.
+/// speaks TLS is told to use `https://` and `--ca`; a call to a web server (it answered HTTP/1,
+/// over TLS not HTTP/2, or HTTP/2 without a gRPC status), that it is no wavesplat service and a
+/// published volume is browsed by its URL. Other statuses are returned unchanged.
 pub async fn explain_status(url: &str, status: tonic::Status) -> tonic::Status {
     let transport = matches!(
         status.code(),
         tonic::Code::Unknown | tonic::Code::Internal | tonic::Code::Unavailable
     );
-    if url.trim().starts_with("https://") || !transport || !speaks_tls(url).await {
+    // An HTTP/2 server that is not gRPC (a web server): tonic maps its HTTP status, or fails
+    // to read its page as gRPC messages.
+    let message = status.message();
+    let not_grpc = message.contains("grpc-status header missing")
+        || (message.contains("while receiving response with status")
+            && !message.contains("with status: 200"));
+    if !transport && !not_grpc {
         return status;
     }
-    tonic::Status::unavailable(format!(
-        "the server at {url} speaks TLS: use https:// and --ca (the call failed: {})",
-        status.message()
-    ))
+    let not_ours = |answered: &str| {
+        tonic::Status::unavailable(format!(
+            "the server at {url} is not a wavesplat cache or orchestrator ({answered}: a web \
+             server?); for a published .wspx use render or view with its URL (the call failed: \
+             {})",
+            status.message()
+        ))
+    };
+    if not_grpc {
+        let http = match message.rfind("status: ") {
+            Some(i) => format!("it answered HTTP {} without gRPC", &message[i + 8..]),
+            None => "it answered HTTP without gRPC".to_string(),
+        };
+        return not_ours(&http);
+    }
+    if url.trim().starts_with("https://") {
+        return if status.message().contains("h2 protocol error") {
+            not_ours("it did not answer in HTTP/2, as gRPC does")
+        } else {
+            status
+        };
+    }
+    match probe(url).await {
+        Some(Answer::Tls) => tonic::Status::unavailable(format!(
+            "the server at {url} speaks TLS: use https:// and --ca (the call failed: {})",
+            status.message()
+        )),
+        Some(Answer::Http1(line)) => not_ours(&format!("it answered {line}")),
+        None => status,
+    }
 }
 
 /// Refuses a non-loopback `addr` without both TLS and authentication, unless `insecure`.
@@ -233,6 +303,43 @@ mod tests {
         assert!(e.to_string().contains("https"), "{e}");
         let e = endpoint("https://h:1", Some(Path::new("/nonexistent.pem"))).unwrap_err();
         assert!(e.to_string().contains("CA certificate"), "{e}");
+    }
+
+    /// A plaintext gRPC call to a web server (it answers the HTTP/2 preface with an HTTP/1.1
+    /// status line, as nginx does) is explained as such, not as "h2 protocol error".
+    #[tokio::test]
+    async fn a_web_server_is_told_apart_from_a_cache() {
+        use std::io::{Read, Write};
+        let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+        let url = format!("http://{}", listener.local_addr().unwrap());
+        std::thread::spawn(move || {
+            if let Ok((mut s, _)) = listener.accept() {
+                let mut buf = [0u8; 64];
+                let _ = s.read(&mut buf);
+                let _ = s.write_all(
+                    b"HTTP/1.1 400 Bad Request\r\nContent-Type: text/html\r\n\r\n<html></html>",
+                );
+            }
+        });
+        let failed = tonic::Status::internal("h2 protocol error: http2 error");
+        let explained = explain_status(&url, failed).await;
+        let m = explained.message();
+        assert!(
+            m.contains("not a wavesplat cache") && m.contains("HTTP/1.1 400 Bad Request"),
+            "{m}"
+        );
+        assert!(m.contains("render or view"), "{m}");
+        assert!(!speaks_tls(&url).await, "nobody listens any more");
+        // An HTTP/2 web server answers a gRPC call with its page (as nginx with http2 does).
+        let failed = tonic::Status::internal(
+            "protocol error: received message with invalid compression flag: 60 (valid flags \
+             are 0 and 1) while receiving response with status: 404 Not Found",
+        );
+        let m = explain_status(&url, failed).await.message().to_string();
+        assert!(
+            m.contains("not a wavesplat cache") && m.contains("HTTP 404 Not Found without gRPC"),
+            "{m}"
+        );
     }
 
     #[test]

@@ -213,6 +213,7 @@ impl ViewArgs {
             (Some(path), _, _) if path.to_str().is_some_and(is_remote) => {
                 Ok(VolumeLocation::Published {
                     url: path.to_str().unwrap_or_default().to_string(),
+                    ca: self.security.options()?.ca,
                 })
             }
             (Some(path), _, _) => Ok(VolumeLocation::File {

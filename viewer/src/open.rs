@@ -169,6 +169,8 @@ pub enum VolumeLocation {
     Published {
         /// Its URL.
         url: String,
+        /// The PEM CA to trust for `https://` (else the system's roots).
+        ca: Option<PathBuf>,
     },
     /// A volume in a cache.
     Cache {
@@ -186,7 +188,7 @@ impl VolumeLocation {
     pub fn describe(&self) -> String {
         match self {
             VolumeLocation::File { path, .. } => path.display().to_string(),
-            VolumeLocation::Published { url } => url.clone(),
+            VolumeLocation::Published { url, .. } => url.clone(),
             VolumeLocation::Cache { urls, name, .. } => format!("{name} at {urls}"),
         }
     }
@@ -203,6 +205,8 @@ pub enum Opened {
     Remote {
         /// Its URL.
         url: String,
+        /// The PEM CA trusted for `https://`.
+        ca: Option<PathBuf>,
         /// The fetching source.
         source: RangeSource,
     },
@@ -234,8 +238,8 @@ impl Opened {
     pub fn all_coefficients(&self, header: &Header) -> Result<Vec<Coefficient>, OpenError> {
         match self {
             Opened::File { source } => Ok(load_coefficients(source.file_bytes(), None, None)?.1),
-            Opened::Remote { url, .. } => {
-                let bytes = fetch_wsp(url).map_err(|source| OpenError::Source {
+            Opened::Remote { url, ca, .. } => {
+                let bytes = fetch_wsp(url, ca.as_deref()).map_err(|source| OpenError::Source {
                     what: url.clone(),
                     source,
                 })?;
@@ -289,12 +293,13 @@ pub fn open(
         source,
     };
     match location {
-        VolumeLocation::Published { url } => {
+        VolumeLocation::Published { url, ca } => {
             let first = request.spec()?;
             let (mut source, header) =
-                RangeSource::open(&url, first, RangeSourceOptions::default()).map_err(failed)?;
+                RangeSource::open(&url, ca.as_deref(), first, RangeSourceOptions::default())
+                    .map_err(failed)?;
             let spec = request.respec(&header, first, &mut source)?;
-            Ok((header, Opened::Remote { url, source }, spec))
+            Ok((header, Opened::Remote { url, ca, source }, spec))
         }
         VolumeLocation::File { path, bytes } => {
             // A named view and the fitting zoom need the volume before packets are ordered.

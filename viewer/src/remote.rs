@@ -6,14 +6,22 @@
 //! request's 64 KiB). The packets the current view sees are then requested in the order the
 //! cache would send them (visible energy per byte, `codec::view::visibility::packet_order`), the
 //! next few in the order whose bytes neighbour each other coalesced into one range, at most
-//! [`RangeSourceOptions::in_flight`] requests at once. A view change reorders what is not yet
-//! requested. Every range is checked: its length, then each packet's framing and CRC as it is
-//! decoded on the network thread; a server that returns less than asked or altered bytes stops
-//! the source with an error that says so ([`SourceStatus::failed`]).
+//! [`RangeSourceOptions::in_flight`] requests at once. Bytes that came with the head are never
+//! asked for again: packets inside them need no request, and the range of a packet that starts
+//! inside them begins where they end. A view change reorders what is not yet requested. Every
+//! range is checked: its length, then each packet's framing and CRC as it is decoded on the
+//! network thread; a server that returns less than asked or altered bytes stops the source with
+//! an error that says so ([`SourceStatus::failed`]).
 //!
-//! The object-store client (`object_store`, as the cache uses) gives S3 signing and HTTP range
-//! requests with retries; its HTTP store speaks plain GET with `Range` to any web server.
+//! `http(s)://` URLs are read with reqwest: plain GET with `Range`, TLS verified against the CA
+//! given (PEM, `--ca`) or else the system's roots. Only what may pass is tried again (a refused
+//! or dropped connection, a timeout, 5xx, 429), a few times with short pauses; what will not
+//! pass fails at once, saying why ([`RangeError`]): a status names its code (the server's page
+//! is not printed, at most a line of plain text), an `https://` URL to a server that does not
+//! speak TLS says so, a certificate from an unknown CA says to pass `--ca`. `s3://` URLs go
+//! through the object-store client (as the cache's bucket store does), which signs requests.
 
+pub use crate::source::RangeError;
 use crate::source::{
     Control, Feed, PacketSender, PacketSource, SourceError, SourcePacket, SourceStatus,
 };
@@ -21,10 +29,12 @@ use bytes::Bytes;
 use futures_util::stream::FuturesUnordered;
 use futures_util::StreamExt;
 use object_store::path::Path as ObjectPath;
-use object_store::{ObjectStore, ObjectStoreExt};
+use object_store::ObjectStore;
 use std::collections::HashSet;
 use std::ops::Range;
+use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
+use std::time::Duration;
 use tokio::sync::mpsc;
 use wavesplat_codec::format::index::{
     read_indexed_head, HeadRead, IndexedHead, PacketMeta, HEAD_READ_BYTES,
@@ -68,56 +78,326 @@ pub struct RangeSource {
     feed: Feed,
 }
 
-/// The object store and the object's path a URL names: `http(s)://host/dir/file` (any web
-/// server or CDN; plain GET with `Range`) or `s3://bucket/key` (endpoint, region and credentials
-/// from the `AWS_*` variables).
-fn store_for(url: &str) -> Result<(Arc<dyn ObjectStore>, ObjectPath), SourceError> {
-    wavesplat_net::tls::install_crypto_provider();
-    let parsed = url::Url::parse(url).map_err(|e| SourceError::Remote(format!("{url}: {e}")))?;
-    let bad = |e: object_store::Error| SourceError::Remote(format!("{url}: {e}"));
-    match parsed.scheme() {
-        "http" | "https" => {
-            let (dir, file) = match url.rfind('/') {
-                Some(i) if i + 1 < url.len() && i > parsed.scheme().len() + 2 => {
-                    (&url[..=i], &url[i + 1..])
+/// Attempts of an HTTP request that fails in a way that may pass.
+const HTTP_ATTEMPTS: u32 = 5;
+/// The pause before the second attempt, doubled before each next one (0.1 + 0.2 + 0.4 + 0.8 s
+/// in all).
+const HTTP_FIRST_PAUSE: Duration = Duration::from_millis(100);
+/// How long connecting may take (as the cache's client).
+const HTTP_CONNECT_TIMEOUT: Duration = Duration::from_secs(5);
+/// How long one request may take, body included (a coalesced request is at most 512 KiB).
+const HTTP_REQUEST_TIMEOUT: Duration = Duration::from_secs(60);
+/// Longest excerpt of a plain-text error body (characters).
+const EXCERPT_CHARS: usize = 160;
+
+/// A published object and the client that reads it.
+#[derive(Clone)]
+enum Object {
+    /// Any web server or CDN: GET with `Range`.
+    Http {
+        client: reqwest::Client,
+        url: reqwest::Url,
+        /// The CA given, for messages.
+        ca: Option<PathBuf>,
+    },
+    /// An object store (S3 and compatibles), through its client.
+    Store {
+        store: Arc<dyn ObjectStore>,
+        path: ObjectPath,
+    },
+}
+
+/// How one attempt of an HTTP request failed.
+enum Attempt {
+    /// It may pass when tried again.
+    Again(String),
+    /// It will not.
+    Final(RangeError),
+}
+
+/// What a failed HTTP request's error means: TLS failures are final, the rest may pass.
+fn classify(e: reqwest::Error, ca: Option<&Path>) -> Attempt {
+    let e = e.without_url();
+    let causes = wavesplat_net::tls::describe(&e);
+    if causes.contains("InvalidContentType") || causes.contains("corrupt message") {
+        Attempt::Final(RangeError::NotTls)
+    } else if causes.contains("UnknownIssuer") {
+        Attempt::Final(RangeError::UnknownIssuer {
+            ca: ca.map(Path::to_path_buf),
+        })
+    } else if [
+        "invalid peer certificate",
+        "received fatal alert",
+        "peer is incompatible",
+    ]
+    .iter()
+    .any(|m| causes.contains(m))
+    {
+        Attempt::Final(RangeError::Tls(causes))
+    } else {
+        Attempt::Again(causes)
+    }
+}
+
+/// `Content-Range: bytes START-END/TOTAL` as (START, END + 1, TOTAL when known).
+fn content_range(value: &str) -> Option<(u64, u64, Option<u64>)> {
+    let (range, total) = value.trim().strip_prefix("bytes ")?.split_once('/')?;
+    let (start, end) = range.split_once('-')?;
+    let (start, end): (u64, u64) = (start.trim().parse().ok()?, end.trim().parse().ok()?);
+    let total = match total.trim() {
+        "*" => None,
+        t => Some(t.parse().ok()?),
+    };
+    (start <= end).then_some((start, end + 1, total))
+}
+
+/// The first line of a plain-text body, cut short; nothing for any other body (an HTML error
+/// page says no more than its status).
+async fn excerpt(mut response: reqwest::Response) -> Option<String> {
+    let plain = response
+        .headers()
+        .get(reqwest::header::CONTENT_TYPE)
+        .and_then(|v| v.to_str().ok())
+        .is_some_and(|t| t.trim_start().starts_with("text/plain"));
+    if !plain {
+        return None;
+    }
+    let mut body = Vec::new();
+    while body.len() < 1024 {
+        match response.chunk().await {
+            Ok(Some(c)) => body.extend_from_slice(&c),
+            _ => break,
+        }
+    }
+    let text = String::from_utf8_lossy(&body);
+    let line = text.lines().map(str::trim).find(|l| !l.is_empty())?;
+    Some(
+        line.chars()
+            .filter(|c| !c.is_control())
+            .take(EXCERPT_CHARS)
+            .collect(),
+    )
+}
+
+impl Object {
+    /// The object at `url`: `http(s)://host/dir/file` (any web server or CDN; TLS verified
+    /// against the PEM CA `ca`, else the system's roots) or `s3://bucket/key` (endpoint,
+    /// region and credentials from the `AWS_*` variables).
+    fn open(url: &str, ca: Option<&Path>) -> Result<Object, RangeError> {
+        wavesplat_net::tls::install_crypto_provider();
+        let parsed = url::Url::parse(url).map_err(|e| RangeError::Url(e.to_string()))?;
+        let ca_error = |ca: &Path, reason: String| RangeError::Ca {
+            path: ca.to_path_buf(),
+            reason,
+        };
+        if parsed.scheme() == "http" && ca.is_some() {
+            return Err(RangeError::CaWithoutTls);
+        }
+        let pem = match ca {
+            Some(ca) => Some(std::fs::read(ca).map_err(|e| ca_error(ca, e.to_string()))?),
+            None => None,
+        };
+        match parsed.scheme() {
+            "http" | "https" => {
+                if parsed.path().ends_with('/') || parsed.path().is_empty() {
+                    return Err(RangeError::Url("no file name".into()));
                 }
-                _ => return Err(SourceError::Remote(format!("{url}: no file name"))),
-            };
-            let store = object_store::http::HttpBuilder::new()
-                .with_url(dir)
-                .with_client_options(object_store::ClientOptions::new().with_allow_http(true))
-                .build()
-                .map_err(bad)?;
-            let path = ObjectPath::from_url_path(file)
-                .map_err(|e| SourceError::Remote(format!("{url}: file name: {e}")))?;
-            Ok((Arc::new(store), path))
+                let mut builder = reqwest::Client::builder()
+                    .connect_timeout(HTTP_CONNECT_TIMEOUT)
+                    .timeout(HTTP_REQUEST_TIMEOUT)
+                    .user_agent(concat!("wavesplat/", env!("CARGO_PKG_VERSION")));
+                // Only the CA given, as the cache's client trusts it.
+                if let Some(ca) = ca {
+                    let certs =
+                        reqwest::Certificate::from_pem_bundle(pem.as_deref().unwrap_or_default())
+                            .map_err(|e| ca_error(ca, wavesplat_net::tls::describe(&e)))?;
+                    if certs.is_empty() {
+                        return Err(ca_error(ca, "no PEM certificate in it".into()));
+                    }
+                    builder = builder.tls_certs_only(certs);
+                }
+                let client = builder
+                    .build()
+                    .map_err(|e| RangeError::Tls(wavesplat_net::tls::describe(&e)))?;
+                Ok(Object::Http {
+                    client,
+                    url: parsed,
+                    ca: ca.map(Path::to_path_buf),
+                })
+            }
+            "s3" | "s3a" => {
+                let mut builder = object_store::aws::AmazonS3Builder::from_env();
+                if let Some(ca) = ca {
+                    // The client settings the AWS_* variables give, and the CA alone.
+                    let mut options = object_store::ClientOptions::new();
+                    for (key, value) in std::env::vars() {
+                        if let Some(key) = key.strip_prefix("AWS_") {
+                            if let Ok(object_store::aws::AmazonS3ConfigKey::Client(k)) =
+                                format!("aws_{}", key.to_ascii_lowercase()).parse()
+                            {
+                                options = options.with_config(k, value);
+                            }
+                        }
+                    }
+                    let certs = object_store::Certificate::from_pem_bundle(
+                        pem.as_deref().unwrap_or_default(),
+                    )
+                    .map_err(|e| ca_error(ca, e.to_string()))?;
+                    if certs.is_empty() {
+                        return Err(ca_error(ca, "no PEM certificate in it".into()));
+                    }
+                    for c in certs {
+                        options = options.with_root_certificate(c);
+                    }
+                    builder =
+                        builder.with_client_options(options.with_no_system_certificates(true));
+                }
+                let store = builder
+                    .with_url(url)
+                    .build()
+                    .map_err(|e| RangeError::Store(e.to_string()))?;
+                let path = ObjectPath::from_url_path(parsed.path())
+                    .map_err(|e| RangeError::Url(format!("key: {e}")))?;
+                Ok(Object::Store {
+                    store: Arc::new(store),
+                    path,
+                })
+            }
+            other => Err(RangeError::Url(format!(
+                "scheme {other:?}; use http(s)://… or s3://bucket/key"
+            ))),
         }
-        "s3" | "s3a" => {
-            let store = object_store::aws::AmazonS3Builder::from_env()
-                .with_url(url)
-                .build()
-                .map_err(bad)?;
-            let path = ObjectPath::from_url_path(parsed.path())
-                .map_err(|e| SourceError::Remote(format!("{url}: key: {e}")))?;
-            Ok((Arc::new(store), path))
+    }
+
+    /// Bytes `range` of the object (the server cuts it at the object's end), or the whole
+    /// object for `None`; and the object's size.
+    async fn read(&self, range: Option<Range<u64>>) -> Result<(Bytes, u64), RangeError> {
+        match self {
+            Object::Http { client, url, ca } => {
+                let mut pause = HTTP_FIRST_PAUSE;
+                let mut attempt = 1;
+                loop {
+                    match Self::http_once(client, url, ca.as_deref(), range.clone()).await {
+                        Ok(got) => return Ok(got),
+                        Err(Attempt::Final(e)) => return Err(e),
+                        Err(Attempt::Again(reason)) if attempt >= HTTP_ATTEMPTS => {
+                            return Err(RangeError::Transfer {
+                                reason,
+                                attempts: attempt,
+                            })
+                        }
+                        Err(Attempt::Again(reason)) => {
+                            tracing::info!(
+                                %url, attempt, %reason,
+                                "range request failed, trying again"
+                            );
+                            tokio::time::sleep(pause).await;
+                            pause *= 2;
+                            attempt += 1;
+                        }
+                    }
+                }
+            }
+            Object::Store { store, path } => {
+                let options = object_store::GetOptions {
+                    range: range.map(object_store::GetRange::Bounded),
+                    ..Default::default()
+                };
+                let failed = |e: object_store::Error| {
+                    let status = |s: &str| RangeError::Status {
+                        status: s.into(),
+                        excerpt: None,
+                    };
+                    match e {
+                        object_store::Error::NotFound { .. } => status("404 Not Found"),
+                        object_store::Error::PermissionDenied { .. } => status("403 Forbidden"),
+                        object_store::Error::Unauthenticated { .. } => status("401 Unauthorized"),
+                        e => RangeError::Store(e.to_string()),
+                    }
+                };
+                let got = store.get_opts(path, options).await.map_err(failed)?;
+                let size = got.meta.size;
+                Ok((got.bytes().await.map_err(failed)?, size))
+            }
         }
-        other => Err(SourceError::Remote(format!(
-            "{url}: scheme {other:?}; use http(s)://… or s3://bucket/key"
-        ))),
+    }
+
+    /// One attempt of an HTTP GET (see [`Object::read`]).
+    async fn http_once(
+        client: &reqwest::Client,
+        url: &reqwest::Url,
+        ca: Option<&Path>,
+        range: Option<Range<u64>>,
+    ) -> Result<(Bytes, u64), Attempt> {
+        let mut request = client.get(url.clone());
+        if let Some(r) = &range {
+            request = request.header(
+                reqwest::header::RANGE,
+                format!("bytes={}-{}", r.start, r.end.saturating_sub(1)),
+            );
+        }
+        let response = request.send().await.map_err(|e| classify(e, ca))?;
+        let status = response.status();
+        let body = |response: reqwest::Response| async move {
+            response.bytes().await.map_err(|e| classify(e, ca))
+        };
+        match (status, range) {
+            (reqwest::StatusCode::PARTIAL_CONTENT, Some(asked)) => {
+                let answer = response
+                    .headers()
+                    .get(reqwest::header::CONTENT_RANGE)
+                    .and_then(|v| v.to_str().ok())
+                    .unwrap_or_default()
+                    .to_string();
+                match content_range(&answer) {
+                    Some((start, _, Some(total))) if start == asked.start => {
+                        Ok((body(response).await?, total))
+                    }
+                    _ => Err(Attempt::Final(RangeError::ContentRange { asked, answer })),
+                }
+            }
+            (reqwest::StatusCode::OK, None) => {
+                let bytes = body(response).await?;
+                let size = bytes.len() as u64;
+                Ok((bytes, size))
+            }
+            // The whole object for a range from its start that holds all of it: as good.
+            (reqwest::StatusCode::OK, Some(asked))
+                if asked.start == 0
+                    && response.content_length().is_some_and(|n| n <= asked.end) =>
+            {
+                let bytes = body(response).await?;
+                let size = bytes.len() as u64;
+                Ok((bytes, size))
+            }
+            (reqwest::StatusCode::OK, Some(asked)) => {
+                Err(Attempt::Final(RangeError::RangeIgnored { asked }))
+            }
+            (s, _)
+                if s.is_server_error()
+                    || s == reqwest::StatusCode::TOO_MANY_REQUESTS
+                    || s == reqwest::StatusCode::REQUEST_TIMEOUT =>
+            {
+                Err(Attempt::Again(format!("the server answered {s}")))
+            }
+            (s, _) => Err(Attempt::Final(RangeError::Status {
+                status: s.to_string(),
+                excerpt: excerpt(response).await,
+            })),
+        }
     }
 }
 
 /// The `.wsp` bytes of the volume at `url` (the whole object, without the index in front when
-/// it is in the indexed layout): for a reference render of everything.
-pub fn fetch_wsp(url: &str) -> Result<Vec<u8>, SourceError> {
-    let (store, path) = store_for(url)?;
+/// it is in the indexed layout): for a reference render of everything. `ca`: the PEM CA to
+/// trust for `https://`.
+pub fn fetch_wsp(url: &str, ca: Option<&Path>) -> Result<Vec<u8>, SourceError> {
+    let object = Object::open(url, ca)?;
     let runtime = tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()
         .map_err(|e| SourceError::Thread(e.to_string()))?;
-    let bytes = runtime
-        .block_on(async { store.get(&path).await?.bytes().await })
-        .map_err(|e| SourceError::Remote(format!("reading {url}: {e}")))?;
+    let (bytes, _) = runtime.block_on(object.read(None))?;
     if !bytes.starts_with(wavesplat_codec::format::index::INDEXED_MAGIC) {
         return Ok(bytes.to_vec());
     }
@@ -152,24 +432,12 @@ struct Head {
 }
 
 async fn read_head(
-    store: &dyn ObjectStore,
-    path: &ObjectPath,
+    object: &Object,
     url: &str,
     status: &Mutex<SourceStatus>,
 ) -> Result<Head, SourceError> {
-    let failed = |e: object_store::Error| SourceError::Remote(format!("reading {url}: {e}"));
-    let first = store
-        .get_opts(
-            path,
-            object_store::GetOptions {
-                range: Some(object_store::GetRange::Bounded(0..HEAD_READ_BYTES)),
-                ..Default::default()
-            },
-        )
-        .await
-        .map_err(failed)?;
-    let object_bytes = first.meta.size;
-    let mut bytes = first.bytes().await.map_err(failed)?.to_vec();
+    let (first, object_bytes) = object.read(Some(0..HEAD_READ_BYTES)).await?;
+    let mut bytes = first.to_vec();
     count(status, bytes.len() as u64);
     let corrupt = |e: FormatError| SourceError::Remote(format!("{url}: {e}"));
     if bytes.starts_with(wavesplat_codec::format::MAGIC) {
@@ -213,10 +481,7 @@ async fn read_head(
                 )));
             }
             let end = (bytes.len() as u64 * 2).min(object_bytes);
-            let more = store
-                .get_range(path, bytes.len() as u64..end)
-                .await
-                .map_err(failed)?;
+            let (more, _) = object.read(Some(bytes.len() as u64..end)).await?;
             count(status, more.len() as u64);
             bytes.extend_from_slice(&more);
         }
@@ -230,10 +495,7 @@ async fn read_head(
                 )))
             }
             HeadRead::Need(n) => {
-                let more = store
-                    .get_range(path, bytes.len() as u64..n as u64)
-                    .await
-                    .map_err(failed)?;
+                let (more, _) = object.read(Some(bytes.len() as u64..n as u64)).await?;
                 count(status, more.len() as u64);
                 bytes.extend_from_slice(&more);
             }
@@ -262,14 +524,16 @@ fn count(status: &Mutex<SourceStatus>, bytes: u64) {
 }
 
 impl RangeSource {
-    /// Reads the head of the volume at `url` and starts fetching the packets `spec` sees.
+    /// Reads the head of the volume at `url` and starts fetching the packets `spec` sees;
+    /// `ca`: the PEM CA to trust for `https://` (else the system's roots).
     pub fn open(
         url: &str,
+        ca: Option<&Path>,
         spec: ViewSpec,
         options: RangeSourceOptions,
     ) -> Result<(RangeSource, Header), SourceError> {
         spec.validate()?;
-        let (store, path) = store_for(url)?;
+        let object = Object::open(url, ca)?;
         let runtime = tokio::runtime::Builder::new_current_thread()
             .enable_all()
             .build()
@@ -278,7 +542,7 @@ impl RangeSource {
             connected: true,
             ..Default::default()
         }));
-        let head = runtime.block_on(read_head(store.as_ref(), &path, url, &status))?;
+        let head = runtime.block_on(read_head(&object, url, &status))?;
         if !head.indexed {
             tracing::warn!(
                 %url,
@@ -293,8 +557,7 @@ impl RangeSource {
         let header = head.header.clone();
         let mut fetch = Fetch {
             url: url.to_string(),
-            store,
-            path,
+            object,
             options,
             requested: HashSet::new(),
             queue: Vec::new(),
@@ -334,8 +597,7 @@ impl PacketSource for RangeSource {
 /// The network task's state.
 struct Fetch {
     url: String,
-    store: Arc<dyn ObjectStore>,
-    path: ObjectPath,
+    object: Object,
     options: RangeSourceOptions,
     /// Packets requested (and not dropped by the session since).
     requested: HashSet<u32>,
@@ -349,8 +611,16 @@ struct Fetch {
 struct Request {
     range: Range<u64>,
     packets: Vec<u32>,
+    /// Bytes at the range's start that came with the head: only the rest is requested (none
+    /// when it is all of them).
+    held: u64,
+}
+
+impl Request {
     /// Inside the bytes read with the head: no request needed.
-    local: bool,
+    fn local(&self) -> bool {
+        self.held >= self.range.end - self.range.start
+    }
 }
 
 impl Fetch {
@@ -448,10 +718,11 @@ impl Fetch {
         let start = self.head.base + self.head.packets[lo as usize].offset;
         let last = &self.head.packets[hi as usize];
         let end = self.head.base + last.offset + last.len as u64;
+        let held = (self.head.first.len() as u64).clamp(start, end) - start;
         Some(Request {
-            local: end <= self.head.first.len() as u64,
             range: start..end,
             packets,
+            held,
         })
     }
 
@@ -479,14 +750,25 @@ impl Fetch {
                 let Some(req) = self.next_request() else {
                     break;
                 };
-                let store = self.store.clone();
-                let path = self.path.clone();
+                let object = self.object.clone();
                 let first = self.head.first.clone();
                 flight.push(async move {
-                    let got = if req.local {
-                        Ok(first.slice(req.range.start as usize..req.range.end as usize))
+                    let (start, end) = (req.range.start as usize, req.range.end as usize);
+                    let got = if req.local() {
+                        Ok(first.slice(start..end))
                     } else {
-                        store.get_range(&path, req.range.clone()).await
+                        // Only what the head did not bring; what it did goes in front.
+                        let from = req.range.start + req.held;
+                        let tail = object.read(Some(from..req.range.end)).await;
+                        tail.map(|(tail, _)| {
+                            if req.held == 0 {
+                                tail
+                            } else {
+                                let mut all = first[start..start + req.held as usize].to_vec();
+                                all.extend_from_slice(&tail);
+                                Bytes::from(all)
+                            }
+                        })
                     };
                     (req, got)
                 });
@@ -522,7 +804,7 @@ impl Fetch {
     async fn deliver(
         &mut self,
         req: Request,
-        got: Result<Bytes, object_store::Error>,
+        got: Result<Bytes, RangeError>,
         tx: &PacketSender,
         first_packet: &mut bool,
     ) -> Result<bool, String> {
@@ -530,9 +812,9 @@ impl Fetch {
             got.map_err(|e| format!("fetching bytes {:?} of {}: {e}", req.range, self.url))?;
         let want = req.range.end - req.range.start;
         self.update(|s| {
-            if !req.local {
+            if !req.local() {
                 s.requests += 1;
-                s.received_bytes += data.len() as u64;
+                s.received_bytes += (data.len() as u64).saturating_sub(req.held);
             }
             if *first_packet {
                 s.requests_before_first_packet = s.requests;
@@ -603,8 +885,10 @@ mod tests {
         };
         Fetch {
             url: "test".into(),
-            store: Arc::new(object_store::memory::InMemory::new()),
-            path: ObjectPath::from("v.wspx"),
+            object: Object::Store {
+                store: Arc::new(object_store::memory::InMemory::new()),
+                path: ObjectPath::from("v.wspx"),
+            },
             options: RangeSourceOptions::default(),
             requested: HashSet::new(),
             queue: Vec::new(),
@@ -670,15 +954,66 @@ mod tests {
         assert!(f.queue[..4].iter().all(|&i| i < 4), "{:?}", &f.queue[..6]);
         let r = f.next_request().unwrap();
         assert!(
-            r.local && r.packets.iter().all(|&i| i < 4),
+            r.local() && r.packets.iter().all(|&i| i < 4),
             "{:?}",
             r.packets
         );
         let mut next = f.next_request().unwrap();
-        while next.local {
+        while next.local() {
             next = f.next_request().unwrap();
         }
         assert!(next.packets.iter().all(|&i| i >= 4));
+    }
+
+    /// A packet that begins inside the bytes read with the head is asked for from where they
+    /// end: the request holds that prefix, and only the rest goes over the wire.
+    #[test]
+    fn a_packet_across_the_head_is_asked_for_from_its_end() {
+        let mut f = fetch(usize::MAX);
+        let p = &f.head.packets[2];
+        let (start, len) = (f.head.base + p.offset, p.len as u64);
+        assert!(len > 2, "the test needs a packet of a few bytes");
+        f.head.first = f.head.first.slice(..(start + len / 2) as usize);
+        f.plan(&ViewSpec::single(View::new(0.3, 0.2, 64, 64)))
+            .unwrap();
+        let mut r = f.next_request().unwrap();
+        while r.local() {
+            r = f.next_request().unwrap();
+        }
+        while !r.packets.contains(&2) {
+            r = f.next_request().unwrap();
+        }
+        assert_eq!(r.range.start, start, "{:?}", r.packets);
+        assert_eq!(r.held, len / 2);
+        assert!(!r.local());
+    }
+
+    #[test]
+    fn content_ranges_and_statuses_read_as_said() {
+        assert_eq!(
+            content_range("bytes 0-65535/284442"),
+            Some((0, 65536, Some(284442)))
+        );
+        assert_eq!(content_range("bytes 10-19/*"), Some((10, 20, None)));
+        for bad in ["", "bytes 5-4/10", "items 0-1/2", "bytes 0-x/2"] {
+            assert_eq!(content_range(bad), None, "{bad:?}");
+        }
+        let page = RangeError::Status {
+            status: "404 Not Found".into(),
+            excerpt: None,
+        };
+        assert_eq!(page.to_string(), "the server answered 404 Not Found");
+        let plain = RangeError::Status {
+            status: "403 Forbidden".into(),
+            excerpt: Some("private".into()),
+        };
+        assert_eq!(
+            plain.to_string(),
+            "the server answered 403 Forbidden: \"private\""
+        );
+        assert!(RangeError::UnknownIssuer { ca: None }
+            .to_string()
+            .contains("--ca"));
     }
 
     #[test]
@@ -687,8 +1022,19 @@ mod tests {
         assert!(is_remote("s3://bucket/v.wspx"));
         assert!(!is_remote("v.wspx"));
         assert!(!is_remote("/data/http://x"));
-        assert!(store_for("http://host/").is_err(), "no file name");
-        assert!(store_for("ftp://host/v.wspx").is_err());
-        assert!(store_for("http://host/dir/v.wspx").is_ok());
+        let open = |url| Object::open(url, None);
+        assert!(open("http://host/").is_err(), "no file name");
+        assert!(open("ftp://host/v.wspx").is_err());
+        assert!(open("http://host/dir/v.wspx").is_ok());
+        assert!(open("https://host/dir/v.wspx").is_ok());
+        let ca = Path::new("/nonexistent/ca.pem");
+        assert_eq!(
+            Object::open("http://host/v.wspx", Some(ca)).err(),
+            Some(RangeError::CaWithoutTls)
+        );
+        assert!(matches!(
+            Object::open("https://host/v.wspx", Some(ca)),
+            Err(RangeError::Ca { .. })
+        ));
     }
 }

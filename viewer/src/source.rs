@@ -1,7 +1,9 @@
 //! Where packets come from: the [`PacketSource`] trait the frame loop polls (never blocking),
 //! a [`FileSource`] that serves a local `.wsp` file in the order the cache would send it for the
 //! current view, and a [`CacheSource`] that pulls packets from a cache over gRPC on its own
-//! thread.
+//! thread; the errors of every source ([`SourceError`], and [`RangeError`], the range reader's
+//! of `remote`, here so that sources share one error type without `remote` and this module
+//! importing each other).
 //!
 //! The cache source runs a tokio runtime on a background thread. It opens a refinement stream
 //! with a small byte credit, hands each packet to the session through a bounded queue and only
@@ -13,6 +15,8 @@
 
 use futures_util::stream::{FuturesOrdered, StreamExt};
 use std::collections::{HashMap, HashSet};
+use std::ops::Range;
+use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 use tokio::sync::{mpsc, OwnedSemaphorePermit, Semaphore};
@@ -107,12 +111,106 @@ pub enum SourceError {
     /// The cache could not be reached or refused.
     #[error(transparent)]
     Client(#[from] ClientError),
-    /// A volume browsed by range requests could not be read.
+    /// A volume browsed by range requests could not be read: its bytes are not what they
+    /// should be.
     #[error("{0}")]
     Remote(String),
+    /// A volume browsed by range requests could not be read: the server's answer, or none.
+    #[error(transparent)]
+    Range(#[from] RangeError),
     /// The background thread could not be started.
     #[error("cannot start the network thread: {0}")]
     Thread(String),
+}
+
+/// Why a published volume could not be read: what the server answered, or why no answer came.
+/// The URL is not repeated here: whoever reports the error names it.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[non_exhaustive]
+pub enum RangeError {
+    /// The URL cannot name a published volume.
+    #[error("{0}")]
+    Url(String),
+    /// The CA certificate could not be used.
+    #[error("the CA certificate {}: {reason}", .path.display())]
+    Ca {
+        /// The PEM file.
+        path: PathBuf,
+        /// What is wrong with it.
+        reason: String,
+    },
+    /// A CA certificate was given for a plaintext URL (as the cache's client, this refuses
+    /// rather than let a user believe the transfer is verified).
+    #[error(
+        "a CA certificate was given (--ca or WAVESPLAT_CA) for a plaintext http:// URL; use \
+         https://, or give no CA"
+    )]
+    CaWithoutTls,
+    /// The server answered with a status other than the bytes asked for.
+    #[error("the server answered {status}{}", excerpt_suffix(.excerpt))]
+    Status {
+        /// The status code and its reason ("404 Not Found").
+        status: String,
+        /// The first line of a plain-text body, cut short (an HTML page is not repeated).
+        excerpt: Option<String>,
+    },
+    /// An `https://` URL to a server that does not answer in TLS.
+    #[error(
+        "the server does not speak TLS: it answered the TLS handshake with something else (a \
+         plaintext HTTP server? then try http://)"
+    )]
+    NotTls,
+    /// The server's certificate is not signed by a CA this client trusts.
+    #[error(
+        "the server's certificate is not signed by a trusted CA (UnknownIssuer): {}",
+        match .ca {
+            Some(ca) => format!("it is not signed by the CA given ({}); pass the CA that signed it with --ca", ca.display()),
+            None => "pass the CA that signed it with --ca PEM (or WAVESPLAT_CA)".to_string(),
+        }
+    )]
+    UnknownIssuer {
+        /// The CA that was given, if any.
+        ca: Option<PathBuf>,
+    },
+    /// TLS failed otherwise (a certificate for another name or expired, a handshake refused).
+    #[error("TLS failed: {0}")]
+    Tls(String),
+    /// The server could not be reached, or the transfer broke, every time it was tried.
+    #[error("{reason} (tried {attempts} times)")]
+    Transfer {
+        /// The last failure.
+        reason: String,
+        /// Attempts made.
+        attempts: u32,
+    },
+    /// The server answered a request for part of the object with all of it.
+    #[error(
+        "the server ignores Range requests (asked for bytes {}..{}, it answered the whole \
+         object); serve the volume from a server that honours Range",
+        .asked.start, .asked.end
+    )]
+    RangeIgnored {
+        /// The range asked for.
+        asked: Range<u64>,
+    },
+    /// The server answered other bytes than those asked for.
+    #[error("asked for bytes {}..{}, the server answered {answer:?}", .asked.start, .asked.end)]
+    ContentRange {
+        /// The range asked for.
+        asked: Range<u64>,
+        /// Its `Content-Range`.
+        answer: String,
+    },
+    /// The object store (`s3://`) failed.
+    #[error("{0}")]
+    Store(String),
+}
+
+fn excerpt_suffix(excerpt: &Option<String>) -> String {
+    excerpt
+        .as_deref()
+        .map(|e| format!(": {e:?}"))
+        .unwrap_or_default()
 }
 
 /// Where a packet lies in a file and what ranks it.
