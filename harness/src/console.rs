@@ -1,13 +1,15 @@
 //! What long commands show while they work: a spinner per task ([`Progress`]) and the job table
 //! of the orchestrator's queue ([`watch`]), as indicatif bars on a terminal and structured
-//! `tracing` events otherwise. Shared by `wavesplat compress`, `decompress`, `archive submit`,
-//! `jobs` and the demo.
+//! `tracing` events otherwise (or, for the demo's long stages, plain lines on stderr with a
+//! reminder every [`HEARTBEAT`], so that a log filter cannot make it silent). Shared by
+//! `wavesplat compress`, `decompress`, `archive submit`, `jobs` and the demo.
 
 use anyhow::{bail, Result};
 use indicatif::{MultiProgress, ProgressBar, ProgressStyle};
 use std::collections::{BTreeMap, HashSet};
 use std::io::{IsTerminal, Write};
-use std::time::Duration;
+use std::sync::{Arc, Condvar, Mutex};
+use std::time::{Duration, Instant};
 use wavesplat_orchestrator::client;
 use wavesplat_orchestrator::convert::state_name;
 use wavesplat_proto::pb;
@@ -16,12 +18,91 @@ use wavesplat_proto::pb;
 pub struct Progress {
     bar: Option<ProgressBar>,
     task: &'static str,
+    lines: Option<Lines>,
+}
+
+/// Plain progress lines on stderr (no terminal): the stage as it changes, and every
+/// [`HEARTBEAT`] without a change a line saying the stage is still under way, from a thread of
+/// its own so that a long stage (a walk, a reference image) is not silent.
+struct Lines {
+    state: Arc<(Mutex<LineState>, Condvar)>,
+    ticker: Option<std::thread::JoinHandle<()>>,
+}
+
+struct LineState {
+    stage: String,
+    since: Instant,
+    last_line: Instant,
+    done: bool,
+}
+
+/// How long a stage runs before a plain-line [`Progress`] says it is still under way.
+pub const HEARTBEAT: Duration = Duration::from_secs(10);
+
+/// The line a plain-line [`Progress`] writes for `stage` of `task`, `running` into it.
+pub fn progress_line(task: &str, stage: &str, running: Option<Duration>) -> String {
+    match running {
+        None => format!("{task}: {stage}"),
+        Some(d) => format!("{task}: {stage} (still running, {:.0} s)", d.as_secs_f64()),
+    }
 }
 
 impl Progress {
-    /// Starts reporting `task`.
+    /// Starts reporting `task`: a spinner on a terminal, `tracing` events otherwise.
     pub fn new(task: &'static str) -> Progress {
-        let bar = std::io::stderr().is_terminal().then(|| {
+        Progress {
+            bar: Progress::spinner(task),
+            task,
+            lines: None,
+        }
+    }
+
+    /// Starts reporting `task`: a spinner on a terminal, otherwise plain lines on stderr
+    /// whatever the log level — each stage, and a reminder every [`HEARTBEAT`] while one
+    /// lasts. For commands whose stages take tens of seconds (the demo).
+    pub fn with_lines(task: &'static str) -> Progress {
+        let bar = Progress::spinner(task);
+        let lines = bar.is_none().then(|| {
+            let now = Instant::now();
+            let state = Arc::new((
+                Mutex::new(LineState {
+                    stage: String::new(),
+                    since: now,
+                    last_line: now,
+                    done: false,
+                }),
+                Condvar::new(),
+            ));
+            let shared = Arc::clone(&state);
+            let ticker = std::thread::Builder::new()
+                .name("progress".into())
+                .spawn(move || {
+                    let (lock, wake) = &*shared;
+                    let mut s = lock.lock().unwrap_or_else(|e| e.into_inner());
+                    while !s.done {
+                        let due = s.last_line + HEARTBEAT;
+                        let now = Instant::now();
+                        if now >= due {
+                            if !s.stage.is_empty() {
+                                eprintln!("{}", progress_line(task, &s.stage, Some(now - s.since)));
+                            }
+                            s.last_line = now;
+                            continue;
+                        }
+                        s = wake
+                            .wait_timeout(s, due - now)
+                            .unwrap_or_else(|e| e.into_inner())
+                            .0;
+                    }
+                })
+                .ok();
+            Lines { state, ticker }
+        });
+        Progress { bar, task, lines }
+    }
+
+    fn spinner(task: &'static str) -> Option<ProgressBar> {
+        std::io::stderr().is_terminal().then(|| {
             let b = ProgressBar::new_spinner();
             b.set_style(
                 ProgressStyle::with_template("{spinner} {elapsed:>4} {prefix}: {msg}")
@@ -30,15 +111,23 @@ impl Progress {
             b.set_prefix(task);
             b.enable_steady_tick(std::time::Duration::from_millis(120));
             b
-        });
-        Progress { bar, task }
+        })
     }
 
     /// Reports a new stage.
     pub fn stage(&self, msg: &str) {
-        match &self.bar {
-            Some(b) => b.set_message(msg.to_string()),
-            None => tracing::info!(task = self.task, stage = msg, "progress"),
+        match (&self.bar, &self.lines) {
+            (Some(b), _) => b.set_message(msg.to_string()),
+            (None, Some(l)) => {
+                let (lock, _) = &*l.state;
+                let mut s = lock.lock().unwrap_or_else(|e| e.into_inner());
+                let now = Instant::now();
+                s.stage = msg.to_string();
+                s.since = now;
+                s.last_line = now;
+                eprintln!("{}", progress_line(self.task, msg, None));
+            }
+            (None, None) => tracing::info!(task = self.task, stage = msg, "progress"),
         }
     }
 
@@ -46,6 +135,25 @@ impl Progress {
     pub fn finish(&self) {
         if let Some(b) = &self.bar {
             b.finish_and_clear();
+        }
+        if let Some(l) = &self.lines {
+            let (lock, wake) = &*l.state;
+            lock.lock().unwrap_or_else(|e| e.into_inner()).done = true;
+            wake.notify_all();
+        }
+    }
+}
+
+impl Drop for Progress {
+    /// Stops the plain lines' reminders (a spinner is left as indicatif leaves it).
+    fn drop(&mut self) {
+        if let Some(l) = self.lines.as_mut() {
+            let (lock, wake) = &*l.state;
+            lock.lock().unwrap_or_else(|e| e.into_inner()).done = true;
+            wake.notify_all();
+            if let Some(t) = l.ticker.take() {
+                let _ = t.join();
+            }
         }
     }
 }
@@ -163,5 +271,22 @@ pub async fn watch(
             return Ok(());
         }
         tokio::time::sleep(Duration::from_millis(300)).await;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn progress_lines_name_the_task_the_stage_and_how_long_it_runs() {
+        assert_eq!(
+            progress_line("demo", "browsing rgb-head (multiview), walk 5 of 6", None),
+            "demo: browsing rgb-head (multiview), walk 5 of 6"
+        );
+        assert_eq!(
+            progress_line("demo", "scoring", Some(Duration::from_millis(20_400))),
+            "demo: scoring (still running, 20 s)"
+        );
     }
 }

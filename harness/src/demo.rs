@@ -6,6 +6,12 @@
 //! view, multiview, depth cueing). Every frame is scored against the reference ray caster's
 //! image of the original volume; it writes frame PNGs, a CSV per run and `report.html` with
 //! charts of the error against time and bytes and a table of figures beside each.
+//!
+//! The final rest runs until the image converges (at most [`FINAL_REST_FACTOR`] times the
+//! first rest's frames), so the final figures are the converged image's rather than whatever a
+//! loaded machine reached in a fixed number of frames; a rest that ends at its limit is
+//! reported as such, with what was still pending ([`RestEnd`]). Progress goes to stderr as
+//! a spinner on a terminal and as plain lines otherwise.
 
 use crate::browse::{browse, probe_backend, reference_options};
 use crate::report::{Chart, Section, Series, Table};
@@ -48,7 +54,70 @@ pub struct Demo {
     pub threads: usize,
 }
 
-/// Runs the demo, writing its outputs and its progress to `say`.
+/// The final rest's frame limit as a multiple of the first rest's: generous, so that the final
+/// rest ends when the image converges (it does so well within it on an idle machine, e.g. 216
+/// frames of 240 for the RGB head's multiview) and the final figures do not depend on how far
+/// refinement got on a loaded one.
+pub const FINAL_REST_FACTOR: usize = 10;
+
+/// How a rest ended.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum RestEnd {
+    /// The image converged: everything sent was drawn with exact tables and the source had
+    /// nothing more; the time is from the walk's start (ms).
+    Converged {
+        /// When (ms from the walk's start).
+        ms: f64,
+    },
+    /// The rest reached its frame limit first.
+    LimitReached {
+        /// Coefficients queued but not yet drawn at its last frame.
+        pending: usize,
+    },
+}
+
+impl RestEnd {
+    /// How path step `step` of `samples` ended (its last frame); `None` if it has no frame.
+    pub fn of(samples: &[FrameSample], step: usize) -> Option<RestEnd> {
+        let last = samples.iter().rfind(|s| s.step == step)?;
+        Some(if last.converged {
+            RestEnd::Converged {
+                ms: last.t.as_secs_f64() * 1e3,
+            }
+        } else {
+            RestEnd::LimitReached {
+                pending: last.pending,
+            }
+        })
+    }
+
+    /// Whether the image converged.
+    pub fn converged(&self) -> bool {
+        matches!(self, RestEnd::Converged { .. })
+    }
+
+    /// In words: "converged" or "rest limit reached, N pending" (with "packets still
+    /// arriving" when nothing was pending but the source had not finished).
+    pub fn label(&self) -> String {
+        match *self {
+            RestEnd::Converged { .. } => "converged".into(),
+            RestEnd::LimitReached { pending: 0 } => {
+                "rest limit reached, 0 pending, packets still arriving".into()
+            }
+            RestEnd::LimitReached { pending } => format!("rest limit reached, {pending} pending"),
+        }
+    }
+
+    /// For the table: "converged at T ms" or the label.
+    pub fn cell(&self) -> String {
+        match *self {
+            RestEnd::Converged { ms } => format!("converged at {ms:.0} ms"),
+            RestEnd::LimitReached { .. } => self.label(),
+        }
+    }
+}
+
+/// Runs the demo, writing its outputs to `say` and its progress to stderr.
 pub fn run(demo: &Demo, say: &mut (dyn Write + Send)) -> Result<()> {
     if !(demo.frame_ms.is_finite() && demo.frame_ms > 0.0) {
         bail!("--frame-ms must be positive, got {}", demo.frame_ms);
@@ -165,7 +234,7 @@ pub fn run(demo: &Demo, say: &mut (dyn Write + Send)) -> Result<()> {
     let (backend, reason) = probe_backend(BackendChoice::Auto)?;
     writeln!(say, "    backend: {reason}")?;
     let mut runs = Vec::new();
-    let progress = crate::console::Progress::new("demo");
+    let progress = crate::console::Progress::with_lines("demo");
     let total_runs = volumes.len() * 3;
     for v in &volumes {
         let file_bytes = stack
@@ -208,7 +277,10 @@ pub fn run(demo: &Demo, say: &mut (dyn Write + Send)) -> Result<()> {
                 3,
             ));
             let end = path.last().expect("a turn has steps").spec;
-            path.push(PathStep::rest(end, demo.rest_frames));
+            path.push(PathStep::rest(
+                end,
+                demo.rest_frames.saturating_mul(FINAL_REST_FACTOR),
+            ));
             progress.stage(&format!(
                 "browsing {} ({scene}), walk {} of {total_runs}",
                 v.name,
@@ -217,6 +289,16 @@ pub fn run(demo: &Demo, say: &mut (dyn Write + Send)) -> Result<()> {
             let (header, backend, samples) =
                 browse(&stack.cache_url, &v.name, spec, &path, frame, backend)
                     .with_context(|| format!("browsing {} ({scene})", v.name))?;
+            let ends = [0, path.len() - 1].map(|step| {
+                RestEnd::of(&samples, step).map_or_else(|| "no frame".into(), |e| e.label())
+            });
+            progress.stage(&format!(
+                "browsed {} ({scene}): {} frames; first rest: {}; final rest: {}",
+                v.name,
+                samples.len(),
+                ends[0],
+                ends[1]
+            ));
             runs.push(Run {
                 volume: v.name.clone(),
                 scene,
@@ -261,13 +343,18 @@ pub fn run(demo: &Demo, say: &mut (dyn Write + Send)) -> Result<()> {
     let intro = format!(
         "{} volumes compressed by the worker (linear B-spline wavelets, 5 % of the coefficients), \
          then browsed from the cache over loopback by the headless viewer with the {} backend at a \
-         {} ms frame budget: rest at α = 0.66, β = 0.91 until converged, a 90° turn in six steps \
-         of three frames, rest again. Q_I is the paper's image quality (eq. 18) against the \
-         reference ray caster's image of the original volume for the same view; SNR the \
-         conventional one. Machine: {} threads.",
+         {} ms frame budget: rest at α = 0.66, β = 0.91 until converged (at most {} frames), a \
+         90° turn in six steps of three frames, rest again until converged (at most {} frames, \
+         so that the final figures are the converged image's; a rest that ends at its limit is \
+         marked \"rest limit reached\" with the coefficients still pending). Q_I is the paper's \
+         image quality (eq. 18) against the reference ray caster's image of the original volume \
+         for the same view; SNR the conventional one. Times depend on the machine and its load; \
+         converged figures do not. Machine: {} threads.",
         volumes.len(),
         runs.first().map_or("cpu".into(), |r| r.backend.clone()),
         demo.frame_ms,
+        demo.rest_frames,
+        demo.rest_frames.saturating_mul(FINAL_REST_FACTOR),
         rayon::current_num_threads()
     );
     crate::report::write_html(
@@ -279,16 +366,18 @@ pub fn run(demo: &Demo, say: &mut (dyn Write + Send)) -> Result<()> {
     for r in &runs {
         let last = r.samples.last();
         let q = r.quality.iter().rev().flatten().next();
+        let end = RestEnd::of(&r.samples, r.path.len() - 1);
         writeln!(
             say,
-            "    {:12} {:10} {:4} frames, {:7} bytes of {:7}, final Q_I {:6.2} dB, SNR {:6.2} dB",
+            "    {:12} {:10} {:4} frames, {:7} bytes of {:7}, final Q_I {:6.2} dB, SNR {:6.2} dB, {}",
             r.volume,
             r.scene,
             r.samples.len(),
             last.map_or(0, |s| s.bytes),
             r.file_bytes,
             q.map_or(f64::NAN, |q| q.q_i),
-            q.map_or(f64::NAN, |q| q.snr)
+            q.map_or(f64::NAN, |q| q.snr),
+            end.map_or_else(|| "no frame".into(), |e| e.label())
         )?;
     }
     writeln!(
@@ -412,12 +501,13 @@ pub fn volume_section(
             "scene",
             "frames",
             "first image ms",
-            "converged ms",
+            "first rest",
             "Q_I 1 frame",
             "Q_I 10",
             "Q_I 60",
             "Q_I at rest",
-            "Q_I after turn",
+            "final rest",
+            "Q_I final",
             "SNR final",
             "bytes",
             "of file",
@@ -442,11 +532,8 @@ pub fn volume_section(
             .iter()
             .find(|s| s.splatted > 0)
             .map(|s| s.t.as_secs_f64() * 1e3);
-        let converged = r
-            .samples
-            .iter()
-            .find(|s| s.step == 0 && s.converged)
-            .map(|s| s.t.as_secs_f64() * 1e3);
+        let rest_cell =
+            |step: usize| RestEnd::of(&r.samples, step).map_or_else(|| "–".into(), |e| e.cell());
         let times: Vec<f64> = r
             .samples
             .iter()
@@ -458,11 +545,12 @@ pub fn volume_section(
             r.scene.to_string(),
             r.samples.len().to_string(),
             fmt(first_image, 0),
-            fmt(converged, 0),
+            rest_cell(0),
             fmt(q_at(r, 0, 1), 1),
             fmt(q_at(r, 0, 10), 1),
             fmt(q_at(r, 0, 60), 1),
             fmt(q_at(r, 0, u64::MAX), 1),
+            rest_cell(turn_end),
             fmt(q_at(r, turn_end, u64::MAX), 1),
             fmt(last_q.map(|q| q.snr), 1),
             r.samples.last().map_or(0, |s| s.bytes).to_string(),
@@ -487,18 +575,30 @@ pub fn volume_section(
                 .collect(),
         ));
         by_frame.push(Series::new(r.scene, pts(&|s| s.frame as f64)));
-        // Frames worth looking at: the first, the 10th, the converged rest, the turn's end and
-        // the converged end.
+        // Frames worth looking at: the first, the 10th, the end of the first rest, the turn's
+        // end and the end of the final rest, each rest's end named by how it ended.
         let step0: Vec<&FrameSample> = r.samples.iter().filter(|s| s.step == 0).collect();
+        let rest_caption =
+            |step: usize, converged: &str, limit: &str| match RestEnd::of(&r.samples, step) {
+                Some(e) if e.converged() => converged.to_string(),
+                Some(e) => format!("{limit}: {}", e.label()),
+                None => limit.to_string(),
+            };
         let picks = [
-            ("first frame", r.samples.first()),
-            ("frame 10", step0.get(9).copied()),
-            ("at rest", step0.last().copied()),
+            ("first frame".to_string(), r.samples.first()),
+            ("frame 10".to_string(), step0.get(9).copied()),
             (
-                "first frame after the turn",
+                rest_caption(0, "converged at rest", "first rest"),
+                step0.last().copied(),
+            ),
+            (
+                "first frame after the turn".to_string(),
                 r.samples.iter().find(|s| s.step == turn_end),
             ),
-            ("converged after the turn", r.samples.last()),
+            (
+                rest_caption(turn_end, "converged after the turn", "rest after the turn"),
+                r.samples.last(),
+            ),
         ];
         for (caption, s) in picks {
             let Some(s) = s else { continue };
@@ -530,15 +630,15 @@ pub fn volume_section(
     let chart_bytes = format!("charts/{slug}-qi-bytes.png");
     // Over a fast link every byte can arrive with the first frames: Q_I against bytes is then
     // a vertical line, and Q_I against frames says what the bytes cannot.
-    let distinct_bytes: HashSet<u64> = by_bytes
-        .iter()
-        .flat_map(|s| s.points.iter().map(|p| p.0.to_bits()))
-        .collect();
-    let (title, x_label, series) = if distinct_bytes.len() >= 4 {
-        ("Q_I against bytes received", "bytes received", by_bytes)
+    let (title, x_label, series) = if bytes_tell_apart(&by_bytes) {
+        (
+            "Q_I against bytes received",
+            "bytes received (after the last byte: a vertical line)",
+            by_bytes,
+        )
     } else {
         (
-            "Q_I against frames (every byte arrived within the first frames)",
+            "Q_I against frames (all bytes within the first frames)",
             "frame",
             by_frame,
         )
@@ -577,6 +677,16 @@ pub fn volume_section(
     })
 }
 
+/// Whether Q_I against bytes received shows more than vertical lines: some run received its
+/// bytes over at least four distinct frames' worth (counts per run, not across runs, whose
+/// few values each would otherwise add up).
+pub fn bytes_tell_apart(by_bytes: &[Series]) -> bool {
+    by_bytes.iter().any(|s| {
+        let distinct: HashSet<u64> = s.points.iter().map(|p| p.0.to_bits()).collect();
+        distinct.len() >= 4
+    })
+}
+
 /// One CSV row per frame.
 fn write_csv(path: &Path, r: &Run) -> Result<()> {
     let mut f = std::io::BufWriter::new(
@@ -594,4 +704,78 @@ fn write_csv(path: &Path, r: &Run) -> Result<()> {
     }
     f.flush()?;
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn sample(frame: u64, step: usize, pending: usize, converged: bool) -> FrameSample {
+        FrameSample {
+            frame,
+            step,
+            frame_in_step: 1,
+            t: Duration::from_millis(17 * frame),
+            frame_time: Duration::from_millis(15),
+            packets: 10,
+            bytes: 78_346,
+            coefficients_held: 94_789,
+            splatted: 50_000,
+            splatted_this_frame: 1_000,
+            invisible: 0,
+            batches: 1,
+            batches_past_deadline: 0,
+            pending,
+            exact: true,
+            converged,
+            memory_full: false,
+            image: None,
+        }
+    }
+
+    #[test]
+    fn a_rest_cut_at_its_limit_is_not_called_converged() {
+        // The reported run: the last frame (431) still had 38 538 coefficients pending.
+        let mut samples: Vec<FrameSample> = (1..=240).map(|f| sample(f, 0, 0, f == 240)).collect();
+        samples.extend((241..=431).map(|f| sample(f, 7, 38_538 + (431 - f as usize), false)));
+        let end = RestEnd::of(&samples, 7).unwrap();
+        assert_eq!(end, RestEnd::LimitReached { pending: 38_538 });
+        assert!(!end.converged());
+        assert_eq!(end.label(), "rest limit reached, 38538 pending");
+        assert!(!end.cell().contains("converged"), "{}", end.cell());
+        // The first rest did converge, at its last frame.
+        let first = RestEnd::of(&samples, 0).unwrap();
+        assert!(first.converged());
+        assert_eq!(first.label(), "converged");
+        assert_eq!(first.cell(), "converged at 4080 ms");
+        // A step without frames has no end, and a rest cut while packets still arrive says so.
+        assert_eq!(RestEnd::of(&samples, 3), None);
+        assert_eq!(
+            RestEnd::LimitReached { pending: 0 }.label(),
+            "rest limit reached, 0 pending, packets still arriving"
+        );
+    }
+
+    #[test]
+    fn bytes_arriving_at_once_choose_the_frame_chart() {
+        // Three runs each with two byte counts: four distinct values across runs, but every
+        // run a vertical line.
+        let runs = [
+            Series::new(
+                "single",
+                vec![(36_000.0, 20.0), (36_247.0, 50.0), (36_247.0, 72.0)],
+            ),
+            Series::new("multiview", vec![(30_000.0, 15.0), (36_247.0, 72.0)]),
+            Series::new("depth-cued", vec![(33_000.0, 30.0), (36_247.0, 72.0)]),
+        ];
+        assert!(!bytes_tell_apart(&runs));
+        let spread = Series::new(
+            "single",
+            [400.0, 4_000.0, 20_000.0, 36_247.0]
+                .iter()
+                .map(|b| (*b, 50.0))
+                .collect(),
+        );
+        assert!(bytes_tell_apart(&[runs[0].clone(), spread]));
+    }
 }
