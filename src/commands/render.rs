@@ -13,13 +13,13 @@ use std::time::{Duration, Instant};
 use wavesplat_codec::metrics::{q_i_paper_db, snr_db};
 use wavesplat_codec::view::patient::PatientView;
 use wavesplat_codec::view::{Cue, CueDirection};
-use wavesplat_viewer::backend::select;
+use wavesplat_viewer::backend::{select, BackendChoice, Selected};
 use wavesplat_viewer::open::{
     draw_whole_file, one_pass_backend, open, Opened, ViewRequest, VolumeLocation,
 };
 use wavesplat_viewer::remote::is_remote;
 use wavesplat_viewer::session::{RenderSession, SessionOptions};
-use wavesplat_viewer::{FrameLoop, Image, RunToEnd};
+use wavesplat_viewer::{CpuBackend, FrameLoop, Image, RunToEnd};
 
 /// Where the volume comes from and how to look at it (shared by `render` and `view`).
 #[derive(Args, Debug, Clone)]
@@ -322,8 +322,32 @@ pub fn run(a: RenderArgs) -> Result<()> {
     } else {
         (a.backend.choice(), None)
     };
-    let mut selected = select(choice).context("choosing the accumulation backend")?;
-    eprintln!("backend: {}", why.unwrap_or(selected.reason));
+    // Opening a GPU device takes 100-300 ms (more on a software adapter, which then is not
+    // even used): a progressive run draws on the CPU meanwhile and switches when a hardware
+    // device is ready. Not with a client memory bound: a switch re-splats what is held, and
+    // the bound may have dropped coefficients already drawn.
+    let probe_aside =
+        !one_pass && matches!(choice, BackendChoice::Auto) && a.view.client_memory.is_none();
+    let (mut selected, mut probe) = if probe_aside {
+        let (tx, rx) = std::sync::mpsc::channel();
+        std::thread::Builder::new()
+            .name("gpu probe".into())
+            .spawn(move || {
+                let _ = tx.send(select(BackendChoice::Auto));
+            })
+            .context("starting the GPU probe")?;
+        (
+            Selected {
+                backend: Box::new(CpuBackend::new()),
+                reason: "cpu backend while a GPU is looked for".into(),
+            },
+            Some(rx),
+        )
+    } else {
+        let s = select(choice).context("choosing the accumulation backend")?;
+        (s, None)
+    };
+    eprintln!("backend: {}", why.unwrap_or(selected.reason.clone()));
     if let (true, Opened::File { source }) = (one_pass, &opened) {
         let whole = draw_whole_file(source.file_bytes(), &spec, &mut selected.backend)
             .with_context(|| format!("rendering {volume}"))?;
@@ -371,6 +395,32 @@ pub fn run(a: RenderArgs) -> Result<()> {
     };
     let run_started = since_request();
     let outcome = frames.run_to_end(&run, |frames, n, report, at| -> Result<()> {
+        if let Some(rx) = &probe {
+            match rx.try_recv() {
+                Ok(Ok(found)) => {
+                    probe = None;
+                    let mut backend = found.backend;
+                    if backend.gpu().is_some() {
+                        frames
+                            .session
+                            .replace_backend(backend)
+                            .context("switching to the GPU backend")?;
+                        eprintln!(
+                            "backend: {} (from frame {n}; the CPU drew until then)",
+                            found.reason
+                        );
+                    } else {
+                        eprintln!("backend: {}", found.reason);
+                    }
+                }
+                Ok(Err(e)) => {
+                    probe = None;
+                    eprintln!("backend: cpu backend (no GPU backend: {e})");
+                }
+                Err(std::sync::mpsc::TryRecvError::Disconnected) => probe = None,
+                Err(std::sync::mpsc::TryRecvError::Empty) => {}
+            }
+        }
         let Some(rec) = &mut recorder else {
             return Ok(());
         };

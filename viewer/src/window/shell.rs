@@ -583,6 +583,14 @@ impl App {
             self.rest_display_ms =
                 Some(refine_start.elapsed().as_secs_f64() * 1e3 + self.display_ms_avg);
         }
+        if report.pending == 0 && report.packets == 0 && !report.exact {
+            // Only the background planner has work (the preview is drawn): wait for it, up to
+            // a frame, instead of showing the same image again on a core it needs.
+            frames
+                .session
+                .wait_exact(Duration::from_secs_f64(budget_ms / 1e3))
+                .context("waiting for the view's tables")?;
+        }
         self.view_refining += refine_start.elapsed();
         let status = frames.source_status();
         let idle = report.idle();
