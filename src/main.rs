@@ -39,8 +39,10 @@ struct Cli {
 
 #[derive(Subcommand, Debug)]
 enum Command {
-    /// Run the main job on a built-in phantom: compress, then render progressively from the
-    /// coefficient stream (quality vs bytes), multiview and depth-cued.
+    /// Run the main job: the cache, the orchestrator and a worker on loopback in one process;
+    /// an archive of built-in phantoms (and any --volume) queued and compressed; every volume
+    /// browsed from the cache at a frame budget (single view, multiview, depth-cued), scored
+    /// against a ray-cast reference, written up in report.html (about a minute on 2 cores).
     Demo(commands::demo::DemoArgs),
     /// Compress a volume (DICOM series or multi-frame file, NIfTI, NRRD, MetaImage, raw, or a
     /// built-in phantom) into a .wsp file.

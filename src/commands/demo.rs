@@ -34,7 +34,9 @@ pub struct DemoArgs {
     /// Frame budget in milliseconds.
     #[arg(long, default_value_t = 16.6)]
     pub frame_ms: f64,
-    /// Most frames to rest at a view waiting for convergence.
+    /// Most frames of the first rest at a view waiting for convergence (the report says "rest
+    /// limit reached, N pending" when it ends there); the final rest after the turn runs until
+    /// converged, at most ten times this.
     #[arg(long, default_value_t = 240)]
     pub rest_frames: usize,
     /// Compression threads of the worker (0: one per core).
