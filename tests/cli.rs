@@ -383,3 +383,58 @@ fn a_published_file_reads_locally() {
     assert!(!c.status.success());
     assert!(err(&c).contains("cut short"), "{}", err(&c));
 }
+
+/// `cache list` says when each volume was made as a date and time (UTC), not milliseconds
+/// since 1970.
+#[test]
+fn cache_list_shows_creation_times_people_read() {
+    let dir = tempfile::tempdir().unwrap();
+    let (_, wsp) = phantom_files(dir.path());
+    let db = dir.path().join("db");
+    let (mut server, addr) = common::spawn_server(&[
+        "serve",
+        "cache",
+        "--db",
+        db.to_str().unwrap(),
+        "--addr",
+        "127.0.0.1:0",
+    ]);
+    let url = format!("http://{addr}");
+    let i = run(&["cache", "ingest", &wsp, "--name", "p", "--cache", &url]);
+    assert!(i.status.success(), "{}", err(&i));
+    let l = run(&["cache", "list", "--cache", &url]);
+    let _ = server.kill();
+    let _ = server.wait();
+    assert!(l.status.success(), "{}", err(&l));
+    let listed = out(&l);
+    let created = listed
+        .split('\t')
+        .find_map(|f| f.strip_prefix("created="))
+        .unwrap_or_else(|| panic!("no created= field in {listed}"));
+    // e.g. 2026-11-28T17:00:34Z
+    let b = created.trim().as_bytes();
+    assert_eq!(b.len(), 20, "{created}");
+    assert!(
+        b[4] == b'-' && b[7] == b'-' && b[10] == b'T' && b[13] == b':' && b[19] == b'Z',
+        "{created}"
+    );
+    assert!(created.starts_with("20"), "{created}");
+}
+
+/// An error about an input names its path once ("reading X: X is not …" said it twice).
+#[test]
+fn a_bad_input_is_named_once() {
+    let dir = tempfile::tempdir().unwrap();
+    let raw = dir.path().join("unnamed.raw");
+    std::fs::write(&raw, [0u8; 64]).unwrap();
+    let o = run(&[
+        "compress",
+        raw.to_str().unwrap(),
+        "-o",
+        dir.path().join("o.wsp").to_str().unwrap(),
+    ]);
+    assert!(!o.status.success());
+    let e = err(&o);
+    assert_eq!(e.matches(raw.to_str().unwrap()).count(), 1, "{e}");
+    assert!(e.contains("--dims"), "{e}");
+}

@@ -234,7 +234,7 @@ pub fn connect(url: &UrlArgs) -> Result<CacheClient> {
 fn describe(v: &VolumeInfo) -> String {
     let dims: Vec<String> = v.dims.iter().map(|d| d.to_string()).collect();
     format!(
-        "{}\tid={}\tdims={}\tchannels={}\tfamily={}\tlevels={}\tbytes={}\tpackets={}\ttiles={}\tlayers={}\tcoefficients={}\tcreated_ms={}",
+        "{}\tid={}\tdims={}\tchannels={}\tfamily={}\tlevels={}\tbytes={}\tpackets={}\ttiles={}\tlayers={}\tcoefficients={}\tcreated={}",
         v.name,
         v.id,
         dims.join("x"),
@@ -246,6 +246,12 @@ fn describe(v: &VolumeInfo) -> String {
         v.tile_count,
         v.layer_count,
         v.coefficients,
-        v.created_unix_ms
+        created(v.created_unix_ms)
     )
+}
+
+/// A volume's creation time for people: UTC to the second (RFC 3339).
+fn created(unix_ms: u64) -> String {
+    let t = std::time::UNIX_EPOCH + std::time::Duration::from_millis(unix_ms);
+    humantime::format_rfc3339_seconds(t).to_string()
 }

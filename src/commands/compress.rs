@@ -188,7 +188,15 @@ fn load(a: &CompressArgs) -> Result<Volume> {
         }
         _ => bail!("raw input needs both --dims and --dtype"),
     };
-    read_volume(input, raw.as_ref()).with_context(|| format!("reading {}", input.display()))
+    read_volume(input, raw.as_ref()).map_err(|e| {
+        // The readers' messages mostly name the file already: say it once.
+        let path = input.display().to_string();
+        if e.to_string().contains(&path) {
+            anyhow::Error::new(e)
+        } else {
+            anyhow::Error::new(e).context(format!("reading {path}"))
+        }
+    })
 }
 
 /// Parses `X,Y,Z` voxel spacing (finite, positive).
