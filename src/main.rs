@@ -42,7 +42,7 @@ enum Command {
     /// Run the main job: the cache, the orchestrator and a worker on loopback in one process;
     /// an archive of built-in phantoms (and any --volume) queued and compressed; every volume
     /// browsed from the cache at a frame budget (single view, multiview, depth-cued), scored
-    /// against a ray-cast reference, written up in report.html (about a minute on 2 cores).
+    /// against a ray-cast reference, written up in report.html (under a minute on 2 cores).
     Demo(commands::demo::DemoArgs),
     /// Compress a volume (DICOM series or multi-frame file, NIfTI, NRRD, MetaImage, raw, or a
     /// built-in phantom) into a .wsp file.
