@@ -65,6 +65,18 @@ pub const MAX_FILE_EXPANSION: usize = 1032;
 /// Decoded bytes allowed beyond the expansion ratios (tiny compressed frames of flat images).
 pub const EXPANSION_SLACK: usize = 1 << 20;
 
+/// A multi-valued decimal attribute as DICOM writes it (`1\0\0\0\1\0`), or "absent".
+fn dicom_values<const N: usize>(v: &Option<[f64; N]>) -> String {
+    match v {
+        Some(values) => values
+            .iter()
+            .map(|x| x.to_string())
+            .collect::<Vec<_>>()
+            .join("\\"),
+        None => "absent".to_string(),
+    }
+}
+
 /// Transfer Syntax UID of RLE Lossless.
 const RLE_LOSSLESS: &str = "1.2.840.10008.1.2.5";
 
@@ -1379,7 +1391,12 @@ pub(crate) fn decode(src: &SourceFiles) -> Result<Volume, ReadError> {
         match (&first.pixel_spacing, &i.pixel_spacing) {
             (Some(a), Some(b)) if close(a, b, 1e-4 * a[0].max(a[1])) => {}
             (None, None) => {}
-            (a, b) => return mismatch(tags::PIXEL_SPACING, format!("{a:?} against {b:?}")),
+            (a, b) => {
+                return mismatch(
+                    tags::PIXEL_SPACING,
+                    format!("{} against {}", dicom_values(a), dicom_values(b)),
+                )
+            }
         }
         match (&first.orientation, &i.orientation) {
             (Some(a), Some(b)) if close(a, b, 1e-4) => {}
@@ -1387,7 +1404,7 @@ pub(crate) fn decode(src: &SourceFiles) -> Result<Volume, ReadError> {
             (a, b) => {
                 return mismatch(
                     tags::IMAGE_ORIENTATION_PATIENT,
-                    format!("{a:?} against {b:?}"),
+                    format!("{} against {}", dicom_values(a), dicom_values(b)),
                 )
             }
         }

@@ -217,6 +217,23 @@ fn inconsistent_series_are_reported() {
     std::fs::rename(&files[0], d.join("ZZZ")).unwrap();
     expect_series_error(&d, "(0028,0010) Rows differs");
 
+    // One slice turned: the orientations are named as DICOM writes them, not as Rust's
+    // `Some([…])`.
+    let d = root.path().join("turned");
+    let (_, files) = series(&d, [4, 4, 3], &o);
+    let mut obj = open_file(&files[1]).unwrap();
+    set(
+        &mut obj,
+        tags::IMAGE_ORIENTATION_PATIENT,
+        VR::DS,
+        PrimitiveValue::from("0\\1\\0\\1\\0\\0".to_string()),
+    );
+    obj.write_to_file(&files[1]).unwrap();
+    expect_series_error(&d, "Image Orientation (Patient) differs");
+    let e = read_volume(&d, None).unwrap_err().to_string();
+    assert!(!e.contains("Some("), "{e}");
+    assert!(e.contains("0\\1\\0\\1\\0\\0"), "{e}");
+
     // Gantry tilt: each slice shifted sideways.
     let d = root.path().join("tilt");
     let tilted = DicomOptions {
