@@ -934,8 +934,9 @@ fn read_image(
             "is 0",
         ));
     }
-    let series = get_str(o, tags::SERIES_INSTANCE_UID)
-        .ok_or_else(|| dicom_err(path, Some(tags::SERIES_INSTANCE_UID), "missing"))?;
+    // Empty when missing: a single file is its own series; files of a directory are grouped
+    // by it, and there a missing one is refused (`read_series`).
+    let series = get_str(o, tags::SERIES_INSTANCE_UID).unwrap_or_default();
     let frames = get_uint(path, o, tags::NUMBER_OF_FRAMES)?
         .unwrap_or(1)
         .max(1) as usize;
@@ -1334,6 +1335,15 @@ pub(crate) fn decode(src: &SourceFiles) -> Result<Volume, ReadError> {
             path: dir.clone(),
             reason: "no image (no file with Rows and Columns)".into(),
         });
+    }
+    if images.len() > 1 {
+        if let Some(i) = images.iter().find(|i| i.series.is_empty()) {
+            return Err(dicom_err(
+                &i.path,
+                Some(tags::SERIES_INSTANCE_UID),
+                "missing (the files of a directory are grouped into one series by it)",
+            ));
+        }
     }
     let mut by_series: BTreeMap<&str, usize> = BTreeMap::new();
     for i in &images {

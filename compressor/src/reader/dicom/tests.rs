@@ -369,6 +369,18 @@ fn bad_attributes_name_the_file_and_the_tag() {
         edit(&target, f);
         expect_tag_error(&d, &target, tag);
     }
+    // A single file without a Series Instance UID is its own series (other toolkits read it);
+    // in a directory of several it is refused above.
+    let d = root.path().join("lone");
+    let (_, files) = series(&d, [4, 4, 1], &o);
+    edit(&files[0], |o| {
+        o.remove_element(tags::SERIES_INSTANCE_UID);
+    });
+    let lone = read_volume(&files[0], None).unwrap_or_else(|e| panic!("{e}"));
+    assert_eq!(lone.dims(), [4, 4, 1]);
+    let lone_dir = read_volume(&d, None).unwrap_or_else(|e| panic!("{e}"));
+    assert_eq!(lone_dir.dims(), [4, 4, 1]);
+
     // A header claiming more native pixel data than the file holds.
     let d = root.path().join("short");
     let (_, files) = series(&d, [4, 4, 1], &o);
