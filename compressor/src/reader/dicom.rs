@@ -1802,8 +1802,9 @@ fn jpeg_colour_markers(jpeg: &[u8]) -> (bool, Option<u8>) {
 /// from the one dicom-pixeldata's decoder applies: without a JFIF marker, an Adobe marker's
 /// transform flag says whether the components are RGB (0) or YCbCr (1), whatever their
 /// component ids. jpeg-decoder looks at the ids first, so an RGB image with ids 1, 2, 3 and
-/// the Adobe flag 0 came out as if it were YCbCr (other colours, silently). `None`: the
-/// general path decodes it.
+/// the Adobe flag 0 came out as if it were YCbCr (other colours, silently). With neither
+/// marker, Photometric Interpretation RGB means the components are RGB. `None`: the general
+/// path decodes it.
 fn adobe_rgb_jpeg_frame(
     img: &Image,
     obj: &DefaultDicomObject,
@@ -1826,6 +1827,10 @@ fn adobe_rgb_jpeg_frame(
     let transform = match jpeg_colour_markers(&frame) {
         (false, Some(0)) => jpeg_decoder::ColorTransform::RGB,
         (false, Some(_)) => jpeg_decoder::ColorTransform::YCbCr,
+        // Neither marker: the decoders guess from the component ids (1, 2, 3 or 0, 1, 2 read
+        // as YCbCr), where DICOM's Photometric Interpretation RGB says no transform was
+        // applied; reference readers follow it.
+        (false, None) if img.photometric == "RGB" => jpeg_decoder::ColorTransform::RGB,
         _ => return Ok(None),
     };
     let mut decoder = jpeg_decoder::Decoder::new(&frame[..]);

@@ -921,8 +921,32 @@ fn adobe_rgb_jpeg(rgb: &[u8], w: u16, h: u16) -> Vec<u8> {
     out
 }
 
+/// A baseline JPEG of `rgb` whose components are the RGB values themselves, with neither a
+/// JFIF nor an Adobe segment and component ids 0, 1, 2 (what the encoder writes): libjpeg's
+/// guess from the ids reads YCbCr, DICOM's Photometric Interpretation RGB says no transform.
+fn unmarked_rgb_jpeg(rgb: &[u8], w: u16, h: u16) -> Vec<u8> {
+    let mut out = Vec::new();
+    let mut enc = jpeg_encoder::Encoder::new(&mut out, 100);
+    enc.set_sampling_factor(jpeg_encoder::SamplingFactor::R_4_4_4);
+    enc.encode(rgb, w, h, jpeg_encoder::ColorType::Ycbcr)
+        .unwrap();
+    assert_eq!(&out[2..4], &[0xFF, 0xE0]);
+    let len = usize::from(u16::from_be_bytes([out[4], out[5]]));
+    out.drain(2..4 + len);
+    assert_eq!(jpeg_colour_markers(&out), (false, None));
+    out
+}
+
 #[test]
 fn lossy_rgb_jpeg_with_an_adobe_marker_keeps_its_colours() {
+    for marked in [true, false] {
+        lossy_rgb_jpeg_keeps_its_colours(marked);
+    }
+}
+
+/// A lossy RGB JPEG (Photometric Interpretation RGB) reads back its colours: marked by an
+/// Adobe segment with ids 1, 2, 3, or unmarked with ids 0, 1, 2.
+fn lossy_rgb_jpeg_keeps_its_colours(adobe_marked: bool) {
     use dicom_core::value::PixelFragmentSequence;
     use dicom_dictionary_std::uids;
     use dicom_object::FileMetaTableBuilder;
@@ -933,7 +957,11 @@ fn lossy_rgb_jpeg_with_an_adobe_marker_keeps_its_colours() {
             [(40 + 12 * x) as u8, (200 - 10 * y) as u8, 90u8]
         })
         .collect();
-    let mut jpeg = adobe_rgb_jpeg(&rgb, w, h);
+    let mut jpeg = if adobe_marked {
+        adobe_rgb_jpeg(&rgb, w, h)
+    } else {
+        unmarked_rgb_jpeg(&rgb, w, h)
+    };
     if jpeg.len() % 2 == 1 {
         jpeg.push(0);
     }
@@ -995,7 +1023,10 @@ fn lossy_rgb_jpeg_with_an_adobe_marker_keeps_its_colours() {
     }
     // Quality 100 at 4:4:4: a few levels of rounding; read as YCbCr the colours are off by
     // tens to hundreds of levels.
-    assert!(worst <= 4.0, "largest colour error {worst} levels");
+    assert!(
+        worst <= 4.0,
+        "adobe marked {adobe_marked}: largest colour error {worst} levels"
+    );
 }
 
 /// Without the `jpeg-ls` feature a JPEG-LS file is refused before decoding, naming the
