@@ -607,7 +607,35 @@ fn element(obj: &InMemDicomObject, tag: Tag) -> Option<&dicom_object::mem::InMem
 /// bytes are the Implicit VR Little Endian encoding, PS3.5 §6.2.2). Read as `UN`, a decimal
 /// string such as Image Orientation (Patient) `1.0\0.0\…` would give the ASCII codes of its
 /// characters as numbers.
+///
+/// A value that is present but blank (no values, or only spaces and NULs: how a Type 2
+/// attribute such as an RT Dose's Slice Thickness is written when unknown) is `None`, as if
+/// absent: every reader of values goes through here, so none of them parses a blank as a
+/// number.
 fn value_element(
+    obj: &InMemDicomObject,
+    tag: Tag,
+) -> Option<std::borrow::Cow<'_, dicom_object::mem::InMemElement>> {
+    value_element_as_coded(obj, tag).filter(|e| !is_blank(e))
+}
+
+/// Whether an element's value is empty or only padding.
+fn is_blank(e: &dicom_object::mem::InMemElement) -> bool {
+    use dicom_core::PrimitiveValue;
+    let blank = |s: &str| {
+        s.trim_matches(|c: char| c == '\0' || c.is_whitespace())
+            .is_empty()
+    };
+    match e.value().primitive() {
+        Some(p) if p.multiplicity() == 0 => true,
+        Some(PrimitiveValue::Str(s)) => blank(s),
+        Some(PrimitiveValue::Strs(v)) => v.iter().all(|s| blank(s)),
+        _ => false,
+    }
+}
+
+/// [`value_element`] before the blank check.
+fn value_element_as_coded(
     obj: &InMemDicomObject,
     tag: Tag,
 ) -> Option<std::borrow::Cow<'_, dicom_object::mem::InMemElement>> {

@@ -369,6 +369,34 @@ fn bad_attributes_name_the_file_and_the_tag() {
         edit(&target, f);
         expect_tag_error(&d, &target, tag);
     }
+    // Type 2 attributes present but blank (an RT Dose's Slice Thickness, padded with a space;
+    // the same bytes in an element of VR UN) are absent, not "not a list of numbers".
+    for (name, vr) in [("blank-ds", VR::DS), ("blank-un", VR::UN)] {
+        let d = root.path().join(name);
+        let (_, files) = series(&d, [4, 4, 3], &o);
+        for f in &files {
+            edit(f, |o| {
+                o.remove_element(tags::SPACING_BETWEEN_SLICES);
+                let blank: PrimitiveValue = match vr {
+                    VR::UN => PrimitiveValue::from(vec![b' ', b' ']),
+                    _ => PrimitiveValue::from("  "),
+                };
+                set(o, tags::SLICE_THICKNESS, vr, blank);
+                set(
+                    o,
+                    tags::RESCALE_INTERCEPT,
+                    vr,
+                    match vr {
+                        VR::UN => PrimitiveValue::from(vec![b' ', b' ']),
+                        _ => PrimitiveValue::from(" "),
+                    },
+                );
+            });
+        }
+        let v = read_volume(&d, None).unwrap_or_else(|e| panic!("{name}: {e}"));
+        assert_eq!(v.dims(), [4, 4, 3], "{name}");
+    }
+
     // A single file without a Series Instance UID is its own series (other toolkits read it);
     // in a directory of several it is refused above.
     let d = root.path().join("lone");
