@@ -28,7 +28,7 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, OnceLock};
 use std::time::{Duration, Instant};
 use wavesplat_codec::format::index::{
-    indexed_layout, read_indexed_head, HeadRead, HEAD_READ_BYTES,
+    indexed_layout, read_indexed_head, wsp_of_indexed, HeadRead, HEAD_READ_BYTES,
 };
 use wavesplat_compressor::encode::{compress, CompressOptions, Target, TileChoice};
 use wavesplat_compressor::phantom::Phantom;
@@ -557,6 +557,29 @@ fn stderr(out: &Output) -> String {
 /// head's first request (64 KiB) ends inside a packet, whose range must begin where that
 /// request ended rather than be fetched again from its start. What the render reports as
 /// fetched is what the server sent.
+/// A whole indexed object held in memory (a local `.wspx`) gives back the `.wsp` it was made
+/// of; cut or extended, it is refused.
+#[test]
+fn the_wsp_inside_a_whole_indexed_object_is_given_back() {
+    use wavesplat_codec::format::FormatError;
+    let (wsp, object) = volume();
+    assert_eq!(wsp_of_indexed(object).unwrap(), &wsp[..]);
+    assert!(matches!(
+        wsp_of_indexed(&object[..object.len() - 7]),
+        Err(FormatError::Truncated { needed: 7, .. })
+    ));
+    let mut longer = object.clone();
+    longer.push(0);
+    assert!(matches!(
+        wsp_of_indexed(&longer),
+        Err(FormatError::Invalid { .. })
+    ));
+    assert!(
+        wsp_of_indexed(wsp).is_err(),
+        "a plain .wsp is no indexed object"
+    );
+}
+
 #[test]
 fn a_whole_view_fetches_no_byte_twice() {
     let wspx = &volume().1;

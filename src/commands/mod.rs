@@ -112,29 +112,13 @@ pub fn read_wsp(path: &std::path::Path) -> Result<Vec<u8>> {
     if !bytes.starts_with(wavesplat_codec::format::index::INDEXED_MAGIC) {
         return Ok(bytes);
     }
-    use wavesplat_codec::format::index::{read_indexed_head, HeadRead};
-    let head = match read_indexed_head(&bytes)
-        .with_context(|| format!("reading the index of {}", path.display()))?
-    {
-        HeadRead::Indexed(h) => h,
-        HeadRead::Need(n) => bail!(
-            "{} is cut short: its indexed layout needs at least {n} bytes, the file has {}",
-            path.display(),
-            bytes.len()
-        ),
-    };
-    if head.object_bytes() != bytes.len() as u64 {
-        bail!(
-            "{} is {} bytes where its index says {} (an index of {} and a .wsp of {}): cut \
-             short or extended",
-            path.display(),
-            bytes.len(),
-            head.object_bytes(),
-            head.wsp_offset,
-            head.wsp_bytes
-        );
-    }
-    Ok(bytes[head.wsp_offset as usize..].to_vec())
+    let wsp = wavesplat_codec::format::index::wsp_of_indexed(&bytes).with_context(|| {
+        format!(
+            "{} is not a whole indexed layout (cut short or damaged)",
+            path.display()
+        )
+    })?;
+    Ok(wsp.to_vec())
 }
 
 fn read_wsp_or_indexed(path: &std::path::Path) -> Result<Vec<u8>> {

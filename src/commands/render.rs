@@ -347,7 +347,7 @@ pub fn run(a: RenderArgs) -> Result<()> {
         let s = select(choice).context("choosing the accumulation backend")?;
         (s, None)
     };
-    eprintln!("backend: {}", why.unwrap_or(selected.reason.clone()));
+    eprintln!("backend: {}", why.unwrap_or(selected.reason));
     if let (true, Opened::File { source }) = (one_pass, &opened) {
         let whole = draw_whole_file(source.file_bytes(), &spec, &mut selected.backend)
             .with_context(|| format!("rendering {volume}"))?;

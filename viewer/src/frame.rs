@@ -90,6 +90,25 @@ impl FrameReport {
     pub fn idle(&self) -> bool {
         self.pending == 0 && self.packets == 0 && self.exact
     }
+
+    /// Whether the frame drew anything new (took packets or splatted coefficients).
+    pub fn changed_image(&self) -> bool {
+        self.coefficients > 0 || self.packets > 0
+    }
+
+    /// This frame and `next`, run after it, as one: their work added up, the state at the end
+    /// (`pending`, `exact`) `next`'s.
+    pub fn followed_by(&self, next: &FrameReport) -> FrameReport {
+        FrameReport {
+            packets: self.packets + next.packets,
+            coefficients: self.coefficients + next.coefficients,
+            records: self.records + next.records,
+            batches: self.batches + next.batches,
+            batches_past_deadline: self.batches_past_deadline + next.batches_past_deadline,
+            elapsed: self.elapsed + next.elapsed,
+            ..*next
+        }
+    }
 }
 
 /// The fill a loop starts with: batches planned to end by 85 % of the budget.
@@ -124,6 +143,20 @@ impl<B: AccumulationBackend, S: PacketSource> FrameLoop<B, S> {
     /// The share of the budget the next frame's batches are planned to fill.
     pub fn fill(&self) -> f64 {
         self.fill
+    }
+
+    /// After a frame that `report` describes: when only the background planner has work (the
+    /// preview is drawn, nothing queued, no packets), waits for it up to `timeout` instead of
+    /// letting the caller spin on a core the planner needs.
+    pub fn wait_if_only_planning(
+        &mut self,
+        report: &FrameReport,
+        timeout: Duration,
+    ) -> Result<(), SessionError> {
+        if report.pending == 0 && report.packets == 0 && !report.exact {
+            self.session.wait_exact(timeout)?;
+        }
+        Ok(())
     }
 
     /// Changes the view (session first: it validates; then the source reorders).
@@ -245,10 +278,8 @@ impl<B: AccumulationBackend, S: PacketSource> FrameLoop<B, S> {
             if run.deadline.is_some_and(|d| start.elapsed() >= d) {
                 break;
             }
-            if report.pending == 0 && report.packets == 0 && !report.exact {
-                // Only the background planner has work (the preview is drawn).
-                self.session.wait_exact(run.frame).map_err(RunError::from)?;
-            }
+            self.wait_if_only_planning(&report, run.frame)
+                .map_err(RunError::from)?;
             if report.idle() {
                 if status.done {
                     break;

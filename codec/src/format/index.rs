@@ -241,6 +241,32 @@ pub fn indexed_layout(wsp: &[u8]) -> Result<Vec<u8>, FormatError> {
     Ok(out)
 }
 
+/// The `.wsp` inside a whole indexed object held in memory (what [`indexed_layout`] wrote, read
+/// back from a local file): its head and index checked, and the object's length held to what
+/// the head declares (a cut or extended object is refused).
+pub fn wsp_of_indexed(object: &[u8]) -> Result<&[u8], FormatError> {
+    let len = object.len() as u64;
+    let truncated = |total: u64| FormatError::Truncated {
+        what: "indexed layout",
+        needed: total.saturating_sub(len),
+        available: len,
+    };
+    let head = match read_indexed_head(object)? {
+        HeadRead::Indexed(h) => h,
+        HeadRead::Need(n) => return Err(truncated(n as u64)),
+    };
+    let total = head.object_bytes();
+    if len < total {
+        return Err(truncated(total));
+    }
+    if len > total {
+        return Err(invalid(format!(
+            "{len} bytes where the head declares {total}"
+        )));
+    }
+    Ok(&object[head.wsp_offset as usize..])
+}
+
 /// An indexed volume's header and index, read from the start of its object.
 #[derive(Debug, Clone)]
 pub struct IndexedHead {

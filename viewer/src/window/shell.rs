@@ -15,7 +15,7 @@ use super::{Context, Result, WindowError};
 use crate::backend::{select, AccumulationBackend, BackendChoice, GpuBackend, GpuContext};
 use crate::session::{RenderSession, SessionOptions};
 use crate::source::PacketSource;
-use crate::{CpuBackend, FrameLoop, FrameReport};
+use crate::{CpuBackend, FrameLoop};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -551,30 +551,19 @@ impl App {
                 (budget_ms - self.display_ms_avg).max(1.0) / 1e3,
             ))
             .context("rendering a frame")?;
-        let mut changed = report.coefficients > 0 || report.packets > 0;
         // When the view rests, refinement gets the frame: frames of the full budget run back
         // to back for a slice several times the display's cost before the image is shown
         // again (a lower display rate while converging; the title says so), instead of a
         // frame's leftover after showing a large image on a software device.
         let resting = !self.controls.interacting() && self.last_view_change.elapsed() >= REST_AFTER;
         self.rest_display_ms = None;
-        if resting && !report.idle() && (report.coefficients > 0 || report.packets > 0) {
+        if resting && !report.idle() && report.changed_image() {
             let slice = rest_slice(self.display_ms_avg, budget_ms);
             let full = Duration::from_secs_f64(budget_ms / 1e3);
             while refine_start.elapsed() < slice {
                 let r = frames.frame(full).context("rendering a frame")?;
-                changed |= r.coefficients > 0 || r.packets > 0;
-                let waiting = r.coefficients == 0 && r.packets == 0;
-                report = FrameReport {
-                    packets: report.packets + r.packets,
-                    coefficients: report.coefficients + r.coefficients,
-                    records: report.records + r.records,
-                    batches: report.batches + r.batches,
-                    batches_past_deadline: report.batches_past_deadline + r.batches_past_deadline,
-                    elapsed: report.elapsed + r.elapsed,
-                    ..r
-                };
-                if report.idle() || waiting {
+                report = report.followed_by(&r);
+                if report.idle() || !r.changed_image() {
                     // Nothing to draw until the planner or the source delivers: show what
                     // there is rather than spin.
                     break;
@@ -583,14 +572,11 @@ impl App {
             self.rest_display_ms =
                 Some(refine_start.elapsed().as_secs_f64() * 1e3 + self.display_ms_avg);
         }
-        if report.pending == 0 && report.packets == 0 && !report.exact {
-            // Only the background planner has work (the preview is drawn): wait for it, up to
-            // a frame, instead of showing the same image again on a core it needs.
-            frames
-                .session
-                .wait_exact(Duration::from_secs_f64(budget_ms / 1e3))
-                .context("waiting for the view's tables")?;
-        }
+        // Only the background planner at work: wait for it, up to a frame, instead of showing
+        // the same preview again.
+        frames
+            .wait_if_only_planning(&report, Duration::from_secs_f64(budget_ms / 1e3))
+            .context("waiting for the view's tables")?;
         self.view_refining += refine_start.elapsed();
         let status = frames.source_status();
         let idle = report.idle();
@@ -603,7 +589,7 @@ impl App {
                 shown: self.view_shown + 1,
             });
         }
-        if changed {
+        if report.changed_image() {
             self.controls.image_changed = true;
         }
         let display_start = Instant::now();
