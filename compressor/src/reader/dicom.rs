@@ -80,10 +80,6 @@ fn dicom_values<const N: usize>(v: &Option<[f64; N]>) -> String {
 /// Transfer Syntax UID of RLE Lossless.
 const RLE_LOSSLESS: &str = "1.2.840.10008.1.2.5";
 
-/// Transfer Syntax UIDs of JPEG-LS, lossless and near-lossless.
-const JPEG_LS_LOSSLESS: &str = "1.2.840.10008.1.2.4.80";
-const JPEG_LS_NEAR_LOSSLESS: &str = "1.2.840.10008.1.2.4.81";
-
 /// SOP Class UID of a DICOMDIR (Media Storage Directory Storage): skipped in series directories.
 const DICOMDIR_SOP_CLASS: &str = "1.2.840.10008.1.3.10";
 
@@ -735,9 +731,6 @@ fn get_floats(
     let Some(e) = value_element(obj, tag) else {
         return Ok(None);
     };
-    if e.value().primitive().is_some_and(|p| p.multiplicity() == 0) {
-        return Ok(None);
-    }
     let v = e
         .to_multi_float64()
         .map_err(|x| dicom_err(path, Some(tag), format!("not a list of numbers: {x}")))?;
@@ -751,9 +744,6 @@ fn get_uint(path: &Path, obj: &InMemDicomObject, tag: Tag) -> Result<Option<u32>
     let Some(e) = value_element(obj, tag) else {
         return Ok(None);
     };
-    if e.value().primitive().is_some_and(|p| p.multiplicity() == 0) {
-        return Ok(None);
-    }
     e.to_int::<u32>()
         .map(Some)
         .map_err(|x| dicom_err(path, Some(tag), format!("not a non-negative integer: {x}")))
@@ -1707,7 +1697,8 @@ fn check_pixel_data(img: &Image, obj: &DefaultDicomObject) -> Result<(), ReadErr
         .transfer_syntax()
         .trim_end_matches('\0')
         .to_string();
-    let jpeg_ls = ts_uid == JPEG_LS_LOSSLESS || ts_uid == JPEG_LS_NEAR_LOSSLESS;
+    let jpeg_ls = ts_uid == dicom_dictionary_std::uids::JPEGLS_LOSSLESS
+        || ts_uid == dicom_dictionary_std::uids::JPEGLS_NEAR_LOSSLESS;
     if jpeg_ls && !cfg!(feature = "jpeg-ls") {
         return Err(dicom_err(
             path,
@@ -2179,7 +2170,10 @@ fn decode_bit_frame(
 fn colour_untouched_by_codec(obj: &DefaultDicomObject) -> bool {
     let ts = obj.meta().transfer_syntax().trim_end_matches('\0');
     let encapsulated = element(obj, tags::PIXEL_DATA).is_some_and(|e| e.fragments().is_some());
-    !encapsulated || ts == RLE_LOSSLESS || ts == JPEG_LS_LOSSLESS || ts == JPEG_LS_NEAR_LOSSLESS
+    !encapsulated
+        || ts == RLE_LOSSLESS
+        || ts == dicom_dictionary_std::uids::JPEGLS_LOSSLESS
+        || ts == dicom_dictionary_std::uids::JPEGLS_NEAR_LOSSLESS
 }
 
 /// One full-range Y, Cb, Cr triple (PS3.3 C.7.6.3.1.2, the ITU-R BT.601 matrix without
