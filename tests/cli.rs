@@ -438,3 +438,99 @@ fn a_bad_input_is_named_once() {
     assert_eq!(e.matches(raw.to_str().unwrap()).count(), 1, "{e}");
     assert!(e.contains("--dims"), "{e}");
 }
+
+/// A single slice (one voxel thin, so its transform has no level) is kept whole by default,
+/// with a note saying why, and rendered face-on as an image viewer shows it: x to the right,
+/// y down. Before, 5 % of its pixels were kept and it was drawn edge-on at a corner.
+#[test]
+fn a_single_slice_is_kept_whole_and_shown_face_on() {
+    let dir = tempfile::tempdir().unwrap();
+    let (w, h) = (48usize, 32usize);
+    // Four quadrants of distinct values: top-left 1.0, top-right 0.6, bottom-left 0.3,
+    // bottom-right 0.1 (y counts rows downwards), with a fine ripple as real images have (the
+    // quantizer's step follows the smallest kept magnitude).
+    let value = |x: usize, y: usize| {
+        let base = match (x < w / 2, y < h / 2) {
+            (true, true) => 1.0f32,
+            (false, true) => 0.6,
+            (true, false) => 0.3,
+            (false, false) => 0.1,
+        };
+        base + 0.001 * ((x + 2 * y) % 5) as f32
+    };
+    let mut bytes = Vec::new();
+    for y in 0..h {
+        for x in 0..w {
+            bytes.extend_from_slice(&value(x, y).to_le_bytes());
+        }
+    }
+    let raw = dir.path().join(format!("slice_{w}x{h}x1_f32.raw"));
+    std::fs::write(&raw, bytes).unwrap();
+    let wsp = dir.path().join("slice.wsp");
+    let c = run(&[
+        "compress",
+        raw.to_str().unwrap(),
+        "-o",
+        wsp.to_str().unwrap(),
+    ]);
+    assert!(c.status.success(), "{}", err(&c));
+    assert!(err(&c).contains("one voxel thin"), "{}", err(&c));
+    // "kept K of N coefficients (P %; Z non-zero)": every non-zero one, K = Z.
+    let summary = out(&c);
+    let kept = summary
+        .split("kept ")
+        .nth(1)
+        .and_then(|s| s.split(' ').next())
+        .unwrap_or_else(|| panic!("no kept count in {summary}"));
+    let non_zero = summary
+        .split(" %; ")
+        .nth(1)
+        .and_then(|s| s.split(' ').next())
+        .unwrap_or_else(|| panic!("no non-zero count in {summary}"));
+    assert_eq!(kept, non_zero, "{summary}");
+    let (iw, ih) = (2 * w, 2 * h);
+    let png = dir.path().join("slice.png");
+    let f32s = dir.path().join("slice.f32");
+    let r = run(&[
+        "render",
+        wsp.to_str().unwrap(),
+        "--size",
+        &format!("{iw}x{ih}"),
+        "-o",
+        png.to_str().unwrap(),
+        "--raw",
+        f32s.to_str().unwrap(),
+        "--cpu",
+    ]);
+    assert!(r.status.success(), "{}", err(&r));
+    let image: Vec<f32> = std::fs::read(&f32s)
+        .unwrap()
+        .chunks_exact(4)
+        .map(|b| f32::from_le_bytes(b.try_into().unwrap()))
+        .collect();
+    assert_eq!(image.len(), iw * ih);
+    // The pixel over a quadrant's centre: the slice fills most of the image, centred.
+    let at = |fx: f64, fy: f64| {
+        let px = (iw as f64 / 2.0 + (fx - 0.5) * 0.8 * iw as f64) as usize;
+        let py = (ih as f64 / 2.0 + (fy - 0.5) * 0.8 * ih as f64) as usize;
+        image[py * iw + px] as f64
+    };
+    let (tl, tr, bl, br) = (
+        at(0.25, 0.25),
+        at(0.75, 0.25),
+        at(0.25, 0.75),
+        at(0.75, 0.75),
+    );
+    assert!(tl > 0.0, "top-left {tl}");
+    for (name, got, want) in [
+        ("top-right", tr, 0.6),
+        ("bottom-left", bl, 0.3),
+        ("bottom-right", br, 0.1),
+    ] {
+        assert!(
+            (got / tl - want).abs() < 0.05,
+            "{name}/top-left = {} (want {want}); quadrants {tl} {tr} {bl} {br}",
+            got / tl
+        );
+    }
+}

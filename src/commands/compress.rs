@@ -6,9 +6,12 @@ use clap::Args;
 use std::path::PathBuf;
 use wavesplat_codec::family::Family;
 use wavesplat_codec::format::CoderKind;
+use wavesplat_codec::layout::Geometry;
 use wavesplat_codec::volume::Volume;
 use wavesplat_compressor::colorspace::ColorSpaceKind;
-use wavesplat_compressor::encode::{compress, CompressOptions, Compressed, Stage, TileChoice};
+use wavesplat_compressor::encode::{
+    compress, CompressOptions, Compressed, Stage, Target, TileChoice,
+};
 use wavesplat_compressor::order::Clustering;
 use wavesplat_compressor::phantom::Phantom;
 use wavesplat_compressor::reader::{read_volume, Endian, RawDtype, RawSpec};
@@ -278,9 +281,22 @@ pub fn options(a: &CompressArgs) -> Result<CompressOptions> {
 
 /// Runs the subcommand.
 pub fn run(a: CompressArgs) -> Result<()> {
-    let opts = options(&a)?;
+    let mut opts = options(&a)?;
     super::check_output(&a.output)?;
     let volume = load(&a)?;
+    if !a.keep.is_given() && Geometry::max_levels(volume.dims()) == 0 {
+        // The transform is one depth M on all three axes, limited by the thinnest: a slice
+        // (one voxel along an axis) has M = 0, its coefficients are its voxels, and keeping
+        // the default 5 % of them would keep the brightest pixels and nothing else.
+        opts.target = Target::All;
+        let d = volume.dims();
+        eprintln!(
+            "note: {}x{}x{} is one voxel thin: the 3D transform has no level (M = 0) and its \
+             coefficients are the voxels, so every non-zero one is kept (lossless selection); \
+             give --target-fraction or --target-bytes to keep fewer",
+            d[0], d[1], d[2]
+        );
+    }
     let progress = Progress::new("compress");
     let report = |stage: Stage, _f: f64| {
         progress.stage(&match stage {

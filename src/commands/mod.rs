@@ -34,7 +34,8 @@ pub struct TargetArgs {
     #[arg(long, group = "target")]
     pub target_bytes: Option<u64>,
     /// Keep this fraction (0..1] of all coefficients: every wavelet coefficient of the padded
-    /// grid, all channels (default 0.05). It is the selection's target; least-squares
+    /// grid, all channels (default 0.05; `compress` keeps every non-zero coefficient of a
+    /// volume one voxel thin, whose transform has no level). It is the selection's target; least-squares
     /// refinement then drops the few whose refitted value is zero, so the count `compress`
     /// prints as kept can be slightly lower.
     #[arg(long, group = "target", allow_negative_numbers = true)]
@@ -51,6 +52,15 @@ pub struct TargetArgs {
 }
 
 impl TargetArgs {
+    /// Whether any target option was given (else [`TargetArgs::target`] is the default).
+    pub fn is_given(&self) -> bool {
+        self.target_bytes.is_some()
+            || self.target_fraction.is_some()
+            || self.target_coefficients.is_some()
+            || self.target_qv.is_some()
+            || self.lossless_selection
+    }
+
     /// The chosen target (default: 5 % of the coefficients).
     pub fn target(&self) -> Target {
         if let Some(b) = self.target_bytes {

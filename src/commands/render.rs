@@ -46,18 +46,19 @@ pub struct ViewArgs {
     /// Azimuth α of the view (radians, paper §3.1). At α = β = 0 the rays run along the
     /// volume's x axis and the image shows its y–z plane, y to the right, z up; α turns the
     /// view about z (α = π/2: along y, x to the left), β tilts it towards z (β = π/2: along z,
-    /// seen from above).
-    #[arg(long, default_value_t = 0.66, allow_negative_numbers = true)]
-    pub alpha: f64,
+    /// seen from above). Default 0.66 with β 0.91, an oblique view; a volume one voxel thin
+    /// (a single slice) is seen face-on instead.
+    #[arg(long, allow_negative_numbers = true)]
+    pub alpha: Option<f64>,
     /// View named from the side of the patient it is seen from: anterior, posterior, left,
     /// right, superior or inferior (radiological display: anterior shows the patient's left on
     /// the right). Needs a volume whose source gave its orientation (DICOM, NIfTI, NRRD,
     /// MetaImage); replaces --alpha/--beta.
     #[arg(long, value_name = "SIDE", conflicts_with_all = ["alpha", "beta"])]
     pub view: Option<String>,
-    /// Elevation β of the view (radians).
-    #[arg(long, default_value_t = 0.91, allow_negative_numbers = true)]
-    pub beta: f64,
+    /// Elevation β of the view (radians; default 0.91, see --alpha).
+    #[arg(long, allow_negative_numbers = true)]
+    pub beta: Option<f64>,
     /// Image size WxH (per view with --multiview).
     #[arg(long, default_value = "256x256")]
     pub size: String,

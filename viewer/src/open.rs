@@ -15,7 +15,7 @@ use wavesplat_client::{ConnectOptions, VolumeKey};
 use wavesplat_codec::format::packet::{decode_packets, Coefficient, PacketError};
 use wavesplat_codec::format::{check_kept, parse_file, FormatError, Header};
 use wavesplat_codec::view::patient::{PatientView, PatientViewError};
-use wavesplat_codec::view::{Cue, View, ViewError, ViewSpec};
+use wavesplat_codec::view::{Cue, Orientation, View, ViewError, ViewSpec};
 
 /// Why a volume could not be opened, or its reference drawn.
 #[derive(Debug, Error)]
@@ -67,10 +67,11 @@ pub enum OpenError {
 /// How to look at a volume, before the volume is known: what a user asks for.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ViewRequest {
-    /// Azimuth α (radians).
-    pub alpha: f64,
-    /// Elevation β (radians).
-    pub beta: f64,
+    /// Azimuth α (radians); `None`: [`DEFAULT_ALPHA`], or face-on for a volume one voxel thin
+    /// ([`face_on_angles`]).
+    pub alpha: Option<f64>,
+    /// Elevation β (radians); `None` as for α.
+    pub beta: Option<f64>,
     /// A view named from the side of the patient; replaces α and β once the volume's placement
     /// is known.
     pub side: Option<PatientView>,
@@ -90,10 +91,39 @@ pub struct ViewRequest {
     pub cue: Option<Cue>,
 }
 
+/// The azimuth α of a view when none is given: an oblique view that shows a volume's three
+/// axes.
+pub const DEFAULT_ALPHA: f64 = 0.66;
+/// The elevation β of a view when none is given.
+pub const DEFAULT_BETA: f64 = 0.91;
+
+/// The angles (α, β) that look at a volume one voxel thin (a single image slice) face-on, with
+/// its other two axes on the screen as an image viewer shows them; `None` for a volume with
+/// depth along every axis. For a slice in x–y (the usual DICOM or PNG slice) x runs to the
+/// right and y down, as the rows and columns of the image; the other two keep the
+/// right-handed screen of [`wavesplat_codec::view::basis_from_angles`].
+pub fn face_on_angles(dims: [usize; 3]) -> Option<(f64, f64)> {
+    use std::f64::consts::FRAC_PI_2;
+    if dims[2] == 1 {
+        Some((-FRAC_PI_2, -FRAC_PI_2))
+    } else if dims[1] == 1 {
+        Some((-FRAC_PI_2, 0.0))
+    } else if dims[0] == 1 {
+        Some((0.0, 0.0))
+    } else {
+        None
+    }
+}
+
 impl ViewRequest {
     /// The view spec the request describes, before the volume is known (validated).
     pub fn spec(&self) -> Result<ViewSpec, OpenError> {
-        let mut view = View::new(self.alpha, self.beta, self.width, self.height);
+        let mut view = View::new(
+            self.alpha.unwrap_or(DEFAULT_ALPHA),
+            self.beta.unwrap_or(DEFAULT_BETA),
+            self.width,
+            self.height,
+        );
         if let Some(z) = self.zoom {
             view = view.with_zoom(z);
         }
@@ -112,10 +142,19 @@ impl ViewRequest {
     }
 
     /// The view spec for the volume of `header`: [`ViewRequest::spec`], turned to the named
-    /// patient side through the volume's placement, and without a zoom zoomed to fit the
-    /// volume (for a multiview, the tightest of its panels).
+    /// patient side through the volume's placement (or, with no angle given, face-on to a
+    /// volume one voxel thin), and without a zoom zoomed to fit the volume (for a multiview,
+    /// the tightest of its panels).
     pub fn spec_for(&self, header: &Header) -> Result<ViewSpec, OpenError> {
         let mut spec = self.spec()?;
+        if let (None, None, None, Some((alpha, beta))) = (
+            self.side,
+            self.alpha,
+            self.beta,
+            face_on_angles(header.geometry.dims),
+        ) {
+            spec.view.orientation = Orientation::Angles { alpha, beta };
+        }
         if let Some(side) = self.side {
             spec.view.orientation =
                 side.orientation(header.placement.as_ref())
