@@ -534,3 +534,63 @@ fn a_single_slice_is_kept_whole_and_shown_face_on() {
         );
     }
 }
+
+/// `--cue-k auto` takes the extinction from the volume (2 / its diagonal: the far end of the
+/// longest path weighted e^-2), says which it took, and draws what that explicit k draws; a
+/// value that is not an extinction is refused naming `auto`.
+#[test]
+fn cue_k_auto_takes_its_scale_from_the_volume() {
+    let dir = tempfile::tempdir().unwrap();
+    let (_raw, wsp) = phantom_files(dir.path());
+    let png = |n: &str| dir.path().join(n).to_str().unwrap().to_string();
+    let auto = run(&[
+        "render",
+        &wsp,
+        "--cpu",
+        "--size",
+        "32x32",
+        "--cue-k",
+        "auto",
+        "-o",
+        &png("a.png"),
+    ]);
+    assert!(auto.status.success(), "{}", err(&auto));
+    // The phantom is 16³ at unit spacing: diagonal 16·√3.
+    let want = 2.0 / (16.0 * 3f64.sqrt());
+    let said = out(&auto);
+    let k: f64 = said
+        .split("depth cueing: k = ")
+        .nth(1)
+        .and_then(|s| s.split(' ').next())
+        .and_then(|s| s.parse().ok())
+        .unwrap_or_else(|| panic!("no k in {said}"));
+    assert!((k - want).abs() < 1e-5, "k {k}, want {want}");
+    let explicit = run(&[
+        "render",
+        &wsp,
+        "--cpu",
+        "--size",
+        "32x32",
+        "--cue-k",
+        &format!("{want}"),
+        "-o",
+        &png("e.png"),
+    ]);
+    assert!(explicit.status.success(), "{}", err(&explicit));
+    let plain = run(&[
+        "render",
+        &wsp,
+        "--cpu",
+        "--size",
+        "32x32",
+        "-o",
+        &png("p.png"),
+    ]);
+    assert!(plain.status.success(), "{}", err(&plain));
+    let [a, e, p] = ["a.png", "e.png", "p.png"].map(|n| std::fs::read(png(n)).unwrap());
+    assert_eq!(a, e, "auto draws what its k draws");
+    assert_ne!(a, p, "auto cues");
+    let bad = run(&["render", &wsp, "--cue-k", "strong", "-o", &png("b.png")]);
+    assert!(!bad.status.success());
+    assert!(err(&bad).contains("auto"), "{}", err(&bad));
+}

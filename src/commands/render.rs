@@ -76,10 +76,12 @@ pub struct ViewArgs {
     /// Three views side by side from one set of footprints (paper §3.1).
     #[arg(long)]
     pub multiview: bool,
-    /// Depth-cue extinction per unit of spacing (per mm, or per voxel for unit spacing; paper
-    /// §3.2); 0 disables.
-    #[arg(long, default_value_t = 0.0)]
-    pub cue_k: f64,
+    /// Depth cueing (paper §3.2): a point d units of spacing (mm, or voxels for unit spacing)
+    /// behind the light-facing side of the volume is weighted e^(−k·d), so k = 2 / depth
+    /// leaves the far side of a volume `depth` units deep at 14 % (e^−2). `auto` takes 2 / the
+    /// volume's diagonal (printed); 0 disables.
+    #[arg(long, value_name = "K|auto", default_value = "0", value_parser = parse_cue_k)]
+    pub cue_k: CueK,
     /// Depth-cue direction α,β (default: along the view direction).
     #[arg(long, allow_hyphen_values = true)]
     pub cue_dir: Option<String>,
@@ -133,6 +135,28 @@ pub struct RenderArgs {
     pub backend: super::BackendArgs,
 }
 
+/// The depth-cue extinction asked for on the command line.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum CueK {
+    /// Per unit of spacing (0: no depth cueing).
+    PerUnit(f64),
+    /// The volume's [`Cue::default_extinction`].
+    FromVolume,
+}
+
+fn parse_cue_k(s: &str) -> Result<CueK, String> {
+    if s.trim().eq_ignore_ascii_case("auto") {
+        return Ok(CueK::FromVolume);
+    }
+    match s.trim().parse::<f64>() {
+        Ok(k) if k.is_finite() && k >= 0.0 => Ok(CueK::PerUnit(k)),
+        _ => Err(format!(
+            "{s:?} is not an extinction: give a finite number >= 0 per unit of spacing \
+             (e.g. 0.01 per mm), or `auto`"
+        )),
+    }
+}
+
 fn pair(s: &str, what: &str) -> Result<[f64; 2]> {
     let p: Vec<&str> = s.split(',').collect();
     if p.len() != 2 {
@@ -165,13 +189,12 @@ impl ViewArgs {
                 ))
             })
             .with_context(|| format!("--size must be WxH, got {:?}", self.size))?;
-        if !self.cue_k.is_finite() || self.cue_k < 0.0 {
-            bail!(
-                "--cue-k must be a finite non-negative extinction per unit of spacing, got {}",
-                self.cue_k
-            );
-        }
-        let cue = if self.cue_k > 0.0 {
+        let (k, cue_k_from_volume) = match self.cue_k {
+            CueK::PerUnit(k) => (k, false),
+            // A placeholder until the volume is known (`ViewRequest::spec_for`).
+            CueK::FromVolume => (1.0, true),
+        };
+        let cue = if k > 0.0 {
             let direction = match &self.cue_dir {
                 Some(s) => {
                     let [alpha, beta] = pair(s, "--cue-dir")?;
@@ -179,10 +202,7 @@ impl ViewArgs {
                 }
                 None => CueDirection::View,
             };
-            Some(Cue {
-                k: self.cue_k,
-                direction,
-            })
+            Some(Cue { k, direction })
         } else {
             None
         };
@@ -204,6 +224,7 @@ impl ViewArgs {
             pan,
             multiview: self.multiview,
             cue,
+            cue_k_from_volume,
         })
     }
 
@@ -295,6 +316,12 @@ pub fn run(a: RenderArgs) -> Result<()> {
     let volume = location.describe();
     let (header, opened, spec) = open(location, &view, a.bytes)?;
     let opened_after = request.elapsed();
+    if let (true, Some(cue)) = (view.cue_k_from_volume, spec.view.cue) {
+        outln!(
+            "depth cueing: k = {:.6} per unit of spacing (2 / the volume's diagonal)",
+            cue.k
+        );
+    }
     let reference_started = Instant::now();
     let reference = if a.reference {
         Some(

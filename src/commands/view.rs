@@ -6,7 +6,7 @@ use super::render::ViewArgs;
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use std::path::PathBuf;
-use wavesplat_codec::view::MAX_IMAGE_SIDE;
+use wavesplat_codec::view::{Cue, MAX_IMAGE_SIDE};
 use wavesplat_viewer::open::open;
 use wavesplat_viewer::window::{self, Script, ViewState, WindowOptions};
 
@@ -75,7 +75,12 @@ pub fn run(a: ViewWindowArgs) -> Result<()> {
     let title = location.describe();
     let (header, opened, spec) = open(location, &request, None)?;
     // The window turns a view by its angles: a named patient view must be one.
-    let state = ViewState::new(&spec, request.zoom, a.frame_ms);
+    let state = ViewState::new(
+        &spec,
+        request.zoom,
+        a.frame_ms,
+        Cue::default_extinction(&header.geometry),
+    );
     let state = match &a.view.view {
         Some(side) => state.with_context(|| format!("--view {side}"))?,
         None => state?,

@@ -89,6 +89,9 @@ pub struct ViewRequest {
     pub multiview: bool,
     /// Depth cueing.
     pub cue: Option<Cue>,
+    /// Whether the cue's extinction is the volume's [`Cue::default_extinction`], set once the
+    /// volume is known (`cue.k` is a placeholder until then).
+    pub cue_k_from_volume: bool,
 }
 
 /// The azimuth α of a view when none is given: an oblique view that shows a volume's three
@@ -154,6 +157,9 @@ impl ViewRequest {
             face_on_angles(header.geometry.dims),
         ) {
             spec.view.orientation = Orientation::Angles { alpha, beta };
+        }
+        if let (true, Some(cue)) = (self.cue_k_from_volume, spec.view.cue.as_mut()) {
+            cue.k = Cue::default_extinction(&header.geometry);
         }
         if let Some(side) = self.side {
             spec.view.orientation =

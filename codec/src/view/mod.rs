@@ -148,6 +148,20 @@ pub struct Cue {
     pub direction: CueDirection,
 }
 
+impl Cue {
+    /// The extinction a volume's depth cueing takes when none is given: 2 / the length of the
+    /// volume's physical diagonal, so that along the longest path through the volume the far
+    /// end is weighted e^(−2) ≈ 14 % of the near end (the light-facing side), whatever the
+    /// volume's size and spacing. Its units are those of `k`: per unit of spacing.
+    pub fn default_extinction(geometry: &Geometry) -> f64 {
+        let diagonal = (0..3)
+            .map(|a| (geometry.dims[a] as f64 * f64::from(geometry.spacing[a])).powi(2))
+            .sum::<f64>()
+            .sqrt();
+        (2.0 / diagonal.max(1e-9)).min(MAX_CUE_K)
+    }
+}
+
 /// What to render: orientation, image size, zoom, pan and optional depth cue.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct View {

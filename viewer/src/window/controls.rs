@@ -56,8 +56,15 @@ pub struct ViewState {
 
 impl ViewState {
     /// The state that shows `spec`: `zoom_abs` is a zoom the user gave (pixels per unit of
-    /// spacing; `None`: the fitting zoom), `budget_ms` the frame budget.
-    pub fn new(spec: &ViewSpec, zoom_abs: Option<f64>, budget_ms: f64) -> Result<ViewState> {
+    /// spacing; `None`: the fitting zoom), `budget_ms` the frame budget, `cue_k` the extinction
+    /// depth cueing starts with when the spec has none (the volume's
+    /// [`Cue::default_extinction`]).
+    pub fn new(
+        spec: &ViewSpec,
+        zoom_abs: Option<f64>,
+        budget_ms: f64,
+        cue_k: f64,
+    ) -> Result<ViewState> {
         let v = &spec.view;
         // The window turns the view by its angles; a named patient view is one when the
         // volume's axes are the patient's up to a rotation about z (always for axial series).
@@ -73,7 +80,7 @@ impl ViewState {
         };
         let (cue_k, cue_dir) = match &v.cue {
             Some(c) => (c.k, c.direction),
-            None => (0.02, CueDirection::View),
+            None => (cue_k, CueDirection::View),
         };
         let mut s = ViewState {
             alpha,
