@@ -17,12 +17,16 @@
 //! (converted to RGB where the codec did not), and PALETTE COLOR (the palette applied, giving
 //! RGB; segmented palettes are refused). Attributes written with VR UN are read as
 //! the VR the standard dictionary gives them; 32-bit samples in big-endian files are put back
-//! in order from the units dicom-rs reads them in.
+//! in order from the units dicom-rs reads them in, as are 8-bit samples in 16-bit words (OW);
+//! 1-bit masks in big-endian files are read as OB (as OW, their bit order is ambiguous and
+//! they are refused). An element whose VR bytes name no VR is read in the layout other
+//! toolkits read it in (dcmtk's or pydicom's, whichever fits the bytes) when the reader does
+//! not use it, and refused, naming it, when it does.
 //!
 //! Transfer syntaxes: Implicit VR Little Endian, Explicit VR Little and Big Endian, Deflated
 //! Explicit VR Little Endian, Encapsulated Uncompressed, and the encapsulated ones
 //! dicom-pixeldata decodes: RLE Lossless, JPEG Baseline (Process 1), JPEG Extended (Process 2 &
-//! 4), JPEG Lossless Non-Hierarchical (Process 14, and Selection Value 1) in pure Rust; JPEG-LS
+//! 4, 8-bit samples: 12-bit lossy JPEG is refused naming it), JPEG Lossless Non-Hierarchical (Process 14, and Selection Value 1) in pure Rust; JPEG-LS
 //! (lossless and near-lossless) through CharLS (`charls`, built from source with cmake) when
 //! the default-off `jpeg-ls` feature is on, refused naming the feature otherwise; JPEG
 //! 2000 (lossless and lossy, and High-Throughput JPEG 2000) through OpenJPEG's Rust port
@@ -198,18 +202,28 @@ const MAX_DEPTH: usize = 32;
 /// length fits in the bytes that remain. dicom-rs sizes its buffers by the declared length
 /// before reading, so without this walk a 1 KB file declaring a 4 GB text element allocates
 /// 4 GB. Deflated data sets are inflated first (within [`MAX_EXPANSION`]).
-fn check_lengths(path: &Path, bytes: &[u8]) -> Result<(), ReadError> {
+///
+/// Returns the elements with an unknown VR it read ([`Walker::odd_header`]), and the rewrites
+/// of `bytes` that make dicom-rs read them as the walk did.
+fn check_lengths(path: &Path, bytes: &[u8]) -> Result<Walked, ReadError> {
     let body = bytes.get(132..).unwrap_or(&[]);
     let mut w = Walker {
         explicit: true,
         big: false,
+        patches: Vec::new(),
+        odd: Vec::new(),
     };
     // The meta group: explicit VR little endian, read as dicom-rs reads it: a group length
     // (0002,0000) first, then whole elements (of any group) until that many bytes are read.
     // Where the data set starts must agree with the parser's, or the walk checks other
     // "elements" than the parser reads (a group length past a run of zeroed elements made
     // dicom-rs read a 1.3 GB value the walk never saw).
-    let (tag, _, len, hdr) = w.header(body, 0).map_err(|m| dicom_err(path, None, m))?;
+    let Header {
+        tag,
+        len,
+        size: hdr,
+        ..
+    } = w.header(body, 0).map_err(|m| dicom_err(path, None, m))?;
     let group_length = match (tag, len) {
         (Tag(0x0002, 0x0000), Some(4)) => body
             .get(hdr..hdr + 4)
@@ -227,7 +241,23 @@ fn check_lengths(path: &Path, bytes: &[u8]) -> Result<(), ReadError> {
     let mut pos = meta_start;
     let mut ts = String::new();
     while pos - meta_start < group_length {
-        let (tag, _vr, len, hdr) = w.header(body, pos).map_err(|m| dicom_err(path, None, m))?;
+        let Header {
+            tag,
+            len,
+            size: hdr,
+            odd,
+            ..
+        } = w.header(body, pos).map_err(|m| dicom_err(path, None, m))?;
+        if let Some(vr) = odd {
+            return Err(dicom_err(
+                path,
+                Some(tag),
+                format!(
+                    "has an unknown value representation {} in the file meta group",
+                    show_vr(vr.bytes)
+                ),
+            ));
+        }
         let start = pos + hdr;
         let len = len.ok_or_else(|| dicom_err(path, None, "undefined length in the meta group"))?;
         let end = start
@@ -248,6 +278,8 @@ fn check_lengths(path: &Path, bytes: &[u8]) -> Result<(), ReadError> {
         pos = end;
     }
     let rest = &body[pos..];
+    let data_start = 132 + pos;
+    let mut deflated = false;
     let inflated;
     let data: &[u8] = match ts.as_str() {
         "1.2.840.10008.1.2" => {
@@ -279,18 +311,198 @@ fn check_lengths(path: &Path, bytes: &[u8]) -> Result<(), ReadError> {
                 ));
             }
             inflated = out;
+            deflated = true;
             &inflated
         }
         _ => rest,
     };
     w.dataset(data, 0, data.len(), 0, false)
-        .map(|_| ())
-        .map_err(|(tag, m)| dicom_err(path, tag, m))
+        .map_err(|(tag, m)| dicom_err(path, tag, m))?;
+    if deflated {
+        if let Some(p) = w.patches.first() {
+            return Err(dicom_err(
+                path,
+                Some(p.tag),
+                "has an unknown value representation with a 2-byte length (or in implicit VR) \
+                 inside a deflated data set, which this reader cannot read",
+            ));
+        }
+    }
+    for p in &mut w.patches {
+        p.at += data_start;
+    }
+    Ok(Walked {
+        patches: w.patches,
+        odd: w.odd,
+    })
+}
+
+/// What [`check_lengths`] found beyond lengths that fit.
+struct Walked {
+    patches: Vec<Patch>,
+    odd: Vec<(Tag, OddVr)>,
+}
+
+/// An element header as the walk reads it.
+struct Header {
+    tag: Tag,
+    /// The VR as written (explicit syntaxes); `UN` for an unknown one, as dicom-rs takes it.
+    vr: Option<[u8; 2]>,
+    /// `None`: undefined.
+    len: Option<usize>,
+    /// Bytes of the header.
+    size: usize,
+    /// An unknown VR, and how its length was read.
+    odd: Option<OddVr>,
+}
+
+/// VR bytes that name no VR (in an explicit VR data set), and the layout the walk read the
+/// element in: the reference toolkits differ, so the walk takes the one under which the
+/// element's value and the next element header fit ([`Walker::odd_header`]).
+#[derive(Debug, Clone, Copy)]
+struct OddVr {
+    bytes: [u8; 2],
+    layout: OddLayout,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum OddLayout {
+    /// Two reserved bytes and a 4-byte length, as the VRs added to the standard lately (UC,
+    /// UR, OL, OV, SV, UV) are written: how dcmtk reads unknown VRs of two capital letters,
+    /// and dicom-rs every unknown VR.
+    Extended,
+    /// A 2-byte length: how dcmtk reads VR bytes that are not two capital letters ("??"),
+    /// and pydicom unknown VRs of capital letters.
+    Short,
+    /// The element is in implicit VR (a 4-byte length where the VR would be): how pydicom
+    /// reads VR bytes that are not capital letters (writers that switch to implicit VR
+    /// inside sequences).
+    Implicit,
+}
+
+/// VR bytes in messages: as text where printable, else as hexadecimal bytes.
+fn show_vr(vr: [u8; 2]) -> String {
+    if vr.iter().all(|b| b.is_ascii_graphic()) {
+        format!("{:?}", String::from_utf8_lossy(&vr))
+    } else {
+        format!("(bytes {:02X} {:02X})", vr[0], vr[1])
+    }
+}
+
+/// Whether `vr` is a VR written with a 4-byte length (`Some(true)`), a 2-byte one
+/// (`Some(false)`), or none the reader knows.
+fn vr_length_size(vr: [u8; 2]) -> Option<bool> {
+    match &vr {
+        b"OB" | b"OD" | b"OF" | b"OL" | b"OV" | b"OW" | b"SQ" | b"SV" | b"UC" | b"UN" | b"UR"
+        | b"UT" | b"UV" => Some(true),
+        b"AE" | b"AS" | b"AT" | b"CS" | b"DA" | b"DS" | b"DT" | b"FD" | b"FL" | b"IS" | b"LO"
+        | b"LT" | b"PN" | b"SH" | b"SL" | b"SS" | b"ST" | b"TM" | b"UI" | b"UL" | b"US" => {
+            Some(false)
+        }
+        _ => None,
+    }
+}
+
+/// Attributes the reader (or dicom-pixeldata, decoding the pixel data) reads: one of these
+/// with an unknown VR is refused rather than read by a guessed layout.
+const NEEDED: [Tag; 47] = [
+    tags::SERIES_INSTANCE_UID,
+    tags::INSTANCE_NUMBER,
+    tags::ROWS,
+    tags::COLUMNS,
+    tags::NUMBER_OF_FRAMES,
+    tags::SAMPLES_PER_PIXEL,
+    tags::PHOTOMETRIC_INTERPRETATION,
+    tags::BITS_ALLOCATED,
+    tags::BITS_STORED,
+    tags::HIGH_BIT,
+    tags::PIXEL_REPRESENTATION,
+    tags::PLANAR_CONFIGURATION,
+    tags::PIXEL_SPACING,
+    tags::IMAGER_PIXEL_SPACING,
+    tags::IMAGE_ORIENTATION_PATIENT,
+    tags::IMAGE_POSITION_PATIENT,
+    tags::SLICE_THICKNESS,
+    tags::SPACING_BETWEEN_SLICES,
+    tags::RESCALE_SLOPE,
+    tags::RESCALE_INTERCEPT,
+    tags::FRAME_INCREMENT_POINTER,
+    tags::GRID_FRAME_OFFSET_VECTOR,
+    tags::DOSE_GRID_SCALING,
+    tags::TEMPORAL_POSITION_IDENTIFIER,
+    tags::TRIGGER_TIME,
+    tags::FRAME_TIME,
+    tags::FRAME_TIME_VECTOR,
+    tags::ACTUAL_FRAME_DURATION,
+    tags::TIME_SLOT_VECTOR,
+    tags::PER_FRAME_FUNCTIONAL_GROUPS_SEQUENCE,
+    tags::SHARED_FUNCTIONAL_GROUPS_SEQUENCE,
+    tags::PIXEL_MEASURES_SEQUENCE,
+    tags::PLANE_POSITION_SEQUENCE,
+    tags::PLANE_ORIENTATION_SEQUENCE,
+    tags::PIXEL_VALUE_TRANSFORMATION_SEQUENCE,
+    tags::RED_PALETTE_COLOR_LOOKUP_TABLE_DESCRIPTOR,
+    tags::GREEN_PALETTE_COLOR_LOOKUP_TABLE_DESCRIPTOR,
+    tags::BLUE_PALETTE_COLOR_LOOKUP_TABLE_DESCRIPTOR,
+    tags::RED_PALETTE_COLOR_LOOKUP_TABLE_DATA,
+    tags::GREEN_PALETTE_COLOR_LOOKUP_TABLE_DATA,
+    tags::BLUE_PALETTE_COLOR_LOOKUP_TABLE_DATA,
+    tags::SEGMENTED_RED_PALETTE_COLOR_LOOKUP_TABLE_DATA,
+    tags::SEGMENTED_GREEN_PALETTE_COLOR_LOOKUP_TABLE_DATA,
+    tags::SEGMENTED_BLUE_PALETTE_COLOR_LOOKUP_TABLE_DATA,
+    tags::WINDOW_CENTER,
+    tags::WINDOW_WIDTH,
+    tags::PIXEL_DATA,
+];
+
+/// A rewrite of the file's bytes: `bytes` replace those at `at` (same length).
+#[derive(Debug, Clone)]
+struct Patch {
+    tag: Tag,
+    at: usize,
+    bytes: Vec<u8>,
+}
+
+/// dicom-rs reads every unknown VR with the [`OddLayout::Extended`] layout; an element the
+/// walk read with an 8-byte header is rewritten so that dicom-rs reads the same bytes as one
+/// element: as `LT` of spaces (its value is not used) where its length fits in 2 bytes, else
+/// as `UN` whose 4-byte length covers the rest of the value.
+fn odd_patch(tag: Tag, at: usize, len: usize, big: bool) -> Patch {
+    let mut bytes = Vec::new();
+    match u16::try_from(len) {
+        Ok(short) => {
+            bytes.extend_from_slice(b"LT");
+            bytes.extend_from_slice(&if big {
+                short.to_be_bytes()
+            } else {
+                short.to_le_bytes()
+            });
+            bytes.resize(4 + len, b' ');
+        }
+        Err(_) => {
+            let rest = (len - 4) as u32;
+            bytes.extend_from_slice(b"UN\0\0");
+            bytes.extend_from_slice(&if big {
+                rest.to_be_bytes()
+            } else {
+                rest.to_le_bytes()
+            });
+        }
+    }
+    Patch {
+        tag,
+        at: at + 4,
+        bytes,
+    }
 }
 
 struct Walker {
     explicit: bool,
     big: bool,
+    /// Rewrites of elements with an unknown VR, at offsets in the data set.
+    patches: Vec<Patch>,
+    /// The elements with an unknown VR the walk read.
+    odd: Vec<(Tag, OddVr)>,
 }
 
 type WalkError = (Option<Tag>, String);
@@ -312,72 +524,89 @@ impl Walker {
         }
     }
 
-    /// The element header at `pos`: tag, VR (explicit only), length (`None`: undefined) and
-    /// header size.
-    #[allow(clippy::type_complexity)]
-    fn header(
-        &self,
-        b: &[u8],
-        pos: usize,
-    ) -> Result<(Tag, Option<[u8; 2]>, Option<usize>, usize), String> {
+    /// The element header at `pos` in `b` (which ends where the data set does).
+    fn header(&self, b: &[u8], pos: usize) -> Result<Header, String> {
         let h = b.get(pos..pos + 8).ok_or("truncated element header")?;
         let tag = Tag(self.u16(&h[0..2]), self.u16(&h[2..4]));
         let undefined = |l: u32| (l != 0xFFFF_FFFF).then_some(l as usize);
+        let plain = |vr, len, size| Header {
+            tag,
+            vr,
+            len,
+            size,
+            odd: None,
+        };
         if tag.group() == 0xFFFE || !self.explicit {
-            return Ok((tag, None, undefined(self.u32(&h[4..8])), 8));
+            return Ok(plain(None, undefined(self.u32(&h[4..8])), 8));
         }
         let vr = [h[4], h[5]];
-        if matches!(
-            &vr,
-            b"OB"
-                | b"OD"
-                | b"OF"
-                | b"OL"
-                | b"OV"
-                | b"OW"
-                | b"SQ"
-                | b"SV"
-                | b"UC"
-                | b"UN"
-                | b"UR"
-                | b"UT"
-                | b"UV"
-        ) {
-            let l = b.get(pos + 8..pos + 12).ok_or("truncated element header")?;
-            Ok((tag, Some(vr), undefined(self.u32(l)), 12))
-        } else if matches!(
-            &vr,
-            b"AE"
-                | b"AS"
-                | b"AT"
-                | b"CS"
-                | b"DA"
-                | b"DS"
-                | b"DT"
-                | b"FD"
-                | b"FL"
-                | b"IS"
-                | b"LO"
-                | b"LT"
-                | b"PN"
-                | b"SH"
-                | b"SL"
-                | b"SS"
-                | b"ST"
-                | b"TM"
-                | b"UI"
-                | b"UL"
-                | b"US"
-        ) {
-            Ok((tag, Some(vr), Some(usize::from(self.u16(&h[6..8]))), 8))
-        } else {
-            // dicom-rs reads an unknown VR with a 4-byte length (as UN): a walk that read 2
-            // bytes would check a different length than the parser then allocates.
-            Err(format!(
-                "element {tag} has an unknown value representation {:?}",
-                String::from_utf8_lossy(&vr)
-            ))
+        match vr_length_size(vr) {
+            Some(true) => {
+                let l = b.get(pos + 8..pos + 12).ok_or("truncated element header")?;
+                Ok(plain(Some(vr), undefined(self.u32(l)), 12))
+            }
+            Some(false) => Ok(plain(Some(vr), Some(usize::from(self.u16(&h[6..8]))), 8)),
+            None => self.odd_header(b, pos, tag, vr),
         }
+    }
+
+    /// The header of an element whose VR bytes name no VR. The reference toolkits read such
+    /// an element in one of three layouts ([`OddLayout`]); the walk takes, of the two a
+    /// toolkit would use for these bytes (capital letters: extended, then short; others:
+    /// short, then implicit), the first under which the value fits and is followed by the end
+    /// of the data set or a plausible element header (a later tag with a known VR, or a
+    /// delimiter). Reported with VR `UN`, as dicom-rs reads it.
+    fn odd_header(&self, b: &[u8], pos: usize, tag: Tag, vr: [u8; 2]) -> Result<Header, String> {
+        let h = &b[pos..pos + 8];
+        let layouts = if vr.iter().all(u8::is_ascii_uppercase) {
+            [OddLayout::Extended, OddLayout::Short]
+        } else {
+            [OddLayout::Short, OddLayout::Implicit]
+        };
+        for layout in layouts {
+            let (len, size) = match layout {
+                OddLayout::Extended => match b.get(pos + 8..pos + 12) {
+                    Some(l) => (self.u32(l), 12),
+                    None => continue,
+                },
+                OddLayout::Short => (u32::from(self.u16(&h[6..8])), 8),
+                OddLayout::Implicit => (self.u32(&h[4..8]), 8),
+            };
+            let fits = if len == 0xFFFF_FFFF {
+                // Undefined: a sequence as dicom-rs reads UN (the walk checks its items).
+                layout == OddLayout::Extended
+            } else {
+                let next = (pos + size).saturating_add(len as usize);
+                next == b.len() || self.plausible_header(b, next, tag)
+            };
+            if fits {
+                return Ok(Header {
+                    tag,
+                    vr: Some(*b"UN"),
+                    len: (len != 0xFFFF_FFFF).then_some(len as usize),
+                    size,
+                    odd: Some(OddVr { bytes: vr, layout }),
+                });
+            }
+        }
+        Err(format!(
+            "element {tag} has an unknown value representation {}, and its value fits in none \
+             of the layouts other toolkits read it in",
+            show_vr(vr)
+        ))
+    }
+
+    /// Whether an element header after `after` can start at `pos`: a delimiter, or a later
+    /// tag with a VR the reader knows.
+    fn plausible_header(&self, b: &[u8], pos: usize, after: Tag) -> bool {
+        let Some(h) = b.get(pos..pos.saturating_add(8)) else {
+            return false;
+        };
+        let tag = Tag(self.u16(&h[0..2]), self.u16(&h[2..4]));
+        if tag == Tag(0xFFFE, 0xE00D) || tag == Tag(0xFFFE, 0xE0DD) {
+            return true;
+        }
+        tag > after && (!self.explicit || vr_length_size([h[4], h[5]]).is_some())
     }
 
     /// The size of one value of a binary VR of fixed size (`None`: text, bytes, sequences).
@@ -414,7 +643,7 @@ impl Walker {
     /// Walks a data set in `b[pos..end]`; with `end` unknown for undefined-length items, stops
     /// at an item delimiter. Returns the position after what it consumed.
     fn dataset(
-        &self,
+        &mut self,
         b: &[u8],
         mut pos: usize,
         end: usize,
@@ -425,7 +654,29 @@ impl Walker {
             return Err((None, format!("sequences nested deeper than {MAX_DEPTH}")));
         }
         while pos < end {
-            let (tag, vr, len, hdr) = self.header(&b[..end], pos).map_err(|m| (None, m))?;
+            let Header {
+                tag,
+                vr,
+                len,
+                size: hdr,
+                odd,
+            } = self.header(&b[..end], pos).map_err(|m| (None, m))?;
+            if let Some(odd) = odd {
+                if NEEDED.contains(&tag) {
+                    return Err((
+                        Some(tag),
+                        format!(
+                            "has an unknown value representation {}; wavesplat needs this \
+                             attribute, and does not guess how to read it",
+                            show_vr(odd.bytes)
+                        ),
+                    ));
+                }
+                self.odd.push((tag, odd));
+                if let (OddLayout::Short | OddLayout::Implicit, Some(len)) = (odd.layout, len) {
+                    self.patches.push(odd_patch(tag, pos, len, self.big));
+                }
+            }
             pos += hdr;
             if tag == Tag(0xFFFE, 0xE00D) && delimited {
                 return Ok(pos);
@@ -484,7 +735,7 @@ impl Walker {
     /// Walks the items of a sequence (or the fragments of encapsulated pixel data) in
     /// `b[pos..end]`, up to the sequence delimiter when the sequence's length is undefined.
     fn items(
-        &self,
+        &mut self,
         b: &[u8],
         mut pos: usize,
         end: usize,
@@ -547,7 +798,29 @@ fn parse(path: &Path, bytes: &[u8], pixels: bool) -> Result<DefaultDicomObject, 
             "not a DICOM file (no DICM preamble at offset 128)",
         ));
     }
-    check_lengths(path, bytes)?;
+    let walked = check_lengths(path, bytes)?;
+    if !pixels {
+        for (tag, odd) in &walked.odd {
+            tracing::warn!(
+                file = %path.display(),
+                element = %tag,
+                vr = %show_vr(odd.bytes),
+                layout = ?odd.layout,
+                "an element with an unknown value representation, read as other toolkits read it; its value is not used"
+            );
+        }
+    }
+    let patched;
+    let bytes = if walked.patches.is_empty() {
+        bytes
+    } else {
+        let mut b = bytes.to_vec();
+        for p in &walked.patches {
+            b[p.at..p.at + p.bytes.len()].copy_from_slice(&p.bytes);
+        }
+        patched = b;
+        &patched[..]
+    };
     let body = &bytes[128..];
     let result = catch_unwind(AssertUnwindSafe(|| {
         let opts = OpenFileOptions::new().read_preamble(ReadPreamble::Never);
@@ -1752,6 +2025,25 @@ fn check_pixel_data(img: &Image, obj: &DefaultDicomObject) -> Result<(), ReadErr
                     }
                 }
             }
+            // jpeg-decoder (and zune-jpeg) decode 8-bit lossy JPEG only; a 12-bit extended
+            // process stream would fail with the decoder's generic "unsupported feature".
+            if JPEG_LOSSY.contains(&ts_uid.as_str()) {
+                let first = frags.iter().find(|f| !f.is_empty());
+                if let Some(p) = first
+                    .and_then(|f| jpeg_sample_precision(f))
+                    .filter(|p| *p != 8)
+                {
+                    return Err(dicom_err(
+                        path,
+                        Some(tags::PIXEL_DATA),
+                        format!(
+                            "{p}-bit lossy JPEG (extended process) is not supported: this build's \
+                             JPEG decoder reads 8-bit lossy JPEG only; transcode the series (to \
+                             JPEG Lossless, JPEG 2000 or an uncompressed syntax)"
+                        ),
+                    ));
+                }
+            }
             let compressed: usize = frags.iter().map(|f| f.len()).sum();
             let limit = compressed
                 .saturating_mul(MAX_EXPANSION)
@@ -1815,6 +2107,28 @@ fn jpeg_colour_markers(jpeg: &[u8]) -> (bool, Option<u8>) {
         i += 2 + len;
     }
     (jfif, adobe)
+}
+
+/// The sample precision (bits) a JPEG stream's frame header (SOF) declares, read up to the
+/// first scan; `None` without one.
+fn jpeg_sample_precision(jpeg: &[u8]) -> Option<u8> {
+    let mut i = 2; // after SOI
+    while i + 4 <= jpeg.len() && jpeg[i] == 0xFF {
+        let marker = jpeg[i + 1];
+        if marker == 0xFF {
+            i += 1; // fill byte
+            continue;
+        }
+        // SOF0..SOF15 but DHT (C4), JPG (C8) and DAC (CC).
+        if (0xC0..=0xCF).contains(&marker) && !matches!(marker, 0xC4 | 0xC8 | 0xCC) {
+            return jpeg.get(i + 4).copied();
+        }
+        if marker == 0xDA || marker == 0xD9 {
+            return None;
+        }
+        i += 2 + usize::from(u16::from_be_bytes([jpeg[i + 2], jpeg[i + 3]]));
+    }
+    None
 }
 
 /// Frame `f` of a lossy JPEG colour image decoded with libjpeg's colour rule, when it differs
@@ -1891,15 +2205,19 @@ fn adobe_rgb_jpeg_frame(
 /// Transfer Syntax UID of Explicit VR Big Endian (retired, still written by some toolkits).
 const EXPLICIT_VR_BIG_ENDIAN: &str = "1.2.840.10008.1.2.2";
 
-/// A frame's native samples as host-order integers of the sample size. dicom-rs hands native
-/// pixel data over as the host-order bytes of the units the element was read in: 16-bit words
-/// for OW, 32-bit for OL, bytes in file order for OB. In a little-endian file that is the
-/// samples' order whatever the unit; in a big-endian one a 32-bit sample read as two OW words
-/// has its high word first, and 16- or 32-bit samples read as OB bytes are big-endian, so
-/// those are put back together here (they came out as other numbers, silently, before).
+/// Frame `f`'s native samples (`data`) as host-order integers of the sample size. dicom-rs
+/// hands native pixel data over as the host-order bytes of the units the element was read in:
+/// 16-bit words for OW, 32-bit for OL, bytes in file order for OB. In a little-endian file
+/// that is the samples' order whatever the unit; in a big-endian one a 32-bit sample read as
+/// two OW words has its high word first, and 16- or 32-bit samples read as OB bytes are
+/// big-endian, so those are put back together here (they came out as other numbers, silently,
+/// before). 8-bit samples in OW words of a big-endian file are each word's bytes swapped back
+/// (PS3.5 8.1.1: the first sample is the low byte of the first word), as pydicom reads them;
+/// a frame may start inside a word, so its samples are cut from the whole pixel data.
 fn native_order<'a>(
     img: &Image,
     obj: &DefaultDicomObject,
+    f: usize,
     data: &'a [u8],
 ) -> Result<std::borrow::Cow<'a, [u8]>, ReadError> {
     use dicom_core::PrimitiveValue;
@@ -1920,6 +2238,20 @@ fn native_order<'a>(
     };
     match (unit, bytes_per) {
         (a, b) if a == b => Ok(Cow::Borrowed(data)),
+        (2, 1) => {
+            let words = p.to_bytes(); // host order
+            let n = img.rows * img.cols * img.samples;
+            // Sample k is byte k % 2 of word k / 2, low byte first; a short frame is reported
+            // by `store_samples`.
+            Ok(Cow::Owned(
+                (f * n..(f + 1) * n)
+                    .map_while(|k| {
+                        let w = words.get(k & !1..(k & !1) + 2)?;
+                        Some(u16::from_ne_bytes([w[0], w[1]]).to_le_bytes()[k % 2])
+                    })
+                    .collect(),
+            ))
+        }
         (1, 2) => Ok(Cow::Owned(
             data.chunks_exact(2)
                 .flat_map(|c| u16::from_be_bytes([c[0], c[1]]).to_ne_bytes())
@@ -1998,7 +2330,7 @@ fn decode_frame(
     let data = decoded.data();
     let need = img.rows * img.cols * img.samples * (img.bits_allocated / 8) as usize;
     // A short frame is reported by `store_samples`.
-    let data = native_order(img, obj, data.get(..need).unwrap_or(data))?;
+    let data = native_order(img, obj, f, data.get(..need).unwrap_or(data))?;
     // Native RGB may be planar (R plane, G plane, B plane); decoders return interleaved.
     let planar = img.samples == 3
         && decoded.planar_configuration() == dicom_pixeldata::PlanarConfiguration::PixelFirst;
@@ -2129,7 +2461,8 @@ fn native_frame_bytes(img: &Image) -> usize {
 
 /// Frame `f` of a 1-bit image (a mask) into channel 0 at `offset`, as 0 and 1 through the
 /// rescale. The bits of all frames run on without padding, least significant bit first
-/// (PS3.5 8.1.1); dicom-pixeldata cuts frames at byte boundaries, so they are read here.
+/// (PS3.5 8.1.1); dicom-pixeldata cuts frames at byte boundaries, so they are read here. In
+/// Explicit VR Big Endian only OB pixel data is read.
 fn decode_bit_frame(
     img: &Image,
     obj: &DefaultDicomObject,
@@ -2139,14 +2472,19 @@ fn decode_bit_frame(
 ) -> Result<(), ReadError> {
     let err = |reason: String| dicom_err(&img.path, Some(tags::PIXEL_DATA), reason);
     let ts = obj.meta().transfer_syntax().trim_end_matches('\0');
-    if ts == EXPLICIT_VR_BIG_ENDIAN {
-        return Err(err(
-            "1-bit samples in an Explicit VR Big Endian file are not supported".into(),
-        ));
-    }
     let Some(p) = element(obj, tags::PIXEL_DATA).and_then(|e| e.value().primitive()) else {
         return Err(err("1-bit samples must be native (not encapsulated)".into()));
     };
+    // OB bytes are never swapped, so in a big-endian file the bits read as in a little-endian
+    // one (as pydicom reads them). OW words are byte-swapped there, and toolkits disagree on
+    // where the bits go then (pydicom takes the bytes in file order, dcmtk the words').
+    if ts == EXPLICIT_VR_BIG_ENDIAN && !matches!(p, dicom_core::PrimitiveValue::U8(_)) {
+        return Err(err(
+            "1-bit samples in 16-bit words (OW) in an Explicit VR Big Endian file are not \
+             supported: their bit order is ambiguous (toolkits disagree); store them as OB"
+                .into(),
+        ));
+    }
     let bytes = p.to_bytes();
     let plane = img.rows * img.cols;
     let (slope, intercept) = img.rescale[f];

@@ -1744,11 +1744,10 @@ fn palette_colour_series_read_as_their_colours() {
     check_against_pydicom(&files, &back, 0.0, "PALETTE COLOR");
 }
 
-/// 1-bit masks (refused before) read as 0 and 1, their bits running on across frames without
-/// padding, as pydicom reads them.
-#[test]
-fn one_bit_masks_read_as_zero_and_one() {
-    // 5 × 3 pixels: 15 bits a frame, so frames 2 and 3 start inside a byte.
+/// A 1-bit mask (5 × 3 pixels, 3 frames: 15 bits a frame, so frames 2 and 3 start inside a
+/// byte) as a classic multi-frame Explicit VR Little Endian file at `path`; returns the mask
+/// as a volume and its packed bits (least significant bit first, padded to an even length).
+fn one_bit_mask_file(path: &Path) -> (Volume, Vec<u8>) {
     let dims = [5, 3, 3];
     let n: usize = dims.iter().product();
     let bits: Vec<u8> = (0..n).map(|i| u8::from((i * 7919) % 5 < 2)).collect();
@@ -1767,17 +1766,15 @@ fn one_bit_masks_read_as_zero_and_one() {
     if packed.len() % 2 == 1 {
         packed.push(0);
     }
-    let dir = tempfile::tempdir().unwrap();
-    let path = dir.path().join("mask.dcm");
     let o = DicomOptions {
         layout: Layout::U8,
         ..Default::default()
     };
-    write_dicom_multiframe(&path, &v, &o);
+    write_dicom_multiframe(path, &v, &o);
     // A classic multi-frame file (what pydicom's check places by Image Position and the
     // slice step), 1 bit a sample.
     let p = v.placement().unwrap();
-    edit(&path, |obj| {
+    edit(path, |obj| {
         obj.remove_element(tags::PER_FRAME_FUNCTIONAL_GROUPS_SEQUENCE);
         obj.remove_element(tags::SHARED_FUNCTIONAL_GROUPS_SEQUENCE);
         obj.remove_element(tags::RESCALE_SLOPE);
@@ -1814,7 +1811,323 @@ fn one_bit_masks_read_as_zero_and_one() {
             PrimitiveValue::U8(packed.clone().into()),
         );
     });
+    (v, packed)
+}
+
+/// 1-bit masks (refused before) read as 0 and 1, their bits running on across frames without
+/// padding, as pydicom reads them.
+#[test]
+fn one_bit_masks_read_as_zero_and_one() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("mask.dcm");
+    let (v, _) = one_bit_mask_file(&path);
     let back = read_volume(&path, None).unwrap();
     assert_eq!(back.channel(0), v.channel(0));
     check_against_pydicom(std::slice::from_ref(&path), &back, 0.0, "1-bit mask");
+}
+
+/// Rewrites the DICOM file `src` as Explicit VR Big Endian at `dst`, with `edit` applied to its
+/// data set first.
+fn rewrite_big_endian(src: &Path, dst: &Path, edit: impl FnOnce(&mut InMemDicomObject)) {
+    use dicom_object::FileMetaTableBuilder;
+    let mut obj = open_file(src).unwrap().into_inner();
+    edit(&mut obj);
+    obj.with_meta(FileMetaTableBuilder::new().transfer_syntax(EXPLICIT_VR_BIG_ENDIAN))
+        .unwrap()
+        .write_to_file(dst)
+        .unwrap();
+}
+
+/// 1-bit masks in Explicit VR Big Endian (refused before): as OB their bytes are not swapped
+/// in either byte order, so the bits read as in little endian, as pydicom reads them; as OW,
+/// where toolkits disagree on the bit order, they are refused naming the layout.
+#[test]
+fn one_bit_masks_in_big_endian_read_as_bytes() {
+    let dir = tempfile::tempdir().unwrap();
+    let le = dir.path().join("mask-le.dcm");
+    let (v, packed) = one_bit_mask_file(&le);
+    let be = dir.path().join("mask-be.dcm");
+    rewrite_big_endian(&le, &be, |_| {});
+    let raw = std::fs::read(&be).unwrap();
+    assert!(
+        raw.windows(packed.len()).any(|w| w == packed),
+        "OB pixel data is written in file order"
+    );
+    let back = read_volume(&be, None).unwrap_or_else(|e| panic!("{e}"));
+    assert_eq!(back.channel(0), v.channel(0));
+    check_against_pydicom(
+        std::slice::from_ref(&be),
+        &back,
+        0.0,
+        "1-bit mask, big endian",
+    );
+
+    let ow = dir.path().join("mask-be-ow.dcm");
+    rewrite_big_endian(&le, &ow, |o| {
+        let words: Vec<u16> = packed
+            .chunks_exact(2)
+            .map(|c| u16::from_le_bytes([c[0], c[1]]))
+            .collect();
+        set(
+            o,
+            tags::PIXEL_DATA,
+            VR::OW,
+            PrimitiveValue::U16(words.into()),
+        );
+    });
+    let e = read_volume(&ow, None).unwrap_err().to_string();
+    assert!(
+        e.contains("1-bit samples in 16-bit words (OW) in an Explicit VR Big Endian file")
+            && e.contains("(7FE0,0010) Pixel Data"),
+        "{e}"
+    );
+}
+
+/// Explicit VR Big Endian pixel data in 16-bit words (OW): 8-bit samples (refused before) read
+/// as pydicom 3 reads them, each word's two bytes swapped back (the first sample is the low
+/// byte of the first word), also where a frame starts inside a word; 8 bits stored in 16-bit
+/// samples keep their low 8 bits whatever lies above them. Both read back as the little-endian
+/// file they were made from.
+#[test]
+fn big_endian_samples_in_16_bit_words_read_in_order() {
+    let dir = tempfile::tempdir().unwrap();
+    // 5 × 3 pixels: 15 samples a frame, so frames 2 and 3 start inside a word.
+    let v = volume([5, 3, 3], [1.0, 1.0, 2.0], Layout::U8, 1.0, 0.0);
+    let le = dir.path().join("le.dcm");
+    let o = DicomOptions {
+        layout: Layout::U8,
+        ..Default::default()
+    };
+    write_dicom_multiframe(&le, &v, &o);
+    let want = read_volume(&le, None).unwrap();
+    let mut samples = open_file(&le)
+        .unwrap()
+        .element(tags::PIXEL_DATA)
+        .unwrap()
+        .to_bytes()
+        .unwrap()
+        .to_vec();
+    samples.truncate(5 * 3 * 3); // without the padding byte
+
+    let eight = dir.path().join("be-8-in-ow.dcm");
+    rewrite_big_endian(&le, &eight, |o| {
+        let words: Vec<u16> = samples
+            .chunks(2)
+            .map(|c| u16::from(c[0]) | (u16::from(*c.get(1).unwrap_or(&0)) << 8))
+            .collect();
+        set(
+            o,
+            tags::PIXEL_DATA,
+            VR::OW,
+            PrimitiveValue::U16(words.into()),
+        );
+    });
+    let raw = std::fs::read(&eight).unwrap();
+    assert!(
+        raw.windows(4)
+            .any(|w| w == [samples[1], samples[0], samples[3], samples[2]]),
+        "the writer did not store the words big-endian"
+    );
+
+    let sixteen = dir.path().join("be-16-bits-8-stored.dcm");
+    rewrite_big_endian(&le, &sixteen, |o| {
+        let words: Vec<u16> = samples.iter().map(|s| u16::from(*s) | 0xA500).collect();
+        set(o, tags::BITS_ALLOCATED, VR::US, PrimitiveValue::from(16u16));
+        set(o, tags::BITS_STORED, VR::US, PrimitiveValue::from(8u16));
+        set(o, tags::HIGH_BIT, VR::US, PrimitiveValue::from(7u16));
+        set(
+            o,
+            tags::PIXEL_DATA,
+            VR::OW,
+            PrimitiveValue::U16(words.into()),
+        );
+    });
+    for (what, path) in [
+        ("8 bits allocated in OW", &eight),
+        ("8 of 16 bits stored", &sixteen),
+    ] {
+        let back = read_volume(path, None).unwrap_or_else(|e| panic!("{what}: {e}"));
+        assert_eq!(back.dims(), want.dims(), "{what}");
+        assert_eq!(back.channel(0), want.channel(0), "{what}");
+    }
+}
+
+/// A greyscale JPEG of 12-bit precision in the extended process (SOF1), as a 12-bit lossy
+/// DICOM file would hold: an 8-bit baseline stream from the encoder with its frame header
+/// rewritten (the reader refuses from the frame header, before any decoding).
+fn twelve_bit_jpeg(w: u16, h: u16) -> Vec<u8> {
+    let grey: Vec<u8> = (0..usize::from(w) * usize::from(h))
+        .map(|i| (i * 37 % 251) as u8)
+        .collect();
+    let mut out = Vec::new();
+    jpeg_encoder::Encoder::new(&mut out, 90)
+        .encode(&grey, w, h, jpeg_encoder::ColorType::Luma)
+        .unwrap();
+    let sof = out.windows(2).position(|m| m == [0xFF, 0xC0]).unwrap();
+    out[sof + 1] = 0xC1;
+    out[sof + 4] = 12;
+    assert_eq!(jpeg_sample_precision(&out), Some(12));
+    out
+}
+
+/// 12-bit lossy JPEG (the extended process, which jpeg-decoder does not decode) is refused
+/// naming the feature, not with the decoder's generic error.
+#[test]
+fn twelve_bit_lossy_jpeg_is_refused_naming_it() {
+    use dicom_core::value::PixelFragmentSequence;
+    use dicom_dictionary_std::uids;
+    use dicom_object::FileMetaTableBuilder;
+    let (w, h) = (16u16, 8u16);
+    let mut jpeg = twelve_bit_jpeg(w, h);
+    if jpeg.len() % 2 == 1 {
+        jpeg.push(0);
+    }
+    let e = |tag, vr, v: PrimitiveValue| DataElement::new(tag, vr, v);
+    let text = |s: &str| PrimitiveValue::from(s.to_string());
+    let mut obj = InMemDicomObject::from_element_iter([
+        e(
+            tags::SOP_CLASS_UID,
+            VR::UI,
+            text(uids::SECONDARY_CAPTURE_IMAGE_STORAGE),
+        ),
+        e(
+            tags::SOP_INSTANCE_UID,
+            VR::UI,
+            text("1.2.826.0.1.3680043.9.7433.10.1"),
+        ),
+        e(tags::SAMPLES_PER_PIXEL, VR::US, PrimitiveValue::from(1u16)),
+        e(
+            tags::PHOTOMETRIC_INTERPRETATION,
+            VR::CS,
+            text("MONOCHROME2"),
+        ),
+        e(tags::ROWS, VR::US, PrimitiveValue::from(h)),
+        e(tags::COLUMNS, VR::US, PrimitiveValue::from(w)),
+        e(tags::BITS_ALLOCATED, VR::US, PrimitiveValue::from(16u16)),
+        e(tags::BITS_STORED, VR::US, PrimitiveValue::from(12u16)),
+        e(tags::HIGH_BIT, VR::US, PrimitiveValue::from(11u16)),
+        e(
+            tags::PIXEL_REPRESENTATION,
+            VR::US,
+            PrimitiveValue::from(0u16),
+        ),
+    ]);
+    set(
+        &mut obj,
+        tags::PIXEL_DATA,
+        VR::OB,
+        dicom_core::DicomValue::from(PixelFragmentSequence::new(Vec::<u32>::new(), vec![jpeg])),
+    );
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("jpeg12.dcm");
+    obj.with_meta(FileMetaTableBuilder::new().transfer_syntax("1.2.840.10008.1.2.4.51"))
+        .unwrap()
+        .write_to_file(&path)
+        .unwrap();
+    let e = read_volume(&path, None).unwrap_err();
+    let msg = e.to_string();
+    assert!(matches!(e, ReadError::Dicom { .. }), "{msg}");
+    assert!(
+        msg.contains("12-bit lossy JPEG (extended process) is not supported")
+            && msg.contains("jpeg12.dcm"),
+        "{msg}"
+    );
+}
+
+/// Where `pat` starts in `bytes`.
+fn find(bytes: &[u8], pat: &[u8]) -> usize {
+    bytes
+        .windows(pat.len())
+        .position(|w| w == pat)
+        .unwrap_or_else(|| panic!("{pat:?} not in the file"))
+}
+
+/// An element whose VR bytes are not a VR, in an Explicit VR Little Endian file, read as the
+/// reference toolkits read it when wavesplat does not need the attribute (refused before):
+/// `??` with a 2-byte length (dcmtk), letters that are no VR with a 2-byte length (pydicom),
+/// letters with the 4-byte length of a VR newer than the dictionary (dcmtk, dicom-rs), and an
+/// element written in implicit VR inside the explicit data set (pydicom). The file reads back
+/// its volume, and as pydicom reads it where pydicom reads that layout. An attribute the
+/// reader needs is refused, naming it.
+#[test]
+fn unknown_value_representations_are_read_as_other_toolkits_read_them() {
+    let dir = tempfile::tempdir().unwrap();
+    let v = volume([5, 4, 1], [0.8, 0.8, 2.0], Layout::I16, 1.0, 0.0);
+    let files = write_dicom_series(&dir.path().join("src"), &v, &DicomOptions::default());
+    let study = Tag(0x0008, 0x1030); // Study Description, LO: not read by wavesplat
+    edit(&files[0], |o| {
+        set(o, study, VR::LO, PrimitiveValue::from("HEAD CT "));
+    });
+    let bytes = std::fs::read(&files[0]).unwrap();
+    let lo = find(&bytes, &[0x08, 0x00, 0x30, 0x10, b'L', b'O', 8, 0]);
+    let with = |patch: &dyn Fn(&mut Vec<u8>)| {
+        let mut b = bytes.clone();
+        patch(&mut b);
+        b
+    };
+    let mut cases: Vec<(&str, Vec<u8>, bool)> = vec![
+        (
+            "?? with a 2-byte length",
+            with(&|b| b[lo + 4..lo + 6].copy_from_slice(b"??")),
+            false,
+        ),
+        (
+            "QX with a 2-byte length",
+            with(&|b| b[lo + 4..lo + 6].copy_from_slice(b"QX")),
+            true,
+        ),
+        (
+            "implicit VR inside explicit",
+            with(&|b| b[lo + 4..lo + 8].copy_from_slice(&8u32.to_le_bytes())),
+            true,
+        ),
+    ];
+    // A VR the dictionary does not know, with a 4-byte length (written as UN, renamed).
+    edit(&files[0], |o| {
+        set(o, study, VR::UN, PrimitiveValue::U8(b"HEAD CT "[..].into()));
+    });
+    let mut b = std::fs::read(&files[0]).unwrap();
+    let un = find(&b, &[0x08, 0x00, 0x30, 0x10, b'U', b'N', 0, 0, 8, 0, 0, 0]);
+    b[un + 4..un + 6].copy_from_slice(b"ZZ");
+    cases.push(("ZZ with a 4-byte length", b, false));
+    for (what, b, pydicom_reads_it) in cases {
+        let path = dir.path().join("odd-vr.dcm");
+        std::fs::write(&path, &b).unwrap();
+        let back = read_volume(&path, None).unwrap_or_else(|e| panic!("{what}: {e}"));
+        assert_same(&back, &v, what);
+        assert_eq!(back.channel(0), v.channel(0), "{what}");
+        if pydicom_reads_it {
+            check_against_pydicom(std::slice::from_ref(&path), &back, 0.0, what);
+        }
+    }
+
+    // Needed attributes are refused, naming them: Pixel Spacing with the VR bytes 10 00
+    // (also in the hostile-lengths test), Rows as ?? with its 2-byte length.
+    for (pat, what) in [
+        (
+            &[0x28, 0x00, 0x30, 0x00, b'D', b'S'][..],
+            "(0028,0030) Pixel Spacing",
+        ),
+        (
+            &[0x28, 0x00, 0x10, 0x00, b'U', b'S'][..],
+            "(0028,0010) Rows",
+        ),
+    ] {
+        let mut b = bytes.clone();
+        let at = find(&b, pat);
+        b[at + 4..at + 6].copy_from_slice(if what.contains("Rows") {
+            b"??"
+        } else {
+            &[0x10, 0]
+        });
+        let path = dir.path().join("needed.dcm");
+        std::fs::write(&path, &b).unwrap();
+        let e = read_volume(&path, None).unwrap_err();
+        let msg = e.to_string();
+        assert!(matches!(e, ReadError::Dicom { .. }), "{msg}");
+        assert!(
+            msg.contains(what) && msg.contains("unknown value representation"),
+            "{what}: {msg}"
+        );
+    }
 }
