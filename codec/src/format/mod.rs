@@ -19,6 +19,7 @@
 //! Every read from bytes is bounds-checked and every field range-checked: truncated, corrupted,
 //! wrong-version or oversized input yields a [`FormatError`], never a panic.
 
+pub mod bricked;
 pub mod bytes;
 mod coefficient;
 pub mod fast;
@@ -83,6 +84,10 @@ pub enum FormatError {
         /// Version supported.
         supported: u16,
     },
+    /// A bricked container ([`bricked`]) where a plain file was expected: its bricks are
+    /// plain files, read through [`bricked::parse_bricked`].
+    #[error("a bricked volume (format version {}): each brick is a volume of its own, read through the bricked container", bricked::BRICKED_VERSION)]
+    Bricked,
     /// Input ended early.
     #[error("truncated {what}: needed {needed} more bytes, {available} available")]
     Truncated {
@@ -851,6 +856,8 @@ pub fn read_header_section(bytes: &[u8]) -> Result<(Header, usize), FormatError>
 fn check_version(version: u16) -> Result<(), FormatError> {
     if (OLDEST_READABLE_VERSION..=VERSION).contains(&version) {
         Ok(())
+    } else if version == bricked::BRICKED_VERSION {
+        Err(FormatError::Bricked)
     } else {
         Err(FormatError::UnsupportedVersion {
             found: version,

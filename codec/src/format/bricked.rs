@@ -1,0 +1,525 @@
+//! The bricked container (format version 9): one logical volume stored as bricks, each a
+//! complete `.wsp` file of its own (a version 8 file: its own transform, header and packets),
+//! behind a manifest that places every brick inside the whole. A volume larger than one
+//! process can transform is compressed brick by brick (and brick jobs run on any worker),
+//! while readers still see one volume: its dimensions, spacing and placement are the
+//! manifest's; each brick's header holds the brick's own. Bricks tile the whole without
+//! overlap, so an image of the whole (linear in the data) is the sum of the bricks' images,
+//! each clipped to its own box.
+//!
+//! Layout: magic `WSPL`, version 9 (u16), manifest length (u32), the manifest, its CRC-32,
+//! then the bricks' bytes in manifest order. A build that reads only versions up to 8 refuses
+//! such a file as "written by a newer wavesplat" ([`FormatError::UnsupportedVersion`]); a plain
+//! (unbricked) volume is still written as version 8, so every existing file, figure and reader
+//! stays valid. The manifest is untrusted input like the rest: counts, sizes, offsets and the
+//! tiling are checked before anything is allocated from them, and each brick's bytes carry a
+//! CRC-32 checked when the brick is taken ([`BrickedFile::brick_bytes`]).
+
+use super::bytes::{ByteReader, ByteWriter};
+use super::{FormatError, MAGIC};
+use crate::volume::Placement;
+
+/// The format version of a bricked container.
+pub const BRICKED_VERSION: u16 = 9;
+
+/// Most bricks one container may hold (a 8192³ volume in 256³ bricks has 32 768).
+pub const MAX_BRICKS: usize = 1 << 20;
+
+/// Largest accepted manifest (bytes).
+const MAX_MANIFEST_BYTES: usize = 64 << 20;
+
+/// Largest side of the whole volume along one axis.
+pub const MAX_SIDE: u64 = 1 << 20;
+
+/// Where one brick lies in the whole and where its bytes are.
+#[derive(Debug, Clone, PartialEq)]
+pub struct BrickEntry {
+    /// Its first voxel in the whole (x, y, z).
+    pub origin: [u64; 3],
+    /// Its dimensions.
+    pub dims: [usize; 3],
+    /// Offset of its `.wsp` bytes from the start of the container.
+    pub offset: u64,
+    /// Length of its `.wsp` bytes.
+    pub length: u64,
+    /// CRC-32 of those bytes.
+    pub crc: u32,
+    /// Coefficients it keeps (its header's count, for listings and budgets).
+    pub kept: u64,
+}
+
+/// What describes the whole volume.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Manifest {
+    /// The whole volume's dimensions.
+    pub dims: [u64; 3],
+    /// Channels (every brick has as many).
+    pub channels: usize,
+    /// Voxel spacing (every brick has the same).
+    pub spacing: [f32; 3],
+    /// Placement of the whole in patient space (voxel (0, 0, 0) of the whole).
+    pub placement: Option<Placement>,
+    /// The nominal brick edge the volume was split with (bricks may be smaller: each axis is
+    /// split into near-equal parts no longer than this).
+    pub brick: usize,
+    /// The bricks, in the order their bytes follow the manifest.
+    pub bricks: Vec<BrickEntry>,
+}
+
+impl Manifest {
+    /// Voxels of the whole (may exceed what one process transforms).
+    pub fn voxels(&self) -> u128 {
+        self.dims.iter().map(|d| *d as u128).product()
+    }
+
+    /// Coefficients kept over all bricks.
+    pub fn kept(&self) -> u64 {
+        self.bricks.iter().map(|b| b.kept).sum()
+    }
+}
+
+/// A parsed bricked container: the manifest and the bytes it indexes.
+#[derive(Debug)]
+pub struct BrickedFile<'a> {
+    /// The manifest.
+    pub manifest: Manifest,
+    bytes: &'a [u8],
+}
+
+impl<'a> BrickedFile<'a> {
+    /// The `.wsp` bytes of brick `i`, checked against their CRC.
+    pub fn brick_bytes(&self, i: usize) -> Result<&'a [u8], FormatError> {
+        let b = self
+            .manifest
+            .bricks
+            .get(i)
+            .ok_or_else(|| FormatError::Invalid {
+                what: "bricked manifest",
+                detail: format!("no brick {i}"),
+            })?;
+        // In range: checked by `parse_bricked`.
+        let data = &self.bytes[b.offset as usize..(b.offset + b.length) as usize];
+        let computed = crc32fast::hash(data);
+        if computed != b.crc {
+            return Err(FormatError::Checksum {
+                what: "brick",
+                stored: b.crc,
+                computed,
+            });
+        }
+        Ok(data)
+    }
+}
+
+/// Whether `bytes` start as a bricked container (magic and version 9).
+pub fn is_bricked(bytes: &[u8]) -> bool {
+    bytes.len() >= 6
+        && &bytes[..4] == MAGIC
+        && u16::from_le_bytes([bytes[4], bytes[5]]) == BRICKED_VERSION
+}
+
+/// The near-equal split of `len` voxels into parts of at most `brick`: ⌈len/brick⌉ parts
+/// whose sizes differ by at most one (so no part is a sliver: a 257-voxel axis in 256-voxel
+/// bricks is 129 + 128, not 256 + 1, whose one-voxel brick would have no wavelet level).
+/// Returns (start, size) per part.
+pub fn split_axis(len: u64, brick: usize) -> Vec<(u64, usize)> {
+    let brick = brick.max(1) as u64;
+    let parts = len.div_ceil(brick).max(1);
+    let base = len / parts;
+    let extra = len % parts;
+    let mut out = Vec::with_capacity(parts as usize);
+    let mut start = 0;
+    for p in 0..parts {
+        let size = base + u64::from(p < extra);
+        out.push((start, size as usize));
+        start += size;
+    }
+    out
+}
+
+/// The bricks of a volume of `dims` split with edge `brick`: (origin, dims) in x-fastest
+/// order, the order [`write_bricked`] expects.
+pub fn brick_grid(dims: [u64; 3], brick: usize) -> Vec<([u64; 3], [usize; 3])> {
+    let [xs, ys, zs] = dims.map(|d| split_axis(d, brick));
+    let mut out = Vec::with_capacity(xs.len() * ys.len() * zs.len());
+    for (z0, dz) in &zs {
+        for (y0, dy) in &ys {
+            for (x0, dx) in &xs {
+                out.push(([*x0, *y0, *z0], [*dx, *dy, *dz]));
+            }
+        }
+    }
+    out
+}
+
+/// Writes a container: `manifest` (whose entries' `offset`, `length` and `crc` are filled in
+/// here) followed by `bricks`, one `.wsp` file each in manifest order.
+pub fn write_bricked(manifest: &Manifest, bricks: &[Vec<u8>]) -> Result<Vec<u8>, FormatError> {
+    if bricks.len() != manifest.bricks.len() {
+        return Err(FormatError::Invalid {
+            what: "bricked manifest",
+            detail: format!(
+                "{} bricks for {} manifest entries",
+                bricks.len(),
+                manifest.bricks.len()
+            ),
+        });
+    }
+    let mut m = manifest.clone();
+    // Offsets depend on the manifest's length, which does not depend on their values (fixed
+    // width fields): write once to measure, then with the offsets.
+    let measure = manifest_bytes(&m);
+    let mut offset = (4 + 2 + 4 + measure.len() + 4) as u64;
+    for (e, b) in m.bricks.iter_mut().zip(bricks) {
+        e.offset = offset;
+        e.length = b.len() as u64;
+        e.crc = crc32fast::hash(b);
+        offset += b.len() as u64;
+    }
+    let mb = manifest_bytes(&m);
+    debug_assert_eq!(mb.len(), measure.len());
+    let mut out = Vec::with_capacity(offset as usize);
+    out.extend_from_slice(MAGIC);
+    out.extend_from_slice(&BRICKED_VERSION.to_le_bytes());
+    out.extend_from_slice(&(mb.len() as u32).to_le_bytes());
+    out.extend_from_slice(&mb);
+    out.extend_from_slice(&crc32fast::hash(&mb).to_le_bytes());
+    for b in bricks {
+        out.extend_from_slice(b);
+    }
+    Ok(out)
+}
+
+fn manifest_bytes(m: &Manifest) -> Vec<u8> {
+    let mut w = ByteWriter::new();
+    for d in m.dims {
+        w.u64(d);
+    }
+    w.u8(m.channels as u8);
+    for s in m.spacing {
+        w.f32(s);
+    }
+    match &m.placement {
+        None => w.u8(0),
+        Some(p) => {
+            w.u8(1);
+            for o in p.origin {
+                w.f64(o);
+            }
+            for d in p.directions.iter().flatten() {
+                w.f64(*d);
+            }
+        }
+    }
+    w.u32(m.brick as u32);
+    w.u32(m.bricks.len() as u32);
+    for b in &m.bricks {
+        for o in b.origin {
+            w.u64(o);
+        }
+        for d in b.dims {
+            w.u32(d as u32);
+        }
+        w.u64(b.offset);
+        w.u64(b.length);
+        w.u32(b.crc);
+        w.u64(b.kept);
+    }
+    w.into_bytes()
+}
+
+fn bad(detail: impl Into<String>) -> FormatError {
+    FormatError::Invalid {
+        what: "bricked manifest",
+        detail: detail.into(),
+    }
+}
+
+/// Parses and validates a container's manifest: the whole's dimensions, every brick inside
+/// them, the bricks tiling the whole exactly (their voxel counts sum to the whole's and none
+/// overlaps another), every brick's bytes inside the file.
+pub fn parse_bricked(bytes: &[u8]) -> Result<BrickedFile<'_>, FormatError> {
+    let mut r = ByteReader::new(bytes, "bricked container");
+    let magic = r
+        .take(4)
+        .map_err(|_| FormatError::BadMagic(bytes.iter().take(4).copied().collect()))?;
+    if magic != MAGIC {
+        return Err(FormatError::BadMagic(magic.to_vec()));
+    }
+    let version = r.u16()?;
+    if version != BRICKED_VERSION {
+        return Err(FormatError::UnsupportedVersion {
+            found: version,
+            supported: BRICKED_VERSION,
+        });
+    }
+    let len = r.u32()? as usize;
+    if len > MAX_MANIFEST_BYTES {
+        return Err(FormatError::TooLarge {
+            what: "bricked manifest",
+            size: len as u64,
+            limit: MAX_MANIFEST_BYTES as u64,
+        });
+    }
+    let mb = r.take(len)?;
+    let stored = r.u32()?;
+    let computed = crc32fast::hash(mb);
+    if stored != computed {
+        return Err(FormatError::Checksum {
+            what: "bricked manifest",
+            stored,
+            computed,
+        });
+    }
+    let data_start = r.position() as u64;
+    let mut m = ByteReader::new(mb, "bricked manifest");
+    let mut dims = [0u64; 3];
+    for d in &mut dims {
+        *d = m.u64()?;
+        if *d == 0 || *d > MAX_SIDE {
+            return Err(bad(format!("whole dimension {d}; allowed 1..={MAX_SIDE}")));
+        }
+    }
+    let channels = m.u8()? as usize;
+    if !(1..=4).contains(&channels) {
+        return Err(bad(format!("{channels} channels")));
+    }
+    let mut spacing = [0f32; 3];
+    for s in &mut spacing {
+        *s = m.f32()?;
+        if !(s.is_finite() && *s > 0.0) {
+            return Err(bad(format!("spacing {s}")));
+        }
+    }
+    let placement = match m.u8()? {
+        0 => None,
+        1 => {
+            let mut origin = [0f64; 3];
+            for o in &mut origin {
+                *o = m.f64()?;
+            }
+            let mut directions = [[0f64; 3]; 3];
+            for d in directions.iter_mut().flatten() {
+                *d = m.f64()?;
+            }
+            if origin
+                .iter()
+                .chain(directions.iter().flatten())
+                .any(|v| !v.is_finite())
+            {
+                return Err(bad("placement not finite"));
+            }
+            Some(Placement { origin, directions })
+        }
+        f => return Err(bad(format!("placement flag {f}"))),
+    };
+    let brick = m.u32()? as usize;
+    if brick == 0 {
+        return Err(bad("brick edge 0"));
+    }
+    let count = m.u32()? as usize;
+    // Each entry is 68 bytes: refuse a count the manifest cannot hold before allocating.
+    const ENTRY_BYTES: usize = 3 * 8 + 3 * 4 + 8 + 8 + 4 + 8;
+    if count == 0 || count > MAX_BRICKS || count * ENTRY_BYTES != m.remaining() {
+        return Err(bad(format!(
+            "{count} bricks in {} bytes of entries",
+            m.remaining()
+        )));
+    }
+    let mut bricks = Vec::with_capacity(count);
+    let mut voxels: u128 = 0;
+    for _ in 0..count {
+        let mut origin = [0u64; 3];
+        for o in &mut origin {
+            *o = m.u64()?;
+        }
+        let mut bd = [0usize; 3];
+        for (a, d) in bd.iter_mut().enumerate() {
+            *d = m.u32()? as usize;
+            if *d == 0 || origin[a].checked_add(*d as u64).is_none_or(|e| e > dims[a]) {
+                return Err(bad(format!(
+                    "a brick at {origin:?} of {bd:?} leaves the whole {dims:?}"
+                )));
+            }
+        }
+        let offset = m.u64()?;
+        let length = m.u64()?;
+        if offset < data_start
+            || offset
+                .checked_add(length)
+                .is_none_or(|e| e > bytes.len() as u64)
+        {
+            return Err(FormatError::Truncated {
+                what: "brick",
+                needed: offset.saturating_add(length),
+                available: bytes.len() as u64,
+            });
+        }
+        let crc = m.u32()?;
+        let kept = m.u64()?;
+        voxels += bd.iter().map(|d| *d as u128).product::<u128>();
+        bricks.push(BrickEntry {
+            origin,
+            dims: bd,
+            offset,
+            length,
+            crc,
+            kept,
+        });
+    }
+    let whole: u128 = dims.iter().map(|d| *d as u128).product();
+    if voxels != whole {
+        return Err(bad(format!(
+            "the bricks hold {voxels} voxels, the whole {dims:?} has {whole}"
+        )));
+    }
+    // Equal sums and no overlap make a tiling: sort by origin and check boxes pairwise only
+    // where they could meet (a sweep along x).
+    let mut order: Vec<usize> = (0..count).collect();
+    order.sort_by_key(|&i| bricks[i].origin[0]);
+    let mut active: Vec<usize> = Vec::new();
+    for &i in &order {
+        let b = &bricks[i];
+        active.retain(|&j| bricks[j].origin[0] + bricks[j].dims[0] as u64 > b.origin[0]);
+        for &j in &active {
+            let o = &bricks[j];
+            let overlaps = (0..3).all(|a| {
+                b.origin[a] < o.origin[a] + o.dims[a] as u64
+                    && o.origin[a] < b.origin[a] + b.dims[a] as u64
+            });
+            if overlaps {
+                return Err(bad(format!(
+                    "bricks at {:?} and {:?} overlap",
+                    b.origin, o.origin
+                )));
+            }
+        }
+        active.push(i);
+    }
+    Ok(BrickedFile {
+        manifest: Manifest {
+            dims,
+            channels,
+            spacing,
+            placement,
+            brick,
+            bricks,
+        },
+        bytes,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn manifest(dims: [u64; 3], brick: usize) -> (Manifest, Vec<Vec<u8>>) {
+        let grid = brick_grid(dims, brick);
+        let bricks: Vec<Vec<u8>> = (0..grid.len()).map(|i| vec![i as u8; 10 + i]).collect();
+        let m = Manifest {
+            dims,
+            channels: 1,
+            spacing: [1.0, 1.0, 2.5],
+            placement: Some(Placement::identity()),
+            brick,
+            bricks: grid
+                .into_iter()
+                .map(|(origin, dims)| BrickEntry {
+                    origin,
+                    dims,
+                    offset: 0,
+                    length: 0,
+                    crc: 0,
+                    kept: 7,
+                })
+                .collect(),
+        };
+        (m, bricks)
+    }
+
+    #[test]
+    fn axes_split_into_near_equal_parts() {
+        assert_eq!(split_axis(257, 256), vec![(0, 129), (129, 128)]);
+        assert_eq!(split_axis(256, 256), vec![(0, 256)]);
+        assert_eq!(split_axis(1, 256), vec![(0, 1)]);
+        assert_eq!(split_axis(96, 32), vec![(0, 32), (32, 32), (64, 32)]);
+        for len in 1..300u64 {
+            for brick in [1, 7, 32, 100] {
+                let parts = split_axis(len, brick);
+                assert_eq!(parts.iter().map(|p| p.1 as u64).sum::<u64>(), len);
+                assert!(parts.iter().all(|p| p.1 <= brick && p.1 > 0));
+                let (lo, hi) = parts
+                    .iter()
+                    .fold((usize::MAX, 0), |(lo, hi), p| (lo.min(p.1), hi.max(p.1)));
+                assert!(hi - lo <= 1, "{len} / {brick}: {parts:?}");
+            }
+        }
+    }
+
+    #[test]
+    fn a_container_round_trips_and_every_brick_is_checked() {
+        let (m, bricks) = manifest([70, 40, 33], 32);
+        let bytes = write_bricked(&m, &bricks).unwrap();
+        assert!(is_bricked(&bytes));
+        let f = parse_bricked(&bytes).unwrap();
+        assert_eq!(f.manifest.dims, m.dims);
+        assert_eq!(f.manifest.placement, m.placement);
+        assert_eq!(f.manifest.bricks.len(), bricks.len());
+        for (i, b) in bricks.iter().enumerate() {
+            assert_eq!(f.brick_bytes(i).unwrap(), b.as_slice());
+        }
+        // A flipped bit in a brick is caught when it is taken, in the manifest at once.
+        let mut bad = bytes.clone();
+        let last = bad.len() - 1;
+        bad[last] ^= 1;
+        let f = parse_bricked(&bad).unwrap();
+        assert!(matches!(
+            f.brick_bytes(bricks.len() - 1),
+            Err(FormatError::Checksum { .. })
+        ));
+        let mut bad = bytes.clone();
+        bad[12] ^= 1;
+        assert!(matches!(
+            parse_bricked(&bad),
+            Err(FormatError::Checksum { .. })
+        ));
+    }
+
+    #[test]
+    fn hostile_manifests_are_refused() {
+        let (m, bricks) = manifest([64, 64, 64], 32);
+        // Every cut of the file is an error, never a panic.
+        let bytes = write_bricked(&m, &bricks).unwrap();
+        for cut in 0..bytes.len() {
+            let _ = parse_bricked(&bytes[..cut]).map(|f| {
+                for i in 0..f.manifest.bricks.len() {
+                    let _ = f.brick_bytes(i);
+                }
+            });
+        }
+        assert!(parse_bricked(&bytes[..bytes.len() - 1]).is_err());
+        // Overlapping bricks (two at the same place, one missing) and gaps are refused.
+        let mut overlap = m.clone();
+        overlap.bricks[1].origin = overlap.bricks[0].origin;
+        assert!(parse_bricked(&write_bricked(&overlap, &bricks).unwrap()).is_err());
+        let mut gap = m.clone();
+        gap.bricks[0].dims = [16, 32, 32];
+        assert!(parse_bricked(&write_bricked(&gap, &bricks).unwrap()).is_err());
+        let mut outside = m.clone();
+        outside.bricks[0].origin = [u64::MAX - 3, 0, 0];
+        assert!(parse_bricked(&write_bricked(&outside, &bricks).unwrap()).is_err());
+    }
+
+    /// The plain reader names a bricked file as such (a build older than version 9 reads
+    /// versions up to 8 and calls it newer).
+    #[test]
+    fn the_plain_reader_names_a_bricked_file() {
+        let (m, bricks) = manifest([8, 8, 8], 8);
+        let bytes = write_bricked(&m, &bricks).unwrap();
+        assert!(matches!(
+            super::super::parse_file(&bytes),
+            Err(FormatError::Bricked)
+        ));
+        assert!(super::super::VERSION < BRICKED_VERSION);
+    }
+}
