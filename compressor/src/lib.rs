@@ -4,6 +4,7 @@
 //! wavesplat format (`wavesplat-codec`). Work is parallel on the rayon pool; results do not
 //! depend on the number of threads.
 
+pub mod bricked;
 pub mod colorspace;
 pub mod decode;
 pub mod encode;

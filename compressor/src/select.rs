@@ -145,6 +145,16 @@ impl Histogram {
         }
     }
 
+    /// Coefficients per score bin.
+    pub(crate) fn counts(&self) -> &[u64] {
+        &self.counts
+    }
+
+    /// Energy per score bin (approximate sums; empty when none were asked for).
+    pub(crate) fn energies(&self) -> &[f64] {
+        &self.energies
+    }
+
     /// The lowest bin that must be collected for the top `k`.
     fn cut_for_count(&self, k: u64) -> usize {
         let mut acc = 0u64;

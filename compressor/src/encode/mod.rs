@@ -116,6 +116,50 @@ pub fn compress(
     Ok(prepared.encode(&ranked, k, opts, expected, true))
 }
 
+/// The oracle's scores of a volume, summarised: how many coefficients and how much energy lie
+/// in each score bin (bins are absolute: 128 per halving of the score, the same for every
+/// volume), so that summaries of several volumes (the bricks of one) can be added and a
+/// single score threshold chosen for all of them, as the oracle would for the whole.
+pub struct ScoreSummary {
+    histogram: crate::select::Histogram,
+    /// Coefficients of the padded grid, all channels.
+    pub total_coefficients: u64,
+    /// Energy of all coefficients (without importance).
+    pub total_energy: f64,
+    /// Selectable (non-zero) coefficients.
+    pub nonzero: u64,
+}
+
+impl ScoreSummary {
+    /// Coefficients per score bin, lowest score first.
+    pub fn counts(&self) -> &[u64] {
+        self.histogram.counts()
+    }
+
+    /// Energy per score bin (sums in a thread-dependent order: a guide, not exact).
+    pub fn energies(&self) -> &[f64] {
+        self.histogram.energies()
+    }
+}
+
+/// The transform and the oracle's scores of `volume` under `opts` (its depth, family, colour
+/// space and margin), without selecting or coding anything: the first pass of a bricked
+/// volume's rate allocation.
+pub fn score_summary(
+    volume: &Volume,
+    opts: &CompressOptions,
+    progress: &(dyn Fn(Stage, f64) + Sync),
+) -> Result<ScoreSummary, CompressError> {
+    let coded = code(volume, opts, false, progress)?;
+    let prepared = prepare(volume, opts, &coded, false, progress)?;
+    Ok(ScoreSummary {
+        total_coefficients: prepared.total_coefficients,
+        total_energy: prepared.total_energy,
+        nonzero: prepared.nonzero,
+        histogram: prepared.histogram,
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::prepare::{choose_tiling, AUTO_THREE_LAYERS_BYTES, AUTO_TWO_LAYERS_BYTES};

@@ -1,0 +1,480 @@
+//! Bricked compression: a volume too large for one transform is split into bricks
+//! ([`wavesplat_codec::format::bricked::brick_grid`]), each compressed on its own as a complete
+//! `.wsp` (its own transform, no margin, so nothing is spent where a brick face cuts the
+//! content), and written as one bricked container. Rate is allocated as for the whole: a first
+//! pass scores every brick's coefficients into absolute score histograms
+//! ([`crate::encode::score_summary`]), their sum gives the one score threshold the oracle would
+//! take for the whole volume, and the second pass keeps in each brick the coefficients above
+//! it (not equal bytes per brick). Only one brick is in memory per worker thread at a time;
+//! the bricks come from a [`BrickSource`] (a volume in memory, or a file read by region).
+//!
+//! A byte target for the whole is met by a search on the global threshold's coefficient count
+//! (log bytes against log count, as the single-volume search does), each trial compressing
+//! every brick: a few times the work of one pass.
+
+use rayon::prelude::*;
+use thiserror::Error;
+use wavesplat_codec::format::bricked::{brick_grid, write_bricked, BrickEntry, Manifest};
+use wavesplat_codec::format::FormatError;
+use wavesplat_codec::layout::Geometry;
+use wavesplat_codec::volume::{Placement, Volume, VolumeError};
+
+use crate::encode::{
+    compress, default_levels, score_summary, CompressError, CompressOptions, ScoreSummary, Stage,
+    Target,
+};
+use crate::reader::ReadError;
+
+/// Where bricks come from: something that can hand out any box of the whole as a volume.
+pub trait BrickSource: Sync {
+    /// The whole volume's dimensions.
+    fn dims(&self) -> [u64; 3];
+    /// Its channels.
+    fn channels(&self) -> usize;
+    /// Its voxel spacing.
+    fn spacing(&self) -> [f32; 3];
+    /// Its placement in patient space (of voxel (0, 0, 0) of the whole).
+    fn placement(&self) -> Option<Placement>;
+    /// The box at `origin` of `dims` as a volume (spacing as the whole's, no placement needed).
+    fn read(&self, origin: [u64; 3], dims: [usize; 3]) -> Result<Volume, ReadError>;
+}
+
+impl BrickSource for Volume {
+    fn dims(&self) -> [u64; 3] {
+        Volume::dims(self).map(|d| d as u64)
+    }
+
+    fn channels(&self) -> usize {
+        self.channel_count()
+    }
+
+    fn spacing(&self) -> [f32; 3] {
+        Volume::spacing(self)
+    }
+
+    fn placement(&self) -> Option<Placement> {
+        Volume::placement(self).copied()
+    }
+
+    fn read(&self, origin: [u64; 3], dims: [usize; 3]) -> Result<Volume, ReadError> {
+        Ok(crop(self, origin, dims)?)
+    }
+}
+
+/// The box of `volume` at `origin` of `dims` (within it).
+pub fn crop(volume: &Volume, origin: [u64; 3], dims: [usize; 3]) -> Result<Volume, VolumeError> {
+    let d = volume.dims();
+    let o = origin.map(|v| v as usize);
+    let channels = volume
+        .channels()
+        .iter()
+        .map(|c| {
+            let mut out = Vec::with_capacity(dims.iter().product());
+            for z in o[2]..o[2] + dims[2] {
+                for y in o[1]..o[1] + dims[1] {
+                    let row = (z * d[1] + y) * d[0];
+                    out.extend_from_slice(&c[row + o[0]..row + o[0] + dims[0]]);
+                }
+            }
+            out
+        })
+        .collect();
+    Volume::new(dims, volume.spacing(), channels)
+}
+
+/// Errors of bricked compression.
+#[derive(Debug, Error)]
+#[non_exhaustive]
+pub enum BrickError {
+    /// A brick could not be read.
+    #[error("reading the brick at {origin:?}")]
+    Read {
+        /// Its origin in the whole.
+        origin: [u64; 3],
+        /// Why.
+        #[source]
+        source: ReadError,
+    },
+    /// A brick could not be compressed.
+    #[error("compressing the brick at {origin:?}")]
+    Compress {
+        /// Its origin in the whole.
+        origin: [u64; 3],
+        /// Why.
+        #[source]
+        source: CompressError,
+    },
+    /// The options do not suit a bricked volume.
+    #[error("invalid option for a bricked volume: {0}")]
+    InvalidOption(String),
+    /// The container could not be written.
+    #[error(transparent)]
+    Format(#[from] FormatError),
+}
+
+/// What a bricked compression made.
+#[derive(Debug)]
+pub struct BrickedCompressed {
+    /// The container's bytes.
+    pub bytes: Vec<u8>,
+    /// Its manifest (offsets filled in).
+    pub manifest: Manifest,
+    /// Coefficients of the padded grids of all bricks, all channels.
+    pub total_coefficients: u64,
+    /// Non-zero coefficients over all bricks.
+    pub nonzero: u64,
+    /// The depth every brick was transformed with.
+    pub levels: usize,
+}
+
+/// Progress of a bricked compression.
+#[derive(Debug, Clone, Copy)]
+pub enum BrickStage {
+    /// Brick `done` of `of` scored (first pass).
+    Scored {
+        /// Bricks scored so far.
+        done: usize,
+        /// Bricks in all.
+        of: usize,
+    },
+    /// Brick `done` of `of` compressed in trial `trial` (second pass; byte targets run
+    /// several trials).
+    Compressed {
+        /// Bricks compressed so far in this trial.
+        done: usize,
+        /// Bricks in all.
+        of: usize,
+        /// The trial (0 for targets other than bytes).
+        trial: usize,
+    },
+}
+
+/// The smallest brick edge: below it the per-brick header and the cut supports cost more than
+/// a brick saves.
+pub const MIN_BRICK: usize = 8;
+
+/// Compresses the volume `source` holds as bricks of edge `brick` with `opts` (whose target is
+/// the whole's). Bricks are compressed on the rayon pool, each read when its turn comes.
+pub fn compress_bricked(
+    source: &dyn BrickSource,
+    opts: &CompressOptions,
+    brick: usize,
+    progress: &(dyn Fn(BrickStage) + Sync),
+) -> Result<BrickedCompressed, BrickError> {
+    if brick < MIN_BRICK {
+        return Err(BrickError::InvalidOption(format!(
+            "brick edge {brick}; at least {MIN_BRICK}"
+        )));
+    }
+    let grid = brick_grid(source.dims(), brick);
+    // One depth for every brick (the smallest brick's default, or the one asked for), no
+    // margin: a brick face that cuts the content is clipped by the renderer, not padded.
+    let levels = match opts.levels {
+        Some(m) => m,
+        None => grid
+            .iter()
+            .map(|(_, d)| default_levels(*d, opts.family))
+            .min()
+            .unwrap_or(0),
+    };
+    if let Some((_, d)) = grid.iter().find(|(_, d)| Geometry::max_levels(*d) < levels) {
+        return Err(BrickError::InvalidOption(format!(
+            "depth M = {levels} does not fit a {}x{}x{} brick",
+            d[0], d[1], d[2]
+        )));
+    }
+    let base = CompressOptions {
+        levels: Some(levels),
+        margin: Some(0),
+        ..opts.clone()
+    };
+    let read = |i: usize| -> Result<Volume, BrickError> {
+        let (origin, dims) = grid[i];
+        source
+            .read(origin, dims)
+            .map_err(|source| BrickError::Read { origin, source })
+    };
+    let quiet = |_: Stage, _: f64| {};
+    let counter = std::sync::atomic::AtomicUsize::new(0);
+    let tick = |make: &dyn Fn(usize) -> BrickStage| {
+        let done = counter.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
+        progress(make(done));
+    };
+
+    // Pass 1: every brick's score histogram (not needed to keep everything).
+    let of = grid.len();
+    let summaries: Vec<ScoreSummary> = match base.target {
+        Target::All => Vec::new(),
+        _ => (0..of)
+            .into_par_iter()
+            .map(|i| {
+                let v = read(i)?;
+                let s =
+                    score_summary(&v, &base, &quiet).map_err(|source| BrickError::Compress {
+                        origin: grid[i].0,
+                        source,
+                    })?;
+                tick(&|done| BrickStage::Scored { done, of });
+                Ok(s)
+            })
+            .collect::<Result<_, BrickError>>()?,
+    };
+    let total_coefficients: u64 = summaries.iter().map(|s| s.total_coefficients).sum();
+    let nonzero: u64 = summaries.iter().map(|s| s.nonzero).sum();
+
+    let compress_all = |counts: Option<&[u64]>, trial: usize| -> Result<Vec<Vec<u8>>, BrickError> {
+        counter.store(0, std::sync::atomic::Ordering::Relaxed);
+        (0..of)
+            .into_par_iter()
+            .map(|i| {
+                let target = match counts {
+                    None => Target::All,
+                    Some(k) => Target::Coefficients(k[i]),
+                };
+                let o = CompressOptions {
+                    target,
+                    ..base.clone()
+                };
+                let v = read(i)?;
+                let c = compress(&v, &o, &quiet).map_err(|source| BrickError::Compress {
+                    origin: grid[i].0,
+                    source,
+                })?;
+                tick(&|done| BrickStage::Compressed { done, of, trial });
+                Ok(c.bytes)
+            })
+            .collect()
+    };
+    let global_k = |k: u64| per_brick_counts(&summaries, k, |s| s.counts().to_vec());
+    let bricks = match base.target {
+        Target::All => compress_all(None, 0)?,
+        Target::Coefficients(c) => compress_all(Some(&global_k(c)), 0)?,
+        Target::Fraction(f) => {
+            if !(f > 0.0 && f <= 1.0) {
+                return Err(BrickError::InvalidOption(format!(
+                    "target fraction {f}; allowed (0, 1]"
+                )));
+            }
+            let k = (f * total_coefficients as f64).round() as u64;
+            compress_all(Some(&global_k(k)), 0)?
+        }
+        Target::QvPercent(q) => {
+            if !(q > 0.0 && q <= 100.0) {
+                return Err(BrickError::InvalidOption(format!(
+                    "target Q_V {q} %; allowed (0, 100]"
+                )));
+            }
+            let goal = q / 100.0 * summaries.iter().map(|s| s.total_energy).sum::<f64>();
+            let k = count_for_energy(&summaries, goal);
+            compress_all(Some(&global_k(k)), 0)?
+        }
+        Target::Bytes(target) => {
+            // Log bytes against log count, from a first guess of one byte per coefficient.
+            let manifest_guess = 64 + 72 * of as u64;
+            let mut k = target
+                .saturating_sub(manifest_guess)
+                .max(1)
+                .min(nonzero.max(1));
+            let mut best: Option<(u64, Vec<Vec<u8>>)> = None;
+            let mut last: Option<(f64, f64)> = None;
+            for trial in 0..BYTE_TRIALS {
+                let b = compress_all(Some(&global_k(k)), trial)?;
+                let bytes: u64 = b.iter().map(|v| v.len() as u64).sum::<u64>() + manifest_guess;
+                let fits = bytes <= target;
+                if fits && best.as_ref().is_none_or(|(bb, _)| bytes > *bb) {
+                    best = Some((bytes, b));
+                }
+                if fits && (bytes as f64 >= 0.98 * target as f64 || k >= nonzero) {
+                    break;
+                }
+                let (lk, lb) = ((k as f64).ln(), (bytes as f64).ln());
+                let slope = match last {
+                    Some((pk, pb)) if (lk - pk).abs() > 1e-9 => {
+                        ((lb - pb) / (lk - pk)).clamp(0.3, 3.0)
+                    }
+                    _ => 1.0,
+                };
+                last = Some((lk, lb));
+                // Aim 1 % under the target.
+                let next = (lk + ((0.99 * target as f64).ln() - lb) / slope).exp();
+                let next = (next.round() as u64).clamp(1, nonzero.max(1));
+                if next == k {
+                    break;
+                }
+                k = next;
+            }
+            match best {
+                Some((_, b)) => b,
+                None => {
+                    return Err(BrickError::InvalidOption(format!(
+                        "a target of {target} bytes is below what {of} bricks need with one \
+                         coefficient each"
+                    )))
+                }
+            }
+        }
+    };
+    let manifest = Manifest {
+        dims: source.dims(),
+        channels: source.channels(),
+        spacing: source.spacing(),
+        placement: source.placement(),
+        brick,
+        bricks: grid
+            .iter()
+            .zip(&bricks)
+            .map(|((origin, dims), b)| BrickEntry {
+                origin: *origin,
+                dims: *dims,
+                offset: 0,
+                length: 0,
+                crc: 0,
+                kept: wavesplat_codec::format::read_header_section(b)
+                    .map(|(h, _)| h.kept)
+                    .unwrap_or(0),
+            })
+            .collect(),
+    };
+    let bytes = write_bricked(&manifest, &bricks)?;
+    let manifest = wavesplat_codec::format::bricked::parse_bricked(&bytes)?.manifest;
+    Ok(BrickedCompressed {
+        bytes,
+        manifest,
+        total_coefficients,
+        nonzero,
+        levels,
+    })
+}
+
+/// Trials of the byte target's search on the global count.
+const BYTE_TRIALS: usize = 6;
+
+/// The number of coefficients (from the top score down) whose energy reaches `goal`, over
+/// all bricks' summed histograms.
+fn count_for_energy(summaries: &[ScoreSummary], goal: f64) -> u64 {
+    let bins = summaries.first().map_or(0, |s| s.counts().len());
+    let (mut acc, mut count) = (0.0, 0u64);
+    for b in (0..bins).rev() {
+        for s in summaries {
+            acc += s.energies().get(b).copied().unwrap_or(0.0);
+            count += s.counts()[b];
+        }
+        if acc >= goal * (1.0 - 1e-9) {
+            break;
+        }
+    }
+    count
+}
+
+/// Each brick's share of the top `k` coefficients of the whole: every coefficient in a bin
+/// above the global threshold bin, and of the threshold bin a share proportional to the
+/// brick's count there (so that the shares sum to `k`).
+fn per_brick_counts(
+    summaries: &[ScoreSummary],
+    k: u64,
+    counts: impl Fn(&ScoreSummary) -> Vec<u64>,
+) -> Vec<u64> {
+    let per: Vec<Vec<u64>> = summaries.iter().map(counts).collect();
+    let bins = per.first().map_or(0, Vec::len);
+    let mut above = 0u64;
+    let mut cut = None;
+    for b in (0..bins).rev() {
+        let in_bin: u64 = per.iter().map(|c| c[b]).sum();
+        if above + in_bin >= k {
+            cut = Some((b, in_bin));
+            break;
+        }
+        above += in_bin;
+    }
+    let Some((cut, in_bin)) = cut else {
+        // Fewer than k selectable: keep everything.
+        return per.iter().map(|c| c.iter().sum()).collect();
+    };
+    let need = k - above;
+    let mut shares: Vec<u64> = per
+        .iter()
+        .map(|c| c[cut + 1..].iter().sum::<u64>())
+        .collect();
+    // Largest-remainder split of `need` over the bricks' counts in the cut bin.
+    let exact: Vec<f64> = per
+        .iter()
+        .map(|c| need as f64 * c[cut] as f64 / in_bin.max(1) as f64)
+        .collect();
+    let mut given = 0u64;
+    for (s, e) in shares.iter_mut().zip(&exact) {
+        *s += e.floor() as u64;
+        given += e.floor() as u64;
+    }
+    let mut order: Vec<usize> = (0..per.len()).collect();
+    order.sort_by(|&a, &b| (exact[b] - exact[b].floor()).total_cmp(&(exact[a] - exact[a].floor())));
+    for &i in order.iter().take((need - given) as usize) {
+        shares[i] += 1;
+    }
+    shares
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::phantom::Phantom;
+
+    /// The bricks keep the whole's count, split by one global threshold: a brick of empty
+    /// space keeps (almost) nothing, unlike an equal split.
+    #[test]
+    fn one_threshold_allocates_the_whole_target_across_bricks() {
+        let v = Phantom::SheppLogan.generate([48, 48, 40]);
+        // Without least-squares refinement, which drops those whose refit is zero.
+        let opts = CompressOptions {
+            target: Target::Fraction(0.03),
+            refine: None,
+            ..CompressOptions::default()
+        };
+        let c = compress_bricked(&v, &opts, 24, &|_| {}).unwrap();
+        let m = &c.manifest;
+        assert_eq!(m.bricks.len(), 8);
+        let want = (0.03 * c.total_coefficients as f64).round() as u64;
+        assert_eq!(m.kept(), want);
+        let counts: Vec<u64> = m.bricks.iter().map(|b| b.kept).collect();
+        let (lo, hi) = (counts.iter().min().unwrap(), counts.iter().max().unwrap());
+        assert!(hi > lo, "{counts:?}");
+        // Every brick reads back as a volume of its own with its own dims.
+        let f = wavesplat_codec::format::bricked::parse_bricked(&c.bytes).unwrap();
+        for (i, e) in f.manifest.bricks.iter().enumerate() {
+            let file = wavesplat_codec::format::parse_file(f.brick_bytes(i).unwrap()).unwrap();
+            assert_eq!(file.header.geometry.dims, e.dims);
+            assert_eq!(file.header.margin, 0);
+        }
+    }
+
+    #[test]
+    fn a_byte_target_for_the_whole_lands_within_two_percent() {
+        let v = Phantom::SheppLogan.generate([40, 40, 40]);
+        for target in [6_000u64, 20_000] {
+            let opts = CompressOptions {
+                target: Target::Bytes(target),
+                ..CompressOptions::default()
+            };
+            let c = compress_bricked(&v, &opts, 20, &|_| {}).unwrap();
+            let got = c.bytes.len() as f64;
+            assert!(
+                got <= target as f64 && got >= 0.98 * target as f64,
+                "{got} bytes for {target}"
+            );
+        }
+    }
+
+    #[test]
+    fn shares_sum_to_the_whole() {
+        let v = Phantom::Spheres.generate([32, 32, 32]);
+        let opts = CompressOptions::default();
+        let s: Vec<ScoreSummary> = brick_grid([32, 32, 32], 16)
+            .into_iter()
+            .map(|(o, d)| score_summary(&crop(&v, o, d).unwrap(), &opts, &|_, _| {}).unwrap())
+            .collect();
+        let nonzero: u64 = s.iter().map(|s| s.nonzero).sum();
+        for k in [0, 1, 17, 1000, nonzero - 1, nonzero, nonzero + 5] {
+            let shares = per_brick_counts(&s, k, |s| s.counts().to_vec());
+            assert_eq!(shares.iter().sum::<u64>(), k.min(nonzero), "k {k}");
+        }
+    }
+}
