@@ -21,6 +21,7 @@ pub mod metaimage;
 pub mod nifti;
 pub mod nrrd;
 pub mod raw;
+pub mod region;
 mod text;
 
 use std::io::{self, Read};
@@ -160,6 +161,14 @@ pub enum ReadError {
         /// The series directory (or file).
         path: PathBuf,
         /// What is inconsistent, with the files and values involved.
+        reason: String,
+    },
+    /// A region asked of a [`region::RegionReader`] is empty or reaches outside the volume.
+    #[error("{}: {reason}", path.display())]
+    Region {
+        /// The volume's file.
+        path: PathBuf,
+        /// The region and the volume's dimensions.
         reason: String,
     },
     /// A bundle of source files (see [`SourceFiles::to_bytes`]) is malformed.

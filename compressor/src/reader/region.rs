@@ -1,0 +1,328 @@
+//! Reading sub-boxes ("regions", e.g. 256³ bricks) of a volume file without loading it whole,
+//! so that volumes larger than memory, or than [`MAX_VOXELS`](wavesplat_codec::volume::MAX_VOXELS), can be compressed brick by
+//! brick. A [`RegionReader`] owns an opened volume: its dimensions (a `usize` triple whose
+//! product may exceed [`MAX_VOXELS`](wavesplat_codec::volume::MAX_VOXELS); byte offsets use checked `u64` arithmetic), channels,
+//! spacing and placement, and where its samples lie. Headerless raw files, NIfTI-1 `.nii`,
+//! NRRD with `raw` encoding (attached or detached) and MetaImage with raw data (`.mha`,
+//! `.mhd` + data file) are read with positioned reads of just the bytes of the region (one
+//! read per row, per slab of full rows, or one for a run of full slabs). gzip and zlib data
+//! (`.nii.gz`, NRRD `gzip`, MetaImage `CompressedData`) cannot be seeked into, and inflating
+//! the stream again from the start for every brick would cost time quadratic in the volume;
+//! so it is inflated once, streaming, into an anonymous temporary file in the system
+//! temporary directory (deleted when the reader is dropped) and regions are read from there:
+//! memory stays bounded, at the cost of disk space equal to the decompressed samples. A DICOM
+//! series (or file) and ASCII NRRD are read whole through [`read_volume`] and cut in memory:
+//! they open only when the whole volume fits within [`MAX_VOXELS`](wavesplat_codec::volume::MAX_VOXELS) (the series decoder's
+//! ordering and validation are not yet available slice by slice). The meaning of each header
+//! (its validation, the spacing, the placement, the channel layout) comes from the format's
+//! own decoder, run on a one-voxel stand-in of the header (see `formats.rs`), so a region gets
+//! exactly the metadata and values [`read_volume`] gives those voxels.
+//!
+//! ```no_run
+//! # fn main() -> Result<(), wavesplat_compressor::reader::ReadError> {
+//! use wavesplat_compressor::reader::region::RegionReader;
+//! let reader = RegionReader::open("ct.nii.gz".as_ref(), None)?;
+//! let [nx, ny, nz] = reader.dims();
+//! let brick = reader.read_region([0, 0, 0], [nx.min(256), ny.min(256), nz.min(256)])?;
+//! assert_eq!(brick.channel_count(), reader.channels());
+//! # Ok(()) }
+//! ```
+
+mod formats;
+
+use std::fs::File;
+use std::io;
+use std::path::{Path, PathBuf};
+
+use super::{deinterleave, read_volume, Endian, RawSpec, ReadError, SampleType};
+use wavesplat_codec::volume::{checked_voxels, Placement, Volume, VolumeError};
+
+/// A volume file opened to read sub-boxes ("regions") without loading it whole. Reads are
+/// positioned (`&self`), so one reader can serve several threads at once.
+#[derive(Debug)]
+pub struct RegionReader {
+    /// The path it was opened from (for messages).
+    path: PathBuf,
+    dims: [usize; 3],
+    channels: usize,
+    spacing: [f32; 3],
+    placement: Option<Placement>,
+    source: Source,
+}
+
+/// Where the samples of an opened volume are.
+#[derive(Debug)]
+enum Source {
+    /// Uncompressed in a file (the volume's own, or a temporary one holding inflated data).
+    Stored(Stored),
+    /// Decoded whole in memory (the formats that cannot be read by region yet).
+    Whole(Volume),
+}
+
+/// Samples stored in a file from `offset` on: x fastest, then y, then z, the channels of a
+/// voxel interleaved; value = `slope · sample + inter`.
+#[derive(Debug)]
+struct Stored {
+    file: File,
+    /// The file the samples come from (for messages: the compressed file when `file` is a
+    /// temporary one).
+    path: PathBuf,
+    offset: u64,
+    sample: SampleType,
+    endian: Endian,
+    slope: f64,
+    inter: f64,
+}
+
+/// What a format's opener found: the volume's metadata and its samples.
+#[derive(Debug)]
+struct Opened {
+    dims: [usize; 3],
+    channels: usize,
+    spacing: [f32; 3],
+    placement: Option<Placement>,
+    source: Source,
+}
+
+impl Opened {
+    /// A volume decoded whole: its own metadata.
+    fn whole(v: Volume) -> Opened {
+        Opened {
+            dims: v.dims(),
+            channels: v.channel_count(),
+            spacing: v.spacing(),
+            placement: v.placement().copied(),
+            source: Source::Whole(v),
+        }
+    }
+}
+
+impl RegionReader {
+    /// Opens the volume at `path` as [`read_volume`] would read it (a DICOM series directory,
+    /// a DICOM, NRRD, MetaImage or NIfTI file by extension, else by content, or a headerless
+    /// raw file described by `raw`), reading only its header, and checking that the file
+    /// holds all the samples the header announces. Compressed samples are inflated to a
+    /// temporary file here; DICOM and ASCII NRRD are decoded whole here.
+    pub fn open(path: &Path, raw: Option<&RawSpec>) -> Result<RegionReader, ReadError> {
+        let opened = formats::open(path, raw)?;
+        Ok(RegionReader {
+            path: path.to_path_buf(),
+            dims: opened.dims,
+            channels: opened.channels,
+            spacing: opened.spacing,
+            placement: opened.placement,
+            source: opened.source,
+        })
+    }
+
+    /// Dimensions (x, y, z) of the whole volume; their product may exceed [`MAX_VOXELS`](wavesplat_codec::volume::MAX_VOXELS).
+    pub fn dims(&self) -> [usize; 3] {
+        self.dims
+    }
+
+    /// Voxels in the whole volume (u128: three `usize` factors can overflow `u64`).
+    pub fn voxel_count(&self) -> u128 {
+        self.dims.iter().map(|d| *d as u128).product()
+    }
+
+    /// Number of channels (1 or 3).
+    pub fn channels(&self) -> usize {
+        self.channels
+    }
+
+    /// Voxel spacing (x, y, z), as [`read_volume`] gives it.
+    pub fn spacing(&self) -> [f32; 3] {
+        self.spacing
+    }
+
+    /// Placement of the whole volume in patient space (LPS), as [`read_volume`] gives it.
+    pub fn placement(&self) -> Option<&Placement> {
+        self.placement.as_ref()
+    }
+
+    /// Whether the volume was decoded whole at open (a DICOM series or file, ASCII NRRD)
+    /// rather than read region by region from a file.
+    pub fn in_memory(&self) -> bool {
+        matches!(self.source, Source::Whole(_))
+    }
+
+    /// The path the reader was opened from.
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
+    /// Reads the box of `size` voxels whose first voxel is `origin`: the same values (rescale,
+    /// sign, byte order, channels) as [`read_volume`] gives those voxels, the volume's
+    /// spacing, and its placement moved to where voxel `origin` lies, so the region is placed
+    /// where it is in the whole. The box must be non-empty and within [`RegionReader::dims`]
+    /// (else [`ReadError::Region`]) and hold at most [`MAX_VOXELS`](wavesplat_codec::volume::MAX_VOXELS) voxels. NaN or Inf
+    /// samples are refused as [`read_volume`] refuses them, with the whole volume's
+    /// coordinates, but only when they lie in the region.
+    pub fn read_region(&self, origin: [usize; 3], size: [usize; 3]) -> Result<Volume, ReadError> {
+        let outside = || ReadError::Region {
+            path: self.path.clone(),
+            reason: format!(
+                "the region of {size:?} voxels at {origin:?} is empty or outside the volume's {:?}",
+                self.dims
+            ),
+        };
+        for a in 0..3 {
+            let end = origin[a].checked_add(size[a]).ok_or_else(outside)?;
+            if size[a] == 0 || end > self.dims[a] {
+                return Err(outside());
+            }
+        }
+        let voxels = checked_voxels(size).map_err(|e| ReadError::volume(&self.path, e))?;
+        let (planar, data_path) = match &self.source {
+            Source::Whole(v) => (cut(v, origin, size), &self.path),
+            Source::Stored(s) => (self.read_stored(s, origin, size, voxels)?, &s.path),
+        };
+        let volume = Volume::new(size, self.spacing, planar).map_err(|e| {
+            let e = match e {
+                VolumeError::NonFinite {
+                    channel,
+                    x,
+                    y,
+                    z,
+                    value,
+                } => VolumeError::NonFinite {
+                    channel,
+                    x: x + origin[0],
+                    y: y + origin[1],
+                    z: z + origin[2],
+                    value,
+                },
+                e => e,
+            };
+            ReadError::volume(data_path, e)
+        })?;
+        match &self.placement {
+            Some(p) => {
+                let moved = Placement {
+                    origin: p.position(self.spacing, origin.map(|o| o as f64)),
+                    directions: p.directions,
+                };
+                volume
+                    .with_placement(moved)
+                    .map_err(|e| ReadError::volume(&self.path, e))
+            }
+            None => Ok(volume),
+        }
+    }
+
+    /// Reads the samples of a region from a file: one positioned read per row, or per run of
+    /// contiguous rows when the region spans whole rows (and whole slabs).
+    fn read_stored(
+        &self,
+        s: &Stored,
+        origin: [usize; 3],
+        size: [usize; 3],
+        voxels: usize,
+    ) -> Result<Vec<Vec<f32>>, ReadError> {
+        let voxel_bytes = self.channels * s.sample.size();
+        let total = voxels.checked_mul(voxel_bytes).ok_or(ReadError::TooLarge {
+            dims: size,
+            channels: self.channels,
+            bytes_per_sample: s.sample.size(),
+        })?;
+        let mut buf = Vec::new();
+        buf.try_reserve_exact(total).map_err(|_| {
+            ReadError::io(
+                &s.path,
+                io::Error::new(
+                    io::ErrorKind::OutOfMemory,
+                    format!("cannot allocate {total} bytes for a region"),
+                ),
+            )
+        })?;
+        buf.resize(total, 0);
+        let [nx, ny, _] = self.dims.map(|d| d as u64);
+        // Byte offset of voxel (x, y, z); within the file size checked at open, so no overflow.
+        let at = |x: usize, y: usize, z: usize| {
+            s.offset + ((z as u64 * ny + y as u64) * nx + x as u64) * voxel_bytes as u64
+        };
+        let full_rows = size[0] == self.dims[0];
+        let full_slabs = full_rows && size[1] == self.dims[1];
+        let (run, runs): (usize, Vec<u64>) = if full_slabs {
+            (total, vec![at(0, 0, origin[2])])
+        } else if full_rows {
+            let run = size[0] * size[1] * voxel_bytes;
+            let starts = (origin[2]..origin[2] + size[2])
+                .map(|z| at(0, origin[1], z))
+                .collect();
+            (run, starts)
+        } else {
+            let run = size[0] * voxel_bytes;
+            let starts = (origin[2]..origin[2] + size[2])
+                .flat_map(|z| (origin[1]..origin[1] + size[1]).map(move |y| (y, z)))
+                .map(|(y, z)| at(origin[0], y, z))
+                .collect();
+            (run, starts)
+        };
+        for (chunk, start) in buf.chunks_mut(run).zip(runs) {
+            read_at(&s.file, chunk, start).map_err(|e| {
+                if e.kind() == io::ErrorKind::UnexpectedEof {
+                    let len = s.file.metadata().map(|m| m.len()).unwrap_or(0);
+                    ReadError::Truncated {
+                        path: s.path.clone(),
+                        offset: start,
+                        expected: chunk.len() as u64,
+                        actual: len.saturating_sub(start).min(chunk.len() as u64),
+                    }
+                } else {
+                    ReadError::io(&s.path, e)
+                }
+            })?;
+        }
+        let planar = deinterleave(&buf, s.sample, s.endian, self.channels, s.slope, s.inter);
+        Ok(planar)
+    }
+}
+
+/// The box `origin`, `size` (within `v`) of each channel of `v`.
+fn cut(v: &Volume, origin: [usize; 3], size: [usize; 3]) -> Vec<Vec<f32>> {
+    let n = size[0] * size[1] * size[2];
+    v.channels()
+        .iter()
+        .map(|ch| {
+            let mut out = Vec::with_capacity(n);
+            for z in origin[2]..origin[2] + size[2] {
+                for y in origin[1]..origin[1] + size[1] {
+                    let i = v.index(origin[0], y, z);
+                    out.extend_from_slice(&ch[i..i + size[0]]);
+                }
+            }
+            out
+        })
+        .collect()
+}
+
+/// Fills `buf` from `file` at byte `offset`, without moving a shared cursor.
+fn read_at(file: &File, buf: &mut [u8], offset: u64) -> io::Result<()> {
+    #[cfg(unix)]
+    {
+        std::os::unix::fs::FileExt::read_exact_at(file, buf, offset)
+    }
+    #[cfg(windows)]
+    {
+        use std::os::windows::fs::FileExt;
+        let (mut buf, mut offset) = (buf, offset);
+        while !buf.is_empty() {
+            match file.seek_read(buf, offset) {
+                Ok(0) => return Err(io::ErrorKind::UnexpectedEof.into()),
+                Ok(n) => {
+                    buf = &mut buf[n..];
+                    offset += n as u64;
+                }
+                Err(e) if e.kind() == io::ErrorKind::Interrupted => {}
+                Err(e) => return Err(e),
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Reads `path` whole through [`read_volume`] (the fallback for formats not read by region).
+fn read_whole(path: &Path) -> Result<Opened, ReadError> {
+    Ok(Opened::whole(read_volume(path, None)?))
+}
