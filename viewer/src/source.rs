@@ -10,8 +10,9 @@
 //! then renews the credit by the packet's size, so what is in flight stays within the credit
 //! plus the queue and a view change reorders the rest within a few packets. View changes and
 //! dropped packets (the session's memory bound) go to the cache on the same stream. If the
-//! connection fails it keeps what it has, says so in its status, and reconnects with backoff,
-//! telling the cache what it holds so nothing is sent twice.
+//! connection fails it keeps what it has, says so in its status (with the cache's own status
+//! when the cache ended the stream: `Unavailable` naming its object store, say), and
+//! reconnects with backoff, telling the cache what it holds so nothing is sent twice.
 
 use futures_util::stream::{FuturesOrdered, StreamExt};
 use std::collections::{HashMap, HashSet};
@@ -1006,7 +1007,7 @@ impl Pull {
                         self.apply_view(v);
                         views_sent = views_sent.wrapping_add(1);
                         if let Err(e) = stream.control().set_view(&v).await {
-                            return Ended::Failed(e.to_string());
+                            return Ended::Failed(end_status(&mut stream, e).await);
                         }
                     }
                     Some(Control::Dropped(ids)) => {
@@ -1014,7 +1015,7 @@ impl Pull {
                             self.held.remove(id);
                         }
                         if let Err(e) = stream.control().holdings(Vec::new(), ids).await {
-                            return Ended::Failed(e.to_string());
+                            return Ended::Failed(end_status(&mut stream, e).await);
                         }
                     }
                 },
@@ -1032,7 +1033,7 @@ impl Pull {
                         return Ended::Closed;
                     }
                     if let Err(e) = stream.control().grant(len).await {
-                        return Ended::Failed(e.to_string());
+                        return Ended::Failed(end_status(&mut stream, e).await);
                     }
                 }
                 decoded = decoding.next(), if pending.is_none() && !decoding.is_empty() => {
@@ -1087,6 +1088,33 @@ impl Pull {
             }
         }
     }
+}
+
+/// How long a stream whose request side closed is read for the status the cache ended it with.
+const END_STATUS_WAIT: Duration = Duration::from_secs(5);
+
+/// Why `stream` ended, when a message to the cache could not be sent on it (`e`). Its request
+/// side closes as soon as the cache ends the stream, and the cache's status (`Unavailable`
+/// when its object store fails, say) comes only after the packets it sent before, which may
+/// still be in flight: the rest of the stream is read for that status, so the source reports
+/// the cache's reason rather than that the stream closed. Packets read here are not delivered
+/// nor held, so the next stream sends them.
+async fn end_status(stream: &mut RefineStream, e: ClientError) -> String {
+    if !matches!(e, ClientError::Closed) {
+        return e.to_string();
+    }
+    let rest = async {
+        loop {
+            match stream.next().await {
+                Ok(Some(_)) => {}
+                Ok(None) => return "the cache closed the stream".to_string(),
+                Err(status) => return status.to_string(),
+            }
+        }
+    };
+    tokio::time::timeout(END_STATUS_WAIT, rest)
+        .await
+        .unwrap_or_else(|_| e.to_string())
 }
 
 /// When a packet starts across the simulated link: when the link came free (`free`) if this
