@@ -1,0 +1,425 @@
+//! Image description: what the reader needs of one file's header ([`Image`]), read and checked
+//! before any pixel is decoded: size and frame count (held to the file's size), sample format,
+//! photometric interpretation and palette, pixel spacing, orientation, per-frame positions
+//! (from the functional groups, the slice step or an RT Dose grid's offsets), rescale and
+//! Dose Grid Scaling, and the refusal of multi-frame files that are time series.
+
+use std::path::{Path, PathBuf};
+
+use dicom_core::Tag;
+use dicom_dictionary_std::tags;
+use dicom_object::{DefaultDicomObject, InMemDicomObject};
+use wavesplat_codec::volume::MAX_VOXELS;
+
+use super::attributes::{element, floats_for_frame, get_floats, get_str, get_uint, require_uint};
+use super::colour::{read_palette, Palette};
+use super::geometry::{grid_frame_offsets, normal};
+use super::{dicom_err, EXPANSION_SLACK, MAX_FILE_EXPANSION};
+use crate::reader::ReadError;
+
+/// SOP Class UID of a DICOMDIR (Media Storage Directory Storage): skipped in series directories.
+const DICOMDIR_SOP_CLASS: &str = "1.2.840.10008.1.3.10";
+
+/// What the reader needs of one image file (pixel data not yet decoded).
+#[derive(Debug, Clone)]
+pub(super) struct Image {
+    pub(super) name: String,
+    pub(super) path: PathBuf,
+    pub(super) series: String,
+    pub(super) rows: usize,
+    pub(super) cols: usize,
+    pub(super) frames: usize,
+    pub(super) samples: usize,
+    pub(super) bits_allocated: u32,
+    pub(super) bits_stored: u32,
+    pub(super) signed: bool,
+    /// (row spacing, column spacing), mm.
+    pub(super) pixel_spacing: Option<[f64; 2]>,
+    /// Row direction, column direction.
+    pub(super) orientation: Option<[f64; 6]>,
+    /// Per frame.
+    pub(super) positions: Vec<Option<[f64; 3]>>,
+    /// Per frame (slope, intercept).
+    pub(super) rescale: Vec<(f64, f64)>,
+    /// Spacing Between Slices, else Slice Thickness.
+    pub(super) slice_step: Option<f64>,
+    pub(super) instance: i64,
+    /// When the image was taken in a time series: Temporal Position Identifier, else Trigger
+    /// Time (named by `time_attribute`).
+    pub(super) time: Option<String>,
+    pub(super) time_attribute: &'static str,
+    /// Photometric Interpretation as the file states it.
+    pub(super) photometric: String,
+    /// The colour palette of a PALETTE COLOR image.
+    pub(super) palette: Option<std::sync::Arc<Palette>>,
+}
+
+impl Image {
+    /// Channels of the volume: three for a palette image (its colours), else the samples.
+    pub(super) fn channels(&self) -> usize {
+        if self.palette.is_some() {
+            3
+        } else {
+            self.samples
+        }
+    }
+}
+
+/// Reads what the reader needs of an image's header; `file_len` (the file's size) bounds the
+/// frames and sample bytes it may declare, so that a small file cannot make the per-frame
+/// loops or the voxel buffer large.
+pub(super) fn read_image(
+    name: &str,
+    path: &Path,
+    obj: &DefaultDicomObject,
+    file_len: usize,
+) -> Result<Option<Image>, ReadError> {
+    let meta = obj.meta();
+    if meta.media_storage_sop_class_uid().trim_end_matches('\0') == DICOMDIR_SOP_CLASS {
+        return Ok(None);
+    }
+    let o: &InMemDicomObject = obj;
+    let (Some(rows), Some(cols)) = (
+        get_uint(path, o, tags::ROWS)?,
+        get_uint(path, o, tags::COLUMNS)?,
+    ) else {
+        tracing::debug!(file = %path.display(), "no Rows/Columns: not an image, skipped");
+        return Ok(None);
+    };
+    if rows == 0 || cols == 0 {
+        return Err(dicom_err(
+            path,
+            Some(if rows == 0 { tags::ROWS } else { tags::COLUMNS }),
+            "is 0",
+        ));
+    }
+    // Empty when missing: a single file is its own series; files of a directory are grouped
+    // by it, and there a missing one is refused (`read_series`).
+    let series = get_str(o, tags::SERIES_INSTANCE_UID).unwrap_or_default();
+    let frames = get_uint(path, o, tags::NUMBER_OF_FRAMES)?
+        .unwrap_or(1)
+        .max(1) as usize;
+    let samples = get_uint(path, o, tags::SAMPLES_PER_PIXEL)?.unwrap_or(1) as usize;
+    if samples != 1 && samples != 3 {
+        return Err(dicom_err(
+            path,
+            Some(tags::SAMPLES_PER_PIXEL),
+            format!("{samples}; 1 or 3 supported"),
+        ));
+    }
+    let plane = (rows as usize) * (cols as usize);
+    let total = plane
+        .checked_mul(frames)
+        .filter(|n| *n <= MAX_VOXELS)
+        .ok_or_else(|| {
+            dicom_err(
+                path,
+                Some(tags::NUMBER_OF_FRAMES),
+                format!("{rows} rows × {cols} columns × {frames} frames exceed the {MAX_VOXELS}-voxel limit"),
+            )
+        })?;
+    let bits_allocated = require_uint(path, o, tags::BITS_ALLOCATED)?;
+    if !matches!(bits_allocated, 1 | 8 | 16 | 32) || bits_allocated == 1 && samples != 1 {
+        return Err(dicom_err(
+            path,
+            Some(tags::BITS_ALLOCATED),
+            format!(
+                "{bits_allocated} with {samples} sample(s) per pixel; 8, 16 or 32 supported, \
+                 and 1 (a bit mask) with one sample"
+            ),
+        ));
+    }
+    // Every frame needs at least one byte of the file (a native sample, or an encapsulated
+    // fragment), and no transfer syntax expands the file beyond MAX_FILE_EXPANSION.
+    let declared = total
+        .saturating_mul(samples)
+        .saturating_mul(bits_allocated as usize)
+        .div_ceil(8);
+    let most = file_len
+        .saturating_mul(MAX_FILE_EXPANSION)
+        .saturating_add(EXPANSION_SLACK);
+    if frames > file_len || declared > most {
+        return Err(dicom_err(
+            path,
+            Some(tags::PIXEL_DATA),
+            format!(
+                "{rows}×{cols} × {frames} frame(s) × {samples} sample(s) × {} byte(s) = {declared} bytes cannot come from a file of {file_len} bytes (at most {MAX_FILE_EXPANSION}× its size + {EXPANSION_SLACK} bytes)",
+                bits_allocated / 8
+            ),
+        ));
+    }
+    let bits_stored = get_uint(path, o, tags::BITS_STORED)?.unwrap_or(bits_allocated);
+    if bits_stored == 0 || bits_stored > bits_allocated {
+        return Err(dicom_err(
+            path,
+            Some(tags::BITS_STORED),
+            format!("{bits_stored} with {bits_allocated} bits allocated"),
+        ));
+    }
+    let high_bit = get_uint(path, o, tags::HIGH_BIT)?.unwrap_or(bits_stored - 1);
+    if high_bit != bits_stored - 1 {
+        return Err(dicom_err(
+            path,
+            Some(tags::HIGH_BIT),
+            format!("{high_bit} with {bits_stored} bits stored; only High Bit = Bits Stored − 1 is supported"),
+        ));
+    }
+    let signed = match get_uint(path, o, tags::PIXEL_REPRESENTATION)?.unwrap_or(0) {
+        0 => false,
+        1 => true,
+        r => {
+            return Err(dicom_err(
+                path,
+                Some(tags::PIXEL_REPRESENTATION),
+                format!("{r}; 0 or 1"),
+            ))
+        }
+    };
+    let photometric =
+        get_str(o, tags::PHOTOMETRIC_INTERPRETATION).unwrap_or_else(|| "MONOCHROME2".into());
+    let ok_photometric = match samples {
+        1 => matches!(
+            photometric.as_str(),
+            "MONOCHROME1" | "MONOCHROME2" | "PALETTE COLOR"
+        ),
+        _ => matches!(
+            photometric.as_str(),
+            "RGB" | "YBR_FULL" | "YBR_FULL_422" | "YBR_ICT" | "YBR_RCT"
+        ),
+    };
+    if !ok_photometric {
+        return Err(dicom_err(
+            path,
+            Some(tags::PHOTOMETRIC_INTERPRETATION),
+            format!("{photometric} with {samples} sample(s) per pixel; supported are MONOCHROME1/2 and PALETTE COLOR (one sample), RGB, YBR_FULL, YBR_FULL_422 and (JPEG 2000) YBR_ICT/YBR_RCT (three)"),
+        ));
+    }
+    let palette = if photometric == "PALETTE COLOR" {
+        Some(std::sync::Arc::new(read_palette(path, o, signed)?))
+    } else {
+        None
+    };
+    let pixel_spacing = match floats_for_frame(
+        path,
+        o,
+        0,
+        tags::PIXEL_MEASURES_SEQUENCE,
+        tags::PIXEL_SPACING,
+    )?
+    .or(get_floats(path, o, tags::IMAGER_PIXEL_SPACING)?)
+    {
+        None => None,
+        Some(v) if v.len() >= 2 && v[0] > 0.0 && v[1] > 0.0 => Some([v[0], v[1]]),
+        Some(v) => {
+            return Err(dicom_err(
+                path,
+                Some(tags::PIXEL_SPACING),
+                format!("{v:?}: two positive numbers expected"),
+            ))
+        }
+    };
+    let orientation = match floats_for_frame(
+        path,
+        o,
+        0,
+        tags::PLANE_ORIENTATION_SEQUENCE,
+        tags::IMAGE_ORIENTATION_PATIENT,
+    )? {
+        None => None,
+        Some(v) if v.len() == 6 => Some([v[0], v[1], v[2], v[3], v[4], v[5]]),
+        Some(v) => {
+            return Err(dicom_err(
+                path,
+                Some(tags::IMAGE_ORIENTATION_PATIENT),
+                format!("{v:?}: six numbers expected"),
+            ))
+        }
+    };
+    let slice_step = {
+        let mut s = None;
+        for tag in [tags::SPACING_BETWEEN_SLICES, tags::SLICE_THICKNESS] {
+            if let Some(v) = floats_for_frame(path, o, 0, tags::PIXEL_MEASURES_SEQUENCE, tag)? {
+                if let Some(x) = v.first().copied().filter(|x| *x > 0.0) {
+                    s = Some(x);
+                    break;
+                }
+            }
+        }
+        s
+    };
+    // Per-frame positions: the functional groups, or the top level for frame 0 (classic
+    // multi-frame files then step along the normal by the slice step).
+    let mut positions = Vec::with_capacity(frames.min(1 << 16));
+    for f in 0..frames {
+        let p = match floats_for_frame(
+            path,
+            o,
+            f,
+            tags::PLANE_POSITION_SEQUENCE,
+            tags::IMAGE_POSITION_PATIENT,
+        )? {
+            None => None,
+            Some(v) if v.len() == 3 => Some([v[0], v[1], v[2]]),
+            Some(v) => {
+                return Err(dicom_err(
+                    path,
+                    Some(tags::IMAGE_POSITION_PATIENT),
+                    format!("{v:?}: three numbers expected"),
+                ))
+            }
+        };
+        positions.push(p);
+    }
+    let has_per_frame = element(o, tags::PER_FRAME_FUNCTIONAL_GROUPS_SEQUENCE).is_some();
+    let grid_offsets = get_floats(path, o, tags::GRID_FRAME_OFFSET_VECTOR)?;
+    if frames > 1 && !has_per_frame && grid_offsets.is_none() {
+        refuse_time_series(path, o, frames)?;
+    }
+    if frames > 1 && !has_per_frame {
+        if let (Some(p0), Some(iop)) = (positions[0], orientation) {
+            let n = normal(&iop);
+            let offsets = match &grid_offsets {
+                Some(g) => grid_frame_offsets(path, g, frames, p0, n)?,
+                None => {
+                    let step = slice_step.ok_or_else(|| {
+                        dicom_err(
+                            path,
+                            Some(tags::SPACING_BETWEEN_SLICES),
+                            "missing: a multi-frame file without per-frame positions needs the \
+                             slice step (or, for RT Dose, Grid Frame Offset Vector (3004,000C))",
+                        )
+                    })?;
+                    (0..frames).map(|f| f as f64 * step).collect()
+                }
+            };
+            for (p, k) in positions.iter_mut().zip(offsets) {
+                *p = Some([p0[0] + k * n[0], p0[1] + k * n[1], p0[2] + k * n[2]]);
+            }
+        }
+    }
+    // RT Dose: stored values × Dose Grid Scaling are the dose (in Dose Units, Gy or relative).
+    let dose_scaling = match get_floats(path, o, tags::DOSE_GRID_SCALING)? {
+        None => 1.0,
+        Some(v) => match v.first().copied() {
+            Some(x) if x > 0.0 => x,
+            _ => {
+                return Err(dicom_err(
+                    path,
+                    Some(tags::DOSE_GRID_SCALING),
+                    format!("{v:?}: one positive number expected"),
+                ))
+            }
+        },
+    };
+    let mut rescale = Vec::with_capacity(frames.min(1 << 16));
+    for f in 0..frames {
+        let slope = floats_for_frame(
+            path,
+            o,
+            f,
+            tags::PIXEL_VALUE_TRANSFORMATION_SEQUENCE,
+            tags::RESCALE_SLOPE,
+        )?
+        .and_then(|v| v.first().copied())
+        .unwrap_or(1.0);
+        let intercept = floats_for_frame(
+            path,
+            o,
+            f,
+            tags::PIXEL_VALUE_TRANSFORMATION_SEQUENCE,
+            tags::RESCALE_INTERCEPT,
+        )?
+        .and_then(|v| v.first().copied())
+        .unwrap_or(0.0);
+        if slope == 0.0 {
+            return Err(dicom_err(path, Some(tags::RESCALE_SLOPE), "is 0"));
+        }
+        rescale.push(if samples == 3 {
+            (1.0, 0.0)
+        } else {
+            (slope * dose_scaling, intercept * dose_scaling)
+        });
+    }
+    let instance = get_str(o, tags::INSTANCE_NUMBER)
+        .and_then(|s| s.parse::<i64>().ok())
+        .unwrap_or(0);
+    let (time, time_attribute) = [
+        (
+            tags::TEMPORAL_POSITION_IDENTIFIER,
+            "Temporal Position Identifier (0020,0100)",
+        ),
+        (tags::TRIGGER_TIME, "Trigger Time (0018,1060)"),
+    ]
+    .into_iter()
+    .find_map(|(t, name)| get_str(o, t).map(|v| (Some(v), name)))
+    .unwrap_or((None, ""));
+    Ok(Some(Image {
+        name: name.to_string(),
+        path: path.to_path_buf(),
+        series,
+        rows: rows as usize,
+        cols: cols as usize,
+        frames,
+        samples,
+        bits_allocated,
+        bits_stored,
+        signed,
+        pixel_spacing,
+        orientation,
+        positions,
+        rescale,
+        slice_step,
+        instance,
+        time,
+        time_attribute,
+        photometric,
+        palette,
+    }))
+}
+
+/// Attributes that make a multi-frame image's frames instants of one acquisition over time
+/// (cine, gated) rather than slices of a volume.
+const TEMPORAL_ATTRIBUTES: [(Tag, &str); 5] = [
+    (tags::FRAME_TIME, "Frame Time"),
+    (tags::FRAME_TIME_VECTOR, "Frame Time Vector"),
+    (tags::TRIGGER_TIME, "Trigger Time"),
+    (tags::ACTUAL_FRAME_DURATION, "Actual Frame Duration"),
+    (tags::TIME_SLOT_VECTOR, "Time Slot Vector"),
+];
+
+/// Refuses a multi-frame file without per-frame positions whose frames step through time
+/// (its Frame Increment Pointer names a time attribute, or it gives a frame time and nothing
+/// that places the frames in space): stacking time as depth would draw a cine loop as a
+/// volume.
+fn refuse_time_series(path: &Path, o: &InMemDicomObject, frames: usize) -> Result<(), ReadError> {
+    let pointers: Vec<Tag> =
+        match element(o, tags::FRAME_INCREMENT_POINTER).and_then(|e| e.value().primitive()) {
+            Some(dicom_core::PrimitiveValue::Tags(t)) => t.to_vec(),
+            _ => Vec::new(),
+        };
+    let by_pointer = TEMPORAL_ATTRIBUTES
+        .iter()
+        .find(|(t, _)| pointers.contains(t));
+    let present = TEMPORAL_ATTRIBUTES
+        .iter()
+        .find(|(t, _)| element(o, *t).is_some());
+    let spatial_pointer = pointers
+        .iter()
+        .any(|t| !TEMPORAL_ATTRIBUTES.iter().any(|(x, _)| x == t));
+    let (tag, name, how) = match (by_pointer, present) {
+        (Some((t, n)), _) => (*t, *n, "its Frame Increment Pointer (0028,0009) names"),
+        (None, Some((t, n))) if !spatial_pointer => (*t, *n, "it has"),
+        _ => return Ok(()),
+    };
+    Err(dicom_err(
+        path,
+        Some(tags::FRAME_INCREMENT_POINTER),
+        format!(
+            "a time series, not a volume: {frames} frames of one slice over time ({how} {name} \
+             ({:04X},{:04X}) and no frame has a position of its own). wavesplat reads volumes; \
+             export one time point as its own series, or a volume's slices",
+            tag.group(),
+            tag.element()
+        ),
+    ))
+}
