@@ -8,12 +8,14 @@ use wavesplat_codec::family::Family;
 use wavesplat_codec::format::CoderKind;
 use wavesplat_codec::layout::Geometry;
 use wavesplat_codec::volume::Volume;
+use wavesplat_compressor::bricked::{compress_bricked, BrickSource, BrickStage};
 use wavesplat_compressor::colorspace::ColorSpaceKind;
 use wavesplat_compressor::encode::{
     compress, CompressOptions, Compressed, Stage, Target, TileChoice,
 };
 use wavesplat_compressor::order::Clustering;
 use wavesplat_compressor::phantom::Phantom;
+use wavesplat_compressor::reader::region::RegionReader;
 use wavesplat_compressor::reader::{read_volume, Endian, RawDtype, RawSpec};
 use wavesplat_compressor::refine::RefineOptions;
 use wavesplat_harness::console::Progress;
@@ -103,6 +105,14 @@ pub struct CompressArgs {
     /// What to keep.
     #[command(flatten)]
     pub keep: super::TargetArgs,
+    /// Split the volume into bricks of at most N voxels a side (each axis in near-equal
+    /// parts), each compressed on its own and read from the file brick by brick (raw, NIfTI,
+    /// NRRD and MetaImage without loading the whole), written as one bricked file (format
+    /// version 9). The target is the whole's: one score threshold across all bricks. For
+    /// volumes larger than memory or than one transform (2^31 voxels); `render` and `info`
+    /// read the result (linear and haar families).
+    #[arg(long, value_name = "N")]
+    pub brick: Option<usize>,
     /// Tile edge in voxels (rounded up to a multiple of 2^M); default: chosen from the size.
     #[arg(long, conflicts_with = "single_sequence")]
     pub tile: Option<usize>,
@@ -131,7 +141,21 @@ pub struct CompressArgs {
     pub cluster_threshold: f64,
 }
 
+/// What `compress` reads: a phantom or file volume, or (with --brick) a file opened to be read
+/// brick by brick.
+enum Loaded {
+    Whole(Volume),
+    Regions(RegionReader),
+}
+
 fn load(a: &CompressArgs) -> Result<Volume> {
+    match open_input(a, false)? {
+        Loaded::Whole(v) => Ok(v),
+        Loaded::Regions(_) => unreachable!("regions are only opened when asked for"),
+    }
+}
+
+fn open_input(a: &CompressArgs, by_region: bool) -> Result<Loaded> {
     if let Some(name) = &a.phantom {
         let p = Phantom::from_name(name).with_context(|| {
             format!(
@@ -139,7 +163,7 @@ fn load(a: &CompressArgs) -> Result<Volume> {
                 Phantom::names()
             )
         })?;
-        return Ok(p.generate(a.dims.unwrap_or([64, 64, 64])));
+        return Ok(Loaded::Whole(p.generate(a.dims.unwrap_or([64, 64, 64]))));
     }
     let Some(input) = &a.input else {
         bail!("give an input file or --phantom NAME");
@@ -191,7 +215,7 @@ fn load(a: &CompressArgs) -> Result<Volume> {
         }
         _ => bail!("raw input needs both --dims and --dtype"),
     };
-    read_volume(input, raw.as_ref()).map_err(|e| {
+    let named = |e: wavesplat_compressor::reader::ReadError| {
         // The readers' messages mostly name the file already: say it once.
         let path = input.display().to_string();
         if e.to_string().contains(&path) {
@@ -199,7 +223,62 @@ fn load(a: &CompressArgs) -> Result<Volume> {
         } else {
             anyhow::Error::new(e).context(format!("reading {path}"))
         }
-    })
+    };
+    if by_region {
+        return Ok(Loaded::Regions(
+            RegionReader::open(input, raw.as_ref()).map_err(named)?,
+        ));
+    }
+    Ok(Loaded::Whole(
+        read_volume(input, raw.as_ref()).map_err(named)?,
+    ))
+}
+
+/// `compress --brick N`: the volume read brick by brick and written as one bricked file.
+fn run_bricked(a: &CompressArgs, opts: &CompressOptions, brick: usize) -> Result<()> {
+    let loaded = open_input(a, true)?;
+    let source: &dyn BrickSource = match &loaded {
+        Loaded::Whole(v) => v,
+        Loaded::Regions(r) => r,
+    };
+    let d = source.dims();
+    let progress = Progress::new("compress");
+    let report = |stage: BrickStage| {
+        progress.stage(&match stage {
+            BrickStage::Scored { done, of } => format!("scoring brick {done} of {of}"),
+            BrickStage::Compressed { done, of, trial } => {
+                format!("compressing brick {done} of {of} (trial {trial})")
+            }
+        })
+    };
+    let c = compress_bricked(source, opts, brick, &report).context("compressing")?;
+    progress.finish();
+    std::fs::write(&a.output, &c.bytes)
+        .with_context(|| format!("writing {}", a.output.display()))?;
+    let voxels = d.iter().map(|v| *v as f64).product::<f64>() * source.channels() as f64;
+    outln!(
+        "{}: {} bytes ({:.4} % of {} samples at one byte each), bricked: {} bricks of at most \
+         {brick} a side",
+        a.output.display(),
+        c.bytes.len(),
+        100.0 * c.bytes.len() as f64 / voxels,
+        voxels,
+        c.manifest.bricks.len()
+    );
+    outln!(
+        "volume {}x{}x{} x{} | {} M={} | kept {} of {} coefficients ({:.3} %; {} non-zero)",
+        d[0],
+        d[1],
+        d[2],
+        source.channels(),
+        opts.family.name(),
+        c.levels,
+        c.manifest.kept(),
+        c.total_coefficients,
+        100.0 * c.manifest.kept() as f64 / c.total_coefficients.max(1) as f64,
+        c.nonzero
+    );
+    Ok(())
 }
 
 /// Parses `X,Y,Z` voxel spacing (finite, positive).
@@ -283,6 +362,9 @@ pub fn options(a: &CompressArgs) -> Result<CompressOptions> {
 pub fn run(a: CompressArgs) -> Result<()> {
     let mut opts = options(&a)?;
     super::check_output(&a.output)?;
+    if let Some(brick) = a.brick {
+        return run_bricked(&a, &opts, brick);
+    }
     let volume = load(&a)?;
     if !a.keep.is_given() && Geometry::max_levels(volume.dims()) == 0 {
         // The transform is one depth M on all three axes, limited by the thinnest: a slice

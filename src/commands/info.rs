@@ -19,6 +19,46 @@ pub struct InfoArgs {
 /// Runs the subcommand.
 pub fn run(a: InfoArgs) -> Result<()> {
     let bytes = super::read_wsp(&a.input)?;
+    if wavesplat_codec::format::bricked::is_bricked(&bytes) {
+        let f = wavesplat_codec::format::bricked::parse_bricked(&bytes)
+            .with_context(|| format!("parsing {}", a.input.display()))?;
+        let m = &f.manifest;
+        outln!("file        {} ({} bytes)", a.input.display(), bytes.len());
+        outln!(
+            "format      bricked container (version {})",
+            wavesplat_codec::format::bricked::BRICKED_VERSION
+        );
+        outln!(
+            "dims        {}x{}x{}, spacing {} x {} x {}",
+            m.dims[0],
+            m.dims[1],
+            m.dims[2],
+            m.spacing[0],
+            m.spacing[1],
+            m.spacing[2]
+        );
+        outln!("channels    {}", m.channels);
+        outln!(
+            "bricks      {} (at most {} a side), {} coefficients kept",
+            m.bricks.len(),
+            m.brick,
+            m.kept()
+        );
+        for (i, b) in m.bricks.iter().enumerate() {
+            outln!(
+                "  brick {i}: at {},{},{} size {}x{}x{}, {} bytes, {} coefficients",
+                b.origin[0],
+                b.origin[1],
+                b.origin[2],
+                b.dims[0],
+                b.dims[1],
+                b.dims[2],
+                b.length,
+                b.kept
+            );
+        }
+        return Ok(());
+    }
     let file = parse_file(&bytes).with_context(|| format!("parsing {}", a.input.display()))?;
     let h = &file.header;
     outln!("file        {} ({} bytes)", a.input.display(), bytes.len());

@@ -313,6 +313,11 @@ pub fn run(a: RenderArgs) -> Result<()> {
     // reference rendering left out.
     let request = Instant::now();
     let location = a.view.location()?;
+    if let VolumeLocation::File { path, bytes } = &location {
+        if wavesplat_codec::format::bricked::is_bricked(bytes) {
+            return render_bricked(&a, &view, path, bytes, request);
+        }
+    }
     let volume = location.describe();
     let (header, opened, spec) = open(location, &view, a.bytes)?;
     let opened_after = request.elapsed();
@@ -567,4 +572,70 @@ fn left_out(vanished: usize) -> String {
     } else {
         format!("; {vanished} splats left out (seen along an axis, the wavelets along it project to zero)")
     }
+}
+
+/// `render` of a local bricked file: every brick the view sees, drawn in one pass on the CPU
+/// and added up ([`wavesplat_viewer::bricked`]).
+fn render_bricked(
+    a: &RenderArgs,
+    view: &ViewRequest,
+    path: &std::path::Path,
+    bytes: &[u8],
+    request: Instant,
+) -> Result<()> {
+    if a.progressive
+        || a.bytes.is_some()
+        || a.budget_ms.is_some()
+        || a.record.is_some()
+        || a.reference
+        || a.view.client_memory.is_some()
+        || a.view.view.is_some()
+    {
+        bail!(
+            "{} is a bricked volume: it is drawn whole in one pass; --progressive, --bytes, \
+             --budget-ms, --record, --reference, --client-memory and --view are not supported \
+             for bricked volumes yet",
+            path.display()
+        );
+    }
+    let (file, first) = wavesplat_viewer::bricked::parse_with_first(bytes)
+        .with_context(|| format!("reading {}", path.display()))?;
+    let whole = wavesplat_viewer::bricked::whole_geometry(&file.manifest, &first);
+    let mut spec = view.spec()?;
+    if view.zoom.is_none() {
+        let fit = spec
+            .cameras(&whole)?
+            .iter()
+            .map(|c| c.fitting_zoom(&whole))
+            .fold(f64::INFINITY, f64::min);
+        spec.view = spec.view.with_zoom(fit);
+    }
+    if let (true, Some(cue)) = (view.cue_k_from_volume, spec.view.cue.as_mut()) {
+        cue.k = wavesplat_codec::view::Cue::default_extinction(&whole);
+        outln!(
+            "depth cueing: k = {:.6} per unit of spacing (2 / the volume's diagonal)",
+            cue.k
+        );
+    }
+    let drawn = wavesplat_viewer::bricked::draw_bricked_file(
+        bytes,
+        &spec,
+        &mut wavesplat_viewer::CpuBackend::new(),
+    )
+    .with_context(|| format!("rendering {}", path.display()))?;
+    write_outputs(&drawn.image, a)?;
+    outln!(
+        "wrote {} ({}x{}) from {}: {} of {} bricks drawn, {} bytes, {} coefficients splatted \
+         (cpu backend) in {:.1} ms",
+        a.output.display(),
+        drawn.image.width,
+        drawn.image.height,
+        path.display(),
+        drawn.drawn,
+        drawn.bricks,
+        drawn.bytes,
+        drawn.coefficients,
+        request.elapsed().as_secs_f64() * 1e3
+    );
+    Ok(())
 }

@@ -31,6 +31,7 @@
 //! ```
 
 pub mod backend;
+pub mod bricked;
 pub mod color;
 pub mod footprint;
 pub mod frame;

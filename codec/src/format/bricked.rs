@@ -520,6 +520,6 @@ mod tests {
             super::super::parse_file(&bytes),
             Err(FormatError::Bricked)
         ));
-        assert!(super::super::VERSION < BRICKED_VERSION);
+        const { assert!(super::super::VERSION < BRICKED_VERSION) };
     }
 }

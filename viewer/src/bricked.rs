@@ -1,0 +1,257 @@
+//! Rendering a bricked volume ([`wavesplat_codec::format::bricked`]) as one: an X-ray image is
+//! linear in the data and the bricks tile the whole, so the whole's image is the sum of the
+//! bricks' images, each drawn by the ordinary splatting path with the whole's camera moved into
+//! the brick's frame (the same zoom, a pan that puts the whole's centre where it belongs) and
+//! clipped at the brick's faces, as a volume is clipped at its own. Depth cueing attenuates
+//! from the whole's light-facing faces: a brick's own cue measures from its own faces, and the
+//! two distances differ by a constant per brick, so its image is scaled by e^(−k·δ). Bricks
+//! whose box projects off the image are neither decoded nor drawn. One planner serves every
+//! brick (their footprint tables are the same for one view and depth).
+
+use crate::backend::AccumulationBackend;
+use crate::open::OpenError;
+use crate::plan::{PlanOptions, Planner, SplatBuffers, SPLAT_BATCH};
+use crate::{Image, RenderError, RenderStats};
+use wavesplat_codec::family::Family;
+use wavesplat_codec::format::bricked::{parse_bricked, BrickedFile, Manifest};
+use wavesplat_codec::format::packet::decode_packets;
+use wavesplat_codec::format::{check_kept, parse_file, FormatError, Header};
+use wavesplat_codec::layout::Geometry;
+use wavesplat_codec::view::{dot, resolve_cue, Camera, CueDirection, Orientation, View, ViewSpec};
+
+/// What drawing a bricked file made.
+#[derive(Debug)]
+pub struct BrickedImage {
+    /// The image in display space (multiview: three panels side by side).
+    pub image: Image,
+    /// Bricks in the file.
+    pub bricks: usize,
+    /// Bricks drawn (the others project off the image in every panel).
+    pub drawn: usize,
+    /// Coefficients splatted over all bricks drawn.
+    pub coefficients: usize,
+    /// Bytes of the bricks drawn.
+    pub bytes: u64,
+    /// Planning and splatting counters.
+    pub stats: RenderStats,
+}
+
+fn format_error(source: FormatError) -> OpenError {
+    OpenError::Format {
+        what: "the bricked file".into(),
+        source,
+    }
+}
+
+/// The whole volume's geometry for cameras (dims and spacing; no transform of its own, and not
+/// limited to what one transform holds).
+pub fn whole_geometry(manifest: &Manifest, first: &Header) -> Geometry {
+    let dims = manifest.dims.map(|d| d as usize);
+    Geometry {
+        dims,
+        padded: dims,
+        origin: [0; 3],
+        levels: 0,
+        family: first.geometry.family,
+        spacing: manifest.spacing,
+    }
+}
+
+/// Parses a bricked file and the header of its first brick.
+pub fn parse_with_first(bytes: &[u8]) -> Result<(BrickedFile<'_>, Header), OpenError> {
+    let file = parse_bricked(bytes).map_err(format_error)?;
+    let first = parse_file(file.brick_bytes(0).map_err(format_error)?)
+        .map_err(format_error)?
+        .header;
+    Ok((file, first))
+}
+
+/// The view of one panel of `spec` as a single view: multiview's panels become explicit bases
+/// at the first panel's zoom, and a cue along "the view" becomes the first panel's direction,
+/// as the multiview renderer resolves it.
+fn panel_views(spec: &ViewSpec, whole: &Geometry) -> Result<Vec<View>, OpenError> {
+    let cameras = spec.cameras(whole).map_err(RenderError::from)?;
+    let n0 = cameras[0].n;
+    Ok(cameras
+        .iter()
+        .map(|c| {
+            let mut v = spec.view;
+            v.orientation = Orientation::Basis { u: c.u, v: c.v };
+            v.zoom = Some(c.zoom);
+            if let Some(cue) = v.cue.as_mut() {
+                if spec.multiview && cue.direction == CueDirection::View {
+                    cue.direction = CueDirection::Vector(n0);
+                }
+            }
+            v
+        })
+        .collect())
+}
+
+/// The view of brick `brick_geometry` at `origin` that draws what `whole_view` shows of it.
+fn brick_view(
+    whole_view: &View,
+    whole_camera: &Camera,
+    whole: &Geometry,
+    brick_geometry: &Geometry,
+    origin: [u64; 3],
+) -> View {
+    let s = whole_camera.spacing;
+    let centre = |d: usize| (d as f64 - 1.0) / 2.0;
+    // The whole's centre in the brick's voxel indices, minus the brick's centre, in physical
+    // units: the brick's camera looks at its own centre, so the pan moves it by this.
+    let d: [f64; 3] = std::array::from_fn(|a| {
+        (centre(whole.dims[a]) - origin[a] as f64 - centre(brick_geometry.dims[a])) * s[a]
+    });
+    let mut v = *whole_view;
+    v.pan = [
+        whole_view.pan[0] + dot(d, whole_camera.u),
+        whole_view.pan[1] + dot(d, whole_camera.v),
+    ];
+    v
+}
+
+/// Whether the box of a brick at `origin` of `dims` (voxel indices of the whole, its support
+/// reaching `reach` voxels beyond) projects onto the image of `camera`.
+fn on_screen(camera: &Camera, origin: [u64; 3], dims: [usize; 3], reach: f64) -> bool {
+    let (mut lo, mut hi) = ([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]);
+    for corner in 0..8 {
+        let x: [f64; 3] = std::array::from_fn(|a| {
+            if corner >> a & 1 == 0 {
+                origin[a] as f64 - 0.5 - reach
+            } else {
+                origin[a] as f64 + dims[a] as f64 - 0.5 + reach
+            }
+        });
+        let p = camera.to_screen(x);
+        for k in 0..2 {
+            lo[k] = lo[k].min(p[k]);
+            hi[k] = hi[k].max(p[k]);
+        }
+    }
+    hi[0] >= 0.0 && lo[0] <= camera.width as f64 && hi[1] >= 0.0 && lo[1] <= camera.height as f64
+}
+
+/// Draws every coefficient of a bricked file's bytes for `spec` with `backend`.
+pub fn draw_bricked_file(
+    bytes: &[u8],
+    spec: &ViewSpec,
+    backend: &mut dyn AccumulationBackend,
+) -> Result<BrickedImage, OpenError> {
+    let (file, first) = parse_with_first(bytes)?;
+    let m = &file.manifest;
+    let whole = whole_geometry(m, &first);
+    let panels = panel_views(spec, &whole)?;
+    let (w, h) = (spec.view.width, spec.view.height);
+    let mut planner = Planner::new(PlanOptions::default());
+    let mut buffers = SplatBuffers::default();
+    let mut stats = RenderStats::default();
+    let mut images: Vec<Option<Image>> = vec![None; panels.len()];
+    let (mut drawn, mut coefficients, mut drawn_bytes) = (0, 0, 0u64);
+    for (i, entry) in m.bricks.iter().enumerate() {
+        let data = file.brick_bytes(i).map_err(format_error)?;
+        let mut decoded: Option<(Header, Vec<Vec<_>>)> = None;
+        for (p, view) in panels.iter().enumerate() {
+            let camera = Camera::new(view, &whole).map_err(RenderError::from)?;
+            // Splats clipped to the brick's box draw nothing outside it; otherwise a basis
+            // function reaches (order/2)·2^M voxels beyond it at most.
+            let reach = if first.geometry.clips_to_box() || first.geometry.family == Family::Haar {
+                1.0 / camera.zoom
+            } else {
+                0.5 * first.geometry.family.order() as f64 * (1u64 << first.geometry.levels) as f64
+            };
+            if !on_screen(&camera, entry.origin, entry.dims, reach) {
+                continue;
+            }
+            if decoded.is_none() {
+                let f = parse_file(data).map_err(format_error)?;
+                if f.header.geometry.dims != entry.dims
+                    || f.header.channels != first.channels
+                    || f.header.geometry.family != first.geometry.family
+                {
+                    return Err(format_error(FormatError::Invalid {
+                        what: "bricked manifest",
+                        detail: format!(
+                            "brick {i} at {:?} does not match the manifest or the first brick",
+                            entry.origin
+                        ),
+                    }));
+                }
+                let d = decode_packets(&f.header, &f.packets, 0)?;
+                let n: usize = d.iter().map(Vec::len).sum();
+                check_kept(&f.header, n as u64).map_err(format_error)?;
+                coefficients += n;
+                drawn += 1;
+                drawn_bytes += data.len() as u64;
+                decoded = Some((f.header, d));
+            }
+            let (header, coeffs) = decoded.as_ref().expect("decoded above");
+            let g = &header.geometry;
+            let bv = brick_view(view, &camera, &whole, g, entry.origin);
+            let bspec = ViewSpec::single(bv);
+            let mut plan = planner.plan(g, &bspec, header.channels)?;
+            backend.begin(plan.layout()).map_err(RenderError::Backend)?;
+            plan.splat_in_batches(
+                coeffs.iter().map(Vec::as_slice),
+                backend,
+                SPLAT_BATCH,
+                &mut buffers,
+                &mut stats,
+            )?;
+            let raw = backend.read().map_err(RenderError::Backend)?;
+            let mut img = crate::color::to_rgb(&raw, header, &plan.cameras, plan.cue.as_ref())?;
+            if let Some(cue) = &view.cue {
+                let wc = resolve_cue(cue, &camera, &whole).map_err(RenderError::from)?;
+                let bc = plan.cue.as_ref().expect("a cued plan");
+                let o = entry.origin.map(|v| v as f64);
+                let delta = wc.dist(o) - bc.dist([0.0; 3]);
+                let scale = (-cue.k * delta).exp() as f32;
+                img.data.iter_mut().for_each(|v| *v *= scale);
+            }
+            match &mut images[p] {
+                Some(total) => total
+                    .data
+                    .iter_mut()
+                    .zip(&img.data)
+                    .for_each(|(t, v)| *t += v),
+                slot => *slot = Some(img),
+            }
+        }
+    }
+    let channels = images
+        .iter()
+        .flatten()
+        .next()
+        .map_or(if first.channels == 3 { 3 } else { 1 }, |i| i.channels);
+    let panels: Vec<Image> = images
+        .into_iter()
+        .map(|i| i.unwrap_or_else(|| Image::new(w, h, channels)))
+        .collect();
+    let image = if panels.len() == 1 {
+        panels.into_iter().next().expect("one panel")
+    } else {
+        side_by_side(&panels)
+    };
+    Ok(BrickedImage {
+        image,
+        bricks: m.bricks.len(),
+        drawn,
+        coefficients,
+        bytes: drawn_bytes,
+        stats,
+    })
+}
+
+/// Panels of equal size side by side, as multiview lays them out.
+fn side_by_side(panels: &[Image]) -> Image {
+    let (w, h, c) = (panels[0].width, panels[0].height, panels[0].channels);
+    let mut out = Image::new(w * panels.len(), h, c);
+    for (p, img) in panels.iter().enumerate() {
+        for y in 0..h {
+            let src = &img.data[y * w * c..(y + 1) * w * c];
+            let at = (y * w * panels.len() + p * w) * c;
+            out.data[at..at + w * c].copy_from_slice(src);
+        }
+    }
+    out
+}
