@@ -270,10 +270,13 @@ pub fn compress_bricked(
             })
             .collect::<Result<_, BrickError>>()?,
     };
-    let total_coefficients: u64 = summaries.iter().map(|s| s.total_coefficients).sum();
-    let nonzero: u64 = summaries.iter().map(|s| s.nonzero).sum();
+    let mut whole = ScoreSummary::empty();
+    summaries.iter().for_each(|s| whole.add(s));
+    let (total_coefficients, nonzero) = (whole.total_coefficients, whole.nonzero);
 
-    let compress_all = |counts: Option<&[u64]>, trial: usize| -> Result<Vec<Vec<u8>>, BrickError> {
+    // Each brick's file and the coefficients it kept.
+    type Bricks = Vec<(Vec<u8>, u64)>;
+    let compress_all = |counts: Option<&[u64]>, trial: usize| -> Result<Bricks, BrickError> {
         counter.store(0, std::sync::atomic::Ordering::Relaxed);
         (0..of)
             .into_par_iter()
@@ -292,11 +295,11 @@ pub fn compress_bricked(
                     source,
                 })?;
                 tick(&|done| BrickStage::Compressed { done, of, trial });
-                Ok(c.bytes)
+                Ok((c.bytes, c.header.kept))
             })
             .collect()
     };
-    let global_k = |k: u64| per_brick_counts(&summaries, k, |s| s.counts().to_vec());
+    let global_k = |k: u64| per_brick_counts(&summaries, &whole, k);
     let bricks = match base.target {
         Target::All => compress_all(None, 0)?,
         Target::Coefficients(c) => compress_all(Some(&global_k(c)), 0)?,
@@ -315,8 +318,7 @@ pub fn compress_bricked(
                     "target Q_V {q} %; allowed (0, 100]"
                 )));
             }
-            let goal = q / 100.0 * summaries.iter().map(|s| s.total_energy).sum::<f64>();
-            let k = count_for_energy(&summaries, goal);
+            let k = count_for_energy(&whole, q / 100.0 * whole.total_energy);
             compress_all(Some(&global_k(k)), 0)?
         }
         Target::Bytes(target) => {
@@ -326,13 +328,14 @@ pub fn compress_bricked(
                 .saturating_sub(manifest_guess)
                 .max(1)
                 .min(nonzero.max(1));
-            let mut best: Option<(u64, Vec<Vec<u8>>)> = None;
+            let mut best: Option<(u64, Bricks)> = None;
             let mut last: Option<(f64, f64)> = None;
             // The largest count known to fit and the smallest known to overflow.
             let (mut fits_k, mut over_k) = (0u64, u64::MAX);
             for trial in 0..BYTE_TRIALS {
                 let b = compress_all(Some(&global_k(k)), trial)?;
-                let bytes: u64 = b.iter().map(|v| v.len() as u64).sum::<u64>() + manifest_guess;
+                let bytes: u64 =
+                    b.iter().map(|(v, _)| v.len() as u64).sum::<u64>() + manifest_guess;
                 let fits = bytes <= target;
                 if fits {
                     fits_k = fits_k.max(k);
@@ -379,7 +382,7 @@ pub fn compress_bricked(
             }
         }
     };
-    let manifest = Manifest {
+    let mut manifest = Manifest {
         dims: source.dims(),
         channels: source.channels(),
         spacing: source.spacing(),
@@ -388,20 +391,18 @@ pub fn compress_bricked(
         bricks: grid
             .iter()
             .zip(&bricks)
-            .map(|((origin, dims), b)| BrickEntry {
+            .map(|((origin, dims), (_, kept))| BrickEntry {
                 origin: *origin,
                 dims: *dims,
                 offset: 0,
                 length: 0,
                 crc: 0,
-                kept: wavesplat_codec::format::read_header_section(b)
-                    .map(|(h, _)| h.kept)
-                    .unwrap_or(0),
+                kept: *kept,
             })
             .collect(),
     };
-    let bytes = write_bricked(&manifest, &bricks)?;
-    let manifest = wavesplat_codec::format::bricked::parse_bricked(&bytes)?.manifest;
+    let files: Vec<&[u8]> = bricks.iter().map(|(b, _)| b.as_slice()).collect();
+    let bytes = write_bricked(&mut manifest, &files)?;
     Ok(BrickedCompressed {
         bytes,
         manifest,
@@ -414,16 +415,13 @@ pub fn compress_bricked(
 /// Trials of the byte target's search on the global count.
 const BYTE_TRIALS: usize = 10;
 
-/// The number of coefficients (from the top score down) whose energy reaches `goal`, over
-/// all bricks' summed histograms.
-fn count_for_energy(summaries: &[ScoreSummary], goal: f64) -> u64 {
-    let bins = summaries.first().map_or(0, |s| s.counts().len());
+/// The number of coefficients (from the top score down) whose energy reaches `goal`, by the
+/// bins of the bricks' summed histogram (down to the bin where it is reached).
+fn count_for_energy(whole: &ScoreSummary, goal: f64) -> u64 {
     let (mut acc, mut count) = (0.0, 0u64);
-    for b in (0..bins).rev() {
-        for s in summaries {
-            acc += s.energies().get(b).copied().unwrap_or(0.0);
-            count += s.counts()[b];
-        }
+    for (c, e) in whole.counts().iter().zip(whole.energies()).rev() {
+        acc += e;
+        count += c;
         if acc >= goal * (1.0 - 1e-9) {
             break;
         }
@@ -431,46 +429,33 @@ fn count_for_energy(summaries: &[ScoreSummary], goal: f64) -> u64 {
     count
 }
 
-/// Each brick's share of the top `k` coefficients of the whole: every coefficient in a bin
-/// above the global threshold bin, and of the threshold bin a share proportional to the
-/// brick's count there (so that the shares sum to `k`).
-fn per_brick_counts(
-    summaries: &[ScoreSummary],
-    k: u64,
-    counts: impl Fn(&ScoreSummary) -> Vec<u64>,
-) -> Vec<u64> {
-    let per: Vec<Vec<u64>> = summaries.iter().map(counts).collect();
-    let bins = per.first().map_or(0, Vec::len);
-    let mut above = 0u64;
-    let mut cut = None;
-    for b in (0..bins).rev() {
-        let in_bin: u64 = per.iter().map(|c| c[b]).sum();
-        if above + in_bin >= k {
-            cut = Some((b, in_bin));
-            break;
-        }
-        above += in_bin;
+/// Each brick's share of the top `k` coefficients of the whole (`whole`, the bricks' summed
+/// summary): every coefficient in a bin above the global threshold bin, and of the threshold
+/// bin a share proportional to the brick's count there (so that the shares sum to `k`).
+fn per_brick_counts(summaries: &[ScoreSummary], whole: &ScoreSummary, k: u64) -> Vec<u64> {
+    if k >= whole.nonzero {
+        // Every selectable coefficient.
+        return summaries.iter().map(|s| s.nonzero).collect();
     }
-    let Some((cut, in_bin)) = cut else {
-        // Fewer than k selectable: keep everything.
-        return per.iter().map(|c| c.iter().sum()).collect();
-    };
+    let cut = whole.cut_for_count(k);
+    let above: u64 = whole.counts()[cut + 1..].iter().sum();
+    let in_bin = whole.counts()[cut];
     let need = k - above;
-    let mut shares: Vec<u64> = per
+    let mut shares: Vec<u64> = summaries
         .iter()
-        .map(|c| c[cut + 1..].iter().sum::<u64>())
+        .map(|s| s.counts()[cut + 1..].iter().sum::<u64>())
         .collect();
     // Largest-remainder split of `need` over the bricks' counts in the cut bin.
-    let exact: Vec<f64> = per
+    let exact: Vec<f64> = summaries
         .iter()
-        .map(|c| need as f64 * c[cut] as f64 / in_bin.max(1) as f64)
+        .map(|s| need as f64 * s.counts()[cut] as f64 / in_bin.max(1) as f64)
         .collect();
     let mut given = 0u64;
     for (s, e) in shares.iter_mut().zip(&exact) {
         *s += e.floor() as u64;
         given += e.floor() as u64;
     }
-    let mut order: Vec<usize> = (0..per.len()).collect();
+    let mut order: Vec<usize> = (0..summaries.len()).collect();
     order.sort_by(|&a, &b| (exact[b] - exact[b].floor()).total_cmp(&(exact[a] - exact[a].floor())));
     for &i in order.iter().take((need - given) as usize) {
         shares[i] += 1;
@@ -536,9 +521,12 @@ mod tests {
             .into_iter()
             .map(|(o, d)| score_summary(&crop(&v, o, d).unwrap(), &opts, &|_, _| {}).unwrap())
             .collect();
+        let mut whole = ScoreSummary::empty();
+        s.iter().for_each(|b| whole.add(b));
         let nonzero: u64 = s.iter().map(|s| s.nonzero).sum();
+        assert_eq!(whole.nonzero, nonzero);
         for k in [0, 1, 17, 1000, nonzero - 1, nonzero, nonzero + 5] {
-            let shares = per_brick_counts(&s, k, |s| s.counts().to_vec());
+            let shares = per_brick_counts(&s, &whole, k);
             assert_eq!(shares.iter().sum::<u64>(), k.min(nonzero), "k {k}");
         }
     }

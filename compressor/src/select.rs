@@ -155,8 +155,23 @@ impl Histogram {
         &self.energies
     }
 
+    /// Adds another histogram's counts and energies (the sum describes both sets of
+    /// coefficients: bins are absolute).
+    pub(crate) fn add(&mut self, other: &Histogram) {
+        for (a, b) in self.counts.iter_mut().zip(&other.counts) {
+            *a += b;
+        }
+        if self.energies.len() < other.energies.len() {
+            self.energies.resize(other.energies.len(), 0.0);
+        }
+        for (a, b) in self.energies.iter_mut().zip(&other.energies) {
+            *a += b;
+        }
+        self.positive += other.positive;
+    }
+
     /// The lowest bin that must be collected for the top `k`.
-    fn cut_for_count(&self, k: u64) -> usize {
+    pub(crate) fn cut_for_count(&self, k: u64) -> usize {
         let mut acc = 0u64;
         for b in (0..BINS).rev() {
             acc += self.counts[b];

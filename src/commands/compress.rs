@@ -141,21 +141,32 @@ pub struct CompressArgs {
     pub cluster_threshold: f64,
 }
 
-/// What `compress` reads: a phantom or file volume, or (with --brick) a file opened to be read
-/// brick by brick.
-enum Loaded {
-    Whole(Volume),
-    Regions(RegionReader),
+/// What `compress` reads: a generated phantom, or a file (with its raw layout when it is raw).
+enum Input {
+    Phantom(Volume),
+    File { path: PathBuf, raw: Option<RawSpec> },
 }
 
-fn load(a: &CompressArgs) -> Result<Volume> {
-    match open_input(a, false)? {
-        Loaded::Whole(v) => Ok(v),
-        Loaded::Regions(_) => unreachable!("regions are only opened when asked for"),
+/// A reader's error, naming the file once (the readers' messages mostly name it already).
+fn read_error(path: &std::path::Path, e: wavesplat_compressor::reader::ReadError) -> anyhow::Error {
+    let shown = path.display().to_string();
+    if e.to_string().contains(&shown) {
+        anyhow::Error::new(e)
+    } else {
+        anyhow::Error::new(e).context(format!("reading {shown}"))
     }
 }
 
-fn open_input(a: &CompressArgs, by_region: bool) -> Result<Loaded> {
+fn load(a: &CompressArgs) -> Result<Volume> {
+    match input(a)? {
+        Input::Phantom(v) => Ok(v),
+        Input::File { path, raw } => {
+            read_volume(&path, raw.as_ref()).map_err(|e| read_error(&path, e))
+        }
+    }
+}
+
+fn input(a: &CompressArgs) -> Result<Input> {
     if let Some(name) = &a.phantom {
         let p = Phantom::from_name(name).with_context(|| {
             format!(
@@ -163,7 +174,7 @@ fn open_input(a: &CompressArgs, by_region: bool) -> Result<Loaded> {
                 Phantom::names()
             )
         })?;
-        return Ok(Loaded::Whole(p.generate(a.dims.unwrap_or([64, 64, 64]))));
+        return Ok(Input::Phantom(p.generate(a.dims.unwrap_or([64, 64, 64]))));
     }
     let Some(input) = &a.input else {
         bail!("give an input file or --phantom NAME");
@@ -215,31 +226,22 @@ fn open_input(a: &CompressArgs, by_region: bool) -> Result<Loaded> {
         }
         _ => bail!("raw input needs both --dims and --dtype"),
     };
-    let named = |e: wavesplat_compressor::reader::ReadError| {
-        // The readers' messages mostly name the file already: say it once.
-        let path = input.display().to_string();
-        if e.to_string().contains(&path) {
-            anyhow::Error::new(e)
-        } else {
-            anyhow::Error::new(e).context(format!("reading {path}"))
-        }
-    };
-    if by_region {
-        return Ok(Loaded::Regions(
-            RegionReader::open(input, raw.as_ref()).map_err(named)?,
-        ));
-    }
-    Ok(Loaded::Whole(
-        read_volume(input, raw.as_ref()).map_err(named)?,
-    ))
+    Ok(Input::File {
+        path: input.clone(),
+        raw,
+    })
 }
 
 /// `compress --brick N`: the volume read brick by brick and written as one bricked file.
 fn run_bricked(a: &CompressArgs, opts: &CompressOptions, brick: usize) -> Result<()> {
-    let loaded = open_input(a, true)?;
-    let source: &dyn BrickSource = match &loaded {
-        Loaded::Whole(v) => v,
-        Loaded::Regions(r) => r,
+    let input = input(a)?;
+    let reader;
+    let source: &dyn BrickSource = match &input {
+        Input::Phantom(v) => v,
+        Input::File { path, raw } => {
+            reader = RegionReader::open(path, raw.as_ref()).map_err(|e| read_error(path, e))?;
+            &reader
+        }
     };
     let d = source.dims();
     let progress = Progress::new("compress");

@@ -321,12 +321,7 @@ pub fn run(a: RenderArgs) -> Result<()> {
     let volume = location.describe();
     let (header, opened, spec) = open(location, &view, a.bytes)?;
     let opened_after = request.elapsed();
-    if let (true, Some(cue)) = (view.cue_k_from_volume, spec.view.cue) {
-        outln!(
-            "depth cueing: k = {:.6} per unit of spacing (2 / the volume's diagonal)",
-            cue.k
-        );
-    }
+    say_cue_k(&view, &spec);
     let reference_started = Instant::now();
     let reference = if a.reference {
         Some(
@@ -539,6 +534,16 @@ pub fn run(a: RenderArgs) -> Result<()> {
     Ok(())
 }
 
+/// Says which extinction `--cue-k auto` took from the volume.
+fn say_cue_k(view: &ViewRequest, spec: &wavesplat_codec::view::ViewSpec) {
+    if let (true, Some(cue)) = (view.cue_k_from_volume, spec.view.cue) {
+        outln!(
+            "depth cueing: k = {:.6} per unit of spacing (2 / the volume's diagonal)",
+            cue.k
+        );
+    }
+}
+
 /// Writes the PNG and, when asked, the raw image.
 fn write_outputs(image: &Image, a: &RenderArgs) -> Result<()> {
     image
@@ -601,22 +606,8 @@ fn render_bricked(
     let (file, first) = wavesplat_viewer::bricked::parse_with_first(bytes)
         .with_context(|| format!("reading {}", path.display()))?;
     let whole = wavesplat_viewer::bricked::whole_geometry(&file.manifest, &first);
-    let mut spec = view.spec()?;
-    if view.zoom.is_none() {
-        let fit = spec
-            .cameras(&whole)?
-            .iter()
-            .map(|c| c.fitting_zoom(&whole))
-            .fold(f64::INFINITY, f64::min);
-        spec.view = spec.view.with_zoom(fit);
-    }
-    if let (true, Some(cue)) = (view.cue_k_from_volume, spec.view.cue.as_mut()) {
-        cue.k = wavesplat_codec::view::Cue::default_extinction(&whole);
-        outln!(
-            "depth cueing: k = {:.6} per unit of spacing (2 / the volume's diagonal)",
-            cue.k
-        );
-    }
+    let spec = view.spec_for_volume(&whole, file.manifest.placement.as_ref())?;
+    say_cue_k(view, &spec);
     let drawn = wavesplat_viewer::bricked::draw_bricked_file(
         bytes,
         &spec,

@@ -17,7 +17,9 @@ use wavesplat_codec::format::bricked::{parse_bricked, BrickedFile, Manifest};
 use wavesplat_codec::format::packet::decode_packets;
 use wavesplat_codec::format::{check_kept, parse_file, FormatError, Header};
 use wavesplat_codec::layout::Geometry;
-use wavesplat_codec::view::{dot, resolve_cue, Camera, CueDirection, Orientation, View, ViewSpec};
+use wavesplat_codec::view::{
+    dot, resolve_cue, Camera, CueDirection, Orientation, ResolvedCue, View, ViewError, ViewSpec,
+};
 
 /// What drawing a bricked file made.
 #[derive(Debug)]
@@ -141,7 +143,27 @@ pub fn draw_bricked_file(
     let (file, first) = parse_with_first(bytes)?;
     let m = &file.manifest;
     let whole = whole_geometry(m, &first);
-    let panels = panel_views(spec, &whole)?;
+    // Per panel: its view, the whole's camera and cue, and how far beyond a brick's box its
+    // splats reach (clipped splats draw nothing outside it; otherwise a basis function
+    // reaches (order/2)·2^M voxels beyond it at most).
+    let panels: Vec<(View, Camera, Option<ResolvedCue>, f64)> = panel_views(spec, &whole)?
+        .into_iter()
+        .map(|view| {
+            let camera = Camera::new(&view, &whole)?;
+            let cue = view
+                .cue
+                .map(|c| resolve_cue(&c, &camera, &whole))
+                .transpose()?;
+            let g = &first.geometry;
+            let reach = if g.clips_to_box() || g.family == Family::Haar {
+                1.0 / camera.zoom
+            } else {
+                0.5 * g.family.order() as f64 * (1u64 << g.levels) as f64
+            };
+            Ok((view, camera, cue, reach))
+        })
+        .collect::<Result<_, ViewError>>()
+        .map_err(RenderError::from)?;
     let (w, h) = (spec.view.width, spec.view.height);
     let mut planner = Planner::new(PlanOptions::default());
     let mut buffers = SplatBuffers::default();
@@ -149,21 +171,14 @@ pub fn draw_bricked_file(
     let mut images: Vec<Option<Image>> = vec![None; panels.len()];
     let (mut drawn, mut coefficients, mut drawn_bytes) = (0, 0, 0u64);
     for (i, entry) in m.bricks.iter().enumerate() {
-        let data = file.brick_bytes(i).map_err(format_error)?;
         let mut decoded: Option<(Header, Vec<Vec<_>>)> = None;
-        for (p, view) in panels.iter().enumerate() {
-            let camera = Camera::new(view, &whole).map_err(RenderError::from)?;
-            // Splats clipped to the brick's box draw nothing outside it; otherwise a basis
-            // function reaches (order/2)·2^M voxels beyond it at most.
-            let reach = if first.geometry.clips_to_box() || first.geometry.family == Family::Haar {
-                1.0 / camera.zoom
-            } else {
-                0.5 * first.geometry.family.order() as f64 * (1u64 << first.geometry.levels) as f64
-            };
-            if !on_screen(&camera, entry.origin, entry.dims, reach) {
+        for (p, (view, camera, whole_cue, reach)) in panels.iter().enumerate() {
+            if !on_screen(camera, entry.origin, entry.dims, *reach) {
                 continue;
             }
             if decoded.is_none() {
+                // Only a brick that is drawn is checked, parsed and decoded.
+                let data = file.brick_bytes(i).map_err(format_error)?;
                 let f = parse_file(data).map_err(format_error)?;
                 if f.header.geometry.dims != entry.dims
                     || f.header.channels != first.channels
@@ -187,7 +202,7 @@ pub fn draw_bricked_file(
             }
             let (header, coeffs) = decoded.as_ref().expect("decoded above");
             let g = &header.geometry;
-            let bv = brick_view(view, &camera, &whole, g, entry.origin);
+            let bv = brick_view(view, camera, &whole, g, entry.origin);
             let bspec = ViewSpec::single(bv);
             let mut plan = planner.plan(g, &bspec, header.channels)?;
             backend.begin(plan.layout()).map_err(RenderError::Backend)?;
@@ -200,12 +215,10 @@ pub fn draw_bricked_file(
             )?;
             let raw = backend.read().map_err(RenderError::Backend)?;
             let mut img = crate::color::to_rgb(&raw, header, &plan.cameras, plan.cue.as_ref())?;
-            if let Some(cue) = &view.cue {
-                let wc = resolve_cue(cue, &camera, &whole).map_err(RenderError::from)?;
-                let bc = plan.cue.as_ref().expect("a cued plan");
+            if let (Some(wc), Some(bc)) = (whole_cue, plan.cue.as_ref()) {
                 let o = entry.origin.map(|v| v as f64);
                 let delta = wc.dist(o) - bc.dist([0.0; 3]);
-                let scale = (-cue.k * delta).exp() as f32;
+                let scale = (-wc.k * delta).exp() as f32;
                 img.data.iter_mut().for_each(|v| *v *= scale);
             }
             match &mut images[p] {

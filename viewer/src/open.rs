@@ -14,8 +14,10 @@ use thiserror::Error;
 use wavesplat_client::{ConnectOptions, VolumeKey};
 use wavesplat_codec::format::packet::{decode_packets, Coefficient, PacketError};
 use wavesplat_codec::format::{check_kept, parse_file, FormatError, Header};
+use wavesplat_codec::layout::Geometry;
 use wavesplat_codec::view::patient::{PatientView, PatientViewError};
 use wavesplat_codec::view::{Cue, Orientation, View, ViewError, ViewSpec};
+use wavesplat_codec::volume::Placement;
 
 /// Why a volume could not be opened, or its reference drawn.
 #[derive(Debug, Error)]
@@ -144,37 +146,47 @@ impl ViewRequest {
         Ok(spec)
     }
 
-    /// The view spec for the volume of `header`: [`ViewRequest::spec`], turned to the named
-    /// patient side through the volume's placement (or, with no angle given, face-on to a
-    /// volume one voxel thin), and without a zoom zoomed to fit the volume (for a multiview,
-    /// the tightest of its panels).
+    /// The view spec for the volume of `header`: [`ViewRequest::spec_for_volume`] with its
+    /// geometry and placement.
     pub fn spec_for(&self, header: &Header) -> Result<ViewSpec, OpenError> {
+        self.spec_for_volume(&header.geometry, header.placement.as_ref())
+    }
+
+    /// The view spec for a volume of `geometry` placed at `placement`: [`ViewRequest::spec`],
+    /// turned to the named patient side through the placement (or, with no angle given,
+    /// face-on to a volume one voxel thin), its cue's extinction the volume's when asked for,
+    /// and without a zoom zoomed to fit the volume (for a multiview, the tightest of its
+    /// panels). A bricked volume passes its whole's geometry.
+    pub fn spec_for_volume(
+        &self,
+        geometry: &Geometry,
+        placement: Option<&Placement>,
+    ) -> Result<ViewSpec, OpenError> {
         let mut spec = self.spec()?;
         if let (None, None, None, Some((alpha, beta))) = (
             self.side,
             self.alpha,
             self.beta,
-            face_on_angles(header.geometry.dims),
+            face_on_angles(geometry.dims),
         ) {
             spec.view.orientation = Orientation::Angles { alpha, beta };
         }
         if let (true, Some(cue)) = (self.cue_k_from_volume, spec.view.cue.as_mut()) {
-            cue.k = Cue::default_extinction(&header.geometry);
+            cue.k = Cue::default_extinction(geometry);
         }
         if let Some(side) = self.side {
             spec.view.orientation =
-                side.orientation(header.placement.as_ref())
+                side.orientation(placement)
                     .map_err(|e| OpenError::Patient {
                         side: side.name().to_string(),
                         source: e,
                     })?;
         }
         if self.zoom.is_none() {
-            let g = &header.geometry;
             let fit = spec
-                .cameras(g)?
+                .cameras(geometry)?
                 .iter()
-                .map(|c| c.fitting_zoom(g))
+                .map(|c| c.fitting_zoom(geometry))
                 .fold(f64::INFINITY, f64::min);
             spec.view = spec.view.with_zoom(fit);
         }

@@ -154,7 +154,7 @@ pub fn brick_grid(dims: [u64; 3], brick: usize) -> Vec<([u64; 3], [usize; 3])> {
 
 /// Writes a container: `manifest` (whose entries' `offset`, `length` and `crc` are filled in
 /// here) followed by `bricks`, one `.wsp` file each in manifest order.
-pub fn write_bricked(manifest: &Manifest, bricks: &[Vec<u8>]) -> Result<Vec<u8>, FormatError> {
+pub fn write_bricked(manifest: &mut Manifest, bricks: &[&[u8]]) -> Result<Vec<u8>, FormatError> {
     if bricks.len() != manifest.bricks.len() {
         return Err(FormatError::Invalid {
             what: "bricked manifest",
@@ -165,19 +165,18 @@ pub fn write_bricked(manifest: &Manifest, bricks: &[Vec<u8>]) -> Result<Vec<u8>,
             ),
         });
     }
-    let mut m = manifest.clone();
     // Offsets depend on the manifest's length, which does not depend on their values (fixed
-    // width fields): write once to measure, then with the offsets.
-    let measure = manifest_bytes(&m);
-    let mut offset = (4 + 2 + 4 + measure.len() + 4) as u64;
-    for (e, b) in m.bricks.iter_mut().zip(bricks) {
+    // width fields).
+    let manifest_len = manifest_bytes(manifest).len();
+    let mut offset = (4 + 2 + 4 + manifest_len + 4) as u64;
+    for (e, b) in manifest.bricks.iter_mut().zip(bricks) {
         e.offset = offset;
         e.length = b.len() as u64;
         e.crc = crc32fast::hash(b);
         offset += b.len() as u64;
     }
-    let mb = manifest_bytes(&m);
-    debug_assert_eq!(mb.len(), measure.len());
+    let mb = manifest_bytes(manifest);
+    debug_assert_eq!(mb.len(), manifest_len);
     let mut out = Vec::with_capacity(offset as usize);
     out.extend_from_slice(MAGIC);
     out.extend_from_slice(&BRICKED_VERSION.to_le_bytes());
@@ -240,13 +239,7 @@ fn bad(detail: impl Into<String>) -> FormatError {
 /// overlaps another), every brick's bytes inside the file.
 pub fn parse_bricked(bytes: &[u8]) -> Result<BrickedFile<'_>, FormatError> {
     let mut r = ByteReader::new(bytes, "bricked container");
-    let magic = r
-        .take(4)
-        .map_err(|_| FormatError::BadMagic(bytes.iter().take(4).copied().collect()))?;
-    if magic != MAGIC {
-        return Err(FormatError::BadMagic(magic.to_vec()));
-    }
-    let version = r.u16()?;
+    let version = super::read_magic_and_version(&mut r, bytes)?;
     if version != BRICKED_VERSION {
         return Err(FormatError::UnsupportedVersion {
             found: version,
@@ -437,6 +430,12 @@ mod tests {
         (m, bricks)
     }
 
+    /// The container of `m` (a copy, its offsets filled in) and `bricks`.
+    fn write(m: &Manifest, bricks: &[Vec<u8>]) -> Vec<u8> {
+        let files: Vec<&[u8]> = bricks.iter().map(Vec::as_slice).collect();
+        write_bricked(&mut m.clone(), &files).unwrap()
+    }
+
     #[test]
     fn axes_split_into_near_equal_parts() {
         assert_eq!(split_axis(257, 256), vec![(0, 129), (129, 128)]);
@@ -459,7 +458,7 @@ mod tests {
     #[test]
     fn a_container_round_trips_and_every_brick_is_checked() {
         let (m, bricks) = manifest([70, 40, 33], 32);
-        let bytes = write_bricked(&m, &bricks).unwrap();
+        let bytes = write(&m, &bricks);
         assert!(is_bricked(&bytes));
         let f = parse_bricked(&bytes).unwrap();
         assert_eq!(f.manifest.dims, m.dims);
@@ -489,7 +488,7 @@ mod tests {
     fn hostile_manifests_are_refused() {
         let (m, bricks) = manifest([64, 64, 64], 32);
         // Every cut of the file is an error, never a panic.
-        let bytes = write_bricked(&m, &bricks).unwrap();
+        let bytes = write(&m, &bricks);
         for cut in 0..bytes.len() {
             let _ = parse_bricked(&bytes[..cut]).map(|f| {
                 for i in 0..f.manifest.bricks.len() {
@@ -501,13 +500,13 @@ mod tests {
         // Overlapping bricks (two at the same place, one missing) and gaps are refused.
         let mut overlap = m.clone();
         overlap.bricks[1].origin = overlap.bricks[0].origin;
-        assert!(parse_bricked(&write_bricked(&overlap, &bricks).unwrap()).is_err());
+        assert!(parse_bricked(&write(&overlap, &bricks)).is_err());
         let mut gap = m.clone();
         gap.bricks[0].dims = [16, 32, 32];
-        assert!(parse_bricked(&write_bricked(&gap, &bricks).unwrap()).is_err());
+        assert!(parse_bricked(&write(&gap, &bricks)).is_err());
         let mut outside = m.clone();
         outside.bricks[0].origin = [u64::MAX - 3, 0, 0];
-        assert!(parse_bricked(&write_bricked(&outside, &bricks).unwrap()).is_err());
+        assert!(parse_bricked(&write(&outside, &bricks)).is_err());
     }
 
     /// The plain reader names a bricked file as such (a build older than version 9 reads
@@ -515,7 +514,7 @@ mod tests {
     #[test]
     fn the_plain_reader_names_a_bricked_file() {
         let (m, bricks) = manifest([8, 8, 8], 8);
-        let bytes = write_bricked(&m, &bricks).unwrap();
+        let bytes = write(&m, &bricks);
         assert!(matches!(
             super::super::parse_file(&bytes),
             Err(FormatError::Bricked)

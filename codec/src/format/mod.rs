@@ -822,13 +822,7 @@ fn write_header_section_version(header: &Header, version: u16) -> Vec<u8> {
 /// Parses a header section, returning the header and the bytes it used.
 pub fn read_header_section(bytes: &[u8]) -> Result<(Header, usize), FormatError> {
     let mut r = ByteReader::new(bytes, "file header");
-    let magic = r
-        .take(4)
-        .map_err(|_| FormatError::BadMagic(bytes.iter().take(4).copied().collect()))?;
-    if magic != MAGIC {
-        return Err(FormatError::BadMagic(magic.to_vec()));
-    }
-    let version = r.u16()?;
+    let version = read_magic_and_version(&mut r, bytes)?;
     check_version(version)?;
     let len = header_length(r.u32()?)?;
     let hb = r.take(len)?;
@@ -850,6 +844,21 @@ pub fn read_header_section(bytes: &[u8]) -> Result<(Header, usize), FormatError>
         ));
     }
     Ok((header, r.position()))
+}
+
+/// Reads the magic (refused unless [`MAGIC`]) and the format version at the start of `bytes`
+/// (`r` reads them).
+pub(crate) fn read_magic_and_version(
+    r: &mut ByteReader<'_>,
+    bytes: &[u8],
+) -> Result<u16, FormatError> {
+    let magic = r
+        .take(4)
+        .map_err(|_| FormatError::BadMagic(bytes.iter().take(4).copied().collect()))?;
+    if magic != MAGIC {
+        return Err(FormatError::BadMagic(magic.to_vec()));
+    }
+    r.u16()
 }
 
 /// Refuses a version this build cannot read.

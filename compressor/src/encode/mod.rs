@@ -131,6 +131,30 @@ pub struct ScoreSummary {
 }
 
 impl ScoreSummary {
+    /// The summary of nothing, to [`ScoreSummary::add`] to.
+    pub fn empty() -> ScoreSummary {
+        ScoreSummary {
+            histogram: crate::select::Histogram::empty(),
+            total_coefficients: 0,
+            total_energy: 0.0,
+            nonzero: 0,
+        }
+    }
+
+    /// Adds another volume's summary: the result summarises both sets of coefficients.
+    pub fn add(&mut self, other: &ScoreSummary) {
+        self.histogram.add(&other.histogram);
+        self.total_coefficients += other.total_coefficients;
+        self.total_energy += other.total_energy;
+        self.nonzero += other.nonzero;
+    }
+
+    /// The lowest score bin holding one of the top `k` coefficients (bin 0 when there are
+    /// fewer than `k`).
+    pub fn cut_for_count(&self, k: u64) -> usize {
+        self.histogram.cut_for_count(k)
+    }
+
     /// Coefficients per score bin, lowest score first.
     pub fn counts(&self) -> &[u64] {
         self.histogram.counts()
