@@ -9,8 +9,7 @@ use dicom_object::{DefaultDicomObject, InMemDicomObject};
 
 use super::attributes::element;
 use super::dicom_err;
-use super::image::Image;
-use super::pixels::{native_frame_bytes, RLE_LOSSLESS};
+use super::Image;
 use crate::reader::ReadError;
 
 /// A PALETTE COLOR image's lookup tables: per colour, the first stored value mapped and the
@@ -107,7 +106,7 @@ fn colour_untouched_by_codec(obj: &DefaultDicomObject) -> bool {
     let ts = obj.meta().transfer_syntax().trim_end_matches('\0');
     let encapsulated = element(obj, tags::PIXEL_DATA).is_some_and(|e| e.fragments().is_some());
     !encapsulated
-        || ts == RLE_LOSSLESS
+        || ts == dicom_dictionary_std::uids::RLE_LOSSLESS
         || ts == dicom_dictionary_std::uids::JPEGLS_LOSSLESS
         || ts == dicom_dictionary_std::uids::JPEGLS_NEAR_LOSSLESS
 }
@@ -127,7 +126,7 @@ fn ybr_full_pixel(y: f64, cb: f64, cr: f64, half: f64) -> [f64; 3] {
 }
 
 /// Interleaved RGB samples (host order) from 8- or 16-bit Y, Cb, Cr triples.
-fn ybr_triples_to_rgb(bytes_per: usize, ybr: impl Iterator<Item = [f64; 3]>) -> Vec<u8> {
+pub(super) fn ybr_triples_to_rgb(bytes_per: usize, ybr: impl Iterator<Item = [f64; 3]>) -> Vec<u8> {
     let half = if bytes_per == 1 { 128.0 } else { 32768.0 };
     let mut out = Vec::new();
     for [y, cb, cr] in ybr {
@@ -141,7 +140,7 @@ fn ybr_triples_to_rgb(bytes_per: usize, ybr: impl Iterator<Item = [f64; 3]>) -> 
     out
 }
 
-fn sample_at(data: &[u8], bytes_per: usize, k: usize) -> f64 {
+pub(super) fn sample_at(data: &[u8], bytes_per: usize, k: usize) -> f64 {
     match bytes_per {
         1 => f64::from(data[k]),
         _ => f64::from(u16::from_ne_bytes([data[2 * k], data[2 * k + 1]])),
@@ -183,50 +182,5 @@ pub(super) fn ybr_full_to_rgb(
     Ok(Some(ybr_triples_to_rgb(
         bytes_per,
         (0..plane).map(|i| [at(i, 0), at(i, 1), at(i, 2)]),
-    )))
-}
-
-/// Frame `f` of native YBR_FULL_422 pixel data (Y1 Y2 Cb Cr for each pair of pixels along a
-/// row) as RGB. dicom-pixeldata sizes native frames as three samples a pixel, so these frames
-/// are cut from the pixel data here. `None` for anything else.
-pub(super) fn native_ybr_422_frame(
-    img: &Image,
-    obj: &DefaultDicomObject,
-    f: usize,
-) -> Result<Option<Vec<u8>>, ReadError> {
-    if img.samples != 3 || img.photometric != "YBR_FULL_422" {
-        return Ok(None);
-    }
-    let Some(p) = element(obj, tags::PIXEL_DATA).and_then(|e| e.value().primitive()) else {
-        return Ok(None); // encapsulated: the JPEG decoder converts
-    };
-    let bytes_per = (img.bits_allocated / 8) as usize;
-    let err = |reason: String| dicom_err(&img.path, Some(tags::PHOTOMETRIC_INTERPRETATION), reason);
-    if bytes_per > 2 || img.signed || img.cols % 2 == 1 {
-        return Err(err(format!(
-            "native YBR_FULL_422 with {} columns of {}-bit {} samples: only even widths of \
-             unsigned 8- or 16-bit samples are supported",
-            img.cols,
-            img.bits_allocated,
-            if img.signed { "signed" } else { "unsigned" }
-        )));
-    }
-    let all = p.to_bytes();
-    let size = native_frame_bytes(img);
-    let Some(frame) = all.get(f * size..(f + 1) * size) else {
-        return Err(err(format!(
-            "frame {} lies beyond the {} bytes of pixel data",
-            f + 1,
-            all.len()
-        )));
-    };
-    let pairs = img.rows * img.cols / 2;
-    Ok(Some(ybr_triples_to_rgb(
-        bytes_per,
-        (0..pairs).flat_map(|q| {
-            let s = |j: usize| sample_at(frame, bytes_per, 4 * q + j);
-            let (cb, cr) = (s(2), s(3));
-            [[s(0), cb, cr], [s(1), cb, cr]]
-        }),
     )))
 }

@@ -9,7 +9,7 @@ use dicom_dictionary_std::tags;
 use wavesplat_codec::volume::Placement;
 
 use super::dicom_err;
-use super::image::Image;
+use super::Image;
 use crate::reader::{voxel_count, ReadError};
 
 /// The offsets along the slice normal of an RT Dose grid's frames from Grid Frame Offset

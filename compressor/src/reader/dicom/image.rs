@@ -4,7 +4,7 @@
 //! (from the functional groups, the slice step or an RT Dose grid's offsets), rescale and
 //! Dose Grid Scaling, and the refusal of multi-frame files that are time series.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use dicom_core::Tag;
 use dicom_dictionary_std::tags;
@@ -12,58 +12,14 @@ use dicom_object::{DefaultDicomObject, InMemDicomObject};
 use wavesplat_codec::volume::MAX_VOXELS;
 
 use super::attributes::{element, floats_for_frame, get_floats, get_str, get_uint, require_uint};
-use super::colour::{read_palette, Palette};
+use super::colour::read_palette;
 use super::geometry::{grid_frame_offsets, normal};
+use super::Image;
 use super::{dicom_err, EXPANSION_SLACK, MAX_FILE_EXPANSION};
 use crate::reader::ReadError;
 
 /// SOP Class UID of a DICOMDIR (Media Storage Directory Storage): skipped in series directories.
 const DICOMDIR_SOP_CLASS: &str = "1.2.840.10008.1.3.10";
-
-/// What the reader needs of one image file (pixel data not yet decoded).
-#[derive(Debug, Clone)]
-pub(super) struct Image {
-    pub(super) name: String,
-    pub(super) path: PathBuf,
-    pub(super) series: String,
-    pub(super) rows: usize,
-    pub(super) cols: usize,
-    pub(super) frames: usize,
-    pub(super) samples: usize,
-    pub(super) bits_allocated: u32,
-    pub(super) bits_stored: u32,
-    pub(super) signed: bool,
-    /// (row spacing, column spacing), mm.
-    pub(super) pixel_spacing: Option<[f64; 2]>,
-    /// Row direction, column direction.
-    pub(super) orientation: Option<[f64; 6]>,
-    /// Per frame.
-    pub(super) positions: Vec<Option<[f64; 3]>>,
-    /// Per frame (slope, intercept).
-    pub(super) rescale: Vec<(f64, f64)>,
-    /// Spacing Between Slices, else Slice Thickness.
-    pub(super) slice_step: Option<f64>,
-    pub(super) instance: i64,
-    /// When the image was taken in a time series: Temporal Position Identifier, else Trigger
-    /// Time (named by `time_attribute`).
-    pub(super) time: Option<String>,
-    pub(super) time_attribute: &'static str,
-    /// Photometric Interpretation as the file states it.
-    pub(super) photometric: String,
-    /// The colour palette of a PALETTE COLOR image.
-    pub(super) palette: Option<std::sync::Arc<Palette>>,
-}
-
-impl Image {
-    /// Channels of the volume: three for a palette image (its colours), else the samples.
-    pub(super) fn channels(&self) -> usize {
-        if self.palette.is_some() {
-            3
-        } else {
-            self.samples
-        }
-    }
-}
 
 /// Reads what the reader needs of an image's header; `file_len` (the file's size) bounds the
 /// frames and sample bytes it may declare, so that a small file cannot make the per-frame

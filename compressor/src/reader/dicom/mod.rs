@@ -43,12 +43,13 @@
 //! compressed bytes, and a panic inside the DICOM crates is caught and reported as an error on
 //! the file.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use dicom_core::Tag;
 use dicom_dictionary_std::tags;
 
 use super::ReadError;
+use colour::Palette;
 
 // One file a job: `series` finds the files and assembles the volume (the entry points),
 // `walk` checks element lengths and parses, `attributes` reads values, `image` describes
@@ -63,7 +64,53 @@ mod series;
 mod walk;
 
 pub use series::is_dicom_file;
-pub(crate) use series::{decode, gather_series, has_preamble};
+pub(crate) use series::{decode, gather_series};
+pub(crate) use walk::has_preamble;
+
+/// What the reader needs of one image file (pixel data not yet decoded).
+#[derive(Debug, Clone)]
+struct Image {
+    name: String,
+    path: PathBuf,
+    series: String,
+    rows: usize,
+    cols: usize,
+    frames: usize,
+    samples: usize,
+    bits_allocated: u32,
+    bits_stored: u32,
+    signed: bool,
+    /// (row spacing, column spacing), mm.
+    pixel_spacing: Option<[f64; 2]>,
+    /// Row direction, column direction.
+    orientation: Option<[f64; 6]>,
+    /// Per frame.
+    positions: Vec<Option<[f64; 3]>>,
+    /// Per frame (slope, intercept).
+    rescale: Vec<(f64, f64)>,
+    /// Spacing Between Slices, else Slice Thickness.
+    slice_step: Option<f64>,
+    instance: i64,
+    /// When the image was taken in a time series: Temporal Position Identifier, else Trigger
+    /// Time (named by `time_attribute`).
+    time: Option<String>,
+    time_attribute: &'static str,
+    /// Photometric Interpretation as the file states it.
+    photometric: String,
+    /// The colour palette of a PALETTE COLOR image.
+    palette: Option<std::sync::Arc<Palette>>,
+}
+
+impl Image {
+    /// Channels of the volume: three for a palette image (its colours), else the samples.
+    fn channels(&self) -> usize {
+        if self.palette.is_some() {
+            3
+        } else {
+            self.samples
+        }
+    }
+}
 
 /// Largest ratio of decoded to encapsulated bytes accepted for a frame (plus 1 MiB): lossless
 /// codecs on real images stay far below it; a forged header on a tiny file does not.

@@ -1,6 +1,7 @@
 //! Pixel decoding: the checks on the transfer syntax and the pixel data's size before anything
 //! is decoded, and each frame's samples into the volume's channels with the modality rescale.
-//! Native data in either byte order (units put back in sample order), RLE (32-bit here, the
+//! Native data in either byte order (units put back in sample order; native YBR_FULL_422
+//! frames cut from the pixel data here, then converted by [`super::colour`]), RLE (32-bit here, the
 //! rest through dicom-pixeldata), 1-bit masks, and the JPEG family (lossy colour JPEG with
 //! libjpeg's colour rule, 12-bit lossy JPEG refused naming it; the rest through
 //! dicom-pixeldata).
@@ -13,8 +14,8 @@ use dicom_pixeldata::PixelDecoder;
 use dicom_transfer_syntax_registry::{TransferSyntaxIndex, TransferSyntaxRegistry};
 
 use super::attributes::element;
-use super::colour::{native_ybr_422_frame, ybr_full_to_rgb};
-use super::image::Image;
+use super::colour::{sample_at, ybr_full_to_rgb, ybr_triples_to_rgb};
+use super::Image;
 use super::{dicom_err, MAX_EXPANSION};
 use crate::reader::ReadError;
 
@@ -624,4 +625,49 @@ fn store_samples(
         }
     }
     Ok(())
+}
+
+/// Frame `f` of native YBR_FULL_422 pixel data (Y1 Y2 Cb Cr for each pair of pixels along a
+/// row) as RGB. dicom-pixeldata sizes native frames as three samples a pixel, so these frames
+/// are cut from the pixel data here. `None` for anything else.
+fn native_ybr_422_frame(
+    img: &Image,
+    obj: &DefaultDicomObject,
+    f: usize,
+) -> Result<Option<Vec<u8>>, ReadError> {
+    if img.samples != 3 || img.photometric != "YBR_FULL_422" {
+        return Ok(None);
+    }
+    let Some(p) = element(obj, tags::PIXEL_DATA).and_then(|e| e.value().primitive()) else {
+        return Ok(None); // encapsulated: the JPEG decoder converts
+    };
+    let bytes_per = (img.bits_allocated / 8) as usize;
+    let err = |reason: String| dicom_err(&img.path, Some(tags::PHOTOMETRIC_INTERPRETATION), reason);
+    if bytes_per > 2 || img.signed || img.cols % 2 == 1 {
+        return Err(err(format!(
+            "native YBR_FULL_422 with {} columns of {}-bit {} samples: only even widths of \
+             unsigned 8- or 16-bit samples are supported",
+            img.cols,
+            img.bits_allocated,
+            if img.signed { "signed" } else { "unsigned" }
+        )));
+    }
+    let all = p.to_bytes();
+    let size = native_frame_bytes(img);
+    let Some(frame) = all.get(f * size..(f + 1) * size) else {
+        return Err(err(format!(
+            "frame {} lies beyond the {} bytes of pixel data",
+            f + 1,
+            all.len()
+        )));
+    };
+    let pairs = img.rows * img.cols / 2;
+    Ok(Some(ybr_triples_to_rgb(
+        bytes_per,
+        (0..pairs).flat_map(|q| {
+            let s = |j: usize| sample_at(frame, bytes_per, 4 * q + j);
+            let (cb, cr) = (s(2), s(3));
+            [[s(0), cb, cr], [s(1), cb, cr]]
+        }),
+    )))
 }

@@ -14,7 +14,7 @@ use wavesplat_codec::volume::Volume;
 use super::geometry::{order_frames, Ordered};
 use super::image::read_image;
 use super::pixels::{check_pixel_data, decode_frame};
-use super::walk::parse;
+use super::walk::{has_preamble, parse};
 use super::{dicom_err, tag_name, EXPANSION_SLACK, MAX_FILE_EXPANSION};
 use crate::reader::{ReadError, SourceFiles, MAX_SOURCE_FILES};
 
@@ -28,11 +28,6 @@ fn dicom_values<const N: usize>(v: &Option<[f64; N]>) -> String {
             .join("\\"),
         None => "absent".to_string(),
     }
-}
-
-/// Whether `head` has the DICOM file preamble (`DICM` at offset 128).
-pub(crate) fn has_preamble(head: &[u8]) -> bool {
-    head.len() >= 132 && &head[128..132] == b"DICM"
 }
 
 /// Gathers the DICOM files directly inside `dir` (regular, non-hidden files starting with the

@@ -1,4 +1,4 @@
-//! The length-checking element walker and the parse it guards: before dicom-rs reads a file,
+//! The `DICM` preamble check, the length-checking element walker and the parse it guards: before dicom-rs reads a file,
 //! [`check_lengths`] walks its element headers (meta group, data set, sequences, items,
 //! fragments) and checks that every declared length fits in the bytes that remain, so that a
 //! forged length cannot make the parser allocate; it also decides how to read an element whose
@@ -14,9 +14,13 @@ use dicom_object::file::ReadPreamble;
 use dicom_object::{DefaultDicomObject, OpenFileOptions};
 
 use super::attributes::known_vrs;
-use super::series::has_preamble;
 use super::{dicom_err, MAX_EXPANSION};
 use crate::reader::ReadError;
+
+/// Whether `head` has the DICOM file preamble (`DICM` at offset 128).
+pub(crate) fn has_preamble(head: &[u8]) -> bool {
+    head.len() >= 132 && &head[128..132] == b"DICM"
+}
 
 /// Largest nesting of sequences accepted.
 const MAX_DEPTH: usize = 32;
