@@ -3,7 +3,9 @@
 //! quadrature transforms of cut factors, and the tables of factor triples, grouped by level so
 //! each distinct factor is evaluated once per FFT grid.
 
-use super::slice::{axis_transform, inverse_and_crop, signed, sizes, MirroredGrid, Transforms};
+use super::slice::{
+    axis_transform, inverse_and_crop, level_subpixel, signed, sizes, MirroredGrid, Transforms,
+};
 use super::FineTable;
 use super::FootprintParams;
 use num_complex::Complex64;
@@ -346,7 +348,7 @@ pub fn compute_factor_tables_with(
         let group: Vec<usize> = (0..keys.len())
             .filter(|i| factor_level(&keys[*i]) == level)
             .collect();
-        let (s, nx, ny) = sizes(p, level);
+        let (s, nx, ny) = sizes(p, level, level_subpixel(p, level));
         let mirrored = MirroredGrid::new(nx, ny);
         // Distinct factors per axis, each evaluated on the grid once per view.
         let mut grids: [Vec<(AxisFactor, FactorGrid)>; 3] = Default::default();

@@ -50,8 +50,8 @@ pub use factor::{
 };
 pub use set::{FootprintSet, VANISHING};
 pub use slice::{
-    axis_transform, basis_transform, compute_fine, compute_fine_with, footprint_spectrum,
-    support_radius, Transforms,
+    axis_transform, basis_transform, compute_fine, compute_fine_at, compute_fine_with,
+    footprint_spectrum, level_subpixel, support_radius, Transforms,
 };
 use wavesplat_codec::family::Family;
 pub use wavesplat_codec::view::sinc;

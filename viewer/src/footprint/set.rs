@@ -3,7 +3,7 @@
 
 use super::factor::{compute_factor_tables_with, AxisFactor, FactorGrids};
 use super::mipmap;
-use super::slice::compute_fine;
+use super::slice::{compute_fine, compute_fine_at, level_subpixel};
 use super::FineTable;
 use super::Footprint;
 use super::FootprintParams;
@@ -39,6 +39,22 @@ pub struct FootprintSet {
     factor_grids: FactorGrids,
 }
 
+/// The tables of one level that do not vanish in the view, with their types: a table whose peak
+/// is at most [`VANISHING`] of the level's largest is a ψ along the view direction, which
+/// integrates to zero along every ray (its splats would add nothing, nor would those of the
+/// finer levels, whose tables are its box sums).
+fn kept<'t>(tables: &'t [FineTable], kinds: &[u8]) -> Vec<(&'t FineTable, u8)> {
+    let peaks: Vec<f64> = tables.iter().map(FineTable::peak).collect();
+    let floor = VANISHING * peaks.iter().copied().fold(0.0, f64::max);
+    tables
+        .iter()
+        .zip(kinds)
+        .zip(&peaks)
+        .filter(|(_, &peak)| peak > floor)
+        .map(|((t, &kind), _)| (t, kind))
+        .collect()
+}
+
 impl FootprintSet {
     /// Builds every table: level M by FFT and finer levels by mipmap (nothing up front when
     /// cued: see [`FootprintSet::factor_tables`]).
@@ -57,26 +73,37 @@ impl FootprintSet {
                 }
             }
         } else {
-            let top = compute_fine(p, m, &all);
-            let peaks: Vec<f64> = top.iter().map(FineTable::peak).collect();
-            let floor = VANISHING * peaks.iter().copied().fold(0.0, f64::max);
-            for ((t, kind), &peak) in top.iter().zip(&all).zip(&peaks) {
-                if peak <= floor {
-                    // A ψ along the view direction integrates to zero along every ray: its
-                    // splats would add nothing, and neither would those of the finer levels,
-                    // whose tables are this one's box sums.
-                    continue;
+            // Levels wide enough for one phase (`level_subpixel`) by their own FFT each; the
+            // finer ones from the coarsest of them, at the phases the finest needs, by mipmap
+            // (whose box sums reach half a pixel either side: an even S).
+            let single = (1..=m)
+                .find(|&level| level_subpixel(p, level) == 1)
+                .unwrap_or(m + 1);
+            for level in single..=m {
+                let kinds = if level == m { &all } else { &wavelets };
+                let built = compute_fine_at(p, level, kinds, 1);
+                for (t, kind) in kept(&built, kinds) {
+                    tables[level * 8 + kind as usize] = Some(Footprint::build(t, p.gradient));
                 }
-                tables[m * 8 + *kind as usize] = Some(Footprint::build(t, p.gradient));
-                if *kind != 0 {
-                    // Each level from the one above it (r = 2): the same box sums as from
-                    // level M at once, in a quarter of the reads per level, since each table
-                    // is a quarter of the one above (`cascaded_mipmap_equals_the_direct_one`).
-                    let mut above = None;
-                    for level in (1..m).rev() {
-                        let f = mipmap(p, above.as_ref().unwrap_or(t), level + 1, level, *kind);
-                        tables[level * 8 + *kind as usize] = Some(Footprint::build(&f, p.gradient));
-                        above = Some(f);
+            }
+            if single > 1 {
+                let top = single - 1;
+                let kinds = if top == m { &all } else { &wavelets };
+                let built = compute_fine_at(p, top, kinds, level_subpixel(p, 1).max(2));
+                for (t, kind) in kept(&built, kinds) {
+                    tables[top * 8 + kind as usize] = Some(Footprint::build(t, p.gradient));
+                    if kind != 0 {
+                        // Each level from the one above it (r = 2): the same box sums as from
+                        // the top at once, in a quarter of the reads per level, since each
+                        // table is a quarter of the one above
+                        // (`cascaded_mipmap_equals_the_direct_one`).
+                        let mut above = None;
+                        for level in (1..top).rev() {
+                            let f = mipmap(p, above.as_ref().unwrap_or(t), level + 1, level, kind);
+                            tables[level * 8 + kind as usize] =
+                                Some(Footprint::build(&f, p.gradient));
+                            above = Some(f);
+                        }
                     }
                 }
             }
