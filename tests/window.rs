@@ -420,6 +420,69 @@ fn a_resting_window_at_800x600_gives_refinement_the_frame() {
     assert!(shown >= 1.0, "{line}");
 }
 
+/// A drag on the CPU backend draws each of its views smaller (`--drag-max-image`), shown
+/// stretched to the window, and the view it ends on is drawn at the window's size again and
+/// converges: every frame of a drag is a new view, and a full-size one took 200 ms a frame at
+/// 1920×1080 (the frame times are figures, in BENCHMARKS.md, not asserted here).
+#[test]
+fn a_drag_draws_smaller_images_and_the_view_it_ends_on_converges_at_full_size() {
+    let Some(x) = display_for_window() else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("phantom.wsp");
+    std::fs::write(&file, wsp(Phantom::SheppLogan, [64, 64, 48])).unwrap();
+    let shot = dir.path().join("end.png");
+    let script = format!(
+        "converge; drag 200,150 500,300 over 12; converge; screenshot {}; quit",
+        shot.display()
+    );
+    let child = view(
+        &x.display,
+        &[
+            file.to_str().unwrap(),
+            "--size",
+            "800x600",
+            "--cpu",
+            "--drag-max-image",
+            "200",
+            "--script",
+            &script,
+        ],
+    )
+    .spawn()
+    .unwrap();
+    let (status, stdout, stderr) = finish(child);
+    assert!(
+        status.success(),
+        "exit {status}\nstdout {stdout}\nstderr {stderr}"
+    );
+    assert!(stdout.contains(", converged"), "{stdout}");
+    // "view: 12 frames while dragging, images up to 200x150, frame time median …"
+    let line = stdout
+        .lines()
+        .find(|l| l.contains("frames while dragging"))
+        .unwrap_or_else(|| panic!("no drag line in {stdout}"));
+    let words: Vec<&str> = line.split_whitespace().collect();
+    let frames: u64 = words[1].parse().unwrap_or_else(|_| panic!("{line}"));
+    assert!(frames >= 12, "one frame a move: {line}");
+    let size = words
+        .iter()
+        .position(|w| *w == "to")
+        .and_then(|i| words.get(i + 1))
+        .map(|w| w.trim_end_matches(','))
+        .unwrap_or_else(|| panic!("{line}"));
+    let (w, h) = size.split_once('x').unwrap_or_else(|| panic!("{line}"));
+    let (w, h): (usize, usize) = (w.parse().unwrap(), h.parse().unwrap());
+    assert!(
+        w.max(h) <= 200 && w * 3 == h * 4,
+        "dragged images keep the window's shape within 200 px: {line}"
+    );
+    let (sw, sh, end) = grey(&shot);
+    assert_eq!((sw, sh), (800, 600), "the view it ended on, at full size");
+    assert!(stats(&end, sw, sw, sh).1 > 10.0, "no volume at the end");
+}
+
 #[test]
 fn the_window_closes_after_a_set_number_of_frames_and_refuses_cueing_in_multiview() {
     let Some(x) = display_for_window() else {
@@ -563,7 +626,7 @@ fn the_screen_shows_the_device_image_of_the_gpu_backend() {
     std::fs::write(&file, wsp(Phantom::Ct, [40, 32, 24])).unwrap();
     for (backend, shown_by) in [
         ("--gpu", "made there by the display pass"),
-        ("--cpu", "uploaded from the host"),
+        ("--cpu", "from the host"),
     ] {
         let p = |name: &str| -> PathBuf { dir.path().join(format!("{backend}-{name}")) };
         let s = |name: &str| p(name).to_str().unwrap().to_string();

@@ -21,6 +21,11 @@ pub struct ViewWindowArgs {
     /// Largest image side in pixels (per view); the image follows the window up to this.
     #[arg(long, default_value_t = 1024)]
     pub max_image: usize,
+    /// Largest image side in pixels while a drag turns or pans the view on the CPU backend,
+    /// shown stretched to the window until the view rests (every frame of a drag is a new
+    /// view, and a full-size one costs more than a frame to plan and draw on the host).
+    #[arg(long, default_value_t = window::DEFAULT_INTERACTIVE_MAX_IMAGE)]
+    pub drag_max_image: usize,
     /// Accumulate on the GPU (the window's adapter).
     #[arg(long, conflicts_with = "cpu")]
     pub gpu: bool,
@@ -38,7 +43,7 @@ pub struct ViewWindowArgs {
     pub exit_after_frames: Option<u64>,
     /// Synthetic input, run through the same handlers as real events: commands separated by
     /// `;` or new lines, or `@FILE`. Commands: `frames N`, `converge`, `drag X0,Y0 X1,Y1
-    /// [shift]`, `wheel LINES`, `key K` (a letter, `+`, `-`, `[`, `]`, `esc`, `f1`),
+    /// [shift] [over N]` (the moves in one frame, or spread over N frames), `wheel LINES`, `key K` (a letter, `+`, `-`, `[`, `]`, `esc`, `f1`),
     /// `resize WxH`, `screenshot PATH`, `signal PATH` (create the file), `await PATH` (wait
     /// until it exists), `lose-device` (destroy the graphics device, as a driver reset would
     /// lose it: the window recreates it), `quit`.
@@ -60,6 +65,12 @@ pub fn run(a: ViewWindowArgs) -> Result<()> {
         bail!(
             "--max-image must be in 1..={MAX_IMAGE_SIDE}, got {}",
             a.max_image
+        );
+    }
+    if a.drag_max_image == 0 || a.drag_max_image > MAX_IMAGE_SIDE {
+        bail!(
+            "--drag-max-image must be in 1..={MAX_IMAGE_SIDE}, got {}",
+            a.drag_max_image
         );
     }
     let script = match &a.script {
@@ -87,6 +98,7 @@ pub fn run(a: ViewWindowArgs) -> Result<()> {
     };
     let options = WindowOptions {
         max_image: a.max_image,
+        interactive_max_image: a.drag_max_image,
         backend: super::backend_choice(a.gpu, a.cpu),
         window_size: (
             request.width.min(u32::MAX as usize) as u32,
@@ -112,6 +124,16 @@ pub fn run(a: ViewWindowArgs) -> Result<()> {
             "refining"
         }
     );
+    if let Some(d) = &outcome.dragging {
+        outln!(
+            "view: {} frames while dragging, images up to {}x{}, frame time median {:.1} ms, 90th percentile {:.1} ms",
+            d.frames,
+            d.largest_image.0,
+            d.largest_image.1,
+            d.frame_ms_quantile(0.5),
+            d.frame_ms_quantile(0.9)
+        );
+    }
     if let Some(c) = outcome.last_convergence {
         // What a user (and the window's test) reads to see that refinement had the time.
         outln!(

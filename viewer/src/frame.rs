@@ -162,10 +162,26 @@ impl<B: AccumulationBackend, S: PacketSource> FrameLoop<B, S> {
     /// Changes the view (session first: it validates; then the source reorders).
     pub fn set_view(&mut self, spec: ViewSpec) -> Result<(), SessionError> {
         self.session.set_view(spec)?;
+        self.after_view_change(&spec);
+        Ok(())
+    }
+
+    /// [`FrameLoop::set_view`] for one step of a drag ([`RenderSession::set_view_turning`]).
+    pub fn set_view_turning(&mut self, spec: ViewSpec) -> Result<(), SessionError> {
+        self.session.set_view_turning(spec)?;
+        self.after_view_change(&spec);
+        Ok(())
+    }
+
+    /// The view stopped turning ([`RenderSession::settle`]).
+    pub fn settle(&mut self) {
+        self.session.settle();
+    }
+
+    fn after_view_change(&mut self, spec: &ViewSpec) {
         let dropped = self.session.take_dropped();
         self.source.dropped(dropped);
-        self.source.set_view(&spec);
-        Ok(())
+        self.source.set_view(spec);
     }
 
     /// One frame of at most about `budget` with the real clock.

@@ -5,6 +5,7 @@
 //! (H rows of W little-endian f32, channels interleaved); and the one measure by which the
 //! tests compare an image with its reference ([`max_relative_difference`]).
 
+use rayon::prelude::*;
 use std::io::Write;
 use std::path::Path;
 use thiserror::Error;
@@ -225,7 +226,9 @@ impl Image {
     pub fn level(x: f32, (lo, hi): (f64, f64)) -> u8 {
         let t = ((x as f64 - lo) / (hi - lo)).clamp(0.0, 1.0);
         if t.is_finite() {
-            (t * 255.0).round() as u8
+            // `round` without a libm call (bit for bit): a display converts millions of
+            // pixels a frame.
+            crate::footprint::round_half_away(t * 255.0) as u8
         } else {
             0
         }
@@ -238,16 +241,49 @@ impl Image {
             return Err(ImageError::Channels(self.channels));
         }
         let w = self.resolve_window(window)?;
-        let mut out = Vec::with_capacity(self.width * self.height * 4);
-        for px in self.data.chunks_exact(self.channels) {
-            let rgb = if self.channels == 1 {
-                [px[0]; 3]
-            } else {
-                [px[0], px[1], px[2]]
-            };
-            out.extend(rgb.map(|x| Image::level(x, w)));
-            out.push(255);
+        let c = self.channels;
+        let mut out = vec![255u8; self.data.len() / c * 4];
+        // Rows in parallel: a workstation window converts two million pixels a frame.
+        let row = self.width.max(1);
+        out.par_chunks_mut(4 * row)
+            .zip(self.data.par_chunks(c * row))
+            .for_each(|(dst, src)| {
+                for (d, px) in dst.chunks_exact_mut(4).zip(src.chunks_exact(c)) {
+                    if c == 1 {
+                        let v = Image::level(px[0], w);
+                        d[..3].fill(v);
+                    } else {
+                        for (dk, &x) in d[..3].iter_mut().zip(px) {
+                            *dk = Image::level(x, w);
+                        }
+                    }
+                }
+            });
+        Ok(out)
+    }
+
+    /// The image as one 0x00RRGGBB word per pixel through a window, as [`Image::to_rgba8`]
+    /// maps it: what a window's host-drawn buffer takes.
+    pub fn to_rgb_words(&self, window: Option<(f64, f64)>) -> Result<Vec<u32>, ImageError> {
+        if self.channels != 1 && self.channels != 3 {
+            return Err(ImageError::Channels(self.channels));
         }
+        let w = self.resolve_window(window)?;
+        let c = self.channels;
+        let mut out = vec![0u32; self.data.len() / c];
+        let row = self.width.max(1);
+        out.par_chunks_mut(row)
+            .zip(self.data.par_chunks(c * row))
+            .for_each(|(dst, src)| {
+                for (d, px) in dst.iter_mut().zip(src.chunks_exact(c)) {
+                    *d = if c == 1 {
+                        u32::from(Image::level(px[0], w)) * 0x01_01_01
+                    } else {
+                        px.iter()
+                            .fold(0, |acc, &x| (acc << 8) | u32::from(Image::level(x, w)))
+                    };
+                }
+            });
         Ok(out)
     }
 

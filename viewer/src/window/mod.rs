@@ -4,19 +4,22 @@
 //! it) and `script` (synthetic input for tests and demos) know no windowing library; `shell`,
 //! behind the `window` feature, is the winit 0.30 front-end: the window and its wgpu surface on
 //! the adapter it chose, surface upkeep, a lost device recreated on the same window, the title
-//! showing the session's state.
+//! showing the session's state; `soft`, behind the same feature, shows host images on a software
+//! device by writing the window's buffer instead of drawing through wgpu.
 
 pub mod controls;
 pub mod script;
 #[cfg(feature = "window")]
 mod shell;
+#[cfg(feature = "window")]
+mod soft;
 
 pub use controls::{
     human_bytes, Controls, Input, KeyPress, Reaction, TitleFacts, ViewState, WindowSize, HELP,
 };
 pub use script::{Command, Script};
 #[cfg(feature = "window")]
-pub use shell::{run, Convergence, WindowOptions, WindowOutcome};
+pub use shell::{run, Convergence, WindowOptions, WindowOutcome, DEFAULT_INTERACTIVE_MAX_IMAGE};
 
 use thiserror::Error;
 

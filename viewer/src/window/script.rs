@@ -88,23 +88,54 @@ impl Script {
                 ),
                 "converge" => Command::Converge,
                 "drag" => {
-                    let (from, to, shift) = match rest {
-                        [a, b] => (point(a)?, point(b)?, false),
-                        [a, b, m] if *m == "shift" => (point(a)?, point(b)?, true),
-                        _ => fail!("script: drag X0,Y0 X1,Y1 [shift], in {raw:?}"),
+                    // drag X0,Y0 X1,Y1 [shift] [over N]: the moves within one frame, or one a
+                    // frame for N frames (a hand's drag, for measuring frames while turning).
+                    let (points, shift, over) = match rest {
+                        [a, b] => ((a, b), false, None),
+                        [a, b, m] if *m == "shift" => ((a, b), true, None),
+                        [a, b, o, n] if *o == "over" => ((a, b), false, Some(*n)),
+                        [a, b, m, o, n] if *m == "shift" && *o == "over" => {
+                            ((a, b), true, Some(*n))
+                        }
+                        _ => fail!("script: drag X0,Y0 X1,Y1 [shift] [over N], in {raw:?}"),
                     };
-                    let mut v = vec![Input::Shift(shift), Input::CursorMoved(from.0, from.1)];
-                    v.push(Input::LeftButton(true));
-                    for i in 1..=8 {
-                        let t = i as f64 / 8.0;
-                        v.push(Input::CursorMoved(
+                    let (from, to) = (point(points.0)?, point(points.1)?);
+                    let over = match over {
+                        None => None,
+                        Some(n) => match n.parse::<usize>() {
+                            Ok(n) if n > 0 => Some(n),
+                            _ => fail!(
+                                "script: drag … over N takes a count of frames ≥ 1, got {n:?}"
+                            ),
+                        },
+                    };
+                    let start = vec![
+                        Input::Shift(shift),
+                        Input::CursorMoved(from.0, from.1),
+                        Input::LeftButton(true),
+                    ];
+                    let steps = over.unwrap_or(8);
+                    let moves = (1..=steps).map(|i| {
+                        let t = i as f64 / steps as f64;
+                        Input::CursorMoved(
                             from.0 + t * (to.0 - from.0),
                             from.1 + t * (to.1 - from.1),
-                        ));
+                        )
+                    });
+                    let end = [Input::LeftButton(false), Input::Shift(false)];
+                    match over {
+                        None => {
+                            Command::Inputs(start.into_iter().chain(moves).chain(end).collect())
+                        }
+                        Some(_) => {
+                            commands.push_back(Command::Inputs(start));
+                            for m in moves {
+                                commands.push_back(Command::Inputs(vec![m]));
+                                commands.push_back(Command::Frames(1));
+                            }
+                            Command::Inputs(end.to_vec())
+                        }
                     }
-                    v.push(Input::LeftButton(false));
-                    v.push(Input::Shift(false));
-                    Command::Inputs(v)
                 }
                 "wheel" => {
                     let l: f64 = one()?
@@ -172,6 +203,25 @@ mod tests {
         assert_eq!(c[2], &Command::Inputs(vec![Input::Key(KeyPress::Escape)]));
         assert_eq!(c[3], &Command::Resize(64, 48));
         assert_eq!(c[4], &Command::Quit);
+        // Spread over frames: press, then one move and one frame each, then release.
+        let s = Script::parse("drag 0,0 30,60 over 3").unwrap();
+        let c: Vec<&Command> = s.commands.iter().collect();
+        assert_eq!(c.len(), 1 + 2 * 3 + 1);
+        assert_eq!(
+            c[0],
+            &Command::Inputs(vec![
+                Input::Shift(false),
+                Input::CursorMoved(0.0, 0.0),
+                Input::LeftButton(true)
+            ])
+        );
+        assert_eq!(c[1], &Command::Inputs(vec![Input::CursorMoved(10.0, 20.0)]));
+        assert_eq!(c[2], &Command::Frames(1));
+        assert_eq!(c[5], &Command::Inputs(vec![Input::CursorMoved(30.0, 60.0)]));
+        assert_eq!(
+            c[7],
+            &Command::Inputs(vec![Input::LeftButton(false), Input::Shift(false)])
+        );
     }
 
     #[test]
@@ -179,6 +229,8 @@ mod tests {
         for (text, says) in [
             ("frames x", "frames N"),
             ("drag 1,2", "drag X0,Y0 X1,Y1"),
+            ("drag 1,2 3,4 over 0", "count of frames"),
+            ("drag 1,2 3,4 shift over x", "count of frames"),
             ("drag 1,nan 2,3", "finite"),
             ("wheel inf", "finite"),
             ("key ctrl", "unknown key"),

@@ -11,6 +11,7 @@ use super::controls::{
     arrange, grid, Controls, Input, KeyPress, Reaction, TitleFacts, ViewState, WindowSize, HELP,
 };
 use super::script::{Command, Script};
+use super::soft::SoftDisplay;
 use super::{Context, Result, WindowError};
 use crate::backend::{select, AccumulationBackend, BackendChoice, GpuBackend, GpuContext};
 use crate::session::{RenderSession, SessionOptions};
@@ -39,6 +40,9 @@ macro_rules! fail {
 pub struct WindowOptions {
     /// The largest image side (per view); the image follows the window up to this.
     pub max_image: usize,
+    /// The largest image side while a drag turns or pans the view with the image made on the
+    /// host ([`DEFAULT_INTERACTIVE_MAX_IMAGE`]); shown stretched to the window.
+    pub interactive_max_image: usize,
     /// The accumulation backend: `Auto` takes the window's device unless it is a software one.
     pub backend: BackendChoice,
     /// The window's inner size at start, per view.
@@ -72,6 +76,31 @@ pub struct WindowOutcome {
     pub converged: bool,
     /// How the last view that converged got there.
     pub last_convergence: Option<Convergence>,
+    /// The frames drawn while a drag turned or panned the view, if any.
+    pub dragging: Option<DragFrames>,
+}
+
+/// The frames drawn while a drag held the view (turning or panning it).
+#[derive(Debug, Clone, PartialEq)]
+pub struct DragFrames {
+    /// Frames drawn.
+    pub frames: u64,
+    /// The largest image shown meanwhile (width, height).
+    pub largest_image: (usize, usize),
+    /// Each frame's time (ms), in order.
+    pub frame_ms: Vec<f64>,
+}
+
+impl DragFrames {
+    /// The `q`-quantile (0..=1) of the frame times, nearest rank.
+    pub fn frame_ms_quantile(&self, q: f64) -> f64 {
+        let mut t = self.frame_ms.clone();
+        t.sort_by(f64::total_cmp);
+        match t.len() {
+            0 => 0.0,
+            n => t[((q.clamp(0.0, 1.0) * (n - 1) as f64).round() as usize).min(n - 1)],
+        }
+    }
 }
 
 /// How a view converged: from the change that made it (a new view, a resize) to the frame that
@@ -86,6 +115,10 @@ pub struct Convergence {
     /// Images shown meanwhile.
     pub shown: u64,
 }
+
+/// The largest image side while a drag turns or pans a view drawn on the host
+/// ([`WindowOptions::interactive_max_image`]'s default).
+pub const DEFAULT_INTERACTIVE_MAX_IMAGE: usize = 512;
 
 /// How long after its last change a view counts as resting (and no button is held): from
 /// then on refinement gets the frame, and the image is shown less often.
@@ -122,6 +155,7 @@ pub fn run(
     let mut app = App {
         controls: Controls::new(state),
         view_size: PhysicalSize::new(0, 0),
+        view_max_image: 0,
         script,
         options,
         pending: Some((header, source)),
@@ -145,6 +179,7 @@ pub fn run(
         view_shown: 0,
         last_convergence: None,
         rest_display_ms: None,
+        dragging: None,
     };
     event_loop
         .run_app(&mut app)
@@ -162,6 +197,7 @@ pub fn run(
         bytes: 0,
         converged: app.converged,
         last_convergence: app.last_convergence,
+        dragging: app.dragging.take(),
     };
     if let Some(frames) = &app.frames {
         let stats = frames.session.stats();
@@ -174,7 +210,10 @@ pub fn run(
 
 /// The window, its surface and what draws to it.
 struct Gfx {
-    // Field order is drop order: the surface goes before the window it draws to.
+    // Field order is drop order: the surfaces go before the window they draw to.
+    /// Where the image is shown instead of the wgpu surface, on a software device when the
+    /// image is made on the host ([`SoftDisplay`]).
+    soft: Option<SoftDisplay>,
     surface: wgpu::Surface<'static>,
     config: wgpu::SurfaceConfiguration,
     blitter: wgpu::util::TextureBlitter,
@@ -194,6 +233,8 @@ struct App {
     controls: Controls,
     /// The window size that view was made for.
     view_size: PhysicalSize<u32>,
+    /// The largest image side that view was made with.
+    view_max_image: usize,
     pending: Option<(Header, Box<dyn PacketSource>)>,
     gfx: Option<Gfx>,
     /// The display connection a new graphics context is made on after a lost device.
@@ -223,6 +264,8 @@ struct App {
     last_convergence: Option<Convergence>,
     /// While the view rests and refines: about how often an image is shown.
     rest_display_ms: Option<f64>,
+    /// The frames drawn while a drag held the view.
+    dragging: Option<DragFrames>,
 }
 
 /// Lost graphics devices a window recreates before it gives up.
@@ -251,7 +294,7 @@ impl App {
         let display = event_loop.owned_display_handle();
         let g = open_display(&display, window.clone())?;
         let ctx = g.ctx.clone();
-        self.display = Some(display);
+        self.display = Some(display.clone());
         let size = window.inner_size();
         let (header, source) = self
             .pending
@@ -287,14 +330,26 @@ impl App {
                     (s.backend, s.reason)
                 }
             };
+        let mut g = g;
+        attach_soft_display(&mut g, &display, self.gpu_backend)?;
         eprintln!(
-            "backend: {reason}; display on {} ({:?}), {}",
-            ctx.info().name,
-            ctx.info().backend,
-            if shown_on_device(self.gpu_backend, &g) {
-                "the image made there by the display pass"
+            "backend: {reason}; {}",
+            if g.soft.is_some() {
+                format!(
+                    "display written from the host to the window's buffer ({} is a software device; WAVESPLAT_DISPLAY=device draws through it)",
+                    ctx.info().name
+                )
             } else {
-                "the image uploaded from the host"
+                format!(
+                    "display on {} ({:?}), {}",
+                    ctx.info().name,
+                    ctx.info().backend,
+                    if shown_on_device(self.gpu_backend, &g) {
+                        "the image made there by the display pass"
+                    } else {
+                        "the image uploaded from the host"
+                    }
+                )
             }
         );
         let spec = self.controls.state.spec(
@@ -309,6 +364,7 @@ impl App {
         self.frames = Some(frames);
         self.gfx = Some(g);
         self.view_size = size;
+        self.view_max_image = self.options.max_image;
         self.controls.view_changed = false;
         self.last_view_change = Instant::now();
         Ok(())
@@ -489,6 +545,8 @@ impl App {
                 .replace_backend(backend)
                 .context("drawing again on the new backend")?;
         }
+        let mut g = g;
+        attach_soft_display(&mut g, &display, self.gpu_backend)?;
         eprintln!("recovered: display on {}", g.ctx.info().name);
         self.gfx = Some(g);
         self.controls.image_changed = true;
@@ -507,48 +565,65 @@ impl App {
             return Ok(()); // minimised
         }
         let start = Instant::now();
-        if size != self.view_size {
+        // While a drag turns or pans the view on the host, the image is made smaller and shown
+        // stretched: a workstation window's image costs more than a frame to plan, splat and
+        // show on two cores, every frame of a drag being a new view.
+        let max_image = if self.controls.interacting() && !self.gpu_backend {
+            self.options
+                .max_image
+                .min(self.options.interactive_max_image)
+        } else {
+            self.options.max_image
+        };
+        if size != self.view_size || max_image != self.view_max_image {
             self.controls.view_changed = true;
         }
         if self.controls.view_changed {
             let geometry = frames.session.header().geometry;
-            let spec =
-                match self
-                    .controls
-                    .state
-                    .spec(window_size(size), self.options.max_image, &geometry)
-                {
-                    Ok(spec) => {
-                        self.controls.applied = self.controls.state.clone();
-                        spec
-                    }
-                    Err(e) => {
-                        // A view the input asked for that the renderer refuses: keep the last one.
-                        eprintln!("view not changed: {}", report(&e));
-                        self.controls.state = self.controls.applied.clone();
-                        self.controls.state.spec(
-                            window_size(size),
-                            self.options.max_image,
-                            &geometry,
-                        )?
-                    }
-                };
-            frames.set_view(spec).context("changing the view")?;
+            let spec = match self
+                .controls
+                .state
+                .spec(window_size(size), max_image, &geometry)
+            {
+                Ok(spec) => {
+                    self.controls.applied = self.controls.state.clone();
+                    spec
+                }
+                Err(e) => {
+                    // A view the input asked for that the renderer refuses: keep the last one.
+                    eprintln!("view not changed: {}", report(&e));
+                    self.controls.state = self.controls.applied.clone();
+                    self.controls
+                        .state
+                        .spec(window_size(size), max_image, &geometry)?
+                }
+            };
+            if self.controls.interacting() {
+                frames.set_view_turning(spec)
+            } else {
+                frames.set_view(spec)
+            }
+            .context("changing the view")?;
             self.view_size = size;
+            self.view_max_image = max_image;
             self.controls.view_changed = false;
             self.controls.image_changed = true;
             self.converged = false;
             self.last_view_change = Instant::now();
             self.view_refining = Duration::ZERO;
             self.view_shown = 0;
+        } else if !self.controls.interacting() {
+            // A drag ended on the view it last asked for: its exact tables from now on.
+            frames.settle();
         }
         // While the user interacts, a frame's splatting gets what the budget leaves after
-        // showing the image, so frames keep to the budget.
+        // showing the image and planning a changed view, so frames keep to the budget.
         let budget_ms = self.controls.state.budget_ms;
         let refine_start = Instant::now();
+        let spent_ms = start.elapsed().as_secs_f64() * 1e3;
         let mut report = frames
             .frame(Duration::from_secs_f64(
-                (budget_ms - self.display_ms_avg).max(1.0) / 1e3,
+                (budget_ms - self.display_ms_avg - spent_ms).max(1.0) / 1e3,
             ))
             .context("rendering a frame")?;
         // When the view rests, refinement gets the frame: frames of the full budget run back
@@ -621,6 +696,8 @@ impl App {
         present(g, size)?;
         let display_ms = display_start.elapsed().as_secs_f64() * 1e3;
         tracing::trace!(
+            interacting = self.controls.interacting(),
+            frame_ms = start.elapsed().as_secs_f64() * 1e3,
             refine_ms = display_start.duration_since(start).as_secs_f64() * 1e3,
             display_ms,
             present_ms = present_start.elapsed().as_secs_f64() * 1e3,
@@ -635,6 +712,19 @@ impl App {
         } else {
             0.9 * self.frame_ms_avg + 0.1 * frame_ms
         };
+        if self.controls.interacting() {
+            let image = self.last_image.unwrap_or((0, 0));
+            let d = self.dragging.get_or_insert(DragFrames {
+                frames: 0,
+                largest_image: (0, 0),
+                frame_ms: Vec::new(),
+            });
+            d.frames += 1;
+            if image.0 * image.1 > d.largest_image.0 * d.largest_image.1 {
+                d.largest_image = image;
+            }
+            d.frame_ms.push(frame_ms);
+        }
         self.drawn += 1;
         self.view_shown += 1;
         self.last_draw = Instant::now();
@@ -688,8 +778,13 @@ fn upload(
     let image = frames.session.image().context("reading the image")?;
     let window = Some(state.display_window(&image));
     let image = arrange(image, panels);
-    let rgba = image.to_rgba8(window).context("converting the image")?;
     let (w, h) = (image.width as u32, image.height as u32);
+    if let Some(soft) = g.soft.as_mut() {
+        let words = image.to_rgb_words(window).context("converting the image")?;
+        soft.set_image(words, image.width, image.height);
+        return Ok((w, h));
+    }
+    let rgba = image.to_rgba8(window).context("converting the image")?;
     if g.uploaded.as_ref().map(|t| (t.width(), t.height())) != Some((w, h)) {
         g.uploaded = Some(g.ctx.device().create_texture(&wgpu::TextureDescriptor {
             label: Some("wavesplat view image"),
@@ -778,6 +873,7 @@ fn open_display(
     }
     let blitter = wgpu::util::TextureBlitter::new(ctx.device(), format);
     Ok(Gfx {
+        soft: None,
         surface,
         config,
         blitter,
@@ -788,9 +884,36 @@ fn open_display(
     })
 }
 
+/// Shows the image through a [`SoftDisplay`] when the image is made on the host and the
+/// window's device is a software one (unless `WAVESPLAT_DISPLAY=device`): drawing a texture on
+/// it costs more than a frame at a workstation's window size.
+fn attach_soft_display(
+    g: &mut Gfx,
+    display: &winit::event_loop::OwnedDisplayHandle,
+    gpu_backend: bool,
+) -> Result<()> {
+    let forced_device = std::env::var("WAVESPLAT_DISPLAY").is_ok_and(|v| v == "device");
+    if gpu_backend || forced_device || !g.ctx.is_software() {
+        return Ok(());
+    }
+    match SoftDisplay::new(display, g.window.clone()) {
+        Ok(soft) => g.soft = Some(soft),
+        // The wgpu surface still shows the image, only more slowly.
+        Err(e) => tracing::warn!(
+            "drawing through {} instead of from the host: {}",
+            g.ctx.info().name,
+            report(&e)
+        ),
+    }
+    Ok(())
+}
+
 /// Draws the image texture over the whole surface and presents it, reconfiguring the surface
 /// when it is outdated and recreating it when it is lost.
 fn present(g: &mut Gfx, size: PhysicalSize<u32>) -> Result<()> {
+    if let Some(soft) = g.soft.as_mut() {
+        return soft.present(size);
+    }
     if (g.config.width, g.config.height) != (size.width, size.height) {
         g.config.width = size.width;
         g.config.height = size.height;

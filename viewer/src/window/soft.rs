@@ -1,0 +1,144 @@
+//! The window's display on a software graphics device: the host image, stretched to the window
+//! by nearest sample, written to the window's shared-memory buffer (softbuffer) instead of drawn
+//! as a texture over a wgpu surface. On Mesa's llvmpipe, drawing and presenting a 1920×1080
+//! surface cost 27–68 ms a frame, above a 60 Hz budget before anything was splatted; written
+//! here it costs 2–6 ms (the `present_ms` of the window's `image shown` trace events). It owns
+//! the pixel buffer and the stretch; which display a window takes is the shell's choice.
+
+use super::{Result, WindowError};
+use rayon::prelude::*;
+use std::num::NonZeroU32;
+use std::sync::Arc;
+use winit::dpi::PhysicalSize;
+use winit::event_loop::OwnedDisplayHandle;
+use winit::window::Window;
+
+/// The window's softbuffer surface and the image it shows.
+pub(super) struct SoftDisplay {
+    surface: softbuffer::Surface<OwnedDisplayHandle, Arc<Window>>,
+    /// The image as 0x00RRGGBB words, row-major, and its size.
+    image: Vec<u32>,
+    width: usize,
+    height: usize,
+}
+
+impl SoftDisplay {
+    /// Opens a softbuffer surface on `window` of the display `display`.
+    pub(super) fn new(display: &OwnedDisplayHandle, window: Arc<Window>) -> Result<SoftDisplay> {
+        let context = softbuffer::Context::new(display.clone()).map_err(|e| {
+            failed(
+                "opening the display for drawing from the host (softbuffer)",
+                e,
+            )
+        })?;
+        let surface = softbuffer::Surface::new(&context, window)
+            .map_err(|e| failed("creating the window's host-drawn surface (softbuffer)", e))?;
+        Ok(SoftDisplay {
+            surface,
+            image: Vec::new(),
+            width: 0,
+            height: 0,
+        })
+    }
+
+    /// Takes the image to show: 0x00RRGGBB words, rows of `width` pixels, display-ready
+    /// values (shown as they are, as on a non-sRGB surface).
+    pub(super) fn set_image(&mut self, words: Vec<u32>, width: usize, height: usize) {
+        self.image = words;
+        self.width = width;
+        self.height = height;
+    }
+
+    /// Writes the image stretched over a window of `size` (black without an image) and shows it.
+    pub(super) fn present(&mut self, size: PhysicalSize<u32>) -> Result<()> {
+        let (Some(w), Some(h)) = (NonZeroU32::new(size.width), NonZeroU32::new(size.height)) else {
+            return Ok(());
+        };
+        self.surface
+            .resize(w, h)
+            .map_err(|e| failed("resizing the window's host-drawn surface", e))?;
+        let mut buffer = self
+            .surface
+            .buffer_mut()
+            .map_err(|e| failed("reaching the window's host-drawn surface", e))?;
+        stretch(
+            &self.image,
+            (self.width, self.height),
+            &mut buffer,
+            (w.get() as usize, h.get() as usize),
+        );
+        buffer
+            .present()
+            .map_err(|e| failed("showing the window's host-drawn surface", e))
+    }
+}
+
+/// A softbuffer error with the step that failed (its errors are not `Send`: their text is kept).
+fn failed(what: &str, e: softbuffer::SoftBufferError) -> WindowError {
+    WindowError::Failed {
+        what: what.to_string(),
+        source: e.to_string().into(),
+    }
+}
+
+/// Fills `out` (`out_size`, row-major) with `image` (`size`) stretched by nearest sample: output
+/// pixel (x, y) takes the image pixel whose cell holds the output pixel's centre, as a texture
+/// drawn over the whole window with nearest filtering; black where there is no image.
+pub(super) fn stretch(
+    image: &[u32],
+    size: (usize, usize),
+    out: &mut [u32],
+    out_size: (usize, usize),
+) {
+    let (w, h) = size;
+    let (ow, oh) = out_size;
+    if w == 0 || h == 0 || image.len() < w * h {
+        out.fill(0);
+        return;
+    }
+    let source = |o: usize, n: usize, on: usize| ((2 * o + 1) * n / (2 * on)).min(n - 1);
+    let columns: Vec<usize> = (0..ow).map(|x| source(x, w, ow)).collect();
+    out.par_chunks_mut(ow.max(1))
+        .take(oh)
+        .enumerate()
+        .for_each(|(y, row)| {
+            let line = &image[source(y, h, oh) * w..][..w];
+            if ow == w {
+                row.copy_from_slice(line);
+            } else {
+                for (p, &x) in row.iter_mut().zip(&columns) {
+                    *p = line[x];
+                }
+            }
+        });
+}
+
+#[cfg(test)]
+mod tests {
+    use super::stretch;
+
+    #[test]
+    fn stretching_takes_the_nearest_sample_and_keeps_an_equal_size() {
+        let image: Vec<u32> = (0..6).collect(); // 3 × 2
+        let mut same = vec![9; 6];
+        stretch(&image, (3, 2), &mut same, (3, 2));
+        assert_eq!(same, image);
+        let mut double = vec![9; 24]; // 6 × 4
+        stretch(&image, (3, 2), &mut double, (6, 4));
+        assert_eq!(
+            double,
+            [0, 0, 1, 1, 2, 2, 0, 0, 1, 1, 2, 2, 3, 3, 4, 4, 5, 5, 3, 3, 4, 4, 5, 5]
+        );
+        let mut shrunk = vec![9; 1];
+        stretch(&image, (3, 2), &mut shrunk, (1, 1));
+        assert_eq!(shrunk, [4]);
+        let mut odd = vec![9; 5 * 3];
+        stretch(&image, (3, 2), &mut odd, (5, 3));
+        // Columns 0..5 of 5 map to 0, 0, 1, 2, 2; rows 0..3 of 3 to 0, 1, 1.
+        assert_eq!(&odd[..5], &[0, 0, 1, 2, 2]);
+        assert_eq!(&odd[10..], &[3, 3, 4, 5, 5]);
+        let mut none = vec![9; 4];
+        stretch(&[], (0, 0), &mut none, (2, 2));
+        assert_eq!(none, [0; 4]);
+    }
+}
