@@ -599,6 +599,68 @@ fn cue_k_auto_takes_its_scale_from_the_volume() {
 /// lists its bricks and `render` draws it (the same picture as the unbricked file, within the
 /// accuracy of their different coefficient sets); options the bricked path does not have are
 /// refused saying so.
+/// A volume that does not fit the memory limit whole is bricked without `--brick`, at the
+/// largest side whose bricks (one per thread) fit, and renders; the same file without a limit
+/// (it fits the memory available) is compressed whole as before.
+#[test]
+fn a_volume_over_the_memory_limit_is_bricked_by_itself() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = |n: &str| dir.path().join(n).to_str().unwrap().to_string();
+    let n = 128usize;
+    let ball: Vec<u8> = (0..n * n * n)
+        .map(|i| {
+            let (x, y, z) = (i % n, i / n % n, i / (n * n));
+            let r2 = [x, y, z]
+                .iter()
+                .map(|&c| (c as f64 - 63.5).powi(2))
+                .sum::<f64>();
+            if r2 < 40.0 * 40.0 {
+                200
+            } else {
+                0
+            }
+        })
+        .collect();
+    let raw = path("ball_128x128x128_u8.raw");
+    std::fs::write(&raw, &ball).unwrap();
+    // The whole needs ~203 MB by the estimate, a 64³ brick ~114 MB of which 64 MB once per
+    // process: two threads' bricks fit 180 MB, the whole does not.
+    let c = run(&[
+        "compress",
+        &raw,
+        "--memory-limit",
+        "180M",
+        "-o",
+        &path("b.wsp"),
+    ]);
+    assert!(c.status.success(), "{}", err(&c));
+    assert!(
+        err(&c).contains("bricks of at most 64 voxels a side")
+            && err(&c).contains("--memory-limit"),
+        "{}",
+        err(&c)
+    );
+    assert!(out(&c).contains("8 bricks"), "{}", out(&c));
+    let info = run(&["info", &path("b.wsp")]);
+    assert!(out(&info).contains("bricked container"), "{}", out(&info));
+    let r = run(&[
+        "render",
+        &path("b.wsp"),
+        "--cpu",
+        "--size",
+        "64x64",
+        "-o",
+        &path("b.png"),
+    ]);
+    assert!(r.status.success(), "{}", err(&r));
+    assert!(out(&r).contains("8 of 8 bricks drawn"), "{}", out(&r));
+    let w = run(&["compress", &raw, "-o", &path("w.wsp")]);
+    assert!(w.status.success(), "{}", err(&w));
+    assert!(!err(&w).contains("bricks of at most"), "{}", err(&w));
+    let info = run(&["info", &path("w.wsp")]);
+    assert!(!out(&info).contains("bricked"), "{}", out(&info));
+}
+
 #[test]
 fn a_bricked_volume_is_compressed_listed_and_rendered() {
     let dir = tempfile::tempdir().unwrap();

@@ -7,11 +7,12 @@ use std::path::PathBuf;
 use wavesplat_codec::family::Family;
 use wavesplat_codec::format::CoderKind;
 use wavesplat_codec::layout::Geometry;
-use wavesplat_codec::volume::Volume;
+use wavesplat_codec::volume::{Volume, MAX_VOXELS};
 use wavesplat_compressor::bricked::{compress_bricked, BrickSource, BrickStage};
 use wavesplat_compressor::colorspace::ColorSpaceKind;
 use wavesplat_compressor::encode::{
-    compress, CompressOptions, Compressed, Stage, Target, TileChoice,
+    compress, memory_estimate, CompressOptions, Compressed, Stage, Target, TileChoice,
+    PROCESS_MEMORY,
 };
 use wavesplat_compressor::order::Clustering;
 use wavesplat_compressor::phantom::Phantom;
@@ -98,8 +99,10 @@ pub struct CompressArgs {
     /// the refinement's gain (92.1 dB) in 1.4 s.
     #[arg(long)]
     pub no_refine: bool,
-    /// Refuse volumes whose estimated working memory exceeds this (bytes, or with a K, M or G
-    /// suffix: `8G`), with a clear error instead of running out of memory.
+    /// Keep compression within this working memory (bytes, or with a K, M or G suffix: `8G`);
+    /// default: the memory available now. A volume file that does not fit whole is compressed
+    /// as bricks that do (see --brick), one per thread; if none fits, or the input is a phantom
+    /// or a DICOM series, it is refused with a clear error instead of running out of memory.
     #[arg(long, value_parser = super::parse_bytes)]
     pub memory_limit: Option<u64>,
     /// What to keep.
@@ -110,7 +113,9 @@ pub struct CompressArgs {
     /// NRRD and MetaImage without loading the whole), written as one bricked file (format
     /// version 9). The target is the whole's: one score threshold across all bricks. For
     /// volumes larger than memory or than one transform (2^31 voxels); `render` and `info`
-    /// read the result (linear and haar families).
+    /// read the result (linear and haar families). Default: whole, unless the volume does not
+    /// fit --memory-limit or has more than 2^31 voxels: then bricks of 256, 128, 64 or 32, the
+    /// largest that fit.
     #[arg(long, value_name = "N")]
     pub brick: Option<usize>,
     /// Tile edge in voxels (rounded up to a multiple of 2^M); default: chosen from the size.
@@ -230,6 +235,111 @@ fn input(a: &CompressArgs) -> Result<Input> {
         path: input.clone(),
         raw,
     })
+}
+
+/// Brick sides `compress` tries, largest first, for a volume it cannot compress whole.
+const AUTO_BRICK_SIDES: [usize; 4] = [256, 128, 64, 32];
+
+/// Without `--memory-limit`, files smaller than this fraction of the memory available are not
+/// probed for bricking: even inflated from gzip and at one byte a sample, their volume's
+/// working memory (~23× its f32 samples) fits.
+const PROBE_FRACTION: u64 = 64;
+
+/// Whether `compress` without `--brick` should brick the input file, and at which side: when
+/// compressing it whole would need more memory than the limit (`--memory-limit`, else the
+/// memory available now) or it has more voxels than one transform takes. The side is the
+/// largest of [`AUTO_BRICK_SIDES`] below the volume's whose bricks, one per thread, fit the
+/// limit (none fitting: compressed whole, which reports the limit). Only files read by region
+/// are probed (a DICOM series or ASCII NRRD is read whole anyway); volumes that fit are
+/// compressed whole, as before.
+fn auto_brick(a: &CompressArgs, opts: &CompressOptions) -> Result<Option<(usize, String)>> {
+    let (Some(path), None) = (&a.input, &a.phantom) else {
+        return Ok(None);
+    };
+    if path.is_dir() {
+        return Ok(None);
+    }
+    let limit = opts.memory_limit.or_else(available_memory);
+    let on_disk = std::fs::metadata(path).map(|m| m.len()).unwrap_or(0);
+    // A limit given is always checked; the memory available only for files large enough.
+    let large = match (opts.memory_limit, limit) {
+        (Some(_), _) => true,
+        (None, Some(l)) => on_disk.saturating_mul(PROBE_FRACTION) >= l,
+        (None, None) => on_disk >= 1 << 30,
+    };
+    if !large {
+        return Ok(None);
+    }
+    let Input::File { path, raw } = input(a)? else {
+        return Ok(None);
+    };
+    let reader = RegionReader::open(&path, raw.as_ref()).map_err(|e| read_error(&path, e))?;
+    if reader.in_memory() {
+        return Ok(None);
+    }
+    let d = reader.dims();
+    let voxels = reader.voxel_count();
+    let why = if voxels > MAX_VOXELS as u128 {
+        format!(
+            "{}x{}x{} is {voxels} voxels, more than one transform takes ({MAX_VOXELS})",
+            d[0], d[1], d[2]
+        )
+    } else {
+        let (needed, _) = memory_estimate(d, reader.channels(), opts)?;
+        match limit {
+            Some(l) if needed > l => format!(
+                "compressing {}x{}x{} whole needs about {} of memory, more than the {} {}",
+                d[0],
+                d[1],
+                d[2],
+                wavesplat_viewer::window::human_bytes(needed),
+                wavesplat_viewer::window::human_bytes(l),
+                if opts.memory_limit.is_some() {
+                    "of --memory-limit"
+                } else {
+                    "available now (--memory-limit sets the limit)"
+                }
+            ),
+            _ => return Ok(None),
+        }
+    };
+    if opts.family == Family::Cubic {
+        bail!("{why}, and bricked volumes do not support the cubic family yet: use --family linear (the default) or haar");
+    }
+    // Bricks are compressed one per thread: the process's share of the estimate once, each
+    // brick's own part per thread. A side no smaller than the volume is no brick at all.
+    let threads = rayon::current_num_threads().max(1) as u64;
+    let brick_opts = CompressOptions {
+        margin: Some(0),
+        ..opts.clone()
+    };
+    let fits = |side: usize| {
+        let b = d.map(|n| n.min(side));
+        memory_estimate(b, reader.channels(), &brick_opts).is_ok_and(|(n, _)| {
+            let per_brick = n.saturating_sub(PROCESS_MEMORY);
+            limit.is_none_or(|l| PROCESS_MEMORY + per_brick.saturating_mul(threads) <= l)
+        })
+    };
+    let too_many_voxels = voxels > MAX_VOXELS as u128;
+    let side = AUTO_BRICK_SIDES
+        .into_iter()
+        .filter(|&side| d.iter().any(|&n| n > side))
+        .find(|&side| fits(side));
+    Ok(match (side, too_many_voxels) {
+        (Some(side), _) => Some((side, why)),
+        (None, true) => Some((AUTO_BRICK_SIDES[AUTO_BRICK_SIDES.len() - 1], why)),
+        // No brick fits either: compressing whole reports the limit, as before.
+        (None, false) => None,
+    })
+}
+
+/// Memory available to a new process now (Linux: `MemAvailable` in `/proc/meminfo`); `None`
+/// elsewhere. Read by hand: one line of a kernel file, no crate needed.
+fn available_memory() -> Option<u64> {
+    let text = std::fs::read_to_string("/proc/meminfo").ok()?;
+    let line = text.lines().find(|l| l.starts_with("MemAvailable:"))?;
+    let kib: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    kib.checked_mul(1024)
 }
 
 /// `compress --brick N`: the volume read brick by brick and written as one bricked file.
@@ -365,6 +475,13 @@ pub fn run(a: CompressArgs) -> Result<()> {
     let mut opts = options(&a)?;
     super::check_output(&a.output)?;
     if let Some(brick) = a.brick {
+        return run_bricked(&a, &opts, brick);
+    }
+    if let Some((brick, why)) = auto_brick(&a, &opts)? {
+        eprintln!(
+            "note: {why}: compressing it as bricks of at most {brick} voxels a side, read from \
+             the file brick by brick, into one bricked file (--brick N chooses the side)"
+        );
         return run_bricked(&a, &opts, brick);
     }
     let volume = load(&a)?;

@@ -13,6 +13,11 @@ use wavesplat_codec::layout::Geometry;
 /// and, with refinement, the padded targets, values, gradients and mask (13 B per channel)
 /// plus two work arrays (8 B); then the candidate list and the encoder's per-coefficient
 /// copies (~200 B per candidate). A byte target that compares two depths holds two
+/// What [`memory_estimate`] counts once per process whatever the volume: the binary, the
+/// thread pool and small tables (~30 MB measured on a 128³ volume). Compressing several
+/// bricks at once needs it once, the rest of each brick's estimate per brick.
+pub const PROCESS_MEMORY: u64 = 64 << 20;
+
 /// transforms at once. Measured peaks stay below it (BENCHMARKS.md, issue 14).
 pub fn memory_estimate(
     dims: [usize; 3],
@@ -67,8 +72,7 @@ pub fn memory_estimate(
         150
     };
     let encode = (candidates / 2).saturating_mul(per_kept);
-    // The binary, the thread pool and small tables: ~30 MB measured on a 128³ volume.
-    let base = 64 << 20;
+    let base = PROCESS_MEMORY;
     let total = base + input + held + prepare.max(lists + refine.max(encode));
     let detail = format!(
         "{} coefficients per channel on the padded {}x{}x{} grid, {} channel(s){}",

@@ -23,7 +23,7 @@ mod options;
 mod prepare;
 mod rate;
 
-pub use memory::memory_estimate;
+pub use memory::{memory_estimate, PROCESS_MEMORY};
 pub use options::{
     default_levels, CompressError, CompressOptions, CompressStats, Compressed, Stage, Target,
     TileChoice, LAYER_GROWTH,
