@@ -190,7 +190,8 @@ impl<B: AccumulationBackend, S: PacketSource> FrameLoop<B, S> {
     }
 
     /// One frame: drain arrived packets, then splat until the deadline (no batch starts after
-    /// it, so at most one ends past it).
+    /// it, so at most one ends past it; a frame that has splatted nothing by then splats one
+    /// batch, so that every frame with something queued draws).
     pub fn frame_with(
         &mut self,
         budget: Duration,
@@ -232,15 +233,21 @@ impl<B: AccumulationBackend, S: PacketSource> FrameLoop<B, S> {
                 self.source.dropped(dropped);
             }
             let now = clock.now();
-            if self.session.pending() == 0 || now >= splat_deadline {
+            // Past the deadline a frame still splats once if it has splatted nothing: taking a
+            // packet (5–13 ms to decode) can outlast a short frame, and frames that each take
+            // one and stop would leave the image blank however many of them run.
+            let late = now >= splat_deadline;
+            if self.session.pending() == 0 || (late && report.coefficients > 0) {
                 break;
             }
-            let step: StepReport = self.session.step_with(splat_deadline - now, clock)?;
+            let step: StepReport = self
+                .session
+                .step_with(splat_deadline.saturating_sub(now), clock)?;
             report.coefficients += step.coefficients;
             report.records += step.records;
             report.batches += step.batches;
             report.batches_past_deadline += usize::from(step.overran);
-            if step.overran || clock.now() >= splat_deadline {
+            if late || step.overran || clock.now() >= splat_deadline {
                 break;
             }
         }

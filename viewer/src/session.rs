@@ -916,7 +916,8 @@ impl<B: AccumulationBackend> RenderSession<B> {
     }
 
     /// Splats queued coefficients, largest visible energy first, in batches sized to what is
-    /// left of `budget` by the running cost estimate; no batch starts after the deadline.
+    /// left of `budget` by the running cost estimate; no batch but the first starts after the
+    /// deadline (a step draws when something is queued, a minimal batch if no time is left).
     pub fn step_with(
         &mut self,
         budget: Duration,
@@ -936,10 +937,12 @@ impl<B: AccumulationBackend> RenderSession<B> {
             // the running estimate measures splatting alone.
             self.backend.prepare(&self.plan.atlas)?;
             let now = clock.now();
-            if now >= deadline {
+            // The first batch runs whatever is left (a minimal one when nothing is): a step
+            // always draws when something is queued.
+            if now >= deadline && report.batches > 0 {
                 break;
             }
-            let left = (deadline - now).as_secs_f64();
+            let left = deadline.saturating_sub(now).as_secs_f64();
             let kind = usize::from(self.exact);
             let packets = &self.packets;
             // Pixels per voxel (the footprint side of a finest coefficient): the zoom per unit
