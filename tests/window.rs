@@ -142,6 +142,24 @@ fn stats(data: &[f64], stride: usize, w: usize, h: usize) -> (f64, f64) {
     )
 }
 
+/// The standard output of a `view` that exited successfully with its view converged.
+fn converged_output(child: Child) -> String {
+    let (status, stdout, stderr) = finish(child);
+    assert!(
+        status.success(),
+        "exit {status}\nstdout {stdout}\nstderr {stderr}"
+    );
+    assert!(stdout.contains(", converged"), "{stdout}");
+    stdout
+}
+
+/// The first line of `text` that contains `needle`.
+fn line_with<'a>(text: &'a str, needle: &str) -> &'a str {
+    text.lines()
+        .find(|l| l.contains(needle))
+        .unwrap_or_else(|| panic!("no line with {needle:?} in {text}"))
+}
+
 fn wait_for(path: &Path, child: &mut Child, what: &str) {
     let deadline = Instant::now() + Duration::from_secs(180);
     while !path.exists() {
@@ -391,17 +409,9 @@ fn a_resting_window_at_800x600_gives_refinement_the_frame() {
     )
     .spawn()
     .unwrap();
-    let (status, stdout, stderr) = finish(child);
-    assert!(
-        status.success(),
-        "exit {status}\nstdout {stdout}\nstderr {stderr}"
-    );
-    assert!(stdout.contains(", converged"), "{stdout}");
+    let stdout = converged_output(child);
     // "view: the last view converged 1.23 s after it changed, 87 % of that refining, 9 images shown"
-    let line = stdout
-        .lines()
-        .find(|l| l.contains("the last view converged"))
-        .unwrap_or_else(|| panic!("no convergence line in {stdout}"));
+    let line = line_with(&stdout, "the last view converged");
     let number_before = |word: &str| -> f64 {
         let head = &line[..line
             .find(word)
@@ -452,17 +462,9 @@ fn a_drag_draws_smaller_images_and_the_view_it_ends_on_converges_at_full_size() 
     )
     .spawn()
     .unwrap();
-    let (status, stdout, stderr) = finish(child);
-    assert!(
-        status.success(),
-        "exit {status}\nstdout {stdout}\nstderr {stderr}"
-    );
-    assert!(stdout.contains(", converged"), "{stdout}");
+    let stdout = converged_output(child);
     // "view: 12 frames while dragging, images up to 200x150, frame time median …"
-    let line = stdout
-        .lines()
-        .find(|l| l.contains("frames while dragging"))
-        .unwrap_or_else(|| panic!("no drag line in {stdout}"));
+    let line = line_with(&stdout, "frames while dragging");
     let words: Vec<&str> = line.split_whitespace().collect();
     let frames: u64 = words[1].parse().unwrap_or_else(|_| panic!("{line}"));
     assert!(frames >= 12, "one frame a move: {line}");
