@@ -7,17 +7,17 @@ use wavesplat_codec::family::Family;
 use wavesplat_codec::format::CoderKind;
 use wavesplat_codec::layout::Geometry;
 
+/// What [`memory_estimate`] counts once per process whatever the volume: the binary, the
+/// thread pool and small tables (~30 MB measured on a 128³ volume). Compressing several
+/// bricks at once needs it once, the rest of each brick's estimate per brick.
+pub const PROCESS_MEMORY: u64 = 64 << 20;
+
 /// The peak memory [`compress`] needs for a volume of `dims` × `channels` with `opts`, in bytes,
 /// counting the input volume (f32 samples) and, per coefficient of the padded grid: the f64
 /// transform of one channel (8 B), the f32 coefficients (4 B per channel), the band map (1 B)
 /// and, with refinement, the padded targets, values, gradients and mask (13 B per channel)
 /// plus two work arrays (8 B); then the candidate list and the encoder's per-coefficient
 /// copies (~200 B per candidate). A byte target that compares two depths holds two
-/// What [`memory_estimate`] counts once per process whatever the volume: the binary, the
-/// thread pool and small tables (~30 MB measured on a 128³ volume). Compressing several
-/// bricks at once needs it once, the rest of each brick's estimate per brick.
-pub const PROCESS_MEMORY: u64 = 64 << 20;
-
 /// transforms at once. Measured peaks stay below it (BENCHMARKS.md, issue 14).
 pub fn memory_estimate(
     dims: [usize; 3],
