@@ -237,54 +237,51 @@ impl Image {
     /// The image as RGBA8 rows (grey repeated in R, G and B; alpha 255) through a window as
     /// [`Image::write_png`] maps it: what a display shows.
     pub fn to_rgba8(&self, window: Option<(f64, f64)>) -> Result<Vec<u8>, ImageError> {
-        if self.channels != 1 && self.channels != 3 {
-            return Err(ImageError::Channels(self.channels));
-        }
-        let w = self.resolve_window(window)?;
-        let c = self.channels;
-        let mut out = vec![255u8; self.data.len() / c * 4];
-        // Rows in parallel: a workstation window converts two million pixels a frame.
-        let row = self.width.max(1);
-        out.par_chunks_mut(4 * row)
-            .zip(self.data.par_chunks(c * row))
-            .for_each(|(dst, src)| {
-                for (d, px) in dst.chunks_exact_mut(4).zip(src.chunks_exact(c)) {
-                    if c == 1 {
-                        let v = Image::level(px[0], w);
-                        d[..3].fill(v);
-                    } else {
-                        for (dk, &x) in d[..3].iter_mut().zip(px) {
-                            *dk = Image::level(x, w);
-                        }
-                    }
-                }
-            });
+        let mut out = vec![255u8; self.width * self.height * 4];
+        self.for_each_rgb(window, out.as_chunks_mut::<4>().0, |d, rgb| {
+            d[..3].copy_from_slice(&rgb)
+        })?;
         Ok(out)
     }
 
     /// The image as one 0x00RRGGBB word per pixel through a window, as [`Image::to_rgba8`]
     /// maps it: what a window's host-drawn buffer takes.
     pub fn to_rgb_words(&self, window: Option<(f64, f64)>) -> Result<Vec<u32>, ImageError> {
+        let mut out = vec![0u32; self.width * self.height];
+        self.for_each_rgb(window, &mut out, |d, [r, g, b]| {
+            *d = u32::from_be_bytes([0, r, g, b])
+        })?;
+        Ok(out)
+    }
+
+    /// Writes each pixel's grey (repeated) or RGB levels through `window` ([`Image::level`])
+    /// into its element of `out` (one per pixel, row-major) with `put`, rows in parallel: a
+    /// workstation window converts two million pixels a frame.
+    fn for_each_rgb<T: Send>(
+        &self,
+        window: Option<(f64, f64)>,
+        out: &mut [T],
+        put: impl Fn(&mut T, [u8; 3]) + Sync,
+    ) -> Result<(), ImageError> {
         if self.channels != 1 && self.channels != 3 {
             return Err(ImageError::Channels(self.channels));
         }
         let w = self.resolve_window(window)?;
         let c = self.channels;
-        let mut out = vec![0u32; self.data.len() / c];
         let row = self.width.max(1);
         out.par_chunks_mut(row)
             .zip(self.data.par_chunks(c * row))
             .for_each(|(dst, src)| {
                 for (d, px) in dst.iter_mut().zip(src.chunks_exact(c)) {
-                    *d = if c == 1 {
-                        u32::from(Image::level(px[0], w)) * 0x01_01_01
+                    let rgb = if c == 1 {
+                        [Image::level(px[0], w); 3]
                     } else {
-                        px.iter()
-                            .fold(0, |acc, &x| (acc << 8) | u32::from(Image::level(x, w)))
+                        [0, 1, 2].map(|k| Image::level(px[k], w))
                     };
+                    put(d, rgb);
                 }
             });
-        Ok(out)
+        Ok(())
     }
 
     /// Writes an 8-bit PNG (grey or RGB) mapping `window = (low, high)` to 0..255; `None`
@@ -320,6 +317,35 @@ impl Image {
 #[cfg(test)]
 mod window_tests {
     use super::*;
+
+    /// The window's host-drawn words carry the display's RGBA bytes pixel for pixel (grey and
+    /// RGB, a NaN and values outside the window included), and other channel counts are
+    /// refused by both.
+    #[test]
+    fn rgb_words_pack_the_rgba_bytes() {
+        for channels in [1, 3] {
+            let mut img = Image::new(5, 3, channels);
+            for (i, v) in img.data.iter_mut().enumerate() {
+                *v = i as f32 * 0.37 - 2.0;
+            }
+            img.data[4] = f32::NAN;
+            for window in [None, Some((-1.0, 3.0))] {
+                let rgba = img.to_rgba8(window).unwrap();
+                let words = img.to_rgb_words(window).unwrap();
+                assert_eq!(words.len(), 15);
+                for (w, p) in words.iter().zip(rgba.chunks_exact(4)) {
+                    assert_eq!(p[3], 255);
+                    assert_eq!(*w, u32::from_be_bytes([0, p[0], p[1], p[2]]));
+                }
+            }
+        }
+        let two = Image::new(2, 2, 2);
+        assert!(matches!(two.to_rgba8(None), Err(ImageError::Channels(2))));
+        assert!(matches!(
+            two.to_rgb_words(None),
+            Err(ImageError::Channels(2))
+        ));
+    }
 
     /// The sampled window of a workstation-sized image (a projection: a bright disc on a dark
     /// background, with a NaN) is within a grey level of the window over every pixel, and a
