@@ -43,8 +43,8 @@ pub struct ViewWindowArgs {
     pub exit_after_frames: Option<u64>,
     /// Synthetic input, run through the same handlers as real events: commands separated by
     /// `;` or new lines, or `@FILE`. Commands: `frames N`, `converge`, `drag X0,Y0 X1,Y1
-    /// [shift] [over N]` (the moves in one frame, or spread over N frames), `wheel LINES`, `key K` (a letter, `+`, `-`, `[`, `]`, `esc`, `f1`),
-    /// `resize WxH`, `screenshot PATH`, `signal PATH` (create the file), `await PATH` (wait
+    /// [shift] [over N]` (the moves in one frame, or spread over N frames), `wheel LINES`,
+    /// `key K` (a letter, `+`, `-`, `[`, `]`, `esc`, `f1`), `resize WxH`, `screenshot PATH`, `signal PATH` (create the file), `await PATH` (wait
     /// until it exists), `lose-device` (destroy the graphics device, as a driver reset would
     /// lose it: the window recreates it), `quit`.
     #[arg(long)]
@@ -127,7 +127,7 @@ pub fn run(a: ViewWindowArgs) -> Result<()> {
     if let Some(d) = &outcome.dragging {
         outln!(
             "view: {} frames while dragging, images up to {}x{}, frame time median {:.1} ms, 90th percentile {:.1} ms",
-            d.frames,
+            d.frames(),
             d.largest_image.0,
             d.largest_image.1,
             d.frame_ms_quantile(0.5),

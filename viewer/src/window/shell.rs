@@ -83,8 +83,6 @@ pub struct WindowOutcome {
 /// The frames drawn while a drag held the view (turning or panning it).
 #[derive(Debug, Clone, PartialEq)]
 pub struct DragFrames {
-    /// Frames drawn.
-    pub frames: u64,
     /// The largest image shown meanwhile (width, height).
     pub largest_image: (usize, usize),
     /// Each frame's time (ms), in order.
@@ -92,6 +90,11 @@ pub struct DragFrames {
 }
 
 impl DragFrames {
+    /// Frames drawn.
+    pub fn frames(&self) -> usize {
+        self.frame_ms.len()
+    }
+
     /// The `q`-quantile (0..=1) of the frame times, nearest rank.
     pub fn frame_ms_quantile(&self, q: f64) -> f64 {
         let mut t = self.frame_ms.clone();
@@ -292,7 +295,7 @@ impl App {
                 .context("creating the window")?,
         );
         let display = event_loop.owned_display_handle();
-        let g = open_display(&display, window.clone())?;
+        let mut g = open_display(&display, window.clone())?;
         let ctx = g.ctx.clone();
         self.display = Some(display.clone());
         let size = window.inner_size();
@@ -330,8 +333,7 @@ impl App {
                     (s.backend, s.reason)
                 }
             };
-        let mut g = g;
-        attach_soft_display(&mut g, &display, self.gpu_backend)?;
+        attach_soft_display(&mut g, &display, self.gpu_backend);
         eprintln!(
             "backend: {reason}; {}",
             if g.soft.is_some() {
@@ -530,7 +532,7 @@ impl App {
         );
         let window = old.window.clone();
         drop(old);
-        let g = open_display(&display, window).context("recreating the graphics device")?;
+        let mut g = open_display(&display, window).context("recreating the graphics device")?;
         if let (true, Some(frames)) = (self.gpu_backend, self.frames.as_mut()) {
             let backend: Box<dyn AccumulationBackend> = match GpuBackend::new(g.ctx.clone()) {
                 Ok(b) => Box::new(b),
@@ -545,8 +547,7 @@ impl App {
                 .replace_backend(backend)
                 .context("drawing again on the new backend")?;
         }
-        let mut g = g;
-        attach_soft_display(&mut g, &display, self.gpu_backend)?;
+        attach_soft_display(&mut g, &display, self.gpu_backend);
         eprintln!("recovered: display on {}", g.ctx.info().name);
         self.gfx = Some(g);
         self.controls.image_changed = true;
@@ -715,11 +716,9 @@ impl App {
         if self.controls.interacting() {
             let image = self.last_image.unwrap_or((0, 0));
             let d = self.dragging.get_or_insert(DragFrames {
-                frames: 0,
                 largest_image: (0, 0),
                 frame_ms: Vec::new(),
             });
-            d.frames += 1;
             if image.0 * image.1 > d.largest_image.0 * d.largest_image.1 {
                 d.largest_image = image;
             }
@@ -891,10 +890,10 @@ fn attach_soft_display(
     g: &mut Gfx,
     display: &winit::event_loop::OwnedDisplayHandle,
     gpu_backend: bool,
-) -> Result<()> {
+) {
     let forced_device = std::env::var("WAVESPLAT_DISPLAY").is_ok_and(|v| v == "device");
     if gpu_backend || forced_device || !g.ctx.is_software() {
-        return Ok(());
+        return;
     }
     match SoftDisplay::new(display, g.window.clone()) {
         Ok(soft) => g.soft = Some(soft),
@@ -905,7 +904,6 @@ fn attach_soft_display(
             report(&e)
         ),
     }
-    Ok(())
 }
 
 /// Draws the image texture over the whole surface and presents it, reconfiguring the surface
