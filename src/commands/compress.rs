@@ -279,7 +279,8 @@ fn auto_brick(a: &CompressArgs, opts: &CompressOptions) -> Result<Option<(usize,
     }
     let d = reader.dims();
     let voxels = reader.voxel_count();
-    let why = if voxels > MAX_VOXELS as u128 {
+    let too_many_voxels = voxels > MAX_VOXELS as u128;
+    let why = if too_many_voxels {
         format!(
             "{}x{}x{} is {voxels} voxels, more than one transform takes ({MAX_VOXELS})",
             d[0], d[1], d[2]
@@ -320,7 +321,6 @@ fn auto_brick(a: &CompressArgs, opts: &CompressOptions) -> Result<Option<(usize,
             limit.is_none_or(|l| PROCESS_MEMORY + per_brick.saturating_mul(threads) <= l)
         })
     };
-    let too_many_voxels = voxels > MAX_VOXELS as u128;
     let side = AUTO_BRICK_SIDES
         .into_iter()
         .filter(|&side| d.iter().any(|&n| n > side))
