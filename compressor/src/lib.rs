@@ -13,3 +13,4 @@ pub mod phantom;
 pub mod reader;
 pub mod refine;
 mod select;
+pub mod visible;

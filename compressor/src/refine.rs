@@ -39,6 +39,7 @@
 use crate::select::{
     histogram, pick_order, score_bin, top_k, top_k_from_floor, BINS_PER_OCTAVE, CHUNK,
 };
+use crate::visible::Visible;
 use rayon::prelude::*;
 use wavesplat_codec::dwt::fast::FastTransform;
 use wavesplat_codec::dwt::{pad_channel_as, unit_basis_line};
@@ -335,6 +336,7 @@ pub fn refine_extended(
     refine_with(
         geometry,
         &band_of,
+        None,
         &targets,
         importance,
         kept,
@@ -382,6 +384,7 @@ pub struct Refined {
 pub(crate) fn refine_with(
     geometry: &Geometry,
     band_of: &[u8],
+    visible: Option<&Visible>,
     targets: &[Vec<f32>],
     importance: &[f64],
     kept: &[KeptValue],
@@ -396,9 +399,12 @@ pub(crate) fn refine_with(
         .iter()
         .map(|b| geometry.basis_norm2(*b))
         .collect();
-    let score_of = |c: usize, band: u8, v: f32| {
+    // The oracle's score, counting only the seen energy where that is asked for.
+    let score_of = |c: usize, i: usize, v: f32| {
         let v = v as f64;
-        v * v * norms[band as usize] * importance[c]
+        let band = band_of[i];
+        let seen = visible.map_or(1.0, |s| s.fraction(i, band));
+        v * v * norms[band as usize] * importance[c] * seen
     };
     if k == 0 || geometry.family == Family::Haar {
         // Haar is orthonormal up to per-band scale: thresholding is already optimal.
@@ -410,7 +416,7 @@ pub(crate) fn refine_with(
             };
         }
         return Refined {
-            kept: sorted(band_of, &score_of, kept.to_vec()),
+            kept: sorted(&score_of, kept.to_vec()),
             extension: Vec::new(),
             first_survivors: k,
         };
@@ -419,7 +425,7 @@ pub(crate) fn refine_with(
     let op = Operator::new(geometry, band_of);
     let threshold = kept
         .iter()
-        .map(|s| score_of(s.channel as usize, band_of[s.index as usize], s.value))
+        .map(|s| score_of(s.channel as usize, s.index as usize, s.value))
         .fold(f64::INFINITY, f64::min);
     let n = geometry.coefficient_count();
     let mut arrays = Arrays::take(scratch, channels, n);
@@ -460,8 +466,8 @@ pub(crate) fn refine_with(
                 values[c]
                     .par_iter()
                     .zip(masks[c].par_iter())
-                    .zip(band_of.par_iter())
-                    .filter(|((v, m), b)| **m && score_of(c, **b, **v) >= threshold)
+                    .enumerate()
+                    .filter(|(i, (v, m))| **m && score_of(c, *i, **v) >= threshold)
                     .count()
             })
             .sum()
@@ -488,7 +494,7 @@ pub(crate) fn refine_with(
             if v == 0.0 {
                 -1.0
             } else {
-                score_of(c, band_of[i], v)
+                score_of(c, i, v)
             }
         };
         // One pass from a floor an octave below the last cut (the oracle's threshold at
@@ -528,9 +534,9 @@ pub(crate) fn refine_with(
             let dropped: usize = values[c]
                 .par_iter_mut()
                 .zip(masks[c].par_iter_mut())
-                .zip(band_of.par_iter())
-                .map(|((v, m), b)| {
-                    if *m && score_of(c, *b, *v) < threshold {
+                .enumerate()
+                .map(|(i, (v, m))| {
+                    if *m && score_of(c, i, *v) < threshold {
                         *m = false;
                         *v = 0.0;
                         1
@@ -566,7 +572,7 @@ pub(crate) fn refine_with(
             })
         })
         .collect();
-    let kept = sorted(band_of, &score_of, out);
+    let kept = sorted(&score_of, out);
     if extension == 0 || kept.is_empty() {
         return Refined {
             kept,
@@ -583,7 +589,7 @@ pub(crate) fn refine_with(
     // stays in decreasing score order, which the encoder's quantizer threshold relies on).
     let floor = kept
         .last()
-        .map(|s| score_of(s.channel as usize, band_of[s.index as usize], s.value))
+        .map(|s| score_of(s.channel as usize, s.index as usize, s.value))
         .unwrap_or(f64::INFINITY);
     let candidate = |c: usize, i: usize| grads[c][i] * op.inv_diag[band_of[i] as usize];
     let score = |c: usize, i: usize| {
@@ -591,7 +597,7 @@ pub(crate) fn refine_with(
         if masks[c][i] || v == 0.0 || !v.is_finite() {
             return -1.0;
         }
-        let s = score_of(c, band_of[i], v);
+        let s = score_of(c, i, v);
         if s < floor {
             s
         } else {
@@ -733,14 +739,13 @@ pub(crate) fn pad_f32(channel: &[f32], geometry: &Geometry) -> Vec<f32> {
 }
 
 fn sorted(
-    band_of: &[u8],
-    score_of: &(dyn Fn(usize, u8, f32) -> f64 + Sync),
+    score_of: &(dyn Fn(usize, usize, f32) -> f64 + Sync),
     list: Vec<KeptValue>,
 ) -> Vec<KeptValue> {
     let mut keyed: Vec<((f64, u8, u32), f32)> = list
         .into_iter()
         .map(|s| {
-            let score = score_of(s.channel as usize, band_of[s.index as usize], s.value);
+            let score = score_of(s.channel as usize, s.index as usize, s.value);
             ((score, s.channel, s.index), s.value)
         })
         .collect();

@@ -446,6 +446,8 @@ pub fn options(a: &CompressArgs) -> Result<CompressOptions> {
         family,
         levels: a.levels,
         margin: a.margin,
+        smooth_padding: false,
+        offset: None,
         colorspace,
         bits: a.bits,
         coder,

@@ -22,6 +22,7 @@
 //! recurses. Lines are independent; with the `rayon` feature they run on the rayon pool and the
 //! result is bit-identical to the sequential run.
 
+pub mod bridge;
 pub mod fast;
 
 use crate::family::Family;

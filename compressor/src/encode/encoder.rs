@@ -9,7 +9,7 @@ use super::prepare::{
 };
 use crate::order::{cluster_order, Item};
 use crate::refine::{refine_with, KeptValue, Output, RefineOptions, Refined};
-use crate::select::top_k;
+use crate::select::{pick_order, top_k};
 use rayon::prelude::*;
 use wavesplat_codec::dwt::fast::FastTransform;
 use wavesplat_codec::format::packet::{encode_packets, Coefficient, PacketInput};
@@ -25,7 +25,13 @@ impl Prepared {
         if w == 0.0 {
             return -1.0;
         }
-        (w as f64).powi(2) * self.norms[self.band_of[i] as usize] * self.color.importance[c]
+        let band = self.band_of[i];
+        let seen = self.visible.as_ref().map_or(1.0, |v| v.fraction(i, band));
+        if seen == 0.0 {
+            // Wholly outside the box: never drawn, never decoded.
+            return -1.0;
+        }
+        (w as f64).powi(2) * self.norms[band as usize] * self.color.importance[c] * seen
     }
 
     /// The energy E = w²·‖b‖² (eq. 14, without importance).
@@ -113,9 +119,16 @@ impl Prepared {
         } = self.refine_top(ranked, k, opts, Output::Set { extension });
         let count = kept.len();
         let scored = |r: &KeptValue| {
-            let band = self.band_of[r.index as usize] as usize;
+            let band = self.band_of[r.index as usize];
+            let seen = self
+                .visible
+                .as_ref()
+                .map_or(1.0, |v| v.fraction(r.index as usize, band));
             Scored {
-                score: (r.value as f64).powi(2) * self.norms[band] * importance[r.channel as usize],
+                score: (r.value as f64).powi(2)
+                    * self.norms[band as usize]
+                    * importance[r.channel as usize]
+                    * seen,
                 channel: r.channel,
                 index: r.index,
                 value: r.value,
@@ -158,6 +171,7 @@ impl Prepared {
         refine_with(
             &self.geometry,
             &self.band_of,
+            self.visible.as_ref(),
             &self.targets,
             &self.color.importance[..self.channels],
             &ranked.top_values(k),
@@ -178,7 +192,33 @@ impl Prepared {
         q_e: bool,
     ) -> Compressed {
         let g = &self.geometry;
-        let kept = &ranked.sorted[..k];
+        // The kept set is chosen by what is seen (where `visible` applies), but the coder's
+        // layers and magnitude chains need the plain score order w²·‖b‖²·I, in which a
+        // substream's magnitudes never grow: re-score and re-sort the set for coding.
+        let plain: Vec<Scored>;
+        let kept = match &self.visible {
+            None => &ranked.sorted[..k],
+            Some(_) => {
+                let importance = &self.color.importance;
+                let mut v: Vec<Scored> = ranked.sorted[..k]
+                    .par_iter()
+                    .map(|s| Scored {
+                        score: (s.value as f64).powi(2)
+                            * self.norms[self.band_of[s.index as usize] as usize]
+                            * importance[s.channel as usize],
+                        ..*s
+                    })
+                    .collect();
+                v.par_sort_unstable_by(|a, b| {
+                    pick_order(
+                        &(a.score, a.channel, a.index),
+                        &(b.score, b.channel, b.index),
+                    )
+                });
+                plain = v;
+                &plain[..]
+            }
+        };
         let (tile, nl) = choose_tiling(g, opts.tile, opts.layers, expected_bytes);
         let tiles: usize = g.padded.iter().map(|p| p.div_ceil(tile)).product();
         let coarse_layer = opts.coarse_layer

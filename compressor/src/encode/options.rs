@@ -50,6 +50,14 @@ pub struct CompressOptions {
     /// exactly: below [`Geometry::separating_margin`] the renderer clips basis functions to the
     /// volume's box.
     pub margin: Option<usize>,
+    /// Fill the padding of a grid that is clipped to the box with a smooth periodic bridge
+    /// instead of zeros ([`wavesplat_codec::dwt::bridge`]): faces that cut the content then
+    /// cost no more than the interior. Bricks of a bricked volume use it.
+    pub smooth_padding: bool,
+    /// The value subtracted from an intensity volume before the transform (`None`: the
+    /// median of its faces, see [`crate::colorspace::face_median`]). The bricks of one volume
+    /// share the whole's, so that no step appears where two bricks meet.
+    pub offset: Option<f64>,
     /// Colour space for 3-channel volumes.
     pub colorspace: ColorSpaceKind,
     /// Quantization bits P (1..=16).
@@ -90,6 +98,8 @@ impl Default for CompressOptions {
             family: Family::Linear,
             levels: None,
             margin: None,
+            smooth_padding: false,
+            offset: None,
             colorspace: ColorSpaceKind::Pca,
             bits: 8,
             coder: CoderKind::Sigmap,

@@ -6,7 +6,9 @@ use super::options::{default_levels, CompressError, CompressOptions, Stage, Tile
 use crate::colorspace::{face_activity, face_median, ColorSpaceKind, ColorTransform};
 use crate::refine::{pad_f32, KeptValue, Scratch};
 use crate::select::{band_map, histogram, Histogram, CHUNK};
+use crate::visible::Visible;
 use rayon::prelude::*;
+use wavesplat_codec::dwt::bridge::bridge_padding;
 use wavesplat_codec::dwt::{forward_3d, pad_channel, samples_to_coefficients, Dwt1d};
 use wavesplat_codec::family::Family;
 use wavesplat_codec::format::{ColorInfo, ColorKind};
@@ -51,6 +53,9 @@ pub(super) struct Prepared {
     /// Grid-sized arrays the refinements and view comparisons on this grid pass on to each
     /// other (fresh ones would fault in their pages every time).
     pub(super) scratch: Scratch,
+    /// The seen share of each coefficient's energy, where smooth padding fills a clipped
+    /// grid (the oracle then ranks by what is drawn; see [`crate::visible`]).
+    pub(super) visible: Option<Visible>,
 }
 
 /// Coefficients by decreasing score: a prefix of the oracle's order, or a refined set followed
@@ -142,7 +147,9 @@ pub(super) fn coded_channels(
     // ±f32::MAX on both sides of the offset could overflow when shifted; such a volume is
     // coded without one.
     let dims = volume.dims();
-    let offset = face_median(volume.channel(0), dims);
+    let offset = opts
+        .offset
+        .unwrap_or_else(|| face_median(volume.channel(0), dims));
     let shifted = (offset != 0.0)
         .then(|| {
             volume
@@ -308,9 +315,20 @@ pub(super) fn prepare(
         .collect();
     let band_of = band_map(&geometry);
     let mut coefficients = Vec::with_capacity(channels.len());
+    let bridged = opts.smooth_padding && geometry.clips_to_box();
+    let with_targets = opts.refine.is_some() && with_targets;
+    let mut targets = Vec::new();
     for (c, ch) in channels.iter().enumerate() {
         progress(Stage::Transform(c), c as f64 / channels.len() as f64);
         let mut data = pad_channel(ch, &geometry);
+        if bridged {
+            bridge_padding(&mut data, &geometry);
+            if with_targets {
+                targets.push(data.par_iter().map(|v| *v as f32).collect());
+            }
+        } else if with_targets {
+            targets.push(pad_f32(ch, &geometry));
+        }
         samples_to_coefficients(&mut data, &geometry);
         forward_3d(&mut data, &geometry, &mut planner);
         coefficients.push(data.into_par_iter().map(|v| v as f32).collect::<Vec<f32>>());
@@ -343,13 +361,14 @@ pub(super) fn prepare(
         total_energy,
         total_coefficients: (n * channels.len()) as u64,
         views: coded.views.clone(),
-        targets: if opts.refine.is_some() && with_targets {
-            channels.iter().map(|c| pad_f32(c, &geometry)).collect()
-        } else {
-            Vec::new()
-        },
+        targets,
         nonzero: 0,
         scratch: Scratch::default(),
+        visible: if bridged {
+            Visible::new(&geometry)
+        } else {
+            None
+        },
     };
     let histogram = {
         let p = &prepared;

@@ -1,0 +1,138 @@
+//! What of each basis function a clipped file shows: where the renderer clips to the volume's
+//! box ([`Geometry::clips_to_box`]) and the decoder crops to it, a coefficient whose basis
+//! function lies mostly in the padding (or wraps round to the far face) is mostly never seen.
+//! Its energy w²·‖b‖² overstates what keeping it buys; w²·‖b‖²·v, with v the fraction of
+//! ‖b‖² inside the box, does not. With smooth padding ([`crate::encode::CompressOptions`]'s
+//! `smooth_padding`) the padding holds a bridge between faces that the transform must
+//! represent but nobody draws, and ranking by the seen energy keeps the budget inside.
+//!
+//! The fraction is separable: a basis function is a product of one periodic line per axis,
+//! so v = v_x·v_y·v_z, each the share of the line's squared level-0 expansion that falls on
+//! the box's voxels. Per axis, level and kind the line of position 0 is synthesized once and
+//! every position's share read from circular prefix sums (positions at level l are shifts
+//! by 2^l).
+
+use wavesplat_codec::dwt::unit_basis_line;
+use wavesplat_codec::layout::Geometry;
+
+/// Per axis, per level (0..=M), [φ, ψ]: the seen fraction of each position's basis line.
+#[derive(Debug, Clone)]
+pub struct Visible {
+    padded: [usize; 3],
+    levels: Vec<u8>,
+    tables: [Vec<[Vec<f32>; 2]>; 3],
+}
+
+impl Visible {
+    /// The fractions for `geometry`, or `None` when it is not clipped (everything is drawn).
+    pub fn new(geometry: &Geometry) -> Option<Visible> {
+        if !geometry.clips_to_box() {
+            return None;
+        }
+        let tables = std::array::from_fn(|a| {
+            let p = geometry.padded[a];
+            let (lo, n) = (geometry.origin[a], geometry.dims[a]);
+            (0..=geometry.levels)
+                .map(|l| {
+                    [false, true].map(|wavelet| {
+                        if l == 0 && wavelet {
+                            return Vec::new();
+                        }
+                        let line = unit_basis_line(geometry.family, p, l, wavelet, false);
+                        seen_shares(&line, lo, n, 1 << l)
+                    })
+                })
+                .collect()
+        });
+        Some(Visible {
+            padded: geometry.padded,
+            levels: geometry.bands().iter().map(|b| b.level).collect(),
+            tables,
+        })
+    }
+
+    /// The seen fraction of coefficient `index` (Mallat layout) of band index `band`.
+    pub fn fraction(&self, index: usize, band: u8) -> f64 {
+        let [px, py, _] = self.padded;
+        let c = [index % px, (index / px) % py, index / (px * py)];
+        let l = self.levels[band as usize] as usize;
+        let mut v = 1.0f64;
+        for a in 0..3 {
+            let half = self.padded[a] >> l;
+            let wavelet = l > 0 && c[a] >= half;
+            let pos = if wavelet { c[a] - half } else { c[a] };
+            v *= f64::from(self.tables[a][l][wavelet as usize][pos]);
+        }
+        v
+    }
+}
+
+/// For a periodic line whose position k is `line` shifted by k·`step`, the share of its
+/// squared values on samples `lo..lo + n`, for every position.
+fn seen_shares(line: &[f64], lo: usize, n: usize, step: usize) -> Vec<f32> {
+    let p = line.len();
+    let sq: Vec<f64> = line.iter().map(|v| v * v).collect();
+    let total: f64 = sq.iter().sum();
+    // Prefix sums over two periods, so any window of up to p samples is one difference.
+    let mut prefix = Vec::with_capacity(2 * p + 1);
+    prefix.push(0.0);
+    for i in 0..2 * p {
+        let last = prefix[i];
+        prefix.push(last + sq[i % p]);
+    }
+    (0..p / step)
+        .map(|k| {
+            if total == 0.0 {
+                return 0.0;
+            }
+            // Box samples lo..lo+n of the shifted line are samples lo − k·step.. of `line`.
+            let start = (lo + p - (k * step) % p) % p;
+            ((prefix[start + n] - prefix[start]) / total) as f32
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use wavesplat_codec::family::Family;
+    use wavesplat_codec::layout::Band;
+
+    /// Against a direct computation: the basis function of a coefficient synthesized on the
+    /// whole grid, its squared expansion summed inside the box over the total.
+    #[test]
+    fn fractions_match_the_synthesized_basis_functions() {
+        let g = Geometry::new([10, 7, 5], Family::Linear, 2, 1).unwrap();
+        assert!(g.clips_to_box());
+        let v = Visible::new(&g).unwrap();
+        let bands = g.bands();
+        let n = g.coefficient_count();
+        let band_of = crate::select::band_map(&g);
+        let mut planner = wavesplat_codec::dwt::Dwt1d::new(g.family);
+        for index in (0..n).step_by(7) {
+            let mut data = vec![0.0f64; n];
+            data[index] = 1.0;
+            wavesplat_codec::dwt::inverse_3d(&mut data, &g, &mut planner);
+            let total: f64 = data.iter().map(|x| x * x).sum();
+            let mut inside = 0.0;
+            for z in 0..g.dims[2] {
+                for y in 0..g.dims[1] {
+                    for x in 0..g.dims[0] {
+                        let i = (g.origin[0] + x)
+                            + g.padded[0] * ((g.origin[1] + y) + g.padded[1] * (g.origin[2] + z));
+                        inside += data[i] * data[i];
+                    }
+                }
+            }
+            let want = inside / total;
+            let got = v.fraction(index, band_of[index]);
+            let band: Band = bands[band_of[index] as usize];
+            assert!(
+                (got - want).abs() < 1e-5,
+                "index {index} ({band:?}): {got} against {want}"
+            );
+        }
+        // Unclipped geometries need no fractions.
+        assert!(Visible::new(&Geometry::new([10, 7, 5], Family::Linear, 2, 6).unwrap()).is_none());
+    }
+}
