@@ -242,9 +242,11 @@ pub fn compress_bricked(
         )));
     }
     if opts.family == wavesplat_codec::family::Family::Cubic {
-        // Measured: every coefficient of cubic bricks draws the whole at 21 dB against the
-        // reference ray caster where the unbricked file draws 53 dB (haar and linear bricks
-        // match the unbricked file within 1 dB); refused until that is understood.
+        // Measured: every coefficient of cubic bricks draws the whole at 36 dB against the
+        // reference ray caster (21 dB before the bridge) where the unbricked file draws 53 dB.
+        // A cubic spline's coefficients near a face come from the interpolation prefilter,
+        // which reaches a few voxels into the neighbour (its pole decays by 0.27 a voxel), so
+        // a brick would need its neighbours' voxels to match the whole; refused until then.
         return Err(BrickError::InvalidOption(
             "the cubic family is not supported for bricked volumes yet (its bricks do not \
              draw the whole accurately); use linear (the default) or haar"
