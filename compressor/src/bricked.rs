@@ -182,9 +182,73 @@ pub enum BrickError {
     /// The options do not suit a bricked volume.
     #[error("invalid option for a bricked volume: {0}")]
     InvalidOption(String),
-    /// The container could not be written.
+    /// The container could not be written (or its manifest read).
     #[error(transparent)]
     Format(#[from] FormatError),
+    /// A brick could not be decoded.
+    #[error("decoding the brick at {origin:?}")]
+    Decode {
+        /// Its origin in the whole.
+        origin: [u64; 3],
+        /// Why.
+        #[source]
+        source: crate::decode::DecodeError,
+    },
+    /// A decoded brick could not be written out.
+    #[error("writing the brick at {origin:?}")]
+    Write {
+        /// Its origin in the whole.
+        origin: [u64; 3],
+        /// Why.
+        #[source]
+        source: std::io::Error,
+    },
+}
+
+/// Decodes every brick of a bricked container to a volume and hands it, with its manifest
+/// entry, to `sink`: bricks are decoded in parallel, one per worker thread at a time, and come
+/// in no particular order, so nothing ever holds the whole volume (each brick within
+/// `budget`). A brick whose header disagrees with its manifest entry (dimensions, channels) is
+/// refused. Returns the manifest.
+pub fn decode_bricks(
+    bytes: &[u8],
+    budget: &wavesplat_codec::format::packet::DecodeBudget,
+    sink: &(dyn Fn(&BrickEntry, Volume) -> std::io::Result<()> + Sync),
+) -> Result<Manifest, BrickError> {
+    let file = wavesplat_codec::format::bricked::parse_bricked(bytes)?;
+    let m = &file.manifest;
+    (0..m.bricks.len()).into_par_iter().try_for_each(|i| {
+        let e = &m.bricks[i];
+        let decode_error = |source| BrickError::Decode {
+            origin: e.origin,
+            source,
+        };
+        let data = file
+            .brick_bytes(i)
+            .map_err(|f| decode_error(crate::decode::DecodeError::Format(f)))?;
+        let v = crate::decode::decompress_within(data, budget).map_err(decode_error)?;
+        if v.dims() != e.dims || v.channel_count() != m.channels {
+            return Err(decode_error(crate::decode::DecodeError::Format(
+                FormatError::Invalid {
+                    what: "bricked manifest",
+                    detail: format!(
+                        "brick {i} at {:?} decodes to {:?} with {} channel(s); the manifest says \
+                         {:?} with {}",
+                        e.origin,
+                        v.dims(),
+                        v.channel_count(),
+                        e.dims,
+                        m.channels
+                    ),
+                },
+            )));
+        }
+        sink(e, v).map_err(|source| BrickError::Write {
+            origin: e.origin,
+            source,
+        })
+    })?;
+    Ok(file.manifest)
 }
 
 /// What a bricked compression made.

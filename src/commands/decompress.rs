@@ -1,4 +1,6 @@
-//! `wavesplat decompress`: full decode to raw f32, for checks against the original.
+//! `wavesplat decompress`: full decode to raw f32, for checks against the original. A bricked
+//! file is decoded brick by brick, each brick's rows written in place in the output file, so
+//! the whole volume is never in memory.
 
 use anyhow::{Context, Result};
 use clap::Args;
@@ -18,6 +20,9 @@ pub struct DecompressArgs {
 pub fn run(a: DecompressArgs) -> Result<()> {
     super::check_output(&a.output)?;
     let bytes = super::read_wsp(&a.input)?;
+    if wavesplat_codec::format::bricked::is_bricked(&bytes) {
+        return decompress_bricked(&a, &bytes);
+    }
     let progress = wavesplat_harness::console::Progress::new("decompress");
     progress.stage("decoding packets and inverse transform");
     let v = wavesplat_compressor::decode::decompress(&bytes)
@@ -37,6 +42,52 @@ pub fn run(a: DecompressArgs) -> Result<()> {
         d[1],
         d[2],
         v.channel_count()
+    );
+    Ok(())
+}
+
+/// Decodes a bricked file into the raw output brick by brick (rows written at their offsets).
+fn decompress_bricked(a: &DecompressArgs, bytes: &[u8]) -> Result<()> {
+    use std::os::unix::fs::FileExt;
+    let manifest = wavesplat_codec::format::bricked::parse_bricked(bytes)
+        .with_context(|| format!("reading {}", a.input.display()))?
+        .manifest;
+    let [nx, ny, nz] = manifest.dims;
+    let c = manifest.channels as u64;
+    let total = nx
+        .checked_mul(ny)
+        .and_then(|v| v.checked_mul(nz))
+        .and_then(|v| v.checked_mul(4 * c))
+        .context("the volume's size overflows")?;
+    let file = std::fs::File::create(&a.output)
+        .with_context(|| format!("creating {}", a.output.display()))?;
+    file.set_len(total)
+        .with_context(|| format!("sizing {} to {total} bytes", a.output.display()))?;
+    let progress = wavesplat_harness::console::Progress::new("decompress");
+    progress.stage(&format!("decoding {} bricks", manifest.bricks.len()));
+    let done = std::sync::atomic::AtomicUsize::new(0);
+    let of = manifest.bricks.len();
+    wavesplat_compressor::bricked::decode_bricks(bytes, &Default::default(), &|e, v| {
+        let samples = v.to_interleaved();
+        let row = e.dims[0] * manifest.channels;
+        for z in 0..e.dims[2] {
+            for y in 0..e.dims[1] {
+                let at = &samples[(z * e.dims[1] + y) * row..][..row];
+                let bytes: Vec<u8> = at.iter().flat_map(|x| x.to_le_bytes()).collect();
+                let (gy, gz) = (e.origin[1] + y as u64, e.origin[2] + z as u64);
+                let offset = ((gz * ny + gy) * nx + e.origin[0]) * 4 * c;
+                file.write_all_at(&bytes, offset)?;
+            }
+        }
+        let n = done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
+        progress.stage(&format!("decoded {n} of {of} bricks"));
+        Ok(())
+    })
+    .with_context(|| format!("decoding {}", a.input.display()))?;
+    progress.finish();
+    outln!(
+        "wrote {} ({nx}x{ny}x{nz}, {c} channel(s), f32 LE), decoded brick by brick ({of} bricks)",
+        a.output.display()
     );
     Ok(())
 }
