@@ -19,7 +19,12 @@ use wavesplat_viewer::open::draw_whole_file;
 use wavesplat_viewer::reference::{render_reference, PaddedVolume};
 use wavesplat_viewer::{CpuBackend, ReferenceOptions};
 
-fn main() -> Result<(), Box<dyn std::error::Error>> {
+type Error = Box<dyn std::error::Error>;
+
+/// Draws one view's image (its samples) from a file.
+type Draw<'a> = &'a dyn Fn(&ViewSpec) -> Result<Vec<f32>, Error>;
+
+fn main() -> Result<(), Error> {
     let args: Vec<String> = std::env::args().skip(1).collect();
     if args.len() < 3 {
         return Err("usage: bricked_quality VOLUME BYTES BRICK...".into());
@@ -49,11 +54,11 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         let view = View::new(a, e, 256, 256);
         references.push((view, render_reference(&truth, &view, &reference)?));
     }
-    let snr = |draw: &dyn Fn(&ViewSpec) -> Result<Vec<f32>, Box<dyn std::error::Error>>| {
+    let snr = |draw: Draw| {
         references
             .iter()
             .map(|(view, r)| Ok(snr_db(&r.data, &draw(&ViewSpec::single(*view))?)))
-            .collect::<Result<Vec<f64>, Box<dyn std::error::Error>>>()
+            .collect::<Result<Vec<f64>, Error>>()
     };
     let sw = snr(&|spec| {
         Ok(draw_whole_file(&whole.bytes, spec, &mut CpuBackend::new())?
