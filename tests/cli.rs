@@ -685,6 +685,12 @@ fn a_bricked_volume_is_compressed_listed_and_rendered() {
     assert!(out(&c).contains("8 bricks"), "{}", out(&c));
     let info = run(&["info", &path("b.wsp")]);
     assert!(out(&info).contains("bricks      8"), "{}", out(&info));
+    assert!(out(&info).contains("their headers"), "{}", out(&info));
+    assert!(
+        out(&info).contains("brick 7: at 20,18,16"),
+        "{}",
+        out(&info)
+    );
     let w = run(&[
         "compress",
         &raw,

@@ -14,7 +14,13 @@ pub struct InfoArgs {
     /// Also list every packet.
     #[arg(long)]
     pub packets: bool,
+    /// For a bricked file, list every brick (otherwise the first 16).
+    #[arg(long)]
+    pub bricks: bool,
 }
+
+/// Bricks a bricked file's listing shows without `--bricks`.
+const BRICKS_LISTED: usize = 16;
 
 /// Runs the subcommand.
 pub fn run(a: InfoArgs) -> Result<()> {
@@ -44,7 +50,31 @@ pub fn run(a: InfoArgs) -> Result<()> {
             m.brick,
             m.kept()
         );
-        for (i, b) in m.bricks.iter().enumerate() {
+        let mut lengths: Vec<u64> = m.bricks.iter().map(|b| b.length).collect();
+        lengths.sort_unstable();
+        let mut headers = 0u64;
+        for i in 0..m.bricks.len() {
+            let brick = f
+                .brick_bytes(i)
+                .with_context(|| format!("reading brick {i} of {}", a.input.display()))?;
+            let (_, used) = wavesplat_codec::format::read_header_section(brick)
+                .with_context(|| format!("parsing brick {i} of {}", a.input.display()))?;
+            headers += used as u64;
+        }
+        outln!(
+            "brick bytes min {} / median {} / max {}; their headers {} bytes ({:.1} % of the file)",
+            lengths[0],
+            lengths[lengths.len() / 2],
+            lengths[lengths.len() - 1],
+            headers,
+            100.0 * headers as f64 / bytes.len() as f64
+        );
+        let listed = if a.bricks {
+            m.bricks.len()
+        } else {
+            BRICKS_LISTED.min(m.bricks.len())
+        };
+        for (i, b) in m.bricks.iter().enumerate().take(listed) {
             outln!(
                 "  brick {i}: at {},{},{} size {}x{}x{}, {} bytes, {} coefficients",
                 b.origin[0],
@@ -55,6 +85,12 @@ pub fn run(a: InfoArgs) -> Result<()> {
                 b.dims[2],
                 b.length,
                 b.kept
+            );
+        }
+        if listed < m.bricks.len() {
+            outln!(
+                "  … and {} more (--bricks lists every one)",
+                m.bricks.len() - listed
             );
         }
         return Ok(());
