@@ -729,6 +729,15 @@ fn a_bricked_volume_is_compressed_listed_and_rendered() {
         let d = run(&["decompress", &path(file), "-o", &path(raw_out)]);
         assert!(d.status.success(), "{}", err(&d));
     }
+    // A damaged brick is refused and nothing half-written is left.
+    let mut damaged = std::fs::read(path("b.wsp")).unwrap();
+    let last = damaged.len() - 3;
+    damaged[last] ^= 0x5a;
+    std::fs::write(path("bad.wsp"), &damaged).unwrap();
+    let bad = run(&["decompress", &path("bad.wsp"), "-o", &path("bad.raw")]);
+    assert!(!bad.status.success());
+    assert!(err(&bad).contains("brick"), "{}", err(&bad));
+    assert!(!dir.path().join("bad.raw").exists());
     let again = run(&["decompress", &path("b.wsp"), "-o", &path("b2.raw")]);
     assert!(out(&again).contains("8 bricks"), "{}", out(&again));
     let original = read("head_40x36x32_f32.raw");

@@ -59,32 +59,45 @@ fn decompress_bricked(a: &DecompressArgs, bytes: &[u8]) -> Result<()> {
         .and_then(|v| v.checked_mul(nz))
         .and_then(|v| v.checked_mul(4 * c))
         .context("the volume's size overflows")?;
+    // Not sized up front: the bricks tile the whole, so the rows they write fill it, and a
+    // hostile manifest claiming a huge volume fails at its first brick before anything large
+    // exists on disk.
     let file = std::fs::File::create(&a.output)
         .with_context(|| format!("creating {}", a.output.display()))?;
-    file.set_len(total)
-        .with_context(|| format!("sizing {} to {total} bytes", a.output.display()))?;
     let progress = wavesplat_harness::console::Progress::new("decompress");
     progress.stage(&format!("decoding {} bricks", manifest.bricks.len()));
     let done = std::sync::atomic::AtomicUsize::new(0);
     let of = manifest.bricks.len();
-    wavesplat_compressor::bricked::decode_bricks(bytes, &Default::default(), &|e, v| {
-        let samples = v.to_interleaved();
-        let row = e.dims[0] * manifest.channels;
-        for z in 0..e.dims[2] {
-            for y in 0..e.dims[1] {
-                let at = &samples[(z * e.dims[1] + y) * row..][..row];
-                let bytes: Vec<u8> = at.iter().flat_map(|x| x.to_le_bytes()).collect();
-                let (gy, gz) = (e.origin[1] + y as u64, e.origin[2] + z as u64);
-                let offset = ((gz * ny + gy) * nx + e.origin[0]) * 4 * c;
-                file.write_all_at(&bytes, offset)?;
+    let decoded =
+        wavesplat_compressor::bricked::decode_bricks(bytes, &Default::default(), &|e, v| {
+            let samples = v.to_interleaved();
+            let row = e.dims[0] * manifest.channels;
+            for z in 0..e.dims[2] {
+                for y in 0..e.dims[1] {
+                    let at = &samples[(z * e.dims[1] + y) * row..][..row];
+                    let bytes: Vec<u8> = at.iter().flat_map(|x| x.to_le_bytes()).collect();
+                    let (gy, gz) = (e.origin[1] + y as u64, e.origin[2] + z as u64);
+                    let offset = ((gz * ny + gy) * nx + e.origin[0]) * 4 * c;
+                    file.write_all_at(&bytes, offset)?;
+                }
             }
-        }
-        let n = done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
-        progress.stage(&format!("decoded {n} of {of} bricks"));
-        Ok(())
-    })
-    .with_context(|| format!("decoding {}", a.input.display()))?;
+            let n = done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
+            progress.stage(&format!("decoded {n} of {of} bricks"));
+            Ok(())
+        })
+        .with_context(|| format!("decoding {}", a.input.display()));
     progress.finish();
+    if let Err(e) = decoded {
+        // Nothing half-written is left behind.
+        let _ = std::fs::remove_file(&a.output);
+        return Err(e);
+    }
+    let written = file.metadata()?.len();
+    anyhow::ensure!(
+        written == total,
+        "{} holds {written} bytes after every brick, {total} expected",
+        a.output.display()
+    );
     outln!(
         "wrote {} ({nx}x{ny}x{nz}, {c} channel(s), f32 LE), decoded brick by brick ({of} bricks)",
         a.output.display()
