@@ -98,6 +98,25 @@ fn reference(volume: &wavesplat_codec::volume::Volume, g: &Geometry, spec: &View
     out
 }
 
+/// The SNR of the unbricked file's image and of the bricked file's against the reference ray
+/// caster of `volume` (geometry `g`), for `spec` at the whole's fitting zoom.
+fn whole_and_bricked_snr(
+    volume: &wavesplat_codec::volume::Volume,
+    g: &Geometry,
+    spec: &ViewSpec,
+    whole: &[u8],
+    bricked: &[u8],
+) -> (f64, f64) {
+    let spec = fitted(spec, g);
+    let w = draw_whole_file(whole, &spec, &mut CpuBackend::new()).unwrap();
+    let b = draw_bricked_file(bricked, &spec, &mut CpuBackend::new()).unwrap();
+    let truth = reference(volume, g, &spec);
+    (
+        snr_db(&truth.data, &w.image.data),
+        snr_db(&truth.data, &b.image.data),
+    )
+}
+
 /// Every coefficient of every brick against the reference ray caster of the original volume:
 /// the bricks' images, moved into place, cut at their faces and cue-scaled, add up to the
 /// whole's line integrals in every kind of view, as closely as the unbricked file of every
@@ -128,14 +147,7 @@ fn every_coefficient_of_the_bricks_draws_the_whole() {
         .unwrap();
         let g = Geometry::new(dims, family, bricked.levels, 0).unwrap();
         for (name, spec) in views() {
-            let spec = fitted(&spec, &g);
-            let w = draw_whole_file(&whole.bytes, &spec, &mut CpuBackend::new()).unwrap();
-            let b = draw_bricked_file(&bricked.bytes, &spec, &mut CpuBackend::new()).unwrap();
-            let truth = reference(&volume, &g, &spec);
-            let (sw, sb) = (
-                snr_db(&truth.data, &w.image.data),
-                snr_db(&truth.data, &b.image.data),
-            );
+            let (sw, sb) = whole_and_bricked_snr(&volume, &g, &spec, &whole.bytes, &bricked.bytes);
             eprintln!("{family} {name}: whole {sw:.2} dB, bricked {sb:.2} dB");
             assert!(
                 sb >= (sw - 1.0).min(50.0),
@@ -215,14 +227,7 @@ fn bricks_at_equal_bytes_draw_nearly_as_well_as_the_whole() {
     let g = Geometry::new(dims, Family::Linear, 0, 0).unwrap();
     let mut gaps = Vec::new();
     for (name, spec) in views() {
-        let spec = fitted(&spec, &g);
-        let w = draw_whole_file(&whole.bytes, &spec, &mut CpuBackend::new()).unwrap();
-        let b = draw_bricked_file(&bricked.bytes, &spec, &mut CpuBackend::new()).unwrap();
-        let truth = reference(&volume, &g, &spec);
-        let (sw, sb) = (
-            snr_db(&truth.data, &w.image.data),
-            snr_db(&truth.data, &b.image.data),
-        );
+        let (sw, sb) = whole_and_bricked_snr(&volume, &g, &spec, &whole.bytes, &bricked.bytes);
         eprintln!(
             "{name}: whole {sw:.2} dB ({} B), bricked {sb:.2} dB ({} B)",
             whole.bytes.len(),
