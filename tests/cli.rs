@@ -760,4 +760,13 @@ fn a_bricked_volume_is_compressed_listed_and_rendered() {
     ]);
     assert!(!refused.status.success());
     assert!(err(&refused).contains("bricked"), "{}", err(&refused));
+    // The window says what to use instead (it refuses before opening a display).
+    let window = run(&["view", &path("b.wsp"), "--cpu"]);
+    assert!(!window.status.success());
+    assert!(
+        err(&window).contains("the window does not open bricked volumes yet")
+            && err(&window).contains("wavesplat render"),
+        "{}",
+        err(&window)
+    );
 }

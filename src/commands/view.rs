@@ -7,7 +7,7 @@ use anyhow::{bail, Context, Result};
 use clap::Args;
 use std::path::PathBuf;
 use wavesplat_codec::view::{Cue, MAX_IMAGE_SIDE};
-use wavesplat_viewer::open::open;
+use wavesplat_viewer::open::{open, VolumeLocation};
 use wavesplat_viewer::window::{self, Script, ViewState, WindowOptions};
 
 /// Arguments of `wavesplat view`.
@@ -83,6 +83,17 @@ pub fn run(a: ViewWindowArgs) -> Result<()> {
         None => Script::default(),
     };
     let location = a.view.location()?;
+    if let VolumeLocation::File { path, bytes } = &location {
+        if wavesplat_codec::format::bricked::is_bricked(bytes) {
+            bail!(
+                "{} is a bricked volume: the window does not open bricked volumes yet; \
+                 `wavesplat render {}` draws it in one pass (`info` lists its bricks, \
+                 `decompress` decodes it)",
+                path.display(),
+                path.display()
+            );
+        }
+    }
     let title = location.describe();
     let (header, opened, spec) = open(location, &request, None)?;
     // The window turns a view by its angles: a named patient view must be one.
