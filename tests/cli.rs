@@ -738,6 +738,15 @@ fn a_bricked_volume_is_compressed_listed_and_rendered() {
     assert!(!bad.status.success());
     assert!(err(&bad).contains("brick"), "{}", err(&bad));
     assert!(!dir.path().join("bad.raw").exists());
+    assert!(!dir.path().join("bad.raw.partial").exists());
+    // A failed decode leaves an earlier file of that name as it was.
+    std::fs::write(path("keep.raw"), b"earlier").unwrap();
+    assert!(
+        !run(&["decompress", &path("bad.wsp"), "-o", &path("keep.raw")])
+            .status
+            .success()
+    );
+    assert_eq!(std::fs::read(path("keep.raw")).unwrap(), b"earlier");
     let again = run(&["decompress", &path("b.wsp"), "-o", &path("b2.raw")]);
     assert!(out(&again).contains("8 bricks"), "{}", out(&again));
     let original = read("head_40x36x32_f32.raw");

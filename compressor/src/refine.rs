@@ -404,6 +404,10 @@ pub(crate) fn refine_with(
         let v = v as f64;
         let band = band_of[i];
         let seen = visible.map_or(1.0, |s| s.fraction(i, band));
+        if seen == 0.0 {
+            // Wholly outside the box: never drawn, never a candidate (as the oracle's score).
+            return -1.0;
+        }
         v * v * norms[band as usize] * importance[c] * seen
     };
     if k == 0 || geometry.family == Family::Haar {

@@ -59,11 +59,15 @@ fn decompress_bricked(a: &DecompressArgs, bytes: &[u8]) -> Result<()> {
         .and_then(|v| v.checked_mul(nz))
         .and_then(|v| v.checked_mul(4 * c))
         .context("the volume's size overflows")?;
-    // Not sized up front: the bricks tile the whole, so the rows they write fill it, and a
-    // hostile manifest claiming a huge volume fails at its first brick before anything large
-    // exists on disk.
-    let file = std::fs::File::create(&a.output)
-        .with_context(|| format!("creating {}", a.output.display()))?;
+    // Written beside the output and renamed over it once complete, so a failure leaves neither
+    // a half-written file nor a lost earlier one. Not sized up front: the bricks tile the
+    // whole, so the rows they write fill it, and a hostile manifest claiming a huge volume
+    // fails at its first brick before anything large exists on disk.
+    let mut partial = a.output.clone().into_os_string();
+    partial.push(".partial");
+    let partial = std::path::PathBuf::from(partial);
+    let file = std::fs::File::create(&partial)
+        .with_context(|| format!("creating {}", partial.display()))?;
     let progress = wavesplat_harness::console::Progress::new("decompress");
     progress.stage(&format!("decoding {} bricks", manifest.bricks.len()));
     let done = std::sync::atomic::AtomicUsize::new(0);
@@ -87,17 +91,23 @@ fn decompress_bricked(a: &DecompressArgs, bytes: &[u8]) -> Result<()> {
         })
         .with_context(|| format!("decoding {}", a.input.display()));
     progress.finish();
-    if let Err(e) = decoded {
-        // Nothing half-written is left behind.
-        let _ = std::fs::remove_file(&a.output);
+    let finished = decoded.and_then(|_| {
+        let written = file
+            .metadata()
+            .with_context(|| format!("reading the size of {}", partial.display()))?
+            .len();
+        anyhow::ensure!(
+            written == total,
+            "{} holds {written} bytes after every brick, {total} expected",
+            partial.display()
+        );
+        std::fs::rename(&partial, &a.output)
+            .with_context(|| format!("renaming {} to {}", partial.display(), a.output.display()))
+    });
+    if let Err(e) = finished {
+        let _ = std::fs::remove_file(&partial);
         return Err(e);
     }
-    let written = file.metadata()?.len();
-    anyhow::ensure!(
-        written == total,
-        "{} holds {written} bytes after every brick, {total} expected",
-        a.output.display()
-    );
     outln!(
         "wrote {} ({nx}x{ny}x{nz}, {c} channel(s), f32 LE), decoded brick by brick ({of} bricks)",
         a.output.display()
