@@ -69,13 +69,7 @@ fn whole_face_median(source: &dyn BrickSource) -> Result<f64, BrickError> {
             .map_err(|source| BrickError::Read { origin, source })?;
         samples.extend_from_slice(v.channel(0));
     }
-    if samples.is_empty() {
-        return Ok(0.0);
-    }
-    let mid = (samples.len() - 1) / 2;
-    let (_, m, _) = samples.select_nth_unstable_by(mid, f32::total_cmp);
-    let m = f64::from(*m);
-    Ok(if m.is_finite() { m } else { 0.0 })
+    Ok(crate::colorspace::median_or_zero(&mut samples))
 }
 
 /// Where bricks come from: something that can hand out any box of the whole as a volume.

@@ -296,8 +296,17 @@ pub fn face_median(channel: &[f32], dims: [usize; 3]) -> f64 {
             }
         }
     }
-    let mid = (face.len() - 1) / 2;
-    let (_, m, _) = face.select_nth_unstable_by(mid, f32::total_cmp);
+    median_or_zero(&mut face)
+}
+
+/// The median of `samples` (reordered in place; the lower middle of an even count), or 0 when
+/// there are none or it is not finite: an offset that is safe to subtract.
+pub fn median_or_zero(samples: &mut [f32]) -> f64 {
+    if samples.is_empty() {
+        return 0.0;
+    }
+    let mid = (samples.len() - 1) / 2;
+    let (_, m, _) = samples.select_nth_unstable_by(mid, f32::total_cmp);
     let m = f64::from(*m);
     if m.is_finite() {
         m

@@ -403,7 +403,7 @@ pub(crate) fn refine_with(
     let score_of = |c: usize, i: usize, v: f32| {
         let v = v as f64;
         let band = band_of[i];
-        let seen = visible.map_or(1.0, |s| s.fraction(i, band));
+        let seen = Visible::share(visible, i, band);
         if seen == 0.0 {
             // Wholly outside the box: never drawn, never a candidate (as the oracle's score).
             return -1.0;

@@ -51,6 +51,12 @@ impl Visible {
         })
     }
 
+    /// The seen fraction of coefficient `index` of band index `band` where `visible` applies,
+    /// 1 (everything drawn) where it does not: the factor every score takes.
+    pub fn share(visible: Option<&Visible>, index: usize, band: u8) -> f64 {
+        visible.map_or(1.0, |v| v.fraction(index, band))
+    }
+
     /// The seen fraction of coefficient `index` (Mallat layout) of band index `band`.
     pub fn fraction(&self, index: usize, band: u8) -> f64 {
         let [px, py, _] = self.padded;

@@ -76,10 +76,12 @@ fn decompress_bricked(a: &DecompressArgs, bytes: &[u8]) -> Result<()> {
         wavesplat_compressor::bricked::decode_bricks(bytes, &Default::default(), &|e, v| {
             let samples = v.to_interleaved();
             let row = e.dims[0] * manifest.channels;
+            let mut bytes: Vec<u8> = Vec::with_capacity(4 * row);
             for z in 0..e.dims[2] {
                 for y in 0..e.dims[1] {
                     let at = &samples[(z * e.dims[1] + y) * row..][..row];
-                    let bytes: Vec<u8> = at.iter().flat_map(|x| x.to_le_bytes()).collect();
+                    bytes.clear();
+                    bytes.extend(at.iter().flat_map(|x| x.to_le_bytes()));
                     let (gy, gz) = (e.origin[1] + y as u64, e.origin[2] + z as u64);
                     let offset = ((gz * ny + gy) * nx + e.origin[0]) * 4 * c;
                     file.write_all_at(&bytes, offset)?;

@@ -44,9 +44,10 @@ pub struct ViewWindowArgs {
     /// Synthetic input, run through the same handlers as real events: commands separated by
     /// `;` or new lines, or `@FILE`. Commands: `frames N`, `converge`, `drag X0,Y0 X1,Y1
     /// [shift] [over N]` (the moves in one frame, or spread over N frames), `wheel LINES`,
-    /// `key K` (a letter, `+`, `-`, `[`, `]`, `esc`, `f1`), `resize WxH`, `screenshot PATH`, `signal PATH` (create the file), `await PATH` (wait
-    /// until it exists), `lose-device` (destroy the graphics device, as a driver reset would
-    /// lose it: the window recreates it), `quit`.
+    /// `key K` (a letter, `+`, `-`, `[`, `]`, `esc`, `f1`), `resize WxH`, `screenshot PATH`,
+    /// `signal PATH` (create the file), `await PATH` (wait until it exists), `lose-device`
+    /// (destroy the graphics device, as a driver reset would lose it: the window recreates
+    /// it), `quit`.
     #[arg(long)]
     pub script: Option<String>,
 }

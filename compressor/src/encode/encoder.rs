@@ -10,6 +10,7 @@ use super::prepare::{
 use crate::order::{cluster_order, Item};
 use crate::refine::{refine_with, KeptValue, Output, RefineOptions, Refined};
 use crate::select::{pick_order, top_k};
+use crate::visible::Visible;
 use rayon::prelude::*;
 use wavesplat_codec::dwt::fast::FastTransform;
 use wavesplat_codec::format::packet::{encode_packets, Coefficient, PacketInput};
@@ -26,7 +27,7 @@ impl Prepared {
             return -1.0;
         }
         let band = self.band_of[i];
-        let seen = self.visible.as_ref().map_or(1.0, |v| v.fraction(i, band));
+        let seen = Visible::share(self.visible.as_ref(), i, band);
         if seen == 0.0 {
             // Wholly outside the box: never drawn, never decoded.
             return -1.0;
@@ -120,10 +121,7 @@ impl Prepared {
         let count = kept.len();
         let scored = |r: &KeptValue| {
             let band = self.band_of[r.index as usize];
-            let seen = self
-                .visible
-                .as_ref()
-                .map_or(1.0, |v| v.fraction(r.index as usize, band));
+            let seen = Visible::share(self.visible.as_ref(), r.index as usize, band);
             Scored {
                 score: (r.value as f64).powi(2)
                     * self.norms[band as usize]
