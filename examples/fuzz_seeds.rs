@@ -12,10 +12,8 @@ use std::path::Path;
 use wavesplat_codec::format::{parse_file, CoderKind};
 use wavesplat_compressor::encode::{compress, CompressOptions, Target, TileChoice};
 use wavesplat_compressor::phantom::Phantom;
-use wavesplat_compressor::reader::fixtures::{
-    self, DicomEncoding, DicomOptions, Layout, NrrdEncoding,
-};
 use wavesplat_compressor::reader::{Format, SourceFiles};
+use wavesplat_fixtures::{self as fixtures, DicomEncoding, DicomOptions, Layout, NrrdEncoding};
 use wavesplat_proto::pb;
 
 fn put(dir: &Path, name: &str, bytes: &[u8]) {

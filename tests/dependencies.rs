@@ -154,6 +154,24 @@ fn only_the_binary_and_the_tests_link_the_harness() {
 }
 
 #[test]
+fn the_test_fixtures_are_linked_by_no_shipped_crate() {
+    // The volume writers panic on I/O errors: tests and examples only (dev-dependencies).
+    for package in [
+        "wavesplat",
+        "wavesplat-cache",
+        "wavesplat-orchestrator",
+        "wavesplat-worker",
+        "wavesplat-client",
+        "wavesplat-compressor",
+        "wavesplat-viewer",
+        "wavesplat-harness",
+        "wavesplat-net",
+    ] {
+        assert_excludes(package, &["wavesplat-fixtures"]);
+    }
+}
+
+#[test]
 fn the_object_store_clients_bring_no_second_crypto_provider() {
     // tonic's TLS uses ring; a second provider (aws-lc-rs, the object-store client's default)
     // would make rustls refuse to pick one at run time.

@@ -23,7 +23,7 @@ use wavesplat_client::{CacheClient, ConnectOptions, Credentials, VolumeKey};
 use wavesplat_codec::volume::Volume;
 use wavesplat_compressor::encode::{compress, CompressOptions, Target, TileChoice};
 use wavesplat_compressor::phantom::Phantom;
-use wavesplat_compressor::reader::fixtures::{self, DicomOptions, Layout, NrrdEncoding};
+use wavesplat_fixtures::{self as fixtures, DicomOptions, Layout, NrrdEncoding};
 use wavesplat_orchestrator::client;
 use wavesplat_proto::pb;
 

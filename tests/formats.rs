@@ -13,7 +13,7 @@ use std::time::{Duration, Instant};
 use wavesplat_client::{CacheClient, VolumeKey};
 use wavesplat_codec::volume::{Placement, Volume};
 use wavesplat_compressor::phantom::Phantom;
-use wavesplat_compressor::reader::fixtures::{
+use wavesplat_fixtures::{
     write_dicom_multiframe, write_dicom_series, write_metaimage, write_nrrd, DicomEncoding,
     DicomOptions, Layout, NrrdEncoding,
 };

@@ -10,9 +10,9 @@ use std::os::unix::fs::FileExt;
 use std::path::Path;
 
 use wavesplat_codec::volume::{Placement, Volume, VolumeError, MAX_VOXELS};
-use wavesplat_compressor::reader::fixtures::{self, DicomOptions, Layout, NrrdEncoding};
 use wavesplat_compressor::reader::region::RegionReader;
 use wavesplat_compressor::reader::{read_volume, Endian, RawDtype, RawSpec, ReadError};
+use wavesplat_fixtures::{self as fixtures, DicomOptions, Layout, NrrdEncoding};
 
 /// Boxes of a volume of `d`: the whole, single voxels at both corners, unaligned interior
 /// boxes, whole rows, whole slabs, and boxes on each far edge (those that fit in `d`).

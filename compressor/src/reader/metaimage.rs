@@ -385,9 +385,9 @@ pub(crate) fn decode(src: &SourceFiles) -> Result<Volume, ReadError> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::reader::fixtures::{self, Layout};
     use crate::reader::read_volume;
     use wavesplat_codec::volume::{Placement, VolumeError};
+    use wavesplat_fixtures::{self as fixtures, Layout};
 
     #[test]
     fn round_trips_attached_detached_raw_and_compressed() {

@@ -16,7 +16,6 @@
 //! door for a path.
 
 pub mod dicom;
-pub mod fixtures;
 pub mod metaimage;
 pub mod nifti;
 pub mod nrrd;

@@ -489,9 +489,9 @@ fn finish(path: &Path, layout: Layout, planar: Vec<Vec<f32>>) -> Result<Volume, 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::reader::fixtures::{self, Layout as FixtureLayout, NrrdEncoding};
     use crate::reader::{read_volume, Format};
     use wavesplat_codec::volume::VolumeError;
+    use wavesplat_fixtures::{self as fixtures, Layout as FixtureLayout, NrrdEncoding};
 
     fn sample_volume(dims: [usize; 3], spacing: [f32; 3]) -> Volume {
         let n = dims.iter().product::<usize>();

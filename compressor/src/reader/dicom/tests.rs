@@ -4,14 +4,15 @@
 
 use super::pixels::{jpeg_colour_markers, jpeg_sample_precision, packbits, EXPLICIT_VR_BIG_ENDIAN};
 use super::*;
-use crate::reader::fixtures::{
-    self, write_dicom_multiframe, write_dicom_series, DicomEncoding, DicomOptions, Layout,
-};
 use crate::reader::read_volume;
 use dicom_core::{DataElement, PrimitiveValue, Tag, VR};
 use dicom_object::{open_file, DefaultDicomObject, InMemDicomObject};
 use std::path::{Path, PathBuf};
 use wavesplat_codec::volume::{Placement, Volume};
+use wavesplat_fixtures::{
+    self as fixtures, write_dicom_multiframe, write_dicom_series, DicomEncoding, DicomOptions,
+    Layout,
+};
 
 /// A placement that is neither axis-aligned nor at the origin (cosines exact in decimal).
 fn oblique() -> Placement {
