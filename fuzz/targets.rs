@@ -185,7 +185,7 @@ pub fn grpc(data: &[u8]) {
     }
     if let Ok(m) = pb::SubmitRequest::decode(data) {
         if let Some(pb::submit_request::Msg::Spec(s)) = m.msg {
-            if let Ok(spec) = wavesplat_orchestrator::convert::spec_from_pb(s) {
+            if let Ok(spec) = wavesplat_orchestrator_client::convert::spec_from_pb(s) {
                 let _ = spec.validate();
             }
         }
@@ -195,7 +195,7 @@ pub fn grpc(data: &[u8]) {
     let _ = pb::LeaseRequest::decode(data);
     let _ = pb::HeartbeatRequest::decode(data);
     if let Ok(m) = pb::FinishRequest::decode(data) {
-        let _ = wavesplat_orchestrator::convert::outcome_from_pb(m.outcome);
+        let _ = wavesplat_orchestrator_client::convert::outcome_from_pb(m.outcome);
     }
     let _ = pb::FetchSourceRequest::decode(data);
 }

@@ -1,5 +1,5 @@
 //! The crate boundaries that carry the design, checked over `cargo tree`: the servers (cache,
-//! orchestrator) and the cache client link the format and the protocol, never the renderer, the
+//! orchestrator) and the two clients (cache, orchestrator) link the format and the protocol, never the renderer, the
 //! encoder or their heavy dependencies (FFT, PNG, GPU, windowing), so a server can run on a
 //! machine without a GPU stack and the client side can depend on the client without a cycle.
 //! The encoder is linked by the worker (and the binary) only.
@@ -80,18 +80,40 @@ fn the_orchestrator_server_links_neither_renderer_nor_encoder() {
 }
 
 #[test]
-fn the_worker_links_the_encoder_but_no_renderer_or_cache_server() {
+fn the_worker_links_the_encoder_but_no_renderer_or_server() {
     let deps = dependencies("wavesplat-worker");
     assert!(deps.contains("wavesplat-compressor"), "{deps:?}");
+    assert!(deps.contains("wavesplat-orchestrator-client"), "{deps:?}");
     assert_excludes(
         "wavesplat-worker",
         &[
             "wavesplat-viewer",
             "wavesplat-cache",
+            "wavesplat-orchestrator",
+            "sled",
+            "tonic-health",
             "png",
             "wgpu",
             "winit",
         ],
+    );
+}
+
+#[test]
+fn the_orchestrator_client_links_neither_renderer_nor_encoder_nor_server() {
+    assert_excludes(
+        "wavesplat-orchestrator-client",
+        &[
+            RENDERING_AND_ENCODING,
+            &[
+                "wavesplat-orchestrator",
+                "wavesplat-cache",
+                "wavesplat-client",
+                "sled",
+                "tonic-health",
+            ],
+        ]
+        .concat(),
     );
 }
 
@@ -143,6 +165,7 @@ fn only_the_binary_and_the_tests_link_the_harness() {
     for package in [
         "wavesplat-cache",
         "wavesplat-orchestrator",
+        "wavesplat-orchestrator-client",
         "wavesplat-worker",
         "wavesplat-client",
         "wavesplat-compressor",
@@ -160,6 +183,7 @@ fn the_test_fixtures_are_linked_by_no_shipped_crate() {
         "wavesplat",
         "wavesplat-cache",
         "wavesplat-orchestrator",
+        "wavesplat-orchestrator-client",
         "wavesplat-worker",
         "wavesplat-client",
         "wavesplat-compressor",

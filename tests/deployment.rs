@@ -24,7 +24,7 @@ use wavesplat_codec::volume::Volume;
 use wavesplat_compressor::encode::{compress, CompressOptions, Target, TileChoice};
 use wavesplat_compressor::phantom::Phantom;
 use wavesplat_fixtures::{self as fixtures, DicomOptions, Layout, NrrdEncoding};
-use wavesplat_orchestrator::client;
+use wavesplat_orchestrator_client as client;
 use wavesplat_proto::pb;
 
 const SUBNET: &str = "10.208.0";

@@ -17,8 +17,8 @@ use wavesplat_fixtures::{
     write_dicom_multiframe, write_dicom_series, write_metaimage, write_nrrd, DicomEncoding,
     DicomOptions, Layout, NrrdEncoding,
 };
-use wavesplat_orchestrator::client;
-use wavesplat_orchestrator::convert::state_name;
+use wavesplat_orchestrator_client as client;
+use wavesplat_orchestrator_client::convert::state_name;
 use wavesplat_proto::pb;
 
 const BIN: &str = env!("CARGO_BIN_EXE_wavesplat");

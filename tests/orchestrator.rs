@@ -13,8 +13,8 @@ use wavesplat_client::{CacheClient, RefineRequest, VolumeKey};
 use wavesplat_codec::format::packet::decode_packet;
 use wavesplat_codec::view::ViewSpec;
 use wavesplat_compressor::phantom::Phantom;
-use wavesplat_orchestrator::client;
-use wavesplat_orchestrator::convert::state_name;
+use wavesplat_orchestrator_client as client;
+use wavesplat_orchestrator_client::convert::state_name;
 use wavesplat_proto::pb;
 use wavesplat_viewer::View;
 

@@ -11,9 +11,9 @@ use wavesplat_codec::view::{View, ViewSpec};
 use wavesplat_compressor::encode::{compress, CompressOptions, Target, TileChoice};
 use wavesplat_compressor::phantom::Phantom;
 use wavesplat_net::{Security, Tokens};
-use wavesplat_orchestrator::client::{self, Client};
-use wavesplat_orchestrator::model::{JobOptions, JobSpec, Source};
 use wavesplat_orchestrator::{DeliveryCheck, ServiceOptions};
+use wavesplat_orchestrator_client::model::{JobOptions, JobSpec, Source};
+use wavesplat_orchestrator_client::{self as client, Client};
 use wavesplat_proto::pb;
 
 const READ: &str = "0123456789abcdef-read";
@@ -381,7 +381,8 @@ async fn every_orchestrator_rpc_checks_its_role_and_deliveries_are_confirmed() {
             assert_eq!(l.is_ok(), token == Some(READ));
         }
     }
-    let state = |jobs: Vec<pb::Job>| wavesplat_orchestrator::convert::state_name(jobs[0].state);
+    let state =
+        |jobs: Vec<pb::Job>| wavesplat_orchestrator_client::convert::state_name(jobs[0].state);
     assert_eq!(state(client::list(&mut admin).await.unwrap()), "queued");
 
     // A worker lease, then a made-up delivery: refused, the job stays running.
@@ -554,7 +555,7 @@ fn the_orchestrator_binary_with_a_cache_url_starts_and_refuses_unconfirmed_deliv
         assert!(c.finish(made_up).await.is_err());
         let jobs = client::list(&mut c).await.unwrap();
         assert_eq!(
-            wavesplat_orchestrator::convert::state_name(jobs[0].state),
+            wavesplat_orchestrator_client::convert::state_name(jobs[0].state),
             "running"
         );
     });

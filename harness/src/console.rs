@@ -10,8 +10,8 @@ use std::collections::{BTreeMap, HashSet};
 use std::io::{IsTerminal, Write};
 use std::sync::{Arc, Condvar, Mutex};
 use std::time::{Duration, Instant};
-use wavesplat_orchestrator::client;
-use wavesplat_orchestrator::convert::state_name;
+use wavesplat_orchestrator_client as client;
+use wavesplat_orchestrator_client::convert::state_name;
 use wavesplat_proto::pb;
 
 /// A progress reporter for one long task.

@@ -62,6 +62,17 @@ pub enum OrchestratorError {
     Transport(#[from] tonic::transport::Error),
 }
 
+impl From<wavesplat_orchestrator_client::ClientError> for OrchestratorError {
+    fn from(e: wavesplat_orchestrator_client::ClientError) -> Self {
+        use wavesplat_orchestrator_client::ClientError;
+        match e {
+            ClientError::InvalidRequest(m) => OrchestratorError::InvalidRequest(m),
+            ClientError::Connect(m) => OrchestratorError::Connect(m),
+            other => OrchestratorError::InvalidRequest(other.to_string()),
+        }
+    }
+}
+
 impl From<OrchestratorError> for tonic::Status {
     fn from(e: OrchestratorError) -> Self {
         let msg = e.to_string();

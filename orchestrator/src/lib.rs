@@ -6,13 +6,13 @@
 //! report a delivery or a typed failure; a lease that stops heartbeating is reclaimed and the
 //! job runs elsewhere; transient failures retry with exponential backoff up to a limit.
 //!
-//! - [`model`]: jobs, specs, states, failures (plain Rust, serialisable for the store);
+//! - [`model`]: jobs, specs, states, failures (plain Rust, serialisable for the store), and
+//!   [`convert`], their `pb` conversions: both from `wavesplat-orchestrator-client`, which
+//!   workers and the CLI link instead of this server;
 //! - [`queue`]: the queue logic with an explicit clock (unit tested without sleeping);
 //! - [`store`]: the sled layout and durability rules;
-//! - [`service`]: the tonic service; [`convert`] / [`error`]: the one place for `pb`
-//!   conversions / `tonic::Status` mapping;
+//! - [`service`]: the tonic service; [`error`]: the one place for the `tonic::Status` mapping;
 //! - [`check`]: confirming a worker's delivery with the cache before a job is done;
-//! - [`client`]: helpers for the CLI, the worker and the tests.
 //!
 //! The worker and archive scanning (which reads volume files to find and hash them) live in
 //! their own crate (`wavesplat-worker`): this one links no encoder and no reader.
@@ -30,10 +30,7 @@
 //! ```
 
 pub mod check;
-pub mod client;
-pub mod convert;
 pub mod error;
-pub mod model;
 pub mod queue;
 pub mod service;
 pub mod store;
@@ -43,19 +40,13 @@ pub use error::OrchestratorError;
 pub use model::{Job, JobId, JobOptions, JobSpec, JobState, TargetSpec};
 pub use queue::QueueOptions;
 pub use service::{OrchestratorService, ServiceOptions};
-pub use store::Store;
-
-use sha2::{Digest, Sha256};
 use std::future::Future;
 use std::time::Duration;
+pub use store::Store;
 use tokio_stream::wrappers::TcpListenerStream;
 use wavesplat_net::{Access, Role};
+pub use wavesplat_orchestrator_client::{convert, model, sha256};
 use wavesplat_proto::pb::orchestrator_server::OrchestratorServer;
-
-/// SHA-256 of `bytes` (the identity of a source volume).
-pub fn sha256(bytes: &[u8]) -> [u8; 32] {
-    Sha256::digest(bytes).into()
-}
 
 /// How an orchestrator server runs.
 #[derive(Debug, Clone, Default)]
@@ -130,8 +121,8 @@ pub async fn serve_with(
         }
     });
     let server = OrchestratorServer::new(service)
-        .max_decoding_message_size(service::CHUNK_BYTES + (1 << 20))
-        .max_encoding_message_size(service::CHUNK_BYTES + (1 << 20));
+        .max_decoding_message_size(wavesplat_orchestrator_client::CHUNK_BYTES + (1 << 20))
+        .max_encoding_message_size(wavesplat_orchestrator_client::CHUNK_BYTES + (1 << 20));
     let mut builder = tonic::transport::Server::builder();
     if let Some(tls) = options.security.tls.clone() {
         builder = builder.tls_config(tls)?;

@@ -17,8 +17,7 @@ use wavesplat_net::status::client_fault;
 use wavesplat_proto::pb;
 use wavesplat_proto::pb::orchestrator_server::Orchestrator;
 
-/// Chunk size of source downloads.
-pub const CHUNK_BYTES: usize = 1 << 20;
+pub use wavesplat_orchestrator_client::CHUNK_BYTES;
 
 /// A clock giving unix milliseconds (injectable for tests).
 pub type Clock = Arc<dyn Fn() -> u64 + Send + Sync>;
@@ -155,7 +154,7 @@ impl OrchestratorService {
                 "the first submit message must be `spec`",
             ));
         };
-        let spec = convert::spec_from_pb(spec)?;
+        let spec = convert::spec_from_pb(spec).map_err(OrchestratorError::from)?;
         if let Source::Upload { size } = spec.source {
             let limit = self.shared.cfg.max_upload_bytes;
             if size > limit {
@@ -343,7 +342,7 @@ impl Orchestrator for OrchestratorService {
         request: Request<pb::FinishRequest>,
     ) -> Result<Response<pb::Job>, Status> {
         let r = request.into_inner();
-        let outcome = convert::outcome_from_pb(r.outcome)?;
+        let outcome = convert::outcome_from_pb(r.outcome).map_err(OrchestratorError::from)?;
         let (id, attempt) = (r.job_id, r.attempt);
         if let (Some(check), Outcome::Delivered(d)) = (&self.check, &outcome) {
             let name = self.lock().get(id)?.spec.name.clone();

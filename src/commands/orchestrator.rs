@@ -9,10 +9,10 @@ use std::collections::HashSet;
 use std::path::PathBuf;
 use wavesplat_compressor::encode::Target;
 use wavesplat_harness::console::{describe, watch};
-use wavesplat_orchestrator::client;
-use wavesplat_orchestrator::convert::state_name;
 use wavesplat_orchestrator::model;
 use wavesplat_orchestrator::{JobOptions, QueueOptions, ServiceOptions, Store, TargetSpec};
+use wavesplat_orchestrator_client as client;
+use wavesplat_orchestrator_client::convert::state_name;
 use wavesplat_proto::pb;
 use wavesplat_worker::archive;
 

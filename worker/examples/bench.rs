@@ -9,9 +9,9 @@
 use std::io::Write;
 use std::time::{Duration, Instant};
 use wavesplat_compressor::phantom::Phantom;
-use wavesplat_orchestrator::client;
-use wavesplat_orchestrator::convert::state_name;
 use wavesplat_orchestrator::{JobOptions, QueueOptions, ServiceOptions, Store};
+use wavesplat_orchestrator_client as client;
+use wavesplat_orchestrator_client::convert::state_name;
 use wavesplat_worker::archive;
 use wavesplat_worker::WorkerOptions;
 

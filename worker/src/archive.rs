@@ -20,7 +20,7 @@
 use std::collections::{BTreeSet, HashSet};
 use std::path::{Path, PathBuf};
 use wavesplat_compressor::reader::{dicom::is_dicom_file, Format, SourceFiles};
-use wavesplat_orchestrator::model::{JobOptions, JobSpec, RawLayout, SampleType, Source};
+use wavesplat_orchestrator_client::model::{JobOptions, JobSpec, RawLayout, SampleType, Source};
 
 /// A supported file.
 #[derive(Debug, Clone, PartialEq, Eq)]

@@ -37,10 +37,12 @@ use wavesplat_client::{CacheClient, ConnectOptions};
 use wavesplat_codec::volume::Volume;
 use wavesplat_compressor::encode::{compress, Stage};
 use wavesplat_compressor::reader::{decode_raw, decode_source, SourceFiles};
-use wavesplat_orchestrator::client::{self, Client};
-use wavesplat_orchestrator::convert;
-use wavesplat_orchestrator::model::{Delivery, Failure, FailureKind, JobSpec, Outcome, Source};
-use wavesplat_orchestrator::sha256;
+use wavesplat_orchestrator_client::convert;
+use wavesplat_orchestrator_client::model::{
+    Delivery, Failure, FailureKind, JobSpec, Outcome, Source,
+};
+use wavesplat_orchestrator_client::sha256;
+use wavesplat_orchestrator_client::{self as client, Client};
 use wavesplat_proto::pb;
 
 /// Worker settings.
@@ -69,7 +71,7 @@ pub struct WorkerOptions {
 pub enum WorkerError {
     /// The orchestrator client could not be set up.
     #[error(transparent)]
-    Orchestrator(#[from] wavesplat_orchestrator::OrchestratorError),
+    Orchestrator(#[from] wavesplat_orchestrator_client::ClientError),
     /// The thread pool could not be built.
     #[error("thread pool: {0}")]
     Pool(#[from] rayon::ThreadPoolBuildError),
@@ -403,8 +405,8 @@ async fn execute(
             FailureKind::InvalidInput,
             format!(
                 "the source changed since submission: SHA-256 {}, submitted {}",
-                wavesplat_orchestrator::model::hex(&got),
-                wavesplat_orchestrator::model::hex(&spec.sha256)
+                wavesplat_orchestrator_client::model::hex(&got),
+                wavesplat_orchestrator_client::model::hex(&spec.sha256)
             ),
         ));
     }

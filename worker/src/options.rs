@@ -5,7 +5,9 @@ use wavesplat_compressor::colorspace::ColorSpaceKind;
 use wavesplat_compressor::encode::{CompressOptions, Target, TileChoice};
 use wavesplat_compressor::reader::{Endian, RawDtype, RawSpec};
 use wavesplat_compressor::refine::RefineOptions;
-use wavesplat_orchestrator::model::{ColorSpace, JobOptions, RawLayout, SampleType, TargetSpec};
+use wavesplat_orchestrator_client::model::{
+    ColorSpace, JobOptions, RawLayout, SampleType, TargetSpec,
+};
 
 /// The compressor's options for a job.
 pub fn compress_options(o: &JobOptions) -> CompressOptions {

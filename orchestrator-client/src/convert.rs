@@ -1,16 +1,16 @@
 //! The one place where wire types (`pb`) become domain types and back. Everything arriving from
 //! the network is checked here (missing fields, sizes, enum values) and reported as
-//! [`OrchestratorError::InvalidRequest`]; nothing panics on bad input.
+//! [`ClientError::InvalidRequest`]; nothing panics on bad input.
 
-use crate::error::OrchestratorError;
+use crate::error::ClientError;
 use crate::model::{
     parse_coder, parse_colorspace, parse_family, Delivery, Failure, FailureKind, Job, JobOptions,
     JobSpec, JobState, Outcome, RawLayout, SampleType, Source, TargetSpec,
 };
 use wavesplat_proto::pb;
 
-fn invalid(msg: impl Into<String>) -> OrchestratorError {
-    OrchestratorError::InvalidRequest(msg.into())
+fn invalid(msg: impl Into<String>) -> ClientError {
+    ClientError::InvalidRequest(msg.into())
 }
 
 fn to_usize(v: u32) -> usize {
@@ -18,7 +18,7 @@ fn to_usize(v: u32) -> usize {
 }
 
 /// `pb::JobSpec` → [`JobSpec`] (shape and names; [`JobSpec::validate`] checks values).
-pub fn spec_from_pb(p: pb::JobSpec) -> Result<JobSpec, OrchestratorError> {
+pub fn spec_from_pb(p: pb::JobSpec) -> Result<JobSpec, ClientError> {
     let source = match p.source {
         Some(pb::job_spec::Source::Path(path)) => Source::Path(path.into()),
         Some(pb::job_spec::Source::UploadSize(size)) => Source::Upload { size },
@@ -66,7 +66,7 @@ pub fn spec_from_pb(p: pb::JobSpec) -> Result<JobSpec, OrchestratorError> {
     })
 }
 
-fn options_from_pb(o: pb::CompressOptions) -> Result<JobOptions, OrchestratorError> {
+fn options_from_pb(o: pb::CompressOptions) -> Result<JobOptions, ClientError> {
     let d = JobOptions::default();
     let target = match o.target.and_then(|t| t.kind) {
         None => d.target,
@@ -165,7 +165,7 @@ pub fn failure_kind_to_pb(k: FailureKind) -> pb::FailureKind {
 }
 
 /// Wire enum value → [`FailureKind`].
-pub fn failure_kind_from_pb(v: i32) -> Result<FailureKind, OrchestratorError> {
+pub fn failure_kind_from_pb(v: i32) -> Result<FailureKind, ClientError> {
     Ok(match pb::FailureKind::try_from(v) {
         Ok(pb::FailureKind::InvalidInput) => FailureKind::InvalidInput,
         Ok(pb::FailureKind::Compress) => FailureKind::Compress,
@@ -179,9 +179,7 @@ pub fn failure_kind_from_pb(v: i32) -> Result<FailureKind, OrchestratorError> {
 }
 
 /// A worker's `FinishRequest` outcome → [`Outcome`].
-pub fn outcome_from_pb(
-    o: Option<pb::finish_request::Outcome>,
-) -> Result<Outcome, OrchestratorError> {
+pub fn outcome_from_pb(o: Option<pb::finish_request::Outcome>) -> Result<Outcome, ClientError> {
     match o {
         Some(pb::finish_request::Outcome::Delivered(d)) => {
             if !(d.sha256.len() == 64 && d.sha256.bytes().all(|b| b.is_ascii_hexdigit())) {

@@ -3,7 +3,7 @@
 //! listing.
 
 use crate::convert;
-use crate::error::OrchestratorError;
+use crate::error::ClientError;
 use crate::model::JobSpec;
 use tonic::service::interceptor::InterceptedService;
 use tonic::transport::Channel;
@@ -25,20 +25,17 @@ fn client(channel: Channel, options: &ConnectOptions) -> Client {
 
 /// Connects to an orchestrator at `url` (`http://HOST:PORT`, `https://HOST:PORT` or
 /// `HOST:PORT`) without a token.
-pub async fn connect(url: &str) -> Result<Client, OrchestratorError> {
+pub async fn connect(url: &str) -> Result<Client, ClientError> {
     connect_with(url, &ConnectOptions::default()).await
 }
 
 /// Connects to an orchestrator at `url` with `options` (CA, token).
-pub async fn connect_with(
-    url: &str,
-    options: &ConnectOptions,
-) -> Result<Client, OrchestratorError> {
+pub async fn connect_with(url: &str, options: &ConnectOptions) -> Result<Client, ClientError> {
     let (url, ep) = options
         .endpoint(url)
-        .map_err(|e| OrchestratorError::Connect(e.to_string()))?;
+        .map_err(|e| ClientError::Connect(e.to_string()))?;
     let channel = ep.connect().await.map_err(|e| {
-        OrchestratorError::Connect(format!(
+        ClientError::Connect(format!(
             "{url}: {}",
             wavesplat_net::tls::explain_connect_error(&url, &e)
         ))
@@ -47,10 +44,10 @@ pub async fn connect_with(
 }
 
 /// A client that connects on first use and reconnects after failures.
-pub fn connect_lazy(url: &str, options: &ConnectOptions) -> Result<Client, OrchestratorError> {
+pub fn connect_lazy(url: &str, options: &ConnectOptions) -> Result<Client, ClientError> {
     let (_, ep) = options
         .endpoint(url)
-        .map_err(|e| OrchestratorError::Connect(e.to_string()))?;
+        .map_err(|e| ClientError::Connect(e.to_string()))?;
     Ok(client(ep.connect_lazy(), options))
 }
 
@@ -65,13 +62,9 @@ pub async fn submit(
         msg: Some(Msg::Spec(convert::spec_to_pb(spec))),
     }];
     if let Some(bytes) = upload {
-        msgs.extend(
-            bytes
-                .chunks(crate::service::CHUNK_BYTES)
-                .map(|c| pb::SubmitRequest {
-                    msg: Some(Msg::Chunk(c.to_vec())),
-                }),
-        );
+        msgs.extend(bytes.chunks(crate::CHUNK_BYTES).map(|c| pb::SubmitRequest {
+            msg: Some(Msg::Chunk(c.to_vec())),
+        }));
     }
     Ok(client.submit(tokio_stream::iter(msgs)).await?.into_inner())
 }

@@ -2,7 +2,7 @@
 //! ([`JobState`]) and how an attempt ended ([`Outcome`]). Plain Rust, serialisable for the
 //! store; the wire types live in `wavesplat_proto::pb` and are converted in [`crate::convert`].
 
-use crate::error::OrchestratorError;
+use crate::error::ClientError;
 use serde::{Deserialize, Deserializer, Serialize, Serializer};
 use std::path::PathBuf;
 use wavesplat_codec::family::Family;
@@ -93,15 +93,15 @@ pub struct RawLayout {
 
 impl RawLayout {
     /// Checks the layout (channels 1 or 3, no zero dimension).
-    pub fn validate(&self) -> Result<(), OrchestratorError> {
+    pub fn validate(&self) -> Result<(), ClientError> {
         if self.channels != 1 && self.channels != 3 {
-            return Err(OrchestratorError::InvalidRequest(format!(
+            return Err(ClientError::InvalidRequest(format!(
                 "raw channels {}; allowed 1 or 3",
                 self.channels
             )));
         }
         if self.dims.contains(&0) {
-            return Err(OrchestratorError::InvalidRequest(format!(
+            return Err(ClientError::InvalidRequest(format!(
                 "raw dims {:?}; each must be at least 1",
                 self.dims
             )));
@@ -158,19 +158,19 @@ impl ColorSpace {
 }
 
 /// Parses a family name (`haar`, `linear`, `cubic`, case-insensitive).
-pub fn parse_family(name: &str) -> Result<Family, OrchestratorError> {
+pub fn parse_family(name: &str) -> Result<Family, ClientError> {
     Family::from_name(&name.trim().to_ascii_lowercase())
         .ok_or_else(|| invalid(format!("family {name:?}; allowed haar, linear, cubic")))
 }
 
 /// Parses a colour space name.
-pub fn parse_colorspace(name: &str) -> Result<ColorSpace, OrchestratorError> {
+pub fn parse_colorspace(name: &str) -> Result<ColorSpace, ClientError> {
     ColorSpace::from_name(name)
         .ok_or_else(|| invalid(format!("colour space {name:?}; allowed rgb, yiq, pca")))
 }
 
 /// Parses a coder name (`sigmap`, `fast`, `range`, `huffman`, case-insensitive).
-pub fn parse_coder(name: &str) -> Result<CoderKind, OrchestratorError> {
+pub fn parse_coder(name: &str) -> Result<CoderKind, ClientError> {
     CoderKind::from_name(&name.trim().to_ascii_lowercase()).ok_or_else(|| {
         invalid(format!(
             "coder {name:?}; allowed sigmap, fast, range, huffman"
@@ -185,13 +185,13 @@ mod by_name {
 
     pub trait Named: Copy {
         fn canonical(self) -> &'static str;
-        fn parse(s: &str) -> Result<Self, OrchestratorError>;
+        fn parse(s: &str) -> Result<Self, ClientError>;
     }
     impl Named for Family {
         fn canonical(self) -> &'static str {
             self.name()
         }
-        fn parse(s: &str) -> Result<Self, OrchestratorError> {
+        fn parse(s: &str) -> Result<Self, ClientError> {
             parse_family(s)
         }
     }
@@ -199,7 +199,7 @@ mod by_name {
         fn canonical(self) -> &'static str {
             self.name()
         }
-        fn parse(s: &str) -> Result<Self, OrchestratorError> {
+        fn parse(s: &str) -> Result<Self, ClientError> {
             parse_coder(s)
         }
     }
@@ -207,7 +207,7 @@ mod by_name {
         fn canonical(self) -> &'static str {
             self.name()
         }
-        fn parse(s: &str) -> Result<Self, OrchestratorError> {
+        fn parse(s: &str) -> Result<Self, ClientError> {
             parse_colorspace(s)
         }
     }
@@ -279,13 +279,13 @@ impl Default for JobOptions {
     }
 }
 
-fn invalid(msg: String) -> OrchestratorError {
-    OrchestratorError::InvalidRequest(msg)
+fn invalid(msg: String) -> ClientError {
+    ClientError::InvalidRequest(msg)
 }
 
 impl JobOptions {
     /// Checks every value.
-    pub fn validate(self) -> Result<JobOptions, OrchestratorError> {
+    pub fn validate(self) -> Result<JobOptions, ClientError> {
         if !(1..=16).contains(&self.bits) {
             return Err(invalid(format!("bits {}; allowed 1..=16", self.bits)));
         }
@@ -355,7 +355,7 @@ pub struct JobSpec {
 
 impl JobSpec {
     /// Validates the spec (name, layout, options).
-    pub fn validate(mut self) -> Result<JobSpec, OrchestratorError> {
+    pub fn validate(mut self) -> Result<JobSpec, ClientError> {
         if self.name.is_empty()
             || self.name.len() > MAX_NAME_BYTES
             || self.name.chars().any(char::is_control)
