@@ -3,6 +3,7 @@
 
 mod common;
 
+use common::{cache_process, ingest_messages, phantom_file, phantom_options, TestCache};
 use std::collections::HashSet;
 use tonic::transport::Channel;
 use tonic::Code;
@@ -10,10 +11,8 @@ use wavesplat_client::{CacheClient, Packet, RefineEvent, RefineRequest, VolumeHe
 use wavesplat_codec::format::packet::{decode_packet, Coefficient};
 use wavesplat_codec::metrics::q_i_paper_db;
 use wavesplat_codec::view::ViewSpec;
-use wavesplat_compressor::encode::{compress, CompressOptions, Target, TileChoice};
+use wavesplat_compressor::encode::CompressOptions;
 use wavesplat_compressor::phantom::Phantom;
-use wavesplat_harness::process::ServerProcess;
-use wavesplat_harness::LocalCache;
 use wavesplat_proto::pb;
 use wavesplat_proto::pb::cache_client::CacheClient as WireClient;
 use wavesplat_viewer::{RenderOptions, Renderer, View};
@@ -24,56 +23,13 @@ fn test_file(dims: [usize; 3]) -> Vec<u8> {
 
 /// `test_file`, with or without the coarse layer.
 fn test_file_with(dims: [usize; 3], coarse_layer: bool) -> Vec<u8> {
-    let vol = Phantom::SheppLogan.generate(dims);
-    compress(
-        &vol,
-        &CompressOptions {
-            target: Target::Fraction(0.05),
-            tile: TileChoice::Size(16),
-            layers: Some(4),
-            levels: Some(3),
-            // The oracle's own coefficients: the ordering tests compare packet orders, and a
-            // least-squares refit is tuned for the whole set rather than for its prefixes.
-            refine: None,
-            coarse_layer,
-            ..Default::default()
-        },
-        &|_, _| {},
-    )
-    .expect("compress")
-    .bytes
-}
-
-/// An in-process cache (the harness's `LocalCache`) with its store in a tempdir.
-struct TestServer {
-    url: String,
-    node: LocalCache,
-    _dir: tempfile::TempDir,
-}
-
-impl TestServer {
-    async fn start() -> TestServer {
-        let dir = tempfile::tempdir().unwrap();
-        let node = LocalCache::start(dir.path()).unwrap();
-        TestServer {
-            url: node.url.clone(),
-            node,
-            _dir: dir,
-        }
-    }
-
-    async fn client(&self) -> CacheClient {
-        CacheClient::connect(&self.url).await.unwrap()
-    }
-
-    /// The generated client, for requests the domain client would never send.
-    async fn wire(&self) -> WireClient<Channel> {
-        WireClient::connect(self.url.clone()).await.unwrap()
-    }
-
-    async fn stop(self) {
-        self.node.stop_async().await.unwrap();
-    }
+    let options = CompressOptions {
+        layers: Some(4),
+        levels: Some(3),
+        coarse_layer,
+        ..phantom_options(0.05)
+    };
+    phantom_file(Phantom::SheppLogan, dims, &options)
 }
 
 fn sorted(mut c: Vec<Coefficient>) -> Vec<Coefficient> {
@@ -109,27 +65,11 @@ async fn volume_names(c: &mut CacheClient) -> Vec<String> {
         .collect()
 }
 
-/// The messages of an upload as the domain client sends them, for tests that corrupt them.
-fn ingest_messages(name: &str, bytes: &[u8]) -> Vec<pb::IngestRequest> {
-    use pb::ingest_request::Msg;
-    let mut out = vec![pb::IngestRequest {
-        msg: Some(Msg::Start(pb::IngestStart {
-            name: name.to_string(),
-            total_size: bytes.len() as u64,
-            sha256: wavesplat_cache::store::sha256(bytes).to_vec(),
-        })),
-    }];
-    out.extend(bytes.chunks(1 << 20).map(|c| pb::IngestRequest {
-        msg: Some(Msg::Chunk(c.to_vec())),
-    }));
-    out
-}
-
 #[tokio::test]
 async fn ingest_list_stream_decode_round_trip() {
     let bytes = test_file([48, 48, 48]);
     let (_, want) = wavesplat_compressor::decode::decode_coefficients(&bytes).unwrap();
-    let server = TestServer::start().await;
+    let server = TestCache::start();
     let mut c = server.client().await;
 
     let r = c.ingest("shepp", &bytes).await.unwrap();
@@ -216,7 +156,7 @@ async fn view_dependent_order_beats_global_order() {
     let total: usize = packets.iter().map(|p| p.len()).sum();
     let global: Vec<u32> = (0..packets.len() as u32).collect();
 
-    let server = TestServer::start().await;
+    let server = TestCache::start();
     let mut c = server.client().await;
     c.ingest("shepp", &bytes).await.unwrap();
     let key = VolumeKey::Name("shepp".into());
@@ -266,7 +206,7 @@ async fn visible_only_leaves_out_what_the_view_cannot_see_until_a_view_does() {
         .iter()
         .flat_map(|p| decode_packet(&header, p).unwrap().coefficients)
         .collect();
-    let server = TestServer::start().await;
+    let server = TestCache::start();
     let mut c = server.client().await;
     let info = c.ingest("shepp", &bytes).await.unwrap().volume;
     let key = VolumeKey::Id(info.id);
@@ -347,7 +287,7 @@ async fn visible_only_leaves_out_what_the_view_cannot_see_until_a_view_does() {
 #[tokio::test]
 async fn nothing_sent_twice_across_view_change_and_reconnect() {
     let bytes = test_file([48, 48, 48]);
-    let server = TestServer::start().await;
+    let server = TestCache::start();
     let mut c = server.client().await;
     let info = c.ingest("shepp", &bytes).await.unwrap().volume;
     let key = VolumeKey::Id(info.id);
@@ -405,7 +345,7 @@ async fn nothing_sent_twice_across_view_change_and_reconnect() {
 #[tokio::test]
 async fn credit_bounds_what_is_in_flight_and_the_view_change_reorders_the_rest() {
     let bytes = test_file([64, 64, 64]);
-    let server = TestServer::start().await;
+    let server = TestCache::start();
     let mut c = server.client().await;
     let info = c.ingest("big", &bytes).await.unwrap().volume;
     let key = VolumeKey::Id(info.id);
@@ -463,7 +403,7 @@ async fn credit_bounds_what_is_in_flight_and_the_view_change_reorders_the_rest()
 #[tokio::test]
 async fn dropped_packets_come_back_after_a_view_change() {
     let bytes = test_file([40, 40, 40]);
-    let server = TestServer::start().await;
+    let server = TestCache::start();
     let mut c = server.client().await;
     let info = c.ingest("v", &bytes).await.unwrap().volume;
     let key = VolumeKey::Id(info.id);
@@ -571,7 +511,7 @@ fn refine_view(key: &VolumeKey, v: pb::ViewSpec) -> pb::RefineRequest {
 #[tokio::test]
 async fn malformed_requests_get_errors_and_leave_the_store_unchanged() {
     let bytes = test_file([24, 24, 24]);
-    let server = TestServer::start().await;
+    let server = TestCache::start();
     server.client().await.ingest("ok", &bytes).await.unwrap();
     let mut c = server.wire().await;
     let key = VolumeKey::Name("ok".into());
@@ -636,22 +576,22 @@ async fn malformed_requests_get_errors_and_leave_the_store_unchanged() {
     assert_eq!(delete.unwrap_err().code(), Code::InvalidArgument);
 
     // Uploads: truncated, wrong checksum, not a .wsp file, oversized declaration, no start.
-    let mut truncated = ingest_messages("t", &bytes);
+    let mut truncated = ingest_messages("t", &bytes, 1 << 20);
     truncated.pop();
-    let mut wrong_sum = ingest_messages("w", &bytes);
+    let mut wrong_sum = ingest_messages("w", &bytes, 1 << 20);
     if let Some(pb::ingest_request::Msg::Start(s)) = &mut wrong_sum[0].msg {
         s.sha256[0] ^= 1;
     }
     let mut garbage_bytes = bytes.clone();
     let n = garbage_bytes.len();
     garbage_bytes[n / 2] ^= 0x55;
-    let garbage = ingest_messages("g", &garbage_bytes);
-    let mut oversized = ingest_messages("o", &bytes);
+    let garbage = ingest_messages("g", &garbage_bytes, 1 << 20);
+    let mut oversized = ingest_messages("o", &bytes, 1 << 20);
     if let Some(pb::ingest_request::Msg::Start(s)) = &mut oversized[0].msg {
         s.total_size = u64::MAX;
     }
-    let no_start = ingest_messages("n", &bytes)[1..].to_vec();
-    let bad_name = ingest_messages("", &bytes);
+    let no_start = ingest_messages("n", &bytes, 1 << 20)[1..].to_vec();
+    let bad_name = ingest_messages("", &bytes, 1 << 20);
     for (what, msgs) in [
         ("truncated", truncated),
         ("wrong checksum", wrong_sum),
@@ -671,15 +611,6 @@ async fn malformed_requests_get_errors_and_leave_the_store_unchanged() {
 }
 
 /// The real binary, serving on 127.0.0.1:0 (the bound address is read from its stdout).
-fn start_process(db: &std::path::Path) -> ServerProcess {
-    let db = db.to_str().expect("utf-8 temp path");
-    ServerProcess::spawn(
-        std::path::Path::new(env!("CARGO_BIN_EXE_wavesplat")),
-        &["serve", "cache", "--addr", "127.0.0.1:0", "--db", db],
-    )
-    .unwrap()
-}
-
 async fn stream_all(url: &str, name: &str) -> (VolumeHeader, Vec<Packet>) {
     let mut c = CacheClient::connect(url).await.unwrap();
     let got = c
@@ -700,11 +631,11 @@ async fn sigkill_during_ingest_and_streaming_leaves_no_partial_volume() {
     let (_, want_a) = wavesplat_compressor::decode::decode_coefficients(&a).unwrap();
     let dir = tempfile::tempdir().unwrap();
 
-    let server = start_process(dir.path());
+    let server = cache_process(dir.path());
     let mut c = CacheClient::connect(&server.url()).await.unwrap();
     c.ingest("a", &a).await.unwrap();
     // Start uploading b, send half of it, and kill the server mid-upload.
-    let msgs = ingest_messages("b", &b);
+    let msgs = ingest_messages("b", &b, 1 << 20);
     let (tx, rx) = tokio::sync::mpsc::channel(16);
     let wire = WireClient::connect(server.url()).await.unwrap();
     let mut c2 = wire.clone();
@@ -726,7 +657,7 @@ async fn sigkill_during_ingest_and_streaming_leaves_no_partial_volume() {
     assert!(upload.await.unwrap().is_err());
     drop(tx);
 
-    let server = start_process(dir.path());
+    let server = cache_process(dir.path());
     let mut c = CacheClient::connect(&server.url()).await.unwrap();
     assert_eq!(volume_names(&mut c).await, vec!["a".to_string()]);
     let (h, p) = stream_all(&server.url(), "a").await;
@@ -746,7 +677,7 @@ async fn sigkill_during_ingest_and_streaming_leaves_no_partial_volume() {
     server.kill();
     drop(stream);
 
-    let server = start_process(dir.path());
+    let server = cache_process(dir.path());
     let mut c = CacheClient::connect(&server.url()).await.unwrap();
     assert_eq!(volume_names(&mut c).await, vec!["a".to_string()]);
     let (h, p) = stream_all(&server.url(), "a").await;
@@ -762,7 +693,7 @@ async fn sigkill_during_ingest_and_streaming_leaves_no_partial_volume() {
 
 #[tokio::test]
 async fn an_empty_request_mid_stream_is_answered_with_what_was_wrong() {
-    let server = TestServer::start().await;
+    let server = TestCache::start();
     server
         .client()
         .await
@@ -800,7 +731,7 @@ async fn a_file_whose_packets_do_not_hold_what_its_header_declares_is_refused() 
     let empty = wavesplat_codec::format::write_file(&file.header, &[]);
     let packets: Vec<Vec<u8>> = file.packets.iter().map(|p| p.to_vec()).collect();
     let short = wavesplat_codec::format::write_file(&file.header, &packets[..packets.len() - 1]);
-    let server = TestServer::start().await;
+    let server = TestCache::start();
     let mut c = server.client().await;
     for (name, b) in [("empty", &empty), ("short", &short)] {
         let e = c.ingest(name, b).await.unwrap_err();
@@ -859,7 +790,7 @@ fn assert_within_credit(got: &[pb::Packet], granted: u64, when: &str) {
 async fn a_stream_sends_at_most_one_packet_beyond_the_credit_granted() {
     use std::time::Duration;
     let bytes = test_file([48, 48, 48]);
-    let server = TestServer::start().await;
+    let server = TestCache::start();
     let info = server
         .client()
         .await
@@ -989,7 +920,7 @@ impl tonic::codec::Codec for RawRequests {
 #[tokio::test]
 async fn a_malformed_message_mid_stream_ends_the_stream_with_an_error() {
     use prost::Message;
-    let server = TestServer::start().await;
+    let server = TestCache::start();
     server
         .client()
         .await

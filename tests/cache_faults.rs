@@ -3,6 +3,9 @@
 //! held in memory, disk space never given back, and client faults answered as server faults.
 //! In-process servers on loopback, sled in a tempdir.
 
+mod common;
+
+use common::{ingest_messages, phantom_file, phantom_options, TestCache};
 use std::time::Duration;
 use tonic::transport::Channel;
 use tonic::Code;
@@ -10,76 +13,17 @@ use wavesplat_cache::store::Upload;
 use wavesplat_cache::{CacheError, Limits, Store, VolumeKey as StoreKey};
 use wavesplat_client::{CacheClient, RefineRequest, VolumeKey};
 use wavesplat_codec::view::{View, ViewSpec};
-use wavesplat_compressor::encode::{compress, CompressOptions, Target, TileChoice};
+use wavesplat_compressor::encode::CompressOptions;
 use wavesplat_compressor::phantom::Phantom;
-use wavesplat_harness::LocalCache;
 use wavesplat_proto::pb;
-use wavesplat_proto::pb::cache_client::CacheClient as WireClient;
 
 fn test_file(dims: [usize; 3], fraction: f64) -> Vec<u8> {
-    let vol = Phantom::SheppLogan.generate(dims);
-    compress(
-        &vol,
-        &CompressOptions {
-            target: Target::Fraction(fraction),
-            tile: TileChoice::Size(16),
-            layers: Some(3),
-            levels: Some(3),
-            refine: None,
-            ..Default::default()
-        },
-        &|_, _| {},
-    )
-    .expect("compress")
-    .bytes
-}
-
-/// An in-process cache (the harness's `LocalCache`) with its store in a tempdir.
-struct TestServer {
-    url: String,
-    store: Store,
-    node: LocalCache,
-    dir: tempfile::TempDir,
-}
-
-impl TestServer {
-    async fn start(limits: Limits) -> TestServer {
-        let dir = tempfile::tempdir().unwrap();
-        let node = LocalCache::start_with(dir.path(), "127.0.0.1:0", limits).unwrap();
-        TestServer {
-            url: node.url.clone(),
-            store: node.store.clone(),
-            node,
-            dir,
-        }
-    }
-
-    async fn client(&self) -> CacheClient {
-        CacheClient::connect(&self.url).await.unwrap()
-    }
-
-    async fn wire(&self) -> WireClient<Channel> {
-        WireClient::connect(self.url.clone()).await.unwrap()
-    }
-
-    async fn stop(self) {
-        self.node.stop_async().await.unwrap();
-    }
-}
-
-fn ingest_messages(name: &str, bytes: &[u8]) -> Vec<pb::IngestRequest> {
-    use pb::ingest_request::Msg;
-    let mut out = vec![pb::IngestRequest {
-        msg: Some(Msg::Start(pb::IngestStart {
-            name: name.to_string(),
-            total_size: bytes.len() as u64,
-            sha256: wavesplat_cache::store::sha256(bytes).to_vec(),
-        })),
-    }];
-    out.extend(bytes.chunks(64 << 10).map(|c| pb::IngestRequest {
-        msg: Some(Msg::Chunk(c.to_vec())),
-    }));
-    out
+    let options = CompressOptions {
+        layers: Some(3),
+        levels: Some(3),
+        ..phantom_options(fraction)
+    };
+    phantom_file(Phantom::SheppLogan, dims, &options)
 }
 
 async fn names(c: &mut CacheClient) -> Vec<String> {
@@ -105,7 +49,7 @@ fn du(dir: &std::path::Path) -> u64 {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn concurrent_identical_ingests_all_succeed_and_land_once() {
     let bytes = test_file([32, 32, 32], 0.05);
-    let server = TestServer::start(Limits::default()).await;
+    let server = TestCache::start();
     let mut tasks = Vec::new();
     for _ in 0..16 {
         let url = server.url.clone();
@@ -127,14 +71,14 @@ async fn concurrent_identical_ingests_all_succeed_and_land_once() {
     assert!(ids.iter().all(|&i| i == ids[0]), "{ids:?}");
     assert_eq!(names(&mut server.client().await).await, vec!["same"]);
     // One file of data, exactly the upload's size: the losers left nothing behind.
-    assert_eq!(server.store.data_bytes().unwrap(), bytes.len() as u64);
+    assert_eq!(server.node.store.data_bytes().unwrap(), bytes.len() as u64);
     server.stop().await;
 }
 
 #[tokio::test]
 async fn identical_content_under_a_second_name_resolves_under_both() {
     let bytes = test_file([24, 24, 24], 0.05);
-    let server = TestServer::start(Limits::default()).await;
+    let server = TestCache::start();
     let mut c = server.client().await;
     let a = c.ingest("archive/a", &bytes).await.unwrap();
     let b = c.ingest("archive/copy-of-a", &bytes).await.unwrap();
@@ -166,10 +110,10 @@ async fn identical_content_under_a_second_name_resolves_under_both() {
         .await
         .unwrap();
     assert!(got.done && !got.packets.is_empty());
-    assert_eq!(server.store.data_bytes().unwrap(), bytes.len() as u64);
+    assert_eq!(server.node.store.data_bytes().unwrap(), bytes.len() as u64);
     c.delete(&key).await.unwrap();
     assert!(names(&mut c).await.is_empty());
-    assert_eq!(server.store.data_bytes().unwrap(), 0);
+    assert_eq!(server.node.store.data_bytes().unwrap(), 0);
     // A different file under a taken name is still refused.
     c.ingest("x", &bytes).await.unwrap();
     let other = test_file([24, 24, 20], 0.05);
@@ -204,11 +148,12 @@ async fn an_ingest_cut_short_by_its_deadline_can_be_repeated_and_lands_once() {
     // Whatever the deadline cut (the upload, the validation, or only the reply), the store
     // agrees with a repeat of the same ingest: it lands once, and says so.
     let bytes = test_file([48, 48, 48], 1.0);
-    let server = TestServer::start(Limits::default()).await;
+    let server = TestCache::start();
     let mut wire = server.wire().await;
     for ms in [1u64, 10, 40, 150] {
         let name = format!("v{ms}");
-        let mut req = tonic::Request::new(tokio_stream::iter(ingest_messages(&name, &bytes)));
+        let mut req =
+            tonic::Request::new(tokio_stream::iter(ingest_messages(&name, &bytes, 64 << 10)));
         req.set_timeout(Duration::from_millis(ms));
         let first = wire.ingest(req).await;
         let mut c = server.client().await;
@@ -232,13 +177,13 @@ async fn an_ingest_cut_short_by_its_deadline_can_be_repeated_and_lands_once() {
         );
     }
     // Identical content: one volume under four names, one file.
-    assert_eq!(server.store.data_bytes().unwrap(), bytes.len() as u64);
+    assert_eq!(server.node.store.data_bytes().unwrap(), bytes.len() as u64);
     server.stop().await;
 }
 
 #[tokio::test]
 async fn junk_is_refused_from_its_first_chunk_while_the_client_is_still_sending() {
-    let server = TestServer::start(Limits::default()).await;
+    let server = TestCache::start();
     let mut wire = server.wire().await;
     let total = 150u64 << 20;
     let (tx, rx) = tokio::sync::mpsc::channel(4);
@@ -269,7 +214,7 @@ async fn junk_is_refused_from_its_first_chunk_while_the_client_is_still_sending(
     assert_eq!(s.code(), Code::InvalidArgument);
     assert!(s.message().contains("magic"), "{}", s.message());
     drop(tx);
-    assert_eq!(server.store.data_bytes().unwrap(), 0);
+    assert_eq!(server.node.store.data_bytes().unwrap(), 0);
     server.stop().await;
 }
 
@@ -353,7 +298,7 @@ struct Bogus {
 
 #[tokio::test]
 async fn client_faults_get_client_statuses() {
-    let server = TestServer::start(Limits::default()).await;
+    let server = TestCache::start();
     let channel = Channel::from_shared(server.url.clone())
         .unwrap()
         .connect()
@@ -383,7 +328,7 @@ async fn client_faults_get_client_statuses() {
         .await
         .unwrap_err();
     assert_eq!(e.code(), Code::ResourceExhausted, "{e:?}");
-    let mut msgs = ingest_messages("big", &[0u8; 16]);
+    let mut msgs = ingest_messages("big", &[0u8; 16], 64 << 10);
     msgs[0].msg = Some(pb::ingest_request::Msg::Start(pb::IngestStart {
         name: "big".into(),
         total_size: 6 << 20,

@@ -21,7 +21,6 @@ use std::time::{Duration, Instant};
 use tonic::Code;
 use wavesplat_client::{CacheClient, ConnectOptions, Credentials, VolumeKey};
 use wavesplat_codec::volume::Volume;
-use wavesplat_compressor::encode::{compress, CompressOptions, Target, TileChoice};
 use wavesplat_compressor::phantom::Phantom;
 use wavesplat_fixtures::{self as fixtures, DicomOptions, Layout, NrrdEncoding};
 use wavesplat_orchestrator_client as client;
@@ -249,18 +248,11 @@ fn the_readme_secure_deployment_runs_across_hosts() {
     assert!(submit.status.success(), "{}", text(&submit));
 
     // A volume to browse, uploaded by a person with `write`.
-    let browse = compress(
-        &Phantom::SheppLogan.generate([80, 80, 80]),
-        &CompressOptions {
-            target: Target::Fraction(0.1),
-            tile: TileChoice::Size(16),
-            refine: None,
-            ..Default::default()
-        },
-        &|_, _| {},
-    )
-    .unwrap()
-    .bytes;
+    let browse = common::phantom_file(
+        Phantom::SheppLogan,
+        [80, 80, 80],
+        &common::phantom_options(0.1),
+    );
     std::fs::write(viewer_dir.join("browse.wsp"), &browse).unwrap();
     let ingest = net.run(
         "viewer",

@@ -8,30 +8,20 @@
 mod common;
 
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Output, Stdio};
+use std::process::{Command, Output};
 use std::time::{Duration, Instant};
 use wavesplat_client::{CacheClient, VolumeKey};
 use wavesplat_codec::volume::{Placement, Volume};
 use wavesplat_compressor::phantom::Phantom;
 use wavesplat_fixtures::{
-    write_dicom_multiframe, write_dicom_series, write_metaimage, write_nrrd, DicomEncoding,
-    DicomOptions, Layout, NrrdEncoding,
+    write_dicom_multiframe, write_dicom_series, write_metaimage, write_nifti, write_nrrd,
+    DicomEncoding, DicomOptions, Layout, NrrdEncoding,
 };
 use wavesplat_orchestrator_client as client;
 use wavesplat_orchestrator_client::convert::state_name;
 use wavesplat_proto::pb;
 
 const BIN: &str = env!("CARGO_BIN_EXE_wavesplat");
-
-/// A child process, killed when dropped.
-struct Proc(Child);
-
-impl Drop for Proc {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
 
 fn cli(args: &[&str]) -> Output {
     Command::new(BIN).args(args).output().unwrap()
@@ -63,33 +53,6 @@ fn ct(dims: [usize; 3], spacing: [f32; 3]) -> Volume {
             directions: [[0.6, 0.8, 0.0], [-0.8, 0.6, 0.0], [0.0, 0.0, 1.0]],
         })
         .unwrap()
-}
-
-fn write_nifti(path: &Path, dims: [usize; 3], samples: &[f32]) {
-    let mut h = vec![0u8; 352];
-    h[0..4].copy_from_slice(&348i32.to_le_bytes());
-    let dim: [i16; 8] = [
-        3,
-        dims[0] as i16,
-        dims[1] as i16,
-        dims[2] as i16,
-        1,
-        1,
-        1,
-        1,
-    ];
-    for (i, d) in dim.iter().enumerate() {
-        h[40 + 2 * i..42 + 2 * i].copy_from_slice(&d.to_le_bytes());
-    }
-    h[70..72].copy_from_slice(&16i16.to_le_bytes());
-    h[72..74].copy_from_slice(&32i16.to_le_bytes());
-    for i in 0..8 {
-        h[76 + 4 * i..80 + 4 * i].copy_from_slice(&1f32.to_le_bytes());
-    }
-    h[108..112].copy_from_slice(&352f32.to_le_bytes());
-    h[344..348].copy_from_slice(b"n+1\0");
-    h.extend(samples.iter().flat_map(|v| v.to_le_bytes()));
-    std::fs::write(path, h).unwrap();
 }
 
 /// Writes the mixed archive under `dir`; returns (good volume names with their source
@@ -237,22 +200,7 @@ async fn an_archive_of_every_format_compresses_and_bad_volumes_fail_alone() {
         },
     );
 
-    let (c_child, c_addr) = common::spawn_server(&[
-        "serve",
-        "cache",
-        "--addr",
-        "127.0.0.1:0",
-        "--db",
-        root.join("cache.db").to_str().unwrap(),
-    ]);
-    let _cache = Proc(c_child);
-    let (o_child, o_addr) = common::spawn_server(&[
-        "serve",
-        "orchestrator",
-        "--addr",
-        "127.0.0.1:0",
-        "--db",
-        root.join("orch.db").to_str().unwrap(),
+    let cluster = common::TestCluster::start(&[
         "--lease-secs",
         "5",
         "--heartbeat-ms",
@@ -260,24 +208,8 @@ async fn an_archive_of_every_format_compresses_and_bad_volumes_fail_alone() {
         "--poll-ms",
         "100",
     ]);
-    let _orch = Proc(o_child);
-    let (o, c) = (format!("http://{o_addr}"), format!("http://{c_addr}"));
-    let _worker = Proc(
-        Command::new(BIN)
-            .args([
-                "worker",
-                "--orchestrator",
-                &o,
-                "--cache",
-                &c,
-                "--threads",
-                "1",
-            ])
-            .stdout(Stdio::null())
-            .stderr(Stdio::null())
-            .spawn()
-            .unwrap(),
-    );
+    let (o, c) = (cluster.orch.url(), cluster.cache.url());
+    let _worker = cluster.worker("w", 0, None);
     let common = ["--orchestrator", &o, "--detach", "--levels", "2"];
     let mut args = vec!["archive", "submit", archive.to_str().unwrap()];
     args.extend_from_slice(&common);

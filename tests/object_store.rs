@@ -317,19 +317,11 @@ fn a_store_outage_ends_a_refinement_stream_as_unavailable() {
     let (bucket_dir, node_dir, viewer_dir) = (dir("bucket"), dir("node"), dir("viewer"));
     let mut net = Net::create("wsu", "10.210.0", &["bucket", "node", "viewer"]);
     let mut bucket = start_bucket(&mut net, &bucket_dir);
-    let vol = Phantom::SheppLogan.generate([64, 56, 48]);
-    let bytes = compress(
-        &vol,
-        &CompressOptions {
-            target: Target::Fraction(0.5),
-            tile: TileChoice::Size(8),
-            refine: None,
-            ..Default::default()
-        },
-        &|_, _| {},
-    )
-    .unwrap()
-    .bytes;
+    let options = CompressOptions {
+        tile: TileChoice::Size(8),
+        ..common::phantom_options(0.5)
+    };
+    let bytes = common::phantom_file(Phantom::SheppLogan, [64, 56, 48], &options);
     // Several times the viewer's credit: packets are still to be read from the store when it
     // stops.
     assert!(bytes.len() > 200_000, "{} bytes", bytes.len());

@@ -5,14 +5,16 @@
 
 mod common;
 
+use common::TestCluster;
 use std::collections::HashSet;
 use std::path::Path;
-use std::process::{Child, Command, Output, Stdio};
+use std::process::{Command, Output};
 use std::time::{Duration, Instant};
 use wavesplat_client::{CacheClient, RefineRequest, VolumeKey};
 use wavesplat_codec::format::packet::decode_packet;
 use wavesplat_codec::view::ViewSpec;
 use wavesplat_compressor::phantom::Phantom;
+use wavesplat_fixtures::write_nifti;
 use wavesplat_orchestrator_client as client;
 use wavesplat_orchestrator_client::convert::state_name;
 use wavesplat_proto::pb;
@@ -21,85 +23,17 @@ use wavesplat_viewer::View;
 const BIN: &str = env!("CARGO_BIN_EXE_wavesplat");
 const DIMS: [usize; 3] = [24, 24, 24];
 
-/// A child process, SIGKILLed when dropped.
-struct Proc {
-    child: Child,
-    addr: String,
-}
-
-impl Proc {
-    /// Starts a server and reads its bound address from the `listening on` line.
-    fn server(args: &[&str]) -> Proc {
-        let (child, addr) = common::spawn_server(args);
-        Proc { child, addr }
-    }
-
-    fn url(&self) -> String {
-        format!("http://{}", self.addr)
-    }
-
-    fn orchestrator(db: &Path, addr: &str) -> Proc {
-        Proc::server(&[
-            "serve",
-            "orchestrator",
-            "--addr",
-            addr,
-            "--db",
-            db.to_str().unwrap(),
-            "--lease-secs",
-            "2",
-            "--heartbeat-ms",
-            "300",
-            "--retry-base-ms",
-            "200",
-            "--poll-ms",
-            "100",
-        ])
-    }
-
-    fn worker(orch: &str, cache: &str, id: &str, pause_ms: u64) -> Proc {
-        Proc::worker_logging_to(orch, cache, id, pause_ms, None)
-    }
-
-    /// A worker whose log (stderr, a file as a service manager would keep it) goes to `log`.
-    fn worker_logging_to(
-        orch: &str,
-        cache: &str,
-        id: &str,
-        pause_ms: u64,
-        log: Option<&Path>,
-    ) -> Proc {
-        let stderr = match log {
-            Some(p) => Stdio::from(std::fs::File::create(p).unwrap()),
-            None => Stdio::null(),
-        };
-        let child = Command::new(BIN)
-            .args(["worker", "--orchestrator", orch, "--cache", cache])
-            .args(["--threads", "1", "--id", id])
-            .args(["--pause-before-upload-ms", &pause_ms.to_string()])
-            .stdout(Stdio::null())
-            .stderr(stderr)
-            .spawn()
-            .unwrap();
-        Proc {
-            child,
-            addr: String::new(),
-        }
-    }
-
-    /// SIGKILL: no shutdown path runs.
-    fn kill(mut self) {
-        self.child.kill().unwrap();
-        self.child.wait().unwrap();
-    }
-}
-
-impl Drop for Proc {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-}
+/// The orchestrator's timings here: leases of 2 s, so a killed worker's job runs again soon.
+const ORCH_TIMING: [&str; 8] = [
+    "--lease-secs",
+    "2",
+    "--heartbeat-ms",
+    "300",
+    "--retry-base-ms",
+    "200",
+    "--poll-ms",
+    "100",
+];
 
 fn cli(args: &[&str]) -> Output {
     Command::new(BIN).args(args).output().unwrap()
@@ -135,34 +69,6 @@ fn submit(dir: &Path, orch: &str, extra: &[&str]) -> String {
 fn write_f32(path: &Path, samples: &[f32]) {
     let bytes: Vec<u8> = samples.iter().flat_map(|v| v.to_le_bytes()).collect();
     std::fs::write(path, bytes).unwrap();
-}
-
-/// A minimal NIfTI-1 single file (float32, unit spacing).
-fn write_nifti(path: &Path, dims: [usize; 3], samples: &[f32]) {
-    let mut h = vec![0u8; 352];
-    h[0..4].copy_from_slice(&348i32.to_le_bytes());
-    let dim: [i16; 8] = [
-        3,
-        dims[0] as i16,
-        dims[1] as i16,
-        dims[2] as i16,
-        1,
-        1,
-        1,
-        1,
-    ];
-    for (i, d) in dim.iter().enumerate() {
-        h[40 + 2 * i..42 + 2 * i].copy_from_slice(&d.to_le_bytes());
-    }
-    h[70..72].copy_from_slice(&16i16.to_le_bytes()); // float32
-    h[72..74].copy_from_slice(&32i16.to_le_bytes());
-    for i in 0..8 {
-        h[76 + 4 * i..80 + 4 * i].copy_from_slice(&1f32.to_le_bytes());
-    }
-    h[108..112].copy_from_slice(&352f32.to_le_bytes());
-    h[344..348].copy_from_slice(b"n+1\0");
-    h.extend(samples.iter().flat_map(|v| v.to_le_bytes()));
-    std::fs::write(path, h).unwrap();
 }
 
 fn phantom(p: Phantom, dims: [usize; 3]) -> Vec<f32> {
@@ -274,38 +180,9 @@ async fn cache_volumes_decode(cache: &str) -> Vec<String> {
     names
 }
 
-struct Cluster {
-    _dir: tempfile::TempDir,
-    root: std::path::PathBuf,
-    cache: Proc,
-    orch: Proc,
-}
-
-impl Cluster {
-    fn start() -> Cluster {
-        let dir = tempfile::tempdir().unwrap();
-        let root = dir.path().to_path_buf();
-        let cache = Proc::server(&[
-            "serve",
-            "cache",
-            "--addr",
-            "127.0.0.1:0",
-            "--db",
-            root.join("cache.db").to_str().unwrap(),
-        ]);
-        let orch = Proc::orchestrator(&root.join("orch.db"), "127.0.0.1:0");
-        Cluster {
-            _dir: dir,
-            root,
-            cache,
-            orch,
-        }
-    }
-}
-
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn archive_is_compressed_into_the_cache_and_bad_files_fail_alone() {
-    let cl = Cluster::start();
+    let cl = TestCluster::start(&ORCH_TIMING);
     let (o, c) = (cl.orch.url(), cl.cache.url());
     // Three archives with different families / colour spaces; one is uploaded, not shared.
     let a = cl.root.join("a");
@@ -322,8 +199,8 @@ async fn archive_is_compressed_into_the_cache_and_bad_files_fail_alone() {
     std::fs::write(b.join("garbage.nii"), b"not a nifti file at all").unwrap();
 
     let logs = [cl.root.join("w1.log"), cl.root.join("w2.log")];
-    let _w1 = Proc::worker_logging_to(&o, &c, "w1", 0, Some(&logs[0]));
-    let _w2 = Proc::worker_logging_to(&o, &c, "w2", 0, Some(&logs[1]));
+    let _w1 = cl.worker("w1", 0, Some(&logs[0]));
+    let _w2 = cl.worker("w2", 0, Some(&logs[1]));
     submit(&a, &o, &["--family", "haar", "--colorspace", "rgb"]);
     submit(
         &b,
@@ -398,12 +275,12 @@ async fn archive_is_compressed_into_the_cache_and_bad_files_fail_alone() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_killed_workers_lease_is_reclaimed_and_the_job_lands_once() {
-    let cl = Cluster::start();
+    let cl = TestCluster::start(&ORCH_TIMING);
     let (o, c) = (cl.orch.url(), cl.cache.url());
     let dir = cl.root.join("arch");
     let good = write_good(&dir, "v", 3);
     // This worker compresses, then hangs before uploading: SIGKILL it there.
-    let stuck = Proc::worker(&o, &c, "doomed", 60_000);
+    let stuck = cl.worker("doomed", 60_000, None);
     submit(&dir, &o, &[]);
     let js = wait_for(&o, 20, "a job held by the doomed worker", |js| {
         js.iter()
@@ -412,7 +289,7 @@ async fn a_killed_workers_lease_is_reclaimed_and_the_job_lands_once() {
     .await;
     let victim = js.iter().find(|j| j.worker == "doomed").unwrap().id;
     stuck.kill();
-    let _w = Proc::worker(&o, &c, "rescuer", 0);
+    let _w = cl.worker("rescuer", 0, None);
     let js = wait_for(&o, 30, "all done", |js| {
         js.len() == 3 && js.iter().all(|j| state_name(j.state) == "done")
     })
@@ -427,7 +304,7 @@ async fn a_killed_workers_lease_is_reclaimed_and_the_job_lands_once() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn orchestrator_restart_keeps_the_queue_and_cancel_retry_work() {
-    let mut cl = Cluster::start();
+    let mut cl = TestCluster::start(&ORCH_TIMING);
     let c = cl.cache.url();
     let dir = cl.root.join("arch");
     let good = write_good(&dir, "r", 6);
@@ -447,7 +324,7 @@ async fn orchestrator_restart_keeps_the_queue_and_cancel_retry_work() {
     assert!(out.contains("cancelled"), "{out}");
 
     // A slow worker, so the run is still going when the orchestrator dies.
-    let _w = Proc::worker(&o, &c, "w", 400);
+    let _w = cl.worker("w", 400, None);
     let before = wait_for(&o, 20, "two jobs done", |js| {
         js.iter().filter(|j| state_name(j.state) == "done").count() >= 2
     })
@@ -456,17 +333,7 @@ async fn orchestrator_restart_keeps_the_queue_and_cancel_retry_work() {
         !all_finished(&before),
         "the run ended before the orchestrator was killed"
     );
-    let addr = cl.orch.addr.clone();
-    let old = std::mem::replace(
-        &mut cl.orch,
-        Proc {
-            child: Command::new("true").spawn().unwrap(),
-            addr: String::new(),
-        },
-    );
-    old.kill();
-    // Restart on the same address (workers know only that) and the same database.
-    cl.orch = Proc::orchestrator(&cl.root.join("orch.db"), &addr);
+    cl.restart_orchestrator();
     let after = jobs(&o).await;
     assert_eq!(after.len(), 6);
     for (b, a) in before.iter().zip(&after) {
@@ -510,12 +377,12 @@ async fn orchestrator_restart_keeps_the_queue_and_cancel_retry_work() {
 /// a retried job shows no stale error while it waits.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_same_archive_with_other_options_lands_under_a_suffix() {
-    let cl = Cluster::start();
+    let cl = TestCluster::start(&ORCH_TIMING);
     let (o, c) = (cl.orch.url(), cl.cache.url());
     let a = cl.root.join("a");
     let good = write_good(&a, "s", 2);
     submit(&a, &o, &[]);
-    let _w = Proc::worker(&o, &c, "w", 0);
+    let _w = cl.worker("w", 0, None);
     wait_for(&o, 45, "the first submission done", all_finished).await;
     submit(&a, &o, &["--family", "cubic"]);
     let js = wait_for(&o, 45, "the clashing submission finished", |js| {

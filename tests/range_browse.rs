@@ -30,7 +30,6 @@ use std::time::{Duration, Instant};
 use wavesplat_codec::format::index::{
     indexed_layout, read_indexed_head, wsp_of_indexed, HeadRead, HEAD_READ_BYTES,
 };
-use wavesplat_compressor::encode::{compress, CompressOptions, Target, TileChoice};
 use wavesplat_compressor::phantom::Phantom;
 
 const BIN: &str = env!("CARGO_BIN_EXE_wavesplat");
@@ -40,18 +39,11 @@ const BIN: &str = env!("CARGO_BIN_EXE_wavesplat");
 fn volume() -> &'static (Vec<u8>, Vec<u8>) {
     static VOLUME: OnceLock<(Vec<u8>, Vec<u8>)> = OnceLock::new();
     VOLUME.get_or_init(|| {
-        let wsp = compress(
-            &Phantom::SheppLogan.generate([128, 112, 96]),
-            &CompressOptions {
-                target: Target::Fraction(0.1),
-                tile: TileChoice::Size(16),
-                refine: None,
-                ..Default::default()
-            },
-            &|_, _| {},
-        )
-        .unwrap()
-        .bytes;
+        let wsp = common::phantom_file(
+            Phantom::SheppLogan,
+            [128, 112, 96],
+            &common::phantom_options(0.1),
+        );
         let wspx = indexed_layout(&wsp).unwrap();
         (wsp, wspx)
     })
@@ -258,13 +250,13 @@ impl Drop for WebServer {
 }
 
 /// nginx serving `root` on a free loopback port; with `tls` (certificate and key, PEM) over
-/// TLS.
+/// TLS. nginx cannot listen on port 0 and say which port it got, so the test binds the port
+/// and hands nginx the listening socket (as its stdin, named in the `NGINX` variable: nginx's
+/// own inheritance of sockets across binary upgrades): the port is never released, so no other
+/// process can take it between the test choosing it and nginx serving it.
 fn start_nginx(dir: &Path, root: &Path, tls: Option<(&Path, &Path)>) -> WebServer {
-    let port = std::net::TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port();
+    let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let port = listener.local_addr().unwrap().port();
     let conf = dir.join("nginx.conf");
     std::fs::create_dir_all(dir.join("logs")).unwrap();
     std::fs::write(
@@ -295,6 +287,8 @@ fn start_nginx(dir: &Path, root: &Path, tls: Option<(&Path, &Path)>) -> WebServe
         .arg(&conf)
         .arg("-p")
         .arg(dir)
+        .env("NGINX", "0;")
+        .stdin(Stdio::from(std::os::fd::OwnedFd::from(listener)))
         .stdout(Stdio::null())
         .stderr(Stdio::null())
         .spawn()

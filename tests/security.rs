@@ -2,13 +2,14 @@
 //! roles on every RPC, the refusal to serve a reachable address unprotected, and deliveries
 //! confirmed with the cache. In-process servers on loopback, sled in a tempdir.
 
+use common::{phantom_file, phantom_options, TestCache};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use tonic::Code;
 use wavesplat_cache::{Limits, Store};
 use wavesplat_client::{CacheClient, ConnectOptions, Credentials, RefineRequest, VolumeKey};
 use wavesplat_codec::view::{View, ViewSpec};
-use wavesplat_compressor::encode::{compress, CompressOptions, Target, TileChoice};
+use wavesplat_compressor::encode::CompressOptions;
 use wavesplat_compressor::phantom::Phantom;
 use wavesplat_net::{Security, Tokens};
 use wavesplat_orchestrator::{DeliveryCheck, ServiceOptions};
@@ -32,20 +33,11 @@ fn tokens() -> Arc<Tokens> {
 }
 
 fn test_file(dims: [usize; 3]) -> Vec<u8> {
-    let vol = Phantom::SheppLogan.generate(dims);
-    compress(
-        &vol,
-        &CompressOptions {
-            target: Target::Fraction(0.05),
-            tile: TileChoice::Size(16),
-            levels: Some(2),
-            refine: None,
-            ..Default::default()
-        },
-        &|_, _| {},
-    )
-    .unwrap()
-    .bytes
+    let options = CompressOptions {
+        levels: Some(2),
+        ..phantom_options(0.05)
+    };
+    phantom_file(Phantom::SheppLogan, dims, &options)
 }
 
 /// A CA and a server certificate for 127.0.0.1 and localhost signed by it, as PEM files.
@@ -83,48 +75,6 @@ fn pki() -> Pki {
     }
 }
 
-struct Cache {
-    addr: std::net::SocketAddr,
-    store: Store,
-    _dir: tempfile::TempDir,
-    stop: Option<tokio::sync::oneshot::Sender<()>>,
-    task: tokio::task::JoinHandle<()>,
-}
-
-impl Cache {
-    async fn start(security: Security) -> Cache {
-        let dir = tempfile::tempdir().unwrap();
-        let store = Store::open(dir.path(), Limits::default()).unwrap();
-        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
-        let addr = listener.local_addr().unwrap();
-        let (tx, rx) = tokio::sync::oneshot::channel();
-        let served = store.clone();
-        let options = wavesplat_cache::ServeOptions {
-            security,
-            ..Default::default()
-        };
-        let task = tokio::spawn(async move {
-            wavesplat_cache::serve_with(listener, served, options, async {
-                let _ = rx.await;
-            })
-            .await
-            .unwrap();
-        });
-        Cache {
-            addr,
-            store,
-            _dir: dir,
-            stop: Some(tx),
-            task,
-        }
-    }
-
-    async fn stop(mut self) {
-        let _ = self.stop.take().unwrap().send(());
-        self.task.await.unwrap();
-    }
-}
-
 fn options(ca: Option<&Path>, token: Option<&str>) -> ConnectOptions {
     ConnectOptions {
         ca: ca.map(Path::to_path_buf),
@@ -146,8 +96,8 @@ async fn tls_round_trip_and_every_cache_rpc_checks_its_role() {
         tokens: Some(tokens()),
         insecure: false,
     };
-    let cache = Cache::start(security).await;
-    let url = format!("https://127.0.0.1:{}", cache.addr.port());
+    let cache = TestCache::secured(security);
+    let url = format!("https://127.0.0.1:{}", cache.node.addr.port());
     let bytes = test_file([24, 24, 24]);
     let key = VolumeKey::Name("v".into());
 
@@ -168,8 +118,8 @@ async fn tls_round_trip_and_every_cache_rpc_checks_its_role() {
             );
         }
     }
-    assert!(cache.store.list().unwrap().is_empty());
-    assert_eq!(cache.store.data_bytes().unwrap(), 0);
+    assert!(cache.node.store.list().unwrap().is_empty());
+    assert_eq!(cache.node.store.data_bytes().unwrap(), 0);
 
     // `write` stores; it cannot read.
     let mut w = client(&url, Some(&pki.ca), Some(WRITE)).await;
@@ -197,13 +147,13 @@ async fn tls_round_trip_and_every_cache_rpc_checks_its_role() {
         r.delete(&key).await.unwrap_err().code(),
         Some(Code::PermissionDenied)
     );
-    assert_eq!(cache.store.list().unwrap().len(), 1);
+    assert_eq!(cache.node.store.list().unwrap().len(), 1);
     let mut a = client(&url, Some(&pki.ca), Some(ADMIN)).await;
     a.delete(&key).await.unwrap();
     assert!(a.list().await.unwrap().is_empty());
 
     // Plaintext against the TLS server fails; so does TLS without the right CA.
-    let plain = format!("http://127.0.0.1:{}", cache.addr.port());
+    let plain = format!("http://127.0.0.1:{}", cache.node.addr.port());
     let mut p = client(&plain, None, Some(READ)).await;
     assert!(p.list().await.is_err());
     let other = pki_other();
@@ -220,9 +170,9 @@ fn pki_other() -> Pki {
 
 #[tokio::test]
 async fn an_https_url_against_a_plaintext_server_fails_clearly() {
-    let cache = Cache::start(Security::default()).await;
+    let cache = TestCache::secured(Security::default());
     let pki = pki();
-    let url = format!("https://127.0.0.1:{}", cache.addr.port());
+    let url = format!("https://127.0.0.1:{}", cache.node.addr.port());
     let e = CacheClient::connect_with(&url, &options(Some(&pki.ca), None))
         .await
         .unwrap_err();
@@ -234,7 +184,7 @@ async fn an_https_url_against_a_plaintext_server_fails_clearly() {
     );
     // http:// stays plaintext and works.
     let mut c = client(
-        &format!("http://127.0.0.1:{}", cache.addr.port()),
+        &format!("http://127.0.0.1:{}", cache.node.addr.port()),
         None,
         None,
     )
@@ -299,12 +249,11 @@ fn job_ref(id: u64) -> pb::JobRef {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn every_orchestrator_rpc_checks_its_role_and_deliveries_are_confirmed() {
     // The cache the orchestrator checks deliveries against (plaintext on loopback, tokens on).
-    let cache = Cache::start(Security {
+    let cache = TestCache::secured(Security {
         tokens: Some(tokens()),
         ..Default::default()
-    })
-    .await;
-    let cache_url = format!("http://{}", cache.addr);
+    });
+    let cache_url = format!("http://{}", cache.node.addr);
     let dir = tempfile::tempdir().unwrap();
     let store = wavesplat_orchestrator::Store::open(dir.path()).unwrap();
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
@@ -410,7 +359,7 @@ async fn every_orchestrator_rpc_checks_its_role_and_deliveries_are_confirmed() {
     // A worker's token adds content and nothing else: it cannot delete.
     let e = cw.delete(&VolumeKey::Name("vol".into())).await.unwrap_err();
     assert_eq!(e.code(), Some(Code::PermissionDenied), "{e}");
-    assert_eq!(cache.store.list().unwrap().len(), 1);
+    assert_eq!(cache.node.store.list().unwrap().len(), 1);
     let lie = pb::Delivered {
         cache_volume_id: stored.id + 1,
         sha256: stored.sha256.clone(),

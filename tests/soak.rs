@@ -13,39 +13,25 @@ use std::time::{Duration, Instant};
 use wavesplat_client::{CacheClient, ClientError, RefineEvent, RefineRequest, VolumeKey};
 use wavesplat_codec::format::parse_file;
 use wavesplat_codec::view::{View, ViewSpec};
-use wavesplat_compressor::encode::{compress, CompressOptions, Target, TileChoice};
+use wavesplat_compressor::encode::CompressOptions;
 use wavesplat_compressor::phantom::Phantom;
 
 const CLIENTS: usize = 32;
 const LIMIT: Duration = Duration::from_secs(100);
 
 fn file(dims: [usize; 3], fraction: f64) -> Vec<u8> {
-    compress(
-        &Phantom::SheppLogan.generate(dims),
-        &CompressOptions {
-            target: Target::Fraction(fraction),
-            tile: TileChoice::Size(16),
-            layers: Some(2),
-            levels: Some(3),
-            refine: None,
-            ..Default::default()
-        },
-        &|_, _| {},
-    )
-    .unwrap()
-    .bytes
+    let options = CompressOptions {
+        layers: Some(2),
+        levels: Some(3),
+        ..common::phantom_options(fraction)
+    };
+    common::phantom_file(Phantom::SheppLogan, dims, &options)
 }
 
 fn start(db: &std::path::Path) -> (Child, String) {
-    let (child, addr) = common::spawn_server(&[
-        "serve",
-        "cache",
-        "--addr",
-        "127.0.0.1:0",
-        "--db",
-        db.to_str().unwrap(),
-    ]);
-    (child, format!("http://{addr}"))
+    let server = common::cache_process(db);
+    let url = server.url();
+    (server.into_parts().0, url)
 }
 
 fn view(i: usize, k: usize) -> ViewSpec {

@@ -4,13 +4,15 @@
 //! bound over the network; and `wavesplat render --cache` against `wavesplat render FILE` (one
 //! pass) and `wavesplat render FILE --progressive` (the frame loop).
 
+mod common;
+
 use std::time::{Duration, Instant};
 use wavesplat_cache::Limits;
 use wavesplat_client::{CacheClient, VolumeKey};
 use wavesplat_codec::format::packet::{decode_packet, Coefficient};
 use wavesplat_codec::format::{parse_file, Header};
 use wavesplat_codec::view::{View, ViewSpec};
-use wavesplat_compressor::encode::{compress, CompressOptions, Target, TileChoice};
+use wavesplat_compressor::encode::CompressOptions;
 use wavesplat_compressor::phantom::Phantom;
 use wavesplat_harness::LocalCache;
 use wavesplat_viewer::session::{RenderSession, SessionOptions, COEFFICIENT_BYTES};
@@ -18,19 +20,11 @@ use wavesplat_viewer::source::{CacheSource, CacheSourceOptions, FileSource, Pack
 use wavesplat_viewer::{CpuBackend, FrameLoop, Image, RenderOptions, Renderer};
 
 fn wsp(phantom: Phantom, n: usize) -> Vec<u8> {
-    compress(
-        &phantom.generate([n; 3]),
-        &CompressOptions {
-            target: Target::Fraction(0.08),
-            tile: TileChoice::Size(16),
-            layers: Some(3),
-            refine: None,
-            ..Default::default()
-        },
-        &|_, _| {},
-    )
-    .expect("compress")
-    .bytes
+    let options = CompressOptions {
+        layers: Some(3),
+        ..common::phantom_options(0.08)
+    };
+    common::phantom_file(phantom, [n; 3], &options)
 }
 
 fn all(bytes: &[u8]) -> (Header, Vec<Coefficient>) {

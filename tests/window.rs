@@ -5,10 +5,12 @@
 //! (Mesa's Vulkan driver), these tests skip with a printed reason, unless
 //! `WAVESPLAT_REQUIRE_GPU=1` (CI sets it, and `.ci/run` installs both): then they fail.
 
+mod common;
+
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
-use wavesplat_compressor::encode::{compress, CompressOptions, Target, TileChoice};
+use wavesplat_compressor::encode::CompressOptions;
 use wavesplat_compressor::phantom::Phantom;
 
 const BIN: &str = env!("CARGO_BIN_EXE_wavesplat");
@@ -94,19 +96,11 @@ impl Xvfb {
 }
 
 fn wsp(phantom: Phantom, dims: [usize; 3]) -> Vec<u8> {
-    compress(
-        &phantom.generate(dims),
-        &CompressOptions {
-            target: Target::Fraction(0.1),
-            tile: TileChoice::Size(16),
-            layers: Some(3),
-            refine: None,
-            ..Default::default()
-        },
-        &|_, _| {},
-    )
-    .expect("compress")
-    .bytes
+    let options = CompressOptions {
+        layers: Some(3),
+        ..common::phantom_options(0.1)
+    };
+    common::phantom_file(phantom, dims, &options)
 }
 
 /// A PNG as 8-bit grey levels (the mean of R, G and B), with its size.

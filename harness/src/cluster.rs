@@ -177,6 +177,16 @@ impl LocalCache {
     /// A node on `addr` (retried until the address is free again, for a restart) with its
     /// store in `dir` under `limits`.
     pub fn start_with(dir: &Path, addr: &str, limits: Limits) -> Result<LocalCache> {
+        LocalCache::start_serving(dir, addr, limits, wavesplat_cache::ServeOptions::default())
+    }
+
+    /// [`LocalCache::start_with`], served with `options` (TLS, tokens, exposure).
+    pub fn start_serving(
+        dir: &Path,
+        addr: &str,
+        limits: Limits,
+        options: wavesplat_cache::ServeOptions,
+    ) -> Result<LocalCache> {
         let store = Store::open(dir, limits)
             .with_context(|| format!("opening the cache store in {}", dir.display()))?;
         let (stop, stop_rx) = tokio::sync::oneshot::channel::<()>();
@@ -204,7 +214,7 @@ impl LocalCache {
                         }
                     };
                     let _ = ready_tx.send(listener.local_addr()?);
-                    wavesplat_cache::serve(listener, served, async {
+                    wavesplat_cache::serve_with(listener, served, options, async {
                         let _ = stop_rx.await;
                     })
                     .await

@@ -1,13 +1,113 @@
-//! Helpers shared by the end-to-end tests: running the real `wavesplat` binary as a server
-//! (through `wavesplat_harness::process`), and reading its images.
+//! Helpers shared by the end-to-end tests: the volumes they compress ([`phantom_file`]), the
+//! one way to start a cache in the test's process ([`TestCache`], over the harness's
+//! `LocalCache`) or the real `wavesplat` binary as a server ([`spawn_server`], through
+//! `wavesplat_harness::process`), raw upload messages, a NIfTI writer, and reading images.
 
 #![allow(dead_code)]
 
 pub mod netns;
 
-use std::path::Path;
-use std::process::Child;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use tonic::transport::Channel;
+use wavesplat_cache::{Limits, ServeOptions};
+use wavesplat_client::CacheClient;
+use wavesplat_compressor::encode::{compress, CompressOptions, Target, TileChoice};
+use wavesplat_compressor::phantom::Phantom;
 use wavesplat_harness::process::ServerProcess;
+use wavesplat_harness::LocalCache;
+use wavesplat_proto::pb;
+use wavesplat_proto::pb::cache_client::CacheClient as WireClient;
+
+/// The options the end-to-end tests compress with: `fraction` of the coefficients in 16³
+/// tiles, keeping the oracle's own coefficients (no least-squares refit: the ordering tests
+/// compare packet orders, and a refit is tuned for the whole set rather than its prefixes).
+/// Tests set layers, levels or tiles on top (`..phantom_options(f)`).
+pub fn phantom_options(fraction: f64) -> CompressOptions {
+    CompressOptions {
+        target: Target::Fraction(fraction),
+        tile: TileChoice::Size(16),
+        refine: None,
+        ..Default::default()
+    }
+}
+
+/// The `.wsp` bytes of `phantom` at `dims` compressed with `options`.
+pub fn phantom_file(phantom: Phantom, dims: [usize; 3], options: &CompressOptions) -> Vec<u8> {
+    compress(&phantom.generate(dims), options, &|_, _| {})
+        .expect("compress")
+        .bytes
+}
+
+/// A cache in the test's process (the harness's `LocalCache` on a thread of its own) with its
+/// store in a temporary directory that lives as long as it does.
+pub struct TestCache {
+    /// `http://127.0.0.1:PORT`.
+    pub url: String,
+    /// The node (its store, its address).
+    pub node: LocalCache,
+    /// Where the store lives.
+    pub dir: tempfile::TempDir,
+}
+
+impl TestCache {
+    /// A node with the default limits, plaintext on loopback.
+    pub fn start() -> TestCache {
+        TestCache::start_with(Limits::default(), ServeOptions::default())
+    }
+
+    /// A node under `limits`, served with `options` (TLS, tokens).
+    pub fn start_with(limits: Limits, options: ServeOptions) -> TestCache {
+        let dir = tempfile::tempdir().unwrap();
+        let node = LocalCache::start_serving(dir.path(), "127.0.0.1:0", limits, options).unwrap();
+        TestCache {
+            url: node.url.clone(),
+            node,
+            dir,
+        }
+    }
+
+    /// A node with the default limits served with `security` (TLS, tokens).
+    pub fn secured(security: wavesplat_net::Security) -> TestCache {
+        let options = ServeOptions {
+            security,
+            ..Default::default()
+        };
+        TestCache::start_with(Limits::default(), options)
+    }
+
+    /// The domain client.
+    pub async fn client(&self) -> CacheClient {
+        CacheClient::connect(&self.url).await.unwrap()
+    }
+
+    /// The generated client, for requests the domain client would never send.
+    pub async fn wire(&self) -> WireClient<Channel> {
+        WireClient::connect(self.url.clone()).await.unwrap()
+    }
+
+    /// Stops the node gracefully (clients on the caller's runtime may finish their streams).
+    pub async fn stop(self) {
+        self.node.stop_async().await.unwrap();
+    }
+}
+
+/// The messages of an upload as the domain client sends them (`start`, then chunks of
+/// `chunk` bytes), for tests that corrupt, cut or replay them.
+pub fn ingest_messages(name: &str, bytes: &[u8], chunk: usize) -> Vec<pb::IngestRequest> {
+    use pb::ingest_request::Msg;
+    let mut out = vec![pb::IngestRequest {
+        msg: Some(Msg::Start(pb::IngestStart {
+            name: name.to_string(),
+            total_size: bytes.len() as u64,
+            sha256: wavesplat_cache::store::sha256(bytes).to_vec(),
+        })),
+    }];
+    out.extend(bytes.chunks(chunk).map(|c| pb::IngestRequest {
+        msg: Some(Msg::Chunk(c.to_vec())),
+    }));
+    out
+}
 
 /// Starts `wavesplat ARGS` (a server bound to port 0) and returns the child and the address it
 /// announced on its first stdout line (`listening on ADDR`), through the harness's
@@ -16,6 +116,17 @@ pub fn spawn_server(args: &[&str]) -> (Child, String) {
     ServerProcess::spawn(Path::new(env!("CARGO_BIN_EXE_wavesplat")), args)
         .unwrap()
         .into_parts()
+}
+
+/// `wavesplat serve cache` on a fresh loopback port with its store in `db` (a real process, for
+/// tests that kill and restart it).
+pub fn cache_process(db: &Path) -> ServerProcess {
+    let db = db.to_str().expect("utf-8 temp path");
+    ServerProcess::spawn(
+        Path::new(env!("CARGO_BIN_EXE_wavesplat")),
+        &["serve", "cache", "--addr", "127.0.0.1:0", "--db", db],
+    )
+    .unwrap()
 }
 
 /// [`spawn_server`] with the server's stderr kept: [`stop_and_read_stderr`] reads it.
@@ -74,5 +185,126 @@ pub fn wait_for_bytes(dir: &std::path::Path) -> u64 {
             "no bytes reached the viewer"
         );
         std::thread::sleep(std::time::Duration::from_millis(5));
+    }
+}
+
+/// A `wavesplat` child process, SIGKILLed when dropped: a server with the address it announced,
+/// or a worker (no address).
+pub struct Proc {
+    /// The process.
+    pub child: Child,
+    /// `HOST:PORT` a server listens on; empty for a worker.
+    pub addr: String,
+}
+
+impl Proc {
+    /// Starts a server and reads its bound address from the `listening on` line.
+    pub fn server(args: &[&str]) -> Proc {
+        let (child, addr) = spawn_server(args);
+        Proc { child, addr }
+    }
+
+    /// `http://ADDR`.
+    pub fn url(&self) -> String {
+        format!("http://{}", self.addr)
+    }
+
+    /// `wavesplat serve orchestrator` on `addr` with its database in `db` and `args` after.
+    pub fn orchestrator(db: &Path, addr: &str, args: &[&str]) -> Proc {
+        let db = db.to_str().unwrap();
+        let mut all = vec!["serve", "orchestrator", "--addr", addr, "--db", db];
+        all.extend_from_slice(args);
+        Proc::server(&all)
+    }
+
+    /// A worker with one compression thread that waits `pause_ms` before each upload; its
+    /// log (stderr, a file as a service manager would keep it) goes to `log` when given.
+    pub fn worker(orch: &str, cache: &str, id: &str, pause_ms: u64, log: Option<&Path>) -> Proc {
+        let stderr = match log {
+            Some(p) => Stdio::from(std::fs::File::create(p).unwrap()),
+            None => Stdio::null(),
+        };
+        let child = Command::new(env!("CARGO_BIN_EXE_wavesplat"))
+            .args(["worker", "--orchestrator", orch, "--cache", cache])
+            .args(["--threads", "1", "--id", id])
+            .args(["--pause-before-upload-ms", &pause_ms.to_string()])
+            .stdout(Stdio::null())
+            .stderr(stderr)
+            .spawn()
+            .unwrap();
+        Proc {
+            child,
+            addr: String::new(),
+        }
+    }
+
+    /// SIGKILL: no shutdown path runs.
+    pub fn kill(mut self) {
+        self.child.kill().unwrap();
+        self.child.wait().unwrap();
+    }
+}
+
+impl Drop for Proc {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// A cache and an orchestrator as real `wavesplat` processes on loopback ports, their stores
+/// in a temporary directory (`root`, where tests also write their archives); workers are
+/// added with [`TestCluster::worker`].
+pub struct TestCluster {
+    _dir: tempfile::TempDir,
+    /// The temporary directory.
+    pub root: PathBuf,
+    /// The cache (`root/cache.db`).
+    pub cache: Proc,
+    /// The orchestrator (`root/orch.db`).
+    pub orch: Proc,
+    orch_args: Vec<String>,
+}
+
+impl TestCluster {
+    /// Starts both servers; `orch_args` (lease, heartbeat, retry and poll timings) go to the
+    /// orchestrator, now and on a restart.
+    pub fn start(orch_args: &[&str]) -> TestCluster {
+        let dir = tempfile::tempdir().unwrap();
+        let root = dir.path().to_path_buf();
+        let cache = Proc::server(&[
+            "serve",
+            "cache",
+            "--addr",
+            "127.0.0.1:0",
+            "--db",
+            root.join("cache.db").to_str().unwrap(),
+        ]);
+        let orch = Proc::orchestrator(&root.join("orch.db"), "127.0.0.1:0", orch_args);
+        TestCluster {
+            _dir: dir,
+            root,
+            cache,
+            orch,
+            orch_args: orch_args.iter().map(|a| a.to_string()).collect(),
+        }
+    }
+
+    /// A worker of this cluster (see [`Proc::worker`]).
+    pub fn worker(&self, id: &str, pause_ms: u64, log: Option<&Path>) -> Proc {
+        Proc::worker(&self.orch.url(), &self.cache.url(), id, pause_ms, log)
+    }
+
+    /// SIGKILLs the orchestrator and starts it again on the same address (workers know only
+    /// that) over the same database.
+    pub fn restart_orchestrator(&mut self) {
+        let addr = self.orch.addr.clone();
+        let args: Vec<&str> = self.orch_args.iter().map(String::as_str).collect();
+        let stand_in = Proc {
+            child: Command::new("true").spawn().unwrap(),
+            addr: String::new(),
+        };
+        std::mem::replace(&mut self.orch, stand_in).kill();
+        self.orch = Proc::orchestrator(&self.root.join("orch.db"), &addr, &args);
     }
 }
