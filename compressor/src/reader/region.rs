@@ -15,7 +15,7 @@
 //! they open only when the whole volume fits within [`MAX_VOXELS`](wavesplat_codec::volume::MAX_VOXELS) (the series decoder's
 //! ordering and validation are not yet available slice by slice). The meaning of each header
 //! (its validation, the spacing, the placement, the channel layout) comes from the format's
-//! own decoder, run on a one-voxel stand-in of the header (see `formats.rs`), so a region gets
+//! own decoder, run on a one-voxel stand-in of the header (see `formats/`), so a region gets
 //! exactly the metadata and values [`read_volume`] gives those voxels.
 //!
 //! ```no_run

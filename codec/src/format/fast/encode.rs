@@ -1,0 +1,338 @@
+//! The fast coder's encoder: symbolizes every packet (octree masks, step symbols, the sign
+//! stream), fits the header's prefix-code tables to all of a file's symbols, then writes each
+//! payload.
+
+use super::cells::CellMap;
+use super::{
+    child_origin, raw_bits, root_log, step_symbol, FastTables, Substream, LEAF_MASK_TABLES,
+    MASK_ALPHABET, MASK_TABLES, MAX_CODE_LENGTH, SIGN_CONTEXTS, VALUE_ALPHABET, VALUE_TABLES,
+};
+use crate::entropy::bits::{BitSink, BitWriter};
+use crate::entropy::huffman::HuffmanCode;
+use crate::entropy::range::{BitModel, RangeEncoder};
+use crate::format::coefficient::{region_extent, Coefficient, PacketInput, SizeBreakdown};
+use crate::format::quant::Quantizer;
+use crate::format::Header;
+
+/// One prefix-coded element of a packet's syntax, before the tables are fitted, packed in
+/// 8 bytes (the encoder holds a whole file's, one or two per coefficient): bits 0–1 the kind
+/// (present bit, mask, step), then the present bit, or the table in bits 2–5 and the mask in
+/// bits 8–15, or the table in bits 2–5, the step symbol in bits 8–13 and its raw bits from bit
+/// 14 (at most 49 of them, as many as [`raw_bits`] says).
+#[derive(Debug, Clone, Copy)]
+struct Symbol(u64);
+
+const _: () = assert!(MASK_TABLES <= 16 && VALUE_TABLES <= 16 && VALUE_ALPHABET <= 64);
+
+impl Symbol {
+    const PRESENT: u64 = 0;
+    const MASK: u64 = 1;
+    const STEP: u64 = 2;
+
+    fn present(present: bool) -> Symbol {
+        Symbol(Self::PRESENT | (present as u64) << 2)
+    }
+    fn mask(table: usize, mask: u8) -> Symbol {
+        Symbol(Self::MASK | (table as u64) << 2 | (mask as u64) << 8)
+    }
+    fn step(table: usize, symbol: usize, raw: u64) -> Symbol {
+        debug_assert!(raw < 1 << raw_bits(symbol));
+        Symbol(Self::STEP | (table as u64) << 2 | (symbol as u64) << 8 | raw << 14)
+    }
+    fn kind(self) -> u64 {
+        self.0 & 3
+    }
+    fn table(self) -> usize {
+        (self.0 >> 2 & 15) as usize
+    }
+    fn mask_bits(self) -> usize {
+        (self.0 >> 8 & 0xFF) as usize
+    }
+    fn step_symbol(self) -> usize {
+        (self.0 >> 8 & 63) as usize
+    }
+    fn raw(self) -> u64 {
+        self.0 >> 14
+    }
+}
+
+/// Symbol counts per table, over all packets.
+struct Frequencies {
+    mask: [Vec<u64>; MASK_TABLES],
+    value: [Vec<u64>; VALUE_TABLES],
+}
+
+impl Frequencies {
+    fn new() -> Frequencies {
+        Frequencies {
+            mask: std::array::from_fn(|_| vec![0; MASK_ALPHABET]),
+            value: std::array::from_fn(|_| vec![0; VALUE_ALPHABET]),
+        }
+    }
+    fn add(&mut self, symbols: &[Symbol]) {
+        for &s in symbols {
+            match s.kind() {
+                Symbol::MASK => self.mask[s.table()][s.mask_bits()] += 1,
+                Symbol::STEP => self.value[s.table()][s.step_symbol()] += 1,
+                _ => {}
+            }
+        }
+    }
+    fn fit(&self) -> FastTables {
+        FastTables::new(
+            std::array::from_fn(|t| HuffmanCode::from_frequencies(&self.mask[t], MAX_CODE_LENGTH)),
+            std::array::from_fn(|t| HuffmanCode::from_frequencies(&self.value[t], MAX_CODE_LENGTH)),
+        )
+    }
+}
+
+/// A packet being symbolized.
+struct PacketCoder {
+    symbols: Vec<Symbol>,
+    signs: RangeEncoder,
+    sign_models: Vec<BitModel>,
+    map: CellMap,
+    recon: Vec<Coefficient>,
+}
+
+/// A coefficient to code: its octree key (interleaved cell bits, x lowest), cell and value.
+type Keyed = (u64, [u32; 3], f32);
+
+impl PacketCoder {
+    fn node(&mut self, s: &Substream, pts: &[Keyed], o: [u32; 3], log: u32) {
+        let shift = 3 * (log - 1);
+        let child = |k: u64| ((k >> shift) & 7) as u32;
+        let mask = pts.iter().fold(0u8, |m, p| m | 1 << child(p.0));
+        let h = 1u32 << (log - 1);
+        let table = if log > 1 {
+            LEAF_MASK_TABLES
+        } else {
+            self.map.face_table(o)
+        };
+        self.symbols.push(Symbol::mask(table, mask));
+        if log > 1 {
+            let mut start = 0;
+            while start < pts.len() {
+                let c = child(pts[start].0);
+                let end = start + pts[start..].partition_point(|p| child(p.0) == c);
+                self.node(s, &pts[start..end], child_origin(o, c, h), log - 1);
+                start = end;
+            }
+            return;
+        }
+        for &(_, cell, value) in pts {
+            let negative = value < 0.0;
+            let (q, magnitude) = s.quant.quantize((value as f64).abs());
+            let (sc, vc) = self.map.leaf_contexts(cell);
+            let (symbol, raw) = step_symbol(q);
+            self.symbols.push(Symbol::step(vc, symbol, raw));
+            self.signs
+                .encode_bit(&mut self.sign_models[s.bi * SIGN_CONTEXTS + sc], negative);
+            self.map.insert(cell, negative, q);
+            let value = if negative { -magnitude } else { magnitude } as f32;
+            self.recon.push(Coefficient::in_region(
+                s.channel, s.band, s.origin, cell, value,
+            ));
+        }
+    }
+}
+
+/// Interleaves the low `log` bits of a cell's coordinates, x lowest: octree order.
+fn octree_key(cell: [u32; 3], log: u32) -> u64 {
+    let mut k = 0u64;
+    for bit in (0..log).rev() {
+        for a in (0..3).rev() {
+            k = k << 1 | ((cell[a] >> bit) & 1) as u64;
+        }
+    }
+    k
+}
+
+/// A packet's symbolized form: prefix-coded symbols, the sign stream and the decoder's
+/// reconstruction (in decode order).
+struct Symbolized {
+    symbols: Vec<Symbol>,
+    signs: Vec<u8>,
+    recon: Vec<Coefficient>,
+}
+
+fn symbolize(header: &Header, input: &PacketInput) -> Symbolized {
+    let nb = header.geometry.band_count();
+    let bands = header.geometry.bands();
+    let mut per_sub: Vec<Vec<&Coefficient>> = vec![Vec::new(); header.substream_count()];
+    for c in &input.coefficients {
+        per_sub[header.substream_id(c.channel as usize, c.band)].push(c);
+    }
+    let mut coder = PacketCoder {
+        symbols: Vec::with_capacity(2 * input.coefficients.len() + per_sub.len()),
+        signs: RangeEncoder::new(),
+        sign_models: vec![BitModel::new(); nb * SIGN_CONTEXTS],
+        map: CellMap::new(),
+        recon: Vec::with_capacity(input.coefficients.len()),
+    };
+    for (sub, list) in per_sub.iter().enumerate() {
+        if header.substreams[sub].is_none() {
+            continue;
+        }
+        coder.symbols.push(Symbol::present(!list.is_empty()));
+        if list.is_empty() {
+            continue;
+        }
+        let bi = sub % nb;
+        let band = bands[bi];
+        let channel = (sub / nb) as u8;
+        let (origin, extent) = region_extent(
+            header,
+            input.tile,
+            band.level,
+            header.geometry.band_dims(band),
+        );
+        let log = root_log(extent);
+        let mut pts: Vec<Keyed> = list
+            .iter()
+            .map(|c| {
+                let cell = [0, 1, 2].map(|a| c.pos[a] - origin[a]);
+                (octree_key(cell, log), cell, c.value)
+            })
+            .collect();
+        pts.sort_unstable_by_key(|p| p.0);
+        let s = Substream {
+            bi,
+            quant: Quantizer::of(header, sub, input.layer),
+            origin,
+            extent,
+            channel,
+            band,
+        };
+        coder.map.reset(extent);
+        coder.node(&s, &pts, [0; 3], log);
+    }
+    Symbolized {
+        symbols: coder.symbols,
+        signs: coder.signs.finish(),
+        recon: coder.recon,
+    }
+}
+
+/// Encodes packets: fits the tables to all of them (stored in `header.fast_tables`), then
+/// writes each payload. Returns the payloads, the decoder's reconstructions and the breakdown
+/// (exact code lengths, and the sign stream's bytes).
+pub(crate) fn encode_packets(
+    header: &mut Header,
+    inputs: &[PacketInput],
+) -> (Vec<Vec<u8>>, Vec<Vec<Coefficient>>, SizeBreakdown) {
+    let header_ref = &*header;
+    let code = |input: &PacketInput| symbolize(header_ref, input);
+    #[cfg(feature = "rayon")]
+    let symbolized: Vec<_> = {
+        use rayon::prelude::*;
+        inputs.par_iter().map(code).collect()
+    };
+    #[cfg(not(feature = "rayon"))]
+    let symbolized: Vec<_> = inputs.iter().map(code).collect();
+    let mut freqs = Frequencies::new();
+    for p in &symbolized {
+        freqs.add(&p.symbols);
+    }
+    let tables = freqs.fit();
+    let mut bd = SizeBreakdown::default();
+    let mut payloads = Vec::with_capacity(inputs.len());
+    let mut recons = Vec::with_capacity(inputs.len());
+    for p in symbolized {
+        let mut w = BitWriter::with_capacity(p.symbols.len());
+        for s in p.symbols {
+            match s.kind() {
+                Symbol::MASK => {
+                    let code = &tables.mask[s.table()];
+                    code.encode(s.mask_bits(), &mut w);
+                    bd.position_bits += code.cost_bits(s.mask_bits()) as f64;
+                }
+                Symbol::STEP => {
+                    let code = &tables.value[s.table()];
+                    let (symbol, n) = (s.step_symbol(), raw_bits(s.step_symbol()));
+                    code.encode(symbol, &mut w);
+                    w.put_bits(s.raw(), n);
+                    bd.value_bits += (code.cost_bits(symbol) + n) as f64;
+                }
+                _ => {
+                    w.put_bit(s.0 >> 2 & 1 != 0);
+                    bd.tag_bits += 1.0;
+                }
+            }
+        }
+        let prefix_coded = w.finish();
+        let mut payload = super::super::bytes::ByteWriter::new();
+        payload.varint(prefix_coded.len() as u64);
+        payload.bytes(&prefix_coded);
+        payload.bytes(&p.signs);
+        let payload = payload.into_bytes();
+        bd.sign_bits += 8.0 * p.signs.len() as f64;
+        payloads.push(payload);
+        recons.push(p.recon);
+    }
+    header.fast_tables = Some(tables);
+    (payloads, recons, bd)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::super::{step_of, DIRECT_STEPS};
+    use super::*;
+
+    #[test]
+    fn step_symbols_cover_every_step_and_decode_back() {
+        let mut qs: Vec<u64> = (0..200).collect();
+        qs.extend((14..50).map(|b| 1u64 << b));
+        qs.extend([u32::MAX as u64, 1_000_000_000_000_000]);
+        for q in qs {
+            let (symbol, raw) = step_symbol(q);
+            assert!(symbol < VALUE_ALPHABET, "q {q}");
+            // q < 14 is its own symbol; above, q − 13 has e bits and e − 1 of them follow.
+            let expected_raw_bits = if q < DIRECT_STEPS {
+                0
+            } else {
+                u64::BITS - (q - (DIRECT_STEPS - 1)).leading_zeros() - 1
+            };
+            assert_eq!(raw_bits(symbol), expected_raw_bits, "q {q}");
+            assert!(raw < 1 << expected_raw_bits);
+            assert_eq!(step_of(symbol, raw), q);
+            for table in [0, VALUE_TABLES - 1] {
+                let packed = Symbol::step(table, symbol, raw);
+                assert_eq!(packed.kind(), Symbol::STEP);
+                assert_eq!(
+                    (packed.table(), packed.step_symbol(), packed.raw()),
+                    (table, symbol, raw)
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn octree_keys_order_children_like_the_decoder() {
+        // The decoder visits child i at child_origin(o, i, h) in increasing i; the encoder's
+        // key order must be the same.
+        let log = 3;
+        let mut cells = Vec::new();
+        for z in 0..8u32 {
+            for y in 0..8u32 {
+                for x in 0..8u32 {
+                    cells.push([x, y, z]);
+                }
+            }
+        }
+        cells.sort_by_key(|&c| octree_key(c, log));
+        let mut visit = Vec::new();
+        fn walk(o: [u32; 3], log: u32, out: &mut Vec<[u32; 3]>) {
+            if log == 0 {
+                out.push(o);
+                return;
+            }
+            let h = 1 << (log - 1);
+            for i in 0..8 {
+                walk(child_origin(o, i, h), log - 1, out);
+            }
+        }
+        walk([0; 3], log, &mut visit);
+        assert_eq!(cells, visit);
+    }
+}

@@ -1,0 +1,265 @@
+//! The fast coder ([`super::CoderKind::Fast`]): the sigmap coder's quantization, octree order
+//! and neighbour contexts, with positions and magnitudes coded by static Huffman tables instead
+//! of adaptive binary decisions, so that a packet decodes with about two table look-ups and one
+//! adaptive sign decision per coefficient.
+//!
+//! The sigmap coder spends about seven adaptive binary decisions per coefficient, each a
+//! serial dependency through the range decoder and its model; that caps it near 6 M
+//! coefficients/s per core. This coder reads one prefix code per occupied octree node of 2×2×2
+//! cells or more and one per coefficient, for several times that speed at some cost in bytes
+//! (measured in BENCHMARKS.md, "Decoding speed").
+//!
+//! A payload is two streams: a varint length, then the prefix-coded stream (MSB-first bits),
+//! then the signs (adaptive binary range coding, reset per packet). Per packet, for each
+//! substream (channel, band) that has parameters in the header: one raw "present" bit; for a
+//! present substream, the dyadic octree over its tile-local band region (the region's
+//! power-of-two bounding cube, at least 2 cells on a side). Every occupied node codes the 8-bit
+//! mask of its occupied children (child i lies half an edge away by (i & 1, i >> 1 & 1,
+//! i >> 2 & 1); children outside the region are never set) and visits them in bit order. A
+//! node of 2×2×2 cells uses one of [`LEAF_MASK_TABLES`] tables, chosen by how many coded cells
+//! of the substream touch its three lower faces; larger nodes share one table. A node of 2×2×2
+//! cells is followed by its coefficients in bit order: for each, its step symbol from the value
+//! table chosen by the mean bit length of its coded lower neighbours' steps (`value_table`),
+//! then its sign in the sign stream (context: band and the signs of its three lower
+//! neighbours, as the sigmap coder). A step symbol is q itself for q < 14, otherwise 13 + e
+//! followed by the e − 1 low bits of q − 13, which has e bits. Steps and reconstruction are the
+//! sigmap coder's ([`super::sigmap`]). The tables live in the header ([`FastTables`]), fitted
+//! by the encoder to all of a file's packets, as the paper's coder does; packets stay
+//! self-contained given the header.
+
+mod cells;
+mod decode;
+mod encode;
+
+use super::quant::Quantizer;
+use crate::entropy::bits::{BitReader, BitSink};
+use crate::entropy::huffman::{HuffmanCode, HuffmanDecoder};
+use crate::entropy::EntropyError;
+use crate::layout::Band;
+use std::sync::Arc;
+
+pub(crate) use decode::decode;
+pub(crate) use encode::encode_packets;
+
+/// Symbols of an occupancy-mask table (8-bit masks; 0 is never coded).
+pub const MASK_ALPHABET: usize = 256;
+/// Symbols of a value table: 14 direct steps and 50 escapes by bit length.
+pub const VALUE_ALPHABET: usize = 64;
+/// Mask tables of nodes of 2×2×2 cells, by the coded cells on their lower faces (none, 1–2,
+/// 3–5, 6 or more). (Also splitting them by whether the parent band's cell over the node holds
+/// a coefficient, as the sigmap coder's contexts do, saved 0.04 % of the decode bench's file
+/// and cost 9 % of the decoding speed.)
+pub const LEAF_MASK_TABLES: usize = 4;
+/// Mask tables: the leaf tables, then one for larger nodes.
+pub const MASK_TABLES: usize = LEAF_MASK_TABLES + 1;
+/// Value tables: no coded lower neighbour, or 1 + the mean magnitude class of those coded
+/// (`value_table`). (Separate tables for the finest and the coarser bands saved 0.15 % on
+/// the decode bench's file, less than their header cost on small files.)
+pub const VALUE_TABLES: usize = 16;
+/// Sign contexts per band: each of the three lower neighbours is absent, positive or negative.
+const SIGN_CONTEXTS: usize = 27;
+/// Steps below this are a symbol of their own; larger ones are escaped by bit length.
+const DIRECT_STEPS: u64 = 14;
+/// Longest prefix code the encoder builds.
+const MAX_CODE_LENGTH: u8 = 15;
+
+/// The fast coder's prefix codes, stored in the header, with their decoders (built once, not
+/// per packet).
+#[derive(Debug, Clone)]
+pub struct FastTables {
+    /// Occupancy masks: [`LEAF_MASK_TABLES`] for nodes of 2×2×2 cells, then larger nodes.
+    mask: [HuffmanCode; MASK_TABLES],
+    /// Step symbols per value context.
+    value: [HuffmanCode; VALUE_TABLES],
+    decoders: Arc<Decoders>,
+}
+
+impl PartialEq for FastTables {
+    fn eq(&self, other: &FastTables) -> bool {
+        self.mask == other.mask && self.value == other.value
+    }
+}
+
+impl FastTables {
+    fn new(mask: [HuffmanCode; MASK_TABLES], value: [HuffmanCode; VALUE_TABLES]) -> FastTables {
+        let decoders = Arc::new(Decoders {
+            mask: std::array::from_fn(|t| HuffmanDecoder::new(&mask[t])),
+            value: std::array::from_fn(|t| HuffmanDecoder::new(&value[t])),
+        });
+        FastTables {
+            mask,
+            value,
+            decoders,
+        }
+    }
+
+    /// Writes every table's code lengths.
+    pub fn write(&self, sink: &mut impl BitSink) {
+        for code in self.mask.iter().chain(&self.value) {
+            code.write_lengths(sink);
+        }
+    }
+
+    /// Reads tables written by [`FastTables::write`], validating every code.
+    pub fn read(reader: &mut BitReader) -> Result<FastTables, EntropyError> {
+        let mut mask = Vec::with_capacity(MASK_TABLES);
+        for _ in 0..MASK_TABLES {
+            mask.push(HuffmanCode::read_lengths(reader, MASK_ALPHABET)?);
+        }
+        let mut value = Vec::with_capacity(VALUE_TABLES);
+        for _ in 0..VALUE_TABLES {
+            value.push(HuffmanCode::read_lengths(reader, VALUE_ALPHABET)?);
+        }
+        Ok(FastTables::new(
+            mask.try_into().expect("MASK_TABLES codes"),
+            value.try_into().expect("VALUE_TABLES codes"),
+        ))
+    }
+}
+
+/// The magnitude class of a step, as its neighbours' contexts read it: its bit length (0 for
+/// q = 0), at most 31. Logarithmic, so that the contexts follow the scale of the magnitudes,
+/// which grows with the rate (a few steps at 0.1 % of the sample bytes, thousands at 5 %); the
+/// sigmap coder's classes are coarser (0, 1, 2–4, 5 and above).
+#[inline(always)]
+fn bit_length_class(q: u64) -> u8 {
+    (u64::BITS - q.leading_zeros()).min(31) as u8
+}
+
+/// The value table of a coefficient from its present lower neighbours' count `n` and summed
+/// magnitude classes: 0 without neighbours, else 1 + their rounded mean class (at most
+/// `VALUE_TABLES` − 2).
+#[inline(always)]
+fn value_table(n: usize, sum: usize) -> usize {
+    let mean = match n {
+        0 => return 0,
+        1 => sum,
+        2 => (sum + 1) >> 1,
+        _ => (2 * sum + 3) / 6,
+    };
+    1 + mean.min(VALUE_TABLES - 2)
+}
+
+/// The step symbol of q and the raw bits that follow it (as many as [`raw_bits`] says).
+fn step_symbol(q: u64) -> (usize, u64) {
+    if q < DIRECT_STEPS {
+        (q as usize, 0)
+    } else {
+        let r = q - DIRECT_STEPS + 1;
+        let e = u64::BITS - r.leading_zeros();
+        (
+            (DIRECT_STEPS - 1) as usize + e as usize,
+            r & ((1u64 << (e - 1)) - 1),
+        )
+    }
+}
+
+/// How many raw bits follow a step symbol.
+fn raw_bits(symbol: usize) -> u32 {
+    (symbol as u32).saturating_sub(DIRECT_STEPS as u32)
+}
+
+/// The step q of a step symbol and its raw bits: the inverse of [`step_symbol`].
+#[inline(always)]
+fn step_of(symbol: usize, raw: u64) -> u64 {
+    if (symbol as u64) < DIRECT_STEPS {
+        symbol as u64
+    } else {
+        (1u64 << raw_bits(symbol) | raw) + DIRECT_STEPS - 1
+    }
+}
+
+/// The child mask bits whose children start inside a region of `extent` cells, for a node at
+/// `o` with children of edge `h`. Children at the lower offsets start at `o`, inside.
+#[inline(always)]
+fn allowed_children(o: [u32; 3], h: u32, extent: [u32; 3]) -> u8 {
+    let mut m = 0xFF;
+    if o[0] + h >= extent[0] {
+        m &= 0b0101_0101;
+    }
+    if o[1] + h >= extent[1] {
+        m &= 0b0011_0011;
+    }
+    if o[2] + h >= extent[2] {
+        m &= 0b0000_1111;
+    }
+    m
+}
+
+/// Offset of child `i` of a node whose children have edge `h`.
+#[inline(always)]
+fn child_origin(o: [u32; 3], i: u32, h: u32) -> [u32; 3] {
+    [
+        o[0] + (i & 1) * h,
+        o[1] + ((i >> 1) & 1) * h,
+        o[2] + ((i >> 2) & 1) * h,
+    ]
+}
+
+/// log2 of the root node's edge: the region's power-of-two bounding cube, at least 2.
+fn root_log(extent: [u32; 3]) -> u32 {
+    let side = extent.iter().copied().max().unwrap_or(1).max(2);
+    u32::BITS - (side - 1).leading_zeros()
+}
+
+/// The substream being coded or decoded.
+struct Substream {
+    bi: usize,
+    quant: Quantizer,
+    origin: [u32; 3],
+    extent: [u32; 3],
+    channel: u8,
+    band: Band,
+}
+
+/// The decoders of a file's tables.
+#[derive(Debug)]
+struct Decoders {
+    mask: [HuffmanDecoder; MASK_TABLES],
+    value: [HuffmanDecoder; VALUE_TABLES],
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn allowed_children_match_a_brute_force_check() {
+        for extent in [[1, 1, 1], [2, 1, 5], [3, 3, 3], [7, 2, 9], [16, 16, 16]] {
+            for log in 1..=4u32 {
+                let h = 1 << (log - 1);
+                let side = 2 * h;
+                for ox in (0..extent[0]).step_by(side as usize) {
+                    for oy in (0..extent[1]).step_by(side as usize) {
+                        for oz in (0..extent[2]).step_by(side as usize) {
+                            let o = [ox, oy, oz];
+                            let brute = (0..8u32).fold(0u8, |m, i| {
+                                let c = child_origin(o, i, h);
+                                let inside = (0..3).all(|a| c[a] < extent[a]);
+                                m | (inside as u8) << i
+                            });
+                            assert_eq!(allowed_children(o, h, extent), brute, "{o:?} {h}");
+                        }
+                    }
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn root_covers_the_region() {
+        for (extent, log) in [
+            ([1, 1, 1], 1),
+            ([2, 1, 1], 1),
+            ([3, 1, 1], 2),
+            ([1, 1, 64], 6),
+        ] {
+            assert_eq!(root_log(extent), log, "{extent:?}");
+        }
+        for extent in [[5, 9, 17], [1, 1, 1000], [129, 2, 2]] {
+            let side = 1u32 << root_log(extent);
+            let largest = *extent.iter().max().unwrap();
+            assert!(largest <= side && side < 2 * largest.max(2), "{extent:?}");
+        }
+    }
+}

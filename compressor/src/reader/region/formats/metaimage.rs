@@ -1,0 +1,185 @@
+//! MetaImage: the text header is parsed for the sizes, element type, byte order, compression
+//! and data file (local or detached, with a header size to skip), and its meaning taken from
+//! the MetaImage decoder on a stand-in.
+
+use std::path::Path;
+
+use super::super::{Opened, Source};
+use super::{file_name, parent, reader_at, spool, stand_in, stored_at, stored_bytes, text_header};
+use crate::reader::text::{self, header_lines};
+use crate::reader::{Endian, Format, ReadError, SampleType};
+
+pub(super) fn open_metaimage(path: &Path) -> Result<Opened, ReadError> {
+    const FORMAT: &str = "MetaImage";
+    let bad = |reason: String| ReadError::bad_header(path, FORMAT, reason);
+    let (prefix, len) = text_header(path)?;
+    let (lines, end, found) = header_lines(
+        &prefix,
+        |l| {
+            l.split_once('=')
+                .is_some_and(|(k, _)| k.trim().eq_ignore_ascii_case("ElementDataFile"))
+        },
+        true,
+    )
+    .ok_or_else(|| bad("the header is not UTF-8 text or is longer than 1 MiB".into()))?;
+    if !found {
+        return Err(bad("no ElementDataFile line ends the header".into()));
+    }
+    let mut fields: Vec<(String, String)> = Vec::new();
+    let mut probe = String::new();
+    const REPLACED: &[&str] = &[
+        "DimSize",
+        "CompressedData",
+        "CompressedDataSize",
+        "HeaderSize",
+        "ElementDataFile",
+    ];
+    for line in &lines {
+        if let Some((k, v)) = line.split_once('=') {
+            let k = k.trim();
+            fields.push((k.to_string(), v.trim().to_string()));
+            if REPLACED.iter().any(|r| r.eq_ignore_ascii_case(k)) {
+                continue;
+            }
+        }
+        probe += line;
+        probe.push('\n');
+    }
+    let get = |keys: &[&str]| -> Option<(String, String)> {
+        keys.iter().find_map(|k| {
+            fields
+                .iter()
+                .find(|(f, _)| f.eq_ignore_ascii_case(k))
+                .cloned()
+        })
+    };
+    let ndims = get(&["NDims"])
+        .and_then(|(_, v)| v.parse::<usize>().ok())
+        .filter(|n| (1..=3).contains(n));
+    let sizes = match (get(&["DimSize"]), ndims) {
+        (Some((_, v)), Some(n)) => match text::sizes(&v).filter(|s| s.len() == n) {
+            Some(s) => {
+                probe += &format!("DimSize = {}\n", vec!["1"; n].join(" "));
+                Some(s)
+            }
+            None => {
+                probe += &format!("DimSize = {v}\n"); // refused by the decoder
+                None
+            }
+        },
+        (Some((_, v)), None) => {
+            probe += &format!("DimSize = {v}\n");
+            None
+        }
+        (None, _) => None,
+    };
+    probe += "ElementDataFile = LOCAL\n";
+    let mut probe = probe.into_bytes();
+    probe.resize(probe.len() + 3 * 8, 0);
+    let meta = stand_in(&parent(path), file_name(path), Format::MetaImage, probe)?;
+
+    // The stand-in's decoder checked NDims, the DimSize count, the element type and channels,
+    // BinaryData and the byte order.
+    let Some(sizes) = sizes else {
+        return Err(bad(
+            "the stand-in header was accepted without DimSize".into()
+        ));
+    };
+    let mut dims = [1usize; 3];
+    for (d, s) in dims.iter_mut().zip(&sizes) {
+        *d = usize::try_from(*s).unwrap_or(usize::MAX);
+    }
+    let channels = meta.channel_count();
+    let ty = get(&["ElementType"]).map(|(_, t)| t.to_ascii_uppercase());
+    let sample = match ty.as_deref() {
+        Some("MET_CHAR") => SampleType::I8,
+        Some("MET_UCHAR") => SampleType::U8,
+        Some("MET_SHORT") => SampleType::I16,
+        Some("MET_USHORT") => SampleType::U16,
+        Some("MET_INT" | "MET_LONG") => SampleType::I32,
+        Some("MET_UINT" | "MET_ULONG") => SampleType::U32,
+        Some("MET_LONG_LONG") => SampleType::I64,
+        Some("MET_ULONG_LONG") => SampleType::U64,
+        Some("MET_FLOAT") => SampleType::F32,
+        Some("MET_DOUBLE") => SampleType::F64,
+        t => {
+            return Err(bad(format!(
+                "ElementType {t:?} passed the decoder but is unknown here"
+            )))
+        }
+    };
+    let bool_field = |keys: &[&str]| -> Result<Option<bool>, ReadError> {
+        match get(keys) {
+            None => Ok(None),
+            Some((k, v)) => match v.to_ascii_lowercase().as_str() {
+                "true" | "1" => Ok(Some(true)),
+                "false" | "0" => Ok(Some(false)),
+                _ => Err(bad(format!("{k} = {v:?} is not True or False"))),
+            },
+        }
+    };
+    let endian = match bool_field(&["BinaryDataByteOrderMSB", "ElementByteOrderMSB"])? {
+        Some(true) => Endian::Big,
+        _ => Endian::Little,
+    };
+    let compressed = bool_field(&["CompressedData"])?.unwrap_or(false);
+    let header_size = match get(&["HeaderSize"]) {
+        None => 0i64,
+        Some((_, v)) => v
+            .parse::<i64>()
+            .ok()
+            .filter(|s| *s >= -1)
+            .ok_or_else(|| bad(format!("HeaderSize = {v:?}; -1 or ≥ 0 expected")))?,
+    };
+    let expected = stored_bytes(path, dims, channels, sample.size())?;
+    let (data_path, base, data_len) = match get(&["ElementDataFile"]) {
+        Some((_, v)) if v.eq_ignore_ascii_case("LOCAL") => (path.to_path_buf(), end as u64, len),
+        Some((_, v)) => {
+            if v.eq_ignore_ascii_case("LIST") || v.contains('%') || v.split_whitespace().count() > 1
+            {
+                return Err(ReadError::unsupported(
+                    path,
+                    format!("ElementDataFile = {v}: only LOCAL or a single data file is supported (not LIST or a file name pattern)"),
+                ));
+            }
+            let p = parent(path).join(&v);
+            let l = std::fs::metadata(&p)
+                .map_err(|e| ReadError::io(&p, e))?
+                .len();
+            (p, 0, l)
+        }
+        None => return Err(bad("no ElementDataFile".into())),
+    };
+    let stored = if compressed {
+        if header_size != 0 {
+            return Err(ReadError::unsupported(
+                path,
+                "HeaderSize with CompressedData",
+            ));
+        }
+        let mut z = flate2::bufread::ZlibDecoder::new(reader_at(&data_path, base)?);
+        spool(&mut z, expected, &data_path, FORMAT, "zlib", sample, endian)?
+    } else {
+        let start = if header_size == -1 {
+            data_len
+                .checked_sub(expected)
+                .filter(|s| *s >= base)
+                .ok_or(ReadError::Truncated {
+                    path: data_path.clone(),
+                    offset: 0,
+                    expected,
+                    actual: data_len.saturating_sub(base),
+                })?
+        } else {
+            base.saturating_add(header_size as u64)
+        };
+        stored_at(&data_path, start, expected, sample, endian)?
+    };
+    Ok(Opened {
+        dims,
+        channels,
+        spacing: meta.spacing(),
+        placement: meta.placement().copied(),
+        source: Source::Stored(stored),
+    })
+}

@@ -1,0 +1,229 @@
+//! Opening each format for region reads: where its samples lie (file, offset, compression, sample
+//! type, byte order, rescale) is parsed here from the header alone; what the header means
+//! (validation, channels, spacing, placement) is taken from the format's own decoder run on a
+//! *stand-in*: the same header with every size set to one voxel (or two, where a size of 1 or 3
+//! decides which axis holds the channels), the data attached, raw, and zero-filled. So
+//! [`super::RegionReader`] reports exactly what [`crate::reader::read_volume`] would, without a
+//! second copy of the geometry code, and the stand-in is a few bytes whatever the volume's size.
+//! The sizes, the data location and encoding, which the stand-in replaces, are validated here
+//! with the decoders' rules and messages.
+
+mod metaimage;
+mod nifti;
+mod nrrd;
+mod raw;
+
+use std::fs::File;
+use std::io::{self, BufReader, Read, Seek, SeekFrom, Write};
+use std::path::{Path, PathBuf};
+
+use self::metaimage::open_metaimage;
+use self::nifti::open_nifti;
+use self::nrrd::open_nrrd;
+use self::raw::open_raw;
+use super::{read_whole, Opened, Stored};
+use crate::reader::text::MAX_TEXT_HEADER;
+use crate::reader::{Endian, Format, RawSpec, ReadError, SampleType, SourceFiles};
+use wavesplat_codec::volume::{Volume, VolumeError};
+
+/// Opens `path` by format, as [`crate::reader::read_volume`] dispatches.
+pub(super) fn open(path: &Path, raw: Option<&RawSpec>) -> Result<Opened, ReadError> {
+    let meta = std::fs::metadata(path).map_err(|e| ReadError::io(path, e))?;
+    if meta.is_dir() {
+        return read_whole(path); // a DICOM series
+    }
+    let by_name = Format::from_name(path);
+    if let (None, Some(spec)) = (by_name, raw) {
+        return open_raw(path, spec);
+    }
+    let format = match by_name {
+        Some(f) => Some(f),
+        None => Format::sniff(&read_prefix(path, 512)?),
+    };
+    match format {
+        Some(Format::Dicom) => read_whole(path),
+        Some(Format::Nrrd) => open_nrrd(path),
+        Some(Format::MetaImage) => open_metaimage(path),
+        Some(Format::Nifti) => open_nifti(path),
+        None => Err(ReadError::MissingRawSpec {
+            path: path.to_path_buf(),
+        }),
+    }
+}
+
+/// Up to `limit` bytes from the start of a file.
+fn read_prefix(path: &Path, limit: u64) -> Result<Vec<u8>, ReadError> {
+    let f = File::open(path).map_err(|e| ReadError::io(path, e))?;
+    let mut out = Vec::new();
+    f.take(limit)
+        .read_to_end(&mut out)
+        .map_err(|e| ReadError::io(path, e))?;
+    Ok(out)
+}
+
+/// Bytes of `dims` × `channels` samples of `sample`, checked (u128, then u64).
+fn stored_bytes(
+    path: &Path,
+    dims: [usize; 3],
+    channels: usize,
+    size: usize,
+) -> Result<u64, ReadError> {
+    if dims.contains(&0) {
+        return Err(ReadError::volume(path, VolumeError::ZeroDimension(dims)));
+    }
+    dims.iter()
+        .chain([&channels, &size])
+        .try_fold(1u128, |acc, d| acc.checked_mul(*d as u128))
+        .and_then(|b| u64::try_from(b).ok())
+        .filter(|b| *b <= i64::MAX as u64)
+        .ok_or(ReadError::TooLarge {
+            dims,
+            channels,
+            bytes_per_sample: size,
+        })
+}
+
+/// Samples stored uncompressed in `data_path` from `offset` on; the file must hold all
+/// `expected` bytes.
+fn stored_at(
+    data_path: &Path,
+    offset: u64,
+    expected: u64,
+    sample: SampleType,
+    endian: Endian,
+) -> Result<Stored, ReadError> {
+    let file = File::open(data_path).map_err(|e| ReadError::io(data_path, e))?;
+    let len = file
+        .metadata()
+        .map_err(|e| ReadError::io(data_path, e))?
+        .len();
+    let actual = len.saturating_sub(offset);
+    if actual < expected {
+        return Err(ReadError::Truncated {
+            path: data_path.to_path_buf(),
+            offset,
+            expected,
+            actual,
+        });
+    }
+    Ok(Stored {
+        file,
+        path: data_path.to_path_buf(),
+        offset,
+        sample,
+        endian,
+        slope: 1.0,
+        inter: 0.0,
+    })
+}
+
+/// Inflates exactly `expected` bytes of `stream` (the samples of `data_path`, compressed with
+/// `what`) into an anonymous temporary file, in 1 MiB steps.
+fn spool(
+    stream: &mut dyn Read,
+    expected: u64,
+    data_path: &Path,
+    format: &'static str,
+    what: &str,
+    sample: SampleType,
+    endian: Endian,
+) -> Result<Stored, ReadError> {
+    let temp_err = |e: io::Error| {
+        ReadError::io(
+            &std::env::temp_dir(),
+            io::Error::new(
+                e.kind(),
+                format!(
+                    "writing the inflated samples of {} to a temporary file: {e}",
+                    data_path.display()
+                ),
+            ),
+        )
+    };
+    let mut file = tempfile::tempfile().map_err(temp_err)?;
+    let mut buf = vec![0u8; 1 << 20];
+    let mut done = 0u64;
+    while done < expected {
+        let want = (expected - done).min(buf.len() as u64) as usize;
+        let n = match stream.read(&mut buf[..want]) {
+            Ok(0) => break,
+            Ok(n) => n,
+            Err(e) if e.kind() == io::ErrorKind::Interrupted => continue,
+            Err(e)
+                if matches!(
+                    e.kind(),
+                    io::ErrorKind::InvalidInput | io::ErrorKind::InvalidData
+                ) =>
+            {
+                return Err(ReadError::bad_header(
+                    data_path,
+                    format,
+                    format!("the {what} data is corrupt: {e}"),
+                ))
+            }
+            Err(e) => return Err(ReadError::io(data_path, e)),
+        };
+        file.write_all(&buf[..n]).map_err(temp_err)?;
+        done += n as u64;
+    }
+    if done != expected {
+        return Err(ReadError::Truncated {
+            path: data_path.to_path_buf(),
+            offset: 0,
+            expected,
+            actual: done,
+        });
+    }
+    file.flush().map_err(temp_err)?;
+    Ok(Stored {
+        file,
+        path: data_path.to_path_buf(),
+        offset: 0,
+        sample,
+        endian,
+        slope: 1.0,
+        inter: 0.0,
+    })
+}
+
+/// A file positioned at `offset`, buffered.
+fn reader_at(path: &Path, offset: u64) -> Result<BufReader<File>, ReadError> {
+    let mut f = File::open(path).map_err(|e| ReadError::io(path, e))?;
+    f.seek(SeekFrom::Start(offset))
+        .map_err(|e| ReadError::io(path, e))?;
+    Ok(BufReader::new(f))
+}
+
+/// Runs a format's decoder on a stand-in file `name` (in `dir`) holding `bytes`.
+fn stand_in(dir: &Path, name: String, format: Format, bytes: Vec<u8>) -> Result<Volume, ReadError> {
+    let src = SourceFiles {
+        origin: dir.join(&name),
+        base: dir.to_path_buf(),
+        format: Some(format),
+        files: vec![(name, bytes)],
+    };
+    match format {
+        Format::Nrrd => crate::reader::nrrd::decode(&src),
+        Format::MetaImage => crate::reader::metaimage::decode(&src),
+        _ => unreachable!("stand-ins are built for text headers only"),
+    }
+}
+
+fn file_name(path: &Path) -> String {
+    path.file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default()
+}
+
+fn parent(path: &Path) -> PathBuf {
+    path.parent().map(Path::to_path_buf).unwrap_or_default()
+}
+
+/// The text header of `path`: the bytes up to where a header that the decoders accept can
+/// end (each line within [`MAX_TEXT_HEADER`], starting within it), and the file's length.
+fn text_header(path: &Path) -> Result<(Vec<u8>, u64), ReadError> {
+    let len = std::fs::metadata(path)
+        .map_err(|e| ReadError::io(path, e))?
+        .len();
+    Ok((read_prefix(path, 2 * MAX_TEXT_HEADER as u64 + 2)?, len))
+}

@@ -1,0 +1,51 @@
+//! Raw files: the samples are the whole file, described by the caller's [`RawSpec`] (sizes,
+//! channels, sample type, byte order, spacing), which is validated here as the raw reader does.
+
+use std::path::Path;
+
+use super::super::{Opened, Source};
+use super::{stored_at, stored_bytes};
+use crate::reader::{RawDtype, RawSpec, ReadError, SampleType};
+use wavesplat_codec::volume::VolumeError;
+
+pub(super) fn open_raw(path: &Path, spec: &RawSpec) -> Result<Opened, ReadError> {
+    if spec.channels != 1 && spec.channels != 3 {
+        return Err(ReadError::ChannelCount(spec.channels));
+    }
+    if spec.spacing.iter().any(|s| !(s.is_finite() && *s > 0.0)) {
+        return Err(ReadError::Volume(VolumeError::Spacing(spec.spacing)));
+    }
+    if spec.dims.contains(&0) {
+        return Err(ReadError::Volume(VolumeError::ZeroDimension(spec.dims)));
+    }
+    let size = spec.dtype.size();
+    let expected = stored_bytes(path, spec.dims, spec.channels, size)?;
+    let sample = match spec.dtype {
+        RawDtype::U8 => SampleType::U8,
+        RawDtype::U16 => SampleType::U16,
+        RawDtype::I16 => SampleType::I16,
+        RawDtype::F32 => SampleType::F32,
+    };
+    // A raw file must be exactly as large as its description (as `read_raw` requires).
+    let len = std::fs::metadata(path)
+        .map_err(|e| ReadError::io(path, e))?
+        .len();
+    if len != expected {
+        return Err(ReadError::SizeMismatch {
+            path: Some(path.to_path_buf()),
+            expected,
+            actual: len,
+            dims: spec.dims,
+            channels: spec.channels,
+            dtype: spec.dtype,
+            bytes_per_sample: size,
+        });
+    }
+    Ok(Opened {
+        dims: spec.dims,
+        channels: spec.channels,
+        spacing: spec.spacing,
+        placement: None,
+        source: Source::Stored(stored_at(path, 0, expected, sample, spec.endian)?),
+    })
+}
