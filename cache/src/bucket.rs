@@ -22,7 +22,7 @@
 //! stream's task are async ([`Bucket::read`]).
 
 use crate::error::CacheError;
-use crate::model::{hex, PacketMeta, VolumeKey, VolumeMeta};
+use crate::model::{PacketMeta, VolumeKey, VolumeMeta};
 use bytes::Bytes;
 use futures_util::{StreamExt, TryStreamExt};
 use object_store::path::Path as ObjectPath;
@@ -32,6 +32,7 @@ use std::num::NonZeroUsize;
 use std::ops::Range;
 use std::sync::{Arc, Mutex};
 use wavesplat_codec::format::index::{read_indexed_head, HeadRead, IndexedHead, HEAD_READ_BYTES};
+use wavesplat_net::digest::{hex, unhex};
 
 /// Name records fetched at once when listing.
 const LIST_CONCURRENCY: usize = 16;
@@ -116,16 +117,6 @@ pub fn content_id(sha256: &[u8; 32]) -> u64 {
     let mut b = [0u8; 8];
     b.copy_from_slice(&sha256[..8]);
     u64::from_be_bytes(b) >> 1
-}
-
-fn unhex(s: &str) -> Option<Vec<u8>> {
-    if !s.len().is_multiple_of(2) {
-        return None;
-    }
-    (0..s.len())
-        .step_by(2)
-        .map(|i| u8::from_str_radix(s.get(i..i + 2)?, 16).ok())
-        .collect()
 }
 
 impl Bucket {

@@ -86,7 +86,7 @@ impl VolumeMeta {
 
     /// SHA-256 as lower-case hex.
     pub fn sha256_hex(&self) -> String {
-        hex(&self.sha256)
+        wavesplat_net::digest::hex(&self.sha256)
     }
 
     /// This record as seen through one of its names.
@@ -195,11 +195,6 @@ impl VolumeMeta {
 
 fn string(b: &[u8]) -> Result<String, CacheError> {
     String::from_utf8(b.to_vec()).map_err(|_| CacheError::Corrupt("non-UTF-8 string".into()))
-}
-
-/// Lower-case hex of some bytes.
-pub fn hex(bytes: &[u8]) -> String {
-    bytes.iter().map(|b| format!("{b:02x}")).collect()
 }
 
 pub use wavesplat_codec::format::index::PacketMeta;

@@ -30,7 +30,6 @@ mod refine;
 
 pub use refine::{RefineControl, RefineEvent, RefineRequest, RefineStream};
 
-use sha2::{Digest, Sha256};
 use thiserror::Error;
 use tonic::service::interceptor::InterceptedService;
 use tonic::transport::Channel;
@@ -342,7 +341,7 @@ impl CacheClient {
 
     /// Uploads a `.wsp` file under `name` (in chunks, with its SHA-256).
     pub async fn ingest(&mut self, name: &str, bytes: &[u8]) -> Result<Ingested, ClientError> {
-        let msgs = convert::ingest_messages(name, bytes, Sha256::digest(bytes).into());
+        let msgs = convert::ingest_messages(name, bytes, wavesplat_net::digest::sha256(bytes));
         let r = self.inner.ingest(tokio_stream::iter(msgs)).await;
         let r = self.checked(r).await?.into_inner();
         Ok(Ingested {

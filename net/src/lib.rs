@@ -8,12 +8,14 @@
 //!   rule against exposing a server by accident;
 //! - [`auth`]: bearer tokens with roles (read, ingest, write, worker, admin), checked in
 //!   constant time by a layer in front of every service, and the clients' credentials;
-//! - [`volume`]: how services and clients name a volume (`VolumeKey`: an id or a name).
+//! - [`volume`]: how services and clients name a volume (`VolumeKey`: an id or a name);
+//! - [`digest`]: content identity, the SHA-256 of a volume's bytes and its hex form.
 //!
 //! A server combines them in [`Security`].
 
 pub mod auth;
 pub mod deadline;
+pub mod digest;
 pub mod status;
 pub mod tls;
 pub mod volume;

@@ -14,12 +14,5 @@ pub use connect::{connect, connect_lazy, connect_with, list, submit, Client};
 pub use error::ClientError;
 pub use model::{Job, JobId, JobOptions, JobSpec, JobState, TargetSpec};
 
-use sha2::{Digest, Sha256};
-
 /// The largest chunk of an uploaded source in one gRPC message (submit and fetch).
 pub const CHUNK_BYTES: usize = 1 << 20;
-
-/// SHA-256 of `bytes` (the identity of a source volume).
-pub fn sha256(bytes: &[u8]) -> [u8; 32] {
-    Sha256::digest(bytes).into()
-}

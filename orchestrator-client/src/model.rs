@@ -383,13 +383,12 @@ impl JobSpec {
     /// new name (`archive submit --name-suffix`) is a new delivery.
     pub fn dedup_key(&self) -> String {
         let opts = serde_json::to_string(&(&self.raw, &self.options)).unwrap_or_default();
-        format!("{}|{opts}|{}", hex(&self.sha256), self.name)
+        format!(
+            "{}|{opts}|{}",
+            wavesplat_net::digest::hex(&self.sha256),
+            self.name
+        )
     }
-}
-
-/// Lower-case hex of bytes.
-pub fn hex(bytes: &[u8]) -> String {
-    bytes.iter().map(|b| format!("{b:02x}")).collect()
 }
 
 /// Why an attempt failed; decides whether the job is retried.

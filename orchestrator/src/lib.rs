@@ -45,7 +45,7 @@ use std::time::Duration;
 pub use store::Store;
 use tokio_stream::wrappers::TcpListenerStream;
 use wavesplat_net::{Access, Role};
-pub use wavesplat_orchestrator_client::{convert, model, sha256};
+pub use wavesplat_orchestrator_client::{convert, model};
 use wavesplat_proto::pb::orchestrator_server::OrchestratorServer;
 
 /// How an orchestrator server runs.

@@ -5,7 +5,7 @@
 use crate::check::DeliveryCheck;
 use crate::convert;
 use crate::error::OrchestratorError;
-use crate::model::{hex, JobState, Outcome, Source};
+use crate::model::{JobState, Outcome, Source};
 use crate::queue::{Queue, QueueOptions};
 use crate::store::Store;
 use std::pin::Pin;
@@ -13,6 +13,7 @@ use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{SystemTime, UNIX_EPOCH};
 use tokio_stream::Stream;
 use tonic::{Request, Response, Status, Streaming};
+use wavesplat_net::digest::hex;
 use wavesplat_net::status::client_fault;
 use wavesplat_proto::pb;
 use wavesplat_proto::pb::orchestrator_server::Orchestrator;
@@ -182,7 +183,7 @@ impl OrchestratorService {
                     bytes.len()
                 )));
             }
-            let got = crate::sha256(&bytes);
+            let got = wavesplat_net::digest::sha256(&bytes);
             if got != spec.sha256 {
                 return Err(Status::invalid_argument(format!(
                     "upload checksum {} does not match the announced {}",

@@ -227,7 +227,7 @@ pub fn job_spec(
     upload: bool,
 ) -> std::io::Result<(JobSpec, Option<Vec<u8>>)> {
     let bytes = source_bytes(&found.path, found.raw.is_some())?;
-    let sha256 = crate::sha256(&bytes);
+    let sha256 = wavesplat_net::digest::sha256(&bytes);
     let source = if upload {
         Source::Upload {
             size: bytes.len() as u64,

@@ -37,11 +37,11 @@ use wavesplat_client::{CacheClient, ConnectOptions};
 use wavesplat_codec::volume::Volume;
 use wavesplat_compressor::encode::{compress, Stage};
 use wavesplat_compressor::reader::{decode_raw, decode_source, SourceFiles};
+use wavesplat_net::digest::sha256;
 use wavesplat_orchestrator_client::convert;
 use wavesplat_orchestrator_client::model::{
     Delivery, Failure, FailureKind, JobSpec, Outcome, Source,
 };
-use wavesplat_orchestrator_client::sha256;
 use wavesplat_orchestrator_client::{self as client, Client};
 use wavesplat_proto::pb;
 
@@ -405,8 +405,8 @@ async fn execute(
             FailureKind::InvalidInput,
             format!(
                 "the source changed since submission: SHA-256 {}, submitted {}",
-                wavesplat_orchestrator_client::model::hex(&got),
-                wavesplat_orchestrator_client::model::hex(&spec.sha256)
+                wavesplat_net::digest::hex(&got),
+                wavesplat_net::digest::hex(&spec.sha256)
             ),
         ));
     }

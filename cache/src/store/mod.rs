@@ -36,10 +36,11 @@ use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
 use std::time::{SystemTime, UNIX_EPOCH};
 pub use upload::Upload;
-pub use validate::{index_file, sha256, validate_name, Limits, MAX_NAME_BYTES};
+pub use validate::{index_file, validate_name, Limits, MAX_NAME_BYTES};
 pub use volume::OpenVolume;
 use volume::VolumeData;
 use wavesplat_codec::format::read_header_section;
+pub use wavesplat_net::digest::sha256;
 
 /// Volumes whose index and open file are kept in memory.
 const OPEN_VOLUMES: usize = 256;

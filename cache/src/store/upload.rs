@@ -273,8 +273,8 @@ impl Upload {
         if hash != self.declared {
             return Err(CacheError::InvalidUpload(format!(
                 "checksum mismatch: declared SHA-256 {}, received content has {}",
-                crate::model::hex(&self.declared),
-                crate::model::hex(&hash)
+                wavesplat_net::digest::hex(&self.declared),
+                wavesplat_net::digest::hex(&hash)
             )));
         }
         let store = self.store.clone();

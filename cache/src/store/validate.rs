@@ -4,7 +4,6 @@
 
 use crate::error::CacheError;
 use crate::model::{PacketMeta, VolumeIndex};
-use sha2::{Digest, Sha256};
 use wavesplat_codec::format::packet::{decode_packet_within, DecodeBudget};
 use wavesplat_codec::format::{parse_file, Prelude};
 
@@ -54,11 +53,6 @@ pub fn validate_name(name: &str) -> Result<(), CacheError> {
         )));
     }
     Ok(())
-}
-
-/// SHA-256 of some bytes.
-pub fn sha256(bytes: &[u8]) -> [u8; 32] {
-    Sha256::digest(bytes).into()
 }
 
 /// Decodes packet `i` and returns its index entry and the number of coefficients it holds.

@@ -376,7 +376,8 @@ impl Header {
                     return Err(invalid(
                         W,
                         format!(
-                            "a coarse layer needs two layers or more and a decomposition;                              {nl} layers, M = {}",
+                            "a coarse layer needs two layers or more and a decomposition; \
+                             {nl} layers, M = {}",
                             geometry.levels
                         ),
                     ))

@@ -1,0 +1,37 @@
+//! How services and clients identify content: the SHA-256 of a volume's bytes (a source in the
+//! job queue, a `.wsp` in the cache) and its lowercase hex form in logs, messages and object
+//! names. Hex through the `hex` crate.
+
+use sha2::{Digest, Sha256};
+
+/// SHA-256 of `bytes`.
+pub fn sha256(bytes: &[u8]) -> [u8; 32] {
+    Sha256::digest(bytes).into()
+}
+
+/// Lowercase hex of `bytes`.
+pub fn hex(bytes: &[u8]) -> String {
+    hex::encode(bytes)
+}
+
+/// The bytes of hex text `s` (either case); `None` when it is not an even number of hex digits.
+pub fn unhex(s: &str) -> Option<Vec<u8>> {
+    hex::decode(s).ok()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_digest_of_nothing_is_the_known_one_and_hex_round_trips() {
+        assert_eq!(
+            hex(&sha256(b"")),
+            "e3b0c44298fc1c149afbf4c8996fb92427ae41e4649b934ca495991b7852b855"
+        );
+        assert_eq!(unhex(&hex(b"a/b c")).unwrap(), b"a/b c");
+        assert_eq!(unhex("0A0b").unwrap(), vec![10, 11]);
+        assert!(unhex("abc").is_none());
+        assert!(unhex("zz").is_none());
+    }
+}
