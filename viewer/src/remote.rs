@@ -23,7 +23,7 @@
 
 pub use crate::source::RangeError;
 use crate::source::{
-    Control, Feed, PacketSender, PacketSource, SourceError, SourcePacket, SourceStatus,
+    packet_source_via_feed, Control, Feed, PacketSender, SourceError, SourcePacket, SourceStatus,
 };
 use bytes::Bytes;
 use futures_util::stream::FuturesUnordered;
@@ -576,23 +576,7 @@ impl RangeSource {
     }
 }
 
-impl PacketSource for RangeSource {
-    fn try_next(&mut self) -> Option<SourcePacket> {
-        self.feed.try_next()
-    }
-
-    fn set_view(&mut self, spec: &ViewSpec) {
-        self.feed.set_view(spec);
-    }
-
-    fn dropped(&mut self, ids: Vec<u32>) {
-        self.feed.dropped(ids);
-    }
-
-    fn status(&self) -> SourceStatus {
-        self.feed.status()
-    }
-}
+packet_source_via_feed!(RangeSource);
 
 /// The network task's state.
 struct Fetch {
