@@ -1,0 +1,232 @@
+//! Input to the window: winit's events (keys, mouse, resize, redraw requests) and the script's
+//! commands turned into the controls' inputs and what they ask of the window (quit, help,
+//! screenshots), and the event loop's pacing between frames.
+
+use super::{report, window_size, App};
+use crate::window::controls::{arrange, grid, Input, KeyPress, Reaction, HELP};
+use crate::window::script::Command;
+use crate::window::{Context, Result, WindowError};
+use std::path::Path;
+use std::time::{Duration, Instant};
+use winit::application::ApplicationHandler;
+use winit::dpi::PhysicalSize;
+use winit::event::{ElementState, MouseButton, MouseScrollDelta, WindowEvent};
+use winit::event_loop::{ActiveEventLoop, ControlFlow};
+use winit::keyboard::{Key, NamedKey};
+use winit::window::WindowId;
+
+impl App {
+    /// Applies one input event (real or scripted) and does what it asks of the window.
+    fn input(&mut self, event_loop: &ActiveEventLoop, input: Input) {
+        let zoom = self.current_zoom();
+        let reaction = self.controls.apply(input, zoom);
+        if matches!(input, Input::Key(_)) {
+            self.last_title = Instant::now() - Duration::from_secs(1);
+        }
+        match reaction {
+            Reaction::None => {}
+            Reaction::Quit => event_loop.exit(),
+            Reaction::Help => eprintln!("{HELP}"),
+            Reaction::Note(note) => eprintln!("{note}"),
+            Reaction::Screenshot => {
+                self.shots += 1;
+                let secs = std::time::SystemTime::now()
+                    .duration_since(std::time::UNIX_EPOCH)
+                    .map_or(0, |d| d.as_secs());
+                let path = self
+                    .options
+                    .shot_dir
+                    .join(format!("wavesplat-{secs}-{}.png", self.shots));
+                match self.screenshot(&path) {
+                    Ok(()) => eprintln!("screenshot: {}", path.display()),
+                    Err(e) => eprintln!("screenshot failed: {}", report(&e)),
+                }
+            }
+        }
+    }
+
+    pub(super) fn screenshot(&mut self, path: &Path) -> Result<()> {
+        let frames = self
+            .frames
+            .as_mut()
+            .ok_or_else(|| WindowError::Invalid("nothing is shown yet".into()))?;
+        let image = frames.session.image().context("reading the image")?;
+        let window = Some(self.controls.state.display_window(&image));
+        arrange(
+            image,
+            grid(window_size(self.view_size), self.controls.state.multiview),
+        )
+        .write_png(path, window)
+        .with_context(|| format!("writing {}", path.display()))
+    }
+
+    /// Pixels per voxel of the current view (for panning by the cursor).
+    fn current_zoom(&self) -> f64 {
+        self.frames
+            .as_ref()
+            .and_then(|f| f.session.plan().cameras.first().map(|c| c.zoom))
+            .filter(|z| z.is_finite() && *z > 0.0)
+            .unwrap_or(1.0)
+    }
+
+    /// Runs script commands until one has to wait for frames or a file.
+    fn run_script(&mut self, event_loop: &ActiveEventLoop) -> Result<()> {
+        while let Some(c) = self.script.commands.front().cloned() {
+            match c {
+                Command::Frames(n) => {
+                    let since = *self.script.waiting_since.get_or_insert(self.drawn);
+                    if self.drawn < since + n {
+                        return Ok(());
+                    }
+                    self.script.waiting_since = None;
+                }
+                Command::Converge => {
+                    if !self.converged || self.controls.view_changed {
+                        return Ok(());
+                    }
+                }
+                Command::Inputs(v) => {
+                    for i in v {
+                        self.input(event_loop, i);
+                    }
+                }
+                Command::Resize(w, h) => {
+                    // Asks once, then waits until the window has the size (a window manager may
+                    // refuse: then go on after 100 frames).
+                    let since = match self.script.waiting_since {
+                        Some(s) => s,
+                        None => {
+                            if let Some(g) = &self.gfx {
+                                let _ = g.window.request_inner_size(PhysicalSize::new(w, h));
+                            }
+                            self.script.waiting_since = Some(self.drawn);
+                            self.drawn
+                        }
+                    };
+                    if self.view_size != PhysicalSize::new(w, h) && self.drawn < since + 100 {
+                        return Ok(());
+                    }
+                    self.script.waiting_since = None;
+                }
+                Command::Screenshot(p) => self.screenshot(&p)?,
+                Command::Signal(p) => {
+                    std::fs::write(&p, b"").with_context(|| format!("writing {}", p.display()))?
+                }
+                Command::Await(p) => {
+                    if !p.exists() {
+                        return Ok(());
+                    }
+                }
+                Command::Quit => event_loop.exit(),
+                Command::LoseDevice => {
+                    if let Some(g) = &self.gfx {
+                        g.ctx.lose_device();
+                    }
+                }
+            }
+            self.script.commands.pop_front();
+        }
+        Ok(())
+    }
+}
+
+impl ApplicationHandler for App {
+    fn resumed(&mut self, event_loop: &ActiveEventLoop) {
+        if self.gfx.is_some() || self.error.is_some() {
+            return;
+        }
+        if let Err(e) = self.init(event_loop) {
+            self.fail(event_loop, e);
+            return;
+        }
+        if let Some(g) = &self.gfx {
+            g.window.request_redraw();
+        }
+    }
+
+    fn window_event(&mut self, event_loop: &ActiveEventLoop, _id: WindowId, event: WindowEvent) {
+        match event {
+            WindowEvent::CloseRequested => event_loop.exit(),
+            WindowEvent::Resized(size) if size.width > 0 && size.height > 0 => {
+                self.controls.view_changed = true;
+            }
+            WindowEvent::ModifiersChanged(m) => {
+                self.input(event_loop, Input::Shift(m.state().shift_key()))
+            }
+            WindowEvent::CursorMoved { position, .. } => {
+                self.input(event_loop, Input::CursorMoved(position.x, position.y))
+            }
+            WindowEvent::MouseInput {
+                state,
+                button: MouseButton::Left,
+                ..
+            } => self.input(
+                event_loop,
+                Input::LeftButton(state == ElementState::Pressed),
+            ),
+            WindowEvent::MouseWheel { delta, .. } => {
+                let lines = match delta {
+                    MouseScrollDelta::LineDelta(_, y) => y as f64,
+                    MouseScrollDelta::PixelDelta(p) => p.y / 40.0,
+                };
+                if lines.is_finite() {
+                    self.input(event_loop, Input::Wheel(lines));
+                }
+            }
+            WindowEvent::KeyboardInput { event, .. } if event.state == ElementState::Pressed => {
+                let key = match &event.logical_key {
+                    Key::Named(NamedKey::Escape) => Some(KeyPress::Escape),
+                    Key::Named(NamedKey::F1) => Some(KeyPress::Help),
+                    Key::Character(s) => s
+                        .chars()
+                        .next()
+                        .map(|c| KeyPress::Char(c.to_ascii_lowercase())),
+                    _ => None,
+                };
+                if let Some(k) = key {
+                    self.input(event_loop, Input::Key(k));
+                }
+            }
+            WindowEvent::RedrawRequested => {
+                if let Err(e) = self.redraw() {
+                    self.fail(event_loop, e);
+                    return;
+                }
+                if self
+                    .options
+                    .exit_after_frames
+                    .is_some_and(|n| self.drawn >= n)
+                {
+                    event_loop.exit();
+                }
+            }
+            _ => {}
+        }
+    }
+
+    fn about_to_wait(&mut self, event_loop: &ActiveEventLoop) {
+        if self.error.is_some() || event_loop.exiting() {
+            return;
+        }
+        if let Err(e) = self.run_script(event_loop) {
+            self.fail(event_loop, e);
+            return;
+        }
+        let Some(g) = &self.gfx else {
+            return;
+        };
+        let busy = !self.converged || self.controls.view_changed || self.controls.image_changed;
+        let scripted = !self.script.commands.is_empty() || self.options.exit_after_frames.is_some();
+        if busy || scripted {
+            g.window.request_redraw();
+            event_loop.set_control_flow(ControlFlow::Poll);
+        } else {
+            // Converged: check back now and then for packets a view change asked for.
+            let next = self.last_draw + Duration::from_millis(100);
+            if Instant::now() >= next {
+                g.window.request_redraw();
+            }
+            event_loop.set_control_flow(ControlFlow::WaitUntil(next));
+        }
+    }
+}
