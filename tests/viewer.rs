@@ -17,7 +17,7 @@ use wavesplat_compressor::phantom::Phantom;
 use wavesplat_harness::LocalCache;
 use wavesplat_viewer::session::{RenderSession, SessionOptions, COEFFICIENT_BYTES};
 use wavesplat_viewer::source::{CacheSource, CacheSourceOptions, FileSource, PacketSource};
-use wavesplat_viewer::{CpuBackend, FrameLoop, Image, RenderOptions, Renderer};
+use wavesplat_viewer::{CpuBackend, FrameLoop, Image};
 
 fn wsp(phantom: Phantom, n: usize) -> Vec<u8> {
     let options = CompressOptions {
@@ -35,24 +35,6 @@ fn all(bytes: &[u8]) -> (Header, Vec<Coefficient>) {
         .flat_map(|p| decode_packet(&file.header, p).unwrap().coefficients)
         .collect();
     (file.header, c)
-}
-
-fn full_image(header: &Header, coeffs: &[Coefficient], spec: &ViewSpec) -> Image {
-    let mut r = Renderer::new(RenderOptions {
-        channels: header.channels,
-        ..Default::default()
-    });
-    let (img, _) = r.render_spec(coeffs, &header.geometry, spec).unwrap();
-    wavesplat_viewer::color::to_rgb_for_spec(&img, header, spec).unwrap()
-}
-
-/// Largest |a − b| over the largest |b|, for images of one shape.
-fn max_rel(a: &Image, b: &Image) -> f64 {
-    assert_eq!(
-        (a.width, a.height, a.channels),
-        (b.width, b.height, b.channels)
-    );
-    wavesplat_viewer::image::max_relative_difference(&a.data, &b.data)
 }
 
 /// Adds `bytes` as `name` to the cache at `url`.
@@ -137,13 +119,15 @@ fn rendering_from_the_cache_equals_rendering_from_the_file() {
                 assert_eq!(s.pending(), 0);
                 images.push(s.image().unwrap());
             }
-            let e = max_rel(&images[0], &images[1]);
+            let e = images[0].relative_difference(&images[1]);
             assert!(
                 e <= 1e-6,
                 "{name} multiview={}: cache vs file {e:e}",
                 spec.multiview
             );
-            let e = max_rel(&images[1], &full_image(&header, &coeffs, &spec));
+            let e = images[1].relative_difference(
+                &wavesplat_viewer::open::display_image(&header, &coeffs, &spec).unwrap(),
+            );
             assert!(e <= 1e-5, "{name}: file vs one-shot {e:e}");
         }
     }
@@ -216,10 +200,10 @@ fn a_view_change_and_a_cache_restart_mid_stream_lose_nothing_and_repeat_nothing(
     while f.session.pending() > 0 {
         f.session.step(Duration::from_secs(60)).unwrap();
     }
-    let e = max_rel(
-        &f.session.image().unwrap(),
-        &full_image(&header, &coeffs, &b),
-    );
+    let e =
+        f.session.image().unwrap().relative_difference(
+            &wavesplat_viewer::open::display_image(&header, &coeffs, &b).unwrap(),
+        );
     assert!(e <= 1e-5, "{e:e}");
     drop(f);
     drop(server);
@@ -272,9 +256,8 @@ fn the_memory_bound_holds_over_the_network() {
             }
             assert!(start.elapsed() < Duration::from_secs(120), "stalled");
         }
-        let e = max_rel(
-            &f.session.image().unwrap(),
-            &full_image(&header, &coeffs, &spec),
+        let e = f.session.image().unwrap().relative_difference(
+            &wavesplat_viewer::open::display_image(&header, &coeffs, &spec).unwrap(),
         );
         assert!(e <= 1e-5, "{e:e}");
     }
@@ -331,9 +314,9 @@ fn the_render_command_gives_the_same_image_from_the_cache_and_from_the_file() {
     };
     let from_file = to_image(from_file);
     // Frames group the splats by timing, so the sums agree to f32 rounding.
-    let e = max_rel(&to_image(from_cache), &from_file);
+    let e = to_image(from_cache).relative_difference(&from_file);
     assert!(e <= 1e-5, "{e:e}");
-    let e = max_rel(&to_image(progressive), &from_file);
+    let e = to_image(progressive).relative_difference(&from_file);
     assert!(e <= 1e-5, "{e:e}");
 }
 

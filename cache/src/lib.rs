@@ -78,13 +78,10 @@ pub async fn serve_with(
     options: ServeOptions,
     shutdown: impl Future<Output = ()> + Send,
 ) -> Result<(), CacheError> {
-    let addr = listener
-        .local_addr()
-        .map_err(|e| CacheError::Io(format!("listener address: {e}")))?;
-    options
+    let addr = options
         .security
-        .check(addr)
-        .map_err(|e| CacheError::Security(e.to_string()))?;
+        .check_listener(&listener)
+        .map_err(CacheError::Security)?;
     let _flush = store::FlushGuard(store.clone());
     let limits = *store.limits();
     let (health, health_service) = tonic_health::server::health_reporter();
@@ -102,10 +99,7 @@ pub async fn serve_with(
         (limits.max_packet_bytes as usize).max(service::MAX_FIRST_PACKETS_BYTES as usize)
             + (1 << 20),
     );
-    let mut builder = tonic::transport::Server::builder();
-    if let Some(tls) = options.security.tls.clone() {
-        builder = builder.tls_config(tls)?;
-    }
+    let builder = options.security.server_builder()?;
     tracing::info!(
         %addr,
         tls = options.security.tls.is_some(),

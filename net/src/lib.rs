@@ -9,11 +9,13 @@
 //! - [`auth`]: bearer tokens with roles (read, ingest, write, worker, admin), checked in
 //!   constant time by a layer in front of every service, and the clients' credentials;
 //! - [`volume`]: how services and clients name a volume (`VolumeKey`: an id or a name);
-//! - [`digest`]: content identity, the SHA-256 of a volume's bytes and its hex form.
+//! - [`digest`]: content identity, the SHA-256 of a volume's bytes and its hex form;
+//! - [`backoff`]: exponential backoff between retries.
 //!
 //! A server combines them in [`Security`].
 
 pub mod auth;
+pub mod backoff;
 pub mod deadline;
 pub mod digest;
 pub mod status;
@@ -65,6 +67,28 @@ impl Security {
             self.tokens.is_some(),
             self.insecure,
         )
+    }
+
+    /// The address `listener` is bound to, once serving there is allowed ([`Security::check`]);
+    /// the error says which (the address unreadable, or the exposure refused).
+    pub fn check_listener(
+        &self,
+        listener: &tokio::net::TcpListener,
+    ) -> Result<std::net::SocketAddr, String> {
+        let addr = listener
+            .local_addr()
+            .map_err(|e| format!("listener address: {e}"))?;
+        self.check(addr).map_err(|e| e.to_string())?;
+        Ok(addr)
+    }
+
+    /// A tonic server builder, with TLS when it is configured.
+    pub fn server_builder(&self) -> Result<tonic::transport::Server, tonic::transport::Error> {
+        let builder = tonic::transport::Server::builder();
+        match self.tls.clone() {
+            Some(tls) => builder.tls_config(tls),
+            None => Ok(builder),
+        }
     }
 
     /// What an operator should be told, once at start, about serving on `addr` with these

@@ -91,13 +91,10 @@ pub async fn serve_with(
     options: ServeOptions,
     shutdown: impl Future<Output = ()> + Send,
 ) -> Result<(), OrchestratorError> {
-    let addr = listener
-        .local_addr()
-        .map_err(|e| OrchestratorError::Connect(format!("listener address: {e}")))?;
-    options
+    let addr = options
         .security
-        .check(addr)
-        .map_err(|e| OrchestratorError::Security(e.to_string()))?;
+        .check_listener(&listener)
+        .map_err(OrchestratorError::Security)?;
     let _flush = store::FlushGuard(store.clone());
     let mut service = OrchestratorService::new(store, config, service::system_clock())?;
     if let Some(check) = options.delivery_check.clone() {
@@ -123,10 +120,7 @@ pub async fn serve_with(
     let server = OrchestratorServer::new(service)
         .max_decoding_message_size(wavesplat_orchestrator_client::CHUNK_BYTES + (1 << 20))
         .max_encoding_message_size(wavesplat_orchestrator_client::CHUNK_BYTES + (1 << 20));
-    let mut builder = tonic::transport::Server::builder();
-    if let Some(tls) = options.security.tls.clone() {
-        builder = builder.tls_config(tls)?;
-    }
+    let builder = options.security.server_builder()?;
     tracing::info!(
         %addr,
         tls = options.security.tls.is_some(),

@@ -70,6 +70,18 @@ impl Image {
         }
     }
 
+    /// [`max_relative_difference`] of this image against `reference`, which must have the same
+    /// width, height and channels (panics otherwise: comparing images of two shapes is a bug of
+    /// the caller).
+    pub fn relative_difference(&self, reference: &Image) -> f64 {
+        assert_eq!(
+            (self.width, self.height, self.channels),
+            (reference.width, reference.height, reference.channels),
+            "images of different shapes"
+        );
+        max_relative_difference(&self.data, &reference.data)
+    }
+
     /// Value of channel `c` at pixel (x, y).
     pub fn get(&self, x: usize, y: usize, c: usize) -> f32 {
         self.data[(y * self.width + x) * self.channels + c]

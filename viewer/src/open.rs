@@ -325,14 +325,23 @@ impl Opened {
 
     /// The image of every coefficient for `spec`, in display space.
     pub fn reference_image(&self, header: &Header, spec: &ViewSpec) -> Result<Image, OpenError> {
-        let all = self.all_coefficients(header)?;
-        let mut r = Renderer::new(RenderOptions {
-            channels: header.channels,
-            ..RenderOptions::default()
-        });
-        let (img, _) = r.render_spec(&all, &header.geometry, spec)?;
-        Ok(crate::color::to_rgb_for_spec(&img, header, spec)?)
+        display_image(header, &self.all_coefficients(header)?, spec)
     }
+}
+
+/// The one-shot image of `coefficients` (of the volume `header` describes) for `spec`, in
+/// display space (colour basis undone, the offset added back).
+pub fn display_image(
+    header: &Header,
+    coefficients: &[Coefficient],
+    spec: &ViewSpec,
+) -> Result<Image, OpenError> {
+    let mut r = Renderer::new(RenderOptions {
+        channels: header.channels,
+        ..RenderOptions::default()
+    });
+    let (img, _) = r.render_spec(coefficients, &header.geometry, spec)?;
+    Ok(crate::color::to_rgb_for_spec(&img, header, spec)?)
 }
 
 /// Opens the volume at `location`, ranked for the view `request` describes; returns its header,

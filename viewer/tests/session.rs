@@ -18,7 +18,7 @@ use wavesplat_viewer::backend::{
 };
 use wavesplat_viewer::session::{Clock, RenderSession, SessionOptions, COEFFICIENT_BYTES};
 use wavesplat_viewer::source::{FileSource, PacketSource, SourcePacket, SourceStatus};
-use wavesplat_viewer::{FrameLoop, Image, RenderOptions, Renderer};
+use wavesplat_viewer::{FrameLoop, Image};
 
 fn wsp(phantom: Phantom, n: usize, tile: usize) -> Vec<u8> {
     wsp_of(&phantom.generate([n; 3]), 0.08, tile)
@@ -53,25 +53,6 @@ fn all(bytes: &[u8]) -> (Header, Vec<Coefficient>) {
         })
         .collect();
     (file.header, c)
-}
-
-/// The one-shot image of every coefficient, in display space.
-fn full_image(header: &Header, coeffs: &[Coefficient], spec: &ViewSpec) -> Image {
-    let mut r = Renderer::new(RenderOptions {
-        channels: header.channels,
-        ..Default::default()
-    });
-    let (img, _) = r.render_spec(coeffs, &header.geometry, spec).unwrap();
-    wavesplat_viewer::color::to_rgb_for_spec(&img, header, spec).unwrap()
-}
-
-/// Largest |a − b| over the largest |b|, for images of one shape.
-fn max_rel(a: &Image, b: &Image) -> f64 {
-    assert_eq!(
-        (a.width, a.height, a.channels),
-        (b.width, b.height, b.channels)
-    );
-    wavesplat_viewer::image::max_relative_difference(&a.data, &b.data)
 }
 
 /// A session on the `n`³ Shepp–Logan file (tiles of 16) that draws `view` with preview
@@ -134,8 +115,8 @@ fn streaming_a_file_converges_to_the_one_shot_image() {
             let mut f = file_loop(&bytes, &header, s, Default::default());
             run_to_end(&mut f);
             let got = f.session.image().unwrap();
-            let want = full_image(&header, &coeffs, &s);
-            let e = max_rel(&got, &want);
+            let want = wavesplat_viewer::open::display_image(&header, &coeffs, &s).unwrap();
+            let e = got.relative_difference(&want);
             assert!(e <= 1e-5, "{phantom:?} multiview={}: {e:e}", s.multiview);
             assert_eq!(
                 f.session.stats().coefficients_received as usize,
@@ -184,9 +165,11 @@ fn a_whole_file_drawn_in_one_pass_equals_the_frame_loops_image() {
             let mut f = file_loop(bytes, &header, s, Default::default());
             run_to_end(&mut f);
             let frames = f.session.image().unwrap();
-            let e = max_rel(&whole.image, &frames);
+            let e = whole.image.relative_difference(&frames);
             assert!(e <= 1e-5, "{name} {s:?}: against the frame loop {e:e}");
-            let e = max_rel(&whole.image, &full_image(&header, &coeffs, &s));
+            let e = whole.image.relative_difference(
+                &wavesplat_viewer::open::display_image(&header, &coeffs, &s).unwrap(),
+            );
             assert!(
                 e <= 1e-5,
                 "{name} {s:?}: against the one-shot renderer {e:e}"
@@ -247,8 +230,8 @@ fn a_volume_without_margin_streams_clipped_to_the_one_shot_image() {
         assert!(f.session.plan().clips(), "{s:?}");
         assert_eq!(f.session.plan().tables_built_inline(), 0, "{s:?}");
         let got = f.session.image().unwrap();
-        let want = full_image(&header, &coeffs, &s);
-        let e = max_rel(&got, &want);
+        let want = wavesplat_viewer::open::display_image(&header, &coeffs, &s).unwrap();
+        let e = got.relative_difference(&want);
         assert!(e <= 1e-5, "{s:?} previews {previews}: {e:e}");
     }
 }
@@ -279,10 +262,14 @@ fn splatting_in_batches_equals_one_batch() {
     // Equal up to f32 rounding: the sums of signed splats are only regrouped (measured:
     // ~3e-6 of the peak for thousands of 7-coefficient batches).
     for img in &images[1..] {
-        let e = max_rel(img, &images[0]);
+        let e = img.relative_difference(&images[0]);
         assert!(e <= 1e-5, "batches change the image by {e:e}");
     }
-    assert!(max_rel(&images[0], &full_image(&header, &coeffs, &s)) <= 1e-5);
+    assert!(
+        images[0].relative_difference(
+            &wavesplat_viewer::open::display_image(&header, &coeffs, &s).unwrap()
+        ) <= 1e-5
+    );
 }
 
 #[test]
@@ -318,8 +305,8 @@ fn a_view_change_mid_stream_resplats_what_is_held_and_continues() {
     f.session.step(Duration::from_secs(60)).map(|_| ()).unwrap();
     run_to_end(&mut f);
     let got = f.session.image().unwrap();
-    let want = full_image(&header, &coeffs, &b);
-    let e = max_rel(&got, &want);
+    let want = wavesplat_viewer::open::display_image(&header, &coeffs, &b).unwrap();
+    let e = got.relative_difference(&want);
     assert!(e <= 1e-5, "after the view change: {e:e}");
     // Every packet once: the file source never delivers a packet twice unless it was dropped.
     assert_eq!(f.source.status().packets as usize, total);
@@ -423,18 +410,16 @@ fn the_memory_bound_holds_and_the_image_still_converges() {
         assert!(st.packets_dropped > 0, "bound {bound}: nothing dropped");
         assert!(st.coefficients_held * COEFFICIENT_BYTES <= bound);
         // Dropped coefficients stay in the image: it is the image of everything received.
-        let e = max_rel(
-            &f.session.image().unwrap(),
-            &full_image(&header, &coeffs, &a),
+        let e = f.session.image().unwrap().relative_difference(
+            &wavesplat_viewer::open::display_image(&header, &coeffs, &a).unwrap(),
         );
         assert!(e <= 1e-5, "bound {bound}, view a: {e:e}");
         // After a view change, what was dropped is asked for again and the new image converges
         // too (the network computer receives everything again).
         f.set_view(b).unwrap();
         run_to_end(&mut f);
-        let e = max_rel(
-            &f.session.image().unwrap(),
-            &full_image(&header, &coeffs, &b),
+        let e = f.session.image().unwrap().relative_difference(
+            &wavesplat_viewer::open::display_image(&header, &coeffs, &b).unwrap(),
         );
         assert!(e <= 1e-5, "bound {bound}, view b: {e:e}");
         assert!(f.session.stats().retained_bytes <= bound);
@@ -621,9 +606,8 @@ fn frames_keep_refining_and_never_run_more_than_one_batch_past_the_budget() {
             }
             assert!(frames < 10_000);
         }
-        let e = max_rel(
-            &f.session.image().unwrap(),
-            &full_image(&header, &coeffs, &s),
+        let e = f.session.image().unwrap().relative_difference(
+            &wavesplat_viewer::open::display_image(&header, &coeffs, &s).unwrap(),
         );
         assert!(e <= 1e-5, "{e:e}");
         assert!(
@@ -660,7 +644,7 @@ fn the_opening_bytes_draw_the_whole_volume_coarsely() {
     };
     let (coarse, plain) = (file(true), file(false));
     let (header, coeffs) = all(&coarse);
-    let full = full_image(&header, &coeffs, &s);
+    let full = wavesplat_viewer::open::display_image(&header, &coeffs, &s).unwrap();
     let parsed = parse_file(&coarse).unwrap();
     let coarse_packets: Vec<usize> = parsed
         .packets
@@ -764,7 +748,7 @@ fn previews_are_replaced_by_exact_tables() {
             );
         }
         // The preview draws everything held without waiting for the exact tables.
-        let want = full_image(&header, &coeffs, &s);
+        let want = wavesplat_viewer::open::display_image(&header, &coeffs, &s).unwrap();
         let mut waited = 0;
         loop {
             session.step(Duration::from_millis(20)).unwrap();
@@ -781,7 +765,7 @@ fn previews_are_replaced_by_exact_tables() {
             }
         }
         let got = session.image().unwrap();
-        let e = max_rel(&got, &want);
+        let e = got.relative_difference(&want);
         assert!(e <= 1e-5, "{s:?}: {e:e}");
     }
     assert_eq!(session.stats().previews, 2);
@@ -825,7 +809,10 @@ fn the_preview_stays_on_screen_until_the_exact_tables_catch_up() {
         steps += 1;
     }
     assert!(steps > 1, "the exact tables drew everything at once");
-    let e = max_rel(&session.image().unwrap(), &full_image(&header, &coeffs, &s));
+    let e = session
+        .image()
+        .unwrap()
+        .relative_difference(&wavesplat_viewer::open::display_image(&header, &coeffs, &s).unwrap());
     assert!(e <= 1e-5, "{e:e}");
 }
 
@@ -867,8 +854,8 @@ fn depth_cue_tables_are_built_off_the_frame_thread() {
                 "{phantom:?} previews {previews}"
             );
             let got = f.session.image().unwrap();
-            let want = full_image(&header, &coeffs, &s);
-            let e = max_rel(&got, &want);
+            let want = wavesplat_viewer::open::display_image(&header, &coeffs, &s).unwrap();
+            let e = got.relative_difference(&want);
             assert!(e <= 1e-5, "{phantom:?} {direction:?}: {e:e}");
         }
     }
@@ -1100,7 +1087,10 @@ fn a_replaced_backend_is_drawn_again_from_what_is_held() {
     while session.pending() > 0 {
         session.step(Duration::from_millis(50)).unwrap();
     }
-    let e = max_rel(&session.image().unwrap(), &full_image(&header, &coeffs, &s));
+    let e = session
+        .image()
+        .unwrap()
+        .relative_difference(&wavesplat_viewer::open::display_image(&header, &coeffs, &s).unwrap());
     assert!(e <= 1e-5, "{e:e}");
 }
 
@@ -1127,7 +1117,10 @@ fn waiting_for_the_exact_tables_installs_them_when_they_arrive() {
     while session.pending() > 0 {
         session.step(Duration::from_millis(50)).unwrap();
     }
-    let e = max_rel(&session.image().unwrap(), &full_image(&header, &coeffs, &s));
+    let e = session
+        .image()
+        .unwrap()
+        .relative_difference(&wavesplat_viewer::open::display_image(&header, &coeffs, &s).unwrap());
     assert!(e <= 1e-5, "{e:e}");
 }
 
@@ -1188,10 +1181,10 @@ fn run_to_end_draws_everything_and_stops_on_a_failed_or_lost_source() {
     assert_eq!(outcome.frames, called);
     assert!(outcome.first_image.is_some_and(|t| t <= outcome.elapsed));
     assert!(f.source_status().done && f.session.pending() == 0);
-    let err = max_rel(
-        &f.session.image().unwrap(),
-        &full_image(&header, &coeffs, &s),
-    );
+    let err =
+        f.session.image().unwrap().relative_difference(
+            &wavesplat_viewer::open::display_image(&header, &coeffs, &s).unwrap(),
+        );
     assert!(err < 1e-4, "{err}");
 
     let ending = |failed: Option<String>, unreachable: bool| {

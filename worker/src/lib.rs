@@ -118,7 +118,7 @@ pub async fn run(
     };
     tokio::pin!(shutdown);
     let mut done = 0usize;
-    let mut backoff = Duration::from_millis(100);
+    let mut backoff = wavesplat_net::backoff::Backoff::default();
     tracing::info!(worker = %ctx.cfg.id, "worker started");
     loop {
         if ctx.cfg.max_jobs.is_some_and(|m| done >= m) {
@@ -134,11 +134,10 @@ pub async fn run(
         let wait = match reply {
             Err(status) => {
                 tracing::warn!(error = %status.message(), "orchestrator unreachable; retrying");
-                backoff = (backoff * 2).min(Duration::from_secs(2));
-                backoff
+                backoff.next_delay()
             }
             Ok(r) => {
-                backoff = Duration::from_millis(100);
+                backoff.reset();
                 let r = r.into_inner();
                 match r.lease {
                     Some(lease) => {

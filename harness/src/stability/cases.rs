@@ -4,7 +4,7 @@
 //! test suite's subset.
 
 use super::inputs::{blobs, faced, lossless, reference_options, volume};
-use super::run::{cue_case, pipeline_case, renderer_case, renderer_case_with};
+use super::run::{cue_case, pipeline_case, renderer_case};
 use super::{case, Case, Criterion, Outcome, CUE_DB, CUE_FLOOR, MATCH};
 use std::f64::consts::FRAC_PI_2;
 use wavesplat_codec::family::Family;
@@ -80,7 +80,9 @@ pub fn cases(quick: bool) -> Vec<Case> {
                 },
                 move || {
                     let data = blobs(cube, 1.0);
-                    renderer_case(cube, &data, family, 2, &view, reference_options(family, 10.0))
+                    let reference = reference_options(family, 10.0);
+                    let options = RenderOptions::default();
+                    renderer_case(cube, &data, family, 2, &view, reference, options)
                 },
             )
             .known_failure(
@@ -121,7 +123,7 @@ pub fn cases(quick: bool) -> Vec<Case> {
                         MATCH,
                         move || {
                             let data = blobs(dims, 1.0);
-                            renderer_case_with(
+                            renderer_case(
                                 dims,
                                 &data,
                                 family,
@@ -189,7 +191,15 @@ pub fn cases(quick: bool) -> Vec<Case> {
                     MATCH,
                     move || {
                         let data = blobs(cube, 1.0);
-                        renderer_case(cube, &data, family, 2, &view, reference)
+                        renderer_case(
+                            cube,
+                            &data,
+                            family,
+                            2,
+                            &view,
+                            reference,
+                            RenderOptions::default(),
+                        )
                     },
                 ));
             }
@@ -250,6 +260,7 @@ pub fn cases(quick: bool) -> Vec<Case> {
                         2,
                         &oblique,
                         reference_options(family, 0.0),
+                        RenderOptions::default(),
                     )
                 },
             ));
@@ -544,6 +555,7 @@ pub fn cases(quick: bool) -> Vec<Case> {
                     2,
                     &view,
                     reference_options(Family::Haar, 0.0),
+                    RenderOptions::default(),
                 ) {
                     Err(e) => Ok(Outcome::Rejected(format!("{e:#}"))),
                     ok => ok,

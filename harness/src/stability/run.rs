@@ -24,28 +24,9 @@ use wavesplat_viewer::{
 };
 
 /// Splats every coefficient of channel data `data` (exact decomposition with the files'
-/// default margin) and renders the reference on the volume they reconstruct.
+/// default margin) with renderer `options`, and renders the reference on the volume they
+/// reconstruct.
 pub(super) fn renderer_case(
-    dims: [usize; 3],
-    data: &[f32],
-    family: Family,
-    levels: usize,
-    view: &View,
-    reference: ReferenceOptions,
-) -> Result<Outcome> {
-    renderer_case_with(
-        dims,
-        data,
-        family,
-        levels,
-        view,
-        reference,
-        RenderOptions::default(),
-    )
-}
-
-/// [`renderer_case`] with renderer options.
-pub(super) fn renderer_case_with(
     dims: [usize; 3],
     data: &[f32],
     family: Family,
@@ -138,7 +119,15 @@ pub(super) fn cue_case(
     let k = view.cue.map_or(0.0, |c| c.k);
     let Outcome::Images {
         image, reference, ..
-    } = renderer_case(dims, data, family, 2, view, reference_options(family, k))?
+    } = renderer_case(
+        dims,
+        data,
+        family,
+        2,
+        view,
+        reference_options(family, k),
+        RenderOptions::default(),
+    )?
     else {
         bail!("a renderer case renders");
     };

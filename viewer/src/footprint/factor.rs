@@ -4,7 +4,7 @@
 //! each distinct factor is evaluated once per FFT grid.
 
 use super::slice::{
-    axis_transform, inverse_and_crop, level_subpixel, signed, sizes, MirroredGrid, Transforms,
+    axis_transform, inverse_and_crop, level_subpixel, signed, sizes, Crop, MirroredGrid, Transforms,
 };
 use super::FineTable;
 use super::FootprintParams;
@@ -443,7 +443,10 @@ pub fn compute_factor_tables_with(
                     rx += p.zoom * h * p.ex[a].abs();
                     ry += p.zoom * h * p.ey[a].abs();
                 }
-                (i, inverse_and_crop(&mut spec, s, nx, ny, rx, ry))
+                (
+                    i,
+                    inverse_and_crop(&mut spec, &Crop::new(s, nx, ny, rx, ry)),
+                )
             })
             .collect();
         for (i, t) in tables {

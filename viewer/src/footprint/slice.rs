@@ -431,22 +431,29 @@ pub fn compute_fine_with(
         .zip(kinds.par_iter())
         .map(|(mut spec, kind)| {
             let (rx, ry) = support_radius(p, level, *kind);
-            inverse_and_crop(&mut spec, s, nx, ny, rx, ry)
+            inverse_and_crop(&mut spec, &Crop::new(s, nx, ny, rx, ry))
         })
         .collect()
 }
 
-/// The crop of an inverse transform: the support radius (rx, ry) pixels plus one sample each
-/// side, centred, at S samples per pixel, and the scale of the unnormalized inverse FFTs.
-struct Crop {
+/// The crop of an inverse transform of an nx × ny grid at S samples per pixel: the support
+/// radius (rx, ry) pixels plus one sample each side, centred, and the scale of the
+/// unnormalized inverse FFTs.
+pub(super) struct Crop {
+    s: usize,
+    nx: usize,
+    ny: usize,
     hx: usize,
     hy: usize,
     scale: f64,
 }
 
 impl Crop {
-    fn new(s: usize, nx: usize, ny: usize, rx: f64, ry: f64) -> Crop {
+    pub(super) fn new(s: usize, nx: usize, ny: usize, rx: f64, ry: f64) -> Crop {
         Crop {
+            s,
+            nx,
+            ny,
             hx: ((rx * s as f64).ceil() as usize + 1).min(nx / 2 - 1),
             hy: ((ry * s as f64).ceil() as usize + 1).min(ny / 2 - 1),
             scale: (s * s) as f64 / (nx * ny) as f64,
@@ -475,8 +482,8 @@ impl Crop {
 }
 
 /// The real part of the inverse 2D FFT of a spectrum (row-major, nx × ny, rows at [`signed`]
-/// frequencies), cropped to the support radius (rx, ry) pixels plus one sample with the centre
-/// in the middle.
+/// frequencies), cropped as `crop` says: the support radius (rx, ry) pixels plus one sample
+/// with the centre in the middle.
 ///
 /// The spectra here are of real functions: every entry of a row of negative frequency is the
 /// conjugate of its mirror (the row and column at the negated frequencies), except in an even
@@ -492,18 +499,12 @@ impl Crop {
 ///
 /// Equal to transforming every row and column in full and keeping the real part, up to
 /// rounding (`hermitian_inverse_equals_the_full_one` below).
-pub(super) fn inverse_and_crop(
-    spec: &mut [Complex64],
-    s: usize,
-    nx: usize,
-    ny: usize,
-    rx: f64,
-    ry: f64,
-) -> FineTable {
+pub(super) fn inverse_and_crop(spec: &mut [Complex64], crop: &Crop) -> FineTable {
+    let (s, nx, ny) = (crop.s, crop.nx, crop.ny);
     // An odd grid's frequencies run from −(n+1)/2 to (n−1)/2 ([`signed`]): rows and columns
     // without mirrors in the middle of the grid. The planner's grids are even ([`nice`]).
     if nx % 2 == 1 || ny % 2 == 1 {
-        return inverse_in_full(spec, s, nx, ny, rx, ry);
+        return inverse_in_full(spec, crop);
     }
     let mut planner = FftPlanner::<f64>::new();
     let fx = planner.plan_fft_inverse(nx);
@@ -526,7 +527,6 @@ pub(super) fn inverse_and_crop(
         .collect();
     // Every transformed row in one call (one scratch buffer for all of them).
     fx.process(&mut spec[..(half + 1) * nx]);
-    let crop = Crop::new(s, nx, ny, rx, ry);
     let (cw, ch) = crop.size();
     let mut data = vec![0.0; cw * ch];
     let mut scratch = vec![zero; fy.get_inplace_scratch_len()];
@@ -574,18 +574,11 @@ pub(super) fn inverse_and_crop(
 
 /// [`inverse_and_crop`] the long way: every row and kept column transformed in full, the real
 /// part kept (for grids of an odd size, whose frequencies are not symmetric about zero).
-fn inverse_in_full(
-    spec: &mut [Complex64],
-    s: usize,
-    nx: usize,
-    ny: usize,
-    rx: f64,
-    ry: f64,
-) -> FineTable {
+fn inverse_in_full(spec: &mut [Complex64], crop: &Crop) -> FineTable {
+    let (s, nx, ny) = (crop.s, crop.nx, crop.ny);
     let mut planner = FftPlanner::<f64>::new();
     let (fx, fy) = (planner.plan_fft_inverse(nx), planner.plan_fft_inverse(ny));
     fx.process(spec);
-    let crop = Crop::new(s, nx, ny, rx, ry);
     let (cw, ch) = crop.size();
     let mut data = vec![0.0; cw * ch];
     let mut col = vec![Complex64::new(0.0, 0.0); ny];
@@ -644,8 +637,9 @@ mod tests {
                     }
                 }
             }
-            let want = inverse_in_full(&mut spec.clone(), s, nx, ny, rx, ry);
-            let got = inverse_and_crop(&mut spec, s, nx, ny, rx, ry);
+            let crop = Crop::new(s, nx, ny, rx, ry);
+            let want = inverse_in_full(&mut spec.clone(), &crop);
+            let got = inverse_and_crop(&mut spec, &crop);
             assert_eq!((got.nx, got.ny), (want.nx, want.ny));
             let peak = want.data.iter().fold(0.0f64, |m, v| m.max(v.abs()));
             for (g, w) in got.data.iter().zip(&want.data) {

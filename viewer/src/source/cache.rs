@@ -222,7 +222,7 @@ impl Pull {
         mut ctl: mpsc::UnboundedReceiver<Control>,
     ) {
         let mut client = Some(client);
-        let mut backoff = Duration::from_millis(100);
+        let mut backoff = wavesplat_net::backoff::Backoff::default();
         loop {
             let c = match client.take() {
                 Some(c) => c,
@@ -237,10 +237,9 @@ impl Pull {
                         if self.next_node() {
                             continue;
                         }
-                        if self.wait(backoff, &mut ctl).await {
+                        if self.wait(backoff.next_delay(), &mut ctl).await {
                             return;
                         }
-                        backoff = (backoff * 2).min(Duration::from_secs(2));
                         continue;
                     }
                 },
@@ -257,10 +256,9 @@ impl Pull {
                     if self.next_node() {
                         continue;
                     }
-                    if self.wait(backoff, &mut ctl).await {
+                    if self.wait(backoff.next_delay(), &mut ctl).await {
                         return;
                     }
-                    backoff = (backoff * 2).min(Duration::from_secs(2));
                 }
             }
         }
