@@ -5,7 +5,7 @@
 use std::io::Read;
 use std::path::Path;
 
-use super::super::{Opened, Source};
+use super::super::Opened;
 use super::{read_prefix, reader_at, spool, stored_at, stored_bytes};
 use crate::reader::{nifti, ReadError, SampleType};
 
@@ -74,11 +74,5 @@ pub(super) fn open_nifti(path: &Path) -> Result<Opened, ReadError> {
         stored.slope = slope;
         stored.inter = inter;
     }
-    Ok(Opened {
-        dims,
-        channels,
-        spacing: meta.spacing(),
-        placement: meta.placement().copied(),
-        source: Source::Stored(stored),
-    })
+    Ok(Opened::stored(&meta, dims, stored))
 }
