@@ -36,7 +36,7 @@ impl<S: BitSink + ?Sized> BitSink for &mut S {
 
 /// Mask of the low `n` bits (`n` ≤ 64).
 #[inline]
-fn low_mask(n: u32) -> u64 {
+pub(super) fn low_mask(n: u32) -> u64 {
     if n >= 64 {
         u64::MAX
     } else {

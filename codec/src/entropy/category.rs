@@ -7,21 +7,12 @@
 //! `2^(k−1) ..= 2^k − 1` with `k` extra bits: `v` itself for `v > 0`, the ones' complement
 //! `v + 2^k − 1` for `v < 0` (so the first extra bit is the sign), exactly as in JPEG.
 
-use super::bits::{BitReader, BitSink};
+use super::bits::{low_mask, BitReader, BitSink};
 use super::huffman::{HuffmanCode, HuffmanDecoder};
 use super::EntropyError;
 
 /// Size of the category alphabet (categories `0..=64`), for both signed and unsigned values.
 pub const NUM_CATEGORIES: usize = 65;
-
-#[inline]
-fn low_mask(n: u32) -> u64 {
-    if n >= 64 {
-        u64::MAX
-    } else {
-        (1u64 << n) - 1
-    }
-}
 
 /// Category of `v` (0..=64), its extra bits and their count (`category − 1`, or 0 for `v = 0`).
 #[inline]

@@ -79,18 +79,14 @@ pub fn decode_packets(bytes: &[u8], with_offsets: bool) -> Result<Vec<PacketMeta
     let n = r.varint_max(1 << 28, "packets")? as usize;
     let mut out = Vec::with_capacity(n.min(r.remaining()));
     for _ in 0..n {
-        let tile = r.varint_max(u32::MAX as u64, "tile")? as u32;
-        let layer = r.varint_max(u32::MAX as u64, "layer")? as u32;
-        let len = r.varint_max(u32::MAX as u64, "len")? as u32;
+        let (tile, layer, len) = entry_head(&mut r)?;
         let offset = if with_offsets { r.varint()? } else { 0 };
-        let ns = r.varint_max(1 << 16, "summary")? as usize;
-        let mut summary = Vec::with_capacity(ns.min(r.remaining()));
-        for _ in 0..ns {
+        let summary = read_summary(&mut r, |r| {
             let level = r.u8()?;
             let kind = r.u8()?;
             let e = r.f64()?;
-            summary.push((Band { level, kind }, e));
-        }
+            Ok((Band { level, kind }, e))
+        })?;
         out.push(PacketMeta {
             tile,
             layer,
@@ -99,13 +95,41 @@ pub fn decode_packets(bytes: &[u8], with_offsets: bool) -> Result<Vec<PacketMeta
             summary,
         });
     }
+    expect_end(&r)?;
+    Ok(out)
+}
+
+/// An index entry's tile, layer and packet length, as both forms of the index begin it.
+fn entry_head(r: &mut ByteReader) -> Result<(u32, u32, u32), FormatError> {
+    let tile = r.varint_max(u32::MAX as u64, "tile")? as u32;
+    let layer = r.varint_max(u32::MAX as u64, "layer")? as u32;
+    let len = r.varint_max(u32::MAX as u64, "len")? as u32;
+    Ok((tile, layer, len))
+}
+
+/// An index entry's energy summary: its length, then that many (band, energy) pairs, each read
+/// by `pair` (the two forms of the index store them differently).
+fn read_summary(
+    r: &mut ByteReader,
+    mut pair: impl FnMut(&mut ByteReader) -> Result<(Band, f64), FormatError>,
+) -> Result<Vec<(Band, f64)>, FormatError> {
+    let ns = r.varint_max(1 << 16, "summary")? as usize;
+    let mut summary = Vec::with_capacity(ns.min(r.remaining()));
+    for _ in 0..ns {
+        summary.push(pair(r)?);
+    }
+    Ok(summary)
+}
+
+/// An error unless `r` has read the whole index: nothing may follow the last entry.
+fn expect_end(r: &ByteReader) -> Result<(), FormatError> {
     if r.remaining() != 0 {
         return Err(invalid(format!(
             "{} bytes after the last packet entry",
             r.remaining()
         )));
     }
-    Ok(out)
+    Ok(())
 }
 
 fn invalid(detail: String) -> FormatError {
@@ -161,22 +185,18 @@ fn decode_compact(bytes: &[u8]) -> Result<Vec<PacketMeta>, FormatError> {
     let mut offset = r.varint()?;
     let mut out = Vec::with_capacity(n.min(r.remaining()));
     for _ in 0..n {
-        let tile = r.varint_max(u32::MAX as u64, "tile")? as u32;
-        let layer = r.varint_max(u32::MAX as u64, "layer")? as u32;
-        let len = r.varint_max(u32::MAX as u64, "len")? as u32;
-        let ns = r.varint_max(1 << 16, "summary")? as usize;
-        let mut summary = Vec::with_capacity(ns.min(r.remaining()));
-        for _ in 0..ns {
+        let (tile, layer, len) = entry_head(&mut r)?;
+        let summary = read_summary(&mut r, |r| {
             let b = r.u8()?;
             let e = from_bf16(r.u16()?);
-            summary.push((
+            Ok((
                 Band {
                     level: b / 8,
                     kind: b % 8,
                 },
                 e,
-            ));
-        }
+            ))
+        })?;
         out.push(PacketMeta {
             tile,
             layer,
@@ -188,12 +208,7 @@ fn decode_compact(bytes: &[u8]) -> Result<Vec<PacketMeta>, FormatError> {
             .checked_add(len as u64)
             .ok_or_else(|| invalid("packet offsets overflow".into()))?;
     }
-    if r.remaining() != 0 {
-        return Err(invalid(format!(
-            "{} bytes after the last packet entry",
-            r.remaining()
-        )));
-    }
+    expect_end(&r)?;
     Ok(out)
 }
 

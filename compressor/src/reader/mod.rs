@@ -636,25 +636,12 @@ pub fn decode_source(src: &SourceFiles, raw: Option<&RawSpec>) -> Result<Volume,
         Some(Format::MetaImage) => metaimage::decode(src),
         Some(Format::Nifti) => nifti::decode_nifti(&src.origin, &src.files[0].1),
         None => match (raw, src.files.as_slice()) {
-            (Some(spec), [(_, bytes)]) => decode_raw(bytes, spec).map_err(|e| match e {
-                ReadError::SizeMismatch {
-                    path: None,
-                    expected,
-                    actual,
-                    dims,
-                    channels,
-                    dtype,
-                    bytes_per_sample,
-                } => ReadError::SizeMismatch {
-                    path: Some(src.origin.clone()),
-                    expected,
-                    actual,
-                    dims,
-                    channels,
-                    dtype,
-                    bytes_per_sample,
-                },
-                e => e,
+            (Some(spec), [(_, bytes)]) => decode_raw(bytes, spec).map_err(|mut e| {
+                // Name the file in a size mismatch that names none.
+                if let ReadError::SizeMismatch { path, .. } = &mut e {
+                    path.get_or_insert_with(|| src.origin.clone());
+                }
+                e
             }),
             _ => Err(ReadError::MissingRawSpec {
                 path: src.origin.clone(),

@@ -32,9 +32,134 @@ pub fn read_nifti(path: &Path) -> Result<Volume, ReadError> {
 }
 
 /// Size of a NIfTI-1 header in bytes.
-const NIFTI1_HEADER_BYTES: u64 = 348;
+pub(super) const NIFTI1_HEADER_BYTES: u64 = 348;
 /// Largest `vox_offset` accepted (extensions beyond this are implausible).
 const MAX_VOX_OFFSET: u64 = 1 << 30;
+
+/// The first [`NIFTI1_HEADER_BYTES`] bytes of `stream`: the header; an error when the file
+/// holds fewer.
+pub(super) fn read_header_bytes(stream: &mut impl Read, path: &Path) -> Result<Vec<u8>, ReadError> {
+    let mut head = Vec::with_capacity(NIFTI1_HEADER_BYTES as usize);
+    stream
+        .take(NIFTI1_HEADER_BYTES)
+        .read_to_end(&mut head)
+        .map_err(|e| ReadError::io(path, e))?;
+    if head.len() as u64 != NIFTI1_HEADER_BYTES {
+        return Err(ReadError::bad_header(
+            path,
+            "NIfTI",
+            format!(
+                "file holds {} bytes, a NIfTI-1 header needs {NIFTI1_HEADER_BYTES}",
+                head.len()
+            ),
+        ));
+    }
+    Ok(head)
+}
+
+/// The header in `head` (from [`read_header_bytes`]) as the `nifti` crate parses it.
+pub(super) fn parse_header(path: &Path, head: &[u8]) -> Result<nifti::NiftiHeader, ReadError> {
+    nifti::NiftiHeader::from_reader(head).map_err(|source| ReadError::Nifti {
+        path: path.to_path_buf(),
+        source,
+    })
+}
+
+/// The grid's dimensions from `dim[0..=7]`: `dim[0]` in 1..=7, every size at least 1, and any
+/// beyond the third 1 (3D volumes only).
+pub(super) fn grid_dims(path: &Path, header: &nifti::NiftiHeader) -> Result<[usize; 3], ReadError> {
+    let ndim = usize::from(header.dim[0]);
+    if !(1..=7).contains(&ndim) {
+        return Err(ReadError::bad_header(
+            path,
+            "NIfTI",
+            format!("dim[0] is {ndim}, expected 1..=7"),
+        ));
+    }
+    let mut dims = [1usize; 3];
+    for i in 1..=ndim {
+        let d = usize::from(header.dim[i]);
+        if d == 0 {
+            return Err(ReadError::bad_header(
+                path,
+                "NIfTI",
+                format!("dim[{i}] is 0, expected at least 1"),
+            ));
+        }
+        if i <= 3 {
+            dims[i - 1] = d;
+        } else if d != 1 {
+            return Err(ReadError::unsupported(
+                path,
+                format!(
+                    "dim[{i}] is {d}: only 3D volumes are supported (dim[0] = {ndim}, extra dimensions must be 1); dim = {:?}",
+                    &header.dim[1..=ndim]
+                ),
+            ));
+        }
+    }
+    Ok(dims)
+}
+
+/// Where the samples start: `vox_offset` as a whole number of bytes from the header's end to
+/// [`MAX_VOX_OFFSET`].
+pub(super) fn data_offset(path: &Path, header: &nifti::NiftiHeader) -> Result<u64, ReadError> {
+    let vox_offset = header.vox_offset;
+    if !vox_offset.is_finite()
+        || vox_offset < NIFTI1_HEADER_BYTES as f32
+        || vox_offset.fract() != 0.0
+        || vox_offset > MAX_VOX_OFFSET as f32
+    {
+        return Err(ReadError::bad_header(
+            path,
+            "NIfTI",
+            format!(
+                "vox_offset is {vox_offset}, expected a whole number of bytes in 348..={MAX_VOX_OFFSET} (at least 352 for a single file)"
+            ),
+        ));
+    }
+    Ok(vox_offset as u64)
+}
+
+/// Reads past the extender and extensions, from the header's end to `vox_offset`; a file that
+/// ends first is truncated (`expected`: the sample bytes it should hold).
+pub(super) fn skip_to_data(
+    stream: &mut impl Read,
+    path: &Path,
+    vox_offset: u64,
+    expected: u64,
+) -> Result<(), ReadError> {
+    let skip = vox_offset - NIFTI1_HEADER_BYTES;
+    let skipped =
+        io::copy(&mut stream.take(skip), &mut io::sink()).map_err(|e| ReadError::io(path, e))?;
+    if skipped != skip {
+        return Err(ReadError::Truncated {
+            path: path.to_path_buf(),
+            offset: vox_offset,
+            expected,
+            actual: 0,
+        });
+    }
+    Ok(())
+}
+
+/// The samples' byte order.
+pub(super) fn endian(header: &nifti::NiftiHeader) -> Endian {
+    match header.endianness {
+        nifti::Endianness::Little => Endian::Little,
+        nifti::Endianness::Big => Endian::Big,
+    }
+}
+
+/// The header's (slope, intercept) when it applies: one channel, a finite non-zero slope and a
+/// finite intercept.
+pub(super) fn scaling(header: &nifti::NiftiHeader, channels: usize) -> Option<(f64, f64)> {
+    (channels == 1
+        && header.scl_slope.is_finite()
+        && header.scl_slope != 0.0
+        && header.scl_inter.is_finite())
+    .then(|| (f64::from(header.scl_slope), f64::from(header.scl_inter)))
+}
 
 /// Decodes a NIfTI-1 single file (`.nii`, or gzip-compressed: detected by content, not by
 /// name); `path` names it in messages.
@@ -48,10 +173,6 @@ const MAX_VOX_OFFSET: u64 = 1 << 30;
 /// `sform_code` > 0 and it is orthonormal (an sform may carry shear from registration), else
 /// from the `qform` when `qform_code` > 0, else there is none.
 pub fn decode_nifti(path: &Path, bytes: &[u8]) -> Result<Volume, ReadError> {
-    let io_err = |source| ReadError::Io {
-        path: path.to_path_buf(),
-        source,
-    };
     let bad = |reason: String| ReadError::bad_header(path, "NIfTI", reason);
     let unsupported = |reason: String| ReadError::Unsupported {
         path: path.to_path_buf(),
@@ -65,22 +186,8 @@ pub fn decode_nifti(path: &Path, bytes: &[u8]) -> Result<Volume, ReadError> {
         Box::new(bytes)
     };
 
-    let mut header_bytes = Vec::with_capacity(NIFTI1_HEADER_BYTES as usize);
-    let _ = (&mut stream)
-        .take(NIFTI1_HEADER_BYTES)
-        .read_to_end(&mut header_bytes)
-        .map_err(io_err)?;
-    if header_bytes.len() as u64 != NIFTI1_HEADER_BYTES {
-        return Err(bad(format!(
-            "file holds {} bytes, a NIfTI-1 header needs {NIFTI1_HEADER_BYTES}",
-            header_bytes.len()
-        )));
-    }
-    let header =
-        nifti::NiftiHeader::from_reader(&header_bytes[..]).map_err(|source| ReadError::Nifti {
-            path: path.to_path_buf(),
-            source,
-        })?;
+    let header_bytes = read_header_bytes(&mut stream, path)?;
+    let header = parse_header(path, &header_bytes)?;
     if header.sizeof_hdr != NIFTI1_HEADER_BYTES as i32 {
         return Err(bad(format!(
             "sizeof_hdr is {}, expected 348 (NIfTI-2 files are not supported)",
@@ -102,26 +209,7 @@ pub fn decode_nifti(path: &Path, bytes: &[u8]) -> Result<Volume, ReadError> {
         }
     }
 
-    // Dimensions.
-    let ndim = usize::from(header.dim[0]);
-    if !(1..=7).contains(&ndim) {
-        return Err(bad(format!("dim[0] is {ndim}, expected 1..=7")));
-    }
-    let mut dims = [1usize; 3];
-    for i in 1..=ndim {
-        let d = usize::from(header.dim[i]);
-        if d == 0 {
-            return Err(bad(format!("dim[{i}] is 0, expected at least 1")));
-        }
-        if i <= 3 {
-            dims[i - 1] = d;
-        } else if d != 1 {
-            return Err(unsupported(format!(
-                "dim[{i}] is {d}: only 3D volumes are supported (dim[0] = {ndim}, extra dimensions must be 1); dim = {:?}",
-                &header.dim[1..=ndim]
-            )));
-        }
-    }
+    let dims = grid_dims(path, &header)?;
 
     // Sample type.
     let (sample, channels) = match header.datatype {
@@ -170,46 +258,15 @@ pub fn decode_nifti(path: &Path, bytes: &[u8]) -> Result<Volume, ReadError> {
             bytes_per_sample: sample.size(),
         })?;
 
-    // Voxel data offset.
-    let vox_offset = header.vox_offset;
-    if !vox_offset.is_finite()
-        || vox_offset < NIFTI1_HEADER_BYTES as f32
-        || vox_offset.fract() != 0.0
-        || vox_offset > MAX_VOX_OFFSET as f32
-    {
-        return Err(bad(format!(
-            "vox_offset is {vox_offset}, expected a whole number of bytes in 348..={MAX_VOX_OFFSET} (at least 352 for a single file)"
-        )));
-    }
-    let vox_offset = vox_offset as u64;
-    // Skip the extender and extensions.
-    let skip = vox_offset - NIFTI1_HEADER_BYTES;
-    let skipped = io::copy(&mut (&mut stream).take(skip), &mut io::sink()).map_err(io_err)?;
-    if skipped != skip {
-        return Err(ReadError::Truncated {
-            path: path.to_path_buf(),
-            offset: vox_offset,
-            expected: expected as u64,
-            actual: 0,
-        });
-    }
+    let vox_offset = data_offset(path, &header)?;
+    skip_to_data(&mut stream, path, vox_offset, expected as u64)?;
 
     // Voxel data: grow as data arrives, so a lying header on a short file allocates little.
     let data = read_exact_or_truncated(&mut stream, expected, bytes.len(), path, vox_offset)?;
 
-    let endian = match header.endianness {
-        nifti::Endianness::Little => Endian::Little,
-        nifti::Endianness::Big => Endian::Big,
-    };
-    let (slope, inter) = if channels == 1
-        && header.scl_slope.is_finite()
-        && header.scl_slope != 0.0
-        && header.scl_inter.is_finite()
-    {
-        (f64::from(header.scl_slope), f64::from(header.scl_inter))
-    } else {
-        (1.0, 0.0)
-    };
+    let endian = endian(&header);
+    let (slope, inter) = scaling(&header, channels).unwrap_or((1.0, 0.0));
+    let ndim = usize::from(header.dim[0]);
     let mut spacing = [1.0f32; 3];
     for (i, s) in spacing.iter_mut().enumerate().take(ndim.min(3)) {
         let p = header.pixdim[i + 1];

@@ -95,6 +95,19 @@ impl Opened {
             source: Source::Whole(v),
         }
     }
+
+    /// A volume whose samples are `stored` in a file and whose other metadata (channels,
+    /// spacing, placement) is that of `meta`, the stand-in a format's decoder read; `dims` are
+    /// the real ones.
+    fn stored(meta: &Volume, dims: [usize; 3], stored: Stored) -> Opened {
+        Opened {
+            dims,
+            channels: meta.channel_count(),
+            spacing: meta.spacing(),
+            placement: meta.placement().copied(),
+            source: Source::Stored(stored),
+        }
+    }
 }
 
 impl RegionReader {

@@ -141,22 +141,36 @@ pub(super) fn check_pixel_data(img: &Image, obj: &DefaultDicomObject) -> Result<
 /// The JPEG transfer syntaxes whose colour rule [`adobe_rgb_jpeg_frame`] corrects.
 const JPEG_LOSSY: [&str; 2] = ["1.2.840.10008.1.2.4.50", "1.2.840.10008.1.2.4.51"];
 
+/// The marker segments of a JPEG stream's header, from after SOI up to the first scan (SOS)
+/// or the end of the image (EOI), each as (marker, offset of its 0xFF, its length field); fill
+/// bytes are passed over, and the walk ends where the bytes stop looking like segments.
+fn jpeg_header_segments(jpeg: &[u8]) -> impl Iterator<Item = (u8, usize, usize)> + '_ {
+    let mut i = 2; // after SOI
+    std::iter::from_fn(move || {
+        while i + 4 <= jpeg.len() && jpeg[i] == 0xFF {
+            let marker = jpeg[i + 1];
+            if marker == 0xFF {
+                i += 1; // fill byte
+                continue;
+            }
+            if marker == 0xDA || marker == 0xD9 {
+                return None; // start of scan, end of image
+            }
+            let at = i;
+            let len = usize::from(u16::from_be_bytes([jpeg[i + 2], jpeg[i + 3]]));
+            i += 2 + len;
+            return Some((marker, at, len));
+        }
+        None
+    })
+}
+
 /// What a JPEG stream's markers say about its colour: (a JFIF marker, the Adobe marker's
 /// transform flag), read up to the first scan.
 pub(super) fn jpeg_colour_markers(jpeg: &[u8]) -> (bool, Option<u8>) {
     let (mut jfif, mut adobe) = (false, None);
-    let mut i = 2; // after SOI
-    while i + 4 <= jpeg.len() && jpeg[i] == 0xFF {
-        let marker = jpeg[i + 1];
-        if marker == 0xFF {
-            i += 1; // fill byte
-            continue;
-        }
-        if marker == 0xDA || marker == 0xD9 {
-            break; // start of scan, end of image
-        }
-        let len = usize::from(u16::from_be_bytes([jpeg[i + 2], jpeg[i + 3]]));
-        let payload = jpeg.get(i + 4..i + 2 + len).unwrap_or(&[]);
+    for (marker, at, len) in jpeg_header_segments(jpeg) {
+        let payload = jpeg.get(at + 4..at + 2 + len).unwrap_or(&[]);
         match marker {
             0xE0 if payload.starts_with(b"JFIF\0") => jfif = true,
             0xEE if payload.starts_with(b"Adobe") && payload.len() >= 12 => {
@@ -164,7 +178,6 @@ pub(super) fn jpeg_colour_markers(jpeg: &[u8]) -> (bool, Option<u8>) {
             }
             _ => {}
         }
-        i += 2 + len;
     }
     (jfif, adobe)
 }
@@ -172,23 +185,12 @@ pub(super) fn jpeg_colour_markers(jpeg: &[u8]) -> (bool, Option<u8>) {
 /// The sample precision (bits) a JPEG stream's frame header (SOF) declares, read up to the
 /// first scan; `None` without one.
 pub(super) fn jpeg_sample_precision(jpeg: &[u8]) -> Option<u8> {
-    let mut i = 2; // after SOI
-    while i + 4 <= jpeg.len() && jpeg[i] == 0xFF {
-        let marker = jpeg[i + 1];
-        if marker == 0xFF {
-            i += 1; // fill byte
-            continue;
-        }
+    jpeg_header_segments(jpeg)
         // SOF0..SOF15 but DHT (C4), JPG (C8) and DAC (CC).
-        if (0xC0..=0xCF).contains(&marker) && !matches!(marker, 0xC4 | 0xC8 | 0xCC) {
-            return jpeg.get(i + 4).copied();
-        }
-        if marker == 0xDA || marker == 0xD9 {
-            return None;
-        }
-        i += 2 + usize::from(u16::from_be_bytes([jpeg[i + 2], jpeg[i + 3]]));
-    }
-    None
+        .find(|&(marker, _, _)| {
+            (0xC0..=0xCF).contains(&marker) && !matches!(marker, 0xC4 | 0xC8 | 0xCC)
+        })
+        .and_then(|(_, at, _)| jpeg.get(at + 4).copied())
 }
 
 /// Frame `f` of a lossy JPEG colour image decoded with libjpeg's colour rule, when it differs

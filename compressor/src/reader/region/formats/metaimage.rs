@@ -4,7 +4,7 @@
 
 use std::path::Path;
 
-use super::super::{Opened, Source};
+use super::super::Opened;
 use super::{file_name, parent, reader_at, spool, stand_in, stored_at, stored_bytes, text_header};
 use crate::reader::text::{self, header_lines};
 use crate::reader::{Endian, Format, ReadError, SampleType};
@@ -175,11 +175,5 @@ pub(super) fn open_metaimage(path: &Path) -> Result<Opened, ReadError> {
         };
         stored_at(&data_path, start, expected, sample, endian)?
     };
-    Ok(Opened {
-        dims,
-        channels,
-        spacing: meta.spacing(),
-        placement: meta.placement().copied(),
-        source: Source::Stored(stored),
-    })
+    Ok(Opened::stored(&meta, dims, stored))
 }

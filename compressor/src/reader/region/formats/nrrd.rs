@@ -6,7 +6,7 @@ use std::fs::File;
 use std::io::{self, BufRead, BufReader, Seek, SeekFrom};
 use std::path::Path;
 
-use super::super::{read_whole, Opened, Source};
+use super::super::{read_whole, Opened};
 use super::{file_name, parent, reader_at, spool, stand_in, stored_at, stored_bytes, text_header};
 use crate::reader::text::{self, header_lines};
 use crate::reader::{Endian, Format, ReadError};
@@ -214,13 +214,7 @@ pub(super) fn open_nrrd(path: &Path) -> Result<Opened, ReadError> {
             ))
         }
     };
-    Ok(Opened {
-        dims,
-        channels,
-        spacing: meta.spacing(),
-        placement: meta.placement().copied(),
-        source: Source::Stored(stored),
-    })
+    Ok(Opened::stored(&meta, dims, stored))
 }
 
 /// The offset just past `lines` newlines from `offset` in `path`; `Err(None)` when the file
