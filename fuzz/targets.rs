@@ -38,6 +38,32 @@ pub fn file(data: &[u8]) {
     }
 }
 
+/// The header of a kept sample file (`corpus/headers/CODER.wsp`), parsed on first use: the
+/// packet targets decode their inputs as packets of that file.
+pub struct KeptHeader {
+    bytes: &'static [u8],
+    parsed: std::sync::OnceLock<Header>,
+}
+
+impl KeptHeader {
+    /// The header of the file `bytes` (included at build time).
+    pub const fn new(bytes: &'static [u8]) -> KeptHeader {
+        KeptHeader {
+            bytes,
+            parsed: std::sync::OnceLock::new(),
+        }
+    }
+
+    /// The parsed header.
+    pub fn get(&self) -> &Header {
+        self.parsed.get_or_init(|| {
+            parse_file(self.bytes)
+                .expect("the kept sample file parses")
+                .header
+        })
+    }
+}
+
 /// One packet against a fixed header. Its last four bytes are replaced by the CRC-32 of the
 /// rest, so that mutated inputs reach the decoder instead of stopping at the checksum (which
 /// the codec's own tests cover).
