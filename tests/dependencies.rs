@@ -160,17 +160,21 @@ fn the_renderer_does_not_link_the_encoder_or_a_server() {
     );
 }
 
+/// The servers, the clients, the worker and the libraries they share: none may link the
+/// harness or the test fixtures.
+const SERVICE_CRATES: &[&str] = &[
+    "wavesplat-cache",
+    "wavesplat-orchestrator",
+    "wavesplat-orchestrator-client",
+    "wavesplat-worker",
+    "wavesplat-client",
+    "wavesplat-compressor",
+    "wavesplat-net",
+];
+
 #[test]
 fn only_the_binary_and_the_tests_link_the_harness() {
-    for package in [
-        "wavesplat-cache",
-        "wavesplat-orchestrator",
-        "wavesplat-orchestrator-client",
-        "wavesplat-worker",
-        "wavesplat-client",
-        "wavesplat-compressor",
-        "wavesplat-net",
-    ] {
+    for package in SERVICE_CRATES {
         assert_excludes(package, &["wavesplat-harness"]);
     }
     assert!(dependencies("wavesplat").contains("wavesplat-harness"));
@@ -179,18 +183,8 @@ fn only_the_binary_and_the_tests_link_the_harness() {
 #[test]
 fn the_test_fixtures_are_linked_by_no_shipped_crate() {
     // The volume writers panic on I/O errors: tests and examples only (dev-dependencies).
-    for package in [
-        "wavesplat",
-        "wavesplat-cache",
-        "wavesplat-orchestrator",
-        "wavesplat-orchestrator-client",
-        "wavesplat-worker",
-        "wavesplat-client",
-        "wavesplat-compressor",
-        "wavesplat-viewer",
-        "wavesplat-harness",
-        "wavesplat-net",
-    ] {
+    let shipped = ["wavesplat", "wavesplat-viewer", "wavesplat-harness"];
+    for package in SERVICE_CRATES.iter().chain(&shipped) {
         assert_excludes(package, &["wavesplat-fixtures"]);
     }
 }

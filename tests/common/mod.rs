@@ -298,13 +298,10 @@ impl TestCluster {
     /// SIGKILLs the orchestrator and starts it again on the same address (workers know only
     /// that) over the same database.
     pub fn restart_orchestrator(&mut self) {
-        let addr = self.orch.addr.clone();
+        self.orch.child.kill().unwrap();
+        self.orch.child.wait().unwrap();
         let args: Vec<&str> = self.orch_args.iter().map(String::as_str).collect();
-        let stand_in = Proc {
-            child: Command::new("true").spawn().unwrap(),
-            addr: String::new(),
-        };
-        std::mem::replace(&mut self.orch, stand_in).kill();
-        self.orch = Proc::orchestrator(&self.root.join("orch.db"), &addr, &args);
+        // Replacing drops the killed process's `Proc`, whose second kill finds it gone.
+        self.orch = Proc::orchestrator(&self.root.join("orch.db"), &self.orch.addr, &args);
     }
 }
