@@ -657,6 +657,25 @@ fn a_volume_over_the_memory_limit_is_bricked_by_itself() {
     let w = run(&["compress", &raw, "-o", &path("w.wsp")]);
     assert!(w.status.success(), "{}", err(&w));
     assert!(!err(&w).contains("bricks of at most"), "{}", err(&w));
+    // A phantom is probed the same way (its size is known without reading anything).
+    let p = run(&[
+        "compress",
+        "--phantom",
+        "spheres",
+        "--dims",
+        "128,128,128",
+        "--memory-limit",
+        "180M",
+        "-o",
+        &path("p.wsp"),
+    ]);
+    assert!(p.status.success(), "{}", err(&p));
+    assert!(
+        err(&p).contains("bricks of at most 64 voxels a side"),
+        "{}",
+        err(&p)
+    );
+    assert!(out(&p).contains("8 bricks"), "{}", out(&p));
     let info = run(&["info", &path("w.wsp")]);
     assert!(!out(&info).contains("bricked"), "{}", out(&info));
 }
@@ -683,6 +702,26 @@ fn a_bricked_volume_is_compressed_listed_and_rendered() {
     ]);
     assert!(c.status.success(), "{}", err(&c));
     assert!(out(&c).contains("8 bricks"), "{}", out(&c));
+    // The phantom read brick by brick (generated a box at a time, never whole) makes the same
+    // file as the phantom written out and read brick by brick from the file.
+    let p = run(&[
+        "compress",
+        "--phantom",
+        "shepp-logan",
+        "--dims",
+        "40,36,32",
+        "--brick",
+        "20",
+        "--target-fraction",
+        "0.2",
+        "-o",
+        &path("p.wsp"),
+    ]);
+    assert!(p.status.success(), "{}", err(&p));
+    assert_eq!(
+        std::fs::read(path("p.wsp")).unwrap(),
+        std::fs::read(path("b.wsp")).unwrap()
+    );
     let info = run(&["info", &path("b.wsp")]);
     assert!(out(&info).contains("bricks      8"), "{}", out(&info));
     assert!(out(&info).contains("their headers"), "{}", out(&info));

@@ -64,6 +64,16 @@ pub enum VolumeError {
     /// orthonormal within [`PLACEMENT_TOLERANCE`].
     #[error("volume placement: {0}")]
     Placement(String),
+    /// A box asked of a larger whole (a brick) does not lie within it.
+    #[error("a box at {origin:?} of {dims:?} voxels does not lie within the whole's {whole:?}")]
+    OutsideWhole {
+        /// The box's first voxel in the whole.
+        origin: [u64; 3],
+        /// The box's dimensions.
+        dims: [usize; 3],
+        /// The whole's dimensions.
+        whole: [u64; 3],
+    },
 }
 
 /// How far from orthonormal the axis directions of a [`Placement`] may be (|‖dᵢ‖ − 1| and

@@ -130,9 +130,43 @@ impl BrickSource for crate::reader::region::RegionReader {
     }
 }
 
+impl BrickSource for crate::phantom::PhantomVolume {
+    fn dims(&self) -> [u64; 3] {
+        self.dims
+    }
+
+    fn channels(&self) -> usize {
+        self.phantom.channel_count()
+    }
+
+    fn spacing(&self) -> [f32; 3] {
+        [1.0; 3]
+    }
+
+    fn placement(&self) -> Option<Placement> {
+        None
+    }
+
+    fn read(&self, origin: [u64; 3], dims: [usize; 3]) -> Result<Volume, ReadError> {
+        Ok(self.phantom.try_generate_region(self.dims, origin, dims)?)
+    }
+}
+
 /// The box of `volume` at `origin` of `dims` (within it).
 pub fn crop(volume: &Volume, origin: [u64; 3], dims: [usize; 3]) -> Result<Volume, VolumeError> {
     let d = volume.dims();
+    let whole = d.map(|n| n as u64);
+    if (0..3).any(|a| {
+        origin[a]
+            .checked_add(dims[a] as u64)
+            .is_none_or(|e| e > whole[a])
+    }) {
+        return Err(VolumeError::OutsideWhole {
+            origin,
+            dims,
+            whole,
+        });
+    }
     let o = origin.map(|v| v as usize);
     let channels = volume
         .channels()

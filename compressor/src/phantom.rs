@@ -44,6 +44,17 @@ pub enum Phantom {
     },
 }
 
+/// A phantom of any size (more voxels than one [`Volume`] holds, too) as a source of boxes:
+/// nothing is generated until a box is asked for ([`Phantom::try_generate_region`]), so a
+/// 2048³ phantom is compressed brick by brick in the memory of one brick.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PhantomVolume {
+    /// Which phantom.
+    pub phantom: Phantom,
+    /// The whole's dimensions.
+    pub dims: [u64; 3],
+}
+
 /// One ellipsoid: intensity, semi-axes, centre, Euler angles (degrees, phi/theta/psi).
 struct Ellipsoid {
     value: f64,
@@ -150,26 +161,70 @@ fn voxel_count(dims: [usize; 3]) -> Result<usize, VolumeError> {
 }
 
 /// Normalised coordinate of voxel centre `i` of `n` along one axis.
-fn coord(i: usize, n: usize) -> f64 {
+fn coord(i: u64, n: u64) -> f64 {
     ((2.0 * i as f64 + 1.0) / n as f64 - 1.0) * (1.0 + MARGIN)
 }
 
-/// Fills one channel by evaluating `f` at every voxel centre (parallel over z-slices; the result
-/// does not depend on the thread count).
-fn fill<F>(dims: [usize; 3], f: F) -> Vec<f32>
+/// Which box of which whole a generated volume covers: the phantom is defined on `whole` and
+/// the box at `origin` of `dims` is evaluated (the whole itself at origin 0).
+#[derive(Debug, Clone, Copy)]
+struct Region {
+    whole: [u64; 3],
+    origin: [u64; 3],
+    dims: [usize; 3],
+}
+
+impl Region {
+    /// Index in the whole's storage order (x fastest) of the box's voxel (0, y, z): where a row
+    /// of the box starts in a generator's sequence.
+    fn row_start(&self, y: usize, z: usize) -> u128 {
+        let [wx, wy, _] = self.whole.map(u128::from);
+        let [ox, oy, oz] = self.origin.map(u128::from);
+        ox + wx * ((oy + y as u128) + wy * (oz + z as u128))
+    }
+}
+
+/// Fills one channel of `r` by evaluating `f` at every voxel centre (parallel over z-slices; the
+/// result does not depend on the thread count, nor on which box of the whole is asked for).
+fn fill<F>(r: Region, f: F) -> Vec<f32>
 where
     F: Fn([f64; 3]) -> f32 + Sync,
 {
-    let [nx, ny, nz] = dims;
+    let [nx, ny, nz] = r.dims;
     let mut out = vec![0.0f32; nx * ny * nz];
-    out.par_chunks_mut(nx * ny)
+    out.par_chunks_mut((nx * ny).max(1))
         .enumerate()
         .for_each(|(z, slice)| {
-            let pz = coord(z, nz);
+            let pz = coord(r.origin[2] + z as u64, r.whole[2]);
             for y in 0..ny {
-                let py = coord(y, ny);
+                let py = coord(r.origin[1] + y as u64, r.whole[1]);
                 for x in 0..nx {
-                    slice[x + nx * y] = f([coord(x, nx), py, pz]);
+                    slice[x + nx * y] = f([coord(r.origin[0] + x as u64, r.whole[0]), py, pz]);
+                }
+            }
+        });
+    out
+}
+
+/// Fills one channel of `r` from a seeded ChaCha8 sequence that draws `words` 32-bit words per
+/// voxel in the whole's storage order, `f` turning a voxel's value `v` and its words into the
+/// sample. Each row of the box starts its generator at the row's word position, so any box
+/// holds exactly the samples the whole generated in order would (a brick of a 2048³ phantom
+/// costs no more than its own voxels).
+fn fill_seeded<F>(r: Region, seed: u64, words: u128, values: Vec<f32>, f: F) -> Vec<f32>
+where
+    F: Fn(f32, &mut ChaCha8Rng) -> f32 + Sync,
+{
+    let [nx, ny, _] = r.dims;
+    let mut out = values;
+    out.par_chunks_mut((nx * ny).max(1))
+        .enumerate()
+        .for_each(|(z, slice)| {
+            let mut rng = ChaCha8Rng::seed_from_u64(seed);
+            for (y, row) in slice.chunks_mut(nx.max(1)).enumerate() {
+                rng.set_word_pos(r.row_start(y, z) * words);
+                for v in row {
+                    *v = f(*v, &mut rng);
                 }
             }
         });
@@ -192,12 +247,43 @@ impl Phantom {
 
     /// Generates the phantom at `dims` (unit spacing), or reports invalid dimensions.
     pub fn try_generate(&self, dims: [usize; 3]) -> Result<Volume, VolumeError> {
+        self.try_generate_region(dims.map(|d| d as u64), [0; 3], dims)
+    }
+
+    /// Generates the box at `origin` of `dims` of the phantom defined on `whole` (unit spacing):
+    /// exactly the voxels [`Phantom::try_generate`] gives the whole there, without generating
+    /// the rest, so a whole of any size (beyond what one volume holds) can be read brick by
+    /// brick. Reports a box that is empty, too large or outside the whole.
+    pub fn try_generate_region(
+        &self,
+        whole: [u64; 3],
+        origin: [u64; 3],
+        dims: [usize; 3],
+    ) -> Result<Volume, VolumeError> {
         let n = voxel_count(dims)?;
+        let outside = (0..3).any(|a| {
+            whole[a] == 0
+                || origin[a]
+                    .checked_add(dims[a] as u64)
+                    .is_none_or(|e| e > whole[a])
+        });
+        if outside {
+            return Err(VolumeError::OutsideWhole {
+                origin,
+                dims,
+                whole,
+            });
+        }
+        let r = Region {
+            whole,
+            origin,
+            dims,
+        };
         let scale = f64::from(PHANTOM_MAX);
         let channels = match *self {
             Phantom::SheppLogan => {
                 let ell = shepp_logan_ellipsoids();
-                vec![fill(dims, |p| {
+                vec![fill(r, |p| {
                     let v: f64 = ell.iter().filter(|e| e.contains(p)).map(|e| e.value).sum();
                     // Sums like 1 - 0.8 - 0.2 are 0 up to rounding: clamp to the scale.
                     (v.clamp(0.0, 1.0) * scale) as f32
@@ -213,7 +299,7 @@ impl Phantom {
                     sphere(200.0, 0.12, [0.3, -0.45, 0.45]),
                     sphere(180.0, 0.06, [0.0, 0.55, 0.3]),
                 ];
-                vec![fill(dims, |p| {
+                vec![fill(r, |p| {
                     let mut v = 0.0;
                     for s in &spheres {
                         if s.contains(p) {
@@ -234,7 +320,7 @@ impl Phantom {
                     euler_deg: [0.0; 3],
                 });
                 // Classes: 0 background, 1 skin, 2 brain, 3 ventricle, 4 tumour.
-                let class = fill(dims, |p| {
+                let class = fill(r, |p| {
                     if tumour.contains(p) && brain.contains(p) {
                         4.0
                     } else if ell[2].contains(p) || ell[3].contains(p) {
@@ -277,7 +363,7 @@ impl Phantom {
                         euler_deg: [0.0; 3],
                     })
                 });
-                let hu = fill(dims, |p| {
+                let hu = fill(r, |p| {
                     let [x, y, z] = p;
                     let ellipse = |a: f64, b: f64| (x / a).powi(2) + (y / (b + 0.05 * z)).powi(2);
                     let mut v = -1000.0;
@@ -298,20 +384,17 @@ impl Phantom {
                     }
                     v as f32
                 });
-                let mut rng = ChaCha8Rng::seed_from_u64(14);
-                vec![hu
-                    .into_iter()
-                    .map(|v| {
-                        let sigma = if v > -950.0 { 12.0 } else { 4.0 };
-                        // Sum of uniforms: a cheap, deterministic near-Gaussian.
-                        let g: f32 = (0..4).map(|_| rng.gen::<f32>() - 0.5).sum::<f32>() * 1.73;
-                        (v + sigma * g).round()
-                    })
-                    .collect()]
+                // Four words per voxel: sum of uniforms, a cheap deterministic near-Gaussian.
+                vec![fill_seeded(r, 14, 4, hu, |v, rng| {
+                    let sigma = if v > -950.0 { 12.0 } else { 4.0 };
+                    let g: f32 = (0..4).map(|_| rng.gen::<f32>() - 0.5).sum::<f32>() * 1.73;
+                    (v + sigma * g).round()
+                })]
             }
             Phantom::Noise { seed } => {
-                let mut rng = ChaCha8Rng::seed_from_u64(seed);
-                vec![(0..n).map(|_| rng.gen::<f32>() * PHANTOM_MAX).collect()]
+                vec![fill_seeded(r, seed, 1, vec![0.0; n], |_, rng| {
+                    rng.gen::<f32>() * PHANTOM_MAX
+                })]
             }
         };
         Volume::new(dims, [1.0; 3], channels)
@@ -415,6 +498,71 @@ mod tests {
         let a = Phantom::Noise { seed: 1 }.generate([8, 8, 8]);
         let b = Phantom::Noise { seed: 2 }.generate([8, 8, 8]);
         assert_ne!(a, b);
+    }
+
+    #[test]
+    fn noise_is_the_generator_drawn_in_storage_order() {
+        // Independent of the row-wise word positions: one generator drawn voxel after voxel.
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        let expected: Vec<f32> = (0..7 * 5 * 3)
+            .map(|_| rng.gen::<f32>() * PHANTOM_MAX)
+            .collect();
+        let v = Phantom::Noise { seed: 3 }.generate([7, 5, 3]);
+        assert_eq!(v.channel(0), expected.as_slice());
+    }
+
+    #[test]
+    fn every_box_of_a_whole_is_that_box_of_the_generated_whole() {
+        let whole = [17, 12, 10];
+        let boxes = [
+            ([0, 0, 0], whole),
+            ([3, 2, 1], [9, 7, 5]),
+            ([16, 11, 9], [1, 1, 1]),
+            ([0, 5, 0], [17, 1, 10]),
+        ];
+        for name in Phantom::names() {
+            let p = Phantom::from_name(name).unwrap();
+            let full = p.generate(whole);
+            for (origin, dims) in boxes {
+                let region = p
+                    .try_generate_region(whole.map(|d| d as u64), origin, dims)
+                    .unwrap();
+                let cropped = crate::bricked::crop(&full, origin, dims).unwrap();
+                assert_eq!(region, cropped, "{name} at {origin:?} of {dims:?}");
+            }
+        }
+    }
+
+    #[test]
+    fn a_box_of_a_whole_beyond_one_volume_is_generated_alone() {
+        // 2^33 voxels in the whole: only the box is generated, at its place in the sequence.
+        let whole = [2048u64, 2048, 2048];
+        let origin = [2040, 2047, 2046];
+        let v = Phantom::Noise { seed: 5 }
+            .try_generate_region(whole, origin, [8, 1, 2])
+            .unwrap();
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        let at = origin[0] as u128 + 2048 * (origin[1] as u128 + 2048 * origin[2] as u128);
+        rng.set_word_pos(at);
+        let first: Vec<f32> = (0..8).map(|_| rng.gen::<f32>() * PHANTOM_MAX).collect();
+        assert_eq!(&v.channel(0)[..8], first.as_slice());
+        // The CT's body runs through every slice: the last slice is not air everywhere.
+        let ct = Phantom::Ct
+            .try_generate_region(whole, [896, 896, 2047], [256, 256, 1])
+            .unwrap();
+        assert!(ct.value_range().1 > 0.0);
+        for (origin, dims) in [
+            ([2041, 0, 0], [8, 1, 1]),
+            ([0, 0, u64::MAX], [1, 1, 1]),
+            ([0, 0, 0], [0, 1, 1]),
+        ] {
+            assert!(
+                Phantom::Zero
+                    .try_generate_region(whole, origin, dims)
+                    .is_err(),
+                "{origin:?} {dims:?}"
+            );
+        }
     }
 
     #[test]

@@ -15,7 +15,7 @@ use wavesplat_compressor::encode::{
     PROCESS_MEMORY,
 };
 use wavesplat_compressor::order::Clustering;
-use wavesplat_compressor::phantom::Phantom;
+use wavesplat_compressor::phantom::{Phantom, PhantomVolume};
 use wavesplat_compressor::reader::region::RegionReader;
 use wavesplat_compressor::reader::{read_volume, Endian, RawDtype, RawSpec};
 use wavesplat_compressor::refine::RefineOptions;
@@ -101,8 +101,9 @@ pub struct CompressArgs {
     pub no_refine: bool,
     /// Keep compression within this working memory (bytes, or with a K, M or G suffix: `8G`);
     /// default: the memory available now. A volume file that does not fit whole is compressed
-    /// as bricks that do (see --brick), one per thread; if none fits, or the input is a phantom
-    /// or a DICOM series, it is refused with a clear error instead of running out of memory.
+    /// as bricks that do (see --brick), one per thread, and so is a phantom (generated brick by
+    /// brick); if none fits, or the input is a DICOM series, it is refused with a clear error
+    /// instead of running out of memory.
     #[arg(long, value_parser = super::parse_bytes)]
     pub memory_limit: Option<u64>,
     /// What to keep.
@@ -110,7 +111,8 @@ pub struct CompressArgs {
     pub keep: super::TargetArgs,
     /// Split the volume into bricks of at most N voxels a side (each axis in near-equal
     /// parts), each compressed on its own and read from the file brick by brick (raw, NIfTI,
-    /// NRRD and MetaImage without loading the whole), written as one bricked file (format
+    /// NRRD and MetaImage without loading the whole; a phantom generated a brick at a time),
+    /// written as one bricked file (format
     /// version 9). The target is the whole's: one score threshold across all bricks. For
     /// volumes larger than memory or than one transform (2^31 voxels); `render` and `info`
     /// read the result (linear and haar families). Default: whole, unless the volume does not
@@ -148,8 +150,12 @@ pub struct CompressArgs {
 
 /// What `compress` reads: a generated phantom, or a file (with its raw layout when it is raw).
 enum Input {
-    Phantom(Volume),
-    File { path: PathBuf, raw: Option<RawSpec> },
+    /// A phantom and its dimensions (generated whole by [`load`], brick by brick when bricked).
+    Phantom(PhantomVolume),
+    File {
+        path: PathBuf,
+        raw: Option<RawSpec>,
+    },
 }
 
 /// A reader's error, naming the file once (the readers' messages mostly name it already).
@@ -164,7 +170,9 @@ fn read_error(path: &std::path::Path, e: wavesplat_compressor::reader::ReadError
 
 fn load(a: &CompressArgs) -> Result<Volume> {
     match input(a)? {
-        Input::Phantom(v) => Ok(v),
+        Input::Phantom(p) => p.phantom.try_generate(p.dims.map(|d| d as usize)).context(
+            "generating the phantom (give --brick N for a phantom larger than one volume)",
+        ),
         Input::File { path, raw } => {
             read_volume(&path, raw.as_ref()).map_err(|e| read_error(&path, e))
         }
@@ -179,7 +187,10 @@ fn input(a: &CompressArgs) -> Result<Input> {
                 Phantom::names()
             )
         })?;
-        return Ok(Input::Phantom(p.generate(a.dims.unwrap_or([64, 64, 64]))));
+        return Ok(Input::Phantom(PhantomVolume {
+            phantom: p,
+            dims: a.dims.unwrap_or([64, 64, 64]).map(|d| d as u64),
+        }));
     }
     let Some(input) = &a.input else {
         bail!("give an input file or --phantom NAME");
@@ -249,36 +260,51 @@ const PROBE_FRACTION: u64 = 64;
 /// compressing it whole would need more memory than the limit (`--memory-limit`, else the
 /// memory available now) or it has more voxels than one transform takes. The side is the
 /// largest of [`AUTO_BRICK_SIDES`] below the volume's whose bricks, one per thread, fit the
-/// limit (none fitting: compressed whole, which reports the limit). Only files read by region
-/// are probed (a DICOM series or ASCII NRRD is read whole anyway); volumes that fit are
-/// compressed whole, as before.
+/// limit (none fitting: compressed whole, which reports the limit). Only phantoms and files read
+/// by region are probed (a DICOM series or ASCII NRRD is read whole anyway); volumes that fit
+/// are compressed whole, as before.
 fn auto_brick(a: &CompressArgs, opts: &CompressOptions) -> Result<Option<(usize, String)>> {
-    let (Some(path), None) = (&a.input, &a.phantom) else {
-        return Ok(None);
-    };
-    if path.is_dir() {
-        return Ok(None);
-    }
     let limit = opts.memory_limit.or_else(available_memory);
-    let on_disk = std::fs::metadata(path).map(|m| m.len()).unwrap_or(0);
-    // A limit given is always checked; the memory available only for files large enough.
-    let large = match (opts.memory_limit, limit) {
-        (Some(_), _) => true,
-        (None, Some(l)) => on_disk.saturating_mul(PROBE_FRACTION) >= l,
-        (None, None) => on_disk >= 1 << 30,
+    let (d, channels, voxels) = match (&a.input, &a.phantom) {
+        // A phantom's size is known without reading anything: always checked.
+        (_, Some(_)) => {
+            let Input::Phantom(p) = input(a)? else {
+                return Ok(None);
+            };
+            let voxels = p.dims.iter().map(|v| *v as u128).product::<u128>();
+            (
+                p.dims.map(|v| v as usize),
+                p.phantom.channel_count(),
+                voxels,
+            )
+        }
+        (Some(path), None) => {
+            if path.is_dir() {
+                return Ok(None);
+            }
+            let on_disk = std::fs::metadata(path).map(|m| m.len()).unwrap_or(0);
+            // A limit given is always checked; the memory available only for files large
+            // enough.
+            let large = match (opts.memory_limit, limit) {
+                (Some(_), _) => true,
+                (None, Some(l)) => on_disk.saturating_mul(PROBE_FRACTION) >= l,
+                (None, None) => on_disk >= 1 << 30,
+            };
+            if !large {
+                return Ok(None);
+            }
+            let Input::File { path, raw } = input(a)? else {
+                return Ok(None);
+            };
+            let reader =
+                RegionReader::open(&path, raw.as_ref()).map_err(|e| read_error(&path, e))?;
+            if reader.in_memory() {
+                return Ok(None);
+            }
+            (reader.dims(), reader.channels(), reader.voxel_count())
+        }
+        (None, None) => return Ok(None),
     };
-    if !large {
-        return Ok(None);
-    }
-    let Input::File { path, raw } = input(a)? else {
-        return Ok(None);
-    };
-    let reader = RegionReader::open(&path, raw.as_ref()).map_err(|e| read_error(&path, e))?;
-    if reader.in_memory() {
-        return Ok(None);
-    }
-    let d = reader.dims();
-    let voxels = reader.voxel_count();
     let too_many_voxels = voxels > MAX_VOXELS as u128;
     let why = if too_many_voxels {
         format!(
@@ -286,7 +312,7 @@ fn auto_brick(a: &CompressArgs, opts: &CompressOptions) -> Result<Option<(usize,
             d[0], d[1], d[2]
         )
     } else {
-        let (needed, _) = memory_estimate(d, reader.channels(), opts)?;
+        let (needed, _) = memory_estimate(d, channels, opts)?;
         match limit {
             Some(l) if needed > l => format!(
                 "compressing {}x{}x{} whole needs about {} of memory, more than the {} {}",
@@ -316,7 +342,7 @@ fn auto_brick(a: &CompressArgs, opts: &CompressOptions) -> Result<Option<(usize,
     };
     let fits = |side: usize| {
         let b = d.map(|n| n.min(side));
-        memory_estimate(b, reader.channels(), &brick_opts).is_ok_and(|(n, _)| {
+        memory_estimate(b, channels, &brick_opts).is_ok_and(|(n, _)| {
             let per_brick = n.saturating_sub(PROCESS_MEMORY);
             limit.is_none_or(|l| PROCESS_MEMORY + per_brick.saturating_mul(threads) <= l)
         })
@@ -347,7 +373,7 @@ fn run_bricked(a: &CompressArgs, opts: &CompressOptions, brick: usize) -> Result
     let input = input(a)?;
     let reader;
     let source: &dyn BrickSource = match &input {
-        Input::Phantom(v) => v,
+        Input::Phantom(p) => p,
         Input::File { path, raw } => {
             reader = RegionReader::open(path, raw.as_ref()).map_err(|e| read_error(path, e))?;
             &reader
