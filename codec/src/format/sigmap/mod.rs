@@ -44,6 +44,7 @@ mod neighbourhood;
 mod octree;
 
 use super::coefficient::{Coefficient, SizeBreakdown};
+use super::packet::PacketFraming;
 use super::quant::Quantizer;
 use super::{invalid, FormatError, Header};
 use crate::entropy::range::{RangeDecoder, RangeEncoder};
@@ -255,16 +256,14 @@ struct Spent {
     value: usize,
 }
 
-/// Decodes a sigmap payload of `count` coefficients.
+/// Decodes a sigmap payload of `packet.count` coefficients (a [`super::packet::PayloadDecoder`]).
 pub(crate) fn decode(
     header: &Header,
-    tile: usize,
-    layer: usize,
-    count: usize,
-    payload: &[u8],
+    packet: &PacketFraming<'_>,
     bd: &mut SizeBreakdown,
 ) -> Result<Vec<Coefficient>, FormatError> {
-    let mut dec = RangeDecoder::new(payload);
+    let (tile, layer, count) = (packet.tile, packet.layer, packet.count);
+    let mut dec = RangeDecoder::new(packet.payload);
     let mut m = Models::new(header);
     let nb = header.geometry.band_count();
     let bands = header.geometry.bands();
