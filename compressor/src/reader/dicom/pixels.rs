@@ -224,8 +224,7 @@ fn adobe_rgb_jpeg_frame(
     obj: &DefaultDicomObject,
     f: usize,
 ) -> Result<Option<Vec<u8>>, ReadError> {
-    let ts = transfer_syntax(obj);
-    if img.samples != 3 || img.bits_allocated != 8 || !JPEG_LOSSY.contains(&ts) {
+    if img.samples != 3 || img.bits_allocated != 8 || !JPEG_LOSSY.contains(&transfer_syntax(obj)) {
         return Ok(None);
     }
     let Some(Ok(frame)) = encapsulated_frame(img, obj, f) else {
@@ -358,6 +357,10 @@ fn native_order<'a>(
     }
 }
 
+/// A decoder of a case that the general path (dicom-pixeldata) gets wrong or lacks: frame `f`
+/// as interleaved host-order samples, or `None` when the case is not this one.
+type SpecialFrame = fn(&Image, &DefaultDicomObject, usize) -> Result<Option<Vec<u8>>, ReadError>;
+
 /// Decodes frame `f` of `obj` into the planar channels at `offset`, with the modality rescale.
 pub(super) fn decode_frame(
     img: &Image,
@@ -370,14 +373,11 @@ pub(super) fn decode_frame(
     if img.bits_allocated == 1 {
         return decode_bit_frame(img, obj, f, offset, out);
     }
-    if let Some(rgb) = adobe_rgb_jpeg_frame(img, obj, f)? {
-        return store_samples(img, f, offset, out, &rgb, false);
-    }
-    if let Some(rgb) = native_ybr_422_frame(img, obj, f)? {
-        return store_samples(img, f, offset, out, &rgb, false);
-    }
-    if let Some(samples) = rle_32_bit_frame(img, obj, f)? {
-        return store_samples(img, f, offset, out, &samples, false);
+    let special: [SpecialFrame; 3] = [adobe_rgb_jpeg_frame, native_ybr_422_frame, rle_32_bit_frame];
+    for decode in special {
+        if let Some(samples) = decode(img, obj, f)? {
+            return store_samples(img, f, offset, out, &samples, false);
+        }
     }
     let decoded = catch_unwind(AssertUnwindSafe(|| obj.decode_pixel_data_frame(f as u32)))
         .map_err(|_| {
@@ -422,8 +422,7 @@ fn rle_32_bit_frame(
     obj: &DefaultDicomObject,
     f: usize,
 ) -> Result<Option<Vec<u8>>, ReadError> {
-    let ts = transfer_syntax(obj);
-    if ts != RLE_LOSSLESS || img.bits_allocated != 32 {
+    if transfer_syntax(obj) != RLE_LOSSLESS || img.bits_allocated != 32 {
         return Ok(None);
     }
     let err = |reason: String| {
