@@ -7,6 +7,7 @@ use common::{cache_process, ingest_messages, phantom_file, phantom_options, Test
 use std::collections::HashSet;
 use tonic::transport::Channel;
 use tonic::Code;
+use wavesplat_client::convert::{view_message, volume_ref};
 use wavesplat_client::{CacheClient, Packet, RefineEvent, RefineRequest, VolumeHeader, VolumeKey};
 use wavesplat_codec::format::packet::{decode_packet, Coefficient};
 use wavesplat_codec::metrics::q_i_paper_db;
@@ -469,30 +470,9 @@ async fn dropped_packets_come_back_after_a_view_change() {
     server.stop().await;
 }
 
+/// The wire message of a single angle view, as the client sends it.
 fn wire_view(v: &View) -> pb::ViewSpec {
-    let wavesplat_codec::view::Orientation::Angles { alpha, beta } = v.orientation else {
-        unreachable!("angle views only")
-    };
-    pb::ViewSpec {
-        alpha,
-        beta,
-        width: v.width as u32,
-        height: v.height as u32,
-        zoom: v.zoom.unwrap_or(0.0),
-        pan_u: v.pan[0],
-        pan_v: v.pan[1],
-        multiview: false,
-        cue: None,
-    }
-}
-
-fn volume_ref(key: &VolumeKey) -> pb::VolumeRef {
-    pb::VolumeRef {
-        key: Some(match key {
-            VolumeKey::Id(id) => pb::volume_ref::Key::Id(*id),
-            VolumeKey::Name(n) => pb::volume_ref::Key::Name(n.clone()),
-        }),
-    }
+    view_message(&ViewSpec::single(*v)).expect("a valid angle view")
 }
 
 fn refine_view(key: &VolumeKey, v: pb::ViewSpec) -> pb::RefineRequest {

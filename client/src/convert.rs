@@ -7,7 +7,7 @@ use wavesplat_codec::view::{CueDirection, Orientation, ViewError, ViewSpec};
 use wavesplat_proto::pb;
 
 /// A volume reference message.
-pub(crate) fn volume_ref(key: &VolumeKey) -> pb::VolumeRef {
+pub fn volume_ref(key: &VolumeKey) -> pb::VolumeRef {
     pb::VolumeRef {
         key: Some(match key {
             VolumeKey::Id(id) => pb::volume_ref::Key::Id(*id),
@@ -18,7 +18,7 @@ pub(crate) fn volume_ref(key: &VolumeKey) -> pb::VolumeRef {
 
 /// A view message. Only spherical-angle views travel on the wire (the cache derives multiview
 /// cameras itself); an explicit basis is refused here rather than sent as NaN.
-pub(crate) fn view_message(spec: &ViewSpec) -> Result<pb::ViewSpec, ViewError> {
+pub fn view_message(spec: &ViewSpec) -> Result<pb::ViewSpec, ViewError> {
     spec.validate()?;
     let v = &spec.view;
     let Orientation::Angles { alpha, beta } = v.orientation else {

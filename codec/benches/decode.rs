@@ -16,7 +16,6 @@ use std::time::Duration;
 use wavesplat_codec::dwt::decompose_channel;
 use wavesplat_codec::family::Family;
 use wavesplat_codec::format::packet::{decode_packet, encode_packets, Coefficient, PacketInput};
-use wavesplat_codec::format::quant::delta_factor;
 use wavesplat_codec::format::{CoderKind, ColorInfo, Header, SubstreamParams};
 use wavesplat_codec::layout::Geometry;
 
@@ -124,17 +123,8 @@ fn make_file(coder: CoderKind, g: &Geometry, kept: &[Scored]) -> (Header, Vec<Ve
         .iter()
         .enumerate()
         .map(|(b, m)| {
-            (!m.is_empty()).then(|| {
-                let delta = if coder.quantizes_by_threshold() {
-                    let t = (score_threshold / g.basis_norm2(g.bands()[b])).sqrt();
-                    t.max(m[0] * 2f64.powi(-30))
-                } else {
-                    delta_factor(m, 8)
-                };
-                SubstreamParams {
-                    w0: m[0] as f32,
-                    delta: delta as f32,
-                }
+            SubstreamParams::of_magnitudes(m, coder, 8, || {
+                (score_threshold / g.basis_norm2(g.bands()[b])).sqrt()
             })
         })
         .collect();

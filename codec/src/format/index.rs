@@ -79,32 +79,41 @@ pub fn decode_packets(bytes: &[u8], with_offsets: bool) -> Result<Vec<PacketMeta
     let n = r.varint_max(1 << 28, "packets")? as usize;
     let mut out = Vec::with_capacity(n.min(r.remaining()));
     for _ in 0..n {
-        let (tile, layer, len) = entry_head(&mut r)?;
-        let offset = if with_offsets { r.varint()? } else { 0 };
-        let summary = read_summary(&mut r, |r| {
-            let level = r.u8()?;
-            let kind = r.u8()?;
-            let e = r.f64()?;
-            Ok((Band { level, kind }, e))
-        })?;
-        out.push(PacketMeta {
-            tile,
-            layer,
-            len,
-            offset,
-            summary,
-        });
+        out.push(read_entry(
+            &mut r,
+            |r| if with_offsets { r.varint() } else { Ok(0) },
+            |r| {
+                let level = r.u8()?;
+                let kind = r.u8()?;
+                let e = r.f64()?;
+                Ok((Band { level, kind }, e))
+            },
+        )?);
     }
     expect_end(&r)?;
     Ok(out)
 }
 
-/// An index entry's tile, layer and packet length, as both forms of the index begin it.
-fn entry_head(r: &mut ByteReader) -> Result<(u32, u32, u32), FormatError> {
+/// An index entry, as both forms of the index store it: tile, layer and packet length; then
+/// its offset, as `offset` reads it (the compact form and the old one store none); then its
+/// energy summary, each (band, energy) pair read by `pair`.
+fn read_entry(
+    r: &mut ByteReader,
+    offset: impl FnOnce(&mut ByteReader) -> Result<u64, FormatError>,
+    pair: impl FnMut(&mut ByteReader) -> Result<(Band, f64), FormatError>,
+) -> Result<PacketMeta, FormatError> {
     let tile = r.varint_max(u32::MAX as u64, "tile")? as u32;
     let layer = r.varint_max(u32::MAX as u64, "layer")? as u32;
     let len = r.varint_max(u32::MAX as u64, "len")? as u32;
-    Ok((tile, layer, len))
+    let offset = offset(r)?;
+    let summary = read_summary(r, pair)?;
+    Ok(PacketMeta {
+        tile,
+        layer,
+        len,
+        offset,
+        summary,
+    })
 }
 
 /// An index entry's energy summary: its length, then that many (band, energy) pairs, each read
@@ -185,28 +194,25 @@ fn decode_compact(bytes: &[u8]) -> Result<Vec<PacketMeta>, FormatError> {
     let mut offset = r.varint()?;
     let mut out = Vec::with_capacity(n.min(r.remaining()));
     for _ in 0..n {
-        let (tile, layer, len) = entry_head(&mut r)?;
-        let summary = read_summary(&mut r, |r| {
-            let b = r.u8()?;
-            let e = from_bf16(r.u16()?);
-            Ok((
-                Band {
-                    level: b / 8,
-                    kind: b % 8,
-                },
-                e,
-            ))
-        })?;
-        out.push(PacketMeta {
-            tile,
-            layer,
-            len,
-            offset,
-            summary,
-        });
+        let entry = read_entry(
+            &mut r,
+            |_| Ok(offset),
+            |r| {
+                let b = r.u8()?;
+                let e = from_bf16(r.u16()?);
+                Ok((
+                    Band {
+                        level: b / 8,
+                        kind: b % 8,
+                    },
+                    e,
+                ))
+            },
+        )?;
         offset = offset
-            .checked_add(len as u64)
+            .checked_add(entry.len as u64)
             .ok_or_else(|| invalid("packet offsets overflow".into()))?;
+        out.push(entry);
     }
     expect_end(&r)?;
     Ok(out)

@@ -228,6 +228,30 @@ pub struct SubstreamParams {
     pub delta: f32,
 }
 
+impl SubstreamParams {
+    /// The parameters of a substream that keeps `magnitudes`, largest first (`None` when it
+    /// keeps none): w₀ the largest; Δ, for a coder that quantizes by the threshold, the step
+    /// `threshold_step` gives, floored at 2^−30 of w₀ so that q stays small even when
+    /// near-zero coefficients are kept, and for the paper's coders Δ of eq. 15 at `bits` bits.
+    pub fn of_magnitudes(
+        magnitudes: &[f64],
+        coder: CoderKind,
+        bits: u8,
+        threshold_step: impl FnOnce() -> f64,
+    ) -> Option<SubstreamParams> {
+        let w0 = *magnitudes.first()?;
+        let delta = if coder.quantizes_by_threshold() {
+            threshold_step().max(w0 * 2f64.powi(-30))
+        } else {
+            quant::delta_factor(magnitudes, bits)
+        };
+        Some(SubstreamParams {
+            w0: w0 as f32,
+            delta: delta as f32,
+        })
+    }
+}
+
 /// The four static Huffman tables of the paper's coder.
 #[derive(Debug, Clone, PartialEq)]
 pub struct HuffmanTables {

@@ -342,38 +342,32 @@ pub fn decode_packet_within(
     bytes: &[u8],
     budget: &DecodeBudget,
 ) -> Result<DecodedPacket, FormatError> {
-    let PacketFraming {
-        tile,
-        layer,
-        count,
-        summary,
-        payload,
-    } = read_framing(header, bytes)?;
-    budget.check_coefficients(count as u64)?;
-    let plen = payload.len();
+    let framing = read_framing(header, bytes)?;
+    budget.check_coefficients(framing.count as u64)?;
+    let plen = framing.payload.len();
     let mut breakdown = SizeBreakdown {
         framing_bytes: (bytes.len() - plen) as u64,
         ..SizeBreakdown::default()
     };
-    let coefficients = match header.coder {
-        CoderKind::Huffman | CoderKind::Range => {
-            super::paper::decode(header, tile, layer, count, payload, &mut breakdown)?
-        }
-        CoderKind::Sigmap => {
-            super::sigmap::decode(header, tile, layer, count, payload, &mut breakdown)?
-        }
-        CoderKind::Fast => {
-            super::fast::decode(header, tile, layer, count, payload, &mut breakdown)?
-        }
+    let decode: PayloadDecoder = match header.coder {
+        CoderKind::Huffman | CoderKind::Range => super::paper::decode,
+        CoderKind::Sigmap => super::sigmap::decode,
+        CoderKind::Fast => super::fast::decode,
     };
+    let coefficients = decode(header, &framing, &mut breakdown)?;
     Ok(DecodedPacket {
-        tile,
-        layer,
-        summary,
+        tile: framing.tile,
+        layer: framing.layer,
+        summary: framing.summary,
         coefficients,
         breakdown,
     })
 }
+
+/// What each coder's decoder is: the coefficients of a packet whose framing is read (exactly
+/// `packet.count` of them, or an error), adding where the payload's bits went to the breakdown.
+pub(crate) type PayloadDecoder =
+    fn(&Header, &PacketFraming<'_>, &mut SizeBreakdown) -> Result<Vec<Coefficient>, FormatError>;
 
 /// A packet that failed to decode, with its index in the file.
 #[derive(Debug, thiserror::Error)]

@@ -9,6 +9,7 @@
 //! adaptive binary models that reset at every packet.
 
 use super::coefficient::{Coefficient, PacketInput, SizeBreakdown, INITIAL_CAPACITY};
+use super::packet::PacketFraming;
 use super::quant::Chain;
 use super::{invalid, CoderKind, FormatError, Header, HuffmanTables, CATEGORY_ALPHABET};
 use crate::entropy::bits::{BitReader, BitSink, BitWriter};
@@ -317,15 +318,14 @@ impl SyntaxSource for RangeSource<'_> {
     }
 }
 
-/// Decodes one packet's payload in the paper's syntax (`header.coder` is Huffman or range).
+/// Decodes one packet's payload in the paper's syntax (`header.coder` is Huffman or range; a
+/// [`super::packet::PayloadDecoder`]).
 pub(super) fn decode(
     header: &Header,
-    tile: usize,
-    layer: usize,
-    count: usize,
-    payload: &[u8],
+    packet: &PacketFraming<'_>,
     breakdown: &mut SizeBreakdown,
 ) -> Result<Vec<Coefficient>, FormatError> {
+    let (tile, layer, count, payload) = (packet.tile, packet.layer, packet.count, packet.payload);
     if header.coder == CoderKind::Huffman {
         let t = header
             .tables

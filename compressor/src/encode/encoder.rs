@@ -14,7 +14,6 @@ use crate::visible::Visible;
 use rayon::prelude::*;
 use wavesplat_codec::dwt::fast::FastTransform;
 use wavesplat_codec::format::packet::{encode_packets, Coefficient, PacketInput};
-use wavesplat_codec::format::quant::delta_factor;
 use wavesplat_codec::format::{write_file, Header, SubstreamParams, MAX_LAYERS};
 use wavesplat_codec::metrics::{q_e_percent, q_v_percent};
 
@@ -274,25 +273,15 @@ impl Prepared {
             .iter()
             .enumerate()
             .map(|(sub, m)| {
-                (!m.is_empty()).then(|| {
-                    let delta = if opts.coder.quantizes_by_threshold() {
-                        let band = g.bands()[sub % nb];
-                        let weight = g.basis_norm2(band) * self.color.importance[sub / nb];
-                        let t = if weight > 0.0 {
-                            (score_threshold / weight).sqrt()
-                        } else {
-                            0.0
-                        };
-                        // Floor the step at 2^-30 of the largest magnitude so q stays small
-                        // even when near-zero coefficients are kept (Target::All).
-                        (opts.step * t).max(m[0] * 2f64.powi(-30))
+                SubstreamParams::of_magnitudes(m, opts.coder, opts.bits, || {
+                    let band = g.bands()[sub % nb];
+                    let weight = g.basis_norm2(band) * self.color.importance[sub / nb];
+                    let t = if weight > 0.0 {
+                        (score_threshold / weight).sqrt()
                     } else {
-                        delta_factor(m, opts.bits)
+                        0.0
                     };
-                    SubstreamParams {
-                        w0: m[0] as f32,
-                        delta: delta as f32,
-                    }
+                    opts.step * t
                 })
             })
             .collect();

@@ -209,22 +209,29 @@ pub(super) fn axis_views(
         .collect();
     let mut along_x = Vec::with_capacity(ny * nz);
     let mut along_y = Vec::with_capacity(nx * nz);
-    let mut along_z: Option<Vec<f64>> = None;
+    let mut images = Vec::with_capacity(groups.len());
     for (slices, img) in groups {
         for (rows, cols) in slices {
             along_x.extend(rows);
             along_y.extend(cols);
         }
-        match along_z.as_mut() {
-            None => along_z = Some(img),
+        images.push(img);
+    }
+    [along_x, along_y, sum_in_order(images, nx * ny)]
+}
+
+/// The sum of the groups' z views, added in order (the first as it is, each later one added to
+/// it term by term), so that every sum adds the same terms in the same order; `len` zeros when
+/// there is no group.
+fn sum_in_order(images: impl IntoIterator<Item = Vec<f64>>, len: usize) -> Vec<f64> {
+    let mut sum: Option<Vec<f64>> = None;
+    for img in images {
+        match sum.as_mut() {
+            None => sum = Some(img),
             Some(a) => a.iter_mut().zip(&img).for_each(|(a, b)| *a += b),
         }
     }
-    [
-        along_x,
-        along_y,
-        along_z.unwrap_or_else(|| vec![0.0; nx * ny]),
-    ]
+    sum.unwrap_or_else(|| vec![0.0; len])
 }
 
 /// What every decomposition depth of one volume shares: the coded channels (`None`: the
@@ -446,7 +453,7 @@ pub(super) fn choose_tiling(
 
 #[cfg(test)]
 mod tests {
-    use super::axis_views;
+    use super::{axis_views, sum_in_order};
     use rand::{Rng, SeedableRng};
 
     /// The three views by plain loops, in the order the one pass must keep: each row along x
@@ -464,8 +471,8 @@ mod tests {
                 }
             }
         }
-        let mut along_z: Option<Vec<f64>> = None;
-        for group in (0..nz).collect::<Vec<_>>().chunks(8) {
+        let zs: Vec<usize> = (0..nz).collect();
+        let images = zs.chunks(8).map(|group| {
             let mut img = vec![0.0; nx * ny];
             for &z in group {
                 for y in 0..ny {
@@ -474,16 +481,9 @@ mod tests {
                     }
                 }
             }
-            match along_z.as_mut() {
-                None => along_z = Some(img),
-                Some(a) => a.iter_mut().zip(&img).for_each(|(a, b)| *a += b),
-            }
-        }
-        [
-            along_x,
-            along_y,
-            along_z.unwrap_or_else(|| vec![0.0; nx * ny]),
-        ]
+            img
+        });
+        [along_x, along_y, sum_in_order(images, nx * ny)]
     }
 
     #[test]

@@ -10,6 +10,7 @@ use super::{
 use crate::entropy::bits::WordReader;
 use crate::entropy::range::{BitModel, RangeDecoder};
 use crate::format::coefficient::{region_extent, Coefficient, SizeBreakdown};
+use crate::format::packet::PacketFraming;
 use crate::format::quant::Quantizer;
 use crate::format::{invalid, FormatError, Header};
 
@@ -103,15 +104,14 @@ impl PacketDecoder<'_> {
     }
 }
 
-/// Decodes a fast-coded payload of `count` coefficients.
+/// Decodes a fast-coded payload of `packet.count` coefficients (a
+/// [`crate::format::packet::PayloadDecoder`]).
 pub(crate) fn decode(
     header: &Header,
-    tile: usize,
-    layer: usize,
-    count: usize,
-    payload: &[u8],
+    packet: &PacketFraming<'_>,
     bd: &mut SizeBreakdown,
 ) -> Result<Vec<Coefficient>, FormatError> {
+    let (tile, layer, count, payload) = (packet.tile, packet.layer, packet.count, packet.payload);
     let tables = header
         .fast_tables
         .as_ref()

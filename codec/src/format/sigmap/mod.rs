@@ -44,6 +44,7 @@ mod neighbourhood;
 mod octree;
 
 use super::coefficient::{Coefficient, SizeBreakdown};
+use super::packet::PacketFraming;
 use super::quant::Quantizer;
 use super::{invalid, FormatError, Header};
 use crate::entropy::range::{RangeDecoder, RangeEncoder};
@@ -255,16 +256,14 @@ struct Spent {
     value: usize,
 }
 
-/// Decodes a sigmap payload of `count` coefficients.
+/// Decodes a sigmap payload of `packet.count` coefficients (a [`super::packet::PayloadDecoder`]).
 pub(crate) fn decode(
     header: &Header,
-    tile: usize,
-    layer: usize,
-    count: usize,
-    payload: &[u8],
+    packet: &PacketFraming<'_>,
     bd: &mut SizeBreakdown,
 ) -> Result<Vec<Coefficient>, FormatError> {
-    let mut dec = RangeDecoder::new(payload);
+    let (tile, layer, count) = (packet.tile, packet.layer, packet.count);
+    let mut dec = RangeDecoder::new(packet.payload);
     let mut m = Models::new(header);
     let nb = header.geometry.band_count();
     let bands = header.geometry.bands();
@@ -535,25 +534,46 @@ mod tests {
         }
     }
 
+    /// A dense and a sparse [`CodedCells`] that are fed the same cells, so that the two
+    /// layouts can be checked to answer alike.
+    #[derive(Default)]
+    struct DenseAndSparse {
+        dense: CodedCells,
+        sparse: CodedCells,
+    }
+
+    impl DenseAndSparse {
+        /// Resets both to one random extent, each side from 1 to `max_side - 1` cells, the
+        /// one dense and the other sparse whatever the size.
+        fn reset_random(&mut self, rng: &mut ChaCha8Rng, max_side: u32) -> [u32; 3] {
+            let extent = [0, 1, 2].map(|_| rng.gen_range(1..max_side));
+            self.dense.reset(extent);
+            self.sparse.reset_with_limit(extent, 0);
+            assert!(self.dense.use_dense && !self.sparse.use_dense);
+            extent
+        }
+
+        fn insert(&mut self, c: [u32; 3], negative: bool, class: u8) {
+            self.dense.insert(c, negative, class);
+            self.sparse.insert(c, negative, class);
+        }
+    }
+
     #[test]
     fn coded_cells_dense_and_sparse_agree_with_a_brute_force_count() {
         let mut rng = ChaCha8Rng::seed_from_u64(5);
-        let mut dense = CodedCells::default();
-        let mut sparse = CodedCells::default();
+        let mut both = DenseAndSparse::default();
         for round in 0..20 {
-            let extent = [0, 1, 2].map(|_| rng.gen_range(1..12u32));
-            dense.reset(extent);
-            sparse.reset_with_limit(extent, 0);
-            assert!(dense.use_dense && !sparse.use_dense);
+            let extent = both.reset_random(&mut rng, 12);
             let mut inserted = std::collections::HashMap::new();
             for _ in 0..rng.gen_range(0..200) {
                 let c = extent.map(|e| rng.gen_range(0..e));
                 let negative = rng.gen_bool(0.5);
                 let q = rng.gen_range(0..12u64);
-                dense.insert(c, negative, magnitude_class(q));
-                sparse.insert(c, negative, magnitude_class(q));
+                both.insert(c, negative, magnitude_class(q));
                 inserted.insert(c, (negative, q));
             }
+            let DenseAndSparse { dense, sparse } = &both;
             for _ in 0..200 {
                 let lo = extent.map(|e| rng.gen_range(0..e));
                 let hi = [0, 1, 2].map(|a| rng.gen_range(lo[a] + 1..=extent[a]));
@@ -610,6 +630,7 @@ mod tests {
             }
         }
         // A reset forgets every cell.
+        let dense = &mut both.dense;
         let extent = dense.extent;
         dense.reset(extent);
         for z in 0..extent[2] {
@@ -686,20 +707,17 @@ mod tests {
     #[test]
     fn brick_face_counts_match_the_map_on_octree_boxes() {
         let mut rng = ChaCha8Rng::seed_from_u64(23);
-        let mut dense = CodedCells::default();
-        let mut sparse = CodedCells::default();
+        let mut both = DenseAndSparse::default();
         for _ in 0..30 {
-            let extent = [0, 1, 2].map(|_| rng.gen_range(1..30u32));
-            dense.reset(extent);
-            sparse.reset_with_limit(extent, 0);
+            let extent = both.reset_random(&mut rng, 30);
             let cells: usize = extent.iter().map(|&e| e as usize).product();
             let n = rng.gen_range(0..=cells);
             for c in random_cells(&mut rng, extent, n) {
                 let negative = rng.gen_bool(0.4);
                 let class = rng.gen_range(0..4u8);
-                dense.insert(c, negative, class);
-                sparse.insert(c, negative, class);
+                both.insert(c, negative, class);
             }
+            let DenseAndSparse { dense, sparse } = &both;
             let mut all = Vec::new();
             boxes(Box3::root(extent), &mut all);
             for b in &all {

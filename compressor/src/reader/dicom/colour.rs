@@ -9,6 +9,7 @@ use dicom_object::{DefaultDicomObject, InMemDicomObject};
 
 use super::attributes::element;
 use super::dicom_err;
+use super::pixels::transfer_syntax;
 use super::Image;
 use crate::reader::ReadError;
 
@@ -103,7 +104,7 @@ pub(super) fn read_palette(
 /// Whether `obj`'s pixel data is encapsulated and its codec leaves the colour space as it is
 /// (RLE, JPEG-LS): then, as in native data, YBR_FULL samples are still Y, Cb, Cr.
 fn colour_untouched_by_codec(obj: &DefaultDicomObject) -> bool {
-    let ts = obj.meta().transfer_syntax().trim_end_matches('\0');
+    let ts = transfer_syntax(obj);
     let encapsulated = element(obj, tags::PIXEL_DATA).is_some_and(|e| e.fragments().is_some());
     !encapsulated
         || ts == dicom_dictionary_std::uids::RLE_LOSSLESS

@@ -22,14 +22,33 @@ use crate::reader::ReadError;
 /// Transfer Syntax UID of RLE Lossless.
 pub(super) const RLE_LOSSLESS: &str = "1.2.840.10008.1.2.5";
 
+/// The transfer syntax UID of `obj`, without the NUL that pads it to an even length.
+pub(super) fn transfer_syntax(obj: &DefaultDicomObject) -> &str {
+    obj.meta().transfer_syntax().trim_end_matches('\0')
+}
+
+/// Frame `f` of encapsulated pixel data: every fragment joined for a single frame, else
+/// fragment `f` when there is one fragment a frame. `None` when the pixel data is not
+/// encapsulated; `Some(Err(n))` when its `n` fragments are neither.
+fn encapsulated_frame(
+    img: &Image,
+    obj: &DefaultDicomObject,
+    f: usize,
+) -> Option<Result<Vec<u8>, usize>> {
+    let fragments = element(obj, tags::PIXEL_DATA)?.fragments()?;
+    Some(if img.frames == 1 {
+        Ok(fragments.iter().flatten().copied().collect())
+    } else if fragments.len() == img.frames {
+        Ok(fragments[f].clone())
+    } else {
+        Err(fragments.len())
+    })
+}
+
 /// Checks the transfer syntax and the pixel data's size before anything is decoded.
 pub(super) fn check_pixel_data(img: &Image, obj: &DefaultDicomObject) -> Result<(), ReadError> {
     let path = &img.path;
-    let ts_uid = obj
-        .meta()
-        .transfer_syntax()
-        .trim_end_matches('\0')
-        .to_string();
+    let ts_uid = transfer_syntax(obj).to_string();
     let jpeg_ls = ts_uid == dicom_dictionary_std::uids::JPEGLS_LOSSLESS
         || ts_uid == dicom_dictionary_std::uids::JPEGLS_NEAR_LOSSLESS;
     if jpeg_ls && !cfg!(feature = "jpeg-ls") {
@@ -205,18 +224,10 @@ fn adobe_rgb_jpeg_frame(
     obj: &DefaultDicomObject,
     f: usize,
 ) -> Result<Option<Vec<u8>>, ReadError> {
-    let ts = obj.meta().transfer_syntax().trim_end_matches('\0');
-    if img.samples != 3 || img.bits_allocated != 8 || !JPEG_LOSSY.contains(&ts) {
+    if img.samples != 3 || img.bits_allocated != 8 || !JPEG_LOSSY.contains(&transfer_syntax(obj)) {
         return Ok(None);
     }
-    let Some(fragments) = element(obj, tags::PIXEL_DATA).and_then(|e| e.fragments()) else {
-        return Ok(None);
-    };
-    let frame: Vec<u8> = if img.frames == 1 {
-        fragments.iter().flatten().copied().collect()
-    } else if fragments.len() == img.frames {
-        fragments[f].clone()
-    } else {
+    let Some(Ok(frame)) = encapsulated_frame(img, obj, f) else {
         return Ok(None);
     };
     let transform = match jpeg_colour_markers(&frame) {
@@ -284,7 +295,7 @@ fn native_order<'a>(
 ) -> Result<std::borrow::Cow<'a, [u8]>, ReadError> {
     use dicom_core::PrimitiveValue;
     use std::borrow::Cow;
-    let ts = obj.meta().transfer_syntax().trim_end_matches('\0');
+    let ts = transfer_syntax(obj);
     let bytes_per = (img.bits_allocated / 8) as usize;
     if ts != EXPLICIT_VR_BIG_ENDIAN {
         return Ok(Cow::Borrowed(data));
@@ -346,6 +357,10 @@ fn native_order<'a>(
     }
 }
 
+/// A decoder of a case that the general path (dicom-pixeldata) gets wrong or lacks: frame `f`
+/// as interleaved host-order samples, or `None` when the case is not this one.
+type SpecialFrame = fn(&Image, &DefaultDicomObject, usize) -> Result<Option<Vec<u8>>, ReadError>;
+
 /// Decodes frame `f` of `obj` into the planar channels at `offset`, with the modality rescale.
 pub(super) fn decode_frame(
     img: &Image,
@@ -358,14 +373,11 @@ pub(super) fn decode_frame(
     if img.bits_allocated == 1 {
         return decode_bit_frame(img, obj, f, offset, out);
     }
-    if let Some(rgb) = adobe_rgb_jpeg_frame(img, obj, f)? {
-        return store_samples(img, f, offset, out, &rgb, false);
-    }
-    if let Some(rgb) = native_ybr_422_frame(img, obj, f)? {
-        return store_samples(img, f, offset, out, &rgb, false);
-    }
-    if let Some(samples) = rle_32_bit_frame(img, obj, f)? {
-        return store_samples(img, f, offset, out, &samples, false);
+    let special: [SpecialFrame; 3] = [adobe_rgb_jpeg_frame, native_ybr_422_frame, rle_32_bit_frame];
+    for decode in special {
+        if let Some(samples) = decode(img, obj, f)? {
+            return store_samples(img, f, offset, out, &samples, false);
+        }
     }
     let decoded = catch_unwind(AssertUnwindSafe(|| obj.decode_pixel_data_frame(f as u32)))
         .map_err(|_| {
@@ -410,8 +422,7 @@ fn rle_32_bit_frame(
     obj: &DefaultDicomObject,
     f: usize,
 ) -> Result<Option<Vec<u8>>, ReadError> {
-    let ts = obj.meta().transfer_syntax().trim_end_matches('\0');
-    if ts != RLE_LOSSLESS || img.bits_allocated != 32 {
+    if transfer_syntax(obj) != RLE_LOSSLESS || img.bits_allocated != 32 {
         return Ok(None);
     }
     let err = |reason: String| {
@@ -421,19 +432,15 @@ fn rle_32_bit_frame(
             format!("frame {}: {reason}", f + 1),
         )
     };
-    let Some(fragments) = element(obj, tags::PIXEL_DATA).and_then(|e| e.fragments()) else {
-        return Err(err("RLE Lossless without encapsulated fragments".into()));
-    };
-    let frame: Vec<u8> = if img.frames == 1 {
-        fragments.iter().flatten().copied().collect()
-    } else if fragments.len() == img.frames {
-        fragments[f].clone()
-    } else {
-        return Err(err(format!(
-            "{} fragments for {} frames: one fragment a frame expected",
-            fragments.len(),
-            img.frames
-        )));
+    let frame = match encapsulated_frame(img, obj, f) {
+        Some(Ok(frame)) => frame,
+        None => return Err(err("RLE Lossless without encapsulated fragments".into())),
+        Some(Err(n)) => {
+            return Err(err(format!(
+                "{n} fragments for {} frames: one fragment a frame expected",
+                img.frames
+            )))
+        }
     };
     let n = img.rows * img.cols;
     let segments = img.samples * 4;
@@ -533,7 +540,7 @@ fn decode_bit_frame(
     out: &mut [Vec<f32>],
 ) -> Result<(), ReadError> {
     let err = |reason: String| dicom_err(&img.path, Some(tags::PIXEL_DATA), reason);
-    let ts = obj.meta().transfer_syntax().trim_end_matches('\0');
+    let ts = transfer_syntax(obj);
     let Some(p) = element(obj, tags::PIXEL_DATA).and_then(|e| e.value().primitive()) else {
         return Err(err("1-bit samples must be native (not encapsulated)".into()));
     };
