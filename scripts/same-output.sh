@@ -43,6 +43,8 @@ COMPRESS=(
   "constant|--phantom constant --dims 16,16,16"
   "zero|--phantom zero --dims 8,8,8"
   "noise|--phantom noise --dims 24,24,24 --tile 8"
+  "ct|--phantom ct --dims 32,28,24"
+  "bricked|--phantom shepp-logan --dims 48,40,36 --brick 24 --target-fraction 0.05"
 )
 if [[ -f "$MNI" ]]; then
   COMPRESS+=("mni|$MNI --target-fraction 0.0125")
@@ -63,6 +65,9 @@ RENDER=(
   "rgb-yiq|--alpha 0.2 --beta 0.9"
   "constant|"
   "noise|--zoom 3 --pan 2,1"
+  "ct|--alpha 0.3 --beta 0.4"
+  "bricked|--alpha 0.3 --beta 0.2"
+  "bricked|--multiview --size 96x96"
 )
 if [[ -f "$MNI" ]]; then
   RENDER+=("mni|" "mni|--view anterior" "~mni|--cue-k 0.01")
