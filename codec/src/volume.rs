@@ -64,16 +64,19 @@ pub enum VolumeError {
     /// orthonormal within [`PLACEMENT_TOLERANCE`].
     #[error("volume placement: {0}")]
     Placement(String),
-    /// A box asked of a larger whole (a brick) does not lie within it.
-    #[error("a box at {origin:?} of {dims:?} voxels does not lie within the whole's {whole:?}")]
-    OutsideWhole {
-        /// The box's first voxel in the whole.
-        origin: [u64; 3],
-        /// The box's dimensions.
-        dims: [usize; 3],
-        /// The whole's dimensions.
-        whole: [u64; 3],
-    },
+    /// A box asked of a larger whole (a brick) does not lie within it (see
+    /// [`VolumeError::outside_whole`]).
+    #[error("{0}")]
+    OutsideWhole(String),
+}
+
+impl VolumeError {
+    /// A box at `origin` of `dims` voxels that does not lie within a whole of `whole`.
+    pub fn outside_whole(origin: [u64; 3], dims: [usize; 3], whole: [u64; 3]) -> VolumeError {
+        VolumeError::OutsideWhole(format!(
+            "a box at {origin:?} of {dims:?} voxels does not lie within the whole's {whole:?}"
+        ))
+    }
 }
 
 /// How far from orthonormal the axis directions of a [`Placement`] may be (|‖dᵢ‖ − 1| and

@@ -161,11 +161,7 @@ pub fn crop(volume: &Volume, origin: [u64; 3], dims: [usize; 3]) -> Result<Volum
             .checked_add(dims[a] as u64)
             .is_none_or(|e| e > whole[a])
     }) {
-        return Err(VolumeError::OutsideWhole {
-            origin,
-            dims,
-            whole,
-        });
+        return Err(VolumeError::outside_whole(origin, dims, whole));
     }
     let o = origin.map(|v| v as usize);
     let channels = volume

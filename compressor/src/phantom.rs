@@ -268,11 +268,7 @@ impl Phantom {
                     .is_none_or(|e| e > whole[a])
         });
         if outside {
-            return Err(VolumeError::OutsideWhole {
-                origin,
-                dims,
-                whole,
-            });
+            return Err(VolumeError::outside_whole(origin, dims, whole));
         }
         let r = Region {
             whole,

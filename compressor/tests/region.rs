@@ -67,12 +67,8 @@ fn check(path: &Path, raw: Option<&RawSpec>) {
     let name = path.display().to_string();
     let whole = read_volume(path, raw).unwrap_or_else(|e| panic!("{name}: {e}"));
     let r = RegionReader::open(path, raw).unwrap_or_else(|e| panic!("{name}: {e}"));
-    // Only DICOM and ASCII NRRD are decoded whole; everything else is read by region.
-    assert_eq!(
-        r.in_memory(),
-        path.is_dir() || name.contains("Ascii"),
-        "{name}"
-    );
+    // Only ASCII NRRD is decoded whole; everything else is read by region (DICOM by slices).
+    assert_eq!(r.in_memory(), name.contains("Ascii"), "{name}");
     assert_eq!(r.dims(), whole.dims(), "{name}");
     assert_eq!(r.voxel_count(), whole.voxel_count() as u128, "{name}");
     assert_eq!(r.channels(), whole.channel_count(), "{name}");
@@ -425,6 +421,55 @@ fn dicom_series_regions_match_the_whole() {
     let series = dir.path().join("series");
     fixtures::write_dicom_series(&series, &v, &DicomOptions::default());
     check(&series, None);
+    // Slices whose file names run against their positions (the volume's order is the
+    // positions'), rescaled, RLE-coded.
+    let rle = dir.path().join("rle");
+    let o = DicomOptions {
+        slope: 0.5,
+        intercept: -1024.0,
+        encoding: fixtures::DicomEncoding::RleLossless,
+        ..DicomOptions::default()
+    };
+    let files = fixtures::write_dicom_series(&rle, &v, &o);
+    let n = files.len();
+    for (i, f) in files.iter().enumerate() {
+        std::fs::rename(f, rle.join(format!("tmp{i}"))).unwrap();
+    }
+    for i in 0..n {
+        std::fs::rename(
+            rle.join(format!("tmp{i}")),
+            rle.join(format!("s{:02}.dcm", n - 1 - i)),
+        )
+        .unwrap();
+    }
+    check(&rle, None);
+    // One multi-frame file.
+    let multi = dir.path().join("multi.dcm");
+    fixtures::write_dicom_multiframe(&multi, &v, &DicomOptions::default());
+    check(&multi, None);
+}
+
+/// A series opens by its headers alone and a region decodes only the files of its slices: a
+/// slice file damaged after opening fails the regions that cross it, naming it, and no other.
+#[test]
+fn dicom_regions_decode_only_the_slices_they_cross() {
+    let dir = tempfile::tempdir().unwrap();
+    let v = placed(1, |i, _| (i % 97) as f32);
+    let series = dir.path().join("series");
+    let files = fixtures::write_dicom_series(&series, &v, &DicomOptions::default());
+    let r = RegionReader::open(&series, None).unwrap();
+    let whole = read_volume(&series, None).unwrap();
+    // The fixture returns the files in slice order (their names run in another).
+    let keep = &files[..2];
+    for f in files.iter().filter(|f| !keep.contains(f)) {
+        let mut bytes = std::fs::read(f).unwrap();
+        bytes.truncate(bytes.len() - 7);
+        std::fs::write(f, bytes).unwrap();
+    }
+    let low = r.read_region([0, 0, 0], [DIMS[0], DIMS[1], 2]).unwrap();
+    assert_eq!(low, cut(&whole, [0, 0, 0], [DIMS[0], DIMS[1], 2]));
+    let e = r.read_region([0, 0, 1], [2, 2, 2]).unwrap_err().to_string();
+    assert!(e.contains("IM"), "the damaged file is named: {e}");
 }
 
 /// Bytes on disk of a file (sparse files take few).

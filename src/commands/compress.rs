@@ -102,8 +102,8 @@ pub struct CompressArgs {
     /// Keep compression within this working memory (bytes, or with a K, M or G suffix: `8G`);
     /// default: the memory available now. A volume file that does not fit whole is compressed
     /// as bricks that do (see --brick), one per thread, and so is a phantom (generated brick by
-    /// brick); if none fits, or the input is a DICOM series, it is refused with a clear error
-    /// instead of running out of memory.
+    /// brick); if none fits, it is refused with a clear error instead of running out of
+    /// memory.
     #[arg(long, value_parser = super::parse_bytes)]
     pub memory_limit: Option<u64>,
     /// What to keep.
@@ -111,7 +111,8 @@ pub struct CompressArgs {
     pub keep: super::TargetArgs,
     /// Split the volume into bricks of at most N voxels a side (each axis in near-equal
     /// parts), each compressed on its own and read from the file brick by brick (raw, NIfTI,
-    /// NRRD and MetaImage without loading the whole; a phantom generated a brick at a time),
+    /// NRRD, MetaImage and DICOM series without loading the whole; a phantom generated a
+    /// brick at a time),
     /// written as one bricked file (format
     /// version 9). The target is the whole's: one score threshold across all bricks. For
     /// volumes larger than memory or than one transform (2^31 voxels); `render` and `info`
@@ -261,8 +262,8 @@ const PROBE_FRACTION: u64 = 64;
 /// memory available now) or it has more voxels than one transform takes. The side is the
 /// largest of [`AUTO_BRICK_SIDES`] below the volume's whose bricks, one per thread, fit the
 /// limit (none fitting: compressed whole, which reports the limit). Only phantoms and files read
-/// by region are probed (a DICOM series or ASCII NRRD is read whole anyway); volumes that fit
-/// are compressed whole, as before.
+/// by region are probed (ASCII NRRD is read whole anyway); volumes that fit are compressed
+/// whole, as before.
 fn auto_brick(a: &CompressArgs, opts: &CompressOptions) -> Result<Option<(usize, String)>> {
     let limit = opts.memory_limit.or_else(available_memory);
     let (d, channels, voxels) = match (&a.input, &a.phantom) {
@@ -279,10 +280,19 @@ fn auto_brick(a: &CompressArgs, opts: &CompressOptions) -> Result<Option<(usize,
             )
         }
         (Some(path), None) => {
-            if path.is_dir() {
-                return Ok(None);
-            }
-            let on_disk = std::fs::metadata(path).map(|m| m.len()).unwrap_or(0);
+            // A DICOM series directory: the bytes of its files.
+            let on_disk = if path.is_dir() {
+                std::fs::read_dir(path)
+                    .map(|entries| {
+                        entries
+                            .filter_map(|e| e.ok()?.metadata().ok())
+                            .map(|m| m.len())
+                            .sum()
+                    })
+                    .unwrap_or(0)
+            } else {
+                std::fs::metadata(path).map(|m| m.len()).unwrap_or(0)
+            };
             // A limit given is always checked; the memory available only for files large
             // enough.
             let large = match (opts.memory_limit, limit) {

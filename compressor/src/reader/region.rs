@@ -11,9 +11,11 @@
 //! so it is inflated once, streaming, into an anonymous temporary file in the system
 //! temporary directory (deleted when the reader is dropped) and regions are read from there:
 //! memory stays bounded, at the cost of disk space equal to the decompressed samples. A DICOM
-//! series (or file) and ASCII NRRD are read whole through [`read_volume`] and cut in memory:
-//! they open only when the whole volume fits within [`MAX_VOXELS`](wavesplat_codec::volume::MAX_VOXELS) (the series decoder's
-//! ordering and validation are not yet available slice by slice). The meaning of each header
+//! series (or multi-frame file) is read by slice ranges: opening reads every file's header
+//! (and keeps no bytes), and a region decodes only the frames of its slices, with the series
+//! decoder's own validation and ordering. ASCII NRRD is read whole through [`read_volume`] and
+//! cut in memory: it opens only when the whole volume fits within
+//! [`MAX_VOXELS`](wavesplat_codec::volume::MAX_VOXELS). The meaning of each header
 //! (its validation, the spacing, the placement, the channel layout) comes from the format's
 //! own decoder, run on a one-voxel stand-in of the header (see `formats/`), so a region gets
 //! exactly the metadata and values [`read_volume`] gives those voxels.
@@ -57,6 +59,8 @@ enum Source {
     Stored(Stored),
     /// Decoded whole in memory (the formats that cannot be read by region yet).
     Whole(Volume),
+    /// A DICOM series (or file) read by slice ranges.
+    Series(super::dicom::SeriesRegions),
 }
 
 /// Samples stored in a file from `offset` on: x fastest, then y, then z, the channels of a
@@ -153,8 +157,8 @@ impl RegionReader {
         self.placement.as_ref()
     }
 
-    /// Whether the volume was decoded whole at open (a DICOM series or file, ASCII NRRD)
-    /// rather than read region by region from a file.
+    /// Whether the volume was decoded whole at open (ASCII NRRD) rather than read region by
+    /// region from its files.
     pub fn in_memory(&self) -> bool {
         matches!(self.source, Source::Whole(_))
     }
@@ -188,6 +192,7 @@ impl RegionReader {
         let voxels = checked_voxels(size).map_err(|e| ReadError::volume(&self.path, e))?;
         let (planar, data_path) = match &self.source {
             Source::Whole(v) => (cut(v, origin, size), &self.path),
+            Source::Series(s) => (s.read(origin, size)?, &self.path),
             Source::Stored(s) => (self.read_stored(s, origin, size, voxels)?, &s.path),
         };
         let volume = Volume::new(size, self.spacing, planar).map_err(|e| {

@@ -53,6 +53,22 @@ use cells::magnitude_class;
 use contexts::{CellContexts, Models};
 use neighbourhood::{Neighbourhood, Relatives};
 use octree::{region, Box3};
+/// The substreams a packet of `header` codes (those with parameters), in order, as (substream,
+/// its band index, whether it is the first coded one of its channel: the neighbourhood
+/// restarts there). The encoder and the decoder walk this one sequence.
+fn coded_substreams(header: &Header) -> impl Iterator<Item = (usize, usize, bool)> + '_ {
+    let nb = header.geometry.band_count();
+    let mut last_channel = None;
+    (0..header.substream_count())
+        .filter(|&sub| header.substreams[sub].is_some())
+        .map(move |sub| {
+            let channel = sub / nb;
+            let starts_channel = last_channel != Some(channel);
+            last_channel = Some(channel);
+            (sub, sub % nb, starts_channel)
+        })
+}
+
 /// Encodes one packet's coefficients; returns payload, the decoder's reconstruction (in decode
 /// order) and the bit breakdown (model-cost estimates scaled to the payload).
 pub(crate) fn encode(
@@ -63,7 +79,6 @@ pub(crate) fn encode(
 ) -> (Vec<u8>, Vec<Coefficient>, SizeBreakdown) {
     let mut enc = RangeEncoder::new();
     let mut m = Models::new(header);
-    let nb = header.geometry.band_count();
     let bands = header.geometry.bands();
     let mut per_sub: Vec<Vec<&Coefficient>> = vec![Vec::new(); header.substream_count()];
     for c in coefficients {
@@ -72,14 +87,11 @@ pub(crate) fn encode(
     let mut recon = Vec::with_capacity(coefficients.len());
     let mut bd = SizeBreakdown::default();
     let mut hood = Neighbourhood::new(header, tile);
-    for (sub, list) in per_sub.iter().enumerate() {
-        if sub % nb == 0 {
+    for (sub, bi, starts_channel) in coded_substreams(header) {
+        if starts_channel {
             hood.reset();
         }
-        if header.substreams[sub].is_none() {
-            continue;
-        }
-        let bi = sub % nb;
+        let list = &per_sub[sub];
         let b0 = enc.bits_spent();
         enc.encode_bit(&mut m.present[bi], !list.is_empty());
         bd.tag_bits += enc.bits_spent() - b0;
@@ -88,7 +100,6 @@ pub(crate) fn encode(
         }
         let band = bands[bi];
         let (origin, root) = region(header, tile, band.level, header.geometry.band_dims(band));
-        let quant = Quantizer::of(header, sub, layer);
         let mut pts: Vec<([u32; 3], f32)> = list
             .iter()
             .map(|c| {
@@ -97,14 +108,7 @@ pub(crate) fn encode(
             })
             .collect();
         let cells: Vec<[u32; 3]> = pts.iter().map(|(p, _)| *p).collect();
-        let ctx = Ctx {
-            bi,
-            quant,
-            origin,
-            channel: (sub / nb) as u8,
-            band,
-            relatives: hood.relatives(bi, band),
-        };
+        let ctx = Ctx::new(header, layer, (sub, bi), band, origin, &hood);
         m.coded.reset(root.hi);
         encode_box(&mut enc, &mut m, &ctx, root, &mut pts, &mut recon, &mut bd);
         hood.record(band, origin, &cells);
@@ -127,6 +131,28 @@ struct Ctx<'a> {
     channel: u8,
     band: Band,
     relatives: Relatives<'a>,
+}
+
+impl<'a> Ctx<'a> {
+    /// The context of substream `sub` (band index `bi`, of `band`) in `layer`, its band's
+    /// region of the tile starting at `origin`, its relatives taken from `hood`.
+    fn new(
+        header: &Header,
+        layer: usize,
+        (sub, bi): (usize, usize),
+        band: Band,
+        origin: [u32; 3],
+        hood: &'a Neighbourhood,
+    ) -> Ctx<'a> {
+        Ctx {
+            bi,
+            quant: Quantizer::of(header, sub, layer),
+            origin,
+            channel: (sub / header.geometry.band_count()) as u8,
+            band,
+            relatives: hood.relatives(bi, band),
+        }
+    }
 }
 
 /// Codes the points of box `b` (any order: each ends in a leaf of its own, and leaves are
@@ -265,20 +291,15 @@ pub(crate) fn decode(
     let (tile, layer, count) = (packet.tile, packet.layer, packet.count);
     let mut dec = RangeDecoder::new(packet.payload);
     let mut m = Models::new(header);
-    let nb = header.geometry.band_count();
     let bands = header.geometry.bands();
     // The count is bounded but may still be large for a hostile packet: grow as decoded.
     let mut out = Vec::with_capacity(count.min(super::coefficient::INITIAL_CAPACITY));
     let mut hood = Neighbourhood::new(header, tile);
     let mut spent = Spent::default();
-    for sub in 0..header.substream_count() {
-        if sub % nb == 0 {
+    for (sub, bi, starts_channel) in coded_substreams(header) {
+        if starts_channel {
             hood.reset();
         }
-        if header.substreams[sub].is_none() {
-            continue;
-        }
-        let bi = sub % nb;
         let b0 = dec.bytes_read();
         let present = dec.decode_bit(&mut m.present[bi]);
         spent.tag += dec.bytes_read() - b0;
@@ -293,15 +314,7 @@ pub(crate) fn decode(
                 "substream present in an empty tile region",
             ));
         }
-        let quant = Quantizer::of(header, sub, layer);
-        let ctx = Ctx {
-            bi,
-            quant,
-            origin,
-            channel: (sub / nb) as u8,
-            band,
-            relatives: hood.relatives(bi, band),
-        };
+        let ctx = Ctx::new(header, layer, (sub, bi), band, origin, &hood);
         let first = out.len();
         m.coded.reset(root.hi);
         decode_box(&mut dec, &mut m, &ctx, root, count, &mut out, &mut spent)?;

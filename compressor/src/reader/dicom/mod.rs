@@ -64,7 +64,7 @@ mod series;
 mod walk;
 
 pub use series::is_dicom_file;
-pub(crate) use series::{decode, gather_series};
+pub(crate) use series::{decode, gather_series, SeriesRegions};
 pub(crate) use walk::has_preamble;
 
 /// What the reader needs of one image file (pixel data not yet decoded).

@@ -371,7 +371,8 @@ pub(super) fn decode_frame(
 ) -> Result<(), ReadError> {
     let path = &img.path;
     if img.bits_allocated == 1 {
-        return decode_bit_frame(img, obj, f, offset, out);
+        let plane = img.rows * img.cols;
+        return decode_bit_frame(img, obj, f, &mut out[0][offset..offset + plane]);
     }
     let special: [SpecialFrame; 3] = [adobe_rgb_jpeg_frame, native_ybr_422_frame, rle_32_bit_frame];
     for decode in special {
@@ -528,16 +529,15 @@ pub(super) fn native_frame_bytes(img: &Image) -> usize {
     img.rows * img.cols * samples * bytes_per
 }
 
-/// Frame `f` of a 1-bit image (a mask) into channel 0 at `offset`, as 0 and 1 through the
-/// rescale. The bits of all frames run on without padding, least significant bit first
+/// Frame `f` of a 1-bit image (a mask) into `frame` (its samples in channel 0), as 0 and 1
+/// through the rescale. The bits of all frames run on without padding, least significant bit first
 /// (PS3.5 8.1.1); dicom-pixeldata cuts frames at byte boundaries, so they are read here. In
 /// Explicit VR Big Endian only OB pixel data is read.
 fn decode_bit_frame(
     img: &Image,
     obj: &DefaultDicomObject,
     f: usize,
-    offset: usize,
-    out: &mut [Vec<f32>],
+    frame: &mut [f32],
 ) -> Result<(), ReadError> {
     let err = |reason: String| dicom_err(&img.path, Some(tags::PIXEL_DATA), reason);
     let ts = transfer_syntax(obj);
@@ -557,7 +557,7 @@ fn decode_bit_frame(
     let bytes = p.to_bytes();
     let plane = img.rows * img.cols;
     let (slope, intercept) = img.rescale[f];
-    for (i, d) in out[0][offset..offset + plane].iter_mut().enumerate() {
+    for (i, d) in frame.iter_mut().take(plane).enumerate() {
         let k = f * plane + i;
         let byte = bytes.get(k / 8).ok_or_else(|| {
             err(format!(

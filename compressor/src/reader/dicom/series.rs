@@ -2,20 +2,21 @@
 //! and [`decode`], which reads every file's header, checks that the images form one series
 //! with one in-plane geometry and sample format, has [`super::geometry`] order and place the
 //! frames, holds the volume to what the files' bytes can hold, and decodes each file's frames
-//! into their slots.
+//! into their slots; [`SeriesRegions`], which does the same checks and reads boxes of the
+//! volume by slice ranges, decoding only the files that hold them.
 
 use std::collections::BTreeMap;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use dicom_core::Tag;
 use dicom_dictionary_std::tags;
-use wavesplat_codec::volume::Volume;
+use wavesplat_codec::volume::{Placement, Volume};
 
-use super::geometry::{order_frames, Ordered};
+use super::geometry::{order_frames, FrameRef, Ordered};
 use super::image::read_image;
 use super::pixels::{check_pixel_data, decode_frame};
 use super::walk::{has_preamble, parse};
-use super::{dicom_err, tag_name, EXPANSION_SLACK, MAX_FILE_EXPANSION};
+use super::{dicom_err, tag_name, Image, EXPANSION_SLACK, MAX_FILE_EXPANSION};
 use crate::reader::{ReadError, SourceFiles, MAX_SOURCE_FILES};
 
 /// A multi-valued decimal attribute as DICOM writes it (`1\0\0\0\1\0`), or "absent".
@@ -30,9 +31,9 @@ fn dicom_values<const N: usize>(v: &Option<[f64; N]>) -> String {
     }
 }
 
-/// Gathers the DICOM files directly inside `dir` (regular, non-hidden files starting with the
-/// DICOM preamble), sorted by name.
-pub(crate) fn gather_series(dir: &Path) -> Result<SourceFiles, ReadError> {
+/// The DICOM files directly inside `dir` (regular, non-hidden files starting with the DICOM
+/// preamble), sorted by name: (name, path). Reads 132 bytes of each.
+pub(crate) fn series_files(dir: &Path) -> Result<Vec<(String, PathBuf)>, ReadError> {
     let mut entries: Vec<_> = std::fs::read_dir(dir)
         .map_err(|e| ReadError::io(dir, e))?
         .collect::<Result<_, _>>()
@@ -59,7 +60,7 @@ pub(crate) fn gather_series(dir: &Path) -> Result<SourceFiles, ReadError> {
                 reason: format!("more than {MAX_SOURCE_FILES} DICOM files"),
             });
         }
-        files.push((name, crate::reader::read_file(&path)?));
+        files.push((name, path));
     }
     if files.is_empty() {
         return Err(ReadError::Series {
@@ -67,6 +68,15 @@ pub(crate) fn gather_series(dir: &Path) -> Result<SourceFiles, ReadError> {
             reason: "no DICOM files (files with the DICM preamble) in this directory".into(),
         });
     }
+    Ok(files)
+}
+
+/// Gathers the DICOM files directly inside `dir` ([`series_files`]) with their bytes.
+pub(crate) fn gather_series(dir: &Path) -> Result<SourceFiles, ReadError> {
+    let files = series_files(dir)?
+        .into_iter()
+        .map(|(name, path)| Ok((name, crate::reader::read_file(&path)?)))
+        .collect::<Result<_, ReadError>>()?;
     Ok(SourceFiles {
         origin: dir.to_path_buf(),
         base: dir.to_path_buf(),
@@ -90,18 +100,40 @@ pub fn is_dicom_file(path: &Path) -> std::io::Result<bool> {
     Ok(has_preamble(&head[..got]))
 }
 
-/// Decodes a DICOM volume (a series directory's files, or one multi-frame file).
-pub(crate) fn decode(src: &SourceFiles) -> Result<Volume, ReadError> {
-    // Pass 1: headers only.
+/// A series described from its files' headers alone: its images, which image and frame each
+/// slice z is, and the volume's geometry. [`decode`] fills the whole volume from it;
+/// [`SeriesRegions`] reads boxes of it, decoding only the frames a box crosses.
+#[derive(Debug)]
+struct Described {
+    images: Vec<Image>,
+    /// The image and frame of each slice, in volume order.
+    frames: Vec<FrameRef>,
+    dims: [usize; 3],
+    spacing: [f32; 3],
+    placement: Option<Placement>,
+    channels: usize,
+}
+
+/// Reads the image headers of `files` (name, path, bytes; pixel data not decoded).
+fn read_headers<'a>(
+    files: impl Iterator<Item = Result<(&'a str, PathBuf, std::borrow::Cow<'a, [u8]>), ReadError>>,
+) -> Result<Vec<Image>, ReadError> {
     let mut images = Vec::new();
-    for (name, bytes) in &src.files {
-        let path = src.path_of(name);
-        let obj = parse(&path, bytes, false)?;
+    for file in files {
+        let (name, path, bytes) = file?;
+        let obj = parse(&path, &bytes, false)?;
         if let Some(img) = read_image(name, &path, &obj, bytes.len())? {
             images.push(img);
         }
     }
-    let dir = &src.origin;
+    Ok(images)
+}
+
+/// Checks that `images` (from files of `file_bytes` bytes in all, in `dir`) form one series with
+/// one in-plane geometry and sample format that its files' bytes can hold, and orders and
+/// places their frames.
+fn describe(dir: &Path, images: Vec<Image>, file_bytes: usize) -> Result<Described, ReadError> {
+    let dir = &dir.to_path_buf();
     if images.is_empty() {
         return Err(ReadError::Series {
             path: dir.clone(),
@@ -198,12 +230,9 @@ pub(crate) fn decode(src: &SourceFiles) -> Result<Volume, ReadError> {
         spacing,
         placement,
     } = order_frames(dir, &images)?;
-    let [nx, ny, nz] = dims;
-    let plane = nx * ny;
 
     // The whole volume, too, must come from the files' bytes (one slack per volume, not per
     // file, so that many small files cannot add up to a large buffer).
-    let file_bytes: usize = src.files.iter().map(|(_, b)| b.len()).sum();
     let declared: usize = images
         .iter()
         .map(|i| i.rows * i.cols * i.frames * i.samples * (i.bits_allocated as usize / 8))
@@ -219,30 +248,44 @@ pub(crate) fn decode(src: &SourceFiles) -> Result<Volume, ReadError> {
             ),
         });
     }
+    Ok(Described {
+        channels: first.channels(),
+        frames: frames.into_iter().map(|(f, _)| f).collect(),
+        images,
+        dims,
+        spacing,
+        placement,
+    })
+}
+
+/// Decodes a DICOM volume (a series directory's files, or one multi-frame file).
+pub(crate) fn decode(src: &SourceFiles) -> Result<Volume, ReadError> {
+    let images = read_headers(src.files.iter().map(|(name, bytes)| {
+        Ok((
+            name.as_str(),
+            src.path_of(name),
+            std::borrow::Cow::Borrowed(bytes.as_slice()),
+        ))
+    }))?;
+    let file_bytes: usize = src.files.iter().map(|(_, b)| b.len()).sum();
+    let dir = &src.origin;
+    let d = describe(dir, images, file_bytes)?;
+    let [nx, ny, nz] = d.dims;
+    let plane = nx * ny;
 
     // Pass 2: decode each file's frames into their slots.
-    let mut slot_of: Vec<Vec<usize>> = images.iter().map(|i| vec![0; i.frames]).collect();
-    for (z, (f, _)) in frames.iter().enumerate() {
+    let mut slot_of: Vec<Vec<usize>> = d.images.iter().map(|i| vec![0; i.frames]).collect();
+    for (z, f) in d.frames.iter().enumerate() {
         slot_of[f.image][f.frame] = z;
     }
-    let channels = first.channels();
     let n = plane * nz;
-    let mut out: Vec<Vec<f32>> = Vec::with_capacity(channels);
-    for _ in 0..channels {
-        let mut c = Vec::new();
-        c.try_reserve_exact(n).map_err(|_| ReadError::Series {
-            path: dir.clone(),
-            reason: format!("cannot allocate {n} voxels"),
-        })?;
-        c.resize(n, 0.0);
-        out.push(c);
-    }
+    let mut out = allocate(dir, d.channels, n)?;
     let by_name: BTreeMap<&str, &[u8]> = src
         .files
         .iter()
         .map(|(n, b)| (n.as_str(), b.as_slice()))
         .collect();
-    for (ii, img) in images.iter().enumerate() {
+    for (ii, img) in d.images.iter().enumerate() {
         let obj = parse(&img.path, by_name[img.name.as_str()], true)?;
         check_pixel_data(img, &obj)?;
         for f in 0..img.frames {
@@ -250,9 +293,123 @@ pub(crate) fn decode(src: &SourceFiles) -> Result<Volume, ReadError> {
             decode_frame(img, &obj, f, z * plane, &mut out)?;
         }
     }
-    let v = Volume::new(dims, spacing, out).map_err(|e| ReadError::volume(dir, e))?;
-    match placement {
+    let v = Volume::new(d.dims, d.spacing, out).map_err(|e| ReadError::volume(dir, e))?;
+    match d.placement {
         Some(p) => v.with_placement(p).map_err(|e| ReadError::volume(dir, e)),
         None => Ok(v),
+    }
+}
+
+/// `channels` zeroed buffers of `n` samples, or an error naming `dir` when memory is short.
+fn allocate(dir: &Path, channels: usize, n: usize) -> Result<Vec<Vec<f32>>, ReadError> {
+    let mut out: Vec<Vec<f32>> = Vec::with_capacity(channels);
+    for _ in 0..channels {
+        let mut c = Vec::new();
+        c.try_reserve_exact(n).map_err(|_| ReadError::Series {
+            path: dir.to_path_buf(),
+            reason: format!("cannot allocate {n} voxels"),
+        })?;
+        c.resize(n, 0.0);
+        out.push(c);
+    }
+    Ok(out)
+}
+
+/// A DICOM series (a directory, or one multi-frame file) opened to read boxes of it by slice
+/// ranges: opening reads each file once for its header and keeps none of the bytes; a box
+/// reads and decodes only the files holding its slices, one frame at a time, so memory is that
+/// of the box plus one frame, whatever the series' size. Validation and ordering are
+/// [`decode`]'s own (one [`describe`]), so a box holds exactly what the whole decode gives
+/// those voxels.
+#[derive(Debug)]
+pub(crate) struct SeriesRegions {
+    origin: PathBuf,
+    described: Described,
+}
+
+impl SeriesRegions {
+    /// Opens the series at `path`: a directory of DICOM files or one DICOM file.
+    pub(crate) fn open(path: &Path) -> Result<SeriesRegions, ReadError> {
+        let meta = std::fs::metadata(path).map_err(|e| ReadError::io(path, e))?;
+        let files: Vec<(String, PathBuf)> = if meta.is_dir() {
+            series_files(path)?
+        } else {
+            let name = path
+                .file_name()
+                .map(|n| n.to_string_lossy().into_owned())
+                .unwrap_or_default();
+            vec![(name, path.to_path_buf())]
+        };
+        let mut file_bytes = 0usize;
+        let images = read_headers(files.iter().map(|(name, path)| {
+            let bytes = crate::reader::read_file(path)?;
+            file_bytes = file_bytes.saturating_add(bytes.len());
+            Ok((name.as_str(), path.clone(), std::borrow::Cow::Owned(bytes)))
+        }))?;
+        let described = describe(path, images, file_bytes)?;
+        Ok(SeriesRegions {
+            origin: path.to_path_buf(),
+            described,
+        })
+    }
+
+    /// Dimensions (x, y, z) of the whole volume.
+    pub(crate) fn dims(&self) -> [usize; 3] {
+        self.described.dims
+    }
+
+    /// Channels (1, or 3 for colour).
+    pub(crate) fn channels(&self) -> usize {
+        self.described.channels
+    }
+
+    /// Voxel spacing, as [`decode`] gives it.
+    pub(crate) fn spacing(&self) -> [f32; 3] {
+        self.described.spacing
+    }
+
+    /// Placement of voxel (0, 0, 0), as [`decode`] gives it.
+    pub(crate) fn placement(&self) -> Option<&Placement> {
+        self.described.placement.as_ref()
+    }
+
+    /// The planar channels of the box of `size` at `origin` (within the volume, checked by the
+    /// caller), with the modality rescale, as [`decode`] gives those voxels.
+    pub(crate) fn read(
+        &self,
+        origin: [usize; 3],
+        size: [usize; 3],
+    ) -> Result<Vec<Vec<f32>>, ReadError> {
+        let d = &self.described;
+        let [nx, ny, _] = d.dims;
+        let plane = nx * ny;
+        let mut out = allocate(&self.origin, d.channels, size.iter().product())?;
+        let mut frame = allocate(&self.origin, d.channels, plane)?;
+        // The box's slices by file, so each file is read and parsed once per box.
+        let mut by_image: BTreeMap<usize, Vec<(usize, usize)>> = BTreeMap::new();
+        for z in origin[2]..origin[2] + size[2] {
+            let f = d.frames[z];
+            by_image
+                .entry(f.image)
+                .or_default()
+                .push((z - origin[2], f.frame));
+        }
+        for (ii, slices) in by_image {
+            let img = &d.images[ii];
+            let bytes = crate::reader::read_file(&img.path)?;
+            let obj = parse(&img.path, &bytes, true)?;
+            check_pixel_data(img, &obj)?;
+            for (bz, f) in slices {
+                decode_frame(img, &obj, f, 0, &mut frame)?;
+                for (c, channel) in out.iter_mut().enumerate() {
+                    for by in 0..size[1] {
+                        let from = (origin[1] + by) * nx + origin[0];
+                        let to = (bz * size[1] + by) * size[0];
+                        channel[to..to + size[0]].copy_from_slice(&frame[c][from..from + size[0]]);
+                    }
+                }
+            }
+        }
+        Ok(out)
     }
 }

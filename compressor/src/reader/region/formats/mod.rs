@@ -21,7 +21,7 @@ use self::metaimage::open_metaimage;
 use self::nifti::open_nifti;
 use self::nrrd::open_nrrd;
 use self::raw::open_raw;
-use super::{read_whole, Opened, Stored};
+use super::{Opened, Stored};
 use crate::reader::text::MAX_TEXT_HEADER;
 use crate::reader::{Endian, Format, RawSpec, ReadError, SampleType, SourceFiles};
 use wavesplat_codec::volume::{Volume, VolumeError};
@@ -30,7 +30,7 @@ use wavesplat_codec::volume::{Volume, VolumeError};
 pub(super) fn open(path: &Path, raw: Option<&RawSpec>) -> Result<Opened, ReadError> {
     let meta = std::fs::metadata(path).map_err(|e| ReadError::io(path, e))?;
     if meta.is_dir() {
-        return read_whole(path); // a DICOM series
+        return open_series(path); // a DICOM series
     }
     let by_name = Format::from_name(path);
     if let (None, Some(spec)) = (by_name, raw) {
@@ -41,7 +41,7 @@ pub(super) fn open(path: &Path, raw: Option<&RawSpec>) -> Result<Opened, ReadErr
         None => Format::sniff(&read_prefix(path, 512)?),
     };
     match format {
-        Some(Format::Dicom) => read_whole(path),
+        Some(Format::Dicom) => open_series(path),
         Some(Format::Nrrd) => open_nrrd(path),
         Some(Format::MetaImage) => open_metaimage(path),
         Some(Format::Nifti) => open_nifti(path),
@@ -49,6 +49,18 @@ pub(super) fn open(path: &Path, raw: Option<&RawSpec>) -> Result<Opened, ReadErr
             path: path.to_path_buf(),
         }),
     }
+}
+
+/// A DICOM series directory or file, read by slice ranges.
+fn open_series(path: &Path) -> Result<Opened, ReadError> {
+    let s = crate::reader::dicom::SeriesRegions::open(path)?;
+    Ok(Opened {
+        dims: s.dims(),
+        channels: s.channels(),
+        spacing: s.spacing(),
+        placement: s.placement().copied(),
+        source: super::Source::Series(s),
+    })
 }
 
 /// Up to `limit` bytes from the start of a file.
