@@ -1,5 +1,5 @@
 //! What every coder of packets shares: the coefficient (channel, band, position, value), a
-//! packet to encode, where its bits went, and the bounds a decoder puts on a packet's declared
+//! packet to encode, a packet's framing (what a decoder is handed), where its bits went, and the bounds a decoder puts on a packet's declared
 //! count before it allocates. The dispatcher (`packet`) and the coders (`paper`, `sigmap`,
 //! `fast`) all import these from here, and none from another.
 
@@ -121,4 +121,20 @@ pub(super) fn region_extent(
         hi[a] = end.saturating_sub(o) as u32;
     }
     (lo, hi)
+}
+
+/// A packet's framing: everything but the coded coefficients (cheap to read: a viewer or a
+/// cache ranks packets by it before decoding any).
+#[derive(Debug, Clone, PartialEq)]
+pub struct PacketFraming<'a> {
+    /// Tile index.
+    pub tile: usize,
+    /// Layer.
+    pub layer: usize,
+    /// Declared coefficient count (checked against the payload size and the tile's capacity).
+    pub count: usize,
+    /// Energy per band (as `packet::DecodedPacket::summary`).
+    pub summary: Vec<(Band, f64)>,
+    /// The coded coefficients.
+    pub payload: &'a [u8],
 }

@@ -10,6 +10,7 @@
 //! that floor, which no priority can tell apart from nothing).
 
 use super::bytes::{ByteReader, ByteWriter};
+pub use super::coefficient::PacketFraming;
 use super::coefficient::MAX_COEFFICIENTS_PER_PAYLOAD_BYTE;
 pub use super::coefficient::{Coefficient, PacketInput, SizeBreakdown};
 use super::{invalid, CoderKind, FormatError, Header};
@@ -220,22 +221,6 @@ pub fn encode_packets(header: &mut Header, inputs: &[PacketInput]) -> EncodedPac
         }
     };
     frame_all(header, inputs, payloads, reconstruction, breakdown)
-}
-
-/// A packet's framing: everything but the coded coefficients (cheap to read: a viewer or a
-/// cache ranks packets by it before decoding any).
-#[derive(Debug, Clone, PartialEq)]
-pub struct PacketFraming<'a> {
-    /// Tile index.
-    pub tile: usize,
-    /// Layer.
-    pub layer: usize,
-    /// Declared coefficient count (checked against the payload size and the tile's capacity).
-    pub count: usize,
-    /// Energy per band (see [`DecodedPacket::summary`]).
-    pub summary: Vec<(Band, f64)>,
-    /// The coded coefficients.
-    pub payload: &'a [u8],
 }
 
 /// Reads and validates a packet's framing and checksum without decoding its coefficients.

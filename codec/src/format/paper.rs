@@ -8,8 +8,8 @@
 //! fitted to the file's symbols; with [`CoderKind::Range`] the same syntax elements go through
 //! adaptive binary models that reset at every packet.
 
+use super::coefficient::PacketFraming;
 use super::coefficient::{Coefficient, PacketInput, SizeBreakdown, INITIAL_CAPACITY};
-use super::packet::PacketFraming;
 use super::quant::Chain;
 use super::{invalid, CoderKind, FormatError, Header, HuffmanTables, CATEGORY_ALPHABET};
 use crate::entropy::bits::{BitReader, BitSink, BitWriter};

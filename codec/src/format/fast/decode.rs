@@ -9,8 +9,8 @@ use super::{
 };
 use crate::entropy::bits::WordReader;
 use crate::entropy::range::{BitModel, RangeDecoder};
+use crate::format::coefficient::PacketFraming;
 use crate::format::coefficient::{region_extent, Coefficient, SizeBreakdown};
-use crate::format::packet::PacketFraming;
 use crate::format::quant::Quantizer;
 use crate::format::{invalid, FormatError, Header};
 

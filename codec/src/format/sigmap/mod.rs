@@ -43,8 +43,8 @@ mod grid;
 mod neighbourhood;
 mod octree;
 
+use super::coefficient::PacketFraming;
 use super::coefficient::{Coefficient, SizeBreakdown};
-use super::packet::PacketFraming;
 use super::quant::Quantizer;
 use super::{invalid, FormatError, Header};
 use crate::entropy::range::{RangeDecoder, RangeEncoder};

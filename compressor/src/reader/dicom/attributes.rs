@@ -12,6 +12,11 @@ use dicom_object::{DefaultDicomObject, InMemDicomObject};
 use super::dicom_err;
 use crate::reader::ReadError;
 
+/// The transfer syntax UID of `obj`, without the NUL that pads it to an even length.
+pub(super) fn transfer_syntax(obj: &DefaultDicomObject) -> &str {
+    obj.meta().transfer_syntax().trim_end_matches('\0')
+}
+
 /// Replaces the top-level elements written as `UN` whose attributes the standard dictionary
 /// knows by their standard VR ([`value_element`]), so that the pixel data decoder, which reads
 /// Rows, Columns, Bits Allocated and the rest itself, sees them too.

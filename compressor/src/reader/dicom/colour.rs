@@ -8,8 +8,8 @@ use dicom_dictionary_std::tags;
 use dicom_object::{DefaultDicomObject, InMemDicomObject};
 
 use super::attributes::element;
+use super::attributes::transfer_syntax;
 use super::dicom_err;
-use super::pixels::transfer_syntax;
 use super::Image;
 use crate::reader::ReadError;
 

@@ -13,7 +13,7 @@ use dicom_object::DefaultDicomObject;
 use dicom_pixeldata::PixelDecoder;
 use dicom_transfer_syntax_registry::{TransferSyntaxIndex, TransferSyntaxRegistry};
 
-use super::attributes::element;
+use super::attributes::{element, transfer_syntax};
 use super::colour::{sample_at, ybr_full_to_rgb, ybr_triples_to_rgb};
 use super::Image;
 use super::{dicom_err, MAX_EXPANSION};
@@ -21,11 +21,6 @@ use crate::reader::ReadError;
 
 /// Transfer Syntax UID of RLE Lossless.
 pub(super) const RLE_LOSSLESS: &str = "1.2.840.10008.1.2.5";
-
-/// The transfer syntax UID of `obj`, without the NUL that pads it to an even length.
-pub(super) fn transfer_syntax(obj: &DefaultDicomObject) -> &str {
-    obj.meta().transfer_syntax().trim_end_matches('\0')
-}
 
 /// Frame `f` of encapsulated pixel data: every fragment joined for a single frame, else
 /// fragment `f` when there is one fragment a frame. `None` when the pixel data is not
