@@ -65,17 +65,30 @@ pub enum VolumeError {
     #[error("volume placement: {0}")]
     Placement(String),
     /// A box asked of a larger whole (a brick) does not lie within it (see
-    /// [`VolumeError::outside_whole`]).
+    /// [`VolumeError::check_within`]).
     #[error("{0}")]
     OutsideWhole(String),
 }
 
 impl VolumeError {
-    /// A box at `origin` of `dims` voxels that does not lie within a whole of `whole`.
-    pub fn outside_whole(origin: [u64; 3], dims: [usize; 3], whole: [u64; 3]) -> VolumeError {
-        VolumeError::OutsideWhole(format!(
-            "a box at {origin:?} of {dims:?} voxels does not lie within the whole's {whole:?}"
-        ))
+    /// Checks that the box at `origin` of `dims` voxels lies within a whole of `whole`
+    /// ([`VolumeError::OutsideWhole`] otherwise).
+    pub fn check_within(
+        origin: [u64; 3],
+        dims: [usize; 3],
+        whole: [u64; 3],
+    ) -> Result<(), VolumeError> {
+        let outside = (0..3).any(|a| {
+            origin[a]
+                .checked_add(dims[a] as u64)
+                .is_none_or(|e| e > whole[a])
+        });
+        if outside {
+            return Err(VolumeError::OutsideWhole(format!(
+                "a box at {origin:?} of {dims:?} voxels does not lie within the whole's {whole:?}"
+            )));
+        }
+        Ok(())
     }
 }
 

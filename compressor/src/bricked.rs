@@ -155,14 +155,7 @@ impl BrickSource for crate::phantom::PhantomVolume {
 /// The box of `volume` at `origin` of `dims` (within it).
 pub fn crop(volume: &Volume, origin: [u64; 3], dims: [usize; 3]) -> Result<Volume, VolumeError> {
     let d = volume.dims();
-    let whole = d.map(|n| n as u64);
-    if (0..3).any(|a| {
-        origin[a]
-            .checked_add(dims[a] as u64)
-            .is_none_or(|e| e > whole[a])
-    }) {
-        return Err(VolumeError::outside_whole(origin, dims, whole));
-    }
+    VolumeError::check_within(origin, dims, d.map(|n| n as u64))?;
     let o = origin.map(|v| v as usize);
     let channels = volume
         .channels()

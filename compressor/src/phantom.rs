@@ -261,15 +261,7 @@ impl Phantom {
         dims: [usize; 3],
     ) -> Result<Volume, VolumeError> {
         let n = voxel_count(dims)?;
-        let outside = (0..3).any(|a| {
-            whole[a] == 0
-                || origin[a]
-                    .checked_add(dims[a] as u64)
-                    .is_none_or(|e| e > whole[a])
-        });
-        if outside {
-            return Err(VolumeError::outside_whole(origin, dims, whole));
-        }
+        VolumeError::check_within(origin, dims, whole)?;
         let r = Region {
             whole,
             origin,
