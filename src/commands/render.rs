@@ -313,8 +313,13 @@ pub fn run(a: RenderArgs) -> Result<()> {
     // reference rendering left out.
     let request = Instant::now();
     let location = a.view.location()?;
+    let one_pass_asked = !a.progressive
+        && a.bytes.is_none()
+        && a.budget_ms.is_none()
+        && a.record.is_none()
+        && a.view.client_memory.is_none();
     if let VolumeLocation::File { path, bytes } = &location {
-        if wavesplat_codec::format::bricked::is_bricked(bytes) {
+        if wavesplat_codec::format::bricked::is_bricked(bytes) && one_pass_asked && !a.reference {
             return render_bricked(&a, &view, path, bytes, request);
         }
     }
@@ -334,12 +339,10 @@ pub fn run(a: RenderArgs) -> Result<()> {
     };
     let reference_took = reference_started.elapsed();
     let since_request = || request.elapsed().saturating_sub(reference_took);
-    let one_pass = !a.progressive
-        && a.bytes.is_none()
-        && a.budget_ms.is_none()
-        && a.record.is_none()
-        && a.view.client_memory.is_none()
-        && matches!(opened, Opened::File { .. });
+    // A bricked file comes here only to be drawn progressively (or with a reference).
+    let one_pass = one_pass_asked
+        && matches!(opened, Opened::File { .. })
+        && opened.bricked_volume().is_none();
     let (choice, why) = if one_pass {
         one_pass_backend(
             a.backend.choice(),
@@ -404,12 +407,17 @@ pub fn run(a: RenderArgs) -> Result<()> {
         report_quality(reference.as_ref(), image);
         return Ok(());
     }
-    let session = RenderSession::new(
-        header.clone(),
-        spec,
-        selected.backend,
-        a.view.session_options(),
-    )?;
+    let session = match opened.bricked_volume() {
+        Some(bricked) => {
+            RenderSession::new_bricked(bricked, spec, selected.backend, a.view.session_options())?
+        }
+        None => RenderSession::new(
+            header.clone(),
+            spec,
+            selected.backend,
+            a.view.session_options(),
+        )?,
+    };
     let mut frames = FrameLoop::new(session, opened.into_source());
     let mut recorder = match &a.record {
         Some(d) => Some(Recorder::new(d, reference.is_some())?),
@@ -579,8 +587,9 @@ fn left_out(vanished: usize) -> String {
     }
 }
 
-/// `render` of a local bricked file: every brick the view sees, drawn in one pass on the CPU
-/// and added up ([`wavesplat_viewer::bricked`]).
+/// `render` of a local bricked file in one pass: every brick the view sees, drawn on the CPU
+/// and added up ([`wavesplat_viewer::bricked`]). (Progressive runs go through the session, as
+/// any file.)
 fn render_bricked(
     a: &RenderArgs,
     view: &ViewRequest,
@@ -588,21 +597,6 @@ fn render_bricked(
     bytes: &[u8],
     request: Instant,
 ) -> Result<()> {
-    if a.progressive
-        || a.bytes.is_some()
-        || a.budget_ms.is_some()
-        || a.record.is_some()
-        || a.reference
-        || a.view.client_memory.is_some()
-        || a.view.view.is_some()
-    {
-        bail!(
-            "{} is a bricked volume: it is drawn whole in one pass; --progressive, --bytes, \
-             --budget-ms, --record, --reference, --client-memory and --view are not supported \
-             for bricked volumes yet",
-            path.display()
-        );
-    }
     let (file, first) = wavesplat_viewer::bricked::parse_with_first(bytes)
         .with_context(|| format!("reading {}", path.display()))?;
     let whole = wavesplat_viewer::bricked::whole_geometry(&file.manifest, &first);

@@ -134,6 +134,76 @@ fn on_screen(camera: &Camera, origin: [u64; 3], dims: [usize; 3], reach: f64) ->
     hi[0] >= 0.0 && lo[0] <= camera.width as f64 && hi[1] >= 0.0 && lo[1] <= camera.height as f64
 }
 
+/// How one brick draws its share of a single view of the whole: its own view (the whole's
+/// camera moved into the brick's frame) and the factor its image is scaled by so that its
+/// depth cue measures from the whole's light-facing faces (1 without a cue).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct BrickFrame {
+    /// The brick's view.
+    pub spec: ViewSpec,
+    /// e^(−k·δ): δ the distance from the whole's light-facing faces to the brick's.
+    pub cue_scale: f64,
+}
+
+/// The whole's camera and resolved cue for a single view `spec` of `whole` (the frame every
+/// brick is drawn in); multiview is refused here: its panels each move into a brick's frame by
+/// a pan of their own, which one brick view cannot hold.
+pub fn whole_frame(
+    spec: &ViewSpec,
+    whole: &Geometry,
+) -> Result<(Camera, Option<ResolvedCue>), RenderError> {
+    if spec.multiview {
+        return Err(RenderError::Unsupported(
+            "multiview of a bricked volume is drawn in one pass only (render without --progressive)",
+        ));
+    }
+    let camera = spec.cameras(whole)?.remove(0);
+    let cue = spec
+        .view
+        .cue
+        .map(|c| resolve_cue(&c, &camera, whole))
+        .transpose()?;
+    Ok((camera, cue))
+}
+
+/// How the brick of `geometry` at `origin` draws its share of the single view `spec` of the
+/// whole (camera and cue from [`whole_frame`]); `None` when its box projects off the image.
+pub fn brick_frame(
+    spec: &ViewSpec,
+    (camera, whole_cue): (&Camera, Option<&ResolvedCue>),
+    whole: &Geometry,
+    geometry: &Geometry,
+    origin: [u64; 3],
+) -> Result<Option<BrickFrame>, RenderError> {
+    if !on_screen(camera, origin, geometry.dims, reach(geometry, camera)) {
+        return Ok(None);
+    }
+    let view = brick_view(&spec.view, camera, whole, geometry, origin);
+    let cue_scale = match (whole_cue, view.cue) {
+        (Some(wc), Some(cue)) => {
+            let own = resolve_cue(&cue, &Camera::new(&view, geometry)?, geometry)?;
+            let delta = wc.dist(origin.map(|v| v as f64)) - own.dist([0.0; 3]);
+            (-wc.k * delta).exp()
+        }
+        _ => 1.0,
+    };
+    Ok(Some(BrickFrame {
+        spec: ViewSpec::single(view),
+        cue_scale,
+    }))
+}
+
+/// How far beyond a brick's box the splats of `geometry` reach on `camera`'s screen, in voxels:
+/// clipped splats draw nothing outside it (a pixel's margin); otherwise a basis function
+/// reaches (order/2)·2^M voxels beyond it at most.
+fn reach(g: &Geometry, camera: &Camera) -> f64 {
+    if g.clips_to_box() || g.family == Family::Haar {
+        1.0 / camera.zoom
+    } else {
+        0.5 * g.family.order() as f64 * (1u64 << g.levels) as f64
+    }
+}
+
 /// Draws every coefficient of a bricked file's bytes for `spec` with `backend`.
 pub fn draw_bricked_file(
     bytes: &[u8],
@@ -154,12 +224,7 @@ pub fn draw_bricked_file(
                 .cue
                 .map(|c| resolve_cue(&c, &camera, &whole))
                 .transpose()?;
-            let g = &first.geometry;
-            let reach = if g.clips_to_box() || g.family == Family::Haar {
-                1.0 / camera.zoom
-            } else {
-                0.5 * g.family.order() as f64 * (1u64 << g.levels) as f64
-            };
+            let reach = reach(&first.geometry, &camera);
             Ok((view, camera, cue, reach))
         })
         .collect::<Result<_, ViewError>>()

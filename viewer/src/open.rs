@@ -323,9 +323,29 @@ impl Opened {
         }
     }
 
-    /// The image of every coefficient for `spec`, in display space.
+    /// The image of every coefficient for `spec`, in display space (a bricked file's: every
+    /// brick drawn in one pass, [`crate::bricked::draw_bricked_file`]).
     pub fn reference_image(&self, header: &Header, spec: &ViewSpec) -> Result<Image, OpenError> {
+        if let Opened::File { source } = self {
+            if source.bricked_volume().is_some() {
+                let drawn = crate::bricked::draw_bricked_file(
+                    source.file_bytes(),
+                    spec,
+                    &mut crate::CpuBackend::new(),
+                )?;
+                return Ok(drawn.image);
+            }
+        }
         display_image(header, &self.all_coefficients(header)?, spec)
+    }
+
+    /// The volume as a bricked session draws it, when it is a bricked file (`None`
+    /// otherwise): [`crate::session::RenderSession::new_bricked`] takes it.
+    pub fn bricked_volume(&self) -> Option<crate::session::BrickedVolume> {
+        match self {
+            Opened::File { source } => source.bricked_volume(),
+            _ => None,
+        }
     }
 }
 
@@ -369,13 +389,19 @@ pub fn open(
         }
         VolumeLocation::File { path, bytes } => {
             // A named view and the fitting zoom need the volume before packets are ordered.
-            let header = parse_file(&bytes)
-                .map_err(|source| OpenError::Format {
-                    what: path.display().to_string(),
-                    source,
-                })?
-                .header;
-            let spec = request.spec_for(&header)?;
+            let spec = if wavesplat_codec::format::bricked::is_bricked(&bytes) {
+                let (file, first) = crate::bricked::parse_with_first(&bytes)?;
+                let whole = crate::bricked::whole_geometry(&file.manifest, &first);
+                request.spec_for_volume(&whole, file.manifest.placement.as_ref())?
+            } else {
+                let header = parse_file(&bytes)
+                    .map_err(|source| OpenError::Format {
+                        what: path.display().to_string(),
+                        source,
+                    })?
+                    .header;
+                request.spec_for(&header)?
+            };
             let source = FileSource::open(bytes, &spec)
                 .map_err(failed)?
                 .with_byte_budget(byte_budget);

@@ -53,6 +53,40 @@ impl Visibility {
         Ok(Visibility { geometry: g, cams })
     }
 
+    /// [`Visibility::new`] with the band weights of `like`: a visibility of the same view
+    /// moved by a pan (the same orientation, zoom and cue) of a volume of the same family,
+    /// depth and spacing, on which the band weights alone depend. The bricks of one volume
+    /// share them: the slice-plane integration is the bulk of a visibility's cost (~10 ms a
+    /// camera), the tile factors are the bricks' own. Falls back to [`Visibility::new`] when
+    /// `like` is of another family, depth or spacing, or has another number of cameras.
+    pub fn new_like(
+        header: &Header,
+        spec: &ViewSpec,
+        like: &Visibility,
+    ) -> Result<Visibility, ViewError> {
+        let g = header.geometry;
+        let cameras = spec.cameras(&g)?;
+        let same = like.geometry.family == g.family
+            && like.geometry.levels == g.levels
+            && like.geometry.spacing == g.spacing
+            && like.cams.len() == cameras.len();
+        if !same {
+            return Visibility::new(header, spec);
+        }
+        let mut cams = Vec::with_capacity(cameras.len());
+        for (cam, shared) in cameras.iter().zip(&like.cams) {
+            let cue = match &spec.view.cue {
+                Some(c) => Some(resolve_cue(c, cam, &g)?),
+                None => None,
+            };
+            cams.push(CameraWeights {
+                band_weight: shared.band_weight.clone(),
+                tile_factor: tile_factors(header, cam, cue.as_ref()),
+            });
+        }
+        Ok(Visibility { geometry: g, cams })
+    }
+
     /// The fraction of a unit-energy coefficient's energy seen in this view when it lies in
     /// `band` and tile `tile` (summed over the cameras; 0 for an unknown band or tile).
     pub fn weight(&self, band: Band, tile: usize) -> f64 {

@@ -22,7 +22,7 @@ impl<B: AccumulationBackend> RenderSession<B> {
                 let e: f64 = h
                     .coefficients
                     .iter()
-                    .filter_map(|c| self.visible_energy(c, h.tile))
+                    .filter_map(|c| self.visible_energy(*id, c, h.tile))
                     .sum();
                 (e / h.bytes().max(1) as f64, *id)
             })

@@ -4,7 +4,8 @@
 
 use super::{RenderSession, SessionError};
 use crate::backend::AccumulationBackend;
-use crate::plan::Planner;
+use crate::plan::{Planner, ViewPlan};
+use crate::RenderError;
 use std::sync::mpsc::TryRecvError;
 use std::time::Duration;
 use wavesplat_codec::view::ViewSpec;
@@ -13,6 +14,12 @@ impl<B: AccumulationBackend> RenderSession<B> {
     /// Plans `spec` exactly on a background thread: the footprint tables and the atlas the
     /// backend reads (copying tables into an atlas is itself too long for a frame).
     pub(super) fn build_in_background(&mut self, spec: ViewSpec) {
+        // A bricked volume's bricks are placed here (cheap); a view that cannot be placed is
+        // planned on the frame thread when the builder reports back, which reports the error.
+        let parts = match &self.bricks {
+            None => Ok(Vec::new()),
+            Some(b) => b.jobs(&spec),
+        };
         let (tx, rx) = std::sync::mpsc::channel();
         let (options, geometry, channels) = (
             *self.planner.options(),
@@ -23,7 +30,19 @@ impl<B: AccumulationBackend> RenderSession<B> {
             // Planning runs parallel loops; on rayon's global pool they would queue ahead of
             // the frame thread's splat batches and stall frames (on two cores, for the whole
             // build). A one-thread pool of its own keeps the global pool free for splatting.
-            let plan_it = || Planner::new(options).plan(&geometry, &spec, channels);
+            let plan_it = || -> Result<Plans, RenderError> {
+                let mut planner = Planner::new(options);
+                let whole = planner.plan(&geometry, &spec, channels)?;
+                let parts = parts?
+                    .iter()
+                    .map(|job| {
+                        job.as_ref()
+                            .map(|(g, s)| planner.plan(g, s, channels))
+                            .transpose()
+                    })
+                    .collect::<Result<_, _>>()?;
+                Ok(Plans { whole, parts })
+            };
             let plan = match rayon::ThreadPoolBuilder::new()
                 .num_threads(1)
                 .thread_name(|_| "wavesplat-planner".into())
@@ -70,12 +89,15 @@ impl<B: AccumulationBackend> RenderSession<B> {
             },
         };
         self.building = None;
-        let plan = match arrived {
-            Some(Ok(plan)) => {
-                for set in plan.footprint_sets() {
+        let plans = match arrived {
+            Some(Ok(plans)) => {
+                for set in std::iter::once(&plans.whole)
+                    .chain(plans.parts.iter().flatten())
+                    .flat_map(ViewPlan::footprint_sets)
+                {
                     self.planner.insert(set);
                 }
-                Some(plan)
+                Some(plans)
             }
             // Planning the view failed there: plan here, which reports the error.
             Some(Err(_)) | None => None,
@@ -84,9 +106,16 @@ impl<B: AccumulationBackend> RenderSession<B> {
             return Ok(());
         }
         let spec = self.plan.spec;
-        match plan {
-            Some(plan) if plan.spec == spec => {
-                self.plan = plan;
+        match plans {
+            Some(plans) if plans.whole.spec == spec => {
+                self.plan = plans.whole;
+                if let Some(b) = &mut self.bricks {
+                    for (part, plan) in b.parts.iter_mut().zip(plans.parts) {
+                        if let (Some(view), Some(plan)) = (part.view.as_mut(), plan) {
+                            view.plan = plan;
+                        }
+                    }
+                }
             }
             Some(_) => {
                 if !self.turning {
@@ -95,15 +124,20 @@ impl<B: AccumulationBackend> RenderSession<B> {
                 return Ok(());
             }
             None => {
-                self.plan =
-                    self.planner
-                        .plan(&self.header.geometry, &spec, self.header.channels)?;
+                let (g, channels) = (self.header.geometry, self.header.channels);
+                self.plan = self.planner.plan(&g, &spec, channels)?;
+                if let Some(b) = &mut self.bricks {
+                    let planner = &mut self.planner;
+                    b.set_view(&spec, &mut |g, s| Ok((planner.plan(g, s, channels)?, true)))?;
+                }
             }
         }
         // A clipped view's pieces need factor tables: built off the frame thread, as in
         // `plan_or_preview` (a cued view never comes through a preview).
-        if self.plan.clips() {
-            self.plan.build_tables_in_background();
+        for plan in self.plans_mut() {
+            if plan.clips() {
+                plan.build_tables_in_background();
+            }
         }
         // What the preview shows now (the backend still holds it; the exact plan has the same
         // cameras) stays on screen until the exact tables catch up.
@@ -116,4 +150,11 @@ impl<B: AccumulationBackend> RenderSession<B> {
         self.shown_preview = preview;
         Ok(())
     }
+}
+
+/// What the background builder plans: the whole's plan and, for a bricked volume, every
+/// brick's (`None` for a brick off the image).
+pub(super) struct Plans {
+    pub(super) whole: ViewPlan,
+    pub(super) parts: Vec<Option<ViewPlan>>,
 }

@@ -5,7 +5,20 @@
 use super::{Held, RenderSession, SessionError};
 use crate::backend::AccumulationBackend;
 use crate::source::SourcePacket;
+use crate::RenderError;
 use wavesplat_codec::format::packet::{decode_packet, Coefficient};
+use wavesplat_codec::format::FormatError;
+
+/// The error of a packet id no brick of a bricked volume has.
+fn unknown_packet(id: u32) -> SessionError {
+    SessionError::Packet {
+        id,
+        source: FormatError::Invalid {
+            what: "packet id",
+            detail: "no brick of the volume has a packet of this id".into(),
+        },
+    }
+}
 
 impl<B: AccumulationBackend> RenderSession<B> {
     /// Decodes and queues a packet (a packet already held is ignored).
@@ -13,8 +26,9 @@ impl<B: AccumulationBackend> RenderSession<B> {
         if self.packets.contains_key(&id) {
             return Ok(());
         }
-        let d = decode_packet(&self.header, bytes)
-            .map_err(|source| SessionError::Packet { id, source })?;
+        let header = self.header_of(id).ok_or_else(|| unknown_packet(id))?;
+        let d =
+            decode_packet(header, bytes).map_err(|source| SessionError::Packet { id, source })?;
         self.add_decoded(id, bytes.len(), d.tile, d.coefficients)
     }
 
@@ -47,6 +61,11 @@ impl<B: AccumulationBackend> RenderSession<B> {
     /// Queues coefficients that did not come in a packet (a local source or a test); they are
     /// held per tile under local ids, like packets that cannot be asked for again.
     pub fn add_coefficients(&mut self, coefficients: Vec<Coefficient>) -> Result<(), SessionError> {
+        if self.bricks.is_some() {
+            return Err(SessionError::Render(RenderError::Unsupported(
+                "loose coefficients in a bricked session (its packets name their brick)",
+            )));
+        }
         for c in &coefficients {
             crate::pieces::check_coefficient(c, &self.header.geometry, self.header.channels)?;
         }
@@ -78,8 +97,9 @@ impl<B: AccumulationBackend> RenderSession<B> {
         coefficients: Vec<Coefficient>,
         wire_bytes: usize,
     ) -> Result<(), SessionError> {
+        let header = self.header_of(id).ok_or_else(|| unknown_packet(id))?;
         for c in &coefficients {
-            crate::pieces::check_coefficient(c, &self.header.geometry, self.header.channels)?;
+            crate::pieces::check_coefficient(c, &header.geometry, header.channels)?;
         }
         self.stats.coefficients_received += coefficients.len() as u64;
         let mut held = Held {

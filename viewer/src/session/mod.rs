@@ -34,6 +34,7 @@
 //!   ([`SessionOptions::transient_bytes`]). A bound of 0 is the paper's "network computer"
 //!   (§4): the session then keeps only the footprint tables and the image.
 
+mod bricks;
 mod display;
 mod eviction;
 mod exact;
@@ -42,6 +43,7 @@ mod queue;
 mod step;
 mod view;
 
+pub use bricks::{BrickedVolume, SessionBrick};
 pub use step::splat_weight;
 
 use crate::backend::gpu::ColorMap;
@@ -80,6 +82,9 @@ pub enum SessionError {
         #[source]
         source: FormatError,
     },
+    /// A bricked volume's bricks cannot share one session.
+    #[error(transparent)]
+    Volume(FormatError),
 }
 
 impl From<BackendError> for SessionError {
@@ -264,13 +269,16 @@ pub struct RenderSession<B: AccumulationBackend> {
     /// Whether `plan` has the exact tables (false while a preview is shown).
     exact: bool,
     /// Exact tables being built on a background thread, and for which parameters.
-    building: Option<Receiver<Result<ViewPlan, RenderError>>>,
+    building: Option<Receiver<Result<exact::Plans, RenderError>>>,
     /// Whether the view is being turned ([`RenderSession::set_view_turning`]).
     turning: bool,
-    visibility: Visibility,
+    /// The view's visibility weights (`None` for a bricked volume: each brick has its own).
+    visibility: Option<Visibility>,
     backend: B,
     /// Basis norm² × importance per (channel, band index).
     energy_scale: Vec<f64>,
+    /// The bricks of a bricked volume (`None`: one volume, drawn with `plan`).
+    bricks: Option<bricks::Bricks>,
     packets: HashMap<u32, Held>,
     queue: BucketQueue,
     /// Queue entries set aside until the plan's background builder has their cued tables.
@@ -316,22 +324,36 @@ impl<B: AccumulationBackend> RenderSession<B> {
         backend: B,
         options: SessionOptions,
     ) -> Result<RenderSession<B>, SessionError> {
+        RenderSession::build(header, spec, backend, options, None)
+    }
+
+    /// A session for `header`'s volume, or for the whole of `bricks` (`header` the whole's).
+    fn build(
+        header: Header,
+        spec: ViewSpec,
+        backend: B,
+        options: SessionOptions,
+        mut bricks: Option<bricks::Bricks>,
+    ) -> Result<RenderSession<B>, SessionError> {
         let g = header.geometry;
         let mut planner = Planner::new(options.plan);
         let mut preview = options.preview.map(Planner::new);
-        let (plan, exact) =
-            plan_or_preview(&mut planner, preview.as_mut(), &g, &spec, header.channels)?;
-        let visibility = Visibility::new(&header, &spec)?;
-        let bands = g.bands();
-        let energy_scale = (0..header.channels)
-            .flat_map(|c| {
-                let importance = header.importance(c);
-                bands
-                    .iter()
-                    .map(move |b| g.basis_norm2(*b) * importance)
-                    .collect::<Vec<_>>()
-            })
-            .collect();
+        let (plan, exact, visibility) = match bricks.as_mut() {
+            None => {
+                let (plan, exact) =
+                    plan_or_preview(&mut planner, preview.as_mut(), &g, &spec, header.channels)?;
+                (plan, exact, Some(Visibility::new(&header, &spec)?))
+            }
+            Some(b) => {
+                // The whole's plan holds the cameras, cue and layout the display uses; its
+                // geometry has no transform, so it has no footprint worth a table.
+                let plan = planner.plan(&g, &spec, header.channels)?;
+                let exact =
+                    bricks::plan_parts(b, &mut planner, preview.as_mut(), &spec, header.channels)?;
+                (plan, exact, None)
+            }
+        };
+        let energy_scale = bricks::energy_scale(&header);
         let mut s = RenderSession {
             header,
             options,
@@ -344,6 +366,7 @@ impl<B: AccumulationBackend> RenderSession<B> {
             visibility,
             backend,
             energy_scale,
+            bricks,
             packets: HashMap::new(),
             queue: BucketQueue::new(),
             waiting: Vec::new(),
@@ -366,7 +389,24 @@ impl<B: AccumulationBackend> RenderSession<B> {
         Ok(s)
     }
 
-    /// The volume's header.
+    /// The plans coefficients are drawn with: the view's, or those of the bricks it sees.
+    fn plans_mut(&mut self) -> Vec<&mut ViewPlan> {
+        match &mut self.bricks {
+            None => vec![&mut self.plan],
+            Some(b) => b.plans_mut().collect(),
+        }
+    }
+
+    /// The header packet `id` decodes with: the volume's, or its brick's (`None`: a bricked
+    /// volume has no packet of that id).
+    fn header_of(&self, id: u32) -> Option<&Header> {
+        match &self.bricks {
+            None => Some(&self.header),
+            Some(b) => b.part_of(id).map(|k| &b.parts[k].header),
+        }
+    }
+
+    /// The volume's header (a bricked volume's: the whole's).
     pub fn header(&self) -> &Header {
         &self.header
     }

@@ -3,10 +3,13 @@
 //! importance), a held packet's coefficients queued for the view, and what waited for its
 //! depth-cue tables queued again once they arrive.
 
+use super::bricks::Bricks;
 use super::{Held, RenderSession};
 use crate::backend::AccumulationBackend;
 use wavesplat_codec::format::packet::Coefficient;
+use wavesplat_codec::format::Header;
 use wavesplat_codec::layout::Band;
+use wavesplat_codec::view::visibility::Visibility;
 
 /// Bucket queue: half-octaves of visible energy.
 const BUCKETS: usize = 4400;
@@ -105,27 +108,92 @@ fn half_octave(x: f64) -> i64 {
     2 * (biased - 1023) + i64::from(mantissa >= std::f64::consts::SQRT_2)
 }
 
-impl<B: AccumulationBackend> RenderSession<B> {
-    /// The energy coefficient `c` of a packet of tile `tile` shows in the current view (what
-    /// orders the queue and eviction); `None` for a band the volume does not have.
-    pub(super) fn visible_energy(&self, c: &Coefficient, tile: usize) -> Option<f64> {
-        self.energy_factors(c, tile).map(|f| energy(c, f))
-    }
+/// What weighs the coefficients of one packet in the current view: its volume's (or brick's)
+/// band indices, energy scales and visibility, and a factor for all (a brick's cue factor²).
+pub(super) struct Lens<'a> {
+    geometry: &'a wavesplat_codec::layout::Geometry,
+    energy_scale: &'a [f64],
+    visibility: &'a Visibility,
+    factor: f64,
+}
 
-    /// The energy scale of `c`'s channel and band and the view's visibility weight of its
-    /// band in tile `tile`: what `energy` multiplies its squared value by.
-    fn energy_factors(&self, c: &Coefficient, tile: usize) -> Option<(f64, f64)> {
-        let b = self.header.geometry.band_index(c.band)?;
-        let nb = self.header.geometry.band_count();
+impl Lens<'_> {
+    /// The energy scale of `c`'s channel and band (times the lens's factor) and the view's
+    /// visibility weight of its band in tile `tile`: what `energy` multiplies its squared
+    /// value by; `None` for a band the volume does not have.
+    fn factors(&self, c: &Coefficient, tile: usize) -> Option<(f64, f64)> {
+        let b = self.geometry.band_index(c.band)?;
+        let nb = self.geometry.band_count();
         Some((
-            self.energy_scale[c.channel as usize * nb + b],
+            self.energy_scale[c.channel as usize * nb + b] * self.factor,
             self.visibility.weight(c.band, tile),
         ))
+    }
+}
+
+/// The lens of packet `id` (`None`: the view sees nothing of it: its brick is off the image,
+/// or no brick has it); the session's fields are passed one by one so that its queue can be
+/// changed while the lens is held.
+pub(super) fn lens_of<'a>(
+    header: &'a Header,
+    energy_scale: &'a [f64],
+    visibility: Option<&'a Visibility>,
+    bricks: Option<&'a Bricks>,
+    id: u32,
+) -> Option<Lens<'a>> {
+    match bricks {
+        None => Some(Lens {
+            geometry: &header.geometry,
+            energy_scale,
+            visibility: visibility?,
+            factor: 1.0,
+        }),
+        Some(b) => {
+            let part = &b.parts[b.part_of(id)?];
+            let view = part.view.as_ref()?;
+            let cue = f64::from(view.cue_scale);
+            Some(Lens {
+                geometry: &part.header.geometry,
+                energy_scale: &part.energy_scale,
+                visibility: &view.visibility,
+                factor: cue * cue,
+            })
+        }
+    }
+}
+
+impl<B: AccumulationBackend> RenderSession<B> {
+    /// The lens of packet `id` in the current view.
+    fn lens(&self, id: u32) -> Option<Lens<'_>> {
+        lens_of(
+            &self.header,
+            &self.energy_scale,
+            self.visibility.as_ref(),
+            self.bricks.as_ref(),
+            id,
+        )
+    }
+
+    /// The energy coefficient `c` of packet `id` of tile `tile` shows in the current view
+    /// (what orders the queue and eviction); `None` for a band the volume does not have, or a
+    /// packet the view sees nothing of.
+    pub(super) fn visible_energy(&self, id: u32, c: &Coefficient, tile: usize) -> Option<f64> {
+        self.lens(id)?.factors(c, tile).map(|f| energy(c, f))
     }
 
     /// Queues the visible coefficients of a held packet for the current view.
     pub(super) fn enqueue(&mut self, id: u32, held: &mut Held) {
         held.queued = 0;
+        let Some(lens) = lens_of(
+            &self.header,
+            &self.energy_scale,
+            self.visibility.as_ref(),
+            self.bricks.as_ref(),
+            id,
+        ) else {
+            self.stats.invisible_in_view += held.coefficients.len() as u64;
+            return;
+        };
         // A packet's coefficients come substream by substream (channel, band): the factors of
         // `visible_energy` are looked up once per run of them.
         let mut run: Option<((u8, Band), (f64, f64))> = None;
@@ -133,7 +201,7 @@ impl<B: AccumulationBackend> RenderSession<B> {
             let factors = match run {
                 Some((key, factors)) if key == (c.channel, c.band) => factors,
                 _ => {
-                    let Some(factors) = self.energy_factors(c, held.tile) else {
+                    let Some(factors) = lens.factors(c, held.tile) else {
                         continue;
                     };
                     run = Some(((c.channel, c.band), factors));
@@ -154,7 +222,12 @@ impl<B: AccumulationBackend> RenderSession<B> {
     /// Installs the depth-cue tables the plan's builder finished and queues again what waited
     /// for them (what still misses a table is set aside again by the next batch).
     pub(super) fn poll_cue_tables(&mut self) {
-        if self.plan.poll_tables() == 0 && (self.waiting.is_empty() || self.plan.tables_pending()) {
+        let (mut arrived, mut pending) = (0, false);
+        for plan in self.plans_mut() {
+            arrived += plan.poll_tables();
+            pending |= plan.tables_pending();
+        }
+        if arrived == 0 && (self.waiting.is_empty() || pending) {
             return;
         }
         for (id, i) in std::mem::take(&mut self.waiting) {
@@ -162,7 +235,7 @@ impl<B: AccumulationBackend> RenderSession<B> {
                 continue;
             };
             let bucket = self
-                .visible_energy(&held.coefficients[i as usize], held.tile)
+                .visible_energy(id, &held.coefficients[i as usize], held.tile)
                 .and_then(bucket_of);
             // It was visible when queued; the same view sees it the same way.
             self.queue.push(bucket.unwrap_or(0), (id, i));

@@ -62,10 +62,11 @@ impl<B: AccumulationBackend> RenderSession<B> {
             weights.clear();
             // Each popped entry's coefficient is looked up once: queued for the batch and
             // weighed for the allowance (the weight kept for the timing below).
-            let plan = &self.plan;
+            let (plan, bricks) = (&self.plan, self.bricks.as_ref());
             let take = |(p, i): (u32, u32)| {
                 let c = packets[&p].coefficients[i as usize];
                 coefficients.push(c);
+                let plan = bricks.and_then(|b| b.plan_of(p)).unwrap_or(plan);
                 let w = plan.weigh(&c, |level| splat_weight(level, zoom));
                 weights.push(w);
                 w
@@ -83,14 +84,18 @@ impl<B: AccumulationBackend> RenderSession<B> {
                 take,
                 &mut batch,
             );
-            self.records.clear();
             let mut stats = RenderStats::default();
-            self.plan
-                .splats(&coefficients, &mut self.records, &mut stats)?;
-            self.backend.accumulate(&self.plan.atlas, &self.records)?;
             // Coefficients whose cued tables are still being built wait (still queued) and are
             // drawn when the tables arrive.
-            let deferred = self.plan.take_deferred();
+            let (deferred, records) = if self.bricks.is_some() {
+                self.draw_bricked(&batch, &coefficients, &mut stats)?
+            } else {
+                self.records.clear();
+                self.plan
+                    .splats(&coefficients, &mut self.records, &mut stats)?;
+                self.backend.accumulate(&self.plan.atlas, &self.records)?;
+                (self.plan.take_deferred(), self.records.len())
+            };
             // What waits was not drawn: its weight is not part of what was timed.
             let waiting_weight: f64 = deferred.iter().map(|&i| weights[i]).sum();
             let weight = (weight - waiting_weight).max(0.0);
@@ -118,7 +123,7 @@ impl<B: AccumulationBackend> RenderSession<B> {
             let c = &mut self.cost[kind];
             *c = if !self.measured[kind] {
                 // A probe that drew nothing (all waiting for tables) measured nothing.
-                self.measured[kind] = per > 0.0 && !self.records.is_empty();
+                self.measured[kind] = per > 0.0 && records > 0;
                 if self.measured[kind] {
                     per
                 } else {
@@ -133,7 +138,7 @@ impl<B: AccumulationBackend> RenderSession<B> {
             };
             self.stats.splatted_in_view += batch.len() as u64;
             report.coefficients += batch.len();
-            report.records += self.records.len();
+            report.records += records;
             report.batches += 1;
             if end > deadline {
                 report.overran = true;

@@ -2,6 +2,7 @@
 //! preview's while the exact one is built), a view being turned or settling, a replaced
 //! backend, and the restart that queues everything held again for the current plan.
 
+use super::bricks::plan_parts;
 use super::{RenderSession, SessionError, INITIAL_COST_PER_WEIGHT};
 use crate::backend::AccumulationBackend;
 use crate::plan::{Planner, ViewPlan};
@@ -70,18 +71,31 @@ impl<B: AccumulationBackend> RenderSession<B> {
     }
 
     fn change_view(&mut self, spec: ViewSpec) -> Result<(), SessionError> {
-        let visibility = Visibility::new(&self.header, &spec)?;
-        let (plan, exact) = plan_or_preview(
-            &mut self.planner,
-            self.preview.as_mut(),
-            &self.header.geometry,
-            &spec,
-            self.header.channels,
-        )?;
+        let (g, channels) = (self.header.geometry, self.header.channels);
+        let (plan, exact) = match &mut self.bricks {
+            None => {
+                let visibility = Visibility::new(&self.header, &spec)?;
+                let (plan, exact) = plan_or_preview(
+                    &mut self.planner,
+                    self.preview.as_mut(),
+                    &g,
+                    &spec,
+                    channels,
+                )?;
+                self.visibility = Some(visibility);
+                (plan, exact)
+            }
+            Some(b) => {
+                // The whole's plan first: it checks the view before any brick is planned.
+                let plan = self.planner.plan(&g, &spec, channels)?;
+                let exact =
+                    plan_parts(b, &mut self.planner, self.preview.as_mut(), &spec, channels)?;
+                (plan, exact)
+            }
+        };
         if !exact {
             self.stats.previews += 1;
         }
-        self.visibility = visibility;
         self.exact = exact;
         self.plan = plan;
         self.stats.view_changes += 1;
@@ -112,7 +126,9 @@ impl<B: AccumulationBackend> RenderSession<B> {
     pub(super) fn restart(&mut self) -> Result<(), SessionError> {
         self.shown_preview = None;
         self.backend.begin(self.plan.layout())?;
-        self.plan.forget_stand_ins();
+        for plan in self.plans_mut() {
+            plan.forget_stand_ins();
+        }
         self.queue.clear();
         self.waiting.clear();
         self.stats.splatted_in_view = 0;

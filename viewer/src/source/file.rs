@@ -1,11 +1,16 @@
 //! The file source: a local `.wsp` file served packet by packet in the order the cache would
 //! send it for the current view (visible energy per byte), up to an optional byte budget, the
-//! next few packets decoded ahead in parallel.
+//! next few packets decoded ahead in parallel. A bricked file is served as one volume: its
+//! bricks' packets under global ids (brick by brick in file order), ranked together by each
+//! brick's view of the whole; a brick whose box the view does not see sends nothing.
 
 use super::{decode_for_session, Decoded, PacketSource, SourceError, SourcePacket, SourceStatus};
+use crate::bricked::{brick_frame, whole_frame, whole_geometry};
+use crate::session::{BrickedVolume, SessionBrick};
 use std::collections::HashMap;
+use wavesplat_codec::format::bricked::{is_bricked, parse_bricked};
 use wavesplat_codec::format::packet::read_framing;
-use wavesplat_codec::format::{check_kept, parse_file, Header};
+use wavesplat_codec::format::{check_kept, parse_file, FormatError, Header};
 use wavesplat_codec::layout::Band;
 use wavesplat_codec::view::visibility::{packet_order, PacketFacts, Visibility};
 use wavesplat_codec::view::ViewSpec;
@@ -16,6 +21,15 @@ struct FilePacket {
     range: std::ops::Range<usize>,
     tile: usize,
     summary: Vec<(Band, f64)>,
+    /// Its brick (0 in a file of one volume).
+    brick: usize,
+}
+
+/// A brick of a bricked file: its header and first voxel in the whole.
+#[derive(Debug, Clone)]
+struct FileBrick {
+    header: Header,
+    origin: [u64; 3],
 }
 
 /// A local `.wsp` file served packet by packet in the cache's order for the current view
@@ -25,7 +39,10 @@ struct FilePacket {
 #[derive(Debug)]
 pub struct FileSource {
     bytes: Vec<u8>,
+    /// The volume's header (a bricked file's: the whole's).
     header: Header,
+    /// The bricks of a bricked file (empty for one volume).
+    bricks: Vec<FileBrick>,
     /// Byte range and framing of each packet.
     packets: Vec<FilePacket>,
     order: Vec<u32>,
@@ -42,39 +59,94 @@ pub struct FileSource {
 const DECODE_AHEAD_PER_THREAD: usize = 2;
 
 impl FileSource {
-    /// Parses `bytes` (the whole file) and ranks its packets for `spec`.
+    /// Parses `bytes` (the whole file, one volume or bricked) and ranks its packets for
+    /// `spec` (a bricked file's view is of its whole: [`crate::bricked::whole_geometry`]).
     pub fn open(bytes: Vec<u8>, spec: &ViewSpec) -> Result<FileSource, SourceError> {
+        if is_bricked(&bytes) {
+            return FileSource::open_bricked(bytes, spec);
+        }
         let (header, ranges) = {
             let file = parse_file(&bytes)?;
-            let base = bytes.as_ptr() as usize;
-            let ranges: Vec<std::ops::Range<usize>> = file
-                .packets
-                .iter()
-                .map(|p| {
-                    let start = p.as_ptr() as usize - base;
-                    start..start + p.len()
-                })
-                .collect();
-            (file.header, ranges)
+            (file.header, ranges_in(&bytes, &file.packets))
         };
-        let mut packets = Vec::with_capacity(ranges.len());
-        let mut held = 0u64;
-        for r in ranges {
-            let f = read_framing(&header, &bytes[r.clone()])?;
-            held = held.saturating_add(f.count as u64);
-            packets.push(FilePacket {
-                range: r,
-                tile: f.tile,
-                summary: f.summary,
-            });
+        let packets = framed(&header, &bytes, ranges, 0)?;
+        FileSource::with_packets(bytes, header, Vec::new(), packets, spec)
+    }
+
+    /// [`FileSource::open`] of a bricked file: every brick's header and packets read (each
+    /// brick checked against the manifest and the first brick), the whole's header made.
+    fn open_bricked(bytes: Vec<u8>, spec: &ViewSpec) -> Result<FileSource, SourceError> {
+        let (header, bricks, packets) = {
+            let file = parse_bricked(&bytes)?;
+            let m = &file.manifest;
+            let mut bricks = Vec::with_capacity(m.bricks.len());
+            let mut packets = Vec::new();
+            for (i, entry) in m.bricks.iter().enumerate() {
+                let f = parse_file(file.brick_bytes(i)?)?;
+                let first = bricks.first().map_or(&f.header, |b: &FileBrick| &b.header);
+                if !same_display(&f.header, first) {
+                    return Err(SourceError::Unsupported(format!(
+                        "brick {i} of this bricked file subtracts another offset or colour \
+                         basis than its first brick, so its bricks cannot be drawn into one \
+                         image progressively; render it in one pass (without --progressive, \
+                         --bytes, --budget-ms, --record or --client-memory), or compress it \
+                         again with this version, whose bricks share the whole's offset"
+                    )));
+                }
+                if f.header.geometry.dims != entry.dims
+                    || f.header.channels != m.channels
+                    || f.header.geometry.family != first.geometry.family
+                {
+                    return Err(FormatError::Invalid {
+                        what: "bricked manifest",
+                        detail: format!(
+                            "brick {i} at {:?} does not match the manifest or the first brick",
+                            entry.origin
+                        ),
+                    }
+                    .into());
+                }
+                let ranges = ranges_in(&bytes, &f.packets);
+                packets.extend(framed(&f.header, &bytes, ranges, i)?);
+                bricks.push(FileBrick {
+                    header: f.header,
+                    origin: entry.origin,
+                });
+            }
+            let Some(first) = bricks.first() else {
+                return Err(FormatError::Invalid {
+                    what: "bricked manifest",
+                    detail: "no bricks".into(),
+                }
+                .into());
+            };
+            let mut header = first.header.clone();
+            header.geometry = whole_geometry(m, &first.header);
+            header.placement = m.placement;
+            (header, bricks, packets)
+        };
+        if u32::try_from(packets.len()).is_err() {
+            return Err(FormatError::Invalid {
+                what: "bricked file",
+                detail: format!("{} packets, more than a source numbers", packets.len()),
+            }
+            .into());
         }
-        // The packets must hold what the header declares: missing or cut packets would
-        // otherwise render as a blank or partial image.
-        check_kept(&header, held)?;
+        FileSource::with_packets(bytes, header, bricks, packets, spec)
+    }
+
+    fn with_packets(
+        bytes: Vec<u8>,
+        header: Header,
+        bricks: Vec<FileBrick>,
+        packets: Vec<FilePacket>,
+        spec: &ViewSpec,
+    ) -> Result<FileSource, SourceError> {
         let n = packets.len();
         let mut s = FileSource {
             bytes,
             header,
+            bricks,
             packets,
             order: Vec::new(),
             cursor: 0,
@@ -88,6 +160,39 @@ impl FileSource {
         };
         s.rank(spec)?;
         Ok(s)
+    }
+
+    /// A bricked file as a session draws it ([`crate::session::RenderSession::new_bricked`]);
+    /// `None` for a file of one volume.
+    pub fn bricked_volume(&self) -> Option<BrickedVolume> {
+        if self.bricks.is_empty() {
+            return None;
+        }
+        let mut counts = vec![0u32; self.bricks.len()];
+        for p in &self.packets {
+            counts[p.brick] += 1;
+        }
+        Some(BrickedVolume {
+            whole: self.header.clone(),
+            bricks: self
+                .bricks
+                .iter()
+                .zip(counts)
+                .map(|(b, packets)| SessionBrick {
+                    header: b.header.clone(),
+                    origin: b.origin,
+                    packets,
+                })
+                .collect(),
+        })
+    }
+
+    /// The header packet `id` decodes with.
+    fn header_of(&self, id: u32) -> &Header {
+        match self.bricks.get(self.packets[id as usize].brick) {
+            Some(b) => &b.header,
+            None => &self.header,
+        }
     }
 
     /// Delivers at most `bytes` bytes of packets (the first packet always).
@@ -124,12 +229,13 @@ impl FileSource {
             .filter(|id| !self.ahead.contains_key(id))
             .take(DECODE_AHEAD_PER_THREAD * threads)
             .collect();
-        let (header, bytes, packets) = (&self.header, &self.bytes, &self.packets);
+        let (bytes, packets) = (&self.bytes, &self.packets);
+        let this = &*self;
         let decode = |ids: &[u32]| -> Vec<(u32, Decoded)> {
             ids.iter()
                 .map(|&id| {
                     let data = &bytes[packets[id as usize].range.clone()];
-                    (id, decode_for_session(header, data))
+                    (id, decode_for_session(this.header_of(id), data))
                 })
                 .collect()
         };
@@ -156,17 +262,22 @@ impl FileSource {
     }
 
     fn rank(&mut self, spec: &ViewSpec) -> Result<(), SourceError> {
-        let vis = Visibility::new(&self.header, spec)?;
-        let keyed: Vec<PacketFacts> = self
-            .packets
-            .iter()
-            .map(|p| PacketFacts {
-                tile: p.tile,
-                summary: &p.summary,
-                bytes: p.range.len(),
-            })
-            .collect();
-        self.order = packet_order(&vis, &keyed)
+        let order = if self.bricks.is_empty() {
+            let vis = Visibility::new(&self.header, spec)?;
+            let keyed: Vec<PacketFacts> = self
+                .packets
+                .iter()
+                .map(|p| PacketFacts {
+                    tile: p.tile,
+                    summary: &p.summary,
+                    bytes: p.range.len(),
+                })
+                .collect();
+            packet_order(&vis, &keyed)
+        } else {
+            self.bricked_order(spec)?
+        };
+        self.order = order
             .into_iter()
             .filter(|i| !self.delivered[*i as usize])
             .collect();
@@ -177,6 +288,103 @@ impl FileSource {
         self.status.done = self.order.is_empty();
         Ok(())
     }
+}
+
+impl FileSource {
+    /// A bricked file's packets for `spec` by visible energy per byte, each brick's seen by its
+    /// own view of the whole (scaled by its cue factor²), ties in file order; the packets of a
+    /// brick the view does not see are left out.
+    fn bricked_order(&self, spec: &ViewSpec) -> Result<Vec<u32>, SourceError> {
+        let whole = self.header.geometry;
+        let (camera, cue) = whole_frame(spec, &whole).map_err(view_error)?;
+        let mut views: Vec<Option<(Visibility, f64)>> = Vec::with_capacity(self.bricks.len());
+        let mut like: Option<Visibility> = None;
+        for b in &self.bricks {
+            let frame = brick_frame(
+                spec,
+                (&camera, cue.as_ref()),
+                &whole,
+                &b.header.geometry,
+                b.origin,
+            )
+            .map_err(view_error)?;
+            views.push(match frame {
+                None => None,
+                Some(f) => {
+                    let vis = match &like {
+                        Some(l) => Visibility::new_like(&b.header, &f.spec, l)?,
+                        None => Visibility::new(&b.header, &f.spec)?,
+                    };
+                    like.get_or_insert_with(|| vis.clone());
+                    Some((vis, f.cue_scale * f.cue_scale))
+                }
+            });
+        }
+        let mut keyed: Vec<(f64, u32)> = self
+            .packets
+            .iter()
+            .enumerate()
+            .filter_map(|(i, p)| {
+                let (vis, factor) = views[p.brick].as_ref()?;
+                let e = vis.visible_energy(p.tile, &p.summary) * factor;
+                Some((e / p.range.len().max(1) as f64, i as u32))
+            })
+            .collect();
+        keyed.sort_by(|a, b| b.0.total_cmp(&a.0).then(a.1.cmp(&b.1)));
+        Ok(keyed.into_iter().map(|(_, i)| i).collect())
+    }
+}
+
+/// A view that cannot be placed in a bricked file's bricks (e.g. multiview).
+fn view_error(e: crate::RenderError) -> SourceError {
+    match e {
+        crate::RenderError::View(v) => SourceError::View(v),
+        other => SourceError::Unsupported(other.to_string()),
+    }
+}
+
+/// Whether two bricks' values are shown alike: the same colour space, basis and offset (their
+/// channels' importance may differ: it only ranks).
+fn same_display(a: &Header, b: &Header) -> bool {
+    let (a, b) = (&a.color, &b.color);
+    (a.kind, a.basis, a.mean) == (b.kind, b.basis, b.mean)
+}
+
+/// The byte ranges of `packets` (slices of `bytes`) in `bytes`.
+fn ranges_in(bytes: &[u8], packets: &[&[u8]]) -> Vec<std::ops::Range<usize>> {
+    let base = bytes.as_ptr() as usize;
+    packets
+        .iter()
+        .map(|p| {
+            let start = p.as_ptr() as usize - base;
+            start..start + p.len()
+        })
+        .collect()
+}
+
+/// The packets at `ranges` of `bytes` with their framing (tile, energy summary), of brick
+/// `brick`; what they hold must be what `header` declares (missing or cut packets would
+/// otherwise render as a blank or partial image).
+fn framed(
+    header: &Header,
+    bytes: &[u8],
+    ranges: Vec<std::ops::Range<usize>>,
+    brick: usize,
+) -> Result<Vec<FilePacket>, SourceError> {
+    let mut packets = Vec::with_capacity(ranges.len());
+    let mut held = 0u64;
+    for r in ranges {
+        let f = read_framing(header, &bytes[r.clone()])?;
+        held = held.saturating_add(f.count as u64);
+        packets.push(FilePacket {
+            range: r,
+            tile: f.tile,
+            summary: f.summary,
+            brick,
+        });
+    }
+    check_kept(header, held)?;
+    Ok(packets)
 }
 
 impl PacketSource for FileSource {

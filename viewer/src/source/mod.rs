@@ -120,6 +120,10 @@ pub enum SourceError {
     /// The background thread could not be started.
     #[error("cannot start the network thread: {0}")]
     Thread(String),
+    /// The view asks what this volume cannot be drawn with (e.g. multiview of a bricked
+    /// volume, drawn in one pass only).
+    #[error("{0}")]
+    Unsupported(String),
 }
 
 /// Why a published volume could not be read: what the server answered, or why no answer came.

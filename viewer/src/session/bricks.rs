@@ -1,0 +1,312 @@
+//! Bricked volumes in a session: the bricks of one volume
+//! ([`wavesplat_codec::format::bricked`]) drawn into one accumulation. A brick's packets carry
+//! global ids (they follow the previous bricks' packets), are decoded with their brick's header
+//! and ranked by their brick's view; a batch is splatted brick by brick, each with its brick's
+//! plan (the whole's camera moved into the brick's frame, [`crate::bricked::brick_frame`]),
+//! values scaled by the brick's depth-cue factor, onto the one image. The session's own plan and
+//! header are the whole's: cameras, cue and image layout, what the display pass uses. A brick
+//! whose box projects off the image has no plan: its packets are held but not queued.
+
+use super::view::plan_or_preview;
+use super::{RenderSession, SessionError};
+use crate::backend::AccumulationBackend;
+use crate::bricked::{brick_frame, whole_frame};
+use crate::plan::{Planner, RenderStats, ViewPlan};
+use crate::RenderError;
+use wavesplat_codec::format::packet::Coefficient;
+use wavesplat_codec::format::{FormatError, Header};
+use wavesplat_codec::layout::Geometry;
+use wavesplat_codec::view::visibility::Visibility;
+use wavesplat_codec::view::ViewSpec;
+
+/// One brick of a volume a session draws.
+#[derive(Debug, Clone)]
+pub struct SessionBrick {
+    /// The brick's own header (its geometry is the brick's).
+    pub header: Header,
+    /// Its first voxel in the whole.
+    pub origin: [u64; 3],
+    /// Packets it has (its packets' global ids follow the previous bricks').
+    pub packets: u32,
+}
+
+/// A bricked volume as a session draws it: the whole's header (its geometry is the whole's:
+/// dimensions and spacing; the colour coding every brick shares) and the bricks.
+#[derive(Debug, Clone)]
+pub struct BrickedVolume {
+    /// The whole's header.
+    pub whole: Header,
+    /// The bricks, in the order of their packets' global ids.
+    pub bricks: Vec<SessionBrick>,
+}
+
+impl BrickedVolume {
+    /// The global id of packet `local` of brick `brick` (`None` past the last packet).
+    pub fn global_id(&self, brick: usize, local: u32) -> Option<u32> {
+        let first: u64 = self.bricks[..brick]
+            .iter()
+            .map(|b| u64::from(b.packets))
+            .sum();
+        (local < self.bricks.get(brick)?.packets)
+            .then(|| u32::try_from(first + u64::from(local)).ok())
+            .flatten()
+    }
+
+    /// Checks that the bricks can share one accumulation: as many channels and the same colour
+    /// coding as the whole, global ids within `u32`.
+    pub fn check(&self) -> Result<(), FormatError> {
+        let invalid = |detail: String| FormatError::Invalid {
+            what: "bricked volume",
+            detail,
+        };
+        let mut ids = 0u64;
+        for (i, b) in self.bricks.iter().enumerate() {
+            let (c, w) = (&b.header.color, &self.whole.color);
+            if b.header.channels != self.whole.channels
+                || (c.kind, c.basis, c.mean) != (w.kind, w.basis, w.mean)
+            {
+                return Err(invalid(format!(
+                    "brick {i} codes its channels otherwise than the first brick"
+                )));
+            }
+            ids += u64::from(b.packets);
+        }
+        if ids > u64::from(u32::MAX) {
+            return Err(invalid(format!(
+                "{ids} packets, more than a session numbers"
+            )));
+        }
+        Ok(())
+    }
+}
+
+/// What the current view draws of one brick.
+pub(super) struct PartView {
+    pub(super) plan: ViewPlan,
+    pub(super) visibility: Visibility,
+    /// The brick's depth-cue factor (1 without a cue): its coefficients are scaled by it.
+    pub(super) cue_scale: f32,
+}
+
+/// A brick in a session.
+pub(super) struct Part {
+    pub(super) header: Header,
+    origin: [u64; 3],
+    first_id: u32,
+    packets: u32,
+    /// Basis norm² × importance per (channel, band index) of the brick's geometry.
+    pub(super) energy_scale: Vec<f64>,
+    /// `None`: off the image in the current view.
+    pub(super) view: Option<PartView>,
+}
+
+/// The bricks of a session.
+pub(super) struct Bricks {
+    pub(super) whole: Geometry,
+    pub(super) parts: Vec<Part>,
+}
+
+/// Basis norm² × importance per (channel, band index) of `header`'s volume.
+pub(super) fn energy_scale(header: &Header) -> Vec<f64> {
+    let g = header.geometry;
+    let bands = g.bands();
+    (0..header.channels)
+        .flat_map(|c| {
+            let importance = header.importance(c);
+            bands
+                .iter()
+                .map(move |b| g.basis_norm2(*b) * importance)
+                .collect::<Vec<_>>()
+        })
+        .collect()
+}
+
+/// Where a brick's plan comes from: the frame thread (exact or preview) or the background
+/// builder's exact plan.
+pub(super) type PartPlanner<'a> =
+    dyn FnMut(&Geometry, &ViewSpec) -> Result<(ViewPlan, bool), SessionError> + 'a;
+
+impl Bricks {
+    pub(super) fn new(volume: BrickedVolume) -> Result<Bricks, SessionError> {
+        volume.check().map_err(SessionError::Volume)?;
+        let mut first_id = 0u32;
+        let parts = volume
+            .bricks
+            .into_iter()
+            .map(|b| {
+                let p = Part {
+                    energy_scale: energy_scale(&b.header),
+                    header: b.header,
+                    origin: b.origin,
+                    first_id,
+                    packets: b.packets,
+                    view: None,
+                };
+                first_id = first_id.wrapping_add(b.packets);
+                p
+            })
+            .collect();
+        Ok(Bricks {
+            whole: volume.whole.geometry,
+            parts,
+        })
+    }
+
+    /// The brick holding global packet `id`.
+    pub(super) fn part_of(&self, id: u32) -> Option<usize> {
+        let k = self
+            .parts
+            .partition_point(|p| p.first_id <= id)
+            .checked_sub(1)?;
+        let p = &self.parts[k];
+        (id - p.first_id < p.packets).then_some(k)
+    }
+
+    /// The plan brick-of-`id` draws with in the current view.
+    pub(super) fn plan_of(&self, id: u32) -> Option<&ViewPlan> {
+        let k = self.part_of(id)?;
+        self.parts[k].view.as_ref().map(|v| &v.plan)
+    }
+
+    /// The single-view frames of `spec` for every brick (`None`: off the image).
+    pub(super) fn frames(
+        &self,
+        spec: &ViewSpec,
+    ) -> Result<Vec<Option<crate::bricked::BrickFrame>>, RenderError> {
+        let (camera, cue) = whole_frame(spec, &self.whole)?;
+        self.parts
+            .iter()
+            .map(|p| {
+                brick_frame(
+                    spec,
+                    (&camera, cue.as_ref()),
+                    &self.whole,
+                    &p.header.geometry,
+                    p.origin,
+                )
+            })
+            .collect()
+    }
+
+    /// Plans every brick the view `spec` sees with `plan` (the bricks of one volume share
+    /// their footprint tables through one planner); returns whether every plan is exact.
+    pub(super) fn set_view(
+        &mut self,
+        spec: &ViewSpec,
+        plan: &mut PartPlanner<'_>,
+    ) -> Result<bool, SessionError> {
+        let frames = self.frames(spec)?;
+        let mut exact = true;
+        let mut like: Option<Visibility> = None;
+        for (part, frame) in self.parts.iter_mut().zip(frames) {
+            part.view = None;
+            let Some(frame) = frame else { continue };
+            let (p, e) = plan(&part.header.geometry, &frame.spec)?;
+            exact &= e;
+            let visibility = match &like {
+                Some(l) => Visibility::new_like(&part.header, &frame.spec, l)?,
+                None => Visibility::new(&part.header, &frame.spec)?,
+            };
+            like.get_or_insert_with(|| visibility.clone());
+            part.view = Some(PartView {
+                plan: p,
+                visibility,
+                cue_scale: frame.cue_scale as f32,
+            });
+        }
+        Ok(exact)
+    }
+
+    /// The bricks' geometries and views for a background build: `None` for a brick off the
+    /// image.
+    pub(super) fn jobs(
+        &self,
+        spec: &ViewSpec,
+    ) -> Result<Vec<Option<(Geometry, ViewSpec)>>, RenderError> {
+        Ok(self
+            .frames(spec)?
+            .into_iter()
+            .zip(&self.parts)
+            .map(|(f, p)| f.map(|f| (p.header.geometry, f.spec)))
+            .collect())
+    }
+
+    /// The plans of the bricks the view sees.
+    pub(super) fn plans_mut(&mut self) -> impl Iterator<Item = &mut ViewPlan> {
+        self.parts
+            .iter_mut()
+            .filter_map(|p| p.view.as_mut().map(|v| &mut v.plan))
+    }
+}
+
+/// The first `plan_or_preview` of every brick (for a new session or a view change).
+pub(super) fn plan_parts(
+    bricks: &mut Bricks,
+    planner: &mut Planner,
+    mut preview: Option<&mut Planner>,
+    spec: &ViewSpec,
+    channels: usize,
+) -> Result<bool, SessionError> {
+    bricks.set_view(spec, &mut |g, s| {
+        plan_or_preview(planner, preview.as_deref_mut(), g, s, channels)
+    })
+}
+
+impl<B: AccumulationBackend> RenderSession<B> {
+    /// A session for a bricked volume (see the module documentation of `session::bricks`):
+    /// the bricks' packets are added under their global ids
+    /// ([`BrickedVolume::global_id`]); multiview is refused (drawn in one pass only).
+    pub fn new_bricked(
+        volume: BrickedVolume,
+        spec: ViewSpec,
+        backend: B,
+        options: super::SessionOptions,
+    ) -> Result<RenderSession<B>, SessionError> {
+        let whole = volume.whole.clone();
+        let bricks = Bricks::new(volume)?;
+        // Checked before anything is planned: a multiview spec is refused here.
+        whole_frame(&spec, &bricks.whole)?;
+        RenderSession::build(whole, spec, backend, options, Some(bricks))
+    }
+
+    /// Draws a batch of a bricked session brick by brick; returns the indices (into `batch`)
+    /// left waiting for their cue tables, ascending, and the records drawn.
+    pub(super) fn draw_bricked(
+        &mut self,
+        batch: &[(u32, u32)],
+        coefficients: &[Coefficient],
+        stats: &mut RenderStats,
+    ) -> Result<(Vec<usize>, usize), SessionError> {
+        let Some(bricks) = self.bricks.as_mut() else {
+            return Ok((Vec::new(), 0));
+        };
+        let mut order: Vec<(usize, usize)> = batch
+            .iter()
+            .enumerate()
+            .map(|(k, (id, _))| (bricks.part_of(*id).unwrap_or(usize::MAX), k))
+            .collect();
+        order.sort_unstable();
+        let (mut deferred, mut records) = (Vec::new(), 0);
+        let mut scaled = Vec::new();
+        for run in order.chunk_by(|a, b| a.0 == b.0) {
+            // Only coefficients of bricks the view sees are queued.
+            let Some(view) = bricks.parts.get_mut(run[0].0).and_then(|p| p.view.as_mut()) else {
+                continue;
+            };
+            scaled.clear();
+            scaled.extend(run.iter().map(|&(_, k)| {
+                let mut c = coefficients[k];
+                c.value *= view.cue_scale;
+                c
+            }));
+            self.records.clear();
+            view.plan.splats(&scaled, &mut self.records, stats)?;
+            self.backend.prepare(&view.plan.atlas)?;
+            self.backend.accumulate(&view.plan.atlas, &self.records)?;
+            records += self.records.len();
+            deferred.extend(view.plan.take_deferred().into_iter().map(|j| run[j].1));
+        }
+        deferred.sort_unstable();
+        Ok((deferred, records))
+    }
+}
