@@ -799,15 +799,34 @@ fn a_bricked_volume_is_compressed_listed_and_rendered() {
         sb > 20.0 && sb > sw - 3.0,
         "decoded bricked {sb:.1} dB, whole {sw:.1} dB"
     );
+    // Drawn progressively, through the frame loop, the bricked file ends at its one-pass image
+    // (f32 sums in another order).
+    let progressive = run(&[
+        "render",
+        &path("b.wsp"),
+        "--cpu",
+        "--progressive",
+        "--size",
+        "48x48",
+        "-o",
+        &path("y.png"),
+        "--raw",
+        &path("y.f32"),
+    ]);
+    assert!(progressive.status.success(), "{}", err(&progressive));
+    let snr = wavesplat_codec::metrics::snr_db(&read("b.f32"), &read("y.f32"));
+    assert!(snr > 90.0, "progressive against one pass: {snr:.1} dB");
+    // Multiview is drawn in one pass only; progressively it is refused, saying so.
     let refused = run(&[
         "render",
         &path("b.wsp"),
         "--progressive",
+        "--multiview",
         "-o",
         &path("y.png"),
     ]);
     assert!(!refused.status.success());
-    assert!(err(&refused).contains("bricked"), "{}", err(&refused));
+    assert!(err(&refused).contains("multiview"), "{}", err(&refused));
     // The window says what to use instead (it refuses before opening a display).
     let window = run(&["view", &path("b.wsp"), "--cpu"]);
     assert!(!window.status.success());

@@ -9,12 +9,11 @@
 //! brick (their footprint tables are the same for one view and depth).
 
 use crate::backend::AccumulationBackend;
-use crate::open::OpenError;
 use crate::plan::{PlanOptions, Planner, SplatBuffers, SPLAT_BATCH};
 use crate::{Image, RenderError, RenderStats};
 use wavesplat_codec::family::Family;
 use wavesplat_codec::format::bricked::{parse_bricked, BrickedFile, Manifest};
-use wavesplat_codec::format::packet::decode_packets;
+use wavesplat_codec::format::packet::{decode_packets, PacketError};
 use wavesplat_codec::format::{check_kept, parse_file, FormatError, Header};
 use wavesplat_codec::layout::Geometry;
 use wavesplat_codec::view::{
@@ -38,11 +37,22 @@ pub struct BrickedImage {
     pub stats: RenderStats,
 }
 
-fn format_error(source: FormatError) -> OpenError {
-    OpenError::Format {
-        what: "the bricked file".into(),
-        source,
-    }
+/// Why a bricked file cannot be drawn.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum BrickedError {
+    /// The container or one of its bricks is not valid.
+    #[error("reading the bricked file")]
+    Format(#[from] FormatError),
+    /// A brick's packets do not decode.
+    #[error("decoding a brick's packets")]
+    Packet(#[from] PacketError),
+    /// The view is invalid.
+    #[error(transparent)]
+    View(#[from] ViewError),
+    /// Drawing failed.
+    #[error(transparent)]
+    Render(#[from] RenderError),
 }
 
 /// The whole volume's geometry for cameras (dims and spacing; no transform of its own, and not
@@ -60,18 +70,16 @@ pub fn whole_geometry(manifest: &Manifest, first: &Header) -> Geometry {
 }
 
 /// Parses a bricked file and the header of its first brick.
-pub fn parse_with_first(bytes: &[u8]) -> Result<(BrickedFile<'_>, Header), OpenError> {
-    let file = parse_bricked(bytes).map_err(format_error)?;
-    let first = parse_file(file.brick_bytes(0).map_err(format_error)?)
-        .map_err(format_error)?
-        .header;
+pub fn parse_with_first(bytes: &[u8]) -> Result<(BrickedFile<'_>, Header), BrickedError> {
+    let file = parse_bricked(bytes)?;
+    let first = parse_file(file.brick_bytes(0)?)?.header;
     Ok((file, first))
 }
 
 /// The view of one panel of `spec` as a single view: multiview's panels become explicit bases
 /// at the first panel's zoom, and a cue along "the view" becomes the first panel's direction,
 /// as the multiview renderer resolves it.
-fn panel_views(spec: &ViewSpec, whole: &Geometry) -> Result<Vec<View>, OpenError> {
+fn panel_views(spec: &ViewSpec, whole: &Geometry) -> Result<Vec<View>, BrickedError> {
     let cameras = spec.cameras(whole).map_err(RenderError::from)?;
     let n0 = cameras[0].n;
     Ok(cameras
@@ -209,7 +217,7 @@ pub fn draw_bricked_file(
     bytes: &[u8],
     spec: &ViewSpec,
     backend: &mut dyn AccumulationBackend,
-) -> Result<BrickedImage, OpenError> {
+) -> Result<BrickedImage, BrickedError> {
     let (file, first) = parse_with_first(bytes)?;
     let m = &file.manifest;
     let whole = whole_geometry(m, &first);
@@ -243,13 +251,13 @@ pub fn draw_bricked_file(
             }
             if decoded.is_none() {
                 // Only a brick that is drawn is checked, parsed and decoded.
-                let data = file.brick_bytes(i).map_err(format_error)?;
-                let f = parse_file(data).map_err(format_error)?;
+                let data = file.brick_bytes(i)?;
+                let f = parse_file(data)?;
                 if f.header.geometry.dims != entry.dims
                     || f.header.channels != first.channels
                     || f.header.geometry.family != first.geometry.family
                 {
-                    return Err(format_error(FormatError::Invalid {
+                    return Err(BrickedError::Format(FormatError::Invalid {
                         what: "bricked manifest",
                         detail: format!(
                             "brick {i} at {:?} does not match the manifest or the first brick",
@@ -259,7 +267,7 @@ pub fn draw_bricked_file(
                 }
                 let d = decode_packets(&f.header, &f.packets, 0)?;
                 let n: usize = d.iter().map(Vec::len).sum();
-                check_kept(&f.header, n as u64).map_err(format_error)?;
+                check_kept(&f.header, n as u64)?;
                 coefficients += n;
                 drawn += 1;
                 drawn_bytes += data.len() as u64;

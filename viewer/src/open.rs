@@ -364,6 +364,21 @@ pub fn display_image(
     Ok(crate::color::to_rgb_for_spec(&img, header, spec)?)
 }
 
+impl From<crate::bricked::BrickedError> for OpenError {
+    fn from(e: crate::bricked::BrickedError) -> Self {
+        use crate::bricked::BrickedError as B;
+        match e {
+            B::Format(source) => OpenError::Format {
+                what: "the bricked file".into(),
+                source,
+            },
+            B::Packet(p) => OpenError::Packet(p),
+            B::View(v) => OpenError::View(v),
+            B::Render(r) => OpenError::Render(r),
+        }
+    }
+}
+
 /// Opens the volume at `location`, ranked for the view `request` describes; returns its header,
 /// the opened source and that view (a named patient side resolved through the volume's
 /// placement, the fitting zoom). `byte_budget` caps the packets' bytes (file and cache). A

@@ -7,11 +7,10 @@
 //! header are the whole's: cameras, cue and image layout, what the display pass uses. A brick
 //! whose box projects off the image has no plan: its packets are held but not queued.
 
-use super::view::plan_or_preview;
 use super::{RenderSession, SessionError};
 use crate::backend::AccumulationBackend;
 use crate::bricked::{brick_frame, whole_frame};
-use crate::plan::{Planner, RenderStats, ViewPlan};
+use crate::plan::{RenderStats, ViewPlan};
 use crate::RenderError;
 use wavesplat_codec::format::packet::Coefficient;
 use wavesplat_codec::format::{FormatError, Header};
@@ -237,19 +236,6 @@ impl Bricks {
             .iter_mut()
             .filter_map(|p| p.view.as_mut().map(|v| &mut v.plan))
     }
-}
-
-/// The first `plan_or_preview` of every brick (for a new session or a view change).
-pub(super) fn plan_parts(
-    bricks: &mut Bricks,
-    planner: &mut Planner,
-    mut preview: Option<&mut Planner>,
-    spec: &ViewSpec,
-    channels: usize,
-) -> Result<bool, SessionError> {
-    bricks.set_view(spec, &mut |g, s| {
-        plan_or_preview(planner, preview.as_deref_mut(), g, s, channels)
-    })
 }
 
 impl<B: AccumulationBackend> RenderSession<B> {

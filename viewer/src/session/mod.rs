@@ -349,7 +349,7 @@ impl<B: AccumulationBackend> RenderSession<B> {
                 // geometry has no transform, so it has no footprint worth a table.
                 let plan = planner.plan(&g, &spec, header.channels)?;
                 let exact =
-                    bricks::plan_parts(b, &mut planner, preview.as_mut(), &spec, header.channels)?;
+                    view::plan_parts(b, &mut planner, preview.as_mut(), &spec, header.channels)?;
                 (plan, exact, None)
             }
         };

@@ -2,7 +2,7 @@
 //! preview's while the exact one is built), a view being turned or settling, a replaced
 //! backend, and the restart that queues everything held again for the current plan.
 
-use super::bricks::plan_parts;
+use super::bricks::Bricks;
 use super::{RenderSession, SessionError, INITIAL_COST_PER_WEIGHT};
 use crate::backend::AccumulationBackend;
 use crate::plan::{Planner, ViewPlan};
@@ -43,6 +43,19 @@ pub(super) fn plan_or_preview(
             Ok((plan, true))
         }
     }
+}
+
+/// The first `plan_or_preview` of every brick (for a new session or a view change).
+pub(super) fn plan_parts(
+    bricks: &mut Bricks,
+    planner: &mut Planner,
+    mut preview: Option<&mut Planner>,
+    spec: &ViewSpec,
+    channels: usize,
+) -> Result<bool, SessionError> {
+    bricks.set_view(spec, &mut |g, s| {
+        plan_or_preview(planner, preview.as_deref_mut(), g, s, channels)
+    })
 }
 
 impl<B: AccumulationBackend> RenderSession<B> {

@@ -1,0 +1,305 @@
+//! A bricked file drawn progressively, as `render --progressive` and the frame loop draw it: one
+//! session over every brick, fed by the file source in view order. Once everything is drawn
+//! with exact tables the image is the one-pass image of the bricks (itself checked against the
+//! reference ray caster in `bricked.rs`), in oblique, axis, near-axis, zoomed and depth-cued
+//! views, after view changes and under a memory bound; a view that sees one corner fetches the
+//! packets of the bricks there only; multiview and mismatched bricks are refused with a reason.
+
+use std::collections::BTreeSet;
+use std::time::Duration;
+use wavesplat_codec::family::Family;
+use wavesplat_codec::layout::Geometry;
+use wavesplat_codec::metrics::snr_db;
+use wavesplat_codec::view::{Cue, CueDirection, View, ViewSpec};
+use wavesplat_compressor::bricked::compress_bricked;
+use wavesplat_compressor::encode::{CompressOptions, Target};
+use wavesplat_compressor::phantom::Phantom;
+use wavesplat_viewer::bricked::draw_bricked_file;
+use wavesplat_viewer::frame::FrameLoop;
+use wavesplat_viewer::session::{BrickedVolume, RenderSession, SessionOptions};
+use wavesplat_viewer::source::{FileSource, PacketSource};
+use wavesplat_viewer::{CpuBackend, Image};
+
+const DIMS: [usize; 3] = [40, 36, 32];
+
+fn bricked_file(family: Family) -> Vec<u8> {
+    let volume = Phantom::SheppLogan.generate(DIMS);
+    let opts = CompressOptions {
+        family,
+        target: Target::Fraction(0.08),
+        ..CompressOptions::default()
+    };
+    let b = compress_bricked(&volume, &opts, 20, &|_| {}).unwrap();
+    assert_eq!(b.manifest.bricks.len(), 8);
+    b.bytes
+}
+
+/// `spec` at the whole's fitting zoom when it has none (both paths then draw one picture).
+fn fitted(spec: ViewSpec) -> ViewSpec {
+    let g = Geometry::new(DIMS, Family::Linear, 0, 0).unwrap();
+    let mut s = spec;
+    if s.view.zoom.is_none() {
+        s.view.zoom = Some(s.cameras(&g).unwrap()[0].fitting_zoom(&g));
+    }
+    s
+}
+
+fn views() -> Vec<(&'static str, ViewSpec)> {
+    let v = |a, b| View::new(a, b, 96, 80);
+    vec![
+        ("oblique", v(0.66, 0.91)),
+        ("axis", v(0.0, 0.0)),
+        ("near axis", v(0.003, -0.002)),
+        (
+            "zoomed and panned",
+            v(0.4, 0.3).with_zoom(3.0).with_pan([-4.0, 3.0]),
+        ),
+        (
+            "cued",
+            v(0.66, 0.91).with_cue(Cue {
+                k: 0.06,
+                direction: CueDirection::View,
+            }),
+        ),
+        (
+            "stiffly cued from the side",
+            v(0.3, 0.2).with_cue(Cue {
+                k: 0.5,
+                direction: CueDirection::Vector([0.8, -0.36, 0.48]),
+            }),
+        ),
+    ]
+    .into_iter()
+    .map(|(n, v)| (n, fitted(ViewSpec::single(v))))
+    .collect()
+}
+
+fn session_loop(
+    bytes: &[u8],
+    spec: ViewSpec,
+    options: SessionOptions,
+) -> (FrameLoop<CpuBackend, FileSource>, BrickedVolume) {
+    let source = FileSource::open(bytes.to_vec(), &spec).unwrap();
+    let volume = source.bricked_volume().expect("a bricked file");
+    let session =
+        RenderSession::new_bricked(volume.clone(), spec, CpuBackend::new(), options).unwrap();
+    (FrameLoop::new(session, source), volume)
+}
+
+/// Frames until the source is done, nothing is pending and the tables are exact; returns the
+/// image.
+fn run_to_end(f: &mut FrameLoop<CpuBackend, FileSource>) -> Image {
+    for _ in 0..100_000 {
+        let r = f.frame(Duration::from_millis(20)).unwrap();
+        assert!(r.batches_past_deadline <= 1);
+        if r.idle() && f.source.status().done {
+            return f.session.image().unwrap();
+        }
+        if r.pending == 0 && r.packets == 0 && !r.exact {
+            // A preview fully drawn: its exact tables are being built.
+            f.session.wait_exact(Duration::from_millis(50)).unwrap();
+        }
+    }
+    panic!("no progress");
+}
+
+fn with_preview() -> SessionOptions {
+    SessionOptions {
+        preview: Some(SessionOptions::default_preview()),
+        ..SessionOptions::default()
+    }
+}
+
+/// Which bricks the ids name (the bricks' packets are numbered brick by brick).
+fn bricks_of(volume: &BrickedVolume, ids: &[u32]) -> BTreeSet<usize> {
+    ids.iter()
+        .map(|&id| {
+            (0..volume.bricks.len())
+                .find(|&b| {
+                    let first = volume.global_id(b, 0).unwrap_or(u32::MAX);
+                    id >= first && id - first < volume.bricks[b].packets
+                })
+                .expect("an id of some brick")
+        })
+        .collect()
+}
+
+/// Drawn progressively to the end, a bricked file's image is its one-pass image (f32 sums in
+/// another order: > 90 dB), in every kind of single view and both families; the first frame
+/// already shows something.
+#[test]
+fn a_progressive_session_ends_at_the_one_pass_image() {
+    for family in [Family::Haar, Family::Linear] {
+        let bytes = bricked_file(family);
+        for (name, spec) in views() {
+            let one_pass = draw_bricked_file(&bytes, &spec, &mut CpuBackend::new()).unwrap();
+            let (mut f, _) = session_loop(&bytes, spec, with_preview());
+            f.frame(Duration::from_millis(5)).unwrap();
+            let first = f.session.image().unwrap();
+            assert!(
+                first.data.iter().any(|v| *v != 0.0),
+                "{family} {name}: blank first frame"
+            );
+            let image = run_to_end(&mut f);
+            let snr = snr_db(&one_pass.image.data, &image.data);
+            assert!(snr > 90.0, "{family} {name}: {snr:.1} dB against one pass");
+            let stats = f.session.stats();
+            // Every coefficient is drawn, or left out as one the view cannot see (a wavelet
+            // along the direction of a view along an axis projects to zero).
+            assert_eq!(
+                (stats.splatted_in_view + stats.invisible_in_view) as usize,
+                one_pass.coefficients,
+                "{family} {name}"
+            );
+        }
+    }
+}
+
+/// A view change restarts the accumulation over every brick held: the second view's image is
+/// its one-pass image, with no packet sent twice; the same under a memory bound that drops
+/// packets (they are asked for again after the view change).
+#[test]
+fn view_changes_and_a_memory_bound_keep_the_image_exact() {
+    let bytes = bricked_file(Family::Linear);
+    let all = views();
+    let (first, second) = (all[0].1, all[4].1);
+    let expected = draw_bricked_file(&bytes, &second, &mut CpuBackend::new()).unwrap();
+    for bound in [None, Some(40_000)] {
+        let options = SessionOptions {
+            memory_bound: bound,
+            ..with_preview()
+        };
+        let (mut f, _) = session_loop(&bytes, first, options);
+        run_to_end(&mut f);
+        f.set_view(second).unwrap();
+        let image = run_to_end(&mut f);
+        let snr = snr_db(&expected.image.data, &image.data);
+        assert!(snr > 90.0, "bound {bound:?}: {snr:.1} dB against one pass");
+        let stats = f.session.stats();
+        if bound.is_some() {
+            assert!(stats.packets_dropped > 0, "the bound dropped nothing");
+            assert!(stats.retained_bytes <= 40_000);
+        } else {
+            assert_eq!(f.source.status().resent, 0);
+            assert_eq!(stats.packets_received, f.source.status().packets);
+        }
+    }
+}
+
+/// Zoomed into the corner at the origin, looking along z: the file source sends packets of the
+/// two bricks along the rays there and of no other, and the image is the one-pass image.
+#[test]
+fn a_view_of_one_corner_fetches_only_the_bricks_it_sees() {
+    let bytes = bricked_file(Family::Linear);
+    let view = View::new(
+        -std::f64::consts::FRAC_PI_2,
+        -std::f64::consts::FRAC_PI_2,
+        32,
+        32,
+    )
+    .with_zoom(4.0)
+    .with_pan([-10.0, 9.0]);
+    let spec = ViewSpec::single(view);
+    let one_pass = draw_bricked_file(&bytes, &spec, &mut CpuBackend::new()).unwrap();
+    assert_eq!(one_pass.drawn, 2);
+    let (mut f, volume) = session_loop(&bytes, spec, SessionOptions::default());
+    let image = run_to_end(&mut f);
+    let held = f.session.held_ids();
+    let seen = bricks_of(&volume, &held);
+    assert_eq!(seen.len(), 2, "packets of bricks {seen:?}");
+    let total: u32 = volume.bricks.iter().map(|b| b.packets).sum();
+    assert!((held.len() as u32) < total);
+    let snr = snr_db(&one_pass.image.data, &image.data);
+    assert!(snr > 90.0, "{snr:.1} dB against one pass");
+}
+
+/// Multiview is drawn in one pass only: the source and the session refuse it, saying so;
+/// loose coefficients (which name no brick) and ids of no brick are refused too.
+#[test]
+fn multiview_and_packets_of_no_brick_are_refused() {
+    let bytes = bricked_file(Family::Linear);
+    let multi = ViewSpec {
+        view: View::new(0.4, 0.3, 64, 64),
+        multiview: true,
+    };
+    let e = FileSource::open(bytes.clone(), &multi).unwrap_err();
+    assert!(e.to_string().contains("multiview"), "{e}");
+    let single = fitted(ViewSpec::single(View::new(0.4, 0.3, 64, 64)));
+    let source = FileSource::open(bytes, &single).unwrap();
+    let volume = source.bricked_volume().unwrap();
+    let e = RenderSession::new_bricked(
+        volume.clone(),
+        multi,
+        CpuBackend::new(),
+        SessionOptions::default(),
+    )
+    .unwrap_err();
+    assert!(e.to_string().contains("multiview"), "{e}");
+    let mut s = RenderSession::new_bricked(
+        volume.clone(),
+        single,
+        CpuBackend::new(),
+        Default::default(),
+    )
+    .unwrap();
+    let total: u32 = volume.bricks.iter().map(|b| b.packets).sum();
+    let e = s.add_packet(total, &[0u8; 16]).unwrap_err();
+    assert!(e.to_string().contains("no brick"), "{e}");
+    assert!(s.add_coefficients(Vec::new()).is_err());
+    assert_eq!(volume.global_id(0, volume.bricks[0].packets), None);
+}
+
+/// Bricks that would be shown otherwise (another colour coding than the first brick's) cannot
+/// share one accumulation: the session refuses them, naming the brick.
+#[test]
+fn bricks_coded_otherwise_are_refused() {
+    let bytes = bricked_file(Family::Linear);
+    let single = fitted(ViewSpec::single(View::new(0.4, 0.3, 64, 64)));
+    let source = FileSource::open(bytes, &single).unwrap();
+    let mut volume = source.bricked_volume().unwrap();
+    volume.bricks[3].header.color.mean[0] += 7.0;
+    let e = RenderSession::new_bricked(volume, single, CpuBackend::new(), Default::default())
+        .unwrap_err();
+    assert!(e.to_string().contains("brick 3"), "{e}");
+}
+
+/// The bricks of one volume share their band weights: a brick's visibility made with the band
+/// weights of another brick's ([`Visibility::new_like`]) weighs every band and tile as its own
+/// computed from scratch, in plain and cued views.
+#[test]
+fn bricks_share_band_weights_exactly() {
+    use wavesplat_codec::view::visibility::Visibility;
+    use wavesplat_viewer::bricked::{brick_frame, whole_frame};
+    let bytes = bricked_file(Family::Linear);
+    let whole = Geometry::new(DIMS, Family::Linear, 0, 0).unwrap();
+    for (name, spec) in views() {
+        let source = FileSource::open(bytes.clone(), &spec).unwrap();
+        let volume = source.bricked_volume().unwrap();
+        let (camera, cue) = whole_frame(&spec, &whole).unwrap();
+        let mut like: Option<Visibility> = None;
+        for b in &volume.bricks {
+            let g = &b.header.geometry;
+            let Some(frame) =
+                brick_frame(&spec, (&camera, cue.as_ref()), &whole, g, b.origin).unwrap()
+            else {
+                continue;
+            };
+            let own = Visibility::new(&b.header, &frame.spec).unwrap();
+            let Some(l) = &like else {
+                like = Some(own);
+                continue;
+            };
+            let shared = Visibility::new_like(&b.header, &frame.spec, l).unwrap();
+            for band in g.bands() {
+                for tile in 0..b.header.tile_count() {
+                    let (x, y) = (own.weight(band, tile), shared.weight(band, tile));
+                    assert!(
+                        (x - y).abs() <= 1e-12 * x.abs().max(1e-300),
+                        "{name}: {band:?} tile {tile}: {x} against {y}"
+                    );
+                }
+            }
+        }
+        assert!(like.is_some(), "{name}: no brick on the image");
+    }
+}
