@@ -827,11 +827,12 @@ fn a_bricked_volume_is_compressed_listed_and_rendered() {
     ]);
     assert!(!refused.status.success());
     assert!(err(&refused).contains("multiview"), "{}", err(&refused));
-    // The window says what to use instead (it refuses before opening a display).
-    let window = run(&["view", &path("b.wsp"), "--cpu"]);
+    // The window shows a bricked volume in single views: asked for multiview, it says what to
+    // use instead (before opening a display).
+    let window = run(&["view", &path("b.wsp"), "--cpu", "--multiview"]);
     assert!(!window.status.success());
     assert!(
-        err(&window).contains("the window does not open bricked volumes yet")
+        err(&window).contains("drawn in one pass only")
             && err(&window).contains("wavesplat render"),
         "{}",
         err(&window)

@@ -479,6 +479,56 @@ fn a_drag_draws_smaller_images_and_the_view_it_ends_on_converges_at_full_size() 
     assert!(stats(&end, sw, sw, sh).1 > 10.0, "no volume at the end");
 }
 
+/// A bricked volume in the window at 800×600 on the CPU: its bricks are drawn as one image, the
+/// view converges, and M says why it does not switch to multiview.
+#[test]
+fn a_bricked_volume_converges_in_the_window_in_single_views() {
+    let Some(x) = display_for_window() else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("bricked.wsp");
+    let volume = Phantom::SheppLogan.generate([64, 64, 48]);
+    let bricked = wavesplat_compressor::bricked::compress_bricked(
+        &volume,
+        &common::phantom_options(0.05),
+        32,
+        &|_| {},
+    )
+    .unwrap();
+    assert_eq!(bricked.manifest.bricks.len(), 8);
+    std::fs::write(&file, &bricked.bytes).unwrap();
+    let shot = dir.path().join("end.png");
+    let script = format!(
+        "key m; converge; drag 200,150 400,250 over 6; converge; screenshot {}; quit",
+        shot.display()
+    );
+    let child = view(
+        &x.display,
+        &[
+            file.to_str().unwrap(),
+            "--size",
+            "800x600",
+            "--cpu",
+            "--script",
+            &script,
+        ],
+    )
+    .spawn()
+    .unwrap();
+    let (status, stdout, stderr) = finish(child);
+    assert!(
+        status.success(),
+        "exit {status}\nstdout {stdout}\nstderr {stderr}"
+    );
+    assert!(stdout.contains("converged"), "{stdout}");
+    assert!(line_with(&stdout, "the last view converged").contains("images shown"));
+    assert!(stderr.contains("drawn in one pass only"), "{stderr}");
+    let (w, h, img) = grey(&shot);
+    assert_eq!((w, h), (800, 600), "a single view at the window's size");
+    assert!(stats(&img, w, w, h).1 > 10.0, "no volume in {shot:?}");
+}
+
 #[test]
 fn the_window_closes_after_a_set_number_of_frames_and_refuses_cueing_in_multiview() {
     let Some(x) = display_for_window() else {

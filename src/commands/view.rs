@@ -85,11 +85,10 @@ pub fn run(a: ViewWindowArgs) -> Result<()> {
     };
     let location = a.view.location()?;
     if let VolumeLocation::File { path, bytes } = &location {
-        if wavesplat_codec::format::bricked::is_bricked(bytes) {
+        if wavesplat_codec::format::bricked::is_bricked(bytes) && request.multiview {
             bail!(
-                "{} is a bricked volume: the window does not open bricked volumes yet; \
-                 `wavesplat render {}` draws it in one pass (`info` lists its bricks, \
-                 `decompress` decodes it)",
+                "{} is a bricked volume: multiview of it is drawn in one pass only \
+                 (`wavesplat render {} --multiview`); the window shows it in single views",
                 path.display(),
                 path.display()
             );
@@ -108,6 +107,12 @@ pub fn run(a: ViewWindowArgs) -> Result<()> {
         Some(side) => state.with_context(|| format!("--view {side}"))?,
         None => state?,
     };
+    let bricked = opened.bricked_volume();
+    let state = if bricked.is_some() {
+        state.single_views_only()
+    } else {
+        state
+    };
     let options = WindowOptions {
         max_image: a.max_image,
         interactive_max_image: a.drag_max_image,
@@ -122,6 +127,7 @@ pub fn run(a: ViewWindowArgs) -> Result<()> {
         exit_after_frames: a.exit_after_frames,
         script,
         title,
+        bricked,
     };
     let outcome = window::run(header, opened.into_source(), state, options)?;
     outln!(

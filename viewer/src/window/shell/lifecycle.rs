@@ -102,8 +102,13 @@ impl App {
             self.options.max_image,
             &header.geometry,
         )?;
-        let session = RenderSession::new(header, spec, backend, self.options.session)
-            .context("starting the render session")?;
+        let session = match self.options.bricked.clone() {
+            Some(bricked) => {
+                RenderSession::new_bricked(bricked, spec, backend, self.options.session)
+            }
+            None => RenderSession::new(header, spec, backend, self.options.session),
+        }
+        .context("starting the render session")?;
         let mut frames = FrameLoop::new(session, source);
         frames.set_view(spec).context("setting the view")?;
         self.frames = Some(frames);

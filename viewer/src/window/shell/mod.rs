@@ -59,6 +59,9 @@ pub struct WindowOptions {
     pub script: Script,
     /// The volume in words, for the title.
     pub title: String,
+    /// A bricked volume's bricks (`None`: one volume), drawn as one by the session
+    /// ([`crate::session::RenderSession::new_bricked`]); such a window offers single views only.
+    pub bricked: Option<crate::session::BrickedVolume>,
 }
 
 /// What the window did, when it closed.
