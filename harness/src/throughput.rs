@@ -266,7 +266,7 @@ fn view_ceiling(
         .iter()
         .step_by(step)
         .map(|r| {
-            let rect = plan.atlas.phases[r.phase as usize];
+            let rect = plan.atlas().phases[r.phase as usize];
             let cols = (rect.cols as usize).min(TILE);
             let rows = (rect.rows as usize).min(TILE);
             (
@@ -292,7 +292,7 @@ fn view_ceiling(
                 let (ox, oy) = ((k * 7) % (TILE - cols + 1), (k * 13) % (TILE - rows + 1));
                 for r in 0..rows {
                     let row = &mut tile[(oy + r) * TILE + ox..(oy + r) * TILE + ox + cols];
-                    let src = &plan.atlas.data[offset + r * stride..offset + r * stride + cols];
+                    let src = &plan.atlas().data[offset + r * stride..offset + r * stride + cols];
                     for (d, s) in row.iter_mut().zip(src) {
                         *d += w * s;
                     }

@@ -57,7 +57,7 @@ fn bench(c: &mut Criterion) {
                     .unwrap();
                 let mut probe = CpuBackend::new();
                 probe.begin(plan.layout()).unwrap();
-                let updates = probe.accumulate(&plan.atlas, &records).unwrap();
+                let updates = probe.accumulate(&plan.atlas(), &records).unwrap();
                 eprintln!(
                     "{family} {count} coefficients at {size}²: {} records, {updates} pixel updates",
                     records.len()
@@ -76,7 +76,7 @@ fn bench(c: &mut Criterion) {
                     group.bench_function("accumulate", |b| {
                         b.iter(|| {
                             backend.begin(plan.layout()).unwrap();
-                            backend.accumulate(&plan.atlas, &records).unwrap();
+                            backend.accumulate(&plan.atlas(), &records).unwrap();
                             backend.read().unwrap()
                         })
                     });

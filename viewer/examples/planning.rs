@@ -62,7 +62,7 @@ fn main() {
                             let t = Instant::now();
                             let plan = planner.plan(&g, &spec, 1).expect("plan");
                             let ms = t.elapsed().as_secs_f64() * 1e3;
-                            atlas_mb = plan.atlas.data.len() as f64 * 4.0 / 1e6;
+                            atlas_mb = plan.atlas().data.len() as f64 * 4.0 / 1e6;
                             let camera = &plan.cameras[0];
                             let (ex, ey) = camera.index_axes();
                             subpixel = options.subpixel_for_view(family, camera.zoom, ex, ey);

@@ -50,7 +50,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         let recorded = ms(t);
         let mut backend = CpuBackend::new();
         backend.begin(plan.layout())?;
-        backend.accumulate(&plan.atlas, &records)?;
+        backend.accumulate(&plan.atlas(), &records)?;
         std::hint::black_box(backend.read()?);
         let done = ms(t);
         whole.push(done);
@@ -135,7 +135,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         record_ms.push(ms(t));
         backend.begin(plan.layout())?;
         let t = Instant::now();
-        updates = backend.accumulate(&plan.atlas, &records)?;
+        updates = backend.accumulate(&plan.atlas(), &records)?;
         accumulate_ms.push(ms(t));
     }
     let accumulate = median(accumulate_ms);

@@ -99,7 +99,7 @@ impl Planned {
     /// The atlas as a batch planned with `samples` of it saw it (the atlas only grows, so a
     /// prefix is exactly that).
     fn atlas_for(&self, samples: usize) -> FootprintAtlas {
-        let mut atlas = self.plan.atlas.clone();
+        let mut atlas = self.plan.atlas().clone();
         atlas.data.truncate(samples);
         atlas
             .phases
@@ -122,7 +122,7 @@ fn plan(g: &Geometry, coeffs: &[Coefficient], spec: &ViewSpec, channels: usize) 
             &mut RenderStats::default(),
         )
         .unwrap();
-        batches.push((plan.atlas.data.len(), records));
+        batches.push((plan.atlas().data.len(), records));
         start = end;
     }
     Planned { plan, batches }
@@ -133,7 +133,7 @@ fn accumulated(ctx: &Arc<GpuContext>, p: &Planned) -> GpuBackend {
     let mut gpu = GpuBackend::new(ctx.clone()).unwrap();
     gpu.begin(p.plan.layout()).unwrap();
     for (_, r) in &p.batches {
-        gpu.accumulate(&p.plan.atlas, r).unwrap();
+        gpu.accumulate(&p.plan.atlas(), r).unwrap();
     }
     gpu
 }
@@ -247,7 +247,7 @@ fn gpu_sums_are_order_and_chunk_independent() {
     let layout = p.plan.layout();
     let mut a = GpuBackend::new(ctx.clone()).unwrap();
     a.begin(layout).unwrap();
-    a.accumulate(&p.plan.atlas, &records).unwrap();
+    a.accumulate(&p.plan.atlas(), &records).unwrap();
     let first = a.read().unwrap();
     let mut reversed = records.clone();
     reversed.reverse();
@@ -262,13 +262,13 @@ fn gpu_sums_are_order_and_chunk_independent() {
     .unwrap();
     b.begin(layout).unwrap();
     // The same total in one call: same exponent, so the same integers.
-    b.accumulate(&p.plan.atlas, &reversed).unwrap();
+    b.accumulate(&p.plan.atlas(), &reversed).unwrap();
     assert_eq!(a.scale_exponent(), b.scale_exponent());
     assert!(first.data.iter().any(|v| *v != 0.0));
     assert_eq!(first.data, b.read().unwrap().data);
     // `begin` clears: the same again on a reused target.
     b.begin(layout).unwrap();
-    b.accumulate(&p.plan.atlas, &records).unwrap();
+    b.accumulate(&p.plan.atlas(), &records).unwrap();
     assert_eq!(first.data, b.read().unwrap().data);
 }
 
@@ -293,13 +293,13 @@ fn gpu_rescales_when_the_mass_grows() {
     cpu.begin(layout).unwrap();
     gpu.begin(layout).unwrap();
     for batch in [&light[..], &records[..]] {
-        cpu.accumulate(&p.plan.atlas, batch).unwrap();
-        gpu.accumulate(&p.plan.atlas, batch).unwrap();
+        cpu.accumulate(&p.plan.atlas(), batch).unwrap();
+        gpu.accumulate(&p.plan.atlas(), batch).unwrap();
     }
     let e_after_light = {
         let mut probe = GpuBackend::new(gpu.context().clone()).unwrap();
         probe.begin(layout).unwrap();
-        probe.accumulate(&p.plan.atlas, &light).unwrap();
+        probe.accumulate(&p.plan.atlas(), &light).unwrap();
         probe.scale_exponent().unwrap()
     };
     assert!(gpu.scale_exponent().unwrap() < e_after_light - 20);
@@ -467,7 +467,7 @@ fn auto_window_from_device_samples_matches_the_host() {
         let empty = gpu.auto_window(None).unwrap();
         assert_eq!(empty, gpu.read().unwrap().resolve_window(None).unwrap());
         for (_, r) in &p.batches {
-            gpu.accumulate(&p.plan.atlas, r).unwrap();
+            gpu.accumulate(&p.plan.atlas(), r).unwrap();
         }
         let offsets: Vec<f32> = (0..w * h).map(|i| (i % 13) as f32 * 0.05).collect();
         let colour = ColorMap {
@@ -506,7 +506,7 @@ fn atlas_windows_give_the_sums_of_one_binding() {
         ViewSpec::single(cued),
     ] {
         let p = plan(&g, &coeffs[..30_000], &spec, 1);
-        let bytes = p.plan.atlas.data.len() * 4;
+        let bytes = p.plan.atlas().data.len() * 4;
         assert!(
             bytes > 8 * 65_536,
             "atlas of {bytes} bytes: no windows to test"
@@ -532,7 +532,7 @@ fn atlas_windows_give_the_sums_of_one_binding() {
     let p = plan(&g, &coeffs[..2_000], &ViewSpec::single(view()), 1);
     let longest = p
         .plan
-        .atlas
+        .atlas()
         .phases
         .iter()
         .map(|r| r.cols * r.rows)
@@ -546,7 +546,7 @@ fn atlas_windows_give_the_sums_of_one_binding() {
     gpu.begin(p.plan.layout()).unwrap();
     let all: Vec<SplatRecord> = p.batches.iter().flat_map(|(_, r)| r.clone()).collect();
     assert!(matches!(
-        gpu.accumulate(&p.plan.atlas, &all),
+        gpu.accumulate(&p.plan.atlas(), &all),
         Err(BackendError::Range(_))
     ));
 }
@@ -557,7 +557,7 @@ fn gpu_refuses_bad_input() {
     let Some(ctx) = gpu() else { return };
     let (g, coeffs) = coefficients(Family::Haar, 1);
     let p = plan(&g, &coeffs[..100], &ViewSpec::single(view()), 1);
-    let atlas = &p.plan.atlas;
+    let atlas = &p.plan.atlas();
     let good = p.batches[2].1[0];
     let mut b = GpuBackend::new(ctx).unwrap();
     assert!(matches!(

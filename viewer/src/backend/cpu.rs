@@ -344,6 +344,11 @@ fn accumulate(
             let ty = (t / tiles_x) * TILE;
             let tw = TILE.min(width - tx);
             let th = TILE.min(height - ty);
+            // A tile no record reaches costs nothing (small batches, such as one brick's of a
+            // bricked volume, reach a few tiles of a large image).
+            if chunks.iter().all(|chunk| chunk.bins[t].is_empty()) {
+                return (Vec::new(), 0);
+            }
             let mut buf = vec![0.0f32; tw * th * channels];
             let mut updates = 0u64;
             let binned = chunks

@@ -48,7 +48,7 @@ impl ViewPlan {
          -> Result<(), RenderError> {
             records.clear();
             plan.splats(part, records, stats)?;
-            stats.pixel_updates += backend.accumulate(&plan.atlas, records)?;
+            stats.pixel_updates += backend.accumulate(&plan.atlas(), records)?;
             Ok(())
         };
         let mut runs = runs.into_iter().peekable();

@@ -31,7 +31,8 @@ use crate::backend::{FootprintAtlas, TableRef};
 use crate::footprint::{AxisFactor, FootprintSet};
 use crate::pieces::{BoxClip, Expansions};
 use rustc_hash::{FxHashMap as HashMap, FxHashSet as HashSet};
-use std::sync::Arc;
+use std::sync::{Arc, RwLock, RwLockReadGuard, RwLockWriteGuard};
+pub use tables::SharedFactorTables;
 use tables::TableBuilder;
 use wavesplat_codec::family::Family;
 use wavesplat_codec::layout::{Band, Geometry};
@@ -190,8 +191,10 @@ pub struct ViewPlan {
     pub cue: Option<ResolvedCue>,
     /// Channels of the image.
     pub channels: usize,
-    /// Every footprint of the view (grows with cued factor triples).
-    pub atlas: FootprintAtlas,
+    /// Every footprint of the view (grows with cued factor triples); shared by the plans
+    /// one planner made with the same footprint sets (a bricked volume's bricks), so each
+    /// table is stored, and uploaded to a device, once. Read it with [`ViewPlan::atlas`].
+    atlas: SharedAtlas,
     expansions: Option<Expansions>,
     /// Clipping to the box, when the geometry's periodic images reach the volume.
     clip: Option<BoxClip>,
@@ -203,6 +206,8 @@ pub struct ViewPlan {
     factor_tables: Vec<HashMap<[AxisFactor; 3], TableRef>>,
     /// The background builder of cued tables, when enabled.
     builder: Option<TableBuilder>,
+    /// Factor tables shared with the other plans of the view (a bricked volume's bricks).
+    shared_tables: Option<Arc<SharedFactorTables>>,
     /// Indices (into the last `splats` call's coefficients) left out for want of a table.
     deferred: Vec<usize>,
     /// Cued tables built on the calling thread so far.
@@ -258,6 +263,29 @@ impl Centres {
 
 /// A cued table request or result: footprint set index and factor triple.
 type TableKey = (usize, [AxisFactor; 3]);
+
+/// An atlas shared by plans (see [`ViewPlan::atlas`]). Plans are planned on one thread and
+/// drawn on another, so the lock is a `RwLock`; it is taken once per batch, never per splat.
+type SharedAtlas = Arc<RwLock<FootprintAtlas>>;
+
+impl ViewPlan {
+    /// Every footprint of the view, as the backends read it. The atlas may be shared with
+    /// other plans of the view (they only append to it); hold the guard only while drawing.
+    pub fn atlas(&self) -> RwLockReadGuard<'_, FootprintAtlas> {
+        // Appends leave the atlas whole even if a panic interrupted one between its vectors'
+        // pushes (lengths are only read through phases that were completed).
+        self.atlas.read().unwrap_or_else(|e| e.into_inner())
+    }
+
+    fn atlas_mut(&self) -> RwLockWriteGuard<'_, FootprintAtlas> {
+        self.atlas.write().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// Whether this plan and `other` store their tables in one atlas.
+    pub fn shares_atlas_with(&self, other: &ViewPlan) -> bool {
+        Arc::ptr_eq(&self.atlas, &other.atlas)
+    }
+}
 
 #[cfg(test)]
 mod tests {

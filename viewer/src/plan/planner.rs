@@ -2,13 +2,13 @@
 //! footprint sets, one shared by the multiview cameras when the spacing allows) and planned into
 //! a [`ViewPlan`], with the footprint sets cached per view.
 
-use super::{Centres, Placement, PlanOptions, ViewPlan};
-use crate::backend::FootprintAtlas;
+use super::{Centres, Placement, PlanOptions, SharedAtlas, ViewPlan};
+use crate::backend::{FootprintAtlas, TableRef};
 use crate::footprint::{FootprintParams, FootprintSet};
 use crate::pieces::{BoxClip, Expansions};
 use crate::RenderError;
 use rustc_hash::{FxHashMap as HashMap, FxHashSet as HashSet};
-use std::sync::Arc;
+use std::sync::{Arc, RwLock, Weak};
 use wavesplat_codec::layout::Geometry;
 use wavesplat_codec::view::{resolve_cue, Camera, ResolvedCue, ViewSpec};
 
@@ -65,6 +65,16 @@ pub struct ResolvedView {
 pub struct Planner {
     options: PlanOptions,
     cache: Vec<(CacheKey, Arc<FootprintSet>)>,
+    /// Atlases of live plans by their footprint sets (weak: a plan dropped frees its atlas).
+    atlases: Vec<AtlasBase>,
+}
+
+/// An atlas some live plans share and where the uncued tables of its sets are in it.
+#[derive(Debug)]
+struct AtlasBase {
+    sets: Vec<Arc<FootprintSet>>,
+    atlas: Weak<RwLock<FootprintAtlas>>,
+    tables: Vec<Vec<Option<TableRef>>>,
 }
 
 impl Planner {
@@ -73,6 +83,7 @@ impl Planner {
         Planner {
             options,
             cache: Vec::new(),
+            atlases: Vec::new(),
         }
     }
 
@@ -159,6 +170,43 @@ impl Planner {
         }
     }
 
+    /// The atlas holding `sets` and their tables in it: the atlas of a live plan made with the
+    /// same sets (the bricks of a bricked volume in one view: one copy of the tables instead of
+    /// one per brick), else a new one.
+    fn atlas_for(
+        &mut self,
+        sets: &[Arc<FootprintSet>],
+    ) -> (SharedAtlas, Vec<Vec<Option<TableRef>>>) {
+        self.atlases.retain(|base| base.atlas.strong_count() > 0);
+        let same = |base: &AtlasBase| {
+            base.sets.len() == sets.len()
+                && base.sets.iter().zip(sets).all(|(a, b)| Arc::ptr_eq(a, b))
+        };
+        if let Some(base) = self.atlases.iter().find(|b| same(b)) {
+            if let Some(atlas) = base.atlas.upgrade() {
+                return (atlas, base.tables.clone());
+            }
+        }
+        let mut atlas = FootprintAtlas::new();
+        atlas.reserve_for(sets.iter().flat_map(|set| set.tables.iter().flatten()));
+        let tables: Vec<Vec<Option<TableRef>>> = sets
+            .iter()
+            .map(|set| {
+                set.tables
+                    .iter()
+                    .map(|t| t.as_ref().map(|f| atlas.push(f)))
+                    .collect()
+            })
+            .collect();
+        let atlas = Arc::new(RwLock::new(atlas));
+        self.atlases.push(AtlasBase {
+            sets: sets.to_vec(),
+            atlas: Arc::downgrade(&atlas),
+            tables: tables.clone(),
+        });
+        (atlas, tables)
+    }
+
     /// Resolves `spec` for `geometry` with `channels` channels.
     pub fn plan(
         &mut self,
@@ -172,17 +220,7 @@ impl Planner {
             footprints,
         } = self.params(geometry, spec)?;
         let sets: Vec<Arc<FootprintSet>> = footprints.iter().map(|p| self.footprints(p)).collect();
-        let mut atlas = FootprintAtlas::new();
-        atlas.reserve_for(sets.iter().flat_map(|set| set.tables.iter().flatten()));
-        let tables = sets
-            .iter()
-            .map(|set| {
-                set.tables
-                    .iter()
-                    .map(|t| t.as_ref().map(|f| atlas.push(f)))
-                    .collect()
-            })
-            .collect();
+        let (atlas, tables) = self.atlas_for(&sets);
         Ok(ViewPlan {
             geometry: *geometry,
             spec: *spec,
@@ -196,6 +234,7 @@ impl Planner {
             atlas,
             tables,
             builder: None,
+            shared_tables: None,
             deferred: Vec::new(),
             built_inline: 0,
             stood_in: HashSet::default(),

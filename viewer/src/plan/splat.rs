@@ -132,13 +132,20 @@ impl ViewPlan {
         for (k, view_triples) in triples.iter().enumerate() {
             let (set, _) = self.set_of(k);
             let mut missing: Vec<[AxisFactor; 3]> = Vec::new();
-            for ((i, _), (t, _)) in pieces.iter().zip(view_triples) {
-                if !self.factor_tables[set].contains_key(t) {
-                    if self.builder.is_some() {
+            for (t, _) in view_triples {
+                if !self.factor_tables[set].contains_key(t) && !missing.contains(t) {
+                    missing.push(*t);
+                }
+            }
+            if missing.is_empty() {
+                continue;
+            }
+            // Tables another plan of the view built are taken as they are.
+            let missing = self.take_shared(set, missing);
+            if self.builder.is_some() {
+                for ((i, _), (t, _)) in pieces.iter().zip(view_triples) {
+                    if !self.factor_tables[set].contains_key(t) {
                         waiting.insert(*i);
-                    }
-                    if !missing.contains(t) {
-                        missing.push(*t);
                     }
                 }
             }
@@ -147,18 +154,22 @@ impl ViewPlan {
             }
             match &mut self.builder {
                 Some(b) => {
+                    // A table another plan asked for first is waited for, not asked for again.
                     let new: Vec<TableKey> = missing
                         .into_iter()
-                        .map(|t| (set, t))
-                        .filter(|key| b.pending.insert(*key))
+                        .filter(|(t, first)| b.pending.insert((set, *t)) && *first)
+                        .map(|(t, _)| (set, t))
                         .collect();
                     // A builder that died (it panicked) leaves its coefficients waiting;
                     // `tables_pending` stays true and the caller sees no progress.
                     if !new.is_empty() {
+                        b.asked.extend(new.iter().copied());
                         let _ = b.requests.send(new);
                     }
                 }
                 None => {
+                    let missing: Vec<[AxisFactor; 3]> =
+                        missing.into_iter().map(|(t, _)| t).collect();
                     tracing::debug!(
                         set,
                         tables = missing.len(),
@@ -168,8 +179,7 @@ impl ViewPlan {
                     let built = self.sets[set].factor_footprints(&missing);
                     self.built_inline += missing.len();
                     for (key, f) in missing.iter().zip(built) {
-                        let t = self.atlas.push(&f);
-                        self.factor_tables[set].insert(*key, t);
+                        self.install_table(set, *key, f);
                     }
                 }
             }
@@ -182,6 +192,8 @@ impl ViewPlan {
         if self.builder.is_some() {
             self.stand_ins(coefficients, &waiting, out);
         }
+        let atlas = self.atlas();
+        let atlas: &FootprintAtlas = &atlas;
         for (k, camera) in self.cameras.iter().enumerate() {
             let (set, permuted) = self.set_of(k);
             let tables = &self.tables[set];
@@ -213,7 +225,7 @@ impl ViewPlan {
                         let scr = camera.to_screen(centre);
                         let value = c.value * sign;
                         let (channel, view) = (c.channel as u16, k as u16);
-                        if place(&t, &self.atlas, scr, value, channel, view, size, &mut out) {
+                        if place(&t, atlas, scr, value, channel, view, size, &mut out) {
                             placed += 1;
                         }
                     }
@@ -232,7 +244,6 @@ impl ViewPlan {
             // chunk counting the coefficients it placed and the first and last of them, so a
             // coefficient whose pieces straddle two chunks counts once.
             let factor_tables = &self.factor_tables[set];
-            let atlas = &self.atlas;
             let waiting = &waiting;
             let placed_pieces: Vec<PlacedPieces> = pieces
                 .par_chunks(CHUNK)

@@ -1,15 +1,60 @@
 //! The tables a plan draws with beyond its footprint sets: cued factor tables built on a thread
-//! of the plan's own while the coefficients that need them wait, the stand-ins drawn meanwhile
-//! with uncued tables (taken back when the real splat comes), and which set each camera uses.
+//! of the plan's own while the coefficients that need them wait (each built once for all the
+//! plans of one view that share a [`SharedFactorTables`]: a bricked volume's bricks), the
+//! stand-ins drawn meanwhile with uncued tables (taken back when the real splat comes), and
+//! which set each camera uses.
 
 use super::splat::place;
 use super::{TableKey, ViewPlan};
-use crate::backend::SplatRecord;
+use crate::backend::{FootprintAtlas, SplatRecord, TableRef};
 use crate::footprint::{AxisFactor, Footprint, FootprintSet};
+use rustc_hash::FxHashMap as HashMap;
 use rustc_hash::FxHashSet as HashSet;
 use std::sync::mpsc::{channel, Receiver, Sender};
-use std::sync::Arc;
+use std::sync::{Arc, Mutex, RwLock, Weak};
 use wavesplat_codec::format::packet::Coefficient;
+
+/// A factor table's key across plans: its footprint set (by address: the plans of one view take
+/// their sets from one planner, and the store keeps each set alive, so an address names one
+/// set) and its factor triple.
+type SharedKey = (usize, [AxisFactor; 3]);
+
+/// Factor tables shared by the plans of one view that draw with the same footprint sets (the
+/// bricks of a bricked volume: their clipped pieces cut by faces at the same offsets need the
+/// same tables). The first plan that misses a table has its builder build it; the others wait
+/// for it here instead of building it again.
+#[derive(Debug, Default)]
+pub struct SharedFactorTables {
+    inner: Mutex<SharedInner>,
+}
+
+#[derive(Debug, Default)]
+struct SharedInner {
+    built: HashMap<SharedKey, SharedTable>,
+    requested: HashSet<SharedKey>,
+    /// The sets named by address, kept alive while their address is a key.
+    sets: HashMap<usize, Arc<FootprintSet>>,
+}
+
+/// A factor table built for one of the plans and where it was stored: a plan whose atlas is
+/// that one takes the stored table instead of storing it again.
+#[derive(Debug)]
+struct SharedTable {
+    footprint: Arc<Footprint>,
+    stored: Weak<RwLock<FootprintAtlas>>,
+    at: TableRef,
+}
+
+impl SharedFactorTables {
+    fn lock(&self) -> std::sync::MutexGuard<'_, SharedInner> {
+        // A plan that panicked while holding the lock left a consistent map (only inserts).
+        self.inner.lock().unwrap_or_else(|e| e.into_inner())
+    }
+}
+
+fn shared_key(set: &Arc<FootprintSet>, triple: [AxisFactor; 3]) -> SharedKey {
+    (Arc::as_ptr(set) as usize, triple)
+}
 
 /// Builds cued tables on a thread of its own (a one-thread rayon pool, so its parallel loops
 /// never queue ahead of the caller's splat batches on the global pool); ends when dropped.
@@ -17,8 +62,10 @@ use wavesplat_codec::format::packet::Coefficient;
 pub(super) struct TableBuilder {
     pub(super) requests: Sender<Vec<TableKey>>,
     results: Receiver<Vec<(TableKey, Arc<Footprint>)>>,
-    /// Requested and not yet received.
+    /// Waited for and not yet received.
     pub(super) pending: HashSet<TableKey>,
+    /// Of `pending`, those this builder was asked for (the rest another plan's builder makes).
+    pub(super) asked: HashSet<TableKey>,
 }
 
 impl TableBuilder {
@@ -60,6 +107,7 @@ impl TableBuilder {
             requests,
             results,
             pending: HashSet::default(),
+            asked: HashSet::default(),
         }
     }
 }
@@ -101,12 +149,119 @@ impl ViewPlan {
         while let Ok(built) = b.results.try_recv() {
             arrived.extend(built);
         }
-        for ((set, triple), f) in &arrived {
-            b.pending.remove(&(*set, *triple));
-            let t = self.atlas.push(f);
-            self.factor_tables[*set].insert(*triple, t);
+        // What another plan's builder made for this plan's waiting coefficients.
+        let mut from_others = Vec::new();
+        if let Some(shared) = &self.shared_tables {
+            let shared = shared.lock();
+            for &(set, triple) in &b.pending {
+                if arrived.iter().any(|(k, _)| *k == (set, triple)) {
+                    continue;
+                }
+                if shared
+                    .built
+                    .contains_key(&shared_key(&self.sets[set], triple))
+                {
+                    from_others.push((set, triple));
+                }
+            }
         }
-        arrived.len()
+        for (key, _) in &arrived {
+            b.pending.remove(key);
+            b.asked.remove(key);
+        }
+        let count = arrived.len() + from_others.len();
+        for ((set, triple), f) in arrived {
+            self.install_table(set, triple, f);
+        }
+        for (set, triple) in from_others {
+            self.take_shared(set, vec![triple]);
+        }
+        count
+    }
+
+    /// Stores a factor table built for this plan and hands it to the plans sharing its tables.
+    pub(super) fn install_table(&mut self, set: usize, triple: [AxisFactor; 3], f: Arc<Footprint>) {
+        if self.factor_tables[set].contains_key(&triple) {
+            return;
+        }
+        let key = shared_key(&self.sets[set], triple);
+        let shared = self.shared_tables.clone();
+        let mut shared = shared.as_ref().map(|s| s.lock());
+        // Stored by a plan with this atlas already: taken, not stored twice.
+        let stored = shared
+            .as_ref()
+            .and_then(|s| s.built.get(&key))
+            .and_then(|t| {
+                (t.stored
+                    .upgrade()
+                    .is_some_and(|a| Arc::ptr_eq(&a, &self.atlas)))
+                .then_some(t.at)
+            });
+        let at = match stored {
+            Some(at) => at,
+            None => self.atlas_mut().push(&f),
+        };
+        self.factor_tables[set].insert(triple, at);
+        if let Some(shared) = &mut shared {
+            shared.sets.insert(key.0, self.sets[set].clone());
+            shared.built.entry(key).or_insert(SharedTable {
+                footprint: f,
+                stored: Arc::downgrade(&self.atlas),
+                at,
+            });
+        }
+    }
+
+    /// Takes factor tables from `shared` and builds each missing one there once for every plan
+    /// sharing it (see [`SharedFactorTables`]); for the plans of one view drawn with the sets
+    /// of one planner. Tables this plan waited for from the plans it shared with before are
+    /// asked of its own builder now: the plan that was to build them may be gone.
+    pub fn share_factor_tables(&mut self, shared: Arc<SharedFactorTables>) {
+        if let Some(b) = &mut self.builder {
+            let orphaned: Vec<TableKey> = b.pending.difference(&b.asked).copied().collect();
+            if !orphaned.is_empty() {
+                b.asked.extend(orphaned.iter().copied());
+                let _ = b.requests.send(orphaned);
+            }
+        }
+        self.shared_tables = Some(shared);
+    }
+
+    /// Of `missing` triples of set `set`: installs those the shared tables hold, and returns the
+    /// rest, each with whether this plan is the one to request it (no other plan did).
+    pub(super) fn take_shared(
+        &mut self,
+        set: usize,
+        missing: Vec<[AxisFactor; 3]>,
+    ) -> Vec<([AxisFactor; 3], bool)> {
+        let Some(shared) = self.shared_tables.clone() else {
+            return missing.into_iter().map(|t| (t, true)).collect();
+        };
+        let mut rest = Vec::new();
+        let mut found = Vec::new();
+        {
+            let mut shared = shared.lock();
+            for t in missing {
+                let key = shared_key(&self.sets[set], t);
+                match shared.built.get(&key) {
+                    Some(table) => found.push((t, table.footprint.clone())),
+                    None => {
+                        let first = shared.requested.insert(key);
+                        if first {
+                            shared.sets.insert(key.0, self.sets[set].clone());
+                        }
+                        rest.push((t, first));
+                    }
+                }
+            }
+        }
+        for (t, f) in found {
+            if let Some(b) = &mut self.builder {
+                b.pending.remove(&(set, t));
+            }
+            self.install_table(set, t, f);
+        }
+        rest
     }
 
     /// The relative cost of drawing `c` in this view, given the cost `weight(level)` of one
@@ -158,6 +313,8 @@ impl ViewPlan {
             return;
         }
         let size = (self.spec.view.width, self.spec.view.height);
+        let shared_atlas = self.atlas.clone();
+        let atlas = shared_atlas.read().unwrap_or_else(|e| e.into_inner());
         for (i, c) in coefficients.iter().enumerate() {
             let key = (c.band, c.pos, c.channel);
             let sign = if waiting.contains(&i) {
@@ -180,7 +337,7 @@ impl ViewPlan {
             let value = (sign * c.value as f64 * cue.weight(centre)) as f32;
             if value != 0.0 {
                 let scr = camera.to_screen(centre);
-                place(&t, &self.atlas, scr, value, c.channel as u16, 0, size, out);
+                place(&t, &atlas, scr, value, c.channel as u16, 0, size, out);
             }
         }
     }
@@ -191,7 +348,7 @@ impl ViewPlan {
         self.stand_in_tables = set
             .tables
             .iter()
-            .map(|t| t.as_ref().map(|f| self.atlas.push(f)))
+            .map(|t| t.as_ref().map(|f| self.atlas_mut().push(f)))
             .collect();
     }
 
@@ -214,5 +371,114 @@ impl ViewPlan {
         } else {
             (k, false)
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::plan::{PlanOptions, Planner, RenderStats};
+    use wavesplat_codec::dwt::decompose_channel;
+    use wavesplat_codec::family::Family;
+    use wavesplat_codec::layout::Geometry;
+    use wavesplat_codec::view::{View, ViewSpec};
+
+    /// A thin box with no margin (its pieces are clipped at the faces, so drawing it needs
+    /// factor tables) and all its coefficients.
+    fn clipped_box() -> (Geometry, Vec<Coefficient>) {
+        let dims = [24, 20, 8];
+        let g = Geometry::new(dims, Family::Linear, 3, 0).unwrap();
+        assert!(g.clips_to_box());
+        let data: Vec<f32> = (0..dims.iter().product::<usize>())
+            .map(|i| 3.0 + ((i as f32) * 0.37).sin())
+            .collect();
+        (g, Coefficient::all_of(&g, 0, &decompose_channel(&data, &g)))
+    }
+
+    /// Plans of one view from one planner (a bricked volume's bricks) store their tables in
+    /// one atlas; a plan of another view gets its own; a factor table built for one plan is
+    /// taken by the others that share the tables, without being built or stored again, and the
+    /// records are those a plan of its own makes.
+    #[test]
+    fn plans_of_one_view_share_their_atlas_and_factor_tables() {
+        let (g, coefficients) = clipped_box();
+        let spec = ViewSpec::single(View::new(0.4, 0.3, 96, 80));
+        let mut planner = Planner::new(PlanOptions::default());
+        let mut first = planner.plan(&g, &spec, 1).unwrap();
+        let mut second = planner.plan(&g, &spec, 1).unwrap();
+        assert!(first.clips());
+        assert!(first.shares_atlas_with(&second));
+        let other = planner
+            .plan(&g, &ViewSpec::single(View::new(1.1, 0.3, 96, 80)), 1)
+            .unwrap();
+        assert!(!other.shares_atlas_with(&first));
+
+        let shared = Arc::new(SharedFactorTables::default());
+        first.share_factor_tables(shared.clone());
+        second.share_factor_tables(shared);
+        let (mut a, mut b) = (Vec::new(), Vec::new());
+        first
+            .splats(&coefficients, &mut a, &mut RenderStats::default())
+            .unwrap();
+        let built = first.tables_built_inline();
+        assert!(built > 0, "a clipped box needs factor tables");
+        let stored = first.atlas().data.len();
+        second
+            .splats(&coefficients, &mut b, &mut RenderStats::default())
+            .unwrap();
+        assert_eq!(second.tables_built_inline(), 0);
+        assert_eq!(second.atlas().data.len(), stored);
+        assert_eq!(a, b);
+
+        // A plan alone builds the same tables and draws the same records.
+        let mut alone = Planner::new(PlanOptions::default())
+            .plan(&g, &spec, 1)
+            .unwrap();
+        let mut c = Vec::new();
+        alone
+            .splats(&coefficients, &mut c, &mut RenderStats::default())
+            .unwrap();
+        assert_eq!(alone.tables_built_inline(), built);
+        assert_eq!(a, c);
+    }
+
+    /// A plan waiting for a table another plan's builder was asked for still gets it when the
+    /// sharing is replaced (as a new view's plans arrive): it asks its own builder then.
+    #[test]
+    fn a_table_waited_for_from_another_plan_comes_after_the_sharing_is_replaced() {
+        let (g, coefficients) = clipped_box();
+        let spec = ViewSpec::single(View::new(0.4, 0.3, 96, 80));
+        let mut planner = Planner::new(PlanOptions::default());
+        let mut first = planner.plan(&g, &spec, 1).unwrap();
+        let mut second = planner.plan(&g, &spec, 1).unwrap();
+        first.build_tables_in_background();
+        second.build_tables_in_background();
+        let shared = Arc::new(SharedFactorTables::default());
+        first.share_factor_tables(shared.clone());
+        second.share_factor_tables(shared);
+        let mut out = Vec::new();
+        first
+            .splats(&coefficients, &mut out, &mut RenderStats::default())
+            .unwrap();
+        second
+            .splats(&coefficients, &mut out, &mut RenderStats::default())
+            .unwrap();
+        assert!(second.tables_pending());
+        // The plan that was asked is gone before it shared anything.
+        drop(first);
+        second.share_factor_tables(Arc::new(SharedFactorTables::default()));
+        let deadline = std::time::Instant::now() + std::time::Duration::from_secs(60);
+        while second.tables_pending() {
+            second.poll_tables();
+            assert!(std::time::Instant::now() < deadline, "tables never came");
+            std::thread::sleep(std::time::Duration::from_millis(5));
+        }
+        assert!(!second.take_deferred().is_empty());
+        // Every table is here now: nothing is left out of a batch.
+        second
+            .splats(&coefficients, &mut out, &mut RenderStats::default())
+            .unwrap();
+        assert!(second.take_deferred().is_empty());
+        assert!(!second.tables_pending());
     }
 }

@@ -10,7 +10,7 @@
 use super::{RenderSession, SessionError};
 use crate::backend::AccumulationBackend;
 use crate::bricked::{brick_frame, whole_frame};
-use crate::plan::{RenderStats, ViewPlan};
+use crate::plan::{RenderStats, SharedFactorTables, ViewPlan};
 use crate::RenderError;
 use wavesplat_codec::format::packet::Coefficient;
 use wavesplat_codec::format::{FormatError, Header};
@@ -213,7 +213,16 @@ impl Bricks {
                 cue_scale: frame.cue_scale as f32,
             });
         }
+        self.share_tables();
         Ok(exact)
+    }
+
+    /// Makes the bricks' plans of the view build each factor table once for all of them.
+    pub(super) fn share_tables(&mut self) {
+        let shared = std::sync::Arc::new(SharedFactorTables::default());
+        for plan in self.plans_mut() {
+            plan.share_factor_tables(shared.clone());
+        }
     }
 
     /// The bricks' geometries and views for a background build: `None` for a brick off the
@@ -287,8 +296,8 @@ impl<B: AccumulationBackend> RenderSession<B> {
             }));
             self.records.clear();
             view.plan.splats(&scaled, &mut self.records, stats)?;
-            self.backend.prepare(&view.plan.atlas)?;
-            self.backend.accumulate(&view.plan.atlas, &self.records)?;
+            self.backend.prepare(&view.plan.atlas())?;
+            self.backend.accumulate(&view.plan.atlas(), &self.records)?;
             records += self.records.len();
             deferred.extend(view.plan.take_deferred().into_iter().map(|j| run[j].1));
         }

@@ -115,6 +115,7 @@ impl<B: AccumulationBackend> RenderSession<B> {
                             view.plan = plan;
                         }
                     }
+                    b.share_tables();
                 }
             }
             Some(_) => {

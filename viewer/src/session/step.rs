@@ -41,7 +41,7 @@ impl<B: AccumulationBackend> RenderSession<B> {
             // A new plan's tables reach the backend before the batch is sized and timed: the
             // upload takes from what is left of the budget instead of running past it, and
             // the running estimate measures splatting alone.
-            self.backend.prepare(&self.plan.atlas)?;
+            self.backend.prepare(&self.plan.atlas())?;
             let now = clock.now();
             // The first batch runs whatever is left (a minimal one when nothing is): a step
             // always draws when something is queued.
@@ -93,7 +93,7 @@ impl<B: AccumulationBackend> RenderSession<B> {
                 self.records.clear();
                 self.plan
                     .splats(&coefficients, &mut self.records, &mut stats)?;
-                self.backend.accumulate(&self.plan.atlas, &self.records)?;
+                self.backend.accumulate(&self.plan.atlas(), &self.records)?;
                 (self.plan.take_deferred(), self.records.len())
             };
             // What waits was not drawn: its weight is not part of what was timed.
