@@ -180,14 +180,7 @@ fn a_view_of_one_brick_draws_no_other() {
     };
     let bricked = compress_bricked(&volume, &opts, 20, &|_| {}).unwrap();
     // Along z, centred on the brick at the origin (x, y < 20, 18), a few voxels wide.
-    let view = View::new(
-        -std::f64::consts::FRAC_PI_2,
-        -std::f64::consts::FRAC_PI_2,
-        32,
-        32,
-    )
-    .with_zoom(4.0)
-    .with_pan([-10.0, 9.0]);
+    let view = common::origin_corner_view();
     let b = draw_bricked_file(
         &bricked.bytes,
         &ViewSpec::single(view),

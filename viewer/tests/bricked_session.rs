@@ -5,6 +5,8 @@
 //! views, after view changes and under a memory bound; a view that sees one corner fetches the
 //! packets of the bricks there only; multiview and mismatched bricks are refused with a reason.
 
+mod common;
+
 use std::collections::BTreeSet;
 use std::time::Duration;
 use wavesplat_codec::family::Family;
@@ -191,14 +193,7 @@ fn view_changes_and_a_memory_bound_keep_the_image_exact() {
 #[test]
 fn a_view_of_one_corner_fetches_only_the_bricks_it_sees() {
     let bytes = bricked_file(Family::Linear);
-    let view = View::new(
-        -std::f64::consts::FRAC_PI_2,
-        -std::f64::consts::FRAC_PI_2,
-        32,
-        32,
-    )
-    .with_zoom(4.0)
-    .with_pan([-10.0, 9.0]);
+    let view = common::origin_corner_view();
     let spec = ViewSpec::single(view);
     let one_pass = draw_bricked_file(&bytes, &spec, &mut CpuBackend::new()).unwrap();
     assert_eq!(one_pass.drawn, 2);

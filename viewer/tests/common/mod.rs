@@ -81,3 +81,16 @@ pub fn reference_options(family: Family) -> wavesplat_viewer::ReferenceOptions {
 pub fn to_coefficients(g: &Geometry, c: &[f64]) -> Vec<Coefficient> {
     Coefficient::all_of(g, 0, c)
 }
+
+/// A view along z zoomed into the corner at the origin, a few voxels wide (32², 4 pixels a
+/// voxel): on a 40×36×32 volume cut into 20-voxel bricks it sees the bricks at x, y < 20, 18.
+pub fn origin_corner_view() -> wavesplat_viewer::View {
+    wavesplat_viewer::View::new(
+        -std::f64::consts::FRAC_PI_2,
+        -std::f64::consts::FRAC_PI_2,
+        32,
+        32,
+    )
+    .with_zoom(4.0)
+    .with_pan([-10.0, 9.0])
+}
