@@ -103,6 +103,8 @@ pub struct RenderArgs {
     #[command(flatten)]
     pub view: ViewArgs,
     /// Use at most this many bytes of packets (the ones the cache ranks first for this view).
+    /// From a local file the first packet is always used, even when it is larger, so that there
+    /// is an image.
     #[arg(long, value_parser = super::parse_bytes)]
     pub bytes: Option<u64>,
     /// Stop after this much time in milliseconds (default: until every packet is splatted).
