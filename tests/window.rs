@@ -203,18 +203,7 @@ fn display_for_window() -> Option<Xvfb> {
     let dir = tempfile::tempdir().unwrap();
     let file = dir.path().join("probe.wsp");
     std::fs::write(&file, wsp(Phantom::SheppLogan, [8, 8, 8])).unwrap();
-    let child = view(
-        &x.display,
-        &[
-            file.to_str().unwrap(),
-            "--size",
-            "16x16",
-            "--exit-after-frames",
-            "1",
-        ],
-    )
-    .spawn()
-    .unwrap();
+    let child = spawn_view(&x.display, &file, "16x16", &["--exit-after-frames", "1"]);
     let (status, _, err) = finish(child);
     if !status.success() && (err.contains("wgpu surface") || err.contains("adapter")) {
         let reason = err.lines().last().unwrap_or("").to_string();
@@ -225,6 +214,13 @@ fn display_for_window() -> Option<Xvfb> {
         return None;
     }
     Some(x)
+}
+
+/// `view FILE --size SIZE ARGS…` on `display`, started.
+fn spawn_view(display: &str, file: &Path, size: &str, args: &[&str]) -> Child {
+    let mut all = vec![file.to_str().unwrap(), "--size", size];
+    all.extend_from_slice(args);
+    view(display, &all).spawn().unwrap()
 }
 
 fn view(display: &str, args: &[&str]) -> Command {
@@ -262,20 +258,12 @@ fn the_window_renders_turns_under_a_drag_and_closes_cleanly() {
         s("c.png"),
         s("r.png"),
     );
-    let child = view(
+    let child = spawn_view(
         &x.display,
-        &[
-            file.to_str().unwrap(),
-            "--size",
-            "160x120",
-            "--script",
-            &script,
-            "--screenshot",
-            &s("final.png"),
-        ],
-    )
-    .spawn()
-    .unwrap();
+        &file,
+        "160x120",
+        &["--script", &script, "--screenshot", &s("final.png")],
+    );
     let mut child = child;
     wait_for(&p("shown"), &mut child, "its first converged image");
     // What the X server shows: the window sits at the top left of the root window (no window
@@ -390,19 +378,12 @@ fn a_resting_window_at_800x600_gives_refinement_the_frame() {
     let dir = tempfile::tempdir().unwrap();
     let file = dir.path().join("phantom.wsp");
     std::fs::write(&file, wsp(Phantom::SheppLogan, [96, 96, 72])).unwrap();
-    let child = view(
+    let child = spawn_view(
         &x.display,
-        &[
-            file.to_str().unwrap(),
-            "--size",
-            "800x600",
-            "--cpu",
-            "--script",
-            "converge; quit",
-        ],
-    )
-    .spawn()
-    .unwrap();
+        &file,
+        "800x600",
+        &["--cpu", "--script", "converge; quit"],
+    );
     let stdout = converged_output(child);
     // "view: the last view converged 1.23 s after it changed, 87 % of that refining, 9 images shown"
     let line = line_with(&stdout, "the last view converged");
@@ -441,21 +422,12 @@ fn a_drag_draws_smaller_images_and_the_view_it_ends_on_converges_at_full_size() 
         "converge; drag 200,150 500,300 over 12; converge; screenshot {}; quit",
         shot.display()
     );
-    let child = view(
+    let child = spawn_view(
         &x.display,
-        &[
-            file.to_str().unwrap(),
-            "--size",
-            "800x600",
-            "--cpu",
-            "--drag-max-image",
-            "200",
-            "--script",
-            &script,
-        ],
-    )
-    .spawn()
-    .unwrap();
+        &file,
+        "800x600",
+        &["--cpu", "--drag-max-image", "200", "--script", &script],
+    );
     let stdout = converged_output(child);
     // "view: 12 frames while dragging, images up to 200x150, frame time median …"
     let line = line_with(&stdout, "frames while dragging");
@@ -503,19 +475,12 @@ fn a_bricked_volume_converges_in_the_window_in_single_views() {
         "key m; converge; drag 200,150 400,250 over 6; converge; screenshot {}; quit",
         shot.display()
     );
-    let child = view(
+    let child = spawn_view(
         &x.display,
-        &[
-            file.to_str().unwrap(),
-            "--size",
-            "800x600",
-            "--cpu",
-            "--script",
-            &script,
-        ],
-    )
-    .spawn()
-    .unwrap();
+        &file,
+        "800x600",
+        &["--cpu", "--script", &script],
+    );
     let (status, stdout, stderr) = finish(child);
     assert!(
         status.success(),
@@ -538,12 +503,11 @@ fn the_window_closes_after_a_set_number_of_frames_and_refuses_cueing_in_multivie
     let file = dir.path().join("rgb.wsp");
     std::fs::write(&file, wsp(Phantom::RgbHead, [24, 24, 17])).unwrap();
     let shot = dir.path().join("last.png");
-    let child = view(
+    let child = spawn_view(
         &x.display,
+        &file,
+        "64x48",
         &[
-            file.to_str().unwrap(),
-            "--size",
-            "64x48",
             "--multiview",
             "--script",
             "key c; key ]",
@@ -554,9 +518,7 @@ fn the_window_closes_after_a_set_number_of_frames_and_refuses_cueing_in_multivie
             "--screenshot",
             shot.to_str().unwrap(),
         ],
-    )
-    .spawn()
-    .unwrap();
+    );
     let (status, stdout, stderr) = finish(child);
     assert!(
         status.success(),
