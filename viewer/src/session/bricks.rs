@@ -283,9 +283,21 @@ impl<B: AccumulationBackend> RenderSession<B> {
         order.sort_unstable();
         let (mut deferred, mut records) = (Vec::new(), 0);
         let mut scaled = Vec::new();
+        // The records of consecutive bricks whose plans share an atlas (all of them, when the
+        // bricks have one shape) are accumulated in one call: one pass over the image's tiles
+        // per batch, not one per brick.
+        let mut pending: Option<usize> = None;
+        self.records.clear();
         for run in order.chunk_by(|a, b| a.0 == b.0) {
             // Only coefficients of bricks the view sees are queued.
-            let Some(view) = bricks.parts.get_mut(run[0].0).and_then(|p| p.view.as_mut()) else {
+            let part = run[0].0;
+            if bricks.parts.get(part).is_none_or(|p| p.view.is_none()) {
+                continue;
+            }
+            if let Some(held) = pending.filter(|&h| !same_atlas(bricks, h, part)) {
+                records += flush_records(&mut self.backend, &mut self.records, bricks, held)?;
+            }
+            let Some(view) = bricks.parts[part].view.as_mut() else {
                 continue;
             };
             scaled.clear();
@@ -294,14 +306,40 @@ impl<B: AccumulationBackend> RenderSession<B> {
                 c.value *= view.cue_scale;
                 c
             }));
-            self.records.clear();
             view.plan.splats(&scaled, &mut self.records, stats)?;
-            self.backend.prepare(&view.plan.atlas())?;
-            self.backend.accumulate(&view.plan.atlas(), &self.records)?;
-            records += self.records.len();
             deferred.extend(view.plan.take_deferred().into_iter().map(|j| run[j].1));
+            pending = Some(part);
+        }
+        if let Some(held) = pending {
+            records += flush_records(&mut self.backend, &mut self.records, bricks, held)?;
         }
         deferred.sort_unstable();
         Ok((deferred, records))
     }
+}
+
+/// Whether bricks `a` and `b` are drawn with plans that share an atlas.
+fn same_atlas(bricks: &Bricks, a: usize, b: usize) -> bool {
+    match (&bricks.parts[a].view, &bricks.parts[b].view) {
+        (Some(x), Some(y)) => x.plan.shares_atlas_with(&y.plan),
+        _ => false,
+    }
+}
+
+/// Accumulates `records` (gathered from bricks drawn with brick `part`'s atlas) and clears
+/// them; returns how many there were.
+fn flush_records<B: AccumulationBackend>(
+    backend: &mut B,
+    records: &mut Vec<crate::backend::SplatRecord>,
+    bricks: &Bricks,
+    part: usize,
+) -> Result<usize, SessionError> {
+    let n = records.len();
+    if let Some(view) = bricks.parts[part].view.as_ref() {
+        let atlas = view.plan.atlas();
+        backend.prepare(&atlas)?;
+        backend.accumulate(&atlas, records)?;
+    }
+    records.clear();
+    Ok(n)
 }
