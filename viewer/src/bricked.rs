@@ -12,10 +12,11 @@ use crate::backend::AccumulationBackend;
 use crate::plan::{PlanOptions, Planner, SplatBuffers, SPLAT_BATCH};
 use crate::{Image, RenderError, RenderStats};
 use wavesplat_codec::family::Family;
-use wavesplat_codec::format::bricked::{parse_bricked, BrickedFile, Manifest};
+use wavesplat_codec::format::bricked::{parse_bricked, BrickEntry, BrickedFile, Manifest};
 use wavesplat_codec::format::packet::{decode_packets, PacketError};
 use wavesplat_codec::format::{check_kept, parse_file, FormatError, Header};
 use wavesplat_codec::layout::Geometry;
+use wavesplat_codec::view::visibility::Visibility;
 use wavesplat_codec::view::{
     dot, resolve_cue, Camera, CueDirection, Orientation, ResolvedCue, View, ViewError, ViewSpec,
 };
@@ -190,8 +191,7 @@ pub fn brick_frame(
     let cue_scale = match (whole_cue, view.cue) {
         (Some(wc), Some(cue)) => {
             let own = resolve_cue(&cue, &Camera::new(&view, geometry)?, geometry)?;
-            let delta = wc.dist(origin.map(|v| v as f64)) - own.dist([0.0; 3]);
-            (-wc.k * delta).exp()
+            cue_factor(wc, &own, origin)
         }
         _ => 1.0,
     };
@@ -199,6 +199,74 @@ pub fn brick_frame(
         spec: ViewSpec::single(view),
         cue_scale,
     }))
+}
+
+/// The frames of `spec` for bricks given by geometry and origin, in the order given (`None`:
+/// the brick projects off the image).
+pub fn brick_frames<'a>(
+    spec: &ViewSpec,
+    whole: &Geometry,
+    bricks: impl IntoIterator<Item = (&'a Geometry, [u64; 3])>,
+) -> Result<Vec<Option<BrickFrame>>, RenderError> {
+    let (camera, cue) = whole_frame(spec, whole)?;
+    bricks
+        .into_iter()
+        .map(|(g, origin)| brick_frame(spec, (&camera, cue.as_ref()), whole, g, origin))
+        .collect()
+}
+
+/// The visibility of a brick of `header` in its frame's `spec`, sharing the band weights of
+/// the first brick's visibility kept in `like` (set by the first call): the bricks of one
+/// view share them ([`Visibility::new_like`]).
+pub fn brick_visibility(
+    header: &Header,
+    spec: &ViewSpec,
+    like: &mut Option<Visibility>,
+) -> Result<Visibility, ViewError> {
+    let visibility = match like.as_ref() {
+        Some(l) => Visibility::new_like(header, spec, l)?,
+        None => Visibility::new(header, spec)?,
+    };
+    like.get_or_insert_with(|| visibility.clone());
+    Ok(visibility)
+}
+
+/// e^(−k·δ): what a brick at `origin` whose own cue is `own` scales its image by so that its
+/// cue measures from the whole's light-facing faces (`whole`), δ the distance between the two.
+fn cue_factor(whole: &ResolvedCue, own: &ResolvedCue, origin: [u64; 3]) -> f64 {
+    let delta = whole.dist(origin.map(|v| v as f64)) - own.dist([0.0; 3]);
+    (-whole.k * delta).exp()
+}
+
+/// Checks brick `i`'s header against its manifest entry: its dimensions, `channels` channels
+/// and the first brick's family.
+pub fn check_brick(
+    i: usize,
+    entry: &BrickEntry,
+    header: &Header,
+    first: &Header,
+    channels: usize,
+) -> Result<(), FormatError> {
+    if header.geometry.dims != entry.dims
+        || header.channels != channels
+        || header.geometry.family != first.geometry.family
+    {
+        return Err(FormatError::Invalid {
+            what: "bricked manifest",
+            detail: format!(
+                "brick {i} at {:?} does not match the manifest or the first brick",
+                entry.origin
+            ),
+        });
+    }
+    Ok(())
+}
+
+/// Whether two bricks' values are shown alike: the same colour space, basis and offset (their
+/// channels' importance may differ: it only ranks).
+pub fn same_display(a: &Header, b: &Header) -> bool {
+    let (a, b) = (&a.color, &b.color);
+    (a.kind, a.basis, a.mean) == (b.kind, b.basis, b.mean)
 }
 
 /// How far beyond a brick's box the splats of `geometry` reach on `camera`'s screen, in voxels:
@@ -253,18 +321,7 @@ pub fn draw_bricked_file(
                 // Only a brick that is drawn is checked, parsed and decoded.
                 let data = file.brick_bytes(i)?;
                 let f = parse_file(data)?;
-                if f.header.geometry.dims != entry.dims
-                    || f.header.channels != first.channels
-                    || f.header.geometry.family != first.geometry.family
-                {
-                    return Err(BrickedError::Format(FormatError::Invalid {
-                        what: "bricked manifest",
-                        detail: format!(
-                            "brick {i} at {:?} does not match the manifest or the first brick",
-                            entry.origin
-                        ),
-                    }));
-                }
+                check_brick(i, entry, &f.header, &first, first.channels)?;
                 let d = decode_packets(&f.header, &f.packets, 0)?;
                 let n: usize = d.iter().map(Vec::len).sum();
                 check_kept(&f.header, n as u64)?;
@@ -289,9 +346,7 @@ pub fn draw_bricked_file(
             let raw = backend.read().map_err(RenderError::Backend)?;
             let mut img = crate::color::to_rgb(&raw, header, &plan.cameras, plan.cue.as_ref())?;
             if let (Some(wc), Some(bc)) = (whole_cue, plan.cue.as_ref()) {
-                let o = entry.origin.map(|v| v as f64);
-                let delta = wc.dist(o) - bc.dist([0.0; 3]);
-                let scale = (-wc.k * delta).exp() as f32;
+                let scale = cue_factor(wc, bc, entry.origin) as f32;
                 img.data.iter_mut().for_each(|v| *v *= scale);
             }
             match &mut images[p] {

@@ -150,18 +150,14 @@ impl ViewPlan {
             arrived.extend(built);
         }
         // What another plan's builder made for this plan's waiting coefficients.
-        let mut from_others = Vec::new();
         if let Some(shared) = &self.shared_tables {
             let shared = shared.lock();
             for &(set, triple) in &b.pending {
                 if arrived.iter().any(|(k, _)| *k == (set, triple)) {
                     continue;
                 }
-                if shared
-                    .built
-                    .contains_key(&shared_key(&self.sets[set], triple))
-                {
-                    from_others.push((set, triple));
+                if let Some(t) = shared.built.get(&shared_key(&self.sets[set], triple)) {
+                    arrived.push(((set, triple), t.footprint.clone()));
                 }
             }
         }
@@ -169,12 +165,9 @@ impl ViewPlan {
             b.pending.remove(key);
             b.asked.remove(key);
         }
-        let count = arrived.len() + from_others.len();
+        let count = arrived.len();
         for ((set, triple), f) in arrived {
             self.install_table(set, triple, f);
-        }
-        for (set, triple) in from_others {
-            self.take_shared(set, vec![triple]);
         }
         count
     }
@@ -395,6 +388,18 @@ mod tests {
         (g, Coefficient::all_of(&g, 0, &decompose_channel(&data, &g)))
     }
 
+    /// Two plans of `spec` from one planner sharing one set of factor tables (as a bricked
+    /// volume's bricks do), and the planner.
+    fn two_sharing_plans(g: &Geometry, spec: &ViewSpec) -> (ViewPlan, ViewPlan, Planner) {
+        let mut planner = Planner::new(PlanOptions::default());
+        let mut first = planner.plan(g, spec, 1).unwrap();
+        let mut second = planner.plan(g, spec, 1).unwrap();
+        let shared = Arc::new(SharedFactorTables::default());
+        first.share_factor_tables(shared.clone());
+        second.share_factor_tables(shared);
+        (first, second, planner)
+    }
+
     /// Plans of one view from one planner (a bricked volume's bricks) store their tables in
     /// one atlas; a plan of another view gets its own; a factor table built for one plan is
     /// taken by the others that share the tables, without being built or stored again, and the
@@ -403,9 +408,7 @@ mod tests {
     fn plans_of_one_view_share_their_atlas_and_factor_tables() {
         let (g, coefficients) = clipped_box();
         let spec = ViewSpec::single(View::new(0.4, 0.3, 96, 80));
-        let mut planner = Planner::new(PlanOptions::default());
-        let mut first = planner.plan(&g, &spec, 1).unwrap();
-        let mut second = planner.plan(&g, &spec, 1).unwrap();
+        let (mut first, mut second, mut planner) = two_sharing_plans(&g, &spec);
         assert!(first.clips());
         assert!(first.shares_atlas_with(&second));
         let other = planner
@@ -413,9 +416,6 @@ mod tests {
             .unwrap();
         assert!(!other.shares_atlas_with(&first));
 
-        let shared = Arc::new(SharedFactorTables::default());
-        first.share_factor_tables(shared.clone());
-        second.share_factor_tables(shared);
         let (mut a, mut b) = (Vec::new(), Vec::new());
         first
             .splats(&coefficients, &mut a, &mut RenderStats::default())
@@ -448,14 +448,9 @@ mod tests {
     fn a_table_waited_for_from_another_plan_comes_after_the_sharing_is_replaced() {
         let (g, coefficients) = clipped_box();
         let spec = ViewSpec::single(View::new(0.4, 0.3, 96, 80));
-        let mut planner = Planner::new(PlanOptions::default());
-        let mut first = planner.plan(&g, &spec, 1).unwrap();
-        let mut second = planner.plan(&g, &spec, 1).unwrap();
+        let (mut first, mut second, _) = two_sharing_plans(&g, &spec);
         first.build_tables_in_background();
         second.build_tables_in_background();
-        let shared = Arc::new(SharedFactorTables::default());
-        first.share_factor_tables(shared.clone());
-        second.share_factor_tables(shared);
         let mut out = Vec::new();
         first
             .splats(&coefficients, &mut out, &mut RenderStats::default())

@@ -9,7 +9,7 @@
 
 use super::{RenderSession, SessionError};
 use crate::backend::AccumulationBackend;
-use crate::bricked::{brick_frame, whole_frame};
+use crate::bricked::{brick_frames, brick_visibility, same_display, whole_frame};
 use crate::plan::{RenderStats, SharedFactorTables, ViewPlan};
 use crate::RenderError;
 use wavesplat_codec::format::packet::Coefficient;
@@ -60,10 +60,7 @@ impl BrickedVolume {
         };
         let mut ids = 0u64;
         for (i, b) in self.bricks.iter().enumerate() {
-            let (c, w) = (&b.header.color, &self.whole.color);
-            if b.header.channels != self.whole.channels
-                || (c.kind, c.basis, c.mean) != (w.kind, w.basis, w.mean)
-            {
+            if b.header.channels != self.whole.channels || !same_display(&b.header, &self.whole) {
                 return Err(invalid(format!(
                     "brick {i} codes its channels otherwise than the first brick"
                 )));
@@ -172,19 +169,11 @@ impl Bricks {
         &self,
         spec: &ViewSpec,
     ) -> Result<Vec<Option<crate::bricked::BrickFrame>>, RenderError> {
-        let (camera, cue) = whole_frame(spec, &self.whole)?;
-        self.parts
-            .iter()
-            .map(|p| {
-                brick_frame(
-                    spec,
-                    (&camera, cue.as_ref()),
-                    &self.whole,
-                    &p.header.geometry,
-                    p.origin,
-                )
-            })
-            .collect()
+        brick_frames(
+            spec,
+            &self.whole,
+            self.parts.iter().map(|p| (&p.header.geometry, p.origin)),
+        )
     }
 
     /// Plans every brick the view `spec` sees with `plan` (the bricks of one volume share
@@ -196,17 +185,13 @@ impl Bricks {
     ) -> Result<bool, SessionError> {
         let frames = self.frames(spec)?;
         let mut exact = true;
-        let mut like: Option<Visibility> = None;
+        let mut like = None;
         for (part, frame) in self.parts.iter_mut().zip(frames) {
             part.view = None;
             let Some(frame) = frame else { continue };
             let (p, e) = plan(&part.header.geometry, &frame.spec)?;
             exact &= e;
-            let visibility = match &like {
-                Some(l) => Visibility::new_like(&part.header, &frame.spec, l)?,
-                None => Visibility::new(&part.header, &frame.spec)?,
-            };
-            like.get_or_insert_with(|| visibility.clone());
+            let visibility = brick_visibility(&part.header, &frame.spec, &mut like)?;
             part.view = Some(PartView {
                 plan: p,
                 visibility,

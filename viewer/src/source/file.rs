@@ -5,7 +5,7 @@
 //! brick's view of the whole; a brick whose box the view does not see sends nothing.
 
 use super::{decode_for_session, Decoded, PacketSource, SourceError, SourcePacket, SourceStatus};
-use crate::bricked::{brick_frame, whole_frame, whole_geometry};
+use crate::bricked::{brick_frames, brick_visibility, check_brick, same_display, whole_geometry};
 use crate::session::{BrickedVolume, SessionBrick};
 use std::collections::HashMap;
 use wavesplat_codec::format::bricked::{is_bricked, parse_bricked};
@@ -93,19 +93,7 @@ impl FileSource {
                          again with this version, whose bricks share the whole's offset"
                     )));
                 }
-                if f.header.geometry.dims != entry.dims
-                    || f.header.channels != m.channels
-                    || f.header.geometry.family != first.geometry.family
-                {
-                    return Err(FormatError::Invalid {
-                        what: "bricked manifest",
-                        detail: format!(
-                            "brick {i} at {:?} does not match the manifest or the first brick",
-                            entry.origin
-                        ),
-                    }
-                    .into());
-                }
+                check_brick(i, entry, &f.header, first, m.channels)?;
                 let ranges = ranges_in(&bytes, &f.packets);
                 packets.extend(framed(&f.header, &bytes, ranges, i)?);
                 bricks.push(FileBrick {
@@ -295,31 +283,26 @@ impl FileSource {
     /// own view of the whole (scaled by its cue factor²), ties in file order; the packets of a
     /// brick the view does not see are left out.
     fn bricked_order(&self, spec: &ViewSpec) -> Result<Vec<u32>, SourceError> {
-        let whole = self.header.geometry;
-        let (camera, cue) = whole_frame(spec, &whole).map_err(view_error)?;
-        let mut views: Vec<Option<(Visibility, f64)>> = Vec::with_capacity(self.bricks.len());
-        let mut like: Option<Visibility> = None;
-        for b in &self.bricks {
-            let frame = brick_frame(
-                spec,
-                (&camera, cue.as_ref()),
-                &whole,
-                &b.header.geometry,
-                b.origin,
-            )
-            .map_err(view_error)?;
-            views.push(match frame {
-                None => None,
-                Some(f) => {
-                    let vis = match &like {
-                        Some(l) => Visibility::new_like(&b.header, &f.spec, l)?,
-                        None => Visibility::new(&b.header, &f.spec)?,
-                    };
-                    like.get_or_insert_with(|| vis.clone());
-                    Some((vis, f.cue_scale * f.cue_scale))
-                }
-            });
-        }
+        let frames = brick_frames(
+            spec,
+            &self.header.geometry,
+            self.bricks.iter().map(|b| (&b.header.geometry, b.origin)),
+        )
+        .map_err(view_error)?;
+        let mut like = None;
+        let views = self
+            .bricks
+            .iter()
+            .zip(frames)
+            .map(|(b, frame)| {
+                frame
+                    .map(|f| {
+                        let vis = brick_visibility(&b.header, &f.spec, &mut like)?;
+                        Ok((vis, f.cue_scale * f.cue_scale))
+                    })
+                    .transpose()
+            })
+            .collect::<Result<Vec<Option<(Visibility, f64)>>, SourceError>>()?;
         let mut keyed: Vec<(f64, u32)> = self
             .packets
             .iter()
@@ -341,13 +324,6 @@ fn view_error(e: crate::RenderError) -> SourceError {
         crate::RenderError::View(v) => SourceError::View(v),
         other => SourceError::Unsupported(other.to_string()),
     }
-}
-
-/// Whether two bricks' values are shown alike: the same colour space, basis and offset (their
-/// channels' importance may differ: it only ranks).
-fn same_display(a: &Header, b: &Header) -> bool {
-    let (a, b) = (&a.color, &b.color);
-    (a.kind, a.basis, a.mean) == (b.kind, b.basis, b.mean)
 }
 
 /// The byte ranges of `packets` (slices of `bytes`) in `bytes`.
