@@ -2,7 +2,8 @@
 //! the end-to-end tests, so that each starts servers, browses and scores the same way:
 //! `console` (the spinner and the job table long commands show), `cluster` (the cache, orchestrator and worker wired on loopback in this process: the same
 //! servers `wavesplat serve` and `wavesplat worker` run), `process` (the real `wavesplat` binary
-//! started as a server, its address read from its first line), `browse` (a frame loop fed by a
+//! started as a server, its address read from its first line), `postgres` (a throwaway
+//! PostgreSQL server for the queue's tests and benches), `browse` (a frame loop fed by a
 //! cache: the demo's and `bench refine`'s sessions, the backend probe, the scoring renderer's
 //! settings), `scoring` (reference images of the original volume per view of a walk, Q_I and
 //! SNR per frame), `report` (PNG charts and the offline `report.html`), `stability` (the stiff
@@ -15,6 +16,7 @@ pub mod browse;
 pub mod cluster;
 pub mod console;
 pub mod demo;
+pub mod postgres;
 pub mod process;
 pub mod refine;
 pub mod report;

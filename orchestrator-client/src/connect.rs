@@ -4,18 +4,19 @@
 
 use crate::convert;
 use crate::error::ClientError;
+use crate::failover::Failover;
 use crate::model::JobSpec;
 use tonic::service::interceptor::InterceptedService;
-use tonic::transport::Channel;
 use tonic::Status;
 use wavesplat_net::{ConnectOptions, Credentials};
 use wavesplat_proto::pb;
 use wavesplat_proto::pb::orchestrator_client::OrchestratorClient;
 
-/// The generated client over a channel that adds the caller's token.
-pub type Client = OrchestratorClient<InterceptedService<Channel, Credentials>>;
+/// The generated client over a channel (one orchestrator, or failing over between several)
+/// that adds the caller's token.
+pub type Client = OrchestratorClient<InterceptedService<Failover, Credentials>>;
 
-fn client(channel: Channel, options: &ConnectOptions) -> Client {
+fn client(channel: Failover, options: &ConnectOptions) -> Client {
     OrchestratorClient::new(InterceptedService::new(
         channel,
         options.credentials.clone(),
@@ -23,32 +24,70 @@ fn client(channel: Channel, options: &ConnectOptions) -> Client {
     .max_decoding_message_size(64 << 20)
 }
 
+/// The URLs of a comma-separated list (`URL` or `URL,URL,…`), each trimmed.
+pub fn split_urls(urls: &str) -> Result<Vec<&str>, ClientError> {
+    let list: Vec<&str> = urls.split(',').map(str::trim).collect();
+    if list.iter().any(|u| u.is_empty()) {
+        return Err(ClientError::Connect(format!(
+            "orchestrator URL list {urls:?} has an empty entry"
+        )));
+    }
+    Ok(list)
+}
+
 /// Connects to an orchestrator at `url` (`http://HOST:PORT`, `https://HOST:PORT` or
-/// `HOST:PORT`) without a token.
+/// `HOST:PORT`; several separated by commas) without a token.
 pub async fn connect(url: &str) -> Result<Client, ClientError> {
     connect_with(url, &ConnectOptions::default()).await
 }
 
-/// Connects to an orchestrator at `url` with `options` (CA, token).
-pub async fn connect_with(url: &str, options: &ConnectOptions) -> Result<Client, ClientError> {
-    let (url, ep) = options
-        .endpoint(url)
-        .map_err(|e| ClientError::Connect(e.to_string()))?;
-    let channel = ep.connect().await.map_err(|e| {
-        ClientError::Connect(format!(
-            "{url}: {}",
-            wavesplat_net::tls::explain_connect_error(&url, &e)
-        ))
-    })?;
-    Ok(client(channel, options))
+/// Connects to the first orchestrator of `urls` (comma-separated) that answers, with `options`
+/// (CA, token); later requests fail over to the others ([`Failover`]). Fails, naming each
+/// URL's reason, when none answers.
+pub async fn connect_with(urls: &str, options: &ConnectOptions) -> Result<Client, ClientError> {
+    let mut channels = Vec::new();
+    let mut first = None;
+    let mut reasons = Vec::new();
+    for u in split_urls(urls)? {
+        let (url, ep) = options
+            .endpoint(u)
+            .map_err(|e| ClientError::Connect(e.to_string()))?;
+        let channel = if first.is_none() {
+            match ep.connect().await {
+                Ok(c) => {
+                    first = Some(channels.len());
+                    c
+                }
+                Err(e) => {
+                    reasons.push(format!(
+                        "{url}: {}",
+                        wavesplat_net::tls::explain_connect_error(&url, &e)
+                    ));
+                    ep.connect_lazy()
+                }
+            }
+        } else {
+            ep.connect_lazy()
+        };
+        channels.push((url, channel));
+    }
+    let Some(first) = first else {
+        return Err(ClientError::Connect(reasons.join("; ")));
+    };
+    Ok(client(Failover::new(channels, first), options))
 }
 
-/// A client that connects on first use and reconnects after failures.
-pub fn connect_lazy(url: &str, options: &ConnectOptions) -> Result<Client, ClientError> {
-    let (_, ep) = options
-        .endpoint(url)
-        .map_err(|e| ClientError::Connect(e.to_string()))?;
-    Ok(client(ep.connect_lazy(), options))
+/// A client over `urls` (comma-separated) that connects on first use, reconnects after
+/// failures and fails over between the URLs.
+pub fn connect_lazy(urls: &str, options: &ConnectOptions) -> Result<Client, ClientError> {
+    let mut channels = Vec::new();
+    for u in split_urls(urls)? {
+        let (url, ep) = options
+            .endpoint(u)
+            .map_err(|e| ClientError::Connect(e.to_string()))?;
+        channels.push((url, ep.connect_lazy()));
+    }
+    Ok(client(Failover::new(channels, 0), options))
 }
 
 /// Submits a job; `upload` carries the source's bytes when the spec says so.

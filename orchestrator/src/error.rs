@@ -1,7 +1,7 @@
 //! The orchestrator's typed errors and their single mapping to gRPC statuses: bad requests are
 //! `InvalidArgument`, unknown jobs `NotFound`, actions the job's state forbids (and lost
 //! leases, deliveries the cache does not confirm) `FailedPrecondition`, an unreachable cache
-//! `Unavailable`, storage trouble `Internal`. Jobs are named by their id (`model::JobId`, a
+//! or queue database `Unavailable`, storage trouble `Internal`. Jobs are named by their id (`model::JobId`, a
 //! `u64`), so this module needs nothing from the others.
 
 use thiserror::Error;
@@ -42,6 +42,10 @@ pub enum OrchestratorError {
     /// The store failed.
     #[error("storage: {0}")]
     Storage(#[from] sled::Error),
+    /// The PostgreSQL queue could not be reached or refused a statement (transient: callers
+    /// retry; the message names the cause).
+    #[error("queue database: {0}")]
+    Database(String),
     /// A stored record could not be read back.
     #[error("corrupt store entry: {0}")]
     Corrupt(String),
@@ -82,9 +86,9 @@ impl From<OrchestratorError> for tonic::Status {
             OrchestratorError::InvalidState { .. }
             | OrchestratorError::LeaseLost { .. }
             | OrchestratorError::Unconfirmed(_) => tonic::Status::failed_precondition(msg),
-            OrchestratorError::CacheUnavailable(_) | OrchestratorError::Connect(_) => {
-                tonic::Status::unavailable(msg)
-            }
+            OrchestratorError::CacheUnavailable(_)
+            | OrchestratorError::Connect(_)
+            | OrchestratorError::Database(_) => tonic::Status::unavailable(msg),
             OrchestratorError::Storage(_)
             | OrchestratorError::Security(_)
             | OrchestratorError::Corrupt(_)

@@ -1,7 +1,7 @@
 //! The wavesplat orchestrator: durable batch compression of a volume archive.
 //!
 //! A gRPC service (`wavesplat.v1.Orchestrator`, plus the standard health service) keeps a queue
-//! of jobs in sled — one job compresses one volume with given options and delivers the `.wsp`
+//! of jobs — in sled, or in PostgreSQL shared by any number of orchestrators — one job compresses one volume with given options and delivers the `.wsp`
 //! result to a coefficient cache. Stateless workers lease jobs, heartbeat with progress, and
 //! report a delivery or a typed failure; a lease that stops heartbeating is reclaimed and the
 //! job runs elsewhere; transient failures retry with exponential backoff up to a limit.
@@ -9,8 +9,11 @@
 //! - [`model`]: jobs, specs, states, failures (plain Rust, serialisable for the store), and
 //!   [`convert`], their `pb` conversions: both from `wavesplat-orchestrator-client`, which
 //!   workers and the CLI link instead of this server;
-//! - [`queue`]: the queue logic with an explicit clock (unit tested without sleeping);
-//! - [`store`]: the sled layout and durability rules;
+//! - [`queue`]: the queue logic with an explicit clock (unit tested without sleeping): the
+//!   per-job [`queue::rules`] both stores apply, and the in-memory index of the embedded store;
+//! - [`jobstore`]: the [`JobStore`] contract and the embedded implementation over
+//!   [`store`], the sled layout and durability rules; [`postgres`]: the same contract over a
+//!   PostgreSQL database (row locks, `SKIP LOCKED` leases, versioned migrations);
 //! - [`service`]: the tonic service; [`error`]: the one place for the `tonic::Status` mapping;
 //! - [`check`]: confirming a worker's delivery with the cache before a job is done;
 //!
@@ -31,13 +34,17 @@
 
 pub mod check;
 pub mod error;
+pub mod jobstore;
+pub mod postgres;
 pub mod queue;
 pub mod service;
 pub mod store;
 
 pub use check::DeliveryCheck;
 pub use error::OrchestratorError;
+pub use jobstore::{EmbeddedQueue, JobStore, Leased};
 pub use model::{Job, JobId, JobOptions, JobSpec, JobState, TargetSpec};
+pub use postgres::{PostgresOptions, PostgresQueue};
 pub use queue::QueueOptions;
 pub use service::{OrchestratorService, ServiceOptions};
 use std::future::Future;
@@ -47,6 +54,42 @@ use tokio_stream::wrappers::TcpListenerStream;
 use wavesplat_net::{Access, Role};
 pub use wavesplat_orchestrator_client::{convert, model};
 use wavesplat_proto::pb::orchestrator_server::OrchestratorServer;
+
+/// Where the queue is kept: the embedded sled store (one orchestrator owns its directory) or a
+/// PostgreSQL database (any number of stateless orchestrators share it).
+pub enum Backend {
+    /// The sled store; the queue is loaded into memory at start.
+    Embedded(Store),
+    /// A PostgreSQL database, already migrated ([`PostgresQueue::connect`]).
+    Postgres(PostgresQueue),
+}
+
+impl From<Store> for Backend {
+    fn from(s: Store) -> Backend {
+        Backend::Embedded(s)
+    }
+}
+
+impl From<PostgresQueue> for Backend {
+    fn from(q: PostgresQueue) -> Backend {
+        Backend::Postgres(q)
+    }
+}
+
+impl Backend {
+    /// The job store over this backend with the queue policy `cfg` and the wall clock.
+    pub fn into_job_store(
+        self,
+        cfg: QueueOptions,
+    ) -> Result<std::sync::Arc<dyn JobStore>, OrchestratorError> {
+        Ok(match self {
+            Backend::Embedded(store) => {
+                std::sync::Arc::new(EmbeddedQueue::open(store, cfg, service::system_clock())?)
+            }
+            Backend::Postgres(q) => std::sync::Arc::new(q.with_options(cfg.validate()?)),
+        })
+    }
+}
 
 /// How an orchestrator server runs.
 #[derive(Debug, Clone, Default)]
@@ -74,7 +117,7 @@ pub fn access(path: &str) -> Access {
 /// taken on the worker's word) until `shutdown` completes; see [`serve_with`].
 pub async fn serve(
     listener: tokio::net::TcpListener,
-    store: Store,
+    store: impl Into<Backend>,
     config: ServiceOptions,
     shutdown: impl Future<Output = ()> + Send,
 ) -> Result<(), OrchestratorError> {
@@ -86,7 +129,7 @@ pub async fn serve(
 /// Refuses a non-loopback listener without TLS and tokens unless `options.security.insecure`.
 pub async fn serve_with(
     listener: tokio::net::TcpListener,
-    store: Store,
+    store: impl Into<Backend>,
     config: ServiceOptions,
     options: ServeOptions,
     shutdown: impl Future<Output = ()> + Send,
@@ -95,8 +138,8 @@ pub async fn serve_with(
         .security
         .check_listener(&listener)
         .map_err(OrchestratorError::Security)?;
-    let _flush = store::FlushGuard(store.clone());
-    let mut service = OrchestratorService::new(store, config, service::system_clock())?;
+    let store = store.into().into_job_store(config.queue)?;
+    let mut service = OrchestratorService::new(store, config).await?;
     if let Some(check) = options.delivery_check.clone() {
         service = service.with_delivery_check(check);
     }
@@ -117,7 +160,7 @@ pub async fn serve_with(
             }
         }
     });
-    let server = OrchestratorServer::new(service)
+    let server = OrchestratorServer::new(service.clone())
         .max_decoding_message_size(wavesplat_orchestrator_client::CHUNK_BYTES + (1 << 20))
         .max_encoding_message_size(wavesplat_orchestrator_client::CHUNK_BYTES + (1 << 20));
     let builder = options.security.server_builder()?;
@@ -136,6 +179,9 @@ pub async fn serve_with(
         .serve_with_incoming_shutdown(TcpListenerStream::new(listener), shutdown)
         .await;
     reaper.abort();
+    if let Err(e) = service.close().await {
+        tracing::error!(error = %e, "flushing the orchestrator store");
+    }
     result?;
     tracing::info!("orchestrator stopped");
     Ok(())

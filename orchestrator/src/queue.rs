@@ -1,10 +1,12 @@
 //! The job queue's logic, in memory and free of I/O: submission with de-duplication, leases
 //! with expiry, heartbeats, outcomes, retry with exponential backoff, cancellation. Time is a
-//! parameter (`now`, unix ms), so tests drive the clock directly. Every mutation returns the
-//! jobs it changed; the service persists exactly those (see [`crate::store`]).
+//! parameter (`now`, unix ms), so tests drive the clock directly. The rules of one job's
+//! changes ([`rules`]) are shared by both stores; [`Queue`] is the in-memory index the embedded
+//! store keeps, whose every mutation returns the jobs it changed so that exactly those are
+//! persisted (see [`crate::store`]).
 
 use crate::error::OrchestratorError;
-use crate::model::{Failure, FailureKind, Job, JobId, JobSpec, JobState, Outcome};
+use crate::model::{Job, JobId, JobSpec, JobState, Outcome};
 use std::collections::{BTreeMap, HashMap};
 
 /// Timing and retry policy.
@@ -69,7 +71,207 @@ pub struct Submitted {
     pub existed: bool,
 }
 
-/// The in-memory queue (the service keeps it behind a mutex and writes changes through).
+/// The rules of one job's state changes, shared by every store: the in-memory [`Queue`] of the
+/// sled store applies them under its mutex, the PostgreSQL store to a row it holds locked.
+pub mod rules {
+    use super::QueueOptions;
+    use crate::error::OrchestratorError;
+    use crate::model::{Failure, FailureKind, Job, JobId, JobSpec, JobState, Outcome};
+
+    /// A new job, queued now.
+    pub fn new_job(id: JobId, spec: JobSpec, now: u64) -> Job {
+        Job {
+            id,
+            spec,
+            state: JobState::Queued { not_before_ms: now },
+            attempts: 0,
+            last_failure: None,
+            created_ms: now,
+            updated_ms: now,
+        }
+    }
+
+    /// Whether `job` is queued and may be leased at `now`.
+    pub fn runnable(job: &Job, now: u64) -> bool {
+        matches!(job.state, JobState::Queued { not_before_ms } if not_before_ms <= now)
+    }
+
+    /// Whether `job` holds a lease that lapsed by `now`.
+    pub fn expired(job: &Job, now: u64) -> bool {
+        matches!(job.state, JobState::Running { lease_expires_ms, .. } if lease_expires_ms <= now)
+    }
+
+    /// Reclaims `job`'s lapsed lease: queued again with backoff, or failed once its attempts
+    /// are used up. Returns false (and changes nothing) if the lease has not lapsed.
+    pub fn expire(cfg: &QueueOptions, job: &mut Job, now: u64) -> bool {
+        let JobState::Running { worker, .. } = &job.state else {
+            return false;
+        };
+        let worker = worker.clone();
+        if !expired(job, now) {
+            return false;
+        }
+        let failure = Failure {
+            kind: FailureKind::LeaseExpired,
+            message: format!("worker {worker:?} stopped heartbeating (lease expired)"),
+        };
+        tracing::warn!(job = job.id, %worker, "lease expired; reclaiming");
+        fail_attempt(cfg, job, failure, now);
+        true
+    }
+
+    /// Records a failed attempt: queued again with backoff, or failed for good.
+    pub fn fail_attempt(cfg: &QueueOptions, job: &mut Job, failure: Failure, now: u64) {
+        job.state = if failure.kind.is_permanent() || job.attempts >= cfg.max_attempts {
+            let mut f = failure.clone();
+            if !failure.kind.is_permanent() {
+                f.message = format!("{} (after {} attempts)", f.message, job.attempts);
+            }
+            JobState::Failed(f)
+        } else {
+            JobState::Queued {
+                not_before_ms: now + cfg.backoff_ms(job.attempts),
+            }
+        };
+        job.last_failure = Some(failure);
+        job.updated_ms = now;
+    }
+
+    /// Leases a runnable `job` to `worker`: a new attempt, running until `now + lease_ms`.
+    pub fn start(cfg: &QueueOptions, job: &mut Job, worker: &str, now: u64) {
+        job.attempts += 1;
+        job.state = JobState::Running {
+            worker: worker.to_string(),
+            attempt: job.attempts,
+            lease_expires_ms: now + cfg.lease_ms,
+            started_ms: now,
+            progress: 0.0,
+            stage: "leased".into(),
+        };
+        job.updated_ms = now;
+    }
+
+    /// Checks that `attempt` holds `job`'s live lease.
+    pub fn check_held(job: &Job, attempt: u32, now: u64) -> Result<(), OrchestratorError> {
+        let lost = |reason: String| OrchestratorError::LeaseLost {
+            id: job.id,
+            attempt,
+            reason,
+        };
+        match &job.state {
+            JobState::Running {
+                attempt: a,
+                lease_expires_ms,
+                ..
+            } if *a == attempt => {
+                if *lease_expires_ms <= now {
+                    Err(lost("the lease expired".into()))
+                } else {
+                    Ok(())
+                }
+            }
+            JobState::Running { attempt: a, .. } => Err(lost(format!(
+                "the job was reclaimed and is now attempt {a}"
+            ))),
+            JobState::Cancelled => Err(lost("the job was cancelled".into())),
+            s => Err(lost(format!("the job is {}", s.name()))),
+        }
+    }
+
+    /// Extends a held lease and records progress.
+    pub fn heartbeat(
+        cfg: &QueueOptions,
+        job: &mut Job,
+        attempt: u32,
+        progress: f32,
+        stage: &str,
+        now: u64,
+    ) -> Result<(), OrchestratorError> {
+        check_held(job, attempt, now)?;
+        if let JobState::Running {
+            lease_expires_ms,
+            progress: p,
+            stage: s,
+            ..
+        } = &mut job.state
+        {
+            *lease_expires_ms = now + cfg.lease_ms;
+            *p = if progress.is_finite() {
+                progress.clamp(0.0, 1.0)
+            } else {
+                0.0
+            };
+            *s = stage.chars().take(200).collect();
+        }
+        Ok(())
+    }
+
+    /// Records the outcome of a held attempt.
+    pub fn finish(
+        cfg: &QueueOptions,
+        job: &mut Job,
+        attempt: u32,
+        outcome: Outcome,
+        now: u64,
+    ) -> Result<(), OrchestratorError> {
+        check_held(job, attempt, now)?;
+        let started = match job.state {
+            JobState::Running { started_ms, .. } => started_ms,
+            _ => now,
+        };
+        match outcome {
+            Outcome::Delivered(delivery) => {
+                job.state = JobState::Done {
+                    delivery,
+                    run_ms: now.saturating_sub(started),
+                };
+                job.updated_ms = now;
+            }
+            Outcome::Failed(f) => fail_attempt(cfg, job, f, now),
+        }
+        Ok(())
+    }
+
+    /// Cancels a queued or running job.
+    pub fn cancel(job: &mut Job, now: u64) -> Result<(), OrchestratorError> {
+        match job.state {
+            JobState::Queued { .. } | JobState::Running { .. } => {
+                job.state = JobState::Cancelled;
+                job.updated_ms = now;
+                Ok(())
+            }
+            _ => Err(OrchestratorError::InvalidState {
+                id: job.id,
+                state: job.state.name(),
+                action: "cancel",
+                allowed: "queued or running",
+            }),
+        }
+    }
+
+    /// Queues a failed or cancelled job again with a fresh attempt budget.
+    pub fn retry(job: &mut Job, now: u64) -> Result<(), OrchestratorError> {
+        match job.state {
+            JobState::Failed(_) | JobState::Cancelled => {
+                job.state = JobState::Queued { not_before_ms: now };
+                job.attempts = 0;
+                // The old failure is history: a retried job shows no error until it fails
+                // again (with the reason of that attempt).
+                job.last_failure = None;
+                job.updated_ms = now;
+                Ok(())
+            }
+            _ => Err(OrchestratorError::InvalidState {
+                id: job.id,
+                state: job.state.name(),
+                action: "retry",
+                allowed: "failed or cancelled",
+            }),
+        }
+    }
+}
+
+/// The in-memory queue (the sled store keeps it behind a mutex and writes changes through).
 #[derive(Debug, Clone)]
 pub struct Queue {
     cfg: QueueOptions,
@@ -120,6 +322,12 @@ impl Queue {
         self.jobs.get(&id).ok_or(OrchestratorError::NotFound(id))
     }
 
+    fn get_mut(&mut self, id: JobId) -> Result<&mut Job, OrchestratorError> {
+        self.jobs
+            .get_mut(&id)
+            .ok_or(OrchestratorError::NotFound(id))
+    }
+
     /// Every job by id.
     pub fn jobs(&self) -> impl Iterator<Item = &Job> {
         self.jobs.values()
@@ -140,15 +348,7 @@ impl Queue {
         }
         let id = self.next_id;
         self.next_id += 1;
-        let job = Job {
-            id,
-            spec,
-            state: JobState::Queued { not_before_ms: now },
-            attempts: 0,
-            last_failure: None,
-            created_ms: now,
-            updated_ms: now,
-        };
+        let job = rules::new_job(id, spec, now);
         self.keys.insert(key, id);
         self.jobs.insert(id, job.clone());
         Ok(Submitted {
@@ -157,72 +357,25 @@ impl Queue {
         })
     }
 
-    /// Reclaims every lease that expired by `now`: the job is queued again with backoff, or
-    /// failed once its attempts are used up. Returns the changed jobs.
+    /// Reclaims every lease that expired by `now` (see [`rules::expire`]). Returns the
+    /// changed jobs.
     pub fn reap(&mut self, now: u64) -> Vec<Job> {
-        let expired: Vec<(JobId, String)> = self
-            .jobs
-            .values()
-            .filter_map(|j| match &j.state {
-                JobState::Running {
-                    lease_expires_ms,
-                    worker,
-                    ..
-                } if *lease_expires_ms <= now => Some((j.id, worker.clone())),
-                _ => None,
-            })
-            .collect();
-        let mut changed = Vec::new();
-        for (id, worker) in expired {
-            let failure = Failure {
-                kind: FailureKind::LeaseExpired,
-                message: format!("worker {worker:?} stopped heartbeating (lease expired)"),
-            };
-            tracing::warn!(job = id, %worker, "lease expired; reclaiming");
-            if let Some(job) = self.jobs.get_mut(&id) {
-                Self::fail_attempt(&self.cfg, job, failure, now);
-                changed.push(job.clone());
-            }
-        }
-        changed
-    }
-
-    fn fail_attempt(cfg: &QueueOptions, job: &mut Job, failure: Failure, now: u64) {
-        job.state = if failure.kind.is_permanent() || job.attempts >= cfg.max_attempts {
-            let mut f = failure.clone();
-            if !failure.kind.is_permanent() {
-                f.message = format!("{} (after {} attempts)", f.message, job.attempts);
-            }
-            JobState::Failed(f)
-        } else {
-            JobState::Queued {
-                not_before_ms: now + cfg.backoff_ms(job.attempts),
-            }
-        };
-        job.last_failure = Some(failure);
-        job.updated_ms = now;
+        let cfg = self.cfg;
+        self.jobs
+            .values_mut()
+            .filter_map(|job| rules::expire(&cfg, job, now).then(|| job.clone()))
+            .collect()
     }
 
     /// Leases the oldest runnable job to `worker` (reclaiming expired leases first). Returns
     /// the leased job (if any) and every job changed.
     pub fn lease(&mut self, worker: &str, now: u64) -> (Option<Job>, Vec<Job>) {
         let mut changed = self.reap(now);
-        let next = self.jobs.values_mut().find(
-            |j| matches!(j.state, JobState::Queued { not_before_ms } if not_before_ms <= now),
-        );
-        let Some(job) = next else {
+        let cfg = self.cfg;
+        let Some(job) = self.jobs.values_mut().find(|j| rules::runnable(j, now)) else {
             return (None, changed);
         };
-        job.attempts += 1;
-        job.state = JobState::Running {
-            worker: worker.to_string(),
-            attempt: job.attempts,
-            lease_expires_ms: now + self.cfg.lease_ms,
-            started_ms: now,
-            progress: 0.0,
-            stage: "leased".into(),
-        };
-        job.updated_ms = now;
+        rules::start(&cfg, job, worker, now);
         let job = job.clone();
         changed.push(job.clone());
         (Some(job), changed)
@@ -239,36 +392,6 @@ impl Queue {
             .min()
     }
 
-    fn held(&mut self, id: JobId, attempt: u32, now: u64) -> Result<&mut Job, OrchestratorError> {
-        let job = self
-            .jobs
-            .get_mut(&id)
-            .ok_or(OrchestratorError::NotFound(id))?;
-        let lost = |reason: String| OrchestratorError::LeaseLost {
-            id,
-            attempt,
-            reason,
-        };
-        match &job.state {
-            JobState::Running {
-                attempt: a,
-                lease_expires_ms,
-                ..
-            } if *a == attempt => {
-                if *lease_expires_ms <= now {
-                    Err(lost("the lease expired".into()))
-                } else {
-                    Ok(job)
-                }
-            }
-            JobState::Running { attempt: a, .. } => Err(lost(format!(
-                "the job was reclaimed and is now attempt {a}"
-            ))),
-            JobState::Cancelled => Err(lost("the job was cancelled".into())),
-            s => Err(lost(format!("the job is {}", s.name()))),
-        }
-    }
-
     /// Extends a lease and records progress.
     pub fn heartbeat(
         &mut self,
@@ -278,23 +401,9 @@ impl Queue {
         stage: &str,
         now: u64,
     ) -> Result<Job, OrchestratorError> {
-        let lease_ms = self.cfg.lease_ms;
-        let job = self.held(id, attempt, now)?;
-        if let JobState::Running {
-            lease_expires_ms,
-            progress: p,
-            stage: s,
-            ..
-        } = &mut job.state
-        {
-            *lease_expires_ms = now + lease_ms;
-            *p = if progress.is_finite() {
-                progress.clamp(0.0, 1.0)
-            } else {
-                0.0
-            };
-            *s = stage.chars().take(200).collect();
-        }
+        let cfg = self.cfg;
+        let job = self.get_mut(id)?;
+        rules::heartbeat(&cfg, job, attempt, progress, stage, now)?;
         Ok(job.clone())
     }
 
@@ -307,75 +416,30 @@ impl Queue {
         now: u64,
     ) -> Result<Job, OrchestratorError> {
         let cfg = self.cfg;
-        let job = self.held(id, attempt, now)?;
-        let started = match job.state {
-            JobState::Running { started_ms, .. } => started_ms,
-            _ => now,
-        };
-        match outcome {
-            Outcome::Delivered(delivery) => {
-                job.state = JobState::Done {
-                    delivery,
-                    run_ms: now.saturating_sub(started),
-                };
-                job.updated_ms = now;
-            }
-            Outcome::Failed(f) => Self::fail_attempt(&cfg, job, f, now),
-        }
+        let job = self.get_mut(id)?;
+        rules::finish(&cfg, job, attempt, outcome, now)?;
         Ok(job.clone())
     }
 
     /// Cancels a queued or running job.
     pub fn cancel(&mut self, id: JobId, now: u64) -> Result<Job, OrchestratorError> {
-        let job = self
-            .jobs
-            .get_mut(&id)
-            .ok_or(OrchestratorError::NotFound(id))?;
-        match job.state {
-            JobState::Queued { .. } | JobState::Running { .. } => {
-                job.state = JobState::Cancelled;
-                job.updated_ms = now;
-                Ok(job.clone())
-            }
-            _ => Err(OrchestratorError::InvalidState {
-                id,
-                state: job.state.name(),
-                action: "cancel",
-                allowed: "queued or running",
-            }),
-        }
+        let job = self.get_mut(id)?;
+        rules::cancel(job, now)?;
+        Ok(job.clone())
     }
 
     /// Queues a failed or cancelled job again with a fresh attempt budget.
     pub fn retry(&mut self, id: JobId, now: u64) -> Result<Job, OrchestratorError> {
-        let job = self
-            .jobs
-            .get_mut(&id)
-            .ok_or(OrchestratorError::NotFound(id))?;
-        match job.state {
-            JobState::Failed(_) | JobState::Cancelled => {
-                job.state = JobState::Queued { not_before_ms: now };
-                job.attempts = 0;
-                // The old failure is history: a retried job shows no error until it fails
-                // again (with the reason of that attempt).
-                job.last_failure = None;
-                job.updated_ms = now;
-                Ok(job.clone())
-            }
-            _ => Err(OrchestratorError::InvalidState {
-                id,
-                state: job.state.name(),
-                action: "retry",
-                allowed: "failed or cancelled",
-            }),
-        }
+        let job = self.get_mut(id)?;
+        rules::retry(job, now)?;
+        Ok(job.clone())
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::model::{Delivery, JobOptions, Source};
+    use crate::model::{Delivery, Failure, FailureKind, JobOptions, Source};
 
     fn spec(n: u8) -> JobSpec {
         JobSpec {

@@ -1,15 +1,15 @@
-//! The tonic service: each RPC converts its request ([`crate::convert`]), runs the queue logic
-//! under one mutex, writes the changed jobs through to the [`Store`] and flushes before
-//! answering. The lock is never held across an `.await`.
+//! The tonic service: each RPC converts and checks its request ([`crate::convert`]), asks the
+//! [`JobStore`] (which makes the change durable before returning) and converts the answer. It
+//! holds no queue state of its own, so orchestrators over one shared store are interchangeable.
 
 use crate::check::DeliveryCheck;
 use crate::convert;
 use crate::error::OrchestratorError;
+use crate::jobstore::JobStore;
 use crate::model::{JobState, Outcome, Source};
-use crate::queue::{Queue, QueueOptions};
-use crate::store::Store;
+use crate::queue::QueueOptions;
 use std::pin::Pin;
-use std::sync::{Arc, Mutex, MutexGuard};
+use std::sync::Arc;
 use std::time::{SystemTime, UNIX_EPOCH};
 use tokio_stream::Stream;
 use tonic::{Request, Response, Status, Streaming};
@@ -54,10 +54,8 @@ impl Default for ServiceOptions {
 }
 
 struct Shared {
-    queue: Mutex<Queue>,
-    store: Store,
+    store: Arc<dyn JobStore>,
     cfg: ServiceOptions,
-    clock: Clock,
 }
 
 /// The `wavesplat.v1.Orchestrator` service.
@@ -68,41 +66,22 @@ pub struct OrchestratorService {
 }
 
 impl OrchestratorService {
-    /// Loads the queue from `store` (running leases get fresh grace) and builds the service.
-    pub fn new(
-        store: Store,
+    /// Builds the service over `store` (whose queue policy wins over `cfg.queue`).
+    pub async fn new(
+        store: Arc<dyn JobStore>,
         cfg: ServiceOptions,
-        clock: Clock,
     ) -> Result<OrchestratorService, OrchestratorError> {
-        let queue_cfg = cfg.queue.validate()?;
-        let jobs = store.load()?;
-        let (queue, changed) = Queue::restore(queue_cfg, jobs, clock());
-        store.put(&changed)?;
-        let counts = queue.jobs().fold([0usize; 5], |mut c, j| {
-            c[match j.state {
-                JobState::Queued { .. } => 0,
-                JobState::Running { .. } => 1,
-                JobState::Done { .. } => 2,
-                JobState::Failed(_) => 3,
-                JobState::Cancelled => 4,
-            }] += 1;
-            c
-        });
+        let counts = store.counts().await?;
         tracing::info!(
-            queued = counts[0],
-            running = counts[1],
-            done = counts[2],
-            failed = counts[3],
-            cancelled = counts[4],
+            queued = counts.queued,
+            running = counts.running,
+            done = counts.done,
+            failed = counts.failed,
+            cancelled = counts.cancelled,
             "queue restored"
         );
         Ok(OrchestratorService {
-            shared: Arc::new(Shared {
-                queue: Mutex::new(queue),
-                store,
-                cfg,
-                clock,
-            }),
+            shared: Arc::new(Shared { store, cfg }),
             check: None,
         })
     }
@@ -113,32 +92,22 @@ impl OrchestratorService {
         self
     }
 
-    fn lock(&self) -> MutexGuard<'_, Queue> {
-        // A panic while holding the lock cannot leave the queue half-updated in a way that
-        // matters more than stopping service would; keep serving.
-        self.shared.queue.lock().unwrap_or_else(|p| p.into_inner())
-    }
-
-    fn now(&self) -> u64 {
-        (self.shared.clock)()
+    fn store(&self) -> &dyn JobStore {
+        self.shared.store.as_ref()
     }
 
     fn max_attempts(&self) -> u32 {
-        self.shared.cfg.queue.max_attempts
+        self.store().options().max_attempts
     }
 
     /// Reclaims expired leases now (the server also does this periodically).
     pub async fn reap(&self) -> Result<usize, OrchestratorError> {
-        let changed = {
-            let mut q = self.lock();
-            let changed = q.reap(self.now());
-            self.shared.store.put(&changed)?;
-            changed
-        };
-        if !changed.is_empty() {
-            self.shared.store.flush().await?;
-        }
-        Ok(changed.len())
+        self.store().reap().await
+    }
+
+    /// Makes everything written so far durable (at shutdown).
+    pub async fn close(&self) -> Result<(), OrchestratorError> {
+        self.store().close().await
     }
 
     async fn submit_inner(
@@ -156,6 +125,7 @@ impl OrchestratorService {
             ));
         };
         let spec = convert::spec_from_pb(spec).map_err(OrchestratorError::from)?;
+        let mut upload = None;
         if let Source::Upload { size } = spec.source {
             let limit = self.shared.cfg.max_upload_bytes;
             if size > limit {
@@ -191,17 +161,9 @@ impl OrchestratorService {
                     hex(&spec.sha256)
                 )));
             }
-            self.shared.store.put_blob(&spec.sha256, &bytes)?;
+            upload = Some(bytes);
         }
-        let submitted = {
-            let mut q = self.lock();
-            let s = q.submit(spec, self.now())?;
-            if !s.existed {
-                self.shared.store.put(std::slice::from_ref(&s.job))?;
-            }
-            s
-        };
-        self.shared.store.flush().await?;
+        let submitted = self.store().submit(spec, upload).await?;
         if !submitted.existed {
             tracing::info!(job = submitted.job.id, name = %submitted.job.spec.name, "submitted");
         }
@@ -209,23 +171,6 @@ impl OrchestratorService {
             job: Some(convert::job_to_pb(&submitted.job, self.max_attempts())),
             existed: submitted.existed,
         })
-    }
-
-    async fn change(
-        &self,
-        f: impl FnOnce(&mut Queue, u64) -> Result<crate::model::Job, OrchestratorError>,
-    ) -> Result<pb::Job, Status> {
-        let job = {
-            let mut q = self.lock();
-            let job = f(&mut q, self.now())?;
-            self.shared.store.put(std::slice::from_ref(&job))?;
-            if matches!(job.state, JobState::Done { .. }) {
-                self.shared.store.release_blob(&job, q.jobs())?;
-            }
-            job
-        };
-        self.shared.store.flush().await?;
-        Ok(convert::job_to_pb(&job, self.max_attempts()))
     }
 }
 
@@ -246,32 +191,33 @@ impl Orchestrator for OrchestratorService {
         &self,
         _request: Request<pb::ListJobsRequest>,
     ) -> Result<Response<pb::ListJobsResponse>, Status> {
-        let q = self.lock();
-        let jobs = q
-            .jobs()
+        let jobs = self
+            .store()
+            .list()
+            .await?
+            .iter()
             .map(|j| convert::job_to_pb(j, self.max_attempts()))
             .collect();
         Ok(Response::new(pb::ListJobsResponse { jobs }))
     }
 
     async fn get_job(&self, request: Request<pb::JobRef>) -> Result<Response<pb::Job>, Status> {
-        let q = self.lock();
-        let job = q.get(request.into_inner().id)?;
-        Ok(Response::new(convert::job_to_pb(job, self.max_attempts())))
+        let job = self.store().get(request.into_inner().id).await?;
+        Ok(Response::new(convert::job_to_pb(&job, self.max_attempts())))
     }
 
     async fn cancel_job(&self, request: Request<pb::JobRef>) -> Result<Response<pb::Job>, Status> {
         let id = request.into_inner().id;
-        let job = self.change(|q, now| q.cancel(id, now)).await?;
+        let job = self.store().cancel(id).await?;
         tracing::info!(job = id, "cancelled");
-        Ok(Response::new(job))
+        Ok(Response::new(convert::job_to_pb(&job, self.max_attempts())))
     }
 
     async fn retry_job(&self, request: Request<pb::JobRef>) -> Result<Response<pb::Job>, Status> {
         let id = request.into_inner().id;
-        let job = self.change(|q, now| q.retry(id, now)).await?;
+        let job = self.store().retry(id).await?;
         tracing::info!(job = id, "queued again");
-        Ok(Response::new(job))
+        Ok(Response::new(convert::job_to_pb(&job, self.max_attempts())))
     }
 
     async fn lease(
@@ -279,27 +225,19 @@ impl Orchestrator for OrchestratorService {
         request: Request<pb::LeaseRequest>,
     ) -> Result<Response<pb::LeaseResponse>, Status> {
         let worker: String = request.into_inner().worker.chars().take(200).collect();
-        let (leased, retry_after) = {
-            let mut q = self.lock();
-            let now = self.now();
-            let (job, changed) = q.lease(&worker, now);
-            self.shared.store.put(&changed)?;
-            let retry_after = q
-                .next_runnable_in(now)
-                .map_or(self.shared.cfg.poll_ms, |d| {
-                    d.clamp(1, self.shared.cfg.poll_ms)
-                });
-            (job, retry_after)
-        };
-        let Some(job) = leased else {
+        let leased = self.store().lease(&worker).await?;
+        let poll_ms = self.shared.cfg.poll_ms;
+        let Some(job) = leased.job else {
+            let retry_after = leased
+                .next_runnable_in
+                .map_or(poll_ms, |d| d.clamp(1, poll_ms));
             return Ok(Response::new(pb::LeaseResponse {
                 lease: None,
-                retry_after_ms: retry_after as u32,
+                retry_after_ms: retry_after.min(u32::MAX as u64) as u32,
             }));
         };
-        self.shared.store.flush().await?;
         tracing::info!(job = job.id, attempt = job.attempts, %worker, "leased");
-        let cfg = &self.shared.cfg.queue;
+        let cfg = self.store().options();
         Ok(Response::new(pb::LeaseResponse {
             lease: Some(pb::Lease {
                 job_id: job.id,
@@ -317,16 +255,15 @@ impl Orchestrator for OrchestratorService {
         request: Request<pb::HeartbeatRequest>,
     ) -> Result<Response<pb::HeartbeatResponse>, Status> {
         let r = request.into_inner();
-        let mut q = self.lock();
-        let reply = match q.heartbeat(r.job_id, r.attempt, r.progress, &r.stage, self.now()) {
-            // Not flushed: see the store's docs.
-            Ok(job) => {
-                self.shared.store.put(std::slice::from_ref(&job))?;
-                pb::HeartbeatResponse {
-                    keep_going: true,
-                    reason: String::new(),
-                }
-            }
+        let reply = match self
+            .store()
+            .heartbeat(r.job_id, r.attempt, r.progress, &r.stage)
+            .await
+        {
+            Ok(_) => pb::HeartbeatResponse {
+                keep_going: true,
+                reason: String::new(),
+            },
             Err(e @ (OrchestratorError::LeaseLost { .. } | OrchestratorError::NotFound(_))) => {
                 pb::HeartbeatResponse {
                     keep_going: false,
@@ -346,24 +283,22 @@ impl Orchestrator for OrchestratorService {
         let outcome = convert::outcome_from_pb(r.outcome).map_err(OrchestratorError::from)?;
         let (id, attempt) = (r.job_id, r.attempt);
         if let (Some(check), Outcome::Delivered(d)) = (&self.check, &outcome) {
-            let name = self.lock().get(id)?.spec.name.clone();
+            let name = self.store().get(id).await?.spec.name;
             if let Err(e) = check.confirm(&name, d).await {
                 tracing::warn!(job = id, attempt, worker = %r.worker, error = %e, "delivery refused");
                 return Err(e.into());
             }
         }
-        let job = self
-            .change(|q, now| q.finish(id, attempt, outcome, now))
-            .await?;
+        let job = self.store().finish(id, attempt, outcome).await?;
         tracing::info!(
             job = id,
             attempt,
             worker = %r.worker,
-            state = convert::state_name(job.state),
-            error = %job.error,
+            state = job.state.name(),
+            error = %job.last_failure.as_ref().map_or("", |f| f.message.as_str()),
             "attempt finished"
         );
-        Ok(Response::new(job))
+        Ok(Response::new(convert::job_to_pb(&job, self.max_attempts())))
     }
 
     type FetchSourceStream = SourceStream;
@@ -373,32 +308,29 @@ impl Orchestrator for OrchestratorService {
         request: Request<pb::FetchSourceRequest>,
     ) -> Result<Response<Self::FetchSourceStream>, Status> {
         let r = request.into_inner();
-        let sha = {
-            let q = self.lock();
-            let job = q.get(r.job_id)?;
-            match job.state {
-                JobState::Running { attempt, .. } if attempt == r.attempt => {}
-                _ => {
-                    return Err(OrchestratorError::LeaseLost {
-                        id: r.job_id,
-                        attempt: r.attempt,
-                        reason: format!("the job is {}", job.state.name()),
-                    }
-                    .into())
+        let job = self.store().get(r.job_id).await?;
+        match job.state {
+            JobState::Running { attempt, .. } if attempt == r.attempt => {}
+            _ => {
+                return Err(OrchestratorError::LeaseLost {
+                    id: r.job_id,
+                    attempt: r.attempt,
+                    reason: format!("the job is {}", job.state.name()),
                 }
+                .into())
             }
-            if !matches!(job.spec.source, Source::Upload { .. }) {
-                return Err(Status::invalid_argument(format!(
-                    "job {} reads its source from a path, not an upload",
-                    r.job_id
-                )));
-            }
-            job.spec.sha256
-        };
+        }
+        if !matches!(job.spec.source, Source::Upload { .. }) {
+            return Err(Status::invalid_argument(format!(
+                "job {} reads its source from a path, not an upload",
+                r.job_id
+            )));
+        }
+        let sha = job.spec.sha256;
         let blob = self
-            .shared
-            .store
-            .blob(&sha)?
+            .store()
+            .upload(&sha)
+            .await?
             .ok_or_else(|| Status::internal(format!("upload {} is missing", hex(&sha))))?;
         let chunks: Vec<Result<pb::SourceChunk, Status>> = blob
             .chunks(CHUNK_BYTES)

@@ -16,17 +16,6 @@ pub struct Store {
     blobs: sled::Tree,
 }
 
-/// Flushes the store when dropped (graceful shutdown and error paths alike).
-pub struct FlushGuard(pub Store);
-
-impl Drop for FlushGuard {
-    fn drop(&mut self) {
-        if let Err(e) = self.0.db.flush() {
-            tracing::error!(error = %e, "flushing the orchestrator store");
-        }
-    }
-}
-
 impl Store {
     /// Opens (or creates) the store in `dir`.
     pub fn open(dir: impl AsRef<Path>) -> Result<Store, OrchestratorError> {

@@ -19,9 +19,20 @@ use wavesplat_worker::archive;
 /// Arguments of `wavesplat serve orchestrator`.
 #[derive(Args, Debug)]
 pub struct ServeOrchestratorArgs {
-    /// Database directory (created if missing).
-    #[arg(long)]
-    pub db: PathBuf,
+    /// Keep the queue in this directory (an embedded sled database, created if missing; one
+    /// orchestrator owns it). The default store: nothing else to run.
+    #[arg(long, required_unless_present = "queue", conflicts_with = "queue")]
+    pub db: Option<PathBuf>,
+    /// Keep the queue in a PostgreSQL database instead, shared by any number of orchestrators
+    /// (each stateless: give workers and clients all their URLs). `postgres://USER@HOST:PORT/DB`;
+    /// the password from the URL, PGPASSWORD or ~/.pgpass; `?sslmode=require` (or
+    /// `verify-full`, with `sslrootcert=FILE`) for TLS to the database. The schema is created
+    /// or upgraded at start.
+    #[arg(long, value_name = "URL")]
+    pub queue: Option<String>,
+    /// Connections to the queue database.
+    #[arg(long, default_value_t = 16, requires = "queue")]
+    pub queue_connections: u32,
     /// Listen address (port 0 picks a free port; the bound address is printed on stdout).
     #[arg(long, default_value = "127.0.0.1:50052")]
     pub addr: String,
@@ -59,7 +70,8 @@ pub struct ServeOrchestratorArgs {
 /// Arguments of `wavesplat worker`.
 #[derive(Args, Debug)]
 pub struct WorkerArgs {
-    /// Orchestrator URL.
+    /// Orchestrator URL; several, comma-separated, for orchestrators sharing one PostgreSQL
+    /// queue: requests go to the first that answers and fail over to the next.
     #[arg(long, default_value = super::DEFAULT_ORCHESTRATOR_URL)]
     pub orchestrator: String,
     /// Cache URL the results are delivered to.
@@ -175,7 +187,8 @@ pub enum ArchiveCommand {
 pub struct SubmitArgs {
     /// Archive directory (scanned recursively).
     pub dir: PathBuf,
-    /// Orchestrator URL.
+    /// Orchestrator URL; several, comma-separated, for orchestrators sharing one PostgreSQL
+    /// queue: requests go to the first that answers and fail over to the next.
     #[arg(long, default_value = super::DEFAULT_ORCHESTRATOR_URL)]
     pub orchestrator: String,
     /// Stream each file's bytes to the orchestrator instead of passing its path (use when the
@@ -215,7 +228,8 @@ pub enum JobsCommand {
 /// Orchestrator address and how to reach it.
 #[derive(Args, Debug)]
 pub struct JobsUrl {
-    /// Orchestrator URL.
+    /// Orchestrator URL; several, comma-separated, for orchestrators sharing one PostgreSQL
+    /// queue: requests go to the first that answers and fail over to the next.
     #[arg(long, default_value = super::DEFAULT_ORCHESTRATOR_URL)]
     pub orchestrator: String,
     #[command(flatten)]
@@ -289,8 +303,31 @@ pub fn run_serve(a: ServeOrchestratorArgs) -> Result<()> {
         security: a.security.security()?,
         delivery_check,
     };
-    let store = Store::open(&a.db).map_err(|e| super::database_error(e, &a.db, "orchestrator"))?;
+    let embedded = match &a.db {
+        Some(db) => {
+            Some(Store::open(db).map_err(|e| super::database_error(e, db, "orchestrator"))?)
+        }
+        None => None,
+    };
     runtime()?.block_on(async move {
+        let store: wavesplat_orchestrator::Backend = match (embedded, &a.queue) {
+            (Some(store), _) => store.into(),
+            (None, Some(url)) => {
+                let pg = wavesplat_orchestrator::PostgresQueue::connect(
+                    url,
+                    wavesplat_orchestrator::PostgresOptions {
+                        max_connections: a.queue_connections,
+                        ..Default::default()
+                    },
+                )
+                .await
+                .context("opening the queue database")?
+                .with_options(config.queue);
+                pg.check_clock().await?;
+                pg.into()
+            }
+            (None, None) => bail!("give --db DIR or --queue postgres://…"),
+        };
         let listener = super::bind_announced(&a.addr, &options.security).await?;
         let shutdown = super::ctrl_c();
         wavesplat_orchestrator::serve_with(listener, store, config, options, shutdown).await?;

@@ -1,0 +1,327 @@
+//! Where the queue lives: the [`JobStore`] contract every RPC goes through, and its embedded
+//! implementation ([`EmbeddedQueue`]: the in-memory [`Queue`] under one mutex, written through
+//! to sled and flushed before answering). The PostgreSQL implementation is
+//! [`crate::postgres::PostgresQueue`]. Both apply the same per-job [`crate::queue::rules`]; they differ in
+//! where jobs are held and how concurrent orchestrators are kept apart (one process with a
+//! mutex, or row locks in a shared database).
+
+use crate::error::OrchestratorError;
+use crate::model::{Job, JobId, JobSpec, JobState, Outcome};
+use crate::queue::{Queue, QueueOptions, Submitted};
+use crate::service::Clock;
+use crate::store::Store;
+use std::sync::{Mutex, MutexGuard};
+
+/// The answer to a lease request.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Leased {
+    /// The job now leased to the caller, if any was runnable.
+    pub job: Option<Job>,
+    /// Milliseconds until the next queued job becomes runnable (`None`: nothing queued).
+    pub next_runnable_in: Option<u64>,
+}
+
+/// Counts of jobs by state, for the start-up log line.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct StateCounts {
+    /// Queued (including those backing off).
+    pub queued: u64,
+    /// Leased to a worker.
+    pub running: u64,
+    /// Delivered.
+    pub done: u64,
+    /// Failed for good.
+    pub failed: u64,
+    /// Cancelled.
+    pub cancelled: u64,
+}
+
+impl StateCounts {
+    fn add(&mut self, state: &JobState) {
+        match state {
+            JobState::Queued { .. } => self.queued += 1,
+            JobState::Running { .. } => self.running += 1,
+            JobState::Done { .. } => self.done += 1,
+            JobState::Failed(_) => self.failed += 1,
+            JobState::Cancelled => self.cancelled += 1,
+        }
+    }
+}
+
+/// The storage contract of the orchestrator: every change is durable when the call returns
+/// (heartbeats excepted: a lost heartbeat costs at most a reclaimed lease), and concurrent
+/// callers (RPCs of one orchestrator, or several orchestrators over one database) never lease
+/// one job twice or apply an outcome to a lease that lapsed.
+#[tonic::async_trait]
+pub trait JobStore: Send + Sync + 'static {
+    /// The timing and retry policy.
+    fn options(&self) -> &QueueOptions;
+
+    /// Adds a job (storing `upload`, the source's bytes, under the spec's hash), or returns the
+    /// known one with the same content hash, layout, options and name.
+    async fn submit(
+        &self,
+        spec: JobSpec,
+        upload: Option<Vec<u8>>,
+    ) -> Result<Submitted, OrchestratorError>;
+
+    /// Leases the oldest runnable job to `worker`.
+    async fn lease(&self, worker: &str) -> Result<Leased, OrchestratorError>;
+
+    /// Extends a held lease and records progress.
+    async fn heartbeat(
+        &self,
+        id: JobId,
+        attempt: u32,
+        progress: f32,
+        stage: &str,
+    ) -> Result<Job, OrchestratorError>;
+
+    /// Records the outcome of a held attempt; a delivered job's uploaded source is dropped
+    /// unless another unfinished job needs it.
+    async fn finish(
+        &self,
+        id: JobId,
+        attempt: u32,
+        outcome: Outcome,
+    ) -> Result<Job, OrchestratorError>;
+
+    /// Cancels a queued or running job.
+    async fn cancel(&self, id: JobId) -> Result<Job, OrchestratorError>;
+
+    /// Queues a failed or cancelled job again with a fresh attempt budget.
+    async fn retry(&self, id: JobId) -> Result<Job, OrchestratorError>;
+
+    /// Reclaims every lapsed lease; returns how many.
+    async fn reap(&self) -> Result<usize, OrchestratorError>;
+
+    /// One job.
+    async fn get(&self, id: JobId) -> Result<Job, OrchestratorError>;
+
+    /// Every job, by id.
+    async fn list(&self) -> Result<Vec<Job>, OrchestratorError>;
+
+    /// The uploaded source with this hash.
+    async fn upload(&self, sha256: &[u8; 32]) -> Result<Option<Vec<u8>>, OrchestratorError>;
+
+    /// Jobs by state.
+    async fn counts(&self) -> Result<StateCounts, OrchestratorError> {
+        let mut c = StateCounts::default();
+        for j in self.list().await? {
+            c.add(&j.state);
+        }
+        Ok(c)
+    }
+
+    /// Makes everything written so far durable (at shutdown).
+    async fn close(&self) -> Result<(), OrchestratorError>;
+}
+
+/// The embedded store: the queue in memory behind one mutex, every change written through to
+/// sled and flushed before the call returns. One orchestrator process owns the database
+/// directory.
+pub struct EmbeddedQueue {
+    options: QueueOptions,
+    queue: Mutex<Queue>,
+    store: Store,
+    clock: Clock,
+}
+
+impl EmbeddedQueue {
+    /// Loads the queue from `store`; running leases get a fresh lease of grace, since their
+    /// workers could not heartbeat while no orchestrator was up.
+    pub fn open(
+        store: Store,
+        cfg: QueueOptions,
+        clock: Clock,
+    ) -> Result<EmbeddedQueue, OrchestratorError> {
+        let options = cfg.validate()?;
+        let jobs = store.load()?;
+        let (queue, changed) = Queue::restore(options, jobs, clock());
+        store.put(&changed)?;
+        Ok(EmbeddedQueue {
+            options,
+            queue: Mutex::new(queue),
+            store,
+            clock,
+        })
+    }
+
+    fn lock(&self) -> MutexGuard<'_, Queue> {
+        // A panic while holding the lock cannot leave the queue half-updated in a way that
+        // matters more than stopping service would; keep serving.
+        self.queue.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    fn now(&self) -> u64 {
+        (self.clock)()
+    }
+
+    async fn change(
+        &self,
+        f: impl FnOnce(&mut Queue, u64) -> Result<Job, OrchestratorError>,
+    ) -> Result<Job, OrchestratorError> {
+        let job = {
+            let mut q = self.lock();
+            let job = f(&mut q, self.now())?;
+            self.store.put(std::slice::from_ref(&job))?;
+            if matches!(job.state, JobState::Done { .. }) {
+                self.store.release_blob(&job, q.jobs())?;
+            }
+            job
+        };
+        self.store.flush().await?;
+        Ok(job)
+    }
+}
+
+#[tonic::async_trait]
+impl JobStore for EmbeddedQueue {
+    fn options(&self) -> &QueueOptions {
+        &self.options
+    }
+
+    async fn submit(
+        &self,
+        spec: JobSpec,
+        upload: Option<Vec<u8>>,
+    ) -> Result<Submitted, OrchestratorError> {
+        if let Some(bytes) = &upload {
+            self.store.put_blob(&spec.sha256, bytes)?;
+        }
+        let submitted = {
+            let mut q = self.lock();
+            let s = q.submit(spec, self.now())?;
+            if !s.existed {
+                self.store.put(std::slice::from_ref(&s.job))?;
+            }
+            s
+        };
+        self.store.flush().await?;
+        Ok(submitted)
+    }
+
+    async fn lease(&self, worker: &str) -> Result<Leased, OrchestratorError> {
+        let leased = {
+            let mut q = self.lock();
+            let now = self.now();
+            let (job, changed) = q.lease(worker, now);
+            self.store.put(&changed)?;
+            Leased {
+                job,
+                next_runnable_in: q.next_runnable_in(now),
+            }
+        };
+        if leased.job.is_some() {
+            self.store.flush().await?;
+        }
+        Ok(leased)
+    }
+
+    async fn heartbeat(
+        &self,
+        id: JobId,
+        attempt: u32,
+        progress: f32,
+        stage: &str,
+    ) -> Result<Job, OrchestratorError> {
+        let mut q = self.lock();
+        let job = q.heartbeat(id, attempt, progress, stage, self.now())?;
+        // Not flushed: see the store's docs.
+        self.store.put(std::slice::from_ref(&job))?;
+        Ok(job)
+    }
+
+    async fn finish(
+        &self,
+        id: JobId,
+        attempt: u32,
+        outcome: Outcome,
+    ) -> Result<Job, OrchestratorError> {
+        self.change(|q, now| q.finish(id, attempt, outcome, now))
+            .await
+    }
+
+    async fn cancel(&self, id: JobId) -> Result<Job, OrchestratorError> {
+        self.change(|q, now| q.cancel(id, now)).await
+    }
+
+    async fn retry(&self, id: JobId) -> Result<Job, OrchestratorError> {
+        self.change(|q, now| q.retry(id, now)).await
+    }
+
+    async fn reap(&self) -> Result<usize, OrchestratorError> {
+        let changed = {
+            let mut q = self.lock();
+            let changed = q.reap(self.now());
+            self.store.put(&changed)?;
+            changed
+        };
+        if !changed.is_empty() {
+            self.store.flush().await?;
+        }
+        Ok(changed.len())
+    }
+
+    async fn get(&self, id: JobId) -> Result<Job, OrchestratorError> {
+        self.lock().get(id).cloned()
+    }
+
+    async fn list(&self) -> Result<Vec<Job>, OrchestratorError> {
+        Ok(self.lock().jobs().cloned().collect())
+    }
+
+    async fn upload(&self, sha256: &[u8; 32]) -> Result<Option<Vec<u8>>, OrchestratorError> {
+        Ok(self.store.blob(sha256)?.map(|b| b.to_vec()))
+    }
+
+    async fn close(&self) -> Result<(), OrchestratorError> {
+        self.store.flush().await
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::model::{JobOptions, Source};
+    use std::sync::Arc;
+
+    #[tokio::test]
+    async fn a_delivered_upload_is_dropped_unless_another_job_needs_it() {
+        let dir = tempfile::tempdir().unwrap();
+        let q = EmbeddedQueue::open(
+            Store::open(dir.path()).unwrap(),
+            QueueOptions::default(),
+            Arc::new(|| 1000),
+        )
+        .unwrap();
+        let spec = |name: &str| JobSpec {
+            name: name.into(),
+            source: Source::Upload { size: 3 },
+            sha256: [7; 32],
+            raw: None,
+            options: JobOptions::default(),
+        };
+        q.submit(spec("a"), Some(vec![1, 2, 3])).await.unwrap();
+        q.submit(spec("b"), Some(vec![1, 2, 3])).await.unwrap();
+        assert_eq!(q.counts().await.unwrap().queued, 2);
+        let a = q.lease("w").await.unwrap().job.unwrap();
+        let delivered = || {
+            Outcome::Delivered(crate::model::Delivery {
+                cache_volume_id: 1,
+                output_bytes: 1,
+                voxels: 1,
+                existed: false,
+                sha256: "ab".repeat(32),
+            })
+        };
+        q.finish(a.id, 1, delivered()).await.unwrap();
+        assert!(
+            q.upload(&[7; 32]).await.unwrap().is_some(),
+            "b still needs it"
+        );
+        let b = q.lease("w").await.unwrap().job.unwrap();
+        q.finish(b.id, 1, delivered()).await.unwrap();
+        assert!(q.upload(&[7; 32]).await.unwrap().is_none());
+    }
+}

@@ -1,0 +1,535 @@
+//! The queue in PostgreSQL: the [`JobStore`] contract over a database that any number of
+//! stateless orchestrators share. Each change is one transaction that locks the rows it
+//! changes (`SELECT … FOR UPDATE`; leases and reaping with `SKIP LOCKED`, so orchestrators
+//! never wait on each other's rows), applies the same [`rules`] as the embedded store, and
+//! commits before the RPC is answered. Uploaded sources are rows of the `uploads` table.
+//! The schema is created and upgraded at start by versioned migrations (`migrations/`, run
+//! under sqlx's advisory lock, so orchestrators starting together apply each once).
+//!
+//! sqlx rather than tokio-postgres: its connection options read the URL, `PGPASSWORD`, the
+//! other `PG*` variables and `.pgpass` the way libpq does, speak TLS through rustls when the
+//! URL's `sslmode` asks for it, come with a pool that reconnects after the database
+//! restarts, and carry the migration runner, so none of that is written here.
+
+use crate::error::OrchestratorError;
+use crate::jobstore::{JobStore, Leased, StateCounts};
+use crate::model::{Job, JobId, JobSpec, JobState, Outcome, Source};
+use crate::queue::{rules, QueueOptions, Submitted};
+use crate::service::{system_clock, Clock};
+use sqlx::migrate::{Migration, MigrationSource, MigrationType, Migrator};
+use sqlx::postgres::{PgConnectOptions, PgPool, PgPoolOptions};
+use sqlx::types::Json;
+use sqlx::{Postgres, Row, Transaction};
+use std::borrow::Cow;
+use std::future::Future;
+use std::pin::Pin;
+use std::str::FromStr;
+use std::time::Duration;
+
+/// Rows of one uploaded source hold at most this many bytes.
+const UPLOAD_CHUNK: usize = 1 << 20;
+
+/// How the orchestrator connects to the database.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct PostgresOptions {
+    /// Connections in the pool.
+    pub max_connections: u32,
+    /// Longest wait for a connection before a request fails as unavailable.
+    pub acquire_timeout: Duration,
+}
+
+impl Default for PostgresOptions {
+    fn default() -> Self {
+        PostgresOptions {
+            max_connections: 16,
+            acquire_timeout: Duration::from_secs(5),
+        }
+    }
+}
+
+/// The schema's versions, applied in order at start.
+#[derive(Debug)]
+struct Migrations;
+
+type Resolved<'s> =
+    Pin<Box<dyn Future<Output = Result<Vec<Migration>, sqlx::error::BoxDynError>> + Send + 's>>;
+
+impl<'s> MigrationSource<'s> for Migrations {
+    fn resolve(self) -> Resolved<'s> {
+        Box::pin(async {
+            Ok(vec![Migration::new(
+                1,
+                Cow::Borrowed("jobs and uploads"),
+                MigrationType::Simple,
+                Cow::Borrowed(include_str!("../migrations/0001_jobs.sql")),
+                false,
+            )])
+        })
+    }
+}
+
+/// The queue in a PostgreSQL database.
+#[derive(Clone)]
+pub struct PostgresQueue {
+    pool: PgPool,
+    options: QueueOptions,
+    clock: Clock,
+}
+
+impl std::fmt::Debug for PostgresQueue {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("PostgresQueue")
+            .field("options", &self.options)
+            .finish_non_exhaustive()
+    }
+}
+
+fn db(e: sqlx::Error) -> OrchestratorError {
+    OrchestratorError::Database(e.to_string())
+}
+
+fn ms(v: u64) -> i64 {
+    i64::try_from(v).unwrap_or(i64::MAX)
+}
+
+impl PostgresQueue {
+    /// Connects to the database at `url` (`postgres://user@host:port/db?sslmode=require`;
+    /// a password from the URL, `PGPASSWORD` or `.pgpass`), applies the schema's migrations and
+    /// warns when this host's clock and the database's differ by more than a quarter lease
+    /// (lease expiry compares times written by different orchestrators).
+    pub async fn connect(
+        url: &str,
+        options: PostgresOptions,
+    ) -> Result<PostgresQueue, OrchestratorError> {
+        let connect = PgConnectOptions::from_str(url).map_err(|e| {
+            OrchestratorError::InvalidRequest(format!("queue URL {}: {e}", redact(url)))
+        })?;
+        let pool = PgPoolOptions::new()
+            .max_connections(options.max_connections.max(1))
+            .acquire_timeout(options.acquire_timeout)
+            .connect_with(connect)
+            .await
+            .map_err(|e| {
+                OrchestratorError::Database(format!("connecting to {}: {e}", redact(url)))
+            })?;
+        let migrator = Migrator::new(Migrations)
+            .await
+            .map_err(|e| OrchestratorError::Database(format!("reading migrations: {e}")))?;
+        migrator
+            .run(&pool)
+            .await
+            .map_err(|e| OrchestratorError::Database(format!("migrating the schema: {e}")))?;
+        let queue = PostgresQueue {
+            pool,
+            options: QueueOptions::default(),
+            clock: system_clock(),
+        };
+        tracing::info!(url = %redact(url), "queue in PostgreSQL");
+        Ok(queue)
+    }
+
+    /// The same database with the queue policy `options`.
+    pub fn with_options(mut self, options: QueueOptions) -> PostgresQueue {
+        self.options = options;
+        self
+    }
+
+    /// The same database read against `clock` (tests drive time with it).
+    pub fn with_clock(mut self, clock: Clock) -> PostgresQueue {
+        self.clock = clock;
+        self
+    }
+
+    /// This host's clock minus the database's, in ms.
+    pub async fn clock_skew_ms(&self) -> Result<i64, OrchestratorError> {
+        let before = (self.clock)();
+        let row = sqlx::query("SELECT (extract(epoch FROM clock_timestamp()) * 1000)::int8")
+            .fetch_one(&self.pool)
+            .await
+            .map_err(db)?;
+        let after = (self.clock)();
+        let theirs: i64 = row.try_get(0).map_err(db)?;
+        Ok(ms((before + after) / 2) - theirs)
+    }
+
+    /// Warns when this host's clock is off the database's by more than a quarter lease.
+    pub async fn check_clock(&self) -> Result<(), OrchestratorError> {
+        let skew = self.clock_skew_ms().await?;
+        if skew.unsigned_abs() > self.options.lease_ms / 4 {
+            tracing::warn!(
+                skew_ms = skew,
+                lease_ms = self.options.lease_ms,
+                "this host's clock is off the database's by more than a quarter lease: \
+                 orchestrators over one database must keep their clocks in step (NTP)"
+            );
+        }
+        Ok(())
+    }
+
+    fn now(&self) -> u64 {
+        (self.clock)()
+    }
+
+    async fn begin(&self) -> Result<Transaction<'static, Postgres>, OrchestratorError> {
+        self.pool.begin().await.map_err(db)
+    }
+
+    /// Writes `job` back to its row with every derived column.
+    async fn write(
+        tx: &mut Transaction<'static, Postgres>,
+        job: &Job,
+    ) -> Result<(), OrchestratorError> {
+        let (not_before, lease_expires, worker) = match &job.state {
+            JobState::Queued { not_before_ms } => (Some(ms(*not_before_ms)), None, None),
+            JobState::Running {
+                lease_expires_ms,
+                worker,
+                ..
+            } => (None, Some(ms(*lease_expires_ms)), Some(worker.as_str())),
+            _ => (None, None, None),
+        };
+        sqlx::query(
+            "UPDATE jobs SET state = $2, not_before_ms = $3, lease_expires_ms = $4, worker = $5,
+                 attempts = $6, error = $7, updated_ms = $8, job = $9
+             WHERE id = $1",
+        )
+        .bind(ms(job.id))
+        .bind(job.state.name())
+        .bind(not_before)
+        .bind(lease_expires)
+        .bind(worker)
+        .bind(i32::try_from(job.attempts).unwrap_or(i32::MAX))
+        .bind(job.last_failure.as_ref().map(|f| f.message.as_str()))
+        .bind(ms(job.updated_ms))
+        .bind(Json(job))
+        .execute(&mut **tx)
+        .await
+        .map_err(db)?;
+        Ok(())
+    }
+
+    fn job_of(row: &sqlx::postgres::PgRow) -> Result<Job, OrchestratorError> {
+        let Json(job): Json<Job> = row
+            .try_get("job")
+            .map_err(|e| OrchestratorError::Corrupt(format!("job record: {e}")))?;
+        Ok(job)
+    }
+
+    /// Locks job `id` in `tx`.
+    async fn locked(
+        tx: &mut Transaction<'static, Postgres>,
+        id: JobId,
+    ) -> Result<Job, OrchestratorError> {
+        let row = sqlx::query("SELECT job FROM jobs WHERE id = $1 FOR UPDATE")
+            .bind(ms(id))
+            .fetch_optional(&mut **tx)
+            .await
+            .map_err(db)?
+            .ok_or(OrchestratorError::NotFound(id))?;
+        Self::job_of(&row)
+    }
+
+    /// Serialises changes to one uploaded source (storing it, dropping it) for the rest of
+    /// `tx`.
+    async fn lock_upload(
+        tx: &mut Transaction<'static, Postgres>,
+        sha256: &[u8; 32],
+    ) -> Result<(), OrchestratorError> {
+        let mut key = [0u8; 8];
+        key.copy_from_slice(&sha256[..8]);
+        sqlx::query("SELECT pg_advisory_xact_lock($1)")
+            .bind(i64::from_be_bytes(key))
+            .execute(&mut **tx)
+            .await
+            .map_err(db)?;
+        Ok(())
+    }
+
+    /// Locks job `id`, applies `f` at the current time, writes it back and commits.
+    async fn change(
+        &self,
+        id: JobId,
+        f: impl FnOnce(&mut Job, u64) -> Result<(), OrchestratorError> + Send,
+    ) -> Result<Job, OrchestratorError> {
+        let mut tx = self.begin().await?;
+        let mut job = Self::locked(&mut tx, id).await?;
+        f(&mut job, self.now())?;
+        Self::write(&mut tx, &job).await?;
+        if matches!(job.state, JobState::Done { .. })
+            && matches!(job.spec.source, Source::Upload { .. })
+        {
+            Self::lock_upload(&mut tx, &job.spec.sha256).await?;
+            sqlx::query(
+                "DELETE FROM uploads WHERE sha256 = $1 AND NOT EXISTS (
+                     SELECT 1 FROM jobs
+                     WHERE sha256 = $1 AND upload AND state <> 'done' AND id <> $2)",
+            )
+            .bind(&job.spec.sha256[..])
+            .bind(ms(job.id))
+            .execute(&mut *tx)
+            .await
+            .map_err(db)?;
+        }
+        tx.commit().await.map_err(db)?;
+        Ok(job)
+    }
+
+    async fn existing(
+        tx: &mut Transaction<'static, Postgres>,
+        key: &str,
+    ) -> Result<Option<Job>, OrchestratorError> {
+        sqlx::query("SELECT job FROM jobs WHERE dedup_key = $1")
+            .bind(key)
+            .fetch_optional(&mut **tx)
+            .await
+            .map_err(db)?
+            .map(|r| Self::job_of(&r))
+            .transpose()
+    }
+}
+
+/// The URL without its password, for messages and logs.
+fn redact(url: &str) -> String {
+    match url::Url::parse(url) {
+        Ok(mut u) if u.password().is_some() => {
+            let _ = u.set_password(Some("***"));
+            u.to_string()
+        }
+        Ok(u) => u.to_string(),
+        Err(_) => "(unparsable URL)".into(),
+    }
+}
+
+#[tonic::async_trait]
+impl JobStore for PostgresQueue {
+    fn options(&self) -> &QueueOptions {
+        &self.options
+    }
+
+    async fn submit(
+        &self,
+        spec: JobSpec,
+        upload: Option<Vec<u8>>,
+    ) -> Result<Submitted, OrchestratorError> {
+        let spec = spec.validate()?;
+        let key = spec.dedup_key();
+        let mut tx = self.begin().await?;
+        if let Some(job) = Self::existing(&mut tx, &key).await? {
+            return Ok(Submitted { job, existed: true });
+        }
+        if let Some(bytes) = &upload {
+            Self::lock_upload(&mut tx, &spec.sha256).await?;
+            let chunks: Vec<&[u8]> = if bytes.is_empty() {
+                vec![&[]]
+            } else {
+                bytes.chunks(UPLOAD_CHUNK).collect()
+            };
+            for (seq, chunk) in chunks.into_iter().enumerate() {
+                sqlx::query(
+                    "INSERT INTO uploads (sha256, seq, data) VALUES ($1, $2, $3)
+                     ON CONFLICT (sha256, seq) DO NOTHING",
+                )
+                .bind(&spec.sha256[..])
+                .bind(i32::try_from(seq).unwrap_or(i32::MAX))
+                .bind(chunk)
+                .execute(&mut *tx)
+                .await
+                .map_err(db)?;
+            }
+        }
+        let id: i64 = sqlx::query("SELECT nextval(pg_get_serial_sequence('jobs', 'id'))")
+            .fetch_one(&mut *tx)
+            .await
+            .and_then(|r| r.try_get(0))
+            .map_err(db)?;
+        let now = self.now();
+        let job = rules::new_job(id as u64, spec, now);
+        let inserted = sqlx::query(
+            "INSERT INTO jobs (id, dedup_key, name, state, not_before_ms, attempts, sha256,
+                               upload, created_ms, updated_ms, job)
+             VALUES ($1, $2, $3, 'queued', $4, 0, $5, $6, $4, $4, $7)
+             ON CONFLICT (dedup_key) DO NOTHING",
+        )
+        .bind(id)
+        .bind(&key)
+        .bind(&job.spec.name)
+        .bind(ms(now))
+        .bind(&job.spec.sha256[..])
+        .bind(matches!(job.spec.source, Source::Upload { .. }))
+        .bind(Json(&job))
+        .execute(&mut *tx)
+        .await
+        .map_err(db)?
+        .rows_affected();
+        if inserted == 0 {
+            // Another orchestrator committed the same job since we looked.
+            tx.rollback().await.map_err(db)?;
+            let mut tx = self.begin().await?;
+            let job = Self::existing(&mut tx, &key).await?.ok_or_else(|| {
+                OrchestratorError::Database(format!("job {key} vanished while submitting"))
+            })?;
+            return Ok(Submitted { job, existed: true });
+        }
+        tx.commit().await.map_err(db)?;
+        Ok(Submitted {
+            job,
+            existed: false,
+        })
+    }
+
+    async fn lease(&self, worker: &str) -> Result<Leased, OrchestratorError> {
+        let now = self.now();
+        let mut tx = self.begin().await?;
+        let row = sqlx::query(
+            "SELECT job FROM jobs WHERE state = 'queued' AND not_before_ms <= $1
+             ORDER BY id LIMIT 1 FOR UPDATE SKIP LOCKED",
+        )
+        .bind(ms(now))
+        .fetch_optional(&mut *tx)
+        .await
+        .map_err(db)?;
+        let job = match row {
+            Some(row) => {
+                let mut job = Self::job_of(&row)?;
+                rules::start(&self.options, &mut job, worker, now);
+                Self::write(&mut tx, &job).await?;
+                Some(job)
+            }
+            None => None,
+        };
+        let next: Option<i64> =
+            sqlx::query("SELECT min(not_before_ms) FROM jobs WHERE state = 'queued'")
+                .fetch_one(&mut *tx)
+                .await
+                .and_then(|r| r.try_get(0))
+                .map_err(db)?;
+        tx.commit().await.map_err(db)?;
+        Ok(Leased {
+            job,
+            next_runnable_in: next.map(|t| (t.max(0) as u64).saturating_sub(now)),
+        })
+    }
+
+    async fn heartbeat(
+        &self,
+        id: JobId,
+        attempt: u32,
+        progress: f32,
+        stage: &str,
+    ) -> Result<Job, OrchestratorError> {
+        let cfg = self.options;
+        let stage = stage.to_string();
+        self.change(id, move |job, now| {
+            rules::heartbeat(&cfg, job, attempt, progress, &stage, now)
+        })
+        .await
+    }
+
+    async fn finish(
+        &self,
+        id: JobId,
+        attempt: u32,
+        outcome: Outcome,
+    ) -> Result<Job, OrchestratorError> {
+        let cfg = self.options;
+        self.change(id, move |job, now| {
+            rules::finish(&cfg, job, attempt, outcome, now)
+        })
+        .await
+    }
+
+    async fn cancel(&self, id: JobId) -> Result<Job, OrchestratorError> {
+        self.change(id, rules::cancel).await
+    }
+
+    async fn retry(&self, id: JobId) -> Result<Job, OrchestratorError> {
+        self.change(id, rules::retry).await
+    }
+
+    async fn reap(&self) -> Result<usize, OrchestratorError> {
+        let now = self.now();
+        let mut tx = self.begin().await?;
+        let rows = sqlx::query(
+            "SELECT job FROM jobs WHERE state = 'running' AND lease_expires_ms <= $1
+             ORDER BY id FOR UPDATE SKIP LOCKED",
+        )
+        .bind(ms(now))
+        .fetch_all(&mut *tx)
+        .await
+        .map_err(db)?;
+        let mut changed = 0;
+        for row in rows {
+            let mut job = Self::job_of(&row)?;
+            if rules::expire(&self.options, &mut job, now) {
+                Self::write(&mut tx, &job).await?;
+                changed += 1;
+            }
+        }
+        tx.commit().await.map_err(db)?;
+        Ok(changed)
+    }
+
+    async fn get(&self, id: JobId) -> Result<Job, OrchestratorError> {
+        let row = sqlx::query("SELECT job FROM jobs WHERE id = $1")
+            .bind(ms(id))
+            .fetch_optional(&self.pool)
+            .await
+            .map_err(db)?
+            .ok_or(OrchestratorError::NotFound(id))?;
+        Self::job_of(&row)
+    }
+
+    async fn list(&self) -> Result<Vec<Job>, OrchestratorError> {
+        sqlx::query("SELECT job FROM jobs ORDER BY id")
+            .fetch_all(&self.pool)
+            .await
+            .map_err(db)?
+            .iter()
+            .map(Self::job_of)
+            .collect()
+    }
+
+    async fn upload(&self, sha256: &[u8; 32]) -> Result<Option<Vec<u8>>, OrchestratorError> {
+        let rows = sqlx::query("SELECT data FROM uploads WHERE sha256 = $1 ORDER BY seq")
+            .bind(&sha256[..])
+            .fetch_all(&self.pool)
+            .await
+            .map_err(db)?;
+        if rows.is_empty() {
+            return Ok(None);
+        }
+        let mut bytes = Vec::new();
+        for row in rows {
+            let chunk: &[u8] = row.try_get(0).map_err(db)?;
+            bytes.extend_from_slice(chunk);
+        }
+        Ok(Some(bytes))
+    }
+
+    async fn counts(&self) -> Result<StateCounts, OrchestratorError> {
+        let rows = sqlx::query("SELECT state, count(*) FROM jobs GROUP BY state")
+            .fetch_all(&self.pool)
+            .await
+            .map_err(db)?;
+        let mut c = StateCounts::default();
+        for row in rows {
+            let state: &str = row.try_get(0).map_err(db)?;
+            let n: i64 = row.try_get(1).map_err(db)?;
+            let n = n.max(0) as u64;
+            match state {
+                "queued" => c.queued += n,
+                "running" => c.running += n,
+                "done" => c.done += n,
+                "failed" => c.failed += n,
+                _ => c.cancelled += n,
+            }
+        }
+        Ok(c)
+    }
+
+    async fn close(&self) -> Result<(), OrchestratorError> {
+        // Every change was committed before its call returned.
+        self.pool.close().await;
+        Ok(())
+    }
+}
