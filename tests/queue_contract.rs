@@ -376,12 +376,51 @@ async fn a_second_store_sees_every_acknowledged_change(b: &mut dyn Backend) {
     }
 }
 
+/// Eight workers at once lease and report 600 jobs to the end (over every store): nothing
+/// hangs, nothing is done twice.
+async fn many_workers_finish_an_archive(b: &mut dyn Backend, stores: usize) {
+    let clock = TestClock::default();
+    let mut qs = vec![b.open(&clock).await];
+    for _ in 1..stores {
+        qs.push(b.reopen(&clock).await);
+    }
+    for n in 0..600 {
+        qs[0].submit(spec(n), None).await.unwrap();
+    }
+    let mut tasks = Vec::new();
+    for w in 0..8 {
+        let q = qs[w % qs.len()].clone();
+        tasks.push(tokio::spawn(async move {
+            let mut done = Vec::new();
+            while let Some(j) = q.lease(&format!("w{w}")).await.unwrap().job {
+                q.heartbeat(j.id, j.attempts, 0.5, "half").await.unwrap();
+                q.finish(j.id, j.attempts, delivered()).await.unwrap();
+                done.push(j.id);
+            }
+            done
+        }));
+    }
+    let all = tokio::time::timeout(std::time::Duration::from_secs(120), async {
+        let mut all = Vec::new();
+        for t in tasks {
+            all.extend(t.await.unwrap());
+        }
+        all
+    })
+    .await
+    .expect("eight workers did not finish 600 jobs in 120 s: a hang");
+    let unique: HashSet<u64> = all.iter().copied().collect();
+    assert_eq!((all.len(), unique.len()), (600, 600));
+    assert_eq!(qs[0].counts().await.unwrap().done, 600);
+}
+
 async fn contract(b: &mut dyn Backend, stores: usize) {
     submit_deduplicates_by_content_options_and_name(b).await;
     leases_are_fifo_and_exclusive_across_stores(b, stores).await;
     failures_back_off_retry_and_stop(b).await;
     uploads_live_until_no_unfinished_job_needs_them(b).await;
     a_second_store_sees_every_acknowledged_change(b).await;
+    many_workers_finish_an_archive(b, stores).await;
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 4)]

@@ -21,6 +21,8 @@ CREATE TABLE jobs (
 -- Leasing scans queued jobs oldest first; reaping finds lapsed leases.
 CREATE INDEX jobs_queued ON jobs (id) WHERE state = 'queued';
 CREATE INDEX jobs_running ON jobs (lease_expires_ms) WHERE state = 'running';
+-- When nothing is runnable, a worker is told when the next backoff ends.
+CREATE INDEX jobs_backing_off ON jobs (not_before_ms) WHERE state = 'queued';
 CREATE INDEX jobs_sha256 ON jobs (sha256) WHERE upload;
 
 -- Uploaded sources, content-addressed, in chunks (a bytea value is limited to 1 GB and is

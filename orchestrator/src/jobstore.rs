@@ -17,7 +17,8 @@ use std::sync::{Mutex, MutexGuard};
 pub struct Leased {
     /// The job now leased to the caller, if any was runnable.
     pub job: Option<Job>,
-    /// Milliseconds until the next queued job becomes runnable (`None`: nothing queued).
+    /// When no job was leased: milliseconds until the next queued job becomes runnable
+    /// (`None`: nothing queued). Not always computed when a job was leased.
     pub next_runnable_in: Option<u64>,
 }
 

@@ -397,12 +397,16 @@ impl JobStore for PostgresQueue {
             }
             None => None,
         };
-        let next: Option<i64> =
+        // Only an idle worker needs to know when the next backoff ends.
+        let next: Option<i64> = if job.is_none() {
             sqlx::query("SELECT min(not_before_ms) FROM jobs WHERE state = 'queued'")
                 .fetch_one(&mut *tx)
                 .await
                 .and_then(|r| r.try_get(0))
-                .map_err(db)?;
+                .map_err(db)?
+        } else {
+            None
+        };
         tx.commit().await.map_err(db)?;
         Ok(Leased {
             job,

@@ -14,6 +14,8 @@ pub struct Store {
     db: sled::Db,
     jobs: sled::Tree,
     blobs: sled::Tree,
+    /// One flush at a time (see [`Store::flush`]).
+    flushing: std::sync::Arc<tokio::sync::Mutex<()>>,
 }
 
 impl Store {
@@ -24,6 +26,7 @@ impl Store {
             jobs: db.open_tree("jobs")?,
             blobs: db.open_tree("blobs")?,
             db,
+            flushing: Default::default(),
         })
     }
 
@@ -40,21 +43,29 @@ impl Store {
             .collect()
     }
 
-    /// Writes jobs (not yet flushed).
+    /// Writes jobs (not yet flushed), one insert each: every record stands alone, and a
+    /// `sled::Batch` would take sled's exclusive lock, which deadlocks against a flush in
+    /// progress (the flush waits on the log flusher, which waits behind the batch's lock).
     pub fn put(&self, jobs: &[Job]) -> Result<(), OrchestratorError> {
-        let mut batch = sled::Batch::default();
         for j in jobs {
             let v = serde_json::to_vec(j)
                 .map_err(|e| OrchestratorError::Corrupt(format!("encoding job {}: {e}", j.id)))?;
-            batch.insert(&j.id.to_be_bytes(), v);
+            self.jobs.insert(j.id.to_be_bytes(), v)?;
         }
-        self.jobs.apply_batch(batch)?;
         Ok(())
     }
 
-    /// Makes everything written so far durable.
+    /// Makes everything written so far durable. Flushes run one at a time, each a blocking
+    /// `flush` off the async threads: sled 0.34's `flush_async` deadlocks when called
+    /// concurrently with itself and with writes (spacejam/sled#1308; `bench queue` with eight
+    /// workers hung within seconds), and the release that fixes it never shipped. A caller
+    /// that waited for another's flush flushes again, which costs little when nothing is new.
     pub async fn flush(&self) -> Result<(), OrchestratorError> {
-        self.db.flush_async().await?;
+        let _one = self.flushing.lock().await;
+        let db = self.db.clone();
+        tokio::task::spawn_blocking(move || db.flush())
+            .await
+            .map_err(|e| OrchestratorError::Corrupt(format!("flushing the store failed: {e}")))??;
         Ok(())
     }
 

@@ -1,0 +1,306 @@
+//! End-to-end tests of the orchestrator over PostgreSQL: a real server (`initdb` into a
+//! tempdir, started and crashed by the test), the real `wavesplat` binary as cache, stateless
+//! orchestrators (`serve orchestrator --queue postgres://…`, the password from `PGPASSWORD`)
+//! and workers given every orchestrator's URL. Nothing is mocked.
+
+mod common;
+
+use common::Proc;
+use std::collections::HashMap;
+use std::io::{BufRead, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+use wavesplat_compressor::phantom::Phantom;
+use wavesplat_fixtures::write_nifti;
+use wavesplat_harness::postgres::{PostgresServer, PASSWORD};
+use wavesplat_orchestrator_client as client;
+use wavesplat_orchestrator_client::convert::state_name;
+use wavesplat_proto::pb;
+
+const BIN: &str = env!("CARGO_BIN_EXE_wavesplat");
+
+/// Writes `n` good NIfTI volumes of distinct content and one broken file; returns the good
+/// names.
+fn write_archive(dir: &Path, n: usize) -> Vec<String> {
+    std::fs::create_dir_all(dir).unwrap();
+    let names = (0..n)
+        .map(|i| {
+            let dims = [20, 20, 16 + 2 * i];
+            let phantom = [Phantom::SheppLogan, Phantom::Spheres][i % 2];
+            let name = format!("v{i}");
+            write_nifti(
+                &dir.join(format!("{name}.nii")),
+                dims,
+                &phantom.generate(dims).to_interleaved(),
+            );
+            name
+        })
+        .collect();
+    std::fs::write(dir.join("broken.nii"), b"not a nifti file at all").unwrap();
+    names
+}
+
+/// `wavesplat serve orchestrator --queue URL` on a free port; its log goes to `log`.
+fn orchestrator(url: &str, log: &Path) -> Proc {
+    let mut child = Command::new(BIN)
+        .args([
+            "serve",
+            "orchestrator",
+            "--addr",
+            "127.0.0.1:0",
+            "--queue",
+            url,
+        ])
+        .args(["--lease-secs", "10", "--heartbeat-ms", "300"])
+        .args(["--retry-base-ms", "200", "--poll-ms", "100"])
+        .env("PGPASSWORD", PASSWORD)
+        .env_remove("WAVESPLAT_TOKENS_FILE")
+        .stdout(Stdio::piped())
+        .stderr(std::fs::File::create(log).unwrap())
+        .spawn()
+        .unwrap();
+    let mut line = String::new();
+    BufReader::new(child.stdout.take().unwrap())
+        .read_line(&mut line)
+        .unwrap();
+    let addr = line
+        .trim()
+        .strip_prefix("listening on ")
+        .unwrap_or_else(|| {
+            panic!(
+                "orchestrator said {line:?}: {}",
+                std::fs::read_to_string(log).unwrap_or_default()
+            )
+        })
+        .to_string();
+    Proc { child, addr }
+}
+
+struct Setup {
+    _dir: tempfile::TempDir,
+    root: PathBuf,
+    pg: PostgresServer,
+    url: String,
+    cache: Proc,
+}
+
+fn setup() -> Setup {
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path().to_path_buf();
+    let pg = PostgresServer::start().unwrap();
+    pg.create_database("queue").unwrap();
+    let url = pg.url("queue");
+    let cache = Proc::server(&[
+        "serve",
+        "cache",
+        "--addr",
+        "127.0.0.1:0",
+        "--db",
+        root.join("cache.db").to_str().unwrap(),
+    ]);
+    Setup {
+        _dir: dir,
+        root,
+        pg,
+        url,
+        cache,
+    }
+}
+
+fn submit(dir: &Path, orchestrators: &str) {
+    let out = Command::new(BIN)
+        .args(["archive", "submit", dir.to_str().unwrap()])
+        .args(["--orchestrator", orchestrators, "--detach", "--levels", "2"])
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", common::text(&out));
+}
+
+async fn list(urls: &str) -> Option<Vec<pb::Job>> {
+    let mut c = client::connect(urls).await.ok()?;
+    client::list(&mut c).await.ok()
+}
+
+async fn wait_for(
+    urls: &str,
+    secs: u64,
+    what: &str,
+    pred: impl Fn(&[pb::Job]) -> bool,
+) -> Vec<pb::Job> {
+    let end = Instant::now() + Duration::from_secs(secs);
+    loop {
+        let js = list(urls).await;
+        if let Some(js) = &js {
+            if pred(js) {
+                return js.clone();
+            }
+        }
+        if Instant::now() > end {
+            let states: Vec<String> = js
+                .unwrap_or_default()
+                .iter()
+                .map(|j| format!("{} {} {}", j.id, state_name(j.state), j.error))
+                .collect();
+            panic!("timed out waiting for {what}: {states:#?}");
+        }
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+}
+
+fn finished(js: &[pb::Job]) -> bool {
+    !js.is_empty()
+        && js
+            .iter()
+            .all(|j| matches!(state_name(j.state), "done" | "failed" | "cancelled"))
+}
+
+fn name(j: &pb::Job) -> &str {
+    &j.spec.as_ref().unwrap().name
+}
+
+/// Each good job done, the broken one failed with its reason, and every good volume delivered
+/// exactly once (the workers' logs, one `delivered` line per delivery) and stored once.
+async fn check_outcome(good: &[String], js: &[pb::Job], logs: &[PathBuf], cache: &str) {
+    assert_eq!(js.len(), good.len() + 1, "{js:?}");
+    for j in js {
+        if name(j) == "broken" {
+            assert_eq!(state_name(j.state), "failed");
+            assert!(j.error.contains("broken.nii"), "{}", j.error);
+            assert_eq!(j.attempts, 1, "invalid input is not retried");
+        } else {
+            assert_eq!(state_name(j.state), "done", "{}: {}", name(j), j.error);
+        }
+    }
+    let log: String = logs
+        .iter()
+        .map(|p| std::fs::read_to_string(p).unwrap_or_default())
+        .collect();
+    let mut deliveries: HashMap<&str, usize> = HashMap::new();
+    for line in log.lines().filter(|l| l.contains("delivered")) {
+        for g in good {
+            if line.contains(&format!("name={g} ")) {
+                *deliveries.entry(g.as_str()).or_default() += 1;
+            }
+        }
+    }
+    for g in good {
+        assert_eq!(
+            deliveries.get(g.as_str()).copied().unwrap_or(0),
+            1,
+            "{g} delivered other than once: {log}"
+        );
+    }
+    let mut c = wavesplat_client::CacheClient::connect(cache).await.unwrap();
+    let mut names: Vec<String> = c
+        .list()
+        .await
+        .unwrap()
+        .into_iter()
+        .map(|v| v.name)
+        .collect();
+    names.sort();
+    let mut want = good.to_vec();
+    want.sort();
+    assert_eq!(names, want);
+}
+
+fn worker(urls: &str, cache: &str, id: &str, log: &Path) -> Proc {
+    let child = Command::new(BIN)
+        .args(["worker", "--orchestrator", urls, "--cache", cache])
+        .args([
+            "--threads",
+            "1",
+            "--id",
+            id,
+            "--pause-before-upload-ms",
+            "300",
+        ])
+        .env("NO_COLOR", "1")
+        .stdout(Stdio::null())
+        .stderr(std::fs::File::create(log).unwrap())
+        .spawn()
+        .unwrap();
+    Proc {
+        child,
+        addr: String::new(),
+    }
+}
+
+/// Two orchestrators over one database, three workers that know both: one orchestrator is
+/// SIGKILLed mid-archive and the other finishes it.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn two_orchestrators_share_the_queue_and_one_dies_mid_archive() {
+    let s = setup();
+    let good = write_archive(&s.root.join("arch"), 9);
+    let o1 = orchestrator(&s.url, &s.root.join("o1.log"));
+    let o2 = orchestrator(&s.url, &s.root.join("o2.log"));
+    let both = format!("{},{}", o1.url(), o2.url());
+    submit(&s.root.join("arch"), &both);
+    // Both orchestrators see the same queue.
+    let (a, b) = (
+        list(&o1.url()).await.unwrap(),
+        list(&o2.url()).await.unwrap(),
+    );
+    assert_eq!(a.len(), good.len() + 1);
+    assert_eq!(a, b);
+    let logs: Vec<PathBuf> = (0..3).map(|i| s.root.join(format!("w{i}.log"))).collect();
+    let _workers: Vec<Proc> = (0..3)
+        .map(|i| worker(&both, &s.cache.url(), &format!("w{i}"), &logs[i]))
+        .collect();
+    let before = wait_for(&o2.url(), 60, "three jobs done", |js| {
+        js.iter().filter(|j| state_name(j.state) == "done").count() >= 3
+    })
+    .await;
+    assert!(!finished(&before), "the archive finished before the kill");
+    o1.kill();
+    let js = wait_for(&o2.url(), 120, "the archive finished", finished).await;
+    check_outcome(&good, &js, &logs, &s.cache.url()).await;
+    // The workers were talking to the first orchestrator and moved to the second.
+    let failed_over = logs
+        .iter()
+        .filter(|p| {
+            std::fs::read_to_string(p)
+                .unwrap_or_default()
+                .contains("failing over")
+        })
+        .count();
+    assert!(failed_over >= 1, "no worker failed over");
+    // The queue is plain SQL for operators.
+    let done =
+        s.pg.psql("queue", "SELECT count(*) FROM jobs WHERE state = 'done'")
+            .unwrap();
+    assert_eq!(done.trim(), good.len().to_string());
+}
+
+/// The database crashes mid-archive (an immediate shutdown: no checkpoint) and comes back:
+/// the orchestrator answers with clear errors meanwhile, then the archive finishes with every
+/// job delivered once.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_database_restarts_mid_archive_and_progress_resumes() {
+    let mut s = setup();
+    let good = write_archive(&s.root.join("arch"), 6);
+    let olog = s.root.join("o.log");
+    let o = orchestrator(&s.url, &olog);
+    submit(&s.root.join("arch"), &o.url());
+    let logs: Vec<PathBuf> = (0..2).map(|i| s.root.join(format!("w{i}.log"))).collect();
+    let _workers: Vec<Proc> = (0..2)
+        .map(|i| worker(&o.url(), &s.cache.url(), &format!("w{i}"), &logs[i]))
+        .collect();
+    wait_for(&o.url(), 60, "two jobs done", |js| {
+        js.iter().filter(|j| state_name(j.state) == "done").count() >= 2
+    })
+    .await;
+    s.pg.crash().unwrap();
+    let mut c = client::connect(&o.url()).await.unwrap();
+    let e = client::list(&mut c).await.unwrap_err();
+    assert_eq!(e.code(), tonic::Code::Unavailable, "{e:?}");
+    assert!(e.message().contains("queue database"), "{}", e.message());
+    tokio::time::sleep(Duration::from_secs(2)).await;
+    s.pg.resume().unwrap();
+    let js = wait_for(&o.url(), 120, "the archive finished", finished).await;
+    check_outcome(&good, &js, &logs, &s.cache.url()).await;
+    drop(o);
+    let olog = std::fs::read_to_string(&olog).unwrap();
+    assert!(olog.contains("queue database"), "{olog}");
+}
