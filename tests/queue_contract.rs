@@ -492,3 +492,67 @@ async fn bad_queue_urls_are_clear_errors() {
     assert!(e.contains("password"), "{e}");
     assert!(!e.contains("wrong@"), "password leaked: {e}");
 }
+
+/// A CA and a server certificate for `names`, written into `dir`; returns (CA file, cert, key).
+fn test_pki(
+    dir: &std::path::Path,
+    names: &[&str],
+) -> (std::path::PathBuf, std::path::PathBuf, std::path::PathBuf) {
+    let mut ca_params = rcgen::CertificateParams::new(Vec::<String>::new()).unwrap();
+    ca_params.is_ca = rcgen::IsCa::Ca(rcgen::BasicConstraints::Unconstrained);
+    let ca_key = rcgen::KeyPair::generate().unwrap();
+    let ca = ca_params.self_signed(&ca_key).unwrap();
+    let params =
+        rcgen::CertificateParams::new(names.iter().map(|n| n.to_string()).collect::<Vec<_>>())
+            .unwrap();
+    let key = rcgen::KeyPair::generate().unwrap();
+    let cert = params.signed_by(&key, &ca, &ca_key).unwrap();
+    let paths = (dir.join("ca.pem"), dir.join("db.crt"), dir.join("db.key"));
+    std::fs::write(&paths.0, ca.pem()).unwrap();
+    std::fs::write(&paths.1, cert.pem()).unwrap();
+    std::fs::write(&paths.2, key.serialize_pem()).unwrap();
+    paths
+}
+
+/// With `sslmode=verify-full` the queue talks to the database over TLS and checks its
+/// certificate: the right CA connects, another CA is refused, and a server that takes only TLS
+/// refuses a plaintext connection.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn tls_to_the_database_is_verified() {
+    let dir = tempfile::tempdir().unwrap();
+    let (ca, cert, key) = test_pki(dir.path(), &["localhost"]);
+    let other = tempfile::tempdir().unwrap();
+    let (other_ca, _, _) = test_pki(other.path(), &["localhost"]);
+    let server = PostgresServer::start_with(wavesplat_harness::postgres::PostgresSetup {
+        tls: Some((cert, key)),
+        ..Default::default()
+    })
+    .unwrap();
+    server.create_database("tls").unwrap();
+    let password = wavesplat_harness::postgres::PASSWORD;
+    let url = |mode: &str, ca: &std::path::Path| {
+        format!(
+            "postgres://postgres:{password}@localhost:{}/tls?sslmode={mode}&sslrootcert={}",
+            server.port(),
+            ca.display()
+        )
+    };
+    let q = PostgresQueue::connect(&url("verify-full", &ca), Default::default())
+        .await
+        .unwrap();
+    q.submit(spec(1), None).await.unwrap();
+    assert_eq!(q.list().await.unwrap().len(), 1);
+    let e = PostgresQueue::connect(&url("verify-full", &other_ca), Default::default())
+        .await
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("certificate") || e.contains("Certificate"),
+        "{e}"
+    );
+    let e = PostgresQueue::connect(&url("disable", &ca), Default::default())
+        .await
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("no encryption") || e.contains("pg_hba"), "{e}");
+}

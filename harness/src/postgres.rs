@@ -2,7 +2,9 @@
 //! binaries, `initdb` into a temporary directory, the postmaster started as a child on a free
 //! loopback port with password (SCRAM) authentication over TCP, stopped (or crashed and started
 //! again) by the caller, and killed when dropped. Run as root (as CI is), the server runs as the
-//! `postgres` user, which refuses nothing but root.
+//! `postgres` user (PostgreSQL refuses to run as root). [`PostgresSetup`] puts it on another
+//! address, behind TLS, or inside a network namespace (a database host of the deployment
+//! tests).
 
 use anyhow::{anyhow, bail, Context, Result};
 use std::os::unix::process::CommandExt;
@@ -13,12 +15,24 @@ use std::time::{Duration, Instant};
 /// The superuser's password in every test server.
 pub const PASSWORD: &str = "wavesplat-test-password";
 
+/// How a test server listens.
+#[derive(Debug, Clone, Default)]
+pub struct PostgresSetup {
+    /// The address to listen on (default `127.0.0.1`).
+    pub listen: Option<String>,
+    /// A certificate and key (PEM files): TLS on, and TCP connections without it refused.
+    pub tls: Option<(PathBuf, PathBuf)>,
+    /// Run the server inside this network namespace (`ip netns exec`; needs root).
+    pub netns: Option<String>,
+}
+
 /// A PostgreSQL server in a temporary directory.
 pub struct PostgresServer {
     dir: tempfile::TempDir,
     bin: PathBuf,
     port: u16,
     owner: Option<(u32, u32)>,
+    setup: PostgresSetup,
     child: Option<Child>,
 }
 
@@ -65,8 +79,13 @@ fn free_port() -> Result<u16> {
 }
 
 impl PostgresServer {
-    /// Creates a cluster (`initdb`) and starts it.
+    /// Creates a cluster (`initdb`) on loopback without TLS and starts it.
     pub fn start() -> Result<PostgresServer> {
+        PostgresServer::start_with(PostgresSetup::default())
+    }
+
+    /// Creates a cluster (`initdb`) as `setup` says and starts it.
+    pub fn start_with(setup: PostgresSetup) -> Result<PostgresServer> {
         let bin = server_bin_dir()?;
         let dir = tempfile::Builder::new().prefix("wavesplat-pg").tempdir()?;
         let root = Command::new("id").arg("-u").output()?.stdout == b"0\n";
@@ -84,6 +103,7 @@ impl PostgresServer {
             bin,
             port: free_port()?,
             owner,
+            setup,
             child: None,
             dir,
         };
@@ -102,6 +122,31 @@ impl PostgresServer {
                 String::from_utf8_lossy(&out.stdout),
                 String::from_utf8_lossy(&out.stderr)
             );
+        }
+        // Password authentication over TCP from anywhere; with TLS, only over TLS.
+        let host = if server.setup.tls.is_some() {
+            "hostssl"
+        } else {
+            "host"
+        };
+        std::fs::write(
+            data.join("pg_hba.conf"),
+            format!(
+                "local all all trust\n{host} all all 0.0.0.0/0 scram-sha-256\n\
+                 {host} all all ::/0 scram-sha-256\n"
+            ),
+        )?;
+        if let Some((cert, key)) = server.setup.tls.clone() {
+            for (from, to) in [(cert, "server.crt"), (key, "server.key")] {
+                let dest = data.join(to);
+                std::fs::copy(&from, &dest)
+                    .with_context(|| format!("copying {}", from.display()))?;
+                std::fs::set_permissions(
+                    &dest,
+                    std::os::unix::fs::PermissionsExt::from_mode(0o600),
+                )?;
+                chown(&dest, server.owner)?;
+            }
         }
         server.resume()?;
         Ok(server)
@@ -129,16 +174,37 @@ impl PostgresServer {
         }
         let log = std::fs::File::create(self.dir.path().join("server.log"))?;
         let data = self.data_dir();
-        let child = self
-            .command("postgres")
+        let postgres = self.bin.join("postgres");
+        let mut command = match (&self.setup.netns, self.owner) {
+            (Some(ns), Some((uid, gid))) => {
+                // `ip netns exec` needs root; setpriv then drops to the server's user and
+                // execs it, so the child is the postmaster itself.
+                let mut c = Command::new("ip");
+                c.args(["netns", "exec", ns, "setpriv"])
+                    .arg(format!("--reuid={uid}"))
+                    .arg(format!("--regid={gid}"))
+                    .args(["--clear-groups", "--"])
+                    .arg(&postgres);
+                c.current_dir(self.dir.path());
+                c
+            }
+            (Some(_), None) => bail!("a server in a network namespace needs root"),
+            (None, _) => self.command("postgres"),
+        };
+        let listen = self.setup.listen.as_deref().unwrap_or("127.0.0.1");
+        command
             .args(["-D", data.to_str().context("utf-8 temp path")?])
             .args(["-p", &self.port.to_string()])
-            .args(["-c", "listen_addresses=127.0.0.1"])
+            .args(["-c", &format!("listen_addresses={listen}")])
             .args([
                 "-c",
                 &format!("unix_socket_directories={}", self.dir.path().display()),
             ])
-            .args(["-c", "max_connections=200", "-c", "fsync=off"])
+            .args(["-c", "max_connections=200", "-c", "fsync=off"]);
+        if self.setup.tls.is_some() {
+            command.args(["-c", "ssl=on"]);
+        }
+        let child = command
             .stdout(Stdio::null())
             .stderr(log)
             .spawn()
@@ -147,7 +213,8 @@ impl PostgresServer {
         let start = Instant::now();
         loop {
             let ready = Command::new(self.bin.join("pg_isready"))
-                .args(["-h", "127.0.0.1", "-p", &self.port.to_string(), "-q"])
+                .args(["-h", &self.dir.path().display().to_string()])
+                .args(["-p", &self.port.to_string(), "-q"])
                 .status()?;
             if ready.success() {
                 return Ok(());
@@ -242,7 +309,12 @@ impl PostgresServer {
 
     /// `postgres://postgres@127.0.0.1:PORT/DB` without the password (give it by `PGPASSWORD`).
     pub fn url(&self, db: &str) -> String {
-        format!("postgres://postgres@127.0.0.1:{}/{db}", self.port)
+        self.url_at("127.0.0.1", db)
+    }
+
+    /// `postgres://postgres@HOST:PORT/DB` without the password.
+    pub fn url_at(&self, host: &str, db: &str) -> String {
+        format!("postgres://postgres@{host}:{}/{db}", self.port)
     }
 
     /// [`PostgresServer::url`] with the password in it.

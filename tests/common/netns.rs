@@ -152,6 +152,19 @@ impl Net {
         args: &[&str],
         token: Option<&str>,
     ) -> Child {
+        self.spawn_with_env(host, dir, name, args, token, &[])
+    }
+
+    /// [`Net::spawn`] with more environment variables.
+    pub fn spawn_with_env(
+        &mut self,
+        host: &str,
+        dir: &Path,
+        name: &str,
+        args: &[&str],
+        token: Option<&str>,
+        env: &[(&str, &str)],
+    ) -> Child {
         let log = std::fs::OpenOptions::new()
             .create(true)
             .append(true)
@@ -159,6 +172,7 @@ impl Net {
             .unwrap();
         let child = self
             .command(host, dir, args, token)
+            .envs(env.iter().copied())
             .stdout(Stdio::piped())
             .stderr(log)
             .spawn()
@@ -177,7 +191,20 @@ impl Net {
         args: &[&str],
         token: Option<&str>,
     ) -> Child {
-        let mut child = self.spawn(host, dir, name, args, token);
+        self.serve_with_env(host, dir, name, args, token, &[])
+    }
+
+    /// [`Net::serve`] with more environment variables.
+    pub fn serve_with_env(
+        &mut self,
+        host: &str,
+        dir: &Path,
+        name: &str,
+        args: &[&str],
+        token: Option<&str>,
+        env: &[(&str, &str)],
+    ) -> Child {
+        let mut child = self.spawn_with_env(host, dir, name, args, token, env);
         let mut line = String::new();
         BufReader::new(child.stdout.take().unwrap())
             .read_line(&mut line)
