@@ -91,6 +91,7 @@ fn the_worker_links_the_encoder_but_no_renderer_or_server() {
             "wavesplat-cache",
             "wavesplat-orchestrator",
             "sled",
+            "sqlx",
             "tonic-health",
             "png",
             "wgpu",
@@ -110,6 +111,7 @@ fn the_orchestrator_client_links_neither_renderer_nor_encoder_nor_server() {
                 "wavesplat-cache",
                 "wavesplat-client",
                 "sled",
+                "sqlx",
                 "tonic-health",
             ],
         ]
@@ -121,7 +123,7 @@ fn the_orchestrator_client_links_neither_renderer_nor_encoder_nor_server() {
 fn the_cache_client_links_neither_renderer_nor_encoder_nor_server() {
     assert_excludes(
         "wavesplat-client",
-        &[RENDERING_AND_ENCODING, &["wavesplat-cache", "sled"]].concat(),
+        &[RENDERING_AND_ENCODING, &["wavesplat-cache", "sled", "sqlx"]].concat(),
     );
 }
 
@@ -154,6 +156,7 @@ fn the_renderer_does_not_link_the_encoder_or_a_server() {
             "wavesplat-compressor",
             "wavesplat-cache",
             "sled",
+            "sqlx",
             "winit",
             "wavesplat-harness",
         ],
