@@ -20,20 +20,36 @@ use wavesplat_proto::pb;
 
 const BIN: &str = env!("CARGO_BIN_EXE_wavesplat");
 
-/// Writes `n` good NIfTI volumes of distinct content and one broken file; returns the good
-/// names.
+/// Writes `n` good volumes of distinct content, cycling through NIfTI, raw f32 and raw RGB
+/// (the naming convention), and one broken file; returns the good names.
 fn write_archive(dir: &Path, n: usize) -> Vec<String> {
     std::fs::create_dir_all(dir).unwrap();
     let names = (0..n)
         .map(|i| {
             let dims = [20, 20, 16 + 2 * i];
-            let phantom = [Phantom::SheppLogan, Phantom::Spheres][i % 2];
             let name = format!("v{i}");
-            write_nifti(
-                &dir.join(format!("{name}.nii")),
-                dims,
-                &phantom.generate(dims).to_interleaved(),
-            );
+            let raw = |suffix: &str| dir.join(format!("{name}_20x20x{}_{suffix}.raw", dims[2]));
+            match i % 3 {
+                0 => write_nifti(
+                    &dir.join(format!("{name}.nii")),
+                    dims,
+                    &Phantom::SheppLogan.generate(dims).to_interleaved(),
+                ),
+                1 => {
+                    let v = Phantom::Spheres.generate(dims).to_interleaved();
+                    let bytes: Vec<u8> = v.iter().flat_map(|x| x.to_le_bytes()).collect();
+                    std::fs::write(raw("f32"), bytes).unwrap();
+                }
+                _ => {
+                    let rgb: Vec<u8> = Phantom::RgbHead
+                        .generate(dims)
+                        .to_interleaved()
+                        .iter()
+                        .map(|v| (v.clamp(0.0, 1.0) * 255.0) as u8)
+                        .collect();
+                    std::fs::write(raw("u8_rgb"), rgb).unwrap();
+                }
+            }
             name
         })
         .collect();
