@@ -320,3 +320,34 @@ async fn the_database_restarts_mid_archive_and_progress_resumes() {
     let olog = std::fs::read_to_string(&olog).unwrap();
     assert!(olog.contains("queue database"), "{olog}");
 }
+
+/// Starting without a store names both choices; an unreachable database is reported with its
+/// cause (not a pool's timeout), without the password.
+#[test]
+fn a_missing_or_unreachable_queue_is_a_clear_error() {
+    let out = Command::new(BIN)
+        .args(["serve", "orchestrator", "--addr", "127.0.0.1:0"])
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let said = String::from_utf8_lossy(&out.stderr);
+    assert!(said.contains("--db") && said.contains("--queue"), "{said}");
+    let port = std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
+    let out = Command::new(BIN)
+        .args(["serve", "orchestrator", "--addr", "127.0.0.1:0", "--queue"])
+        .arg(format!(
+            "postgres://wavesplat:s3cret@127.0.0.1:{port}/queue"
+        ))
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let said = String::from_utf8_lossy(&out.stderr);
+    assert!(said.contains("refused"), "{said}");
+    // The cause itself, not the pool's "timed out".
+    assert!(!said.contains("timed out"), "{said}");
+    assert!(!said.contains("s3cret"), "the password leaked: {said}");
+}

@@ -440,6 +440,24 @@ async fn the_postgres_store_keeps_the_contract_with_two_orchestrators() {
     };
     contract(&mut b, 2).await;
     an_expired_lease_is_reclaimed_and_the_stale_worker_refused(&mut b).await;
+
+    // A refused change leaves no transaction open: a dropped one keeps its row locked until
+    // sqlx rolls it back in the background, and a lease right after skips the locked job.
+    let clock = TestClock::default();
+    let q = b.open(&clock).await;
+    let other = b.reopen(&clock).await;
+    q.submit(spec(1), None).await.unwrap();
+    for round in 0..12 {
+        assert!(q.retry(1).await.is_err(), "a queued job cannot be retried");
+        let leased = other.lease("w").await.unwrap().job;
+        assert_eq!(
+            leased.map(|j| j.id),
+            Some(1),
+            "round {round}: the job was skipped"
+        );
+        other.cancel(1).await.unwrap();
+        other.retry(1).await.unwrap();
+    }
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -104,6 +104,12 @@ impl PostgresQueue {
         let connect = PgConnectOptions::from_str(url).map_err(|e| {
             OrchestratorError::InvalidRequest(format!("queue URL {}: {e}", redact(url)))
         })?;
+        // One connection first: the pool retries until its timeout and then reports only
+        // that it timed out, hiding the cause (refused, unknown host, TLS, password).
+        let probe = sqlx::ConnectOptions::connect(&connect).await.map_err(|e| {
+            OrchestratorError::Database(format!("connecting to {}: {e}", redact(url)))
+        })?;
+        let _ = sqlx::Connection::close(probe).await;
         let pool = PgPoolOptions::new()
             .max_connections(options.max_connections.max(1))
             .acquire_timeout(options.acquire_timeout)
@@ -252,8 +258,20 @@ impl PostgresQueue {
         f: impl FnOnce(&mut Job, u64) -> Result<(), OrchestratorError> + Send,
     ) -> Result<Job, OrchestratorError> {
         let mut tx = self.begin().await?;
-        let mut job = Self::locked(&mut tx, id).await?;
-        f(&mut job, self.now())?;
+        // A refused change ends its transaction here: dropped, sqlx would roll it back only
+        // when the pool next hands out the connection, and until then the row stays locked
+        // and every lease skips the job.
+        let mut job = match Self::locked(&mut tx, id).await {
+            Ok(job) => job,
+            Err(e) => {
+                let _ = tx.rollback().await;
+                return Err(e);
+            }
+        };
+        if let Err(e) = f(&mut job, self.now()) {
+            tx.rollback().await.map_err(db)?;
+            return Err(e);
+        }
         Self::write(&mut tx, &job).await?;
         if matches!(job.state, JobState::Done { .. })
             && matches!(job.spec.source, Source::Upload { .. })
@@ -315,6 +333,7 @@ impl JobStore for PostgresQueue {
         let key = spec.dedup_key();
         let mut tx = self.begin().await?;
         if let Some(job) = Self::existing(&mut tx, &key).await? {
+            tx.rollback().await.map_err(db)?;
             return Ok(Submitted { job, existed: true });
         }
         if let Some(bytes) = &upload {
@@ -368,6 +387,7 @@ impl JobStore for PostgresQueue {
             let job = Self::existing(&mut tx, &key).await?.ok_or_else(|| {
                 OrchestratorError::Database(format!("job {key} vanished while submitting"))
             })?;
+            tx.commit().await.map_err(db)?;
             return Ok(Submitted { job, existed: true });
         }
         tx.commit().await.map_err(db)?;

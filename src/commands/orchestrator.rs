@@ -18,10 +18,11 @@ use wavesplat_worker::archive;
 
 /// Arguments of `wavesplat serve orchestrator`.
 #[derive(Args, Debug)]
+#[command(group(clap::ArgGroup::new("store").required(true).args(["db", "queue"])))]
 pub struct ServeOrchestratorArgs {
     /// Keep the queue in this directory (an embedded sled database, created if missing; one
     /// orchestrator owns it). The default store: nothing else to run.
-    #[arg(long, required_unless_present = "queue", conflicts_with = "queue")]
+    #[arg(long)]
     pub db: Option<PathBuf>,
     /// Keep the queue in a PostgreSQL database instead, shared by any number of orchestrators
     /// (each stateless: give workers and clients all their URLs). `postgres://USER@HOST:PORT/DB`;
