@@ -14,6 +14,7 @@
 mod common;
 
 use common::netns::Net;
+use common::pki::{pki, secret};
 use common::{read_f32, text, wait_for_bytes};
 use std::path::Path;
 use std::process::Output;
@@ -33,33 +34,6 @@ const HOSTS: [&str; 5] = ["cache", "orch", "worker1", "worker2", "viewer"];
 fn ip_of(host: &str) -> String {
     let i = HOSTS.iter().position(|h| *h == host).unwrap();
     format!("{SUBNET}.{}", 10 + i)
-}
-
-/// A CA and, for each server host, a certificate for its name and address.
-fn pki(dirs: &[(&str, &Path)]) -> String {
-    let mut ca_params = rcgen::CertificateParams::new(Vec::<String>::new()).unwrap();
-    ca_params.is_ca = rcgen::IsCa::Ca(rcgen::BasicConstraints::Unconstrained);
-    ca_params
-        .distinguished_name
-        .push(rcgen::DnType::CommonName, "wavesplat deployment test CA");
-    let ca_key = rcgen::KeyPair::generate().unwrap();
-    let ca = ca_params.self_signed(&ca_key).unwrap();
-    for (host, dir) in dirs {
-        let params = rcgen::CertificateParams::new(vec![host.to_string(), ip_of(host)]).unwrap();
-        let key = rcgen::KeyPair::generate().unwrap();
-        let cert = params.signed_by(&key, &ca, &ca_key).unwrap();
-        std::fs::write(dir.join(format!("{host}.crt")), cert.pem()).unwrap();
-        std::fs::write(dir.join(format!("{host}.key")), key.serialize_pem()).unwrap();
-    }
-    ca.pem()
-}
-
-fn secret(what: &str) -> String {
-    let nanos = std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .unwrap()
-        .as_nanos();
-    format!("{what}-{nanos:x}-{:x}", std::process::id())
 }
 
 fn scaled(p: Phantom, dims: [usize; 3], scale: f32) -> Volume {
@@ -158,7 +132,10 @@ fn the_readme_secure_deployment_runs_across_hosts() {
     };
     let (cache_dir, orch_dir, viewer_dir) = (dir("cache"), dir("orch"), dir("viewer"));
     let worker_dirs = [dir("worker1"), dir("worker2")];
-    let ca_pem = pki(&[("cache", &cache_dir), ("orch", &orch_dir)]);
+    let ca_pem = pki(&[
+        ("cache", ip_of("cache"), &cache_dir),
+        ("orch", ip_of("orch"), &orch_dir),
+    ]);
     for h in HOSTS {
         std::fs::write(dir(h).join("ca.pem"), &ca_pem).unwrap();
     }

@@ -12,6 +12,7 @@
 mod common;
 
 use common::netns::Net;
+use common::pki::{pki, secret};
 use common::text;
 use std::collections::HashMap;
 use std::path::Path;
@@ -30,30 +31,6 @@ const HOSTS: [&str; 7] = ["db", "orch1", "orch2", "cache", "worker1", "worker2",
 fn ip_of(host: &str) -> String {
     let i = HOSTS.iter().position(|h| *h == host).unwrap();
     format!("{SUBNET}.{}", 10 + i)
-}
-
-/// A CA and a certificate for each host's name and address in its directory.
-fn pki(dirs: &[(&str, &Path)]) -> String {
-    let mut ca_params = rcgen::CertificateParams::new(Vec::<String>::new()).unwrap();
-    ca_params.is_ca = rcgen::IsCa::Ca(rcgen::BasicConstraints::Unconstrained);
-    let ca_key = rcgen::KeyPair::generate().unwrap();
-    let ca = ca_params.self_signed(&ca_key).unwrap();
-    for (host, dir) in dirs {
-        let params = rcgen::CertificateParams::new(vec![host.to_string(), ip_of(host)]).unwrap();
-        let key = rcgen::KeyPair::generate().unwrap();
-        let cert = params.signed_by(&key, &ca, &ca_key).unwrap();
-        std::fs::write(dir.join(format!("{host}.crt")), cert.pem()).unwrap();
-        std::fs::write(dir.join(format!("{host}.key")), key.serialize_pem()).unwrap();
-    }
-    ca.pem()
-}
-
-fn secret(what: &str) -> String {
-    let nanos = std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .unwrap()
-        .as_nanos();
-    format!("{what}-{nanos:x}-{:x}", std::process::id())
 }
 
 /// Jobs as the operator sees them, through both orchestrators.
@@ -121,10 +98,10 @@ fn stateless_orchestrators_over_postgres_run_across_hosts() {
     };
     let servers = ["db", "orch1", "orch2", "cache"];
     let server_dirs: Vec<_> = servers.iter().map(|h| dir(h)).collect();
-    let pairs: Vec<(&str, &Path)> = servers
+    let pairs: Vec<(&str, String, &Path)> = servers
         .iter()
-        .copied()
-        .zip(server_dirs.iter().map(|d| d.as_path()))
+        .zip(&server_dirs)
+        .map(|(h, d)| (*h, ip_of(h), d.as_path()))
         .collect();
     let ca_pem = pki(&pairs);
     for h in HOSTS {

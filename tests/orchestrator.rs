@@ -5,17 +5,17 @@
 
 mod common;
 
+use common::jobs::{finished as all_finished, list, name, wait_for};
 use common::TestCluster;
 use std::collections::HashSet;
 use std::path::Path;
 use std::process::{Command, Output};
-use std::time::{Duration, Instant};
+
 use wavesplat_client::{CacheClient, RefineRequest, VolumeKey};
 use wavesplat_codec::format::packet::decode_packet;
 use wavesplat_codec::view::ViewSpec;
 use wavesplat_compressor::phantom::Phantom;
 use wavesplat_fixtures::write_nifti;
-use wavesplat_orchestrator_client as client;
 use wavesplat_orchestrator_client::convert::state_name;
 use wavesplat_proto::pb;
 use wavesplat_viewer::View;
@@ -111,49 +111,7 @@ fn write_good(dir: &Path, prefix: &str, n: usize) -> Vec<String> {
 }
 
 async fn jobs(url: &str) -> Vec<pb::Job> {
-    let mut c = client::connect(url).await.unwrap();
-    client::list(&mut c).await.unwrap()
-}
-
-fn name(j: &pb::Job) -> &str {
-    &j.spec.as_ref().unwrap().name
-}
-
-/// Polls until `pred` holds for the job list, at most `secs` seconds.
-async fn wait_for(
-    url: &str,
-    secs: u64,
-    what: &str,
-    pred: impl Fn(&[pb::Job]) -> bool,
-) -> Vec<pb::Job> {
-    let end = Instant::now() + Duration::from_secs(secs);
-    loop {
-        if let Ok(mut c) = client::connect(url).await {
-            if let Ok(js) = client::list(&mut c).await {
-                if pred(&js) {
-                    return js;
-                }
-                if Instant::now() > end {
-                    let states: Vec<String> = js
-                        .iter()
-                        .map(|j| {
-                            format!("{} {} {} {}", j.id, name(j), state_name(j.state), j.error)
-                        })
-                        .collect();
-                    panic!("timed out waiting for {what}: {states:#?}");
-                }
-            }
-        }
-        assert!(Instant::now() <= end, "timed out waiting for {what}");
-        tokio::time::sleep(Duration::from_millis(100)).await;
-    }
-}
-
-fn all_finished(js: &[pb::Job]) -> bool {
-    !js.is_empty()
-        && js
-            .iter()
-            .all(|j| matches!(state_name(j.state), "done" | "failed" | "cancelled"))
+    list(url).await.expect("the orchestrator answers")
 }
 
 /// Every volume in the cache, each streamed in full and decoded; names must be unique.

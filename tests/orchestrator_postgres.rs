@@ -5,12 +5,13 @@
 
 mod common;
 
+use common::jobs::{finished, list, name, wait_for};
 use common::Proc;
 use std::collections::HashMap;
 use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
-use std::time::{Duration, Instant};
+use std::time::Duration;
 use wavesplat_compressor::phantom::Phantom;
 use wavesplat_fixtures::write_nifti;
 use wavesplat_harness::postgres::{PostgresServer, PASSWORD};
@@ -107,14 +108,7 @@ fn setup() -> Setup {
     let pg = PostgresServer::start().unwrap();
     pg.create_database("queue").unwrap();
     let url = pg.url("queue");
-    let cache = Proc::server(&[
-        "serve",
-        "cache",
-        "--addr",
-        "127.0.0.1:0",
-        "--db",
-        root.join("cache.db").to_str().unwrap(),
-    ]);
+    let cache = Proc::cache(&root.join("cache.db"));
     Setup {
         _dir: dir,
         root,
@@ -131,48 +125,6 @@ fn submit(dir: &Path, orchestrators: &str) {
         .output()
         .unwrap();
     assert!(out.status.success(), "{}", common::text(&out));
-}
-
-async fn list(urls: &str) -> Option<Vec<pb::Job>> {
-    let mut c = client::connect(urls).await.ok()?;
-    client::list(&mut c).await.ok()
-}
-
-async fn wait_for(
-    urls: &str,
-    secs: u64,
-    what: &str,
-    pred: impl Fn(&[pb::Job]) -> bool,
-) -> Vec<pb::Job> {
-    let end = Instant::now() + Duration::from_secs(secs);
-    loop {
-        let js = list(urls).await;
-        if let Some(js) = &js {
-            if pred(js) {
-                return js.clone();
-            }
-        }
-        if Instant::now() > end {
-            let states: Vec<String> = js
-                .unwrap_or_default()
-                .iter()
-                .map(|j| format!("{} {} {}", j.id, state_name(j.state), j.error))
-                .collect();
-            panic!("timed out waiting for {what}: {states:#?}");
-        }
-        tokio::time::sleep(Duration::from_millis(100)).await;
-    }
-}
-
-fn finished(js: &[pb::Job]) -> bool {
-    !js.is_empty()
-        && js
-            .iter()
-            .all(|j| matches!(state_name(j.state), "done" | "failed" | "cancelled"))
-}
-
-fn name(j: &pb::Job) -> &str {
-    &j.spec.as_ref().unwrap().name
 }
 
 /// Each good job done, the broken one failed with its reason, and every good volume delivered

@@ -3,6 +3,8 @@
 //! database per scenario), through the [`JobStore`] interface the orchestrator's RPCs use, with
 //! a clock the test drives. Two PostgreSQL stores over one database stand for two orchestrators.
 
+mod common;
+
 use std::collections::HashSet;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
@@ -511,25 +513,15 @@ async fn bad_queue_urls_are_clear_errors() {
     assert!(!e.contains("wrong@"), "password leaked: {e}");
 }
 
-/// A CA and a server certificate for `names`, written into `dir`; returns (CA file, cert, key).
-fn test_pki(
-    dir: &std::path::Path,
-    names: &[&str],
-) -> (std::path::PathBuf, std::path::PathBuf, std::path::PathBuf) {
-    let mut ca_params = rcgen::CertificateParams::new(Vec::<String>::new()).unwrap();
-    ca_params.is_ca = rcgen::IsCa::Ca(rcgen::BasicConstraints::Unconstrained);
-    let ca_key = rcgen::KeyPair::generate().unwrap();
-    let ca = ca_params.self_signed(&ca_key).unwrap();
-    let params =
-        rcgen::CertificateParams::new(names.iter().map(|n| n.to_string()).collect::<Vec<_>>())
-            .unwrap();
-    let key = rcgen::KeyPair::generate().unwrap();
-    let cert = params.signed_by(&key, &ca, &ca_key).unwrap();
-    let paths = (dir.join("ca.pem"), dir.join("db.crt"), dir.join("db.key"));
-    std::fs::write(&paths.0, ca.pem()).unwrap();
-    std::fs::write(&paths.1, cert.pem()).unwrap();
-    std::fs::write(&paths.2, key.serialize_pem()).unwrap();
-    paths
+/// A CA and a certificate for `localhost` in `dir`; returns (CA file, cert, key).
+fn test_pki(dir: &std::path::Path) -> (std::path::PathBuf, std::path::PathBuf, std::path::PathBuf) {
+    let ca = common::pki::pki(&[("localhost", "127.0.0.1".into(), dir)]);
+    std::fs::write(dir.join("ca.pem"), ca).unwrap();
+    (
+        dir.join("ca.pem"),
+        dir.join("localhost.crt"),
+        dir.join("localhost.key"),
+    )
 }
 
 /// With `sslmode=verify-full` the queue talks to the database over TLS and checks its
@@ -538,9 +530,9 @@ fn test_pki(
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn tls_to_the_database_is_verified() {
     let dir = tempfile::tempdir().unwrap();
-    let (ca, cert, key) = test_pki(dir.path(), &["localhost"]);
+    let (ca, cert, key) = test_pki(dir.path());
     let other = tempfile::tempdir().unwrap();
-    let (other_ca, _, _) = test_pki(other.path(), &["localhost"]);
+    let (other_ca, _, _) = test_pki(other.path());
     let server = PostgresServer::start_with(wavesplat_harness::postgres::PostgresSetup {
         tls: Some((cert, key)),
         ..Default::default()

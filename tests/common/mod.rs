@@ -5,7 +5,9 @@
 
 #![allow(dead_code)]
 
+pub mod jobs;
 pub mod netns;
+pub mod pki;
 
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
@@ -209,6 +211,18 @@ impl Proc {
         format!("http://{}", self.addr)
     }
 
+    /// `wavesplat serve cache` on a free loopback port with its store in `db`.
+    pub fn cache(db: &Path) -> Proc {
+        Proc::server(&[
+            "serve",
+            "cache",
+            "--addr",
+            "127.0.0.1:0",
+            "--db",
+            db.to_str().unwrap(),
+        ])
+    }
+
     /// `wavesplat serve orchestrator` on `addr` with its database in `db` and `args` after.
     pub fn orchestrator(db: &Path, addr: &str, args: &[&str]) -> Proc {
         let db = db.to_str().unwrap();
@@ -272,14 +286,7 @@ impl TestCluster {
     pub fn start(orch_args: &[&str]) -> TestCluster {
         let dir = tempfile::tempdir().unwrap();
         let root = dir.path().to_path_buf();
-        let cache = Proc::server(&[
-            "serve",
-            "cache",
-            "--addr",
-            "127.0.0.1:0",
-            "--db",
-            root.join("cache.db").to_str().unwrap(),
-        ]);
+        let cache = Proc::cache(&root.join("cache.db"));
         let orch = Proc::orchestrator(&root.join("orch.db"), "127.0.0.1:0", orch_args);
         TestCluster {
             _dir: dir,
