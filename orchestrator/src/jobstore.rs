@@ -7,8 +7,7 @@
 
 use crate::error::OrchestratorError;
 use crate::model::{Job, JobId, JobSpec, JobState, Outcome};
-use crate::queue::{Queue, QueueOptions, Submitted};
-use crate::service::Clock;
+use crate::queue::{Clock, Queue, QueueOptions, Submitted};
 use crate::store::Store;
 use std::sync::{Mutex, MutexGuard};
 

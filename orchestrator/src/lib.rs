@@ -84,7 +84,7 @@ impl Backend {
     ) -> Result<std::sync::Arc<dyn JobStore>, OrchestratorError> {
         Ok(match self {
             Backend::Embedded(store) => {
-                std::sync::Arc::new(EmbeddedQueue::open(store, cfg, service::system_clock())?)
+                std::sync::Arc::new(EmbeddedQueue::open(store, cfg, queue::system_clock())?)
             }
             Backend::Postgres(q) => std::sync::Arc::new(q.with_options(cfg.validate()?)),
         })

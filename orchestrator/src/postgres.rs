@@ -14,8 +14,7 @@
 use crate::error::OrchestratorError;
 use crate::jobstore::{JobStore, Leased, StateCounts};
 use crate::model::{Job, JobId, JobSpec, JobState, Outcome, Source};
-use crate::queue::{rules, QueueOptions, Submitted};
-use crate::service::{system_clock, Clock};
+use crate::queue::{rules, system_clock, Clock, QueueOptions, Submitted};
 use sqlx::migrate::{Migration, MigrationSource, MigrationType, Migrator};
 use sqlx::postgres::{PgConnectOptions, PgPool, PgPoolOptions};
 use sqlx::types::Json;

@@ -8,6 +8,20 @@
 use crate::error::OrchestratorError;
 use crate::model::{Job, JobId, JobSpec, JobState, Outcome};
 use std::collections::{BTreeMap, HashMap};
+use std::sync::Arc;
+use std::time::{SystemTime, UNIX_EPOCH};
+
+/// A clock giving unix milliseconds (injectable for tests).
+pub type Clock = Arc<dyn Fn() -> u64 + Send + Sync>;
+
+/// The wall clock.
+pub fn system_clock() -> Clock {
+    Arc::new(|| {
+        SystemTime::now()
+            .duration_since(UNIX_EPOCH)
+            .map_or(0, |d| d.as_millis() as u64)
+    })
+}
 
 /// Timing and retry policy.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

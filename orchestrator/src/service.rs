@@ -10,7 +10,6 @@ use crate::model::{JobState, Outcome, Source};
 use crate::queue::QueueOptions;
 use std::pin::Pin;
 use std::sync::Arc;
-use std::time::{SystemTime, UNIX_EPOCH};
 use tokio_stream::Stream;
 use tonic::{Request, Response, Status, Streaming};
 use wavesplat_net::digest::hex;
@@ -18,19 +17,8 @@ use wavesplat_net::status::client_fault;
 use wavesplat_proto::pb;
 use wavesplat_proto::pb::orchestrator_server::Orchestrator;
 
+pub use crate::queue::{system_clock, Clock};
 pub use wavesplat_orchestrator_client::CHUNK_BYTES;
-
-/// A clock giving unix milliseconds (injectable for tests).
-pub type Clock = Arc<dyn Fn() -> u64 + Send + Sync>;
-
-/// The wall clock.
-pub fn system_clock() -> Clock {
-    Arc::new(|| {
-        SystemTime::now()
-            .duration_since(UNIX_EPOCH)
-            .map_or(0, |d| d.as_millis() as u64)
-    })
-}
 
 /// Service settings.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
