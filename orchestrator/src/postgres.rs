@@ -305,16 +305,30 @@ impl PostgresQueue {
     }
 }
 
-/// The URL without its password, for messages and logs.
+/// The URL without its password (user info or a `password` query parameter), for messages and
+/// logs.
 fn redact(url: &str) -> String {
-    match url::Url::parse(url) {
-        Ok(mut u) if u.password().is_some() => {
-            let _ = u.set_password(Some("***"));
-            u.to_string()
-        }
-        Ok(u) => u.to_string(),
-        Err(_) => "(unparsable URL)".into(),
+    let Ok(mut u) = url::Url::parse(url) else {
+        return "(unparsable URL)".into();
+    };
+    if u.password().is_some() {
+        let _ = u.set_password(Some("***"));
     }
+    if u.query_pairs().any(|(k, _)| k == "password") {
+        let pairs: Vec<(String, String)> = u
+            .query_pairs()
+            .map(|(k, v)| {
+                let v = if k == "password" {
+                    "***".into()
+                } else {
+                    v.into_owned()
+                };
+                (k.into_owned(), v)
+            })
+            .collect();
+        u.query_pairs_mut().clear().extend_pairs(pairs);
+    }
+    u.to_string()
 }
 
 #[tonic::async_trait]
@@ -554,5 +568,24 @@ impl JobStore for PostgresQueue {
         // Every change was committed before its call returned.
         self.pool.close().await;
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::redact;
+
+    #[test]
+    fn passwords_never_reach_messages() {
+        for url in [
+            "postgres://queue:hunter2@db:5432/jobs",
+            "postgres://queue@db/jobs?password=hunter2&sslmode=require",
+        ] {
+            let shown = redact(url);
+            assert!(!shown.contains("hunter2"), "{shown}");
+            assert!(shown.contains("db") && shown.contains("jobs"), "{shown}");
+        }
+        assert!(redact("postgres://db/jobs?sslmode=require").contains("sslmode=require"));
+        assert_eq!(redact("not a url"), "(unparsable URL)");
     }
 }
