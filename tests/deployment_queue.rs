@@ -11,10 +11,10 @@
 
 mod common;
 
+use common::jobs::{deliveries, finished};
 use common::netns::Net;
 use common::pki::{pki, secret};
 use common::text;
-use std::collections::HashMap;
 use std::path::Path;
 use std::time::{Duration, Instant};
 use wavesplat_client::{ConnectOptions, Credentials};
@@ -74,13 +74,6 @@ fn wait_for(
         );
         std::thread::sleep(Duration::from_millis(200));
     }
-}
-
-fn finished(js: &[pb::Job]) -> bool {
-    !js.is_empty()
-        && js
-            .iter()
-            .all(|j| matches!(state_name(j.state), "done" | "failed" | "cancelled"))
 }
 
 #[test]
@@ -291,19 +284,14 @@ fn stateless_orchestrators_over_postgres_run_across_hosts() {
             assert_eq!(state_name(j.state), "done", "{name}: {}", j.error);
         }
     }
-    let mut deliveries: HashMap<String, usize> = HashMap::new();
+    let mut log = String::new();
     let mut failed_over = 0;
     for w in ["worker1", "worker2"] {
-        let log = std::fs::read_to_string(dir(w).join("worker.log")).unwrap();
-        failed_over += usize::from(log.contains("failing over"));
-        for line in log.lines().filter(|l| l.contains("delivered")) {
-            for g in &good {
-                if line.contains(&format!("name={g} ")) {
-                    *deliveries.entry(g.clone()).or_default() += 1;
-                }
-            }
-        }
+        let own = std::fs::read_to_string(dir(w).join("worker.log")).unwrap();
+        failed_over += usize::from(own.contains("failing over"));
+        log.push_str(&own);
     }
+    let deliveries = deliveries(&log, &good);
     for g in &good {
         assert_eq!(deliveries.get(g), Some(&1), "{g}: {deliveries:?}");
     }

@@ -5,16 +5,15 @@
 
 mod common;
 
-use common::jobs::{finished, list, name, wait_for};
+use common::jobs::{deliveries, finished, list, name, wait_for};
 use common::Proc;
-use std::collections::HashMap;
-use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::time::Duration;
 use wavesplat_compressor::phantom::Phantom;
 use wavesplat_fixtures::write_nifti;
 use wavesplat_harness::postgres::{PostgresServer, PASSWORD};
+use wavesplat_harness::process::ServerProcess;
 use wavesplat_orchestrator_client as client;
 use wavesplat_orchestrator_client::convert::state_name;
 use wavesplat_proto::pb;
@@ -60,7 +59,8 @@ fn write_archive(dir: &Path, n: usize) -> Vec<String> {
 
 /// `wavesplat serve orchestrator --queue URL` on a free port; its log goes to `log`.
 fn orchestrator(url: &str, log: &Path) -> Proc {
-    let mut child = Command::new(BIN)
+    let mut command = Command::new(BIN);
+    command
         .args([
             "serve",
             "orchestrator",
@@ -72,25 +72,15 @@ fn orchestrator(url: &str, log: &Path) -> Proc {
         .args(["--lease-secs", "10", "--heartbeat-ms", "300"])
         .args(["--retry-base-ms", "200", "--poll-ms", "100"])
         .env("PGPASSWORD", PASSWORD)
-        .env_remove("WAVESPLAT_TOKENS_FILE")
-        .stdout(Stdio::piped())
-        .stderr(std::fs::File::create(log).unwrap())
-        .spawn()
-        .unwrap();
-    let mut line = String::new();
-    BufReader::new(child.stdout.take().unwrap())
-        .read_line(&mut line)
-        .unwrap();
-    let addr = line
-        .trim()
-        .strip_prefix("listening on ")
-        .unwrap_or_else(|| {
+        .stderr(std::fs::File::create(log).unwrap());
+    let (child, addr) = ServerProcess::start(command)
+        .unwrap_or_else(|e| {
             panic!(
-                "orchestrator said {line:?}: {}",
+                "{e:#}: {}",
                 std::fs::read_to_string(log).unwrap_or_default()
             )
         })
-        .to_string();
+        .into_parts();
     Proc { child, addr }
 }
 
@@ -144,17 +134,10 @@ async fn check_outcome(good: &[String], js: &[pb::Job], logs: &[PathBuf], cache:
         .iter()
         .map(|p| std::fs::read_to_string(p).unwrap_or_default())
         .collect();
-    let mut deliveries: HashMap<&str, usize> = HashMap::new();
-    for line in log.lines().filter(|l| l.contains("delivered")) {
-        for g in good {
-            if line.contains(&format!("name={g} ")) {
-                *deliveries.entry(g.as_str()).or_default() += 1;
-            }
-        }
-    }
+    let deliveries = deliveries(&log, good);
     for g in good {
         assert_eq!(
-            deliveries.get(g.as_str()).copied().unwrap_or(0),
+            deliveries.get(g).copied().unwrap_or(0),
             1,
             "{g} delivered other than once: {log}"
         );

@@ -270,26 +270,8 @@ impl PostgresServer {
 
     /// Creates database `name` (empty).
     pub fn create_database(&self, name: &str) -> Result<()> {
-        let out = Command::new(self.bin.join("psql"))
-            .args(["-h", &self.dir.path().display().to_string()])
-            .args([
-                "-p",
-                &self.port.to_string(),
-                "-U",
-                "postgres",
-                "-d",
-                "postgres",
-            ])
-            .args(["-v", "ON_ERROR_STOP=1", "-q", "-c"])
-            .arg(format!("CREATE DATABASE \"{name}\""))
-            .output()
-            .context("running psql")?;
-        if !out.status.success() {
-            bail!(
-                "creating database {name}: {}",
-                String::from_utf8_lossy(&out.stderr)
-            );
-        }
+        self.psql("postgres", &format!("CREATE DATABASE \"{name}\""))
+            .with_context(|| format!("creating database {name}"))?;
         Ok(())
     }
 

@@ -29,13 +29,23 @@ impl ServerProcess {
     }
 
     fn spawn_with(bin: &Path, args: &[&str], stderr: Stdio) -> Result<ServerProcess> {
-        let mut child = Command::new(bin)
-            .args(args)
+        let mut command = Command::new(bin);
+        command.args(args).stderr(stderr);
+        ServerProcess::start(command)
+    }
+
+    /// Starts a prepared command (its environment, its stderr as the caller set them;
+    /// `WAVESPLAT_TOKENS_FILE` removed) and waits for its `listening on ADDR` line.
+    pub fn start(mut command: Command) -> Result<ServerProcess> {
+        let args: Vec<String> = command
+            .get_args()
+            .map(|a| a.to_string_lossy().into_owned())
+            .collect();
+        let mut child = command
             .env_remove("WAVESPLAT_TOKENS_FILE")
             .stdout(Stdio::piped())
-            .stderr(stderr)
             .spawn()
-            .with_context(|| format!("starting {}", bin.display()))?;
+            .with_context(|| format!("starting {}", command.get_program().to_string_lossy()))?;
         let mut line = String::new();
         if let Some(out) = child.stdout.take() {
             BufReader::new(out)

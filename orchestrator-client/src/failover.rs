@@ -31,12 +31,6 @@ impl Failover {
             current: Arc::new(AtomicUsize::new(first % n)),
         }
     }
-
-    /// The URL requests go to now.
-    pub fn current_url(&self) -> &str {
-        let i = self.current.load(Ordering::Relaxed) % self.channels.len().max(1);
-        self.channels.get(i).map_or("", |(u, _)| u.as_str())
-    }
 }
 
 impl Service<http::Request<Body>> for Failover {

@@ -17,7 +17,7 @@ pub struct Leased {
     /// The job now leased to the caller, if any was runnable.
     pub job: Option<Job>,
     /// When no job was leased: milliseconds until the next queued job becomes runnable
-    /// (`None`: nothing queued). Not always computed when a job was leased.
+    /// (`None`: nothing queued, or a job was leased).
     pub next_runnable_in: Option<u64>,
 }
 
@@ -207,9 +207,14 @@ impl JobStore for EmbeddedQueue {
             let now = self.now();
             let (job, changed) = q.lease(worker, now);
             self.store.put(&changed)?;
+            // Only an idle worker needs to know when the next backoff ends.
+            let next_runnable_in = match job {
+                None => q.next_runnable_in(now),
+                Some(_) => None,
+            };
             Leased {
                 job,
-                next_runnable_in: q.next_runnable_in(now),
+                next_runnable_in,
             }
         };
         if leased.job.is_some() {

@@ -1,6 +1,7 @@
 //! Watching an orchestrator's jobs from a test: listing (through any of several URLs, as the
 //! CLI does), waiting with a bound for a condition on the list, and what a job is called.
 
+use std::collections::HashMap;
 use std::time::{Duration, Instant};
 use wavesplat_orchestrator_client as client;
 use wavesplat_orchestrator_client::convert::state_name;
@@ -15,6 +16,20 @@ pub async fn list(urls: &str) -> Option<Vec<pb::Job>> {
 /// A job's cache name.
 pub fn name(j: &pb::Job) -> &str {
     &j.spec.as_ref().unwrap().name
+}
+
+/// How often each of `names` was delivered according to workers' logs (`log`: their text,
+/// one `delivered … name=NAME …` line per delivery).
+pub fn deliveries(log: &str, names: &[String]) -> HashMap<String, usize> {
+    let mut count = HashMap::new();
+    for line in log.lines().filter(|l| l.contains("delivered")) {
+        for n in names {
+            if line.contains(&format!("name={n} ")) {
+                *count.entry(n.clone()).or_default() += 1;
+            }
+        }
+    }
+    count
 }
 
 /// Every job done, failed or cancelled (and at least one job).

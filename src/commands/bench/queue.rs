@@ -16,6 +16,7 @@ use wavesplat_orchestrator::model::{JobOptions, JobSpec, Source};
 use wavesplat_orchestrator::{Backend, PostgresQueue, QueueOptions, ServiceOptions, Store};
 use wavesplat_orchestrator_client as client;
 use wavesplat_proto::pb;
+use wavesplat_viewer::walk::percentile;
 
 /// Arguments of `wavesplat bench queue`.
 #[derive(Args, Debug)]
@@ -169,7 +170,6 @@ async fn measure(store: &'static str, urls: Vec<String>, a: &QueueBenchArgs) -> 
     for t in idle {
         t.abort();
     }
-    latency_ms.sort_by(f64::total_cmp);
     Ok(Row {
         store,
         orchestrators: urls.len(),
@@ -177,13 +177,6 @@ async fn measure(store: &'static str, urls: Vec<String>, a: &QueueBenchArgs) -> 
         leases_s,
         latency_ms,
     })
-}
-
-fn quantile(v: &[f64], q: f64) -> f64 {
-    if v.is_empty() {
-        return f64::NAN;
-    }
-    v[((v.len() - 1) as f64 * q).round() as usize]
 }
 
 /// Runs the subcommand.
@@ -256,11 +249,8 @@ pub fn run(a: QueueBenchArgs) -> Result<()> {
         "max ms"
     );
     for r in &rows {
-        let (p50, p95, max) = (
-            quantile(&r.latency_ms, 0.5),
-            quantile(&r.latency_ms, 0.95),
-            quantile(&r.latency_ms, 1.0),
-        );
+        let p = |q: f64| percentile(&r.latency_ms, q).unwrap_or(f64::NAN);
+        let (p50, p95, max) = (p(50.0), p(95.0), p(100.0));
         writeln!(
             f,
             "{},{},{},{},{:.3},{:.1},{:.3},{:.1},{:.2},{:.2},{:.2}",
