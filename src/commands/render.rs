@@ -362,19 +362,14 @@ pub fn run(a: RenderArgs) -> Result<()> {
     let probe_aside =
         !one_pass && matches!(choice, BackendChoice::Auto) && a.view.client_memory.is_none();
     let (mut selected, mut probe) = if probe_aside {
-        let (tx, rx) = std::sync::mpsc::channel();
-        std::thread::Builder::new()
-            .name("gpu probe".into())
-            .spawn(move || {
-                let _ = tx.send(select(BackendChoice::Auto));
-            })
+        let probe = ProbeAside::spawn("gpu probe", || select(BackendChoice::Auto))
             .context("starting the GPU probe")?;
         (
             Selected {
                 backend: Box::new(CpuBackend::new()),
                 reason: "cpu backend while a GPU is looked for".into(),
             },
-            Some(rx),
+            Some(probe),
         )
     } else {
         let s = select(choice).context("choosing the accumulation backend")?;
@@ -433,8 +428,8 @@ pub fn run(a: RenderArgs) -> Result<()> {
     };
     let run_started = since_request();
     let outcome = frames.run_to_end(&run, |frames, n, report, at| -> Result<()> {
-        if let Some(rx) = &probe {
-            match rx.try_recv() {
+        if let Some(aside) = &probe {
+            match aside.try_recv() {
                 Ok(Ok(found)) => {
                     probe = None;
                     let mut backend = found.backend;
@@ -625,4 +620,86 @@ fn render_bricked(
         request.elapsed().as_secs_f64() * 1e3
     );
     Ok(())
+}
+
+/// A question answered on a thread of its own (the GPU probe) while the caller goes on. Dropping
+/// it waits for that thread: the probe loads the Vulkan driver (`dlopen` of lavapipe runs LLVM's
+/// static constructors under the dynamic loader's lock), and a process that returns from `main`
+/// meanwhile deadlocks in `exit`, whose `_dl_fini` waits for that same lock (seen once in about
+/// 125 renders of a 32×32 image, which finishes before the probe does).
+struct ProbeAside<T> {
+    answer: std::sync::mpsc::Receiver<T>,
+    thread: Option<std::thread::JoinHandle<()>>,
+}
+
+impl<T: Send + 'static> ProbeAside<T> {
+    fn spawn(name: &str, ask: impl FnOnce() -> T + Send + 'static) -> std::io::Result<Self> {
+        let (tx, answer) = std::sync::mpsc::channel();
+        let thread = std::thread::Builder::new()
+            .name(name.into())
+            .spawn(move || {
+                let _ = tx.send(ask());
+            })?;
+        Ok(ProbeAside {
+            answer,
+            thread: Some(thread),
+        })
+    }
+
+    /// The answer if it has come.
+    fn try_recv(&self) -> Result<T, std::sync::mpsc::TryRecvError> {
+        self.answer.try_recv()
+    }
+}
+
+impl<T> Drop for ProbeAside<T> {
+    fn drop(&mut self) {
+        if let Some(thread) = self.thread.take() {
+            let _ = thread.join();
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::ProbeAside;
+    use std::sync::atomic::{AtomicBool, Ordering};
+    use std::sync::Arc;
+    use std::time::Duration;
+
+    /// The caller goes on while the probe runs, and letting go of an unanswered probe waits
+    /// until its thread has finished (so the process never exits in the middle of it).
+    #[test]
+    fn dropping_an_unanswered_probe_waits_for_its_thread() {
+        let finished = Arc::new(AtomicBool::new(false));
+        let f = finished.clone();
+        let aside = ProbeAside::spawn("slow probe", move || {
+            std::thread::sleep(Duration::from_millis(300));
+            f.store(true, Ordering::SeqCst);
+            7
+        })
+        .unwrap();
+        assert!(aside.try_recv().is_err(), "answered before it could have");
+        drop(aside);
+        assert!(
+            finished.load(Ordering::SeqCst),
+            "the probe thread outlived its handle"
+        );
+    }
+
+    /// A probe that answered gives the answer once.
+    #[test]
+    fn an_answered_probe_gives_its_answer() {
+        let aside = ProbeAside::spawn("quick probe", || 7).unwrap();
+        let mut got = None;
+        for _ in 0..1000 {
+            if let Ok(v) = aside.try_recv() {
+                got = Some(v);
+                break;
+            }
+            std::thread::sleep(Duration::from_millis(2));
+        }
+        assert_eq!(got, Some(7));
+        assert!(aside.try_recv().is_err());
+    }
 }
