@@ -804,3 +804,116 @@ fn the_ca_given_is_trusted_for_https() {
         "{err}"
     );
 }
+
+/// A bricked volume (80×72×64 in 40³ bricks: 8), published: its head names every brick; the
+/// object gives the container back and a damaged index or a cut object is refused. Browsed by
+/// range requests it is drawn as one volume: the whole view ends at the local file's image, and
+/// a view zoomed into one corner fetches the head and the bytes of at most the two bricks along
+/// its rays (of eight), ending at the local file's image of that corner.
+#[test]
+fn a_published_bricked_volume_browses_as_one() {
+    use wavesplat_codec::format::index::BrickedHead;
+    let volume = Phantom::SheppLogan.generate([80, 72, 64]);
+    let bricked = wavesplat_compressor::bricked::compress_bricked(
+        &volume,
+        &common::phantom_options(0.2),
+        40,
+        &|_| {},
+    )
+    .unwrap();
+    let wsp = bricked.bytes;
+    let wspx = indexed_layout(&wsp).unwrap();
+    let head: BrickedHead = match read_indexed_head(&wspx).unwrap() {
+        HeadRead::Bricked(h) => *h,
+        _ => panic!("a bricked volume's head is not read as bricked"),
+    };
+    assert_eq!(head.bricks.len(), 8);
+    assert_eq!(head.object_bytes(), wspx.len() as u64);
+    assert_eq!(wsp_of_indexed(&wspx).unwrap(), &wsp[..]);
+    assert!(
+        wsp_of_indexed(&wspx[..wspx.len() - 5]).is_err(),
+        "cut short"
+    );
+    let mut damaged = wspx.clone();
+    damaged[30] ^= 0x40;
+    assert!(read_indexed_head(&damaged).is_err(), "a damaged index");
+    // Every packet the head places starts where its brick's bytes say.
+    for (b, brick) in head.bricks.iter().enumerate() {
+        let entry = &head.manifest.bricks[b];
+        for i in 0..brick.packets.len() {
+            let at = head.packet_offset(b, i).unwrap();
+            assert!(at >= head.wsp_offset + entry.offset);
+            assert!(at < head.wsp_offset + entry.offset + entry.length);
+        }
+    }
+    let largest_two: u64 = {
+        let mut lengths: Vec<u64> = head.manifest.bricks.iter().map(|b| b.length).collect();
+        lengths.sort_unstable();
+        lengths.iter().rev().take(2).sum()
+    };
+
+    let tmp = tempfile::tempdir().unwrap();
+    std::fs::write(tmp.path().join("b.wsp"), &wsp).unwrap();
+    let corner = [
+        "--alpha=-1.5707963267948966",
+        "--beta=-1.5707963267948966",
+        "--zoom",
+        "4",
+        "--pan=-20,18",
+        "--size",
+        "32x32",
+    ];
+    let whole = ["--size", "48x48"];
+    for (name, view) in [("whole", &whole[..]), ("corner", &corner[..])] {
+        let server = TinyServer::start(vec![("/b.wspx", wspx.clone())], &[]);
+        let url = format!("http://{}/b.wspx", server.url);
+        let remote = format!("{name}-remote.f32");
+        let local = format!("{name}-local.f32");
+        let mut args = vec![url.as_str(), "--cpu", "-o", "r.png", "--raw", &remote];
+        args.extend_from_slice(view);
+        let out = render(tmp.path(), &args);
+        assert!(out.status.success(), "{name}: {}", text(&out));
+        let mut args = vec![
+            "b.wsp",
+            "--cpu",
+            "--progressive",
+            "-o",
+            "l.png",
+            "--raw",
+            &local,
+        ];
+        args.extend_from_slice(view);
+        let out_local = render(tmp.path(), &args);
+        assert!(out_local.status.success(), "{}", text(&out_local));
+        let (r, l) = (
+            read_f32(&tmp.path().join(&remote)),
+            read_f32(&tmp.path().join(&local)),
+        );
+        assert!(l.iter().any(|v| *v != 0.0), "{name}: the image is empty");
+        let snr = wavesplat_codec::metrics::snr_db(&l, &r);
+        assert!(snr > 90.0, "{name}: remote against local {snr:.1} dB");
+        let served = server.served();
+        let (_, _, fetched, object) = range_line(&out);
+        assert_eq!(object, wspx.len() as u64);
+        assert_eq!(
+            fetched, served,
+            "{name}: the bytes reported are the bytes sent"
+        );
+        eprintln!(
+            "{name}: {served} of {object} bytes fetched ({:.1} %)",
+            100.0 * served as f64 / object as f64
+        );
+        if name == "corner" {
+            assert!(
+                served <= HEAD_READ_BYTES + largest_two,
+                "a corner fetched {served} bytes: more than the head and two bricks ({})",
+                HEAD_READ_BYTES + largest_two
+            );
+        } else {
+            assert!(
+                served <= object,
+                "the whole view fetched {served} bytes: some twice"
+            );
+        }
+    }
+}

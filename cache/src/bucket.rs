@@ -358,6 +358,13 @@ impl Bucket {
                 CacheError::Corrupt(format!("the head of {path} in {}: {e}", self.url))
             })? {
                 HeadRead::Indexed(h) => break h,
+                // Ingest refuses bricked volumes, so a bucket node never wrote one.
+                HeadRead::Bricked(_) => {
+                    return Err(CacheError::Corrupt(format!(
+                        "{path} in {} is a bricked volume, which cache nodes do not serve yet",
+                        self.url
+                    )))
+                }
                 HeadRead::Need(n) if (n as u64) > object_bytes || n <= bytes.len() => {
                     return Err(CacheError::Corrupt(format!(
                         "{path} in {} ends inside its head ({object_bytes} bytes)",

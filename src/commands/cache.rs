@@ -2,7 +2,7 @@
 //! ingest|list|show|rm` (talk to one). Wiring only: the server lives in `wavesplat-cache`, the
 //! client in `wavesplat-client`.
 
-use anyhow::{Context, Result};
+use anyhow::{bail, Context, Result};
 use clap::{Args, Subcommand};
 use std::path::PathBuf;
 use wavesplat_cache::{Limits, Store};
@@ -141,6 +141,15 @@ pub fn run(cmd: CacheCommand) -> Result<()> {
     match cmd {
         CacheCommand::Ingest(a) => {
             let bytes = super::read_wsp(&a.input)?;
+            if wavesplat_codec::format::bricked::is_bricked(&bytes) {
+                bail!(
+                    "{} is a bricked volume, which cache nodes do not serve yet: publish it \
+                     (wavesplat publish {} -o VOLUME.wspx) on a web server or bucket and browse \
+                     it by URL (wavesplat render|view https://HOST/VOLUME.wspx)",
+                    a.input.display(),
+                    a.input.display()
+                );
+            }
             let name = match a.name {
                 Some(n) => n,
                 None => a

@@ -326,25 +326,34 @@ impl Opened {
     /// The image of every coefficient for `spec`, in display space (a bricked file's: every
     /// brick drawn in one pass, [`crate::bricked::draw_bricked_file`]).
     pub fn reference_image(&self, header: &Header, spec: &ViewSpec) -> Result<Image, OpenError> {
-        if let Opened::File { source } = self {
-            if source.bricked_volume().is_some() {
-                let drawn = crate::bricked::draw_bricked_file(
-                    source.file_bytes(),
-                    spec,
-                    &mut crate::CpuBackend::new(),
-                )?;
-                return Ok(drawn.image);
+        let draw = |bytes: &[u8]| -> Result<Image, OpenError> {
+            let drawn =
+                crate::bricked::draw_bricked_file(bytes, spec, &mut crate::CpuBackend::new())?;
+            Ok(drawn.image)
+        };
+        match self {
+            Opened::File { source } if source.bricked_volume().is_some() => {
+                return draw(source.file_bytes())
             }
+            Opened::Remote { url, ca, source } if source.bricked_volume().is_some() => {
+                let bytes = fetch_wsp(url, ca.as_deref()).map_err(|source| OpenError::Source {
+                    what: url.clone(),
+                    source,
+                })?;
+                return draw(&bytes);
+            }
+            _ => {}
         }
         display_image(header, &self.all_coefficients(header)?, spec)
     }
 
-    /// The volume as a bricked session draws it, when it is a bricked file (`None`
-    /// otherwise): [`crate::session::RenderSession::new_bricked`] takes it.
+    /// The volume as a bricked session draws it, when it is a bricked file or published
+    /// bricked volume (`None` otherwise): [`crate::session::RenderSession::new_bricked`] takes it.
     pub fn bricked_volume(&self) -> Option<crate::session::BrickedVolume> {
         match self {
             Opened::File { source } => source.bricked_volume(),
-            _ => None,
+            Opened::Remote { source, .. } => source.bricked_volume(),
+            Opened::Cache { .. } => None,
         }
     }
 }

@@ -26,7 +26,7 @@ pub const BRICKED_VERSION: u16 = 9;
 pub const MAX_BRICKS: usize = 1 << 20;
 
 /// Largest accepted manifest (bytes).
-const MAX_MANIFEST_BYTES: usize = 64 << 20;
+pub const MAX_MANIFEST_BYTES: usize = 64 << 20;
 
 /// Largest side of the whole volume along one axis.
 pub const MAX_SIDE: u64 = 1 << 20;
@@ -238,6 +238,15 @@ fn bad(detail: impl Into<String>) -> FormatError {
 /// them, the bricks tiling the whole exactly (their voxel counts sum to the whole's and none
 /// overlaps another), every brick's bytes inside the file.
 pub fn parse_bricked(bytes: &[u8]) -> Result<BrickedFile<'_>, FormatError> {
+    let manifest = parse_manifest(bytes, bytes.len() as u64)?;
+    Ok(BrickedFile { manifest, bytes })
+}
+
+/// Parses and validates the manifest at the start of a container of `container_bytes` bytes
+/// from `prefix`, its first bytes (at least the manifest section: what a reader fetching byte
+/// ranges has), with the checks of [`parse_bricked`].
+pub fn parse_manifest(prefix: &[u8], container_bytes: u64) -> Result<Manifest, FormatError> {
+    let bytes = prefix;
     let mut r = ByteReader::new(bytes, "bricked container");
     let version = super::read_magic_and_version(&mut r, bytes)?;
     if version != BRICKED_VERSION {
@@ -340,12 +349,12 @@ pub fn parse_bricked(bytes: &[u8]) -> Result<BrickedFile<'_>, FormatError> {
         if offset < data_start
             || offset
                 .checked_add(length)
-                .is_none_or(|e| e > bytes.len() as u64)
+                .is_none_or(|e| e > container_bytes)
         {
             return Err(FormatError::Truncated {
                 what: "brick",
                 needed: offset.saturating_add(length),
-                available: bytes.len() as u64,
+                available: container_bytes,
             });
         }
         let crc = m.u32()?;
@@ -389,16 +398,13 @@ pub fn parse_bricked(bytes: &[u8]) -> Result<BrickedFile<'_>, FormatError> {
         }
         active.push(i);
     }
-    Ok(BrickedFile {
-        manifest: Manifest {
-            dims,
-            channels,
-            spacing,
-            placement,
-            brick,
-            bricks,
-        },
-        bytes,
+    Ok(Manifest {
+        dims,
+        channels,
+        spacing,
+        placement,
+        brick,
+        bricks,
     })
 }
 

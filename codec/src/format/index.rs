@@ -19,17 +19,39 @@
 //! The energies only rank packets (visible energy per byte), so 0.4 % precision is plenty and
 //! keeps the index near 3 bytes per band of a packet; the cache's own index keeps f64.
 //!
+//! A bricked container ([`crate::format::bricked`], format version 9) is published the same way
+//! as layout version 2: one object, the index of every brick in front of the unchanged
+//! container, so a reader has the manifest, every brick's header and every packet's place
+//! after one or two requests, and then fetches only the packets (of the bricks) a view sees:
+//!
+//! ```text
+//! "WSPX" | 2 u16 | container length u64 | index length u32 | index CRC-32
+//! index: brick count (varint); per brick in manifest order: its .wsp header section's length
+//!        (varint) and bytes (a copy: its own lies inside the container), its compact index's
+//!        length (varint) and bytes (as above; offsets within the brick's .wsp)
+//! the bricked container, byte for byte (its manifest first)
+//! ```
+//!
+//! One object rather than a manifest plus an object per brick: a published volume stays one
+//! file to copy, serve and cache, and a reader still needs no request per brick before its
+//! first image (all headers come with the head).
+//!
 //! Every read is bounds-checked and the index is checked against the `.wsp` it fronts: packets lie
 //! after the header, inside the file, without overlapping.
 
+use crate::format::bricked::{
+    is_bricked, parse_bricked, parse_manifest, Manifest, MAX_MANIFEST_BYTES,
+};
 use crate::format::bytes::{ByteReader, ByteWriter};
 use crate::format::{read_header_section, FormatError, Header, MAGIC};
 use crate::layout::Band;
 
 /// Magic bytes of the indexed layout.
 pub const INDEXED_MAGIC: &[u8; 4] = b"WSPX";
-/// The indexed layout's version.
+/// The indexed layout's version (of one volume).
 pub const INDEXED_VERSION: u16 = 1;
+/// The indexed layout's version for a bricked container.
+pub const BRICKED_INDEXED_VERSION: u16 = 2;
 /// Bytes before the index: magic, version, `.wsp` length, index length, index CRC.
 pub const INDEXED_HEAD_BYTES: usize = 4 + 2 + 8 + 4 + 4;
 /// What a range reader asks for first: the head, the index and the `.wsp` header of most
@@ -222,14 +244,19 @@ fn decode_compact(bytes: &[u8]) -> Result<Vec<PacketMeta>, FormatError> {
 /// the index. The packets must follow each other in the file, as in every `.wsp`.
 pub fn indexed_prefix(wsp_bytes: u64, packets: &[PacketMeta]) -> Result<Vec<u8>, FormatError> {
     let index = encode_compact(packets)?;
+    Ok(prefix_with(INDEXED_VERSION, wsp_bytes, &index))
+}
+
+/// The head (magic, `version`, lengths, CRC) and `index`.
+fn prefix_with(version: u16, wsp_bytes: u64, index: &[u8]) -> Vec<u8> {
     let mut out = Vec::with_capacity(INDEXED_HEAD_BYTES + index.len());
     out.extend_from_slice(INDEXED_MAGIC);
-    out.extend_from_slice(&INDEXED_VERSION.to_le_bytes());
+    out.extend_from_slice(&version.to_le_bytes());
     out.extend_from_slice(&wsp_bytes.to_le_bytes());
     out.extend_from_slice(&(index.len() as u32).to_le_bytes());
-    out.extend_from_slice(&crc32fast::hash(&index).to_le_bytes());
-    out.extend_from_slice(&index);
-    Ok(out)
+    out.extend_from_slice(&crc32fast::hash(index).to_le_bytes());
+    out.extend_from_slice(index);
+    out
 }
 
 /// The index of a whole `.wsp` file: every packet decoded once (which also checks it), and the
@@ -254,8 +281,34 @@ pub fn index_file(bytes: &[u8]) -> Result<Vec<PacketMeta>, FormatError> {
     Ok(out)
 }
 
-/// A `.wsp` file in the indexed layout (see the module documentation).
+/// A `.wsp` file in the indexed layout (see the module documentation); a bricked container in
+/// its version 2, every brick's packets decoded once (which checks them).
 pub fn indexed_layout(wsp: &[u8]) -> Result<Vec<u8>, FormatError> {
+    if is_bricked(wsp) {
+        let file = parse_bricked(wsp)?;
+        let mut w = ByteWriter::new();
+        w.varint(file.manifest.bricks.len() as u64);
+        for i in 0..file.manifest.bricks.len() {
+            let brick = file.brick_bytes(i)?;
+            let (_, header_len) = read_header_section(brick)?;
+            let index = encode_compact(&index_file(brick)?)?;
+            w.varint(header_len as u64);
+            w.bytes(&brick[..header_len]);
+            w.varint(index.len() as u64);
+            w.bytes(&index);
+        }
+        let index = w.into_bytes();
+        if index.len() > MAX_INDEX_BYTES as usize {
+            return Err(FormatError::TooLarge {
+                what: "bricked packet index",
+                size: index.len() as u64,
+                limit: MAX_INDEX_BYTES as u64,
+            });
+        }
+        let mut out = prefix_with(BRICKED_INDEXED_VERSION, wsp.len() as u64, &index);
+        out.extend_from_slice(wsp);
+        return Ok(out);
+    }
     let packets = index_file(wsp)?;
     let mut out = indexed_prefix(wsp.len() as u64, &packets)?;
     out.extend_from_slice(wsp);
@@ -272,11 +325,11 @@ pub fn wsp_of_indexed(object: &[u8]) -> Result<&[u8], FormatError> {
         needed: total.saturating_sub(len),
         available: len,
     };
-    let head = match read_indexed_head(object)? {
-        HeadRead::Indexed(h) => h,
+    let (total, wsp_offset) = match read_indexed_head(object)? {
+        HeadRead::Indexed(h) => (h.object_bytes(), h.wsp_offset),
+        HeadRead::Bricked(h) => (h.object_bytes(), h.wsp_offset),
         HeadRead::Need(n) => return Err(truncated(n as u64)),
     };
-    let total = head.object_bytes();
     if len < total {
         return Err(truncated(total));
     }
@@ -285,7 +338,7 @@ pub fn wsp_of_indexed(object: &[u8]) -> Result<&[u8], FormatError> {
             "{len} bytes where the head declares {total}"
         )));
     }
-    Ok(&object[head.wsp_offset as usize..])
+    Ok(&object[wsp_offset as usize..])
 }
 
 /// An indexed volume's header and index, read from the start of its object.
@@ -324,6 +377,45 @@ pub enum HeadRead {
     Need(usize),
     /// The header and index.
     Indexed(Box<IndexedHead>),
+    /// A bricked container's manifest and every brick's header and index.
+    Bricked(Box<BrickedHead>),
+}
+
+/// One brick of a published bricked volume: its header and packet index.
+#[derive(Debug, Clone)]
+pub struct IndexedBrick {
+    /// The brick's parsed `.wsp` header (its geometry is the brick's).
+    pub header: Header,
+    /// Its `.wsp` header section's bytes.
+    pub header_bytes: Vec<u8>,
+    /// Per packet, in file order; offsets are within the brick's `.wsp`.
+    pub packets: Vec<PacketMeta>,
+}
+
+/// A published bricked volume's head: the container's manifest, each brick's header and index.
+#[derive(Debug, Clone)]
+pub struct BrickedHead {
+    /// The manifest (brick offsets are within the container).
+    pub manifest: Manifest,
+    /// The bricks, in manifest order.
+    pub bricks: Vec<IndexedBrick>,
+    /// Where the container starts in the object.
+    pub wsp_offset: u64,
+    /// Length of the container.
+    pub wsp_bytes: u64,
+}
+
+impl BrickedHead {
+    /// Bytes of the whole object.
+    pub fn object_bytes(&self) -> u64 {
+        self.wsp_offset + self.wsp_bytes
+    }
+
+    /// Where packet `i` of brick `brick` starts in the object (`None` past the last).
+    pub fn packet_offset(&self, brick: usize, i: usize) -> Option<u64> {
+        let p = self.bricks.get(brick)?.packets.get(i)?;
+        Some(self.wsp_offset + self.manifest.bricks[brick].offset + p.offset)
+    }
 }
 
 /// Reads an indexed volume's head from the first bytes of its object: the header and index, or
@@ -344,10 +436,10 @@ pub fn read_indexed_head(bytes: &[u8]) -> Result<HeadRead, FormatError> {
     }
     let mut r = ByteReader::new(&bytes[4..INDEXED_HEAD_BYTES], "indexed layout head");
     let version = r.u16()?;
-    if version != INDEXED_VERSION {
+    if version != INDEXED_VERSION && version != BRICKED_INDEXED_VERSION {
         return Err(FormatError::UnsupportedVersion {
             found: version,
-            supported: INDEXED_VERSION,
+            supported: BRICKED_INDEXED_VERSION,
         });
     }
     let wsp_bytes = r.u64()?;
@@ -367,7 +459,21 @@ pub fn read_indexed_head(bytes: &[u8]) -> Result<HeadRead, FormatError> {
     let len_bytes: [u8; 4] = bytes[section_start + 6..section_start + 10]
         .try_into()
         .map_err(|_| invalid("header length".into()))?;
-    let section = 14usize.saturating_add(u32::from_le_bytes(len_bytes) as usize);
+    let declared = u32::from_le_bytes(len_bytes);
+    // Bounded before anything is fetched for it: a hostile length would ask for gigabytes.
+    let declared = if version == BRICKED_INDEXED_VERSION {
+        if declared as usize > MAX_MANIFEST_BYTES {
+            return Err(FormatError::TooLarge {
+                what: "bricked manifest",
+                size: declared as u64,
+                limit: MAX_MANIFEST_BYTES as u64,
+            });
+        }
+        declared as usize
+    } else {
+        crate::format::header::header_length(declared)?
+    };
+    let section = 14usize.saturating_add(declared);
     if section as u64 > wsp_bytes {
         return Err(invalid(format!(
             "a header section of {section} bytes in a .wsp of {wsp_bytes}"
@@ -386,6 +492,16 @@ pub fn read_indexed_head(bytes: &[u8]) -> Result<HeadRead, FormatError> {
             computed,
         });
     }
+    if version == BRICKED_INDEXED_VERSION {
+        let manifest = parse_manifest(&bytes[section_start..need], wsp_bytes)?;
+        let bricks = decode_brick_index(index, &manifest)?;
+        return Ok(HeadRead::Bricked(Box::new(BrickedHead {
+            manifest,
+            bricks,
+            wsp_offset: wsp_offset as u64,
+            wsp_bytes,
+        })));
+    }
     let packets = decode_compact(index)?;
     let (header, header_len) = read_header_section(&bytes[section_start..need])?;
     check_packets(&packets, header_len as u64, wsp_bytes)?;
@@ -396,6 +512,46 @@ pub fn read_indexed_head(bytes: &[u8]) -> Result<HeadRead, FormatError> {
         wsp_offset: wsp_offset as u64,
         wsp_bytes,
     })))
+}
+
+/// The bricks' headers and indexes of a bricked layout, each checked against its manifest
+/// entry: as many bricks, each header's dimensions the entry's, its packets inside its bytes.
+fn decode_brick_index(index: &[u8], manifest: &Manifest) -> Result<Vec<IndexedBrick>, FormatError> {
+    let mut r = ByteReader::new(index, "bricked packet index");
+    let n = r.varint_max(manifest.bricks.len() as u64, "bricks")? as usize;
+    if n != manifest.bricks.len() {
+        return Err(invalid(format!(
+            "an index of {n} bricks for a manifest of {}",
+            manifest.bricks.len()
+        )));
+    }
+    let mut bricks = Vec::with_capacity(n);
+    for (i, entry) in manifest.bricks.iter().enumerate() {
+        let len = r.varint_max(index.len() as u64, "header length")? as usize;
+        let section = r.take(len)?;
+        let (header, header_len) = read_header_section(section)?;
+        if header_len != len {
+            return Err(invalid(format!(
+                "brick {i}'s header section holds {len} bytes, its header {header_len}"
+            )));
+        }
+        if header.geometry.dims != entry.dims {
+            return Err(invalid(format!(
+                "brick {i}'s header has dimensions {:?}, the manifest {:?}",
+                header.geometry.dims, entry.dims
+            )));
+        }
+        let index_len = r.varint_max(index.len() as u64, "index length")? as usize;
+        let packets = decode_compact(r.take(index_len)?)?;
+        check_packets(&packets, header_len as u64, entry.length)?;
+        bricks.push(IndexedBrick {
+            header,
+            header_bytes: section.to_vec(),
+            packets,
+        });
+    }
+    expect_end(&r)?;
+    Ok(bricks)
 }
 
 /// Checks that packets lie after the header, inside the file, in order and without overlap.

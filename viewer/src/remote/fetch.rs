@@ -1,11 +1,14 @@
 //! The range source's network task: the packets the current view sees ordered as the cache
 //! would send them (those that came with the head first), neighbours in the file coalesced into
 //! one range, a few requests in flight, each range checked and its packets decoded and queued
-//! for the session; view changes reorder what is not yet requested.
+//! for the session; view changes reorder what is not yet requested. A bricked volume's packets
+//! are ranked across its bricks as a bricked file's are (each brick by its own view of the
+//! whole); a brick the view does not see is not fetched.
 
 use super::head::Head;
 use super::object::Object;
 use super::{RangeError, RangeSourceOptions};
+use crate::source::file::{bricked_packet_order, BrickPacket};
 use crate::source::{Control, PacketSender, SourceError, SourcePacket, SourceStatus};
 use bytes::Bytes;
 use futures_util::stream::FuturesUnordered;
@@ -76,6 +79,36 @@ impl Fetch {
         if !self.head.indexed {
             self.queue = (0..packets.len() as u32)
                 .filter(|i| !self.requested.contains(i))
+                .collect();
+            return Ok(());
+        }
+        if !self.head.bricks.is_empty() {
+            let bricks: Vec<(&wavesplat_codec::format::Header, [u64; 3])> = self
+                .head
+                .bricks
+                .iter()
+                .map(|b| (&b.header, b.origin))
+                .collect();
+            let keyed = bricked_packet_order(
+                spec,
+                &self.head.header.geometry,
+                &bricks,
+                packets
+                    .iter()
+                    .zip(&self.head.packet_brick)
+                    .map(|(p, &b)| BrickPacket {
+                        brick: b as usize,
+                        tile: p.tile as usize,
+                        summary: &p.summary,
+                        bytes: p.len as usize,
+                    }),
+            )?;
+            self.queue = keyed
+                .into_iter()
+                .filter(|(e, i)| {
+                    !self.requested.contains(i) && (!self.options.visible_only || *e > 0.0)
+                })
+                .map(|(_, i)| i)
                 .collect();
             return Ok(());
         }
@@ -257,7 +290,7 @@ impl Fetch {
             let p = &self.head.packets[id as usize];
             let start = (self.head.base + p.offset - req.range.start) as usize;
             let bytes = data[start..start + p.len as usize].to_vec();
-            let d = decode_packet(&self.head.header, &bytes)
+            let d = decode_packet(self.head.header_of(id), &bytes)
                 .map_err(|e| format!("packet {id} of {}: {e}", self.url))?;
             if self.head.indexed && (d.tile as u32 != p.tile || d.layer as u32 != p.layer) {
                 return Err(format!(
@@ -324,6 +357,8 @@ mod tests {
                 object_bytes: h.object_bytes(),
                 header: h.header,
                 packets: h.packets,
+                bricks: Vec::new(),
+                packet_brick: Vec::new(),
                 base: h.wsp_offset,
                 indexed: true,
             },

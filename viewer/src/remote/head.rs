@@ -1,23 +1,33 @@
 //! The head of a published volume: its header and packet index read in one request (more when
 //! they are larger), from the indexed layout or a plain `.wsp` (header and directory, packets
-//! then in file order), checked against the object's size.
+//! then in file order), checked against the object's size; a bricked volume's manifest and
+//! every brick's header and index, its packets numbered as one volume's.
 
 use super::object::Object;
+use crate::session::{BrickedVolume, SessionBrick};
+use crate::source::file::{check_session_brick, whole_header};
 use crate::source::{SourceError, SourceStatus};
 use bytes::Bytes;
 use std::sync::Mutex;
 use wavesplat_codec::format::index::{
-    read_indexed_head, HeadRead, IndexedHead, PacketMeta, HEAD_READ_BYTES,
+    read_indexed_head, BrickedHead, HeadRead, IndexedHead, PacketMeta, HEAD_READ_BYTES,
 };
 use wavesplat_codec::format::{parse_prelude, FormatError, Header};
 
 /// The volume's head as read: the indexed layout, or a plain `.wsp` (header and directory only:
-/// packets are then requested in file order, all of them).
+/// packets are then requested in file order, all of them). A bricked volume's packets are
+/// numbered brick after brick (global ids, as a session numbers them); its header is the
+/// whole's.
 pub(super) struct Head {
     /// The object's first bytes as read for the head (packets inside them need no request).
     pub(super) first: Bytes,
     pub(super) header: Header,
+    /// Per packet; offsets are from `base` (a bricked volume's: from the container's start).
     pub(super) packets: Vec<PacketMeta>,
+    /// A bricked volume's bricks (empty for one volume).
+    pub(super) bricks: Vec<HeadBrick>,
+    /// Each packet's brick (empty for one volume).
+    pub(super) packet_brick: Vec<u32>,
     /// Where packet offsets start in the object.
     pub(super) base: u64,
     pub(super) object_bytes: u64,
@@ -63,6 +73,8 @@ pub(super) async fn read_head(
                     first: Bytes::from(bytes),
                     header: p.header,
                     packets,
+                    bricks: Vec::new(),
+                    packet_brick: Vec::new(),
                     base: 0,
                     object_bytes,
                     indexed: false,
@@ -82,6 +94,15 @@ pub(super) async fn read_head(
     let head: IndexedHead = loop {
         match read_indexed_head(&bytes).map_err(corrupt)? {
             HeadRead::Indexed(h) => break *h,
+            HeadRead::Bricked(h) => {
+                if h.object_bytes() != object_bytes {
+                    return Err(SourceError::Remote(format!(
+                        "{url} holds {object_bytes} bytes, its head describes {}: truncated or not this volume",
+                        h.object_bytes()
+                    )));
+                }
+                return Head::bricked(Bytes::from(bytes), *h, object_bytes, url);
+            }
             HeadRead::Need(n) if n as u64 > object_bytes || n <= bytes.len() => {
                 return Err(SourceError::Remote(format!(
                     "{url} ends inside its head ({object_bytes} bytes)"
@@ -104,10 +125,101 @@ pub(super) async fn read_head(
         first: Bytes::from(bytes),
         header: head.header,
         packets: head.packets,
+        bricks: Vec::new(),
+        packet_brick: Vec::new(),
         base: head.wsp_offset,
         object_bytes,
         indexed: true,
     })
+}
+
+/// One brick of a bricked volume: its header and first voxel in the whole.
+pub(super) struct HeadBrick {
+    pub(super) header: Header,
+    pub(super) origin: [u64; 3],
+    /// Packets it has.
+    pub(super) packets: u32,
+}
+
+impl Head {
+    /// The header packet `id` decodes with (its brick's, for a bricked volume).
+    pub(super) fn header_of(&self, id: u32) -> &Header {
+        match self.packet_brick.get(id as usize) {
+            Some(&b) => &self.bricks[b as usize].header,
+            None => &self.header,
+        }
+    }
+
+    /// The volume as a session draws it, when it is bricked.
+    pub(super) fn bricked_volume(&self) -> Option<BrickedVolume> {
+        if self.bricks.is_empty() {
+            return None;
+        }
+        Some(BrickedVolume {
+            whole: self.header.clone(),
+            bricks: self
+                .bricks
+                .iter()
+                .map(|b| SessionBrick {
+                    header: b.header.clone(),
+                    origin: b.origin,
+                    packets: b.packets,
+                })
+                .collect(),
+        })
+    }
+
+    /// A published bricked volume's head: every brick checked against the manifest and the
+    /// first brick, its packets numbered after the previous bricks'.
+    fn bricked(
+        first: Bytes,
+        head: BrickedHead,
+        object_bytes: u64,
+        url: &str,
+    ) -> Result<Head, SourceError> {
+        let m = &head.manifest;
+        let Some(first_brick) = head.bricks.first() else {
+            return Err(SourceError::Remote(format!(
+                "{url}: a bricked volume of no bricks"
+            )));
+        };
+        let mut packets = Vec::new();
+        let mut packet_brick = Vec::new();
+        let mut bricks = Vec::with_capacity(head.bricks.len());
+        for (i, (b, entry)) in head.bricks.iter().zip(&m.bricks).enumerate() {
+            check_session_brick(i, entry, &b.header, &first_brick.header, m.channels)?;
+            let index = u32::try_from(i)
+                .map_err(|_| SourceError::Remote(format!("{url}: too many bricks")))?;
+            for p in &b.packets {
+                packets.push(PacketMeta {
+                    offset: entry.offset + p.offset,
+                    ..p.clone()
+                });
+                packet_brick.push(index);
+            }
+            bricks.push(HeadBrick {
+                header: b.header.clone(),
+                origin: entry.origin,
+                packets: b.packets.len() as u32,
+            });
+        }
+        if u32::try_from(packets.len()).is_err() {
+            return Err(SourceError::Remote(format!(
+                "{url}: {} packets, more than a source numbers",
+                packets.len()
+            )));
+        }
+        Ok(Head {
+            first,
+            header: whole_header(m, &first_brick.header),
+            packets,
+            bricks,
+            packet_brick,
+            base: head.wsp_offset,
+            object_bytes,
+            indexed: true,
+        })
+    }
 }
 
 fn count(status: &Mutex<SourceStatus>, bytes: u64) {

@@ -25,6 +25,7 @@ mod fetch;
 mod head;
 mod object;
 
+use crate::session::BrickedVolume;
 pub use crate::source::RangeError;
 use crate::source::{packet_source_via_feed, Feed, SourceError, SourceStatus};
 use fetch::Fetch;
@@ -69,6 +70,8 @@ impl Default for RangeSourceOptions {
 #[derive(Debug)]
 pub struct RangeSource {
     feed: Feed,
+    /// The volume as a session draws it, when it is bricked.
+    bricked: Option<Box<BrickedVolume>>,
 }
 
 /// The `.wsp` bytes of the volume at `url` (the whole object, without the index in front when
@@ -86,6 +89,9 @@ pub fn fetch_wsp(url: &str, ca: Option<&Path>) -> Result<Vec<u8>, SourceError> {
     }
     match read_indexed_head(&bytes).map_err(|e| SourceError::Remote(format!("{url}: {e}")))? {
         HeadRead::Indexed(h) if h.object_bytes() == bytes.len() as u64 => {
+            Ok(bytes[h.wsp_offset as usize..].to_vec())
+        }
+        HeadRead::Bricked(h) if h.object_bytes() == bytes.len() as u64 => {
             Ok(bytes[h.wsp_offset as usize..].to_vec())
         }
         _ => Err(SourceError::Remote(format!(
@@ -133,6 +139,7 @@ impl RangeSource {
             .unwrap_or_else(|e| e.into_inner())
             .object_bytes = head.object_bytes;
         let header = head.header.clone();
+        let bricked = head.bricked_volume().map(Box::new);
         let mut fetch = Fetch {
             url: url.to_string(),
             object,
@@ -150,7 +157,13 @@ impl RangeSource {
             status,
             move |tx, ctl| fetch.run(tx, ctl),
         )?;
-        Ok((RangeSource { feed }, header))
+        Ok((RangeSource { feed, bricked }, header))
+    }
+
+    /// The volume as a session draws it ([`crate::session::RenderSession::new_bricked`]), when
+    /// it is bricked; `None` for one volume.
+    pub fn bricked_volume(&self) -> Option<BrickedVolume> {
+        self.bricked.as_deref().cloned()
     }
 }
 

@@ -8,10 +8,10 @@ use super::{decode_for_session, Decoded, PacketSource, SourceError, SourcePacket
 use crate::bricked::{brick_frames, brick_visibility, check_brick, same_display, whole_geometry};
 use crate::session::{BrickedVolume, SessionBrick};
 use std::collections::HashMap;
-use wavesplat_codec::format::bricked::{is_bricked, parse_bricked};
+use wavesplat_codec::format::bricked::{is_bricked, parse_bricked, BrickEntry, Manifest};
 use wavesplat_codec::format::packet::read_framing;
 use wavesplat_codec::format::{check_kept, parse_file, FormatError, Header};
-use wavesplat_codec::layout::Band;
+use wavesplat_codec::layout::{Band, Geometry};
 use wavesplat_codec::view::visibility::{packet_order, PacketFacts, Visibility};
 use wavesplat_codec::view::ViewSpec;
 
@@ -84,16 +84,7 @@ impl FileSource {
             for (i, entry) in m.bricks.iter().enumerate() {
                 let f = parse_file(file.brick_bytes(i)?)?;
                 let first = bricks.first().map_or(&f.header, |b: &FileBrick| &b.header);
-                if !same_display(&f.header, first) {
-                    return Err(SourceError::Unsupported(format!(
-                        "brick {i} of this bricked file subtracts another offset or colour \
-                         basis than its first brick, so its bricks cannot be drawn into one \
-                         image progressively; render it in one pass (without --progressive, \
-                         --bytes, --budget-ms, --record or --client-memory), or compress it \
-                         again with this version, whose bricks share the whole's offset"
-                    )));
-                }
-                check_brick(i, entry, &f.header, first, m.channels)?;
+                check_session_brick(i, entry, &f.header, first, m.channels)?;
                 let ranges = ranges_in(&bytes, &f.packets);
                 packets.extend(framed(&f.header, &bytes, ranges, i)?);
                 bricks.push(FileBrick {
@@ -108,10 +99,7 @@ impl FileSource {
                 }
                 .into());
             };
-            let mut header = first.header.clone();
-            header.geometry = whole_geometry(m, &first.header);
-            header.placement = m.placement;
-            (header, bricks, packets)
+            (whole_header(m, &first.header), bricks, packets)
         };
         if u32::try_from(packets.len()).is_err() {
             return Err(FormatError::Invalid {
@@ -283,39 +271,101 @@ impl FileSource {
     /// own view of the whole (scaled by its cue factor²), ties in file order; the packets of a
     /// brick the view does not see are left out.
     fn bricked_order(&self, spec: &ViewSpec) -> Result<Vec<u32>, SourceError> {
-        let frames = brick_frames(
-            spec,
-            &self.header.geometry,
-            self.bricks.iter().map(|b| (&b.header.geometry, b.origin)),
-        )
-        .map_err(view_error)?;
-        let mut like = None;
-        let views = self
-            .bricks
-            .iter()
-            .zip(frames)
-            .map(|(b, frame)| {
-                frame
-                    .map(|f| {
-                        let vis = brick_visibility(&b.header, &f.spec, &mut like)?;
-                        Ok((vis, f.cue_scale * f.cue_scale))
-                    })
-                    .transpose()
-            })
-            .collect::<Result<Vec<Option<(Visibility, f64)>>, SourceError>>()?;
-        let mut keyed: Vec<(f64, u32)> = self
-            .packets
-            .iter()
-            .enumerate()
-            .filter_map(|(i, p)| {
-                let (vis, factor) = views[p.brick].as_ref()?;
-                let e = vis.visible_energy(p.tile, &p.summary) * factor;
-                Some((e / p.range.len().max(1) as f64, i as u32))
-            })
-            .collect();
-        keyed.sort_by(|a, b| b.0.total_cmp(&a.0).then(a.1.cmp(&b.1)));
+        let bricks: Vec<(&Header, [u64; 3])> =
+            self.bricks.iter().map(|b| (&b.header, b.origin)).collect();
+        let packets = self.packets.iter().map(|p| BrickPacket {
+            brick: p.brick,
+            tile: p.tile,
+            summary: &p.summary,
+            bytes: p.range.len(),
+        });
+        let keyed = bricked_packet_order(spec, &self.header.geometry, &bricks, packets)?;
         Ok(keyed.into_iter().map(|(_, i)| i).collect())
     }
+}
+
+/// What ranks one packet of a bricked volume.
+pub(crate) struct BrickPacket<'a> {
+    /// Its brick.
+    pub(crate) brick: usize,
+    /// Its tile in the brick.
+    pub(crate) tile: usize,
+    /// Its energy per band.
+    pub(crate) summary: &'a [(Band, f64)],
+    /// Its size.
+    pub(crate) bytes: usize,
+}
+
+/// A bricked volume's packets (ids in the order given) for `spec` by visible energy per byte,
+/// with that figure, best first: each brick's seen by its own view of the whole `whole` (scaled
+/// by its cue factor²), ties by id; the packets of a brick the view does not see are left out.
+/// `bricks`: each brick's header and first voxel in the whole.
+pub(crate) fn bricked_packet_order<'a>(
+    spec: &ViewSpec,
+    whole: &Geometry,
+    bricks: &[(&Header, [u64; 3])],
+    packets: impl Iterator<Item = BrickPacket<'a>>,
+) -> Result<Vec<(f64, u32)>, SourceError> {
+    let frames = brick_frames(
+        spec,
+        whole,
+        bricks.iter().map(|(h, origin)| (&h.geometry, *origin)),
+    )
+    .map_err(view_error)?;
+    let mut like = None;
+    let views = bricks
+        .iter()
+        .zip(frames)
+        .map(|((header, _), frame)| {
+            frame
+                .map(|f| {
+                    let vis = brick_visibility(header, &f.spec, &mut like)?;
+                    Ok((vis, f.cue_scale * f.cue_scale))
+                })
+                .transpose()
+        })
+        .collect::<Result<Vec<Option<(Visibility, f64)>>, SourceError>>()?;
+    let mut keyed: Vec<(f64, u32)> = packets
+        .enumerate()
+        .filter_map(|(i, p)| {
+            let (vis, factor) = views.get(p.brick)?.as_ref()?;
+            let e = vis.visible_energy(p.tile, p.summary) * factor;
+            Some((e / p.bytes.max(1) as f64, i as u32))
+        })
+        .collect();
+    keyed.sort_by(|a, b| b.0.total_cmp(&a.0).then(a.1.cmp(&b.1)));
+    Ok(keyed)
+}
+
+/// Checks brick `i` (manifest entry `entry`, header `header`) against the manifest and the
+/// first brick, for a session that draws every brick into one image.
+pub(crate) fn check_session_brick(
+    i: usize,
+    entry: &BrickEntry,
+    header: &Header,
+    first: &Header,
+    channels: usize,
+) -> Result<(), SourceError> {
+    if !same_display(header, first) {
+        return Err(SourceError::Unsupported(format!(
+            "brick {i} of this bricked file subtracts another offset or colour \
+             basis than its first brick, so its bricks cannot be drawn into one \
+             image progressively; render it in one pass (without --progressive, \
+             --bytes, --budget-ms, --record or --client-memory), or compress it \
+             again with this version, whose bricks share the whole's offset"
+        )));
+    }
+    check_brick(i, entry, header, first, channels)?;
+    Ok(())
+}
+
+/// The header a session draws a bricked volume of `manifest` with: the first brick's, with the
+/// whole's geometry and placement.
+pub(crate) fn whole_header(manifest: &Manifest, first: &Header) -> Header {
+    let mut header = first.clone();
+    header.geometry = whole_geometry(manifest, first);
+    header.placement = manifest.placement;
+    header
 }
 
 /// A view that cannot be placed in a bricked file's bricks (e.g. multiview).

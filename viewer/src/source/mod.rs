@@ -16,7 +16,7 @@
 
 mod cache;
 mod feed;
-mod file;
+pub(crate) mod file;
 
 pub use cache::{CacheSource, CacheSourceOptions};
 pub(crate) use feed::{packet_source_via_feed, Control, Feed, PacketSender};
