@@ -4,8 +4,9 @@
 //!
 //! The volume is any file `compress` reads (read whole here: this measures quality, not
 //! memory). Prints, per brick edge, the file sizes, the compression times and the image SNR in
-//! three views (oblique, along an axis, oblique from the other side), whole against bricked.
-//! The figures are in BENCHMARKS.md ("Scale and robustness").
+//! three views (oblique, along an axis, oblique from the other side), whole against bricked,
+//! and the depth each took; `WAVESPLAT_BRICK_LEVELS=M` gives the bricks depth M instead of the
+//! one they probe for. The figures are in BENCHMARKS.md ("Scale and robustness").
 use std::path::Path;
 use std::time::Instant;
 use wavesplat_codec::layout::Geometry;
@@ -72,9 +73,20 @@ fn main() -> Result<(), Error> {
         sw[1],
         sw[2]
     );
+    // WAVESPLAT_BRICK_LEVELS=M compresses the bricks at depth M instead of the depth they
+    // probe for (the whole's depth is printed to compare).
+    let brick_opts = CompressOptions {
+        levels: match std::env::var("WAVESPLAT_BRICK_LEVELS") {
+            Ok(m) => Some(m.parse()?),
+            Err(_) => None,
+        },
+        ..opts.clone()
+    };
+    println!("whole: depth M = {}", whole.header.geometry.levels);
     for brick in bricks {
         let started = Instant::now();
-        let b = compress_bricked(&volume, &opts, brick, &|_| {})?;
+        let b = compress_bricked(&volume, &brick_opts, brick, &|_| {})?;
+        println!("{brick}³ bricks: depth M = {}", b.levels);
         let secs = started.elapsed().as_secs_f64();
         let sb = snr(&|spec| {
             Ok(draw_bricked_file(&b.bytes, spec, &mut CpuBackend::new())?
