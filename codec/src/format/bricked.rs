@@ -243,10 +243,9 @@ pub fn parse_bricked(bytes: &[u8]) -> Result<BrickedFile<'_>, FormatError> {
 }
 
 /// Parses and validates the manifest at the start of a container of `container_bytes` bytes
-/// from `prefix`, its first bytes (at least the manifest section: what a reader fetching byte
+/// from `bytes`, its first bytes (at least the manifest section: what a reader fetching byte
 /// ranges has), with the checks of [`parse_bricked`].
-pub fn parse_manifest(prefix: &[u8], container_bytes: u64) -> Result<Manifest, FormatError> {
-    let bytes = prefix;
+pub fn parse_manifest(bytes: &[u8], container_bytes: u64) -> Result<Manifest, FormatError> {
     let mut r = ByteReader::new(bytes, "bricked container");
     let version = super::read_magic_and_version(&mut r, bytes)?;
     if version != BRICKED_VERSION {

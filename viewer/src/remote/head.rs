@@ -91,36 +91,41 @@ pub(super) async fn read_head(
             bytes.extend_from_slice(&more);
         }
     }
-    let head: IndexedHead = loop {
-        match read_indexed_head(&bytes).map_err(corrupt)? {
-            HeadRead::Indexed(h) => break *h,
-            HeadRead::Bricked(h) => {
-                if h.object_bytes() != object_bytes {
-                    return Err(SourceError::Remote(format!(
-                        "{url} holds {object_bytes} bytes, its head describes {}: truncated or not this volume",
-                        h.object_bytes()
-                    )));
-                }
-                return Head::bricked(Bytes::from(bytes), *h, object_bytes, url);
-            }
-            HeadRead::Need(n) if n as u64 > object_bytes || n <= bytes.len() => {
+    // The head, and the object length it declares (either layout).
+    let (head, declared) = loop {
+        let read = read_indexed_head(&bytes).map_err(corrupt)?;
+        let declared = match &read {
+            HeadRead::Indexed(h) => h.object_bytes(),
+            HeadRead::Bricked(h) => h.object_bytes(),
+            HeadRead::Need(n) if *n as u64 > object_bytes || *n <= bytes.len() => {
                 return Err(SourceError::Remote(format!(
                     "{url} ends inside its head ({object_bytes} bytes)"
                 )))
             }
             HeadRead::Need(n) => {
-                let (more, _) = object.read(Some(bytes.len() as u64..n as u64)).await?;
+                let (more, _) = object.read(Some(bytes.len() as u64..*n as u64)).await?;
                 count(status, more.len() as u64);
                 bytes.extend_from_slice(&more);
+                continue;
             }
-        }
+        };
+        break (read, declared);
     };
-    if head.object_bytes() != object_bytes {
+    if declared != object_bytes {
         return Err(SourceError::Remote(format!(
-            "{url} holds {object_bytes} bytes, its head describes {}: truncated or not this volume",
-            head.object_bytes()
+            "{url} holds {object_bytes} bytes, its head describes {declared}: truncated or not this volume"
         )));
     }
+    let head: IndexedHead = match head {
+        HeadRead::Indexed(h) => *h,
+        HeadRead::Bricked(h) => return Head::bricked(Bytes::from(bytes), *h, object_bytes, url),
+        // The loop above ends only with a head; an incomplete one is an error, not a panic.
+        HeadRead::Need(n) => {
+            return Err(SourceError::Remote(format!(
+                "{url}: its head needs its first {n} bytes, more than were read"
+            )))
+        }
+    };
     Ok(Head {
         first: Bytes::from(bytes),
         header: head.header,

@@ -34,7 +34,7 @@ use object::Object;
 use std::collections::HashSet;
 use std::path::Path;
 use std::sync::{Arc, Mutex};
-use wavesplat_codec::format::index::{read_indexed_head, HeadRead};
+use wavesplat_codec::format::index::wsp_of_indexed;
 use wavesplat_codec::format::Header;
 use wavesplat_codec::view::ViewSpec;
 
@@ -87,17 +87,10 @@ pub fn fetch_wsp(url: &str, ca: Option<&Path>) -> Result<Vec<u8>, SourceError> {
     if !bytes.starts_with(wavesplat_codec::format::index::INDEXED_MAGIC) {
         return Ok(bytes.to_vec());
     }
-    match read_indexed_head(&bytes).map_err(|e| SourceError::Remote(format!("{url}: {e}")))? {
-        HeadRead::Indexed(h) if h.object_bytes() == bytes.len() as u64 => {
-            Ok(bytes[h.wsp_offset as usize..].to_vec())
-        }
-        HeadRead::Bricked(h) if h.object_bytes() == bytes.len() as u64 => {
-            Ok(bytes[h.wsp_offset as usize..].to_vec())
-        }
-        _ => Err(SourceError::Remote(format!(
-            "{url}: the object does not hold what its head describes"
-        ))),
-    }
+    // The head checked and the object's length held to what it declares, as for a local file.
+    wsp_of_indexed(&bytes)
+        .map(<[u8]>::to_vec)
+        .map_err(|e| SourceError::Remote(format!("{url}: {e}")))
 }
 
 /// Whether `s` names a volume to browse by range requests rather than a local file.
