@@ -256,6 +256,24 @@ fn bricks_coded_otherwise_are_refused() {
     let e = RenderSession::new_bricked(volume, single, CpuBackend::new(), Default::default())
         .unwrap_err();
     assert!(e.to_string().contains("brick 3"), "{e}");
+    // A colour volume's bricks each have a colour basis of their own: the file source refuses
+    // to draw them progressively, saying why, without advising a fresh compression that would
+    // change nothing.
+    let rgb = compress_bricked(
+        &Phantom::RgbHead.generate([40, 36, 32]),
+        &CompressOptions {
+            target: Target::Fraction(0.08),
+            ..CompressOptions::default()
+        },
+        20,
+        &|_| {},
+    )
+    .unwrap();
+    let e = FileSource::open(rgb.bytes, &single)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("colour volume"), "{e}");
+    assert!(!e.contains("compress it again"), "{e}");
 }
 
 /// The bricks of one volume share their band weights: a brick's visibility made with the band

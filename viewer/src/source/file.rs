@@ -347,12 +347,19 @@ pub(crate) fn check_session_brick(
     channels: usize,
 ) -> Result<(), SourceError> {
     if !same_display(header, first) {
+        // A colour volume's bricks each fit a colour basis of their own (in this version too);
+        // a single channel's bricks share the whole's offset in this version (older files of
+        // the bricked format gave each brick its own).
+        let remedy = if header.channels > 1 {
+            " (the bricks of a colour volume each have a colour basis of their own)"
+        } else {
+            ", or compress it again with this version, whose bricks share the whole's offset"
+        };
         return Err(SourceError::Unsupported(format!(
-            "brick {i} of this bricked file subtracts another offset or colour \
-             basis than its first brick, so its bricks cannot be drawn into one \
-             image progressively; render it in one pass (without --progressive, \
-             --bytes, --budget-ms, --record or --client-memory), or compress it \
-             again with this version, whose bricks share the whole's offset"
+            "brick {i} of this bricked volume subtracts another offset or colour basis than \
+             its first brick, so its bricks cannot be drawn into one image progressively; \
+             render a local copy in one pass (without --progressive, --bytes, --budget-ms, \
+             --record or --client-memory){remedy}"
         )));
     }
     check_brick(i, entry, header, first, channels)?;
