@@ -8,7 +8,7 @@
 use super::head::Head;
 use super::object::Object;
 use super::{RangeError, RangeSourceOptions};
-use crate::source::file::{bricked_packet_order, BrickPacket};
+use wavesplat_codec::view::bricked::{bricked_packet_order, BrickPacket};
 use crate::source::{Control, PacketSender, SourceError, SourcePacket, SourceStatus};
 use bytes::Bytes;
 use futures_util::stream::FuturesUnordered;

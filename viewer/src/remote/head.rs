@@ -5,7 +5,8 @@
 
 use super::object::Object;
 use crate::session::{BrickedVolume, SessionBrick};
-use crate::source::file::{check_session_brick, whole_header};
+use crate::source::file::check_session_brick;
+use wavesplat_codec::view::bricked::whole_header;
 use crate::source::{SourceError, SourceStatus};
 use bytes::Bytes;
 use std::sync::Mutex;

@@ -174,6 +174,7 @@ impl Bricks {
             &self.whole,
             self.parts.iter().map(|p| (&p.header.geometry, p.origin)),
         )
+        .map_err(RenderError::from)
     }
 
     /// Plans every brick the view `spec` sees with `plan` (the bricks of one volume share

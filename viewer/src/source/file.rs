@@ -5,14 +5,15 @@
 //! brick's view of the whole; a brick whose box the view does not see sends nothing.
 
 use super::{decode_for_session, Decoded, PacketSource, SourceError, SourcePacket, SourceStatus};
-use crate::bricked::{brick_frames, brick_visibility, check_brick, same_display, whole_geometry};
+use crate::bricked::{check_brick, same_display};
 use crate::session::{BrickedVolume, SessionBrick};
 use std::collections::HashMap;
-use wavesplat_codec::format::bricked::{is_bricked, parse_bricked, BrickEntry, Manifest};
+use wavesplat_codec::format::bricked::{is_bricked, parse_bricked, BrickEntry};
 use wavesplat_codec::format::packet::read_framing;
 use wavesplat_codec::format::{check_kept, parse_file, FormatError, Header};
-use wavesplat_codec::layout::{Band, Geometry};
+use wavesplat_codec::layout::Band;
 use wavesplat_codec::view::visibility::{packet_order, PacketFacts, Visibility};
+use wavesplat_codec::view::bricked::{bricked_packet_order, whole_header, BrickPacket};
 use wavesplat_codec::view::ViewSpec;
 
 /// Where a packet lies in a file and what ranks it.
@@ -284,59 +285,6 @@ impl FileSource {
     }
 }
 
-/// What ranks one packet of a bricked volume.
-pub(crate) struct BrickPacket<'a> {
-    /// Its brick.
-    pub(crate) brick: usize,
-    /// Its tile in the brick.
-    pub(crate) tile: usize,
-    /// Its energy per band.
-    pub(crate) summary: &'a [(Band, f64)],
-    /// Its size.
-    pub(crate) bytes: usize,
-}
-
-/// A bricked volume's packets (ids in the order given) for `spec` by visible energy per byte,
-/// with that figure, best first: each brick's seen by its own view of the whole `whole` (scaled
-/// by its cue factor²), ties by id; the packets of a brick the view does not see are left out.
-/// `bricks`: each brick's header and first voxel in the whole.
-pub(crate) fn bricked_packet_order<'a>(
-    spec: &ViewSpec,
-    whole: &Geometry,
-    bricks: &[(&Header, [u64; 3])],
-    packets: impl Iterator<Item = BrickPacket<'a>>,
-) -> Result<Vec<(f64, u32)>, SourceError> {
-    let frames = brick_frames(
-        spec,
-        whole,
-        bricks.iter().map(|(h, origin)| (&h.geometry, *origin)),
-    )
-    .map_err(view_error)?;
-    let mut like = None;
-    let views = bricks
-        .iter()
-        .zip(frames)
-        .map(|((header, _), frame)| {
-            frame
-                .map(|f| {
-                    let vis = brick_visibility(header, &f.spec, &mut like)?;
-                    Ok((vis, f.cue_scale * f.cue_scale))
-                })
-                .transpose()
-        })
-        .collect::<Result<Vec<Option<(Visibility, f64)>>, SourceError>>()?;
-    let mut keyed: Vec<(f64, u32)> = packets
-        .enumerate()
-        .filter_map(|(i, p)| {
-            let (vis, factor) = views.get(p.brick)?.as_ref()?;
-            let e = vis.visible_energy(p.tile, p.summary) * factor;
-            Some((e / p.bytes.max(1) as f64, i as u32))
-        })
-        .collect();
-    keyed.sort_by(|a, b| b.0.total_cmp(&a.0).then(a.1.cmp(&b.1)));
-    Ok(keyed)
-}
-
 /// Checks brick `i` (manifest entry `entry`, header `header`) against the manifest and the
 /// first brick, for a session that draws every brick into one image.
 pub(crate) fn check_session_brick(
@@ -364,23 +312,6 @@ pub(crate) fn check_session_brick(
     }
     check_brick(i, entry, header, first, channels)?;
     Ok(())
-}
-
-/// The header a session draws a bricked volume of `manifest` with: the first brick's, with the
-/// whole's geometry and placement.
-pub(crate) fn whole_header(manifest: &Manifest, first: &Header) -> Header {
-    let mut header = first.clone();
-    header.geometry = whole_geometry(manifest, first);
-    header.placement = manifest.placement;
-    header
-}
-
-/// A view that cannot be placed in a bricked file's bricks (e.g. multiview).
-fn view_error(e: crate::RenderError) -> SourceError {
-    match e {
-        crate::RenderError::View(v) => SourceError::View(v),
-        other => SourceError::Unsupported(other.to_string()),
-    }
 }
 
 /// The byte ranges of `packets` (slices of `bytes`) in `bytes`.

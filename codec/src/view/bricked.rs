@@ -1,0 +1,298 @@
+//! Views of a bricked volume ([`crate::format::bricked`]): the pure geometry by which every
+//! reader of one (the renderer, the file and range sources, the cache) places the whole's view
+//! in each brick and ranks the bricks' packets together. A brick is seen through the whole's
+//! camera moved into the brick's frame (the same zoom, a pan that puts the whole's centre where
+//! it belongs) and clipped at its faces; depth cueing measures from the whole's light-facing
+//! faces, which differ from a brick's own by a constant distance per brick, so its image (and
+//! its packets' visible energy, squared) is scaled by e^(−k·δ). A brick whose box projects off
+//! the image is seen by no packet of it. The bricks of one view share the band weights of their
+//! visibility ([`Visibility::new_like`]). Multiview of bricks is not placed here: each panel
+//! would move into a brick by a pan of its own, which one brick view cannot hold.
+
+use super::visibility::Visibility;
+use super::{dot, resolve_cue, Camera, ResolvedCue, View, ViewError, ViewSpec};
+use crate::family::Family;
+use crate::format::bricked::{BrickEntry, Manifest};
+use crate::format::{FormatError, Header};
+use crate::layout::{Band, Geometry};
+
+/// The whole volume's geometry for cameras (dims and spacing; no transform of its own, and not
+/// limited to what one transform holds).
+pub fn whole_geometry(manifest: &Manifest, first: &Header) -> Geometry {
+    let dims = manifest.dims.map(|d| d as usize);
+    Geometry {
+        dims,
+        padded: dims,
+        origin: [0; 3],
+        levels: 0,
+        family: first.geometry.family,
+        spacing: manifest.spacing,
+    }
+}
+
+/// The header a reader draws a bricked volume of `manifest` with: the first brick's, with the
+/// whole's geometry and placement.
+pub fn whole_header(manifest: &Manifest, first: &Header) -> Header {
+    let mut header = first.clone();
+    header.geometry = whole_geometry(manifest, first);
+    header.placement = manifest.placement;
+    header
+}
+
+/// Checks brick `i`'s header against its manifest entry: its dimensions, `channels` channels
+/// and the first brick's family.
+pub fn check_brick(
+    i: usize,
+    entry: &BrickEntry,
+    header: &Header,
+    first: &Header,
+    channels: usize,
+) -> Result<(), FormatError> {
+    if header.geometry.dims != entry.dims
+        || header.channels != channels
+        || header.geometry.family != first.geometry.family
+    {
+        return Err(FormatError::Invalid {
+            what: "bricked manifest",
+            detail: format!(
+                "brick {i} at {:?} does not match the manifest or the first brick",
+                entry.origin
+            ),
+        });
+    }
+    Ok(())
+}
+
+/// Whether two bricks' values are shown alike: the same colour space, basis and offset (their
+/// channels' importance may differ: it only ranks).
+pub fn same_display(a: &Header, b: &Header) -> bool {
+    let (a, b) = (&a.color, &b.color);
+    (a.kind, a.basis, a.mean) == (b.kind, b.basis, b.mean)
+}
+
+/// The view of brick `brick_geometry` at `origin` that draws what `whole_view` shows of it.
+pub fn brick_view(
+    whole_view: &View,
+    whole_camera: &Camera,
+    whole: &Geometry,
+    brick_geometry: &Geometry,
+    origin: [u64; 3],
+) -> View {
+    let s = whole_camera.spacing;
+    let centre = |d: usize| (d as f64 - 1.0) / 2.0;
+    // The whole's centre in the brick's voxel indices, minus the brick's centre, in physical
+    // units: the brick's camera looks at its own centre, so the pan moves it by this.
+    let d: [f64; 3] = std::array::from_fn(|a| {
+        (centre(whole.dims[a]) - origin[a] as f64 - centre(brick_geometry.dims[a])) * s[a]
+    });
+    let mut v = *whole_view;
+    v.pan = [
+        whole_view.pan[0] + dot(d, whole_camera.u),
+        whole_view.pan[1] + dot(d, whole_camera.v),
+    ];
+    v
+}
+
+/// Whether the box of a brick at `origin` of `dims` (voxel indices of the whole, its support
+/// reaching `reach` voxels beyond) projects onto the image of `camera`.
+pub fn on_screen(camera: &Camera, origin: [u64; 3], dims: [usize; 3], reach: f64) -> bool {
+    let (mut lo, mut hi) = ([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]);
+    for corner in 0..8 {
+        let x: [f64; 3] = std::array::from_fn(|a| {
+            if corner >> a & 1 == 0 {
+                origin[a] as f64 - 0.5 - reach
+            } else {
+                origin[a] as f64 + dims[a] as f64 - 0.5 + reach
+            }
+        });
+        let p = camera.to_screen(x);
+        for k in 0..2 {
+            lo[k] = lo[k].min(p[k]);
+            hi[k] = hi[k].max(p[k]);
+        }
+    }
+    hi[0] >= 0.0 && lo[0] <= camera.width as f64 && hi[1] >= 0.0 && lo[1] <= camera.height as f64
+}
+
+/// How far beyond a brick's box the splats of `g` reach on `camera`'s screen, in voxels:
+/// clipped splats draw nothing outside it (a pixel's margin); otherwise a basis function
+/// reaches (order/2)·2^M voxels beyond it at most.
+pub fn reach(g: &Geometry, camera: &Camera) -> f64 {
+    if g.clips_to_box() || g.family == Family::Haar {
+        1.0 / camera.zoom
+    } else {
+        0.5 * g.family.order() as f64 * (1u64 << g.levels) as f64
+    }
+}
+
+/// e^(−k·δ): what a brick at `origin` whose own cue is `own` scales its image by so that its
+/// cue measures from the whole's light-facing faces (`whole`), δ the distance between the two.
+pub fn cue_factor(whole: &ResolvedCue, own: &ResolvedCue, origin: [u64; 3]) -> f64 {
+    let delta = whole.dist(origin.map(|v| v as f64)) - own.dist([0.0; 3]);
+    (-whole.k * delta).exp()
+}
+
+/// How one brick draws its share of a single view of the whole: its own view (the whole's
+/// camera moved into the brick's frame) and the factor its image is scaled by so that its
+/// depth cue measures from the whole's light-facing faces (1 without a cue).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct BrickFrame {
+    /// The brick's view.
+    pub spec: ViewSpec,
+    /// e^(−k·δ): δ the distance from the whole's light-facing faces to the brick's.
+    pub cue_scale: f64,
+}
+
+/// The whole's camera and resolved cue for a single view `spec` of `whole` (the frame every
+/// brick is drawn in); multiview is refused ([`ViewError::MultiviewOfBricks`]).
+pub fn whole_frame(
+    spec: &ViewSpec,
+    whole: &Geometry,
+) -> Result<(Camera, Option<ResolvedCue>), ViewError> {
+    if spec.multiview {
+        return Err(ViewError::MultiviewOfBricks);
+    }
+    let camera = spec.cameras(whole)?.remove(0);
+    let cue = spec
+        .view
+        .cue
+        .map(|c| resolve_cue(&c, &camera, whole))
+        .transpose()?;
+    Ok((camera, cue))
+}
+
+/// How the brick of `geometry` at `origin` draws its share of the single view `spec` of the
+/// whole (camera and cue from [`whole_frame`]); `None` when its box projects off the image.
+pub fn brick_frame(
+    spec: &ViewSpec,
+    (camera, whole_cue): (&Camera, Option<&ResolvedCue>),
+    whole: &Geometry,
+    geometry: &Geometry,
+    origin: [u64; 3],
+) -> Result<Option<BrickFrame>, ViewError> {
+    if !on_screen(camera, origin, geometry.dims, reach(geometry, camera)) {
+        return Ok(None);
+    }
+    let view = brick_view(&spec.view, camera, whole, geometry, origin);
+    let cue_scale = match (whole_cue, view.cue) {
+        (Some(wc), Some(cue)) => {
+            let own = resolve_cue(&cue, &Camera::new(&view, geometry)?, geometry)?;
+            cue_factor(wc, &own, origin)
+        }
+        _ => 1.0,
+    };
+    Ok(Some(BrickFrame {
+        spec: ViewSpec::single(view),
+        cue_scale,
+    }))
+}
+
+/// The frames of `spec` for bricks given by geometry and origin, in the order given (`None`:
+/// the brick projects off the image).
+pub fn brick_frames<'a>(
+    spec: &ViewSpec,
+    whole: &Geometry,
+    bricks: impl IntoIterator<Item = (&'a Geometry, [u64; 3])>,
+) -> Result<Vec<Option<BrickFrame>>, ViewError> {
+    let (camera, cue) = whole_frame(spec, whole)?;
+    bricks
+        .into_iter()
+        .map(|(g, origin)| brick_frame(spec, (&camera, cue.as_ref()), whole, g, origin))
+        .collect()
+}
+
+/// The visibility of a brick of `header` in its frame's `spec`, sharing the band weights of
+/// the first brick's visibility kept in `like` (set by the first call): the bricks of one
+/// view share them ([`Visibility::new_like`]).
+pub fn brick_visibility(
+    header: &Header,
+    spec: &ViewSpec,
+    like: &mut Option<Visibility>,
+) -> Result<Visibility, ViewError> {
+    let visibility = match like.as_ref() {
+        Some(l) => Visibility::new_like(header, spec, l)?,
+        None => Visibility::new(header, spec)?,
+    };
+    like.get_or_insert_with(|| visibility.clone());
+    Ok(visibility)
+}
+
+/// What one view of a bricked volume sees of each brick's packets: per brick, its visibility in
+/// its frame and its cue factor squared (energy scales with the square of the values), or
+/// nothing for a brick off the image.
+#[derive(Debug, Clone)]
+pub struct BrickedVisibility {
+    bricks: Vec<Option<(Visibility, f64)>>,
+}
+
+impl BrickedVisibility {
+    /// The view `spec` of the whole `whole` seen in bricks given by header and first voxel.
+    pub fn new(
+        spec: &ViewSpec,
+        whole: &Geometry,
+        bricks: &[(&Header, [u64; 3])],
+    ) -> Result<BrickedVisibility, ViewError> {
+        let frames = brick_frames(spec, whole, bricks.iter().map(|(h, o)| (&h.geometry, *o)))?;
+        let mut like = None;
+        let bricks = bricks
+            .iter()
+            .zip(frames)
+            .map(|((header, _), frame)| {
+                frame
+                    .map(|f| {
+                        let vis = brick_visibility(header, &f.spec, &mut like)?;
+                        Ok((vis, f.cue_scale * f.cue_scale))
+                    })
+                    .transpose()
+            })
+            .collect::<Result<_, ViewError>>()?;
+        Ok(BrickedVisibility { bricks })
+    }
+
+    /// Whether the view sees brick `brick` at all (its box projects onto the image).
+    pub fn sees(&self, brick: usize) -> bool {
+        self.bricks.get(brick).is_some_and(Option::is_some)
+    }
+
+    /// The visible energy of a packet of brick `brick` (tile `tile`, energy per band
+    /// `summary`); `None` for a brick off the image.
+    pub fn visible_energy(&self, brick: usize, tile: usize, summary: &[(Band, f64)]) -> Option<f64> {
+        let (vis, factor) = self.bricks.get(brick)?.as_ref()?;
+        Some(vis.visible_energy(tile, summary) * factor)
+    }
+}
+
+/// What ranks one packet of a bricked volume.
+#[derive(Debug, Clone, Copy)]
+pub struct BrickPacket<'a> {
+    /// Its brick.
+    pub brick: usize,
+    /// Its tile in the brick.
+    pub tile: usize,
+    /// Its energy per band.
+    pub summary: &'a [(Band, f64)],
+    /// Its size.
+    pub bytes: usize,
+}
+
+/// A bricked volume's packets (ids in the order given) for `spec` by visible energy per byte,
+/// with that figure, best first: each brick's seen by its own view of the whole `whole` (scaled
+/// by its cue factor²), ties by id; the packets of a brick the view does not see are left out.
+/// `bricks`: each brick's header and first voxel in the whole.
+pub fn bricked_packet_order<'a>(
+    spec: &ViewSpec,
+    whole: &Geometry,
+    bricks: &[(&Header, [u64; 3])],
+    packets: impl Iterator<Item = BrickPacket<'a>>,
+) -> Result<Vec<(f64, u32)>, ViewError> {
+    let seen = BrickedVisibility::new(spec, whole, bricks)?;
+    let mut keyed: Vec<(f64, u32)> = packets
+        .enumerate()
+        .filter_map(|(i, p)| {
+            let e = seen.visible_energy(p.brick, p.tile, p.summary)?;
+            Some((e / p.bytes.max(1) as f64, i as u32))
+        })
+        .collect();
+    keyed.sort_by(|a, b| b.0.total_cmp(&a.0).then(a.1.cmp(&b.1)));
+    Ok(keyed)
+}
