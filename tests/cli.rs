@@ -838,23 +838,9 @@ fn a_bricked_volume_is_compressed_listed_and_rendered() {
         err(&window)
     );
     // Published (the indexed layout of every brick; browsing it is tests/range_browse.rs), and
-    // read back locally as the same volume. A cache node does not take it yet: `cache ingest`
-    // says so and what to do instead, before connecting anywhere.
+    // read back locally as the same volume. (Cache nodes serve it too: tests/cache_bricked.rs.)
     let published = run(&["publish", &path("b.wsp"), "-o", &path("b.wspx")]);
     assert!(published.status.success(), "{}", err(&published));
     let info = run(&["info", &path("b.wspx")]);
     assert!(out(&info).contains("bricks      8"), "{}", out(&info));
-    let ingest = run(&[
-        "cache",
-        "ingest",
-        &path("b.wsp"),
-        "--cache",
-        "http://127.0.0.1:9",
-    ]);
-    assert!(!ingest.status.success());
-    assert!(
-        err(&ingest).contains("bricked") && err(&ingest).contains("wavesplat publish"),
-        "{}",
-        err(&ingest)
-    );
 }

@@ -6,6 +6,8 @@
 //!   indexed layout (`wavesplat_codec::format::index`): a reader has the header and the whole
 //!   packet index (tiles, layers, the energy summaries the planner weighs) after one ranged
 //!   request (two when they are larger than the first request), then fetches packets by range;
+//!   a bricked volume is its container in the bricked indexed layout (version 2: the manifest,
+//!   then every brick's header and index), its packets numbered brick after brick;
 //! - `names/<hex of the name>`: one small object per name holding the content hash, written
 //!   with `If-None-Match: *`, so two nodes that ingest the same volume at once store it once and
 //!   the same name cannot point at two contents.
@@ -22,7 +24,7 @@
 //! stream's task are async ([`Bucket::read`]).
 
 use crate::error::CacheError;
-use crate::model::{PacketMeta, VolumeKey, VolumeMeta};
+use crate::model::{BrickedIndex, IndexBrick, PacketMeta, VolumeIndex, VolumeKey, VolumeMeta};
 use bytes::Bytes;
 use futures_util::{StreamExt, TryStreamExt};
 use object_store::path::Path as ObjectPath;
@@ -31,7 +33,11 @@ use std::collections::HashMap;
 use std::num::NonZeroUsize;
 use std::ops::Range;
 use std::sync::{Arc, Mutex};
-use wavesplat_codec::format::index::{read_indexed_head, HeadRead, IndexedHead, HEAD_READ_BYTES};
+use wavesplat_codec::format::bricked::manifest_section;
+use wavesplat_codec::format::index::{
+    read_indexed_head, BrickedHead, HeadRead, IndexedHead, HEAD_READ_BYTES,
+};
+use wavesplat_codec::view::bricked::{check_brick, whole_header};
 use wavesplat_net::digest::{hex, unhex};
 
 /// Name records fetched at once when listing.
@@ -57,10 +63,88 @@ const NAME_MAGIC: &[u8; 4] = b"WSPN";
 pub struct BucketVolume {
     /// Its content hash.
     pub sha256: [u8; 32],
-    /// Header and index.
-    pub head: Arc<IndexedHead>,
+    /// Header and index (packet offsets within the `.wsp` or bricked container).
+    pub index: VolumeIndex,
+    /// Where the `.wsp` or container starts in the object (add it to a packet's offset).
+    pub wsp_offset: u64,
+    /// Length of the `.wsp` or container.
+    pub wsp_bytes: u64,
     /// When the object was written (ms since the Unix epoch).
     pub created_unix_ms: u64,
+}
+
+impl BucketVolume {
+    /// An opened object of one volume.
+    fn whole(sha256: [u8; 32], h: IndexedHead, created_unix_ms: u64) -> BucketVolume {
+        BucketVolume {
+            sha256,
+            index: VolumeIndex {
+                header: h.header,
+                header_bytes: h.header_bytes,
+                packets: h.packets,
+                bricked: None,
+            },
+            wsp_offset: h.wsp_offset,
+            wsp_bytes: h.wsp_bytes,
+            created_unix_ms,
+        }
+    }
+
+    /// An opened object of a bricked volume (the indexed layout's version 2): its bricks
+    /// checked against the manifest and the first brick, its packets numbered brick after
+    /// brick with offsets from the container's start, and the manifest section clients get
+    /// as the volume's header bytes.
+    fn bricked(
+        sha256: [u8; 32],
+        h: BrickedHead,
+        created_unix_ms: u64,
+    ) -> Result<BucketVolume, CacheError> {
+        let m = &h.manifest;
+        let first = h
+            .bricks
+            .first()
+            .map(|b| b.header.clone())
+            .ok_or_else(|| CacheError::Corrupt("a bricked volume of no bricks".into()))?;
+        let mut packets = Vec::new();
+        let mut bricks = Vec::with_capacity(h.bricks.len());
+        for (i, (b, entry)) in h.bricks.into_iter().zip(&m.bricks).enumerate() {
+            check_brick(i, entry, &b.header, &first, m.channels)?;
+            let first_packet = u32::try_from(packets.len())
+                .ok()
+                .filter(|n| n.checked_add(b.packets.len() as u32).is_some())
+                .ok_or_else(|| CacheError::Corrupt("more than 2^32 packets".into()))?;
+            bricks.push(IndexBrick {
+                header: b.header,
+                header_bytes: b.header_bytes,
+                origin: entry.origin,
+                first_packet,
+                packets: b.packets.len() as u32,
+            });
+            packets.extend(b.packets.into_iter().map(|p| PacketMeta {
+                offset: entry.offset + p.offset,
+                ..p
+            }));
+        }
+        Ok(BucketVolume {
+            sha256,
+            index: VolumeIndex {
+                header: whole_header(m, &first),
+                header_bytes: manifest_section(m),
+                packets,
+                bricked: Some(Box::new(BrickedIndex {
+                    manifest: h.manifest,
+                    bricks,
+                })),
+            },
+            wsp_offset: h.wsp_offset,
+            wsp_bytes: h.wsp_bytes,
+            created_unix_ms,
+        })
+    }
+
+    fn object_bytes(&self) -> u64 {
+        self.wsp_offset + self.wsp_bytes
+    }
 }
 
 /// The store's handle on a bucket; cheap to share.
@@ -353,17 +437,15 @@ impl Bucket {
             .await
             .map_err(|e| self.failed("reading", &path, e))?
             .to_vec();
-        let head = loop {
-            match read_indexed_head(&bytes).map_err(|e| {
-                CacheError::Corrupt(format!("the head of {path} in {}: {e}", self.url))
-            })? {
-                HeadRead::Indexed(h) => break h,
-                // Ingest refuses bricked volumes, so a bucket node never wrote one.
-                HeadRead::Bricked(_) => {
-                    return Err(CacheError::Corrupt(format!(
-                        "{path} in {} is a bricked volume, which cache nodes do not serve yet",
-                        self.url
-                    )))
+        let corrupt = |e: &dyn std::fmt::Display| {
+            CacheError::Corrupt(format!("the head of {path} in {}: {e}", self.url))
+        };
+        let v = loop {
+            match read_indexed_head(&bytes).map_err(|e| corrupt(&e))? {
+                HeadRead::Indexed(h) => break BucketVolume::whole(*sha256, *h, created_unix_ms),
+                HeadRead::Bricked(h) => {
+                    break BucketVolume::bricked(*sha256, *h, created_unix_ms)
+                        .map_err(|e| corrupt(&e))?
                 }
                 HeadRead::Need(n) if (n as u64) > object_bytes || n <= bytes.len() => {
                     return Err(CacheError::Corrupt(format!(
@@ -381,18 +463,14 @@ impl Bucket {
                 }
             }
         };
-        if head.object_bytes() != object_bytes {
+        if v.object_bytes() != object_bytes {
             return Err(CacheError::Corrupt(format!(
                 "{path} in {} holds {object_bytes} bytes, its head describes {}",
                 self.url,
-                head.object_bytes()
+                v.object_bytes()
             )));
         }
-        let v = Arc::new(BucketVolume {
-            sha256: *sha256,
-            head: Arc::from(head),
-            created_unix_ms,
-        });
+        let v = Arc::new(v);
         if let Ok(mut h) = self.heads.lock() {
             h.put(*sha256, v.clone());
         }
@@ -627,18 +705,21 @@ impl Bucket {
 
 /// The record of an opened volume under `names`.
 fn meta_of(v: &BucketVolume, names: Vec<String>) -> VolumeMeta {
-    let h = &v.head;
-    let packets: &[PacketMeta] = &h.packets;
-    VolumeMeta::from_header(
+    let h = &v.index;
+    let mut meta = VolumeMeta::from_header(
         content_id(&v.sha256),
         names,
         v.sha256,
         v.created_unix_ms,
-        h.wsp_bytes,
+        v.wsp_bytes,
         &h.header,
         h.header_bytes.len(),
-        packets,
-    )
+        &h.packets,
+    );
+    if let Some(b) = &h.bricked {
+        meta.describe_bricks(h.header_bytes.len(), b);
+    }
+    meta
 }
 
 fn name_record(sha256: &[u8; 32]) -> Vec<u8> {

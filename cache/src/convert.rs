@@ -2,7 +2,7 @@
 //! into typed values (with range checks that need no store), results are turned into messages.
 
 use crate::error::CacheError;
-use crate::model::{PacketMeta, VolumeKey, VolumeMeta};
+use crate::model::{PacketMeta, VolumeIndex, VolumeKey, VolumeMeta};
 use wavesplat_codec::view::{Cue, CueDirection, View, ViewSpec};
 use wavesplat_proto::pb;
 
@@ -14,6 +14,24 @@ pub fn volume_key(r: Option<pb::VolumeRef>) -> Result<VolumeKey, CacheError> {
         None => Err(CacheError::InvalidRequest(
             "missing volume reference (id or name)".into(),
         )),
+    }
+}
+
+/// A volume's header message: its facts, its header section and, for a bricked volume, its
+/// bricks' headers.
+pub fn volume_header(meta: &VolumeMeta, index: &VolumeIndex) -> pb::VolumeHeader {
+    pb::VolumeHeader {
+        volume: Some(volume_info(meta)),
+        header: index.header_bytes.clone(),
+        bricks: index.bricked.as_ref().map_or_else(Vec::new, |b| {
+            b.bricks
+                .iter()
+                .map(|k| pb::BrickHeader {
+                    header: k.header_bytes.clone(),
+                    packets: k.packets,
+                })
+                .collect()
+        }),
     }
 }
 

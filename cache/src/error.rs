@@ -60,6 +60,9 @@ pub enum CacheError {
     /// A limit on concurrent work was reached (per client or for the server).
     #[error("busy: {0}")]
     Busy(String),
+    /// The request cannot be served for this volume (it names what can).
+    #[error("not supported: {0}")]
+    Unsupported(String),
     /// The request's credentials do not allow it.
     #[error("permission denied: {0}")]
     PermissionDenied(String),
@@ -99,6 +102,7 @@ impl From<CacheError> for tonic::Status {
             CacheError::Cancelled(_) => tonic::Status::cancelled(msg),
             CacheError::Busy(_) => tonic::Status::resource_exhausted(msg),
             CacheError::PermissionDenied(_) => tonic::Status::permission_denied(msg),
+            CacheError::Unsupported(_) => tonic::Status::failed_precondition(msg),
             CacheError::Storage(_)
             | CacheError::Corrupt(_)
             | CacheError::Io(_)

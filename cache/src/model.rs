@@ -4,8 +4,9 @@
 //! (bounds-checked reads through the codec's byte reader, so a corrupt entry is an error).
 
 use crate::error::CacheError;
+use wavesplat_codec::format::bricked::{parse_manifest, Manifest};
 use wavesplat_codec::format::bytes::{ByteReader, ByteWriter};
-use wavesplat_codec::format::Header;
+use wavesplat_codec::format::{read_header_section, Header};
 
 pub use wavesplat_net::VolumeKey;
 
@@ -82,6 +83,26 @@ impl VolumeMeta {
             tile: h.tile as u32,
             coefficients: h.kept,
         }
+    }
+
+    /// Makes a record made from a bricked volume's whole header (`from_header`) describe its
+    /// bricks: their levels, tiles and coefficients, and the header bytes of the manifest
+    /// section (`section_bytes`) and every brick.
+    pub(crate) fn describe_bricks(&mut self, section_bytes: usize, b: &BrickedIndex) {
+        let first = &b.bricks[0].header;
+        self.levels = first.geometry.levels as u32;
+        self.tile_count = b
+            .bricks
+            .iter()
+            .map(|k| k.header.tile_count() as u64)
+            .sum::<u64>()
+            .min(u64::from(u32::MAX)) as u32;
+        self.coefficients = b.manifest.kept();
+        self.header_bytes = section_bytes as u64
+            + b.bricks
+                .iter()
+                .map(|k| k.header_bytes.len() as u64)
+                .sum::<u64>();
     }
 
     /// SHA-256 as lower-case hex.
@@ -203,12 +224,107 @@ pub use wavesplat_codec::format::index::PacketMeta;
 /// store's encoding of the index (with the packets' offsets) is its own tree's format.
 #[derive(Debug, Clone)]
 pub struct VolumeIndex {
-    /// The parsed header.
+    /// The parsed header (a bricked volume's: the whole's, for views and listings).
     pub header: Header,
-    /// The header section bytes (what clients need to decode packets).
+    /// The header section bytes (what clients need to decode packets); a bricked volume's:
+    /// its container's manifest section.
     pub header_bytes: Vec<u8>,
-    /// Per packet, in file order.
+    /// Per packet, in file order (a bricked volume's: brick after brick, offsets from the
+    /// container's start).
     pub packets: Vec<PacketMeta>,
+    /// A bricked volume's bricks.
+    pub bricked: Option<Box<BrickedIndex>>,
+}
+
+impl VolumeIndex {
+    /// The brick packet `id` belongs to (0 for one volume).
+    pub fn brick_of(&self, id: u32) -> usize {
+        self.bricked.as_ref().map_or(0, |b| {
+            b.bricks
+                .partition_point(|k| k.first_packet <= id)
+                .saturating_sub(1)
+        })
+    }
+}
+
+/// The bricks of a bricked volume as the store keeps them: the manifest and each brick's header.
+#[derive(Debug, Clone)]
+pub struct BrickedIndex {
+    /// The parsed manifest.
+    pub manifest: Manifest,
+    /// Each brick, in manifest order.
+    pub bricks: Vec<IndexBrick>,
+}
+
+/// One brick of a stored bricked volume.
+#[derive(Debug, Clone)]
+pub struct IndexBrick {
+    /// Its header.
+    pub header: Header,
+    /// Its header section bytes (what clients decode its packets with).
+    pub header_bytes: Vec<u8>,
+    /// Its first voxel in the whole.
+    pub origin: [u64; 3],
+    /// The volume-wide id of its first packet.
+    pub first_packet: u32,
+    /// Its packets.
+    pub packets: u32,
+}
+
+/// Encodes the bricks' headers and packet counts (the manifest is stored on its own).
+pub(crate) fn encode_bricks(bricks: &[IndexBrick]) -> Vec<u8> {
+    let mut w = ByteWriter::new();
+    w.u8(1); // record version
+    w.u32(bricks.len() as u32);
+    for b in bricks {
+        w.u32(b.header_bytes.len() as u32);
+        w.bytes(&b.header_bytes);
+        w.u32(b.packets);
+    }
+    w.into_bytes()
+}
+
+/// Decodes what [`encode_bricks`] wrote for the volume of `manifest` (the manifest section of a
+/// container of `file_bytes` bytes), checking the bricks against the manifest.
+pub(crate) fn decode_bricks(
+    manifest_section: &[u8],
+    file_bytes: u64,
+    bytes: &[u8],
+) -> Result<BrickedIndex, CacheError> {
+    let corrupt = |e: String| CacheError::Corrupt(format!("stored bricks: {e}"));
+    let manifest =
+        parse_manifest(manifest_section, file_bytes).map_err(|e| corrupt(e.to_string()))?;
+    let mut r = ByteReader::new(bytes, "stored bricks");
+    let version = r.u8()?;
+    if version != 1 {
+        return Err(corrupt(format!("record version {version}")));
+    }
+    let n = r.u32()? as usize;
+    if n != manifest.bricks.len() {
+        return Err(corrupt(format!(
+            "{n} bricks for a manifest of {}",
+            manifest.bricks.len()
+        )));
+    }
+    let mut bricks = Vec::with_capacity(n);
+    let mut first_packet = 0u32;
+    for entry in &manifest.bricks {
+        let len = r.u32()? as usize;
+        let header_bytes = r.take(len)?.to_vec();
+        let (header, _) = read_header_section(&header_bytes).map_err(|e| corrupt(e.to_string()))?;
+        let packets = r.u32()?;
+        bricks.push(IndexBrick {
+            header,
+            header_bytes,
+            origin: entry.origin,
+            first_packet,
+            packets,
+        });
+        first_packet = first_packet
+            .checked_add(packets)
+            .ok_or_else(|| corrupt("more than 2^32 packets".into()))?;
+    }
+    Ok(BrickedIndex { manifest, bricks })
 }
 
 /// Encodes a packet index.

@@ -1,8 +1,10 @@
 //! The one place where the generated `pb` types meet the client's domain types: requests built
 //! from domain values, responses checked and turned into domain values.
 
-use crate::{ClientError, Packet, VolumeHeader, VolumeInfo, VolumeKey};
+use crate::{BrickHeader, ClientError, Packet, VolumeHeader, VolumeInfo, VolumeKey};
+use wavesplat_codec::format::bricked::parse_manifest;
 use wavesplat_codec::format::read_header_section;
+use wavesplat_codec::view::bricked::{check_brick, whole_header};
 use wavesplat_codec::view::{CueDirection, Orientation, ViewError, ViewSpec};
 use wavesplat_proto::pb;
 
@@ -107,11 +109,49 @@ pub(crate) fn volume_header(h: pb::VolumeHeader) -> Result<VolumeHeader, ClientE
         h.volume
             .ok_or_else(|| ClientError::Protocol("header without volume facts".into()))?,
     )?;
-    let (header, _) = read_header_section(&h.header)?;
+    if h.bricks.is_empty() {
+        let (header, _) = read_header_section(&h.header)?;
+        return Ok(VolumeHeader {
+            info,
+            header,
+            bytes: h.header,
+            bricks: Vec::new(),
+        });
+    }
+    // A bricked volume: the manifest places the bricks (checked against the file's size), each
+    // brick's header against its entry, and their packets against the volume's count.
+    let manifest = parse_manifest(&h.header, info.file_bytes)?;
+    if manifest.bricks.len() != h.bricks.len() {
+        return Err(ClientError::Protocol(format!(
+            "{} brick headers for a manifest of {} bricks",
+            h.bricks.len(),
+            manifest.bricks.len()
+        )));
+    }
+    let mut bricks = Vec::with_capacity(h.bricks.len());
+    let mut packets = 0u64;
+    for (i, (b, entry)) in h.bricks.iter().zip(&manifest.bricks).enumerate() {
+        let (header, _) = read_header_section(&b.header)?;
+        let first = bricks.first().map_or(&header, |f: &BrickHeader| &f.header);
+        check_brick(i, entry, &header, first, manifest.channels)?;
+        packets += u64::from(b.packets);
+        bricks.push(BrickHeader {
+            header,
+            origin: entry.origin,
+            packets: b.packets,
+        });
+    }
+    if packets != u64::from(info.packet_count) {
+        return Err(ClientError::Protocol(format!(
+            "the bricks have {packets} packets, the volume {}",
+            info.packet_count
+        )));
+    }
     Ok(VolumeHeader {
+        header: whole_header(&manifest, &bricks[0].header),
         info,
-        header,
         bytes: h.header,
+        bricks,
     })
 }
 

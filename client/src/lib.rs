@@ -162,10 +162,24 @@ pub struct VolumeInfo {
 pub struct VolumeHeader {
     /// The cache's facts.
     pub info: VolumeInfo,
-    /// The parsed, validated header.
+    /// The parsed, validated header (a bricked volume's: the whole's, for views).
     pub header: Header,
-    /// The header section as stored (magic to header CRC).
+    /// The header section as stored (magic to header CRC; a bricked volume's: its container's
+    /// manifest section).
     pub bytes: Vec<u8>,
+    /// A bricked volume's bricks, in the order of their packets' ids (empty for one volume).
+    pub bricks: Vec<BrickHeader>,
+}
+
+/// One brick of a bricked volume as the cache describes it.
+#[derive(Debug, Clone)]
+pub struct BrickHeader {
+    /// Its header (what its packets decode with).
+    pub header: Header,
+    /// Its first voxel in the whole.
+    pub origin: [u64; 3],
+    /// Its packets (their ids follow the previous bricks').
+    pub packets: u32,
 }
 
 /// One packet as the cache sent it.

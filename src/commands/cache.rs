@@ -2,7 +2,7 @@
 //! ingest|list|show|rm` (talk to one). Wiring only: the server lives in `wavesplat-cache`, the
 //! client in `wavesplat-client`.
 
-use anyhow::{bail, Context, Result};
+use anyhow::{Context, Result};
 use clap::{Args, Subcommand};
 use std::path::PathBuf;
 use wavesplat_cache::{Limits, Store};
@@ -141,15 +141,6 @@ pub fn run(cmd: CacheCommand) -> Result<()> {
     match cmd {
         CacheCommand::Ingest(a) => {
             let bytes = super::read_wsp(&a.input)?;
-            if wavesplat_codec::format::bricked::is_bricked(&bytes) {
-                bail!(
-                    "{} is a bricked volume, which cache nodes do not serve yet: publish it \
-                     (wavesplat publish {} -o VOLUME.wspx) on a web server or bucket and browse \
-                     it by URL (wavesplat render|view https://HOST/VOLUME.wspx)",
-                    a.input.display(),
-                    a.input.display()
-                );
-            }
             let name = match a.name {
                 Some(n) => n,
                 None => a
@@ -204,6 +195,18 @@ pub fn run(cmd: CacheCommand) -> Result<()> {
                 v.packet_bytes
             );
             super::info::print_header(&h.header);
+            if let Some(first) = h.bricks.first() {
+                outln!(
+                    "bricks      {} (the first at {:?}, {}x{}x{} voxels, {} levels); the header \
+                     above is the whole's",
+                    h.bricks.len(),
+                    first.origin,
+                    first.header.geometry.dims[0],
+                    first.header.geometry.dims[1],
+                    first.header.geometry.dims[2],
+                    first.header.geometry.levels
+                );
+            }
             outln!(
                 "packets     {} holding {} coefficients",
                 v.packet_count,

@@ -342,6 +342,16 @@ impl Opened {
                 })?;
                 return draw(&bytes);
             }
+            Opened::Cache { source, key, .. } if source.bricked_volume().is_some() => {
+                return Err(OpenError::Source {
+                    what: key.to_string(),
+                    source: SourceError::Unsupported(
+                        "the reference image of a bricked volume is drawn from its file: \
+                         compare against the local .wsp file or its published URL"
+                            .into(),
+                    ),
+                });
+            }
             _ => {}
         }
         display_image(header, &self.all_coefficients(header)?, spec)
@@ -353,7 +363,7 @@ impl Opened {
         match self {
             Opened::File { source } => source.bricked_volume(),
             Opened::Remote { source, .. } => source.bricked_volume(),
-            Opened::Cache { .. } => None,
+            Opened::Cache { source, .. } => source.bricked_volume(),
         }
     }
 }

@@ -378,10 +378,10 @@ impl Cache for CacheService {
         let store = self.store.clone();
         let (volume, name) =
             blocking(move || Ok((store.open_volume(store.resolve(&key)?)?, key))).await?;
-        Ok(Response::new(pb::VolumeHeader {
-            volume: Some(convert::volume_info(&named(&volume, &name))),
-            header: volume.index.header_bytes.clone(),
-        }))
+        Ok(Response::new(convert::volume_header(
+            &named(&volume, &name),
+            &volume.index,
+        )))
     }
 
     async fn packet_table(
@@ -418,6 +418,13 @@ impl Cache for CacheService {
         let store = self.store.clone();
         let resp = blocking(move || {
             let volume = store.open_volume(store.resolve(&key)?)?;
+            if volume.index.bricked.is_some() {
+                return Err(CacheError::Unsupported(
+                    "a bricked volume's first packets are one brick's: its packets are \
+                     streamed by Refine, whose header message carries its bricks"
+                        .into(),
+                ));
+            }
             let mut packets = Vec::new();
             let mut used = 0u64;
             for (i, p) in volume.index.packets.iter().enumerate() {
@@ -499,12 +506,12 @@ fn named(volume: &OpenVolume, key: &crate::VolumeKey) -> crate::VolumeMeta {
 
 #[cfg(test)]
 mod tests {
+    use super::session::Ranking;
     use super::session::CHEAP_PLAN_PACKETS;
     use super::*;
     use crate::Limits;
     use pb::refine_response::Msg;
     use std::time::Duration;
-    use wavesplat_codec::view::priority::Priority;
     use wavesplat_codec::view::ViewSpec;
 
     fn open_test_volume(dir: &std::path::Path) -> Arc<OpenVolume> {
@@ -539,7 +546,7 @@ mod tests {
     async fn serve(
         volume: &Arc<OpenVolume>,
         visible_only: bool,
-        planning: tokio::task::JoinHandle<Result<Priority, Status>>,
+        planning: tokio::task::JoinHandle<Result<Ranking, Status>>,
     ) -> (
         tokio::task::JoinHandle<()>,
         mpsc::Receiver<Result<pb::RefineResponse, Status>>,
@@ -618,7 +625,7 @@ mod tests {
         // Once the plan arrives, the rest follows in the view's descending priority, each
         // packet once.
         let spec = ViewSpec::single(wavesplat_codec::view::View::new(0.7, 0.4, 48, 48));
-        let planned = Priority::new(&volume.index.header, &spec).unwrap();
+        let planned = Ranking::new(&volume.index, &spec).unwrap();
         let (gate_tx, gate_rx) = tokio::sync::oneshot::channel::<()>();
         let planning = tokio::spawn(async move {
             let _ = gate_rx.await;
@@ -724,7 +731,7 @@ mod tests {
         session.hold(&[first]).unwrap();
         session.release(&[first]).unwrap();
         let spec = ViewSpec::single(wavesplat_codec::view::View::new(0.7, 0.4, 48, 48));
-        let priority = Priority::new(&volume.index.header, &spec).unwrap();
+        let priority = Ranking::new(&volume.index, &spec).unwrap();
         session.reorder(priority.clone());
         assert!(!session.queue.iter().any(|(_, id)| *id == first));
         assert_eq!(session.queue.len(), volume.index.packets.len() - 1);

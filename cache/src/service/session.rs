@@ -1,24 +1,66 @@
 //! One refinement stream: its volume held open, the unsent-packet queue in the view's order,
 //! the client's credit, holdings and view changes read from the same stream, `done` announced
 //! per view; and the planning of a view on the bounded planner pool (small volumes plan at once).
+//! A bricked volume's packets are ranked together, each by its brick's view of the whole
+//! ([`wavesplat_codec::view::bricked`]); a brick the view does not see sends nothing in that
+//! view.
 
 use super::named;
 use super::{blocking, next_message, UNPLANNED_SHARE};
 use crate::convert;
 use crate::error::CacheError;
+use crate::model::{PacketMeta, VolumeIndex};
 use crate::store::OpenVolume;
 use std::collections::HashSet;
 use std::sync::Arc;
 use tokio::sync::{mpsc, watch, Semaphore};
 use tokio_stream::Stream;
 use tonic::Status;
+use wavesplat_codec::view::bricked::BrickedVisibility;
 use wavesplat_codec::view::priority::Priority;
-use wavesplat_codec::view::ViewSpec;
+use wavesplat_codec::view::{ViewError, ViewSpec};
 use wavesplat_proto::pb;
 
 /// Volumes with at most this many packets plan in well under a millisecond (0.37 ms at 180
 /// packets): their plans skip the planner pool, whose queue would cost more than the plan.
 pub(super) const CHEAP_PLAN_PACKETS: usize = 512;
+
+/// What one view ranks a volume's packets by.
+#[derive(Debug, Clone)]
+pub(super) enum Ranking {
+    /// One volume: its visibility.
+    Whole(Priority),
+    /// A bricked volume: each brick's visibility in its frame (none off the image).
+    Bricked(BrickedVisibility),
+}
+
+impl Ranking {
+    /// The ranking of `spec` for the volume of `index`.
+    pub(super) fn new(index: &VolumeIndex, spec: &ViewSpec) -> Result<Ranking, ViewError> {
+        Ok(match &index.bricked {
+            None => Ranking::Whole(Priority::new(&index.header, spec)?),
+            Some(b) => {
+                let bricks: Vec<_> = b.bricks.iter().map(|k| (&k.header, k.origin)).collect();
+                Ranking::Bricked(BrickedVisibility::new(
+                    spec,
+                    &index.header.geometry,
+                    &bricks,
+                )?)
+            }
+        })
+    }
+
+    /// The visible energy of packet `id` (`p`) of the volume of `index`; `None` for a packet of
+    /// a brick off the image (not sent in this view).
+    fn visible_energy(&self, index: &VolumeIndex, id: u32, p: &PacketMeta) -> Option<f64> {
+        match self {
+            Ranking::Whole(priority) => Some(priority.visible_energy(p)),
+            Ranking::Bricked(seen) => {
+                seen.visible_energy(index.brick_of(id), p.tile as usize, &p.summary)
+            }
+        }
+    }
+}
 
 /// Plans `spec` for `volume` on the blocking pool, once one of `planners`' permits is free
 /// (at once for a small volume, [`CHEAP_PLAN_PACKETS`]).
@@ -26,7 +68,7 @@ pub(super) async fn plan(
     planners: Arc<Semaphore>,
     volume: Arc<OpenVolume>,
     spec: ViewSpec,
-) -> Result<Priority, Status> {
+) -> Result<Ranking, Status> {
     let _permit = if volume.index.packets.len() <= CHEAP_PLAN_PACKETS {
         None
     } else {
@@ -38,8 +80,7 @@ pub(super) async fn plan(
         )
     };
     blocking(move || {
-        Priority::new(&volume.index.header, &spec)
-            .map_err(|e| CacheError::InvalidRequest(e.to_string()))
+        Ranking::new(&volume.index, &spec).map_err(|e| CacheError::InvalidRequest(e.to_string()))
     })
     .await
 }
@@ -153,7 +194,7 @@ impl Session {
     }
 
     /// The client changed the view: what it dropped may be sent again, in the new order.
-    pub(super) fn change_view(&mut self, priority: Priority) {
+    pub(super) fn change_view(&mut self, priority: Ranking) {
         self.released.clear();
         self.reorder(priority);
         self.views = self.views.wrapping_add(1);
@@ -164,21 +205,23 @@ impl Session {
         self.credit.is_none_or(|c| c > 0)
     }
 
-    /// Queues what the client neither holds nor dropped in this view, in `priority`'s order.
-    pub(super) fn reorder(&mut self, priority: Priority) {
+    /// Queues what the client neither holds nor dropped in this view, in `priority`'s order
+    /// (visible energy per byte); a bricked volume's bricks off the image queue nothing.
+    pub(super) fn reorder(&mut self, priority: Ranking) {
         let (held, released) = (&self.held, &self.released);
-        let mut q: Vec<(f64, u32)> = self
-            .volume
-            .index
+        let index = &self.volume.index;
+        let mut q: Vec<(f64, u32)> = index
             .packets
             .iter()
             .enumerate()
-            .filter(|(i, p)| {
-                !held.contains(&(*i as u32))
-                    && !released.contains(&(*i as u32))
-                    && (!self.visible_only || priority.visible_energy(p) > 0.0)
+            .filter_map(|(i, p)| {
+                let id = i as u32;
+                if held.contains(&id) || released.contains(&id) {
+                    return None;
+                }
+                let energy = priority.visible_energy(index, id, p)?;
+                (!self.visible_only || energy > 0.0).then(|| (energy / f64::from(p.len.max(1)), id))
             })
-            .map(|(i, p)| (priority.priority(p), i as u32))
             .collect();
         // Ascending priority, ties: later file position first, so pops give file order.
         q.sort_by(|a, b| a.0.total_cmp(&b.0).then(b.1.cmp(&a.1)));
@@ -256,17 +299,15 @@ impl Session {
     pub(super) async fn run(
         mut self,
         mut inbound: impl Stream<Item = Result<pb::RefineRequest, Status>> + Unpin,
-        mut planning: tokio::task::JoinHandle<Result<Priority, Status>>,
+        mut planning: tokio::task::JoinHandle<Result<Ranking, Status>>,
         tx: mpsc::Sender<Result<pb::RefineResponse, Status>>,
         send_header: bool,
         mut stopping: watch::Receiver<bool>,
     ) {
         use pb::refine_response::Msg;
         if send_header {
-            let header = pb::VolumeHeader {
-                volume: Some(convert::volume_info(&named(&self.volume, &self.name))),
-                header: self.volume.index.header_bytes.clone(),
-            };
+            let header =
+                convert::volume_header(&named(&self.volume, &self.name), &self.volume.index);
             let msg = pb::RefineResponse {
                 msg: Some(Msg::Header(header)),
             };

@@ -28,7 +28,9 @@ mod volume;
 
 use crate::bucket::Bucket;
 use crate::error::CacheError;
-use crate::model::{decode_packets, encode_packets, VolumeIndex, VolumeKey, VolumeMeta};
+use crate::model::{
+    decode_bricks, decode_packets, encode_packets, VolumeIndex, VolumeKey, VolumeMeta,
+};
 use sled::transaction::{ConflictableTransactionError, TransactionError, Transactional};
 use std::collections::HashMap;
 use std::fs::File;
@@ -39,7 +41,9 @@ pub use upload::Upload;
 pub use validate::{index_file, validate_name, Limits, MAX_NAME_BYTES};
 pub use volume::OpenVolume;
 use volume::VolumeData;
+use wavesplat_codec::format::bricked::is_bricked;
 use wavesplat_codec::format::read_header_section;
+use wavesplat_codec::view::bricked::whole_header;
 pub use wavesplat_net::digest::sha256;
 
 /// Volumes whose index and open file are kept in memory.
@@ -64,6 +68,9 @@ pub struct Store {
     hashes: sled::Tree,
     headers: sled::Tree,
     index: sled::Tree,
+    /// A bricked volume's bricks (their headers and packet counts); its `headers` entry is the
+    /// container's manifest section.
+    bricks: sled::Tree,
     files: Arc<PathBuf>,
     limits: Limits,
     open: Arc<Mutex<HashMap<u64, Arc<OpenVolume>>>>,
@@ -121,6 +128,7 @@ impl Store {
             hashes: db.open_tree("hashes")?,
             headers: db.open_tree("headers")?,
             index: db.open_tree("packet_index")?,
+            bricks: db.open_tree("bricks")?,
             db,
             files: Arc::new(files),
             limits,
@@ -222,7 +230,7 @@ impl Store {
     /// (called at open).
     fn collect_garbage(&self) -> Result<usize, CacheError> {
         let mut removed = 0;
-        for tree in [&self.headers, &self.index] {
+        for tree in [&self.headers, &self.index, &self.bricks] {
             let mut dead = Vec::new();
             for kv in tree.iter() {
                 let (k, _) = kv?;
@@ -360,6 +368,7 @@ impl Store {
         self.forget(id);
         self.headers.remove(id.to_be_bytes())?;
         self.index.remove(id.to_be_bytes())?;
+        self.bricks.remove(id.to_be_bytes())?;
         for ext in ["wsp", "part"] {
             match std::fs::remove_file(self.file_path(id, ext)) {
                 Ok(()) => {}
@@ -491,15 +500,11 @@ impl Store {
             let v = b.wait(b.open_volume(&sha))?;
             let opened = Arc::new(OpenVolume {
                 meta: b.stream_meta(&v),
-                index: VolumeIndex {
-                    header: v.head.header.clone(),
-                    header_bytes: v.head.header_bytes.clone(),
-                    packets: v.head.packets.clone(),
-                },
+                index: v.index.clone(),
                 data: VolumeData::Bucket {
                     bucket: b.clone(),
                     sha256: v.sha256,
-                    wsp_offset: v.head.wsp_offset,
+                    wsp_offset: v.wsp_offset,
                 },
             });
             self.keep_open(id, &opened);
@@ -512,9 +517,26 @@ impl Store {
         let key = id.to_be_bytes();
         let missing = || CacheError::Corrupt(format!("volume {id} has a record but no data"));
         let header_bytes = self.headers.get(key)?.ok_or_else(missing)?.to_vec();
-        let (header, _) = read_header_section(&header_bytes)
-            .map_err(|e| CacheError::Corrupt(format!("stored header of volume {id}: {e}")))?;
+        let (header, bricked) = if is_bricked(&header_bytes) {
+            let stored = self.bricks.get(key)?.ok_or_else(missing)?;
+            let b = decode_bricks(&header_bytes, meta.file_bytes, &stored)?;
+            let first = &b.bricks[0].header;
+            (whole_header(&b.manifest, first), Some(Box::new(b)))
+        } else {
+            let (header, _) = read_header_section(&header_bytes)
+                .map_err(|e| CacheError::Corrupt(format!("stored header of volume {id}: {e}")))?;
+            (header, None)
+        };
         let packets = decode_packets(&self.index.get(key)?.ok_or_else(missing)?, true)?;
+        if let Some(b) = &bricked {
+            let counted: u64 = b.bricks.iter().map(|k| u64::from(k.packets)).sum();
+            if counted != packets.len() as u64 {
+                return Err(CacheError::Corrupt(format!(
+                    "volume {id}: its bricks have {counted} packets, its index {}",
+                    packets.len()
+                )));
+            }
+        }
         let file = match File::open(self.file_path(id, "wsp")) {
             Ok(f) => f,
             // Deleted meanwhile.
@@ -529,6 +551,7 @@ impl Store {
                 header,
                 header_bytes,
                 packets,
+                bricked,
             },
             data: VolumeData::File(file),
         });

@@ -1,6 +1,9 @@
 //! An upload: the volume streamed to `volumes/ID.part` and validated as it arrives (the header
 //! and directory as soon as they are complete, every packet as soon as its bytes are), then
-//! synced, renamed and committed by the store in one transaction.
+//! synced, renamed and committed by the store in one transaction. A bricked container is read
+//! the same way front to back: its manifest section first, then each brick as a `.wsp` of its
+//! own (checked against its manifest entry and CRC), its packets numbered after the previous
+//! bricks'.
 
 use super::id_from;
 use super::io;
@@ -11,12 +14,16 @@ use super::Ingested;
 use super::Store;
 use crate::bucket::Bucket;
 use crate::error::CacheError;
-use crate::model::{encode_packets, PacketMeta, VolumeKey, VolumeMeta};
+use crate::model::{
+    encode_bricks, encode_packets, BrickedIndex, IndexBrick, PacketMeta, VolumeKey, VolumeMeta,
+};
 use sha2::{Digest, Sha256};
 use std::fs::File;
 use std::io::Write;
 use std::path::PathBuf;
-use wavesplat_codec::format::{parse_prelude, Prelude};
+use wavesplat_codec::format::bricked::{is_bricked, parse_manifest, Manifest, MAX_MANIFEST_BYTES};
+use wavesplat_codec::format::{parse_prelude, Header, Prelude};
+use wavesplat_codec::view::bricked::{check_brick, whole_header};
 
 /// An upload in progress: bytes are hashed, written to a file and validated as they arrive.
 /// Dropping it before [`Upload::finish`] removes what it wrote.
@@ -37,14 +44,15 @@ struct Sink {
     id: u64,
     part: PathBuf,
     file: File,
-    prelude_buf: Vec<u8>,
-    prelude: Option<Prelude>,
-    header_bytes: Vec<u8>,
-    packet_buf: Vec<u8>,
+    /// The upload's first bytes, until they say whether it is one volume or a bricked
+    /// container and, for a container, until its manifest section is complete.
+    head: Vec<u8>,
+    /// What the head said: `None` while it is incomplete.
+    layout: Option<Layout>,
+    /// The `.wsp` being read: the whole upload, or the current brick of a container.
+    reader: Option<WspReader>,
+    /// Every packet so far, numbered across bricks; offsets from the upload's start.
     packets: Vec<PacketMeta>,
-    /// Coefficients the packets so far hold.
-    held: u64,
-    offset: u64,
     kept: bool,
 }
 
@@ -56,24 +64,96 @@ impl Drop for Sink {
     }
 }
 
-impl Sink {
-    /// The prelude of a complete upload whose packets hold what its header declares.
-    fn complete(&mut self) -> Result<Prelude, CacheError> {
+/// What an upload holds.
+#[derive(Debug)]
+enum Layout {
+    /// One volume (a `.wsp` file).
+    Single,
+    /// A bricked container: its manifest and the bricks read so far.
+    Bricked(Box<BrickedUpload>),
+}
+
+#[derive(Debug)]
+struct BrickedUpload {
+    manifest: Manifest,
+    bricks: Vec<IndexBrick>,
+    /// CRC-32 of the current brick's bytes so far.
+    crc: crc32fast::Hasher,
+}
+
+/// One `.wsp` inside an upload (the whole upload, or one brick), validated as its bytes
+/// arrive: the header and directory as soon as they are complete, every packet as soon as its
+/// bytes are.
+#[derive(Debug)]
+struct WspReader {
+    /// Its length, and the bytes of it read so far.
+    len: u64,
+    read: u64,
+    /// Its brick (`None`: the upload is one volume).
+    brick: Option<usize>,
+    prelude_buf: Vec<u8>,
+    prelude: Option<Prelude>,
+    header_bytes: Vec<u8>,
+    packet_buf: Vec<u8>,
+    /// Its packets read so far.
+    packets: usize,
+    /// Coefficients its packets so far hold.
+    held: u64,
+    /// Where its next packet starts in the upload.
+    offset: u64,
+}
+
+impl WspReader {
+    fn new(start: u64, len: u64, brick: Option<usize>) -> WspReader {
+        WspReader {
+            len,
+            read: 0,
+            brick,
+            prelude_buf: Vec::new(),
+            prelude: None,
+            header_bytes: Vec::new(),
+            packet_buf: Vec::new(),
+            packets: 0,
+            held: 0,
+            offset: start,
+        }
+    }
+
+    /// "brick 3: " for a brick, nothing for one volume (a prefix of messages).
+    fn which(&self) -> String {
+        self.brick.map_or(String::new(), |b| format!("brick {b}: "))
+    }
+
+    /// The prelude, header bytes and packet count of a complete `.wsp` whose packets hold what
+    /// its header declares.
+    fn complete(&mut self) -> Result<(Prelude, Vec<u8>, usize), CacheError> {
         let complete = self
             .prelude
             .as_ref()
-            .is_some_and(|p| self.packets.len() == p.packet_lengths.len());
+            .is_some_and(|p| self.packets == p.packet_lengths.len());
         let Some(prelude) = self.prelude.take().filter(|_| complete) else {
-            return Err(CacheError::InvalidUpload(
-                "the upload ends inside its header, directory or a packet".into(),
-            ));
+            return Err(CacheError::InvalidUpload(format!(
+                "{}the upload ends inside its header, directory or a packet",
+                self.which()
+            )));
         };
         check_kept(&prelude, self.held)?;
-        Ok(prelude)
+        Ok((
+            prelude,
+            std::mem::take(&mut self.header_bytes),
+            self.packets,
+        ))
     }
 
-    /// Validates the next bytes of the file.
-    fn feed(&mut self, data: &[u8], total: u64, limits: &Limits) -> Result<(), CacheError> {
+    /// Validates the next bytes of this `.wsp` (no more than it has left), appending its
+    /// packets' index entries to `packets`.
+    fn feed(
+        &mut self,
+        data: &[u8],
+        limits: &Limits,
+        packets: &mut Vec<PacketMeta>,
+    ) -> Result<(), CacheError> {
+        self.read += data.len() as u64;
         if self.prelude.is_none() {
             self.prelude_buf.extend_from_slice(data);
             let Some(p) = parse_prelude(&self.prelude_buf)? else {
@@ -93,29 +173,43 @@ impl Sink {
                     limit: limits.max_prelude_bytes,
                 });
             }
-            if p.file_bytes() != total {
-                return Err(CacheError::InvalidUpload(format!(
-                    "the packet directory describes a file of {} bytes, the upload declares {total}",
-                    p.file_bytes()
-                )));
+            if p.file_bytes() != self.len {
+                return Err(CacheError::InvalidUpload(match self.brick {
+                    None => format!(
+                        "the packet directory describes a file of {} bytes, the upload \
+                         declares {}",
+                        p.file_bytes(),
+                        self.len
+                    ),
+                    Some(b) => format!(
+                        "brick {b}: its packet directory describes {} bytes, the manifest {}",
+                        p.file_bytes(),
+                        self.len
+                    ),
+                }));
             }
             for &len in &p.packet_lengths {
                 check_packet_size(len, limits)?;
             }
             let rest = std::mem::take(&mut self.prelude_buf);
             self.header_bytes = rest[..p.header_bytes].to_vec();
-            self.packets.reserve_exact(p.packet_lengths.len());
-            self.offset = p.len() as u64;
+            packets.reserve(p.packet_lengths.len());
+            self.offset += p.len() as u64;
             let used = p.len();
             self.prelude = Some(p);
-            return self.feed_packets(&rest[used..], limits);
+            return self.feed_packets(&rest[used..], limits, packets);
         }
-        self.feed_packets(data, limits)
+        self.feed_packets(data, limits, packets)
     }
 
-    fn feed_packets(&mut self, mut data: &[u8], limits: &Limits) -> Result<(), CacheError> {
+    fn feed_packets(
+        &mut self,
+        mut data: &[u8],
+        limits: &Limits,
+        packets: &mut Vec<PacketMeta>,
+    ) -> Result<(), CacheError> {
         while !data.is_empty() {
-            let n = self.feed_packets_some(data, limits)?;
+            let n = self.feed_packets_some(data, limits, packets)?;
             data = &data[n..];
         }
         Ok(())
@@ -123,15 +217,21 @@ impl Sink {
 
     /// Takes bytes of the current packet from `data`, checks the packet when complete, and
     /// returns how many bytes it took.
-    fn feed_packets_some(&mut self, data: &[u8], limits: &Limits) -> Result<usize, CacheError> {
+    fn feed_packets_some(
+        &mut self,
+        data: &[u8],
+        limits: &Limits,
+        packets: &mut Vec<PacketMeta>,
+    ) -> Result<usize, CacheError> {
         let Some(p) = &self.prelude else {
             return Ok(0);
         };
-        let i = self.packets.len();
+        let i = self.packets;
         let Some(&len) = p.packet_lengths.get(i) else {
-            return Err(CacheError::InvalidUpload(
-                "bytes after the last packet".into(),
-            ));
+            return Err(CacheError::InvalidUpload(format!(
+                "{}bytes after the last packet",
+                self.which()
+            )));
         };
         if self.packet_buf.is_empty() {
             self.packet_buf.reserve_exact(len);
@@ -139,9 +239,16 @@ impl Sink {
         let take = (len - self.packet_buf.len()).min(data.len());
         self.packet_buf.extend_from_slice(&data[..take]);
         if self.packet_buf.len() == len {
-            let (meta, held) = index_packet(p, i, &self.packet_buf, self.offset, &limits.decode)?;
+            let (meta, held) = index_packet(p, i, &self.packet_buf, self.offset, &limits.decode)
+                .map_err(|e| match (self.brick, e) {
+                    (Some(b), CacheError::InvalidUpload(m)) => {
+                        CacheError::InvalidUpload(format!("brick {b}: {m}"))
+                    }
+                    (_, e) => e,
+                })?;
             self.offset += len as u64;
-            self.packets.push(meta);
+            packets.push(meta);
+            self.packets += 1;
             self.held += held;
             self.packet_buf.clear();
         }
@@ -149,11 +256,11 @@ impl Sink {
         Ok(take)
     }
 
-    /// The bytes this upload may hold in memory from now on.
-    fn memory_need(&self, total: u64, limits: &Limits) -> u64 {
+    /// The bytes this `.wsp` may hold in memory from now on.
+    fn memory_need(&self, limits: &Limits) -> u64 {
         match &self.prelude {
-            None => total.min(limits.max_prelude_bytes),
-            Some(p) => p.packet_lengths[self.packets.len()..]
+            None => self.len.min(limits.max_prelude_bytes),
+            Some(p) => p.packet_lengths[self.packets..]
                 .iter()
                 .copied()
                 .max()
@@ -162,6 +269,219 @@ impl Sink {
     }
 }
 
+/// Bytes of a bricked container before its manifest: magic, version, manifest length.
+const CONTAINER_LEAD: usize = 4 + 2 + 4;
+
+impl Sink {
+    fn new(id: u64, part: PathBuf, file: File) -> Sink {
+        Sink {
+            id,
+            part,
+            file,
+            head: Vec::new(),
+            layout: None,
+            reader: None,
+            packets: Vec::new(),
+            kept: false,
+        }
+    }
+
+    /// What a complete upload holds: the header (a bricked volume's: the whole's), the header
+    /// bytes clients get (a bricked volume's: the container's manifest section) and, for a
+    /// bricked volume, its bricks.
+    #[allow(clippy::type_complexity)]
+    fn complete(&mut self) -> Result<(Header, Vec<u8>, Option<BrickedIndex>), CacheError> {
+        match self.layout.take() {
+            Some(Layout::Single) => {
+                let Some(r) = self.reader.as_mut() else {
+                    return Err(CacheError::InvalidUpload(
+                        "the upload ends inside its header".into(),
+                    ));
+                };
+                let (prelude, header_bytes, _) = r.complete()?;
+                Ok((prelude.header, header_bytes, None))
+            }
+            Some(Layout::Bricked(b)) if b.bricks.len() == b.manifest.bricks.len() => {
+                let header = whole_header(&b.manifest, &b.bricks[0].header);
+                let b = *b;
+                Ok((
+                    header,
+                    std::mem::take(&mut self.head),
+                    Some(BrickedIndex {
+                        manifest: b.manifest,
+                        bricks: b.bricks,
+                    }),
+                ))
+            }
+            Some(Layout::Bricked(b)) => Err(CacheError::InvalidUpload(format!(
+                "the upload ends inside brick {} of {}",
+                b.bricks.len(),
+                b.manifest.bricks.len()
+            ))),
+            None => Err(CacheError::InvalidUpload(
+                "the upload ends inside its header".into(),
+            )),
+        }
+    }
+
+    /// Validates the next bytes of the upload (of `total` bytes).
+    fn feed(&mut self, mut data: &[u8], total: u64, limits: &Limits) -> Result<(), CacheError> {
+        while !data.is_empty() {
+            let taken = match self.reader.as_mut() {
+                Some(r) => {
+                    let take = (r.len - r.read).min(data.len() as u64) as usize;
+                    if let Some(Layout::Bricked(b)) = &mut self.layout {
+                        b.crc.update(&data[..take]);
+                    }
+                    r.feed(&data[..take], limits, &mut self.packets)?;
+                    if r.read == r.len && r.brick.is_some() {
+                        self.end_brick()?;
+                    }
+                    take
+                }
+                None => match self.feed_head(data, total, limits)? {
+                    Some(n) => n,
+                    None => continue,
+                },
+            };
+            if taken == 0 {
+                return Err(CacheError::InvalidUpload(
+                    "bytes after the last brick".into(),
+                ));
+            }
+            data = &data[taken..];
+        }
+        Ok(())
+    }
+
+    /// Takes bytes of the upload's head from `data` (no more than it needs, so that what
+    /// follows reaches the first `.wsp` reader); returns how many, or `None` when it took none
+    /// but decided the layout (the reader takes `data` next).
+    fn feed_head(
+        &mut self,
+        data: &[u8],
+        total: u64,
+        limits: &Limits,
+    ) -> Result<Option<usize>, CacheError> {
+        if self.layout.is_some() {
+            // Every brick read: nothing may follow.
+            return Ok(Some(0));
+        }
+        let need = if self.head.len() < 6 {
+            6
+        } else if !is_bricked(&self.head) {
+            // One volume: its reader takes the head's bytes, then the rest.
+            let mut r = WspReader::new(0, total, None);
+            r.feed(&std::mem::take(&mut self.head), limits, &mut self.packets)?;
+            self.reader = Some(r);
+            self.layout = Some(Layout::Single);
+            // Nothing of `data` taken: the reader takes it next.
+            return Ok(None);
+        } else if self.head.len() < CONTAINER_LEAD {
+            CONTAINER_LEAD
+        } else {
+            let len = u32::from_le_bytes(self.head[6..10].try_into().expect("4 bytes")) as u64;
+            let section = CONTAINER_LEAD as u64 + len + 4;
+            let limit = limits.max_prelude_bytes.min(MAX_MANIFEST_BYTES as u64);
+            if section > limit {
+                return Err(CacheError::TooLarge {
+                    what: "bricked manifest",
+                    size: section,
+                    limit,
+                });
+            }
+            section as usize
+        };
+        let take = (need - self.head.len()).min(data.len());
+        self.head.extend_from_slice(&data[..take]);
+        if self.head.len() == need && need > CONTAINER_LEAD {
+            self.begin_bricks(total)?;
+        }
+        Ok(Some(take))
+    }
+
+    /// The manifest section is complete: parses the manifest (checked against the upload's
+    /// size) and starts reading its first brick. Bricks must follow the manifest section in
+    /// manifest order without gaps, as the container writer lays them out: the upload is read
+    /// once, front to back.
+    fn begin_bricks(&mut self, total: u64) -> Result<(), CacheError> {
+        let manifest = parse_manifest(&self.head, total)?;
+        let mut at = self.head.len() as u64;
+        for (i, b) in manifest.bricks.iter().enumerate() {
+            if b.offset != at {
+                return Err(CacheError::InvalidUpload(format!(
+                    "brick {i} starts at byte {}, not where the previous one ends ({at}): a \
+                     cache takes bricks laid out in manifest order",
+                    b.offset
+                )));
+            }
+            at += b.length;
+        }
+        if at != total {
+            return Err(CacheError::InvalidUpload(format!(
+                "the bricks end at byte {at}, the upload declares {total}"
+            )));
+        }
+        let first = &manifest.bricks[0];
+        self.reader = Some(WspReader::new(first.offset, first.length, Some(0)));
+        self.layout = Some(Layout::Bricked(Box::new(BrickedUpload {
+            manifest,
+            bricks: Vec::new(),
+            crc: crc32fast::Hasher::new(),
+        })));
+        Ok(())
+    }
+
+    /// The current brick's bytes are all read: checks it (complete, its CRC, its header against
+    /// the manifest and the first brick), records it, and starts reading the next one.
+    fn end_brick(&mut self) -> Result<(), CacheError> {
+        let (Some(r), Some(Layout::Bricked(b))) = (self.reader.as_mut(), self.layout.as_mut())
+        else {
+            return Ok(());
+        };
+        let i = b.bricks.len();
+        let (prelude, header_bytes, count) = r.complete()?;
+        let entry = &b.manifest.bricks[i];
+        let computed = std::mem::take(&mut b.crc).finalize();
+        if computed != entry.crc {
+            return Err(CacheError::InvalidUpload(format!(
+                "brick {i}: CRC-32 {computed:08x}, the manifest says {:08x}",
+                entry.crc
+            )));
+        }
+        let first = b.bricks.first().map_or(&prelude.header, |f| &f.header);
+        check_brick(i, entry, &prelude.header, first, b.manifest.channels)?;
+        let first_packet = self.packets.len() - count;
+        let first_packet = u32::try_from(first_packet)
+            .ok()
+            .filter(|_| u32::try_from(self.packets.len()).is_ok())
+            .ok_or_else(|| {
+                CacheError::InvalidUpload("more than 2^32 packets in one volume".into())
+            })?;
+        b.bricks.push(IndexBrick {
+            header: prelude.header,
+            header_bytes,
+            origin: entry.origin,
+            first_packet,
+            packets: count as u32,
+        });
+        self.reader = b
+            .manifest
+            .bricks
+            .get(i + 1)
+            .map(|e| WspReader::new(e.offset, e.length, Some(i + 1)));
+        Ok(())
+    }
+
+    /// The bytes this upload may hold in memory from now on.
+    fn memory_need(&self, total: u64, limits: &Limits) -> u64 {
+        match &self.reader {
+            Some(r) => r.memory_need(limits),
+            None if self.layout.is_none() => total.min(limits.max_prelude_bytes),
+            None => 0,
+        }
+    }
+}
 impl Upload {
     /// Starts an upload of `total` bytes under `name` whose SHA-256 is declared to be
     /// `declared`.
@@ -199,19 +519,7 @@ impl Upload {
             let id = store.db.generate_id()?;
             let part = store.file_path(id, "part");
             let file = File::create(&part).map_err(|e| io("creating an upload file", e))?;
-            Some(Sink {
-                id,
-                part,
-                file,
-                prelude_buf: Vec::new(),
-                prelude: None,
-                header_bytes: Vec::new(),
-                packet_buf: Vec::new(),
-                packets: Vec::new(),
-                held: 0,
-                offset: 0,
-                kept: false,
-            })
+            Some(Sink::new(id, part, file))
         };
         Ok(Upload {
             store: store.clone(),
@@ -291,7 +599,7 @@ impl Upload {
                 meta
             }
             Some(mut s) => {
-                let prelude = s.complete()?;
+                let (header, header_bytes, bricked) = s.complete()?;
                 s.file.sync_all().map_err(|e| io("syncing an upload", e))?;
                 let id = s.id;
                 let path = store.file_path(id, "wsp");
@@ -300,27 +608,35 @@ impl Upload {
                 if let Ok(dir) = File::open(&*store.files) {
                     let _ = dir.sync_all();
                 }
-                store
-                    .headers
-                    .insert(id.to_be_bytes(), std::mem::take(&mut s.header_bytes))?;
+                let section_bytes = header_bytes.len();
+                store.headers.insert(id.to_be_bytes(), header_bytes)?;
                 store
                     .index
                     .insert(id.to_be_bytes(), encode_packets(&s.packets))?;
+                if let Some(b) = &bricked {
+                    store
+                        .bricks
+                        .insert(id.to_be_bytes(), encode_bricks(&b.bricks))?;
+                }
                 store.db.flush()?;
                 if let Some(e) = abandon() {
                     store.remove_data(id)?;
                     return Err(e);
                 }
-                VolumeMeta::from_header(
+                let mut meta = VolumeMeta::from_header(
                     id,
                     vec![self.name.clone()],
                     hash,
                     now_ms(),
                     self.total,
-                    &prelude.header,
-                    prelude.header_bytes,
+                    &header,
+                    section_bytes,
                     &s.packets,
-                )
+                );
+                if let Some(b) = &bricked {
+                    meta.describe_bricks(section_bytes, b);
+                }
+                meta
             }
         };
         let fresh = meta.id != u64::MAX;
@@ -363,11 +679,18 @@ impl Upload {
         let object = match self.sink.take() {
             None => None,
             Some(mut s) => {
-                s.complete()?;
-                let mut object =
-                    wavesplat_codec::format::index::indexed_prefix(self.total, &s.packets)?;
+                let bricked = s.complete()?.2.is_some();
                 let file = std::fs::read(&s.part).map_err(|e| io("reading an upload back", e))?;
-                object.extend_from_slice(&file);
+                let object = if bricked {
+                    // The published layout of a bricked volume (version 2 of the indexed
+                    // layout): its manifest, every brick's header and index, the container.
+                    wavesplat_codec::format::index::indexed_layout(&file)?
+                } else {
+                    let mut object =
+                        wavesplat_codec::format::index::indexed_prefix(self.total, &s.packets)?;
+                    object.extend_from_slice(&file);
+                    object
+                };
                 Some(bytes::Bytes::from(object))
             }
         };

@@ -84,7 +84,8 @@ pub(super) fn check_kept(prelude: &Prelude, held: u64) -> Result<(), CacheError>
         .map_err(|e| CacheError::InvalidUpload(e.to_string()))
 }
 
-/// Validates a whole file: parses it, decodes every packet, and builds its index.
+/// Validates a whole file of one volume: parses it, decodes every packet, and builds its index
+/// (a bricked container is validated as it is uploaded, [`super::Upload`]).
 pub fn index_file(bytes: &[u8], limits: &Limits) -> Result<VolumeIndex, CacheError> {
     let file = parse_file(bytes)?;
     let prelude = Prelude {
@@ -108,6 +109,7 @@ pub fn index_file(bytes: &[u8], limits: &Limits) -> Result<VolumeIndex, CacheErr
         header_bytes: bytes[..file.header_bytes].to_vec(),
         header: file.header,
         packets,
+        bricked: None,
     })
 }
 

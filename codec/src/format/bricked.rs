@@ -175,18 +175,28 @@ pub fn write_bricked(manifest: &mut Manifest, bricks: &[&[u8]]) -> Result<Vec<u8
         e.crc = crc32fast::hash(b);
         offset += b.len() as u64;
     }
-    let mb = manifest_bytes(manifest);
-    debug_assert_eq!(mb.len(), manifest_len);
+    let section = manifest_section(manifest);
+    debug_assert_eq!(section.len(), 4 + 2 + 4 + manifest_len + 4);
     let mut out = Vec::with_capacity(offset as usize);
+    out.extend_from_slice(&section);
+    for b in bricks {
+        out.extend_from_slice(b);
+    }
+    Ok(out)
+}
+
+/// The manifest section a container of `manifest` starts with (magic, version, manifest
+/// length, manifest, CRC-32): what [`parse_manifest`] reads, byte for byte as
+/// [`write_bricked`] wrote it.
+pub fn manifest_section(manifest: &Manifest) -> Vec<u8> {
+    let mb = manifest_bytes(manifest);
+    let mut out = Vec::with_capacity(4 + 2 + 4 + mb.len() + 4);
     out.extend_from_slice(MAGIC);
     out.extend_from_slice(&BRICKED_VERSION.to_le_bytes());
     out.extend_from_slice(&(mb.len() as u32).to_le_bytes());
     out.extend_from_slice(&mb);
     out.extend_from_slice(&crc32fast::hash(&mb).to_le_bytes());
-    for b in bricks {
-        out.extend_from_slice(b);
-    }
-    Ok(out)
+    out
 }
 
 fn manifest_bytes(m: &Manifest) -> Vec<u8> {
@@ -472,6 +482,10 @@ mod tests {
         for (i, b) in bricks.iter().enumerate() {
             assert_eq!(f.brick_bytes(i).unwrap(), b.as_slice());
         }
+        // The manifest section made again from the parsed manifest is the file's, byte for
+        // byte (a reader that keeps only the manifest can hand the section on).
+        let section = manifest_section(&f.manifest);
+        assert_eq!(section, bytes[..f.manifest.bricks[0].offset as usize]);
         // A flipped bit in a brick is caught when it is taken, in the manifest at once.
         let mut bad = bytes.clone();
         let last = bad.len() - 1;

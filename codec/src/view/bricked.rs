@@ -256,7 +256,12 @@ impl BrickedVisibility {
 
     /// The visible energy of a packet of brick `brick` (tile `tile`, energy per band
     /// `summary`); `None` for a brick off the image.
-    pub fn visible_energy(&self, brick: usize, tile: usize, summary: &[(Band, f64)]) -> Option<f64> {
+    pub fn visible_energy(
+        &self,
+        brick: usize,
+        tile: usize,
+        summary: &[(Band, f64)],
+    ) -> Option<f64> {
         let (vis, factor) = self.bricks.get(brick)?.as_ref()?;
         Some(vis.visible_energy(tile, summary) * factor)
     }

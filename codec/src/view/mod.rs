@@ -84,7 +84,9 @@ pub enum ViewError {
     ZeroCueDirection,
     /// Multiview of a bricked volume: each panel would move into a brick by a pan of its own,
     /// which one brick view cannot hold ([`bricked`]).
-    #[error("multiview of a bricked volume is drawn in one pass only (render without --progressive)")]
+    #[error(
+        "multiview of a bricked volume is drawn in one pass only (render without --progressive)"
+    )]
     MultiviewOfBricks,
 }
 

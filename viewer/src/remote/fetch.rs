@@ -8,7 +8,6 @@
 use super::head::Head;
 use super::object::Object;
 use super::{RangeError, RangeSourceOptions};
-use wavesplat_codec::view::bricked::{bricked_packet_order, BrickPacket};
 use crate::source::{Control, PacketSender, SourceError, SourcePacket, SourceStatus};
 use bytes::Bytes;
 use futures_util::stream::FuturesUnordered;
@@ -18,6 +17,7 @@ use std::ops::Range;
 use std::sync::{Arc, Mutex};
 use tokio::sync::mpsc;
 use wavesplat_codec::format::packet::decode_packet;
+use wavesplat_codec::view::bricked::{bricked_packet_order, BrickPacket};
 use wavesplat_codec::view::priority::Priority;
 use wavesplat_codec::view::ViewSpec;
 

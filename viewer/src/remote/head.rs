@@ -6,7 +6,6 @@
 use super::object::Object;
 use crate::session::{BrickedVolume, SessionBrick};
 use crate::source::file::check_session_brick;
-use wavesplat_codec::view::bricked::whole_header;
 use crate::source::{SourceError, SourceStatus};
 use bytes::Bytes;
 use std::sync::Mutex;
@@ -14,6 +13,7 @@ use wavesplat_codec::format::index::{
     read_indexed_head, BrickedHead, HeadRead, IndexedHead, PacketMeta, HEAD_READ_BYTES,
 };
 use wavesplat_codec::format::{parse_prelude, FormatError, Header};
+use wavesplat_codec::view::bricked::whole_header;
 
 /// The volume's head as read: the indexed layout, or a plain `.wsp` (header and directory only:
 /// packets are then requested in file order, all of them). A bricked volume's packets are

@@ -1,12 +1,16 @@
 //! The cache source: packets pulled from a cache over gRPC by a background thread with a byte
 //! credit renewed as the session takes them, view changes and dropped packets sent on the same
 //! stream, reconnection with backoff (on the next cache node when there are several), packets
-//! decoded off the runtime's thread, and an optionally simulated link speed.
+//! decoded off the runtime's thread, and an optionally simulated link speed. A bricked volume's
+//! packets (numbered brick after brick, ranked across bricks by the cache) decode with their
+//! brick's header; [`CacheSource::bricked_volume`] is what a session draws them into.
 
+use super::file::check_display;
 use super::{
     decode_for_session, packet_source_via_feed, Control, Feed, PacketSender, SourceError,
     SourcePacket, SourceStatus,
 };
+use crate::session::{BrickedVolume, SessionBrick};
 use futures_util::stream::{FuturesOrdered, StreamExt};
 use std::collections::HashSet;
 use std::sync::{Arc, Mutex};
@@ -58,6 +62,8 @@ impl Default for CacheSourceOptions {
 #[derive(Debug)]
 pub struct CacheSource {
     feed: Feed,
+    /// The volume as a session draws it, when it is bricked.
+    bricked: Option<Box<BrickedVolume>>,
 }
 
 impl CacheSource {
@@ -143,8 +149,9 @@ impl CacheSource {
             held: HashSet::new(),
             status: status.clone(),
             link_free: None,
-            header: Arc::new(header.header.clone()),
+            headers: Arc::new(PacketHeaders::of(&header)),
         };
+        let bricked = bricked_volume(&header)?.map(Box::new);
         let feed = Feed::start(
             "wavesplat-cache-source",
             runtime,
@@ -152,7 +159,74 @@ impl CacheSource {
             status,
             move |tx, ctl| task.run(client, Some(stream), tx, ctl),
         )?;
-        Ok((CacheSource { feed }, header))
+        Ok((CacheSource { feed, bricked }, header))
+    }
+
+    /// The volume as a session draws it ([`crate::session::RenderSession::new_bricked`]), when
+    /// it is bricked; `None` for one volume.
+    pub fn bricked_volume(&self) -> Option<BrickedVolume> {
+        self.bricked.as_deref().cloned()
+    }
+}
+
+/// A bricked volume from the cache's header as a session draws it (its bricks checked to share
+/// one image); `None` for one volume.
+fn bricked_volume(header: &VolumeHeader) -> Result<Option<BrickedVolume>, SourceError> {
+    let Some(first) = header.bricks.first() else {
+        return Ok(None);
+    };
+    for (i, b) in header.bricks.iter().enumerate() {
+        check_display(i, &b.header, &first.header)?;
+    }
+    let volume = BrickedVolume {
+        whole: header.header.clone(),
+        bricks: header
+            .bricks
+            .iter()
+            .map(|b| SessionBrick {
+                header: b.header.clone(),
+                origin: b.origin,
+                packets: b.packets,
+            })
+            .collect(),
+    };
+    volume.check()?;
+    Ok(Some(volume))
+}
+
+/// The headers a stream's packets decode with: the volume's, or each brick's for the packets
+/// of a bricked volume (ids numbered brick after brick).
+#[derive(Debug)]
+struct PacketHeaders {
+    whole: Header,
+    /// Per brick: the id of its first packet and its header, ascending.
+    bricks: Vec<(u32, Header)>,
+}
+
+impl PacketHeaders {
+    fn of(header: &VolumeHeader) -> PacketHeaders {
+        let mut first = 0u32;
+        let bricks = header
+            .bricks
+            .iter()
+            .map(|b| {
+                let at = first;
+                first = first.saturating_add(b.packets);
+                (at, b.header.clone())
+            })
+            .collect();
+        PacketHeaders {
+            whole: header.header.clone(),
+            bricks,
+        }
+    }
+
+    /// The header packet `id` decodes with.
+    fn header_of(&self, id: u32) -> &Header {
+        match self.bricks.partition_point(|(first, _)| *first <= id) {
+            0 => &self.whole,
+            k => &self.bricks[k - 1].1,
+        }
     }
 }
 
@@ -189,8 +263,8 @@ struct Pull {
     status: Arc<Mutex<SourceStatus>>,
     /// When the simulated link finishes carrying the last packet.
     link_free: Option<tokio::time::Instant>,
-    /// The volume's header (to decode packets off the runtime's thread).
-    header: Arc<Header>,
+    /// The headers packets decode with (off the runtime's thread).
+    headers: Arc<PacketHeaders>,
 }
 
 /// A packet on its way to the session: crossing the simulated link, then decoding.
@@ -440,13 +514,14 @@ impl Pull {
                             // meanwhile; a packet that fails to decode goes on as bytes and
                             // the session reports it.
                             let arrives = self.link_arrival(p.data.len());
-                            let header = Arc::clone(&self.header);
+                            let headers = Arc::clone(&self.headers);
                             decoding.push_back(Box::pin(async move {
                                 if let Some(t) = arrives {
                                     tokio::time::sleep_until(t).await;
                                 }
                                 tokio::task::spawn_blocking(move || {
-                                    let decoded = decode_for_session(&header, &p.data);
+                                    let header = headers.header_of(p.id);
+                                    let decoded = decode_for_session(header, &p.data);
                                     SourcePacket { id: p.id, data: p.data, decoded }
                                 })
                                 .await

@@ -12,8 +12,8 @@ use wavesplat_codec::format::bricked::{is_bricked, parse_bricked, BrickEntry};
 use wavesplat_codec::format::packet::read_framing;
 use wavesplat_codec::format::{check_kept, parse_file, FormatError, Header};
 use wavesplat_codec::layout::Band;
-use wavesplat_codec::view::visibility::{packet_order, PacketFacts, Visibility};
 use wavesplat_codec::view::bricked::{bricked_packet_order, whole_header, BrickPacket};
+use wavesplat_codec::view::visibility::{packet_order, PacketFacts, Visibility};
 use wavesplat_codec::view::ViewSpec;
 
 /// Where a packet lies in a file and what ranks it.
@@ -294,6 +294,14 @@ pub(crate) fn check_session_brick(
     first: &Header,
     channels: usize,
 ) -> Result<(), SourceError> {
+    check_display(i, header, first)?;
+    check_brick(i, entry, header, first, channels)?;
+    Ok(())
+}
+
+/// Checks that brick `i` (header `header`) shows its values as the first brick does, so that a
+/// session can draw both into one image.
+pub(crate) fn check_display(i: usize, header: &Header, first: &Header) -> Result<(), SourceError> {
     if !same_display(header, first) {
         // A colour volume's bricks each fit a colour basis of their own (in this version too);
         // a single channel's bricks share the whole's offset in this version (older files of
@@ -310,7 +318,6 @@ pub(crate) fn check_session_brick(
              --record or --client-memory){remedy}"
         )));
     }
-    check_brick(i, entry, header, first, channels)?;
     Ok(())
 }
 
