@@ -12,13 +12,16 @@
 //! So each brick is padded by 2^M voxels filled with a smooth bridge from face to opposite
 //! face ([`wavesplat_codec::dwt::bridge`]), its coefficients are ranked by the energy they
 //! show inside its box ([`crate::visible`]), and every brick subtracts the whole's offset
-//! (the median of the whole's faces), so that neighbours' images meet without a seam. The
+//! (the median of the whole's faces), so that neighbours' images meet without a seam; the
+//! bricks of an RGB volume share the whole's colour transform (its faces' median colour and,
+//! for PCA, the basis of the whole's colour moments), so that they draw into one image. The
 //! renderer clips each brick to its box.
 //!
 //! A byte target for the whole is met by a search on the global threshold's coefficient count
 //! (log bytes against log count, as the single-volume search does), each trial compressing
 //! every brick: a few times the work of one pass.
 
+use crate::colorspace::{ColorSpaceKind, ColorTransform};
 use rayon::prelude::*;
 use thiserror::Error;
 use wavesplat_codec::format::bricked::{brick_grid, write_bricked, BrickEntry, Manifest};
@@ -45,11 +48,12 @@ pub fn bridge_margin(family: wavesplat_codec::family::Family, levels: usize) -> 
     1 << levels
 }
 
-/// The median of the whole volume's faces (as a single volume's offset is chosen), read face by
-/// face from `source`: every brick subtracts this one offset. Bricks with offsets of their own
-/// would each draw their offset as a constant over their box, whose edge is a half-voxel step
-/// where the whole's spline ramps, and two neighbours' steps would not cancel.
-fn whole_face_median(source: &dyn BrickSource) -> Result<f64, BrickError> {
+/// The median of the whole volume's faces per channel (as a single volume's offset or colour
+/// origin is chosen), read face by face from `source`: every brick subtracts this one offset.
+/// Bricks with offsets of their own would each draw their offset as a constant over their box,
+/// whose edge is a half-voxel step where the whole's spline ramps, and two neighbours' steps
+/// would not cancel.
+fn whole_face_medians(source: &dyn BrickSource) -> Result<Vec<f64>, BrickError> {
     let d = source.dims();
     let mut faces: Vec<([u64; 3], [usize; 3])> = Vec::new();
     for a in 0..3 {
@@ -62,14 +66,51 @@ fn whole_face_median(source: &dyn BrickSource) -> Result<f64, BrickError> {
             faces.push((origin, dims));
         }
     }
-    let mut samples: Vec<f32> = Vec::new();
+    let mut samples: Vec<Vec<f32>> = vec![Vec::new(); source.channels()];
     for (origin, dims) in faces {
         let v = source
             .read(origin, dims)
             .map_err(|source| BrickError::Read { origin, source })?;
-        samples.extend_from_slice(v.channel(0));
+        for (c, s) in samples.iter_mut().enumerate() {
+            s.extend_from_slice(v.channel(c));
+        }
     }
-    Ok(crate::colorspace::median_or_zero(&mut samples))
+    Ok(samples
+        .iter_mut()
+        .map(|s| crate::colorspace::median_or_zero(s))
+        .collect())
+}
+
+/// The colour transform of `kind` every brick of an RGB volume shares: about the whole's faces'
+/// median colour `mean`, PCA's basis from the whole's colour second moments, gathered brick by
+/// brick from `source` (one brick in memory at a time). Bricks that fitted their own would each
+/// code their values in another basis, and could not be drawn into one image progressively.
+fn whole_color_transform(
+    source: &dyn BrickSource,
+    grid: &[([u64; 3], [usize; 3])],
+    kind: ColorSpaceKind,
+    mean: [f64; 3],
+) -> Result<ColorTransform, BrickError> {
+    let mut moments = [[0.0f64; 3]; 3];
+    if kind == ColorSpaceKind::Pca {
+        let total: f64 = grid
+            .iter()
+            .map(|(_, d)| d.iter().product::<usize>() as f64)
+            .sum();
+        for &(origin, dims) in grid {
+            let v = source
+                .read(origin, dims)
+                .map_err(|source| BrickError::Read { origin, source })?;
+            let share = v.voxel_count() as f64 / total;
+            let m = crate::colorspace::second_moments(&v, mean);
+            for (row, r) in moments.iter_mut().zip(m) {
+                for (a, b) in row.iter_mut().zip(r) {
+                    *a += b * share;
+                }
+            }
+        }
+    }
+    Ok(ColorTransform::with_origin(kind, mean, &moments))
 }
 
 /// Where bricks come from: something that can hand out any box of the whole as a volume.
@@ -376,7 +417,16 @@ pub fn compress_bricked(
         smooth_padding: true,
         offset: match opts.offset {
             Some(o) => Some(o),
-            None if source.channels() == 1 => Some(whole_face_median(source)?),
+            None if source.channels() == 1 => Some(whole_face_medians(source)?[0]),
+            None => None,
+        },
+        color_transform: match &opts.color_transform {
+            Some(t) => Some(t.clone()),
+            None if source.channels() == 3 => {
+                let m = whole_face_medians(source)?;
+                let mean = [m[0], m[1], m[2]];
+                Some(whole_color_transform(source, &grid, opts.colorspace, mean)?)
+            }
             None => None,
         },
         ..opts.clone()

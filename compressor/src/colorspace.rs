@@ -128,7 +128,23 @@ impl ColorTransform {
             return Err(ColorError::NotRgb(volume.channel_count()));
         }
         let mean = face_colour(volume);
-        Ok(match kind {
+        let moments = match kind {
+            ColorSpaceKind::Pca => second_moments(volume, mean),
+            _ => [[0.0; 3]; 3],
+        };
+        Ok(ColorTransform::with_origin(kind, mean, &moments))
+    }
+
+    /// The transform of `kind` about the colour `mean`; PCA's basis from the colour second
+    /// moments about `mean` (`moments`, E[(x − mean)(x − mean)ᵀ]; the fixed spaces ignore
+    /// them). A bricked volume's bricks share the transform made from the whole's faces and
+    /// moments, gathered brick by brick.
+    pub fn with_origin(
+        kind: ColorSpaceKind,
+        mean: [f64; 3],
+        moments: &[[f64; 3]; 3],
+    ) -> ColorTransform {
+        match kind {
             ColorSpaceKind::Rgb => ColorTransform {
                 mean,
                 ..ColorTransform::rgb()
@@ -138,7 +154,7 @@ impl ColorTransform {
                 ..ColorTransform::yiq()
             },
             ColorSpaceKind::Pca => {
-                let (basis, energy) = pca_basis(&second_moments(volume, mean));
+                let (basis, energy) = pca_basis(moments);
                 // Orthonormal: every channel's error comes back to RGB at weight 1; a channel
                 // with no energy (beyond rounding) is never worth a coefficient.
                 let importance = energy.map(|e| if e > 0.0 { 1.0 } else { 0.0 });
@@ -149,7 +165,7 @@ impl ColorTransform {
                     importance,
                 }
             }
-        })
+        }
     }
 
     /// Projects an RGB volume into the C₁..C₃ space (3 channels, same dims and spacing).
@@ -366,7 +382,7 @@ fn face_colour(volume: &Volume) -> [f64; 3] {
 }
 
 /// Colour second moments about `origin`, E[(x − o)(x − o)ᵀ] (divided by N), in f64.
-fn second_moments(volume: &Volume, origin: [f64; 3]) -> [[f64; 3]; 3] {
+pub(crate) fn second_moments(volume: &Volume, origin: [f64; 3]) -> [[f64; 3]; 3] {
     let ch = volume.channels();
     let n = volume.voxel_count() as f64;
     let mut m = [[0.0f64; 3]; 3];

@@ -485,6 +485,7 @@ pub fn options(a: &CompressArgs) -> Result<CompressOptions> {
         smooth_padding: false,
         offset: None,
         colorspace,
+        color_transform: None,
         bits: a.bits,
         coder,
         target,

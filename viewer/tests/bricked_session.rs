@@ -256,24 +256,60 @@ fn bricks_coded_otherwise_are_refused() {
     let e = RenderSession::new_bricked(volume, single, CpuBackend::new(), Default::default())
         .unwrap_err();
     assert!(e.to_string().contains("brick 3"), "{e}");
-    // A colour volume's bricks each have a colour basis of their own: the file source refuses
-    // to draw them progressively, saying why, without advising a fresh compression that would
-    // change nothing.
-    let rgb = compress_bricked(
-        &Phantom::RgbHead.generate([40, 36, 32]),
-        &CompressOptions {
+}
+
+/// The bricks of a colour volume share the whole's colour transform (its faces' median colour
+/// and the basis of its colour moments), so they draw into one image progressively: in RGB, YIQ
+/// and PCA, the progressive image ends at the one-pass image of the bricks, and that image is
+/// the unbricked file's picture within the accuracy of their different coefficient sets.
+#[test]
+fn a_colour_volume_s_bricks_draw_into_one_image() {
+    use wavesplat_compressor::colorspace::ColorSpaceKind;
+    use wavesplat_compressor::encode::compress;
+    let volume = Phantom::RgbHead.generate(DIMS);
+    let spec = fitted(ViewSpec::single(View::new(0.66, 0.91, 96, 80)));
+    for kind in [
+        ColorSpaceKind::Pca,
+        ColorSpaceKind::Rgb,
+        ColorSpaceKind::Yiq,
+    ] {
+        let opts = CompressOptions {
             target: Target::Fraction(0.08),
+            colorspace: kind,
             ..CompressOptions::default()
-        },
-        20,
-        &|_| {},
-    )
-    .unwrap();
-    let e = FileSource::open(rgb.bytes, &single)
-        .unwrap_err()
-        .to_string();
-    assert!(e.contains("colour volume"), "{e}");
-    assert!(!e.contains("compress it again"), "{e}");
+        };
+        let bytes = compress_bricked(&volume, &opts, 20, &|_| {}).unwrap().bytes;
+        let (mut f, bricked) = session_loop(&bytes, spec, SessionOptions::default());
+        let first = &bricked.bricks[0].header.color;
+        assert!(
+            bricked
+                .bricks
+                .iter()
+                .all(|b| b.header.color.basis == first.basis && b.header.color.mean == first.mean),
+            "{kind:?}: the bricks code their colours alike"
+        );
+        let progressive = run_to_end(&mut f);
+        let one_pass = draw_bricked_file(&bytes, &spec, &mut CpuBackend::new())
+            .unwrap()
+            .image;
+        assert_eq!(progressive.channels, 3);
+        let snr = snr_db(&one_pass.data, &progressive.data);
+        assert!(
+            snr > 100.0,
+            "{kind:?}: progressive against one pass {snr:.1} dB"
+        );
+        let whole = compress(&volume, &opts, &|_, _| {}).unwrap().bytes;
+        let whole_image =
+            wavesplat_viewer::open::draw_whole_file(&whole, &spec, &mut CpuBackend::new())
+                .unwrap()
+                .image;
+        let whole_snr = snr_db(&whole_image.data, &one_pass.data);
+        eprintln!("{kind:?}: progressive against one pass {snr:.1} dB, bricked against whole {whole_snr:.1} dB");
+        assert!(
+            whole_snr > 20.0,
+            "{kind:?}: bricked against whole {whole_snr:.1} dB"
+        );
+    }
 }
 
 /// The bricks of one volume share their band weights: a brick's visibility made with the band

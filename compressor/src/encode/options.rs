@@ -2,7 +2,7 @@
 //! Q_V, all), tiling, the options with their defaults, the typed errors, progress stages,
 //! statistics and the compressed file with the decoder's view of its coefficients.
 
-use crate::colorspace::{ColorError, ColorSpaceKind};
+use crate::colorspace::{ColorError, ColorSpaceKind, ColorTransform};
 use crate::order::Clustering;
 use crate::refine::RefineOptions;
 use thiserror::Error;
@@ -60,6 +60,10 @@ pub struct CompressOptions {
     pub offset: Option<f64>,
     /// Colour space for 3-channel volumes.
     pub colorspace: ColorSpaceKind,
+    /// The colour transform of a 3-channel volume when it is fitted elsewhere (`None`: fitted
+    /// to the volume, [`ColorTransform::fit`]). The bricks of one volume share the whole's, so
+    /// that they show their values alike and draw into one image.
+    pub color_transform: Option<ColorTransform>,
     /// Quantization bits P (1..=16).
     pub bits: u8,
     /// Entropy coder.
@@ -101,6 +105,7 @@ impl Default for CompressOptions {
             smooth_padding: false,
             offset: None,
             colorspace: ColorSpaceKind::Pca,
+            color_transform: None,
             bits: 8,
             coder: CoderKind::Sigmap,
             target: Target::Fraction(0.05),

@@ -138,7 +138,10 @@ pub(super) fn coded_channels(
     opts: &CompressOptions,
 ) -> Result<(Option<Channels>, ColorInfo), CompressError> {
     if volume.channel_count() == 3 {
-        let t = ColorTransform::fit(opts.colorspace, volume)?;
+        let t = match &opts.color_transform {
+            Some(t) => t.clone(),
+            None => ColorTransform::fit(opts.colorspace, volume)?,
+        };
         let v = t.forward(volume)?;
         return Ok((Some(v.into_channels()), color_info(&t)));
     }

@@ -303,14 +303,10 @@ pub(crate) fn check_session_brick(
 /// session can draw both into one image.
 pub(crate) fn check_display(i: usize, header: &Header, first: &Header) -> Result<(), SourceError> {
     if !same_display(header, first) {
-        // A colour volume's bricks each fit a colour basis of their own (in this version too);
-        // a single channel's bricks share the whole's offset in this version (older files of
-        // the bricked format gave each brick its own).
-        let remedy = if header.channels > 1 {
-            " (the bricks of a colour volume each have a colour basis of their own)"
-        } else {
-            ", or compress it again with this version, whose bricks share the whole's offset"
-        };
+        // The bricks of one volume share the whole's offset or colour transform in this
+        // version; older files of the bricked format gave each brick its own.
+        let remedy = ", or compress it again with this version, whose bricks share the whole's \
+                      offset and colour transform";
         return Err(SourceError::Unsupported(format!(
             "brick {i} of this bricked volume subtracts another offset or colour basis than \
              its first brick, so its bricks cannot be drawn into one image progressively; \
