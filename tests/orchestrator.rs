@@ -380,3 +380,87 @@ async fn the_same_archive_with_other_options_lands_under_a_suffix() {
     want.sort();
     assert_eq!(cache_volumes_decode(&c).await, want);
 }
+
+/// `archive submit --brick N`: a worker compresses the volume as a bricked volume, reading a
+/// raw file on shared storage brick by brick (an uploaded one is decoded whole and split), and
+/// the cache holds one bricked volume per job, exactly as `compress_bricked` makes it with the
+/// job's options, even when the first worker is killed before its upload. A bricked job asks for
+/// linear or haar: the cubic family is refused at submission.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_bricked_job_lands_as_one_bricked_volume_once() {
+    use wavesplat_compressor::bricked::compress_bricked;
+    use wavesplat_orchestrator_client::model::JobOptions;
+    let cl = TestCluster::start(&ORCH_TIMING);
+    let (o, c) = (cl.orch.url(), cl.cache.url());
+    let dims = [48, 40, 36];
+    let samples = phantom(Phantom::SheppLogan, dims);
+    let shared = cl.root.join("shared");
+    let uploaded = cl.root.join("uploaded");
+    for (dir, name) in [(&shared, "big"), (&uploaded, "sent")] {
+        std::fs::create_dir_all(dir).unwrap();
+        write_f32(&dir.join(raw_name(name, dims, "f32")), &samples);
+    }
+    let refused = cli(&[
+        "archive",
+        "submit",
+        shared.to_str().unwrap(),
+        "--orchestrator",
+        &o,
+        "--detach",
+        "--brick",
+        "24",
+        "--family",
+        "cubic",
+    ]);
+    assert!(!refused.status.success());
+    assert!(
+        String::from_utf8_lossy(&refused.stderr).contains("cubic"),
+        "{}",
+        String::from_utf8_lossy(&refused.stderr)
+    );
+    // This worker compresses, then hangs before uploading: SIGKILL it there.
+    let stuck = cl.worker("doomed", 60_000, None);
+    submit(&shared, &o, &["--brick", "24"]);
+    wait_for(&o, 60, "the doomed worker holding the bricked job", |js| {
+        js.iter()
+            .any(|j| j.worker == "doomed" && j.stage.contains("paused"))
+    })
+    .await;
+    stuck.kill();
+    let _w = cl.worker("rescuer", 0, None);
+    submit(&uploaded, &o, &["--brick", "24", "--upload"]);
+    let js = wait_for(&o, 90, "both bricked jobs done", |js| {
+        js.len() == 2 && js.iter().all(|j| state_name(j.state) == "done")
+    })
+    .await;
+    let big = js.iter().find(|j| name(j) == "big").unwrap();
+    assert_eq!(big.attempts, 2, "reclaimed once");
+
+    let options = JobOptions {
+        levels: Some(2),
+        brick: Some(24),
+        ..JobOptions::default()
+    };
+    let volume = Phantom::SheppLogan.generate(dims);
+    let expected = compress_bricked(
+        &volume,
+        &wavesplat_worker::options::compress_options(&options),
+        24,
+        &|_| {},
+    )
+    .unwrap();
+    assert_eq!(expected.manifest.bricks.len(), 8);
+    let expected_sha = wavesplat_net::digest::hex(&wavesplat_net::digest::sha256(&expected.bytes));
+    let mut client = CacheClient::connect(&c).await.unwrap();
+    let listed = client.list().await.unwrap();
+    assert_eq!(listed.len(), 2, "one volume per job: {listed:?}");
+    for v in &listed {
+        assert_eq!(v.sha256, expected_sha, "{}: not the bricked file", v.name);
+        let h = client
+            .header(&VolumeKey::Name(v.name.clone()))
+            .await
+            .unwrap();
+        assert_eq!(h.bricks.len(), 8, "{}", v.name);
+        assert_eq!(h.header.geometry.dims, dims);
+    }
+}

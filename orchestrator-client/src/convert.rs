@@ -104,6 +104,7 @@ fn options_from_pb(o: pb::CompressOptions) -> Result<JobOptions, ClientError> {
         refine_rounds: o.refine_rounds.map(to_usize),
         no_refine: o.no_refine,
         layer_growth: o.layer_growth,
+        brick: o.brick.map(to_usize),
     })
 }
 
@@ -147,6 +148,7 @@ pub fn spec_to_pb(s: &JobSpec) -> pb::JobSpec {
             refine_rounds: o.refine_rounds.map(u32_of),
             no_refine: o.no_refine,
             layer_growth: o.layer_growth,
+            brick: o.brick.map(u32_of),
         }),
     }
 }
@@ -290,6 +292,7 @@ mod tests {
                 refine_rounds: Some(2),
                 no_refine: true,
                 layer_growth: Some(4.0),
+                brick: Some(64),
                 ..JobOptions::default()
             },
         };
@@ -308,6 +311,12 @@ mod tests {
         // The wire form carries it; validation (on submit) refuses it.
         let e = spec_from_pb(p).unwrap().validate().unwrap_err();
         assert!(e.to_string().contains("layer growth"), "{e}");
+        for brick in [3, 4096] {
+            let mut p = spec_to_pb(&spec);
+            p.options.as_mut().unwrap().brick = Some(brick);
+            let e = spec_from_pb(p).unwrap().validate().unwrap_err();
+            assert!(e.to_string().contains(&format!("brick {brick}")), "{e}");
+        }
         let mut p = spec_to_pb(&spec);
         p.options.as_mut().unwrap().family = "sinc".into();
         let e = spec_from_pb(p).unwrap_err();

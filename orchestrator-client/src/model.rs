@@ -257,7 +257,16 @@ pub struct JobOptions {
     /// Layer growth (`None`: the compressor's default).
     #[serde(default)]
     pub layer_growth: Option<f64>,
+    /// Compress as a bricked volume in bricks of at most this side (`None`: one volume).
+    #[serde(default)]
+    pub brick: Option<usize>,
 }
+
+/// Smallest brick side a job may ask for (smaller bricks cost more in headers and quality than
+/// they save).
+pub const MIN_BRICK: usize = 8;
+/// Largest brick side a job may ask for (a brick is one transform: 1024³ is already 23 GB).
+pub const MAX_BRICK: usize = 1024;
 
 impl Default for JobOptions {
     /// The compressor's defaults (the worker's tests check that they agree).
@@ -275,6 +284,7 @@ impl Default for JobOptions {
             refine_rounds: None,
             no_refine: false,
             layer_growth: None,
+            brick: None,
         }
     }
 }
@@ -318,6 +328,19 @@ impl JobOptions {
         }
         if self.tile == Some(0) {
             return Err(invalid("tile 0; must be at least 1".into()));
+        }
+        if let Some(b) = self.brick {
+            if !(MIN_BRICK..=MAX_BRICK).contains(&b) {
+                return Err(invalid(format!(
+                    "brick {b}; allowed {MIN_BRICK}..={MAX_BRICK} voxels a side"
+                )));
+            }
+            if self.family == Family::Cubic {
+                return Err(invalid(
+                    "bricked volumes do not support the cubic family yet; use linear or haar"
+                        .into(),
+                ));
+            }
         }
         match self.target {
             TargetSpec::Fraction(f) if !(f > 0.0 && f <= 1.0) => {

@@ -136,6 +136,12 @@ pub struct JobOptionArgs {
     /// Send the oracle's coefficients unchanged (no least-squares refinement).
     #[arg(long)]
     pub no_refine: bool,
+    /// Compress each volume as a bricked volume in bricks of at most N voxels a side
+    /// (8..=1024; linear or haar): the worker reads a raw, NIfTI, NRRD or MetaImage file on
+    /// shared storage brick by brick, so its memory is about one brick per thread whatever the
+    /// volume's size (see `compress --brick`).
+    #[arg(long, value_name = "N")]
+    pub brick: Option<usize>,
 }
 
 impl JobOptionArgs {
@@ -161,6 +167,7 @@ impl JobOptionArgs {
             refine_rounds: self.refine_rounds,
             no_refine: self.no_refine,
             layer_growth: self.layer_growth,
+            brick: self.brick,
         }
         .validate()?)
     }

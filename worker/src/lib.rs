@@ -35,7 +35,9 @@ use thiserror::Error;
 use tonic::Code;
 use wavesplat_client::{CacheClient, ConnectOptions};
 use wavesplat_codec::volume::Volume;
+use wavesplat_compressor::bricked::{compress_bricked, BrickSource, BrickStage};
 use wavesplat_compressor::encode::{compress, Stage};
+use wavesplat_compressor::reader::region::RegionReader;
 use wavesplat_compressor::reader::{decode_raw, decode_source, SourceFiles};
 use wavesplat_net::digest::sha256;
 use wavesplat_orchestrator_client::convert;
@@ -389,6 +391,52 @@ fn decode(spec: &JobSpec, bytes: Vec<u8>) -> Result<Volume, Failure> {
     }
 }
 
+/// A job of a bricked volume (`--brick`), on the worker's pool: a file on shared storage (raw,
+/// NIfTI, NRRD, MetaImage) is read brick by brick once its hash is verified (its bytes are let
+/// go first), so the worker holds about one brick per thread whatever the volume's size; an
+/// uploaded source or a DICOM series is decoded whole and split. Returns the bricked file and
+/// the volume's voxel count.
+fn compress_bricked_job(
+    spec: &JobSpec,
+    bytes: Vec<u8>,
+    brick: usize,
+    opts: &wavesplat_compressor::encode::CompressOptions,
+    sh: &Shared,
+) -> Result<(Vec<u8>, u64), Failure> {
+    let invalid = |e: &dyn std::fmt::Display| fail(FailureKind::InvalidInput, e.to_string());
+    let (reader, volume);
+    let source: &dyn BrickSource = match &spec.source {
+        Source::Path(p) if !p.is_dir() => {
+            drop(bytes);
+            let raw = spec.raw.as_ref().map(options::raw_spec);
+            reader = RegionReader::open(p, raw.as_ref()).map_err(|e| invalid(&e))?;
+            &reader
+        }
+        _ => {
+            volume = decode(spec, bytes)?;
+            &volume
+        }
+    };
+    let voxels = source.dims().iter().product::<u64>();
+    sh.set(0.05, "reading bricks");
+    let report = |stage: BrickStage| {
+        let (p, what) = match stage {
+            BrickStage::Scored { done, of } => (
+                0.05 + 0.25 * done as f32 / of.max(1) as f32,
+                format!("scoring brick {done} of {of}"),
+            ),
+            BrickStage::Compressed { done, of, trial } => (
+                0.3 + 0.6 * done as f32 / of.max(1) as f32,
+                format!("compressing brick {done} of {of} (trial {trial})"),
+            ),
+        };
+        sh.set(p, what);
+    };
+    compress_bricked(source, opts, brick, &report)
+        .map(|c| (c.bytes, voxels))
+        .map_err(|e| fail(FailureKind::Compress, e.to_string()))
+}
+
 async fn execute(
     ctx: &mut Ctx,
     id: u64,
@@ -414,6 +462,9 @@ async fn execute(
     let pool = ctx.pool.clone();
     let sh = shared.clone();
     let compressed = tokio::task::spawn_blocking(move || {
+        if let Some(brick) = job_spec.options.brick {
+            return pool.install(|| compress_bricked_job(&job_spec, bytes, brick, &opts, &sh));
+        }
         let volume = decode(&job_spec, bytes)?;
         let voxels = volume.voxel_count() as u64;
         sh.set(0.05, "compressing");
