@@ -4,7 +4,9 @@
 //! retry can help. A worker that loses its lease (expired, or the job was cancelled) discards
 //! its result; a worker killed mid-job simply stops heartbeating and the job runs elsewhere.
 //! Cache ingest is idempotent by content hash and the compressor is deterministic, so a job
-//! that ran twice lands once.
+//! that ran twice lands once. A job with a brick size compresses a bricked volume on the
+//! worker's pool; a file on shared storage is then hashed in pieces and read brick by brick,
+//! never whole.
 //!
 //! The worker is its own crate so that the orchestrator server links no encoder: the job's
 //! options are the orchestrator's domain types, mapped to the compressor's in [`options`].
@@ -391,6 +393,21 @@ fn decode(spec: &JobSpec, bytes: Vec<u8>) -> Result<Volume, Failure> {
     }
 }
 
+/// Whether the job is a bricked one whose source is a file on shared storage that hashes, read
+/// in pieces, to the submitted SHA-256 (a raw file or a single-file format; a detached header's
+/// bundle hashes otherwise, and is then read whole as any source is).
+async fn hashed_in_place(spec: &JobSpec) -> bool {
+    let (Some(_), Source::Path(p)) = (spec.options.brick, &spec.source) else {
+        return false;
+    };
+    if !p.is_file() {
+        return false;
+    }
+    let p = p.clone();
+    let hashed = tokio::task::spawn_blocking(move || wavesplat_net::digest::sha256_file(&p)).await;
+    matches!(hashed, Ok(Ok(h)) if h == spec.sha256)
+}
+
 /// A job of a bricked volume (`--brick`), on the worker's pool: a file on shared storage (raw,
 /// NIfTI, NRRD, MetaImage) is read brick by brick once its hash is verified (its bytes are let
 /// go first), so the worker holds about one brick per thread whatever the volume's size; an
@@ -406,7 +423,7 @@ fn compress_bricked_job(
     let invalid = |e: &dyn std::fmt::Display| fail(FailureKind::InvalidInput, e.to_string());
     let (reader, volume);
     let source: &dyn BrickSource = match &spec.source {
-        Source::Path(p) if !p.is_dir() => {
+        Source::Path(p) if p.is_file() => {
             drop(bytes);
             let raw = spec.raw.as_ref().map(options::raw_spec);
             reader = RegionReader::open(p, raw.as_ref()).map_err(|e| invalid(&e))?;
@@ -445,8 +462,19 @@ async fn execute(
     shared: &Arc<Shared>,
 ) -> Result<Delivery, Failure> {
     shared.set(0.0, "reading");
-    let bytes = fetch_source(ctx, id, attempt, spec).await?;
-    let got = sha256(&bytes);
+    // A bricked job's file verified without holding it (its bricks are read from it), or the
+    // source's bytes read and verified.
+    let in_place = hashed_in_place(spec).await;
+    let bytes = if in_place {
+        Vec::new()
+    } else {
+        fetch_source(ctx, id, attempt, spec).await?
+    };
+    let got = if in_place {
+        spec.sha256
+    } else {
+        sha256(&bytes)
+    };
     if got != spec.sha256 {
         return Err(fail(
             FailureKind::InvalidInput,
