@@ -226,14 +226,28 @@ pub fn job_spec(
     options: &JobOptions,
     upload: bool,
 ) -> std::io::Result<(JobSpec, Option<Vec<u8>>)> {
-    let bytes = source_bytes(&found.path, found.raw.is_some())?;
-    let sha256 = wavesplat_net::digest::sha256(&bytes);
-    let source = if upload {
-        Source::Upload {
-            size: bytes.len() as u64,
-        }
+    // A file that is its own source bytes (raw, NIfTI, MetaImage in one file) is hashed in
+    // pieces when it is not uploaded, so that submitting a volume larger than memory does not
+    // read it whole; other sources (a DICOM series, a detached header and its data) are
+    // gathered and hashed as the worker will gather them.
+    let own_bytes = found.raw.is_some() || {
+        let name = found.path.to_string_lossy().to_ascii_lowercase();
+        [".nii", ".nii.gz", ".mha"]
+            .iter()
+            .any(|e| name.ends_with(e))
+    };
+    let (sha256, bytes) = if own_bytes && !upload {
+        (wavesplat_net::digest::sha256_file(&found.path)?, None)
     } else {
-        Source::Path(std::fs::canonicalize(&found.path)?)
+        let bytes = source_bytes(&found.path, found.raw.is_some())?;
+        (wavesplat_net::digest::sha256(&bytes), Some(bytes))
+    };
+    let bytes = bytes.filter(|_| upload);
+    let source = match &bytes {
+        Some(b) => Source::Upload {
+            size: b.len() as u64,
+        },
+        None => Source::Path(std::fs::canonicalize(&found.path)?),
     };
     let spec = JobSpec {
         name: found.name.clone(),
@@ -242,7 +256,7 @@ pub fn job_spec(
         raw: found.raw.clone(),
         options: options.clone(),
     };
-    Ok((spec, upload.then_some(bytes)))
+    Ok((spec, bytes))
 }
 
 #[cfg(test)]
@@ -310,5 +324,30 @@ mod tests {
         );
         assert!(s.found.iter().any(|f| f.path == r.join("study/series1")));
         assert_eq!(s.skipped.len(), 2, "{:?}", s.skipped);
+    }
+
+    /// A job names the same content whether its source is uploaded or named by path: files
+    /// hashed in pieces (raw, NIfTI, MetaImage) and gathered sources (a detached header with
+    /// its data) alike.
+    #[test]
+    fn a_source_hashes_alike_by_path_and_by_upload() {
+        let dir = tempfile::tempdir().unwrap();
+        let r = dir.path();
+        let data: Vec<u8> = (0..(5 << 20) + 3).map(|i| (i % 253) as u8).collect();
+        std::fs::write(r.join("c_4x4x4_u8.raw"), &data).unwrap();
+        std::fs::write(r.join("a.nii"), &data).unwrap();
+        std::fs::write(r.join("vol.nhdr"), "NRRD0004\ndata file: v.raw\n").unwrap();
+        std::fs::write(r.join("v.raw"), b"x").unwrap();
+        let s = scan(r).unwrap();
+        assert_eq!(s.found.len(), 3, "{:?}", s.found);
+        for f in &s.found {
+            let (by_path, none) = job_spec(f, &JobOptions::default(), false).unwrap();
+            let (by_upload, bytes) = job_spec(f, &JobOptions::default(), true).unwrap();
+            assert!(none.is_none());
+            let bytes = bytes.expect("an upload carries its bytes");
+            assert_eq!(by_path.sha256, by_upload.sha256, "{}", f.name);
+            assert_eq!(by_upload.sha256, wavesplat_net::digest::sha256(&bytes));
+            assert!(matches!(by_path.source, Source::Path(_)));
+        }
     }
 }
