@@ -33,6 +33,21 @@ fn bricked_file() -> Vec<u8> {
     .bytes
 }
 
+/// A 32² view along −z zoomed into one corner of the whole (the `render` arguments of the
+/// first test's "corner").
+fn corner_view() -> ViewSpec {
+    ViewSpec::single(
+        View::new(
+            -std::f64::consts::FRAC_PI_2,
+            -std::f64::consts::FRAC_PI_2,
+            32,
+            32,
+        )
+        .with_zoom(4.0)
+        .with_pan([-20.0, 18.0]),
+    )
+}
+
 fn render(dir: &Path, args: &[&str]) -> Output {
     Command::new(BIN)
         .arg("render")
@@ -178,16 +193,7 @@ fn a_view_of_one_corner_is_sent_only_the_bricks_it_sees() {
     ids.sort_unstable();
     assert_eq!(ids, (0..total).collect::<Vec<_>>(), "every packet once");
 
-    let corner = ViewSpec::single(
-        View::new(
-            -std::f64::consts::FRAC_PI_2,
-            -std::f64::consts::FRAC_PI_2,
-            32,
-            32,
-        )
-        .with_zoom(4.0)
-        .with_pan([-20.0, 18.0]),
-    );
+    let corner = corner_view();
     let bricks: Vec<_> = header
         .bricks
         .iter()
@@ -341,16 +347,7 @@ fn nodes_over_an_object_store_serve_bricked_volumes_alike() {
         "--store",
         &store_url,
     ]);
-    let corner = ViewSpec::single(
-        View::new(
-            -std::f64::consts::FRAC_PI_2,
-            -std::f64::consts::FRAC_PI_2,
-            32,
-            32,
-        )
-        .with_zoom(4.0)
-        .with_pan([-20.0, 18.0]),
-    );
+    let corner = corner_view();
     for spec in [ViewSpec::single(View::new(0.4, 0.3, 48, 48)), corner] {
         let collect = |url: &str| {
             let mut c = rt.block_on(CacheClient::connect(url)).unwrap();

@@ -739,4 +739,31 @@ mod tests {
         assert!(session.queue.iter().any(|(_, id)| *id == first));
         assert_eq!(session.queue.len(), volume.index.packets.len());
     }
+
+    /// A bricked volume's stream sends nothing before its view is planned: its file order is
+    /// its first brick's, which the view may not see. One volume's stream sends its first
+    /// packets in file order meanwhile.
+    #[test]
+    fn a_bricked_volume_waits_for_its_plan() {
+        use wavesplat_compressor::bricked::compress_bricked;
+        use wavesplat_compressor::encode::{CompressOptions, Target};
+        let dir = tempfile::tempdir().unwrap();
+        let vol = wavesplat_compressor::phantom::Phantom::SheppLogan.generate([40, 36, 32]);
+        let opts = CompressOptions {
+            target: Target::Fraction(0.1),
+            ..Default::default()
+        };
+        let bytes = compress_bricked(&vol, &opts, 20, &|_| {}).unwrap().bytes;
+        let store = Store::open(dir.path(), Limits::default()).unwrap();
+        let id = store.ingest("b", &bytes, None).unwrap().volume.id;
+        let bricked = store.open_volume(id).unwrap();
+        assert!(bricked.index.bricked.is_some());
+        let whole = open_test_volume(&dir.path().join("whole"));
+        for (volume, sends) in [(bricked, false), (whole, true)] {
+            let planners = Arc::new(Semaphore::new(1));
+            let mut session = Session::new(volume, crate::VolumeKey::Id(1), 0, planners);
+            session.unplanned();
+            assert_eq!(session.may_send_queued(), sends);
+        }
+    }
 }

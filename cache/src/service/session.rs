@@ -144,14 +144,18 @@ impl Session {
 
     /// Queues the packets not held in file order, to send while the view is planned: up to
     /// 1/[`UNPLANNED_SHARE`] of the volume's bytes, nothing for a visible-only stream (it may
-    /// not send what the view cannot see, which only the plan knows).
+    /// not send what the view cannot see, which only the plan knows) nor for a bricked volume
+    /// (its file order is its first brick's, which the view may not see: a view is sent only
+    /// the bricks it sees).
     pub(super) fn unplanned(&mut self) {
         let packets = &self.volume.index.packets;
-        self.unplanned = Some(if self.visible_only {
-            0
-        } else {
-            (self.volume.meta.packet_bytes / UNPLANNED_SHARE).max(1)
-        });
+        self.unplanned = Some(
+            if self.visible_only || self.volume.index.bricked.is_some() {
+                0
+            } else {
+                (self.volume.meta.packet_bytes / UNPLANNED_SHARE).max(1)
+            },
+        );
         let held = &self.held;
         // Pops come from the end: file order is the reversed ids.
         self.queue = (0..packets.len() as u32)
@@ -162,7 +166,7 @@ impl Session {
     }
 
     /// Whether the queue may be sent from now: planned, or within the unplanned budget.
-    fn may_send_queued(&self) -> bool {
+    pub(super) fn may_send_queued(&self) -> bool {
         !self.queue.is_empty() && self.unplanned.is_none_or(|b| b > 0)
     }
 
