@@ -12,7 +12,7 @@ use std::path::Path;
 use std::process::{Command, Output};
 use wavesplat_cache::{CacheError, Limits, Store};
 use wavesplat_client::{CacheClient, RefineRequest, VolumeKey};
-use wavesplat_codec::format::bricked::parse_bricked;
+use wavesplat_codec::format::bricked::{parse_bricked, write_bricked};
 use wavesplat_codec::view::bricked::BrickedVisibility;
 use wavesplat_codec::view::{View, ViewSpec};
 use wavesplat_compressor::phantom::Phantom;
@@ -287,11 +287,19 @@ fn the_store_keeps_bricked_volumes_and_refuses_damaged_ones() {
     damaged[(last.offset + last.length - 3) as usize] ^= 0x10;
     let mut padded = wsp.clone();
     padded.push(0);
+    // A container whose first brick has no bytes (its manifest otherwise consistent).
+    let mut manifest = file.manifest.clone();
+    let mut bricks: Vec<&[u8]> = (0..manifest.bricks.len())
+        .map(|i| file.brick_bytes(i).unwrap())
+        .collect();
+    bricks[0] = &[];
+    let empty_brick = write_bricked(&mut manifest, &bricks).unwrap();
     for (name, bytes, expect) in [
         ("damaged", &damaged[..], "brick 7"),
         ("cut", &wsp[..wsp.len() - 10], "brick"),
         ("cut-in-manifest", &wsp[..40], "upload ends"),
         ("padded", &padded[..], "bricks end at byte"),
+        ("empty-brick", &empty_brick[..], "brick 0 is empty"),
     ] {
         let e = store.ingest(name, bytes, None).unwrap_err();
         assert!(

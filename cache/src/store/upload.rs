@@ -408,6 +408,11 @@ impl Sink {
         let manifest = parse_manifest(&self.head, total)?;
         let mut at = self.head.len() as u64;
         for (i, b) in manifest.bricks.iter().enumerate() {
+            if b.length == 0 {
+                return Err(CacheError::InvalidUpload(format!(
+                    "brick {i} is empty: every brick is a .wsp file"
+                )));
+            }
             if b.offset != at {
                 return Err(CacheError::InvalidUpload(format!(
                     "brick {i} starts at byte {}, not where the previous one ends ({at}): a \
