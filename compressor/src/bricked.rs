@@ -346,9 +346,19 @@ pub enum BrickStage {
     },
 }
 
-/// The smallest brick edge: below it the per-brick header and the cut supports cost more than
-/// a brick saves.
-pub const MIN_BRICK: usize = 8;
+impl std::fmt::Display for BrickStage {
+    /// What a progress line says: "scoring brick 3 of 8", "compressing brick 3 of 8 (trial 1)".
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            BrickStage::Scored { done, of } => write!(f, "scoring brick {done} of {of}"),
+            BrickStage::Compressed { done, of, trial } => {
+                write!(f, "compressing brick {done} of {of} (trial {trial})")
+            }
+        }
+    }
+}
+
+pub use wavesplat_codec::format::bricked::MIN_BRICK;
 
 /// Compresses the volume `source` holds as bricks of edge `brick` with `opts` (whose target is
 /// the whole's). Bricks are compressed on the rayon pool, each read when its turn comes.

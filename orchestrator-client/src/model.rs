@@ -262,9 +262,7 @@ pub struct JobOptions {
     pub brick: Option<usize>,
 }
 
-/// Smallest brick side a job may ask for (smaller bricks cost more in headers and quality than
-/// they save).
-pub const MIN_BRICK: usize = 8;
+pub use wavesplat_codec::format::bricked::MIN_BRICK;
 /// Largest brick side a job may ask for (a brick is one transform: 1024³ is already 23 GB).
 pub const MAX_BRICK: usize = 1024;
 

@@ -391,14 +391,7 @@ fn run_bricked(a: &CompressArgs, opts: &CompressOptions, brick: usize) -> Result
     };
     let d = source.dims();
     let progress = Progress::new("compress");
-    let report = |stage: BrickStage| {
-        progress.stage(&match stage {
-            BrickStage::Scored { done, of } => format!("scoring brick {done} of {of}"),
-            BrickStage::Compressed { done, of, trial } => {
-                format!("compressing brick {done} of {of} (trial {trial})")
-            }
-        })
-    };
+    let report = |stage: BrickStage| progress.stage(&stage.to_string());
     let c = compress_bricked(source, opts, brick, &report).context("compressing")?;
     progress.finish();
     std::fs::write(&a.output, &c.bytes)

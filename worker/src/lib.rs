@@ -437,17 +437,11 @@ fn compress_bricked_job(
     let voxels = source.dims().iter().product::<u64>();
     sh.set(0.05, "reading bricks");
     let report = |stage: BrickStage| {
-        let (p, what) = match stage {
-            BrickStage::Scored { done, of } => (
-                0.05 + 0.25 * done as f32 / of.max(1) as f32,
-                format!("scoring brick {done} of {of}"),
-            ),
-            BrickStage::Compressed { done, of, trial } => (
-                0.3 + 0.6 * done as f32 / of.max(1) as f32,
-                format!("compressing brick {done} of {of} (trial {trial})"),
-            ),
+        let p = match stage {
+            BrickStage::Scored { done, of } => 0.05 + 0.25 * done as f32 / of.max(1) as f32,
+            BrickStage::Compressed { done, of, .. } => 0.3 + 0.6 * done as f32 / of.max(1) as f32,
         };
-        sh.set(p, what);
+        sh.set(p, stage.to_string());
     };
     compress_bricked(source, opts, brick, &report)
         .map(|c| (c.bytes, voxels))
@@ -470,12 +464,8 @@ async fn execute(
     } else {
         fetch_source(ctx, id, attempt, spec).await?
     };
-    let got = if in_place {
-        spec.sha256
-    } else {
-        sha256(&bytes)
-    };
-    if got != spec.sha256 {
+    let got = sha256(&bytes);
+    if !in_place && got != spec.sha256 {
         return Err(fail(
             FailureKind::InvalidInput,
             format!(

@@ -28,6 +28,10 @@ pub const MAX_BRICKS: usize = 1 << 20;
 /// Largest accepted manifest (bytes).
 pub const MAX_MANIFEST_BYTES: usize = 64 << 20;
 
+/// The smallest brick edge a bricked volume is split with: below it the per-brick header and
+/// the cut supports cost more than a brick saves.
+pub const MIN_BRICK: usize = 8;
+
 /// Largest side of the whole volume along one axis.
 pub const MAX_SIDE: u64 = 1 << 20;
 

@@ -26,7 +26,7 @@ pub(super) struct Head {
     /// Per packet; offsets are from `base` (a bricked volume's: from the container's start).
     pub(super) packets: Vec<PacketMeta>,
     /// A bricked volume's bricks (empty for one volume).
-    pub(super) bricks: Vec<HeadBrick>,
+    pub(super) bricks: Vec<SessionBrick>,
     /// Each packet's brick (empty for one volume).
     pub(super) packet_brick: Vec<u32>,
     /// Where packet offsets start in the object.
@@ -139,14 +139,6 @@ pub(super) async fn read_head(
     })
 }
 
-/// One brick of a bricked volume: its header and first voxel in the whole.
-pub(super) struct HeadBrick {
-    pub(super) header: Header,
-    pub(super) origin: [u64; 3],
-    /// Packets it has.
-    pub(super) packets: u32,
-}
-
 impl Head {
     /// The header packet `id` decodes with (its brick's, for a bricked volume).
     pub(super) fn header_of(&self, id: u32) -> &Header {
@@ -163,15 +155,7 @@ impl Head {
         }
         Some(BrickedVolume {
             whole: self.header.clone(),
-            bricks: self
-                .bricks
-                .iter()
-                .map(|b| SessionBrick {
-                    header: b.header.clone(),
-                    origin: b.origin,
-                    packets: b.packets,
-                })
-                .collect(),
+            bricks: self.bricks.clone(),
         })
     }
 
@@ -203,7 +187,7 @@ impl Head {
                 });
                 packet_brick.push(index);
             }
-            bricks.push(HeadBrick {
+            bricks.push(SessionBrick {
                 header: b.header.clone(),
                 origin: entry.origin,
                 packets: b.packets.len() as u32,

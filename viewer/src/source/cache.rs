@@ -135,6 +135,8 @@ impl CacheSource {
                 reason: "no cache URL given".into(),
             }))
         })?;
+        let bricked = bricked_volume(&header)?;
+        let headers = Arc::new(PacketHeaders::new(&header.header, bricked.as_ref()));
         let status = Arc::new(Mutex::new(SourceStatus {
             connected: true,
             ..Default::default()
@@ -149,9 +151,9 @@ impl CacheSource {
             held: HashSet::new(),
             status: status.clone(),
             link_free: None,
-            headers: Arc::new(PacketHeaders::of(&header)),
+            headers,
         };
-        let bricked = bricked_volume(&header)?.map(Box::new);
+        let bricked = bricked.map(Box::new);
         let feed = Feed::start(
             "wavesplat-cache-source",
             runtime,
@@ -204,10 +206,11 @@ struct PacketHeaders {
 }
 
 impl PacketHeaders {
-    fn of(header: &VolumeHeader) -> PacketHeaders {
+    /// The headers of a volume of header `whole`, bricked as `bricked` (if it is).
+    fn new(whole: &Header, bricked: Option<&BrickedVolume>) -> PacketHeaders {
         let mut first = 0u32;
-        let bricks = header
-            .bricks
+        let bricks = bricked
+            .map_or(&[][..], |b| &b.bricks)
             .iter()
             .map(|b| {
                 let at = first;
@@ -216,7 +219,7 @@ impl PacketHeaders {
             })
             .collect();
         PacketHeaders {
-            whole: header.header.clone(),
+            whole: whole.clone(),
             bricks,
         }
     }
