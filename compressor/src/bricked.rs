@@ -30,8 +30,7 @@ use wavesplat_codec::layout::Geometry;
 use wavesplat_codec::volume::{Placement, Volume, VolumeError};
 
 use crate::encode::{
-    compress, default_levels, score_summary, CompressError, CompressOptions, ScoreSummary, Stage,
-    Target,
+    compress, default_levels, score_summary, CompressError, CompressOptions, ScoreSummary, Target,
 };
 use crate::reader::ReadError;
 
@@ -360,14 +359,207 @@ impl std::fmt::Display for BrickStage {
 
 pub use wavesplat_codec::format::bricked::MIN_BRICK;
 
-/// Compresses the volume `source` holds as bricks of edge `brick` with `opts` (whose target is
-/// the whole's). Bricks are compressed on the rayon pool, each read when its turn comes.
-pub fn compress_bricked(
-    source: &dyn BrickSource,
-    opts: &CompressOptions,
-    brick: usize,
-    progress: &(dyn Fn(BrickStage) + Sync),
-) -> Result<BrickedCompressed, BrickError> {
+/// What every brick of one bricked volume shares, decided once on the whole: the depth, the
+/// offset a scalar volume's bricks subtract, and the colour transform an RGB volume's bricks
+/// share. Plain values, so that a distributed job can hand them to the workers that compress
+/// single bricks ([`BrickPlan::with_choices`]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct SharedChoices {
+    /// Decomposition depth M of every brick.
+    pub levels: usize,
+    /// The whole's offset (scalar volumes).
+    pub offset: Option<f64>,
+    /// The whole's colour transform (RGB volumes).
+    pub color: Option<ColorTransform>,
+}
+
+/// The whole volume as bricks: its grid, the choices the bricks share and the options each
+/// brick is compressed with. A plan scores and encodes single bricks
+/// ([`BrickPlan::score`], [`BrickPlan::encode`]), in this process or on any machine that can
+/// read the source; [`allocate`] drives the rate allocation over all of them.
+#[derive(Debug, Clone)]
+pub struct BrickPlan {
+    /// Each brick's origin and dimensions, x fastest.
+    pub grid: Vec<([u64; 3], [usize; 3])>,
+    /// The brick edge asked for.
+    pub brick: usize,
+    /// What the bricks share.
+    pub choices: SharedChoices,
+    /// The whole's target (the bricks' own targets come from the allocation).
+    pub target: Target,
+    base: CompressOptions,
+    dims: [u64; 3],
+    channels: usize,
+    spacing: [f32; 3],
+    placement: Option<Placement>,
+}
+
+impl BrickPlan {
+    /// Plans `source` as bricks of edge `brick` under `opts` (whose target is the whole's):
+    /// checks the options, reads the whole's faces for its offset or colour origin (and, for
+    /// PCA, its colour moments brick by brick) and picks the depth.
+    pub fn new(
+        source: &dyn BrickSource,
+        opts: &CompressOptions,
+        brick: usize,
+    ) -> Result<BrickPlan, BrickError> {
+        check_options(opts, brick)?;
+        let grid = brick_grid(source.dims(), brick);
+        let levels = choose_levels(source, opts, &grid)?;
+        let offset = match opts.offset {
+            Some(o) => Some(o),
+            None if source.channels() == 1 => Some(whole_face_medians(source)?[0]),
+            None => None,
+        };
+        let color = match &opts.color_transform {
+            Some(t) => Some(t.clone()),
+            None if source.channels() == 3 => {
+                let m = whole_face_medians(source)?;
+                let mean = [m[0], m[1], m[2]];
+                Some(whole_color_transform(source, &grid, opts.colorspace, mean)?)
+            }
+            None => None,
+        };
+        BrickPlan::with_choices(
+            source,
+            opts,
+            brick,
+            SharedChoices {
+                levels,
+                offset,
+                color,
+            },
+        )
+    }
+
+    /// The plan of `source` with choices already made (by [`BrickPlan::new`] elsewhere):
+    /// nothing is read.
+    pub fn with_choices(
+        source: &dyn BrickSource,
+        opts: &CompressOptions,
+        brick: usize,
+        choices: SharedChoices,
+    ) -> Result<BrickPlan, BrickError> {
+        check_options(opts, brick)?;
+        let grid = brick_grid(source.dims(), brick);
+        let levels = choices.levels;
+        if let Some((_, d)) = grid.iter().find(|(_, d)| Geometry::max_levels(*d) < levels) {
+            return Err(BrickError::InvalidOption(format!(
+                "depth M = {levels} does not fit a {}x{}x{} brick",
+                d[0], d[1], d[2]
+            )));
+        }
+        if source.channels() == 3 && choices.color.is_none() {
+            return Err(BrickError::InvalidOption(
+                "the bricks of an RGB volume need the whole's colour transform".into(),
+            ));
+        }
+        let base = CompressOptions {
+            levels: Some(levels),
+            margin: Some(bridge_margin(opts.family, levels)),
+            smooth_padding: true,
+            offset: choices.offset,
+            color_transform: choices.color.clone(),
+            ..opts.clone()
+        };
+        Ok(BrickPlan {
+            grid,
+            brick,
+            choices,
+            target: opts.target,
+            base,
+            dims: source.dims(),
+            channels: source.channels(),
+            spacing: source.spacing(),
+            placement: source.placement(),
+        })
+    }
+
+    /// Reads brick `i` (without placement: the manifest places the whole, and 97 bytes per
+    /// brick's header add up at low rates).
+    fn read(&self, source: &dyn BrickSource, i: usize) -> Result<Volume, BrickError> {
+        let (origin, dims) = *self.grid.get(i).ok_or_else(|| {
+            BrickError::InvalidOption(format!("brick {i} of {}", self.grid.len()))
+        })?;
+        let v = source
+            .read(origin, dims)
+            .map_err(|source| BrickError::Read { origin, source })?;
+        if v.placement().is_none() {
+            return Ok(v);
+        }
+        let (d, s) = (v.dims(), v.spacing());
+        Volume::new(d, s, v.into_channels()).map_err(|e| BrickError::Read {
+            origin,
+            source: e.into(),
+        })
+    }
+
+    /// The first pass for brick `i`: its coefficients' score histogram.
+    pub fn score(&self, source: &dyn BrickSource, i: usize) -> Result<ScoreSummary, BrickError> {
+        let v = self.read(source, i)?;
+        score_summary(&v, &self.base, &|_, _| {}).map_err(|source| BrickError::Compress {
+            origin: self.grid[i].0,
+            source,
+        })
+    }
+
+    /// Brick `i` compressed as a `.wsp` of its own, keeping its top `count` coefficients
+    /// (`None`: all), and the count it kept.
+    pub fn encode(
+        &self,
+        source: &dyn BrickSource,
+        i: usize,
+        count: Option<u64>,
+    ) -> Result<(Vec<u8>, u64), BrickError> {
+        let v = self.read(source, i)?;
+        let o = CompressOptions {
+            target: count.map_or(Target::All, Target::Coefficients),
+            ..self.base.clone()
+        };
+        let c = compress(&v, &o, &|_, _| {}).map_err(|source| BrickError::Compress {
+            origin: self.grid[i].0,
+            source,
+        })?;
+        Ok((c.bytes, c.header.kept))
+    }
+
+    /// The container of the bricks' files (in grid order) and the counts they kept.
+    pub fn assemble(&self, bricks: &[(Vec<u8>, u64)]) -> Result<Vec<u8>, BrickError> {
+        Ok(write_bricked(
+            &mut self.manifest(bricks),
+            &self.files(bricks),
+        )?)
+    }
+
+    fn files<'a>(&self, bricks: &'a [(Vec<u8>, u64)]) -> Vec<&'a [u8]> {
+        bricks.iter().map(|(b, _)| b.as_slice()).collect()
+    }
+
+    fn manifest(&self, bricks: &[(Vec<u8>, u64)]) -> Manifest {
+        Manifest {
+            dims: self.dims,
+            channels: self.channels,
+            spacing: self.spacing,
+            placement: self.placement,
+            brick: self.brick,
+            bricks: self
+                .grid
+                .iter()
+                .zip(bricks)
+                .map(|((origin, dims), (_, kept))| BrickEntry {
+                    origin: *origin,
+                    dims: *dims,
+                    offset: 0,
+                    length: 0,
+                    crc: 0,
+                    kept: *kept,
+                })
+                .collect(),
+        }
+    }
+}
+
+fn check_options(opts: &CompressOptions, brick: usize) -> Result<(), BrickError> {
     if brick < MIN_BRICK {
         return Err(BrickError::InvalidOption(format!(
             "brick edge {brick}; at least {MIN_BRICK}"
@@ -385,18 +577,32 @@ pub fn compress_bricked(
                 .into(),
         ));
     }
-    let grid = brick_grid(source.dims(), brick);
-    // One depth for every brick (the smallest brick's default, or the one asked for), no
-    // margin: a brick face that cuts the content is clipped by the renderer, not padded.
+    match opts.target {
+        Target::Fraction(f) if !(f > 0.0 && f <= 1.0) => Err(BrickError::InvalidOption(format!(
+            "target fraction {f}; allowed (0, 1]"
+        ))),
+        Target::QvPercent(q) if !(q > 0.0 && q <= 100.0) => Err(BrickError::InvalidOption(
+            format!("target Q_V {q} %; allowed (0, 100]"),
+        )),
+        _ => Ok(()),
+    }
+}
+
+/// One depth for every brick: the one asked for, or the smallest brick's default; a byte
+/// target picks it as the single-volume search does (shallower at high rates), on the middle
+/// brick at its share of the bytes.
+fn choose_levels(
+    source: &dyn BrickSource,
+    opts: &CompressOptions,
+    grid: &[([u64; 3], [usize; 3])],
+) -> Result<usize, BrickError> {
     let deepest = grid
         .iter()
         .map(|(_, d)| default_levels(*d, opts.family))
         .min()
         .unwrap_or(0);
-    let levels = match (opts.levels, opts.target) {
+    Ok(match (opts.levels, opts.target) {
         (Some(m), _) => m,
-        // A byte target picks the depth as the single-volume search does (shallower at high
-        // rates), on the middle brick at its share of the bytes; every brick takes that depth.
         (None, Target::Bytes(total)) if grid.len() > 1 => {
             let (origin, dims) = grid[grid.len() / 2];
             let share = dims.iter().map(|d| *d as f64).product::<f64>()
@@ -414,140 +620,97 @@ pub fn compress_bricked(
                 .unwrap_or(deepest)
         }
         (None, _) => deepest,
-    };
-    if let Some((_, d)) = grid.iter().find(|(_, d)| Geometry::max_levels(*d) < levels) {
-        return Err(BrickError::InvalidOption(format!(
-            "depth M = {levels} does not fit a {}x{}x{} brick",
-            d[0], d[1], d[2]
-        )));
-    }
-    let base = CompressOptions {
-        levels: Some(levels),
-        margin: Some(bridge_margin(opts.family, levels)),
-        smooth_padding: true,
-        offset: match opts.offset {
-            Some(o) => Some(o),
-            None if source.channels() == 1 => Some(whole_face_medians(source)?[0]),
-            None => None,
-        },
-        color_transform: match &opts.color_transform {
-            Some(t) => Some(t.clone()),
-            None if source.channels() == 3 => {
-                let m = whole_face_medians(source)?;
-                let mean = [m[0], m[1], m[2]];
-                Some(whole_color_transform(source, &grid, opts.colorspace, mean)?)
-            }
-            None => None,
-        },
-        ..opts.clone()
-    };
-    // A brick's own header carries no placement: the manifest places the whole, and 97 bytes
-    // per brick add up at low rates.
-    let read = |i: usize| -> Result<Volume, BrickError> {
-        let (origin, dims) = grid[i];
-        let v = source
-            .read(origin, dims)
-            .map_err(|source| BrickError::Read { origin, source })?;
-        if v.placement().is_none() {
-            return Ok(v);
-        }
-        let (d, s) = (v.dims(), v.spacing());
-        Volume::new(d, s, v.into_channels()).map_err(|e| BrickError::Read {
-            origin,
-            source: e.into(),
-        })
-    };
-    let quiet = |_: Stage, _: f64| {};
-    let counter = std::sync::atomic::AtomicUsize::new(0);
-    let tick = |make: &dyn Fn(usize) -> BrickStage| {
-        let done = counter.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
-        progress(make(done));
-    };
+    })
+}
 
-    // Pass 1: every brick's score histogram (not needed to keep everything).
-    let of = grid.len();
-    let summaries: Vec<ScoreSummary> = match base.target {
+/// One brick compressed by a [`BrickWork`]: its file (bytes, or wherever the work keeps
+/// them), its length and the coefficients it kept.
+#[derive(Debug, Clone)]
+pub struct CodedBrick<F> {
+    /// The file, or a handle to it.
+    pub file: F,
+    /// Its length in bytes.
+    pub len: u64,
+    /// Coefficients it kept.
+    pub kept: u64,
+}
+
+/// Whatever runs the two passes over all bricks of a plan: the rayon pool of this process
+/// ([`LocalBricks`]), or jobs spread over workers. [`allocate`] asks for the scores once and
+/// for the bricks compressed once per trial of the rate search.
+pub trait BrickWork {
+    /// Where a compressed brick's file is kept.
+    type File;
+    /// Every brick's score histogram, in grid order.
+    fn score_all(&self, plan: &BrickPlan) -> Result<Vec<ScoreSummary>, BrickError>;
+    /// Every brick compressed keeping `counts[i]` coefficients (`None`: all), in grid order;
+    /// `trial` counts the rate search's trials.
+    fn encode_all(
+        &self,
+        plan: &BrickPlan,
+        counts: Option<&[u64]>,
+        trial: usize,
+    ) -> Result<Vec<CodedBrick<Self::File>>, BrickError>;
+}
+
+/// The bricks a rate allocation chose, and what it summed over them.
+#[derive(Debug)]
+pub struct Allocated<F> {
+    /// The chosen trial's bricks, in grid order.
+    pub bricks: Vec<CodedBrick<F>>,
+    /// Coefficients of the padded grids of all bricks, all channels.
+    pub total_coefficients: u64,
+    /// Non-zero coefficients over all bricks.
+    pub nonzero: u64,
+}
+
+/// Allocates the whole's target across the plan's bricks as for the whole volume: the bricks'
+/// score histograms summed give one global threshold; a byte target searches on its count
+/// (log bytes against log count, from one byte per coefficient), each trial compressing every
+/// brick. The container's size is estimated for the search from its manifest
+/// ([`manifest_allowance`]).
+pub fn allocate<W: BrickWork>(
+    plan: &BrickPlan,
+    work: &W,
+) -> Result<Allocated<W::File>, BrickError> {
+    let of = plan.grid.len();
+    let summaries: Vec<ScoreSummary> = match plan.target {
         Target::All => Vec::new(),
-        _ => (0..of)
-            .into_par_iter()
-            .map(|i| {
-                let v = read(i)?;
-                let s =
-                    score_summary(&v, &base, &quiet).map_err(|source| BrickError::Compress {
-                        origin: grid[i].0,
-                        source,
-                    })?;
-                tick(&|done| BrickStage::Scored { done, of });
-                Ok(s)
-            })
-            .collect::<Result<_, BrickError>>()?,
+        _ => work.score_all(plan)?,
     };
     let mut whole = ScoreSummary::empty();
     summaries.iter().for_each(|s| whole.add(s));
     let (total_coefficients, nonzero) = (whole.total_coefficients, whole.nonzero);
-
-    // Each brick's file and the coefficients it kept.
-    type Bricks = Vec<(Vec<u8>, u64)>;
-    let compress_all = |counts: Option<&[u64]>, trial: usize| -> Result<Bricks, BrickError> {
-        counter.store(0, std::sync::atomic::Ordering::Relaxed);
-        (0..of)
-            .into_par_iter()
-            .map(|i| {
-                let target = match counts {
-                    None => Target::All,
-                    Some(k) => Target::Coefficients(k[i]),
-                };
-                let o = CompressOptions {
-                    target,
-                    ..base.clone()
-                };
-                let v = read(i)?;
-                let c = compress(&v, &o, &quiet).map_err(|source| BrickError::Compress {
-                    origin: grid[i].0,
-                    source,
-                })?;
-                tick(&|done| BrickStage::Compressed { done, of, trial });
-                Ok((c.bytes, c.header.kept))
-            })
-            .collect()
-    };
     let global_k = |k: u64| per_brick_counts(&summaries, &whole, k);
-    let bricks = match base.target {
-        Target::All => compress_all(None, 0)?,
-        Target::Coefficients(c) => compress_all(Some(&global_k(c)), 0)?,
+    let done = |bricks| Allocated {
+        bricks,
+        total_coefficients,
+        nonzero,
+    };
+    let bricks = match plan.target {
+        Target::All => work.encode_all(plan, None, 0)?,
+        Target::Coefficients(c) => work.encode_all(plan, Some(&global_k(c)), 0)?,
         Target::Fraction(f) => {
-            if !(f > 0.0 && f <= 1.0) {
-                return Err(BrickError::InvalidOption(format!(
-                    "target fraction {f}; allowed (0, 1]"
-                )));
-            }
             let k = (f * total_coefficients as f64).round() as u64;
-            compress_all(Some(&global_k(k)), 0)?
+            work.encode_all(plan, Some(&global_k(k)), 0)?
         }
         Target::QvPercent(q) => {
-            if !(q > 0.0 && q <= 100.0) {
-                return Err(BrickError::InvalidOption(format!(
-                    "target Q_V {q} %; allowed (0, 100]"
-                )));
-            }
             let k = count_for_energy(&whole, q / 100.0 * whole.total_energy);
-            compress_all(Some(&global_k(k)), 0)?
+            work.encode_all(plan, Some(&global_k(k)), 0)?
         }
         Target::Bytes(target) => {
-            // Log bytes against log count, from a first guess of one byte per coefficient.
-            let manifest_guess = 64 + 72 * of as u64;
+            let manifest_guess = manifest_allowance(of);
             let mut k = target
                 .saturating_sub(manifest_guess)
                 .max(1)
                 .min(nonzero.max(1));
-            let mut best: Option<(u64, Bricks)> = None;
+            let mut best: Option<(u64, Vec<CodedBrick<W::File>>)> = None;
             let mut last: Option<(f64, f64)> = None;
             // The largest count known to fit and the smallest known to overflow.
             let (mut fits_k, mut over_k) = (0u64, u64::MAX);
             for trial in 0..BYTE_TRIALS {
-                let b = compress_all(Some(&global_k(k)), trial)?;
-                let bytes: u64 =
-                    b.iter().map(|(v, _)| v.len() as u64).sum::<u64>() + manifest_guess;
+                let b = work.encode_all(plan, Some(&global_k(k)), trial)?;
+                let bytes: u64 = b.iter().map(|c| c.len).sum::<u64>() + manifest_guess;
                 let fits = bytes <= target;
                 if fits {
                     fits_k = fits_k.max(k);
@@ -594,33 +757,82 @@ pub fn compress_bricked(
             }
         }
     };
-    let mut manifest = Manifest {
-        dims: source.dims(),
-        channels: source.channels(),
-        spacing: source.spacing(),
-        placement: source.placement(),
-        brick,
-        bricks: grid
-            .iter()
-            .zip(&bricks)
-            .map(|((origin, dims), (_, kept))| BrickEntry {
-                origin: *origin,
-                dims: *dims,
-                offset: 0,
-                length: 0,
-                crc: 0,
-                kept: *kept,
+    Ok(done(bricks))
+}
+
+/// The bytes a byte target's search sets aside for the container's manifest of `bricks`
+/// bricks (an upper estimate).
+pub fn manifest_allowance(bricks: usize) -> u64 {
+    64 + 72 * bricks as u64
+}
+
+/// The bricks of a plan compressed on this process's rayon pool, each read from `source`
+/// when its turn comes (one brick per thread in memory), with progress.
+pub struct LocalBricks<'a> {
+    /// Where the bricks come from.
+    pub source: &'a dyn BrickSource,
+    /// Called as bricks finish.
+    pub progress: &'a (dyn Fn(BrickStage) + Sync),
+}
+
+impl BrickWork for LocalBricks<'_> {
+    type File = Vec<u8>;
+
+    fn score_all(&self, plan: &BrickPlan) -> Result<Vec<ScoreSummary>, BrickError> {
+        let (of, counter) = (plan.grid.len(), std::sync::atomic::AtomicUsize::new(0));
+        (0..of)
+            .into_par_iter()
+            .map(|i| {
+                let s = plan.score(self.source, i)?;
+                let done = counter.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
+                (self.progress)(BrickStage::Scored { done, of });
+                Ok(s)
             })
-            .collect(),
-    };
-    let files: Vec<&[u8]> = bricks.iter().map(|(b, _)| b.as_slice()).collect();
-    let bytes = write_bricked(&mut manifest, &files)?;
+            .collect()
+    }
+
+    fn encode_all(
+        &self,
+        plan: &BrickPlan,
+        counts: Option<&[u64]>,
+        trial: usize,
+    ) -> Result<Vec<CodedBrick<Vec<u8>>>, BrickError> {
+        let (of, counter) = (plan.grid.len(), std::sync::atomic::AtomicUsize::new(0));
+        (0..of)
+            .into_par_iter()
+            .map(|i| {
+                let (file, kept) = plan.encode(self.source, i, counts.map(|k| k[i]))?;
+                let done = counter.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
+                (self.progress)(BrickStage::Compressed { done, of, trial });
+                Ok(CodedBrick {
+                    len: file.len() as u64,
+                    file,
+                    kept,
+                })
+            })
+            .collect()
+    }
+}
+
+/// Compresses the volume `source` holds as bricks of edge `brick` with `opts` (whose target is
+/// the whole's). Bricks are compressed on the rayon pool, each read when its turn comes.
+pub fn compress_bricked(
+    source: &dyn BrickSource,
+    opts: &CompressOptions,
+    brick: usize,
+    progress: &(dyn Fn(BrickStage) + Sync),
+) -> Result<BrickedCompressed, BrickError> {
+    let plan = BrickPlan::new(source, opts, brick)?;
+    let a = allocate(&plan, &LocalBricks { source, progress })?;
+    let bricks: Vec<(Vec<u8>, u64)> = a.bricks.into_iter().map(|c| (c.file, c.kept)).collect();
+    let mut manifest = plan.manifest(&bricks);
+    let bytes = write_bricked(&mut manifest, &plan.files(&bricks))?;
     Ok(BrickedCompressed {
         bytes,
         manifest,
-        total_coefficients,
-        nonzero,
-        levels,
+        total_coefficients: a.total_coefficients,
+        nonzero: a.nonzero,
+        levels: plan.choices.levels,
     })
 }
 
@@ -724,6 +936,111 @@ mod tests {
                 "{got} bytes for {target}"
             );
         }
+    }
+
+    /// A work that runs each brick as a separate machine would: a plan rebuilt from the shared
+    /// choices alone, scores passed as bytes.
+    struct Apart<'a> {
+        source: &'a dyn BrickSource,
+        opts: CompressOptions,
+    }
+
+    impl Apart<'_> {
+        fn plan(&self, plan: &BrickPlan) -> BrickPlan {
+            BrickPlan::with_choices(self.source, &self.opts, plan.brick, plan.choices.clone())
+                .unwrap()
+        }
+    }
+
+    impl BrickWork for Apart<'_> {
+        type File = Vec<u8>;
+        fn score_all(&self, plan: &BrickPlan) -> Result<Vec<ScoreSummary>, BrickError> {
+            (0..plan.grid.len())
+                .map(|i| {
+                    let bytes = self.plan(plan).score(self.source, i)?.to_bytes(true);
+                    Ok(ScoreSummary::from_bytes(&bytes).unwrap())
+                })
+                .collect()
+        }
+        fn encode_all(
+            &self,
+            plan: &BrickPlan,
+            counts: Option<&[u64]>,
+            _trial: usize,
+        ) -> Result<Vec<CodedBrick<Vec<u8>>>, BrickError> {
+            (0..plan.grid.len())
+                .map(|i| {
+                    let (file, kept) =
+                        self.plan(plan)
+                            .encode(self.source, i, counts.map(|k| k[i]))?;
+                    Ok(CodedBrick {
+                        len: file.len() as u64,
+                        file,
+                        kept,
+                    })
+                })
+                .collect()
+        }
+    }
+
+    /// Bricks compressed apart, from the shared choices and the scores' bytes, make the same
+    /// file as in one process: scalar and PCA colour, a fraction and a byte target.
+    #[test]
+    fn bricks_compressed_apart_make_the_same_file() {
+        let grey = Phantom::SheppLogan.generate([40, 36, 30]);
+        let rgb = Phantom::RgbHead.generate([36, 30, 28]);
+        for (v, target) in [
+            (&grey, Target::Fraction(0.05)),
+            (&grey, Target::Bytes(9_000)),
+            (&rgb, Target::Fraction(0.04)),
+        ] {
+            let opts = CompressOptions {
+                target,
+                ..CompressOptions::default()
+            };
+            let here = compress_bricked(v, &opts, 20, &|_| {}).unwrap();
+            let plan = BrickPlan::new(v, &opts, 20).unwrap();
+            let work = Apart {
+                source: v,
+                opts: opts.clone(),
+            };
+            let a = allocate(&plan, &work).unwrap();
+            let bricks: Vec<(Vec<u8>, u64)> =
+                a.bricks.into_iter().map(|c| (c.file, c.kept)).collect();
+            assert_eq!(plan.assemble(&bricks).unwrap(), here.bytes, "{target:?}");
+        }
+    }
+
+    /// A summary survives its bytes; damaged bytes are refused, never read as another summary.
+    #[test]
+    fn a_score_summary_reads_back_from_its_bytes_and_refuses_damage() {
+        let v = Phantom::Spheres.generate([24, 24, 24]);
+        let s = score_summary(&v, &CompressOptions::default(), &|_, _| {}).unwrap();
+        let filled = s.counts().iter().filter(|c| **c > 0).count();
+        let lean = ScoreSummary::from_bytes(&s.to_bytes(false)).unwrap();
+        assert_eq!(lean.counts(), s.counts());
+        assert!(lean.energies().is_empty());
+        assert!(s.to_bytes(false).len() < 64 + 6 * filled, "{filled} bins");
+        let bytes = s.to_bytes(true);
+        let back = ScoreSummary::from_bytes(&bytes).unwrap();
+        assert_eq!(back.counts(), s.counts());
+        assert_eq!(back.energies(), s.energies());
+        assert_eq!(
+            (back.total_coefficients, back.nonzero, back.total_energy),
+            (s.total_coefficients, s.nonzero, s.total_energy)
+        );
+        for cut in [0, 7, 8, 40, bytes.len() - 1] {
+            assert!(
+                ScoreSummary::from_bytes(&bytes[..cut]).is_err(),
+                "cut at {cut}"
+            );
+        }
+        let mut longer = bytes.clone();
+        longer.push(0);
+        assert!(ScoreSummary::from_bytes(&longer).is_err());
+        let mut tag = bytes.clone();
+        tag[7] ^= 1;
+        assert!(ScoreSummary::from_bytes(&tag).is_err());
     }
 
     #[test]

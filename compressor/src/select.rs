@@ -145,6 +145,23 @@ impl Histogram {
         }
     }
 
+    /// A histogram of these bins' counts and energies (`energies` empty, or one per bin).
+    pub(crate) fn from_parts(
+        counts: Vec<u64>,
+        energies: Vec<f64>,
+        positive: u64,
+    ) -> Option<Histogram> {
+        let fits = counts.len() == BINS && (energies.is_empty() || energies.len() == BINS);
+        fits.then_some(Histogram {
+            counts,
+            energies,
+            positive,
+        })
+    }
+
+    /// Bins in all.
+    pub(crate) const BINS: usize = BINS;
+
     /// Coefficients per score bin.
     pub(crate) fn counts(&self) -> &[u64] {
         &self.counts
