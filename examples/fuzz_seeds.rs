@@ -131,6 +131,7 @@ fn main() {
                     family: "cubic".into(),
                     ..Default::default()
                 }),
+                part: None,
             })),
         }
         .encode_to_vec(),

@@ -267,6 +267,7 @@ fn the_readme_secure_deployment_runs_across_hosts() {
             let lease = orch
                 .lease(pb::LeaseRequest {
                     worker: "forger".into(),
+                    parts_only: false,
                 })
                 .await
                 .unwrap()

@@ -110,6 +110,11 @@ fn write_good(dir: &Path, prefix: &str, n: usize) -> Vec<String> {
         .collect()
 }
 
+/// Whether a listed job is a part of a bricked job.
+fn is_part(j: &pb::Job) -> bool {
+    j.spec.as_ref().is_some_and(|s| s.part.is_some())
+}
+
 async fn jobs(url: &str) -> Vec<pb::Job> {
     list(url).await.expect("the orchestrator answers")
 }
@@ -418,7 +423,8 @@ async fn a_bricked_job_lands_as_one_bricked_volume_once() {
         "{}",
         String::from_utf8_lossy(&refused.stderr)
     );
-    // This worker compresses, then hangs before uploading: SIGKILL it there.
+    // This worker coordinates the job, runs all its parts (it is alone), then hangs before
+    // uploading: SIGKILL it there.
     let stuck = cl.worker("doomed", 60_000, None);
     submit(&shared, &o, &["--brick", "24"]);
     wait_for(&o, 60, "the doomed worker holding the bricked job", |js| {
@@ -430,11 +436,23 @@ async fn a_bricked_job_lands_as_one_bricked_volume_once() {
     let _w = cl.worker("rescuer", 0, None);
     submit(&uploaded, &o, &["--brick", "24", "--upload"]);
     let js = wait_for(&o, 90, "both bricked jobs done", |js| {
-        js.len() == 2 && js.iter().all(|j| state_name(j.state) == "done")
+        let whole: Vec<_> = js.iter().filter(|j| !is_part(j)).collect();
+        whole.len() == 2 && whole.iter().all(|j| state_name(j.state) == "done")
     })
     .await;
-    let big = js.iter().find(|j| name(j) == "big").unwrap();
+    let big = js.iter().find(|j| name(j) == "big" && !is_part(j)).unwrap();
     assert_eq!(big.attempts, 2, "reclaimed once");
+    // The file on shared storage was spread over parts (8 bricks scored, 8 coded), each run
+    // once: the rescuer found them done and only gathered them; the upload was not.
+    let parts: Vec<_> = js.iter().filter(|j| is_part(j)).collect();
+    assert_eq!(parts.len(), 16, "{parts:?}");
+    for p in &parts {
+        assert_eq!(
+            p.spec.as_ref().unwrap().part.as_ref().unwrap().parent,
+            big.id
+        );
+        assert_eq!((state_name(p.state), p.attempts), ("done", 1), "{p:?}");
+    }
 
     let options = JobOptions {
         levels: Some(2),
@@ -463,4 +481,291 @@ async fn a_bricked_job_lands_as_one_bricked_volume_once() {
         assert_eq!(h.bricks.len(), 8, "{}", v.name);
         assert_eq!(h.header.geometry.dims, dims);
     }
+}
+
+/// Two workers share one bricked job: each runs some of its bricks, a byte target's search
+/// runs its trials as rounds of parts, and the volume lands once, byte for byte the file one
+/// process makes.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_bricked_job_spreads_its_bricks_over_workers() {
+    use wavesplat_compressor::bricked::compress_bricked;
+    use wavesplat_orchestrator_client::model::{JobOptions, TargetSpec};
+    let cl = TestCluster::start(&ORCH_TIMING);
+    let (o, c) = (cl.orch.url(), cl.cache.url());
+    let dims = [48, 40, 36];
+    let shared = cl.root.join("shared");
+    std::fs::create_dir_all(&shared).unwrap();
+    write_f32(
+        &shared.join(raw_name("spread", dims, "f32")),
+        &phantom(Phantom::SheppLogan, dims),
+    );
+    let logs = [cl.root.join("w1.log"), cl.root.join("w2.log")];
+    let _w1 = cl.worker("w1", 0, Some(&logs[0]));
+    let _w2 = cl.worker("w2", 0, Some(&logs[1]));
+    let target = 7_000u64;
+    submit(
+        &shared,
+        &o,
+        &["--brick", "24", "--target-bytes", &target.to_string()],
+    );
+    let js = wait_for(&o, 120, "the bricked job done", |js| {
+        js.iter()
+            .any(|j| !is_part(j) && state_name(j.state) == "done")
+    })
+    .await;
+    let parent = js.iter().find(|j| !is_part(j)).unwrap();
+    let parts: Vec<_> = js.iter().filter(|j| is_part(j)).collect();
+    let trials: HashSet<u32> = parts
+        .iter()
+        .filter_map(|p| match p.spec.as_ref()?.part.as_ref()?.step {
+            Some(pb::part_spec::Step::Encode(ref e)) => Some(e.trial),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(
+        parts.len(),
+        8 * (1 + trials.len()),
+        "8 bricks scored, 8 per trial"
+    );
+    assert!(parts.iter().all(|p| state_name(p.state) == "done"));
+    for log in &logs {
+        let text = std::fs::read_to_string(log).unwrap();
+        let ran = text.lines().filter(|l| l.contains("running part")).count();
+        assert!(ran > 0, "{} ran no part:\n{text}", log.display());
+    }
+
+    let options = JobOptions {
+        levels: Some(2),
+        brick: Some(24),
+        target: TargetSpec::Bytes(target),
+        ..JobOptions::default()
+    };
+    let expected = compress_bricked(
+        &Phantom::SheppLogan.generate(dims),
+        &wavesplat_worker::options::compress_options(&options),
+        24,
+        &|_| {},
+    )
+    .unwrap();
+    let got = expected.bytes.len() as u64;
+    assert!(got <= target && got as f64 >= 0.98 * target as f64, "{got}");
+    assert_eq!(parent.output_bytes, got);
+    let mut client = CacheClient::connect(&c).await.unwrap();
+    let listed = client.list().await.unwrap();
+    assert_eq!(listed.len(), 1, "{listed:?}");
+    assert_eq!(
+        listed[0].sha256,
+        wavesplat_net::digest::hex(&wavesplat_net::digest::sha256(&expected.bytes))
+    );
+}
+
+/// The parts' RPCs from the other side of the wire, as a worker that does not follow the
+/// rules would call them: parts only for the job one holds, only as its spec; results only
+/// complete and as announced, only through `FinishPart`, only to the holder of the parent;
+/// cancelling a bricked job cancels its parts.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_parts_rpcs_hold_their_rules_against_a_raw_client() {
+    use tonic::Code;
+    use wavesplat_orchestrator_client::model::{JobOptions, JobSpec, PartSpec, PartStep, Source};
+    use wavesplat_orchestrator_client::{self as client, convert};
+    let cl = TestCluster::start(&ORCH_TIMING);
+    let mut c = client::connect(&cl.orch.url()).await.unwrap();
+    let parent_spec = JobSpec {
+        name: "large".into(),
+        source: Source::Path("/shared/large_64x64x64_f32.raw".into()),
+        sha256: [5; 32],
+        raw: None,
+        options: JobOptions {
+            brick: Some(32),
+            ..JobOptions::default()
+        },
+        part: None,
+    };
+    client::submit(&mut c, &parent_spec, None).await.unwrap();
+    let lease = c
+        .lease(pb::LeaseRequest {
+            worker: "coord".into(),
+            parts_only: false,
+        })
+        .await
+        .unwrap()
+        .into_inner()
+        .lease
+        .unwrap();
+    let (pid, pat) = (lease.job_id, lease.attempt);
+    let part = |index: u32| JobSpec {
+        part: Some(PartSpec {
+            parent: pid,
+            index,
+            of: 8,
+            step: PartStep::Score { energies: false },
+            levels: 2,
+            offset: Some(0.0),
+            color: None,
+        }),
+        ..parent_spec.clone()
+    };
+    let ask = |attempt: u32, specs: Vec<JobSpec>| pb::SubmitPartsRequest {
+        parent_id: pid,
+        parent_attempt: attempt,
+        parts: specs.iter().map(convert::spec_to_pb).collect(),
+    };
+    let code = |r: Result<tonic::Response<pb::SubmitPartsResponse>, tonic::Status>| {
+        r.map(|_| ()).unwrap_err().code()
+    };
+    assert_eq!(
+        code(c.submit_parts(ask(pat + 1, vec![part(0)])).await),
+        Code::FailedPrecondition
+    );
+    let renamed = JobSpec {
+        name: "other".into(),
+        ..part(0)
+    };
+    assert_eq!(
+        code(c.submit_parts(ask(pat, vec![renamed])).await),
+        Code::InvalidArgument
+    );
+    let mut elsewhere = part(0);
+    elsewhere.part.as_mut().unwrap().parent = pid + 7;
+    assert_eq!(
+        code(c.submit_parts(ask(pat, vec![elsewhere])).await),
+        Code::InvalidArgument
+    );
+    assert_eq!(
+        code(c.submit_parts(ask(pat, vec![parent_spec.clone()])).await),
+        Code::InvalidArgument
+    );
+    let mut outside = part(0);
+    outside.part.as_mut().unwrap().index = 8;
+    assert_eq!(
+        code(c.submit_parts(ask(pat, vec![outside])).await),
+        Code::InvalidArgument
+    );
+    let states = c
+        .submit_parts(ask(pat, vec![part(0), part(1)]))
+        .await
+        .unwrap()
+        .into_inner()
+        .parts;
+    assert_eq!(states.len(), 2);
+    assert!(states.iter().all(|p| state_name(p.state) == "queued"));
+    let again = c
+        .submit_parts(ask(pat, vec![part(0), part(1)]))
+        .await
+        .unwrap()
+        .into_inner()
+        .parts;
+    assert_eq!(
+        again.iter().map(|p| p.id).collect::<Vec<_>>(),
+        states.iter().map(|p| p.id).collect::<Vec<_>>(),
+        "asking again polls the same parts"
+    );
+
+    let p = c
+        .lease(pb::LeaseRequest {
+            worker: "w".into(),
+            parts_only: true,
+        })
+        .await
+        .unwrap()
+        .into_inner()
+        .lease
+        .unwrap();
+    assert_eq!(p.job_id, states[0].id);
+    let finish = c
+        .finish(pb::FinishRequest {
+            job_id: p.job_id,
+            attempt: p.attempt,
+            worker: "w".into(),
+            outcome: Some(pb::finish_request::Outcome::Delivered(pb::Delivered {
+                sha256: "0".repeat(64),
+                ..Default::default()
+            })),
+        })
+        .await;
+    assert_eq!(
+        finish.unwrap_err().code(),
+        Code::InvalidArgument,
+        "a part's result needs FinishPart"
+    );
+    let result = b"a brick's summary".to_vec();
+    let send = |size: u64, sha: Vec<u8>, chunks: Vec<Vec<u8>>, attempt: u32| {
+        let mut m = vec![pb::FinishPartRequest {
+            msg: Some(pb::finish_part_request::Msg::Head(pb::PartResult {
+                job_id: p.job_id,
+                attempt,
+                worker: "w".into(),
+                size,
+                sha256: sha,
+                voxels: 1,
+            })),
+        }];
+        m.extend(chunks.into_iter().map(|c| pb::FinishPartRequest {
+            msg: Some(pb::finish_part_request::Msg::Chunk(c)),
+        }));
+        tokio_stream::iter(m)
+    };
+    let sha = wavesplat_net::digest::sha256(&result).to_vec();
+    let n = result.len() as u64;
+    for (size, digest, chunks, attempt) in [
+        (n, sha.clone(), vec![result[..5].to_vec()], p.attempt),
+        (n, sha.clone(), vec![result.clone(), vec![0]], p.attempt),
+        (n, vec![0; 32], vec![result.clone()], p.attempt),
+        (n, sha.clone(), vec![result.clone()], p.attempt + 1),
+        (1 << 40, sha.clone(), vec![result.clone()], p.attempt),
+    ] {
+        let r = c.finish_part(send(size, digest, chunks, attempt)).await;
+        assert!(r.is_err(), "size {size}, attempt {attempt}: accepted");
+    }
+    let fetch = |attempt: u32, part: u64| pb::FetchResultRequest {
+        parent_id: pid,
+        parent_attempt: attempt,
+        part_id: part,
+    };
+    let none = c.fetch_result(fetch(pat, p.job_id)).await;
+    assert_eq!(
+        none.map(|_| ()).unwrap_err().code(),
+        Code::FailedPrecondition,
+        "no result yet"
+    );
+    let done = c
+        .finish_part(send(
+            n,
+            sha.clone(),
+            vec![result[..4].to_vec(), result[4..].to_vec()],
+            p.attempt,
+        ))
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(state_name(done.state), "done");
+    assert_eq!(done.output_bytes, n);
+    assert!(
+        c.fetch_result(fetch(pat + 1, p.job_id)).await.is_err(),
+        "not the parent's holder"
+    );
+    assert!(
+        c.fetch_result(fetch(pat, pid)).await.is_err(),
+        "the parent is no part"
+    );
+    let mut got = Vec::new();
+    let mut s = c
+        .fetch_result(fetch(pat, p.job_id))
+        .await
+        .unwrap()
+        .into_inner();
+    while let Some(chunk) = s.message().await.unwrap() {
+        got.extend_from_slice(&chunk.data);
+    }
+    assert_eq!(got, result);
+
+    c.cancel_job(pb::JobRef { id: pid }).await.unwrap();
+    let js = jobs(&cl.orch.url()).await;
+    let state_of = |id: u64| state_name(js.iter().find(|j| j.id == id).unwrap().state);
+    assert_eq!(state_of(states[0].id), "done");
+    assert_eq!(
+        state_of(states[1].id),
+        "cancelled",
+        "a bricked job's parts go with it"
+    );
 }

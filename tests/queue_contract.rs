@@ -36,6 +36,7 @@ fn spec(n: u32) -> JobSpec {
         sha256: sha,
         raw: None,
         options: JobOptions::default(),
+        part: None,
     }
 }
 
@@ -188,7 +189,7 @@ async fn leases_are_fifo_and_exclusive_across_stores(b: &mut dyn Backend, stores
         qs[0].submit(spec(n), None).await.unwrap();
     }
     // One lease alone takes the oldest.
-    let oldest = qs[0].lease("solo").await.unwrap().job.unwrap();
+    let oldest = qs[0].lease("solo", false).await.unwrap().job.unwrap();
     assert_eq!(oldest.spec.name, "v0");
     assert_eq!(oldest.attempts, 1);
     // Eight callers at once over every store lease the rest, each job once.
@@ -197,7 +198,7 @@ async fn leases_are_fifo_and_exclusive_across_stores(b: &mut dyn Backend, stores
         let q = qs[w % qs.len()].clone();
         tasks.push(tokio::spawn(async move {
             let mut got = Vec::new();
-            while let Some(j) = q.lease(&format!("w{w}")).await.unwrap().job {
+            while let Some(j) = q.lease(&format!("w{w}"), false).await.unwrap().job {
                 got.push(j.id);
             }
             got
@@ -210,7 +211,7 @@ async fn leases_are_fifo_and_exclusive_across_stores(b: &mut dyn Backend, stores
     let unique: HashSet<u64> = all.iter().copied().collect();
     assert_eq!(all.len(), 40, "{all:?}");
     assert_eq!(unique.len(), 40, "a job was leased twice: {all:?}");
-    let leased = qs[qs.len() - 1].lease("late").await.unwrap();
+    let leased = qs[qs.len() - 1].lease("late", false).await.unwrap();
     assert!(leased.job.is_none());
     assert_eq!(leased.next_runnable_in, None);
 }
@@ -220,7 +221,7 @@ async fn an_expired_lease_is_reclaimed_and_the_stale_worker_refused(b: &mut dyn 
     let q = b.open(&clock).await;
     let other = b.reopen(&clock).await;
     q.submit(spec(1), None).await.unwrap();
-    let job = q.lease("w1").await.unwrap().job.unwrap();
+    let job = q.lease("w1", false).await.unwrap().job.unwrap();
     clock.set(900);
     other.heartbeat(job.id, 1, 0.5, "transform").await.unwrap();
     clock.set(1500);
@@ -249,11 +250,11 @@ async fn an_expired_lease_is_reclaimed_and_the_stale_worker_refused(b: &mut dyn 
         .unwrap()
         .message
         .contains("stopped heartbeating"));
-    let wait = q.lease("w2").await.unwrap();
+    let wait = q.lease("w2", false).await.unwrap();
     assert!(wait.job.is_none(), "backing off");
     assert_eq!(wait.next_runnable_in, Some(100));
     clock.set(2000);
-    let again = other.lease("w2").await.unwrap().job.unwrap();
+    let again = other.lease("w2", false).await.unwrap().job.unwrap();
     assert_eq!(again.attempts, 2);
     let e = q.heartbeat(job.id, 1, 0.9, "x").await.unwrap_err();
     assert!(lease_lost(&e), "{e}");
@@ -275,7 +276,7 @@ async fn failures_back_off_retry_and_stop(b: &mut dyn Backend) {
     let mut now = 0;
     for attempt in 1..=3 {
         clock.set(now);
-        let j = q.lease("w").await.unwrap().job.unwrap();
+        let j = q.lease("w", false).await.unwrap().job.unwrap();
         assert_eq!((j.id, j.attempts), (1, attempt));
         let j = q
             .finish(1, attempt, failed(FailureKind::CacheUnavailable))
@@ -295,7 +296,7 @@ async fn failures_back_off_retry_and_stop(b: &mut dyn Backend) {
         }
         // Job 2 is leased between job 1's attempts and left running.
         if attempt == 1 {
-            let two = q.lease("w").await.unwrap().job.unwrap();
+            let two = q.lease("w", false).await.unwrap().job.unwrap();
             assert_eq!(two.id, 2);
             q.finish(2, 1, failed(FailureKind::InvalidInput))
                 .await
@@ -313,7 +314,7 @@ async fn failures_back_off_retry_and_stop(b: &mut dyn Backend) {
     assert_eq!((r.attempts, r.last_failure.is_none()), (0, true));
     let e = q.retry(2).await.unwrap_err();
     assert!(matches!(e, OrchestratorError::InvalidState { .. }), "{e}");
-    let running = q.lease("w").await.unwrap().job.unwrap();
+    let running = q.lease("w", false).await.unwrap().job.unwrap();
     assert_eq!(running.id, 2);
     q.cancel(2).await.unwrap();
     let e = q.heartbeat(2, 1, 0.1, "s").await.unwrap_err();
@@ -334,6 +335,7 @@ async fn uploads_live_until_no_unfinished_job_needs_them(b: &mut dyn Backend) {
         sha256: [sha; 32],
         raw: None,
         options: JobOptions::default(),
+        part: None,
     };
     q.submit(up("a", 1, big.len()), Some(big.clone()))
         .await
@@ -345,13 +347,13 @@ async fn uploads_live_until_no_unfinished_job_needs_them(b: &mut dyn Backend) {
     assert_eq!(q.upload(&[1; 32]).await.unwrap().as_deref(), Some(&big[..]));
     assert_eq!(q.upload(&[2; 32]).await.unwrap(), Some(Vec::new()));
     assert_eq!(q.upload(&[3; 32]).await.unwrap(), None);
-    let a = q.lease("w").await.unwrap().job.unwrap();
+    let a = q.lease("w", false).await.unwrap().job.unwrap();
     q.finish(a.id, 1, delivered()).await.unwrap();
     assert!(
         q.upload(&[1; 32]).await.unwrap().is_some(),
         "b still needs it"
     );
-    let b2 = q.lease("w").await.unwrap().job.unwrap();
+    let b2 = q.lease("w", false).await.unwrap().job.unwrap();
     q.finish(b2.id, 1, delivered()).await.unwrap();
     assert_eq!(q.upload(&[1; 32]).await.unwrap(), None);
 }
@@ -362,10 +364,10 @@ async fn a_second_store_sees_every_acknowledged_change(b: &mut dyn Backend) {
     for n in 0..5 {
         q.submit(spec(n), None).await.unwrap();
     }
-    let j = q.lease("w").await.unwrap().job.unwrap();
+    let j = q.lease("w", false).await.unwrap().job.unwrap();
     q.finish(j.id, 1, delivered()).await.unwrap();
     q.cancel(3).await.unwrap();
-    let held = q.lease("w").await.unwrap().job.unwrap();
+    let held = q.lease("w", false).await.unwrap().job.unwrap();
     let before = q.list().await.unwrap();
     drop(q);
     let after = b.reopen(&clock).await.list().await.unwrap();
@@ -394,7 +396,7 @@ async fn many_workers_finish_an_archive(b: &mut dyn Backend, stores: usize) {
         let q = qs[w % qs.len()].clone();
         tasks.push(tokio::spawn(async move {
             let mut done = Vec::new();
-            while let Some(j) = q.lease(&format!("w{w}")).await.unwrap().job {
+            while let Some(j) = q.lease(&format!("w{w}"), false).await.unwrap().job {
                 q.heartbeat(j.id, j.attempts, 0.5, "half").await.unwrap();
                 q.finish(j.id, j.attempts, delivered()).await.unwrap();
                 done.push(j.id);
@@ -416,7 +418,69 @@ async fn many_workers_finish_an_archive(b: &mut dyn Backend, stores: usize) {
     assert_eq!(qs[0].counts().await.unwrap().done, 600);
 }
 
+/// Parts of bricked jobs: a worker waiting on its parts leases only parts (the oldest one, past
+/// older whole jobs); a part's result is kept, replaced by a later attempt's, seen by a second
+/// store, and dropped with its bricked job's other results only.
+async fn parts_lease_apart_and_their_results_live_until_dropped(b: &mut dyn Backend) {
+    use wavesplat_orchestrator::model::{PartSpec, PartStep};
+    let clock = TestClock::default();
+    let q = b.open(&clock).await;
+    let bricked = |n: u32| JobSpec {
+        options: JobOptions {
+            brick: Some(16),
+            ..JobOptions::default()
+        },
+        ..spec(n)
+    };
+    let part = |parent: u64, index: u32| JobSpec {
+        part: Some(PartSpec {
+            parent,
+            index,
+            of: 2,
+            step: PartStep::Score { energies: false },
+            levels: 2,
+            offset: Some(0.5),
+            color: None,
+        }),
+        ..bricked(1)
+    };
+    let whole = q.submit(spec(0), None).await.unwrap().job;
+    let parent = q.submit(bricked(1), None).await.unwrap().job;
+    assert!(
+        q.lease("idle", true).await.unwrap().job.is_none(),
+        "no parts yet"
+    );
+    let p0 = q.submit(part(parent.id, 0), None).await.unwrap().job;
+    let p1 = q.submit(part(parent.id, 1), None).await.unwrap().job;
+    assert!(q.submit(part(parent.id, 1), None).await.unwrap().existed);
+    let got = q.lease("coordinator", true).await.unwrap().job.unwrap();
+    assert_eq!(got.id, p0.id, "the oldest part, not the older whole jobs");
+    let next = q.lease("any", false).await.unwrap().job.unwrap();
+    assert_eq!(
+        next.id, whole.id,
+        "a plain lease takes the oldest job of any kind"
+    );
+    q.put_result(parent.id, p0.id, vec![1; 10]).await.unwrap();
+    q.put_result(parent.id, p0.id, vec![2; 3]).await.unwrap();
+    q.put_result(parent.id + 100, p1.id, vec![9]).await.unwrap();
+    let big: Vec<u8> = (0..(3 << 20) + 5).map(|i| (i % 253) as u8).collect();
+    q.put_result(parent.id, p1.id, big.clone()).await.unwrap();
+    assert_eq!(q.result(parent.id, p0.id).await.unwrap(), Some(vec![2; 3]));
+    drop(q);
+    let other = b.reopen(&clock).await;
+    assert_eq!(other.result(parent.id, p1.id).await.unwrap(), Some(big));
+    assert_eq!(other.result(parent.id, 999).await.unwrap(), None);
+    assert_eq!(other.drop_results(parent.id).await.unwrap(), 2);
+    assert_eq!(other.result(parent.id, p0.id).await.unwrap(), None);
+    assert_eq!(
+        other.result(parent.id + 100, p1.id).await.unwrap(),
+        Some(vec![9]),
+        "another job's results stay"
+    );
+}
+
 async fn contract(b: &mut dyn Backend, stores: usize) {
+    parts_lease_apart_and_their_results_live_until_dropped(b).await;
     submit_deduplicates_by_content_options_and_name(b).await;
     leases_are_fifo_and_exclusive_across_stores(b, stores).await;
     failures_back_off_retry_and_stop(b).await;
@@ -451,7 +515,7 @@ async fn the_postgres_store_keeps_the_contract_with_two_orchestrators() {
     q.submit(spec(1), None).await.unwrap();
     for round in 0..12 {
         assert!(q.retry(1).await.is_err(), "a queued job cannot be retried");
-        let leased = other.lease("w").await.unwrap().job;
+        let leased = other.lease("w", false).await.unwrap().job;
         assert_eq!(
             leased.map(|j| j.id),
             Some(1),

@@ -279,6 +279,7 @@ async fn every_orchestrator_rpc_checks_its_role_and_deliveries_are_confirmed() {
         sha256: [9; 32],
         raw: None,
         options: JobOptions::default(),
+        part: None,
     };
 
     // Submitting needs `admin`.
@@ -304,6 +305,7 @@ async fn every_orchestrator_rpc_checks_its_role_and_deliveries_are_confirmed() {
     // Leasing, heartbeats and outcomes need `worker`.
     let lease = pb::LeaseRequest {
         worker: "fake".into(),
+        parts_only: false,
     };
     for (token, want) in [
         (None, Code::Unauthenticated),
@@ -479,10 +481,14 @@ fn the_orchestrator_binary_with_a_cache_url_starts_and_refuses_unconfirmed_deliv
             sha256: [9; 32],
             raw: None,
             options: JobOptions::default(),
+            part: None,
         };
         client::submit(&mut c, &spec, None).await.unwrap();
         let l = c
-            .lease(pb::LeaseRequest { worker: "w".into() })
+            .lease(pb::LeaseRequest {
+                worker: "w".into(),
+                parts_only: false,
+            })
             .await
             .unwrap()
             .into_inner()

@@ -232,9 +232,10 @@ pub enum BrickError {
     Compress {
         /// Its origin in the whole.
         origin: [u64; 3],
-        /// Why.
+        /// Why (boxed: the compressor's error is large, and this one travels through every
+        /// brick's result).
         #[source]
-        source: CompressError,
+        source: Box<CompressError>,
     },
     /// The options do not suit a bricked volume.
     #[error("invalid option for a bricked volume: {0}")]
@@ -499,7 +500,7 @@ impl BrickPlan {
         let v = self.read(source, i)?;
         score_summary(&v, &self.base, &|_, _| {}).map_err(|source| BrickError::Compress {
             origin: self.grid[i].0,
-            source,
+            source: Box::new(source),
         })
     }
 
@@ -518,7 +519,7 @@ impl BrickPlan {
         };
         let c = compress(&v, &o, &|_, _| {}).map_err(|source| BrickError::Compress {
             origin: self.grid[i].0,
-            source,
+            source: Box::new(source),
         })?;
         Ok((c.bytes, c.header.kept))
     }

@@ -162,13 +162,34 @@ pub fn job_name(j: &pb::Job) -> &str {
     j.spec.as_ref().map_or("", |s| s.name.as_str())
 }
 
-/// A job in one tab-separated line: id, state, name, attempts, progress, worker, error.
+/// The part a job is of a bricked job ("part of 7: brick 3/8 coding"), if it is one.
+pub fn part_label(j: &pb::Job) -> Option<String> {
+    let p = j.spec.as_ref()?.part.as_ref()?;
+    let step = match p.step {
+        Some(pb::part_spec::Step::Score(_)) => "scoring".to_string(),
+        Some(pb::part_spec::Step::Encode(ref e)) => format!("coding, trial {}", e.trial),
+        None => "?".to_string(),
+    };
+    Some(format!(
+        "part of {}: brick {}/{} {step}",
+        p.parent,
+        p.index + 1,
+        p.of
+    ))
+}
+
+/// A job in one tab-separated line: id, state, name (and which part of a bricked job it is),
+/// attempts, progress, worker, error.
 pub fn describe(j: &pb::Job) -> String {
+    let name = match part_label(j) {
+        Some(p) => format!("{} ({p})", job_name(j)),
+        None => job_name(j).to_string(),
+    };
     format!(
         "{}\t{}\t{}\tattempts={}/{}\tprogress={:.0}%\tworker={}\tbytes={}\terror={}",
         j.id,
         state_name(j.state),
-        job_name(j),
+        name,
         j.attempts,
         j.max_attempts,
         100.0 * j.progress,
@@ -184,7 +205,8 @@ fn is_terminal(j: &pb::Job) -> bool {
 
 /// Polls the jobs (all, or `ids`) until every one is finished, then writes the outcome to `say`: indicatif bars on a terminal
 /// (one per job and one overall), `tracing` events on state changes otherwise. Fails if any
-/// job failed.
+/// job failed. The parts of a bricked job are not shown: the job's own line says how many of
+/// its bricks are done.
 pub async fn watch(
     c: &mut client::Client,
     ids: Option<&HashSet<u64>>,
@@ -211,7 +233,7 @@ pub async fn watch(
         let jobs: Vec<pb::Job> = client::list(c)
             .await?
             .into_iter()
-            .filter(|j| ids.is_none_or(|s| s.contains(&j.id)))
+            .filter(|j| ids.is_none_or(|s| s.contains(&j.id)) && part_label(j).is_none())
             .collect();
         let finished = jobs.iter().filter(|j| is_terminal(j)).count();
         let failed = jobs

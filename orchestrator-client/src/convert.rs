@@ -5,7 +5,8 @@
 use crate::error::ClientError;
 use crate::model::{
     parse_coder, parse_colorspace, parse_family, Delivery, Failure, FailureKind, Job, JobOptions,
-    JobSpec, JobState, Outcome, RawLayout, SampleType, Source, TargetSpec,
+    JobSpec, JobState, Outcome, PartColor, PartSpec, PartStep, RawLayout, SampleType, Source,
+    TargetSpec,
 };
 use wavesplat_proto::pb;
 
@@ -57,13 +58,82 @@ pub fn spec_from_pb(p: pb::JobSpec) -> Result<JobSpec, ClientError> {
         }
     };
     let options = options_from_pb(p.options.unwrap_or_default())?;
+    let part = p.part.map(part_from_pb).transpose()?;
     Ok(JobSpec {
         name: p.name,
         source,
         sha256,
         raw,
         options,
+        part,
     })
+}
+
+fn part_from_pb(p: pb::PartSpec) -> Result<PartSpec, ClientError> {
+    let step = match p.step {
+        Some(pb::part_spec::Step::Score(s)) => PartStep::Score {
+            energies: s.energies,
+        },
+        Some(pb::part_spec::Step::Encode(e)) => PartStep::Encode {
+            count: e.count,
+            trial: e.trial,
+        },
+        None => return Err(invalid("part without a step (score or encode)")),
+    };
+    let color = match p.color {
+        None => None,
+        Some(c) => {
+            let three = |v: &[f64], what: &str| -> Result<[f64; 3], ClientError> {
+                v.try_into()
+                    .map_err(|_| invalid(format!("part colour {what}: {} values, need 3", v.len())))
+            };
+            if c.basis.len() != 9 {
+                return Err(invalid(format!(
+                    "part colour basis: {} values, need 9",
+                    c.basis.len()
+                )));
+            }
+            Some(PartColor {
+                basis: [
+                    three(&c.basis[0..3], "basis")?,
+                    three(&c.basis[3..6], "basis")?,
+                    three(&c.basis[6..9], "basis")?,
+                ],
+                mean: three(&c.mean, "mean")?,
+                importance: three(&c.importance, "importance")?,
+            })
+        }
+    };
+    Ok(PartSpec {
+        parent: p.parent,
+        index: p.index,
+        of: p.of,
+        step,
+        levels: p.levels,
+        offset: p.offset,
+        color,
+    })
+}
+
+fn part_to_pb(p: &PartSpec) -> pb::PartSpec {
+    pb::PartSpec {
+        parent: p.parent,
+        index: p.index,
+        of: p.of,
+        step: Some(match p.step {
+            PartStep::Score { energies } => pb::part_spec::Step::Score(pb::ScoreStep { energies }),
+            PartStep::Encode { count, trial } => {
+                pb::part_spec::Step::Encode(pb::EncodeStep { count, trial })
+            }
+        }),
+        levels: p.levels,
+        offset: p.offset,
+        color: p.color.map(|c| pb::PartColor {
+            basis: c.basis.iter().flatten().copied().collect(),
+            mean: c.mean.to_vec(),
+            importance: c.importance.to_vec(),
+        }),
+    }
 }
 
 fn options_from_pb(o: pb::CompressOptions) -> Result<JobOptions, ClientError> {
@@ -150,6 +220,7 @@ pub fn spec_to_pb(s: &JobSpec) -> pb::JobSpec {
             layer_growth: o.layer_growth,
             brick: o.brick.map(u32_of),
         }),
+        part: s.part.as_ref().map(part_to_pb),
     }
 }
 
@@ -295,8 +366,42 @@ mod tests {
                 brick: Some(64),
                 ..JobOptions::default()
             },
+            part: None,
         };
         assert_eq!(spec_from_pb(spec_to_pb(&spec)).unwrap(), spec);
+        // A part, with its colour transform, round-trips and validates; a broken one does not.
+        let part = JobSpec {
+            part: Some(PartSpec {
+                parent: 9,
+                index: 3,
+                of: 8,
+                step: PartStep::Encode {
+                    count: Some(1234),
+                    trial: 2,
+                },
+                levels: 2,
+                offset: None,
+                color: Some(PartColor {
+                    basis: [[0.6, 0.5, 0.1], [0.2, -0.7, 0.3], [0.1, 0.2, -0.9]],
+                    mean: [0.25, 0.5, 0.125],
+                    importance: [1.0, 1.0, 0.0],
+                }),
+            }),
+            ..spec.clone()
+        };
+        let back = spec_from_pb(spec_to_pb(&part)).unwrap();
+        assert_eq!(back, part);
+        assert!(spec.is_parent_of(&back.clone().validate().unwrap()));
+        assert_ne!(part.dedup_key(), spec.dedup_key());
+        let mut p = spec_to_pb(&part);
+        p.part.as_mut().unwrap().color.as_mut().unwrap().basis.pop();
+        assert!(spec_from_pb(p).is_err());
+        let mut p = spec_to_pb(&part);
+        p.part.as_mut().unwrap().index = 8;
+        assert!(spec_from_pb(p).unwrap().validate().is_err());
+        let mut p = spec_to_pb(&part);
+        p.part.as_mut().unwrap().step = None;
+        assert!(spec_from_pb(p).is_err());
         let mut p = spec_to_pb(&spec);
         p.sha256 = vec![1, 2];
         assert!(spec_from_pb(p).is_err());

@@ -372,6 +372,109 @@ pub struct JobSpec {
     pub raw: Option<RawLayout>,
     /// Compressor options.
     pub options: JobOptions,
+    /// Set for one brick's share of a bricked volume's job (its parent): what the worker
+    /// running the parent decided for all bricks, and which brick and step this is.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub part: Option<PartSpec>,
+}
+
+/// One step of one brick of a bricked job, run as a job of its own so that any worker can take
+/// it: the parent's worker plans the volume (depth, offset, colour transform), spreads the
+/// bricks' scoring and then their coding over the queue, and commits the volume to the cache
+/// once, from the parts' results.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct PartSpec {
+    /// The bricked job this belongs to.
+    pub parent: JobId,
+    /// The brick, in the grid's order (x fastest).
+    pub index: u32,
+    /// Bricks in the grid.
+    pub of: u32,
+    /// Scoring or coding.
+    pub step: PartStep,
+    /// Decomposition depth of every brick.
+    pub levels: u32,
+    /// The whole's offset (scalar volumes).
+    pub offset: Option<f64>,
+    /// The whole's colour transform (RGB volumes).
+    pub color: Option<PartColor>,
+}
+
+/// What a part does.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub enum PartStep {
+    /// Score the brick's coefficients: the result is its score summary (with energies when
+    /// `energies`).
+    Score {
+        /// Whether the summary carries each bin's energy (a Q_V target needs them).
+        energies: bool,
+    },
+    /// Code the brick keeping its top `count` coefficients (`None`: all): the result is the
+    /// brick's `.wsp` file. `trial` numbers the rate search's rounds.
+    Encode {
+        /// Coefficients to keep.
+        count: Option<u64>,
+        /// The round of the byte target's search.
+        trial: u32,
+    },
+}
+
+/// A colour transform as plain numbers (the compressor's `ColorTransform` without its kind,
+/// which is the job's colour space).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct PartColor {
+    /// Rows: the projections onto C1..C3.
+    pub basis: [[f64; 3]; 3],
+    /// The colour subtracted first.
+    pub mean: [f64; 3],
+    /// Each channel's importance.
+    pub importance: [f64; 3],
+}
+
+/// Largest result a part may report: a brick's file (a 1024³ brick's is far below this).
+pub const MAX_PART_RESULT_BYTES: usize = 512 << 20;
+
+impl PartSpec {
+    /// Checks the numbers.
+    pub fn validate(&self) -> Result<(), ClientError> {
+        if self.of == 0 || self.index >= self.of {
+            return Err(invalid(format!(
+                "part {} of {}: the index must be below the count",
+                self.index, self.of
+            )));
+        }
+        if !(1..=16).contains(&self.levels) {
+            return Err(invalid(format!(
+                "part depth {}; allowed 1..=16",
+                self.levels
+            )));
+        }
+        let finite = |v: &[f64]| v.iter().all(|x| x.is_finite());
+        if self.offset.is_some_and(|o| !o.is_finite())
+            || self.color.is_some_and(|c| {
+                !finite(&c.mean) || !finite(&c.importance) || !c.basis.iter().all(|r| finite(r))
+            })
+        {
+            return Err(invalid(
+                "part offset or colour transform not finite".to_string(),
+            ));
+        }
+        Ok(())
+    }
+
+    /// A short label: "brick 3/8 scoring", "brick 3/8 coding (trial 1)".
+    pub fn label(&self) -> String {
+        match self.step {
+            PartStep::Score { .. } => format!("brick {}/{} scoring", self.index + 1, self.of),
+            PartStep::Encode { trial, .. } => {
+                format!(
+                    "brick {}/{} coding (trial {trial})",
+                    self.index + 1,
+                    self.of
+                )
+            }
+        }
+    }
 }
 
 impl JobSpec {
@@ -395,7 +498,23 @@ impl JobSpec {
             }
         }
         self.options = self.options.validate()?;
+        if let Some(p) = &self.part {
+            p.validate()?;
+            if self.options.brick.is_none() {
+                return Err(invalid("a part of a job that is not bricked".into()));
+            }
+        }
         Ok(self)
+    }
+
+    /// Whether `part` is a part of this job: the same delivery, source and options.
+    pub fn is_parent_of(&self, part: &JobSpec) -> bool {
+        self.part.is_none()
+            && self.name == part.name
+            && self.source == part.source
+            && self.sha256 == part.sha256
+            && self.raw == part.raw
+            && self.options == part.options
     }
 
     /// The identity of the work: content hash, layout, options and the name it is delivered
@@ -404,8 +523,12 @@ impl JobSpec {
     /// new name (`archive submit --name-suffix`) is a new delivery.
     pub fn dedup_key(&self) -> String {
         let opts = serde_json::to_string(&(&self.raw, &self.options)).unwrap_or_default();
+        let part = match &self.part {
+            None => String::new(),
+            Some(p) => format!("|part:{}", serde_json::to_string(p).unwrap_or_default()),
+        };
         format!(
-            "{}|{opts}|{}",
+            "{}|{opts}|{}{part}",
             wavesplat_net::digest::hex(&self.sha256),
             self.name
         )

@@ -65,8 +65,9 @@ pub trait JobStore: Send + Sync + 'static {
         upload: Option<Vec<u8>>,
     ) -> Result<Submitted, OrchestratorError>;
 
-    /// Leases the oldest runnable job to `worker`.
-    async fn lease(&self, worker: &str) -> Result<Leased, OrchestratorError>;
+    /// Leases the oldest runnable job to `worker` (with `parts_only`, the oldest part of a
+    /// bricked job).
+    async fn lease(&self, worker: &str, parts_only: bool) -> Result<Leased, OrchestratorError>;
 
     /// Extends a held lease and records progress.
     async fn heartbeat(
@@ -103,6 +104,21 @@ pub trait JobStore: Send + Sync + 'static {
 
     /// The uploaded source with this hash.
     async fn upload(&self, sha256: &[u8; 32]) -> Result<Option<Vec<u8>>, OrchestratorError>;
+
+    /// Stores (durably) the result of part `id` of the bricked job `parent`, replacing any
+    /// earlier attempt's.
+    async fn put_result(
+        &self,
+        parent: JobId,
+        id: JobId,
+        bytes: Vec<u8>,
+    ) -> Result<(), OrchestratorError>;
+
+    /// The result of part `id` of `parent`.
+    async fn result(&self, parent: JobId, id: JobId) -> Result<Option<Vec<u8>>, OrchestratorError>;
+
+    /// Drops the results of `parent`'s parts (once it is done with them); returns how many.
+    async fn drop_results(&self, parent: JobId) -> Result<usize, OrchestratorError>;
 
     /// Jobs by state.
     async fn counts(&self) -> Result<StateCounts, OrchestratorError> {
@@ -201,11 +217,11 @@ impl JobStore for EmbeddedQueue {
         Ok(submitted)
     }
 
-    async fn lease(&self, worker: &str) -> Result<Leased, OrchestratorError> {
+    async fn lease(&self, worker: &str, parts_only: bool) -> Result<Leased, OrchestratorError> {
         let leased = {
             let mut q = self.lock();
             let now = self.now();
-            let (job, changed) = q.lease(worker, now);
+            let (job, changed) = q.lease(worker, parts_only, now);
             self.store.put(&changed)?;
             // Only an idle worker needs to know when the next backoff ends.
             let next_runnable_in = match job {
@@ -280,6 +296,28 @@ impl JobStore for EmbeddedQueue {
         Ok(self.store.blob(sha256)?.map(|b| b.to_vec()))
     }
 
+    async fn put_result(
+        &self,
+        parent: JobId,
+        id: JobId,
+        bytes: Vec<u8>,
+    ) -> Result<(), OrchestratorError> {
+        self.store.put_result(parent, id, &bytes)?;
+        self.store.flush().await
+    }
+
+    async fn result(&self, parent: JobId, id: JobId) -> Result<Option<Vec<u8>>, OrchestratorError> {
+        Ok(self.store.result(parent, id)?.map(|b| b.to_vec()))
+    }
+
+    async fn drop_results(&self, parent: JobId) -> Result<usize, OrchestratorError> {
+        let n = self.store.drop_results(parent)?;
+        if n > 0 {
+            self.store.flush().await?;
+        }
+        Ok(n)
+    }
+
     async fn close(&self) -> Result<(), OrchestratorError> {
         self.store.flush().await
     }
@@ -306,11 +344,12 @@ mod tests {
             sha256: [7; 32],
             raw: None,
             options: JobOptions::default(),
+            part: None,
         };
         q.submit(spec("a"), Some(vec![1, 2, 3])).await.unwrap();
         q.submit(spec("b"), Some(vec![1, 2, 3])).await.unwrap();
         assert_eq!(q.counts().await.unwrap().queued, 2);
-        let a = q.lease("w").await.unwrap().job.unwrap();
+        let a = q.lease("w", false).await.unwrap().job.unwrap();
         let delivered = || {
             Outcome::Delivered(crate::model::Delivery {
                 cache_volume_id: 1,
@@ -325,7 +364,7 @@ mod tests {
             q.upload(&[7; 32]).await.unwrap().is_some(),
             "b still needs it"
         );
-        let b = q.lease("w").await.unwrap().job.unwrap();
+        let b = q.lease("w", false).await.unwrap().job.unwrap();
         q.finish(b.id, 1, delivered()).await.unwrap();
         assert!(q.upload(&[7; 32]).await.unwrap().is_none());
     }

@@ -101,12 +101,16 @@ pub struct ServeOptions {
 }
 
 /// The access rule of every orchestrator RPC: submitting, cancelling and retrying need
-/// `admin`; leasing, heartbeats, outcomes and uploaded sources `worker`; listing `read`;
+/// `admin`; leasing, heartbeats, outcomes, uploaded sources and the parts of bricked jobs
+/// `worker`; listing `read`;
 /// health checks are public; anything unknown needs `admin`.
 pub fn access(path: &str) -> Access {
     match path.strip_prefix("/wavesplat.v1.Orchestrator/") {
         Some("Submit" | "CancelJob" | "RetryJob") => Access::Role(Role::Admin),
-        Some("Lease" | "Heartbeat" | "Finish" | "FetchSource") => Access::Role(Role::Worker),
+        Some(
+            "Lease" | "Heartbeat" | "Finish" | "FetchSource" | "SubmitParts" | "FinishPart"
+            | "FetchResult",
+        ) => Access::Role(Role::Worker),
         Some("ListJobs" | "GetJob") => Access::Role(Role::Read),
         _ if path.starts_with("/grpc.health.v1.Health/") => Access::Public,
         _ => Access::Role(Role::Admin),

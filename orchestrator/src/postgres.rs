@@ -56,13 +56,22 @@ type Resolved<'s> =
 impl<'s> MigrationSource<'s> for Migrations {
     fn resolve(self) -> Resolved<'s> {
         Box::pin(async {
-            Ok(vec![Migration::new(
-                1,
-                Cow::Borrowed("jobs and uploads"),
-                MigrationType::Simple,
-                Cow::Borrowed(include_str!("../migrations/0001_jobs.sql")),
-                false,
-            )])
+            Ok(vec![
+                Migration::new(
+                    1,
+                    Cow::Borrowed("jobs and uploads"),
+                    MigrationType::Simple,
+                    Cow::Borrowed(include_str!("../migrations/0001_jobs.sql")),
+                    false,
+                ),
+                Migration::new(
+                    2,
+                    Cow::Borrowed("results of bricked jobs' parts"),
+                    MigrationType::Simple,
+                    Cow::Borrowed(include_str!("../migrations/0002_results.sql")),
+                    false,
+                ),
+            ])
         })
     }
 }
@@ -410,14 +419,16 @@ impl JobStore for PostgresQueue {
         })
     }
 
-    async fn lease(&self, worker: &str) -> Result<Leased, OrchestratorError> {
+    async fn lease(&self, worker: &str, parts_only: bool) -> Result<Leased, OrchestratorError> {
         let now = self.now();
         let mut tx = self.begin().await?;
         let row = sqlx::query(
             "SELECT job FROM jobs WHERE state = 'queued' AND not_before_ms <= $1
+                 AND (NOT $2 OR job->'spec' ? 'part')
              ORDER BY id LIMIT 1 FOR UPDATE SKIP LOCKED",
         )
         .bind(ms(now))
+        .bind(parts_only)
         .fetch_optional(&mut *tx)
         .await
         .map_err(db)?;
@@ -524,6 +535,45 @@ impl JobStore for PostgresQueue {
             .iter()
             .map(Self::job_of)
             .collect()
+    }
+
+    async fn put_result(
+        &self,
+        parent: JobId,
+        id: JobId,
+        bytes: Vec<u8>,
+    ) -> Result<(), OrchestratorError> {
+        sqlx::query(
+            "INSERT INTO results (parent, job_id, data) VALUES ($1, $2, $3)
+             ON CONFLICT (parent, job_id) DO UPDATE SET data = EXCLUDED.data",
+        )
+        .bind(ms(parent))
+        .bind(ms(id))
+        .bind(bytes)
+        .execute(&self.pool)
+        .await
+        .map_err(db)?;
+        Ok(())
+    }
+
+    async fn result(&self, parent: JobId, id: JobId) -> Result<Option<Vec<u8>>, OrchestratorError> {
+        let row = sqlx::query("SELECT data FROM results WHERE parent = $1 AND job_id = $2")
+            .bind(ms(parent))
+            .bind(ms(id))
+            .fetch_optional(&self.pool)
+            .await
+            .map_err(db)?;
+        row.map(|r| r.try_get::<Vec<u8>, _>(0).map_err(db))
+            .transpose()
+    }
+
+    async fn drop_results(&self, parent: JobId) -> Result<usize, OrchestratorError> {
+        let done = sqlx::query("DELETE FROM results WHERE parent = $1")
+            .bind(ms(parent))
+            .execute(&self.pool)
+            .await
+            .map_err(db)?;
+        Ok(done.rows_affected() as usize)
     }
 
     async fn upload(&self, sha256: &[u8; 32]) -> Result<Option<Vec<u8>>, OrchestratorError> {

@@ -381,12 +381,17 @@ impl Queue {
             .collect()
     }
 
-    /// Leases the oldest runnable job to `worker` (reclaiming expired leases first). Returns
-    /// the leased job (if any) and every job changed.
-    pub fn lease(&mut self, worker: &str, now: u64) -> (Option<Job>, Vec<Job>) {
+    /// Leases the oldest runnable job (only parts of bricked jobs with `parts_only`) to
+    /// `worker` (reclaiming expired leases first). Returns the leased job (if any) and every
+    /// job changed.
+    pub fn lease(&mut self, worker: &str, parts_only: bool, now: u64) -> (Option<Job>, Vec<Job>) {
         let mut changed = self.reap(now);
         let cfg = self.cfg;
-        let Some(job) = self.jobs.values_mut().find(|j| rules::runnable(j, now)) else {
+        let Some(job) = self
+            .jobs
+            .values_mut()
+            .find(|j| rules::runnable(j, now) && (!parts_only || j.spec.part.is_some()))
+        else {
             return (None, changed);
         };
         rules::start(&cfg, job, worker, now);
@@ -462,6 +467,7 @@ mod tests {
             sha256: [n; 32],
             raw: None,
             options: JobOptions::default(),
+            part: None,
         }
     }
 
@@ -514,9 +520,9 @@ mod tests {
         let mut q = Queue::new(cfg());
         q.submit(spec(1), 0).unwrap();
         q.submit(spec(2), 0).unwrap();
-        let (a, _) = q.lease("w1", 10);
-        let (b, _) = q.lease("w2", 10);
-        let (c, _) = q.lease("w3", 10);
+        let (a, _) = q.lease("w1", false, 10);
+        let (b, _) = q.lease("w2", false, 10);
+        let (c, _) = q.lease("w3", false, 10);
         assert_eq!(a.unwrap().id, 1);
         assert_eq!(b.unwrap().id, 2);
         assert!(c.is_none());
@@ -526,7 +532,7 @@ mod tests {
     fn expired_lease_is_reclaimed_and_the_stale_worker_is_refused() {
         let mut q = Queue::new(cfg());
         q.submit(spec(1), 0).unwrap();
-        let (job, _) = q.lease("w1", 0);
+        let (job, _) = q.lease("w1", false, 0);
         let job = job.unwrap();
         // Heartbeats keep it alive past the original expiry.
         q.heartbeat(job.id, 1, 0.5, "transform", 900).unwrap();
@@ -545,8 +551,8 @@ mod tests {
             FailureKind::LeaseExpired
         );
         // Backoff: not runnable yet.
-        assert!(q.lease("w2", 1950).0.is_none());
-        let (again, _) = q.lease("w2", 2000);
+        assert!(q.lease("w2", false, 1950).0.is_none());
+        let (again, _) = q.lease("w2", false, 2000);
         assert_eq!(again.unwrap().attempts, 2);
         // The old worker's heartbeat and outcome are refused.
         assert!(matches!(
@@ -570,7 +576,7 @@ mod tests {
         };
         let mut now = 0;
         for attempt in 1..=3u32 {
-            let (j, _) = q.lease("w", now);
+            let (j, _) = q.lease("w", false, now);
             assert_eq!(j.unwrap().attempts, attempt);
             let j = q.finish(1, attempt, fail(), now).unwrap();
             match j.state {
@@ -592,7 +598,7 @@ mod tests {
     fn permanent_failures_are_not_retried() {
         let mut q = Queue::new(cfg());
         q.submit(spec(1), 0).unwrap();
-        q.lease("w", 0);
+        q.lease("w", false, 0);
         let j = q
             .finish(
                 1,
@@ -618,10 +624,10 @@ mod tests {
         let mut q = Queue::new(cfg());
         q.submit(spec(1), 0).unwrap();
         q.submit(spec(2), 0).unwrap();
-        q.lease("w", 0);
+        q.lease("w", false, 0);
         q.cancel(1, 1).unwrap();
         q.cancel(2, 1).unwrap();
-        assert!(q.lease("w", 2).0.is_none());
+        assert!(q.lease("w", false, 2).0.is_none());
         let e = q.heartbeat(1, 1, 0.1, "s", 3).unwrap_err();
         assert!(e.to_string().contains("cancelled"), "{e}");
         assert!(q.finish(1, 1, delivered(), 3).is_err());
@@ -637,7 +643,7 @@ mod tests {
         let mut q = Queue::new(cfg());
         q.submit(spec(1), 0).unwrap();
         q.submit(spec(2), 0).unwrap();
-        q.lease("w", 0);
+        q.lease("w", false, 0);
         let jobs: Vec<Job> = q.jobs().cloned().collect();
         let (mut r, changed) = Queue::restore(cfg(), jobs, 5000);
         assert_eq!(changed.len(), 1);

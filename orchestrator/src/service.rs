@@ -164,6 +164,150 @@ impl OrchestratorService {
 
 type SourceStream = Pin<Box<dyn Stream<Item = Result<pb::SourceChunk, Status>> + Send>>;
 
+/// Parts one `SubmitParts` call may name (its reply stays well below the message limit).
+pub const MAX_PARTS_PER_CALL: usize = 4096;
+
+impl OrchestratorService {
+    /// Refuses unless job `id` is running as `attempt`.
+    async fn held(&self, id: u64, attempt: u32) -> Result<crate::model::Job, Status> {
+        let job = self.store().get(id).await?;
+        match job.state {
+            JobState::Running { attempt: a, .. } if a == attempt => Ok(job),
+            _ => Err(OrchestratorError::LeaseLost {
+                id,
+                attempt,
+                reason: format!("the job is {}", job.state.name()),
+            }
+            .into()),
+        }
+    }
+
+    async fn submit_parts_inner(
+        &self,
+        r: pb::SubmitPartsRequest,
+    ) -> Result<pb::SubmitPartsResponse, Status> {
+        if r.parts.len() > MAX_PARTS_PER_CALL {
+            return Err(Status::invalid_argument(format!(
+                "{} parts in one call; at most {MAX_PARTS_PER_CALL}",
+                r.parts.len()
+            )));
+        }
+        let parent = self.held(r.parent_id, r.parent_attempt).await?;
+        if parent.spec.options.brick.is_none() || parent.spec.part.is_some() {
+            return Err(Status::invalid_argument(format!(
+                "job {} is not a bricked job: it has no parts",
+                r.parent_id
+            )));
+        }
+        let mut parts = Vec::with_capacity(r.parts.len());
+        for p in r.parts {
+            let spec = convert::spec_from_pb(p).map_err(OrchestratorError::from)?;
+            let ok = spec.part.as_ref().is_some_and(|p| p.parent == parent.id)
+                && parent.spec.is_parent_of(&spec);
+            if !ok {
+                return Err(Status::invalid_argument(format!(
+                    "a part of job {} must be its spec with `part` naming it",
+                    parent.id
+                )));
+            }
+            let mut job = self.store().submit(spec, None).await?.job;
+            if matches!(job.state, JobState::Failed(_) | JobState::Cancelled) {
+                // Its bricked job runs again (retried, or taken over after a crash).
+                job = self.store().retry(job.id).await?;
+            }
+            parts.push(part_state(&job));
+        }
+        Ok(pb::SubmitPartsResponse { parts })
+    }
+
+    async fn finish_part_inner(
+        &self,
+        mut stream: Streaming<pb::FinishPartRequest>,
+    ) -> Result<pb::Job, Status> {
+        let Some(pb::finish_part_request::Msg::Head(head)) = stream
+            .message()
+            .await
+            .map_err(client_fault)?
+            .and_then(|m| m.msg)
+        else {
+            return Err(Status::invalid_argument(
+                "the first FinishPart message must be `head`",
+            ));
+        };
+        let (id, attempt) = (head.job_id, head.attempt);
+        let job = self.held(id, attempt).await?;
+        let Some(part) = &job.spec.part else {
+            return Err(Status::invalid_argument(format!(
+                "job {id} is not a part of a bricked job"
+            )));
+        };
+        let size = head.size;
+        let limit = wavesplat_orchestrator_client::model::MAX_PART_RESULT_BYTES;
+        if size as usize > limit {
+            return Err(Status::invalid_argument(format!(
+                "a part's result of {size} bytes exceeds the limit of {limit} bytes (use \
+                 smaller bricks)"
+            )));
+        }
+        let mut bytes = Vec::with_capacity(size as usize);
+        while let Some(m) = stream.message().await.map_err(client_fault)? {
+            match m.msg {
+                Some(pb::finish_part_request::Msg::Chunk(c))
+                    if bytes.len() as u64 + c.len() as u64 <= size =>
+                {
+                    bytes.extend_from_slice(&c)
+                }
+                Some(pb::finish_part_request::Msg::Chunk(_)) => {
+                    return Err(Status::invalid_argument(format!(
+                        "result longer than the announced {size} bytes"
+                    )))
+                }
+                _ => return Err(Status::invalid_argument("a second `head` in one result")),
+            }
+        }
+        if bytes.len() as u64 != size {
+            return Err(Status::invalid_argument(format!(
+                "result truncated: {} of {size} bytes",
+                bytes.len()
+            )));
+        }
+        let sha = wavesplat_net::digest::sha256(&bytes);
+        if head.sha256 != sha {
+            return Err(Status::invalid_argument(
+                "the result's SHA-256 does not match the announced one",
+            ));
+        }
+        self.store().put_result(part.parent, id, bytes).await?;
+        let delivery = crate::model::Delivery {
+            cache_volume_id: 0,
+            output_bytes: size,
+            voxels: head.voxels,
+            existed: false,
+            sha256: hex(&sha),
+        };
+        let job = self
+            .store()
+            .finish(id, attempt, Outcome::Delivered(delivery))
+            .await?;
+        tracing::debug!(job = id, attempt, worker = %head.worker, bytes = size, "part finished");
+        Ok(convert::job_to_pb(&job, self.max_attempts()))
+    }
+}
+
+/// Where one part stands, for the worker that waits on it.
+fn part_state(job: &crate::model::Job) -> pb::PartState {
+    let j = convert::job_to_pb(job, 0);
+    pb::PartState {
+        id: j.id,
+        state: j.state,
+        worker: j.worker,
+        progress: j.progress,
+        output_bytes: j.output_bytes,
+        failure: j.failure,
+        error: j.error,
+    }
+}
+
 #[tonic::async_trait]
 impl Orchestrator for OrchestratorService {
     async fn submit(
@@ -198,6 +342,13 @@ impl Orchestrator for OrchestratorService {
         let id = request.into_inner().id;
         let job = self.store().cancel(id).await?;
         tracing::info!(job = id, "cancelled");
+        // Its parts go with it (the worker that held it stops at its next heartbeat).
+        for part in self.store().list().await? {
+            if part.spec.part.as_ref().is_some_and(|p| p.parent == id) && !part.state.is_terminal()
+            {
+                self.store().cancel(part.id).await?;
+            }
+        }
         Ok(Response::new(convert::job_to_pb(&job, self.max_attempts())))
     }
 
@@ -212,8 +363,9 @@ impl Orchestrator for OrchestratorService {
         &self,
         request: Request<pb::LeaseRequest>,
     ) -> Result<Response<pb::LeaseResponse>, Status> {
-        let worker: String = request.into_inner().worker.chars().take(200).collect();
-        let leased = self.store().lease(&worker).await?;
+        let r = request.into_inner();
+        let worker: String = r.worker.chars().take(200).collect();
+        let leased = self.store().lease(&worker, r.parts_only).await?;
         let poll_ms = self.shared.cfg.poll_ms;
         let Some(job) = leased.job else {
             let retry_after = leased
@@ -270,14 +422,28 @@ impl Orchestrator for OrchestratorService {
         let r = request.into_inner();
         let outcome = convert::outcome_from_pb(r.outcome).map_err(OrchestratorError::from)?;
         let (id, attempt) = (r.job_id, r.attempt);
-        if let (Some(check), Outcome::Delivered(d)) = (&self.check, &outcome) {
-            let name = self.store().get(id).await?.spec.name;
-            if let Err(e) = check.confirm(&name, d).await {
-                tracing::warn!(job = id, attempt, worker = %r.worker, error = %e, "delivery refused");
-                return Err(e.into());
+        if let Outcome::Delivered(d) = &outcome {
+            let spec = self.store().get(id).await?.spec;
+            if spec.part.is_some() {
+                return Err(Status::invalid_argument(format!(
+                    "job {id} is a part of a bricked job: its result comes with FinishPart"
+                )));
+            }
+            if let Some(check) = &self.check {
+                if let Err(e) = check.confirm(&spec.name, d).await {
+                    tracing::warn!(job = id, attempt, worker = %r.worker, error = %e, "delivery refused");
+                    return Err(e.into());
+                }
             }
         }
         let job = self.store().finish(id, attempt, outcome).await?;
+        if matches!(job.state, JobState::Done { .. }) && job.spec.options.brick.is_some() {
+            // A bricked job that landed needs its parts' results no more.
+            let dropped = self.store().drop_results(id).await?;
+            if dropped > 0 {
+                tracing::debug!(job = id, dropped, "parts' results dropped");
+            }
+        }
         tracing::info!(
             job = id,
             attempt,
@@ -321,6 +487,62 @@ impl Orchestrator for OrchestratorService {
             .await?
             .ok_or_else(|| Status::internal(format!("upload {} is missing", hex(&sha))))?;
         let chunks: Vec<Result<pb::SourceChunk, Status>> = blob
+            .chunks(CHUNK_BYTES)
+            .map(|c| Ok(pb::SourceChunk { data: c.to_vec() }))
+            .collect();
+        Ok(Response::new(Box::pin(tokio_stream::iter(chunks))))
+    }
+
+    async fn submit_parts(
+        &self,
+        request: Request<pb::SubmitPartsRequest>,
+    ) -> Result<Response<pb::SubmitPartsResponse>, Status> {
+        Ok(Response::new(
+            self.submit_parts_inner(request.into_inner()).await?,
+        ))
+    }
+
+    async fn finish_part(
+        &self,
+        request: Request<Streaming<pb::FinishPartRequest>>,
+    ) -> Result<Response<pb::Job>, Status> {
+        Ok(Response::new(
+            self.finish_part_inner(request.into_inner()).await?,
+        ))
+    }
+
+    type FetchResultStream = SourceStream;
+
+    async fn fetch_result(
+        &self,
+        request: Request<pb::FetchResultRequest>,
+    ) -> Result<Response<Self::FetchResultStream>, Status> {
+        let r = request.into_inner();
+        self.held(r.parent_id, r.parent_attempt).await?;
+        let part = self.store().get(r.part_id).await?;
+        if part
+            .spec
+            .part
+            .as_ref()
+            .is_none_or(|p| p.parent != r.parent_id)
+        {
+            return Err(Status::invalid_argument(format!(
+                "job {} is not a part of job {}",
+                r.part_id, r.parent_id
+            )));
+        }
+        let bytes = self
+            .store()
+            .result(r.parent_id, r.part_id)
+            .await?
+            .ok_or_else(|| {
+                Status::failed_precondition(format!(
+                    "part {} has no result (it is {})",
+                    r.part_id,
+                    part.state.name()
+                ))
+            })?;
+        let chunks: Vec<Result<pb::SourceChunk, Status>> = bytes
             .chunks(CHUNK_BYTES)
             .map(|c| Ok(pb::SourceChunk { data: c.to_vec() }))
             .collect();

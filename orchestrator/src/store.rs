@@ -1,5 +1,6 @@
-//! The sled store. Trees: `jobs` (id, big-endian → JSON [`Job`]) and `blobs` (SHA-256 → the
-//! bytes of an uploaded source). The queue lives in memory ([`crate::queue::Queue`]) and every
+//! The sled store. Trees: `jobs` (id, big-endian → JSON [`Job`]), `blobs` (SHA-256 → the
+//! bytes of an uploaded source) and `results` (a bricked job's id and its part's id, both
+//! big-endian → the part's result). The queue lives in memory ([`crate::queue::Queue`]) and every
 //! change is written through and flushed before the request that caused it is answered, so an
 //! acknowledged submission or outcome survives SIGKILL. Heartbeats are not flushed (a lease
 //! gets fresh grace on restart instead).
@@ -14,6 +15,7 @@ pub struct Store {
     db: sled::Db,
     jobs: sled::Tree,
     blobs: sled::Tree,
+    results: sled::Tree,
     /// One flush at a time (see [`Store::flush`]).
     flushing: std::sync::Arc<tokio::sync::Mutex<()>>,
 }
@@ -25,6 +27,7 @@ impl Store {
         Ok(Store {
             jobs: db.open_tree("jobs")?,
             blobs: db.open_tree("blobs")?,
+            results: db.open_tree("results")?,
             db,
             flushing: Default::default(),
         })
@@ -80,6 +83,30 @@ impl Store {
         Ok(self.blobs.get(sha)?)
     }
 
+    /// Stores the result of part `id` of the bricked job `parent` (not yet flushed).
+    pub fn put_result(&self, parent: u64, id: u64, bytes: &[u8]) -> Result<(), OrchestratorError> {
+        self.results.insert(result_key(parent, id), bytes)?;
+        Ok(())
+    }
+
+    /// The result of part `id` of `parent`.
+    pub fn result(&self, parent: u64, id: u64) -> Result<Option<sled::IVec>, OrchestratorError> {
+        Ok(self.results.get(result_key(parent, id))?)
+    }
+
+    /// Drops every result of `parent`'s parts; returns how many.
+    pub fn drop_results(&self, parent: u64) -> Result<usize, OrchestratorError> {
+        let keys: Vec<sled::IVec> = self
+            .results
+            .scan_prefix(parent.to_be_bytes())
+            .keys()
+            .collect::<Result<_, _>>()?;
+        for k in &keys {
+            self.results.remove(k)?;
+        }
+        Ok(keys.len())
+    }
+
     /// Drops the uploaded source of `job` unless another unfinished job still needs it.
     pub fn release_blob<'a>(
         &self,
@@ -99,4 +126,11 @@ impl Store {
         }
         Ok(())
     }
+}
+
+fn result_key(parent: u64, id: u64) -> [u8; 16] {
+    let mut k = [0u8; 16];
+    k[..8].copy_from_slice(&parent.to_be_bytes());
+    k[8..].copy_from_slice(&id.to_be_bytes());
+    k
 }

@@ -255,6 +255,7 @@ pub fn job_spec(
         sha256,
         raw: found.raw.clone(),
         options: options.clone(),
+        part: None,
     };
     Ok((spec, bytes))
 }

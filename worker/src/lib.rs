@@ -28,6 +28,7 @@
 
 pub mod archive;
 pub mod options;
+mod parts;
 
 use std::future::Future;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -39,7 +40,6 @@ use wavesplat_client::{CacheClient, ConnectOptions};
 use wavesplat_codec::volume::Volume;
 use wavesplat_compressor::bricked::{compress_bricked, BrickSource, BrickStage};
 use wavesplat_compressor::encode::{compress, Stage};
-use wavesplat_compressor::reader::region::RegionReader;
 use wavesplat_compressor::reader::{decode_raw, decode_source, SourceFiles};
 use wavesplat_net::digest::sha256;
 use wavesplat_orchestrator_client::convert;
@@ -130,6 +130,7 @@ pub async fn run(
         }
         let req = pb::LeaseRequest {
             worker: ctx.cfg.id.clone(),
+            parts_only: false,
         };
         let reply = tokio::select! {
             _ = &mut shutdown => break,
@@ -164,7 +165,7 @@ pub async fn run(
 
 /// Progress shared between the job and its heartbeat task.
 #[derive(Default)]
-struct Shared {
+pub(crate) struct Shared {
     progress: Mutex<(f32, String)>,
     lost: AtomicBool,
 }
@@ -172,7 +173,7 @@ struct Shared {
 impl Shared {
     /// Reports a stage; the fraction never goes back (the compressor's stages repeat: a byte
     /// target's rate trials, a second decomposition depth).
-    fn set(&self, p: f32, stage: impl Into<String>) {
+    pub(crate) fn set(&self, p: f32, stage: impl Into<String>) {
         if let Ok(mut g) = self.progress.lock() {
             *g = (g.0.max(p), stage.into());
         }
@@ -191,13 +192,28 @@ fn stage_progress(stage: Stage, f: f64) -> (f32, String) {
     }
 }
 
+impl Ctx {
+    fn part_runner(&self) -> parts::PartRunner {
+        parts::PartRunner {
+            orch: self.orch.clone(),
+            pool: self.pool.clone(),
+            worker: self.cfg.id.clone(),
+        }
+    }
+}
+
 async fn run_lease(ctx: &mut Ctx, lease: pb::Lease) {
     let (id, attempt) = (lease.job_id, lease.attempt);
-    let spec = match lease.spec.map(convert::spec_from_pb) {
+    let spec = match lease.spec.clone().map(convert::spec_from_pb) {
         Some(Ok(s)) => Ok(s),
         Some(Err(e)) => Err(e.to_string()),
         None => Err("lease without a job spec".to_string()),
     };
+    if let Ok(spec) = &spec {
+        if spec.part.is_some() {
+            return parts::run_part_lease(&ctx.part_runner(), lease, spec.clone()).await;
+        }
+    }
     tracing::info!(job = id, attempt, "running");
     let shared = Arc::new(Shared::default());
     let heartbeat = tokio::spawn(heartbeat_loop(
@@ -227,7 +243,7 @@ async fn run_lease(ctx: &mut Ctx, lease: pb::Lease) {
             Outcome::Failed(f)
         }
     };
-    report(ctx, id, attempt, outcome).await;
+    report(&mut ctx.orch, &ctx.cfg.id, id, attempt, outcome).await;
 }
 
 async fn heartbeat_loop(
@@ -266,7 +282,7 @@ async fn heartbeat_loop(
 }
 
 /// Reports an outcome, retrying while the orchestrator is unreachable (it may be restarting).
-async fn report(ctx: &mut Ctx, id: u64, attempt: u32, outcome: Outcome) {
+async fn report(orch: &mut Client, worker: &str, id: u64, attempt: u32, outcome: Outcome) {
     let outcome = match outcome {
         Outcome::Delivered(d) => pb::finish_request::Outcome::Delivered(pb::Delivered {
             cache_volume_id: d.cache_volume_id,
@@ -283,13 +299,13 @@ async fn report(ctx: &mut Ctx, id: u64, attempt: u32, outcome: Outcome) {
     let req = pb::FinishRequest {
         job_id: id,
         attempt,
-        worker: ctx.cfg.id.clone(),
+        worker: worker.to_string(),
         outcome: Some(outcome),
     };
     let deadline = tokio::time::Instant::now() + Duration::from_secs(600);
     let mut wait = Duration::from_millis(100);
     loop {
-        match ctx.orch.finish(req.clone()).await {
+        match orch.finish(req.clone()).await {
             Ok(j) => {
                 let j = j.into_inner();
                 tracing::info!(
@@ -420,20 +436,8 @@ fn compress_bricked_job(
     opts: &wavesplat_compressor::encode::CompressOptions,
     sh: &Shared,
 ) -> Result<(Vec<u8>, u64), Failure> {
-    let invalid = |e: &dyn std::fmt::Display| fail(FailureKind::InvalidInput, e.to_string());
-    let (reader, volume);
-    let source: &dyn BrickSource = match &spec.source {
-        Source::Path(p) if p.is_file() => {
-            drop(bytes);
-            let raw = spec.raw.as_ref().map(options::raw_spec);
-            reader = RegionReader::open(p, raw.as_ref()).map_err(|e| invalid(&e))?;
-            &reader
-        }
-        _ => {
-            volume = decode(spec, bytes)?;
-            &volume
-        }
-    };
+    let volume = decode(spec, bytes)?;
+    let source: &dyn BrickSource = &volume;
     let voxels = source.dims().iter().product::<u64>();
     sh.set(0.05, "reading bricks");
     let report = |stage: BrickStage| {
@@ -479,7 +483,12 @@ async fn execute(
     let job_spec = spec.clone();
     let pool = ctx.pool.clone();
     let sh = shared.clone();
+    let (runner, handle) = (ctx.part_runner(), tokio::runtime::Handle::current());
     let compressed = tokio::task::spawn_blocking(move || {
+        if in_place {
+            // A bricked volume on shared storage: its bricks spread over the workers.
+            return parts::coordinate(runner, handle, job_spec, id, attempt, sh);
+        }
         if let Some(brick) = job_spec.options.brick {
             return pool.install(|| compress_bricked_job(&job_spec, bytes, brick, &opts, &sh));
         }

@@ -59,6 +59,7 @@ fn spec(i: usize, tag: &str) -> JobSpec {
         sha256: sha,
         raw: None,
         options: JobOptions::default(),
+        part: None,
     }
 }
 
@@ -95,7 +96,10 @@ async fn fake_worker(url: String, id: String, stop_when_idle: bool) -> Result<us
     let mut n = 0;
     loop {
         let r = c
-            .lease(pb::LeaseRequest { worker: id.clone() })
+            .lease(pb::LeaseRequest {
+                worker: id.clone(),
+                parts_only: false,
+            })
             .await?
             .into_inner();
         let Some(lease) = r.lease else {

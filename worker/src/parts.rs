@@ -1,0 +1,491 @@
+//! Bricked jobs spread over workers. The worker that leases a bricked job whose source is a
+//! file on shared storage *coordinates* it: it plans the volume ([`BrickPlan::new`]: the depth,
+//! the whole's offset or colour transform), adds one part per brick to the queue to score it,
+//! allocates the whole's rate from the parts' score summaries ([`allocate`]), adds one part per
+//! brick to code it (a byte target: one round per trial of the search), fetches the chosen
+//! files and commits the bricked volume to the cache once, as any job delivers.
+//!
+//! Any worker leases parts. The coordinator runs parts itself while it waits, so one worker
+//! alone still finishes the job, and every extra worker takes bricks off it. A part's result
+//! goes back to the orchestrator (`FinishPart`) and the coordinator fetches it
+//! (`FetchResult`). A part whose worker dies is leased again alone; a coordinator that dies is
+//! replaced by the next worker to lease the job, whose parts are already known (`SubmitParts`
+//! leaves them as they are), so bricks done before are not compressed again.
+
+use crate::{fail, heartbeat_loop, options, Shared};
+use std::sync::atomic::Ordering;
+use std::sync::Arc;
+use std::time::Duration;
+use wavesplat_compressor::bricked::{
+    allocate, BrickError, BrickPlan, BrickSource, BrickWork, CodedBrick, SharedChoices,
+};
+use wavesplat_compressor::colorspace::ColorTransform;
+use wavesplat_compressor::encode::{ScoreSummary, Target};
+use wavesplat_compressor::reader::region::RegionReader;
+use wavesplat_orchestrator_client::model::{
+    Failure, FailureKind, JobSpec, PartColor, PartSpec, PartStep, Source,
+};
+use wavesplat_orchestrator_client::{convert, Client, CHUNK_BYTES};
+use wavesplat_proto::pb;
+
+/// How often a coordinator with nothing to run asks after its parts.
+const POLL: Duration = Duration::from_millis(200);
+
+/// What a worker needs to run parts: its orchestrator client, pool and name.
+#[derive(Clone)]
+pub(crate) struct PartRunner {
+    pub orch: Client,
+    pub pool: Arc<rayon::ThreadPool>,
+    pub worker: String,
+}
+
+/// Opens a part's (or a coordinator's) source: a file on shared storage read by region.
+fn open_source(spec: &JobSpec) -> Result<RegionReader, Failure> {
+    let Source::Path(p) = &spec.source else {
+        return Err(fail(
+            FailureKind::InvalidInput,
+            "the bricks of a job are spread over workers only from a file on shared storage",
+        ));
+    };
+    let raw = spec.raw.as_ref().map(options::raw_spec);
+    RegionReader::open(p, raw.as_ref()).map_err(|e| {
+        let kind = if p.is_file() {
+            FailureKind::InvalidInput
+        } else {
+            FailureKind::SourceUnavailable
+        };
+        fail(kind, format!("{}: {e}", p.display()))
+    })
+}
+
+fn brick_failure(e: BrickError) -> Failure {
+    let kind = match e {
+        BrickError::Read { .. } => FailureKind::InvalidInput,
+        _ => FailureKind::Compress,
+    };
+    fail(kind, format!("{e:#}"))
+}
+
+/// The plan of a part: the parent's choices, nothing read.
+fn part_plan(
+    spec: &JobSpec,
+    part: &PartSpec,
+    source: &dyn BrickSource,
+) -> Result<BrickPlan, Failure> {
+    let opts = options::compress_options(&spec.options);
+    let brick = spec.options.brick.ok_or_else(|| {
+        fail(
+            FailureKind::InvalidInput,
+            "a part of a job that is not bricked",
+        )
+    })?;
+    let choices = SharedChoices {
+        levels: part.levels as usize,
+        offset: part.offset,
+        color: part.color.map(|c| ColorTransform {
+            kind: opts.colorspace,
+            basis: c.basis,
+            mean: c.mean,
+            importance: c.importance,
+        }),
+    };
+    let plan = BrickPlan::with_choices(source, &opts, brick, choices).map_err(brick_failure)?;
+    if plan.grid.len() != part.of as usize {
+        return Err(fail(
+            FailureKind::InvalidInput,
+            format!(
+                "the source makes {} bricks, the part says {}: the file changed",
+                plan.grid.len(),
+                part.of
+            ),
+        ));
+    }
+    Ok(plan)
+}
+
+/// Runs one part on the pool: its result's bytes and the brick's voxels.
+fn compute_part(spec: &JobSpec, part: &PartSpec) -> Result<(Vec<u8>, u64), Failure> {
+    let source = open_source(spec)?;
+    let plan = part_plan(spec, part, &source)?;
+    let i = part.index as usize;
+    let voxels = plan.grid[i].1.iter().map(|d| *d as u64).product();
+    let bytes = match part.step {
+        PartStep::Score { energies } => plan
+            .score(&source, i)
+            .map_err(brick_failure)?
+            .to_bytes(energies),
+        PartStep::Encode { count, .. } => plan.encode(&source, i, count).map_err(brick_failure)?.0,
+    };
+    Ok((bytes, voxels))
+}
+
+/// Runs a leased part end to end: heartbeats, the work, and its result or failure reported.
+pub(crate) async fn run_part_lease(runner: &PartRunner, lease: pb::Lease, spec: JobSpec) {
+    let (id, attempt) = (lease.job_id, lease.attempt);
+    let Some(part) = spec.part.clone() else {
+        return;
+    };
+    tracing::info!(job = id, attempt, part = %part.label(), "running part");
+    let shared = Arc::new(Shared::default());
+    shared.set(0.1, part.label());
+    let heartbeat = tokio::spawn(heartbeat_loop(
+        runner.orch.clone(),
+        id,
+        attempt,
+        runner.worker.clone(),
+        Duration::from_millis(u64::from(lease.heartbeat_ms.max(50))),
+        shared.clone(),
+    ));
+    let pool = runner.pool.clone();
+    let result = tokio::task::spawn_blocking(move || pool.install(|| compute_part(&spec, &part)))
+        .await
+        .map_err(|e| fail(FailureKind::Worker, format!("part task: {e}")))
+        .and_then(|r| r);
+    heartbeat.abort();
+    if shared.lost.load(Ordering::SeqCst) {
+        tracing::warn!(job = id, attempt, "lease lost; part's result discarded");
+        return;
+    }
+    let mut orch = runner.orch.clone();
+    match result {
+        Ok((bytes, voxels)) => {
+            if let Err(s) = finish_part(&mut orch, id, attempt, &runner.worker, bytes, voxels).await
+            {
+                // The lease lapses and the part runs again.
+                tracing::warn!(job = id, attempt, error = %s.message(), "part's result refused");
+            }
+        }
+        Err(f) => {
+            tracing::warn!(job = id, attempt, kind = f.kind.name(), reason = %f.message, "part failed");
+            crate::report(
+                &mut orch,
+                &runner.worker,
+                id,
+                attempt,
+                wavesplat_orchestrator_client::model::Outcome::Failed(f),
+            )
+            .await;
+        }
+    }
+}
+
+async fn finish_part(
+    orch: &mut Client,
+    id: u64,
+    attempt: u32,
+    worker: &str,
+    bytes: Vec<u8>,
+    voxels: u64,
+) -> Result<(), tonic::Status> {
+    let head = pb::PartResult {
+        job_id: id,
+        attempt,
+        worker: worker.to_string(),
+        size: bytes.len() as u64,
+        sha256: wavesplat_net::digest::sha256(&bytes).to_vec(),
+        voxels,
+    };
+    let mut messages = vec![pb::FinishPartRequest {
+        msg: Some(pb::finish_part_request::Msg::Head(head)),
+    }];
+    messages.extend(bytes.chunks(CHUNK_BYTES).map(|c| pb::FinishPartRequest {
+        msg: Some(pb::finish_part_request::Msg::Chunk(c.to_vec())),
+    }));
+    orch.finish_part(tokio_stream::iter(messages)).await?;
+    Ok(())
+}
+
+/// The coordinator's side: the parts of one bricked job, run through the queue.
+struct RemoteBricks {
+    runner: PartRunner,
+    handle: tokio::runtime::Handle,
+    parent: JobSpec,
+    parent_id: u64,
+    parent_attempt: u32,
+    shared: Arc<Shared>,
+    /// Why the parts could not finish, for the job's outcome.
+    failure: std::sync::Mutex<Option<Failure>>,
+}
+
+/// A part that is done: its id and its result's size.
+struct DonePart {
+    id: u64,
+    bytes: u64,
+}
+
+/// The parts could not finish; why is kept in [`RemoteBricks::failure`].
+struct Stopped;
+
+impl From<Stopped> for BrickError {
+    fn from(_: Stopped) -> BrickError {
+        BrickError::InvalidOption("the bricks' parts did not finish".into())
+    }
+}
+
+impl RemoteBricks {
+    fn stop(&self, f: Failure) -> Stopped {
+        if let Ok(mut slot) = self.failure.lock() {
+            slot.get_or_insert(f);
+        }
+        Stopped
+    }
+
+    fn part(&self, plan: &BrickPlan, index: usize, step: PartStep) -> JobSpec {
+        let c = &plan.choices;
+        JobSpec {
+            part: Some(PartSpec {
+                parent: self.parent_id,
+                index: index as u32,
+                of: plan.grid.len() as u32,
+                step,
+                levels: c.levels as u32,
+                offset: c.offset,
+                color: c.color.as_ref().map(|t| PartColor {
+                    basis: t.basis,
+                    mean: t.mean,
+                    importance: t.importance,
+                }),
+            }),
+            ..self.parent.clone()
+        }
+    }
+
+    /// Adds `parts` (or polls them, if known) and waits until all are done, running parts
+    /// itself while any is queued. `stage` names the step for progress, whose fraction goes
+    /// from `from` to `to`.
+    fn run_all(
+        &self,
+        parts: &[JobSpec],
+        stage: &str,
+        from: f32,
+        to: f32,
+    ) -> Result<Vec<DonePart>, Stopped> {
+        let specs: Vec<pb::JobSpec> = parts.iter().map(convert::spec_to_pb).collect();
+        loop {
+            if self.shared.lost.load(Ordering::SeqCst) {
+                return Err(self.stop(fail(
+                    FailureKind::Worker,
+                    "the bricked job's lease was lost",
+                )));
+            }
+            let mut states = Vec::with_capacity(specs.len());
+            for batch in specs.chunks(1024) {
+                let mut orch = self.runner.orch.clone();
+                let req = pb::SubmitPartsRequest {
+                    parent_id: self.parent_id,
+                    parent_attempt: self.parent_attempt,
+                    parts: batch.to_vec(),
+                };
+                match self.handle.block_on(orch.submit_parts(req)) {
+                    Ok(r) => states.extend(r.into_inner().parts),
+                    Err(s) if s.code() == tonic::Code::FailedPrecondition => {
+                        return Err(self.stop(fail(FailureKind::Worker, s.message().to_string())))
+                    }
+                    Err(s) => {
+                        // The orchestrator may be restarting: ask again.
+                        tracing::warn!(error = %s.message(), "adding parts failed; retrying");
+                        std::thread::sleep(POLL);
+                        break;
+                    }
+                }
+            }
+            if states.len() == specs.len() {
+                let state = |p: &pb::PartState| convert::state_name(p.state);
+                if let Some((i, p)) = states
+                    .iter()
+                    .enumerate()
+                    .find(|(_, p)| matches!(state(p), "failed" | "cancelled"))
+                {
+                    let kind =
+                        convert::failure_kind_from_pb(p.failure).unwrap_or(FailureKind::Worker);
+                    let label = parts[i]
+                        .part
+                        .as_ref()
+                        .map(|p| p.label())
+                        .unwrap_or_default();
+                    return Err(self.stop(fail(kind, format!("{label} {}: {}", state(p), p.error))));
+                }
+                let done = states.iter().filter(|p| state(p) == "done").count();
+                let running = states.iter().filter(|p| state(p) == "running").count();
+                let of = states.len();
+                self.shared.set(
+                    from + (to - from) * done as f32 / of.max(1) as f32,
+                    format!("{stage}: {done} of {of} bricks done, {running} running"),
+                );
+                if done == of {
+                    return Ok(states
+                        .iter()
+                        .map(|p| DonePart {
+                            id: p.id,
+                            bytes: p.output_bytes,
+                        })
+                        .collect());
+                }
+                if !self.run_one_part() {
+                    std::thread::sleep(POLL);
+                }
+            }
+        }
+    }
+
+    /// Leases one part (of any bricked job) and runs it here; false if none was queued.
+    fn run_one_part(&self) -> bool {
+        let mut orch = self.runner.orch.clone();
+        let req = pb::LeaseRequest {
+            worker: self.runner.worker.clone(),
+            parts_only: true,
+        };
+        let Ok(reply) = self.handle.block_on(orch.lease(req)) else {
+            return false;
+        };
+        let Some(lease) = reply.into_inner().lease else {
+            return false;
+        };
+        let spec = lease.spec.clone().map(convert::spec_from_pb);
+        match spec {
+            Some(Ok(spec)) => {
+                self.handle
+                    .block_on(run_part_lease(&self.runner, lease, spec));
+            }
+            _ => tracing::warn!(job = lease.job_id, "a leased part without a valid spec"),
+        }
+        true
+    }
+
+    /// The result of a done part.
+    fn fetch(&self, part: u64) -> Result<Vec<u8>, Stopped> {
+        let mut orch = self.runner.orch.clone();
+        let req = pb::FetchResultRequest {
+            parent_id: self.parent_id,
+            parent_attempt: self.parent_attempt,
+            part_id: part,
+        };
+        let unavailable = |s: tonic::Status| {
+            fail(
+                FailureKind::Worker,
+                format!("fetching the result of part {part}: {}", s.message()),
+            )
+        };
+        let got = self.handle.block_on(async {
+            let mut stream = orch.fetch_result(req).await?.into_inner();
+            let mut bytes = Vec::new();
+            while let Some(c) = stream.message().await? {
+                bytes.extend_from_slice(&c.data);
+            }
+            Ok::<_, tonic::Status>(bytes)
+        });
+        got.map_err(|s| self.stop(unavailable(s)))
+    }
+}
+
+impl BrickWork for RemoteBricks {
+    /// The id of the part whose result is the brick's file.
+    type File = u64;
+
+    fn score_all(&self, plan: &BrickPlan) -> Result<Vec<ScoreSummary>, BrickError> {
+        let energies = matches!(plan.target, Target::QvPercent(_));
+        let parts: Vec<JobSpec> = (0..plan.grid.len())
+            .map(|i| self.part(plan, i, PartStep::Score { energies }))
+            .collect();
+        let done = self.run_all(&parts, "scoring", 0.05, 0.3)?;
+        let mut summaries = Vec::with_capacity(done.len());
+        for p in &done {
+            let bytes = self.fetch(p.id)?;
+            let s = ScoreSummary::from_bytes(&bytes)
+                .map_err(|e| self.stop(fail(FailureKind::Worker, format!("part {}: {e}", p.id))))?;
+            summaries.push(s);
+        }
+        Ok(summaries)
+    }
+
+    fn encode_all(
+        &self,
+        plan: &BrickPlan,
+        counts: Option<&[u64]>,
+        trial: usize,
+    ) -> Result<Vec<CodedBrick<u64>>, BrickError> {
+        let parts: Vec<JobSpec> = (0..plan.grid.len())
+            .map(|i| {
+                let step = PartStep::Encode {
+                    count: counts.map(|k| k[i]),
+                    trial: trial as u32,
+                };
+                self.part(plan, i, step)
+            })
+            .collect();
+        let stage = format!("coding (trial {trial})");
+        let done = self.run_all(&parts, &stage, 0.3, 0.9)?;
+        Ok(done
+            .into_iter()
+            .map(|p| CodedBrick {
+                file: p.id,
+                len: p.bytes,
+                // Read from the file's header when it is fetched.
+                kept: 0,
+            })
+            .collect())
+    }
+}
+
+/// Coordinates a bricked job whose source is a file on shared storage (its hash verified):
+/// returns the bricked file and the volume's voxels. Runs on a blocking thread.
+pub(crate) fn coordinate(
+    runner: PartRunner,
+    handle: tokio::runtime::Handle,
+    spec: JobSpec,
+    parent_id: u64,
+    parent_attempt: u32,
+    shared: Arc<Shared>,
+) -> Result<(Vec<u8>, u64), Failure> {
+    let brick = spec
+        .options
+        .brick
+        .ok_or_else(|| fail(FailureKind::Worker, "not a bricked job"))?;
+    let source = open_source(&spec)?;
+    let voxels = BrickSource::dims(&source).iter().product::<u64>();
+    shared.set(0.02, "planning the bricks");
+    let opts = options::compress_options(&spec.options);
+    let pool = runner.pool.clone();
+    let plan = pool.install(|| BrickPlan::new(&source, &opts, brick).map_err(brick_failure))?;
+    drop(source);
+    tracing::info!(
+        job = parent_id,
+        bricks = plan.grid.len(),
+        levels = plan.choices.levels,
+        "bricks planned; spreading them over the queue"
+    );
+    let work = RemoteBricks {
+        runner,
+        handle,
+        parent: spec,
+        parent_id,
+        parent_attempt,
+        shared: shared.clone(),
+        failure: std::sync::Mutex::new(None),
+    };
+    let allocated = allocate(&plan, &work).map_err(|e| {
+        work.failure
+            .lock()
+            .ok()
+            .and_then(|mut f| f.take())
+            .unwrap_or_else(|| brick_failure(e))
+    })?;
+    shared.set(0.9, "gathering the bricks");
+    let mut bricks = Vec::with_capacity(allocated.bricks.len());
+    for b in &allocated.bricks {
+        let bytes = work.fetch(b.file).map_err(|Stopped| {
+            work.failure
+                .lock()
+                .ok()
+                .and_then(|mut f| f.take())
+                .unwrap_or_else(|| fail(FailureKind::Worker, "fetching a brick failed"))
+        })?;
+        let kept = wavesplat_codec::format::parse_file(&bytes)
+            .map_err(|e| fail(FailureKind::Worker, format!("part {}'s file: {e}", b.file)))?
+            .header
+            .kept;
+        bricks.push((bytes, kept));
+    }
+    let file = plan.assemble(&bricks).map_err(brick_failure)?;
+    Ok((file, voxels))
+}
