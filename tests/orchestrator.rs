@@ -769,3 +769,59 @@ async fn the_parts_rpcs_hold_their_rules_against_a_raw_client() {
         "a bricked job's parts go with it"
     );
 }
+
+/// The orchestrator is SIGKILLed and restarted while a bricked job's parts run: the worker
+/// keeps going (its reports retried until the orchestrator answers), and the volume lands
+/// once, the file one process makes.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_bricked_job_survives_an_orchestrator_restart_midway() {
+    use wavesplat_compressor::bricked::compress_bricked;
+    use wavesplat_orchestrator_client::model::{JobOptions, TargetSpec};
+    let mut cl = TestCluster::start(&ORCH_TIMING);
+    let (o, c) = (cl.orch.url(), cl.cache.url());
+    let dims = [96, 72, 48];
+    let shared = cl.root.join("shared");
+    std::fs::create_dir_all(&shared).unwrap();
+    write_f32(
+        &shared.join(raw_name("midway", dims, "f32")),
+        &phantom(Phantom::Spheres, dims),
+    );
+    let _w = cl.worker("w", 0, None);
+    submit(&shared, &o, &["--brick", "24", "--target-fraction", "0.04"]);
+    wait_for(&o, 60, "some of the bricks scored", |js| {
+        js.iter()
+            .filter(|j| is_part(j) && state_name(j.state) == "done")
+            .count()
+            >= 3
+    })
+    .await;
+    cl.restart_orchestrator();
+    let js = wait_for(&o, 120, "the bricked job done", |js| {
+        js.iter()
+            .any(|j| !is_part(j) && state_name(j.state) == "done")
+    })
+    .await;
+    let parts: Vec<_> = js.iter().filter(|j| is_part(j)).collect();
+    assert_eq!(parts.len(), 2 * 24, "{} parts", parts.len());
+    assert!(parts.iter().all(|p| p.attempts <= 2), "{parts:?}");
+    let options = JobOptions {
+        levels: Some(2),
+        brick: Some(24),
+        target: TargetSpec::Fraction(0.04),
+        ..JobOptions::default()
+    };
+    let expected = compress_bricked(
+        &Phantom::Spheres.generate(dims),
+        &wavesplat_worker::options::compress_options(&options),
+        24,
+        &|_| {},
+    )
+    .unwrap();
+    let mut client = CacheClient::connect(&c).await.unwrap();
+    let listed = client.list().await.unwrap();
+    assert_eq!(listed.len(), 1, "{listed:?}");
+    assert_eq!(
+        listed[0].sha256,
+        wavesplat_net::digest::hex(&wavesplat_net::digest::sha256(&expected.bytes))
+    );
+}

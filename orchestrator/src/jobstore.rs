@@ -202,6 +202,7 @@ impl JobStore for EmbeddedQueue {
         spec: JobSpec,
         upload: Option<Vec<u8>>,
     ) -> Result<Submitted, OrchestratorError> {
+        let uploaded = upload.is_some();
         if let Some(bytes) = &upload {
             self.store.put_blob(&spec.sha256, bytes)?;
         }
@@ -213,7 +214,10 @@ impl JobStore for EmbeddedQueue {
             }
             s
         };
-        self.store.flush().await?;
+        // A known job wrote nothing (a bricked job's worker polls its parts this way).
+        if uploaded || !submitted.existed {
+            self.store.flush().await?;
+        }
         Ok(submitted)
     }
 

@@ -149,10 +149,28 @@ pub(crate) async fn run_part_lease(runner: &PartRunner, lease: pb::Lease, spec: 
     let mut orch = runner.orch.clone();
     match result {
         Ok((bytes, voxels)) => {
-            if let Err(s) = finish_part(&mut orch, id, attempt, &runner.worker, bytes, voxels).await
-            {
-                // The lease lapses and the part runs again.
-                tracing::warn!(job = id, attempt, error = %s.message(), "part's result refused");
+            // Retried while the orchestrator is unreachable (it may be restarting); refused,
+            // the lease lapses and the part runs again.
+            let deadline = tokio::time::Instant::now() + Duration::from_secs(600);
+            let mut wait = Duration::from_millis(100);
+            loop {
+                let sent =
+                    finish_part(&mut orch, id, attempt, &runner.worker, &bytes, voxels).await;
+                match sent {
+                    Ok(()) => break,
+                    Err(s)
+                        if s.code() == tonic::Code::Unavailable
+                            && tokio::time::Instant::now() < deadline =>
+                    {
+                        tracing::warn!(job = id, error = %s.message(), "reporting a part failed; retrying");
+                        tokio::time::sleep(wait).await;
+                        wait = (wait * 2).min(Duration::from_secs(2));
+                    }
+                    Err(s) => {
+                        tracing::warn!(job = id, attempt, error = %s.message(), "part's result refused");
+                        break;
+                    }
+                }
             }
         }
         Err(f) => {
@@ -174,7 +192,7 @@ async fn finish_part(
     id: u64,
     attempt: u32,
     worker: &str,
-    bytes: Vec<u8>,
+    bytes: &[u8],
     voxels: u64,
 ) -> Result<(), tonic::Status> {
     let head = pb::PartResult {
@@ -182,7 +200,7 @@ async fn finish_part(
         attempt,
         worker: worker.to_string(),
         size: bytes.len() as u64,
-        sha256: wavesplat_net::digest::sha256(&bytes).to_vec(),
+        sha256: wavesplat_net::digest::sha256(bytes).to_vec(),
         voxels,
     };
     let mut messages = vec![pb::FinishPartRequest {

@@ -1,0 +1,81 @@
+#!/usr/bin/env bash
+# A bricked job spread over workers (issue 55): the CT phantom at N³ written as a raw f32 file
+# on "shared storage" (a local directory every worker reads), submitted as one bricked job
+# (`archive submit --brick B --target-fraction F`) to an orchestrator and a cache on loopback,
+# then compressed by W workers, each with one compression thread and pinned with taskset to a
+# core of its own. The time is from submission until the job is done; each worker's peak
+# resident memory is read from /proc (VmHWM) before it is stopped. One CSV row a run, and a
+# Markdown table on stdout.
+#   bash scripts/brick-workers.sh [SIZE] [WORKERS] [BRICK] [FRACTION]
+#   e.g. bash scripts/brick-workers.sh 512 "1 2" 128 0.01
+# WORKERS: worker counts (default "1 2"; more than the machine's cores are skipped).
+# Writes $TMPDIR/wavesplat-workers/workers.csv (size,workers,brick,parts,seconds,
+# peak_rss_mb_max,bytes,ns_per_voxel_core).
+set -euo pipefail
+ROOT="$(cd "$(dirname "$0")/.." && pwd)"
+N=${1:-512}
+WORKERS=${2:-"1 2"}
+BRICK=${3:-128}
+FRACTION=${4:-0.01}
+W="$ROOT/target/release/wavesplat"
+TMP="${TMPDIR:-/tmp}/wavesplat-workers"
+command -v taskset >/dev/null || { echo "needs taskset (util-linux)" >&2; exit 1; }
+cargo build --release --quiet --manifest-path "$ROOT/Cargo.toml" --bin wavesplat
+mkdir -p "$TMP/shared"
+SRC="$TMP/shared/ct_${N}x${N}x${N}_f32.raw"
+[ -f "$SRC" ] || "$W" phantom ct --dims "$N,$N,$N" -o "$SRC"
+CSV="$TMP/workers.csv"
+[ -f "$CSV" ] || echo "size,workers,brick,parts,seconds,peak_rss_mb_max,bytes,ns_per_voxel_core" >"$CSV"
+CORES=$(nproc)
+PIDS=()
+cleanup() { for p in "${PIDS[@]}"; do kill "$p" 2>/dev/null || true; done; }
+trap cleanup EXIT
+free_port() { python3 -c 'import socket; s=socket.socket(); s.bind(("127.0.0.1",0)); print(s.getsockname()[1])'; }
+echo "CT phantom ${N}³ f32 on shared storage, bricks of $BRICK, $FRACTION of the coefficients, $CORES cores, $(date -u +%F)"
+echo
+echo "| workers | parts | wall s | peak RSS per worker | bytes | ns per voxel and core |"
+echo "|---|---|---|---|---|---|"
+for w in $WORKERS; do
+  [ "$w" -le "$CORES" ] || continue
+  run="$TMP/run_w$w"
+  rm -rf "$run" && mkdir -p "$run"
+  cp=$(free_port); op=$(free_port)
+  "$W" serve cache --db "$run/cache.db" --addr "127.0.0.1:$cp" >"$run/cache.log" 2>&1 &
+  PIDS+=($!)
+  "$W" serve orchestrator --db "$run/orch.db" --addr "127.0.0.1:$op" >"$run/orch.log" 2>&1 &
+  PIDS+=($!)
+  sleep 1
+  start=$(date +%s.%N)
+  "$W" archive submit "$TMP/shared" --orchestrator "http://127.0.0.1:$op" --detach \
+    --brick "$BRICK" --target-fraction "$FRACTION" >"$run/submit.log"
+  WP=()
+  for i in $(seq 0 $((w - 1))); do
+    taskset -c "$i" "$W" worker --orchestrator "http://127.0.0.1:$op" \
+      --cache "http://127.0.0.1:$cp" --threads 1 --id "w$i" >"$run/w$i.log" 2>&1 &
+    WP+=($!); PIDS+=($!)
+  done
+  # Until the bricked job (not a part) is done; a failure stops the script.
+  while :; do
+    line=$("$W" jobs list --orchestrator "http://127.0.0.1:$op" | grep -v "part of" | head -1)
+    case "$line" in
+      *$'\t'done$'\t'*) break ;;
+      *$'\t'failed$'\t'*) echo "failed: $line" >&2; exit 1 ;;
+    esac
+    sleep 0.5
+  done
+  end=$(date +%s.%N)
+  peak=0
+  for p in "${WP[@]}"; do
+    kb=$(awk '/^VmHWM:/ {print $2}' "/proc/$p/status")
+    [ "$kb" -gt "$peak" ] && peak=$kb
+  done
+  parts=$("$W" jobs list --orchestrator "http://127.0.0.1:$op" | grep -c "part of" || true)
+  bytes=$(echo "$line" | sed -n 's/.*bytes=\([0-9]*\).*/\1/p')
+  secs=$(echo "$end - $start" | bc -l | xargs printf '%.1f')
+  ns=$(echo "$secs * $w * 1000000000 / ($N * $N * $N)" | bc -l | xargs printf '%.0f')
+  echo "$N,$w,$BRICK,$parts,$secs,$((peak / 1024)),$bytes,$ns" >>"$CSV"
+  echo "| $w | $parts | $secs | $((peak / 1024)) MB | $bytes | $ns |"
+  cleanup; PIDS=(); sleep 1
+done
+echo
+echo "CSV: $CSV"
