@@ -6,7 +6,7 @@
 mod common;
 
 use common::jobs::{finished as all_finished, list, name, wait_for};
-use common::TestCluster;
+use common::{Proc, TestCluster};
 use std::collections::HashSet;
 use std::path::Path;
 use std::process::{Command, Output};
@@ -814,6 +814,93 @@ async fn a_bricked_job_survives_an_orchestrator_restart_midway() {
         &Phantom::Spheres.generate(dims),
         &wavesplat_worker::options::compress_options(&options),
         24,
+        &|_| {},
+    )
+    .unwrap();
+    let mut client = CacheClient::connect(&c).await.unwrap();
+    let listed = client.list().await.unwrap();
+    assert_eq!(listed.len(), 1, "{listed:?}");
+    assert_eq!(
+        listed[0].sha256,
+        wavesplat_net::digest::hex(&wavesplat_net::digest::sha256(&expected.bytes))
+    );
+}
+
+/// A worker SIGKILLed while it runs one brick's part: only that part runs again (its lease
+/// lapses), the worker planning the job is not disturbed, and the volume lands once, the file
+/// one process makes.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_part_whose_worker_dies_runs_again_alone() {
+    use wavesplat_compressor::bricked::compress_bricked;
+    use wavesplat_orchestrator_client::model::{JobOptions, TargetSpec};
+    let cl = TestCluster::start(&ORCH_TIMING);
+    let (o, c) = (cl.orch.url(), cl.cache.url());
+    let dims = [96, 96, 64];
+    let shared = cl.root.join("shared");
+    std::fs::create_dir_all(&shared).unwrap();
+    write_f32(
+        &shared.join(raw_name("victim", dims, "f32")),
+        &phantom(Phantom::SheppLogan, dims),
+    );
+    let _planner = cl.worker("planner", 0, None);
+    submit(&shared, &o, &["--brick", "32", "--target-fraction", "0.03"]);
+    wait_for(&o, 30, "the planner holding the bricked job", |js| {
+        js.iter().any(|j| !is_part(j) && j.worker == "planner")
+    })
+    .await;
+    // This worker computes a part, then hangs before reporting it: SIGKILL it there.
+    let doomed = Proc::worker_with(
+        &o,
+        &c,
+        "doomed",
+        &["--pause-before-part-report-ms", "60000"],
+        None,
+    );
+    let held = |j: &pb::Job| is_part(j) && j.worker == "doomed" && j.stage.contains("paused");
+    let js = wait_for(&o, 60, "a part held by the doomed worker", |js| {
+        js.iter().any(held)
+    })
+    .await;
+    let victim = js.iter().find(|j| held(j)).unwrap().id;
+    doomed.kill();
+    let js = wait_for(&o, 120, "the bricked job done", |js| {
+        js.iter()
+            .any(|j| !is_part(j) && state_name(j.state) == "done")
+    })
+    .await;
+    let parent = js.iter().find(|j| !is_part(j)).unwrap();
+    assert_eq!(parent.attempts, 1, "the planner was not disturbed");
+    let v = js.iter().find(|j| j.id == victim).unwrap();
+    assert_eq!(
+        (state_name(v.state), v.attempts),
+        ("done", 2),
+        "the killed part ran again: {v:?}"
+    );
+    assert!(v.error.contains("stopped heartbeating"), "{}", v.error);
+    let parts: Vec<_> = js.iter().filter(|j| is_part(j)).collect();
+    assert_eq!(parts.len(), 2 * 18);
+    let again: Vec<u64> = parts
+        .iter()
+        .filter(|p| p.attempts != 1)
+        .map(|p| p.id)
+        .collect();
+    assert!(
+        again.iter().all(|id| *id == victim
+            || parts
+                .iter()
+                .any(|p| p.id == *id && p.error.contains("stopped heartbeating"))),
+        "only parts of the killed worker ran twice: {again:?}"
+    );
+    let options = JobOptions {
+        levels: Some(2),
+        brick: Some(32),
+        target: TargetSpec::Fraction(0.03),
+        ..JobOptions::default()
+    };
+    let expected = compress_bricked(
+        &Phantom::SheppLogan.generate(dims),
+        &wavesplat_worker::options::compress_options(&options),
+        32,
         &|_| {},
     )
     .unwrap();

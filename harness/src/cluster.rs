@@ -95,6 +95,7 @@ impl LocalStack {
                 id: "demo-worker".into(),
                 max_jobs: None,
                 pause_before_upload_ms: 0,
+                pause_before_part_report_ms: 0,
                 connect: Default::default(),
             };
             tasks.push(runtime.spawn({

@@ -90,6 +90,10 @@ pub struct WorkerArgs {
     /// Testing aid: pause this long (ms) after compressing each volume, before uploading.
     #[arg(long, default_value_t = 0, hide = true)]
     pub pause_before_upload_ms: u64,
+    /// Testing aid: pause this long (ms) after computing each part of a bricked job, before
+    /// reporting it.
+    #[arg(long, default_value_t = 0, hide = true)]
+    pub pause_before_part_report_ms: u64,
     /// CA and token for both services (the token needs `worker` at the orchestrator and
     /// `ingest` at the cache).
     #[command(flatten)]
@@ -352,6 +356,7 @@ pub fn run_worker(a: WorkerArgs) -> Result<()> {
         id: a.id.unwrap_or_else(wavesplat_worker::default_worker_id),
         max_jobs: a.max_jobs,
         pause_before_upload_ms: a.pause_before_upload_ms,
+        pause_before_part_report_ms: a.pause_before_part_report_ms,
         connect: a.security.options()?,
     };
     runtime()?.block_on(async move {

@@ -234,6 +234,19 @@ impl Proc {
     /// A worker with one compression thread that waits `pause_ms` before each upload; its
     /// log (stderr, a file as a service manager would keep it) goes to `log` when given.
     pub fn worker(orch: &str, cache: &str, id: &str, pause_ms: u64, log: Option<&Path>) -> Proc {
+        let pause = pause_ms.to_string();
+        Proc::worker_with(orch, cache, id, &["--pause-before-upload-ms", &pause], log)
+    }
+
+    /// A worker with one compression thread and `extra` arguments (testing aids); its log
+    /// goes to `log` when given.
+    pub fn worker_with(
+        orch: &str,
+        cache: &str,
+        id: &str,
+        extra: &[&str],
+        log: Option<&Path>,
+    ) -> Proc {
         let stderr = match log {
             Some(p) => Stdio::from(std::fs::File::create(p).unwrap()),
             None => Stdio::null(),
@@ -241,7 +254,7 @@ impl Proc {
         let child = Command::new(env!("CARGO_BIN_EXE_wavesplat"))
             .args(["worker", "--orchestrator", orch, "--cache", cache])
             .args(["--threads", "1", "--id", id])
-            .args(["--pause-before-upload-ms", &pause_ms.to_string()])
+            .args(extra)
             .stdout(Stdio::null())
             .stderr(stderr)
             .spawn()

@@ -78,6 +78,7 @@ async fn run(workers: usize) -> String {
             id: format!("bench-{w}"),
             max_jobs: None,
             pause_before_upload_ms: 0,
+            pause_before_part_report_ms: 0,
         };
         tokio::spawn(wavesplat_worker::run(cfg, std::future::pending()));
     }

@@ -20,6 +20,7 @@
 //!     id: wavesplat_worker::default_worker_id(),
 //!     max_jobs: None,
 //!     pause_before_upload_ms: 0,
+//!     pause_before_part_report_ms: 0,
 //!     connect: Default::default(),
 //! };
 //! wavesplat_worker::run(cfg, async { let _ = tokio::signal::ctrl_c().await; }).await?;
@@ -64,6 +65,9 @@ pub struct WorkerOptions {
     pub max_jobs: Option<usize>,
     /// Testing aid: pause this long after compressing, before uploading (ms).
     pub pause_before_upload_ms: u64,
+    /// Testing aid: pause this long after computing a part of a bricked job, before reporting
+    /// its result (ms).
+    pub pause_before_part_report_ms: u64,
     /// CA and token for both services (the token needs the `worker` role at the orchestrator
     /// and `ingest` at the cache).
     pub connect: ConnectOptions,
@@ -198,6 +202,7 @@ impl Ctx {
             orch: self.orch.clone(),
             pool: self.pool.clone(),
             worker: self.cfg.id.clone(),
+            pause_ms: self.cfg.pause_before_part_report_ms,
         }
     }
 }

@@ -37,6 +37,8 @@ pub(crate) struct PartRunner {
     pub orch: Client,
     pub pool: Arc<rayon::ThreadPool>,
     pub worker: String,
+    /// Testing aid: pause this long before reporting a part's result (ms).
+    pub pause_ms: u64,
 }
 
 /// Opens a part's (or a coordinator's) source: a file on shared storage read by region.
@@ -141,6 +143,10 @@ pub(crate) async fn run_part_lease(runner: &PartRunner, lease: pb::Lease, spec: 
         .await
         .map_err(|e| fail(FailureKind::Worker, format!("part task: {e}")))
         .and_then(|r| r);
+    if runner.pause_ms > 0 && result.is_ok() {
+        shared.set(0.9, "paused (testing aid)");
+        tokio::time::sleep(Duration::from_millis(runner.pause_ms)).await;
+    }
     heartbeat.abort();
     if shared.lost.load(Ordering::SeqCst) {
         tracing::warn!(job = id, attempt, "lease lost; part's result discarded");
