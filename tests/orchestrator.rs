@@ -912,3 +912,100 @@ async fn a_part_whose_worker_dies_runs_again_alone() {
         wavesplat_net::digest::hex(&wavesplat_net::digest::sha256(&expected.bytes))
     );
 }
+
+/// A colour volume's bricks spread over two workers share the whole's PCA colour transform,
+/// carried to every part in its spec: the volume lands as the one-process file.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_colour_bricked_job_spread_over_workers_makes_the_one_process_file() {
+    use wavesplat_compressor::bricked::compress_bricked;
+    use wavesplat_compressor::reader::decode_raw;
+    use wavesplat_orchestrator_client::model::{JobOptions, RawLayout, SampleType, TargetSpec};
+    let cl = TestCluster::start(&ORCH_TIMING);
+    let (o, c) = (cl.orch.url(), cl.cache.url());
+    let dims = [40, 36, 30];
+    let shared = cl.root.join("shared");
+    std::fs::create_dir_all(&shared).unwrap();
+    let rgb: Vec<u8> = phantom(Phantom::RgbHead, dims)
+        .iter()
+        .map(|v| (v.clamp(0.0, 1.0) * 255.0) as u8)
+        .collect();
+    std::fs::write(shared.join(raw_name("colour", dims, "u8_rgb")), &rgb).unwrap();
+    let _w1 = cl.worker("w1", 0, None);
+    let _w2 = cl.worker("w2", 0, None);
+    submit(&shared, &o, &["--brick", "20", "--target-fraction", "0.04"]);
+    let js = wait_for(&o, 120, "the colour bricked job done", |js| {
+        js.iter()
+            .any(|j| !is_part(j) && state_name(j.state) == "done")
+    })
+    .await;
+    assert_eq!(js.iter().filter(|j| is_part(j)).count(), 16);
+    let layout = RawLayout {
+        dims,
+        dtype: SampleType::U8,
+        big_endian: false,
+        channels: 3,
+    };
+    let volume = decode_raw(&rgb, &wavesplat_worker::options::raw_spec(&layout)).unwrap();
+    let options = JobOptions {
+        levels: Some(2),
+        brick: Some(20),
+        target: TargetSpec::Fraction(0.04),
+        ..JobOptions::default()
+    };
+    let expected = compress_bricked(
+        &volume,
+        &wavesplat_worker::options::compress_options(&options),
+        20,
+        &|_| {},
+    )
+    .unwrap();
+    let mut client = CacheClient::connect(&c).await.unwrap();
+    let listed = client.list().await.unwrap();
+    assert_eq!(listed.len(), 1, "{listed:?}");
+    assert_eq!(
+        listed[0].sha256,
+        wavesplat_net::digest::hex(&wavesplat_net::digest::sha256(&expected.bytes))
+    );
+}
+
+/// The cache is SIGKILLed while a bricked job's planning worker is about to commit it: the
+/// commit fails (the cache is unreachable), the job is leased again, its bricks are found
+/// done (none is compressed again), and once the cache is back the volume lands once.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_bricked_job_commits_once_after_a_cache_kill() {
+    let mut cl = TestCluster::start(&ORCH_TIMING);
+    let (o, c) = (cl.orch.url(), cl.cache.url());
+    let dims = [48, 40, 36];
+    let shared = cl.root.join("shared");
+    std::fs::create_dir_all(&shared).unwrap();
+    write_f32(
+        &shared.join(raw_name("committed", dims, "f32")),
+        &phantom(Phantom::SheppLogan, dims),
+    );
+    let _w = cl.worker("planner", 2_000, None);
+    submit(&shared, &o, &["--brick", "24"]);
+    wait_for(&o, 60, "the planner about to commit", |js| {
+        js.iter().any(|j| !is_part(j) && j.stage.contains("paused"))
+    })
+    .await;
+    cl.kill_cache();
+    wait_for(&o, 30, "the commit failed", |js| {
+        js.iter().any(|j| !is_part(j) && j.error.contains("cache"))
+    })
+    .await;
+    cl.start_cache_again();
+    let js = wait_for(&o, 60, "the bricked job done", |js| {
+        js.iter()
+            .any(|j| !is_part(j) && state_name(j.state) == "done")
+    })
+    .await;
+    let parent = js.iter().find(|j| !is_part(j)).unwrap();
+    assert!(parent.attempts >= 2, "{parent:?}");
+    let parts: Vec<_> = js.iter().filter(|j| is_part(j)).collect();
+    assert_eq!(parts.len(), 16);
+    assert!(parts.iter().all(|p| p.attempts == 1), "no brick ran twice");
+    let mut client = CacheClient::connect(&c).await.unwrap();
+    let listed = client.list().await.unwrap();
+    assert_eq!(listed.len(), 1, "{listed:?}");
+    assert_eq!(listed[0].name, "committed");
+}

@@ -324,4 +324,23 @@ impl TestCluster {
         // Replacing drops the killed process's `Proc`, whose second kill finds it gone.
         self.orch = Proc::orchestrator(&self.root.join("orch.db"), &self.orch.addr, &args);
     }
+
+    /// SIGKILLs the cache (it stays down until [`TestCluster::start_cache_again`]).
+    pub fn kill_cache(&mut self) {
+        let _ = self.cache.child.kill();
+        let _ = self.cache.child.wait();
+    }
+
+    /// Starts the cache again on its address over its store.
+    pub fn start_cache_again(&mut self) {
+        let db = self.root.join("cache.db");
+        self.cache = Proc::server(&[
+            "serve",
+            "cache",
+            "--addr",
+            &self.cache.addr,
+            "--db",
+            db.to_str().unwrap(),
+        ]);
+    }
 }
