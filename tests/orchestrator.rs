@@ -1009,3 +1009,56 @@ async fn a_bricked_job_commits_once_after_a_cache_kill() {
     assert_eq!(listed.len(), 1, "{listed:?}");
     assert_eq!(listed[0].name, "committed");
 }
+
+/// A gzip-compressed NIfTI file's bricks spread over two workers (each keeps the inflated file
+/// open across the parts it takes): the volume lands as the file one process makes from it.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_compressed_nifti_bricked_job_spread_over_workers() {
+    use std::io::Write;
+    use wavesplat_compressor::bricked::compress_bricked;
+    use wavesplat_compressor::reader::region::RegionReader;
+    use wavesplat_orchestrator_client::model::{JobOptions, TargetSpec};
+    let cl = TestCluster::start(&ORCH_TIMING);
+    let (o, c) = (cl.orch.url(), cl.cache.url());
+    let dims = [48, 40, 36];
+    let shared = cl.root.join("shared");
+    std::fs::create_dir_all(&shared).unwrap();
+    let plain = cl.root.join("head.nii");
+    write_nifti(&plain, dims, &phantom(Phantom::Spheres, dims));
+    let gz = shared.join("head.nii.gz");
+    let mut e = flate2::write::GzEncoder::new(
+        std::fs::File::create(&gz).unwrap(),
+        flate2::Compression::fast(),
+    );
+    e.write_all(&std::fs::read(&plain).unwrap()).unwrap();
+    e.finish().unwrap();
+    let _w1 = cl.worker("w1", 0, None);
+    let _w2 = cl.worker("w2", 0, None);
+    submit(&shared, &o, &["--brick", "24", "--target-fraction", "0.05"]);
+    wait_for(&o, 120, "the bricked job done", |js| {
+        js.iter()
+            .any(|j| !is_part(j) && state_name(j.state) == "done")
+    })
+    .await;
+    let options = JobOptions {
+        levels: Some(2),
+        brick: Some(24),
+        target: TargetSpec::Fraction(0.05),
+        ..JobOptions::default()
+    };
+    let reader = RegionReader::open(&gz, None).unwrap();
+    let expected = compress_bricked(
+        &reader,
+        &wavesplat_worker::options::compress_options(&options),
+        24,
+        &|_| {},
+    )
+    .unwrap();
+    let mut client = CacheClient::connect(&c).await.unwrap();
+    let listed = client.list().await.unwrap();
+    assert_eq!(listed.len(), 1, "{listed:?}");
+    assert_eq!(
+        listed[0].sha256,
+        wavesplat_net::digest::hex(&wavesplat_net::digest::sha256(&expected.bytes))
+    );
+}

@@ -104,6 +104,8 @@ struct Ctx {
     orch: Client,
     cache: CacheClient,
     pool: Arc<rayon::ThreadPool>,
+    /// The source its parts read last, kept open ([`parts::PartRunner::opened`]).
+    opened: Arc<Mutex<Option<parts::OpenedSource>>>,
 }
 
 /// Runs the worker until `shutdown` completes (checked between jobs, so a running job is
@@ -123,6 +125,7 @@ pub async fn run(
         orch,
         cache,
         pool: Arc::new(pool),
+        opened: Default::default(),
     };
     tokio::pin!(shutdown);
     let mut done = 0usize;
@@ -203,6 +206,7 @@ impl Ctx {
             pool: self.pool.clone(),
             worker: self.cfg.id.clone(),
             pause_ms: self.cfg.pause_before_part_report_ms,
+            opened: self.opened.clone(),
         }
     }
 }
@@ -218,6 +222,11 @@ async fn run_lease(ctx: &mut Ctx, lease: pb::Lease) {
         if spec.part.is_some() {
             return parts::run_part_lease(&ctx.part_runner(), lease, spec.clone()).await;
         }
+    }
+    // A source kept open for parts is let go before a job of its own (a bricked job opens its
+    // source again, once).
+    if let Ok(mut opened) = ctx.opened.lock() {
+        opened.take();
     }
     tracing::info!(job = id, attempt, "running");
     let shared = Arc::new(Shared::default());

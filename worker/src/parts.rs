@@ -39,6 +39,36 @@ pub(crate) struct PartRunner {
     pub worker: String,
     /// Testing aid: pause this long before reporting a part's result (ms).
     pub pause_ms: u64,
+    /// The source the last part read, kept open for the next: a worker takes the parts of
+    /// one volume in a row, and opening a compressed file (`.nii.gz`) inflates it whole.
+    pub opened: Arc<std::sync::Mutex<Option<OpenedSource>>>,
+}
+
+/// A part's source kept open, with what it was opened for.
+pub(crate) struct OpenedSource {
+    key: String,
+    reader: Arc<RegionReader>,
+}
+
+impl PartRunner {
+    /// The reader of `spec`'s source: the one kept open if it is the same file, or a new one
+    /// (kept in its place).
+    fn source(&self, spec: &JobSpec) -> Result<Arc<RegionReader>, Failure> {
+        let key = format!("{:?}|{:?}|{:?}", spec.source, spec.sha256, spec.raw);
+        if let Ok(slot) = self.opened.lock() {
+            if let Some(o) = slot.as_ref().filter(|o| o.key == key) {
+                return Ok(o.reader.clone());
+            }
+        }
+        let reader = Arc::new(open_source(spec)?);
+        if let Ok(mut slot) = self.opened.lock() {
+            *slot = Some(OpenedSource {
+                key,
+                reader: reader.clone(),
+            });
+        }
+        Ok(reader)
+    }
 }
 
 /// Opens a part's (or a coordinator's) source: a file on shared storage read by region.
@@ -106,17 +136,22 @@ fn part_plan(
 }
 
 /// Runs one part on the pool: its result's bytes and the brick's voxels.
-fn compute_part(spec: &JobSpec, part: &PartSpec) -> Result<(Vec<u8>, u64), Failure> {
-    let source = open_source(spec)?;
-    let plan = part_plan(spec, part, &source)?;
+fn compute_part(
+    runner: &PartRunner,
+    spec: &JobSpec,
+    part: &PartSpec,
+) -> Result<(Vec<u8>, u64), Failure> {
+    let source = runner.source(spec)?;
+    let source: &RegionReader = &source;
+    let plan = part_plan(spec, part, source)?;
     let i = part.index as usize;
     let voxels = plan.grid[i].1.iter().map(|d| *d as u64).product();
     let bytes = match part.step {
         PartStep::Score { energies } => plan
-            .score(&source, i)
+            .score(source, i)
             .map_err(brick_failure)?
             .to_bytes(energies),
-        PartStep::Encode { count, .. } => plan.encode(&source, i, count).map_err(brick_failure)?.0,
+        PartStep::Encode { count, .. } => plan.encode(source, i, count).map_err(brick_failure)?.0,
     };
     Ok((bytes, voxels))
 }
@@ -138,11 +173,12 @@ pub(crate) async fn run_part_lease(runner: &PartRunner, lease: pb::Lease, spec: 
         Duration::from_millis(u64::from(lease.heartbeat_ms.max(50))),
         shared.clone(),
     ));
-    let pool = runner.pool.clone();
-    let result = tokio::task::spawn_blocking(move || pool.install(|| compute_part(&spec, &part)))
-        .await
-        .map_err(|e| fail(FailureKind::Worker, format!("part task: {e}")))
-        .and_then(|r| r);
+    let (pool, r) = (runner.pool.clone(), runner.clone());
+    let result =
+        tokio::task::spawn_blocking(move || pool.install(|| compute_part(&r, &spec, &part)))
+            .await
+            .map_err(|e| fail(FailureKind::Worker, format!("part task: {e}")))
+            .and_then(|r| r);
     if runner.pause_ms > 0 && result.is_ok() {
         shared.set(0.9, "paused (testing aid)");
         tokio::time::sleep(Duration::from_millis(runner.pause_ms)).await;
@@ -465,12 +501,12 @@ pub(crate) fn coordinate(
         .options
         .brick
         .ok_or_else(|| fail(FailureKind::Worker, "not a bricked job"))?;
-    let source = open_source(&spec)?;
-    let voxels = BrickSource::dims(&source).iter().product::<u64>();
+    let source = runner.source(&spec)?;
+    let voxels = BrickSource::dims(&*source).iter().product::<u64>();
     shared.set(0.02, "planning the bricks");
     let opts = options::compress_options(&spec.options);
     let pool = runner.pool.clone();
-    let plan = pool.install(|| BrickPlan::new(&source, &opts, brick).map_err(brick_failure))?;
+    let plan = pool.install(|| BrickPlan::new(&*source, &opts, brick).map_err(brick_failure))?;
     drop(source);
     tracing::info!(
         job = parent_id,
