@@ -641,6 +641,12 @@ async fn the_parts_rpcs_hold_their_rules_against_a_raw_client() {
         code(c.submit_parts(ask(pat, vec![outside])).await),
         Code::InvalidArgument
     );
+    let submitted = client::submit(&mut c, &part(0), None).await;
+    assert_eq!(
+        submitted.unwrap_err().code(),
+        Code::InvalidArgument,
+        "a part is not submitted as a job"
+    );
     let states = c
         .submit_parts(ask(pat, vec![part(0), part(1)]))
         .await

@@ -113,6 +113,12 @@ impl OrchestratorService {
             ));
         };
         let spec = convert::spec_from_pb(spec).map_err(OrchestratorError::from)?;
+        if spec.part.is_some() {
+            return Err(Status::invalid_argument(
+                "a part of a bricked job is added by the worker that holds the job \
+                 (SubmitParts), not submitted",
+            ));
+        }
         let mut upload = None;
         if let Source::Upload { size } = spec.source {
             let limit = self.shared.cfg.max_upload_bytes;
