@@ -28,8 +28,10 @@ use wavesplat_orchestrator_client::model::{
 use wavesplat_orchestrator_client::{convert, Client, CHUNK_BYTES};
 use wavesplat_proto::pb;
 
-/// How often a coordinator with nothing to run asks after its parts.
+/// How often a coordinator with nothing to run asks after its parts: this, growing to
+/// [`MAX_POLL`] while none finishes.
 const POLL: Duration = Duration::from_millis(200);
+const MAX_POLL: Duration = Duration::from_secs(1);
 
 /// What a worker needs to run parts: its orchestrator client, pool and name.
 #[derive(Clone)]
@@ -321,6 +323,11 @@ impl RemoteBricks {
         to: f32,
     ) -> Result<Vec<DonePart>, Stopped> {
         let specs: Vec<pb::JobSpec> = parts.iter().map(convert::spec_to_pb).collect();
+        // Each part's last known state; a done one is not asked after again.
+        let mut known: Vec<Option<pb::PartState>> = vec![None; specs.len()];
+        let state = |p: &pb::PartState| convert::state_name(p.state);
+        let is_done = |p: &Option<pb::PartState>| p.as_ref().is_some_and(|p| state(p) == "done");
+        let mut wait = POLL / 2;
         loop {
             if self.shared.lost.load(Ordering::SeqCst) {
                 return Err(self.stop(fail(
@@ -328,62 +335,81 @@ impl RemoteBricks {
                     "the bricked job's lease was lost",
                 )));
             }
-            let mut states = Vec::with_capacity(specs.len());
-            for batch in specs.chunks(1024) {
+            let open: Vec<usize> = (0..specs.len()).filter(|&i| !is_done(&known[i])).collect();
+            let done_before = specs.len() - open.len();
+            let mut answered = true;
+            for batch in open.chunks(1024) {
                 let mut orch = self.runner.orch.clone();
                 let req = pb::SubmitPartsRequest {
                     parent_id: self.parent_id,
                     parent_attempt: self.parent_attempt,
-                    parts: batch.to_vec(),
+                    parts: batch.iter().map(|&i| specs[i].clone()).collect(),
                 };
                 match self.handle.block_on(orch.submit_parts(req)) {
-                    Ok(r) => states.extend(r.into_inner().parts),
+                    Ok(r) => {
+                        for (&i, p) in batch.iter().zip(r.into_inner().parts) {
+                            known[i] = Some(p);
+                        }
+                    }
                     Err(s) if s.code() == tonic::Code::FailedPrecondition => {
                         return Err(self.stop(fail(FailureKind::Worker, s.message().to_string())))
                     }
                     Err(s) => {
                         // The orchestrator may be restarting: ask again.
                         tracing::warn!(error = %s.message(), "adding parts failed; retrying");
-                        std::thread::sleep(POLL);
+                        answered = false;
                         break;
                     }
                 }
             }
-            if states.len() == specs.len() {
-                let state = |p: &pb::PartState| convert::state_name(p.state);
-                if let Some((i, p)) = states
-                    .iter()
-                    .enumerate()
-                    .find(|(_, p)| matches!(state(p), "failed" | "cancelled"))
-                {
-                    let kind =
-                        convert::failure_kind_from_pb(p.failure).unwrap_or(FailureKind::Worker);
-                    let label = parts[i]
-                        .part
-                        .as_ref()
-                        .map(|p| p.label())
-                        .unwrap_or_default();
-                    return Err(self.stop(fail(kind, format!("{label} {}: {}", state(p), p.error))));
-                }
-                let done = states.iter().filter(|p| state(p) == "done").count();
-                let running = states.iter().filter(|p| state(p) == "running").count();
-                let of = states.len();
-                self.shared.set(
-                    from + (to - from) * done as f32 / of.max(1) as f32,
-                    format!("{stage}: {done} of {of} bricks done, {running} running"),
-                );
-                if done == of {
-                    return Ok(states
-                        .iter()
-                        .map(|p| DonePart {
-                            id: p.id,
-                            bytes: p.output_bytes,
-                        })
-                        .collect());
-                }
-                if !self.run_one_part() {
-                    std::thread::sleep(POLL);
-                }
+            if !answered {
+                std::thread::sleep(POLL);
+                continue;
+            }
+            if let Some((i, p)) = known.iter().enumerate().find_map(|(i, p)| {
+                p.as_ref()
+                    .filter(|p| matches!(state(p), "failed" | "cancelled"))
+                    .map(|p| (i, p))
+            }) {
+                let kind = convert::failure_kind_from_pb(p.failure).unwrap_or(FailureKind::Worker);
+                let label = parts[i]
+                    .part
+                    .as_ref()
+                    .map(|p| p.label())
+                    .unwrap_or_default();
+                return Err(self.stop(fail(kind, format!("{label} {}: {}", state(p), p.error))));
+            }
+            let done = known.iter().filter(|p| is_done(p)).count();
+            let running = known
+                .iter()
+                .flatten()
+                .filter(|p| state(p) == "running")
+                .count();
+            let of = specs.len();
+            self.shared.set(
+                from + (to - from) * done as f32 / of.max(1) as f32,
+                format!("{stage}: {done} of {of} bricks done, {running} running"),
+            );
+            if done == of {
+                return Ok(known
+                    .into_iter()
+                    .flatten()
+                    .map(|p| DonePart {
+                        id: p.id,
+                        bytes: p.output_bytes,
+                    })
+                    .collect());
+            }
+            if self.run_one_part() {
+                wait = POLL / 2;
+            } else {
+                // Nothing to run here: wait, longer while no part finishes elsewhere.
+                wait = if done > done_before {
+                    POLL / 2
+                } else {
+                    (wait * 3 / 2).min(MAX_POLL)
+                };
+                std::thread::sleep(wait);
             }
         }
     }
