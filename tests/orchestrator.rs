@@ -602,6 +602,7 @@ async fn the_parts_rpcs_hold_their_rules_against_a_raw_client() {
             levels: 2,
             offset: Some(0.0),
             color: None,
+            source_bytes: None,
         }),
         ..parent_spec.clone()
     };
@@ -1066,5 +1067,50 @@ async fn a_compressed_nifti_bricked_job_spread_over_workers() {
     assert_eq!(
         listed[0].sha256,
         wavesplat_net::digest::hex(&wavesplat_net::digest::sha256(&expected.bytes))
+    );
+}
+
+/// The source file changes while its bricks are being compressed: the next part refuses it,
+/// and the job fails for good saying so, instead of mixing two files' bricks in the cache.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_source_changed_midway_fails_the_bricked_job_clearly() {
+    let cl = TestCluster::start(&ORCH_TIMING);
+    let (o, c) = (cl.orch.url(), cl.cache.url());
+    let dims = [48, 40, 36];
+    let shared = cl.root.join("shared");
+    std::fs::create_dir_all(&shared).unwrap();
+    let file = shared.join(raw_name("moving", dims, "f32"));
+    write_f32(&file, &phantom(Phantom::SheppLogan, dims));
+    let _w = Proc::worker_with(
+        &o,
+        &c,
+        "w",
+        &["--pause-before-part-report-ms", "1500"],
+        None,
+    );
+    submit(&shared, &o, &["--brick", "24"]);
+    wait_for(&o, 60, "a part paused", |js| {
+        js.iter().any(|j| is_part(j) && j.stage.contains("paused"))
+    })
+    .await;
+    // Replaced by a longer file under the same name.
+    write_f32(&file, &phantom(Phantom::SheppLogan, [48, 40, 40]));
+    let js = wait_for(&o, 60, "the bricked job failed", |js| {
+        js.iter()
+            .any(|j| !is_part(j) && state_name(j.state) == "failed")
+    })
+    .await;
+    let parent = js.iter().find(|j| !is_part(j)).unwrap();
+    assert!(
+        parent
+            .error
+            .contains("the source changed since the job was planned"),
+        "{}",
+        parent.error
+    );
+    let mut client = CacheClient::connect(&c).await.unwrap();
+    assert!(
+        client.list().await.unwrap().is_empty(),
+        "nothing was delivered"
     );
 }

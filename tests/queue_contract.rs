@@ -441,6 +441,7 @@ async fn parts_lease_apart_and_their_results_live_until_dropped(b: &mut dyn Back
             levels: 2,
             offset: Some(0.5),
             color: None,
+            source_bytes: None,
         }),
         ..bricked(1)
     };

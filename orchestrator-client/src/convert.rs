@@ -112,6 +112,7 @@ fn part_from_pb(p: pb::PartSpec) -> Result<PartSpec, ClientError> {
         levels: p.levels,
         offset: p.offset,
         color,
+        source_bytes: (p.source_bytes > 0).then_some(p.source_bytes),
     })
 }
 
@@ -133,6 +134,7 @@ fn part_to_pb(p: &PartSpec) -> pb::PartSpec {
             mean: c.mean.to_vec(),
             importance: c.importance.to_vec(),
         }),
+        source_bytes: p.source_bytes.unwrap_or(0),
     }
 }
 
@@ -386,6 +388,7 @@ mod tests {
                     mean: [0.25, 0.5, 0.125],
                     importance: [1.0, 1.0, 0.0],
                 }),
+                source_bytes: Some(1 << 33),
             }),
             ..spec.clone()
         };

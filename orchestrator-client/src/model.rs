@@ -398,6 +398,10 @@ pub struct PartSpec {
     pub offset: Option<f64>,
     /// The whole's colour transform (RGB volumes).
     pub color: Option<PartColor>,
+    /// The source file's length when the job was planned (`None`: not checked): a part whose
+    /// file has another length refuses to run rather than mix two files' bricks.
+    #[serde(default)]
+    pub source_bytes: Option<u64>,
 }
 
 /// What a part does.

@@ -199,6 +199,9 @@ impl OrchestratorService {
             )));
         }
         let parent = self.held(r.parent_id, r.parent_attempt).await?;
+        let JobState::Running { started_ms, .. } = parent.state else {
+            return Err(Status::internal("a held job that is not running"));
+        };
         if parent.spec.options.brick.is_none() || parent.spec.part.is_some() {
             return Err(Status::invalid_argument(format!(
                 "job {} is not a bricked job: it has no parts",
@@ -217,8 +220,12 @@ impl OrchestratorService {
                 )));
             }
             let mut job = self.store().submit(spec, None).await?.job;
-            if matches!(job.state, JobState::Failed(_) | JobState::Cancelled) {
-                // Its bricked job runs again (retried, or taken over after a crash).
+            if matches!(job.state, JobState::Failed(_) | JobState::Cancelled)
+                && job.updated_ms < started_ms
+            {
+                // It ended under an earlier attempt of its bricked job, which runs again
+                // (retried, or taken over after a crash). One that ended under this attempt
+                // stays as it is: the worker polling it learns that it failed.
                 job = self.store().retry(job.id).await?;
             }
             parts.push(part_state(&job));

@@ -73,6 +73,14 @@ impl PartRunner {
     }
 }
 
+/// The length of `spec`'s source file.
+fn source_bytes(spec: &JobSpec) -> Option<u64> {
+    match &spec.source {
+        Source::Path(p) => std::fs::metadata(p).ok().map(|m| m.len()),
+        Source::Upload { .. } => None,
+    }
+}
+
 /// Opens a part's (or a coordinator's) source: a file on shared storage read by region.
 fn open_source(spec: &JobSpec) -> Result<RegionReader, Failure> {
     let Source::Path(p) = &spec.source else {
@@ -143,6 +151,17 @@ fn compute_part(
     spec: &JobSpec,
     part: &PartSpec,
 ) -> Result<(Vec<u8>, u64), Failure> {
+    if let (Some(planned), now) = (part.source_bytes, source_bytes(spec)) {
+        if now != Some(planned) {
+            return Err(fail(
+                FailureKind::InvalidInput,
+                format!(
+                    "the source changed since the job was planned: {planned} bytes then, {} now",
+                    now.map_or("unreadable".to_string(), |n| format!("{n} bytes"))
+                ),
+            ));
+        }
+    }
     let source = runner.source(spec)?;
     let source: &RegionReader = &source;
     let plan = part_plan(spec, part, source)?;
@@ -265,6 +284,8 @@ struct RemoteBricks {
     parent_id: u64,
     parent_attempt: u32,
     shared: Arc<Shared>,
+    /// The source file's length when planned (every part checks it).
+    source_bytes: Option<u64>,
     /// Why the parts could not finish, for the job's outcome.
     failure: std::sync::Mutex<Option<Failure>>,
 }
@@ -307,6 +328,7 @@ impl RemoteBricks {
                     mean: t.mean,
                     importance: t.importance,
                 }),
+                source_bytes: self.source_bytes,
             }),
             ..self.parent.clone()
         }
@@ -543,6 +565,7 @@ pub(crate) fn coordinate(
     let work = RemoteBricks {
         runner,
         handle,
+        source_bytes: source_bytes(&spec),
         parent: spec,
         parent_id,
         parent_attempt,
