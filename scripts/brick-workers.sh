@@ -56,7 +56,7 @@ for w in $WORKERS; do
   done
   # Until the bricked job (not a part) is done; a failure stops the script.
   while :; do
-    line=$("$W" jobs list --orchestrator "http://127.0.0.1:$op" | grep -v "part of" | head -1)
+    line=$("$W" jobs list --orchestrator "http://127.0.0.1:$op" | head -1)
     case "$line" in
       *$'\t'done$'\t'*) break ;;
       *$'\t'failed$'\t'*) echo "failed: $line" >&2; exit 1 ;;
@@ -69,7 +69,7 @@ for w in $WORKERS; do
     kb=$(awk '/^VmHWM:/ {print $2}' "/proc/$p/status")
     [ "$kb" -gt "$peak" ] && peak=$kb
   done
-  parts=$("$W" jobs list --orchestrator "http://127.0.0.1:$op" | grep -c "part of" || true)
+  parts=$("$W" jobs list --parts --orchestrator "http://127.0.0.1:$op" | grep -c "part of" || true)
   bytes=$(echo "$line" | sed -n 's/.*bytes=\([0-9]*\).*/\1/p')
   secs=$(echo "$end - $start" | bc -l | xargs printf '%.1f')
   ns=$(echo "$secs * $w * 1000000000 / ($N * $N * $N)" | bc -l | xargs printf '%.0f')

@@ -528,6 +528,16 @@ async fn a_bricked_job_spreads_its_bricks_over_workers() {
         "8 bricks scored, 8 per trial"
     );
     assert!(parts.iter().all(|p| state_name(p.state) == "done"));
+    // `jobs list` shows the job and counts its parts; `--parts` lists them, labelled.
+    let listed = cli_ok(&["jobs", "list", "--orchestrator", &o]);
+    assert_eq!(listed.lines().count(), 2, "{listed}");
+    assert!(
+        listed.contains(&format!("({} parts of bricked jobs", parts.len())),
+        "{listed}"
+    );
+    let all = cli_ok(&["jobs", "list", "--parts", "--orchestrator", &o]);
+    assert_eq!(all.lines().count(), 1 + parts.len(), "{all}");
+    assert!(all.contains("(part of 1: brick 8/8 scoring)"), "{all}");
     for log in &logs {
         let text = std::fs::read_to_string(log).unwrap();
         let ran = text.lines().filter(|l| l.contains("running part")).count();

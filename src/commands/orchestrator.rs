@@ -8,7 +8,7 @@ use clap::{Args, Subcommand};
 use std::collections::HashSet;
 use std::path::PathBuf;
 use wavesplat_compressor::encode::Target;
-use wavesplat_harness::console::{describe, watch};
+use wavesplat_harness::console::{describe, part_label, watch};
 use wavesplat_orchestrator::model;
 use wavesplat_orchestrator::{JobOptions, QueueOptions, ServiceOptions, Store, TargetSpec};
 use wavesplat_orchestrator_client as client;
@@ -227,8 +227,9 @@ pub struct SubmitArgs {
 /// `wavesplat jobs …`.
 #[derive(Subcommand, Debug)]
 pub enum JobsCommand {
-    /// One line per job: id, state, name, attempts, progress, worker, error.
-    List(JobsUrl),
+    /// One line per job: id, state, name, attempts, progress, worker, error (the parts of
+    /// bricked jobs with --parts).
+    List(JobsListArgs),
     /// Show progress bars until every job is finished.
     Watch(JobsUrl),
     /// Cancel a queued or running job (a running worker discards its result).
@@ -246,6 +247,17 @@ pub struct JobsUrl {
     pub orchestrator: String,
     #[command(flatten)]
     pub security: super::security::ClientSecurityArgs,
+}
+
+/// `jobs list`.
+#[derive(Args, Debug)]
+pub struct JobsListArgs {
+    /// List the parts of bricked jobs too (one per brick and step, labelled with their job);
+    /// without it they are counted on a last line.
+    #[arg(long)]
+    pub parts: bool,
+    #[command(flatten)]
+    pub url: JobsUrl,
 }
 
 /// A job id.
@@ -447,7 +459,8 @@ async fn submit_all(a: SubmitArgs, scan: &archive::Scan, options: &JobOptions) -
 /// Runs `wavesplat jobs …`.
 pub fn run_jobs(cmd: JobsCommand) -> Result<()> {
     let url = match &cmd {
-        JobsCommand::List(u) | JobsCommand::Watch(u) => u.orchestrator.clone(),
+        JobsCommand::List(a) => a.url.orchestrator.clone(),
+        JobsCommand::Watch(u) => u.orchestrator.clone(),
         JobsCommand::Cancel(a) | JobsCommand::Retry(a) => a.url.orchestrator.clone(),
     };
     runtime()?.block_on(async move {
@@ -460,10 +473,18 @@ pub fn run_jobs(cmd: JobsCommand) -> Result<()> {
 
 async fn jobs(cmd: JobsCommand) -> Result<()> {
     match cmd {
-        JobsCommand::List(u) => {
-            let mut c = connect(&u.orchestrator, &u.security).await?;
+        JobsCommand::List(a) => {
+            let mut c = connect(&a.url.orchestrator, &a.url.security).await?;
+            let mut hidden = 0usize;
             for j in client::list(&mut c).await? {
+                if part_label(&j).is_some() && !a.parts {
+                    hidden += 1;
+                    continue;
+                }
                 outln!("{}", describe(&j));
+            }
+            if hidden > 0 {
+                outln!("({hidden} parts of bricked jobs not listed: --parts lists them)");
             }
         }
         JobsCommand::Watch(u) => {
