@@ -56,7 +56,7 @@ for w in $WORKERS; do
   done
   # Until the bricked job (not a part) is done; a failure stops the script.
   while :; do
-    line=$("$W" jobs list --orchestrator "http://127.0.0.1:$op" | head -1)
+    line=$("$W" jobs list --orchestrator "http://127.0.0.1:$op" | sed -n 1p)
     case "$line" in
       *$'\t'done$'\t'*) break ;;
       *$'\t'failed$'\t'*) echo "failed: $line" >&2; exit 1 ;;
