@@ -115,6 +115,34 @@ fn is_part(j: &pb::Job) -> bool {
     j.spec.as_ref().is_some_and(|s| s.part.is_some())
 }
 
+/// The bricked file one process makes from `source` with a job's options (depth 2, as
+/// [`submit`] asks), bricks of `brick` and `target`.
+fn one_process_file(
+    source: &dyn wavesplat_compressor::bricked::BrickSource,
+    brick: usize,
+    target: wavesplat_orchestrator_client::model::TargetSpec,
+) -> Vec<u8> {
+    let options = wavesplat_orchestrator_client::model::JobOptions {
+        levels: Some(2),
+        brick: Some(brick),
+        target,
+        ..Default::default()
+    };
+    let opts = wavesplat_worker::options::compress_options(&options);
+    wavesplat_compressor::bricked::compress_bricked(source, &opts, brick, &|_| {})
+        .unwrap()
+        .bytes
+}
+
+/// The cache holds one volume, and its content is `file` (by SHA-256).
+async fn assert_cache_holds_only(cache: &str, file: &[u8]) {
+    let mut client = CacheClient::connect(cache).await.unwrap();
+    let listed = client.list().await.unwrap();
+    assert_eq!(listed.len(), 1, "{listed:?}");
+    let sha = wavesplat_net::digest::hex(&wavesplat_net::digest::sha256(file));
+    assert_eq!(listed[0].sha256, sha, "not the one-process file");
+}
+
 async fn jobs(url: &str) -> Vec<pb::Job> {
     list(url).await.expect("the orchestrator answers")
 }
@@ -488,8 +516,7 @@ async fn a_bricked_job_lands_as_one_bricked_volume_once() {
 /// process makes.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_bricked_job_spreads_its_bricks_over_workers() {
-    use wavesplat_compressor::bricked::compress_bricked;
-    use wavesplat_orchestrator_client::model::{JobOptions, TargetSpec};
+    use wavesplat_orchestrator_client::model::TargetSpec;
     let cl = TestCluster::start(&ORCH_TIMING);
     let (o, c) = (cl.orch.url(), cl.cache.url());
     let dims = [48, 40, 36];
@@ -544,29 +571,15 @@ async fn a_bricked_job_spreads_its_bricks_over_workers() {
         assert!(ran > 0, "{} ran no part:\n{text}", log.display());
     }
 
-    let options = JobOptions {
-        levels: Some(2),
-        brick: Some(24),
-        target: TargetSpec::Bytes(target),
-        ..JobOptions::default()
-    };
-    let expected = compress_bricked(
+    let expected = one_process_file(
         &Phantom::SheppLogan.generate(dims),
-        &wavesplat_worker::options::compress_options(&options),
         24,
-        &|_| {},
-    )
-    .unwrap();
-    let got = expected.bytes.len() as u64;
+        TargetSpec::Bytes(target),
+    );
+    let got = expected.len() as u64;
     assert!(got <= target && got as f64 >= 0.98 * target as f64, "{got}");
     assert_eq!(parent.output_bytes, got);
-    let mut client = CacheClient::connect(&c).await.unwrap();
-    let listed = client.list().await.unwrap();
-    assert_eq!(listed.len(), 1, "{listed:?}");
-    assert_eq!(
-        listed[0].sha256,
-        wavesplat_net::digest::hex(&wavesplat_net::digest::sha256(&expected.bytes))
-    );
+    assert_cache_holds_only(&c, &expected).await;
 }
 
 /// The parts' RPCs from the other side of the wire, as a worker that does not follow the
@@ -792,8 +805,7 @@ async fn the_parts_rpcs_hold_their_rules_against_a_raw_client() {
 /// once, the file one process makes.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_bricked_job_survives_an_orchestrator_restart_midway() {
-    use wavesplat_compressor::bricked::compress_bricked;
-    use wavesplat_orchestrator_client::model::{JobOptions, TargetSpec};
+    use wavesplat_orchestrator_client::model::TargetSpec;
     let mut cl = TestCluster::start(&ORCH_TIMING);
     let (o, c) = (cl.orch.url(), cl.cache.url());
     let dims = [96, 72, 48];
@@ -821,26 +833,12 @@ async fn a_bricked_job_survives_an_orchestrator_restart_midway() {
     let parts: Vec<_> = js.iter().filter(|j| is_part(j)).collect();
     assert_eq!(parts.len(), 2 * 24, "{} parts", parts.len());
     assert!(parts.iter().all(|p| p.attempts <= 2), "{parts:?}");
-    let options = JobOptions {
-        levels: Some(2),
-        brick: Some(24),
-        target: TargetSpec::Fraction(0.04),
-        ..JobOptions::default()
-    };
-    let expected = compress_bricked(
+    let expected = one_process_file(
         &Phantom::Spheres.generate(dims),
-        &wavesplat_worker::options::compress_options(&options),
         24,
-        &|_| {},
-    )
-    .unwrap();
-    let mut client = CacheClient::connect(&c).await.unwrap();
-    let listed = client.list().await.unwrap();
-    assert_eq!(listed.len(), 1, "{listed:?}");
-    assert_eq!(
-        listed[0].sha256,
-        wavesplat_net::digest::hex(&wavesplat_net::digest::sha256(&expected.bytes))
+        TargetSpec::Fraction(0.04),
     );
+    assert_cache_holds_only(&c, &expected).await;
 }
 
 /// A worker SIGKILLed while it runs one brick's part: only that part runs again (its lease
@@ -848,8 +846,7 @@ async fn a_bricked_job_survives_an_orchestrator_restart_midway() {
 /// one process makes.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_part_whose_worker_dies_runs_again_alone() {
-    use wavesplat_compressor::bricked::compress_bricked;
-    use wavesplat_orchestrator_client::model::{JobOptions, TargetSpec};
+    use wavesplat_orchestrator_client::model::TargetSpec;
     let cl = TestCluster::start(&ORCH_TIMING);
     let (o, c) = (cl.orch.url(), cl.cache.url());
     let dims = [96, 96, 64];
@@ -908,35 +905,20 @@ async fn a_part_whose_worker_dies_runs_again_alone() {
                 .any(|p| p.id == *id && p.error.contains("stopped heartbeating"))),
         "only parts of the killed worker ran twice: {again:?}"
     );
-    let options = JobOptions {
-        levels: Some(2),
-        brick: Some(32),
-        target: TargetSpec::Fraction(0.03),
-        ..JobOptions::default()
-    };
-    let expected = compress_bricked(
+    let expected = one_process_file(
         &Phantom::SheppLogan.generate(dims),
-        &wavesplat_worker::options::compress_options(&options),
         32,
-        &|_| {},
-    )
-    .unwrap();
-    let mut client = CacheClient::connect(&c).await.unwrap();
-    let listed = client.list().await.unwrap();
-    assert_eq!(listed.len(), 1, "{listed:?}");
-    assert_eq!(
-        listed[0].sha256,
-        wavesplat_net::digest::hex(&wavesplat_net::digest::sha256(&expected.bytes))
+        TargetSpec::Fraction(0.03),
     );
+    assert_cache_holds_only(&c, &expected).await;
 }
 
 /// A colour volume's bricks spread over two workers share the whole's PCA colour transform,
 /// carried to every part in its spec: the volume lands as the one-process file.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_colour_bricked_job_spread_over_workers_makes_the_one_process_file() {
-    use wavesplat_compressor::bricked::compress_bricked;
     use wavesplat_compressor::reader::decode_raw;
-    use wavesplat_orchestrator_client::model::{JobOptions, RawLayout, SampleType, TargetSpec};
+    use wavesplat_orchestrator_client::model::{RawLayout, SampleType, TargetSpec};
     let cl = TestCluster::start(&ORCH_TIMING);
     let (o, c) = (cl.orch.url(), cl.cache.url());
     let dims = [40, 36, 30];
@@ -963,26 +945,8 @@ async fn a_colour_bricked_job_spread_over_workers_makes_the_one_process_file() {
         channels: 3,
     };
     let volume = decode_raw(&rgb, &wavesplat_worker::options::raw_spec(&layout)).unwrap();
-    let options = JobOptions {
-        levels: Some(2),
-        brick: Some(20),
-        target: TargetSpec::Fraction(0.04),
-        ..JobOptions::default()
-    };
-    let expected = compress_bricked(
-        &volume,
-        &wavesplat_worker::options::compress_options(&options),
-        20,
-        &|_| {},
-    )
-    .unwrap();
-    let mut client = CacheClient::connect(&c).await.unwrap();
-    let listed = client.list().await.unwrap();
-    assert_eq!(listed.len(), 1, "{listed:?}");
-    assert_eq!(
-        listed[0].sha256,
-        wavesplat_net::digest::hex(&wavesplat_net::digest::sha256(&expected.bytes))
-    );
+    let expected = one_process_file(&volume, 20, TargetSpec::Fraction(0.04));
+    assert_cache_holds_only(&c, &expected).await;
 }
 
 /// The cache is SIGKILLed while a bricked job's planning worker is about to commit it: the
@@ -1032,9 +996,8 @@ async fn a_bricked_job_commits_once_after_a_cache_kill() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_compressed_nifti_bricked_job_spread_over_workers() {
     use std::io::Write;
-    use wavesplat_compressor::bricked::compress_bricked;
     use wavesplat_compressor::reader::region::RegionReader;
-    use wavesplat_orchestrator_client::model::{JobOptions, TargetSpec};
+    use wavesplat_orchestrator_client::model::TargetSpec;
     let cl = TestCluster::start(&ORCH_TIMING);
     let (o, c) = (cl.orch.url(), cl.cache.url());
     let dims = [48, 40, 36];
@@ -1057,27 +1020,9 @@ async fn a_compressed_nifti_bricked_job_spread_over_workers() {
             .any(|j| !is_part(j) && state_name(j.state) == "done")
     })
     .await;
-    let options = JobOptions {
-        levels: Some(2),
-        brick: Some(24),
-        target: TargetSpec::Fraction(0.05),
-        ..JobOptions::default()
-    };
     let reader = RegionReader::open(&gz, None).unwrap();
-    let expected = compress_bricked(
-        &reader,
-        &wavesplat_worker::options::compress_options(&options),
-        24,
-        &|_| {},
-    )
-    .unwrap();
-    let mut client = CacheClient::connect(&c).await.unwrap();
-    let listed = client.list().await.unwrap();
-    assert_eq!(listed.len(), 1, "{listed:?}");
-    assert_eq!(
-        listed[0].sha256,
-        wavesplat_net::digest::hex(&wavesplat_net::digest::sha256(&expected.bytes))
-    );
+    let expected = one_process_file(&reader, 24, TargetSpec::Fraction(0.05));
+    assert_cache_holds_only(&c, &expected).await;
 }
 
 /// The source file changes while its bricks are being compressed: the next part refuses it,
