@@ -326,6 +326,29 @@ async fn every_orchestrator_rpc_checks_its_role_and_deliveries_are_confirmed() {
             ..Default::default()
         };
         assert_eq!(c.finish(fin).await.unwrap_err().code(), want);
+        // So do the parts of bricked jobs.
+        let parts = pb::SubmitPartsRequest {
+            parent_id: job.id,
+            parent_attempt: 1,
+            parts: Vec::new(),
+        };
+        assert_eq!(c.submit_parts(parts).await.unwrap_err().code(), want);
+        let head = pb::FinishPartRequest {
+            msg: Some(pb::finish_part_request::Msg::Head(pb::PartResult {
+                job_id: job.id,
+                attempt: 1,
+                ..Default::default()
+            })),
+        };
+        let finished = c.finish_part(tokio_stream::iter(vec![head])).await;
+        assert_eq!(finished.unwrap_err().code(), want);
+        let fetch = pb::FetchResultRequest {
+            parent_id: job.id,
+            parent_attempt: 1,
+            part_id: job.id,
+        };
+        let fetched = c.fetch_result(fetch).await.map(|_| ());
+        assert_eq!(fetched.unwrap_err().code(), want);
         if token.is_some() {
             // Reading is allowed to `read` only (and admin).
             let l = c.list_jobs(pb::ListJobsRequest {}).await;
