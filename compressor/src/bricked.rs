@@ -407,6 +407,8 @@ impl BrickPlan {
         check_options(opts, brick)?;
         let grid = brick_grid(source.dims(), brick);
         let levels = choose_levels(source, opts, &grid)?;
+        // Before the whole's faces (and, for PCA, all of it) are read.
+        check_depth(&grid, levels)?;
         let offset = match opts.offset {
             Some(o) => Some(o),
             None if source.channels() == 1 => Some(whole_face_medians(source)?[0]),
@@ -421,16 +423,12 @@ impl BrickPlan {
             }
             None => None,
         };
-        BrickPlan::with_choices(
-            source,
-            opts,
-            brick,
-            SharedChoices {
-                levels,
-                offset,
-                color,
-            },
-        )
+        let choices = SharedChoices {
+            levels,
+            offset,
+            color,
+        };
+        BrickPlan::build(source, opts, brick, grid, choices)
     }
 
     /// The plan of `source` with choices already made (by [`BrickPlan::new`] elsewhere):
@@ -443,13 +441,19 @@ impl BrickPlan {
     ) -> Result<BrickPlan, BrickError> {
         check_options(opts, brick)?;
         let grid = brick_grid(source.dims(), brick);
+        check_depth(&grid, choices.levels)?;
+        BrickPlan::build(source, opts, brick, grid, choices)
+    }
+
+    /// The plan of checked options, grid and depth.
+    fn build(
+        source: &dyn BrickSource,
+        opts: &CompressOptions,
+        brick: usize,
+        grid: Vec<([u64; 3], [usize; 3])>,
+        choices: SharedChoices,
+    ) -> Result<BrickPlan, BrickError> {
         let levels = choices.levels;
-        if let Some((_, d)) = grid.iter().find(|(_, d)| Geometry::max_levels(*d) < levels) {
-            return Err(BrickError::InvalidOption(format!(
-                "depth M = {levels} does not fit a {}x{}x{} brick",
-                d[0], d[1], d[2]
-            )));
-        }
         if source.channels() == 3 && choices.color.is_none() {
             return Err(BrickError::InvalidOption(
                 "the bricks of an RGB volume need the whole's colour transform".into(),
@@ -524,16 +528,13 @@ impl BrickPlan {
         Ok((c.bytes, c.header.kept))
     }
 
-    /// The container of the bricks' files (in grid order) and the counts they kept.
-    pub fn assemble(&self, bricks: &[(Vec<u8>, u64)]) -> Result<Vec<u8>, BrickError> {
-        Ok(write_bricked(
-            &mut self.manifest(bricks),
-            &self.files(bricks),
-        )?)
-    }
-
-    fn files<'a>(&self, bricks: &'a [(Vec<u8>, u64)]) -> Vec<&'a [u8]> {
-        bricks.iter().map(|(b, _)| b.as_slice()).collect()
+    /// The container of the bricks' files (in grid order) and the counts they kept, and its
+    /// manifest (offsets filled in).
+    pub fn assemble(&self, bricks: &[(Vec<u8>, u64)]) -> Result<(Vec<u8>, Manifest), BrickError> {
+        let mut manifest = self.manifest(bricks);
+        let files: Vec<&[u8]> = bricks.iter().map(|(b, _)| b.as_slice()).collect();
+        let bytes = write_bricked(&mut manifest, &files)?;
+        Ok((bytes, manifest))
     }
 
     fn manifest(&self, bricks: &[(Vec<u8>, u64)]) -> Manifest {
@@ -586,6 +587,17 @@ fn check_options(opts: &CompressOptions, brick: usize) -> Result<(), BrickError>
             format!("target Q_V {q} %; allowed (0, 100]"),
         )),
         _ => Ok(()),
+    }
+}
+
+/// Refuses a depth that does not fit every brick of `grid`.
+fn check_depth(grid: &[([u64; 3], [usize; 3])], levels: usize) -> Result<(), BrickError> {
+    match grid.iter().find(|(_, d)| Geometry::max_levels(*d) < levels) {
+        Some((_, d)) => Err(BrickError::InvalidOption(format!(
+            "depth M = {levels} does not fit a {}x{}x{} brick",
+            d[0], d[1], d[2]
+        ))),
+        None => Ok(()),
     }
 }
 
@@ -826,8 +838,7 @@ pub fn compress_bricked(
     let plan = BrickPlan::new(source, opts, brick)?;
     let a = allocate(&plan, &LocalBricks { source, progress })?;
     let bricks: Vec<(Vec<u8>, u64)> = a.bricks.into_iter().map(|c| (c.file, c.kept)).collect();
-    let mut manifest = plan.manifest(&bricks);
-    let bytes = write_bricked(&mut manifest, &plan.files(&bricks))?;
+    let (bytes, manifest) = plan.assemble(&bricks)?;
     Ok(BrickedCompressed {
         bytes,
         manifest,
@@ -1008,7 +1019,7 @@ mod tests {
             let a = allocate(&plan, &work).unwrap();
             let bricks: Vec<(Vec<u8>, u64)> =
                 a.bricks.into_iter().map(|c| (c.file, c.kept)).collect();
-            assert_eq!(plan.assemble(&bricks).unwrap(), here.bytes, "{target:?}");
+            assert_eq!(plan.assemble(&bricks).unwrap().0, here.bytes, "{target:?}");
         }
     }
 

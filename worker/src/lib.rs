@@ -316,12 +316,27 @@ async fn report(orch: &mut Client, worker: &str, id: u64, attempt: u32, outcome:
         worker: worker.to_string(),
         outcome: Some(outcome),
     };
+    let orch = &*orch;
+    until_answered(id, attempt, || {
+        let (mut orch, req) = (orch.clone(), req.clone());
+        async move { orch.finish(req).await.map(|r| r.into_inner()) }
+    })
+    .await;
+}
+
+/// Sends a job's outcome with `send`, again while the orchestrator does not answer (it may be
+/// restarting), for up to 10 minutes; a refusal (the lease lost, the job unknown, the request
+/// invalid) ends it. Logs how it ended.
+async fn until_answered<F, Fut>(id: u64, attempt: u32, mut send: F)
+where
+    F: FnMut() -> Fut,
+    Fut: Future<Output = Result<pb::Job, tonic::Status>>,
+{
     let deadline = tokio::time::Instant::now() + Duration::from_secs(600);
     let mut wait = Duration::from_millis(100);
     loop {
-        match orch.finish(req.clone()).await {
+        match send().await {
             Ok(j) => {
-                let j = j.into_inner();
                 tracing::info!(
                     job = id,
                     attempt,

@@ -209,55 +209,39 @@ pub(crate) async fn run_part_lease(runner: &PartRunner, lease: pb::Lease, spec: 
         tracing::warn!(job = id, attempt, "lease lost; part's result discarded");
         return;
     }
-    let mut orch = runner.orch.clone();
     match result {
+        // Sent as any outcome is (refused, the lease lapses and the part runs again).
         Ok((bytes, voxels)) => {
-            // Retried while the orchestrator is unreachable (it may be restarting); refused,
-            // the lease lapses and the part runs again.
-            let deadline = tokio::time::Instant::now() + Duration::from_secs(600);
-            let mut wait = Duration::from_millis(100);
-            loop {
-                let sent =
-                    finish_part(&mut orch, id, attempt, &runner.worker, &bytes, voxels).await;
-                match sent {
-                    Ok(()) => break,
-                    Err(s)
-                        if s.code() == tonic::Code::Unavailable
-                            && tokio::time::Instant::now() < deadline =>
-                    {
-                        tracing::warn!(job = id, error = %s.message(), "reporting a part failed; retrying");
-                        tokio::time::sleep(wait).await;
-                        wait = (wait * 2).min(Duration::from_secs(2));
-                    }
-                    Err(s) => {
-                        tracing::warn!(job = id, attempt, error = %s.message(), "part's result refused");
-                        break;
-                    }
-                }
-            }
+            let worker = runner.worker.as_str();
+            let send = || finish_part(runner.orch.clone(), id, attempt, worker, &bytes, voxels);
+            crate::until_answered(id, attempt, send).await;
         }
-        Err(f) => {
-            tracing::warn!(job = id, attempt, kind = f.kind.name(), reason = %f.message, "part failed");
-            crate::report(
-                &mut orch,
-                &runner.worker,
-                id,
-                attempt,
-                wavesplat_orchestrator_client::model::Outcome::Failed(f),
-            )
-            .await;
-        }
+        Err(f) => fail_part(runner, id, attempt, f).await,
     }
 }
 
+/// Reports that part `id` failed.
+async fn fail_part(runner: &PartRunner, id: u64, attempt: u32, f: Failure) {
+    tracing::warn!(job = id, attempt, kind = f.kind.name(), reason = %f.message, "part failed");
+    let outcome = wavesplat_orchestrator_client::model::Outcome::Failed(f);
+    crate::report(
+        &mut runner.orch.clone(),
+        &runner.worker,
+        id,
+        attempt,
+        outcome,
+    )
+    .await;
+}
+
 async fn finish_part(
-    orch: &mut Client,
+    mut orch: Client,
     id: u64,
     attempt: u32,
     worker: &str,
     bytes: &[u8],
     voxels: u64,
-) -> Result<(), tonic::Status> {
+) -> Result<pb::Job, tonic::Status> {
     let head = pb::PartResult {
         job_id: id,
         attempt,
@@ -272,8 +256,10 @@ async fn finish_part(
     messages.extend(bytes.chunks(CHUNK_BYTES).map(|c| pb::FinishPartRequest {
         msg: Some(pb::finish_part_request::Msg::Chunk(c.to_vec())),
     }));
-    orch.finish_part(tokio_stream::iter(messages)).await?;
-    Ok(())
+    Ok(orch
+        .finish_part(tokio_stream::iter(messages))
+        .await?
+        .into_inner())
 }
 
 /// The coordinator's side: the parts of one bricked job, run through the queue.
@@ -311,6 +297,15 @@ impl RemoteBricks {
             slot.get_or_insert(f);
         }
         Stopped
+    }
+
+    /// Why the parts stopped, or `otherwise` when they did not.
+    fn failure_or(&self, otherwise: Failure) -> Failure {
+        self.failure
+            .lock()
+            .ok()
+            .and_then(|mut f| f.take())
+            .unwrap_or(otherwise)
     }
 
     fn part(&self, plan: &BrickPlan, index: usize, step: PartStep) -> JobSpec {
@@ -449,13 +444,22 @@ impl RemoteBricks {
         let Some(lease) = reply.into_inner().lease else {
             return false;
         };
-        let spec = lease.spec.clone().map(convert::spec_from_pb);
-        match spec {
-            Some(Ok(spec)) => {
+        let (id, attempt) = (lease.job_id, lease.attempt);
+        match lease.spec.clone().map(convert::spec_from_pb) {
+            Some(Ok(spec)) => self
+                .handle
+                .block_on(run_part_lease(&self.runner, lease, spec)),
+            // As the worker's loop reports a lease it cannot read.
+            Some(Err(e)) => {
+                let f = fail(FailureKind::Worker, e.to_string());
                 self.handle
-                    .block_on(run_part_lease(&self.runner, lease, spec));
+                    .block_on(fail_part(&self.runner, id, attempt, f));
             }
-            _ => tracing::warn!(job = lease.job_id, "a leased part without a valid spec"),
+            None => {
+                let f = fail(FailureKind::Worker, "lease without a job spec");
+                self.handle
+                    .block_on(fail_part(&self.runner, id, attempt, f));
+            }
         }
         true
     }
@@ -549,6 +553,8 @@ pub(crate) fn coordinate(
         .options
         .brick
         .ok_or_else(|| fail(FailureKind::Worker, "not a bricked job"))?;
+    // The length the parts check: the file as hashed, before it is planned.
+    let planned_bytes = source_bytes(&spec);
     let source = runner.source(&spec)?;
     let voxels = BrickSource::dims(&*source).iter().product::<u64>();
     shared.set(0.02, "planning the bricks");
@@ -565,29 +571,19 @@ pub(crate) fn coordinate(
     let work = RemoteBricks {
         runner,
         handle,
-        source_bytes: source_bytes(&spec),
+        source_bytes: planned_bytes,
         parent: spec,
         parent_id,
         parent_attempt,
         shared: shared.clone(),
         failure: std::sync::Mutex::new(None),
     };
-    let allocated = allocate(&plan, &work).map_err(|e| {
-        work.failure
-            .lock()
-            .ok()
-            .and_then(|mut f| f.take())
-            .unwrap_or_else(|| brick_failure(e))
-    })?;
+    let allocated = allocate(&plan, &work).map_err(|e| work.failure_or(brick_failure(e)))?;
     shared.set(0.9, "gathering the bricks");
     let mut bricks = Vec::with_capacity(allocated.bricks.len());
     for b in &allocated.bricks {
         let bytes = work.fetch(b.file).map_err(|Stopped| {
-            work.failure
-                .lock()
-                .ok()
-                .and_then(|mut f| f.take())
-                .unwrap_or_else(|| fail(FailureKind::Worker, "fetching a brick failed"))
+            work.failure_or(fail(FailureKind::Worker, "fetching a brick failed"))
         })?;
         let kept = wavesplat_codec::format::parse_file(&bytes)
             .map_err(|e| fail(FailureKind::Worker, format!("part {}'s file: {e}", b.file)))?
@@ -595,6 +591,6 @@ pub(crate) fn coordinate(
             .kept;
         bricks.push((bytes, kept));
     }
-    let file = plan.assemble(&bricks).map_err(brick_failure)?;
+    let (file, _) = plan.assemble(&bricks).map_err(brick_failure)?;
     Ok((file, voxels))
 }
