@@ -127,26 +127,11 @@ impl OrchestratorService {
                     "upload of {size} bytes exceeds the limit of {limit} bytes"
                 )));
             }
-            let mut bytes = Vec::with_capacity(size.min(64 << 20) as usize);
-            while let Some(m) = stream.message().await.map_err(client_fault)? {
-                match m.msg {
-                    Some(pb::submit_request::Msg::Chunk(c)) => {
-                        if bytes.len() as u64 + c.len() as u64 > size {
-                            return Err(Status::invalid_argument(format!(
-                                "upload longer than the announced {size} bytes"
-                            )));
-                        }
-                        bytes.extend_from_slice(&c);
-                    }
-                    _ => return Err(Status::invalid_argument("a second `spec` in one upload")),
-                }
-            }
-            if bytes.len() as u64 != size {
-                return Err(Status::invalid_argument(format!(
-                    "upload truncated: {} of {size} bytes",
-                    bytes.len()
-                )));
-            }
+            let bytes = read_announced(&mut stream, size, "upload", |m| match m.msg {
+                Some(pb::submit_request::Msg::Chunk(c)) => Ok(c),
+                _ => Err("a second `spec` in one upload"),
+            })
+            .await?;
             let got = wavesplat_net::digest::sha256(&bytes);
             if got != spec.sha256 {
                 return Err(Status::invalid_argument(format!(
@@ -262,28 +247,11 @@ impl OrchestratorService {
                  smaller bricks)"
             )));
         }
-        let mut bytes = Vec::with_capacity(size as usize);
-        while let Some(m) = stream.message().await.map_err(client_fault)? {
-            match m.msg {
-                Some(pb::finish_part_request::Msg::Chunk(c))
-                    if bytes.len() as u64 + c.len() as u64 <= size =>
-                {
-                    bytes.extend_from_slice(&c)
-                }
-                Some(pb::finish_part_request::Msg::Chunk(_)) => {
-                    return Err(Status::invalid_argument(format!(
-                        "result longer than the announced {size} bytes"
-                    )))
-                }
-                _ => return Err(Status::invalid_argument("a second `head` in one result")),
-            }
-        }
-        if bytes.len() as u64 != size {
-            return Err(Status::invalid_argument(format!(
-                "result truncated: {} of {size} bytes",
-                bytes.len()
-            )));
-        }
+        let bytes = read_announced(&mut stream, size, "result", |m| match m.msg {
+            Some(pb::finish_part_request::Msg::Chunk(c)) => Ok(c),
+            _ => Err("a second `head` in one result"),
+        })
+        .await?;
         let sha = wavesplat_net::digest::sha256(&bytes);
         if head.sha256 != sha {
             return Err(Status::invalid_argument(
@@ -305,6 +273,43 @@ impl OrchestratorService {
         tracing::debug!(job = id, attempt, worker = %head.worker, bytes = size, "part finished");
         Ok(convert::job_to_pb(&job, self.max_attempts()))
     }
+}
+
+/// The chunks that follow a stream's first message: exactly `size` bytes (`what` names them
+/// in errors), each message's bytes given by `chunk` (or why the message does not belong).
+/// Memory is reserved for at most 64 MiB up front, whatever the announced size.
+async fn read_announced<M>(
+    stream: &mut Streaming<M>,
+    size: u64,
+    what: &str,
+    chunk: impl Fn(M) -> Result<Vec<u8>, &'static str>,
+) -> Result<Vec<u8>, Status> {
+    let mut bytes = Vec::with_capacity(size.min(64 << 20) as usize);
+    while let Some(m) = stream.message().await.map_err(client_fault)? {
+        let c = chunk(m).map_err(Status::invalid_argument)?;
+        if bytes.len() as u64 + c.len() as u64 > size {
+            return Err(Status::invalid_argument(format!(
+                "{what} longer than the announced {size} bytes"
+            )));
+        }
+        bytes.extend_from_slice(&c);
+    }
+    if bytes.len() as u64 != size {
+        return Err(Status::invalid_argument(format!(
+            "{what} truncated: {} of {size} bytes",
+            bytes.len()
+        )));
+    }
+    Ok(bytes)
+}
+
+/// `bytes` as a stream of chunks of at most [`CHUNK_BYTES`].
+fn chunked(bytes: &[u8]) -> SourceStream {
+    let chunks: Vec<Result<pb::SourceChunk, Status>> = bytes
+        .chunks(CHUNK_BYTES)
+        .map(|c| Ok(pb::SourceChunk { data: c.to_vec() }))
+        .collect();
+    Box::pin(tokio_stream::iter(chunks))
 }
 
 /// Where one part stands, for the worker that waits on it.
@@ -475,18 +480,7 @@ impl Orchestrator for OrchestratorService {
         request: Request<pb::FetchSourceRequest>,
     ) -> Result<Response<Self::FetchSourceStream>, Status> {
         let r = request.into_inner();
-        let job = self.store().get(r.job_id).await?;
-        match job.state {
-            JobState::Running { attempt, .. } if attempt == r.attempt => {}
-            _ => {
-                return Err(OrchestratorError::LeaseLost {
-                    id: r.job_id,
-                    attempt: r.attempt,
-                    reason: format!("the job is {}", job.state.name()),
-                }
-                .into())
-            }
-        }
+        let job = self.held(r.job_id, r.attempt).await?;
         if !matches!(job.spec.source, Source::Upload { .. }) {
             return Err(Status::invalid_argument(format!(
                 "job {} reads its source from a path, not an upload",
@@ -499,11 +493,7 @@ impl Orchestrator for OrchestratorService {
             .upload(&sha)
             .await?
             .ok_or_else(|| Status::internal(format!("upload {} is missing", hex(&sha))))?;
-        let chunks: Vec<Result<pb::SourceChunk, Status>> = blob
-            .chunks(CHUNK_BYTES)
-            .map(|c| Ok(pb::SourceChunk { data: c.to_vec() }))
-            .collect();
-        Ok(Response::new(Box::pin(tokio_stream::iter(chunks))))
+        Ok(Response::new(chunked(&blob)))
     }
 
     async fn submit_parts(
@@ -555,10 +545,6 @@ impl Orchestrator for OrchestratorService {
                     part.state.name()
                 ))
             })?;
-        let chunks: Vec<Result<pb::SourceChunk, Status>> = bytes
-            .chunks(CHUNK_BYTES)
-            .map(|c| Ok(pb::SourceChunk { data: c.to_vec() }))
-            .collect();
-        Ok(Response::new(Box::pin(tokio_stream::iter(chunks))))
+        Ok(Response::new(chunked(&bytes)))
     }
 }
