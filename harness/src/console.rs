@@ -164,18 +164,11 @@ pub fn job_name(j: &pb::Job) -> &str {
 
 /// The part a job is of a bricked job ("part of 7: brick 3/8 coding"), if it is one.
 pub fn part_label(j: &pb::Job) -> Option<String> {
-    let p = j.spec.as_ref()?.part.as_ref()?;
-    let step = match p.step {
-        Some(pb::part_spec::Step::Score(_)) => "scoring".to_string(),
-        Some(pb::part_spec::Step::Encode(ref e)) => format!("coding, trial {}", e.trial),
-        None => "?".to_string(),
-    };
-    Some(format!(
-        "part of {}: brick {}/{} {step}",
-        p.parent,
-        p.index + 1,
-        p.of
-    ))
+    let p = j.spec.as_ref()?.part.clone()?;
+    match client::convert::part_from_pb(p) {
+        Ok(p) => Some(format!("part of {}: {}", p.parent, p.label())),
+        Err(_) => Some("part of a bricked job (unreadable)".into()),
+    }
 }
 
 /// A job in one tab-separated line: id, state, name (and which part of a bricked job it is),

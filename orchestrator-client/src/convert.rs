@@ -69,7 +69,8 @@ pub fn spec_from_pb(p: pb::JobSpec) -> Result<JobSpec, ClientError> {
     })
 }
 
-fn part_from_pb(p: pb::PartSpec) -> Result<PartSpec, ClientError> {
+/// `pb::PartSpec` → [`PartSpec`] (shape; [`PartSpec::validate`] checks values).
+pub fn part_from_pb(p: pb::PartSpec) -> Result<PartSpec, ClientError> {
     let step = match p.step {
         Some(pb::part_spec::Step::Score(s)) => PartStep::Score {
             energies: s.energies,
