@@ -205,25 +205,7 @@ pub fn manifest_section(manifest: &Manifest) -> Vec<u8> {
 
 fn manifest_bytes(m: &Manifest) -> Vec<u8> {
     let mut w = ByteWriter::new();
-    for d in m.dims {
-        w.u64(d);
-    }
-    w.u8(m.channels as u8);
-    for s in m.spacing {
-        w.f32(s);
-    }
-    match &m.placement {
-        None => w.u8(0),
-        Some(p) => {
-            w.u8(1);
-            for o in p.origin {
-                w.f64(o);
-            }
-            for d in p.directions.iter().flatten() {
-                w.f64(*d);
-            }
-        }
-    }
+    write_space(&mut w, &m.space());
     w.u32(m.brick as u32);
     w.u32(m.bricks.len() as u32);
     for b in &m.bricks {
@@ -239,6 +221,106 @@ fn manifest_bytes(m: &Manifest) -> Vec<u8> {
         w.u64(b.kept);
     }
     w.into_bytes()
+}
+
+/// What places a logical volume (a bricked one, or each time point of a series): the whole's
+/// dimensions, channels, spacing and placement, as their manifests hold them.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Space {
+    /// The whole volume's dimensions.
+    pub dims: [u64; 3],
+    /// Channels.
+    pub channels: usize,
+    /// Voxel spacing.
+    pub spacing: [f32; 3],
+    /// Placement in patient space (of voxel (0, 0, 0)).
+    pub placement: Option<Placement>,
+}
+
+impl Manifest {
+    /// The whole's dimensions, channels, spacing and placement.
+    pub fn space(&self) -> Space {
+        Space {
+            dims: self.dims,
+            channels: self.channels,
+            spacing: self.spacing,
+            placement: self.placement,
+        }
+    }
+}
+
+/// Writes `space` as a manifest holds it.
+pub(super) fn write_space(w: &mut ByteWriter, space: &Space) {
+    for d in space.dims {
+        w.u64(d);
+    }
+    w.u8(space.channels as u8);
+    for s in space.spacing {
+        w.f32(s);
+    }
+    match &space.placement {
+        None => w.u8(0),
+        Some(p) => {
+            w.u8(1);
+            for o in p.origin {
+                w.f64(o);
+            }
+            for d in p.directions.iter().flatten() {
+                w.f64(*d);
+            }
+        }
+    }
+}
+
+/// Reads and checks what [`write_space`] wrote (`what` names the manifest in errors).
+pub(super) fn read_space(m: &mut ByteReader<'_>, what: &'static str) -> Result<Space, FormatError> {
+    let bad = |detail: String| FormatError::Invalid { what, detail };
+    let mut dims = [0u64; 3];
+    for d in &mut dims {
+        *d = m.u64()?;
+        if *d == 0 || *d > MAX_SIDE {
+            return Err(bad(format!("whole dimension {d}; allowed 1..={MAX_SIDE}")));
+        }
+    }
+    let channels = m.u8()? as usize;
+    if !(1..=4).contains(&channels) {
+        return Err(bad(format!("{channels} channels")));
+    }
+    let mut spacing = [0f32; 3];
+    for s in &mut spacing {
+        *s = m.f32()?;
+        if !(s.is_finite() && *s > 0.0) {
+            return Err(bad(format!("spacing {s}")));
+        }
+    }
+    let placement = match m.u8()? {
+        0 => None,
+        1 => {
+            let mut origin = [0f64; 3];
+            for o in &mut origin {
+                *o = m.f64()?;
+            }
+            let mut directions = [[0f64; 3]; 3];
+            for d in directions.iter_mut().flatten() {
+                *d = m.f64()?;
+            }
+            if origin
+                .iter()
+                .chain(directions.iter().flatten())
+                .any(|v| !v.is_finite())
+            {
+                return Err(bad("placement not finite".into()));
+            }
+            Some(Placement { origin, directions })
+        }
+        f => return Err(bad(format!("placement flag {f}"))),
+    };
+    Ok(Space {
+        dims,
+        channels,
+        spacing,
+        placement,
+    })
 }
 
 fn bad(detail: impl Into<String>) -> FormatError {
@@ -288,46 +370,12 @@ pub fn parse_manifest(bytes: &[u8], container_bytes: u64) -> Result<Manifest, Fo
     }
     let data_start = r.position() as u64;
     let mut m = ByteReader::new(mb, "bricked manifest");
-    let mut dims = [0u64; 3];
-    for d in &mut dims {
-        *d = m.u64()?;
-        if *d == 0 || *d > MAX_SIDE {
-            return Err(bad(format!("whole dimension {d}; allowed 1..={MAX_SIDE}")));
-        }
-    }
-    let channels = m.u8()? as usize;
-    if !(1..=4).contains(&channels) {
-        return Err(bad(format!("{channels} channels")));
-    }
-    let mut spacing = [0f32; 3];
-    for s in &mut spacing {
-        *s = m.f32()?;
-        if !(s.is_finite() && *s > 0.0) {
-            return Err(bad(format!("spacing {s}")));
-        }
-    }
-    let placement = match m.u8()? {
-        0 => None,
-        1 => {
-            let mut origin = [0f64; 3];
-            for o in &mut origin {
-                *o = m.f64()?;
-            }
-            let mut directions = [[0f64; 3]; 3];
-            for d in directions.iter_mut().flatten() {
-                *d = m.f64()?;
-            }
-            if origin
-                .iter()
-                .chain(directions.iter().flatten())
-                .any(|v| !v.is_finite())
-            {
-                return Err(bad("placement not finite"));
-            }
-            Some(Placement { origin, directions })
-        }
-        f => return Err(bad(format!("placement flag {f}"))),
-    };
+    let Space {
+        dims,
+        channels,
+        spacing,
+        placement,
+    } = read_space(&mut m, "bricked manifest")?;
     let brick = m.u32()? as usize;
     if brick == 0 {
         return Err(bad("brick edge 0"));

@@ -1,7 +1,7 @@
 //! The format's error type, [`FormatError`], and the shorthand for its most common case, a
 //! field out of range or inconsistent.
 
-use super::bricked;
+use super::{bricked, series};
 use super::OLDEST_READABLE_VERSION;
 use crate::entropy::EntropyError;
 use crate::layout::LayoutError;
@@ -27,6 +27,10 @@ pub enum FormatError {
     /// plain files, read through [`bricked::parse_bricked`].
     #[error("a bricked volume (format version {}): each brick is a volume of its own, read through the bricked container", bricked::BRICKED_VERSION)]
     Bricked,
+    /// A series container ([`series`]) where a plain file was expected: its components are
+    /// volume files, read through [`series::parse_series`].
+    #[error("a time series (format version {}): each time point is a sum of volumes of its own, read through the series container", series::SERIES_VERSION)]
+    Series,
     /// Input ended early.
     #[error("truncated {what}: needed {needed} more bytes, {available} available")]
     Truncated {

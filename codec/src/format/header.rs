@@ -526,6 +526,8 @@ pub(super) fn check_version(version: u16) -> Result<(), FormatError> {
         Ok(())
     } else if version == bricked::BRICKED_VERSION {
         Err(FormatError::Bricked)
+    } else if version == super::series::SERIES_VERSION {
+        Err(FormatError::Series)
     } else {
         Err(FormatError::UnsupportedVersion {
             found: version,

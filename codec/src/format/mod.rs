@@ -30,6 +30,7 @@ pub mod index;
 pub mod packet;
 mod paper;
 pub mod quant;
+pub mod series;
 pub mod sigmap;
 
 use crate::entropy::huffman::HuffmanCode;
