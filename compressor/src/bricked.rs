@@ -686,10 +686,30 @@ pub fn allocate<W: BrickWork>(
     plan: &BrickPlan,
     work: &W,
 ) -> Result<Allocated<W::File>, BrickError> {
-    let of = plan.grid.len();
-    let summaries: Vec<ScoreSummary> = match plan.target {
+    allocate_units(
+        plan.target,
+        plan.grid.len(),
+        manifest_allowance(plan.grid.len()),
+        || work.score_all(plan),
+        |counts, trial| work.encode_all(plan, counts, trial),
+    )
+}
+
+/// The allocation of [`allocate`] over any `of` units compressed apart (a plan's bricks, or
+/// a series' components and their bricks): `score_all` gives every unit's score histogram,
+/// `encode_all` every unit compressed keeping the counts given (`None`: all) in a trial of the
+/// rate search; `overhead` is what the container adds to the units' bytes, counted against a
+/// byte target.
+pub fn allocate_units<F>(
+    target: Target,
+    of: usize,
+    overhead: u64,
+    score_all: impl FnOnce() -> Result<Vec<ScoreSummary>, BrickError>,
+    mut encode_all: impl FnMut(Option<&[u64]>, usize) -> Result<Vec<CodedBrick<F>>, BrickError>,
+) -> Result<Allocated<F>, BrickError> {
+    let summaries: Vec<ScoreSummary> = match target {
         Target::All => Vec::new(),
-        _ => work.score_all(plan)?,
+        _ => score_all()?,
     };
     let mut whole = ScoreSummary::empty();
     summaries.iter().for_each(|s| whole.add(s));
@@ -700,29 +720,29 @@ pub fn allocate<W: BrickWork>(
         total_coefficients,
         nonzero,
     };
-    let bricks = match plan.target {
-        Target::All => work.encode_all(plan, None, 0)?,
-        Target::Coefficients(c) => work.encode_all(plan, Some(&global_k(c)), 0)?,
+    let bricks = match target {
+        Target::All => encode_all(None, 0)?,
+        Target::Coefficients(c) => encode_all(Some(&global_k(c)), 0)?,
         Target::Fraction(f) => {
             let k = (f * total_coefficients as f64).round() as u64;
-            work.encode_all(plan, Some(&global_k(k)), 0)?
+            encode_all(Some(&global_k(k)), 0)?
         }
         Target::QvPercent(q) => {
             let k = count_for_energy(&whole, q / 100.0 * whole.total_energy);
-            work.encode_all(plan, Some(&global_k(k)), 0)?
+            encode_all(Some(&global_k(k)), 0)?
         }
         Target::Bytes(target) => {
-            let manifest_guess = manifest_allowance(of);
+            let manifest_guess = overhead;
             let mut k = target
                 .saturating_sub(manifest_guess)
                 .max(1)
                 .min(nonzero.max(1));
-            let mut best: Option<(u64, Vec<CodedBrick<W::File>>)> = None;
+            let mut best: Option<(u64, Vec<CodedBrick<F>>)> = None;
             let mut last: Option<(f64, f64)> = None;
             // The largest count known to fit and the smallest known to overflow.
             let (mut fits_k, mut over_k) = (0u64, u64::MAX);
             for trial in 0..BYTE_TRIALS {
-                let b = work.encode_all(plan, Some(&global_k(k)), trial)?;
+                let b = encode_all(Some(&global_k(k)), trial)?;
                 let bytes: u64 = b.iter().map(|c| c.len).sum::<u64>() + manifest_guess;
                 let fits = bytes <= target;
                 if fits {
@@ -763,7 +783,7 @@ pub fn allocate<W: BrickWork>(
                 Some((_, b)) => b,
                 None => {
                     return Err(BrickError::InvalidOption(format!(
-                        "a target of {target} bytes is below what {of} bricks need with one \
+                        "a target of {target} bytes is below what {of} parts need with one \
                          coefficient each"
                     )))
                 }

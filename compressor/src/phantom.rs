@@ -437,6 +437,52 @@ impl Phantom {
     }
 }
 
+/// The beating phantom: time point `t` of `points` of a cine-like series at `dims` (unit
+/// spacing), with a known motion. A torso (ellipsoid, value 100) holds a static spine (300)
+/// and a heart (ellipsoid, 250) around a blood pool (400) whose radii scale by
+/// s(t) = 1 + 0.2·sin(2πt/points), once over the series; seeded noise (uniform, ±4) differs
+/// at every voxel and time point. What does not move is the same at every time point except
+/// for the noise, as in a cine MR.
+pub fn beating(dims: [usize; 3], t: usize, points: usize) -> Result<Volume, VolumeError> {
+    let n = checked_voxels(dims)?;
+    let s = beating_scale(t, points);
+    let [nx, ny, nz] = dims.map(|d| d as f64);
+    let norm = |i: usize, n: f64| (2.0 * (i as f64 + 0.5) / n) - 1.0;
+    let inside = |p: [f64; 3], c: [f64; 3], r: [f64; 3]| {
+        (0..3).map(|a| ((p[a] - c[a]) / r[a]).powi(2)).sum::<f64>() <= 1.0
+    };
+    let mut rng = ChaCha8Rng::seed_from_u64(0xbea7 ^ (t as u64).wrapping_mul(0x9e37_79b9));
+    let mut data = Vec::with_capacity(n);
+    for z in 0..dims[2] {
+        for y in 0..dims[1] {
+            for x in 0..dims[0] {
+                let p = [norm(x, nx), norm(y, ny), norm(z, nz)];
+                let mut v = 0.0;
+                if inside(p, [0.0; 3], [0.9, 0.7, 0.95]) {
+                    v = 100.0;
+                    if inside(p, [0.0, -0.45, 0.0], [0.15, 0.15, 0.9]) {
+                        v = 300.0;
+                    }
+                    let heart = [0.15, 0.15, 0.0];
+                    if inside(p, heart, [0.35 * s, 0.3 * s, 0.5 * s]) {
+                        v = 250.0;
+                    }
+                    if inside(p, heart, [0.22 * s, 0.18 * s, 0.35 * s]) {
+                        v = 400.0;
+                    }
+                }
+                data.push((v + rng.gen_range(-4.0..4.0)) as f32);
+            }
+        }
+    }
+    Volume::new(dims, [1.0; 3], vec![data])
+}
+
+/// The beating phantom's scale s(t) of its heart's radii at time point `t` of `points`.
+pub fn beating_scale(t: usize, points: usize) -> f64 {
+    1.0 + 0.2 * (2.0 * std::f64::consts::PI * t as f64 / points.max(1) as f64).sin()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

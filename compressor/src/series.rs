@@ -1,0 +1,772 @@
+//! Time-varying volumes compressed together: the time points of a series go through an
+//! orthonormal Haar wavelet along time in groups of G ([`TemporalHaar`]), so a group's common
+//! content becomes one low-pass *component* and its changes a few detail components that cost
+//! little where nothing moves. Each component is a volume of its own ([`ComponentSource`]: a
+//! weighted sum of time points, read brick by brick) compressed as bricks are
+//! ([`BrickPlan`]), with the whole series' rate allocated by one score threshold across every
+//! component and brick ([`allocate_units`]): the transform is orthonormal, so the squared error
+//! summed over time points is the one summed over components. The result is a series container
+//! ([`wavesplat_codec::format::series`]) whose time points name their group's components and
+//! weights: a reader wants no byte of another group. Groups of 1 compress each time point
+//! alone.
+//!
+//! Time points come from a [`SeriesSource`]: volumes in memory ([`VolumeSeries`]), a 4D file
+//! read by region ([`crate::reader::region::RegionReader`]), or one file per time step
+//! ([`crate::reader::steps::StepSeries`]).
+
+use rayon::prelude::*;
+use thiserror::Error;
+use wavesplat_codec::format::bricked::Space;
+use wavesplat_codec::format::series::{
+    parse_series, write_series, ComponentEntry, SeriesManifest, TimePoint, MAX_TERMS,
+};
+use wavesplat_codec::format::FormatError;
+use wavesplat_codec::volume::{Placement, Volume, VolumeError};
+
+use crate::bricked::{
+    allocate_units, manifest_allowance, BrickError, BrickPlan, BrickSource, BrickStage,
+    CodedBrick, SharedChoices,
+};
+use crate::encode::{compress, CompressOptions, ScoreSummary, Target};
+use crate::reader::ReadError;
+
+/// Largest temporal group.
+pub const MAX_GROUP: usize = 1 << (MAX_TERMS - 1);
+
+/// A time-varying volume: time points of one space, read box by box.
+pub trait SeriesSource: Sync {
+    /// Every time point's dimensions.
+    fn dims(&self) -> [u64; 3];
+    /// Channels.
+    fn channels(&self) -> usize;
+    /// Voxel spacing.
+    fn spacing(&self) -> [f32; 3];
+    /// Placement in patient space (of voxel (0, 0, 0)).
+    fn placement(&self) -> Option<Placement>;
+    /// How many time points.
+    fn time_points(&self) -> usize;
+    /// Each time point's time in seconds, when the source says (else `None`).
+    fn times(&self) -> Option<Vec<f64>>;
+    /// The box at `origin` of `dims` of time point `t` (spacing as the whole's).
+    fn read_at(&self, t: usize, origin: [u64; 3], dims: [usize; 3]) -> Result<Volume, ReadError>;
+}
+
+/// Why a series cannot be made or compressed.
+#[derive(Debug, Error)]
+#[non_exhaustive]
+pub enum SeriesError {
+    /// Time points that are not one space.
+    #[error("time point {t} does not match time point 0: {what}")]
+    Mismatch {
+        /// The time point.
+        t: usize,
+        /// What differs.
+        what: String,
+    },
+    /// Options that do not suit a series.
+    #[error("invalid option for a time series: {0}")]
+    InvalidOption(String),
+    /// Compressing a component failed.
+    #[error(transparent)]
+    Brick(#[from] BrickError),
+    /// The container could not be written or read.
+    #[error(transparent)]
+    Format(#[from] FormatError),
+    /// A component could not be decoded.
+    #[error("decoding component {component}")]
+    Decode {
+        /// The component.
+        component: usize,
+        /// Why.
+        #[source]
+        source: crate::decode::DecodeError,
+    },
+    /// Decoded components could not be summed.
+    #[error(transparent)]
+    Volume(#[from] VolumeError),
+}
+
+/// A series held in memory: one volume per time point.
+#[derive(Debug, Clone)]
+pub struct VolumeSeries {
+    volumes: Vec<Volume>,
+    times: Option<Vec<f64>>,
+}
+
+impl VolumeSeries {
+    /// The time points `volumes` (at least one; all of one size, channel count and spacing),
+    /// taken at `times` seconds when known (as many, finite, increasing).
+    pub fn new(volumes: Vec<Volume>, times: Option<Vec<f64>>) -> Result<VolumeSeries, SeriesError> {
+        let first = volumes
+            .first()
+            .ok_or_else(|| SeriesError::InvalidOption("a series of no time points".into()))?;
+        for (t, v) in volumes.iter().enumerate().skip(1) {
+            check_same(t, first, v)?;
+        }
+        if let Some(times) = &times {
+            check_times(times, volumes.len())?;
+        }
+        Ok(VolumeSeries { volumes, times })
+    }
+
+    /// The time points.
+    pub fn volumes(&self) -> &[Volume] {
+        &self.volumes
+    }
+}
+
+/// Refuses a time point `v` that is not of `first`'s space.
+pub fn check_same(t: usize, first: &Volume, v: &Volume) -> Result<(), SeriesError> {
+    let what = if v.dims() != first.dims() {
+        format!("dimensions {:?} against {:?}", v.dims(), first.dims())
+    } else if v.channel_count() != first.channel_count() {
+        format!(
+            "{} channel(s) against {}",
+            v.channel_count(),
+            first.channel_count()
+        )
+    } else if v.spacing() != first.spacing() {
+        format!("spacing {:?} against {:?}", v.spacing(), first.spacing())
+    } else {
+        return Ok(());
+    };
+    Err(SeriesError::Mismatch { t, what })
+}
+
+/// Refuses times that are not one finite, strictly increasing time per time point.
+pub fn check_times(times: &[f64], points: usize) -> Result<(), SeriesError> {
+    if times.len() != points {
+        return Err(SeriesError::InvalidOption(format!(
+            "{} times for {points} time points",
+            times.len()
+        )));
+    }
+    if let Some(t) = (0..points).find(|&t| !times[t].is_finite() || t > 0 && times[t] <= times[t - 1])
+    {
+        return Err(SeriesError::InvalidOption(format!(
+            "time point {t} at {} s: times must be finite and increasing",
+            times[t]
+        )));
+    }
+    Ok(())
+}
+
+impl SeriesSource for VolumeSeries {
+    fn dims(&self) -> [u64; 3] {
+        self.volumes[0].dims().map(|d| d as u64)
+    }
+
+    fn channels(&self) -> usize {
+        self.volumes[0].channel_count()
+    }
+
+    fn spacing(&self) -> [f32; 3] {
+        self.volumes[0].spacing()
+    }
+
+    fn placement(&self) -> Option<Placement> {
+        self.volumes[0].placement().copied()
+    }
+
+    fn time_points(&self) -> usize {
+        self.volumes.len()
+    }
+
+    fn times(&self) -> Option<Vec<f64>> {
+        self.times.clone()
+    }
+
+    fn read_at(&self, t: usize, origin: [u64; 3], dims: [usize; 3]) -> Result<Volume, ReadError> {
+        let v = self.volumes.get(t).ok_or_else(|| ReadError::Region {
+            path: "(series in memory)".into(),
+            reason: format!("no time point {t} of {}", self.volumes.len()),
+        })?;
+        Ok(crate::bricked::crop(v, origin, dims)?)
+    }
+}
+
+/// One time point of a series, as a volume to read bricks from.
+pub struct TimePointSource<'a> {
+    /// The series.
+    pub series: &'a dyn SeriesSource,
+    /// The time point.
+    pub t: usize,
+}
+
+impl BrickSource for TimePointSource<'_> {
+    fn dims(&self) -> [u64; 3] {
+        self.series.dims()
+    }
+    fn channels(&self) -> usize {
+        self.series.channels()
+    }
+    fn spacing(&self) -> [f32; 3] {
+        self.series.spacing()
+    }
+    fn placement(&self) -> Option<Placement> {
+        self.series.placement()
+    }
+    fn read(&self, origin: [u64; 3], dims: [usize; 3]) -> Result<Volume, ReadError> {
+        self.series.read_at(self.t, origin, dims)
+    }
+}
+
+/// One component of a series' temporal transform as a volume: Σ weight · time point, read
+/// box by box (one box of each time point it sums at a time). It has no placement: the
+/// series manifest places the whole.
+pub struct ComponentSource<'a> {
+    /// The series.
+    pub series: &'a dyn SeriesSource,
+    /// (time point, weight).
+    pub terms: &'a [(usize, f64)],
+}
+
+impl BrickSource for ComponentSource<'_> {
+    fn dims(&self) -> [u64; 3] {
+        self.series.dims()
+    }
+    fn channels(&self) -> usize {
+        self.series.channels()
+    }
+    fn spacing(&self) -> [f32; 3] {
+        self.series.spacing()
+    }
+    fn placement(&self) -> Option<Placement> {
+        None
+    }
+    fn read(&self, origin: [u64; 3], dims: [usize; 3]) -> Result<Volume, ReadError> {
+        let channels = self.series.channels();
+        let n: usize = dims.iter().product();
+        // Summed in f64: a group's detail components are small differences of large values.
+        let mut acc = vec![vec![0f64; n]; channels];
+        for &(t, w) in self.terms {
+            let v = self.series.read_at(t, origin, dims)?;
+            for (a, c) in acc.iter_mut().zip(v.channels()) {
+                a.iter_mut().zip(c).for_each(|(a, x)| *a += w * f64::from(*x));
+            }
+        }
+        let data = acc
+            .into_iter()
+            .map(|c| c.into_iter().map(|v| v as f32).collect())
+            .collect();
+        Ok(Volume::new(dims, self.series.spacing(), data)?)
+    }
+}
+
+/// The orthonormal Haar transform along time over groups of G consecutive time points (the
+/// last group may be shorter): in a group, time points are paired, each pair's normalised sum
+/// goes on to the next level and its difference is a detail component; an odd one out goes on
+/// unchanged; the last sum left is the group's low-pass component. Its matrix is orthogonal, so
+/// each time point is its group's components weighted by the transposed matrix.
+#[derive(Debug, Clone, PartialEq)]
+pub struct TemporalHaar {
+    /// The group size G.
+    pub group: usize,
+    /// Each component as (time point, weight): the analysis. A group's components are
+    /// consecutive, its low-pass one first, then details from coarse to fine.
+    pub components: Vec<Vec<(usize, f64)>>,
+    /// Each time point as (component, weight): the synthesis.
+    pub points: Vec<Vec<(usize, f64)>>,
+}
+
+impl TemporalHaar {
+    /// The transform of `points` time points in groups of `group` (a power of two, at most
+    /// [`MAX_GROUP`]).
+    pub fn new(points: usize, group: usize) -> Result<TemporalHaar, SeriesError> {
+        if !group.is_power_of_two() || group > MAX_GROUP {
+            return Err(SeriesError::InvalidOption(format!(
+                "temporal group {group}; a power of two up to {MAX_GROUP}"
+            )));
+        }
+        if points == 0 {
+            return Err(SeriesError::InvalidOption("a series of no time points".into()));
+        }
+        let mut components: Vec<Vec<(usize, f64)>> = Vec::new();
+        let mut synthesis: Vec<Vec<(usize, f64)>> = vec![Vec::new(); points];
+        let h = std::f64::consts::FRAC_1_SQRT_2;
+        for start in (0..points).step_by(group) {
+            let end = (start + group).min(points);
+            // Each signal as its weights over the group's time points.
+            let mut level: Vec<Vec<(usize, f64)>> = (start..end).map(|t| vec![(t, 1.0)]).collect();
+            let mut details: Vec<Vec<Vec<(usize, f64)>>> = Vec::new();
+            while level.len() > 1 {
+                let mut next = Vec::with_capacity(level.len().div_ceil(2));
+                let mut found = Vec::new();
+                for pair in level.chunks(2) {
+                    match pair {
+                        [a, b] => {
+                            let combine = |sign: f64| -> Vec<(usize, f64)> {
+                                a.iter()
+                                    .map(|(t, w)| (*t, w * h))
+                                    .chain(b.iter().map(|(t, w)| (*t, sign * w * h)))
+                                    .collect()
+                            };
+                            next.push(combine(1.0));
+                            found.push(combine(-1.0));
+                        }
+                        [a] => next.push(a.clone()),
+                        _ => unreachable!("chunks of two"),
+                    }
+                }
+                details.push(found);
+                level = next;
+            }
+            let first = components.len();
+            components.push(level.pop().expect("one signal left"));
+            for d in details.into_iter().rev().flatten() {
+                components.push(d);
+            }
+            for (c, comp) in components.iter().enumerate().skip(first) {
+                for &(t, w) in comp {
+                    synthesis[t].push((c, w));
+                }
+            }
+        }
+        Ok(TemporalHaar {
+            group,
+            components,
+            points: synthesis,
+        })
+    }
+}
+
+/// What a series compression made.
+#[derive(Debug)]
+pub struct SeriesCompressed {
+    /// The container's bytes.
+    pub bytes: Vec<u8>,
+    /// Its manifest.
+    pub manifest: SeriesManifest,
+    /// The depth every component was transformed with.
+    pub levels: usize,
+    /// Coefficients of all components' padded grids, all channels.
+    pub total_coefficients: u64,
+}
+
+/// Compresses `series` as one series container: its time points through [`TemporalHaar`] in
+/// groups of `group`, every component as bricks of edge `brick` (one brick, a plain volume
+/// file, when a time point fits one), and the target of `opts` (whose depth, when not given,
+/// is the one a time point alone would take at its share of a byte target) over the whole
+/// series. Intensity series only.
+pub fn compress_series(
+    series: &dyn SeriesSource,
+    opts: &CompressOptions,
+    group: usize,
+    brick: usize,
+    progress: &(dyn Fn(BrickStage) + Sync),
+) -> Result<SeriesCompressed, SeriesError> {
+    if series.channels() != 1 {
+        return Err(SeriesError::InvalidOption(
+            "colour time series are not supported yet; compress one time point (--time-point)"
+                .into(),
+        ));
+    }
+    let points = series.time_points();
+    let haar = TemporalHaar::new(points, group)?;
+    let mid = TimePointSource {
+        series,
+        t: points / 2,
+    };
+    // The depth and offset come from one time point at its share of the target.
+    let share = CompressOptions {
+        target: match opts.target {
+            Target::Bytes(total) => Target::Bytes((total / points as u64).max(1024)),
+            t => t,
+        },
+        ..opts.clone()
+    };
+    let single = wavesplat_codec::format::bricked::brick_grid(series.dims(), brick).len() == 1;
+    let levels = match (opts.levels, opts.target) {
+        (None, Target::Bytes(_)) if single => {
+            let v = mid
+                .read([0; 3], series.dims().map(|d| d as usize))
+                .map_err(|source| BrickError::Read {
+                    origin: [0; 3],
+                    source,
+                })?;
+            let c = compress(&v, &share, &|_, _| {}).map_err(|source| BrickError::Compress {
+                origin: [0; 3],
+                source: Box::new(source),
+            })?;
+            Some(c.header.geometry.levels)
+        }
+        (m, _) => m,
+    };
+    let probe = BrickPlan::new(
+        &mid,
+        &CompressOptions {
+            levels,
+            ..share.clone()
+        },
+        brick,
+    )?;
+    let choices = probe.choices.clone();
+    let sources: Vec<ComponentSource> = haar
+        .components
+        .iter()
+        .map(|terms| ComponentSource { series, terms })
+        .collect();
+    let plans: Vec<BrickPlan> = sources
+        .iter()
+        .map(|s| {
+            let gain: f64 = s.terms.iter().map(|(_, w)| w).sum();
+            BrickPlan::with_choices(
+                s,
+                opts,
+                brick,
+                SharedChoices {
+                    // A component's mean is its weights' sum times a time point's.
+                    offset: choices.offset.map(|o| o * gain),
+                    ..choices.clone()
+                },
+            )
+        })
+        .collect::<Result<_, _>>()?;
+    let units: Vec<(usize, usize)> = plans
+        .iter()
+        .enumerate()
+        .flat_map(|(c, p)| (0..p.grid.len()).map(move |i| (c, i)))
+        .collect();
+    let of = units.len();
+    let overhead = 64
+        + 28 * plans.len() as u64
+        + haar.points.iter().map(|p| 9 + 8 * p.len() as u64).sum::<u64>()
+        + plans
+            .iter()
+            .filter(|p| p.grid.len() > 1)
+            .map(|p| manifest_allowance(p.grid.len()))
+            .sum::<u64>();
+    let counter = std::sync::atomic::AtomicUsize::new(0);
+    let tick = |stage: &dyn Fn(usize) -> BrickStage| {
+        let done = counter.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
+        progress(stage(done));
+    };
+    let allocated = allocate_units(
+        opts.target,
+        of,
+        overhead,
+        || {
+            counter.store(0, std::sync::atomic::Ordering::Relaxed);
+            units
+                .par_iter()
+                .map(|&(c, i)| {
+                    let s: ScoreSummary = plans[c].score(&sources[c], i)?;
+                    tick(&|done| BrickStage::Scored { done, of });
+                    Ok(s)
+                })
+                .collect()
+        },
+        |counts, trial| {
+            counter.store(0, std::sync::atomic::Ordering::Relaxed);
+            units
+                .par_iter()
+                .enumerate()
+                .map(|(u, &(c, i))| {
+                    let (file, kept) = plans[c].encode(&sources[c], i, counts.map(|k| k[u]))?;
+                    tick(&|done| BrickStage::Compressed { done, of, trial });
+                    Ok(CodedBrick {
+                        len: file.len() as u64,
+                        file,
+                        kept,
+                    })
+                })
+                .collect()
+        },
+    )?;
+    // Each component's bricks, in order: one brick is its plain file, more a container.
+    let mut coded = allocated.bricks.into_iter();
+    let mut files: Vec<Vec<u8>> = Vec::with_capacity(plans.len());
+    let mut entries = Vec::with_capacity(plans.len());
+    for plan in &plans {
+        let bricks: Vec<(Vec<u8>, u64)> = coded
+            .by_ref()
+            .take(plan.grid.len())
+            .map(|b| (b.file, b.kept))
+            .collect();
+        let kept = bricks.iter().map(|b| b.1).sum();
+        let file = if bricks.len() == 1 {
+            bricks.into_iter().next().expect("one brick").0
+        } else {
+            plan.assemble(&bricks)?.0
+        };
+        entries.push(ComponentEntry {
+            offset: 0,
+            length: 0,
+            crc: 0,
+            kept,
+        });
+        files.push(file);
+    }
+    let (times_known, times) = match series.times() {
+        Some(t) if check_times(&t, points).is_ok() => (true, t),
+        _ => (false, (0..points).map(|t| t as f64).collect()),
+    };
+    let mut manifest = SeriesManifest {
+        space: Space {
+            dims: series.dims(),
+            channels: series.channels(),
+            spacing: series.spacing(),
+            placement: series.placement(),
+        },
+        times_known,
+        group,
+        components: entries,
+        points: haar
+            .points
+            .iter()
+            .zip(&times)
+            .map(|(terms, time)| TimePoint {
+                time: *time,
+                terms: terms.iter().map(|(c, w)| (*c, *w as f32)).collect(),
+            })
+            .collect(),
+    };
+    let slices: Vec<&[u8]> = files.iter().map(Vec::as_slice).collect();
+    let bytes = write_series(&mut manifest, &slices)?;
+    Ok(SeriesCompressed {
+        bytes,
+        manifest,
+        levels: choices.levels,
+        total_coefficients: allocated.total_coefficients,
+    })
+}
+
+/// Decodes time point `t` of a series container: its components decoded (plain files or
+/// bricked containers) and summed with their weights, in f64.
+pub fn decode_time_point(bytes: &[u8], t: usize) -> Result<Volume, SeriesError> {
+    let file = parse_series(bytes)?;
+    let m = &file.manifest;
+    let point = m.points.get(t).ok_or_else(|| {
+        SeriesError::InvalidOption(format!("time point {t}; the series has {}", m.points.len()))
+    })?;
+    let dims = m.space.dims.map(|d| d as usize);
+    let n = wavesplat_codec::volume::checked_voxels(dims)?;
+    let mut acc = vec![vec![0f64; n]; m.space.channels];
+    for &(c, w) in &point.terms {
+        let data = file.component_bytes(c)?;
+        let v = decode_component(data).map_err(|source| SeriesError::Decode {
+            component: c,
+            source,
+        })?;
+        if v.dims() != dims || v.channel_count() != m.space.channels {
+            return Err(SeriesError::Format(FormatError::Invalid {
+                what: "series manifest",
+                detail: format!(
+                    "component {c} decodes to {:?} with {} channel(s); the series is {:?} with {}",
+                    v.dims(),
+                    v.channel_count(),
+                    dims,
+                    m.space.channels
+                ),
+            }));
+        }
+        for (a, ch) in acc.iter_mut().zip(v.channels()) {
+            a.iter_mut()
+                .zip(ch)
+                .for_each(|(a, x)| *a += f64::from(w) * f64::from(*x));
+        }
+    }
+    let data = acc
+        .into_iter()
+        .map(|c| c.into_iter().map(|v| v as f32).collect())
+        .collect();
+    let v = Volume::new(dims, m.space.spacing, data)?;
+    Ok(match m.space.placement {
+        Some(p) => v.with_placement(p)?,
+        None => v,
+    })
+}
+
+/// A component's file decoded whole: a plain file, or a bricked container's bricks pasted
+/// into the whole (series held whole are small; a large one is drawn, not decoded).
+fn decode_component(data: &[u8]) -> Result<Volume, crate::decode::DecodeError> {
+    use crate::decode::DecodeError;
+    use wavesplat_codec::format::bricked::{is_bricked, parse_bricked};
+    let budget = wavesplat_codec::format::packet::DecodeBudget::default();
+    if !is_bricked(data) {
+        return crate::decode::decompress_within(data, &budget);
+    }
+    let m = parse_bricked(data).map_err(DecodeError::Format)?.manifest;
+    let dims = m.dims.map(|d| d as usize);
+    let n = wavesplat_codec::volume::checked_voxels(dims)
+        .map_err(|e| DecodeError::Format(FormatError::Invalid {
+            what: "bricked component",
+            detail: e.to_string(),
+        }))?;
+    let whole = std::sync::Mutex::new(vec![vec![0f32; n]; m.channels]);
+    crate::bricked::decode_bricks(data, &budget, &|e, v| {
+        let mut whole = whole.lock().expect("not poisoned");
+        let [bx, by, bz] = e.dims;
+        let o = e.origin.map(|v| v as usize);
+        for (w, c) in whole.iter_mut().zip(v.channels()) {
+            for z in 0..bz {
+                for y in 0..by {
+                    let src = &c[(z * by + y) * bx..][..bx];
+                    let at = ((o[2] + z) * dims[1] + o[1] + y) * dims[0] + o[0];
+                    w[at..at + bx].copy_from_slice(src);
+                }
+            }
+        }
+        Ok(())
+    })
+    .map_err(|e| {
+        DecodeError::Format(FormatError::Invalid {
+            what: "bricked component",
+            detail: e.to_string(),
+        })
+    })?;
+    let data = whole.into_inner().expect("not poisoned");
+    Volume::new(dims, m.spacing, data).map_err(|e| {
+        DecodeError::Format(FormatError::Invalid {
+            what: "bricked component",
+            detail: e.to_string(),
+        })
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::phantom::{beating, beating_scale};
+    use wavesplat_codec::metrics::psnr_db;
+
+    fn cine(dims: [usize; 3], points: usize) -> VolumeSeries {
+        let v = (0..points)
+            .map(|t| beating(dims, t, points).unwrap())
+            .collect();
+        VolumeSeries::new(v, Some((0..points).map(|t| 0.04 * t as f64).collect())).unwrap()
+    }
+
+    /// Mean PSNR (peak 400) of every decoded time point against the original.
+    fn mean_psnr(series: &VolumeSeries, bytes: &[u8]) -> f64 {
+        let n = series.time_points();
+        (0..n)
+            .map(|t| {
+                let d = decode_time_point(bytes, t).unwrap();
+                psnr_db(series.volumes()[t].channel(0), d.channel(0), 400.0)
+            })
+            .sum::<f64>()
+            / n as f64
+    }
+
+    #[test]
+    fn the_temporal_haar_is_orthonormal_and_inverts_in_f64() {
+        for points in 1..=19 {
+            for group in [1, 2, 4, 8, 16] {
+                let h = TemporalHaar::new(points, group).unwrap();
+                assert_eq!(h.components.len(), points, "{points}/{group}");
+                // A A^T = I over the components' analysis rows.
+                for (a, ca) in h.components.iter().enumerate() {
+                    for (b, cb) in h.components.iter().enumerate() {
+                        let dot: f64 = ca
+                            .iter()
+                            .map(|(t, w)| {
+                                cb.iter().find(|(u, _)| u == t).map_or(0.0, |(_, v)| w * v)
+                            })
+                            .sum();
+                        let want = if a == b { 1.0 } else { 0.0 };
+                        assert!((dot - want).abs() < 1e-12, "{points}/{group}: {a},{b} {dot}");
+                    }
+                }
+                // Synthesis of a random signal's analysis gives it back.
+                let x: Vec<f64> = (0..points).map(|t| ((t * 7919) % 101) as f64 - 50.0).collect();
+                let coef: Vec<f64> = h
+                    .components
+                    .iter()
+                    .map(|c| c.iter().map(|(t, w)| w * x[*t]).sum())
+                    .collect();
+                for (t, terms) in h.points.iter().enumerate() {
+                    let back: f64 = terms.iter().map(|(c, w)| w * coef[*c]).sum();
+                    assert!((back - x[t]).abs() < 1e-9, "{points}/{group} t={t}");
+                    // A time point needs its group's components only, at most log2(G) + 1.
+                    assert!(terms.len() <= group.trailing_zeros() as usize + 1);
+                    assert!(terms.iter().all(|(c, _)| c / group == t / group || group == 1));
+                }
+            }
+        }
+        assert!(TemporalHaar::new(4, 3).is_err());
+        assert!(TemporalHaar::new(0, 2).is_err());
+    }
+
+    #[test]
+    fn every_coefficient_gives_every_time_point_back() {
+        let s = cine([20, 18, 9], 5);
+        let opts = CompressOptions {
+            target: Target::All,
+            refine: None,
+            ..CompressOptions::default()
+        };
+        for group in [1, 4] {
+            let c = compress_series(&s, &opts, group, 256, &|_| {}).unwrap();
+            assert_eq!(c.manifest.points.len(), 5);
+            assert!(c.manifest.times_known);
+            assert!((c.manifest.points[3].time - 0.12).abs() < 1e-12);
+            // Quantization only: far above the noise's 4.
+            assert!(mean_psnr(&s, &c.bytes) > 50.0, "group {group}");
+        }
+    }
+
+    #[test]
+    fn a_group_shares_what_does_not_move_and_beats_time_points_alone_at_equal_bytes() {
+        let s = cine([32, 32, 16], 8);
+        let target = 24_000;
+        let opts = CompressOptions {
+            target: Target::Bytes(target),
+            ..CompressOptions::default()
+        };
+        let alone = compress_series(&s, &opts, 1, 256, &|_| {}).unwrap();
+        let grouped = compress_series(&s, &opts, 8, 256, &|_| {}).unwrap();
+        for c in [&alone, &grouped] {
+            let n = c.bytes.len() as u64;
+            assert!(n <= target && n as f64 >= 0.98 * target as f64, "{n}");
+        }
+        let (a, g) = (mean_psnr(&s, &alone.bytes), mean_psnr(&s, &grouped.bytes));
+        assert!(g > a + 1.0, "grouped {g:.2} dB, alone {a:.2} dB");
+        // The known motion survives: the blood pool (> 325) grows and shrinks with s(t)³.
+        let pool = |t: usize| {
+            let d = decode_time_point(&grouped.bytes, t).unwrap();
+            d.channel(0).iter().filter(|v| **v > 325.0).count() as f64
+        };
+        let (p0, p2, p6) = (pool(0), pool(2), pool(6));
+        let ratio = |t: usize| (beating_scale(t, 8) / beating_scale(0, 8)).powi(3);
+        assert!((p2 / p0 / ratio(2) - 1.0).abs() < 0.2, "{p0} {p2}");
+        assert!((p6 / p0 / ratio(6) - 1.0).abs() < 0.2, "{p0} {p6}");
+    }
+
+    #[test]
+    fn bricked_components_decode_and_stay_apart_by_group() {
+        let s = cine([24, 20, 18], 6);
+        let opts = CompressOptions {
+            target: Target::Fraction(0.2),
+            ..CompressOptions::default()
+        };
+        let c = compress_series(&s, &opts, 2, 12, &|_| {}).unwrap();
+        let f = parse_series(&c.bytes).unwrap();
+        assert_eq!(f.manifest.components.len(), 6);
+        for c in 0..6 {
+            assert!(wavesplat_codec::format::bricked::is_bricked(
+                f.component_bytes(c).unwrap()
+            ));
+        }
+        // Time point 3 needs the second group's two components only.
+        let terms: Vec<usize> = f.manifest.points[3].terms.iter().map(|t| t.0).collect();
+        assert_eq!(terms.len(), 2);
+        assert!(terms.iter().all(|c| (2..4).contains(c)), "{terms:?}");
+        assert!(mean_psnr(&s, &c.bytes) > 35.0);
+    }
+
+    #[test]
+    fn series_that_are_not_one_space_or_not_intensity_are_refused() {
+        let a = beating([8, 8, 8], 0, 2).unwrap();
+        let b = beating([8, 8, 9], 1, 2).unwrap();
+        let e = VolumeSeries::new(vec![a.clone(), b], None).unwrap_err();
+        assert!(e.to_string().contains("time point 1"), "{e}");
+        let e = VolumeSeries::new(vec![a.clone(), a.clone()], Some(vec![0.0, 0.0])).unwrap_err();
+        assert!(e.to_string().contains("increasing"), "{e}");
+        assert!(VolumeSeries::new(Vec::new(), None).is_err());
+        let rgb = crate::phantom::Phantom::RgbHead.generate([8, 8, 8]);
+        let s = VolumeSeries::new(vec![rgb.clone(), rgb], None).unwrap();
+        let e = compress_series(&s, &CompressOptions::default(), 2, 256, &|_| {}).unwrap_err();
+        assert!(e.to_string().contains("colour"), "{e}");
+    }
+}
