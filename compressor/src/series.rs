@@ -66,9 +66,9 @@ pub enum SeriesError {
     /// Options that do not suit a series.
     #[error("invalid option for a time series: {0}")]
     InvalidOption(String),
-    /// Compressing a component failed.
+    /// Compressing a component failed (boxed: it is large, and small results travel well).
     #[error(transparent)]
-    Brick(#[from] BrickError),
+    Brick(Box<BrickError>),
     /// The container could not be written or read.
     #[error(transparent)]
     Format(#[from] FormatError),
@@ -79,11 +79,17 @@ pub enum SeriesError {
         component: usize,
         /// Why.
         #[source]
-        source: crate::decode::DecodeError,
+        source: Box<crate::decode::DecodeError>,
     },
     /// Decoded components could not be summed.
     #[error(transparent)]
     Volume(#[from] VolumeError),
+}
+
+impl From<BrickError> for SeriesError {
+    fn from(e: BrickError) -> SeriesError {
+        SeriesError::Brick(Box::new(e))
+    }
 }
 
 /// A series held in memory: one volume per time point.
@@ -546,7 +552,7 @@ pub fn decode_time_point(bytes: &[u8], t: usize) -> Result<Volume, SeriesError> 
         let data = file.component_bytes(c)?;
         let v = decode_component(data).map_err(|source| SeriesError::Decode {
             component: c,
-            source,
+            source: Box::new(source),
         })?;
         if v.dims() != dims || v.channel_count() != m.space.channels {
             return Err(SeriesError::Format(FormatError::Invalid {
