@@ -12,6 +12,6 @@ pub mod order;
 pub mod phantom;
 pub mod reader;
 pub mod refine;
-pub mod series;
 mod select;
+pub mod series;
 pub mod visible;

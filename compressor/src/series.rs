@@ -24,8 +24,8 @@ use wavesplat_codec::format::FormatError;
 use wavesplat_codec::volume::{Placement, Volume, VolumeError};
 
 use crate::bricked::{
-    allocate_units, manifest_allowance, BrickError, BrickPlan, BrickSource, BrickStage,
-    CodedBrick, SharedChoices,
+    allocate_units, manifest_allowance, BrickError, BrickPlan, BrickSource, BrickStage, CodedBrick,
+    SharedChoices,
 };
 use crate::encode::{compress, CompressOptions, ScoreSummary, Target};
 use crate::reader::ReadError;
@@ -147,7 +147,8 @@ pub fn check_times(times: &[f64], points: usize) -> Result<(), SeriesError> {
             times.len()
         )));
     }
-    if let Some(t) = (0..points).find(|&t| !times[t].is_finite() || t > 0 && times[t] <= times[t - 1])
+    if let Some(t) =
+        (0..points).find(|&t| !times[t].is_finite() || t > 0 && times[t] <= times[t - 1])
     {
         return Err(SeriesError::InvalidOption(format!(
             "time point {t} at {} s: times must be finite and increasing",
@@ -188,6 +189,59 @@ impl SeriesSource for VolumeSeries {
             reason: format!("no time point {t} of {}", self.volumes.len()),
         })?;
         Ok(crate::bricked::crop(v, origin, dims)?)
+    }
+}
+
+impl SeriesSource for crate::reader::region::RegionReader {
+    fn dims(&self) -> [u64; 3] {
+        crate::reader::region::RegionReader::dims(self).map(|d| d as u64)
+    }
+    fn channels(&self) -> usize {
+        crate::reader::region::RegionReader::channels(self)
+    }
+    fn spacing(&self) -> [f32; 3] {
+        crate::reader::region::RegionReader::spacing(self)
+    }
+    fn placement(&self) -> Option<Placement> {
+        crate::reader::region::RegionReader::placement(self).copied()
+    }
+    fn time_points(&self) -> usize {
+        crate::reader::region::RegionReader::time_points(self)
+    }
+    fn times(&self) -> Option<Vec<f64>> {
+        let step = self.time_step()?;
+        Some((0..self.time_points()).map(|t| t as f64 * step).collect())
+    }
+    fn read_at(&self, t: usize, origin: [u64; 3], dims: [usize; 3]) -> Result<Volume, ReadError> {
+        self.read_region_at(t, origin.map(|o| o as usize), dims)
+    }
+}
+
+impl SeriesSource for crate::reader::steps::StepSeries {
+    fn dims(&self) -> [u64; 3] {
+        self.steps()[0].dims().map(|d| d as u64)
+    }
+    fn channels(&self) -> usize {
+        self.steps()[0].channels()
+    }
+    fn spacing(&self) -> [f32; 3] {
+        self.steps()[0].spacing()
+    }
+    fn placement(&self) -> Option<Placement> {
+        self.steps()[0].placement().copied()
+    }
+    fn time_points(&self) -> usize {
+        self.steps().len()
+    }
+    fn times(&self) -> Option<Vec<f64>> {
+        None
+    }
+    fn read_at(&self, t: usize, origin: [u64; 3], dims: [usize; 3]) -> Result<Volume, ReadError> {
+        let step = self.steps().get(t).ok_or_else(|| ReadError::Region {
+            path: self.dir().to_path_buf(),
+            reason: format!("no time step {t} of {}", self.steps().len()),
+        })?;
+        step.read_region(origin.map(|o| o as usize), dims)
     }
 }
 
@@ -248,7 +302,9 @@ impl BrickSource for ComponentSource<'_> {
         for &(t, w) in self.terms {
             let v = self.series.read_at(t, origin, dims)?;
             for (a, c) in acc.iter_mut().zip(v.channels()) {
-                a.iter_mut().zip(c).for_each(|(a, x)| *a += w * f64::from(*x));
+                a.iter_mut()
+                    .zip(c)
+                    .for_each(|(a, x)| *a += w * f64::from(*x));
             }
         }
         let data = acc
@@ -285,7 +341,9 @@ impl TemporalHaar {
             )));
         }
         if points == 0 {
-            return Err(SeriesError::InvalidOption("a series of no time points".into()));
+            return Err(SeriesError::InvalidOption(
+                "a series of no time points".into(),
+            ));
         }
         let mut components: Vec<Vec<(usize, f64)>> = Vec::new();
         let mut synthesis: Vec<Vec<(usize, f64)>> = vec![Vec::new(); points];
@@ -436,7 +494,11 @@ pub fn compress_series(
     let of = units.len();
     let overhead = 64
         + 28 * plans.len() as u64
-        + haar.points.iter().map(|p| 9 + 8 * p.len() as u64).sum::<u64>()
+        + haar
+            .points
+            .iter()
+            .map(|p| 9 + 8 * p.len() as u64)
+            .sum::<u64>()
         + plans
             .iter()
             .filter(|p| p.grid.len() > 1)
@@ -594,11 +656,12 @@ fn decode_component(data: &[u8]) -> Result<Volume, crate::decode::DecodeError> {
     }
     let m = parse_bricked(data).map_err(DecodeError::Format)?.manifest;
     let dims = m.dims.map(|d| d as usize);
-    let n = wavesplat_codec::volume::checked_voxels(dims)
-        .map_err(|e| DecodeError::Format(FormatError::Invalid {
+    let n = wavesplat_codec::volume::checked_voxels(dims).map_err(|e| {
+        DecodeError::Format(FormatError::Invalid {
             what: "bricked component",
             detail: e.to_string(),
-        }))?;
+        })
+    })?;
     let whole = std::sync::Mutex::new(vec![vec![0f32; n]; m.channels]);
     crate::bricked::decode_bricks(data, &budget, &|e, v| {
         let mut whole = whole.lock().expect("not poisoned");
@@ -671,11 +734,16 @@ mod tests {
                             })
                             .sum();
                         let want = if a == b { 1.0 } else { 0.0 };
-                        assert!((dot - want).abs() < 1e-12, "{points}/{group}: {a},{b} {dot}");
+                        assert!(
+                            (dot - want).abs() < 1e-12,
+                            "{points}/{group}: {a},{b} {dot}"
+                        );
                     }
                 }
                 // Synthesis of a random signal's analysis gives it back.
-                let x: Vec<f64> = (0..points).map(|t| ((t * 7919) % 101) as f64 - 50.0).collect();
+                let x: Vec<f64> = (0..points)
+                    .map(|t| ((t * 7919) % 101) as f64 - 50.0)
+                    .collect();
                 let coef: Vec<f64> = h
                     .components
                     .iter()
@@ -686,7 +754,9 @@ mod tests {
                     assert!((back - x[t]).abs() < 1e-9, "{points}/{group} t={t}");
                     // A time point needs its group's components only, at most log2(G) + 1.
                     assert!(terms.len() <= group.trailing_zeros() as usize + 1);
-                    assert!(terms.iter().all(|(c, _)| c / group == t / group || group == 1));
+                    assert!(terms
+                        .iter()
+                        .all(|(c, _)| c / group == t / group || group == 1));
                 }
             }
         }

@@ -153,6 +153,7 @@ fn raw_regions_match_the_whole_for_every_dtype_endian_and_channel_count() {
                     endian,
                     channels,
                     spacing: [0.5, 1.0, 2.5],
+                    time_points: 1,
                 };
                 check(&path, Some(&spec));
             }

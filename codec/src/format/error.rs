@@ -1,8 +1,8 @@
 //! The format's error type, [`FormatError`], and the shorthand for its most common case, a
 //! field out of range or inconsistent.
 
-use super::{bricked, series};
 use super::OLDEST_READABLE_VERSION;
+use super::{bricked, series};
 use crate::entropy::EntropyError;
 use crate::layout::LayoutError;
 use thiserror::Error;

@@ -21,6 +21,7 @@ pub mod nifti;
 pub mod nrrd;
 pub mod raw;
 pub mod region;
+pub mod steps;
 mod text;
 
 use std::io::{self, Read};
@@ -169,6 +170,18 @@ pub enum ReadError {
         path: PathBuf,
         /// The region and the volume's dimensions.
         reason: String,
+    },
+    /// A time series where one volume was asked for.
+    #[error(
+        "{}: a time series of {points} time points, not one volume: `compress` reads it as a \
+         series (every time point in one file), `--time-point N` takes one volume out",
+        path.display()
+    )]
+    TimeSeries {
+        /// The file.
+        path: PathBuf,
+        /// Its time points.
+        points: usize,
     },
     /// A bundle of source files (see [`SourceFiles::to_bytes`]) is malformed.
     #[error("malformed source bundle: {0}")]

@@ -66,8 +66,48 @@ pub(super) fn parse_header(path: &Path, head: &[u8]) -> Result<nifti::NiftiHeade
 }
 
 /// The grid's dimensions from `dim[0..=7]`: `dim[0]` in 1..=7, every size at least 1, and any
-/// beyond the third 1 (3D volumes only).
+/// beyond the third 1 (3D volumes only: a fourth of more than 1 is a time series, refused
+/// here as [`ReadError::TimeSeries`]; [`series_dims`] reads it).
 pub(super) fn grid_dims(path: &Path, header: &nifti::NiftiHeader) -> Result<[usize; 3], ReadError> {
+    match series_dims(path, header)? {
+        (dims, 1) => Ok(dims),
+        (_, points) => Err(ReadError::TimeSeries {
+            path: path.to_path_buf(),
+            points,
+        }),
+    }
+}
+
+/// The grid's dimensions and time points: as [`grid_dims`], but `dim[4]` is the number of time
+/// points (any beyond it must be 1).
+pub(super) fn series_dims(
+    path: &Path,
+    header: &nifti::NiftiHeader,
+) -> Result<([usize; 3], usize), ReadError> {
+    let dims = space_dims(path, header)?;
+    let points = if header.dim[0] >= 4 {
+        usize::from(header.dim[4])
+    } else {
+        1
+    };
+    Ok((dims, points))
+}
+
+/// The time between time points in seconds from `pixdim[4]` and the time unit of
+/// `xyzt_units` (seconds, milliseconds or microseconds), when both say.
+pub(super) fn time_step(header: &nifti::NiftiHeader) -> Option<f64> {
+    let step = f64::from(header.pixdim[4]);
+    let unit = match header.xyzt_units & 0x38 {
+        8 => 1.0,
+        16 => 1e-3,
+        24 => 1e-6,
+        _ => return None,
+    };
+    (step.is_finite() && step > 0.0).then_some(step * unit)
+}
+
+/// The spatial dimensions, with every dimension beyond the fourth 1.
+fn space_dims(path: &Path, header: &nifti::NiftiHeader) -> Result<[usize; 3], ReadError> {
     let ndim = usize::from(header.dim[0]);
     if !(1..=7).contains(&ndim) {
         return Err(ReadError::bad_header(
@@ -88,11 +128,11 @@ pub(super) fn grid_dims(path: &Path, header: &nifti::NiftiHeader) -> Result<[usi
         }
         if i <= 3 {
             dims[i - 1] = d;
-        } else if d != 1 {
+        } else if i > 4 && d != 1 {
             return Err(ReadError::unsupported(
                 path,
                 format!(
-                    "dim[{i}] is {d}: only 3D volumes are supported (dim[0] = {ndim}, extra dimensions must be 1); dim = {:?}",
+                    "dim[{i}] is {d}: only 3D volumes and time series are supported (dim[0] = {ndim}, dimensions beyond the fourth must be 1); dim = {:?}",
                     &header.dim[1..=ndim]
                 ),
             ));
@@ -484,9 +524,17 @@ mod tests {
         let mut b = good([4, 2, 2, 2, 3, 1, 1, 1], 2, 8);
         b.extend(vec![0u8; 24]);
         write_file(&path, &b, false);
+        // Real 4D: a time series, which one volume's reader refuses by name.
+        let e = read_volume(&path, None).unwrap_err();
+        assert!(matches!(e, ReadError::TimeSeries { points: 3, .. }), "{e}");
+        assert!(e.to_string().contains("--time-point"), "{e}");
+        // Beyond the fourth dimension: refused.
+        let mut b = good([5, 2, 2, 2, 1, 2, 1, 1], 2, 8);
+        b.extend(vec![0u8; 16]);
+        write_file(&path, &b, false);
         let e = read_volume(&path, None).unwrap_err();
         assert!(matches!(e, ReadError::Unsupported { .. }), "{e}");
-        assert!(e.to_string().contains("dim[4] is 3"), "{e}");
+        assert!(e.to_string().contains("dim[5] is 2"), "{e}");
 
         // Complex data.
         let mut b = good([3, 1, 1, 1, 1, 1, 1, 1], 32, 64);

@@ -103,6 +103,8 @@ pub struct RawSpec {
     pub channels: usize,
     /// Voxel spacing (x, y, z); must be positive and finite.
     pub spacing: [f32; 3],
+    /// Time points stored one after another (a 4D raw file: x, y, z, t); 1 for a volume.
+    pub time_points: usize,
 }
 
 impl RawSpec {
@@ -114,6 +116,7 @@ impl RawSpec {
             endian: Endian::Little,
             channels: 1,
             spacing: [1.0; 3],
+            time_points: 1,
         }
     }
 
@@ -133,6 +136,17 @@ impl RawSpec {
             })
     }
 
+    /// Refuses a spec of several time points where one volume is read.
+    fn one_time_point(&self, path: Option<&Path>) -> Result<(), ReadError> {
+        if self.time_points == 1 {
+            return Ok(());
+        }
+        Err(ReadError::TimeSeries {
+            path: path.map_or_else(|| "(raw data)".into(), Path::to_path_buf),
+            points: self.time_points,
+        })
+    }
+
     fn mismatch(&self, path: Option<&Path>, expected: usize, actual: u64) -> ReadError {
         ReadError::SizeMismatch {
             path: path.map(Path::to_path_buf),
@@ -149,6 +163,7 @@ impl RawSpec {
 /// Reads a headerless raw volume. The file must be exactly as large as `spec` requires; its size
 /// is checked before anything is read.
 pub fn read_raw(path: &Path, spec: &RawSpec) -> Result<Volume, ReadError> {
+    spec.one_time_point(Some(path))?;
     let expected = spec.byte_len()?;
     let io_err = |source| ReadError::Io {
         path: path.to_path_buf(),
@@ -180,6 +195,7 @@ pub fn read_raw(path: &Path, spec: &RawSpec) -> Result<Volume, ReadError> {
 /// Decodes a headerless raw volume from memory. `bytes` must be exactly as long as `spec`
 /// requires.
 pub fn decode_raw(bytes: &[u8], spec: &RawSpec) -> Result<Volume, ReadError> {
+    spec.one_time_point(None)?;
     let expected = spec.byte_len()?;
     if bytes.len() != expected {
         return Err(spec.mismatch(None, expected, bytes.len() as u64));
@@ -207,6 +223,7 @@ mod tests {
             endian,
             channels,
             spacing: [1.0, 2.0, 0.5],
+            time_points: 1,
         }
     }
 

@@ -50,6 +50,12 @@ pub struct RegionReader {
     spacing: [f32; 3],
     placement: Option<Placement>,
     source: Source,
+    /// Time points (a 4D file's; 1 for a volume).
+    time_points: usize,
+    /// Seconds between time points, when the file says.
+    time_step: Option<f64>,
+    /// The time point [`RegionReader::read_region`] reads.
+    selected: usize,
 }
 
 /// Where the samples of an opened volume are.
@@ -76,6 +82,8 @@ struct Stored {
     endian: Endian,
     slope: f64,
     inter: f64,
+    /// Bytes of one time point's samples (time points follow one another).
+    frame: u64,
 }
 
 /// What a format's opener found: the volume's metadata and its samples.
@@ -86,6 +94,8 @@ struct Opened {
     spacing: [f32; 3],
     placement: Option<Placement>,
     source: Source,
+    time_points: usize,
+    time_step: Option<f64>,
 }
 
 impl Opened {
@@ -97,6 +107,8 @@ impl Opened {
             spacing: v.spacing(),
             placement: v.placement().copied(),
             source: Source::Whole(v),
+            time_points: 1,
+            time_step: None,
         }
     }
 
@@ -110,6 +122,8 @@ impl Opened {
             spacing: meta.spacing(),
             placement: meta.placement().copied(),
             source: Source::Stored(stored),
+            time_points: 1,
+            time_step: None,
         }
     }
 }
@@ -120,7 +134,26 @@ impl RegionReader {
     /// raw file described by `raw`), reading only its header, and checking that the file
     /// holds all the samples the header announces. Compressed samples are inflated to a
     /// temporary file here; DICOM and ASCII NRRD are decoded whole here.
+    ///
+    /// A time series (a 4D NIfTI, a raw spec of several time points) is refused here as
+    /// [`ReadError::TimeSeries`]: [`RegionReader::open_series`] opens it.
     pub fn open(path: &Path, raw: Option<&RawSpec>) -> Result<RegionReader, ReadError> {
+        let reader = RegionReader::open_series(path, raw)?;
+        if reader.time_points > 1 {
+            return Err(ReadError::TimeSeries {
+                path: path.to_path_buf(),
+                points: reader.time_points,
+            });
+        }
+        Ok(reader)
+    }
+
+    /// Opens `path` as [`RegionReader::open`] does, and a time series too: a 4D NIfTI
+    /// (`dim[4]` time points, `pixdim[4]` in the unit of `xyzt_units` between them) or a raw
+    /// file of `raw.time_points` volumes one after another. Regions of any time point are
+    /// read with [`RegionReader::read_region_at`]; [`RegionReader::read_region`] reads the
+    /// selected one (the first, or [`RegionReader::select_time_point`]'s).
+    pub fn open_series(path: &Path, raw: Option<&RawSpec>) -> Result<RegionReader, ReadError> {
         let opened = formats::open(path, raw)?;
         Ok(RegionReader {
             path: path.to_path_buf(),
@@ -129,7 +162,37 @@ impl RegionReader {
             spacing: opened.spacing,
             placement: opened.placement,
             source: opened.source,
+            time_points: opened.time_points,
+            time_step: opened.time_step,
+            selected: 0,
         })
+    }
+
+    /// Time points (1 for a volume).
+    pub fn time_points(&self) -> usize {
+        self.time_points
+    }
+
+    /// Seconds between time points, when the file says.
+    pub fn time_step(&self) -> Option<f64> {
+        self.time_step
+    }
+
+    /// This reader with time point `t` selected: [`RegionReader::read_region`] (and so the
+    /// reader as a brick source) reads it, as one volume.
+    pub fn select_time_point(mut self, t: usize) -> Result<RegionReader, ReadError> {
+        if t >= self.time_points {
+            return Err(ReadError::Region {
+                path: self.path.clone(),
+                reason: format!(
+                    "time point {t}: it has {} (0..={})",
+                    self.time_points,
+                    self.time_points - 1
+                ),
+            });
+        }
+        self.selected = t;
+        Ok(self)
     }
 
     /// Dimensions (x, y, z) of the whole volume; their product may exceed [`MAX_VOXELS`](wavesplat_codec::volume::MAX_VOXELS).
@@ -176,6 +239,22 @@ impl RegionReader {
     /// samples are refused as [`read_volume`] refuses them, with the whole volume's
     /// coordinates, but only when they lie in the region.
     pub fn read_region(&self, origin: [usize; 3], size: [usize; 3]) -> Result<Volume, ReadError> {
+        self.read_region_at(self.selected, origin, size)
+    }
+
+    /// Reads a region of time point `t` as [`RegionReader::read_region`] does.
+    pub fn read_region_at(
+        &self,
+        t: usize,
+        origin: [usize; 3],
+        size: [usize; 3],
+    ) -> Result<Volume, ReadError> {
+        if t >= self.time_points {
+            return Err(ReadError::Region {
+                path: self.path.clone(),
+                reason: format!("time point {t} of {}", self.time_points),
+            });
+        }
         let outside = || ReadError::Region {
             path: self.path.clone(),
             reason: format!(
@@ -193,7 +272,7 @@ impl RegionReader {
         let (planar, data_path) = match &self.source {
             Source::Whole(v) => (cut(v, origin, size), &self.path),
             Source::Series(s) => (s.read(origin, size)?, &self.path),
-            Source::Stored(s) => (self.read_stored(s, origin, size, voxels)?, &s.path),
+            Source::Stored(s) => (self.read_stored(s, t, origin, size, voxels)?, &s.path),
         };
         let volume = Volume::new(size, self.spacing, planar).map_err(|e| {
             let e = match e {
@@ -233,6 +312,7 @@ impl RegionReader {
     fn read_stored(
         &self,
         s: &Stored,
+        t: usize,
         origin: [usize; 3],
         size: [usize; 3],
         voxels: usize,
@@ -257,7 +337,9 @@ impl RegionReader {
         let [nx, ny, _] = self.dims.map(|d| d as u64);
         // Byte offset of voxel (x, y, z); within the file size checked at open, so no overflow.
         let at = |x: usize, y: usize, z: usize| {
-            s.offset + ((z as u64 * ny + y as u64) * nx + x as u64) * voxel_bytes as u64
+            s.offset
+                + t as u64 * s.frame
+                + ((z as u64 * ny + y as u64) * nx + x as u64) * voxel_bytes as u64
         };
         let full_rows = size[0] == self.dims[0];
         let full_slabs = full_rows && size[1] == self.dims[1];

@@ -60,6 +60,8 @@ fn open_series(path: &Path) -> Result<Opened, ReadError> {
         spacing: s.spacing(),
         placement: s.placement().copied(),
         source: super::Source::Series(s),
+        time_points: 1,
+        time_step: None,
     })
 }
 
@@ -126,6 +128,7 @@ fn stored_at(
         endian,
         slope: 1.0,
         inter: 0.0,
+        frame: expected,
     })
 }
 
@@ -195,6 +198,7 @@ fn spool(
         endian,
         slope: 1.0,
         inter: 0.0,
+        frame: expected,
     })
 }
 

@@ -42,7 +42,7 @@ pub(super) fn open_nifti(path: &Path) -> Result<Opened, ReadError> {
 
     let header = nifti::parse_header(path, &head)?;
     // The stand-in had every size 1: check the real ones as the decoder does.
-    let dims = nifti::grid_dims(path, &header)?;
+    let (dims, time_points) = nifti::series_dims(path, &header)?;
     let sample = match header.datatype {
         2 | 128 => SampleType::U8,
         4 => SampleType::I16,
@@ -61,7 +61,14 @@ pub(super) fn open_nifti(path: &Path) -> Result<Opened, ReadError> {
         }
     };
     let channels = meta.channel_count();
-    let expected = stored_bytes(path, dims, channels, sample.size())?;
+    let frame = stored_bytes(path, dims, channels, sample.size())?;
+    let expected = frame
+        .checked_mul(time_points as u64)
+        .ok_or(ReadError::TooLarge {
+            dims,
+            channels,
+            bytes_per_sample: sample.size(),
+        })?;
     let vox_offset = nifti::data_offset(path, &header)?;
     let endian = nifti::endian(&header);
     let mut stored = if gz {
@@ -74,5 +81,10 @@ pub(super) fn open_nifti(path: &Path) -> Result<Opened, ReadError> {
         stored.slope = slope;
         stored.inter = inter;
     }
-    Ok(Opened::stored(&meta, dims, stored))
+    stored.frame = frame;
+    Ok(Opened {
+        time_points,
+        time_step: nifti::time_step(&header),
+        ..Opened::stored(&meta, dims, stored)
+    })
 }

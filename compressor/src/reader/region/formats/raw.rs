@@ -18,8 +18,21 @@ pub(super) fn open_raw(path: &Path, spec: &RawSpec) -> Result<Opened, ReadError>
     if spec.dims.contains(&0) {
         return Err(ReadError::Volume(VolumeError::ZeroDimension(spec.dims)));
     }
+    if spec.time_points == 0 {
+        return Err(ReadError::Region {
+            path: path.to_path_buf(),
+            reason: "a raw series of 0 time points".into(),
+        });
+    }
     let size = spec.dtype.size();
-    let expected = stored_bytes(path, spec.dims, spec.channels, size)?;
+    let frame = stored_bytes(path, spec.dims, spec.channels, size)?;
+    let expected = frame
+        .checked_mul(spec.time_points as u64)
+        .ok_or(ReadError::TooLarge {
+            dims: spec.dims,
+            channels: spec.channels,
+            bytes_per_sample: size,
+        })?;
     let sample = match spec.dtype {
         RawDtype::U8 => SampleType::U8,
         RawDtype::U16 => SampleType::U16,
@@ -46,6 +59,11 @@ pub(super) fn open_raw(path: &Path, spec: &RawSpec) -> Result<Opened, ReadError>
         channels: spec.channels,
         spacing: spec.spacing,
         placement: None,
-        source: Source::Stored(stored_at(path, 0, expected, sample, spec.endian)?),
+        source: Source::Stored(super::super::Stored {
+            frame,
+            ..stored_at(path, 0, expected, sample, spec.endian)?
+        }),
+        time_points: spec.time_points,
+        time_step: None,
     })
 }
