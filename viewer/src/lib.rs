@@ -41,6 +41,7 @@ pub mod pieces;
 pub mod plan;
 pub mod reference;
 pub mod remote;
+pub mod series;
 pub mod session;
 pub mod source;
 pub mod splat;
