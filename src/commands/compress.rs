@@ -15,10 +15,12 @@ use wavesplat_compressor::encode::{
     PROCESS_MEMORY,
 };
 use wavesplat_compressor::order::Clustering;
-use wavesplat_compressor::phantom::{Phantom, PhantomVolume};
+use wavesplat_compressor::phantom::{beating, Phantom, PhantomVolume};
 use wavesplat_compressor::reader::region::RegionReader;
-use wavesplat_compressor::reader::{read_volume, Endian, RawDtype, RawSpec};
+use wavesplat_compressor::reader::steps::{step_files, StepSeries};
+use wavesplat_compressor::reader::{read_volume, time_points, Endian, RawDtype, RawSpec};
 use wavesplat_compressor::refine::RefineOptions;
+use wavesplat_compressor::series::{TimePointSource, VolumeSeries};
 use wavesplat_harness::console::Progress;
 
 /// Arguments of `wavesplat compress`.
@@ -33,12 +35,25 @@ pub struct CompressArgs {
     #[arg(short, long)]
     pub output: PathBuf,
     /// Use a built-in phantom instead of a file: shepp-logan, spheres, rgb-head, constant,
-    /// zero, ct, noise.
+    /// zero, ct, noise; or beating, a time series (a heart whose size follows one beat over
+    /// the series, in a static torso, with noise).
     #[arg(long, conflicts_with = "input")]
     pub phantom: Option<String>,
-    /// Raw input dimensions X,Y,Z (x fastest); phantom size with --phantom (default 64,64,64).
-    #[arg(long, value_parser = super::parse_dims)]
-    pub dims: Option<[usize; 3]>,
+    /// Raw input dimensions X,Y,Z (x fastest), or X,Y,Z,T for a raw time series of T time
+    /// points one after another; phantom size with --phantom (default 64,64,64; the beating
+    /// phantom takes X,Y,Z,T, default 64,64,16,16).
+    #[arg(long, value_parser = super::parse_series_dims)]
+    pub dims: Option<super::SeriesDims>,
+    /// From a time series (a 4D NIfTI, a raw file with --dims X,Y,Z,T, a directory of one
+    /// volume per time step), compress only time point N (counting from 0) as one volume.
+    #[arg(long, value_name = "N")]
+    pub time_point: Option<usize>,
+    /// A time series is compressed whole into one file: its time points go through a Haar
+    /// wavelet along time in groups of G (a power of two), so what a group's time points share
+    /// is stored once; a viewer of one time point reads its group's bytes only. 1 compresses
+    /// each time point alone.
+    #[arg(long, value_name = "G", default_value_t = 8)]
+    pub time_group: usize,
     /// Raw sample type: u8, u16, i16, f32.
     #[arg(long)]
     pub dtype: Option<String>,
@@ -190,7 +205,7 @@ fn input(a: &CompressArgs) -> Result<Input> {
         })?;
         return Ok(Input::Phantom(PhantomVolume {
             phantom: p,
-            dims: a.dims.unwrap_or([64, 64, 64]).map(|d| d as u64),
+            dims: a.dims.map_or([64, 64, 64], |d| d.xyz).map(|d| d as u64),
         }));
     }
     let Some(input) = &a.input else {
@@ -210,7 +225,8 @@ fn input(a: &CompressArgs) -> Result<Input> {
     }
     let raw = match (&a.dims, &a.dtype) {
         (Some(d), Some(t)) => {
-            let mut spec = RawSpec::new(*d, RawDtype::from_name(t)?);
+            let mut spec = RawSpec::new(d.xyz, RawDtype::from_name(t)?);
+            spec.time_points = d.t.unwrap_or(1);
             spec.endian = Endian::from_name(&a.endian)?;
             spec.channels = a.channels;
             if let Some(s) = a.spacing {
@@ -247,6 +263,41 @@ fn input(a: &CompressArgs) -> Result<Input> {
         path: input.clone(),
         raw,
     })
+}
+
+/// The time series `compress` reads, when its input is one: the beating phantom, a 4D file
+/// (from its header alone: nothing is read here but the header) or a directory of time steps.
+fn open_series(a: &CompressArgs) -> Result<Option<super::series::SeriesInput>> {
+    use super::series::SeriesInput;
+    if a.phantom.as_deref() == Some("beating") {
+        let d = a.dims.map_or([64, 64, 16], |d| d.xyz);
+        let t = a.dims.and_then(|d| d.t).unwrap_or(16);
+        let volumes = (0..t)
+            .map(|i| beating(d, i, t))
+            .collect::<Result<Vec<_>, _>>()
+            .context("generating the beating phantom")?;
+        return Ok(Some(SeriesInput::Memory(VolumeSeries::new(volumes, None)?)));
+    }
+    if a.phantom.is_some() {
+        return Ok(None);
+    }
+    let Input::File { path, raw } = input(a)? else {
+        return Ok(None);
+    };
+    if path.is_dir() {
+        let files = step_files(&path, raw.as_ref()).map_err(|e| read_error(&path, e))?;
+        if files.is_empty() {
+            return Ok(None); // a DICOM series
+        }
+        let steps = StepSeries::open(&path, raw.as_ref()).map_err(|e| read_error(&path, e))?;
+        return Ok(Some(SeriesInput::Steps(steps)));
+    }
+    if time_points(&path, raw.as_ref()).map_err(|e| read_error(&path, e))? <= 1 {
+        return Ok(None);
+    }
+    let reader =
+        RegionReader::open_series(&path, raw.as_ref()).map_err(|e| read_error(&path, e))?;
+    Ok(Some(SeriesInput::File(Box::new(reader))))
 }
 
 /// Brick sides `compress` tries, largest first, for a volume it cannot compress whole.
@@ -389,6 +440,16 @@ fn run_bricked(a: &CompressArgs, opts: &CompressOptions, brick: usize) -> Result
             &reader
         }
     };
+    compress_bricks_of(a, opts, brick, source)
+}
+
+/// Compresses `source` as bricks of `brick` into `a.output`, with a summary.
+fn compress_bricks_of(
+    a: &CompressArgs,
+    opts: &CompressOptions,
+    brick: usize,
+    source: &dyn BrickSource,
+) -> Result<()> {
     let d = source.dims();
     let progress = Progress::new("compress");
     let report = |stage: BrickStage| progress.stage(&stage.to_string());
@@ -504,8 +565,39 @@ pub fn options(a: &CompressArgs) -> Result<CompressOptions> {
 
 /// Runs the subcommand.
 pub fn run(a: CompressArgs) -> Result<()> {
-    let mut opts = options(&a)?;
+    let opts = options(&a)?;
     super::check_output(&a.output)?;
+    let series = open_series(&a)?;
+    let taken;
+    let volume = match (&series, a.time_point) {
+        (Some(s), None) => return super::series::compress(&a, &opts, s.source()),
+        (Some(s), Some(t)) => {
+            let source = s.source();
+            if t >= source.time_points() {
+                bail!(
+                    "--time-point {t}: the series has {} time points (0..={})",
+                    source.time_points(),
+                    source.time_points() - 1
+                );
+            }
+            let one = TimePointSource { series: source, t };
+            if let Some(brick) = a.brick {
+                return compress_bricks_of(&a, &opts, brick, &one);
+            }
+            taken = one
+                .read([0; 3], source.dims().map(|d| d as usize))
+                .with_context(|| format!("reading time point {t}"))?;
+            Some(taken)
+        }
+        (None, Some(_)) => bail!(
+            "--time-point applies to a time series (a 4D NIfTI, raw --dims X,Y,Z,T, a \
+             directory of time steps, --phantom beating); this input is one volume"
+        ),
+        (None, None) => None,
+    };
+    if let Some(volume) = volume {
+        return compress_volume(&a, opts, volume);
+    }
     if let Some(brick) = a.brick {
         return run_bricked(&a, &opts, brick);
     }
@@ -517,6 +609,11 @@ pub fn run(a: CompressArgs) -> Result<()> {
         return run_bricked(&a, &opts, brick);
     }
     let volume = load(&a)?;
+    compress_volume(&a, opts, volume)
+}
+
+/// Compresses one volume whole into `a.output`, with a summary.
+fn compress_volume(a: &CompressArgs, mut opts: CompressOptions, volume: Volume) -> Result<()> {
     if !a.keep.is_given() && Geometry::max_levels(volume.dims()) == 0 {
         // The transform is one depth M on all three axes, limited by the thinnest: a slice
         // (one voxel along an axis) has M = 0, its coefficients are its voxels, and keeping

@@ -14,19 +14,35 @@ pub struct DecompressArgs {
     /// Output: raw little-endian f32, x fastest, channels interleaved.
     #[arg(short, long)]
     pub output: PathBuf,
+    /// Of a time series, decode time point N (counting from 0; default 0).
+    #[arg(long, value_name = "N")]
+    pub time_point: Option<usize>,
 }
 
 /// Runs the subcommand.
 pub fn run(a: DecompressArgs) -> Result<()> {
     super::check_output(&a.output)?;
     let bytes = super::read_wsp(&a.input)?;
+    let series = wavesplat_codec::format::series::is_series(&bytes);
+    if a.time_point.is_some() && !series {
+        anyhow::bail!(
+            "--time-point applies to a time series file; {} is one volume",
+            a.input.display()
+        );
+    }
     if wavesplat_codec::format::bricked::is_bricked(&bytes) {
         return decompress_bricked(&a, &bytes);
     }
     let progress = wavesplat_harness::console::Progress::new("decompress");
     progress.stage("decoding packets and inverse transform");
-    let v = wavesplat_compressor::decode::decompress(&bytes)
-        .with_context(|| format!("decoding {}", a.input.display()))?;
+    let v = if series {
+        let t = a.time_point.unwrap_or(0);
+        wavesplat_compressor::series::decode_time_point(&bytes, t)
+            .with_context(|| format!("decoding time point {t} of {}", a.input.display()))?
+    } else {
+        wavesplat_compressor::decode::decompress(&bytes)
+            .with_context(|| format!("decoding {}", a.input.display()))?
+    };
     progress.finish();
     let out: Vec<u8> = v
         .to_interleaved()

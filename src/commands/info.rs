@@ -14,7 +14,8 @@ pub struct InfoArgs {
     /// Also list every packet.
     #[arg(long)]
     pub packets: bool,
-    /// For a bricked file, list every brick (otherwise the first 16).
+    /// For a bricked file, list every brick (otherwise the first 16); for a time series, every
+    /// time point (otherwise the first 32).
     #[arg(long)]
     pub bricks: bool,
 }
@@ -25,6 +26,9 @@ const BRICKS_LISTED: usize = 16;
 /// Runs the subcommand.
 pub fn run(a: InfoArgs) -> Result<()> {
     let bytes = super::read_wsp(&a.input)?;
+    if wavesplat_codec::format::series::is_series(&bytes) {
+        return series_info(&a, &bytes);
+    }
     if wavesplat_codec::format::bricked::is_bricked(&bytes) {
         let f = wavesplat_codec::format::bricked::parse_bricked(&bytes)
             .with_context(|| format!("parsing {}", a.input.display()))?;
@@ -249,4 +253,87 @@ fn nz(x: f64) -> f64 {
     } else {
         x
     }
+}
+
+/// Time points `info` lists for a series without `--bricks`.
+const TIME_POINTS_LISTED: usize = 32;
+
+/// `info` of a series file: its space, time points and their times, the components each
+/// names and the bytes a viewer of each reads.
+fn series_info(a: &InfoArgs, bytes: &[u8]) -> Result<()> {
+    use wavesplat_codec::format::series::{parse_series, SERIES_VERSION};
+    let f = parse_series(bytes).with_context(|| format!("parsing {}", a.input.display()))?;
+    let m = &f.manifest;
+    let s = &m.space;
+    outln!("file        {} ({} bytes)", a.input.display(), bytes.len());
+    outln!("format      time series (version {SERIES_VERSION})");
+    outln!(
+        "dims        {}x{}x{}, spacing {} x {} x {}",
+        s.dims[0],
+        s.dims[1],
+        s.dims[2],
+        s.spacing[0],
+        s.spacing[1],
+        s.spacing[2]
+    );
+    outln!("channels    {}", s.channels);
+    let n = m.points.len();
+    let times = if m.times_known {
+        let step = if n > 1 {
+            format!(
+                ", {:.4} s apart",
+                (m.points[n - 1].time - m.points[0].time) / (n - 1) as f64
+            )
+        } else {
+            String::new()
+        };
+        format!(
+            "from {:.4} s to {:.4} s{step}",
+            m.points[0].time,
+            m.points[n - 1].time
+        )
+    } else {
+        "no times in the source (numbered in order)".to_string()
+    };
+    outln!("time points {n}, {times}");
+    let bricked = (0..m.components.len())
+        .filter(|&c| {
+            f.component_bytes(c)
+                .is_ok_and(wavesplat_codec::format::bricked::is_bricked)
+        })
+        .count();
+    outln!(
+        "components  {} (a Haar wavelet along time in groups of {}; {} bricked), {} coefficients \
+         kept",
+        m.components.len(),
+        m.group,
+        bricked,
+        m.kept()
+    );
+    let listed = if a.bricks {
+        n
+    } else {
+        TIME_POINTS_LISTED.min(n)
+    };
+    for (t, p) in m.points.iter().enumerate().take(listed) {
+        let terms: Vec<String> = p
+            .terms
+            .iter()
+            .map(|(c, w)| format!("{w:+.4}·c{c}"))
+            .collect();
+        outln!(
+            "  time point {t}{}: {} bytes = {}",
+            if m.times_known {
+                format!(" at {:.4} s", p.time)
+            } else {
+                String::new()
+            },
+            m.point_bytes(t),
+            terms.join(" ")
+        );
+    }
+    if listed < n {
+        outln!("  … and {} more (--bricks lists every one)", n - listed);
+    }
+    Ok(())
 }

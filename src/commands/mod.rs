@@ -12,6 +12,7 @@ pub mod phantom;
 pub mod publish;
 pub mod render;
 pub mod security;
+pub mod series;
 pub mod serve;
 pub mod view;
 
@@ -221,6 +222,37 @@ pub fn parse_dims(s: &str) -> Result<[usize; 3]> {
         }
     }
     Ok(d)
+}
+
+/// Dimensions X,Y,Z of a volume, or X,Y,Z,T of a time series (T time points).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct SeriesDims {
+    /// X, Y, Z.
+    pub xyz: [usize; 3],
+    /// T, when given.
+    pub t: Option<usize>,
+}
+
+/// Parses `X,Y,Z` or `X,Y,Z,T` (each at least 1).
+pub fn parse_series_dims(s: &str) -> Result<SeriesDims> {
+    let parts: Vec<&str> = s.split([',', 'x']).collect();
+    match parts.len() {
+        3 => Ok(SeriesDims {
+            xyz: parse_dims(s)?,
+            t: None,
+        }),
+        4 => {
+            let xyz = parse_dims(&parts[..3].join(",")).with_context(|| format!("in {s:?}"))?;
+            let t: usize = parts[3].trim().parse().with_context(|| {
+                format!("time points {:?} in {s:?} is not an integer", parts[3])
+            })?;
+            if t == 0 {
+                bail!("time points must be at least 1, got {s:?}");
+            }
+            Ok(SeriesDims { xyz, t: Some(t) })
+        }
+        _ => bail!("dimensions must be X,Y,Z or X,Y,Z,T (time points), got {s:?}"),
+    }
 }
 
 /// Parses a byte count with an optional k/M/G suffix (powers of 1024).

@@ -127,7 +127,18 @@ pub struct RenderArgs {
     /// to the order of f32 additions) in about 70 % of the time.
     #[arg(long)]
     pub progressive: bool,
-    /// Output PNG.
+    /// Of a time series, draw time point N (counting from 0; default 0).
+    #[arg(long, value_name = "N", conflicts_with = "time_points")]
+    pub time_point: Option<usize>,
+    /// Of a time series, draw time points A to B (both included; `all`: every one): one PNG
+    /// each (t0000.png, …) in the directory -o names, all through one window so that they
+    /// compare, and an animated PNG of them (animation.png, at --fps).
+    #[arg(long, value_name = "A..B")]
+    pub time_points: Option<String>,
+    /// Frames per second of the animated PNG of --time-points.
+    #[arg(long, default_value_t = 10.0)]
+    pub fps: f64,
+    /// Output PNG (a directory with --time-points).
     #[arg(short, long)]
     pub output: PathBuf,
     /// Also write the image as raw f32 (H rows of W little-endian floats; RGB interleaved).
@@ -296,7 +307,9 @@ impl Recorder {
 pub fn run(a: RenderArgs) -> Result<()> {
     let view = a.view.request()?;
     view.spec()?;
-    super::check_output(&a.output)?;
+    if a.time_points.is_none() {
+        super::check_output(&a.output)?;
+    }
     if let Some(r) = &a.raw {
         super::check_output(r)?;
     }
@@ -321,9 +334,23 @@ pub fn run(a: RenderArgs) -> Result<()> {
         && a.record.is_none()
         && a.view.client_memory.is_none();
     if let VolumeLocation::File { path, bytes } = &location {
+        if wavesplat_codec::format::series::is_series(bytes) {
+            if !one_pass_asked || a.reference {
+                bail!(
+                    "{} is a time series, drawn in one pass: --progressive, --bytes, \
+                     --budget-ms, --record, --client-memory and --reference do not apply to one \
+                     yet",
+                    path.display()
+                );
+            }
+            return super::series::render(&a, &view, path, bytes, request);
+        }
         if wavesplat_codec::format::bricked::is_bricked(bytes) && one_pass_asked && !a.reference {
             return render_bricked(&a, &view, path, bytes, request);
         }
+    }
+    if a.time_point.is_some() || a.time_points.is_some() {
+        bail!("--time-point and --time-points apply to a local time series file (one `compress` made from a 4D file, a directory of time steps or --phantom beating)");
     }
     let volume = location.describe();
     let (header, opened, spec) = open(location, &view, a.bytes)?;
@@ -540,7 +567,7 @@ pub fn run(a: RenderArgs) -> Result<()> {
 }
 
 /// Says which extinction `--cue-k auto` took from the volume.
-fn say_cue_k(view: &ViewRequest, spec: &wavesplat_codec::view::ViewSpec) {
+pub(super) fn say_cue_k(view: &ViewRequest, spec: &wavesplat_codec::view::ViewSpec) {
     if let (true, Some(cue)) = (view.cue_k_from_volume, spec.view.cue) {
         outln!(
             "depth cueing: k = {:.6} per unit of spacing (2 / the volume's diagonal)",
@@ -550,7 +577,7 @@ fn say_cue_k(view: &ViewRequest, spec: &wavesplat_codec::view::ViewSpec) {
 }
 
 /// Writes the PNG and, when asked, the raw image.
-fn write_outputs(image: &Image, a: &RenderArgs) -> Result<()> {
+pub(super) fn write_outputs(image: &Image, a: &RenderArgs) -> Result<()> {
     image
         .write_png(&a.output, None)
         .with_context(|| format!("writing {}", a.output.display()))?;

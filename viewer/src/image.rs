@@ -26,6 +26,9 @@ pub enum ImageError {
     /// Invalid window.
     #[error("window [{0}, {1}] is empty or not finite")]
     BadWindow(f64, f64),
+    /// Frames that cannot make one animation.
+    #[error("{0}")]
+    Frames(String),
 }
 
 /// The largest |image − reference| over the largest |reference| (samples of equal count, in the
@@ -312,6 +315,45 @@ impl Image {
         enc.set_depth(png::BitDepth::Eight);
         let mut writer = enc.write_header()?;
         writer.write_image_data(&bytes)?;
+        Ok(())
+    }
+
+    /// Writes `frames` (of one size and channel count, at least one) as an animated PNG
+    /// (APNG: every viewer that does not animate shows the first frame) through one `window`
+    /// (a series is compared across its frames), each shown `delay_ms` milliseconds, looping.
+    pub fn write_animated_png(
+        frames: &[Image],
+        path: &Path,
+        window: (f64, f64),
+        delay_ms: u16,
+    ) -> Result<(), ImageError> {
+        let first = frames
+            .first()
+            .ok_or(ImageError::Frames("an animation of no frames".into()))?;
+        if frames
+            .iter()
+            .any(|f| (f.width, f.height, f.channels) != (first.width, first.height, first.channels))
+        {
+            return Err(ImageError::Frames("frames of different sizes".into()));
+        }
+        let colour = match first.channels {
+            1 => png::ColorType::Grayscale,
+            3 => png::ColorType::Rgb,
+            c => return Err(ImageError::Channels(c)),
+        };
+        let w = first.resolve_window(Some(window))?;
+        let file = std::io::BufWriter::new(std::fs::File::create(path)?);
+        let mut enc = png::Encoder::new(file, first.width as u32, first.height as u32);
+        enc.set_color(colour);
+        enc.set_depth(png::BitDepth::Eight);
+        enc.set_animated(frames.len() as u32, 0)?;
+        enc.set_frame_delay(delay_ms.max(1), 1000)?;
+        let mut writer = enc.write_header()?;
+        for f in frames {
+            let bytes: Vec<u8> = f.data.iter().map(|x| Image::level(*x, w)).collect();
+            writer.write_image_data(&bytes)?;
+        }
+        writer.finish()?;
         Ok(())
     }
 

@@ -678,6 +678,43 @@ pub fn read_volume(path: &Path, raw: Option<&RawSpec>) -> Result<Volume, ReadErr
     decode_source(&src, raw)
 }
 
+/// How many time points the volume file at `path` holds, from its header alone (a NIfTI's
+/// `dim[4]`, a raw spec's time points); 1 for every other file and for directories (a
+/// directory of time steps is [`steps::StepSeries`]'s). Errors only when the file cannot be
+/// opened; a header that does not parse says 1 here and is reported by the reader.
+pub fn time_points(path: &Path, raw: Option<&RawSpec>) -> Result<usize, ReadError> {
+    let meta = std::fs::metadata(path).map_err(|e| ReadError::io(path, e))?;
+    if !meta.is_file() {
+        return Ok(1);
+    }
+    let by_name = Format::from_name(path);
+    if let (None, Some(spec)) = (by_name, raw) {
+        return Ok(spec.time_points.max(1));
+    }
+    let head = {
+        let mut f = std::fs::File::open(path).map_err(|e| ReadError::io(path, e))?;
+        let mut head = Vec::new();
+        (&mut f)
+            .take(512)
+            .read_to_end(&mut head)
+            .map_err(|e| ReadError::io(path, e))?;
+        head
+    };
+    if by_name.or_else(|| Format::sniff(&head)) != Some(Format::Nifti) {
+        return Ok(1);
+    }
+    let f = std::fs::File::open(path).map_err(|e| ReadError::io(path, e))?;
+    let mut stream: Box<dyn Read> = if head.starts_with(&[0x1f, 0x8b]) {
+        Box::new(flate2::read::MultiGzDecoder::new(f))
+    } else {
+        Box::new(f)
+    };
+    let parsed = nifti::read_header_bytes(&mut stream, path)
+        .and_then(|h| nifti::parse_header(path, &h))
+        .and_then(|h| nifti::series_dims(path, &h));
+    Ok(parsed.map_or(1, |(_, points)| points))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

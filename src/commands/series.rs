@@ -1,0 +1,237 @@
+//! Time series at the command line: what `compress` reads as one (the beating phantom, a 4D
+//! file, a directory of time steps) and how it compresses it into one series file, with a
+//! summary of its time points, groups and bytes.
+
+use anyhow::{bail, Context, Result};
+use wavesplat_compressor::bricked::BrickStage;
+use wavesplat_compressor::encode::CompressOptions;
+use wavesplat_compressor::reader::region::RegionReader;
+use wavesplat_compressor::reader::steps::StepSeries;
+use wavesplat_compressor::series::{compress_series, SeriesSource, VolumeSeries};
+use wavesplat_harness::console::Progress;
+
+use super::compress::CompressArgs;
+
+/// A time series `compress` reads.
+pub enum SeriesInput {
+    /// Generated in memory (the beating phantom).
+    Memory(VolumeSeries),
+    /// A 4D file read by region.
+    File(Box<RegionReader>),
+    /// A directory of one volume file per time step.
+    Steps(StepSeries),
+}
+
+impl SeriesInput {
+    /// The series as a source of time points.
+    pub fn source(&self) -> &dyn SeriesSource {
+        match self {
+            SeriesInput::Memory(s) => s,
+            SeriesInput::File(r) => r.as_ref(),
+            SeriesInput::Steps(s) => s,
+        }
+    }
+}
+
+/// Brick edge of a series' components when `--brick` is not given: a time point up to 256 a
+/// side is one plain file per component.
+const SERIES_BRICK: usize = 256;
+
+/// `compress` of a time series: every time point into one series file.
+pub fn compress(a: &CompressArgs, opts: &CompressOptions, source: &dyn SeriesSource) -> Result<()> {
+    let points = source.time_points();
+    if !a.time_group.is_power_of_two() {
+        bail!(
+            "--time-group {}: a power of two (1 compresses each time point alone)",
+            a.time_group
+        );
+    }
+    let group = a.time_group.min(points.next_power_of_two());
+    let brick = a.brick.unwrap_or(SERIES_BRICK);
+    let d = source.dims();
+    let progress = Progress::new("compress");
+    progress.stage(&format!(
+        "time series: {points} time points of {}x{}x{} in groups of {group}",
+        d[0], d[1], d[2]
+    ));
+    let report = |stage: BrickStage| {
+        progress.stage(&match stage {
+            BrickStage::Scored { done, of } => format!("scoring part {done} of {of}"),
+            BrickStage::Compressed { done, of, trial } => {
+                format!("compressing part {done} of {of} (trial {trial})")
+            }
+        })
+    };
+    let c = compress_series(source, opts, group, brick, &report).context("compressing")?;
+    progress.finish();
+    std::fs::write(&a.output, &c.bytes)
+        .with_context(|| format!("writing {}", a.output.display()))?;
+    let m = &c.manifest;
+    let samples =
+        d.iter().map(|v| *v as f64).product::<f64>() * source.channels() as f64 * points as f64;
+    outln!(
+        "{}: {} bytes ({:.4} % of {} samples at one byte each), a time series of {points} time \
+         points in groups of {group}: {} components",
+        a.output.display(),
+        c.bytes.len(),
+        100.0 * c.bytes.len() as f64 / samples,
+        samples,
+        m.components.len()
+    );
+    let per_point: Vec<u64> = (0..points).map(|t| m.point_bytes(t)).collect();
+    outln!(
+        "volume {}x{}x{} x{} | {} M={} | kept {} of {} coefficients ({:.3} %) | a time point \
+         reads {}..{} bytes{}",
+        d[0],
+        d[1],
+        d[2],
+        source.channels(),
+        opts.family.name(),
+        c.levels,
+        m.kept(),
+        c.total_coefficients,
+        100.0 * m.kept() as f64 / c.total_coefficients.max(1) as f64,
+        per_point.iter().min().unwrap_or(&0),
+        per_point.iter().max().unwrap_or(&0),
+        match (m.times_known, m.points.get(1)) {
+            (true, Some(p)) => format!(" | time step {:.4} s", p.time - m.points[0].time),
+            _ => String::new(),
+        }
+    );
+    Ok(())
+}
+
+/// The time points `--time-points` names in a series of `points`: `A..B` (both included) or
+/// `all`.
+pub fn parse_time_range(s: &str, points: usize) -> Result<std::ops::RangeInclusive<usize>> {
+    let last = points - 1;
+    if s.trim() == "all" {
+        return Ok(0..=last);
+    }
+    let Some((a, b)) = s.split_once("..") else {
+        bail!("--time-points {s:?}: give A..B (both included) or all");
+    };
+    let num = |v: &str| -> Result<usize> {
+        v.trim()
+            .parse()
+            .with_context(|| format!("--time-points {s:?}: {v:?} is not a time point"))
+    };
+    let (a, b) = (num(a)?, num(b.trim_start_matches('='))?);
+    if a > b || b > last {
+        bail!("--time-points {s:?}: the series has time points 0..={last}, and A must not pass B");
+    }
+    Ok(a..=b)
+}
+
+/// `render` of a local series file: one time point to -o, or a range of them as PNGs and an
+/// animated PNG in the directory -o names. Drawn in one pass on the CPU, each time point from
+/// its own group's components.
+pub fn render(
+    a: &super::render::RenderArgs,
+    view: &wavesplat_viewer::open::ViewRequest,
+    path: &std::path::Path,
+    bytes: &[u8],
+    request: std::time::Instant,
+) -> Result<()> {
+    use wavesplat_codec::format::series::parse_series;
+    use wavesplat_viewer::series::{draw_series_point, series_header};
+    use wavesplat_viewer::{CpuBackend, Image};
+    let file = parse_series(bytes).with_context(|| format!("reading {}", path.display()))?;
+    let m = &file.manifest;
+    let points = m.points.len();
+    let header = series_header(&file).with_context(|| format!("reading {}", path.display()))?;
+    let spec = view.spec_for_volume(&header.geometry, m.space.placement.as_ref())?;
+    super::render::say_cue_k(view, &spec);
+    let when = |t: usize| {
+        if m.times_known {
+            format!(" at {:.3} s", m.points[t].time)
+        } else {
+            String::new()
+        }
+    };
+    let draw = |t: usize| {
+        draw_series_point(bytes, t, &spec, &mut CpuBackend::new())
+            .with_context(|| format!("rendering time point {t} of {}", path.display()))
+    };
+    let Some(range) = &a.time_points else {
+        let t = a.time_point.unwrap_or(0);
+        if t >= points {
+            bail!(
+                "--time-point {t}: the series has {points} time points (0..={})",
+                points - 1
+            );
+        }
+        let d = draw(t)?;
+        super::render::write_outputs(&d.image, a)?;
+        outln!(
+            "wrote {} ({}x{}) from {}: time point {t} of {points}{}, {} components, {} bytes, {} \
+             coefficients splatted (cpu backend) in {:.1} ms{}",
+            a.output.display(),
+            d.image.width,
+            d.image.height,
+            path.display(),
+            when(t),
+            d.components,
+            d.bytes,
+            d.coefficients,
+            request.elapsed().as_secs_f64() * 1e3,
+            if a.time_point.is_none() && points > 1 {
+                " (--time-point N or --time-points A..B for others)"
+            } else {
+                ""
+            }
+        );
+        return Ok(());
+    };
+    if !(a.fps.is_finite() && a.fps > 0.0 && a.fps <= 1000.0) {
+        bail!("--fps {}: a rate in (0, 1000] frames per second", a.fps);
+    }
+    let range = parse_time_range(range, points)?;
+    std::fs::create_dir_all(&a.output)
+        .with_context(|| format!("creating {}", a.output.display()))?;
+    let progress = Progress::new("render");
+    let mut frames: Vec<Image> = Vec::with_capacity(range.clone().count());
+    let mut read = 0u64;
+    for t in range.clone() {
+        progress.stage(&format!("time point {t} of {points}"));
+        let d = draw(t)?;
+        read += d.bytes;
+        frames.push(d.image);
+    }
+    progress.finish();
+    // One window for all, so that the frames compare: the widest of theirs.
+    let window = frames
+        .iter()
+        .map(Image::auto_window)
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), (l, h)| {
+            (lo.min(l), hi.max(h))
+        });
+    let window = if window.1 > window.0 {
+        window
+    } else {
+        (window.0, window.0 + 1.0)
+    };
+    for (t, f) in range.clone().zip(&frames) {
+        let p = a.output.join(format!("t{t:04}.png"));
+        f.write_png(&p, Some(window))
+            .with_context(|| format!("writing {}", p.display()))?;
+    }
+    let anim = a.output.join("animation.png");
+    let delay = (1000.0 / a.fps).round().clamp(1.0, 65535.0) as u16;
+    Image::write_animated_png(&frames, &anim, window, delay)
+        .with_context(|| format!("writing {}", anim.display()))?;
+    outln!(
+        "wrote {} time points ({}..={}) of {points} from {} to {}: t{:04}.png … t{:04}.png and \
+         animation.png at {} frames/s; {read} bytes of components read in {:.1} ms",
+        frames.len(),
+        range.start(),
+        range.end(),
+        path.display(),
+        a.output.display(),
+        range.start(),
+        range.end(),
+        a.fps,
+        request.elapsed().as_secs_f64() * 1e3
+    );
+    Ok(())
+}
