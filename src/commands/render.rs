@@ -95,6 +95,13 @@ pub struct ViewArgs {
     /// built in the background (tens to hundreds of ms), then redrawn with them.
     #[arg(long)]
     pub no_preview: bool,
+    /// Of a time series, show time point N (counting from 0; default 0).
+    #[arg(long, value_name = "N")]
+    pub time_point: Option<usize>,
+    /// Time points per second when a time series plays (the window's playback, space to
+    /// play and pause; the animated PNG of `render --time-points`).
+    #[arg(long, default_value_t = 10.0)]
+    pub fps: f64,
 }
 
 /// Arguments of `wavesplat render`.
@@ -127,17 +134,11 @@ pub struct RenderArgs {
     /// to the order of f32 additions) in about 70 % of the time.
     #[arg(long)]
     pub progressive: bool,
-    /// Of a time series, draw time point N (counting from 0; default 0).
-    #[arg(long, value_name = "N", conflicts_with = "time_points")]
-    pub time_point: Option<usize>,
     /// Of a time series, draw time points A to B (both included; `all`: every one): one PNG
     /// each (t0000.png, …) in the directory -o names, all through one window so that they
     /// compare, and an animated PNG of them (animation.png, at --fps).
-    #[arg(long, value_name = "A..B")]
+    #[arg(long, value_name = "A..B", conflicts_with = "time_point")]
     pub time_points: Option<String>,
-    /// Frames per second of the animated PNG of --time-points.
-    #[arg(long, default_value_t = 10.0)]
-    pub fps: f64,
     /// Output PNG (a directory with --time-points).
     #[arg(short, long)]
     pub output: PathBuf,
@@ -238,6 +239,7 @@ impl ViewArgs {
             multiview: self.multiview,
             cue,
             cue_k_from_volume,
+            time_point: self.time_point,
         })
     }
 
@@ -333,23 +335,30 @@ pub fn run(a: RenderArgs) -> Result<()> {
         && a.budget_ms.is_none()
         && a.record.is_none()
         && a.view.client_memory.is_none();
+    let series = matches!(&location, VolumeLocation::File { bytes, .. }
+        if wavesplat_codec::format::series::is_series(bytes));
     if let VolumeLocation::File { path, bytes } = &location {
-        if wavesplat_codec::format::series::is_series(bytes) {
-            if !one_pass_asked || a.reference {
+        if series {
+            if a.reference {
                 bail!(
-                    "{} is a time series, drawn in one pass: --progressive, --bytes, \
-                     --budget-ms, --record, --client-memory and --reference do not apply to one \
-                     yet",
+                    "{}: --reference does not apply to a time series yet (compress the time \
+                     point alone with `compress --time-point N` and render that)",
                     path.display()
                 );
             }
-            return super::series::render(&a, &view, path, bytes, request);
+            if one_pass_asked {
+                return super::series::render(&a, &view, path, bytes, request);
+            }
+            if a.time_points.is_some() {
+                bail!("--time-points draws each time point in one pass: leave out --progressive, --bytes, --budget-ms, --record and --client-memory");
+            }
+            // Drawn progressively below: the time point's components as one volume.
         }
         if wavesplat_codec::format::bricked::is_bricked(bytes) && one_pass_asked && !a.reference {
             return render_bricked(&a, &view, path, bytes, request);
         }
     }
-    if a.time_point.is_some() || a.time_points.is_some() {
+    if !series && (a.view.time_point.is_some() || a.time_points.is_some()) {
         bail!("--time-point and --time-points apply to a local time series file (one `compress` made from a 4D file, a directory of time steps or --phantom beating)");
     }
     let volume = location.describe();

@@ -154,7 +154,7 @@ pub fn render(
             .with_context(|| format!("rendering time point {t} of {}", path.display()))
     };
     let Some(range) = &a.time_points else {
-        let t = a.time_point.unwrap_or(0);
+        let t = a.view.time_point.unwrap_or(0);
         if t >= points {
             bail!(
                 "--time-point {t}: the series has {points} time points (0..={})",
@@ -175,7 +175,7 @@ pub fn render(
             d.bytes,
             d.coefficients,
             request.elapsed().as_secs_f64() * 1e3,
-            if a.time_point.is_none() && points > 1 {
+            if a.view.time_point.is_none() && points > 1 {
                 " (--time-point N or --time-points A..B for others)"
             } else {
                 ""
@@ -183,8 +183,11 @@ pub fn render(
         );
         return Ok(());
     };
-    if !(a.fps.is_finite() && a.fps > 0.0 && a.fps <= 1000.0) {
-        bail!("--fps {}: a rate in (0, 1000] frames per second", a.fps);
+    if !(a.view.fps.is_finite() && a.view.fps > 0.0 && a.view.fps <= 1000.0) {
+        bail!(
+            "--fps {}: a rate in (0, 1000] frames per second",
+            a.view.fps
+        );
     }
     let range = parse_time_range(range, points)?;
     std::fs::create_dir_all(&a.output)
@@ -217,7 +220,7 @@ pub fn render(
             .with_context(|| format!("writing {}", p.display()))?;
     }
     let anim = a.output.join("animation.png");
-    let delay = (1000.0 / a.fps).round().clamp(1.0, 65535.0) as u16;
+    let delay = (1000.0 / a.view.fps).round().clamp(1.0, 65535.0) as u16;
     Image::write_animated_png(&frames, &anim, window, delay)
         .with_context(|| format!("writing {}", anim.display()))?;
     outln!(
@@ -230,7 +233,7 @@ pub fn render(
         a.output.display(),
         range.start(),
         range.end(),
-        a.fps,
+        a.view.fps,
         request.elapsed().as_secs_f64() * 1e3
     );
     Ok(())

@@ -31,6 +31,15 @@ pub enum OpenError {
         #[source]
         source: SourceError,
     },
+    /// A time series file cannot be read.
+    #[error("reading the time series {what}")]
+    Series {
+        /// The volume, in words.
+        what: String,
+        /// Why.
+        #[source]
+        source: Box<crate::series::SeriesDrawError>,
+    },
     /// The file is not a valid `.wsp` file.
     #[error("reading {what}")]
     Format {
@@ -94,6 +103,8 @@ pub struct ViewRequest {
     /// Whether the cue's extinction is the volume's [`Cue::default_extinction`], set once the
     /// volume is known (`cue.k` is a placeholder until then).
     pub cue_k_from_volume: bool,
+    /// Of a time series, the time point shown (`None`: the first).
+    pub time_point: Option<usize>,
 }
 
 /// The azimuth α of a view when none is given: an oblique view that shows a volume's three
@@ -423,6 +434,32 @@ pub fn open(
         }
         VolumeLocation::File { path, bytes } => {
             // A named view and the fitting zoom need the volume before packets are ordered.
+            if wavesplat_codec::format::series::is_series(&bytes) {
+                let t = request.time_point.unwrap_or(0);
+                let header = {
+                    let file = wavesplat_codec::format::series::parse_series(&bytes).map_err(
+                        |source| OpenError::Format {
+                            what: path.display().to_string(),
+                            source,
+                        },
+                    )?;
+                    crate::series::series_header(&file).map_err(|e| OpenError::Series {
+                        what: path.display().to_string(),
+                        source: Box::new(e),
+                    })?
+                };
+                let spec = request.spec_for_volume(&header.geometry, header.placement.as_ref())?;
+                let source = FileSource::open_series_point(bytes, t, &spec)
+                    .map_err(failed)?
+                    .with_byte_budget(byte_budget);
+                return Ok((
+                    source.header().clone(),
+                    Opened::File {
+                        source: Box::new(source),
+                    },
+                    spec,
+                ));
+            }
             let spec = if wavesplat_codec::format::bricked::is_bricked(&bytes) {
                 let (file, first) = crate::bricked::parse_with_first(&bytes)?;
                 let whole = crate::bricked::whole_geometry(&file.manifest, &first);

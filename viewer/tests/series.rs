@@ -190,3 +190,67 @@ fn a_time_point_needs_no_byte_of_another_group() {
         "{e}"
     );
 }
+
+/// Frames until the source is done, nothing is pending and the tables are exact.
+fn run_to_end(
+    f: &mut wavesplat_viewer::frame::FrameLoop<CpuBackend, wavesplat_viewer::source::FileSource>,
+) -> Image {
+    use std::time::Duration;
+    use wavesplat_viewer::source::PacketSource;
+    for _ in 0..100_000 {
+        let r = f.frame(Duration::from_millis(20)).unwrap();
+        if r.idle() && f.source.status().done {
+            return f.session.image().unwrap();
+        }
+        if r.pending == 0 && r.packets == 0 && !r.exact {
+            f.session.wait_exact(Duration::from_millis(50)).unwrap();
+        }
+    }
+    panic!("no progress");
+}
+
+/// A time point drawn progressively, as `render --progressive` and the window draw it (one
+/// session over its components' bricks, weighted as they are decoded, the weighted offset
+/// drawn once), ends at its one-pass image (> 90 dB: f32 sums in another order), with plain
+/// and bricked components, in oblique, axis and cued views; it receives its group's bytes only.
+#[test]
+fn a_time_point_drawn_progressively_ends_at_its_one_pass_image() {
+    use wavesplat_viewer::frame::FrameLoop;
+    use wavesplat_viewer::session::{RenderSession, SessionOptions};
+    use wavesplat_viewer::source::{FileSource, PacketSource};
+    let s = cine(6);
+    let opts = CompressOptions {
+        target: Target::Fraction(0.1),
+        ..CompressOptions::default()
+    };
+    for (group, brick) in [(4, 256), (2, 16)] {
+        let c = compress_series(&s, &opts, group, brick, &|_| {}).unwrap();
+        let g = Geometry::new(DIMS, Family::Linear, 0, 0).unwrap();
+        let m = parse_series(&c.bytes).unwrap().manifest;
+        for (name, spec) in views().into_iter().filter(|(n, _)| *n != "multiview") {
+            let spec = fitted(&spec, &g);
+            for t in [1, 5] {
+                let one = draw_series_point(&c.bytes, t, &spec, &mut CpuBackend::new()).unwrap();
+                let source = FileSource::open_series_point(c.bytes.clone(), t, &spec).unwrap();
+                let volume = source
+                    .bricked_volume()
+                    .expect("a time point is drawn as bricks");
+                let session = RenderSession::new_bricked(
+                    volume,
+                    spec,
+                    CpuBackend::new(),
+                    SessionOptions::default(),
+                )
+                .unwrap();
+                let mut f = FrameLoop::new(session, source);
+                let image = run_to_end(&mut f);
+                let db = snr_db(&one.image.data, &image.data);
+                assert!(
+                    db > 90.0,
+                    "group {group}, brick {brick}, {name}, t {t}: {db:.1} dB"
+                );
+                assert!(f.source.status().bytes <= m.point_bytes(t));
+            }
+        }
+    }
+}

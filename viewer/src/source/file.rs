@@ -26,11 +26,13 @@ struct FilePacket {
     brick: usize,
 }
 
-/// A brick of a bricked file: its header and first voxel in the whole.
+/// A brick of a bricked file: its header and first voxel in the whole; in a time point of a
+/// series, the weight its component has in the time point (1 otherwise).
 #[derive(Debug, Clone)]
 struct FileBrick {
     header: Header,
     origin: [u64; 3],
+    weight: f32,
 }
 
 /// A local `.wsp` file served packet by packet in the cache's order for the current view
@@ -91,6 +93,7 @@ impl FileSource {
                 bricks.push(FileBrick {
                     header: f.header,
                     origin: entry.origin,
+                    weight: 1.0,
                 });
             }
             let Some(first) = bricks.first() else {
@@ -105,6 +108,115 @@ impl FileSource {
         if u32::try_from(packets.len()).is_err() {
             return Err(FormatError::Invalid {
                 what: "bricked file",
+                detail: format!("{} packets, more than a source numbers", packets.len()),
+            }
+            .into());
+        }
+        FileSource::with_packets(bytes, header, bricks, packets, spec)
+    }
+
+    /// Time point `t` of a series file ([`wavesplat_codec::format::series`]) served as one
+    /// volume for `spec` (of the whole: [`crate::series::series_header`]'s geometry): the
+    /// bricks of the components it names (a plain component is one brick of the whole's size)
+    /// under global ids in component order, each packet's values scaled by its component's
+    /// weight as it is decoded and its energy by the weight² as it is ranked. The time point's
+    /// offset, the components' offsets so weighted, is the whole's (and every brick's, as a
+    /// session draws the offset once for the whole). Only the named components are read.
+    pub fn open_series_point(
+        bytes: Vec<u8>,
+        t: usize,
+        spec: &ViewSpec,
+    ) -> Result<FileSource, SourceError> {
+        use wavesplat_codec::format::series::parse_series;
+        let (header, bricks, packets) = {
+            let file = parse_series(&bytes)?;
+            let m = &file.manifest;
+            let point = m.points.get(t).ok_or_else(|| FormatError::Invalid {
+                what: "series manifest",
+                detail: format!("time point {t}; the series has {}", m.points.len()),
+            })?;
+            let dims = m.space.dims.map(|d| d as usize);
+            let mut bricks: Vec<FileBrick> = Vec::new();
+            let mut packets = Vec::new();
+            let mut offset = 0f64;
+            let mut whole: Option<Header> = None;
+            for &(c, weight) in &point.terms {
+                let data = file.component_bytes(c)?;
+                // (header, origin, packets' byte ranges) of each brick of the component.
+                let mut parts: Vec<(Header, [u64; 3], Vec<std::ops::Range<usize>>)> = Vec::new();
+                let component_whole = if is_bricked(data) {
+                    let cf = parse_bricked(data)?;
+                    let cm = &cf.manifest;
+                    for (i, entry) in cm.bricks.iter().enumerate() {
+                        let f = parse_file(cf.brick_bytes(i)?)?;
+                        let first = parts.first().map_or(&f.header, |p| &p.0);
+                        check_session_brick(i, entry, &f.header, first, cm.channels)?;
+                        let ranges = ranges_in(&bytes, &f.packets);
+                        parts.push((f.header, entry.origin, ranges));
+                    }
+                    let first = &parts.first().ok_or_else(|| FormatError::Invalid {
+                        what: "series component",
+                        detail: format!("component {c} has no bricks"),
+                    })?;
+                    whole_header(cm, &first.0)
+                } else {
+                    let f = parse_file(data)?;
+                    let ranges = ranges_in(&bytes, &f.packets);
+                    parts.push((f.header.clone(), [0; 3], ranges));
+                    f.header
+                };
+                if component_whole.geometry.dims != dims
+                    || component_whole.channels != m.space.channels
+                {
+                    return Err(FormatError::Invalid {
+                        what: "series component",
+                        detail: format!(
+                            "component {c} is {:?} with {} channel(s); the series is {dims:?} \
+                             with {}",
+                            component_whole.geometry.dims,
+                            component_whole.channels,
+                            m.space.channels
+                        ),
+                    }
+                    .into());
+                }
+                offset += f64::from(weight) * component_whole.color.mean[0];
+                whole.get_or_insert(component_whole);
+                for (header, origin, ranges) in parts {
+                    let brick = bricks.len();
+                    let mut framed_packets = framed(&header, &bytes, ranges, brick)?;
+                    let w2 = f64::from(weight) * f64::from(weight);
+                    for p in &mut framed_packets {
+                        p.summary.iter_mut().for_each(|(_, e)| *e *= w2);
+                    }
+                    packets.extend(framed_packets);
+                    bricks.push(FileBrick {
+                        header,
+                        origin,
+                        weight,
+                    });
+                }
+            }
+            let mut header = whole.expect("a time point names at least one component");
+            header.geometry = wavesplat_codec::layout::Geometry {
+                dims,
+                padded: dims,
+                origin: [0; 3],
+                levels: 0,
+                family: header.geometry.family,
+                spacing: m.space.spacing,
+            };
+            header.placement = m.space.placement;
+            header.color.mean[0] = offset;
+            for b in &mut bricks {
+                b.header.color.mean[0] = offset;
+                check_display(0, &b.header, &header)?;
+            }
+            (header, bricks, packets)
+        };
+        if u32::try_from(packets.len()).is_err() {
+            return Err(FormatError::Invalid {
+                what: "series time point",
                 detail: format!("{} packets, more than a source numbers", packets.len()),
             }
             .into());
@@ -164,6 +276,13 @@ impl FileSource {
         })
     }
 
+    /// The weight packet `id`'s values are scaled by (1 but in a series' time point).
+    fn weight_of(&self, id: u32) -> f32 {
+        self.bricks
+            .get(self.packets[id as usize].brick)
+            .map_or(1.0, |b| b.weight)
+    }
+
     /// The header packet `id` decodes with.
     fn header_of(&self, id: u32) -> &Header {
         match self.bricks.get(self.packets[id as usize].brick) {
@@ -212,7 +331,12 @@ impl FileSource {
             ids.iter()
                 .map(|&id| {
                     let data = &bytes[packets[id as usize].range.clone()];
-                    (id, decode_for_session(this.header_of(id), data))
+                    let mut decoded = decode_for_session(this.header_of(id), data);
+                    let weight = this.weight_of(id);
+                    if let (Some((_, coefficients)), true) = (decoded.as_mut(), weight != 1.0) {
+                        coefficients.iter_mut().for_each(|c| c.value *= weight);
+                    }
+                    (id, decoded)
                 })
                 .collect()
         };
