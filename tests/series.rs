@@ -150,8 +150,34 @@ fn a_4d_nifti_compresses_into_one_series_file_that_info_decompress_and_render_re
         &d("f2"),
     ]);
     assert!(e.contains("0..=5"), "{e}");
-    let e = cli_err(&["render", &d("c.wsp"), "--progressive", "-o", &d("x.png")]);
+    let e = cli_err(&["render", &d("c.wsp"), "--reference", "-o", &d("x.png")]);
     assert!(e.contains("time series"), "{e}");
+    // Drawn progressively (the frame loop the window uses), a time point ends at its one-pass
+    // image.
+    let raw = |name: &str, extra: &[&str]| {
+        let mut args = vec![
+            "render",
+            &d("c.wsp")[..],
+            "--time-point",
+            "4",
+            "--size",
+            "48x40",
+        ]
+        .into_iter()
+        .map(String::from)
+        .collect::<Vec<_>>();
+        args.extend(extra.iter().map(|s| s.to_string()));
+        args.extend(["--raw".into(), d(name), "-o".into(), d("p.png")]);
+        let refs: Vec<&str> = args.iter().map(String::as_str).collect();
+        cli_ok(&refs);
+        common::read_f32(&dir.path().join(name))
+    };
+    let (one, progressive) = (
+        raw("one.f32", &[]),
+        raw("prog.f32", &["--progressive", "--cpu"]),
+    );
+    let db = wavesplat_codec::metrics::snr_db(&one, &progressive);
+    assert!(db > 90.0, "{db:.1} dB");
     // One time point taken out at compression is a plain volume file.
     cli_ok(&[
         "compress",
