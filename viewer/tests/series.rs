@@ -254,3 +254,47 @@ fn a_time_point_drawn_progressively_ends_at_its_one_pass_image() {
         }
     }
 }
+
+/// Playing a series replaces the time point a session draws: the next one's parts are planned
+/// at once with the tables the last one built (no preview), and its image ends at its own
+/// one-pass image, nothing of the last time point left in it.
+#[test]
+fn a_session_moves_to_another_time_point_keeping_its_tables() {
+    use wavesplat_viewer::frame::FrameLoop;
+    use wavesplat_viewer::session::{RenderSession, SessionOptions};
+    use wavesplat_viewer::source::FileSource;
+    let s = cine(8);
+    let opts = CompressOptions {
+        target: Target::Fraction(0.1),
+        ..CompressOptions::default()
+    };
+    let c = compress_series(&s, &opts, 4, 256, &|_| {}).unwrap();
+    let g = Geometry::new(DIMS, Family::Linear, 0, 0).unwrap();
+    let spec = fitted(&ViewSpec::single(View::new(0.66, 0.91, 64, 56)), &g);
+    let options = SessionOptions {
+        preview: Some(SessionOptions::default_preview()),
+        ..SessionOptions::default()
+    };
+    let source = FileSource::open_series_point(c.bytes.clone(), 2, &spec).unwrap();
+    let volume = source.bricked_volume().unwrap();
+    let session = RenderSession::new_bricked(volume, spec, CpuBackend::new(), options).unwrap();
+    let mut f = FrameLoop::new(session, source);
+    run_to_end(&mut f);
+    for t in [3, 6, 0] {
+        let previews = f.session.stats().previews;
+        let source = FileSource::open_series_point(c.bytes.clone(), t, &spec).unwrap();
+        f.session
+            .replace_bricked_volume(source.bricked_volume().unwrap())
+            .unwrap();
+        f.source = source;
+        assert!(
+            f.session.is_exact(),
+            "time point {t} is planned with the cached tables"
+        );
+        let image = run_to_end(&mut f);
+        assert_eq!(f.session.stats().previews, previews, "time point {t}");
+        let one = draw_series_point(&c.bytes, t, &spec, &mut CpuBackend::new()).unwrap();
+        let db = snr_db(&one.image.data, &image.data);
+        assert!(db > 90.0, "time point {t}: {db:.1} dB");
+    }
+}

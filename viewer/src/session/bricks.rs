@@ -250,6 +250,34 @@ impl<B: AccumulationBackend> RenderSession<B> {
         RenderSession::build(whole, spec, backend, options, Some(bricks))
     }
 
+    /// Replaces the volume a bricked session draws by `volume` (the next time point of a
+    /// series, whose components have the geometries of the last one's): everything held is
+    /// dropped and the view is drawn again from nothing, while the backend, the planners and
+    /// the footprint tables they cached stay (a time point's parts are planned at once with
+    /// the tables the last one built). A background build in flight is dropped: it was for
+    /// the old parts. The source that fed the old volume goes with it (its ids mean other
+    /// packets now).
+    pub fn replace_bricked_volume(&mut self, volume: BrickedVolume) -> Result<(), SessionError> {
+        let whole = volume.whole.clone();
+        let bricks = Bricks::new(volume)?;
+        whole_frame(&self.plan.spec, &bricks.whole)?;
+        self.energy_scale = energy_scale(&whole);
+        self.header = whole;
+        self.bricks = Some(bricks);
+        self.packets.clear();
+        self.queue = super::queue::BucketQueue::new();
+        self.waiting.clear();
+        self.dropped.clear();
+        self.path_lengths = None;
+        self.device_colour = None;
+        self.shown_preview = None;
+        self.building = None;
+        self.fresh_bytes = 0;
+        self.stats.coefficients_held = 0;
+        let spec = self.plan.spec;
+        self.set_view(spec)
+    }
+
     /// Draws a batch of a bricked session brick by brick; returns the indices (into `batch`)
     /// left waiting for their cue tables, ascending, and the records drawn.
     pub(super) fn draw_bricked(
