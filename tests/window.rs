@@ -700,3 +700,101 @@ fn the_screen_shows_the_device_image_of_the_gpu_backend() {
         );
     }
 }
+
+/// A time series plays in the window: space starts it, every time point it moves to is drawn
+/// (and shown converged before it moves on, at this size), the arrows step while paused, and
+/// the title says which time point is shown; the screenshot of a paused time point is that
+/// time point's `render` image.
+#[test]
+fn a_time_series_plays_steps_and_pauses_in_the_window() {
+    let Some(x) = display_for_window() else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("cine.wsp");
+    let out = Command::new(BIN)
+        .args([
+            "compress",
+            "--phantom",
+            "beating",
+            "--dims",
+            "32,32,12,8",
+            "--target-fraction",
+            "0.1",
+            "-o",
+        ])
+        .arg(&file)
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", common::text(&out));
+    let shot = dir.path().join("paused.png");
+    let script = format!(
+        "converge; key space; played 10; key space; key right; key right; converge; screenshot {}; quit",
+        shot.display()
+    );
+    let child = spawn_view(
+        &x.display,
+        &file,
+        "128x128",
+        &[
+            "--cpu",
+            "--fps",
+            "40",
+            "--time-point",
+            "1",
+            "--script",
+            &script,
+        ],
+    );
+    let (status, stdout, stderr) = finish(child);
+    assert!(
+        status.success(),
+        "exit {status}\nstdout {stdout}\nstderr {stderr}"
+    );
+    let played = line_with(&stdout, "view: played");
+    let n: u64 = played
+        .split_whitespace()
+        .nth(2)
+        .and_then(|v| v.parse().ok())
+        .unwrap_or_else(|| panic!("{played}"));
+    assert!(n >= 10, "{played}");
+    let converged: u64 = played
+        .split(", ")
+        .last()
+        .and_then(|s| s.split_whitespace().next())
+        .and_then(|v| v.parse().ok())
+        .unwrap_or_else(|| panic!("{played}"));
+    assert!(
+        converged >= 9,
+        "most time points are left converged: {played}"
+    );
+    // Paused after 10 moves from time point 1, then two steps on: time point 13 mod 8 = 5.
+    let rendered = dir.path().join("t5.png");
+    let out = Command::new(BIN)
+        .args([
+            "render",
+            "--time-point",
+            "5",
+            "--size",
+            "128x128",
+            "--cpu",
+            "-o",
+        ])
+        .arg(&rendered)
+        .arg(&file)
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", common::text(&out));
+    let (w, h, shown) = grey(&shot);
+    let (_, _, want) = grey(&rendered);
+    assert_eq!((w, h), (128, 128));
+    let diff = shown
+        .iter()
+        .zip(&want)
+        .map(|(a, b)| (a - b).abs())
+        .fold(0.0, f64::max);
+    assert!(
+        diff <= 2.0,
+        "the paused time point is time point 5's image: {diff}"
+    );
+}

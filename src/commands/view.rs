@@ -6,8 +6,10 @@ use super::render::ViewArgs;
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use std::path::PathBuf;
+use wavesplat_codec::format::series::{is_series, parse_series};
 use wavesplat_codec::view::{Cue, MAX_IMAGE_SIDE};
 use wavesplat_viewer::open::{open, VolumeLocation};
+use wavesplat_viewer::source::{FileSource, PacketSource};
 use wavesplat_viewer::window::{self, Script, ViewState, WindowOptions};
 
 /// Arguments of `wavesplat view`.
@@ -44,7 +46,9 @@ pub struct ViewWindowArgs {
     /// Synthetic input, run through the same handlers as real events: commands separated by
     /// `;` or new lines, or `@FILE`. Commands: `frames N`, `converge`, `drag X0,Y0 X1,Y1
     /// [shift] [over N]` (the moves in one frame, or spread over N frames), `wheel LINES`,
-    /// `key K` (a letter, `+`, `-`, `[`, `]`, `esc`, `f1`), `resize WxH`, `screenshot PATH`,
+    /// `key K` (a letter, `+`, `-`, `[`, `]`, `esc`, `f1`, `left`, `right`, `space`),
+    /// `played N` (wait until a playing time series moved on N times), `resize WxH`,
+    /// `screenshot PATH`,
     /// `signal PATH` (create the file), `await PATH` (wait until it exists), `lose-device`
     /// (destroy the graphics device, as a driver reset would lose it: the window recreates
     /// it), `quit`.
@@ -93,7 +97,47 @@ pub fn run(a: ViewWindowArgs) -> Result<()> {
                 path.display()
             );
         }
+        if is_series(bytes) && request.multiview {
+            bail!(
+                "{} is a time series: multiview of a time point is drawn in one pass only \
+                 (`wavesplat render {} --multiview --time-point N`); the window shows it in \
+                 single views",
+                path.display(),
+                path.display()
+            );
+        }
     }
+    if !(a.view.fps.is_finite() && a.view.fps > 0.0 && a.view.fps <= 1000.0) {
+        bail!(
+            "--fps {}: a rate in (0, 1000] time points per second",
+            a.view.fps
+        );
+    }
+    // A time series plays: its time points are opened from its bytes as the window asks.
+    let series = match &location {
+        VolumeLocation::File { path, bytes } if is_series(bytes) => {
+            let m = parse_series(bytes)
+                .with_context(|| format!("reading {}", path.display()))?
+                .manifest;
+            let points = m.points.len();
+            if let Some(t) = a.view.time_point.filter(|t| *t >= points) {
+                bail!(
+                    "--time-point {t}: the series has {points} time points (0..={})",
+                    points - 1
+                );
+            }
+            let times = m
+                .times_known
+                .then(|| m.points.iter().map(|p| p.time).collect::<Vec<f64>>());
+            Some((bytes.clone(), points, times))
+        }
+        _ => {
+            if a.view.time_point.is_some() {
+                bail!("--time-point applies to a local time series file");
+            }
+            None
+        }
+    };
     let title = location.describe();
     let (header, opened, spec) = open(location, &request, None)?;
     // The window turns a view by its angles: a named patient view must be one.
@@ -113,6 +157,25 @@ pub fn run(a: ViewWindowArgs) -> Result<()> {
     } else {
         state
     };
+    let (state, playback) = match series {
+        Some((bytes, points, times)) => {
+            let state = state.with_time(a.view.time_point.unwrap_or(0), points, times, a.view.fps);
+            let open = move |t: usize, spec: &wavesplat_codec::view::ViewSpec| {
+                let source = FileSource::open_series_point(bytes.clone(), t, spec)?;
+                let volume = source
+                    .bricked_volume()
+                    .ok_or("a time point is drawn as bricks")?;
+                Ok((volume, Box::new(source) as Box<dyn PacketSource>))
+            };
+            (
+                state,
+                Some(window::SeriesPlayback {
+                    open: Box::new(open),
+                }),
+            )
+        }
+        None => (state, None),
+    };
     let options = WindowOptions {
         max_image: a.max_image,
         interactive_max_image: a.drag_max_image,
@@ -128,6 +191,7 @@ pub fn run(a: ViewWindowArgs) -> Result<()> {
         script,
         title,
         bricked,
+        series: playback,
     };
     let outcome = window::run(header, opened.into_source(), state, options)?;
     outln!(
@@ -150,6 +214,15 @@ pub fn run(a: ViewWindowArgs) -> Result<()> {
             d.largest_image.1,
             d.frame_ms_quantile(0.5),
             d.frame_ms_quantile(0.9)
+        );
+    }
+    if let Some(p) = outcome.playback {
+        outln!(
+            "view: played {} time points in {:.2} s ({:.1} per second), {} of those it left shown converged",
+            p.advanced,
+            p.playing.as_secs_f64(),
+            p.advanced as f64 / p.playing.as_secs_f64().max(1e-9),
+            p.left_converged
         );
     }
     if let Some(c) = outcome.last_convergence {

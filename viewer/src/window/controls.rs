@@ -53,7 +53,40 @@ pub struct ViewState {
     pub level: f64,
     /// Multiview is not offered (a bricked volume: its panels are drawn in one pass only).
     pub single_view_only: bool,
+    /// A time series' time point and playback (`None`: one volume).
+    pub time: Option<TimeState>,
     initial: Option<Box<ViewState>>,
+}
+
+/// Where a time series is and whether it plays.
+#[derive(Debug, Clone, PartialEq)]
+pub struct TimeState {
+    /// The time point shown.
+    pub point: usize,
+    /// Time points in the series.
+    pub points: usize,
+    /// Each time point's time in seconds, when the series has them.
+    pub times: Option<Vec<f64>>,
+    /// Whether it plays.
+    pub playing: bool,
+    /// Time points per second while it plays.
+    pub fps: f64,
+}
+
+impl TimeState {
+    /// The time point `step` away from the one shown, around the loop.
+    fn stepped(&self, step: isize) -> usize {
+        (self.point as isize + step).rem_euclid(self.points.max(1) as isize) as usize
+    }
+
+    /// The time point and its time, in words ("t 3/16, 0.120 s").
+    pub fn describe(&self) -> String {
+        let time = match &self.times {
+            Some(t) => format!(", {:.3} s", t[self.point.min(t.len().saturating_sub(1))]),
+            None => String::new(),
+        };
+        format!("t {}/{}{time}", self.point, self.points)
+    }
 }
 
 impl ViewState {
@@ -99,10 +132,34 @@ impl ViewState {
             contrast: 1.0,
             level: 0.0,
             single_view_only: false,
+            time: None,
             initial: None,
         };
         s.initial = Some(Box::new(s.clone()));
         Ok(s)
+    }
+
+    /// This state for a time series of `points` time points (at `times` seconds when known),
+    /// showing `point`, playing at `fps` when asked to play.
+    pub fn with_time(
+        mut self,
+        point: usize,
+        points: usize,
+        times: Option<Vec<f64>>,
+        fps: f64,
+    ) -> ViewState {
+        self.time = Some(TimeState {
+            point: point.min(points.saturating_sub(1)),
+            points,
+            times,
+            playing: false,
+            fps,
+        });
+        self.initial = Some(Box::new(ViewState {
+            initial: None,
+            ..self.clone()
+        }));
+        self
     }
 
     /// This state for a volume drawn in single views only (a bricked volume): M says why it
@@ -261,6 +318,10 @@ pub enum KeyPress {
     Escape,
     /// F1.
     Help,
+    /// The left arrow (one time point back).
+    Left,
+    /// The right arrow (one time point on).
+    Right,
 }
 
 /// One input event, from winit or from the script.
@@ -292,7 +353,7 @@ pub const HELP: &str =
   M multiview, C depth cue on/off, [ ] cue extinction down/up, D cue light direction (view,
   +x, +y, +z), + - frame budget up/down, 1 2 display window narrower/wider, 3 4 level
   down/up, 0 automatic window/level, R reset the view, S screenshot (PNG), H or F1 this help,
-  Esc or Q quit";
+  Esc or Q quit; a time series: space plays and pauses, left/right arrows (or , .) step";
 
 /// What the front-end does after an input event.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -322,6 +383,8 @@ pub struct Controls {
     pub view_changed: bool,
     /// Only the display (window, level) changed: the image needs converting again.
     pub image_changed: bool,
+    /// The time point changed: the renderer needs the new time point's volume.
+    pub time_changed: bool,
 }
 
 impl Controls {
@@ -333,6 +396,15 @@ impl Controls {
             input: InputState::default(),
             view_changed: true,
             image_changed: true,
+            time_changed: false,
+        }
+    }
+
+    /// Moves a playing series to its next time point (the front-end's clock says when).
+    pub fn advance_time(&mut self) {
+        if let Some(t) = self.state.time.as_mut() {
+            t.point = t.stepped(1);
+            self.time_changed = true;
         }
     }
 
@@ -375,7 +447,23 @@ impl Controls {
 
     fn key(&mut self, k: KeyPress) -> Reaction {
         let s = &mut self.state;
+        let step = match k {
+            KeyPress::Left | KeyPress::Char(',') => Some(-1),
+            KeyPress::Right | KeyPress::Char('.') => Some(1),
+            _ => None,
+        };
+        if let (Some(step), Some(t)) = (step, s.time.as_mut()) {
+            t.point = t.stepped(step);
+            t.playing = false;
+            self.time_changed = true;
+            return Reaction::None;
+        }
         match k {
+            KeyPress::Char(' ') => match s.time.as_mut() {
+                Some(t) => t.playing = !t.playing,
+                None => return Reaction::Note("space plays a time series; this is one volume"),
+            },
+            KeyPress::Left | KeyPress::Right => {}
             KeyPress::Escape | KeyPress::Char('q') => return Reaction::Quit,
             KeyPress::Help | KeyPress::Char('h') => return Reaction::Help,
             KeyPress::Char('m') => {
@@ -444,8 +532,11 @@ impl Controls {
             }
             KeyPress::Char('r') => {
                 if let Some(initial) = s.initial.clone() {
+                    // The view resets; the time point and playback stay.
+                    let time = s.time.take();
                     *s = *initial.clone();
                     s.initial = Some(initial);
+                    s.time = time;
                 }
                 self.view_changed = true;
             }
@@ -541,9 +632,18 @@ impl ViewState {
             String::new()
         };
         let (iw, ih) = f.image;
+        let volume = match &self.time {
+            Some(t) => format!(
+                "{} — {}{}",
+                f.volume,
+                t.describe(),
+                if t.playing { ", playing" } else { "" }
+            ),
+            None => f.volume.to_string(),
+        };
         let title = format!(
             "wavesplat — {} — {} held, {} splatted, {} received — {:.1} ms/frame (budget {:.1}) — {}{}{}{} — {iw}x{ih}",
-            f.volume,
+            volume,
             f.held,
             f.splatted,
             human_bytes(f.bytes),
@@ -577,6 +677,7 @@ mod tests {
             contrast: 1.0,
             level: 0.0,
             single_view_only: false,
+            time: None,
             initial: None,
         }
     }

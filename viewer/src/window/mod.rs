@@ -15,11 +15,15 @@ mod shell;
 mod soft;
 
 pub use controls::{
-    human_bytes, Controls, Input, KeyPress, Reaction, TitleFacts, ViewState, WindowSize, HELP,
+    human_bytes, Controls, Input, KeyPress, Reaction, TimeState, TitleFacts, ViewState, WindowSize,
+    HELP,
 };
 pub use script::{Command, Script};
 #[cfg(feature = "window")]
-pub use shell::{run, Convergence, WindowOptions, WindowOutcome, DEFAULT_INTERACTIVE_MAX_IMAGE};
+pub use shell::{
+    run, Convergence, PlaybackFacts, SeriesPlayback, WindowOptions, WindowOutcome,
+    DEFAULT_INTERACTIVE_MAX_IMAGE,
+};
 
 use thiserror::Error;
 

@@ -24,6 +24,8 @@ pub enum Command {
     Frames(u64),
     /// Wait until the view has converged.
     Converge,
+    /// Wait until a playing time series has moved on N times in all.
+    Played(u64),
     /// Feed these events through the input handlers.
     Inputs(Vec<Input>),
     /// Ask for this window size and wait until it is granted (or 100 frames).
@@ -87,6 +89,11 @@ impl Script {
                         .map_err(|e| invalid(format!("script: frames N: {e}")))?,
                 ),
                 "converge" => Command::Converge,
+                "played" => Command::Played(
+                    one()?
+                        .parse()
+                        .map_err(|e| invalid(format!("script: played N: {e}")))?,
+                ),
                 "drag" => {
                     // drag X0,Y0 X1,Y1 [shift] [over N]: the moves within one frame, or one a
                     // frame for N frames (a hand's drag, for measuring frames while turning).
@@ -151,6 +158,9 @@ impl Script {
                     let key = match k.to_lowercase().as_str() {
                         "esc" | "escape" => KeyPress::Escape,
                         "f1" => KeyPress::Help,
+                        "left" => KeyPress::Left,
+                        "right" => KeyPress::Right,
+                        "space" => KeyPress::Char(' '),
                         s if s.chars().count() == 1 => {
                             KeyPress::Char(s.chars().next().unwrap_or('?'))
                         }

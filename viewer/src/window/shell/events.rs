@@ -85,6 +85,11 @@ impl App {
                         return Ok(());
                     }
                 }
+                Command::Played(n) => {
+                    if self.playback.map_or(0, |p| p.advanced) < n {
+                        return Ok(());
+                    }
+                }
                 Command::Inputs(v) => {
                     for i in v {
                         self.input(event_loop, i);
@@ -177,6 +182,9 @@ impl ApplicationHandler for App {
                 let key = match &event.logical_key {
                     Key::Named(NamedKey::Escape) => Some(KeyPress::Escape),
                     Key::Named(NamedKey::F1) => Some(KeyPress::Help),
+                    Key::Named(NamedKey::ArrowLeft) => Some(KeyPress::Left),
+                    Key::Named(NamedKey::ArrowRight) => Some(KeyPress::Right),
+                    Key::Named(NamedKey::Space) => Some(KeyPress::Char(' ')),
                     Key::Character(s) => s
                         .chars()
                         .next()
@@ -215,14 +223,21 @@ impl ApplicationHandler for App {
         let Some(g) = &self.gfx else {
             return;
         };
-        let busy = !self.converged || self.controls.view_changed || self.controls.image_changed;
+        let busy = !self.converged
+            || self.controls.view_changed
+            || self.controls.image_changed
+            || self.controls.time_changed;
         let scripted = !self.script.commands.is_empty() || self.options.exit_after_frames.is_some();
         if busy || scripted {
             g.window.request_redraw();
             event_loop.set_control_flow(ControlFlow::Poll);
         } else {
-            // Converged: check back now and then for packets a view change asked for.
-            let next = self.last_draw + Duration::from_millis(100);
+            // Converged: check back now and then for packets a view change asked for, and
+            // when a playing series' interval is over.
+            let mut next = self.last_draw + Duration::from_millis(100);
+            if let Some(t) = self.controls.state.time.as_ref().filter(|t| t.playing) {
+                next = next.min(self.last_time_switch + Duration::from_secs_f64(1.0 / t.fps));
+            }
             if Instant::now() >= next {
                 g.window.request_redraw();
             }

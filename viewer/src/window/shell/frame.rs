@@ -3,7 +3,7 @@
 //! shown on the device or uploaded, presented, and the title kept up to date.
 
 use super::surface::{present, shown_on_device, upload};
-use super::{report, window_size, App, Convergence, DragFrames};
+use super::{report, window_size, App, Convergence, DragFrames, PLAYBACK_PATIENCE};
 use crate::window::controls::{grid, TitleFacts};
 use crate::window::{Context, Result};
 use std::time::{Duration, Instant};
@@ -67,6 +67,47 @@ impl App {
         };
         if size != self.view_size || max_image != self.view_max_image {
             self.controls.view_changed = true;
+        }
+        // A playing series moves on once its interval is over and the time point converged
+        // (or it waited PLAYBACK_PATIENCE more): each time point is shown whole.
+        if let Some(t) = self.controls.state.time.as_ref().filter(|t| t.playing) {
+            let interval = Duration::from_secs_f64(1.0 / t.fps);
+            let waited = self.last_time_switch.elapsed();
+            if waited >= interval && (self.converged || waited >= interval + PLAYBACK_PATIENCE) {
+                let p = self.playback.get_or_insert_with(Default::default);
+                p.left_converged += u64::from(self.converged);
+                self.controls.advance_time();
+            }
+        }
+        if std::mem::take(&mut self.controls.time_changed) {
+            if let (Some(series), Some(t)) = (
+                self.options.series.as_mut(),
+                self.controls.state.time.as_ref(),
+            ) {
+                let spec = *frames.session.spec();
+                let (volume, source) = (series.open)(t.point, &spec).map_err(|source| {
+                    crate::window::WindowError::Failed {
+                        what: format!("opening time point {}", t.point),
+                        source,
+                    }
+                })?;
+                frames
+                    .session
+                    .replace_bricked_volume(volume)
+                    .context("drawing the next time point")?;
+                frames.source = source;
+                if t.playing {
+                    let p = self.playback.get_or_insert_with(Default::default);
+                    p.advanced += 1;
+                    p.playing += self.last_time_switch.elapsed();
+                }
+                self.last_time_switch = Instant::now();
+                self.controls.image_changed = true;
+                self.converged = false;
+                self.last_view_change = Instant::now();
+                self.view_refining = Duration::ZERO;
+                self.view_shown = 0;
+            }
         }
         if self.controls.view_changed {
             let geometry = frames.session.header().geometry;

@@ -35,6 +35,43 @@ use winit::dpi::PhysicalSize;
 use winit::event_loop::EventLoop;
 use winit::window::Window;
 
+/// What opens a time series' time points for the window: `open(t, spec)` gives time point
+/// `t` as a bricked session's volume and a source of its packets ranked for `spec`.
+pub struct SeriesPlayback {
+    /// Opens time point `t` for the view `spec`.
+    #[allow(clippy::type_complexity)]
+    pub open: Box<
+        dyn FnMut(
+            usize,
+            &wavesplat_codec::view::ViewSpec,
+        ) -> std::result::Result<
+            (crate::session::BrickedVolume, Box<dyn PacketSource>),
+            Box<dyn std::error::Error + Send + Sync>,
+        >,
+    >,
+}
+
+impl std::fmt::Debug for SeriesPlayback {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("SeriesPlayback")
+    }
+}
+
+/// How a series played in the window.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct PlaybackFacts {
+    /// Time points the playback moved to.
+    pub advanced: u64,
+    /// Of the time points it moved away from, those it showed converged.
+    pub left_converged: u64,
+    /// Time spent playing.
+    pub playing: Duration,
+}
+
+/// How long a playing series waits at most for a time point to converge before it moves on
+/// anyway, beyond its interval.
+pub(super) const PLAYBACK_PATIENCE: Duration = Duration::from_secs(2);
+
 /// How the window runs.
 #[derive(Debug)]
 pub struct WindowOptions {
@@ -62,6 +99,8 @@ pub struct WindowOptions {
     /// A bricked volume's bricks (`None`: one volume), drawn as one by the session
     /// ([`crate::session::RenderSession::new_bricked`]); such a window offers single views only.
     pub bricked: Option<crate::session::BrickedVolume>,
+    /// A time series: how its time points are opened (its time state is the view state's).
+    pub series: Option<SeriesPlayback>,
 }
 
 /// What the window did, when it closed.
@@ -81,6 +120,8 @@ pub struct WindowOutcome {
     pub last_convergence: Option<Convergence>,
     /// The frames drawn while a drag turned or panned the view, if any.
     pub dragging: Option<DragFrames>,
+    /// How a time series played, if it did.
+    pub playback: Option<PlaybackFacts>,
 }
 
 /// The frames drawn while a drag held the view (turning or panning it).
@@ -167,6 +208,8 @@ pub fn run(
         last_convergence: None,
         rest_display_ms: None,
         dragging: None,
+        last_time_switch: Instant::now(),
+        playback: None,
     };
     event_loop
         .run_app(&mut app)
@@ -185,6 +228,7 @@ pub fn run(
         converged: app.converged,
         last_convergence: app.last_convergence,
         dragging: app.dragging.take(),
+        playback: app.playback,
     };
     if let Some(frames) = &app.frames {
         let stats = frames.session.stats();
@@ -253,6 +297,10 @@ struct App {
     rest_display_ms: Option<f64>,
     /// The frames drawn while a drag held the view.
     dragging: Option<DragFrames>,
+    /// When the time point last changed.
+    last_time_switch: Instant,
+    /// How a series played.
+    playback: Option<PlaybackFacts>,
 }
 
 /// The size winit reports, as the controls take it.
