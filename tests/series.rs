@@ -2,7 +2,8 @@
 //! step), a 4D raw file and a directory of time steps are each compressed with one command
 //! into one series file; `info` shows the time points and their times, `decompress
 //! --time-point` gives back a time point, `render --time-point` and `--time-points` draw them
-//! (PNGs through one window and an animated PNG); `--time-point` takes one volume out at
+//! (PNGs through one window and an animated PNG); a DICOM cine (slices repeated at several
+//! trigger times) compresses the same way; `--time-point` takes one volume out at
 //! compression; bad series are refused with the problem named.
 
 mod common;
@@ -11,7 +12,7 @@ use std::path::Path;
 use std::process::{Command, Output};
 use wavesplat_codec::volume::Volume;
 use wavesplat_compressor::phantom::beating;
-use wavesplat_fixtures::{write_nifti, write_nifti_series};
+use wavesplat_fixtures::{write_dicom_cine, write_nifti, write_nifti_series, DicomOptions, Layout};
 
 const BIN: &str = env!("CARGO_BIN_EXE_wavesplat");
 const DIMS: [usize; 3] = [24, 20, 12];
@@ -327,4 +328,70 @@ fn a_4d_raw_file_and_a_directory_of_steps_compress_with_one_command() {
         &d("x.wsp"),
     ]);
     assert!(e.contains("one volume"), "{e}");
+}
+
+#[test]
+fn a_dicom_cine_compresses_with_one_command_and_plays_its_trigger_times() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = |n: &str| dir.path().join(n).to_string_lossy().into_owned();
+    // Integer-valued time points (16-bit samples).
+    let vols: Vec<Volume> = points(5)
+        .into_iter()
+        .map(|v| {
+            let data = v.channel(0).iter().map(|x| x.max(0.0).round()).collect();
+            Volume::new(DIMS, [1.25, 1.25, 4.0], vec![data]).unwrap()
+        })
+        .collect();
+    let ms = [0.0, 41.5, 83.0, 124.5, 166.0];
+    let o = DicomOptions {
+        layout: Layout::U16,
+        ..Default::default()
+    };
+    write_dicom_cine(&dir.path().join("cine"), &vols, &ms, &o);
+    let out = cli_ok(&[
+        "compress",
+        &d("cine"),
+        "--target-fraction",
+        "0.15",
+        "-o",
+        &d("c.wsp"),
+    ]);
+    assert!(out.contains("a time series of 5 time points"), "{out}");
+    assert!(out.contains("time step 0.0415 s"), "{out}");
+    let info = cli_ok(&["info", &d("c.wsp")]);
+    assert!(
+        info.contains("time points 5, from 0.0000 s to 0.1660 s"),
+        "{info}"
+    );
+    assert!(info.contains("spacing 1.25 x 1.25 x 4"), "{info}");
+    cli_ok(&[
+        "decompress",
+        &d("c.wsp"),
+        "--time-point",
+        "3",
+        "-o",
+        &d("t3.raw"),
+    ]);
+    let db = psnr_of(&dir.path().join("t3.raw"), &vols[3]);
+    assert!(db > 35.0, "{db:.2} dB");
+    // One time point taken out of the cine.
+    cli_ok(&[
+        "compress",
+        &d("cine"),
+        "--time-point",
+        "4",
+        "--target-fraction",
+        "0.15",
+        "-o",
+        &d("one.wsp"),
+    ]);
+    cli_ok(&["decompress", &d("one.wsp"), "-o", &d("one.raw")]);
+    let (db, other) = (
+        psnr_of(&dir.path().join("one.raw"), &vols[4]),
+        psnr_of(&dir.path().join("one.raw"), &vols[1]),
+    );
+    assert!(
+        db > 28.0 && db > other + 3.0,
+        "{db:.2} dB, against another {other:.2}"
+    );
 }

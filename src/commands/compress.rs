@@ -16,6 +16,7 @@ use wavesplat_compressor::encode::{
 };
 use wavesplat_compressor::order::Clustering;
 use wavesplat_compressor::phantom::{beating, Phantom, PhantomVolume};
+use wavesplat_compressor::reader::dicom::read_time_series;
 use wavesplat_compressor::reader::region::RegionReader;
 use wavesplat_compressor::reader::steps::{step_files, StepSeries};
 use wavesplat_compressor::reader::{read_volume, time_points, Endian, RawDtype, RawSpec};
@@ -287,7 +288,15 @@ fn open_series(a: &CompressArgs) -> Result<Option<super::series::SeriesInput>> {
     if path.is_dir() {
         let files = step_files(&path, raw.as_ref()).map_err(|e| read_error(&path, e))?;
         if files.is_empty() {
-            return Ok(None); // a DICOM series
+            // A DICOM series: a time series when its slices repeat at several times.
+            let Some((volumes, times)) =
+                read_time_series(&path).map_err(|e| read_error(&path, e))?
+            else {
+                return Ok(None);
+            };
+            return Ok(Some(SeriesInput::Memory(VolumeSeries::new(
+                volumes, times,
+            )?)));
         }
         let steps = StepSeries::open(&path, raw.as_ref()).map_err(|e| read_error(&path, e))?;
         return Ok(Some(SeriesInput::Steps(steps)));

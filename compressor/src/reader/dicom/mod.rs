@@ -63,8 +63,8 @@ mod pixels;
 mod series;
 mod walk;
 
-pub use series::is_dicom_file;
 pub(crate) use series::{decode, gather_series, SeriesRegions};
+pub use series::{is_dicom_file, read_time_series};
 pub(crate) use walk::has_preamble;
 
 /// What the reader needs of one image file (pixel data not yet decoded).

@@ -300,6 +300,131 @@ pub(crate) fn decode(src: &SourceFiles) -> Result<Volume, ReadError> {
     }
 }
 
+/// A DICOM series directory whose images repeat the same slices at several time points (a
+/// cine MR stack, a 4D CT): each time point's images (grouped by Temporal Position Identifier,
+/// else Trigger Time) decoded as a volume of its own, with every check a volume gets, in time
+/// order; and their times in seconds when Trigger Time gives them. `Ok(None)` when the images
+/// are not a time series (no time, or one). Every time point must be of the first's
+/// dimensions and spacing, and every image must say its time: a missing, mixed or unreadable
+/// time is an error naming the file, as is a time point whose slices do not form a volume.
+/// The series is held in memory (cine and 4D series are small); a larger one is refused by
+/// the volume's own memory checks.
+pub fn read_time_series(dir: &Path) -> Result<Option<(Vec<Volume>, Option<Vec<f64>>)>, ReadError> {
+    let bad = |reason: String| ReadError::Series {
+        path: dir.to_path_buf(),
+        reason,
+    };
+    // Only a series whose (first) image says a time is read whole here: a volume's series
+    // (a CT without a trigger) costs one header.
+    let Some((name, path)) = series_files(dir)?.into_iter().next() else {
+        return Ok(None);
+    };
+    let first = crate::reader::read_file(&path)?;
+    let says_time = read_headers(std::iter::once(Ok((
+        name.as_str(),
+        path.clone(),
+        std::borrow::Cow::Borrowed(first.as_slice()),
+    ))))?
+    .first()
+    .is_some_and(|i| i.time.is_some());
+    if !says_time {
+        return Ok(None);
+    }
+    let files = gather_series(dir)?;
+    let images = read_headers(files.files.iter().map(|(name, bytes)| {
+        Ok((
+            name.as_str(),
+            files.path_of(name),
+            std::borrow::Cow::Borrowed(bytes.as_slice()),
+        ))
+    }))?;
+    let times: std::collections::BTreeSet<&str> =
+        images.iter().filter_map(|i| i.time.as_deref()).collect();
+    if times.len() < 2 {
+        return Ok(None);
+    }
+    if let Some(i) = images.iter().find(|i| i.time.is_none()) {
+        return Err(bad(format!(
+            "a time series whose image {} says no time (Temporal Position Identifier or \
+             Trigger Time) where the others do",
+            i.name
+        )));
+    }
+    let attribute = images[0].time_attribute;
+    if let Some(i) = images.iter().find(|i| i.time_attribute != attribute) {
+        return Err(bad(format!(
+            "a time series whose images say their time by different attributes: {} by {}, {} \
+             by {attribute}",
+            i.name, i.time_attribute, images[0].name
+        )));
+    }
+    // Time points by their time's text, in order of its value.
+    let mut by_text: BTreeMap<&str, Vec<String>> = BTreeMap::new();
+    for i in &images {
+        by_text
+            .entry(i.time.as_deref().unwrap_or_default())
+            .or_default()
+            .push(i.name.clone());
+    }
+    let mut groups: Vec<(f64, Vec<String>)> = Vec::with_capacity(by_text.len());
+    for (text, names) in by_text {
+        let value = text
+            .trim()
+            .parse::<f64>()
+            .ok()
+            .filter(|v| v.is_finite())
+            .ok_or_else(|| {
+                bad(format!(
+                    "image {} has {attribute} {text:?}, not a number",
+                    names[0]
+                ))
+            })?;
+        groups.push((value, names));
+    }
+    groups.sort_by(|a, b| a.0.total_cmp(&b.0));
+    if let Some(w) = groups.windows(2).find(|w| w[0].0 == w[1].0) {
+        return Err(bad(format!(
+            "two time points at {attribute} {}: images {} and {}",
+            w[0].0, w[0].1[0], w[1].1[0]
+        )));
+    }
+    let mut volumes: Vec<Volume> = Vec::with_capacity(groups.len());
+    let mut values = Vec::with_capacity(groups.len());
+    for (t, (value, names)) in groups.into_iter().enumerate() {
+        let src = SourceFiles {
+            origin: dir.to_path_buf(),
+            base: dir.to_path_buf(),
+            format: Some(crate::reader::Format::Dicom),
+            files: files
+                .files
+                .iter()
+                .filter(|(n, _)| names.contains(n))
+                .cloned()
+                .collect(),
+        };
+        let v =
+            decode(&src).map_err(|e| bad(format!("time point {t} ({attribute} {value}): {e}")))?;
+        if let Some(first) = volumes.first() {
+            if v.dims() != first.dims() || v.spacing() != first.spacing() {
+                return Err(bad(format!(
+                    "time point {t} ({attribute} {value}) is {:?} at spacing {:?}; time point 0 \
+                     is {:?} at {:?}",
+                    v.dims(),
+                    v.spacing(),
+                    first.dims(),
+                    first.spacing()
+                )));
+            }
+        }
+        volumes.push(v);
+        values.push(value);
+    }
+    let times = attribute
+        .starts_with("Trigger Time")
+        .then(|| values.iter().map(|ms| ms / 1000.0).collect());
+    Ok(Some((volumes, times)))
+}
+
 /// `channels` zeroed buffers of `n` samples, or an error naming `dir` when memory is short.
 fn allocate(dir: &Path, channels: usize, n: usize) -> Result<Vec<Vec<f32>>, ReadError> {
     let mut out: Vec<Vec<f32>> = Vec::with_capacity(channels);

@@ -2135,3 +2135,129 @@ fn unknown_value_representations_are_read_as_other_toolkits_read_them() {
         );
     }
 }
+
+/// Writes the 4D series of `volumes` (one per time point) into `dir/4d`: each time point's
+/// slices with `attr` = `value(t)` and UIDs of their own; returns the directory.
+fn write_4d(
+    dir: &Path,
+    volumes: &[Volume],
+    attr: (Tag, VR),
+    value: &dyn Fn(usize) -> String,
+) -> PathBuf {
+    let o = DicomOptions {
+        layout: Layout::U16,
+        ..Default::default()
+    };
+    let series = dir.join("4d");
+    std::fs::create_dir_all(&series).unwrap();
+    for (t, v) in volumes.iter().enumerate() {
+        let files = write_dicom_series(&dir.join(format!("t{t}")), v, &o);
+        for (i, f) in files.iter().enumerate() {
+            let mut obj = open_file(f).unwrap();
+            set(&mut obj, attr.0, attr.1, PrimitiveValue::from(value(t)));
+            set(
+                &mut obj,
+                tags::SOP_INSTANCE_UID,
+                VR::UI,
+                PrimitiveValue::from(format!("1.2.826.0.1.3680043.9.7433.5.{t}.{i}")),
+            );
+            obj.write_to_file(series.join(format!("img-{t}-{i}.dcm")))
+                .unwrap();
+        }
+    }
+    series
+}
+
+/// A 4D series read as a time series: each time point (grouped by Trigger Time, in the order
+/// of its value, not of the text) decodes as that volume, with its time in seconds; by
+/// Temporal Position Identifier, without times. One volume's reader still refuses it.
+#[test]
+fn a_4d_series_reads_as_time_points_in_time_order() {
+    let vols: Vec<Volume> = (0..3)
+        .map(|t| {
+            let v = volume([6, 5, 3], [1.0, 1.0, 2.0], Layout::U16, 1.0, 0.0);
+            let d = v
+                .channel(0)
+                .iter()
+                .map(|x| (x + 1000.0 * t as f32).min(65535.0))
+                .collect();
+            Volume::new(v.dims(), v.spacing(), vec![d])
+                .unwrap()
+                .with_placement(oblique())
+                .unwrap()
+        })
+        .collect();
+    let dir = tempfile::tempdir().unwrap();
+    // Trigger times 0, 45.5 and 100 ms: "100" sorts before "45.5" as text.
+    let ms = ["0", "45.5", "100"];
+    let series = write_4d(dir.path(), &vols, (tags::TRIGGER_TIME, VR::DS), &|t| {
+        ms[t].into()
+    });
+    let (back, times) = read_time_series(&series).unwrap().expect("a time series");
+    assert_eq!(back.len(), 3);
+    for (t, v) in back.iter().enumerate() {
+        assert_same(v, &vols[t], &format!("time point {t}"));
+    }
+    assert_eq!(times, Some(vec![0.0, 0.0455, 0.1]));
+    assert!(read_volume(&series, None)
+        .unwrap_err()
+        .to_string()
+        .contains("time series"));
+
+    let dir = tempfile::tempdir().unwrap();
+    let series = write_4d(
+        dir.path(),
+        &vols,
+        (tags::TEMPORAL_POSITION_IDENTIFIER, VR::IS),
+        &|t| (t + 1).to_string(),
+    );
+    let (back, times) = read_time_series(&series).unwrap().unwrap();
+    assert_eq!(times, None);
+    assert_same(&back[2], &vols[2], "time point 2");
+    // One volume is no time series.
+    let one = tempfile::tempdir().unwrap();
+    let o = DicomOptions {
+        layout: Layout::U16,
+        ..Default::default()
+    };
+    write_dicom_series(one.path(), &vols[0], &o);
+    assert!(read_time_series(one.path()).unwrap().is_none());
+}
+
+/// A 4D series with a time point missing a slice, an image without its time or a time that is
+/// not a number is refused, naming the time point or the file.
+#[test]
+fn broken_4d_series_are_refused_naming_the_problem() {
+    let vols: Vec<Volume> = (0..2)
+        .map(|_| volume([6, 5, 4], [1.0, 1.0, 2.0], Layout::U16, 1.0, 0.0))
+        .collect();
+    let attr = (tags::TRIGGER_TIME, VR::DS);
+    let dir = tempfile::tempdir().unwrap();
+    let series = write_4d(dir.path(), &vols, attr, &|t| (40 * t).to_string());
+    std::fs::remove_file(series.join("img-1-1.dcm")).unwrap();
+    let e = read_time_series(&series).unwrap_err().to_string();
+    assert!(
+        e.contains("time point 1 (Trigger Time (0018,1060) 40)") && e.contains("slice spacing"),
+        "{e}"
+    );
+
+    let dir = tempfile::tempdir().unwrap();
+    let series = write_4d(dir.path(), &vols, attr, &|t| (40 * t).to_string());
+    let f = series.join("img-0-2.dcm");
+    let mut obj = open_file(&f).unwrap();
+    obj.remove_element(tags::TRIGGER_TIME);
+    obj.write_to_file(&f).unwrap();
+    let e = read_time_series(&series).unwrap_err().to_string();
+    assert!(e.contains("img-0-2.dcm says no time"), "{e}");
+
+    let dir = tempfile::tempdir().unwrap();
+    let series = write_4d(dir.path(), &vols, attr, &|t| {
+        if t == 0 {
+            "0".into()
+        } else {
+            "late".into()
+        }
+    });
+    let e = read_time_series(&series).unwrap_err().to_string();
+    assert!(e.contains("not a number"), "{e}");
+}
