@@ -300,6 +300,9 @@ pub(crate) fn decode(src: &SourceFiles) -> Result<Volume, ReadError> {
     }
 }
 
+/// The time points of a series (in time order) and their times in seconds, when known.
+pub type TimeSeries = (Vec<Volume>, Option<Vec<f64>>);
+
 /// A DICOM series directory whose images repeat the same slices at several time points (a
 /// cine MR stack, a 4D CT): each time point's images (grouped by Temporal Position Identifier,
 /// else Trigger Time) decoded as a volume of its own, with every check a volume gets, in time
