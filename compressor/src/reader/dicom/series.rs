@@ -312,7 +312,7 @@ pub type TimeSeries = (Vec<Volume>, Option<Vec<f64>>);
 /// time is an error naming the file, as is a time point whose slices do not form a volume.
 /// The series is held in memory (cine and 4D series are small); a larger one is refused by
 /// the volume's own memory checks.
-pub fn read_time_series(dir: &Path) -> Result<Option<(Vec<Volume>, Option<Vec<f64>>)>, ReadError> {
+pub fn read_time_series(dir: &Path) -> Result<Option<TimeSeries>, ReadError> {
     let bad = |reason: String| ReadError::Series {
         path: dir.to_path_buf(),
         reason,
