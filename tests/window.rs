@@ -702,9 +702,9 @@ fn the_screen_shows_the_device_image_of_the_gpu_backend() {
 }
 
 /// A time series plays in the window: space starts it, every time point it moves to is drawn
-/// (and shown converged before it moves on, at this size), the arrows step while paused, and
-/// the title says which time point is shown; the screenshot of a paused time point is that
-/// time point's `render` image.
+/// (and shown converged before it moves on, at this size), a time point drawn before in the
+/// same view is shown again from its kept image, the arrows step while paused; the screenshot
+/// of a paused time point (kept or drawn) is that time point's `render` image.
 #[test]
 fn a_time_series_plays_steps_and_pauses_in_the_window() {
     let Some(x) = display_for_window() else {
@@ -728,9 +728,13 @@ fn a_time_series_plays_steps_and_pauses_in_the_window() {
         .unwrap();
     assert!(out.status.success(), "{}", common::text(&out));
     let shot = dir.path().join("paused.png");
+    // After R (the view reset, the same view): the session itself draws the time point shown.
+    let drawn = dir.path().join("reset.png");
     let script = format!(
-        "converge; key space; played 10; key space; key right; key right; converge; screenshot {}; quit",
-        shot.display()
+        "converge; key space; played 10; key space; key right; key right; converge; screenshot {}; \
+         key r; converge; screenshot {}; quit",
+        shot.display(),
+        drawn.display()
     );
     let child = spawn_view(
         &x.display,
@@ -768,6 +772,15 @@ fn a_time_series_plays_steps_and_pauses_in_the_window() {
         converged >= 9,
         "most time points are left converged: {played}"
     );
+    // After the first loop (8 time points) the time points come back in the same view: shown
+    // from their kept images.
+    let kept = line_with(&stdout, "drawn before in this view");
+    let k: u64 = kept
+        .split_whitespace()
+        .nth(1)
+        .and_then(|v| v.parse().ok())
+        .unwrap_or_else(|| panic!("{kept}"));
+    assert!(k >= 2, "{kept}");
     // Paused after 10 moves from time point 1, then two steps on: time point 13 mod 8 = 5.
     let rendered = dir.path().join("t5.png");
     let out = Command::new(BIN)
@@ -785,16 +798,18 @@ fn a_time_series_plays_steps_and_pauses_in_the_window() {
         .output()
         .unwrap();
     assert!(out.status.success(), "{}", common::text(&out));
-    let (w, h, shown) = grey(&shot);
     let (_, _, want) = grey(&rendered);
-    assert_eq!((w, h), (128, 128));
-    let diff = shown
-        .iter()
-        .zip(&want)
-        .map(|(a, b)| (a - b).abs())
-        .fold(0.0, f64::max);
-    assert!(
-        diff <= 2.0,
-        "the paused time point is time point 5's image: {diff}"
-    );
+    for path in [&shot, &drawn] {
+        let (w, h, shown) = grey(path);
+        assert_eq!((w, h), (128, 128));
+        let diff = shown
+            .iter()
+            .zip(&want)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0, f64::max);
+        assert!(
+            diff <= 2.0,
+            "{path:?}: the paused time point is time point 5's image: {diff}"
+        );
+    }
 }

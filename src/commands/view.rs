@@ -224,6 +224,14 @@ pub fn run(a: ViewWindowArgs) -> Result<()> {
             p.advanced as f64 / p.playing.as_secs_f64().max(1e-9),
             p.left_converged
         );
+        if p.kept > 1 {
+            // Time points already drawn in this view (after the first loop): their kept images.
+            outln!(
+                "view: {} of them drawn before in this view, shown again at {:.1} per second",
+                p.kept,
+                (p.kept - 1) as f64 / p.kept_playing.as_secs_f64().max(1e-9)
+            );
+        }
     }
     if let Some(c) = outcome.last_convergence {
         // What a user (and the window's test) reads to see that refinement had the time.

@@ -921,4 +921,57 @@ mod tests {
         assert_eq!(human_bytes(9_999), "9999 B");
         assert_eq!(human_bytes(25_000_000), "25.0 MB");
     }
+
+    /// Space plays and pauses a series, the arrows (or , .) step around the loop and pause it,
+    /// the clock's advance wraps, R keeps the time point; one volume says space has nothing to
+    /// play; the title names the time point and its time.
+    #[test]
+    fn time_keys_play_pause_and_step_a_series() {
+        let key = |c: &mut Controls, k| c.apply(Input::Key(k), 1.0);
+        let mut one = Controls::new(state());
+        assert!(matches!(
+            key(&mut one, KeyPress::Char(' ')),
+            Reaction::Note(_)
+        ));
+        assert!(!one.time_changed);
+        let mut c = Controls::new(state().with_time(1, 4, Some(vec![0.0, 0.05, 0.1, 0.15]), 10.0));
+        let time = |c: &Controls| c.state.time.clone().unwrap();
+        key(&mut c, KeyPress::Char(' '));
+        assert!(time(&c).playing && !c.time_changed);
+        c.advance_time();
+        c.advance_time();
+        c.advance_time();
+        assert_eq!(time(&c).point, 0, "the clock wraps around the loop");
+        assert!(c.time_changed);
+        c.time_changed = false;
+        key(&mut c, KeyPress::Left);
+        assert_eq!((time(&c).point, time(&c).playing), (3, false));
+        assert!(c.time_changed);
+        key(&mut c, KeyPress::Char('.'));
+        key(&mut c, KeyPress::Right);
+        assert_eq!(time(&c).point, 1);
+        key(&mut c, KeyPress::Char('r'));
+        assert_eq!(time(&c).point, 1, "a view reset keeps the time point");
+        let facts = TitleFacts {
+            volume: "cine.wsp",
+            held: 0,
+            splatted: 0,
+            bytes: 0,
+            frame_ms: 1.0,
+            connected: true,
+            problem: None,
+            converged: true,
+            idle: true,
+            memory_full: false,
+            recoveries: 0,
+            image: (8, 8),
+            rest_display_ms: None,
+        };
+        let (title, _) = c.state.title(&facts);
+        assert!(title.contains("cine.wsp — t 1/4, 0.050 s"), "{title}");
+        // Arrow keys on one volume do nothing.
+        let before = one.state.clone();
+        key(&mut one, KeyPress::Right);
+        assert_eq!(one.state, before);
+    }
 }

@@ -50,7 +50,14 @@ impl App {
             .frames
             .as_mut()
             .ok_or_else(|| WindowError::Invalid("nothing is shown yet".into()))?;
-        let image = frames.session.image().context("reading the image")?;
+        // The image shown: a played time point's kept image, else the session's.
+        let kept = self
+            .cached_point
+            .and_then(|t| self.time_images.get(t, frames.session.spec()).cloned());
+        let image = match kept {
+            Some(image) => image,
+            None => frames.session.image().context("reading the image")?,
+        };
         let window = Some(self.controls.state.display_window(&image));
         arrange(
             image,
@@ -81,7 +88,7 @@ impl App {
                     self.script.waiting_since = None;
                 }
                 Command::Converge => {
-                    if !self.converged || self.controls.view_changed {
+                    if !self.converged || self.controls.view_changed || self.controls.time_changed {
                         return Ok(());
                     }
                 }

@@ -2,7 +2,7 @@
 //! after the display's own cost (longer refinement slices while the view rests), the image
 //! shown on the device or uploaded, presented, and the title kept up to date.
 
-use super::surface::{present, shown_on_device, upload};
+use super::surface::{present, shown_on_device, upload, upload_image};
 use super::{report, window_size, App, Convergence, DragFrames, PLAYBACK_PATIENCE};
 use crate::window::controls::{grid, TitleFacts};
 use crate::window::{Context, Result};
@@ -79,15 +79,49 @@ impl App {
                 self.controls.advance_time();
             }
         }
-        if std::mem::take(&mut self.controls.time_changed) {
-            if let (Some(series), Some(t)) = (
-                self.options.series.as_mut(),
-                self.controls.state.time.as_ref(),
-            ) {
+        let time_changed = std::mem::take(&mut self.controls.time_changed);
+        let wanted = self
+            .controls
+            .state
+            .time
+            .as_ref()
+            .map(|t| (t.point, t.playing));
+        if let (Some((point, playing)), true) = (wanted, time_changed) {
+            if playing {
+                let p = self.playback.get_or_insert_with(Default::default);
+                p.advanced += 1;
+                p.playing += self.last_time_switch.elapsed();
+                if self.cached_point.is_some() {
+                    // The time point left was shown from its kept image.
+                    p.kept_playing += self.last_time_switch.elapsed();
+                }
+            }
+            self.last_time_switch = Instant::now();
+            self.controls.image_changed = true;
+            let spec = *frames.session.spec();
+            if !self.controls.view_changed && self.time_images.get(point, &spec).is_some() {
+                // Drawn converged in this view before: shown again as it was.
+                self.cached_point = Some(point);
+                self.converged = true;
+                if playing {
+                    self.playback.get_or_insert_with(Default::default).kept += 1;
+                }
+            } else {
+                self.cached_point = None;
+            }
+        }
+        // The session draws the time point shown, unless that one is kept from before and the
+        // view stays.
+        if let Some((point, _)) = wanted {
+            let needs_session = self.cached_point.is_none() || self.controls.view_changed;
+            if needs_session && point != self.session_point {
+                let series = self.options.series.as_mut().ok_or_else(|| {
+                    crate::window::WindowError::Invalid("a time state without a series".into())
+                })?;
                 let spec = *frames.session.spec();
-                let (volume, source) = (series.open)(t.point, &spec).map_err(|source| {
+                let (volume, source) = (series.open)(point, &spec).map_err(|source| {
                     crate::window::WindowError::Failed {
-                        what: format!("opening time point {}", t.point),
+                        what: format!("opening time point {point}"),
                         source,
                     }
                 })?;
@@ -96,17 +130,15 @@ impl App {
                     .replace_bricked_volume(volume)
                     .context("drawing the next time point")?;
                 frames.source = source;
-                if t.playing {
-                    let p = self.playback.get_or_insert_with(Default::default);
-                    p.advanced += 1;
-                    p.playing += self.last_time_switch.elapsed();
-                }
-                self.last_time_switch = Instant::now();
+                self.session_point = point;
                 self.controls.image_changed = true;
                 self.converged = false;
                 self.last_view_change = Instant::now();
                 self.view_refining = Duration::ZERO;
                 self.view_shown = 0;
+            }
+            if needs_session {
+                self.cached_point = None;
             }
         }
         if self.controls.view_changed {
@@ -149,6 +181,9 @@ impl App {
         }
         // While the user interacts, a frame's splatting gets what the budget leaves after
         // showing the image and planning a changed view, so frames keep to the budget.
+        if self.cached_point.is_some() {
+            return self.show_kept(size, start);
+        }
         let budget_ms = self.controls.state.budget_ms;
         let refine_start = Instant::now();
         let spent_ms = start.elapsed().as_secs_f64() * 1e3;
@@ -188,6 +223,13 @@ impl App {
         let idle = report.idle();
         let was_converged = self.converged;
         self.converged = idle && status.done;
+        if self.converged && self.controls.state.time.is_some() {
+            let spec = *frames.session.spec();
+            if self.time_images.get(self.session_point, &spec).is_none() {
+                let image = frames.session.image().context("reading the image")?;
+                self.time_images.keep(self.session_point, spec, image);
+            }
+        }
         if self.converged && !was_converged {
             self.last_convergence = Some(Convergence {
                 elapsed: self.last_view_change.elapsed(),
@@ -284,6 +326,57 @@ impl App {
                 report.coefficients,
                 state
             );
+        }
+        Ok(())
+    }
+
+    /// Shows the kept image of the time point being played (`cached_point`), with no session
+    /// work: the display's cost only.
+    fn show_kept(&mut self, size: winit::dpi::PhysicalSize<u32>, start: Instant) -> Result<()> {
+        let (Some(g), Some(frames), Some(point)) =
+            (self.gfx.as_mut(), self.frames.as_ref(), self.cached_point)
+        else {
+            return Ok(());
+        };
+        let spec = *frames.session.spec();
+        if self.controls.image_changed {
+            let image = self
+                .time_images
+                .get(point, &spec)
+                .cloned()
+                .ok_or_else(|| crate::window::WindowError::Invalid("no kept image".into()))?;
+            let panels = grid(window_size(self.view_size), self.controls.state.multiview);
+            let (w, h) = upload_image(g, image, &self.controls.state, panels)?;
+            self.last_image = Some((w as usize, h as usize));
+            self.controls.image_changed = false;
+        }
+        present(g, size)?;
+        self.converged = true;
+        self.drawn += 1;
+        self.view_shown += 1;
+        self.last_draw = Instant::now();
+        let frame_ms = start.elapsed().as_secs_f64() * 1e3;
+        self.frame_ms_avg = 0.9 * self.frame_ms_avg + 0.1 * frame_ms;
+        if self.last_title.elapsed() > Duration::from_millis(250) {
+            self.last_title = Instant::now();
+            let stats = frames.session.stats();
+            let status = frames.source_status();
+            let (title, _) = self.controls.state.title(&TitleFacts {
+                volume: &self.options.title,
+                held: stats.coefficients_held,
+                splatted: stats.splatted_in_view,
+                bytes: status.bytes,
+                frame_ms: self.frame_ms_avg,
+                connected: status.connected,
+                problem: status.problem.as_deref(),
+                converged: true,
+                idle: true,
+                memory_full: frames.session.memory_full(),
+                recoveries: self.recoveries,
+                image: self.last_image.unwrap_or((0, 0)),
+                rest_display_ms: None,
+            });
+            g.window.set_title(&title);
         }
         Ok(())
     }

@@ -66,6 +66,58 @@ pub struct PlaybackFacts {
     pub left_converged: u64,
     /// Time spent playing.
     pub playing: Duration,
+    /// Of the moves, those to a time point drawn converged in this view before, shown from its
+    /// kept image (after the first loop, every one).
+    pub kept: u64,
+    /// Time spent on those time points.
+    pub kept_playing: Duration,
+}
+
+/// Images of a series' converged time points in one view, shown again when playback comes
+/// back to them while the view stays: after the first loop a time point costs its display only.
+#[derive(Default)]
+pub(super) struct TimeImages {
+    /// The view they were drawn in.
+    pub(super) spec: Option<wavesplat_codec::view::ViewSpec>,
+    pub(super) images: std::collections::HashMap<usize, crate::Image>,
+    pub(super) bytes: usize,
+}
+
+/// Most bytes of time point images kept.
+pub(super) const TIME_IMAGES_BYTES: usize = 512 << 20;
+
+impl TimeImages {
+    /// The image of time point `t` in view `spec`, if kept.
+    pub(super) fn get(
+        &self,
+        t: usize,
+        spec: &wavesplat_codec::view::ViewSpec,
+    ) -> Option<&crate::Image> {
+        (self.spec.as_ref() == Some(spec))
+            .then(|| self.images.get(&t))
+            .flatten()
+    }
+
+    /// Keeps `image` as time point `t`'s in view `spec` (forgetting those of another view),
+    /// within [`TIME_IMAGES_BYTES`].
+    pub(super) fn keep(
+        &mut self,
+        t: usize,
+        spec: wavesplat_codec::view::ViewSpec,
+        image: crate::Image,
+    ) {
+        if self.spec != Some(spec) {
+            self.images.clear();
+            self.bytes = 0;
+            self.spec = Some(spec);
+        }
+        let size = image.data.len() * 4;
+        if self.images.contains_key(&t) || self.bytes + size > TIME_IMAGES_BYTES {
+            return;
+        }
+        self.bytes += size;
+        self.images.insert(t, image);
+    }
 }
 
 /// How long a playing series waits at most for a time point to converge before it moves on
@@ -180,6 +232,7 @@ pub fn run(
     let event_loop = EventLoop::new().context(
         "opening the display (no X11 display? set DISPLAY, or use `wavesplat render` headless)",
     )?;
+    let state_point = state.time.as_ref().map_or(0, |t| t.point);
     let mut app = App {
         controls: Controls::new(state),
         view_size: PhysicalSize::new(0, 0),
@@ -210,6 +263,9 @@ pub fn run(
         dragging: None,
         last_time_switch: Instant::now(),
         playback: None,
+        time_images: TimeImages::default(),
+        session_point: state_point,
+        cached_point: None,
     };
     event_loop
         .run_app(&mut app)
@@ -301,6 +357,12 @@ struct App {
     last_time_switch: Instant,
     /// How a series played.
     playback: Option<PlaybackFacts>,
+    /// Converged time points' images in the current view.
+    time_images: TimeImages,
+    /// The time point the session draws.
+    session_point: usize,
+    /// The time point shown from `time_images` instead of the session's image, if one is.
+    cached_point: Option<usize>,
 }
 
 /// The size winit reports, as the controls take it.

@@ -27,6 +27,17 @@ pub(super) fn upload(
     panels: (usize, usize),
 ) -> Result<(u32, u32)> {
     let image = frames.session.image().context("reading the image")?;
+    upload_image(g, image, state, panels)
+}
+
+/// Uploads `image` (a host image: the session's, or a time point's kept from before) as the
+/// texture shown, through the state's display window.
+pub(super) fn upload_image(
+    g: &mut Gfx,
+    image: crate::Image,
+    state: &ViewState,
+    panels: (usize, usize),
+) -> Result<(u32, u32)> {
     let window = Some(state.display_window(&image));
     let image = arrange(image, panels);
     let (w, h) = (image.width as u32, image.height as u32);
