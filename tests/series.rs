@@ -68,6 +68,13 @@ fn a_4d_nifti_compresses_into_one_series_file_that_info_decompress_and_render_re
         Some(40.0),
         true,
     );
+    // `info` of the source lists its time points.
+    let info = cli_ok(&["info", &d("cine.nii.gz")]);
+    assert!(
+        info.contains("a time series of 6 time points of 24x20x12 x1")
+            && info.contains("0.0400 s apart"),
+        "{info}"
+    );
     let out = cli_ok(&[
         "compress",
         &d("cine.nii.gz"),
@@ -272,6 +279,11 @@ fn a_4d_raw_file_and_a_directory_of_steps_compress_with_one_command() {
             v.channel(0),
         );
     }
+    let info = cli_ok(&["info", &d("steps")]);
+    assert!(
+        info.contains("a time series of 4 time points") && info.contains("no times"),
+        "{info}"
+    );
     let out = cli_ok(&[
         "compress",
         &d("steps"),
@@ -348,6 +360,11 @@ fn a_dicom_cine_compresses_with_one_command_and_plays_its_trigger_times() {
         ..Default::default()
     };
     write_dicom_cine(&dir.path().join("cine"), &vols, &ms, &o);
+    let info = cli_ok(&["info", &d("cine")]);
+    assert!(
+        info.contains("a time series of 5 time points") && info.contains("0.0415 s apart"),
+        "{info}"
+    );
     let out = cli_ok(&[
         "compress",
         &d("cine"),

@@ -16,10 +16,8 @@ use wavesplat_compressor::encode::{
 };
 use wavesplat_compressor::order::Clustering;
 use wavesplat_compressor::phantom::{beating, Phantom, PhantomVolume};
-use wavesplat_compressor::reader::dicom::read_time_series;
 use wavesplat_compressor::reader::region::RegionReader;
-use wavesplat_compressor::reader::steps::{step_files, StepSeries};
-use wavesplat_compressor::reader::{read_volume, time_points, Endian, RawDtype, RawSpec};
+use wavesplat_compressor::reader::{read_volume, Endian, RawDtype, RawSpec};
 use wavesplat_compressor::refine::RefineOptions;
 use wavesplat_compressor::series::{TimePointSource, VolumeSeries};
 use wavesplat_harness::console::Progress;
@@ -176,7 +174,10 @@ enum Input {
 }
 
 /// A reader's error, naming the file once (the readers' messages mostly name it already).
-fn read_error(path: &std::path::Path, e: wavesplat_compressor::reader::ReadError) -> anyhow::Error {
+pub(super) fn read_error(
+    path: &std::path::Path,
+    e: wavesplat_compressor::reader::ReadError,
+) -> anyhow::Error {
     let shown = path.display().to_string();
     if e.to_string().contains(&shown) {
         anyhow::Error::new(e)
@@ -285,28 +286,7 @@ fn open_series(a: &CompressArgs) -> Result<Option<super::series::SeriesInput>> {
     let Input::File { path, raw } = input(a)? else {
         return Ok(None);
     };
-    if path.is_dir() {
-        let files = step_files(&path, raw.as_ref()).map_err(|e| read_error(&path, e))?;
-        if files.is_empty() {
-            // A DICOM series: a time series when its slices repeat at several times.
-            let Some((volumes, times)) =
-                read_time_series(&path).map_err(|e| read_error(&path, e))?
-            else {
-                return Ok(None);
-            };
-            return Ok(Some(SeriesInput::Memory(VolumeSeries::new(
-                volumes, times,
-            )?)));
-        }
-        let steps = StepSeries::open(&path, raw.as_ref()).map_err(|e| read_error(&path, e))?;
-        return Ok(Some(SeriesInput::Steps(steps)));
-    }
-    if time_points(&path, raw.as_ref()).map_err(|e| read_error(&path, e))? <= 1 {
-        return Ok(None);
-    }
-    let reader =
-        RegionReader::open_series(&path, raw.as_ref()).map_err(|e| read_error(&path, e))?;
-    Ok(Some(SeriesInput::File(Box::new(reader))))
+    super::series::open_path(&path, raw.as_ref())
 }
 
 /// Brick sides `compress` tries, largest first, for a volume it cannot compress whole.

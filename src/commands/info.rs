@@ -9,7 +9,8 @@ use wavesplat_codec::format::{parse_file, Header};
 /// Arguments of `wavesplat info`.
 #[derive(Args, Debug)]
 pub struct InfoArgs {
-    /// The .wsp file.
+    /// The .wsp file (or a time series source: a 4D NIfTI, a DICOM cine, a directory of time
+    /// steps, whose time points are listed).
     pub input: PathBuf,
     /// Also list every packet.
     #[arg(long)]
@@ -25,6 +26,20 @@ const BRICKS_LISTED: usize = 16;
 
 /// Runs the subcommand.
 pub fn run(a: InfoArgs) -> Result<()> {
+    // A time series source (a 4D file, a DICOM cine, a directory of steps): its time points.
+    let head = std::fs::File::open(&a.input).and_then(|mut f| {
+        let mut head = [0u8; 4];
+        std::io::Read::read_exact(&mut f, &mut head).map(|_| head)
+    });
+    if !matches!(&head, Ok(h) if h == wavesplat_codec::format::MAGIC) {
+        if let Some(series) = super::series::open_path(&a.input, None)? {
+            outln!(
+                "{}",
+                super::series::describe_source(&a.input, series.source())
+            );
+            return Ok(());
+        }
+    }
     let bytes = super::read_wsp(&a.input)?;
     if wavesplat_codec::format::series::is_series(&bytes) {
         return series_info(&a, &bytes);

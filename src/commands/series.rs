@@ -33,6 +33,68 @@ impl SeriesInput {
     }
 }
 
+/// The time series at `path`, when it is one (read from headers where the format allows): a
+/// directory of time steps, a DICOM series whose slices repeat at several times (decoded
+/// here), a 4D NIfTI or a raw file whose spec has several time points.
+pub fn open_path(
+    path: &std::path::Path,
+    raw: Option<&wavesplat_compressor::reader::RawSpec>,
+) -> Result<Option<SeriesInput>> {
+    use super::compress::read_error;
+    use wavesplat_compressor::reader::dicom::read_time_series;
+    use wavesplat_compressor::reader::steps::step_files;
+    use wavesplat_compressor::reader::time_points;
+    if path.is_dir() {
+        let files = step_files(path, raw).map_err(|e| read_error(path, e))?;
+        if files.is_empty() {
+            // A DICOM series: a time series when its slices repeat at several times.
+            let Some((volumes, times)) = read_time_series(path).map_err(|e| read_error(path, e))?
+            else {
+                return Ok(None);
+            };
+            return Ok(Some(SeriesInput::Memory(VolumeSeries::new(
+                volumes, times,
+            )?)));
+        }
+        let steps = StepSeries::open(path, raw).map_err(|e| read_error(path, e))?;
+        return Ok(Some(SeriesInput::Steps(steps)));
+    }
+    if time_points(path, raw).map_err(|e| read_error(path, e))? <= 1 {
+        return Ok(None);
+    }
+    let reader = RegionReader::open_series(path, raw).map_err(|e| read_error(path, e))?;
+    Ok(Some(SeriesInput::File(Box::new(reader))))
+}
+
+/// What `info` says of a time series source: its time points, their size and their times.
+pub fn describe_source(path: &std::path::Path, series: &dyn SeriesSource) -> String {
+    let d = series.dims();
+    let s = series.spacing();
+    let n = series.time_points();
+    let times = match series.times() {
+        Some(t) if n > 1 => format!(
+            ", {:.4} s apart (from {:.4} s to {:.4} s)",
+            (t[n - 1] - t[0]) / (n - 1) as f64,
+            t[0],
+            t[n - 1]
+        ),
+        _ => ", no times in the source (numbered in order)".into(),
+    };
+    format!(
+        "source      {}: a time series of {n} time points of {}x{}x{} x{} (spacing {} x {} x {}){times}\n\
+         compress    wavesplat compress {} -o series.wsp (--time-point N takes one volume)",
+        path.display(),
+        d[0],
+        d[1],
+        d[2],
+        series.channels(),
+        s[0],
+        s[1],
+        s[2],
+        path.display()
+    )
+}
+
 /// Brick edge of a series' components when `--brick` is not given: a time point up to 256 a
 /// side is one plain file per component.
 const SERIES_BRICK: usize = 256;
