@@ -14,8 +14,7 @@ use wavesplat_compressor::encode::{compress, CompressOptions, Target};
 use wavesplat_compressor::phantom::Phantom;
 use wavesplat_viewer::bricked::draw_bricked_file;
 use wavesplat_viewer::open::draw_whole_file;
-use wavesplat_viewer::reference::{render_reference_camera, PaddedVolume};
-use wavesplat_viewer::{CpuBackend, Image};
+use wavesplat_viewer::CpuBackend;
 
 fn views() -> Vec<(&'static str, ViewSpec)> {
     let v = |a, b| View::new(a, b, 72, 64);
@@ -68,36 +67,6 @@ fn fitted(spec: &ViewSpec, g: &Geometry) -> ViewSpec {
     s
 }
 
-fn reference(volume: &wavesplat_codec::volume::Volume, g: &Geometry, spec: &ViewSpec) -> Image {
-    let truth = PaddedVolume::from_volume(volume.channels(), g);
-    let cameras = spec.cameras(g).unwrap();
-    let n0 = cameras[0].n;
-    let panels: Vec<Image> = cameras
-        .iter()
-        .map(|c| {
-            let cue = spec.view.cue.map(|mut cue| {
-                if cue.direction == CueDirection::View {
-                    cue.direction = CueDirection::Vector(n0);
-                }
-                wavesplat_codec::view::resolve_cue(&cue, c, g).unwrap()
-            });
-            render_reference_camera(&truth, c, cue, &common::reference_options(g.family))
-        })
-        .collect();
-    if panels.len() == 1 {
-        return panels.into_iter().next().unwrap();
-    }
-    let (w, h) = (panels[0].width, panels[0].height);
-    let mut out = Image::new(3 * w, h, 1);
-    for (p, img) in panels.iter().enumerate() {
-        for y in 0..h {
-            out.data[y * 3 * w + p * w..y * 3 * w + (p + 1) * w]
-                .copy_from_slice(&img.data[y * w..(y + 1) * w]);
-        }
-    }
-    out
-}
-
 /// The SNR of the unbricked file's image and of the bricked file's against the reference ray
 /// caster of `volume` (geometry `g`), for `spec` at the whole's fitting zoom.
 fn whole_and_bricked_snr(
@@ -110,7 +79,7 @@ fn whole_and_bricked_snr(
     let spec = fitted(spec, g);
     let w = draw_whole_file(whole, &spec, &mut CpuBackend::new()).unwrap();
     let b = draw_bricked_file(bricked, &spec, &mut CpuBackend::new()).unwrap();
-    let truth = reference(volume, g, &spec);
+    let truth = common::reference_image(volume, g, &spec);
     (
         snr_db(&truth.data, &w.image.data),
         snr_db(&truth.data, &b.image.data),

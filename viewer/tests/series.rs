@@ -15,7 +15,6 @@ use wavesplat_codec::volume::Volume;
 use wavesplat_compressor::encode::{CompressOptions, Target};
 use wavesplat_compressor::phantom::beating;
 use wavesplat_compressor::series::{compress_series, VolumeSeries};
-use wavesplat_viewer::reference::{render_reference_camera, PaddedVolume};
 use wavesplat_viewer::series::{draw_series_point, SeriesDrawError};
 use wavesplat_viewer::{CpuBackend, Image};
 
@@ -65,41 +64,14 @@ fn fitted(spec: &ViewSpec, g: &Geometry) -> ViewSpec {
     s
 }
 
-fn reference(volume: &Volume, g: &Geometry, spec: &ViewSpec) -> Image {
-    let truth = PaddedVolume::from_volume(volume.channels(), g);
-    let cameras = spec.cameras(g).unwrap();
-    let n0 = cameras[0].n;
-    let panels: Vec<Image> = cameras
-        .iter()
-        .map(|c| {
-            let cue = spec.view.cue.map(|mut cue| {
-                if cue.direction == CueDirection::View {
-                    cue.direction = CueDirection::Vector(n0);
-                }
-                wavesplat_codec::view::resolve_cue(&cue, c, g).unwrap()
-            });
-            render_reference_camera(&truth, c, cue, &common::reference_options(g.family))
-        })
-        .collect();
-    if panels.len() == 1 {
-        return panels.into_iter().next().unwrap();
-    }
-    let (w, h) = (panels[0].width, panels[0].height);
-    let mut out = Image::new(3 * w, h, 1);
-    for (p, img) in panels.iter().enumerate() {
-        for y in 0..h {
-            out.data[y * 3 * w + p * w..y * 3 * w + (p + 1) * w]
-                .copy_from_slice(&img.data[y * w..(y + 1) * w]);
-        }
-    }
-    out
-}
-
 /// SNR of time point `t` of `bytes` against the reference of `volume` for `spec`.
 fn snr(bytes: &[u8], t: usize, volume: &Volume, g: &Geometry, spec: &ViewSpec) -> f64 {
     let spec = fitted(spec, g);
     let drawn = draw_series_point(bytes, t, &spec, &mut CpuBackend::new()).unwrap();
-    snr_db(&reference(volume, g, &spec).data, &drawn.image.data)
+    snr_db(
+        &common::reference_image(volume, g, &spec).data,
+        &drawn.image.data,
+    )
 }
 
 /// Every coefficient of every component: each time point's image, summed from its group's

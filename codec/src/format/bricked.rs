@@ -115,6 +115,56 @@ impl<'a> BrickedFile<'a> {
     }
 }
 
+/// The section a container of format `version` starts with: magic, version, the manifest's
+/// length (u32), the manifest `mb`, its CRC-32.
+pub(super) fn write_section(version: u16, mb: &[u8]) -> Vec<u8> {
+    let mut out = Vec::with_capacity(4 + 2 + 4 + mb.len() + 4);
+    out.extend_from_slice(MAGIC);
+    out.extend_from_slice(&version.to_le_bytes());
+    out.extend_from_slice(&(mb.len() as u32).to_le_bytes());
+    out.extend_from_slice(mb);
+    out.extend_from_slice(&crc32fast::hash(mb).to_le_bytes());
+    out
+}
+
+/// Reads what [`write_section`] wrote at the start of `bytes`, refusing another magic or
+/// version, a manifest longer than `max` and a CRC that does not match (`what` names the
+/// manifest); returns the manifest's bytes and where the data after the section starts.
+pub(super) fn read_section<'a>(
+    bytes: &'a [u8],
+    version: u16,
+    max: usize,
+    what: &'static str,
+) -> Result<(&'a [u8], u64), FormatError> {
+    let mut r = ByteReader::new(bytes, what);
+    let found = super::read_magic_and_version(&mut r, bytes)?;
+    if found != version {
+        return Err(FormatError::UnsupportedVersion {
+            found,
+            supported: version,
+        });
+    }
+    let len = r.u32()? as usize;
+    if len > max {
+        return Err(FormatError::TooLarge {
+            what,
+            size: len as u64,
+            limit: max as u64,
+        });
+    }
+    let mb = r.take(len)?;
+    let stored = r.u32()?;
+    let computed = crc32fast::hash(mb);
+    if stored != computed {
+        return Err(FormatError::Checksum {
+            what,
+            stored,
+            computed,
+        });
+    }
+    Ok((mb, r.position() as u64))
+}
+
 /// Whether `bytes` start as a bricked container (magic and version 9).
 pub fn is_bricked(bytes: &[u8]) -> bool {
     bytes.len() >= 6
@@ -193,14 +243,7 @@ pub fn write_bricked(manifest: &mut Manifest, bricks: &[&[u8]]) -> Result<Vec<u8
 /// length, manifest, CRC-32): what [`parse_manifest`] reads, byte for byte as
 /// [`write_bricked`] wrote it.
 pub fn manifest_section(manifest: &Manifest) -> Vec<u8> {
-    let mb = manifest_bytes(manifest);
-    let mut out = Vec::with_capacity(4 + 2 + 4 + mb.len() + 4);
-    out.extend_from_slice(MAGIC);
-    out.extend_from_slice(&BRICKED_VERSION.to_le_bytes());
-    out.extend_from_slice(&(mb.len() as u32).to_le_bytes());
-    out.extend_from_slice(&mb);
-    out.extend_from_slice(&crc32fast::hash(&mb).to_le_bytes());
-    out
+    write_section(BRICKED_VERSION, &manifest_bytes(manifest))
 }
 
 fn manifest_bytes(m: &Manifest) -> Vec<u8> {
@@ -342,33 +385,12 @@ pub fn parse_bricked(bytes: &[u8]) -> Result<BrickedFile<'_>, FormatError> {
 /// from `bytes`, its first bytes (at least the manifest section: what a reader fetching byte
 /// ranges has), with the checks of [`parse_bricked`].
 pub fn parse_manifest(bytes: &[u8], container_bytes: u64) -> Result<Manifest, FormatError> {
-    let mut r = ByteReader::new(bytes, "bricked container");
-    let version = super::read_magic_and_version(&mut r, bytes)?;
-    if version != BRICKED_VERSION {
-        return Err(FormatError::UnsupportedVersion {
-            found: version,
-            supported: BRICKED_VERSION,
-        });
-    }
-    let len = r.u32()? as usize;
-    if len > MAX_MANIFEST_BYTES {
-        return Err(FormatError::TooLarge {
-            what: "bricked manifest",
-            size: len as u64,
-            limit: MAX_MANIFEST_BYTES as u64,
-        });
-    }
-    let mb = r.take(len)?;
-    let stored = r.u32()?;
-    let computed = crc32fast::hash(mb);
-    if stored != computed {
-        return Err(FormatError::Checksum {
-            what: "bricked manifest",
-            stored,
-            computed,
-        });
-    }
-    let data_start = r.position() as u64;
+    let (mb, data_start) = read_section(
+        bytes,
+        BRICKED_VERSION,
+        MAX_MANIFEST_BYTES,
+        "bricked manifest",
+    )?;
     let mut m = ByteReader::new(mb, "bricked manifest");
     let Space {
         dims,

@@ -16,7 +16,7 @@
 //! manifest is untrusted input: counts, weights, times and ranges are checked before anything
 //! is allocated from them; each component's bytes are checked against their CRC when taken.
 
-use super::bricked::{read_space, write_space, Space};
+use super::bricked::{read_section, read_space, write_section, write_space, Space};
 use super::bytes::{ByteReader, ByteWriter};
 use super::{FormatError, MAGIC};
 
@@ -155,13 +155,8 @@ pub fn write_series(
         e.crc = crc32fast::hash(b);
         offset += b.len() as u64;
     }
-    let mb = manifest_bytes(manifest);
-    let mut out = Vec::with_capacity(offset as usize);
-    out.extend_from_slice(MAGIC);
-    out.extend_from_slice(&SERIES_VERSION.to_le_bytes());
-    out.extend_from_slice(&(mb.len() as u32).to_le_bytes());
-    out.extend_from_slice(&mb);
-    out.extend_from_slice(&crc32fast::hash(&mb).to_le_bytes());
+    let mut out = write_section(SERIES_VERSION, &manifest_bytes(manifest));
+    out.reserve(offset as usize - out.len());
     for b in components {
         out.extend_from_slice(b);
     }
@@ -206,33 +201,8 @@ pub fn parse_series(bytes: &[u8]) -> Result<SeriesFile<'_>, FormatError> {
 /// 1..=[`MAX_TERMS`] distinct components with finite non-zero weights; every component used;
 /// times finite and strictly increasing.
 pub fn parse_manifest(bytes: &[u8], container_bytes: u64) -> Result<SeriesManifest, FormatError> {
-    let mut r = ByteReader::new(bytes, "series container");
-    let version = super::read_magic_and_version(&mut r, bytes)?;
-    if version != SERIES_VERSION {
-        return Err(FormatError::UnsupportedVersion {
-            found: version,
-            supported: SERIES_VERSION,
-        });
-    }
-    let len = r.u32()? as usize;
-    if len > MAX_MANIFEST_BYTES {
-        return Err(FormatError::TooLarge {
-            what: "series manifest",
-            size: len as u64,
-            limit: MAX_MANIFEST_BYTES as u64,
-        });
-    }
-    let mb = r.take(len)?;
-    let stored = r.u32()?;
-    let computed = crc32fast::hash(mb);
-    if stored != computed {
-        return Err(FormatError::Checksum {
-            what: "series manifest",
-            stored,
-            computed,
-        });
-    }
-    let data_start = r.position() as u64;
+    let (mb, data_start) =
+        read_section(bytes, SERIES_VERSION, MAX_MANIFEST_BYTES, "series manifest")?;
     let mut m = ByteReader::new(mb, "series manifest");
     let space = read_space(&mut m, "series manifest")?;
     let times_known = match m.u8()? {
@@ -441,16 +411,7 @@ mod tests {
         let good = parse_series(&bytes).unwrap().manifest;
         let mut long = good.clone();
         long.components[2].length += 1;
-        let section = |m: &SeriesManifest| {
-            let mb = manifest_bytes(m);
-            let mut out = Vec::new();
-            out.extend_from_slice(MAGIC);
-            out.extend_from_slice(&SERIES_VERSION.to_le_bytes());
-            out.extend_from_slice(&(mb.len() as u32).to_le_bytes());
-            out.extend_from_slice(&mb);
-            out.extend_from_slice(&crc32fast::hash(&mb).to_le_bytes());
-            out
-        };
+        let section = |m: &SeriesManifest| write_section(SERIES_VERSION, &manifest_bytes(m));
         let total = bytes.len() as u64;
         assert!(matches!(
             parse_manifest(&section(&long), total),

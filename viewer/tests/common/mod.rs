@@ -94,3 +94,42 @@ pub fn origin_corner_view() -> wavesplat_viewer::View {
     .with_zoom(4.0)
     .with_pan([-10.0, 9.0])
 }
+
+/// The reference ray caster's image of `volume` (geometry `g`) for `spec`: each view's camera
+/// (multiview's three panels side by side), a cue "along the view" taken along the first
+/// panel's direction, as the multiview renderer resolves it.
+pub fn reference_image(
+    volume: &wavesplat_codec::volume::Volume,
+    g: &Geometry,
+    spec: &wavesplat_codec::view::ViewSpec,
+) -> wavesplat_viewer::Image {
+    use wavesplat_codec::view::CueDirection;
+    use wavesplat_viewer::reference::{render_reference_camera, PaddedVolume};
+    let truth = PaddedVolume::from_volume(volume.channels(), g);
+    let cameras = spec.cameras(g).unwrap();
+    let n0 = cameras[0].n;
+    let panels: Vec<wavesplat_viewer::Image> = cameras
+        .iter()
+        .map(|c| {
+            let cue = spec.view.cue.map(|mut cue| {
+                if cue.direction == CueDirection::View {
+                    cue.direction = CueDirection::Vector(n0);
+                }
+                wavesplat_codec::view::resolve_cue(&cue, c, g).unwrap()
+            });
+            render_reference_camera(&truth, c, cue, &reference_options(g.family))
+        })
+        .collect();
+    if panels.len() == 1 {
+        return panels.into_iter().next().unwrap();
+    }
+    let (w, h) = (panels[0].width, panels[0].height);
+    let mut out = wavesplat_viewer::Image::new(3 * w, h, 1);
+    for (p, img) in panels.iter().enumerate() {
+        for y in 0..h {
+            out.data[y * 3 * w + p * w..y * 3 * w + (p + 1) * w]
+                .copy_from_slice(&img.data[y * w..(y + 1) * w]);
+        }
+    }
+    out
+}

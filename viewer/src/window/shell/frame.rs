@@ -302,21 +302,14 @@ impl App {
         if idle != self.last_report_idle || self.last_title.elapsed() > Duration::from_millis(250) {
             self.last_report_idle = idle;
             self.last_title = Instant::now();
-            let stats = frames.session.stats();
             let (title, state) = self.controls.state.title(&TitleFacts {
-                volume: &self.options.title,
-                held: stats.coefficients_held,
-                splatted: stats.splatted_in_view,
-                bytes: status.bytes,
                 frame_ms: self.frame_ms_avg,
-                connected: status.connected,
-                problem: status.problem.as_deref(),
                 converged: self.converged,
                 idle,
-                memory_full: frames.session.memory_full(),
                 recoveries: self.recoveries,
                 image: self.last_image.unwrap_or((0, 0)),
                 rest_display_ms: self.rest_display_ms,
+                ..session_facts(&self.options.title, frames, &status)
             });
             g.window.set_title(&title);
             tracing::debug!(
@@ -359,25 +352,40 @@ impl App {
         self.frame_ms_avg = 0.9 * self.frame_ms_avg + 0.1 * frame_ms;
         if self.last_title.elapsed() > Duration::from_millis(250) {
             self.last_title = Instant::now();
-            let stats = frames.session.stats();
             let status = frames.source_status();
             let (title, _) = self.controls.state.title(&TitleFacts {
-                volume: &self.options.title,
-                held: stats.coefficients_held,
-                splatted: stats.splatted_in_view,
-                bytes: status.bytes,
                 frame_ms: self.frame_ms_avg,
-                connected: status.connected,
-                problem: status.problem.as_deref(),
-                converged: true,
-                idle: true,
-                memory_full: frames.session.memory_full(),
                 recoveries: self.recoveries,
                 image: self.last_image.unwrap_or((0, 0)),
-                rest_display_ms: None,
+                ..session_facts(&self.options.title, frames, &status)
             });
             g.window.set_title(&title);
         }
         Ok(())
+    }
+}
+
+/// What the title says of the session and its source (`volume` names the volume), as a
+/// converged, idle view with no other facts: the caller sets those it knows.
+fn session_facts<'a>(
+    volume: &'a str,
+    frames: &super::Frames,
+    status: &'a crate::source::SourceStatus,
+) -> TitleFacts<'a> {
+    let stats = frames.session.stats();
+    TitleFacts {
+        volume,
+        held: stats.coefficients_held,
+        splatted: stats.splatted_in_view,
+        bytes: status.bytes,
+        frame_ms: 0.0,
+        connected: status.connected,
+        problem: status.problem.as_deref(),
+        converged: true,
+        idle: true,
+        memory_full: frames.session.memory_full(),
+        recoveries: 0,
+        image: (0, 0),
+        rest_display_ms: None,
     }
 }
