@@ -52,6 +52,23 @@ fn main() {
             put(&root.join(format!("packet_{name}")), &format!("p{i}"), p);
         }
     }
+    // A bricked container and a time series (format versions 9 and 10) for the file target.
+    let small = CompressOptions {
+        target: Target::Fraction(0.2),
+        refine: None,
+        ..Default::default()
+    };
+    let vol = Phantom::SheppLogan.generate([16, 12, 10]);
+    let bricked =
+        wavesplat_compressor::bricked::compress_bricked(&vol, &small, 8, &|_| {}).unwrap();
+    put(&root.join("file"), "bricked.wsp", &bricked.bytes);
+    let points = (0..3)
+        .map(|t| wavesplat_compressor::phantom::beating([10, 8, 6], t, 3).unwrap())
+        .collect();
+    let series = wavesplat_compressor::series::VolumeSeries::new(points, None).unwrap();
+    let series =
+        wavesplat_compressor::series::compress_series(&series, &small, 2, 256, &|_| {}).unwrap();
+    put(&root.join("file"), "series.wsp", &series.bytes);
     let mut raw = vec![7u8, 5, 3, 1, 0, 0, 0, 0];
     raw.extend((0..8 * 6 * 4 * 2).map(|i| (i * 37 % 251) as u8));
     put(&root.join("raw"), "u16", &raw);

@@ -28,12 +28,37 @@ pub const FILE_BUDGET: DecodeBudget = DecodeBudget {
     max_bytes: 4 << 20,
 };
 
-/// A whole file: header, directory, every packet.
+/// A whole file: header, directory, every packet; or a container (bricked, version 9; a time
+/// series, version 10): its manifest and the files it holds (at most 64, each as a plain file
+/// or, in a series, a bricked container).
 pub fn file(data: &[u8]) {
+    plain_file(data);
+    bricked_file(data);
+    if let Ok(s) = wavesplat_codec::format::series::parse_series(data) {
+        for c in 0..s.manifest.components.len().min(64) {
+            if let Ok(component) = s.component_bytes(c) {
+                plain_file(component);
+                bricked_file(component);
+            }
+        }
+    }
+}
+
+fn plain_file(data: &[u8]) {
     let _ = parse_prelude(data);
     if let Ok(f) = parse_file(data) {
         for p in &f.packets {
             let _ = decode_packet_within(&f.header, p, &FILE_BUDGET);
+        }
+    }
+}
+
+fn bricked_file(data: &[u8]) {
+    if let Ok(b) = wavesplat_codec::format::bricked::parse_bricked(data) {
+        for i in 0..b.manifest.bricks.len().min(64) {
+            if let Ok(brick) = b.brick_bytes(i) {
+                plain_file(brick);
+            }
         }
     }
 }
