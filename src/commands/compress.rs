@@ -173,26 +173,13 @@ enum Input {
     },
 }
 
-/// A reader's error, naming the file once (the readers' messages mostly name it already).
-pub(super) fn read_error(
-    path: &std::path::Path,
-    e: wavesplat_compressor::reader::ReadError,
-) -> anyhow::Error {
-    let shown = path.display().to_string();
-    if e.to_string().contains(&shown) {
-        anyhow::Error::new(e)
-    } else {
-        anyhow::Error::new(e).context(format!("reading {shown}"))
-    }
-}
-
 fn load(a: &CompressArgs) -> Result<Volume> {
     match input(a)? {
         Input::Phantom(p) => p.phantom.try_generate(p.dims.map(|d| d as usize)).context(
             "generating the phantom (give --brick N for a phantom larger than one volume)",
         ),
         Input::File { path, raw } => {
-            read_volume(&path, raw.as_ref()).map_err(|e| read_error(&path, e))
+            read_volume(&path, raw.as_ref()).map_err(|e| super::read_error(&path, e))
         }
     }
 }
@@ -347,7 +334,7 @@ fn auto_brick(a: &CompressArgs, opts: &CompressOptions) -> Result<Option<(usize,
                 return Ok(None);
             };
             let reader =
-                RegionReader::open(&path, raw.as_ref()).map_err(|e| read_error(&path, e))?;
+                RegionReader::open(&path, raw.as_ref()).map_err(|e| super::read_error(&path, e))?;
             if reader.in_memory() {
                 return Ok(None);
             }
@@ -425,7 +412,8 @@ fn run_bricked(a: &CompressArgs, opts: &CompressOptions, brick: usize) -> Result
     let source: &dyn BrickSource = match &input {
         Input::Phantom(p) => p,
         Input::File { path, raw } => {
-            reader = RegionReader::open(path, raw.as_ref()).map_err(|e| read_error(path, e))?;
+            reader =
+                RegionReader::open(path, raw.as_ref()).map_err(|e| super::read_error(path, e))?;
             &reader
         }
     };
@@ -559,7 +547,9 @@ pub fn run(a: CompressArgs) -> Result<()> {
     let series = open_series(&a)?;
     let taken;
     let volume = match (&series, a.time_point) {
-        (Some(s), None) => return super::series::compress(&a, &opts, s.source()),
+        (Some(s), None) => {
+            return super::series::compress(&a.output, a.time_group, a.brick, &opts, s.source())
+        }
         (Some(s), Some(t)) => {
             let source = s.source();
             if t >= source.time_points() {

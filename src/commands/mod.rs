@@ -224,6 +224,19 @@ pub fn parse_dims(s: &str) -> Result<[usize; 3]> {
     Ok(d)
 }
 
+/// A reader's error, naming the file once (the readers' messages mostly name it already).
+pub fn read_error(
+    path: &std::path::Path,
+    e: wavesplat_compressor::reader::ReadError,
+) -> anyhow::Error {
+    let shown = path.display().to_string();
+    if e.to_string().contains(&shown) {
+        anyhow::Error::new(e)
+    } else {
+        anyhow::Error::new(e).context(format!("reading {shown}"))
+    }
+}
+
 /// Dimensions X,Y,Z of a volume, or X,Y,Z,T of a time series (T time points).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct SeriesDims {

@@ -347,7 +347,7 @@ pub fn run(a: RenderArgs) -> Result<()> {
                 );
             }
             if one_pass_asked {
-                return super::series::render(&a, &view, path, bytes, request);
+                return render_series(&a, &view, path, bytes, request);
             }
             if a.time_points.is_some() {
                 bail!("--time-points draws each time point in one pass: leave out --progressive, --bytes, --budget-ms, --record and --client-memory");
@@ -576,7 +576,7 @@ pub fn run(a: RenderArgs) -> Result<()> {
 }
 
 /// Says which extinction `--cue-k auto` took from the volume.
-pub(super) fn say_cue_k(view: &ViewRequest, spec: &wavesplat_codec::view::ViewSpec) {
+fn say_cue_k(view: &ViewRequest, spec: &wavesplat_codec::view::ViewSpec) {
     if let (true, Some(cue)) = (view.cue_k_from_volume, spec.view.cue) {
         outln!(
             "depth cueing: k = {:.6} per unit of spacing (2 / the volume's diagonal)",
@@ -586,7 +586,7 @@ pub(super) fn say_cue_k(view: &ViewRequest, spec: &wavesplat_codec::view::ViewSp
 }
 
 /// Writes the PNG and, when asked, the raw image.
-pub(super) fn write_outputs(image: &Image, a: &RenderArgs) -> Result<()> {
+fn write_outputs(image: &Image, a: &RenderArgs) -> Result<()> {
     image
         .write_png(&a.output, None)
         .with_context(|| format!("writing {}", a.output.display()))?;
@@ -653,6 +653,122 @@ fn render_bricked(
         drawn.bricks,
         drawn.bytes,
         drawn.coefficients,
+        request.elapsed().as_secs_f64() * 1e3
+    );
+    Ok(())
+}
+
+/// `render` of a local series file: one time point to -o, or a range of them as PNGs and an
+/// animated PNG in the directory -o names. Drawn in one pass on the CPU, each time point from
+/// its own group's components.
+fn render_series(
+    a: &RenderArgs,
+    view: &wavesplat_viewer::open::ViewRequest,
+    path: &std::path::Path,
+    bytes: &[u8],
+    request: std::time::Instant,
+) -> Result<()> {
+    use wavesplat_codec::format::series::parse_series;
+    use wavesplat_viewer::series::{draw_series_point, series_header};
+    use wavesplat_viewer::{CpuBackend, Image};
+    let file = parse_series(bytes).with_context(|| format!("reading {}", path.display()))?;
+    let m = &file.manifest;
+    let points = m.points.len();
+    let header = series_header(&file).with_context(|| format!("reading {}", path.display()))?;
+    let spec = view.spec_for_volume(&header.geometry, m.space.placement.as_ref())?;
+    say_cue_k(view, &spec);
+    let when = |t: usize| {
+        if m.times_known {
+            format!(" at {:.3} s", m.points[t].time)
+        } else {
+            String::new()
+        }
+    };
+    let draw = |t: usize| {
+        draw_series_point(bytes, t, &spec, &mut CpuBackend::new())
+            .with_context(|| format!("rendering time point {t} of {}", path.display()))
+    };
+    let Some(range) = &a.time_points else {
+        let t = a.view.time_point.unwrap_or(0);
+        if t >= points {
+            bail!(
+                "--time-point {t}: the series has {points} time points (0..={})",
+                points - 1
+            );
+        }
+        let d = draw(t)?;
+        write_outputs(&d.image, a)?;
+        outln!(
+            "wrote {} ({}x{}) from {}: time point {t} of {points}{}, {} components, {} bytes, {} \
+             coefficients splatted (cpu backend) in {:.1} ms{}",
+            a.output.display(),
+            d.image.width,
+            d.image.height,
+            path.display(),
+            when(t),
+            d.components,
+            d.bytes,
+            d.coefficients,
+            request.elapsed().as_secs_f64() * 1e3,
+            if a.view.time_point.is_none() && points > 1 {
+                " (--time-point N or --time-points A..B for others)"
+            } else {
+                ""
+            }
+        );
+        return Ok(());
+    };
+    if !(a.view.fps.is_finite() && a.view.fps > 0.0 && a.view.fps <= 1000.0) {
+        bail!(
+            "--fps {}: a rate in (0, 1000] frames per second",
+            a.view.fps
+        );
+    }
+    let range = super::series::parse_time_range(range, points)?;
+    std::fs::create_dir_all(&a.output)
+        .with_context(|| format!("creating {}", a.output.display()))?;
+    let progress = wavesplat_harness::console::Progress::new("render");
+    let mut frames: Vec<Image> = Vec::with_capacity(range.clone().count());
+    let mut read = 0u64;
+    for t in range.clone() {
+        progress.stage(&format!("time point {t} of {points}"));
+        let d = draw(t)?;
+        read += d.bytes;
+        frames.push(d.image);
+    }
+    progress.finish();
+    // One window for all, so that the frames compare: the widest of theirs.
+    let window = frames
+        .iter()
+        .map(Image::auto_window)
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), (l, h)| {
+            (lo.min(l), hi.max(h))
+        });
+    let window = if window.1 > window.0 {
+        window
+    } else {
+        (window.0, window.0 + 1.0)
+    };
+    for (t, f) in range.clone().zip(&frames) {
+        let p = a.output.join(format!("t{t:04}.png"));
+        f.write_png(&p, Some(window))
+            .with_context(|| format!("writing {}", p.display()))?;
+    }
+    let anim = a.output.join("animation.png");
+    let delay = (1000.0 / a.view.fps).round().clamp(1.0, 65535.0) as u16;
+    Image::write_animated_png(&frames, &anim, window, delay)
+        .with_context(|| format!("writing {}", anim.display()))?;
+    outln!(
+        "wrote {} time points ({}..={}) of {points} from {} to {}: t{:04}.png … t{:04}.png and \
+         animation.png at {} frames/s; {read} bytes of components read in {:.1} ms",
+        frames.len(),
+        range.start(),
+        range.end(),
+        path.display(),
+        a.output.display(),
+        range.start(),
+        range.end(),
+        a.view.fps,
         request.elapsed().as_secs_f64() * 1e3
     );
     Ok(())

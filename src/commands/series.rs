@@ -1,6 +1,8 @@
-//! Time series at the command line: what `compress` reads as one (the beating phantom, a 4D
-//! file, a directory of time steps) and how it compresses it into one series file, with a
-//! summary of its time points, groups and bytes.
+//! Time series at the command line: what `compress` and `info` read as one (the beating
+//! phantom, a 4D file, a DICOM cine, a directory of time steps); `compress` of one into one
+//! series file, with a summary of its time points, groups and bytes; `info` of a source; and
+//! `render` of a series file's time points (one, or a range as PNGs through one display window
+//! and an animated PNG).
 
 use anyhow::{bail, Context, Result};
 use wavesplat_compressor::bricked::BrickStage;
@@ -9,8 +11,6 @@ use wavesplat_compressor::reader::region::RegionReader;
 use wavesplat_compressor::reader::steps::StepSeries;
 use wavesplat_compressor::series::{compress_series, SeriesSource, VolumeSeries};
 use wavesplat_harness::console::Progress;
-
-use super::compress::CompressArgs;
 
 /// A time series `compress` reads.
 pub enum SeriesInput {
@@ -40,7 +40,7 @@ pub fn open_path(
     path: &std::path::Path,
     raw: Option<&wavesplat_compressor::reader::RawSpec>,
 ) -> Result<Option<SeriesInput>> {
-    use super::compress::read_error;
+    use super::read_error;
     use wavesplat_compressor::reader::dicom::read_time_series;
     use wavesplat_compressor::reader::steps::step_files;
     use wavesplat_compressor::reader::time_points;
@@ -100,16 +100,19 @@ pub fn describe_source(path: &std::path::Path, series: &dyn SeriesSource) -> Str
 const SERIES_BRICK: usize = 256;
 
 /// `compress` of a time series: every time point into one series file.
-pub fn compress(a: &CompressArgs, opts: &CompressOptions, source: &dyn SeriesSource) -> Result<()> {
+pub fn compress(
+    output: &std::path::Path,
+    time_group: usize,
+    brick: Option<usize>,
+    opts: &CompressOptions,
+    source: &dyn SeriesSource,
+) -> Result<()> {
     let points = source.time_points();
-    if !a.time_group.is_power_of_two() {
-        bail!(
-            "--time-group {}: a power of two (1 compresses each time point alone)",
-            a.time_group
-        );
+    if !time_group.is_power_of_two() {
+        bail!("--time-group {time_group}: a power of two (1 compresses each time point alone)");
     }
-    let group = a.time_group.min(points.next_power_of_two());
-    let brick = a.brick.unwrap_or(SERIES_BRICK);
+    let group = time_group.min(points.next_power_of_two());
+    let brick = brick.unwrap_or(SERIES_BRICK);
     let d = source.dims();
     let progress = Progress::new("compress");
     progress.stage(&format!(
@@ -126,15 +129,14 @@ pub fn compress(a: &CompressArgs, opts: &CompressOptions, source: &dyn SeriesSou
     };
     let c = compress_series(source, opts, group, brick, &report).context("compressing")?;
     progress.finish();
-    std::fs::write(&a.output, &c.bytes)
-        .with_context(|| format!("writing {}", a.output.display()))?;
+    std::fs::write(output, &c.bytes).with_context(|| format!("writing {}", output.display()))?;
     let m = &c.manifest;
     let samples =
         d.iter().map(|v| *v as f64).product::<f64>() * source.channels() as f64 * points as f64;
     outln!(
         "{}: {} bytes ({:.4} % of {} samples at one byte each), a time series of {points} time \
          points in groups of {group}: {} components",
-        a.output.display(),
+        output.display(),
         c.bytes.len(),
         100.0 * c.bytes.len() as f64 / samples,
         samples,
@@ -183,120 +185,4 @@ pub fn parse_time_range(s: &str, points: usize) -> Result<std::ops::RangeInclusi
         bail!("--time-points {s:?}: the series has time points 0..={last}, and A must not pass B");
     }
     Ok(a..=b)
-}
-
-/// `render` of a local series file: one time point to -o, or a range of them as PNGs and an
-/// animated PNG in the directory -o names. Drawn in one pass on the CPU, each time point from
-/// its own group's components.
-pub fn render(
-    a: &super::render::RenderArgs,
-    view: &wavesplat_viewer::open::ViewRequest,
-    path: &std::path::Path,
-    bytes: &[u8],
-    request: std::time::Instant,
-) -> Result<()> {
-    use wavesplat_codec::format::series::parse_series;
-    use wavesplat_viewer::series::{draw_series_point, series_header};
-    use wavesplat_viewer::{CpuBackend, Image};
-    let file = parse_series(bytes).with_context(|| format!("reading {}", path.display()))?;
-    let m = &file.manifest;
-    let points = m.points.len();
-    let header = series_header(&file).with_context(|| format!("reading {}", path.display()))?;
-    let spec = view.spec_for_volume(&header.geometry, m.space.placement.as_ref())?;
-    super::render::say_cue_k(view, &spec);
-    let when = |t: usize| {
-        if m.times_known {
-            format!(" at {:.3} s", m.points[t].time)
-        } else {
-            String::new()
-        }
-    };
-    let draw = |t: usize| {
-        draw_series_point(bytes, t, &spec, &mut CpuBackend::new())
-            .with_context(|| format!("rendering time point {t} of {}", path.display()))
-    };
-    let Some(range) = &a.time_points else {
-        let t = a.view.time_point.unwrap_or(0);
-        if t >= points {
-            bail!(
-                "--time-point {t}: the series has {points} time points (0..={})",
-                points - 1
-            );
-        }
-        let d = draw(t)?;
-        super::render::write_outputs(&d.image, a)?;
-        outln!(
-            "wrote {} ({}x{}) from {}: time point {t} of {points}{}, {} components, {} bytes, {} \
-             coefficients splatted (cpu backend) in {:.1} ms{}",
-            a.output.display(),
-            d.image.width,
-            d.image.height,
-            path.display(),
-            when(t),
-            d.components,
-            d.bytes,
-            d.coefficients,
-            request.elapsed().as_secs_f64() * 1e3,
-            if a.view.time_point.is_none() && points > 1 {
-                " (--time-point N or --time-points A..B for others)"
-            } else {
-                ""
-            }
-        );
-        return Ok(());
-    };
-    if !(a.view.fps.is_finite() && a.view.fps > 0.0 && a.view.fps <= 1000.0) {
-        bail!(
-            "--fps {}: a rate in (0, 1000] frames per second",
-            a.view.fps
-        );
-    }
-    let range = parse_time_range(range, points)?;
-    std::fs::create_dir_all(&a.output)
-        .with_context(|| format!("creating {}", a.output.display()))?;
-    let progress = Progress::new("render");
-    let mut frames: Vec<Image> = Vec::with_capacity(range.clone().count());
-    let mut read = 0u64;
-    for t in range.clone() {
-        progress.stage(&format!("time point {t} of {points}"));
-        let d = draw(t)?;
-        read += d.bytes;
-        frames.push(d.image);
-    }
-    progress.finish();
-    // One window for all, so that the frames compare: the widest of theirs.
-    let window = frames
-        .iter()
-        .map(Image::auto_window)
-        .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), (l, h)| {
-            (lo.min(l), hi.max(h))
-        });
-    let window = if window.1 > window.0 {
-        window
-    } else {
-        (window.0, window.0 + 1.0)
-    };
-    for (t, f) in range.clone().zip(&frames) {
-        let p = a.output.join(format!("t{t:04}.png"));
-        f.write_png(&p, Some(window))
-            .with_context(|| format!("writing {}", p.display()))?;
-    }
-    let anim = a.output.join("animation.png");
-    let delay = (1000.0 / a.view.fps).round().clamp(1.0, 65535.0) as u16;
-    Image::write_animated_png(&frames, &anim, window, delay)
-        .with_context(|| format!("writing {}", anim.display()))?;
-    outln!(
-        "wrote {} time points ({}..={}) of {points} from {} to {}: t{:04}.png … t{:04}.png and \
-         animation.png at {} frames/s; {read} bytes of components read in {:.1} ms",
-        frames.len(),
-        range.start(),
-        range.end(),
-        path.display(),
-        a.output.display(),
-        range.start(),
-        range.end(),
-        a.view.fps,
-        request.elapsed().as_secs_f64() * 1e3
-    );
-    Ok(())
 }

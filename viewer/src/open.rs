@@ -31,15 +31,6 @@ pub enum OpenError {
         #[source]
         source: SourceError,
     },
-    /// A time series file cannot be read.
-    #[error("reading the time series {what}")]
-    Series {
-        /// The volume, in words.
-        what: String,
-        /// Why.
-        #[source]
-        source: Box<crate::series::SeriesDrawError>,
-    },
     /// The file is not a valid `.wsp` file.
     #[error("reading {what}")]
     Format {
@@ -443,9 +434,11 @@ pub fn open(
                             source,
                         },
                     )?;
-                    crate::series::series_header(&file).map_err(|e| OpenError::Series {
-                        what: path.display().to_string(),
-                        source: Box::new(e),
+                    wavesplat_codec::view::bricked::series_header(&file).map_err(|source| {
+                        OpenError::Format {
+                            what: path.display().to_string(),
+                            source,
+                        }
                     })?
                 };
                 let spec = request.spec_for_volume(&header.geometry, header.placement.as_ref())?;

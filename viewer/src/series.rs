@@ -14,6 +14,8 @@ use wavesplat_codec::format::series::{parse_series, SeriesFile};
 use wavesplat_codec::format::{parse_file, FormatError, Header};
 use wavesplat_codec::view::ViewSpec;
 
+pub use wavesplat_codec::view::bricked::series_header;
+
 /// What drawing a time point made.
 #[derive(Debug)]
 pub struct SeriesImage {
@@ -70,24 +72,6 @@ pub enum SeriesDrawError {
         /// What the series is.
         expected: String,
     },
-}
-
-/// The header a series is drawn with: its first component's (the whole's, for a bricked one),
-/// with the series' placement. Every component spans the same whole, so one view fits all.
-pub fn series_header(file: &SeriesFile<'_>) -> Result<Header, SeriesDrawError> {
-    let data = file.component_bytes(0)?;
-    let mut header = if is_bricked(data) {
-        let (f, first) = parse_with_first(data).map_err(|e| SeriesDrawError::Bricked {
-            component: 0,
-            source: Box::new(e),
-        })?;
-        whole_header(&f.manifest, &first)
-    } else {
-        parse_file(data)?.header
-    };
-    check_component(file, 0, &header)?;
-    header.placement = file.manifest.space.placement;
-    Ok(header)
 }
 
 /// Refuses component `c` whose (whole) header is not the series' space.

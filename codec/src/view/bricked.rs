@@ -39,6 +39,34 @@ pub fn whole_header(manifest: &Manifest, first: &Header) -> Header {
     header
 }
 
+/// The header a reader draws a time point of a series with: its first component's (the
+/// whole's, for a bricked one) with the series' placement, checked against the series' space.
+/// Every component spans the same whole, so one view fits every time point.
+pub fn series_header(file: &crate::format::series::SeriesFile<'_>) -> Result<Header, FormatError> {
+    use crate::format::bricked::{is_bricked, parse_bricked};
+    let data = file.component_bytes(0)?;
+    let mut header = if is_bricked(data) {
+        let b = parse_bricked(data)?;
+        let first = crate::format::parse_file(b.brick_bytes(0)?)?.header;
+        whole_header(&b.manifest, &first)
+    } else {
+        crate::format::parse_file(data)?.header
+    };
+    let space = &file.manifest.space;
+    let dims = space.dims.map(|d| d as usize);
+    if header.geometry.dims != dims || header.channels != space.channels {
+        return Err(FormatError::Invalid {
+            what: "series manifest",
+            detail: format!(
+                "component 0 is {:?} with {} channel(s); the series is {dims:?} with {}",
+                header.geometry.dims, header.channels, space.channels
+            ),
+        });
+    }
+    header.placement = space.placement;
+    Ok(header)
+}
+
 /// Checks brick `i`'s header against its manifest entry: its dimensions, `channels` channels
 /// and the first brick's family.
 pub fn check_brick(

@@ -265,7 +265,7 @@ impl<B: AccumulationBackend> RenderSession<B> {
         self.header = whole;
         self.bricks = Some(bricks);
         self.packets.clear();
-        self.queue = super::queue::BucketQueue::new();
+        self.queue.clear();
         self.waiting.clear();
         self.dropped.clear();
         self.path_lengths = None;

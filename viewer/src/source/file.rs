@@ -116,7 +116,7 @@ impl FileSource {
     }
 
     /// Time point `t` of a series file ([`wavesplat_codec::format::series`]) served as one
-    /// volume for `spec` (of the whole: [`crate::series::series_header`]'s geometry): the
+    /// volume for `spec` (of the whole: [`wavesplat_codec::view::bricked::series_header`]'s geometry): the
     /// bricks of the components it names (a plain component is one brick of the whole's size)
     /// under global ids in component order, each packet's values scaled by its component's
     /// weight as it is decoded and its energy by the weight² as it is ranked. The time point's

@@ -96,8 +96,9 @@ pub(super) fn check_steps(
             let reason = match (&a.time, &b.time) {
                 (Some(ta), Some(tb)) if ta != tb => format!(
                     "a time series (4D), not a volume: the same slices at {} time points ({} \
-                     {ta} and {tb} at one position: {} and {}). wavesplat reads volumes: give \
-                     each time point its own directory",
+                     {ta} and {tb} at one position: {} and {}). `wavesplat compress` reads \
+                     it as a time series (every time point in one file), `--time-point N` \
+                     takes one volume out",
                     times.len(),
                     a.time_attribute,
                     label(k),
