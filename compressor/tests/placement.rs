@@ -133,11 +133,17 @@ fn hostile_placements_and_old_versions_are_refused() {
         e.to_string().contains("compress the source volume again"),
         "{e}"
     );
-    // The first version this build knows nothing of (version 9 is the bricked container,
-    // which the plain reader names as such).
+    // Versions 9 and 10 are the bricked and series containers, which the plain reader names
+    // as such; the first version this build knows nothing of is newer.
+    let mut series = bytes.clone();
+    series[4..6].copy_from_slice(&wavesplat_codec::format::series::SERIES_VERSION.to_le_bytes());
+    assert!(matches!(
+        read_header_section(&series).unwrap_err(),
+        FormatError::Series
+    ));
     let mut newer = bytes;
     newer[4..6]
-        .copy_from_slice(&(wavesplat_codec::format::bricked::BRICKED_VERSION + 1).to_le_bytes());
+        .copy_from_slice(&(wavesplat_codec::format::series::SERIES_VERSION + 1).to_le_bytes());
     assert!(read_header_section(&newer)
         .unwrap_err()
         .to_string()
