@@ -83,6 +83,7 @@ impl BucketVolume {
                 header_bytes: h.header_bytes,
                 packets: h.packets,
                 bricked: None,
+                series: None,
             },
             wsp_offset: h.wsp_offset,
             wsp_bytes: h.wsp_bytes,
@@ -135,6 +136,7 @@ impl BucketVolume {
                     manifest: h.manifest,
                     bricks,
                 })),
+                series: None,
             },
             wsp_offset: h.wsp_offset,
             wsp_bytes: h.wsp_bytes,
@@ -717,7 +719,7 @@ fn meta_of(v: &BucketVolume, names: Vec<String>) -> VolumeMeta {
         &h.packets,
     );
     if let Some(b) = &h.bricked {
-        meta.describe_bricks(h.header_bytes.len(), b);
+        meta.describe_bricks(h.header_bytes.len(), &b.bricks, b.manifest.kept());
     }
     meta
 }

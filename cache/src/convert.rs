@@ -17,22 +17,45 @@ pub fn volume_key(r: Option<pb::VolumeRef>) -> Result<VolumeKey, CacheError> {
     }
 }
 
-/// A volume's header message: its facts, its header section and, for a bricked volume, its
-/// bricks' headers.
+/// A volume's header message: its facts, its header section and, for a bricked volume or a
+/// time series, its bricks' headers (a series': each with its component and origin).
 pub fn volume_header(meta: &VolumeMeta, index: &VolumeIndex) -> pb::VolumeHeader {
     pb::VolumeHeader {
         volume: Some(volume_info(meta)),
         header: index.header_bytes.clone(),
-        bricks: index.bricked.as_ref().map_or_else(Vec::new, |b| {
-            b.bricks
+        bricks: match (&index.bricked, &index.series) {
+            (Some(b), _) => b
+                .bricks
                 .iter()
                 .map(|k| pb::BrickHeader {
                     header: k.header_bytes.clone(),
                     packets: k.packets,
+                    ..Default::default()
                 })
-                .collect()
-        }),
+                .collect(),
+            (None, Some(s)) => s
+                .bricks
+                .iter()
+                .enumerate()
+                .map(|(i, k)| {
+                    let component = s.component_of(i);
+                    pb::BrickHeader {
+                        header: k.header_bytes.clone(),
+                        packets: k.packets,
+                        component: component as u32,
+                        origin: k.origin.to_vec(),
+                        bricked: s.bricked[component],
+                    }
+                })
+                .collect(),
+            (None, None) => Vec::new(),
+        },
     }
+}
+
+/// The time point a view asks for (checked against the volume when it is planned).
+pub fn time_point(v: Option<&pb::ViewSpec>) -> usize {
+    v.map_or(0, |v| v.time_point as usize)
 }
 
 /// Parses and range-checks a view.

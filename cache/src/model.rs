@@ -6,6 +6,7 @@
 use crate::error::CacheError;
 use wavesplat_codec::format::bricked::{parse_manifest, Manifest};
 use wavesplat_codec::format::bytes::{ByteReader, ByteWriter};
+use wavesplat_codec::format::series::SeriesManifest;
 use wavesplat_codec::format::{read_header_section, Header};
 
 pub use wavesplat_net::VolumeKey;
@@ -88,18 +89,23 @@ impl VolumeMeta {
     /// Makes a record made from a bricked volume's whole header (`from_header`) describe its
     /// bricks: their levels, tiles and coefficients, and the header bytes of the manifest
     /// section (`section_bytes`) and every brick.
-    pub(crate) fn describe_bricks(&mut self, section_bytes: usize, b: &BrickedIndex) {
-        let first = &b.bricks[0].header;
+    /// (A series' record: the bricks of every component, and the coefficients of all.)
+    pub(crate) fn describe_bricks(
+        &mut self,
+        section_bytes: usize,
+        bricks: &[IndexBrick],
+        kept: u64,
+    ) {
+        let first = &bricks[0].header;
         self.levels = first.geometry.levels as u32;
-        self.tile_count = b
-            .bricks
+        self.tile_count = bricks
             .iter()
             .map(|k| k.header.tile_count() as u64)
             .sum::<u64>()
             .min(u64::from(u32::MAX)) as u32;
-        self.coefficients = b.manifest.kept();
+        self.coefficients = kept;
         self.header_bytes = section_bytes as u64
-            + b.bricks
+            + bricks
                 .iter()
                 .map(|k| k.header_bytes.len() as u64)
                 .sum::<u64>();
@@ -234,17 +240,154 @@ pub struct VolumeIndex {
     pub packets: Vec<PacketMeta>,
     /// A bricked volume's bricks.
     pub bricked: Option<Box<BrickedIndex>>,
+    /// A time series' components and their bricks (its `header` is its time point 0's).
+    pub series: Option<Box<SeriesIndex>>,
 }
 
 impl VolumeIndex {
+    /// The bricks of a bricked volume or of every component of a series, in packet order
+    /// (`None` for one volume).
+    pub fn bricks(&self) -> Option<&[IndexBrick]> {
+        match (&self.bricked, &self.series) {
+            (Some(b), _) => Some(&b.bricks),
+            (None, Some(s)) => Some(&s.bricks),
+            (None, None) => None,
+        }
+    }
+
     /// The brick packet `id` belongs to (0 for one volume).
     pub fn brick_of(&self, id: u32) -> usize {
-        self.bricked.as_ref().map_or(0, |b| {
-            b.bricks
+        self.bricks().map_or(0, |bricks| {
+            bricks
                 .partition_point(|k| k.first_packet <= id)
                 .saturating_sub(1)
         })
     }
+
+    /// Time points (1 for a volume that is not a series).
+    pub fn time_points(&self) -> usize {
+        self.series.as_ref().map_or(1, |s| s.manifest.points.len())
+    }
+}
+
+/// A time series as the store keeps it: its manifest and every component's bricks (a plain
+/// component is one brick of the whole's size at the origin), component after component.
+#[derive(Debug, Clone)]
+pub struct SeriesIndex {
+    /// The parsed series manifest.
+    pub manifest: SeriesManifest,
+    /// Every component's bricks, in component order; packets numbered brick after brick.
+    pub bricks: Vec<IndexBrick>,
+    /// Each component's bricks (a range of `bricks`).
+    pub components: Vec<std::ops::Range<usize>>,
+    /// Whether each component is a bricked container (else a plain `.wsp`, its one brick).
+    pub bricked: Vec<bool>,
+}
+
+impl SeriesIndex {
+    /// The header time points are drawn with: component 0's whole header (a bricked one's
+    /// made as [`wavesplat_codec::view::bricked::whole_header`] makes it) with the series'
+    /// placement, as [`wavesplat_codec::view::bricked::series_header`] makes it from the file.
+    pub fn whole_header(&self) -> Result<Header, wavesplat_codec::format::FormatError> {
+        wavesplat_codec::view::bricked::series_brick_header(
+            &self.manifest.space,
+            self.bricks[self.components[0].start].header.clone(),
+            self.bricked[0],
+        )
+    }
+
+    /// The component brick `brick` belongs to.
+    pub fn component_of(&self, brick: usize) -> usize {
+        self.components
+            .partition_point(|r| r.start <= brick)
+            .saturating_sub(1)
+    }
+}
+
+/// Encodes a series' bricks: per component its brick count, per brick its origin, header and
+/// packet count (the series manifest is stored on its own).
+pub(crate) fn encode_series(s: &SeriesIndex) -> Vec<u8> {
+    let mut w = ByteWriter::new();
+    w.u8(2); // record version (1: a bricked volume's, `encode_bricks`)
+    w.u32(s.components.len() as u32);
+    for (r, bricked) in s.components.iter().zip(&s.bricked) {
+        w.u32(r.len() as u32);
+        w.u8(u8::from(*bricked));
+    }
+    for b in &s.bricks {
+        for o in b.origin {
+            w.u64(o);
+        }
+        w.u32(b.header_bytes.len() as u32);
+        w.bytes(&b.header_bytes);
+        w.u32(b.packets);
+    }
+    w.into_bytes()
+}
+
+/// Decodes what [`encode_series`] wrote for the series of `manifest_section` (of a container of
+/// `file_bytes` bytes), checking the counts against the manifest.
+pub(crate) fn decode_series(
+    manifest_section: &[u8],
+    file_bytes: u64,
+    bytes: &[u8],
+) -> Result<SeriesIndex, CacheError> {
+    let corrupt = |e: String| CacheError::Corrupt(format!("stored series: {e}"));
+    let manifest = wavesplat_codec::format::series::parse_manifest(manifest_section, file_bytes)
+        .map_err(|e| corrupt(e.to_string()))?;
+    let mut r = ByteReader::new(bytes, "stored series");
+    let version = r.u8()?;
+    if version != 2 {
+        return Err(corrupt(format!("record version {version}")));
+    }
+    let n = r.u32()? as usize;
+    if n != manifest.components.len() {
+        return Err(corrupt(format!(
+            "{n} components for a manifest of {}",
+            manifest.components.len()
+        )));
+    }
+    let mut components = Vec::with_capacity(n);
+    let mut bricked = Vec::with_capacity(n);
+    let mut at = 0usize;
+    for _ in 0..n {
+        let count = r.u32()? as usize;
+        if count == 0 || count > bytes.len() {
+            return Err(corrupt(format!("a component of {count} bricks")));
+        }
+        components.push(at..at + count);
+        bricked.push(match r.u8()? {
+            0 => false,
+            1 => true,
+            f => return Err(corrupt(format!("component kind {f}"))),
+        });
+        at += count;
+    }
+    let mut bricks = Vec::with_capacity(at.min(bytes.len()));
+    let mut first_packet = 0u32;
+    for _ in 0..at {
+        let origin = [r.u64()?, r.u64()?, r.u64()?];
+        let len = r.u32()? as usize;
+        let header_bytes = r.take(len)?.to_vec();
+        let (header, _) = read_header_section(&header_bytes).map_err(|e| corrupt(e.to_string()))?;
+        let packets = r.u32()?;
+        bricks.push(IndexBrick {
+            header,
+            header_bytes,
+            origin,
+            first_packet,
+            packets,
+        });
+        first_packet = first_packet
+            .checked_add(packets)
+            .ok_or_else(|| corrupt("more than 2^32 packets".into()))?;
+    }
+    Ok(SeriesIndex {
+        manifest,
+        bricks,
+        components,
+        bricked,
+    })
 }
 
 /// The bricks of a bricked volume as the store keeps them: the manifest and each brick's header.

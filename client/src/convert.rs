@@ -4,7 +4,8 @@
 use crate::{BrickHeader, ClientError, Packet, VolumeHeader, VolumeInfo, VolumeKey};
 use wavesplat_codec::format::bricked::parse_manifest;
 use wavesplat_codec::format::read_header_section;
-use wavesplat_codec::view::bricked::{check_brick, whole_header};
+use wavesplat_codec::format::series::{is_series, parse_manifest as parse_series_manifest};
+use wavesplat_codec::view::bricked::{check_brick, series_brick_header, whole_header};
 use wavesplat_codec::view::{CueDirection, Orientation, ViewError, ViewSpec};
 use wavesplat_proto::pb;
 
@@ -20,7 +21,8 @@ pub fn volume_ref(key: &VolumeKey) -> pb::VolumeRef {
 
 /// A view message. Only spherical-angle views travel on the wire (the cache derives multiview
 /// cameras itself); an explicit basis is refused here rather than sent as NaN.
-pub fn view_message(spec: &ViewSpec) -> Result<pb::ViewSpec, ViewError> {
+/// `time_point`: of a time series, the time point shown (0 for any other volume).
+pub fn view_message(spec: &ViewSpec, time_point: u32) -> Result<pb::ViewSpec, ViewError> {
     spec.validate()?;
     let v = &spec.view;
     let Orientation::Angles { alpha, beta } = v.orientation else {
@@ -37,6 +39,7 @@ pub fn view_message(spec: &ViewSpec) -> Result<pb::ViewSpec, ViewError> {
         pan_u: v.pan[0],
         pan_v: v.pan[1],
         multiview: spec.multiview,
+        time_point,
         cue: v.cue.map(|c| pb::Cue {
             k: c.k,
             direction: Some(match c.direction {
@@ -116,7 +119,11 @@ pub(crate) fn volume_header(h: pb::VolumeHeader) -> Result<VolumeHeader, ClientE
             header,
             bytes: h.header,
             bricks: Vec::new(),
+            series: None,
         });
+    }
+    if is_series(&h.header) {
+        return series_header(info, h.header, &h.bricks);
     }
     // A bricked volume: the manifest places the bricks (checked against the file's size), each
     // brick's header against its entry, and their packets against the volume's count.
@@ -139,19 +146,102 @@ pub(crate) fn volume_header(h: pb::VolumeHeader) -> Result<VolumeHeader, ClientE
             header,
             origin: entry.origin,
             packets: b.packets,
+            component: 0,
         });
     }
+    check_packet_count(packets, &info)?;
+    Ok(VolumeHeader {
+        header: whole_header(&manifest, &bricks[0].header),
+        info,
+        bytes: h.header,
+        bricks,
+        series: None,
+    })
+}
+
+fn check_packet_count(packets: u64, info: &VolumeInfo) -> Result<(), ClientError> {
     if packets != u64::from(info.packet_count) {
         return Err(ClientError::Protocol(format!(
             "the bricks have {packets} packets, the volume {}",
             info.packet_count
         )));
     }
+    Ok(())
+}
+
+/// A time series' header message: its manifest (checked against the file's size) and every
+/// component's bricks, component after component, each inside the whole with the series'
+/// channels and component 0's family.
+fn series_header(
+    info: VolumeInfo,
+    section: Vec<u8>,
+    brick_messages: &[pb::BrickHeader],
+) -> Result<VolumeHeader, ClientError> {
+    let bad = |m: String| ClientError::Protocol(format!("series header: {m}"));
+    let manifest = parse_series_manifest(&section, info.file_bytes)?;
+    let space = &manifest.space;
+    let mut bricks: Vec<BrickHeader> = Vec::with_capacity(brick_messages.len());
+    let mut packets = 0u64;
+    let mut first_bricked = false;
+    for (i, b) in brick_messages.iter().enumerate() {
+        let component = b.component as usize;
+        let expected = bricks.last().map_or(0, |p| p.component);
+        if component != expected && component != expected + 1 {
+            return Err(bad(format!(
+                "brick {i} is of component {component} after component {expected}"
+            )));
+        }
+        let origin: [u64; 3] = b.origin.as_slice().try_into().map_err(|_| {
+            bad(format!(
+                "brick {i} has an origin of {} values",
+                b.origin.len()
+            ))
+        })?;
+        let (header, _) = read_header_section(&b.header)?;
+        let fits = (0..3).all(|a| {
+            origin[a]
+                .checked_add(header.geometry.dims[a] as u64)
+                .is_some_and(|end| end <= space.dims[a])
+        });
+        if !fits || header.channels != space.channels {
+            return Err(bad(format!(
+                "brick {i} at {origin:?}, {:?} with {} channel(s), is not inside the series' \
+                 {:?} with {}",
+                header.geometry.dims, header.channels, space.dims, space.channels
+            )));
+        }
+        if let Some(first) = bricks.first() {
+            if header.geometry.family != first.header.geometry.family {
+                return Err(bad(format!(
+                    "brick {i}'s wavelet family differs from brick 0's"
+                )));
+            }
+        } else {
+            first_bricked = b.bricked;
+        }
+        packets += u64::from(b.packets);
+        bricks.push(BrickHeader {
+            header,
+            origin,
+            packets: b.packets,
+            component,
+        });
+    }
+    let components = bricks.last().map_or(0, |b| b.component + 1);
+    if components != manifest.components.len() {
+        return Err(bad(format!(
+            "bricks of {components} components; the manifest has {}",
+            manifest.components.len()
+        )));
+    }
+    check_packet_count(packets, &info)?;
+    let header = series_brick_header(space, bricks[0].header.clone(), first_bricked)?;
     Ok(VolumeHeader {
-        header: whole_header(&manifest, &bricks[0].header),
+        header,
         info,
-        bytes: h.header,
+        bytes: section,
         bricks,
+        series: Some(Box::new(manifest)),
     })
 }
 

@@ -167,8 +167,12 @@ pub struct VolumeHeader {
     /// The header section as stored (magic to header CRC; a bricked volume's: its container's
     /// manifest section).
     pub bytes: Vec<u8>,
-    /// A bricked volume's bricks, in the order of their packets' ids (empty for one volume).
+    /// A bricked volume's bricks, or every component's bricks of a time series, in the order
+    /// of their packets' ids (empty for one volume).
     pub bricks: Vec<BrickHeader>,
+    /// A time series' manifest: its time points, each a weighted sum of components (`header`
+    /// is then the one every time point is drawn with).
+    pub series: Option<Box<wavesplat_codec::format::series::SeriesManifest>>,
 }
 
 /// One brick of a bricked volume as the cache describes it.
@@ -180,6 +184,8 @@ pub struct BrickHeader {
     pub origin: [u64; 3],
     /// Its packets (their ids follow the previous bricks').
     pub packets: u32,
+    /// Of a time series: its component (0 otherwise).
+    pub component: usize,
 }
 
 /// One packet as the cache sent it.

@@ -25,6 +25,8 @@ pub struct RefineRequest {
     pub credit_bytes: u64,
     /// Only the packets the view sees (see [`RefineRequest::visible_only`]).
     pub visible_only: bool,
+    /// Of a time series, the time point shown (0 for any other volume).
+    pub time_point: u32,
 }
 
 impl RefineRequest {
@@ -37,7 +39,14 @@ impl RefineRequest {
             have_header: false,
             credit_bytes: 0,
             visible_only: false,
+            time_point: 0,
         }
+    }
+
+    /// Of a time series, show time point `t` (its components' packets only).
+    pub fn at_time_point(mut self, t: u32) -> RefineRequest {
+        self.time_point = t;
+        self
     }
 
     /// Send only the packets each view sees (on screen, in a band its projection does not
@@ -86,6 +95,8 @@ pub enum RefineEvent {
 #[derive(Debug, Clone)]
 pub struct RefineControl {
     tx: mpsc::Sender<pb::RefineRequest>,
+    /// The time point the stream's views are of (a time series'; 0 otherwise).
+    time_point: std::sync::Arc<std::sync::atomic::AtomicU32>,
 }
 
 impl RefineControl {
@@ -96,10 +107,19 @@ impl RefineControl {
             .map_err(|_| ClientError::Closed)
     }
 
-    /// Ranks what is not yet sent for a new view.
+    /// Ranks what is not yet sent for a new view (of the stream's time point).
     pub async fn set_view(&self, view: &ViewSpec) -> Result<(), ClientError> {
-        let v = convert::view_message(view)
+        let t = self.time_point.load(std::sync::atomic::Ordering::Relaxed);
+        self.set_view_at(view, t).await
+    }
+
+    /// Ranks what is not yet sent for a new view of time point `t` of a time series (later
+    /// views keep it).
+    pub async fn set_view_at(&self, view: &ViewSpec, t: u32) -> Result<(), ClientError> {
+        let v = convert::view_message(view, t)
             .map_err(|e| ClientError::Protocol(format!("view cannot be sent: {e}")))?;
+        self.time_point
+            .store(t, std::sync::atomic::Ordering::Relaxed);
         self.send(pb::refine_request::Msg::View(v)).await
     }
 
@@ -161,7 +181,7 @@ pub(crate) async fn open(
     client: &mut pb::cache_client::CacheClient<crate::Transport>,
     request: RefineRequest,
 ) -> Result<RefineStream, ClientError> {
-    let view = convert::view_message(&request.view)
+    let view = convert::view_message(&request.view, request.time_point)
         .map_err(|e| ClientError::Protocol(format!("view cannot be sent: {e}")))?;
     let (tx, rx) = mpsc::channel(CONTROL_BUFFER);
     let start = pb::RefineRequest {
@@ -180,7 +200,10 @@ pub(crate) async fn open(
         .await?
         .into_inner();
     Ok(RefineStream {
-        control: RefineControl { tx },
+        control: RefineControl {
+            tx,
+            time_point: std::sync::Arc::new(request.time_point.into()),
+        },
         inbound,
     })
 }

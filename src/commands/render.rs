@@ -358,8 +358,12 @@ pub fn run(a: RenderArgs) -> Result<()> {
             return render_bricked(&a, &view, path, bytes, request);
         }
     }
-    if !series && (a.view.time_point.is_some() || a.time_points.is_some()) {
-        bail!("--time-point and --time-points apply to a local time series file (one `compress` made from a 4D file, a directory of time steps or --phantom beating)");
+    let cached = matches!(location, VolumeLocation::Cache { .. });
+    if cached && a.time_points.is_some() {
+        bail!("--time-points draws a local time series file; from a cache, render one --time-point N at a time (or `view` it to play)");
+    }
+    if !series && !cached && (a.view.time_point.is_some() || a.time_points.is_some()) {
+        bail!("--time-point and --time-points apply to a time series: a local file (one `compress` made from a 4D file, a directory of time steps or --phantom beating) or one in a cache");
     }
     let volume = location.describe();
     let (header, opened, spec) = open(location, &view, a.bytes)?;

@@ -8,8 +8,8 @@ use clap::Args;
 use std::path::PathBuf;
 use wavesplat_codec::format::series::{is_series, parse_series};
 use wavesplat_codec::view::{Cue, MAX_IMAGE_SIDE};
-use wavesplat_viewer::open::{open, VolumeLocation};
-use wavesplat_viewer::source::{FileSource, PacketSource};
+use wavesplat_viewer::open::{open, Opened, VolumeLocation};
+use wavesplat_viewer::source::{CacheSource, CacheSourceOptions, FileSource, PacketSource};
 use wavesplat_viewer::window::{self, Script, ViewState, WindowOptions};
 
 /// Arguments of `wavesplat view`.
@@ -131,15 +131,46 @@ pub fn run(a: ViewWindowArgs) -> Result<()> {
                 .then(|| m.points.iter().map(|p| p.time).collect::<Vec<f64>>());
             Some((bytes.clone(), points, times))
         }
+        VolumeLocation::Cache { .. } => None,
         _ => {
             if a.view.time_point.is_some() {
-                bail!("--time-point applies to a local time series file");
+                bail!("--time-point applies to a time series (a local file or in a cache)");
             }
             None
         }
     };
+    let cache = match &location {
+        VolumeLocation::Cache {
+            urls,
+            connect,
+            name,
+        } => Some((urls.clone(), connect.clone(), name.clone())),
+        _ => None,
+    };
     let title = location.describe();
     let (header, opened, spec) = open(location, &request, None)?;
+    // A time series in a cache plays too: each time point is a stream of its own.
+    let cached_series = match (&opened, cache) {
+        (Opened::Cache { source, .. }, Some(cache)) => source.series().map(|m| {
+            let times = m
+                .times_known
+                .then(|| m.points.iter().map(|p| p.time).collect::<Vec<f64>>());
+            (cache, m.points.len(), times)
+        }),
+        _ => None,
+    };
+    if cached_series.is_none()
+        && matches!(opened, Opened::Cache { .. })
+        && a.view.time_point.is_some()
+    {
+        bail!("--time-point applies to a time series; {title} is one volume");
+    }
+    if cached_series.is_some() && request.multiview {
+        bail!(
+            "{title} is a time series: the window shows a time point in single views \
+             (`wavesplat render --multiview` draws one)"
+        );
+    }
     // The window turns a view by its angles: a named patient view must be one.
     let state = ViewState::new(
         &spec,
@@ -174,7 +205,31 @@ pub fn run(a: ViewWindowArgs) -> Result<()> {
                 }),
             )
         }
-        None => (state, None),
+        None => match cached_series {
+            Some(((urls, connect, name), points, times)) => {
+                let state =
+                    state.with_time(a.view.time_point.unwrap_or(0), points, times, a.view.fps);
+                let open = move |t: usize, spec: &wavesplat_codec::view::ViewSpec| {
+                    let options = CacheSourceOptions {
+                        time_point: u32::try_from(t)?,
+                        ..CacheSourceOptions::default()
+                    };
+                    let key = wavesplat_client::VolumeKey::Name(name.clone());
+                    let (source, _) = CacheSource::open_with(&urls, &connect, key, *spec, options)?;
+                    let volume = source
+                        .bricked_volume()
+                        .ok_or("a time point is drawn as bricks")?;
+                    Ok((volume, Box::new(source) as Box<dyn PacketSource>))
+                };
+                (
+                    state,
+                    Some(window::SeriesPlayback {
+                        open: Box::new(open),
+                    }),
+                )
+            }
+            None => (state, None),
+        },
     };
     let options = WindowOptions {
         max_image: a.max_image,

@@ -485,6 +485,9 @@ pub fn open(
             let key = VolumeKey::Name(name);
             let options = CacheSourceOptions {
                 byte_budget,
+                time_point: request
+                    .time_point
+                    .map_or(0, |t| u32::try_from(t).unwrap_or(u32::MAX)),
                 ..CacheSourceOptions::default()
             };
             let first = request.spec()?;
@@ -492,8 +495,14 @@ pub fn open(
                 CacheSource::open_with(&urls, &connect, key.clone(), first, options)
                     .map_err(failed)?;
             let spec = request.respec(&header.header, first, &mut source)?;
+            // A time point of a series is drawn with its own header (its components' offsets
+            // weighted), as the file's is.
+            let drawn = match (&header.series, source.bricked_volume()) {
+                (Some(_), Some(volume)) => volume.whole,
+                _ => header.header,
+            };
             Ok((
-                header.header,
+                drawn,
                 Opened::Cache {
                     url: urls,
                     connect,

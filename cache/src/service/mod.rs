@@ -425,6 +425,14 @@ impl Cache for CacheService {
                         .into(),
                 ));
             }
+            if volume.index.series.is_some() {
+                return Err(CacheError::Unsupported(
+                    "a time series' first packets are one component's: a time point is \
+                     streamed by Refine (its view's time_point), whose header message carries \
+                     every component's bricks"
+                        .into(),
+                ));
+            }
             let mut packets = Vec::new();
             let mut used = 0u64;
             for (i, p) in volume.index.packets.iter().enumerate() {
@@ -467,6 +475,7 @@ impl Cache for CacheService {
             }
         };
         let key = convert::volume_key(start.volume)?;
+        let time_point = convert::time_point(start.view.as_ref());
         let spec = convert::view_spec(start.view)?;
         let store = self.store.clone();
         let (volume, name) = blocking(move || {
@@ -483,7 +492,7 @@ impl Cache for CacheService {
         session.visible_only = start.visible_only;
         session.hold(&start.have)?;
         session.unplanned();
-        let planning = tokio::spawn(plan(self.planners.clone(), volume, spec));
+        let planning = tokio::spawn(plan(self.planners.clone(), volume, spec, time_point));
         let (tx, rx) = mpsc::channel(STREAM_BUFFER);
         let stopping = self.stopping.clone();
         tokio::spawn(async move {
@@ -625,7 +634,7 @@ mod tests {
         // Once the plan arrives, the rest follows in the view's descending priority, each
         // packet once.
         let spec = ViewSpec::single(wavesplat_codec::view::View::new(0.7, 0.4, 48, 48));
-        let planned = Ranking::new(&volume.index, &spec).unwrap();
+        let planned = Ranking::new(&volume.index, &spec, 0).unwrap();
         let (gate_tx, gate_rx) = tokio::sync::oneshot::channel::<()>();
         let planning = tokio::spawn(async move {
             let _ = gate_rx.await;
@@ -668,14 +677,14 @@ mod tests {
         let spec = ViewSpec::single(wavesplat_codec::view::View::new(0.7, 0.4, 48, 48));
         let busy = Arc::new(Semaphore::new(0));
         let planned =
-            tokio::time::timeout(Duration::from_secs(10), plan(busy.clone(), small, spec)).await;
+            tokio::time::timeout(Duration::from_secs(10), plan(busy.clone(), small, spec, 0)).await;
         assert!(
             matches!(planned, Ok(Ok(_))),
             "the small volume's plan waited"
         );
         let waiting = tokio::time::timeout(
             Duration::from_millis(300),
-            plan(busy.clone(), large.clone(), spec),
+            plan(busy.clone(), large.clone(), spec, 0),
         )
         .await;
         assert!(
@@ -683,7 +692,8 @@ mod tests {
             "the large volume's plan ran without a planner"
         );
         busy.add_permits(1);
-        let planned = tokio::time::timeout(Duration::from_secs(10), plan(busy, large, spec)).await;
+        let planned =
+            tokio::time::timeout(Duration::from_secs(10), plan(busy, large, spec, 0)).await;
         assert!(
             matches!(planned, Ok(Ok(_))),
             "no plan once a planner was free"
@@ -731,7 +741,7 @@ mod tests {
         session.hold(&[first]).unwrap();
         session.release(&[first]).unwrap();
         let spec = ViewSpec::single(wavesplat_codec::view::View::new(0.7, 0.4, 48, 48));
-        let priority = Ranking::new(&volume.index, &spec).unwrap();
+        let priority = Ranking::new(&volume.index, &spec, 0).unwrap();
         session.reorder(priority.clone());
         assert!(!session.queue.iter().any(|(_, id)| *id == first));
         assert_eq!(session.queue.len(), volume.index.packets.len() - 1);

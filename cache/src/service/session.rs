@@ -32,21 +32,57 @@ pub(super) enum Ranking {
     Whole(Priority),
     /// A bricked volume: each brick's visibility in its frame (none off the image).
     Bricked(BrickedVisibility),
+    /// A time point of a series: the bricks of the components it names, seen as a bricked
+    /// volume's are; each packet's energy scaled by its component's weight squared (the time
+    /// point is the weighted sum of its components), other components' packets not sent.
+    Series {
+        seen: BrickedVisibility,
+        /// Per brick of the series: its index among the time point's bricks and its weight².
+        bricks: Vec<Option<(usize, f64)>>,
+    },
 }
 
 impl Ranking {
-    /// The ranking of `spec` for the volume of `index`.
-    pub(super) fn new(index: &VolumeIndex, spec: &ViewSpec) -> Result<Ranking, ViewError> {
-        Ok(match &index.bricked {
-            None => Ranking::Whole(Priority::new(&index.header, spec)?),
-            Some(b) => {
+    /// The ranking of `spec` at time point `time_point` (0 for a volume that is not a series)
+    /// for the volume of `index`.
+    pub(super) fn new(
+        index: &VolumeIndex,
+        spec: &ViewSpec,
+        time_point: usize,
+    ) -> Result<Ranking, CacheError> {
+        let points = index.time_points();
+        if time_point >= points {
+            return Err(CacheError::InvalidRequest(format!(
+                "time point {time_point}: the volume has {points} (0..={})",
+                points - 1
+            )));
+        }
+        let invalid = |e: ViewError| CacheError::InvalidRequest(e.to_string());
+        Ok(match (&index.bricked, &index.series) {
+            (Some(b), _) => {
                 let bricks: Vec<_> = b.bricks.iter().map(|k| (&k.header, k.origin)).collect();
-                Ranking::Bricked(BrickedVisibility::new(
-                    spec,
-                    &index.header.geometry,
-                    &bricks,
-                )?)
+                Ranking::Bricked(
+                    BrickedVisibility::new(spec, &index.header.geometry, &bricks)
+                        .map_err(invalid)?,
+                )
             }
+            (None, Some(s)) => {
+                let mut seen_bricks = Vec::new();
+                let mut bricks = vec![None; s.bricks.len()];
+                for &(c, weight) in &s.manifest.points[time_point].terms {
+                    for k in s.components[c].clone() {
+                        let b = &s.bricks[k];
+                        bricks[k] = Some((seen_bricks.len(), f64::from(weight).powi(2)));
+                        seen_bricks.push((&b.header, b.origin));
+                    }
+                }
+                Ranking::Series {
+                    seen: BrickedVisibility::new(spec, &index.header.geometry, &seen_bricks)
+                        .map_err(invalid)?,
+                    bricks,
+                }
+            }
+            (None, None) => Ranking::Whole(Priority::new(&index.header, spec).map_err(invalid)?),
         })
     }
 
@@ -58,6 +94,11 @@ impl Ranking {
             Ranking::Bricked(seen) => {
                 seen.visible_energy(index.brick_of(id), p.tile as usize, &p.summary)
             }
+            Ranking::Series { seen, bricks } => {
+                let (brick, w2) = bricks[index.brick_of(id)]?;
+                seen.visible_energy(brick, p.tile as usize, &p.summary)
+                    .map(|e| e * w2)
+            }
         }
     }
 }
@@ -68,6 +109,7 @@ pub(super) async fn plan(
     planners: Arc<Semaphore>,
     volume: Arc<OpenVolume>,
     spec: ViewSpec,
+    time_point: usize,
 ) -> Result<Ranking, Status> {
     let _permit = if volume.index.packets.len() <= CHEAP_PLAN_PACKETS {
         None
@@ -79,10 +121,7 @@ pub(super) async fn plan(
                 .map_err(|_| Status::internal("the planner pool is closed"))?,
         )
     };
-    blocking(move || {
-        Ranking::new(&volume.index, &spec).map_err(|e| CacheError::InvalidRequest(e.to_string()))
-    })
-    .await
+    blocking(move || Ranking::new(&volume.index, &spec, time_point)).await
 }
 
 /// A byte count from the wire as a signed credit (larger ones are as good as unbounded).
@@ -150,7 +189,7 @@ impl Session {
     pub(super) fn unplanned(&mut self) {
         let packets = &self.volume.index.packets;
         self.unplanned = Some(
-            if self.visible_only || self.volume.index.bricked.is_some() {
+            if self.visible_only || self.volume.index.bricks().is_some() {
                 0
             } else {
                 (self.volume.meta.packet_bytes / UNPLANNED_SHARE).max(1)
@@ -237,8 +276,10 @@ impl Session {
     async fn handle(&mut self, msg: pb::RefineRequest) -> Result<(), Status> {
         match msg.msg {
             Some(pb::refine_request::Msg::View(v)) => {
+                let time_point = convert::time_point(Some(&v));
                 let spec = convert::view_spec(Some(v))?;
-                let priority = plan(self.planners.clone(), self.volume.clone(), spec).await?;
+                let priority =
+                    plan(self.planners.clone(), self.volume.clone(), spec, time_point).await?;
                 self.change_view(priority);
                 tracing::debug!(volume = self.volume.meta.id, "view changed");
                 Ok(())

@@ -29,7 +29,8 @@ mod volume;
 use crate::bucket::Bucket;
 use crate::error::CacheError;
 use crate::model::{
-    decode_bricks, decode_packets, encode_packets, VolumeIndex, VolumeKey, VolumeMeta,
+    decode_bricks, decode_packets, decode_series, encode_packets, VolumeIndex, VolumeKey,
+    VolumeMeta,
 };
 use sled::transaction::{ConflictableTransactionError, TransactionError, Transactional};
 use std::collections::HashMap;
@@ -43,6 +44,7 @@ pub use volume::OpenVolume;
 use volume::VolumeData;
 use wavesplat_codec::format::bricked::is_bricked;
 use wavesplat_codec::format::read_header_section;
+use wavesplat_codec::format::series::is_series;
 use wavesplat_codec::view::bricked::whole_header;
 pub use wavesplat_net::digest::sha256;
 
@@ -517,19 +519,30 @@ impl Store {
         let key = id.to_be_bytes();
         let missing = || CacheError::Corrupt(format!("volume {id} has a record but no data"));
         let header_bytes = self.headers.get(key)?.ok_or_else(missing)?.to_vec();
-        let (header, bricked) = if is_bricked(&header_bytes) {
+        let (header, bricked, series) = if is_bricked(&header_bytes) {
             let stored = self.bricks.get(key)?.ok_or_else(missing)?;
             let b = decode_bricks(&header_bytes, meta.file_bytes, &stored)?;
             let first = &b.bricks[0].header;
-            (whole_header(&b.manifest, first), Some(Box::new(b)))
+            (whole_header(&b.manifest, first), Some(Box::new(b)), None)
+        } else if is_series(&header_bytes) {
+            let stored = self.bricks.get(key)?.ok_or_else(missing)?;
+            let s = decode_series(&header_bytes, meta.file_bytes, &stored)?;
+            let header = s
+                .whole_header()
+                .map_err(|e| CacheError::Corrupt(format!("stored series {id}: {e}")))?;
+            (header, None, Some(Box::new(s)))
         } else {
             let (header, _) = read_header_section(&header_bytes)
                 .map_err(|e| CacheError::Corrupt(format!("stored header of volume {id}: {e}")))?;
-            (header, None)
+            (header, None, None)
         };
         let packets = decode_packets(&self.index.get(key)?.ok_or_else(missing)?, true)?;
-        if let Some(b) = &bricked {
-            let counted: u64 = b.bricks.iter().map(|k| u64::from(k.packets)).sum();
+        let bricks = bricked
+            .as_ref()
+            .map(|b| &b.bricks)
+            .or(series.as_ref().map(|s| &s.bricks));
+        if let Some(bricks) = bricks {
+            let counted: u64 = bricks.iter().map(|k| u64::from(k.packets)).sum();
             if counted != packets.len() as u64 {
                 return Err(CacheError::Corrupt(format!(
                     "volume {id}: its bricks have {counted} packets, its index {}",
@@ -552,6 +565,7 @@ impl Store {
                 header_bytes,
                 packets,
                 bricked,
+                series,
             },
             data: VolumeData::File(file),
         });

@@ -15,13 +15,18 @@ use super::Store;
 use crate::bucket::Bucket;
 use crate::error::CacheError;
 use crate::model::{
-    encode_bricks, encode_packets, BrickedIndex, IndexBrick, PacketMeta, VolumeKey, VolumeMeta,
+    encode_bricks, encode_packets, encode_series, BrickedIndex, IndexBrick, PacketMeta,
+    SeriesIndex, VolumeKey, VolumeMeta,
 };
 use sha2::{Digest, Sha256};
 use std::fs::File;
 use std::io::Write;
 use std::path::PathBuf;
 use wavesplat_codec::format::bricked::{is_bricked, parse_manifest, Manifest, MAX_MANIFEST_BYTES};
+use wavesplat_codec::format::series::{
+    is_series, parse_manifest as parse_series_manifest, SeriesManifest,
+    MAX_MANIFEST_BYTES as SERIES_MAX_MANIFEST_BYTES,
+};
 use wavesplat_codec::format::{parse_prelude, Header, Prelude};
 use wavesplat_codec::view::bricked::{check_brick, whole_header};
 
@@ -44,24 +49,12 @@ struct Sink {
     id: u64,
     part: PathBuf,
     file: File,
-    /// The upload's first bytes, until they say whether it is one volume or a bricked
-    /// container and, for a container, until its manifest section is complete.
-    head: Vec<u8>,
-    /// What the head said: `None` while it is incomplete.
-    layout: Option<Layout>,
-    /// The `.wsp` being read: the whole upload, or the current brick of a container.
-    reader: Option<WspReader>,
-    /// Every packet so far, numbered across bricks; offsets from the upload's start.
+    /// The upload read as one volume file.
+    volume: ContainerReader,
+    /// Every packet so far, numbered across bricks and components; offsets from the upload's
+    /// start.
     packets: Vec<PacketMeta>,
     kept: bool,
-}
-
-impl Drop for Sink {
-    fn drop(&mut self) {
-        if !self.kept {
-            let _ = std::fs::remove_file(&self.part);
-        }
-    }
 }
 
 /// What an upload holds.
@@ -71,6 +64,52 @@ enum Layout {
     Single,
     /// A bricked container: its manifest and the bricks read so far.
     Bricked(Box<BrickedUpload>),
+    /// A series container: its manifest and the components read so far.
+    Series(Box<SeriesUpload>),
+}
+
+/// What a complete volume file of an upload holds, besides its header.
+#[derive(Debug)]
+enum Stored {
+    /// One volume of this many packets.
+    Single(usize),
+    Bricked(BrickedIndex),
+    Series(SeriesIndex),
+}
+
+#[derive(Debug)]
+struct SeriesUpload {
+    manifest: SeriesManifest,
+    /// The component being read (`None`: every one is read).
+    component: Option<Box<ContainerReader>>,
+    /// The whole header of component 0 (once read).
+    first: Option<Header>,
+    bricks: Vec<IndexBrick>,
+    components: Vec<std::ops::Range<usize>>,
+    /// Whether each component read so far is a bricked container.
+    bricked: Vec<bool>,
+    /// CRC-32 of the current component's bytes so far.
+    crc: crc32fast::Hasher,
+}
+
+/// One volume file of an upload read front to back: a `.wsp`, a bricked container or (the
+/// upload itself, not a component of one) a series container whose components are read by
+/// readers of their own.
+#[derive(Debug)]
+struct ContainerReader {
+    /// Where it starts in the upload, its length, and the bytes of it read so far.
+    base: u64,
+    len: u64,
+    read: u64,
+    /// Whether it may be a series (the upload itself).
+    top: bool,
+    /// Its first bytes, until they say whether it is one volume or a container and, for a
+    /// container, until its manifest section is complete.
+    head: Vec<u8>,
+    /// What the head said: `None` while it is incomplete.
+    layout: Option<Layout>,
+    /// The `.wsp` being read: the whole file, or the current brick of a bricked container.
+    reader: Option<WspReader>,
 }
 
 #[derive(Debug)]
@@ -273,24 +312,35 @@ impl WspReader {
 const CONTAINER_LEAD: usize = 4 + 2 + 4;
 
 impl Sink {
-    fn new(id: u64, part: PathBuf, file: File) -> Sink {
+    fn new(id: u64, part: PathBuf, file: File, total: u64) -> Sink {
         Sink {
             id,
             part,
             file,
-            head: Vec::new(),
-            layout: None,
-            reader: None,
+            volume: ContainerReader::new(0, total, true),
             packets: Vec::new(),
             kept: false,
         }
     }
+}
 
-    /// What a complete upload holds: the header (a bricked volume's: the whole's), the header
-    /// bytes clients get (a bricked volume's: the container's manifest section) and, for a
-    /// bricked volume, its bricks.
-    #[allow(clippy::type_complexity)]
-    fn complete(&mut self) -> Result<(Header, Vec<u8>, Option<BrickedIndex>), CacheError> {
+impl ContainerReader {
+    fn new(base: u64, len: u64, top: bool) -> ContainerReader {
+        ContainerReader {
+            base,
+            len,
+            read: 0,
+            top,
+            head: Vec::new(),
+            layout: None,
+            reader: None,
+        }
+    }
+
+    /// What a complete file holds: the header (a bricked volume's: the whole's; a series': its
+    /// time point 0's), the header bytes clients get (a container's: its manifest section) and
+    /// its bricks or components.
+    fn complete(&mut self) -> Result<(Header, Vec<u8>, Stored), CacheError> {
         match self.layout.take() {
             Some(Layout::Single) => {
                 let Some(r) = self.reader.as_mut() else {
@@ -298,8 +348,8 @@ impl Sink {
                         "the upload ends inside its header".into(),
                     ));
                 };
-                let (prelude, header_bytes, _) = r.complete()?;
-                Ok((prelude.header, header_bytes, None))
+                let (prelude, header_bytes, count) = r.complete()?;
+                Ok((prelude.header, header_bytes, Stored::Single(count)))
             }
             Some(Layout::Bricked(b)) if b.bricks.len() == b.manifest.bricks.len() => {
                 let header = whole_header(&b.manifest, &b.bricks[0].header);
@@ -307,7 +357,7 @@ impl Sink {
                 Ok((
                     header,
                     std::mem::take(&mut self.head),
-                    Some(BrickedIndex {
+                    Stored::Bricked(BrickedIndex {
                         manifest: b.manifest,
                         bricks: b.bricks,
                     }),
@@ -318,61 +368,96 @@ impl Sink {
                 b.bricks.len(),
                 b.manifest.bricks.len()
             ))),
+            Some(Layout::Series(s)) if s.components.len() == s.manifest.components.len() => {
+                let s = *s;
+                let index = SeriesIndex {
+                    manifest: s.manifest,
+                    bricks: s.bricks,
+                    components: s.components,
+                    bricked: s.bricked,
+                };
+                let header = index.whole_header()?;
+                Ok((
+                    header,
+                    std::mem::take(&mut self.head),
+                    Stored::Series(index),
+                ))
+            }
+            Some(Layout::Series(s)) => Err(CacheError::InvalidUpload(format!(
+                "the upload ends inside component {} of {}",
+                s.components.len(),
+                s.manifest.components.len()
+            ))),
             None => Err(CacheError::InvalidUpload(
                 "the upload ends inside its header".into(),
             )),
         }
     }
 
-    /// Validates the next bytes of the upload (of `total` bytes).
-    fn feed(&mut self, mut data: &[u8], total: u64, limits: &Limits) -> Result<(), CacheError> {
+    /// Validates the next bytes of the file (no more than it has left).
+    fn feed(
+        &mut self,
+        mut data: &[u8],
+        limits: &Limits,
+        packets: &mut Vec<PacketMeta>,
+    ) -> Result<(), CacheError> {
         while !data.is_empty() {
-            let taken = match self.reader.as_mut() {
-                Some(r) => {
-                    let take = (r.len - r.read).min(data.len() as u64) as usize;
-                    if let Some(Layout::Bricked(b)) = &mut self.layout {
-                        b.crc.update(&data[..take]);
+            let taken = if let Some(Layout::Series(s)) = &mut self.layout {
+                s.feed(data, limits, packets)?
+            } else {
+                match self.reader.as_mut() {
+                    Some(r) => {
+                        let take = (r.len - r.read).min(data.len() as u64) as usize;
+                        if let Some(Layout::Bricked(b)) = &mut self.layout {
+                            b.crc.update(&data[..take]);
+                        }
+                        r.feed(&data[..take], limits, packets)?;
+                        if r.read == r.len && r.brick.is_some() {
+                            self.end_brick(packets)?;
+                        }
+                        take
                     }
-                    r.feed(&data[..take], limits, &mut self.packets)?;
-                    if r.read == r.len && r.brick.is_some() {
-                        self.end_brick()?;
-                    }
-                    take
+                    None => match self.feed_head(data, limits, packets)? {
+                        Some(n) => n,
+                        None => continue,
+                    },
                 }
-                None => match self.feed_head(data, total, limits)? {
-                    Some(n) => n,
-                    None => continue,
-                },
             };
             if taken == 0 {
                 return Err(CacheError::InvalidUpload(
                     "bytes after the last brick".into(),
                 ));
             }
+            self.read += taken as u64;
             data = &data[taken..];
         }
         Ok(())
     }
 
-    /// Takes bytes of the upload's head from `data` (no more than it needs, so that what
+    /// Takes bytes of the file's head from `data` (no more than it needs, so that what
     /// follows reaches the first `.wsp` reader); returns how many, or `None` when it took none
     /// but decided the layout (the reader takes `data` next).
     fn feed_head(
         &mut self,
         data: &[u8],
-        total: u64,
         limits: &Limits,
+        packets: &mut Vec<PacketMeta>,
     ) -> Result<Option<usize>, CacheError> {
         if self.layout.is_some() {
             // Every brick read: nothing may follow.
             return Ok(Some(0));
         }
+        let series = is_series(&self.head);
         let need = if self.head.len() < 6 {
             6
-        } else if !is_bricked(&self.head) {
+        } else if series && !self.top {
+            return Err(CacheError::InvalidUpload(
+                "a component of a series is itself a series".into(),
+            ));
+        } else if !is_bricked(&self.head) && !series {
             // One volume: its reader takes the head's bytes, then the rest.
-            let mut r = WspReader::new(0, total, None);
-            r.feed(&std::mem::take(&mut self.head), limits, &mut self.packets)?;
+            let mut r = WspReader::new(self.base, self.len, None);
+            r.feed(&std::mem::take(&mut self.head), limits, packets)?;
             self.reader = Some(r);
             self.layout = Some(Layout::Single);
             // Nothing of `data` taken: the reader takes it next.
@@ -382,10 +467,15 @@ impl Sink {
         } else {
             let len = u32::from_le_bytes(self.head[6..10].try_into().expect("4 bytes")) as u64;
             let section = CONTAINER_LEAD as u64 + len + 4;
-            let limit = limits.max_prelude_bytes.min(MAX_MANIFEST_BYTES as u64);
+            let (what, max) = if series {
+                ("series manifest", SERIES_MAX_MANIFEST_BYTES)
+            } else {
+                ("bricked manifest", MAX_MANIFEST_BYTES)
+            };
+            let limit = limits.max_prelude_bytes.min(max as u64);
             if section > limit {
                 return Err(CacheError::TooLarge {
-                    what: "bricked manifest",
+                    what,
                     size: section,
                     limit,
                 });
@@ -395,7 +485,11 @@ impl Sink {
         let take = (need - self.head.len()).min(data.len());
         self.head.extend_from_slice(&data[..take]);
         if self.head.len() == need && need > CONTAINER_LEAD {
-            self.begin_bricks(total)?;
+            if series {
+                self.begin_components()?;
+            } else {
+                self.begin_bricks()?;
+            }
         }
         Ok(Some(take))
     }
@@ -404,31 +498,20 @@ impl Sink {
     /// size) and starts reading its first brick. Bricks must follow the manifest section in
     /// manifest order without gaps, as the container writer lays them out: the upload is read
     /// once, front to back.
-    fn begin_bricks(&mut self, total: u64) -> Result<(), CacheError> {
-        let manifest = parse_manifest(&self.head, total)?;
-        let mut at = self.head.len() as u64;
-        for (i, b) in manifest.bricks.iter().enumerate() {
-            if b.length == 0 {
-                return Err(CacheError::InvalidUpload(format!(
-                    "brick {i} is empty: every brick is a .wsp file"
-                )));
-            }
-            if b.offset != at {
-                return Err(CacheError::InvalidUpload(format!(
-                    "brick {i} starts at byte {}, not where the previous one ends ({at}): a \
-                     cache takes bricks laid out in manifest order",
-                    b.offset
-                )));
-            }
-            at += b.length;
-        }
-        if at != total {
-            return Err(CacheError::InvalidUpload(format!(
-                "the bricks end at byte {at}, the upload declares {total}"
-            )));
-        }
+    fn begin_bricks(&mut self) -> Result<(), CacheError> {
+        let manifest = parse_manifest(&self.head, self.len)?;
+        let spans: Vec<(u64, u64)> = manifest
+            .bricks
+            .iter()
+            .map(|b| (b.offset, b.length))
+            .collect();
+        self.check_laid_out("brick", &spans)?;
         let first = &manifest.bricks[0];
-        self.reader = Some(WspReader::new(first.offset, first.length, Some(0)));
+        self.reader = Some(WspReader::new(
+            self.base + first.offset,
+            first.length,
+            Some(0),
+        ));
         self.layout = Some(Layout::Bricked(Box::new(BrickedUpload {
             manifest,
             bricks: Vec::new(),
@@ -437,9 +520,60 @@ impl Sink {
         Ok(())
     }
 
+    /// The series manifest section is complete: parses it (checked against the upload's size)
+    /// and starts reading its first component, laid out as bricks are.
+    fn begin_components(&mut self) -> Result<(), CacheError> {
+        let manifest = parse_series_manifest(&self.head, self.len)?;
+        let spans: Vec<(u64, u64)> = manifest
+            .components
+            .iter()
+            .map(|c| (c.offset, c.length))
+            .collect();
+        self.check_laid_out("component", &spans)?;
+        let first = &manifest.components[0];
+        let component = ContainerReader::new(self.base + first.offset, first.length, false);
+        self.layout = Some(Layout::Series(Box::new(SeriesUpload {
+            manifest,
+            component: Some(Box::new(component)),
+            first: None,
+            bricks: Vec::new(),
+            components: Vec::new(),
+            bricked: Vec::new(),
+            crc: crc32fast::Hasher::new(),
+        })));
+        Ok(())
+    }
+
+    /// Checks that the parts at `spans` (offset, length from the container's start) follow
+    /// the manifest section in order, without gaps, to the container's end, none empty.
+    fn check_laid_out(&self, what: &str, spans: &[(u64, u64)]) -> Result<(), CacheError> {
+        let mut at = self.head.len() as u64;
+        for (i, &(offset, length)) in spans.iter().enumerate() {
+            if length == 0 {
+                return Err(CacheError::InvalidUpload(format!(
+                    "{what} {i} is empty: every {what} is a volume file"
+                )));
+            }
+            if offset != at {
+                return Err(CacheError::InvalidUpload(format!(
+                    "{what} {i} starts at byte {offset}, not where the previous one ends \
+                     ({at}): a cache takes {what}s laid out in manifest order"
+                )));
+            }
+            at += length;
+        }
+        if at != self.len {
+            return Err(CacheError::InvalidUpload(format!(
+                "the {what}s end at byte {at}, the upload declares {}",
+                self.len
+            )));
+        }
+        Ok(())
+    }
+
     /// The current brick's bytes are all read: checks it (complete, its CRC, its header against
     /// the manifest and the first brick), records it, and starts reading the next one.
-    fn end_brick(&mut self) -> Result<(), CacheError> {
+    fn end_brick(&mut self, packets: &[PacketMeta]) -> Result<(), CacheError> {
         let (Some(r), Some(Layout::Bricked(b))) = (self.reader.as_mut(), self.layout.as_mut())
         else {
             return Ok(());
@@ -456,37 +590,135 @@ impl Sink {
         }
         let first = b.bricks.first().map_or(&prelude.header, |f| &f.header);
         check_brick(i, entry, &prelude.header, first, b.manifest.channels)?;
-        let first_packet = self.packets.len() - count;
-        let first_packet = u32::try_from(first_packet)
-            .ok()
-            .filter(|_| u32::try_from(self.packets.len()).is_ok())
-            .ok_or_else(|| {
-                CacheError::InvalidUpload("more than 2^32 packets in one volume".into())
-            })?;
         b.bricks.push(IndexBrick {
             header: prelude.header,
             header_bytes,
             origin: entry.origin,
-            first_packet,
+            first_packet: first_packet(packets, count)?,
             packets: count as u32,
         });
         self.reader = b
             .manifest
             .bricks
             .get(i + 1)
-            .map(|e| WspReader::new(e.offset, e.length, Some(i + 1)));
+            .map(|e| WspReader::new(self.base + e.offset, e.length, Some(i + 1)));
         Ok(())
     }
 
-    /// The bytes this upload may hold in memory from now on.
-    fn memory_need(&self, total: u64, limits: &Limits) -> u64 {
+    /// The bytes this file may hold in memory from now on.
+    fn memory_need(&self, limits: &Limits) -> u64 {
+        if let Some(Layout::Series(s)) = &self.layout {
+            return s.component.as_ref().map_or(0, |c| c.memory_need(limits));
+        }
         match &self.reader {
             Some(r) => r.memory_need(limits),
-            None if self.layout.is_none() => total.min(limits.max_prelude_bytes),
+            None if self.layout.is_none() => self.len.min(limits.max_prelude_bytes),
             None => 0,
         }
     }
 }
+
+/// The id of the first of the last `count` packets of `packets`, checked to number in `u32`.
+fn first_packet(packets: &[PacketMeta], count: usize) -> Result<u32, CacheError> {
+    u32::try_from(packets.len() - count)
+        .ok()
+        .filter(|_| u32::try_from(packets.len()).is_ok())
+        .ok_or_else(|| CacheError::InvalidUpload("more than 2^32 packets in one volume".into()))
+}
+
+impl SeriesUpload {
+    /// Feeds the current component the bytes of `data` it has left; returns how many it took
+    /// (0: every component is read).
+    fn feed(
+        &mut self,
+        data: &[u8],
+        limits: &Limits,
+        packets: &mut Vec<PacketMeta>,
+    ) -> Result<usize, CacheError> {
+        let i = self.components.len();
+        let Some(c) = self.component.as_mut() else {
+            return Ok(0);
+        };
+        let take = (c.len - c.read).min(data.len() as u64) as usize;
+        self.crc.update(&data[..take]);
+        c.feed(&data[..take], limits, packets)
+            .map_err(|e| in_component(i, e))?;
+        if c.read == c.len {
+            self.end_component(packets)
+                .map_err(|e| in_component(i, e))?;
+        }
+        Ok(take)
+    }
+
+    /// The current component's bytes are all read: checks it (complete, its CRC, its space
+    /// against the series'), records its bricks, and starts reading the next one.
+    fn end_component(&mut self, packets: &[PacketMeta]) -> Result<(), CacheError> {
+        let Some(mut c) = self.component.take() else {
+            return Ok(());
+        };
+        let i = self.components.len();
+        let entry = &self.manifest.components[i];
+        let computed = std::mem::take(&mut self.crc).finalize();
+        if computed != entry.crc {
+            return Err(CacheError::InvalidUpload(format!(
+                "CRC-32 {computed:08x}, the manifest says {:08x}",
+                entry.crc
+            )));
+        }
+        let (header, header_bytes, stored) = c.complete()?;
+        let space = &self.manifest.space;
+        if header.geometry.dims != space.dims.map(|d| d as usize)
+            || header.channels != space.channels
+        {
+            return Err(CacheError::InvalidUpload(format!(
+                "{:?} with {} channel(s); the series is {:?} with {}",
+                header.geometry.dims, header.channels, space.dims, space.channels
+            )));
+        }
+        if let Some(first) = &self.first {
+            // Offsets differ between components (a time point weights them); the family, the
+            // colour space and its basis may not.
+            let shown = |h: &Header| (h.geometry.family, h.color.kind, h.color.basis);
+            if shown(&header) != shown(first) {
+                return Err(CacheError::InvalidUpload(
+                    "its wavelet family or colour space differs from component 0's".into(),
+                ));
+            }
+        }
+        let start = self.bricks.len();
+        self.bricked.push(matches!(stored, Stored::Bricked(_)));
+        match stored {
+            Stored::Single(count) => self.bricks.push(IndexBrick {
+                header: header.clone(),
+                header_bytes,
+                origin: [0; 3],
+                first_packet: first_packet(packets, count)?,
+                packets: count as u32,
+            }),
+            Stored::Bricked(b) => self.bricks.extend(b.bricks),
+            Stored::Series(_) => {
+                return Err(CacheError::InvalidUpload("a series in a series".into()))
+            }
+        }
+        self.components.push(start..self.bricks.len());
+        self.first.get_or_insert(header);
+        self.component = self
+            .manifest
+            .components
+            .get(i + 1)
+            .map(|e| Box::new(ContainerReader::new(e.offset, e.length, false)));
+        Ok(())
+    }
+}
+
+/// Names component `i` in an upload error about it.
+fn in_component(i: usize, e: CacheError) -> CacheError {
+    match e {
+        CacheError::InvalidUpload(m) => CacheError::InvalidUpload(format!("component {i}: {m}")),
+        e => e,
+    }
+}
+
 impl Upload {
     /// Starts an upload of `total` bytes under `name` whose SHA-256 is declared to be
     /// `declared`.
@@ -524,7 +756,7 @@ impl Upload {
             let id = store.db.generate_id()?;
             let part = store.file_path(id, "part");
             let file = File::create(&part).map_err(|e| io("creating an upload file", e))?;
-            Some(Sink::new(id, part, file))
+            Some(Sink::new(id, part, file, total))
         };
         Ok(Upload {
             store: store.clone(),
@@ -542,7 +774,7 @@ impl Upload {
     pub fn memory_need(&self) -> u64 {
         self.sink
             .as_ref()
-            .map_or(0, |s| s.memory_need(self.total, &self.store.limits))
+            .map_or(0, |s| s.volume.memory_need(&self.store.limits))
     }
 
     /// Bytes received so far.
@@ -564,7 +796,7 @@ impl Upload {
             s.file
                 .write_all(chunk)
                 .map_err(|e| io("writing an upload", e))?;
-            s.feed(chunk, self.total, &self.store.limits)?;
+            s.volume.feed(chunk, &self.store.limits, &mut s.packets)?;
         }
         Ok(())
     }
@@ -604,7 +836,7 @@ impl Upload {
                 meta
             }
             Some(mut s) => {
-                let (header, header_bytes, bricked) = s.complete()?;
+                let (header, header_bytes, stored) = s.volume.complete()?;
                 s.file.sync_all().map_err(|e| io("syncing an upload", e))?;
                 let id = s.id;
                 let path = store.file_path(id, "wsp");
@@ -618,10 +850,16 @@ impl Upload {
                 store
                     .index
                     .insert(id.to_be_bytes(), encode_packets(&s.packets))?;
-                if let Some(b) = &bricked {
-                    store
-                        .bricks
-                        .insert(id.to_be_bytes(), encode_bricks(&b.bricks))?;
+                match &stored {
+                    Stored::Bricked(b) => {
+                        store
+                            .bricks
+                            .insert(id.to_be_bytes(), encode_bricks(&b.bricks))?;
+                    }
+                    Stored::Series(s) => {
+                        store.bricks.insert(id.to_be_bytes(), encode_series(s))?;
+                    }
+                    Stored::Single(_) => {}
                 }
                 store.db.flush()?;
                 if let Some(e) = abandon() {
@@ -638,8 +876,14 @@ impl Upload {
                     section_bytes,
                     &s.packets,
                 );
-                if let Some(b) = &bricked {
-                    meta.describe_bricks(section_bytes, b);
+                match &stored {
+                    Stored::Bricked(b) => {
+                        meta.describe_bricks(section_bytes, &b.bricks, b.manifest.kept())
+                    }
+                    Stored::Series(s) => {
+                        meta.describe_bricks(section_bytes, &s.bricks, s.manifest.kept())
+                    }
+                    Stored::Single(_) => {}
                 }
                 meta
             }
@@ -684,7 +928,16 @@ impl Upload {
         let object = match self.sink.take() {
             None => None,
             Some(mut s) => {
-                let bricked = s.complete()?.2.is_some();
+                let bricked = match s.volume.complete()?.2 {
+                    Stored::Single(_) => false,
+                    Stored::Bricked(_) => true,
+                    Stored::Series(_) => {
+                        return Err(CacheError::InvalidUpload(
+                            "a time series: cache nodes over an object store do not take time                              series yet; a node with its own store (`cache serve --db`) does"
+                                .into(),
+                        ))
+                    }
+                };
                 let file = std::fs::read(&s.part).map_err(|e| io("reading an upload back", e))?;
                 let object = if bricked {
                     // The published layout of a bricked volume (version 2 of the indexed

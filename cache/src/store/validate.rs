@@ -110,6 +110,7 @@ pub fn index_file(bytes: &[u8], limits: &Limits) -> Result<VolumeIndex, CacheErr
         header: file.header,
         packets,
         bricked: None,
+        series: None,
     })
 }
 

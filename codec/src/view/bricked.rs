@@ -45,26 +45,58 @@ pub fn whole_header(manifest: &Manifest, first: &Header) -> Header {
 pub fn series_header(file: &crate::format::series::SeriesFile<'_>) -> Result<Header, FormatError> {
     use crate::format::bricked::{is_bricked, parse_bricked};
     let data = file.component_bytes(0)?;
-    let mut header = if is_bricked(data) {
+    let first = if is_bricked(data) {
         let b = parse_bricked(data)?;
         let first = crate::format::parse_file(b.brick_bytes(0)?)?.header;
         whole_header(&b.manifest, &first)
     } else {
         crate::format::parse_file(data)?.header
     };
-    let space = &file.manifest.space;
+    series_space_header(&file.manifest.space, first)
+}
+
+/// [`series_header`] from the header of component 0's first brick (`first`; `bricked`: the
+/// component is a bricked container, whose whole header [`whole_header`] makes from the
+/// space) and the series' space: checked against the space, with its placement. What a reader
+/// that holds only the components' brick headers (a cache, its clients) draws a series with.
+pub fn series_brick_header(
+    space: &crate::format::bricked::Space,
+    mut first: Header,
+    bricked: bool,
+) -> Result<Header, FormatError> {
+    if bricked {
+        let dims = space.dims.map(|d| d as usize);
+        first.geometry = Geometry {
+            dims,
+            padded: dims,
+            origin: [0; 3],
+            levels: 0,
+            family: first.geometry.family,
+            spacing: space.spacing,
+        };
+    }
+    series_space_header(space, first)
+}
+
+/// [`series_header`] from the whole header of a series' component 0 (`first`, a bricked one's
+/// [`whole_header`]) and the series' space: `first` checked against the space, with its
+/// placement.
+pub fn series_space_header(
+    space: &crate::format::bricked::Space,
+    mut first: Header,
+) -> Result<Header, FormatError> {
     let dims = space.dims.map(|d| d as usize);
-    if header.geometry.dims != dims || header.channels != space.channels {
+    if first.geometry.dims != dims || first.channels != space.channels {
         return Err(FormatError::Invalid {
             what: "series manifest",
             detail: format!(
                 "component 0 is {:?} with {} channel(s); the series is {dims:?} with {}",
-                header.geometry.dims, header.channels, space.channels
+                first.geometry.dims, first.channels, space.channels
             ),
         });
     }
-    header.placement = space.placement;
-    Ok(header)
+    first.placement = space.placement;
+    Ok(first)
 }
 
 /// Checks brick `i`'s header against its manifest entry: its dimensions, `channels` channels

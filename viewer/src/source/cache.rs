@@ -44,6 +44,9 @@ pub struct CacheSourceOptions {
     /// that sees them (default: yes; an off-screen or cancelled band is never sent for
     /// nothing).
     pub visible_only: bool,
+    /// Of a time series, the time point drawn (its components' packets only; 0 for any other
+    /// volume).
+    pub time_point: u32,
 }
 
 impl Default for CacheSourceOptions {
@@ -54,6 +57,7 @@ impl Default for CacheSourceOptions {
             byte_budget: None,
             link_bytes_per_second: None,
             visible_only: true,
+            time_point: 0,
         }
     }
 }
@@ -62,8 +66,10 @@ impl Default for CacheSourceOptions {
 #[derive(Debug)]
 pub struct CacheSource {
     feed: Feed,
-    /// The volume as a session draws it, when it is bricked.
+    /// The volume as a session draws it, when it is bricked (or a time point of a series).
     bricked: Option<Box<BrickedVolume>>,
+    /// Of a time series, its manifest.
+    series: Option<Box<wavesplat_codec::format::series::SeriesManifest>>,
 }
 
 impl CacheSource {
@@ -135,8 +141,8 @@ impl CacheSource {
                 reason: "no cache URL given".into(),
             }))
         })?;
-        let bricked = bricked_volume(&header)?;
-        let headers = Arc::new(PacketHeaders::new(&header.header, bricked.as_ref()));
+        let (headers, bricked) = PacketHeaders::new(&header, options.time_point as usize)?;
+        let headers = Arc::new(headers);
         let status = Arc::new(Mutex::new(SourceStatus {
             connected: true,
             ..Default::default()
@@ -161,7 +167,15 @@ impl CacheSource {
             status,
             move |tx, ctl| task.run(client, Some(stream), tx, ctl),
         )?;
-        Ok((CacheSource { feed, bricked }, header))
+        let series = header.series.clone();
+        Ok((
+            CacheSource {
+                feed,
+                bricked,
+                series,
+            },
+            header,
+        ))
     }
 
     /// The volume as a session draws it ([`crate::session::RenderSession::new_bricked`]), when
@@ -169,66 +183,189 @@ impl CacheSource {
     pub fn bricked_volume(&self) -> Option<BrickedVolume> {
         self.bricked.as_deref().cloned()
     }
-}
 
-/// A bricked volume from the cache's header as a session draws it (its bricks checked to share
-/// one image); `None` for one volume.
-fn bricked_volume(header: &VolumeHeader) -> Result<Option<BrickedVolume>, SourceError> {
-    let Some(first) = header.bricks.first() else {
-        return Ok(None);
-    };
-    for (i, b) in header.bricks.iter().enumerate() {
-        check_display(i, &b.header, &first.header)?;
+    /// Of a time series, its manifest (its time points and their times); `None` otherwise.
+    pub fn series(&self) -> Option<&wavesplat_codec::format::series::SeriesManifest> {
+        self.series.as_deref()
     }
-    let volume = BrickedVolume {
-        whole: header.header.clone(),
-        bricks: header
-            .bricks
-            .iter()
-            .map(|b| SessionBrick {
-                header: b.header.clone(),
-                origin: b.origin,
-                packets: b.packets,
-            })
-            .collect(),
-    };
-    volume.check()?;
-    Ok(Some(volume))
 }
 
-/// The headers a stream's packets decode with: the volume's, or each brick's for the packets
-/// of a bricked volume (ids numbered brick after brick).
+/// One brick as a stream's packets name it: its first packet's id on the wire, its header, the
+/// weight its values are scaled by and its first packet's id in the session.
+#[derive(Debug)]
+struct PacketBrick {
+    first: u32,
+    packets: u32,
+    header: Header,
+    weight: f32,
+    /// `None`: a brick of a series component the time point does not name.
+    local_first: Option<u32>,
+}
+
+/// The headers a stream's packets decode with and the ids the session knows them by: one
+/// volume's (ids as sent), each brick's for a bricked volume (ids numbered brick after brick),
+/// and for a time point of a series each of its components' bricks, numbered in the session
+/// brick after brick in the time point's order, values scaled by the component's weight.
 #[derive(Debug)]
 struct PacketHeaders {
     whole: Header,
-    /// Per brick: the id of its first packet and its header, ascending.
-    bricks: Vec<(u32, Header)>,
+    /// Per brick, ascending by `first`.
+    bricks: Vec<PacketBrick>,
+    /// (session id of its first packet, brick) for the bricks the session draws, ascending.
+    by_local: Vec<(u32, usize)>,
 }
 
 impl PacketHeaders {
-    /// The headers of a volume of header `whole`, bricked as `bricked` (if it is).
-    fn new(whole: &Header, bricked: Option<&BrickedVolume>) -> PacketHeaders {
+    /// The headers of the volume of `header` at `time_point` (of a series; 0 otherwise), and the
+    /// volume as a session draws it when it is bricked or a series (its bricks checked to share
+    /// one image).
+    fn new(
+        header: &VolumeHeader,
+        time_point: usize,
+    ) -> Result<(PacketHeaders, Option<BrickedVolume>), SourceError> {
         let mut first = 0u32;
-        let bricks = bricked
-            .map_or(&[][..], |b| &b.bricks)
+        let mut bricks: Vec<PacketBrick> = header
+            .bricks
             .iter()
             .map(|b| {
                 let at = first;
                 first = first.saturating_add(b.packets);
-                (at, b.header.clone())
+                PacketBrick {
+                    first: at,
+                    packets: b.packets,
+                    header: b.header.clone(),
+                    weight: 1.0,
+                    local_first: header.series.is_none().then_some(at),
+                }
             })
             .collect();
-        PacketHeaders {
-            whole: whole.clone(),
-            bricks,
+        let mut whole = header.header.clone();
+        // The bricks the session draws, in its order: (brick, origin).
+        let mut drawn: Vec<usize> = Vec::new();
+        match &header.series {
+            None => {
+                if time_point != 0 {
+                    return Err(SourceError::Unsupported(format!(
+                        "time point {time_point} of a volume that is not a time series"
+                    )));
+                }
+                drawn.extend(0..bricks.len());
+            }
+            Some(m) => {
+                let point = m.points.get(time_point).ok_or_else(|| {
+                    SourceError::Unsupported(format!(
+                        "time point {time_point}: the series has {}",
+                        m.points.len()
+                    ))
+                })?;
+                let mut offset = 0f64;
+                let mut local = 0u32;
+                for &(c, weight) in &point.terms {
+                    let of_c: Vec<usize> = (0..bricks.len())
+                        .filter(|&k| header.bricks[k].component == c)
+                        .collect();
+                    let Some(&k0) = of_c.first() else {
+                        return Err(SourceError::Client(ClientError::Protocol(format!(
+                            "the cache's header has no bricks of component {c}"
+                        ))));
+                    };
+                    offset += f64::from(weight) * bricks[k0].header.color.mean[0];
+                    for k in of_c {
+                        bricks[k].weight = weight;
+                        bricks[k].local_first = Some(local);
+                        local = local.saturating_add(bricks[k].packets);
+                        drawn.push(k);
+                    }
+                }
+                let dims = whole.geometry.dims;
+                whole.geometry = wavesplat_codec::layout::Geometry {
+                    dims,
+                    padded: dims,
+                    origin: [0; 3],
+                    levels: 0,
+                    family: whole.geometry.family,
+                    spacing: m.space.spacing,
+                };
+                whole.color.mean[0] = offset;
+            }
+        }
+        let volume = if drawn.is_empty() {
+            None
+        } else {
+            let volume = BrickedVolume {
+                whole: whole.clone(),
+                bricks: drawn
+                    .iter()
+                    .map(|&k| {
+                        let mut h = bricks[k].header.clone();
+                        if header.series.is_some() {
+                            h.color.mean[0] = whole.color.mean[0];
+                        }
+                        SessionBrick {
+                            header: h,
+                            origin: header.bricks[k].origin,
+                            packets: bricks[k].packets,
+                        }
+                    })
+                    .collect(),
+            };
+            let first = &volume.bricks[0].header;
+            for (i, b) in volume.bricks.iter().enumerate() {
+                check_display(i, &b.header, first)?;
+            }
+            volume.check()?;
+            Some(volume)
+        };
+        let mut by_local: Vec<(u32, usize)> = drawn
+            .iter()
+            .filter_map(|&k| bricks[k].local_first.map(|l| (l, k)))
+            .collect();
+        by_local.sort_unstable();
+        Ok((
+            PacketHeaders {
+                whole,
+                bricks,
+                by_local,
+            },
+            volume,
+        ))
+    }
+
+    /// The brick packet `id` (as sent) belongs to (`None` for one volume).
+    fn brick(&self, id: u32) -> Option<&PacketBrick> {
+        match self.bricks.partition_point(|b| b.first <= id) {
+            0 => None,
+            k => Some(&self.bricks[k - 1]),
         }
     }
 
-    /// The header packet `id` decodes with.
+    /// The header packet `id` (as sent) decodes with.
     fn header_of(&self, id: u32) -> &Header {
-        match self.bricks.partition_point(|(first, _)| *first <= id) {
-            0 => &self.whole,
-            k => &self.bricks[k - 1].1,
+        self.brick(id).map_or(&self.whole, |b| &b.header)
+    }
+
+    /// The weight packet `id`'s (as sent) values are scaled by.
+    fn weight_of(&self, id: u32) -> f32 {
+        self.brick(id).map_or(1.0, |b| b.weight)
+    }
+
+    /// The session's id of packet `id` (as sent); `None` for a packet of a series component the
+    /// time point does not name.
+    fn local(&self, id: u32) -> Option<u32> {
+        match self.brick(id) {
+            None => Some(id),
+            Some(b) => b.local_first.map(|l| l + (id - b.first)),
+        }
+    }
+
+    /// The id on the wire of the session's packet `local`.
+    fn global(&self, local: u32) -> u32 {
+        match self.by_local.partition_point(|(l, _)| *l <= local) {
+            0 => local,
+            k => {
+                let (l, brick) = self.by_local[k - 1];
+                self.bricks[brick].first + (local - l)
+            }
         }
     }
 }
@@ -248,6 +385,7 @@ fn stream_request(
         .holding(held, have_header)
         .with_credit(options.credit_bytes.max(1))
         .visible_only(options.visible_only)
+        .at_time_point(options.time_point)
 }
 
 /// The network task's state.
@@ -469,6 +607,8 @@ impl Pull {
                         }
                     }
                     Some(Control::Dropped(ids)) => {
+                        let ids: Vec<u32> =
+                            ids.into_iter().map(|id| self.headers.global(id)).collect();
                         for id in &ids {
                             self.held.remove(id);
                         }
@@ -482,7 +622,7 @@ impl Pull {
                     let p = pending.take().expect("pending packet");
                     let len = p.data.len() as u64;
                     in_flight = in_flight.saturating_sub(len);
-                    self.held.insert(p.id);
+                    self.held.insert(self.headers.global(p.id));
                     self.update(|s| {
                         s.packets += 1;
                         s.bytes += len;
@@ -510,6 +650,13 @@ impl Pull {
                 }
                 ev = stream.next(), if want_more => match ev {
                     Ok(Some(RefineEvent::Packet(p))) => {
+                        let Some(local) = self.headers.local(p.id) else {
+                            return Ended::Failed(format!(
+                                "the cache sent packet {} of a component time point {} does \
+                                 not name",
+                                p.id, self.options.time_point
+                            ));
+                        };
                         if !self.held.contains(&p.id) {
                             in_flight += p.data.len() as u64;
                             // It crosses the simulated link (if any) and is decoded off this
@@ -524,8 +671,13 @@ impl Pull {
                                 }
                                 tokio::task::spawn_blocking(move || {
                                     let header = headers.header_of(p.id);
-                                    let decoded = decode_for_session(header, &p.data);
-                                    SourcePacket { id: p.id, data: p.data, decoded }
+                                    let mut decoded = decode_for_session(header, &p.data);
+                                    let weight = headers.weight_of(p.id);
+                                    if let (Some((_, c)), true) = (decoded.as_mut(), weight != 1.0)
+                                    {
+                                        c.iter_mut().for_each(|c| c.value *= weight);
+                                    }
+                                    SourcePacket { id: local, data: p.data, decoded }
                                 })
                                 .await
                             }));
