@@ -472,7 +472,7 @@ async fn dropped_packets_come_back_after_a_view_change() {
 
 /// The wire message of a single angle view, as the client sends it.
 fn wire_view(v: &View) -> pb::ViewSpec {
-    view_message(&ViewSpec::single(*v)).expect("a valid angle view")
+    view_message(&ViewSpec::single(*v), 0).expect("a valid angle view")
 }
 
 fn refine_view(key: &VolumeKey, v: pb::ViewSpec) -> pb::RefineRequest {
@@ -517,6 +517,15 @@ async fn malformed_requests_get_errors_and_leave_the_store_unchanged() {
     };
     assert_eq!(
         refine_code(refine_view(&key, huge)).await,
+        Code::InvalidArgument
+    );
+    // A time point of a volume that is not a time series.
+    let later = pb::ViewSpec {
+        time_point: 1,
+        ..good
+    };
+    assert_eq!(
+        refine_code(refine_view(&key, later)).await,
         Code::InvalidArgument
     );
     let nan = pb::ViewSpec {

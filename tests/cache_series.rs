@@ -226,16 +226,16 @@ fn a_time_point_is_sent_only_its_components_packets() {
                 .await?;
             s.control().set_view_at(&view, 4).await?;
             let mut ids = Vec::new();
-            let mut dones = 0;
             while let Some(ev) = s.next().await? {
                 match ev {
                     wavesplat_client::RefineEvent::Packet(p) => ids.push(p.id),
-                    wavesplat_client::RefineEvent::Done { views, .. } if views == 1 => break,
-                    wavesplat_client::RefineEvent::Done { .. } => dones += 1,
-                    wavesplat_client::RefineEvent::Header(_) => {}
+                    // The time point 4 view's `done`.
+                    wavesplat_client::RefineEvent::Done { views: 1, .. } => break,
+                    wavesplat_client::RefineEvent::Done { .. }
+                    | wavesplat_client::RefineEvent::Header(_) => {}
                 }
             }
-            Ok::<_, wavesplat_client::ClientError>((ids, dones))
+            Ok::<_, wavesplat_client::ClientError>(ids)
         })
         .unwrap();
     let both: HashSet<u32> = [0usize, 4]
@@ -243,13 +243,13 @@ fn a_time_point_is_sent_only_its_components_packets() {
         .flat_map(|t| manifest.points[*t].terms.iter())
         .flat_map(|(c, _)| of_component[*c].iter().copied())
         .collect();
-    assert!(got.0.iter().all(|id| both.contains(id)), "{:?}", got.0);
+    assert!(got.iter().all(|id| both.contains(id)), "{got:?}");
     let at4: HashSet<u32> = manifest.points[4]
         .terms
         .iter()
         .flat_map(|(c, _)| of_component[*c].iter().copied())
         .collect();
-    let sent: HashSet<u32> = got.0.iter().copied().collect();
+    let sent: HashSet<u32> = got.iter().copied().collect();
     assert!(at4.is_subset(&sent), "time point 4 was not sent whole");
     let past = rt.block_on(c.refine_collect(
         RefineRequest::new(key, view).at_time_point(POINTS as u32),
@@ -269,7 +269,7 @@ fn the_store_keeps_series_and_refuses_damaged_ones() {
     let tmp = tempfile::tempdir().unwrap();
     let limits = Limits::default();
     let (id, packets, bricks) = {
-        let store = Store::open(tmp.path(), limits.clone()).unwrap();
+        let store = Store::open(tmp.path(), limits).unwrap();
         let v = store.ingest("cine", &wsp, None).unwrap().volume;
         let open = store.open_volume(v.id).unwrap();
         let s = open.index.series.as_ref().expect("a series");
@@ -277,7 +277,7 @@ fn the_store_keeps_series_and_refuses_damaged_ones() {
         (v.id, open.index.packets.len(), s.bricks.len())
     };
     {
-        let store = Store::open(tmp.path(), limits.clone()).unwrap();
+        let store = Store::open(tmp.path(), limits).unwrap();
         let open = store.open_volume(id).unwrap();
         let s = open
             .index
@@ -300,7 +300,7 @@ fn the_store_keeps_series_and_refuses_damaged_ones() {
             );
         }
     }
-    let store = Store::open(tmp.path(), limits.clone()).unwrap();
+    let store = Store::open(tmp.path(), limits).unwrap();
     let c1 = &file.manifest.components[1];
     let mut damaged = wsp.clone();
     damaged[(c1.offset + c1.length / 2) as usize] ^= 0x40;

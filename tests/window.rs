@@ -813,3 +813,106 @@ fn a_time_series_plays_steps_and_pauses_in_the_window() {
         );
     }
 }
+
+/// A time series in a cache node plays in the window as its file does: each time point a
+/// stream of its own components' packets; the screenshot of a paused time point is that time
+/// point's `render` image of the file.
+#[test]
+fn a_time_series_plays_from_a_cache_in_the_window() {
+    let Some(x) = display_for_window() else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("cine.wsp");
+    let out = Command::new(BIN)
+        .args([
+            "compress",
+            "--phantom",
+            "beating",
+            "--dims",
+            "32,32,12,6",
+            "--target-fraction",
+            "0.1",
+            "--time-group",
+            "4",
+            "-o",
+        ])
+        .arg(&file)
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", common::text(&out));
+    let server = wavesplat_harness::LocalCache::start(&dir.path().join("db")).unwrap();
+    let out = Command::new(BIN)
+        .args(["cache", "ingest"])
+        .arg(&file)
+        .args(["--name", "cine", "--cache", &server.url])
+        .env_remove("WAVESPLAT_CA")
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", common::text(&out));
+    let shot = dir.path().join("paused.png");
+    let script = format!(
+        "converge; key space; played 8; key space; key right; converge; screenshot {}; quit",
+        shot.display()
+    );
+    let child = view(
+        &x.display,
+        &[
+            "--cache",
+            &server.url,
+            "--volume",
+            "cine",
+            "--size",
+            "96x96",
+            "--cpu",
+            "--fps",
+            "40",
+            "--script",
+            &script,
+        ],
+    )
+    .env_remove("WAVESPLAT_CA")
+    .spawn()
+    .unwrap();
+    let (status, stdout, stderr) = finish(child);
+    assert!(
+        status.success(),
+        "exit {status}\nstdout {stdout}\nstderr {stderr}"
+    );
+    let played = line_with(&stdout, "view: played");
+    let n: u64 = played
+        .split_whitespace()
+        .nth(2)
+        .and_then(|v| v.parse().ok())
+        .unwrap_or_else(|| panic!("{played}"));
+    assert!(n >= 8, "{played}");
+    // Paused after 8 moves from time point 0, then one step on: time point 9 mod 6 = 3.
+    let rendered = dir.path().join("t3.png");
+    let out = Command::new(BIN)
+        .args([
+            "render",
+            "--time-point",
+            "3",
+            "--size",
+            "96x96",
+            "--cpu",
+            "-o",
+        ])
+        .arg(&rendered)
+        .arg(&file)
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", common::text(&out));
+    let (_, _, want) = grey(&rendered);
+    let (w, h, shown) = grey(&shot);
+    assert_eq!((w, h), (96, 96));
+    let diff = shown
+        .iter()
+        .zip(&want)
+        .map(|(a, b)| (a - b).abs())
+        .fold(0.0, f64::max);
+    assert!(
+        diff <= 2.0,
+        "the paused time point is time point 3's image: {diff}"
+    );
+}

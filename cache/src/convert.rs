@@ -140,6 +140,7 @@ mod tests {
             pan_v: 0.0,
             multiview: false,
             cue: None,
+            time_point: 0,
         }
     }
 

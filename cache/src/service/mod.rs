@@ -483,6 +483,15 @@ impl Cache for CacheService {
             Ok((volume, key))
         })
         .await?;
+        // Refused before the stream starts (a later view's is refused when it is planned).
+        let points = volume.index.time_points();
+        if time_point >= points {
+            return Err(CacheError::InvalidRequest(format!(
+                "time point {time_point}: the volume has {points} (0..={})",
+                points - 1
+            ))
+            .into());
+        }
         let mut session = Session::new(
             volume.clone(),
             name,

@@ -57,6 +57,14 @@ struct Sink {
     kept: bool,
 }
 
+impl Drop for Sink {
+    fn drop(&mut self) {
+        if !self.kept {
+            let _ = std::fs::remove_file(&self.part);
+        }
+    }
+}
+
 /// What an upload holds.
 #[derive(Debug)]
 enum Layout {
