@@ -323,3 +323,64 @@ fn the_store_keeps_series_and_refuses_damaged_ones() {
         assert!(store.resolve(&VolumeKey::Name(name.into())).is_err());
     }
 }
+
+/// Nodes over an object store (a `file://` bucket: the series published in the indexed
+/// layout's version 3) serve a series as a node with its own store does: the same manifest
+/// section, bricks and packet count, and for each time point the same packets with the same
+/// bytes, from the node that took the upload and from a cold one.
+#[test]
+fn nodes_over_an_object_store_serve_series_alike() {
+    let wsp = series_file(16);
+    let tmp = tempfile::tempdir().unwrap();
+    let path = |p: &str| tmp.path().join(p).to_str().unwrap().to_string();
+    let store_url = format!("file://{}", path("bucket"));
+    let serve = |db: &str, store: Option<&str>| {
+        let db = path(db);
+        let mut args = vec!["serve", "cache", "--addr", "127.0.0.1:0", "--db", &db];
+        if let Some(s) = store {
+            args.extend_from_slice(&["--store", s]);
+        }
+        common::spawn_server(&args)
+    };
+    let (mut own, own_url) = serve("own", None);
+    let (mut first, first_url) = serve("n1", Some(&store_url));
+    let rt = runtime();
+    for url in [&own_url, &first_url] {
+        let mut c = rt.block_on(CacheClient::connect(url)).unwrap();
+        rt.block_on(c.ingest("cine", &wsp)).unwrap();
+    }
+    let (mut cold, cold_url) = serve("n2", Some(&store_url));
+    let view = ViewSpec::single(View::new(0.4, 0.3, 48, 48));
+    for t in [0u32, 4] {
+        let collect = |url: &str| {
+            let mut c = rt.block_on(CacheClient::connect(url)).unwrap();
+            let request = RefineRequest::new(VolumeKey::Name("cine".into()), view).at_time_point(t);
+            let got = rt.block_on(c.refine_collect(request, None)).unwrap();
+            assert!(got.done, "{url}");
+            let h = got.header.expect("a header");
+            let bricks: Vec<(String, [u64; 3], u32, usize)> = h
+                .bricks
+                .iter()
+                .map(|b| (format!("{:?}", b.header), b.origin, b.packets, b.component))
+                .collect();
+            let mut packets: Vec<(u32, Vec<u8>)> =
+                got.packets.into_iter().map(|p| (p.id, p.data)).collect();
+            packets.sort();
+            (h.bytes, h.info.packet_count, bricks, packets, h.series)
+        };
+        let reference = collect(&own_url);
+        assert!(reference.4.is_some(), "a series");
+        assert!(!reference.3.is_empty());
+        for url in [&first_url, &cold_url] {
+            let got = collect(url);
+            assert_eq!(got.0, reference.0, "{url}: the manifest section");
+            assert_eq!(got.1, reference.1, "{url}: the packet count");
+            assert!(got.2 == reference.2, "{url}: the bricks");
+            assert!(got.3 == reference.3, "{url}, t {t}: the packets");
+        }
+    }
+    for child in [&mut own, &mut first, &mut cold] {
+        let _ = child.kill();
+        let _ = child.wait();
+    }
+}

@@ -917,3 +917,86 @@ fn a_published_bricked_volume_browses_as_one() {
         }
     }
 }
+
+/// A published time series (the indexed layout's version 3) browses one time point at a time:
+/// its head lists every component's bricks; `render URL --time-point t` draws what the local
+/// file's time point draws and fetches, beyond the head, only the bytes of the components the
+/// time point names; a time point past the end is refused by name.
+#[test]
+fn a_published_series_browses_one_time_point_at_a_time() {
+    use wavesplat_codec::format::index::SeriesHead;
+    use wavesplat_compressor::series::{compress_series, VolumeSeries};
+    const POINTS: usize = 6;
+    let volumes = (0..POINTS)
+        .map(|t| wavesplat_compressor::phantom::beating([48, 40, 24], t, POINTS).unwrap())
+        .collect();
+    let s = VolumeSeries::new(volumes, None).unwrap();
+    let wsp = compress_series(&s, &common::phantom_options(0.3), 4, 24, &|_| {})
+        .unwrap()
+        .bytes;
+    let wspx = indexed_layout(&wsp).unwrap();
+    let head: SeriesHead = match read_indexed_head(&wspx).unwrap() {
+        HeadRead::Series(h) => *h,
+        _ => panic!("a series' head is not read as a series"),
+    };
+    assert_eq!(head.object_bytes(), wspx.len() as u64);
+    assert_eq!(wsp_of_indexed(&wspx).unwrap(), &wsp[..]);
+    assert_eq!(head.bricked.len(), head.manifest.components.len());
+    assert!(head.bricked.iter().all(|b| *b), "bricked components");
+    assert!(head.bricks.len() > head.manifest.components.len());
+    // Every brick's packets lie inside its component.
+    for b in &head.bricks {
+        let c = &head.manifest.components[b.component];
+        for p in &b.brick.packets {
+            let at = b.offset + p.offset;
+            assert!(at >= c.offset && at + p.len as u64 <= c.offset + c.length);
+        }
+    }
+    let mut damaged = wspx.clone();
+    damaged[30] ^= 0x40;
+    assert!(read_indexed_head(&damaged).is_err(), "a damaged index");
+
+    let tmp = tempfile::tempdir().unwrap();
+    std::fs::write(tmp.path().join("s.wsp"), &wsp).unwrap();
+    for t in [0usize, 3, 5] {
+        let server = TinyServer::start(vec![("/s.wspx", wspx.clone())], &[]);
+        let url = format!("http://{}/s.wspx", server.url);
+        let tp = t.to_string();
+        let view = ["--alpha", "0.5", "--beta", "0.2", "--size", "48x40"];
+        let mut args = vec![url.as_str(), "--time-point", &tp, "--cpu", "-o", "r.png"];
+        args.extend_from_slice(&["--raw", "remote.f32"]);
+        args.extend_from_slice(&view);
+        let out = render(tmp.path(), &args);
+        assert!(out.status.success(), "t {t}: {}", text(&out));
+        let mut args = vec!["s.wsp", "--time-point", &tp, "--cpu", "--progressive"];
+        args.extend_from_slice(&["-o", "l.png", "--raw", "local.f32"]);
+        args.extend_from_slice(&view);
+        let out_local = render(tmp.path(), &args);
+        assert!(out_local.status.success(), "{}", text(&out_local));
+        let (r, l) = (
+            read_f32(&tmp.path().join("remote.f32")),
+            read_f32(&tmp.path().join("local.f32")),
+        );
+        assert!(l.iter().any(|v| *v != 0.0), "t {t}: the image is empty");
+        let snr = wavesplat_codec::metrics::snr_db(&l, &r);
+        assert!(snr > 90.0, "t {t}: remote against local {snr:.1} dB");
+        let served = server.served();
+        let own = head.manifest.point_bytes(t);
+        assert!(
+            served <= head.wsp_offset + HEAD_READ_BYTES + own,
+            "t {t} fetched {served} bytes: more than the head and its components ({own})"
+        );
+        assert!(own < wsp.len() as u64, "t {t} names every component");
+    }
+    let server = TinyServer::start(vec![("/s.wspx", wspx.clone())], &[]);
+    let url = format!("http://{}/s.wspx", server.url);
+    let out = render(
+        tmp.path(),
+        &[&url, "--time-point", "6", "--cpu", "-o", "x.png"],
+    );
+    let said = text(&out);
+    assert!(
+        !out.status.success() && said.contains("time point 6"),
+        "{said}"
+    );
+}

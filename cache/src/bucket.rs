@@ -24,7 +24,9 @@
 //! stream's task are async ([`Bucket::read`]).
 
 use crate::error::CacheError;
-use crate::model::{BrickedIndex, IndexBrick, PacketMeta, VolumeIndex, VolumeKey, VolumeMeta};
+use crate::model::{
+    BrickedIndex, IndexBrick, PacketMeta, SeriesIndex, VolumeIndex, VolumeKey, VolumeMeta,
+};
 use bytes::Bytes;
 use futures_util::{StreamExt, TryStreamExt};
 use object_store::path::Path as ObjectPath;
@@ -35,7 +37,7 @@ use std::ops::Range;
 use std::sync::{Arc, Mutex};
 use wavesplat_codec::format::bricked::manifest_section;
 use wavesplat_codec::format::index::{
-    read_indexed_head, BrickedHead, HeadRead, IndexedHead, HEAD_READ_BYTES,
+    read_indexed_head, BrickedHead, HeadRead, IndexedHead, SeriesHead, HEAD_READ_BYTES,
 };
 use wavesplat_codec::view::bricked::{check_brick, whole_header};
 use wavesplat_net::digest::{hex, unhex};
@@ -137,6 +139,62 @@ impl BucketVolume {
                     bricks,
                 })),
                 series: None,
+            },
+            wsp_offset: h.wsp_offset,
+            wsp_bytes: h.wsp_bytes,
+            created_unix_ms,
+        })
+    }
+
+    /// An opened object of a time series (the indexed layout's version 3): every component's
+    /// bricks, their packets numbered brick after brick with offsets from the container's
+    /// start, and the manifest section clients get as the volume's header bytes.
+    fn series(
+        sha256: [u8; 32],
+        h: SeriesHead,
+        created_unix_ms: u64,
+    ) -> Result<BucketVolume, CacheError> {
+        let mut packets = Vec::new();
+        let mut bricks = Vec::with_capacity(h.bricks.len());
+        let mut components: Vec<std::ops::Range<usize>> = Vec::new();
+        for b in h.bricks {
+            if components.len() == b.component {
+                components.push(bricks.len()..bricks.len());
+            }
+            let first_packet = u32::try_from(packets.len())
+                .ok()
+                .filter(|n| n.checked_add(b.brick.packets.len() as u32).is_some())
+                .ok_or_else(|| CacheError::Corrupt("more than 2^32 packets".into()))?;
+            bricks.push(IndexBrick {
+                header: b.brick.header,
+                header_bytes: b.brick.header_bytes,
+                origin: b.origin,
+                first_packet,
+                packets: b.brick.packets.len() as u32,
+            });
+            if let Some(r) = components.last_mut() {
+                r.end = bricks.len();
+            }
+            packets.extend(b.brick.packets.into_iter().map(|p| PacketMeta {
+                offset: b.offset + p.offset,
+                ..p
+            }));
+        }
+        let series = SeriesIndex {
+            manifest: h.manifest,
+            bricks,
+            components,
+            bricked: h.bricked,
+        };
+        let header = series.whole_header()?;
+        Ok(BucketVolume {
+            sha256,
+            index: VolumeIndex {
+                header,
+                header_bytes: wavesplat_codec::format::series::manifest_section(&series.manifest),
+                packets,
+                bricked: None,
+                series: Some(Box::new(series)),
             },
             wsp_offset: h.wsp_offset,
             wsp_bytes: h.wsp_bytes,
@@ -449,6 +507,10 @@ impl Bucket {
                     break BucketVolume::bricked(*sha256, *h, created_unix_ms)
                         .map_err(|e| corrupt(&e))?
                 }
+                HeadRead::Series(h) => {
+                    break BucketVolume::series(*sha256, *h, created_unix_ms)
+                        .map_err(|e| corrupt(&e))?
+                }
                 HeadRead::Need(n) if (n as u64) > object_bytes || n <= bytes.len() => {
                     return Err(CacheError::Corrupt(format!(
                         "{path} in {} ends inside its head ({object_bytes} bytes)",
@@ -720,6 +782,9 @@ fn meta_of(v: &BucketVolume, names: Vec<String>) -> VolumeMeta {
     );
     if let Some(b) = &h.bricked {
         meta.describe_bricks(h.header_bytes.len(), &b.bricks, b.manifest.kept());
+    }
+    if let Some(s) = &h.series {
+        meta.describe_bricks(h.header_bytes.len(), &s.bricks, s.manifest.kept());
     }
     meta
 }

@@ -358,12 +358,16 @@ pub fn run(a: RenderArgs) -> Result<()> {
             return render_bricked(&a, &view, path, bytes, request);
         }
     }
-    let cached = matches!(location, VolumeLocation::Cache { .. });
+    // A series in a cache or published: one time point, progressively.
+    let cached = matches!(
+        location,
+        VolumeLocation::Cache { .. } | VolumeLocation::Published { .. }
+    );
     if cached && a.time_points.is_some() {
-        bail!("--time-points draws a local time series file; from a cache, render one --time-point N at a time (or `view` it to play)");
+        bail!("--time-points draws a local time series file; from a cache or a URL, render one --time-point N at a time (or `view` it to play)");
     }
     if !series && !cached && (a.view.time_point.is_some() || a.time_points.is_some()) {
-        bail!("--time-point and --time-points apply to a time series: a local file (one `compress` made from a 4D file, a directory of time steps or --phantom beating) or one in a cache");
+        bail!("--time-point and --time-points apply to a time series: a local file (one `compress` made from a 4D file, a directory of time steps or --phantom beating) or one in a cache or published");
     }
     let volume = location.describe();
     let (header, opened, spec) = open(location, &view, a.bytes)?;

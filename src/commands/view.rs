@@ -9,7 +9,15 @@ use std::path::PathBuf;
 use wavesplat_codec::format::series::{is_series, parse_series};
 use wavesplat_codec::view::{Cue, MAX_IMAGE_SIDE};
 use wavesplat_viewer::open::{open, Opened, VolumeLocation};
+use wavesplat_viewer::remote::{RangeSource, RangeSourceOptions};
 use wavesplat_viewer::source::{CacheSource, CacheSourceOptions, FileSource, PacketSource};
+
+/// Where the time points of a series played from elsewhere than a local file come from: a
+/// cache (its URLs, CA and token, and the volume's name) or a published URL (and its CA).
+enum RemoteSeries {
+    Cache((String, wavesplat_client::ConnectOptions, String)),
+    Published((String, Option<PathBuf>)),
+}
 use wavesplat_viewer::window::{self, Script, ViewState, WindowOptions};
 
 /// Arguments of `wavesplat view`.
@@ -131,7 +139,7 @@ pub fn run(a: ViewWindowArgs) -> Result<()> {
                 .then(|| m.points.iter().map(|p| p.time).collect::<Vec<f64>>());
             Some((bytes.clone(), points, times))
         }
-        VolumeLocation::Cache { .. } => None,
+        VolumeLocation::Cache { .. } | VolumeLocation::Published { .. } => None,
         _ => {
             if a.view.time_point.is_some() {
                 bail!("--time-point applies to a time series (a local file or in a cache)");
@@ -147,20 +155,31 @@ pub fn run(a: ViewWindowArgs) -> Result<()> {
         } => Some((urls.clone(), connect.clone(), name.clone())),
         _ => None,
     };
+    let published = match &location {
+        VolumeLocation::Published { url, ca } => Some((url.clone(), ca.clone())),
+        _ => None,
+    };
     let title = location.describe();
     let (header, opened, spec) = open(location, &request, None)?;
-    // A time series in a cache plays too: each time point is a stream of its own.
-    let cached_series = match (&opened, cache) {
-        (Opened::Cache { source, .. }, Some(cache)) => source.series().map(|m| {
-            let times = m
-                .times_known
-                .then(|| m.points.iter().map(|p| p.time).collect::<Vec<f64>>());
-            (cache, m.points.len(), times)
-        }),
+    // A time series in a cache or published plays too: each time point is a stream (a
+    // source) of its own.
+    let times_of = |m: &wavesplat_codec::format::series::SeriesManifest| {
+        let times = m
+            .times_known
+            .then(|| m.points.iter().map(|p| p.time).collect::<Vec<f64>>());
+        (m.points.len(), times)
+    };
+    let cached_series = match (&opened, cache, published) {
+        (Opened::Cache { source, .. }, Some(cache), _) => source
+            .series()
+            .map(|m| (RemoteSeries::Cache(cache), times_of(m))),
+        (Opened::Remote { source, .. }, _, Some(published)) => source
+            .series()
+            .map(|m| (RemoteSeries::Published(published), times_of(m))),
         _ => None,
     };
     if cached_series.is_none()
-        && matches!(opened, Opened::Cache { .. })
+        && matches!(opened, Opened::Cache { .. } | Opened::Remote { .. })
         && a.view.time_point.is_some()
     {
         bail!("--time-point applies to a time series; {title} is one volume");
@@ -206,20 +225,33 @@ pub fn run(a: ViewWindowArgs) -> Result<()> {
             )
         }
         None => match cached_series {
-            Some(((urls, connect, name), points, times)) => {
+            Some((remote, (points, times))) => {
                 let state =
                     state.with_time(a.view.time_point.unwrap_or(0), points, times, a.view.fps);
                 let open = move |t: usize, spec: &wavesplat_codec::view::ViewSpec| {
-                    let options = CacheSourceOptions {
-                        time_point: u32::try_from(t)?,
-                        ..CacheSourceOptions::default()
+                    let (volume, source): (_, Box<dyn PacketSource>) = match &remote {
+                        RemoteSeries::Cache((urls, connect, name)) => {
+                            let options = CacheSourceOptions {
+                                time_point: u32::try_from(t)?,
+                                ..CacheSourceOptions::default()
+                            };
+                            let key = wavesplat_client::VolumeKey::Name(name.clone());
+                            let (source, _) =
+                                CacheSource::open_with(urls, connect, key, *spec, options)?;
+                            (source.bricked_volume(), Box::new(source))
+                        }
+                        RemoteSeries::Published((url, ca)) => {
+                            let options = RangeSourceOptions {
+                                time_point: t,
+                                ..RangeSourceOptions::default()
+                            };
+                            let (source, _) =
+                                RangeSource::open(url, ca.as_deref(), *spec, options)?;
+                            (source.bricked_volume(), Box::new(source))
+                        }
                     };
-                    let key = wavesplat_client::VolumeKey::Name(name.clone());
-                    let (source, _) = CacheSource::open_with(&urls, &connect, key, *spec, options)?;
-                    let volume = source
-                        .bricked_volume()
-                        .ok_or("a time point is drawn as bricks")?;
-                    Ok((volume, Box::new(source) as Box<dyn PacketSource>))
+                    let volume = volume.ok_or("a time point is drawn as bricks")?;
+                    Ok((volume, source))
                 };
                 (
                     state,

@@ -206,3 +206,22 @@ fn side_by_side(panels: &[Image]) -> Image {
     }
     out
 }
+
+/// The header a time point of a series is drawn with as a bricked session's whole: the series'
+/// header (`series`, [`wavesplat_codec::view::bricked::series_header`]) with the whole's
+/// geometry (no transform of its own) and the time point's offset (`offset`: its components'
+/// offsets weighted), which a session draws once for the whole.
+pub fn time_point_header(series: &Header, spacing: [f32; 3], offset: f64) -> Header {
+    let mut whole = series.clone();
+    let dims = whole.geometry.dims;
+    whole.geometry = Geometry {
+        dims,
+        padded: dims,
+        origin: [0; 3],
+        levels: 0,
+        family: whole.geometry.family,
+        spacing,
+    };
+    whole.color.mean[0] = offset;
+    whole
+}

@@ -417,9 +417,12 @@ pub fn open(
     match location {
         VolumeLocation::Published { url, ca } => {
             let first = request.spec()?;
+            let options = RangeSourceOptions {
+                time_point: request.time_point.unwrap_or(0),
+                ..RangeSourceOptions::default()
+            };
             let (mut source, header) =
-                RangeSource::open(&url, ca.as_deref(), first, RangeSourceOptions::default())
-                    .map_err(failed)?;
+                RangeSource::open(&url, ca.as_deref(), first, options).map_err(failed)?;
             let spec = request.respec(&header, first, &mut source)?;
             Ok((header, Opened::Remote { url, ca, source }, spec))
         }

@@ -936,20 +936,14 @@ impl Upload {
         let object = match self.sink.take() {
             None => None,
             Some(mut s) => {
-                let bricked = match s.volume.complete()?.2 {
-                    Stored::Single(_) => false,
-                    Stored::Bricked(_) => true,
-                    Stored::Series(_) => {
-                        return Err(CacheError::InvalidUpload(
-                            "a time series: cache nodes over an object store do not take time                              series yet; a node with its own store (`cache serve --db`) does"
-                                .into(),
-                        ))
-                    }
-                };
+                // A bricked container or a series is published in its own version of the
+                // indexed layout.
+                let bricked = !matches!(s.volume.complete()?.2, Stored::Single(_));
                 let file = std::fs::read(&s.part).map_err(|e| io("reading an upload back", e))?;
                 let object = if bricked {
-                    // The published layout of a bricked volume (version 2 of the indexed
-                    // layout): its manifest, every brick's header and index, the container.
+                    // The published layout of a bricked volume or a series (versions 2 and 3
+                    // of the indexed layout): its manifest, every brick's header and index,
+                    // the container.
                     wavesplat_codec::format::index::indexed_layout(&file)?
                 } else {
                     let mut object =

@@ -32,6 +32,20 @@
 //! the bricked container, byte for byte (its manifest first)
 //! ```
 //!
+//! A time series ([`crate::format::series`], format version 10) is published as layout version 3,
+//! the same way: every component's bricks (a plain component is one brick) indexed in front of
+//! the unchanged container, so a reader of one time point fetches the packets of the components
+//! it names and no other:
+//!
+//! ```text
+//! "WSPX" | 3 u16 | container length u64 | index length u32 | index CRC-32
+//! index: component count (varint); per component in manifest order: its kind (u8: 0 a plain
+//!        .wsp, 1 a bricked container), its brick count (varint) and per brick its first
+//!        voxel in the whole (3 varints), its .wsp's offset in the component and its length
+//!        (varints), its header section (length varint and bytes) and its compact index
+//! the series container, byte for byte (its manifest first)
+//! ```
+//!
 //! One object rather than a manifest plus an object per brick: a published volume stays one
 //! file to copy, serve and cache, and a reader still needs no request per brick before its
 //! first image (all headers come with the head).
@@ -52,6 +66,8 @@ pub const INDEXED_MAGIC: &[u8; 4] = b"WSPX";
 pub const INDEXED_VERSION: u16 = 1;
 /// The indexed layout's version for a bricked container.
 pub const BRICKED_INDEXED_VERSION: u16 = 2;
+/// The indexed layout's version for a time series.
+pub const SERIES_INDEXED_VERSION: u16 = 3;
 /// Bytes before the index: magic, version, `.wsp` length, index length, index CRC.
 pub const INDEXED_HEAD_BYTES: usize = 4 + 2 + 8 + 4 + 4;
 /// What a range reader asks for first: the head, the index and the `.wsp` header of most
@@ -284,6 +300,9 @@ pub fn index_file(bytes: &[u8]) -> Result<Vec<PacketMeta>, FormatError> {
 /// A `.wsp` file in the indexed layout (see the module documentation); a bricked container in
 /// its version 2, every brick's packets decoded once (which checks them).
 pub fn indexed_layout(wsp: &[u8]) -> Result<Vec<u8>, FormatError> {
+    if crate::format::series::is_series(wsp) {
+        return series_indexed_layout(wsp);
+    }
     if is_bricked(wsp) {
         let file = parse_bricked(wsp)?;
         let mut w = ByteWriter::new();
@@ -315,6 +334,55 @@ pub fn indexed_layout(wsp: &[u8]) -> Result<Vec<u8>, FormatError> {
     Ok(out)
 }
 
+/// [`indexed_layout`] of a series container (layout version 3): every component's bricks
+/// indexed, every packet decoded once.
+fn series_indexed_layout(container: &[u8]) -> Result<Vec<u8>, FormatError> {
+    let file = crate::format::series::parse_series(container)?;
+    let mut w = ByteWriter::new();
+    w.varint(file.manifest.components.len() as u64);
+    for c in 0..file.manifest.components.len() {
+        let data = file.component_bytes(c)?;
+        // (origin, offset in the component, length) of each brick's .wsp.
+        let bricks: Vec<([u64; 3], u64, u64)> = if is_bricked(data) {
+            let b = parse_bricked(data)?;
+            b.manifest
+                .bricks
+                .iter()
+                .map(|e| (e.origin, e.offset, e.length))
+                .collect()
+        } else {
+            vec![([0; 3], 0, data.len() as u64)]
+        };
+        w.u8(u8::from(is_bricked(data)));
+        w.varint(bricks.len() as u64);
+        for (origin, offset, length) in bricks {
+            let brick = &data[offset as usize..(offset + length) as usize];
+            let (_, header_len) = read_header_section(brick)?;
+            let index = encode_compact(&index_file(brick)?)?;
+            for o in origin {
+                w.varint(o);
+            }
+            w.varint(offset);
+            w.varint(length);
+            w.varint(header_len as u64);
+            w.bytes(&brick[..header_len]);
+            w.varint(index.len() as u64);
+            w.bytes(&index);
+        }
+    }
+    let index = w.into_bytes();
+    if index.len() > MAX_INDEX_BYTES as usize {
+        return Err(FormatError::TooLarge {
+            what: "series packet index",
+            size: index.len() as u64,
+            limit: MAX_INDEX_BYTES as u64,
+        });
+    }
+    let mut out = prefix_with(SERIES_INDEXED_VERSION, container.len() as u64, &index);
+    out.extend_from_slice(container);
+    Ok(out)
+}
+
 /// The `.wsp` inside a whole indexed object held in memory (what [`indexed_layout`] wrote, read
 /// back from a local file): its head and index checked, and the object's length held to what
 /// the head declares (a cut or extended object is refused).
@@ -328,6 +396,7 @@ pub fn wsp_of_indexed(object: &[u8]) -> Result<&[u8], FormatError> {
     let (total, wsp_offset) = match read_indexed_head(object)? {
         HeadRead::Indexed(h) => (h.object_bytes(), h.wsp_offset),
         HeadRead::Bricked(h) => (h.object_bytes(), h.wsp_offset),
+        HeadRead::Series(h) => (h.object_bytes(), h.wsp_offset),
         HeadRead::Need(n) => return Err(truncated(n as u64)),
     };
     if len < total {
@@ -379,6 +448,43 @@ pub enum HeadRead {
     Indexed(Box<IndexedHead>),
     /// A bricked container's manifest and every brick's header and index.
     Bricked(Box<BrickedHead>),
+    /// A series container's manifest and every component's bricks' headers and indexes.
+    Series(Box<SeriesHead>),
+}
+
+/// One brick of a component of a published series: where it is, its header and packet index.
+#[derive(Debug, Clone)]
+pub struct SeriesBrick {
+    /// Its component.
+    pub component: usize,
+    /// Its first voxel in the whole.
+    pub origin: [u64; 3],
+    /// Where its `.wsp` starts in the container.
+    pub offset: u64,
+    /// Its header and packets (offsets within its `.wsp`).
+    pub brick: IndexedBrick,
+}
+
+/// A published series' head: the container's manifest and every component's bricks.
+#[derive(Debug, Clone)]
+pub struct SeriesHead {
+    /// The manifest (component offsets are within the container).
+    pub manifest: crate::format::series::SeriesManifest,
+    /// Whether each component is a bricked container (else a plain `.wsp`, its one brick).
+    pub bricked: Vec<bool>,
+    /// Every component's bricks, component after component.
+    pub bricks: Vec<SeriesBrick>,
+    /// Where the container starts in the object.
+    pub wsp_offset: u64,
+    /// Length of the container.
+    pub wsp_bytes: u64,
+}
+
+impl SeriesHead {
+    /// Bytes of the whole object.
+    pub fn object_bytes(&self) -> u64 {
+        self.wsp_offset + self.wsp_bytes
+    }
 }
 
 /// One brick of a published bricked volume: its header and packet index.
@@ -436,10 +542,10 @@ pub fn read_indexed_head(bytes: &[u8]) -> Result<HeadRead, FormatError> {
     }
     let mut r = ByteReader::new(&bytes[4..INDEXED_HEAD_BYTES], "indexed layout head");
     let version = r.u16()?;
-    if version != INDEXED_VERSION && version != BRICKED_INDEXED_VERSION {
+    if !(INDEXED_VERSION..=SERIES_INDEXED_VERSION).contains(&version) {
         return Err(FormatError::UnsupportedVersion {
             found: version,
-            supported: BRICKED_INDEXED_VERSION,
+            supported: SERIES_INDEXED_VERSION,
         });
     }
     let wsp_bytes = r.u64()?;
@@ -461,12 +567,17 @@ pub fn read_indexed_head(bytes: &[u8]) -> Result<HeadRead, FormatError> {
         .map_err(|_| invalid("header length".into()))?;
     let declared = u32::from_le_bytes(len_bytes);
     // Bounded before anything is fetched for it: a hostile length would ask for gigabytes.
-    let declared = if version == BRICKED_INDEXED_VERSION {
-        if declared as usize > MAX_MANIFEST_BYTES {
+    let declared = if version != INDEXED_VERSION {
+        let (what, max) = if version == SERIES_INDEXED_VERSION {
+            ("series manifest", crate::format::series::MAX_MANIFEST_BYTES)
+        } else {
+            ("bricked manifest", MAX_MANIFEST_BYTES)
+        };
+        if declared as usize > max {
             return Err(FormatError::TooLarge {
-                what: "bricked manifest",
+                what,
                 size: declared as u64,
-                limit: MAX_MANIFEST_BYTES as u64,
+                limit: max as u64,
             });
         }
         declared as usize
@@ -491,6 +602,18 @@ pub fn read_indexed_head(bytes: &[u8]) -> Result<HeadRead, FormatError> {
             stored,
             computed,
         });
+    }
+    if version == SERIES_INDEXED_VERSION {
+        let manifest =
+            crate::format::series::parse_manifest(&bytes[section_start..need], wsp_bytes)?;
+        let (bricked, bricks) = decode_series_index(index, &manifest)?;
+        return Ok(HeadRead::Series(Box::new(SeriesHead {
+            manifest,
+            bricked,
+            bricks,
+            wsp_offset: wsp_offset as u64,
+            wsp_bytes,
+        })));
     }
     if version == BRICKED_INDEXED_VERSION {
         let manifest = parse_manifest(&bytes[section_start..need], wsp_bytes)?;
@@ -552,6 +675,89 @@ fn decode_brick_index(index: &[u8], manifest: &Manifest) -> Result<Vec<IndexedBr
     }
     expect_end(&r)?;
     Ok(bricks)
+}
+
+/// The components' bricks of a series layout, each checked: as many components as the
+/// manifest, each brick's `.wsp` inside its component, after the previous brick's, its header
+/// inside the whole with the series' channels, its packets inside its bytes.
+fn decode_series_index(
+    index: &[u8],
+    manifest: &crate::format::series::SeriesManifest,
+) -> Result<(Vec<bool>, Vec<SeriesBrick>), FormatError> {
+    let mut r = ByteReader::new(index, "series packet index");
+    let n = r.varint_max(manifest.components.len() as u64, "components")? as usize;
+    if n != manifest.components.len() {
+        return Err(invalid(format!(
+            "an index of {n} components for a manifest of {}",
+            manifest.components.len()
+        )));
+    }
+    let space = &manifest.space;
+    let mut kinds = Vec::with_capacity(n);
+    let mut bricks = Vec::new();
+    for (c, entry) in manifest.components.iter().enumerate() {
+        let bricked = match r.u8()? {
+            0 => false,
+            1 => true,
+            k => return Err(invalid(format!("component {c} of kind {k}"))),
+        };
+        kinds.push(bricked);
+        let count = r.varint_max(index.len() as u64, "bricks")? as usize;
+        if count == 0 || (!bricked && count != 1) {
+            return Err(invalid(format!("component {c} of {count} bricks")));
+        }
+        let mut end = 0u64;
+        for k in 0..count {
+            let origin = [r.varint()?, r.varint()?, r.varint()?];
+            let offset = r.varint()?;
+            let length = r.varint()?;
+            let stop = offset.checked_add(length);
+            if offset < end || stop.is_none_or(|s| s > entry.length) || (!bricked && offset != 0) {
+                return Err(invalid(format!(
+                    "brick {k} of component {c} at {offset}..+{length} leaves its component \
+                     of {} bytes or overlaps the previous brick",
+                    entry.length
+                )));
+            }
+            end = offset + length;
+            let len = r.varint_max(index.len() as u64, "header length")? as usize;
+            let section = r.take(len)?;
+            let (header, header_len) = read_header_section(section)?;
+            if header_len != len {
+                return Err(invalid(format!(
+                    "brick {k} of component {c}: its header section holds {len} bytes, its \
+                     header {header_len}"
+                )));
+            }
+            let inside = (0..3).all(|a| {
+                origin[a]
+                    .checked_add(header.geometry.dims[a] as u64)
+                    .is_some_and(|e| e <= space.dims[a])
+            });
+            if !inside || header.channels != space.channels {
+                return Err(invalid(format!(
+                    "brick {k} of component {c} at {origin:?}, {:?} with {} channel(s), is not \
+                     inside the series' {:?} with {}",
+                    header.geometry.dims, header.channels, space.dims, space.channels
+                )));
+            }
+            let index_len = r.varint_max(index.len() as u64, "index length")? as usize;
+            let packets = decode_compact(r.take(index_len)?)?;
+            check_packets(&packets, header_len as u64, length)?;
+            bricks.push(SeriesBrick {
+                component: c,
+                origin,
+                offset: entry.offset + offset,
+                brick: IndexedBrick {
+                    header,
+                    header_bytes: section.to_vec(),
+                    packets,
+                },
+            });
+        }
+    }
+    expect_end(&r)?;
+    Ok((kinds, bricks))
 }
 
 /// Checks that packets lie after the header, inside the file, in order and without overlap.

@@ -165,6 +165,12 @@ pub fn write_series(
     Ok(out)
 }
 
+/// The manifest section of a series container (magic, version 10, manifest length, manifest,
+/// CRC): what a reader of its components needs first, and what a cache sends as its header.
+pub fn manifest_section(m: &SeriesManifest) -> Vec<u8> {
+    write_section(SERIES_VERSION, &manifest_bytes(m))
+}
+
 fn manifest_bytes(m: &SeriesManifest) -> Vec<u8> {
     let mut w = ByteWriter::new();
     write_space(&mut w, &m.space);

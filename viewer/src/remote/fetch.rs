@@ -290,8 +290,12 @@ impl Fetch {
             let p = &self.head.packets[id as usize];
             let start = (self.head.base + p.offset - req.range.start) as usize;
             let bytes = data[start..start + p.len as usize].to_vec();
-            let d = decode_packet(self.head.header_of(id), &bytes)
+            let mut d = decode_packet(self.head.header_of(id), &bytes)
                 .map_err(|e| format!("packet {id} of {}: {e}", self.url))?;
+            let weight = self.head.weight_of(id);
+            if weight != 1.0 {
+                d.coefficients.iter_mut().for_each(|c| c.value *= weight);
+            }
             if self.head.indexed && (d.tile as u32 != p.tile || d.layer as u32 != p.layer) {
                 return Err(format!(
                     "packet {id} of {} is tile {} layer {}, its index says tile {} layer {}",
@@ -359,6 +363,8 @@ mod tests {
                 packets: h.packets,
                 bricks: Vec::new(),
                 packet_brick: Vec::new(),
+                weights: Vec::new(),
+                series: None,
                 base: h.wsp_offset,
                 indexed: true,
             },

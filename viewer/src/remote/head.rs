@@ -5,15 +5,15 @@
 
 use super::object::Object;
 use crate::session::{BrickedVolume, SessionBrick};
-use crate::source::file::check_session_brick;
+use crate::source::file::{check_display, check_session_brick};
 use crate::source::{SourceError, SourceStatus};
 use bytes::Bytes;
 use std::sync::Mutex;
 use wavesplat_codec::format::index::{
-    read_indexed_head, BrickedHead, HeadRead, IndexedHead, PacketMeta, HEAD_READ_BYTES,
+    read_indexed_head, BrickedHead, HeadRead, IndexedHead, PacketMeta, SeriesHead, HEAD_READ_BYTES,
 };
 use wavesplat_codec::format::{parse_prelude, FormatError, Header};
-use wavesplat_codec::view::bricked::whole_header;
+use wavesplat_codec::view::bricked::{series_brick_header, whole_header};
 
 /// The volume's head as read: the indexed layout, or a plain `.wsp` (header and directory only:
 /// packets are then requested in file order, all of them). A bricked volume's packets are
@@ -29,16 +29,23 @@ pub(super) struct Head {
     pub(super) bricks: Vec<SessionBrick>,
     /// Each packet's brick (empty for one volume).
     pub(super) packet_brick: Vec<u32>,
+    /// Each brick's weight (of a time point of a series; empty otherwise: 1).
+    pub(super) weights: Vec<f32>,
+    /// Of a series, its manifest.
+    pub(super) series: Option<Box<wavesplat_codec::format::series::SeriesManifest>>,
     /// Where packet offsets start in the object.
     pub(super) base: u64,
     pub(super) object_bytes: u64,
     pub(super) indexed: bool,
 }
 
+/// Reads the head of the volume at `url`; of a time series, as time point `time_point` (0 for
+/// any other volume).
 pub(super) async fn read_head(
     object: &Object,
     url: &str,
     status: &Mutex<SourceStatus>,
+    time_point: usize,
 ) -> Result<Head, SourceError> {
     let (first, object_bytes) = object.read(Some(0..HEAD_READ_BYTES)).await?;
     let mut bytes = first.to_vec();
@@ -76,6 +83,8 @@ pub(super) async fn read_head(
                     packets,
                     bricks: Vec::new(),
                     packet_brick: Vec::new(),
+                    weights: Vec::new(),
+                    series: None,
                     base: 0,
                     object_bytes,
                     indexed: false,
@@ -98,6 +107,7 @@ pub(super) async fn read_head(
         let declared = match &read {
             HeadRead::Indexed(h) => h.object_bytes(),
             HeadRead::Bricked(h) => h.object_bytes(),
+            HeadRead::Series(h) => h.object_bytes(),
             HeadRead::Need(n) if *n as u64 > object_bytes || *n <= bytes.len() => {
                 return Err(SourceError::Remote(format!(
                     "{url} ends inside its head ({object_bytes} bytes)"
@@ -119,7 +129,15 @@ pub(super) async fn read_head(
     }
     let head: IndexedHead = match head {
         HeadRead::Indexed(h) => *h,
+        _ if time_point != 0 && !matches!(head, HeadRead::Series(_)) => {
+            return Err(SourceError::Unsupported(format!(
+                "{url}: time point {time_point} of a volume that is not a time series"
+            )))
+        }
         HeadRead::Bricked(h) => return Head::bricked(Bytes::from(bytes), *h, object_bytes, url),
+        HeadRead::Series(h) => {
+            return Head::series(Bytes::from(bytes), *h, object_bytes, url, time_point)
+        }
         // The loop above ends only with a head; an incomplete one is an error, not a panic.
         HeadRead::Need(n) => {
             return Err(SourceError::Remote(format!(
@@ -133,6 +151,8 @@ pub(super) async fn read_head(
         packets: head.packets,
         bricks: Vec::new(),
         packet_brick: Vec::new(),
+        weights: Vec::new(),
+        series: None,
         base: head.wsp_offset,
         object_bytes,
         indexed: true,
@@ -146,6 +166,98 @@ impl Head {
             Some(&b) => &self.bricks[b as usize].header,
             None => &self.header,
         }
+    }
+
+    /// The weight packet `id`'s values are scaled by (1 but in a time point of a series).
+    pub(super) fn weight_of(&self, id: u32) -> f32 {
+        self.packet_brick
+            .get(id as usize)
+            .and_then(|&b| self.weights.get(b as usize))
+            .copied()
+            .unwrap_or(1.0)
+    }
+
+    /// A published series' head as time point `t`: the bricks of the components it names, in
+    /// its order, served as one bricked volume (as [`crate::source::FileSource::open_series_point`]
+    /// serves a file's): packets numbered brick after brick, their energies scaled by their
+    /// component's weight² and their values by the weight; the whole's offset the weighted
+    /// sum of the components'.
+    fn series(
+        first: Bytes,
+        head: SeriesHead,
+        object_bytes: u64,
+        url: &str,
+        t: usize,
+    ) -> Result<Head, SourceError> {
+        let m = &head.manifest;
+        let bad = |m: String| SourceError::Remote(format!("{url}: {m}"));
+        let point = m.points.get(t).ok_or_else(|| {
+            SourceError::Unsupported(format!(
+                "{url}: time point {t}: the series has {}",
+                m.points.len()
+            ))
+        })?;
+        let first_brick = head
+            .bricks
+            .first()
+            .ok_or_else(|| bad("a series of no bricks".into()))?;
+        let series_header =
+            series_brick_header(&m.space, first_brick.brick.header.clone(), head.bricked[0])
+                .map_err(|e| bad(e.to_string()))?;
+        let mut packets = Vec::new();
+        let mut packet_brick = Vec::new();
+        let mut bricks: Vec<SessionBrick> = Vec::new();
+        let mut weights = Vec::new();
+        let mut offset = 0f64;
+        for &(c, weight) in &point.terms {
+            let of_c: Vec<&wavesplat_codec::format::index::SeriesBrick> =
+                head.bricks.iter().filter(|b| b.component == c).collect();
+            let Some(b0) = of_c.first() else {
+                return Err(bad(format!("component {c} has no bricks")));
+            };
+            offset += f64::from(weight) * b0.brick.header.color.mean[0];
+            let w2 = f64::from(weight) * f64::from(weight);
+            for b in of_c {
+                let index =
+                    u32::try_from(bricks.len()).map_err(|_| bad("too many bricks".into()))?;
+                for p in &b.brick.packets {
+                    let mut p = p.clone();
+                    p.offset += b.offset;
+                    p.summary.iter_mut().for_each(|(_, e)| *e *= w2);
+                    packets.push(p);
+                    packet_brick.push(index);
+                }
+                bricks.push(SessionBrick {
+                    header: b.brick.header.clone(),
+                    origin: b.origin,
+                    packets: b.brick.packets.len() as u32,
+                });
+                weights.push(weight);
+            }
+        }
+        if u32::try_from(packets.len()).is_err() {
+            return Err(bad(format!(
+                "{} packets, more than a source numbers",
+                packets.len()
+            )));
+        }
+        let header = crate::bricked::time_point_header(&series_header, m.space.spacing, offset);
+        for (i, b) in bricks.iter_mut().enumerate() {
+            b.header.color.mean[0] = offset;
+            check_display(i, &b.header, &header)?;
+        }
+        Ok(Head {
+            first,
+            header,
+            packets,
+            bricks,
+            packet_brick,
+            weights,
+            series: Some(Box::new(head.manifest)),
+            base: head.wsp_offset,
+            object_bytes,
+            indexed: true,
+        })
     }
 
     /// The volume as a session draws it, when it is bricked.
@@ -205,6 +317,8 @@ impl Head {
             packets,
             bricks,
             packet_brick,
+            weights: Vec::new(),
+            series: None,
             base: head.wsp_offset,
             object_bytes,
             indexed: true,

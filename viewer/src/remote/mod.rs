@@ -52,6 +52,9 @@ pub struct RangeSourceOptions {
     /// Bytes of packets decoded and queued for the session ahead of it (a packet larger than
     /// this passes alone).
     pub queue_bytes: u64,
+    /// Of a time series, the time point drawn (the packets of the components it names; 0 for
+    /// any other volume).
+    pub time_point: usize,
 }
 
 impl Default for RangeSourceOptions {
@@ -62,6 +65,7 @@ impl Default for RangeSourceOptions {
             lookahead: 64,
             visible_only: true,
             queue_bytes: 256 << 10,
+            time_point: 0,
         }
     }
 }
@@ -70,8 +74,10 @@ impl Default for RangeSourceOptions {
 #[derive(Debug)]
 pub struct RangeSource {
     feed: Feed,
-    /// The volume as a session draws it, when it is bricked.
+    /// The volume as a session draws it, when it is bricked (or a time point of a series).
     bricked: Option<Box<BrickedVolume>>,
+    /// Of a time series, its manifest.
+    series: Option<Box<wavesplat_codec::format::series::SeriesManifest>>,
 }
 
 /// The `.wsp` bytes of the volume at `url` (the whole object, without the index in front when
@@ -119,7 +125,7 @@ impl RangeSource {
             connected: true,
             ..Default::default()
         }));
-        let head = runtime.block_on(read_head(&object, url, &status))?;
+        let head = runtime.block_on(read_head(&object, url, &status, options.time_point))?;
         if !head.indexed {
             tracing::warn!(
                 %url,
@@ -133,6 +139,7 @@ impl RangeSource {
             .object_bytes = head.object_bytes;
         let header = head.header.clone();
         let bricked = head.bricked_volume().map(Box::new);
+        let series = head.series.clone();
         let mut fetch = Fetch {
             url: url.to_string(),
             object,
@@ -150,13 +157,25 @@ impl RangeSource {
             status,
             move |tx, ctl| fetch.run(tx, ctl),
         )?;
-        Ok((RangeSource { feed, bricked }, header))
+        Ok((
+            RangeSource {
+                feed,
+                bricked,
+                series,
+            },
+            header,
+        ))
     }
 
     /// The volume as a session draws it ([`crate::session::RenderSession::new_bricked`]), when
     /// it is bricked; `None` for one volume.
     pub fn bricked_volume(&self) -> Option<BrickedVolume> {
         self.bricked.as_deref().cloned()
+    }
+
+    /// Of a time series, its manifest (its time points and their times); `None` otherwise.
+    pub fn series(&self) -> Option<&wavesplat_codec::format::series::SeriesManifest> {
+        self.series.as_deref()
     }
 }
 

@@ -277,16 +277,7 @@ impl PacketHeaders {
                         drawn.push(k);
                     }
                 }
-                let dims = whole.geometry.dims;
-                whole.geometry = wavesplat_codec::layout::Geometry {
-                    dims,
-                    padded: dims,
-                    origin: [0; 3],
-                    levels: 0,
-                    family: whole.geometry.family,
-                    spacing: m.space.spacing,
-                };
-                whole.color.mean[0] = offset;
+                whole = crate::bricked::time_point_header(&whole, m.space.spacing, offset);
             }
         }
         let volume = if drawn.is_empty() {
