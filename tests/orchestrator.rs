@@ -1069,3 +1069,89 @@ async fn a_source_changed_midway_fails_the_bricked_job_clearly() {
         "nothing was delivered"
     );
 }
+
+/// A time series in an archive is one job and one volume in the cache: a 4D NIfTI and a DICOM
+/// cine (slices repeated at several trigger times) are each compressed by a worker into one
+/// series file (the same bytes `compress_series` makes in one process with the job's options),
+/// committed once, and each time point streams from the cache with its own components only.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_time_series_in_an_archive_is_one_volume_in_the_cache() {
+    use wavesplat_codec::volume::Volume;
+    use wavesplat_compressor::phantom::beating;
+    use wavesplat_compressor::series::compress_series;
+    use wavesplat_fixtures::{write_dicom_cine, write_nifti_series, DicomOptions, Layout};
+    const POINTS: usize = 5;
+    let cl = TestCluster::start(&ORCH_TIMING);
+    let (o, c) = (cl.orch.url(), cl.cache.url());
+    let dir = cl.root.join("cines");
+    std::fs::create_dir_all(&dir).unwrap();
+    let dims = [24, 20, 12];
+    // Integer-valued time points (the DICOM cine's samples are 16-bit).
+    let volumes: Vec<Volume> = (0..POINTS)
+        .map(|t| {
+            let v = beating(dims, t, POINTS).unwrap();
+            let data = v.channel(0).iter().map(|x| x.max(0.0).round()).collect();
+            Volume::new(dims, [1.0, 1.0, 1.0], vec![data]).unwrap()
+        })
+        .collect();
+    let samples: Vec<Vec<f32>> = volumes.iter().map(|v| v.channel(0).to_vec()).collect();
+    write_nifti_series(&dir.join("heart.nii"), dims, &samples, Some(40.0), false);
+    let ms: Vec<f64> = (0..POINTS).map(|t| t as f64 * 40.0).collect();
+    let o_dicom = DicomOptions {
+        layout: Layout::U16,
+        ..Default::default()
+    };
+    write_dicom_cine(&dir.join("cine"), &volumes, &ms, &o_dicom);
+    let _w = cl.worker("w1", 0, None);
+    submit(&dir, &o, &["--time-group", "4", "--target-fraction", "0.2"]);
+    let js = wait_for(&o, 60, "both series done", all_finished).await;
+    assert_eq!(js.len(), 2, "one job per series");
+    for j in &js {
+        assert_eq!(state_name(j.state), "done", "{}: {}", name(j), j.error);
+    }
+    // The NIfTI's series is what one process makes of the same time points and options.
+    let options = wavesplat_orchestrator_client::model::JobOptions {
+        levels: Some(2),
+        time_group: Some(4),
+        target: wavesplat_orchestrator_client::model::TargetSpec::Fraction(0.2),
+        ..Default::default()
+    };
+    let opts = wavesplat_worker::options::compress_options(&options);
+    let reader = wavesplat_compressor::reader::region::RegionReader::open_series(
+        &dir.join("heart.nii"),
+        None,
+    )
+    .unwrap();
+    let one = compress_series(&reader, &opts, 4, 256, &|_| {})
+        .unwrap()
+        .bytes;
+    let mut client = CacheClient::connect(&c).await.unwrap();
+    let listed = client.list().await.unwrap();
+    assert_eq!(listed.len(), 2, "{listed:?}");
+    let heart = listed.iter().find(|v| v.name == "heart").expect("heart");
+    assert_eq!(
+        heart.sha256,
+        wavesplat_net::digest::hex(&wavesplat_net::digest::sha256(&one)),
+        "not the one-process series"
+    );
+    for v in &listed {
+        for t in [0u32, 3] {
+            let request = RefineRequest::new(
+                VolumeKey::Name(v.name.clone()),
+                ViewSpec::single(View::new(0.4, 0.7, 32, 32)),
+            )
+            .at_time_point(t);
+            let got = client.refine_collect(request, None).await.unwrap();
+            assert!(got.done);
+            let h = got.header.unwrap();
+            let m = h.series.as_ref().expect("a series");
+            assert_eq!(m.points.len(), POINTS, "{}", v.name);
+            assert!(!got.packets.is_empty());
+            assert!(
+                (got.packets.len() as u32) < v.packet_count,
+                "{} t {t}: every component's packets",
+                v.name
+            );
+        }
+    }
+}

@@ -84,6 +84,66 @@ pub enum SeriesError {
     /// Decoded components could not be summed.
     #[error(transparent)]
     Volume(#[from] VolumeError),
+    /// The series could not be read (boxed: it is large).
+    #[error(transparent)]
+    Read(Box<ReadError>),
+}
+
+impl From<ReadError> for SeriesError {
+    fn from(e: ReadError) -> SeriesError {
+        SeriesError::Read(Box::new(e))
+    }
+}
+
+/// A time series as read from where it is kept.
+#[derive(Debug)]
+pub enum SeriesInput {
+    /// Held in memory (a DICOM cine, decoded; a generated phantom).
+    Memory(VolumeSeries),
+    /// A 4D file read by region.
+    File(Box<crate::reader::region::RegionReader>),
+    /// A directory of one volume file per time step.
+    Steps(crate::reader::steps::StepSeries),
+}
+
+impl SeriesInput {
+    /// The series as a source of time points.
+    pub fn source(&self) -> &dyn SeriesSource {
+        match self {
+            SeriesInput::Memory(s) => s,
+            SeriesInput::File(r) => r.as_ref(),
+            SeriesInput::Steps(s) => s,
+        }
+    }
+}
+
+/// The time series at `path`, when it is one (read from headers where the format allows;
+/// `None` for one volume): a directory of time steps, a DICOM series whose slices repeat at
+/// several times (decoded here), a 4D NIfTI, or a raw file whose spec has several time points.
+pub fn open_series_path(
+    path: &std::path::Path,
+    raw: Option<&crate::reader::RawSpec>,
+) -> Result<Option<SeriesInput>, SeriesError> {
+    use crate::reader::dicom::read_time_series;
+    use crate::reader::steps::{step_files, StepSeries};
+    if path.is_dir() {
+        let files = step_files(path, raw)?;
+        if files.is_empty() {
+            // A DICOM series: a time series when its slices repeat at several times.
+            let Some((volumes, times)) = read_time_series(path)? else {
+                return Ok(None);
+            };
+            return Ok(Some(SeriesInput::Memory(VolumeSeries::new(
+                volumes, times,
+            )?)));
+        }
+        return Ok(Some(SeriesInput::Steps(StepSeries::open(path, raw)?)));
+    }
+    if crate::reader::time_points(path, raw)? <= 1 {
+        return Ok(None);
+    }
+    let reader = crate::reader::region::RegionReader::open_series(path, raw)?;
+    Ok(Some(SeriesInput::File(Box::new(reader))))
 }
 
 impl From<BrickError> for SeriesError {

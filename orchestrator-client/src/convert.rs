@@ -178,6 +178,7 @@ fn options_from_pb(o: pb::CompressOptions) -> Result<JobOptions, ClientError> {
         no_refine: o.no_refine,
         layer_growth: o.layer_growth,
         brick: o.brick.map(to_usize),
+        time_group: o.time_group.map(to_usize),
     })
 }
 
@@ -222,6 +223,7 @@ pub fn spec_to_pb(s: &JobSpec) -> pb::JobSpec {
             no_refine: o.no_refine,
             layer_growth: o.layer_growth,
             brick: o.brick.map(u32_of),
+            time_group: o.time_group.map(u32_of),
         }),
         part: s.part.as_ref().map(part_to_pb),
     }

@@ -260,6 +260,10 @@ pub struct JobOptions {
     /// Compress as a bricked volume in bricks of at most this side (`None`: one volume).
     #[serde(default)]
     pub brick: Option<usize>,
+    /// Of a time series: the temporal group its time points are compressed together in
+    /// (`None`: 8).
+    #[serde(default)]
+    pub time_group: Option<usize>,
 }
 
 pub use wavesplat_codec::format::bricked::MIN_BRICK;
@@ -283,6 +287,7 @@ impl Default for JobOptions {
             no_refine: false,
             layer_growth: None,
             brick: None,
+            time_group: None,
         }
     }
 }
@@ -326,6 +331,13 @@ impl JobOptions {
         }
         if self.tile == Some(0) {
             return Err(invalid("tile 0; must be at least 1".into()));
+        }
+        if let Some(g) = self.time_group {
+            if !g.is_power_of_two() || g > 1 << 15 {
+                return Err(invalid(format!(
+                    "time group {g}; a power of two up to 32768"
+                )));
+            }
         }
         if let Some(b) = self.brick {
             if !(MIN_BRICK..=MAX_BRICK).contains(&b) {

@@ -146,6 +146,11 @@ pub struct JobOptionArgs {
     /// volume's size (see `compress --brick`).
     #[arg(long, value_name = "N")]
     pub brick: Option<usize>,
+    /// Of a time series (a 4D NIfTI, a DICOM cine directory): compress its time points
+    /// together in groups of G (a power of two; 1: each alone), as `compress --time-group`.
+    /// Default 8.
+    #[arg(long, value_name = "G")]
+    pub time_group: Option<usize>,
 }
 
 impl JobOptionArgs {
@@ -172,6 +177,7 @@ impl JobOptionArgs {
             no_refine: self.no_refine,
             layer_growth: self.layer_growth,
             brick: self.brick,
+            time_group: self.time_group,
         }
         .validate()?)
     }

@@ -7,63 +7,21 @@
 use anyhow::{bail, Context, Result};
 use wavesplat_compressor::bricked::BrickStage;
 use wavesplat_compressor::encode::CompressOptions;
-use wavesplat_compressor::reader::region::RegionReader;
-use wavesplat_compressor::reader::steps::StepSeries;
-use wavesplat_compressor::series::{compress_series, SeriesSource, VolumeSeries};
+use wavesplat_compressor::series::{compress_series, SeriesSource};
 use wavesplat_harness::console::Progress;
 
-/// A time series `compress` reads.
-pub enum SeriesInput {
-    /// Generated in memory (the beating phantom).
-    Memory(VolumeSeries),
-    /// A 4D file read by region.
-    File(Box<RegionReader>),
-    /// A directory of one volume file per time step.
-    Steps(StepSeries),
-}
+pub use wavesplat_compressor::series::SeriesInput;
 
-impl SeriesInput {
-    /// The series as a source of time points.
-    pub fn source(&self) -> &dyn SeriesSource {
-        match self {
-            SeriesInput::Memory(s) => s,
-            SeriesInput::File(r) => r.as_ref(),
-            SeriesInput::Steps(s) => s,
-        }
-    }
-}
-
-/// The time series at `path`, when it is one (read from headers where the format allows): a
-/// directory of time steps, a DICOM series whose slices repeat at several times (decoded
-/// here), a 4D NIfTI or a raw file whose spec has several time points.
+/// The time series at `path`, when it is one ([`wavesplat_compressor::series::open_series_path`]),
+/// its read errors reported with the path.
 pub fn open_path(
     path: &std::path::Path,
     raw: Option<&wavesplat_compressor::reader::RawSpec>,
 ) -> Result<Option<SeriesInput>> {
-    use super::read_error;
-    use wavesplat_compressor::reader::dicom::read_time_series;
-    use wavesplat_compressor::reader::steps::step_files;
-    use wavesplat_compressor::reader::time_points;
-    if path.is_dir() {
-        let files = step_files(path, raw).map_err(|e| read_error(path, e))?;
-        if files.is_empty() {
-            // A DICOM series: a time series when its slices repeat at several times.
-            let Some((volumes, times)) = read_time_series(path).map_err(|e| read_error(path, e))?
-            else {
-                return Ok(None);
-            };
-            return Ok(Some(SeriesInput::Memory(VolumeSeries::new(
-                volumes, times,
-            )?)));
-        }
-        let steps = StepSeries::open(path, raw).map_err(|e| read_error(path, e))?;
-        return Ok(Some(SeriesInput::Steps(steps)));
-    }
-    if time_points(path, raw).map_err(|e| read_error(path, e))? <= 1 {
-        return Ok(None);
-    }
-    let reader = RegionReader::open_series(path, raw).map_err(|e| read_error(path, e))?;
-    Ok(Some(SeriesInput::File(Box::new(reader))))
+    wavesplat_compressor::series::open_series_path(path, raw).map_err(|e| match e {
+        wavesplat_compressor::series::SeriesError::Read(r) => super::read_error(path, *r),
+        e => anyhow::Error::new(e).context(format!("reading {}", path.display())),
+    })
 }
 
 /// What `info` says of a time series source: its time points, their size and their times.
