@@ -916,3 +916,137 @@ fn a_time_series_plays_from_a_cache_in_the_window() {
         "the paused time point is time point 3's image: {diff}"
     );
 }
+
+/// A time series plays on when the cache node it streams from is killed: two nodes over one
+/// object store (`file://`), the window given both; paused after three moves (the time points
+/// seen so far came from the first node), the first node is killed, and playing on opens the
+/// time points not yet seen on the second. The loop is played through and the screenshot of
+/// the time point paused on afterwards is that time point's `render` image of the file.
+#[test]
+fn a_time_series_plays_on_when_its_cache_node_is_killed() {
+    let Some(x) = display_for_window() else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let path = |p: &str| dir.path().join(p).to_str().unwrap().to_string();
+    let file = dir.path().join("cine.wsp");
+    let out = Command::new(BIN)
+        .args([
+            "compress",
+            "--phantom",
+            "beating",
+            "--dims",
+            "32,32,12,6",
+            "--target-fraction",
+            "0.1",
+            "--time-group",
+            "2",
+            "-o",
+        ])
+        .arg(&file)
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", common::text(&out));
+    let store = format!("file://{}", path("bucket"));
+    let node = |db: &str| {
+        let db = path(db);
+        common::spawn_server(&[
+            "serve",
+            "cache",
+            "--addr",
+            "127.0.0.1:0",
+            "--db",
+            &db,
+            "--store",
+            &store,
+        ])
+    };
+    let (mut first, first_url) = node("n1");
+    let (mut second, second_url) = node("n2");
+    let out = Command::new(BIN)
+        .args(["cache", "ingest"])
+        .arg(&file)
+        .args(["--name", "cine", "--cache", &first_url])
+        .env_remove("WAVESPLAT_CA")
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", common::text(&out));
+    let (ready, go) = (dir.path().join("ready"), dir.path().join("go"));
+    let shot = dir.path().join("paused.png");
+    // Three moves from time point 0 (t1..t3 opened on the first node), paused; after the kill
+    // on to nine moves in all (t4, t5 opened on the second node, then t0..t3 again), paused on
+    // t3, one step on to t4.
+    let script = format!(
+        "converge; key space; played 3; key space; signal {}; await {}; key space; played 9; \
+         key space; key right; converge; screenshot {}; quit",
+        ready.display(),
+        go.display(),
+        shot.display()
+    );
+    let urls = format!("{first_url},{second_url}");
+    let mut child = view(
+        &x.display,
+        &[
+            "--cache", &urls, "--volume", "cine", "--size", "96x96", "--cpu", "--fps", "20",
+            "--script", &script,
+        ],
+    )
+    .env_remove("WAVESPLAT_CA")
+    .spawn()
+    .unwrap();
+    let started = std::time::Instant::now();
+    while !ready.exists() {
+        if let Ok(Some(status)) = child.try_wait() {
+            panic!("the window ended before playing: {status}");
+        }
+        assert!(
+            started.elapsed().as_secs() < 120,
+            "no pause after three moves"
+        );
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+    let _ = first.kill();
+    let _ = first.wait();
+    std::fs::write(&go, b"").unwrap();
+    let (status, stdout, stderr) = finish(child);
+    let _ = second.kill();
+    let _ = second.wait();
+    assert!(
+        status.success(),
+        "exit {status}\nstdout {stdout}\nstderr {stderr}"
+    );
+    let played = line_with(&stdout, "view: played");
+    let n: u64 = played
+        .split_whitespace()
+        .nth(2)
+        .and_then(|v| v.parse().ok())
+        .unwrap_or_else(|| panic!("{played}"));
+    assert!(n >= 9, "{played}");
+    let rendered = dir.path().join("t4.png");
+    let out = Command::new(BIN)
+        .args([
+            "render",
+            "--time-point",
+            "4",
+            "--size",
+            "96x96",
+            "--cpu",
+            "-o",
+        ])
+        .arg(&rendered)
+        .arg(&file)
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", common::text(&out));
+    let (_, _, want) = grey(&rendered);
+    let (_, _, shown) = grey(&shot);
+    let diff = shown
+        .iter()
+        .zip(&want)
+        .map(|(a, b)| (a - b).abs())
+        .fold(0.0, f64::max);
+    assert!(
+        diff <= 2.0,
+        "the paused time point is time point 4's image: {diff}"
+    );
+}

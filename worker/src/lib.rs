@@ -41,7 +41,7 @@ use wavesplat_client::{CacheClient, ConnectOptions};
 use wavesplat_codec::volume::Volume;
 use wavesplat_compressor::bricked::{compress_bricked, BrickSource, BrickStage};
 use wavesplat_compressor::encode::{compress, Stage};
-use wavesplat_compressor::reader::{decode_raw, decode_source, SourceFiles};
+use wavesplat_compressor::reader::{decode_raw, decode_source, ReadError, SourceFiles};
 use wavesplat_net::digest::sha256;
 use wavesplat_orchestrator_client::convert;
 use wavesplat_orchestrator_client::model::{
@@ -433,7 +433,18 @@ fn decode(spec: &JobSpec, bytes: Vec<u8>) -> Result<Volume, Failure> {
                 Source::Upload { .. } => std::path::PathBuf::from(&spec.name),
             };
             let src = SourceFiles::from_bytes(bytes, &origin).map_err(|e| invalid(&e))?;
-            decode_source(&src, None).map_err(|e| invalid(&e))
+            decode_source(&src, None).map_err(|e| match (e, source) {
+                (ReadError::TimeSeries { points, .. }, Source::Upload { .. }) => fail(
+                    FailureKind::InvalidInput,
+                    format!(
+                        "{}: a time series of {points} time points, uploaded: workers compress \
+                         a time series read from shared storage (submit it without --upload), \
+                         or compress it locally and `cache ingest` the file",
+                        origin.display()
+                    ),
+                ),
+                (e, _) => invalid(&e),
+            })
         }
     }
 }
