@@ -1070,10 +1070,12 @@ async fn a_source_changed_midway_fails_the_bricked_job_clearly() {
     );
 }
 
-/// A time series in an archive is one job and one volume in the cache: a 4D NIfTI and a DICOM
-/// cine (slices repeated at several trigger times) are each compressed by a worker into one
-/// series file (the same bytes `compress_series` makes in one process with the job's options),
-/// committed once, and each time point streams from the cache with its own components only.
+/// A time series in an archive is one job and one volume in the cache: a 4D NIfTI, a DICOM cine
+/// (slices repeated at several trigger times) and, with `--time-steps`, a directory of numbered
+/// time steps are each compressed by a worker into one series file (the NIfTI's: the same bytes
+/// `compress_series` makes in one process with the job's options), committed once, and each
+/// time point streams from the cache with its own components only; a directory whose steps
+/// repeat a number is skipped, saying so.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_time_series_in_an_archive_is_one_volume_in_the_cache() {
     use wavesplat_codec::volume::Volume;
@@ -1102,10 +1104,41 @@ async fn a_time_series_in_an_archive_is_one_volume_in_the_cache() {
         ..Default::default()
     };
     write_dicom_cine(&dir.join("cine"), &volumes, &ms, &o_dicom);
+    std::fs::create_dir_all(dir.join("run")).unwrap();
+    for (t, v) in samples.iter().enumerate() {
+        write_nifti(&dir.join(format!("run/step_{:04}.nii", 10 * t)), dims, v);
+    }
+    std::fs::create_dir_all(dir.join("broken")).unwrap();
+    write_nifti(&dir.join("broken/a_1.nii"), dims, &samples[0]);
+    write_nifti(&dir.join("broken/b_1.nii"), dims, &samples[1]);
     let _w = cl.worker("w1", 0, None);
-    submit(&dir, &o, &["--time-group", "4", "--target-fraction", "0.2"]);
-    let js = wait_for(&o, 60, "both series done", all_finished).await;
-    assert_eq!(js.len(), 2, "one job per series");
+    let out = cli(&[
+        "archive",
+        "submit",
+        dir.to_str().unwrap(),
+        "--orchestrator",
+        &o,
+        "--detach",
+        "--levels",
+        "2",
+        "--time-steps",
+        "--time-group",
+        "4",
+        "--target-fraction",
+        "0.2",
+    ]);
+    let said = format!(
+        "{}{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(out.status.success(), "{said}");
+    assert!(
+        said.contains("skipped") && said.contains("broken") && said.contains("step"),
+        "{said}"
+    );
+    let js = wait_for(&o, 60, "the series done", all_finished).await;
+    assert_eq!(js.len(), 3, "one job per series");
     for j in &js {
         assert_eq!(state_name(j.state), "done", "{}: {}", name(j), j.error);
     }
@@ -1127,7 +1160,7 @@ async fn a_time_series_in_an_archive_is_one_volume_in_the_cache() {
         .bytes;
     let mut client = CacheClient::connect(&c).await.unwrap();
     let listed = client.list().await.unwrap();
-    assert_eq!(listed.len(), 2, "{listed:?}");
+    assert_eq!(listed.len(), 3, "{listed:?}");
     let heart = listed.iter().find(|v| v.name == "heart").expect("heart");
     assert_eq!(
         heart.sha256,

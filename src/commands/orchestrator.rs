@@ -224,6 +224,11 @@ pub struct SubmitArgs {
     /// Put this after every volume's name in the cache (e.g. `_cubic` for `--family cubic`).
     #[arg(long, default_value = "")]
     pub name_suffix: String,
+    /// A directory whose volume files are numbered time steps (`step_0000.nii.gz`,
+    /// `step_0010.nii.gz`, …) is one time series, named by the directory (without this, each
+    /// file is a volume of its own). 4D NIfTI files and DICOM cines are series either way.
+    #[arg(long)]
+    pub time_steps: bool,
     #[command(flatten)]
     pub security: super::security::ClientSecurityArgs,
     #[command(flatten)]
@@ -409,7 +414,8 @@ pub fn run_worker(a: WorkerArgs) -> Result<()> {
 pub fn run_archive(cmd: ArchiveCommand) -> Result<()> {
     let ArchiveCommand::Submit(a) = cmd;
     let options = a.options.options()?;
-    let scan = archive::scan(&a.dir).with_context(|| format!("scanning {}", a.dir.display()))?;
+    let scan = archive::scan_with(&a.dir, a.time_steps)
+        .with_context(|| format!("scanning {}", a.dir.display()))?;
     for (path, why) in &scan.skipped {
         eprintln!("skipped {}: {why}", path.display());
     }

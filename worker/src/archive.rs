@@ -11,6 +11,13 @@
 //!   DTYPE is `u8`, `u16`, `i16` or `f32`; `_rgb` means 3 channels interleaved per voxel;
 //!   `_be` big-endian samples (little-endian otherwise); x varies fastest.
 //!
+//! With `time_steps` ([`scan_with`]), a directory whose volume files (NIfTI, NRRD, MetaImage)
+//! are numbered time steps of one simulation or acquisition (`step_0000.nii.gz`,
+//! `step_0010.nii.gz`, …: [`wavesplat_compressor::reader::steps`]) is one time series, named by
+//! the directory's path; a directory whose files are not such steps (a step missing, repeated
+//! or unnumbered, or of another size) is reported as skipped with the reason. Without it every
+//! file is a volume of its own, as a directory of unrelated numbered volumes must be.
+//!
 //! The volume's name in the cache is its path relative to the archive root without the
 //! extension and (for raw files) without the layout suffix: `ct/head_64x64x32_u8.raw` → `ct/head`,
 //! `ct/series1/` (DICOM) → `ct/series1`. Data files named by `.nhdr` / `.mhd` headers are part
@@ -19,6 +26,7 @@
 
 use std::collections::{BTreeSet, HashSet};
 use std::path::{Path, PathBuf};
+use wavesplat_compressor::reader::steps::{step_files, StepSeries};
 use wavesplat_compressor::reader::{dicom::is_dicom_file, Format, SourceFiles};
 use wavesplat_orchestrator_client::model::{JobOptions, JobSpec, RawLayout, SampleType, Source};
 
@@ -99,12 +107,75 @@ fn walk(dir: &Path, out: &mut Vec<PathBuf>) -> std::io::Result<()> {
     Ok(())
 }
 
-/// Scans `root` recursively.
+/// Scans `root` recursively (every file a volume of its own: [`scan_with`] without time steps).
 pub fn scan(root: &Path) -> std::io::Result<Scan> {
+    scan_with(root, false)
+}
+
+/// The name of a directory under `root` in the cache: its path relative to `root`, or `root`'s
+/// own name for `root` itself (`fallback` when it has none).
+fn dir_name(root: &Path, dir: &Path, fallback: &str) -> String {
+    let rel = dir
+        .strip_prefix(root)
+        .map(|p| p.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    if rel.is_empty() {
+        root.file_name().map_or_else(
+            || fallback.to_string(),
+            |n| n.to_string_lossy().into_owned(),
+        )
+    } else {
+        rel
+    }
+}
+
+/// Scans `root` recursively; with `time_steps`, a directory of numbered time steps is one time
+/// series (see the module documentation).
+pub fn scan_with(root: &Path, time_steps: bool) -> std::io::Result<Scan> {
     let mut files = Vec::new();
     walk(root, &mut files)?;
     let mut scan = Scan::default();
     let mut names = HashSet::new();
+    // Directories of time steps: each one series, every file in it taken.
+    let mut step_dirs: BTreeSet<PathBuf> = BTreeSet::new();
+    if time_steps {
+        let dirs: BTreeSet<PathBuf> = files
+            .iter()
+            .filter_map(|p| p.parent().map(Path::to_path_buf))
+            .collect();
+        for dir in dirs {
+            let steps = match step_files(&dir, None) {
+                Ok(s) if s.len() >= 2 => s,
+                _ => continue,
+            };
+            let name = dir_name(root, &dir, "steps");
+            match StepSeries::open(&dir, None) {
+                Ok(_) if names.insert(name.clone()) => {
+                    scan.found.push(Found {
+                        path: dir.clone(),
+                        name,
+                        raw: None,
+                    });
+                    step_dirs.insert(dir);
+                }
+                // Skipped whole: its files are not submitted one by one either.
+                Ok(_) => {
+                    scan.skipped.push((
+                        dir.clone(),
+                        format!("another volume already uses the name {name:?}"),
+                    ));
+                    step_dirs.insert(dir);
+                }
+                Err(e) => {
+                    scan.skipped.push((
+                        dir.clone(),
+                        format!("not one time series of {} steps: {e}", steps.len()),
+                    ));
+                    step_dirs.insert(dir);
+                }
+            }
+        }
+    }
     // DICOM files make their directory a volume; data files of detached headers belong to
     // their header.
     let mut dicom_dirs = BTreeSet::new();
@@ -129,16 +200,7 @@ pub fn scan(root: &Path) -> std::io::Result<Scan> {
         }
     }
     for dir in dicom_dirs {
-        let rel = dir
-            .strip_prefix(root)
-            .map(|p| p.to_string_lossy().into_owned())
-            .unwrap_or_default();
-        let name = if rel.is_empty() {
-            root.file_name()
-                .map_or_else(|| "dicom".to_string(), |n| n.to_string_lossy().into_owned())
-        } else {
-            rel
-        };
+        let name = dir_name(root, &dir, "dicom");
         if !names.insert(name.clone()) {
             scan.skipped.push((
                 dir,
@@ -153,7 +215,7 @@ pub fn scan(root: &Path) -> std::io::Result<Scan> {
         });
     }
     for path in files {
-        if taken.contains(&path) {
+        if taken.contains(&path) || path.parent().is_some_and(|d| step_dirs.contains(d)) {
             continue;
         }
         let file_name = path
@@ -210,12 +272,38 @@ pub fn source_bytes(path: &Path, raw: bool) -> std::io::Result<Vec<u8>> {
     if raw {
         return std::fs::read(path);
     }
+    if path.is_dir() && step_files(path, None).is_ok_and(|s| !s.is_empty()) {
+        return steps_bytes(path);
+    }
     SourceFiles::gather(path, None)
         .map(|s| s.to_bytes())
         .map_err(|e| match e {
             wavesplat_compressor::reader::ReadError::Io { source, .. } => source,
             e => std::io::Error::other(e.to_string()),
         })
+}
+
+/// The bytes of a directory of time steps: a bundle ([`SourceFiles::to_bytes`]) of every
+/// visible file in it (the steps and their data files), in name order. Held in memory whole
+/// (hashing a large series by its files in turn would not need it: not done yet).
+fn steps_bytes(dir: &Path) -> std::io::Result<Vec<u8>> {
+    let mut entries: Vec<_> = std::fs::read_dir(dir)?.collect::<Result<_, _>>()?;
+    entries.sort_by_key(|e| e.file_name());
+    let mut files = Vec::new();
+    for e in entries {
+        let name = e.file_name().to_string_lossy().into_owned();
+        if name.starts_with('.') || !e.file_type()?.is_file() {
+            continue;
+        }
+        files.push((name, std::fs::read(e.path())?));
+    }
+    Ok(SourceFiles {
+        origin: dir.to_path_buf(),
+        base: dir.to_path_buf(),
+        format: None,
+        files,
+    }
+    .to_bytes())
 }
 
 /// Builds the job for a found volume: reads it to hash it; with `upload`, the bytes are
