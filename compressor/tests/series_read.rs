@@ -180,3 +180,79 @@ fn missing_repeated_unnumbered_or_mismatched_steps_are_named() {
         "{e}"
     );
 }
+
+/// A 4D NRRD whose last axis is time (`kinds: domain domain domain time`, as Slicer writes a
+/// sequence), raw and gzip, attached and detached: every time point reads back exactly, the
+/// time step comes from the axis' spacing and unit, one volume's readers refuse it by name,
+/// and a file shorter than its time points is refused at open.
+#[test]
+fn a_4d_nrrd_with_a_time_axis_is_read_time_point_by_time_point() {
+    use std::io::Write;
+    let dir = tempfile::tempdir().unwrap();
+    let vols = points(5);
+    let data: Vec<u8> = vols
+        .iter()
+        .flat_map(|v| v.channel(0).iter().flat_map(|x| x.to_le_bytes()))
+        .collect();
+    let header = |encoding: &str, data_file: Option<&str>| {
+        let mut h = format!(
+            "NRRD0004\ntype: float\ndimension: 4\nsizes: {} {} {} 5\nendian: little\n\
+             encoding: {encoding}\nkinds: domain domain domain time\nspacings: 1 1 1 40\n\
+             units: mm mm mm ms\n",
+            DIMS[0], DIMS[1], DIMS[2]
+        );
+        if let Some(f) = data_file {
+            h += &format!("data file: {f}\n");
+        }
+        h + "\n"
+    };
+    let gz = {
+        let mut e = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::fast());
+        e.write_all(&data).unwrap();
+        e.finish().unwrap()
+    };
+    let raw_path = dir.path().join("cine.nrrd");
+    std::fs::write(
+        &raw_path,
+        [header("raw", None).into_bytes(), data.clone()].concat(),
+    )
+    .unwrap();
+    let gz_path = dir.path().join("cine_gz.nrrd");
+    std::fs::write(&gz_path, [header("gzip", None).into_bytes(), gz].concat()).unwrap();
+    let nhdr = dir.path().join("detached.nhdr");
+    std::fs::write(&nhdr, header("raw", Some("detached.data"))).unwrap();
+    std::fs::write(dir.path().join("detached.data"), &data).unwrap();
+    for path in [&raw_path, &gz_path, &nhdr] {
+        assert_eq!(
+            wavesplat_compressor::reader::time_points(path, None).unwrap(),
+            5,
+            "{path:?}"
+        );
+        let e = RegionReader::open(path, None).unwrap_err();
+        assert!(matches!(e, ReadError::TimeSeries { points: 5, .. }), "{e}");
+        let e = wavesplat_compressor::reader::read_volume(path, None).unwrap_err();
+        assert!(e.to_string().contains("5 time points"), "{e}");
+        let r = RegionReader::open_series(path, None).unwrap();
+        assert_eq!(r.time_points(), 5);
+        assert_eq!(r.time_step(), Some(0.04));
+        assert_eq!(r.dims(), DIMS);
+        reads_as(&r, &vols, Some((0..5).map(|t| t as f64 * 0.04).collect()));
+    }
+    // Without units the times are unknown; a file one time point short is refused.
+    let no_units = header("raw", None).replace("units: mm mm mm ms\n", "");
+    let p = dir.path().join("no_units.nrrd");
+    std::fs::write(&p, [no_units.into_bytes(), data.clone()].concat()).unwrap();
+    assert_eq!(
+        RegionReader::open_series(&p, None).unwrap().time_step(),
+        None
+    );
+    let frame = data.len() / 5;
+    let p = dir.path().join("short.nrrd");
+    std::fs::write(
+        &p,
+        [header("raw", None).into_bytes(), data[..4 * frame].to_vec()].concat(),
+    )
+    .unwrap();
+    let e = RegionReader::open_series(&p, None).unwrap_err();
+    assert!(e.to_string().contains("short.nrrd"), "{e}");
+}

@@ -679,7 +679,7 @@ pub fn read_volume(path: &Path, raw: Option<&RawSpec>) -> Result<Volume, ReadErr
 }
 
 /// How many time points the volume file at `path` holds, from its header alone (a NIfTI's
-/// `dim[4]`, a raw spec's time points); 1 for every other file and for directories (a
+/// `dim[4]`, an NRRD's trailing time axis, a raw spec's time points); 1 for every other file and for directories (a
 /// directory of time steps is [`steps::StepSeries`]'s). Errors only when the file cannot be
 /// opened; a header that does not parse says 1 here and is reported by the reader.
 pub fn time_points(path: &Path, raw: Option<&RawSpec>) -> Result<usize, ReadError> {
@@ -700,7 +700,19 @@ pub fn time_points(path: &Path, raw: Option<&RawSpec>) -> Result<usize, ReadErro
             .map_err(|e| ReadError::io(path, e))?;
         head
     };
-    if by_name.or_else(|| Format::sniff(&head)) != Some(Format::Nifti) {
+    let format = by_name.or_else(|| Format::sniff(&head));
+    if format == Some(Format::Nrrd) {
+        // Its text header (up to 1 MiB): a trailing time axis says the time points.
+        let mut prefix = Vec::new();
+        std::fs::File::open(path)
+            .and_then(|f| f.take(1 << 20).read_to_end(&mut prefix))
+            .map_err(|e| ReadError::io(path, e))?;
+        return Ok(nrrd::series_info(path, &prefix)
+            .ok()
+            .flatten()
+            .map_or(1, |(points, _)| points));
+    }
+    if format != Some(Format::Nifti) {
         return Ok(1);
     }
     let f = std::fs::File::open(path).map_err(|e| ReadError::io(path, e))?;

@@ -32,6 +32,10 @@ struct Header {
     space_dimension: Option<usize>,
     space_directions: Option<Vec<Option<Vec<f64>>>>,
     space_origin: Option<Vec<f64>>,
+    /// Per axis: its kind (`domain`, `space`, `time`, `list`, …), lower case.
+    kinds: Option<Vec<String>>,
+    /// Per axis: its unit (`mm`, `ms`, …), as written.
+    units: Option<Vec<String>>,
     byte_skip: i64,
     line_skip: u64,
     data_file: Option<String>,
@@ -102,6 +106,22 @@ fn parse_header(path: &Path, bytes: &[u8]) -> Result<Header, ReadError> {
             "space origin" => {
                 h.space_origin = Some(text::vector(value).ok_or_else(|| fail("a vector"))?)
             }
+            "kinds" => {
+                h.kinds = Some(
+                    value
+                        .split_whitespace()
+                        .map(str::to_ascii_lowercase)
+                        .collect(),
+                )
+            }
+            "units" => {
+                h.units = Some(
+                    value
+                        .split_whitespace()
+                        .map(|u| u.trim_matches('"').to_string())
+                        .collect(),
+                )
+            }
             "byte skip" => h.byte_skip = value.parse().map_err(|_| fail("a number"))?,
             "line skip" => h.line_skip = value.parse().map_err(|_| fail("a number"))?,
             "data file" | "datafile" => {
@@ -110,10 +130,50 @@ fn parse_header(path: &Path, bytes: &[u8]) -> Result<Header, ReadError> {
                     break; // the remaining lines name the data files
                 }
             }
-            _ => {} // kinds, centers, labels, units, content, measurement frame, …
+            _ => {} // centers, labels, content, measurement frame, …
         }
     }
     Ok(h)
+}
+
+/// Whether the header's last axis of four is time (`kinds: … time`, as Slicer and ITK write a
+/// 4D sequence: x fastest, time slowest).
+fn time_axis(h: &Header) -> bool {
+    h.dimension == Some(4)
+        && h.kinds
+            .as_ref()
+            .is_some_and(|k| k.len() == 4 && k[3] == "time")
+}
+
+/// Of an NRRD file whose last axis is time (`kinds: … time`) with more than one sample: its
+/// time points and, when the header gives the axis a spacing and a unit of time (s, ms, us),
+/// the seconds between them. `None` for any other NRRD file.
+pub(crate) fn series_info(
+    path: &Path,
+    bytes: &[u8],
+) -> Result<Option<(usize, Option<f64>)>, ReadError> {
+    let h = parse_header(path, bytes)?;
+    let points = match (&h.sizes, time_axis(&h)) {
+        (Some(s), true) if s.len() == 4 && s[3] > 1 => usize::try_from(s[3]).unwrap_or(usize::MAX),
+        _ => return Ok(None),
+    };
+    let unit = h.units.as_ref().and_then(|u| u.get(3)).and_then(|u| {
+        match u.to_ascii_lowercase().as_str() {
+            "s" | "sec" | "second" | "seconds" => Some(1.0),
+            "ms" | "msec" => Some(1e-3),
+            "us" | "µs" | "usec" => Some(1e-6),
+            _ => None,
+        }
+    });
+    let step = h
+        .spacings
+        .as_ref()
+        .and_then(|s| s.get(3))
+        .copied()
+        .filter(|s| s.is_finite() && *s > 0.0)
+        .zip(unit)
+        .map(|(s, u)| s * u);
+    Ok(Some((points, step)))
 }
 
 /// The names of the data files a detached header refers to (relative to its directory).
@@ -164,10 +224,19 @@ fn layout(path: &Path, h: &Header) -> Result<Layout, ReadError> {
     if let Some(z) = sizes.iter().position(|s| *s == 0) {
         return Err(bad(path, format!("size of axis {z} is 0")));
     }
-    // A 4D volume: a leading channel axis (1 or 3, no space direction), or a trailing axis of 1.
+    // A 4D volume: a leading channel axis (1 or 3, no space direction), or a trailing axis of 1;
+    // a trailing time axis of several time points is a time series, read by time point.
     let mut spatial: Vec<usize> = (0..dimension).collect();
     let mut channels = 1;
-    if dimension == 4 {
+    if time_axis(h) && sizes[3] > 1 {
+        return Err(ReadError::TimeSeries {
+            path: path.to_path_buf(),
+            points: usize::try_from(sizes[3]).unwrap_or(usize::MAX),
+        });
+    }
+    if dimension == 4 && time_axis(h) {
+        spatial.pop();
+    } else if dimension == 4 {
         let first_none = h
             .space_directions
             .as_ref()
@@ -180,7 +249,7 @@ fn layout(path: &Path, h: &Header) -> Result<Layout, ReadError> {
         } else {
             return Err(ReadError::unsupported(
                 path,
-                format!("4D data of sizes {sizes:?}: only 3D volumes, a leading axis of 1 or 3 channels, or a trailing axis of size 1 are supported"),
+                format!("4D data of sizes {sizes:?}: only 3D volumes, a leading axis of 1 or 3 channels, a trailing axis of size 1, or a trailing time axis (`kinds: … time`) are supported"),
             ));
         }
     }

@@ -104,15 +104,28 @@ pub(super) fn open_nrrd(path: &Path) -> Result<Opened, ReadError> {
             probe.push('\n');
         }
     }
+    // A trailing time axis (`kinds: … time`): the time points follow each other, each a
+    // volume; the stand-in has one.
+    let series = crate::reader::nrrd::series_info(path, &prefix)?;
     if let Some(e) = &encoding {
         if matches!(e.as_str(), "ascii" | "text" | "txt") {
+            if let Some((points, _)) = series {
+                return Err(ReadError::unsupported(
+                    path,
+                    format!("a time series of {points} time points in ASCII encoding; raw or gzip are read by time point"),
+                ));
+            }
             return read_whole(path); // decimal text: no fixed place per voxel
         }
     }
     if let Some(s) = &sizes {
         let s: Vec<String> = s
             .iter()
-            .map(|s| nrrd_stand_in_size(*s).to_string())
+            .enumerate()
+            .map(|(a, s)| match series {
+                Some(_) if a == 3 => "1".to_string(),
+                _ => nrrd_stand_in_size(*s).to_string(),
+            })
             .collect();
         probe += &format!("sizes: {}\n", s.join(" "));
     }
@@ -131,7 +144,9 @@ pub(super) fn open_nrrd(path: &Path) -> Result<Opened, ReadError> {
     let channels = meta.channel_count();
     let mut spatial: Vec<usize> = (0..sizes.len()).collect();
     if sizes.len() == 4 {
-        if matches!(sizes[0], 1 | 3) && first_direction_none != Some(false) {
+        if series.is_some() {
+            spatial.pop();
+        } else if matches!(sizes[0], 1 | 3) && first_direction_none != Some(false) {
             spatial.remove(0);
         } else {
             spatial.pop();
@@ -148,7 +163,15 @@ pub(super) fn open_nrrd(path: &Path) -> Result<Opened, ReadError> {
             meta.dims()
         )));
     }
-    let expected = stored_bytes(path, dims, channels, sample.size())?;
+    let frame = stored_bytes(path, dims, channels, sample.size())?;
+    let points = series.map_or(1, |(p, _)| p);
+    let expected = frame
+        .checked_mul(points as u64)
+        .ok_or(ReadError::TooLarge {
+            dims,
+            channels,
+            bytes_per_sample: sample.size(),
+        })?;
     let endian = endian.unwrap_or(Endian::Little);
 
     // Where the data starts: the data file, or just past the blank line.
@@ -214,7 +237,13 @@ pub(super) fn open_nrrd(path: &Path) -> Result<Opened, ReadError> {
             ))
         }
     };
-    Ok(Opened::stored(&meta, dims, stored))
+    let mut stored = stored;
+    stored.frame = frame;
+    Ok(Opened {
+        time_points: points,
+        time_step: series.and_then(|(_, step)| step),
+        ..Opened::stored(&meta, dims, stored)
+    })
 }
 
 /// The offset just past `lines` newlines from `offset` in `path`; `Err(None)` when the file
