@@ -412,3 +412,54 @@ fn a_dicom_cine_compresses_with_one_command_and_plays_its_trigger_times() {
         "{db:.2} dB, against another {other:.2}"
     );
 }
+
+/// A multi-frame DICOM cine (one slice over time, Frame Time) compresses with one command into
+/// a series of one-slice time points at its frame times; each decoded time point is its frame.
+#[test]
+fn a_multiframe_dicom_cine_compresses_into_a_series_of_its_frames() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = |n: &str| dir.path().join(n).to_string_lossy().into_owned();
+    // Eight frames of a 40×36 slice: the beating phantom's middle slice over one beat.
+    let frames: Vec<Vec<f32>> = (0..8)
+        .map(|t| {
+            let v = beating([40, 36, 9], t, 8).unwrap();
+            v.channel(0)[4 * 40 * 36..5 * 40 * 36]
+                .iter()
+                .map(|x| x.max(0.0).round())
+                .collect()
+        })
+        .collect();
+    let stacked = Volume::new([40, 36, 8], [0.8, 0.8, 6.0], vec![frames.concat()]).unwrap();
+    let o = DicomOptions {
+        layout: Layout::U16,
+        ..Default::default()
+    };
+    wavesplat_fixtures::write_dicom_cine_file(&dir.path().join("cine.dcm"), &stacked, 25.0, &o);
+    let info = cli_ok(&["info", &d("cine.dcm")]);
+    assert!(
+        info.contains("a time series of 8 time points of 40x36x1")
+            && info.contains("0.0250 s apart"),
+        "{info}"
+    );
+    cli_ok(&[
+        "compress",
+        &d("cine.dcm"),
+        "--target-fraction",
+        "0.5",
+        "-o",
+        &d("cine.wsp"),
+    ]);
+    for t in [0usize, 5] {
+        cli_ok(&[
+            "decompress",
+            &d("cine.wsp"),
+            "--time-point",
+            &t.to_string(),
+            "-o",
+            &d("t.raw"),
+        ]);
+        let got = common::read_f32(&dir.path().join("t.raw"));
+        let psnr = wavesplat_codec::metrics::psnr_db(&frames[t], &got, 400.0);
+        assert!(psnr > 35.0, "time point {t}: {psnr:.1} dB");
+    }
+}

@@ -119,7 +119,8 @@ impl SeriesInput {
 
 /// The time series at `path`, when it is one (read from headers where the format allows;
 /// `None` for one volume): a directory of time steps, a DICOM series whose slices repeat at
-/// several times (decoded here), a 4D NIfTI, or a raw file whose spec has several time points.
+/// several times or a multi-frame DICOM cine (decoded here), a 4D NIfTI or NRRD, or a raw file
+/// whose spec has several time points.
 pub fn open_series_path(
     path: &std::path::Path,
     raw: Option<&crate::reader::RawSpec>,
@@ -138,6 +139,13 @@ pub fn open_series_path(
             )?)));
         }
         return Ok(Some(SeriesInput::Steps(StepSeries::open(path, raw)?)));
+    }
+    if raw.is_none() && crate::reader::dicom::is_dicom_file(path).unwrap_or(false) {
+        // A multi-frame cine: its frames are the time points.
+        return Ok(crate::reader::dicom::read_cine_file(path)?
+            .map(|(volumes, times)| VolumeSeries::new(volumes, times))
+            .transpose()?
+            .map(SeriesInput::Memory));
     }
     if crate::reader::time_points(path, raw)? <= 1 {
         return Ok(None);

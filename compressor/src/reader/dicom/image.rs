@@ -30,6 +30,18 @@ pub(super) fn read_image(
     obj: &DefaultDicomObject,
     file_len: usize,
 ) -> Result<Option<Image>, ReadError> {
+    read_image_as(name, path, obj, file_len, false)
+}
+
+/// [`read_image`]; `cine`: a multi-frame file whose frames are instants of one slice over time
+/// is read as such (its frames keep the first frame's position), not refused.
+pub(super) fn read_image_as(
+    name: &str,
+    path: &Path,
+    obj: &DefaultDicomObject,
+    file_len: usize,
+    cine: bool,
+) -> Result<Option<Image>, ReadError> {
     let meta = obj.meta();
     if meta.media_storage_sop_class_uid().trim_end_matches('\0') == DICOMDIR_SOP_CLASS {
         return Ok(None);
@@ -228,10 +240,14 @@ pub(super) fn read_image(
     }
     let has_per_frame = element(o, tags::PER_FRAME_FUNCTIONAL_GROUPS_SEQUENCE).is_some();
     let grid_offsets = get_floats(path, o, tags::GRID_FRAME_OFFSET_VECTOR)?;
-    if frames > 1 && !has_per_frame && grid_offsets.is_none() {
-        refuse_time_series(path, o, frames)?;
-    }
-    if frames > 1 && !has_per_frame {
+    let over_time = frames > 1 && !has_per_frame && grid_offsets.is_none() && {
+        let temporal = temporal_attribute(o);
+        if let (Some(t), false) = (temporal, cine) {
+            return Err(refusal(path, t, frames));
+        }
+        temporal.is_some()
+    };
+    if frames > 1 && !has_per_frame && !over_time {
         if let (Some(p0), Some(iop)) = (positions[0], orientation) {
             let n = normal(&iop);
             let offsets = match &grid_offsets {
@@ -343,11 +359,12 @@ const TEMPORAL_ATTRIBUTES: [(Tag, &str); 5] = [
     (tags::TIME_SLOT_VECTOR, "Time Slot Vector"),
 ];
 
-/// Refuses a multi-frame file without per-frame positions whose frames step through time
-/// (its Frame Increment Pointer names a time attribute, or it gives a frame time and nothing
-/// that places the frames in space): stacking time as depth would draw a cine loop as a
-/// volume.
-fn refuse_time_series(path: &Path, o: &InMemDicomObject, frames: usize) -> Result<(), ReadError> {
+/// How a multi-frame file without per-frame positions says its frames step through time: the
+/// temporal attribute (its tag, its name) and how (its Frame Increment Pointer names it, or it
+/// has it and its pointer names nothing spatial); `None` when nothing does (a volume's frames).
+type Temporal = (Tag, &'static str, &'static str);
+
+fn temporal_attribute(o: &InMemDicomObject) -> Option<Temporal> {
     let pointers: Vec<Tag> =
         match element(o, tags::FRAME_INCREMENT_POINTER).and_then(|e| e.value().primitive()) {
             Some(dicom_core::PrimitiveValue::Tags(t)) => t.to_vec(),
@@ -362,20 +379,74 @@ fn refuse_time_series(path: &Path, o: &InMemDicomObject, frames: usize) -> Resul
     let spatial_pointer = pointers
         .iter()
         .any(|t| !TEMPORAL_ATTRIBUTES.iter().any(|(x, _)| x == t));
-    let (tag, name, how) = match (by_pointer, present) {
-        (Some((t, n)), _) => (*t, *n, "its Frame Increment Pointer (0028,0009) names"),
-        (None, Some((t, n))) if !spatial_pointer => (*t, *n, "it has"),
-        _ => return Ok(()),
-    };
-    Err(dicom_err(
+    match (by_pointer, present) {
+        (Some((t, n)), _) => Some((*t, *n, "its Frame Increment Pointer (0028,0009) names")),
+        (None, Some((t, n))) if !spatial_pointer => Some((*t, *n, "it has")),
+        _ => None,
+    }
+}
+
+/// One volume's readers refuse a multi-frame cine (stacking time as depth would draw a cine
+/// loop as a volume), saying what it is and what reads it.
+fn refusal(path: &Path, (tag, name, how): Temporal, frames: usize) -> ReadError {
+    dicom_err(
         path,
         Some(tags::FRAME_INCREMENT_POINTER),
         format!(
             "a time series, not a volume: {frames} frames of one slice over time ({how} {name} \
-             ({:04X},{:04X}) and no frame has a position of its own). wavesplat reads volumes; \
-             export one time point as its own series, or a volume's slices",
+             ({:04X},{:04X}) and no frame has a position of its own). `wavesplat compress` \
+             reads it as a time series of {frames} time points",
             tag.group(),
             tag.element()
         ),
-    ))
+    )
+}
+
+/// Of a multi-frame file whose frames are instants of one slice over time (a cine, an
+/// ultrasound loop): the frames' times in seconds when Frame Time or Frame Time Vector gives
+/// them (`Some(None)` when only another temporal attribute says it is a cine); `None` when the
+/// file is not such a cine.
+pub(super) fn cine_times(
+    path: &Path,
+    obj: &DefaultDicomObject,
+) -> Result<Option<Option<Vec<f64>>>, ReadError> {
+    let o: &InMemDicomObject = obj;
+    let frames = get_uint(path, o, tags::NUMBER_OF_FRAMES)?.unwrap_or(1) as usize;
+    if frames <= 1
+        || element(o, tags::PER_FRAME_FUNCTIONAL_GROUPS_SEQUENCE).is_some()
+        || get_floats(path, o, tags::GRID_FRAME_OFFSET_VECTOR)?.is_some()
+        || temporal_attribute(o).is_none()
+    {
+        return Ok(None);
+    }
+    let bad = |what: String| dicom_err(path, Some(tags::FRAME_TIME_VECTOR), what);
+    if let Some(v) = get_floats(path, o, tags::FRAME_TIME_VECTOR)? {
+        // Per frame: the time since the previous frame (the first's is 0), in ms.
+        if v.len() != frames {
+            return Err(bad(format!("{} values for {frames} frames", v.len())));
+        }
+        let mut at = 0.0;
+        let mut times = Vec::with_capacity(frames);
+        for (f, dt) in v.iter().enumerate() {
+            if !(dt.is_finite() && (*dt > 0.0 || f == 0) && *dt >= 0.0) {
+                return Err(bad(format!("frame {f}: an increment of {dt} ms")));
+            }
+            at += dt;
+            times.push(at / 1000.0);
+        }
+        return Ok(Some(Some(times)));
+    }
+    if let Some(ft) = get_floats(path, o, tags::FRAME_TIME)?.and_then(|v| v.first().copied()) {
+        if !(ft.is_finite() && ft > 0.0) {
+            return Err(dicom_err(
+                path,
+                Some(tags::FRAME_TIME),
+                format!("{ft} ms between frames"),
+            ));
+        }
+        return Ok(Some(Some(
+            (0..frames).map(|f| f as f64 * ft / 1000.0).collect(),
+        )));
+    }
+    Ok(Some(None))
 }

@@ -64,7 +64,7 @@ mod series;
 mod walk;
 
 pub(crate) use series::{decode, gather_series, SeriesRegions};
-pub use series::{is_dicom_file, read_time_series, TimeSeries};
+pub use series::{is_dicom_file, read_cine_file, read_time_series, TimeSeries};
 pub(crate) use walk::has_preamble;
 
 /// What the reader needs of one image file (pixel data not yet decoded).

@@ -312,6 +312,7 @@ pub type TimeSeries = (Vec<Volume>, Option<Vec<f64>>);
 /// time is an error naming the file, as is a time point whose slices do not form a volume.
 /// The series is held in memory (cine and 4D series are small); a larger one is refused by
 /// the volume's own memory checks.
+/// A directory holding one multi-frame cine file is that file's series ([`read_cine_file`]).
 pub fn read_time_series(dir: &Path) -> Result<Option<TimeSeries>, ReadError> {
     let bad = |reason: String| ReadError::Series {
         path: dir.to_path_buf(),
@@ -319,7 +320,12 @@ pub fn read_time_series(dir: &Path) -> Result<Option<TimeSeries>, ReadError> {
     };
     // Only a series whose (first) image says a time is read whole here: a volume's series
     // (a CT without a trigger) costs one header.
-    let Some((name, path)) = series_files(dir)?.into_iter().next() else {
+    let listed = series_files(dir)?;
+    if let [(_, path)] = listed.as_slice() {
+        // One file: a multi-frame cine, or one volume.
+        return read_cine_file(path);
+    }
+    let Some((name, path)) = listed.into_iter().next() else {
         return Ok(None);
     };
     let first = crate::reader::read_file(&path)?;
@@ -425,6 +431,45 @@ pub fn read_time_series(dir: &Path) -> Result<Option<TimeSeries>, ReadError> {
     let times = attribute
         .starts_with("Trigger Time")
         .then(|| values.iter().map(|ms| ms / 1000.0).collect());
+    Ok(Some((volumes, times)))
+}
+
+/// A multi-frame DICOM file whose frames are instants of one slice over time (a cine MR slice,
+/// an ultrasound loop: Frame Increment Pointer → Frame Time or Frame Time Vector, no per-frame
+/// positions): each frame a time point, a volume of one slice (columns × rows × 1, the pixel
+/// spacing and the slice thickness), every value as the volume reader decodes it (rescale,
+/// palette, colour); the times in seconds from Frame Time or Frame Time Vector. `Ok(None)` for
+/// any other file (a volume's frames, one frame).
+pub fn read_cine_file(path: &Path) -> Result<Option<TimeSeries>, ReadError> {
+    let bytes = crate::reader::read_file(path)?;
+    let header = parse(path, &bytes, false)?;
+    let Some(times) = super::image::cine_times(path, &header)? else {
+        return Ok(None);
+    };
+    let name = path
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    let img = super::image::read_image_as(&name, path, &header, bytes.len(), true)?
+        .ok_or_else(|| dicom_err(path, Some(tags::ROWS), "missing: not an image"))?;
+    drop(header);
+    let obj = parse(path, &bytes, true)?;
+    check_pixel_data(&img, &obj)?;
+    let plane = img.rows * img.cols;
+    let spacing = match img.pixel_spacing {
+        // (row spacing, column spacing): x steps along a row by the column spacing.
+        Some([row, col]) => [col as f32, row as f32, img.slice_step.unwrap_or(1.0) as f32],
+        None => [1.0, 1.0, img.slice_step.unwrap_or(1.0) as f32],
+    };
+    let mut volumes = Vec::with_capacity(img.frames);
+    for f in 0..img.frames {
+        let mut out = allocate(path, img.channels(), plane)?;
+        decode_frame(&img, &obj, f, 0, &mut out)?;
+        volumes.push(
+            Volume::new([img.cols, img.rows, 1], spacing, out)
+                .map_err(|e| ReadError::volume(path, e))?,
+        );
+    }
     Ok(Some((volumes, times)))
 }
 

@@ -837,19 +837,17 @@ fn attributes_written_as_unknown_vr_are_read_as_their_standard_vr() {
     assert_same(&read_volume(dir.path(), None).unwrap(), &v, "UN attributes");
 }
 
-/// A cine (one slice over time) is not a volume: refused, saying what it is.
-#[test]
-fn temporal_multiframe_files_are_refused_as_time_series() {
-    let v = volume([8, 8, 6], [1.0, 1.0, 5.0], Layout::U16, 1.0, 0.0);
-    let dir = tempfile::tempdir().unwrap();
-    let path = dir.path().join("cine.dcm");
+/// A multi-frame cine file (frames of one slice over time, no per-frame positions) at `path`,
+/// made from the slices of `v`, its frames stepped by `pointer` (Frame Time or Frame Time
+/// Vector, set to `value`).
+fn write_cine(path: &Path, v: &Volume, pointer: Tag, value: &str) {
     let o = DicomOptions {
         layout: Layout::U16,
         ..Default::default()
     };
-    write_dicom_multiframe(&path, &v, &o);
+    write_dicom_multiframe(path, v, &o);
     // Make it what an MR cine looks like: no per-frame positions, frames stepped by time.
-    let mut obj = open_file(&path).unwrap();
+    let mut obj = open_file(path).unwrap();
     obj.remove_element(tags::PER_FRAME_FUNCTIONAL_GROUPS_SEQUENCE);
     set(
         &mut obj,
@@ -861,17 +859,70 @@ fn temporal_multiframe_files_are_refused_as_time_series() {
         &mut obj,
         tags::FRAME_INCREMENT_POINTER,
         VR::AT,
-        PrimitiveValue::Tags(vec![tags::FRAME_TIME].into()),
+        PrimitiveValue::Tags(vec![pointer].into()),
     );
     set(
         &mut obj,
-        tags::FRAME_TIME,
+        pointer,
         VR::DS,
-        PrimitiveValue::from("33.3".to_string()),
+        PrimitiveValue::from(value.to_string()),
     );
-    obj.write_to_file(&path).unwrap();
+    obj.write_to_file(path).unwrap();
+}
+
+/// A cine (one slice over time) is not a volume: one volume's reader refuses it, saying what it
+/// is and what reads it; the time series reader reads each frame as a time point of one slice
+/// (the values the volume's slices had, the pixel spacing), at the times Frame Time or Frame
+/// Time Vector give; a Frame Time Vector of the wrong length is refused by name.
+#[test]
+fn temporal_multiframe_files_are_time_series() {
+    let v = volume([8, 7, 6], [0.5, 0.75, 5.0], Layout::U16, 1.0, 0.0);
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("cine.dcm");
+    write_cine(&path, &v, tags::FRAME_TIME, "33.3");
     let e = read_volume(&path, None).unwrap_err().to_string();
-    assert!(e.contains("time series") && e.contains("Frame Time"), "{e}");
+    assert!(
+        e.contains("time series") && e.contains("Frame Time") && e.contains("compress"),
+        "{e}"
+    );
+    let (frames, times) = read_cine_file(&path).unwrap().expect("a cine");
+    assert_eq!(frames.len(), 6);
+    let times = times.expect("times from Frame Time");
+    for (f, t) in times.iter().enumerate() {
+        assert!((t - f as f64 * 0.0333).abs() < 1e-9, "frame {f} at {t}");
+    }
+    let plane = 8 * 7;
+    for (f, frame) in frames.iter().enumerate() {
+        assert_eq!(frame.dims(), [8, 7, 1]);
+        assert_eq!(&frame.spacing()[..2], &[0.5, 0.75]);
+        assert_eq!(
+            frame.channel(0),
+            &v.channel(0)[f * plane..(f + 1) * plane],
+            "frame {f}"
+        );
+    }
+    // A directory holding the one file reads the same.
+    let (in_dir, _) = read_time_series(dir.path()).unwrap().expect("a cine");
+    assert_eq!(in_dir.len(), 6);
+    // Frame Time Vector: the increments since the previous frame.
+    let p = dir.path().join("vector.dcm");
+    write_cine(&p, &v, tags::FRAME_TIME_VECTOR, "0\\40\\40\\50\\40\\40");
+    let (_, times) = read_cine_file(&p).unwrap().unwrap();
+    assert_eq!(times.unwrap(), vec![0.0, 0.04, 0.08, 0.13, 0.17, 0.21]);
+    write_cine(&p, &v, tags::FRAME_TIME_VECTOR, "0\\40\\40");
+    let e = read_cine_file(&p).unwrap_err().to_string();
+    assert!(e.contains("3 values for 6 frames"), "{e}");
+    // A volume's multi-frame file is not a cine.
+    let p = dir.path().join("volume.dcm");
+    write_dicom_multiframe(
+        &p,
+        &v,
+        &DicomOptions {
+            layout: Layout::U16,
+            ..Default::default()
+        },
+    );
+    assert!(read_cine_file(&p).unwrap().is_none());
 }
 
 /// A 4D series (the same slices at several time points) is refused as a time series, not as
