@@ -30,8 +30,17 @@ pub const FILE_BUDGET: DecodeBudget = DecodeBudget {
 
 /// A whole file: header, directory, every packet; or a container (bricked, version 9; a time
 /// series, version 10): its manifest and the files it holds (at most 64, each as a plain file
-/// or, in a series, a bricked container).
+/// or, in a series, a bricked container); or a published file (the indexed layout, versions 1
+/// to 3): its head and index, and the file it fronts.
 pub fn file(data: &[u8]) {
+    let _ = wavesplat_codec::format::index::read_indexed_head(data);
+    if let Ok(inner) = wavesplat_codec::format::index::wsp_of_indexed(data) {
+        volume_file(inner);
+    }
+    volume_file(data);
+}
+
+fn volume_file(data: &[u8]) {
     plain_file(data);
     bricked_file(data);
     if let Ok(s) = wavesplat_codec::format::series::parse_series(data) {

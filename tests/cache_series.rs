@@ -384,3 +384,52 @@ fn nodes_over_an_object_store_serve_series_alike() {
         let _ = child.wait();
     }
 }
+
+/// A series' header message as a client checks it (read from the other side of the wire, as a
+/// hostile or broken server could send it): the cache's own is taken; bricks of components out
+/// of order, a brick outside the whole, an origin of two values, a component missing and a
+/// packet count that does not add up are each refused, naming the problem.
+#[test]
+fn a_clients_check_of_a_series_header_refuses_what_does_not_add_up() {
+    use wavesplat_client::convert::volume_header;
+    use wavesplat_proto::pb;
+    let wsp = series_file(16);
+    let tmp = tempfile::tempdir().unwrap();
+    let server = LocalCache::start(tmp.path()).unwrap();
+    let rt = runtime();
+    let good: pb::VolumeHeader = rt.block_on(async {
+        let mut c = CacheClient::connect(&server.url).await.unwrap();
+        c.ingest("cine", &wsp).await.unwrap();
+        let mut wire = pb::cache_client::CacheClient::connect(server.url.clone())
+            .await
+            .unwrap();
+        wire.header(pb::DescribeRequest {
+            volume: Some(pb::VolumeRef {
+                key: Some(pb::volume_ref::Key::Name("cine".into())),
+            }),
+        })
+        .await
+        .unwrap()
+        .into_inner()
+    });
+    let parsed = volume_header(good.clone()).unwrap();
+    assert_eq!(parsed.series.as_ref().unwrap().points.len(), POINTS);
+    let refused = |edit: &dyn Fn(&mut pb::VolumeHeader), want: &str| {
+        let mut h = good.clone();
+        edit(&mut h);
+        let e = volume_header(h).expect_err(want).to_string();
+        assert!(e.contains(want), "{want}: {e}");
+    };
+    let last = good.bricks.len() - 1;
+    refused(&|h| h.bricks[last].component = 0, "after component");
+    refused(&|h| h.bricks[0].origin = vec![30, 0, 0], "not inside");
+    refused(&|h| h.bricks[0].origin = vec![0, 0], "origin of 2 values");
+    refused(
+        &|h| {
+            let c = h.bricks[last].component;
+            h.bricks.retain(|b| b.component != c);
+        },
+        "components; the manifest has",
+    );
+    refused(&|h| h.bricks[0].packets += 1, "packets, the volume");
+}

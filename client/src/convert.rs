@@ -107,7 +107,7 @@ pub(crate) fn volume_info(v: pb::VolumeInfo) -> Result<VolumeInfo, ClientError> 
 }
 
 /// A header message, parsed by the codec.
-pub(crate) fn volume_header(h: pb::VolumeHeader) -> Result<VolumeHeader, ClientError> {
+pub fn volume_header(h: pb::VolumeHeader) -> Result<VolumeHeader, ClientError> {
     let info = volume_info(
         h.volume
             .ok_or_else(|| ClientError::Protocol("header without volume facts".into()))?,
