@@ -439,10 +439,13 @@ pub fn read_time_series(dir: &Path) -> Result<Option<TimeSeries>, ReadError> {
 /// positions): each frame a time point, a volume of one slice (columns × rows × 1, the pixel
 /// spacing and the slice thickness), every value as the volume reader decodes it (rescale,
 /// palette, colour); the times in seconds from Frame Time or Frame Time Vector. `Ok(None)` for
-/// any other file (a volume's frames, one frame).
+/// any other file (a volume's frames, one frame, a file whose header does not parse: the
+/// volume reader says what is wrong with it).
 pub fn read_cine_file(path: &Path) -> Result<Option<TimeSeries>, ReadError> {
     let bytes = crate::reader::read_file(path)?;
-    let header = parse(path, &bytes, false)?;
+    let Ok(header) = parse(path, &bytes, false) else {
+        return Ok(None);
+    };
     let Some(times) = super::image::cine_times(path, &header)? else {
         return Ok(None);
     };

@@ -119,12 +119,21 @@ impl App {
                     crate::window::WindowError::Invalid("a time state without a series".into())
                 })?;
                 let spec = *frames.session.spec();
-                let (volume, source) = (series.open)(point, &spec).map_err(|source| {
-                    crate::window::WindowError::Failed {
-                        what: format!("opening time point {point}"),
-                        source,
+                let (volume, source) = match self.prefetched.take().filter(|p| p.point == point) {
+                    // Opened ahead (for this view, or turned to it now).
+                    Some(mut p) => {
+                        if p.spec != spec {
+                            p.source.set_view(&spec);
+                        }
+                        (p.volume, p.source)
                     }
-                })?;
+                    None => (series.open)(point, &spec).map_err(|source| {
+                        crate::window::WindowError::Failed {
+                            what: format!("opening time point {point}"),
+                            source,
+                        }
+                    })?,
+                };
                 frames
                     .session
                     .replace_bricked_volume(volume)
@@ -229,6 +238,15 @@ impl App {
                 let image = frames.session.image().context("reading the image")?;
                 self.time_images.keep(self.session_point, spec, image);
             }
+            prefetch_next(
+                self.controls.state.time.as_ref(),
+                self.cached_point.is_some(),
+                self.session_point,
+                &self.time_images,
+                &mut self.prefetched,
+                self.options.series.as_mut(),
+                &spec,
+            );
         }
         if self.converged && !was_converged {
             self.last_convergence = Some(Convergence {
@@ -387,5 +405,53 @@ fn session_facts<'a>(
         recoveries: 0,
         image: (0, 0),
         rest_display_ms: None,
+    }
+}
+
+/// While a playing series rests converged on a time point the session draws (`session_point`,
+/// none shown from a kept image): opens the next one (unless its image is kept for `spec`, or
+/// it is open already), so that its source fetches and decodes while this one is shown and
+/// the move to it waits for nothing. A time point that fails to open here is opened again
+/// (and its error reported) when the series moves to it.
+fn prefetch_next(
+    time: Option<&crate::window::controls::TimeState>,
+    shown_kept: bool,
+    session_point: usize,
+    time_images: &super::TimeImages,
+    prefetched: &mut Option<super::Prefetched>,
+    series: Option<&mut super::SeriesPlayback>,
+    spec: &wavesplat_codec::view::ViewSpec,
+) {
+    let Some(next) = time
+        .filter(|t| t.playing && t.points > 1)
+        .map(|t| (t.point + 1) % t.points)
+    else {
+        return;
+    };
+    if shown_kept
+        || next == session_point
+        || time_images.get(next, spec).is_some()
+        || prefetched
+            .as_ref()
+            .is_some_and(|p| p.point == next && p.spec == *spec)
+    {
+        return;
+    }
+    let Some(series) = series else {
+        return;
+    };
+    match (series.open)(next, spec) {
+        Ok((volume, source)) => {
+            *prefetched = Some(super::Prefetched {
+                point: next,
+                spec: *spec,
+                volume,
+                source,
+            })
+        }
+        Err(e) => {
+            tracing::debug!(point = next, error = %e, "opening the next time point ahead failed");
+            *prefetched = None;
+        }
     }
 }

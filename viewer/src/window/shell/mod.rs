@@ -266,6 +266,7 @@ pub fn run(
         time_images: TimeImages::default(),
         session_point: state_point,
         cached_point: None,
+        prefetched: None,
     };
     event_loop
         .run_app(&mut app)
@@ -363,6 +364,17 @@ struct App {
     session_point: usize,
     /// The time point shown from `time_images` instead of the session's image, if one is.
     cached_point: Option<usize>,
+    /// The next time point of a playing series, opened while the one shown rests converged
+    /// (its source already fetching), for the session to move to without waiting.
+    prefetched: Option<Prefetched>,
+}
+
+/// A time point opened ahead of being shown: for the view `spec`, its volume and source.
+struct Prefetched {
+    point: usize,
+    spec: wavesplat_codec::view::ViewSpec,
+    volume: crate::session::BrickedVolume,
+    source: Box<dyn PacketSource>,
 }
 
 /// The size winit reports, as the controls take it.
