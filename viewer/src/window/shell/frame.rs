@@ -27,6 +27,10 @@ fn rest_slice(display_ms: f64, budget_ms: f64) -> Duration {
     Duration::from_secs_f64(ms / 1e3)
 }
 
+/// How long a converged time point must have left of its interval for the next one to be
+/// opened ahead: about what opening a stream over a wide-area link takes.
+const PREFETCH_SLACK: Duration = Duration::from_millis(100);
+
 impl App {
     /// One displayed frame; a lost graphics device (found before the frame or by its failure)
     /// is recreated and the frame skipped.
@@ -238,15 +242,29 @@ impl App {
                 let image = frames.session.image().context("reading the image")?;
                 self.time_images.keep(self.session_point, spec, image);
             }
-            prefetch_next(
-                self.controls.state.time.as_ref(),
-                self.cached_point.is_some(),
-                self.session_point,
-                &self.time_images,
-                &mut self.prefetched,
-                self.options.series.as_mut(),
-                &spec,
-            );
+            // Only while it rests: a time point that converged after its interval is moved
+            // on from at the next frame, and opening the next one ahead would only move the
+            // open (it blocks this thread) a frame earlier.
+            let slack = self
+                .controls
+                .state
+                .time
+                .as_ref()
+                .map_or(Duration::ZERO, |t| {
+                    Duration::from_secs_f64(1.0 / t.fps)
+                        .saturating_sub(self.last_time_switch.elapsed())
+                });
+            if slack >= PREFETCH_SLACK {
+                prefetch_next(
+                    self.controls.state.time.as_ref(),
+                    self.cached_point.is_some(),
+                    self.session_point,
+                    &self.time_images,
+                    &mut self.prefetched,
+                    self.options.series.as_mut(),
+                    &spec,
+                );
+            }
         }
         if self.converged && !was_converged {
             self.last_convergence = Some(Convergence {
