@@ -815,8 +815,9 @@ fn a_time_series_plays_steps_and_pauses_in_the_window() {
 }
 
 /// A time series in a cache node plays in the window as its file does: each time point a
-/// stream of its own components' packets; the screenshot of a paused time point is that time
-/// point's `render` image of the file.
+/// stream of its own components' packets, opened ahead while the one before rests (at one time
+/// point per second); the screenshot of a paused time point is that time point's `render`
+/// image of the file.
 #[test]
 fn a_time_series_plays_from_a_cache_in_the_window() {
     let Some(x) = display_for_window() else {
@@ -865,8 +866,9 @@ fn a_time_series_plays_from_a_cache_in_the_window() {
             "--size",
             "96x96",
             "--cpu",
+            // Slow enough that each time point rests converged: the next is opened ahead.
             "--fps",
-            "40",
+            "1",
             "--script",
             &script,
         ],
@@ -886,6 +888,15 @@ fn a_time_series_plays_from_a_cache_in_the_window() {
         .and_then(|v| v.parse().ok())
         .unwrap_or_else(|| panic!("{played}"));
     assert!(n >= 8, "{played}");
+    // The first loop's moves (all but the first time point's) went to time points opened
+    // ahead; the screenshot below is of one drawn that way.
+    let ahead = line_with(&stdout, "opened ahead");
+    let a: u64 = ahead
+        .split_whitespace()
+        .nth(1)
+        .and_then(|v| v.parse().ok())
+        .unwrap_or_else(|| panic!("{ahead}"));
+    assert!(a >= 3, "{ahead}");
     // Paused after 8 moves from time point 0, then one step on: time point 9 mod 6 = 3.
     let rendered = dir.path().join("t3.png");
     let out = Command::new(BIN)

@@ -319,6 +319,12 @@ pub fn run(a: ViewWindowArgs) -> Result<()> {
                 (p.kept - 1) as f64 / p.kept_playing.as_secs_f64().max(1e-9)
             );
         }
+        if p.opened_ahead > 0 {
+            outln!(
+                "view: {} of them opened ahead while the one before rested",
+                p.opened_ahead
+            );
+        }
     }
     if let Some(c) = outcome.last_convergence {
         // What a user (and the window's test) reads to see that refinement had the time.

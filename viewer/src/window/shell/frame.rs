@@ -129,6 +129,9 @@ impl App {
                         if p.spec != spec {
                             p.source.set_view(&spec);
                         }
+                        self.playback
+                            .get_or_insert_with(Default::default)
+                            .opened_ahead += 1;
                         (p.volume, p.source)
                     }
                     None => (series.open)(point, &spec).map_err(|source| {

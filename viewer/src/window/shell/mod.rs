@@ -71,6 +71,8 @@ pub struct PlaybackFacts {
     pub kept: u64,
     /// Time spent on those time points.
     pub kept_playing: Duration,
+    /// Of the moves, those to a time point opened ahead while the previous one rested.
+    pub opened_ahead: u64,
 }
 
 /// Images of a series' converged time points in one view, shown again when playback comes
