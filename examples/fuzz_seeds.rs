@@ -52,7 +52,8 @@ fn main() {
             put(&root.join(format!("packet_{name}")), &format!("p{i}"), p);
         }
     }
-    // A bricked container and a time series (format versions 9 and 10) for the file target.
+    // A bricked container and a time series (format versions 9 and 10) for the file target,
+    // and published series.
     let small = CompressOptions {
         target: Target::Fraction(0.2),
         refine: None,
@@ -69,6 +70,24 @@ fn main() {
     let series =
         wavesplat_compressor::series::compress_series(&series, &small, 2, 256, &|_| {}).unwrap();
     put(&root.join("file"), "series.wsp", &series.bytes);
+    // Published (the indexed layout's version 3): a series of plain and of bricked components.
+    let index = wavesplat_codec::format::index::indexed_layout;
+    put(
+        &root.join("file"),
+        "plain-series.wspx",
+        &index(&series.bytes).unwrap(),
+    );
+    let points = (0..2)
+        .map(|t| wavesplat_compressor::phantom::beating([12, 10, 8], t, 2).unwrap())
+        .collect();
+    let series = wavesplat_compressor::series::VolumeSeries::new(points, None).unwrap();
+    let series =
+        wavesplat_compressor::series::compress_series(&series, &small, 2, 8, &|_| {}).unwrap();
+    put(
+        &root.join("file"),
+        "series.wspx",
+        &index(&series.bytes).unwrap(),
+    );
     let mut raw = vec![7u8, 5, 3, 1, 0, 0, 0, 0];
     raw.extend((0..8 * 6 * 4 * 2).map(|i| (i * 37 % 251) as u8));
     put(&root.join("raw"), "u16", &raw);

@@ -8,8 +8,7 @@
 mod common;
 
 use common::{read_f32, text};
-use std::path::Path;
-use std::process::{Command, Output};
+use std::process::Command;
 use wavesplat_cache::{CacheError, Limits, Store};
 use wavesplat_client::{CacheClient, RefineRequest, VolumeKey};
 use wavesplat_codec::format::bricked::{parse_bricked, write_bricked};
@@ -48,22 +47,7 @@ fn corner_view() -> ViewSpec {
     )
 }
 
-fn render(dir: &Path, args: &[&str]) -> Output {
-    Command::new(BIN)
-        .arg("render")
-        .args(args)
-        .current_dir(dir)
-        .env_remove("WAVESPLAT_CA")
-        .output()
-        .unwrap()
-}
-
-fn runtime() -> tokio::runtime::Runtime {
-    tokio::runtime::Builder::new_current_thread()
-        .enable_all()
-        .build()
-        .unwrap()
-}
+use common::{render_in as render, runtime};
 
 /// `render --cache` of a bricked volume ends at the local file's progressive image: the whole
 /// volume, a view zoomed into one corner, a near-axis view and a depth-cued one.

@@ -9,8 +9,7 @@ mod common;
 
 use common::{read_f32, text};
 use std::collections::HashSet;
-use std::path::Path;
-use std::process::{Command, Output};
+use std::process::Command;
 use wavesplat_cache::{CacheError, Limits, Store};
 use wavesplat_client::{CacheClient, RefineRequest, VolumeKey};
 use wavesplat_codec::format::series::parse_series;
@@ -36,22 +35,7 @@ fn series_file(brick: usize) -> Vec<u8> {
         .bytes
 }
 
-fn render(dir: &Path, args: &[&str]) -> Output {
-    Command::new(BIN)
-        .arg("render")
-        .args(args)
-        .current_dir(dir)
-        .env_remove("WAVESPLAT_CA")
-        .output()
-        .unwrap()
-}
-
-fn runtime() -> tokio::runtime::Runtime {
-    tokio::runtime::Builder::new_current_thread()
-        .enable_all()
-        .build()
-        .unwrap()
-}
+use common::{render_in as render, runtime};
 
 /// `render --cache --time-point` of a series ends at the local file's progressive image of the
 /// same time point, for plain and bricked components, a plain and a depth-cued view; time

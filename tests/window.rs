@@ -814,17 +814,10 @@ fn a_time_series_plays_steps_and_pauses_in_the_window() {
     }
 }
 
-/// A time series in a cache node plays in the window as its file does: each time point a
-/// stream of its own components' packets, opened ahead while the one before rests (at one time
-/// point per second); the screenshot of a paused time point is that time point's `render`
-/// image of the file.
-#[test]
-fn a_time_series_plays_from_a_cache_in_the_window() {
-    let Some(x) = display_for_window() else {
-        return;
-    };
-    let dir = tempfile::tempdir().unwrap();
-    let file = dir.path().join("cine.wsp");
+/// The beating phantom (32×32×12, six time points, 10 %, groups of `group`) compressed into
+/// `dir/cine.wsp`.
+fn beating_cine(dir: &Path, group: &str) -> std::path::PathBuf {
+    let file = dir.join("cine.wsp");
     let out = Command::new(BIN)
         .args([
             "compress",
@@ -835,22 +828,83 @@ fn a_time_series_plays_from_a_cache_in_the_window() {
             "--target-fraction",
             "0.1",
             "--time-group",
-            "4",
+            group,
             "-o",
         ])
         .arg(&file)
         .output()
         .unwrap();
     assert!(out.status.success(), "{}", common::text(&out));
-    let server = wavesplat_harness::LocalCache::start(&dir.path().join("db")).unwrap();
+    file
+}
+
+/// `cache ingest FILE --name cine` into the cache at `url`.
+fn ingest_cine(file: &Path, url: &str) {
     let out = Command::new(BIN)
         .args(["cache", "ingest"])
-        .arg(&file)
-        .args(["--name", "cine", "--cache", &server.url])
+        .arg(file)
+        .args(["--name", "cine", "--cache", url])
         .env_remove("WAVESPLAT_CA")
         .output()
         .unwrap();
     assert!(out.status.success(), "{}", common::text(&out));
+}
+
+/// The first number on the line of `stdout` that contains `needle`, the `nth` word.
+fn count_on(stdout: &str, needle: &str, nth: usize) -> u64 {
+    let line = line_with(stdout, needle);
+    line.split_whitespace()
+        .nth(nth)
+        .and_then(|v| v.parse().ok())
+        .unwrap_or_else(|| panic!("{line}"))
+}
+
+/// Asserts the 96² screenshot `shot` is time point `t`'s `render` image of `file` (within two
+/// grey levels).
+fn shows_time_point(shot: &Path, file: &Path, t: usize) {
+    let rendered = shot.with_file_name(format!("t{t}.png"));
+    let out = Command::new(BIN)
+        .args([
+            "render",
+            "--time-point",
+            &t.to_string(),
+            "--size",
+            "96x96",
+            "--cpu",
+            "-o",
+        ])
+        .arg(&rendered)
+        .arg(file)
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", common::text(&out));
+    let (_, _, want) = grey(&rendered);
+    let (w, h, shown) = grey(shot);
+    assert_eq!((w, h), (96, 96));
+    let diff = shown
+        .iter()
+        .zip(&want)
+        .map(|(a, b)| (a - b).abs())
+        .fold(0.0, f64::max);
+    assert!(
+        diff <= 2.0,
+        "the paused time point is time point {t}'s image: {diff}"
+    );
+}
+
+/// A time series in a cache node plays in the window as its file does: each time point a
+/// stream of its own components' packets, opened ahead while the one before rests (at one time
+/// point per second); the screenshot of a paused time point is that time point's `render`
+/// image of the file.
+#[test]
+fn a_time_series_plays_from_a_cache_in_the_window() {
+    let Some(x) = display_for_window() else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let file = beating_cine(dir.path(), "4");
+    let server = wavesplat_harness::LocalCache::start(&dir.path().join("db")).unwrap();
+    ingest_cine(&file, &server.url);
     let shot = dir.path().join("paused.png");
     let script = format!(
         "converge; key space; played 8; key space; key right; converge; screenshot {}; quit",
@@ -881,51 +935,12 @@ fn a_time_series_plays_from_a_cache_in_the_window() {
         status.success(),
         "exit {status}\nstdout {stdout}\nstderr {stderr}"
     );
-    let played = line_with(&stdout, "view: played");
-    let n: u64 = played
-        .split_whitespace()
-        .nth(2)
-        .and_then(|v| v.parse().ok())
-        .unwrap_or_else(|| panic!("{played}"));
-    assert!(n >= 8, "{played}");
+    assert!(count_on(&stdout, "view: played", 2) >= 8, "{stdout}");
     // The first loop's moves (all but the first time point's) went to time points opened
     // ahead; the screenshot below is of one drawn that way.
-    let ahead = line_with(&stdout, "opened ahead");
-    let a: u64 = ahead
-        .split_whitespace()
-        .nth(1)
-        .and_then(|v| v.parse().ok())
-        .unwrap_or_else(|| panic!("{ahead}"));
-    assert!(a >= 3, "{ahead}");
+    assert!(count_on(&stdout, "opened ahead", 1) >= 3, "{stdout}");
     // Paused after 8 moves from time point 0, then one step on: time point 9 mod 6 = 3.
-    let rendered = dir.path().join("t3.png");
-    let out = Command::new(BIN)
-        .args([
-            "render",
-            "--time-point",
-            "3",
-            "--size",
-            "96x96",
-            "--cpu",
-            "-o",
-        ])
-        .arg(&rendered)
-        .arg(&file)
-        .output()
-        .unwrap();
-    assert!(out.status.success(), "{}", common::text(&out));
-    let (_, _, want) = grey(&rendered);
-    let (w, h, shown) = grey(&shot);
-    assert_eq!((w, h), (96, 96));
-    let diff = shown
-        .iter()
-        .zip(&want)
-        .map(|(a, b)| (a - b).abs())
-        .fold(0.0, f64::max);
-    assert!(
-        diff <= 2.0,
-        "the paused time point is time point 3's image: {diff}"
-    );
+    shows_time_point(&shot, &file, 3);
 }
 
 /// A time series plays on when the cache node it streams from is killed: two nodes over one
@@ -940,24 +955,7 @@ fn a_time_series_plays_on_when_its_cache_node_is_killed() {
     };
     let dir = tempfile::tempdir().unwrap();
     let path = |p: &str| dir.path().join(p).to_str().unwrap().to_string();
-    let file = dir.path().join("cine.wsp");
-    let out = Command::new(BIN)
-        .args([
-            "compress",
-            "--phantom",
-            "beating",
-            "--dims",
-            "32,32,12,6",
-            "--target-fraction",
-            "0.1",
-            "--time-group",
-            "2",
-            "-o",
-        ])
-        .arg(&file)
-        .output()
-        .unwrap();
-    assert!(out.status.success(), "{}", common::text(&out));
+    let file = beating_cine(dir.path(), "2");
     let store = format!("file://{}", path("bucket"));
     let node = |db: &str| {
         let db = path(db);
@@ -974,14 +972,7 @@ fn a_time_series_plays_on_when_its_cache_node_is_killed() {
     };
     let (mut first, first_url) = node("n1");
     let (mut second, second_url) = node("n2");
-    let out = Command::new(BIN)
-        .args(["cache", "ingest"])
-        .arg(&file)
-        .args(["--name", "cine", "--cache", &first_url])
-        .env_remove("WAVESPLAT_CA")
-        .output()
-        .unwrap();
-    assert!(out.status.success(), "{}", common::text(&out));
+    ingest_cine(&file, &first_url);
     let (ready, go) = (dir.path().join("ready"), dir.path().join("go"));
     let shot = dir.path().join("paused.png");
     // Three moves from time point 0 (t1..t3 opened on the first node), paused; after the kill
@@ -1026,38 +1017,6 @@ fn a_time_series_plays_on_when_its_cache_node_is_killed() {
         status.success(),
         "exit {status}\nstdout {stdout}\nstderr {stderr}"
     );
-    let played = line_with(&stdout, "view: played");
-    let n: u64 = played
-        .split_whitespace()
-        .nth(2)
-        .and_then(|v| v.parse().ok())
-        .unwrap_or_else(|| panic!("{played}"));
-    assert!(n >= 9, "{played}");
-    let rendered = dir.path().join("t4.png");
-    let out = Command::new(BIN)
-        .args([
-            "render",
-            "--time-point",
-            "4",
-            "--size",
-            "96x96",
-            "--cpu",
-            "-o",
-        ])
-        .arg(&rendered)
-        .arg(&file)
-        .output()
-        .unwrap();
-    assert!(out.status.success(), "{}", common::text(&out));
-    let (_, _, want) = grey(&rendered);
-    let (_, _, shown) = grey(&shot);
-    let diff = shown
-        .iter()
-        .zip(&want)
-        .map(|(a, b)| (a - b).abs())
-        .fold(0.0, f64::max);
-    assert!(
-        diff <= 2.0,
-        "the paused time point is time point 4's image: {diff}"
-    );
+    assert!(count_on(&stdout, "view: played", 2) >= 9, "{stdout}");
+    shows_time_point(&shot, &file, 4);
 }

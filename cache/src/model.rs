@@ -318,9 +318,7 @@ pub(crate) fn encode_series(s: &SeriesIndex) -> Vec<u8> {
         for o in b.origin {
             w.u64(o);
         }
-        w.u32(b.header_bytes.len() as u32);
-        w.bytes(&b.header_bytes);
-        w.u32(b.packets);
+        write_brick(&mut w, b);
     }
     w.into_bytes()
 }
@@ -367,20 +365,7 @@ pub(crate) fn decode_series(
     let mut first_packet = 0u32;
     for _ in 0..at {
         let origin = [r.u64()?, r.u64()?, r.u64()?];
-        let len = r.u32()? as usize;
-        let header_bytes = r.take(len)?.to_vec();
-        let (header, _) = read_header_section(&header_bytes).map_err(|e| corrupt(e.to_string()))?;
-        let packets = r.u32()?;
-        bricks.push(IndexBrick {
-            header,
-            header_bytes,
-            origin,
-            first_packet,
-            packets,
-        });
-        first_packet = first_packet
-            .checked_add(packets)
-            .ok_or_else(|| corrupt("more than 2^32 packets".into()))?;
+        bricks.push(read_brick(&mut r, origin, &mut first_packet, &corrupt)?);
     }
     Ok(SeriesIndex {
         manifest,
@@ -414,15 +399,45 @@ pub struct IndexBrick {
     pub packets: u32,
 }
 
+/// One stored brick: its header section (length and bytes) and its packet count.
+fn write_brick(w: &mut ByteWriter, b: &IndexBrick) {
+    w.u32(b.header_bytes.len() as u32);
+    w.bytes(&b.header_bytes);
+    w.u32(b.packets);
+}
+
+/// Reads what [`write_brick`] wrote, for a brick at `origin` whose packets are numbered from
+/// `first_packet` (advanced past them).
+fn read_brick(
+    r: &mut ByteReader<'_>,
+    origin: [u64; 3],
+    first_packet: &mut u32,
+    corrupt: &dyn Fn(String) -> CacheError,
+) -> Result<IndexBrick, CacheError> {
+    let len = r.u32()? as usize;
+    let header_bytes = r.take(len)?.to_vec();
+    let (header, _) = read_header_section(&header_bytes).map_err(|e| corrupt(e.to_string()))?;
+    let packets = r.u32()?;
+    let brick = IndexBrick {
+        header,
+        header_bytes,
+        origin,
+        first_packet: *first_packet,
+        packets,
+    };
+    *first_packet = first_packet
+        .checked_add(packets)
+        .ok_or_else(|| corrupt("more than 2^32 packets".into()))?;
+    Ok(brick)
+}
+
 /// Encodes the bricks' headers and packet counts (the manifest is stored on its own).
 pub(crate) fn encode_bricks(bricks: &[IndexBrick]) -> Vec<u8> {
     let mut w = ByteWriter::new();
     w.u8(1); // record version
     w.u32(bricks.len() as u32);
     for b in bricks {
-        w.u32(b.header_bytes.len() as u32);
-        w.bytes(&b.header_bytes);
-        w.u32(b.packets);
+        write_brick(&mut w, b);
     }
     w.into_bytes()
 }
@@ -452,20 +467,12 @@ pub(crate) fn decode_bricks(
     let mut bricks = Vec::with_capacity(n);
     let mut first_packet = 0u32;
     for entry in &manifest.bricks {
-        let len = r.u32()? as usize;
-        let header_bytes = r.take(len)?.to_vec();
-        let (header, _) = read_header_section(&header_bytes).map_err(|e| corrupt(e.to_string()))?;
-        let packets = r.u32()?;
-        bricks.push(IndexBrick {
-            header,
-            header_bytes,
-            origin: entry.origin,
-            first_packet,
-            packets,
-        });
-        first_packet = first_packet
-            .checked_add(packets)
-            .ok_or_else(|| corrupt("more than 2^32 packets".into()))?;
+        bricks.push(read_brick(
+            &mut r,
+            entry.origin,
+            &mut first_packet,
+            &corrupt,
+        )?);
     }
     Ok(BrickedIndex { manifest, bricks })
 }

@@ -142,6 +142,25 @@ pub fn spawn_server_with_stderr(args: &[&str]) -> (Child, String) {
 pub use wavesplat_harness::process::stop_and_read_stderr;
 
 /// A finished command's status and output, for assertion messages.
+/// `wavesplat render ARGS` run in `dir`, without a CA from the environment.
+pub fn render_in(dir: &Path, args: &[&str]) -> std::process::Output {
+    Command::new(env!("CARGO_BIN_EXE_wavesplat"))
+        .arg("render")
+        .args(args)
+        .current_dir(dir)
+        .env_remove("WAVESPLAT_CA")
+        .output()
+        .unwrap()
+}
+
+/// A single-threaded runtime for a test's client calls.
+pub fn runtime() -> tokio::runtime::Runtime {
+    tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .unwrap()
+}
+
 pub fn text(o: &std::process::Output) -> String {
     format!(
         "status {:?}\nstdout:\n{}\nstderr:\n{}",

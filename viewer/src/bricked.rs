@@ -213,15 +213,11 @@ fn side_by_side(panels: &[Image]) -> Image {
 /// offsets weighted), which a session draws once for the whole.
 pub fn time_point_header(series: &Header, spacing: [f32; 3], offset: f64) -> Header {
     let mut whole = series.clone();
-    let dims = whole.geometry.dims;
-    whole.geometry = Geometry {
-        dims,
-        padded: dims,
-        origin: [0; 3],
-        levels: 0,
-        family: whole.geometry.family,
+    whole.geometry = wavesplat_codec::view::bricked::space_geometry(
+        whole.geometry.dims,
+        whole.geometry.family,
         spacing,
-    };
+    );
     whole.color.mean[0] = offset;
     whole
 }

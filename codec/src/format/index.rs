@@ -309,24 +309,14 @@ pub fn indexed_layout(wsp: &[u8]) -> Result<Vec<u8>, FormatError> {
         w.varint(file.manifest.bricks.len() as u64);
         for i in 0..file.manifest.bricks.len() {
             let brick = file.brick_bytes(i)?;
-            let (_, header_len) = read_header_section(brick)?;
-            let index = encode_compact(&index_file(brick)?)?;
-            w.varint(header_len as u64);
-            w.bytes(&brick[..header_len]);
-            w.varint(index.len() as u64);
-            w.bytes(&index);
+            write_brick_index(&mut w, brick)?;
         }
-        let index = w.into_bytes();
-        if index.len() > MAX_INDEX_BYTES as usize {
-            return Err(FormatError::TooLarge {
-                what: "bricked packet index",
-                size: index.len() as u64,
-                limit: MAX_INDEX_BYTES as u64,
-            });
-        }
-        let mut out = prefix_with(BRICKED_INDEXED_VERSION, wsp.len() as u64, &index);
-        out.extend_from_slice(wsp);
-        return Ok(out);
+        return layout_with(
+            BRICKED_INDEXED_VERSION,
+            "bricked packet index",
+            &w.into_bytes(),
+            wsp,
+        );
     }
     let packets = index_file(wsp)?;
     let mut out = indexed_prefix(wsp.len() as u64, &packets)?;
@@ -356,29 +346,50 @@ fn series_indexed_layout(container: &[u8]) -> Result<Vec<u8>, FormatError> {
         w.u8(u8::from(is_bricked(data)));
         w.varint(bricks.len() as u64);
         for (origin, offset, length) in bricks {
-            let brick = &data[offset as usize..(offset + length) as usize];
-            let (_, header_len) = read_header_section(brick)?;
-            let index = encode_compact(&index_file(brick)?)?;
             for o in origin {
                 w.varint(o);
             }
             w.varint(offset);
             w.varint(length);
-            w.varint(header_len as u64);
-            w.bytes(&brick[..header_len]);
-            w.varint(index.len() as u64);
-            w.bytes(&index);
+            write_brick_index(&mut w, &data[offset as usize..(offset + length) as usize])?;
         }
     }
-    let index = w.into_bytes();
+    layout_with(
+        SERIES_INDEXED_VERSION,
+        "series packet index",
+        &w.into_bytes(),
+        container,
+    )
+}
+
+/// One brick's entry in a bricked or series index: its `.wsp` header section (length and
+/// bytes) and its compact packet index (length and bytes), every packet decoded once.
+fn write_brick_index(w: &mut ByteWriter, brick: &[u8]) -> Result<(), FormatError> {
+    let (_, header_len) = read_header_section(brick)?;
+    let index = encode_compact(&index_file(brick)?)?;
+    w.varint(header_len as u64);
+    w.bytes(&brick[..header_len]);
+    w.varint(index.len() as u64);
+    w.bytes(&index);
+    Ok(())
+}
+
+/// A container in the indexed layout's `version` with `index` (bounded, `what` it is) in
+/// front of it.
+fn layout_with(
+    version: u16,
+    what: &'static str,
+    index: &[u8],
+    container: &[u8],
+) -> Result<Vec<u8>, FormatError> {
     if index.len() > MAX_INDEX_BYTES as usize {
         return Err(FormatError::TooLarge {
-            what: "series packet index",
+            what,
             size: index.len() as u64,
             limit: MAX_INDEX_BYTES as u64,
         });
     }
-    let mut out = prefix_with(SERIES_INDEXED_VERSION, container.len() as u64, &index);
+    let mut out = prefix_with(version, container.len() as u64, index);
     out.extend_from_slice(container);
     Ok(out)
 }
@@ -650,28 +661,14 @@ fn decode_brick_index(index: &[u8], manifest: &Manifest) -> Result<Vec<IndexedBr
     }
     let mut bricks = Vec::with_capacity(n);
     for (i, entry) in manifest.bricks.iter().enumerate() {
-        let len = r.varint_max(index.len() as u64, "header length")? as usize;
-        let section = r.take(len)?;
-        let (header, header_len) = read_header_section(section)?;
-        if header_len != len {
-            return Err(invalid(format!(
-                "brick {i}'s header section holds {len} bytes, its header {header_len}"
-            )));
-        }
-        if header.geometry.dims != entry.dims {
+        let brick = read_brick_index(&mut r, index.len(), entry.length, &format!("brick {i}"))?;
+        if brick.header.geometry.dims != entry.dims {
             return Err(invalid(format!(
                 "brick {i}'s header has dimensions {:?}, the manifest {:?}",
-                header.geometry.dims, entry.dims
+                brick.header.geometry.dims, entry.dims
             )));
         }
-        let index_len = r.varint_max(index.len() as u64, "index length")? as usize;
-        let packets = decode_compact(r.take(index_len)?)?;
-        check_packets(&packets, header_len as u64, entry.length)?;
-        bricks.push(IndexedBrick {
-            header,
-            header_bytes: section.to_vec(),
-            packets,
-        });
+        bricks.push(brick);
     }
     expect_end(&r)?;
     Ok(bricks)
@@ -720,15 +717,13 @@ fn decode_series_index(
                 )));
             }
             end = offset + length;
-            let len = r.varint_max(index.len() as u64, "header length")? as usize;
-            let section = r.take(len)?;
-            let (header, header_len) = read_header_section(section)?;
-            if header_len != len {
-                return Err(invalid(format!(
-                    "brick {k} of component {c}: its header section holds {len} bytes, its \
-                     header {header_len}"
-                )));
-            }
+            let brick = read_brick_index(
+                &mut r,
+                index.len(),
+                length,
+                &format!("brick {k} of component {c}"),
+            )?;
+            let header = &brick.header;
             let inside = (0..3).all(|a| {
                 origin[a]
                     .checked_add(header.geometry.dims[a] as u64)
@@ -741,23 +736,43 @@ fn decode_series_index(
                     header.geometry.dims, header.channels, space.dims, space.channels
                 )));
             }
-            let index_len = r.varint_max(index.len() as u64, "index length")? as usize;
-            let packets = decode_compact(r.take(index_len)?)?;
-            check_packets(&packets, header_len as u64, length)?;
             bricks.push(SeriesBrick {
                 component: c,
                 origin,
                 offset: entry.offset + offset,
-                brick: IndexedBrick {
-                    header,
-                    header_bytes: section.to_vec(),
-                    packets,
-                },
+                brick,
             });
         }
     }
     expect_end(&r)?;
     Ok((kinds, bricks))
+}
+
+/// Reads one brick's entry of a bricked or series index (`what` names it in errors): its
+/// header section, whose header must fill it, and its compact index, whose packets must lie
+/// inside the brick's `length` bytes; lengths bounded by the index's `index_len`.
+fn read_brick_index(
+    r: &mut ByteReader<'_>,
+    index_len: usize,
+    length: u64,
+    what: &str,
+) -> Result<IndexedBrick, FormatError> {
+    let len = r.varint_max(index_len as u64, "header length")? as usize;
+    let section = r.take(len)?;
+    let (header, header_len) = read_header_section(section)?;
+    if header_len != len {
+        return Err(invalid(format!(
+            "{what}'s header section holds {len} bytes, its header {header_len}"
+        )));
+    }
+    let packets_len = r.varint_max(index_len as u64, "index length")? as usize;
+    let packets = decode_compact(r.take(packets_len)?)?;
+    check_packets(&packets, header_len as u64, length)?;
+    Ok(IndexedBrick {
+        header,
+        header_bytes: section.to_vec(),
+        packets,
+    })
 }
 
 /// Checks that packets lie after the header, inside the file, in order and without overlap.

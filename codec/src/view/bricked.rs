@@ -19,14 +19,23 @@ use crate::layout::{Band, Geometry};
 /// The whole volume's geometry for cameras (dims and spacing; no transform of its own, and not
 /// limited to what one transform holds).
 pub fn whole_geometry(manifest: &Manifest, first: &Header) -> Geometry {
-    let dims = manifest.dims.map(|d| d as usize);
+    space_geometry(
+        manifest.dims.map(|d| d as usize),
+        first.geometry.family,
+        manifest.spacing,
+    )
+}
+
+/// The geometry of a whole of `dims` voxels at `spacing` drawn from transforms of `family`:
+/// no transform of its own (what cameras and a bricked session's whole need).
+pub fn space_geometry(dims: [usize; 3], family: Family, spacing: [f32; 3]) -> Geometry {
     Geometry {
         dims,
         padded: dims,
         origin: [0; 3],
         levels: 0,
-        family: first.geometry.family,
-        spacing: manifest.spacing,
+        family,
+        spacing,
     }
 }
 
@@ -65,15 +74,11 @@ pub fn series_brick_header(
     bricked: bool,
 ) -> Result<Header, FormatError> {
     if bricked {
-        let dims = space.dims.map(|d| d as usize);
-        first.geometry = Geometry {
-            dims,
-            padded: dims,
-            origin: [0; 3],
-            levels: 0,
-            family: first.geometry.family,
-            spacing: space.spacing,
-        };
+        first.geometry = space_geometry(
+            space.dims.map(|d| d as usize),
+            first.geometry.family,
+            space.spacing,
+        );
     }
     series_space_header(space, first)
 }

@@ -198,16 +198,8 @@ impl FileSource {
                 }
             }
             let mut header = whole.expect("a time point names at least one component");
-            header.geometry = wavesplat_codec::layout::Geometry {
-                dims,
-                padded: dims,
-                origin: [0; 3],
-                levels: 0,
-                family: header.geometry.family,
-                spacing: m.space.spacing,
-            };
             header.placement = m.space.placement;
-            header.color.mean[0] = offset;
+            let header = crate::bricked::time_point_header(&header, m.space.spacing, offset);
             for b in &mut bricks {
                 b.header.color.mean[0] = offset;
                 check_display(0, &b.header, &header)?;
