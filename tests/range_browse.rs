@@ -18,7 +18,7 @@
 
 mod common;
 
-use common::{read_f32, relative_difference, text};
+use common::{read_f32, relative_difference, render_in as render, text};
 use std::collections::HashMap;
 use std::io::{Read, Write};
 use std::net::{TcpListener, TcpStream};
@@ -309,16 +309,6 @@ fn start_nginx(dir: &Path, root: &Path, tls: Option<(&Path, &Path)>) -> WebServe
             if tls.is_some() { "https" } else { "http" }
         ),
     }
-}
-
-fn render(dir: &Path, args: &[&str]) -> Output {
-    Command::new(BIN)
-        .arg("render")
-        .args(args)
-        .current_dir(dir)
-        .env_remove("WAVESPLAT_CA")
-        .output()
-        .unwrap()
 }
 
 /// "range requests: R (F before the first packet), B of T bytes fetched (P %)" as (R, F, B, T).
