@@ -559,7 +559,7 @@ async fn a_bricked_job_spreads_its_bricks_over_workers() {
     let listed = cli_ok(&["jobs", "list", "--orchestrator", &o]);
     assert_eq!(listed.lines().count(), 2, "{listed}");
     assert!(
-        listed.contains(&format!("({} parts of bricked jobs", parts.len())),
+        listed.contains(&format!("({} parts of bricked or series jobs", parts.len())),
         "{listed}"
     );
     let all = cli_ok(&["jobs", "list", "--parts", "--orchestrator", &o]);
@@ -626,6 +626,7 @@ async fn the_parts_rpcs_hold_their_rules_against_a_raw_client() {
             offset: Some(0.0),
             color: None,
             source_bytes: None,
+            time_points: None,
         }),
         ..parent_spec.clone()
     };
@@ -1072,8 +1073,9 @@ async fn a_source_changed_midway_fails_the_bricked_job_clearly() {
 
 /// A time series in an archive is one job and one volume in the cache: a 4D NIfTI, a DICOM cine
 /// (slices repeated at several trigger times) and, with `--time-steps`, a directory of numbered
-/// time steps are each compressed by a worker into one series file (the NIfTI's: the same bytes
-/// `compress_series` makes in one process with the job's options), committed once, and each
+/// time steps are each compressed into one series file, its units (temporal components) scored
+/// and coded as parts spread over two workers (the NIfTI's: the same bytes `compress_series`
+/// makes in one process with the job's options), committed once, and each
 /// time point streams from the cache with its own components only; a directory whose steps
 /// repeat a number is skipped, saying so.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -1111,7 +1113,9 @@ async fn a_time_series_in_an_archive_is_one_volume_in_the_cache() {
     std::fs::create_dir_all(dir.join("broken")).unwrap();
     write_nifti(&dir.join("broken/a_1.nii"), dims, &samples[0]);
     write_nifti(&dir.join("broken/b_1.nii"), dims, &samples[1]);
-    let _w = cl.worker("w1", 0, None);
+    let logs = [cl.root.join("w1.log"), cl.root.join("w2.log")];
+    let _w1 = cl.worker("w1", 0, Some(&logs[0]));
+    let _w2 = cl.worker("w2", 0, Some(&logs[1]));
     let out = cli(&[
         "archive",
         "submit",
@@ -1137,11 +1141,39 @@ async fn a_time_series_in_an_archive_is_one_volume_in_the_cache() {
         said.contains("skipped") && said.contains("broken") && said.contains("step"),
         "{said}"
     );
-    let js = wait_for(&o, 60, "the series done", all_finished).await;
+    let js = wait_for(&o, 120, "the series done", all_finished).await;
+    let (parts, js): (Vec<_>, Vec<_>) = js.into_iter().partition(is_part);
     assert_eq!(js.len(), 3, "one job per series");
-    for j in &js {
+    for j in js.iter().chain(&parts) {
         assert_eq!(state_name(j.state), "done", "{}: {}", name(j), j.error);
     }
+    // Each series' units (a temporal component each: 2 groups of 4 and 1 make 5) were scored
+    // and coded as parts, and both workers ran some.
+    for j in &js {
+        let units: Vec<&pb::PartSpec> = parts
+            .iter()
+            .filter_map(|p| p.spec.as_ref()?.part.as_ref())
+            .filter(|p| p.parent == j.id)
+            .collect();
+        assert!(units.len() >= 10, "{}: {} parts", name(j), units.len());
+        assert!(
+            units
+                .iter()
+                .all(|p| p.time_points == POINTS as u32 && p.of == 5),
+            "{}: {units:?}",
+            name(j)
+        );
+    }
+    for log in &logs {
+        let text = std::fs::read_to_string(log).unwrap();
+        assert!(
+            text.contains("running part"),
+            "{} ran no part:\n{text}",
+            log.display()
+        );
+    }
+    let all = cli_ok(&["jobs", "list", "--parts", "--orchestrator", &o]);
+    assert!(all.contains("series unit 5/5 scoring"), "{all}");
     // The NIfTI's series is what one process makes of the same time points and options.
     let options = wavesplat_orchestrator_client::model::JobOptions {
         levels: Some(2),
@@ -1187,4 +1219,68 @@ async fn a_time_series_in_an_archive_is_one_volume_in_the_cache() {
             );
         }
     }
+}
+
+/// A time series' coordinator SIGKILLed while it holds one of the series' parts: the job's
+/// lease lapses, the next worker takes it over with the parts already added, and the series
+/// lands once, the bytes one process makes.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_series_job_survives_its_coordinators_death() {
+    use wavesplat_compressor::phantom::beating;
+    use wavesplat_compressor::series::compress_series;
+    use wavesplat_fixtures::write_nifti_series;
+    const POINTS: usize = 6;
+    let cl = TestCluster::start(&ORCH_TIMING);
+    let (o, c) = (cl.orch.url(), cl.cache.url());
+    let dir = cl.root.join("shared");
+    std::fs::create_dir_all(&dir).unwrap();
+    let dims = [32, 28, 16];
+    let samples: Vec<Vec<f32>> = (0..POINTS)
+        .map(|t| beating(dims, t, POINTS).unwrap().channel(0).to_vec())
+        .collect();
+    let path = dir.join("beat.nii");
+    write_nifti_series(&path, dims, &samples, Some(50.0), false);
+    // It computes a part, then hangs before reporting it: SIGKILL it there.
+    let doomed = Proc::worker_with(
+        &o,
+        &c,
+        "doomed",
+        &["--pause-before-part-report-ms", "60000"],
+        None,
+    );
+    submit(&dir, &o, &["--time-group", "4", "--target-fraction", "0.1"]);
+    let held = |j: &pb::Job| is_part(j) && j.worker == "doomed" && j.stage.contains("paused");
+    let js = wait_for(&o, 60, "a part held by the doomed coordinator", |js| {
+        js.iter().any(held)
+    })
+    .await;
+    let parent = js.iter().find(|j| !is_part(j)).unwrap().id;
+    assert_eq!(
+        js.iter().find(|j| j.id == parent).unwrap().worker,
+        "doomed",
+        "it coordinates the series"
+    );
+    doomed.kill();
+    let _next = cl.worker("next", 0, None);
+    let js = wait_for(&o, 120, "the series done", |js| {
+        js.iter()
+            .any(|j| j.id == parent && state_name(j.state) == "done")
+    })
+    .await;
+    let job = js.iter().find(|j| j.id == parent).unwrap();
+    assert_eq!(job.attempts, 2, "taken over once: {job:?}");
+    let options = wavesplat_orchestrator_client::model::JobOptions {
+        levels: Some(2),
+        time_group: Some(4),
+        target: wavesplat_orchestrator_client::model::TargetSpec::Fraction(0.1),
+        ..Default::default()
+    };
+    let opts = wavesplat_worker::options::compress_options(&options);
+    let reader =
+        wavesplat_compressor::reader::region::RegionReader::open_series(&path, None).unwrap();
+    let one = compress_series(&reader, &opts, 4, 256, &|_| {})
+        .unwrap()
+        .bytes;
+    assert_eq!(job.output_bytes, one.len() as u64);
+    assert_cache_holds_only(&c, &one).await;
 }

@@ -442,6 +442,7 @@ async fn parts_lease_apart_and_their_results_live_until_dropped(b: &mut dyn Back
             offset: Some(0.5),
             color: None,
             source_bytes: None,
+            time_points: None,
         }),
         ..bricked(1)
     };

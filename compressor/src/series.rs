@@ -475,11 +475,256 @@ pub struct SeriesCompressed {
     pub total_coefficients: u64,
 }
 
-/// Compresses `series` as one series container: its time points through [`TemporalHaar`] in
-/// groups of `group`, every component as bricks of edge `brick` (one brick, a plain volume
-/// file, when a time point fits one), and the target of `opts` (whose depth, when not given,
-/// is the one a time point alone would take at its share of a byte target) over the whole
-/// series. Intensity series only.
+/// A series' compression planned: its temporal transform, one [`BrickPlan`] per component
+/// and the *units* the rate is allocated over (every component's bricks, component after
+/// component). A unit is scored or coded alone ([`SeriesPlan::score`],
+/// [`SeriesPlan::encode`]), in this process ([`compress_series`]) or on any worker that can
+/// read the series, and the units' files make the container ([`SeriesPlan::assemble`]).
+#[derive(Debug, Clone)]
+pub struct SeriesPlan {
+    /// The temporal transform.
+    pub haar: TemporalHaar,
+    /// Each component's bricks.
+    pub plans: Vec<BrickPlan>,
+    /// (component, brick) of each unit.
+    pub units: Vec<(usize, usize)>,
+    /// What one time point's bricks share (a component's offset is scaled by its weights' sum).
+    pub choices: SharedChoices,
+    /// The whole series' target.
+    pub target: Target,
+    /// Bytes of the container beside the units' files (manifests), for a byte target's search.
+    pub overhead: u64,
+}
+
+impl SeriesPlan {
+    /// Plans `series` in temporal groups of `group`, every component as bricks of edge `brick`
+    /// (one brick, a plain volume file, when a time point fits one), under the target of
+    /// `opts`, whose depth, when not given, is the one a time point alone would take at its
+    /// share of a byte target (the middle time point is read and compressed for it).
+    /// Intensity series only.
+    pub fn new(
+        series: &dyn SeriesSource,
+        opts: &CompressOptions,
+        group: usize,
+        brick: usize,
+    ) -> Result<SeriesPlan, SeriesError> {
+        check_intensity(series)?;
+        let points = series.time_points();
+        TemporalHaar::new(points, group)?;
+        let mid = TimePointSource {
+            series,
+            t: points / 2,
+        };
+        // The depth and offset come from one time point at its share of the target.
+        let share = CompressOptions {
+            target: match opts.target {
+                Target::Bytes(total) => Target::Bytes((total / points as u64).max(1024)),
+                t => t,
+            },
+            ..opts.clone()
+        };
+        let single = wavesplat_codec::format::bricked::brick_grid(series.dims(), brick).len() == 1;
+        let levels = match (opts.levels, opts.target) {
+            (None, Target::Bytes(_)) if single => {
+                let v = mid
+                    .read([0; 3], series.dims().map(|d| d as usize))
+                    .map_err(|source| BrickError::Read {
+                        origin: [0; 3],
+                        source,
+                    })?;
+                let c =
+                    compress(&v, &share, &|_, _| {}).map_err(|source| BrickError::Compress {
+                        origin: [0; 3],
+                        source: Box::new(source),
+                    })?;
+                Some(c.header.geometry.levels)
+            }
+            (m, _) => m,
+        };
+        let probe = BrickPlan::new(
+            &mid,
+            &CompressOptions {
+                levels,
+                ..share.clone()
+            },
+            brick,
+        )?;
+        SeriesPlan::with_choices(series, opts, group, brick, probe.choices)
+    }
+
+    /// The plan of `series` with what its time points share already chosen (as
+    /// [`SeriesPlan::new`] chose it, elsewhere): nothing is read.
+    pub fn with_choices(
+        series: &dyn SeriesSource,
+        opts: &CompressOptions,
+        group: usize,
+        brick: usize,
+        choices: SharedChoices,
+    ) -> Result<SeriesPlan, SeriesError> {
+        check_intensity(series)?;
+        let haar = TemporalHaar::new(series.time_points(), group)?;
+        let plans: Vec<BrickPlan> = haar
+            .components
+            .iter()
+            .map(|terms| {
+                let s = ComponentSource { series, terms };
+                let gain: f64 = terms.iter().map(|(_, w)| w).sum();
+                BrickPlan::with_choices(
+                    &s,
+                    opts,
+                    brick,
+                    SharedChoices {
+                        // A component's mean is its weights' sum times a time point's.
+                        offset: choices.offset.map(|o| o * gain),
+                        ..choices.clone()
+                    },
+                )
+            })
+            .collect::<Result<_, _>>()?;
+        let units: Vec<(usize, usize)> = plans
+            .iter()
+            .enumerate()
+            .flat_map(|(c, p)| (0..p.grid.len()).map(move |i| (c, i)))
+            .collect();
+        let overhead = 64
+            + 28 * plans.len() as u64
+            + haar
+                .points
+                .iter()
+                .map(|p| 9 + 8 * p.len() as u64)
+                .sum::<u64>()
+            + plans
+                .iter()
+                .filter(|p| p.grid.len() > 1)
+                .map(|p| manifest_allowance(p.grid.len()))
+                .sum::<u64>();
+        Ok(SeriesPlan {
+            haar,
+            plans,
+            units,
+            choices,
+            target: opts.target,
+            overhead,
+        })
+    }
+
+    /// The component of unit `u` as a volume to read bricks from.
+    fn component<'a>(&'a self, series: &'a dyn SeriesSource, c: usize) -> ComponentSource<'a> {
+        ComponentSource {
+            series,
+            terms: &self.haar.components[c],
+        }
+    }
+
+    fn unit(&self, u: usize) -> Result<(usize, usize), BrickError> {
+        self.units.get(u).copied().ok_or_else(|| {
+            BrickError::InvalidOption(format!("unit {u} of a series of {}", self.units.len()))
+        })
+    }
+
+    /// Unit `u`'s score summary.
+    pub fn score(&self, series: &dyn SeriesSource, u: usize) -> Result<ScoreSummary, BrickError> {
+        let (c, i) = self.unit(u)?;
+        self.plans[c].score(&self.component(series, c), i)
+    }
+
+    /// Unit `u` compressed as a `.wsp` of its own keeping its top `count` coefficients
+    /// (`None`: all), and the count it kept.
+    pub fn encode(
+        &self,
+        series: &dyn SeriesSource,
+        u: usize,
+        count: Option<u64>,
+    ) -> Result<(Vec<u8>, u64), BrickError> {
+        let (c, i) = self.unit(u)?;
+        self.plans[c].encode(&self.component(series, c), i, count)
+    }
+
+    /// The series container of every unit's file and kept count, in unit order.
+    pub fn assemble(
+        &self,
+        series: &dyn SeriesSource,
+        units: Vec<(Vec<u8>, u64)>,
+        total_coefficients: u64,
+    ) -> Result<SeriesCompressed, SeriesError> {
+        if units.len() != self.units.len() {
+            return Err(SeriesError::InvalidOption(format!(
+                "{} coded units for a series of {}",
+                units.len(),
+                self.units.len()
+            )));
+        }
+        let points = series.time_points();
+        // Each component's bricks, in order: one brick is its plain file, more a container.
+        let mut coded = units.into_iter();
+        let mut files: Vec<Vec<u8>> = Vec::with_capacity(self.plans.len());
+        let mut entries = Vec::with_capacity(self.plans.len());
+        for plan in &self.plans {
+            let bricks: Vec<(Vec<u8>, u64)> = coded.by_ref().take(plan.grid.len()).collect();
+            let kept = bricks.iter().map(|b| b.1).sum();
+            let file = if bricks.len() == 1 {
+                bricks.into_iter().next().expect("one brick").0
+            } else {
+                plan.assemble(&bricks)?.0
+            };
+            entries.push(ComponentEntry {
+                offset: 0,
+                length: 0,
+                crc: 0,
+                kept,
+            });
+            files.push(file);
+        }
+        let (times_known, times) = match series.times() {
+            Some(t) if check_times(&t, points).is_ok() => (true, t),
+            _ => (false, (0..points).map(|t| t as f64).collect()),
+        };
+        let mut manifest = SeriesManifest {
+            space: Space {
+                dims: series.dims(),
+                channels: series.channels(),
+                spacing: series.spacing(),
+                placement: series.placement(),
+            },
+            times_known,
+            group: self.haar.group,
+            components: entries,
+            points: self
+                .haar
+                .points
+                .iter()
+                .zip(&times)
+                .map(|(terms, time)| TimePoint {
+                    time: *time,
+                    terms: terms.iter().map(|(c, w)| (*c, *w as f32)).collect(),
+                })
+                .collect(),
+        };
+        let slices: Vec<&[u8]> = files.iter().map(Vec::as_slice).collect();
+        let bytes = write_series(&mut manifest, &slices)?;
+        Ok(SeriesCompressed {
+            bytes,
+            manifest,
+            levels: self.choices.levels,
+            total_coefficients,
+        })
+    }
+}
+
+/// Refuses a colour series.
+fn check_intensity(series: &dyn SeriesSource) -> Result<(), SeriesError> {
+    if series.channels() != 1 {
+        return Err(SeriesError::InvalidOption(
+            "colour time series are not supported yet; compress one time point (--time-point)"
+                .into(),
+        ));
+    }
+    Ok(())
+}
+
+/// Compresses `series` as one series container in this process: planned by
+/// [`SeriesPlan::new`] (groups of `group`, bricks of edge `brick`), with the target of `opts`
+/// allocated over every unit by [`allocate_units`] on the rayon pool.
 pub fn compress_series(
     series: &dyn SeriesSource,
     opts: &CompressOptions,
@@ -487,106 +732,23 @@ pub fn compress_series(
     brick: usize,
     progress: &(dyn Fn(BrickStage) + Sync),
 ) -> Result<SeriesCompressed, SeriesError> {
-    if series.channels() != 1 {
-        return Err(SeriesError::InvalidOption(
-            "colour time series are not supported yet; compress one time point (--time-point)"
-                .into(),
-        ));
-    }
-    let points = series.time_points();
-    let haar = TemporalHaar::new(points, group)?;
-    let mid = TimePointSource {
-        series,
-        t: points / 2,
-    };
-    // The depth and offset come from one time point at its share of the target.
-    let share = CompressOptions {
-        target: match opts.target {
-            Target::Bytes(total) => Target::Bytes((total / points as u64).max(1024)),
-            t => t,
-        },
-        ..opts.clone()
-    };
-    let single = wavesplat_codec::format::bricked::brick_grid(series.dims(), brick).len() == 1;
-    let levels = match (opts.levels, opts.target) {
-        (None, Target::Bytes(_)) if single => {
-            let v = mid
-                .read([0; 3], series.dims().map(|d| d as usize))
-                .map_err(|source| BrickError::Read {
-                    origin: [0; 3],
-                    source,
-                })?;
-            let c = compress(&v, &share, &|_, _| {}).map_err(|source| BrickError::Compress {
-                origin: [0; 3],
-                source: Box::new(source),
-            })?;
-            Some(c.header.geometry.levels)
-        }
-        (m, _) => m,
-    };
-    let probe = BrickPlan::new(
-        &mid,
-        &CompressOptions {
-            levels,
-            ..share.clone()
-        },
-        brick,
-    )?;
-    let choices = probe.choices.clone();
-    let sources: Vec<ComponentSource> = haar
-        .components
-        .iter()
-        .map(|terms| ComponentSource { series, terms })
-        .collect();
-    let plans: Vec<BrickPlan> = sources
-        .iter()
-        .map(|s| {
-            let gain: f64 = s.terms.iter().map(|(_, w)| w).sum();
-            BrickPlan::with_choices(
-                s,
-                opts,
-                brick,
-                SharedChoices {
-                    // A component's mean is its weights' sum times a time point's.
-                    offset: choices.offset.map(|o| o * gain),
-                    ..choices.clone()
-                },
-            )
-        })
-        .collect::<Result<_, _>>()?;
-    let units: Vec<(usize, usize)> = plans
-        .iter()
-        .enumerate()
-        .flat_map(|(c, p)| (0..p.grid.len()).map(move |i| (c, i)))
-        .collect();
-    let of = units.len();
-    let overhead = 64
-        + 28 * plans.len() as u64
-        + haar
-            .points
-            .iter()
-            .map(|p| 9 + 8 * p.len() as u64)
-            .sum::<u64>()
-        + plans
-            .iter()
-            .filter(|p| p.grid.len() > 1)
-            .map(|p| manifest_allowance(p.grid.len()))
-            .sum::<u64>();
+    let plan = SeriesPlan::new(series, opts, group, brick)?;
+    let of = plan.units.len();
     let counter = std::sync::atomic::AtomicUsize::new(0);
     let tick = |stage: &dyn Fn(usize) -> BrickStage| {
         let done = counter.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
         progress(stage(done));
     };
     let allocated = allocate_units(
-        opts.target,
+        plan.target,
         of,
-        overhead,
+        plan.overhead,
         || {
             counter.store(0, std::sync::atomic::Ordering::Relaxed);
-            units
-                .par_iter()
-                .map(|&(c, i)| {
-                    let s: ScoreSummary = plans[c].score(&sources[c], i)?;
+            (0..of)
+                .into_par_iter()
+                .map(|u| {
+                    let s = plan.score(series, u)?;
                     tick(&|done| BrickStage::Scored { done, of });
                     Ok(s)
                 })
@@ -594,11 +756,10 @@ pub fn compress_series(
         },
         |counts, trial| {
             counter.store(0, std::sync::atomic::Ordering::Relaxed);
-            units
-                .par_iter()
-                .enumerate()
-                .map(|(u, &(c, i))| {
-                    let (file, kept) = plans[c].encode(&sources[c], i, counts.map(|k| k[u]))?;
+            (0..of)
+                .into_par_iter()
+                .map(|u| {
+                    let (file, kept) = plan.encode(series, u, counts.map(|k| k[u]))?;
                     tick(&|done| BrickStage::Compressed { done, of, trial });
                     Ok(CodedBrick {
                         len: file.len() as u64,
@@ -609,62 +770,12 @@ pub fn compress_series(
                 .collect()
         },
     )?;
-    // Each component's bricks, in order: one brick is its plain file, more a container.
-    let mut coded = allocated.bricks.into_iter();
-    let mut files: Vec<Vec<u8>> = Vec::with_capacity(plans.len());
-    let mut entries = Vec::with_capacity(plans.len());
-    for plan in &plans {
-        let bricks: Vec<(Vec<u8>, u64)> = coded
-            .by_ref()
-            .take(plan.grid.len())
-            .map(|b| (b.file, b.kept))
-            .collect();
-        let kept = bricks.iter().map(|b| b.1).sum();
-        let file = if bricks.len() == 1 {
-            bricks.into_iter().next().expect("one brick").0
-        } else {
-            plan.assemble(&bricks)?.0
-        };
-        entries.push(ComponentEntry {
-            offset: 0,
-            length: 0,
-            crc: 0,
-            kept,
-        });
-        files.push(file);
-    }
-    let (times_known, times) = match series.times() {
-        Some(t) if check_times(&t, points).is_ok() => (true, t),
-        _ => (false, (0..points).map(|t| t as f64).collect()),
-    };
-    let mut manifest = SeriesManifest {
-        space: Space {
-            dims: series.dims(),
-            channels: series.channels(),
-            spacing: series.spacing(),
-            placement: series.placement(),
-        },
-        times_known,
-        group,
-        components: entries,
-        points: haar
-            .points
-            .iter()
-            .zip(&times)
-            .map(|(terms, time)| TimePoint {
-                time: *time,
-                terms: terms.iter().map(|(c, w)| (*c, *w as f32)).collect(),
-            })
-            .collect(),
-    };
-    let slices: Vec<&[u8]> = files.iter().map(Vec::as_slice).collect();
-    let bytes = write_series(&mut manifest, &slices)?;
-    Ok(SeriesCompressed {
-        bytes,
-        manifest,
-        levels: choices.levels,
-        total_coefficients: allocated.total_coefficients,
-    })
+    let units = allocated
+        .bricks
+        .into_iter()
+        .map(|b| (b.file, b.kept))
+        .collect();
+    plan.assemble(series, units, allocated.total_coefficients)
 }
 
 /// Decodes time point `t` of a series container: its components decoded (plain files or

@@ -114,6 +114,7 @@ pub fn part_from_pb(p: pb::PartSpec) -> Result<PartSpec, ClientError> {
         offset: p.offset,
         color,
         source_bytes: (p.source_bytes > 0).then_some(p.source_bytes),
+        time_points: (p.time_points > 0).then_some(p.time_points),
     })
 }
 
@@ -136,6 +137,7 @@ fn part_to_pb(p: &PartSpec) -> pb::PartSpec {
             importance: c.importance.to_vec(),
         }),
         source_bytes: p.source_bytes.unwrap_or(0),
+        time_points: p.time_points.unwrap_or(0),
     }
 }
 
@@ -392,6 +394,7 @@ mod tests {
                     importance: [1.0, 1.0, 0.0],
                 }),
                 source_bytes: Some(1 << 33),
+                time_points: Some(16),
             }),
             ..spec.clone()
         };

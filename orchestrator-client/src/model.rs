@@ -414,6 +414,11 @@ pub struct PartSpec {
     /// file has another length refuses to run rather than mix two files' bricks.
     #[serde(default)]
     pub source_bytes: Option<u64>,
+    /// Set for a part of a time series: the series' time points. The part is then unit
+    /// `index` of `of` (every temporal component's bricks, component after component), and
+    /// `offset` a time point's.
+    #[serde(default)]
+    pub time_points: Option<u32>,
 }
 
 /// What a part does.
@@ -465,6 +470,9 @@ impl PartSpec {
                 self.levels
             )));
         }
+        if self.time_points == Some(0) {
+            return Err(invalid("a part of a series of no time points".to_string()));
+        }
         let finite = |v: &[f64]| v.iter().all(|x| x.is_finite());
         if self.offset.is_some_and(|o| !o.is_finite())
             || self.color.is_some_and(|c| {
@@ -478,17 +486,17 @@ impl PartSpec {
         Ok(())
     }
 
-    /// A short label: "brick 3/8 scoring", "brick 3/8 coding (trial 1)".
+    /// A short label: "brick 3/8 scoring", "series unit 3/8 coding (trial 1)".
     pub fn label(&self) -> String {
+        let what = if self.time_points.is_some() {
+            "series unit"
+        } else {
+            "brick"
+        };
+        let (i, of) = (self.index + 1, self.of);
         match self.step {
-            PartStep::Score { .. } => format!("brick {}/{} scoring", self.index + 1, self.of),
-            PartStep::Encode { trial, .. } => {
-                format!(
-                    "brick {}/{} coding (trial {trial})",
-                    self.index + 1,
-                    self.of
-                )
-            }
+            PartStep::Score { .. } => format!("{what} {i}/{of} scoring"),
+            PartStep::Encode { trial, .. } => format!("{what} {i}/{of} coding (trial {trial})"),
         }
     }
 }
@@ -516,8 +524,10 @@ impl JobSpec {
         self.options = self.options.validate()?;
         if let Some(p) = &self.part {
             p.validate()?;
-            if self.options.brick.is_none() {
-                return Err(invalid("a part of a job that is not bricked".into()));
+            if self.options.brick.is_none() && p.time_points.is_none() {
+                return Err(invalid(
+                    "a part of a job that is neither bricked nor a time series".into(),
+                ));
             }
         }
         Ok(self)

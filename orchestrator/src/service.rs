@@ -187,9 +187,11 @@ impl OrchestratorService {
         let JobState::Running { started_ms, .. } = parent.state else {
             return Err(Status::internal("a held job that is not running"));
         };
-        if parent.spec.options.brick.is_none() || parent.spec.part.is_some() {
+        // Which jobs are spread over parts is the worker's choice (a bricked volume, a time
+        // series: the orchestrator reads no source); only a part has none of its own.
+        if parent.spec.part.is_some() {
             return Err(Status::invalid_argument(format!(
-                "job {} is not a bricked job: it has no parts",
+                "job {} is a part: parts have no parts",
                 r.parent_id
             )));
         }
@@ -455,8 +457,8 @@ impl Orchestrator for OrchestratorService {
             }
         }
         let job = self.store().finish(id, attempt, outcome).await?;
-        if matches!(job.state, JobState::Done { .. }) && job.spec.options.brick.is_some() {
-            // A bricked job that landed needs its parts' results no more.
+        if matches!(job.state, JobState::Done { .. }) && job.spec.part.is_none() {
+            // A job that landed needs its parts' results no more.
             let dropped = self.store().drop_results(id).await?;
             if dropped > 0 {
                 tracing::debug!(job = id, dropped, "parts' results dropped");

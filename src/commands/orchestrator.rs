@@ -90,7 +90,7 @@ pub struct WorkerArgs {
     /// Testing aid: pause this long (ms) after compressing each volume, before uploading.
     #[arg(long, default_value_t = 0, hide = true)]
     pub pause_before_upload_ms: u64,
-    /// Testing aid: pause this long (ms) after computing each part of a bricked job, before
+    /// Testing aid: pause this long (ms) after computing each part of a spread job, before
     /// reporting it.
     #[arg(long, default_value_t = 0, hide = true)]
     pub pause_before_part_report_ms: u64,
@@ -239,7 +239,7 @@ pub struct SubmitArgs {
 #[derive(Subcommand, Debug)]
 pub enum JobsCommand {
     /// One line per job: id, state, name, attempts, progress, worker, error (the parts of
-    /// bricked jobs with --parts).
+    /// bricked and time series jobs with --parts).
     List(JobsListArgs),
     /// Show progress bars until every job is finished.
     Watch(JobsUrl),
@@ -263,8 +263,8 @@ pub struct JobsUrl {
 /// `jobs list`.
 #[derive(Args, Debug)]
 pub struct JobsListArgs {
-    /// List the parts of bricked jobs too (one per brick and step, labelled with their job);
-    /// without it they are counted on a last line.
+    /// List the parts of bricked and time series jobs too (one per brick, or series unit, and
+    /// step, labelled with their job); without it they are counted on a last line.
     #[arg(long)]
     pub parts: bool,
     #[command(flatten)]
@@ -496,7 +496,7 @@ async fn jobs(cmd: JobsCommand) -> Result<()> {
                 outln!("{}", describe(&j));
             }
             if hidden > 0 {
-                outln!("({hidden} parts of bricked jobs not listed: --parts lists them)");
+                outln!("({hidden} parts of bricked or series jobs not listed: --parts lists them)");
             }
         }
         JobsCommand::Watch(u) => {

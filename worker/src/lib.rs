@@ -493,55 +493,6 @@ fn compress_bricked_job(
         .map_err(|e| fail(FailureKind::Compress, e.to_string()))
 }
 
-/// Brick edge of a series' components when the job names none: a time point up to 256 a side
-/// is one plain file per component (as `compress` does).
-const SERIES_BRICK: usize = 256;
-
-/// A job whose source on shared storage is a time series (a 4D NIfTI, a DICOM cine, a raw
-/// file of several time points), read from its path once its bytes are verified: every time
-/// point into one series file, in temporal groups of the job's `time_group` (default 8).
-/// `None` when the source is one volume. Returns the series file and its voxel count over
-/// every time point.
-fn compress_series_job(
-    spec: &JobSpec,
-    opts: &wavesplat_compressor::encode::CompressOptions,
-    sh: &Shared,
-) -> Option<Result<(Vec<u8>, u64), Failure>> {
-    use wavesplat_compressor::series::{compress_series, open_series_path, SeriesError};
-    let Source::Path(path) = &spec.source else {
-        return None;
-    };
-    let raw = spec.raw.as_ref().map(options::raw_spec);
-    let invalid = |e: SeriesError| fail(FailureKind::InvalidInput, e.to_string());
-    let input = match open_series_path(path, raw.as_ref()) {
-        Ok(Some(input)) => input,
-        Ok(None) => return None,
-        Err(e) => return Some(Err(invalid(e))),
-    };
-    let source = input.source();
-    let voxels = source.dims().iter().product::<u64>() * source.time_points() as u64;
-    sh.set(0.05, format!("{} time points", source.time_points()));
-    let report = |stage: BrickStage| {
-        let p = match stage {
-            BrickStage::Scored { done, of } => 0.05 + 0.25 * done as f32 / of.max(1) as f32,
-            BrickStage::Compressed { done, of, .. } => 0.3 + 0.6 * done as f32 / of.max(1) as f32,
-        };
-        sh.set(p, stage.to_string());
-    };
-    let group = spec.options.time_group.unwrap_or(8);
-    let brick = spec.options.brick.unwrap_or(SERIES_BRICK);
-    Some(
-        compress_series(source, opts, group, brick, &report)
-            .map(|c| (c.bytes, voxels))
-            .map_err(|e| match e {
-                SeriesError::InvalidOption(_)
-                | SeriesError::Read(_)
-                | SeriesError::Mismatch { .. } => invalid(e),
-                e => fail(FailureKind::Compress, e.to_string()),
-            }),
-    )
-}
-
 async fn execute(
     ctx: &mut Ctx,
     id: u64,
@@ -579,8 +530,12 @@ async fn execute(
             // A bricked volume on shared storage: its bricks spread over the workers.
             return parts::coordinate(runner, handle, job_spec, id, attempt, sh);
         }
-        if let Some(done) = pool.install(|| compress_series_job(&job_spec, &opts, &sh)) {
-            return done;
+        if let Source::Path(_) = &job_spec.source {
+            if runner.series_if(&job_spec)?.is_some() {
+                // A time series on shared storage: its units spread over the workers.
+                drop(bytes);
+                return parts::coordinate_series(runner, handle, job_spec, id, attempt, sh);
+            }
         }
         if let Some(brick) = job_spec.options.brick {
             return pool.install(|| compress_bricked_job(&job_spec, bytes, brick, &opts, &sh));

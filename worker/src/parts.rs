@@ -1,9 +1,12 @@
-//! Bricked jobs spread over workers. The worker that leases a bricked job whose source is a
-//! file on shared storage *coordinates* it: it plans the volume ([`BrickPlan::new`]: the depth,
+//! Bricked jobs and time series spread over workers. The worker that leases a bricked job
+//! whose source is a file on shared storage *coordinates* it: it plans the volume ([`BrickPlan::new`]: the depth,
 //! the whole's offset or colour transform), adds one part per brick to the queue to score it,
 //! allocates the whole's rate from the parts' score summaries ([`allocate`]), adds one part per
 //! brick to code it (a byte target: one round per trial of the search), fetches the chosen
-//! files and commits the bricked volume to the cache once, as any job delivers.
+//! files and commits the bricked volume to the cache once, as any job delivers. A time series
+//! on shared storage is coordinated the same way ([`coordinate_series`]): its parts are the
+//! *units* of a [`SeriesPlan`] (every temporal component's bricks), allocated as one process
+//! allocates them.
 //!
 //! Any worker leases parts. The coordinator runs parts itself while it waits, so one worker
 //! alone still finishes the job, and every extra worker takes bricks off it. A part's result
@@ -17,11 +20,13 @@ use std::sync::atomic::Ordering;
 use std::sync::Arc;
 use std::time::Duration;
 use wavesplat_compressor::bricked::{
-    allocate, BrickError, BrickPlan, BrickSource, BrickWork, CodedBrick, SharedChoices,
+    allocate, allocate_units, BrickError, BrickPlan, BrickSource, BrickWork, CodedBrick,
+    SharedChoices,
 };
 use wavesplat_compressor::colorspace::ColorTransform;
 use wavesplat_compressor::encode::{ScoreSummary, Target};
 use wavesplat_compressor::reader::region::RegionReader;
+use wavesplat_compressor::series::{open_series_path, SeriesError, SeriesInput, SeriesPlan};
 use wavesplat_orchestrator_client::model::{
     Failure, FailureKind, JobSpec, PartColor, PartSpec, PartStep, Source,
 };
@@ -49,27 +54,82 @@ pub(crate) struct PartRunner {
 /// A part's source kept open, with what it was opened for.
 pub(crate) struct OpenedSource {
     key: String,
-    reader: Arc<RegionReader>,
+    opened: Opened,
+}
+
+/// What a source is kept open under: the file, its hash and layout, and how it was opened.
+fn opened_key(spec: &JobSpec, series: bool) -> String {
+    format!(
+        "{:?}|{:?}|{:?}|{series}",
+        spec.source, spec.sha256, spec.raw
+    )
+}
+
+/// A source open for parts: one volume read by region, or a time series.
+#[derive(Clone)]
+enum Opened {
+    Volume(Arc<RegionReader>),
+    Series(Arc<SeriesInput>),
 }
 
 impl PartRunner {
-    /// The reader of `spec`'s source: the one kept open if it is the same file, or a new one
-    /// (kept in its place).
-    fn source(&self, spec: &JobSpec) -> Result<Arc<RegionReader>, Failure> {
-        let key = format!("{:?}|{:?}|{:?}", spec.source, spec.sha256, spec.raw);
+    /// `spec`'s source opened as a volume (`series` false) or a time series: the one kept
+    /// open if it is the same, or a new one (kept in its place).
+    fn opened(&self, spec: &JobSpec, series: bool) -> Result<Opened, Failure> {
+        let key = opened_key(spec, series);
         if let Ok(slot) = self.opened.lock() {
             if let Some(o) = slot.as_ref().filter(|o| o.key == key) {
-                return Ok(o.reader.clone());
+                return Ok(o.opened.clone());
             }
         }
-        let reader = Arc::new(open_source(spec)?);
+        let opened = if series {
+            Opened::Series(Arc::new(open_series(spec)?))
+        } else {
+            Opened::Volume(Arc::new(open_source(spec)?))
+        };
         if let Ok(mut slot) = self.opened.lock() {
             *slot = Some(OpenedSource {
                 key,
-                reader: reader.clone(),
+                opened: opened.clone(),
             });
         }
-        Ok(reader)
+        Ok(opened)
+    }
+
+    /// The reader of `spec`'s source, one volume.
+    fn source(&self, spec: &JobSpec) -> Result<Arc<RegionReader>, Failure> {
+        match self.opened(spec, false)? {
+            Opened::Volume(r) => Ok(r),
+            Opened::Series(_) => Err(fail(FailureKind::Worker, "a series opened as a volume")),
+        }
+    }
+
+    /// `spec`'s source opened as a time series (and kept open) when it is one; `None` when it
+    /// is one volume.
+    pub(crate) fn series_if(&self, spec: &JobSpec) -> Result<Option<Arc<SeriesInput>>, Failure> {
+        let Source::Path(p) = &spec.source else {
+            return Ok(None);
+        };
+        let raw = spec.raw.as_ref().map(options::raw_spec);
+        let Some(input) = open_series_path(p, raw.as_ref()).map_err(series_failure)? else {
+            return Ok(None);
+        };
+        let input = Arc::new(input);
+        if let Ok(mut slot) = self.opened.lock() {
+            *slot = Some(OpenedSource {
+                key: opened_key(spec, true),
+                opened: Opened::Series(input.clone()),
+            });
+        }
+        Ok(Some(input))
+    }
+
+    /// `spec`'s source as a time series.
+    fn series(&self, spec: &JobSpec) -> Result<Arc<SeriesInput>, Failure> {
+        match self.opened(spec, true)? {
+            Opened::Series(s) => Ok(s),
+            Opened::Volume(_) => Err(fail(FailureKind::Worker, "a volume opened as a series")),
+        }
     }
 }
 
@@ -98,6 +158,55 @@ fn open_source(spec: &JobSpec) -> Result<RegionReader, Failure> {
         };
         fail(kind, format!("{}: {e}", p.display()))
     })
+}
+
+/// Opens a time series on shared storage (a 4D file, a directory of time steps, a DICOM
+/// cine); a source that is one volume is refused.
+pub(crate) fn open_series(spec: &JobSpec) -> Result<SeriesInput, Failure> {
+    let Source::Path(p) = &spec.source else {
+        return Err(fail(
+            FailureKind::InvalidInput,
+            "a time series is spread over workers only from shared storage",
+        ));
+    };
+    let raw = spec.raw.as_ref().map(options::raw_spec);
+    match open_series_path(p, raw.as_ref()) {
+        Ok(Some(s)) => Ok(s),
+        Ok(None) => Err(fail(
+            FailureKind::InvalidInput,
+            format!(
+                "{}: one volume, not a time series: the file changed",
+                p.display()
+            ),
+        )),
+        Err(e) => Err(series_failure(e)),
+    }
+}
+
+/// A series error as a job's failure: bad input, or a failed compression.
+pub(crate) fn series_failure(e: SeriesError) -> Failure {
+    match e {
+        SeriesError::InvalidOption(_) | SeriesError::Read(_) | SeriesError::Mismatch { .. } => {
+            fail(FailureKind::InvalidInput, e.to_string())
+        }
+        SeriesError::Brick(b) => brick_failure(*b),
+        e => fail(FailureKind::Compress, e.to_string()),
+    }
+}
+
+/// Temporal group of a series job that names none.
+pub(crate) const SERIES_GROUP: usize = 8;
+
+/// Brick edge of a series' components when the job names none: a time point up to 256 a side
+/// is one plain file per component (as `compress` does).
+pub(crate) const SERIES_BRICK: usize = 256;
+
+/// The group and brick edge of a series job.
+fn series_shape(spec: &JobSpec) -> (usize, usize) {
+    (
+        spec.options.time_group.unwrap_or(SERIES_GROUP),
+        spec.options.brick.unwrap_or(SERIES_BRICK),
+    )
 }
 
 fn brick_failure(e: BrickError) -> Failure {
@@ -162,6 +271,9 @@ fn compute_part(
             ));
         }
     }
+    if let Some(points) = part.time_points {
+        return compute_series_part(runner, spec, part, points);
+    }
     let source = runner.source(spec)?;
     let source: &RegionReader = &source;
     let plan = part_plan(spec, part, source)?;
@@ -173,6 +285,57 @@ fn compute_part(
             .map_err(brick_failure)?
             .to_bytes(energies),
         PartStep::Encode { count, .. } => plan.encode(source, i, count).map_err(brick_failure)?.0,
+    };
+    Ok((bytes, voxels))
+}
+
+/// Runs one unit of a time series: the plan made again from the parent's choices, nothing
+/// else read.
+fn compute_series_part(
+    runner: &PartRunner,
+    spec: &JobSpec,
+    part: &PartSpec,
+    points: u32,
+) -> Result<(Vec<u8>, u64), Failure> {
+    let input = runner.series(spec)?;
+    let series = input.source();
+    if series.time_points() != points as usize {
+        return Err(fail(
+            FailureKind::InvalidInput,
+            format!(
+                "the source has {} time points, the part says {points}: the file changed",
+                series.time_points()
+            ),
+        ));
+    }
+    let (group, brick) = series_shape(spec);
+    let opts = options::compress_options(&spec.options);
+    let choices = SharedChoices {
+        levels: part.levels as usize,
+        offset: part.offset,
+        color: None,
+    };
+    let plan =
+        SeriesPlan::with_choices(series, &opts, group, brick, choices).map_err(series_failure)?;
+    if plan.units.len() != part.of as usize {
+        return Err(fail(
+            FailureKind::InvalidInput,
+            format!(
+                "the series makes {} units, the part says {}: the file changed",
+                plan.units.len(),
+                part.of
+            ),
+        ));
+    }
+    let u = part.index as usize;
+    let (c, i) = plan.units[u];
+    let voxels = plan.plans[c].grid[i].1.iter().map(|d| *d as u64).product();
+    let bytes = match part.step {
+        PartStep::Score { energies } => plan
+            .score(series, u)
+            .map_err(brick_failure)?
+            .to_bytes(energies),
+        PartStep::Encode { count, .. } => plan.encode(series, u, count).map_err(brick_failure)?.0,
     };
     Ok((bytes, voxels))
 }
@@ -272,6 +435,8 @@ struct RemoteBricks {
     shared: Arc<Shared>,
     /// The source file's length when planned (every part checks it).
     source_bytes: Option<u64>,
+    /// A time series' time points (its parts are units of a [`SeriesPlan`]); `None` for bricks.
+    time_points: Option<u32>,
     /// Why the parts could not finish, for the job's outcome.
     failure: std::sync::Mutex<Option<Failure>>,
 }
@@ -308,13 +473,13 @@ impl RemoteBricks {
             .unwrap_or(otherwise)
     }
 
-    fn part(&self, plan: &BrickPlan, index: usize, step: PartStep) -> JobSpec {
-        let c = &plan.choices;
+    /// Part `index` of `of`, doing `step` with the parent's choices `c`.
+    fn part(&self, index: usize, of: usize, c: &SharedChoices, step: PartStep) -> JobSpec {
         JobSpec {
             part: Some(PartSpec {
                 parent: self.parent_id,
                 index: index as u32,
-                of: plan.grid.len() as u32,
+                of: of as u32,
                 step,
                 levels: c.levels as u32,
                 offset: c.offset,
@@ -324,9 +489,78 @@ impl RemoteBricks {
                     importance: t.importance,
                 }),
                 source_bytes: self.source_bytes,
+                time_points: self.time_points,
             }),
             ..self.parent.clone()
         }
+    }
+
+    /// Every one of `of` parts scored: their summaries, in order.
+    fn score_parts(
+        &self,
+        of: usize,
+        choices: &SharedChoices,
+        energies: bool,
+    ) -> Result<Vec<ScoreSummary>, BrickError> {
+        let parts: Vec<JobSpec> = (0..of)
+            .map(|i| self.part(i, of, choices, PartStep::Score { energies }))
+            .collect();
+        let done = self.run_all(&parts, "scoring", 0.05, 0.3)?;
+        let mut summaries = Vec::with_capacity(done.len());
+        for p in &done {
+            let bytes = self.fetch(p.id)?;
+            let s = ScoreSummary::from_bytes(&bytes)
+                .map_err(|e| self.stop(fail(FailureKind::Worker, format!("part {}: {e}", p.id))))?;
+            summaries.push(s);
+        }
+        Ok(summaries)
+    }
+
+    /// Every one of `of` parts coded keeping `counts` (`None`: all), in trial `trial`.
+    fn encode_parts(
+        &self,
+        of: usize,
+        choices: &SharedChoices,
+        counts: Option<&[u64]>,
+        trial: usize,
+    ) -> Result<Vec<CodedBrick<u64>>, BrickError> {
+        let parts: Vec<JobSpec> = (0..of)
+            .map(|i| {
+                let step = PartStep::Encode {
+                    count: counts.map(|k| k[i]),
+                    trial: trial as u32,
+                };
+                self.part(i, of, choices, step)
+            })
+            .collect();
+        let stage = format!("coding (trial {trial})");
+        let done = self.run_all(&parts, &stage, 0.3, 0.9)?;
+        Ok(done
+            .into_iter()
+            .map(|p| CodedBrick {
+                file: p.id,
+                len: p.bytes,
+                // Read from the file's header when it is fetched.
+                kept: 0,
+            })
+            .collect())
+    }
+
+    /// The chosen parts' files fetched, each with the count its header says it kept.
+    fn gather(&self, chosen: &[CodedBrick<u64>]) -> Result<Vec<(Vec<u8>, u64)>, Failure> {
+        self.shared.set(0.9, "gathering the parts' files");
+        let mut files = Vec::with_capacity(chosen.len());
+        for b in chosen {
+            let bytes = self.fetch(b.file).map_err(|Stopped| {
+                self.failure_or(fail(FailureKind::Worker, "fetching a part's file failed"))
+            })?;
+            let kept = wavesplat_codec::format::parse_file(&bytes)
+                .map_err(|e| fail(FailureKind::Worker, format!("part {}'s file: {e}", b.file)))?
+                .header
+                .kept;
+            files.push((bytes, kept));
+        }
+        Ok(files)
     }
 
     /// Adds `parts` (or polls them, if known) and waits until all are done, running parts
@@ -368,8 +602,18 @@ impl RemoteBricks {
                             known[i] = Some(p);
                         }
                     }
-                    Err(s) if s.code() == tonic::Code::FailedPrecondition => {
-                        return Err(self.stop(fail(FailureKind::Worker, s.message().to_string())))
+                    // Not held any more, or parts this orchestrator refuses: asking again
+                    // would get the same answer.
+                    Err(s)
+                        if matches!(
+                            s.code(),
+                            tonic::Code::FailedPrecondition | tonic::Code::InvalidArgument
+                        ) =>
+                    {
+                        return Err(self.stop(fail(
+                            FailureKind::Worker,
+                            format!("adding parts: {}", s.message()),
+                        )))
                     }
                     Err(s) => {
                         // The orchestrator may be restarting: ask again.
@@ -496,18 +740,7 @@ impl BrickWork for RemoteBricks {
 
     fn score_all(&self, plan: &BrickPlan) -> Result<Vec<ScoreSummary>, BrickError> {
         let energies = matches!(plan.target, Target::QvPercent(_));
-        let parts: Vec<JobSpec> = (0..plan.grid.len())
-            .map(|i| self.part(plan, i, PartStep::Score { energies }))
-            .collect();
-        let done = self.run_all(&parts, "scoring", 0.05, 0.3)?;
-        let mut summaries = Vec::with_capacity(done.len());
-        for p in &done {
-            let bytes = self.fetch(p.id)?;
-            let s = ScoreSummary::from_bytes(&bytes)
-                .map_err(|e| self.stop(fail(FailureKind::Worker, format!("part {}: {e}", p.id))))?;
-            summaries.push(s);
-        }
-        Ok(summaries)
+        self.score_parts(plan.grid.len(), &plan.choices, energies)
     }
 
     fn encode_all(
@@ -516,26 +749,7 @@ impl BrickWork for RemoteBricks {
         counts: Option<&[u64]>,
         trial: usize,
     ) -> Result<Vec<CodedBrick<u64>>, BrickError> {
-        let parts: Vec<JobSpec> = (0..plan.grid.len())
-            .map(|i| {
-                let step = PartStep::Encode {
-                    count: counts.map(|k| k[i]),
-                    trial: trial as u32,
-                };
-                self.part(plan, i, step)
-            })
-            .collect();
-        let stage = format!("coding (trial {trial})");
-        let done = self.run_all(&parts, &stage, 0.3, 0.9)?;
-        Ok(done
-            .into_iter()
-            .map(|p| CodedBrick {
-                file: p.id,
-                len: p.bytes,
-                // Read from the file's header when it is fetched.
-                kept: 0,
-            })
-            .collect())
+        self.encode_parts(plan.grid.len(), &plan.choices, counts, trial)
     }
 }
 
@@ -572,6 +786,7 @@ pub(crate) fn coordinate(
         runner,
         handle,
         source_bytes: planned_bytes,
+        time_points: None,
         parent: spec,
         parent_id,
         parent_attempt,
@@ -579,18 +794,72 @@ pub(crate) fn coordinate(
         failure: std::sync::Mutex::new(None),
     };
     let allocated = allocate(&plan, &work).map_err(|e| work.failure_or(brick_failure(e)))?;
-    shared.set(0.9, "gathering the bricks");
-    let mut bricks = Vec::with_capacity(allocated.bricks.len());
-    for b in &allocated.bricks {
-        let bytes = work.fetch(b.file).map_err(|Stopped| {
-            work.failure_or(fail(FailureKind::Worker, "fetching a brick failed"))
-        })?;
-        let kept = wavesplat_codec::format::parse_file(&bytes)
-            .map_err(|e| fail(FailureKind::Worker, format!("part {}'s file: {e}", b.file)))?
-            .header
-            .kept;
-        bricks.push((bytes, kept));
-    }
+    let bricks = work.gather(&allocated.bricks)?;
     let (file, _) = plan.assemble(&bricks).map_err(brick_failure)?;
     Ok((file, voxels))
+}
+
+/// Coordinates a job whose source on shared storage is a time series: planned here
+/// ([`SeriesPlan::new`], groups of the job's `time_group`), every unit (a temporal component's
+/// brick) scored and coded as a part on any worker, the series' rate allocated over the units
+/// as in one process, and the container assembled and committed once. Returns the series
+/// file and its voxels over every time point. Runs on a blocking thread.
+pub(crate) fn coordinate_series(
+    runner: PartRunner,
+    handle: tokio::runtime::Handle,
+    spec: JobSpec,
+    parent_id: u64,
+    parent_attempt: u32,
+    shared: Arc<Shared>,
+) -> Result<(Vec<u8>, u64), Failure> {
+    // A single file's length is checked by every part; a directory's time steps are not.
+    let planned_bytes = match &spec.source {
+        Source::Path(p) if p.is_file() => source_bytes(&spec),
+        _ => None,
+    };
+    let input = runner.series(&spec)?;
+    let series = input.source();
+    let points = series.time_points();
+    let voxels = series.dims().iter().product::<u64>() * points as u64;
+    shared.set(0.02, format!("planning {points} time points"));
+    let (group, brick) = series_shape(&spec);
+    let opts = options::compress_options(&spec.options);
+    let pool = runner.pool.clone();
+    let plan = pool
+        .install(|| SeriesPlan::new(series, &opts, group, brick))
+        .map_err(series_failure)?;
+    tracing::info!(
+        job = parent_id,
+        time_points = points,
+        components = plan.plans.len(),
+        units = plan.units.len(),
+        levels = plan.choices.levels,
+        "series planned; spreading its units over the queue"
+    );
+    let work = RemoteBricks {
+        runner,
+        handle,
+        source_bytes: planned_bytes,
+        time_points: Some(points as u32),
+        parent: spec,
+        parent_id,
+        parent_attempt,
+        shared: shared.clone(),
+        failure: std::sync::Mutex::new(None),
+    };
+    let of = plan.units.len();
+    let energies = matches!(plan.target, Target::QvPercent(_));
+    let allocated = allocate_units(
+        plan.target,
+        of,
+        plan.overhead,
+        || work.score_parts(of, &plan.choices, energies),
+        |counts, trial| work.encode_parts(of, &plan.choices, counts, trial),
+    )
+    .map_err(|e| work.failure_or(brick_failure(e)))?;
+    let units = work.gather(&allocated.bricks)?;
+    let c = plan
+        .assemble(series, units, allocated.total_coefficients)
+        .map_err(series_failure)?;
+    Ok((c.bytes, voxels))
 }
