@@ -256,3 +256,73 @@ fn a_4d_nrrd_with_a_time_axis_is_read_time_point_by_time_point() {
     let e = RegionReader::open_series(&p, None).unwrap_err();
     assert!(e.to_string().contains("short.nrrd"), "{e}");
 }
+
+/// An enhanced multi-frame DICOM whose frames carry a temporal dimension (each frame's Frame
+/// Content gives its Temporal Position Index; frames stored slice-major, as an enhanced MR
+/// cine stack is) reads as a series: each index's frames one volume, exactly as written, its
+/// time from the frames' Nominal Cardiac Trigger Delay Time. One volume's reader refuses it,
+/// naming the series; a frame moved to another time point is an error naming the time point.
+#[test]
+fn an_enhanced_multiframe_dicom_with_a_temporal_dimension_is_a_series() {
+    use dicom_core::value::DataSetSequence;
+    use dicom_core::{DataElement, Length, PrimitiveValue, VR};
+    use dicom_dictionary_std::tags;
+    use dicom_object::InMemDicomObject;
+    use wavesplat_compressor::series::open_series_path;
+    use wavesplat_fixtures::{write_dicom_enhanced_series, DicomOptions, Layout};
+    let dir = tempfile::tempdir().unwrap();
+    // Integer samples: the file stores 16-bit values.
+    let vols: Vec<Volume> = points(5)
+        .iter()
+        .map(|v| {
+            let data = v.channel(0).iter().map(|x| x.max(0.0).round()).collect();
+            Volume::new(DIMS, [1.0, 1.0, 1.0], vec![data]).unwrap()
+        })
+        .collect();
+    let ms = [0.0, 45.0, 90.0, 135.0, 180.0];
+    let path = dir.path().join("enhanced.dcm");
+    let o = DicomOptions {
+        layout: Layout::U16,
+        ..Default::default()
+    };
+    write_dicom_enhanced_series(&path, &vols, &ms, &o);
+    let e = wavesplat_compressor::reader::read_volume(&path, None).unwrap_err();
+    let said = e.to_string();
+    assert!(
+        said.contains("5 time points") && said.contains("Temporal Position Index"),
+        "{said}"
+    );
+    let input = open_series_path(&path, None).unwrap().expect("a series");
+    let times: Vec<f64> = ms.iter().map(|m| m / 1000.0).collect();
+    assert_eq!(input.source().times(), Some(times.clone()));
+    // Placed as the file says (the fixture's identity orientation, slice 0 at the origin).
+    let placement = input.source().placement().expect("placed");
+    assert_eq!(placement.origin, [0.0; 3]);
+    let placed: Vec<Volume> = vols
+        .iter()
+        .map(|v| v.clone().with_placement(placement).unwrap())
+        .collect();
+    reads_as(input.source(), &placed, Some(times));
+
+    // Frame 1 (slice 0 of time point 1) says it belongs to time point 3.
+    let mut obj = dicom_object::open_file(&path).unwrap();
+    let mut items: Vec<InMemDicomObject> = obj
+        .element(tags::PER_FRAME_FUNCTIONAL_GROUPS_SEQUENCE)
+        .unwrap()
+        .items()
+        .unwrap()
+        .to_vec();
+    let content = InMemDicomObject::from_element_iter([DataElement::new(
+        tags::TEMPORAL_POSITION_INDEX,
+        VR::UL,
+        PrimitiveValue::from(4u32),
+    )]);
+    let sq = |tag, items: Vec<InMemDicomObject>| {
+        DataElement::new(tag, VR::SQ, DataSetSequence::new(items, Length::UNDEFINED))
+    };
+    items[1].put(sq(tags::FRAME_CONTENT_SEQUENCE, vec![content]));
+    obj.put(sq(tags::PER_FRAME_FUNCTIONAL_GROUPS_SEQUENCE, items));
+    obj.write_to_file(&path).unwrap();
+    let e = open_series_path(&path, None).unwrap_err().to_string();
+    assert!(e.contains("Temporal Position Index 2"), "{e}");
+}

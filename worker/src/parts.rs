@@ -501,7 +501,7 @@ impl RemoteBricks {
         of: usize,
         choices: &SharedChoices,
         energies: bool,
-    ) -> Result<Vec<ScoreSummary>, BrickError> {
+    ) -> Result<Vec<ScoreSummary>, Stopped> {
         let parts: Vec<JobSpec> = (0..of)
             .map(|i| self.part(i, of, choices, PartStep::Score { energies }))
             .collect();
@@ -523,7 +523,7 @@ impl RemoteBricks {
         choices: &SharedChoices,
         counts: Option<&[u64]>,
         trial: usize,
-    ) -> Result<Vec<CodedBrick<u64>>, BrickError> {
+    ) -> Result<Vec<CodedBrick<u64>>, Stopped> {
         let parts: Vec<JobSpec> = (0..of)
             .map(|i| {
                 let step = PartStep::Encode {
@@ -740,7 +740,7 @@ impl BrickWork for RemoteBricks {
 
     fn score_all(&self, plan: &BrickPlan) -> Result<Vec<ScoreSummary>, BrickError> {
         let energies = matches!(plan.target, Target::QvPercent(_));
-        self.score_parts(plan.grid.len(), &plan.choices, energies)
+        Ok(self.score_parts(plan.grid.len(), &plan.choices, energies)?)
     }
 
     fn encode_all(
@@ -749,7 +749,7 @@ impl BrickWork for RemoteBricks {
         counts: Option<&[u64]>,
         trial: usize,
     ) -> Result<Vec<CodedBrick<u64>>, BrickError> {
-        self.encode_parts(plan.grid.len(), &plan.choices, counts, trial)
+        Ok(self.encode_parts(plan.grid.len(), &plan.choices, counts, trial)?)
     }
 }
 
@@ -804,6 +804,8 @@ pub(crate) fn coordinate(
 /// brick) scored and coded as a part on any worker, the series' rate allocated over the units
 /// as in one process, and the container assembled and committed once. Returns the series
 /// file and its voxels over every time point. Runs on a blocking thread.
+// The allocation's closures return `allocate_units`' error type, which the compressor fixes.
+#[allow(clippy::result_large_err)]
 pub(crate) fn coordinate_series(
     runner: PartRunner,
     handle: tokio::runtime::Handle,
@@ -853,8 +855,14 @@ pub(crate) fn coordinate_series(
         plan.target,
         of,
         plan.overhead,
-        || work.score_parts(of, &plan.choices, energies),
-        |counts, trial| work.encode_parts(of, &plan.choices, counts, trial),
+        || {
+            let summaries = work.score_parts(of, &plan.choices, energies)?;
+            Ok(summaries)
+        },
+        |counts, trial| {
+            let coded = work.encode_parts(of, &plan.choices, counts, trial)?;
+            Ok(coded)
+        },
     )
     .map_err(|e| work.failure_or(brick_failure(e)))?;
     let units = work.gather(&allocated.bricks)?;

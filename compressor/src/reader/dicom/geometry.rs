@@ -179,7 +179,7 @@ pub(super) fn order_frames(dir: &Path, images: &[Image]) -> Result<Ordered, Read
     let first = &images[0];
     let mut frames: Vec<(FrameRef, Option<[f64; 3]>)> = Vec::new();
     for (ii, img) in images.iter().enumerate() {
-        for f in 0..img.frames {
+        for f in img.frame_list() {
             frames.push((
                 FrameRef {
                     image: ii,

@@ -312,6 +312,47 @@ pub(super) fn read_image_as(
             (slope * dose_scaling, intercept * dose_scaling)
         });
     }
+    // An enhanced multi-frame file's temporal dimension: each frame's Temporal Position Index
+    // and Nominal Cardiac Trigger Delay Time, when every frame has one of its own.
+    let per_frame = |seq: Tag, tag: Tag| -> Result<Option<Vec<f64>>, ReadError> {
+        if !has_per_frame {
+            return Ok(None);
+        }
+        let mut values = Vec::with_capacity(frames.min(1 << 16));
+        for f in 0..frames {
+            match floats_for_frame(path, o, f, seq, tag)?.and_then(|v| v.first().copied()) {
+                Some(v) => values.push(v),
+                None => return Ok(None),
+            }
+        }
+        Ok(Some(values))
+    };
+    let temporal_index = per_frame(tags::FRAME_CONTENT_SEQUENCE, tags::TEMPORAL_POSITION_INDEX)?
+        .map(|v| {
+            v.into_iter()
+                .map(|x| x.max(0.0) as u32)
+                .collect::<Vec<u32>>()
+        })
+        .filter(|v| v.iter().any(|x| *x != v[0]));
+    let trigger_delay_ms = per_frame(
+        tags::CARDIAC_SYNCHRONIZATION_SEQUENCE,
+        tags::NOMINAL_CARDIAC_TRIGGER_DELAY_TIME,
+    )?;
+    if let (Some(index), false) = (&temporal_index, cine) {
+        let points = index
+            .iter()
+            .collect::<std::collections::BTreeSet<_>>()
+            .len();
+        return Err(dicom_err(
+            path,
+            Some(tags::TEMPORAL_POSITION_INDEX),
+            format!(
+                "a time series, not a volume: {frames} frames at {points} time points (each \
+                 frame's Frame Content (0020,9111) gives its Temporal Position Index). \
+                 `wavesplat compress` reads it as a time series of {points} time points"
+            ),
+        ));
+    }
     let instance = get_str(o, tags::INSTANCE_NUMBER)
         .and_then(|s| s.parse::<i64>().ok())
         .unwrap_or(0);
@@ -346,6 +387,9 @@ pub(super) fn read_image_as(
         time_attribute,
         photometric,
         palette,
+        temporal_index,
+        trigger_delay_ms,
+        selected: None,
     }))
 }
 

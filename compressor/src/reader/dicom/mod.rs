@@ -99,9 +99,25 @@ struct Image {
     photometric: String,
     /// The colour palette of a PALETTE COLOR image.
     palette: Option<std::sync::Arc<Palette>>,
+    /// Per frame, of an enhanced multi-frame file with a temporal dimension: its Temporal
+    /// Position Index (`None` when frames do not have one each, or all share one).
+    temporal_index: Option<Vec<u32>>,
+    /// Per frame: Nominal Cardiac Trigger Delay Time, ms (when every frame has one).
+    trigger_delay_ms: Option<Vec<f64>>,
+    /// The frames of this file that belong to the volume being read (`None`: all): one time
+    /// point of an enhanced multi-frame series.
+    selected: Option<Vec<usize>>,
 }
 
 impl Image {
+    /// The frames read into the volume, in file order.
+    fn frame_list(&self) -> Vec<usize> {
+        match &self.selected {
+            Some(s) => s.clone(),
+            None => (0..self.frames).collect(),
+        }
+    }
+
     /// Channels of the volume: three for a palette image (its colours), else the samples.
     fn channels(&self) -> usize {
         if self.palette.is_some() {

@@ -5,6 +5,7 @@
 //! into their slots; [`SeriesRegions`], which does the same checks and reads boxes of the
 //! volume by slice ranges, decoding only the files that hold them.
 
+use dicom_object::DefaultDicomObject;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
@@ -235,7 +236,9 @@ fn describe(dir: &Path, images: Vec<Image>, file_bytes: usize) -> Result<Describ
     // file, so that many small files cannot add up to a large buffer).
     let declared: usize = images
         .iter()
-        .map(|i| i.rows * i.cols * i.frames * i.samples * (i.bits_allocated as usize / 8))
+        .map(|i| {
+            i.rows * i.cols * i.frame_list().len() * i.samples * (i.bits_allocated as usize / 8)
+        })
         .fold(0usize, usize::saturating_add);
     let most = file_bytes
         .saturating_mul(MAX_FILE_EXPANSION)
@@ -270,25 +273,36 @@ pub(crate) fn decode(src: &SourceFiles) -> Result<Volume, ReadError> {
     let file_bytes: usize = src.files.iter().map(|(_, b)| b.len()).sum();
     let dir = &src.origin;
     let d = describe(dir, images, file_bytes)?;
+    let by_name: BTreeMap<&str, &[u8]> = src
+        .files
+        .iter()
+        .map(|(n, b)| (n.as_str(), b.as_slice()))
+        .collect();
+    decode_described(dir, &d, |img| {
+        let obj = parse(&img.path, by_name[img.name.as_str()], true)?;
+        check_pixel_data(img, &obj)?;
+        Ok(std::borrow::Cow::Owned(obj))
+    })
+}
+
+/// The volume of described images: each image's frames decoded into their slots, its data
+/// set (with pixel data, checked) from `object`.
+fn decode_described<'a>(
+    dir: &Path,
+    d: &Described,
+    mut object: impl FnMut(&Image) -> Result<std::borrow::Cow<'a, DefaultDicomObject>, ReadError>,
+) -> Result<Volume, ReadError> {
     let [nx, ny, nz] = d.dims;
     let plane = nx * ny;
-
-    // Pass 2: decode each file's frames into their slots.
     let mut slot_of: Vec<Vec<usize>> = d.images.iter().map(|i| vec![0; i.frames]).collect();
     for (z, f) in d.frames.iter().enumerate() {
         slot_of[f.image][f.frame] = z;
     }
     let n = plane * nz;
     let mut out = allocate(dir, d.channels, n)?;
-    let by_name: BTreeMap<&str, &[u8]> = src
-        .files
-        .iter()
-        .map(|(n, b)| (n.as_str(), b.as_slice()))
-        .collect();
     for (ii, img) in d.images.iter().enumerate() {
-        let obj = parse(&img.path, by_name[img.name.as_str()], true)?;
-        check_pixel_data(img, &obj)?;
-        for f in 0..img.frames {
+        let obj = object(img)?;
+        for f in img.frame_list() {
             let z = slot_of[ii][f];
             decode_frame(img, &obj, f, z * plane, &mut out)?;
         }
@@ -438,8 +452,9 @@ pub fn read_time_series(dir: &Path) -> Result<Option<TimeSeries>, ReadError> {
 /// an ultrasound loop: Frame Increment Pointer → Frame Time or Frame Time Vector, no per-frame
 /// positions): each frame a time point, a volume of one slice (columns × rows × 1, the pixel
 /// spacing and the slice thickness), every value as the volume reader decodes it (rescale,
-/// palette, colour); the times in seconds from Frame Time or Frame Time Vector. `Ok(None)` for
-/// any other file (a volume's frames, one frame, a file whose header does not parse: the
+/// palette, colour); the times in seconds from Frame Time or Frame Time Vector. An enhanced
+/// multi-frame file with a temporal dimension is read by [`read_enhanced_series`]. `Ok(None)`
+/// for any other file (a volume's frames, one frame, a file whose header does not parse: the
 /// volume reader says what is wrong with it).
 pub fn read_cine_file(path: &Path) -> Result<Option<TimeSeries>, ReadError> {
     let bytes = crate::reader::read_file(path)?;
@@ -447,7 +462,7 @@ pub fn read_cine_file(path: &Path) -> Result<Option<TimeSeries>, ReadError> {
         return Ok(None);
     };
     let Some(times) = super::image::cine_times(path, &header)? else {
-        return Ok(None);
+        return read_enhanced_series(path, &bytes, &header);
     };
     let name = path
         .file_name()
@@ -473,6 +488,69 @@ pub fn read_cine_file(path: &Path) -> Result<Option<TimeSeries>, ReadError> {
                 .map_err(|e| ReadError::volume(path, e))?,
         );
     }
+    Ok(Some((volumes, times)))
+}
+
+/// An enhanced multi-frame file whose frames carry a temporal dimension (each frame's Frame
+/// Content gives its Temporal Position Index, as an enhanced MR cine or a 4D CT stores it):
+/// the frames of each index, in index order, a volume read as one volume's frames are (their
+/// per-frame positions ordered and checked); the times in seconds from the frames' Nominal
+/// Cardiac Trigger Delay Time when every frame has one and they increase. `Ok(None)` when the
+/// file has no temporal dimension.
+fn read_enhanced_series(
+    path: &Path,
+    bytes: &[u8],
+    header: &DefaultDicomObject,
+) -> Result<Option<TimeSeries>, ReadError> {
+    let name = path
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    let Some(img) = super::image::read_image_as(&name, path, header, bytes.len(), true)? else {
+        return Ok(None);
+    };
+    let Some(index) = img.temporal_index.clone() else {
+        return Ok(None);
+    };
+    let bad = |reason: String| ReadError::Series {
+        path: path.to_path_buf(),
+        reason,
+    };
+    let mut by_index: BTreeMap<u32, Vec<usize>> = BTreeMap::new();
+    for (f, k) in index.iter().enumerate() {
+        by_index.entry(*k).or_default().push(f);
+    }
+    let obj = parse(path, bytes, true)?;
+    check_pixel_data(&img, &obj)?;
+    let mut volumes: Vec<Volume> = Vec::with_capacity(by_index.len());
+    let mut delays = Vec::with_capacity(by_index.len());
+    for (t, (k, frames)) in by_index.into_iter().enumerate() {
+        let what = format!("time point {t} (Temporal Position Index {k})");
+        if let Some(d) = &img.trigger_delay_ms {
+            delays.push(d[frames[0]]);
+        }
+        let view = Image {
+            selected: Some(frames),
+            ..img.clone()
+        };
+        let d = describe(path, vec![view], bytes.len()).map_err(|e| bad(format!("{what}: {e}")))?;
+        let v = decode_described(path, &d, |_| Ok(std::borrow::Cow::Borrowed(&obj)))
+            .map_err(|e| bad(format!("{what}: {e}")))?;
+        if let Some(first) = volumes.first() {
+            if v.dims() != first.dims() || v.spacing() != first.spacing() {
+                return Err(bad(format!(
+                    "{what} is {:?} at spacing {:?}; time point 0 is {:?} at {:?}",
+                    v.dims(),
+                    v.spacing(),
+                    first.dims(),
+                    first.spacing()
+                )));
+            }
+        }
+        volumes.push(v);
+    }
+    let times = (delays.len() == volumes.len() && delays.windows(2).all(|w| w[1] > w[0]))
+        .then(|| delays.iter().map(|ms| ms / 1000.0).collect());
     Ok(Some((volumes, times)))
 }
 
