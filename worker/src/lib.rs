@@ -449,15 +449,21 @@ fn decode(spec: &JobSpec, bytes: Vec<u8>) -> Result<Volume, Failure> {
     }
 }
 
-/// Whether the job is a bricked one whose source is a file on shared storage that hashes, read
-/// in pieces, to the submitted SHA-256 (a raw file or a single-file format; a detached header's
-/// bundle hashes otherwise, and is then read whole as any source is).
+/// Whether the job's source is a file on shared storage read in place (a bricked volume brick
+/// by brick, or a time series, a 4D file, time point by time point) that hashes, read in
+/// pieces, to the submitted SHA-256: its bytes are then never held whole. A raw file or a
+/// single-file format; a detached header's bundle hashes otherwise, and is then read whole as
+/// any source is.
 async fn hashed_in_place(spec: &JobSpec) -> bool {
-    let (Some(_), Source::Path(p)) = (spec.options.brick, &spec.source) else {
+    let Source::Path(p) = &spec.source else {
         return false;
     };
-    // A 4D file is a time series: read as one (`compress_series_job`), not brick by brick.
-    if !p.is_file() || wavesplat_compressor::reader::time_points(p, None).is_ok_and(|t| t > 1) {
+    if !p.is_file() {
+        return false;
+    }
+    let raw = spec.raw.as_ref().map(options::raw_spec);
+    let series = wavesplat_compressor::reader::time_points(p, raw.as_ref()).is_ok_and(|t| t > 1);
+    if spec.options.brick.is_none() && !series {
         return false;
     }
     let p = p.clone();
@@ -526,16 +532,14 @@ async fn execute(
     let sh = shared.clone();
     let (runner, handle) = (ctx.part_runner(), tokio::runtime::Handle::current());
     let compressed = tokio::task::spawn_blocking(move || {
+        if runner.series_if(&job_spec)?.is_some() {
+            // A time series on shared storage: its units spread over the workers.
+            drop(bytes);
+            return parts::coordinate_series(runner, handle, job_spec, id, attempt, sh);
+        }
         if in_place {
             // A bricked volume on shared storage: its bricks spread over the workers.
             return parts::coordinate(runner, handle, job_spec, id, attempt, sh);
-        }
-        if let Source::Path(_) = &job_spec.source {
-            if runner.series_if(&job_spec)?.is_some() {
-                // A time series on shared storage: its units spread over the workers.
-                drop(bytes);
-                return parts::coordinate_series(runner, handle, job_spec, id, attempt, sh);
-            }
         }
         if let Some(brick) = job_spec.options.brick {
             return pool.install(|| compress_bricked_job(&job_spec, bytes, brick, &opts, &sh));
