@@ -244,8 +244,8 @@ fn a_time_point_is_sent_only_its_components_packets() {
 }
 
 /// The store keeps a series across a restart (the same manifest, bricks and packets); a
-/// damaged component, a cut upload and bytes after the last component are refused, naming
-/// what is wrong, and leave nothing behind.
+/// damaged component, a cut upload, bytes after the last component and a series nested in a
+/// series are refused, naming what is wrong, and leave nothing behind.
 #[test]
 fn the_store_keeps_series_and_refuses_damaged_ones() {
     let wsp = series_file(16);
@@ -303,7 +303,28 @@ fn the_store_keeps_series_and_refuses_damaged_ones() {
     long.extend_from_slice(&[0; 8]);
     let m = refused(&long, "long");
     assert!(m.contains("end at byte") || m.contains("after"), "{m}");
-    for name in ["damaged", "cut", "long"] {
+    // A series whose component 0 is itself a series (the manifest checks out: each component
+    // its bytes and CRC) is refused naming the nesting.
+    let mut manifest = file.manifest.clone();
+    let components: Vec<&[u8]> = manifest
+        .components
+        .iter()
+        .enumerate()
+        .map(|(c, e)| {
+            if c == 0 {
+                wsp.as_slice()
+            } else {
+                &wsp[e.offset as usize..(e.offset + e.length) as usize]
+            }
+        })
+        .collect();
+    let nested = wavesplat_codec::format::series::write_series(&mut manifest, &components).unwrap();
+    let m = refused(&nested, "nested");
+    assert!(
+        m.contains("component 0: a component of a series is itself a series"),
+        "{m}"
+    );
+    for name in ["damaged", "cut", "long", "nested"] {
         assert!(store.resolve(&VolumeKey::Name(name.into())).is_err());
     }
 }
