@@ -1020,3 +1020,61 @@ fn a_time_series_plays_on_when_its_cache_node_is_killed() {
     assert!(count_on(&stdout, "view: played", 2) >= 9, "{stdout}");
     shows_time_point(&shot, &file, 4);
 }
+
+/// A published time series plays in the window from its URL (range requests to a plain web
+/// server) as from its cache: each time point's components fetched when it is first shown or
+/// opened ahead while the one before rests, and after the first loop nothing more is fetched;
+/// the screenshot of a paused time point is that time point's `render` image of the file.
+#[test]
+fn a_published_time_series_plays_from_its_url_in_the_window() {
+    let Some(x) = display_for_window() else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let file = beating_cine(dir.path(), "4");
+    let published = dir.path().join("cine.wspx");
+    let out = Command::new(BIN)
+        .arg("publish")
+        .arg(&file)
+        .arg("-o")
+        .arg(&published)
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", common::text(&out));
+    let server = common::http::TinyServer::start(
+        vec![("/cine.wspx", std::fs::read(&published).unwrap())],
+        &[],
+    );
+    let url = format!("http://{}/cine.wspx", server.url);
+    let shot = dir.path().join("paused.png");
+    let script = format!(
+        "converge; key space; played 8; key space; key right; converge; screenshot {}; quit",
+        shot.display()
+    );
+    let child = view(
+        &x.display,
+        &[
+            &url, "--size", "96x96", "--cpu", "--fps", "1", "--script", &script,
+        ],
+    )
+    .spawn()
+    .unwrap();
+    let (status, stdout, stderr) = finish(child);
+    assert!(
+        status.success(),
+        "exit {status}\nstdout {stdout}\nstderr {stderr}"
+    );
+    assert!(count_on(&stdout, "view: played", 2) >= 8, "{stdout}");
+    assert!(count_on(&stdout, "opened ahead", 1) >= 3, "{stdout}");
+    // Each of the six time points' streams was opened once, in the first loop: an opening
+    // reads the head in one request of HEAD_READ_BYTES, more than this small file, so a time point
+    // opened again in the second loop would take the bytes served past six files.
+    let size = std::fs::metadata(&published).unwrap().len();
+    assert!(size <= wavesplat_codec::format::index::HEAD_READ_BYTES);
+    assert!(
+        server.served() <= 6 * size,
+        "{} bytes served of a {size}-byte file",
+        server.served()
+    );
+    shows_time_point(&shot, &file, 3);
+}

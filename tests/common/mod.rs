@@ -5,6 +5,7 @@
 
 #![allow(dead_code)]
 
+pub mod http;
 pub mod jobs;
 pub mod netns;
 pub mod pki;
