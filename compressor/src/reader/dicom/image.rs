@@ -362,6 +362,7 @@ pub(super) fn read_image_as(
             "Temporal Position Identifier (0020,0100)",
         ),
         (tags::TRIGGER_TIME, "Trigger Time (0018,1060)"),
+        (tags::ACQUISITION_TIME, ACQUISITION_TIME),
     ]
     .into_iter()
     .find_map(|(t, name)| get_str(o, t).map(|v| (Some(v), name)))
@@ -392,6 +393,9 @@ pub(super) fn read_image_as(
         selected: None,
     }))
 }
+
+/// The name of Acquisition Time in messages (and how a time series says it is grouped by it).
+pub(super) const ACQUISITION_TIME: &str = "Acquisition Time (0008,0032)";
 
 /// Attributes that make a multi-frame image's frames instants of one acquisition over time
 /// (cine, gated) rather than slices of a volume.

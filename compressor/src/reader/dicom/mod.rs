@@ -92,7 +92,7 @@ struct Image {
     slice_step: Option<f64>,
     instance: i64,
     /// When the image was taken in a time series: Temporal Position Identifier, else Trigger
-    /// Time (named by `time_attribute`).
+    /// Time, else Acquisition Time (named by `time_attribute`).
     time: Option<String>,
     time_attribute: &'static str,
     /// Photometric Interpretation as the file states it.

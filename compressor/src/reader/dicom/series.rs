@@ -15,6 +15,7 @@ use wavesplat_codec::volume::{Placement, Volume};
 
 use super::geometry::{order_frames, FrameRef, Ordered};
 use super::image::read_image;
+use super::image::ACQUISITION_TIME;
 use super::pixels::{check_pixel_data, decode_frame};
 use super::walk::{has_preamble, parse};
 use super::{dicom_err, tag_name, Image, EXPANSION_SLACK, MAX_FILE_EXPANSION};
@@ -319,8 +320,9 @@ pub type TimeSeries = (Vec<Volume>, Option<Vec<f64>>);
 
 /// A DICOM series directory whose images repeat the same slices at several time points (a
 /// cine MR stack, a 4D CT): each time point's images (grouped by Temporal Position Identifier,
-/// else Trigger Time) decoded as a volume of its own, with every check a volume gets, in time
-/// order; and their times in seconds when Trigger Time gives them. `Ok(None)` when the images
+/// else Trigger Time, else Acquisition Time where slices repeat positions) decoded as a volume
+/// of its own, with every check a volume gets, in time order; and their times in seconds when
+/// Trigger Time or Acquisition Time gives them. `Ok(None)` when the images
 /// are not a time series (no time, or one). Every time point must be of the first's
 /// dimensions and spacing, and every image must say its time: a missing, mixed or unreadable
 /// time is an error naming the file, as is a time point whose slices do not form a volume.
@@ -343,15 +345,29 @@ pub fn read_time_series(dir: &Path) -> Result<Option<TimeSeries>, ReadError> {
         return Ok(None);
     };
     let first = crate::reader::read_file(&path)?;
-    let says_time = read_headers(std::iter::once(Ok((
+    let Some(said) = read_headers(std::iter::once(Ok((
         name.as_str(),
         path.clone(),
         std::borrow::Cow::Borrowed(first.as_slice()),
     ))))?
     .first()
-    .is_some_and(|i| i.time.is_some());
-    if !says_time {
+    .filter(|i| i.time.is_some())
+    .map(|i| i.time_attribute) else {
         return Ok(None);
+    };
+    drop(first);
+    if said == ACQUISITION_TIME {
+        // Most volumes' slices say when each was acquired: grouped by it only when slices
+        // repeat positions. Headers read one file at a time, no bytes kept (a large volume's
+        // series is read by region afterwards).
+        let listed = series_files(dir)?;
+        let images = read_headers(listed.iter().map(|(name, path)| {
+            let bytes = crate::reader::read_file(path)?;
+            Ok((name.as_str(), path.clone(), std::borrow::Cow::Owned(bytes)))
+        }))?;
+        if !positions_repeat(&images) {
+            return Ok(None);
+        }
     }
     let files = gather_series(dir)?;
     let images = read_headers(files.files.iter().map(|(name, bytes)| {
@@ -368,8 +384,8 @@ pub fn read_time_series(dir: &Path) -> Result<Option<TimeSeries>, ReadError> {
     }
     if let Some(i) = images.iter().find(|i| i.time.is_none()) {
         return Err(bad(format!(
-            "a time series whose image {} says no time (Temporal Position Identifier or \
-             Trigger Time) where the others do",
+            "a time series whose image {} says no time (Temporal Position Identifier, \
+             Trigger Time or Acquisition Time) where the others do",
             i.name
         )));
     }
@@ -391,17 +407,17 @@ pub fn read_time_series(dir: &Path) -> Result<Option<TimeSeries>, ReadError> {
     }
     let mut groups: Vec<(f64, Vec<String>)> = Vec::with_capacity(by_text.len());
     for (text, names) in by_text {
-        let value = text
-            .trim()
-            .parse::<f64>()
-            .ok()
-            .filter(|v| v.is_finite())
-            .ok_or_else(|| {
-                bad(format!(
-                    "image {} has {attribute} {text:?}, not a number",
-                    names[0]
-                ))
-            })?;
+        let value = if attribute == ACQUISITION_TIME {
+            seconds_of_day(text)
+        } else {
+            text.trim().parse::<f64>().ok()
+        };
+        let value = value.filter(|v| v.is_finite()).ok_or_else(|| {
+            bad(format!(
+                "image {} has {attribute} {text:?}, not a number",
+                names[0]
+            ))
+        })?;
         groups.push((value, names));
     }
     groups.sort_by(|a, b| a.0.total_cmp(&b.0));
@@ -442,10 +458,52 @@ pub fn read_time_series(dir: &Path) -> Result<Option<TimeSeries>, ReadError> {
         volumes.push(v);
         values.push(value);
     }
-    let times = attribute
-        .starts_with("Trigger Time")
-        .then(|| values.iter().map(|ms| ms / 1000.0).collect());
+    let times = if attribute.starts_with("Trigger Time") {
+        Some(values.iter().map(|ms| ms / 1000.0).collect())
+    } else if attribute == ACQUISITION_TIME {
+        Some(values.iter().map(|s| s - values[0]).collect())
+    } else {
+        None
+    };
     Ok(Some((volumes, times)))
+}
+
+/// A DICOM time of day (TM: `HHMMSS.FFFFFF`, fields from the right optional, or the older
+/// `HH:MM:SS`) in seconds since midnight; `None` when it is not one.
+fn seconds_of_day(text: &str) -> Option<f64> {
+    let t: String = text.trim().chars().filter(|c| *c != ':').collect();
+    let (whole, fraction) = t.split_once('.').unwrap_or((&t, ""));
+    if whole.len() < 2 || whole.len() % 2 != 0 || whole.len() > 6 {
+        return None;
+    }
+    if !whole.bytes().all(|b| b.is_ascii_digit()) || !fraction.bytes().all(|b| b.is_ascii_digit()) {
+        return None;
+    }
+    let field = |i: usize| {
+        whole
+            .get(2 * i..2 * i + 2)
+            .map_or(Some(0.0), |f| f.parse::<f64>().ok())
+    };
+    let (h, m, s) = (field(0)?, field(1)?, field(2)?);
+    if h > 23.0 || m > 59.0 || s > 60.0 {
+        return None;
+    }
+    let frac = if fraction.is_empty() {
+        0.0
+    } else {
+        format!("0.{fraction}").parse::<f64>().ok()?
+    };
+    Some(h * 3600.0 + m * 60.0 + s + frac)
+}
+
+/// Whether two frames of `images` lie at one position (to a micrometre): slices repeated at
+/// several times, not one volume.
+fn positions_repeat(images: &[Image]) -> bool {
+    let mut seen = std::collections::HashSet::new();
+    images
+        .iter()
+        .flat_map(|i| i.frame_list().into_iter().filter_map(|f| i.positions[f]))
+        .any(|p| !seen.insert(p.map(|x| (x * 1000.0).round() as i64)))
 }
 
 /// A multi-frame DICOM file whose frames are instants of one slice over time (a cine MR slice,

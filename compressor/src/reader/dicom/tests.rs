@@ -2221,7 +2221,9 @@ fn write_4d(
 
 /// A 4D series read as a time series: each time point (grouped by Trigger Time, in the order
 /// of its value, not of the text) decodes as that volume, with its time in seconds; by
-/// Temporal Position Identifier, without times. One volume's reader still refuses it.
+/// Temporal Position Identifier, without times; by Acquisition Time only where slices repeat
+/// positions (a volume whose slices each have their own is one volume). One volume's reader
+/// still refuses it.
 #[test]
 fn a_4d_series_reads_as_time_points_in_time_order() {
     let vols: Vec<Volume> = (0..3)
@@ -2273,6 +2275,35 @@ fn a_4d_series_reads_as_time_points_in_time_order() {
     };
     write_dicom_series(one.path(), &vols[0], &o);
     assert!(read_time_series(one.path()).unwrap().is_none());
+
+    // By Acquisition Time (TM), when slices repeat positions: times from the first.
+    let dir = tempfile::tempdir().unwrap();
+    let at = ["235958", "235958.5", "23:59:59.75"];
+    let series = write_4d(dir.path(), &vols, (tags::ACQUISITION_TIME, VR::TM), &|t| {
+        at[t].into()
+    });
+    let (back, times) = read_time_series(&series).unwrap().expect("a time series");
+    assert_eq!(times, Some(vec![0.0, 0.5, 1.75]));
+    assert_same(&back[1], &vols[1], "time point 1 by Acquisition Time");
+    // A volume whose slices each say their own Acquisition Time (a helical CT) is one volume.
+    for (z, f) in write_dicom_series(one.path(), &vols[0], &o)
+        .iter()
+        .enumerate()
+    {
+        let mut obj = open_file(f).unwrap();
+        obj.put(DataElement::new(
+            tags::ACQUISITION_TIME,
+            VR::TM,
+            PrimitiveValue::from(format!("1015{:02}.25", 10 + z)),
+        ));
+        obj.write_to_file(f).unwrap();
+    }
+    assert!(read_time_series(one.path()).unwrap().is_none());
+    assert_same(
+        &read_volume(one.path(), None).unwrap(),
+        &vols[0],
+        "a volume with per-slice times",
+    );
 }
 
 /// A 4D series with a time point missing a slice, an image without its time or a time that is
