@@ -4,9 +4,9 @@
 
 use crate::error::ClientError;
 use crate::model::{
-    parse_coder, parse_colorspace, parse_family, Delivery, Failure, FailureKind, Job, JobOptions,
-    JobSpec, JobState, Outcome, PartColor, PartSpec, PartStep, RawLayout, SampleType, Source,
-    TargetSpec,
+    parse_coder, parse_colorspace, parse_effort, parse_family, Delivery, Effort, Failure,
+    FailureKind, Job, JobOptions, JobSpec, JobState, Outcome, PartColor, PartSpec, PartStep,
+    RawLayout, SampleType, Source, TargetSpec,
 };
 use wavesplat_proto::pb;
 
@@ -181,6 +181,11 @@ fn options_from_pb(o: pb::CompressOptions) -> Result<JobOptions, ClientError> {
         layer_growth: o.layer_growth,
         brick: o.brick.map(to_usize),
         time_group: o.time_group.map(to_usize),
+        effort: if o.effort.is_empty() {
+            d.effort
+        } else {
+            parse_effort(&o.effort)?
+        },
     })
 }
 
@@ -226,6 +231,10 @@ pub fn spec_to_pb(s: &JobSpec) -> pb::JobSpec {
             layer_growth: o.layer_growth,
             brick: o.brick.map(u32_of),
             time_group: o.time_group.map(u32_of),
+            effort: match o.effort {
+                Effort::Default => String::new(),
+                e => e.name().into(),
+            },
         }),
         part: s.part.as_ref().map(part_to_pb),
     }

@@ -264,6 +264,50 @@ pub struct JobOptions {
     /// (`None`: 8).
     #[serde(default)]
     pub time_group: Option<usize>,
+    /// Compression effort (the options above given too override it). Left out of the stored
+    /// form when it is the default, so that a job's identity is what it was before efforts.
+    #[serde(default, skip_serializing_if = "Effort::is_default")]
+    pub effort: Effort,
+}
+
+/// Compression effort of a job, by name (the compressor's `Effort`: fast, default, best).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Effort {
+    /// The depth predicted, no refinement.
+    Fast,
+    /// Depths compared, three refinement rounds.
+    #[default]
+    Default,
+    /// More refinement.
+    Best,
+}
+
+impl Effort {
+    /// Its name.
+    pub fn name(self) -> &'static str {
+        match self {
+            Effort::Fast => "fast",
+            Effort::Default => "default",
+            Effort::Best => "best",
+        }
+    }
+
+    fn is_default(&self) -> bool {
+        *self == Effort::Default
+    }
+}
+
+/// Parses an effort name.
+pub fn parse_effort(name: &str) -> Result<Effort, ClientError> {
+    match name.trim().to_ascii_lowercase().as_str() {
+        "fast" => Ok(Effort::Fast),
+        "default" => Ok(Effort::Default),
+        "best" => Ok(Effort::Best),
+        _ => Err(invalid(format!(
+            "effort {name:?}; allowed fast, default, best"
+        ))),
+    }
 }
 
 pub use wavesplat_codec::format::bricked::MIN_BRICK;
@@ -288,6 +332,7 @@ impl Default for JobOptions {
             layer_growth: None,
             brick: None,
             time_group: None,
+            effort: Effort::Default,
         }
     }
 }

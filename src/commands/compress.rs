@@ -11,7 +11,7 @@ use wavesplat_codec::volume::{Volume, MAX_VOXELS};
 use wavesplat_compressor::bricked::{compress_bricked, BrickSource, BrickStage};
 use wavesplat_compressor::colorspace::ColorSpaceKind;
 use wavesplat_compressor::encode::{
-    compress, memory_estimate, CompressOptions, Compressed, Stage, Target, TileChoice,
+    compress, memory_estimate, CompressOptions, Compressed, Effort, Stage, Target, TileChoice,
     PROCESS_MEMORY,
 };
 use wavesplat_compressor::order::Clustering;
@@ -99,6 +99,13 @@ pub struct CompressArgs {
     /// Quantizer step of the sigmap coder relative to each band's smallest kept magnitude.
     #[arg(long, default_value_t = 1.0)]
     pub step: f64,
+    /// Compression effort: fast (the depth predicted from the rate instead of compared, no
+    /// least-squares refinement), default (depths compared, three refinement rounds) or best
+    /// (more refinement rounds and iterations). --levels, --refine-rounds,
+    /// --refine-iterations and --no-refine given too override it. What each costs and buys:
+    /// BENCHMARKS.md, "Compression effort".
+    #[arg(long, default_value = "default", value_parser = parse_effort)]
+    pub effort: Effort,
     /// Rounds of least-squares refinement of the kept set (iterative hard thresholding with
     /// conjugate-gradient refits; splines only). 0 refits the oracle's selection only;
     /// --no-refine sends the oracle's exact coefficients, as the paper does (default 3).
@@ -529,15 +536,38 @@ pub fn options(a: &CompressArgs) -> Result<CompressOptions> {
             threshold: a.cluster_threshold,
         }),
         step: a.step,
-        refine: (!a.no_refine).then(|| {
-            let d = RefineOptions::default();
-            RefineOptions {
-                rounds: a.refine_rounds.unwrap_or(d.rounds),
-                cg_iterations: a.refine_iterations.unwrap_or(d.cg_iterations),
-            }
-        }),
+        depth_search: a.effort.depth_search(),
+        refine: refine_options(a.effort, a.no_refine, a.refine_rounds, a.refine_iterations),
         memory_limit: a.memory_limit,
     })
+}
+
+/// The refinement `effort` runs, with the flags given on top: `--no-refine` none, a round or
+/// iteration count one (from the effort's, or the default's when the effort has none).
+pub fn refine_options(
+    effort: Effort,
+    no_refine: bool,
+    rounds: Option<usize>,
+    iterations: Option<usize>,
+) -> Option<RefineOptions> {
+    if no_refine {
+        return None;
+    }
+    let asked = rounds.is_some() || iterations.is_some();
+    let base = match effort.refine() {
+        Some(r) => r,
+        None if asked => RefineOptions::default(),
+        None => return None,
+    };
+    Some(RefineOptions {
+        rounds: rounds.unwrap_or(base.rounds),
+        cg_iterations: iterations.unwrap_or(base.cg_iterations),
+    })
+}
+
+fn parse_effort(s: &str) -> Result<Effort, String> {
+    Effort::from_name(s)
+        .ok_or_else(|| format!("unknown effort {s:?}; one of {}", Effort::NAMES.join(", ")))
 }
 
 /// Runs the subcommand.

@@ -151,6 +151,9 @@ pub struct JobOptionArgs {
     /// Default 8.
     #[arg(long, value_name = "G")]
     pub time_group: Option<usize>,
+    /// Compression effort: fast, default, best (see `compress --help`).
+    #[arg(long, default_value = "default")]
+    pub effort: String,
 }
 
 impl JobOptionArgs {
@@ -178,6 +181,7 @@ impl JobOptionArgs {
             layer_growth: self.layer_growth,
             brick: self.brick,
             time_group: self.time_group,
+            effort: model::parse_effort(&self.effort)?,
         }
         .validate()?)
     }

@@ -2,16 +2,17 @@
 //! submission) become the compressor's: [`compress_options`] and [`raw_spec`].
 
 use wavesplat_compressor::colorspace::ColorSpaceKind;
-use wavesplat_compressor::encode::{CompressOptions, Target, TileChoice};
+use wavesplat_compressor::encode::{CompressOptions, Effort, Target, TileChoice};
 use wavesplat_compressor::reader::{Endian, RawDtype, RawSpec};
 use wavesplat_compressor::refine::RefineOptions;
 use wavesplat_orchestrator_client::model::{
-    ColorSpace, JobOptions, RawLayout, SampleType, TargetSpec,
+    self, ColorSpace, JobOptions, RawLayout, SampleType, TargetSpec,
 };
 
 /// The compressor's options for a job.
 pub fn compress_options(o: &JobOptions) -> CompressOptions {
     let d = CompressOptions::default();
+    let effort = effort(o.effort);
     CompressOptions {
         family: o.family,
         levels: o.levels,
@@ -33,11 +34,36 @@ pub fn compress_options(o: &JobOptions) -> CompressOptions {
         layers: o.layers,
         layer_growth: o.layer_growth.unwrap_or(d.layer_growth),
         step: o.step,
-        refine: (!o.no_refine).then(|| RefineOptions {
-            rounds: o.refine_rounds.unwrap_or(RefineOptions::default().rounds),
+        depth_search: effort.depth_search(),
+        refine: refine_options(effort, o.no_refine, o.refine_rounds),
+        ..d
+    }
+}
+
+/// The compressor's effort of a job's.
+pub fn effort(e: model::Effort) -> Effort {
+    match e {
+        model::Effort::Fast => Effort::Fast,
+        model::Effort::Default => Effort::Default,
+        model::Effort::Best => Effort::Best,
+    }
+}
+
+/// The refinement of `effort` with a job's flags on top (as `compress` has it).
+fn refine_options(effort: Effort, no_refine: bool, rounds: Option<usize>) -> Option<RefineOptions> {
+    if no_refine {
+        return None;
+    }
+    match (effort.refine(), rounds) {
+        (Some(r), rounds) => Some(RefineOptions {
+            rounds: rounds.unwrap_or(r.rounds),
+            ..r
+        }),
+        (None, Some(rounds)) => Some(RefineOptions {
+            rounds,
             ..RefineOptions::default()
         }),
-        ..d
+        (None, None) => None,
     }
 }
 
@@ -101,5 +127,43 @@ mod tests {
         assert!(c.refine.is_none());
         assert!(matches!(c.target, Target::Bytes(1000)));
         assert!(matches!(c.tile, TileChoice::Size(8)));
+    }
+
+    /// A job's effort gives the compressor's options of that effort, and the job's refinement
+    /// flags still override it.
+    #[test]
+    fn a_jobs_effort_is_the_compressors() {
+        for e in [
+            model::Effort::Fast,
+            model::Effort::Default,
+            model::Effort::Best,
+        ] {
+            let o = JobOptions {
+                effort: e,
+                ..JobOptions::default()
+            };
+            let want = effort(e).options();
+            let got = compress_options(&o);
+            assert_eq!(
+                (got.depth_search, got.refine),
+                (want.depth_search, want.refine)
+            );
+            assert_eq!(effort(e).name(), e.name());
+        }
+        let fast_refined = JobOptions {
+            effort: model::Effort::Fast,
+            refine_rounds: Some(1),
+            ..JobOptions::default()
+        };
+        assert_eq!(
+            compress_options(&fast_refined).refine.map(|r| r.rounds),
+            Some(1)
+        );
+        let best_plain = JobOptions {
+            effort: model::Effort::Best,
+            no_refine: true,
+            ..JobOptions::default()
+        };
+        assert!(compress_options(&best_plain).refine.is_none());
     }
 }

@@ -25,8 +25,8 @@ mod rate;
 
 pub use memory::{memory_estimate, PROCESS_MEMORY};
 pub use options::{
-    default_levels, CompressError, CompressOptions, CompressStats, Compressed, Stage, Target,
-    TileChoice, LAYER_GROWTH,
+    default_levels, CompressError, CompressOptions, CompressStats, Compressed, DepthSearch, Effort,
+    Stage, Target, TileChoice, LAYER_GROWTH,
 };
 use prepare::{code, prepare};
 pub use prepare::{default_margin, COARSE_LAYER_MIN_LEVELS, STRUCTURED_FACES};
@@ -410,6 +410,29 @@ mod tests {
         let (one, _) = memory_estimate([64, 64, 64], 1, &bytes(Some(3))).unwrap();
         let (two, _) = memory_estimate([64, 64, 64], 1, &bytes(None)).unwrap();
         assert!(two > one, "{two} <= {one}");
+    }
+
+    /// A predicted depth (the fast effort) tries no second depth: the default one where the
+    /// file cannot afford a shallower coarse band, shallower where it can, as the comparison
+    /// would go; a given depth is kept as given.
+    #[test]
+    fn a_predicted_depth_goes_shallower_only_where_the_file_affords_it() {
+        let v = crate::phantom::Phantom::SheppLogan.generate([32, 32, 32]);
+        let levels = |bytes: u64, given: Option<usize>| {
+            let o = CompressOptions {
+                target: Target::Bytes(bytes),
+                levels: given,
+                ..Effort::Fast.options()
+            };
+            assert_eq!(depth_candidates([32, 32, 32], &o), vec![given.unwrap_or(3)]);
+            let c = compress(&v, &o, &|_, _| {}).unwrap();
+            assert!(c.stats.bytes <= bytes);
+            c.header.geometry.levels
+        };
+        assert_eq!(levels(1_000, None), 3);
+        let high = levels(40_000, None);
+        assert!(high < 3, "{high}");
+        assert_eq!(levels(40_000, Some(3)), 3);
     }
 
     /// The first refined-set size falls back to the oracle's when the pilot tells nothing,

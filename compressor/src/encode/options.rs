@@ -46,6 +46,8 @@ pub struct CompressOptions {
     /// Decomposition depth M (`None`: [`default_levels`]; a byte target compares it with one
     /// level less, and shallower ones at high rates, see [`depth_candidates`]).
     pub levels: Option<usize>,
+    /// How a byte target without a depth chooses one.
+    pub depth_search: DepthSearch,
     /// Zero margin in voxels around the volume (`None`: [`default_margin`]). Every margin renders
     /// exactly: below [`Geometry::separating_margin`] the renderer clips basis functions to the
     /// volume's box.
@@ -101,6 +103,7 @@ impl Default for CompressOptions {
         CompressOptions {
             family: Family::Linear,
             levels: None,
+            depth_search: DepthSearch::Compare,
             margin: None,
             smooth_padding: false,
             offset: None,
@@ -120,6 +123,86 @@ impl Default for CompressOptions {
             step: 1.0,
             refine: Some(RefineOptions::default()),
             memory_limit: None,
+        }
+    }
+}
+
+/// How a byte target without a given depth chooses the decomposition depth.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum DepthSearch {
+    /// Compress at [`default_levels`] and one level less (and shallower while the shallowest
+    /// wins and its file affords the next coarse band), keeping the depth whose X-ray views
+    /// come closer: one more transform and oracle pass per depth.
+    Compare,
+    /// Take [`default_levels`], going one level shallower only while the file there affords
+    /// the next coarse band ([`crate::encode::worth_going_shallower`]), which the comparison's
+    /// measurements say is when the shallower depth wins: no views computed, no depth
+    /// compressed that is not kept.
+    Predict,
+}
+
+/// How much work compression spends for quality: a preset of the options that cost time
+/// (the depth search, the least-squares refinement), which flags given on top override.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Effort {
+    /// The depth predicted, no refinement: the oracle's coefficients as the paper sends them.
+    Fast,
+    /// Depths compared, three rounds of refinement.
+    #[default]
+    Default,
+    /// Depths compared, more refinement rounds and conjugate-gradient iterations.
+    Best,
+}
+
+impl Effort {
+    /// Every effort's name, fastest first.
+    pub const NAMES: [&'static str; 3] = ["fast", "default", "best"];
+
+    /// The effort named `name` (`fast`, `default`, `best`).
+    pub fn from_name(name: &str) -> Option<Effort> {
+        match name {
+            "fast" => Some(Effort::Fast),
+            "default" => Some(Effort::Default),
+            "best" => Some(Effort::Best),
+            _ => None,
+        }
+    }
+
+    /// Its name.
+    pub fn name(self) -> &'static str {
+        match self {
+            Effort::Fast => "fast",
+            Effort::Default => "default",
+            Effort::Best => "best",
+        }
+    }
+
+    /// The depth search of this effort.
+    pub fn depth_search(self) -> DepthSearch {
+        match self {
+            Effort::Fast => DepthSearch::Predict,
+            Effort::Default | Effort::Best => DepthSearch::Compare,
+        }
+    }
+
+    /// The refinement of this effort (`None`: none).
+    pub fn refine(self) -> Option<RefineOptions> {
+        match self {
+            Effort::Fast => None,
+            Effort::Default => Some(RefineOptions::default()),
+            Effort::Best => Some(RefineOptions {
+                rounds: 6,
+                cg_iterations: 4,
+            }),
+        }
+    }
+
+    /// The default options with this effort's choices.
+    pub fn options(self) -> CompressOptions {
+        CompressOptions {
+            depth_search: self.depth_search(),
+            refine: self.refine(),
+            ..CompressOptions::default()
         }
     }
 }

@@ -4,7 +4,9 @@
 //! writes.
 
 use super::encoder::finish;
-use super::options::{default_levels, CompressError, CompressOptions, Compressed, Stage};
+use super::options::{
+    default_levels, CompressError, CompressOptions, Compressed, DepthSearch, Stage,
+};
 use super::prepare::{code, prepare, Prepared, Ranked};
 use crate::refine::{pad_f32, RefineOptions};
 use wavesplat_codec::format::CoderKind;
@@ -34,7 +36,7 @@ pub(super) fn depth_candidates(dims: [usize; 3], opts: &CompressOptions) -> Vec<
         Some(m) => vec![m],
         None => {
             let d = default_levels(dims, opts.family);
-            if d >= 2 {
+            if d >= 2 && opts.depth_search == DepthSearch::Compare {
                 vec![d, d - 1]
             } else {
                 vec![d]
@@ -104,7 +106,8 @@ pub(super) fn compress_to_bytes(
         // differ); it is an error only when it fits neither.
         let (ranked, plain) = match oracle_to_bytes(&prepared, &o, target, &mut trials, progress) {
             Ok(found) => found,
-            Err(e @ CompressError::TargetTooSmall { .. }) if comparing => {
+            // (A predicted shallower depth that does not fit leaves the deeper file kept.)
+            Err(e @ CompressError::TargetTooSmall { .. }) if comparing || best.is_some() => {
                 tracing::debug!(levels = m, error = %e, "depth candidate does not fit");
                 // The error names the smallest file of any depth.
                 let smaller = |a: &CompressError, b: &CompressError| match (a, b) {
@@ -122,7 +125,16 @@ pub(super) fn compress_to_bytes(
             Err(e) => return Err(e),
         };
         if !comparing {
+            // A predicted depth goes one level shallower while the file affords its coarse
+            // band (the comparison's own rule for trying it), and takes it unseen.
+            let shallower = opts.depth_search == DepthSearch::Predict
+                && opts.levels.is_none()
+                && worth_going_shallower(plain.stats.kept, prepared.channels, &prepared.geometry);
             best = Some((0.0, prepared, ranked, plain));
+            if shallower {
+                depths.push(m - 1);
+                continue;
+            }
             break;
         }
         let error = prepared.view_error(&plain);
