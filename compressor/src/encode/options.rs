@@ -134,10 +134,10 @@ pub enum DepthSearch {
     /// wins and its file affords the next coarse band), keeping the depth whose X-ray views
     /// come closer: one more transform and oracle pass per depth.
     Compare,
-    /// Take [`default_levels`], going one level shallower only while the file there affords
-    /// the next coarse band ([`crate::encode::worth_going_shallower`]), which the comparison's
-    /// measurements say is when the shallower depth wins: no views computed, no depth
-    /// compressed that is not kept.
+    /// Take [`default_levels`], going shallower while the file there affords the next coarse
+    /// band ([`crate::encode::worth_going_shallower`], taken for every level at once), which
+    /// the comparison's measurements say is when the shallower depth wins: no views computed,
+    /// at most two depths compressed.
     Predict,
 }
 

@@ -57,13 +57,36 @@ const SHALLOWER_KEPT: f64 = 0.8;
 /// Whether a file of `kept` coefficients over `channels` at `geometry`'s depth M makes depth
 /// M − 1 worth a try ([`SHALLOWER_KEPT`]; never below M = 1).
 pub fn worth_going_shallower(kept: u64, channels: usize, geometry: &Geometry) -> bool {
-    let m = geometry.levels;
+    affords_coarse_band(
+        kept,
+        channels,
+        geometry.coefficient_count(),
+        geometry.levels,
+    )
+}
+
+/// Whether `kept` coefficients over `channels` on a grid of `count` coefficients per channel
+/// at depth `m` make depth m − 1 worth a try ([`SHALLOWER_KEPT`] of its coarse band).
+fn affords_coarse_band(kept: u64, channels: usize, count: usize, m: usize) -> bool {
     if m < 2 || channels == 0 {
         return false;
     }
     // The coarse band of M − 1 on this grid (the shallower grid is at most this large).
-    let coarse = geometry.coefficient_count() as f64 / 8f64.powi(m as i32 - 1);
+    let coarse = count as f64 / 8f64.powi(m as i32 - 1);
     kept as f64 / channels as f64 >= SHALLOWER_KEPT * coarse
+}
+
+/// The depth a predicted search goes to from a file of `kept` coefficients at `geometry`'s
+/// depth: one level shallower while that many coefficients would afford the next coarse band
+/// (the grid's size taken for the shallower grids': each step of the comparison's rule, taken
+/// at once instead of compressing at every depth between).
+fn predicted_depth(kept: u64, channels: usize, geometry: &Geometry) -> usize {
+    let count = geometry.coefficient_count();
+    let mut m = geometry.levels;
+    while affords_coarse_band(kept, channels, count, m) {
+        m -= 1;
+    }
+    m
 }
 
 /// Byte target. Per candidate depth ([`depth_candidates`]) the oracle's order is searched for
@@ -125,14 +148,16 @@ pub(super) fn compress_to_bytes(
             Err(e) => return Err(e),
         };
         if !comparing {
-            // A predicted depth goes one level shallower while the file affords its coarse
-            // band (the comparison's own rule for trying it), and takes it unseen.
-            let shallower = opts.depth_search == DepthSearch::Predict
-                && opts.levels.is_none()
-                && worth_going_shallower(plain.stats.kept, prepared.channels, &prepared.geometry);
+            // A predicted depth goes shallower while the file affords the next coarse band
+            // (the comparison's own rule for trying it), and takes it unseen.
+            let to = if opts.depth_search == DepthSearch::Predict && opts.levels.is_none() {
+                predicted_depth(plain.stats.kept, prepared.channels, &prepared.geometry)
+            } else {
+                m
+            };
             best = Some((0.0, prepared, ranked, plain));
-            if shallower {
-                depths.push(m - 1);
+            if to < m {
+                depths.push(to);
                 continue;
             }
             break;
