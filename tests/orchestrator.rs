@@ -134,6 +134,23 @@ fn one_process_file(
         .bytes
 }
 
+/// The series file one process makes of the 4D NIfTI at `path` with a job's options (depth 2,
+/// as [`submit`] asks), temporal groups of `group` and `fraction` of the coefficients.
+fn one_process_series(path: &Path, group: usize, fraction: f64) -> Vec<u8> {
+    let options = wavesplat_orchestrator_client::model::JobOptions {
+        levels: Some(2),
+        time_group: Some(group),
+        target: wavesplat_orchestrator_client::model::TargetSpec::Fraction(fraction),
+        ..Default::default()
+    };
+    let opts = wavesplat_worker::options::compress_options(&options);
+    let reader =
+        wavesplat_compressor::reader::region::RegionReader::open_series(path, None).unwrap();
+    wavesplat_compressor::series::compress_series(&reader, &opts, group, 256, &|_| {})
+        .unwrap()
+        .bytes
+}
+
 /// The cache holds one volume, and its content is `file` (by SHA-256).
 async fn assert_cache_holds_only(cache: &str, file: &[u8]) {
     let mut client = CacheClient::connect(cache).await.unwrap();
@@ -1082,7 +1099,6 @@ async fn a_source_changed_midway_fails_the_bricked_job_clearly() {
 async fn a_time_series_in_an_archive_is_one_volume_in_the_cache() {
     use wavesplat_codec::volume::Volume;
     use wavesplat_compressor::phantom::beating;
-    use wavesplat_compressor::series::compress_series;
     use wavesplat_fixtures::{write_dicom_cine, write_nifti_series, DicomOptions, Layout};
     const POINTS: usize = 5;
     let cl = TestCluster::start(&ORCH_TIMING);
@@ -1175,21 +1191,7 @@ async fn a_time_series_in_an_archive_is_one_volume_in_the_cache() {
     let all = cli_ok(&["jobs", "list", "--parts", "--orchestrator", &o]);
     assert!(all.contains("series unit 5/5 scoring"), "{all}");
     // The NIfTI's series is what one process makes of the same time points and options.
-    let options = wavesplat_orchestrator_client::model::JobOptions {
-        levels: Some(2),
-        time_group: Some(4),
-        target: wavesplat_orchestrator_client::model::TargetSpec::Fraction(0.2),
-        ..Default::default()
-    };
-    let opts = wavesplat_worker::options::compress_options(&options);
-    let reader = wavesplat_compressor::reader::region::RegionReader::open_series(
-        &dir.join("heart.nii"),
-        None,
-    )
-    .unwrap();
-    let one = compress_series(&reader, &opts, 4, 256, &|_| {})
-        .unwrap()
-        .bytes;
+    let one = one_process_series(&dir.join("heart.nii"), 4, 0.2);
     let mut client = CacheClient::connect(&c).await.unwrap();
     let listed = client.list().await.unwrap();
     assert_eq!(listed.len(), 3, "{listed:?}");
@@ -1227,7 +1229,6 @@ async fn a_time_series_in_an_archive_is_one_volume_in_the_cache() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_series_job_survives_its_coordinators_death() {
     use wavesplat_compressor::phantom::beating;
-    use wavesplat_compressor::series::compress_series;
     use wavesplat_fixtures::write_nifti_series;
     const POINTS: usize = 6;
     let cl = TestCluster::start(&ORCH_TIMING);
@@ -1269,18 +1270,7 @@ async fn a_series_job_survives_its_coordinators_death() {
     .await;
     let job = js.iter().find(|j| j.id == parent).unwrap();
     assert_eq!(job.attempts, 2, "taken over once: {job:?}");
-    let options = wavesplat_orchestrator_client::model::JobOptions {
-        levels: Some(2),
-        time_group: Some(4),
-        target: wavesplat_orchestrator_client::model::TargetSpec::Fraction(0.1),
-        ..Default::default()
-    };
-    let opts = wavesplat_worker::options::compress_options(&options);
-    let reader =
-        wavesplat_compressor::reader::region::RegionReader::open_series(&path, None).unwrap();
-    let one = compress_series(&reader, &opts, 4, 256, &|_| {})
-        .unwrap()
-        .bytes;
+    let one = one_process_series(&path, 4, 0.1);
     assert_eq!(job.output_bytes, one.len() as u64);
     assert_cache_holds_only(&c, &one).await;
 }

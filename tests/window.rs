@@ -905,42 +905,41 @@ fn a_time_series_plays_from_a_cache_in_the_window() {
     let file = beating_cine(dir.path(), "4");
     let server = wavesplat_harness::LocalCache::start(&dir.path().join("db")).unwrap();
     ingest_cine(&file, &server.url);
-    let shot = dir.path().join("paused.png");
+    plays_and_steps(
+        &x.display,
+        &["--cache", &server.url, "--volume", "cine"],
+        dir.path(),
+        &file,
+    );
+}
+
+/// Plays the six-time-point `file`'s series from `source` in the window at one time point
+/// per second (slow enough that each rests converged: the next is opened ahead), pauses after
+/// 8 moves and steps once, and checks: played through, the first loop's moves (all but the
+/// first time point's) went to time points opened ahead, and the screenshot of the time point
+/// paused on (9 mod 6 = 3) is its `render` image of the file, drawn that way.
+fn plays_and_steps(display: &str, source: &[&str], dir: &Path, file: &Path) {
+    let shot = dir.join("paused.png");
     let script = format!(
         "converge; key space; played 8; key space; key right; converge; screenshot {}; quit",
         shot.display()
     );
-    let child = view(
-        &x.display,
-        &[
-            "--cache",
-            &server.url,
-            "--volume",
-            "cine",
-            "--size",
-            "96x96",
-            "--cpu",
-            // Slow enough that each time point rests converged: the next is opened ahead.
-            "--fps",
-            "1",
-            "--script",
-            &script,
-        ],
-    )
-    .env_remove("WAVESPLAT_CA")
-    .spawn()
-    .unwrap();
+    let mut args = source.to_vec();
+    args.extend([
+        "--size", "96x96", "--cpu", "--fps", "1", "--script", &script,
+    ]);
+    let child = view(display, &args)
+        .env_remove("WAVESPLAT_CA")
+        .spawn()
+        .unwrap();
     let (status, stdout, stderr) = finish(child);
     assert!(
         status.success(),
         "exit {status}\nstdout {stdout}\nstderr {stderr}"
     );
     assert!(count_on(&stdout, "view: played", 2) >= 8, "{stdout}");
-    // The first loop's moves (all but the first time point's) went to time points opened
-    // ahead; the screenshot below is of one drawn that way.
     assert!(count_on(&stdout, "opened ahead", 1) >= 3, "{stdout}");
-    // Paused after 8 moves from time point 0, then one step on: time point 9 mod 6 = 3.
-    shows_time_point(&shot, &file, 3);
+    shows_time_point(&shot, file, 3);
 }
 
 /// A time series plays on when the cache node it streams from is killed: two nodes over one
@@ -1046,26 +1045,7 @@ fn a_published_time_series_plays_from_its_url_in_the_window() {
         &[],
     );
     let url = format!("http://{}/cine.wspx", server.url);
-    let shot = dir.path().join("paused.png");
-    let script = format!(
-        "converge; key space; played 8; key space; key right; converge; screenshot {}; quit",
-        shot.display()
-    );
-    let child = view(
-        &x.display,
-        &[
-            &url, "--size", "96x96", "--cpu", "--fps", "1", "--script", &script,
-        ],
-    )
-    .spawn()
-    .unwrap();
-    let (status, stdout, stderr) = finish(child);
-    assert!(
-        status.success(),
-        "exit {status}\nstdout {stdout}\nstderr {stderr}"
-    );
-    assert!(count_on(&stdout, "view: played", 2) >= 8, "{stdout}");
-    assert!(count_on(&stdout, "opened ahead", 1) >= 3, "{stdout}");
+    plays_and_steps(&x.display, &[&url], dir.path(), &file);
     // Each of the six time points' streams was opened once, in the first loop: an opening
     // reads the head in one request of HEAD_READ_BYTES, more than this small file, so a time point
     // opened again in the second loop would take the bytes served past six files.
@@ -1076,5 +1056,4 @@ fn a_published_time_series_plays_from_its_url_in_the_window() {
         "{} bytes served of a {size}-byte file",
         server.served()
     );
-    shows_time_point(&shot, &file, 3);
 }

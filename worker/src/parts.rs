@@ -279,14 +279,25 @@ fn compute_part(
     let plan = part_plan(spec, part, source)?;
     let i = part.index as usize;
     let voxels = plan.grid[i].1.iter().map(|d| *d as u64).product();
-    let bytes = match part.step {
-        PartStep::Score { energies } => plan
-            .score(source, i)
-            .map_err(brick_failure)?
-            .to_bytes(energies),
-        PartStep::Encode { count, .. } => plan.encode(source, i, count).map_err(brick_failure)?.0,
-    };
+    let bytes = run_step(
+        part.step,
+        || plan.score(source, i),
+        |count| plan.encode(source, i, count),
+    )?;
     Ok((bytes, voxels))
+}
+
+/// A part's step run by `score` or `encode`: its result's bytes (a score summary, or the
+/// brick's file).
+fn run_step(
+    step: PartStep,
+    score: impl FnOnce() -> Result<ScoreSummary, BrickError>,
+    encode: impl FnOnce(Option<u64>) -> Result<(Vec<u8>, u64), BrickError>,
+) -> Result<Vec<u8>, Failure> {
+    Ok(match step {
+        PartStep::Score { energies } => score().map_err(brick_failure)?.to_bytes(energies),
+        PartStep::Encode { count, .. } => encode(count).map_err(brick_failure)?.0,
+    })
 }
 
 /// Runs one unit of a time series: the plan made again from the parent's choices, nothing
@@ -330,13 +341,11 @@ fn compute_series_part(
     let u = part.index as usize;
     let (c, i) = plan.units[u];
     let voxels = plan.plans[c].grid[i].1.iter().map(|d| *d as u64).product();
-    let bytes = match part.step {
-        PartStep::Score { energies } => plan
-            .score(series, u)
-            .map_err(brick_failure)?
-            .to_bytes(energies),
-        PartStep::Encode { count, .. } => plan.encode(series, u, count).map_err(brick_failure)?.0,
-    };
+    let bytes = run_step(
+        part.step,
+        || plan.score(series, u),
+        |count| plan.encode(series, u, count),
+    )?;
     Ok((bytes, voxels))
 }
 
