@@ -281,8 +281,8 @@ fn compute_part(
     let voxels = plan.grid[i].1.iter().map(|d| *d as u64).product();
     let bytes = run_step(
         part.step,
-        || plan.score(source, i),
-        |count| plan.encode(source, i, count),
+        || plan.score(source, i).map_err(brick_failure),
+        |count| plan.encode(source, i, count).map_err(brick_failure),
     )?;
     Ok((bytes, voxels))
 }
@@ -291,12 +291,12 @@ fn compute_part(
 /// brick's file).
 fn run_step(
     step: PartStep,
-    score: impl FnOnce() -> Result<ScoreSummary, BrickError>,
-    encode: impl FnOnce(Option<u64>) -> Result<(Vec<u8>, u64), BrickError>,
+    score: impl FnOnce() -> Result<ScoreSummary, Failure>,
+    encode: impl FnOnce(Option<u64>) -> Result<(Vec<u8>, u64), Failure>,
 ) -> Result<Vec<u8>, Failure> {
     Ok(match step {
-        PartStep::Score { energies } => score().map_err(brick_failure)?.to_bytes(energies),
-        PartStep::Encode { count, .. } => encode(count).map_err(brick_failure)?.0,
+        PartStep::Score { energies } => score()?.to_bytes(energies),
+        PartStep::Encode { count, .. } => encode(count)?.0,
     })
 }
 
@@ -343,8 +343,8 @@ fn compute_series_part(
     let voxels = plan.plans[c].grid[i].1.iter().map(|d| *d as u64).product();
     let bytes = run_step(
         part.step,
-        || plan.score(series, u),
-        |count| plan.encode(series, u, count),
+        || plan.score(series, u).map_err(brick_failure),
+        |count| plan.encode(series, u, count).map_err(brick_failure),
     )?;
     Ok((bytes, voxels))
 }
