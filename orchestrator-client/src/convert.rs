@@ -380,11 +380,23 @@ mod tests {
                 no_refine: true,
                 layer_growth: Some(4.0),
                 brick: Some(64),
+                effort: Effort::Fast,
                 ..JobOptions::default()
             },
             part: None,
         };
         assert_eq!(spec_from_pb(spec_to_pb(&spec)).unwrap(), spec);
+        // Every effort round-trips; the default one travels as nothing and is stored as before.
+        for effort in [Effort::Fast, Effort::Default, Effort::Best] {
+            let mut s = spec.clone();
+            s.options.effort = effort;
+            assert_eq!(spec_from_pb(spec_to_pb(&s)).unwrap(), s);
+        }
+        let default = JobOptions::default();
+        assert!(!serde_json::to_string(&default).unwrap().contains("effort"));
+        let mut pb_spec = spec_to_pb(&spec);
+        pb_spec.options.as_mut().unwrap().effort = "slow".into();
+        assert!(spec_from_pb(pb_spec).is_err());
         // A part, with its colour transform, round-trips and validates; a broken one does not.
         let part = JobSpec {
             part: Some(PartSpec {
