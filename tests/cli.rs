@@ -157,6 +157,38 @@ fn first_hour_mistakes_are_explained() {
     // Raw samples: not a wavesplat file, compress them first.
     let e = run(&["info", &raw]);
     assert!(err(&e).contains("not a wavesplat file"), "{}", err(&e));
+
+    // An effort that does not exist is named with the ones that do; each that does compresses
+    // to the byte target.
+    let args = |effort: &'static str| {
+        [
+            "compress",
+            &raw,
+            "--dims",
+            "16,16,16",
+            "--dtype",
+            "f32",
+            "--target-bytes",
+            "2000",
+            "--effort",
+            effort,
+            "-o",
+            o,
+        ]
+        .map(str::to_string)
+    };
+    let e = run(&args("slow").each_ref().map(String::as_str));
+    assert!(!e.status.success());
+    assert!(
+        err(&e).contains("slow") && err(&e).contains("fast, default, best"),
+        "{}",
+        err(&e)
+    );
+    for effort in ["fast", "default", "best"] {
+        let e = run(&args(effort).each_ref().map(String::as_str));
+        assert!(e.status.success(), "{effort}: {}", err(&e));
+        assert!(std::fs::metadata(o).unwrap().len() <= 2000, "{effort}");
+    }
 }
 
 /// A second server on a database another process holds says so, once.
