@@ -160,8 +160,8 @@ fn first_hour_mistakes_are_explained() {
 
     // An effort that does not exist is named with the ones that do; each that does compresses
     // to the byte target.
-    let args = |effort: &'static str| {
-        [
+    let compress = |effort: &str| {
+        run(&[
             "compress",
             &raw,
             "--dims",
@@ -174,10 +174,9 @@ fn first_hour_mistakes_are_explained() {
             effort,
             "-o",
             o,
-        ]
-        .map(str::to_string)
+        ])
     };
-    let e = run(&args("slow").each_ref().map(String::as_str));
+    let e = compress("slow");
     assert!(!e.status.success());
     assert!(
         err(&e).contains("slow") && err(&e).contains("fast, default, best"),
@@ -185,7 +184,7 @@ fn first_hour_mistakes_are_explained() {
         err(&e)
     );
     for effort in ["fast", "default", "best"] {
-        let e = run(&args(effort).each_ref().map(String::as_str));
+        let e = compress(effort);
         assert!(e.status.success(), "{effort}: {}", err(&e));
         assert!(std::fs::metadata(o).unwrap().len() <= 2000, "{effort}");
     }

@@ -241,17 +241,20 @@ fn part_plan(
         }),
     };
     let plan = BrickPlan::with_choices(source, &opts, brick, choices).map_err(brick_failure)?;
-    if plan.grid.len() != part.of as usize {
-        return Err(fail(
-            FailureKind::InvalidInput,
-            format!(
-                "the source makes {} bricks, the part says {}: the file changed",
-                plan.grid.len(),
-                part.of
-            ),
-        ));
-    }
+    same_count("the source makes", plan.grid.len(), "bricks", part.of)?;
     Ok(plan)
+}
+
+/// Refuses a part whose source now makes another count of something than the part was
+/// planned with ("the source makes 8 bricks, the part says 6: the file changed").
+fn same_count(source_does: &str, found: usize, what: &str, planned: u32) -> Result<(), Failure> {
+    if found == planned as usize {
+        return Ok(());
+    }
+    Err(fail(
+        FailureKind::InvalidInput,
+        format!("{source_does} {found} {what}, the part says {planned}: the file changed"),
+    ))
 }
 
 /// Runs one part on the pool: its result's bytes and the brick's voxels.
@@ -310,15 +313,12 @@ fn compute_series_part(
 ) -> Result<(Vec<u8>, u64), Failure> {
     let input = runner.series(spec)?;
     let series = input.source();
-    if series.time_points() != points as usize {
-        return Err(fail(
-            FailureKind::InvalidInput,
-            format!(
-                "the source has {} time points, the part says {points}: the file changed",
-                series.time_points()
-            ),
-        ));
-    }
+    same_count(
+        "the source has",
+        series.time_points(),
+        "time points",
+        points,
+    )?;
     let (group, brick) = series_shape(spec);
     let opts = options::compress_options(&spec.options);
     let choices = SharedChoices {
@@ -328,16 +328,7 @@ fn compute_series_part(
     };
     let plan =
         SeriesPlan::with_choices(series, &opts, group, brick, choices).map_err(series_failure)?;
-    if plan.units.len() != part.of as usize {
-        return Err(fail(
-            FailureKind::InvalidInput,
-            format!(
-                "the series makes {} units, the part says {}: the file changed",
-                plan.units.len(),
-                part.of
-            ),
-        ));
-    }
+    same_count("the series makes", plan.units.len(), "units", part.of)?;
     let u = part.index as usize;
     let (c, i) = plan.units[u];
     let voxels = plan.plans[c].grid[i].1.iter().map(|d| *d as u64).product();

@@ -441,20 +441,9 @@ pub fn read_time_series(dir: &Path) -> Result<Option<TimeSeries>, ReadError> {
                 .cloned()
                 .collect(),
         };
-        let v =
-            decode(&src).map_err(|e| bad(format!("time point {t} ({attribute} {value}): {e}")))?;
-        if let Some(first) = volumes.first() {
-            if v.dims() != first.dims() || v.spacing() != first.spacing() {
-                return Err(bad(format!(
-                    "time point {t} ({attribute} {value}) is {:?} at spacing {:?}; time point 0 \
-                     is {:?} at {:?}",
-                    v.dims(),
-                    v.spacing(),
-                    first.dims(),
-                    first.spacing()
-                )));
-            }
-        }
+        let what = format!("time point {t} ({attribute} {value})");
+        let v = decode(&src).map_err(|e| bad(format!("{what}: {e}")))?;
+        same_space_as_first(&volumes, &v, &what).map_err(bad)?;
         volumes.push(v);
         values.push(value);
     }
@@ -466,6 +455,21 @@ pub fn read_time_series(dir: &Path) -> Result<Option<TimeSeries>, ReadError> {
         None
     };
     Ok(Some((volumes, times)))
+}
+
+/// Refuses time point `v` (named `what`) when it is not of the first of `volumes`' dimensions
+/// and spacing, saying both.
+fn same_space_as_first(volumes: &[Volume], v: &Volume, what: &str) -> Result<(), String> {
+    match volumes.first() {
+        Some(first) if v.dims() != first.dims() || v.spacing() != first.spacing() => Err(format!(
+            "{what} is {:?} at spacing {:?}; time point 0 is {:?} at {:?}",
+            v.dims(),
+            v.spacing(),
+            first.dims(),
+            first.spacing()
+        )),
+        _ => Ok(()),
+    }
 }
 
 /// A DICOM time of day (TM: `HHMMSS.FFFFFF`, fields from the right optional, or the older
@@ -594,17 +598,7 @@ fn read_enhanced_series(
         let d = describe(path, vec![view], bytes.len()).map_err(|e| bad(format!("{what}: {e}")))?;
         let v = decode_described(path, &d, |_| Ok(std::borrow::Cow::Borrowed(&obj)))
             .map_err(|e| bad(format!("{what}: {e}")))?;
-        if let Some(first) = volumes.first() {
-            if v.dims() != first.dims() || v.spacing() != first.spacing() {
-                return Err(bad(format!(
-                    "{what} is {:?} at spacing {:?}; time point 0 is {:?} at {:?}",
-                    v.dims(),
-                    v.spacing(),
-                    first.dims(),
-                    first.spacing()
-                )));
-            }
-        }
+        same_space_as_first(&volumes, &v, &what).map_err(bad)?;
         volumes.push(v);
     }
     let times = (delays.len() == volumes.len() && delays.windows(2).all(|w| w[1] > w[0]))
