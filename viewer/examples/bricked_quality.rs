@@ -6,7 +6,7 @@
 //! memory). Prints, per brick edge, the file sizes, the compression times and the image SNR in
 //! three views (oblique, along an axis, oblique from the other side), whole against bricked,
 //! and the depth each took; `WAVESPLAT_BRICK_LEVELS=M` gives the bricks depth M instead of the
-//! one they probe for. The figures are in BENCHMARKS.md ("Scale and robustness").
+//! one their byte target chooses. The figures are in BENCHMARKS.md ("Scale and robustness").
 use std::path::Path;
 use std::time::Instant;
 use wavesplat_codec::layout::Geometry;
@@ -73,8 +73,8 @@ fn main() -> Result<(), Error> {
         sw[1],
         sw[2]
     );
-    // WAVESPLAT_BRICK_LEVELS=M compresses the bricks at depth M instead of the depth they
-    // probe for (the whole's depth is printed to compare).
+    // WAVESPLAT_BRICK_LEVELS=M compresses the bricks at depth M instead of the depth their
+    // byte target chooses (the whole's depth is printed to compare).
     let brick_opts = CompressOptions {
         levels: match std::env::var("WAVESPLAT_BRICK_LEVELS") {
             Ok(m) => Some(m.parse()?),

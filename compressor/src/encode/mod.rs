@@ -28,6 +28,7 @@ pub use options::{
     default_levels, CompressError, CompressOptions, CompressStats, Compressed, DepthSearch, Effort,
     Stage, Target, TileChoice, LAYER_GROWTH,
 };
+pub(crate) use prepare::axis_views;
 use prepare::{code, prepare};
 pub use prepare::{default_margin, COARSE_LAYER_MIN_LEVELS, STRUCTURED_FACES};
 pub use rate::worth_going_shallower;

@@ -175,7 +175,7 @@ pub(super) fn coded_channels(
 /// summing its slices' rows (along x) and columns (along y) and its part of the z view; the
 /// groups' z views are then added in order, so every sum adds the same terms in the same order
 /// whatever the thread count.
-pub(super) fn axis_views(
+pub(crate) fn axis_views(
     dims: [usize; 3],
     at: &(impl Fn(usize, usize, usize) -> f64 + Sync),
 ) -> [Vec<f64>; 3] {
