@@ -634,16 +634,13 @@ fn choose_levels(
 /// large volume's.
 const DEPTH_SAMPLE: usize = 8;
 
-/// The bricks of a grid of `n` a depth comparison compresses: all of a grid of at most
-/// [`DEPTH_SAMPLE`], else that many evenly spaced in grid order (x fastest), each in the middle
-/// of its stretch.
+/// The bricks of a grid of `n` a depth comparison compresses: a quarter of them (at least 2,
+/// at most [`DEPTH_SAMPLE`]; all of a grid of 2), evenly spaced in grid order (x fastest),
+/// each in the middle of its stretch. Each depth compared costs the sample's compression, so
+/// a small grid's comparison stays below its own allocation.
 fn depth_sample(n: usize) -> Vec<usize> {
-    if n <= DEPTH_SAMPLE {
-        return (0..n).collect();
-    }
-    (0..DEPTH_SAMPLE)
-        .map(|j| ((2 * j + 1) * n) / (2 * DEPTH_SAMPLE))
-        .collect()
+    let k = (n / 4).clamp(2, DEPTH_SAMPLE).min(n);
+    (0..k).map(|j| ((2 * j + 1) * n) / (2 * k)).collect()
 }
 
 /// The depth of a bricked byte target, chosen as the whole's search chooses it
@@ -1176,6 +1173,27 @@ mod tests {
                 got <= best + 0.02 && range.contains(&chosen.levels),
                 "{bytes} B: chose M = {}; errors {errors:?}",
                 chosen.levels
+            );
+        }
+    }
+
+    /// The depth sample: a quarter of the grid between 2 and 8 bricks, distinct, in order,
+    /// spread from the first stretch to the last.
+    #[test]
+    fn the_depth_sample_spreads_over_the_grid() {
+        assert_eq!(depth_sample(2), vec![0, 1]);
+        assert_eq!(depth_sample(8), vec![2, 6]);
+        assert_eq!(depth_sample(27).len(), 6);
+        for n in 2..600 {
+            let s = depth_sample(n);
+            assert_eq!(s.len(), (n / 4).clamp(2, 8).min(n), "{n}");
+            assert!(
+                s.windows(2).all(|w| w[0] < w[1]) && *s.last().unwrap() < n,
+                "{n}"
+            );
+            assert!(
+                s[0] < n.div_ceil(s.len()) && *s.last().unwrap() >= n - n / s.len(),
+                "{n}"
             );
         }
     }
