@@ -614,6 +614,133 @@ impl SourceFiles {
     }
 }
 
+/// A volume's source files named and measured, not read: the files [`SourceFiles::gather`]
+/// would read, whose [`SourceListing::write_to`] streams exactly the bytes of
+/// [`SourceFiles::to_bytes`] one file at a time. A source larger than memory (a DICOM series of
+/// thousands of slices, a detached header's data) is hashed this way without being held.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct SourceListing {
+    /// The format, when known (named in a bundle).
+    pub format: Option<Format>,
+    /// (name, path, length in bytes), the primary file first; names are unique.
+    pub files: Vec<(String, PathBuf, u64)>,
+}
+
+/// How much of a primary file [`SourceListing::list`] reads to find the data files it names:
+/// a detached header is a few hundred bytes, and an attached one names none.
+const LISTING_HEAD: u64 = 1 << 20;
+
+impl SourceListing {
+    /// Lists the files of the volume at `path` as [`SourceFiles::gather`] would gather them
+    /// (the same detection, the same order), reading only a DICOM file's preamble and at most
+    /// the first MiB of a primary file.
+    pub fn list(path: &Path, format: Option<Format>) -> Result<SourceListing, ReadError> {
+        let meta = std::fs::metadata(path).map_err(|e| ReadError::io(path, e))?;
+        let len_of = |p: &Path| {
+            std::fs::metadata(p)
+                .map(|m| m.len())
+                .map_err(|e| ReadError::io(p, e))
+        };
+        if meta.is_dir() {
+            let files = dicom::series_files(path)?
+                .into_iter()
+                .map(|(name, p)| {
+                    let len = len_of(&p)?;
+                    Ok((name, p, len))
+                })
+                .collect::<Result<_, ReadError>>()?;
+            return Ok(SourceListing {
+                format: Some(Format::Dicom),
+                files,
+            });
+        }
+        let mut head = Vec::new();
+        std::fs::File::open(path)
+            .and_then(|f| f.take(LISTING_HEAD).read_to_end(&mut head))
+            .map_err(|e| ReadError::io(path, e))?;
+        let format = format
+            .or_else(|| Format::from_name(path))
+            .or_else(|| Format::sniff(&head));
+        let name = path
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_default();
+        let mut files = vec![(name, path.to_path_buf(), meta.len())];
+        let companions = match format {
+            Some(Format::Nrrd) => nrrd::data_files(path, &head)?,
+            Some(Format::MetaImage) => metaimage::data_files(path, &head)?,
+            _ => Vec::new(),
+        };
+        let dir = path.parent().unwrap_or(Path::new("."));
+        for c in companions {
+            if files.iter().any(|(n, _, _)| *n == c) {
+                continue;
+            }
+            let p = dir.join(&c);
+            let len = len_of(&p)?;
+            files.push((c, p, len));
+        }
+        Ok(SourceListing { format, files })
+    }
+
+    /// The length of [`SourceListing::write_to`]'s bytes.
+    pub fn byte_len(&self) -> u64 {
+        match self.files.as_slice() {
+            [(_, _, len)] => *len,
+            files => {
+                let f = self.format.map_or(0, |f| f.name().len() as u64);
+                BUNDLE_MAGIC.len() as u64
+                    + 1
+                    + f
+                    + 4
+                    + files
+                        .iter()
+                        .map(|(n, _, len)| 2 + n.len() as u64 + 8 + len)
+                        .sum::<u64>()
+            }
+        }
+    }
+
+    /// Writes the bytes [`SourceFiles::to_bytes`] makes of these files, reading one file at a
+    /// time in pieces. A file whose length is no longer the listed one is refused: the bytes
+    /// written so far would describe another source.
+    pub fn write_to(&self, out: &mut dyn io::Write) -> Result<(), ReadError> {
+        let copy = |out: &mut dyn io::Write, p: &Path, len: u64| -> Result<(), ReadError> {
+            let f = std::fs::File::open(p).map_err(|e| ReadError::io(p, e))?;
+            let copied = io::copy(&mut f.take(len + 1), out).map_err(|e| ReadError::io(p, e))?;
+            if copied != len {
+                return Err(ReadError::io(
+                    p,
+                    io::Error::other(format!(
+                        "changed while being read: {copied} bytes or more, listed {len}"
+                    )),
+                ));
+            }
+            Ok(())
+        };
+        let written = |e: io::Error| ReadError::io(Path::new("(output)"), e);
+        if let [(_, p, len)] = self.files.as_slice() {
+            return copy(out, p, *len);
+        }
+        let f = self.format.map_or("", Format::name);
+        let mut head = Vec::with_capacity(BUNDLE_MAGIC.len() + 5 + f.len());
+        head.extend_from_slice(BUNDLE_MAGIC);
+        head.push(f.len() as u8);
+        head.extend_from_slice(f.as_bytes());
+        head.extend_from_slice(&(self.files.len() as u32).to_le_bytes());
+        out.write_all(&head).map_err(written)?;
+        for (name, p, len) in &self.files {
+            let mut entry = Vec::with_capacity(name.len() + 10);
+            entry.extend_from_slice(&(name.len() as u16).to_le_bytes());
+            entry.extend_from_slice(name.as_bytes());
+            entry.extend_from_slice(&len.to_le_bytes());
+            out.write_all(&entry).map_err(written)?;
+            copy(out, p, *len)?;
+        }
+        Ok(())
+    }
+}
+
 fn parent_of(p: &Path) -> PathBuf {
     p.parent().map(Path::to_path_buf).unwrap_or_default()
 }
@@ -730,6 +857,86 @@ pub fn time_points(path: &Path, raw: Option<&RawSpec>) -> Result<usize, ReadErro
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A listing streams exactly the bytes gathering makes (and says their length) for every
+    /// kind of source: a DICOM series directory, detached and attached NRRD and MetaImage, a
+    /// NIfTI and a raw file; a file that changes length after listing is refused by name.
+    #[test]
+    fn a_listing_streams_the_gathered_bytes() {
+        use std::io::Write;
+        use wavesplat_fixtures::{
+            write_dicom_series, write_metaimage, write_nifti, write_nrrd, DicomOptions, Layout,
+            NrrdEncoding,
+        };
+        let dir = tempfile::tempdir().unwrap();
+        let head = crate::phantom::Phantom::SheppLogan.generate([20, 18, 12]);
+        let whole: Vec<f32> = head.channel(0).iter().map(|x| x.round()).collect();
+        let v = Volume::new(head.dims(), head.spacing(), vec![whole]).unwrap();
+        let series = dir.path().join("series");
+        std::fs::create_dir(&series).unwrap();
+        write_dicom_series(&series, &v, &DicomOptions::default());
+        // Not DICOM: left out of the series by both.
+        std::fs::write(series.join("notes.txt"), b"not a slice").unwrap();
+        let nifti = dir.path().join("v.nii");
+        write_nifti(&nifti, v.dims(), v.channel(0));
+        let raw = dir.path().join("v.f32");
+        let le: Vec<u8> = v.channel(0).iter().flat_map(|x| x.to_le_bytes()).collect();
+        std::fs::write(&raw, &le).unwrap();
+        let mut sources = vec![series, nifti, raw];
+        for detached in [true, false] {
+            sources.push(write_nrrd(
+                dir.path(),
+                &format!("n{detached}"),
+                &v,
+                Layout::F32,
+                NrrdEncoding::Raw,
+                detached,
+                "LPS",
+            ));
+            sources.push(write_metaimage(
+                dir.path(),
+                &format!("m{detached}"),
+                &v,
+                Layout::F32,
+                false,
+                detached,
+            ));
+        }
+        for path in &sources {
+            let gathered = SourceFiles::gather(path, None).unwrap().to_bytes();
+            let listing = SourceListing::list(path, None).unwrap();
+            let mut streamed = Vec::new();
+            listing.write_to(&mut streamed).unwrap();
+            assert!(streamed == gathered, "{}", path.display());
+            assert_eq!(
+                listing.byte_len(),
+                gathered.len() as u64,
+                "{}",
+                path.display()
+            );
+        }
+        let listing = SourceListing::list(&sources[0], None).unwrap();
+        assert_eq!(
+            listing.files.len(),
+            12,
+            "one file a slice, the notes left out"
+        );
+        let (_, slice, _) = &listing.files[3];
+        std::fs::OpenOptions::new()
+            .append(true)
+            .open(slice)
+            .unwrap()
+            .write_all(b"more")
+            .unwrap();
+        let e = listing.write_to(&mut Vec::new()).unwrap_err();
+        let why = std::error::Error::source(&e).map(|s| s.to_string());
+        assert!(e.to_string().contains(&slice.display().to_string()), "{e}");
+        assert!(
+            why.as_deref()
+                .is_some_and(|w| w.contains("changed while being read")),
+            "{why:?}"
+        );
+    }
 
     #[test]
     fn formats_by_name_and_content() {
