@@ -1043,6 +1043,87 @@ async fn a_compressed_nifti_bricked_job_spread_over_workers() {
     assert_cache_holds_only(&c, &expected).await;
 }
 
+/// A DICOM series directory and a detached MetaImage header (its data in another file) on
+/// shared storage: their bricked jobs are hashed file by file and spread over the workers like
+/// a single file's (parts read slice ranges and regions, nobody holds the volume), and each
+/// lands as the file one process makes from the same source.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_dicom_series_and_a_detached_header_spread_their_bricks_over_workers() {
+    use wavesplat_codec::volume::Volume;
+    use wavesplat_compressor::reader::region::RegionReader;
+    use wavesplat_fixtures::{write_dicom_series, write_metaimage, DicomOptions, Layout};
+    use wavesplat_orchestrator_client::model::TargetSpec;
+    let cl = TestCluster::start(&ORCH_TIMING);
+    let (o, c) = (cl.orch.url(), cl.cache.url());
+    let dims = [40, 36, 30];
+    let shared = cl.root.join("shared");
+    let series = shared.join("ct");
+    std::fs::create_dir_all(&series).unwrap();
+    // Integer samples: the DICOM slices are 16-bit.
+    let samples: Vec<f32> = phantom(Phantom::SheppLogan, dims)
+        .iter()
+        .map(|x| x.round())
+        .collect();
+    let v = Volume::new(dims, [1.0, 1.0, 1.0], vec![samples]).unwrap();
+    let dicom = DicomOptions {
+        layout: Layout::U16,
+        ..Default::default()
+    };
+    write_dicom_series(&series, &v, &dicom);
+    let header = write_metaimage(&shared, "head", &v, Layout::F32, false, true);
+    assert!(
+        shared.join("head.raw").is_file(),
+        "a detached header's data file"
+    );
+    let logs = [cl.root.join("w1.log"), cl.root.join("w2.log")];
+    let _w1 = cl.worker("w1", 0, Some(&logs[0]));
+    let _w2 = cl.worker("w2", 0, Some(&logs[1]));
+    submit(&shared, &o, &["--brick", "20", "--target-fraction", "0.05"]);
+    let js = wait_for(&o, 120, "both bricked jobs done", all_finished).await;
+    let (parts, js): (Vec<_>, Vec<_>) = js.into_iter().partition(is_part);
+    assert_eq!(js.len(), 2, "one job per volume");
+    for j in js.iter().chain(&parts) {
+        assert_eq!(state_name(j.state), "done", "{}: {}", name(j), j.error);
+    }
+    for j in &js {
+        let mine = parts
+            .iter()
+            .filter(|p| {
+                p.spec
+                    .as_ref()
+                    .and_then(|s| s.part.as_ref())
+                    .is_some_and(|p| p.parent == j.id)
+            })
+            .count();
+        // 2 × 2 × 2 bricks, scored and coded.
+        assert_eq!(mine, 16, "{}: its bricks ran as parts", name(j));
+    }
+    for log in &logs {
+        let text = std::fs::read_to_string(log).unwrap();
+        assert!(
+            text.contains("running part"),
+            "{} ran no part:\n{text}",
+            log.display()
+        );
+    }
+    let mut client = CacheClient::connect(&c).await.unwrap();
+    let listed = client.list().await.unwrap();
+    assert_eq!(listed.len(), 2, "{listed:?}");
+    for (source, wanted) in [(&series, "ct"), (&header, "head")] {
+        let reader = RegionReader::open(source, None).unwrap();
+        let one = one_process_file(&reader, 20, TargetSpec::Fraction(0.05));
+        let got = listed
+            .iter()
+            .find(|l| l.name == wanted)
+            .unwrap_or_else(|| panic!("{wanted} in {listed:?}"));
+        assert_eq!(
+            got.sha256,
+            wavesplat_net::digest::hex(&wavesplat_net::digest::sha256(&one)),
+            "{wanted}: not the one-process file"
+        );
+    }
+}
+
 /// The source file changes while its bricks are being compressed: the next part refuses it,
 /// and the job fails for good saying so, instead of mixing two files' bricks in the cache.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -25,6 +25,16 @@ pub fn sha256_file(path: &std::path::Path) -> std::io::Result<[u8; 32]> {
     }
 }
 
+/// SHA-256 of whatever `write` writes to the writer it is given (bytes streamed from several
+/// files, say), never held.
+pub fn sha256_stream<E>(
+    write: impl FnOnce(&mut dyn std::io::Write) -> Result<(), E>,
+) -> Result<[u8; 32], E> {
+    let mut hasher = Sha256::new();
+    write(&mut hasher)?;
+    Ok(hasher.finalize().into())
+}
+
 /// Lowercase hex of `bytes`.
 pub fn hex(bytes: &[u8]) -> String {
     hex::encode(bytes)

@@ -27,7 +27,9 @@
 use std::collections::{BTreeSet, HashSet};
 use std::path::{Path, PathBuf};
 use wavesplat_compressor::reader::steps::{step_files, StepSeries};
-use wavesplat_compressor::reader::{dicom::is_dicom_file, Format, SourceFiles};
+use wavesplat_compressor::reader::{
+    dicom::is_dicom_file, Format, ReadError, SourceFiles, SourceListing,
+};
 use wavesplat_orchestrator_client::model::{JobOptions, JobSpec, RawLayout, SampleType, Source};
 
 /// A supported file.
@@ -265,45 +267,80 @@ pub fn scan_with(root: &Path, time_steps: bool) -> std::io::Result<Scan> {
     Ok(scan)
 }
 
-/// The bytes a job's hash covers and an upload carries: a raw file's bytes, or the volume's
-/// gathered files ([`SourceFiles::to_bytes`]: a single file's own bytes, or a bundle of a
-/// DICOM directory's files or a detached header and its data file).
-pub fn source_bytes(path: &Path, raw: bool) -> std::io::Result<Vec<u8>> {
+/// The files a job's hash covers and an upload carries, listed, not read: a raw file, the
+/// visible files of a directory of time steps, or the volume's gathered files
+/// ([`SourceListing::list`]: a single file, a DICOM directory's files, a detached header and
+/// its data file).
+pub fn source_listing(path: &Path, raw: bool) -> std::io::Result<SourceListing> {
+    let name = |p: &Path| {
+        p.file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_default()
+    };
     if raw {
-        return std::fs::read(path);
+        let len = std::fs::metadata(path)?.len();
+        return Ok(SourceListing {
+            format: None,
+            files: vec![(name(path), path.to_path_buf(), len)],
+        });
     }
     if path.is_dir() && step_files(path, None).is_ok_and(|s| !s.is_empty()) {
-        return steps_bytes(path);
+        // Every visible file: the steps and their data files, in name order.
+        let mut entries: Vec<_> = std::fs::read_dir(path)?.collect::<Result<_, _>>()?;
+        entries.sort_by_key(|e| e.file_name());
+        let mut files = Vec::new();
+        for e in entries {
+            let n = e.file_name().to_string_lossy().into_owned();
+            if n.starts_with('.') || !e.file_type()?.is_file() {
+                continue;
+            }
+            files.push((n, e.path(), e.metadata()?.len()));
+        }
+        return Ok(SourceListing {
+            format: None,
+            files,
+        });
     }
-    SourceFiles::gather(path, None)
-        .map(|s| s.to_bytes())
-        .map_err(|e| match e {
-            wavesplat_compressor::reader::ReadError::Io { source, .. } => source,
-            e => std::io::Error::other(e.to_string()),
-        })
+    SourceListing::list(path, None).map_err(io_error)
 }
 
-/// The bytes of a directory of time steps: a bundle ([`SourceFiles::to_bytes`]) of every
-/// visible file in it (the steps and their data files), in name order. Held in memory whole
-/// (hashing a large series by its files in turn would not need it: not done yet).
-fn steps_bytes(dir: &Path) -> std::io::Result<Vec<u8>> {
-    let mut entries: Vec<_> = std::fs::read_dir(dir)?.collect::<Result<_, _>>()?;
-    entries.sort_by_key(|e| e.file_name());
-    let mut files = Vec::new();
-    for e in entries {
-        let name = e.file_name().to_string_lossy().into_owned();
-        if name.starts_with('.') || !e.file_type()?.is_file() {
-            continue;
+/// A reader's error as an I/O error that keeps the path it names.
+fn io_error(e: ReadError) -> std::io::Error {
+    match &e {
+        ReadError::Io { source, .. } => {
+            std::io::Error::new(source.kind(), format!("{e}: {source}"))
         }
-        files.push((name, std::fs::read(e.path())?));
+        _ => std::io::Error::other(e.to_string()),
     }
-    Ok(SourceFiles {
-        origin: dir.to_path_buf(),
-        base: dir.to_path_buf(),
-        format: None,
-        files,
-    }
-    .to_bytes())
+}
+
+/// The bytes a job's hash covers and an upload carries ([`source_listing`]'s files, as
+/// [`SourceFiles::to_bytes`] makes them: a single file's own bytes, or a bundle), in memory.
+pub fn source_bytes(path: &Path, raw: bool) -> std::io::Result<Vec<u8>> {
+    let listing = source_listing(path, raw)?;
+    let mut bytes = Vec::new();
+    bytes
+        .try_reserve_exact(usize::try_from(listing.byte_len()).unwrap_or(usize::MAX))
+        .map_err(|_| {
+            std::io::Error::new(
+                std::io::ErrorKind::OutOfMemory,
+                format!(
+                    "{}: cannot hold {} bytes",
+                    path.display(),
+                    listing.byte_len()
+                ),
+            )
+        })?;
+    listing.write_to(&mut bytes).map_err(io_error)?;
+    Ok(bytes)
+}
+
+/// The SHA-256 of [`source_bytes`], streamed one file at a time in pieces (a source larger
+/// than memory is never held), and their length.
+pub fn source_digest(path: &Path, raw: bool) -> std::io::Result<([u8; 32], u64)> {
+    let listing = source_listing(path, raw)?;
+    let digest = wavesplat_net::digest::sha256_stream(|w| listing.write_to(w).map_err(io_error))?;
+    Ok((digest, listing.byte_len()))
 }
 
 /// Builds the job for a found volume: reads it to hash it; with `upload`, the bytes are
@@ -314,10 +351,11 @@ pub fn job_spec(
     options: &JobOptions,
     upload: bool,
 ) -> std::io::Result<(JobSpec, Option<Vec<u8>>)> {
-    // A file that is its own source bytes (raw, NIfTI, MetaImage in one file) is hashed in
-    // pieces when it is not uploaded, so that submitting a volume larger than memory does not
-    // read it whole; other sources (a DICOM series, a detached header and its data) are
-    // gathered and hashed as the worker will gather them.
+    // A source that is not uploaded is hashed in pieces, so that submitting a volume larger
+    // than memory does not read it whole: a file that is its own source bytes (raw, NIfTI,
+    // MetaImage in one file) as a file, other sources (a DICOM series, a detached header and
+    // its data, a directory of time steps) as the bundle the worker will gather, file by
+    // file.
     let own_bytes = found.raw.is_some() || {
         let name = found.path.to_string_lossy().to_ascii_lowercase();
         [".nii", ".nii.gz", ".mha"]
@@ -326,6 +364,8 @@ pub fn job_spec(
     };
     let (sha256, bytes) = if own_bytes && !upload {
         (wavesplat_net::digest::sha256_file(&found.path)?, None)
+    } else if !upload {
+        (source_digest(&found.path, found.raw.is_some())?.0, None)
     } else {
         let bytes = source_bytes(&found.path, found.raw.is_some())?;
         (wavesplat_net::digest::sha256(&bytes), Some(bytes))
@@ -416,8 +456,8 @@ mod tests {
     }
 
     /// A job names the same content whether its source is uploaded or named by path: files
-    /// hashed in pieces (raw, NIfTI, MetaImage) and gathered sources (a detached header with
-    /// its data) alike.
+    /// hashed in pieces (raw, NIfTI, MetaImage) and sources of several files streamed file by
+    /// file (a detached header with its data, a DICOM series directory) alike.
     #[test]
     fn a_source_hashes_alike_by_path_and_by_upload() {
         let dir = tempfile::tempdir().unwrap();
@@ -427,8 +467,15 @@ mod tests {
         std::fs::write(r.join("a.nii"), &data).unwrap();
         std::fs::write(r.join("vol.nhdr"), "NRRD0004\ndata file: v.raw\n").unwrap();
         std::fs::write(r.join("v.raw"), b"x").unwrap();
+        std::fs::create_dir_all(r.join("series")).unwrap();
+        for (i, f) in ["IM1", "IM2", "IM3"].iter().enumerate() {
+            let mut dcm = vec![0u8; 128];
+            dcm.extend_from_slice(b"DICM");
+            dcm.extend(data.iter().skip(i).take(1 << 20));
+            std::fs::write(r.join("series").join(f), &dcm).unwrap();
+        }
         let s = scan(r).unwrap();
-        assert_eq!(s.found.len(), 3, "{:?}", s.found);
+        assert_eq!(s.found.len(), 4, "{:?}", s.found);
         for f in &s.found {
             let (by_path, none) = job_spec(f, &JobOptions::default(), false).unwrap();
             let (by_upload, bytes) = job_spec(f, &JobOptions::default(), true).unwrap();
@@ -437,6 +484,9 @@ mod tests {
             assert_eq!(by_path.sha256, by_upload.sha256, "{}", f.name);
             assert_eq!(by_upload.sha256, wavesplat_net::digest::sha256(&bytes));
             assert!(matches!(by_path.source, Source::Path(_)));
+            let streamed = source_digest(&f.path, f.raw.is_some()).unwrap();
+            assert_eq!(streamed.0.to_vec(), by_path.sha256, "{}", f.name);
+            assert_eq!(streamed.1, bytes.len() as u64, "{}", f.name);
         }
     }
 }

@@ -449,32 +449,32 @@ fn decode(spec: &JobSpec, bytes: Vec<u8>) -> Result<Volume, Failure> {
     }
 }
 
-/// Whether the job's source is a file on shared storage read in place (a bricked volume brick
-/// by brick, or a time series, a 4D file, time point by time point) that hashes, read in
-/// pieces, to the submitted SHA-256: its bytes are then never held whole. A raw file or a
-/// single-file format; a detached header's bundle hashes otherwise, and is then read whole as
-/// any source is.
+/// Whether the job's source is on shared storage, read in place (a bricked volume brick by
+/// brick, or a time series time point by time point) and hashes, streamed file by file
+/// ([`archive::source_digest`]), to the submitted SHA-256: its bytes are then never held
+/// whole. Any source on a path: a raw or single-file volume, a detached header and its data,
+/// a DICOM series directory (read by slice ranges), a 4D file or a directory of time steps.
 async fn hashed_in_place(spec: &JobSpec) -> bool {
     let Source::Path(p) = &spec.source else {
         return false;
     };
-    if !p.is_file() {
-        return false;
-    }
     let raw = spec.raw.as_ref().map(options::raw_spec);
-    let series = wavesplat_compressor::reader::time_points(p, raw.as_ref()).is_ok_and(|t| t > 1);
+    let series = if p.is_dir() {
+        wavesplat_compressor::reader::steps::step_files(p, None).is_ok_and(|s| !s.is_empty())
+    } else {
+        wavesplat_compressor::reader::time_points(p, raw.as_ref()).is_ok_and(|t| t > 1)
+    };
     if spec.options.brick.is_none() && !series {
         return false;
     }
-    let p = p.clone();
-    let hashed = tokio::task::spawn_blocking(move || wavesplat_net::digest::sha256_file(&p)).await;
-    matches!(hashed, Ok(Ok(h)) if h == spec.sha256)
+    let (p, raw) = (p.clone(), spec.raw.is_some());
+    let hashed = tokio::task::spawn_blocking(move || archive::source_digest(&p, raw)).await;
+    matches!(hashed, Ok(Ok((h, _))) if h == spec.sha256)
 }
 
-/// A job of a bricked volume (`--brick`), on the worker's pool: a file on shared storage (raw,
-/// NIfTI, NRRD, MetaImage) is read brick by brick once its hash is verified (its bytes are let
-/// go first), so the worker holds about one brick per thread whatever the volume's size; an
-/// uploaded source or a DICOM series is decoded whole and split. Returns the bricked file and
+/// A job of a bricked volume (`--brick`) whose source is not read in place (an uploaded one),
+/// on the worker's pool: decoded whole and split. (A source on shared storage is read brick by
+/// brick by the workers its bricks are spread over, [`parts::coordinate`].) Returns the bricked file and
 /// the volume's voxel count.
 fn compress_bricked_job(
     spec: &JobSpec,

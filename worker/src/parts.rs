@@ -133,10 +133,13 @@ impl PartRunner {
     }
 }
 
-/// The length of `spec`'s source file.
+/// The length of `spec`'s source: a file's, or the sum of a directory's or a detached
+/// header's files (as its hash covers them, [`crate::archive::source_listing`]).
 fn source_bytes(spec: &JobSpec) -> Option<u64> {
     match &spec.source {
-        Source::Path(p) => std::fs::metadata(p).ok().map(|m| m.len()),
+        Source::Path(p) => crate::archive::source_listing(p, spec.raw.is_some())
+            .ok()
+            .map(|l| l.byte_len()),
         Source::Upload { .. } => None,
     }
 }
@@ -146,7 +149,7 @@ fn open_source(spec: &JobSpec) -> Result<RegionReader, Failure> {
     let Source::Path(p) = &spec.source else {
         return Err(fail(
             FailureKind::InvalidInput,
-            "the bricks of a job are spread over workers only from a file on shared storage",
+            "the bricks of a job are spread over workers only from a source on shared storage",
         ));
     };
     let raw = spec.raw.as_ref().map(options::raw_spec);
@@ -814,11 +817,8 @@ pub(crate) fn coordinate_series(
     parent_attempt: u32,
     shared: Arc<Shared>,
 ) -> Result<(Vec<u8>, u64), Failure> {
-    // A single file's length is checked by every part; a directory's time steps are not.
-    let planned_bytes = match &spec.source {
-        Source::Path(p) if p.is_file() => source_bytes(&spec),
-        _ => None,
-    };
+    // The source's length (a file's, or a directory's files') is checked by every part.
+    let planned_bytes = source_bytes(&spec);
     let input = runner.series(&spec)?;
     let series = input.source();
     let points = series.time_points();
