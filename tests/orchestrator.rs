@@ -151,6 +151,18 @@ fn one_process_series(path: &Path, group: usize, fraction: f64) -> Vec<u8> {
         .bytes
 }
 
+/// Every worker whose log is in `logs` ran at least one part.
+fn each_ran_a_part(logs: &[std::path::PathBuf]) {
+    for log in logs {
+        let text = std::fs::read_to_string(log).unwrap();
+        assert!(
+            text.contains("running part"),
+            "{} ran no part:\n{text}",
+            log.display()
+        );
+    }
+}
+
 /// The cache holds one volume, and its content is `file` (by SHA-256).
 async fn assert_cache_holds_only(cache: &str, file: &[u8]) {
     let mut client = CacheClient::connect(cache).await.unwrap();
@@ -1098,14 +1110,7 @@ async fn a_dicom_series_and_a_detached_header_spread_their_bricks_over_workers()
         // 2 × 2 × 2 bricks, scored and coded.
         assert_eq!(mine, 16, "{}: its bricks ran as parts", name(j));
     }
-    for log in &logs {
-        let text = std::fs::read_to_string(log).unwrap();
-        assert!(
-            text.contains("running part"),
-            "{} ran no part:\n{text}",
-            log.display()
-        );
-    }
+    each_ran_a_part(&logs);
     let mut client = CacheClient::connect(&c).await.unwrap();
     let listed = client.list().await.unwrap();
     assert_eq!(listed.len(), 2, "{listed:?}");
@@ -1261,14 +1266,7 @@ async fn a_time_series_in_an_archive_is_one_volume_in_the_cache() {
             name(j)
         );
     }
-    for log in &logs {
-        let text = std::fs::read_to_string(log).unwrap();
-        assert!(
-            text.contains("running part"),
-            "{} ran no part:\n{text}",
-            log.display()
-        );
-    }
+    each_ran_a_part(&logs);
     let all = cli_ok(&["jobs", "list", "--parts", "--orchestrator", &o]);
     assert!(all.contains("series unit 5/5 scoring"), "{all}");
     // The NIfTI's series is what one process makes of the same time points and options.
