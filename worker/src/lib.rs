@@ -459,8 +459,10 @@ async fn hashed_in_place(spec: &JobSpec) -> bool {
         return false;
     };
     let raw = spec.raw.as_ref().map(options::raw_spec);
+    // (A directory's steps as `series::open_series_path` finds them.)
     let series = if p.is_dir() {
-        wavesplat_compressor::reader::steps::step_files(p, None).is_ok_and(|s| !s.is_empty())
+        wavesplat_compressor::reader::steps::step_files(p, raw.as_ref())
+            .is_ok_and(|s| !s.is_empty())
     } else {
         wavesplat_compressor::reader::time_points(p, raw.as_ref()).is_ok_and(|t| t > 1)
     };
