@@ -902,6 +902,26 @@ mod tests {
                 detached,
             ));
         }
+        // Attached headers whose files are larger than what listing reads of them (1 MiB).
+        let big = crate::phantom::Phantom::SheppLogan.generate([72, 72, 60]);
+        let big_nrrd = write_nrrd(
+            dir.path(),
+            "big",
+            &big,
+            Layout::F32,
+            NrrdEncoding::Raw,
+            false,
+            "LPS",
+        );
+        let big_mha = write_metaimage(dir.path(), "big", &big, Layout::F32, false, false);
+        for p in [&big_nrrd, &big_mha] {
+            assert!(
+                std::fs::metadata(p).unwrap().len() > LISTING_HEAD,
+                "{}",
+                p.display()
+            );
+        }
+        sources.extend([big_nrrd, big_mha]);
         for path in &sources {
             let gathered = SourceFiles::gather(path, None).unwrap().to_bytes();
             let listing = SourceListing::list(path, None).unwrap();
