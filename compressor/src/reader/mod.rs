@@ -456,36 +456,23 @@ impl SourceFiles {
     /// detached NRRD or MetaImage header brings the data file(s) it names (relative to the
     /// header's directory); anything else is one file. `format` overrides detection.
     pub fn gather(path: &Path, format: Option<Format>) -> Result<SourceFiles, ReadError> {
-        let meta = std::fs::metadata(path).map_err(|e| ReadError::io(path, e))?;
-        if meta.is_dir() {
-            return dicom::gather_series(path);
-        }
-        let bytes = read_file(path)?;
-        let format = format
-            .or_else(|| Format::from_name(path))
-            .or_else(|| Format::sniff(&bytes));
-        let name = path
-            .file_name()
-            .map(|n| n.to_string_lossy().into_owned())
-            .unwrap_or_default();
-        let mut files = vec![(name, bytes)];
-        let companions = match format {
-            Some(Format::Nrrd) => nrrd::data_files(path, &files[0].1)?,
-            Some(Format::MetaImage) => metaimage::data_files(path, &files[0].1)?,
-            _ => Vec::new(),
+        // The files are found as a listing finds them ([`SourceListing::list`]), so that the
+        // bytes hashed by streaming a listing are the bytes gathered here.
+        let listing = SourceListing::list(path, format)?;
+        let files = listing
+            .files
+            .into_iter()
+            .map(|(name, p, _)| Ok((name, read_file(&p)?)))
+            .collect::<Result<_, ReadError>>()?;
+        let base = if path.is_dir() {
+            path.to_path_buf()
+        } else {
+            path.parent().unwrap_or(Path::new(".")).to_path_buf()
         };
-        let dir = path.parent().unwrap_or(Path::new("."));
-        for c in companions {
-            if files.iter().any(|(n, _)| *n == c) {
-                continue;
-            }
-            let p = dir.join(&c);
-            files.push((c, read_file(&p)?));
-        }
         Ok(SourceFiles {
             origin: path.to_path_buf(),
-            base: dir.to_path_buf(),
-            format,
+            base,
+            format: listing.format,
             files,
         })
     }
@@ -615,8 +602,8 @@ impl SourceFiles {
 }
 
 /// A volume's source files named and measured, not read: the files [`SourceFiles::gather`]
-/// would read, whose [`SourceListing::write_to`] streams exactly the bytes of
-/// [`SourceFiles::to_bytes`] one file at a time. A source larger than memory (a DICOM series of
+/// reads (it finds them through this listing), whose [`SourceListing::write_to`] streams
+/// exactly the bytes of [`SourceFiles::to_bytes`] one file at a time. A source larger than memory (a DICOM series of
 /// thousands of slices, a detached header's data) is hashed this way without being held.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct SourceListing {

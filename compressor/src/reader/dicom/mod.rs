@@ -63,7 +63,7 @@ mod pixels;
 mod series;
 mod walk;
 
-pub(crate) use series::{decode, gather_series, series_files, SeriesRegions};
+pub(crate) use series::{decode, series_files, SeriesRegions};
 pub use series::{is_dicom_file, read_cine_file, read_time_series, TimeSeries};
 pub(crate) use walk::has_preamble;
 

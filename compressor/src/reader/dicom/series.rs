@@ -73,20 +73,6 @@ pub(crate) fn series_files(dir: &Path) -> Result<Vec<(String, PathBuf)>, ReadErr
     Ok(files)
 }
 
-/// Gathers the DICOM files directly inside `dir` ([`series_files`]) with their bytes.
-pub(crate) fn gather_series(dir: &Path) -> Result<SourceFiles, ReadError> {
-    let files = series_files(dir)?
-        .into_iter()
-        .map(|(name, path)| Ok((name, crate::reader::read_file(&path)?)))
-        .collect::<Result<_, ReadError>>()?;
-    Ok(SourceFiles {
-        origin: dir.to_path_buf(),
-        base: dir.to_path_buf(),
-        format: Some(crate::reader::Format::Dicom),
-        files,
-    })
-}
-
 /// Whether the file at `path` starts with the DICOM preamble (reads 132 bytes).
 pub fn is_dicom_file(path: &Path) -> std::io::Result<bool> {
     use std::io::Read;
@@ -369,7 +355,7 @@ pub fn read_time_series(dir: &Path) -> Result<Option<TimeSeries>, ReadError> {
             return Ok(None);
         }
     }
-    let files = gather_series(dir)?;
+    let files = SourceFiles::gather(dir, None)?;
     let images = read_headers(files.files.iter().map(|(name, bytes)| {
         Ok((
             name.as_str(),
