@@ -454,9 +454,10 @@ fn decode(spec: &JobSpec, bytes: Vec<u8>) -> Result<Volume, Failure> {
 /// ([`archive::source_digest`]), to the submitted SHA-256: its bytes are then never held
 /// whole. Any source on a path: a raw or single-file volume, a detached header and its data,
 /// a DICOM series directory (read by slice ranges), a 4D file or a directory of time steps.
-async fn hashed_in_place(spec: &JobSpec) -> bool {
+/// Returns the length of the bytes hashed when they match (`None`: not read in place).
+async fn hashed_in_place(spec: &JobSpec) -> Option<u64> {
     let Source::Path(p) = &spec.source else {
-        return false;
+        return None;
     };
     let raw = spec.raw.as_ref().map(options::raw_spec);
     // (A directory's steps as `series::open_series_path` finds them.)
@@ -467,11 +468,14 @@ async fn hashed_in_place(spec: &JobSpec) -> bool {
         wavesplat_compressor::reader::time_points(p, raw.as_ref()).is_ok_and(|t| t > 1)
     };
     if spec.options.brick.is_none() && !series {
-        return false;
+        return None;
     }
     let (p, raw) = (p.clone(), spec.raw.is_some());
     let hashed = tokio::task::spawn_blocking(move || archive::source_digest(&p, raw)).await;
-    matches!(hashed, Ok(Ok((h, _))) if h == spec.sha256)
+    match hashed {
+        Ok(Ok((h, len))) if h == spec.sha256 => Some(len),
+        _ => None,
+    }
 }
 
 /// A job of a bricked volume (`--brick`) whose source is not read in place (an uploaded one),
@@ -512,13 +516,13 @@ async fn execute(
     // A bricked job's file verified without holding it (its bricks are read from it), or the
     // source's bytes read and verified.
     let in_place = hashed_in_place(spec).await;
-    let bytes = if in_place {
+    let bytes = if in_place.is_some() {
         Vec::new()
     } else {
         fetch_source(ctx, id, attempt, spec).await?
     };
     let got = sha256(&bytes);
-    if !in_place && got != spec.sha256 {
+    if in_place.is_none() && got != spec.sha256 {
         return Err(fail(
             FailureKind::InvalidInput,
             format!(
@@ -533,15 +537,21 @@ async fn execute(
     let pool = ctx.pool.clone();
     let sh = shared.clone();
     let (runner, handle) = (ctx.part_runner(), tokio::runtime::Handle::current());
+    // The length of the source as hashed, which every part of a spread job checks the source
+    // against (an uploaded source is never spread).
+    let hashed = match &spec.source {
+        Source::Path(_) => Some(in_place.unwrap_or(bytes.len() as u64)),
+        Source::Upload { .. } => None,
+    };
     let compressed = tokio::task::spawn_blocking(move || {
         if runner.series_if(&job_spec)?.is_some() {
             // A time series on shared storage: its units spread over the workers.
             drop(bytes);
-            return parts::coordinate_series(runner, handle, job_spec, id, attempt, sh);
+            return parts::coordinate_series(runner, handle, job_spec, id, attempt, hashed, sh);
         }
-        if in_place {
+        if in_place.is_some() {
             // A bricked volume on shared storage: its bricks spread over the workers.
-            return parts::coordinate(runner, handle, job_spec, id, attempt, sh);
+            return parts::coordinate(runner, handle, job_spec, id, attempt, hashed, sh);
         }
         if let Some(brick) = job_spec.options.brick {
             return pool.install(|| compress_bricked_job(&job_spec, bytes, brick, &opts, &sh));

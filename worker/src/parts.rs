@@ -756,22 +756,22 @@ impl BrickWork for RemoteBricks {
     }
 }
 
-/// Coordinates a bricked job whose source is a file on shared storage (its hash verified):
-/// returns the bricked file and the volume's voxels. Runs on a blocking thread.
+/// Coordinates a bricked job whose source is on shared storage (its hash verified; `hashed`
+/// the length of the bytes hashed, which every part checks the source against): returns the
+/// bricked file and the volume's voxels. Runs on a blocking thread.
 pub(crate) fn coordinate(
     runner: PartRunner,
     handle: tokio::runtime::Handle,
     spec: JobSpec,
     parent_id: u64,
     parent_attempt: u32,
+    hashed: Option<u64>,
     shared: Arc<Shared>,
 ) -> Result<(Vec<u8>, u64), Failure> {
     let brick = spec
         .options
         .brick
         .ok_or_else(|| fail(FailureKind::Worker, "not a bricked job"))?;
-    // The length the parts check: the file as hashed, before it is planned.
-    let planned_bytes = source_bytes(&spec);
     let source = runner.source(&spec)?;
     let voxels = BrickSource::dims(&*source).iter().product::<u64>();
     shared.set(0.02, "planning the bricks");
@@ -788,7 +788,7 @@ pub(crate) fn coordinate(
     let work = RemoteBricks {
         runner,
         handle,
-        source_bytes: planned_bytes,
+        source_bytes: hashed,
         time_points: None,
         parent: spec,
         parent_id,
@@ -805,8 +805,9 @@ pub(crate) fn coordinate(
 /// Coordinates a job whose source on shared storage is a time series: planned here
 /// ([`SeriesPlan::new`], groups of the job's `time_group`), every unit (a temporal component's
 /// brick) scored and coded as a part on any worker, the series' rate allocated over the units
-/// as in one process, and the container assembled and committed once. Returns the series
-/// file and its voxels over every time point. Runs on a blocking thread.
+/// as in one process, and the container assembled and committed once (`hashed` as for
+/// [`coordinate`]). Returns the series file and its voxels over every time point. Runs on a
+/// blocking thread.
 // The allocation's closures return `allocate_units`' error type, which the compressor fixes.
 #[allow(clippy::result_large_err)]
 pub(crate) fn coordinate_series(
@@ -815,10 +816,9 @@ pub(crate) fn coordinate_series(
     spec: JobSpec,
     parent_id: u64,
     parent_attempt: u32,
+    hashed: Option<u64>,
     shared: Arc<Shared>,
 ) -> Result<(Vec<u8>, u64), Failure> {
-    // The source's length (a file's, or a directory's files') is checked by every part.
-    let planned_bytes = source_bytes(&spec);
     let input = runner.series(&spec)?;
     let series = input.source();
     let points = series.time_points();
@@ -841,7 +841,7 @@ pub(crate) fn coordinate_series(
     let work = RemoteBricks {
         runner,
         handle,
-        source_bytes: planned_bytes,
+        source_bytes: hashed,
         time_points: Some(points as u32),
         parent: spec,
         parent_id,
