@@ -675,10 +675,32 @@ fn compare_depths(
     let share = voxels(&sample) / voxels(grid).max(1.0);
     let bytes = (total.saturating_sub(manifest_allowance(grid.len())) as f64 * share) as u64
         + manifest_allowance(sample.len());
+    // The originals' views, read once for every depth compared.
+    let originals = sample
+        .par_iter()
+        .map(|&(origin, dims)| {
+            let v = source
+                .read(origin, dims)
+                .map_err(|source| BrickError::Read { origin, source })?;
+            Ok(channel_views(&v))
+        })
+        .collect::<Result<Vec<_>, BrickError>>()?;
+    // Oracle files, not refined ones, as the whole's comparison scores its depths: their
+    // ranking of depths predicts the refined files' (BENCHMARKS.md), at a fraction of the time.
+    let oracle = CompressOptions {
+        target: Target::Bytes(bytes),
+        refine: None,
+        ..opts.clone()
+    };
     let mut best: Option<(f64, usize)> = None;
     let mut m = deepest;
     loop {
-        let scored = sample_view_error(source, opts, brick, &sample, shared, m, bytes)?;
+        let choices = SharedChoices {
+            levels: m,
+            ..shared.clone()
+        };
+        let plan = BrickPlan::build(source, &oracle, brick, sample.clone(), choices)?;
+        let scored = sample_view_error(source, &plan, &originals)?;
         tracing::debug!(levels = m, bytes, ?scored, "bricked depth candidate");
         let Some(error) = scored else {
             // Too small for this depth's coarse band: a shallower one's is larger still.
@@ -696,34 +718,33 @@ fn compare_depths(
     Ok(best.map_or(deepest, |(_, m)| m))
 }
 
-/// The sample's bricks at depth `m` allocated to `bytes` as a bricked volume of their own,
-/// decoded and held to their originals: the mean over the three axes of ln Σ ‖P_v f − P_v f̂‖²
-/// over bricks and channels (P_v the sum along axis v over a brick's box), as the whole's
-/// depth comparison scores a depth. `None` when `bytes` does not fit the sample at this depth.
+/// The three axis X-ray views of each channel of `v` ([`axis_views`]).
+fn channel_views(v: &Volume) -> Vec<[Vec<f64>; 3]> {
+    let dims = v.dims();
+    v.channels()
+        .iter()
+        .map(|f| {
+            axis_views(dims, &|x, y, z| {
+                f64::from(f[x + dims[0] * (y + dims[1] * z)])
+            })
+        })
+        .collect()
+}
+
+/// The sample's bricks as `plan` holds them (at one depth, its target their share of the bytes)
+/// allocated as a bricked volume of their own, decoded and held to their originals (whose
+/// views are `originals`, per brick and channel): the mean over the three axes of
+/// ln Σ ‖P_v f − P_v f̂‖² over bricks and channels (P_v the sum along axis v over a brick's
+/// box), as the whole's depth comparison scores a depth. `None` when the target does not fit
+/// the sample at this depth.
 fn sample_view_error(
     source: &dyn BrickSource,
-    opts: &CompressOptions,
-    brick: usize,
-    sample: &[([u64; 3], [usize; 3])],
-    shared: &SharedChoices,
-    m: usize,
-    bytes: u64,
+    plan: &BrickPlan,
+    originals: &[Vec<[Vec<f64>; 3]>],
 ) -> Result<Option<f64>, BrickError> {
-    // Oracle files, not refined ones, as the whole's comparison scores its depths: their
-    // ranking of depths predicts the refined files' (BENCHMARKS.md), at a fraction of the time.
-    let o = CompressOptions {
-        target: Target::Bytes(bytes),
-        refine: None,
-        ..opts.clone()
-    };
-    let choices = SharedChoices {
-        levels: m,
-        ..shared.clone()
-    };
-    let plan = BrickPlan::build(source, &o, brick, sample.to_vec(), choices)?;
     let quiet = |_| {};
     let allocated = match allocate(
-        &plan,
+        plan,
         &LocalBricks {
             source,
             progress: &quiet,
@@ -737,21 +758,18 @@ fn sample_view_error(
     let energies = allocated
         .bricks
         .par_iter()
-        .enumerate()
-        .map(|(i, coded)| {
-            let origin = plan.grid[i].0;
-            let original = plan.read(source, i)?;
-            let decoded = crate::decode::decompress(&coded.file)
-                .map_err(|source| BrickError::Decode { origin, source })?;
-            let dims = original.dims();
+        .zip(originals)
+        .zip(&plan.grid)
+        .map(|((coded, original), (origin, _))| {
+            let decoded =
+                crate::decode::decompress(&coded.file).map_err(|source| BrickError::Decode {
+                    origin: *origin,
+                    source,
+                })?;
             let mut energy = [0.0f64; 3];
-            for (f, g) in original.channels().iter().zip(decoded.channels()) {
-                let at = |x: usize, y: usize, z: usize| {
-                    let i = x + dims[0] * (y + dims[1] * z);
-                    f64::from(f[i]) - f64::from(g[i])
-                };
-                for (e, view) in energy.iter_mut().zip(axis_views(dims, &at)) {
-                    *e += view.iter().map(|d| d * d).sum::<f64>();
+            for (f, g) in original.iter().zip(channel_views(&decoded)) {
+                for ((e, f), g) in energy.iter_mut().zip(f).zip(&g) {
+                    *e += f.iter().zip(g).map(|(a, b)| (a - b).powi(2)).sum::<f64>();
                 }
             }
             Ok(energy)
