@@ -351,26 +351,17 @@ pub fn job_spec(
     options: &JobOptions,
     upload: bool,
 ) -> std::io::Result<(JobSpec, Option<Vec<u8>>)> {
-    // A source that is not uploaded is hashed in pieces, so that submitting a volume larger
-    // than memory does not read it whole: a file that is its own source bytes (raw, NIfTI,
-    // MetaImage in one file) as a file, other sources (a DICOM series, a detached header and
-    // its data, a directory of time steps) as the bundle the worker will gather, file by
-    // file.
-    let own_bytes = found.raw.is_some() || {
-        let name = found.path.to_string_lossy().to_ascii_lowercase();
-        [".nii", ".nii.gz", ".mha"]
-            .iter()
-            .any(|e| name.ends_with(e))
-    };
-    let (sha256, bytes) = if own_bytes && !upload {
-        (wavesplat_net::digest::sha256_file(&found.path)?, None)
-    } else if !upload {
-        (source_digest(&found.path, found.raw.is_some())?.0, None)
-    } else {
-        let bytes = source_bytes(&found.path, found.raw.is_some())?;
+    // A source that is not uploaded is hashed in pieces, file by file, as the bundle the
+    // worker will gather (a single file's own bytes, or a DICOM series, a detached header and
+    // its data, a directory of time steps), so that submitting a volume larger than memory
+    // does not read it whole.
+    let raw = found.raw.is_some();
+    let (sha256, bytes) = if upload {
+        let bytes = source_bytes(&found.path, raw)?;
         (wavesplat_net::digest::sha256(&bytes), Some(bytes))
+    } else {
+        (source_digest(&found.path, raw)?.0, None)
     };
-    let bytes = bytes.filter(|_| upload);
     let source = match &bytes {
         Some(b) => Source::Upload {
             size: b.len() as u64,
