@@ -9,22 +9,6 @@ pub fn sha256(bytes: &[u8]) -> [u8; 32] {
     Sha256::digest(bytes).into()
 }
 
-/// SHA-256 of the file at `path`, read in pieces of 1 MiB (never whole in memory).
-pub fn sha256_file(path: &std::path::Path) -> std::io::Result<[u8; 32]> {
-    use std::io::Read;
-    let mut file = std::fs::File::open(path)?;
-    let mut hasher = Sha256::new();
-    let mut buf = vec![0u8; 1 << 20];
-    loop {
-        match file.read(&mut buf) {
-            Ok(0) => return Ok(hasher.finalize().into()),
-            Ok(n) => hasher.update(&buf[..n]),
-            Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
-            Err(e) => return Err(e),
-        }
-    }
-}
-
 /// SHA-256 of whatever `write` writes to the writer it is given (bytes streamed from several
 /// files, say), never held.
 pub fn sha256_stream<E>(
@@ -50,13 +34,16 @@ mod tests {
     use super::*;
 
     #[test]
-    fn a_file_hashes_in_pieces_as_its_bytes_do() {
+    fn a_file_streamed_in_pieces_hashes_as_its_bytes_do() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("f");
         let bytes: Vec<u8> = (0..(3 << 20) + 17).map(|i| (i * 7 % 251) as u8).collect();
         std::fs::write(&path, &bytes).unwrap();
-        assert_eq!(sha256_file(&path).unwrap(), sha256(&bytes));
-        assert!(sha256_file(&dir.path().join("missing")).is_err());
+        let streamed = |p: &std::path::Path| {
+            sha256_stream(|w| std::io::copy(&mut std::fs::File::open(p)?, w).map(|_| ()))
+        };
+        assert_eq!(streamed(&path).unwrap(), sha256(&bytes));
+        assert!(streamed(&dir.path().join("missing")).is_err());
     }
 
     #[test]
