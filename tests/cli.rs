@@ -109,19 +109,16 @@ fn first_hour_mistakes_are_explained() {
     assert!(!e.status.success());
     assert!(err(&e).contains("already a compressed"), "{}", err(&e));
 
+    // The raw phantom compressed to `o` with further options.
+    let compress_raw = |options: &[&str]| {
+        let mut args = vec!["compress", &raw, "--dims", "16,16,16", "--dtype", "f32"];
+        args.extend_from_slice(options);
+        args.extend(["-o", o]);
+        run(&args)
+    };
+
     // A negative fraction reaches the validation instead of clap's "unexpected argument '-0'".
-    let e = run(&[
-        "compress",
-        &raw,
-        "--dims",
-        "16,16,16",
-        "--dtype",
-        "f32",
-        "--target-fraction",
-        "-0.5",
-        "-o",
-        o,
-    ]);
+    let e = compress_raw(&["--target-fraction", "-0.5"]);
     assert!(!e.status.success());
     assert!(
         err(&e).contains("-0.5") && err(&e).contains("(0, 1]"),
@@ -160,22 +157,7 @@ fn first_hour_mistakes_are_explained() {
 
     // An effort that does not exist is named with the ones that do; each that does compresses
     // to the byte target.
-    let compress = |effort: &str| {
-        run(&[
-            "compress",
-            &raw,
-            "--dims",
-            "16,16,16",
-            "--dtype",
-            "f32",
-            "--target-bytes",
-            "2000",
-            "--effort",
-            effort,
-            "-o",
-            o,
-        ])
-    };
+    let compress = |effort: &str| compress_raw(&["--target-bytes", "2000", "--effort", effort]);
     let e = compress("slow");
     assert!(!e.status.success());
     assert!(
