@@ -1,9 +1,9 @@
 //! Bricked volumes in a cache node (embedded store): ingested as one volume (the container read
 //! front to back, every brick checked), kept across a restart, streamed by `Refine` with its
 //! bricks' headers and its packets ranked across bricks, and drawn by `render --cache` as the
-//! local file is drawn; a view zoomed into one corner is sent the packets of the bricks it sees
-//! and no other, read on the wire by a plain client; damaged uploads are refused naming the
-//! brick.
+//! local file is drawn (multiview too); a view zoomed into one corner is sent the packets of
+//! the bricks it sees and no other, read on the wire by a plain client; damaged uploads are
+//! refused naming the brick.
 
 mod common;
 
@@ -142,6 +142,43 @@ fn a_bricked_volume_renders_from_the_cache_as_from_its_file() {
         let snr = wavesplat_codec::metrics::snr_db(&l, &c);
         assert!(snr > 90.0, "{name}: cache against file {snr:.1} dB");
     }
+    // Multiview from the cache (the node ranks each brick by what any panel sees of it) ends
+    // at the local file's one-pass multiview image.
+    let multiview = [
+        "--multiview",
+        "--alpha",
+        "0.4",
+        "--beta",
+        "0.3",
+        "--size",
+        "40x32",
+    ];
+    let mut args = vec![
+        "--cache",
+        &server.url,
+        "--volume",
+        "big",
+        "--cpu",
+        "-o",
+        "c.png",
+        "--raw",
+        "mc.f32",
+    ];
+    args.extend_from_slice(&multiview);
+    let out = render(tmp.path(), &args);
+    assert!(out.status.success(), "multiview: {}", text(&out));
+    let mut args = vec!["b.wsp", "--cpu", "-o", "l.png", "--raw", "ml.f32"];
+    args.extend_from_slice(&multiview);
+    let out = render(tmp.path(), &args);
+    assert!(out.status.success(), "multiview: {}", text(&out));
+    let (c, l) = (
+        read_f32(&tmp.path().join("mc.f32")),
+        read_f32(&tmp.path().join("ml.f32")),
+    );
+    assert_eq!(l.len(), 3 * 40 * 32, "three panels");
+    assert!(l.iter().any(|v| *v != 0.0), "multiview: the image is empty");
+    let snr = wavesplat_codec::metrics::snr_db(&l, &c);
+    assert!(snr > 90.0, "multiview: cache against one pass {snr:.1} dB");
 }
 
 /// Read on the wire by a plain client: the header message carries every brick's header and

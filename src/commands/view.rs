@@ -96,25 +96,6 @@ pub fn run(a: ViewWindowArgs) -> Result<()> {
         None => Script::default(),
     };
     let location = a.view.location()?;
-    if let VolumeLocation::File { path, bytes } = &location {
-        if wavesplat_codec::format::bricked::is_bricked(bytes) && request.multiview {
-            bail!(
-                "{} is a bricked volume: multiview of it is drawn in one pass only \
-                 (`wavesplat render {} --multiview`); the window shows it in single views",
-                path.display(),
-                path.display()
-            );
-        }
-        if is_series(bytes) && request.multiview {
-            bail!(
-                "{} is a time series: multiview of a time point is drawn in one pass only \
-                 (`wavesplat render {} --multiview --time-point N`); the window shows it in \
-                 single views",
-                path.display(),
-                path.display()
-            );
-        }
-    }
     if !(a.view.fps.is_finite() && a.view.fps > 0.0 && a.view.fps <= 1000.0) {
         bail!(
             "--fps {}: a rate in (0, 1000] time points per second",
@@ -184,12 +165,6 @@ pub fn run(a: ViewWindowArgs) -> Result<()> {
     {
         bail!("--time-point applies to a time series; {title} is one volume");
     }
-    if cached_series.is_some() && request.multiview {
-        bail!(
-            "{title} is a time series: the window shows a time point in single views \
-             (`wavesplat render --multiview` draws one)"
-        );
-    }
     // The window turns a view by its angles: a named patient view must be one.
     let state = ViewState::new(
         &spec,
@@ -202,11 +177,6 @@ pub fn run(a: ViewWindowArgs) -> Result<()> {
         None => state?,
     };
     let bricked = opened.bricked_volume();
-    let state = if bricked.is_some() {
-        state.single_views_only()
-    } else {
-        state
-    };
     let (state, playback) = match series {
         Some((bytes, points, times)) => {
             let state = state.with_time(a.view.time_point.unwrap_or(0), points, times, a.view.fps);

@@ -6,8 +6,9 @@
 //! faces, which differ from a brick's own by a constant distance per brick, so its image (and
 //! its packets' visible energy, squared) is scaled by e^(−k·δ). A brick whose box projects off
 //! the image is seen by no packet of it. The bricks of one view share the band weights of their
-//! visibility ([`Visibility::new_like`]). Multiview of bricks is not placed here: each panel
-//! would move into a brick by a pan of its own, which one brick view cannot hold.
+//! visibility ([`Visibility::new_like`]). In multiview each panel moves into a brick by a pan
+//! of its own (the panels' screen axes differ): a brick's frame holds the whole's multiview
+//! spec at the whole's zoom and one pan per panel ([`BrickFrame::cameras`]).
 
 use super::visibility::Visibility;
 use super::{dot, resolve_cue, Camera, ResolvedCue, View, ViewError, ViewSpec};
@@ -151,6 +152,8 @@ pub fn brick_view(
         (centre(whole.dims[a]) - origin[a] as f64 - centre(brick_geometry.dims[a])) * s[a]
     });
     let mut v = *whole_view;
+    // The whole's zoom: a view without one would fit the brick's own box.
+    v.zoom = Some(whole_camera.zoom);
     v.pan = [
         whole_view.pan[0] + dot(d, whole_camera.u),
         whole_view.pan[1] + dot(d, whole_camera.v),
@@ -197,48 +200,73 @@ pub fn cue_factor(whole: &ResolvedCue, own: &ResolvedCue, origin: [u64; 3]) -> f
     (-whole.k * delta).exp()
 }
 
-/// How one brick draws its share of a single view of the whole: its own view (the whole's
-/// camera moved into the brick's frame) and the factor its image is scaled by so that its
-/// depth cue measures from the whole's light-facing faces (1 without a cue).
+/// How one brick draws its share of a view of the whole: its own view (the whole's camera moved
+/// into the brick's frame: the whole's zoom, a pan that puts the whole's centre where it
+/// belongs), one pan per camera (multiview's panels each move by their own), and the factor its
+/// image is scaled by so that its depth cue measures from the whole's light-facing faces (1
+/// without a cue; multiview has none).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct BrickFrame {
-    /// The brick's view.
+    /// The brick's view (multiview: the whole's multiview spec, its first panel's pan).
     pub spec: ViewSpec,
+    /// The pan of each camera of `spec` in the brick's frame (the first is `spec`'s own; a
+    /// single view uses only it).
+    pub pans: [[f64; 2]; 3],
     /// e^(−k·δ): δ the distance from the whole's light-facing faces to the brick's.
     pub cue_scale: f64,
 }
 
-/// The whole's camera and resolved cue for a single view `spec` of `whole` (the frame every
-/// brick is drawn in); multiview is refused ([`ViewError::MultiviewOfBricks`]).
+impl BrickFrame {
+    /// The brick's cameras in this frame (one, or the three multiview panels), for the brick of
+    /// `geometry`: `spec`'s cameras, each moved by its own pan.
+    pub fn cameras(&self, geometry: &Geometry) -> Result<Vec<Camera>, ViewError> {
+        let mut cameras = self.spec.cameras(geometry)?;
+        for (camera, pan) in cameras.iter_mut().zip(self.pans) {
+            camera.pan = pan;
+        }
+        Ok(cameras)
+    }
+}
+
+/// The whole's cameras (one, or the three multiview panels) and resolved cue for `spec` of
+/// `whole`: the frame every brick is drawn in.
 pub fn whole_frame(
     spec: &ViewSpec,
     whole: &Geometry,
-) -> Result<(Camera, Option<ResolvedCue>), ViewError> {
-    if spec.multiview {
-        return Err(ViewError::MultiviewOfBricks);
-    }
-    let camera = spec.cameras(whole)?.remove(0);
+) -> Result<(Vec<Camera>, Option<ResolvedCue>), ViewError> {
+    let cameras = spec.cameras(whole)?;
     let cue = spec
         .view
         .cue
-        .map(|c| resolve_cue(&c, &camera, whole))
+        .map(|c| resolve_cue(&c, &cameras[0], whole))
         .transpose()?;
-    Ok((camera, cue))
+    Ok((cameras, cue))
 }
 
-/// How the brick of `geometry` at `origin` draws its share of the single view `spec` of the
-/// whole (camera and cue from [`whole_frame`]); `None` when its box projects off the image.
+/// How the brick of `geometry` at `origin` draws its share of the view `spec` of the whole
+/// (cameras and cue from [`whole_frame`]); `None` when its box projects off the image of every
+/// camera.
 pub fn brick_frame(
     spec: &ViewSpec,
-    (camera, whole_cue): (&Camera, Option<&ResolvedCue>),
+    (cameras, whole_cue): (&[Camera], Option<&ResolvedCue>),
     whole: &Geometry,
     geometry: &Geometry,
     origin: [u64; 3],
 ) -> Result<Option<BrickFrame>, ViewError> {
-    if !on_screen(camera, origin, geometry.dims, reach(geometry, camera)) {
+    let Some(first) = cameras.first() else {
+        return Ok(None);
+    };
+    if !cameras
+        .iter()
+        .any(|c| on_screen(c, origin, geometry.dims, reach(geometry, c)))
+    {
         return Ok(None);
     }
-    let view = brick_view(&spec.view, camera, whole, geometry, origin);
+    let view = brick_view(&spec.view, first, whole, geometry, origin);
+    let mut pans = [view.pan; 3];
+    for (pan, camera) in pans.iter_mut().zip(cameras).skip(1) {
+        *pan = brick_view(&spec.view, camera, whole, geometry, origin).pan;
+    }
     let cue_scale = match (whole_cue, view.cue) {
         (Some(wc), Some(cue)) => {
             let own = resolve_cue(&cue, &Camera::new(&view, geometry)?, geometry)?;
@@ -247,7 +275,11 @@ pub fn brick_frame(
         _ => 1.0,
     };
     Ok(Some(BrickFrame {
-        spec: ViewSpec::single(view),
+        spec: ViewSpec {
+            view,
+            multiview: spec.multiview,
+        },
+        pans,
         cue_scale,
     }))
 }
@@ -259,25 +291,23 @@ pub fn brick_frames<'a>(
     whole: &Geometry,
     bricks: impl IntoIterator<Item = (&'a Geometry, [u64; 3])>,
 ) -> Result<Vec<Option<BrickFrame>>, ViewError> {
-    let (camera, cue) = whole_frame(spec, whole)?;
+    let (cameras, cue) = whole_frame(spec, whole)?;
     bricks
         .into_iter()
-        .map(|(g, origin)| brick_frame(spec, (&camera, cue.as_ref()), whole, g, origin))
+        .map(|(g, origin)| brick_frame(spec, (&cameras, cue.as_ref()), whole, g, origin))
         .collect()
 }
 
-/// The visibility of a brick of `header` in its frame's `spec`, sharing the band weights of
-/// the first brick's visibility kept in `like` (set by the first call): the bricks of one
-/// view share them ([`Visibility::new_like`]).
+/// The visibility of a brick of `header` in its `frame` (every camera with its own pan),
+/// sharing the band weights of the first brick's visibility kept in `like` (set by the first
+/// call): the bricks of one view share them ([`Visibility::new_like`]).
 pub fn brick_visibility(
     header: &Header,
-    spec: &ViewSpec,
+    frame: &BrickFrame,
     like: &mut Option<Visibility>,
 ) -> Result<Visibility, ViewError> {
-    let visibility = match like.as_ref() {
-        Some(l) => Visibility::new_like(header, spec, l)?,
-        None => Visibility::new(header, spec)?,
-    };
+    let cameras = frame.cameras(&header.geometry)?;
+    let visibility = Visibility::with_cameras(header, &frame.spec, &cameras, like.as_ref())?;
     like.get_or_insert_with(|| visibility.clone());
     Ok(visibility)
 }
@@ -305,7 +335,7 @@ impl BrickedVisibility {
             .map(|((header, _), frame)| {
                 frame
                     .map(|f| {
-                        let vis = brick_visibility(header, &f.spec, &mut like)?;
+                        let vis = brick_visibility(header, &f, &mut like)?;
                         Ok((vis, f.cue_scale * f.cue_scale))
                     })
                     .transpose()

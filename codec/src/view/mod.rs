@@ -82,12 +82,6 @@ pub enum ViewError {
     /// Zero cue direction vector.
     #[error("the cue direction vector is zero")]
     ZeroCueDirection,
-    /// Multiview of a bricked volume: each panel would move into a brick by a pan of its own,
-    /// which one brick view cannot hold ([`bricked`]).
-    #[error(
-        "multiview of a bricked volume is drawn in one pass only (render without --progressive)"
-    )]
-    MultiviewOfBricks,
 }
 
 /// A number as people read it in a message: plain for ordinary magnitudes, in scientific

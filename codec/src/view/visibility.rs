@@ -37,20 +37,7 @@ pub struct Visibility {
 impl Visibility {
     /// Plans `spec` for the volume of `header`.
     pub fn new(header: &Header, spec: &ViewSpec) -> Result<Visibility, ViewError> {
-        let g = header.geometry;
-        let cameras = spec.cameras(&g)?;
-        let mut cams = Vec::with_capacity(cameras.len());
-        for cam in &cameras {
-            let cue = match &spec.view.cue {
-                Some(c) => Some(resolve_cue(c, cam, &g)?),
-                None => None,
-            };
-            cams.push(CameraWeights {
-                band_weight: band_weights(&g, cam),
-                tile_factor: tile_factors(header, cam, cue.as_ref()),
-            });
-        }
-        Ok(Visibility { geometry: g, cams })
+        Visibility::with_cameras(header, spec, &spec.cameras(&header.geometry)?, None)
     }
 
     /// [`Visibility::new`] with the band weights of `like`: a visibility of the same view
@@ -64,23 +51,37 @@ impl Visibility {
         spec: &ViewSpec,
         like: &Visibility,
     ) -> Result<Visibility, ViewError> {
+        Visibility::with_cameras(header, spec, &spec.cameras(&header.geometry)?, Some(like))
+    }
+
+    /// The visibility of `spec`'s view (its cue) through `cameras` (one per image of the
+    /// view, each possibly moved by a pan of its own, as a bricked volume's multiview panels
+    /// are in a brick), with the band weights of `like` where it fits ([`Visibility::new_like`]).
+    pub fn with_cameras(
+        header: &Header,
+        spec: &ViewSpec,
+        cameras: &[Camera],
+        like: Option<&Visibility>,
+    ) -> Result<Visibility, ViewError> {
+        spec.validate()?;
         let g = header.geometry;
-        let cameras = spec.cameras(&g)?;
-        let same = like.geometry.family == g.family
-            && like.geometry.levels == g.levels
-            && like.geometry.spacing == g.spacing
-            && like.cams.len() == cameras.len();
-        if !same {
-            return Visibility::new(header, spec);
-        }
+        let like = like.filter(|l| {
+            l.geometry.family == g.family
+                && l.geometry.levels == g.levels
+                && l.geometry.spacing == g.spacing
+                && l.cams.len() == cameras.len()
+        });
         let mut cams = Vec::with_capacity(cameras.len());
-        for (cam, shared) in cameras.iter().zip(&like.cams) {
+        for (k, cam) in cameras.iter().enumerate() {
             let cue = match &spec.view.cue {
                 Some(c) => Some(resolve_cue(c, cam, &g)?),
                 None => None,
             };
             cams.push(CameraWeights {
-                band_weight: shared.band_weight.clone(),
+                band_weight: match like {
+                    Some(l) => l.cams[k].band_weight.clone(),
+                    None => band_weights(&g, cam),
+                },
                 tile_factor: tile_factors(header, cam, cue.as_ref()),
             });
         }

@@ -9,7 +9,7 @@
 
 use super::{RenderSession, SessionError};
 use crate::backend::AccumulationBackend;
-use crate::bricked::{brick_frames, brick_visibility, same_display, whole_frame};
+use crate::bricked::{brick_frames, brick_visibility, same_display, whole_frame, BrickFrame};
 use crate::plan::{RenderStats, SharedFactorTables, ViewPlan};
 use crate::RenderError;
 use wavesplat_codec::format::packet::Coefficient;
@@ -164,11 +164,8 @@ impl Bricks {
         self.parts[k].view.as_ref().map(|v| &v.plan)
     }
 
-    /// The single-view frames of `spec` for every brick (`None`: off the image).
-    pub(super) fn frames(
-        &self,
-        spec: &ViewSpec,
-    ) -> Result<Vec<Option<crate::bricked::BrickFrame>>, RenderError> {
+    /// The frames of `spec` for every brick (`None`: off the image).
+    pub(super) fn frames(&self, spec: &ViewSpec) -> Result<Vec<Option<BrickFrame>>, RenderError> {
         brick_frames(
             spec,
             &self.whole,
@@ -192,9 +189,9 @@ impl Bricks {
             let Some(frame) = frame else { continue };
             let (p, e) = plan(&part.header.geometry, &frame.spec)?;
             exact &= e;
-            let visibility = brick_visibility(&part.header, &frame.spec, &mut like)?;
+            let visibility = brick_visibility(&part.header, &frame, &mut like)?;
             part.view = Some(PartView {
-                plan: p,
+                plan: in_frame(p, &frame),
                 visibility,
                 cue_scale: frame.cue_scale as f32,
             });
@@ -211,17 +208,17 @@ impl Bricks {
         }
     }
 
-    /// The bricks' geometries and views for a background build: `None` for a brick off the
+    /// The bricks' geometries and frames for a background build: `None` for a brick off the
     /// image.
     pub(super) fn jobs(
         &self,
         spec: &ViewSpec,
-    ) -> Result<Vec<Option<(Geometry, ViewSpec)>>, RenderError> {
+    ) -> Result<Vec<Option<(Geometry, BrickFrame)>>, RenderError> {
         Ok(self
             .frames(spec)?
             .into_iter()
             .zip(&self.parts)
-            .map(|(f, p)| f.map(|f| (p.header.geometry, f.spec)))
+            .map(|(f, p)| f.map(|f| (p.header.geometry, f)))
             .collect())
     }
 
@@ -236,7 +233,7 @@ impl Bricks {
 impl<B: AccumulationBackend> RenderSession<B> {
     /// A session for a bricked volume (see the module documentation of `session::bricks`):
     /// the bricks' packets are added under their global ids
-    /// ([`BrickedVolume::global_id`]); multiview is refused (drawn in one pass only).
+    /// ([`BrickedVolume::global_id`]).
     pub fn new_bricked(
         volume: BrickedVolume,
         spec: ViewSpec,
@@ -245,7 +242,7 @@ impl<B: AccumulationBackend> RenderSession<B> {
     ) -> Result<RenderSession<B>, SessionError> {
         let whole = volume.whole.clone();
         let bricks = Bricks::new(volume)?;
-        // Checked before anything is planned: a multiview spec is refused here.
+        // The view is checked against the whole before anything is planned.
         whole_frame(&spec, &bricks.whole)?;
         RenderSession::build(whole, spec, backend, options, Some(bricks))
     }
@@ -330,6 +327,16 @@ impl<B: AccumulationBackend> RenderSession<B> {
         deferred.sort_unstable();
         Ok((deferred, records))
     }
+}
+
+/// A brick's plan of its frame's spec with every camera moved by the frame's own pan for it
+/// (multiview's panels move into a brick by pans of their own; the tables do not depend on the
+/// pan).
+pub(super) fn in_frame(mut plan: ViewPlan, frame: &BrickFrame) -> ViewPlan {
+    for (camera, pan) in plan.cameras.iter_mut().zip(frame.pans) {
+        camera.pan = pan;
+    }
+    plan
 }
 
 /// Whether bricks `a` and `b` are drawn with plans that share an atlas.

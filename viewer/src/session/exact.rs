@@ -37,7 +37,10 @@ impl<B: AccumulationBackend> RenderSession<B> {
                     .iter()
                     .map(|job| {
                         job.as_ref()
-                            .map(|(g, s)| planner.plan(g, s, channels))
+                            .map(|(g, frame)| {
+                                let plan = planner.plan(g, &frame.spec, channels)?;
+                                Ok::<_, RenderError>(super::bricks::in_frame(plan, frame))
+                            })
                             .transpose()
                     })
                     .collect::<Result<_, _>>()?;

@@ -51,8 +51,6 @@ pub struct ViewState {
     pub contrast: f64,
     /// Display window centre, offset from the automatic one in units of its width.
     pub level: f64,
-    /// Multiview is not offered (a bricked volume: its panels are drawn in one pass only).
-    pub single_view_only: bool,
     /// A time series' time point and playback (`None`: one volume).
     pub time: Option<TimeState>,
     initial: Option<Box<ViewState>>,
@@ -131,7 +129,6 @@ impl ViewState {
             budget_ms,
             contrast: 1.0,
             level: 0.0,
-            single_view_only: false,
             time: None,
             initial: None,
         };
@@ -159,18 +156,6 @@ impl ViewState {
             initial: None,
             ..self.clone()
         }));
-        self
-    }
-
-    /// This state for a volume drawn in single views only (a bricked volume): M says why it
-    /// does not switch to multiview, also after a reset.
-    pub fn single_views_only(mut self) -> ViewState {
-        self.single_view_only = true;
-        self.multiview = false;
-        if let Some(i) = self.initial.as_mut() {
-            i.single_view_only = true;
-            i.multiview = false;
-        }
         self
     }
 
@@ -467,12 +452,6 @@ impl Controls {
             KeyPress::Escape | KeyPress::Char('q') => return Reaction::Quit,
             KeyPress::Help | KeyPress::Char('h') => return Reaction::Help,
             KeyPress::Char('m') => {
-                if s.single_view_only {
-                    return Reaction::Note(
-                        "multiview of a bricked volume is drawn in one pass only \
-                         (wavesplat render --multiview)",
-                    );
-                }
                 s.multiview = !s.multiview;
                 self.view_changed = true;
                 if s.multiview && s.cue_on {
@@ -676,7 +655,6 @@ mod tests {
             budget_ms: 16.6,
             contrast: 1.0,
             level: 0.0,
-            single_view_only: false,
             time: None,
             initial: None,
         }
