@@ -634,7 +634,8 @@ fn the_ca_given_is_trusted_for_https() {
 /// object gives the container back and a damaged index or a cut object is refused. Browsed by
 /// range requests it is drawn as one volume: the whole view ends at the local file's image, and
 /// a view zoomed into one corner fetches the head and the bytes of at most the two bricks along
-/// its rays (of eight), ending at the local file's image of that corner.
+/// its rays (of eight), ending at the local file's image of that corner; multiview ends at the
+/// local file's multiview image.
 #[test]
 fn a_published_bricked_volume_browses_as_one() {
     use wavesplat_codec::format::index::BrickedHead;
@@ -689,7 +690,20 @@ fn a_published_bricked_volume_browses_as_one() {
         "32x32",
     ];
     let whole = ["--size", "48x48"];
-    for (name, view) in [("whole", &whole[..]), ("corner", &corner[..])] {
+    let multiview = [
+        "--multiview",
+        "--alpha",
+        "0.4",
+        "--beta",
+        "0.3",
+        "--size",
+        "40x32",
+    ];
+    for (name, view) in [
+        ("whole", &whole[..]),
+        ("corner", &corner[..]),
+        ("multiview", &multiview[..]),
+    ] {
         let server = TinyServer::start(vec![("/b.wspx", wspx.clone())], &[]);
         let url = format!("http://{}/b.wspx", server.url);
         let remote = format!("{name}-remote.f32");
