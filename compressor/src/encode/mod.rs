@@ -32,6 +32,7 @@ pub(crate) use prepare::axis_views;
 use prepare::{code, prepare};
 pub use prepare::{default_margin, COARSE_LAYER_MIN_LEVELS, STRUCTURED_FACES};
 pub use rate::worth_going_shallower;
+pub(crate) use rate::SHALLOWER_KEPT;
 use rate::{bytes_per_coefficient_guess, compress_to_bytes};
 use wavesplat_codec::volume::Volume;
 

@@ -52,7 +52,7 @@ pub(super) fn depth_candidates(dims: [usize; 3], opts: &CompressOptions) -> Vec<
 /// (ratio 1.0) gain 2.0–2.1 dB at M = 1; the slabs and aniso at 5.85 % (0.65) lose 0.5–2.3 dB,
 /// the RGB phantom at 5.85 % (0.57) 0.4 dB (and its oracle files' views ranked M = 1 first),
 /// the first two at 1.25 % (0.24) 1.3 dB, the MNI volume at 1.25 % (0.12) 6 dB.
-const SHALLOWER_KEPT: f64 = 0.8;
+pub(crate) const SHALLOWER_KEPT: f64 = 0.8;
 
 /// Whether a file of `kept` coefficients over `channels` at `geometry`'s depth M makes depth
 /// M − 1 worth a try ([`SHALLOWER_KEPT`]; never below M = 1).
