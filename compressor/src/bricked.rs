@@ -644,14 +644,13 @@ fn choose_levels(
     }
 }
 
+/// A brick of a grid: its first voxel in the whole and its dimensions.
+type GridBrick = ([u64; 3], [usize; 3]);
+
 /// The sample of `grid` a depth choice compresses ([`depth_sample`]) and its share of the
 /// bytes `total` (its share of the voxels, each side's manifest allowed for).
-fn sample_and_bytes(
-    grid: &[([u64; 3], [usize; 3])],
-    total: u64,
-) -> (Vec<([u64; 3], [usize; 3])>, u64) {
-    let sample: Vec<([u64; 3], [usize; 3])> =
-        depth_sample(grid.len()).iter().map(|&i| grid[i]).collect();
+fn sample_and_bytes(grid: &[GridBrick], total: u64) -> (Vec<GridBrick>, u64) {
+    let sample: Vec<GridBrick> = depth_sample(grid.len()).iter().map(|&i| grid[i]).collect();
     let voxels = |g: &[([u64; 3], [usize; 3])]| -> f64 {
         g.iter()
             .map(|(_, d)| d.iter().map(|v| *v as f64).product::<f64>())
