@@ -1129,6 +1129,86 @@ async fn a_dicom_series_and_a_detached_header_spread_their_bricks_over_workers()
     }
 }
 
+/// A volume on shared storage submitted without `--brick` that would not fit a worker's memory
+/// whole (`archive submit --memory-limit`) is submitted as a bricked job by itself, saying so,
+/// at the largest side of which a brick fits; its bricks spread over both workers and it lands
+/// as the file one process makes in those bricks. A volume that fits stays whole.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_volume_too_large_for_a_worker_is_submitted_as_bricks_by_itself() {
+    use wavesplat_compressor::reader::region::RegionReader;
+    use wavesplat_orchestrator_client::model::TargetSpec;
+    let cl = TestCluster::start(&ORCH_TIMING);
+    let (o, c) = (cl.orch.url(), cl.cache.url());
+    let shared = cl.root.join("shared");
+    std::fs::create_dir_all(&shared).unwrap();
+    let dims = [128, 128, 128];
+    let big = shared.join(raw_name("big", dims, "f32"));
+    write_f32(&big, &phantom(Phantom::SheppLogan, dims));
+    let small_dims = [32, 32, 24];
+    let small = shared.join(raw_name("small", small_dims, "f32"));
+    write_f32(&small, &phantom(Phantom::SheppLogan, small_dims));
+    let logs = [cl.root.join("w1.log"), cl.root.join("w2.log")];
+    let _w1 = cl.worker("w1", 0, Some(&logs[0]));
+    let _w2 = cl.worker("w2", 0, Some(&logs[1]));
+    // By the estimate the 128³ whole at depth 2 needs ~175 MB, a 64³ brick much less (64 MB of
+    // it the process's): 160 MiB takes a brick, not the whole.
+    let out = cli(&[
+        "archive",
+        "submit",
+        shared.to_str().unwrap(),
+        "--orchestrator",
+        &o,
+        "--detach",
+        "--levels",
+        "2",
+        "--target-fraction",
+        "0.05",
+        "--memory-limit",
+        "160M",
+    ]);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        out.status.success(),
+        "{}: {stderr}{}",
+        out.status,
+        String::from_utf8_lossy(&out.stdout)
+    );
+    assert!(
+        stderr.contains("big_128x128x128_f32.raw")
+            && stderr.contains("bricks of at most 64 voxels a side")
+            && stderr.contains("--memory-limit"),
+        "{stderr}"
+    );
+    assert!(
+        !stderr.contains("small_"),
+        "the small volume fits: {stderr}"
+    );
+    let js = wait_for(&o, 180, "both jobs done", all_finished).await;
+    let (parts, js): (Vec<_>, Vec<_>) = js.into_iter().partition(is_part);
+    assert_eq!(js.len(), 2, "one job per volume");
+    for j in js.iter().chain(&parts) {
+        assert_eq!(state_name(j.state), "done", "{}: {}", name(j), j.error);
+    }
+    // 2 × 2 × 2 bricks of the large volume, scored and coded; none of the small one.
+    assert_eq!(parts.len(), 16, "the large volume's bricks ran as parts");
+    each_ran_a_part(&logs);
+    let mut client = CacheClient::connect(&c).await.unwrap();
+    let listed = client.list().await.unwrap();
+    let got = listed
+        .iter()
+        .find(|l| l.name == "big")
+        .unwrap_or_else(|| panic!("big in {listed:?}"));
+    let (_, layout) = wavesplat_worker::archive::parse_raw_name("big_128x128x128_f32.raw").unwrap();
+    let raw = wavesplat_worker::options::raw_spec(&layout);
+    let reader = RegionReader::open(&big, Some(&raw)).unwrap();
+    let one = one_process_file(&reader, 64, TargetSpec::Fraction(0.05));
+    assert_eq!(
+        got.sha256,
+        wavesplat_net::digest::hex(&wavesplat_net::digest::sha256(&one)),
+        "not the one-process file in 64³ bricks"
+    );
+}
+
 /// The source file changes while its bricks are being compressed: the next part refuses it,
 /// and the job fails for good saying so, instead of mixing two files' bricks in the cache.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -32,8 +32,8 @@ use wavesplat_codec::layout::Geometry;
 use wavesplat_codec::volume::{Placement, Volume, VolumeError};
 
 use crate::encode::{
-    axis_views, compress, default_levels, score_summary, CompressError, CompressOptions,
-    DepthSearch, ScoreSummary, Target, SHALLOWER_KEPT,
+    axis_views, compress, default_levels, memory_estimate, score_summary, CompressError,
+    CompressOptions, DepthSearch, ScoreSummary, Target, PROCESS_MEMORY, SHALLOWER_KEPT,
 };
 use crate::reader::ReadError;
 
@@ -362,6 +362,83 @@ impl std::fmt::Display for BrickStage {
 }
 
 pub use wavesplat_codec::format::bricked::MIN_BRICK;
+
+/// Brick sides a volume too large to compress whole is split into, largest first.
+pub const AUTO_BRICK_SIDES: [usize; 4] = [256, 128, 64, 32];
+
+/// Why a volume is compressed as bricks without being asked to ([`auto_brick`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum BrickReason {
+    /// More voxels than one transform takes ([`wavesplat_codec::volume::MAX_VOXELS`]).
+    TooManyVoxels(u128),
+    /// Compressing it whole needs about `needed` bytes, more than the `limit`.
+    OverMemory {
+        /// The estimate for the whole ([`crate::encode::memory_estimate`]).
+        needed: u64,
+        /// The memory it must fit.
+        limit: u64,
+    },
+}
+
+/// A brick side chosen for a volume that cannot be compressed whole, and why.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct AutoBrick {
+    /// The brick edge.
+    pub side: usize,
+    /// Why the whole does not do.
+    pub reason: BrickReason,
+}
+
+/// Whether a volume of `dims` voxels and `channels` channels compressed with `opts` should be
+/// bricked, and at which side: when it has more voxels than one transform takes, or compressing
+/// it whole would need more than `limit` bytes ([`crate::encode::memory_estimate`]). The side is
+/// the largest of [`AUTO_BRICK_SIDES`] below the volume's whose bricks, `threads` at a time (one
+/// per thread of a process, or one on a worker running a part), fit the limit beside the
+/// process's own share; none fitting: `None` for a volume that has few enough voxels (compressed
+/// whole, which reports the limit), the smallest side otherwise. What `compress` and `archive
+/// submit` do with a volume given without `--brick`.
+pub fn auto_brick(
+    dims: [usize; 3],
+    channels: usize,
+    opts: &CompressOptions,
+    limit: Option<u64>,
+    threads: u64,
+) -> Result<Option<AutoBrick>, CompressError> {
+    let voxels = dims.iter().map(|v| *v as u128).product::<u128>();
+    let reason = if voxels > wavesplat_codec::volume::MAX_VOXELS as u128 {
+        BrickReason::TooManyVoxels(voxels)
+    } else {
+        let (needed, _) = memory_estimate(dims, channels, opts)?;
+        match limit {
+            Some(limit) if needed > limit => BrickReason::OverMemory { needed, limit },
+            _ => return Ok(None),
+        }
+    };
+    let brick_opts = CompressOptions {
+        margin: Some(0),
+        ..opts.clone()
+    };
+    let fits = |side: usize| {
+        let b = dims.map(|n| n.min(side));
+        memory_estimate(b, channels, &brick_opts).is_ok_and(|(n, _)| {
+            let per_brick = n.saturating_sub(PROCESS_MEMORY);
+            limit.is_none_or(|l| PROCESS_MEMORY + per_brick.saturating_mul(threads.max(1)) <= l)
+        })
+    };
+    let side = AUTO_BRICK_SIDES
+        .into_iter()
+        .filter(|&side| dims.iter().any(|&n| n > side))
+        .find(|&side| fits(side));
+    Ok(match (side, reason) {
+        (Some(side), reason) => Some(AutoBrick { side, reason }),
+        (None, BrickReason::TooManyVoxels(_)) => Some(AutoBrick {
+            side: AUTO_BRICK_SIDES[AUTO_BRICK_SIDES.len() - 1],
+            reason,
+        }),
+        // No brick fits either: compressing whole reports the limit.
+        (None, BrickReason::OverMemory { .. }) => None,
+    })
+}
 
 /// What every brick of one bricked volume shares, decided once on the whole: the depth, the
 /// offset a scalar volume's bricks subtract, and the colour transform an RGB volume's bricks

@@ -8,11 +8,12 @@ use wavesplat_codec::family::Family;
 use wavesplat_codec::format::CoderKind;
 use wavesplat_codec::layout::Geometry;
 use wavesplat_codec::volume::{Volume, MAX_VOXELS};
-use wavesplat_compressor::bricked::{compress_bricked, BrickSource, BrickStage};
+use wavesplat_compressor::bricked::{
+    compress_bricked, AutoBrick, BrickReason, BrickSource, BrickStage,
+};
 use wavesplat_compressor::colorspace::ColorSpaceKind;
 use wavesplat_compressor::encode::{
-    compress, memory_estimate, CompressOptions, Compressed, Effort, Stage, Target, TileChoice,
-    PROCESS_MEMORY,
+    compress, CompressOptions, Compressed, Effort, Stage, Target, TileChoice,
 };
 use wavesplat_compressor::order::Clustering;
 use wavesplat_compressor::phantom::{beating, Phantom, PhantomVolume};
@@ -283,9 +284,6 @@ fn open_series(a: &CompressArgs) -> Result<Option<super::series::SeriesInput>> {
     super::series::open_path(&path, raw.as_ref())
 }
 
-/// Brick sides `compress` tries, largest first, for a volume it cannot compress whole.
-const AUTO_BRICK_SIDES: [usize; 4] = [256, 128, 64, 32];
-
 /// Without `--memory-limit`, files smaller than this fraction of the memory available are not
 /// probed for bricking: even inflated from gzip and at one byte a sample, their volume's
 /// working memory (~23× its f32 samples) fits.
@@ -294,113 +292,116 @@ const PROBE_FRACTION: u64 = 64;
 /// Whether `compress` without `--brick` should brick the input file, and at which side: when
 /// compressing it whole would need more memory than the limit (`--memory-limit`, else the
 /// memory available now) or it has more voxels than one transform takes. The side is the
-/// largest of [`AUTO_BRICK_SIDES`] below the volume's whose bricks, one per thread, fit the
+/// largest of `AUTO_BRICK_SIDES` below the volume's whose bricks, one per thread, fit the
 /// limit (none fitting: compressed whole, which reports the limit). Only phantoms and files read
 /// by region are probed (ASCII NRRD is read whole anyway); volumes that fit are compressed
 /// whole, as before.
 fn auto_brick(a: &CompressArgs, opts: &CompressOptions) -> Result<Option<(usize, String)>> {
-    let limit = opts.memory_limit.or_else(available_memory);
-    let (d, channels, voxels) = match (&a.input, &a.phantom) {
+    let threads = rayon::current_num_threads().max(1) as u64;
+    match (&a.input, &a.phantom) {
         // A phantom's size is known without reading anything: always checked.
         (_, Some(_)) => {
             let Input::Phantom(p) = input(a)? else {
                 return Ok(None);
             };
-            let voxels = p.dims.iter().map(|v| *v as u128).product::<u128>();
-            (
-                p.dims.map(|v| v as usize),
-                p.phantom.channel_count(),
-                voxels,
-            )
+            let limit = opts.memory_limit.or_else(available_memory);
+            let dims = p.dims.map(|v| v as usize);
+            brick_side(dims, p.phantom.channel_count(), opts, limit, threads)
         }
-        (Some(path), None) => {
-            // A DICOM series directory: the bytes of its files.
-            let on_disk = if path.is_dir() {
-                std::fs::read_dir(path)
-                    .map(|entries| {
-                        entries
-                            .filter_map(|e| e.ok()?.metadata().ok())
-                            .map(|m| m.len())
-                            .sum()
-                    })
-                    .unwrap_or(0)
-            } else {
-                std::fs::metadata(path).map(|m| m.len()).unwrap_or(0)
-            };
-            // A limit given is always checked; the memory available only for files large
-            // enough.
-            let large = match (opts.memory_limit, limit) {
-                (Some(_), _) => true,
-                (None, Some(l)) => on_disk.saturating_mul(PROBE_FRACTION) >= l,
-                (None, None) => on_disk >= 1 << 30,
-            };
-            if !large {
-                return Ok(None);
-            }
+        (Some(_), None) => {
             let Input::File { path, raw } = input(a)? else {
                 return Ok(None);
             };
-            let reader =
-                RegionReader::open(&path, raw.as_ref()).map_err(|e| super::read_error(&path, e))?;
-            if reader.in_memory() {
-                return Ok(None);
-            }
-            (reader.dims(), reader.channels(), reader.voxel_count())
+            probe_file_for_bricks(&path, raw.as_ref(), opts, threads)
         }
-        (None, None) => return Ok(None),
-    };
-    let too_many_voxels = voxels > MAX_VOXELS as u128;
-    let why = if too_many_voxels {
-        format!(
-            "{}x{}x{} is {voxels} voxels, more than one transform takes ({MAX_VOXELS})",
-            d[0], d[1], d[2]
-        )
+        (None, None) => Ok(None),
+    }
+}
+
+/// Whether the volume file (or DICOM series directory) at `path` should be compressed as
+/// bricks, `threads` of them at a time, within `opts.memory_limit` (else the memory available
+/// now), and at which side, with the reason ([`wavesplat_compressor::bricked::auto_brick`]).
+/// Without a limit given only files large enough are probed ([`PROBE_FRACTION`]); a file its
+/// reader holds in memory anyway is not bricked.
+pub(crate) fn probe_file_for_bricks(
+    path: &std::path::Path,
+    raw: Option<&RawSpec>,
+    opts: &CompressOptions,
+    threads: u64,
+) -> Result<Option<(usize, String)>> {
+    let limit = opts.memory_limit.or_else(available_memory);
+    // A DICOM series directory: the bytes of its files.
+    let on_disk = if path.is_dir() {
+        std::fs::read_dir(path)
+            .map(|entries| {
+                entries
+                    .filter_map(|e| e.ok()?.metadata().ok())
+                    .map(|m| m.len())
+                    .sum()
+            })
+            .unwrap_or(0)
     } else {
-        let (needed, _) = memory_estimate(d, channels, opts)?;
-        match limit {
-            Some(l) if needed > l => format!(
-                "compressing {}x{}x{} whole needs about {} of memory, more than the {} {}",
-                d[0],
-                d[1],
-                d[2],
-                wavesplat_viewer::window::human_bytes(needed),
-                wavesplat_viewer::window::human_bytes(l),
-                if opts.memory_limit.is_some() {
-                    "of --memory-limit"
-                } else {
-                    "available now (--memory-limit sets the limit)"
-                }
-            ),
-            _ => return Ok(None),
-        }
+        std::fs::metadata(path).map(|m| m.len()).unwrap_or(0)
     };
+    // A limit given is always checked; the memory available only for files large enough.
+    let large = match (opts.memory_limit, limit) {
+        (Some(_), _) => true,
+        (None, Some(l)) => on_disk.saturating_mul(PROBE_FRACTION) >= l,
+        (None, None) => on_disk >= 1 << 30,
+    };
+    if !large {
+        return Ok(None);
+    }
+    let reader = RegionReader::open(path, raw).map_err(|e| super::read_error(path, e))?;
+    if reader.in_memory() {
+        return Ok(None);
+    }
+    brick_side(reader.dims(), reader.channels(), opts, limit, threads)
+}
+
+/// [`wavesplat_compressor::bricked::auto_brick`] with its reason said; refuses the cubic
+/// family, which bricks do not support.
+fn brick_side(
+    dims: [usize; 3],
+    channels: usize,
+    opts: &CompressOptions,
+    limit: Option<u64>,
+    threads: u64,
+) -> Result<Option<(usize, String)>> {
+    let Some(AutoBrick { side, reason }) =
+        wavesplat_compressor::bricked::auto_brick(dims, channels, opts, limit, threads)?
+    else {
+        return Ok(None);
+    };
+    let why = brick_reason(dims, reason, opts.memory_limit.is_some());
     if opts.family == Family::Cubic {
         bail!("{why}, and bricked volumes do not support the cubic family yet: use --family linear (the default) or haar");
     }
-    // Bricks are compressed one per thread: the process's share of the estimate once, each
-    // brick's own part per thread. A side no smaller than the volume is no brick at all.
-    let threads = rayon::current_num_threads().max(1) as u64;
-    let brick_opts = CompressOptions {
-        margin: Some(0),
-        ..opts.clone()
-    };
-    let fits = |side: usize| {
-        let b = d.map(|n| n.min(side));
-        memory_estimate(b, channels, &brick_opts).is_ok_and(|(n, _)| {
-            let per_brick = n.saturating_sub(PROCESS_MEMORY);
-            limit.is_none_or(|l| PROCESS_MEMORY + per_brick.saturating_mul(threads) <= l)
-        })
-    };
-    let side = AUTO_BRICK_SIDES
-        .into_iter()
-        .filter(|&side| d.iter().any(|&n| n > side))
-        .find(|&side| fits(side));
-    Ok(match (side, too_many_voxels) {
-        (Some(side), _) => Some((side, why)),
-        (None, true) => Some((AUTO_BRICK_SIDES[AUTO_BRICK_SIDES.len() - 1], why)),
-        // No brick fits either: compressing whole reports the limit, as before.
-        (None, false) => None,
-    })
+    Ok(Some((side, why)))
+}
+
+/// Says why a volume of `dims` is bricked ([`BrickReason`]); `limit_given`: the limit is
+/// `--memory-limit`'s (else the memory available now).
+fn brick_reason(dims: [usize; 3], reason: BrickReason, limit_given: bool) -> String {
+    match reason {
+        BrickReason::TooManyVoxels(voxels) => format!(
+            "{}x{}x{} is {voxels} voxels, more than one transform takes ({MAX_VOXELS})",
+            dims[0], dims[1], dims[2]
+        ),
+        BrickReason::OverMemory { needed, limit } => format!(
+            "compressing {}x{}x{} whole needs about {} of memory, more than the {} {}",
+            dims[0],
+            dims[1],
+            dims[2],
+            wavesplat_viewer::window::human_bytes(needed),
+            wavesplat_viewer::window::human_bytes(limit),
+            if limit_given {
+                "of --memory-limit"
+            } else {
+                "available now (--memory-limit sets the limit)"
+            }
+        ),
+    }
 }
 
 /// Memory available to a new process now (Linux: `MemAvailable` in `/proc/meminfo`); `None`

@@ -233,6 +233,15 @@ pub struct SubmitArgs {
     /// file is a volume of its own). 4D NIfTI files and DICOM cines are series either way.
     #[arg(long)]
     pub time_steps: bool,
+    /// Each worker's memory for a job (bytes, or with a K, M or G suffix: `8G`); default: the
+    /// memory available on this machine. A volume given without --brick that would need more
+    /// to compress whole (or has more voxels than one transform takes) is submitted as a
+    /// bricked job instead, in the largest bricks of 256, 128, 64 or 32 a side of which one
+    /// fits, as `compress` bricks a file by itself; its bricks spread over the workers when
+    /// they read it on shared storage. Without it, only files larger than 1/64 of the memory
+    /// available are probed.
+    #[arg(long, value_parser = super::parse_bytes)]
+    pub memory_limit: Option<u64>,
     #[command(flatten)]
     pub security: super::security::ClientSecurityArgs,
     #[command(flatten)]
@@ -435,6 +444,59 @@ pub fn run_archive(cmd: ArchiveCommand) -> Result<()> {
     })
 }
 
+/// The options the found volume `f` is submitted with: `options`, with a brick side when they
+/// name none, `f` is one volume (a time series is bricked by its own rule) and compressing it
+/// whole would not fit `limit` (each worker's memory; else the memory available here), as
+/// `compress` bricks a file by itself (`compress::probe_file_for_bricks`, one brick at a time:
+/// a worker runs one part at a time). Says so when it bricks.
+fn submit_options(
+    f: &archive::Found,
+    options: &JobOptions,
+    limit: Option<u64>,
+) -> Result<JobOptions> {
+    if options.brick.is_some() {
+        return Ok(options.clone());
+    }
+    let raw = f.raw.as_ref().map(wavesplat_worker::options::raw_spec);
+    let series = if f.path.is_dir() {
+        wavesplat_compressor::reader::steps::step_files(&f.path, raw.as_ref())
+            .is_ok_and(|s| !s.is_empty())
+    } else {
+        wavesplat_compressor::reader::time_points(&f.path, raw.as_ref()).is_ok_and(|t| t > 1)
+    };
+    if series {
+        return Ok(options.clone());
+    }
+    let opts = wavesplat_compressor::encode::CompressOptions {
+        memory_limit: limit,
+        ..wavesplat_worker::options::compress_options(options)
+    };
+    // A file that cannot be probed is submitted as it is: its worker says what is wrong with it
+    // (as for any job). A cubic job is not bricked (the family has no bricks yet).
+    if opts.family == wavesplat_codec::family::Family::Cubic {
+        return Ok(options.clone());
+    }
+    let probed = super::compress::probe_file_for_bricks(&f.path, raw.as_ref(), &opts, 1)
+        .unwrap_or_else(|e| {
+            tracing::debug!(path = %f.path.display(), "not probed for bricks: {e:#}");
+            None
+        });
+    Ok(match probed {
+        Some((side, why)) => {
+            eprintln!(
+                "note: {}: {why}: submitted as bricks of at most {side} voxels a side, each \
+                 compressed on its own (--brick N chooses the side)",
+                f.path.display()
+            );
+            JobOptions {
+                brick: Some(side),
+                ..options.clone()
+            }
+        }
+        None => options.clone(),
+    })
+}
+
 async fn submit_all(a: SubmitArgs, scan: &archive::Scan, options: &JobOptions) -> Result<()> {
     let mut c = connect(&a.orchestrator, &a.security).await?;
     let mut ids = HashSet::new();
@@ -444,6 +506,7 @@ async fn submit_all(a: SubmitArgs, scan: &archive::Scan, options: &JobOptions) -
             name: format!("{}{}{}", a.name_prefix, f.name, a.name_suffix),
             ..f.clone()
         };
+        let options = &submit_options(f, options, a.memory_limit)?;
         let (spec, bytes) = archive::job_spec(f, options, a.upload)
             .with_context(|| format!("reading {}", f.path.display()))?;
         let r = client::submit(&mut c, &spec, bytes.as_deref())
