@@ -80,7 +80,7 @@ fn a_bricked_volume_renders_from_the_cache_as_from_its_file() {
         "{}",
         text(&show)
     );
-    let views: [(&str, &[&str]); 4] = [
+    let views: [(&str, &[&str]); 5] = [
         ("whole", &["--size", "64x48"]),
         (
             "corner",
@@ -102,6 +102,19 @@ fn a_bricked_volume_renders_from_the_cache_as_from_its_file() {
             "cued",
             &[
                 "--alpha", "0.5", "--beta", "0.3", "--cue-k", "0.2", "--size", "48x48",
+            ],
+        ),
+        // The node ranks each brick by what any panel sees of it.
+        (
+            "multiview",
+            &[
+                "--multiview",
+                "--alpha",
+                "0.4",
+                "--beta",
+                "0.3",
+                "--size",
+                "40x32",
             ],
         ),
     ];
@@ -142,43 +155,6 @@ fn a_bricked_volume_renders_from_the_cache_as_from_its_file() {
         let snr = wavesplat_codec::metrics::snr_db(&l, &c);
         assert!(snr > 90.0, "{name}: cache against file {snr:.1} dB");
     }
-    // Multiview from the cache (the node ranks each brick by what any panel sees of it) ends
-    // at the local file's one-pass multiview image.
-    let multiview = [
-        "--multiview",
-        "--alpha",
-        "0.4",
-        "--beta",
-        "0.3",
-        "--size",
-        "40x32",
-    ];
-    let mut args = vec![
-        "--cache",
-        &server.url,
-        "--volume",
-        "big",
-        "--cpu",
-        "-o",
-        "c.png",
-        "--raw",
-        "mc.f32",
-    ];
-    args.extend_from_slice(&multiview);
-    let out = render(tmp.path(), &args);
-    assert!(out.status.success(), "multiview: {}", text(&out));
-    let mut args = vec!["b.wsp", "--cpu", "-o", "l.png", "--raw", "ml.f32"];
-    args.extend_from_slice(&multiview);
-    let out = render(tmp.path(), &args);
-    assert!(out.status.success(), "multiview: {}", text(&out));
-    let (c, l) = (
-        read_f32(&tmp.path().join("mc.f32")),
-        read_f32(&tmp.path().join("ml.f32")),
-    );
-    assert_eq!(l.len(), 3 * 40 * 32, "three panels");
-    assert!(l.iter().any(|v| *v != 0.0), "multiview: the image is empty");
-    let snr = wavesplat_codec::metrics::snr_db(&l, &c);
-    assert!(snr > 90.0, "multiview: cache against one pass {snr:.1} dB");
 }
 
 /// Read on the wire by a plain client: the header message carries every brick's header and

@@ -1317,6 +1317,23 @@ mod tests {
             / 3.0
     }
 
+    /// The axis-view error of `v` in 32³ bricks with `opts` at each depth 1 to 3, and the
+    /// smallest.
+    fn depth_errors(v: &Volume, opts: &CompressOptions) -> (Vec<(usize, f64)>, f64) {
+        let errors: Vec<(usize, f64)> = (1..=3)
+            .map(|m| {
+                let o = CompressOptions {
+                    levels: Some(m),
+                    ..opts.clone()
+                };
+                let c = compress_bricked(v, &o, 32, &|_| {}).unwrap();
+                (m, whole_view_error(v, &c.bytes))
+            })
+            .collect();
+        let best = errors.iter().map(|e| e.1).fold(f64::INFINITY, f64::min);
+        (errors, best)
+    }
+
     /// A bricked byte target takes its depth as the whole's search does, on the bricks: of the
     /// depths the bricks could take (1 to their default 3), one whose decoded whole comes
     /// closest to the original in its axis X-ray views (within 0.02 of the best's ln error,
@@ -1336,17 +1353,7 @@ mod tests {
                 ..CompressOptions::default()
             };
             let chosen = compress_bricked(&v, &opts, 32, &|_| {}).unwrap();
-            let errors: Vec<(usize, f64)> = (1..=3)
-                .map(|m| {
-                    let o = CompressOptions {
-                        levels: Some(m),
-                        ..opts.clone()
-                    };
-                    let c = compress_bricked(&v, &o, 32, &|_| {}).unwrap();
-                    (m, whole_view_error(&v, &c.bytes))
-                })
-                .collect();
-            let best = errors.iter().map(|e| e.1).fold(f64::INFINITY, f64::min);
+            let (errors, best) = depth_errors(&v, &opts);
             let got = errors[chosen.levels - 1].1;
             assert!(
                 got <= best + 0.02 && range.contains(&chosen.levels),
@@ -1375,17 +1382,7 @@ mod tests {
             let chosen = compress_bricked(&v, &opts, 32, &|_| {}).unwrap();
             let off = (chosen.bytes.len() as f64 / bytes as f64 - 1.0).abs();
             assert!(off <= 0.02, "{bytes} B: {} B", chosen.bytes.len());
-            let errors: Vec<(usize, f64)> = (1..=3)
-                .map(|m| {
-                    let o = CompressOptions {
-                        levels: Some(m),
-                        ..opts.clone()
-                    };
-                    let c = compress_bricked(&v, &o, 32, &|_| {}).unwrap();
-                    (m, whole_view_error(&v, &c.bytes))
-                })
-                .collect();
-            let best = errors.iter().map(|e| e.1).fold(f64::INFINITY, f64::min);
+            let (errors, best) = depth_errors(&v, &opts);
             let got = errors[chosen.levels - 1].1;
             assert!(
                 got <= best + 0.15 && range.contains(&chosen.levels),
