@@ -1,6 +1,6 @@
 //! The memory bound of a session: retained (already splatted) packets beyond it are dropped,
-//! least visible energy per byte first, and the ids of those a source can send again noted for
-//! it.
+//! least visible energy per byte first (each packet's energy summed once per view, as it is
+//! queued), and the ids of those a source can send again noted for it.
 
 use super::RenderSession;
 use crate::backend::AccumulationBackend;
@@ -18,14 +18,7 @@ impl<B: AccumulationBackend> RenderSession<B> {
             .packets
             .iter()
             .filter(|(_, h)| h.queued == 0)
-            .map(|(id, h)| {
-                let e: f64 = h
-                    .coefficients
-                    .iter()
-                    .filter_map(|c| self.visible_energy(*id, c, h.tile))
-                    .sum();
-                (e / h.bytes().max(1) as f64, *id)
-            })
+            .map(|(id, h)| (h.visible / h.bytes().max(1) as f64, *id))
             .collect();
         candidates.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
         for (_, id) in candidates {

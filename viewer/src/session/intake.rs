@@ -108,6 +108,7 @@ impl<B: AccumulationBackend> RenderSession<B> {
             queued: 0,
             wire_bytes,
             fresh: false,
+            visible: 0.0,
         };
         self.enqueue(id, &mut held);
         let bytes = held.bytes();

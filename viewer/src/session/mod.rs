@@ -240,6 +240,10 @@ struct Held {
     wire_bytes: usize,
     /// Taken and not yet wholly splatted since (counted in `RenderSession::fresh_bytes`).
     fresh: bool,
+    /// The visible energy of its coefficients in the current view (set as they are queued for
+    /// it): what the memory bound drops the least of first, read there without going over
+    /// every coefficient held again.
+    visible: f64,
 }
 
 impl Held {

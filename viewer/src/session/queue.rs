@@ -181,9 +181,11 @@ impl<B: AccumulationBackend> RenderSession<B> {
         self.lens(id)?.factors(c, tile).map(|f| energy(c, f))
     }
 
-    /// Queues the visible coefficients of a held packet for the current view.
+    /// Queues the visible coefficients of a held packet for the current view, and sums their
+    /// visible energy (`Held::visible`).
     pub(super) fn enqueue(&mut self, id: u32, held: &mut Held) {
         held.queued = 0;
+        held.visible = 0.0;
         let Some(lens) = lens_of(
             &self.header,
             &self.energy_scale,
@@ -209,6 +211,7 @@ impl<B: AccumulationBackend> RenderSession<B> {
                 }
             };
             let e = energy(c, factors);
+            held.visible += e;
             match bucket_of(e) {
                 Some(k) => {
                     self.queue.push(k, (id, i as u32));
