@@ -403,20 +403,28 @@ fn a_colour_volume_s_bricks_draw_into_one_image() {
     }
 }
 
-/// The bricks of one volume share their band weights: a brick's visibility made with the band
-/// weights of another brick's ([`Visibility::new_like`]) weighs every band and tile as its own
-/// computed from scratch, in plain and cued views.
+/// The bricks of one volume share their band weights, and those of one shape their tile boxes:
+/// a brick's visibility made with another brick's band weights ([`Visibility::new_like`]), or
+/// as a session makes it (`brick_visibility`, boxes by shape), weighs every band and tile as
+/// its own computed from scratch, in plain and cued views.
 #[test]
 fn bricks_share_band_weights_exactly() {
     use wavesplat_codec::view::visibility::Visibility;
-    use wavesplat_viewer::bricked::{brick_frame, whole_frame};
-    let bytes = bricked_file(Family::Linear);
+    use wavesplat_viewer::bricked::{brick_frame, brick_visibility, whole_frame};
+    // Bricks of 16 over 40 × 36 × 32: three shapes along x and y (16, 16, 8 and 16, 16, 4).
+    let opts = CompressOptions {
+        target: Target::Fraction(0.08),
+        ..CompressOptions::default()
+    };
+    let volume = Phantom::SheppLogan.generate(DIMS);
+    let bytes = compress_bricked(&volume, &opts, 16, &|_| {}).unwrap().bytes;
     let whole = Geometry::new(DIMS, Family::Linear, 0, 0).unwrap();
     for (name, spec) in views() {
         let source = FileSource::open(bytes.clone(), &spec).unwrap();
         let volume = source.bricked_volume().unwrap();
         let (camera, cue) = whole_frame(&spec, &whole).unwrap();
         let mut like: Option<Visibility> = None;
+        let mut shapes = Vec::new();
         for b in &volume.bricks {
             let g = &b.header.geometry;
             let Some(frame) =
@@ -425,6 +433,8 @@ fn bricks_share_band_weights_exactly() {
                 continue;
             };
             let own = Visibility::new(&b.header, &frame.spec).unwrap();
+            // Shared as a session shares them: band weights, and tile boxes by brick shape.
+            let by_shape = brick_visibility(&b.header, &frame, &mut shapes).unwrap();
             let Some(l) = &like else {
                 like = Some(own);
                 continue;
@@ -432,14 +442,17 @@ fn bricks_share_band_weights_exactly() {
             let shared = Visibility::new_like(&b.header, &frame.spec, l).unwrap();
             for band in g.bands() {
                 for tile in 0..b.header.tile_count() {
-                    let (x, y) = (own.weight(band, tile), shared.weight(band, tile));
-                    assert!(
-                        (x - y).abs() <= 1e-12 * x.abs().max(1e-300),
-                        "{name}: {band:?} tile {tile}: {x} against {y}"
-                    );
+                    let x = own.weight(band, tile);
+                    for y in [shared.weight(band, tile), by_shape.weight(band, tile)] {
+                        assert!(
+                            (x - y).abs() <= 1e-12 * x.abs().max(1e-300),
+                            "{name}: {band:?} tile {tile}: {x} against {y}"
+                        );
+                    }
                 }
             }
         }
         assert!(like.is_some(), "{name}: no brick on the image");
+        assert!(shapes.len() > 1, "{name}: bricks of one shape only");
     }
 }

@@ -12,7 +12,7 @@ use super::{resolve_cue, sinc, Camera, ResolvedCue, ViewError, ViewSpec};
 use crate::family::Family;
 use crate::format::Header;
 use crate::layout::{Band, Geometry};
-use std::sync::OnceLock;
+use std::sync::{Arc, OnceLock};
 
 /// Half width (cycles per voxel, level 0) and step of the slice-plane integration grid.
 const GRID_RADIUS: f64 = 3.0;
@@ -32,6 +32,30 @@ struct CameraWeights {
 pub struct Visibility {
     geometry: Geometry,
     cams: Vec<CameraWeights>,
+    /// Each (tile, level)'s box ([`tile_box`]), tile·(M+1) + level: they depend on the volume
+    /// alone, so the bricks of one shape share them ([`Visibility::with_cameras`]), and
+    /// computing them is most of a brick's tile factors.
+    boxes: TileBoxes,
+}
+
+/// The boxes of every (tile, level) of one volume shape, and the tile edge they are for.
+#[derive(Debug, Clone)]
+struct TileBoxes {
+    tile: usize,
+    boxes: Arc<Vec<([f64; 3], [f64; 3])>>,
+}
+
+impl TileBoxes {
+    fn of(header: &Header) -> TileBoxes {
+        let levels = header.geometry.levels + 1;
+        let boxes = (0..header.tile_count())
+            .flat_map(|t| (0..levels).map(move |level| tile_box(header, t, level)))
+            .collect();
+        TileBoxes {
+            tile: header.tile,
+            boxes: Arc::new(boxes),
+        }
+    }
 }
 
 impl Visibility {
@@ -65,6 +89,10 @@ impl Visibility {
     ) -> Result<Visibility, ViewError> {
         spec.validate()?;
         let g = header.geometry;
+        let boxes = match like {
+            Some(l) if l.is_shape_of(header) => l.boxes.clone(),
+            _ => TileBoxes::of(header),
+        };
         let like = like.filter(|l| {
             l.geometry.family == g.family
                 && l.geometry.levels == g.levels
@@ -82,10 +110,20 @@ impl Visibility {
                     Some(l) => l.cams[k].band_weight.clone(),
                     None => band_weights(&g, cam),
                 },
-                tile_factor: tile_factors(header, cam, cue.as_ref()),
+                tile_factor: tile_factors(&boxes.boxes, cam, cue.as_ref()),
             });
         }
-        Ok(Visibility { geometry: g, cams })
+        Ok(Visibility {
+            geometry: g,
+            cams,
+            boxes,
+        })
+    }
+
+    /// Whether this is a visibility of a volume of `header`'s shape (geometry and tile edge),
+    /// whose tile boxes [`Visibility::with_cameras`] takes as they are.
+    pub fn is_shape_of(&self, header: &Header) -> bool {
+        self.geometry == header.geometry && self.boxes.tile == header.tile
     }
 
     /// The fraction of a unit-energy coefficient's energy seen in this view when it lies in
@@ -317,39 +355,40 @@ pub fn tile_box(header: &Header, t: usize, level: usize) -> ([f64; 3], [f64; 3])
     (lo, hi)
 }
 
-fn tile_factors(header: &Header, cam: &Camera, cue: Option<&ResolvedCue>) -> Vec<f64> {
-    let levels = header.geometry.levels + 1;
+/// The on-screen fraction × cue attenuation² of each (tile, level) box of `boxes` for `cam`.
+fn tile_factors(
+    boxes: &[([f64; 3], [f64; 3])],
+    cam: &Camera,
+    cue: Option<&ResolvedCue>,
+) -> Vec<f64> {
     let (w, h) = (cam.width as f64, cam.height as f64);
-    let mut out = Vec::with_capacity(header.tile_count() * levels);
-    for t in 0..header.tile_count() {
-        for level in 0..levels {
-            let (lo, hi) = tile_box(header, t, level);
-            let mut x = [f64::INFINITY, f64::NEG_INFINITY];
-            let mut y = [f64::INFINITY, f64::NEG_INFINITY];
-            let mut near = f64::INFINITY;
-            for c in 0..8 {
-                let p = [
-                    if c & 1 == 0 { lo[0] } else { hi[0] },
-                    if c & 2 == 0 { lo[1] } else { hi[1] },
-                    if c & 4 == 0 { lo[2] } else { hi[2] },
-                ];
-                let sp = cam.to_screen(p);
-                x = [x[0].min(sp[0]), x[1].max(sp[0])];
-                y = [y[0].min(sp[1]), y[1].max(sp[1])];
-                if let Some(cue) = cue {
-                    near = near.min(cue.dist(p));
-                }
-            }
-            let ox = (x[1].min(w) - x[0].max(0.0)).max(0.0);
-            let oy = (y[1].min(h) - y[0].max(0.0)).max(0.0);
-            let area = ((x[1] - x[0]) * (y[1] - y[0])).max(1e-12);
-            let mut f = (ox * oy / area).min(1.0);
+    let mut out = Vec::with_capacity(boxes.len());
+    for &(lo, hi) in boxes {
+        let mut x = [f64::INFINITY, f64::NEG_INFINITY];
+        let mut y = [f64::INFINITY, f64::NEG_INFINITY];
+        let mut near = f64::INFINITY;
+        for c in 0..8 {
+            let p = [
+                if c & 1 == 0 { lo[0] } else { hi[0] },
+                if c & 2 == 0 { lo[1] } else { hi[1] },
+                if c & 4 == 0 { lo[2] } else { hi[2] },
+            ];
+            let sp = cam.to_screen(p);
+            x = [x[0].min(sp[0]), x[1].max(sp[0])];
+            y = [y[0].min(sp[1]), y[1].max(sp[1])];
             if let Some(cue) = cue {
-                let att = (-cue.k * near.max(0.0)).exp();
-                f *= att * att;
+                near = near.min(cue.dist(p));
             }
-            out.push(f);
         }
+        let ox = (x[1].min(w) - x[0].max(0.0)).max(0.0);
+        let oy = (y[1].min(h) - y[0].max(0.0)).max(0.0);
+        let area = ((x[1] - x[0]) * (y[1] - y[0])).max(1e-12);
+        let mut f = (ox * oy / area).min(1.0);
+        if let Some(cue) = cue {
+            let att = (-cue.k * near.max(0.0)).exp();
+            f *= att * att;
+        }
+        out.push(f);
     }
     out
 }

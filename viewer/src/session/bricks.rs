@@ -183,7 +183,7 @@ impl Bricks {
     ) -> Result<bool, SessionError> {
         let frames = self.frames(spec)?;
         let mut exact = true;
-        let mut like = None;
+        let mut like = Vec::new();
         for (part, frame) in self.parts.iter_mut().zip(frames) {
             part.view = None;
             let Some(frame) = frame else { continue };
