@@ -221,10 +221,17 @@ impl BrickFrame {
     /// `geometry`: `spec`'s cameras, each moved by its own pan.
     pub fn cameras(&self, geometry: &Geometry) -> Result<Vec<Camera>, ViewError> {
         let mut cameras = self.spec.cameras(geometry)?;
+        self.move_cameras(&mut cameras);
+        Ok(cameras)
+    }
+
+    /// Moves `cameras` (those of `spec`, in its order) each by its own pan: what a brick's
+    /// plan of `spec` needs to draw in this frame (the footprint tables do not depend on the
+    /// pan).
+    pub fn move_cameras(&self, cameras: &mut [Camera]) {
         for (camera, pan) in cameras.iter_mut().zip(self.pans) {
             camera.pan = pan;
         }
-        Ok(cameras)
     }
 }
 

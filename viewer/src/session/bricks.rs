@@ -330,12 +330,9 @@ impl<B: AccumulationBackend> RenderSession<B> {
 }
 
 /// A brick's plan of its frame's spec with every camera moved by the frame's own pan for it
-/// (multiview's panels move into a brick by pans of their own; the tables do not depend on the
-/// pan).
+/// (multiview's panels move into a brick by pans of their own, [`BrickFrame::move_cameras`]).
 pub(super) fn in_frame(mut plan: ViewPlan, frame: &BrickFrame) -> ViewPlan {
-    for (camera, pan) in plan.cameras.iter_mut().zip(frame.pans) {
-        camera.pan = pan;
-    }
+    frame.move_cameras(&mut plan.cameras);
     plan
 }
 
