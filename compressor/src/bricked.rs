@@ -728,7 +728,7 @@ type GridBrick = ([u64; 3], [usize; 3]);
 /// bytes `total` (its share of the voxels, each side's manifest allowed for).
 fn sample_and_bytes(grid: &[GridBrick], total: u64) -> (Vec<GridBrick>, u64) {
     let sample: Vec<GridBrick> = depth_sample(grid.len()).iter().map(|&i| grid[i]).collect();
-    let voxels = |g: &[([u64; 3], [usize; 3])]| -> f64 {
+    let voxels = |g: &[GridBrick]| -> f64 {
         g.iter()
             .map(|(_, d)| d.iter().map(|v| *v as f64).product::<f64>())
             .sum()
@@ -739,9 +739,53 @@ fn sample_and_bytes(grid: &[GridBrick], total: u64) -> (Vec<GridBrick>, u64) {
     (sample, bytes)
 }
 
+/// The plan of the bricks `sample` as a bricked volume of their own at depth `m`, allocated
+/// `bytes` as oracle files (no refinement: the whole's depth search scores its depths on
+/// oracle files too, whose ranking of depths predicts the refined files', BENCHMARKS.md).
+fn sample_plan(
+    source: &dyn BrickSource,
+    opts: &CompressOptions,
+    brick: usize,
+    (sample, bytes): (&[GridBrick], u64),
+    shared: &SharedChoices,
+    m: usize,
+) -> Result<BrickPlan, BrickError> {
+    let oracle = CompressOptions {
+        target: Target::Bytes(bytes),
+        refine: None,
+        ..opts.clone()
+    };
+    let choices = SharedChoices {
+        levels: m,
+        ..shared.clone()
+    };
+    BrickPlan::build(source, &oracle, brick, sample.to_vec(), choices)
+}
+
+/// A sample's `plan` allocated on this process's pool, quietly; `None` when its target does
+/// not fit the sample at the plan's depth (the options were checked: an invalid option left is
+/// a target below the sample's minimum).
+fn allocate_sample(
+    source: &dyn BrickSource,
+    plan: &BrickPlan,
+) -> Result<Option<Allocated<Vec<u8>>>, BrickError> {
+    let quiet = |_| {};
+    match allocate(
+        plan,
+        &LocalBricks {
+            source,
+            progress: &quiet,
+        },
+    ) {
+        Ok(a) => Ok(Some(a)),
+        Err(BrickError::InvalidOption(_)) => Ok(None),
+        Err(e) => Err(e),
+    }
+}
+
 /// The coefficients of the coarse band of depth `m` over the bricks `sample` (their own
 /// voxels, not their padded grids), per channel.
-fn coarse_band_cells(sample: &[([u64; 3], [usize; 3])], m: usize) -> u64 {
+fn coarse_band_cells(sample: &[GridBrick], m: usize) -> u64 {
     sample
         .iter()
         .map(|(_, d)| d.iter().map(|v| v.div_ceil(1 << m) as u64).product::<u64>())
@@ -760,34 +804,17 @@ fn predict_depth(
     source: &dyn BrickSource,
     opts: &CompressOptions,
     brick: usize,
-    grid: &[([u64; 3], [usize; 3])],
+    grid: &[GridBrick],
     shared: &SharedChoices,
     deepest: usize,
     total: u64,
 ) -> Result<usize, BrickError> {
     let (sample, bytes) = sample_and_bytes(grid, total);
-    let oracle = CompressOptions {
-        target: Target::Bytes(bytes),
-        refine: None,
-        ..opts.clone()
-    };
-    let choices = SharedChoices {
-        levels: deepest,
-        ..shared.clone()
-    };
-    let plan = BrickPlan::build(source, &oracle, brick, sample.clone(), choices)?;
-    let quiet = |_| {};
-    let kept: u64 = match allocate(
-        &plan,
-        &LocalBricks {
-            source,
-            progress: &quiet,
-        },
-    ) {
-        Ok(a) => a.bricks.iter().map(|b| b.kept).sum(),
+    let plan = sample_plan(source, opts, brick, (&sample, bytes), shared, deepest)?;
+    let kept: u64 = match allocate_sample(source, &plan)? {
+        Some(a) => a.bricks.iter().map(|b| b.kept).sum(),
         // Too small for the deepest depth's coarse band: a shallower one's is larger still.
-        Err(BrickError::InvalidOption(_)) => return Ok(deepest),
-        Err(e) => return Err(e),
+        None => return Ok(deepest),
     };
     let per_channel = kept as f64 / plan.channels.max(1) as f64;
     let mut m = deepest;
@@ -828,7 +855,7 @@ fn compare_depths(
     source: &dyn BrickSource,
     opts: &CompressOptions,
     brick: usize,
-    grid: &[([u64; 3], [usize; 3])],
+    grid: &[GridBrick],
     shared: &SharedChoices,
     deepest: usize,
     total: u64,
@@ -844,21 +871,10 @@ fn compare_depths(
             Ok(channel_views(&v))
         })
         .collect::<Result<Vec<_>, BrickError>>()?;
-    // Oracle files, not refined ones, as the whole's comparison scores its depths: their
-    // ranking of depths predicts the refined files' (BENCHMARKS.md), at a fraction of the time.
-    let oracle = CompressOptions {
-        target: Target::Bytes(bytes),
-        refine: None,
-        ..opts.clone()
-    };
     let mut best: Option<(f64, usize)> = None;
     let mut m = deepest;
     loop {
-        let choices = SharedChoices {
-            levels: m,
-            ..shared.clone()
-        };
-        let plan = BrickPlan::build(source, &oracle, brick, sample.clone(), choices)?;
+        let plan = sample_plan(source, opts, brick, (&sample, bytes), shared, m)?;
         let scored = sample_view_error(source, &plan, &originals)?;
         tracing::debug!(levels = m, bytes, ?scored, "bricked depth candidate");
         let Some(error) = scored else {
@@ -901,18 +917,8 @@ fn sample_view_error(
     plan: &BrickPlan,
     originals: &[Vec<[Vec<f64>; 3]>],
 ) -> Result<Option<f64>, BrickError> {
-    let quiet = |_| {};
-    let allocated = match allocate(
-        plan,
-        &LocalBricks {
-            source,
-            progress: &quiet,
-        },
-    ) {
-        Ok(a) => a,
-        // The options were checked: what is left is a target below the sample's minimum.
-        Err(BrickError::InvalidOption(_)) => return Ok(None),
-        Err(e) => return Err(e),
+    let Some(allocated) = allocate_sample(source, plan)? else {
+        return Ok(None);
     };
     let energies = allocated
         .bricks
