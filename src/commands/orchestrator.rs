@@ -458,24 +458,19 @@ fn submit_options(
         return Ok(options.clone());
     }
     let raw = f.raw.as_ref().map(wavesplat_worker::options::raw_spec);
-    let series = if f.path.is_dir() {
-        wavesplat_compressor::reader::steps::step_files(&f.path, raw.as_ref())
-            .is_ok_and(|s| !s.is_empty())
-    } else {
-        wavesplat_compressor::reader::time_points(&f.path, raw.as_ref()).is_ok_and(|t| t > 1)
-    };
-    if series {
+    if archive::is_series_source(&f.path, raw.as_ref()) {
         return Ok(options.clone());
     }
     let opts = wavesplat_compressor::encode::CompressOptions {
         memory_limit: limit,
         ..wavesplat_worker::options::compress_options(options)
     };
-    // A file that cannot be probed is submitted as it is: its worker says what is wrong with it
-    // (as for any job). A cubic job is not bricked (the family has no bricks yet).
+    // A cubic job is not bricked (the family has no bricks yet).
     if opts.family == wavesplat_codec::family::Family::Cubic {
         return Ok(options.clone());
     }
+    // A file that cannot be probed is submitted as it is: its worker says what is wrong with it
+    // (as for any job).
     let probed = super::compress::probe_file_for_bricks(&f.path, raw.as_ref(), &opts, 1)
         .unwrap_or_else(|e| {
             tracing::debug!(path = %f.path.display(), "not probed for bricks: {e:#}");

@@ -343,6 +343,18 @@ pub fn source_digest(path: &Path, raw: bool) -> std::io::Result<([u8; 32], u64)>
     Ok((digest, listing.byte_len()))
 }
 
+/// Whether the source at `path` (raw layout `raw`) is a time series: a directory of time steps
+/// (as `series::open_series_path` finds them) or a file of more than one time point (a 4D
+/// NIfTI, a DICOM cine). What both the submission (a series is not bricked by size) and the
+/// worker (a series is read in place) ask.
+pub fn is_series_source(path: &Path, raw: Option<&wavesplat_compressor::reader::RawSpec>) -> bool {
+    if path.is_dir() {
+        step_files(path, raw).is_ok_and(|s| !s.is_empty())
+    } else {
+        wavesplat_compressor::reader::time_points(path, raw).is_ok_and(|t| t > 1)
+    }
+}
+
 /// Builds the job for a found volume: reads it to hash it; with `upload`, the bytes are
 /// returned to be streamed with the submission, otherwise the job names the volume's absolute
 /// path (which every worker must be able to read).

@@ -460,14 +460,7 @@ async fn hashed_in_place(spec: &JobSpec) -> Option<u64> {
         return None;
     };
     let raw = spec.raw.as_ref().map(options::raw_spec);
-    // (A directory's steps as `series::open_series_path` finds them.)
-    let series = if p.is_dir() {
-        wavesplat_compressor::reader::steps::step_files(p, raw.as_ref())
-            .is_ok_and(|s| !s.is_empty())
-    } else {
-        wavesplat_compressor::reader::time_points(p, raw.as_ref()).is_ok_and(|t| t > 1)
-    };
-    if spec.options.brick.is_none() && !series {
+    if spec.options.brick.is_none() && !archive::is_series_source(p, raw.as_ref()) {
         return None;
     }
     let (p, raw) = (p.clone(), spec.raw.is_some());
