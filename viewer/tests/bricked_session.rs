@@ -212,8 +212,9 @@ fn a_view_of_one_corner_fetches_only_the_bricks_it_sees() {
 
 /// Multiview of a bricked file drawn progressively ends at its one-pass image (which places
 /// each panel in the bricks by its own code, `draw_bricked_file`), in oblique, near-axis and
-/// zoomed-and-panned views, both families; every coefficient is drawn or invisible in every
-/// panel; a view change from a single view to multiview and back keeps the image exact.
+/// zoomed-and-panned views, both families; every coefficient is drawn (in a panel that sees
+/// it) or counted invisible; a view change from a single view to multiview and back keeps the
+/// image exact.
 #[test]
 fn multiview_of_a_bricked_file_ends_at_the_one_pass_image() {
     let multi = |v: View| {
@@ -248,6 +249,12 @@ fn multiview_of_a_bricked_file_ends_at_the_one_pass_image() {
             assert_eq!(image.width, one_pass.image.width, "{family} {name}");
             let snr = snr_db(&one_pass.image.data, &image.data);
             assert!(snr > 90.0, "{family} {name}: {snr:.1} dB against one pass");
+            let stats = f.session.stats();
+            assert_eq!(
+                (stats.splatted_in_view + stats.invisible_in_view) as usize,
+                one_pass.coefficients,
+                "{family} {name}: every coefficient drawn or invisible"
+            );
             // Each third of the image is one panel: each matches its one-pass panel on its own
             // (a panel drawn with another panel's pan would not).
             let w = spec.view.width;
