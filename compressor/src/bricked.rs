@@ -33,7 +33,8 @@ use wavesplat_codec::volume::{Placement, Volume, VolumeError};
 
 use crate::encode::{
     axis_views, compress, default_levels, memory_estimate, score_summary, CompressError,
-    CompressOptions, DepthSearch, ScoreSummary, Target, PROCESS_MEMORY, SHALLOWER_KEPT,
+    CompressOptions, DepthSearch, ScoreSummary, SummedScores, Target, PROCESS_MEMORY,
+    SHALLOWER_KEPT,
 };
 use crate::reader::ReadError;
 
@@ -1028,8 +1029,13 @@ pub fn allocate_units<F>(
         Target::All => Vec::new(),
         _ => score_all()?,
     };
-    let mut whole = ScoreSummary::empty();
+    let mut whole = SummedScores::new();
     summaries.iter().for_each(|s| whole.add(s));
+    if matches!(target, Target::QvPercent(_)) && !summaries.iter().all(|s| s.has_energies()) {
+        return Err(BrickError::InvalidOption(
+            "a Q_V target needs the parts' energies, and a score summary came without them".into(),
+        ));
+    }
     let (total_coefficients, nonzero) = (whole.total_coefficients, whole.nonzero);
     let global_k = |k: u64| per_brick_counts(&summaries, &whole, k);
     let done = |bricks| Allocated {
@@ -1133,7 +1139,10 @@ impl BrickWork for LocalBricks<'_> {
         (0..of)
             .into_par_iter()
             .map(|i| {
-                let s = plan.score(self.source, i)?;
+                let mut s = plan.score(self.source, i)?;
+                if !matches!(plan.target, Target::QvPercent(_)) {
+                    s = s.without_energies();
+                }
                 let done = counter.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
                 (self.progress)(BrickStage::Scored { done, of });
                 Ok(s)
@@ -1190,7 +1199,7 @@ const BYTE_TRIALS: usize = 10;
 
 /// The number of coefficients (from the top score down) whose energy reaches `goal`, by the
 /// bins of the bricks' summed histogram (down to the bin where it is reached).
-fn count_for_energy(whole: &ScoreSummary, goal: f64) -> u64 {
+fn count_for_energy(whole: &SummedScores, goal: f64) -> u64 {
     let (mut acc, mut count) = (0.0, 0u64);
     for (c, e) in whole.counts().iter().zip(whole.energies()).rev() {
         acc += e;
@@ -1205,7 +1214,7 @@ fn count_for_energy(whole: &ScoreSummary, goal: f64) -> u64 {
 /// Each brick's share of the top `k` coefficients of the whole (`whole`, the bricks' summed
 /// summary): every coefficient in a bin above the global threshold bin, and of the threshold
 /// bin a share proportional to the brick's count there (so that the shares sum to `k`).
-fn per_brick_counts(summaries: &[ScoreSummary], whole: &ScoreSummary, k: u64) -> Vec<u64> {
+fn per_brick_counts(summaries: &[ScoreSummary], whole: &SummedScores, k: u64) -> Vec<u64> {
     if k >= whole.nonzero {
         // Every selectable coefficient.
         return summaries.iter().map(|s| s.nonzero).collect();
@@ -1214,14 +1223,12 @@ fn per_brick_counts(summaries: &[ScoreSummary], whole: &ScoreSummary, k: u64) ->
     let above: u64 = whole.counts()[cut + 1..].iter().sum();
     let in_bin = whole.counts()[cut];
     let need = k - above;
-    let mut shares: Vec<u64> = summaries
-        .iter()
-        .map(|s| s.counts()[cut + 1..].iter().sum::<u64>())
-        .collect();
+    let (mut shares, at): (Vec<u64>, Vec<u64>) =
+        summaries.iter().map(|s| s.count_above_and_at(cut)).unzip();
     // Largest-remainder split of `need` over the bricks' counts in the cut bin.
-    let exact: Vec<f64> = summaries
+    let exact: Vec<f64> = at
         .iter()
-        .map(|s| need as f64 * s.counts()[cut] as f64 / in_bin.max(1) as f64)
+        .map(|a| need as f64 * *a as f64 / in_bin.max(1) as f64)
         .collect();
     let mut given = 0u64;
     for (s, e) in shares.iter_mut().zip(&exact) {
@@ -1522,23 +1529,32 @@ mod tests {
     }
 
     /// A summary survives its bytes; damaged bytes are refused, never read as another summary.
+    /// In memory it holds its filled bins only, a few bytes each (the planner holds one per
+    /// brick), and reads the same counts as the dense sum built from it.
     #[test]
     fn a_score_summary_reads_back_from_its_bytes_and_refuses_damage() {
         let v = Phantom::Spheres.generate([24, 24, 24]);
         let s = score_summary(&v, &CompressOptions::default(), &|_, _| {}).unwrap();
-        let filled = s.counts().iter().filter(|c| **c > 0).count();
+        let mut dense = SummedScores::new();
+        dense.add(&s);
+        let filled = dense.counts().iter().filter(|c| **c > 0).count();
+        assert!(filled > 100, "{filled} bins");
+        assert_eq!(dense.counts().iter().sum::<u64>(), s.nonzero);
         let lean = ScoreSummary::from_bytes(&s.to_bytes(false)).unwrap();
-        assert_eq!(lean.counts(), s.counts());
-        assert!(lean.energies().is_empty());
+        assert!(!lean.has_energies() && s.has_energies());
+        assert_eq!(lean, s.clone().without_energies());
         assert!(s.to_bytes(false).len() < 64 + 6 * filled, "{filled} bins");
+        assert!(lean.heap_bytes() <= 6 * filled, "{} B", lean.heap_bytes());
+        for cut in [0, 1000, 30_000, 32_000, 34_000, 65_535] {
+            let above = dense.counts()[cut + 1..].iter().sum::<u64>();
+            assert_eq!(lean.count_above_and_at(cut), (above, dense.counts()[cut]));
+        }
         let bytes = s.to_bytes(true);
         let back = ScoreSummary::from_bytes(&bytes).unwrap();
-        assert_eq!(back.counts(), s.counts());
-        assert_eq!(back.energies(), s.energies());
-        assert_eq!(
-            (back.total_coefficients, back.nonzero, back.total_energy),
-            (s.total_coefficients, s.nonzero, s.total_energy)
-        );
+        assert_eq!(back, s);
+        let mut again = SummedScores::new();
+        again.add(&back);
+        assert_eq!(again.energies(), dense.energies());
         for cut in [0, 7, 8, 40, bytes.len() - 1] {
             assert!(
                 ScoreSummary::from_bytes(&bytes[..cut]).is_err(),
@@ -1551,6 +1567,15 @@ mod tests {
         let mut tag = bytes.clone();
         tag[7] ^= 1;
         assert!(ScoreSummary::from_bytes(&tag).is_err());
+        // Summaries without energies cannot meet a Q_V target: refused, not kept whole.
+        let refused = allocate_units(
+            Target::QvPercent(90.0),
+            1,
+            0,
+            || Ok(vec![lean.clone()]),
+            |_, _| -> Result<Vec<CodedBrick<()>>, BrickError> { unreachable!() },
+        );
+        assert!(matches!(refused, Err(BrickError::InvalidOption(_))));
     }
 
     #[test]
@@ -1561,7 +1586,7 @@ mod tests {
             .into_iter()
             .map(|(o, d)| score_summary(&crop(&v, o, d).unwrap(), &opts, &|_, _| {}).unwrap())
             .collect();
-        let mut whole = ScoreSummary::empty();
+        let mut whole = SummedScores::new();
         s.iter().for_each(|b| whole.add(b));
         let nonzero: u64 = s.iter().map(|s| s.nonzero).sum();
         assert_eq!(whole.nonzero, nonzero);

@@ -487,7 +487,7 @@ pub(crate) fn refine_with(
         }
         Output::Set { extension } => extension,
     };
-    let mut floor_bin = score_bin(threshold).saturating_sub(BINS_PER_OCTAVE);
+    let mut floor_bin = score_bin(threshold).saturating_sub(BINS_PER_OCTAVE / 2);
     for _ in 0..opts.rounds {
         // Candidates: one gradient step in the Jacobi metric from the current fit (the refit
         // left the gradient there). Keep the K best over all channels (deterministic ties).
@@ -501,7 +501,7 @@ pub(crate) fn refine_with(
                 score_of(c, i, v)
             }
         };
-        // One pass from a floor an octave below the last cut (the oracle's threshold at
+        // One pass from a floor half an octave below the last cut (the oracle's threshold at
         // first): the same picks as the histogram's two passes, which run when it declines.
         let picks =
             top_k_from_floor(channels, n, k, floor_bin, 4 * k, &score).unwrap_or_else(|| {
@@ -509,7 +509,7 @@ pub(crate) fn refine_with(
                 top_k(&hist, channels, n, k, &score)
             });
         if let Some(last) = picks.last() {
-            floor_bin = score_bin(last.0).saturating_sub(BINS_PER_OCTAVE);
+            floor_bin = score_bin(last.0).saturating_sub(BINS_PER_OCTAVE / 2);
         }
         let chosen: Vec<(u8, u32, f32)> = picks
             .iter()

@@ -145,20 +145,6 @@ impl Histogram {
         }
     }
 
-    /// A histogram of these bins' counts and energies (`energies` empty, or one per bin).
-    pub(crate) fn from_parts(
-        counts: Vec<u64>,
-        energies: Vec<f64>,
-        positive: u64,
-    ) -> Option<Histogram> {
-        let fits = counts.len() == BINS && (energies.is_empty() || energies.len() == BINS);
-        fits.then_some(Histogram {
-            counts,
-            energies,
-            positive,
-        })
-    }
-
     /// Bins in all.
     pub(crate) const BINS: usize = BINS;
 
@@ -172,19 +158,13 @@ impl Histogram {
         &self.energies
     }
 
-    /// Adds another histogram's counts and energies (the sum describes both sets of
-    /// coefficients: bins are absolute).
-    pub(crate) fn add(&mut self, other: &Histogram) {
-        for (a, b) in self.counts.iter_mut().zip(&other.counts) {
-            *a += b;
+    /// Adds `count` coefficients of total energy `energy` to bin `b` (an energy is dropped
+    /// when the histogram keeps none).
+    pub(crate) fn add_to_bin(&mut self, b: usize, count: u64, energy: f64) {
+        self.counts[b] += count;
+        if let Some(e) = self.energies.get_mut(b) {
+            *e += energy;
         }
-        if self.energies.len() < other.energies.len() {
-            self.energies.resize(other.energies.len(), 0.0);
-        }
-        for (a, b) in self.energies.iter_mut().zip(&other.energies) {
-            *a += b;
-        }
-        self.positive += other.positive;
     }
 
     /// The lowest bin that must be collected for the top `k`.
@@ -289,8 +269,8 @@ fn best_of(parts: Vec<Vec<Pick>>, k: usize) -> Vec<Pick> {
     picks
 }
 
-/// Histogram bins per halving of the score (the f32 mantissa bits a bin keeps).
-pub(crate) const BINS_PER_OCTAVE: usize = 128;
+/// Histogram bins per halving of the score: a bin keeps the top 8 of an f32's 23 mantissa bits.
+pub(crate) const BINS_PER_OCTAVE: usize = 256;
 
 /// The top `k` selectable coefficients as [`top_k`] returns them, in one pass instead of two,
 /// when a floor on their scores is known: every coefficient whose score bin is at least

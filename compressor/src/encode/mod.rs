@@ -15,13 +15,15 @@
 //!
 //! Its parts, each a module of its own: `options` (what is asked and returned), `prepare` (the
 //! transform and the oracle), `encoder` (a prepared volume to a file), `memory` (the estimate
-//! and cap) and `rate` (the byte target: depth, refined set size, rate search).
+//! and cap) `rate` (the byte target: depth, refined set size, rate search) and `summary` (the
+//! scores summarised for a bricked allocation).
 
 mod encoder;
 mod memory;
 mod options;
 mod prepare;
 mod rate;
+mod summary;
 
 pub use memory::{memory_estimate, PROCESS_MEMORY};
 pub use options::{
@@ -34,6 +36,7 @@ pub use prepare::{default_margin, COARSE_LAYER_MIN_LEVELS, STRUCTURED_FACES};
 pub use rate::worth_going_shallower;
 pub(crate) use rate::SHALLOWER_KEPT;
 use rate::{bytes_per_coefficient_guess, compress_to_bytes};
+pub use summary::{ScoreSummary, SummaryBytesError, SummedScores};
 use wavesplat_codec::volume::Volume;
 
 /// Compresses a volume. `progress(stage, fraction)` is called as work proceeds.
@@ -118,181 +121,6 @@ pub fn compress(
     Ok(prepared.encode(&ranked, k, opts, expected, true))
 }
 
-/// The oracle's scores of a volume, summarised: how many coefficients and how much energy lie
-/// in each score bin (bins are absolute: 128 per halving of the score, the same for every
-/// volume), so that summaries of several volumes (the bricks of one) can be added and a
-/// single score threshold chosen for all of them, as the oracle would for the whole.
-pub struct ScoreSummary {
-    histogram: crate::select::Histogram,
-    /// Coefficients of the padded grid, all channels.
-    pub total_coefficients: u64,
-    /// Energy of all coefficients (without importance).
-    pub total_energy: f64,
-    /// Selectable (non-zero) coefficients.
-    pub nonzero: u64,
-}
-
-impl ScoreSummary {
-    /// The summary of nothing, to [`ScoreSummary::add`] to.
-    pub fn empty() -> ScoreSummary {
-        ScoreSummary {
-            histogram: crate::select::Histogram::empty(),
-            total_coefficients: 0,
-            total_energy: 0.0,
-            nonzero: 0,
-        }
-    }
-
-    /// Adds another volume's summary: the result summarises both sets of coefficients.
-    pub fn add(&mut self, other: &ScoreSummary) {
-        self.histogram.add(&other.histogram);
-        self.total_coefficients += other.total_coefficients;
-        self.total_energy += other.total_energy;
-        self.nonzero += other.nonzero;
-    }
-
-    /// The lowest score bin holding one of the top `k` coefficients (bin 0 when there are
-    /// fewer than `k`).
-    pub fn cut_for_count(&self, k: u64) -> usize {
-        self.histogram.cut_for_count(k)
-    }
-
-    /// Coefficients per score bin, lowest score first.
-    pub fn counts(&self) -> &[u64] {
-        self.histogram.counts()
-    }
-
-    /// Energy per score bin (sums in a thread-dependent order: a guide, not exact).
-    pub fn energies(&self) -> &[f64] {
-        self.histogram.energies()
-    }
-}
-
-/// Why bytes are not a [`ScoreSummary`].
-#[derive(Debug, thiserror::Error)]
-#[error("not a score summary: {0}")]
-pub struct SummaryBytesError(String);
-
-/// The start of [`ScoreSummary::to_bytes`]: a tag and its version.
-const SUMMARY_MAGIC: &[u8; 8] = b"WSSCORE1";
-
-impl ScoreSummary {
-    /// The summary as bytes, to hand from the worker that scored a brick to the one that
-    /// allocates the rate: a tag, the totals, then every non-empty bin as varints (its distance
-    /// from the last, its count) and, with `energies` (only a Q_V target needs them), its
-    /// energy. A brick's scores fill a few thousand to tens of thousands of the 65 536 bins.
-    pub fn to_bytes(&self, energies: bool) -> Vec<u8> {
-        let counts = self.histogram.counts();
-        let e = if energies {
-            self.histogram.energies()
-        } else {
-            &[]
-        };
-        let filled: Vec<usize> = (0..counts.len())
-            .filter(|&b| counts[b] != 0 || e.get(b).is_some_and(|e| *e != 0.0))
-            .collect();
-        let mut out = Vec::with_capacity(48 + filled.len() * if e.is_empty() { 4 } else { 12 });
-        out.extend_from_slice(SUMMARY_MAGIC);
-        out.extend_from_slice(&self.total_coefficients.to_le_bytes());
-        out.extend_from_slice(&self.total_energy.to_le_bytes());
-        out.extend_from_slice(&self.nonzero.to_le_bytes());
-        out.extend_from_slice(&self.histogram.positive.to_le_bytes());
-        out.push(u8::from(!e.is_empty()));
-        put_varint(&mut out, filled.len() as u64);
-        let mut next = 0usize;
-        for b in filled {
-            put_varint(&mut out, (b - next) as u64);
-            put_varint(&mut out, counts[b]);
-            if let Some(e) = e.get(b) {
-                out.extend_from_slice(&e.to_le_bytes());
-            }
-            next = b + 1;
-        }
-        out
-    }
-
-    /// Reads [`ScoreSummary::to_bytes`]'s output back, checking its tag, length and bins.
-    pub fn from_bytes(bytes: &[u8]) -> Result<ScoreSummary, SummaryBytesError> {
-        let bad = |what: &str| SummaryBytesError(what.to_string());
-        let mut r = bytes;
-        if r.len() < 41 || &r[..8] != SUMMARY_MAGIC {
-            return Err(bad("wrong tag or version, or cut short"));
-        }
-        let u64_at = |at: usize| u64::from_le_bytes(r[at..at + 8].try_into().unwrap_or([0; 8]));
-        let total_coefficients = u64_at(8);
-        let total_energy = f64::from_bits(u64_at(16));
-        let nonzero = u64_at(24);
-        let positive = u64_at(32);
-        let with_energies = match r[40] {
-            0 => false,
-            1 => true,
-            _ => return Err(bad("energy flag")),
-        };
-        r = &r[41..];
-        let bins = crate::select::Histogram::BINS;
-        let filled = take_varint(&mut r).ok_or_else(|| bad("cut short"))?;
-        if filled > bins as u64 {
-            return Err(bad("more bins than there are"));
-        }
-        let mut counts = vec![0u64; bins];
-        let mut energies = if with_energies {
-            vec![0.0f64; bins]
-        } else {
-            Vec::new()
-        };
-        let mut next = 0u64;
-        for _ in 0..filled {
-            let b = take_varint(&mut r)
-                .and_then(|d| next.checked_add(d))
-                .filter(|b| *b < bins as u64)
-                .ok_or_else(|| bad("bin out of range or cut short"))? as usize;
-            counts[b] = take_varint(&mut r).ok_or_else(|| bad("cut short"))?;
-            if let Some(slot) = energies.get_mut(b) {
-                let (e, rest) = r.split_at_checked(8).ok_or_else(|| bad("cut short"))?;
-                *slot = f64::from_le_bytes(e.try_into().unwrap_or([0; 8]));
-                r = rest;
-            }
-            next = b as u64 + 1;
-        }
-        if !r.is_empty() {
-            return Err(bad("bytes after the last bin"));
-        }
-        let binned = counts.iter().try_fold(0u64, |a, c| a.checked_add(*c));
-        if !total_energy.is_finite() || binned.is_none_or(|n| n > total_coefficients) {
-            return Err(bad("totals disagree with the bins"));
-        }
-        let histogram = crate::select::Histogram::from_parts(counts, energies, positive)
-            .ok_or_else(|| bad("bins"))?;
-        Ok(ScoreSummary {
-            histogram,
-            total_coefficients,
-            total_energy,
-            nonzero,
-        })
-    }
-}
-
-/// LEB128, as protobuf writes integers (by hand: two small loops, not worth a crate).
-fn put_varint(out: &mut Vec<u8>, mut v: u64) {
-    while v >= 0x80 {
-        out.push((v as u8) | 0x80);
-        v >>= 7;
-    }
-    out.push(v as u8);
-}
-
-fn take_varint(r: &mut &[u8]) -> Option<u64> {
-    let mut v = 0u64;
-    for (i, &byte) in r.iter().enumerate().take(10) {
-        v |= u64::from(byte & 0x7f) << (7 * i);
-        if byte & 0x80 == 0 {
-            *r = &r[i + 1..];
-            return Some(v);
-        }
-    }
-    None
-}
-
 /// The transform and the oracle's scores of `volume` under `opts` (its depth, family, colour
 /// space and margin), without selecting or coding anything: the first pass of a bricked
 /// volume's rate allocation.
@@ -303,12 +131,12 @@ pub fn score_summary(
 ) -> Result<ScoreSummary, CompressError> {
     let coded = code(volume, opts, false, progress)?;
     let prepared = prepare(volume, opts, &coded, false, progress)?;
-    Ok(ScoreSummary {
-        total_coefficients: prepared.total_coefficients,
-        total_energy: prepared.total_energy,
-        nonzero: prepared.nonzero,
-        histogram: prepared.histogram,
-    })
+    Ok(ScoreSummary::from_histogram(
+        &prepared.histogram,
+        prepared.total_coefficients,
+        prepared.total_energy,
+        prepared.nonzero,
+    ))
 }
 
 #[cfg(test)]
