@@ -35,8 +35,8 @@ fn bench(c: &mut Criterion) {
             memory_bound: bound,
             ..Default::default()
         };
-        let session = RenderSession::new(header.clone(), spec.clone(), CpuBackend::new(), options)
-            .expect("session");
+        let session =
+            RenderSession::new(header.clone(), spec, CpuBackend::new(), options).expect("session");
         let mut f = FrameLoop::new(session, source);
         loop {
             let r = f.frame(Duration::from_millis(2)).expect("frame");
