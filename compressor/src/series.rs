@@ -988,6 +988,26 @@ mod tests {
         assert!((p6 / p0 / ratio(6) - 1.0).abs() < 0.2, "{p0} {p6}");
     }
 
+    /// A Q_V target keeps a small part of a series, not all of it (the components' bridge
+    /// energy outside their boxes was once counted in the goal).
+    #[test]
+    fn a_qv_target_keeps_what_the_energy_needs() {
+        let s = cine([24, 20, 12], 4);
+        let at = |target| {
+            let opts = CompressOptions {
+                target,
+                refine: None,
+                ..CompressOptions::default()
+            };
+            compress_series(&s, &opts, 4, 256, &|_| {})
+                .unwrap()
+                .bytes
+                .len()
+        };
+        let (qv, all) = (at(Target::QvPercent(90.0)), at(Target::All));
+        assert!(qv * 10 < all, "Q_V 90 %: {qv} bytes, everything {all}");
+    }
+
     #[test]
     fn bricked_components_decode_and_stay_apart_by_group() {
         let s = cine([24, 20, 18], 6);
