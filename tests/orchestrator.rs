@@ -444,7 +444,8 @@ async fn the_same_archive_with_other_options_lands_under_a_suffix() {
 }
 
 /// `archive submit --brick N`: a worker compresses the volume as a bricked volume, reading a
-/// raw file on shared storage brick by brick (an uploaded one is decoded whole and split), and
+/// raw file on shared storage brick by brick (an uploaded one from the worker's temporary copy
+/// of it), and
 /// the cache holds one bricked volume per job, exactly as `compress_bricked` makes it with the
 /// job's options, even when the first worker is killed before its upload. A bricked job asks for
 /// linear or haar: the cubic family is refused at submission.
@@ -1022,7 +1023,8 @@ async fn a_bricked_job_commits_once_after_a_cache_kill() {
 }
 
 /// A gzip-compressed NIfTI file's bricks spread over two workers (each keeps the inflated file
-/// open across the parts it takes): the volume lands as the file one process makes from it.
+/// open across the parts it takes): the volume lands as the file one process makes from it,
+/// and so does the same file uploaded (read by region from the worker's temporary copy).
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_compressed_nifti_bricked_job_spread_over_workers() {
     use std::io::Write;
@@ -1053,6 +1055,28 @@ async fn a_compressed_nifti_bricked_job_spread_over_workers() {
     let reader = RegionReader::open(&gz, None).unwrap();
     let expected = one_process_file(&reader, 24, TargetSpec::Fraction(0.05));
     assert_cache_holds_only(&c, &expected).await;
+    // The same file uploaded: the worker streams it to a temporary file and reads its bricks
+    // from there (never holding it whole), into the same bytes.
+    let uploaded = cl.root.join("uploaded");
+    std::fs::create_dir_all(&uploaded).unwrap();
+    std::fs::copy(&gz, uploaded.join("sent.nii.gz")).unwrap();
+    submit(
+        &uploaded,
+        &o,
+        &["--brick", "24", "--target-fraction", "0.05", "--upload"],
+    );
+    wait_for(&o, 120, "the uploaded bricked job done", |js| {
+        js.iter()
+            .filter(|j| !is_part(j) && state_name(j.state) == "done")
+            .count()
+            == 2
+    })
+    .await;
+    let mut client = CacheClient::connect(&c).await.unwrap();
+    let listed = client.list().await.unwrap();
+    assert_eq!(listed.len(), 2, "{listed:?}");
+    let sha = wavesplat_net::digest::hex(&wavesplat_net::digest::sha256(&expected));
+    assert!(listed.iter().all(|v| v.sha256 == sha), "{listed:?}");
 }
 
 /// A DICOM series directory and a detached MetaImage header (its data in another file) on

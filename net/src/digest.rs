@@ -19,6 +19,22 @@ pub fn sha256_stream<E>(
     Ok(hasher.finalize().into())
 }
 
+/// SHA-256 of bytes given piece by piece, as they arrive (a source streamed to a file).
+#[derive(Default)]
+pub struct Sha256Pieces(Sha256);
+
+impl Sha256Pieces {
+    /// Adds the next piece.
+    pub fn update(&mut self, piece: &[u8]) {
+        self.0.update(piece);
+    }
+
+    /// The digest of all pieces, in order.
+    pub fn finish(self) -> [u8; 32] {
+        self.0.finalize().into()
+    }
+}
+
 /// Lowercase hex of `bytes`.
 pub fn hex(bytes: &[u8]) -> String {
     hex::encode(bytes)
@@ -44,6 +60,11 @@ mod tests {
         };
         assert_eq!(streamed(&path).unwrap(), sha256(&bytes));
         assert!(streamed(&dir.path().join("missing")).is_err());
+        let mut pieces = Sha256Pieces::default();
+        for piece in bytes.chunks(65_521) {
+            pieces.update(piece);
+        }
+        assert_eq!(pieces.finish(), sha256(&bytes));
     }
 
     #[test]

@@ -41,6 +41,7 @@ use wavesplat_client::{CacheClient, ConnectOptions};
 use wavesplat_codec::volume::Volume;
 use wavesplat_compressor::bricked::{compress_bricked, BrickSource, BrickStage};
 use wavesplat_compressor::encode::{compress, Stage};
+use wavesplat_compressor::reader::region::RegionReader;
 use wavesplat_compressor::reader::{decode_raw, decode_source, ReadError, SourceFiles};
 use wavesplat_net::digest::sha256;
 use wavesplat_orchestrator_client::convert;
@@ -471,19 +472,17 @@ async fn hashed_in_place(spec: &JobSpec) -> Option<u64> {
     }
 }
 
-/// A job of a bricked volume (`--brick`) whose source is not read in place (an uploaded one),
-/// on the worker's pool: decoded whole and split. (A source on shared storage is read brick by
-/// brick by the workers its bricks are spread over, [`parts::coordinate`].) Returns the bricked file and
-/// the volume's voxel count.
+/// A job of a bricked volume (`--brick`) whose source is not read in place, on the worker's
+/// pool: an uploaded one, read by region from the worker's temporary copy
+/// ([`UploadedFile`]), or decoded whole and split when it came as a bundle of files. (A source
+/// on shared storage is read brick by brick by the workers its bricks are spread over,
+/// [`parts::coordinate`].) Returns the bricked file and the volume's voxel count.
 fn compress_bricked_job(
-    spec: &JobSpec,
-    bytes: Vec<u8>,
+    source: &dyn BrickSource,
     brick: usize,
     opts: &wavesplat_compressor::encode::CompressOptions,
     sh: &Shared,
 ) -> Result<(Vec<u8>, u64), Failure> {
-    let volume = decode(spec, bytes)?;
-    let source: &dyn BrickSource = &volume;
     let voxels = source.dims().iter().product::<u64>();
     sh.set(0.05, "reading bricks");
     let report = |stage: BrickStage| {
@@ -498,6 +497,99 @@ fn compress_bricked_job(
         .map_err(|e| fail(FailureKind::Compress, e.to_string()))
 }
 
+/// An uploaded source of a bricked job, streamed to a temporary file as it arrives (and hashed
+/// on the way), so that the worker never holds it whole: its bricks are read from the file by
+/// region, as from shared storage. The file is named for its format (sniffed from its first
+/// bytes), which is how the region reader knows it; the directory goes when this is dropped.
+struct UploadedFile {
+    _dir: tempfile::TempDir,
+    path: std::path::PathBuf,
+    sha256: [u8; 32],
+    /// Whether it is a bundle of several files (a detached header and its data, a DICOM
+    /// series), which is unpacked in memory instead.
+    bundle: bool,
+}
+
+async fn fetch_upload_to_file(
+    ctx: &mut Ctx,
+    id: u64,
+    attempt: u32,
+) -> Result<UploadedFile, Failure> {
+    use tokio::io::AsyncWriteExt;
+    let unavailable = |s: tonic::Status| {
+        fail(
+            FailureKind::SourceUnavailable,
+            format!("fetching the uploaded source: {}", s.message()),
+        )
+    };
+    let local = |e: std::io::Error| {
+        fail(
+            FailureKind::Worker,
+            format!("keeping the uploaded source in a temporary file: {e}"),
+        )
+    };
+    let dir = tempfile::Builder::new()
+        .prefix("wavesplat-upload-")
+        .tempdir()
+        .map_err(local)?;
+    let part = dir.path().join("source.part");
+    let mut file = tokio::fs::File::create(&part).await.map_err(local)?;
+    let mut stream = ctx
+        .orch
+        .fetch_source(pb::FetchSourceRequest {
+            job_id: id,
+            attempt,
+        })
+        .await
+        .map_err(unavailable)?
+        .into_inner();
+    let (mut digest, mut head) = (wavesplat_net::digest::Sha256Pieces::default(), Vec::new());
+    while let Some(c) = stream.message().await.map_err(unavailable)? {
+        digest.update(&c.data);
+        if head.len() < 512 {
+            head.extend_from_slice(&c.data[..c.data.len().min(512 - head.len())]);
+        }
+        file.write_all(&c.data).await.map_err(local)?;
+    }
+    file.flush().await.map_err(local)?;
+    drop(file);
+    let bundle = head.starts_with(wavesplat_compressor::reader::BUNDLE_MAGIC);
+    use wavesplat_compressor::reader::Format;
+    let name = match Format::sniff(&head) {
+        Some(Format::Nifti) if head.starts_with(&[0x1f, 0x8b]) => "source.nii.gz",
+        Some(Format::Nifti) => "source.nii",
+        Some(Format::Nrrd) => "source.nrrd",
+        Some(Format::MetaImage) => "source.mha",
+        Some(Format::Dicom) => "source.dcm",
+        None => "source.raw",
+    };
+    let path = dir.path().join(name);
+    tokio::fs::rename(&part, &path).await.map_err(local)?;
+    Ok(UploadedFile {
+        _dir: dir,
+        path,
+        sha256: digest.finish(),
+        bundle,
+    })
+}
+
+/// The reader of an uploaded source's temporary copy (see [`UploadedFile`]).
+fn open_upload(spec: &JobSpec, path: &std::path::Path) -> Result<RegionReader, Failure> {
+    let raw = spec.raw.as_ref().map(options::raw_spec);
+    RegionReader::open(path, raw.as_ref()).map_err(|e| match e {
+        ReadError::TimeSeries { points, .. } => fail(
+            FailureKind::InvalidInput,
+            format!(
+                "{}: a time series of {points} time points, uploaded: workers compress a time \
+                 series read from shared storage (submit it without --upload), or compress it \
+                 locally and `cache ingest` the file",
+                spec.name
+            ),
+        ),
+        e => fail(FailureKind::InvalidInput, format!("{}: {e}", spec.name)),
+    })
+}
+
 async fn execute(
     ctx: &mut Ctx,
     id: u64,
@@ -509,12 +601,31 @@ async fn execute(
     // A bricked job's file verified without holding it (its bricks are read from it), or the
     // source's bytes read and verified.
     let in_place = hashed_in_place(spec).await;
+    // An uploaded source of a bricked job goes to a temporary file, not to memory.
+    let mut uploaded = None;
     let bytes = if in_place.is_some() {
         Vec::new()
+    } else if spec.options.brick.is_some() && matches!(spec.source, Source::Upload { .. }) {
+        let f = fetch_upload_to_file(ctx, id, attempt).await?;
+        let bytes = if f.bundle {
+            tokio::fs::read(&f.path).await.map_err(|e| {
+                fail(
+                    FailureKind::Worker,
+                    format!("reading the uploaded bundle back: {e}"),
+                )
+            })?
+        } else {
+            Vec::new()
+        };
+        uploaded = Some(f);
+        bytes
     } else {
         fetch_source(ctx, id, attempt, spec).await?
     };
-    let got = sha256(&bytes);
+    let got = match &uploaded {
+        Some(f) => f.sha256,
+        None => sha256(&bytes),
+    };
     if in_place.is_none() && got != spec.sha256 {
         return Err(fail(
             FailureKind::InvalidInput,
@@ -547,7 +658,12 @@ async fn execute(
             return parts::coordinate(runner, handle, job_spec, id, attempt, hashed, sh);
         }
         if let Some(brick) = job_spec.options.brick {
-            return pool.install(|| compress_bricked_job(&job_spec, bytes, brick, &opts, &sh));
+            if let Some(f) = uploaded.filter(|f| !f.bundle) {
+                let reader = open_upload(&job_spec, &f.path)?;
+                return pool.install(|| compress_bricked_job(&reader, brick, &opts, &sh));
+            }
+            let volume = decode(&job_spec, bytes)?;
+            return pool.install(|| compress_bricked_job(&volume, brick, &opts, &sh));
         }
         let volume = decode(&job_spec, bytes)?;
         let voxels = volume.voxel_count() as u64;
