@@ -9,6 +9,8 @@
 #   bash scripts/brick-workers.sh [SIZE] [WORKERS] [BRICK] [FRACTION]
 #   e.g. bash scripts/brick-workers.sh 512 "1 2" 128 0.01
 # WORKERS: worker counts (default "1 2"; more than the machine's cores are skipped).
+# UPLOAD=1 submits the file with --upload (one worker compresses it, reading its bricks from
+# its temporary copy of the upload); WAVESPLAT=PATH runs another build of the binary.
 # Writes $TMPDIR/wavesplat-workers/workers.csv (size,workers,brick,parts,seconds,
 # peak_rss_mb_max,bytes,ns_per_voxel_core).
 set -euo pipefail
@@ -17,10 +19,12 @@ N=${1:-512}
 WORKERS=${2:-"1 2"}
 BRICK=${3:-128}
 FRACTION=${4:-0.01}
-W="$ROOT/target/release/wavesplat"
+W="${WAVESPLAT:-$ROOT/target/release/wavesplat}"
+UPLOAD_FLAG=()
+[ "${UPLOAD:-0}" = 1 ] && UPLOAD_FLAG=(--upload)
 TMP="${TMPDIR:-/tmp}/wavesplat-workers"
 command -v taskset >/dev/null || { echo "needs taskset (util-linux)" >&2; exit 1; }
-cargo build --release --quiet --manifest-path "$ROOT/Cargo.toml" --bin wavesplat
+[ -n "${WAVESPLAT:-}" ] || cargo build --release --quiet --manifest-path "$ROOT/Cargo.toml" --bin wavesplat
 mkdir -p "$TMP/shared"
 SRC="$TMP/shared/ct_${N}x${N}x${N}_f32.raw"
 [ -f "$SRC" ] || "$W" phantom ct --dims "$N,$N,$N" -o "$SRC"
@@ -47,7 +51,7 @@ for w in $WORKERS; do
   sleep 1
   start=$(date +%s.%N)
   "$W" archive submit "$TMP/shared" --orchestrator "http://127.0.0.1:$op" --detach \
-    --brick "$BRICK" --target-fraction "$FRACTION" >"$run/submit.log"
+    --brick "$BRICK" --target-fraction "$FRACTION" "${UPLOAD_FLAG[@]}" >"$run/submit.log"
   WP=()
   for i in $(seq 0 $((w - 1))); do
     taskset -c "$i" "$W" worker --orchestrator "http://127.0.0.1:$op" \
