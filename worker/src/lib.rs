@@ -396,28 +396,38 @@ async fn fetch_source(
             .map_err(|e| fail(FailureKind::Worker, format!("reading task: {e}")))?
         }
         Source::Upload { size } => {
-            let unavailable = |s: tonic::Status| {
-                fail(
-                    FailureKind::SourceUnavailable,
-                    format!("fetching the uploaded source: {}", s.message()),
-                )
-            };
-            let mut stream = ctx
-                .orch
-                .fetch_source(pb::FetchSourceRequest {
-                    job_id: id,
-                    attempt,
-                })
-                .await
-                .map_err(unavailable)?
-                .into_inner();
+            let mut stream = upload_stream(ctx, id, attempt).await?;
             let mut bytes = Vec::with_capacity((*size).min(1 << 30) as usize);
-            while let Some(c) = stream.message().await.map_err(unavailable)? {
+            while let Some(c) = stream.message().await.map_err(upload_unavailable)? {
                 bytes.extend_from_slice(&c.data);
             }
             Ok(bytes)
         }
     }
+}
+
+/// The stream of a job's uploaded source from the orchestrator.
+async fn upload_stream(
+    ctx: &mut Ctx,
+    id: u64,
+    attempt: u32,
+) -> Result<tonic::Streaming<pb::SourceChunk>, Failure> {
+    Ok(ctx
+        .orch
+        .fetch_source(pb::FetchSourceRequest {
+            job_id: id,
+            attempt,
+        })
+        .await
+        .map_err(upload_unavailable)?
+        .into_inner())
+}
+
+fn upload_unavailable(s: tonic::Status) -> Failure {
+    fail(
+        FailureKind::SourceUnavailable,
+        format!("fetching the uploaded source: {}", s.message()),
+    )
 }
 
 fn decode(spec: &JobSpec, bytes: Vec<u8>) -> Result<Volume, Failure> {
@@ -516,12 +526,6 @@ async fn fetch_upload_to_file(
     attempt: u32,
 ) -> Result<UploadedFile, Failure> {
     use tokio::io::AsyncWriteExt;
-    let unavailable = |s: tonic::Status| {
-        fail(
-            FailureKind::SourceUnavailable,
-            format!("fetching the uploaded source: {}", s.message()),
-        )
-    };
     let local = |e: std::io::Error| {
         fail(
             FailureKind::Worker,
@@ -534,17 +538,9 @@ async fn fetch_upload_to_file(
         .map_err(local)?;
     let part = dir.path().join("source.part");
     let mut file = tokio::fs::File::create(&part).await.map_err(local)?;
-    let mut stream = ctx
-        .orch
-        .fetch_source(pb::FetchSourceRequest {
-            job_id: id,
-            attempt,
-        })
-        .await
-        .map_err(unavailable)?
-        .into_inner();
+    let mut stream = upload_stream(ctx, id, attempt).await?;
     let (mut digest, mut head) = (wavesplat_net::digest::Sha256Pieces::default(), Vec::new());
-    while let Some(c) = stream.message().await.map_err(unavailable)? {
+    while let Some(c) = stream.message().await.map_err(upload_unavailable)? {
         digest.update(&c.data);
         if head.len() < 512 {
             head.extend_from_slice(&c.data[..c.data.len().min(512 - head.len())]);
