@@ -1069,9 +1069,12 @@ pub fn allocate_units<F>(
             let mut last: Option<(f64, f64)> = None;
             // The largest count known to fit and the smallest known to overflow.
             let (mut fits_k, mut over_k) = (0u64, u64::MAX);
+            // The smallest file tried: its bytes and its count (for the refusal below).
+            let mut smallest = (u64::MAX, 0u64);
             for trial in 0..BYTE_TRIALS {
                 let b = encode_all(Some(&global_k(k)), trial)?;
                 let bytes: u64 = b.iter().map(|c| c.len).sum::<u64>() + manifest_guess;
+                smallest = smallest.min((bytes, k));
                 let fits = bytes <= target;
                 if fits {
                     fits_k = fits_k.max(k);
@@ -1110,10 +1113,12 @@ pub fn allocate_units<F>(
             match best {
                 Some((_, b)) => b,
                 None => {
+                    let (bytes, kept) = smallest;
                     return Err(BrickError::InvalidOption(format!(
-                        "a target of {target} bytes is below what {of} parts need with one \
-                         coefficient each"
-                    )))
+                        "a target of {target} bytes is too small for {of} parts: the smallest \
+                         file tried, keeping {kept} coefficients in all, takes {bytes} bytes \
+                         (every part's header and the container's manifest count)"
+                    )));
                 }
             }
         }
@@ -1581,6 +1586,36 @@ mod tests {
             |_, _| -> Result<Vec<CodedBrick<()>>, BrickError> { unreachable!() },
         );
         assert!(matches!(refused, Err(BrickError::InvalidOption(_))));
+    }
+
+    /// A byte target below what the bricks' headers alone take is refused, saying how small
+    /// a file they made (an all-zero volume keeps nothing, so "one coefficient each" was wrong).
+    #[test]
+    fn a_byte_target_below_the_headers_is_refused_with_the_smallest_size() {
+        let v = Phantom::Zero.generate([40, 40, 40]);
+        let opts = CompressOptions {
+            target: Target::Bytes(1_000),
+            ..CompressOptions::default()
+        };
+        match compress_bricked(&v, &opts, 16, &|_| {}) {
+            Err(BrickError::InvalidOption(m)) => {
+                let bytes: u64 = m
+                    .split("takes ")
+                    .nth(1)
+                    .and_then(|t| t.split(' ').next())
+                    .and_then(|n| n.parse().ok())
+                    .unwrap_or_else(|| panic!("{m}"));
+                assert!(bytes > 1_000 && m.contains("27 parts"), "{m}");
+                // The file that size names is one the target could have been.
+                let fits = CompressOptions {
+                    target: Target::Bytes(bytes),
+                    ..CompressOptions::default()
+                };
+                let made = compress_bricked(&v, &fits, 16, &|_| {}).unwrap();
+                assert!(made.bytes.len() as u64 <= bytes, "{m}");
+            }
+            other => panic!("{:?}", other.map(|c| c.bytes.len())),
+        }
     }
 
     /// A Q_V target keeps about what it keeps of the whole volume, not everything (the
