@@ -1051,12 +1051,10 @@ pub fn allocate_units<F>(
             encode_all(Some(&global_k(k)), 0)?
         }
         Target::QvPercent(q) => {
-            // Of the energy a brick could keep: its bridge's coefficients wholly outside its
-            // box (score < 0, never kept) carry energy too, often more than the share a
-            // target leaves out, and counting them made every Q_V target keep everything.
-            // For a whole volume the two totals are the same.
-            let selectable: f64 = whole.energies().iter().sum();
-            let k = count_for_energy(&whole, q / 100.0 * selectable);
+            // Of the energy the bricks can keep (each summary's total is its selectable
+            // energy: a bridge's coefficients wholly outside the box are never kept, and
+            // counting them once made every Q_V target keep everything).
+            let k = count_for_energy(&whole, q / 100.0 * whole.total_energy);
             encode_all(Some(&global_k(k)), 0)?
         }
         Target::Bytes(target) => {
@@ -1577,6 +1575,24 @@ mod tests {
         let mut tag = bytes.clone();
         tag[7] ^= 1;
         assert!(ScoreSummary::from_bytes(&tag).is_err());
+        // Totals that disagree with the bins, a bin's energy that is not a finite
+        // non-negative number, and a varint past 64 bits are refused.
+        let mut nonzero = bytes.clone();
+        nonzero[24] ^= 1;
+        assert!(ScoreSummary::from_bytes(&nonzero).is_err());
+        let first_energy = bytes.len() - 8 * s.bins().count();
+        for bad in [f64::NAN, f64::INFINITY, -1.0] {
+            let mut e = bytes.clone();
+            // The last bin's energy is the last 8 bytes.
+            let n = e.len();
+            e[n - 8..].copy_from_slice(&bad.to_le_bytes());
+            assert!(ScoreSummary::from_bytes(&e).is_err(), "{bad}");
+        }
+        assert!(first_energy > 41);
+        let mut long = bytes[..41].to_vec();
+        long.extend_from_slice(&[0xff; 9]);
+        long.push(0x02);
+        assert!(ScoreSummary::from_bytes(&long).is_err());
         // Summaries without energies cannot meet a Q_V target: refused, not kept whole.
         let refused = allocate_units(
             Target::QvPercent(90.0),

@@ -161,7 +161,7 @@ impl Histogram {
     /// Adds `count` coefficients of total energy `energy` to bin `b` (an energy is dropped
     /// when the histogram keeps none).
     pub(crate) fn add_to_bin(&mut self, b: usize, count: u64, energy: f64) {
-        self.counts[b] += count;
+        self.counts[b] = self.counts[b].saturating_add(count);
         if let Some(e) = self.energies.get_mut(b) {
             *e += energy;
         }

@@ -524,6 +524,8 @@ async fn fetch_upload_to_file(
     ctx: &mut Ctx,
     id: u64,
     attempt: u32,
+    spec: &JobSpec,
+    size: u64,
 ) -> Result<UploadedFile, Failure> {
     use tokio::io::AsyncWriteExt;
     let local = |e: std::io::Error| {
@@ -540,7 +542,15 @@ async fn fetch_upload_to_file(
     let mut file = tokio::fs::File::create(&part).await.map_err(local)?;
     let mut stream = upload_stream(ctx, id, attempt).await?;
     let (mut digest, mut head) = (wavesplat_net::digest::Sha256Pieces::default(), Vec::new());
+    let mut written = 0u64;
     while let Some(c) = stream.message().await.map_err(upload_unavailable)? {
+        written = written.saturating_add(c.data.len() as u64);
+        if written > size {
+            return Err(fail(
+                FailureKind::InvalidInput,
+                format!("the uploaded source is longer than the {size} bytes submitted"),
+            ));
+        }
         digest.update(&c.data);
         if head.len() < 512 {
             head.extend_from_slice(&c.data[..c.data.len().min(512 - head.len())]);
@@ -550,15 +560,7 @@ async fn fetch_upload_to_file(
     file.flush().await.map_err(local)?;
     drop(file);
     let bundle = head.starts_with(wavesplat_compressor::reader::BUNDLE_MAGIC);
-    use wavesplat_compressor::reader::Format;
-    let name = match Format::sniff(&head) {
-        Some(Format::Nifti) if head.starts_with(&[0x1f, 0x8b]) => "source.nii.gz",
-        Some(Format::Nifti) => "source.nii",
-        Some(Format::Nrrd) => "source.nrrd",
-        Some(Format::MetaImage) => "source.mha",
-        Some(Format::Dicom) => "source.dcm",
-        None => "source.raw",
-    };
+    let name = upload_file_name(spec.raw.is_some(), &spec.name, &head);
     let path = dir.path().join(name);
     tokio::fs::rename(&part, &path).await.map_err(local)?;
     Ok(UploadedFile {
@@ -567,6 +569,26 @@ async fn fetch_upload_to_file(
         sha256: digest.finish(),
         bundle,
     })
+}
+
+/// The name an uploaded source's temporary copy is given, which is how the region reader
+/// knows its format: found as the in-memory decoder finds it, by the job's layout for raw
+/// samples (whatever their first bytes look like), else by the job's name, else by the
+/// source's first bytes (`head`).
+fn upload_file_name(raw: bool, job_name: &str, head: &[u8]) -> &'static str {
+    use wavesplat_compressor::reader::Format;
+    if raw {
+        return "source.raw";
+    }
+    let format = Format::from_name(std::path::Path::new(job_name)).or(Format::sniff(head));
+    match format {
+        Some(Format::Nifti) if head.starts_with(&[0x1f, 0x8b]) => "source.nii.gz",
+        Some(Format::Nifti) => "source.nii",
+        Some(Format::Nrrd) => "source.nrrd",
+        Some(Format::MetaImage) => "source.mha",
+        Some(Format::Dicom) => "source.dcm",
+        None => "source.raw",
+    }
 }
 
 /// The reader of an uploaded source's temporary copy (see [`UploadedFile`]).
@@ -601,8 +623,8 @@ async fn execute(
     let mut uploaded = None;
     let bytes = if in_place.is_some() {
         Vec::new()
-    } else if spec.options.brick.is_some() && matches!(spec.source, Source::Upload { .. }) {
-        let f = fetch_upload_to_file(ctx, id, attempt).await?;
+    } else if let (Some(_), Source::Upload { size }) = (spec.options.brick, &spec.source) {
+        let f = fetch_upload_to_file(ctx, id, attempt, spec, *size).await?;
         let bytes = if f.bundle {
             tokio::fs::read(&f.path).await.map_err(|e| {
                 fail(
@@ -716,6 +738,26 @@ async fn execute(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// An upload's temporary copy is named for its format as the in-memory decoder finds it:
+    /// raw samples stay raw even when their first bytes look like gzip or a header.
+    #[test]
+    fn an_uploaded_copy_is_named_for_its_format() {
+        let gzip = [0x1f, 0x8b, 8, 0];
+        assert_eq!(upload_file_name(true, "ct", &gzip), "source.raw");
+        assert_eq!(
+            upload_file_name(true, "ct.nrrd", b"NRRD0004\n"),
+            "source.raw"
+        );
+        assert_eq!(upload_file_name(false, "ct", &gzip), "source.nii.gz");
+        assert_eq!(upload_file_name(false, "ct", b"NRRD0004\n"), "source.nrrd");
+        assert_eq!(
+            upload_file_name(false, "head.mha", b"no header"),
+            "source.mha"
+        );
+        assert_eq!(upload_file_name(false, "ct.nii", &[0; 8]), "source.nii");
+        assert_eq!(upload_file_name(false, "ct", &[0; 8]), "source.raw");
+    }
 
     #[test]
     fn reported_progress_never_goes_back_when_stages_repeat() {

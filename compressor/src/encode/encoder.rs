@@ -388,7 +388,7 @@ impl Prepared {
             total_coefficients: self.total_coefficients,
             nonzero_coefficients: self.nonzero,
             kept: k as u64,
-            q_v: q_v_percent(kept_energy, self.total_energy),
+            q_v: q_v_percent(kept_energy, self.selectable_energy),
             q_e,
             bytes: bytes.len() as u64,
             breakdown: encoded.breakdown,

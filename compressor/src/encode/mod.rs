@@ -87,7 +87,7 @@ pub fn compress(
                 )));
             }
             // Energies (without importance) accumulated in score order.
-            let goal = q / 100.0 * prepared.total_energy;
+            let goal = q / 100.0 * prepared.selectable_energy;
             let cap = prepared.histogram.count_for_energy(goal) as usize;
             let ranked = prepared.ranked(cap);
             let mut acc = 0.0;
@@ -134,7 +134,7 @@ pub fn score_summary(
     Ok(ScoreSummary::from_histogram(
         &prepared.histogram,
         prepared.total_coefficients,
-        prepared.total_energy,
+        prepared.selectable_energy,
         prepared.nonzero,
     ))
 }

@@ -41,6 +41,10 @@ pub(super) struct Prepared {
     /// Score histogram of the oracle (S = E·I).
     pub(super) histogram: Histogram,
     pub(super) total_energy: f64,
+    /// Energy of the coefficients the oracle may keep (score ≥ 0): the total less a bridge's
+    /// coefficients wholly outside the box, which are never kept. What a Q_V target and the
+    /// reported Q_V are counted against (summed in fixed chunks: thread-count independent).
+    pub(super) selectable_energy: f64,
     pub(super) total_coefficients: u64,
     /// The channels' voxel samples after the colour transform on the padded grid (for
     /// refinement; empty without).
@@ -369,6 +373,7 @@ pub(super) fn prepare(
         coefficients,
         histogram: Histogram::empty(),
         total_energy,
+        selectable_energy: total_energy,
         total_coefficients: (n * channels.len()) as u64,
         views: coded.views.clone(),
         targets,
@@ -391,6 +396,21 @@ pub(super) fn prepare(
     };
     prepared.nonzero = histogram.positive;
     prepared.histogram = histogram;
+    if prepared.visible.is_some() {
+        // Without a bridge every non-zero coefficient is selectable: the total stands.
+        let p = &prepared;
+        let parts: Vec<f64> = (0..p.channels * per_channel)
+            .into_par_iter()
+            .map(|job| {
+                let (c, j) = (job / per_channel, job % per_channel);
+                (j * CHUNK..((j + 1) * CHUNK).min(n))
+                    .filter(|&i| p.score(c, i) >= 0.0)
+                    .map(|i| p.energy(c, i))
+                    .sum::<f64>()
+            })
+            .collect();
+        prepared.selectable_energy = parts.iter().sum();
+    }
     Ok(prepared)
 }
 

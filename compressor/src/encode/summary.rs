@@ -15,8 +15,8 @@ use crate::select::Histogram;
 /// One volume's (or brick's) score histogram, its filled bins only.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ScoreSummary {
-    /// Filled bins in ascending order, each as two varints: its distance from the previous
-    /// filled bin plus one (from bin 0 for the first), and its count.
+    /// Filled bins in ascending order, each as two varints: the empty bins skipped since the
+    /// previous filled one (since bin 0 for the first), and its count.
     filled: Vec<u8>,
     /// Filled bins.
     bins: usize,
@@ -25,7 +25,8 @@ pub struct ScoreSummary {
     energies: Vec<f64>,
     /// Coefficients of the padded grid, all channels.
     pub total_coefficients: u64,
-    /// Energy of all coefficients (without importance).
+    /// Energy of the coefficients the oracle may keep (without importance): all of them but
+    /// a bridge's wholly outside the box.
     pub total_energy: f64,
     /// Selectable (non-zero) coefficients.
     pub nonzero: u64,
@@ -194,7 +195,11 @@ impl ScoreSummary {
             let energy = if with_energies {
                 let (e, rest) = r.split_at_checked(8).ok_or_else(|| bad("cut short"))?;
                 r = rest;
-                Some(f64::from_le_bytes(e.try_into().unwrap_or([0; 8])))
+                let e = f64::from_le_bytes(e.try_into().unwrap_or([0; 8]));
+                if !(e.is_finite() && e >= 0.0) {
+                    return Err(bad("a bin's energy is negative or not finite"));
+                }
+                Some(e)
             } else {
                 None
             };
@@ -205,7 +210,12 @@ impl ScoreSummary {
             return Err(bad("bytes after the last bin"));
         }
         s.filled.shrink_to_fit();
-        if !s.total_energy.is_finite() {
+        s.energies.shrink_to_fit();
+        let totals_agree = s.total_energy.is_finite()
+            && s.total_energy >= 0.0
+            && s.positive == binned
+            && s.nonzero == binned;
+        if !totals_agree {
             return Err(bad("totals disagree with the bins"));
         }
         Ok(s)
@@ -246,10 +256,15 @@ impl SummedScores {
         for (b, c, e) in summary.bins() {
             self.histogram.add_to_bin(b, c, e.unwrap_or(0.0));
         }
-        self.histogram.positive += summary.positive;
-        self.total_coefficients += summary.total_coefficients;
+        // Saturating: summaries read from bytes are checked against their own bins, not
+        // against each other's sums.
+        let h = &mut self.histogram;
+        h.positive = h.positive.saturating_add(summary.positive);
+        self.total_coefficients = self
+            .total_coefficients
+            .saturating_add(summary.total_coefficients);
         self.total_energy += summary.total_energy;
-        self.nonzero += summary.nonzero;
+        self.nonzero = self.nonzero.saturating_add(summary.nonzero);
     }
 
     /// The lowest score bin holding one of the top `k` coefficients (bin 0 when there are
@@ -281,6 +296,10 @@ fn put_varint(out: &mut Vec<u8>, mut v: u64) {
 fn take_varint(r: &mut &[u8]) -> Option<u64> {
     let mut v = 0u64;
     for (i, &byte) in r.iter().enumerate().take(10) {
+        if i == 9 && byte > 1 {
+            // Past 64 bits.
+            return None;
+        }
         v |= u64::from(byte & 0x7f) << (7 * i);
         if byte & 0x80 == 0 {
             *r = &r[i + 1..];
