@@ -1634,6 +1634,31 @@ mod tests {
         }
     }
 
+    /// A summary's total is the energy its coefficients could keep: the file's total energy
+    /// for a volume without a bridge (the same number, summed alike), less for a brick, whose
+    /// bridge's coefficients wholly outside its box are never kept.
+    #[test]
+    fn the_selectable_energy_is_the_total_without_a_bridge_and_less_with_one() {
+        let v = Phantom::Ct.generate([40, 36, 30]);
+        let opts = CompressOptions::default();
+        let summary = score_summary(&v, &opts, &|_, _| {}).unwrap();
+        let whole = compress(&v, &opts, &|_, _| {}).unwrap();
+        assert_eq!(summary.total_energy, whole.header.total_energy);
+        let plan = BrickPlan::new(&v, &opts, 16).unwrap();
+        for i in [0, plan.grid.len() - 1] {
+            let (file, _) = plan.encode(&v, i, None).unwrap();
+            let total = wavesplat_codec::format::parse_file(&file)
+                .unwrap()
+                .header
+                .total_energy;
+            let selectable = plan.score(&v, i).unwrap().total_energy;
+            assert!(
+                selectable > 0.0 && selectable < total,
+                "{selectable} {total}"
+            );
+        }
+    }
+
     /// A Q_V target keeps about what it keeps of the whole volume, not everything (the
     /// bridges' energy outside the bricks' boxes is never kept, and once was counted).
     #[test]

@@ -78,6 +78,9 @@ pub(crate) struct Histogram {
     energies: Vec<f64>,
     /// Selectable coefficients (score ≥ 0).
     pub positive: u64,
+    /// The `energy` of the selectable coefficients (0 without `energy`), summed exactly as
+    /// the encoder's total: in fixed chunks, in chunk order (thread-count independent).
+    pub selected_energy: f64,
 }
 
 /// One pass over `n` coefficients of each of `channels` channels: `score(c, i)` (negative:
@@ -94,44 +97,55 @@ where
     let energy_bins = if energy.is_some() { BINS } else { 0 };
     // A few accumulators per thread, not one per chunk (each is ~0.8 MB).
     let min_len = (jobs / (4 * rayon::current_num_threads())).max(1);
-    let (counts, energies) = (0..jobs)
+    // Each job's energy sum is kept with its job number, so that the total is summed in job
+    // order whatever thread summed each job.
+    let (counts, energies, mut job_energies) = (0..jobs)
         .into_par_iter()
         .with_min_len(min_len)
         .fold(
-            || (vec![0u64; BINS], vec![0.0f64; energy_bins]),
-            |(mut counts, mut energies), job| {
+            || (vec![0u64; BINS], vec![0.0f64; energy_bins], Vec::new()),
+            |(mut counts, mut energies, mut job_energies), job| {
                 let (c, chunk) = (job / chunks, job % chunks);
                 let range = chunk * CHUNK..((chunk + 1) * CHUNK).min(n);
+                let mut job_energy = 0.0f64;
                 for i in range {
                     let s = score(c, i);
                     if s >= 0.0 {
                         let b = bin(s);
                         counts[b] += 1;
                         if let Some(energy) = energy {
-                            energies[b] += energy(c, i);
+                            let e = energy(c, i);
+                            energies[b] += e;
+                            job_energy += e;
                         }
                     }
                 }
-                (counts, energies)
+                if energy.is_some() {
+                    job_energies.push((job, job_energy));
+                }
+                (counts, energies, job_energies)
             },
         )
         .reduce(
-            || (vec![0u64; BINS], vec![0.0f64; energy_bins]),
-            |(mut c1, mut e1), (c2, e2)| {
+            || (vec![0u64; BINS], vec![0.0f64; energy_bins], Vec::new()),
+            |(mut c1, mut e1, mut j1), (c2, e2, j2)| {
                 for (a, b) in c1.iter_mut().zip(&c2) {
                     *a += b;
                 }
                 for (a, b) in e1.iter_mut().zip(&e2) {
                     *a += b;
                 }
-                (c1, e1)
+                j1.extend(j2);
+                (c1, e1, j1)
             },
         );
+    job_energies.sort_unstable_by_key(|(job, _)| *job);
     let positive = counts.iter().sum();
     Histogram {
         counts,
         energies,
         positive,
+        selected_energy: job_energies.iter().map(|(_, e)| e).sum(),
     }
 }
 
@@ -142,6 +156,7 @@ impl Histogram {
             counts: vec![0; BINS],
             energies: vec![0.0; BINS],
             positive: 0,
+            selected_energy: 0.0,
         }
     }
 

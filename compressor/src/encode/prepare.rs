@@ -373,7 +373,7 @@ pub(super) fn prepare(
         coefficients,
         histogram: Histogram::empty(),
         total_energy,
-        selectable_energy: total_energy,
+        selectable_energy: 0.0,
         total_coefficients: (n * channels.len()) as u64,
         views: coded.views.clone(),
         targets,
@@ -395,22 +395,10 @@ pub(super) fn prepare(
         )
     };
     prepared.nonzero = histogram.positive;
+    // Summed over the same chunks in the same order as the total: without a bridge (every
+    // non-zero coefficient selectable) the two are the same number.
+    prepared.selectable_energy = histogram.selected_energy;
     prepared.histogram = histogram;
-    if prepared.visible.is_some() {
-        // Without a bridge every non-zero coefficient is selectable: the total stands.
-        let p = &prepared;
-        let parts: Vec<f64> = (0..p.channels * per_channel)
-            .into_par_iter()
-            .map(|job| {
-                let (c, j) = (job / per_channel, job % per_channel);
-                (j * CHUNK..((j + 1) * CHUNK).min(n))
-                    .filter(|&i| p.score(c, i) >= 0.0)
-                    .map(|i| p.energy(c, i))
-                    .sum::<f64>()
-            })
-            .collect();
-        prepared.selectable_energy = parts.iter().sum();
-    }
     Ok(prepared)
 }
 

@@ -228,7 +228,8 @@ pub struct SummedScores {
     histogram: Histogram,
     /// Coefficients of the padded grids, all channels.
     pub total_coefficients: u64,
-    /// Energy of all coefficients (without importance).
+    /// Energy of the coefficients the oracle may keep (without importance), the summaries'
+    /// totals added.
     pub total_energy: f64,
     /// Selectable (non-zero) coefficients.
     pub nonzero: u64,
