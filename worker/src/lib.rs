@@ -445,15 +445,9 @@ fn decode(spec: &JobSpec, bytes: Vec<u8>) -> Result<Volume, Failure> {
             };
             let src = SourceFiles::from_bytes(bytes, &origin).map_err(|e| invalid(&e))?;
             decode_source(&src, None).map_err(|e| match (e, source) {
-                (ReadError::TimeSeries { points, .. }, Source::Upload { .. }) => fail(
-                    FailureKind::InvalidInput,
-                    format!(
-                        "{}: a time series of {points} time points, uploaded: workers compress \
-                         a time series read from shared storage (submit it without --upload), \
-                         or compress it locally and `cache ingest` the file",
-                        origin.display()
-                    ),
-                ),
+                (ReadError::TimeSeries { points, .. }, Source::Upload { .. }) => {
+                    uploaded_series_refused(&origin.display().to_string(), points)
+                }
                 (e, _) => invalid(&e),
             })
         }
@@ -595,17 +589,22 @@ fn upload_file_name(raw: bool, job_name: &str, head: &[u8]) -> &'static str {
 fn open_upload(spec: &JobSpec, path: &std::path::Path) -> Result<RegionReader, Failure> {
     let raw = spec.raw.as_ref().map(options::raw_spec);
     RegionReader::open(path, raw.as_ref()).map_err(|e| match e {
-        ReadError::TimeSeries { points, .. } => fail(
-            FailureKind::InvalidInput,
-            format!(
-                "{}: a time series of {points} time points, uploaded: workers compress a time \
-                 series read from shared storage (submit it without --upload), or compress it \
-                 locally and `cache ingest` the file",
-                spec.name
-            ),
-        ),
+        ReadError::TimeSeries { points, .. } => uploaded_series_refused(&spec.name, points),
         e => fail(FailureKind::InvalidInput, format!("{}: {e}", spec.name)),
     })
+}
+
+/// Why an uploaded time series fails its job (`name`: the source in the message), read in
+/// memory or from the upload's temporary copy alike.
+fn uploaded_series_refused(name: &str, points: usize) -> Failure {
+    fail(
+        FailureKind::InvalidInput,
+        format!(
+            "{name}: a time series of {points} time points, uploaded: workers compress a time \
+             series read from shared storage (submit it without --upload), or compress it \
+             locally and `cache ingest` the file"
+        ),
+    )
 }
 
 async fn execute(
