@@ -10,7 +10,8 @@
 #   e.g. bash scripts/brick-workers.sh 512 "1 2" 128 0.01
 # WORKERS: worker counts (default "1 2"; more than the machine's cores are skipped).
 # UPLOAD=1 submits the file with --upload (one worker compresses it, reading its bricks from
-# its temporary copy of the upload); WAVESPLAT=PATH runs another build of the binary.
+# its temporary copy of the upload); DETACHED=1 submits the same samples behind a detached
+# MetaImage header (two files: uploaded, a bundle); WAVESPLAT=PATH runs another build.
 # Writes $TMPDIR/wavesplat-workers/workers.csv (size,workers,brick,parts,seconds,
 # peak_rss_mb_max,bytes,ns_per_voxel_core).
 set -euo pipefail
@@ -28,6 +29,16 @@ command -v taskset >/dev/null || { echo "needs taskset (util-linux)" >&2; exit 1
 mkdir -p "$TMP/shared"
 SRC="$TMP/shared/ct_${N}x${N}x${N}_f32.raw"
 [ -f "$SRC" ] || "$W" phantom ct --dims "$N,$N,$N" -o "$SRC"
+SUBMIT="$TMP/shared"
+if [ "${DETACHED:-0}" = 1 ]; then
+  # The same samples behind a detached MetaImage header: a source of two files (uploaded as
+  # a bundle), its data a hard link to the raw file.
+  SUBMIT="$TMP/detached"
+  mkdir -p "$SUBMIT"
+  [ -f "$SUBMIT/ct.raw" ] || ln "$SRC" "$SUBMIT/ct.raw"
+  printf 'ObjectType = Image\nNDims = 3\nDimSize = %s %s %s\nElementType = MET_FLOAT\nElementDataFile = ct.raw\n' \
+    "$N" "$N" "$N" >"$SUBMIT/ct.mhd"
+fi
 CSV="$TMP/workers.csv"
 [ -f "$CSV" ] || echo "size,workers,brick,parts,seconds,peak_rss_mb_max,bytes,ns_per_voxel_core" >"$CSV"
 CORES=$(nproc)
@@ -50,7 +61,7 @@ for w in $WORKERS; do
   PIDS+=($!)
   sleep 1
   start=$(date +%s.%N)
-  "$W" archive submit "$TMP/shared" --orchestrator "http://127.0.0.1:$op" --detach \
+  "$W" archive submit "$SUBMIT" --orchestrator "http://127.0.0.1:$op" --detach \
     --brick "$BRICK" --target-fraction "$FRACTION" "${UPLOAD_FLAG[@]}" >"$run/submit.log"
   WP=()
   for i in $(seq 0 $((w - 1))); do

@@ -1153,6 +1153,130 @@ async fn a_dicom_series_and_a_detached_header_spread_their_bricks_over_workers()
     }
 }
 
+/// Multi-file sources uploaded as bricked jobs (`--upload --brick`): a DICOM series and a
+/// detached MetaImage header are unpacked file by file into the worker's scratch directory as
+/// they stream (never held whole) and land as the file one process makes from the same
+/// source; an uploaded 4D NIfTI is refused with what to do instead, bricked or not. The
+/// worker, started with `--scratch-dir`, removes there the upload a dead worker left, and
+/// leaves no upload of its own behind.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn uploaded_bundles_unpack_as_they_stream_and_an_uploaded_series_is_refused() {
+    use wavesplat_codec::volume::Volume;
+    use wavesplat_compressor::reader::region::RegionReader;
+    use wavesplat_fixtures::{
+        write_dicom_series, write_metaimage, write_nifti_series, DicomOptions, Layout,
+    };
+    use wavesplat_orchestrator_client::model::TargetSpec;
+    let cl = TestCluster::start(&ORCH_TIMING);
+    let (o, c) = (cl.orch.url(), cl.cache.url());
+    let dims = [40, 36, 30];
+    let up = cl.root.join("up");
+    let series = up.join("ct");
+    std::fs::create_dir_all(&series).unwrap();
+    let samples: Vec<f32> = phantom(Phantom::SheppLogan, dims)
+        .iter()
+        .map(|x| x.round())
+        .collect();
+    let v = Volume::new(dims, [1.0, 1.0, 1.0], vec![samples]).unwrap();
+    let dicom = DicomOptions {
+        layout: Layout::U16,
+        ..Default::default()
+    };
+    write_dicom_series(&series, &v, &dicom);
+    let header = write_metaimage(&up, "head", &v, Layout::F32, false, true);
+    // Time series: one submitted bricked, one whole.
+    let cines = [cl.root.join("cine_b"), cl.root.join("cine_w")];
+    let points: Vec<Vec<f32>> = (0..3)
+        .map(|t| {
+            phantom(Phantom::Spheres, [16, 16, 8])
+                .iter()
+                .map(|x| x * (1.0 + t as f32))
+                .collect()
+        })
+        .collect();
+    for (dir, name) in cines.iter().zip(["beat_b.nii", "beat_w.nii"]) {
+        std::fs::create_dir_all(dir).unwrap();
+        write_nifti_series(&dir.join(name), [16, 16, 8], &points, Some(40.0), false);
+    }
+    // What a killed worker left: an upload under a process id that no longer runs.
+    let scratch = cl.root.join("scratch");
+    let dead = {
+        let mut child = Command::new("true").spawn().unwrap();
+        let pid = child.id();
+        child.wait().unwrap();
+        pid
+    };
+    let stale = scratch.join(format!("wavesplat-upload-{dead}-x1Yz"));
+    std::fs::create_dir_all(&stale).unwrap();
+    std::fs::write(stale.join("source.raw"), b"left behind").unwrap();
+    let log = cl.root.join("w1.log");
+    let _w = Proc::worker_with(
+        &o,
+        &c,
+        "w1",
+        &["--scratch-dir", scratch.to_str().unwrap(), "--log", "info"],
+        Some(&log),
+    );
+    let bricked = ["--brick", "20", "--target-fraction", "0.05", "--upload"];
+    submit(&up, &o, &bricked);
+    submit(&cines[0], &o, &bricked);
+    submit(&cines[1], &o, &["--target-fraction", "0.05", "--upload"]);
+    let js = wait_for(&o, 120, "every uploaded job finished", |js| {
+        js.len() == 4 && all_finished(js)
+    })
+    .await;
+    let state = |wanted: &str| {
+        let j = js
+            .iter()
+            .find(|j| name(j) == wanted)
+            .unwrap_or_else(|| panic!("{wanted}: {js:?}"));
+        (state_name(j.state), j.error.clone())
+    };
+    for wanted in ["beat_b", "beat_w"] {
+        let (s, error) = state(wanted);
+        assert_eq!(s, "failed", "{wanted}");
+        assert!(
+            error.contains("a time series of 3 time points, uploaded")
+                && error.contains("without --upload"),
+            "{wanted}: {error}"
+        );
+    }
+    let mut client = CacheClient::connect(&c).await.unwrap();
+    let listed = client.list().await.unwrap();
+    assert_eq!(listed.len(), 2, "{listed:?}");
+    for (source, wanted) in [(&series, "ct"), (&header, "head")] {
+        assert_eq!(state(wanted).0, "done", "{wanted}: {}", state(wanted).1);
+        let reader = RegionReader::open(source, None).unwrap();
+        let one = one_process_file(&reader, 20, TargetSpec::Fraction(0.05));
+        let got = listed.iter().find(|l| l.name == wanted).unwrap();
+        assert_eq!(
+            got.sha256,
+            wavesplat_net::digest::hex(&wavesplat_net::digest::sha256(&one)),
+            "{wanted}: not the one-process file"
+        );
+    }
+    let text = std::fs::read_to_string(&log).unwrap();
+    assert_eq!(
+        text.matches("uploaded bundle unpacked").count(),
+        2,
+        "both bundles unpacked as they streamed:\n{text}"
+    );
+    assert!(
+        !stale.exists(),
+        "the dead worker's upload is removed:\n{text}"
+    );
+    let left: Vec<_> = std::fs::read_dir(&scratch)
+        .unwrap()
+        .flatten()
+        .map(|e| e.file_name())
+        .filter(|n| n.to_string_lossy().starts_with("wavesplat-upload-"))
+        .collect();
+    assert!(
+        left.is_empty(),
+        "uploads left in the scratch directory: {left:?}"
+    );
+}
+
 /// A volume on shared storage submitted without `--brick` that would not fit a worker's memory
 /// whole (`archive submit --memory-limit`) is submitted as a bricked job by itself, saying so,
 /// at the largest side of which a brick fits; its bricks spread over both workers and it lands

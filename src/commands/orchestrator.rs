@@ -87,6 +87,13 @@ pub struct WorkerArgs {
     /// Exit after this many jobs.
     #[arg(long)]
     pub max_jobs: Option<usize>,
+    /// Directory for temporary files (default: $TMPDIR, else /tmp): an uploaded bricked job's
+    /// source is streamed there (as large as the upload; a bundle of files unpacked), and a
+    /// compressed source (.nii.gz) is inflated there. Give a disk with room when /tmp is small
+    /// or in memory (tmpfs). Uploads that a killed worker left there are removed when a worker
+    /// starts.
+    #[arg(long, value_name = "DIR")]
+    pub scratch_dir: Option<std::path::PathBuf>,
     /// Testing aid: pause this long (ms) after compressing each volume, before uploading.
     #[arg(long, default_value_t = 0, hide = true)]
     pub pause_before_upload_ms: u64,
@@ -385,6 +392,12 @@ pub fn run_serve(a: ServeOrchestratorArgs) -> Result<()> {
 
 /// Runs `wavesplat worker`.
 pub fn run_worker(a: WorkerArgs) -> Result<()> {
+    if let Some(dir) = &a.scratch_dir {
+        std::fs::create_dir_all(dir)
+            .with_context(|| format!("creating the scratch directory {}", dir.display()))?;
+        // Every temporary file of this process goes there (uploads, inflated sources).
+        let _ = tempfile::env::override_temp_dir(dir);
+    }
     let cfg = wavesplat_worker::WorkerOptions {
         orchestrator: a.orchestrator,
         cache: a.cache,

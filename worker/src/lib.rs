@@ -42,7 +42,9 @@ use wavesplat_codec::volume::Volume;
 use wavesplat_compressor::bricked::{compress_bricked, BrickSource, BrickStage};
 use wavesplat_compressor::encode::{compress, Stage};
 use wavesplat_compressor::reader::region::RegionReader;
-use wavesplat_compressor::reader::{decode_raw, decode_source, ReadError, SourceFiles};
+use wavesplat_compressor::reader::{
+    decode_raw, decode_source, unpack_bundle, ReadError, SourceFiles,
+};
 use wavesplat_net::digest::sha256;
 use wavesplat_orchestrator_client::convert;
 use wavesplat_orchestrator_client::model::{
@@ -131,7 +133,8 @@ pub async fn run(
     tokio::pin!(shutdown);
     let mut done = 0usize;
     let mut backoff = wavesplat_net::backoff::Backoff::default();
-    tracing::info!(worker = %ctx.cfg.id, "worker started");
+    tracing::info!(worker = %ctx.cfg.id, scratch = %tempfile::env::temp_dir().display(), "worker started");
+    remove_stale_uploads();
     loop {
         if ctx.cfg.max_jobs.is_some_and(|m| done >= m) {
             break;
@@ -478,7 +481,7 @@ async fn hashed_in_place(spec: &JobSpec) -> Option<u64> {
 
 /// A job of a bricked volume (`--brick`) whose source is not read in place, on the worker's
 /// pool: an uploaded one, read by region from the worker's temporary copy
-/// ([`UploadedFile`]), or decoded whole and split when it came as a bundle of files. (A source
+/// ([`UploadedFile`]), or decoded whole and split when its bytes were fetched. (A source
 /// on shared storage is read brick by brick by the workers its bricks are spread over,
 /// [`parts::coordinate`].) Returns the bricked file and the volume's voxel count.
 fn compress_bricked_job(
@@ -501,18 +504,22 @@ fn compress_bricked_job(
         .map_err(|e| fail(FailureKind::Compress, e.to_string()))
 }
 
-/// An uploaded source of a bricked job, streamed to a temporary file as it arrives (and hashed
-/// on the way), so that the worker never holds it whole: its bricks are read from the file by
-/// region, as from shared storage. The file is named for its format (sniffed from its first
-/// bytes), which is how the region reader knows it; the directory goes when this is dropped.
+/// An uploaded source of a bricked job, streamed to disk as it arrives (and hashed on the
+/// way), so that the worker never holds it whole: its bricks are read by region, as from
+/// shared storage. A single file is named for its format (by the job's layout or name, else
+/// its first bytes), which is how the region reader knows it; a bundle of several files (a
+/// detached header and its data, a DICOM series) is unpacked file by file as it streams
+/// ([`unpack_bundle`]), and `path` is what opens it (the series' directory, or the header).
+/// The directory goes when this is dropped.
 struct UploadedFile {
     _dir: tempfile::TempDir,
     path: std::path::PathBuf,
     sha256: [u8; 32],
-    /// Whether it is a bundle of several files (a detached header and its data, a DICOM
-    /// series), which is unpacked in memory instead.
-    bundle: bool,
 }
+
+/// Prefix of an upload's temporary directory, followed by the worker's process id: a worker
+/// starting removes those its dead predecessors on the machine left ([`remove_stale_uploads`]).
+const UPLOAD_DIR_PREFIX: &str = "wavesplat-upload-";
 
 async fn fetch_upload_to_file(
     ctx: &mut Ctx,
@@ -521,48 +528,163 @@ async fn fetch_upload_to_file(
     spec: &JobSpec,
     size: u64,
 ) -> Result<UploadedFile, Failure> {
-    use tokio::io::AsyncWriteExt;
+    let dir = tempfile::Builder::new()
+        .prefix(&format!("{UPLOAD_DIR_PREFIX}{}-", std::process::id()))
+        .tempdir()
+        .map_err(|e| {
+            fail(
+                FailureKind::Worker,
+                format!("keeping the uploaded source in a temporary directory: {e}"),
+            )
+        })?;
+    // The disk side runs on a blocking thread reading the chunks as a stream, so that a
+    // bundle is unpacked as it arrives rather than written whole and copied.
+    let (tx, rx) = tokio::sync::mpsc::channel::<Vec<u8>>(16);
+    let (into, raw, name) = (
+        dir.path().to_path_buf(),
+        spec.raw.is_some(),
+        spec.name.clone(),
+    );
+    let sink = tokio::task::spawn_blocking(move || {
+        store_upload(&mut ChunkReader::new(rx), &into, raw, &name)
+    });
+    let mut digest = wavesplat_net::digest::Sha256Pieces::default();
+    let received = async {
+        let mut stream = upload_stream(ctx, id, attempt).await?;
+        let mut written = 0u64;
+        while let Some(c) = stream.message().await.map_err(upload_unavailable)? {
+            written = written.saturating_add(c.data.len() as u64);
+            if written > size {
+                return Err(fail(
+                    FailureKind::InvalidInput,
+                    format!("the uploaded source is longer than the {size} bytes submitted"),
+                ));
+            }
+            digest.update(&c.data);
+            if tx.send(c.data).await.is_err() {
+                // The disk side stopped: it says why.
+                break;
+            }
+        }
+        Ok(())
+    }
+    .await;
+    drop(tx);
+    let stored = sink
+        .await
+        .map_err(|e| fail(FailureKind::Worker, format!("storing the upload: {e}")))?;
+    received?;
+    let path = stored?;
+    Ok(UploadedFile {
+        _dir: dir,
+        path,
+        sha256: digest.finish(),
+    })
+}
+
+/// The blocking reader of an upload's chunks as they arrive ([`fetch_upload_to_file`]).
+struct ChunkReader {
+    rx: tokio::sync::mpsc::Receiver<Vec<u8>>,
+    chunk: Vec<u8>,
+    at: usize,
+}
+
+impl ChunkReader {
+    fn new(rx: tokio::sync::mpsc::Receiver<Vec<u8>>) -> ChunkReader {
+        ChunkReader {
+            rx,
+            chunk: Vec::new(),
+            at: 0,
+        }
+    }
+}
+
+impl std::io::Read for ChunkReader {
+    fn read(&mut self, buf: &mut [u8]) -> std::io::Result<usize> {
+        while self.at == self.chunk.len() {
+            match self.rx.blocking_recv() {
+                Some(c) => (self.chunk, self.at) = (c, 0),
+                None => return Ok(0),
+            }
+        }
+        let n = buf.len().min(self.chunk.len() - self.at);
+        buf[..n].copy_from_slice(&self.chunk[self.at..self.at + n]);
+        self.at += n;
+        Ok(n)
+    }
+}
+
+/// Writes an upload read from `r` into `dir`: a bundle (never for raw samples) unpacked into
+/// its files, anything else as one file named for its format. Returns what opens it.
+fn store_upload(
+    r: &mut dyn std::io::Read,
+    dir: &std::path::Path,
+    raw: bool,
+    job_name: &str,
+) -> Result<std::path::PathBuf, Failure> {
+    use std::io::{Read, Write};
     let local = |e: std::io::Error| {
         fail(
             FailureKind::Worker,
             format!("keeping the uploaded source in a temporary file: {e}"),
         )
     };
-    let dir = tempfile::Builder::new()
-        .prefix("wavesplat-upload-")
-        .tempdir()
-        .map_err(local)?;
-    let part = dir.path().join("source.part");
-    let mut file = tokio::fs::File::create(&part).await.map_err(local)?;
-    let mut stream = upload_stream(ctx, id, attempt).await?;
-    let (mut digest, mut head) = (wavesplat_net::digest::Sha256Pieces::default(), Vec::new());
-    let mut written = 0u64;
-    while let Some(c) = stream.message().await.map_err(upload_unavailable)? {
-        written = written.saturating_add(c.data.len() as u64);
-        if written > size {
-            return Err(fail(
+    let mut head = Vec::with_capacity(512);
+    r.take(512).read_to_end(&mut head).map_err(local)?;
+    let mut rest = std::io::Cursor::new(&head).chain(r);
+    if !raw && head.starts_with(wavesplat_compressor::reader::BUNDLE_MAGIC) {
+        let unpacked = unpack_bundle(&mut rest, dir).map_err(|e| {
+            fail(
                 FailureKind::InvalidInput,
-                format!("the uploaded source is longer than the {size} bytes submitted"),
-            ));
-        }
-        digest.update(&c.data);
-        if head.len() < 512 {
-            head.extend_from_slice(&c.data[..c.data.len().min(512 - head.len())]);
-        }
-        file.write_all(&c.data).await.map_err(local)?;
+                format!("{job_name}: the uploaded bundle: {e}"),
+            )
+        })?;
+        tracing::info!(
+            source = job_name,
+            files = unpacked.files,
+            bytes = unpacked.bytes,
+            "uploaded bundle unpacked into a temporary directory"
+        );
+        return Ok(unpacked.primary);
     }
-    file.flush().await.map_err(local)?;
-    drop(file);
-    let bundle = head.starts_with(wavesplat_compressor::reader::BUNDLE_MAGIC);
-    let name = upload_file_name(spec.raw.is_some(), &spec.name, &head);
-    let path = dir.path().join(name);
-    tokio::fs::rename(&part, &path).await.map_err(local)?;
-    Ok(UploadedFile {
-        _dir: dir,
-        path,
-        sha256: digest.finish(),
-        bundle,
-    })
+    let path = dir.join(upload_file_name(raw, job_name, &head));
+    let mut file = std::io::BufWriter::new(std::fs::File::create(&path).map_err(local)?);
+    std::io::copy(&mut rest, &mut file).map_err(local)?;
+    file.flush().map_err(local)?;
+    Ok(path)
+}
+
+/// Removes the upload directories ([`UPLOAD_DIR_PREFIX`]) in the temporary directory that
+/// workers no longer running left behind (killed before they could clean up), judged by the
+/// process id in the name: where no such process runs (Linux's `/proc`). Elsewhere, or for a
+/// directory whose name carries no process id, nothing is removed.
+pub fn remove_stale_uploads() -> usize {
+    let (tmp, proc) = (tempfile::env::temp_dir(), std::path::Path::new("/proc"));
+    if !proc.join("self").exists() {
+        return 0;
+    }
+    let Ok(entries) = std::fs::read_dir(&tmp) else {
+        return 0;
+    };
+    let mut removed = 0;
+    for e in entries.flatten() {
+        let name = e.file_name().to_string_lossy().into_owned();
+        let Some(pid) = name
+            .strip_prefix(UPLOAD_DIR_PREFIX)
+            .and_then(|rest| rest.split('-').next())
+            .and_then(|p| p.parse::<u32>().ok())
+        else {
+            continue;
+        };
+        if pid == std::process::id() || proc.join(pid.to_string()).exists() {
+            continue;
+        }
+        if e.file_type().is_ok_and(|t| t.is_dir()) && std::fs::remove_dir_all(e.path()).is_ok() {
+            tracing::info!(path = %e.path().display(), "removed an upload a dead worker left");
+            removed += 1;
+        }
+    }
+    removed
 }
 
 /// The name an uploaded source's temporary copy is given, which is how the region reader
@@ -623,19 +745,8 @@ async fn execute(
     let bytes = if in_place.is_some() {
         Vec::new()
     } else if let (Some(_), Source::Upload { size }) = (spec.options.brick, &spec.source) {
-        let f = fetch_upload_to_file(ctx, id, attempt, spec, *size).await?;
-        let bytes = if f.bundle {
-            tokio::fs::read(&f.path).await.map_err(|e| {
-                fail(
-                    FailureKind::Worker,
-                    format!("reading the uploaded bundle back: {e}"),
-                )
-            })?
-        } else {
-            Vec::new()
-        };
-        uploaded = Some(f);
-        bytes
+        uploaded = Some(fetch_upload_to_file(ctx, id, attempt, spec, *size).await?);
+        Vec::new()
     } else {
         fetch_source(ctx, id, attempt, spec).await?
     };
@@ -675,7 +786,7 @@ async fn execute(
             return parts::coordinate(runner, handle, job_spec, id, attempt, hashed, sh);
         }
         if let Some(brick) = job_spec.options.brick {
-            if let Some(f) = uploaded.filter(|f| !f.bundle) {
+            if let Some(f) = uploaded {
                 let reader = open_upload(&job_spec, &f.path)?;
                 return pool.install(|| compress_bricked_job(&reader, brick, &opts, &sh));
             }

@@ -23,6 +23,7 @@ pub mod raw;
 pub mod region;
 pub mod steps;
 mod text;
+pub mod unpack;
 
 use std::io::{self, Read};
 use std::path::{Path, PathBuf};
@@ -32,6 +33,7 @@ use wavesplat_codec::volume::{checked_voxels, Volume, VolumeError, MAX_VOXELS};
 
 pub use nifti::{is_nifti_path, read_nifti};
 pub use raw::{decode_raw, read_raw, Endian, RawDtype, RawSpec};
+pub use unpack::{unpack_bundle, UnpackedBundle};
 
 /// Errors from reading a volume.
 #[derive(Debug, Error)]
@@ -542,14 +544,7 @@ impl SourceFiles {
         }
         let flen = take(&mut r, 1).ok_or_else(|| bad("truncated format name"))?[0] as usize;
         let fname = take(&mut r, flen).ok_or_else(|| bad("truncated format name"))?;
-        let format = match fname {
-            b"" => None,
-            b"dicom" => Some(Format::Dicom),
-            b"nrrd" => Some(Format::Nrrd),
-            b"metaimage" => Some(Format::MetaImage),
-            b"nifti" => Some(Format::Nifti),
-            _ => return Err(bad("unknown format name")),
-        };
+        let format = bundle_format(fname)?;
         let count = take(&mut r, 4).ok_or_else(|| bad("truncated file count"))?;
         let count = u32::from_le_bytes(count.try_into().expect("4 bytes")) as usize;
         // Each entry takes at least 10 bytes: bound the count by the input.
@@ -726,6 +721,23 @@ impl SourceListing {
         }
         Ok(())
     }
+}
+
+/// The format a bundle names ([`Format::name`]; empty: none).
+pub(crate) fn bundle_format(name: &[u8]) -> Result<Option<Format>, ReadError> {
+    Ok(match name {
+        b"" => None,
+        b"dicom" => Some(Format::Dicom),
+        b"nrrd" => Some(Format::Nrrd),
+        b"metaimage" => Some(Format::MetaImage),
+        b"nifti" => Some(Format::Nifti),
+        _ => {
+            return Err(ReadError::Bundle(format!(
+                "unknown format name {:?}",
+                String::from_utf8_lossy(name)
+            )))
+        }
+    })
 }
 
 fn parent_of(p: &Path) -> PathBuf {
