@@ -33,7 +33,7 @@ SUBMIT="$TMP/shared"
 if [ "${DETACHED:-0}" = 1 ]; then
   # The same samples behind a detached MetaImage header: a source of two files (uploaded as
   # a bundle), its data a hard link to the raw file.
-  SUBMIT="$TMP/detached"
+  SUBMIT="$TMP/detached_$N"
   mkdir -p "$SUBMIT"
   [ -f "$SUBMIT/ct.raw" ] || ln "$SRC" "$SUBMIT/ct.raw"
   printf 'ObjectType = Image\nNDims = 3\nDimSize = %s %s %s\nElementType = MET_FLOAT\nElementDataFile = ct.raw\n' \

@@ -715,6 +715,57 @@ fn a_bricked_volume_is_compressed_listed_and_rendered() {
     ]);
     assert!(c.status.success(), "{}", err(&c));
     assert!(out(&c).contains("8 bricks"), "{}", out(&c));
+    assert!(!out(&c).contains("note: the manifest"), "{}", out(&c));
+    // Written under a temporary name and renamed: nothing else is left beside it, and it has
+    // the permissions a plainly written file gets (readable by a web server), not a temporary
+    // file's owner-only ones.
+    let beside: Vec<String> = std::fs::read_dir(dir.path())
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .filter(|n| n != "head_40x36x32_f32.raw" && n != "b.wsp")
+        .collect();
+    assert!(beside.is_empty(), "{beside:?}");
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::PermissionsExt;
+        std::fs::write(path("plain"), b"x").unwrap();
+        let mode = |n: &str| std::fs::metadata(path(n)).unwrap().permissions().mode() & 0o777;
+        assert_eq!(mode("b.wsp"), mode("plain"));
+        std::fs::remove_file(path("plain")).unwrap();
+    }
+    // A bricked compression that fails (its output directory is missing) leaves no file.
+    let missing = run(&[
+        "compress",
+        &raw,
+        "--brick",
+        "20",
+        "-o",
+        &path("no/such/dir/b.wsp"),
+    ]);
+    assert!(!missing.status.success());
+    assert!(err(&missing).contains("no/such/dir"), "{}", err(&missing));
+    // Small bricks at a small byte target with the fast coder: the headers (its tables) take
+    // most of the file, and the summary says so and what leaves more.
+    let small = run(&[
+        "compress",
+        &raw,
+        "--brick",
+        "10",
+        "--coder",
+        "fast",
+        "--target-bytes",
+        "20000",
+        "-o",
+        &path("small.wsp"),
+    ]);
+    assert!(small.status.success(), "{}", err(&small));
+    assert!(
+        out(&small).contains("note: the manifest and the bricks' headers take")
+            && out(&small).contains("fast coder's tables")
+            && out(&small).contains("larger bricks (--brick)"),
+        "{}",
+        out(&small)
+    );
     // The phantom read brick by brick (generated a box at a time, never whole) makes the same
     // file as the phantom written out and read brick by brick from the file.
     let p = run(&[
@@ -737,7 +788,11 @@ fn a_bricked_volume_is_compressed_listed_and_rendered() {
     );
     let info = run(&["info", &path("b.wsp")]);
     assert!(out(&info).contains("bricks      8"), "{}", out(&info));
-    assert!(out(&info).contains("their headers"), "{}", out(&info));
+    assert!(
+        out(&info).contains("the manifest and their headers"),
+        "{}",
+        out(&info)
+    );
     assert!(
         out(&info).contains("brick 7: at 20,18,16"),
         "{}",

@@ -256,6 +256,12 @@ pub enum BrickError {
         #[source]
         source: crate::decode::DecodeError,
     },
+    /// The coded bricks could not be kept in their temporary file.
+    #[error("keeping the coded bricks in a temporary file")]
+    Spill(#[source] std::io::Error),
+    /// The container could not be written out.
+    #[error("writing the bricked file")]
+    Output(#[source] std::io::Error),
     /// A decoded brick could not be written out.
     #[error("writing the brick at {origin:?}")]
     Write {
@@ -1164,21 +1170,146 @@ impl BrickWork for LocalBricks<'_> {
         counts: Option<&[u64]>,
         trial: usize,
     ) -> Result<Vec<CodedBrick<Vec<u8>>>, BrickError> {
+        self.encode_each(plan, counts, trial, &Ok)
+    }
+}
+
+impl LocalBricks<'_> {
+    /// Every brick compressed as [`BrickWork::encode_all`] asks, each file handed to `keep`
+    /// as it is made (which decides where it is kept).
+    fn encode_each<F: Send>(
+        &self,
+        plan: &BrickPlan,
+        counts: Option<&[u64]>,
+        trial: usize,
+        keep: &(dyn Fn(Vec<u8>) -> Result<F, BrickError> + Sync),
+    ) -> Result<Vec<CodedBrick<F>>, BrickError> {
         let (of, counter) = (plan.grid.len(), std::sync::atomic::AtomicUsize::new(0));
         (0..of)
             .into_par_iter()
             .map(|i| {
                 let (file, kept) = plan.encode(self.source, i, counts.map(|k| k[i]))?;
+                let len = file.len() as u64;
+                let file = keep(file)?;
                 let done = counter.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
                 (self.progress)(BrickStage::Compressed { done, of, trial });
-                Ok(CodedBrick {
-                    len: file.len() as u64,
-                    file,
-                    kept,
-                })
+                Ok(CodedBrick { len, file, kept })
             })
             .collect()
     }
+}
+
+/// A trial's coded bricks kept on disk instead of in memory ([`SpillingBricks`]): an unnamed
+/// temporary file the bricks are appended to as they are made, gone when the last
+/// [`SpilledBrick`] of the trial is dropped. A bricked volume's file can be larger than memory
+/// allows to hold twice (a byte target's search keeps its best trial while it tries the next),
+/// so no coded brick stays in memory longer than it takes to append it.
+#[derive(Debug)]
+pub struct Spill {
+    /// The file and the length written so far.
+    file: std::sync::Mutex<(std::fs::File, u64)>,
+}
+
+impl Spill {
+    fn new(dir: Option<&std::path::Path>) -> Result<Spill, BrickError> {
+        let file = match dir {
+            Some(d) => tempfile::tempfile_in(d),
+            None => tempfile::tempfile(),
+        }
+        .map_err(BrickError::Spill)?;
+        Ok(Spill {
+            file: std::sync::Mutex::new((file, 0)),
+        })
+    }
+
+    /// Appends a brick's file; what finds it again.
+    fn push(self: &std::sync::Arc<Spill>, bytes: &[u8]) -> Result<SpilledBrick, BrickError> {
+        use std::io::Write;
+        let (_, header) = wavesplat_codec::format::read_header_section(bytes)?;
+        let crc = crc32fast::hash(bytes);
+        let mut g = self.file.lock().unwrap_or_else(|p| p.into_inner());
+        let offset = g.1;
+        g.0.write_all(bytes).map_err(BrickError::Spill)?;
+        g.1 += bytes.len() as u64;
+        Ok(SpilledBrick {
+            spill: self.clone(),
+            offset,
+            crc,
+            header: header as u64,
+        })
+    }
+
+    /// Copies `len` bytes from `offset` to `out`.
+    fn copy_to(&self, offset: u64, len: u64, out: &mut dyn std::io::Write) -> std::io::Result<()> {
+        use std::io::{Read, Seek, SeekFrom};
+        let mut g = self.file.lock().unwrap_or_else(|p| p.into_inner());
+        g.0.seek(SeekFrom::Start(offset))?;
+        let copied = std::io::copy(&mut (&mut g.0).take(len), out)?;
+        // Writes append from the end again.
+        g.0.seek(SeekFrom::End(0))?;
+        if copied != len {
+            return Err(std::io::Error::other(format!(
+                "the temporary file holds {copied} of a brick's {len} bytes"
+            )));
+        }
+        Ok(())
+    }
+}
+
+/// Where a [`Spill`] keeps one coded brick.
+#[derive(Debug, Clone)]
+pub struct SpilledBrick {
+    spill: std::sync::Arc<Spill>,
+    offset: u64,
+    crc: u32,
+    /// Its header section's length (what [`BrickedWritten::overhead`] sums).
+    header: u64,
+}
+
+/// The bricks compressed on this process's pool as [`LocalBricks`] does, each trial's files
+/// kept in a [`Spill`] in `dir` (`None`: the temporary directory) rather than in memory.
+pub struct SpillingBricks<'a> {
+    /// What compresses the bricks.
+    pub local: LocalBricks<'a>,
+    /// Where the trials' temporary files go.
+    pub dir: Option<&'a std::path::Path>,
+}
+
+impl BrickWork for SpillingBricks<'_> {
+    type File = SpilledBrick;
+
+    fn score_all(&self, plan: &BrickPlan) -> Result<Vec<ScoreSummary>, BrickError> {
+        self.local.score_all(plan)
+    }
+
+    fn encode_all(
+        &self,
+        plan: &BrickPlan,
+        counts: Option<&[u64]>,
+        trial: usize,
+    ) -> Result<Vec<CodedBrick<SpilledBrick>>, BrickError> {
+        let spill = std::sync::Arc::new(Spill::new(self.dir)?);
+        self.local
+            .encode_each(plan, counts, trial, &|bytes| spill.push(&bytes))
+    }
+}
+
+/// What [`compress_bricked_to`] wrote.
+#[derive(Debug)]
+pub struct BrickedWritten {
+    /// The container's manifest (offsets filled in).
+    pub manifest: Manifest,
+    /// Bytes written.
+    pub bytes: u64,
+    /// Bytes of them outside the bricks' packets: the manifest section and every brick's header
+    /// section.
+    pub overhead: u64,
+    /// Coefficients of the padded grids of all bricks, all channels.
+    pub total_coefficients: u64,
+    /// Non-zero coefficients over all bricks.
+    pub nonzero: u64,
+    /// The depth every brick was transformed with.
+    pub levels: usize,
 }
 
 /// Compresses the volume `source` holds as bricks of edge `brick` with `opts` (whose target is
@@ -1189,13 +1320,54 @@ pub fn compress_bricked(
     brick: usize,
     progress: &(dyn Fn(BrickStage) + Sync),
 ) -> Result<BrickedCompressed, BrickError> {
-    let plan = BrickPlan::new(source, opts, brick)?;
-    let a = allocate(&plan, &LocalBricks { source, progress })?;
-    let bricks: Vec<(Vec<u8>, u64)> = a.bricks.into_iter().map(|c| (c.file, c.kept)).collect();
-    let (bytes, manifest) = plan.assemble(&bricks)?;
+    let mut bytes = Vec::new();
+    let w = compress_bricked_to(source, opts, brick, progress, None, &mut bytes)?;
     Ok(BrickedCompressed {
         bytes,
+        manifest: w.manifest,
+        total_coefficients: w.total_coefficients,
+        nonzero: w.nonzero,
+        levels: w.levels,
+    })
+}
+
+/// Compresses as [`compress_bricked`] does, writing the container to `out` as it is assembled:
+/// the coded bricks wait in a temporary file in `spill_dir` (`None`: the temporary directory),
+/// not in memory, so that memory stays about one brick per thread however large the file.
+/// `out` gets the manifest section and then the bricks, in one pass.
+pub fn compress_bricked_to(
+    source: &dyn BrickSource,
+    opts: &CompressOptions,
+    brick: usize,
+    progress: &(dyn Fn(BrickStage) + Sync),
+    spill_dir: Option<&std::path::Path>,
+    out: &mut dyn std::io::Write,
+) -> Result<BrickedWritten, BrickError> {
+    let plan = BrickPlan::new(source, opts, brick)?;
+    let work = SpillingBricks {
+        local: LocalBricks { source, progress },
+        dir: spill_dir,
+    };
+    let a = allocate(&plan, &work)?;
+    let kept: Vec<(Vec<u8>, u64)> = a.bricks.iter().map(|c| (Vec::new(), c.kept)).collect();
+    let mut manifest = plan.manifest(&kept);
+    let placed: Vec<(u64, u32)> = a.bricks.iter().map(|c| (c.len, c.file.crc)).collect();
+    let section = wavesplat_codec::format::bricked::place_bricks(&mut manifest, &placed)?;
+    out.write_all(&section).map_err(BrickError::Output)?;
+    let mut written = section.len() as u64;
+    for c in &a.bricks {
+        c.file
+            .spill
+            .copy_to(c.file.offset, c.len, out)
+            .map_err(BrickError::Output)?;
+        written += c.len;
+    }
+    out.flush().map_err(BrickError::Output)?;
+    let headers: u64 = a.bricks.iter().map(|c| c.file.header).sum();
+    Ok(BrickedWritten {
         manifest,
+        bytes: written,
+        overhead: section.len() as u64 + headers,
         total_coefficients: a.total_coefficients,
         nonzero: a.nonzero,
         levels: plan.choices.levels,
@@ -1533,6 +1705,47 @@ mod tests {
             let bricks: Vec<(Vec<u8>, u64)> =
                 a.bricks.into_iter().map(|c| (c.file, c.kept)).collect();
             assert_eq!(plan.assemble(&bricks).unwrap().0, here.bytes, "{target:?}");
+        }
+    }
+
+    /// The container streamed from the bricks kept on disk is the one built in memory
+    /// (checked by `bricks_compressed_apart_make_the_same_file` too, for several trials of a
+    /// byte target); the spill directory is empty afterwards, the overhead reported is the
+    /// file's, and a writer that fails is an error, not a panic or a short file called done.
+    #[test]
+    fn a_bricked_file_is_written_from_its_spill_and_leaves_nothing_behind() {
+        let v = Phantom::SheppLogan.generate([40, 36, 30]);
+        let opts = CompressOptions {
+            target: Target::Bytes(9_000),
+            ..CompressOptions::default()
+        };
+        let spill = tempfile::tempdir().unwrap();
+        let mut out = Vec::new();
+        let w = compress_bricked_to(&v, &opts, 20, &|_| {}, Some(spill.path()), &mut out).unwrap();
+        assert_eq!(out, compress_bricked(&v, &opts, 20, &|_| {}).unwrap().bytes);
+        assert_eq!(w.bytes, out.len() as u64);
+        let f = wavesplat_codec::format::bricked::parse_bricked(&out).unwrap();
+        assert_eq!(w.overhead, f.overhead_bytes().unwrap());
+        assert_eq!(w.manifest, f.manifest);
+        assert_eq!(std::fs::read_dir(spill.path()).unwrap().count(), 0);
+
+        struct Full(usize);
+        impl std::io::Write for Full {
+            fn write(&mut self, b: &[u8]) -> std::io::Result<usize> {
+                if self.0 == 0 {
+                    return Err(std::io::Error::other("disk full"));
+                }
+                let n = b.len().min(self.0);
+                self.0 -= n;
+                Ok(n)
+            }
+            fn flush(&mut self) -> std::io::Result<()> {
+                Ok(())
+            }
+        }
+        for room in [0, 100, out.len() - 1] {
+            let e = compress_bricked_to(&v, &opts, 20, &|_| {}, None, &mut Full(room)).unwrap_err();
+            assert!(matches!(e, BrickError::Output(_)), "{room}: {e:?}");
         }
     }
 

@@ -9,7 +9,7 @@ use wavesplat_codec::format::CoderKind;
 use wavesplat_codec::layout::Geometry;
 use wavesplat_codec::volume::{Volume, MAX_VOXELS};
 use wavesplat_compressor::bricked::{
-    compress_bricked, AutoBrick, BrickReason, BrickSource, BrickStage,
+    compress_bricked_to, AutoBrick, BrickReason, BrickSource, BrickStage,
 };
 use wavesplat_compressor::colorspace::ColorSpaceKind;
 use wavesplat_compressor::encode::{
@@ -438,17 +438,48 @@ fn compress_bricks_of(
     let d = source.dims();
     let progress = Progress::new("compress");
     let report = |stage: BrickStage| progress.stage(&stage.to_string());
-    let c = compress_bricked(source, opts, brick, &report).context("compressing")?;
+    let written = |e: std::io::Error| {
+        anyhow::Error::new(e).context(format!("writing {}", a.output.display()))
+    };
+    // The file is written as it is assembled (the coded bricks wait in a temporary file beside
+    // it, not in memory) under a temporary name, renamed when complete: a failure leaves no
+    // partial file. A device or pipe (`-o /dev/null`) is written in place.
+    let special = std::fs::metadata(&a.output).is_ok_and(|m| !m.is_file());
+    let c = if special {
+        let mut out = std::io::BufWriter::new(std::fs::File::create(&a.output).map_err(written)?);
+        let c = compress_bricked_to(source, opts, brick, &report, None, &mut out)
+            .context("compressing")?;
+        out.into_inner().map_err(|e| written(e.into_error()))?;
+        c
+    } else {
+        let dir = match a.output.parent() {
+            Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
+            _ => std::path::PathBuf::from("."),
+        };
+        let mut builder = tempfile::Builder::new();
+        builder.prefix(".wavesplat-").suffix(".partial");
+        // The permissions a file written plainly gets (0o666 less the umask), not a temporary
+        // file's owner-only ones: a web server or another user may serve or read it.
+        #[cfg(unix)]
+        builder.permissions(std::os::unix::fs::PermissionsExt::from_mode(0o666));
+        let partial = builder
+            .tempfile_in(&dir)
+            .with_context(|| format!("creating a file in {}", dir.display()))?;
+        let mut out = std::io::BufWriter::new(partial);
+        let c = compress_bricked_to(source, opts, brick, &report, Some(&dir), &mut out)
+            .context("compressing")?;
+        let partial = out.into_inner().map_err(|e| written(e.into_error()))?;
+        partial.persist(&a.output).map_err(|e| written(e.error))?;
+        c
+    };
     progress.finish();
-    std::fs::write(&a.output, &c.bytes)
-        .with_context(|| format!("writing {}", a.output.display()))?;
     let voxels = d.iter().map(|v| *v as f64).product::<f64>() * source.channels() as f64;
     outln!(
         "{}: {} bytes ({:.4} % of {} samples at one byte each), bricked: {} bricks of at most \
          {brick} a side",
         a.output.display(),
-        c.bytes.len(),
-        100.0 * c.bytes.len() as f64 / voxels,
+        c.bytes,
+        100.0 * c.bytes as f64 / voxels,
         voxels,
         c.manifest.bricks.len()
     );
@@ -465,7 +496,28 @@ fn compress_bricks_of(
         100.0 * c.manifest.kept() as f64 / c.total_coefficients.max(1) as f64,
         c.nonzero
     );
+    if let Some(note) = overhead_note(c.overhead, c.bytes, opts.coder) {
+        outln!("{note}");
+    }
     Ok(())
+}
+
+/// A bricked file whose manifest and brick headers take more than a fifth of it leaves little
+/// of a byte target to coefficients: say so, and what leaves more.
+fn overhead_note(overhead: u64, total: u64, coder: CoderKind) -> Option<String> {
+    if overhead * 5 <= total {
+        return None;
+    }
+    let tables = if coder == CoderKind::Fast {
+        " (each brick's header carries the fast coder's tables: the default coder's carry none)"
+    } else {
+        ""
+    };
+    Some(format!(
+        "note: the manifest and the bricks' headers take {overhead} of the {total} bytes \
+         ({:.0} %){tables}; larger bricks (--brick) leave more of the file to coefficients",
+        100.0 * overhead as f64 / total.max(1) as f64
+    ))
 }
 
 /// Parses `X,Y,Z` voxel spacing (finite, positive).

@@ -71,17 +71,11 @@ pub fn run(a: InfoArgs) -> Result<()> {
         );
         let mut lengths: Vec<u64> = m.bricks.iter().map(|b| b.length).collect();
         lengths.sort_unstable();
-        let mut headers = 0u64;
-        for i in 0..m.bricks.len() {
-            let brick = f
-                .brick_bytes(i)
-                .with_context(|| format!("reading brick {i} of {}", a.input.display()))?;
-            let (_, used) = wavesplat_codec::format::read_header_section(brick)
-                .with_context(|| format!("parsing brick {i} of {}", a.input.display()))?;
-            headers += used as u64;
-        }
+        let headers = f
+            .overhead_bytes()
+            .with_context(|| format!("reading the bricks of {}", a.input.display()))?;
         outln!(
-            "brick bytes min {} / median {} / max {}; their headers {} bytes ({:.1} % of the file)",
+            "brick bytes min {} / median {} / max {}; the manifest and their headers {} bytes ({:.1} % of the file)",
             lengths[0],
             lengths[lengths.len() / 2],
             lengths[lengths.len() - 1],

@@ -115,6 +115,20 @@ impl<'a> BrickedFile<'a> {
     }
 }
 
+impl BrickedFile<'_> {
+    /// What the container spends outside its bricks' packets: the manifest's section and every
+    /// brick's header section (which carries the fast coder's tables, where used), in bytes.
+    pub fn overhead_bytes(&self) -> Result<u64, FormatError> {
+        let bricks: u64 = self.manifest.bricks.iter().map(|b| b.length).sum();
+        let mut overhead = (self.bytes.len() as u64).saturating_sub(bricks);
+        for i in 0..self.manifest.bricks.len() {
+            let (_, used) = super::read_header_section(self.brick_bytes(i)?)?;
+            overhead += used as u64;
+        }
+        Ok(overhead)
+    }
+}
+
 /// The section a container of format `version` starts with: magic, version, the manifest's
 /// length (u32), the manifest `mb`, its CRC-32.
 pub(super) fn write_section(version: u16, mb: &[u8]) -> Vec<u8> {
@@ -209,6 +223,28 @@ pub fn brick_grid(dims: [u64; 3], brick: usize) -> Vec<([u64; 3], [usize; 3])> {
 /// Writes a container: `manifest` (whose entries' `offset`, `length` and `crc` are filled in
 /// here) followed by `bricks`, one `.wsp` file each in manifest order.
 pub fn write_bricked(manifest: &mut Manifest, bricks: &[&[u8]]) -> Result<Vec<u8>, FormatError> {
+    let placed: Vec<(u64, u32)> = bricks
+        .iter()
+        .map(|b| (b.len() as u64, crc32fast::hash(b)))
+        .collect();
+    let section = place_bricks(manifest, &placed)?;
+    let total = section.len() + placed.iter().map(|p| p.0 as usize).sum::<usize>();
+    let mut out = Vec::with_capacity(total);
+    out.extend_from_slice(&section);
+    for b in bricks {
+        out.extend_from_slice(b);
+    }
+    Ok(out)
+}
+
+/// Fills in `manifest`'s offsets, lengths and CRCs for bricks of (length, CRC-32) `bricks` in
+/// manifest order, and returns the manifest section the container starts with: the bricks'
+/// bytes follow it, in that order. (What [`write_bricked`] does for bytes in memory, for a
+/// writer that streams the bricks from elsewhere.)
+pub fn place_bricks(
+    manifest: &mut Manifest,
+    bricks: &[(u64, u32)],
+) -> Result<Vec<u8>, FormatError> {
     if bricks.len() != manifest.bricks.len() {
         return Err(FormatError::Invalid {
             what: "bricked manifest",
@@ -223,20 +259,15 @@ pub fn write_bricked(manifest: &mut Manifest, bricks: &[&[u8]]) -> Result<Vec<u8
     // width fields).
     let manifest_len = manifest_bytes(manifest).len();
     let mut offset = (4 + 2 + 4 + manifest_len + 4) as u64;
-    for (e, b) in manifest.bricks.iter_mut().zip(bricks) {
+    for (e, (len, crc)) in manifest.bricks.iter_mut().zip(bricks) {
         e.offset = offset;
-        e.length = b.len() as u64;
-        e.crc = crc32fast::hash(b);
-        offset += b.len() as u64;
+        e.length = *len;
+        e.crc = *crc;
+        offset += len;
     }
     let section = manifest_section(manifest);
     debug_assert_eq!(section.len(), 4 + 2 + 4 + manifest_len + 4);
-    let mut out = Vec::with_capacity(offset as usize);
-    out.extend_from_slice(&section);
-    for b in bricks {
-        out.extend_from_slice(b);
-    }
-    Ok(out)
+    Ok(section)
 }
 
 /// The manifest section a container of `manifest` starts with (magic, version, manifest
