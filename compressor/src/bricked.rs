@@ -628,6 +628,20 @@ impl BrickPlan {
         Ok((bytes, manifest))
     }
 
+    /// The container's manifest section for bricks of (length, CRC-32, coefficients kept) in
+    /// grid order, whose bytes follow it in that order, and its manifest (offsets filled in):
+    /// for a container written as its bricks stream from elsewhere.
+    pub fn manifest_section_for(
+        &self,
+        bricks: &[(u64, u32, u64)],
+    ) -> Result<(Vec<u8>, Manifest), BrickError> {
+        let kept: Vec<(Vec<u8>, u64)> = bricks.iter().map(|b| (Vec::new(), b.2)).collect();
+        let mut manifest = self.manifest(&kept);
+        let placed: Vec<(u64, u32)> = bricks.iter().map(|b| (b.0, b.1)).collect();
+        let section = wavesplat_codec::format::bricked::place_bricks(&mut manifest, &placed)?;
+        Ok((section, manifest))
+    }
+
     /// The bytes of the container's manifest section for this plan's grid: its fields have fixed
     /// widths, so this is exact before any brick is coded (what a byte target sets aside).
     pub fn manifest_len(&self) -> u64 {
@@ -1349,10 +1363,12 @@ pub fn compress_bricked_to(
         dir: spill_dir,
     };
     let a = allocate(&plan, &work)?;
-    let kept: Vec<(Vec<u8>, u64)> = a.bricks.iter().map(|c| (Vec::new(), c.kept)).collect();
-    let mut manifest = plan.manifest(&kept);
-    let placed: Vec<(u64, u32)> = a.bricks.iter().map(|c| (c.len, c.file.crc)).collect();
-    let section = wavesplat_codec::format::bricked::place_bricks(&mut manifest, &placed)?;
+    let placed: Vec<(u64, u32, u64)> = a
+        .bricks
+        .iter()
+        .map(|c| (c.len, c.file.crc, c.kept))
+        .collect();
+    let (section, manifest) = plan.manifest_section_for(&placed)?;
     out.write_all(&section).map_err(BrickError::Output)?;
     let mut written = section.len() as u64;
     for c in &a.bricks {

@@ -552,18 +552,58 @@ impl RemoteBricks {
     /// The chosen parts' files fetched, each with the count its header says it kept.
     fn gather(&self, chosen: &[CodedBrick<u64>]) -> Result<Vec<(Vec<u8>, u64)>, Failure> {
         self.shared.set(0.9, "gathering the parts' files");
-        let mut files = Vec::with_capacity(chosen.len());
+        chosen.iter().map(|b| self.fetch_kept(b)).collect()
+    }
+
+    /// The bricked container of the chosen parts' files, fetched one at a time straight into
+    /// it (its manifest section, of fixed length, written last in the place kept for it), so
+    /// that the file is held once, not once as parts and again as the container.
+    fn gather_container(
+        &self,
+        plan: &BrickPlan,
+        chosen: &[CodedBrick<u64>],
+    ) -> Result<Vec<u8>, Failure> {
+        self.shared.set(0.9, "gathering the parts' files");
+        let head = plan.manifest_len() as usize;
+        let total = head as u64 + chosen.iter().map(|b| b.len).sum::<u64>();
+        let mut out = Vec::new();
+        out.try_reserve_exact(total as usize).map_err(|_| {
+            fail(
+                FailureKind::Worker,
+                format!("no memory for the {total}-byte bricked file"),
+            )
+        })?;
+        out.resize(head, 0);
+        let mut placed = Vec::with_capacity(chosen.len());
         for b in chosen {
-            let bytes = self.fetch(b.file).map_err(|Stopped| {
-                self.failure_or(fail(FailureKind::Worker, "fetching a part's file failed"))
-            })?;
-            let kept = wavesplat_codec::format::parse_file(&bytes)
-                .map_err(|e| fail(FailureKind::Worker, format!("part {}'s file: {e}", b.file)))?
-                .header
-                .kept;
-            files.push((bytes, kept));
+            let (bytes, kept) = self.fetch_kept(b)?;
+            placed.push((bytes.len() as u64, crc32fast::hash(&bytes), kept));
+            out.extend_from_slice(&bytes);
         }
-        Ok(files)
+        let (section, _) = plan.manifest_section_for(&placed).map_err(brick_failure)?;
+        if section.len() != head {
+            return Err(fail(
+                FailureKind::Worker,
+                format!(
+                    "the manifest took {} bytes, {head} set aside",
+                    section.len()
+                ),
+            ));
+        }
+        out[..head].copy_from_slice(&section);
+        Ok(out)
+    }
+
+    /// A chosen part's file fetched, with the count its header says it kept.
+    fn fetch_kept(&self, b: &CodedBrick<u64>) -> Result<(Vec<u8>, u64), Failure> {
+        let bytes = self.fetch(b.file).map_err(|Stopped| {
+            self.failure_or(fail(FailureKind::Worker, "fetching a part's file failed"))
+        })?;
+        let kept = wavesplat_codec::format::parse_file(&bytes)
+            .map_err(|e| fail(FailureKind::Worker, format!("part {}'s file: {e}", b.file)))?
+            .header
+            .kept;
+        Ok((bytes, kept))
     }
 
     /// Adds `parts` (or polls them, if known) and waits until all are done, running parts
@@ -797,8 +837,7 @@ pub(crate) fn coordinate(
         failure: std::sync::Mutex::new(None),
     };
     let allocated = allocate(&plan, &work).map_err(|e| work.failure_or(brick_failure(e)))?;
-    let bricks = work.gather(&allocated.bricks)?;
-    let (file, _) = plan.assemble(&bricks).map_err(brick_failure)?;
+    let file = work.gather_container(&plan, &allocated.bricks)?;
     Ok((file, voxels))
 }
 
