@@ -1225,7 +1225,7 @@ pub struct Spill {
 }
 
 impl Spill {
-    fn new(dir: Option<&std::path::Path>) -> Result<Spill, BrickError> {
+    pub(crate) fn new(dir: Option<&std::path::Path>) -> Result<Spill, BrickError> {
         let file = match dir {
             Some(d) => tempfile::tempfile_in(d),
             None => tempfile::tempfile(),
@@ -1237,7 +1237,10 @@ impl Spill {
     }
 
     /// Appends a brick's file; what finds it again.
-    fn push(self: &std::sync::Arc<Spill>, bytes: &[u8]) -> Result<SpilledBrick, BrickError> {
+    pub(crate) fn push(
+        self: &std::sync::Arc<Spill>,
+        bytes: &[u8],
+    ) -> Result<SpilledBrick, BrickError> {
         use std::io::Write;
         let (_, header) = wavesplat_codec::format::read_header_section(bytes)?;
         let crc = crc32fast::hash(bytes);
@@ -1275,9 +1278,17 @@ impl Spill {
 pub struct SpilledBrick {
     spill: std::sync::Arc<Spill>,
     offset: u64,
-    crc: u32,
+    /// The CRC-32 of its bytes.
+    pub(crate) crc: u32,
     /// Its header section's length (what [`BrickedWritten::overhead`] sums).
     header: u64,
+}
+
+impl SpilledBrick {
+    /// Copies the brick's `len` bytes to `out`.
+    pub(crate) fn copy_to(&self, len: u64, out: &mut dyn std::io::Write) -> std::io::Result<()> {
+        self.spill.copy_to(self.offset, len, out)
+    }
 }
 
 /// The bricks compressed on this process's pool as [`LocalBricks`] does, each trial's files
@@ -1372,10 +1383,7 @@ pub fn compress_bricked_to(
     out.write_all(&section).map_err(BrickError::Output)?;
     let mut written = section.len() as u64;
     for c in &a.bricks {
-        c.file
-            .spill
-            .copy_to(c.file.offset, c.len, out)
-            .map_err(BrickError::Output)?;
+        c.file.copy_to(c.len, out).map_err(BrickError::Output)?;
         written += c.len;
     }
     out.flush().map_err(BrickError::Output)?;

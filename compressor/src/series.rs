@@ -18,14 +18,15 @@ use rayon::prelude::*;
 use thiserror::Error;
 use wavesplat_codec::format::bricked::Space;
 use wavesplat_codec::format::series::{
-    parse_series, write_series, ComponentEntry, SeriesManifest, TimePoint, MAX_TERMS,
+    parse_series, place_components, write_series, ComponentEntry, SeriesManifest, TimePoint,
+    MAX_TERMS,
 };
 use wavesplat_codec::format::FormatError;
 use wavesplat_codec::volume::{Placement, Volume, VolumeError};
 
 use crate::bricked::{
     allocate_units, manifest_allowance, BrickError, BrickPlan, BrickSource, BrickStage, CodedBrick,
-    SharedChoices,
+    SharedChoices, Spill, SpilledBrick,
 };
 use crate::encode::{compress, CompressOptions, ScoreSummary, Target};
 use crate::reader::ReadError;
@@ -654,7 +655,6 @@ impl SeriesPlan {
                 self.units.len()
             )));
         }
-        let points = series.time_points();
         // Each component's bricks, in order: one brick is its plain file, more a container.
         let mut coded = units.into_iter();
         let mut files: Vec<Vec<u8>> = Vec::with_capacity(self.plans.len());
@@ -675,11 +675,27 @@ impl SeriesPlan {
             });
             files.push(file);
         }
+        let mut manifest = self.manifest(series, entries);
+        let slices: Vec<&[u8]> = files.iter().map(Vec::as_slice).collect();
+        let bytes = write_series(&mut manifest, &slices)?;
+        Ok(SeriesCompressed {
+            bytes,
+            manifest,
+            levels: self.choices.levels,
+            total_coefficients,
+        })
+    }
+}
+
+impl SeriesPlan {
+    /// The series manifest of components `entries` (offsets to be filled in).
+    fn manifest(&self, series: &dyn SeriesSource, entries: Vec<ComponentEntry>) -> SeriesManifest {
+        let points = series.time_points();
         let (times_known, times) = match series.times() {
             Some(t) if check_times(&t, points).is_ok() => (true, t),
             _ => (false, (0..points).map(|t| t as f64).collect()),
         };
-        let mut manifest = SeriesManifest {
+        SeriesManifest {
             space: Space {
                 dims: series.dims(),
                 channels: series.channels(),
@@ -699,15 +715,73 @@ impl SeriesPlan {
                     terms: terms.iter().map(|(c, w)| (*c, *w as f32)).collect(),
                 })
                 .collect(),
-        };
-        let slices: Vec<&[u8]> = files.iter().map(Vec::as_slice).collect();
-        let bytes = write_series(&mut manifest, &slices)?;
-        Ok(SeriesCompressed {
-            bytes,
-            manifest,
-            levels: self.choices.levels,
-            total_coefficients,
-        })
+        }
+    }
+
+    /// Writes the series container of the units coded in `units` (unit order) to `out`: the
+    /// series manifest section, then each component (its plain file, or its bricked
+    /// container's manifest section and bricks), the units' bytes copied from where they
+    /// wait. Returns the manifest and the bytes written.
+    fn write_spilled(
+        &self,
+        series: &dyn SeriesSource,
+        units: &[CodedBrick<SpilledBrick>],
+        out: &mut dyn std::io::Write,
+    ) -> Result<(SeriesManifest, u64), SeriesError> {
+        if units.len() != self.units.len() {
+            return Err(SeriesError::InvalidOption(format!(
+                "{} coded units for a series of {}",
+                units.len(),
+                self.units.len()
+            )));
+        }
+        // Each component: its bricked manifest section (none for one brick), its units, and
+        // its length, CRC-32 (combined from its parts' without reading them again) and count.
+        let mut components = Vec::with_capacity(self.plans.len());
+        let mut start = 0;
+        for plan in &self.plans {
+            let mine = &units[start..start + plan.grid.len()];
+            start += plan.grid.len();
+            let section = if mine.len() == 1 {
+                Vec::new()
+            } else {
+                let placed: Vec<(u64, u32, u64)> =
+                    mine.iter().map(|u| (u.len, u.file.crc, u.kept)).collect();
+                plan.manifest_section_for(&placed)?.0
+            };
+            let mut crc = crc32fast::Hasher::new();
+            crc.update(&section);
+            for u in mine {
+                crc.combine(&crc32fast::Hasher::new_with_initial_len(u.file.crc, u.len));
+            }
+            let len = section.len() as u64 + mine.iter().map(|u| u.len).sum::<u64>();
+            let kept = mine.iter().map(|u| u.kept).sum();
+            components.push((section, mine, len, crc.finalize(), kept));
+        }
+        let entries = components
+            .iter()
+            .map(|c| ComponentEntry {
+                offset: 0,
+                length: 0,
+                crc: 0,
+                kept: c.4,
+            })
+            .collect();
+        let mut manifest = self.manifest(series, entries);
+        let placed: Vec<(u64, u32)> = components.iter().map(|c| (c.2, c.3)).collect();
+        let section = place_components(&mut manifest, &placed)?;
+        let output = |e| SeriesError::Brick(Box::new(BrickError::Output(e)));
+        out.write_all(&section).map_err(output)?;
+        let mut written = section.len() as u64;
+        for (section, mine, len, _, _) in &components {
+            out.write_all(section).map_err(output)?;
+            for u in *mine {
+                u.file.copy_to(u.len, out).map_err(output)?;
+            }
+            written += len;
+        }
+        out.flush().map_err(output)?;
+        Ok((manifest, written))
     }
 }
 
@@ -732,6 +806,42 @@ pub fn compress_series(
     brick: usize,
     progress: &(dyn Fn(BrickStage) + Sync),
 ) -> Result<SeriesCompressed, SeriesError> {
+    let mut bytes = Vec::new();
+    let w = compress_series_to(series, opts, group, brick, progress, None, &mut bytes)?;
+    Ok(SeriesCompressed {
+        bytes,
+        manifest: w.manifest,
+        levels: w.levels,
+        total_coefficients: w.total_coefficients,
+    })
+}
+
+/// What [`compress_series_to`] wrote.
+#[derive(Debug)]
+pub struct SeriesWritten {
+    /// The container's manifest.
+    pub manifest: SeriesManifest,
+    /// Bytes written.
+    pub bytes: u64,
+    /// The depth every component was transformed with.
+    pub levels: usize,
+    /// Coefficients of all components' padded grids, all channels.
+    pub total_coefficients: u64,
+}
+
+/// Compresses as [`compress_series`] does, writing the container to `out` as it is
+/// assembled: the coded units of each trial wait in a temporary file in `spill_dir` (`None`:
+/// the temporary directory), as a bricked volume's bricks do
+/// ([`crate::bricked::compress_bricked_to`]), so memory does not grow with the file.
+pub fn compress_series_to(
+    series: &dyn SeriesSource,
+    opts: &CompressOptions,
+    group: usize,
+    brick: usize,
+    progress: &(dyn Fn(BrickStage) + Sync),
+    spill_dir: Option<&std::path::Path>,
+    out: &mut dyn std::io::Write,
+) -> Result<SeriesWritten, SeriesError> {
     let plan = SeriesPlan::new(series, opts, group, brick)?;
     let of = plan.units.len();
     let counter = std::sync::atomic::AtomicUsize::new(0);
@@ -756,26 +866,26 @@ pub fn compress_series(
         },
         |counts, trial| {
             counter.store(0, std::sync::atomic::Ordering::Relaxed);
+            let spill = std::sync::Arc::new(Spill::new(spill_dir)?);
             (0..of)
                 .into_par_iter()
                 .map(|u| {
                     let (file, kept) = plan.encode(series, u, counts.map(|k| k[u]))?;
+                    let len = file.len() as u64;
+                    let file = spill.push(&file)?;
                     tick(&|done| BrickStage::Compressed { done, of, trial });
-                    Ok(CodedBrick {
-                        len: file.len() as u64,
-                        file,
-                        kept,
-                    })
+                    Ok(CodedBrick { len, file, kept })
                 })
                 .collect()
         },
     )?;
-    let units = allocated
-        .bricks
-        .into_iter()
-        .map(|b| (b.file, b.kept))
-        .collect();
-    plan.assemble(series, units, allocated.total_coefficients)
+    let (manifest, bytes) = plan.write_spilled(series, &allocated.bricks, out)?;
+    Ok(SeriesWritten {
+        manifest,
+        bytes,
+        levels: plan.choices.levels,
+        total_coefficients: allocated.total_coefficients,
+    })
 }
 
 /// Decodes time point `t` of a series container: its components decoded (plain files or
@@ -1006,6 +1116,52 @@ mod tests {
         };
         let (qv, all) = (at(Target::QvPercent(90.0)), at(Target::All));
         assert!(qv * 10 < all, "Q_V 90 %: {qv} bytes, everything {all}");
+    }
+
+    /// A series streamed from its coded units on disk (bricked components: their manifest
+    /// sections made there, their CRCs combined from the bricks') is byte for byte the one
+    /// assembled in memory, as workers assemble it, at a fraction and over a byte target's
+    /// trials; every component's CRC checks, and the spill directory is left empty.
+    #[test]
+    fn a_series_streamed_from_its_spill_is_the_one_assembled_in_memory() {
+        let s = cine([24, 20, 18], 6);
+        for target in [Target::Fraction(0.2), Target::Bytes(30_000)] {
+            let opts = CompressOptions {
+                target,
+                ..CompressOptions::default()
+            };
+            let plan = SeriesPlan::new(&s, &opts, 2, 12).unwrap();
+            let a = allocate_units(
+                plan.target,
+                plan.units.len(),
+                plan.overhead,
+                || (0..plan.units.len()).map(|u| plan.score(&s, u)).collect(),
+                |counts, _| {
+                    (0..plan.units.len())
+                        .map(|u| {
+                            let (file, kept) = plan.encode(&s, u, counts.map(|k| k[u]))?;
+                            let len = file.len() as u64;
+                            Ok(CodedBrick { len, file, kept })
+                        })
+                        .collect()
+                },
+            )
+            .unwrap();
+            let units = a.bricks.into_iter().map(|b| (b.file, b.kept)).collect();
+            let in_memory = plan.assemble(&s, units, a.total_coefficients).unwrap();
+            let spill = tempfile::tempdir().unwrap();
+            let mut out = Vec::new();
+            let w = compress_series_to(&s, &opts, 2, 12, &|_| {}, Some(spill.path()), &mut out)
+                .unwrap();
+            assert_eq!(out, in_memory.bytes, "{target:?}");
+            assert_eq!(w.bytes, out.len() as u64);
+            assert_eq!(w.manifest, in_memory.manifest);
+            let f = parse_series(&out).unwrap();
+            for c in 0..f.manifest.components.len() {
+                f.component_bytes(c).unwrap();
+            }
+            assert_eq!(std::fs::read_dir(spill.path()).unwrap().count(), 0);
+        }
     }
 
     #[test]

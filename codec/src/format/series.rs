@@ -140,6 +140,26 @@ pub fn write_series(
     manifest: &mut SeriesManifest,
     components: &[&[u8]],
 ) -> Result<Vec<u8>, FormatError> {
+    let placed: Vec<(u64, u32)> = components
+        .iter()
+        .map(|b| (b.len() as u64, crc32fast::hash(b)))
+        .collect();
+    let mut out = place_components(manifest, &placed)?;
+    out.reserve(placed.iter().map(|p| p.0 as usize).sum());
+    for b in components {
+        out.extend_from_slice(b);
+    }
+    Ok(out)
+}
+
+/// Fills in `manifest`'s offsets, lengths and CRCs for components of (length, CRC-32)
+/// `components` in manifest order, and returns the manifest section the container starts
+/// with (checked as a reader checks it): the components' bytes follow it, in that order.
+/// (What [`write_series`] does for bytes in memory, for a writer that streams them.)
+pub fn place_components(
+    manifest: &mut SeriesManifest,
+    components: &[(u64, u32)],
+) -> Result<Vec<u8>, FormatError> {
     if components.len() != manifest.components.len() {
         return Err(bad(format!(
             "{} components for {} manifest entries",
@@ -149,20 +169,16 @@ pub fn write_series(
     }
     let manifest_len = manifest_bytes(manifest).len();
     let mut offset = (4 + 2 + 4 + manifest_len + 4) as u64;
-    for (e, b) in manifest.components.iter_mut().zip(components) {
+    for (e, (len, crc)) in manifest.components.iter_mut().zip(components) {
         e.offset = offset;
-        e.length = b.len() as u64;
-        e.crc = crc32fast::hash(b);
-        offset += b.len() as u64;
+        e.length = *len;
+        e.crc = *crc;
+        offset += len;
     }
-    let mut out = write_section(SERIES_VERSION, &manifest_bytes(manifest));
-    out.reserve(offset as usize - out.len());
-    for b in components {
-        out.extend_from_slice(b);
-    }
+    let section = write_section(SERIES_VERSION, &manifest_bytes(manifest));
     // Refuse to write what readers would refuse.
-    parse_manifest(&out, out.len() as u64)?;
-    Ok(out)
+    parse_manifest(&section, offset)?;
+    Ok(section)
 }
 
 /// The manifest section of a series container (magic, version 10, manifest length, manifest,
