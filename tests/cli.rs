@@ -732,8 +732,23 @@ fn a_bricked_volume_is_compressed_listed_and_rendered() {
         let mode = |n: &str| std::fs::metadata(path(n)).unwrap().permissions().mode() & 0o777;
         assert_eq!(mode("b.wsp"), mode("plain"));
         std::fs::remove_file(path("plain")).unwrap();
+        // Written through a link to an existing file: the link stays, the file keeps its mode.
+        std::fs::write(path("kept.wsp"), b"old").unwrap();
+        std::fs::set_permissions(path("kept.wsp"), std::fs::Permissions::from_mode(0o640)).unwrap();
+        std::os::unix::fs::symlink(path("kept.wsp"), path("link.wsp")).unwrap();
+        let l = run(&["compress", &raw, "--brick", "20", "-o", &path("link.wsp")]);
+        assert!(l.status.success(), "{}", err(&l));
+        let meta = std::fs::symlink_metadata(path("link.wsp")).unwrap();
+        assert!(meta.file_type().is_symlink());
+        assert_eq!(mode("kept.wsp"), 0o640);
+        assert!(std::fs::read(path("kept.wsp"))
+            .unwrap()
+            .starts_with(b"WSPL"));
+        for n in ["kept.wsp", "link.wsp"] {
+            std::fs::remove_file(path(n)).unwrap();
+        }
     }
-    // A bricked compression that fails (its output directory is missing) leaves no file.
+    // A bricked compression whose output directory is missing is refused, naming it.
     let missing = run(&[
         "compress",
         &raw,

@@ -1198,17 +1198,12 @@ async fn uploaded_bundles_unpack_as_they_stream_and_an_uploaded_series_is_refuse
         std::fs::create_dir_all(dir).unwrap();
         write_nifti_series(&dir.join(name), [16, 16, 8], &points, Some(40.0), false);
     }
-    // What a killed worker left: an upload under a process id that no longer runs.
+    // What a killed worker left: an upload whose lock nobody holds.
     let scratch = cl.root.join("scratch");
-    let dead = {
-        let mut child = Command::new("true").spawn().unwrap();
-        let pid = child.id();
-        child.wait().unwrap();
-        pid
-    };
-    let stale = scratch.join(format!("wavesplat-upload-{dead}-x1Yz"));
-    std::fs::create_dir_all(&stale).unwrap();
-    std::fs::write(stale.join("source.raw"), b"left behind").unwrap();
+    let stale = scratch.join("wavesplat-upload-x1Yz");
+    std::fs::create_dir_all(stale.join("source")).unwrap();
+    std::fs::write(stale.join(".lock"), b"").unwrap();
+    std::fs::write(stale.join("source/source.raw"), b"left behind").unwrap();
     let log = cl.root.join("w1.log");
     let _w = Proc::worker_with(
         &o,

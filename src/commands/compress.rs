@@ -438,40 +438,9 @@ fn compress_bricks_of(
     let d = source.dims();
     let progress = Progress::new("compress");
     let report = |stage: BrickStage| progress.stage(&stage.to_string());
-    let written = |e: std::io::Error| {
-        anyhow::Error::new(e).context(format!("writing {}", a.output.display()))
-    };
-    // The file is written as it is assembled (the coded bricks wait in a temporary file beside
-    // it, not in memory) under a temporary name, renamed when complete: a failure leaves no
-    // partial file. A device or pipe (`-o /dev/null`) is written in place.
-    let special = std::fs::metadata(&a.output).is_ok_and(|m| !m.is_file());
-    let c = if special {
-        let mut out = std::io::BufWriter::new(std::fs::File::create(&a.output).map_err(written)?);
-        let c = compress_bricked_to(source, opts, brick, &report, None, &mut out)
-            .context("compressing")?;
-        out.into_inner().map_err(|e| written(e.into_error()))?;
-        c
-    } else {
-        let dir = match a.output.parent() {
-            Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
-            _ => std::path::PathBuf::from("."),
-        };
-        let mut builder = tempfile::Builder::new();
-        builder.prefix(".wavesplat-").suffix(".partial");
-        // The permissions a file written plainly gets (0o666 less the umask), not a temporary
-        // file's owner-only ones: a web server or another user may serve or read it.
-        #[cfg(unix)]
-        builder.permissions(std::os::unix::fs::PermissionsExt::from_mode(0o666));
-        let partial = builder
-            .tempfile_in(&dir)
-            .with_context(|| format!("creating a file in {}", dir.display()))?;
-        let mut out = std::io::BufWriter::new(partial);
-        let c = compress_bricked_to(source, opts, brick, &report, Some(&dir), &mut out)
-            .context("compressing")?;
-        let partial = out.into_inner().map_err(|e| written(e.into_error()))?;
-        partial.persist(&a.output).map_err(|e| written(e.error))?;
-        c
-    };
+    let c = super::write_output(&a.output, |spill, out| {
+        compress_bricked_to(source, opts, brick, &report, spill, out).context("compressing")
+    })?;
     progress.finish();
     let voxels = d.iter().map(|v| *v as f64).product::<f64>() * source.channels() as f64;
     outln!(

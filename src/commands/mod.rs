@@ -115,6 +115,59 @@ pub fn check_output(path: &std::path::Path) -> Result<()> {
     Ok(())
 }
 
+/// Writes the file `path` by `write`, which streams it to the writer it is given and may keep
+/// temporary files in the directory it is given (where the file goes): under a temporary name
+/// beside it, renamed over `path` when complete, so a failure leaves no partial file and
+/// readers never see one. The file keeps what a plainly written one would: an existing file's
+/// permissions (a new one's: 0o666 less the umask, not a temporary file's owner-only ones), and
+/// a symbolic link stays a link (its target is replaced). A device or pipe (`-o /dev/null`) is
+/// written in place.
+pub fn write_output<T>(
+    path: &std::path::Path,
+    write: impl FnOnce(Option<&std::path::Path>, &mut dyn std::io::Write) -> Result<T>,
+) -> Result<T> {
+    use std::io::Write;
+    let written =
+        |e: std::io::Error| anyhow::Error::new(e).context(format!("writing {}", path.display()));
+    // Through a link to its target (a dangling link is written as a new file at its target).
+    let target = match std::fs::symlink_metadata(path) {
+        Ok(m) if m.file_type().is_symlink() => match std::fs::canonicalize(path) {
+            Ok(t) => t,
+            Err(_) => std::fs::read_link(path).map_err(written)?,
+        },
+        _ => path.to_path_buf(),
+    };
+    let existing = std::fs::metadata(&target).ok();
+    if existing.as_ref().is_some_and(|m| !m.is_file()) {
+        let mut out = std::io::BufWriter::new(std::fs::File::create(&target).map_err(written)?);
+        let t = write(None, &mut out)?;
+        out.flush().map_err(written)?;
+        return Ok(t);
+    }
+    let dir = match target.parent() {
+        Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
+        _ => std::path::PathBuf::from("."),
+    };
+    let mut builder = tempfile::Builder::new();
+    builder.prefix(".wavesplat-").suffix(".partial");
+    #[cfg(unix)]
+    builder.permissions(std::os::unix::fs::PermissionsExt::from_mode(0o666));
+    let partial = builder
+        .tempfile_in(&dir)
+        .with_context(|| format!("creating a file in {}", dir.display()))?;
+    if let Some(m) = &existing {
+        partial
+            .as_file()
+            .set_permissions(m.permissions())
+            .map_err(written)?;
+    }
+    let mut out = std::io::BufWriter::new(partial);
+    let t = write(Some(&dir), &mut out)?;
+    let partial = out.into_inner().map_err(|e| written(e.into_error()))?;
+    partial.persist(&target).map_err(|e| written(e.error))?;
+    Ok(t)
+}
+
 /// Reads a compressed volume: a `.wsp`, or the indexed layout `publish` writes (`.wspx`: its
 /// index checked, the unchanged `.wsp` behind it returned). A file that is neither is refused
 /// saying what it is: a volume in a format `compress` reads is a volume to compress first.

@@ -88,10 +88,11 @@ pub struct WorkerArgs {
     #[arg(long)]
     pub max_jobs: Option<usize>,
     /// Directory for temporary files (default: $TMPDIR, else /tmp): an uploaded bricked job's
-    /// source is streamed there (as large as the upload; a bundle of files unpacked), and a
-    /// compressed source (.nii.gz) is inflated there. Give a disk with room when /tmp is small
-    /// or in memory (tmpfs). Uploads that a killed worker left there are removed when a worker
-    /// starts.
+    /// source is streamed there (as large as the upload; a bundle of files unpacked), a
+    /// compressed source (.nii.gz) is inflated there, and a bricked job compressed here keeps
+    /// its coded bricks there until its file is assembled (about the file's size). Give a disk
+    /// with room when /tmp is small or in memory (tmpfs). Uploads that a killed worker left
+    /// there are removed when a worker starts.
     #[arg(long, value_name = "DIR")]
     pub scratch_dir: Option<std::path::PathBuf>,
     /// Testing aid: pause this long (ms) after compressing each volume, before uploading.

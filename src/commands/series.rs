@@ -7,7 +7,7 @@
 use anyhow::{bail, Context, Result};
 use wavesplat_compressor::bricked::BrickStage;
 use wavesplat_compressor::encode::CompressOptions;
-use wavesplat_compressor::series::{compress_series, SeriesSource};
+use wavesplat_compressor::series::{compress_series_to, SeriesSource};
 use wavesplat_harness::console::Progress;
 
 pub use wavesplat_compressor::series::SeriesInput;
@@ -85,9 +85,10 @@ pub fn compress(
             }
         })
     };
-    let c = compress_series(source, opts, group, brick, &report).context("compressing")?;
+    let c = super::write_output(output, |spill, out| {
+        compress_series_to(source, opts, group, brick, &report, spill, out).context("compressing")
+    })?;
     progress.finish();
-    std::fs::write(output, &c.bytes).with_context(|| format!("writing {}", output.display()))?;
     let m = &c.manifest;
     let samples =
         d.iter().map(|v| *v as f64).product::<f64>() * source.channels() as f64 * points as f64;
@@ -95,8 +96,8 @@ pub fn compress(
         "{}: {} bytes ({:.4} % of {} samples at one byte each), a time series of {points} time \
          points in groups of {group}: {} components",
         output.display(),
-        c.bytes.len(),
-        100.0 * c.bytes.len() as f64 / samples,
+        c.bytes,
+        100.0 * c.bytes as f64 / samples,
         samples,
         m.components.len()
     );

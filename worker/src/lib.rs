@@ -43,7 +43,7 @@ use wavesplat_compressor::bricked::{compress_bricked, BrickSource, BrickStage};
 use wavesplat_compressor::encode::{compress, Stage};
 use wavesplat_compressor::reader::region::RegionReader;
 use wavesplat_compressor::reader::{
-    decode_raw, decode_source, unpack_bundle, ReadError, SourceFiles,
+    decode_raw, decode_source, unpack_bundle, ReadError, SourceFiles, SourceListing,
 };
 use wavesplat_net::digest::sha256;
 use wavesplat_orchestrator_client::convert;
@@ -512,14 +512,23 @@ fn compress_bricked_job(
 /// ([`unpack_bundle`]), and `path` is what opens it (the series' directory, or the header).
 /// The directory goes when this is dropped.
 struct UploadedFile {
+    /// Held (and locked) while the upload is in use; closed before the directory goes.
+    _lock: std::fs::File,
     _dir: tempfile::TempDir,
+    /// The directory the upload's files are in.
+    source: std::path::PathBuf,
+    /// What opens it: the single file, a bundle's header or its series' directory.
     path: std::path::PathBuf,
     sha256: [u8; 32],
 }
 
-/// Prefix of an upload's temporary directory, followed by the worker's process id: a worker
-/// starting removes those its dead predecessors on the machine left ([`remove_stale_uploads`]).
+/// Prefix of an upload's temporary directory. Each holds [`UPLOAD_LOCK`], locked by its worker
+/// for as long as it lives: a worker starting removes those whose lock it can take (their
+/// worker is gone: [`remove_stale_uploads`]).
 const UPLOAD_DIR_PREFIX: &str = "wavesplat-upload-";
+
+/// The lock file in an upload's temporary directory.
+const UPLOAD_LOCK: &str = ".lock";
 
 async fn fetch_upload_to_file(
     ctx: &mut Ctx,
@@ -528,25 +537,30 @@ async fn fetch_upload_to_file(
     spec: &JobSpec,
     size: u64,
 ) -> Result<UploadedFile, Failure> {
+    let scratch = |e: std::io::Error| {
+        fail(
+            FailureKind::Worker,
+            format!("keeping the uploaded source in a temporary directory: {e}"),
+        )
+    };
     let dir = tempfile::Builder::new()
-        .prefix(&format!("{UPLOAD_DIR_PREFIX}{}-", std::process::id()))
+        .prefix(UPLOAD_DIR_PREFIX)
         .tempdir()
-        .map_err(|e| {
-            fail(
-                FailureKind::Worker,
-                format!("keeping the uploaded source in a temporary directory: {e}"),
-            )
-        })?;
+        .map_err(scratch)?;
+    let lock = std::fs::File::create(dir.path().join(UPLOAD_LOCK)).map_err(scratch)?;
+    lock.try_lock().map_err(|e| scratch(e.into()))?;
+    // The upload's own files go beside the lock, in a directory of their own (a bundle may
+    // name any file).
+    let source = dir.path().join("source");
+    std::fs::create_dir(&source).map_err(scratch)?;
     // The disk side runs on a blocking thread reading the chunks as a stream, so that a
-    // bundle is unpacked as it arrives rather than written whole and copied.
+    // bundle is unpacked as it arrives rather than written whole and copied. It owns the
+    // directory until it is done, so that nothing removes the directory under it.
     let (tx, rx) = tokio::sync::mpsc::channel::<Vec<u8>>(16);
-    let (into, raw, name) = (
-        dir.path().to_path_buf(),
-        spec.raw.is_some(),
-        spec.name.clone(),
-    );
+    let (raw, name) = (spec.raw.is_some(), spec.name.clone());
     let sink = tokio::task::spawn_blocking(move || {
-        store_upload(&mut ChunkReader::new(rx), &into, raw, &name)
+        let stored = store_upload(&mut ChunkReader::new(rx), &source, raw, &name);
+        (dir, source, stored)
     });
     let mut digest = wavesplat_net::digest::Sha256Pieces::default();
     let received = async {
@@ -570,13 +584,15 @@ async fn fetch_upload_to_file(
     }
     .await;
     drop(tx);
-    let stored = sink
+    let (dir, source, stored) = sink
         .await
         .map_err(|e| fail(FailureKind::Worker, format!("storing the upload: {e}")))?;
     received?;
     let path = stored?;
     Ok(UploadedFile {
+        _lock: lock,
         _dir: dir,
+        source,
         path,
         sha256: digest.finish(),
     })
@@ -634,10 +650,13 @@ fn store_upload(
     let mut rest = std::io::Cursor::new(&head).chain(r);
     if !raw && head.starts_with(wavesplat_compressor::reader::BUNDLE_MAGIC) {
         let unpacked = unpack_bundle(&mut rest, dir).map_err(|e| {
-            fail(
-                FailureKind::InvalidInput,
-                format!("{job_name}: the uploaded bundle: {e}"),
-            )
+            // A malformed bundle is the submitter's; the disk failing is this worker's (and
+            // worth a retry elsewhere).
+            let kind = match e {
+                ReadError::Bundle(_) => FailureKind::InvalidInput,
+                _ => FailureKind::Worker,
+            };
+            fail(kind, format!("{job_name}: the uploaded bundle: {e}"))
         })?;
         tracing::info!(
             source = job_name,
@@ -655,36 +674,64 @@ fn store_upload(
 }
 
 /// Removes the upload directories ([`UPLOAD_DIR_PREFIX`]) in the temporary directory that
-/// workers no longer running left behind (killed before they could clean up), judged by the
-/// process id in the name: where no such process runs (Linux's `/proc`). Elsewhere, or for a
-/// directory whose name carries no process id, nothing is removed.
+/// workers no longer running left behind (killed before they could clean up): those whose
+/// lock file ([`UPLOAD_LOCK`]) this process can lock, which no live worker holds, on this host
+/// or another sharing the directory. A directory without a lock file (one being created) is
+/// left alone. Returns how many were removed.
 pub fn remove_stale_uploads() -> usize {
-    let (tmp, proc) = (tempfile::env::temp_dir(), std::path::Path::new("/proc"));
-    if !proc.join("self").exists() {
-        return 0;
-    }
-    let Ok(entries) = std::fs::read_dir(&tmp) else {
+    let Ok(entries) = std::fs::read_dir(tempfile::env::temp_dir()) else {
         return 0;
     };
     let mut removed = 0;
     for e in entries.flatten() {
-        let name = e.file_name().to_string_lossy().into_owned();
-        let Some(pid) = name
-            .strip_prefix(UPLOAD_DIR_PREFIX)
-            .and_then(|rest| rest.split('-').next())
-            .and_then(|p| p.parse::<u32>().ok())
-        else {
-            continue;
-        };
-        if pid == std::process::id() || proc.join(pid.to_string()).exists() {
+        let name = e.file_name();
+        if !name.to_string_lossy().starts_with(UPLOAD_DIR_PREFIX)
+            || !e.file_type().is_ok_and(|t| t.is_dir())
+        {
             continue;
         }
-        if e.file_type().is_ok_and(|t| t.is_dir()) && std::fs::remove_dir_all(e.path()).is_ok() {
+        let Ok(lock) = std::fs::File::open(e.path().join(UPLOAD_LOCK)) else {
+            continue;
+        };
+        if lock.try_lock().is_err() {
+            continue;
+        }
+        if std::fs::remove_dir_all(e.path()).is_ok() {
             tracing::info!(path = %e.path().display(), "removed an upload a dead worker left");
             removed += 1;
         }
     }
     removed
+}
+
+/// Refuses an upload whose header names a data file outside what was uploaded (an absolute
+/// path, `..`, or a file the upload did not carry): the region reader would otherwise read
+/// whatever file on this host the name points at, and deliver it to the cache. `primary` is
+/// the uploaded header (or single file) in `dir`; a directory (a DICOM series) lists only its
+/// own files.
+fn confined(primary: &std::path::Path, dir: &std::path::Path, raw: bool) -> Result<(), Failure> {
+    if raw || primary.is_dir() {
+        return Ok(());
+    }
+    let refused = |m: String| fail(FailureKind::InvalidInput, m);
+    let listing = SourceListing::list(primary, None).map_err(|e| {
+        refused(format!(
+            "the uploaded header names a file the upload does not carry, or cannot be read: {e}"
+        ))
+    })?;
+    let root = std::fs::canonicalize(dir)
+        .map_err(|e| fail(FailureKind::Worker, format!("the upload's directory: {e}")))?;
+    for (name, path, _) in listing.files.iter().skip(1) {
+        let inside = std::fs::canonicalize(path).is_ok_and(|p| p.starts_with(&root));
+        if !inside {
+            return Err(refused(format!(
+                "the uploaded header names the data file {name:?}, which the upload does not \
+                 carry: an uploaded header's data must come with it (archive submit \
+                 --upload sends the files a header names beside it)"
+            )));
+        }
+    }
+    Ok(())
 }
 
 /// The name an uploaded source's temporary copy is given, which is how the region reader
@@ -708,9 +755,10 @@ fn upload_file_name(raw: bool, job_name: &str, head: &[u8]) -> &'static str {
 }
 
 /// The reader of an uploaded source's temporary copy (see [`UploadedFile`]).
-fn open_upload(spec: &JobSpec, path: &std::path::Path) -> Result<RegionReader, Failure> {
+fn open_upload(spec: &JobSpec, f: &UploadedFile) -> Result<RegionReader, Failure> {
+    confined(&f.path, &f.source, spec.raw.is_some())?;
     let raw = spec.raw.as_ref().map(options::raw_spec);
-    RegionReader::open(path, raw.as_ref()).map_err(|e| match e {
+    RegionReader::open(&f.path, raw.as_ref()).map_err(|e| match e {
         ReadError::TimeSeries { points, .. } => uploaded_series_refused(&spec.name, points),
         e => fail(FailureKind::InvalidInput, format!("{}: {e}", spec.name)),
     })
@@ -787,7 +835,7 @@ async fn execute(
         }
         if let Some(brick) = job_spec.options.brick {
             if let Some(f) = uploaded {
-                let reader = open_upload(&job_spec, &f.path)?;
+                let reader = open_upload(&job_spec, &f)?;
                 return pool.install(|| compress_bricked_job(&reader, brick, &opts, &sh));
             }
             let volume = decode(&job_spec, bytes)?;
@@ -848,6 +896,73 @@ async fn execute(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// An uploaded header may name only data the upload carried: an absolute path, a path out
+    /// of the upload's directory and a file the upload lacks are refused (the region reader
+    /// would read them from this host), a data file inside it is taken.
+    #[test]
+    fn an_uploaded_header_reads_no_file_outside_the_upload() {
+        let outside = tempfile::tempdir().unwrap();
+        let secret = outside.path().join("secret.raw");
+        std::fs::write(&secret, [7u8; 4]).unwrap();
+        let root = tempfile::tempdir().unwrap();
+        let dir = root.path().join("source");
+        std::fs::create_dir_all(dir.join("data")).unwrap();
+        std::fs::write(dir.join("data/v.raw"), [1u8; 4]).unwrap();
+        std::fs::write(root.path().join("beside.raw"), [1u8; 4]).unwrap();
+        let header = |data: &str| {
+            let h = dir.join("v.mhd");
+            std::fs::write(
+                &h,
+                format!(
+                    "ObjectType = Image\nNDims = 3\nDimSize = 2 2 1\nElementType = \
+                     MET_UCHAR\nElementDataFile = {data}\n"
+                ),
+            )
+            .unwrap();
+            h
+        };
+        for data in [secret.to_str().unwrap(), "../beside.raw", "missing.raw"] {
+            let e = confined(&header(data), &dir, false).unwrap_err();
+            assert_eq!(e.kind, FailureKind::InvalidInput, "{data}");
+            assert!(
+                e.message.contains("does not carry"),
+                "{data}: {}",
+                e.message
+            );
+        }
+        confined(&header("data/v.raw"), &dir, false).unwrap();
+        // Raw samples and a DICOM directory name no other file.
+        confined(&dir.join("data/v.raw"), &dir, true).unwrap();
+        confined(&dir, &dir, false).unwrap();
+    }
+
+    /// A worker starting removes the uploads whose lock nobody holds (their worker died), and
+    /// leaves those of live workers and any directory without a lock file.
+    #[test]
+    fn only_uploads_of_dead_workers_are_removed() {
+        let tmp = tempfile::env::temp_dir();
+        let made = |tag: &str, lock: bool| {
+            let d = tmp.join(format!(
+                "{UPLOAD_DIR_PREFIX}test-{}-{tag}",
+                std::process::id()
+            ));
+            std::fs::create_dir_all(d.join("source")).unwrap();
+            if lock {
+                std::fs::write(d.join(UPLOAD_LOCK), b"").unwrap();
+            }
+            d
+        };
+        let (dead, live, unlocked) = (made("dead", true), made("live", true), made("new", false));
+        let held = std::fs::File::open(live.join(UPLOAD_LOCK)).unwrap();
+        held.try_lock().unwrap();
+        remove_stale_uploads();
+        assert!(!dead.exists());
+        assert!(live.exists() && unlocked.exists());
+        drop(held);
+        std::fs::remove_dir_all(live).unwrap();
+        std::fs::remove_dir_all(unlocked).unwrap();
+    }
 
     /// An upload's temporary copy is named for its format as the in-memory decoder finds it:
     /// raw samples stay raw even when their first bytes look like gzip or a header.

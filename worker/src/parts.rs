@@ -565,9 +565,18 @@ impl RemoteBricks {
     ) -> Result<Vec<u8>, Failure> {
         self.shared.set(0.9, "gathering the parts' files");
         let head = plan.manifest_len() as usize;
-        let total = head as u64 + chosen.iter().map(|b| b.len).sum::<u64>();
+        let total = chosen
+            .iter()
+            .try_fold(head as u64, |t, b| t.checked_add(b.len))
+            .and_then(|t| usize::try_from(t).ok())
+            .ok_or_else(|| {
+                fail(
+                    FailureKind::Worker,
+                    "the parts' files are too large to hold",
+                )
+            })?;
         let mut out = Vec::new();
-        out.try_reserve_exact(total as usize).map_err(|_| {
+        out.try_reserve_exact(total).map_err(|_| {
             fail(
                 FailureKind::Worker,
                 format!("no memory for the {total}-byte bricked file"),
@@ -577,7 +586,18 @@ impl RemoteBricks {
         let mut placed = Vec::with_capacity(chosen.len());
         for b in chosen {
             let (bytes, kept) = self.fetch_kept(b)?;
-            placed.push((bytes.len() as u64, crc32fast::hash(&bytes), kept));
+            if bytes.len() as u64 != b.len {
+                return Err(fail(
+                    FailureKind::Worker,
+                    format!(
+                        "part {}'s file has {} bytes, reported {}",
+                        b.file,
+                        bytes.len(),
+                        b.len
+                    ),
+                ));
+            }
+            placed.push((b.len, crc32fast::hash(&bytes), kept));
             out.extend_from_slice(&bytes);
         }
         let (section, _) = plan.manifest_section_for(&placed).map_err(brick_failure)?;

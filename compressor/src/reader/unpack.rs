@@ -17,7 +17,8 @@ use super::{bundle_format, Format, ReadError, BUNDLE_MAGIC, MAX_SOURCE_FILES};
 /// What [`unpack_bundle`] wrote.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct UnpackedBundle {
-    /// The format the bundle names (`None`: to be found from the files).
+    /// The format the bundle names (`None`: to be found from the files). A reader of the
+    /// files finds it again from their names and contents, as for a source on disk.
     pub format: Option<Format>,
     /// What to open: the directory for a DICOM series, else the primary (first) file.
     pub primary: PathBuf,
@@ -53,7 +54,7 @@ pub fn unpack_bundle(r: &mut dyn Read, dir: &Path) -> Result<UnpackedBundle, Rea
             "file count {count} is not within 1..={MAX_SOURCE_FILES}"
         )));
     }
-    let mut seen = HashSet::new();
+    let (mut seen, mut dirs) = (HashSet::new(), HashSet::new());
     let (mut primary, mut bytes) = (None, 0u64);
     for i in 0..count {
         let mut nl = [0u8; 2];
@@ -63,9 +64,18 @@ pub fn unpack_bundle(r: &mut dyn Read, dir: &Path) -> Result<UnpackedBundle, Rea
         let name =
             String::from_utf8(name).map_err(|_| bad(format!("file {i}: name is not UTF-8")))?;
         let relative = inside(&name)?;
-        if !seen.insert(relative.clone()) {
-            return Err(bad(format!("file {name:?} appears twice")));
+        // A name given twice, or a file where another name needs a directory (`a` and
+        // `a/b`, either way round).
+        let clash = seen.contains(&relative)
+            || dirs.contains(&relative)
+            || relative.ancestors().skip(1).any(|a| seen.contains(a));
+        if clash {
+            return Err(bad(format!(
+                "file {name:?} appears twice or clashes with another file's directory"
+            )));
         }
+        seen.insert(relative.clone());
+        dirs.extend(relative.ancestors().skip(1).map(Path::to_path_buf));
         let mut len = [0u8; 8];
         read_exact(r, &mut len, "file length")?;
         let len = u64::from_le_bytes(len);
@@ -103,8 +113,22 @@ pub fn unpack_bundle(r: &mut dyn Read, dir: &Path) -> Result<UnpackedBundle, Rea
     })
 }
 
-/// `name` as a path inside the unpacking directory: relative, made of plain components.
+/// Most directories a bundle's file name may descend (a DICOM series' names have none, a
+/// header's data file one or two): deep names would make many directories for few bytes.
+pub const MAX_NAME_DEPTH: usize = 8;
+
+/// Longest file name in a bundle (bytes).
+pub const MAX_NAME_BYTES: usize = 1024;
+
+/// `name` as a path inside the unpacking directory: relative, made of plain components, at
+/// most [`MAX_NAME_DEPTH`] directories deep and [`MAX_NAME_BYTES`] long.
 fn inside(name: &str) -> Result<PathBuf, ReadError> {
+    if name.len() > MAX_NAME_BYTES {
+        return Err(ReadError::Bundle(format!(
+            "a file name of {} bytes; at most {MAX_NAME_BYTES}",
+            name.len()
+        )));
+    }
     let mut out = PathBuf::new();
     for c in Path::new(name).components() {
         match c {
@@ -121,6 +145,11 @@ fn inside(name: &str) -> Result<PathBuf, ReadError> {
     }
     if out.as_os_str().is_empty() {
         return Err(ReadError::Bundle(format!("file name {name:?} is empty")));
+    }
+    if out.components().count() > MAX_NAME_DEPTH + 1 {
+        return Err(ReadError::Bundle(format!(
+            "file {name:?} lies more than {MAX_NAME_DEPTH} directories deep"
+        )));
     }
     Ok(out)
 }
@@ -220,6 +249,23 @@ mod tests {
             );
         }
         refused(&bundle(None, &[("a", b"1"), ("./a", b"2")]), "twice");
+        refused(&bundle(None, &[("a", b"1"), ("a/b", b"2")]), "clashes");
+        refused(&bundle(None, &[("a/b", b"1"), ("a", b"2")]), "clashes");
+        let deep = "d/".repeat(MAX_NAME_DEPTH + 1) + "f";
+        refused(&bundle(None, &[("a", b"1"), (deep.as_str(), b"2")]), "deep");
+        let long = "n".repeat(MAX_NAME_BYTES + 1);
+        refused(
+            &bundle(None, &[("a", b"1"), (long.as_str(), b"2")]),
+            "at most",
+        );
+        // As deep as allowed is taken.
+        let ok = "d/".repeat(MAX_NAME_DEPTH) + "f";
+        let root = tempfile::tempdir().unwrap();
+        unpack_bundle(
+            &mut &bundle(None, &[("a", b"1"), (ok.as_str(), b"2")])[..],
+            root.path(),
+        )
+        .unwrap();
         let good = bundle(Some(Format::Nrrd), &[("v.nhdr", b"h"), ("v.raw", b"1234")]);
         refused(&good[..good.len() - 1], "claims 4 bytes");
         for cut in 1..good.len() - 4 {
