@@ -1079,23 +1079,17 @@ async fn a_compressed_nifti_bricked_job_spread_over_workers() {
     assert!(listed.iter().all(|v| v.sha256 == sha), "{listed:?}");
 }
 
-/// A DICOM series directory and a detached MetaImage header (its data in another file) on
-/// shared storage: their bricked jobs are hashed file by file and spread over the workers like
-/// a single file's (parts read slice ranges and regions, nobody holds the volume), and each
-/// lands as the file one process makes from the same source.
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn a_dicom_series_and_a_detached_header_spread_their_bricks_over_workers() {
+/// Sources of several files in `dir`, the same Shepp–Logan samples of `dims` (rounded: the
+/// DICOM slices are 16-bit): a DICOM series directory `ct` and a detached MetaImage header
+/// `head.mhd` with its data file. Returns their paths.
+fn series_and_detached_header(
+    dir: &Path,
+    dims: [usize; 3],
+) -> (std::path::PathBuf, std::path::PathBuf) {
     use wavesplat_codec::volume::Volume;
-    use wavesplat_compressor::reader::region::RegionReader;
     use wavesplat_fixtures::{write_dicom_series, write_metaimage, DicomOptions, Layout};
-    use wavesplat_orchestrator_client::model::TargetSpec;
-    let cl = TestCluster::start(&ORCH_TIMING);
-    let (o, c) = (cl.orch.url(), cl.cache.url());
-    let dims = [40, 36, 30];
-    let shared = cl.root.join("shared");
-    let series = shared.join("ct");
+    let series = dir.join("ct");
     std::fs::create_dir_all(&series).unwrap();
-    // Integer samples: the DICOM slices are 16-bit.
     let samples: Vec<f32> = phantom(Phantom::SheppLogan, dims)
         .iter()
         .map(|x| x.round())
@@ -1106,7 +1100,23 @@ async fn a_dicom_series_and_a_detached_header_spread_their_bricks_over_workers()
         ..Default::default()
     };
     write_dicom_series(&series, &v, &dicom);
-    let header = write_metaimage(&shared, "head", &v, Layout::F32, false, true);
+    let header = write_metaimage(dir, "head", &v, Layout::F32, false, true);
+    (series, header)
+}
+
+/// A DICOM series directory and a detached MetaImage header (its data in another file) on
+/// shared storage: their bricked jobs are hashed file by file and spread over the workers like
+/// a single file's (parts read slice ranges and regions, nobody holds the volume), and each
+/// lands as the file one process makes from the same source.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_dicom_series_and_a_detached_header_spread_their_bricks_over_workers() {
+    use wavesplat_compressor::reader::region::RegionReader;
+    use wavesplat_orchestrator_client::model::TargetSpec;
+    let cl = TestCluster::start(&ORCH_TIMING);
+    let (o, c) = (cl.orch.url(), cl.cache.url());
+    let dims = [40, 36, 30];
+    let shared = cl.root.join("shared");
+    let (series, header) = series_and_detached_header(&shared, dims);
     assert!(
         shared.join("head.raw").is_file(),
         "a detached header's data file"
@@ -1161,29 +1171,14 @@ async fn a_dicom_series_and_a_detached_header_spread_their_bricks_over_workers()
 /// leaves no upload of its own behind.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn uploaded_bundles_unpack_as_they_stream_and_an_uploaded_series_is_refused() {
-    use wavesplat_codec::volume::Volume;
     use wavesplat_compressor::reader::region::RegionReader;
-    use wavesplat_fixtures::{
-        write_dicom_series, write_metaimage, write_nifti_series, DicomOptions, Layout,
-    };
+    use wavesplat_fixtures::write_nifti_series;
     use wavesplat_orchestrator_client::model::TargetSpec;
     let cl = TestCluster::start(&ORCH_TIMING);
     let (o, c) = (cl.orch.url(), cl.cache.url());
     let dims = [40, 36, 30];
     let up = cl.root.join("up");
-    let series = up.join("ct");
-    std::fs::create_dir_all(&series).unwrap();
-    let samples: Vec<f32> = phantom(Phantom::SheppLogan, dims)
-        .iter()
-        .map(|x| x.round())
-        .collect();
-    let v = Volume::new(dims, [1.0, 1.0, 1.0], vec![samples]).unwrap();
-    let dicom = DicomOptions {
-        layout: Layout::U16,
-        ..Default::default()
-    };
-    write_dicom_series(&series, &v, &dicom);
-    let header = write_metaimage(&up, "head", &v, Layout::F32, false, true);
+    let (series, header) = series_and_detached_header(&up, dims);
     // Time series: one submitted bricked, one whole.
     let cines = [cl.root.join("cine_b"), cl.root.join("cine_w")];
     let points: Vec<Vec<f32>> = (0..3)
