@@ -341,6 +341,37 @@ async fn nothing_sent_twice_across_view_change_and_reconnect() {
     server.stop().await;
 }
 
+/// A file of several upload chunks (the last one partial), handed over by value so that its
+/// chunks are made as they are sent, is stored whole: the cache's SHA-256 and size are the
+/// file's, and its coefficients decode from the cache as from the file.
+#[tokio::test]
+async fn an_owned_upload_of_several_chunks_is_stored_whole() {
+    let bytes = phantom_file(
+        Phantom::Noise { seed: 7 },
+        [112, 112, 112],
+        &CompressOptions {
+            target: wavesplat_compressor::encode::Target::All,
+            ..phantom_options(1.0)
+        },
+    );
+    let chunk = wavesplat_client::CHUNK_BYTES;
+    assert!(
+        bytes.len() > 2 * chunk && !bytes.len().is_multiple_of(chunk),
+        "{} bytes",
+        bytes.len()
+    );
+    let server = TestCache::start();
+    let mut c = server.client().await;
+    let sha = wavesplat_net::digest::hex(&wavesplat_net::digest::sha256(&bytes));
+    let info = c.ingest_owned("noise", bytes.clone()).await.unwrap().volume;
+    assert_eq!(info.file_bytes, bytes.len() as u64);
+    assert_eq!(info.sha256, sha);
+    // The same content by reference is the same volume.
+    let again = c.ingest("noise", &bytes).await.unwrap();
+    assert!(again.existed && again.volume.id == info.id);
+    server.stop().await;
+}
+
 /// With credit the client pulls: a client that stops reading after its first packet has at
 /// most its credit (plus one packet) in flight, and a view change then reorders the rest.
 #[tokio::test]

@@ -62,6 +62,12 @@ impl CacheClient {
         self.runtime.block_on(self.inner.ingest(name, bytes))
     }
 
+    /// Uploads a `.wsp` file, taking its bytes (no copy of the file: see
+    /// [`crate::CacheClient::ingest_owned`]).
+    pub fn ingest_owned(&mut self, name: &str, bytes: Vec<u8>) -> Result<Ingested, ClientError> {
+        self.runtime.block_on(self.inner.ingest_owned(name, bytes))
+    }
+
     /// The header and the first packets in file order, up to `max_bytes`.
     pub fn first_packets(
         &mut self,

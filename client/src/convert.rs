@@ -57,24 +57,27 @@ pub fn view_message(spec: &ViewSpec, time_point: u32) -> Result<pb::ViewSpec, Vi
     })
 }
 
-/// The messages of an upload: `start`, then chunks.
+/// The messages of an upload: `start` (with the bytes' SHA-256), then chunks, each copied out
+/// of `bytes` only when the stream is asked for it.
 pub(crate) fn ingest_messages(
     name: &str,
-    bytes: &[u8],
-    sha256: [u8; 32],
-) -> Vec<pb::IngestRequest> {
+    bytes: Vec<u8>,
+) -> impl Iterator<Item = pb::IngestRequest> + Send + 'static {
     use pb::ingest_request::Msg;
-    let mut out = vec![pb::IngestRequest {
+    let start = pb::IngestRequest {
         msg: Some(Msg::Start(pb::IngestStart {
             name: name.to_string(),
             total_size: bytes.len() as u64,
-            sha256: sha256.to_vec(),
+            sha256: wavesplat_net::digest::sha256(&bytes).to_vec(),
         })),
-    }];
-    out.extend(bytes.chunks(crate::CHUNK_BYTES).map(|c| pb::IngestRequest {
-        msg: Some(Msg::Chunk(c.to_vec())),
-    }));
-    out
+    };
+    let chunks = bytes.len().div_ceil(crate::CHUNK_BYTES);
+    std::iter::once(start).chain((0..chunks).map(move |i| {
+        let end = ((i + 1) * crate::CHUNK_BYTES).min(bytes.len());
+        pb::IngestRequest {
+            msg: Some(Msg::Chunk(bytes[i * crate::CHUNK_BYTES..end].to_vec())),
+        }
+    }))
 }
 
 /// A volume's facts, checked.

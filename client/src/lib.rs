@@ -359,9 +359,21 @@ impl CacheClient {
         Ok(r.into_inner().id)
     }
 
-    /// Uploads a `.wsp` file under `name` (in chunks, with its SHA-256).
+    /// Uploads a `.wsp` file under `name` (in chunks, with its SHA-256). Copies it once: a
+    /// caller that owns the bytes gives them to [`CacheClient::ingest_owned`] instead.
     pub async fn ingest(&mut self, name: &str, bytes: &[u8]) -> Result<Ingested, ClientError> {
-        let msgs = convert::ingest_messages(name, bytes, wavesplat_net::digest::sha256(bytes));
+        self.ingest_owned(name, bytes.to_vec()).await
+    }
+
+    /// Uploads a `.wsp` file under `name`, as [`CacheClient::ingest`] does, taking the bytes:
+    /// each chunk's message is made as the transport takes it, so the upload costs a chunk or
+    /// two of memory beyond the file, not the file again.
+    pub async fn ingest_owned(
+        &mut self,
+        name: &str,
+        bytes: Vec<u8>,
+    ) -> Result<Ingested, ClientError> {
+        let msgs = convert::ingest_messages(name, bytes);
         let r = self.inner.ingest(tokio_stream::iter(msgs)).await;
         let r = self.checked(r).await?.into_inner();
         Ok(Ingested {

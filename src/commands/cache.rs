@@ -150,7 +150,7 @@ pub fn run(cmd: CacheCommand) -> Result<()> {
                     .context("the input has no file name; pass --name")?,
             };
             let r = connect(&a.url)?
-                .ingest(&name, &bytes)
+                .ingest_owned(&name, bytes)
                 .with_context(|| format!("ingesting {}", a.input.display()))?;
             let what = if r.existed {
                 "already stored as"

@@ -863,30 +863,37 @@ async fn execute(
         return Err(fail(FailureKind::Worker, "lease lost before upload"));
     }
     shared.set(0.9, "uploading");
-    let r = ctx.cache.ingest(&spec.name, &file).await.map_err(|e| {
-        if e.code() == Some(Code::AlreadyExists) {
-            // The same files compressed again with other options: say what to do.
-            return fail(
-                FailureKind::CacheRejected,
-                format!(
+    let output_bytes = file.len() as u64;
+    let r = ctx
+        .cache
+        .ingest_owned(&spec.name, file)
+        .await
+        .map_err(|e| {
+            if e.code() == Some(Code::AlreadyExists) {
+                // The same files compressed again with other options: say what to do.
+                return fail(
+                    FailureKind::CacheRejected,
+                    format!(
                     "the cache already has a volume named {:?} with other content: submit with \
                      --name-suffix (e.g. _cubic) or --name-prefix to keep both, or remove it \
                      first (wavesplat cache rm {})",
                     spec.name, spec.name
                 ),
-            );
-        }
-        let kind = match e.code() {
-            Some(Code::InvalidArgument | Code::FailedPrecondition) => FailureKind::CacheRejected,
-            _ => FailureKind::CacheUnavailable,
-        };
-        fail(kind, format!("cache ingest of {:?}: {e}", spec.name))
-    })?;
+                );
+            }
+            let kind = match e.code() {
+                Some(Code::InvalidArgument | Code::FailedPrecondition) => {
+                    FailureKind::CacheRejected
+                }
+                _ => FailureKind::CacheUnavailable,
+            };
+            fail(kind, format!("cache ingest of {:?}: {e}", spec.name))
+        })?;
     let v = r.volume;
-    tracing::info!(job = id, name = %spec.name, cache_id = v.id, bytes = file.len(), existed = r.existed, "delivered");
+    tracing::info!(job = id, name = %spec.name, cache_id = v.id, bytes = output_bytes, existed = r.existed, "delivered");
     Ok(Delivery {
         cache_volume_id: v.id,
-        output_bytes: file.len() as u64,
+        output_bytes,
         voxels,
         existed: r.existed,
         sha256: v.sha256,
