@@ -622,7 +622,8 @@ impl BrickPlan {
     /// The container of the bricks' files (in grid order) and the counts they kept, and its
     /// manifest (offsets filled in).
     pub fn assemble(&self, bricks: &[(Vec<u8>, u64)]) -> Result<(Vec<u8>, Manifest), BrickError> {
-        let mut manifest = self.manifest(bricks);
+        let kept: Vec<u64> = bricks.iter().map(|(_, k)| *k).collect();
+        let mut manifest = self.manifest(&kept);
         let files: Vec<&[u8]> = bricks.iter().map(|(b, _)| b.as_slice()).collect();
         let bytes = write_bricked(&mut manifest, &files)?;
         Ok((bytes, manifest))
@@ -635,7 +636,7 @@ impl BrickPlan {
         &self,
         bricks: &[(u64, u32, u64)],
     ) -> Result<(Vec<u8>, Manifest), BrickError> {
-        let kept: Vec<(Vec<u8>, u64)> = bricks.iter().map(|b| (Vec::new(), b.2)).collect();
+        let kept: Vec<u64> = bricks.iter().map(|b| b.2).collect();
         let mut manifest = self.manifest(&kept);
         let placed: Vec<(u64, u32)> = bricks.iter().map(|b| (b.0, b.1)).collect();
         let section = wavesplat_codec::format::bricked::place_bricks(&mut manifest, &placed)?;
@@ -645,11 +646,12 @@ impl BrickPlan {
     /// The bytes of the container's manifest section for this plan's grid: its fields have fixed
     /// widths, so this is exact before any brick is coded (what a byte target sets aside).
     pub fn manifest_len(&self) -> u64 {
-        let none = vec![(Vec::new(), 0); self.grid.len()];
-        manifest_section(&self.manifest(&none)).len() as u64
+        manifest_section(&self.manifest(&vec![0; self.grid.len()])).len() as u64
     }
 
-    fn manifest(&self, bricks: &[(Vec<u8>, u64)]) -> Manifest {
+    /// The manifest of bricks that kept `kept` coefficients each, in grid order (offsets,
+    /// lengths and CRCs to be placed).
+    fn manifest(&self, kept: &[u64]) -> Manifest {
         Manifest {
             dims: self.dims,
             channels: self.channels,
@@ -659,8 +661,8 @@ impl BrickPlan {
             bricks: self
                 .grid
                 .iter()
-                .zip(bricks)
-                .map(|((origin, dims), (_, kept))| BrickEntry {
+                .zip(kept)
+                .map(|((origin, dims), kept)| BrickEntry {
                     origin: *origin,
                     dims: *dims,
                     offset: 0,
@@ -1241,10 +1243,9 @@ impl Spill {
         self: &std::sync::Arc<Spill>,
         bytes: &[u8],
     ) -> Result<SpilledBrick, BrickError> {
-        use std::io::Write;
+        use std::io::{Seek, SeekFrom, Write};
         let (_, header) = wavesplat_codec::format::read_header_section(bytes)?;
         let crc = crc32fast::hash(bytes);
-        use std::io::{Seek, SeekFrom};
         let mut g = self.file.lock().unwrap_or_else(|p| p.into_inner());
         let offset = g.1;
         // From the end as recorded, wherever a read or a failed write left the file's cursor.
@@ -1742,7 +1743,7 @@ mod tests {
     /// byte target); the overhead reported is the file's, and a writer that fails is an
     /// error, not a panic or a short file called done.
     #[test]
-    fn a_bricked_file_is_written_from_its_spill_and_leaves_nothing_behind() {
+    fn a_bricked_file_is_written_from_its_spill() {
         let v = Phantom::SheppLogan.generate([40, 36, 30]);
         let opts = CompressOptions {
             target: Target::Bytes(9_000),

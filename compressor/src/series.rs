@@ -685,9 +685,7 @@ impl SeriesPlan {
             total_coefficients,
         })
     }
-}
 
-impl SeriesPlan {
     /// The series manifest of components `entries` (offsets to be filled in).
     fn manifest(&self, series: &dyn SeriesSource, entries: Vec<ComponentEntry>) -> SeriesManifest {
         let points = series.time_points();
@@ -735,8 +733,16 @@ impl SeriesPlan {
                 self.units.len()
             )));
         }
-        // Each component: its bricked manifest section (none for one brick), its units, and
-        // its length, CRC-32 (combined from its parts' without reading them again) and count.
+        /// One component as written: its bricked manifest section (none for one brick), its
+        /// units, and its length, CRC-32 (combined from its units' without reading them again)
+        /// and count.
+        struct Component<'u> {
+            section: Vec<u8>,
+            units: &'u [CodedBrick<SpilledBrick>],
+            len: u64,
+            crc: u32,
+            kept: u64,
+        }
         let mut components = Vec::with_capacity(self.plans.len());
         let mut start = 0;
         for plan in &self.plans {
@@ -756,7 +762,13 @@ impl SeriesPlan {
             }
             let len = section.len() as u64 + mine.iter().map(|u| u.len).sum::<u64>();
             let kept = mine.iter().map(|u| u.kept).sum();
-            components.push((section, mine, len, crc.finalize(), kept));
+            components.push(Component {
+                section,
+                units: mine,
+                len,
+                crc: crc.finalize(),
+                kept,
+            });
         }
         let entries = components
             .iter()
@@ -764,21 +776,21 @@ impl SeriesPlan {
                 offset: 0,
                 length: 0,
                 crc: 0,
-                kept: c.4,
+                kept: c.kept,
             })
             .collect();
         let mut manifest = self.manifest(series, entries);
-        let placed: Vec<(u64, u32)> = components.iter().map(|c| (c.2, c.3)).collect();
+        let placed: Vec<(u64, u32)> = components.iter().map(|c| (c.len, c.crc)).collect();
         let section = place_components(&mut manifest, &placed)?;
         let output = |e| SeriesError::Brick(Box::new(BrickError::Output(e)));
         out.write_all(&section).map_err(output)?;
         let mut written = section.len() as u64;
-        for (section, mine, len, _, _) in &components {
-            out.write_all(section).map_err(output)?;
-            for u in *mine {
+        for c in &components {
+            out.write_all(&c.section).map_err(output)?;
+            for u in c.units {
                 u.file.copy_to(u.len, out).map_err(output)?;
             }
-            written += len;
+            written += c.len;
         }
         out.flush().map_err(output)?;
         Ok((manifest, written))

@@ -537,12 +537,6 @@ async fn fetch_upload_to_file(
     spec: &JobSpec,
     size: u64,
 ) -> Result<UploadedFile, Failure> {
-    let scratch = |e: std::io::Error| {
-        fail(
-            FailureKind::Worker,
-            format!("keeping the uploaded source in a temporary directory: {e}"),
-        )
-    };
     let dir = tempfile::Builder::new()
         .prefix(UPLOAD_DIR_PREFIX)
         .tempdir()
@@ -598,6 +592,14 @@ async fn fetch_upload_to_file(
     })
 }
 
+/// A failure of this worker's own disk while it keeps an upload (worth a retry elsewhere).
+fn scratch(e: std::io::Error) -> Failure {
+    fail(
+        FailureKind::Worker,
+        format!("keeping the uploaded source in a temporary directory: {e}"),
+    )
+}
+
 /// The blocking reader of an upload's chunks as they arrive ([`fetch_upload_to_file`]).
 struct ChunkReader {
     rx: tokio::sync::mpsc::Receiver<Vec<u8>>,
@@ -639,14 +641,8 @@ fn store_upload(
     job_name: &str,
 ) -> Result<std::path::PathBuf, Failure> {
     use std::io::{Read, Write};
-    let local = |e: std::io::Error| {
-        fail(
-            FailureKind::Worker,
-            format!("keeping the uploaded source in a temporary file: {e}"),
-        )
-    };
     let mut head = Vec::with_capacity(512);
-    r.take(512).read_to_end(&mut head).map_err(local)?;
+    r.take(512).read_to_end(&mut head).map_err(scratch)?;
     let mut rest = std::io::Cursor::new(&head).chain(r);
     if !raw && head.starts_with(wavesplat_compressor::reader::BUNDLE_MAGIC) {
         let unpacked = unpack_bundle(&mut rest, dir).map_err(|e| {
@@ -667,9 +663,9 @@ fn store_upload(
         return Ok(unpacked.primary);
     }
     let path = dir.join(upload_file_name(raw, job_name, &head));
-    let mut file = std::io::BufWriter::new(std::fs::File::create(&path).map_err(local)?);
-    std::io::copy(&mut rest, &mut file).map_err(local)?;
-    file.flush().map_err(local)?;
+    let mut file = std::io::BufWriter::new(std::fs::File::create(&path).map_err(scratch)?);
+    std::io::copy(&mut rest, &mut file).map_err(scratch)?;
+    file.flush().map_err(scratch)?;
     Ok(path)
 }
 
@@ -868,27 +864,7 @@ async fn execute(
         .cache
         .ingest_owned(&spec.name, file)
         .await
-        .map_err(|e| {
-            if e.code() == Some(Code::AlreadyExists) {
-                // The same files compressed again with other options: say what to do.
-                return fail(
-                    FailureKind::CacheRejected,
-                    format!(
-                    "the cache already has a volume named {:?} with other content: submit with \
-                     --name-suffix (e.g. _cubic) or --name-prefix to keep both, or remove it \
-                     first (wavesplat cache rm {})",
-                    spec.name, spec.name
-                ),
-                );
-            }
-            let kind = match e.code() {
-                Some(Code::InvalidArgument | Code::FailedPrecondition) => {
-                    FailureKind::CacheRejected
-                }
-                _ => FailureKind::CacheUnavailable,
-            };
-            fail(kind, format!("cache ingest of {:?}: {e}", spec.name))
-        })?;
+        .map_err(|e| ingest_failure(&spec.name, e))?;
     let v = r.volume;
     tracing::info!(job = id, name = %spec.name, cache_id = v.id, bytes = output_bytes, existed = r.existed, "delivered");
     Ok(Delivery {
@@ -898,6 +874,26 @@ async fn execute(
         existed: r.existed,
         sha256: v.sha256,
     })
+}
+
+/// Why delivering `name` to the cache failed, as the job's failure.
+fn ingest_failure(name: &str, e: wavesplat_client::ClientError) -> Failure {
+    if e.code() == Some(Code::AlreadyExists) {
+        // The same files compressed again with other options: say what to do.
+        return fail(
+            FailureKind::CacheRejected,
+            format!(
+                "the cache already has a volume named {name:?} with other content: submit with \
+                 --name-suffix (e.g. _cubic) or --name-prefix to keep both, or remove it first \
+                 (wavesplat cache rm {name})"
+            ),
+        );
+    }
+    let kind = match e.code() {
+        Some(Code::InvalidArgument | Code::FailedPrecondition) => FailureKind::CacheRejected,
+        _ => FailureKind::CacheUnavailable,
+    };
+    fail(kind, format!("cache ingest of {name:?}: {e}"))
 }
 
 #[cfg(test)]
