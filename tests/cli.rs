@@ -938,3 +938,64 @@ fn a_bricked_volume_is_compressed_listed_and_rendered() {
     let info = run(&["info", &path("b.wspx")]);
     assert!(out(&info).contains("bricks      8"), "{}", out(&info));
 }
+
+/// Stopped by Ctrl-C (SIGINT) or SIGTERM while it writes a bricked file, `compress` removes its
+/// unfinished file: nothing is left in the output's directory (a stopped compression of a large
+/// volume would otherwise leave a hidden file about the output's size), and the status says it
+/// was interrupted.
+#[cfg(unix)]
+#[test]
+fn an_interrupted_compress_leaves_no_unfinished_file() {
+    for signal in ["-INT", "-TERM"] {
+        let dir = tempfile::tempdir().unwrap();
+        let output = dir.path().join("big.wsp");
+        let mut child = Command::new(BIN)
+            .args([
+                "compress",
+                "--phantom",
+                "ct",
+                "--dims",
+                "160,160,160",
+                "--brick",
+                "32",
+            ])
+            .args(["--target-fraction", "0.5", "-o"])
+            .arg(&output)
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::piped())
+            .spawn()
+            .unwrap();
+        let unfinished = || {
+            std::fs::read_dir(dir.path())
+                .unwrap()
+                .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+                .collect::<Vec<_>>()
+        };
+        let started = std::time::Instant::now();
+        while unfinished().is_empty() {
+            assert!(
+                child.try_wait().unwrap().is_none(),
+                "compress ended before it could be interrupted"
+            );
+            assert!(
+                started.elapsed().as_secs() < 120,
+                "no unfinished file appeared"
+            );
+            std::thread::sleep(std::time::Duration::from_millis(20));
+        }
+        std::thread::sleep(std::time::Duration::from_millis(200));
+        let killed = Command::new("kill")
+            .args([signal, &child.id().to_string()])
+            .status()
+            .unwrap();
+        assert!(killed.success());
+        let done = child.wait_with_output().unwrap();
+        let stderr = String::from_utf8_lossy(&done.stderr).into_owned();
+        assert_eq!(done.status.code(), Some(130), "{signal}: {stderr}");
+        assert!(
+            stderr.contains("removed the unfinished"),
+            "{signal}: {stderr}"
+        );
+        assert!(unfinished().is_empty(), "{signal}: {:?}", unfinished());
+    }
+}

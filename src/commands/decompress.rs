@@ -82,8 +82,9 @@ fn decompress_bricked(a: &DecompressArgs, bytes: &[u8]) -> Result<()> {
     let mut partial = a.output.clone().into_os_string();
     partial.push(".partial");
     let partial = std::path::PathBuf::from(partial);
-    let file = std::fs::File::create(&partial)
+    let file = super::interrupt::Unfinished::register(&partial, || std::fs::File::create(&partial))
         .with_context(|| format!("creating {}", partial.display()))?;
+    let _unfinished = super::interrupt::Unfinished::guard(&partial);
     let progress = wavesplat_harness::console::Progress::new("decompress");
     progress.stage(&format!("decoding {} bricks", manifest.bricks.len()));
     let done = std::sync::atomic::AtomicUsize::new(0);

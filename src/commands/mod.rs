@@ -7,6 +7,7 @@ pub mod compress;
 pub mod decompress;
 pub mod demo;
 pub mod info;
+pub mod interrupt;
 pub mod orchestrator;
 pub mod phantom;
 pub mod publish;
@@ -150,11 +151,18 @@ pub fn write_output<T>(
     };
     let mut builder = tempfile::Builder::new();
     builder.prefix(".wavesplat-").suffix(".partial");
-    #[cfg(unix)]
-    builder.permissions(std::os::unix::fs::PermissionsExt::from_mode(0o666));
+    // Each name tried is registered before the file is made, so that an interrupt at any
+    // moment removes it ([`interrupt`]).
     let partial = builder
-        .tempfile_in(&dir)
+        .make_in(&dir, |name| {
+            let mut open = std::fs::File::options();
+            open.write(true).create_new(true);
+            #[cfg(unix)]
+            std::os::unix::fs::OpenOptionsExt::mode(&mut open, 0o666);
+            interrupt::Unfinished::register(name, || open.open(name))
+        })
         .with_context(|| format!("creating a file in {}", dir.display()))?;
+    let _unfinished = interrupt::Unfinished::guard(partial.path());
     if let Some(m) = &existing {
         partial
             .as_file()
