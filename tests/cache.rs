@@ -342,8 +342,9 @@ async fn nothing_sent_twice_across_view_change_and_reconnect() {
 }
 
 /// A file of several upload chunks (the last one partial), handed over by value so that its
-/// chunks are made as they are sent, is stored whole: the cache's SHA-256 and size are the
-/// file's, and its coefficients decode from the cache as from the file.
+/// chunks are made as they are sent, or sent from disk, is stored whole: the cache's SHA-256
+/// and size are the file's, and its coefficients decode from the cache as from the file. A
+/// file that cannot be read fails as the client's read and stores nothing.
 #[tokio::test]
 async fn an_owned_upload_of_several_chunks_is_stored_whole() {
     let bytes = phantom_file(
@@ -369,6 +370,33 @@ async fn an_owned_upload_of_several_chunks_is_stored_whole() {
     // The same content by reference is the same volume.
     let again = c.ingest("noise", &bytes).await.unwrap();
     assert!(again.existed && again.volume.id == info.id);
+    // Sent from disk (as a worker sends a bricked file), from wherever the file's cursor was:
+    // the same content, under a second name; its bytes come back whole.
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("noise.wsp");
+    std::fs::write(&path, &bytes).unwrap();
+    let mut file = std::fs::File::open(&path).unwrap();
+    std::io::Seek::seek(&mut file, std::io::SeekFrom::Start(12345)).unwrap();
+    let from_disk = c.ingest_file("noise-on-disk", file).await.unwrap();
+    assert!(from_disk.existed && from_disk.volume.id == info.id);
+    // A file that cannot be read is the client's error, not the cache's, and stores nothing.
+    let unreadable = std::fs::OpenOptions::new()
+        .append(true)
+        .open(&path)
+        .unwrap();
+    let e = c.ingest_file("unreadable", unreadable).await.unwrap_err();
+    assert!(
+        matches!(e, wavesplat_client::ClientError::UploadRead(_)),
+        "{e}"
+    );
+    let names: Vec<String> = c
+        .list()
+        .await
+        .unwrap()
+        .into_iter()
+        .map(|v| v.name)
+        .collect();
+    assert!(!names.iter().any(|n| n == "unreadable"), "{names:?}");
     server.stop().await;
 }
 

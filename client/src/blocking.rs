@@ -68,6 +68,16 @@ impl CacheClient {
         self.runtime.block_on(self.inner.ingest_owned(name, bytes))
     }
 
+    /// Uploads a `.wsp` file from disk without holding it (see
+    /// [`crate::CacheClient::ingest_file`]).
+    pub fn ingest_file(
+        &mut self,
+        name: &str,
+        file: std::fs::File,
+    ) -> Result<Ingested, ClientError> {
+        self.runtime.block_on(self.inner.ingest_file(name, file))
+    }
+
     /// The header and the first packets in file order, up to `max_bytes`.
     pub fn first_packets(
         &mut self,

@@ -57,6 +57,17 @@ pub fn view_message(spec: &ViewSpec, time_point: u32) -> Result<pb::ViewSpec, Vi
     })
 }
 
+/// An upload's first message: its name, length and SHA-256.
+pub(crate) fn ingest_start(name: &str, total_size: u64, sha256: [u8; 32]) -> pb::IngestRequest {
+    pb::IngestRequest {
+        msg: Some(pb::ingest_request::Msg::Start(pb::IngestStart {
+            name: name.to_string(),
+            total_size,
+            sha256: sha256.to_vec(),
+        })),
+    }
+}
+
 /// The messages of an upload: `start` (with the bytes' SHA-256), then chunks, each copied out
 /// of `bytes` only when the stream is asked for it.
 pub(crate) fn ingest_messages(
@@ -64,13 +75,11 @@ pub(crate) fn ingest_messages(
     bytes: Vec<u8>,
 ) -> impl Iterator<Item = pb::IngestRequest> + Send + 'static {
     use pb::ingest_request::Msg;
-    let start = pb::IngestRequest {
-        msg: Some(Msg::Start(pb::IngestStart {
-            name: name.to_string(),
-            total_size: bytes.len() as u64,
-            sha256: wavesplat_net::digest::sha256(&bytes).to_vec(),
-        })),
-    };
+    let start = ingest_start(
+        name,
+        bytes.len() as u64,
+        wavesplat_net::digest::sha256(&bytes),
+    );
     let chunks = bytes.len().div_ceil(crate::CHUNK_BYTES);
     std::iter::once(start).chain((0..chunks).map(move |i| {
         let end = ((i + 1) * crate::CHUNK_BYTES).min(bytes.len());
@@ -78,6 +87,45 @@ pub(crate) fn ingest_messages(
             msg: Some(Msg::Chunk(bytes[i * crate::CHUNK_BYTES..end].to_vec())),
         }
     }))
+}
+
+/// Where a failed read of an uploaded file is left for the caller.
+pub(crate) type ReadError = std::sync::Arc<std::sync::Mutex<Option<std::io::Error>>>;
+
+/// The chunk messages of `total` bytes of `file` (from its cursor), read on a blocking thread a
+/// chunk or two ahead of the transport. A read that fails, or a file shorter than `total`,
+/// ends the stream early and leaves the error in the returned slot.
+pub(crate) fn file_chunks(
+    mut file: std::fs::File,
+    total: u64,
+) -> (
+    impl tokio_stream::Stream<Item = pb::IngestRequest> + Send + 'static,
+    ReadError,
+) {
+    use std::io::Read;
+    let (tx, rx) = tokio::sync::mpsc::channel(2);
+    let error = ReadError::default();
+    let slot = error.clone();
+    tokio::task::spawn_blocking(move || {
+        let mut left = total;
+        while left > 0 {
+            let want = left.min(crate::CHUNK_BYTES as u64) as usize;
+            let mut chunk = vec![0u8; want];
+            if let Err(e) = file.read_exact(&mut chunk) {
+                *slot.lock().unwrap_or_else(|p| p.into_inner()) = Some(e);
+                return;
+            }
+            left -= want as u64;
+            let msg = pb::IngestRequest {
+                msg: Some(pb::ingest_request::Msg::Chunk(chunk)),
+            };
+            if tx.blocking_send(msg).is_err() {
+                // The upload ended (refused, or the connection went): nothing to send to.
+                return;
+            }
+        }
+    });
+    (tokio_stream::wrappers::ReceiverStream::new(rx), error)
 }
 
 /// A volume's facts, checked.

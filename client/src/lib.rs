@@ -79,6 +79,9 @@ pub enum ClientError {
     /// The refinement stream's request side is closed (the stream ended).
     #[error("the refinement stream is closed")]
     Closed,
+    /// The file being uploaded could not be read (nothing was stored).
+    #[error("reading the file to upload: {0}")]
+    UploadRead(#[source] std::io::Error),
 }
 
 impl ClientError {
@@ -117,6 +120,29 @@ impl From<tonic::Status> for ClientError {
             code: s.code(),
             message: s.message().to_string(),
         }
+    }
+}
+
+/// `file`'s length and SHA-256, read from its start; the file is handed back rewound.
+fn hash_file(mut file: std::fs::File) -> std::io::Result<(std::fs::File, u64, [u8; 32])> {
+    use std::io::{Seek, SeekFrom};
+    file.seek(SeekFrom::Start(0))?;
+    let mut hasher = wavesplat_net::digest::Sha256Pieces::default();
+    let total = std::io::copy(&mut file, &mut HashWriter(&mut hasher))?;
+    file.seek(SeekFrom::Start(0))?;
+    Ok((file, total, hasher.finish()))
+}
+
+/// Feeds what is written to a hasher.
+struct HashWriter<'a>(&'a mut wavesplat_net::digest::Sha256Pieces);
+
+impl std::io::Write for HashWriter<'_> {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        self.0.update(buf);
+        Ok(buf.len())
+    }
+    fn flush(&mut self) -> std::io::Result<()> {
+        Ok(())
     }
 }
 
@@ -375,6 +401,41 @@ impl CacheClient {
     ) -> Result<Ingested, ClientError> {
         let msgs = convert::ingest_messages(name, bytes);
         let r = self.inner.ingest(tokio_stream::iter(msgs)).await;
+        let r = self.checked(r).await?.into_inner();
+        Ok(Ingested {
+            volume: convert::volume_info(
+                r.volume
+                    .ok_or_else(|| ClientError::Protocol("ingest returned no volume".into()))?,
+            )?,
+            existed: r.existed,
+        })
+    }
+
+    /// Uploads the `.wsp` file `file` (read from its start) under `name`, as
+    /// [`CacheClient::ingest`] does, without holding it: one pass reads it for its SHA-256,
+    /// a second sends it chunk by chunk as the transport takes them, so that the upload costs a
+    /// few chunks of memory whatever the file's size. A file that changes between the passes
+    /// fails the cache's hash check and is not stored.
+    pub async fn ingest_file(
+        &mut self,
+        name: &str,
+        file: std::fs::File,
+    ) -> Result<Ingested, ClientError> {
+        let (file, total, sha256) = tokio::task::spawn_blocking(move || hash_file(file))
+            .await
+            .map_err(|e| ClientError::UploadRead(std::io::Error::other(e)))?
+            .map_err(ClientError::UploadRead)?;
+        let (chunks, read_error) = convert::file_chunks(file, total);
+        let msgs = tokio_stream::StreamExt::chain(
+            tokio_stream::once(convert::ingest_start(name, total, sha256)),
+            chunks,
+        );
+        let r = self.inner.ingest(msgs).await;
+        // A read that failed ended the stream early, which the cache refused as short: the
+        // read's error is the one to report.
+        if let Some(e) = read_error.lock().unwrap_or_else(|p| p.into_inner()).take() {
+            return Err(ClientError::UploadRead(e));
+        }
         let r = self.checked(r).await?.into_inner();
         Ok(Ingested {
             volume: convert::volume_info(

@@ -643,6 +643,31 @@ impl BrickPlan {
         Ok((section, manifest))
     }
 
+    /// Writes the container of the coded bricks (in grid order, waiting in a [`Spill`]) to
+    /// `out`: the manifest section, then each brick copied from the spill, in one pass.
+    pub fn write_container(
+        &self,
+        bricks: &[CodedBrick<SpilledBrick>],
+        out: &mut dyn std::io::Write,
+    ) -> Result<ContainerWritten, BrickError> {
+        let placed: Vec<(u64, u32, u64)> =
+            bricks.iter().map(|c| (c.len, c.file.crc, c.kept)).collect();
+        let (section, manifest) = self.manifest_section_for(&placed)?;
+        out.write_all(&section).map_err(BrickError::Output)?;
+        let mut bytes = section.len() as u64;
+        for c in bricks {
+            c.file.copy_to(c.len, out).map_err(BrickError::Output)?;
+            bytes += c.len;
+        }
+        out.flush().map_err(BrickError::Output)?;
+        let headers: u64 = bricks.iter().map(|c| c.file.header).sum();
+        Ok(ContainerWritten {
+            manifest,
+            bytes,
+            overhead: section.len() as u64 + headers,
+        })
+    }
+
     /// The bytes of the container's manifest section for this plan's grid: its fields have fixed
     /// widths, so this is exact before any brick is coded (what a byte target sets aside).
     pub fn manifest_len(&self) -> u64 {
@@ -1227,7 +1252,8 @@ pub struct Spill {
 }
 
 impl Spill {
-    pub(crate) fn new(dir: Option<&std::path::Path>) -> Result<Spill, BrickError> {
+    /// An empty spill: an unnamed temporary file in `dir` (`None`: the temporary directory).
+    pub fn new(dir: Option<&std::path::Path>) -> Result<Spill, BrickError> {
         let file = match dir {
             Some(d) => tempfile::tempfile_in(d),
             None => tempfile::tempfile(),
@@ -1238,11 +1264,8 @@ impl Spill {
         })
     }
 
-    /// Appends a brick's file; what finds it again.
-    pub(crate) fn push(
-        self: &std::sync::Arc<Spill>,
-        bytes: &[u8],
-    ) -> Result<SpilledBrick, BrickError> {
+    /// Appends a brick's file (its header section is checked); what finds it again.
+    pub fn push(self: &std::sync::Arc<Spill>, bytes: &[u8]) -> Result<SpilledBrick, BrickError> {
         use std::io::{Seek, SeekFrom, Write};
         let (_, header) = wavesplat_codec::format::read_header_section(bytes)?;
         let crc = crc32fast::hash(bytes);
@@ -1322,6 +1345,18 @@ impl BrickWork for SpillingBricks<'_> {
     }
 }
 
+/// What [`BrickPlan::write_container`] wrote.
+#[derive(Debug)]
+pub struct ContainerWritten {
+    /// The container's manifest (offsets filled in).
+    pub manifest: Manifest,
+    /// Bytes written.
+    pub bytes: u64,
+    /// Bytes of them outside the bricks' packets: the manifest section and every brick's header
+    /// section.
+    pub overhead: u64,
+}
+
 /// What [`compress_bricked_to`] wrote.
 #[derive(Debug)]
 pub struct BrickedWritten {
@@ -1380,24 +1415,11 @@ pub fn compress_bricked_to(
         dir: spill_dir,
     };
     let a = allocate(&plan, &work)?;
-    let placed: Vec<(u64, u32, u64)> = a
-        .bricks
-        .iter()
-        .map(|c| (c.len, c.file.crc, c.kept))
-        .collect();
-    let (section, manifest) = plan.manifest_section_for(&placed)?;
-    out.write_all(&section).map_err(BrickError::Output)?;
-    let mut written = section.len() as u64;
-    for c in &a.bricks {
-        c.file.copy_to(c.len, out).map_err(BrickError::Output)?;
-        written += c.len;
-    }
-    out.flush().map_err(BrickError::Output)?;
-    let headers: u64 = a.bricks.iter().map(|c| c.file.header).sum();
+    let c = plan.write_container(&a.bricks, out)?;
     Ok(BrickedWritten {
-        manifest,
-        bytes: written,
-        overhead: section.len() as u64 + headers,
+        manifest: c.manifest,
+        bytes: c.bytes,
+        overhead: c.overhead,
         total_coefficients: a.total_coefficients,
         nonzero: a.nonzero,
         levels: plan.choices.levels,

@@ -720,7 +720,7 @@ impl SeriesPlan {
     /// series manifest section, then each component (its plain file, or its bricked
     /// container's manifest section and bricks), the units' bytes copied from where they
     /// wait. Returns the manifest and the bytes written.
-    fn write_spilled(
+    pub fn write_container(
         &self,
         series: &dyn SeriesSource,
         units: &[CodedBrick<SpilledBrick>],
@@ -891,7 +891,7 @@ pub fn compress_series_to(
                 .collect()
         },
     )?;
-    let (manifest, bytes) = plan.write_spilled(series, &allocated.bricks, out)?;
+    let (manifest, bytes) = plan.write_container(series, &allocated.bricks, out)?;
     Ok(SeriesWritten {
         manifest,
         bytes,

@@ -136,11 +136,26 @@ pub fn run_serve(a: ServeCacheArgs) -> Result<()> {
     })
 }
 
+/// `path` opened, when it is a file that starts as a `.wsp` does.
+fn open_plain_wsp(path: &std::path::Path) -> Result<Option<std::fs::File>> {
+    use std::io::Read;
+    if path.is_dir() {
+        return Ok(None);
+    }
+    let mut file =
+        std::fs::File::open(path).with_context(|| format!("opening {}", path.display()))?;
+    let mut first = [0u8; 4];
+    match file.read_exact(&mut first) {
+        Ok(()) => Ok((&first == wavesplat_codec::format::MAGIC).then_some(file)),
+        Err(e) if e.kind() == std::io::ErrorKind::UnexpectedEof => Ok(None),
+        Err(e) => Err(e).with_context(|| format!("reading {}", path.display())),
+    }
+}
+
 /// Runs `wavesplat cache …`.
 pub fn run(cmd: CacheCommand) -> Result<()> {
     match cmd {
         CacheCommand::Ingest(a) => {
-            let bytes = super::read_wsp(&a.input)?;
             let name = match a.name {
                 Some(n) => n,
                 None => a
@@ -149,9 +164,15 @@ pub fn run(cmd: CacheCommand) -> Result<()> {
                     .map(|s| s.to_string_lossy().into_owned())
                     .context("the input has no file name; pass --name")?,
             };
-            let r = connect(&a.url)?
-                .ingest_owned(&name, bytes)
-                .with_context(|| format!("ingesting {}", a.input.display()))?;
+            let mut cache = connect(&a.url)?;
+            // A `.wsp` (or a bricked or series container) is sent from disk as it is read;
+            // anything else (an indexed layout to convert, or not a `.wsp` at all) goes through
+            // `read_wsp`, which converts it or says what it is.
+            let r = match open_plain_wsp(&a.input)? {
+                Some(file) => cache.ingest_file(&name, file),
+                None => cache.ingest_owned(&name, super::read_wsp(&a.input)?),
+            }
+            .with_context(|| format!("ingesting {}", a.input.display()))?;
             let what = if r.existed {
                 "already stored as"
             } else {

@@ -39,7 +39,7 @@ use thiserror::Error;
 use tonic::Code;
 use wavesplat_client::{CacheClient, ConnectOptions};
 use wavesplat_codec::volume::Volume;
-use wavesplat_compressor::bricked::{compress_bricked, BrickSource, BrickStage};
+use wavesplat_compressor::bricked::{compress_bricked_to, BrickError, BrickSource, BrickStage};
 use wavesplat_compressor::encode::{compress, Stage};
 use wavesplat_compressor::reader::region::RegionReader;
 use wavesplat_compressor::reader::{
@@ -489,7 +489,7 @@ fn compress_bricked_job(
     brick: usize,
     opts: &wavesplat_compressor::encode::CompressOptions,
     sh: &Shared,
-) -> Result<(Vec<u8>, u64), Failure> {
+) -> Result<(Output, u64), Failure> {
     let voxels = source.dims().iter().product::<u64>();
     sh.set(0.05, "reading bricks");
     let report = |stage: BrickStage| {
@@ -499,9 +499,43 @@ fn compress_bricked_job(
         };
         sh.set(p, stage.to_string());
     };
-    compress_bricked(source, opts, brick, &report)
-        .map(|c| (c.bytes, voxels))
-        .map_err(|e| fail(FailureKind::Compress, e.to_string()))
+    // The coded bricks wait in the scratch directory, and the container is written there:
+    // a bricked file may be larger than the worker's memory.
+    let mut out = std::io::BufWriter::new(tempfile::tempfile().map_err(output_failure)?);
+    compress_bricked_to(source, opts, brick, &report, None, &mut out).map_err(|e| match e {
+        BrickError::Spill(e) | BrickError::Output(e) => output_failure(e),
+        e => fail(FailureKind::Compress, e.to_string()),
+    })?;
+    let file = out
+        .into_inner()
+        .map_err(|e| output_failure(e.into_error()))?;
+    Ok((Output::File(file), voxels))
+}
+
+/// A compressed volume on its way to the cache: in memory, or in a temporary file in the
+/// scratch directory (a bricked volume or a series, which may be larger than memory), sent
+/// from there chunk by chunk.
+pub(crate) enum Output {
+    Bytes(Vec<u8>),
+    File(std::fs::File),
+}
+
+impl Output {
+    fn len(&self) -> Result<u64, Failure> {
+        match self {
+            Output::Bytes(b) => Ok(b.len() as u64),
+            Output::File(f) => f.metadata().map(|m| m.len()).map_err(output_failure),
+        }
+    }
+}
+
+/// A failure to keep a job's output (or its coded parts) in the scratch directory: the worker's
+/// fault (its disk), retried elsewhere.
+pub(crate) fn output_failure(e: std::io::Error) -> Failure {
+    fail(
+        FailureKind::Worker,
+        format!("keeping the compressed file in the scratch directory: {e}"),
+    )
 }
 
 /// An uploaded source of a bricked job, streamed to disk as it arrives (and hashed on the
@@ -845,7 +879,7 @@ async fn execute(
             sh.set(p, s);
         };
         pool.install(|| compress(&volume, &opts, &progress))
-            .map(|c| (c.bytes, voxels))
+            .map(|c| (Output::Bytes(c.bytes), voxels))
             .map_err(|e| fail(FailureKind::Compress, e.to_string()))
     })
     .await
@@ -859,12 +893,12 @@ async fn execute(
         return Err(fail(FailureKind::Worker, "lease lost before upload"));
     }
     shared.set(0.9, "uploading");
-    let output_bytes = file.len() as u64;
-    let r = ctx
-        .cache
-        .ingest_owned(&spec.name, file)
-        .await
-        .map_err(|e| ingest_failure(&spec.name, e))?;
+    let output_bytes = file.len()?;
+    let r = match file {
+        Output::Bytes(b) => ctx.cache.ingest_owned(&spec.name, b).await,
+        Output::File(f) => ctx.cache.ingest_file(&spec.name, f).await,
+    }
+    .map_err(|e| ingest_failure(&spec.name, e))?;
     let v = r.volume;
     tracing::info!(job = id, name = %spec.name, cache_id = v.id, bytes = output_bytes, existed = r.existed, "delivered");
     Ok(Delivery {
@@ -878,6 +912,9 @@ async fn execute(
 
 /// Why delivering `name` to the cache failed, as the job's failure.
 fn ingest_failure(name: &str, e: wavesplat_client::ClientError) -> Failure {
+    if let wavesplat_client::ClientError::UploadRead(e) = e {
+        return output_failure(e);
+    }
     if e.code() == Some(Code::AlreadyExists) {
         // The same files compressed again with other options: say what to do.
         return fail(

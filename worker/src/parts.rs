@@ -15,13 +15,13 @@
 //! replaced by the next worker to lease the job, whose parts are already known (`SubmitParts`
 //! leaves them as they are), so bricks done before are not compressed again.
 
-use crate::{fail, heartbeat_loop, options, Shared};
+use crate::{fail, heartbeat_loop, options, output_failure, Output, Shared};
 use std::sync::atomic::Ordering;
 use std::sync::Arc;
 use std::time::Duration;
 use wavesplat_compressor::bricked::{
     allocate, allocate_units, BrickError, BrickPlan, BrickSource, BrickWork, CodedBrick,
-    SharedChoices,
+    SharedChoices, Spill, SpilledBrick,
 };
 use wavesplat_compressor::colorspace::ColorTransform;
 use wavesplat_compressor::encode::{ScoreSummary, Target};
@@ -549,69 +549,36 @@ impl RemoteBricks {
             .collect())
     }
 
-    /// The chosen parts' files fetched, each with the count its header says it kept.
-    fn gather(&self, chosen: &[CodedBrick<u64>]) -> Result<Vec<(Vec<u8>, u64)>, Failure> {
+    /// The chosen parts' files fetched one at a time into a [`Spill`] in the scratch
+    /// directory, each with the count its header says it kept and its length checked against
+    /// what its part reported: memory holds one part's file at a time, however large the
+    /// volume.
+    fn gather(&self, chosen: &[CodedBrick<u64>]) -> Result<Vec<CodedBrick<SpilledBrick>>, Failure> {
         self.shared.set(0.9, "gathering the parts' files");
-        chosen.iter().map(|b| self.fetch_kept(b)).collect()
-    }
-
-    /// The bricked container of the chosen parts' files, fetched one at a time straight into
-    /// it (its manifest section, of fixed length, written last in the place kept for it), so
-    /// that the file is held once, not once as parts and again as the container.
-    fn gather_container(
-        &self,
-        plan: &BrickPlan,
-        chosen: &[CodedBrick<u64>],
-    ) -> Result<Vec<u8>, Failure> {
-        self.shared.set(0.9, "gathering the parts' files");
-        let head = plan.manifest_len() as usize;
-        let total = chosen
+        let spill = Arc::new(Spill::new(None).map_err(spill_failure)?);
+        chosen
             .iter()
-            .try_fold(head as u64, |t, b| t.checked_add(b.len))
-            .and_then(|t| usize::try_from(t).ok())
-            .ok_or_else(|| {
-                fail(
-                    FailureKind::Worker,
-                    "the parts' files are too large to hold",
-                )
-            })?;
-        let mut out = Vec::new();
-        out.try_reserve_exact(total).map_err(|_| {
-            fail(
-                FailureKind::Worker,
-                format!("no memory for the {total}-byte bricked file"),
-            )
-        })?;
-        out.resize(head, 0);
-        let mut placed = Vec::with_capacity(chosen.len());
-        for b in chosen {
-            let (bytes, kept) = self.fetch_kept(b)?;
-            if bytes.len() as u64 != b.len {
-                return Err(fail(
-                    FailureKind::Worker,
-                    format!(
-                        "part {}'s file has {} bytes, reported {}",
-                        b.file,
-                        bytes.len(),
-                        b.len
-                    ),
-                ));
-            }
-            placed.push((b.len, crc32fast::hash(&bytes), kept));
-            out.extend_from_slice(&bytes);
-        }
-        let (section, _) = plan.manifest_section_for(&placed).map_err(brick_failure)?;
-        if section.len() != head {
-            return Err(fail(
-                FailureKind::Worker,
-                format!(
-                    "the manifest took {} bytes, {head} set aside",
-                    section.len()
-                ),
-            ));
-        }
-        out[..head].copy_from_slice(&section);
-        Ok(out)
+            .map(|b| {
+                let (bytes, kept) = self.fetch_kept(b)?;
+                if bytes.len() as u64 != b.len {
+                    return Err(fail(
+                        FailureKind::Worker,
+                        format!(
+                            "part {}'s file has {} bytes, reported {}",
+                            b.file,
+                            bytes.len(),
+                            b.len
+                        ),
+                    ));
+                }
+                let file = spill.push(&bytes).map_err(spill_failure)?;
+                Ok(CodedBrick {
+                    file,
+                    len: b.len,
+                    kept,
+                })
+            })
+            .collect()
     }
 
     /// A chosen part's file fetched, with the count its header says it kept.
@@ -827,7 +794,7 @@ pub(crate) fn coordinate(
     parent_attempt: u32,
     hashed: Option<u64>,
     shared: Arc<Shared>,
-) -> Result<(Vec<u8>, u64), Failure> {
+) -> Result<(Output, u64), Failure> {
     let brick = spec
         .options
         .brick
@@ -857,8 +824,35 @@ pub(crate) fn coordinate(
         failure: std::sync::Mutex::new(None),
     };
     let allocated = allocate(&plan, &work).map_err(|e| work.failure_or(brick_failure(e)))?;
-    let file = work.gather_container(&plan, &allocated.bricks)?;
+    let bricks = work.gather(&allocated.bricks)?;
+    let file = write_output(|out| {
+        plan.write_container(&bricks, out)
+            .map(drop)
+            .map_err(spill_failure)
+    })?;
     Ok((file, voxels))
+}
+
+/// The job's output written by `write` to a temporary file in the scratch directory, not to
+/// memory: a bricked volume or a series may be larger than the worker's memory.
+fn write_output(
+    write: impl FnOnce(&mut dyn std::io::Write) -> Result<(), Failure>,
+) -> Result<Output, Failure> {
+    let mut out = std::io::BufWriter::new(tempfile::tempfile().map_err(output_failure)?);
+    write(&mut out)?;
+    let file = out
+        .into_inner()
+        .map_err(|e| output_failure(e.into_error()))?;
+    Ok(Output::File(file))
+}
+
+/// A failure of writing the gathered parts or the container: the scratch directory's (the
+/// worker's) unless the parts' files are not what they claim.
+fn spill_failure<E: Into<BrickError>>(e: E) -> Failure {
+    match e.into() {
+        BrickError::Spill(e) | BrickError::Output(e) => output_failure(e),
+        e => fail(FailureKind::Worker, format!("the parts' files: {e}")),
+    }
 }
 
 /// Coordinates a job whose source on shared storage is a time series: planned here
@@ -877,7 +871,7 @@ pub(crate) fn coordinate_series(
     parent_attempt: u32,
     hashed: Option<u64>,
     shared: Arc<Shared>,
-) -> Result<(Vec<u8>, u64), Failure> {
+) -> Result<(Output, u64), Failure> {
     let input = runner.series(&spec)?;
     let series = input.source();
     let points = series.time_points();
@@ -925,8 +919,13 @@ pub(crate) fn coordinate_series(
     )
     .map_err(|e| work.failure_or(brick_failure(e)))?;
     let units = work.gather(&allocated.bricks)?;
-    let c = plan
-        .assemble(series, units, allocated.total_coefficients)
-        .map_err(series_failure)?;
-    Ok((c.bytes, voxels))
+    let file = write_output(|out| {
+        plan.write_container(series, &units, out)
+            .map(drop)
+            .map_err(|e| match e {
+                SeriesError::Brick(e) => spill_failure(*e),
+                e => series_failure(e),
+            })
+    })?;
+    Ok((file, voxels))
 }
