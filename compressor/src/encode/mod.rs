@@ -143,8 +143,8 @@ pub fn score_summary(
 mod tests {
     use super::prepare::{choose_tiling, AUTO_THREE_LAYERS_BYTES, AUTO_TWO_LAYERS_BYTES};
     use super::rate::{
-        close_to_target, depth_candidates, next_set_size, predicted_set_size, PILOT_KEEP,
-        REFINED_SIZE_SLOPE,
+        close_to_target, depth_candidates, next_set_size, predicted_depth, predicted_set_size,
+        PILOT_KEEP, REFINED_SIZE_SLOPE,
     };
     use super::*;
     use crate::colorspace::face_activity;
@@ -263,6 +263,62 @@ mod tests {
         let high = levels(40_000, None);
         assert!(high < 3, "{high}");
         assert_eq!(levels(40_000, Some(3)), 3);
+    }
+
+    /// The fast effort's depth, guessed from the target's bytes or from one probe of the
+    /// default depth, is the depth its rule gives from the full search's count at each depth
+    /// (searched one depth at a time, as before the shortcuts), on smooth data (few bits per
+    /// coefficient), on colour, and on noise (many bits per coefficient: a depth guessed from
+    /// the bytes comes out too shallow and is searched one level deeper); targets where the
+    /// count lands within a quarter of the rule's threshold are left out (there a probe and
+    /// the full search may fall either side). Each file fits its target.
+    #[test]
+    fn the_fast_effort_predicts_the_depth_the_full_search_rule_gives() {
+        let rule = |v: &Volume, bytes: u64| -> Option<usize> {
+            let mut m = default_levels(v.dims(), Family::Linear);
+            loop {
+                let o = CompressOptions {
+                    target: Target::Bytes(bytes),
+                    levels: Some(m),
+                    ..Effort::Fast.options()
+                };
+                let c = compress(v, &o, &|_, _| {}).ok()?;
+                let g = &c.header.geometry;
+                let channels = v.channel_count();
+                if m >= 2 {
+                    let coarse = g.coefficient_count() as f64 / 8f64.powi(m as i32 - 1);
+                    let ratio = c.stats.kept as f64 / channels as f64
+                        / (super::rate::SHALLOWER_KEPT * coarse);
+                    if ratio > 0.75 && ratio < 1.33 {
+                        return None;
+                    }
+                }
+                let to = predicted_depth(c.stats.kept, channels, g);
+                if to >= m {
+                    return Some(m);
+                }
+                m = to;
+            }
+        };
+        let mut compared = 0;
+        for (name, v) in [
+            ("shepp", Phantom::SheppLogan.generate([40, 36, 32])),
+            ("rgb", Phantom::RgbHead.generate([32, 32, 32])),
+            ("noise", Phantom::Noise { seed: 3 }.generate([32, 32, 32])),
+        ] {
+            for bytes in [400, 1_500, 4_000, 9_000, 20_000, 45_000] {
+                let Some(want) = rule(&v, bytes) else { continue };
+                let o = CompressOptions {
+                    target: Target::Bytes(bytes),
+                    ..Effort::Fast.options()
+                };
+                let c = compress(&v, &o, &|_, _| {}).unwrap();
+                assert!(c.stats.bytes <= bytes, "{name} {bytes}: {}", c.stats.bytes);
+                assert_eq!(c.header.geometry.levels, want, "{name} at {bytes} bytes");
+                compared += 1;
+            }
+        }
+        assert!(compared >= 10, "{compared} targets compared");
     }
 
     /// The first refined-set size falls back to the oracle's when the pilot tells nothing,

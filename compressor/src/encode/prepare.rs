@@ -111,7 +111,7 @@ fn faces_structured(volume: &Volume) -> bool {
 }
 
 /// [`default_margin`] once the faces are known.
-fn margin_for_faces(structured: bool, family: Family, levels: usize) -> usize {
+pub(super) fn margin_for_faces(structured: bool, family: Family, levels: usize) -> usize {
     if structured {
         0
     } else {

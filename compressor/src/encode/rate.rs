@@ -7,7 +7,7 @@ use super::encoder::finish;
 use super::options::{
     default_levels, CompressError, CompressOptions, Compressed, DepthSearch, Stage,
 };
-use super::prepare::{code, prepare, Prepared, Ranked};
+use super::prepare::{code, margin_for_faces, prepare, Coded, Prepared, Ranked};
 use crate::refine::{pad_f32, RefineOptions};
 use wavesplat_codec::format::CoderKind;
 use wavesplat_codec::layout::Geometry;
@@ -80,7 +80,7 @@ fn affords_coarse_band(kept: u64, channels: usize, count: usize, m: usize) -> bo
 /// depth: one level shallower while that many coefficients would afford the next coarse band
 /// (the grid's size taken for the shallower grids': each step of the comparison's rule, taken
 /// at once instead of compressing at every depth between).
-fn predicted_depth(kept: u64, channels: usize, geometry: &Geometry) -> usize {
+pub(super) fn predicted_depth(kept: u64, channels: usize, geometry: &Geometry) -> usize {
     let count = geometry.coefficient_count();
     let mut m = geometry.levels;
     while affords_coarse_band(kept, channels, count, m) {
@@ -110,8 +110,32 @@ pub(super) fn compress_to_bytes(
     let mut too_small: Option<CompressError> = None;
     let mut depths = depths;
     let mut next = 0;
+    // A predicted depth is chosen from one probe of the default depth ([`Searched`]); the
+    // default depth is searched in full only if it is kept, or if the predicted one turns out
+    // not to fit the target (`fallback`).
+    let predicting =
+        !comparing && opts.depth_search == DepthSearch::Predict && opts.levels.is_none();
+    let mut probed = false;
+    let mut fallback: Option<usize> = None;
+    // The default depth's grid, while the depth searched was guessed from the target's bytes
+    // alone: its file's count checks the guess.
+    let mut unseen: Option<Geometry> = None;
+    let mut guess: Option<usize> = None;
     // The coded channels and their views, shared by the depths compared.
     let coded = code(volume, opts, comparing, progress)?;
+    if predicting {
+        let default = depths[0];
+        if let Some((levels, kept, geometry)) =
+            depth_from_bytes(volume, opts, &coded, default, target)?
+        {
+            tracing::debug!(to = levels, kept, "predicted depth from the target's bytes");
+            depths = vec![levels];
+            probed = true;
+            fallback = Some(default);
+            guess = Some(kept);
+            unseen = Some(geometry);
+        }
+    }
     while next < depths.len() {
         let m = depths[next];
         next += 1;
@@ -127,10 +151,43 @@ pub(super) fn compress_to_bytes(
         let prepared = prepare(volume, &o, &coded, !comparing, progress)?;
         // A target too small for one depth may fit the other (their headers and coarse bands
         // differ); it is an error only when it fits neither.
-        let (ranked, plain) = match oracle_to_bytes(&prepared, &o, target, &mut trials, progress) {
-            Ok(found) => found,
-            // (A predicted shallower depth that does not fit leaves the deeper file kept.)
-            Err(e @ CompressError::TargetTooSmall { .. }) if comparing || best.is_some() => {
+        let probe = predicting && !probed;
+        probed = true;
+        let searched = oracle_to_bytes(&prepared, &o, target, guess, probe, &mut trials, progress);
+        let (ranked, plain) = match searched {
+            Ok(Searched::Found(ranked, plain)) => {
+                fallback = None;
+                // A depth guessed from the bytes that the file's count would not have chosen
+                // (it spends more bits per coefficient than guessed): one level deeper, with
+                // its own probe's rule after it.
+                if let Some(g) = unseen.take() {
+                    let count = g.coefficient_count();
+                    if !affords_coarse_band(plain.stats.kept, volume.channel_count(), count, m + 1)
+                    {
+                        tracing::debug!(levels = m, kept = plain.stats.kept, "guessed too shallow");
+                        depths.push(m + 1);
+                        guess = Some(plain.stats.kept as usize);
+                        continue;
+                    }
+                }
+                (ranked, plain)
+            }
+            Ok(Searched::Shallower { levels, kept }) => {
+                tracing::debug!(from = m, to = levels, kept, "predicted depth from a probe");
+                depths.push(levels);
+                fallback = Some(m);
+                guess = Some(kept);
+                continue;
+            }
+            // (A predicted shallower depth that does not fit leaves the deeper file kept, or
+            // has the deeper depth searched after all.)
+            Err(e @ CompressError::TargetTooSmall { .. })
+                if comparing || best.is_some() || fallback.is_some() =>
+            {
+                if let Some(deeper) = fallback.take() {
+                    depths.push(deeper);
+                    guess = None;
+                }
                 tracing::debug!(levels = m, error = %e, "depth candidate does not fit");
                 // The error names the smallest file of any depth.
                 let smaller = |a: &CompressError, b: &CompressError| match (a, b) {
@@ -309,15 +366,67 @@ fn leaves_room(bytes: u64, target: u64) -> bool {
     (bytes as f64) < CLOSE_BELOW * target as f64
 }
 
+/// Bits per kept coefficient a file is taken to spend when a depth is predicted from the
+/// target's bytes alone ([`depth_from_bytes`]): the MRI's files spend 4.9–5.3 at 0.07–5.85 %.
+const GUESSED_BITS_PER_COEFFICIENT: f64 = 5.0;
+
+/// A predicted depth decided before any transform, when the target's bytes decide it: the
+/// count a target affords at [`GUESSED_BITS_PER_COEFFICIENT`] is taken at 0.7 and 1.4 times
+/// that (3.6–7.1 bits per coefficient), and if both give the same depth shallower than
+/// `default` ([`predicted_depth`]), that depth, the guessed count and the default depth's grid
+/// (whose rule the file's count is checked against) are returned; otherwise (`None`) the
+/// default depth's probe decides ([`oracle_to_bytes`]). Saves the default depth's transform,
+/// ranking and probe.
+fn depth_from_bytes(
+    volume: &Volume,
+    opts: &CompressOptions,
+    coded: &Coded,
+    default: usize,
+    target: u64,
+) -> Result<Option<(usize, usize, Geometry)>, CompressError> {
+    let margin = opts
+        .margin
+        .unwrap_or_else(|| margin_for_faces(coded.structured_faces, opts.family, default));
+    let geometry = Geometry::new(volume.dims(), opts.family, default, margin)?;
+    let channels = volume.channel_count();
+    let kept = target as f64 * 8.0 / GUESSED_BITS_PER_COEFFICIENT;
+    let at = |k: f64| predicted_depth(k as u64, channels, &geometry);
+    let (low, high) = (at(kept * 0.7), at(kept * 1.4));
+    Ok((low == high && low < default).then_some((low, kept as usize, geometry)))
+}
+
+/// What [`oracle_to_bytes`] found: the ranking and its fullest file that fits, or (a probe
+/// for a predicted depth) the shallower depth the target's estimated count affords.
+enum Searched {
+    Found(Ranked, Compressed),
+    /// The depth to search instead, and the count the probe estimated for the target (the
+    /// shallower search's first guess).
+    Shallower {
+        levels: usize,
+        kept: usize,
+    },
+}
+
+/// Log–log slope of a file's size against its count of kept coefficients that a single trial
+/// extrapolates with (the rate search's own first step, [`fit_bytes`]).
+const SIZE_SLOPE: f64 = 0.9;
+
 /// The oracle's order searched for the largest prefix that fits `target` bytes, on a candidate
-/// list grown 4× whenever the search runs off its end.
+/// list grown 4× whenever the search runs off its end; the first trial at `guess` coefficients
+/// (`None`: a guess from the target's bytes). With `probe` (a predicted depth's default), the
+/// first trial's size is extrapolated to the target's count first, and if that count affords a
+/// shallower depth ([`predicted_depth`]) the search stops there: the full search at this depth
+/// (3–7 encodings of the whole file, about half of `--effort fast`'s time at 5.85 %) would
+/// only have been the input of the same rule.
 fn oracle_to_bytes(
     prepared: &Prepared,
     opts: &CompressOptions,
     target: u64,
+    guess: Option<usize>,
+    probe: bool,
     trials: &mut usize,
     progress: &(dyn Fn(Stage, f64) + Sync),
-) -> Result<(Ranked, Compressed), CompressError> {
+) -> Result<Searched, CompressError> {
     let n = prepared.nonzero as usize;
     // Candidates: 4 per target byte for the sigmap and fast coders (they code ~1.1–1.5
     // coefficients per byte on real data), 1 per byte for the paper's syntaxes.
@@ -329,18 +438,34 @@ fn oracle_to_bytes(
     let mut cap = (target.saturating_mul(per_byte) as usize)
         .max(1024)
         .min(n.max(1));
-    let guess = (target / bytes_per_coefficient_guess(opts.coder)) as usize;
+    let guess = guess.unwrap_or((target / bytes_per_coefficient_guess(opts.coder)) as usize);
+    let mut probe = probe;
     loop {
         let ranked = prepared.ranked(cap);
+        let mut known = None;
+        if std::mem::take(&mut probe) && !ranked.sorted.is_empty() {
+            let k = guess.clamp(1, ranked.sorted.len());
+            *trials += 1;
+            progress(Stage::Encode(*trials), 0.0);
+            let first = prepared.encode(&ranked, k, opts, target, false);
+            let ratio = target as f64 / first.stats.bytes.max(1) as f64;
+            let kept = ((k as f64) * ratio.powf(1.0 / SIZE_SLOPE)).round() as usize;
+            let kept = kept.clamp(1, n.max(1));
+            let levels = predicted_depth(kept as u64, prepared.channels, &prepared.geometry);
+            if levels < prepared.geometry.levels {
+                return Ok(Searched::Shallower { levels, kept });
+            }
+            known = Some(first);
+        }
         let search = RateSearch {
             target,
             guess,
-            known: None,
+            known,
         };
         let plain = fit_bytes(prepared, &ranked, opts, search, trials, progress)?;
         let len = ranked.sorted.len();
         if ranked.complete || (plain.stats.kept as usize) < len || cap >= n {
-            return Ok((ranked, plain));
+            return Ok(Searched::Found(ranked, plain));
         }
         cap = cap.saturating_mul(4).min(n);
     }
