@@ -156,6 +156,7 @@ pub(super) fn compress_to_bytes(
         let searched = oracle_to_bytes(&prepared, &o, target, guess, probe, &mut trials, progress);
         let (ranked, plain) = match searched {
             Ok(Searched::Found(ranked, plain)) => {
+                let plain = *plain;
                 fallback = None;
                 // A depth guessed from the bytes that the file's count would not have chosen
                 // (it spends more bits per coefficient than guessed): one level deeper, with
@@ -398,7 +399,7 @@ fn depth_from_bytes(
 /// What [`oracle_to_bytes`] found: the ranking and its fullest file that fits, or (a probe
 /// for a predicted depth) the shallower depth the target's estimated count affords.
 enum Searched {
-    Found(Ranked, Compressed),
+    Found(Ranked, Box<Compressed>),
     /// The depth to search instead, and the count the probe estimated for the target (the
     /// shallower search's first guess).
     Shallower {
@@ -465,7 +466,7 @@ fn oracle_to_bytes(
         let plain = fit_bytes(prepared, &ranked, opts, search, trials, progress)?;
         let len = ranked.sorted.len();
         if ranked.complete || (plain.stats.kept as usize) < len || cap >= n {
-            return Ok(Searched::Found(ranked, plain));
+            return Ok(Searched::Found(ranked, Box::new(plain)));
         }
         cap = cap.saturating_mul(4).min(n);
     }
