@@ -3,6 +3,7 @@
 # scripts/brick_sperr.py. Needs the peers' Python environment (numpy, scipy, h5py, hdf5plugin):
 # VENV=DIR names it (default: ../shared/peers/.venv, made by `bash ../shared/peers/run.sh`).
 #   bash scripts/brick-sperr.sh [N] [BRICK] [FRACTION]      e.g. bash scripts/brick-sperr.sh 512 256 0.01
+# WAVESPLAT_FLAGS="--effort fast" passes more flags to `wavesplat compress`.
 set -euo pipefail
 ROOT="$(cd "$(dirname "$0")/.." && pwd)"
 VENV=${VENV:-$ROOT/../shared/peers/.venv}

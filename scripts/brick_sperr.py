@@ -66,8 +66,10 @@ def main():
     env = dict(os.environ, RAYON_NUM_THREADS="1")
     one_core = ["taskset", "-c", "0"]
     ours = os.path.join(tmp, f"ct{n}_b{brick}.wsp")
+    # More `compress` flags (e.g. "--effort fast") from the environment.
+    extra = os.environ.get("WAVESPLAT_FLAGS", "").split()
     secs = run(one_core + [w, "compress", raw, "--dims", f"{n},{n},{n}", "--dtype", "f32", "--brick", str(brick),
-                           "--target-fraction", str(fraction), "-o", ours], env)
+                           "--target-fraction", str(fraction), *extra, "-o", ours], env)
     size = os.path.getsize(ours)
     decoded = os.path.join(tmp, f"ct{n}_b{brick}.decoded.f32")
     dsecs = run(one_core + [w, "decompress", ours, "-o", decoded], env)
@@ -82,7 +84,7 @@ def main():
     rows = []
     m = peers.metrics(ref, refviews, scale(y))
     del y
-    rows.append(("wavesplat", f"--brick {brick} --target-fraction {fraction}", size, secs,
+    rows.append(("wavesplat", " ".join([f"--brick {brick} --target-fraction {fraction}", *extra]), size, secs,
                  dsecs, m))
     bpv = size * 8.0 / x.size
     ssize, ssecs, sy = sperr_chunked(x, bpv, brick)

@@ -696,7 +696,9 @@ struct RateSearch {
 /// at the first that fills [`FILE_FILL`] of it. Sizes grow smoothly (about as K^0.9) with the
 /// number K of kept coefficients, so each trial interpolates log size against log K between
 /// the tightest fitting and overflowing trials (extrapolating from the one known side first),
-/// and every third step bisects to guarantee progress. Typically 3–7 trials.
+/// and every third step bisects to guarantee progress unless the last step at least halved
+/// its distance to the aim (a secant closing in from one side leaves the other bound far, so
+/// a bisection there would throw away a step that nearly landed). Typically 2–6 trials.
 fn fit_bytes(
     prepared: &Prepared,
     ranked: &Ranked,
@@ -725,6 +727,8 @@ fn fit_bytes(
     let mut hi: Option<(usize, u64)> = None;
     let mut best: Option<Compressed> = None;
     let mut k = guess.clamp(len.min(1), len);
+    // How far the last two trials' sizes were from the aim (log ratio).
+    let mut misses = [f64::INFINITY; 2];
     for step in 0..MAX_TRIALS {
         let c = match known.take() {
             Some(c) if (c.stats.kept as usize) <= len => {
@@ -735,6 +739,7 @@ fn fit_bytes(
         };
         let bytes = c.stats.bytes;
         tracing::trace!(k, bytes, target, "rate search trial");
+        misses = [misses[1], ((bytes.max(1) as f64) / aim).ln().abs()];
         if bytes <= target {
             if lo.is_none_or(|(lk, _)| k > lk) {
                 lo = Some((k, bytes));
@@ -757,7 +762,8 @@ fn fit_bytes(
             (Some((lk, _)), Some((hk, _))) if hk <= lk + 1 => break,
             (Some((lk, lb)), Some((hk, hb))) => {
                 let mid = lk + (hk - lk) / 2;
-                if step % 3 == 2 || hb <= lb {
+                let closing_in = misses[1] <= misses[0] / 2.0;
+                if (step % 3 == 2 && !closing_in) || hb <= lb {
                     mid
                 } else {
                     let slope = ((hb as f64).ln() - (lb.max(1) as f64).ln())
