@@ -1392,6 +1392,41 @@ async fn a_source_changed_midway_fails_the_bricked_job_clearly() {
     );
 }
 
+/// A plain job whose source changed between submission and the worker's read fails as the
+/// submitter's error, and its failure does not say the SHA-256 the worker found: whoever
+/// submits a path could otherwise learn the hash of any file a worker can read.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_changed_source_fails_without_telling_its_hash() {
+    let cl = TestCluster::start(&ORCH_TIMING);
+    let (o, c) = (cl.orch.url(), cl.cache.url());
+    let dims = [20, 18, 16];
+    let shared = cl.root.join("shared");
+    std::fs::create_dir_all(&shared).unwrap();
+    let file = shared.join(raw_name("edited", dims, "f32"));
+    write_f32(&file, &phantom(Phantom::SheppLogan, dims));
+    submit(&shared, &o, &[]);
+    // Edited in place before any worker reads it.
+    let edited = phantom(Phantom::Spheres, dims);
+    write_f32(&file, &edited);
+    let found = wavesplat_net::digest::hex(&wavesplat_net::digest::sha256(
+        &std::fs::read(&file).unwrap(),
+    ));
+    let _w = Proc::worker(&o, &c, "w", 0, None);
+    let js = wait_for(&o, 60, "the job failed", |js| {
+        js.iter().any(|j| state_name(j.state) == "failed")
+    })
+    .await;
+    let job = js.iter().find(|j| state_name(j.state) == "failed").unwrap();
+    assert!(
+        job.error.contains("the source changed since submission"),
+        "{}",
+        job.error
+    );
+    assert!(!job.error.contains(&found), "{}", job.error);
+    let mut client = CacheClient::connect(&c).await.unwrap();
+    assert!(client.list().await.unwrap().is_empty(), "nothing delivered");
+}
+
 /// A time series in an archive is one job and one volume in the cache: a 4D NIfTI, a DICOM cine
 /// (slices repeated at several trigger times) and, with `--time-steps`, a directory of numbered
 /// time steps are each compressed into one series file, its units (temporal components) scored

@@ -833,11 +833,20 @@ async fn execute(
         None => sha256(&bytes),
     };
     if in_place.is_none() && got != spec.sha256 {
+        // The hash found goes to the worker's log, not to the job's failure: whoever submits a
+        // path could otherwise learn the SHA-256 of any file the worker can read (and confirm
+        // a guess of its content).
+        tracing::warn!(
+            job = id,
+            found = %wavesplat_net::digest::hex(&got),
+            submitted = %wavesplat_net::digest::hex(&spec.sha256),
+            "the source's SHA-256 is not the submitted one"
+        );
         return Err(fail(
             FailureKind::InvalidInput,
             format!(
-                "the source changed since submission: SHA-256 {}, submitted {}",
-                wavesplat_net::digest::hex(&got),
+                "the source changed since submission: its SHA-256 is not the submitted {} \
+                 (the one found is in the worker's log)",
                 wavesplat_net::digest::hex(&spec.sha256)
             ),
         ));

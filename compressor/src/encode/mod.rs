@@ -287,7 +287,8 @@ mod tests {
                 let channels = v.channel_count();
                 if m >= 2 {
                     let coarse = g.coefficient_count() as f64 / 8f64.powi(m as i32 - 1);
-                    let ratio = c.stats.kept as f64 / channels as f64
+                    let ratio = c.stats.kept as f64
+                        / channels as f64
                         / (super::rate::SHALLOWER_KEPT * coarse);
                     if ratio > 0.75 && ratio < 1.33 {
                         return None;
@@ -307,7 +308,9 @@ mod tests {
             ("noise", Phantom::Noise { seed: 3 }.generate([32, 32, 32])),
         ] {
             for bytes in [400, 1_500, 4_000, 9_000, 20_000, 45_000] {
-                let Some(want) = rule(&v, bytes) else { continue };
+                let Some(want) = rule(&v, bytes) else {
+                    continue;
+                };
                 let o = CompressOptions {
                     target: Target::Bytes(bytes),
                     ..Effort::Fast.options()
