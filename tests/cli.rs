@@ -871,6 +871,33 @@ fn a_bricked_volume_is_compressed_listed_and_rendered() {
     assert_eq!(std::fs::read(path("keep.raw")).unwrap(), b"earlier");
     let again = run(&["decompress", &path("b.wsp"), "-o", &path("b2.raw")]);
     assert!(out(&again).contains("8 bricks"), "{}", out(&again));
+    // The same bricks behind the first container version's manifest (explicit entries, what
+    // earlier builds wrote) read the same: `info` names the version, `decompress` writes the
+    // same volume.
+    {
+        use wavesplat_codec::format::bricked::{
+            parse_bricked, write_bricked, BRICKED_VERSION, EXPLICIT_BRICKED_VERSION,
+        };
+        let bytes = std::fs::read(path("b.wsp")).unwrap();
+        let f = parse_bricked(&bytes).unwrap();
+        assert_eq!(f.manifest.version, BRICKED_VERSION);
+        let bricks: Vec<&[u8]> = (0..f.manifest.bricks.len())
+            .map(|i| f.brick_bytes(i).unwrap())
+            .collect();
+        let mut old = f.manifest.clone();
+        old.version = EXPLICIT_BRICKED_VERSION;
+        let old_bytes = write_bricked(&mut old, &bricks).unwrap();
+        assert!(old_bytes.len() > bytes.len());
+        std::fs::write(path("b9.wsp"), &old_bytes).unwrap();
+        let info = run(&["info", &path("b9.wsp")]);
+        assert!(out(&info).contains("(version 9)"), "{}", out(&info));
+        let d = run(&["decompress", &path("b9.wsp"), "-o", &path("b9.raw")]);
+        assert!(d.status.success(), "{}", err(&d));
+        assert_eq!(
+            std::fs::read(path("b9.raw")).unwrap(),
+            std::fs::read(path("b2.raw")).unwrap()
+        );
+    }
     let original = read("head_40x36x32_f32.raw");
     let (bricked, whole) = (read("b.raw"), read("w.raw"));
     assert_eq!(bricked.len(), original.len());

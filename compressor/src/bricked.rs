@@ -696,6 +696,7 @@ impl BrickPlan {
                     kept: *kept,
                 })
                 .collect(),
+            version: wavesplat_codec::format::bricked::BRICKED_VERSION,
         }
     }
 }

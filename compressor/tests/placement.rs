@@ -133,8 +133,19 @@ fn hostile_placements_and_old_versions_are_refused() {
         e.to_string().contains("compress the source volume again"),
         "{e}"
     );
-    // Versions 9 and 10 are the bricked and series containers, which the plain reader names
-    // as such; the first version this build knows nothing of is newer.
+    // Versions 9 and 11 are the bricked containers and 10 the series container, which the
+    // plain reader names as such; the first version this build knows nothing of is newer.
+    for v in [
+        wavesplat_codec::format::bricked::EXPLICIT_BRICKED_VERSION,
+        wavesplat_codec::format::bricked::BRICKED_VERSION,
+    ] {
+        let mut bricked = bytes.clone();
+        bricked[4..6].copy_from_slice(&v.to_le_bytes());
+        assert!(matches!(
+            read_header_section(&bricked).unwrap_err(),
+            FormatError::Bricked
+        ));
+    }
     let mut series = bytes.clone();
     series[4..6].copy_from_slice(&wavesplat_codec::format::series::SERIES_VERSION.to_le_bytes());
     assert!(matches!(
@@ -143,7 +154,7 @@ fn hostile_placements_and_old_versions_are_refused() {
     ));
     let mut newer = bytes;
     newer[4..6]
-        .copy_from_slice(&(wavesplat_codec::format::series::SERIES_VERSION + 1).to_le_bytes());
+        .copy_from_slice(&(wavesplat_codec::format::bricked::BRICKED_VERSION + 1).to_le_bytes());
     assert!(read_header_section(&newer)
         .unwrap_err()
         .to_string()

@@ -134,7 +134,7 @@ pub struct CompressArgs {
     /// Split the volume into bricks of at most N voxels a side (each axis in near-equal
     /// parts), each compressed on its own and read from the file brick by brick (raw, NIfTI,
     /// NRRD, MetaImage and DICOM series without loading the whole; a phantom generated a
-    /// brick at a time), written as one bricked file (format version 9); the coded bricks wait
+    /// brick at a time), written as one bricked file (format version 11); the coded bricks wait
     /// in a temporary file beside the output (about the output's size, twice that during a
     /// byte target's search), so memory stays about one brick per thread whatever the file's
     /// size. The target is the whole's: one score threshold across all bricks. For

@@ -49,10 +49,7 @@ pub fn run(a: InfoArgs) -> Result<()> {
             .with_context(|| format!("parsing {}", a.input.display()))?;
         let m = &f.manifest;
         outln!("file        {} ({} bytes)", a.input.display(), bytes.len());
-        outln!(
-            "format      bricked container (version {})",
-            wavesplat_codec::format::bricked::BRICKED_VERSION
-        );
+        outln!("format      bricked container (version {})", m.version);
         outln!(
             "dims        {}x{}x{}, spacing {} x {} x {}",
             m.dims[0],

@@ -25,7 +25,7 @@ pub enum FormatError {
     },
     /// A bricked container ([`bricked`]) where a plain file was expected: its bricks are
     /// plain files, read through [`bricked::parse_bricked`].
-    #[error("a bricked volume (format version {}): each brick is a volume of its own, read through the bricked container", bricked::BRICKED_VERSION)]
+    #[error("a bricked volume (format version {} or {}): each brick is a volume of its own, read through the bricked container", bricked::EXPLICIT_BRICKED_VERSION, bricked::BRICKED_VERSION)]
     Bricked,
     /// A series container ([`series`]) where a plain file was expected: its components are
     /// volume files, read through [`series::parse_series`].

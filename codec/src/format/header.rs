@@ -524,7 +524,7 @@ pub(crate) fn read_magic_and_version(
 pub(super) fn check_version(version: u16) -> Result<(), FormatError> {
     if (OLDEST_READABLE_VERSION..=VERSION).contains(&version) {
         Ok(())
-    } else if version == bricked::BRICKED_VERSION {
+    } else if bricked::is_bricked_version(version) {
         Err(FormatError::Bricked)
     } else if version == super::series::SERIES_VERSION {
         Err(FormatError::Series)

@@ -19,7 +19,7 @@
 //! The energies only rank packets (visible energy per byte), so 0.4 % precision is plenty and
 //! keeps the index near 3 bytes per band of a packet; the cache's own index keeps f64.
 //!
-//! A bricked container ([`crate::format::bricked`], format version 9) is published the same way
+//! A bricked container ([`crate::format::bricked`], format version 9 or 11) is published the same way
 //! as layout version 2: one object, the index of every brick in front of the unchanged
 //! container, so a reader has the manifest, every brick's header and every packet's place
 //! after one or two requests, and then fetches only the packets (of the bricks) a view sees:

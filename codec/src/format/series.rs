@@ -1,6 +1,6 @@
 //! The series container (format version 10): a time-varying volume (a cine, a 4D series,
 //! simulation time steps) as one file. It holds *components*, each a complete volume file of
-//! its own (a plain version 8 `.wsp` or a version 9 bricked container), and describes every
+//! its own (a plain version 8 `.wsp` or a version 9 or 11 bricked container), and describes every
 //! time point as a weighted sum of components: with a wavelet along time, a group's time points
 //! share a low-pass component and each adds its own few detail components, so what neighbouring
 //! time points share is stored once. Rendering is linear in the data, so a time point's image is
