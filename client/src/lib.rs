@@ -123,6 +123,17 @@ impl From<tonic::Status> for ClientError {
     }
 }
 
+/// What the cache answered to an upload.
+fn ingested(r: pb::IngestResponse) -> Result<Ingested, ClientError> {
+    Ok(Ingested {
+        volume: convert::volume_info(
+            r.volume
+                .ok_or_else(|| ClientError::Protocol("ingest returned no volume".into()))?,
+        )?,
+        existed: r.existed,
+    })
+}
+
 /// `file`'s length and SHA-256, read from its start; the file is handed back rewound.
 fn hash_file(mut file: std::fs::File) -> std::io::Result<(std::fs::File, u64, [u8; 32])> {
     use std::io::{Seek, SeekFrom};
@@ -401,14 +412,7 @@ impl CacheClient {
     ) -> Result<Ingested, ClientError> {
         let msgs = convert::ingest_messages(name, bytes);
         let r = self.inner.ingest(tokio_stream::iter(msgs)).await;
-        let r = self.checked(r).await?.into_inner();
-        Ok(Ingested {
-            volume: convert::volume_info(
-                r.volume
-                    .ok_or_else(|| ClientError::Protocol("ingest returned no volume".into()))?,
-            )?,
-            existed: r.existed,
-        })
+        ingested(self.checked(r).await?.into_inner())
     }
 
     /// Uploads the `.wsp` file `file` (read from its start) under `name`, as
@@ -436,14 +440,7 @@ impl CacheClient {
         if let Some(e) = read_error.lock().unwrap_or_else(|p| p.into_inner()).take() {
             return Err(ClientError::UploadRead(e));
         }
-        let r = self.checked(r).await?.into_inner();
-        Ok(Ingested {
-            volume: convert::volume_info(
-                r.volume
-                    .ok_or_else(|| ClientError::Protocol("ingest returned no volume".into()))?,
-            )?,
-            existed: r.existed,
-        })
+        ingested(self.checked(r).await?.into_inner())
     }
 
     /// The header and the first packets in global significance order, up to `max_bytes`.

@@ -514,18 +514,49 @@ pub fn parse_manifest(bytes: &[u8], container_bytes: u64) -> Result<Manifest, Fo
         return Err(bad("brick edge 0"));
     }
     let count = m.u32()? as usize;
-    if version == BRICKED_VERSION {
-        let bricks = compact_entries(&mut m, dims, brick, count, data_start, container_bytes)?;
-        return Ok(Manifest {
-            dims,
-            channels,
-            spacing,
-            placement,
-            brick,
-            bricks,
-            version,
+    let bricks = if version == BRICKED_VERSION {
+        compact_entries(&mut m, dims, brick, count, data_start, container_bytes)?
+    } else {
+        explicit_entries(&mut m, dims, count, data_start, container_bytes)?
+    };
+    Ok(Manifest {
+        dims,
+        channels,
+        spacing,
+        placement,
+        brick,
+        bricks,
+        version,
+    })
+}
+
+/// Refuses a brick of `length` bytes at `offset` that runs past a container of
+/// `container_bytes`.
+fn check_inside(offset: u64, length: u64, container_bytes: u64) -> Result<(), FormatError> {
+    if offset
+        .checked_add(length)
+        .is_none_or(|e| e > container_bytes)
+    {
+        return Err(FormatError::Truncated {
+            what: "brick",
+            needed: offset.saturating_add(length),
+            available: container_bytes,
         });
     }
+    Ok(())
+}
+
+/// The entries of a version 9 manifest (`count` of them in `m`), each placing its brick
+/// explicitly: every brick inside the whole, the bricks tiling it exactly (their voxel counts
+/// sum to the whole's and none overlaps another), every brick's bytes inside the container's
+/// `container_bytes` after `data_start`.
+fn explicit_entries(
+    m: &mut ByteReader<'_>,
+    dims: [u64; 3],
+    count: usize,
+    data_start: u64,
+    container_bytes: u64,
+) -> Result<Vec<BrickEntry>, FormatError> {
     // Each entry is 68 bytes: refuse a count the manifest cannot hold before allocating.
     const ENTRY_BYTES: usize = 3 * 8 + 3 * 4 + 8 + 8 + 4 + 8;
     if count == 0 || count > MAX_BRICKS || count * ENTRY_BYTES != m.remaining() {
@@ -552,17 +583,12 @@ pub fn parse_manifest(bytes: &[u8], container_bytes: u64) -> Result<Manifest, Fo
         }
         let offset = m.u64()?;
         let length = m.u64()?;
-        if offset < data_start
-            || offset
-                .checked_add(length)
-                .is_none_or(|e| e > container_bytes)
-        {
-            return Err(FormatError::Truncated {
-                what: "brick",
-                needed: offset.saturating_add(length),
-                available: container_bytes,
-            });
+        if offset < data_start {
+            return Err(bad(format!(
+                "a brick at byte {offset}, inside the manifest"
+            )));
         }
+        check_inside(offset, length, container_bytes)?;
         let crc = m.u32()?;
         let kept = m.u64()?;
         voxels += bd.iter().map(|d| *d as u128).product::<u128>();
@@ -604,15 +630,7 @@ pub fn parse_manifest(bytes: &[u8], container_bytes: u64) -> Result<Manifest, Fo
         }
         active.push(i);
     }
-    Ok(Manifest {
-        dims,
-        channels,
-        spacing,
-        placement,
-        brick,
-        bricks,
-        version,
-    })
+    Ok(bricks)
 }
 
 /// The entries of a compact manifest (`count` of them in `m`): each brick's box is the grid's
@@ -648,16 +666,7 @@ fn compact_entries(
         let length = read_u40(m)?;
         let crc = m.u32()?;
         let kept = read_u40(m)?;
-        if offset
-            .checked_add(length)
-            .is_none_or(|e| e > container_bytes)
-        {
-            return Err(FormatError::Truncated {
-                what: "brick",
-                needed: offset.saturating_add(length),
-                available: container_bytes,
-            });
-        }
+        check_inside(offset, length, container_bytes)?;
         bricks.push(BrickEntry {
             origin,
             dims: bd,
