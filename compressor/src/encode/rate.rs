@@ -110,7 +110,8 @@ pub(super) fn compress_to_bytes(
     let mut too_small: Option<CompressError> = None;
     let mut depths = depths;
     let mut next = 0;
-    // A predicted depth is chosen from one probe of the default depth ([`Searched`]); the
+    // A predicted depth is chosen from the target's bytes where they decide it
+    // ([`depth_from_bytes`]), else from one probe of the default depth ([`Searched`]); the
     // default depth is searched in full only if it is kept, or if the predicted one turns out
     // not to fit the target (`fallback`).
     let predicting =
