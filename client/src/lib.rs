@@ -138,23 +138,13 @@ fn ingested(r: pb::IngestResponse) -> Result<Ingested, ClientError> {
 fn hash_file(mut file: std::fs::File) -> std::io::Result<(std::fs::File, u64, [u8; 32])> {
     use std::io::{Seek, SeekFrom};
     file.seek(SeekFrom::Start(0))?;
-    let mut hasher = wavesplat_net::digest::Sha256Pieces::default();
-    let total = std::io::copy(&mut file, &mut HashWriter(&mut hasher))?;
+    let mut total = 0;
+    let sha256 = wavesplat_net::digest::sha256_stream(|w| {
+        total = std::io::copy(&mut file, w)?;
+        Ok::<_, std::io::Error>(())
+    })?;
     file.seek(SeekFrom::Start(0))?;
-    Ok((file, total, hasher.finish()))
-}
-
-/// Feeds what is written to a hasher.
-struct HashWriter<'a>(&'a mut wavesplat_net::digest::Sha256Pieces);
-
-impl std::io::Write for HashWriter<'_> {
-    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
-        self.0.update(buf);
-        Ok(buf.len())
-    }
-    fn flush(&mut self) -> std::io::Result<()> {
-        Ok(())
-    }
+    Ok((file, total, sha256))
 }
 
 /// What the cache says about a stored volume.

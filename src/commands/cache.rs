@@ -164,13 +164,22 @@ pub fn run(cmd: CacheCommand) -> Result<()> {
                     .map(|s| s.to_string_lossy().into_owned())
                     .context("the input has no file name; pass --name")?,
             };
-            let mut cache = connect(&a.url)?;
             // A `.wsp` (or a bricked or series container) is sent from disk as it is read;
             // anything else (an indexed layout to convert, or not a `.wsp` at all) goes through
-            // `read_wsp`, which converts it or says what it is.
-            let r = match open_plain_wsp(&a.input)? {
-                Some(file) => cache.ingest_file(&name, file),
-                None => cache.ingest_owned(&name, super::read_wsp(&a.input)?),
+            // `read_wsp`, which converts it or says what it is. Both before connecting, so that
+            // a bad file is reported as such.
+            enum Source {
+                File(std::fs::File),
+                Converted(Vec<u8>),
+            }
+            let source = match open_plain_wsp(&a.input)? {
+                Some(file) => Source::File(file),
+                None => Source::Converted(super::read_wsp(&a.input)?),
+            };
+            let mut cache = connect(&a.url)?;
+            let r = match source {
+                Source::File(file) => cache.ingest_file(&name, file),
+                Source::Converted(bytes) => cache.ingest_owned(&name, bytes),
             }
             .with_context(|| format!("ingesting {}", a.input.display()))?;
             let what = if r.existed {

@@ -501,15 +501,28 @@ fn compress_bricked_job(
     };
     // The coded bricks wait in the scratch directory, and the container is written there:
     // a bricked file may be larger than the worker's memory.
-    let mut out = std::io::BufWriter::new(tempfile::tempfile().map_err(output_failure)?);
-    compress_bricked_to(source, opts, brick, &report, None, &mut out).map_err(|e| match e {
-        BrickError::Spill(e) | BrickError::Output(e) => output_failure(e),
-        e => fail(FailureKind::Compress, e.to_string()),
+    let file = write_output(|out| {
+        compress_bricked_to(source, opts, brick, &report, None, out)
+            .map(drop)
+            .map_err(|e| match e {
+                BrickError::Spill(e) | BrickError::Output(e) => output_failure(e),
+                e => fail(FailureKind::Compress, e.to_string()),
+            })
     })?;
+    Ok((file, voxels))
+}
+
+/// The job's output written by `write` to a temporary file in the scratch directory, not to
+/// memory: a bricked volume or a series may be larger than the worker's memory.
+pub(crate) fn write_output(
+    write: impl FnOnce(&mut dyn std::io::Write) -> Result<(), Failure>,
+) -> Result<Output, Failure> {
+    let mut out = std::io::BufWriter::new(tempfile::tempfile().map_err(output_failure)?);
+    write(&mut out)?;
     let file = out
         .into_inner()
         .map_err(|e| output_failure(e.into_error()))?;
-    Ok((Output::File(file), voxels))
+    Ok(Output::File(file))
 }
 
 /// A compressed volume on its way to the cache: in memory, or in a temporary file in the

@@ -15,7 +15,7 @@
 //! replaced by the next worker to lease the job, whose parts are already known (`SubmitParts`
 //! leaves them as they are), so bricks done before are not compressed again.
 
-use crate::{fail, heartbeat_loop, options, output_failure, Output, Shared};
+use crate::{fail, heartbeat_loop, options, output_failure, write_output, Output, Shared};
 use std::sync::atomic::Ordering;
 use std::sync::Arc;
 use std::time::Duration;
@@ -831,19 +831,6 @@ pub(crate) fn coordinate(
             .map_err(spill_failure)
     })?;
     Ok((file, voxels))
-}
-
-/// The job's output written by `write` to a temporary file in the scratch directory, not to
-/// memory: a bricked volume or a series may be larger than the worker's memory.
-fn write_output(
-    write: impl FnOnce(&mut dyn std::io::Write) -> Result<(), Failure>,
-) -> Result<Output, Failure> {
-    let mut out = std::io::BufWriter::new(tempfile::tempfile().map_err(output_failure)?);
-    write(&mut out)?;
-    let file = out
-        .into_inner()
-        .map_err(|e| output_failure(e.into_error()))?;
-    Ok(Output::File(file))
 }
 
 /// A failure of writing the gathered parts or the container: the scratch directory's (the

@@ -168,20 +168,21 @@ pub(super) fn write_section(version: u16, mb: &[u8]) -> Vec<u8> {
 }
 
 /// Reads what [`write_section`] wrote at the start of `bytes`, refusing another magic or
-/// version, a manifest longer than `max` and a CRC that does not match (`what` names the
-/// manifest); returns the manifest's bytes and where the data after the section starts.
+/// version than `versions` (the first is the one this build writes), a manifest longer than
+/// `max` and a CRC that does not match (`what` names the manifest); returns the manifest's
+/// bytes, where the data after the section starts, and the version found.
 pub(super) fn read_section<'a>(
     bytes: &'a [u8],
-    version: u16,
+    versions: &[u16],
     max: usize,
     what: &'static str,
-) -> Result<(&'a [u8], u64), FormatError> {
+) -> Result<(&'a [u8], u64, u16), FormatError> {
     let mut r = ByteReader::new(bytes, what);
     let found = super::read_magic_and_version(&mut r, bytes)?;
-    if found != version {
+    if !versions.contains(&found) {
         return Err(FormatError::UnsupportedVersion {
             found,
-            supported: version,
+            supported: versions[0],
         });
     }
     let len = r.u32()? as usize;
@@ -202,7 +203,7 @@ pub(super) fn read_section<'a>(
             computed,
         });
     }
-    Ok((mb, r.position() as u64))
+    Ok((mb, r.position() as u64, found))
 }
 
 /// Whether `version` is a bricked container's.
@@ -491,17 +492,12 @@ pub fn parse_bricked(bytes: &[u8]) -> Result<BrickedFile<'_>, FormatError> {
 /// from `bytes`, its first bytes (at least the manifest section: what a reader fetching byte
 /// ranges has), with the checks of [`parse_bricked`].
 pub fn parse_manifest(bytes: &[u8], container_bytes: u64) -> Result<Manifest, FormatError> {
-    // The version decides the entries' layout; `read_section` checks the rest.
-    let version = match bytes.get(4..6) {
-        Some(v) if bytes.starts_with(MAGIC) => u16::from_le_bytes([v[0], v[1]]),
-        _ => BRICKED_VERSION,
-    };
-    let expected = if version == EXPLICIT_BRICKED_VERSION {
-        version
-    } else {
-        BRICKED_VERSION
-    };
-    let (mb, data_start) = read_section(bytes, expected, MAX_MANIFEST_BYTES, "bricked manifest")?;
+    let (mb, data_start, version) = read_section(
+        bytes,
+        &[BRICKED_VERSION, EXPLICIT_BRICKED_VERSION],
+        MAX_MANIFEST_BYTES,
+        "bricked manifest",
+    )?;
     let mut m = ByteReader::new(mb, "bricked manifest");
     let Space {
         dims,

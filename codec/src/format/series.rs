@@ -223,8 +223,12 @@ pub fn parse_series(bytes: &[u8]) -> Result<SeriesFile<'_>, FormatError> {
 /// 1..=[`MAX_TERMS`] distinct components with finite non-zero weights; every component used;
 /// times finite and strictly increasing.
 pub fn parse_manifest(bytes: &[u8], container_bytes: u64) -> Result<SeriesManifest, FormatError> {
-    let (mb, data_start) =
-        read_section(bytes, SERIES_VERSION, MAX_MANIFEST_BYTES, "series manifest")?;
+    let (mb, data_start, _) = read_section(
+        bytes,
+        &[SERIES_VERSION],
+        MAX_MANIFEST_BYTES,
+        "series manifest",
+    )?;
     let mut m = ByteReader::new(mb, "series manifest");
     let space = read_space(&mut m, "series manifest")?;
     let times_known = match m.u8()? {
