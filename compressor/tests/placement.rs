@@ -134,7 +134,8 @@ fn hostile_placements_and_old_versions_are_refused() {
         "{e}"
     );
     // Versions 9 and 11 are the bricked containers and 10 the series container, which the
-    // plain reader names as such; the first version this build knows nothing of is newer.
+    // plain reader names as such (plain files went from 8 to 12); the first version this
+    // build knows nothing of is newer.
     for v in [
         wavesplat_codec::format::bricked::EXPLICIT_BRICKED_VERSION,
         wavesplat_codec::format::bricked::BRICKED_VERSION,
@@ -153,8 +154,7 @@ fn hostile_placements_and_old_versions_are_refused() {
         FormatError::Series
     ));
     let mut newer = bytes;
-    newer[4..6]
-        .copy_from_slice(&(wavesplat_codec::format::bricked::BRICKED_VERSION + 1).to_le_bytes());
+    newer[4..6].copy_from_slice(&(VERSION + 1).to_le_bytes());
     assert!(read_header_section(&newer)
         .unwrap_err()
         .to_string()
@@ -280,4 +280,79 @@ fn coarse_layer_files_are_not_written_in_versions_before_it() {
         e.to_string().contains("coarse layer needs two layers"),
         "{e}"
     );
+}
+
+/// Sigmap packets of version 8 (models starting at ½) still decode, to the same coefficients
+/// as the same file's version 12 packets (models starting from the trained priors), on volumes
+/// the priors were not trained on (a CT-like body, noise) and on ones they were; version 12's
+/// are smaller in all; packets coded with the priors cannot be written under version 8, and
+/// `compress` writes version 8 when asked.
+#[test]
+fn version_8_sigmap_packets_still_decode_and_the_priors_save_bytes() {
+    use wavesplat_codec::format::LAST_UNPRIMED_VERSION;
+    let (mut primed, mut unprimed) = (0usize, 0usize);
+    for (v, fraction) in [
+        (Phantom::Ct.generate([40, 36, 24]), 0.02),
+        (Phantom::Ct.generate([40, 36, 24]), 0.002),
+        (Phantom::Noise { seed: 3 }.generate([16, 16, 16]), 0.2),
+        (Phantom::SheppLogan.generate([32, 30, 28]), 0.01),
+        (Phantom::RgbHead.generate([20, 20, 20]), 0.05),
+    ] {
+        let bytes = compress(
+            &v,
+            &CompressOptions {
+                target: Target::Fraction(fraction),
+                ..Default::default()
+            },
+            &|_, _| {},
+        )
+        .unwrap()
+        .bytes;
+        let parsed = parse_file(&bytes).unwrap();
+        assert_eq!(parsed.header.version, VERSION);
+        let v8 = rewritten(&bytes, LAST_UNPRIMED_VERSION);
+        let parsed8 = parse_file(&v8).unwrap();
+        assert_eq!(parsed8.header.version, LAST_UNPRIMED_VERSION);
+        assert_eq!(decoded(&v8), decoded(&bytes));
+        assert_eq!(
+            decompress(&v8).unwrap().channels(),
+            decompress(&bytes).unwrap().channels()
+        );
+        primed += parsed.packets.iter().map(|p| p.len()).sum::<usize>();
+        unprimed += parsed8.packets.iter().map(|p| p.len()).sum::<usize>();
+        let packets: Vec<Vec<u8>> = parsed.packets.iter().map(|p| p.to_vec()).collect();
+        let e = write_file_version(&parsed.header, &packets, LAST_UNPRIMED_VERSION).unwrap_err();
+        assert!(e.to_string().contains("trained priors"), "{e}");
+        // Asked for, compress writes version 8 itself: the same coefficients.
+        let asked = compress(
+            &v,
+            &CompressOptions {
+                target: Target::Fraction(fraction),
+                format_version: LAST_UNPRIMED_VERSION,
+                ..Default::default()
+            },
+            &|_, _| {},
+        )
+        .unwrap()
+        .bytes;
+        assert_eq!(
+            parse_file(&asked).unwrap().header.version,
+            LAST_UNPRIMED_VERSION
+        );
+        assert_eq!(decoded(&asked), decoded(&bytes));
+    }
+    assert!(
+        primed < unprimed,
+        "payloads: {primed} bytes with the priors, {unprimed} without"
+    );
+    let e = compress(
+        &Phantom::SheppLogan.generate([8, 8, 8]),
+        &CompressOptions {
+            format_version: 9,
+            ..Default::default()
+        },
+        &|_, _| {},
+    )
+    .unwrap_err();
+    assert!(e.to_string().contains("format version 9"), "{e}");
 }

@@ -67,6 +67,30 @@ impl BitModel {
         }
     }
 
+    /// A model starting at probability `p0` (that the bit is 0, in units of 2^−12, clamped to
+    /// `1..4096`) as if it had already seen `seen` bits: its warm-up goes on from there, so a
+    /// prior trained elsewhere is trusted about as much as that many bits of this stream.
+    pub const fn primed(p0: u16, seen: u8) -> Self {
+        let p0 = if p0 < 1 {
+            1
+        } else if p0 >= PROB_ONE as u16 {
+            PROB_ONE as u16 - 1
+        } else {
+            p0
+        };
+        BitModel {
+            p0,
+            shift: Self::DEFAULT_SHIFT,
+            seen,
+        }
+    }
+
+    /// The probability that the next bit is 0 in units of 2^−12, and the bits seen so far
+    /// (saturating at 255).
+    pub fn state(&self) -> (u16, u8) {
+        (self.p0, self.seen)
+    }
+
     /// Current probability that the next bit is 0.
     pub fn p0(&self) -> f64 {
         self.p0 as f64 / PROB_ONE as f64
@@ -426,6 +450,22 @@ impl AdaptiveUintModel {
             suffix: [[m; 3]; 65],
         }
     }
+
+    /// Its binary models, [`AdaptiveUintModel::MODELS`] of them, in a fixed order: the
+    /// prefix's, then each bit length's suffix tree.
+    pub fn models(&self) -> impl Iterator<Item = &BitModel> {
+        self.prefix.iter().chain(self.suffix.iter().flatten())
+    }
+
+    /// [`AdaptiveUintModel::models`], to set.
+    pub fn models_mut(&mut self) -> impl Iterator<Item = &mut BitModel> {
+        self.prefix
+            .iter_mut()
+            .chain(self.suffix.iter_mut().flatten())
+    }
+
+    /// How many binary models an [`AdaptiveUintModel`] holds.
+    pub const MODELS: usize = 64 + 65 * 3;
 
     /// Codes `v`.
     pub fn encode(&mut self, enc: &mut RangeEncoder, v: u64) {

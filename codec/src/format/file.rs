@@ -9,7 +9,7 @@ use super::header::{
 };
 use super::{
     invalid, CoderKind, FormatError, Header, COARSE_LAYER_VERSION, FAST_CODER_VERSION, MAGIC,
-    MAGNITUDE_CONTEXTS_VERSION, MAX_PACKET_BYTES,
+    MAGNITUDE_CONTEXTS_VERSION, MAX_PACKET_BYTES, PRIORS_VERSION,
 };
 
 /// A parsed file: the header and the location of each packet.
@@ -96,6 +96,19 @@ pub fn write_file_version(
         return Err(invalid(
             "header",
             format!("format version {version} cannot hold an intensity offset"),
+        ));
+    }
+    if header.coder == CoderKind::Sigmap
+        && (version >= PRIORS_VERSION) != (header.version >= PRIORS_VERSION)
+    {
+        return Err(invalid(
+            "header",
+            format!(
+                "sigmap packets coded for format version {} do not decode as version {version} \
+                 (version {PRIORS_VERSION} starts their models from trained priors): encode them \
+                 with that version",
+                header.version
+            ),
         ));
     }
     Ok(write_file_body(

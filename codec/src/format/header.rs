@@ -6,7 +6,7 @@ use super::bytes::{ByteReader, ByteWriter};
 use super::{
     bricked, fast, invalid, CoderKind, ColorInfo, ColorKind, FormatError, HuffmanTables,
     SubstreamParams, CATEGORY_ALPHABET, COARSE_LAYER_VERSION, FAST_CODER_VERSION, MAGIC,
-    MAX_HEADER_BYTES, MAX_LAYERS, MAX_MARGIN, OLDEST_READABLE_VERSION, VERSION,
+    MAX_HEADER_BYTES, MAX_LAYERS, MAX_MARGIN, VERSION,
 };
 use crate::entropy::bits::{BitReader, BitWriter};
 use crate::entropy::huffman::HuffmanCode;
@@ -460,9 +460,16 @@ impl Header {
     }
 }
 
-/// Serializes the header section (magic, version, header, CRC).
+/// Serializes the header section (magic, version, header, CRC) in the version its packets were
+/// coded for ([`Header::version`]; [`VERSION`] for a header that names no plain version), so
+/// that a file read and written again keeps the version its packets decode in.
 pub fn write_header_section(header: &Header) -> Vec<u8> {
-    write_header_section_version(header, VERSION)
+    let version = if super::is_plain_version(header.version) {
+        header.version
+    } else {
+        VERSION
+    };
+    write_header_section_version(header, version)
 }
 
 pub(super) fn write_header_section_version(header: &Header, version: u16) -> Vec<u8> {
@@ -522,7 +529,7 @@ pub(crate) fn read_magic_and_version(
 
 /// Refuses a version this build cannot read.
 pub(super) fn check_version(version: u16) -> Result<(), FormatError> {
-    if (OLDEST_READABLE_VERSION..=VERSION).contains(&version) {
+    if super::is_plain_version(version) {
         Ok(())
     } else if bricked::is_bricked_version(version) {
         Err(FormatError::Bricked)

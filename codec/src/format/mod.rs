@@ -48,8 +48,24 @@ pub const MAGIC: &[u8; 4] = b"WSPL";
 /// Current format version (4: the header carries the volume's placement in patient space; 5:
 /// an intensity volume's offset, the value subtracted before the transform; 6: the sigmap
 /// coder codes each magnitude in the context of its lower neighbours' magnitudes; 7: the fast
-/// coder, [`CoderKind::Fast`]; 8: the coarse layer, [`Header::coarse_layer`]).
-pub const VERSION: u16 = 8;
+/// coder, [`CoderKind::Fast`]; 8: the coarse layer, [`Header::coarse_layer`]; 12: the sigmap
+/// coder's models start from trained priors, [`sigmap::priors`]). Versions 9 to 11 are the
+/// bricked and series containers' ([`bricked`], [`series`]), so the plain file's versions are
+/// [`is_plain_version`]'s.
+pub const VERSION: u16 = 12;
+
+/// First version whose sigmap packets start their models from the trained priors
+/// ([`sigmap::priors`]).
+pub const PRIORS_VERSION: u16 = 12;
+
+/// The last plain version before the containers' numbers (9 to 11).
+pub const LAST_UNPRIMED_VERSION: u16 = 8;
+
+/// Whether a plain file (one volume, [`parse_file`]) of this version is readable here.
+pub fn is_plain_version(version: u16) -> bool {
+    (OLDEST_READABLE_VERSION..=LAST_UNPRIMED_VERSION).contains(&version)
+        || version == PRIORS_VERSION
+}
 
 /// First version with the coarse layer ([`Header::coarse_layer`]).
 pub const COARSE_LAYER_VERSION: u16 = 8;

@@ -303,7 +303,7 @@ impl Prepared {
             fast_tables: None,
             total_energy: self.total_energy,
             kept: k as u64,
-            version: wavesplat_codec::format::VERSION,
+            version: opts.format_version,
         };
         // Group by (layer, tile), keeping significance order inside each group.
         let mut groups: std::collections::BTreeMap<(usize, usize), Vec<(Scored, Coefficient)>> =

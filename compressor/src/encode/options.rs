@@ -96,6 +96,10 @@ pub struct CompressOptions {
     pub refine: Option<RefineOptions>,
     /// Refuse to start when [`memory_estimate`] exceeds this many bytes (`None`: no limit).
     pub memory_limit: Option<u64>,
+    /// The plain format version written: [`wavesplat_codec::format::VERSION`], or
+    /// [`wavesplat_codec::format::LAST_UNPRIMED_VERSION`] for readers from before the sigmap
+    /// coder's trained priors (its packets then start their models at ½, ~3 % more bytes).
+    pub format_version: u16,
 }
 
 impl Default for CompressOptions {
@@ -123,6 +127,7 @@ impl Default for CompressOptions {
             step: 1.0,
             refine: Some(RefineOptions::default()),
             memory_limit: None,
+            format_version: wavesplat_codec::format::VERSION,
         }
     }
 }

@@ -305,6 +305,16 @@ pub(super) fn prepare(
             opts.step
         )));
     }
+    let versions = [
+        wavesplat_codec::format::LAST_UNPRIMED_VERSION,
+        wavesplat_codec::format::VERSION,
+    ];
+    if !versions.contains(&opts.format_version) {
+        return Err(CompressError::InvalidOption(format!(
+            "format version {}; {} or {} allowed",
+            opts.format_version, versions[0], versions[1]
+        )));
+    }
     if !(1..=16).contains(&opts.bits) {
         return Err(CompressError::InvalidOption(format!(
             "quantization bits P = {}; allowed 1..=16",

@@ -8,6 +8,7 @@ use super::cells::{
     face_state_of_count, CodedCells, FACE_STATES, NEIGHBOUR_STATES, SIGN_CONTEXTS, VALUE_CONTEXTS,
 };
 use super::octree::Box3;
+use super::priors;
 use crate::entropy::range::{AdaptiveUintModel, BitModel};
 
 /// Most size contexts per band (log2 of a box's cell count, clamped); a packet uses as many as
@@ -51,20 +52,70 @@ impl Models {
         } else {
             1
         };
+        let coded = SPARE_CELLS
+            .try_with(|c| c.take())
+            .ok()
+            .flatten()
+            .unwrap_or_default();
+        if header.version >= super::super::PRIORS_VERSION {
+            let key = (header.geometry.levels, size_contexts, value_contexts);
+            let p = PRIMED.with(|p| {
+                let mut p = p.borrow_mut();
+                if p.as_ref().map(|p| p.key) != Some(key) {
+                    let mut m = Models::fresh(nb, size_contexts, value_contexts, occupied);
+                    priors::prime(&mut m, &header.geometry.bands(), priors::shipped());
+                    *p = Some(Primed {
+                        key,
+                        present: m.present.clone(),
+                        occupied: m.occupied.clone(),
+                        sign: m.sign.clone(),
+                        value: m.value.clone(),
+                    });
+                }
+                p.clone().expect("just set")
+            });
+            return Models {
+                size_contexts,
+                value_contexts,
+                present: p.present,
+                occupied: p.occupied,
+                sign: p.sign,
+                value: p.value,
+                coded,
+            };
+        }
+        let mut m = Models::fresh(nb, size_contexts, value_contexts, occupied);
+        m.coded = coded;
+        m
+    }
+
+    /// Models at probability ½ (the format before [`super::super::PRIORS_VERSION`]).
+    fn fresh(nb: usize, size_contexts: usize, value_contexts: usize, occupied: usize) -> Models {
         Models {
             size_contexts,
             value_contexts,
-            present: (0..nb).map(|_| BitModel::new()).collect(),
-            occupied: (0..occupied).map(|_| BitModel::new()).collect(),
-            sign: (0..nb * SIGN_CONTEXTS).map(|_| BitModel::new()).collect(),
+            present: vec![BitModel::new(); nb],
+            occupied: vec![BitModel::new(); occupied],
+            sign: vec![BitModel::new(); nb * SIGN_CONTEXTS],
             value: vec![AdaptiveUintModel::new(); nb * value_contexts],
-            coded: SPARE_CELLS
-                .try_with(|c| c.take())
-                .ok()
-                .flatten()
-                .unwrap_or_default(),
+            coded: CodedCells::default(),
         }
     }
+}
+
+/// A packet's primed models for one (depth, size contexts, value contexts): the last set built
+/// on this thread, copied for each packet of that shape.
+#[derive(Clone)]
+struct Primed {
+    key: (usize, usize, usize),
+    present: Vec<BitModel>,
+    occupied: Vec<BitModel>,
+    sign: Vec<BitModel>,
+    value: Vec<AdaptiveUintModel>,
+}
+
+thread_local! {
+    static PRIMED: std::cell::RefCell<Option<Primed>> = const { std::cell::RefCell::new(None) };
 }
 
 thread_local! {
