@@ -5,7 +5,8 @@
 //! records where each model ended each packet. The CT phantom is left out: the test set holds
 //! a volume like it, and the priors must be measured on volumes they were not trained on.
 //!
-//! `cargo run --release -p wavesplat-compressor --example train_priors -- OUT.bin [SEEN]`
+//! `cargo run --release -p wavesplat-compressor --example train_priors -- OUT.bin [MAX_SEEN]`
+//! (MAX_SEEN: the most bits any prior counts as seen, default 30: fully learnt)
 
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -32,8 +33,10 @@ fn noisy(v: &Volume, sigma: f32, seed: u64) -> Volume {
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let mut args = std::env::args().skip(1);
-    let out = args.next().ok_or("usage: train_priors OUT.bin [SEEN]")?;
-    let seen: u8 = args.next().map_or(Ok(6), |s| s.parse())?;
+    let out = args
+        .next()
+        .ok_or("usage: train_priors OUT.bin [MAX_SEEN]")?;
+    let max_seen: u8 = args.next().map_or(Ok(30), |s| s.parse())?;
     let mut volumes: Vec<(String, Volume)> = Vec::new();
     for dims in [[96, 96, 96], [160, 128, 112]] {
         let sl = Phantom::SheppLogan.generate(dims);
@@ -64,7 +67,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             }
         }
     }
-    let table = training.finish(16.0, seen);
+    let table = training.finish(16, max_seen);
     let primed = table.p0.iter().filter(|p| **p != 0).count();
     std::fs::write(&out, table.to_bytes())?;
     eprintln!("{primed} models primed, written to {out}");

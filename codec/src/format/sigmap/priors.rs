@@ -39,9 +39,9 @@ const VALUE_PER_BAND: usize = VALUE_CONTEXTS * AdaptiveUintModel::MODELS;
 /// Models in the canonical table.
 pub const CANONICAL_MODELS: usize = VALUE_AT + BAND_KEYS * VALUE_PER_BAND;
 
-/// The table's file: magic, then version (u16), model count (u32), the bits a prior counts as
-/// seen (u8), entry count (u32), entries (index u32, p0 u16, little-endian, by increasing
-/// index), CRC-32 of everything before it.
+/// The table's file: magic, then version (u16), model count (u32), entry count (u32), entries
+/// (index u32, p0 u16, seen u8; little-endian, by increasing index), CRC-32 of everything
+/// before it.
 const TABLE: &[u8] = include_bytes!("priors.bin");
 const TABLE_MAGIC: &[u8; 4] = b"WSPP";
 const TABLE_VERSION: u16 = 1;
@@ -52,20 +52,21 @@ const TABLE_VERSION: u16 = 1;
 pub struct TableError(String);
 
 /// A priors table: per canonical model, its starting probability of a 0 in units of 2^−12
-/// (0: no prior, start at ½), and how many bits a prior counts as seen.
+/// (0: no prior, start at ½), and how many bits that prior counts as seen: how far it is
+/// trusted ([`BitModel::primed`]).
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Table {
     /// Per canonical model, p0 or 0.
     pub p0: Vec<u16>,
-    /// The bits a model starting from its prior counts as seen (see [`BitModel::primed`]).
-    pub seen: u8,
+    /// Per canonical model, the bits its prior counts as seen (0 where p0 is 0).
+    pub seen: Vec<u8>,
 }
 
 impl Table {
     /// Reads a table written by [`Table::to_bytes`].
     pub fn from_bytes(bytes: &[u8]) -> Result<Table, TableError> {
         let bad = |s: &str| TableError(s.to_string());
-        if bytes.len() < 19 || &bytes[..4] != TABLE_MAGIC {
+        if bytes.len() < 18 || &bytes[..4] != TABLE_MAGIC {
             return Err(bad("not a priors table"));
         }
         let (body, crc) = bytes.split_at(bytes.len() - 4);
@@ -80,23 +81,24 @@ impl Table {
         if u32_at(6) as usize != CANONICAL_MODELS {
             return Err(bad("model count differs from this codec's"));
         }
-        let seen = body[10];
-        let count = u32_at(11) as usize;
-        if body.len() != 15 + 6 * count {
+        let count = u32_at(10) as usize;
+        if body.len() != 14 + 7 * count {
             return Err(bad("length does not match the entry count"));
         }
         let mut p0 = vec![0u16; CANONICAL_MODELS];
+        let mut seen = vec![0u8; CANONICAL_MODELS];
         let mut last = None;
-        for e in body[15..].chunks_exact(6) {
+        for e in body[14..].chunks_exact(7) {
             let index = u32::from_le_bytes(e[..4].try_into().expect("4 bytes")) as usize;
             let p = u16::from_le_bytes([e[4], e[5]]);
             if index >= CANONICAL_MODELS || last.is_some_and(|l| index <= l) {
                 return Err(bad("entry index out of order or range"));
             }
-            if !(1..4096).contains(&p) {
-                return Err(bad("probability out of range"));
+            if !(1..4096).contains(&p) || e[6] == 0 {
+                return Err(bad("probability or trust out of range"));
             }
             p0[index] = p;
+            seen[index] = e[6];
             last = Some(index);
         }
         Ok(Table { p0, seen })
@@ -104,34 +106,34 @@ impl Table {
 
     /// Writes the table in the form [`Table::from_bytes`] reads.
     pub fn to_bytes(&self) -> Vec<u8> {
-        let entries: Vec<(usize, u16)> = self
+        let entries: Vec<(usize, u16, u8)> = self
             .p0
             .iter()
             .enumerate()
             .filter(|(_, p)| **p != 0)
-            .map(|(i, p)| (i, *p))
+            .map(|(i, p)| (i, *p, self.seen[i].max(1)))
             .collect();
-        let mut out = Vec::with_capacity(19 + 6 * entries.len());
+        let mut out = Vec::with_capacity(18 + 7 * entries.len());
         out.extend_from_slice(TABLE_MAGIC);
         out.extend_from_slice(&TABLE_VERSION.to_le_bytes());
         out.extend_from_slice(&(CANONICAL_MODELS as u32).to_le_bytes());
-        out.push(self.seen);
         out.extend_from_slice(&(entries.len() as u32).to_le_bytes());
-        for (i, p) in entries {
+        for (i, p, seen) in entries {
             out.extend_from_slice(&(i as u32).to_le_bytes());
             out.extend_from_slice(&p.to_le_bytes());
+            out.push(seen);
         }
         let crc = crc32fast::hash(&out);
         out.extend_from_slice(&crc.to_le_bytes());
         out
     }
 
-    /// The model a prior `p` (0: none) starts.
-    fn model(&self, p: u16) -> BitModel {
-        if p == 0 {
+    /// The model canonical model `i` starts as.
+    fn model(&self, i: usize) -> BitModel {
+        if self.p0[i] == 0 {
             BitModel::new()
         } else {
-            BitModel::primed(p, self.seen)
+            BitModel::primed(self.p0[i], self.seen[i])
         }
     }
 }
@@ -190,13 +192,15 @@ fn for_each_model<'m>(
 
 /// Sets every model of fresh `m` (band index → band: `bands`) to its prior in `table`.
 pub(super) fn prime(m: &mut Models, bands: &[Band], table: &Table) {
-    for_each_model(m, bands, |i, model| *model = table.model(table.p0[i]));
+    for_each_model(m, bands, |i, model| *model = table.model(i));
 }
 
 /// Whether a [`Training`] is recording.
 static RECORDING: AtomicBool = AtomicBool::new(false);
-/// Per canonical model: Σ w·p0 and Σ w over the packets recorded.
-static RECORDED: Mutex<Vec<(f64, f64)>> = Mutex::new(Vec::new());
+/// Per canonical model, over the packets recorded: Σ w, Σ w·p0, Σ w·p0², Σ w·⌊2^20 / (n + 2)⌋
+/// (n the bits seen, at most 61), w = min(n, 64). Integers, so that the sums do not depend on
+/// the order the packets come in.
+static RECORDED: Mutex<Vec<[u64; 4]>> = Mutex::new(Vec::new());
 
 /// Records, while a [`Training`] runs, where each model of a coded packet ended: its p0,
 /// weighted by the bits it saw (up to 64). Coding is the same whether or not it records.
@@ -204,21 +208,24 @@ pub(super) fn record(m: &mut Models, bands: &[Band]) {
     if !RECORDING.load(Ordering::Relaxed) {
         return;
     }
-    let mut seen = Vec::new();
+    let mut ended = Vec::new();
     for_each_model(m, bands, |i, model| {
         let (p0, n) = model.state();
         if n > 0 {
-            seen.push((i, p0, n));
+            ended.push((i, p0, n));
         }
     });
     let mut recorded = RECORDED.lock().unwrap_or_else(|e| e.into_inner());
     if recorded.len() != CANONICAL_MODELS {
-        *recorded = vec![(0.0, 0.0); CANONICAL_MODELS];
+        *recorded = vec![[0; 4]; CANONICAL_MODELS];
     }
-    for (i, p0, n) in seen {
-        let w = f64::from(n.min(64));
-        recorded[i].0 += w * f64::from(p0);
-        recorded[i].1 += w;
+    for (i, p0, n) in ended {
+        let (w, p) = (u64::from(n.min(64)), u64::from(p0));
+        let r = &mut recorded[i];
+        r[0] += w;
+        r[1] += w * p;
+        r[2] += w * p * p;
+        r[3] += w * ((1 << 20) / (u64::from(n.min(61)) + 2));
     }
 }
 
@@ -231,26 +238,38 @@ pub struct Training(());
 impl Training {
     /// Starts recording (clearing anything recorded before).
     pub fn start() -> Training {
-        *RECORDED.lock().unwrap_or_else(|e| e.into_inner()) = vec![(0.0, 0.0); CANONICAL_MODELS];
+        *RECORDED.lock().unwrap_or_else(|e| e.into_inner()) = vec![[0; 4]; CANONICAL_MODELS];
         RECORDING.store(true, Ordering::SeqCst);
         Training(())
     }
 
-    /// Stops recording and returns the table: each model's mean end state, for the models
-    /// with at least `min_weight` recorded bits (weighted as in [`record`]); `seen` as given.
-    pub fn finish(self, min_weight: f64, seen: u8) -> Table {
+    /// Stops recording and returns the table: for each model with at least `min_weight`
+    /// recorded bits, its mean end state, trusted as much as the spread of the end states
+    /// across packets says (a Beta prior's equivalent count, p̄(1 − p̄)/σ² − 2 with σ² the
+    /// spread less the end states' own estimation noise), at most `max_seen` bits.
+    pub fn finish(self, min_weight: u64, max_seen: u8) -> Table {
         RECORDING.store(false, Ordering::SeqCst);
         let recorded = std::mem::take(&mut *RECORDED.lock().unwrap_or_else(|e| e.into_inner()));
-        let p0 = recorded
-            .iter()
-            .map(|(sum, w)| {
-                if *w >= min_weight && *w > 0.0 {
-                    (sum / w).round().clamp(1.0, 4095.0) as u16
-                } else {
-                    0
-                }
-            })
-            .collect();
+        let mut p0 = vec![0u16; CANONICAL_MODELS];
+        let mut seen = vec![0u8; CANONICAL_MODELS];
+        for (i, r) in recorded.iter().enumerate() {
+            if r[0] < min_weight.max(1) {
+                continue;
+            }
+            let w = r[0] as f64;
+            let mean = r[1] as f64 / w;
+            let spread = (r[2] as f64 / w - mean * mean).max(0.0);
+            let p = mean / 4096.0;
+            let noise = p * (1.0 - p) * (r[3] as f64 / w) / f64::from(1u32 << 20);
+            let var = spread / (4096.0 * 4096.0) - noise;
+            let count = if var > 0.0 {
+                p * (1.0 - p) / var - 2.0
+            } else {
+                f64::INFINITY
+            };
+            p0[i] = mean.round().clamp(1.0, 4095.0) as u16;
+            seen[i] = count.clamp(1.0, f64::from(max_seen.max(1))).round() as u8;
+        }
         Table { p0, seen }
     }
 }
@@ -271,7 +290,7 @@ mod tests {
         assert_eq!(t.p0.len(), CANONICAL_MODELS);
         let primed = t.p0.iter().filter(|p| **p != 0).count();
         assert!(primed > 100, "only {primed} primed models");
-        assert!(t.seen > 0);
+        assert!((0..CANONICAL_MODELS).all(|i| (t.p0[i] == 0) == (t.seen[i] == 0)));
     }
 
     #[test]
@@ -279,7 +298,10 @@ mod tests {
         let mut p0 = vec![0u16; CANONICAL_MODELS];
         p0[3] = 100;
         p0[CANONICAL_MODELS - 1] = 4000;
-        let t = Table { p0, seen: 9 };
+        let mut seen = vec![0u8; CANONICAL_MODELS];
+        seen[3] = 9;
+        seen[CANONICAL_MODELS - 1] = 1;
+        let t = Table { p0, seen };
         let bytes = t.to_bytes();
         assert_eq!(Table::from_bytes(&bytes), Ok(t));
         for at in [0, 5, 12, bytes.len() - 3, bytes.len() - 1] {
