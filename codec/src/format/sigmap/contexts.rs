@@ -63,7 +63,7 @@ impl Models {
                 let mut p = p.borrow_mut();
                 if p.as_ref().map(|p| p.key) != Some(key) {
                     let mut m = Models::fresh(nb, size_contexts, value_contexts, occupied);
-                    priors::prime(&mut m, &header.geometry.bands(), priors::shipped());
+                    priors::prime(m.arrays(), &header.geometry.bands(), priors::shipped());
                     *p = Some(Primed {
                         key,
                         present: m.present.clone(),
@@ -87,6 +87,18 @@ impl Models {
         let mut m = Models::fresh(nb, size_contexts, value_contexts, occupied);
         m.coded = coded;
         m
+    }
+
+    /// Its model arrays, as the priors see them.
+    pub(super) fn arrays(&mut self) -> priors::Arrays<'_> {
+        priors::Arrays {
+            present: &mut self.present,
+            occupied: &mut self.occupied,
+            sign: &mut self.sign,
+            value: &mut self.value,
+            size_contexts: self.size_contexts,
+            value_contexts: self.value_contexts,
+        }
     }
 
     /// Models at probability ½ (the format before [`super::super::PRIORS_VERSION`]).

@@ -114,7 +114,7 @@ pub(crate) fn encode(
         encode_box(&mut enc, &mut m, &ctx, root, &mut pts, &mut recon, &mut bd);
         hood.record(band, origin, &cells);
     }
-    priors::record(&mut m, &bands);
+    priors::record(m.arrays(), &bands);
     let mut payload = enc.finish();
     // Keep the count within what the packet reader accepts for this payload size; the range
     // decoder reads missing bytes as zeros, so the padding decodes as if absent.

@@ -17,7 +17,6 @@
 //! Written here because no crate holds context priors for a custom context model.
 
 use super::cells::{FACE_STATES, NEIGHBOUR_STATES, SIGN_CONTEXTS, VALUE_CONTEXTS};
-use super::contexts::Models;
 use crate::entropy::range::{AdaptiveUintModel, BitModel};
 use crate::layout::Band;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -154,13 +153,20 @@ fn band_key(band: Band) -> usize {
     }
 }
 
+/// A packet's model arrays, laid out as the sigmap coder's context functions index them
+/// (`contexts::Models`).
+pub(super) struct Arrays<'a> {
+    pub(super) present: &'a mut [BitModel],
+    pub(super) occupied: &'a mut [BitModel],
+    pub(super) sign: &'a mut [BitModel],
+    pub(super) value: &'a mut [AdaptiveUintModel],
+    pub(super) size_contexts: usize,
+    pub(super) value_contexts: usize,
+}
+
 /// Calls `f(canonical index, model)` for every model of `m`, whose band index `bi` is band
-/// `bands[bi]`. The arrays' layouts are those of [`Models`] (see its context functions).
-fn for_each_model<'m>(
-    m: &'m mut Models,
-    bands: &[Band],
-    mut f: impl FnMut(usize, &'m mut BitModel),
-) {
+/// `bands[bi]`.
+fn for_each_model<'m>(m: Arrays<'m>, bands: &[Band], mut f: impl FnMut(usize, &'m mut BitModel)) {
     let keys: Vec<usize> = bands.iter().map(|b| band_key(*b)).collect();
     for (bi, model) in m.present.iter_mut().enumerate() {
         f(PRESENT_AT + keys[bi], model);
@@ -191,7 +197,7 @@ fn for_each_model<'m>(
 }
 
 /// Sets every model of fresh `m` (band index → band: `bands`) to its prior in `table`.
-pub(super) fn prime(m: &mut Models, bands: &[Band], table: &Table) {
+pub(super) fn prime(m: Arrays<'_>, bands: &[Band], table: &Table) {
     for_each_model(m, bands, |i, model| *model = table.model(i));
 }
 
@@ -204,7 +210,7 @@ static RECORDED: Mutex<Vec<[u64; 4]>> = Mutex::new(Vec::new());
 
 /// Records, while a [`Training`] runs, where each model of a coded packet ended: its p0,
 /// weighted by the bits it saw (up to 64). Coding is the same whether or not it records.
-pub(super) fn record(m: &mut Models, bands: &[Band]) {
+pub(super) fn record(m: Arrays<'_>, bands: &[Band]) {
     if !RECORDING.load(Ordering::Relaxed) {
         return;
     }
