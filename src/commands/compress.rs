@@ -102,7 +102,7 @@ pub struct CompressArgs {
     pub step: f64,
     /// Plain format version to write: 12 (the sigmap coder's models start from trained
     /// priors) or 8, which readers built before version 12 read too (its sigmap packets start
-    /// their models at ½: ~3 % more bytes at the same coefficients)
+    /// their models at ½: 2–5 % more bytes at the same coefficients)
     #[arg(long, default_value_t = wavesplat_codec::format::VERSION)]
     pub format_version: u16,
     /// Compression effort: fast (the depth predicted from the rate instead of compared, no

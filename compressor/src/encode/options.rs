@@ -98,7 +98,7 @@ pub struct CompressOptions {
     pub memory_limit: Option<u64>,
     /// The plain format version written: [`wavesplat_codec::format::VERSION`], or
     /// [`wavesplat_codec::format::LAST_UNPRIMED_VERSION`] for readers from before the sigmap
-    /// coder's trained priors (its packets then start their models at ½, ~3 % more bytes).
+    /// coder's trained priors (its packets then start their models at ½, 2–5 % more bytes).
     pub format_version: u16,
 }
 

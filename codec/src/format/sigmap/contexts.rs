@@ -10,6 +10,7 @@ use super::cells::{
 use super::octree::Box3;
 use super::priors;
 use crate::entropy::range::{AdaptiveUintModel, BitModel};
+use std::sync::{Arc, Mutex};
 
 /// Most size contexts per band (log2 of a box's cell count, clamped); a packet uses as many as
 /// its tile's largest region needs ([`Models::new`]), so small tiles set up fewer models.
@@ -59,28 +60,24 @@ impl Models {
             .unwrap_or_default();
         if header.version >= super::super::PRIORS_VERSION {
             let key = (header.geometry.levels, size_contexts, value_contexts);
-            let p = PRIMED.with(|p| {
-                let mut p = p.borrow_mut();
-                if p.as_ref().map(|p| p.key) != Some(key) {
-                    let mut m = Models::fresh(nb, size_contexts, value_contexts, occupied);
-                    priors::prime(m.arrays(), &header.geometry.bands(), priors::shipped());
-                    *p = Some(Primed {
-                        key,
-                        present: m.present.clone(),
-                        occupied: m.occupied.clone(),
-                        sign: m.sign.clone(),
-                        value: m.value.clone(),
-                    });
+            let p = primed(key, || {
+                let mut m = Models::fresh(nb, size_contexts, value_contexts, occupied);
+                priors::prime(m.arrays(), &header.geometry.bands(), priors::shipped());
+                Primed {
+                    key,
+                    present: std::mem::take(&mut m.present),
+                    occupied: std::mem::take(&mut m.occupied),
+                    sign: std::mem::take(&mut m.sign),
+                    value: std::mem::take(&mut m.value),
                 }
-                p.clone().expect("just set")
             });
             return Models {
                 size_contexts,
                 value_contexts,
-                present: p.present,
-                occupied: p.occupied,
-                sign: p.sign,
-                value: p.value,
+                present: p.present.clone(),
+                occupied: p.occupied.clone(),
+                sign: p.sign.clone(),
+                value: p.value.clone(),
                 coded,
             };
         }
@@ -115,9 +112,8 @@ impl Models {
     }
 }
 
-/// A packet's primed models for one (depth, size contexts, value contexts): the last set built
-/// on this thread, copied for each packet of that shape.
-#[derive(Clone)]
+/// A packet's primed models for one (depth, size contexts, value contexts), copied for each
+/// packet of that shape.
 struct Primed {
     key: (usize, usize, usize),
     present: Vec<BitModel>,
@@ -126,8 +122,26 @@ struct Primed {
     value: Vec<AdaptiveUintModel>,
 }
 
-thread_local! {
-    static PRIMED: std::cell::RefCell<Option<Primed>> = const { std::cell::RefCell::new(None) };
+/// Shapes of primed models kept at most (a file has one or two; each is up to ~0.3 MB).
+const PRIMED_SHAPES: usize = 8;
+
+/// The primed models of shape `key`, built by `build` the first time (and again after
+/// [`PRIMED_SHAPES`] other shapes). Kept for the process, not per thread, so that no thread's
+/// exit frees them (and decoding threads share one copy).
+fn primed(key: (usize, usize, usize), build: impl FnOnce() -> Primed) -> Arc<Primed> {
+    static PRIMED: Mutex<Vec<Arc<Primed>>> = Mutex::new(Vec::new());
+    let mut kept = PRIMED.lock().unwrap_or_else(|e| e.into_inner());
+    if let Some(i) = kept.iter().position(|p| p.key == key) {
+        let p = kept.remove(i);
+        kept.push(p.clone());
+        return p;
+    }
+    let p = Arc::new(build());
+    if kept.len() == PRIMED_SHAPES {
+        kept.remove(0);
+    }
+    kept.push(p.clone());
+    p
 }
 
 thread_local! {
