@@ -1,7 +1,8 @@
 //! The sigmap coder's adaptive models (`Models`: presence, occupancy, sign and magnitude models
-//! of a packet, fresh in every packet) and the context index of each decision: occupancy by
-//! band, box size, the parent's and cousins' significance and the face state; signs and
-//! magnitudes by the coded cells' lower neighbours.
+//! of a packet, fresh in every packet: at the trained priors from format version 12, at ½
+//! before) and the context index of each decision: occupancy by band, box size, the parent's
+//! and cousins' significance and the face state; signs and magnitudes by the coded cells'
+//! lower neighbours.
 
 use super::super::Header;
 use super::cells::{
