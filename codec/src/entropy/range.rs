@@ -453,11 +453,6 @@ impl AdaptiveUintModel {
 
     /// Its binary models, [`AdaptiveUintModel::MODELS`] of them, in a fixed order: the
     /// prefix's, then each bit length's suffix tree.
-    pub fn models(&self) -> impl Iterator<Item = &BitModel> {
-        self.prefix.iter().chain(self.suffix.iter().flatten())
-    }
-
-    /// [`AdaptiveUintModel::models`], to set.
     pub fn models_mut(&mut self) -> impl Iterator<Item = &mut BitModel> {
         self.prefix
             .iter_mut()

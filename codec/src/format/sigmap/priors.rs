@@ -18,6 +18,8 @@
 
 use super::cells::{FACE_STATES, NEIGHBOUR_STATES, SIGN_CONTEXTS, VALUE_CONTEXTS};
 use crate::entropy::range::{AdaptiveUintModel, BitModel};
+use crate::format::bytes::{ByteReader, ByteWriter};
+use crate::format::FormatError;
 use crate::layout::Band;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Mutex;
@@ -72,32 +74,32 @@ impl Table {
         if crc32fast::hash(body) != u32::from_le_bytes(crc.try_into().expect("4 bytes")) {
             return Err(bad("checksum mismatch"));
         }
-        let u16_at = |i: usize| u16::from_le_bytes([body[i], body[i + 1]]);
-        let u32_at = |i: usize| u32::from_le_bytes(body[i..i + 4].try_into().expect("4 bytes"));
-        if u16_at(4) != TABLE_VERSION {
+        let read = |e: FormatError| TableError(e.to_string());
+        let mut r = ByteReader::new(&body[4..], "priors table");
+        if r.u16().map_err(read)? != TABLE_VERSION {
             return Err(bad("unknown version"));
         }
-        if u32_at(6) as usize != CANONICAL_MODELS {
+        if r.u32().map_err(read)? as usize != CANONICAL_MODELS {
             return Err(bad("model count differs from this codec's"));
         }
-        let count = u32_at(10) as usize;
-        if body.len() != 14 + 7 * count {
+        let count = r.u32().map_err(read)? as usize;
+        if r.remaining() != 7 * count {
             return Err(bad("length does not match the entry count"));
         }
         let mut p0 = vec![0u16; CANONICAL_MODELS];
         let mut seen = vec![0u8; CANONICAL_MODELS];
         let mut last = None;
-        for e in body[14..].chunks_exact(7) {
-            let index = u32::from_le_bytes(e[..4].try_into().expect("4 bytes")) as usize;
-            let p = u16::from_le_bytes([e[4], e[5]]);
+        for _ in 0..count {
+            let index = r.u32().map_err(read)? as usize;
+            let (p, trust) = (r.u16().map_err(read)?, r.u8().map_err(read)?);
             if index >= CANONICAL_MODELS || last.is_some_and(|l| index <= l) {
                 return Err(bad("entry index out of order or range"));
             }
-            if !(1..4096).contains(&p) || e[6] == 0 {
+            if !(1..4096).contains(&p) || trust == 0 {
                 return Err(bad("probability or trust out of range"));
             }
             p0[index] = p;
-            seen[index] = e[6];
+            seen[index] = trust;
             last = Some(index);
         }
         Ok(Table { p0, seen })
@@ -112,16 +114,17 @@ impl Table {
             .filter(|(_, p)| **p != 0)
             .map(|(i, p)| (i, *p, self.seen[i].max(1)))
             .collect();
-        let mut out = Vec::with_capacity(18 + 7 * entries.len());
-        out.extend_from_slice(TABLE_MAGIC);
-        out.extend_from_slice(&TABLE_VERSION.to_le_bytes());
-        out.extend_from_slice(&(CANONICAL_MODELS as u32).to_le_bytes());
-        out.extend_from_slice(&(entries.len() as u32).to_le_bytes());
+        let mut w = ByteWriter::new();
+        w.bytes(TABLE_MAGIC);
+        w.u16(TABLE_VERSION);
+        w.u32(CANONICAL_MODELS as u32);
+        w.u32(entries.len() as u32);
         for (i, p, seen) in entries {
-            out.extend_from_slice(&(i as u32).to_le_bytes());
-            out.extend_from_slice(&p.to_le_bytes());
-            out.push(seen);
+            w.u32(i as u32);
+            w.u16(p);
+            w.u8(seen);
         }
+        let mut out = w.into_bytes();
         let crc = crc32fast::hash(&out);
         out.extend_from_slice(&crc.to_le_bytes());
         out
@@ -297,6 +300,11 @@ mod tests {
         let primed = t.p0.iter().filter(|p| **p != 0).count();
         assert!(primed > 100, "only {primed} primed models");
         assert!((0..CANONICAL_MODELS).all(|i| (t.p0[i] == 0) == (t.seen[i] == 0)));
+        assert_eq!(
+            t.to_bytes(),
+            TABLE,
+            "the table writes back to the same bytes"
+        );
     }
 
     #[test]
