@@ -6,8 +6,8 @@
 use wavesplat_codec::format::packet::{decode_packet, encode_packets, Coefficient, PacketInput};
 use wavesplat_codec::format::{
     parse_file, read_header_section, write_file, write_file_version, FormatError,
-    COARSE_LAYER_VERSION, FAST_CODER_VERSION, MAGIC, MAGNITUDE_CONTEXTS_VERSION,
-    OLDEST_READABLE_VERSION, VERSION,
+    COARSE_LAYER_VERSION, COMPACT_HEADER_VERSION, FAST_CODER_VERSION, MAGIC,
+    MAGNITUDE_CONTEXTS_VERSION, OLDEST_READABLE_VERSION, PRIORS_VERSION, VERSION,
 };
 use wavesplat_codec::volume::{Placement, Volume};
 use wavesplat_compressor::decode::decompress;
@@ -86,43 +86,44 @@ fn placement_and_spacing_round_trip() {
         .is_none());
 }
 
-/// Rewrites the header's `i`-th f64 of the placement (0..3 origin, 3..12 directions) and fixes
-/// the header CRC.
-fn patch_placement(bytes: &[u8], i: usize, value: f64) -> Vec<u8> {
-    let mut b = bytes.to_vec();
-    let len = u32::from_le_bytes(b[6..10].try_into().unwrap()) as usize;
-    let hb = 10;
-    // The header starts with three varint dims and three f32 spacings, then the flag byte.
-    let mut p = hb;
-    for _ in 0..3 {
-        while b[p] & 0x80 != 0 {
-            p += 1;
-        }
-        p += 1;
+/// The file `bytes` written as format `version` (12: f64 fields as they are; 13: the compact
+/// header's tagged numbers) with the placement's `i`-th value (0..3 origin, 3..12 directions)
+/// set to `value`: what a hostile writer puts on the wire, through the writer, which checks
+/// nothing of the placement, so the reader's checks are what the test sees.
+fn with_placement_value(bytes: &[u8], i: usize, value: f64, version: u16) -> Vec<u8> {
+    let f = parse_file(bytes).unwrap();
+    let mut header = f.header.clone();
+    let p = header.placement.as_mut().expect("a placed volume");
+    if i < 3 {
+        p.origin[i] = value;
+    } else {
+        p.directions[(i - 3) / 3][(i - 3) % 3] = value;
     }
-    p += 12;
-    assert_eq!(b[p], 1, "placement flag");
-    let at = p + 1 + 8 * i;
-    b[at..at + 8].copy_from_slice(&value.to_le_bytes());
-    let crc = crc32fast::hash(&b[hb..hb + len]);
-    b[hb + len..hb + len + 4].copy_from_slice(&crc.to_le_bytes());
-    b
+    let packets: Vec<Vec<u8>> = f.packets.iter().map(|p| p.to_vec()).collect();
+    write_file_version(&header, &packets, version).unwrap()
 }
 
 #[test]
 fn hostile_placements_and_old_versions_are_refused() {
     let bytes = file(&placed());
-    assert!(read_header_section(&patch_placement(&bytes, 0, 0.0)).is_ok());
-    for (i, v) in [
-        (1, f64::NAN),
-        (2, f64::INFINITY),
-        (0, 1e300),
-        (3, 0.0),
-        (4, 0.5),
-        (11, 2.0),
-    ] {
-        let e = read_header_section(&patch_placement(&bytes, i, v)).unwrap_err();
-        assert!(matches!(e, FormatError::Invalid { .. }), "{i} {v}: {e}");
+    for version in [PRIORS_VERSION, COMPACT_HEADER_VERSION] {
+        let fine = read_header_section(&with_placement_value(&bytes, 0, 0.0, version));
+        assert_eq!(fine.unwrap().0.placement.unwrap().origin[0], 0.0);
+        for (i, v) in [
+            (1, f64::NAN),
+            (2, f64::INFINITY),
+            (0, 1e300),
+            (3, 0.0),
+            (4, 0.5),
+            (11, 2.0),
+            (5, -1.0),
+        ] {
+            let e = read_header_section(&with_placement_value(&bytes, i, v, version)).unwrap_err();
+            assert!(
+                matches!(e, FormatError::Invalid { .. }),
+                "{version} {i} {v}: {e}"
+            );
+        }
     }
     let mut old = bytes.clone();
     old[4..6].copy_from_slice(&(OLDEST_READABLE_VERSION - 1).to_le_bytes());
@@ -134,8 +135,8 @@ fn hostile_placements_and_old_versions_are_refused() {
         "{e}"
     );
     // Versions 9 and 11 are the bricked containers and 10 the series container, which the
-    // plain reader names as such (plain files went from 8 to 12); the first version this
-    // build knows nothing of is newer.
+    // plain reader names as such (plain files went from 8 to 12 and 13); the first version
+    // this build knows nothing of is newer.
     for v in [
         wavesplat_codec::format::bricked::EXPLICIT_BRICKED_VERSION,
         wavesplat_codec::format::bricked::BRICKED_VERSION,
@@ -355,4 +356,135 @@ fn version_8_sigmap_packets_still_decode_and_the_priors_save_bytes() {
     )
     .unwrap_err();
     assert!(e.to_string().contains("format version 9"), "{e}");
+}
+
+/// The compact header (version 13) holds exactly what version 12's holds: files of every coder,
+/// spacing, placement, colour space, layer count and quantizer step, and of degenerate volumes,
+/// read back to the same header and packets when written as either version, and version 13's
+/// header is the smaller. Δs that no step predicts (what another writer may send) round-trip
+/// exactly too, and a compact header's unknown number or spacing tags are refused.
+#[test]
+fn the_compact_header_holds_what_version_12_holds_in_fewer_bytes() {
+    use wavesplat_codec::format::CoderKind;
+    let rgb = Phantom::RgbHead.generate([10, 9, 8]);
+    let zero = Volume::new([5, 4, 3], [1.0; 3], vec![vec![0.0; 60]]).unwrap();
+    let constant = Volume::new([6, 6, 6], [2.0; 3], vec![vec![7.25; 216]]).unwrap();
+    let one = Volume::new([1, 1, 1], [1.0; 3], vec![vec![3.0]]).unwrap();
+    let cases: Vec<(&str, Volume, CompressOptions)> = vec![
+        ("placed sigmap", placed(), CompressOptions::default()),
+        (
+            "placed fast",
+            placed(),
+            CompressOptions {
+                coder: CoderKind::Fast,
+                ..Default::default()
+            },
+        ),
+        (
+            "huffman",
+            placed(),
+            CompressOptions {
+                coder: CoderKind::Huffman,
+                ..Default::default()
+            },
+        ),
+        (
+            "range, 4 layers",
+            Phantom::SheppLogan.generate([16, 12, 10]),
+            CompressOptions {
+                coder: CoderKind::Range,
+                layers: Some(4),
+                ..Default::default()
+            },
+        ),
+        (
+            "step 0.37, 3 layers",
+            Phantom::Ct.generate([20, 18, 12]),
+            CompressOptions {
+                step: 0.37,
+                layers: Some(3),
+                ..Default::default()
+            },
+        ),
+        ("rgb", rgb, CompressOptions::default()),
+        ("zero", zero, CompressOptions::default()),
+        ("constant", constant, CompressOptions::default()),
+        ("one voxel", one, CompressOptions::default()),
+    ];
+    for (name, v, opts) in cases {
+        let opts = CompressOptions {
+            target: Target::Fraction(0.3),
+            refine: None,
+            ..opts
+        };
+        let bytes = compress(&v, &opts, &|_, _| {}).unwrap().bytes;
+        let f = parse_file(&bytes).unwrap();
+        assert_eq!(f.header.version, COMPACT_HEADER_VERSION, "{name}");
+        let packets: Vec<Vec<u8>> = f.packets.iter().map(|p| p.to_vec()).collect();
+        let old = write_file_version(&f.header, &packets, PRIORS_VERSION).unwrap();
+        let g = parse_file(&old).unwrap();
+        assert_eq!(g.header.version, PRIORS_VERSION, "{name}");
+        let mut same = g.header.clone();
+        same.version = COMPACT_HEADER_VERSION;
+        assert_eq!(same, f.header, "{name}");
+        assert_eq!(g.packets, f.packets, "{name}");
+        assert_eq!(
+            decompress(&old).unwrap().channels(),
+            decompress(&bytes).unwrap().channels(),
+            "{name}"
+        );
+        assert!(
+            f.header_bytes < g.header_bytes,
+            "{name}: compact header {} bytes, version 12's {}",
+            f.header_bytes,
+            g.header_bytes
+        );
+        // Δs off the step's prediction: zero, subnormal, the largest f32, a factor off.
+        let mut odd = f.header.clone();
+        let oddities = [0.0f32, f32::from_bits(1), f32::MAX, 1.37e-3, 3.0e7];
+        for (k, s) in odd.substreams.iter_mut().flatten().enumerate() {
+            s.delta = oddities[k % oddities.len()];
+        }
+        let written = write_file_version(&odd, &packets, COMPACT_HEADER_VERSION).unwrap();
+        assert_eq!(parse_file(&written).unwrap().header, odd, "{name}: odd Δs");
+    }
+}
+
+/// A compact header's tagged numbers and spacing are checked like the rest: a tag no writer
+/// uses is refused, as are a negative or non-finite step scale (the CRC fixed, so the checks
+/// after it are what refuses).
+#[test]
+fn compact_header_tags_no_writer_uses_are_refused() {
+    let bytes = compress(
+        &Phantom::SheppLogan.generate([12, 10, 8]),
+        &CompressOptions {
+            target: Target::Fraction(0.3),
+            refine: None,
+            ..Default::default()
+        },
+        &|_, _| {},
+    )
+    .unwrap()
+    .bytes;
+    let len = u32::from_le_bytes(bytes[6..10].try_into().unwrap()) as usize;
+    // The header: three one-byte dims, then the spacing tag.
+    let spacing_at = 10 + 3;
+    assert_eq!(bytes[spacing_at], 0, "unit spacing");
+    let patched = |at: usize, byte: u8| {
+        let mut b = bytes.clone();
+        b[at] = byte;
+        let crc = crc32fast::hash(&b[10..10 + len]);
+        b[10 + len..14 + len].copy_from_slice(&crc.to_le_bytes());
+        b
+    };
+    let e = read_header_section(&patched(spacing_at, 3)).unwrap_err();
+    assert!(e.to_string().contains("spacing tag 3"), "{e}");
+    // After the spacing tag: placement flag, channels, family, levels, margin, colour kind,
+    // then the intensity offset's number tag.
+    let offset_at = spacing_at + 7;
+    let e = read_header_section(&patched(offset_at, 6)).unwrap_err();
+    assert!(e.to_string().contains("number tag 6"), "{e}");
+    for tag in 7..=255u8 {
+        assert!(read_header_section(&patched(offset_at, tag)).is_err());
+    }
 }

@@ -1,5 +1,5 @@
 //! The bricked container (format version 11, and 9 read): one logical volume stored as
-//! bricks, each a complete `.wsp` file of its own (a version 8 file: its own transform, header
+//! bricks, each a complete `.wsp` file of its own (a plain file: its own transform, header
 //! and packets), behind a manifest that places every brick inside the whole. A volume larger
 //! than one process can transform is compressed brick by brick (and brick jobs run on any
 //! worker), while readers still see one volume: its dimensions, spacing and placement are the
@@ -19,8 +19,8 @@
 //! On MNI in 64³ bricks at 87 kB the compact manifest is 2.4 kB smaller (of the file's 3 %).
 //! A build that reads versions up to 8 refuses either as "written by a newer wavesplat"
 //! ([`FormatError::UnsupportedVersion`]); one that reads version 9 only refuses version 11 the
-//! same way. A plain (unbricked) volume is still written as version 8, so every existing file,
-//! figure and reader stays valid. The manifest is untrusted input like the rest: counts,
+//! same way. A plain (unbricked) volume is still written as a plain file, so every existing
+//! file, figure and reader stays valid. The manifest is untrusted input like the rest: counts,
 //! sizes, offsets and the tiling are checked before anything is allocated from them, and each
 //! brick's bytes carry a CRC-32 checked when the brick is taken
 //! ([`BrickedFile::brick_bytes`]).

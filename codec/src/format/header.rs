@@ -5,8 +5,8 @@
 use super::bytes::{ByteReader, ByteWriter};
 use super::{
     bricked, fast, invalid, CoderKind, ColorInfo, ColorKind, FormatError, HuffmanTables,
-    SubstreamParams, CATEGORY_ALPHABET, COARSE_LAYER_VERSION, FAST_CODER_VERSION, MAGIC,
-    MAX_HEADER_BYTES, MAX_LAYERS, MAX_MARGIN, VERSION,
+    SubstreamParams, CATEGORY_ALPHABET, COARSE_LAYER_VERSION, COMPACT_HEADER_VERSION,
+    FAST_CODER_VERSION, MAGIC, MAX_HEADER_BYTES, MAX_LAYERS, MAX_MARGIN, VERSION,
 };
 use crate::entropy::bits::{BitReader, BitWriter};
 use crate::entropy::huffman::HuffmanCode;
@@ -153,13 +153,7 @@ impl Header {
 
     /// Smallest magnitude a kept coefficient of `substream` can have: √(threshold / (‖basis‖²·I)).
     pub fn magnitude_threshold(&self, substream: usize) -> f64 {
-        let (channel, band) = self.substream_of(substream);
-        let weight = self.geometry.basis_norm2(band) * self.importance(channel);
-        if weight > 0.0 {
-            (self.score_threshold / weight).sqrt()
-        } else {
-            0.0
-        }
+        magnitude_threshold(&self.geometry, &self.color, self.score_threshold, substream)
     }
 
     fn write_version(&self, w: &mut ByteWriter, version: u16) {
@@ -167,8 +161,20 @@ impl Header {
         for d in g.dims {
             w.varint(d as u64);
         }
-        for s in g.spacing {
-            w.f32(s);
+        let compact = version >= COMPACT_HEADER_VERSION;
+        let number = |w: &mut ByteWriter, v: f64| {
+            if compact {
+                write_number(w, v);
+            } else {
+                w.f64(v);
+            }
+        };
+        if compact {
+            write_spacing(w, g.spacing);
+        } else {
+            for s in g.spacing {
+                w.f32(s);
+            }
         }
         match &self.placement {
             _ if version < 4 => {}
@@ -176,7 +182,7 @@ impl Header {
             Some(p) => {
                 w.u8(1);
                 for v in p.origin.iter().chain(p.directions.iter().flatten()) {
-                    w.f64(*v);
+                    number(w, *v);
                 }
             }
         }
@@ -188,17 +194,17 @@ impl Header {
         if self.channels == 3 {
             for row in self.color.basis {
                 for v in row {
-                    w.f64(v);
+                    number(w, v);
                 }
             }
             for v in self.color.mean {
-                w.f64(v);
+                number(w, v);
             }
         } else if version >= 5 {
-            w.f64(self.color.mean[0]);
+            number(w, self.color.mean[0]);
         }
         for v in &self.color.importance[..self.channels] {
-            w.f64(*v);
+            number(w, *v);
         }
         w.f32(self.value_range[0]);
         w.f32(self.value_range[1]);
@@ -212,7 +218,7 @@ impl Header {
         w.varint(self.tile as u64);
         w.u8(self.layer_bounds.len() as u8);
         for b in &self.layer_bounds {
-            w.f64(*b);
+            number(w, *b);
         }
         if version >= COARSE_LAYER_VERSION {
             w.u8(u8::from(self.coarse_layer));
@@ -226,9 +232,13 @@ impl Header {
             }
         }
         w.bytes(&bitmap);
-        for s in self.substreams.iter().flatten() {
-            w.f32(s.w0);
-            w.f32(s.delta);
+        if compact && self.coder.quantizes_by_threshold() {
+            self.write_predicted_deltas(w);
+        } else {
+            for s in self.substreams.iter().flatten() {
+                w.f32(s.w0);
+                w.f32(s.delta);
+            }
         }
         w.f64(self.total_energy);
         w.varint(self.kept);
@@ -250,6 +260,34 @@ impl Header {
         }
     }
 
+    /// The substreams' parameters in the compact header, for a coder that quantizes by the
+    /// threshold: the step scale (a [`write_number`]), then per present substream w₀ (f32) and
+    /// Δ as the zigzag varint of its bits' difference from [`predicted_delta`]'s. The scale is
+    /// the first substream's Δ over its smallest magnitude (rounded to f32), so a file written
+    /// at one step (the compressor's `--step`) has differences of 0 or ±1 bit: one byte each.
+    /// Any Δ still round-trips exactly, at up to five bytes.
+    fn write_predicted_deltas(&self, w: &mut ByteWriter) {
+        let scale = self
+            .substreams
+            .iter()
+            .enumerate()
+            .find_map(|(i, s)| {
+                let t = self.magnitude_threshold(i);
+                let s = s.filter(|s| s.delta > 0.0 && t > 0.0)?;
+                let scale = (s.delta as f64 / t) as f32 as f64;
+                scale.is_finite().then_some(scale)
+            })
+            .unwrap_or(0.0);
+        write_number(w, scale);
+        for (i, s) in self.substreams.iter().enumerate() {
+            let Some(s) = s else { continue };
+            w.f32(s.w0);
+            let predicted = predicted_delta(self.magnitude_threshold(i), s.w0, scale);
+            let difference = s.delta.to_bits() as i64 - predicted.to_bits() as i64;
+            w.varint(((difference << 1) ^ (difference >> 63)) as u64);
+        }
+    }
+
     fn read(r: &mut ByteReader, version: u16) -> Result<Header, FormatError> {
         const W: &str = "header";
         let mut dims = [0usize; 3];
@@ -257,7 +295,19 @@ impl Header {
             *d = r.varint_max(1 << 24, "dimension")? as usize;
         }
         crate::volume::checked_voxels(dims).map_err(|e| invalid(W, e.to_string()))?;
-        let spacing = [r.f32()?, r.f32()?, r.f32()?];
+        let compact = version >= COMPACT_HEADER_VERSION;
+        let number = |r: &mut ByteReader| {
+            if compact {
+                read_number(r)
+            } else {
+                r.f64()
+            }
+        };
+        let spacing = if compact {
+            read_spacing(r)?
+        } else {
+            [r.f32()?, r.f32()?, r.f32()?]
+        };
         if spacing.iter().any(|s| !(s.is_finite() && *s > 0.0)) {
             return Err(invalid(
                 W,
@@ -269,7 +319,7 @@ impl Header {
             1 => {
                 let mut p = Placement::identity();
                 for v in p.origin.iter_mut().chain(p.directions.iter_mut().flatten()) {
-                    *v = r.f64()?;
+                    *v = number(r)?;
                 }
                 p.validate().map_err(|e| invalid(W, e.to_string()))?;
                 Some(p)
@@ -303,17 +353,17 @@ impl Header {
         if channels == 3 {
             for row in &mut color.basis {
                 for v in row.iter_mut() {
-                    *v = r.f64()?;
+                    *v = number(r)?;
                 }
             }
             for v in &mut color.mean {
-                *v = r.f64()?;
+                *v = number(r)?;
             }
         } else if version >= 5 {
-            color.mean[0] = r.f64()?;
+            color.mean[0] = number(r)?;
         }
         for v in &mut color.importance[..channels] {
-            *v = r.f64()?;
+            *v = number(r)?;
         }
         let all = color
             .basis
@@ -359,7 +409,7 @@ impl Header {
         }
         let mut layer_bounds = Vec::with_capacity(nl);
         for _ in 0..nl {
-            let b = r.f64()?;
+            let b = number(r)?;
             if b.is_nan() || b < 0.0 || layer_bounds.last().is_some_and(|p: &f64| b > *p) {
                 return Err(invalid(
                     W,
@@ -396,10 +446,28 @@ impl Header {
         }
         let nsub = channels * geometry.band_count();
         let bitmap = r.take(nsub.div_ceil(8))?.to_vec();
+        let predicted = compact && coder.quantizes_by_threshold();
+        let scale = if predicted { read_number(r)? } else { 0.0 };
+        if !(scale.is_finite() && scale >= 0.0) {
+            return Err(invalid(W, format!("step scale {scale}")));
+        }
         let mut substreams = Vec::with_capacity(nsub);
         for i in 0..nsub {
             if bitmap[i / 8] & (1 << (i % 8)) != 0 {
-                let (w0, delta) = (r.f32()?, r.f32()?);
+                let (w0, delta) = if predicted {
+                    let w0 = r.f32()?;
+                    let t = magnitude_threshold(&geometry, &color, score_threshold, i);
+                    let zigzag = r.varint_max(u32::MAX as u64 * 2 + 1, "delta difference")?;
+                    let difference = (zigzag >> 1) as i64 ^ -((zigzag & 1) as i64);
+                    let bits = predicted_delta(t, w0, scale).to_bits() as i64 + difference;
+                    let delta = u32::try_from(bits)
+                        .ok()
+                        .filter(|b| *b <= f32::MAX.to_bits())
+                        .map_or(f32::NAN, f32::from_bits);
+                    (w0, delta)
+                } else {
+                    (r.f32()?, r.f32()?)
+                };
                 if !(w0.is_finite() && delta.is_finite() && w0 >= 0.0 && delta >= 0.0) {
                     return Err(invalid(W, format!("substream {i}: w0 {w0}, delta {delta}")));
                 }
@@ -458,6 +526,112 @@ impl Header {
             version,
         })
     }
+}
+
+/// Smallest magnitude a kept coefficient of `substream` can have under `score_threshold`:
+/// √(threshold / (‖basis‖²·I)), 0 where the weight is 0.
+fn magnitude_threshold(
+    geometry: &Geometry,
+    color: &ColorInfo,
+    score_threshold: f64,
+    substream: usize,
+) -> f64 {
+    let nb = geometry.band_count();
+    let band = geometry.bands()[substream % nb];
+    let weight = geometry.basis_norm2(band) * color.importance[(substream / nb).min(2)];
+    if weight > 0.0 {
+        (score_threshold / weight).sqrt()
+    } else {
+        0.0
+    }
+}
+
+/// The Δ a threshold-quantizing encoder gives a substream whose smallest magnitude is
+/// `threshold` and largest `w0` at step `scale` (as [`SubstreamParams::of_magnitudes`] floors
+/// it): the compact header codes each Δ as its difference from this.
+fn predicted_delta(threshold: f64, w0: f32, scale: f64) -> f32 {
+    (scale * threshold).max(w0 as f64 * 2f64.powi(-30)) as f32
+}
+
+/// A compact header's number: one tag byte, and for the tags that need them the value's f32 or
+/// f64 bytes. Header fields are mostly 0, 1, −1 or +∞ (offsets, importances, placement
+/// directions, the first layer bound), which then take one byte instead of eight.
+mod number_tag {
+    pub const ZERO: u8 = 0;
+    pub const ONE: u8 = 1;
+    pub const MINUS_ONE: u8 = 2;
+    pub const INFINITY: u8 = 3;
+    pub const F32: u8 = 4;
+    pub const F64: u8 = 5;
+}
+
+fn write_number(w: &mut ByteWriter, v: f64) {
+    use number_tag::*;
+    let bits = v.to_bits();
+    if bits == 0f64.to_bits() {
+        w.u8(ZERO);
+    } else if bits == 1f64.to_bits() {
+        w.u8(ONE);
+    } else if bits == (-1f64).to_bits() {
+        w.u8(MINUS_ONE);
+    } else if bits == f64::INFINITY.to_bits() {
+        w.u8(INFINITY);
+    } else if (v as f32 as f64).to_bits() == bits {
+        w.u8(F32);
+        w.f32(v as f32);
+    } else {
+        w.u8(F64);
+        w.f64(v);
+    }
+}
+
+fn read_number(r: &mut ByteReader) -> Result<f64, FormatError> {
+    use number_tag::*;
+    Ok(match r.u8()? {
+        ZERO => 0.0,
+        ONE => 1.0,
+        MINUS_ONE => -1.0,
+        INFINITY => f64::INFINITY,
+        F32 => r.f32()? as f64,
+        F64 => r.f64()?,
+        tag => {
+            return Err(invalid(
+                "header",
+                format!("number tag {tag}; 0 to {F64} allowed"),
+            ))
+        }
+    })
+}
+
+/// The compact header's voxel spacing: a tag (0: unit spacing, 1: one f32 for every axis, 2:
+/// one f32 per axis), then the f32s it names.
+fn write_spacing(w: &mut ByteWriter, spacing: [f32; 3]) {
+    let bits = spacing.map(f32::to_bits);
+    if bits == [1f32.to_bits(); 3] {
+        w.u8(0);
+    } else if bits[1] == bits[0] && bits[2] == bits[0] {
+        w.u8(1);
+        w.f32(spacing[0]);
+    } else {
+        w.u8(2);
+        for s in spacing {
+            w.f32(s);
+        }
+    }
+}
+
+fn read_spacing(r: &mut ByteReader) -> Result<[f32; 3], FormatError> {
+    Ok(match r.u8()? {
+        0 => [1.0; 3],
+        1 => [r.f32()?; 3],
+        2 => [r.f32()?, r.f32()?, r.f32()?],
+        tag => {
+            return Err(invalid(
+                "header",
+                format!("spacing tag {tag}; 0 to 2 allowed"),
+            ))
+        }
+    })
 }
 
 /// Serializes the header section (magic, version, header, CRC) in the version its packets were

@@ -96,7 +96,9 @@ pub struct CompressOptions {
     pub refine: Option<RefineOptions>,
     /// Refuse to start when [`memory_estimate`] exceeds this many bytes (`None`: no limit).
     pub memory_limit: Option<u64>,
-    /// The plain format version written: [`wavesplat_codec::format::VERSION`], or
+    /// The plain format version written: [`wavesplat_codec::format::VERSION`] (the compact
+    /// header), [`wavesplat_codec::format::PRIORS_VERSION`] for readers from before the
+    /// compact header (the same packets, a header larger by tens of bytes), or
     /// [`wavesplat_codec::format::LAST_UNPRIMED_VERSION`] for readers from before the sigmap
     /// coder's trained priors (its packets then start their models at ½, 2–5 % more bytes).
     pub format_version: u16,
