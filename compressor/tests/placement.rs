@@ -26,13 +26,14 @@ fn placed() -> Volume {
         .unwrap()
 }
 
-/// `v` compressed without the coarse layer (version 8), so that it can be written in the
-/// versions before it.
+/// `v` compressed without the coarse layer (version 8), and in version 12 (every substream's
+/// largest magnitude sent), so that it can be written in the versions before them.
 fn file(v: &Volume) -> Vec<u8> {
     let opts = CompressOptions {
         target: Target::Fraction(0.3),
         refine: None,
         coarse_layer: false,
+        format_version: PRIORS_VERSION,
         ..CompressOptions::default()
     };
     compress(v, &opts, &|_, _| {}).unwrap().bytes
@@ -207,8 +208,8 @@ fn version_5_sigmap_packets_still_decode() {
     ] {
         let bytes = file(&v);
         let parsed = parse_file(&bytes).unwrap();
-        assert_eq!(parsed.header.version, VERSION);
-        const { assert!(VERSION >= MAGNITUDE_CONTEXTS_VERSION) };
+        assert_eq!(parsed.header.version, PRIORS_VERSION);
+        const { assert!(PRIORS_VERSION >= MAGNITUDE_CONTEXTS_VERSION) };
         let v5 = rewritten(&bytes, 5);
         assert_eq!(parse_file(&v5).unwrap().header.version, 5);
         assert_ne!(parse_file(&v5).unwrap().packets, parsed.packets);
@@ -303,6 +304,7 @@ fn version_8_sigmap_packets_still_decode_and_the_priors_save_bytes() {
             &v,
             &CompressOptions {
                 target: Target::Fraction(fraction),
+                format_version: PRIORS_VERSION,
                 ..Default::default()
             },
             &|_, _| {},
@@ -310,7 +312,7 @@ fn version_8_sigmap_packets_still_decode_and_the_priors_save_bytes() {
         .unwrap()
         .bytes;
         let parsed = parse_file(&bytes).unwrap();
-        assert_eq!(parsed.header.version, VERSION);
+        assert_eq!(parsed.header.version, PRIORS_VERSION);
         let v8 = rewritten(&bytes, LAST_UNPRIMED_VERSION);
         let parsed8 = parse_file(&v8).unwrap();
         assert_eq!(parsed8.header.version, LAST_UNPRIMED_VERSION);
@@ -360,9 +362,11 @@ fn version_8_sigmap_packets_still_decode_and_the_priors_save_bytes() {
 
 /// The compact header (version 13) holds exactly what version 12's holds: files of every coder,
 /// spacing, placement, colour space, layer count and quantizer step, and of degenerate volumes,
-/// read back to the same header and packets when written as either version, and version 13's
-/// header is the smaller. Δs that no step predicts (what another writer may send) round-trip
-/// exactly too, and a compact header's unknown number or spacing tags are refused.
+/// compressed in version 12 and written as 13, read back to the same header and packets, in a
+/// smaller header. Compressed in version 13, a threshold coder's caps on reconstruction (w₀)
+/// are rounded up to sixteenths of Δ or dropped (+∞, which version 12 cannot say: writing such
+/// a file as version 12 is refused), and the header is smaller still. Δs and caps that no
+/// step predicts (what another writer may send) round-trip exactly too.
 #[test]
 fn the_compact_header_holds_what_version_12_holds_in_fewer_bytes() {
     use wavesplat_codec::format::CoderKind;
@@ -411,26 +415,31 @@ fn the_compact_header_holds_what_version_12_holds_in_fewer_bytes() {
         ("constant", constant, CompressOptions::default()),
         ("one voxel", one, CompressOptions::default()),
     ];
+    let mut capless = 0;
     for (name, v, opts) in cases {
         let opts = CompressOptions {
             target: Target::Fraction(0.3),
             refine: None,
             ..opts
         };
-        let bytes = compress(&v, &opts, &|_, _| {}).unwrap().bytes;
-        let f = parse_file(&bytes).unwrap();
-        assert_eq!(f.header.version, COMPACT_HEADER_VERSION, "{name}");
-        let packets: Vec<Vec<u8>> = f.packets.iter().map(|p| p.to_vec()).collect();
-        let old = write_file_version(&f.header, &packets, PRIORS_VERSION).unwrap();
+        let old_opts = CompressOptions {
+            format_version: PRIORS_VERSION,
+            ..opts.clone()
+        };
+        let old = compress(&v, &old_opts, &|_, _| {}).unwrap().bytes;
         let g = parse_file(&old).unwrap();
         assert_eq!(g.header.version, PRIORS_VERSION, "{name}");
-        let mut same = g.header.clone();
-        same.version = COMPACT_HEADER_VERSION;
-        assert_eq!(same, f.header, "{name}");
-        assert_eq!(g.packets, f.packets, "{name}");
+        let packets: Vec<Vec<u8>> = g.packets.iter().map(|p| p.to_vec()).collect();
+        let compact = write_file_version(&g.header, &packets, COMPACT_HEADER_VERSION).unwrap();
+        let f = parse_file(&compact).unwrap();
+        assert_eq!(f.header.version, COMPACT_HEADER_VERSION, "{name}");
+        let mut same = f.header.clone();
+        same.version = PRIORS_VERSION;
+        assert_eq!(same, g.header, "{name}");
+        assert_eq!(f.packets, g.packets, "{name}");
         assert_eq!(
+            decompress(&compact).unwrap().channels(),
             decompress(&old).unwrap().channels(),
-            decompress(&bytes).unwrap().channels(),
             "{name}"
         );
         assert!(
@@ -439,14 +448,73 @@ fn the_compact_header_holds_what_version_12_holds_in_fewer_bytes() {
             f.header_bytes,
             g.header_bytes
         );
-        // Δs off the step's prediction: zero, subnormal, the largest f32, a factor off.
-        let mut odd = f.header.clone();
-        let oddities = [0.0f32, f32::from_bits(1), f32::MAX, 1.37e-3, 3.0e7];
-        for (k, s) in odd.substreams.iter_mut().flatten().enumerate() {
-            s.delta = oddities[k % oddities.len()];
+        // Compressed in version 13 itself.
+        let new = compress(&v, &opts, &|_, _| {}).unwrap().bytes;
+        let n = parse_file(&new).unwrap();
+        assert_eq!(n.header.version, COMPACT_HEADER_VERSION, "{name}");
+        assert!(n.header_bytes <= f.header_bytes, "{name}");
+        let new_packets: Vec<Vec<u8>> = n.packets.iter().map(|p| p.to_vec()).collect();
+        let without = n
+            .header
+            .substreams
+            .iter()
+            .flatten()
+            .filter(|s| s.w0.is_infinite());
+        if without.count() > 0 {
+            assert!(opts.coder.quantizes_by_threshold(), "{name}");
+            capless += 1;
+            let e = write_file_version(&n.header, &new_packets, PRIORS_VERSION).unwrap_err();
+            assert!(e.to_string().contains("largest magnitude"), "{name}: {e}");
         }
-        let written = write_file_version(&odd, &packets, COMPACT_HEADER_VERSION).unwrap();
-        assert_eq!(parse_file(&written).unwrap().header, odd, "{name}: odd Δs");
+        // Δs off the step's prediction: zero, subnormal, the largest f32, a factor off; caps
+        // off the sixteenths, none, and zero.
+        let oddities = [0.0f32, f32::from_bits(1), f32::MAX, 1.37e-3, 3.0e7];
+        let caps = [0.1f32, f32::INFINITY, 0.0, 1.0e30, 7.0];
+        for (header, packets) in [(&f.header, &packets), (&n.header, &new_packets)] {
+            let mut odd = header.clone();
+            for (k, s) in odd.substreams.iter_mut().flatten().enumerate() {
+                s.delta = oddities[k % oddities.len()];
+                if k % 3 == 1 && header.coder.quantizes_by_threshold() {
+                    s.w0 = caps[k % caps.len()];
+                }
+            }
+            let written = write_file_version(&odd, packets, COMPACT_HEADER_VERSION).unwrap();
+            assert_eq!(parse_file(&written).unwrap().header, odd, "{name}: odd Δs");
+        }
+    }
+    assert!(capless >= 3, "{capless} files went without a w0");
+}
+
+/// With its cap on reconstruction rounded up to a sixteenth of Δ, or dropped where the largest
+/// magnitude lies far above the rest, a version 13 file decodes as accurately as version 12's
+/// exact caps at fewer bytes (a single coefficient's exactness is
+/// `roundtrip::lossless_selection_of_a_single_coefficient_is_exact`).
+#[test]
+fn the_coarse_cap_costs_no_accuracy() {
+    let v = Phantom::SheppLogan.generate([24, 20, 16]);
+    for fraction in [0.01, 0.05, 0.3] {
+        let err = |version: u16| {
+            let o = CompressOptions {
+                target: Target::Fraction(fraction),
+                format_version: version,
+                ..Default::default()
+            };
+            let bytes = compress(&v, &o, &|_, _| {}).unwrap().bytes;
+            let back = decompress(&bytes).unwrap();
+            let e: f64 = back.channels()[0]
+                .iter()
+                .zip(&v.channels()[0])
+                .map(|(a, b)| (*a as f64 - *b as f64).powi(2))
+                .sum();
+            (e, bytes.len())
+        };
+        let (e12, b12) = err(PRIORS_VERSION);
+        let (e13, b13) = err(COMPACT_HEADER_VERSION);
+        assert!(b13 < b12, "{fraction}: {b13} bytes against {b12}");
+        assert!(
+            e13 <= e12 * 1.02,
+            "{fraction}: squared error {e13} against version 12's {e12}"
+        );
     }
 }
 

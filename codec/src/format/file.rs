@@ -8,8 +8,8 @@ use super::header::{
     write_header_section_version,
 };
 use super::{
-    invalid, CoderKind, FormatError, Header, COARSE_LAYER_VERSION, FAST_CODER_VERSION, MAGIC,
-    MAGNITUDE_CONTEXTS_VERSION, MAX_PACKET_BYTES, PRIORS_VERSION,
+    invalid, CoderKind, FormatError, Header, COARSE_LAYER_VERSION, COMPACT_HEADER_VERSION,
+    FAST_CODER_VERSION, MAGIC, MAGNITUDE_CONTEXTS_VERSION, MAX_PACKET_BYTES, PRIORS_VERSION,
 };
 
 /// A parsed file: the header and the location of each packet.
@@ -108,6 +108,20 @@ pub fn write_file_version(
                  (version {PRIORS_VERSION} starts their models from trained priors): encode them \
                  with that version",
                 header.version
+            ),
+        ));
+    }
+    if version < COMPACT_HEADER_VERSION
+        && header
+            .substreams
+            .iter()
+            .flatten()
+            .any(|s| !s.w0.is_finite())
+    {
+        return Err(invalid(
+            "header",
+            format!(
+                "format version {version} sends every substream's largest magnitude, and this                  file's packets were quantized without some (version                  {COMPACT_HEADER_VERSION}): compress with --format-version {version}"
             ),
         ));
     }

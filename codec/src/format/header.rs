@@ -6,7 +6,7 @@ use super::bytes::{ByteReader, ByteWriter};
 use super::{
     bricked, fast, invalid, CoderKind, ColorInfo, ColorKind, FormatError, HuffmanTables,
     SubstreamParams, CATEGORY_ALPHABET, COARSE_LAYER_VERSION, COMPACT_HEADER_VERSION,
-    FAST_CODER_VERSION, MAGIC, MAX_HEADER_BYTES, MAX_LAYERS, MAX_MARGIN, VERSION,
+    FAST_CODER_VERSION, MAGIC, MAX_CAP_STEPS, MAX_HEADER_BYTES, MAX_LAYERS, MAX_MARGIN, VERSION,
 };
 use crate::entropy::bits::{BitReader, BitWriter};
 use crate::entropy::huffman::HuffmanCode;
@@ -261,11 +261,14 @@ impl Header {
     }
 
     /// The substreams' parameters in the compact header, for a coder that quantizes by the
-    /// threshold: the step scale (a [`write_number`]), then per present substream w₀ (f32) and
-    /// Δ as the zigzag varint of its bits' difference from [`predicted_delta`]'s. The scale is
-    /// the first substream's Δ over its smallest magnitude (rounded to f32), so a file written
-    /// at one step (the compressor's `--step`) has differences of 0 or ±1 bit: one byte each.
-    /// Any Δ still round-trips exactly, at up to five bytes.
+    /// threshold: the step scale (a [`write_number`]), then per present substream Δ as the
+    /// zigzag varint of its bits' difference from [`predicted_delta`]'s and the cap w₀ as a
+    /// varint: 0 for none (+∞), 1 for an f32 that follows, 2 + n for the cap n sixteenths of
+    /// Δ above the smallest magnitude ([`SubstreamParams::cap_at`]). The scale is the first
+    /// substream's Δ over its smallest magnitude (rounded to f32), so a file written at one
+    /// step (the compressor's `--step`) has differences of 0 or ±1 bit: one byte each. What
+    /// the compressor writes takes two bytes a substream; any Δ and w₀ still round-trip
+    /// exactly, at up to nine.
     fn write_predicted_deltas(&self, w: &mut ByteWriter) {
         let scale = self
             .substreams
@@ -281,10 +284,18 @@ impl Header {
         write_number(w, scale);
         for (i, s) in self.substreams.iter().enumerate() {
             let Some(s) = s else { continue };
-            w.f32(s.w0);
-            let predicted = predicted_delta(self.magnitude_threshold(i), s.w0, scale);
+            let threshold = self.magnitude_threshold(i);
+            let predicted = predicted_delta(threshold, scale);
             let difference = s.delta.to_bits() as i64 - predicted.to_bits() as i64;
             w.varint(((difference << 1) ^ (difference >> 63)) as u64);
+            if s.w0 == f32::INFINITY {
+                w.varint(0);
+            } else if let Some(steps) = s.cap_steps(threshold) {
+                w.varint(2 + steps as u64);
+            } else {
+                w.varint(1);
+                w.f32(s.w0);
+            }
         }
     }
 
@@ -455,20 +466,29 @@ impl Header {
         for i in 0..nsub {
             if bitmap[i / 8] & (1 << (i % 8)) != 0 {
                 let (w0, delta) = if predicted {
-                    let w0 = r.f32()?;
                     let t = magnitude_threshold(&geometry, &color, score_threshold, i);
                     let zigzag = r.varint_max(u32::MAX as u64 * 2 + 1, "delta difference")?;
                     let difference = (zigzag >> 1) as i64 ^ -((zigzag & 1) as i64);
-                    let bits = predicted_delta(t, w0, scale).to_bits() as i64 + difference;
+                    let bits = predicted_delta(t, scale).to_bits() as i64 + difference;
                     let delta = u32::try_from(bits)
                         .ok()
                         .filter(|b| *b <= f32::MAX.to_bits())
                         .map_or(f32::NAN, f32::from_bits);
+                    let cap = r.varint_max(2 + MAX_CAP_STEPS as u64, "cap")?;
+                    let w0 = match cap {
+                        0 => f32::INFINITY,
+                        1 => match r.f32()? {
+                            w0 if w0.is_finite() => w0,
+                            w0 => return Err(invalid(W, format!("substream {i}: w0 {w0}"))),
+                        },
+                        n => SubstreamParams::cap_at(t, delta, n as u32 - 2),
+                    };
                     (w0, delta)
                 } else {
                     (r.f32()?, r.f32()?)
                 };
-                if !(w0.is_finite() && delta.is_finite() && w0 >= 0.0 && delta >= 0.0) {
+                let w0_fine = w0.is_finite() || (predicted && w0 == f32::INFINITY);
+                if !(w0_fine && delta.is_finite() && w0 >= 0.0 && delta >= 0.0) {
                     return Err(invalid(W, format!("substream {i}: w0 {w0}, delta {delta}")));
                 }
                 substreams.push(Some(SubstreamParams { w0, delta }));
@@ -547,10 +567,10 @@ fn magnitude_threshold(
 }
 
 /// The Δ a threshold-quantizing encoder gives a substream whose smallest magnitude is
-/// `threshold` and largest `w0` at step `scale` (as [`SubstreamParams::of_magnitudes`] floors
-/// it): the compact header codes each Δ as its difference from this.
-fn predicted_delta(threshold: f64, w0: f32, scale: f64) -> f32 {
-    (scale * threshold).max(w0 as f64 * 2f64.powi(-30)) as f32
+/// `threshold` at step `scale` (but where [`SubstreamParams::of_magnitudes`] floors it): the
+/// compact header codes each Δ as its difference from this.
+fn predicted_delta(threshold: f64, scale: f64) -> f32 {
+    (scale * threshold) as f32
 }
 
 /// A compact header's number: one tag byte, and for the tags that need them the value's f32 or

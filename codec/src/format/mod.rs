@@ -54,12 +54,15 @@ pub const MAGIC: &[u8; 4] = b"WSPL";
 /// ([`bricked`], [`series`]), so the plain file's versions are [`is_plain_version`]'s.
 pub const VERSION: u16 = 13;
 
-/// First version with the compact header: the packets are version 12's, the header spends
-/// fewer bytes on what is usually a round number (unit spacing, importance 1, an infinite layer
-/// bound, a zero offset: a tag byte instead of 8 or 12 bytes) and codes each substream's Δ as
-/// its difference from the Δ its score threshold predicts (one byte rather than four). A small
-/// file or a brick is mostly header: 64³ bricks of MNI at 87 kB spent 10 % of the file on
-/// their headers.
+/// First version with the compact header: the packets' syntax is version 12's, the header
+/// spends fewer bytes on what is usually a round number (unit spacing, importance 1, an
+/// infinite layer bound, a zero offset: a tag byte instead of 8 or 12 bytes), codes each
+/// substream's Δ as its difference from the Δ its score threshold predicts (one byte rather
+/// than four), and a threshold coder's cap on reconstructions w₀ in sixteenths of Δ above the
+/// substream's smallest magnitude, or none (one byte rather than four,
+/// [`SubstreamParams::with_coarse_cap`]).
+/// A small file or a brick is mostly header: 64³ bricks of MNI at 87 kB spent 10 % of the
+/// file on their headers.
 pub const COMPACT_HEADER_VERSION: u16 = 13;
 
 /// First version whose sigmap packets start their models from the trained priors
@@ -247,7 +250,10 @@ impl CoderKind {
 /// Quantization parameters of one substream (channel, band): eq. 15–17.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct SubstreamParams {
-    /// The exact largest magnitude w₀ in the substream.
+    /// The largest magnitude w₀ in the substream, which caps reconstructions: exact in the
+    /// paper's coders and before [`COMPACT_HEADER_VERSION`]; from it, for a threshold coder,
+    /// rounded up to a sixteenth of Δ above the smallest magnitude, or +∞ (no cap) where it
+    /// lies more than 7¾ steps above it (see [`SubstreamParams::with_coarse_cap`]).
     pub w0: f32,
     /// The delta factor Δ (0 when the substream has a single distinct magnitude).
     pub delta: f32,
@@ -274,6 +280,56 @@ impl SubstreamParams {
             w0: w0 as f32,
             delta: delta as f32,
         })
+    }
+}
+
+/// Sixteenths of Δ above the smallest magnitude the compact header can say a cap in (one byte
+/// with its two tags, see [`SubstreamParams::cap_steps`]).
+pub const MAX_CAP_STEPS: u32 = 125;
+
+impl SubstreamParams {
+    /// The cap `steps` sixteenths of Δ above `threshold` (the substream's smallest magnitude),
+    /// computed alike by the compressor and the reader.
+    pub fn cap_at(threshold: f64, delta: f32, steps: u32) -> f32 {
+        (threshold + steps as f64 * delta as f64 / 16.0) as f32
+    }
+
+    /// Where this substream's w₀ lies above `threshold` in sixteenths of Δ, when it lies there
+    /// exactly as [`SubstreamParams::cap_at`] computes it and within [`MAX_CAP_STEPS`].
+    pub fn cap_steps(&self, threshold: f64) -> Option<u32> {
+        let delta = self.delta as f64;
+        if !(delta > 0.0 && delta.is_finite() && self.w0.is_finite() && threshold.is_finite()) {
+            return None;
+        }
+        let steps = (16.0 * (self.w0 as f64 - threshold) / delta).round();
+        if !(0.0..=MAX_CAP_STEPS as f64).contains(&steps) {
+            return None;
+        }
+        let steps = steps as u32;
+        (Self::cap_at(threshold, self.delta, steps).to_bits() == self.w0.to_bits()).then_some(steps)
+    }
+
+    /// The parameters the compact header sends for a threshold coder's substream whose
+    /// smallest magnitude is `threshold`: the cap w₀ rounded up to the next sixteenth of Δ
+    /// above it (one byte instead of four; a substream of one coefficient at the threshold,
+    /// such as a constant volume's, keeps its exact value), or no cap (+∞) where w₀ lies more
+    /// than [`MAX_CAP_STEPS`] sixteenths above: there the cap changed only the largest
+    /// coefficient's reconstruction, whose error is then at most Δ/2 like every other's.
+    pub fn with_coarse_cap(self, threshold: f64) -> SubstreamParams {
+        let delta = self.delta as f64;
+        let w0 = if delta > 0.0 && delta.is_finite() && threshold.is_finite() {
+            let steps = (16.0 * (self.w0 as f64 - threshold) / delta)
+                .ceil()
+                .max(0.0);
+            if steps <= MAX_CAP_STEPS as f64 {
+                Self::cap_at(threshold, self.delta, steps as u32)
+            } else {
+                f32::INFINITY
+            }
+        } else {
+            self.w0
+        };
+        SubstreamParams { w0, ..self }
     }
 }
 

@@ -14,7 +14,9 @@ use crate::visible::Visible;
 use rayon::prelude::*;
 use wavesplat_codec::dwt::fast::FastTransform;
 use wavesplat_codec::format::packet::{encode_packets, Coefficient, PacketInput};
-use wavesplat_codec::format::{write_file, Header, SubstreamParams, MAX_LAYERS};
+use wavesplat_codec::format::{
+    write_file, Header, SubstreamParams, COMPACT_HEADER_VERSION, MAX_LAYERS,
+};
 use wavesplat_codec::metrics::{q_e_percent, q_v_percent};
 
 impl Prepared {
@@ -305,6 +307,16 @@ impl Prepared {
             kept: k as u64,
             version: opts.format_version,
         };
+        // From the compact header on, a threshold coder's cap on reconstructions goes in
+        // sixteenths of Δ (one byte), or not at all where it changed little.
+        if opts.format_version >= COMPACT_HEADER_VERSION && opts.coder.quantizes_by_threshold() {
+            for sub in 0..header.substreams.len() {
+                let threshold = header.magnitude_threshold(sub);
+                if let Some(params) = header.substreams[sub].as_mut() {
+                    *params = params.with_coarse_cap(threshold);
+                }
+            }
+        }
         // Group by (layer, tile), keeping significance order inside each group.
         let mut groups: std::collections::BTreeMap<(usize, usize), Vec<(Scored, Coefficient)>> =
             Default::default();
