@@ -317,7 +317,9 @@ impl SubstreamParams {
     /// coefficient's reconstruction, whose error is then at most Δ/2 like every other's.
     pub fn with_coarse_cap(self, threshold: f64) -> SubstreamParams {
         let delta = self.delta as f64;
-        let w0 = if delta > 0.0 && delta.is_finite() && threshold.is_finite() {
+        // A substream of zero weight (a channel of importance 0) has no threshold magnitude,
+        // and its cap also bounds the layers' chains (`Header::chain_start`): it stays exact.
+        let w0 = if delta > 0.0 && delta.is_finite() && threshold > 0.0 && threshold.is_finite() {
             let steps = (16.0 * (self.w0 as f64 - threshold) / delta)
                 .ceil()
                 .max(0.0);
@@ -348,3 +350,50 @@ pub struct HuffmanTables {
 
 /// Alphabet of the magnitude-category tables.
 pub const CATEGORY_ALPHABET: usize = 65;
+
+#[cfg(test)]
+mod tests {
+    use super::SubstreamParams;
+
+    /// The compact header's caps: rounded up to the next sixteenth of Δ above the threshold
+    /// (never below w₀, less than a sixteenth above it), exact for a coefficient at the
+    /// threshold, dropped far above it, and left exact where there is no threshold (a
+    /// substream of zero weight, whose cap also bounds the layers' chains); a cap said in
+    /// sixteenths reads back to the same f32.
+    #[test]
+    fn caps_round_up_to_sixteenths_of_delta_or_go() {
+        let (t, delta) = (2.5f64, 0.75f32);
+        for w0 in [2.5f32, 2.5001, 2.9, 4.0, 8.3] {
+            let p = SubstreamParams { w0, delta }.with_coarse_cap(t);
+            assert!(
+                p.w0 >= w0 && (p.w0 - w0) as f64 <= delta as f64 / 16.0 + 1e-6,
+                "{w0}"
+            );
+            let n = p.cap_steps(t).expect("a cap in sixteenths");
+            assert_eq!(
+                SubstreamParams::cap_at(t, delta, n).to_bits(),
+                p.w0.to_bits()
+            );
+        }
+        let lone = SubstreamParams { w0: 2.5, delta }.with_coarse_cap(t);
+        assert_eq!(lone.w0, 2.5);
+        let far = SubstreamParams { w0: 9.0, delta }.with_coarse_cap(t);
+        assert_eq!(far.w0, f32::INFINITY);
+        assert_eq!(far.cap_steps(t), None);
+        for (w0, threshold) in [(9.0f32, 0.0), (9.0, f64::NAN)] {
+            let kept = SubstreamParams { w0, delta }.with_coarse_cap(threshold);
+            assert_eq!(kept.w0, w0, "threshold {threshold}");
+        }
+        assert_eq!(
+            SubstreamParams {
+                w0: 3.0,
+                delta: 0.0
+            }
+            .with_coarse_cap(t)
+            .w0,
+            3.0
+        );
+        // A w0 off the sixteenths is said as an f32, not as steps.
+        assert_eq!(SubstreamParams { w0: 2.6, delta }.cap_steps(t), None);
+    }
+}
