@@ -101,9 +101,9 @@ pub struct CompressArgs {
     #[arg(long, default_value_t = 1.0)]
     pub step: f64,
     /// Plain format version to write: 13 (the compact header); 12, which readers built
-    /// before version 13 read too (the same packets, a header larger by tens of bytes: it
-    /// matters for small files and small bricks); or 8, which readers built before version 12
-    /// read too (its sigmap packets start their models at ½: 2–5 % more bytes at the same
+    /// before version 13 read too (the same packet syntax, a header larger by 100–250 bytes:
+    /// it matters for small files and small bricks); or 8, which readers built before version
+    /// 12 read too (its sigmap packets start their models at ½: 2–5 % more bytes at the same
     /// coefficients)
     #[arg(long, default_value_t = wavesplat_codec::format::VERSION)]
     pub format_version: u16,

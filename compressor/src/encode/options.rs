@@ -98,7 +98,7 @@ pub struct CompressOptions {
     pub memory_limit: Option<u64>,
     /// The plain format version written: [`wavesplat_codec::format::VERSION`] (the compact
     /// header), [`wavesplat_codec::format::PRIORS_VERSION`] for readers from before the
-    /// compact header (the same packets, a header larger by tens of bytes), or
+    /// compact header (the same packet syntax, a header larger by 100–250 bytes), or
     /// [`wavesplat_codec::format::LAST_UNPRIMED_VERSION`] for readers from before the sigmap
     /// coder's trained priors (its packets then start their models at ½, 2–5 % more bytes).
     pub format_version: u16,
