@@ -468,7 +468,7 @@ fn the_compact_header_holds_what_version_12_holds_in_fewer_bytes() {
         }
         // Δs off the step's prediction: zero, subnormal, the largest f32, a factor off; caps
         // off the sixteenths, none, and zero.
-        let oddities = [0.0f32, f32::from_bits(1), f32::MAX, 1.37e-3, 3.0e7];
+        let oddities = [0.0f32, -0.0, f32::from_bits(1), f32::MAX, 1.37e-3, 3.0e7];
         let caps = [0.1f32, f32::INFINITY, 0.0, 1.0e30, 7.0];
         for (header, packets) in [(&f.header, &packets), (&n.header, &new_packets)] {
             let mut odd = header.clone();
@@ -479,7 +479,25 @@ fn the_compact_header_holds_what_version_12_holds_in_fewer_bytes() {
                 }
             }
             let written = write_file_version(&odd, packets, COMPACT_HEADER_VERSION).unwrap();
-            assert_eq!(parse_file(&written).unwrap().header, odd, "{name}: odd Δs");
+            let back = parse_file(&written).unwrap().header;
+            assert_eq!(back, odd, "{name}: odd Δs");
+            let signs = |h: &wavesplat_codec::format::Header| -> Vec<u32> {
+                h.substreams
+                    .iter()
+                    .flatten()
+                    .map(|s| s.delta.to_bits())
+                    .collect()
+            };
+            assert_eq!(signs(&back), signs(&odd), "{name}: Δ bits");
+            // An importance so small that every threshold magnitude overflows to +∞.
+            let mut tiny = header.clone();
+            tiny.color.importance[0] = 5e-324;
+            let written = write_file_version(&tiny, packets, COMPACT_HEADER_VERSION).unwrap();
+            assert_eq!(
+                parse_file(&written).unwrap().header,
+                tiny,
+                "{name}: tiny importance"
+            );
         }
     }
     assert!(capless >= 3, "{capless} files went without a w0");
@@ -555,4 +573,66 @@ fn compact_header_tags_no_writer_uses_are_refused() {
     for tag in 7..=255u8 {
         assert!(read_header_section(&patched(offset_at, tag)).is_err());
     }
+}
+
+/// Empty layers have +∞ bounds, and a layer above one takes its lower bound from the next
+/// layer's chain start, which a substream without a cap (w₀ = +∞) left infinite: every value of
+/// that layer came back +∞ and the file was refused. A 16³ volume kept to its 64 scaling
+/// coefficients (the coarse layer) and one more, in three layers, so the last two are empty:
+/// it decodes, to what version 12 decodes within the quantizer's step.
+#[test]
+fn a_layer_above_empty_ones_decodes_without_its_cap() {
+    use wavesplat_codec::family::Family;
+    use wavesplat_compressor::encode::TileChoice;
+    let n = 16usize;
+    let data: Vec<f32> = (0..n * n * n)
+        .map(|i| {
+            let (x, y, z) = (i % n, (i / n) % n, i / (n * n));
+            let block = 1.0 + (x / 4 + 4 * (y / 4) + 16 * (z / 4)) as f32;
+            let cell = (4..6).contains(&x) && (4..6).contains(&y) && (4..6).contains(&z);
+            block
+                + if !cell {
+                    0.0
+                } else if x % 2 == 0 {
+                    50.0
+                } else {
+                    -50.0
+                }
+        })
+        .collect();
+    let vol = Volume::new([n; 3], [1.0; 3], vec![data]).unwrap();
+    let decoded_with = |version: u16| {
+        let o = CompressOptions {
+            family: Family::Haar,
+            levels: Some(2),
+            margin: Some(0),
+            offset: Some(0.0),
+            tile: TileChoice::Size(8),
+            layers: Some(3),
+            refine: None,
+            target: Target::Coefficients(65),
+            format_version: version,
+            ..Default::default()
+        };
+        let bytes = compress(&vol, &o, &|_, _| {}).unwrap().bytes;
+        let h = parse_file(&bytes).unwrap().header;
+        (h, decompress(&bytes).unwrap())
+    };
+    let (h13, v13) = decoded_with(COMPACT_HEADER_VERSION);
+    assert!(
+        h13.layer_bounds.iter().skip(1).all(|b| b.is_infinite()),
+        "the score layers' bounds: {:?}",
+        h13.layer_bounds
+    );
+    assert!(h13.substreams.iter().flatten().any(|s| s.w0.is_infinite()));
+    let (_, v12) = decoded_with(PRIORS_VERSION);
+    let worst = v13.channels()[0]
+        .iter()
+        .zip(&v12.channels()[0])
+        .map(|(a, b)| (a - b).abs())
+        .fold(0f32, f32::max);
+    assert!(
+        worst.is_finite() && worst < 5.0,
+        "largest difference {worst}"
+    );
 }

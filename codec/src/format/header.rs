@@ -276,7 +276,7 @@ impl Header {
             .enumerate()
             .find_map(|(i, s)| {
                 let t = self.magnitude_threshold(i);
-                let s = s.filter(|s| s.delta > 0.0 && t > 0.0)?;
+                let s = s.filter(|s| s.delta > 0.0 && t > 0.0 && t.is_finite())?;
                 let scale = (s.delta as f64 / t) as f32 as f64;
                 scale.is_finite().then_some(scale)
             })
@@ -470,9 +470,10 @@ impl Header {
                     let zigzag = r.varint_max(u32::MAX as u64 * 2 + 1, "delta difference")?;
                     let difference = (zigzag >> 1) as i64 ^ -((zigzag & 1) as i64);
                     let bits = predicted_delta(t, scale).to_bits() as i64 + difference;
+                    // Finite and not negative (−0.0 included, which version 12 holds too).
                     let delta = u32::try_from(bits)
                         .ok()
-                        .filter(|b| *b <= f32::MAX.to_bits())
+                        .filter(|b| *b <= f32::MAX.to_bits() || *b == (-0.0f32).to_bits())
                         .map_or(f32::NAN, f32::from_bits);
                     let cap = r.varint_max(2 + MAX_CAP_STEPS as u64, "cap")?;
                     let w0 = match cap {
@@ -570,7 +571,14 @@ fn magnitude_threshold(
 /// `threshold` at step `scale` (but where [`SubstreamParams::of_magnitudes`] floors it): the
 /// compact header codes each Δ as its difference from this.
 fn predicted_delta(threshold: f64, scale: f64) -> f32 {
-    (scale * threshold) as f32
+    // 0 · ∞ (a substream whose threshold magnitude overflows) is a NaN whose bits Rust does not
+    // pin down across platforms: predict 0 there, so that every reader decodes the same Δ.
+    let predicted = scale * threshold;
+    if predicted.is_nan() {
+        0.0
+    } else {
+        predicted as f32
+    }
 }
 
 /// A compact header's number: one tag byte, and for the tags that need them the value's f32 or

@@ -131,6 +131,14 @@ impl Quantizer {
         } else {
             header.magnitude_threshold(sub)
         };
+        // A layer below whose bound is +∞ (empty layers have such bounds) says nothing about
+        // this one's lower bound, and nor does a cap the file does not send (w₀ = +∞, which
+        // `chain_start` then returns): the substream's smallest magnitude is the bound.
+        let lb = if lb.is_finite() {
+            lb
+        } else {
+            header.magnitude_threshold(sub)
+        };
         let lb = lb.max(0.0);
         let ub = header.chain_start(sub, layer).max(lb);
         Quantizer {
