@@ -121,7 +121,9 @@ pub fn write_file_version(
         return Err(invalid(
             "header",
             format!(
-                "format version {version} sends every substream's largest magnitude, and this                  file's packets were quantized without some (version                  {COMPACT_HEADER_VERSION}): compress with --format-version {version}"
+                "format version {version} sends every substream's largest magnitude, and this \
+                 file's packets were quantized without some (version \
+                 {COMPACT_HEADER_VERSION}): compress with --format-version {version}"
             ),
         ));
     }
