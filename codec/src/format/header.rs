@@ -550,8 +550,9 @@ impl Header {
 }
 
 /// Smallest magnitude a kept coefficient of `substream` can have under `score_threshold`:
-/// √(threshold / (‖basis‖²·I)), 0 where the weight is 0.
-fn magnitude_threshold(
+/// √(threshold / (‖basis‖²·I)), 0 where the weight is 0. The compressor's quantizer steps
+/// and the compact header's predicted Δ both come from it, so they agree bit for bit.
+pub fn magnitude_threshold(
     geometry: &Geometry,
     color: &ColorInfo,
     score_threshold: f64,

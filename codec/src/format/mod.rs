@@ -41,7 +41,7 @@ pub use file::{
     check_kept, parse_file, parse_prelude, write_file, write_file_version, Prelude, WspFile,
 };
 pub(crate) use header::read_magic_and_version;
-pub use header::{read_header_section, write_header_section, Header};
+pub use header::{magnitude_threshold, read_header_section, write_header_section, Header};
 
 /// File magic.
 pub const MAGIC: &[u8; 4] = b"WSPL";

@@ -15,7 +15,7 @@ use rayon::prelude::*;
 use wavesplat_codec::dwt::fast::FastTransform;
 use wavesplat_codec::format::packet::{encode_packets, Coefficient, PacketInput};
 use wavesplat_codec::format::{
-    write_file, Header, SubstreamParams, COMPACT_HEADER_VERSION, MAX_LAYERS,
+    magnitude_threshold, write_file, Header, SubstreamParams, COMPACT_HEADER_VERSION, MAX_LAYERS,
 };
 use wavesplat_codec::metrics::{q_e_percent, q_v_percent};
 
@@ -276,14 +276,7 @@ impl Prepared {
             .enumerate()
             .map(|(sub, m)| {
                 SubstreamParams::of_magnitudes(m, opts.coder, opts.bits, || {
-                    let band = g.bands()[sub % nb];
-                    let weight = g.basis_norm2(band) * self.color.importance[sub / nb];
-                    let t = if weight > 0.0 {
-                        (score_threshold / weight).sqrt()
-                    } else {
-                        0.0
-                    };
-                    opts.step * t
+                    opts.step * magnitude_threshold(g, &self.color, score_threshold, sub)
                 })
             })
             .collect();
