@@ -21,6 +21,11 @@ fn sigmap_file(dims: [usize; 3], target: Target) -> Vec<u8> {
 
 /// A Shepp–Logan phantom of `dims` coded with `coder`: 16-voxel tiles, two layers.
 fn coded_file(coder: CoderKind, dims: [usize; 3], target: Target) -> Vec<u8> {
+    coded_file_version(coder, dims, target, wavesplat_codec::format::VERSION)
+}
+
+/// [`coded_file`] in format version `version`.
+fn coded_file_version(coder: CoderKind, dims: [usize; 3], target: Target, version: u16) -> Vec<u8> {
     let vol = Phantom::SheppLogan.generate(dims);
     compress(
         &vol,
@@ -30,6 +35,7 @@ fn coded_file(coder: CoderKind, dims: [usize; 3], target: Target) -> Vec<u8> {
             tile: TileChoice::Size(16),
             layers: Some(2),
             refine: None,
+            format_version: version,
             ..Default::default()
         },
         &|_, _| {},
@@ -180,9 +186,25 @@ fn a_caller_budget_refuses_a_valid_file_before_decoding_it() {
 
 #[test]
 fn fast_coder_packets_of_garbage_or_flipped_bits_are_refused_or_decode_whole() {
-    let file = coded_file(CoderKind::Fast, [24, 20, 16], Target::Fraction(0.2));
+    // Prefix-coded (version 13) and rANS-coded (version 14 on) packets.
+    for version in [
+        wavesplat_codec::format::COMPACT_HEADER_VERSION,
+        wavesplat_codec::format::RANS_VERSION,
+    ] {
+        fast_packets_of_garbage_or_flipped_bits(version);
+    }
+}
+
+fn fast_packets_of_garbage_or_flipped_bits(version: u16) {
+    let file = coded_file_version(
+        CoderKind::Fast,
+        [24, 20, 16],
+        Target::Fraction(0.2),
+        version,
+    );
     let parsed = parse_file(&file).unwrap();
     let h = &parsed.header;
+    assert_eq!(h.version, version);
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(21);
     let mut refused = 0;
     for packet in &parsed.packets {

@@ -168,114 +168,136 @@ impl HuffmanCode {
     /// Writes the code lengths compactly (see [`HuffmanCode::read_lengths`] for the format).
     /// Use a [`super::bits::BitCounter`] to learn the header cost.
     pub fn write_lengths(&self, sink: &mut impl BitSink) {
-        let n = self.lengths.len() as u64;
-        let width = u64::BITS - n.leading_zeros();
-        sink.put_bits(width as u64, 5);
-        sink.put_bits(n, width);
-        let max = self.max_length();
-        let lbits = u8::BITS - max.leading_zeros();
-        sink.put_bits(lbits as u64, 3);
-        if lbits == 0 {
-            return;
-        }
-        let literal_cost = 1 + lbits as u64;
-        let mut prev = 0u8;
-        let mut i = 0;
-        while i < self.lengths.len() {
-            let len = self.lengths[i];
-            let run = self.lengths[i..].iter().take_while(|&&l| l == len).count();
-            let mut rest = run;
-            if len == 0 && 2 + gamma_bits(run as u64) < literal_cost * run as u64 {
-                sink.put_bits(0b10, 2);
-                put_gamma(sink, run as u64);
-                rest = 0;
-            } else if len != prev {
-                sink.put_bit(false);
-                sink.put_bits(len as u64, lbits);
-                rest -= 1;
-            }
-            if rest > 0 {
-                if 2 + gamma_bits(rest as u64) < literal_cost * rest as u64 {
-                    sink.put_bits(0b11, 2);
-                    put_gamma(sink, rest as u64);
-                } else {
-                    for _ in 0..rest {
-                        sink.put_bit(false);
-                        sink.put_bits(len as u64, lbits);
-                    }
-                }
-            }
-            prev = len;
-            i += run;
-        }
+        write_small_values(sink, &self.lengths);
     }
 
     /// Reads code lengths written by [`HuffmanCode::write_lengths`] and validates them as in
     /// [`HuffmanCode::from_lengths`]; an alphabet larger than `max_symbols` is an error.
     ///
-    /// Format: 5 bits `w`, then the alphabet size `n` in `w` bits; 3 bits `b` (bits per length,
-    /// 0 meaning all lengths are 0); then tokens until `n` lengths are known: `0` + `b` bits is
-    /// one literal length, `10` + Elias-gamma `r` is a run of `r` zeros, `11` + Elias-gamma `r`
-    /// repeats the previous length (initially 0) `r` times.
+    /// Format ([`write_small_values`]): 5 bits `w`, then the alphabet size `n` in `w` bits; 3
+    /// bits `b` (bits per length, 0 meaning all lengths are 0); then tokens until `n` lengths
+    /// are known: `0` + `b` bits is one literal length, `10` + Elias-gamma `r` is a run of `r`
+    /// zeros, `11` + Elias-gamma `r` repeats the previous length (initially 0) `r` times.
     pub fn read_lengths(
         reader: &mut BitReader,
         max_symbols: usize,
     ) -> Result<HuffmanCode, EntropyError> {
-        let max_symbols = max_symbols.min(MAX_ALPHABET);
-        let width = reader.get_bits(5)? as u32;
-        if width > 17 {
-            return Err(EntropyError::out_of_range(
-                "alphabet size width",
-                width,
-                0,
-                17,
-            ));
-        }
-        let n = reader.get_bits(width)?;
-        if n > max_symbols as u64 {
-            return Err(EntropyError::out_of_range(
-                "Huffman alphabet size",
-                n,
-                0,
-                max_symbols as u64,
-            ));
-        }
-        let n = n as usize;
-        let lbits = reader.get_bits(3)? as u32;
-        if lbits > 5 {
-            return Err(EntropyError::out_of_range(
-                "bits per code length",
-                lbits,
-                0,
-                5,
-            ));
-        }
-        let mut lengths = Vec::with_capacity(n);
-        if lbits > 0 {
-            let mut prev = 0u8;
-            while lengths.len() < n {
-                if !reader.get_bit()? {
-                    prev = reader.get_bits(lbits)? as u8;
-                    lengths.push(prev);
-                    continue;
-                }
-                let repeat = reader.get_bit()?;
-                let run = get_gamma(reader, 17)?;
-                let left = (n - lengths.len()) as u64;
-                if run > left {
-                    return Err(EntropyError::InvalidTable(format!(
-                        "run of {run} code lengths exceeds the {left} symbols left"
-                    )));
-                }
-                let value = if repeat { prev } else { 0 };
-                lengths.extend(std::iter::repeat_n(value, run as usize));
-                prev = value;
-            }
-        } else {
-            lengths.resize(n, 0);
-        }
+        let lengths = read_small_values(reader, max_symbols.min(MAX_ALPHABET), 5, "code length")?;
         HuffmanCode::from_lengths(&lengths)
     }
+}
+
+/// Writes a table of small values (one per symbol, most of them 0 or repeating): Huffman code
+/// lengths, and the rANS tables' levels ([`super::rans`]). Format: see
+/// [`HuffmanCode::read_lengths`]; `values.len()` must fit 17 bits and the values 7.
+pub(crate) fn write_small_values(sink: &mut impl BitSink, values: &[u8]) {
+    let n = values.len() as u64;
+    let width = u64::BITS - n.leading_zeros();
+    sink.put_bits(width as u64, 5);
+    sink.put_bits(n, width);
+    let max = values.iter().copied().max().unwrap_or(0);
+    let lbits = u8::BITS - max.leading_zeros();
+    sink.put_bits(lbits as u64, 3);
+    if lbits == 0 {
+        return;
+    }
+    let literal_cost = 1 + lbits as u64;
+    let mut prev = 0u8;
+    let mut i = 0;
+    while i < values.len() {
+        let len = values[i];
+        let run = values[i..].iter().take_while(|&&l| l == len).count();
+        let mut rest = run;
+        if len == 0 && 2 + gamma_bits(run as u64) < literal_cost * run as u64 {
+            sink.put_bits(0b10, 2);
+            put_gamma(sink, run as u64);
+            rest = 0;
+        } else if len != prev {
+            sink.put_bit(false);
+            sink.put_bits(len as u64, lbits);
+            rest -= 1;
+        }
+        if rest > 0 {
+            if 2 + gamma_bits(rest as u64) < literal_cost * rest as u64 {
+                sink.put_bits(0b11, 2);
+                put_gamma(sink, rest as u64);
+            } else {
+                for _ in 0..rest {
+                    sink.put_bit(false);
+                    sink.put_bits(len as u64, lbits);
+                }
+            }
+        }
+        prev = len;
+        i += run;
+    }
+}
+
+/// Reads a table written by [`write_small_values`]: at most `max_symbols` values of at most
+/// `max_value_bits` bits (`what` names them in errors).
+pub(crate) fn read_small_values(
+    reader: &mut BitReader,
+    max_symbols: usize,
+    max_value_bits: u32,
+    what: &'static str,
+) -> Result<Vec<u8>, EntropyError> {
+    let width = reader.get_bits(5)? as u32;
+    if width > 17 {
+        return Err(EntropyError::out_of_range(
+            "alphabet size width",
+            width,
+            0,
+            17,
+        ));
+    }
+    let n = reader.get_bits(width)?;
+    if n > max_symbols as u64 {
+        return Err(EntropyError::out_of_range(
+            "alphabet size",
+            n,
+            0,
+            max_symbols as u64,
+        ));
+    }
+    let n = n as usize;
+    let lbits = reader.get_bits(3)? as u32;
+    if lbits > max_value_bits {
+        return Err(EntropyError::out_of_range(
+            if what == "code length" {
+                "bits per code length"
+            } else {
+                "bits per table value"
+            },
+            lbits,
+            0,
+            max_value_bits,
+        ));
+    }
+    let mut values = Vec::with_capacity(n);
+    if lbits > 0 {
+        let mut prev = 0u8;
+        while values.len() < n {
+            if !reader.get_bit()? {
+                prev = reader.get_bits(lbits)? as u8;
+                values.push(prev);
+                continue;
+            }
+            let repeat = reader.get_bit()?;
+            let run = get_gamma(reader, 17)?;
+            let left = (n - values.len()) as u64;
+            if run > left {
+                return Err(EntropyError::InvalidTable(format!(
+                    "run of {run} {what}s exceeds the {left} symbols left"
+                )));
+            }
+            let value = if repeat { prev } else { 0 };
+            values.extend(std::iter::repeat_n(value, run as usize));
+            prev = value;
+        }
+    } else {
+        values.resize(n, 0);
+    }
+    Ok(values)
 }
 
 /// Bits of the Elias-gamma code of `v` ≥ 1.

@@ -10,6 +10,7 @@ use super::header::{
 use super::{
     invalid, CoderKind, FormatError, Header, COARSE_LAYER_VERSION, COMPACT_HEADER_VERSION,
     FAST_CODER_VERSION, MAGIC, MAGNITUDE_CONTEXTS_VERSION, MAX_PACKET_BYTES, PRIORS_VERSION,
+    RANS_VERSION,
 };
 
 /// A parsed file: the header and the location of each packet.
@@ -82,6 +83,22 @@ pub fn write_file_version(
         return Err(invalid(
             "header",
             format!("format version {version} has no fast coder"),
+        ));
+    }
+    if header.coder == CoderKind::Fast
+        && header
+            .fast_tables
+            .as_ref()
+            .is_some_and(|t| t.is_rans() != (version >= RANS_VERSION))
+    {
+        return Err(invalid(
+            "header",
+            format!(
+                "fast-coder packets coded for format version {} do not decode as version \
+                 {version} (version {RANS_VERSION} codes them by rANS): encode them with that \
+                 version",
+                header.version
+            ),
         ));
     }
     if version < COARSE_LAYER_VERSION && header.coarse_layer {

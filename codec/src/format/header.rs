@@ -522,7 +522,7 @@ impl Header {
         let fast_tables = if coder == CoderKind::Fast {
             let n = r.varint_max(1 << 20, "table blob length")? as usize;
             let blob = r.take(n)?;
-            Some(fast::FastTables::read(&mut BitReader::new(blob))?)
+            Some(fast::FastTables::read(&mut BitReader::new(blob), version)?)
         } else {
             None
         };

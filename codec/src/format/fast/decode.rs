@@ -1,32 +1,45 @@
-//! The fast coder's decoder: reads a payload's prefix-coded stream with the header's table
-//! decoders and its sign stream, walking each present substream's octree, and checks that the
-//! streams hold exactly the coefficients the packet declares.
+//! The fast coder's decoder: reads a payload's symbols (a prefix-coded stream, or an rANS
+//! stream and a raw stream, by format version) with the header's tables and its sign stream,
+//! walking each present substream's octree, and checks that the streams hold exactly the
+//! coefficients the packet declares.
 
 use super::cells::CellMap;
 use super::{
-    allowed_children, child_origin, raw_bits, root_log, step_of, Decoders, Substream,
-    LEAF_MASK_TABLES, SIGN_CONTEXTS,
+    allowed_children, child_origin, raw_bits, root_log, step_of, Decoders, Substream, Tables,
+    LEAF_MASK_TABLES, MASK_TABLES, SIGN_CONTEXTS, VALUE_TABLES,
 };
 use crate::entropy::bits::WordReader;
 use crate::entropy::range::{BitModel, RangeDecoder};
+use crate::entropy::rans::{RansDecoder, RansTable};
 use crate::format::coefficient::PacketFraming;
 use crate::format::coefficient::{region_extent, Coefficient, SizeBreakdown};
 use crate::format::quant::Quantizer;
 use crate::format::{invalid, FormatError, Header};
 
-/// A packet being decoded.
-struct PacketDecoder<'a> {
+/// Where a packet's present bits, masks and steps come from: one implementation per payload
+/// layout, so that the octree walk is written once and compiled for each.
+trait SymbolSource {
+    /// The next present bit.
+    fn present(&mut self) -> bool;
+    /// The next occupancy mask, from mask table `table`.
+    fn mask(&mut self, table: usize) -> Result<u8, FormatError>;
+    /// The next step, from value table `table` (its symbol, then its raw bits).
+    fn step(&mut self, table: usize) -> Result<u64, FormatError>;
+    /// Whether a read went past the end of a stream.
+    fn overrun(&self) -> bool;
+    /// Checks that the streams ended with their last symbol, and charges their bits to the
+    /// breakdown (`present` present bits).
+    fn finish(self, present: u64, bd: &mut SizeBreakdown) -> Result<(), FormatError>;
+}
+
+/// The prefix-coded stream of format versions before [`crate::format::RANS_VERSION`].
+struct PrefixSource<'a> {
     tables: &'a Decoders,
     reader: WordReader<'a>,
-    signs: RangeDecoder<'a>,
-    sign_models: Vec<BitModel>,
-    map: CellMap,
-    count: usize,
-    out: Vec<Coefficient>,
     position_bits: u64,
 }
 
-impl PacketDecoder<'_> {
+impl PrefixSource<'_> {
     #[cold]
     fn not_a_codeword(&self) -> FormatError {
         invalid(
@@ -34,7 +47,134 @@ impl PacketDecoder<'_> {
             format!("no codeword at bit {}", self.reader.position()),
         )
     }
+}
 
+impl SymbolSource for PrefixSource<'_> {
+    #[inline(always)]
+    fn present(&mut self) -> bool {
+        self.reader.get_bits(1) != 0
+    }
+
+    #[inline(always)]
+    fn mask(&mut self, table: usize) -> Result<u8, FormatError> {
+        self.reader.refill();
+        let (mask, len) = self.tables.mask[table]
+            .decode_window(self.reader.peek())
+            .ok_or_else(|| self.not_a_codeword())?;
+        self.reader.consume(len);
+        self.position_bits += len as u64;
+        Ok(mask as u8)
+    }
+
+    #[inline(always)]
+    fn step(&mut self, table: usize) -> Result<u64, FormatError> {
+        self.reader.refill();
+        let (symbol, len) = self.tables.value[table]
+            .decode_window(self.reader.peek())
+            .ok_or_else(|| self.not_a_codeword())?;
+        self.reader.consume(len);
+        // symbol < 64, so at most 49 raw bits: they fit a refilled buffer.
+        Ok(step_of(symbol, self.reader.get_bits(raw_bits(symbol))))
+    }
+
+    fn overrun(&self) -> bool {
+        self.reader.overrun()
+    }
+
+    fn finish(self, present: u64, bd: &mut SizeBreakdown) -> Result<(), FormatError> {
+        if self.reader.overrun() || self.reader.bits_remaining() >= 8 {
+            return Err(invalid(
+                "packet",
+                "the streams' lengths do not match their coefficients",
+            ));
+        }
+        let total = self.reader.position();
+        bd.tag_bits += present as f64;
+        bd.position_bits += self.position_bits as f64;
+        bd.value_bits += (total - present - self.position_bits) as f64;
+        Ok(())
+    }
+}
+
+/// The rANS stream and the raw stream of format version [`crate::format::RANS_VERSION`] on.
+struct RansSource<'a> {
+    mask: &'a [RansTable; MASK_TABLES],
+    value: &'a [RansTable; VALUE_TABLES],
+    ans: RansDecoder<'a>,
+    raw: WordReader<'a>,
+    ans_bytes: usize,
+    raw_bytes: usize,
+    /// The masks' cost in 1/256 bits.
+    position_q8: u64,
+}
+
+#[cold]
+fn empty_table(what: &str, table: usize) -> FormatError {
+    invalid(
+        "packet",
+        format!("a symbol from {what} table {table}, which the header leaves empty"),
+    )
+}
+
+impl SymbolSource for RansSource<'_> {
+    #[inline(always)]
+    fn present(&mut self) -> bool {
+        self.raw.get_bits(1) != 0
+    }
+
+    #[inline(always)]
+    fn mask(&mut self, table: usize) -> Result<u8, FormatError> {
+        let t = &self.mask[table];
+        let mask = self
+            .ans
+            .decode(t)
+            .ok_or_else(|| empty_table("mask", table))?;
+        self.position_q8 += t.cost_q8(mask) as u64;
+        Ok(mask as u8)
+    }
+
+    #[inline(always)]
+    fn step(&mut self, table: usize) -> Result<u64, FormatError> {
+        let symbol = self
+            .ans
+            .decode(&self.value[table])
+            .ok_or_else(|| empty_table("value", table))?;
+        // A value table has at most 64 symbols, so at most 49 raw bits.
+        self.raw.refill();
+        Ok(step_of(symbol, self.raw.get_bits(raw_bits(symbol))))
+    }
+
+    fn overrun(&self) -> bool {
+        self.ans.overrun() || self.raw.overrun()
+    }
+
+    fn finish(self, present: u64, bd: &mut SizeBreakdown) -> Result<(), FormatError> {
+        if !self.ans.is_complete() || self.raw.overrun() || self.raw.bits_remaining() >= 8 {
+            return Err(invalid(
+                "packet",
+                "the streams' lengths do not match their coefficients",
+            ));
+        }
+        let total = 8.0 * (self.ans_bytes + self.raw_bytes) as f64;
+        let position = self.position_q8 as f64 / 256.0;
+        bd.tag_bits += present as f64;
+        bd.position_bits += position;
+        bd.value_bits += total - present as f64 - position;
+        Ok(())
+    }
+}
+
+/// A packet being decoded.
+struct PacketDecoder<'a, S> {
+    source: S,
+    signs: RangeDecoder<'a>,
+    sign_models: Vec<BitModel>,
+    map: CellMap,
+    count: usize,
+    out: Vec<Coefficient>,
+}
+
+impl<S: SymbolSource> PacketDecoder<'_, S> {
     fn node(&mut self, s: &Substream, o: [u32; 3], log: u32) -> Result<(), FormatError> {
         let h = 1u32 << (log - 1);
         let table = if log > 1 {
@@ -42,13 +182,7 @@ impl PacketDecoder<'_> {
         } else {
             self.map.face_table(o)
         };
-        self.reader.refill();
-        let (mask, len) = self.tables.mask[table]
-            .decode_window(self.reader.peek())
-            .ok_or_else(|| self.not_a_codeword())?;
-        self.reader.consume(len);
-        self.position_bits += len as u64;
-        let mask = mask as u8;
+        let mask = self.source.mask(table)?;
         if mask == 0 || mask & !allowed_children(o, h, s.extent) != 0 {
             return Err(invalid(
                 "packet",
@@ -73,7 +207,7 @@ impl PacketDecoder<'_> {
                 "more coefficients than the packet declares",
             ));
         }
-        if self.signs.overrun() || self.reader.overrun() {
+        if self.signs.overrun() || self.source.overrun() {
             return Err(invalid(
                 "packet",
                 format!("the payload ends after {} coefficients", self.out.len()),
@@ -84,13 +218,7 @@ impl PacketDecoder<'_> {
             m &= m - 1;
             let cell = child_origin(o, i, 1);
             let (sc, vc) = self.map.leaf_contexts(cell);
-            self.reader.refill();
-            let (symbol, len) = self.tables.value[vc]
-                .decode_window(self.reader.peek())
-                .ok_or_else(|| self.not_a_codeword())?;
-            self.reader.consume(len);
-            // symbol < 64, so at most 49 raw bits: they fit a refilled buffer.
-            let q = step_of(symbol, self.reader.get_bits(raw_bits(symbol)));
+            let q = self.source.step(vc)?;
             let negative = self
                 .signs
                 .decode_bit(&mut self.sign_models[s.bi * SIGN_CONTEXTS + sc]);
@@ -111,27 +239,61 @@ pub(crate) fn decode(
     packet: &PacketFraming<'_>,
     bd: &mut SizeBreakdown,
 ) -> Result<Vec<Coefficient>, FormatError> {
-    let (tile, layer, count, payload) = (packet.tile, packet.layer, packet.count, packet.payload);
+    let payload = packet.payload;
     let tables = header
         .fast_tables
         .as_ref()
         .ok_or_else(|| invalid("header", "fast coder without tables"))?;
     let mut r = super::super::bytes::ByteReader::new(payload, "packet");
-    let prefix_len = r.varint_max(payload.len() as u64, "prefix-coded stream length")? as usize;
-    let prefix_coded = r.take(prefix_len)?;
-    let signs = r.take(r.remaining())?;
+    let first_len = r.varint_max(payload.len() as u64, "symbol stream length")? as usize;
+    let first = r.take(first_len)?;
+    match &*tables.0 {
+        Tables::Prefix { decoders, .. } => {
+            let signs = r.take(r.remaining())?;
+            let source = PrefixSource {
+                tables: decoders,
+                reader: WordReader::new(first),
+                position_bits: 0,
+            };
+            decode_with(header, packet, source, signs, bd)
+        }
+        Tables::Rans { mask, value } => {
+            let raw_len = r.varint_max(r.remaining() as u64, "raw stream length")? as usize;
+            let raw = r.take(raw_len)?;
+            let signs = r.take(r.remaining())?;
+            let source = RansSource {
+                mask,
+                value,
+                ans: RansDecoder::new(first).map_err(|e| invalid("packet", e.to_string()))?,
+                raw: WordReader::new(raw),
+                ans_bytes: first.len(),
+                raw_bytes: raw.len(),
+                position_q8: 0,
+            };
+            decode_with(header, packet, source, signs, bd)
+        }
+    }
+}
+
+/// Walks a packet's substreams with its symbols from `source` and its signs from `signs`.
+fn decode_with<S: SymbolSource>(
+    header: &Header,
+    packet: &PacketFraming<'_>,
+    source: S,
+    signs: &[u8],
+    bd: &mut SizeBreakdown,
+) -> Result<Vec<Coefficient>, FormatError> {
+    let (tile, layer, count) = (packet.tile, packet.layer, packet.count);
     let nb = header.geometry.band_count();
     let bands = header.geometry.bands();
     let mut d = PacketDecoder {
-        reader: WordReader::new(prefix_coded),
+        source,
         signs: RangeDecoder::new(signs),
         sign_models: vec![BitModel::new(); nb * SIGN_CONTEXTS],
         map: CellMap::new(),
-        tables: &tables.decoders,
         count,
         // The count is bounded but may still be large for a hostile packet: grow as decoded.
         out: Vec::with_capacity(count.min(super::super::coefficient::INITIAL_CAPACITY)),
-        position_bits: 0,
     };
     let mut present_bits = 0u64;
     for sub in 0..header.substream_count() {
@@ -139,7 +301,7 @@ pub(crate) fn decode(
             continue;
         }
         present_bits += 1;
-        if d.reader.get_bits(1) == 0 {
+        if !d.source.present() {
             continue;
         }
         let bi = sub % nb;
@@ -173,16 +335,13 @@ pub(crate) fn decode(
             ),
         ));
     }
-    if d.reader.overrun() || d.reader.bits_remaining() >= 8 || d.signs.overrun() {
+    if d.signs.overrun() {
         return Err(invalid(
             "packet",
             "the streams' lengths do not match their coefficients",
         ));
     }
-    let total = d.reader.position();
-    bd.tag_bits += present_bits as f64;
-    bd.position_bits += d.position_bits as f64;
-    bd.value_bits += (total - present_bits - d.position_bits) as f64;
+    d.source.finish(present_bits, bd)?;
     bd.sign_bits += 8.0 * signs.len() as f64;
     Ok(d.out)
 }

@@ -1,18 +1,21 @@
 //! The fast coder's encoder: symbolizes every packet (octree masks, step symbols, the sign
-//! stream), fits the header's prefix-code tables to all of a file's symbols, then writes each
-//! payload.
+//! stream), fits the header's tables (prefix codes, or rANS distributions) to all of a file's
+//! symbols, then writes each payload.
 
 use super::cells::CellMap;
 use super::{
-    child_origin, raw_bits, root_log, step_symbol, FastTables, Substream, LEAF_MASK_TABLES,
+    child_origin, raw_bits, root_log, step_symbol, FastTables, Substream, Tables, LEAF_MASK_TABLES,
     MASK_ALPHABET, MASK_TABLES, MAX_CODE_LENGTH, SIGN_CONTEXTS, VALUE_ALPHABET, VALUE_TABLES,
 };
 use crate::entropy::bits::{BitSink, BitWriter};
 use crate::entropy::huffman::HuffmanCode;
 use crate::entropy::range::{BitModel, RangeEncoder};
+use crate::entropy::rans::{RansEncoder, RansTable};
+use crate::format::bytes::ByteWriter;
 use crate::format::coefficient::{region_extent, Coefficient, PacketInput, SizeBreakdown};
 use crate::format::quant::Quantizer;
 use crate::format::Header;
+use crate::format::RANS_VERSION;
 
 /// One prefix-coded element of a packet's syntax, before the tables are fitted, packed in
 /// 8 bytes (the encoder holds a whole file's, one or two per coefficient): bits 0–1 the kind
@@ -78,8 +81,15 @@ impl Frequencies {
             }
         }
     }
-    fn fit(&self) -> FastTables {
-        FastTables::new(
+    /// Tables for these counts: prefix codes, or rANS distributions.
+    fn fit(&self, rans: bool) -> FastTables {
+        if rans {
+            return FastTables::rans(
+                std::array::from_fn(|t| RansTable::from_counts(&self.mask[t])),
+                std::array::from_fn(|t| RansTable::from_counts(&self.value[t])),
+            );
+        }
+        FastTables::prefix(
             std::array::from_fn(|t| HuffmanCode::from_frequencies(&self.mask[t], MAX_CODE_LENGTH)),
             std::array::from_fn(|t| HuffmanCode::from_frequencies(&self.value[t], MAX_CODE_LENGTH)),
         )
@@ -234,44 +244,103 @@ pub(crate) fn encode_packets(
     for p in &symbolized {
         freqs.add(&p.symbols);
     }
-    let tables = freqs.fit();
+    let tables = freqs.fit(header.version >= RANS_VERSION);
     let mut bd = SizeBreakdown::default();
     let mut payloads = Vec::with_capacity(inputs.len());
     let mut recons = Vec::with_capacity(inputs.len());
     for p in symbolized {
-        let mut w = BitWriter::with_capacity(p.symbols.len());
-        for s in p.symbols {
-            match s.kind() {
-                Symbol::MASK => {
-                    let code = &tables.mask[s.table()];
-                    code.encode(s.mask_bits(), &mut w);
-                    bd.position_bits += code.cost_bits(s.mask_bits()) as f64;
-                }
-                Symbol::STEP => {
-                    let code = &tables.value[s.table()];
-                    let (symbol, n) = (s.step_symbol(), raw_bits(s.step_symbol()));
-                    code.encode(symbol, &mut w);
-                    w.put_bits(s.raw(), n);
-                    bd.value_bits += (code.cost_bits(symbol) + n) as f64;
-                }
-                _ => {
-                    w.put_bit(s.0 >> 2 & 1 != 0);
-                    bd.tag_bits += 1.0;
-                }
+        let payload = match &*tables.0 {
+            Tables::Prefix { mask, value, .. } => {
+                write_prefix_coded(mask, value, p.symbols, &mut bd)
             }
-        }
-        let prefix_coded = w.finish();
-        let mut payload = super::super::bytes::ByteWriter::new();
-        payload.varint(prefix_coded.len() as u64);
-        payload.bytes(&prefix_coded);
+            Tables::Rans { mask, value } => write_rans_coded(mask, value, p.symbols, &mut bd),
+        };
+        let mut payload = payload;
         payload.bytes(&p.signs);
-        let payload = payload.into_bytes();
         bd.sign_bits += 8.0 * p.signs.len() as f64;
-        payloads.push(payload);
+        payloads.push(payload.into_bytes());
         recons.push(p.recon);
     }
     header.fast_tables = Some(tables);
     (payloads, recons, bd)
+}
+
+/// A payload's symbols as one prefix-coded stream (before format version
+/// [`super::super::RANS_VERSION`]), after its varint length.
+fn write_prefix_coded(
+    mask: &[HuffmanCode; MASK_TABLES],
+    value: &[HuffmanCode; VALUE_TABLES],
+    symbols: Vec<Symbol>,
+    bd: &mut SizeBreakdown,
+) -> ByteWriter {
+    let mut w = BitWriter::with_capacity(symbols.len());
+    for s in symbols {
+        match s.kind() {
+            Symbol::MASK => {
+                let code = &mask[s.table()];
+                code.encode(s.mask_bits(), &mut w);
+                bd.position_bits += code.cost_bits(s.mask_bits()) as f64;
+            }
+            Symbol::STEP => {
+                let code = &value[s.table()];
+                let (symbol, n) = (s.step_symbol(), raw_bits(s.step_symbol()));
+                code.encode(symbol, &mut w);
+                w.put_bits(s.raw(), n);
+                bd.value_bits += (code.cost_bits(symbol) + n) as f64;
+            }
+            _ => {
+                w.put_bit(s.0 >> 2 & 1 != 0);
+                bd.tag_bits += 1.0;
+            }
+        }
+    }
+    let prefix_coded = w.finish();
+    let mut payload = ByteWriter::new();
+    payload.varint(prefix_coded.len() as u64);
+    payload.bytes(&prefix_coded);
+    payload
+}
+
+/// A payload's symbols as an rANS stream and a raw stream, each after its varint length. The
+/// breakdown charges masks their exact costs, present bits one bit each, and the rest of both
+/// streams (the steps and their raw bits, the final states, padding) to values.
+fn write_rans_coded(
+    mask: &[RansTable; MASK_TABLES],
+    value: &[RansTable; VALUE_TABLES],
+    symbols: Vec<Symbol>,
+    bd: &mut SizeBreakdown,
+) -> ByteWriter {
+    let mut ans = RansEncoder::with_capacity(symbols.len());
+    let mut raw = BitWriter::new();
+    let (mut tag_bits, mut position_bits) = (0.0, 0.0);
+    for s in symbols {
+        match s.kind() {
+            Symbol::MASK => {
+                let table = &mask[s.table()];
+                ans.put(table, s.mask_bits());
+                position_bits += table.cost_bits(s.mask_bits());
+            }
+            Symbol::STEP => {
+                ans.put(&value[s.table()], s.step_symbol());
+                raw.put_bits(s.raw(), raw_bits(s.step_symbol()));
+            }
+            _ => {
+                raw.put_bit(s.0 >> 2 & 1 != 0);
+                tag_bits += 1.0;
+            }
+        }
+    }
+    let (ans, raw) = (ans.finish(), raw.finish());
+    let total = 8.0 * (ans.len() + raw.len()) as f64;
+    bd.tag_bits += tag_bits;
+    bd.position_bits += position_bits;
+    bd.value_bits += total - tag_bits - position_bits;
+    let mut payload = ByteWriter::new();
+    payload.varint(ans.len() as u64);
+    payload.bytes(&ans);
+    payload.varint(raw.len() as u64);
+    payload.bytes(&raw);
+    payload
 }
 
 #[cfg(test)]

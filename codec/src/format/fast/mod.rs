@@ -1,39 +1,47 @@
 //! The fast coder ([`super::CoderKind::Fast`]): the sigmap coder's quantization, octree order
-//! and neighbour contexts, with positions and magnitudes coded by static Huffman tables instead
-//! of adaptive binary decisions, so that a packet decodes with about two table look-ups and one
+//! and neighbour contexts, with positions and magnitudes coded by static tables instead of
+//! adaptive binary decisions, so that a packet decodes with about two table look-ups and one
 //! adaptive sign decision per coefficient.
 //!
 //! The sigmap coder spends about seven adaptive binary decisions per coefficient, each a
 //! serial dependency through the range decoder and its model; that caps it near 6 M
-//! coefficients/s per core. This coder reads one prefix code per occupied octree node of 2×2×2
+//! coefficients/s per core. This coder reads one symbol per occupied octree node of 2×2×2
 //! cells or more and one per coefficient, for several times that speed at some cost in bytes
 //! (measured in BENCHMARKS.md, "Decoding speed").
 //!
-//! A payload is two streams: a varint length, then the prefix-coded stream (MSB-first bits),
-//! then the signs (adaptive binary range coding, reset per packet). Per packet, for each
-//! substream (channel, band) that has parameters in the header: one raw "present" bit; for a
-//! present substream, the dyadic octree over its tile-local band region (the region's
-//! power-of-two bounding cube, at least 2 cells on a side). Every occupied node codes the 8-bit
-//! mask of its occupied children (child i lies half an edge away by (i & 1, i >> 1 & 1,
-//! i >> 2 & 1); children outside the region are never set) and visits them in bit order. A
-//! node of 2×2×2 cells uses one of [`LEAF_MASK_TABLES`] tables, chosen by how many coded cells
-//! of the substream touch its three lower faces; larger nodes share one table. A node of 2×2×2
-//! cells is followed by its coefficients in bit order: for each, its step symbol from the value
-//! table chosen by the mean bit length of its coded lower neighbours' steps (`value_table`),
-//! then its sign in the sign stream (context: band and the signs of its three lower
-//! neighbours, as the sigmap coder). A step symbol is q itself for q < 14, otherwise 13 + e
-//! followed by the e − 1 low bits of q − 13, which has e bits. Steps and reconstruction are the
-//! sigmap coder's ([`super::sigmap`]). The tables live in the header ([`FastTables`]), fitted
-//! by the encoder to all of a file's packets, as the paper's coder does; packets stay
-//! self-contained given the header.
+//! The symbols: per packet, for each substream (channel, band) that has parameters in the
+//! header, one raw "present" bit; for a present substream, the dyadic octree over its
+//! tile-local band region (the region's power-of-two bounding cube, at least 2 cells on a
+//! side). Every occupied node codes the 8-bit mask of its occupied children (child i lies half
+//! an edge away by (i & 1, i >> 1 & 1, i >> 2 & 1); children outside the region are never
+//! set) and visits them in bit order. A node of 2×2×2 cells uses one of [`LEAF_MASK_TABLES`]
+//! tables, chosen by how many coded cells of the substream touch its three lower faces; larger
+//! nodes share one table. A node of 2×2×2 cells is followed by its coefficients in bit order:
+//! for each, its step symbol from the value table chosen by the mean bit length of its coded
+//! lower neighbours' steps (`value_table`), then its sign in the sign stream (context: band and
+//! the signs of its three lower neighbours, as the sigmap coder). A step symbol is q itself for
+//! q < 14, otherwise 13 + e followed by the e − 1 low bits of q − 13, which has e bits. Steps
+//! and reconstruction are the sigmap coder's ([`super::sigmap`]). The tables live in the header
+//! ([`FastTables`]), fitted by the encoder to all of a file's packets, as the paper's coder
+//! does; packets stay self-contained given the header.
+//!
+//! The payload, before format version [`RANS_VERSION`]: a varint length, the prefix-coded
+//! stream (MSB-first bits: the present bits, the masks' and steps' codewords, the steps' raw
+//! bits, in syntax order), then the signs (adaptive binary range coding, reset per packet).
+//! From it, the masks and step symbols are coded by rANS with static distributions
+//! ([`crate::entropy::rans`], fractional code lengths where a prefix code spends at least a
+//! bit on each): a varint length and the rANS stream, a varint length and the raw stream
+//! (MSB-first: the present bits and the steps' raw bits, in syntax order), then the signs.
 
 mod cells;
 mod decode;
 mod encode;
 
 use super::quant::Quantizer;
+use super::RANS_VERSION;
 use crate::entropy::bits::{BitReader, BitSink};
 use crate::entropy::huffman::{HuffmanCode, HuffmanDecoder};
+use crate::entropy::rans::RansTable;
 use crate::entropy::EntropyError;
 use crate::layout::Band;
 use std::sync::Arc;
@@ -63,45 +71,103 @@ const DIRECT_STEPS: u64 = 14;
 /// Longest prefix code the encoder builds.
 const MAX_CODE_LENGTH: u8 = 15;
 
-/// The fast coder's prefix codes, stored in the header, with their decoders (built once, not
-/// per packet).
+/// The fast coder's tables, stored in the header and fitted by the encoder to all of a
+/// file's packets: prefix codes before format version [`RANS_VERSION`], rANS distributions
+/// from it. Shared, so that a clone of the header does not copy them.
 #[derive(Debug, Clone)]
-pub struct FastTables {
-    /// Occupancy masks: [`LEAF_MASK_TABLES`] for nodes of 2×2×2 cells, then larger nodes.
-    mask: [HuffmanCode; MASK_TABLES],
-    /// Step symbols per value context.
-    value: [HuffmanCode; VALUE_TABLES],
-    decoders: Arc<Decoders>,
+pub struct FastTables(Arc<Tables>);
+
+// One per file, behind an `Arc`: the variants' sizes do not matter.
+#[allow(clippy::large_enum_variant)]
+#[derive(Debug)]
+enum Tables {
+    /// Prefix codes with their decoders (built once, not per packet).
+    Prefix {
+        /// Occupancy masks: [`LEAF_MASK_TABLES`] for nodes of 2×2×2 cells, then larger nodes.
+        mask: [HuffmanCode; MASK_TABLES],
+        /// Step symbols per value context.
+        value: [HuffmanCode; VALUE_TABLES],
+        decoders: Decoders,
+    },
+    /// rANS distributions, the same contexts.
+    Rans {
+        mask: [RansTable; MASK_TABLES],
+        value: [RansTable; VALUE_TABLES],
+    },
 }
 
 impl PartialEq for FastTables {
     fn eq(&self, other: &FastTables) -> bool {
-        self.mask == other.mask && self.value == other.value
+        match (&*self.0, &*other.0) {
+            (
+                Tables::Prefix { mask, value, .. },
+                Tables::Prefix {
+                    mask: m, value: v, ..
+                },
+            ) => mask == m && value == v,
+            (Tables::Rans { mask, value }, Tables::Rans { mask: m, value: v }) => {
+                mask == m && value == v
+            }
+            _ => false,
+        }
     }
 }
 
 impl FastTables {
-    fn new(mask: [HuffmanCode; MASK_TABLES], value: [HuffmanCode; VALUE_TABLES]) -> FastTables {
-        let decoders = Arc::new(Decoders {
+    fn prefix(mask: [HuffmanCode; MASK_TABLES], value: [HuffmanCode; VALUE_TABLES]) -> FastTables {
+        let decoders = Decoders {
             mask: std::array::from_fn(|t| HuffmanDecoder::new(&mask[t])),
             value: std::array::from_fn(|t| HuffmanDecoder::new(&value[t])),
-        });
-        FastTables {
+        };
+        FastTables(Arc::new(Tables::Prefix {
             mask,
             value,
             decoders,
-        }
+        }))
     }
 
-    /// Writes every table's code lengths.
+    fn rans(mask: [RansTable; MASK_TABLES], value: [RansTable; VALUE_TABLES]) -> FastTables {
+        FastTables(Arc::new(Tables::Rans { mask, value }))
+    }
+
+    /// Whether these are rANS distributions (format version [`RANS_VERSION`] and later).
+    pub fn is_rans(&self) -> bool {
+        matches!(*self.0, Tables::Rans { .. })
+    }
+
+    /// Writes every table: code lengths, or rANS levels.
     pub fn write(&self, sink: &mut impl BitSink) {
-        for code in self.mask.iter().chain(&self.value) {
-            code.write_lengths(sink);
+        match &*self.0 {
+            Tables::Prefix { mask, value, .. } => {
+                for code in mask.iter().chain(value) {
+                    code.write_lengths(sink);
+                }
+            }
+            Tables::Rans { mask, value } => {
+                for table in mask.iter().chain(value) {
+                    table.write_levels(sink);
+                }
+            }
         }
     }
 
-    /// Reads tables written by [`FastTables::write`], validating every code.
-    pub fn read(reader: &mut BitReader) -> Result<FastTables, EntropyError> {
+    /// Reads tables written by [`FastTables::write`] for a file of `version`, validating
+    /// every table.
+    pub fn read(reader: &mut BitReader, version: u16) -> Result<FastTables, EntropyError> {
+        if version >= RANS_VERSION {
+            let mut mask = Vec::with_capacity(MASK_TABLES);
+            for _ in 0..MASK_TABLES {
+                mask.push(RansTable::read_levels(reader, MASK_ALPHABET)?);
+            }
+            let mut value = Vec::with_capacity(VALUE_TABLES);
+            for _ in 0..VALUE_TABLES {
+                value.push(RansTable::read_levels(reader, VALUE_ALPHABET)?);
+            }
+            return Ok(FastTables::rans(
+                mask.try_into().expect("MASK_TABLES tables"),
+                value.try_into().expect("VALUE_TABLES tables"),
+            ));
+        }
         let mut mask = Vec::with_capacity(MASK_TABLES);
         for _ in 0..MASK_TABLES {
             mask.push(HuffmanCode::read_lengths(reader, MASK_ALPHABET)?);
@@ -110,7 +176,7 @@ impl FastTables {
         for _ in 0..VALUE_TABLES {
             value.push(HuffmanCode::read_lengths(reader, VALUE_ALPHABET)?);
         }
-        Ok(FastTables::new(
+        Ok(FastTables::prefix(
             mask.try_into().expect("MASK_TABLES codes"),
             value.try_into().expect("VALUE_TABLES codes"),
         ))

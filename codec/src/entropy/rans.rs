@@ -1,0 +1,581 @@
+//! Static-model rANS (range asymmetric numeral systems): fractional code lengths at a table
+//! look-up per symbol, the fast coder's entropy coder from format version 14
+//! ([`crate::format::RANS_VERSION`]).
+//!
+//! A [`RansTable`] is a distribution over at most 256 symbols in units of 2^−[`PRECISION`],
+//! described by one small integer per symbol, its *level* (0: the symbol never occurs; level l
+//! weighs 2^((l − 1)/4), so the levels cover 12 octaves in quarter octaves), which
+//! [`RansTable::write_levels`] serializes as compactly as Huffman code lengths. The weights
+//! become frequencies by integer arithmetic only ([`frequencies_of_levels`]), so every platform
+//! decodes the same table. Against a prefix code, a symbol of probability 0.9 costs 0.15 bits
+//! instead of 1.
+//!
+//! [`RansEncoder`] takes a packet's symbols in order and writes them backwards (rANS is a
+//! stack) with two states that alternate symbol by symbol, so that the decoder's consecutive
+//! state updates do not wait on each other; the stream is 16-bit words, little-endian, the two
+//! final states first. [`RansDecoder`] reads untrusted bytes: it never panics, and
+//! [`RansDecoder::is_complete`] holds only when the stream ended exactly where its encoder
+//! started (both states back at their initial value, every word read), which a corrupted or
+//! truncated stream almost never does.
+//!
+//! Written here rather than taken from a crate: `constriction`'s ANS coder (the well-kept Rust
+//! one) decodes a single state from a `Vec` of words it owns, and this format needs two
+//! interleaved states read in place from a packet's bytes, with the tables described by levels
+//! in the file's header.
+
+use super::bits::{BitReader, BitSink};
+use super::huffman::{read_small_values, write_small_values};
+use super::EntropyError;
+
+/// Bits of probability resolution: frequencies sum to 2^12.
+pub const PRECISION: u32 = 12;
+/// The frequencies' total.
+pub const TOTAL: u32 = 1 << PRECISION;
+/// Largest level ([`RansTable`]): weight 2^12 times the weight of level 1.
+pub const MAX_LEVEL: u8 = 49;
+/// Largest alphabet: symbols are packed in 8 bits of the decoding table.
+pub const MAX_SYMBOLS: usize = 256;
+/// The states' lower bound; they live in [2^16, 2^32) and move by 16-bit words.
+const LOWER: u32 = 1 << 16;
+/// 2^(k/4) for k = 0..4, in units of 2^−12: the levels' weights within an octave.
+const QUARTER_OCTAVES: [u64; 4] = [4096, 4871, 5793, 6889];
+
+/// The weight of a level ≥ 1 (integer, so that every platform agrees).
+fn weight(level: u8) -> u64 {
+    let l = (level - 1) as u64;
+    QUARTER_OCTAVES[(l % 4) as usize] << (l / 4)
+}
+
+/// Frequencies summing to [`TOTAL`] for symbols' levels (0: absent, frequency 0; others at
+/// least 1), by integer arithmetic only: each used symbol gets its share of the total,
+/// rounded down and at least 1; what is left over goes to the heaviest symbol, and an excess
+/// (from the symbols raised to 1) is taken from the largest frequencies. All zero when no
+/// symbol is used.
+pub fn frequencies_of_levels(levels: &[u8]) -> Vec<u32> {
+    let total_weight: u64 = levels.iter().filter(|&&l| l > 0).map(|&l| weight(l)).sum();
+    let mut freqs = vec![0u32; levels.len()];
+    if total_weight == 0 {
+        return freqs;
+    }
+    let mut sum = 0u32;
+    for (f, &l) in freqs.iter_mut().zip(levels) {
+        if l > 0 {
+            *f = ((weight(l) * TOTAL as u64 / total_weight) as u32).max(1);
+            sum += *f;
+        }
+    }
+    let heaviest = (0..levels.len())
+        .max_by_key(|&i| (levels[i], std::cmp::Reverse(i)))
+        .expect("a used symbol");
+    if sum < TOTAL {
+        freqs[heaviest] += TOTAL - sum;
+    }
+    while sum > TOTAL {
+        // At most MAX_SYMBOLS symbols were raised to 1, and TOTAL > 2 · MAX_SYMBOLS, so the
+        // largest frequency always has room to give.
+        let largest = (0..freqs.len())
+            .max_by_key(|&i| (freqs[i], std::cmp::Reverse(i)))
+            .expect("a used symbol");
+        let give = (sum - TOTAL).min(freqs[largest] - 1);
+        freqs[largest] -= give;
+        sum -= give;
+    }
+    freqs
+}
+
+/// The levels that describe symbol counts: each symbol's count relative to the largest, in
+/// quarter octaves, at least 1 for a symbol that occurs (the encoder's side; floating point
+/// is fine here, the levels are what is sent).
+pub fn levels_of_counts(counts: &[u64]) -> Vec<u8> {
+    let max = counts.iter().copied().max().unwrap_or(0);
+    counts
+        .iter()
+        .map(|&c| {
+            if c == 0 {
+                return 0;
+            }
+            let below = (4.0 * (max as f64 / c as f64).log2()).round();
+            (MAX_LEVEL as f64 - below).max(1.0) as u8
+        })
+        .collect()
+}
+
+/// One static distribution: its levels, frequencies, cumulative starts, and the decoder's
+/// table of 2^12 slots (each the symbol in bits 0–7, its frequency − 1 in bits 8–19, and the
+/// slot's offset from the symbol's start in bits 20–31). Empty when no symbol is used.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct RansTable {
+    levels: Vec<u8>,
+    freq: Vec<u16>,
+    start: Vec<u16>,
+    /// Each symbol's cost in 1/256 bits, for size breakdowns.
+    cost: Vec<u16>,
+    slots: Box<[u32]>,
+}
+
+impl RansTable {
+    /// The table described by `levels` (at most [`MAX_SYMBOLS`], each at most [`MAX_LEVEL`]).
+    pub fn from_levels(levels: &[u8]) -> Result<RansTable, EntropyError> {
+        if levels.len() > MAX_SYMBOLS {
+            return Err(EntropyError::out_of_range(
+                "rANS alphabet size",
+                levels.len() as u64,
+                0,
+                MAX_SYMBOLS as u64,
+            ));
+        }
+        if let Some(&l) = levels.iter().find(|&&l| l > MAX_LEVEL) {
+            return Err(EntropyError::out_of_range("rANS level", l, 0, MAX_LEVEL));
+        }
+        let end = levels.iter().rposition(|&l| l > 0).map_or(0, |i| i + 1);
+        let levels = levels[..end].to_vec();
+        let freqs = frequencies_of_levels(&levels);
+        let mut start = Vec::with_capacity(freqs.len());
+        let mut at = 0u32;
+        for &f in &freqs {
+            start.push(at as u16);
+            at += f;
+        }
+        let mut slots = Vec::new();
+        if at == TOTAL {
+            slots.reserve_exact(TOTAL as usize);
+            for (sym, &f) in freqs.iter().enumerate() {
+                for offset in 0..f {
+                    slots.push(sym as u32 | (f - 1) << 8 | offset << 20);
+                }
+            }
+        }
+        Ok(RansTable {
+            levels,
+            // A frequency is at most TOTAL = 2^12: it fits 16 bits.
+            freq: freqs.iter().map(|&f| f as u16).collect(),
+            start,
+            cost: freqs
+                .iter()
+                .map(|&f| {
+                    if f == 0 {
+                        0
+                    } else {
+                        (256.0 * (TOTAL as f64 / f as f64).log2()).round() as u16
+                    }
+                })
+                .collect(),
+            slots: slots.into_boxed_slice(),
+        })
+    }
+
+    /// The table for symbol counts ([`levels_of_counts`]).
+    pub fn from_counts(counts: &[u64]) -> RansTable {
+        RansTable::from_levels(&levels_of_counts(counts)).expect("levels of at most 256 counts")
+    }
+
+    /// Whether no symbol can be coded with this table.
+    pub fn is_empty(&self) -> bool {
+        self.slots.is_empty()
+    }
+
+    /// The symbols' levels (trailing zeros trimmed).
+    pub fn levels(&self) -> &[u8] {
+        &self.levels
+    }
+
+    /// The frequency of a symbol (out of [`TOTAL`]); 0 if it cannot be coded.
+    pub fn frequency(&self, sym: usize) -> u32 {
+        self.freq.get(sym).map_or(0, |&f| f as u32)
+    }
+
+    /// A symbol's cost in bits: −log2 of its probability (+∞ if it cannot be coded).
+    pub fn cost_bits(&self, sym: usize) -> f64 {
+        (TOTAL as f64 / self.frequency(sym) as f64).log2()
+    }
+
+    /// A symbol's cost in 1/256 bits (0 if it cannot be coded), by table look-up.
+    #[inline(always)]
+    pub fn cost_q8(&self, sym: usize) -> u32 {
+        self.cost.get(sym).map_or(0, |&c| c as u32)
+    }
+
+    /// Writes the levels ([`write_small_values`], values of at most 6 bits).
+    pub fn write_levels(&self, sink: &mut impl BitSink) {
+        write_small_values(sink, &self.levels);
+    }
+
+    /// Reads levels written by [`RansTable::write_levels`] for an alphabet of at most
+    /// `max_symbols` (≤ [`MAX_SYMBOLS`]).
+    pub fn read_levels(
+        reader: &mut BitReader,
+        max_symbols: usize,
+    ) -> Result<RansTable, EntropyError> {
+        let levels = read_small_values(reader, max_symbols.min(MAX_SYMBOLS), 6, "level")?;
+        RansTable::from_levels(&levels)
+    }
+}
+
+/// Collects a stream's symbols in order, then writes them ([`RansEncoder::finish`]).
+#[derive(Debug, Default)]
+pub struct RansEncoder {
+    /// (start, frequency) of each symbol, in decoding order.
+    symbols: Vec<(u16, u16)>,
+}
+
+impl RansEncoder {
+    /// An empty stream.
+    pub fn new() -> RansEncoder {
+        RansEncoder::default()
+    }
+
+    /// An empty stream with room for `n` symbols.
+    pub fn with_capacity(n: usize) -> RansEncoder {
+        RansEncoder {
+            symbols: Vec::with_capacity(n),
+        }
+    }
+
+    /// Appends `sym` coded with `table`.
+    ///
+    /// # Panics
+    /// If the table cannot code `sym` (its count was 0 when the table was fitted: an
+    /// encoder-side programming error).
+    pub fn put(&mut self, table: &RansTable, sym: usize) {
+        let f = table.frequency(sym);
+        assert!(f > 0, "symbol {sym} has no frequency in its rANS table");
+        // f ≤ TOTAL = 2^12, and the start of a used symbol is below TOTAL: both fit 16 bits
+        // (a frequency of 2^12 is stored as 4096, which fits u16).
+        self.symbols.push((table.start[sym], f as u16));
+    }
+
+    /// Symbols appended so far.
+    pub fn len(&self) -> usize {
+        self.symbols.len()
+    }
+
+    /// Whether no symbol was appended.
+    pub fn is_empty(&self) -> bool {
+        self.symbols.is_empty()
+    }
+
+    /// The stream's bytes: empty for no symbols, else the two final states (the first
+    /// symbol's first, each as its high then low 16-bit word) and the renormalization words,
+    /// every word little-endian.
+    pub fn finish(self) -> Vec<u8> {
+        if self.symbols.is_empty() {
+            return Vec::new();
+        }
+        let mut state = [LOWER; 2];
+        let mut words: Vec<u16> = Vec::with_capacity(self.symbols.len() / 2 + 4);
+        for (i, &(start, freq)) in self.symbols.iter().enumerate().rev() {
+            let x = &mut state[i & 1];
+            let (start, freq) = (start as u32, freq as u32);
+            // Keep x below 2^32 after coding: renormalize (one word suffices) when x ≥
+            // 2^(16 + 16 − 12) · freq.
+            if *x as u64 >= (((LOWER >> PRECISION) as u64) << 16) * freq as u64 {
+                words.push(*x as u16);
+                *x >>= 16;
+            }
+            *x = ((*x / freq) << PRECISION) + (*x % freq) + start;
+        }
+        for x in [state[1], state[0]] {
+            words.push(x as u16);
+            words.push((x >> 16) as u16);
+        }
+        words.iter().rev().flat_map(|w| w.to_le_bytes()).collect()
+    }
+}
+
+/// Reads a stream written by [`RansEncoder::finish`] from untrusted bytes.
+#[derive(Debug)]
+pub struct RansDecoder<'a> {
+    bytes: &'a [u8],
+    pos: usize,
+    state: [u32; 2],
+    which: usize,
+    overrun: bool,
+}
+
+impl<'a> RansDecoder<'a> {
+    /// A decoder of `bytes`: empty (a stream of no symbols), or at least the two states, a
+    /// whole number of words, each state at least 2^16.
+    pub fn new(bytes: &'a [u8]) -> Result<RansDecoder<'a>, EntropyError> {
+        let mut d = RansDecoder {
+            bytes,
+            pos: 0,
+            state: [LOWER; 2],
+            which: 0,
+            overrun: false,
+        };
+        if bytes.is_empty() {
+            return Ok(d);
+        }
+        if bytes.len() < 8 || !bytes.len().is_multiple_of(2) {
+            return Err(EntropyError::InvalidTable(format!(
+                "rANS stream of {} bytes: not a whole number of 16-bit words, or shorter than \
+                 its two states",
+                bytes.len()
+            )));
+        }
+        for s in 0..2 {
+            let x = (d.word() as u32) << 16 | d.word() as u32;
+            if x < LOWER {
+                return Err(EntropyError::InvalidTable(format!(
+                    "rANS state {x:#x} below its lower bound {LOWER:#x}"
+                )));
+            }
+            d.state[s] = x;
+        }
+        Ok(d)
+    }
+
+    #[inline(always)]
+    fn word(&mut self) -> u16 {
+        match self.bytes.get(self.pos..self.pos + 2) {
+            Some(w) => {
+                self.pos += 2;
+                u16::from_le_bytes([w[0], w[1]])
+            }
+            None => {
+                self.overrun = true;
+                0
+            }
+        }
+    }
+
+    /// Decodes one symbol with `table`; `None` if the table is empty (no symbol can come from
+    /// it: the stream is not one the encoder wrote).
+    #[inline(always)]
+    pub fn decode(&mut self, table: &RansTable) -> Option<usize> {
+        let x = self.state[self.which];
+        let slot = *table.slots.get((x & (TOTAL - 1)) as usize)?;
+        let freq = (slot >> 8 & 0xFFF) + 1;
+        let mut x = freq * (x >> PRECISION) + (slot >> 20);
+        if x < LOWER {
+            x = x << 16 | self.word() as u32;
+        }
+        self.state[self.which] = x;
+        self.which ^= 1;
+        Some((slot & 0xFF) as usize)
+    }
+
+    /// Whether a read went past the end of the stream.
+    pub fn overrun(&self) -> bool {
+        self.overrun
+    }
+
+    /// Whether the stream ended exactly where its encoder began: every word read, nothing
+    /// read past the end, both states at their initial value.
+    pub fn is_complete(&self) -> bool {
+        !self.overrun && self.pos == self.bytes.len() && self.state == [LOWER; 2]
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::super::bits::BitWriter;
+    use super::*;
+
+    /// A small deterministic generator (xorshift), so the tests need no crate for randomness.
+    struct Rng(u64);
+    impl Rng {
+        fn next(&mut self) -> u64 {
+            self.0 ^= self.0 << 13;
+            self.0 ^= self.0 >> 7;
+            self.0 ^= self.0 << 17;
+            self.0
+        }
+        /// A symbol drawn from `counts` (as a distribution).
+        fn draw(&mut self, counts: &[u64]) -> usize {
+            let total: u64 = counts.iter().sum();
+            let mut r = self.next() % total;
+            for (i, &c) in counts.iter().enumerate() {
+                if r < c {
+                    return i;
+                }
+                r -= c;
+            }
+            unreachable!()
+        }
+    }
+
+    fn tables() -> Vec<(Vec<u64>, RansTable)> {
+        let skewed = vec![900, 60, 25, 10, 4, 1];
+        let flat = vec![1; 256];
+        let sparse: Vec<u64> = (0..256)
+            .map(|i| if i % 17 == 3 { i as u64 } else { 0 })
+            .collect();
+        let lone = vec![0, 0, 5];
+        [skewed, flat, sparse, lone]
+            .into_iter()
+            .map(|c| {
+                let t = RansTable::from_counts(&c);
+                (c, t)
+            })
+            .collect()
+    }
+
+    #[test]
+    fn frequencies_sum_to_the_total_and_keep_every_used_symbol() {
+        let mut rng = Rng(7);
+        let mut cases: Vec<Vec<u8>> = vec![
+            vec![],
+            vec![0, 0],
+            vec![1],
+            vec![MAX_LEVEL],
+            vec![1; 256],
+            vec![MAX_LEVEL; 256],
+        ];
+        // One heavy symbol and 255 at the lowest level: the raise to 1 must be paid for.
+        let mut heavy = vec![1u8; 256];
+        heavy[100] = MAX_LEVEL;
+        cases.push(heavy);
+        for _ in 0..200 {
+            let n = 1 + rng.next() as usize % 256;
+            cases.push((0..n).map(|_| (rng.next() % 50) as u8).collect());
+        }
+        for levels in cases {
+            let f = frequencies_of_levels(&levels);
+            let used = levels.iter().filter(|&&l| l > 0).count();
+            let sum: u32 = f.iter().sum();
+            assert_eq!(sum, if used > 0 { TOTAL } else { 0 }, "{levels:?}");
+            for (l, f) in levels.iter().zip(&f) {
+                assert_eq!(*l > 0, *f > 0, "{levels:?}");
+            }
+        }
+    }
+
+    #[test]
+    fn frequencies_follow_the_levels_within_rounding() {
+        // Two used symbols eight quarter-octaves apart weigh 1 : 4.
+        let f = frequencies_of_levels(&[41, 0, 49]);
+        assert_eq!(f[0] + f[2], TOTAL);
+        assert!((f[2] as i64 - 4 * f[0] as i64).abs() <= 4, "{f:?}");
+        // Symbols at the same level share equally.
+        let f = frequencies_of_levels(&[10, 10, 10, 10]);
+        assert_eq!(f, vec![1024; 4]);
+    }
+
+    #[test]
+    fn streams_round_trip_with_two_states_and_any_length() {
+        let tables = tables();
+        let mut rng = Rng(42);
+        for n in [0usize, 1, 2, 3, 10, 1001, 20_000] {
+            let mut enc = RansEncoder::with_capacity(n);
+            let mut expected = Vec::with_capacity(n);
+            for _ in 0..n {
+                let t = rng.next() as usize % tables.len();
+                let sym = rng.draw(&tables[t].0);
+                enc.put(&tables[t].1, sym);
+                expected.push((t, sym));
+            }
+            assert_eq!(enc.len(), n);
+            let bytes = enc.finish();
+            assert_eq!(bytes.is_empty(), n == 0);
+            let mut dec = RansDecoder::new(&bytes).unwrap();
+            for (i, &(t, sym)) in expected.iter().enumerate() {
+                assert_eq!(dec.decode(&tables[t].1), Some(sym), "symbol {i} of {n}");
+            }
+            assert!(dec.is_complete(), "{n} symbols");
+        }
+    }
+
+    #[test]
+    fn a_stream_costs_its_ideal_length_within_the_final_states() {
+        // The independent reference: −log2 of each coded symbol's probability, summed in f64.
+        let tables = tables();
+        let mut rng = Rng(3);
+        for (counts, table) in &tables {
+            let mut enc = RansEncoder::new();
+            let mut ideal = 0.0;
+            for _ in 0..50_000 {
+                let sym = rng.draw(counts);
+                ideal += table.cost_bits(sym);
+                enc.put(table, sym);
+            }
+            let bits = 8.0 * enc.finish().len() as f64;
+            // Two 32-bit states are flushed; 12-bit precision costs a little more than ideal.
+            assert!(bits >= ideal - 1.0, "{bits} < {ideal}");
+            assert!(bits <= ideal * 1.001 + 64.0 + 16.0, "{bits} vs {ideal}");
+        }
+        // A symbol of probability 0.9 costs about 0.15 bits, where a prefix code spends 1.
+        let t = RansTable::from_counts(&[9, 1]);
+        assert!(t.cost_bits(0) < 0.2, "{}", t.cost_bits(0));
+        // A table of one symbol costs nothing: the stream is the two states.
+        let lone = RansTable::from_counts(&[0, 0, 5]);
+        let mut enc = RansEncoder::new();
+        for _ in 0..1000 {
+            enc.put(&lone, 2);
+        }
+        let bytes = enc.finish();
+        assert_eq!(bytes.len(), 8);
+        let mut dec = RansDecoder::new(&bytes).unwrap();
+        assert!((0..1000).all(|_| dec.decode(&lone) == Some(2)));
+        assert!(dec.is_complete());
+    }
+
+    #[test]
+    fn levels_round_trip_through_the_header_form() {
+        for (counts, table) in tables() {
+            let mut w = BitWriter::new();
+            table.write_levels(&mut w);
+            let bytes = w.finish();
+            let back = RansTable::read_levels(&mut BitReader::new(&bytes), counts.len()).unwrap();
+            assert_eq!(back, table);
+        }
+        let empty = RansTable::from_counts(&[0, 0, 0]);
+        assert!(empty.is_empty());
+        assert!(RansDecoder::new(&[0; 8]).is_err(), "states below the bound");
+        // A level above the largest, or an alphabet above the bound, is refused.
+        assert!(RansTable::from_levels(&[MAX_LEVEL + 1]).is_err());
+        assert!(RansTable::from_levels(&[1; MAX_SYMBOLS + 1]).is_err());
+        let mut w = BitWriter::new();
+        RansTable::from_counts(&[1; 64]).write_levels(&mut w);
+        assert!(RansTable::read_levels(&mut BitReader::new(&w.finish()), 63).is_err());
+    }
+
+    #[test]
+    fn hostile_streams_never_panic_and_are_not_complete() {
+        let tables = tables();
+        let mut rng = Rng(99);
+        // A valid stream, truncated or with a flipped bit, does not end where it began.
+        let mut enc = RansEncoder::new();
+        let mut syms = Vec::new();
+        for _ in 0..500 {
+            let sym = rng.draw(&tables[0].0);
+            enc.put(&tables[0].1, sym);
+            syms.push(sym);
+        }
+        let bytes = enc.finish();
+        let run = |b: &[u8]| -> bool {
+            let Ok(mut d) = RansDecoder::new(b) else {
+                return false;
+            };
+            let same = syms.iter().all(|&s| d.decode(&tables[0].1) == Some(s));
+            same && d.is_complete()
+        };
+        assert!(run(&bytes));
+        for cut in [2, 8, bytes.len() / 2, bytes.len() - 2] {
+            assert!(!run(&bytes[..bytes.len() - cut]), "cut {cut}");
+        }
+        let mut flipped = 0;
+        for i in 0..bytes.len() {
+            let mut b = bytes.clone();
+            b[i] ^= 1 << (rng.next() % 8);
+            flipped += !run(&b) as usize;
+        }
+        assert!(
+            flipped * 100 >= bytes.len() * 95,
+            "{flipped} of {}",
+            bytes.len()
+        );
+        // Random bytes through random tables: no panic, and an empty table yields nothing.
+        for _ in 0..500 {
+            let n = 2 * (rng.next() as usize % 40);
+            let b: Vec<u8> = (0..n).map(|_| rng.next() as u8).collect();
+            if let Ok(mut d) = RansDecoder::new(&b) {
+                for _ in 0..100 {
+                    let t = rng.next() as usize % tables.len();
+                    assert!(d.decode(&tables[t].1).is_some_and(|s| s < 256));
+                }
+                assert_eq!(d.decode(&RansTable::from_counts(&[])), None);
+            }
+        }
+    }
+}
