@@ -52,6 +52,26 @@ fn main() {
             put(&root.join(format!("packet_{name}")), &format!("p{i}"), p);
         }
     }
+    // The fast coder's prefix-coded packets (format version 13; version 14 codes them by rANS)
+    // for the file target.
+    let vol = Phantom::SheppLogan.generate([12, 10, 8]);
+    let prefix_coded = compress(
+        &vol,
+        &CompressOptions {
+            coder: CoderKind::Fast,
+            target: Target::Fraction(0.2),
+            tile: TileChoice::Size(8),
+            layers: Some(2),
+            levels: Some(2),
+            refine: None,
+            format_version: wavesplat_codec::format::COMPACT_HEADER_VERSION,
+            ..Default::default()
+        },
+        &|_, _| {},
+    )
+    .unwrap()
+    .bytes;
+    put(&root.join("file"), "fast-prefix-coded.wsp", &prefix_coded);
     // A bricked container and a time series (format versions 9 and 10) for the file target,
     // and published series.
     let small = CompressOptions {
