@@ -5,7 +5,9 @@
 //! A [`RansTable`] is a distribution over at most 256 symbols in units of 2^−[`PRECISION`],
 //! described by one small integer per symbol, its *level* (0: the symbol never occurs; level l
 //! weighs 2^((l − 1)/4), so the levels cover 12 octaves in quarter octaves), which
-//! [`RansTable::write_levels`] serializes as compactly as Huffman code lengths. The weights
+//! [`RansTable::write_levels`] serializes as compactly as Huffman code lengths. A table of few
+//! counts is described on a coarser grid (half or whole octaves: fewer bits per level), chosen
+//! by what the header and the coded symbols cost together ([`RansTable::from_counts`]). The weights
 //! become frequencies by integer arithmetic only ([`frequencies_of_levels`]), so every platform
 //! decodes the same table. Against a prefix code, a symbol of probability 0.9 costs 0.15 bits
 //! instead of 1.
@@ -23,7 +25,7 @@
 //! interleaved states read in place from a packet's bytes, with the tables described by levels
 //! in the file's header.
 
-use super::bits::{BitReader, BitSink};
+use super::bits::{BitCounter, BitReader, BitSink};
 use super::huffman::{read_small_values, write_small_values};
 use super::EntropyError;
 
@@ -83,18 +85,25 @@ pub fn frequencies_of_levels(levels: &[u8]) -> Vec<u32> {
     freqs
 }
 
-/// The levels that describe symbol counts: each symbol's count relative to the largest, in
-/// quarter octaves, at least 1 for a symbol that occurs (the encoder's side; floating point
-/// is fine here, the levels are what is sent).
-pub fn levels_of_counts(counts: &[u64]) -> Vec<u8> {
+/// Grid steps of the levels a table may be described on, in quarter octaves: a table of few
+/// counts is described as well by whole octaves, in fewer header bits ([`RansTable::from_counts`]
+/// picks the step that costs least in all).
+pub const LEVEL_STEPS: [u8; 3] = [1, 2, 4];
+
+/// The levels that describe symbol counts on a grid of `step` quarter octaves: each symbol's
+/// count relative to the largest, at least 1 for a symbol that occurs (the encoder's side;
+/// floating point is fine here, the levels are what is sent).
+pub fn levels_of_counts(counts: &[u64], step: u8) -> Vec<u8> {
     let max = counts.iter().copied().max().unwrap_or(0);
+    let step = step as f64;
     counts
         .iter()
         .map(|&c| {
             if c == 0 {
                 return 0;
             }
-            let below = (4.0 * (max as f64 / c as f64).log2()).round();
+            let below = step * (4.0 * (max as f64 / c as f64).log2() / step).round();
+            // 48 is a multiple of every step, so level 1 lies on every grid.
             (MAX_LEVEL as f64 - below).max(1.0) as u8
         })
         .collect()
@@ -105,6 +114,8 @@ pub fn levels_of_counts(counts: &[u64]) -> Vec<u8> {
 /// slot's offset from the symbol's start in bits 20–31). Empty when no symbol is used.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct RansTable {
+    /// The levels' grid step, in quarter octaves (one of [`LEVEL_STEPS`]).
+    step: u8,
     levels: Vec<u8>,
     freq: Vec<u16>,
     start: Vec<u16>,
@@ -114,8 +125,13 @@ pub struct RansTable {
 }
 
 impl RansTable {
-    /// The table described by `levels` (at most [`MAX_SYMBOLS`], each at most [`MAX_LEVEL`]).
-    pub fn from_levels(levels: &[u8]) -> Result<RansTable, EntropyError> {
+    /// The table described by `levels` (at most [`MAX_SYMBOLS`], each at most [`MAX_LEVEL`]) on
+    /// the grid of `step` quarter octaves (one of [`LEVEL_STEPS`]; each used level one more
+    /// than a multiple of it).
+    pub fn from_levels(levels: &[u8], step: u8) -> Result<RansTable, EntropyError> {
+        if !LEVEL_STEPS.contains(&step) {
+            return Err(EntropyError::out_of_range("rANS level step", step, 1, 4));
+        }
         if levels.len() > MAX_SYMBOLS {
             return Err(EntropyError::out_of_range(
                 "rANS alphabet size",
@@ -126,6 +142,11 @@ impl RansTable {
         }
         if let Some(&l) = levels.iter().find(|&&l| l > MAX_LEVEL) {
             return Err(EntropyError::out_of_range("rANS level", l, 0, MAX_LEVEL));
+        }
+        if levels.iter().any(|&l| l > 0 && (l - 1) % step != 0) {
+            return Err(EntropyError::InvalidTable(format!(
+                "rANS levels off their grid of {step} quarter octaves"
+            )));
         }
         let end = levels.iter().rposition(|&l| l > 0).map_or(0, |i| i + 1);
         let levels = levels[..end].to_vec();
@@ -146,6 +167,7 @@ impl RansTable {
             }
         }
         Ok(RansTable {
+            step,
             levels,
             // A frequency is at most TOTAL = 2^12: it fits 16 bits.
             freq: freqs.iter().map(|&f| f as u16).collect(),
@@ -164,9 +186,28 @@ impl RansTable {
         })
     }
 
-    /// The table for symbol counts ([`levels_of_counts`]).
+    /// The table for symbol counts ([`levels_of_counts`]) on the grid step that costs least:
+    /// the header bits of its levels plus the counts' coded bits.
     pub fn from_counts(counts: &[u64]) -> RansTable {
-        RansTable::from_levels(&levels_of_counts(counts)).expect("levels of at most 256 counts")
+        let cost = |t: &RansTable| -> f64 {
+            let mut header = BitCounter::new();
+            t.write_levels(&mut header);
+            let coded: f64 = counts
+                .iter()
+                .enumerate()
+                .filter(|&(_, &c)| c > 0)
+                .map(|(sym, &c)| c as f64 * t.cost_bits(sym))
+                .sum();
+            header.bits() as f64 + coded
+        };
+        LEVEL_STEPS
+            .iter()
+            .map(|&step| {
+                RansTable::from_levels(&levels_of_counts(counts, step), step)
+                    .expect("levels of at most 256 counts, on their grid")
+            })
+            .min_by(|a, b| cost(a).total_cmp(&cost(b)))
+            .expect("a grid step")
     }
 
     /// Whether no symbol can be coded with this table.
@@ -195,9 +236,20 @@ impl RansTable {
         self.cost.get(sym).map_or(0, |&c| c as u32)
     }
 
-    /// Writes the levels ([`write_small_values`], values of at most 6 bits).
+    /// Writes the grid step (2 bits: 0, 1, 2 for 1, 2, 4 quarter octaves) and the levels on
+    /// it: level l as (l − 1) / step + 1, 0 for an absent symbol ([`write_small_values`]).
     pub fn write_levels(&self, sink: &mut impl BitSink) {
-        write_small_values(sink, &self.levels);
+        let code = LEVEL_STEPS
+            .iter()
+            .position(|&s| s == self.step)
+            .unwrap_or(0);
+        sink.put_bits(code as u64, 2);
+        let units: Vec<u8> = self
+            .levels
+            .iter()
+            .map(|&l| if l == 0 { 0 } else { (l - 1) / self.step + 1 })
+            .collect();
+        write_small_values(sink, &units);
     }
 
     /// Reads levels written by [`RansTable::write_levels`] for an alphabet of at most
@@ -206,8 +258,17 @@ impl RansTable {
         reader: &mut BitReader,
         max_symbols: usize,
     ) -> Result<RansTable, EntropyError> {
-        let levels = read_small_values(reader, max_symbols.min(MAX_SYMBOLS), 6, "level")?;
-        RansTable::from_levels(&levels)
+        let code = reader.get_bits(2)? as usize;
+        let step = *LEVEL_STEPS
+            .get(code)
+            .ok_or_else(|| EntropyError::out_of_range("rANS level step code", code as u64, 0, 2))?;
+        let units = read_small_values(reader, max_symbols.min(MAX_SYMBOLS), 6, "level")?;
+        // Units are below 64 and steps at most 4: levels stay below 256 before validation.
+        let levels: Vec<u8> = units
+            .iter()
+            .map(|&u| if u == 0 { 0 } else { 1 + (u - 1) * step })
+            .collect();
+        RansTable::from_levels(&levels, step)
     }
 }
 
@@ -511,7 +572,57 @@ mod tests {
     }
 
     #[test]
+    fn the_grid_step_is_chosen_by_what_header_and_symbols_cost_together() {
+        let cost = |t: &RansTable, counts: &[u64]| -> f64 {
+            let mut w = BitWriter::new();
+            t.write_levels(&mut w);
+            let coded: f64 = (0..counts.len())
+                .filter(|&i| counts[i] > 0)
+                .map(|i| counts[i] as f64 * t.cost_bits(i))
+                .sum();
+            8.0 * w.finish().len() as f64 + coded
+        };
+        let mut rng = Rng(5);
+        let mut steps = std::collections::BTreeSet::new();
+        for scale in [1u64, 3, 30, 3000, 300_000] {
+            for _ in 0..10 {
+                let counts: Vec<u64> = (0..256)
+                    .map(|i| {
+                        let r = rng.next();
+                        // A geometric-like spread over the alphabet, a few symbols absent.
+                        if r % 7 == 0 {
+                            0
+                        } else {
+                            1 + (r >> 8) % (scale * 256 / (i + 1))
+                        }
+                    })
+                    .collect();
+                let chosen = RansTable::from_counts(&counts);
+                steps.insert(chosen.step);
+                for &step in &LEVEL_STEPS {
+                    let other =
+                        RansTable::from_levels(&levels_of_counts(&counts, step), step).unwrap();
+                    // Whole bytes here, bits in the choice: allow the byte rounding.
+                    assert!(cost(&chosen, &counts) <= cost(&other, &counts) + 8.0);
+                }
+            }
+        }
+        assert!(
+            steps.len() >= 2,
+            "one step chosen for every spread: {steps:?}"
+        );
+    }
+
+    #[test]
     fn levels_round_trip_through_the_header_form() {
+        for &step in &LEVEL_STEPS {
+            let counts = [500, 0, 20, 3, 1, 0, 0];
+            let t = RansTable::from_levels(&levels_of_counts(&counts, step), step).unwrap();
+            let mut w = BitWriter::new();
+            t.write_levels(&mut w);
+            let back = RansTable::read_levels(&mut BitReader::new(&w.finish()), 7).unwrap();
+            assert_eq!(back, t, "step {step}");
+        }
         for (counts, table) in tables() {
             let mut w = BitWriter::new();
             table.write_levels(&mut w);
@@ -523,8 +634,10 @@ mod tests {
         assert!(empty.is_empty());
         assert!(RansDecoder::new(&[0; 8]).is_err(), "states below the bound");
         // A level above the largest, or an alphabet above the bound, is refused.
-        assert!(RansTable::from_levels(&[MAX_LEVEL + 1]).is_err());
-        assert!(RansTable::from_levels(&[1; MAX_SYMBOLS + 1]).is_err());
+        assert!(RansTable::from_levels(&[MAX_LEVEL + 1], 1).is_err());
+        assert!(RansTable::from_levels(&[1; MAX_SYMBOLS + 1], 1).is_err());
+        assert!(RansTable::from_levels(&[1, 3], 4).is_err(), "off the grid");
+        assert!(RansTable::from_levels(&[1, 5], 3).is_err(), "no such step");
         let mut w = BitWriter::new();
         RansTable::from_counts(&[1; 64]).write_levels(&mut w);
         assert!(RansTable::read_levels(&mut BitReader::new(&w.finish()), 63).is_err());
