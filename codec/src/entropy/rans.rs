@@ -590,7 +590,7 @@ mod tests {
                     .map(|i| {
                         let r = rng.next();
                         // A geometric-like spread over the alphabet, a few symbols absent.
-                        if r % 7 == 0 {
+                        if r.is_multiple_of(7) {
                             0
                         } else {
                             1 + (r >> 8) % (scale * 256 / (i + 1))
