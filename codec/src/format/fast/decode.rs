@@ -5,8 +5,8 @@
 
 use super::cells::CellMap;
 use super::{
-    allowed_children, child_origin, raw_bits, root_log, step_of, Decoders, Substream, Tables,
-    LEAF_MASK_TABLES, MASK_TABLES, SIGN_CONTEXTS, VALUE_TABLES,
+    allowed_children, child_origin, raw_bits, root_log, step_of, value_group, Decoders, Substream,
+    Tables, LEAF_MASK_TABLES, MASK_TABLES, SIGN_CONTEXTS, VALUE_TABLES,
 };
 use crate::entropy::bits::WordReader;
 use crate::entropy::range::{BitModel, RangeDecoder};
@@ -14,7 +14,7 @@ use crate::entropy::rans::{RansDecoder, RansTable};
 use crate::format::coefficient::PacketFraming;
 use crate::format::coefficient::{region_extent, Coefficient, SizeBreakdown};
 use crate::format::quant::Quantizer;
-use crate::format::{invalid, FormatError, Header};
+use crate::format::{invalid, FormatError, Header, RANS_VERSION};
 
 /// Where a packet's present bits, masks and steps come from: one implementation per payload
 /// layout, so that the octree walk is written once and compiled for each.
@@ -99,7 +99,7 @@ impl SymbolSource for PrefixSource<'_> {
 /// The rANS stream and the raw stream of format version [`crate::format::RANS_VERSION`] on.
 struct RansSource<'a> {
     mask: &'a [RansTable; MASK_TABLES],
-    value: &'a [RansTable; VALUE_TABLES],
+    value: &'a [RansTable],
     ans: RansDecoder<'a>,
     raw: WordReader<'a>,
     ans_bytes: usize,
@@ -218,7 +218,7 @@ impl<S: SymbolSource> PacketDecoder<'_, S> {
             m &= m - 1;
             let cell = child_origin(o, i, 1);
             let (sc, vc) = self.map.leaf_contexts(cell);
-            let q = self.source.step(vc)?;
+            let q = self.source.step(s.value_base + vc)?;
             let negative = self
                 .signs
                 .decode_bit(&mut self.sign_models[s.bi * SIGN_CONTEXTS + sc]);
@@ -317,6 +317,11 @@ fn decode_with<S: SymbolSource>(
         }
         let s = Substream {
             bi,
+            value_base: if header.version >= RANS_VERSION {
+                VALUE_TABLES * value_group(band)
+            } else {
+                0
+            },
             quant: Quantizer::of(header, sub, layer),
             origin,
             extent,

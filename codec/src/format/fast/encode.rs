@@ -4,8 +4,9 @@
 
 use super::cells::CellMap;
 use super::{
-    child_origin, raw_bits, root_log, step_symbol, FastTables, Substream, Tables, LEAF_MASK_TABLES,
-    MASK_ALPHABET, MASK_TABLES, MAX_CODE_LENGTH, SIGN_CONTEXTS, VALUE_ALPHABET, VALUE_TABLES,
+    child_origin, raw_bits, root_log, step_symbol, value_group, FastTables, Substream, Tables,
+    LEAF_MASK_TABLES, MASK_ALPHABET, MASK_TABLES, MAX_CODE_LENGTH, RANS_VALUE_TABLES,
+    SIGN_CONTEXTS, VALUE_ALPHABET, VALUE_TABLES,
 };
 use crate::entropy::bits::{BitSink, BitWriter};
 use crate::entropy::huffman::HuffmanCode;
@@ -19,13 +20,13 @@ use crate::format::RANS_VERSION;
 
 /// One prefix-coded element of a packet's syntax, before the tables are fitted, packed in
 /// 8 bytes (the encoder holds a whole file's, one or two per coefficient): bits 0–1 the kind
-/// (present bit, mask, step), then the present bit, or the table in bits 2–5 and the mask in
-/// bits 8–15, or the table in bits 2–5, the step symbol in bits 8–13 and its raw bits from bit
+/// (present bit, mask, step), then the present bit, or the table in bits 2–7 and the mask in
+/// bits 8–15, or the table in bits 2–7, the step symbol in bits 8–13 and its raw bits from bit
 /// 14 (at most 49 of them, as many as [`raw_bits`] says).
 #[derive(Debug, Clone, Copy)]
 struct Symbol(u64);
 
-const _: () = assert!(MASK_TABLES <= 16 && VALUE_TABLES <= 16 && VALUE_ALPHABET <= 64);
+const _: () = assert!(MASK_TABLES <= 64 && RANS_VALUE_TABLES <= 64 && VALUE_ALPHABET <= 64);
 
 impl Symbol {
     const PRESENT: u64 = 0;
@@ -46,7 +47,7 @@ impl Symbol {
         self.0 & 3
     }
     fn table(self) -> usize {
-        (self.0 >> 2 & 15) as usize
+        (self.0 >> 2 & 63) as usize
     }
     fn mask_bits(self) -> usize {
         (self.0 >> 8 & 0xFF) as usize
@@ -62,14 +63,15 @@ impl Symbol {
 /// Symbol counts per table, over all packets.
 struct Frequencies {
     mask: [Vec<u64>; MASK_TABLES],
-    value: [Vec<u64>; VALUE_TABLES],
+    /// [`RANS_VALUE_TABLES`] tables; a prefix-coded file uses the first [`VALUE_TABLES`].
+    value: Vec<Vec<u64>>,
 }
 
 impl Frequencies {
     fn new() -> Frequencies {
         Frequencies {
             mask: std::array::from_fn(|_| vec![0; MASK_ALPHABET]),
-            value: std::array::from_fn(|_| vec![0; VALUE_ALPHABET]),
+            value: vec![vec![0; VALUE_ALPHABET]; RANS_VALUE_TABLES],
         }
     }
     fn add(&mut self, symbols: &[Symbol]) {
@@ -86,9 +88,15 @@ impl Frequencies {
         if rans {
             return FastTables::rans(
                 std::array::from_fn(|t| RansTable::from_counts(&self.mask[t])),
-                std::array::from_fn(|t| RansTable::from_counts(&self.value[t])),
+                self.value
+                    .iter()
+                    .map(|c| RansTable::from_counts(c))
+                    .collect(),
             );
         }
+        debug_assert!(self.value[VALUE_TABLES..]
+            .iter()
+            .all(|c| c.iter().all(|&n| n == 0)));
         FastTables::prefix(
             std::array::from_fn(|t| HuffmanCode::from_frequencies(&self.mask[t], MAX_CODE_LENGTH)),
             std::array::from_fn(|t| HuffmanCode::from_frequencies(&self.value[t], MAX_CODE_LENGTH)),
@@ -135,7 +143,8 @@ impl PacketCoder {
             let (q, magnitude) = s.quant.quantize((value as f64).abs());
             let (sc, vc) = self.map.leaf_contexts(cell);
             let (symbol, raw) = step_symbol(q);
-            self.symbols.push(Symbol::step(vc, symbol, raw));
+            self.symbols
+                .push(Symbol::step(s.value_base + vc, symbol, raw));
             self.signs
                 .encode_bit(&mut self.sign_models[s.bi * SIGN_CONTEXTS + sc], negative);
             self.map.insert(cell, negative, q);
@@ -208,6 +217,11 @@ fn symbolize(header: &Header, input: &PacketInput) -> Symbolized {
         pts.sort_unstable_by_key(|p| p.0);
         let s = Substream {
             bi,
+            value_base: if header.version >= RANS_VERSION {
+                VALUE_TABLES * value_group(band)
+            } else {
+                0
+            },
             quant: Quantizer::of(header, sub, input.layer),
             origin,
             extent,
@@ -306,7 +320,7 @@ fn write_prefix_coded(
 /// streams (the steps and their raw bits, the final states, padding) to values.
 fn write_rans_coded(
     mask: &[RansTable; MASK_TABLES],
-    value: &[RansTable; VALUE_TABLES],
+    value: &[RansTable],
     symbols: Vec<Symbol>,
     bd: &mut SizeBreakdown,
 ) -> ByteWriter {
@@ -365,7 +379,7 @@ mod tests {
             assert_eq!(raw_bits(symbol), expected_raw_bits, "q {q}");
             assert!(raw < 1 << expected_raw_bits);
             assert_eq!(step_of(symbol, raw), q);
-            for table in [0, VALUE_TABLES - 1] {
+            for table in [0, VALUE_TABLES - 1, RANS_VALUE_TABLES - 1] {
                 let packed = Symbol::step(table, symbol, raw);
                 assert_eq!(packed.kind(), Symbol::STEP);
                 assert_eq!(
