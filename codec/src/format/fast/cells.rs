@@ -40,6 +40,13 @@ pub(super) struct CellMap {
     stride: [usize; 2],
 }
 
+/// A cell's place in the brick directory ([`CellMap::leaf_contexts`]).
+#[derive(Debug, Clone, Copy)]
+pub(super) struct CellPlace {
+    brick: usize,
+    offset: usize,
+}
+
 /// Offset of a cell in its brick.
 #[inline(always)]
 fn brick_offset(c: [u32; 3]) -> usize {
@@ -97,11 +104,29 @@ impl CellMap {
         }
     }
 
+    /// Where cell `c` lives in the directory: its brick's index and its offset in the brick
+    /// (meaningless for a hashed map). [`CellMap::leaf_contexts`] returns it, so that the
+    /// insertion that follows does not compute it again.
     #[inline(always)]
+    fn place(&self, c: [u32; 3]) -> CellPlace {
+        CellPlace {
+            brick: self.brick(c),
+            offset: brick_offset(c),
+        }
+    }
+
+    #[cfg(test)]
     pub(super) fn insert(&mut self, c: [u32; 3], negative: bool, q: u64) {
+        let at = self.place(c);
+        self.insert_at(c, at, negative, q);
+    }
+
+    /// [`CellMap::insert`] at the place [`CellMap::leaf_contexts`] gave for `c`.
+    #[inline(always)]
+    pub(super) fn insert_at(&mut self, c: [u32; 3], at: CellPlace, negative: bool, q: u64) {
         let v = 1 | (negative as u8) << 1 | bit_length_class(q) << 2;
         if self.use_directory {
-            let b = self.brick(c);
+            let b = at.brick;
             let mut slot = self.directory[b] as usize;
             if slot == 0 {
                 slot = self.bricks.len() / 64;
@@ -109,7 +134,7 @@ impl CellMap {
                 self.directory[b] = slot as u32;
                 self.used.push(b as u32);
             }
-            self.bricks[64 * slot + brick_offset(c)] = v;
+            self.bricks[64 * slot + at.offset] = v;
         } else {
             self.sparse.insert(c, v);
         }
@@ -123,17 +148,19 @@ impl CellMap {
     }
 
     /// The (sign, value) contexts of a cell: its three lower neighbours' signs (base 3) and the
-    /// bucketed sum of their (1 + magnitude class).
+    /// bucketed sum of their (1 + magnitude class); and the cell's place, for
+    /// [`CellMap::insert_at`].
     #[inline(always)]
-    pub(super) fn leaf_contexts(&self, c: [u32; 3]) -> (usize, usize) {
+    pub(super) fn leaf_contexts(&self, c: [u32; 3]) -> (usize, usize, CellPlace) {
         let (x, y, z) = (c[0], c[1], c[2]);
+        let at = self.place(c);
         let (vx, vy, vz) = if self.use_directory {
             // Neighbours inside the cell's brick by offset, others from the brick below.
             // Scalars rather than coordinate arrays: copying arrays through the stack stalled
             // store forwarding here.
-            let b = self.brick(c);
+            let b = at.brick;
             let own = self.cells_of(b);
-            let o = brick_offset(c);
+            let o = at.offset;
             let vx = if x & 3 != 0 {
                 own[o - 1]
             } else if x > 0 {
@@ -166,18 +193,16 @@ impl CellMap {
             };
             (get(1, 0, 0), get(0, 1, 0), get(0, 0, 1))
         };
-        let sign_of = |v: u8| {
-            if v == 0 {
-                0
-            } else {
-                1 + ((v >> 1) & 1) as usize
-            }
-        };
+        // 0 for no coefficient, 1 positive, 2 negative: a coded cell has bit 0 set and its
+        // sign in bit 1, an empty one is 0 (no branch: the signs are as unpredictable as the
+        // data).
+        let sign_of = |v: u8| (v & 1) as usize + ((v >> 1) & 1) as usize;
         let present = (vx != 0) as usize + (vy != 0) as usize + (vz != 0) as usize;
         let classes = (vx >> 2) as usize + (vy >> 2) as usize + (vz >> 2) as usize;
         (
             sign_of(vx) + 3 * sign_of(vy) + 9 * sign_of(vz),
             value_table(present, classes),
+            at,
         )
     }
 
@@ -307,8 +332,10 @@ mod tests {
                     1 + ((mean + 0.5).floor() as usize).min(VALUE_TABLES - 2)
                 };
                 let want = (sign, table);
-                assert_eq!(dense.leaf_contexts(c), want, "round {round} {c:?}");
-                assert_eq!(sparse.leaf_contexts(c), want, "round {round} {c:?}");
+                let (ds, dv, _) = dense.leaf_contexts(c);
+                let (ss, sv, _) = sparse.leaf_contexts(c);
+                assert_eq!((ds, dv), want, "round {round} {c:?}");
+                assert_eq!((ss, sv), want, "round {round} {c:?}");
                 // Faces of the node of 2×2×2 cells at the even corner below c.
                 let o = c.map(|v| v & !1);
                 let touching = truth

@@ -217,12 +217,12 @@ impl<S: SymbolSource> PacketDecoder<'_, S> {
             let i = m.trailing_zeros();
             m &= m - 1;
             let cell = child_origin(o, i, 1);
-            let (sc, vc) = self.map.leaf_contexts(cell);
+            let (sc, vc, at) = self.map.leaf_contexts(cell);
             let q = self.source.step(s.value_base + vc)?;
             let negative = self
                 .signs
                 .decode_bit(&mut self.sign_models[s.bi * SIGN_CONTEXTS + sc]);
-            self.map.insert(cell, negative, q);
+            self.map.insert_at(cell, at, negative, q);
             let value = s.quant.signed_value(q, negative)?;
             self.out.push(Coefficient::in_region(
                 s.channel, s.band, s.origin, cell, value,

@@ -141,13 +141,13 @@ impl PacketCoder {
         for &(_, cell, value) in pts {
             let negative = value < 0.0;
             let (q, magnitude) = s.quant.quantize((value as f64).abs());
-            let (sc, vc) = self.map.leaf_contexts(cell);
+            let (sc, vc, at) = self.map.leaf_contexts(cell);
             let (symbol, raw) = step_symbol(q);
             self.symbols
                 .push(Symbol::step(s.value_base + vc, symbol, raw));
             self.signs
                 .encode_bit(&mut self.sign_models[s.bi * SIGN_CONTEXTS + sc], negative);
-            self.map.insert(cell, negative, q);
+            self.map.insert_at(cell, at, negative, q);
             let value = if negative { -magnitude } else { magnitude } as f32;
             self.recon.push(Coefficient::in_region(
                 s.channel, s.band, s.origin, cell, value,
