@@ -328,6 +328,51 @@ fn fast_coder_rans_packets_decode_like_prefix_coded_ones_in_fewer_bytes() {
     }
 }
 
+/// A header that names no plain version (a container's, or none) is written as the current
+/// version, and its packets are coded for that version too, so the file reads back.
+#[test]
+fn packets_of_a_header_without_a_plain_version_are_coded_for_the_current_one() {
+    use wavesplat_codec::format::CoderKind;
+    let v = Phantom::Ct.generate([24, 19, 13]);
+    for coder in [CoderKind::Fast, CoderKind::Sigmap] {
+        let opts = CompressOptions {
+            coder,
+            target: Target::Fraction(0.3),
+            refine: None,
+            ..Default::default()
+        };
+        let bytes = compress(&v, &opts, &|_, _| {}).unwrap().bytes;
+        let f = parse_file(&bytes).unwrap();
+        let inputs: Vec<PacketInput> = f
+            .packets
+            .iter()
+            .map(|p| {
+                let d = decode_packet(&f.header, p).unwrap();
+                PacketInput {
+                    tile: d.tile,
+                    layer: d.layer,
+                    coefficients: d.coefficients,
+                }
+            })
+            .collect();
+        for version in [0u16, 10, 11] {
+            let mut h = f.header.clone();
+            h.version = version;
+            let packets = encode_packets(&mut h, &inputs).packets;
+            let written = write_file(&h, &packets);
+            let back = parse_file(&written)
+                .unwrap_or_else(|e| panic!("{coder:?}, version {version}: {e}"));
+            assert_eq!(back.header.version, VERSION);
+            let kept: usize = back
+                .packets
+                .iter()
+                .map(|p| decode_packet(&back.header, p).unwrap().coefficients.len())
+                .sum();
+            assert_eq!(kept as u64, f.header.kept, "{coder:?}, version {version}");
+        }
+    }
+}
+
 /// A file with the coarse layer reads back with it; it is not written in a version before the
 /// coarse layer (whose readers would take layer 0 for a score layer and quantize it wrongly),
 /// and a header that claims a coarse layer with one layer only is refused on read.

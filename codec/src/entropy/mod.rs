@@ -7,7 +7,7 @@
 //! look-up tables ([`huffman`]); JPEG-style magnitude categories that map unbounded integers to a
 //! small Huffman alphabet plus raw extra bits ([`category`]); and an adaptive binary range coder
 //! with integer binarizations, the arithmetic-coding option named as future work in the paper
-//! ([`range`]); and static-model rANS with two interleaved states and tables described by small
+//! ([`range`]); and static-model rANS with tables described by small
 //! integer levels, fractional code lengths at a table look-up per symbol ([`rans`]). Every
 //! decoder here reads untrusted bytes: malformed or truncated input yields an
 //! [`EntropyError`], never a panic or an endless loop.

@@ -186,6 +186,11 @@ fn frame_all(
 /// packets and stored into `header.tables`; `header.substreams` must already hold the
 /// quantization parameters of every substream that appears.
 pub fn encode_packets(header: &mut Header, inputs: &[PacketInput]) -> EncodedPackets {
+    // A header that names no plain version is written as the current one
+    // (`write_header_section`): code its packets for that version too.
+    if !super::is_plain_version(header.version) {
+        header.version = super::VERSION;
+    }
     header.fast_tables = None;
     let (payloads, reconstruction, breakdown) = match header.coder {
         CoderKind::Huffman | CoderKind::Range => super::paper::encode_packets(header, inputs),

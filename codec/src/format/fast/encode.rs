@@ -317,7 +317,7 @@ fn write_prefix_coded(
 
 /// A payload's symbols as an rANS stream and a raw stream, each after its varint length. The
 /// breakdown charges masks their exact costs, present bits one bit each, and the rest of both
-/// streams (the steps and their raw bits, the final states, padding) to values.
+/// streams (the steps and their raw bits, the final state, padding) to values.
 fn write_rans_coded(
     mask: &[RansTable; MASK_TABLES],
     value: &[RansTable],
