@@ -168,55 +168,38 @@ impl Quantizer {
     /// that are not finite.
     #[inline(always)]
     pub(crate) fn signed_value(&self, q: u64, negative: bool) -> Result<f32, FormatError> {
-        // The check returns a bool and the error is built out of line: a `Result` carrying the
-        // error through every call kept this from inlining in the decoders' loops (41
-        // instructions a coefficient, 8 % of the fast decoder's).
-        match self.signed_value_if_valid(q, negative) {
-            Some(value) => Ok(value),
-            None => Err(self.invalid_value(q, negative)),
-        }
-    }
-
-    #[inline(always)]
-    fn signed_value_if_valid(&self, q: u64, negative: bool) -> Option<f32> {
-        let magnitude = if self.step > 0.0 {
-            if q > 1_000_000_000_000_000 {
-                return None;
-            }
-            self.reconstruct(q)
-        } else {
-            f32::from_bits(u32::try_from(q).ok()?) as f64
-        };
+        // The reason travels as a `&'static str` and the error is built out of line: a
+        // `FormatError` carried through every call kept this from inlining in the decoders'
+        // loops (41 instructions a coefficient, 8 % of the fast decoder's).
+        let magnitude = self.magnitude(q).map_err(refused)?;
         // −magnitude, by flipping the sign bit as negation does, without a branch on the sign
         // (as unpredictable as the data).
         let value = f64::from_bits(magnitude.to_bits() ^ (u64::from(negative) << 63)) as f32;
-        value.is_finite().then_some(value)
-    }
-
-    /// Why [`Quantizer::signed_value`] refused a step.
-    #[cold]
-    #[inline(never)]
-    fn invalid_value(&self, q: u64, negative: bool) -> FormatError {
-        match self.dequantize(q) {
-            Err(e) => e,
-            Ok(_) => {
-                debug_assert!(self.signed_value_if_valid(q, negative).is_none());
-                invalid("packet", "decoded value is not finite")
-            }
+        if value.is_finite() {
+            Ok(value)
+        } else {
+            Err(refused("decoded value is not finite"))
         }
     }
 
-    /// The magnitude of a decoded step, refusing steps no encoder writes.
-    pub(crate) fn dequantize(&self, q: u64) -> Result<f64, FormatError> {
+    /// The magnitude of a decoded step, or why no encoder writes that step.
+    #[inline(always)]
+    fn magnitude(&self, q: u64) -> Result<f64, &'static str> {
         if self.step > 0.0 {
             if q > 1_000_000_000_000_000 {
-                return Err(invalid("packet", "quantized magnitude out of range"));
+                return Err("quantized magnitude out of range");
             }
             Ok(self.reconstruct(q))
         } else {
-            let bits =
-                u32::try_from(q).map_err(|_| invalid("packet", "exact magnitude out of range"))?;
+            let bits = u32::try_from(q).map_err(|_| "exact magnitude out of range")?;
             Ok(f32::from_bits(bits) as f64)
         }
     }
+}
+
+/// A packet's step refused by [`Quantizer::signed_value`], for `why`.
+#[cold]
+#[inline(never)]
+fn refused(why: &'static str) -> FormatError {
+    invalid("packet", why)
 }
