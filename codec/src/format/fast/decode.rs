@@ -5,16 +5,17 @@
 
 use super::cells::CellMap;
 use super::{
-    allowed_children, child_origin, raw_bits, root_log, step_of, value_group, Decoders, Substream,
-    Tables, LEAF_MASK_TABLES, MASK_TABLES, SIGN_CONTEXTS, VALUE_TABLES,
+    allowed_children, child_origin, raw_bits, root_log, step_of, value_base, Decoders, Substream,
+    Tables, LEAF_MASK_TABLES, MASK_TABLES, SIGN_CONTEXTS,
 };
 use crate::entropy::bits::WordReader;
+use crate::entropy::huffman::HuffmanDecoder;
 use crate::entropy::range::{BitModel, RangeDecoder};
 use crate::entropy::rans::{RansDecoder, RansTable};
 use crate::format::coefficient::PacketFraming;
 use crate::format::coefficient::{region_extent, Coefficient, SizeBreakdown};
 use crate::format::quant::Quantizer;
-use crate::format::{invalid, FormatError, Header, RANS_VERSION};
+use crate::format::{invalid, FormatError, Header};
 
 /// Where a packet's present bits, masks and steps come from: one implementation per payload
 /// layout, so that the octree walk is written once and compiled for each.
@@ -27,9 +28,8 @@ trait SymbolSource {
     fn step(&mut self, table: usize) -> Result<u64, FormatError>;
     /// Whether a read went past the end of a stream.
     fn overrun(&self) -> bool;
-    /// Checks that the streams ended with their last symbol, and charges their bits to the
-    /// breakdown (`present` present bits).
-    fn finish(self, present: u64, bd: &mut SizeBreakdown) -> Result<(), FormatError>;
+    /// If the streams ended with their last symbol: their bits, and of those the masks'.
+    fn end(self) -> Option<(f64, f64)>;
 }
 
 /// The prefix-coded stream of format versions before [`crate::format::RANS_VERSION`].
@@ -47,6 +47,17 @@ impl PrefixSource<'_> {
             format!("no codeword at bit {}", self.reader.position()),
         )
     }
+
+    /// The next codeword's symbol and length.
+    #[inline(always)]
+    fn codeword(&mut self, code: &HuffmanDecoder) -> Result<(usize, u32), FormatError> {
+        self.reader.refill();
+        let (symbol, len) = code
+            .decode_window(self.reader.peek())
+            .ok_or_else(|| self.not_a_codeword())?;
+        self.reader.consume(len);
+        Ok((symbol, len))
+    }
 }
 
 impl SymbolSource for PrefixSource<'_> {
@@ -57,22 +68,14 @@ impl SymbolSource for PrefixSource<'_> {
 
     #[inline(always)]
     fn mask(&mut self, table: usize) -> Result<u8, FormatError> {
-        self.reader.refill();
-        let (mask, len) = self.tables.mask[table]
-            .decode_window(self.reader.peek())
-            .ok_or_else(|| self.not_a_codeword())?;
-        self.reader.consume(len);
+        let (mask, len) = self.codeword(&self.tables.mask[table])?;
         self.position_bits += len as u64;
         Ok(mask as u8)
     }
 
     #[inline(always)]
     fn step(&mut self, table: usize) -> Result<u64, FormatError> {
-        self.reader.refill();
-        let (symbol, len) = self.tables.value[table]
-            .decode_window(self.reader.peek())
-            .ok_or_else(|| self.not_a_codeword())?;
-        self.reader.consume(len);
+        let (symbol, _) = self.codeword(&self.tables.value[table])?;
         // symbol < 64, so at most 49 raw bits: they fit a refilled buffer.
         Ok(step_of(symbol, self.reader.get_bits(raw_bits(symbol))))
     }
@@ -81,18 +84,9 @@ impl SymbolSource for PrefixSource<'_> {
         self.reader.overrun()
     }
 
-    fn finish(self, present: u64, bd: &mut SizeBreakdown) -> Result<(), FormatError> {
-        if self.reader.overrun() || self.reader.bits_remaining() >= 8 {
-            return Err(invalid(
-                "packet",
-                "the streams' lengths do not match their coefficients",
-            ));
-        }
-        let total = self.reader.position();
-        bd.tag_bits += present as f64;
-        bd.position_bits += self.position_bits as f64;
-        bd.value_bits += (total - present - self.position_bits) as f64;
-        Ok(())
+    fn end(self) -> Option<(f64, f64)> {
+        let ended = !self.reader.overrun() && self.reader.bits_remaining() < 8;
+        ended.then(|| (self.reader.position() as f64, self.position_bits as f64))
     }
 }
 
@@ -148,19 +142,14 @@ impl SymbolSource for RansSource<'_> {
         self.ans.overrun() || self.raw.overrun()
     }
 
-    fn finish(self, present: u64, bd: &mut SizeBreakdown) -> Result<(), FormatError> {
-        if !self.ans.is_complete() || self.raw.overrun() || self.raw.bits_remaining() >= 8 {
-            return Err(invalid(
-                "packet",
-                "the streams' lengths do not match their coefficients",
-            ));
-        }
-        let total = 8.0 * (self.ans_bytes + self.raw_bytes) as f64;
-        let position = self.position_q8 as f64 / 256.0;
-        bd.tag_bits += present as f64;
-        bd.position_bits += position;
-        bd.value_bits += total - present as f64 - position;
-        Ok(())
+    fn end(self) -> Option<(f64, f64)> {
+        let ended = self.ans.is_complete() && !self.raw.overrun() && self.raw.bits_remaining() < 8;
+        ended.then(|| {
+            (
+                8.0 * (self.ans_bytes + self.raw_bytes) as f64,
+                self.position_q8 as f64 / 256.0,
+            )
+        })
     }
 }
 
@@ -317,11 +306,7 @@ fn decode_with<S: SymbolSource>(
         }
         let s = Substream {
             bi,
-            value_base: if header.version >= RANS_VERSION {
-                VALUE_TABLES * value_group(band)
-            } else {
-                0
-            },
+            value_base: value_base(header, band),
             quant: Quantizer::of(header, sub, layer),
             origin,
             extent,
@@ -340,13 +325,20 @@ fn decode_with<S: SymbolSource>(
             ),
         ));
     }
-    if d.signs.overrun() {
+    let ended = if d.signs.overrun() {
+        None
+    } else {
+        d.source.end()
+    };
+    let Some((total, position)) = ended else {
         return Err(invalid(
             "packet",
             "the streams' lengths do not match their coefficients",
         ));
-    }
-    d.source.finish(present_bits, bd)?;
+    };
+    bd.tag_bits += present_bits as f64;
+    bd.position_bits += position;
+    bd.value_bits += total - present_bits as f64 - position;
     bd.sign_bits += 8.0 * signs.len() as f64;
     Ok(d.out)
 }

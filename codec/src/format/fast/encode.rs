@@ -4,7 +4,7 @@
 
 use super::cells::CellMap;
 use super::{
-    child_origin, raw_bits, root_log, step_symbol, value_group, FastTables, Substream, Tables,
+    child_origin, raw_bits, root_log, step_symbol, value_base, FastTables, Substream, Tables,
     LEAF_MASK_TABLES, MASK_ALPHABET, MASK_TABLES, MAX_CODE_LENGTH, RANS_VALUE_TABLES,
     SIGN_CONTEXTS, VALUE_ALPHABET, VALUE_TABLES,
 };
@@ -217,11 +217,7 @@ fn symbolize(header: &Header, input: &PacketInput) -> Symbolized {
         pts.sort_unstable_by_key(|p| p.0);
         let s = Substream {
             bi,
-            value_base: if header.version >= RANS_VERSION {
-                VALUE_TABLES * value_group(band)
-            } else {
-                0
-            },
+            value_base: value_base(header, band),
             quant: Quantizer::of(header, sub, input.layer),
             origin,
             extent,

@@ -236,6 +236,16 @@ fn value_group(band: Band) -> usize {
     }
 }
 
+/// The first of a band's value tables ([`Substream::value_base`]): its group's in an
+/// rANS-coded file, 0 in a prefix-coded one (one group).
+fn value_base(header: &super::Header, band: Band) -> usize {
+    if header.version >= RANS_VERSION {
+        VALUE_TABLES * value_group(band)
+    } else {
+        0
+    }
+}
+
 /// The step symbol of q and the raw bits that follow it (as many as [`raw_bits`] says).
 fn step_symbol(q: u64) -> (usize, u64) {
     if q < DIRECT_STEPS {
