@@ -182,7 +182,12 @@ impl HuffmanCode {
         reader: &mut BitReader,
         max_symbols: usize,
     ) -> Result<HuffmanCode, EntropyError> {
-        let lengths = read_small_values(reader, max_symbols.min(MAX_ALPHABET), 5, "code length")?;
+        let lengths = read_small_values(
+            reader,
+            max_symbols.min(MAX_ALPHABET),
+            5,
+            ("code length", "bits per code length"),
+        )?;
         HuffmanCode::from_lengths(&lengths)
     }
 }
@@ -234,13 +239,14 @@ pub(crate) fn write_small_values(sink: &mut impl BitSink, values: &[u8]) {
 }
 
 /// Reads a table written by [`write_small_values`]: at most `max_symbols` values of at most
-/// `max_value_bits` bits (`what` names them in errors).
+/// `max_value_bits` bits. `names` name a value and the bits per value in errors.
 pub(crate) fn read_small_values(
     reader: &mut BitReader,
     max_symbols: usize,
     max_value_bits: u32,
-    what: &'static str,
+    names: (&'static str, &'static str),
 ) -> Result<Vec<u8>, EntropyError> {
+    let (what, width_what) = names;
     let width = reader.get_bits(5)? as u32;
     if width > 17 {
         return Err(EntropyError::out_of_range(
@@ -263,11 +269,7 @@ pub(crate) fn read_small_values(
     let lbits = reader.get_bits(3)? as u32;
     if lbits > max_value_bits {
         return Err(EntropyError::out_of_range(
-            if what == "code length" {
-                "bits per code length"
-            } else {
-                "bits per table value"
-            },
+            width_what,
             lbits,
             0,
             max_value_bits,

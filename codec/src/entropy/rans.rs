@@ -271,7 +271,12 @@ impl RansTable {
         let step = *LEVEL_STEPS
             .get(code)
             .ok_or_else(|| EntropyError::out_of_range("rANS level step code", code as u64, 0, 2))?;
-        let units = read_small_values(reader, max_symbols.min(MAX_SYMBOLS), 6, "level")?;
+        let units = read_small_values(
+            reader,
+            max_symbols.min(MAX_SYMBOLS),
+            6,
+            ("level", "bits per level"),
+        )?;
         // Units are below 64 and steps at most 4: levels stay below 256 before validation.
         let levels: Vec<u8> = units
             .iter()
