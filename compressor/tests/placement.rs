@@ -267,9 +267,9 @@ fn fast_coder_rans_packets_decode_like_prefix_coded_ones_in_fewer_bytes() {
         ("one voxel", Phantom::Ct.generate([1, 1, 1]), 1.0),
     ];
     for (name, v, fraction) in cases {
-        let coded = |version: u16| {
+        let coded = |coder: CoderKind, version: u16| {
             let opts = CompressOptions {
-                coder: CoderKind::Fast,
+                coder,
                 target: Target::Fraction(fraction),
                 refine: None,
                 format_version: version,
@@ -277,7 +277,8 @@ fn fast_coder_rans_packets_decode_like_prefix_coded_ones_in_fewer_bytes() {
             };
             compress(&v, &opts, &|_, _| {}).unwrap().bytes
         };
-        let (prefix, rans) = (coded(COMPACT_HEADER_VERSION), coded(RANS_VERSION));
+        let prefix = coded(CoderKind::Fast, COMPACT_HEADER_VERSION);
+        let rans = coded(CoderKind::Fast, RANS_VERSION);
         let (p, r) = (parse_file(&prefix).unwrap(), parse_file(&rans).unwrap());
         assert_eq!(r.header.version, RANS_VERSION, "{name}");
         assert!(r.header.fast_tables.as_ref().unwrap().is_rans(), "{name}");
@@ -310,16 +311,8 @@ fn fast_coder_rans_packets_decode_like_prefix_coded_ones_in_fewer_bytes() {
         let e = write_file_version(&p.header, &pp, RANS_VERSION).unwrap_err();
         assert!(e.to_string().contains("rANS"), "{name}: {e}");
         // The other coders' files are the same in both versions but for the version number.
-        let sigmap = |version: u16| {
-            let opts = CompressOptions {
-                target: Target::Fraction(fraction),
-                refine: None,
-                format_version: version,
-                ..Default::default()
-            };
-            compress(&v, &opts, &|_, _| {}).unwrap().bytes
-        };
-        let (a, b) = (sigmap(COMPACT_HEADER_VERSION), sigmap(RANS_VERSION));
+        let a = coded(CoderKind::Sigmap, COMPACT_HEADER_VERSION);
+        let b = coded(CoderKind::Sigmap, RANS_VERSION);
         let (a, b) = (parse_file(&a).unwrap(), parse_file(&b).unwrap());
         let mut h = a.header.clone();
         h.version = RANS_VERSION;
