@@ -66,7 +66,9 @@ pub fn run(a: RefineArgs) -> Result<()> {
     let volume: Volume = match &a.volume {
         Some(p) => wavesplat_compressor::reader::read_volume(p, None)
             .with_context(|| format!("reading {}", p.display()))?,
-        None => Phantom::SheppLogan.generate([a.size, a.size, (3 * a.size / 4).max(1)]),
+        None => Phantom::SheppLogan
+            .try_generate([a.size, a.size, (3 * a.size / 4).max(1)])
+            .with_context(|| format!("--size {}", a.size))?,
     };
     let settings = RefineBench {
         volume,

@@ -32,7 +32,9 @@ pub struct ThroughputArgs {
 pub fn run(a: ThroughputArgs) -> Result<()> {
     let volume = match &a.input {
         Some(p) => read_volume(p, None).with_context(|| format!("reading {}", p.display()))?,
-        None => Phantom::SheppLogan.generate([a.size; 3]),
+        None => Phantom::SheppLogan
+            .try_generate([a.size; 3])
+            .with_context(|| format!("--size {}", a.size))?,
     };
     let settings = ThroughputBench {
         volume,
