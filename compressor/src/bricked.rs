@@ -32,9 +32,9 @@ use wavesplat_codec::layout::Geometry;
 use wavesplat_codec::volume::{Placement, Volume, VolumeError};
 
 use crate::encode::{
-    axis_views, compress, default_levels, memory_estimate, score_summary, CompressError,
-    CompressOptions, DepthSearch, ScoreSummary, SummedScores, Target, PROCESS_MEMORY,
-    SHALLOWER_KEPT,
+    axis_views, compress, deepest_compared, default_levels, memory_estimate, score_summary,
+    CompressError, CompressOptions, DepthSearch, ScoreSummary, SummedScores, Target,
+    PROCESS_MEMORY, SHALLOWER_KEPT,
 };
 use crate::reader::ReadError;
 
@@ -938,6 +938,30 @@ fn compare_depths(
             break;
         }
         m -= 1;
+    }
+    // The default won over a shallower depth: deeper ones while they come closer (a volume
+    // smooth at its finest scales), up to what the smallest brick's grid allows
+    // ([`deepest_compared`]).
+    if let Some((mut best_error, best_m)) = best.filter(|&(_, b)| b == deepest && m < deepest) {
+        let cap = grid
+            .iter()
+            .map(|(_, d)| deepest_compared(*d, opts.family))
+            .min()
+            .unwrap_or(deepest);
+        let mut chosen = best_m;
+        for m in deepest + 1..=cap {
+            let plan = sample_plan(source, opts, brick, (&sample, bytes), shared, m)?;
+            let scored = sample_view_error(source, &plan, &originals)?;
+            tracing::debug!(levels = m, bytes, ?scored, "bricked depth candidate");
+            match scored {
+                Some(error) if error < best_error => {
+                    best_error = error;
+                    chosen = m;
+                }
+                _ => break,
+            }
+        }
+        return Ok(chosen);
     }
     Ok(best.map_or(deepest, |(_, m)| m))
 }

@@ -9,8 +9,8 @@ use wavesplat_codec::format::parse_file;
 use wavesplat_codec::volume::Volume;
 use wavesplat_compressor::decode::decompress;
 use wavesplat_compressor::encode::{
-    compress, default_levels, memory_estimate, worth_going_shallower, CompressError,
-    CompressOptions, Compressed, Target, TileChoice,
+    compress, deepest_compared, default_levels, memory_estimate, worth_going_shallower,
+    CompressError, CompressOptions, Compressed, Target, TileChoice,
 };
 use wavesplat_compressor::phantom::Phantom;
 
@@ -297,8 +297,9 @@ fn log_view_error(original: &Volume, decoded: &Volume) -> f64 {
 #[test]
 fn a_byte_target_keeps_the_depth_whose_views_come_closer() {
     let mut wins = std::collections::BTreeMap::<usize, usize>::new();
-    // Points where a depth below the first two was compared.
+    // Points where a depth below the first two was compared, and where one past the default.
     let mut descended = 0;
+    let mut deeper = 0;
     for (name, vol) in archive() {
         let samples = (vol.voxel_count() * vol.channel_count()) as f64;
         for pct in [0.2, 15.0] {
@@ -314,12 +315,14 @@ fn a_byte_target_keeps_the_depth_whose_views_come_closer() {
             };
             let depth = auto.header.geometry.levels;
             let deepest = default_levels(vol.dims(), Family::Linear);
+            let cap = deepest_compared(vol.dims(), Family::Linear);
             if deepest < 2 {
                 assert_eq!(depth, deepest, "{name} {pct} %");
                 continue;
             }
-            // Forced files from the default depth down, each the oracle's file at that depth.
-            let forced: Vec<(usize, Compressed)> = (1..=deepest)
+            // Forced files from the deepest the rule may compare down, each the oracle's file
+            // at that depth.
+            let forced: Vec<(usize, Compressed)> = (1..=cap)
                 .rev()
                 .filter_map(|m| match compress(&vol, &opts(Some(m)), &|_, _| {}) {
                     Ok(c) => Some((m, c)),
@@ -354,10 +357,17 @@ fn a_byte_target_keeps_the_depth_whose_views_come_closer() {
                     "{name} {pct} %: went below M = {m} without its gate"
                 );
             }
-            let mut compared: Vec<usize> = (depth..=deepest).collect();
+            let mut compared: Vec<usize> = (depth.min(deepest)..=depth.max(deepest)).collect();
             compared.push(deepest - 1);
             if depth < deepest && worth(depth) {
                 compared.push(depth - 1);
+            }
+            // The default or a deeper depth won over one level less: one level deeper was
+            // compared too, up to the cap.
+            let fits = |m: usize| forced.iter().any(|(fm, _)| *fm == m);
+            if depth >= deepest && depth < cap && fits(deepest - 1) {
+                compared.push(depth + 1);
+                deeper += 1;
             }
             if compared.iter().any(|m| *m + 1 < deepest) {
                 descended += 1;
@@ -381,9 +391,61 @@ fn a_byte_target_keeps_the_depth_whose_views_come_closer() {
         "wins by depth {wins:?}"
     );
     assert!(
-        descended > 0,
-        "no point compared a third depth; wins {wins:?}"
+        descended > 0 && deeper > 0,
+        "no point compared a third depth below ({descended}) or past the default ({deeper}); \
+         wins {wins:?}"
     );
+}
+
+/// A volume smooth at its finest scales (two broad Gaussian blobs, 96³) is drawn closer by a
+/// deeper transform than the default: a byte target compares past the default while the
+/// deepest compared wins, takes the depth whose X-ray views come closest (the file forced to
+/// that depth, byte for byte), and stops at the first deeper depth that loses.
+#[test]
+fn a_byte_target_goes_deeper_on_a_volume_smooth_at_its_finest_scales() {
+    let n = 96;
+    let c = n as f32 / 2.0 - 0.5;
+    let mut data = Vec::with_capacity(n * n * n);
+    for z in 0..n {
+        for y in 0..n {
+            for x in 0..n {
+                let (dx, dy, dz) = (x as f32 - c, y as f32 - c, z as f32 - c);
+                let r2 = dx * dx + dy * dy + dz * dz;
+                let q2 = (dx - 15.0).powi(2) + (dy + 10.0).powi(2) + dz * dz;
+                data.push(200.0 * (-r2 / 648.0).exp() + 80.0 * (-q2 / 162.0).exp());
+            }
+        }
+    }
+    let vol = Volume::new([n; 3], [1.0; 3], vec![data]).unwrap();
+    let deepest = default_levels(vol.dims(), Family::Linear);
+    let cap = deepest_compared(vol.dims(), Family::Linear);
+    assert!(cap > deepest + 1, "the grid allows {cap} levels");
+    for target in [600u64, 3000] {
+        let opts = |levels| CompressOptions {
+            target: Target::Bytes(target),
+            levels,
+            refine: None,
+            ..Default::default()
+        };
+        let auto = compress(&vol, &opts(None), &|_, _| {}).unwrap();
+        let depth = auto.header.geometry.levels;
+        assert!(depth > deepest, "{target} B: M = {depth}");
+        let error = |m: usize| {
+            let f = compress(&vol, &opts(Some(m)), &|_, _| {}).unwrap();
+            (log_view_error(&vol, &decompress(&f.bytes).unwrap()), f)
+        };
+        let (chosen, same) = error(depth);
+        assert_eq!(same.bytes, auto.bytes, "{target} B: M = {depth}");
+        for m in deepest..=(depth + 1).min(cap) {
+            if m != depth {
+                let (e, _) = error(m);
+                assert!(
+                    chosen < e,
+                    "{target} B: M = {depth} ({chosen}), M = {m} ({e})"
+                );
+            }
+        }
+    }
 }
 
 /// A byte target that only one of the compared depths can meet is met at that depth; one that

@@ -74,7 +74,9 @@ pub struct CompressArgs {
     /// default and one level less are both tried and the one whose X-ray views of the volume
     /// come out closer is kept (the shallower one usually wins at higher rates); one level
     /// less again is tried while the shallowest wins and the file nearly affords its coarse
-    /// band (M = 1 at ~1 bit per voxel).
+    /// band (M = 1 at ~1 bit per voxel); while the default or a deeper depth wins, one level
+    /// more is tried, up to 5 for linear, 3 for cubic (large volumes smooth at their finest
+    /// scales: the MRI resampled to 512³ takes M = 5, +5.5 dB).
     #[arg(long)]
     pub levels: Option<usize>,
     /// Zero margin (voxels) around the volume before the periodic transform. Default: none when

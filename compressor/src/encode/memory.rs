@@ -1,7 +1,7 @@
 //! The working memory a compression needs, estimated before any is allocated, so a volume too
 //! large for the cap is refused with the figure instead of running out of memory.
 
-use super::options::{default_levels, CompressError, CompressOptions, Target};
+use super::options::{deepest_compared, default_levels, CompressError, CompressOptions, Target};
 use super::rate::depth_candidates;
 use wavesplat_codec::family::Family;
 use wavesplat_codec::format::CoderKind;
@@ -17,14 +17,23 @@ pub const PROCESS_MEMORY: u64 = 64 << 20;
 /// transform of one channel (8 B), the f32 coefficients (4 B per channel), the band map (1 B)
 /// and, with refinement, the padded targets, values, gradients and mask (13 B per channel)
 /// plus two work arrays (8 B); then the candidate list and the encoder's per-coefficient
-/// copies (~200 B per candidate). A byte target that compares two depths holds two
-/// transforms at once. Measured peaks stay below it (BENCHMARKS.md, issue 14).
+/// copies (~200 B per candidate). A byte target that compares depths holds two transforms at
+/// once, on the grid of the deepest depth it may compare. Measured peaks stay below it (BENCHMARKS.md, issue 14).
 pub fn memory_estimate(
     dims: [usize; 3],
     channels: usize,
     opts: &CompressOptions,
 ) -> Result<(u64, String), CompressError> {
-    let levels = opts.levels.unwrap_or(default_levels(dims, opts.family));
+    // A byte target without a given depth compares two ([`depth_candidates`]) and may go
+    // deeper than the default ([`deepest_compared`]), whose margin and padding make the
+    // largest grid: the estimate takes that one.
+    let comparing =
+        matches!(opts.target, Target::Bytes(_)) && depth_candidates(dims, opts).len() > 1;
+    let levels = match opts.levels {
+        Some(m) => m,
+        None if comparing => deepest_compared(dims, opts.family),
+        None => default_levels(dims, opts.family),
+    };
     // The larger grid of the two defaults (see `default_margin`): an upper bound.
     let margin = opts
         .margin
@@ -39,11 +48,8 @@ pub fn memory_estimate(
     let refining = opts.refine.is_some() && opts.family != Family::Haar;
     // Held from the transform to the end: coefficients, band map, padded targets.
     let persistent = 4 * n * c + n + if refining { 4 * n * c } else { 0 };
-    // A byte target without a given depth compares two ([`depth_candidates`]): both
-    // transforms are held while the second one is scored (without padded targets; the
-    // shallower grid is never the larger one), and the scoring synthesizes one channel.
-    let comparing =
-        matches!(opts.target, Target::Bytes(_)) && depth_candidates(dims, opts).len() > 1;
+    // A comparison holds two transforms while the second one is scored (without padded
+    // targets; counted at the largest grid), and the scoring synthesizes one channel.
     let held = if comparing {
         persistent.max(2 * (4 * n * c + n) + 4 * n)
     } else {

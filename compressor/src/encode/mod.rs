@@ -27,8 +27,8 @@ mod summary;
 
 pub use memory::{memory_estimate, PROCESS_MEMORY};
 pub use options::{
-    default_levels, CompressError, CompressOptions, CompressStats, Compressed, DepthSearch, Effort,
-    Stage, Target, TileChoice, LAYER_GROWTH,
+    deepest_compared, default_levels, CompressError, CompressOptions, CompressStats, Compressed,
+    DepthSearch, Effort, Stage, Target, TileChoice, LAYER_GROWTH,
 };
 pub(crate) use prepare::axis_views;
 use prepare::{code, prepare};

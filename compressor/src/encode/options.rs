@@ -333,12 +333,27 @@ pub const LAYER_GROWTH: f64 = 16.0;
 
 /// The decomposition depth M when none is given: min(6, maximum) for Haar, min(3, maximum)
 /// for linear, min(2, maximum) for cubic (whose coarse supports grow as (2j − 1)·2^M). A byte
-/// target also tries one level less ([`depth_candidates`]).
+/// target also tries one level less, and deeper ones up to [`deepest_compared`] while the
+/// deepest tried wins ([`depth_candidates`]).
 pub fn default_levels(dims: [usize; 3], family: Family) -> usize {
     let max_levels = Geometry::max_levels(dims);
     match family {
         Family::Haar => max_levels.min(6),
         Family::Linear => max_levels.min(3),
         Family::Cubic => max_levels.min(2),
+    }
+}
+
+/// The deepest depth a byte target's comparison tries: two levels past the default for linear
+/// (5), one for cubic (3), Haar's default (6), within what the grid allows. On the volumes of
+/// the test set (≤ 233 voxels a side) a depth past the default never won; on the MNI volume
+/// resampled to 512³ (smooth at the finest scales, as an oversampled acquisition is) linear at
+/// M = 5 drew +5.6 dB Q_I over M = 3 at equal bytes (BENCHMARKS.md, "Scale and robustness").
+pub fn deepest_compared(dims: [usize; 3], family: Family) -> usize {
+    let max_levels = Geometry::max_levels(dims);
+    match family {
+        Family::Haar => max_levels.min(6),
+        Family::Linear => max_levels.min(5),
+        Family::Cubic => max_levels.min(3),
     }
 }

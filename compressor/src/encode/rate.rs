@@ -5,7 +5,8 @@
 
 use super::encoder::finish;
 use super::options::{
-    default_levels, CompressError, CompressOptions, Compressed, DepthSearch, Stage,
+    deepest_compared, default_levels, CompressError, CompressOptions, Compressed, DepthSearch,
+    Stage,
 };
 use super::prepare::{code, margin_for_faces, prepare, Coded, Prepared, Ranked};
 use crate::refine::{pad_f32, RefineOptions};
@@ -26,11 +27,13 @@ pub(super) fn bytes_per_coefficient_guess(coder: CoderKind) -> u64 {
 
 /// The depths a byte target compares first when none is given: the family's default
 /// ([`default_levels`]) and, when it is at least 2, one level less (then shallower ones while
-/// the shallowest wins and its file affords the next coarse band, [`worth_going_shallower`]). Which one codes a volume
+/// the shallowest wins and its file affords the next coarse band, [`worth_going_shallower`];
+/// deeper ones while the deepest wins over a shallower one, up to [`deepest_compared`]). Which one codes a volume
 /// better depends on the rate and on the data: on the test set (BENCHMARKS.md, issue 14) the
 /// shallower depth gains 0.5–1.3 dB Q_I at 1.25–5.85 % on most volumes and loses up to 38 dB
 /// at 0.07 % (a coarse band too large to afford), while a CT volume keeps preferring the
-/// deeper one at every rate; a deeper one than the default never won.
+/// deeper one at every rate; a deeper one than the default never won there, but does on large
+/// volumes smooth at their finest scales ([`deepest_compared`]).
 pub(super) fn depth_candidates(dims: [usize; 3], opts: &CompressOptions) -> Vec<usize> {
     match opts.levels {
         Some(m) => vec![m],
@@ -233,13 +236,22 @@ pub(super) fn compress_to_bytes(
             best = Some((error, prepared, ranked, plain));
         }
         // The shallowest depth so far won: one level less may be better still, when its
-        // coarse band is affordable.
+        // coarse band is affordable. The deepest so far won over a shallower one: one level
+        // more may be better still (a volume smooth at its finest scales), up to
+        // [`deepest_compared`].
         if next == depths.len() {
+            let deepest = depths.iter().copied().max().unwrap_or(m);
+            let shallowest = depths.iter().copied().min().unwrap_or(m);
             if let Some((_, p, _, c)) = &best {
-                if p.geometry.levels == m
+                if p.geometry.levels == shallowest
                     && worth_going_shallower(c.stats.kept, p.channels, &p.geometry)
                 {
-                    depths.push(m - 1);
+                    depths.push(shallowest - 1);
+                } else if p.geometry.levels == deepest
+                    && depths.len() > 1
+                    && deepest < deepest_compared(volume.dims(), opts.family)
+                {
+                    depths.push(deepest + 1);
                 }
             }
         }
