@@ -7,6 +7,11 @@
   testset.py ct OUT.raw NX NY NZ [--u16]       one CT-like i16 volume (memory benchmarks);
                                                --u16: the same + 1024 (air at 24) as u16
   testset.py ct-rgb OUT.raw NX NY NZ           its tissue classes painted as colours (u8 RGB)
+  testset.py mni-up OUT.raw N [SIGMA]          the MNI volume resampled up to N³ (cubic
+                                               spline, axes stretched to the cube) as u16
+                                               (x 256), with seeded noise of SIGMA (default 64,
+                                               a quarter of one original grey level), written
+                                               slab by slab (bounded memory at any N)
   testset.py qi OUTDIR NAME DECODED.f32        Q_I and PSNR of a decoded f32 volume only
   testset.py score OUTDIR NAME DECODED.f32 BYTES
         Q_I (paper dB, mean of the peers' three X-ray views, per channel then averaged), PSNR
@@ -126,6 +131,26 @@ def volumes(only=None):
     return out
 
 
+def mni_up_slabs(n, sigma=64.0, seed=7, slab=32):
+    """The MNI volume resampled to n³ by its cubic spline (each axis stretched to n samples),
+    times 256 plus seeded Gaussian noise of `sigma`, rounded and clipped to u16: a real
+    anatomy at the size of a micro-CT, with fine-scale noise as an acquisition has. Yields
+    (z0, block of shape (nz, n, n) u16, z fastest-varying last: storage order) slab by slab."""
+    from scipy import ndimage
+    src = mni() * 256.0  # (x, y, z)
+    coef = ndimage.spline_filter(src, order=3, mode="nearest")
+    rng = np.random.default_rng(seed)
+    scale = [(s - 1) / max(n - 1, 1) for s in src.shape]
+    xs = np.arange(n) * scale[0]
+    ys = np.arange(n) * scale[1]
+    for z0 in range(0, n, slab):
+        zs = np.arange(z0, min(z0 + slab, n)) * scale[2]
+        Z, Y, X = np.meshgrid(zs, ys, xs, indexing="ij")
+        v = ndimage.map_coordinates(coef, [X, Y, Z], order=3, mode="nearest", prefilter=False)
+        v += rng.normal(0.0, sigma, v.shape)
+        yield z0, np.clip(np.rint(v), 0, 65535).astype("<u2")
+
+
 def write_raw(arr, path):
     # (x, y, z[, c]) -> x fastest, channels interleaved per voxel
     if arr.ndim == 4:
@@ -233,6 +258,14 @@ def main():
     elif cmd == "ct-rgb":
         nx, ny, nz = (int(v) for v in sys.argv[3:6])
         write_raw(classified_ct_rgb(ct_like((nx, ny, nz))), sys.argv[2])
+    elif cmd == "mni-up":
+        n = int(sys.argv[3])
+        sigma = float(sys.argv[4]) if len(sys.argv) > 4 else 64.0
+        tmp = sys.argv[2] + ".partial"
+        with open(tmp, "wb") as f:
+            for _, block in mni_up_slabs(n, sigma):
+                block.tofile(f)
+        os.replace(tmp, sys.argv[2])
     elif cmd == "qi":
         ref, _ = load(sys.argv[2], sys.argv[3])
         dec = np.fromfile(sys.argv[4], dtype="<f4").reshape(
