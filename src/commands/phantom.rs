@@ -46,11 +46,7 @@ impl SampleType {
     fn append(self, samples: &[f32], out: &mut Vec<u8>) {
         match self {
             SampleType::F32 => out.extend(samples.iter().flat_map(|x| x.to_le_bytes())),
-            SampleType::U8 => out.extend(
-                samples
-                    .iter()
-                    .map(|x| x.round().clamp(0.0, 255.0) as u8),
-            ),
+            SampleType::U8 => out.extend(samples.iter().map(|x| x.round().clamp(0.0, 255.0) as u8)),
         }
     }
 }
