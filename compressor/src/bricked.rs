@@ -1634,26 +1634,13 @@ mod tests {
     }
 
     /// Where the default depth wins over a shallower one and a deeper one wins over the
-    /// default (a 96³ field of two broad Gaussian blobs in 48³ bricks, 3 000 bytes), a bricked
+    /// default ([`Phantom::Blobs`] at 96³ in 48³ bricks, 3 000 bytes), a bricked
     /// byte target's comparison goes past the default, up to the depth whose decoded whole
     /// draws closest in its axis X-ray views: closer than the default and the next deeper
     /// depth.
     #[test]
     fn a_bricked_byte_target_goes_deeper_on_a_smooth_volume() {
-        let n = 96;
-        let c = n as f32 / 2.0 - 0.5;
-        let mut data = Vec::with_capacity(n * n * n);
-        for z in 0..n {
-            for y in 0..n {
-                for x in 0..n {
-                    let (dx, dy, dz) = (x as f32 - c, y as f32 - c, z as f32 - c);
-                    let r2 = dx * dx + dy * dy + dz * dz;
-                    let q2 = (dx - 15.0).powi(2) + (dy + 10.0).powi(2) + dz * dz;
-                    data.push(200.0 * (-r2 / 648.0).exp() + 80.0 * (-q2 / 162.0).exp());
-                }
-            }
-        }
-        let v = Volume::new([n; 3], [1.0; 3], vec![data]).unwrap();
+        let v = Phantom::Blobs.generate([96; 3]);
         let opts = CompressOptions {
             target: Target::Bytes(3000),
             refine: None,

@@ -36,6 +36,10 @@ pub enum Phantom {
     /// fat −90, soft tissue 40, two lungs −820, a vertebra 700, ribs 900, seeded noise (σ 12 in
     /// the body, 4 in air). Intensity, negative values.
     Ct,
+    /// Two broad Gaussian blobs (σ 0.375 and 0.19 of the half box, peaks 200 and 80), smooth
+    /// at every scale: the kind of volume a deeper transform codes better than the default
+    /// depth (an oversampled acquisition). Intensity, 0..=255.
+    Blobs,
     /// Independent uniform noise in [0, 255) from a ChaCha8 generator with this seed, in
     /// storage order. Intensity.
     Noise {
@@ -379,6 +383,12 @@ impl Phantom {
                     (v + sigma * g).round()
                 })]
             }
+            Phantom::Blobs => vec![fill(r, |p| {
+                let r2 = p[0] * p[0] + p[1] * p[1] + p[2] * p[2];
+                let q2 = (p[0] - 0.3125).powi(2) + (p[1] + 0.2083).powi(2) + p[2] * p[2];
+                (200.0 * (-r2 / (2.0 * 0.375 * 0.375)).exp()
+                    + 80.0 * (-q2 / (2.0 * 0.1875 * 0.1875)).exp()) as f32
+            })],
             Phantom::Noise { seed } => {
                 vec![fill_seeded(r, seed, 1, vec![0.0; n], |_, rng| {
                     rng.gen::<f32>() * PHANTOM_MAX
@@ -390,7 +400,7 @@ impl Phantom {
 
     /// Parses a phantom name (case-insensitive, `_` and `-` interchangeable): `shepp-logan`,
     /// `spheres`, `rgb-head`, `constant` (value 128; `constant:V` for another value), `zero`, `ct`,
-    /// `noise` (seed 0; `noise:SEED` for another seed).
+    /// `blobs`, `noise` (seed 0; `noise:SEED` for another seed).
     pub fn from_name(name: &str) -> Option<Phantom> {
         let name = name.trim().to_ascii_lowercase().replace('_', "-");
         let (base, arg) = match name.split_once([':', '=']) {
@@ -403,6 +413,7 @@ impl Phantom {
             ("rgb-head" | "rgbhead", None) => Some(Phantom::RgbHead),
             ("zero" | "zeros", None) => Some(Phantom::Zero),
             ("ct", None) => Some(Phantom::Ct),
+            ("blobs", None) => Some(Phantom::Blobs),
             ("constant", None) => Some(Phantom::Constant(128.0)),
             ("constant", Some(a)) => a
                 .parse::<f32>()
@@ -424,6 +435,7 @@ impl Phantom {
             "constant",
             "zero",
             "ct",
+            "blobs",
             "noise",
         ]
     }

@@ -398,26 +398,13 @@ fn a_byte_target_keeps_the_depth_whose_views_come_closer() {
     );
 }
 
-/// A volume smooth at its finest scales (two broad Gaussian blobs, 96³) is drawn closer by a
+/// A volume smooth at its finest scales (`Phantom::Blobs`, 96³) is drawn closer by a
 /// deeper transform than the default: a byte target compares past the default while the
 /// deepest compared wins, takes the depth whose X-ray views come closest (the file forced to
 /// that depth, byte for byte), and stops at the first deeper depth that loses.
 #[test]
 fn a_byte_target_goes_deeper_on_a_volume_smooth_at_its_finest_scales() {
-    let n = 96;
-    let c = n as f32 / 2.0 - 0.5;
-    let mut data = Vec::with_capacity(n * n * n);
-    for z in 0..n {
-        for y in 0..n {
-            for x in 0..n {
-                let (dx, dy, dz) = (x as f32 - c, y as f32 - c, z as f32 - c);
-                let r2 = dx * dx + dy * dy + dz * dz;
-                let q2 = (dx - 15.0).powi(2) + (dy + 10.0).powi(2) + dz * dz;
-                data.push(200.0 * (-r2 / 648.0).exp() + 80.0 * (-q2 / 162.0).exp());
-            }
-        }
-    }
-    let vol = Volume::new([n; 3], [1.0; 3], vec![data]).unwrap();
+    let vol = Phantom::Blobs.generate([96; 3]);
     let deepest = default_levels(vol.dims(), Family::Linear);
     let cap = deepest_compared(vol.dims(), Family::Linear);
     assert!(cap > deepest + 1, "the grid allows {cap} levels");

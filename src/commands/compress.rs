@@ -35,8 +35,8 @@ pub struct CompressArgs {
     #[arg(short, long)]
     pub output: PathBuf,
     /// Use a built-in phantom instead of a file: shepp-logan, spheres, rgb-head, constant,
-    /// zero, ct, noise; or beating, a time series (a heart whose size follows one beat over
-    /// the series, in a static torso, with noise).
+    /// zero, ct, blobs, noise; or beating, a time series (a heart whose size follows one beat
+    /// over the series, in a static torso, with noise).
     #[arg(long, conflicts_with = "input")]
     pub phantom: Option<String>,
     /// Raw input dimensions X,Y,Z (x fastest), or X,Y,Z,T for a raw time series of T time

@@ -12,7 +12,7 @@ use wavesplat_harness::console::Progress;
 /// Arguments of `wavesplat phantom`.
 #[derive(Args, Debug)]
 pub struct PhantomArgs {
-    /// Phantom: shepp-logan, spheres, rgb-head, constant, zero, ct, noise.
+    /// Phantom: shepp-logan, spheres, rgb-head, constant, zero, ct, blobs, noise.
     #[arg(default_value = "shepp-logan")]
     pub name: String,
     /// Dimensions X,Y,Z. Any size: the file is generated and written a slab of z at a time.
