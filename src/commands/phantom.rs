@@ -22,7 +22,8 @@ pub struct PhantomArgs {
     #[arg(long, default_value = "f32")]
     pub dtype: String,
     /// Output file (x fastest, channels interleaved). Written under a temporary name beside
-    /// it and renamed when complete, so an interrupted run leaves no partial file behind.
+    /// it and renamed when complete, so an interrupted run leaves no partial file behind
+    /// (as every command's output).
     #[arg(short, long)]
     pub output: PathBuf,
 }
@@ -62,7 +63,7 @@ fn write_phantom(
     dims: [usize; 3],
     dtype: SampleType,
     slab_voxels: u64,
-    out: &mut impl Write,
+    out: &mut dyn Write,
     mut done: impl FnMut(usize),
 ) -> Result<usize> {
     if dims.contains(&0) {
@@ -97,30 +98,14 @@ pub fn run(a: PhantomArgs) -> Result<()> {
         )
     })?;
     let dtype = SampleType::parse(&a.dtype)?;
-    let dir = match a.output.parent() {
-        Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
-        _ => PathBuf::from("."),
-    };
-    let mut builder = tempfile::Builder::new();
-    // A file like any other the user writes (the temporary file's default is owner-only).
-    #[cfg(unix)]
-    builder.permissions(std::os::unix::fs::PermissionsExt::from_mode(0o666));
-    let file = builder
-        .tempfile_in(&dir)
-        .with_context(|| format!("creating a temporary file in {}", dir.display()))?;
-    let mut w = std::io::BufWriter::with_capacity(1 << 20, file);
     let progress = Progress::new("phantom");
-    let channels = write_phantom(p, a.dims, dtype, SLAB_VOXELS, &mut w, |z| {
-        progress.stage(&format!("slice {z} of {}", a.dims[2]))
-    })
-    .with_context(|| format!("writing {}", a.output.display()))?;
+    let channels = super::write_output(&a.output, |_, out| {
+        write_phantom(p, a.dims, dtype, SLAB_VOXELS, out, |z| {
+            progress.stage(&format!("slice {z} of {}", a.dims[2]))
+        })
+        .with_context(|| format!("writing {}", a.output.display()))
+    })?;
     progress.finish();
-    let file = w
-        .into_inner()
-        .map_err(|e| e.into_error())
-        .with_context(|| format!("writing {}", a.output.display()))?;
-    file.persist(&a.output)
-        .with_context(|| format!("writing {}", a.output.display()))?;
     outln!(
         "wrote {} ({}x{}x{}, {} channel(s), {})",
         a.output.display(),
