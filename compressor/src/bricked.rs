@@ -920,16 +920,17 @@ fn compare_depths(
             Ok(channel_views(&v))
         })
         .collect::<Result<Vec<_>, BrickError>>()?;
-    let mut best: Option<(f64, usize)> = None;
-    let mut m = deepest;
-    loop {
+    // A depth's axis-view error on the sample (`None`: too small for its coarse band).
+    let score = |m: usize| -> Result<Option<f64>, BrickError> {
         let plan = sample_plan(source, opts, brick, (&sample, bytes), shared, m)?;
         let scored = sample_view_error(source, &plan, &originals)?;
         tracing::debug!(levels = m, bytes, ?scored, "bricked depth candidate");
-        let Some(error) = scored else {
-            // Too small for this depth's coarse band: a shallower one's is larger still.
-            break;
-        };
+        Ok(scored)
+    };
+    let mut best: Option<(f64, usize)> = None;
+    let mut m = deepest;
+    // A depth too small for its coarse band ends it: a shallower one's is larger still.
+    while let Some(error) = score(m)? {
         if best.is_some_and(|(b, _)| error >= b) {
             break;
         }
@@ -942,26 +943,18 @@ fn compare_depths(
     // The default won over a shallower depth: deeper ones while they come closer (a volume
     // smooth at its finest scales), up to what the smallest brick's grid allows
     // ([`deepest_compared`]).
-    if let Some((mut best_error, best_m)) = best.filter(|&(_, b)| b == deepest && m < deepest) {
+    if best.is_some_and(|(_, b)| b == deepest && m < deepest) {
         let cap = grid
             .iter()
             .map(|(_, d)| deepest_compared(*d, opts.family))
             .min()
             .unwrap_or(deepest);
-        let mut chosen = best_m;
         for m in deepest + 1..=cap {
-            let plan = sample_plan(source, opts, brick, (&sample, bytes), shared, m)?;
-            let scored = sample_view_error(source, &plan, &originals)?;
-            tracing::debug!(levels = m, bytes, ?scored, "bricked depth candidate");
-            match scored {
-                Some(error) if error < best_error => {
-                    best_error = error;
-                    chosen = m;
-                }
+            match score(m)? {
+                Some(error) if best.is_some_and(|(b, _)| error < b) => best = Some((error, m)),
                 _ => break,
             }
         }
-        return Ok(chosen);
     }
     Ok(best.map_or(deepest, |(_, m)| m))
 }

@@ -36,7 +36,7 @@ pub enum Phantom {
     /// fat −90, soft tissue 40, two lungs −820, a vertebra 700, ribs 900, seeded noise (σ 12 in
     /// the body, 4 in air). Intensity, negative values.
     Ct,
-    /// Two broad Gaussian blobs (σ 0.375 and 0.19 of the half box, peaks 200 and 80), smooth
+    /// Two broad Gaussian blobs (σ 0.375 and 0.1875 of the half box, peaks 200 and 80), smooth
     /// at every scale: the kind of volume a deeper transform codes better than the default
     /// depth (an oversampled acquisition). Intensity, 0..=255.
     Blobs,

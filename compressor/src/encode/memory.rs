@@ -18,7 +18,8 @@ pub const PROCESS_MEMORY: u64 = 64 << 20;
 /// and, with refinement, the padded targets, values, gradients and mask (13 B per channel)
 /// plus two work arrays (8 B); then the candidate list and the encoder's per-coefficient
 /// copies (~200 B per candidate). A byte target that compares depths holds two transforms at
-/// once, on the grid of the deepest depth it may compare. Measured peaks stay below it (BENCHMARKS.md, issue 14).
+/// once, on the grid of the deepest depth it may compare. Measured peaks stay below it
+/// (BENCHMARKS.md, issue 14).
 pub fn memory_estimate(
     dims: [usize; 3],
     channels: usize,

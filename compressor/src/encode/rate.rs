@@ -248,7 +248,6 @@ pub(super) fn compress_to_bytes(
                 {
                     depths.push(shallowest - 1);
                 } else if p.geometry.levels == deepest
-                    && depths.len() > 1
                     && deepest < deepest_compared(volume.dims(), opts.family)
                 {
                     depths.push(deepest + 1);
