@@ -887,15 +887,16 @@ fn depth_sample(n: usize) -> Vec<usize> {
     (0..k).map(|j| ((2 * j + 1) * n) / (2 * k)).collect()
 }
 
-/// The depth of a bricked byte target, chosen as the whole's search chooses it
-/// (`encode::rate`): from the bricks' default `deepest`, one level shallower at a time while
-/// the shallower depth comes closer. (The whole's search tries a third depth only when its
-/// file affords the next coarse band; the bricks' padded grids, a margin on every side, count
-/// up to twice their voxels, so that gate kept 32³ bricks of a CT phantom at M = 2 where
-/// M = 1 draws 1 dB closer.) A depth is scored on a sample of the bricks ([`depth_sample`]) allocated together at their
-/// share of the bytes (one global threshold over them, as for the whole), decoded, and held to
-/// the originals by their three axis X-ray views ([`sample_view_error`]); the closer depth wins,
-/// the deeper one on a tie.
+/// The depth of a bricked byte target, compared as the whole's search compares depths
+/// (`encode::rate`) but from both sides of the bricks' default `deepest` ([`search_depth`]:
+/// deeper first, up to [`deepest_compared`] of the smallest brick; shallower, one level at a
+/// time, only when no deeper one came closer). (The whole's search tries a third shallower depth only when its file affords the next coarse band; the bricks'
+/// padded grids, a margin on every side, count up to twice their voxels, so that gate kept
+/// 32³ bricks of a CT phantom at M = 2 where M = 1 draws 1 dB closer.) A depth is scored on a
+/// sample of the bricks ([`depth_sample`]) allocated together at their share of the bytes
+/// (one global threshold over them, as for the whole), decoded, and held to the originals by
+/// their three axis X-ray views ([`sample_view_error`]); the closer depth wins, the default on
+/// a tie.
 ///
 /// Why not each brick's own search: a brick alone at its share of the bytes goes deeper than
 /// the whole does (measured on the MRI at 87 kB and 1 MB, BENCHMARKS.md "Bricked volumes"),
@@ -927,36 +928,49 @@ fn compare_depths(
         tracing::debug!(levels = m, bytes, ?scored, "bricked depth candidate");
         Ok(scored)
     };
-    let mut best: Option<(f64, usize)> = None;
-    let mut m = deepest;
-    // A depth too small for its coarse band ends it: a shallower one's is larger still.
-    while let Some(error) = score(m)? {
-        if best.is_some_and(|(b, _)| error >= b) {
-            break;
+    let cap = grid
+        .iter()
+        .map(|(_, d)| deepest_compared(*d, opts.family))
+        .min()
+        .unwrap_or(deepest);
+    search_depth(deepest, cap, score)
+}
+
+/// The depth a comparison settles on, given each depth's error (`score`; `None`: the
+/// target does not fit that depth): from `default`, one level deeper at a time while the
+/// deeper depth comes closer (a volume smooth at its finest scales), up to `cap`; when none
+/// did, one level shallower at a time while the shallower one comes closer, down to 1. A
+/// depth that does not fit ends its direction (a shallower depth's coarse band is larger
+/// still; a deeper one is past what fits); the default on a tie, and when it does not fit.
+///
+/// Deeper first, because the error against the depth need not have one minimum: the sample
+/// of the MRI resampled to 512³ in 256³ bricks scored M = 2 below the default 3, and 4 and 5
+/// below both (BENCHMARKS.md, "Scale and robustness"), so a comparison that went shallower
+/// first stopped at 2, 7 dB Q_I from M = 5.
+fn search_depth<E>(
+    default: usize,
+    cap: usize,
+    mut score: impl FnMut(usize) -> Result<Option<f64>, E>,
+) -> Result<usize, E> {
+    let Some(error) = score(default)? else {
+        return Ok(default);
+    };
+    let mut best = (error, default);
+    for m in default + 1..=cap {
+        match score(m)? {
+            Some(error) if error < best.0 => best = (error, m),
+            _ => break,
         }
-        best = Some((error, m));
-        if m < 2 {
-            break;
-        }
-        m -= 1;
     }
-    // The default won over a shallower depth: deeper ones while they come closer (a volume
-    // smooth at its finest scales), up to what the smallest brick's grid allows
-    // ([`deepest_compared`]).
-    if best.is_some_and(|(_, b)| b == deepest && m < deepest) {
-        let cap = grid
-            .iter()
-            .map(|(_, d)| deepest_compared(*d, opts.family))
-            .min()
-            .unwrap_or(deepest);
-        for m in deepest + 1..=cap {
+    if best.1 == default {
+        for m in (1..default).rev() {
             match score(m)? {
-                Some(error) if best.is_some_and(|(b, _)| error < b) => best = Some((error, m)),
+                Some(error) if error < best.0 => best = (error, m),
                 _ => break,
             }
         }
     }
-    Ok(best.map_or(deepest, |(_, m)| m))
+    Ok(best.1)
 }
 
 /// The three axis X-ray views of each channel of `v` ([`axis_views`]).
@@ -1624,6 +1638,50 @@ mod tests {
                 chosen.levels
             );
         }
+    }
+
+    /// Runs [`search_depth`] over `errors[m - 1]` (the error of depth m; `None`: does not
+    /// fit) and returns its choice and the depths it scored, in order.
+    fn searched(default: usize, cap: usize, errors: &[Option<f64>]) -> (usize, Vec<usize>) {
+        let mut scored = Vec::new();
+        let chosen = search_depth::<()>(default, cap, |m| {
+            scored.push(m);
+            Ok(errors[m - 1])
+        })
+        .unwrap();
+        (chosen, scored)
+    }
+
+    /// The depth search on error curves measured (BENCHMARKS.md): a curve with two minima
+    /// (the resampled MRI's 256³ bricks: M = 2 below 3, and 4 and 5 below both) goes deeper
+    /// and never shallower; a curve whose minimum is shallower goes there after one deeper
+    /// try; the default stays on a tie, when it does not fit, and when the cap is the default.
+    #[test]
+    fn the_depth_search_goes_deeper_first_and_shallower_only_when_deeper_loses() {
+        let two_minima = [32.54, 30.42, 30.52, 30.00, 29.89].map(Some);
+        assert_eq!(searched(3, 5, &two_minima), (5, vec![3, 4, 5]));
+        // Capped below the deeper minimum: the default, then 4 is the cap.
+        assert_eq!(searched(3, 4, &two_minima), (4, vec![3, 4]));
+        // The MRI at 1.25 % (the whole's axis views): the minimum is M = 2.
+        let shallower = [20.20, 19.92, 20.01, 20.07, 20.06].map(Some);
+        assert_eq!(searched(3, 5, &shallower), (2, vec![3, 4, 2, 1]));
+        // A deeper depth past the minimum stops the deeper direction at once.
+        let deeper = [20.06, 19.92, 19.72, 19.70, 19.71].map(Some);
+        assert_eq!(searched(3, 5, &deeper), (4, vec![3, 4, 5]));
+        // Ties keep the default, in both directions.
+        let flat = [1.0; 5].map(Some);
+        assert_eq!(searched(3, 5, &flat), (3, vec![3, 4, 2]));
+        // The default does not fit: nothing else is tried.
+        assert_eq!(
+            searched(3, 5, &[Some(1.0), Some(1.0), None, Some(0.5), Some(0.1)]),
+            (3, vec![3])
+        );
+        // A depth that does not fit ends its direction.
+        let gaps = [Some(0.1), None, Some(5.0), None, Some(0.2)];
+        assert_eq!(searched(3, 5, &gaps), (3, vec![3, 4, 2]));
+        // The cap at the default: shallower only, down to 1.
+        let down = [3.0, 4.0, 5.0, 1.0, 1.0].map(Some);
+        assert_eq!(searched(3, 3, &down), (1, vec![3, 2, 1]));
     }
 
     /// Where the default depth wins over a shallower one and a deeper one wins over the
