@@ -656,6 +656,13 @@ fn a_volume_over_the_memory_limit_is_bricked_by_itself() {
     assert!(out(&c).contains("8 bricks"), "{}", out(&c));
     let info = run(&["info", &path("b.wsp")]);
     assert!(out(&info).contains("bricked container"), "{}", out(&info));
+    // The bricks' depth and coder, shared by all of them.
+    assert!(
+        out(&info).contains("coding      linear (order 2), levels M = ")
+            && out(&info).contains(", every brick"),
+        "{}",
+        out(&info)
+    );
     let r = run(&[
         "render",
         &path("b.wsp"),

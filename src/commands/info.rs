@@ -66,6 +66,32 @@ pub fn run(a: InfoArgs) -> Result<()> {
             m.brick,
             m.kept()
         );
+        // Every brick's family, depth and coder (one line when they share them, as the
+        // compressor writes them; a file put together otherwise lists each set).
+        let mut codings: std::collections::BTreeMap<String, usize> = Default::default();
+        for i in 0..m.bricks.len() {
+            let (h, _) = f
+                .brick_bytes(i)
+                .and_then(wavesplat_codec::format::read_header_section)
+                .with_context(|| format!("reading brick {i}'s header in {}", a.input.display()))?;
+            let g = &h.geometry;
+            let coding = format!(
+                "{} (order {}), levels M = {}, coder {} (format version {})",
+                g.family,
+                g.family.order(),
+                g.levels,
+                h.coder.name(),
+                h.version
+            );
+            *codings.entry(coding).or_default() += 1;
+        }
+        for (coding, n) in &codings {
+            if codings.len() == 1 {
+                outln!("coding      {coding}, every brick");
+            } else {
+                outln!("coding      {coding}, {n} bricks");
+            }
+        }
         let mut lengths: Vec<u64> = m.bricks.iter().map(|b| b.length).collect();
         lengths.sort_unstable();
         let headers = f
