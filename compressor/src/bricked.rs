@@ -475,6 +475,10 @@ pub struct BrickPlan {
     pub choices: SharedChoices,
     /// The whole's target (the bricks' own targets come from the allocation).
     pub target: Target,
+    /// Coefficients kept per byte of the bricks' files, where a depth comparison measured it
+    /// on a sample of the bricks: a byte target's rate search starts from it
+    /// ([`allocate_units`]). `None`: from one byte per coefficient.
+    pub coefficients_per_byte: Option<f64>,
     base: CompressOptions,
     dims: [u64; 3],
     channels: usize,
@@ -517,9 +521,12 @@ impl BrickPlan {
             offset,
             color,
         };
-        choices.levels = choose_levels(source, opts, brick, &grid, &choices)?;
+        let (levels, coefficients_per_byte) = choose_levels(source, opts, brick, &grid, &choices)?;
+        choices.levels = levels;
         check_depth(&grid, choices.levels)?;
-        BrickPlan::build(source, opts, brick, grid, choices)
+        let mut plan = BrickPlan::build(source, opts, brick, grid, choices)?;
+        plan.coefficients_per_byte = coefficients_per_byte;
+        Ok(plan)
     }
 
     /// The plan of `source` with choices already made (by [`BrickPlan::new`] elsewhere):
@@ -563,6 +570,7 @@ impl BrickPlan {
             brick,
             choices,
             target: opts.target,
+            coefficients_per_byte: None,
             base,
             dims: source.dims(),
             channels: source.channels(),
@@ -743,30 +751,31 @@ fn check_depth(grid: &[([u64; 3], [usize; 3])], levels: usize) -> Result<(), Bri
 
 /// One depth for every brick: the one asked for, or the smallest brick's default; a byte
 /// target compares depths as the single-volume search does, on a sample of the bricks
-/// ([`compare_depths`]).
+/// ([`compare_depths`]), which also gives the coefficients per byte the sample kept at the
+/// depth chosen.
 fn choose_levels(
     source: &dyn BrickSource,
     opts: &CompressOptions,
     brick: usize,
     grid: &[([u64; 3], [usize; 3])],
     shared: &SharedChoices,
-) -> Result<usize, BrickError> {
+) -> Result<(usize, Option<f64>), BrickError> {
     let deepest = grid
         .iter()
         .map(|(_, d)| default_levels(*d, opts.family))
         .min()
         .unwrap_or(0);
     match (opts.levels, opts.target) {
-        (Some(m), _) => Ok(m),
+        (Some(m), _) => Ok((m, None)),
         (None, Target::Bytes(total)) if grid.len() > 1 && deepest >= 2 => match opts.depth_search {
             DepthSearch::Compare => {
                 compare_depths(source, opts, brick, grid, shared, deepest, total)
             }
             DepthSearch::Predict => {
-                predict_depth(source, opts, brick, grid, shared, deepest, total)
+                predict_depth(source, opts, brick, grid, shared, deepest, total).map(|m| (m, None))
             }
         },
-        (None, _) => Ok(deepest),
+        (None, _) => Ok((deepest, None)),
     }
 }
 
@@ -889,14 +898,14 @@ fn depth_sample(n: usize) -> Vec<usize> {
 
 /// The depth of a bricked byte target, compared as the whole's search compares depths
 /// (`encode::rate`) but from both sides of the bricks' default `deepest` ([`search_depth`]:
-/// deeper first, up to [`deepest_compared`] of the smallest brick; shallower, one level at a
-/// time, only when no deeper one came closer). (The whole's search tries a third shallower depth only when its file affords the next coarse band; the bricks'
-/// padded grids, a margin on every side, count up to twice their voxels, so that gate kept
-/// 32³ bricks of a CT phantom at M = 2 where M = 1 draws 1 dB closer.) A depth is scored on a
-/// sample of the bricks ([`depth_sample`]) allocated together at their share of the bytes
-/// (one global threshold over them, as for the whole), decoded, and held to the originals by
-/// their three axis X-ray views ([`sample_view_error`]); the closer depth wins, the default on
-/// a tie.
+/// the default and both neighbours, then on in the closest one's direction, deeper up to
+/// [`deepest_compared`] of the smallest brick). (The whole's search tries a third shallower
+/// depth only when its file affords the next coarse band; the bricks' padded grids, a margin
+/// on every side, count up to twice their voxels, so that gate kept 32³ bricks of a CT
+/// phantom at M = 2 where M = 1 draws 1 dB closer.) A depth is scored on a sample of the
+/// bricks ([`depth_sample`]) allocated together at their share of the bytes (one global
+/// threshold over them, as for the whole), decoded, and held to the originals by their three
+/// axis X-ray views ([`sample_view_error`]); the closer depth wins, the default on a tie.
 ///
 /// Why not each brick's own search: a brick alone at its share of the bytes goes deeper than
 /// the whole does (measured on the MRI at 87 kB and 1 MB, BENCHMARKS.md "Bricked volumes"),
@@ -909,7 +918,7 @@ fn compare_depths(
     shared: &SharedChoices,
     deepest: usize,
     total: u64,
-) -> Result<usize, BrickError> {
+) -> Result<(usize, Option<f64>), BrickError> {
     let (sample, bytes) = sample_and_bytes(grid, total);
     // The originals' views, read once for every depth compared.
     let originals = sample
@@ -921,32 +930,46 @@ fn compare_depths(
             Ok(channel_views(&v))
         })
         .collect::<Result<Vec<_>, BrickError>>()?;
+    // Coefficients per byte each depth's sample kept, in the order scored: the next depth's
+    // rate search starts from the last one's, the whole's from the chosen depth's (they
+    // differ by ~1 % between depths, and a byte per coefficient is 30 % off on the MRI).
+    let mut per_byte: Vec<(usize, f64)> = Vec::new();
     // A depth's axis-view error on the sample (`None`: too small for its coarse band).
     let score = |m: usize| -> Result<Option<f64>, BrickError> {
-        let plan = sample_plan(source, opts, brick, (&sample, bytes), shared, m)?;
+        let mut plan = sample_plan(source, opts, brick, (&sample, bytes), shared, m)?;
+        plan.coefficients_per_byte = per_byte.last().map(|&(_, r)| r);
         let scored = sample_view_error(source, &plan, &originals)?;
         tracing::debug!(levels = m, bytes, ?scored, "bricked depth candidate");
-        Ok(scored)
+        Ok(scored.map(|(error, ratio)| {
+            per_byte.push((m, ratio));
+            error
+        }))
     };
     let cap = grid
         .iter()
         .map(|(_, d)| deepest_compared(*d, opts.family))
         .min()
         .unwrap_or(deepest);
-    search_depth(deepest, cap, score)
+    let chosen = search_depth(deepest, cap, score)?;
+    let ratio = per_byte
+        .iter()
+        .find(|&&(m, _)| m == chosen)
+        .map(|&(_, r)| r);
+    Ok((chosen, ratio))
 }
 
 /// The depth a comparison settles on, given each depth's error (`score`; `None`: the
-/// target does not fit that depth): from `default`, one level deeper at a time while the
-/// deeper depth comes closer (a volume smooth at its finest scales), up to `cap`; when none
-/// did, one level shallower at a time while the shallower one comes closer, down to 1. A
+/// target does not fit that depth): `default` and its two neighbours (one level deeper, up
+/// to `cap`; one shallower, down to 1) are scored, and from the closest of the three the
+/// search goes on in its direction, one level at a time while the next depth comes closer. A
 /// depth that does not fit ends its direction (a shallower depth's coarse band is larger
 /// still; a deeper one is past what fits); the default on a tie, and when it does not fit.
 ///
-/// Deeper first, because the error against the depth need not have one minimum: the sample
-/// of the MRI resampled to 512³ in 256³ bricks scored M = 2 below the default 3, and 4 and 5
-/// below both (BENCHMARKS.md, "Scale and robustness"), so a comparison that went shallower
-/// first stopped at 2, 7 dB Q_I from M = 5.
+/// Both neighbours, because the error against the depth need not have one minimum, on
+/// either side: the sample of the MRI resampled to 512³ in 256³ bricks scored M = 2 below
+/// the default 3, and 4 and 5 below both, so a search that went shallower first stopped at
+/// 2, 7 dB Q_I from M = 5; the MRI in 128³ bricks at 1 MB scored 4 and 5 below 3, where M = 2
+/// draws 0.6 dB closer than 5 (BENCHMARKS.md, "Scale and robustness").
 fn search_depth<E>(
     default: usize,
     cap: usize,
@@ -956,19 +979,36 @@ fn search_depth<E>(
         return Ok(default);
     };
     let mut best = (error, default);
-    for m in default + 1..=cap {
-        match score(m)? {
-            Some(error) if error < best.0 => best = (error, m),
-            _ => break,
-        }
-    }
-    if best.1 == default {
-        for m in (1..default).rev() {
-            match score(m)? {
-                Some(error) if error < best.0 => best = (error, m),
-                _ => break,
+    let deeper = match default < cap {
+        true => score(default + 1)?,
+        false => None,
+    };
+    let shallower = match default > 1 {
+        true => score(default - 1)?,
+        false => None,
+    };
+    let closer = |e: Option<f64>, than: f64| e.filter(|e| *e < than);
+    match (closer(deeper, error), closer(shallower, error)) {
+        // Deeper, unless the shallower neighbour came closer still.
+        (Some(d), s) if s.is_none_or(|s| d <= s) => {
+            best = (d, default + 1);
+            for m in default + 2..=cap {
+                match score(m)? {
+                    Some(error) if error < best.0 => best = (error, m),
+                    _ => break,
+                }
             }
         }
+        (_, Some(s)) => {
+            best = (s, default - 1);
+            for m in (1..default - 1).rev() {
+                match score(m)? {
+                    Some(error) if error < best.0 => best = (error, m),
+                    _ => break,
+                }
+            }
+        }
+        _ => {}
     }
     Ok(best.1)
 }
@@ -990,13 +1030,13 @@ fn channel_views(v: &Volume) -> Vec<[Vec<f64>; 3]> {
 /// allocated as a bricked volume of their own, decoded and held to their originals (whose
 /// views are `originals`, per brick and channel): the mean over the three axes of
 /// ln Σ ‖P_v f − P_v f̂‖² over bricks and channels (P_v the sum along axis v over a brick's
-/// box), as the whole's depth comparison scores a depth. `None` when the target does not fit
-/// the sample at this depth.
+/// box), as the whole's depth comparison scores a depth, and the coefficients the files kept
+/// per byte of them. `None` when the target does not fit the sample at this depth.
 fn sample_view_error(
     source: &dyn BrickSource,
     plan: &BrickPlan,
     originals: &[Vec<[Vec<f64>; 3]>],
-) -> Result<Option<f64>, BrickError> {
+) -> Result<Option<(f64, f64)>, BrickError> {
     let Some(allocated) = allocate_sample(source, plan)? else {
         return Ok(None);
     };
@@ -1029,7 +1069,9 @@ fn sample_view_error(
         .map(|e| (e + f64::MIN_POSITIVE).ln())
         .sum::<f64>()
         / 3.0;
-    Ok(Some(error))
+    let kept: u64 = allocated.bricks.iter().map(|b| b.kept).sum();
+    let len: u64 = allocated.bricks.iter().map(|b| b.len).sum();
+    Ok(Some((error, kept as f64 / len.max(1) as f64)))
 }
 
 /// One brick compressed by a [`BrickWork`]: its file (bytes, or wherever the work keeps
@@ -1087,6 +1129,7 @@ pub fn allocate<W: BrickWork>(
         plan.target,
         plan.grid.len(),
         plan.manifest_len(),
+        plan.coefficients_per_byte,
         || work.score_all(plan),
         |counts, trial| work.encode_all(plan, counts, trial),
     )
@@ -1096,11 +1139,13 @@ pub fn allocate<W: BrickWork>(
 /// a series' components and their bricks): `score_all` gives every unit's score histogram,
 /// `encode_all` every unit compressed keeping the counts given (`None`: all) in a trial of the
 /// rate search; `overhead` is what the container adds to the units' bytes, counted against a
-/// byte target.
+/// byte target, whose search starts from `coefficients_per_byte` of the units' bytes where it
+/// is known (`None`: one per byte).
 pub fn allocate_units<F>(
     target: Target,
     of: usize,
     overhead: u64,
+    coefficients_per_byte: Option<f64>,
     score_all: impl FnOnce() -> Result<Vec<ScoreSummary>, BrickError>,
     mut encode_all: impl FnMut(Option<&[u64]>, usize) -> Result<Vec<CodedBrick<F>>, BrickError>,
 ) -> Result<Allocated<F>, BrickError> {
@@ -1138,10 +1183,13 @@ pub fn allocate_units<F>(
         }
         Target::Bytes(target) => {
             let manifest_guess = overhead;
-            let mut k = target
-                .saturating_sub(manifest_guess)
-                .max(1)
-                .min(nonzero.max(1));
+            let units_bytes = target.saturating_sub(manifest_guess);
+            // Aimed 1 % under the target, as the steps below aim.
+            let first = match coefficients_per_byte {
+                Some(r) if r.is_finite() && r > 0.0 => (0.99 * r * units_bytes as f64) as u64,
+                _ => units_bytes,
+            };
+            let mut k = first.max(1).min(nonzero.max(1));
             let mut best: Option<(u64, Vec<CodedBrick<F>>)> = None;
             let mut last: Option<(f64, f64)> = None;
             // The largest count known to fit and the smallest known to overflow.
@@ -1151,6 +1199,7 @@ pub fn allocate_units<F>(
             for trial in 0..BYTE_TRIALS {
                 let b = encode_all(Some(&global_k(k)), trial)?;
                 let bytes: u64 = b.iter().map(|c| c.len).sum::<u64>() + manifest_guess;
+                tracing::debug!(trial, kept = k, bytes, target, "bricked rate search trial");
                 smallest = smallest.min((bytes, k));
                 let fits = bytes <= target;
                 if fits {
@@ -1640,6 +1689,63 @@ mod tests {
         }
     }
 
+    /// A bricked byte target's rate search starts from the coefficients per byte its depth
+    /// comparison's sample kept at the depth chosen: it lands within 2 % of the target, and in
+    /// fewer trials than the same plan started from one coefficient per byte.
+    #[test]
+    fn the_rate_search_starts_from_the_sample_s_coefficients_per_byte() {
+        /// Counts the rate search's trials.
+        struct Counted<'a>(LocalBricks<'a>, std::sync::atomic::AtomicUsize);
+        impl BrickWork for Counted<'_> {
+            type File = Vec<u8>;
+            fn score_all(&self, plan: &BrickPlan) -> Result<Vec<ScoreSummary>, BrickError> {
+                self.0.score_all(plan)
+            }
+            fn encode_all(
+                &self,
+                plan: &BrickPlan,
+                counts: Option<&[u64]>,
+                trial: usize,
+            ) -> Result<Vec<CodedBrick<Vec<u8>>>, BrickError> {
+                self.1.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                self.0.encode_all(plan, counts, trial)
+            }
+        }
+        let v = Phantom::SheppLogan.generate([64, 64, 48]);
+        let quiet = |_| {};
+        let mut fewer = 0;
+        for target in [4_000u64, 12_000, 40_000] {
+            let opts = CompressOptions {
+                target: Target::Bytes(target),
+                ..CompressOptions::default()
+            };
+            let mut plan = BrickPlan::new(&v, &opts, 32).unwrap();
+            let ratio = plan.coefficients_per_byte;
+            assert!(ratio.is_some_and(|r| r > 0.5 && r < 10.0), "{ratio:?}");
+            let mut trials = [0usize; 2];
+            for (i, start) in [ratio, None].into_iter().enumerate() {
+                plan.coefficients_per_byte = start;
+                let work = Counted(
+                    LocalBricks {
+                        source: &v,
+                        progress: &quiet,
+                    },
+                    Default::default(),
+                );
+                let a = allocate(&plan, &work).unwrap();
+                let bytes = a.bricks.iter().map(|b| b.len).sum::<u64>() + plan.manifest_len();
+                assert!(
+                    bytes <= target && bytes as f64 >= 0.98 * target as f64,
+                    "{bytes} bytes for {target} (start {start:?})"
+                );
+                trials[i] = work.1.into_inner();
+            }
+            assert!(trials[0] <= trials[1], "{trials:?} at {target}");
+            fewer += usize::from(trials[0] < trials[1]);
+        }
+        assert!(fewer > 0, "the sample's ratio saved no trial");
+    }
+
     /// Runs [`search_depth`] over `errors[m - 1]` (the error of depth m; `None`: does not
     /// fit) and returns its choice and the depths it scored, in order.
     fn searched(default: usize, cap: usize, errors: &[Option<f64>]) -> (usize, Vec<usize>) {
@@ -1652,36 +1758,41 @@ mod tests {
         (chosen, scored)
     }
 
-    /// The depth search on error curves measured (BENCHMARKS.md): a curve with two minima
-    /// (the resampled MRI's 256³ bricks: M = 2 below 3, and 4 and 5 below both) goes deeper
-    /// and never shallower; a curve whose minimum is shallower goes there after one deeper
-    /// try; the default stays on a tie, when it does not fit, and when the cap is the default.
+    /// The depth search on error curves measured (BENCHMARKS.md): the default and both
+    /// neighbours are scored, and the search goes on from the closest. A curve with two minima
+    /// (the resampled MRI's 256³ bricks: M = 2 below 3, and 4 and 5 below both) goes deeper;
+    /// one whose deeper neighbour comes closer but whose shallower one comes closer still goes
+    /// shallower (the MRI in 128³ bricks at 1 MB); the default stays on a tie, when it does
+    /// not fit, and a depth that does not fit ends its direction.
     #[test]
-    fn the_depth_search_goes_deeper_first_and_shallower_only_when_deeper_loses() {
+    fn the_depth_search_scores_both_neighbours_and_follows_the_closer() {
         let two_minima = [32.54, 30.42, 30.52, 30.00, 29.89].map(Some);
-        assert_eq!(searched(3, 5, &two_minima), (5, vec![3, 4, 5]));
-        // Capped below the deeper minimum: the default, then 4 is the cap.
-        assert_eq!(searched(3, 4, &two_minima), (4, vec![3, 4]));
+        assert_eq!(searched(3, 5, &two_minima), (5, vec![3, 4, 2, 5]));
+        // Capped below the deeper minimum.
+        assert_eq!(searched(3, 4, &two_minima), (4, vec![3, 4, 2]));
+        // Deeper comes closer than the default, shallower closer still.
+        let both = [13.50, 13.00, 13.27, 13.13, 13.11].map(Some);
+        assert_eq!(searched(3, 5, &both), (2, vec![3, 4, 2, 1]));
         // The MRI at 1.25 % (the whole's axis views): the minimum is M = 2.
         let shallower = [20.20, 19.92, 20.01, 20.07, 20.06].map(Some);
         assert_eq!(searched(3, 5, &shallower), (2, vec![3, 4, 2, 1]));
-        // A deeper depth past the minimum stops the deeper direction at once.
+        // A deeper depth past the minimum stops the deeper direction.
         let deeper = [20.06, 19.92, 19.72, 19.70, 19.71].map(Some);
-        assert_eq!(searched(3, 5, &deeper), (4, vec![3, 4, 5]));
-        // Ties keep the default, in both directions.
+        assert_eq!(searched(3, 5, &deeper), (4, vec![3, 4, 2, 5]));
+        // Ties keep the default.
         let flat = [1.0; 5].map(Some);
         assert_eq!(searched(3, 5, &flat), (3, vec![3, 4, 2]));
         // The default does not fit: nothing else is tried.
-        assert_eq!(
-            searched(3, 5, &[Some(1.0), Some(1.0), None, Some(0.5), Some(0.1)]),
-            (3, vec![3])
-        );
-        // A depth that does not fit ends its direction.
+        let unfit = [Some(1.0), Some(1.0), None, Some(0.5), Some(0.1)];
+        assert_eq!(searched(3, 5, &unfit), (3, vec![3]));
+        // Neighbours that do not fit end both directions.
         let gaps = [Some(0.1), None, Some(5.0), None, Some(0.2)];
         assert_eq!(searched(3, 5, &gaps), (3, vec![3, 4, 2]));
-        // The cap at the default: shallower only, down to 1.
+        // The cap at the default: shallower only, down to 1; the default at 1: deeper only.
         let down = [3.0, 4.0, 5.0, 1.0, 1.0].map(Some);
         assert_eq!(searched(3, 3, &down), (1, vec![3, 2, 1]));
+        let up = [3.0, 2.0, 1.0, 1.0, 1.0].map(Some);
+        assert_eq!(searched(1, 5, &up), (3, vec![1, 2, 3, 4]));
     }
 
     /// Where the default depth wins over a shallower one and a deeper one wins over the
@@ -1972,6 +2083,7 @@ mod tests {
             Target::QvPercent(90.0),
             1,
             0,
+            None,
             || Ok(vec![lean.clone()]),
             |_, _| -> Result<Vec<CodedBrick<()>>, BrickError> { unreachable!() },
         );

@@ -865,6 +865,7 @@ pub fn compress_series_to(
         plan.target,
         of,
         plan.overhead,
+        None,
         || {
             counter.store(0, std::sync::atomic::Ordering::Relaxed);
             (0..of)
@@ -1147,6 +1148,7 @@ mod tests {
                 plan.target,
                 plan.units.len(),
                 plan.overhead,
+                None,
                 || (0..plan.units.len()).map(|u| plan.score(&s, u)).collect(),
                 |counts, _| {
                     (0..plan.units.len())

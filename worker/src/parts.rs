@@ -895,6 +895,7 @@ pub(crate) fn coordinate_series(
         plan.target,
         of,
         plan.overhead,
+        None,
         || {
             let summaries = work.score_parts(of, &plan.choices, energies)?;
             Ok(summaries)
