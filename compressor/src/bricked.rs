@@ -476,8 +476,9 @@ pub struct BrickPlan {
     /// The whole's target (the bricks' own targets come from the allocation).
     pub target: Target,
     /// Coefficients kept per byte of the bricks' files, where a depth comparison measured it
-    /// on a sample of the bricks: a byte target's rate search starts from it
-    /// ([`allocate_units`]). `None`: from one byte per coefficient.
+    /// on a sample of the bricks (scaled by `REFINED_PER_ORACLE` when refining): a byte
+    /// target's rate search starts from it ([`allocate_units`]). `None`: from one byte per
+    /// coefficient.
     pub coefficients_per_byte: Option<f64>,
     base: CompressOptions,
     dims: [u64; 3],
