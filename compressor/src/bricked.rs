@@ -2010,7 +2010,7 @@ mod tests {
         assert_eq!(out, compress_bricked(&v, &opts, 20, &|_| {}).unwrap().bytes);
         assert_eq!(w.bytes, out.len() as u64);
         let f = wavesplat_codec::format::bricked::parse_bricked(&out).unwrap();
-        assert_eq!(w.overhead, f.overhead_bytes().unwrap());
+        assert_eq!(w.overhead, f.overhead_bytes(&f.brick_headers().unwrap()));
         assert_eq!(w.manifest, f.manifest);
 
         struct Full(usize);

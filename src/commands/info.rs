@@ -68,12 +68,11 @@ pub fn run(a: InfoArgs) -> Result<()> {
         );
         // Every brick's family, depth and coder (one line when they share them, as the
         // compressor writes them; a file put together otherwise lists each set).
+        let brick_headers = f
+            .brick_headers()
+            .with_context(|| format!("reading the bricks of {}", a.input.display()))?;
         let mut codings: std::collections::BTreeMap<String, usize> = Default::default();
-        for i in 0..m.bricks.len() {
-            let (h, _) = f
-                .brick_bytes(i)
-                .and_then(wavesplat_codec::format::read_header_section)
-                .with_context(|| format!("reading brick {i}'s header in {}", a.input.display()))?;
+        for (h, _) in &brick_headers {
             let g = &h.geometry;
             let coding = format!(
                 "{} (order {}), levels M = {}, coder {} (format version {})",
@@ -94,9 +93,7 @@ pub fn run(a: InfoArgs) -> Result<()> {
         }
         let mut lengths: Vec<u64> = m.bricks.iter().map(|b| b.length).collect();
         lengths.sort_unstable();
-        let headers = f
-            .overhead_bytes()
-            .with_context(|| format!("reading the bricks of {}", a.input.display()))?;
+        let headers = f.overhead_bytes(&brick_headers);
         outln!(
             "brick bytes min {} / median {} / max {}; the manifest and their headers {} bytes ({:.1} % of the file)",
             lengths[0],

@@ -26,7 +26,7 @@
 //! ([`BrickedFile::brick_bytes`]).
 
 use super::bytes::{ByteReader, ByteWriter};
-use super::{FormatError, MAGIC};
+use super::{FormatError, Header, MAGIC};
 use crate::volume::Placement;
 
 /// The format version of the bricked containers this build writes: the compact manifest
@@ -142,16 +142,21 @@ impl<'a> BrickedFile<'a> {
 }
 
 impl BrickedFile<'_> {
+    /// Every brick's header and the length of its header section, in grid order (each brick
+    /// checked against its CRC).
+    pub fn brick_headers(&self) -> Result<Vec<(Header, usize)>, FormatError> {
+        (0..self.manifest.bricks.len())
+            .map(|i| super::read_header_section(self.brick_bytes(i)?))
+            .collect()
+    }
+
     /// What the container spends outside its bricks' packets: the manifest's section and every
-    /// brick's header section (which carries the fast coder's tables, where used), in bytes.
-    pub fn overhead_bytes(&self) -> Result<u64, FormatError> {
+    /// brick's header section (which carries the fast coder's tables, where used), in bytes,
+    /// given the bricks' headers ([`BrickedFile::brick_headers`]).
+    pub fn overhead_bytes(&self, headers: &[(Header, usize)]) -> u64 {
         let bricks: u64 = self.manifest.bricks.iter().map(|b| b.length).sum();
-        let mut overhead = (self.bytes.len() as u64).saturating_sub(bricks);
-        for i in 0..self.manifest.bricks.len() {
-            let (_, used) = super::read_header_section(self.brick_bytes(i)?)?;
-            overhead += used as u64;
-        }
-        Ok(overhead)
+        let sections: u64 = headers.iter().map(|(_, used)| *used as u64).sum();
+        (self.bytes.len() as u64).saturating_sub(bricks) + sections
     }
 }
 
