@@ -991,13 +991,15 @@ fn search_depth<E>(
         return Ok(default);
     };
     let mut best = (error, default);
-    let deeper = match default < cap {
-        true => score(default + 1)?,
-        false => None,
+    let deeper = if default < cap {
+        score(default + 1)?
+    } else {
+        None
     };
-    let shallower = match default > 1 {
-        true => score(default - 1)?,
-        false => None,
+    let shallower = if default > 1 {
+        score(default - 1)?
+    } else {
+        None
     };
     let closer = |e: Option<f64>, than: f64| e.filter(|e| *e < than);
     match (closer(deeper, error), closer(shallower, error)) {
