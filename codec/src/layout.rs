@@ -236,6 +236,17 @@ impl Geometry {
         ]
     }
 
+    /// Whether coefficient `pos` of `band` sits in the padding: the first voxel of its cell
+    /// (`pos · 2^level` on the padded grid) lies outside the volume's box along some axis. Such
+    /// coefficients serve only the faces (their basis functions reach into the box from outside),
+    /// which is what a brick's bridge padding costs.
+    pub fn cell_outside_box(&self, band: Band, pos: [u32; 3]) -> bool {
+        (0..3).any(|a| {
+            let first = (pos[a] as usize) << band.level;
+            first < self.origin[a] || first >= self.origin[a] + self.dims[a]
+        })
+    }
+
     /// Linear index (Mallat layout, x fastest) of coefficient `pos` of `band`.
     pub fn linear_index(&self, band: Band, pos: [usize; 3]) -> usize {
         let bd = self.band_dims(band);
@@ -396,6 +407,27 @@ mod tests {
             Some(g.band_count() - 1)
         );
         assert_eq!(g.band_index(Band { level: 2, kind: 0 }), None);
+    }
+
+    /// A cell is in the padding when its first voxel is: a 10-voxel axis with margin 4 at
+    /// level 2 pads to 20 with the box at 5..15, and of the cells starting at 0, 4, 8, 12 and
+    /// 16 only 8 and 12 start inside; at level 0 exactly the box's voxels are inside.
+    #[test]
+    fn cells_in_the_padding_are_those_whose_first_voxel_is_outside_the_box() {
+        let g = Geometry::new([10, 10, 10], Family::Linear, 2, 4).unwrap();
+        assert_eq!((g.padded, g.origin), ([20; 3], [5; 3]));
+        let scaling = Band { level: 2, kind: 0 };
+        let outside: Vec<u32> = (0..5)
+            .filter(|&i| g.cell_outside_box(scaling, [i, 2, 2]))
+            .collect();
+        assert_eq!(outside, vec![0, 1, 4]);
+        // Any axis outside puts the cell outside.
+        assert!(g.cell_outside_box(scaling, [2, 2, 4]));
+        let voxels = Band { level: 0, kind: 0 };
+        let inside = (0..20)
+            .filter(|&i| !g.cell_outside_box(voxels, [i, 7, 7]))
+            .count();
+        assert_eq!(inside, 10);
     }
 
     #[test]

@@ -4,7 +4,7 @@ use anyhow::{Context, Result};
 use clap::Args;
 use std::path::PathBuf;
 use wavesplat_codec::format::packet::{decode_packet, SizeBreakdown};
-use wavesplat_codec::format::{parse_file, Header};
+use wavesplat_codec::format::{parse_file, Header, WspFile};
 
 /// Arguments of `wavesplat info`.
 #[derive(Args, Debug)]
@@ -126,6 +126,28 @@ pub fn run(a: InfoArgs) -> Result<()> {
                 m.bricks.len() - listed
             );
         }
+        // Where the bytes went, over every brick: the manifest with the bricks' header
+        // sections (as above), their packet directories, and their packets' payload.
+        let mut total = SizeBreakdown::default();
+        let (mut directories, mut outside) = (0usize, 0usize);
+        for i in 0..m.bricks.len() {
+            let brick = f
+                .brick_bytes(i)
+                .and_then(parse_file)
+                .with_context(|| format!("reading brick {i} of {}", a.input.display()))?;
+            directories += brick.directory_bytes;
+            outside += packets_breakdown(&brick, &mut total, false)
+                .with_context(|| format!("decoding brick {i}"))?
+                .outside;
+        }
+        // Coefficients in a brick's padding draw only near its faces: the share bricking costs
+        // in coefficients (an unbricked file keeps almost none there).
+        outln!(
+            "padding     {} of the kept coefficients ({:.1} %) sit in the bricks' padding, for their faces",
+            outside,
+            100.0 * outside as f64 / m.kept().max(1) as f64
+        );
+        print_breakdown(bytes.len(), headers as usize, directories, &total);
         return Ok(());
     }
     let file = parse_file(&bytes).with_context(|| format!("parsing {}", a.input.display()))?;
@@ -133,16 +155,46 @@ pub fn run(a: InfoArgs) -> Result<()> {
     outln!("file        {} ({} bytes)", a.input.display(), bytes.len());
     print_header(h);
     let mut total = SizeBreakdown::default();
-    let mut coefficients = 0usize;
+    let coefficients = packets_breakdown(&file, &mut total, a.packets)?.coefficients;
+    outln!(
+        "packets     {} holding {} coefficients (header says {})",
+        file.packets.len(),
+        coefficients,
+        h.kept
+    );
+    print_breakdown(bytes.len(), file.header_bytes, file.directory_bytes, &total);
+    Ok(())
+}
+
+/// How many coefficients a file's packets hold, and how many of them sit in the padding
+/// ([`wavesplat_codec::layout::Geometry::cell_outside_box`]).
+struct Counted {
+    coefficients: usize,
+    outside: usize,
+}
+
+/// Decodes `file`'s packets, adds where their bits went to `total` and counts their
+/// coefficients; `list` prints a line per packet.
+fn packets_breakdown(file: &WspFile<'_>, total: &mut SizeBreakdown, list: bool) -> Result<Counted> {
+    let mut counted = Counted {
+        coefficients: 0,
+        outside: 0,
+    };
+    let g = &file.header.geometry;
     for (i, p) in file.packets.iter().enumerate() {
-        let d = decode_packet(h, p).with_context(|| format!("decoding packet {i}"))?;
-        coefficients += d.coefficients.len();
+        let d = decode_packet(&file.header, p).with_context(|| format!("decoding packet {i}"))?;
+        counted.coefficients += d.coefficients.len();
+        counted.outside += d
+            .coefficients
+            .iter()
+            .filter(|c| g.cell_outside_box(c.band, c.pos))
+            .count();
         total.tag_bits += d.breakdown.tag_bits;
         total.position_bits += d.breakdown.position_bits;
         total.sign_bits += d.breakdown.sign_bits;
         total.value_bits += d.breakdown.value_bits;
         total.framing_bytes += d.breakdown.framing_bytes;
-        if a.packets {
+        if list {
             let energy: f64 = d.summary.iter().map(|(_, e)| e).sum();
             outln!(
                 "packet {i:5}  tile {:5}  layer {:2}  {:7} coefficients  {:8} bytes  energy {:.3e}",
@@ -154,23 +206,28 @@ pub fn run(a: InfoArgs) -> Result<()> {
             );
         }
     }
-    outln!(
-        "packets     {} holding {} coefficients (header says {})",
-        file.packets.len(),
-        coefficients,
-        h.kept
-    );
-    let pct = |x: f64| 100.0 * x / bytes.len() as f64;
+    Ok(counted)
+}
+
+/// Prints a size breakdown: header sections, packet directories, then the packets' framing
+/// and payload, each in bytes and as a share of a file of `file_bytes`.
+fn print_breakdown(
+    file_bytes: usize,
+    header_bytes: usize,
+    directory_bytes: usize,
+    total: &SizeBreakdown,
+) {
+    let pct = |x: f64| 100.0 * x / file_bytes as f64;
     outln!("size breakdown (bytes, % of file):");
     outln!(
         "  header + tables        {:9} {:6.2} %",
-        file.header_bytes,
-        pct(file.header_bytes as f64)
+        header_bytes,
+        pct(header_bytes as f64)
     );
     outln!(
         "  packet directory       {:9} {:6.2} %",
-        file.directory_bytes,
-        pct(file.directory_bytes as f64)
+        directory_bytes,
+        pct(directory_bytes as f64)
     );
     outln!(
         "  packet framing/summary {:9} {:6.2} %",
@@ -185,7 +242,6 @@ pub fn run(a: InfoArgs) -> Result<()> {
     ] {
         outln!("  {name:22} {:9.0} {:6.2} %", bits / 8.0, pct(bits / 8.0));
     }
-    Ok(())
 }
 
 /// Prints a header's facts, one per line (shared by `info` and `cache show`).
