@@ -700,6 +700,94 @@ fn a_volume_over_the_memory_limit_is_bricked_by_itself() {
     assert!(!out(&info).contains("bricked"), "{}", out(&info));
 }
 
+/// A bricked compression killed midway (SIGKILL, as a reboot or the OOM killer would) leaves
+/// the bricks it finished in OUTPUT.checkpoint; the same command run again says it resumes,
+/// writes the file an uninterrupted run writes, byte for byte, and removes the checkpoint.
+/// With --no-resume it starts over instead, and still writes that file.
+#[test]
+fn a_killed_bricked_compression_resumes_where_it_stopped() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = |n: &str| dir.path().join(n).to_str().unwrap().to_string();
+    let args = |out: &str| {
+        [
+            "compress",
+            "--phantom",
+            "shepp-logan",
+            "--dims",
+            "96,96,80",
+            "--brick",
+            "16",
+            "--target-fraction",
+            "0.05",
+            "-o",
+        ]
+        .iter()
+        .map(|s| s.to_string())
+        .chain([out.to_string()])
+        .collect::<Vec<_>>()
+    };
+    let whole = Command::new(BIN)
+        .args(args(&path("whole.wsp")))
+        .output()
+        .unwrap();
+    assert!(whole.status.success(), "{}", err(&whole));
+    let want = std::fs::read(path("whole.wsp")).unwrap();
+    let checkpoint = dir.path().join("k.wsp.checkpoint");
+    // Killed once the checkpoint holds a coded brick (216 bricks: far from done).
+    let kill_midway = || {
+        let mut child = Command::new(BIN)
+            .args(args(&path("k.wsp")))
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .unwrap();
+        let coded = || {
+            std::fs::read_dir(&checkpoint).is_ok_and(|entries| {
+                entries
+                    .flatten()
+                    .any(|e| e.file_name().to_string_lossy().starts_with("brick-"))
+            })
+        };
+        let start = std::time::Instant::now();
+        while !coded() {
+            assert!(
+                child.try_wait().unwrap().is_none(),
+                "finished before it could be killed"
+            );
+            assert!(start.elapsed().as_secs() < 300, "no brick coded");
+            std::thread::sleep(std::time::Duration::from_millis(1));
+        }
+        child.kill().unwrap();
+        child.wait().unwrap();
+        assert!(!dir.path().join("k.wsp").exists());
+    };
+    kill_midway();
+    let resumed = Command::new(BIN)
+        .args(args(&path("k.wsp")))
+        .output()
+        .unwrap();
+    assert!(resumed.status.success(), "{}", err(&resumed));
+    assert!(
+        out(&resumed).contains("resuming from") && out(&resumed).contains("k.wsp.checkpoint"),
+        "{}",
+        out(&resumed)
+    );
+    assert_eq!(std::fs::read(path("k.wsp")).unwrap(), want);
+    assert!(
+        !checkpoint.exists(),
+        "the checkpoint is removed once the file is written"
+    );
+    std::fs::remove_file(path("k.wsp")).unwrap();
+    kill_midway();
+    let mut fresh = args(&path("k.wsp"));
+    fresh.push("--no-resume".into());
+    let over = Command::new(BIN).args(fresh).output().unwrap();
+    assert!(over.status.success(), "{}", err(&over));
+    assert!(!out(&over).contains("resuming"), "{}", out(&over));
+    assert_eq!(std::fs::read(path("k.wsp")).unwrap(), want);
+    assert!(!checkpoint.exists());
+}
+
 #[test]
 fn a_bricked_volume_is_compressed_listed_and_rendered() {
     let dir = tempfile::tempdir().unwrap();
@@ -819,6 +907,38 @@ fn a_bricked_volume_is_compressed_listed_and_rendered() {
         out(&info).contains("brick 7: at 20,18,16"),
         "{}",
         out(&info)
+    );
+    // Where the bytes went, over every brick: the parts sum to the file, and the share of
+    // coefficients in the bricks' padding is named.
+    let listed = out(&info);
+    let parts: f64 = [
+        "header + tables",
+        "packet directory",
+        "packet framing/summary",
+        "type/depth/channel",
+        "positions",
+        "signs",
+        "values",
+    ]
+    .iter()
+    .map(|name| {
+        let line = listed
+            .lines()
+            .find(|l| l.trim_start().starts_with(name))
+            .unwrap_or_else(|| panic!("no {name} in {listed}"));
+        line.trim_start()[name.len()..]
+            .split_whitespace()
+            .next()
+            .and_then(|v| v.parse::<f64>().ok())
+            .unwrap_or_else(|| panic!("{line}"))
+    })
+    .sum();
+    let bytes = std::fs::metadata(path("b.wsp")).unwrap().len() as f64;
+    assert!((parts - bytes).abs() <= 8.0, "{parts} of {bytes}: {listed}");
+    assert!(
+        listed.contains("of the kept coefficients")
+            && listed.contains("sit in the bricks' padding"),
+        "{listed}"
     );
     let w = run(&[
         "compress",
@@ -974,9 +1094,9 @@ fn a_bricked_volume_is_compressed_listed_and_rendered() {
 }
 
 /// Stopped by Ctrl-C (SIGINT) or SIGTERM while it writes a bricked file, `compress` removes its
-/// unfinished file: nothing is left in the output's directory (a stopped compression of a large
-/// volume would otherwise leave a hidden file about the output's size), and the status says it
-/// was interrupted.
+/// unfinished file (a stopped compression of a large volume would otherwise leave a hidden file
+/// about the output's size): only the checkpoint it resumes from is left, said on stderr, and
+/// the status says it was interrupted.
 #[cfg(unix)]
 #[test]
 fn an_interrupted_compress_leaves_no_unfinished_file() {
@@ -1030,6 +1150,15 @@ fn an_interrupted_compress_leaves_no_unfinished_file() {
             stderr.contains("removed the unfinished"),
             "{signal}: {stderr}"
         );
-        assert!(unfinished().is_empty(), "{signal}: {:?}", unfinished());
+        // The checkpoint stays on purpose, and the message says what to do with it.
+        assert!(
+            stderr.contains("big.wsp.checkpoint: run the same command again"),
+            "{signal}: {stderr}"
+        );
+        assert_eq!(
+            unfinished(),
+            vec!["big.wsp.checkpoint".to_string()],
+            "{signal}"
+        );
     }
 }

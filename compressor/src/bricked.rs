@@ -259,6 +259,10 @@ pub enum BrickError {
     /// The coded bricks could not be kept in their temporary file.
     #[error("keeping the coded bricks in a temporary file")]
     Spill(#[source] std::io::Error),
+    /// The checkpoint directory could not be read or written
+    /// ([`crate::checkpoint::Checkpoint`]).
+    #[error("keeping the finished bricks in the checkpoint directory")]
+    Checkpoint(#[source] std::io::Error),
     /// The container could not be written out.
     #[error("writing the bricked file")]
     Output(#[source] std::io::Error),
@@ -845,6 +849,7 @@ fn allocate_sample(
         &LocalBricks {
             source,
             progress: &quiet,
+            checkpoint: None,
         },
     ) {
         Ok(a) => Ok(Some(a)),
@@ -1279,6 +1284,8 @@ pub struct LocalBricks<'a> {
     pub source: &'a dyn BrickSource,
     /// Called as bricks finish.
     pub progress: &'a (dyn Fn(BrickStage) + Sync),
+    /// Where finished passes are kept and found again (`None`: nowhere).
+    pub checkpoint: Option<&'a crate::checkpoint::Checkpoint>,
 }
 
 impl BrickWork for LocalBricks<'_> {
@@ -1289,10 +1296,20 @@ impl BrickWork for LocalBricks<'_> {
         (0..of)
             .into_par_iter()
             .map(|i| {
-                let mut s = plan.score(self.source, i)?;
-                if !matches!(plan.target, Target::QvPercent(_)) {
-                    s = s.without_energies();
-                }
+                let energies = matches!(plan.target, Target::QvPercent(_));
+                let s = match self.checkpoint.and_then(|c| c.summary(i)) {
+                    Some(s) => s,
+                    None => {
+                        let mut s = plan.score(self.source, i)?;
+                        if !energies {
+                            s = s.without_energies();
+                        }
+                        if let Some(c) = self.checkpoint {
+                            c.save_summary(i, &s, energies)?;
+                        }
+                        s
+                    }
+                };
                 let done = counter.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
                 (self.progress)(BrickStage::Scored { done, of });
                 Ok(s)
@@ -1324,7 +1341,17 @@ impl LocalBricks<'_> {
         (0..of)
             .into_par_iter()
             .map(|i| {
-                let (file, kept) = plan.encode(self.source, i, counts.map(|k| k[i]))?;
+                let count = counts.map(|k| k[i]);
+                let (file, kept) = match self.checkpoint.and_then(|c| c.coded(i, count)) {
+                    Some(coded) => coded,
+                    None => {
+                        let coded = plan.encode(self.source, i, count)?;
+                        if let Some(c) = self.checkpoint {
+                            c.save_coded(i, count, &coded.0)?;
+                        }
+                        coded
+                    }
+                };
                 let len = file.len() as u64;
                 let file = keep(file)?;
                 let done = counter.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
@@ -1481,7 +1508,7 @@ pub fn compress_bricked(
     progress: &(dyn Fn(BrickStage) + Sync),
 ) -> Result<BrickedCompressed, BrickError> {
     let mut bytes = Vec::new();
-    let w = compress_bricked_to(source, opts, brick, progress, None, &mut bytes)?;
+    let w = compress_bricked_to(source, opts, brick, progress, None, None, &mut bytes)?;
     Ok(BrickedCompressed {
         bytes,
         manifest: w.manifest,
@@ -1495,18 +1522,25 @@ pub fn compress_bricked(
 /// the coded bricks wait in a temporary file in `spill_dir` (`None`: the temporary directory,
 /// which must have room for about the file, twice during a byte target's search), not in
 /// memory, so that memory stays about one brick per thread however large the file.
-/// `out` gets the manifest section and then the bricks, in one pass.
+/// `out` gets the manifest section and then the bricks, in one pass. With a `checkpoint`,
+/// every brick's passes are kept there as they finish and taken from there where it holds them
+/// ([`crate::checkpoint`]): an interrupted compression run again does only what is missing.
 pub fn compress_bricked_to(
     source: &dyn BrickSource,
     opts: &CompressOptions,
     brick: usize,
     progress: &(dyn Fn(BrickStage) + Sync),
     spill_dir: Option<&std::path::Path>,
+    checkpoint: Option<&crate::checkpoint::Checkpoint>,
     out: &mut dyn std::io::Write,
 ) -> Result<BrickedWritten, BrickError> {
     let plan = BrickPlan::new(source, opts, brick)?;
     let work = SpillingBricks {
-        local: LocalBricks { source, progress },
+        local: LocalBricks {
+            source,
+            progress,
+            checkpoint,
+        },
         dir: spill_dir,
     };
     let a = allocate(&plan, &work)?;
@@ -1743,6 +1777,7 @@ mod tests {
                     LocalBricks {
                         source: &v,
                         progress: &quiet,
+                        checkpoint: None,
                     },
                     Default::default(),
                 );
@@ -2008,7 +2043,8 @@ mod tests {
         };
         let spill = tempfile::tempdir().unwrap();
         let mut out = Vec::new();
-        let w = compress_bricked_to(&v, &opts, 20, &|_| {}, Some(spill.path()), &mut out).unwrap();
+        let w = compress_bricked_to(&v, &opts, 20, &|_| {}, Some(spill.path()), None, &mut out)
+            .unwrap();
         assert_eq!(out, compress_bricked(&v, &opts, 20, &|_| {}).unwrap().bytes);
         assert_eq!(w.bytes, out.len() as u64);
         let f = wavesplat_codec::format::bricked::parse_bricked(&out).unwrap();
@@ -2030,8 +2066,118 @@ mod tests {
             }
         }
         for room in [0, 100, out.len() - 1] {
-            let e = compress_bricked_to(&v, &opts, 20, &|_| {}, None, &mut Full(room)).unwrap_err();
+            let e = compress_bricked_to(&v, &opts, 20, &|_| {}, None, None, &mut Full(room))
+                .unwrap_err();
             assert!(matches!(e, BrickError::Output(_)), "{room}: {e:?}");
+        }
+    }
+
+    /// A source that counts its reads and fails the `fail_at`-th one (counting from 1; 0: none),
+    /// as a kill, a lost disk or a full one would stop a compression midway.
+    struct Flaky<'a> {
+        volume: &'a Volume,
+        reads: std::sync::atomic::AtomicUsize,
+        fail_at: usize,
+    }
+
+    impl BrickSource for Flaky<'_> {
+        fn dims(&self) -> [u64; 3] {
+            BrickSource::dims(self.volume)
+        }
+        fn channels(&self) -> usize {
+            BrickSource::channels(self.volume)
+        }
+        fn spacing(&self) -> [f32; 3] {
+            BrickSource::spacing(self.volume)
+        }
+        fn placement(&self) -> Option<Placement> {
+            BrickSource::placement(self.volume)
+        }
+        fn read(&self, origin: [u64; 3], dims: [usize; 3]) -> Result<Volume, ReadError> {
+            let n = self.reads.fetch_add(1, std::sync::atomic::Ordering::SeqCst) + 1;
+            if n == self.fail_at {
+                return Err(ReadError::Io {
+                    path: "volume.raw".into(),
+                    source: std::io::Error::other("the disk went away"),
+                });
+            }
+            BrickSource::read(self.volume, origin, dims)
+        }
+    }
+
+    /// A compression stopped midway and run again with its checkpoint does only what is
+    /// missing and writes the file an uninterrupted run writes, byte for byte. A fraction
+    /// target stopped while coding its third brick from the end reads no brick to score again
+    /// and codes only those three; run a third time it reads none for either pass. A byte
+    /// target (several trials, each brick's count its own entry) stopped in its last trial
+    /// ends in the same file, reading less. A checkpoint of other options is emptied, not used.
+    #[test]
+    fn a_compression_run_again_with_its_checkpoint_goes_on_where_it_stopped() {
+        let v = Phantom::SheppLogan.generate([40, 36, 30]);
+        // One thread: bricks are read in grid order, so where a run stops is known.
+        let one_thread = rayon::ThreadPoolBuilder::new()
+            .num_threads(1)
+            .build()
+            .unwrap();
+        for target in [Target::Fraction(0.05), Target::Bytes(9_000)] {
+            let opts = CompressOptions {
+                target,
+                ..CompressOptions::default()
+            };
+            let bricks = BrickPlan::new(&v, &opts, 20).unwrap().grid.len();
+            let dir = tempfile::tempdir().unwrap();
+            let key = format!("{opts:?}");
+            let run = |fail_at: usize, checkpoint: bool| {
+                let source = Flaky {
+                    volume: &v,
+                    reads: Default::default(),
+                    fail_at,
+                };
+                let (cp, resumed) = if checkpoint {
+                    let (cp, r) = crate::checkpoint::Checkpoint::open(dir.path(), &key).unwrap();
+                    (Some(cp), r)
+                } else {
+                    (None, Default::default())
+                };
+                let mut out = Vec::new();
+                let r = one_thread.install(|| {
+                    compress_bricked_to(&source, &opts, 20, &|_| {}, None, cp.as_ref(), &mut out)
+                });
+                (r.map(|_| out), resumed, source.reads.into_inner())
+            };
+            // Without a checkpoint: the file, and how many reads it takes.
+            let (whole, _, all_reads) = run(0, false);
+            let whole = whole.unwrap();
+            let (stopped, fresh, _) = run(all_reads - 2, true);
+            assert!(
+                matches!(stopped, Err(BrickError::Read { .. })),
+                "{target:?}: {stopped:?}"
+            );
+            assert_eq!(fresh, crate::checkpoint::Resumed::default());
+            let (again, resumed, reads) = run(0, true);
+            assert_eq!(again.unwrap(), whole, "{target:?}");
+            assert_eq!(resumed.scored, bricks, "{target:?}: every brick was scored");
+            assert!(reads < all_reads, "{target:?}: {reads} of {all_reads}");
+            let (third, _, third_reads) = run(0, true);
+            assert_eq!(third.unwrap(), whole, "{target:?}");
+            if matches!(target, Target::Fraction(_)) {
+                // The plan's reads (the whole's faces) are all a run does beyond the bricks'
+                // two passes, one read a brick each.
+                let plan_reads = all_reads - 2 * bricks;
+                assert_eq!(resumed.coded, bricks - 3, "{resumed:?}");
+                assert_eq!(reads, plan_reads + 3);
+                assert_eq!(third_reads, plan_reads);
+            } else {
+                assert!(third_reads <= all_reads - 2 * bricks, "{third_reads}");
+            }
+            // Other options: the entries are removed, and nothing of them is used.
+            let other = CompressOptions {
+                target: Target::Fraction(0.02),
+                ..CompressOptions::default()
+            };
+            let (_, replaced) =
+                crate::checkpoint::Checkpoint::open(dir.path(), &format!("{other:?}")).unwrap();
+            assert!(replaced.replaced && replaced.scored + replaced.coded == 0);
         }
     }
 

@@ -5,6 +5,7 @@
 //! depend on the number of threads.
 
 pub mod bricked;
+pub mod checkpoint;
 pub mod colorspace;
 pub mod decode;
 pub mod encode;

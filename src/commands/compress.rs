@@ -11,6 +11,7 @@ use wavesplat_codec::volume::{Volume, MAX_VOXELS};
 use wavesplat_compressor::bricked::{
     compress_bricked_to, AutoBrick, BrickReason, BrickSource, BrickStage,
 };
+use wavesplat_compressor::checkpoint::Checkpoint;
 use wavesplat_compressor::colorspace::ColorSpaceKind;
 use wavesplat_compressor::encode::{
     compress, CompressOptions, Compressed, Effort, Stage, Target, TileChoice,
@@ -155,6 +156,13 @@ pub struct CompressArgs {
     /// largest that fit.
     #[arg(long, value_name = "N")]
     pub brick: Option<usize>,
+    /// A bricked compression keeps each brick as it finishes in OUTPUT.checkpoint/ (beside
+    /// the output, about the output's size) and removes it once the file is written; run the
+    /// same command again after an interruption (a kill, a reboot, a full disk) and it goes on
+    /// from there, writing the same file. This flag discards such a checkpoint and starts over.
+    /// A checkpoint of another input or other options is never used.
+    #[arg(long)]
+    pub no_resume: bool,
     /// Tile edge in voxels (rounded up to a multiple of 2^M); default: chosen from the size.
     #[arg(long, conflicts_with = "single_sequence")]
     pub tile: Option<usize>,
@@ -450,8 +458,41 @@ fn compress_bricks_of(
     let d = source.dims();
     let progress = Progress::new("compress");
     let report = |stage: BrickStage| progress.stage(&stage.to_string());
+    let checkpoint_dir = checkpoint_dir(&a.output);
     let c = super::write_output(&a.output, |spill, out| {
-        compress_bricked_to(source, opts, brick, &report, spill, out).context("compressing")
+        // Only where the output is a file (a checkpoint beside a pipe or a device would
+        // outlive what it served).
+        let checkpoint = match spill {
+            Some(_) => Some(open_checkpoint(a, opts, brick, &checkpoint_dir)?),
+            None => None,
+        };
+        let _kept = checkpoint.as_ref().map(|cp| {
+            super::interrupt::Kept::note(format!(
+                "the bricks finished so far are kept in {}: run the same command again to go \
+                 on from there",
+                cp.dir().display()
+            ))
+        });
+        let written =
+            compress_bricked_to(source, opts, brick, &report, spill, checkpoint.as_ref(), out);
+        match (written, checkpoint) {
+            (Ok(w), cp) => Ok((w, cp)),
+            (Err(e), Some(_)) => Err(anyhow::Error::new(e).context(format!(
+                "compressing (the bricks finished so far are kept in {}: run the same command \
+                 again to go on from there, or with --no-resume to start over)",
+                checkpoint_dir.display()
+            ))),
+            (Err(e), None) => Err(anyhow::Error::new(e).context("compressing")),
+        }
+    })
+    .map(|(c, checkpoint)| {
+        // The file is in place: what it was made from is no longer needed.
+        if let Some(cp) = checkpoint {
+            if let Err(e) = cp.remove() {
+                tracing::warn!(dir = %checkpoint_dir.display(), error = %e, "could not remove the checkpoint");
+            }
+        }
+        c
     })?;
     progress.finish();
     let voxels = d.iter().map(|v| *v as f64).product::<f64>() * source.channels() as f64;
@@ -481,6 +522,98 @@ fn compress_bricks_of(
         outln!("{note}");
     }
     Ok(())
+}
+
+/// Where a bricked compression to `output` keeps its checkpoint: `OUTPUT.checkpoint` beside it.
+fn checkpoint_dir(output: &std::path::Path) -> PathBuf {
+    let mut name = output.file_name().unwrap_or_default().to_os_string();
+    name.push(".checkpoint");
+    output.with_file_name(name)
+}
+
+/// Opens the checkpoint of this compression in `dir` (emptied first with --no-resume), saying
+/// what it holds when it resumes one.
+fn open_checkpoint(
+    a: &CompressArgs,
+    opts: &CompressOptions,
+    brick: usize,
+    dir: &std::path::Path,
+) -> Result<Checkpoint> {
+    if a.no_resume && dir.exists() {
+        std::fs::remove_dir_all(dir)
+            .with_context(|| format!("removing the checkpoint {}", dir.display()))?;
+    }
+    let key = checkpoint_key(a, opts, brick)?;
+    let (cp, resumed) = Checkpoint::open(dir, &key)
+        .with_context(|| format!("opening the checkpoint {}", dir.display()))?;
+    if resumed.replaced {
+        tracing::warn!(
+            dir = %dir.display(),
+            "the checkpoint was of another input or other options: starting over"
+        );
+    } else if resumed.scored + resumed.coded > 0 {
+        outln!(
+            "resuming from {}: {} bricks scored and {} coded already",
+            dir.display(),
+            resumed.scored,
+            resumed.coded
+        );
+    }
+    Ok(cp)
+}
+
+/// What a checkpoint is tied to: this build, the input's identity (a file's canonical path,
+/// length and modification time; a directory's entries' count, total length and latest
+/// modification; a phantom's name and size), the brick edge and every option that shapes the
+/// file.
+fn checkpoint_key(a: &CompressArgs, opts: &CompressOptions, brick: usize) -> Result<String> {
+    let input = match (&a.input, &a.phantom) {
+        (Some(path), _) => {
+            let canonical = std::fs::canonicalize(path)
+                .with_context(|| format!("reading {}", path.display()))?;
+            let stamp = |m: &std::fs::Metadata| {
+                let modified = m
+                    .modified()
+                    .ok()
+                    .and_then(|t| t.duration_since(std::time::UNIX_EPOCH).ok())
+                    .map_or(0, |d| d.as_nanos());
+                (m.len(), modified)
+            };
+            let meta = std::fs::metadata(&canonical)
+                .with_context(|| format!("reading {}", path.display()))?;
+            if meta.is_dir() {
+                let (mut count, mut bytes, mut latest) = (0u64, 0u64, 0u128);
+                for entry in std::fs::read_dir(&canonical)
+                    .with_context(|| format!("reading {}", path.display()))?
+                {
+                    let m = entry
+                        .and_then(|e| e.metadata())
+                        .with_context(|| format!("reading {}", path.display()))?;
+                    let (len, modified) = stamp(&m);
+                    count += 1;
+                    bytes += len;
+                    latest = latest.max(modified);
+                }
+                format!("dir {} {count} {bytes} {latest}", canonical.display())
+            } else {
+                let (len, modified) = stamp(&meta);
+                format!("file {} {len} {modified}", canonical.display())
+            }
+        }
+        (None, phantom) => format!("phantom {phantom:?} {:?}", a.dims),
+    };
+    // The memory limit shapes how the work is done, not the file: a run resumed under
+    // another limit still uses the checkpoint.
+    let shaping = CompressOptions {
+        memory_limit: None,
+        ..opts.clone()
+    };
+    Ok(format!(
+        "wavesplat {}\ninput {input}\nraw {:?} {:?}\nbrick {brick}\noptions {shaping:?}\n",
+        env!("CARGO_PKG_VERSION"),
+        a.dims,
+        a.dtype
+    ))
 }
 
 /// A bricked file whose manifest and brick headers take more than a fifth of it leaves little

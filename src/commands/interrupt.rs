@@ -1,6 +1,7 @@
 //! What an interrupted command leaves behind: the unfinished output files it is writing
 //! ([`super::write_output`]'s temporary files beside the output), removed when the process is
-//! stopped by Ctrl-C (SIGINT) or SIGTERM. Without this, a stopped compression of a large
+//! stopped by Ctrl-C (SIGINT) or SIGTERM, and what it keeps on purpose ([`Kept`]: a bricked
+//! compression's checkpoint), said. Without this, a stopped compression of a large
 //! volume would leave a file about the output's size in the output's directory, under a
 //! hidden name nobody removes. The handler is a thread waiting on tokio's signal streams
 //! (tokio is already the binary's runtime; the signal crates would add a second way to the
@@ -12,6 +13,8 @@ use std::sync::{Mutex, OnceLock};
 
 /// The unfinished files of this process.
 static UNFINISHED: Mutex<Vec<PathBuf>> = Mutex::new(Vec::new());
+/// What an interrupt leaves on purpose, said when it comes ([`Kept`]).
+static KEPT: Mutex<Vec<String>> = Mutex::new(Vec::new());
 /// Whether the handler is installed (set once, by the first [`Unfinished::register`]).
 static HANDLER: OnceLock<bool> = OnceLock::new();
 
@@ -51,6 +54,33 @@ impl Unfinished {
 impl Drop for Unfinished {
     fn drop(&mut self) {
         forget(&self.path);
+    }
+}
+
+/// What an interrupted command leaves on purpose (a checkpoint to resume from): its line is
+/// said after the unfinished files are removed, while this lives.
+pub struct Kept {
+    line: String,
+}
+
+impl Kept {
+    /// Says `line` if the process is interrupted while the returned guard lives (installing
+    /// the handler, as [`Unfinished::register`] does).
+    pub fn note(line: String) -> Kept {
+        HANDLER.get_or_init(install);
+        KEPT.lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .push(line.clone());
+        Kept { line }
+    }
+}
+
+impl Drop for Kept {
+    fn drop(&mut self) {
+        let mut kept = KEPT.lock().unwrap_or_else(|p| p.into_inner());
+        if let Some(i) = kept.iter().position(|l| *l == self.line) {
+            kept.remove(i);
+        }
     }
 }
 
@@ -98,6 +128,9 @@ fn install() -> bool {
                 if std::fs::remove_file(&p).is_ok() {
                     eprintln!("interrupted: removed the unfinished {}", p.display());
                 }
+            }
+            for line in KEPT.lock().unwrap_or_else(|p| p.into_inner()).drain(..) {
+                eprintln!("interrupted: {line}");
             }
             std::process::exit(130);
         });

@@ -502,7 +502,7 @@ fn compress_bricked_job(
     // The coded bricks wait in the scratch directory, and the container is written there:
     // a bricked file may be larger than the worker's memory.
     let file = write_output(|out| {
-        compress_bricked_to(source, opts, brick, &report, None, out)
+        compress_bricked_to(source, opts, brick, &report, None, None, out)
             .map(drop)
             .map_err(|e| match e {
                 BrickError::Spill(e) | BrickError::Output(e) => output_failure(e),

@@ -1,0 +1,221 @@
+//! Resuming an interrupted bricked compression. A large volume takes hours in one process
+//! (2048³ on two cores: most of an hour), and a kill, a reboot or a full disk near the end
+//! should not cost the bricks already done. A [`Checkpoint`] is a directory that keeps, as
+//! they are made, every brick's score summary (the first pass) and every coded brick (the
+//! second, keyed by the count it kept, so a byte target's trials are kept apart). A run of the
+//! same compression finds them and does only what is missing; the result is the same file,
+//! byte for byte, since each brick's pass depends only on the brick, the options and its count.
+//!
+//! Each entry is written to a temporary name and renamed, and carries a CRC-32 of its bytes,
+//! so an entry cut off by a kill is never read: a damaged or unreadable one is done again. The
+//! directory is tied to one compression by a key (the input's identity and the options, which
+//! the caller builds): a checkpoint of another compression is emptied before it is used.
+
+use crate::bricked::BrickError;
+use crate::encode::ScoreSummary;
+use std::path::{Path, PathBuf};
+
+/// The file naming the compression a checkpoint belongs to.
+const KEY_FILE: &str = "key";
+
+/// A directory of the finished passes of one bricked compression.
+#[derive(Debug)]
+pub struct Checkpoint {
+    dir: PathBuf,
+}
+
+/// What a checkpoint held when it was opened.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct Resumed {
+    /// Bricks whose score summary it held.
+    pub scored: usize,
+    /// Coded bricks it held (over every count).
+    pub coded: usize,
+    /// Whether it held another compression's entries, which were removed.
+    pub replaced: bool,
+}
+
+impl Checkpoint {
+    /// Opens the checkpoint in `dir` (created when missing) for the compression `key` names.
+    /// Entries of another key are removed first; an empty or new directory takes the key.
+    pub fn open(dir: &Path, key: &str) -> Result<(Checkpoint, Resumed), BrickError> {
+        let io = BrickError::Checkpoint;
+        std::fs::create_dir_all(dir).map_err(io)?;
+        let cp = Checkpoint {
+            dir: dir.to_path_buf(),
+        };
+        let mut resumed = Resumed::default();
+        let stored = std::fs::read(dir.join(KEY_FILE)).ok();
+        if stored.as_deref() != Some(key.as_bytes()) {
+            resumed.replaced = stored.is_some();
+            for entry in std::fs::read_dir(dir).map_err(io)? {
+                let path = entry.map_err(io)?.path();
+                if is_entry(&path) {
+                    resumed.replaced = true;
+                    std::fs::remove_file(&path).map_err(io)?;
+                }
+            }
+            cp.write_atomic(KEY_FILE, key.as_bytes())?;
+        }
+        for entry in std::fs::read_dir(dir).map_err(io)? {
+            let name = entry.map_err(io)?.file_name();
+            let name = name.to_string_lossy();
+            if name.starts_with("score-") && !name.ends_with(".tmp") {
+                resumed.scored += 1;
+            } else if name.starts_with("brick-") && !name.ends_with(".tmp") {
+                resumed.coded += 1;
+            }
+        }
+        Ok((cp, resumed))
+    }
+
+    /// The directory.
+    pub fn dir(&self) -> &Path {
+        &self.dir
+    }
+
+    /// Brick `i`'s score summary, if kept and intact.
+    pub fn summary(&self, i: usize) -> Option<ScoreSummary> {
+        let bytes = self.read_checked(&format!("score-{i}"))?;
+        ScoreSummary::from_bytes(&bytes).ok()
+    }
+
+    /// Keeps brick `i`'s score summary (`energies`: with its energies, which a Q_V target needs).
+    pub fn save_summary(
+        &self,
+        i: usize,
+        summary: &ScoreSummary,
+        energies: bool,
+    ) -> Result<(), BrickError> {
+        self.write_checked(&format!("score-{i}"), &summary.to_bytes(energies))
+    }
+
+    /// Brick `i` coded keeping `count` coefficients (`None`: all), if kept and intact: its
+    /// file and the count its header says it kept.
+    pub fn coded(&self, i: usize, count: Option<u64>) -> Option<(Vec<u8>, u64)> {
+        let bytes = self.read_checked(&coded_name(i, count))?;
+        let (header, _) = wavesplat_codec::format::read_header_section(&bytes).ok()?;
+        Some((bytes, header.kept))
+    }
+
+    /// Keeps brick `i` coded keeping `count` coefficients.
+    pub fn save_coded(&self, i: usize, count: Option<u64>, file: &[u8]) -> Result<(), BrickError> {
+        self.write_checked(&coded_name(i, count), file)
+    }
+
+    /// Removes the checkpoint (once the file it served is written).
+    pub fn remove(self) -> Result<(), BrickError> {
+        std::fs::remove_dir_all(&self.dir).map_err(BrickError::Checkpoint)
+    }
+
+    /// The bytes of entry `name` less its CRC-32 trailer, if present and the CRC matches.
+    fn read_checked(&self, name: &str) -> Option<Vec<u8>> {
+        let mut bytes = std::fs::read(self.dir.join(name)).ok()?;
+        let body = bytes.len().checked_sub(4)?;
+        let stored = u32::from_le_bytes(bytes[body..].try_into().ok()?);
+        bytes.truncate(body);
+        (crc32fast::hash(&bytes) == stored).then_some(bytes)
+    }
+
+    /// Writes entry `name`: `bytes` and their CRC-32.
+    fn write_checked(&self, name: &str, bytes: &[u8]) -> Result<(), BrickError> {
+        let mut with_crc = Vec::with_capacity(bytes.len() + 4);
+        with_crc.extend_from_slice(bytes);
+        with_crc.extend_from_slice(&crc32fast::hash(bytes).to_le_bytes());
+        self.write_atomic(name, &with_crc)
+    }
+
+    /// Writes `name` under a temporary name and renames it, so a kill leaves the old entry or
+    /// none, never part of one.
+    fn write_atomic(&self, name: &str, bytes: &[u8]) -> Result<(), BrickError> {
+        let tmp = self.dir.join(format!("{name}.tmp"));
+        std::fs::write(&tmp, bytes)
+            .and_then(|_| std::fs::rename(&tmp, self.dir.join(name)))
+            .map_err(BrickError::Checkpoint)
+    }
+}
+
+/// Whether `path` is a checkpoint entry's file (a summary or a coded brick, or one being
+/// written): what a checkpoint of another key has removed, and nothing else of the directory.
+fn is_entry(path: &Path) -> bool {
+    path.is_file()
+        && path
+            .file_name()
+            .and_then(|n| n.to_str())
+            .is_some_and(|n| n.starts_with("score-") || n.starts_with("brick-"))
+}
+
+/// The entry name of brick `i` coded keeping `count` coefficients.
+fn coded_name(i: usize, count: Option<u64>) -> String {
+    match count {
+        Some(k) => format!("brick-{i}-{k}"),
+        None => format!("brick-{i}-all"),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::encode::{score_summary, CompressOptions};
+    use crate::phantom::Phantom;
+
+    /// Entries read back as written; one cut short, with a byte changed, or left under its
+    /// temporary name (a kill while writing) is not read, so its pass is done again.
+    #[test]
+    fn entries_read_back_and_damaged_ones_are_not_read() {
+        let dir = tempfile::tempdir().unwrap();
+        let (cp, resumed) = Checkpoint::open(dir.path(), "k").unwrap();
+        assert_eq!(resumed, Resumed::default());
+        let v = Phantom::Spheres.generate([16, 16, 16]);
+        let opts = CompressOptions::default();
+        let summary = score_summary(&v, &opts, &|_, _| {}).unwrap();
+        cp.save_summary(3, &summary, false).unwrap();
+        let file = crate::encode::compress(&v, &opts, &|_, _| {}).unwrap();
+        cp.save_coded(3, Some(7), &file.bytes).unwrap();
+        assert_eq!(
+            cp.summary(3).unwrap().to_bytes(false),
+            summary.to_bytes(false)
+        );
+        assert_eq!(
+            cp.coded(3, Some(7)),
+            Some((file.bytes.clone(), file.header.kept))
+        );
+        // Another count, another brick: not there.
+        assert!(cp.coded(3, Some(8)).is_none() && cp.coded(3, None).is_none());
+        assert!(cp.summary(2).is_none());
+        let (_, resumed) = Checkpoint::open(dir.path(), "k").unwrap();
+        assert_eq!((resumed.scored, resumed.coded), (1, 1));
+
+        let path = dir.path().join("brick-3-7");
+        let good = std::fs::read(&path).unwrap();
+        std::fs::write(&path, &good[..good.len() - 1]).unwrap();
+        assert!(cp.coded(3, Some(7)).is_none(), "cut short");
+        let mut flipped = good.clone();
+        flipped[good.len() / 2] ^= 0x10;
+        std::fs::write(&path, &flipped).unwrap();
+        assert!(cp.coded(3, Some(7)).is_none(), "a byte changed");
+        std::fs::remove_file(&path).unwrap();
+        std::fs::write(dir.path().join("brick-3-7.tmp"), &good).unwrap();
+        assert!(cp.coded(3, Some(7)).is_none(), "never renamed");
+        let (_, resumed) = Checkpoint::open(dir.path(), "k").unwrap();
+        assert_eq!((resumed.scored, resumed.coded), (1, 0));
+    }
+
+    /// Another key empties the checkpoint of its entries (and only of them); removing it
+    /// removes the directory.
+    #[test]
+    fn another_key_empties_the_checkpoint() {
+        let dir = tempfile::tempdir().unwrap();
+        let at = dir.path().join("out.wsp.checkpoint");
+        let (cp, _) = Checkpoint::open(&at, "first").unwrap();
+        cp.write_checked("score-0", b"anything").unwrap();
+        std::fs::write(at.join("notes.txt"), b"mine").unwrap();
+        let (cp, resumed) = Checkpoint::open(&at, "second").unwrap();
+        assert!(resumed.replaced);
+        assert_eq!((resumed.scored, resumed.coded), (0, 0));
+        assert!(!at.join("score-0").exists() && at.join("notes.txt").exists());
+        assert_eq!(std::fs::read(at.join(KEY_FILE)).unwrap(), b"second");
+        cp.remove().unwrap();
+        assert!(!at.exists());
+    }
+}
