@@ -2,6 +2,7 @@
 
 use anyhow::{Context, Result};
 use clap::Args;
+use rayon::prelude::*;
 use std::path::PathBuf;
 use wavesplat_codec::format::packet::{decode_packet, SizeBreakdown};
 use wavesplat_codec::format::{parse_file, Header, WspFile};
@@ -19,7 +20,15 @@ pub struct InfoArgs {
     /// time point (otherwise the first 32).
     #[arg(long)]
     pub bricks: bool,
+    /// For a bricked file over 64 MB, still split its bytes into headers, positions, signs
+    /// and values (and count the coefficients in the bricks' padding), which decodes every
+    /// brick; smaller files always show it.
+    #[arg(long)]
+    pub breakdown: bool,
 }
+
+/// Bricked files up to this size show their size breakdown without `--breakdown`.
+const BREAKDOWN_BYTES: u64 = 64 << 20;
 
 /// Bricks a bricked file's listing shows without `--bricks`.
 const BRICKS_LISTED: usize = 16;
@@ -127,18 +136,35 @@ pub fn run(a: InfoArgs) -> Result<()> {
             );
         }
         // Where the bytes went, over every brick: the manifest with the bricks' header
-        // sections (as above), their packet directories, and their packets' payload.
+        // sections (as above), their packet directories, and their packets' payload. It
+        // decodes every brick (on every core), so a large file does it when asked.
+        if bytes.len() as u64 > BREAKDOWN_BYTES && !a.breakdown {
+            outln!(
+                "size breakdown: --breakdown decodes every brick to split their bytes (this file \
+                 is over {} MB)",
+                BREAKDOWN_BYTES >> 20
+            );
+            return Ok(());
+        }
+        let per_brick = (0..m.bricks.len())
+            .into_par_iter()
+            .map(|i| {
+                let brick = f
+                    .brick_bytes(i)
+                    .and_then(parse_file)
+                    .with_context(|| format!("reading brick {i} of {}", a.input.display()))?;
+                let mut part = SizeBreakdown::default();
+                let counted = packets_breakdown(&brick, &mut part, false)
+                    .with_context(|| format!("decoding brick {i}"))?;
+                Ok((part, brick.directory_bytes, counted.outside))
+            })
+            .collect::<Result<Vec<_>>>()?;
         let mut total = SizeBreakdown::default();
         let (mut directories, mut outside) = (0usize, 0usize);
-        for i in 0..m.bricks.len() {
-            let brick = f
-                .brick_bytes(i)
-                .and_then(parse_file)
-                .with_context(|| format!("reading brick {i} of {}", a.input.display()))?;
-            directories += brick.directory_bytes;
-            outside += packets_breakdown(&brick, &mut total, false)
-                .with_context(|| format!("decoding brick {i}"))?
-                .outside;
+        for (part, directory, out) in per_brick {
+            add_breakdown(&mut total, &part);
+            directories += directory;
+            outside += out;
         }
         // Coefficients in a brick's padding draw only near its faces: the share bricking costs
         // in coefficients (an unbricked file keeps almost none there).
@@ -189,11 +215,7 @@ fn packets_breakdown(file: &WspFile<'_>, total: &mut SizeBreakdown, list: bool) 
             .iter()
             .filter(|c| g.cell_outside_box(c.band, c.pos))
             .count();
-        total.tag_bits += d.breakdown.tag_bits;
-        total.position_bits += d.breakdown.position_bits;
-        total.sign_bits += d.breakdown.sign_bits;
-        total.value_bits += d.breakdown.value_bits;
-        total.framing_bytes += d.breakdown.framing_bytes;
+        add_breakdown(total, &d.breakdown);
         if list {
             let energy: f64 = d.summary.iter().map(|(_, e)| e).sum();
             outln!(
@@ -207,6 +229,15 @@ fn packets_breakdown(file: &WspFile<'_>, total: &mut SizeBreakdown, list: bool) 
         }
     }
     Ok(counted)
+}
+
+/// Adds `part` to `total`.
+fn add_breakdown(total: &mut SizeBreakdown, part: &SizeBreakdown) {
+    total.tag_bits += part.tag_bits;
+    total.position_bits += part.position_bits;
+    total.sign_bits += part.sign_bits;
+    total.value_bits += part.value_bits;
+    total.framing_bytes += part.framing_bytes;
 }
 
 /// Prints a size breakdown: header sections, packet directories, then the packets' framing
