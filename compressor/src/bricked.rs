@@ -1305,7 +1305,8 @@ impl BrickWork for LocalBricks<'_> {
                             s = s.without_energies();
                         }
                         if let Some(c) = self.checkpoint {
-                            c.save_summary(i, &s, energies)?;
+                            c.save_summary(i, &s, energies)
+                                .map_err(BrickError::Checkpoint)?;
                         }
                         s
                     }
@@ -1347,7 +1348,8 @@ impl LocalBricks<'_> {
                     None => {
                         let coded = plan.encode(self.source, i, count)?;
                         if let Some(c) = self.checkpoint {
-                            c.save_coded(i, count, &coded.0)?;
+                            c.save_coded(i, count, &coded.0)
+                                .map_err(BrickError::Checkpoint)?;
                         }
                         coded
                     }

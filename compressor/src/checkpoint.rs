@@ -10,8 +10,9 @@
 //! so an entry cut off by a kill is never read: a damaged or unreadable one is done again. The
 //! directory is tied to one compression by a key (the input's identity and the options, which
 //! the caller builds): a checkpoint of another compression is emptied before it is used.
+//! Its errors are the file system's; the bricked compressor reports them as
+//! `BrickError::Checkpoint`.
 
-use crate::bricked::BrickError;
 use crate::encode::ScoreSummary;
 use std::path::{Path, PathBuf};
 
@@ -38,9 +39,8 @@ pub struct Resumed {
 impl Checkpoint {
     /// Opens the checkpoint in `dir` (created when missing) for the compression `key` names.
     /// Entries of another key are removed first; an empty or new directory takes the key.
-    pub fn open(dir: &Path, key: &str) -> Result<(Checkpoint, Resumed), BrickError> {
-        let io = BrickError::Checkpoint;
-        std::fs::create_dir_all(dir).map_err(io)?;
+    pub fn open(dir: &Path, key: &str) -> std::io::Result<(Checkpoint, Resumed)> {
+        std::fs::create_dir_all(dir)?;
         let cp = Checkpoint {
             dir: dir.to_path_buf(),
         };
@@ -48,17 +48,17 @@ impl Checkpoint {
         let stored = std::fs::read(dir.join(KEY_FILE)).ok();
         if stored.as_deref() != Some(key.as_bytes()) {
             resumed.replaced = stored.is_some();
-            for entry in std::fs::read_dir(dir).map_err(io)? {
-                let path = entry.map_err(io)?.path();
+            for entry in std::fs::read_dir(dir)? {
+                let path = entry?.path();
                 if is_entry(&path) {
                     resumed.replaced = true;
-                    std::fs::remove_file(&path).map_err(io)?;
+                    std::fs::remove_file(&path)?;
                 }
             }
             cp.write_atomic(KEY_FILE, key.as_bytes())?;
         }
-        for entry in std::fs::read_dir(dir).map_err(io)? {
-            let name = entry.map_err(io)?.file_name();
+        for entry in std::fs::read_dir(dir)? {
+            let name = entry?.file_name();
             let name = name.to_string_lossy();
             if name.starts_with("score-") && !name.ends_with(".tmp") {
                 resumed.scored += 1;
@@ -86,7 +86,7 @@ impl Checkpoint {
         i: usize,
         summary: &ScoreSummary,
         energies: bool,
-    ) -> Result<(), BrickError> {
+    ) -> std::io::Result<()> {
         self.write_checked(&format!("score-{i}"), &summary.to_bytes(energies))
     }
 
@@ -99,13 +99,13 @@ impl Checkpoint {
     }
 
     /// Keeps brick `i` coded keeping `count` coefficients.
-    pub fn save_coded(&self, i: usize, count: Option<u64>, file: &[u8]) -> Result<(), BrickError> {
+    pub fn save_coded(&self, i: usize, count: Option<u64>, file: &[u8]) -> std::io::Result<()> {
         self.write_checked(&coded_name(i, count), file)
     }
 
     /// Removes the checkpoint (once the file it served is written).
-    pub fn remove(self) -> Result<(), BrickError> {
-        std::fs::remove_dir_all(&self.dir).map_err(BrickError::Checkpoint)
+    pub fn remove(self) -> std::io::Result<()> {
+        std::fs::remove_dir_all(&self.dir)
     }
 
     /// The bytes of entry `name` less its CRC-32 trailer, if present and the CRC matches.
@@ -118,7 +118,7 @@ impl Checkpoint {
     }
 
     /// Writes entry `name`: `bytes` and their CRC-32.
-    fn write_checked(&self, name: &str, bytes: &[u8]) -> Result<(), BrickError> {
+    fn write_checked(&self, name: &str, bytes: &[u8]) -> std::io::Result<()> {
         let mut with_crc = Vec::with_capacity(bytes.len() + 4);
         with_crc.extend_from_slice(bytes);
         with_crc.extend_from_slice(&crc32fast::hash(bytes).to_le_bytes());
@@ -127,11 +127,9 @@ impl Checkpoint {
 
     /// Writes `name` under a temporary name and renames it, so a kill leaves the old entry or
     /// none, never part of one.
-    fn write_atomic(&self, name: &str, bytes: &[u8]) -> Result<(), BrickError> {
+    fn write_atomic(&self, name: &str, bytes: &[u8]) -> std::io::Result<()> {
         let tmp = self.dir.join(format!("{name}.tmp"));
-        std::fs::write(&tmp, bytes)
-            .and_then(|_| std::fs::rename(&tmp, self.dir.join(name)))
-            .map_err(BrickError::Checkpoint)
+        std::fs::write(&tmp, bytes).and_then(|_| std::fs::rename(&tmp, self.dir.join(name)))
     }
 }
 
