@@ -259,10 +259,6 @@ pub enum BrickError {
     /// The coded bricks could not be kept in their temporary file.
     #[error("keeping the coded bricks in a temporary file")]
     Spill(#[source] std::io::Error),
-    /// The checkpoint directory could not be read or written
-    /// ([`crate::checkpoint::Checkpoint`]).
-    #[error("keeping the finished bricks in the checkpoint directory")]
-    Checkpoint(#[source] std::io::Error),
     /// The container could not be written out.
     #[error("writing the bricked file")]
     Output(#[source] std::io::Error),
@@ -1305,8 +1301,7 @@ impl BrickWork for LocalBricks<'_> {
                             s = s.without_energies();
                         }
                         if let Some(c) = self.checkpoint {
-                            c.save_summary(i, &s, energies)
-                                .map_err(BrickError::Checkpoint)?;
+                            c.keep_summary(i, &s, energies);
                         }
                         s
                     }
@@ -1348,8 +1343,7 @@ impl LocalBricks<'_> {
                     None => {
                         let coded = plan.encode(self.source, i, count)?;
                         if let Some(c) = self.checkpoint {
-                            c.save_coded(i, count, &coded.0)
-                                .map_err(BrickError::Checkpoint)?;
+                            c.keep_coded(i, count, &coded.0);
                         }
                         coded
                     }

@@ -10,8 +10,8 @@
 //! so an entry cut off by a kill is never read: a damaged or unreadable one is done again. The
 //! directory is tied to one compression by a key (the input's identity and the options, which
 //! the caller builds): a checkpoint of another compression is emptied before it is used.
-//! Its errors are the file system's; the bricked compressor reports them as
-//! `BrickError::Checkpoint`.
+//! A checkpoint that cannot be written (a full disk, a name taken) is a warning, not an error:
+//! the compression goes on without it ([`Checkpoint::keep_summary`]).
 
 use crate::encode::ScoreSummary;
 use std::path::{Path, PathBuf};
@@ -23,6 +23,8 @@ const KEY_FILE: &str = "key";
 #[derive(Debug)]
 pub struct Checkpoint {
     dir: PathBuf,
+    /// Set by the first entry that could not be written: no more are tried.
+    unwritable: std::sync::atomic::AtomicBool,
 }
 
 /// What a checkpoint held when it was opened.
@@ -43,6 +45,7 @@ impl Checkpoint {
         std::fs::create_dir_all(dir)?;
         let cp = Checkpoint {
             dir: dir.to_path_buf(),
+            unwritable: Default::default(),
         };
         let mut resumed = Resumed::default();
         let stored = std::fs::read(dir.join(KEY_FILE)).ok();
@@ -101,6 +104,46 @@ impl Checkpoint {
     /// Keeps brick `i` coded keeping `count` coefficients.
     pub fn save_coded(&self, i: usize, count: Option<u64>, file: &[u8]) -> std::io::Result<()> {
         self.write_checked(&coded_name(i, count), file)
+    }
+
+    /// Keeps brick `i`'s score summary as [`Checkpoint::save_summary`] does; one that cannot
+    /// be written is a warning (the first time) and the compression goes on without the
+    /// checkpoint, which is a convenience, never a reason to fail.
+    pub fn keep_summary(&self, i: usize, summary: &ScoreSummary, energies: bool) {
+        if !self.is_unwritable() {
+            let kept = self.save_summary(i, summary, energies);
+            self.note(kept);
+        }
+    }
+
+    /// Keeps brick `i` coded as [`Checkpoint::save_coded`] does, going on without the
+    /// checkpoint where it cannot be written ([`Checkpoint::keep_summary`]).
+    pub fn keep_coded(&self, i: usize, count: Option<u64>, file: &[u8]) {
+        if !self.is_unwritable() {
+            let kept = self.save_coded(i, count, file);
+            self.note(kept);
+        }
+    }
+
+    fn is_unwritable(&self) -> bool {
+        self.unwritable.load(std::sync::atomic::Ordering::Relaxed)
+    }
+
+    /// Warns of the first entry that could not be written, and stops writing.
+    fn note(&self, kept: std::io::Result<()>) {
+        if let Err(e) = kept {
+            if !self
+                .unwritable
+                .swap(true, std::sync::atomic::Ordering::Relaxed)
+            {
+                tracing::warn!(
+                    dir = %self.dir.display(),
+                    error = %e,
+                    "cannot keep finished bricks in the checkpoint: going on without it (an \
+                     interruption now loses what is not kept)"
+                );
+            }
+        }
     }
 
     /// Removes the checkpoint (once the file it served is written).
@@ -197,6 +240,23 @@ mod tests {
         assert!(cp.coded(3, Some(7)).is_none(), "never renamed");
         let (_, resumed) = Checkpoint::open(dir.path(), "k").unwrap();
         assert_eq!((resumed.scored, resumed.coded), (1, 0));
+    }
+
+    /// An entry that cannot be written (its name taken by a directory) leaves the checkpoint
+    /// unwritten from then on, without an error; what was kept before still reads.
+    #[test]
+    fn an_unwritable_checkpoint_is_given_up_without_an_error() {
+        let dir = tempfile::tempdir().unwrap();
+        let (cp, _) = Checkpoint::open(dir.path(), "k").unwrap();
+        cp.keep_coded(0, None, b"first");
+        std::fs::create_dir_all(dir.path().join("brick-1-all").join("taken")).unwrap();
+        cp.keep_coded(1, None, b"second");
+        assert!(cp.is_unwritable());
+        cp.keep_coded(2, None, b"third");
+        assert!(!dir.path().join("brick-2-all").exists());
+        assert!(cp
+            .read_checked("brick-0-all")
+            .is_some_and(|b| b == b"first"));
     }
 
     /// Another key empties the checkpoint of its entries (and only of them); removing it
