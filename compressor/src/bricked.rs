@@ -1530,7 +1530,23 @@ pub fn compress_bricked_to(
     checkpoint: Option<&crate::checkpoint::Checkpoint>,
     out: &mut dyn std::io::Write,
 ) -> Result<BrickedWritten, BrickError> {
-    let plan = BrickPlan::new(source, opts, brick)?;
+    let kept_plan = checkpoint
+        .and_then(|c| c.plan())
+        .and_then(|bytes| PlanChoices::from_bytes(&bytes));
+    let plan = match kept_plan {
+        Some(kept) => {
+            let mut plan = BrickPlan::with_choices(source, opts, brick, kept.choices)?;
+            plan.coefficients_per_byte = kept.coefficients_per_byte;
+            plan
+        }
+        None => {
+            let plan = BrickPlan::new(source, opts, brick)?;
+            if let Some(c) = checkpoint {
+                c.keep_plan(&PlanChoices::of(&plan).to_bytes());
+            }
+            plan
+        }
+    };
     let work = SpillingBricks {
         local: LocalBricks {
             source,
@@ -1549,6 +1565,101 @@ pub fn compress_bricked_to(
         nonzero: a.nonzero,
         levels: plan.choices.levels,
     })
+}
+
+/// What [`BrickPlan::new`] chose that a checkpoint keeps, so that a compression run again
+/// plans without reading the whole's faces or comparing depths on a sample again: the shared
+/// choices and the rate search's start.
+#[derive(Debug, Clone, PartialEq)]
+struct PlanChoices {
+    choices: SharedChoices,
+    coefficients_per_byte: Option<f64>,
+}
+
+impl PlanChoices {
+    fn of(plan: &BrickPlan) -> PlanChoices {
+        PlanChoices {
+            choices: plan.choices.clone(),
+            coefficients_per_byte: plan.coefficients_per_byte,
+        }
+    }
+
+    /// The choices as bytes: the depth (u64), then the offset, the rate search's start and the
+    /// colour transform, each a presence byte and its values (f64 bits, little-endian; the
+    /// transform's kind by name, length first).
+    fn to_bytes(&self) -> Vec<u8> {
+        let mut out = (self.choices.levels as u64).to_le_bytes().to_vec();
+        for v in [self.choices.offset, self.coefficients_per_byte] {
+            out.push(u8::from(v.is_some()));
+            out.extend_from_slice(&v.unwrap_or(0.0).to_le_bytes());
+        }
+        match &self.choices.color {
+            None => out.push(0),
+            Some(t) => {
+                out.push(1);
+                let name = t.kind.name().as_bytes();
+                out.push(name.len() as u8);
+                out.extend_from_slice(name);
+                let values = t.basis.iter().flatten().chain(&t.mean).chain(&t.importance);
+                for v in values {
+                    out.extend_from_slice(&v.to_le_bytes());
+                }
+            }
+        }
+        out
+    }
+
+    /// Reads what [`PlanChoices::to_bytes`] wrote; `None` for anything else (the plan is then
+    /// made again).
+    fn from_bytes(bytes: &[u8]) -> Option<PlanChoices> {
+        let mut r = bytes;
+        let mut take = |n: usize| -> Option<&[u8]> {
+            let (head, rest) = r.split_at_checked(n)?;
+            r = rest;
+            Some(head)
+        };
+        let levels = u64::from_le_bytes(take(8)?.try_into().ok()?) as usize;
+        let mut optional = || -> Option<Option<f64>> {
+            let present = take(1)?[0];
+            let v = f64::from_le_bytes(take(8)?.try_into().ok()?);
+            match present {
+                0 => Some(None),
+                1 => Some(Some(v)),
+                _ => None,
+            }
+        };
+        let (offset, coefficients_per_byte) = (optional()?, optional()?);
+        let color = match take(1)?[0] {
+            0 => None,
+            1 => {
+                let len = take(1)?[0] as usize;
+                let kind = ColorSpaceKind::from_name(std::str::from_utf8(take(len)?).ok()?)?;
+                let mut values = [0f64; 15];
+                for v in &mut values {
+                    *v = f64::from_le_bytes(take(8)?.try_into().ok()?);
+                }
+                let row = |i: usize| [values[i], values[i + 1], values[i + 2]];
+                Some(ColorTransform {
+                    kind,
+                    basis: [row(0), row(3), row(6)],
+                    mean: row(9),
+                    importance: row(12),
+                })
+            }
+            _ => return None,
+        };
+        if !r.is_empty() {
+            return None;
+        }
+        Some(PlanChoices {
+            choices: SharedChoices {
+                levels,
+                offset,
+                color,
+            },
+            coefficients_per_byte,
+        })
+    }
 }
 
 /// Trials of the byte target's search on the global count.
@@ -2103,10 +2214,11 @@ mod tests {
 
     /// A compression stopped midway and run again with its checkpoint does only what is
     /// missing and writes the file an uninterrupted run writes, byte for byte. A fraction
-    /// target stopped while coding its third brick from the end reads no brick to score again
-    /// and codes only those three; run a third time it reads none for either pass. A byte
-    /// target (several trials, each brick's count its own entry) stopped in its last trial
-    /// ends in the same file, reading less. A checkpoint of other options is emptied, not used.
+    /// target stopped while coding its third brick from the end plans, scores and reads
+    /// nothing again but those three bricks; run a third time it reads nothing. A byte target
+    /// (a depth compared on a sample, several trials, each brick's count its own entry)
+    /// stopped in its last trial ends in the same file, reading less, and nothing the third
+    /// time. A checkpoint of other options is emptied, not used.
     #[test]
     fn a_compression_run_again_with_its_checkpoint_goes_on_where_it_stopped() {
         let v = Phantom::SheppLogan.generate([40, 36, 30]);
@@ -2154,17 +2266,15 @@ mod tests {
             assert_eq!(again.unwrap(), whole, "{target:?}");
             assert_eq!(resumed.scored, bricks, "{target:?}: every brick was scored");
             assert!(reads < all_reads, "{target:?}: {reads} of {all_reads}");
+            // Everything kept, the plan included (the whole's faces, a byte target's depth
+            // compared on a sample): nothing is read.
             let (third, _, third_reads) = run(0, true);
             assert_eq!(third.unwrap(), whole, "{target:?}");
+            assert_eq!(third_reads, 0, "{target:?}");
             if matches!(target, Target::Fraction(_)) {
-                // The plan's reads (the whole's faces) are all a run does beyond the bricks'
-                // two passes, one read a brick each.
-                let plan_reads = all_reads - 2 * bricks;
+                // The plan was kept before the stop: only the 3 bricks left are read.
                 assert_eq!(resumed.coded, bricks - 3, "{resumed:?}");
-                assert_eq!(reads, plan_reads + 3);
-                assert_eq!(third_reads, plan_reads);
-            } else {
-                assert!(third_reads <= all_reads - 2 * bricks, "{third_reads}");
+                assert_eq!(reads, 3);
             }
             // Other options: the entries are removed, and nothing of them is used.
             let other = CompressOptions {
@@ -2175,6 +2285,50 @@ mod tests {
                 crate::checkpoint::Checkpoint::open(dir.path(), &format!("{other:?}")).unwrap();
             assert!(replaced.replaced && replaced.scored + replaced.coded == 0);
         }
+    }
+
+    /// The plan's choices a checkpoint keeps read back as they were (a colour transform, a
+    /// rate search's start, none of either); anything cut short, longer or with an unknown
+    /// tag is refused (the plan is then made again).
+    #[test]
+    fn the_plan_s_choices_read_back_from_their_bytes() {
+        let rgb = Phantom::RgbHead.generate([36, 30, 28]);
+        let grey = Phantom::SheppLogan.generate([40, 36, 30]);
+        for (v, target) in [
+            (&rgb, Target::Fraction(0.04)),
+            (&grey, Target::Bytes(9_000)),
+            (&grey, Target::Fraction(0.05)),
+        ] {
+            let opts = CompressOptions {
+                target,
+                ..CompressOptions::default()
+            };
+            let kept = PlanChoices::of(&BrickPlan::new(v, &opts, 20).unwrap());
+            let bytes = kept.to_bytes();
+            assert_eq!(PlanChoices::from_bytes(&bytes), Some(kept.clone()));
+            assert!(PlanChoices::from_bytes(&bytes[..bytes.len() - 1]).is_none());
+            let mut longer = bytes.clone();
+            longer.push(0);
+            assert!(PlanChoices::from_bytes(&longer).is_none());
+            let mut tag = bytes.clone();
+            tag[8] = 7;
+            assert!(PlanChoices::from_bytes(&tag).is_none());
+        }
+        let with_colour =
+            PlanChoices::of(&BrickPlan::new(&rgb, &CompressOptions::default(), 20).unwrap());
+        assert!(with_colour.choices.color.is_some());
+        let scalar = PlanChoices::of(
+            &BrickPlan::new(
+                &grey,
+                &CompressOptions {
+                    target: Target::Bytes(9_000),
+                    ..CompressOptions::default()
+                },
+                20,
+            )
+            .unwrap(),
+        );
+        assert!(scalar.coefficients_per_byte.is_some() && scalar.choices.offset.is_some());
     }
 
     /// A summary survives its bytes; damaged bytes are refused, never read as another summary.

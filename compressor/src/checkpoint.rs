@@ -1,8 +1,9 @@
 //! Resuming an interrupted bricked compression. A large volume takes hours in one process
 //! (2048³ on two cores: most of an hour), and a kill, a reboot or a full disk near the end
 //! should not cost the bricks already done. A [`Checkpoint`] is a directory that keeps, as
-//! they are made, every brick's score summary (the first pass) and every coded brick (the
-//! second, keyed by the count it kept, so a byte target's trials are kept apart). A run of the
+//! they are made, the plan's choices (a byte target's depth, compared on a sample of the
+//! bricks), every brick's score summary (the first pass) and every coded brick (the second,
+//! keyed by the count it kept, so a byte target's trials are kept apart). A run of the
 //! same compression finds them and does only what is missing; the result is the same file,
 //! byte for byte, since each brick's pass depends only on the brick, the options and its count.
 //!
@@ -18,6 +19,8 @@ use std::path::{Path, PathBuf};
 
 /// The file naming the compression a checkpoint belongs to.
 const KEY_FILE: &str = "key";
+/// The entry of the plan's choices.
+const PLAN_FILE: &str = "plan";
 
 /// A directory of the finished passes of one bricked compression.
 #[derive(Debug)]
@@ -75,6 +78,22 @@ impl Checkpoint {
     /// The directory.
     pub fn dir(&self) -> &Path {
         &self.dir
+    }
+
+    /// The plan's choices as the caller wrote them ([`Checkpoint::keep_plan`]), if kept and
+    /// intact.
+    pub fn plan(&self) -> Option<Vec<u8>> {
+        self.read_checked(PLAN_FILE)
+    }
+
+    /// Keeps the plan's choices (the depth a byte target compared on a sample, the whole's
+    /// offset or colour transform), so that a run again does not plan again; a checkpoint that
+    /// cannot be written is given up as [`Checkpoint::keep_summary`] says.
+    pub fn keep_plan(&self, bytes: &[u8]) {
+        if !self.is_unwritable() {
+            let kept = self.write_checked(PLAN_FILE, bytes);
+            self.note(kept);
+        }
     }
 
     /// Brick `i`'s score summary, if kept and intact.
@@ -180,10 +199,9 @@ impl Checkpoint {
 /// written): what a checkpoint of another key has removed, and nothing else of the directory.
 fn is_entry(path: &Path) -> bool {
     path.is_file()
-        && path
-            .file_name()
-            .and_then(|n| n.to_str())
-            .is_some_and(|n| n.starts_with("score-") || n.starts_with("brick-"))
+        && path.file_name().and_then(|n| n.to_str()).is_some_and(|n| {
+            n.starts_with("score-") || n.starts_with("brick-") || n.starts_with(PLAN_FILE)
+        })
 }
 
 /// The entry name of brick `i` coded keeping `count` coefficients.
