@@ -2265,6 +2265,7 @@ mod tests {
             let (again, resumed, reads) = run(0, true);
             assert_eq!(again.unwrap(), whole, "{target:?}");
             assert_eq!(resumed.scored, bricks, "{target:?}: every brick was scored");
+            assert!(resumed.planned, "{target:?}");
             assert!(reads < all_reads, "{target:?}: {reads} of {all_reads}");
             // Everything kept, the plan included (the whole's faces, a byte target's depth
             // compared on a sample): nothing is read.
@@ -2283,7 +2284,8 @@ mod tests {
             };
             let (_, replaced) =
                 crate::checkpoint::Checkpoint::open(dir.path(), &format!("{other:?}")).unwrap();
-            assert!(replaced.replaced && replaced.scored + replaced.coded == 0);
+            assert!(replaced.replaced && !replaced.planned);
+            assert_eq!(replaced.scored + replaced.coded, 0);
         }
     }
 

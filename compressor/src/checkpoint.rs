@@ -33,6 +33,8 @@ pub struct Checkpoint {
 /// What a checkpoint held when it was opened.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub struct Resumed {
+    /// Whether it held the plan's choices.
+    pub planned: bool,
     /// Bricks whose score summary it held.
     pub scored: usize,
     /// Coded bricks it held (over every count).
@@ -66,7 +68,9 @@ impl Checkpoint {
         for entry in std::fs::read_dir(dir)? {
             let name = entry?.file_name();
             let name = name.to_string_lossy();
-            if name.starts_with("score-") && !name.ends_with(".tmp") {
+            if name == PLAN_FILE {
+                resumed.planned = true;
+            } else if name.starts_with("score-") && !name.ends_with(".tmp") {
                 resumed.scored += 1;
             } else if name.starts_with("brick-") && !name.ends_with(".tmp") {
                 resumed.coded += 1;

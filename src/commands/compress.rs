@@ -551,10 +551,11 @@ fn open_checkpoint(
             dir = %dir.display(),
             "the checkpoint was of another input or other options: starting over"
         );
-    } else if resumed.scored + resumed.coded > 0 {
+    } else if resumed.planned || resumed.scored + resumed.coded > 0 {
         outln!(
-            "resuming from {}: {} bricks scored and {} coded already",
+            "resuming from {}: {}{} bricks scored and {} coded already",
             dir.display(),
+            if resumed.planned { "the plan, " } else { "" },
             resumed.scored,
             resumed.coded
         );
