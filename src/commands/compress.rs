@@ -156,11 +156,12 @@ pub struct CompressArgs {
     /// largest that fit.
     #[arg(long, value_name = "N")]
     pub brick: Option<usize>,
-    /// A bricked compression keeps each brick as it finishes in OUTPUT.checkpoint/ (beside
-    /// the output, about the output's size) and removes it once the file is written; run the
-    /// same command again after an interruption (a kill, a reboot, a full disk) and it goes on
-    /// from there, writing the same file. This flag discards such a checkpoint and starts over.
-    /// A checkpoint of another input or other options is never used.
+    /// Start a bricked compression over, discarding the checkpoint of an interrupted run. By
+    /// default a bricked compression keeps its plan and each brick as it finishes in
+    /// OUTPUT.checkpoint/ beside the output (about the output's size, once per trial of a byte
+    /// target's search) and removes it once the file is written; the same command run again
+    /// after an interruption (a kill, a reboot, a full disk) goes on from there and writes the
+    /// same file. A checkpoint of another input or other options is never used.
     #[arg(long)]
     pub no_resume: bool,
     /// Tile edge in voxels (rounded up to a multiple of 2^M); default: chosen from the size.
