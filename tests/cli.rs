@@ -777,6 +777,18 @@ fn a_killed_bricked_compression_resumes_where_it_stopped() {
         !checkpoint.exists(),
         "the checkpoint is removed once the file is written"
     );
+    // The killed run's unfinished output (SIGKILL is not caught) is removed by the run again.
+    let left: Vec<String> = std::fs::read_dir(dir.path())
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .filter(|n| n.ends_with(".partial"))
+        .collect();
+    assert!(left.is_empty(), "{left:?}");
+    assert!(
+        out(&resumed).contains("left by the interrupted run"),
+        "{}",
+        out(&resumed)
+    );
     std::fs::remove_file(path("k.wsp")).unwrap();
     kill_midway();
     let mut fresh = args(&path("k.wsp"));
@@ -786,6 +798,14 @@ fn a_killed_bricked_compression_resumes_where_it_stopped() {
     assert!(!out(&over).contains("resuming"), "{}", out(&over));
     assert_eq!(std::fs::read(path("k.wsp")).unwrap(), want);
     assert!(!checkpoint.exists());
+    let partial = std::fs::read_dir(dir.path())
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .any(|n| n.ends_with(".partial"));
+    assert!(
+        !partial,
+        "--no-resume removes the killed run's unfinished output too"
+    );
 }
 
 #[test]

@@ -21,6 +21,8 @@ use std::path::{Path, PathBuf};
 const KEY_FILE: &str = "key";
 /// The entry of the plan's choices.
 const PLAN_FILE: &str = "plan";
+/// The entry naming the unfinished output file of the run that made the checkpoint.
+const UNFINISHED_FILE: &str = "unfinished-output";
 
 /// A directory of the finished passes of one bricked compression.
 #[derive(Debug)]
@@ -100,6 +102,32 @@ impl Checkpoint {
         }
     }
 
+    /// The unfinished output file the run that made this checkpoint was writing, as the
+    /// caller recorded it ([`Checkpoint::keep_unfinished_output`]). Kept whatever the key: the
+    /// file of a run with other options is just as unfinished.
+    pub fn unfinished_output(&self) -> Option<PathBuf> {
+        Checkpoint::unfinished_output_in(&self.dir)
+    }
+
+    /// [`Checkpoint::unfinished_output`] of the checkpoint in `dir`, without opening it (to
+    /// read before a checkpoint is discarded).
+    pub fn unfinished_output_in(dir: &Path) -> Option<PathBuf> {
+        let bytes = read_checked_at(&dir.join(UNFINISHED_FILE))?;
+        Some(PathBuf::from(String::from_utf8(bytes).ok()?))
+    }
+
+    /// Records the unfinished output file this run writes (a temporary name renamed into place
+    /// at the end), so that a run again can remove it if this one is killed before it can
+    /// (SIGKILL is not caught).
+    pub fn keep_unfinished_output(&self, path: &Path) {
+        if let Some(name) = path.to_str() {
+            if !self.is_unwritable() {
+                let kept = self.write_checked(UNFINISHED_FILE, name.as_bytes());
+                self.note(kept);
+            }
+        }
+    }
+
     /// Brick `i`'s score summary, if kept and intact.
     pub fn summary(&self, i: usize) -> Option<ScoreSummary> {
         let bytes = self.read_checked(&format!("score-{i}"))?;
@@ -176,11 +204,7 @@ impl Checkpoint {
 
     /// The bytes of entry `name` less its CRC-32 trailer, if present and the CRC matches.
     fn read_checked(&self, name: &str) -> Option<Vec<u8>> {
-        let mut bytes = std::fs::read(self.dir.join(name)).ok()?;
-        let body = bytes.len().checked_sub(4)?;
-        let stored = u32::from_le_bytes(bytes[body..].try_into().ok()?);
-        bytes.truncate(body);
-        (crc32fast::hash(&bytes) == stored).then_some(bytes)
+        read_checked_at(&self.dir.join(name))
     }
 
     /// Writes entry `name`: `bytes` and their CRC-32.
@@ -197,6 +221,15 @@ impl Checkpoint {
         let tmp = self.dir.join(format!("{name}.tmp"));
         std::fs::write(&tmp, bytes).and_then(|_| std::fs::rename(&tmp, self.dir.join(name)))
     }
+}
+
+/// The bytes of the entry at `path` less its CRC-32 trailer, if present and the CRC matches.
+fn read_checked_at(path: &Path) -> Option<Vec<u8>> {
+    let mut bytes = std::fs::read(path).ok()?;
+    let body = bytes.len().checked_sub(4)?;
+    let stored = u32::from_le_bytes(bytes[body..].try_into().ok()?);
+    bytes.truncate(body);
+    (crc32fast::hash(&bytes) == stored).then_some(bytes)
 }
 
 /// Whether `path` is a checkpoint entry's file (a summary or a coded brick, or one being

@@ -464,7 +464,29 @@ fn compress_bricks_of(
         // Only where the output is a file (a checkpoint beside a pipe or a device would
         // outlive what it served).
         let checkpoint = match spill {
-            Some(_) => Some(open_checkpoint(a, opts, brick, &checkpoint_dir)?),
+            Some(dir) => {
+                // Read before --no-resume discards the checkpoint.
+                let left = Checkpoint::unfinished_output_in(&checkpoint_dir);
+                let cp = open_checkpoint(a, opts, brick, &checkpoint_dir)?;
+                // The unfinished output of a run killed before it could remove it (SIGKILL),
+                // replaced by this run's.
+                let current = super::interrupt::unfinished()
+                    .into_iter()
+                    .rev()
+                    .find(|p| p.parent() == Some(dir));
+                if let Some(left) = left {
+                    if Some(&left) != current.as_ref()
+                        && left.parent() == Some(dir)
+                        && std::fs::remove_file(&left).is_ok()
+                    {
+                        outln!("removed {}, left by the interrupted run", left.display());
+                    }
+                }
+                if let Some(current) = &current {
+                    cp.keep_unfinished_output(current);
+                }
+                Some(cp)
+            }
             None => None,
         };
         let _kept = checkpoint.as_ref().map(|cp| {

@@ -84,6 +84,11 @@ impl Drop for Kept {
     }
 }
 
+/// The unfinished files of this process now, oldest first.
+pub fn unfinished() -> Vec<PathBuf> {
+    lock().clone()
+}
+
 fn forget(path: &Path) {
     lock().retain(|p| p != path);
 }
