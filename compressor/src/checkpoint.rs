@@ -102,15 +102,10 @@ impl Checkpoint {
         }
     }
 
-    /// The unfinished output file the run that made this checkpoint was writing, as the
-    /// caller recorded it ([`Checkpoint::keep_unfinished_output`]). Kept whatever the key: the
-    /// file of a run with other options is just as unfinished.
-    pub fn unfinished_output(&self) -> Option<PathBuf> {
-        Checkpoint::unfinished_output_in(&self.dir)
-    }
-
-    /// [`Checkpoint::unfinished_output`] of the checkpoint in `dir`, without opening it (to
-    /// read before a checkpoint is discarded).
+    /// The unfinished output file the run that made the checkpoint in `dir` was writing, as
+    /// the caller recorded it ([`Checkpoint::keep_unfinished_output`]), read without opening
+    /// the checkpoint (so before one is discarded). Kept whatever the key: the file of a run
+    /// with other options is just as unfinished.
     pub fn unfinished_output_in(dir: &Path) -> Option<PathBuf> {
         let bytes = read_checked_at(&dir.join(UNFINISHED_FILE))?;
         Some(PathBuf::from(String::from_utf8(bytes).ok()?))
