@@ -12,15 +12,22 @@
 //! every position's share read from circular prefix sums (positions at level l are shifts
 //! by 2^l).
 
+use strength_reduce::StrengthReducedUsize;
 use wavesplat_codec::dwt::unit_basis_line;
 use wavesplat_codec::layout::Geometry;
 
-/// Per axis, per level (0..=M), [φ, ψ]: the seen fraction of each position's basis line.
+/// Per axis, per level (0..=M): the seen fraction of each position's basis line, indexed by
+/// the coefficient's coordinate in the Mallat layout (φ positions first, then ψ from half the
+/// level's block).
 #[derive(Debug, Clone)]
 pub struct Visible {
-    padded: [usize; 3],
+    /// The grid's row and column lengths as divisors: every score takes a coefficient's
+    /// position from its index, and a hardware division per axis was a tenth of a bricked
+    /// compression's time.
+    row: StrengthReducedUsize,
+    column: StrengthReducedUsize,
     levels: Vec<u8>,
-    tables: [Vec<[Vec<f32>; 2]>; 3],
+    tables: [Vec<Vec<f32>>; 3],
 }
 
 impl Visible {
@@ -34,18 +41,23 @@ impl Visible {
             let (lo, n) = (geometry.origin[a], geometry.dims[a]);
             (0..=geometry.levels)
                 .map(|l| {
-                    [false, true].map(|wavelet| {
-                        if l == 0 && wavelet {
-                            return Vec::new();
-                        }
+                    let shares = |wavelet| {
                         let line = unit_basis_line(geometry.family, p, l, wavelet, false);
                         seen_shares(&line, lo, n, 1 << l)
-                    })
+                    };
+                    // Level l's φ positions then its ψ positions, as the layout stores them
+                    // along the axis (level 0 has only φ).
+                    let mut table = shares(false);
+                    if l > 0 {
+                        table.extend(shares(true));
+                    }
+                    table
                 })
                 .collect()
         });
         Some(Visible {
-            padded: geometry.padded,
+            row: StrengthReducedUsize::new(geometry.padded[0]),
+            column: StrengthReducedUsize::new(geometry.padded[1]),
             levels: geometry.bands().iter().map(|b| b.level).collect(),
             tables,
         })
@@ -53,21 +65,20 @@ impl Visible {
 
     /// The seen fraction of coefficient `index` of band index `band` where `visible` applies,
     /// 1 (everything drawn) where it does not: the factor every score takes.
+    #[inline]
     pub fn share(visible: Option<&Visible>, index: usize, band: u8) -> f64 {
         visible.map_or(1.0, |v| v.fraction(index, band))
     }
 
     /// The seen fraction of coefficient `index` (Mallat layout) of band index `band`.
+    #[inline]
     pub fn fraction(&self, index: usize, band: u8) -> f64 {
-        let [px, py, _] = self.padded;
-        let c = [index % px, (index / px) % py, index / (px * py)];
+        let (plane_and_row, x) = StrengthReducedUsize::div_rem(index, self.row);
+        let (z, y) = StrengthReducedUsize::div_rem(plane_and_row, self.column);
         let l = self.levels[band as usize] as usize;
         let mut v = 1.0f64;
-        for a in 0..3 {
-            let half = self.padded[a] >> l;
-            let wavelet = l > 0 && c[a] >= half;
-            let pos = if wavelet { c[a] - half } else { c[a] };
-            v *= f64::from(self.tables[a][l][wavelet as usize][pos]);
+        for (table, c) in self.tables.iter().zip([x, y, z]) {
+            v *= f64::from(table[l][c]);
         }
         v
     }
