@@ -706,25 +706,47 @@ fn a_volume_over_the_memory_limit_is_bricked_by_itself() {
 /// With --no-resume it starts over instead, and still writes that file.
 #[test]
 fn a_killed_bricked_compression_resumes_where_it_stopped() {
+    killed_and_resumed(&[
+        "--phantom",
+        "shepp-logan",
+        "--dims",
+        "96,96,80",
+        "--brick",
+        "16",
+        "--target-fraction",
+        "0.05",
+    ]);
+}
+
+/// The same for a colour volume at a byte target: the resumed run takes the whole's colour
+/// transform, the depth and the rate search's start from the checkpoint's plan, and the
+/// coded bricks of the trials it finished, and still writes the uninterrupted run's file.
+#[test]
+fn a_killed_colour_bricked_compression_at_a_byte_target_resumes() {
+    killed_and_resumed(&[
+        "--phantom",
+        "rgb-head",
+        "--dims",
+        "64,64,48",
+        "--brick",
+        "16",
+        "--target-bytes",
+        "20000",
+    ]);
+}
+
+/// Compresses with `options` once uninterrupted, then killed once a brick is coded and run
+/// again (it resumes), then killed again and run with --no-resume (it starts over): both
+/// runs again write the uninterrupted file and leave no checkpoint or unfinished output.
+fn killed_and_resumed(options: &[&str]) {
     let dir = tempfile::tempdir().unwrap();
     let path = |n: &str| dir.path().join(n).to_str().unwrap().to_string();
     let args = |out: &str| {
-        [
-            "compress",
-            "--phantom",
-            "shepp-logan",
-            "--dims",
-            "96,96,80",
-            "--brick",
-            "16",
-            "--target-fraction",
-            "0.05",
-            "-o",
-        ]
-        .iter()
-        .map(|s| s.to_string())
-        .chain([out.to_string()])
-        .collect::<Vec<_>>()
+        std::iter::once("compress")
+            .chain(options.iter().copied())
+            .chain(["-o", out])
+            .map(str::to_string)
+            .collect::<Vec<_>>()
     };
     let whole = Command::new(BIN)
         .args(args(&path("whole.wsp")))
@@ -733,7 +755,7 @@ fn a_killed_bricked_compression_resumes_where_it_stopped() {
     assert!(whole.status.success(), "{}", err(&whole));
     let want = std::fs::read(path("whole.wsp")).unwrap();
     let checkpoint = dir.path().join("k.wsp.checkpoint");
-    // Killed once the checkpoint holds a coded brick (216 bricks: far from done).
+    // Killed once the checkpoint holds a coded brick (tens of bricks: far from done).
     let kill_midway = || {
         let mut child = Command::new(BIN)
             .args(args(&path("k.wsp")))
