@@ -735,6 +735,98 @@ fn a_killed_colour_bricked_compression_at_a_byte_target_resumes() {
     ]);
 }
 
+/// Runs `wavesplat ARGS` and kills it (SIGKILL) once `checkpoint` holds a coded brick.
+fn kill_once_a_brick_is_coded(args: &[String], checkpoint: &std::path::Path) {
+    let mut child = Command::new(BIN)
+        .args(args)
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let coded = || {
+        std::fs::read_dir(checkpoint).is_ok_and(|entries| {
+            entries
+                .flatten()
+                .any(|e| e.file_name().to_string_lossy().starts_with("brick-"))
+        })
+    };
+    let start = std::time::Instant::now();
+    while !coded() {
+        assert!(
+            child.try_wait().unwrap().is_none(),
+            "finished before it could be killed"
+        );
+        assert!(start.elapsed().as_secs() < 300, "no brick coded");
+        std::thread::sleep(std::time::Duration::from_millis(1));
+    }
+    child.kill().unwrap();
+    child.wait().unwrap();
+}
+
+/// An input rewritten in place between the killed run and the run again, with the same length
+/// and modification time (as a copy that keeps times would leave it), is not the checkpoint's:
+/// the run again starts over, and writes the file of the new contents.
+#[test]
+fn a_checkpoint_is_not_used_for_an_input_rewritten_with_the_same_length_and_time() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = |n: &str| dir.path().join(n).to_str().unwrap().to_string();
+    let raw = path("head_64x64x48_f32.raw");
+    let made = run(&["phantom", "shepp-logan", "--dims", "64,64,48", "-o", &raw]);
+    assert!(made.status.success(), "{}", err(&made));
+    let args: Vec<String> = [
+        "compress",
+        &raw,
+        "--brick",
+        "16",
+        "--target-fraction",
+        "0.05",
+        "-o",
+        &path("k.wsp"),
+    ]
+    .iter()
+    .map(|s| s.to_string())
+    .collect();
+    let checkpoint = dir.path().join("k.wsp.checkpoint");
+    kill_once_a_brick_is_coded(&args, &checkpoint);
+    // The same samples in the opposite order along x: other contents, the same length.
+    let modified = std::fs::metadata(&raw).unwrap().modified().unwrap();
+    let bytes = std::fs::read(&raw).unwrap();
+    let mut flipped = Vec::with_capacity(bytes.len());
+    for row in bytes.chunks(64 * 4) {
+        for sample in row.chunks(4).rev() {
+            flipped.extend_from_slice(sample);
+        }
+    }
+    assert_ne!(flipped, bytes);
+    std::fs::write(&raw, &flipped).unwrap();
+    let file = std::fs::File::options().write(true).open(&raw).unwrap();
+    file.set_modified(modified).unwrap();
+    drop(file);
+    assert_eq!(
+        std::fs::metadata(&raw).unwrap().modified().unwrap(),
+        modified
+    );
+    let again = Command::new(BIN).args(&args).output().unwrap();
+    assert!(again.status.success(), "{}", err(&again));
+    assert!(!out(&again).contains("resuming"), "{}", out(&again));
+    assert!(!checkpoint.exists());
+    let fresh = run(&[
+        "compress",
+        &raw,
+        "--brick",
+        "16",
+        "--target-fraction",
+        "0.05",
+        "-o",
+        &path("fresh.wsp"),
+    ]);
+    assert!(fresh.status.success(), "{}", err(&fresh));
+    assert_eq!(
+        std::fs::read(path("k.wsp")).unwrap(),
+        std::fs::read(path("fresh.wsp")).unwrap()
+    );
+}
+
 /// Compresses with `options` once uninterrupted, then killed once a brick is coded and run
 /// again (it resumes), then killed again and run with --no-resume (it starts over): both
 /// runs again write the uninterrupted file and leave no checkpoint or unfinished output.
@@ -757,30 +849,7 @@ fn killed_and_resumed(options: &[&str]) {
     let checkpoint = dir.path().join("k.wsp.checkpoint");
     // Killed once the checkpoint holds a coded brick (tens of bricks: far from done).
     let kill_midway = || {
-        let mut child = Command::new(BIN)
-            .args(args(&path("k.wsp")))
-            .stdout(Stdio::null())
-            .stderr(Stdio::null())
-            .spawn()
-            .unwrap();
-        let coded = || {
-            std::fs::read_dir(&checkpoint).is_ok_and(|entries| {
-                entries
-                    .flatten()
-                    .any(|e| e.file_name().to_string_lossy().starts_with("brick-"))
-            })
-        };
-        let start = std::time::Instant::now();
-        while !coded() {
-            assert!(
-                child.try_wait().unwrap().is_none(),
-                "finished before it could be killed"
-            );
-            assert!(start.elapsed().as_secs() < 300, "no brick coded");
-            std::thread::sleep(std::time::Duration::from_millis(1));
-        }
-        child.kill().unwrap();
-        child.wait().unwrap();
+        kill_once_a_brick_is_coded(&args(&path("k.wsp")), &checkpoint);
         assert!(!dir.path().join("k.wsp").exists());
     };
     kill_midway();
