@@ -773,21 +773,23 @@ fn a_checkpoint_is_not_used_for_an_input_rewritten_with_the_same_length_and_time
     let raw = path("head_64x64x48_f32.raw");
     let made = run(&["phantom", "shepp-logan", "--dims", "64,64,48", "-o", &raw]);
     assert!(made.status.success(), "{}", err(&made));
-    let args: Vec<String> = [
-        "compress",
-        &raw,
-        "--brick",
-        "16",
-        "--target-fraction",
-        "0.05",
-        "-o",
-        &path("k.wsp"),
-    ]
-    .iter()
-    .map(|s| s.to_string())
-    .collect();
+    let args = |out: &str| -> Vec<String> {
+        [
+            "compress",
+            &raw,
+            "--brick",
+            "16",
+            "--target-fraction",
+            "0.05",
+            "-o",
+            out,
+        ]
+        .iter()
+        .map(|s| s.to_string())
+        .collect()
+    };
     let checkpoint = dir.path().join("k.wsp.checkpoint");
-    kill_once_a_brick_is_coded(&args, &checkpoint);
+    kill_once_a_brick_is_coded(&args(&path("k.wsp")), &checkpoint);
     // The same samples in the opposite order along x: other contents, the same length.
     let modified = std::fs::metadata(&raw).unwrap().modified().unwrap();
     let bytes = std::fs::read(&raw).unwrap();
@@ -806,20 +808,17 @@ fn a_checkpoint_is_not_used_for_an_input_rewritten_with_the_same_length_and_time
         std::fs::metadata(&raw).unwrap().modified().unwrap(),
         modified
     );
-    let again = Command::new(BIN).args(&args).output().unwrap();
+    let again = Command::new(BIN)
+        .args(args(&path("k.wsp")))
+        .output()
+        .unwrap();
     assert!(again.status.success(), "{}", err(&again));
     assert!(!out(&again).contains("resuming"), "{}", out(&again));
     assert!(!checkpoint.exists());
-    let fresh = run(&[
-        "compress",
-        &raw,
-        "--brick",
-        "16",
-        "--target-fraction",
-        "0.05",
-        "-o",
-        &path("fresh.wsp"),
-    ]);
+    let fresh = Command::new(BIN)
+        .args(args(&path("fresh.wsp")))
+        .output()
+        .unwrap();
     assert!(fresh.status.success(), "{}", err(&fresh));
     assert_eq!(
         std::fs::read(path("k.wsp")).unwrap(),
