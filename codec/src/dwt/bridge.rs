@@ -19,64 +19,72 @@ use crate::layout::Geometry;
 /// bridges, axis by axis. Samples inside the box are unchanged. A no-op on an axis without
 /// padding.
 pub fn bridge_padding(data: &mut [f64], geometry: &Geometry) {
-    let padded = geometry.padded;
-    debug_assert_eq!(data.len(), padded.iter().product::<usize>());
-    let stride = [1, padded[0], padded[0] * padded[1]];
+    debug_assert_eq!(data.len(), geometry.padded.iter().product::<usize>());
     for axis in 0..3 {
-        let (n, p, o) = (geometry.dims[axis], padded[axis], geometry.origin[axis]);
+        let (n, p, o) = (
+            geometry.dims[axis],
+            geometry.padded[axis],
+            geometry.origin[axis],
+        );
         if p == n {
             continue;
         }
-        // The other two axes: every position of an axis already bridged, the box of one not
-        // yet bridged.
-        let range = |a: usize| {
-            if a < axis {
-                0..padded[a]
-            } else {
-                geometry.origin[a]..geometry.origin[a] + geometry.dims[a]
-            }
-        };
-        let [b, c] = match axis {
-            0 => [1, 2],
-            1 => [0, 2],
-            _ => [0, 1],
-        };
+        let step = axis_stride(geometry, axis);
         let hermite = Hermite::new(p - n);
         // Where the bridge's samples go along the axis: after the box, wrapping round.
-        let gap_at: Vec<usize> = (0..p - n)
-            .map(|k| ((o + n + k) % p) * stride[axis])
-            .collect();
-        for j in range(c) {
-            for i in range(b) {
-                let base = i * stride[b] + j * stride[c];
-                // Only the line's first and last three samples shape its bridge.
-                let ends = end_samples(n, |k| data[base + (o + k) * stride[axis]]);
-                for (at, v) in gap_at.iter().zip(hermite.bridge(&ends)) {
-                    data[base + at] = v;
-                }
+        let gap_at: Vec<usize> = (0..p - n).map(|k| ((o + n + k) % p) * step).collect();
+        for base in line_starts(geometry, axis) {
+            // Only the line's first and last three samples shape its bridge.
+            let ends = end_samples(n, |k| data[base + (o + k) * step]);
+            for (at, v) in gap_at.iter().zip(hermite.bridge(&ends)) {
+                data[base + at] = v;
             }
         }
     }
 }
 
-/// A line's first and last samples as [`bridge`] reads them: `first[..]` the first three
-/// (fewer when the line is shorter), `last[..]` the last three, in order, and the length.
+/// The distance in the padded grid (x fastest) between neighbours along `axis`.
+fn axis_stride(geometry: &Geometry, axis: usize) -> usize {
+    geometry.padded[..axis].iter().product()
+}
+
+/// The index of sample 0 along `axis` of every line that axis's bridging fills: over the other
+/// two axes, every position of an axis already bridged and the box of one not yet bridged.
+fn line_starts(geometry: &Geometry, axis: usize) -> impl Iterator<Item = usize> + '_ {
+    let range = move |a: usize| {
+        if a < axis {
+            0..geometry.padded[a]
+        } else {
+            geometry.origin[a]..geometry.origin[a] + geometry.dims[a]
+        }
+    };
+    let [b, c] = match axis {
+        0 => [1, 2],
+        1 => [0, 2],
+        _ => [0, 1],
+    };
+    let (stride_b, stride_c) = (axis_stride(geometry, b), axis_stride(geometry, c));
+    range(c).flat_map(move |j| range(b).map(move |i| i * stride_b + j * stride_c))
+}
+
+/// A line's first and last samples as [`Hermite::bridge`] reads them: `first[..held]` the
+/// first three (fewer when the line is shorter), `last[..held]` the last three, in order.
 struct EndSamples {
     first: [f64; 3],
     last: [f64; 3],
-    n: usize,
+    held: usize,
 }
 
 /// The end samples of a line of `n ≥ 1` samples read by `at`.
 fn end_samples(n: usize, at: impl Fn(usize) -> f64) -> EndSamples {
-    let take = n.min(3);
+    let held = n.min(3);
     let mut first = [0.0; 3];
     let mut last = [0.0; 3];
-    for k in 0..take {
+    for k in 0..held {
         first[k] = at(k);
-        last[k] = at(n - take + k);
+        last[k] = at(n - held + k);
     }
-    EndSamples { first, last, n }
+    EndSamples { first, last, held }
 }
 
 /// The cubic Hermite weights of a bridge across `gap` samples, computed once per axis: the
@@ -108,11 +116,9 @@ impl Hermite {
 
     /// The bridge from the line's last sample round to its first.
     fn bridge<'a>(&'a self, ends: &EndSamples) -> impl Iterator<Item = f64> + 'a {
-        let take = ends.n.min(3);
-        let (last, first) = (ends.last[take - 1], ends.first[0]);
+        let (tail, head) = (&ends.last[..ends.held], &ends.first[..ends.held]);
+        let (last, first) = (tail[ends.held - 1], head[0]);
         // End slopes per voxel: the mean of up to two differences at each end.
-        let tail = &ends.last[..take];
-        let head = &ends.first[..take];
         let m0 = mean_difference(tail) * self.span;
         let m1 = mean_difference(head) * self.span;
         self.weights
@@ -137,6 +143,8 @@ fn mean_difference(samples: &[f64]) -> f64 {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::dwt::pad_channel;
+    use crate::family::Family;
 
     /// The `gap` values that follow `line` periodically, from its last sample round to its
     /// first, from the whole line: the formula `bridge_padding` is checked against.
@@ -199,40 +207,26 @@ mod tests {
             }
         }
     }
-    use crate::dwt::pad_channel;
-    use crate::family::Family;
 
-    /// The padding filled axis by axis as the whole-line formula fills it, line by line: the
-    /// reference `bridge_padding` is checked against bit for bit.
+    /// The padding filled axis by axis as the whole-line formula fills it, each line copied
+    /// whole (over the same lines, [`line_starts`]): the reference `bridge_padding` is checked
+    /// against bit for bit.
     fn reference_padding(data: &mut [f64], geometry: &Geometry) {
-        let padded = geometry.padded;
-        let stride = [1, padded[0], padded[0] * padded[1]];
         for axis in 0..3 {
-            let (n, p, o) = (geometry.dims[axis], padded[axis], geometry.origin[axis]);
+            let (n, p, o) = (
+                geometry.dims[axis],
+                geometry.padded[axis],
+                geometry.origin[axis],
+            );
             if p == n {
                 continue;
             }
-            let range = |a: usize| {
-                if a < axis {
-                    0..padded[a]
-                } else {
-                    geometry.origin[a]..geometry.origin[a] + geometry.dims[a]
-                }
-            };
-            let [b, c] = match axis {
-                0 => [1, 2],
-                1 => [0, 2],
-                _ => [0, 1],
-            };
-            for j in range(c) {
-                for i in range(b) {
-                    let base = i * stride[b] + j * stride[c];
-                    let line: Vec<f64> = (0..n)
-                        .map(|k| data[base + (o + k) * stride[axis]])
-                        .collect();
-                    for (k, v) in reference_bridge(&line, p - n).into_iter().enumerate() {
-                        data[base + ((o + n + k) % p) * stride[axis]] = v;
-                    }
+            let step = axis_stride(geometry, axis);
+            let starts: Vec<usize> = line_starts(geometry, axis).collect();
+            for base in starts {
+                let line: Vec<f64> = (0..n).map(|k| data[base + (o + k) * step]).collect();
+                for (k, v) in reference_bridge(&line, p - n).into_iter().enumerate() {
+                    data[base + ((o + n + k) % p) * step] = v;
                 }
             }
         }
