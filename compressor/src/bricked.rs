@@ -32,9 +32,9 @@ use wavesplat_codec::layout::Geometry;
 use wavesplat_codec::volume::{Placement, Volume, VolumeError};
 
 use crate::encode::{
-    axis_views, compress, deepest_compared, default_levels, memory_estimate, score_summary,
-    CompressError, CompressOptions, DepthSearch, ScoreSummary, SummedScores, Target,
-    PROCESS_MEMORY, SHALLOWER_KEPT,
+    axis_views, compress, deepest_compared, default_levels, memory_estimate, score_keeping_top,
+    score_summary, CompressError, CompressOptions, DepthSearch, KeptTop, ScoreSummary,
+    SummedScores, Target, PROCESS_MEMORY, SHALLOWER_KEPT,
 };
 use crate::reader::ReadError;
 
@@ -612,6 +612,67 @@ impl BrickPlan {
         })
     }
 
+    /// The first pass for brick `i` ([`BrickPlan::score`]) with its top `cap` coefficients
+    /// kept for the second ([`BrickPlan::encode_kept`]) where the bricks do not refine.
+    pub fn score_keeping_top(
+        &self,
+        source: &dyn BrickSource,
+        i: usize,
+        cap: u64,
+    ) -> Result<(ScoreSummary, Option<KeptTop>), BrickError> {
+        let v = self.read(source, i)?;
+        score_keeping_top(&v, &self.base, cap, &|_, _| {}).map_err(|source| BrickError::Compress {
+            origin: self.grid[i].0,
+            source: Box::new(source),
+        })
+    }
+
+    /// How many of brick `i`'s top coefficients its first pass should keep for the second
+    /// ([`BrickPlan::score_keeping_top`]): [`TOP_SPARE`] times its voxels' share of the count
+    /// the whole's target is expected to keep, and [`TOP_FLOOR`] more. `None` where nothing
+    /// is worth keeping: the bricks refine (the second pass needs the whole transform), or
+    /// the target's count is not known before the scores are (a Q_V target, or everything).
+    pub fn top_cap(&self, i: usize) -> Option<u64> {
+        if self.base.refine.is_some() {
+            return None;
+        }
+        let whole = self.dims.iter().map(|v| *v as f64).product::<f64>() * self.channels as f64;
+        let fraction = match self.target {
+            Target::Fraction(f) => f,
+            Target::Coefficients(c) => c as f64 / whole.max(1.0),
+            Target::Bytes(b) => {
+                self.coefficients_per_byte.unwrap_or(1.0) * b as f64 / whole.max(1.0)
+            }
+            Target::QvPercent(_) | Target::All => return None,
+        };
+        let (_, d) = self.grid.get(i)?;
+        let n = d.iter().map(|v| *v as f64).product::<f64>() * self.channels as f64;
+        let cap = (TOP_SPARE * fraction.clamp(0.0, 1.0) * n).ceil();
+        cap.is_finite().then(|| cap as u64 + TOP_FLOOR)
+    }
+
+    /// Brick `i` compressed from its kept `top` keeping `count` coefficients: the file
+    /// [`BrickPlan::encode`] writes for it, without reading or transforming it again. `None`
+    /// where the top was not kept under this plan's options or does not cover the count.
+    pub fn encode_kept(
+        &self,
+        i: usize,
+        top: &KeptTop,
+        count: u64,
+    ) -> Option<Result<(Vec<u8>, u64), BrickError>> {
+        if !top.scored_with(&self.base) || !top.covers(count) {
+            return None;
+        }
+        Some(
+            top.compress(count)
+                .map(|c| (c.bytes, c.header.kept))
+                .map_err(|source| BrickError::Compress {
+                    origin: self.grid[i].0,
+                    source: Box::new(source),
+                }),
+        )
+    }
+
     /// Brick `i` compressed as a `.wsp` of its own, keeping its top `count` coefficients
     /// (`None`: all), and the count it kept.
     pub fn encode(
@@ -846,6 +907,7 @@ fn allocate_sample(
             source,
             progress: &quiet,
             checkpoint: None,
+            tops: KeptTops::for_plan(plan),
         },
     ) {
         Ok(a) => Ok(Some(a)),
@@ -1273,8 +1335,91 @@ pub fn manifest_allowance(bricks: usize) -> u64 {
     64 + 72 * bricks as u64
 }
 
+/// How many times its voxels' share of the kept coefficients a brick's first pass keeps
+/// ([`BrickPlan::top_cap`]). A brick's share of one global threshold follows its content, not
+/// its size: on the MRI at 1.25 % in 64³ bricks the densest brick keeps 7.4 times its voxels'
+/// share, and at 0.5 % in 32³ bricks 18 times; the CT phantom at 1 % in 64³ bricks, 4.2 times.
+/// A brick beyond its kept top is transformed again (at 8: none of the MRI's 48 bricks of 64³,
+/// 11 of its 336 of 32³). Keeping 4 times left 12 of the 48 bricks of 64³ to transform again;
+/// 12 times collected and sorted more than it saved (BENCHMARKS.md).
+pub const TOP_SPARE: f64 = 8.0;
+
+/// Coefficients a brick's first pass keeps beyond [`TOP_SPARE`] times its share, so that
+/// small bricks and low rates are covered too.
+pub const TOP_FLOOR: u64 = 1024;
+
+/// The most bytes the kept tops of one allocation hold ([`KeptTops`]); under a memory limit,
+/// at most what the bricks being compressed leave free. Bricks scored after the budget is
+/// spent keep nothing and are transformed again.
+pub const TOP_BUDGET: u64 = 512 << 20;
+
+/// The tops the bricks' first passes kept ([`KeptTop`]), by brick, within a budget of bytes;
+/// and how many bricks were coded from them and how many transformed again.
+#[derive(Default)]
+pub struct KeptTops {
+    tops: std::sync::Mutex<std::collections::HashMap<GridBrick, std::sync::Arc<KeptTop>>>,
+    /// The most bytes the tops may hold.
+    budget: u64,
+    bytes: std::sync::atomic::AtomicU64,
+    /// Bricks coded from a kept top.
+    pub reused: std::sync::atomic::AtomicUsize,
+    /// Bricks coded by reading and transforming them again.
+    pub transformed: std::sync::atomic::AtomicUsize,
+}
+
+impl KeptTops {
+    /// None yet, to hold at most `budget` bytes (0: keep nothing).
+    pub fn new(budget: u64) -> KeptTops {
+        KeptTops {
+            budget,
+            ..KeptTops::default()
+        }
+    }
+
+    /// None yet, within the budget for compressing `plan` on this process's pool:
+    /// [`TOP_BUDGET`], and under a memory limit at most what the limit leaves beside the
+    /// process's own share and one brick per thread ([`memory_estimate`] of the largest).
+    pub fn for_plan(plan: &BrickPlan) -> KeptTops {
+        let Some(limit) = plan.base.memory_limit else {
+            return KeptTops::new(TOP_BUDGET);
+        };
+        let largest = plan
+            .grid
+            .iter()
+            .map(|(_, d)| *d)
+            .max_by_key(|d| d.iter().product::<usize>())
+            .unwrap_or([1; 3]);
+        let threads = rayon::current_num_threads().max(1) as u64;
+        let free = memory_estimate(largest, plan.channels, &plan.base).map_or(0, |(n, _)| {
+            let per_brick = n.saturating_sub(PROCESS_MEMORY);
+            limit.saturating_sub(PROCESS_MEMORY + per_brick.saturating_mul(threads))
+        });
+        KeptTops::new(free.min(TOP_BUDGET))
+    }
+
+    /// Keeps `top` for `brick` if the budget allows (else drops it).
+    fn keep(&self, brick: GridBrick, top: KeptTop) {
+        use std::sync::atomic::Ordering;
+        let size = top.heap_bytes() as u64;
+        if self.bytes.fetch_add(size, Ordering::Relaxed) + size > self.budget {
+            self.bytes.fetch_sub(size, Ordering::Relaxed);
+            return;
+        }
+        let mut tops = self.tops.lock().unwrap_or_else(|p| p.into_inner());
+        tops.insert(brick, std::sync::Arc::new(top));
+    }
+
+    /// The top kept for `brick`, if any.
+    fn get(&self, brick: &GridBrick) -> Option<std::sync::Arc<KeptTop>> {
+        let tops = self.tops.lock().unwrap_or_else(|p| p.into_inner());
+        tops.get(brick).cloned()
+    }
+}
+
 /// The bricks of a plan compressed on this process's rayon pool, each read from `source`
-/// when its turn comes (one brick per thread in memory), with progress.
+/// when its turn comes (one brick per thread in memory), with progress. Where the bricks do
+/// not refine, the first pass keeps each brick's top coefficients ([`KeptTops`]) and the
+/// second codes from them.
 pub struct LocalBricks<'a> {
     /// Where the bricks come from.
     pub source: &'a dyn BrickSource,
@@ -1282,6 +1427,8 @@ pub struct LocalBricks<'a> {
     pub progress: &'a (dyn Fn(BrickStage) + Sync),
     /// Where finished passes are kept and found again (`None`: nowhere).
     pub checkpoint: Option<&'a crate::checkpoint::Checkpoint>,
+    /// The first pass's kept tops.
+    pub tops: KeptTops,
 }
 
 impl BrickWork for LocalBricks<'_> {
@@ -1296,7 +1443,16 @@ impl BrickWork for LocalBricks<'_> {
                 let s = match self.checkpoint.and_then(|c| c.summary(i)) {
                     Some(s) => s,
                     None => {
-                        let mut s = plan.score(self.source, i)?;
+                        let mut s = match plan.top_cap(i) {
+                            Some(cap) => {
+                                let (s, top) = plan.score_keeping_top(self.source, i, cap)?;
+                                if let Some(top) = top {
+                                    self.tops.keep(plan.grid[i], top);
+                                }
+                                s
+                            }
+                            None => plan.score(self.source, i)?,
+                        };
                         if !energies {
                             s = s.without_energies();
                         }
@@ -1341,7 +1497,19 @@ impl LocalBricks<'_> {
                 let (file, kept) = match self.checkpoint.and_then(|c| c.coded(i, count)) {
                     Some(coded) => coded,
                     None => {
-                        let coded = plan.encode(self.source, i, count)?;
+                        let kept = match (count, self.tops.get(&plan.grid[i])) {
+                            (Some(count), Some(top)) => plan.encode_kept(i, &top, count),
+                            _ => None,
+                        };
+                        let counter = match kept {
+                            Some(_) => &self.tops.reused,
+                            None => &self.tops.transformed,
+                        };
+                        counter.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                        let coded = match kept {
+                            Some(coded) => coded?,
+                            None => plan.encode(self.source, i, count)?,
+                        };
                         if let Some(c) = self.checkpoint {
                             c.keep_coded(i, count, &coded.0);
                         }
@@ -1552,10 +1720,17 @@ pub fn compress_bricked_to(
             source,
             progress,
             checkpoint,
+            tops: KeptTops::for_plan(&plan),
         },
         dir: spill_dir,
     };
     let a = allocate(&plan, &work)?;
+    let tops = &work.local.tops;
+    tracing::debug!(
+        from_kept_top = tops.reused.load(std::sync::atomic::Ordering::Relaxed),
+        transformed_again = tops.transformed.load(std::sync::atomic::Ordering::Relaxed),
+        "bricks coded"
+    );
     let c = plan.write_container(&a.bricks, out)?;
     Ok(BrickedWritten {
         manifest: c.manifest,
@@ -1746,6 +1921,78 @@ mod tests {
         }
     }
 
+    /// The container `plan` allocates with `tops`, and how many bricks were coded from a kept
+    /// top and how many transformed again.
+    fn allocated_with(v: &Volume, plan: &BrickPlan, tops: KeptTops) -> (Vec<u8>, usize, usize) {
+        let quiet = |_| {};
+        let work = LocalBricks {
+            source: v,
+            progress: &quiet,
+            checkpoint: None,
+            tops,
+        };
+        let a = allocate(plan, &work).unwrap();
+        let files: Vec<(Vec<u8>, u64)> = a.bricks.into_iter().map(|b| (b.file, b.kept)).collect();
+        let (bytes, _) = plan.assemble(&files).unwrap();
+        let load =
+            |n: &std::sync::atomic::AtomicUsize| n.load(std::sync::atomic::Ordering::Relaxed);
+        (bytes, load(&work.tops.reused), load(&work.tops.transformed))
+    }
+
+    /// Bricks coded from the tops their first pass kept are the files a second transform
+    /// writes, byte for byte: for fraction, count and byte targets (whose search codes every
+    /// brick several times), scalar and colour volumes, with every brick's top kept, with
+    /// none (a budget of nothing) and with some (a budget of half).
+    #[test]
+    fn bricks_coded_from_kept_tops_are_the_files_a_second_transform_writes() {
+        let ct = Phantom::Ct.generate([72, 60, 40]);
+        let rgb = Phantom::RgbHead.generate([40, 36, 30]);
+        let cases = [
+            (&ct, Target::Fraction(0.02)),
+            (&ct, Target::Coefficients(3_000)),
+            (&ct, Target::Bytes(12_000)),
+            (&rgb, Target::Fraction(0.03)),
+            (&rgb, Target::Bytes(9_000)),
+        ];
+        for (v, target) in cases {
+            let opts = CompressOptions {
+                target,
+                ..Effort::Fast.options()
+            };
+            let plan = BrickPlan::new(v, &opts, 24).unwrap();
+            let bricks = plan.grid.len();
+            let (again, reused, transformed) = allocated_with(v, &plan, KeptTops::new(0));
+            assert_eq!(reused, 0, "{target:?}");
+            assert!(transformed >= bricks, "{target:?}");
+            let all = KeptTops::for_plan(&plan);
+            let (kept, reused, transformed) = allocated_with(v, &plan, all);
+            assert_eq!(kept, again, "{target:?}: every top kept");
+            // A brick whose share is beyond its kept top is transformed again; most are not.
+            assert!(
+                4 * reused >= 3 * (reused + transformed),
+                "{target:?}: {reused} {transformed}"
+            );
+            // A budget for about half the bricks' tops.
+            let one = plan.top_cap(0).unwrap() * std::mem::size_of::<(f64, u64, u64)>() as u64;
+            let half = KeptTops::new(one * bricks as u64 / 2);
+            let (some, reused, transformed) = allocated_with(v, &plan, half);
+            assert_eq!(some, again, "{target:?}: some tops kept");
+            assert!(
+                reused > 0 && transformed > 0,
+                "{target:?}: {reused} {transformed}"
+            );
+        }
+        // A refining compression keeps none and codes every brick by transforming it again.
+        let opts = CompressOptions {
+            target: Target::Fraction(0.02),
+            ..Effort::Default.options()
+        };
+        let plan = BrickPlan::new(&ct, &opts, 24).unwrap();
+        assert_eq!(plan.top_cap(0), None);
+        let (_, reused, _) = allocated_with(&ct, &plan, KeptTops::for_plan(&plan));
+        assert_eq!(reused, 0);
+    }
+
     #[test]
     fn a_byte_target_for_the_whole_lands_within_two_percent() {
         let v = Phantom::SheppLogan.generate([40, 40, 40]);
@@ -1885,6 +2132,7 @@ mod tests {
                         source: &v,
                         progress: &quiet,
                         checkpoint: None,
+                        tops: KeptTops::for_plan(&plan),
                     },
                     Default::default(),
                 );

@@ -160,6 +160,17 @@ impl Histogram {
         }
     }
 
+    /// A histogram that holds no bins at all (for a prepared volume whose scores are spent,
+    /// [`crate::encode::KeptTop`]): only its totals may be read.
+    pub(crate) fn none() -> Histogram {
+        Histogram {
+            counts: Vec::new(),
+            energies: Vec::new(),
+            positive: 0,
+            selected_energy: 0.0,
+        }
+    }
+
     /// Bins in all.
     pub(crate) const BINS: usize = BINS;
 

@@ -70,6 +70,17 @@ impl Visible {
         visible.map_or(1.0, |v| v.fraction(index, band))
     }
 
+    /// Bytes its tables hold on the heap.
+    pub fn heap_bytes(&self) -> usize {
+        let tables: usize = self
+            .tables
+            .iter()
+            .flatten()
+            .map(|t| t.capacity() * std::mem::size_of::<f32>())
+            .sum();
+        tables + self.levels.capacity()
+    }
+
     /// The seen fraction of coefficient `index` (Mallat layout) of band index `band`.
     #[inline]
     pub fn fraction(&self, index: usize, band: u8) -> f64 {

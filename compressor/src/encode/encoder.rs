@@ -36,6 +36,19 @@ impl Prepared {
         (w as f64).powi(2) * self.norms[band as usize] * self.color.importance[c] * seen
     }
 
+    /// The band index of coefficient `i`: from the band map, or from the geometry where the
+    /// map was dropped ([`super::top::KeptTop`]).
+    pub(super) fn band_at(&self, i: usize) -> u8 {
+        match self.band_of.get(i) {
+            Some(b) => *b,
+            None => {
+                let g = &self.geometry;
+                g.band_index(g.locate(i).0)
+                    .expect("a coefficient of the grid") as u8
+            }
+        }
+    }
+
     /// The energy E = w²·‖b‖² (eq. 14, without importance).
     pub(super) fn energy(&self, c: usize, i: usize) -> f64 {
         (self.coefficients[c][i] as f64).powi(2) * self.norms[self.band_of[i] as usize]
@@ -203,7 +216,7 @@ impl Prepared {
                     .par_iter()
                     .map(|s| Scored {
                         score: (s.value as f64).powi(2)
-                            * self.norms[self.band_of[s.index as usize] as usize]
+                            * self.norms[self.band_at(s.index as usize) as usize]
                             * importance[s.channel as usize],
                         ..*s
                     })
@@ -387,7 +400,7 @@ impl Prepared {
         };
         let kept_energy: f64 = kept
             .iter()
-            .map(|s| (s.value as f64).powi(2) * self.norms[self.band_of[s.index as usize] as usize])
+            .map(|s| (s.value as f64).powi(2) * self.norms[self.band_at(s.index as usize) as usize])
             .sum();
         let stats = CompressStats {
             total_coefficients: self.total_coefficients,

@@ -15,8 +15,9 @@
 //!
 //! Its parts, each a module of its own: `options` (what is asked and returned), `prepare` (the
 //! transform and the oracle), `encoder` (a prepared volume to a file), `memory` (the estimate
-//! and cap) `rate` (the byte target: depth, refined set size, rate search) and `summary` (the
-//! scores summarised for a bricked allocation).
+//! and cap) `rate` (the byte target: depth, refined set size, rate search), `summary` (the
+//! scores summarised for a bricked allocation) and `top` (a score pass that keeps the top
+//! coefficients, so that a brick is coded without being transformed again).
 
 mod encoder;
 mod memory;
@@ -24,6 +25,7 @@ mod options;
 mod prepare;
 mod rate;
 mod summary;
+mod top;
 
 pub use memory::{memory_estimate, PROCESS_MEMORY};
 pub use options::{
@@ -37,6 +39,7 @@ pub use rate::worth_going_shallower;
 pub(crate) use rate::SHALLOWER_KEPT;
 use rate::{bytes_per_coefficient_guess, compress_to_bytes};
 pub use summary::{ScoreSummary, SummaryBytesError, SummedScores};
+pub use top::{score_keeping_top, KeptTop};
 use wavesplat_codec::volume::Volume;
 
 /// Compresses a volume. `progress(stage, fraction)` is called as work proceeds.

@@ -1,0 +1,226 @@
+//! A volume's score pass that keeps the oracle's top coefficients ([`KeptTop`]), so that a
+//! later pass codes the volume from them without reading or transforming it again: a bricked
+//! volume's rate allocation scores every brick once to choose the global threshold, then codes
+//! each brick with its share, and without this every brick went through the colour transform,
+//! padding, prefilter, 3D transform and two passes of scores a second time (and once more per
+//! trial of a byte target's search).
+//!
+//! Only compressions that do not refine keep their top: the least-squares refinement fits the
+//! kept set to the voxels, which needs the dense transform and the samples. What is kept is
+//! what [`Prepared::encode`] reads: the volume's small metadata (geometry, band norms, colour
+//! information, value range, totals, the seen-share tables of a bridged grid) and the top
+//! `cap` coefficients in the oracle's order, 24 bytes each. A file coded from them is the file
+//! [`super::compress`] writes for the same count, byte for byte.
+
+use super::options::{CompressError, CompressOptions, Compressed, Stage, Target};
+use super::prepare::{code, prepare, Prepared, Ranked, Scored};
+use super::rate::bytes_per_coefficient_guess;
+use super::summary::ScoreSummary;
+use crate::select::Histogram;
+use wavesplat_codec::volume::Volume;
+
+/// A volume's oracle's top coefficients and what coding them needs, kept from its score pass
+/// ([`score_keeping_top`]).
+pub struct KeptTop {
+    /// The prepared volume without its dense arrays (coefficients, band map, histogram).
+    prepared: Prepared,
+    /// The top coefficients in the oracle's order.
+    ranked: Ranked,
+    /// The options it was scored with.
+    opts: CompressOptions,
+}
+
+/// The score summary of `volume` under `opts` ([`super::score_summary`]) and, when `opts` do
+/// not refine, its oracle's top `cap` coefficients kept for coding ([`KeptTop::compress`]).
+pub fn score_keeping_top(
+    volume: &Volume,
+    opts: &CompressOptions,
+    cap: u64,
+    progress: &(dyn Fn(Stage, f64) + Sync),
+) -> Result<(ScoreSummary, Option<KeptTop>), CompressError> {
+    let coded = code(volume, opts, false, progress)?;
+    let mut prepared = prepare(volume, opts, &coded, false, progress)?;
+    drop(coded);
+    let summary = ScoreSummary::from_histogram(
+        &prepared.histogram,
+        prepared.total_coefficients,
+        prepared.selectable_energy,
+        prepared.nonzero,
+    );
+    if opts.refine.is_some() {
+        return Ok((summary, None));
+    }
+    let cap = usize::try_from(cap.min(prepared.nonzero)).unwrap_or(usize::MAX);
+    let ranked = prepared.ranked(cap);
+    prepared.coefficients = Vec::new();
+    prepared.band_of = Vec::new();
+    prepared.histogram = Histogram::none();
+    prepared.targets = Vec::new();
+    prepared.views = Vec::new();
+    prepared.scratch = Default::default();
+    let kept = KeptTop {
+        prepared,
+        ranked,
+        opts: opts.clone(),
+    };
+    Ok((summary, Some(kept)))
+}
+
+impl KeptTop {
+    /// Whether keeping `count` coefficients (as [`Target::Coefficients`]) can be coded from
+    /// what is kept: the count is within the top kept, or the top holds every selectable
+    /// coefficient.
+    pub fn covers(&self, count: u64) -> bool {
+        self.ranked.complete || count <= self.ranked.sorted.len() as u64
+    }
+
+    /// Whether it was scored with `opts`, up to the target (what a second pass may change).
+    pub fn scored_with(&self, opts: &CompressOptions) -> bool {
+        let same = CompressOptions {
+            target: opts.target,
+            ..self.opts.clone()
+        };
+        same == *opts
+    }
+
+    /// Coefficients kept.
+    pub fn len(&self) -> usize {
+        self.ranked.sorted.len()
+    }
+
+    /// Whether no coefficient is kept.
+    pub fn is_empty(&self) -> bool {
+        self.ranked.sorted.is_empty()
+    }
+
+    /// Bytes it holds on the heap (about).
+    pub fn heap_bytes(&self) -> usize {
+        self.ranked.sorted.capacity() * std::mem::size_of::<Scored>()
+            + self.prepared.norms.capacity() * std::mem::size_of::<f64>()
+            + self.prepared.visible.as_ref().map_or(0, |v| v.heap_bytes())
+    }
+
+    /// The volume compressed keeping its top `count` coefficients: the file
+    /// [`super::compress`] writes with the options it was scored with and
+    /// [`Target::Coefficients`]`(count)`. A count beyond what is kept ([`KeptTop::covers`]) is
+    /// refused.
+    pub fn compress(&self, count: u64) -> Result<Compressed, CompressError> {
+        if !self.covers(count) {
+            return Err(CompressError::InvalidOption(format!(
+                "{count} coefficients asked of a kept top of {}",
+                self.ranked.sorted.len()
+            )));
+        }
+        let opts = CompressOptions {
+            target: Target::Coefficients(count),
+            ..self.opts.clone()
+        };
+        if !(opts.layer_growth.is_finite() && opts.layer_growth > 1.0) {
+            return Err(CompressError::InvalidOption(format!(
+                "layer growth {}; allowed: a finite number above 1",
+                opts.layer_growth
+            )));
+        }
+        let k = usize::try_from(count.min(self.prepared.nonzero))
+            .unwrap_or(usize::MAX)
+            .min(self.ranked.sorted.len());
+        let expected = (k as u64)
+            .saturating_mul(bytes_per_coefficient_guess(opts.coder))
+            .max(64);
+        Ok(self.prepared.encode(&self.ranked, k, &opts, expected, true))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::encode::{compress, score_summary, Effort};
+    use crate::phantom::Phantom;
+
+    /// Options without refinement: plain, and with the smooth padding and margin of a brick
+    /// (a bridged grid, whose scores take the seen share).
+    fn fast(v: &Volume, bridged: bool) -> CompressOptions {
+        CompressOptions {
+            smooth_padding: bridged,
+            margin: bridged.then_some(4),
+            levels: (v.dims().iter().min() >= Some(&8)).then_some(2),
+            ..Effort::Fast.options()
+        }
+    }
+
+    /// Every count within the kept top gives the file `compress` writes for it, byte for byte,
+    /// on scalar and colour volumes, flat and bridged grids, odd sizes and empty volumes; the
+    /// summary is the one the plain score pass gives.
+    #[test]
+    fn a_kept_top_codes_the_file_compress_writes() {
+        let slab = {
+            let head = Phantom::Ct.generate([33, 29, 21]);
+            let d = head.dims();
+            Volume::new(d, [1.0, 1.0, 2.5], head.into_channels()).unwrap()
+        };
+        let volumes = [
+            Phantom::SheppLogan.generate([40, 36, 30]),
+            slab,
+            Phantom::RgbHead.generate([24, 20, 17]),
+            Phantom::Zero.generate([9, 8, 7]),
+            Phantom::Constant(-1000.0).generate([16, 8, 4]),
+            Phantom::SheppLogan.generate([1, 1, 1]),
+        ];
+        for v in &volumes {
+            for bridged in [false, true] {
+                let opts = fast(v, bridged);
+                let cap = 700;
+                let (summary, top) = score_keeping_top(v, &opts, cap, &|_, _| {}).unwrap();
+                assert_eq!(summary, score_summary(v, &opts, &|_, _| {}).unwrap());
+                let top = top.expect("no refinement: a top is kept");
+                assert!(top.scored_with(&opts));
+                let nonzero = summary.nonzero;
+                assert_eq!(top.len() as u64, cap.min(nonzero), "{:?}", v.dims());
+                for count in [0, 1, 37, 350, cap, nonzero, nonzero + 5] {
+                    if count > cap && nonzero > cap {
+                        assert!(!top.covers(count));
+                        assert!(top.compress(count).is_err());
+                        continue;
+                    }
+                    let want = compress(
+                        v,
+                        &CompressOptions {
+                            target: Target::Coefficients(count),
+                            ..opts.clone()
+                        },
+                        &|_, _| {},
+                    )
+                    .unwrap();
+                    let got = top.compress(count).unwrap();
+                    assert_eq!(got.bytes, want.bytes, "{:?} {bridged} {count}", v.dims());
+                    assert_eq!(got.stats.kept, want.stats.kept);
+                    assert_eq!(got.stats.q_v.to_bits(), want.stats.q_v.to_bits());
+                    assert_eq!(got.stats.q_e.to_bits(), want.stats.q_e.to_bits());
+                }
+            }
+        }
+    }
+
+    /// A refining compression keeps nothing (its second pass needs the dense transform), and a
+    /// top is not taken for other options.
+    #[test]
+    fn refinement_keeps_no_top_and_other_options_are_not_served() {
+        let v = Phantom::SheppLogan.generate([24, 24, 24]);
+        let refining = Effort::Default.options();
+        let (_, top) = score_keeping_top(&v, &refining, 100, &|_, _| {}).unwrap();
+        assert!(top.is_none());
+        let opts = fast(&v, false);
+        let (_, top) = score_keeping_top(&v, &opts, 100, &|_, _| {}).unwrap();
+        let top = top.unwrap();
+        let other_step = CompressOptions {
+            step: opts.step * 2.0,
+            ..opts.clone()
+        };
+        assert!(!top.scored_with(&other_step));
+        let other_target = CompressOptions {
+            target: Target::Bytes(999),
+            ..opts.clone()
+        };
+        assert!(top.scored_with(&other_target));
+    }
+}
