@@ -633,10 +633,19 @@ impl BrickPlan {
     /// is worth keeping: the bricks refine (the second pass needs the whole transform), or
     /// the target's count is not known before the scores are (a Q_V target, or everything).
     pub fn top_cap(&self, i: usize) -> Option<u64> {
+        self.top_cap_within(i, 1)
+    }
+
+    /// [`BrickPlan::top_cap`] where the whole's target is shared by `parts` volumes of this
+    /// plan's size (the components of a time series), so that a count or byte target is
+    /// spread over all of them.
+    pub(crate) fn top_cap_within(&self, i: usize, parts: usize) -> Option<u64> {
         if self.base.refine.is_some() {
             return None;
         }
-        let whole = self.dims.iter().map(|v| *v as f64).product::<f64>() * self.channels as f64;
+        let whole = self.dims.iter().map(|v| *v as f64).product::<f64>()
+            * self.channels as f64
+            * parts.max(1) as f64;
         let fraction = match self.target {
             Target::Fraction(f) => f,
             Target::Coefficients(c) => c as f64 / whole.max(1.0),
@@ -671,6 +680,52 @@ impl BrickPlan {
                     source: Box::new(source),
                 }),
         )
+    }
+
+    /// The first pass for brick `i` of volume `volume` (0; a series' component), keeping its
+    /// top `cap` coefficients in `tops` where a cap is given and the bricks do not refine.
+    pub(crate) fn score_into(
+        &self,
+        source: &dyn BrickSource,
+        i: usize,
+        tops: &KeptTops,
+        volume: usize,
+        cap: Option<u64>,
+    ) -> Result<ScoreSummary, BrickError> {
+        let Some(cap) = cap else {
+            return self.score(source, i);
+        };
+        let (summary, top) = self.score_keeping_top(source, i, cap)?;
+        if let Some(top) = top {
+            tops.keep((volume, self.grid[i]), top);
+        }
+        Ok(summary)
+    }
+
+    /// Brick `i` of volume `volume` compressed as [`BrickPlan::encode`] does: from its top
+    /// kept in `tops` where that covers `count`, else read and transformed again (each counted
+    /// in `tops`).
+    pub(crate) fn encode_from(
+        &self,
+        source: &dyn BrickSource,
+        i: usize,
+        count: Option<u64>,
+        tops: &KeptTops,
+        volume: usize,
+    ) -> Result<(Vec<u8>, u64), BrickError> {
+        let kept = match (count, tops.get(&(volume, self.grid[i]))) {
+            (Some(count), Some(top)) => self.encode_kept(i, &top, count),
+            _ => None,
+        };
+        let counter = match kept {
+            Some(_) => &tops.reused,
+            None => &tops.transformed,
+        };
+        counter.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        match kept {
+            Some(coded) => coded,
+            None => self.encode(source, i, count),
+        }
     }
 
     /// Brick `i` compressed as a `.wsp` of its own, keeping its top `count` coefficients
@@ -853,7 +908,7 @@ fn choose_levels(
 const REFINED_PER_ORACLE: f64 = 1.07;
 
 /// A brick of a grid: its first voxel in the whole and its dimensions.
-type GridBrick = ([u64; 3], [usize; 3]);
+pub(crate) type GridBrick = ([u64; 3], [usize; 3]);
 
 /// The sample of `grid` a depth choice compresses ([`depth_sample`]) and its share of the
 /// bytes `total` (its share of the voxels, each side's manifest allowed for).
@@ -1353,11 +1408,14 @@ pub const TOP_FLOOR: u64 = 1024;
 /// spent keep nothing and are transformed again.
 pub const TOP_BUDGET: u64 = 512 << 20;
 
+/// Which brick a kept top is of: the volume (0; a time series' component) and the brick.
+pub(crate) type TopKey = (usize, GridBrick);
+
 /// The tops the bricks' first passes kept ([`KeptTop`]), by brick, within a budget of bytes;
 /// and how many bricks were coded from them and how many transformed again.
 #[derive(Default)]
 pub struct KeptTops {
-    tops: std::sync::Mutex<std::collections::HashMap<GridBrick, std::sync::Arc<KeptTop>>>,
+    tops: std::sync::Mutex<std::collections::HashMap<TopKey, std::sync::Arc<KeptTop>>>,
     /// The most bytes the tops may hold.
     budget: u64,
     bytes: std::sync::atomic::AtomicU64,
@@ -1398,7 +1456,7 @@ impl KeptTops {
     }
 
     /// Keeps `top` for `brick` if the budget allows (else drops it).
-    fn keep(&self, brick: GridBrick, top: KeptTop) {
+    pub(crate) fn keep(&self, brick: TopKey, top: KeptTop) {
         use std::sync::atomic::Ordering;
         let size = top.heap_bytes() as u64;
         if self.bytes.fetch_add(size, Ordering::Relaxed) + size > self.budget {
@@ -1410,7 +1468,7 @@ impl KeptTops {
     }
 
     /// The top kept for `brick`, if any.
-    fn get(&self, brick: &GridBrick) -> Option<std::sync::Arc<KeptTop>> {
+    pub(crate) fn get(&self, brick: &TopKey) -> Option<std::sync::Arc<KeptTop>> {
         let tops = self.tops.lock().unwrap_or_else(|p| p.into_inner());
         tops.get(brick).cloned()
     }
@@ -1443,16 +1501,8 @@ impl BrickWork for LocalBricks<'_> {
                 let s = match self.checkpoint.and_then(|c| c.summary(i)) {
                     Some(s) => s,
                     None => {
-                        let mut s = match plan.top_cap(i) {
-                            Some(cap) => {
-                                let (s, top) = plan.score_keeping_top(self.source, i, cap)?;
-                                if let Some(top) = top {
-                                    self.tops.keep(plan.grid[i], top);
-                                }
-                                s
-                            }
-                            None => plan.score(self.source, i)?,
-                        };
+                        let mut s =
+                            plan.score_into(self.source, i, &self.tops, 0, plan.top_cap(i))?;
                         if !energies {
                             s = s.without_energies();
                         }
@@ -1497,19 +1547,7 @@ impl LocalBricks<'_> {
                 let (file, kept) = match self.checkpoint.and_then(|c| c.coded(i, count)) {
                     Some(coded) => coded,
                     None => {
-                        let kept = match (count, self.tops.get(&plan.grid[i])) {
-                            (Some(count), Some(top)) => plan.encode_kept(i, &top, count),
-                            _ => None,
-                        };
-                        let counter = match kept {
-                            Some(_) => &self.tops.reused,
-                            None => &self.tops.transformed,
-                        };
-                        counter.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-                        let coded = match kept {
-                            Some(coded) => coded?,
-                            None => plan.encode(self.source, i, count)?,
-                        };
+                        let coded = plan.encode_from(self.source, i, count, &self.tops, 0)?;
                         if let Some(c) = self.checkpoint {
                             c.keep_coded(i, count, &coded.0);
                         }

@@ -26,7 +26,7 @@ use wavesplat_codec::volume::{Placement, Volume, VolumeError};
 
 use crate::bricked::{
     allocate_units, manifest_allowance, BrickError, BrickPlan, BrickSource, BrickStage, CodedBrick,
-    SharedChoices, Spill, SpilledBrick,
+    KeptTops, SharedChoices, Spill, SpilledBrick,
 };
 use crate::encode::{compress, CompressOptions, ScoreSummary, Target};
 use crate::reader::ReadError;
@@ -629,6 +629,42 @@ impl SeriesPlan {
         self.plans[c].score(&self.component(series, c), i)
     }
 
+    /// Unit `u`'s score summary, its top coefficients kept in `tops` where the units do not
+    /// refine ([`BrickPlan::top_cap`], the target spread over every component), so that
+    /// [`SeriesPlan::encode_from`] codes it without summing its time points and transforming
+    /// them again.
+    pub fn score_into(
+        &self,
+        series: &dyn SeriesSource,
+        u: usize,
+        tops: &KeptTops,
+    ) -> Result<ScoreSummary, BrickError> {
+        let (c, i) = self.unit(u)?;
+        let plan = &self.plans[c];
+        let cap = plan.top_cap_within(i, self.plans.len());
+        plan.score_into(&self.component(series, c), i, tops, c, cap)
+    }
+
+    /// Unit `u` compressed as [`SeriesPlan::encode`] does, from its top kept in `tops` where
+    /// that covers `count`.
+    pub fn encode_from(
+        &self,
+        series: &dyn SeriesSource,
+        u: usize,
+        count: Option<u64>,
+        tops: &KeptTops,
+    ) -> Result<(Vec<u8>, u64), BrickError> {
+        let (c, i) = self.unit(u)?;
+        self.plans[c].encode_from(&self.component(series, c), i, count, tops, c)
+    }
+
+    /// The budget of the units' kept tops ([`KeptTops::for_plan`] of the first component).
+    pub fn kept_tops(&self) -> KeptTops {
+        self.plans
+            .first()
+            .map_or(KeptTops::new(0), KeptTops::for_plan)
+    }
+
     /// Unit `u` compressed as a `.wsp` of its own keeping its top `count` coefficients
     /// (`None`: all), and the count it kept.
     pub fn encode(
@@ -861,6 +897,7 @@ pub fn compress_series_to(
         let done = counter.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
         progress(stage(done));
     };
+    let tops = plan.kept_tops();
     let allocated = allocate_units(
         plan.target,
         of,
@@ -871,7 +908,7 @@ pub fn compress_series_to(
             (0..of)
                 .into_par_iter()
                 .map(|u| {
-                    let s = plan.score(series, u)?;
+                    let s = plan.score_into(series, u, &tops)?;
                     tick(&|done| BrickStage::Scored { done, of });
                     Ok(s)
                 })
@@ -883,7 +920,7 @@ pub fn compress_series_to(
             (0..of)
                 .into_par_iter()
                 .map(|u| {
-                    let (file, kept) = plan.encode(series, u, counts.map(|k| k[u]))?;
+                    let (file, kept) = plan.encode_from(series, u, counts.map(|k| k[u]), &tops)?;
                     let len = file.len() as u64;
                     let file = spill.push(&file)?;
                     tick(&|done| BrickStage::Compressed { done, of, trial });
@@ -892,6 +929,11 @@ pub fn compress_series_to(
                 .collect()
         },
     )?;
+    tracing::debug!(
+        from_kept_top = tops.reused.load(std::sync::atomic::Ordering::Relaxed),
+        transformed_again = tops.transformed.load(std::sync::atomic::Ordering::Relaxed),
+        "series units coded"
+    );
     let (manifest, bytes) = plan.write_container(series, &allocated.bricks, out)?;
     Ok(SeriesWritten {
         manifest,
@@ -1174,6 +1216,66 @@ mod tests {
             for c in 0..f.manifest.components.len() {
                 f.component_bytes(c).unwrap();
             }
+        }
+    }
+
+    /// Without refinement, the units coded from the tops their score pass kept are the files
+    /// coded by summing their time points and transforming them again, byte for byte, at a
+    /// fraction and over a byte target's trials, and the whole series written so is the one
+    /// written without them.
+    #[test]
+    fn series_units_coded_from_kept_tops_are_the_files_a_second_transform_writes() {
+        let s = cine([24, 20, 18], 6);
+        for target in [Target::Fraction(0.05), Target::Bytes(12_000)] {
+            let opts = CompressOptions {
+                target,
+                ..crate::encode::Effort::Fast.options()
+            };
+            let plan = SeriesPlan::new(&s, &opts, 2, 12).unwrap();
+            let of = plan.units.len();
+            let allocated = |tops: &KeptTops| {
+                allocate_units(
+                    plan.target,
+                    of,
+                    plan.overhead,
+                    None,
+                    || (0..of).map(|u| plan.score_into(&s, u, tops)).collect(),
+                    |counts, _| {
+                        (0..of)
+                            .map(|u| {
+                                let count = counts.map(|k| k[u]);
+                                let (file, kept) = plan.encode_from(&s, u, count, tops)?;
+                                let len = file.len() as u64;
+                                Ok(CodedBrick { len, file, kept })
+                            })
+                            .collect()
+                    },
+                )
+                .unwrap()
+            };
+            let files = |a: crate::bricked::Allocated<Vec<u8>>| -> Vec<(Vec<u8>, u64)> {
+                a.bricks.into_iter().map(|b| (b.file, b.kept)).collect()
+            };
+            let none = KeptTops::new(0);
+            let without = allocated(&none);
+            let total = without.total_coefficients;
+            let again = files(without);
+            assert_eq!(none.reused.load(std::sync::atomic::Ordering::Relaxed), 0);
+            let tops = plan.kept_tops();
+            let kept = files(allocated(&tops));
+            assert_eq!(kept, again, "{target:?}");
+            let reused = tops.reused.load(std::sync::atomic::Ordering::Relaxed);
+            let transformed = tops.transformed.load(std::sync::atomic::Ordering::Relaxed);
+            // A series' temporal means take most of the kept coefficients and its differences
+            // few, so the tops sized by each unit's voxels cover only some of the means.
+            assert!(
+                reused > 0 && reused + transformed >= of,
+                "{target:?}: {reused} {transformed}"
+            );
+            let mut out = Vec::new();
+            compress_series_to(&s, &opts, 2, 12, &|_| {}, None, &mut out).unwrap();
+            let in_memory = plan.assemble(&s, again, total).unwrap();
+            assert_eq!(out, in_memory.bytes, "{target:?}");
         }
     }
 
