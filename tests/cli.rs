@@ -735,6 +735,25 @@ fn a_killed_colour_bricked_compression_at_a_byte_target_resumes() {
     ]);
 }
 
+/// The same without refinement (`--effort fast`) at a byte target, where the uninterrupted run
+/// codes every brick from the top its score pass kept, and the resumed one codes the bricks
+/// whose scores it takes from the checkpoint by transforming them again: both write one file.
+#[test]
+fn a_killed_fast_bricked_compression_at_a_byte_target_resumes() {
+    killed_and_resumed(&[
+        "--phantom",
+        "ct",
+        "--dims",
+        "96,80,64",
+        "--brick",
+        "16",
+        "--effort",
+        "fast",
+        "--target-bytes",
+        "30000",
+    ]);
+}
+
 /// Runs `wavesplat ARGS` and kills it (SIGKILL) once `checkpoint` holds a coded brick.
 fn kill_once_a_brick_is_coded(args: &[String], checkpoint: &std::path::Path) {
     let mut child = Command::new(BIN)
