@@ -2011,7 +2011,7 @@ mod tests {
                 "{target:?}: {reused} {transformed}"
             );
             // A budget for about half the bricks' tops.
-            let one = plan.top_cap(0).unwrap() * std::mem::size_of::<(f64, u64, u64)>() as u64;
+            let one = plan.top_cap(0).unwrap() * std::mem::size_of::<(u32, f32)>() as u64;
             let half = KeptTops::new(one * bricks as u64 / 2);
             let (some, reused, transformed) = allocated_with(v, &plan, half);
             assert_eq!(some, again, "{target:?}: some tops kept");

@@ -27,7 +27,13 @@ impl Prepared {
         if w == 0.0 {
             return -1.0;
         }
-        let band = self.band_of[i];
+        self.score_in_band(c, i, w, self.band_of[i])
+    }
+
+    /// [`Prepared::score`] of a non-zero coefficient `i` of channel `c` whose value `w` and
+    /// band index `band` are known.
+    #[inline]
+    pub(super) fn score_in_band(&self, c: usize, i: usize, w: f32, band: u8) -> f64 {
         let seen = Visible::share(self.visible.as_ref(), i, band);
         if seen == 0.0 {
             // Wholly outside the box: never drawn, never decoded.

@@ -9,7 +9,7 @@
 //! kept set to the voxels, which needs the dense transform and the samples. What is kept is
 //! what [`Prepared::encode`] reads: the volume's small metadata (geometry, band norms, colour
 //! information, value range, totals, the seen-share tables of a bridged grid) and the top
-//! `cap` coefficients in the oracle's order, 24 bytes each. A file coded from them is the file
+//! `cap` coefficients in the oracle's order, 8 bytes each (9 with more than one channel). A file coded from them is the file
 //! [`super::compress`] writes for the same count, byte for byte.
 
 use super::options::{CompressError, CompressOptions, Compressed, Stage, Target};
@@ -24,8 +24,13 @@ use wavesplat_codec::volume::Volume;
 pub struct KeptTop {
     /// The prepared volume without its dense arrays (coefficients, band map, histogram).
     prepared: Prepared,
-    /// The top coefficients in the oracle's order.
-    ranked: Ranked,
+    /// The top coefficients in the oracle's order: index and value (8 bytes; their scores,
+    /// which the ranking's 24-byte entries also hold, are computed again for the ones coded).
+    top: Vec<(u32, f32)>,
+    /// Each one's channel (empty for one channel).
+    channels: Vec<u8>,
+    /// The top holds every selectable coefficient.
+    complete: bool,
     /// The options it was scored with.
     opts: CompressOptions,
 }
@@ -52,6 +57,13 @@ pub fn score_keeping_top(
     }
     let cap = usize::try_from(cap.min(prepared.nonzero)).unwrap_or(usize::MAX);
     let ranked = prepared.ranked(cap);
+    let top = ranked.sorted.iter().map(|s| (s.index, s.value)).collect();
+    let channels = match prepared.channels {
+        1 => Vec::new(),
+        _ => ranked.sorted.iter().map(|s| s.channel).collect(),
+    };
+    let complete = ranked.complete;
+    drop(ranked);
     prepared.coefficients = Vec::new();
     prepared.band_of = Vec::new();
     prepared.histogram = Histogram::none();
@@ -60,7 +72,9 @@ pub fn score_keeping_top(
     prepared.scratch = Default::default();
     let kept = KeptTop {
         prepared,
-        ranked,
+        top,
+        channels,
+        complete,
         opts: opts.clone(),
     };
     Ok((summary, Some(kept)))
@@ -71,7 +85,7 @@ impl KeptTop {
     /// what is kept: the count is within the top kept, or the top holds every selectable
     /// coefficient.
     pub fn covers(&self, count: u64) -> bool {
-        self.ranked.complete || count <= self.ranked.sorted.len() as u64
+        self.complete || count <= self.top.len() as u64
     }
 
     /// Whether it was scored with `opts`, up to the target (what a second pass may change).
@@ -85,17 +99,18 @@ impl KeptTop {
 
     /// Coefficients kept.
     pub fn len(&self) -> usize {
-        self.ranked.sorted.len()
+        self.top.len()
     }
 
     /// Whether no coefficient is kept.
     pub fn is_empty(&self) -> bool {
-        self.ranked.sorted.is_empty()
+        self.top.is_empty()
     }
 
     /// Bytes it holds on the heap (about).
     pub fn heap_bytes(&self) -> usize {
-        self.ranked.sorted.capacity() * std::mem::size_of::<Scored>()
+        self.top.capacity() * std::mem::size_of::<(u32, f32)>()
+            + self.channels.capacity()
             + self.prepared.norms.capacity() * std::mem::size_of::<f64>()
             + self.prepared.visible.as_ref().map_or(0, |v| v.heap_bytes())
     }
@@ -108,7 +123,7 @@ impl KeptTop {
         if !self.covers(count) {
             return Err(CompressError::InvalidOption(format!(
                 "{count} coefficients asked of a kept top of {}",
-                self.ranked.sorted.len()
+                self.top.len()
             )));
         }
         let opts = CompressOptions {
@@ -123,11 +138,31 @@ impl KeptTop {
         }
         let k = usize::try_from(count.min(self.prepared.nonzero))
             .unwrap_or(usize::MAX)
-            .min(self.ranked.sorted.len());
+            .min(self.top.len());
+        let p = &self.prepared;
+        let sorted = self.top[..k]
+            .iter()
+            .enumerate()
+            .map(|(j, &(index, value))| {
+                let channel = self.channels.get(j).copied().unwrap_or(0);
+                let band = p.band_at(index as usize);
+                Scored {
+                    score: p.score_in_band(channel as usize, index as usize, value, band),
+                    channel,
+                    index,
+                    value,
+                }
+            })
+            .collect();
+        let ranked = Ranked {
+            sorted,
+            complete: self.complete && k == self.top.len(),
+            refined: 0,
+        };
         let expected = (k as u64)
             .saturating_mul(bytes_per_coefficient_guess(opts.coder))
             .max(64);
-        Ok(self.prepared.encode(&self.ranked, k, &opts, expected, true))
+        Ok(p.encode(&ranked, k, &opts, expected, true))
     }
 }
 
