@@ -628,8 +628,9 @@ impl BrickPlan {
     }
 
     /// How many of brick `i`'s top coefficients its first pass should keep for the second
-    /// ([`BrickPlan::score_keeping_top`]): [`TOP_SPARE`] times its voxels' share of the count
-    /// the whole's target is expected to keep, and [`TOP_FLOOR`] more. `None` where nothing
+    /// ([`BrickPlan::score_keeping_top`]): [`TOP_SPARE`] times its share of the count the
+    /// whole's target is expected to keep (of a fraction, that fraction of its padded grid; of
+    /// a count or bytes, its voxels' share), and [`TOP_FLOOR`] more. `None` where nothing
     /// is worth keeping: the bricks refine (the second pass needs the whole transform), or
     /// the target's count is not known before the scores are (a Q_V target, or everything).
     pub fn top_cap(&self, i: usize) -> Option<u64> {
@@ -643,20 +644,26 @@ impl BrickPlan {
         if self.base.refine.is_some() {
             return None;
         }
-        let whole = self.dims.iter().map(|v| *v as f64).product::<f64>()
-            * self.channels as f64
-            * parts.max(1) as f64;
-        let fraction = match self.target {
-            Target::Fraction(f) => f,
-            Target::Coefficients(c) => c as f64 / whole.max(1.0),
-            Target::Bytes(b) => {
-                self.coefficients_per_byte.unwrap_or(1.0) * b as f64 / whole.max(1.0)
+        let (_, d) = *self.grid.get(i)?;
+        let voxels = |d: &[u64]| d.iter().map(|v| *v as f64).product::<f64>();
+        // A count or byte target spreads over the voxels; a fraction is of the padded grids'
+        // coefficients, which small bricks have many more of than voxels.
+        let share = voxels(&d.map(|v| v as u64)) / (voxels(&self.dims) * parts.max(1) as f64);
+        let expected = match self.target {
+            Target::Fraction(f) => {
+                let levels = self.choices.levels;
+                let margin = bridge_margin(self.base.family, levels);
+                let padded = Geometry::new(d, self.base.family, levels, margin)
+                    .map_or(voxels(&d.map(|v| v as u64)), |g| {
+                        g.coefficient_count() as f64
+                    });
+                f.clamp(0.0, 1.0) * padded * self.channels as f64
             }
+            Target::Coefficients(c) => c as f64 * share,
+            Target::Bytes(b) => self.coefficients_per_byte.unwrap_or(1.0) * b as f64 * share,
             Target::QvPercent(_) | Target::All => return None,
         };
-        let (_, d) = self.grid.get(i)?;
-        let n = d.iter().map(|v| *v as f64).product::<f64>() * self.channels as f64;
-        let cap = (TOP_SPARE * fraction.clamp(0.0, 1.0) * n).ceil();
+        let cap = (TOP_SPARE * expected).ceil();
         cap.is_finite().then(|| cap as u64 + TOP_FLOOR)
     }
 
@@ -1390,13 +1397,13 @@ pub fn manifest_allowance(bricks: usize) -> u64 {
     64 + 72 * bricks as u64
 }
 
-/// How many times its voxels' share of the kept coefficients a brick's first pass keeps
+/// How many times its expected share of the kept coefficients a brick's first pass keeps
 /// ([`BrickPlan::top_cap`]). A brick's share of one global threshold follows its content, not
-/// its size: on the MRI at 1.25 % in 64³ bricks the densest brick keeps 7.4 times its voxels'
-/// share, and at 0.5 % in 32³ bricks 18 times; the CT phantom at 1 % in 64³ bricks, 4.2 times.
-/// A brick beyond its kept top is transformed again (at 8: none of the MRI's 48 bricks of 64³,
-/// 11 of its 336 of 32³). Keeping 4 times left 12 of the 48 bricks of 64³ to transform again;
-/// 12 times collected and sorted more than it saved (BENCHMARKS.md).
+/// its size: in its voxels' share, the densest brick of the MRI at 1.25 % in 64³ bricks keeps
+/// 7.4 times, at 0.5 % in 32³ bricks 18 times, and of the CT phantom at 1 % in 64³ bricks 4.2
+/// times. Sized by 8 times the padded grid's share of a fraction, none of the MRI's 48 bricks
+/// of 64³ nor its 336 of 32³ is transformed again; 4 times the voxels' share left 12 of the 48
+/// to transform again, and 12 times kept and sorted more than it saved (BENCHMARKS.md).
 pub const TOP_SPARE: f64 = 8.0;
 
 /// Coefficients a brick's first pass keeps beyond [`TOP_SPARE`] times its share, so that
