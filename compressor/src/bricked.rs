@@ -603,13 +603,18 @@ impl BrickPlan {
         })
     }
 
+    /// A compression error of brick `i`, placed at its origin.
+    fn compress_error(&self, i: usize) -> impl FnOnce(CompressError) -> BrickError + '_ {
+        move |source| BrickError::Compress {
+            origin: self.grid[i].0,
+            source: Box::new(source),
+        }
+    }
+
     /// The first pass for brick `i`: its coefficients' score histogram.
     pub fn score(&self, source: &dyn BrickSource, i: usize) -> Result<ScoreSummary, BrickError> {
         let v = self.read(source, i)?;
-        score_summary(&v, &self.base, &|_, _| {}).map_err(|source| BrickError::Compress {
-            origin: self.grid[i].0,
-            source: Box::new(source),
-        })
+        score_summary(&v, &self.base, &|_, _| {}).map_err(self.compress_error(i))
     }
 
     /// The first pass for brick `i` ([`BrickPlan::score`]) with its top `cap` coefficients
@@ -621,10 +626,7 @@ impl BrickPlan {
         cap: u64,
     ) -> Result<(ScoreSummary, Option<KeptTop>), BrickError> {
         let v = self.read(source, i)?;
-        score_keeping_top(&v, &self.base, cap, &|_, _| {}).map_err(|source| BrickError::Compress {
-            origin: self.grid[i].0,
-            source: Box::new(source),
-        })
+        score_keeping_top(&v, &self.base, cap, &|_, _| {}).map_err(self.compress_error(i))
     }
 
     /// How many of brick `i`'s top coefficients its first pass should keep for the second
@@ -645,18 +647,17 @@ impl BrickPlan {
             return None;
         }
         let (_, d) = *self.grid.get(i)?;
-        let voxels = |d: &[u64]| d.iter().map(|v| *v as f64).product::<f64>();
+        let voxels = d.iter().map(|v| *v as f64).product::<f64>();
+        let whole = self.dims.iter().map(|v| *v as f64).product::<f64>();
         // A count or byte target spreads over the voxels; a fraction is of the padded grids'
         // coefficients, which small bricks have many more of than voxels.
-        let share = voxels(&d.map(|v| v as u64)) / (voxels(&self.dims) * parts.max(1) as f64);
+        let share = voxels / (whole * parts.max(1) as f64);
         let expected = match self.target {
             Target::Fraction(f) => {
                 let levels = self.choices.levels;
                 let margin = bridge_margin(self.base.family, levels);
                 let padded = Geometry::new(d, self.base.family, levels, margin)
-                    .map_or(voxels(&d.map(|v| v as u64)), |g| {
-                        g.coefficient_count() as f64
-                    });
+                    .map_or(voxels, |g| g.coefficient_count() as f64);
                 f.clamp(0.0, 1.0) * padded * self.channels as f64
             }
             Target::Coefficients(c) => c as f64 * share,
@@ -682,10 +683,7 @@ impl BrickPlan {
         Some(
             top.compress(count)
                 .map(|c| (c.bytes, c.header.kept))
-                .map_err(|source| BrickError::Compress {
-                    origin: self.grid[i].0,
-                    source: Box::new(source),
-                }),
+                .map_err(self.compress_error(i)),
         )
     }
 
@@ -720,18 +718,20 @@ impl BrickPlan {
         tops: &KeptTops,
         volume: usize,
     ) -> Result<(Vec<u8>, u64), BrickError> {
+        use std::sync::atomic::Ordering::Relaxed;
         let kept = match (count, tops.get(&(volume, self.grid[i]))) {
             (Some(count), Some(top)) => self.encode_kept(i, &top, count),
             _ => None,
         };
-        let counter = match kept {
-            Some(_) => &tops.reused,
-            None => &tops.transformed,
-        };
-        counter.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
         match kept {
-            Some(coded) => coded,
-            None => self.encode(source, i, count),
+            Some(coded) => {
+                tops.reused.fetch_add(1, Relaxed);
+                coded
+            }
+            None => {
+                tops.transformed.fetch_add(1, Relaxed);
+                self.encode(source, i, count)
+            }
         }
     }
 
@@ -748,10 +748,7 @@ impl BrickPlan {
             target: count.map_or(Target::All, Target::Coefficients),
             ..self.base.clone()
         };
-        let c = compress(&v, &o, &|_, _| {}).map_err(|source| BrickError::Compress {
-            origin: self.grid[i].0,
-            source: Box::new(source),
-        })?;
+        let c = compress(&v, &o, &|_, _| {}).map_err(self.compress_error(i))?;
         Ok((c.bytes, c.header.kept))
     }
 
@@ -1474,6 +1471,12 @@ impl KeptTops {
         tops.insert(brick, std::sync::Arc::new(top));
     }
 
+    /// Bricks coded from a kept top, and bricks read and transformed again, so far.
+    pub fn counts(&self) -> (usize, usize) {
+        use std::sync::atomic::Ordering::Relaxed;
+        (self.reused.load(Relaxed), self.transformed.load(Relaxed))
+    }
+
     /// The top kept for `brick`, if any.
     pub(crate) fn get(&self, brick: &TopKey) -> Option<std::sync::Arc<KeptTop>> {
         let tops = self.tops.lock().unwrap_or_else(|p| p.into_inner());
@@ -1770,12 +1773,8 @@ pub fn compress_bricked_to(
         dir: spill_dir,
     };
     let a = allocate(&plan, &work)?;
-    let tops = &work.local.tops;
-    tracing::debug!(
-        from_kept_top = tops.reused.load(std::sync::atomic::Ordering::Relaxed),
-        transformed_again = tops.transformed.load(std::sync::atomic::Ordering::Relaxed),
-        "bricks coded"
-    );
+    let (from_kept_top, transformed_again) = work.local.tops.counts();
+    tracing::debug!(from_kept_top, transformed_again, "bricks coded");
     let c = plan.write_container(&a.bricks, out)?;
     Ok(BrickedWritten {
         manifest: c.manifest,
@@ -1979,9 +1978,8 @@ mod tests {
         let a = allocate(plan, &work).unwrap();
         let files: Vec<(Vec<u8>, u64)> = a.bricks.into_iter().map(|b| (b.file, b.kept)).collect();
         let (bytes, _) = plan.assemble(&files).unwrap();
-        let load =
-            |n: &std::sync::atomic::AtomicUsize| n.load(std::sync::atomic::Ordering::Relaxed);
-        (bytes, load(&work.tops.reused), load(&work.tops.transformed))
+        let (reused, transformed) = work.tops.counts();
+        (bytes, reused, transformed)
     }
 
     /// Bricks coded from the tops their first pass kept are the files a second transform

@@ -937,11 +937,8 @@ pub fn compress_series_to(
                 .collect()
         },
     )?;
-    tracing::debug!(
-        from_kept_top = tops.reused.load(std::sync::atomic::Ordering::Relaxed),
-        transformed_again = tops.transformed.load(std::sync::atomic::Ordering::Relaxed),
-        "series units coded"
-    );
+    let (from_kept_top, transformed_again) = tops.counts();
+    tracing::debug!(from_kept_top, transformed_again, "series units coded");
     let (manifest, bytes) = plan.write_container(series, &allocated.bricks, out)?;
     Ok(SeriesWritten {
         manifest,
@@ -1181,6 +1178,34 @@ mod tests {
         assert!(qv * 10 < all, "Q_V 90 %: {qv} bytes, everything {all}");
     }
 
+    /// `plan`'s units allocated one after another in this thread, scored and coded through
+    /// `tops` (a budget of nothing: each unit read and transformed in both passes).
+    fn allocated_in_order(
+        plan: &SeriesPlan,
+        s: &dyn SeriesSource,
+        tops: &KeptTops,
+    ) -> crate::bricked::Allocated<Vec<u8>> {
+        let of = plan.units.len();
+        allocate_units(
+            plan.target,
+            of,
+            plan.overhead,
+            None,
+            || (0..of).map(|u| plan.score_into(s, u, tops)).collect(),
+            |counts, _| {
+                (0..of)
+                    .map(|u| {
+                        let count = counts.map(|k| k[u]);
+                        let (file, kept) = plan.encode_from(s, u, count, tops)?;
+                        let len = file.len() as u64;
+                        Ok(CodedBrick { len, file, kept })
+                    })
+                    .collect()
+            },
+        )
+        .unwrap()
+    }
+
     /// A series streamed from its coded units on disk (bricked components: their manifest
     /// sections made there, their CRCs combined from the bricks') is byte for byte the one
     /// assembled in memory, as workers assemble it, at a fraction and over a byte target's
@@ -1194,23 +1219,7 @@ mod tests {
                 ..CompressOptions::default()
             };
             let plan = SeriesPlan::new(&s, &opts, 2, 12).unwrap();
-            let a = allocate_units(
-                plan.target,
-                plan.units.len(),
-                plan.overhead,
-                None,
-                || (0..plan.units.len()).map(|u| plan.score(&s, u)).collect(),
-                |counts, _| {
-                    (0..plan.units.len())
-                        .map(|u| {
-                            let (file, kept) = plan.encode(&s, u, counts.map(|k| k[u]))?;
-                            let len = file.len() as u64;
-                            Ok(CodedBrick { len, file, kept })
-                        })
-                        .collect()
-                },
-            )
-            .unwrap();
+            let a = allocated_in_order(&plan, &s, &KeptTops::new(0));
             let units = a.bricks.into_iter().map(|b| (b.file, b.kept)).collect();
             let in_memory = plan.assemble(&s, units, a.total_coefficients).unwrap();
             let spill = tempfile::tempdir().unwrap();
@@ -1241,26 +1250,7 @@ mod tests {
             };
             let plan = SeriesPlan::new(&s, &opts, 2, 12).unwrap();
             let of = plan.units.len();
-            let allocated = |tops: &KeptTops| {
-                allocate_units(
-                    plan.target,
-                    of,
-                    plan.overhead,
-                    None,
-                    || (0..of).map(|u| plan.score_into(&s, u, tops)).collect(),
-                    |counts, _| {
-                        (0..of)
-                            .map(|u| {
-                                let count = counts.map(|k| k[u]);
-                                let (file, kept) = plan.encode_from(&s, u, count, tops)?;
-                                let len = file.len() as u64;
-                                Ok(CodedBrick { len, file, kept })
-                            })
-                            .collect()
-                    },
-                )
-                .unwrap()
-            };
+            let allocated = |tops: &KeptTops| allocated_in_order(&plan, &s, tops);
             let files = |a: crate::bricked::Allocated<Vec<u8>>| -> Vec<(Vec<u8>, u64)> {
                 a.bricks.into_iter().map(|b| (b.file, b.kept)).collect()
             };
@@ -1268,12 +1258,11 @@ mod tests {
             let without = allocated(&none);
             let total = without.total_coefficients;
             let again = files(without);
-            assert_eq!(none.reused.load(std::sync::atomic::Ordering::Relaxed), 0);
+            assert_eq!(none.counts().0, 0);
             let tops = plan.kept_tops();
             let kept = files(allocated(&tops));
             assert_eq!(kept, again, "{target:?}");
-            let reused = tops.reused.load(std::sync::atomic::Ordering::Relaxed);
-            let transformed = tops.transformed.load(std::sync::atomic::Ordering::Relaxed);
+            let (reused, transformed) = tops.counts();
             assert!(reused + transformed >= of);
             assert!(
                 4 * reused >= 3 * (reused + transformed),

@@ -37,7 +37,7 @@ use prepare::{code, prepare};
 pub use prepare::{default_margin, COARSE_LAYER_MIN_LEVELS, STRUCTURED_FACES};
 pub use rate::worth_going_shallower;
 pub(crate) use rate::SHALLOWER_KEPT;
-use rate::{bytes_per_coefficient_guess, compress_to_bytes};
+use rate::{compress_to_bytes, expected_bytes};
 pub use summary::{ScoreSummary, SummaryBytesError, SummedScores};
 pub use top::{score_keeping_top, KeptTop};
 use wavesplat_codec::volume::Volume;
@@ -59,12 +59,7 @@ pub fn compress(
             });
         }
     }
-    if !(opts.layer_growth.is_finite() && opts.layer_growth > 1.0) {
-        return Err(CompressError::InvalidOption(format!(
-            "layer growth {}; allowed: a finite number above 1",
-            opts.layer_growth
-        )));
-    }
+    check_layer_growth(opts)?;
     if let Target::Bytes(b) = opts.target {
         return compress_to_bytes(volume, opts, b, progress);
     }
@@ -118,10 +113,19 @@ pub fn compress(
     };
     let k = k.min(ranked.sorted.len());
     progress(Stage::Encode(0), 0.0);
-    let expected = (k as u64)
-        .saturating_mul(bytes_per_coefficient_guess(opts.coder))
-        .max(64);
+    let expected = expected_bytes(k, opts.coder);
     Ok(prepared.encode(&ranked, k, opts, expected, true))
+}
+
+/// Refuses a layer growth that is not a finite number above 1.
+fn check_layer_growth(opts: &CompressOptions) -> Result<(), CompressError> {
+    if !(opts.layer_growth.is_finite() && opts.layer_growth > 1.0) {
+        return Err(CompressError::InvalidOption(format!(
+            "layer growth {}; allowed: a finite number above 1",
+            opts.layer_growth
+        )));
+    }
+    Ok(())
 }
 
 /// The transform and the oracle's scores of `volume` under `opts` (its depth, family, colour
@@ -132,14 +136,25 @@ pub fn score_summary(
     opts: &CompressOptions,
     progress: &(dyn Fn(Stage, f64) + Sync),
 ) -> Result<ScoreSummary, CompressError> {
+    scored(volume, opts, progress).map(|(_, summary)| summary)
+}
+
+/// The prepared volume (transform and scores) of `volume` under `opts` and its score
+/// summary: what [`score_summary`] and [`score_keeping_top`] share.
+fn scored(
+    volume: &Volume,
+    opts: &CompressOptions,
+    progress: &(dyn Fn(Stage, f64) + Sync),
+) -> Result<(prepare::Prepared, ScoreSummary), CompressError> {
     let coded = code(volume, opts, false, progress)?;
     let prepared = prepare(volume, opts, &coded, false, progress)?;
-    Ok(ScoreSummary::from_histogram(
+    let summary = ScoreSummary::from_histogram(
         &prepared.histogram,
         prepared.total_coefficients,
         prepared.selectable_energy,
         prepared.nonzero,
-    ))
+    );
+    Ok((prepared, summary))
 }
 
 #[cfg(test)]

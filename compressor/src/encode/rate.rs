@@ -25,6 +25,14 @@ pub(super) fn bytes_per_coefficient_guess(coder: CoderKind) -> u64 {
     }
 }
 
+/// The expected size of a file keeping `kept` coefficients with `coder`, from which its
+/// automatic tiling is chosen.
+pub(super) fn expected_bytes(kept: usize, coder: CoderKind) -> u64 {
+    (kept as u64)
+        .saturating_mul(bytes_per_coefficient_guess(coder))
+        .max(64)
+}
+
 /// The depths a byte target compares first when none is given: the family's default
 /// ([`default_levels`]) and, when it is at least 2, one level less (then shallower ones while
 /// the shallowest wins and its file affords the next coarse band, [`worth_going_shallower`];

@@ -9,13 +9,15 @@
 //! kept set to the voxels, which needs the dense transform and the samples. What is kept is
 //! what [`Prepared::encode`] reads: the volume's small metadata (geometry, band norms, colour
 //! information, value range, totals, the seen-share tables of a bridged grid) and the top
-//! `cap` coefficients in the oracle's order, 8 bytes each (9 with more than one channel). A file coded from them is the file
-//! [`super::compress`] writes for the same count, byte for byte.
+//! `cap` coefficients in the oracle's order, 8 bytes each (9 with more than one channel). A
+//! file coded from them is the file [`super::compress`] writes for the same count, byte for
+//! byte.
 
 use super::options::{CompressError, CompressOptions, Compressed, Stage, Target};
-use super::prepare::{code, prepare, Prepared, Ranked, Scored};
-use super::rate::bytes_per_coefficient_guess;
+use super::prepare::{Prepared, Ranked, Scored};
+use super::rate::expected_bytes;
 use super::summary::ScoreSummary;
+use super::{check_layer_growth, scored};
 use crate::select::Histogram;
 use wavesplat_codec::volume::Volume;
 
@@ -43,15 +45,7 @@ pub fn score_keeping_top(
     cap: u64,
     progress: &(dyn Fn(Stage, f64) + Sync),
 ) -> Result<(ScoreSummary, Option<KeptTop>), CompressError> {
-    let coded = code(volume, opts, false, progress)?;
-    let mut prepared = prepare(volume, opts, &coded, false, progress)?;
-    drop(coded);
-    let summary = ScoreSummary::from_histogram(
-        &prepared.histogram,
-        prepared.total_coefficients,
-        prepared.selectable_energy,
-        prepared.nonzero,
-    );
+    let (mut prepared, summary) = scored(volume, opts, progress)?;
     if opts.refine.is_some() {
         return Ok((summary, None));
     }
@@ -130,12 +124,7 @@ impl KeptTop {
             target: Target::Coefficients(count),
             ..self.opts.clone()
         };
-        if !(opts.layer_growth.is_finite() && opts.layer_growth > 1.0) {
-            return Err(CompressError::InvalidOption(format!(
-                "layer growth {}; allowed: a finite number above 1",
-                opts.layer_growth
-            )));
-        }
+        check_layer_growth(&opts)?;
         let k = usize::try_from(count.min(self.prepared.nonzero))
             .unwrap_or(usize::MAX)
             .min(self.top.len());
@@ -159,10 +148,7 @@ impl KeptTop {
             complete: self.complete && k == self.top.len(),
             refined: 0,
         };
-        let expected = (k as u64)
-            .saturating_mul(bytes_per_coefficient_guess(opts.coder))
-            .max(64);
-        Ok(p.encode(&ranked, k, &opts, expected, true))
+        Ok(p.encode(&ranked, k, &opts, expected_bytes(k, opts.coder), true))
     }
 }
 
