@@ -37,6 +37,7 @@ use crate::encode::{
     SummedScores, Target, PROCESS_MEMORY, SHALLOWER_KEPT,
 };
 use crate::reader::ReadError;
+use crate::scratch::ScratchFile;
 
 /// The margin a brick is padded with for its smooth bridge (see
 /// [`wavesplat_codec::dwt::bridge`]): the coarsest level's spacing 2^M on each side, below the
@@ -1407,22 +1408,39 @@ pub const TOP_SPARE: f64 = 8.0;
 /// small bricks and low rates are covered too.
 pub const TOP_FLOOR: u64 = 1024;
 
-/// The most bytes the kept tops of one allocation hold ([`KeptTops`]); under a memory limit,
-/// at most what the bricks being compressed leave free. Bricks scored after the budget is
-/// spent keep nothing and are transformed again.
+/// The most bytes the kept tops of one allocation hold in memory ([`KeptTops`]); under a
+/// memory limit, at most what the bricks being compressed leave free. Tops kept after the
+/// budget is spent go to a temporary file where one is allowed ([`KeptTops::spilling_in`]),
+/// else they are dropped and their bricks transformed again.
 pub const TOP_BUDGET: u64 = 512 << 20;
+
+/// The share of the free disk space (where the temporary file goes, when the first top is
+/// spilled) that spilled tops may take: the rest is left to the output, the checkpoint and
+/// the trials' coded bricks.
+pub const TOP_DISK_SHARE: f64 = 0.25;
 
 /// Which brick a kept top is of: the volume (0; a time series' component) and the brick.
 pub(crate) type TopKey = (usize, GridBrick);
 
-/// The tops the bricks' first passes kept ([`KeptTop`]), by brick, within a budget of bytes;
-/// and how many bricks were coded from them and how many transformed again.
+/// The tops the bricks' first passes kept ([`KeptTop`]), by brick, within a budget of bytes in
+/// memory and, beyond it, in a temporary file within a share of the free disk; and how many
+/// bricks were coded from them and how many transformed again.
 #[derive(Default)]
 pub struct KeptTops {
     tops: std::sync::Mutex<std::collections::HashMap<TopKey, std::sync::Arc<KeptTop>>>,
-    /// The most bytes the tops may hold.
+    /// The most bytes the tops may hold in memory.
     budget: u64,
     bytes: std::sync::atomic::AtomicU64,
+    /// The directory of the temporary file tops beyond the budget go to (`None`: none).
+    spill_dir: Option<Option<std::path::PathBuf>>,
+    /// That file and the most bytes it may take, made when the first top goes there (`None`
+    /// inside: it could not be made).
+    spill: std::sync::OnceLock<Option<(std::sync::Arc<ScratchFile>, u64)>>,
+    spilled_bytes: std::sync::atomic::AtomicU64,
+    /// A write to the temporary file failed: nothing more goes there.
+    spill_failed: std::sync::atomic::AtomicBool,
+    /// Tops moved to the temporary file.
+    pub spilled: std::sync::atomic::AtomicUsize,
     /// Bricks coded from a kept top.
     pub reused: std::sync::atomic::AtomicUsize,
     /// Bricks coded by reading and transforming them again.
@@ -1459,16 +1477,93 @@ impl KeptTops {
         KeptTops::new(free.min(TOP_BUDGET))
     }
 
-    /// Keeps `top` for `brick` if the budget allows (else drops it).
-    pub(crate) fn keep(&self, brick: TopKey, top: KeptTop) {
-        use std::sync::atomic::Ordering;
+    /// The same, with the tops beyond the memory budget moved to an unnamed temporary file in
+    /// `dir` (`None`: the temporary directory) while they take at most [`TOP_DISK_SHARE`] of
+    /// the free space there; beyond that they are dropped.
+    pub fn spilling_in(self, dir: Option<&std::path::Path>) -> KeptTops {
+        KeptTops {
+            spill_dir: Some(dir.map(std::path::Path::to_path_buf)),
+            ..self
+        }
+    }
+
+    /// The temporary file and its budget, made on the first call (`None`: no spill, or it
+    /// could not be made, which is said once).
+    fn spill_file(&self) -> Option<&(std::sync::Arc<ScratchFile>, u64)> {
+        let dir = self.spill_dir.as_ref()?;
+        self.spill
+            .get_or_init(|| {
+                let made = ScratchFile::new(dir.as_deref()).and_then(|file| {
+                    let at = dir.clone().unwrap_or_else(std::env::temp_dir);
+                    let free = fs2::available_space(&at)?;
+                    Ok((
+                        std::sync::Arc::new(file),
+                        (free as f64 * TOP_DISK_SHARE) as u64,
+                    ))
+                });
+                match made {
+                    Ok(spill) => Some(spill),
+                    Err(e) => {
+                        tracing::warn!(
+                            error = %e,
+                            "the kept tops beyond their memory budget have no temporary file; \
+                             their bricks are transformed again"
+                        );
+                        None
+                    }
+                }
+            })
+            .as_ref()
+    }
+
+    /// Keeps `top` for `brick`: in memory if the budget allows, else in the temporary file if
+    /// there is one with room, else not at all.
+    pub(crate) fn keep(&self, brick: TopKey, mut top: KeptTop) {
+        use std::sync::atomic::Ordering::Relaxed;
         let size = top.heap_bytes() as u64;
-        if self.bytes.fetch_add(size, Ordering::Relaxed) + size > self.budget {
-            self.bytes.fetch_sub(size, Ordering::Relaxed);
-            return;
+        if self.bytes.fetch_add(size, Relaxed) + size > self.budget {
+            self.bytes.fetch_sub(size, Relaxed);
+            if !self.spill_to_disk(&mut top) {
+                return;
+            }
+            // What stays in memory (the metadata) is counted but not refused: a few kB.
+            self.bytes.fetch_add(top.heap_bytes() as u64, Relaxed);
         }
         let mut tops = self.tops.lock().unwrap_or_else(|p| p.into_inner());
         tops.insert(brick, std::sync::Arc::new(top));
+    }
+
+    /// Moves `top`'s coefficients to the temporary file; whether it did.
+    fn spill_to_disk(&self, top: &mut KeptTop) -> bool {
+        use std::sync::atomic::Ordering::Relaxed;
+        let Some((file, budget)) = self.spill_file() else {
+            return false;
+        };
+        let size = top.spilled_size();
+        if self.spill_failed.load(Relaxed) {
+            return false;
+        }
+        if self.spilled_bytes.fetch_add(size, Relaxed) + size > *budget {
+            self.spilled_bytes.fetch_sub(size, Relaxed);
+            return false;
+        }
+        match top.spill(file) {
+            Ok(()) => {
+                self.spilled.fetch_add(1, Relaxed);
+                true
+            }
+            Err(e) => {
+                self.spilled_bytes.fetch_sub(size, Relaxed);
+                if !self.spill_failed.swap(true, Relaxed) {
+                    tracing::warn!(
+                        error = %e,
+                        "writing a kept top to its temporary file failed; the bricks scored \
+                         from now on are transformed again"
+                    );
+                }
+                false
+            }
+        }
     }
 
     /// Bricks coded from a kept top, and bricks read and transformed again, so far.
@@ -1581,55 +1676,27 @@ impl LocalBricks<'_> {
 /// so no coded brick stays in memory longer than it takes to append it.
 #[derive(Debug)]
 pub struct Spill {
-    /// The file and the length written so far.
-    file: std::sync::Mutex<(std::fs::File, u64)>,
+    file: crate::scratch::ScratchFile,
 }
 
 impl Spill {
     /// An empty spill: an unnamed temporary file in `dir` (`None`: the temporary directory).
     pub fn new(dir: Option<&std::path::Path>) -> Result<Spill, BrickError> {
-        let file = match dir {
-            Some(d) => tempfile::tempfile_in(d),
-            None => tempfile::tempfile(),
-        }
-        .map_err(BrickError::Spill)?;
-        Ok(Spill {
-            file: std::sync::Mutex::new((file, 0)),
-        })
+        let file = crate::scratch::ScratchFile::new(dir).map_err(BrickError::Spill)?;
+        Ok(Spill { file })
     }
 
     /// Appends a brick's file (its header section is checked); what finds it again.
     pub fn push(self: &std::sync::Arc<Spill>, bytes: &[u8]) -> Result<SpilledBrick, BrickError> {
-        use std::io::{Seek, SeekFrom, Write};
         let (_, header) = wavesplat_codec::format::read_header_section(bytes)?;
         let crc = crc32fast::hash(bytes);
-        let mut g = self.file.lock().unwrap_or_else(|p| p.into_inner());
-        let offset = g.1;
-        // From the end as recorded, wherever a read or a failed write left the file's cursor.
-        g.0.seek(SeekFrom::Start(offset))
-            .and_then(|_| g.0.write_all(bytes))
-            .map_err(BrickError::Spill)?;
-        g.1 += bytes.len() as u64;
+        let offset = self.file.append(bytes).map_err(BrickError::Spill)?;
         Ok(SpilledBrick {
             spill: self.clone(),
             offset,
             crc,
             header: header as u64,
         })
-    }
-
-    /// Copies `len` bytes from `offset` to `out`.
-    fn copy_to(&self, offset: u64, len: u64, out: &mut dyn std::io::Write) -> std::io::Result<()> {
-        use std::io::{Read, Seek, SeekFrom};
-        let mut g = self.file.lock().unwrap_or_else(|p| p.into_inner());
-        g.0.seek(SeekFrom::Start(offset))?;
-        let copied = std::io::copy(&mut (&mut g.0).take(len), out)?;
-        if copied != len {
-            return Err(std::io::Error::other(format!(
-                "the temporary file holds {copied} of a brick's {len} bytes"
-            )));
-        }
-        Ok(())
     }
 }
 
@@ -1647,7 +1714,7 @@ pub struct SpilledBrick {
 impl SpilledBrick {
     /// Copies the brick's `len` bytes to `out`.
     pub(crate) fn copy_to(&self, len: u64, out: &mut dyn std::io::Write) -> std::io::Result<()> {
-        self.spill.copy_to(self.offset, len, out)
+        self.spill.file.copy_to(self.offset, len, out)
     }
 }
 
@@ -1768,13 +1835,18 @@ pub fn compress_bricked_to(
             source,
             progress,
             checkpoint,
-            tops: KeptTops::for_plan(&plan),
+            tops: KeptTops::for_plan(&plan).spilling_in(spill_dir),
         },
         dir: spill_dir,
     };
     let a = allocate(&plan, &work)?;
     let (from_kept_top, transformed_again) = work.local.tops.counts();
-    tracing::debug!(from_kept_top, transformed_again, "bricks coded");
+    let spilled = work
+        .local
+        .tops
+        .spilled
+        .load(std::sync::atomic::Ordering::Relaxed);
+    tracing::debug!(from_kept_top, transformed_again, spilled, "bricks coded");
     let c = plan.write_container(&a.bricks, out)?;
     Ok(BrickedWritten {
         manifest: c.manifest,
@@ -1965,9 +2037,8 @@ mod tests {
         }
     }
 
-    /// The container `plan` allocates with `tops`, and how many bricks were coded from a kept
-    /// top and how many transformed again.
-    fn allocated_with(v: &Volume, plan: &BrickPlan, tops: KeptTops) -> (Vec<u8>, usize, usize) {
+    /// The container `plan` allocates with `tops`, and the tops after it (what they counted).
+    fn allocated_with(v: &Volume, plan: &BrickPlan, tops: KeptTops) -> (Vec<u8>, KeptTops) {
         let quiet = |_| {};
         let work = LocalBricks {
             source: v,
@@ -1978,16 +2049,17 @@ mod tests {
         let a = allocate(plan, &work).unwrap();
         let files: Vec<(Vec<u8>, u64)> = a.bricks.into_iter().map(|b| (b.file, b.kept)).collect();
         let (bytes, _) = plan.assemble(&files).unwrap();
-        let (reused, transformed) = work.tops.counts();
-        (bytes, reused, transformed)
+        (bytes, work.tops)
     }
 
     /// Bricks coded from the tops their first pass kept are the files a second transform
     /// writes, byte for byte: for fraction, count and byte targets (whose search codes every
     /// brick several times), scalar and colour volumes, with every brick's top kept, with
-    /// none (a budget of nothing) and with some (a budget of half).
+    /// none (a budget of nothing) and with some (a budget of half); and with the tops beyond
+    /// the budget in a temporary file, or a temporary file that cannot be made.
     #[test]
     fn bricks_coded_from_kept_tops_are_the_files_a_second_transform_writes() {
+        use std::sync::atomic::Ordering::Relaxed;
         let ct = Phantom::Ct.generate([72, 60, 40]);
         let rgb = Phantom::RgbHead.generate([40, 36, 30]);
         let cases = [
@@ -1997,6 +2069,7 @@ mod tests {
             (&rgb, Target::Fraction(0.03)),
             (&rgb, Target::Bytes(9_000)),
         ];
+        let dir = tempfile::tempdir().unwrap();
         for (v, target) in cases {
             let opts = CompressOptions {
                 target,
@@ -2004,12 +2077,14 @@ mod tests {
             };
             let plan = BrickPlan::new(v, &opts, 24).unwrap();
             let bricks = plan.grid.len();
-            let (again, reused, transformed) = allocated_with(v, &plan, KeptTops::new(0));
+            let (again, none) = allocated_with(v, &plan, KeptTops::new(0));
+            let (reused, transformed) = none.counts();
             assert_eq!(reused, 0, "{target:?}");
             assert!(transformed >= bricks, "{target:?}");
-            let all = KeptTops::for_plan(&plan);
-            let (kept, reused, transformed) = allocated_with(v, &plan, all);
+            let (kept, all) = allocated_with(v, &plan, KeptTops::for_plan(&plan));
             assert_eq!(kept, again, "{target:?}: every top kept");
+            let (reused, transformed) = all.counts();
+            assert_eq!(all.spilled.load(Relaxed), 0);
             // A brick whose share is beyond its kept top is transformed again; most are not.
             assert!(
                 4 * reused >= 3 * (reused + transformed),
@@ -2018,12 +2093,34 @@ mod tests {
             // A budget for about half the bricks' tops.
             let one = plan.top_cap(0).unwrap() * std::mem::size_of::<(u32, f32)>() as u64;
             let half = KeptTops::new(one * bricks as u64 / 2);
-            let (some, reused, transformed) = allocated_with(v, &plan, half);
+            let (some, half) = allocated_with(v, &plan, half);
             assert_eq!(some, again, "{target:?}: some tops kept");
+            let (reused_half, transformed_half) = half.counts();
             assert!(
-                reused > 0 && transformed > 0,
-                "{target:?}: {reused} {transformed}"
+                reused_half > 0 && transformed_half > 0,
+                "{target:?}: {reused_half} {transformed_half}"
             );
+            // Nothing in memory, every top in a temporary file: coded from it as from memory.
+            let spilling = KeptTops::new(0).spilling_in(Some(dir.path()));
+            let (from_disk, spilled) = allocated_with(v, &plan, spilling);
+            assert_eq!(from_disk, again, "{target:?}: tops in a temporary file");
+            assert_eq!(spilled.counts(), (reused, transformed), "{target:?}");
+            assert_eq!(spilled.spilled.load(Relaxed), bricks, "{target:?}");
+            // Half in memory, the rest on disk.
+            let mixed = KeptTops::new(one * bricks as u64 / 2).spilling_in(None);
+            let (mixed_bytes, mixed) = allocated_with(v, &plan, mixed);
+            assert_eq!(mixed_bytes, again, "{target:?}: half on disk");
+            assert_eq!(mixed.counts(), (reused, transformed), "{target:?}");
+            let on_disk = mixed.spilled.load(Relaxed);
+            assert!(on_disk > 0 && on_disk < bricks, "{target:?}: {on_disk}");
+            // A temporary file that cannot be made: the tops are dropped, the bricks
+            // transformed again, the file the same.
+            let nowhere = dir.path().join("no such directory");
+            let dropped = KeptTops::new(0).spilling_in(Some(&nowhere));
+            let (without, dropped) = allocated_with(v, &plan, dropped);
+            assert_eq!(without, again, "{target:?}: no temporary file");
+            assert_eq!(dropped.counts().0, 0);
+            assert_eq!(dropped.spilled.load(Relaxed), 0);
         }
         // A refining compression keeps none and codes every brick by transforming it again.
         let opts = CompressOptions {
@@ -2032,8 +2129,10 @@ mod tests {
         };
         let plan = BrickPlan::new(&ct, &opts, 24).unwrap();
         assert_eq!(plan.top_cap(0), None);
-        let (_, reused, _) = allocated_with(&ct, &plan, KeptTops::for_plan(&plan));
-        assert_eq!(reused, 0);
+        let tops = KeptTops::for_plan(&plan).spilling_in(Some(dir.path()));
+        let (_, tops) = allocated_with(&ct, &plan, tops);
+        assert_eq!(tops.counts().0, 0);
+        assert_eq!(tops.spilled.load(Relaxed), 0);
     }
 
     #[test]

@@ -13,6 +13,7 @@ pub mod order;
 pub mod phantom;
 pub mod reader;
 pub mod refine;
+pub mod scratch;
 mod select;
 pub mod series;
 pub mod visible;

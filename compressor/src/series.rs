@@ -905,7 +905,7 @@ pub fn compress_series_to(
         let done = counter.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
         progress(stage(done));
     };
-    let tops = plan.kept_tops();
+    let tops = plan.kept_tops().spilling_in(spill_dir);
     let allocated = allocate_units(
         plan.target,
         of,
@@ -938,7 +938,13 @@ pub fn compress_series_to(
         },
     )?;
     let (from_kept_top, transformed_again) = tops.counts();
-    tracing::debug!(from_kept_top, transformed_again, "series units coded");
+    let spilled = tops.spilled.load(std::sync::atomic::Ordering::Relaxed);
+    tracing::debug!(
+        from_kept_top,
+        transformed_again,
+        spilled,
+        "series units coded"
+    );
     let (manifest, bytes) = plan.write_container(series, &allocated.bricks, out)?;
     Ok(SeriesWritten {
         manifest,

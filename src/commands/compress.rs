@@ -149,7 +149,10 @@ pub struct CompressArgs {
     /// brick at a time), written as one bricked file (format version 11); the coded bricks wait
     /// in a temporary file beside the output (about the output's size, twice that during a
     /// byte target's search), so memory stays about one brick per thread whatever the file's
-    /// size. The target is the whole's: one score threshold across all bricks. For
+    /// size; without refinement (--effort fast) each brick's top coefficients, kept from its
+    /// first pass so that it is not transformed again, go there too beyond 512 MB of memory
+    /// (8 bytes a coefficient, 8 times the brick's share; at most a quarter of the free
+    /// space). The target is the whole's: one score threshold across all bricks. For
     /// volumes larger than memory or than one transform (2^31 voxels); `render` and `info`
     /// read the result (linear and haar families). Default: whole, unless the volume does not
     /// fit --memory-limit or has more than 2^31 voxels: then bricks of 256, 128, 64 or 32, the

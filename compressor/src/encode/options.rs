@@ -250,6 +250,10 @@ pub enum CompressError {
         /// What dominates the estimate.
         detail: String,
     },
+    /// A kept top's coefficients could not be read back from the temporary file they were
+    /// moved to.
+    #[error("reading a kept top back from its temporary file")]
+    KeptTopRead(#[source] std::io::Error),
 }
 
 /// Stages reported to a progress callback.

@@ -9,16 +9,20 @@
 //! kept set to the voxels, which needs the dense transform and the samples. What is kept is
 //! what [`Prepared::encode`] reads: the volume's small metadata (geometry, band norms, colour
 //! information, value range, totals, the seen-share tables of a bridged grid) and the top
-//! `cap` coefficients in the oracle's order, 8 bytes each (9 with more than one channel). A
-//! file coded from them is the file [`super::compress`] writes for the same count, byte for
-//! byte.
+//! `cap` coefficients in the oracle's order, 8 bytes each (9 with more than one channel), in
+//! memory or moved to a [`ScratchFile`] ([`KeptTop::spill`]), from which a coding reads only
+//! the prefix it keeps. A file coded from them is the file [`super::compress`] writes for the
+//! same count, byte for byte.
 
 use super::options::{CompressError, CompressOptions, Compressed, Stage, Target};
 use super::prepare::{Prepared, Ranked, Scored};
 use super::rate::expected_bytes;
 use super::summary::ScoreSummary;
 use super::{check_layer_growth, scored};
+use crate::scratch::ScratchFile;
 use crate::select::Histogram;
+use std::borrow::Cow;
+use std::sync::Arc;
 use wavesplat_codec::volume::Volume;
 
 /// A volume's oracle's top coefficients and what coding them needs, kept from its score pass
@@ -26,15 +30,31 @@ use wavesplat_codec::volume::Volume;
 pub struct KeptTop {
     /// The prepared volume without its dense arrays (coefficients, band map, histogram).
     prepared: Prepared,
-    /// The top coefficients in the oracle's order: index and value (8 bytes; their scores,
-    /// which the ranking's 24-byte entries also hold, are computed again for the ones coded).
-    top: Vec<(u32, f32)>,
-    /// Each one's channel (empty for one channel).
-    channels: Vec<u8>,
+    /// The top coefficients in the oracle's order.
+    values: TopValues,
     /// The top holds every selectable coefficient.
     complete: bool,
     /// The options it was scored with.
     opts: CompressOptions,
+}
+
+/// Where a [`KeptTop`]'s coefficients are.
+enum TopValues {
+    /// In memory: index and value (8 bytes; their scores, which the ranking's 24-byte entries
+    /// also hold, are computed again for the ones coded), and each one's channel (empty for
+    /// one channel).
+    Held {
+        top: Vec<(u32, f32)>,
+        channels: Vec<u8>,
+    },
+    /// In a scratch file from `offset`: `len` little-endian (index u32, value f32) pairs, then
+    /// `len` channel bytes where `channels`.
+    Spilled {
+        file: Arc<ScratchFile>,
+        offset: u64,
+        len: usize,
+        channels: bool,
+    },
 }
 
 /// The score summary of `volume` under `opts` ([`super::score_summary`]) and, when `opts` do
@@ -66,8 +86,7 @@ pub fn score_keeping_top(
     prepared.scratch = Default::default();
     let kept = KeptTop {
         prepared,
-        top,
-        channels,
+        values: TopValues::Held { top, channels },
         complete,
         opts: opts.clone(),
     };
@@ -79,7 +98,7 @@ impl KeptTop {
     /// what is kept: the count is within the top kept, or the top holds every selectable
     /// coefficient.
     pub fn covers(&self, count: u64) -> bool {
-        self.complete || count <= self.top.len() as u64
+        self.complete || count <= self.len() as u64
     }
 
     /// Whether it was scored with `opts`, up to the target (what a second pass may change).
@@ -93,20 +112,97 @@ impl KeptTop {
 
     /// Coefficients kept.
     pub fn len(&self) -> usize {
-        self.top.len()
+        match &self.values {
+            TopValues::Held { top, .. } => top.len(),
+            TopValues::Spilled { len, .. } => *len,
+        }
     }
 
     /// Whether no coefficient is kept.
     pub fn is_empty(&self) -> bool {
-        self.top.is_empty()
+        self.len() == 0
     }
 
     /// Bytes it holds on the heap (about).
     pub fn heap_bytes(&self) -> usize {
-        self.top.capacity() * std::mem::size_of::<(u32, f32)>()
-            + self.channels.capacity()
+        let values = match &self.values {
+            TopValues::Held { top, channels } => {
+                top.capacity() * std::mem::size_of::<(u32, f32)>() + channels.capacity()
+            }
+            TopValues::Spilled { .. } => 0,
+        };
+        values
             + self.prepared.norms.capacity() * std::mem::size_of::<f64>()
             + self.prepared.visible.as_ref().map_or(0, |v| v.heap_bytes())
+    }
+
+    /// Whether its coefficients are in a scratch file.
+    pub fn is_spilled(&self) -> bool {
+        matches!(self.values, TopValues::Spilled { .. })
+    }
+
+    /// Bytes its coefficients take in a scratch file ([`KeptTop::spill`]).
+    pub fn spilled_size(&self) -> u64 {
+        let per = match &self.values {
+            TopValues::Held { channels, .. } => 8 + u64::from(!channels.is_empty()),
+            TopValues::Spilled { channels, .. } => 8 + u64::from(*channels),
+        };
+        self.len() as u64 * per
+    }
+
+    /// Moves its coefficients to the end of `file`, leaving in memory only what coding needs
+    /// beside them (a few kB). On an error it keeps them in memory. Spilled already: nothing.
+    pub fn spill(&mut self, file: &Arc<ScratchFile>) -> std::io::Result<()> {
+        let TopValues::Held { top, channels } = &self.values else {
+            return Ok(());
+        };
+        let mut bytes = Vec::with_capacity(self.spilled_size() as usize);
+        for &(index, value) in top {
+            bytes.extend_from_slice(&index.to_le_bytes());
+            bytes.extend_from_slice(&value.to_bits().to_le_bytes());
+        }
+        bytes.extend_from_slice(channels);
+        let offset = file.append(&bytes)?;
+        self.values = TopValues::Spilled {
+            file: file.clone(),
+            offset,
+            len: top.len(),
+            channels: !channels.is_empty(),
+        };
+        Ok(())
+    }
+
+    /// Its first `k` (at most its length) coefficients and their channels (empty for one
+    /// channel), from memory or read back from its scratch file.
+    #[allow(clippy::type_complexity)]
+    fn prefix(&self, k: usize) -> Result<(Cow<'_, [(u32, f32)]>, Cow<'_, [u8]>), CompressError> {
+        match &self.values {
+            TopValues::Held { top, channels } => Ok((
+                Cow::Borrowed(&top[..k]),
+                Cow::Borrowed(&channels[..k.min(channels.len())]),
+            )),
+            TopValues::Spilled {
+                file,
+                offset,
+                len,
+                channels,
+            } => {
+                let read = |at: u64, n: usize| file.read(at, n).map_err(CompressError::KeptTopRead);
+                let pairs = read(*offset, k * 8)?
+                    .chunks_exact(8)
+                    .map(|b| {
+                        let index = u32::from_le_bytes([b[0], b[1], b[2], b[3]]);
+                        let value = f32::from_bits(u32::from_le_bytes([b[4], b[5], b[6], b[7]]));
+                        (index, value)
+                    })
+                    .collect();
+                let channel_bytes = match channels {
+                    true => read(offset + *len as u64 * 8, k)?,
+                    false => Vec::new(),
+                };
+                Ok((Cow::Owned(pairs), Cow::Owned(channel_bytes)))
+            }
+        }
     }
 
     /// The volume compressed keeping its top `count` coefficients: the file
@@ -117,7 +213,7 @@ impl KeptTop {
         if !self.covers(count) {
             return Err(CompressError::InvalidOption(format!(
                 "{count} coefficients asked of a kept top of {}",
-                self.top.len()
+                self.len()
             )));
         }
         let opts = CompressOptions {
@@ -127,13 +223,14 @@ impl KeptTop {
         check_layer_growth(&opts)?;
         let k = usize::try_from(count.min(self.prepared.nonzero))
             .unwrap_or(usize::MAX)
-            .min(self.top.len());
+            .min(self.len());
         let p = &self.prepared;
-        let sorted = self.top[..k]
+        let (top, channels) = self.prefix(k)?;
+        let sorted = top
             .iter()
             .enumerate()
             .map(|(j, &(index, value))| {
-                let channel = self.channels.get(j).copied().unwrap_or(0);
+                let channel = channels.get(j).copied().unwrap_or(0);
                 let band = p.band_at(index as usize);
                 Scored {
                     score: p.score_in_band(channel as usize, index as usize, value, band),
@@ -145,7 +242,7 @@ impl KeptTop {
             .collect();
         let ranked = Ranked {
             sorted,
-            complete: self.complete && k == self.top.len(),
+            complete: self.complete && k == self.len(),
             refined: 0,
         };
         Ok(p.encode(&ranked, k, &opts, expected_bytes(k, opts.coder), true))
@@ -218,6 +315,50 @@ mod tests {
                     assert_eq!(got.stats.q_v.to_bits(), want.stats.q_v.to_bits());
                     assert_eq!(got.stats.q_e.to_bits(), want.stats.q_e.to_bits());
                 }
+            }
+        }
+    }
+
+    /// A top moved to a scratch file codes the files it coded in memory, holds only its
+    /// metadata in memory, and takes 8 bytes a coefficient on disk (9 with colour); spilling
+    /// it again changes nothing.
+    #[test]
+    fn a_spilled_top_codes_the_files_it_coded_in_memory() {
+        let file = Arc::new(ScratchFile::new(None).unwrap());
+        for v in [
+            Phantom::SheppLogan.generate([40, 36, 30]),
+            Phantom::RgbHead.generate([24, 20, 17]),
+            Phantom::Zero.generate([9, 8, 7]),
+            Phantom::SheppLogan.generate([1, 1, 1]),
+        ] {
+            let opts = fast(&v, true);
+            let (_, top) = score_keeping_top(&v, &opts, 900, &|_, _| {}).unwrap();
+            let mut top = top.unwrap();
+            let counts = [0, 1, 100, 899, 900].map(|c: u64| c.min(top.len() as u64));
+            let held: Vec<Vec<u8>> = counts
+                .iter()
+                .map(|&c| top.compress(c).unwrap().bytes)
+                .collect();
+            let (heap, len) = (top.heap_bytes(), top.len());
+            let per = if v.channel_count() > 1 { 9 } else { 8 };
+            assert_eq!(top.spilled_size(), len as u64 * per);
+            let before = file.len();
+            top.spill(&file).unwrap();
+            assert!(top.is_spilled());
+            assert_eq!(file.len() - before, len as u64 * per);
+            assert!(
+                top.heap_bytes() + len * 8 <= heap,
+                "{} of {heap}",
+                top.heap_bytes()
+            );
+            top.spill(&file).unwrap();
+            assert_eq!(file.len() - before, len as u64 * per);
+            assert_eq!(top.len(), len);
+            for (&c, want) in counts.iter().zip(&held) {
+                assert_eq!(&top.compress(c).unwrap().bytes, want, "{:?} {c}", v.dims());
+            }
+            if top.len() == 900 {
+                assert!(top.compress(901).is_err());
             }
         }
     }
