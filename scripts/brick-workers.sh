@@ -11,7 +11,8 @@
 # WORKERS: worker counts (default "1 2"; more than the machine's cores are skipped).
 # UPLOAD=1 submits the file with --upload (one worker compresses it, reading its bricks from
 # its temporary copy of the upload); DETACHED=1 submits the same samples behind a detached
-# MetaImage header (two files: uploaded, a bundle); WAVESPLAT=PATH runs another build.
+# MetaImage header (two files: uploaded, a bundle); WAVESPLAT=PATH runs another build;
+# SUBMIT_FLAGS adds options to the submission (e.g. SUBMIT_FLAGS="--effort fast").
 # Writes $TMPDIR/wavesplat-workers/workers.csv (size,workers,brick,parts,seconds,
 # peak_rss_mb_max,bytes,ns_per_voxel_core).
 set -euo pipefail
@@ -62,7 +63,8 @@ for w in $WORKERS; do
   sleep 1
   start=$(date +%s.%N)
   "$W" archive submit "$SUBMIT" --orchestrator "http://127.0.0.1:$op" --detach \
-    --brick "$BRICK" --target-fraction "$FRACTION" "${UPLOAD_FLAG[@]}" >"$run/submit.log"
+    --brick "$BRICK" --target-fraction "$FRACTION" "${UPLOAD_FLAG[@]}" ${SUBMIT_FLAGS:-} \
+    >"$run/submit.log"
   WP=()
   for i in $(seq 0 $((w - 1))); do
     taskset -c "$i" "$W" worker --orchestrator "http://127.0.0.1:$op" \
