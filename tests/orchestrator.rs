@@ -612,6 +612,94 @@ async fn a_bricked_job_spreads_its_bricks_over_workers() {
     assert_cache_holds_only(&c, &expected).await;
 }
 
+/// A bricked job without refinement (`--effort fast`) over two workers: each worker keeps the
+/// tops of the bricks it scores, the queue hands a brick's encode parts (every trial of a byte
+/// target's search) to the worker that scored it first, and that worker codes them from the
+/// top instead of transforming the brick again; the volume is the file one process makes.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_fast_bricked_job_codes_its_bricks_from_the_tops_their_workers_kept() {
+    use wavesplat_orchestrator_client::model::{Effort, JobOptions, TargetSpec};
+    let cl = TestCluster::start(&ORCH_TIMING);
+    let (o, c) = (cl.orch.url(), cl.cache.url());
+    let dims = [56, 48, 40];
+    let shared = cl.root.join("shared");
+    std::fs::create_dir_all(&shared).unwrap();
+    write_f32(
+        &shared.join(raw_name("fast", dims, "f32")),
+        &phantom(Phantom::Ct, dims),
+    );
+    let logs = [cl.root.join("w1.log"), cl.root.join("w2.log")];
+    let _w1 = cl.worker("w1", 0, Some(&logs[0]));
+    let _w2 = cl.worker("w2", 0, Some(&logs[1]));
+    let target = 9_000u64;
+    submit(
+        &shared,
+        &o,
+        &[
+            "--brick",
+            "24",
+            "--effort",
+            "fast",
+            "--target-bytes",
+            &target.to_string(),
+        ],
+    );
+    let js = wait_for(&o, 120, "the bricked job done", |js| {
+        js.iter()
+            .any(|j| !is_part(j) && state_name(j.state) == "done")
+    })
+    .await;
+    let parent = js.iter().find(|j| !is_part(j)).unwrap();
+    let encodes = js
+        .iter()
+        .filter(|j| {
+            j.spec
+                .as_ref()
+                .and_then(|s| s.part.as_ref())
+                .is_some_and(|p| matches!(p.step, Some(pb::part_spec::Step::Encode(_))))
+        })
+        .count();
+    let scores = js.iter().filter(|j| is_part(j)).count() - encodes;
+    assert_eq!(scores, 12, "3 × 2 × 2 bricks scored");
+    assert!(encodes >= scores, "every brick coded: {encodes}");
+    let mut from_tops = 0;
+    let mut text = String::new();
+    for log in &logs {
+        let t = std::fs::read_to_string(log).unwrap();
+        from_tops += t
+            .lines()
+            .filter(|l| l.contains("part coded from the top this worker kept"))
+            .count();
+        text += &t;
+    }
+    // A brick whose share is beyond its kept top is transformed again, and a worker that runs
+    // out of its own parts takes the other's; most are coded from a top (without the
+    // preference about a fifth were).
+    assert!(
+        3 * from_tops >= 2 * encodes && from_tops <= encodes,
+        "{from_tops} of {encodes} encode parts coded from a kept top:\n{text}"
+    );
+
+    let options = JobOptions {
+        levels: Some(2),
+        brick: Some(24),
+        effort: Effort::Fast,
+        target: TargetSpec::Bytes(target),
+        ..Default::default()
+    };
+    let opts = wavesplat_worker::options::compress_options(&options);
+    let expected = wavesplat_compressor::bricked::compress_bricked(
+        &Phantom::Ct.generate(dims),
+        &opts,
+        24,
+        &|_| {},
+    )
+    .unwrap()
+    .bytes;
+    assert_eq!(parent.output_bytes, expected.len() as u64);
+    assert_cache_holds_only(&c, &expected).await;
+}
+
 /// The parts' RPCs from the other side of the wire, as a worker that does not follow the
 /// rules would call them: parts only for the job one holds, only as its spec; results only
 /// complete and as announced, only through `FinishPart`, only to the holder of the parent;
@@ -657,6 +745,7 @@ async fn the_parts_rpcs_hold_their_rules_against_a_raw_client() {
             color: None,
             source_bytes: None,
             time_points: None,
+            prefer_worker: None,
         }),
         ..parent_spec.clone()
     };

@@ -443,6 +443,7 @@ async fn parts_lease_apart_and_their_results_live_until_dropped(b: &mut dyn Back
             color: None,
             source_bytes: None,
             time_points: None,
+            prefer_worker: None,
         }),
         ..bricked(1)
     };
@@ -481,7 +482,90 @@ async fn parts_lease_apart_and_their_results_live_until_dropped(b: &mut dyn Back
     );
 }
 
+/// A part that prefers a worker goes to that worker's lease before older jobs, and to any
+/// other's when it is the oldest; a done job names the worker that finished it; the preference
+/// is not part of a part's identity.
+async fn a_part_goes_first_to_the_worker_it_prefers(b: &mut dyn Backend) {
+    use wavesplat_orchestrator::model::{JobState, PartSpec, PartStep};
+    let clock = TestClock::default();
+    let q = b.open(&clock).await;
+    let bricked = JobSpec {
+        options: JobOptions {
+            brick: Some(16),
+            ..JobOptions::default()
+        },
+        ..spec(1)
+    };
+    let part = |parent: u64, index: u32, prefer: Option<&str>| JobSpec {
+        part: Some(PartSpec {
+            parent,
+            index,
+            of: 4,
+            step: PartStep::Encode {
+                count: Some(10),
+                trial: 0,
+            },
+            levels: 2,
+            offset: Some(0.5),
+            color: None,
+            source_bytes: None,
+            time_points: None,
+            prefer_worker: prefer.map(str::to_string),
+        }),
+        ..bricked.clone()
+    };
+    let parent = q.submit(bricked.clone(), None).await.unwrap().job;
+    let leased = q.lease("coordinator", false).await.unwrap().job.unwrap();
+    assert_eq!(leased.id, parent.id);
+    let p0 = q.submit(part(parent.id, 0, None), None).await.unwrap().job;
+    let p1 = q
+        .submit(part(parent.id, 1, Some("w2")), None)
+        .await
+        .unwrap()
+        .job;
+    let p2 = q
+        .submit(part(parent.id, 2, Some("w1")), None)
+        .await
+        .unwrap()
+        .job;
+    let p3 = q
+        .submit(part(parent.id, 3, Some("w2")), None)
+        .await
+        .unwrap()
+        .job;
+    let again = q
+        .submit(part(parent.id, 1, Some("w9")), None)
+        .await
+        .unwrap();
+    assert!(again.existed, "another preference is the same part");
+    assert_eq!(again.job.id, p1.id);
+    let w1 = q.lease("w1", true).await.unwrap().job.unwrap();
+    assert_eq!(w1.id, p2.id, "w1's own part before the older ones");
+    let w2 = q.lease("w2", true).await.unwrap().job.unwrap();
+    assert_eq!(w2.id, p1.id, "w2's oldest own part");
+    let w3 = q.lease("w3", true).await.unwrap().job.unwrap();
+    assert_eq!(w3.id, p0.id, "no part prefers w3: the oldest");
+    let w1 = q.lease("w1", true).await.unwrap().job.unwrap();
+    assert_eq!(
+        w1.id, p3.id,
+        "w1 takes w2's part when nothing else is queued"
+    );
+    let done = q.finish(w1.id, w1.attempts, delivered()).await.unwrap();
+    match done.state {
+        JobState::Done { worker, .. } => assert_eq!(worker, "w1"),
+        other => panic!("not done: {other:?}"),
+    }
+    drop(q);
+    let seen = b.reopen(&clock).await.get(p3.id).await.unwrap();
+    assert!(
+        matches!(seen.state, JobState::Done { ref worker, .. } if worker == "w1"),
+        "{:?}",
+        seen.state
+    );
+}
+
 async fn contract(b: &mut dyn Backend, stores: usize) {
+    a_part_goes_first_to_the_worker_it_prefers(b).await;
     parts_lease_apart_and_their_results_live_until_dropped(b).await;
     submit_deduplicates_by_content_options_and_name(b).await;
     leases_are_fifo_and_exclusive_across_stores(b, stores).await;

@@ -690,7 +690,7 @@ impl BrickPlan {
 
     /// The first pass for brick `i` of volume `volume` (0; a series' component), keeping its
     /// top `cap` coefficients in `tops` where a cap is given and the bricks do not refine.
-    pub(crate) fn score_into(
+    pub fn score_into(
         &self,
         source: &dyn BrickSource,
         i: usize,
@@ -711,7 +711,7 @@ impl BrickPlan {
     /// Brick `i` of volume `volume` compressed as [`BrickPlan::encode`] does: from its top
     /// kept in `tops` where that covers `count`, else read and transformed again (each counted
     /// in `tops`).
-    pub(crate) fn encode_from(
+    pub fn encode_from(
         &self,
         source: &dyn BrickSource,
         i: usize,

@@ -115,6 +115,7 @@ pub fn part_from_pb(p: pb::PartSpec) -> Result<PartSpec, ClientError> {
         color,
         source_bytes: (p.source_bytes > 0).then_some(p.source_bytes),
         time_points: (p.time_points > 0).then_some(p.time_points),
+        prefer_worker: (!p.prefer_worker.is_empty()).then_some(p.prefer_worker),
     })
 }
 
@@ -138,6 +139,7 @@ fn part_to_pb(p: &PartSpec) -> pb::PartSpec {
         }),
         source_bytes: p.source_bytes.unwrap_or(0),
         time_points: p.time_points.unwrap_or(0),
+        prefer_worker: p.prefer_worker.clone().unwrap_or_default(),
     }
 }
 
@@ -326,7 +328,9 @@ pub fn job_to_pb(j: &Job, max_attempts: u32) -> pb::Job {
             p.stage = stage.clone();
             pb::JobState::Running
         }
-        JobState::Done { delivery, run_ms } => {
+        JobState::Done {
+            delivery, run_ms, ..
+        } => {
             p.progress = 1.0;
             p.cache_volume_id = delivery.cache_volume_id;
             p.output_bytes = delivery.output_bytes;
@@ -416,6 +420,7 @@ mod tests {
                 }),
                 source_bytes: Some(1 << 33),
                 time_points: Some(16),
+                prefer_worker: Some("w1-4242".into()),
             }),
             ..spec.clone()
         };
@@ -429,6 +434,19 @@ mod tests {
         let mut p = spec_to_pb(&part);
         p.part.as_mut().unwrap().index = 8;
         assert!(spec_from_pb(p).unwrap().validate().is_err());
+        // The preferred worker: not part of the identity; bounded, no control characters.
+        let mut elsewhere = part.clone();
+        elsewhere.part.as_mut().unwrap().prefer_worker = None;
+        assert_eq!(elsewhere.dedup_key(), part.dedup_key());
+        assert!(spec_from_pb(spec_to_pb(&elsewhere))
+            .unwrap()
+            .validate()
+            .is_ok());
+        for bad in ["w\n1".to_string(), "w".repeat(256)] {
+            let mut p = spec_to_pb(&part);
+            p.part.as_mut().unwrap().prefer_worker = bad;
+            assert!(spec_from_pb(p).unwrap().validate().is_err());
+        }
         let mut p = spec_to_pb(&part);
         p.part.as_mut().unwrap().step = None;
         assert!(spec_from_pb(p).is_err());

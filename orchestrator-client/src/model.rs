@@ -464,6 +464,11 @@ pub struct PartSpec {
     /// `offset` a time point's.
     #[serde(default)]
     pub time_points: Option<u32>,
+    /// The worker that scored this brick, which may hold its kept top: a lease from it takes
+    /// this part before older ones, any worker's otherwise. Not part of the part's identity
+    /// ([`JobSpec::dedup_key`]): it steers the work, it does not change it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub prefer_worker: Option<String>,
 }
 
 /// What a part does.
@@ -497,6 +502,12 @@ pub struct PartColor {
     pub importance: [f64; 3],
 }
 
+/// Whether `name` can be a part's preferred worker: 1..=[`MAX_NAME_BYTES`] bytes without
+/// control characters.
+pub fn is_worker_name(name: &str) -> bool {
+    !name.is_empty() && name.len() <= MAX_NAME_BYTES && !name.chars().any(char::is_control)
+}
+
 /// Largest result a part may report: a brick's file (a 1024³ brick's is far below this).
 pub const MAX_PART_RESULT_BYTES: usize = 512 << 20;
 
@@ -517,6 +528,15 @@ impl PartSpec {
         }
         if self.time_points == Some(0) {
             return Err(invalid("a part of a series of no time points".to_string()));
+        }
+        if let Some(w) = &self.prefer_worker {
+            if !is_worker_name(w) {
+                return Err(invalid(format!(
+                    "a part's preferred worker must be 1..={MAX_NAME_BYTES} bytes without \
+                     control characters ({} bytes)",
+                    w.len()
+                )));
+            }
         }
         let finite = |v: &[f64]| v.iter().all(|x| x.is_finite());
         if self.offset.is_some_and(|o| !o.is_finite())
@@ -596,7 +616,13 @@ impl JobSpec {
         let opts = serde_json::to_string(&(&self.raw, &self.options)).unwrap_or_default();
         let part = match &self.part {
             None => String::new(),
-            Some(p) => format!("|part:{}", serde_json::to_string(p).unwrap_or_default()),
+            Some(p) => {
+                let work = PartSpec {
+                    prefer_worker: None,
+                    ..p.clone()
+                };
+                format!("|part:{}", serde_json::to_string(&work).unwrap_or_default())
+            }
         };
         format!(
             "{}|{opts}|{}{part}",
@@ -712,6 +738,10 @@ pub enum JobState {
         delivery: Delivery,
         /// Wall time of the successful attempt.
         run_ms: u64,
+        /// The worker that held the successful attempt (empty in jobs stored before it was
+        /// recorded).
+        #[serde(default)]
+        worker: String,
     },
     /// Gave up.
     Failed(Failure),

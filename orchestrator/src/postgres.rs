@@ -423,12 +423,15 @@ impl JobStore for PostgresQueue {
         let now = self.now();
         let mut tx = self.begin().await?;
         let row = sqlx::query(
+            // The parts that prefer this worker first (`rules::prefers`), then by age.
             "SELECT job FROM jobs WHERE state = 'queued' AND not_before_ms <= $1
                  AND (NOT $2 OR job->'spec' ? 'part')
-             ORDER BY id LIMIT 1 FOR UPDATE SKIP LOCKED",
+             ORDER BY COALESCE(job->'spec'->'part'->>'prefer_worker' = $3, false) DESC, id
+             LIMIT 1 FOR UPDATE SKIP LOCKED",
         )
         .bind(ms(now))
         .bind(parts_only)
+        .bind(worker)
         .fetch_optional(&mut *tx)
         .await
         .map_err(db)?;

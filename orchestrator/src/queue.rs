@@ -110,6 +110,16 @@ pub mod rules {
         matches!(job.state, JobState::Queued { not_before_ms } if not_before_ms <= now)
     }
 
+    /// Whether `job` is a part that prefers `worker` (the worker that scored its brick, which
+    /// may hold what coding it needs): that worker's lease takes it before older jobs.
+    pub fn prefers(job: &Job, worker: &str) -> bool {
+        job.spec
+            .part
+            .as_ref()
+            .and_then(|p| p.prefer_worker.as_deref())
+            .is_some_and(|w| w == worker)
+    }
+
     /// Whether `job` holds a lease that lapsed by `now`.
     pub fn expired(job: &Job, now: u64) -> bool {
         matches!(job.state, JobState::Running { lease_expires_ms, .. } if lease_expires_ms <= now)
@@ -229,15 +239,18 @@ pub mod rules {
         now: u64,
     ) -> Result<(), OrchestratorError> {
         check_held(job, attempt, now)?;
-        let started = match job.state {
-            JobState::Running { started_ms, .. } => started_ms,
-            _ => now,
+        let (started, worker) = match &job.state {
+            JobState::Running {
+                started_ms, worker, ..
+            } => (*started_ms, worker.clone()),
+            _ => (now, String::new()),
         };
         match outcome {
             Outcome::Delivered(delivery) => {
                 job.state = JobState::Done {
                     delivery,
                     run_ms: now.saturating_sub(started),
+                    worker,
                 };
                 job.updated_ms = now;
             }
@@ -382,16 +395,21 @@ impl Queue {
     }
 
     /// Leases the oldest runnable job (only parts of bricked jobs with `parts_only`) to
-    /// `worker` (reclaiming expired leases first). Returns the leased job (if any) and every
-    /// job changed.
+    /// `worker` (reclaiming expired leases first), the oldest of the parts that prefer it
+    /// first ([`rules::prefers`]). Returns the leased job (if any) and every job changed.
     pub fn lease(&mut self, worker: &str, parts_only: bool, now: u64) -> (Option<Job>, Vec<Job>) {
         let mut changed = self.reap(now);
         let cfg = self.cfg;
-        let Some(job) = self
-            .jobs
-            .values_mut()
-            .find(|j| rules::runnable(j, now) && (!parts_only || j.spec.part.is_some()))
-        else {
+        let takes = |j: &Job| rules::runnable(j, now) && (!parts_only || j.spec.part.is_some());
+        let mut oldest = None;
+        for j in self.jobs.values().filter(|j| takes(j)) {
+            if rules::prefers(j, worker) {
+                oldest = Some(j.id);
+                break;
+            }
+            oldest = oldest.or(Some(j.id));
+        }
+        let Some(job) = oldest.and_then(|id| self.jobs.get_mut(&id)) else {
             return (None, changed);
         };
         rules::start(&cfg, job, worker, now);

@@ -109,6 +109,8 @@ struct Ctx {
     pool: Arc<rayon::ThreadPool>,
     /// The source its parts read last, kept open ([`parts::PartRunner::opened`]).
     opened: Arc<Mutex<Option<parts::OpenedSource>>>,
+    /// The tops its score parts kept ([`parts::PartRunner::tops`]).
+    tops: parts::PartTops,
 }
 
 /// Runs the worker until `shutdown` completes (checked between jobs, so a running job is
@@ -129,6 +131,7 @@ pub async fn run(
         cache,
         pool: Arc::new(pool),
         opened: Default::default(),
+        tops: Default::default(),
     };
     tokio::pin!(shutdown);
     let mut done = 0usize;
@@ -161,7 +164,10 @@ pub async fn run(
                         done += 1;
                         continue;
                     }
-                    None => Duration::from_millis(u64::from(r.retry_after_ms.max(10))),
+                    None => {
+                        parts::release_idle_tops(&ctx.tops, parts::TOPS_IDLE);
+                        Duration::from_millis(u64::from(r.retry_after_ms.max(10)))
+                    }
                 }
             }
         };
@@ -211,6 +217,7 @@ impl Ctx {
             worker: self.cfg.id.clone(),
             pause_ms: self.cfg.pause_before_part_report_ms,
             opened: self.opened.clone(),
+            tops: self.tops.clone(),
         }
     }
 }

@@ -20,7 +20,7 @@ use std::sync::atomic::Ordering;
 use std::sync::Arc;
 use std::time::Duration;
 use wavesplat_compressor::bricked::{
-    allocate, allocate_units, BrickError, BrickPlan, BrickSource, BrickWork, CodedBrick,
+    allocate, allocate_units, BrickError, BrickPlan, BrickSource, BrickWork, CodedBrick, KeptTops,
     SharedChoices, Spill, SpilledBrick,
 };
 use wavesplat_compressor::colorspace::ColorTransform;
@@ -28,7 +28,7 @@ use wavesplat_compressor::encode::{ScoreSummary, Target};
 use wavesplat_compressor::reader::region::RegionReader;
 use wavesplat_compressor::series::{open_series_path, SeriesError, SeriesInput, SeriesPlan};
 use wavesplat_orchestrator_client::model::{
-    Failure, FailureKind, JobSpec, PartColor, PartSpec, PartStep, Source,
+    is_worker_name, Failure, FailureKind, JobSpec, PartColor, PartSpec, PartStep, Source,
 };
 use wavesplat_orchestrator_client::{convert, Client, CHUNK_BYTES};
 use wavesplat_proto::pb;
@@ -49,6 +49,36 @@ pub(crate) struct PartRunner {
     /// The source the last part read, kept open for the next: a worker takes the parts of
     /// one volume in a row, and opening a compressed file (`.nii.gz`) inflates it whole.
     pub opened: Arc<std::sync::Mutex<Option<OpenedSource>>>,
+    /// The tops its score parts kept ([`PartRunner::tops`]).
+    pub tops: PartTops,
+}
+
+/// The parent whose parts a worker ran last and the tops its score parts kept, so that its
+/// encode parts of the same bricks code from them instead of reading and transforming the
+/// brick again (without refinement: `--effort fast`); the queue hands a brick's encode part to
+/// the worker that scored it first (`PartSpec::prefer_worker`). Only the last parent's are
+/// kept: a part of another parent drops them (and their temporary file), and so does a worker
+/// left idle for [`TOPS_IDLE`].
+pub(crate) type PartTops = Arc<std::sync::Mutex<Option<PartTopsOf>>>;
+
+/// How long an idle worker keeps the tops of the last parent it ran parts of: longer than a
+/// bricked job's pause between its rounds of parts (its allocation, and the slowest brick of
+/// the round before).
+pub(crate) const TOPS_IDLE: Duration = Duration::from_secs(120);
+
+/// The tops kept for one parent's parts, and when a part last used them.
+pub(crate) struct PartTopsOf {
+    parent: u64,
+    tops: Arc<KeptTops>,
+    used: std::time::Instant,
+}
+
+/// Drops the tops in `slot` if no part used them for `idle`.
+pub(crate) fn release_idle_tops(slot: &PartTops, idle: Duration) {
+    let mut slot = slot.lock().unwrap_or_else(|p| p.into_inner());
+    if slot.as_ref().is_some_and(|t| t.used.elapsed() >= idle) {
+        *slot = None;
+    }
 }
 
 /// A part's source kept open, with what it was opened for.
@@ -73,6 +103,31 @@ enum Opened {
 }
 
 impl PartRunner {
+    /// The tops kept for the parts of `parent`: the ones kept so far, or new ones from `make`
+    /// (in place of another parent's).
+    fn tops(&self, parent: u64, make: impl FnOnce() -> KeptTops) -> Arc<KeptTops> {
+        let mut slot = self.tops.lock().unwrap_or_else(|p| p.into_inner());
+        let used = std::time::Instant::now();
+        match slot.as_mut() {
+            Some(kept) if kept.parent == parent => {
+                kept.used = used;
+                kept.tops.clone()
+            }
+            _ => {
+                // The old parent's tops go first, so that they and the new never both hold
+                // their budget.
+                *slot = None;
+                let tops = Arc::new(make());
+                *slot = Some(PartTopsOf {
+                    parent,
+                    tops: tops.clone(),
+                    used,
+                });
+                tops
+            }
+        }
+    }
+
     /// `spec`'s source opened as a volume (`series` false) or a time series: the one kept
     /// open if it is the same, or a new one (kept in its place).
     fn opened(&self, spec: &JobSpec, series: bool) -> Result<Opened, Failure> {
@@ -285,12 +340,39 @@ fn compute_part(
     let plan = part_plan(spec, part, source)?;
     let i = part.index as usize;
     let voxels = plan.grid[i].1.iter().map(|d| *d as u64).product();
-    let bytes = run_step(
-        part.step,
-        || plan.score(source, i).map_err(brick_failure),
-        |count| plan.encode(source, i, count).map_err(brick_failure),
-    )?;
+    let tops = runner.tops(part.parent, || KeptTops::for_plan(&plan).spilling_in(None));
+    let bytes = with_tops(part, &tops, || {
+        run_step(
+            part.step,
+            || {
+                plan.score_into(source, i, &tops, 0, plan.top_cap(i))
+                    .map_err(brick_failure)
+            },
+            |count| {
+                plan.encode_from(source, i, count, &tops, 0)
+                    .map_err(brick_failure)
+            },
+        )
+    })?;
     Ok((bytes, voxels))
+}
+
+/// Runs `step` with `tops`, saying when it coded the part from a kept top.
+fn with_tops(
+    part: &PartSpec,
+    tops: &KeptTops,
+    step: impl FnOnce() -> Result<Vec<u8>, Failure>,
+) -> Result<Vec<u8>, Failure> {
+    let before = tops.counts().0;
+    let bytes = step()?;
+    if tops.counts().0 > before {
+        tracing::info!(
+            parent = part.parent,
+            part = %part.label(),
+            "part coded from the top this worker kept when it scored it"
+        );
+    }
+    Ok(bytes)
 }
 
 /// A part's step run by `score` or `encode`: its result's bytes (a score summary, or the
@@ -335,11 +417,17 @@ fn compute_series_part(
     let u = part.index as usize;
     let (c, i) = plan.units[u];
     let voxels = plan.plans[c].grid[i].1.iter().map(|d| *d as u64).product();
-    let bytes = run_step(
-        part.step,
-        || plan.score(series, u).map_err(brick_failure),
-        |count| plan.encode(series, u, count).map_err(brick_failure),
-    )?;
+    let tops = runner.tops(part.parent, || plan.kept_tops().spilling_in(None));
+    let bytes = with_tops(part, &tops, || {
+        run_step(
+            part.step,
+            || plan.score_into(series, u, &tops).map_err(brick_failure),
+            |count| {
+                plan.encode_from(series, u, count, &tops)
+                    .map_err(brick_failure)
+            },
+        )
+    })?;
     Ok((bytes, voxels))
 }
 
@@ -442,12 +530,16 @@ struct RemoteBricks {
     time_points: Option<u32>,
     /// Why the parts could not finish, for the job's outcome.
     failure: std::sync::Mutex<Option<Failure>>,
+    /// The worker that scored each brick (empty: not known), whom its encode parts prefer:
+    /// it may hold the brick's kept top ([`PartTops`]).
+    scored_by: std::sync::Mutex<Vec<String>>,
 }
 
-/// A part that is done: its id and its result's size.
+/// A part that is done: its id, its result's size and the worker that finished it.
 struct DonePart {
     id: u64,
     bytes: u64,
+    worker: String,
 }
 
 /// The parts could not finish; why is kept in [`RemoteBricks::failure`].
@@ -493,6 +585,7 @@ impl RemoteBricks {
                 }),
                 source_bytes: self.source_bytes,
                 time_points: self.time_points,
+                prefer_worker: None,
             }),
             ..self.parent.clone()
         }
@@ -509,6 +602,8 @@ impl RemoteBricks {
             .map(|i| self.part(i, of, choices, PartStep::Score { energies }))
             .collect();
         let done = self.run_all(&parts, "scoring", 0.05, 0.3)?;
+        *self.scored_by.lock().unwrap_or_else(|p| p.into_inner()) =
+            done.iter().map(|p| p.worker.clone()).collect();
         let mut summaries = Vec::with_capacity(done.len());
         for p in &done {
             let bytes = self.fetch(p.id)?;
@@ -527,13 +622,22 @@ impl RemoteBricks {
         counts: Option<&[u64]>,
         trial: usize,
     ) -> Result<Vec<CodedBrick<u64>>, Stopped> {
+        let scored_by = self
+            .scored_by
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .clone();
         let parts: Vec<JobSpec> = (0..of)
             .map(|i| {
                 let step = PartStep::Encode {
                     count: counts.map(|k| k[i]),
                     trial: trial as u32,
                 };
-                self.part(i, of, choices, step)
+                let mut spec = self.part(i, of, choices, step);
+                if let (Some(part), Some(w)) = (spec.part.as_mut(), scored_by.get(i)) {
+                    part.prefer_worker = is_worker_name(w).then(|| w.clone());
+                }
+                spec
             })
             .collect();
         let stage = format!("coding (trial {trial})");
@@ -688,6 +792,7 @@ impl RemoteBricks {
                     .map(|p| DonePart {
                         id: p.id,
                         bytes: p.output_bytes,
+                        worker: p.worker,
                     })
                     .collect());
             }
@@ -817,6 +922,7 @@ pub(crate) fn coordinate(
         handle,
         source_bytes: hashed,
         time_points: None,
+        scored_by: Default::default(),
         parent: spec,
         parent_id,
         parent_attempt,
@@ -883,6 +989,7 @@ pub(crate) fn coordinate_series(
         handle,
         source_bytes: hashed,
         time_points: Some(points as u32),
+        scored_by: Default::default(),
         parent: spec,
         parent_id,
         parent_attempt,
