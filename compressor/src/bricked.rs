@@ -1494,7 +1494,7 @@ impl KeptTops {
         self.spill
             .get_or_init(|| {
                 let made = ScratchFile::new(dir.as_deref()).and_then(|file| {
-                    let at = dir.clone().unwrap_or_else(std::env::temp_dir);
+                    let at = dir.clone().unwrap_or_else(tempfile::env::temp_dir);
                     let free = fs2::available_space(&at)?;
                     Ok((
                         std::sync::Arc::new(file),
