@@ -71,6 +71,13 @@ impl<'s> MigrationSource<'s> for Migrations {
                     Cow::Borrowed(include_str!("../migrations/0002_results.sql")),
                     false,
                 ),
+                Migration::new(
+                    3,
+                    Cow::Borrowed("queued parts by their preferred worker"),
+                    MigrationType::Simple,
+                    Cow::Borrowed(include_str!("../migrations/0003_preferred_parts.sql")),
+                    false,
+                ),
             ])
         })
     }
@@ -422,19 +429,31 @@ impl JobStore for PostgresQueue {
     async fn lease(&self, worker: &str, parts_only: bool) -> Result<Leased, OrchestratorError> {
         let now = self.now();
         let mut tx = self.begin().await?;
-        let row = sqlx::query(
-            // The parts that prefer this worker first (`rules::prefers`), then by age.
+        // The oldest part that prefers this worker (`rules::prefers`; by the index
+        // `jobs_queued_preferring`), else the oldest runnable job (by `jobs_queued`).
+        let preferred = sqlx::query(
             "SELECT job FROM jobs WHERE state = 'queued' AND not_before_ms <= $1
-                 AND (NOT $2 OR job->'spec' ? 'part')
-             ORDER BY COALESCE(job->'spec'->'part'->>'prefer_worker' = $3, false) DESC, id
-             LIMIT 1 FOR UPDATE SKIP LOCKED",
+                 AND job->'spec'->'part'->>'prefer_worker' = $2
+             ORDER BY id LIMIT 1 FOR UPDATE SKIP LOCKED",
         )
         .bind(ms(now))
-        .bind(parts_only)
         .bind(worker)
         .fetch_optional(&mut *tx)
         .await
         .map_err(db)?;
+        let row = match preferred {
+            Some(row) => Some(row),
+            None => sqlx::query(
+                "SELECT job FROM jobs WHERE state = 'queued' AND not_before_ms <= $1
+                     AND (NOT $2 OR job->'spec' ? 'part')
+                 ORDER BY id LIMIT 1 FOR UPDATE SKIP LOCKED",
+            )
+            .bind(ms(now))
+            .bind(parts_only)
+            .fetch_optional(&mut *tx)
+            .await
+            .map_err(db)?,
+        };
         let job = match row {
             Some(row) => {
                 let mut job = Self::job_of(&row)?;

@@ -305,6 +305,10 @@ pub struct Queue {
     jobs: BTreeMap<JobId, Job>,
     keys: HashMap<String, JobId>,
     next_id: JobId,
+    /// The parts that prefer a worker, by worker ([`rules::prefers`]): a hint that leasing
+    /// reads instead of scanning the queue. A part is dropped from it when a lease finds it
+    /// out of the queue (it then goes to whoever leases it, should it be queued again).
+    preferring: HashMap<String, std::collections::BTreeSet<JobId>>,
 }
 
 impl Queue {
@@ -315,6 +319,7 @@ impl Queue {
             jobs: BTreeMap::new(),
             keys: HashMap::new(),
             next_id: 1,
+            preferring: HashMap::new(),
         }
     }
 
@@ -334,9 +339,22 @@ impl Queue {
             }
             q.next_id = q.next_id.max(job.id + 1);
             q.keys.insert(job.spec.dedup_key(), job.id);
+            q.note_preference(&job);
             q.jobs.insert(job.id, job);
         }
         (q, changed)
+    }
+
+    /// Records `job` under the worker it prefers, if it is a queued part that prefers one.
+    fn note_preference(&mut self, job: &Job) {
+        let worker = job
+            .spec
+            .part
+            .as_ref()
+            .and_then(|p| p.prefer_worker.as_ref());
+        if let (Some(w), JobState::Queued { .. }) = (worker, &job.state) {
+            self.preferring.entry(w.clone()).or_default().insert(job.id);
+        }
     }
 
     /// The policy.
@@ -377,6 +395,7 @@ impl Queue {
         self.next_id += 1;
         let job = rules::new_job(id, spec, now);
         self.keys.insert(key, id);
+        self.note_preference(&job);
         self.jobs.insert(id, job.clone());
         Ok(Submitted {
             job,
@@ -401,17 +420,39 @@ impl Queue {
         let mut changed = self.reap(now);
         let cfg = self.cfg;
         let takes = |j: &Job| rules::runnable(j, now) && (!parts_only || j.spec.part.is_some());
-        let mut oldest = None;
-        for j in self.jobs.values().filter(|j| takes(j)) {
-            if rules::prefers(j, worker) {
-                oldest = Some(j.id);
-                break;
+        let jobs = &self.jobs;
+        let mut chosen = None;
+        if let Some(ids) = self.preferring.get_mut(worker) {
+            ids.retain(|id| {
+                jobs.get(id)
+                    .is_some_and(|j| matches!(j.state, JobState::Queued { .. }))
+            });
+            chosen = ids
+                .iter()
+                .copied()
+                .find(|id| jobs.get(id).is_some_and(takes));
+            if ids.is_empty() {
+                self.preferring.remove(worker);
             }
-            oldest = oldest.or(Some(j.id));
         }
-        let Some(job) = oldest.and_then(|id| self.jobs.get_mut(&id)) else {
+        let chosen = chosen.or_else(|| jobs.values().find(|j| takes(j)).map(|j| j.id));
+        let Some(job) = chosen.and_then(|id| self.jobs.get_mut(&id)) else {
             return (None, changed);
         };
+        // Leased: out of the hint, whichever worker it preferred.
+        if let Some(w) = job
+            .spec
+            .part
+            .as_ref()
+            .and_then(|p| p.prefer_worker.as_ref())
+        {
+            if let Some(ids) = self.preferring.get_mut(w) {
+                ids.remove(&job.id);
+                if ids.is_empty() {
+                    self.preferring.remove(w);
+                }
+            }
+        }
         rules::start(&cfg, job, worker, now);
         let job = job.clone();
         changed.push(job.clone());
