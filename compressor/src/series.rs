@@ -478,8 +478,8 @@ pub struct SeriesCompressed {
 
 /// A series' compression planned: its temporal transform, one [`BrickPlan`] per component
 /// and the *units* the rate is allocated over (every component's bricks, component after
-/// component). A unit is scored or coded alone ([`SeriesPlan::score`],
-/// [`SeriesPlan::encode`]), in this process ([`compress_series`]) or on any worker that can
+/// component). A unit is scored or coded alone ([`SeriesPlan::score_into`],
+/// [`SeriesPlan::encode_from`]), in this process ([`compress_series`]) or on any worker that can
 /// read the series, and the units' files make the container ([`SeriesPlan::assemble`]).
 #[derive(Debug, Clone)]
 pub struct SeriesPlan {
@@ -623,12 +623,6 @@ impl SeriesPlan {
         })
     }
 
-    /// Unit `u`'s score summary.
-    pub fn score(&self, series: &dyn SeriesSource, u: usize) -> Result<ScoreSummary, BrickError> {
-        let (c, i) = self.unit(u)?;
-        self.plans[c].score(&self.component(series, c), i)
-    }
-
     /// Unit `u`'s score summary, its top coefficients kept in `tops` where the units do not
     /// refine ([`BrickPlan::top_cap`], the target spread over every component), so that
     /// [`SeriesPlan::encode_from`] codes it without summing its time points and transforming
@@ -653,8 +647,9 @@ impl SeriesPlan {
         plan.score_into(&self.component(series, c), i, tops, c, cap)
     }
 
-    /// Unit `u` compressed as [`SeriesPlan::encode`] does, from its top kept in `tops` where
-    /// that covers `count`.
+    /// Unit `u` compressed as a `.wsp` of its own keeping its top `count` coefficients
+    /// (`None`: all), and the count it kept: from its top kept in `tops` where that covers
+    /// `count`, else read and transformed again ([`BrickPlan::encode_from`]).
     pub fn encode_from(
         &self,
         series: &dyn SeriesSource,
@@ -671,18 +666,6 @@ impl SeriesPlan {
         self.plans
             .first()
             .map_or(KeptTops::new(0), KeptTops::for_plan)
-    }
-
-    /// Unit `u` compressed as a `.wsp` of its own keeping its top `count` coefficients
-    /// (`None`: all), and the count it kept.
-    pub fn encode(
-        &self,
-        series: &dyn SeriesSource,
-        u: usize,
-        count: Option<u64>,
-    ) -> Result<(Vec<u8>, u64), BrickError> {
-        let (c, i) = self.unit(u)?;
-        self.plans[c].encode(&self.component(series, c), i, count)
     }
 
     /// The series container of every unit's file and kept count, in unit order.
