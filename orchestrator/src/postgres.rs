@@ -429,7 +429,7 @@ impl JobStore for PostgresQueue {
     async fn lease(&self, worker: &str, parts_only: bool) -> Result<Leased, OrchestratorError> {
         let now = self.now();
         let mut tx = self.begin().await?;
-        // The oldest part that prefers this worker (`rules::prefers`; by the index
+        // The oldest part that prefers this worker (`rules::preferred_worker`; by the index
         // `jobs_queued_preferring`), else the oldest runnable job (by `jobs_queued`).
         let preferred = sqlx::query(
             "SELECT job FROM jobs WHERE state = 'queued' AND not_before_ms <= $1

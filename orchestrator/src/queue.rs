@@ -110,14 +110,11 @@ pub mod rules {
         matches!(job.state, JobState::Queued { not_before_ms } if not_before_ms <= now)
     }
 
-    /// Whether `job` is a part that prefers `worker` (the worker that scored its brick, which
-    /// may hold what coding it needs): that worker's lease takes it before older jobs.
-    pub fn prefers(job: &Job, worker: &str) -> bool {
-        job.spec
-            .part
-            .as_ref()
-            .and_then(|p| p.prefer_worker.as_deref())
-            .is_some_and(|w| w == worker)
+    /// The worker `job` prefers, if it is a part that names one (the worker that scored its
+    /// brick, which may hold what coding it needs): that worker's lease takes it before older
+    /// jobs.
+    pub fn preferred_worker(job: &Job) -> Option<&str> {
+        job.spec.part.as_ref()?.prefer_worker.as_deref()
     }
 
     /// Whether `job` holds a lease that lapsed by `now`.
@@ -305,7 +302,7 @@ pub struct Queue {
     jobs: BTreeMap<JobId, Job>,
     keys: HashMap<String, JobId>,
     next_id: JobId,
-    /// The parts that prefer a worker, by worker ([`rules::prefers`]): a hint that leasing
+    /// The parts that prefer a worker, by worker ([`rules::preferred_worker`]): a hint that leasing
     /// reads instead of scanning the queue. A part is dropped from it when a lease finds it
     /// out of the queue (it then goes to whoever leases it, should it be queued again).
     preferring: HashMap<String, std::collections::BTreeSet<JobId>>,
@@ -347,13 +344,11 @@ impl Queue {
 
     /// Records `job` under the worker it prefers, if it is a queued part that prefers one.
     fn note_preference(&mut self, job: &Job) {
-        let worker = job
-            .spec
-            .part
-            .as_ref()
-            .and_then(|p| p.prefer_worker.as_ref());
-        if let (Some(w), JobState::Queued { .. }) = (worker, &job.state) {
-            self.preferring.entry(w.clone()).or_default().insert(job.id);
+        if let (Some(w), JobState::Queued { .. }) = (rules::preferred_worker(job), &job.state) {
+            self.preferring
+                .entry(w.to_string())
+                .or_default()
+                .insert(job.id);
         }
     }
 
@@ -415,7 +410,7 @@ impl Queue {
 
     /// Leases the oldest runnable job (only parts of bricked jobs with `parts_only`) to
     /// `worker` (reclaiming expired leases first), the oldest of the parts that prefer it
-    /// first ([`rules::prefers`]). Returns the leased job (if any) and every job changed.
+    /// first ([`rules::preferred_worker`]). Returns the leased job (if any) and every job changed.
     pub fn lease(&mut self, worker: &str, parts_only: bool, now: u64) -> (Option<Job>, Vec<Job>) {
         let mut changed = self.reap(now);
         let cfg = self.cfg;
@@ -440,12 +435,7 @@ impl Queue {
             return (None, changed);
         };
         // Leased: out of the hint, whichever worker it preferred.
-        if let Some(w) = job
-            .spec
-            .part
-            .as_ref()
-            .and_then(|p| p.prefer_worker.as_ref())
-        {
+        if let Some(w) = rules::preferred_worker(job) {
             if let Some(ids) = self.preferring.get_mut(w) {
                 ids.remove(&job.id);
                 if ids.is_empty() {
