@@ -1439,8 +1439,8 @@ pub struct KeptTops {
     spilled_bytes: std::sync::atomic::AtomicU64,
     /// A write to the temporary file failed: nothing more goes there.
     spill_failed: std::sync::atomic::AtomicBool,
-    /// Tops moved to the temporary file.
-    pub spilled: std::sync::atomic::AtomicUsize,
+    /// Tops moved to the temporary file ([`KeptTops::spilled`]).
+    spilled: std::sync::atomic::AtomicUsize,
     /// Bricks coded from a kept top.
     pub reused: std::sync::atomic::AtomicUsize,
     /// Bricks coded by reading and transforming them again.
@@ -1539,10 +1539,10 @@ impl KeptTops {
         let Some((file, budget)) = self.spill_file() else {
             return false;
         };
-        let size = top.spilled_size();
         if self.spill_failed.load(Relaxed) {
             return false;
         }
+        let size = top.spilled_size();
         if self.spilled_bytes.fetch_add(size, Relaxed) + size > *budget {
             self.spilled_bytes.fetch_sub(size, Relaxed);
             return false;
@@ -1570,6 +1570,11 @@ impl KeptTops {
     pub fn counts(&self) -> (usize, usize) {
         use std::sync::atomic::Ordering::Relaxed;
         (self.reused.load(Relaxed), self.transformed.load(Relaxed))
+    }
+
+    /// Tops moved to the temporary file so far.
+    pub fn spilled(&self) -> usize {
+        self.spilled.load(std::sync::atomic::Ordering::Relaxed)
     }
 
     /// The top kept for `brick`, if any.
@@ -1841,11 +1846,7 @@ pub fn compress_bricked_to(
     };
     let a = allocate(&plan, &work)?;
     let (from_kept_top, transformed_again) = work.local.tops.counts();
-    let spilled = work
-        .local
-        .tops
-        .spilled
-        .load(std::sync::atomic::Ordering::Relaxed);
+    let spilled = work.local.tops.spilled();
     tracing::debug!(from_kept_top, transformed_again, spilled, "bricks coded");
     let c = plan.write_container(&a.bricks, out)?;
     Ok(BrickedWritten {
@@ -2059,7 +2060,6 @@ mod tests {
     /// the budget in a temporary file, or a temporary file that cannot be made.
     #[test]
     fn bricks_coded_from_kept_tops_are_the_files_a_second_transform_writes() {
-        use std::sync::atomic::Ordering::Relaxed;
         let ct = Phantom::Ct.generate([72, 60, 40]);
         let rgb = Phantom::RgbHead.generate([40, 36, 30]);
         let cases = [
@@ -2084,7 +2084,7 @@ mod tests {
             let (kept, all) = allocated_with(v, &plan, KeptTops::for_plan(&plan));
             assert_eq!(kept, again, "{target:?}: every top kept");
             let (reused, transformed) = all.counts();
-            assert_eq!(all.spilled.load(Relaxed), 0);
+            assert_eq!(all.spilled(), 0);
             // A brick whose share is beyond its kept top is transformed again; most are not.
             assert!(
                 4 * reused >= 3 * (reused + transformed),
@@ -2105,13 +2105,13 @@ mod tests {
             let (from_disk, spilled) = allocated_with(v, &plan, spilling);
             assert_eq!(from_disk, again, "{target:?}: tops in a temporary file");
             assert_eq!(spilled.counts(), (reused, transformed), "{target:?}");
-            assert_eq!(spilled.spilled.load(Relaxed), bricks, "{target:?}");
+            assert_eq!(spilled.spilled(), bricks, "{target:?}");
             // Half in memory, the rest on disk.
             let mixed = KeptTops::new(one * bricks as u64 / 2).spilling_in(None);
             let (mixed_bytes, mixed) = allocated_with(v, &plan, mixed);
             assert_eq!(mixed_bytes, again, "{target:?}: half on disk");
             assert_eq!(mixed.counts(), (reused, transformed), "{target:?}");
-            let on_disk = mixed.spilled.load(Relaxed);
+            let on_disk = mixed.spilled();
             assert!(on_disk > 0 && on_disk < bricks, "{target:?}: {on_disk}");
             // A temporary file that cannot be made: the tops are dropped, the bricks
             // transformed again, the file the same.
@@ -2120,7 +2120,7 @@ mod tests {
             let (without, dropped) = allocated_with(v, &plan, dropped);
             assert_eq!(without, again, "{target:?}: no temporary file");
             assert_eq!(dropped.counts().0, 0);
-            assert_eq!(dropped.spilled.load(Relaxed), 0);
+            assert_eq!(dropped.spilled(), 0);
         }
         // A refining compression keeps none and codes every brick by transforming it again.
         let opts = CompressOptions {
@@ -2132,7 +2132,7 @@ mod tests {
         let tops = KeptTops::for_plan(&plan).spilling_in(Some(dir.path()));
         let (_, tops) = allocated_with(&ct, &plan, tops);
         assert_eq!(tops.counts().0, 0);
-        assert_eq!(tops.spilled.load(Relaxed), 0);
+        assert_eq!(tops.spilled(), 0);
     }
 
     #[test]

@@ -921,7 +921,7 @@ pub fn compress_series_to(
         },
     )?;
     let (from_kept_top, transformed_again) = tops.counts();
-    let spilled = tops.spilled.load(std::sync::atomic::Ordering::Relaxed);
+    let spilled = tops.spilled();
     tracing::debug!(
         from_kept_top,
         transformed_again,
