@@ -128,7 +128,16 @@ fn one_process_file(
         target,
         ..Default::default()
     };
-    let opts = wavesplat_worker::options::compress_options(&options);
+    one_process_file_with(source, &options)
+}
+
+/// The bricked file one process makes from `source` with a job's `options` (their brick).
+fn one_process_file_with(
+    source: &dyn wavesplat_compressor::bricked::BrickSource,
+    options: &wavesplat_orchestrator_client::model::JobOptions,
+) -> Vec<u8> {
+    let opts = wavesplat_worker::options::compress_options(options);
+    let brick = options.brick.expect("a bricked job's options");
     wavesplat_compressor::bricked::compress_bricked(source, &opts, brick, &|_| {})
         .unwrap()
         .bytes
@@ -706,15 +715,7 @@ async fn a_fast_bricked_job_codes_its_bricks_from_the_tops_their_workers_kept() 
         target: TargetSpec::Bytes(target),
         ..Default::default()
     };
-    let opts = wavesplat_worker::options::compress_options(&options);
-    let expected = wavesplat_compressor::bricked::compress_bricked(
-        &Phantom::Ct.generate(dims),
-        &opts,
-        24,
-        &|_| {},
-    )
-    .unwrap()
-    .bytes;
+    let expected = one_process_file_with(&Phantom::Ct.generate(dims), &options);
     assert_eq!(parent.output_bytes, expected.len() as u64);
     assert_cache_holds_only(&c, &expected).await;
 }
