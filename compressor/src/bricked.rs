@@ -1431,6 +1431,9 @@ pub struct KeptTops {
     /// The most bytes the tops may hold in memory.
     budget: u64,
     bytes: std::sync::atomic::AtomicU64,
+    /// Memory these tops share with others' (a worker's tops of several jobs), counted
+    /// beside their own budget; what they hold is given back when they are dropped.
+    shared: Option<std::sync::Arc<TopMemory>>,
     /// The directory of the temporary file tops beyond the budget go to (`None`: none).
     spill_dir: Option<Option<std::path::PathBuf>>,
     /// That file and the most bytes it may take, made when the first top goes there (`None`
@@ -1450,10 +1453,9 @@ pub struct KeptTops {
 impl KeptTops {
     /// None yet, to hold at most `budget` bytes (0: keep nothing).
     pub fn new(budget: u64) -> KeptTops {
-        KeptTops {
-            budget,
-            ..KeptTops::default()
-        }
+        let mut tops = KeptTops::default();
+        tops.budget = budget;
+        tops
     }
 
     /// None yet, within the budget for compressing `plan` on this process's pool:
@@ -1480,11 +1482,21 @@ impl KeptTops {
     /// The same, with the tops beyond the memory budget moved to an unnamed temporary file in
     /// `dir` (`None`: the temporary directory) while they take at most [`TOP_DISK_SHARE`] of
     /// the free space there; beyond that they are dropped.
-    pub fn spilling_in(self, dir: Option<&std::path::Path>) -> KeptTops {
-        KeptTops {
-            spill_dir: Some(dir.map(std::path::Path::to_path_buf)),
-            ..self
-        }
+    pub fn spilling_in(mut self, dir: Option<&std::path::Path>) -> KeptTops {
+        self.spill_dir = Some(dir.map(std::path::Path::to_path_buf));
+        self
+    }
+
+    /// The same, with the memory the tops hold counted in `shared` too: a top is kept in
+    /// memory only where both this budget and the shared one allow.
+    pub fn sharing(mut self, shared: std::sync::Arc<TopMemory>) -> KeptTops {
+        self.shared = Some(shared);
+        self
+    }
+
+    /// Bytes the tops hold in memory.
+    pub fn memory_bytes(&self) -> u64 {
+        self.bytes.load(std::sync::atomic::Ordering::Relaxed)
     }
 
     /// The temporary file and its budget, made on the first call (`None`: no spill, or it
@@ -1521,13 +1533,19 @@ impl KeptTops {
     pub(crate) fn keep(&self, brick: TopKey, mut top: KeptTop) {
         use std::sync::atomic::Ordering::Relaxed;
         let size = top.heap_bytes() as u64;
-        if self.bytes.fetch_add(size, Relaxed) + size > self.budget {
+        let own = self.bytes.fetch_add(size, Relaxed) + size <= self.budget;
+        let shared = own && self.shared.as_ref().is_none_or(|m| m.take(size));
+        if !shared {
             self.bytes.fetch_sub(size, Relaxed);
             if !self.spill_to_disk(&mut top) {
                 return;
             }
             // What stays in memory (the metadata) is counted but not refused: a few kB.
-            self.bytes.fetch_add(top.heap_bytes() as u64, Relaxed);
+            let metadata = top.heap_bytes() as u64;
+            self.bytes.fetch_add(metadata, Relaxed);
+            if let Some(m) = &self.shared {
+                m.used.fetch_add(metadata, Relaxed);
+            }
         }
         let mut tops = self.tops.lock().unwrap_or_else(|p| p.into_inner());
         tops.insert(brick, std::sync::Arc::new(top));
@@ -1581,6 +1599,51 @@ impl KeptTops {
     pub(crate) fn get(&self, brick: &TopKey) -> Option<std::sync::Arc<KeptTop>> {
         let tops = self.tops.lock().unwrap_or_else(|p| p.into_inner());
         tops.get(brick).cloned()
+    }
+}
+
+impl Drop for KeptTops {
+    /// Gives the memory the tops held back to the shared budget.
+    fn drop(&mut self) {
+        if let Some(m) = &self.shared {
+            let held = self.bytes.load(std::sync::atomic::Ordering::Relaxed);
+            m.used
+                .fetch_sub(held.min(m.used()), std::sync::atomic::Ordering::Relaxed);
+        }
+    }
+}
+
+/// A budget of bytes in memory that the [`KeptTops`] of several allocations draw on together
+/// ([`KeptTops::sharing`]): a worker running the parts of several bricked jobs at once keeps
+/// each job's tops, and all of them within one budget.
+#[derive(Debug, Default)]
+pub struct TopMemory {
+    budget: u64,
+    used: std::sync::atomic::AtomicU64,
+}
+
+impl TopMemory {
+    /// None used yet, at most `budget` bytes.
+    pub fn new(budget: u64) -> TopMemory {
+        TopMemory {
+            budget,
+            used: std::sync::atomic::AtomicU64::new(0),
+        }
+    }
+
+    /// Bytes the tops drawing on it hold now.
+    pub fn used(&self) -> u64 {
+        self.used.load(std::sync::atomic::Ordering::Relaxed)
+    }
+
+    /// Takes `size` bytes if the budget has them; whether it did.
+    fn take(&self, size: u64) -> bool {
+        use std::sync::atomic::Ordering::Relaxed;
+        if self.used.fetch_add(size, Relaxed) + size > self.budget {
+            self.used.fetch_sub(size, Relaxed);
+            return false;
+        }
+        true
     }
 }
 
@@ -2133,6 +2196,60 @@ mod tests {
         let (_, tops) = allocated_with(&ct, &plan, tops);
         assert_eq!(tops.counts().0, 0);
         assert_eq!(tops.spilled(), 0);
+    }
+
+    /// The tops of several allocations drawing on one [`TopMemory`] (a worker's tops of
+    /// several jobs): together they hold no more than it allows, those that find it spent go to
+    /// the temporary file, the files are the same, and a dropped allocation's memory is free
+    /// for the next.
+    #[test]
+    fn tops_of_several_allocations_share_one_memory_budget() {
+        let v = Phantom::Ct.generate([72, 60, 40]);
+        let opts = CompressOptions {
+            target: Target::Fraction(0.02),
+            ..Effort::Fast.options()
+        };
+        let plan = BrickPlan::new(&v, &opts, 24).unwrap();
+        let bricks = plan.grid.len();
+        let (again, _) = allocated_with(&v, &plan, KeptTops::new(0));
+        let dir = tempfile::tempdir().unwrap();
+        let one = plan.top_cap(0).unwrap() * std::mem::size_of::<(u32, f32)>() as u64;
+        let budget = one * bricks as u64 / 2;
+        let shared = std::sync::Arc::new(TopMemory::new(budget));
+        let sharing = || {
+            KeptTops::for_plan(&plan)
+                .sharing(shared.clone())
+                .spilling_in(Some(dir.path()))
+        };
+        let (first_bytes, first) = allocated_with(&v, &plan, sharing());
+        assert_eq!(first_bytes, again);
+        assert_eq!(shared.used(), first.memory_bytes());
+        assert!(
+            first.spilled() > 0 && first.spilled() < bricks,
+            "{}",
+            first.spilled()
+        );
+        // The second finds the memory the first holds spent: more of its tops on disk.
+        let (second_bytes, second) = allocated_with(&v, &plan, sharing());
+        assert_eq!(second_bytes, again);
+        assert_eq!(second.counts(), first.counts());
+        assert!(second.spilled() > first.spilled(), "{}", second.spilled());
+        assert_eq!(shared.used(), first.memory_bytes() + second.memory_bytes());
+        // Only the spilled tops' metadata (counted, never refused) goes beyond the budget.
+        let metadata = shared.used().saturating_sub(budget);
+        assert!(
+            metadata < one * bricks as u64 / 8,
+            "{} of {budget}",
+            shared.used()
+        );
+        // Dropped, the first's memory is free again: a third keeps as many in memory.
+        drop(first);
+        assert_eq!(shared.used(), second.memory_bytes());
+        let (third_bytes, third) = allocated_with(&v, &plan, sharing());
+        assert_eq!(third_bytes, again);
+        assert!(third.spilled() < second.spilled(), "{}", third.spilled());
+        drop((second, third));
+        assert_eq!(shared.used(), 0);
     }
 
     #[test]
