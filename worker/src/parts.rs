@@ -21,7 +21,7 @@ use std::sync::Arc;
 use std::time::Duration;
 use wavesplat_compressor::bricked::{
     allocate, allocate_units, BrickError, BrickPlan, BrickSource, BrickWork, CodedBrick, KeptTops,
-    SharedChoices, Spill, SpilledBrick,
+    SharedChoices, Spill, SpilledBrick, TopMemory, TOP_BUDGET,
 };
 use wavesplat_compressor::colorspace::ColorTransform;
 use wavesplat_compressor::encode::{ScoreSummary, Target};
@@ -53,18 +53,67 @@ pub(crate) struct PartRunner {
     pub tops: PartTops,
 }
 
-/// The parent whose parts a worker ran last and the tops its score parts kept, so that its
+/// The tops a worker's score parts kept, by the parent (bricked job) they are of, so that its
 /// encode parts of the same bricks code from them instead of reading and transforming the
 /// brick again (without refinement: `--effort fast`); the queue hands a brick's encode part to
-/// the worker that scored it first (`PartSpec::prefer_worker`). Only the last parent's are
-/// kept: a part of another parent drops them (and their temporary file), and so does a worker
-/// left idle for [`TOPS_IDLE`].
-pub(crate) type PartTops = Arc<std::sync::Mutex<Option<PartTopsOf>>>;
+/// the worker that scored it first (`PartSpec::prefer_worker`). The tops of up to
+/// [`TOPS_PARENTS`] parents are kept at once (a batch of bricked jobs runs on the same workers,
+/// their parts interleaved), all within one memory budget ([`TopMemory`], [`TOP_BUDGET`]);
+/// beyond it they go to a temporary file. A parent's tops are dropped (and their temporary
+/// file) when a part of a parent not held comes and the slots are full (the least recently
+/// used go), or when no part used them for [`TOPS_IDLE`].
+pub(crate) type PartTops = Arc<std::sync::Mutex<PartTopsHeld>>;
 
-/// How long an idle worker keeps the tops of the last parent it ran parts of: longer than a
-/// bricked job's pause between its rounds of parts (its allocation, and the slowest brick of
-/// the round before).
+/// How long a worker keeps the tops of a parent no part used: longer than a bricked job's
+/// pause between its rounds of parts (its allocation, and the slowest brick of the round
+/// before).
 pub(crate) const TOPS_IDLE: Duration = Duration::from_secs(120);
+
+/// How many parents' tops a worker keeps at once.
+pub(crate) const TOPS_PARENTS: usize = 4;
+
+/// The tops a worker holds: up to [`TOPS_PARENTS`] parents', and the memory they share.
+pub(crate) struct PartTopsHeld {
+    parents: Vec<PartTopsOf>,
+    memory: Arc<TopMemory>,
+}
+
+impl Default for PartTopsHeld {
+    fn default() -> Self {
+        PartTopsHeld {
+            parents: Vec::new(),
+            memory: Arc::new(TopMemory::new(TOP_BUDGET)),
+        }
+    }
+}
+
+impl PartTopsHeld {
+    /// The tops kept for the parts of `parent`: the ones kept so far, or new ones from `make`
+    /// drawing on the shared memory (in place of the least recently used parent's when
+    /// [`TOPS_PARENTS`] are held). Tops no part used for [`TOPS_IDLE`] go first.
+    fn of_parent(&mut self, parent: u64, make: impl FnOnce() -> KeptTops) -> Arc<KeptTops> {
+        self.parents.retain(|t| t.used.elapsed() < TOPS_IDLE);
+        let used = std::time::Instant::now();
+        if let Some(kept) = self.parents.iter_mut().find(|t| t.parent == parent) {
+            kept.used = used;
+            return kept.tops.clone();
+        }
+        if self.parents.len() >= TOPS_PARENTS {
+            // The oldest go first, so that their memory is free for the new.
+            let oldest = (0..self.parents.len())
+                .min_by_key(|&i| self.parents[i].used)
+                .unwrap_or(0);
+            self.parents.swap_remove(oldest);
+        }
+        let tops = Arc::new(make().sharing(self.memory.clone()));
+        self.parents.push(PartTopsOf {
+            parent,
+            tops: tops.clone(),
+            used,
+        });
+        tops
+    }
+}
 
 /// The tops kept for one parent's parts, and when a part last used them.
 pub(crate) struct PartTopsOf {
@@ -73,12 +122,10 @@ pub(crate) struct PartTopsOf {
     used: std::time::Instant,
 }
 
-/// Drops the tops in `slot` if no part used them for `idle`.
+/// Drops the tops in `slot` that no part used for `idle`.
 pub(crate) fn release_idle_tops(slot: &PartTops, idle: Duration) {
-    let mut slot = slot.lock().unwrap_or_else(|p| p.into_inner());
-    if slot.as_ref().is_some_and(|t| t.used.elapsed() >= idle) {
-        *slot = None;
-    }
+    let mut held = slot.lock().unwrap_or_else(|p| p.into_inner());
+    held.parents.retain(|t| t.used.elapsed() < idle);
 }
 
 /// A part's source kept open, with what it was opened for.
@@ -104,28 +151,11 @@ enum Opened {
 
 impl PartRunner {
     /// The tops kept for the parts of `parent`: the ones kept so far, or new ones from `make`
-    /// (in place of another parent's).
+    /// drawing on the worker's shared memory (in place of the least recently used parent's
+    /// when [`TOPS_PARENTS`] are held).
     fn tops(&self, parent: u64, make: impl FnOnce() -> KeptTops) -> Arc<KeptTops> {
-        let mut slot = self.tops.lock().unwrap_or_else(|p| p.into_inner());
-        let used = std::time::Instant::now();
-        match slot.as_mut() {
-            Some(kept) if kept.parent == parent => {
-                kept.used = used;
-                kept.tops.clone()
-            }
-            _ => {
-                // The old parent's tops go first, so that they and the new never both hold
-                // their budget.
-                *slot = None;
-                let tops = Arc::new(make());
-                *slot = Some(PartTopsOf {
-                    parent,
-                    tops: tops.clone(),
-                    used,
-                });
-                tops
-            }
-        }
+        let mut held = self.tops.lock().unwrap_or_else(|p| p.into_inner());
+        held.of_parent(parent, make)
     }
 
     /// `spec`'s source opened as a volume (`series` false) or a time series: the one kept
@@ -437,7 +467,13 @@ pub(crate) async fn run_part_lease(runner: &PartRunner, lease: pb::Lease, spec: 
     let Some(part) = spec.part.clone() else {
         return;
     };
-    tracing::info!(job = id, attempt, part = %part.label(), "running part");
+    tracing::info!(
+        job = id,
+        attempt,
+        parent = part.parent,
+        part = %part.label(),
+        "running part"
+    );
     let shared = Arc::new(Shared::default());
     shared.set(0.1, part.label());
     let heartbeat = tokio::spawn(heartbeat_loop(
@@ -1023,4 +1059,44 @@ pub(crate) fn coordinate_series(
             })
     })?;
     Ok((file, voxels))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A worker keeps the tops of up to [`TOPS_PARENTS`] parents at once: a parent's parts
+    /// find the tops its earlier parts kept, whichever parents' parts ran between, and a
+    /// parent beyond the slots takes the place of the one no part used for longest.
+    #[test]
+    fn tops_are_kept_per_parent_and_the_least_recently_used_go_first() {
+        let slot = PartTops::default();
+        let runner_tops = |parent: u64| {
+            let mut held = slot.lock().unwrap();
+            held.of_parent(parent, || KeptTops::new(1 << 20))
+        };
+        let first: Vec<Arc<KeptTops>> = (0..TOPS_PARENTS as u64).map(runner_tops).collect();
+        // Interleaved parts of the parents held find their own tops.
+        for (parent, tops) in first.iter().enumerate().rev() {
+            assert!(Arc::ptr_eq(tops, &runner_tops(parent as u64)), "{parent}");
+        }
+        // Parent 0 was used last (the loop ran backwards): a new parent takes the place of
+        // the last one, which no part used for longest.
+        let oldest = TOPS_PARENTS as u64 - 1;
+        let newcomer = runner_tops(100);
+        assert_eq!(slot.lock().unwrap().parents.len(), TOPS_PARENTS);
+        assert!(Arc::ptr_eq(&first[0], &runner_tops(0)));
+        assert!(Arc::ptr_eq(&newcomer, &runner_tops(100)));
+        assert!(!Arc::ptr_eq(&first[oldest as usize], &runner_tops(oldest)));
+        // Every parent's tops draw on the one memory of the worker; the tops no longer held
+        // let go of it once no part holds them.
+        drop((first, newcomer));
+        let memory = slot.lock().unwrap().memory.clone();
+        assert_eq!(Arc::strong_count(&memory), 2 + TOPS_PARENTS);
+        // Idle, all are dropped, and with them their claims on the memory.
+        release_idle_tops(&slot, Duration::ZERO);
+        assert!(slot.lock().unwrap().parents.is_empty());
+        assert_eq!(Arc::strong_count(&memory), 2);
+        assert_eq!(memory.used(), 0);
+    }
 }
