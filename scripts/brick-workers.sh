@@ -12,9 +12,11 @@
 # UPLOAD=1 submits the file with --upload (one worker compresses it, reading its bricks from
 # its temporary copy of the upload); DETACHED=1 submits the same samples behind a detached
 # MetaImage header (two files: uploaded, a bundle); WAVESPLAT=PATH runs another build;
-# SUBMIT_FLAGS adds options to the submission (e.g. SUBMIT_FLAGS="--effort fast").
+# SUBMIT_FLAGS adds options to the submission (e.g. SUBMIT_FLAGS="--effort fast"); JOBS=K
+# submits K such volumes at once (K bricked jobs in flight on the same workers, the time until
+# the last is done; the same samples under K names).
 # Writes $TMPDIR/wavesplat-workers/workers.csv (size,workers,brick,parts,seconds,
-# peak_rss_mb_max,bytes,ns_per_voxel_core).
+# peak_rss_mb_max,bytes,ns_per_voxel_core,jobs; bytes of the first job listed).
 set -euo pipefail
 ROOT="$(cd "$(dirname "$0")/.." && pwd)"
 N=${1:-512}
@@ -22,6 +24,7 @@ WORKERS=${2:-"1 2"}
 BRICK=${3:-128}
 FRACTION=${4:-0.01}
 W="${WAVESPLAT:-$ROOT/target/release/wavesplat}"
+JOBS=${JOBS:-1}
 UPLOAD_FLAG=()
 [ "${UPLOAD:-0}" = 1 ] && UPLOAD_FLAG=(--upload)
 TMP="${TMPDIR:-/tmp}/wavesplat-workers"
@@ -40,14 +43,22 @@ if [ "${DETACHED:-0}" = 1 ]; then
   printf 'ObjectType = Image\nNDims = 3\nDimSize = %s %s %s\nElementType = MET_FLOAT\nElementDataFile = ct.raw\n' \
     "$N" "$N" "$N" >"$SUBMIT/ct.mhd"
 fi
+if [ "$JOBS" -gt 1 ]; then
+  # K volumes: hard links to the same samples under K names, one bricked job each.
+  SUBMIT="$TMP/jobs_${N}_$JOBS"
+  mkdir -p "$SUBMIT"
+  for k in $(seq 1 "$JOBS"); do
+    [ -f "$SUBMIT/ct${k}_${N}x${N}x${N}_f32.raw" ] || ln "$SRC" "$SUBMIT/ct${k}_${N}x${N}x${N}_f32.raw"
+  done
+fi
 CSV="$TMP/workers.csv"
-[ -f "$CSV" ] || echo "size,workers,brick,parts,seconds,peak_rss_mb_max,bytes,ns_per_voxel_core" >"$CSV"
+[ -f "$CSV" ] || echo "size,workers,brick,parts,seconds,peak_rss_mb_max,bytes,ns_per_voxel_core,jobs" >"$CSV"
 CORES=$(nproc)
 PIDS=()
 cleanup() { for p in "${PIDS[@]}"; do kill "$p" 2>/dev/null || true; done; }
 trap cleanup EXIT
 free_port() { python3 -c 'import socket; s=socket.socket(); s.bind(("127.0.0.1",0)); print(s.getsockname()[1])'; }
-echo "CT phantom ${N}³ f32 on shared storage, bricks of $BRICK, $FRACTION of the coefficients, $CORES cores, $(date -u +%F)"
+echo "$JOBS × CT phantom ${N}³ f32 on shared storage, bricks of $BRICK, $FRACTION of the coefficients, $CORES cores, $(date -u +%F)"
 echo
 echo "| workers | parts | wall s | peak RSS per worker | bytes | ns per voxel and core |"
 echo "|---|---|---|---|---|---|"
@@ -71,15 +82,16 @@ for w in $WORKERS; do
       --cache "http://127.0.0.1:$cp" --threads 1 --id "w$i" >"$run/w$i.log" 2>&1 &
     WP+=($!); PIDS+=($!)
   done
-  # Until the bricked job (not a part) is done; a failure stops the script.
+  # Until the bricked jobs (not their parts) are done; a failure stops the script.
   while :; do
-    line=$("$W" jobs list --orchestrator "http://127.0.0.1:$op" | sed -n 1p)
-    case "$line" in
-      *$'\t'done$'\t'*) break ;;
-      *$'\t'failed$'\t'*) echo "failed: $line" >&2; exit 1 ;;
-    esac
+    listed=$("$W" jobs list --orchestrator "http://127.0.0.1:$op")
+    if grep -q $'\t'failed$'\t' <<<"$listed"; then
+      echo "failed: $(grep $'\t'failed$'\t' <<<"$listed")" >&2; exit 1
+    fi
+    [ "$(grep -c $'\t'done$'\t' <<<"$listed" || true)" -ge "$JOBS" ] && break
     sleep 0.5
   done
+  line=$(sed -n 1p <<<"$listed")
   end=$(date +%s.%N)
   peak=0
   for p in "${WP[@]}"; do
@@ -89,8 +101,8 @@ for w in $WORKERS; do
   parts=$("$W" jobs list --parts --orchestrator "http://127.0.0.1:$op" | grep -c "part of" || true)
   bytes=$(echo "$line" | sed -n 's/.*bytes=\([0-9]*\).*/\1/p')
   secs=$(echo "$end - $start" | bc -l | xargs printf '%.1f')
-  ns=$(echo "$secs * $w * 1000000000 / ($N * $N * $N)" | bc -l | xargs printf '%.0f')
-  echo "$N,$w,$BRICK,$parts,$secs,$((peak / 1024)),$bytes,$ns" >>"$CSV"
+  ns=$(echo "$secs * $w * 1000000000 / ($JOBS * $N * $N * $N)" | bc -l | xargs printf '%.0f')
+  echo "$N,$w,$BRICK,$parts,$secs,$((peak / 1024)),$bytes,$ns,$JOBS" >>"$CSV"
   echo "| $w | $parts | $secs | $((peak / 1024)) MB | $bytes | $ns |"
   cleanup; PIDS=(); sleep 1
 done
