@@ -1494,6 +1494,11 @@ impl KeptTops {
         self
     }
 
+    /// The most bytes the tops may hold in memory.
+    pub fn budget(&self) -> u64 {
+        self.budget
+    }
+
     /// Bytes the tops hold in memory.
     pub fn memory_bytes(&self) -> u64 {
         self.bytes.load(std::sync::atomic::Ordering::Relaxed)
@@ -1618,7 +1623,7 @@ impl Drop for KeptTops {
 /// each job's tops, and all of them within one budget.
 #[derive(Debug, Default)]
 pub struct TopMemory {
-    budget: u64,
+    budget: std::sync::atomic::AtomicU64,
     used: std::sync::atomic::AtomicU64,
 }
 
@@ -1626,7 +1631,7 @@ impl TopMemory {
     /// None used yet, at most `budget` bytes.
     pub fn new(budget: u64) -> TopMemory {
         TopMemory {
-            budget,
+            budget: std::sync::atomic::AtomicU64::new(budget),
             used: std::sync::atomic::AtomicU64::new(0),
         }
     }
@@ -1636,10 +1641,23 @@ impl TopMemory {
         self.used.load(std::sync::atomic::Ordering::Relaxed)
     }
 
+    /// The most bytes the tops drawing on it may hold.
+    pub fn budget(&self) -> u64 {
+        self.budget.load(std::sync::atomic::Ordering::Relaxed)
+    }
+
+    /// Sets the most bytes the tops drawing on it may hold (e.g. the smallest budget of the
+    /// allocations drawing on it, each within its process's memory limit). Tops already held
+    /// beyond it stay; the next ones are refused until there is room.
+    pub fn set_budget(&self, budget: u64) {
+        self.budget
+            .store(budget, std::sync::atomic::Ordering::Relaxed);
+    }
+
     /// Takes `size` bytes if the budget has them; whether it did.
     fn take(&self, size: u64) -> bool {
         use std::sync::atomic::Ordering::Relaxed;
-        if self.used.fetch_add(size, Relaxed) + size > self.budget {
+        if self.used.fetch_add(size, Relaxed) + size > self.budget() {
             self.used.fetch_sub(size, Relaxed);
             return false;
         }
@@ -2243,6 +2261,7 @@ mod tests {
             shared.used()
         );
         // Dropped, the first's memory is free again: a third keeps as many in memory.
+        let first_counts = first.counts();
         drop(first);
         assert_eq!(shared.used(), second.memory_bytes());
         let (third_bytes, third) = allocated_with(&v, &plan, sharing());
@@ -2250,6 +2269,14 @@ mod tests {
         assert!(third.spilled() < second.spilled(), "{}", third.spilled());
         drop((second, third));
         assert_eq!(shared.used(), 0);
+        // A budget lowered to nothing (a job under a tight memory limit joined): every top of
+        // the next goes to disk, the same file.
+        shared.set_budget(0);
+        let (fourth_bytes, fourth) = allocated_with(&v, &plan, sharing());
+        assert_eq!(fourth_bytes, again);
+        assert_eq!(fourth.spilled(), bricks);
+        assert_eq!(fourth.counts(), first_counts);
+        assert_eq!(shared.used(), fourth.memory_bytes());
     }
 
     #[test]

@@ -88,11 +88,21 @@ impl Default for PartTopsHeld {
 }
 
 impl PartTopsHeld {
+    /// The shared memory's budget: the smallest of the held parents' own (each what its job's
+    /// memory limit leaves for tops, at most [`TOP_BUDGET`]), so that all parents' tops
+    /// together stay within what one of them may hold.
+    fn limit_memory(&self) {
+        let budget = self.parents.iter().map(|t| t.tops.budget()).min();
+        self.memory
+            .set_budget(budget.unwrap_or(TOP_BUDGET).min(TOP_BUDGET));
+    }
+
     /// The tops kept for the parts of `parent`: the ones kept so far, or new ones from `make`
     /// drawing on the shared memory (in place of the least recently used parent's when
     /// [`TOPS_PARENTS`] are held). Tops no part used for [`TOPS_IDLE`] go first.
     fn of_parent(&mut self, parent: u64, make: impl FnOnce() -> KeptTops) -> Arc<KeptTops> {
         self.parents.retain(|t| t.used.elapsed() < TOPS_IDLE);
+        self.limit_memory();
         let used = std::time::Instant::now();
         if let Some(kept) = self.parents.iter_mut().find(|t| t.parent == parent) {
             kept.used = used;
@@ -111,6 +121,7 @@ impl PartTopsHeld {
             tops: tops.clone(),
             used,
         });
+        self.limit_memory();
         tops
     }
 }
@@ -126,6 +137,7 @@ pub(crate) struct PartTopsOf {
 pub(crate) fn release_idle_tops(slot: &PartTops, idle: Duration) {
     let mut held = slot.lock().unwrap_or_else(|p| p.into_inner());
     held.parents.retain(|t| t.used.elapsed() < idle);
+    held.limit_memory();
 }
 
 /// A part's source kept open, with what it was opened for.
@@ -1073,7 +1085,8 @@ mod tests {
         let slot = PartTops::default();
         let runner_tops = |parent: u64| {
             let mut held = slot.lock().unwrap();
-            held.of_parent(parent, || KeptTops::new(1 << 20))
+            let budget = if parent == 200 { 1 << 10 } else { 1 << 20 };
+            held.of_parent(parent, || KeptTops::new(budget))
         };
         let first: Vec<Arc<KeptTops>> = (0..TOPS_PARENTS as u64).map(runner_tops).collect();
         // Interleaved parts of the parents held find their own tops.
@@ -1093,8 +1106,16 @@ mod tests {
         drop((first, newcomer));
         let memory = slot.lock().unwrap().memory.clone();
         assert_eq!(Arc::strong_count(&memory), 2 + TOPS_PARENTS);
+        assert_eq!(memory.budget(), 1 << 20);
+        // A job under a tighter memory limit leaves less for tops: all parents' tops together
+        // stay within it while it is held, and the whole budget comes back when none is held.
+        let tight = runner_tops(200);
+        assert_eq!(memory.budget(), 1 << 10);
+        assert_eq!(tight.budget(), 1 << 10);
+        drop(tight);
         // Idle, all are dropped, and with them their claims on the memory.
         release_idle_tops(&slot, Duration::ZERO);
+        assert_eq!(memory.budget(), TOP_BUDGET);
         assert!(slot.lock().unwrap().parents.is_empty());
         assert_eq!(Arc::strong_count(&memory), 2);
         assert_eq!(memory.used(), 0);
