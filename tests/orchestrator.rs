@@ -174,11 +174,24 @@ fn each_ran_a_part(logs: &[std::path::PathBuf]) {
 
 /// The cache holds one volume, and its content is `file` (by SHA-256).
 async fn assert_cache_holds_only(cache: &str, file: &[u8]) {
+    assert_cache_holds_only_these(cache, &[file]).await;
+}
+
+/// The cache holds exactly `files` (by sha256, in any order): a volume committed once each.
+async fn assert_cache_holds_only_these(cache: &str, files: &[&[u8]]) {
+    let sha = |f: &[u8]| wavesplat_net::digest::hex(&wavesplat_net::digest::sha256(f));
+    let mut expected: Vec<String> = files.iter().map(|f| sha(f)).collect();
+    expected.sort();
     let mut client = CacheClient::connect(cache).await.unwrap();
-    let listed = client.list().await.unwrap();
-    assert_eq!(listed.len(), 1, "{listed:?}");
-    let sha = wavesplat_net::digest::hex(&wavesplat_net::digest::sha256(file));
-    assert_eq!(listed[0].sha256, sha, "not the one-process file");
+    let mut cached: Vec<String> = client
+        .list()
+        .await
+        .unwrap()
+        .into_iter()
+        .map(|v| v.sha256)
+        .collect();
+    cached.sort();
+    assert_eq!(cached, expected, "not the one-process files");
 }
 
 async fn jobs(url: &str) -> Vec<pb::Job> {
@@ -733,24 +746,12 @@ async fn fast_bricked_jobs_in_flight_together_code_their_bricks_from_the_tops_th
         target: TargetSpec::Bytes(target),
         ..Default::default()
     };
-    let mut expected: Vec<String> = volumes
+    let expected: Vec<Vec<u8>> = volumes
         .iter()
-        .map(|dims| {
-            let file = one_process_file_with(&Phantom::Ct.generate(*dims), &options);
-            wavesplat_net::digest::hex(&wavesplat_net::digest::sha256(&file))
-        })
+        .map(|dims| one_process_file_with(&Phantom::Ct.generate(*dims), &options))
         .collect();
-    expected.sort();
-    let mut client = CacheClient::connect(&c).await.unwrap();
-    let mut cached: Vec<String> = client
-        .list()
-        .await
-        .unwrap()
-        .into_iter()
-        .map(|v| v.sha256)
-        .collect();
-    cached.sort();
-    assert_eq!(cached, expected, "not the one-process files");
+    let expected: Vec<&[u8]> = expected.iter().map(Vec::as_slice).collect();
+    assert_cache_holds_only_these(&c, &expected).await;
 }
 
 /// The parts' RPCs from the other side of the wire, as a worker that does not follow the
