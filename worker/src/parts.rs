@@ -97,23 +97,28 @@ impl PartTopsHeld {
             .set_budget(budget.unwrap_or(TOP_BUDGET).min(TOP_BUDGET));
     }
 
+    /// Drops the tops that no part used for `idle`, and sets the shared budget from those left.
+    fn drop_idle(&mut self, idle: Duration) {
+        self.parents.retain(|t| t.used.elapsed() < idle);
+        self.limit_memory();
+    }
+
     /// The tops kept for the parts of `parent`: the ones kept so far, or new ones from `make`
     /// drawing on the shared memory (in place of the least recently used parent's when
     /// [`TOPS_PARENTS`] are held). Tops no part used for [`TOPS_IDLE`] go first.
     fn of_parent(&mut self, parent: u64, make: impl FnOnce() -> KeptTops) -> Arc<KeptTops> {
-        self.parents.retain(|t| t.used.elapsed() < TOPS_IDLE);
-        self.limit_memory();
+        self.drop_idle(TOPS_IDLE);
         let used = std::time::Instant::now();
         if let Some(kept) = self.parents.iter_mut().find(|t| t.parent == parent) {
             kept.used = used;
             return kept.tops.clone();
         }
         if self.parents.len() >= TOPS_PARENTS {
-            // The oldest go first, so that their memory is free for the new.
-            let oldest = (0..self.parents.len())
+            // The least recently used go first, so that their memory is free for the new.
+            let least_used = (0..self.parents.len())
                 .min_by_key(|&i| self.parents[i].used)
                 .unwrap_or(0);
-            self.parents.swap_remove(oldest);
+            self.parents.swap_remove(least_used);
         }
         let tops = Arc::new(make().sharing(self.memory.clone()));
         self.parents.push(PartTopsOf {
@@ -135,9 +140,9 @@ pub(crate) struct PartTopsOf {
 
 /// Drops the tops in `slot` that no part used for `idle`.
 pub(crate) fn release_idle_tops(slot: &PartTops, idle: Duration) {
-    let mut held = slot.lock().unwrap_or_else(|p| p.into_inner());
-    held.parents.retain(|t| t.used.elapsed() < idle);
-    held.limit_memory();
+    slot.lock()
+        .unwrap_or_else(|p| p.into_inner())
+        .drop_idle(idle);
 }
 
 /// A part's source kept open, with what it was opened for.
