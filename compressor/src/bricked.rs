@@ -1549,7 +1549,7 @@ impl KeptTops {
             let metadata = top.heap_bytes() as u64;
             self.bytes.fetch_add(metadata, Relaxed);
             if let Some(m) = &self.shared {
-                m.used.fetch_add(metadata, Relaxed);
+                m.count(metadata);
             }
         }
         let mut tops = self.tops.lock().unwrap_or_else(|p| p.into_inner());
@@ -1611,9 +1611,7 @@ impl Drop for KeptTops {
     /// Gives the memory the tops held back to the shared budget.
     fn drop(&mut self) {
         if let Some(m) = &self.shared {
-            let held = self.bytes.load(std::sync::atomic::Ordering::Relaxed);
-            m.used
-                .fetch_sub(held.min(m.used()), std::sync::atomic::Ordering::Relaxed);
+            m.give_back(self.memory_bytes());
         }
     }
 }
@@ -1652,6 +1650,21 @@ impl TopMemory {
     pub fn set_budget(&self, budget: u64) {
         self.budget
             .store(budget, std::sync::atomic::Ordering::Relaxed);
+    }
+
+    /// Counts `size` bytes held whether or not the budget has them (a spilled top's metadata).
+    fn count(&self, size: u64) {
+        self.used
+            .fetch_add(size, std::sync::atomic::Ordering::Relaxed);
+    }
+
+    /// Gives back `size` bytes that tops held.
+    fn give_back(&self, size: u64) {
+        use std::sync::atomic::Ordering::Relaxed;
+        // Never below nothing, should a count and a give-back race.
+        let _ = self
+            .used
+            .fetch_update(Relaxed, Relaxed, |used| Some(used.saturating_sub(size)));
     }
 
     /// Takes `size` bytes if the budget has them; whether it did.
