@@ -700,6 +700,57 @@ fn a_volume_over_the_memory_limit_is_bricked_by_itself() {
     assert!(!out(&info).contains("bricked"), "{}", out(&info));
 }
 
+/// `--brick N` with a memory limit one brick of N does not fit is refused before any brick is
+/// scored, saying what one brick needs and what to change, and leaves no checkpoint to resume
+/// (running again could not help); the limit the message names is enough.
+#[test]
+fn bricks_that_do_not_fit_the_memory_limit_are_refused_before_any_is_compressed() {
+    let dir = tempfile::tempdir().unwrap();
+    let out_path = dir.path().join("b.wsp");
+    let compress = |limit: &str| {
+        run(&[
+            "compress",
+            "--phantom",
+            "ct",
+            "--dims",
+            "64,64,48",
+            "--brick",
+            "32",
+            "--effort",
+            "fast",
+            "--target-fraction",
+            "0.05",
+            "--memory-limit",
+            limit,
+            "-o",
+            out_path.to_str().unwrap(),
+        ])
+    };
+    let refused = compress("1M");
+    assert!(!refused.status.success());
+    let e = err(&refused);
+    assert!(
+        e.contains("one brick needs more memory than --memory-limit")
+            && e.contains("smaller --brick")
+            && e.contains("the limit is 1048576 bytes")
+            && !e.contains("run the same command again")
+            && !e.contains("panicked"),
+        "{e}"
+    );
+    let left: Vec<_> = std::fs::read_dir(dir.path()).unwrap().collect();
+    assert!(left.is_empty(), "{left:?}");
+    // What one brick needs, by the message, is a limit it fits.
+    let needed = e
+        .split("compressing needs about ")
+        .nth(1)
+        .and_then(|r| r.split(' ').next())
+        .and_then(|n| n.parse::<u64>().ok())
+        .unwrap_or_else(|| panic!("no estimate in {e}"));
+    let fits = compress(&needed.to_string());
+    assert!(fits.status.success(), "{}", err(&fits));
+    assert!(out(&fits).contains("8 bricks"), "{}", out(&fits));
+}
+
 /// A bricked compression killed midway (SIGKILL, as a reboot or the OOM killer would) leaves
 /// the bricks it finished in OUTPUT.checkpoint; the same command run again says it resumes,
 /// writes the file an uninterrupted run writes, byte for byte, and removes the checkpoint.

@@ -754,6 +754,130 @@ async fn fast_bricked_jobs_in_flight_together_code_their_bricks_from_the_tops_th
     assert_cache_holds_only_these(&c, &expected).await;
 }
 
+/// A job carries `archive submit --memory-limit` to its workers, which keep to it: a bricked
+/// job whose limit leaves nothing beside one brick has its bricks coded by transforming them
+/// again on a worker that would otherwise keep their tops, and lands as the one-process file;
+/// a volume no brick of which fits the limit fails, saying what it needs, instead of running
+/// out of memory on a worker.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_job_keeps_to_its_memory_limit_on_the_workers() {
+    use wavesplat_compressor::bricked::{BrickError, BrickPlan};
+    use wavesplat_compressor::encode::CompressError;
+    use wavesplat_orchestrator_client::model::{Effort, JobOptions, TargetSpec};
+    let cl = TestCluster::start(&ORCH_TIMING);
+    let (o, c) = (cl.orch.url(), cl.cache.url());
+    let dims = [48, 48, 32];
+    let shared = cl.root.join("shared");
+    std::fs::create_dir_all(&shared).unwrap();
+    let volume = Phantom::Ct.generate(dims);
+    write_f32(
+        &shared.join(raw_name("tight", dims, "f32")),
+        &volume.to_interleaved(),
+    );
+    let log = cl.root.join("w1.log");
+    let _w1 = cl.worker("w1", 0, Some(&log));
+    let target = 9_000u64;
+    let mut options = JobOptions {
+        levels: Some(2),
+        brick: Some(24),
+        effort: Effort::Fast,
+        target: TargetSpec::Bytes(target),
+        memory_limit: Some(1),
+        ..Default::default()
+    };
+    // What one brick needs, by the compressor's own estimate: a limit of exactly that leaves
+    // nothing for kept tops on a worker of one thread.
+    let refused = BrickPlan::new(
+        &volume,
+        &wavesplat_worker::options::compress_options(&options),
+        24,
+    )
+    .err();
+    let Some(BrickError::Compress { source, .. }) = refused else {
+        panic!("a limit of one byte is refused: {refused:?}");
+    };
+    let CompressError::MemoryLimit { needed, .. } = *source else {
+        panic!("refused for memory: {source}");
+    };
+    options.memory_limit = Some(needed);
+    submit(
+        &shared,
+        &o,
+        &[
+            "--brick",
+            "24",
+            "--effort",
+            "fast",
+            "--target-bytes",
+            &target.to_string(),
+            "--memory-limit",
+            &needed.to_string(),
+        ],
+    );
+    let js = wait_for(&o, 180, "the bricked job done", all_finished).await;
+    for j in &js {
+        assert_eq!(state_name(j.state), "done", "{}: {}", name(j), j.error);
+    }
+    let text = std::fs::read_to_string(&log).unwrap();
+    let coded = text
+        .lines()
+        .filter(|l| l.contains("running part") && l.contains("coding"))
+        .count();
+    assert!(
+        coded >= 8,
+        "every brick coded on the one worker: {coded}\n{text}"
+    );
+    // Every brick's top went to the temporary file, none to memory (where an unlimited job
+    // keeps them: `fast_bricked_jobs_in_flight_together…`).
+    let scored: Vec<&str> = text
+        .lines()
+        .filter(|l| l.contains("brick scored; its top kept"))
+        .collect();
+    assert_eq!(scored.len(), 8, "{text}");
+    assert!(
+        scored
+            .iter()
+            .all(|l| l.contains("kept in the temporary file")),
+        "a top kept in memory beyond the job's memory limit:\n{text}"
+    );
+    assert_cache_holds_only(&c, &one_process_file_with(&volume, &options)).await;
+
+    // The same volume under a limit no brick fits: refused by the compressor on the worker,
+    // saying so (a permanent failure, not retried).
+    let out = cli(&[
+        "archive",
+        "submit",
+        shared.to_str().unwrap(),
+        "--orchestrator",
+        &o,
+        "--detach",
+        "--levels",
+        "2",
+        "--name-suffix=-small",
+        "--memory-limit",
+        "1M",
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let js = wait_for(&o, 120, "the second job finished", all_finished).await;
+    let failed: Vec<_> = js
+        .iter()
+        .filter(|j| !is_part(j) && name(j).ends_with("-small"))
+        .collect();
+    assert_eq!(failed.len(), 1);
+    let j = failed[0];
+    assert_eq!(state_name(j.state), "failed", "{}", j.error);
+    assert!(
+        j.error.contains("bytes of memory") && j.error.contains("the limit is 1048576 bytes"),
+        "{}",
+        j.error
+    );
+    assert_eq!(j.attempts, 1, "not retried: {}", j.error);
+}
+
 /// The parts' RPCs from the other side of the wire, as a worker that does not follow the
 /// rules would call them: parts only for the job one holds, only as its spec; results only
 /// complete and as announced, only through `FinishPart`, only to the holder of the parent;

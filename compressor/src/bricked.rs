@@ -422,12 +422,18 @@ pub fn auto_brick(
             _ => return Ok(None),
         }
     };
-    let brick_opts = CompressOptions {
-        margin: Some(0),
-        ..opts.clone()
-    };
     let fits = |side: usize| {
         let b = dims.map(|n| n.min(side));
+        // A brick is transformed with its bridge margin at a depth up to its default (what
+        // [`BrickPlan::new`] checks against the limit).
+        let levels = opts
+            .levels
+            .unwrap_or_else(|| default_levels(b, opts.family));
+        let brick_opts = CompressOptions {
+            levels: Some(levels),
+            margin: Some(bridge_margin(opts.family, levels)),
+            ..opts.clone()
+        };
         memory_estimate(b, channels, &brick_opts).is_ok_and(|(n, _)| {
             let per_brick = n.saturating_sub(PROCESS_MEMORY);
             limit.is_none_or(|l| PROCESS_MEMORY + per_brick.saturating_mul(threads.max(1)) <= l)
@@ -571,6 +577,28 @@ impl BrickPlan {
             color_transform: choices.color.clone(),
             ..opts.clone()
         };
+        // A brick that cannot be compressed within the memory limit is refused before any is
+        // scored, not when its turn comes.
+        if let Some(limit) = base.memory_limit {
+            let (origin, largest) = largest_brick(&grid);
+            let (needed, detail) =
+                memory_estimate(largest, source.channels(), &base).map_err(|e| {
+                    BrickError::Compress {
+                        origin,
+                        source: Box::new(e),
+                    }
+                })?;
+            if needed > limit {
+                return Err(BrickError::Compress {
+                    origin,
+                    source: Box::new(CompressError::MemoryLimit {
+                        needed,
+                        limit,
+                        detail,
+                    }),
+                });
+            }
+        }
         Ok(BrickPlan {
             grid,
             brick,
@@ -833,6 +861,15 @@ impl BrickPlan {
             version: wavesplat_codec::format::bricked::BRICKED_VERSION,
         }
     }
+}
+
+/// The origin and dimensions of the brick with the most voxels in `grid` (the first such).
+fn largest_brick(grid: &[([u64; 3], [usize; 3])]) -> ([u64; 3], [usize; 3]) {
+    grid.iter()
+        .copied()
+        .rev()
+        .max_by_key(|(_, d)| d.iter().product::<usize>())
+        .unwrap_or(([0; 3], [1; 3]))
 }
 
 fn check_options(opts: &CompressOptions, brick: usize) -> Result<(), BrickError> {
@@ -1465,12 +1502,7 @@ impl KeptTops {
         let Some(limit) = plan.base.memory_limit else {
             return KeptTops::new(TOP_BUDGET);
         };
-        let largest = plan
-            .grid
-            .iter()
-            .map(|(_, d)| *d)
-            .max_by_key(|d| d.iter().product::<usize>())
-            .unwrap_or([1; 3]);
+        let (_, largest) = largest_brick(&plan.grid);
         let threads = rayon::current_num_threads().max(1) as u64;
         let free = memory_estimate(largest, plan.channels, &plan.base).map_or(0, |(n, _)| {
             let per_brick = n.saturating_sub(PROCESS_MEMORY);

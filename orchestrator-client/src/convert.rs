@@ -188,6 +188,7 @@ fn options_from_pb(o: pb::CompressOptions) -> Result<JobOptions, ClientError> {
         } else {
             parse_effort(&o.effort)?
         },
+        memory_limit: o.memory_limit,
     })
 }
 
@@ -237,6 +238,7 @@ pub fn spec_to_pb(s: &JobSpec) -> pb::JobSpec {
                 Effort::Default => String::new(),
                 e => e.name().into(),
             },
+            memory_limit: o.memory_limit,
         }),
         part: s.part.as_ref().map(part_to_pb),
     }
@@ -398,6 +400,17 @@ mod tests {
         }
         let default = JobOptions::default();
         assert!(!serde_json::to_string(&default).unwrap().contains("effort"));
+        // A memory limit round-trips and is part of the job's identity; none is stored as
+        // before limits; a limit of nothing is refused.
+        let mut limited = spec.clone();
+        limited.options.memory_limit = Some(3 << 30);
+        assert_eq!(spec_from_pb(spec_to_pb(&limited)).unwrap(), limited);
+        assert_ne!(limited.dedup_key(), spec.dedup_key());
+        assert!(!serde_json::to_string(&default).unwrap().contains("memory"));
+        limited.options.memory_limit = Some(0);
+        assert!(spec_from_pb(spec_to_pb(&limited))
+            .and_then(|s| s.validate())
+            .is_err());
         let mut pb_spec = spec_to_pb(&spec);
         pb_spec.options.as_mut().unwrap().effort = "slow".into();
         assert!(spec_from_pb(pb_spec).is_err());

@@ -268,6 +268,12 @@ pub struct JobOptions {
     /// form when it is the default, so that a job's identity is what it was before efforts.
     #[serde(default, skip_serializing_if = "Effort::is_default")]
     pub effort: Effort,
+    /// Each worker's memory for this job in bytes (`None`: no limit): a volume compressed
+    /// whole that would need more is refused, and a bricked job's workers keep tops only in
+    /// what one brick per thread leaves. Left out of the stored form when unset, so that a job's
+    /// identity is what it was before limits.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub memory_limit: Option<u64>,
 }
 
 /// Compression effort of a job, by name (the compressor's `Effort`: fast, default, best).
@@ -333,6 +339,7 @@ impl Default for JobOptions {
             brick: None,
             time_group: None,
             effort: Effort::Default,
+            memory_limit: None,
         }
     }
 }
@@ -376,6 +383,9 @@ impl JobOptions {
         }
         if self.tile == Some(0) {
             return Err(invalid("tile 0; must be at least 1".into()));
+        }
+        if self.memory_limit == Some(0) {
+            return Err(invalid("memory limit 0; must be at least 1 byte".into()));
         }
         if let Some(g) = self.time_group {
             if !g.is_power_of_two() || g > 1 << 15 {

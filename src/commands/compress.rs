@@ -9,12 +9,12 @@ use wavesplat_codec::format::CoderKind;
 use wavesplat_codec::layout::Geometry;
 use wavesplat_codec::volume::{Volume, MAX_VOXELS};
 use wavesplat_compressor::bricked::{
-    compress_bricked_to, AutoBrick, BrickReason, BrickSource, BrickStage,
+    compress_bricked_to, AutoBrick, BrickError, BrickReason, BrickSource, BrickStage,
 };
 use wavesplat_compressor::checkpoint::Checkpoint;
 use wavesplat_compressor::colorspace::ColorSpaceKind;
 use wavesplat_compressor::encode::{
-    compress, CompressOptions, Compressed, Effort, Stage, Target, TileChoice,
+    compress, CompressError, CompressOptions, Compressed, Effort, Stage, Target, TileChoice,
 };
 use wavesplat_compressor::order::Clustering;
 use wavesplat_compressor::phantom::{beating, Phantom, PhantomVolume};
@@ -452,6 +452,12 @@ fn run_bricked(a: &CompressArgs, opts: &CompressOptions, brick: usize) -> Result
     compress_bricks_of(a, opts, brick, source)
 }
 
+/// Whether a bricked compression was refused for a brick needing more than the memory limit.
+fn refused_for_memory(e: &BrickError) -> bool {
+    matches!(e, BrickError::Compress { source, .. }
+        if matches!(**source, CompressError::MemoryLimit { .. }))
+}
+
 /// Compresses `source` as bricks of `brick` into `a.output`, with a summary.
 fn compress_bricks_of(
     a: &CompressArgs,
@@ -503,6 +509,17 @@ fn compress_bricks_of(
             compress_bricked_to(source, opts, brick, &report, spill, checkpoint.as_ref(), out);
         match (written, checkpoint) {
             (Ok(w), cp) => Ok((w, cp)),
+            // Refused before any brick was scored: running again would not help, and there is
+            // nothing to keep.
+            (Err(e), Some(cp)) if refused_for_memory(&e) => {
+                if let Err(r) = cp.remove() {
+                    tracing::debug!("removing the checkpoint: {r}");
+                }
+                Err(anyhow::Error::new(e).context(
+                    "compressing: one brick needs more memory than --memory-limit gives; give \
+                     more, or a smaller --brick",
+                ))
+            }
             (Err(e), Some(_)) => Err(anyhow::Error::new(e).context(format!(
                 "compressing (the bricks finished so far are kept in {}: run the same command \
                  again to go on from there, or with --no-resume to start over)",

@@ -190,6 +190,7 @@ impl JobOptionArgs {
             brick: self.brick,
             time_group: self.time_group,
             effort: model::parse_effort(&self.effort)?,
+            memory_limit: None,
         }
         .validate()?)
     }
@@ -242,12 +243,16 @@ pub struct SubmitArgs {
     #[arg(long)]
     pub time_steps: bool,
     /// Each worker's memory for a job (bytes, or with a K, M or G suffix: `8G`); default: the
-    /// memory available on this machine. A volume given without --brick that would need more
-    /// to compress whole (or has more voxels than one transform takes) is submitted as a
-    /// bricked job instead, in the largest bricks of 256, 128, 64 or 32 a side of which one
-    /// fits, as `compress` bricks a file by itself; its bricks spread over the workers when
-    /// they read it on shared storage. Without it, only files larger than 1/64 of the memory
-    /// available are probed.
+    /// memory available on this machine, and no limit on the workers. A volume given without
+    /// --brick that would need more to compress whole (or has more voxels than one transform
+    /// takes) is submitted as a bricked job instead, in the largest bricks of 256, 128, 64 or
+    /// 32 a side of which one fits, as `compress` bricks a file by itself; its bricks spread
+    /// over the workers when they read it on shared storage. Without it, only files larger
+    /// than 1/64 of the memory available are probed. Given, the jobs carry it and their
+    /// workers keep to it: a volume compressed whole that would need more fails (kind
+    /// compress) instead of running out of memory, and a bricked job's workers keep its
+    /// bricks' top coefficients only in what one brick per thread leaves. Part of a job's
+    /// identity: the same volume submitted again with another limit is a new job.
     #[arg(long, value_parser = super::parse_bytes)]
     pub memory_limit: Option<u64>,
     #[command(flatten)]
@@ -440,7 +445,12 @@ pub fn run_worker(a: WorkerArgs) -> Result<()> {
 /// Runs `wavesplat archive …`.
 pub fn run_archive(cmd: ArchiveCommand) -> Result<()> {
     let ArchiveCommand::Submit(a) = cmd;
-    let options = a.options.options()?;
+    // The workers keep to the limit too: the job carries it.
+    let options = JobOptions {
+        memory_limit: a.memory_limit,
+        ..a.options.options()?
+    }
+    .validate()?;
     let scan = archive::scan_with(&a.dir, a.time_steps)
         .with_context(|| format!("scanning {}", a.dir.display()))?;
     for (path, why) in &scan.skipped {

@@ -36,6 +36,7 @@ pub fn compress_options(o: &JobOptions) -> CompressOptions {
         step: o.step,
         depth_search: effort.depth_search(),
         refine: refine_options(effort, o.no_refine, o.refine_rounds),
+        memory_limit: o.memory_limit,
         ..d
     }
 }

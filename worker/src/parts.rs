@@ -58,8 +58,9 @@ pub(crate) struct PartRunner {
 /// brick again (without refinement: `--effort fast`); the queue hands a brick's encode part to
 /// the worker that scored it first (`PartSpec::prefer_worker`). The tops of up to
 /// [`TOPS_PARENTS`] parents are kept at once (a batch of bricked jobs runs on the same workers,
-/// their parts interleaved), all within one memory budget ([`TopMemory`], [`TOP_BUDGET`]);
-/// beyond it they go to a temporary file. A parent's tops are dropped (and their temporary
+/// their parts interleaved), all within one memory budget ([`TopMemory`], [`TOP_BUDGET`], or
+/// less where a held job's memory limit leaves less: then the others' tops are dropped until
+/// what is held fits); beyond it they go to a temporary file. A parent's tops are dropped (and their temporary
 /// file) when a part of a parent not held comes and the slots are full (the least recently
 /// used go), or when no part used them for [`TOPS_IDLE`].
 pub(crate) type PartTops = Arc<std::sync::Mutex<PartTopsHeld>>;
@@ -127,6 +128,22 @@ impl PartTopsHeld {
             used,
         });
         self.limit_memory();
+        // A job under a tighter memory limit than those held came: the others' tops go, the
+        // least recently used first, until what is held fits its budget.
+        while self.memory.used() > self.memory.budget() && self.parents.len() > 1 {
+            let Some(least_used) = (0..self.parents.len())
+                .filter(|&i| self.parents[i].parent != parent)
+                .min_by_key(|&i| self.parents[i].used)
+            else {
+                break;
+            };
+            let dropped = self.parents.swap_remove(least_used);
+            tracing::info!(
+                parent = dropped.parent,
+                budget = self.memory.budget(),
+                "dropping the tops kept for a job: a job under a tighter memory limit came"
+            );
+        }
         tops
     }
 }
@@ -404,14 +421,31 @@ fn compute_part(
     Ok((bytes, voxels))
 }
 
-/// Runs `step` with `tops`, saying when it coded the part from a kept top.
+/// Runs `step` with `tops`, saying where a score part kept its brick's top, and when an encode
+/// part coded from a kept top.
 fn with_tops(
     part: &PartSpec,
     tops: &KeptTops,
     step: impl FnOnce() -> Result<Vec<u8>, Failure>,
 ) -> Result<Vec<u8>, Failure> {
     let before = tops.counts().0;
+    let (spilled, held) = (tops.spilled(), tops.memory_bytes());
     let bytes = step()?;
+    if matches!(part.step, PartStep::Score { .. }) {
+        let kept = if tops.spilled() > spilled {
+            "in the temporary file"
+        } else if tops.memory_bytes() > held {
+            "in memory"
+        } else {
+            "nowhere"
+        };
+        tracing::info!(
+            parent = part.parent,
+            part = %part.label(),
+            tops_in_memory = tops.memory_bytes(),
+            "brick scored; its top kept {kept}"
+        );
+    }
     if tops.counts().0 > before {
         tracing::info!(
             parent = part.parent,
@@ -1123,6 +1157,55 @@ mod tests {
         assert_eq!(memory.budget(), TOP_BUDGET);
         assert!(slot.lock().unwrap().parents.is_empty());
         assert_eq!(Arc::strong_count(&memory), 2);
+        assert_eq!(memory.used(), 0);
+    }
+
+    /// A job under a memory limit too tight for the tops other jobs' parts kept on this worker
+    /// has them dropped when its first part comes (the least recently used first), so that
+    /// what the worker holds keeps to the tightest limit held; tops that fit stay.
+    #[test]
+    fn a_job_under_a_tighter_memory_limit_drops_the_tops_that_exceed_it() {
+        use wavesplat_compressor::encode::{CompressOptions, Effort};
+        use wavesplat_compressor::phantom::Phantom;
+        let v = Phantom::Ct.generate([48, 40, 32]);
+        let opts = CompressOptions {
+            target: Target::Fraction(0.05),
+            ..Effort::Fast.options()
+        };
+        let plan = BrickPlan::new(&v, &opts, 16).unwrap();
+        let slot = PartTops::default();
+        let tops_of = |parent: u64, budget: u64| {
+            let mut held = slot.lock().unwrap();
+            held.of_parent(parent, || KeptTops::new(budget))
+        };
+        // Two jobs' parts keep the tops of some bricks each.
+        let keep = |tops: &KeptTops, bricks: std::ops::Range<usize>| {
+            for i in bricks {
+                plan.score_into(&v, i, tops, 0, plan.top_cap(i)).unwrap();
+            }
+            tops.memory_bytes()
+        };
+        let first = keep(&tops_of(1, 1 << 20), 0..4);
+        let second = keep(&tops_of(2, 1 << 20), 4..6);
+        assert!(first > second && second > 0, "{first} {second}");
+        let memory = slot.lock().unwrap().memory.clone();
+        assert_eq!(memory.used(), first + second);
+        // Job 1's parts ran last.
+        tops_of(1, 1 << 20);
+        // A job whose limit leaves room for job 1's tops but not for both: job 2's go (used
+        // least recently), job 1's stay.
+        let roomy = tops_of(3, first + second - 1);
+        assert_eq!(memory.used(), first);
+        let held = |p: u64| slot.lock().unwrap().parents.iter().any(|t| t.parent == p);
+        assert!(held(1) && !held(2) && held(3));
+        drop(roomy);
+        // A job whose limit leaves nothing for tops: every other job's that holds any go (job
+        // 3's hold nothing and may stay).
+        let tight = tops_of(4, 0);
+        assert_eq!(memory.used(), 0);
+        assert!(!held(1) && held(4));
+        // Its own parts keep no top, and its bricks are coded by transforming them again.
+        keep(&tight, 0..2);
         assert_eq!(memory.used(), 0);
     }
 }
