@@ -8,7 +8,9 @@
 # Markdown table on stdout.
 #   bash scripts/brick-workers.sh [SIZE] [WORKERS] [BRICK] [FRACTION]
 #   e.g. bash scripts/brick-workers.sh 512 "1 2" 128 0.01
-# WORKERS: worker counts (default "1 2"; more than the machine's cores are skipped).
+# WORKERS: worker counts (default "1 2"; more than the machine's cores are skipped, unless
+# OVERSUBSCRIBE=1 pins them to the cores in turn: for how many jobs' parts each worker sees,
+# not for time per core).
 # UPLOAD=1 submits the file with --upload (one worker compresses it, reading its bricks from
 # its temporary copy of the upload); DETACHED=1 submits the same samples behind a detached
 # MetaImage header (two files: uploaded, a bundle); WAVESPLAT=PATH runs another build;
@@ -16,7 +18,8 @@
 # submits K such volumes at once (K bricked jobs in flight on the same workers, the time until
 # the last is done; the same samples under K names).
 # Writes $TMPDIR/wavesplat-workers/workers.csv (size,workers,brick,parts,seconds,
-# peak_rss_mb_max,bytes,ns_per_voxel_core,jobs; bytes of the first job listed).
+# peak_rss_mb_max,bytes,ns_per_voxel_core,jobs,from_tops; bytes of the first job listed;
+# from_tops: the encode parts the workers coded from a top they kept, of all encode parts).
 set -euo pipefail
 ROOT="$(cd "$(dirname "$0")/.." && pwd)"
 N=${1:-512}
@@ -52,7 +55,7 @@ if [ "$JOBS" -gt 1 ]; then
   done
 fi
 CSV="$TMP/workers.csv"
-[ -f "$CSV" ] || echo "size,workers,brick,parts,seconds,peak_rss_mb_max,bytes,ns_per_voxel_core,jobs" >"$CSV"
+[ -f "$CSV" ] || echo "size,workers,brick,parts,seconds,peak_rss_mb_max,bytes,ns_per_voxel_core,jobs,from_tops" >"$CSV"
 CORES=$(nproc)
 PIDS=()
 cleanup() { for p in "${PIDS[@]}"; do kill "$p" 2>/dev/null || true; done; }
@@ -60,10 +63,10 @@ trap cleanup EXIT
 free_port() { python3 -c 'import socket; s=socket.socket(); s.bind(("127.0.0.1",0)); print(s.getsockname()[1])'; }
 echo "$JOBS × CT phantom ${N}³ f32 on shared storage, bricks of $BRICK, $FRACTION of the coefficients, $CORES cores, $(date -u +%F)"
 echo
-echo "| workers | parts | wall s | peak RSS per worker | bytes | ns per voxel and core |"
-echo "|---|---|---|---|---|---|"
+echo "| workers | parts | wall s | peak RSS per worker | bytes | ns per voxel and core | coded from a kept top |"
+echo "|---|---|---|---|---|---|---|"
 for w in $WORKERS; do
-  [ "$w" -le "$CORES" ] || continue
+  [ "$w" -le "$CORES" ] || [ "${OVERSUBSCRIBE:-0}" = 1 ] || continue
   run="$TMP/run_w$w"
   rm -rf "$run" && mkdir -p "$run"
   cp=$(free_port); op=$(free_port)
@@ -78,7 +81,7 @@ for w in $WORKERS; do
     >"$run/submit.log"
   WP=()
   for i in $(seq 0 $((w - 1))); do
-    taskset -c "$i" "$W" worker --orchestrator "http://127.0.0.1:$op" \
+    taskset -c "$((i % CORES))" "$W" worker --orchestrator "http://127.0.0.1:$op" \
       --cache "http://127.0.0.1:$cp" --threads 1 --id "w$i" >"$run/w$i.log" 2>&1 &
     WP+=($!); PIDS+=($!)
   done
@@ -102,8 +105,10 @@ for w in $WORKERS; do
   bytes=$(echo "$line" | sed -n 's/.*bytes=\([0-9]*\).*/\1/p')
   secs=$(echo "$end - $start" | bc -l | xargs printf '%.1f')
   ns=$(echo "$secs * $w * 1000000000 / ($JOBS * $N * $N * $N)" | bc -l | xargs printf '%.0f')
-  echo "$N,$w,$BRICK,$parts,$secs,$((peak / 1024)),$bytes,$ns,$JOBS" >>"$CSV"
-  echo "| $w | $parts | $secs | $((peak / 1024)) MB | $bytes | $ns |"
+  encodes=$("$W" jobs list --parts --orchestrator "http://127.0.0.1:$op" | grep -c "coding" || true)
+  from_tops=$(cat "$run"/w*.log | grep -c "part coded from the top this worker kept" || true)
+  echo "$N,$w,$BRICK,$parts,$secs,$((peak / 1024)),$bytes,$ns,$JOBS,$from_tops/$encodes" >>"$CSV"
+  echo "| $w | $parts | $secs | $((peak / 1024)) MB | $bytes | $ns | $from_tops of $encodes |"
   cleanup; PIDS=(); sleep 1
 done
 echo

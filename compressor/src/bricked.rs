@@ -1602,6 +1602,12 @@ impl KeptTops {
             self.spilled_bytes.fetch_sub(size, Relaxed);
             return false;
         }
+        if let Some(m) = &self.shared {
+            if !m.take_disk(size, *budget) {
+                self.spilled_bytes.fetch_sub(size, Relaxed);
+                return false;
+            }
+        }
         match top.spill(file) {
             Ok(()) => {
                 self.spilled.fetch_add(1, Relaxed);
@@ -1609,6 +1615,9 @@ impl KeptTops {
             }
             Err(e) => {
                 self.spilled_bytes.fetch_sub(size, Relaxed);
+                if let Some(m) = &self.shared {
+                    m.give_back_disk(size);
+                }
                 if !self.spill_failed.swap(true, Relaxed) {
                     tracing::warn!(
                         error = %e,
@@ -1640,21 +1649,30 @@ impl KeptTops {
 }
 
 impl Drop for KeptTops {
-    /// Gives the memory the tops held back to the shared budget.
+    /// Gives the memory and the disk the tops held back to the shared budgets (the temporary
+    /// file goes with the last holder of it).
     fn drop(&mut self) {
         if let Some(m) = &self.shared {
             m.give_back(self.memory_bytes());
+            m.give_back_disk(
+                self.spilled_bytes
+                    .load(std::sync::atomic::Ordering::Relaxed),
+            );
         }
     }
 }
 
 /// A budget of bytes in memory that the [`KeptTops`] of several allocations draw on together
 /// ([`KeptTops::sharing`]): a worker running the parts of several bricked jobs at once keeps
-/// each job's tops, and all of them within one budget.
+/// each job's tops, and all of them within one budget. The tops they move to their temporary
+/// files share one disk budget too: the first to spill sets it ([`TOP_DISK_SHARE`] of the free
+/// space then), so that many allocations do not each take a share of what the others left.
 #[derive(Debug, Default)]
 pub struct TopMemory {
     budget: std::sync::atomic::AtomicU64,
     used: std::sync::atomic::AtomicU64,
+    disk_budget: std::sync::OnceLock<u64>,
+    disk_used: std::sync::atomic::AtomicU64,
 }
 
 impl TopMemory {
@@ -1662,8 +1680,39 @@ impl TopMemory {
     pub fn new(budget: u64) -> TopMemory {
         TopMemory {
             budget: std::sync::atomic::AtomicU64::new(budget),
-            used: std::sync::atomic::AtomicU64::new(0),
+            ..TopMemory::default()
         }
+    }
+
+    /// The same, with at most `bytes` in the temporary files of all allocations together.
+    pub fn with_disk_budget(self, bytes: u64) -> TopMemory {
+        let _ = self.disk_budget.set(bytes);
+        self
+    }
+
+    /// Bytes the tops drawing on it hold in their temporary files now.
+    pub fn disk_used(&self) -> u64 {
+        self.disk_used.load(std::sync::atomic::Ordering::Relaxed)
+    }
+
+    /// Takes `size` bytes of the disk budget (set to `first` by the first call where none was
+    /// given) if it has them; whether it did.
+    fn take_disk(&self, size: u64, first: u64) -> bool {
+        use std::sync::atomic::Ordering::Relaxed;
+        let budget = *self.disk_budget.get_or_init(|| first);
+        if self.disk_used.fetch_add(size, Relaxed) + size > budget {
+            self.disk_used.fetch_sub(size, Relaxed);
+            return false;
+        }
+        true
+    }
+
+    /// Gives back `size` bytes of the disk budget.
+    fn give_back_disk(&self, size: u64) {
+        use std::sync::atomic::Ordering::Relaxed;
+        let _ = self
+            .disk_used
+            .fetch_update(Relaxed, Relaxed, |used| Some(used.saturating_sub(size)));
     }
 
     /// Bytes the tops drawing on it hold now.
@@ -2322,6 +2371,59 @@ mod tests {
         assert_eq!(fourth.spilled(), bricks);
         assert_eq!(fourth.counts(), first_counts);
         assert_eq!(shared.used(), fourth.memory_bytes());
+    }
+
+    /// The tops several allocations move to their temporary files share one disk budget: a
+    /// second allocation finds what the first spilled counted against it and spills less (the
+    /// rest of its bricks transformed again, the same file); the first's dropped, its disk is
+    /// free again.
+    #[test]
+    fn tops_of_several_allocations_share_one_disk_budget() {
+        let v = Phantom::Ct.generate([72, 60, 40]);
+        let opts = CompressOptions {
+            target: Target::Fraction(0.02),
+            ..Effort::Fast.options()
+        };
+        let plan = BrickPlan::new(&v, &opts, 24).unwrap();
+        let bricks = plan.grid.len();
+        let (again, _) = allocated_with(&v, &plan, KeptTops::new(0));
+        let dir = tempfile::tempdir().unwrap();
+        // No memory for tops; disk for about two thirds of one allocation's.
+        let one = plan.top_cap(0).unwrap() * std::mem::size_of::<(u32, f32)>() as u64;
+        let disk = one * bricks as u64 * 2 / 3;
+        let shared = std::sync::Arc::new(TopMemory::new(0).with_disk_budget(disk));
+        let sharing = || {
+            KeptTops::for_plan(&plan)
+                .sharing(shared.clone())
+                .spilling_in(Some(dir.path()))
+        };
+        let (first_bytes, first) = allocated_with(&v, &plan, sharing());
+        assert_eq!(first_bytes, again);
+        assert!(first.spilled() > 0, "{}", first.spilled());
+        assert!(shared.disk_used() > 0 && shared.disk_used() <= disk);
+        let after_first = shared.disk_used();
+        let (second_bytes, second) = allocated_with(&v, &plan, sharing());
+        assert_eq!(second_bytes, again);
+        assert!(
+            second.spilled() < first.spilled(),
+            "{} {}",
+            second.spilled(),
+            first.spilled()
+        );
+        assert!(
+            shared.disk_used() <= disk,
+            "{} of {disk}",
+            shared.disk_used()
+        );
+        assert!(
+            second.counts().1 > first.counts().1,
+            "more transformed again"
+        );
+        let both = shared.disk_used();
+        drop(first);
+        assert_eq!(shared.disk_used(), both - after_first);
+        drop(second);
+        assert_eq!(shared.disk_used(), 0);
     }
 
     #[test]

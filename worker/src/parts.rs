@@ -70,8 +70,13 @@ pub(crate) type PartTops = Arc<std::sync::Mutex<PartTopsHeld>>;
 /// before).
 pub(crate) const TOPS_IDLE: Duration = Duration::from_secs(120);
 
-/// How many parents' tops a worker keeps at once.
-pub(crate) const TOPS_PARENTS: usize = 4;
+/// How many parents' tops a worker keeps at once. Every worker holding a parent (planning it,
+/// then waiting on its parts) spreads parts to all workers, so a worker sees the parts of up
+/// to as many parents as there are workers; beyond this count the least recently used parent's
+/// tops go, and parents taking turns then drop each other's before they are used (six jobs on
+/// six workers kept 34–240 of 384 encode parts' tops with four, 323–360 with sixteen:
+/// BENCHMARKS.md). Their memory and disk are bounded by the shared budgets, not by this count.
+pub(crate) const TOPS_PARENTS: usize = 16;
 
 /// The tops a worker holds: up to [`TOPS_PARENTS`] parents', and the memory they share.
 pub(crate) struct PartTopsHeld {
