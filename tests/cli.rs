@@ -833,6 +833,64 @@ fn kill_once_a_brick_is_coded(args: &[String], checkpoint: &std::path::Path) {
     child.wait().unwrap();
 }
 
+/// A killed run's checkpoint survives a run again under a memory limit its bricks do not fit:
+/// that run is refused saying the finished bricks are kept, and the run after it, without
+/// the limit, resumes from them and writes the uninterrupted run's file.
+#[test]
+fn a_memory_refusal_keeps_the_checkpoint_of_an_earlier_run() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = |n: &str| dir.path().join(n).to_str().unwrap().to_string();
+    let args = |out: &str, extra: &[&str]| -> Vec<String> {
+        [
+            "compress",
+            "--phantom",
+            "shepp-logan",
+            "--dims",
+            "96,96,80",
+            "--brick",
+            "16",
+            "--target-fraction",
+            "0.05",
+            "-o",
+            out,
+        ]
+        .iter()
+        .chain(extra)
+        .map(|s| s.to_string())
+        .collect()
+    };
+    let checkpoint = dir.path().join("k.wsp.checkpoint");
+    kill_once_a_brick_is_coded(&args(&path("k.wsp"), &[]), &checkpoint);
+    let refused = Command::new(BIN)
+        .args(args(&path("k.wsp"), &["--memory-limit", "1M"]))
+        .output()
+        .unwrap();
+    assert!(!refused.status.success());
+    assert!(
+        err(&refused).contains("the limit is 1048576 bytes")
+            && err(&refused).contains("run the same command again"),
+        "{}",
+        err(&refused)
+    );
+    assert!(checkpoint.exists(), "the earlier run's bricks are kept");
+    let again = Command::new(BIN)
+        .args(args(&path("k.wsp"), &[]))
+        .output()
+        .unwrap();
+    assert!(again.status.success(), "{}", err(&again));
+    assert!(out(&again).contains("resuming"), "{}", out(&again));
+    assert!(!checkpoint.exists());
+    let fresh = Command::new(BIN)
+        .args(args(&path("fresh.wsp"), &[]))
+        .output()
+        .unwrap();
+    assert!(fresh.status.success(), "{}", err(&fresh));
+    assert_eq!(
+        std::fs::read(path("k.wsp")).unwrap(),
+        std::fs::read(path("fresh.wsp")).unwrap()
+    );
+}
+
 /// An input rewritten in place between the killed run and the run again, with the same length
 /// and modification time (as a copy that keeps times would leave it), is not the checkpoint's:
 /// the run again starts over, and writes the file of the new contents.

@@ -274,6 +274,14 @@ pub enum BrickError {
     },
 }
 
+impl BrickError {
+    /// Whether a brick was refused for needing more memory than the limit.
+    pub fn is_memory_refusal(&self) -> bool {
+        matches!(self, BrickError::Compress { source, .. }
+            if matches!(**source, CompressError::MemoryLimit { .. }))
+    }
+}
+
 /// Decodes every brick of a bricked container to a volume and hands it, with its manifest
 /// entry, to `sink`: bricks are decoded in parallel, one per worker thread at a time, and come
 /// in no particular order, so nothing ever holds the whole volume (each brick within
@@ -1108,7 +1116,12 @@ fn compare_depths(
     let mut per_byte: Vec<(usize, f64)> = Vec::new();
     // A depth's axis-view error on the sample (`None`: too small for its coarse band).
     let score = |m: usize| -> Result<Option<f64>, BrickError> {
-        let mut plan = sample_plan(source, opts, brick, (&sample, bytes), shared, m)?;
+        // A depth whose bricks would not fit the memory limit is not a candidate (a deeper
+        // one's bricks are larger still).
+        let mut plan = match sample_plan(source, opts, brick, (&sample, bytes), shared, m) {
+            Err(e) if e.is_memory_refusal() => return Ok(None),
+            plan => plan?,
+        };
         plan.coefficients_per_byte = per_byte.last().map(|&(_, r)| r);
         let scored = sample_view_error(source, &plan, &originals)?;
         tracing::debug!(levels = m, bytes, ?scored, "bricked depth candidate");
@@ -1477,6 +1490,8 @@ pub struct KeptTops {
     /// inside: it could not be made).
     spill: std::sync::OnceLock<Option<(std::sync::Arc<ScratchFile>, u64)>>,
     spilled_bytes: std::sync::atomic::AtomicU64,
+    /// Of `bytes`, the metadata of tops moved to the temporary file (counted, never refused).
+    metadata_bytes: std::sync::atomic::AtomicU64,
     /// A write to the temporary file failed: nothing more goes there.
     spill_failed: std::sync::atomic::AtomicBool,
     /// Tops moved to the temporary file ([`KeptTops::spilled`]).
@@ -1499,14 +1514,19 @@ impl KeptTops {
     /// [`TOP_BUDGET`], and under a memory limit at most what the limit leaves beside the
     /// process's own share and one brick per thread ([`memory_estimate`] of the largest).
     pub fn for_plan(plan: &BrickPlan) -> KeptTops {
+        KeptTops::for_plan_bricks_at_once(plan, rayon::current_num_threads().max(1) as u64)
+    }
+
+    /// The same, with `bricks` compressed at once instead of one per thread (a worker running
+    /// one part at a time: one).
+    pub fn for_plan_bricks_at_once(plan: &BrickPlan, bricks: u64) -> KeptTops {
         let Some(limit) = plan.base.memory_limit else {
             return KeptTops::new(TOP_BUDGET);
         };
         let (_, largest) = largest_brick(&plan.grid);
-        let threads = rayon::current_num_threads().max(1) as u64;
         let free = memory_estimate(largest, plan.channels, &plan.base).map_or(0, |(n, _)| {
             let per_brick = n.saturating_sub(PROCESS_MEMORY);
-            limit.saturating_sub(PROCESS_MEMORY + per_brick.saturating_mul(threads))
+            limit.saturating_sub(PROCESS_MEMORY + per_brick.saturating_mul(bricks.max(1)))
         });
         KeptTops::new(free.min(TOP_BUDGET))
     }
@@ -1534,6 +1554,15 @@ impl KeptTops {
     /// Bytes the tops hold in memory.
     pub fn memory_bytes(&self) -> u64 {
         self.bytes.load(std::sync::atomic::Ordering::Relaxed)
+    }
+
+    /// Of [`KeptTops::memory_bytes`], what the budgets govern: the tops kept in memory, not
+    /// the metadata of those moved to the temporary file.
+    pub fn budgeted_bytes(&self) -> u64 {
+        use std::sync::atomic::Ordering::Relaxed;
+        self.bytes
+            .load(Relaxed)
+            .saturating_sub(self.metadata_bytes.load(Relaxed))
     }
 
     /// The temporary file and its budget, made on the first call (`None`: no spill, or it
@@ -1580,6 +1609,7 @@ impl KeptTops {
             // What stays in memory (the metadata) is counted but not refused: a few kB.
             let metadata = top.heap_bytes() as u64;
             self.bytes.fetch_add(metadata, Relaxed);
+            self.metadata_bytes.fetch_add(metadata, Relaxed);
             if let Some(m) = &self.shared {
                 m.count(metadata);
             }
@@ -2371,6 +2401,56 @@ mod tests {
         assert_eq!(fourth.spilled(), bricks);
         assert_eq!(fourth.counts(), first_counts);
         assert_eq!(shared.used(), fourth.memory_bytes());
+    }
+
+    /// A byte target's depth comparison under a memory limit that the default depth's bricks
+    /// fit and a deeper depth's do not: the deeper depth is no candidate (not a refusal of
+    /// the whole plan), and the depth chosen fits.
+    #[test]
+    fn a_depth_whose_bricks_do_not_fit_the_memory_limit_is_not_compared() {
+        let v = Phantom::Ct.generate([96, 80, 64]);
+        let (dims, brick) = ([48, 40, 32], 48);
+        let default = default_levels(dims, wavesplat_codec::family::Family::Linear);
+        assert!(
+            deepest_compared(dims, wavesplat_codec::family::Family::Linear) > default,
+            "a deeper candidate"
+        );
+        let opts = CompressOptions {
+            target: Target::Bytes(6_000),
+            ..CompressOptions::default()
+        };
+        let need = |levels: usize| {
+            let at = CompressOptions {
+                levels: Some(levels),
+                memory_limit: Some(1),
+                ..opts.clone()
+            };
+            match BrickPlan::new(&v, &at, brick) {
+                Err(BrickError::Compress { source, .. }) => match *source {
+                    CompressError::MemoryLimit { needed, .. } => needed,
+                    e => panic!("{e}"),
+                },
+                other => panic!("not refused: {:?}", other.map(|p| p.choices.levels)),
+            }
+        };
+        let (fits, deeper) = (need(default), need(default + 1));
+        assert!(deeper > fits, "{deeper} {fits}");
+        let limited = CompressOptions {
+            memory_limit: Some(fits),
+            ..opts.clone()
+        };
+        let plan = BrickPlan::new(&v, &limited, brick).expect("the default depth fits");
+        assert!(plan.choices.levels <= default, "{}", plan.choices.levels);
+        // Below what the default depth needs, the plan is refused saying so.
+        let tight = CompressOptions {
+            memory_limit: Some(fits - 1),
+            ..opts
+        };
+        let refused = BrickPlan::new(&v, &tight, brick).err();
+        assert!(
+            refused.as_ref().is_some_and(BrickError::is_memory_refusal),
+            "{refused:?}"
+        );
     }
 
     /// The tops several allocations move to their temporary files share one disk budget: a

@@ -9,12 +9,12 @@ use wavesplat_codec::format::CoderKind;
 use wavesplat_codec::layout::Geometry;
 use wavesplat_codec::volume::{Volume, MAX_VOXELS};
 use wavesplat_compressor::bricked::{
-    compress_bricked_to, AutoBrick, BrickError, BrickReason, BrickSource, BrickStage,
+    compress_bricked_to, AutoBrick, BrickReason, BrickSource, BrickStage,
 };
 use wavesplat_compressor::checkpoint::Checkpoint;
 use wavesplat_compressor::colorspace::ColorSpaceKind;
 use wavesplat_compressor::encode::{
-    compress, CompressError, CompressOptions, Compressed, Effort, Stage, Target, TileChoice,
+    compress, CompressOptions, Compressed, Effort, Stage, Target, TileChoice,
 };
 use wavesplat_compressor::order::Clustering;
 use wavesplat_compressor::phantom::{beating, Phantom, PhantomVolume};
@@ -452,12 +452,6 @@ fn run_bricked(a: &CompressArgs, opts: &CompressOptions, brick: usize) -> Result
     compress_bricks_of(a, opts, brick, source)
 }
 
-/// Whether a bricked compression was refused for a brick needing more than the memory limit.
-fn refused_for_memory(e: &BrickError) -> bool {
-    matches!(e, BrickError::Compress { source, .. }
-        if matches!(**source, CompressError::MemoryLimit { .. }))
-}
-
 /// Compresses `source` as bricks of `brick` into `a.output`, with a summary.
 fn compress_bricks_of(
     a: &CompressArgs,
@@ -472,11 +466,15 @@ fn compress_bricks_of(
     let c = super::write_output(&a.output, |spill, out| {
         // Only where the output is a file (a checkpoint beside a pipe or a device would
         // outlive what it served).
+        // Whether the checkpoint holds nothing of an earlier run (only then may a refusal
+        // remove it).
+        let mut fresh_checkpoint = false;
         let checkpoint = match spill {
             Some(dir) => {
                 // Read before --no-resume discards the checkpoint.
                 let left = Checkpoint::unfinished_output_in(&checkpoint_dir);
-                let cp = open_checkpoint(a, opts, brick, &checkpoint_dir)?;
+                let (cp, fresh) = open_checkpoint(a, opts, brick, &checkpoint_dir)?;
+                fresh_checkpoint = fresh;
                 // The unfinished output of a run killed before it could remove it (SIGKILL),
                 // replaced by this run's.
                 let current = super::interrupt::unfinished()
@@ -510,8 +508,8 @@ fn compress_bricks_of(
         match (written, checkpoint) {
             (Ok(w), cp) => Ok((w, cp)),
             // Refused before any brick was scored: running again would not help, and there is
-            // nothing to keep.
-            (Err(e), Some(cp)) if refused_for_memory(&e) => {
+            // nothing to keep (a resumed checkpoint stays: a larger limit goes on from it).
+            (Err(e), Some(cp)) if e.is_memory_refusal() && fresh_checkpoint => {
                 if let Err(r) = cp.remove() {
                     tracing::debug!("removing the checkpoint: {r}");
                 }
@@ -575,13 +573,13 @@ fn checkpoint_dir(output: &std::path::Path) -> PathBuf {
 }
 
 /// Opens the checkpoint of this compression in `dir` (emptied first with --no-resume), saying
-/// what it holds when it resumes one.
+/// what it holds when it resumes one; and whether it holds nothing of an earlier run.
 fn open_checkpoint(
     a: &CompressArgs,
     opts: &CompressOptions,
     brick: usize,
     dir: &std::path::Path,
-) -> Result<Checkpoint> {
+) -> Result<(Checkpoint, bool)> {
     if a.no_resume && dir.exists() {
         std::fs::remove_dir_all(dir)
             .with_context(|| format!("removing the checkpoint {}", dir.display()))?;
@@ -594,7 +592,9 @@ fn open_checkpoint(
             dir = %dir.display(),
             "the checkpoint was of another input or other options: starting over"
         );
-    } else if resumed.planned || resumed.scored + resumed.coded > 0 {
+    }
+    let fresh = resumed.replaced || !(resumed.planned || resumed.scored + resumed.coded > 0);
+    if !fresh {
         outln!(
             "resuming from {}: {}{} bricks scored and {} coded already",
             dir.display(),
@@ -603,7 +603,7 @@ fn open_checkpoint(
             resumed.coded
         );
     }
-    Ok(cp)
+    Ok((cp, fresh))
 }
 
 /// What a checkpoint is tied to: this build, the input's identity (a file's canonical path,

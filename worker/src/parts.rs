@@ -133,11 +133,16 @@ impl PartTopsHeld {
             used,
         });
         self.limit_memory();
-        // A job under a tighter memory limit than those held came: the others' tops go, the
-        // least recently used first, until what is held fits its budget.
-        while self.memory.used() > self.memory.budget() && self.parents.len() > 1 {
+        // A job under a tighter memory limit than those held came: the others' tops in memory
+        // go, the least recently used first, until what is held in memory fits its budget
+        // (tops in the temporary file hold only their metadata there, counted, never refused).
+        let in_memory =
+            |held: &[PartTopsOf]| -> u64 { held.iter().map(|t| t.tops.budgeted_bytes()).sum() };
+        while in_memory(&self.parents) > self.memory.budget() {
             let Some(least_used) = (0..self.parents.len())
-                .filter(|&i| self.parents[i].parent != parent)
+                .filter(|&i| {
+                    self.parents[i].parent != parent && self.parents[i].tops.budgeted_bytes() > 0
+                })
                 .min_by_key(|&i| self.parents[i].used)
             else {
                 break;
@@ -149,6 +154,7 @@ impl PartTopsHeld {
                 "dropping the tops kept for a job: a job under a tighter memory limit came"
             );
         }
+        self.limit_memory();
         tops
     }
 }
@@ -409,7 +415,10 @@ fn compute_part(
     let plan = part_plan(spec, part, source)?;
     let i = part.index as usize;
     let voxels = plan.grid[i].1.iter().map(|d| *d as u64).product();
-    let tops = runner.tops(part.parent, || KeptTops::for_plan(&plan).spilling_in(None));
+    // A worker runs one part, one brick, at a time.
+    let tops = runner.tops(part.parent, || {
+        KeptTops::for_plan_bricks_at_once(&plan, 1).spilling_in(None)
+    });
     let bytes = with_tops(part, &tops, || {
         run_step(
             part.step,
@@ -1179,9 +1188,12 @@ mod tests {
         };
         let plan = BrickPlan::new(&v, &opts, 16).unwrap();
         let slot = PartTops::default();
+        let dir = tempfile::tempdir().unwrap();
         let tops_of = |parent: u64, budget: u64| {
             let mut held = slot.lock().unwrap();
-            held.of_parent(parent, || KeptTops::new(budget))
+            held.of_parent(parent, || {
+                KeptTops::new(budget).spilling_in(Some(dir.path()))
+            })
         };
         // Two jobs' parts keep the tops of some bricks each.
         let keep = |tops: &KeptTops, bricks: std::ops::Range<usize>| {
@@ -1209,8 +1221,17 @@ mod tests {
         let tight = tops_of(4, 0);
         assert_eq!(memory.used(), 0);
         assert!(!held(1) && held(4));
-        // Its own parts keep no top, and its bricks are coded by transforming them again.
+        // Its own parts keep their tops in the temporary file: only their metadata in memory.
         keep(&tight, 0..2);
-        assert_eq!(memory.used(), 0);
+        assert!(tight.spilled() == 2 && tight.budgeted_bytes() == 0);
+        assert_eq!(memory.used(), tight.memory_bytes());
+        drop(tight);
+        // That metadata is no reason to drop the tops of the next job, nor its own: the next
+        // job's go to the temporary file too while the tight job is held.
+        let next = tops_of(5, 1 << 20);
+        keep(&next, 2..3);
+        assert!(held(4) && held(5));
+        assert_eq!(next.spilled(), 1);
+        assert_eq!(memory.budget(), 0);
     }
 }
