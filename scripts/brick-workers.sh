@@ -33,10 +33,11 @@ UPLOAD_FLAG=()
 TMP="${TMPDIR:-/tmp}/wavesplat-workers"
 command -v taskset >/dev/null || { echo "needs taskset (util-linux)" >&2; exit 1; }
 [ -n "${WAVESPLAT:-}" ] || cargo build --release --quiet --manifest-path "$ROOT/Cargo.toml" --bin wavesplat
-mkdir -p "$TMP/shared"
-SRC="$TMP/shared/ct_${N}x${N}x${N}_f32.raw"
+# One directory per size: the submission takes every volume in its directory.
+mkdir -p "$TMP/shared_$N"
+SRC="$TMP/shared_$N/ct_${N}x${N}x${N}_f32.raw"
 [ -f "$SRC" ] || "$W" phantom ct --dims "$N,$N,$N" -o "$SRC"
-SUBMIT="$TMP/shared"
+SUBMIT="$TMP/shared_$N"
 if [ "${DETACHED:-0}" = 1 ]; then
   # The same samples behind a detached MetaImage header: a source of two files (uploaded as
   # a bundle), its data a hard link to the raw file.
