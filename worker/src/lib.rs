@@ -464,6 +464,49 @@ fn decode(spec: &JobSpec, bytes: Vec<u8>) -> Result<Volume, Failure> {
     }
 }
 
+/// A job compressed whole (not bricked, not a time series) on a path whose compression would
+/// need more than its memory limit, refused from its raw layout or its file's header alone,
+/// before the source is read (reading and decoding it whole could already pass the limit). A
+/// compressed file (`.gz`), which only reading inflates, an upload and a header that cannot be
+/// read are left to the compressor's own check after decoding.
+fn refuse_over_memory_limit(spec: &JobSpec) -> Result<(), Failure> {
+    let (Some(limit), None, Source::Path(path)) =
+        (spec.options.memory_limit, spec.options.brick, &spec.source)
+    else {
+        return Ok(());
+    };
+    let raw = spec.raw.as_ref().map(options::raw_spec);
+    if archive::is_series_source(path, raw.as_ref()) {
+        return Ok(());
+    }
+    let (dims, channels) = match &spec.raw {
+        Some(r) => (r.dims, r.channels),
+        None if path
+            .extension()
+            .is_some_and(|e| e.eq_ignore_ascii_case("gz")) =>
+        {
+            return Ok(())
+        }
+        None => match RegionReader::open(path, None) {
+            Ok(r) => (r.dims(), r.channels()),
+            Err(_) => return Ok(()),
+        },
+    };
+    let opts = options::compress_options(&spec.options);
+    match wavesplat_compressor::encode::memory_estimate(dims, channels, &opts) {
+        Ok((needed, detail)) if needed > limit => Err(fail(
+            FailureKind::Compress,
+            wavesplat_compressor::encode::CompressError::MemoryLimit {
+                needed,
+                limit,
+                detail,
+            }
+            .to_string(),
+        )),
+        _ => Ok(()),
+    }
+}
+
 /// Whether the job's source is on shared storage, read in place (a bricked volume brick by
 /// brick, or a time series time point by time point) and hashes, streamed file by file
 /// ([`archive::source_digest`]), to the submitted SHA-256: its bytes are then never held
@@ -835,6 +878,16 @@ async fn execute(
     shared: &Arc<Shared>,
 ) -> Result<Delivery, Failure> {
     shared.set(0.0, "reading");
+    // A whole volume over the job's memory limit is refused before its bytes are read.
+    let early = spec.clone();
+    tokio::task::spawn_blocking(move || refuse_over_memory_limit(&early))
+        .await
+        .map_err(|e| {
+            fail(
+                FailureKind::Worker,
+                format!("checking the memory limit: {e}"),
+            )
+        })??;
     // A bricked job's file verified without holding it (its bricks are read from it), or the
     // source's bytes read and verified.
     let in_place = hashed_in_place(spec).await;
@@ -1004,6 +1057,69 @@ mod tests {
         // Raw samples and a DICOM directory name no other file.
         confined(&dir.join("data/v.raw"), &dir, true).unwrap();
         confined(&dir, &dir, false).unwrap();
+    }
+
+    /// A whole volume over its job's memory limit is refused from its raw layout or its
+    /// header before any sample is read (here: a raw file that does not exist, and a header
+    /// whose data file is sparse, 2 GiB of nothing on disk); under the limit, or bricked, it
+    /// goes on to be read.
+    #[test]
+    fn a_whole_volume_over_its_memory_limit_is_refused_before_its_source_is_read() {
+        use wavesplat_orchestrator_client::model::{JobOptions, RawLayout, SampleType};
+        let dir = tempfile::tempdir().unwrap();
+        let spec = |path: std::path::PathBuf, raw: Option<RawLayout>, limit, brick| JobSpec {
+            name: "v".into(),
+            source: Source::Path(path),
+            sha256: [0; 32],
+            raw,
+            options: JobOptions {
+                memory_limit: limit,
+                brick,
+                ..JobOptions::default()
+            },
+            part: None,
+        };
+        let layout = Some(RawLayout {
+            dims: [1024, 1024, 1024],
+            dtype: SampleType::U16,
+            big_endian: false,
+            channels: 1,
+        });
+        let absent = dir.path().join("absent_1024x1024x1024_u16.raw");
+        let refused =
+            refuse_over_memory_limit(&spec(absent.clone(), layout.clone(), Some(8 << 30), None))
+                .unwrap_err();
+        assert_eq!(refused.kind, FailureKind::Compress);
+        assert!(
+            refused.message.contains("bytes of memory")
+                && refused
+                    .message
+                    .contains(&format!("the limit is {} bytes", 8u64 << 30)),
+            "{}",
+            refused.message
+        );
+        // A header names the dimensions; its data file is not read.
+        std::fs::File::create(dir.path().join("big.raw"))
+            .unwrap()
+            .set_len(2 << 30)
+            .unwrap();
+        let mhd = dir.path().join("big.mhd");
+        std::fs::write(
+            &mhd,
+            "ObjectType = Image\nNDims = 3\nDimSize = 1024 1024 1024\nElementType = MET_USHORT\n\
+             ElementDataFile = big.raw\n",
+        )
+        .unwrap();
+        let refused = refuse_over_memory_limit(&spec(mhd, None, Some(8 << 30), None));
+        assert!(refused.is_err_and(|f| f.kind == FailureKind::Compress));
+        // Within the limit, without one, or bricked: nothing refused here.
+        for (limit, brick) in [
+            (Some(1u64 << 50), None),
+            (None, None),
+            (Some(8 << 30), Some(256)),
+        ] {
+            refuse_over_memory_limit(&spec(absent.clone(), layout.clone(), limit, brick)).unwrap();
+        }
     }
 
     /// A worker starting removes the uploads whose lock nobody holds (their worker died), and
