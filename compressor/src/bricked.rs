@@ -2340,22 +2340,51 @@ mod tests {
         assert_eq!(tops.spilled(), 0);
     }
 
-    /// The tops of several allocations drawing on one [`TopMemory`] (a worker's tops of
-    /// several jobs): together they hold no more than it allows, those that find it spent go to
-    /// the temporary file, the files are the same, and a dropped allocation's memory is free
-    /// for the next.
-    #[test]
-    fn tops_of_several_allocations_share_one_memory_budget() {
+    /// A CT phantom in 24-voxel bricks at 2 % without refinement: its plan, brick count, the
+    /// file written with no tops kept, a temporary directory for spilled tops, and the bytes
+    /// one brick's kept top takes at most.
+    struct SharedTopsCase {
+        v: Volume,
+        plan: BrickPlan,
+        bricks: usize,
+        again: Vec<u8>,
+        dir: tempfile::TempDir,
+        one: u64,
+    }
+
+    fn shared_tops_case() -> SharedTopsCase {
         let v = Phantom::Ct.generate([72, 60, 40]);
         let opts = CompressOptions {
             target: Target::Fraction(0.02),
             ..Effort::Fast.options()
         };
         let plan = BrickPlan::new(&v, &opts, 24).unwrap();
-        let bricks = plan.grid.len();
         let (again, _) = allocated_with(&v, &plan, KeptTops::new(0));
-        let dir = tempfile::tempdir().unwrap();
         let one = plan.top_cap(0).unwrap() * std::mem::size_of::<(u32, f32)>() as u64;
+        SharedTopsCase {
+            bricks: plan.grid.len(),
+            v,
+            plan,
+            again,
+            dir: tempfile::tempdir().unwrap(),
+            one,
+        }
+    }
+
+    /// The tops of several allocations drawing on one [`TopMemory`] (a worker's tops of
+    /// several jobs): together they hold no more than it allows, those that find it spent go to
+    /// the temporary file, the files are the same, and a dropped allocation's memory is free
+    /// for the next.
+    #[test]
+    fn tops_of_several_allocations_share_one_memory_budget() {
+        let SharedTopsCase {
+            v,
+            plan,
+            bricks,
+            again,
+            dir,
+            one,
+        } = shared_tops_case();
         let budget = one * bricks as u64 / 2;
         let shared = std::sync::Arc::new(TopMemory::new(budget));
         let sharing = || {
@@ -2459,17 +2488,15 @@ mod tests {
     /// free again.
     #[test]
     fn tops_of_several_allocations_share_one_disk_budget() {
-        let v = Phantom::Ct.generate([72, 60, 40]);
-        let opts = CompressOptions {
-            target: Target::Fraction(0.02),
-            ..Effort::Fast.options()
-        };
-        let plan = BrickPlan::new(&v, &opts, 24).unwrap();
-        let bricks = plan.grid.len();
-        let (again, _) = allocated_with(&v, &plan, KeptTops::new(0));
-        let dir = tempfile::tempdir().unwrap();
+        let SharedTopsCase {
+            v,
+            plan,
+            bricks,
+            again,
+            dir,
+            one,
+        } = shared_tops_case();
         // No memory for tops; disk for about two thirds of one allocation's.
-        let one = plan.top_cap(0).unwrap() * std::mem::size_of::<(u32, f32)>() as u64;
         let disk = one * bricks as u64 * 2 / 3;
         let shared = std::sync::Arc::new(TopMemory::new(0).with_disk_budget(disk));
         let sharing = || {
