@@ -250,9 +250,10 @@ pub struct SubmitArgs {
     /// over the workers when they read it on shared storage. Without it, only files larger
     /// than 1/64 of the memory available are probed. Given, the jobs carry it and their
     /// workers keep to it: a volume compressed whole that would need more fails (kind
-    /// compress) instead of running out of memory, and a bricked job's workers keep its
-    /// bricks' top coefficients only in what one brick per thread leaves. Part of a job's
-    /// identity: the same volume submitted again with another limit is a new job.
+    /// compress; refused from its header, before it is read) instead of running out of memory,
+    /// and a bricked job's workers keep its bricks' top coefficients only in what one brick
+    /// leaves. Part of a job's identity: the same volume submitted again with another limit is
+    /// a new job. A time series is not bricked by it.
     #[arg(long, value_parser = super::parse_bytes)]
     pub memory_limit: Option<u64>,
     #[command(flatten)]
