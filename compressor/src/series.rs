@@ -338,6 +338,9 @@ impl BrickSource for TimePointSource<'_> {
     fn read(&self, origin: [u64; 3], dims: [usize; 3]) -> Result<Volume, ReadError> {
         self.series.read_at(self.t, origin, dims)
     }
+    fn reads_rows_whole(&self) -> bool {
+        true
+    }
 }
 
 /// One component of a series' temporal transform as a volume: Σ weight · time point, read
@@ -381,6 +384,9 @@ impl BrickSource for ComponentSource<'_> {
             .map(|c| c.into_iter().map(|v| v as f32).collect())
             .collect();
         Ok(Volume::new(dims, self.series.spacing(), data)?)
+    }
+    fn reads_rows_whole(&self) -> bool {
+        true
     }
 }
 
