@@ -54,6 +54,7 @@ const RENDERING_AND_ENCODING: &[&str] = &[
     "wavesplat-viewer",
     "wavesplat-compressor",
     "rustfft",
+    "nalgebra",
     "png",
     "wgpu",
     "winit",
@@ -129,7 +130,8 @@ fn the_cache_client_links_neither_renderer_nor_encoder_nor_server() {
 
 #[test]
 fn the_codec_links_no_service_renderer_or_wire_protocol() {
-    // rustfft is the codec's own (the exact analysis transform), behind its `transform` feature.
+    // rustfft and nalgebra are the codec's own (the exact analysis transform), behind its
+    // `transform` feature.
     assert_excludes(
         "wavesplat-codec",
         &[
