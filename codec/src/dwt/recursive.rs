@@ -55,7 +55,7 @@ impl AllPole {
     /// the FFT path).
     pub(crate) fn of_symmetric(symmetric: &[f64]) -> Option<AllPole> {
         let len = symmetric.len();
-        if len % 2 == 0 {
+        if len.is_multiple_of(2) {
             return None;
         }
         let k = len / 2;
