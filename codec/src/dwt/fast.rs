@@ -17,6 +17,7 @@
 //! The f64 routines of [`super`] stay the reference: tests compare both. Results do not depend
 //! on the thread count (each line is computed the same way whatever thread runs it).
 
+use super::lanes::weighted_row_sum;
 use super::{for_each_chunk, interpolation_taps};
 use crate::family::Family;
 use crate::layout::Geometry;
@@ -128,27 +129,7 @@ fn apply_taps<'a>(
     for (dst_row, range) in rows {
         let taps = &list[range.clone()];
         let dst = &mut out[dst_row * width..(dst_row + 1) * width];
-        let mut x = 0;
-        while x + LANES <= width {
-            let mut acc = [0.0f32; LANES];
-            for &(_, s, w) in taps {
-                let from: &[f32; LANES] = row(s as usize)[x..x + LANES]
-                    .try_into()
-                    .expect("a slice of LANES samples");
-                for (a, v) in acc.iter_mut().zip(from) {
-                    *a += w * v;
-                }
-            }
-            dst[x..x + LANES].copy_from_slice(&acc);
-            x += LANES;
-        }
-        for (i, d) in dst.iter_mut().enumerate().skip(x) {
-            let mut a = 0.0f32;
-            for &(_, s, w) in taps {
-                a += w * row(s as usize)[i];
-            }
-            *d = a;
-        }
+        weighted_row_sum::<_, _, LANES>(dst, || taps.iter().map(|&(_, s, w)| (row(s as usize), w)));
     }
 }
 

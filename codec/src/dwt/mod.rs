@@ -26,6 +26,7 @@
 
 pub mod bridge;
 pub mod fast;
+mod lanes;
 pub mod recursive;
 
 use crate::family::Family;

@@ -21,6 +21,7 @@
 //! count: each panel is computed the same way whatever thread runs it.
 
 use super::for_each_chunk;
+use super::lanes::weighted_row_sum;
 use crate::family::Family;
 use multiversion::multiversion;
 
@@ -175,17 +176,8 @@ fn recursion_pair(panel: &mut [f64], width: usize, len: usize, r: f64, start: &m
     } else {
         1.0
     };
-    start.clear();
-    start.resize(width, 0.0);
     // Causal: y[0] = Σ_k r^k x[−k].
-    let mut w = fold;
-    for k in 0..terms {
-        let src = (len - k) % len;
-        for (s, v) in start.iter_mut().zip(&panel[src * width..(src + 1) * width]) {
-            *s += w * v;
-        }
-        w *= r;
-    }
+    periodic_start(panel, width, r, terms, fold, |k| (len - k) % len, start);
     panel[..width].copy_from_slice(start);
     for n in 1..len {
         let (before, rest) = panel.split_at_mut(n * width);
@@ -195,15 +187,7 @@ fn recursion_pair(panel: &mut [f64], width: usize, len: usize, r: f64, start: &m
         }
     }
     // Anti-causal: y[len − 1] = Σ_k r^k x[len − 1 + k].
-    start.iter_mut().for_each(|s| *s = 0.0);
-    let mut w = fold;
-    for k in 0..terms {
-        let src = (len - 1 + k) % len;
-        for (s, v) in start.iter_mut().zip(&panel[src * width..(src + 1) * width]) {
-            *s += w * v;
-        }
-        w *= r;
-    }
+    periodic_start(panel, width, r, terms, fold, |k| (len - 1 + k) % len, start);
     panel[(len - 1) * width..].copy_from_slice(start);
     for n in (0..len - 1).rev() {
         let (head, after) = panel.split_at_mut((n + 1) * width);
@@ -211,6 +195,30 @@ fn recursion_pair(panel: &mut [f64], width: usize, len: usize, r: f64, start: &m
         for (y, p) in head[n * width..].iter_mut().zip(next) {
             *y += r * p;
         }
+    }
+}
+
+/// `start` ← fold · Σ_{k < terms} r^k · (panel row `row_of(k)`): a recursion's periodic
+/// start, row by row of `width` samples. Inlined into [`recursion_pair`].
+#[inline(always)]
+fn periodic_start(
+    panel: &[f64],
+    width: usize,
+    r: f64,
+    terms: usize,
+    fold: f64,
+    row_of: impl Fn(usize) -> usize,
+    start: &mut Vec<f64>,
+) {
+    start.clear();
+    start.resize(width, 0.0);
+    let mut w = fold;
+    for k in 0..terms {
+        let src = row_of(k);
+        for (s, v) in start.iter_mut().zip(&panel[src * width..(src + 1) * width]) {
+            *s += w * v;
+        }
+        w *= r;
     }
 }
 
@@ -359,27 +367,12 @@ fn adjugate_rows(
             let m = (k as isize + tap.offset).rem_euclid(hi) as usize;
             *start = (2 * m + tap.phase) * stride;
         }
-        let mut x = 0;
-        while x + LANES <= width {
-            let mut acc = [0.0f64; LANES];
-            for (start, tap) in starts.iter().zip(taps) {
-                let from: &[f64; LANES] = src[start + x..start + x + LANES]
-                    .try_into()
-                    .expect("a slice of LANES samples");
-                for (a, v) in acc.iter_mut().zip(from) {
-                    *a += tap.weight * v;
-                }
-            }
-            dst[x..x + LANES].copy_from_slice(&acc);
-            x += LANES;
-        }
-        for (i, d) in dst.iter_mut().enumerate().skip(x) {
-            let mut a = 0.0;
-            for (start, tap) in starts.iter().zip(taps) {
-                a += tap.weight * src[start + i];
-            }
-            *d = a;
-        }
+        weighted_row_sum::<_, _, LANES>(dst, || {
+            starts
+                .iter()
+                .zip(taps)
+                .map(|(start, tap)| (&src[*start..], tap.weight))
+        });
     }
 }
 
