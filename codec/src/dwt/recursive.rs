@@ -408,19 +408,10 @@ fn for_each_panel(
                 while y0 < block[1] {
                     let lines = X_LINES.min(block[1] - y0);
                     panel.resize(len * lines, 0.0);
-                    for j in 0..lines {
-                        let at = (y0 + j) * row;
-                        for (n, v) in slab[at..at + len].iter().enumerate() {
-                            panel[n * lines + j] = *v;
-                        }
-                    }
+                    let rows = &mut slab[y0 * row..];
+                    transpose_rows_into_panel(rows, row, len, lines, &mut panel);
                     op(&panel, lines, len, lines, s);
-                    for j in 0..lines {
-                        let at = (y0 + j) * row;
-                        for (n, v) in slab[at..at + len].iter_mut().enumerate() {
-                            *v = s.out[n * lines + j];
-                        }
-                    }
+                    transpose_panel_into_rows(&s.out, len, lines, rows, row);
                     y0 += lines;
                 }
                 s.panel = panel;
@@ -481,6 +472,52 @@ fn for_each_panel(
                     s.panel = input;
                 },
             );
+        }
+    }
+}
+
+/// Samples of a line that one step of the x panels' transposes moves for every line at once:
+/// the panel rows it writes (or reads) then stay in L1 together, where a whole line at a time
+/// strides across the panel and touches a new cache line per sample.
+const TRANSPOSE_TILE: usize = 8;
+
+/// `panel[n · lines + j] = rows[j · row + n]` for the first `len` samples of `lines` rows
+/// `row` apart: x lines as the rows of a panel, tile by tile.
+fn transpose_rows_into_panel(
+    rows: &[f64],
+    row: usize,
+    len: usize,
+    lines: usize,
+    panel: &mut [f64],
+) {
+    for n0 in (0..len).step_by(TRANSPOSE_TILE) {
+        let n1 = (n0 + TRANSPOSE_TILE).min(len);
+        let tile = &mut panel[n0 * lines..n1 * lines];
+        for j in 0..lines {
+            let line = &rows[j * row + n0..j * row + n1];
+            for (k, v) in line.iter().enumerate() {
+                tile[k * lines + j] = *v;
+            }
+        }
+    }
+}
+
+/// The inverse of [`transpose_rows_into_panel`]: `rows[j · row + n] = panel[n · lines + j]`.
+fn transpose_panel_into_rows(
+    panel: &[f64],
+    len: usize,
+    lines: usize,
+    rows: &mut [f64],
+    row: usize,
+) {
+    for n0 in (0..len).step_by(TRANSPOSE_TILE) {
+        let n1 = (n0 + TRANSPOSE_TILE).min(len);
+        let tile = &panel[n0 * lines..n1 * lines];
+        for j in 0..lines {
+            let line = &mut rows[j * row + n0..j * row + n1];
+            for (k, v) in line.iter_mut().enumerate() {
+                *v = tile[k * lines + j];
+            }
         }
     }
 }
@@ -587,6 +624,37 @@ mod tests {
     }
 
     /// Panels of several widths give each of their lines what one line alone gives.
+    #[test]
+    fn the_tiled_transposes_move_each_sample_once_and_invert_each_other() {
+        // Lengths below, at and across the tile, rows longer than the lines (a block's corner).
+        for (len, lines, row) in [
+            (1, 1, 1),
+            (7, 3, 9),
+            (8, 32, 8),
+            (13, 5, 20),
+            (197, 32, 197),
+        ] {
+            let rows: Vec<f64> = (0..lines * row).map(|i| i as f64).collect();
+            let mut panel = vec![f64::NAN; len * lines];
+            transpose_rows_into_panel(&rows, row, len, lines, &mut panel);
+            for n in 0..len {
+                for j in 0..lines {
+                    assert_eq!(
+                        panel[n * lines + j],
+                        rows[j * row + n],
+                        "{len} {lines} {row}"
+                    );
+                }
+            }
+            let mut back = vec![-1.0; lines * row];
+            transpose_panel_into_rows(&panel, len, lines, &mut back, row);
+            for (i, v) in back.iter().enumerate() {
+                let expected = if i % row < len { rows[i] } else { -1.0 };
+                assert_eq!(*v, expected, "{len} {lines} {row}: sample {i}");
+            }
+        }
+    }
+
     #[test]
     fn a_panel_filters_each_of_its_lines_alone() {
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(19);
