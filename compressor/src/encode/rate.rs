@@ -391,13 +391,18 @@ fn leaves_room(bytes: u64, target: u64) -> bool {
 /// target's bytes alone ([`depth_from_bytes`]): the MRI's files spend 4.9–5.3 at 0.07–5.85 %.
 const GUESSED_BITS_PER_COEFFICIENT: f64 = 5.0;
 
-/// A predicted depth decided before any transform, when the target's bytes decide it: the
-/// count a target affords at [`GUESSED_BITS_PER_COEFFICIENT`] is taken at 0.7 and 1.4 times
-/// that (3.6–7.1 bits per coefficient), and if both give the same depth shallower than
+/// A predicted depth decided before any transform, when the target's bytes decide it: if the
+/// count a target affords at [`GUESSED_BITS_PER_COEFFICIENT`] gives a depth shallower than
 /// `default` ([`predicted_depth`]), that depth, the guessed count and the default depth's grid
 /// (whose rule the file's count is checked against) are returned; otherwise (`None`) the
 /// default depth's probe decides ([`oracle_to_bytes`]). Saves the default depth's transform,
-/// ranking and probe.
+/// ranking and probe. The guess is checked both ways by the searched file's own count: one
+/// level deeper where it would not have chosen this depth, shallower where it affords the next
+/// coarse band ([`compress_to_bytes`]). So a guess near the rule's threshold costs a search at
+/// the wrong depth only where it is wrong, where a probe of the default depth costs its
+/// transform, ranking and one encoding every time. On the effort study's 32 points (files of
+/// 4.4–5.8 bits per coefficient) the guess alone took the 8 points a probe used to decide, to
+/// the same depths, none corrected (BENCHMARKS.md, "Compression effort").
 fn depth_from_bytes(
     volume: &Volume,
     opts: &CompressOptions,
@@ -411,9 +416,8 @@ fn depth_from_bytes(
     let geometry = Geometry::new(volume.dims(), opts.family, default, margin)?;
     let channels = volume.channel_count();
     let kept = target as f64 * 8.0 / GUESSED_BITS_PER_COEFFICIENT;
-    let at = |k: f64| predicted_depth(k as u64, channels, &geometry);
-    let (low, high) = (at(kept * 0.7), at(kept * 1.4));
-    Ok((low == high && low < default).then_some((low, kept as usize, geometry)))
+    let levels = predicted_depth(kept as u64, channels, &geometry);
+    Ok((levels < default).then_some((levels, kept as usize, geometry)))
 }
 
 /// What [`oracle_to_bytes`] found: the ranking and its fullest file that fits, or (a probe
