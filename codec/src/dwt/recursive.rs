@@ -623,7 +623,8 @@ mod tests {
         }
     }
 
-    /// Panels of several widths give each of their lines what one line alone gives.
+    /// The x panels' transposes put every sample of the lines where the panel wants it and
+    /// back, whatever the line length against the tile.
     #[test]
     fn the_tiled_transposes_move_each_sample_once_and_invert_each_other() {
         // Lengths below, at and across the tile, rows longer than the lines (a block's corner).
@@ -655,6 +656,7 @@ mod tests {
         }
     }
 
+    /// Panels of several widths give each of their lines what one line alone gives.
     #[test]
     fn a_panel_filters_each_of_its_lines_alone() {
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(19);

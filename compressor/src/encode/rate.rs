@@ -401,7 +401,7 @@ const GUESSED_BITS_PER_COEFFICIENT: f64 = 5.0;
 /// coarse band ([`compress_to_bytes`]). So a guess near the rule's threshold costs a search at
 /// the wrong depth only where it is wrong, where a probe of the default depth costs its
 /// transform, ranking and one encoding every time. On the effort study's 32 points (files of
-/// 4.4–5.8 bits per coefficient) the guess alone took the 8 points a probe used to decide, to
+/// 4.3–5.8 bits per coefficient) the guess alone took the 8 points a probe used to decide, to
 /// the same depths, none corrected (BENCHMARKS.md, "Compression effort").
 fn depth_from_bytes(
     volume: &Volume,
