@@ -72,6 +72,24 @@ fn main() {
     .unwrap()
     .bytes;
     put(&root.join("file"), "fast-prefix-coded.wsp", &prefix_coded);
+    // And version 14's rANS-coded packets, before the occupancy contexts (version 15).
+    let rans_v14 = compress(
+        &vol,
+        &CompressOptions {
+            coder: CoderKind::Fast,
+            target: Target::Fraction(0.2),
+            tile: TileChoice::Size(8),
+            layers: Some(2),
+            levels: Some(2),
+            refine: None,
+            format_version: wavesplat_codec::format::RANS_VERSION,
+            ..Default::default()
+        },
+        &|_, _| {},
+    )
+    .unwrap()
+    .bytes;
+    put(&root.join("file"), "fast-rans-v14.wsp", &rans_v14);
     // A bricked container and a time series (format versions 9 and 10) for the file target,
     // and published series.
     let small = CompressOptions {

@@ -186,10 +186,12 @@ fn a_caller_budget_refuses_a_valid_file_before_decoding_it() {
 
 #[test]
 fn fast_coder_packets_of_garbage_or_flipped_bits_are_refused_or_decode_whole() {
-    // Prefix-coded (version 13) and rANS-coded (version 14 on) packets.
+    // Prefix-coded (version 13), rANS-coded (version 14) and packets with the occupancy
+    // contexts (version 15 on).
     for version in [
         wavesplat_codec::format::COMPACT_HEADER_VERSION,
         wavesplat_codec::format::RANS_VERSION,
+        wavesplat_codec::format::FAST_CONTEXTS_VERSION,
     ] {
         fast_packets_of_garbage_or_flipped_bits(version);
     }

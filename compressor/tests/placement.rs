@@ -321,6 +321,73 @@ fn fast_coder_rans_packets_decode_like_prefix_coded_ones_in_fewer_bytes() {
     }
 }
 
+/// From version 15 the fast coder codes the masks of nodes of 4×4×4 cells bit by bit in the
+/// context of their faces, and large steps in half octaves. The same coefficients decode to
+/// the same volume in fewer bytes than version 14's, every coefficient kept or a few, at a
+/// volume's faces (a 1-voxel volume, odd sizes); packets coded for one version are not written
+/// as the other.
+#[test]
+fn fast_coder_occupancy_contexts_decode_like_version_14_in_fewer_bytes() {
+    use wavesplat_codec::format::{CoderKind, FAST_CONTEXTS_VERSION, RANS_VERSION};
+    let cases = [
+        ("ct", Phantom::Ct.generate([48, 40, 36]), 0.05),
+        ("blobs", Phantom::Blobs.generate([33, 29, 40]), 0.1),
+        ("ct, all", Phantom::Ct.generate([24, 20, 17]), 1.0),
+        ("one voxel", Phantom::Ct.generate([1, 1, 1]), 1.0),
+    ];
+    for (name, v, fraction) in cases {
+        let coded = |version: u16| {
+            let opts = CompressOptions {
+                coder: CoderKind::Fast,
+                target: Target::Fraction(fraction),
+                refine: None,
+                format_version: version,
+                ..Default::default()
+            };
+            compress(&v, &opts, &|_, _| {}).unwrap().bytes
+        };
+        let (old, new) = (coded(RANS_VERSION), coded(FAST_CONTEXTS_VERSION));
+        let (o, n) = (parse_file(&old).unwrap(), parse_file(&new).unwrap());
+        assert_eq!(n.header.version, FAST_CONTEXTS_VERSION, "{name}");
+        assert!(n
+            .header
+            .fast_tables
+            .as_ref()
+            .unwrap()
+            .has_occupancy_tables());
+        assert!(!o
+            .header
+            .fast_tables
+            .as_ref()
+            .unwrap()
+            .has_occupancy_tables());
+        assert_eq!(
+            decompress(&new).unwrap().channels(),
+            decompress(&old).unwrap().channels(),
+            "{name}"
+        );
+        let kept: usize = o
+            .packets
+            .iter()
+            .map(|q| decode_packet(&o.header, q).unwrap().coefficients.len())
+            .sum();
+        if kept > 1000 {
+            assert!(
+                new.len() < old.len(),
+                "{name}: version 15 {} bytes, version 14 {}",
+                new.len(),
+                old.len()
+            );
+        }
+        let np: Vec<Vec<u8>> = n.packets.iter().map(|q| q.to_vec()).collect();
+        let e = write_file_version(&n.header, &np, RANS_VERSION).unwrap_err();
+        assert!(e.to_string().contains("face"), "{name}: {e}");
+        let op: Vec<Vec<u8>> = o.packets.iter().map(|q| q.to_vec()).collect();
+        let e = write_file_version(&o.header, &op, FAST_CONTEXTS_VERSION).unwrap_err();
+        assert!(e.to_string().contains("face"), "{name}: {e}");
+    }
+}
+
 /// A header that names no plain version (a container's, or none) is written as the current
 /// version, and its packets are coded for that version too, so the file reads back.
 #[test]

@@ -103,9 +103,11 @@ pub struct CompressArgs {
     /// Quantizer step of the sigmap coder relative to each band's smallest kept magnitude.
     #[arg(long, default_value_t = 1.0)]
     pub step: f64,
-    /// Plain format version to write: 14 (the fast coder's symbols coded by rANS); 13, which
-    /// readers built before version 14 read too (the same file for every coder but
-    /// --coder fast, which it codes with prefix codes: a few per cent more bytes); 12, which
+    /// Plain format version to write: 15 (the fast coder's occupancy contexts and steps in
+    /// half octaves); 14, which readers built before version 15 read too (the same file for
+    /// every coder but --coder fast: 1–3 % more bytes); 13, which readers built before version
+    /// 14 read too (--coder fast with prefix codes instead of rANS: a few per cent more bytes
+    /// again); 12, which
     /// readers built before version 13 read too (the same packet syntax, a header larger by 100–250 bytes:
     /// it matters for small files and small bricks); or 8, which readers built before version
     /// 12 read too (its sigmap packets start their models at ½: 2–5 % more bytes at the same

@@ -424,6 +424,25 @@ impl<'a> RansDecoder<'a> {
         Some((slot & 0xFF) as usize)
     }
 
+    /// Decodes a symbol of a binary table (at most two symbols, 0 and 1) from `f0`, the
+    /// table's frequency of 0 ([`RansTable::frequency`]; 0 to [`TOTAL`]): the same result as
+    /// [`RansDecoder::decode`] on that table, without its 16 KiB slot array, for tables kept
+    /// in a few registers. The caller checks that the table is not empty.
+    #[inline(always)]
+    pub fn decode_binary(&mut self, f0: u32) -> bool {
+        debug_assert!(f0 <= TOTAL);
+        let x = self.state;
+        let slot = x & (TOTAL - 1);
+        let bit = slot >= f0;
+        let (start, freq) = if bit { (f0, TOTAL - f0) } else { (0, f0) };
+        let mut x = freq * (x >> PRECISION) + slot - start;
+        if x < LOWER {
+            x = x << 16 | self.word() as u32;
+        }
+        self.state = x;
+        bit
+    }
+
     /// Whether a read went past the end of the stream.
     pub fn overrun(&self) -> bool {
         self.overrun
@@ -519,6 +538,54 @@ mod tests {
         // Symbols at the same level share equally.
         let f = frequencies_of_levels(&[10, 10, 10, 10]);
         assert_eq!(f, vec![1024; 4]);
+    }
+
+    #[test]
+    fn binary_symbols_decode_as_the_slot_table_decodes_them() {
+        // Binary tables from every split, both one-symbol tables included, mixed in one stream
+        // with a 256-symbol table; decode_binary must follow decode symbol by symbol.
+        let mut rng = Rng(11);
+        let binary: Vec<(Vec<u64>, RansTable)> = [
+            [1, 0],
+            [0, 1],
+            [1, 1],
+            [999, 1],
+            [1, 999],
+            [70, 30],
+            [3, 5000],
+        ]
+        .into_iter()
+        .map(|c| (c.to_vec(), RansTable::from_counts(&c)))
+        .collect();
+        let wide = RansTable::from_counts(&[5; 256]);
+        let mut enc = RansEncoder::new();
+        let mut expected = Vec::new();
+        for _ in 0..5000 {
+            let t = rng.next() as usize % (binary.len() + 1);
+            if t == binary.len() {
+                let sym = rng.next() as usize % 256;
+                enc.put(&wide, sym);
+                expected.push((t, sym));
+            } else {
+                let sym = rng.draw(&binary[t].0);
+                enc.put(&binary[t].1, sym);
+                expected.push((t, sym));
+            }
+        }
+        let bytes = enc.finish();
+        let mut slow = RansDecoder::new(&bytes).unwrap();
+        let mut fast = RansDecoder::new(&bytes).unwrap();
+        for &(t, sym) in &expected {
+            if t == binary.len() {
+                assert_eq!(slow.decode(&wide), Some(sym));
+                assert_eq!(fast.decode(&wide), Some(sym));
+            } else {
+                let table = &binary[t].1;
+                assert_eq!(slow.decode(table), Some(sym));
+                assert_eq!(fast.decode_binary(table.frequency(0)), sym == 1, "{t}");
+            }
+        }
+        assert!(slow.is_complete() && fast.is_complete());
     }
 
     #[test]

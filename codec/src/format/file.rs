@@ -9,8 +9,8 @@ use super::header::{
 };
 use super::{
     invalid, CoderKind, FormatError, Header, COARSE_LAYER_VERSION, COMPACT_HEADER_VERSION,
-    FAST_CODER_VERSION, MAGIC, MAGNITUDE_CONTEXTS_VERSION, MAX_PACKET_BYTES, PRIORS_VERSION,
-    RANS_VERSION,
+    FAST_CODER_VERSION, FAST_CONTEXTS_VERSION, MAGIC, MAGNITUDE_CONTEXTS_VERSION, MAX_PACKET_BYTES,
+    PRIORS_VERSION, RANS_VERSION,
 };
 
 /// A parsed file: the header and the location of each packet.
@@ -97,6 +97,21 @@ pub fn write_file_version(
                 "fast-coder packets coded for format version {} do not decode as version \
                  {version} (version {RANS_VERSION} codes them by rANS): encode them with that \
                  version",
+                header.version
+            ),
+        ));
+    }
+    if header.coder == CoderKind::Fast
+        && header.fast_tables.as_ref().is_some_and(|t| {
+            t.is_rans() && t.has_occupancy_tables() != (version >= FAST_CONTEXTS_VERSION)
+        })
+    {
+        return Err(invalid(
+            "header",
+            format!(
+                "fast-coder packets coded for format version {} do not decode as version \
+                 {version} (version {FAST_CONTEXTS_VERSION} codes occupancy with the face \
+                 contexts): encode them with that version",
                 header.version
             ),
         ));

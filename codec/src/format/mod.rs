@@ -51,9 +51,15 @@ pub const MAGIC: &[u8; 4] = b"WSPL";
 /// coder, [`CoderKind::Fast`]; 8: the coarse layer, [`Header::coarse_layer`]; 12: the sigmap
 /// coder's models start from trained priors, [`sigmap::priors`]; 13: the compact header,
 /// [`COMPACT_HEADER_VERSION`]; 14: the fast coder codes its symbols by rANS,
-/// [`RANS_VERSION`]). Versions 9 to 11 are the bricked and series containers'
+/// [`RANS_VERSION`]; 15: the fast coder's occupancy contexts and steps in half octaves,
+/// [`FAST_CONTEXTS_VERSION`]). Versions 9 to 11 are the bricked and series containers'
 /// ([`bricked`], [`series`]), so the plain file's versions are [`is_plain_version`]'s.
-pub const VERSION: u16 = 14;
+pub const VERSION: u16 = 15;
+
+/// First version whose fast coder codes the children of nodes of 4 and 8 cells on a side one
+/// by one, in the context of the coded cells at each child's lower faces, and its steps of 14
+/// or more in half octaves ([`fast`]). The other coders' packets are version 14's.
+pub const FAST_CONTEXTS_VERSION: u16 = 15;
 
 /// First version with the compact header: the packets' syntax is version 12's, the header
 /// spends fewer bytes on what is usually a round number (unit spacing, importance 1, an

@@ -97,9 +97,11 @@ pub struct CompressOptions {
     /// Refuse to start when [`memory_estimate`] exceeds this many bytes (`None`: no limit).
     pub memory_limit: Option<u64>,
     /// The plain format version written: [`wavesplat_codec::format::VERSION`] (the fast
-    /// coder's symbols coded by rANS), [`wavesplat_codec::format::COMPACT_HEADER_VERSION`] for
-    /// readers from before that (the same file, for every coder but the fast one, whose
-    /// symbols it codes with prefix codes: a few per cent more bytes),
+    /// coder's occupancy contexts), [`wavesplat_codec::format::RANS_VERSION`] for readers from
+    /// before that (the same file for every coder but the fast one: 1–3 % more bytes),
+    /// [`wavesplat_codec::format::COMPACT_HEADER_VERSION`] for readers from before rANS (the
+    /// same file, for every coder but the fast one, whose symbols it codes with prefix codes:
+    /// a few per cent more bytes),
     /// [`wavesplat_codec::format::PRIORS_VERSION`] for readers from before the
     /// compact header (the same packet syntax, a header larger by 100–250 bytes), or
     /// [`wavesplat_codec::format::LAST_UNPRIMED_VERSION`] for readers from before the sigmap

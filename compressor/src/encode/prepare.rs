@@ -309,12 +309,13 @@ pub(super) fn prepare(
         wavesplat_codec::format::LAST_UNPRIMED_VERSION,
         wavesplat_codec::format::PRIORS_VERSION,
         wavesplat_codec::format::COMPACT_HEADER_VERSION,
+        wavesplat_codec::format::RANS_VERSION,
         wavesplat_codec::format::VERSION,
     ];
     if !versions.contains(&opts.format_version) {
         return Err(CompressError::InvalidOption(format!(
-            "format version {}; {}, {}, {} or {} allowed",
-            opts.format_version, versions[0], versions[1], versions[2], versions[3]
+            "format version {}; {}, {}, {}, {} or {} allowed",
+            opts.format_version, versions[0], versions[1], versions[2], versions[3], versions[4]
         )));
     }
     if !(1..=16).contains(&opts.bits) {

@@ -259,12 +259,119 @@ impl CellMap {
             }
             n
         };
-        match n {
-            0 => 0,
-            1 | 2 => 1,
-            3..=5 => 2,
-            _ => 3,
+        face_state_of_count(n)
+    }
+}
+
+impl CellMap {
+    /// The face states of the eight children (2×2×2 cells each) of the node of 4×4×4 cells at
+    /// `o` (coordinates multiples of 4: one brick of the directory), child i at
+    /// `child_origin(o, i, 2)`: by the coded cells just below each child's lower faces that
+    /// lie outside the node (none, 1–2, 3–5, 6 or more), as [`CellMap::face_table`] counts
+    /// them for a node of 2×2×2 cells. The faces inside the node are its siblings', coded
+    /// after.
+    pub(super) fn node4_face_states(&self, o: [u32; 3]) -> [usize; 8] {
+        debug_assert!(o.iter().all(|&v| v % 4 == 0));
+        // quadrant[a][j]: the coded cells of the 2×2 quadrant j of the node's lower face along
+        // axis a, j by the halves of the face's two other axes, the first one lowest (the
+        // child's bits on those axes).
+        let mut quadrant = [[0u32; 4]; 3];
+        if self.use_directory {
+            // Each lower face is the facing plane of the brick below along its axis: x = 3
+            // (offsets 3 + 4y + 16z), y = 3 (12 + x + 16z) or z = 3 (48 + x + 4y). A brick is
+            // eight little-endian words (word k: bytes 8k..8k + 8) whose non-zero bytes are
+            // counted a word at a time, under a mask of the quadrant's bytes.
+            let b = self.brick(o);
+            // Byte 7 of each word's byte set where the byte is not 0.
+            let nonzero = |w: u64| {
+                const LOW7: u64 = 0x7f7f_7f7f_7f7f_7f7f;
+                ((w & LOW7).wrapping_add(LOW7) | w) & !LOW7
+            };
+            let words = |brick: usize| -> [u64; 8] {
+                let cells = self.cells_of(brick);
+                std::array::from_fn(|k| {
+                    nonzero(u64::from_le_bytes(
+                        cells[8 * k..8 * k + 8].try_into().expect("8 bytes"),
+                    ))
+                })
+            };
+            let count = |w: u64, mask: u64| (w & mask).count_ones();
+            if o[0] > 0 {
+                // Plane x = 3: row z is words 2z and 2z + 1, y = 0, 1 (2, 3) at bytes 3, 7.
+                let w = words(b - 1);
+                const X3: u64 = 0x8000_0000_8000_0000;
+                for zh in 0..2 {
+                    for yh in 0..2 {
+                        quadrant[0][yh + 2 * zh] =
+                            count(w[4 * zh + yh], X3) + count(w[4 * zh + 2 + yh], X3);
+                    }
+                }
+            }
+            if o[1] > 0 {
+                // Plane y = 3: bytes 4..8 of word 2z + 1 hold x = 0..4.
+                let w = words(b - self.stride[0]);
+                const Y3: [u64; 2] = [0x0000_8080_0000_0000, 0x8080_0000_0000_0000];
+                for zh in 0..2 {
+                    for xh in 0..2 {
+                        quadrant[1][xh + 2 * zh] =
+                            count(w[4 * zh + 1], Y3[xh]) + count(w[4 * zh + 3], Y3[xh]);
+                    }
+                }
+            }
+            if o[2] > 0 {
+                // Plane z = 3: words 6 (y = 0, 1) and 7 (y = 2, 3), x at byte x + 4(y & 1).
+                let w = words(b - self.stride[1]);
+                const Z3: [u64; 2] = [0x0000_8080_0000_8080, 0x8080_0000_8080_0000];
+                for yh in 0..2 {
+                    for xh in 0..2 {
+                        quadrant[2][xh + 2 * yh] = count(w[6 + yh], Z3[xh]);
+                    }
+                }
+            }
+        } else {
+            for a in 0..3 {
+                if o[a] == 0 {
+                    continue;
+                }
+                let (b, c) = ((a + 1) % 3, (a + 2) % 3);
+                // The face's axes in increasing order, as the quadrant index takes them.
+                let (first, second) = (b.min(c), b.max(c));
+                for j in 0..4u32 {
+                    for i in 0..4u32 {
+                        let mut p = o;
+                        p[a] -= 1;
+                        p[first] += i;
+                        p[second] += j;
+                        quadrant[a][(i / 2 + 2 * (j / 2)) as usize] += (self.get(p) != 0) as u32;
+                    }
+                }
+            }
         }
+        std::array::from_fn(|child| {
+            let half = [child & 1, child >> 1 & 1, child >> 2 & 1];
+            let mut n = 0;
+            if half[0] == 0 {
+                n += quadrant[0][half[1] + 2 * half[2]];
+            }
+            if half[1] == 0 {
+                n += quadrant[1][half[0] + 2 * half[2]];
+            }
+            if half[2] == 0 {
+                n += quadrant[2][half[0] + 2 * half[1]];
+            }
+            face_state_of_count(n)
+        })
+    }
+}
+
+/// The face state of `n` coded cells below a box's lower faces (none, 1–2, 3–5, 6 or more).
+#[inline(always)]
+fn face_state_of_count(n: u32) -> usize {
+    match n {
+        0 => 0,
+        1 | 2 => 1,
+        3..=5 => 2,
+        _ => 3,
     }
 }
 
@@ -356,6 +463,33 @@ mod tests {
                 };
                 assert_eq!(dense.face_table(o), table, "round {round} {o:?}");
                 assert_eq!(sparse.face_table(o), table, "round {round} {o:?}");
+            }
+            // The face states of the children of a node of 4×4×4 cells: the coded cells
+            // below each child's lower faces outside the node.
+            for _ in 0..20 {
+                let o = extent.map(|e| rng.gen_range(0..e) & !3);
+                let want: [usize; 8] = std::array::from_fn(|i| {
+                    let c = [0, 1, 2].map(|a| o[a] + 2 * (i as u32 >> a & 1));
+                    let n = truth
+                        .keys()
+                        .filter(|p| {
+                            (0..3).any(|a| {
+                                c[a] == o[a]
+                                    && o[a] > 0
+                                    && p[a] == o[a] - 1
+                                    && (0..3).all(|b| b == a || (p[b] >= c[b] && p[b] < c[b] + 2))
+                            })
+                        })
+                        .count();
+                    match n {
+                        0 => 0,
+                        1 | 2 => 1,
+                        3..=5 => 2,
+                        _ => 3,
+                    }
+                });
+                assert_eq!(dense.node4_face_states(o), want, "round {round} {o:?}");
+                assert_eq!(sparse.node4_face_states(o), want, "round {round} {o:?}");
             }
             // A reset forgets every cell.
             dense.reset(extent);

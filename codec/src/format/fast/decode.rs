@@ -5,8 +5,10 @@
 
 use super::cells::CellMap;
 use super::{
-    allowed_children, child_origin, raw_bits, root_log, step_of, value_base, Decoders, Substream,
-    Tables, LEAF_MASK_TABLES, MASK_TABLES, SIGN_CONTEXTS,
+    allowed_children, child_origin, masks_bit_by_bit, occupancy_table, occupied_lower_siblings,
+    raw_bits, root_log, step_of, value_base, Decoders, StepTable, Substream, Tables,
+    HALF_OCTAVE_STEPS, LEAF_MASK_TABLES, MASK_TABLES, OCCUPANCY_TABLES, OCTAVE_STEPS,
+    SIGN_CONTEXTS,
 };
 use crate::entropy::bits::WordReader;
 use crate::entropy::huffman::HuffmanDecoder;
@@ -15,7 +17,7 @@ use crate::entropy::rans::{RansDecoder, RansTable};
 use crate::format::coefficient::PacketFraming;
 use crate::format::coefficient::{region_extent, Coefficient, SizeBreakdown};
 use crate::format::quant::Quantizer;
-use crate::format::{invalid, FormatError, Header};
+use crate::format::{invalid, FormatError, Header, FAST_CONTEXTS_VERSION};
 
 /// Where a packet's present bits, masks and steps come from: one implementation per payload
 /// layout, so that the octree walk is written once and compiled for each.
@@ -26,6 +28,8 @@ trait SymbolSource {
     fn mask(&mut self, table: usize) -> Result<u8, FormatError>;
     /// The next step, from value table `table` (its symbol, then its raw bits).
     fn step(&mut self, table: usize) -> Result<u64, FormatError>;
+    /// The next child's occupancy, from occupancy table `table`.
+    fn occupied(&mut self, table: usize) -> Result<bool, FormatError>;
     /// Whether a read went past the end of a stream.
     fn overrun(&self) -> bool;
     /// If the streams ended with their last symbol: their bits, and of those the masks'.
@@ -80,6 +84,14 @@ impl SymbolSource for PrefixSource<'_> {
         Ok(step_of(symbol, self.reader.get_bits(raw_bits(symbol))))
     }
 
+    fn occupied(&mut self, _table: usize) -> Result<bool, FormatError> {
+        // Prefix-coded files predate the occupancy symbols.
+        Err(invalid(
+            "packet",
+            "an occupancy symbol in a prefix-coded file",
+        ))
+    }
+
     fn overrun(&self) -> bool {
         self.reader.overrun()
     }
@@ -94,6 +106,16 @@ impl SymbolSource for PrefixSource<'_> {
 struct RansSource<'a> {
     mask: &'a [RansTable; MASK_TABLES],
     value: &'a [RansTable],
+    /// The occupancy tables' frequencies of 0 (binary tables need no more to decode,
+    /// [`RansDecoder::decode_binary`]) and costs of 0 and 1 in 1/256 bits; the tables left
+    /// empty have their bit set in `occupancy_empty` (all of them before
+    /// [`crate::format::FAST_CONTEXTS_VERSION`]).
+    occupancy_f0: [u32; OCCUPANCY_TABLES],
+    occupancy_cost: [[u32; 2]; OCCUPANCY_TABLES],
+    occupancy_empty: u32,
+    /// The steps of the value symbols: in octaves, or in half octaves
+    /// ([`crate::format::FAST_CONTEXTS_VERSION`] on).
+    steps: &'static StepTable,
     ans: RansDecoder<'a>,
     raw: WordReader<'a>,
     ans_bytes: usize,
@@ -133,9 +155,21 @@ impl SymbolSource for RansSource<'_> {
             .ans
             .decode(&self.value[table])
             .ok_or_else(|| empty_table("value", table))?;
-        // A value table has at most 64 symbols, so at most 49 raw bits.
+        // A value table has at most 64 symbols (49 raw bits), or 113 in half octaves (48).
+        let (base, raw_bits) = self.steps.get(symbol);
         self.raw.refill();
-        Ok(step_of(symbol, self.raw.get_bits(raw_bits(symbol))))
+        Ok(base + self.raw.take_refilled(raw_bits))
+    }
+
+    #[inline(always)]
+    fn occupied(&mut self, table: usize) -> Result<bool, FormatError> {
+        let table = table % OCCUPANCY_TABLES;
+        if self.occupancy_empty >> table & 1 != 0 {
+            return Err(empty_table("occupancy", table));
+        }
+        let bit = self.ans.decode_binary(self.occupancy_f0[table]);
+        self.position_q8 += self.occupancy_cost[table][bit as usize] as u64;
+        Ok(bit)
     }
 
     fn overrun(&self) -> bool {
@@ -164,23 +198,30 @@ struct PacketDecoder<'a, S> {
 }
 
 impl<S: SymbolSource> PacketDecoder<'_, S> {
+    /// Decodes the node of edge 2^`log` at `o`, known to be occupied.
     fn node(&mut self, s: &Substream, o: [u32; 3], log: u32) -> Result<(), FormatError> {
         let h = 1u32 << (log - 1);
-        let table = if log > 1 {
-            LEAF_MASK_TABLES
+        let mask = if masks_bit_by_bit(s.sequential, log) {
+            self.mask_bit_by_bit(s, o)?
         } else {
-            self.map.face_table(o)
+            let table = if log > 1 {
+                LEAF_MASK_TABLES
+            } else {
+                self.map.face_table(o)
+            };
+            let mask = self.source.mask(table)?;
+            if mask == 0 || mask & !allowed_children(o, h, s.extent) != 0 {
+                return Err(invalid(
+                    "packet",
+                    format!(
+                        "occupancy mask {mask:#04x} at {o:?} (edge {}) outside the tile's band \
+                         region",
+                        2 * h
+                    ),
+                ));
+            }
+            mask
         };
-        let mask = self.source.mask(table)?;
-        if mask == 0 || mask & !allowed_children(o, h, s.extent) != 0 {
-            return Err(invalid(
-                "packet",
-                format!(
-                    "occupancy mask {mask:#04x} at {o:?} (edge {}) outside the tile's band region",
-                    2 * h
-                ),
-            ));
-        }
         let mut m = mask as u32;
         if log > 1 {
             while m != 0 {
@@ -219,6 +260,27 @@ impl<S: SymbolSource> PacketDecoder<'_, S> {
         }
         Ok(())
     }
+
+    /// The occupancy mask of the node of 4×4×4 cells at `o`, bit by bit: each allowed
+    /// child's bit from its occupancy table, but for a last child whose siblings are all
+    /// empty (implied). Never empty, never outside the region.
+    fn mask_bit_by_bit(&mut self, s: &Substream, o: [u32; 3]) -> Result<u8, FormatError> {
+        let faces = self.map.node4_face_states(o);
+        let mut m = allowed_children(o, 2, s.extent) as u32;
+        let mut mask = 0u32;
+        while m != 0 {
+            let i = m.trailing_zeros();
+            m &= m - 1;
+            let occupied = if mask != 0 || m != 0 {
+                let table = occupancy_table(faces[i as usize], occupied_lower_siblings(i, mask));
+                self.source.occupied(table)?
+            } else {
+                true
+            };
+            mask |= (occupied as u32) << i;
+        }
+        Ok(mask as u8)
+    }
 }
 
 /// Decodes a fast-coded payload of `packet.count` coefficients (a
@@ -246,13 +308,32 @@ pub(crate) fn decode(
             };
             decode_with(header, packet, source, signs, bd)
         }
-        Tables::Rans { mask, value } => {
+        Tables::Rans {
+            mask,
+            value,
+            occupancy,
+        } => {
             let raw_len = r.varint_max(r.remaining() as u64, "raw stream length")? as usize;
             let raw = r.take(raw_len)?;
             let signs = r.take(r.remaining())?;
+            let occupancy_table = |t: usize| occupancy.get(t).filter(|t| !t.is_empty());
             let source = RansSource {
                 mask,
                 value,
+                occupancy_f0: std::array::from_fn(|t| {
+                    occupancy_table(t).map_or(0, |t| t.frequency(0))
+                }),
+                occupancy_cost: std::array::from_fn(|t| {
+                    occupancy_table(t).map_or([0; 2], |t| [t.cost_q8(0), t.cost_q8(1)])
+                }),
+                occupancy_empty: (0..OCCUPANCY_TABLES)
+                    .filter(|&t| occupancy_table(t).is_none())
+                    .fold(0, |m, t| m | 1 << t),
+                steps: if occupancy.is_empty() {
+                    &OCTAVE_STEPS
+                } else {
+                    &HALF_OCTAVE_STEPS
+                },
                 ans: RansDecoder::new(first).map_err(|e| invalid("packet", e.to_string()))?,
                 raw: WordReader::new(raw),
                 ans_bytes: first.len(),
@@ -306,6 +387,7 @@ fn decode_with<S: SymbolSource>(
         }
         let s = Substream {
             bi,
+            sequential: header.version >= FAST_CONTEXTS_VERSION,
             value_base: value_base(header, band),
             quant: Quantizer::of(header, sub, layer),
             origin,

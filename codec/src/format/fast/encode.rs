@@ -4,9 +4,11 @@
 
 use super::cells::CellMap;
 use super::{
-    child_origin, raw_bits, root_log, step_symbol, value_base, FastTables, Substream, Tables,
-    LEAF_MASK_TABLES, MASK_ALPHABET, MASK_TABLES, MAX_CODE_LENGTH, RANS_VALUE_TABLES,
-    SIGN_CONTEXTS, VALUE_ALPHABET, VALUE_TABLES,
+    allowed_children, child_origin, masks_bit_by_bit, occupancy_table, occupied_lower_siblings,
+    raw_bits, raw_bits_halves, root_log, step_symbol, step_symbol_halves, value_base, FastTables,
+    Substream, Tables, HALF_OCTAVE_VALUE_ALPHABET, LEAF_MASK_TABLES, MASK_ALPHABET, MASK_TABLES,
+    MAX_CODE_LENGTH, OCCUPANCY_TABLES, RANS_VALUE_TABLES, SIGN_CONTEXTS, VALUE_ALPHABET,
+    VALUE_TABLES,
 };
 use crate::entropy::bits::{BitSink, BitWriter};
 use crate::entropy::huffman::HuffmanCode;
@@ -16,22 +18,30 @@ use crate::format::bytes::ByteWriter;
 use crate::format::coefficient::{region_extent, Coefficient, PacketInput, SizeBreakdown};
 use crate::format::quant::Quantizer;
 use crate::format::Header;
-use crate::format::RANS_VERSION;
+use crate::format::{FAST_CONTEXTS_VERSION, RANS_VERSION};
 
-/// One prefix-coded element of a packet's syntax, before the tables are fitted, packed in
-/// 8 bytes (the encoder holds a whole file's, one or two per coefficient): bits 0–1 the kind
-/// (present bit, mask, step), then the present bit, or the table in bits 2–7 and the mask in
-/// bits 8–15, or the table in bits 2–7, the step symbol in bits 8–13 and its raw bits from bit
-/// 14 (at most 49 of them, as many as [`raw_bits`] says).
+/// One element of a packet's syntax, before the tables are fitted, packed in 8 bytes (the
+/// encoder holds a whole file's, one or two per coefficient): bits 0–1 the kind (present bit,
+/// mask, step, occupancy), then the present bit, or the table in bits 2–7 and the mask (or
+/// the occupancy bit) in bits 8–15, or the table in bits 2–7, the step symbol in bits 8–14 and
+/// its raw bits from bit 15 (at most 49 of them, as many as [`raw_bits`] or
+/// [`raw_bits_halves`] says).
 #[derive(Debug, Clone, Copy)]
 struct Symbol(u64);
 
-const _: () = assert!(MASK_TABLES <= 64 && RANS_VALUE_TABLES <= 64 && VALUE_ALPHABET <= 64);
+const _: () = assert!(
+    MASK_TABLES <= 64
+        && RANS_VALUE_TABLES <= 64
+        && OCCUPANCY_TABLES <= 64
+        && VALUE_ALPHABET <= 128
+        && HALF_OCTAVE_VALUE_ALPHABET <= 128
+);
 
 impl Symbol {
     const PRESENT: u64 = 0;
     const MASK: u64 = 1;
     const STEP: u64 = 2;
+    const OCCUPANCY: u64 = 3;
 
     fn present(present: bool) -> Symbol {
         Symbol(Self::PRESENT | (present as u64) << 2)
@@ -40,8 +50,12 @@ impl Symbol {
         Symbol(Self::MASK | (table as u64) << 2 | (mask as u64) << 8)
     }
     fn step(table: usize, symbol: usize, raw: u64) -> Symbol {
-        debug_assert!(raw < 1 << raw_bits(symbol));
-        Symbol(Self::STEP | (table as u64) << 2 | (symbol as u64) << 8 | raw << 14)
+        // At most 49 raw bits (version 14's largest step symbol; 48 in half octaves).
+        debug_assert!(raw < 1 << 49 && symbol < 128);
+        Symbol(Self::STEP | (table as u64) << 2 | (symbol as u64) << 8 | raw << 15)
+    }
+    fn occupancy(table: usize, occupied: bool) -> Symbol {
+        Symbol(Self::OCCUPANCY | (table as u64) << 2 | (occupied as u64) << 8)
     }
     fn kind(self) -> u64 {
         self.0 & 3
@@ -53,25 +67,29 @@ impl Symbol {
         (self.0 >> 8 & 0xFF) as usize
     }
     fn step_symbol(self) -> usize {
-        (self.0 >> 8 & 63) as usize
+        (self.0 >> 8 & 127) as usize
     }
     fn raw(self) -> u64 {
-        self.0 >> 14
+        self.0 >> 15
     }
 }
 
 /// Symbol counts per table, over all packets.
 struct Frequencies {
     mask: [Vec<u64>; MASK_TABLES],
-    /// [`RANS_VALUE_TABLES`] tables; a prefix-coded file uses the first [`VALUE_TABLES`].
+    /// [`RANS_VALUE_TABLES`] tables of the file's value alphabet; a prefix-coded file uses the
+    /// first [`VALUE_TABLES`].
     value: Vec<Vec<u64>>,
+    /// [`OCCUPANCY_TABLES`] binary tables ([`FAST_CONTEXTS_VERSION`] on).
+    occupancy: Vec<[u64; 2]>,
 }
 
 impl Frequencies {
-    fn new() -> Frequencies {
+    fn new(value_alphabet: usize) -> Frequencies {
         Frequencies {
             mask: std::array::from_fn(|_| vec![0; MASK_ALPHABET]),
-            value: vec![vec![0; VALUE_ALPHABET]; RANS_VALUE_TABLES],
+            value: vec![vec![0; value_alphabet]; RANS_VALUE_TABLES],
+            occupancy: vec![[0; 2]; OCCUPANCY_TABLES],
         }
     }
     fn add(&mut self, symbols: &[Symbol]) {
@@ -79,12 +97,14 @@ impl Frequencies {
             match s.kind() {
                 Symbol::MASK => self.mask[s.table()][s.mask_bits()] += 1,
                 Symbol::STEP => self.value[s.table()][s.step_symbol()] += 1,
+                Symbol::OCCUPANCY => self.occupancy[s.table()][s.mask_bits()] += 1,
                 _ => {}
             }
         }
     }
-    /// Tables for these counts: prefix codes, or rANS distributions.
-    fn fit(&self, rans: bool) -> FastTables {
+    /// Tables for these counts: prefix codes, or rANS distributions (with the occupancy
+    /// tables when `contexts`).
+    fn fit(&self, rans: bool, contexts: bool) -> FastTables {
         if rans {
             return FastTables::rans(
                 std::array::from_fn(|t| RansTable::from_counts(&self.mask[t])),
@@ -92,6 +112,14 @@ impl Frequencies {
                     .iter()
                     .map(|c| RansTable::from_counts(c))
                     .collect(),
+                if contexts {
+                    self.occupancy
+                        .iter()
+                        .map(|c| RansTable::from_counts(c))
+                        .collect()
+                } else {
+                    Vec::new()
+                },
             );
         }
         debug_assert!(self.value[VALUE_TABLES..]
@@ -117,17 +145,37 @@ struct PacketCoder {
 type Keyed = (u64, [u32; 3], f32);
 
 impl PacketCoder {
+    /// Codes the node of edge 2^`log` at `o` holding `pts` (at least one).
     fn node(&mut self, s: &Substream, pts: &[Keyed], o: [u32; 3], log: u32) {
         let shift = 3 * (log - 1);
         let child = |k: u64| ((k >> shift) & 7) as u32;
         let mask = pts.iter().fold(0u8, |m, p| m | 1 << child(p.0));
         let h = 1u32 << (log - 1);
-        let table = if log > 1 {
-            LEAF_MASK_TABLES
+        if masks_bit_by_bit(s.sequential, log) {
+            // As the decoder's `mask_bit_by_bit`.
+            let faces = self.map.node4_face_states(o);
+            let mut m = allowed_children(o, h, s.extent) as u32;
+            let mut coded = 0u32;
+            while m != 0 {
+                let i = m.trailing_zeros();
+                m &= m - 1;
+                let occupied = mask >> i & 1 != 0;
+                if coded != 0 || m != 0 {
+                    let table =
+                        occupancy_table(faces[i as usize], occupied_lower_siblings(i, coded));
+                    self.symbols.push(Symbol::occupancy(table, occupied));
+                }
+                coded |= (occupied as u32) << i;
+            }
+            debug_assert_eq!(coded, mask as u32);
         } else {
-            self.map.face_table(o)
-        };
-        self.symbols.push(Symbol::mask(table, mask));
+            let table = if log > 1 {
+                LEAF_MASK_TABLES
+            } else {
+                self.map.face_table(o)
+            };
+            self.symbols.push(Symbol::mask(table, mask));
+        }
         if log > 1 {
             let mut start = 0;
             while start < pts.len() {
@@ -142,7 +190,11 @@ impl PacketCoder {
             let negative = value < 0.0;
             let (q, magnitude) = s.quant.quantize((value as f64).abs());
             let (sc, vc, at) = self.map.leaf_contexts(cell);
-            let (symbol, raw) = step_symbol(q);
+            let (symbol, raw) = if s.sequential {
+                step_symbol_halves(q)
+            } else {
+                step_symbol(q)
+            };
             self.symbols
                 .push(Symbol::step(s.value_base + vc, symbol, raw));
             self.signs
@@ -217,6 +269,7 @@ fn symbolize(header: &Header, input: &PacketInput) -> Symbolized {
         pts.sort_unstable_by_key(|p| p.0);
         let s = Substream {
             bi,
+            sequential: header.version >= FAST_CONTEXTS_VERSION,
             value_base: value_base(header, band),
             quant: Quantizer::of(header, sub, input.layer),
             origin,
@@ -250,11 +303,16 @@ pub(crate) fn encode_packets(
     };
     #[cfg(not(feature = "rayon"))]
     let symbolized: Vec<_> = inputs.iter().map(code).collect();
-    let mut freqs = Frequencies::new();
+    let contexts = header.version >= FAST_CONTEXTS_VERSION;
+    let mut freqs = Frequencies::new(if contexts {
+        HALF_OCTAVE_VALUE_ALPHABET
+    } else {
+        VALUE_ALPHABET
+    });
     for p in &symbolized {
         freqs.add(&p.symbols);
     }
-    let tables = freqs.fit(header.version >= RANS_VERSION);
+    let tables = freqs.fit(header.version >= RANS_VERSION, contexts);
     let mut bd = SizeBreakdown::default();
     let mut payloads = Vec::with_capacity(inputs.len());
     let mut recons = Vec::with_capacity(inputs.len());
@@ -263,7 +321,11 @@ pub(crate) fn encode_packets(
             Tables::Prefix { mask, value, .. } => {
                 write_prefix_coded(mask, value, p.symbols, &mut bd)
             }
-            Tables::Rans { mask, value } => write_rans_coded(mask, value, p.symbols, &mut bd),
+            Tables::Rans {
+                mask,
+                value,
+                occupancy,
+            } => write_rans_coded(mask, value, occupancy, p.symbols, &mut bd),
         };
         let mut payload = payload;
         payload.bytes(&p.signs);
@@ -317,6 +379,7 @@ fn write_prefix_coded(
 fn write_rans_coded(
     mask: &[RansTable; MASK_TABLES],
     value: &[RansTable],
+    occupancy: &[RansTable],
     symbols: Vec<Symbol>,
     bd: &mut SizeBreakdown,
 ) -> ByteWriter {
@@ -332,7 +395,17 @@ fn write_rans_coded(
             }
             Symbol::STEP => {
                 ans.put(&value[s.table()], s.step_symbol());
-                raw.put_bits(s.raw(), raw_bits(s.step_symbol()));
+                let n = if occupancy.is_empty() {
+                    raw_bits(s.step_symbol())
+                } else {
+                    raw_bits_halves(s.step_symbol())
+                };
+                raw.put_bits(s.raw(), n);
+            }
+            Symbol::OCCUPANCY => {
+                let table = &occupancy[s.table()];
+                ans.put(table, s.mask_bits());
+                position_bits += table.cost_bits(s.mask_bits());
             }
             _ => {
                 raw.put_bit(s.0 >> 2 & 1 != 0);
@@ -383,6 +456,42 @@ mod tests {
                     (table, symbol, raw)
                 );
             }
+        }
+    }
+
+    #[test]
+    fn half_octave_step_symbols_cover_every_step_and_decode_back() {
+        use super::super::{step_of_halves, HALF_OCTAVE_STEPS, OCTAVE_STEPS};
+        let mut qs: Vec<u64> = (0..300).collect();
+        for b in 4..50 {
+            qs.extend([(1u64 << b) - 1, 1 << b, (1 << b) + 1, 3 << (b - 1)]);
+        }
+        qs.extend([999_999_999_999_999, 1_000_000_000_000_000]);
+        let mut last = 0;
+        for q in qs {
+            let (symbol, raw) = step_symbol_halves(q);
+            assert!(symbol < HALF_OCTAVE_VALUE_ALPHABET, "q {q}");
+            assert!(raw < 1 << raw_bits_halves(symbol), "q {q}");
+            assert_eq!(step_of_halves(symbol, raw), q);
+            // The decoder's table reads the same step.
+            let (base, n) = HALF_OCTAVE_STEPS.get(symbol);
+            assert_eq!((base + raw, n), (q, raw_bits_halves(symbol)), "q {q}");
+            // Symbols grow with q, and one raw bit fewer than version 14's follows a large
+            // step.
+            assert!(symbol >= last || q < 300, "q {q}");
+            last = last.max(symbol);
+            if q >= 16 {
+                let (s14, _) = step_symbol(q);
+                assert_eq!(raw_bits_halves(symbol) + 1, raw_bits(s14), "q {q}");
+            }
+            let packed = Symbol::step(RANS_VALUE_TABLES - 1, symbol, raw);
+            assert_eq!(
+                (packed.table(), packed.step_symbol(), packed.raw()),
+                (RANS_VALUE_TABLES - 1, symbol, raw)
+            );
+            let (s14, raw14) = step_symbol(q);
+            let (base, n) = OCTAVE_STEPS.get(s14);
+            assert_eq!((base + raw14, n), (q, raw_bits(s14)), "q {q}");
         }
     }
 
