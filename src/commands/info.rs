@@ -336,8 +336,15 @@ pub fn print_header(h: &Header) {
         g.family.order(),
         g.levels
     );
+    // The fast coder's tables named built-in rather than described in the header.
+    let builtin = h
+        .fast_tables
+        .as_ref()
+        .map(|t| t.builtin_count())
+        .filter(|&n| n > 0)
+        .map_or(String::new(), |n| format!(", {n} of its tables built in"));
     outln!(
-        "coder       {}, P = {} bits (format version {})",
+        "coder       {}, P = {} bits (format version {}){builtin}",
         h.coder.name(),
         h.bits,
         h.version

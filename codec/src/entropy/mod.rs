@@ -57,6 +57,9 @@ pub enum EntropyError {
     /// A code-length table is malformed (description says what is wrong).
     #[error("invalid Huffman table: {0}")]
     InvalidTable(String),
+    /// A header names a built-in table that this build does not hold.
+    #[error("table {0} is named built-in, and this build holds no such table")]
+    NoBuiltinTable(usize),
     /// A decoded or requested value lies outside its allowed range.
     #[error("{what} is {value}, allowed range is {min}..={max}")]
     ValueOutOfRange {

@@ -312,6 +312,7 @@ pub(crate) fn decode(
             mask,
             value,
             occupancy,
+            ..
         } => {
             let raw_len = r.varint_max(r.remaining() as u64, "raw stream length")? as usize;
             let raw = r.take(raw_len)?;

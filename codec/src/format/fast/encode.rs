@@ -2,6 +2,7 @@
 //! stream), fits the header's tables (prefix codes, or rANS distributions) to all of a file's
 //! symbols, then writes each payload.
 
+use super::builtin;
 use super::cells::CellMap;
 use super::{
     allowed_children, child_origin, masks_bit_by_bit, occupancy_table, occupied_lower_siblings,
@@ -10,7 +11,7 @@ use super::{
     MAX_CODE_LENGTH, OCCUPANCY_TABLES, RANS_VALUE_TABLES, SIGN_CONTEXTS, VALUE_ALPHABET,
     VALUE_TABLES,
 };
-use crate::entropy::bits::{BitSink, BitWriter};
+use crate::entropy::bits::{BitCounter, BitSink, BitWriter};
 use crate::entropy::huffman::HuffmanCode;
 use crate::entropy::range::{BitModel, RangeEncoder};
 use crate::entropy::rans::{RansEncoder, RansTable};
@@ -105,6 +106,9 @@ impl Frequencies {
     /// Tables for these counts: prefix codes, or rANS distributions (with the occupancy
     /// tables when `contexts`).
     fn fit(&self, rans: bool, contexts: bool) -> FastTables {
+        if rans && contexts {
+            return self.fit_with_builtin();
+        }
         if rans {
             return FastTables::rans(
                 std::array::from_fn(|t| RansTable::from_counts(&self.mask[t])),
@@ -112,14 +116,8 @@ impl Frequencies {
                     .iter()
                     .map(|c| RansTable::from_counts(c))
                     .collect(),
-                if contexts {
-                    self.occupancy
-                        .iter()
-                        .map(|c| RansTable::from_counts(c))
-                        .collect()
-                } else {
-                    Vec::new()
-                },
+                Vec::new(),
+                0,
             );
         }
         debug_assert!(self.value[VALUE_TABLES..]
@@ -128,6 +126,67 @@ impl Frequencies {
         FastTables::prefix(
             std::array::from_fn(|t| HuffmanCode::from_frequencies(&self.mask[t], MAX_CODE_LENGTH)),
             std::array::from_fn(|t| HuffmanCode::from_frequencies(&self.value[t], MAX_CODE_LENGTH)),
+        )
+    }
+}
+
+impl Frequencies {
+    /// Version [`FAST_CONTEXTS_VERSION`]'s tables: each the file's own distribution, or the
+    /// built-in one ([`builtin`]) where that codes the table's symbols in no more bits than
+    /// the file's own and its description. Records the counts for a [`builtin::Training`].
+    fn fit_with_builtin(&self) -> FastTables {
+        let counts: Vec<&[u64]> = self
+            .mask
+            .iter()
+            .map(Vec::as_slice)
+            .chain(self.occupancy.iter().map(|c| c.as_slice()))
+            .chain(self.value.iter().map(Vec::as_slice))
+            .collect();
+        builtin::record(&counts);
+        let shipped = builtin::shipped();
+        let mut chosen_builtin = 0u128;
+        let tables: Vec<RansTable> = counts
+            .iter()
+            .enumerate()
+            .map(|(t, c)| {
+                let own = RansTable::from_counts(c);
+                if own.is_empty() {
+                    return own;
+                }
+                let Some(Some(shipped)) = shipped.get(t) else {
+                    return own;
+                };
+                let coded = |table: &RansTable| -> Option<f64> {
+                    let mut bits = 0.0;
+                    for (sym, &n) in c.iter().enumerate().filter(|(_, &n)| n > 0) {
+                        if table.frequency(sym) == 0 {
+                            return None;
+                        }
+                        bits += n as f64 * table.cost_bits(sym);
+                    }
+                    Some(bits)
+                };
+                let mut description = BitCounter::new();
+                own.write_levels(&mut description);
+                let own_bits = description.bits() as f64 + coded(&own).unwrap_or(f64::INFINITY);
+                match coded(shipped) {
+                    Some(bits) if bits <= own_bits => {
+                        chosen_builtin |= 1 << t;
+                        shipped.clone()
+                    }
+                    _ => own,
+                }
+            })
+            .collect();
+        let mut tables = tables.into_iter();
+        let mask: Vec<RansTable> = tables.by_ref().take(MASK_TABLES).collect();
+        let occupancy: Vec<RansTable> = tables.by_ref().take(OCCUPANCY_TABLES).collect();
+        let value: Vec<RansTable> = tables.collect();
+        FastTables::rans(
+            mask.try_into().expect("MASK_TABLES tables"),
+            value,
+            occupancy,
+            chosen_builtin,
         )
     }
 }
@@ -325,6 +384,7 @@ pub(crate) fn encode_packets(
                 mask,
                 value,
                 occupancy,
+                ..
             } => write_rans_coded(mask, value, occupancy, p.symbols, &mut bd),
         };
         let mut payload = payload;

@@ -47,6 +47,7 @@
 //! cells, saved a further 0.5 % of MNI's bytes at 1.25 % but cost a quarter of the decoding
 //! speed.)
 
+pub mod builtin;
 mod cells;
 mod decode;
 mod encode;
@@ -125,6 +126,10 @@ enum Tables {
         /// From [`FAST_CONTEXTS_VERSION`]: [`OCCUPANCY_TABLES`] binary tables, and the value
         /// tables' alphabet is [`HALF_OCTAVE_VALUE_ALPHABET`]. Empty before.
         occupancy: Vec<RansTable>,
+        /// From [`FAST_CONTEXTS_VERSION`]: bit t set where the header's table t (header
+        /// order: masks, occupancy, values) is the built-in one ([`builtin`]), named rather
+        /// than described.
+        builtin: u128,
     },
 }
 
@@ -142,13 +147,15 @@ impl PartialEq for FastTables {
                     mask,
                     value,
                     occupancy,
+                    builtin,
                 },
                 Tables::Rans {
                     mask: m,
                     value: v,
                     occupancy: o,
+                    builtin: b,
                 },
-            ) => mask == m && value == v && occupancy == o,
+            ) => mask == m && value == v && occupancy == o && builtin == b,
             _ => false,
         }
     }
@@ -171,14 +178,25 @@ impl FastTables {
         mask: [RansTable; MASK_TABLES],
         value: Vec<RansTable>,
         occupancy: Vec<RansTable>,
+        builtin: u128,
     ) -> FastTables {
         debug_assert_eq!(value.len(), RANS_VALUE_TABLES);
         debug_assert!(occupancy.is_empty() || occupancy.len() == OCCUPANCY_TABLES);
+        debug_assert!(builtin == 0 || !occupancy.is_empty());
         FastTables(Arc::new(Tables::Rans {
             mask,
             value,
             occupancy,
+            builtin,
         }))
+    }
+
+    /// How many of the header's tables are the built-in ones ([`builtin`]).
+    pub fn builtin_count(&self) -> u32 {
+        match &*self.0 {
+            Tables::Rans { builtin, .. } => builtin.count_ones(),
+            Tables::Prefix { .. } => 0,
+        }
     }
 
     /// Whether these are rANS distributions (format version [`RANS_VERSION`] and later).
@@ -205,10 +223,21 @@ impl FastTables {
                 mask,
                 value,
                 occupancy,
+                builtin,
             } => {
-                for table in mask.iter().chain(occupancy).chain(value) {
+                // From FAST_CONTEXTS_VERSION (occupancy tables present) a used table's bit is
+                // followed by one saying whether it is the built-in one.
+                let named = !occupancy.is_empty();
+                for (t, table) in mask.iter().chain(occupancy).chain(value).enumerate() {
                     sink.put_bit(!table.is_empty());
-                    if !table.is_empty() {
+                    if table.is_empty() {
+                        continue;
+                    }
+                    let is_builtin = builtin >> t & 1 != 0;
+                    if named {
+                        sink.put_bit(is_builtin);
+                    }
+                    if !is_builtin {
                         table.write_levels(sink);
                     }
                 }
@@ -220,18 +249,29 @@ impl FastTables {
     /// every table.
     pub fn read(reader: &mut BitReader, version: u16) -> Result<FastTables, EntropyError> {
         if version >= RANS_VERSION {
+            let contexts = version >= FAST_CONTEXTS_VERSION;
+            let mut builtin_bits = 0u128;
+            let mut t = 0;
             let mut read = |alphabet: usize| -> Result<RansTable, EntropyError> {
-                if reader.get_bit()? {
-                    RansTable::read_levels(reader, alphabet)
-                } else {
-                    RansTable::from_levels(&[], 1)
+                let at = t;
+                t += 1;
+                if !reader.get_bit()? {
+                    return RansTable::from_levels(&[], 1);
                 }
+                if contexts && reader.get_bit()? {
+                    builtin_bits |= 1 << at;
+                    return builtin::shipped()
+                        .get(at)
+                        .cloned()
+                        .flatten()
+                        .ok_or(EntropyError::NoBuiltinTable(at));
+                }
+                RansTable::read_levels(reader, alphabet)
             };
             let mut mask = Vec::with_capacity(MASK_TABLES);
             for _ in 0..MASK_TABLES {
                 mask.push(read(MASK_ALPHABET)?);
             }
-            let contexts = version >= FAST_CONTEXTS_VERSION;
             let mut occupancy = Vec::new();
             if contexts {
                 for _ in 0..OCCUPANCY_TABLES {
@@ -251,6 +291,7 @@ impl FastTables {
                 mask.try_into().expect("MASK_TABLES tables"),
                 value,
                 occupancy,
+                builtin_bits,
             ));
         }
         let mut mask = Vec::with_capacity(MASK_TABLES);
@@ -531,6 +572,60 @@ mod tests {
                     }
                 }
             }
+        }
+    }
+
+    /// A version 15 table set with `tables` at their header indices (masks, occupancy,
+    /// values) and every other table empty.
+    fn table_set(tables: &[(usize, RansTable)], builtin: u128) -> FastTables {
+        let at = |t: usize| {
+            tables.iter().find(|(i, _)| *i == t).map_or_else(
+                || RansTable::from_levels(&[], 1).unwrap(),
+                |(_, x)| x.clone(),
+            )
+        };
+        FastTables::rans(
+            std::array::from_fn(at),
+            (0..RANS_VALUE_TABLES)
+                .map(|v| at(MASK_TABLES + OCCUPANCY_TABLES + v))
+                .collect(),
+            (0..OCCUPANCY_TABLES).map(|o| at(MASK_TABLES + o)).collect(),
+            builtin,
+        )
+    }
+
+    #[test]
+    fn tables_named_built_in_read_back_and_unknown_ones_are_refused() {
+        use crate::entropy::bits::BitWriter;
+        let shipped = builtin::shipped();
+        let named = shipped
+            .iter()
+            .position(Option::is_some)
+            .expect("a built-in table");
+        let own = MASK_TABLES + OCCUPANCY_TABLES; // the first value table
+        let own_table = RansTable::from_counts(&[5, 1, 0, 2]);
+        let set = table_set(
+            &[(named, shipped[named].clone().unwrap()), (own, own_table)],
+            1 << named,
+        );
+        assert_eq!(set.builtin_count(), 1);
+        let mut w = BitWriter::new();
+        set.write(&mut w);
+        let bytes = w.finish();
+        let read = FastTables::read(&mut BitReader::new(&bytes), FAST_CONTEXTS_VERSION).unwrap();
+        assert_eq!(read, set);
+        // A built-in table costs two bits in the header, whatever its size.
+        let mut w = BitWriter::new();
+        table_set(&[(named, shipped[named].clone().unwrap())], 0).write(&mut w);
+        assert!(w.finish().len() > bytes.len());
+        // A header naming a table this build holds none of is refused.
+        if let Some(missing) = shipped.iter().position(Option::is_none) {
+            let set = table_set(&[(missing, RansTable::from_counts(&[1, 1]))], 1 << missing);
+            let mut w = BitWriter::new();
+            set.write(&mut w);
+            let bytes = w.finish();
+            let e = FastTables::read(&mut BitReader::new(&bytes), FAST_CONTEXTS_VERSION);
+            assert_eq!(e.unwrap_err(), EntropyError::NoBuiltinTable(missing));
         }
     }
 
