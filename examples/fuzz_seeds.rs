@@ -52,44 +52,39 @@ fn main() {
             put(&root.join(format!("packet_{name}")), &format!("p{i}"), p);
         }
     }
-    // The fast coder's prefix-coded packets (format version 13; version 14 codes them by rANS)
-    // for the file target.
+    // The fast coder's packets of earlier versions for the file target: prefix-coded (format
+    // version 13; version 14 codes them by rANS) and by rANS before the occupancy contexts
+    // (version 14; version 15 has them).
     let vol = Phantom::SheppLogan.generate([12, 10, 8]);
-    let prefix_coded = compress(
-        &vol,
-        &CompressOptions {
-            coder: CoderKind::Fast,
-            target: Target::Fraction(0.2),
-            tile: TileChoice::Size(8),
-            layers: Some(2),
-            levels: Some(2),
-            refine: None,
-            format_version: wavesplat_codec::format::COMPACT_HEADER_VERSION,
-            ..Default::default()
-        },
-        &|_, _| {},
-    )
-    .unwrap()
-    .bytes;
-    put(&root.join("file"), "fast-prefix-coded.wsp", &prefix_coded);
-    // And version 14's rANS-coded packets, before the occupancy contexts (version 15).
-    let rans_v14 = compress(
-        &vol,
-        &CompressOptions {
-            coder: CoderKind::Fast,
-            target: Target::Fraction(0.2),
-            tile: TileChoice::Size(8),
-            layers: Some(2),
-            levels: Some(2),
-            refine: None,
-            format_version: wavesplat_codec::format::RANS_VERSION,
-            ..Default::default()
-        },
-        &|_, _| {},
-    )
-    .unwrap()
-    .bytes;
-    put(&root.join("file"), "fast-rans-v14.wsp", &rans_v14);
+    let fast_file = |format_version: u16| {
+        compress(
+            &vol,
+            &CompressOptions {
+                coder: CoderKind::Fast,
+                target: Target::Fraction(0.2),
+                tile: TileChoice::Size(8),
+                layers: Some(2),
+                levels: Some(2),
+                refine: None,
+                format_version,
+                ..Default::default()
+            },
+            &|_, _| {},
+        )
+        .unwrap()
+        .bytes
+    };
+    use wavesplat_codec::format::{COMPACT_HEADER_VERSION, RANS_VERSION};
+    put(
+        &root.join("file"),
+        "fast-prefix-coded.wsp",
+        &fast_file(COMPACT_HEADER_VERSION),
+    );
+    put(
+        &root.join("file"),
+        "fast-rans-v14.wsp",
+        &fast_file(RANS_VERSION),
+    );
     // A bricked container and a time series (format versions 9 and 10) for the file target,
     // and published series.
     let small = CompressOptions {
