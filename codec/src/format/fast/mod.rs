@@ -40,7 +40,7 @@
 //! a last child whose siblings are all empty is implied. Then its children are visited as
 //! before. A step of 14 or more is coded in half octaves: the symbol names the bit length of
 //! q − 13 and the bit below its leading one, and one raw bit fewer follows
-//! ([`step_symbol_halves`]). A joint 8-bit mask sees nothing of the node's surroundings, and
+//! (`step_symbol_halves`). A joint 8-bit mask sees nothing of the node's surroundings, and
 //! the cells at the lower faces are where occupancy is told; all eight bits are decoded
 //! before any child, so that the decoder branches on no bit while it reads them. (Coding each
 //! child's bit just before its subtree, so that its face state counts its earlier siblings'
