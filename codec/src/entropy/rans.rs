@@ -198,16 +198,9 @@ impl RansTable {
             "rANS alphabet of {} symbols exceeds {MAX_SYMBOLS}",
             counts.len()
         );
+        // Every counted symbol has a level on every grid, so each table codes them all.
         let cost = |t: &RansTable| -> f64 {
-            let mut header = BitCounter::new();
-            t.write_levels(&mut header);
-            let coded: f64 = counts
-                .iter()
-                .enumerate()
-                .filter(|&(_, &c)| c > 0)
-                .map(|(sym, &c)| c as f64 * t.cost_bits(sym))
-                .sum();
-            header.bits() as f64 + coded
+            t.description_bits() as f64 + t.coded_bits(counts).unwrap_or(f64::INFINITY)
         };
         LEVEL_STEPS
             .iter()
@@ -217,6 +210,26 @@ impl RansTable {
             })
             .min_by(|a, b| cost(a).total_cmp(&cost(b)))
             .expect("a grid step")
+    }
+
+    /// The bits `counts` (per symbol) take coded with this table, at its ideal code lengths;
+    /// `None` if a counted symbol cannot be coded with it.
+    pub fn coded_bits(&self, counts: &[u64]) -> Option<f64> {
+        let mut bits = 0.0;
+        for (sym, &c) in counts.iter().enumerate().filter(|&(_, &c)| c > 0) {
+            if self.frequency(sym) == 0 {
+                return None;
+            }
+            bits += c as f64 * self.cost_bits(sym);
+        }
+        Some(bits)
+    }
+
+    /// The bits of this table's description ([`RansTable::write_levels`]).
+    pub fn description_bits(&self) -> u64 {
+        let mut counter = BitCounter::new();
+        self.write_levels(&mut counter);
+        counter.bits()
     }
 
     /// Whether no symbol can be coded with this table.

@@ -11,7 +11,7 @@ use super::{
     MAX_CODE_LENGTH, OCCUPANCY_TABLES, RANS_VALUE_TABLES, SIGN_CONTEXTS, VALUE_ALPHABET,
     VALUE_TABLES,
 };
-use crate::entropy::bits::{BitCounter, BitSink, BitWriter};
+use crate::entropy::bits::{BitSink, BitWriter};
 use crate::entropy::huffman::HuffmanCode;
 use crate::entropy::range::{BitModel, RangeEncoder};
 use crate::entropy::rans::{RansEncoder, RansTable};
@@ -156,20 +156,9 @@ impl Frequencies {
                 let Some(Some(shipped)) = shipped.get(t) else {
                     return own;
                 };
-                let coded = |table: &RansTable| -> Option<f64> {
-                    let mut bits = 0.0;
-                    for (sym, &n) in c.iter().enumerate().filter(|(_, &n)| n > 0) {
-                        if table.frequency(sym) == 0 {
-                            return None;
-                        }
-                        bits += n as f64 * table.cost_bits(sym);
-                    }
-                    Some(bits)
-                };
-                let mut description = BitCounter::new();
-                own.write_levels(&mut description);
-                let own_bits = description.bits() as f64 + coded(&own).unwrap_or(f64::INFINITY);
-                match coded(shipped) {
+                let own_bits =
+                    own.description_bits() as f64 + own.coded_bits(c).unwrap_or(f64::INFINITY);
+                match shipped.coded_bits(c) {
                     Some(bits) if bits <= own_bits => {
                         chosen_builtin |= 1 << t;
                         shipped.clone()
