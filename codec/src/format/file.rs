@@ -89,29 +89,15 @@ pub fn write_file_version(
         && header
             .fast_tables
             .as_ref()
-            .is_some_and(|t| t.is_rans() != (version >= RANS_VERSION))
+            .is_some_and(|t| !t.decode_as(version))
     {
         return Err(invalid(
             "header",
             format!(
                 "fast-coder packets coded for format version {} do not decode as version \
-                 {version} (version {RANS_VERSION} codes them by rANS): encode them with that \
-                 version",
-                header.version
-            ),
-        ));
-    }
-    if header.coder == CoderKind::Fast
-        && header.fast_tables.as_ref().is_some_and(|t| {
-            t.is_rans() && t.has_occupancy_tables() != (version >= FAST_CONTEXTS_VERSION)
-        })
-    {
-        return Err(invalid(
-            "header",
-            format!(
-                "fast-coder packets coded for format version {} do not decode as version \
-                 {version} (version {FAST_CONTEXTS_VERSION} codes occupancy with the face \
-                 contexts): encode them with that version",
+                 {version} (version {RANS_VERSION} codes them by rANS, version \
+                 {FAST_CONTEXTS_VERSION} codes occupancy with the face contexts): encode them \
+                 with that version",
                 header.version
             ),
         ));

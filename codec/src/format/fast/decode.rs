@@ -317,18 +317,18 @@ pub(crate) fn decode(
             let raw_len = r.varint_max(r.remaining() as u64, "raw stream length")? as usize;
             let raw = r.take(raw_len)?;
             let signs = r.take(r.remaining())?;
-            let occupancy_table = |t: usize| occupancy.get(t).filter(|t| !t.is_empty());
+            let used_occupancy = |t: usize| occupancy.get(t).filter(|t| !t.is_empty());
             let source = RansSource {
                 mask,
                 value,
                 occupancy_f0: std::array::from_fn(|t| {
-                    occupancy_table(t).map_or(0, |t| t.frequency(0))
+                    used_occupancy(t).map_or(0, |t| t.frequency(0))
                 }),
                 occupancy_cost: std::array::from_fn(|t| {
-                    occupancy_table(t).map_or([0; 2], |t| [t.cost_q8(0), t.cost_q8(1)])
+                    used_occupancy(t).map_or([0; 2], |t| [t.cost_q8(0), t.cost_q8(1)])
                 }),
                 occupancy_empty: (0..OCCUPANCY_TABLES)
-                    .filter(|&t| occupancy_table(t).is_none())
+                    .filter(|&t| used_occupancy(t).is_none())
                     .fold(0, |m, t| m | 1 << t),
                 steps: if occupancy.is_empty() {
                     &OCTAVE_STEPS

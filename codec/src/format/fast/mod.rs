@@ -210,6 +210,14 @@ impl FastTables {
         matches!(&*self.0, Tables::Rans { occupancy, .. } if !occupancy.is_empty())
     }
 
+    /// Whether packets coded with these tables decode as a file of `version`: prefix codes
+    /// before [`RANS_VERSION`], rANS without occupancy tables up to the version before
+    /// [`FAST_CONTEXTS_VERSION`], with them from it.
+    pub fn decode_as(&self, version: u16) -> bool {
+        self.is_rans() == (version >= RANS_VERSION)
+            && self.has_occupancy_tables() == (version >= FAST_CONTEXTS_VERSION)
+    }
+
     /// Writes every table: code lengths, or for rANS a bit saying whether the table is used
     /// and the used tables' levels.
     pub fn write(&self, sink: &mut impl BitSink) {
