@@ -9,10 +9,9 @@
 //! (MIN_FILES: the least weight, in files of 4 096 symbols, a table needs to be built in;
 //! default 4)
 
-use wavesplat_codec::family::Family;
 use wavesplat_codec::format::fast::builtin::Training;
 use wavesplat_codec::format::CoderKind;
-use wavesplat_compressor::encode::{compress, CompressOptions, Target};
+use wavesplat_compressor::encode::CompressOptions;
 
 #[path = "training_set/mod.rs"]
 mod training_set;
@@ -25,21 +24,14 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let min_files: u64 = args.next().map_or(Ok(4), |s| s.parse())?;
     let volumes = training_set::volumes(&[[48, 40, 36], [96, 96, 96], [160, 128, 112]])?;
     let training = Training::start();
-    for (name, v) in &volumes {
-        for family in [Family::Linear, Family::Cubic, Family::Haar] {
-            for fraction in [0.0007, 0.003, 0.0125, 0.05] {
-                let opts = CompressOptions {
-                    family,
-                    coder: CoderKind::Fast,
-                    target: Target::Fraction(fraction),
-                    refine: None,
-                    ..CompressOptions::default()
-                };
-                let c = compress(v, &opts, &|_, _| {})?;
-                eprintln!("{name} {family:?} {fraction}: {} bytes", c.bytes.len());
-            }
-        }
-    }
+    training_set::compress_all(
+        &volumes,
+        &CompressOptions {
+            coder: CoderKind::Fast,
+            refine: None,
+            ..CompressOptions::default()
+        },
+    )?;
     let levels = training.finish(min_files);
     std::fs::write(&out, levels.to_bytes())?;
     eprintln!(

@@ -8,9 +8,8 @@
 //! `cargo run --release -p wavesplat-compressor --example train_priors -- OUT.bin [MAX_SEEN]`
 //! (MAX_SEEN: the most bits any prior counts as seen, default 30: fully learnt)
 
-use wavesplat_codec::family::Family;
 use wavesplat_codec::format::sigmap::priors::Training;
-use wavesplat_compressor::encode::{compress, CompressOptions, Target};
+use wavesplat_compressor::encode::CompressOptions;
 
 #[path = "training_set/mod.rs"]
 mod training_set;
@@ -23,20 +22,13 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let max_seen: u8 = args.next().map_or(Ok(30), |s| s.parse())?;
     let volumes = training_set::volumes(&[[96, 96, 96], [160, 128, 112]])?;
     let training = Training::start();
-    for (name, v) in &volumes {
-        for family in [Family::Linear, Family::Cubic, Family::Haar] {
-            for fraction in [0.0007, 0.003, 0.0125, 0.05] {
-                let opts = CompressOptions {
-                    family,
-                    target: Target::Fraction(fraction),
-                    format_version: wavesplat_codec::format::LAST_UNPRIMED_VERSION,
-                    ..CompressOptions::default()
-                };
-                let c = compress(v, &opts, &|_, _| {})?;
-                eprintln!("{name} {family:?} {fraction}: {} bytes", c.bytes.len());
-            }
-        }
-    }
+    training_set::compress_all(
+        &volumes,
+        &CompressOptions {
+            format_version: wavesplat_codec::format::LAST_UNPRIMED_VERSION,
+            ..CompressOptions::default()
+        },
+    )?;
     let table = training.finish(16, max_seen);
     let primed = table.p0.iter().filter(|p| **p != 0).count();
     std::fs::write(&out, table.to_bytes())?;

@@ -1,11 +1,13 @@
-//! The phantoms the codec's trained tables learn from (`train_priors`, `train_fast_tables`):
-//! Shepp–Logan with and without noise, the noisy spheres and the RGB head at each of the
+//! The phantoms the codec's trained tables learn from (`train_priors`, `train_fast_tables`),
+//! and the compressions they learn from them: Shepp–Logan with and without noise, the noisy spheres and the RGB head at each of the
 //! given sizes, and the beating heart. The CT phantom is left out: the test set holds a volume
 //! like it, and what is trained must be measured on volumes it was not trained on.
 
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
+use wavesplat_codec::family::Family;
 use wavesplat_codec::volume::Volume;
+use wavesplat_compressor::encode::{compress, CompressOptions, Target};
 use wavesplat_compressor::phantom::{beating, Phantom};
 
 /// A phantom with seeded Gaussian-like noise of standard deviation `sigma` added (the sum of
@@ -41,4 +43,26 @@ pub fn volumes(sizes: &[[usize; 3]]) -> Result<Vec<(String, Volume)>, Box<dyn st
     }
     volumes.push(("beating".into(), beating([128, 128, 24], 3, 16)?));
     Ok(volumes)
+}
+
+/// Compresses each volume with each family at each training rate (`base`'s other options),
+/// in one fixed order, reporting each file's size; a training records what the coders see.
+pub fn compress_all(
+    volumes: &[(String, Volume)],
+    base: &CompressOptions,
+) -> Result<(), Box<dyn std::error::Error>> {
+    for (name, v) in volumes {
+        for family in [Family::Linear, Family::Cubic, Family::Haar] {
+            for fraction in [0.0007, 0.003, 0.0125, 0.05] {
+                let opts = CompressOptions {
+                    family,
+                    target: Target::Fraction(fraction),
+                    ..base.clone()
+                };
+                let c = compress(v, &opts, &|_, _| {})?;
+                eprintln!("{name} {family:?} {fraction}: {} bytes", c.bytes.len());
+            }
+        }
+    }
+    Ok(())
 }

@@ -395,6 +395,33 @@ mod tests {
     use rand::{Rng, SeedableRng};
     use rand_chacha::ChaCha8Rng;
 
+    /// The face state of the box of 2×2×2 cells at `c`, by brute force over the coded cells
+    /// `truth`: those just below its lower faces along the axes `counted` picks (none, 1–2,
+    /// 3–5, 6 or more).
+    fn brute_face_state<V>(
+        truth: &std::collections::HashMap<[u32; 3], V>,
+        c: [u32; 3],
+        counted: impl Fn(usize) -> bool,
+    ) -> usize {
+        let touching = truth
+            .keys()
+            .filter(|p| {
+                (0..3).any(|a| {
+                    counted(a)
+                        && c[a] > 0
+                        && p[a] == c[a] - 1
+                        && (0..3).all(|b| b == a || (p[b] >= c[b] && p[b] < c[b] + 2))
+                })
+            })
+            .count();
+        match touching {
+            0 => 0,
+            1 | 2 => 1,
+            3..=5 => 2,
+            _ => 3,
+        }
+    }
+
     #[test]
     fn directory_and_hashed_cell_maps_give_brute_force_contexts() {
         let mut rng = ChaCha8Rng::seed_from_u64(3);
@@ -445,22 +472,7 @@ mod tests {
                 assert_eq!((ss, sv), want, "round {round} {c:?}");
                 // Faces of the node of 2×2×2 cells at the even corner below c.
                 let o = c.map(|v| v & !1);
-                let touching = truth
-                    .keys()
-                    .filter(|p| {
-                        (0..3).any(|a| {
-                            o[a] > 0
-                                && p[a] == o[a] - 1
-                                && (0..3).all(|b| b == a || (p[b] >= o[b] && p[b] < o[b] + 2))
-                        })
-                    })
-                    .count();
-                let table = match touching {
-                    0 => 0,
-                    1 | 2 => 1,
-                    3..=5 => 2,
-                    _ => 3,
-                };
+                let table = brute_face_state(&truth, o, |_| true);
                 assert_eq!(dense.face_table(o), table, "round {round} {o:?}");
                 assert_eq!(sparse.face_table(o), table, "round {round} {o:?}");
             }
@@ -470,23 +482,7 @@ mod tests {
                 let o = extent.map(|e| rng.gen_range(0..e) & !3);
                 let want: [usize; 8] = std::array::from_fn(|i| {
                     let c = [0, 1, 2].map(|a| o[a] + 2 * (i as u32 >> a & 1));
-                    let n = truth
-                        .keys()
-                        .filter(|p| {
-                            (0..3).any(|a| {
-                                c[a] == o[a]
-                                    && o[a] > 0
-                                    && p[a] == o[a] - 1
-                                    && (0..3).all(|b| b == a || (p[b] >= c[b] && p[b] < c[b] + 2))
-                            })
-                        })
-                        .count();
-                    match n {
-                        0 => 0,
-                        1 | 2 => 1,
-                        3..=5 => 2,
-                        _ => 3,
-                    }
+                    brute_face_state(&truth, c, |a| c[a] == o[a])
                 });
                 assert_eq!(dense.node4_face_states(o), want, "round {round} {o:?}");
                 assert_eq!(sparse.node4_face_states(o), want, "round {round} {o:?}");
