@@ -855,8 +855,13 @@ fn depth_cue_tables_are_built_off_the_frame_thread() {
             );
             let got = f.session.image().unwrap();
             let want = wavesplat_viewer::open::display_image(&header, &coeffs, &s).unwrap();
+            // The session's f32 image sums the same records as the reference in another
+            // order (its batches are cut by the clock, the stand-ins come and go): 7.8e-6 to
+            // 1.02e-5 of the peak over 40 runs, with stand-ins or without (8.5e-6 to 9.1e-6),
+            // so the bound is twice that; a stand-in left in the image, or a coefficient
+            // drawn twice, is off by orders of magnitude more.
             let e = got.relative_difference(&want);
-            assert!(e <= 1e-5, "{phantom:?} {direction:?}: {e:e}");
+            assert!(e <= 2e-5, "{phantom:?} {direction:?}: {e:e}");
         }
     }
 }
