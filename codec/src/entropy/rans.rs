@@ -408,6 +408,25 @@ impl<'a> RansDecoder<'a> {
         Ok(d)
     }
 
+    /// `x` with the next word shifted in if it fell below [`LOWER`] (one word always
+    /// suffices), without a branch on that: whether a symbol needs a word is as unpredictable
+    /// as its cost. The word is read either way (0 past the end, an overrun only if taken).
+    #[inline(always)]
+    fn renormalized(&mut self, x: u32) -> u32 {
+        let need = x < LOWER;
+        let (word, in_bounds) = match self.bytes.get(self.pos..self.pos + 2) {
+            Some(w) => (u16::from_le_bytes([w[0], w[1]]) as u32, true),
+            None => (0, false),
+        };
+        self.overrun |= need & !in_bounds;
+        self.pos += 2 * usize::from(need & in_bounds);
+        if need {
+            x << 16 | word
+        } else {
+            x
+        }
+    }
+
     #[inline(always)]
     fn word(&mut self) -> u16 {
         match self.bytes.get(self.pos..self.pos + 2) {
@@ -429,11 +448,7 @@ impl<'a> RansDecoder<'a> {
         let x = self.state;
         let slot = *table.slots.get((x & (TOTAL - 1)) as usize)?;
         let freq = (slot >> 8 & 0xFFF) + 1;
-        let mut x = freq * (x >> PRECISION) + (slot >> 20);
-        if x < LOWER {
-            x = x << 16 | self.word() as u32;
-        }
-        self.state = x;
+        self.state = self.renormalized(freq * (x >> PRECISION) + (slot >> 20));
         Some((slot & 0xFF) as usize)
     }
 
@@ -448,11 +463,7 @@ impl<'a> RansDecoder<'a> {
         let slot = x & (TOTAL - 1);
         let bit = slot >= f0;
         let (start, freq) = if bit { (f0, TOTAL - f0) } else { (0, f0) };
-        let mut x = freq * (x >> PRECISION) + slot - start;
-        if x < LOWER {
-            x = x << 16 | self.word() as u32;
-        }
-        self.state = x;
+        self.state = self.renormalized(freq * (x >> PRECISION) + slot - start);
         bit
     }
 
@@ -764,7 +775,16 @@ mod tests {
         };
         assert!(run(&bytes));
         for cut in [2, 8, bytes.len() / 2, bytes.len() - 2] {
-            assert!(!run(&bytes[..bytes.len() - cut]), "cut {cut}");
+            let short = &bytes[..bytes.len() - cut];
+            assert!(!run(short), "cut {cut}");
+            // The words cut off are words the symbols need: reading them is an overrun (or
+            // what is left is shorter than the state, refused at once).
+            if let Ok(mut d) = RansDecoder::new(short) {
+                for _ in &syms {
+                    d.decode(&tables[0].1);
+                }
+                assert!(d.overrun(), "cut {cut}");
+            }
         }
         let mut flipped = 0;
         for i in 0..bytes.len() {
