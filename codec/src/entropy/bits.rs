@@ -266,14 +266,13 @@ impl<'a> WordReader<'a> {
     /// Tops the buffer up to at least [`WordReader::PEEK_BITS`] valid bits.
     #[inline(always)]
     pub fn refill(&mut self) {
-        if self.bits >= Self::PEEK_BITS {
-            return;
-        }
+        // No branch on whether the buffer needs bits (as unpredictable as the bits the symbols
+        // took): a full buffer loads the next word too and takes no byte of it.
         if let Some(chunk) = self.data.get(self.next..self.next + 8) {
             let word = u64::from_be_bytes(chunk.try_into().expect("8 bytes"));
             // The loaded bits past the whole bytes taken are the stream's own next bits, so
             // OR-ing them in again on the next refill changes nothing.
-            self.buf |= word >> self.bits;
+            self.buf |= word.checked_shr(self.bits).unwrap_or(0);
             let bytes = (64 - self.bits) / 8;
             self.next += bytes as usize;
             self.bits += 8 * bytes;
@@ -284,7 +283,7 @@ impl<'a> WordReader<'a> {
 
     #[cold]
     fn refill_at_end(&mut self) {
-        while self.bits <= 56 {
+        while self.bits < Self::PEEK_BITS {
             let byte = self.data.get(self.next).copied().unwrap_or(0);
             self.buf |= (byte as u64) << (56 - self.bits);
             self.next += 1;

@@ -392,9 +392,10 @@ impl<'a> RangeDecoder<'a> {
         let bound = (self.range >> PROB_BITS) * model.p0 as u32;
         // Branch-free: the bit is as unpredictable as the data.
         let bit = self.code >= bound;
-        let taken = if bit { bound } else { 0 };
-        self.code -= taken;
-        self.range = if bit { self.range - bound } else { bound };
+        // By masks rather than selects, which the compiler turned into a branch here.
+        let mask = 0u32.wrapping_sub(bit as u32);
+        self.code -= bound & mask;
+        self.range = (bound & !mask) | ((self.range - bound) & mask);
         model.update(bit);
         self.normalize();
         bit

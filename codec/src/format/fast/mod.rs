@@ -331,14 +331,37 @@ fn bit_length_class(q: u64) -> u8 {
 /// `VALUE_TABLES` − 2).
 #[inline(always)]
 fn value_table(n: usize, sum: usize) -> usize {
-    let mean = match n {
-        0 => return 0,
-        1 => sum,
-        2 => (sum + 1) >> 1,
-        _ => (2 * sum + 3) / 6,
-    };
-    1 + mean.min(VALUE_TABLES - 2)
+    // Looked up rather than computed by cases: the count is as unpredictable as the data.
+    VALUE_TABLE_OF[n.min(3)][sum.min(MAX_CLASS_SUM)] as usize
 }
+
+/// The largest sum of three neighbours' magnitude classes ([`bit_length_class`]).
+const MAX_CLASS_SUM: usize = 3 * 31;
+
+/// [`value_table`] for every count and sum.
+static VALUE_TABLE_OF: [[u8; MAX_CLASS_SUM + 1]; 4] = {
+    let mut t = [[0u8; MAX_CLASS_SUM + 1]; 4];
+    let mut n = 1;
+    while n < 4 {
+        let mut sum = 0;
+        while sum <= MAX_CLASS_SUM {
+            let mean = match n {
+                1 => sum,
+                2 => (sum + 1) >> 1,
+                _ => (2 * sum + 3) / 6,
+            };
+            let mean = if mean < VALUE_TABLES - 2 {
+                mean
+            } else {
+                VALUE_TABLES - 2
+            };
+            t[n][sum] = (1 + mean) as u8;
+            sum += 1;
+        }
+        n += 1;
+    }
+    t
+};
 
 /// The group of a band's value tables in an rANS-coded file ([`VALUE_GROUPS`]).
 fn value_group(band: Band) -> usize {
