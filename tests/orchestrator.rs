@@ -579,8 +579,12 @@ async fn a_bricked_job_spreads_its_bricks_over_workers() {
         &phantom(Phantom::SheppLogan, dims),
     );
     let logs = [cl.root.join("w1.log"), cl.root.join("w2.log")];
-    let _w1 = cl.worker("w1", 0, Some(&logs[0]));
-    let _w2 = cl.worker("w2", 0, Some(&logs[1]));
+    // Each part held 300 ms before it is reported, so that a worker slow to start polling
+    // (a loaded machine: one CI run saw w2 run every part) still finds parts queued while the
+    // other holds its own.
+    let slow_parts = ["--pause-before-part-report-ms", "300"];
+    let _w1 = Proc::worker_with(&o, &c, "w1", &slow_parts, Some(&logs[0]));
+    let _w2 = Proc::worker_with(&o, &c, "w2", &slow_parts, Some(&logs[1]));
     let target = 7_000u64;
     submit(
         &shared,
