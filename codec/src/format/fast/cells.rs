@@ -47,6 +47,62 @@ pub(super) struct CellPlace {
     offset: usize,
 }
 
+/// A node of 2×2×2 cells in a directory map, ready to give its children's contexts
+/// ([`CellMap::leaf_node`]): the same as [`CellMap::leaf_contexts`] gives, from indices into
+/// the bricks found once a node rather than once a child.
+pub(super) struct LeafNode {
+    brick: usize,
+    /// The node's origin cell's offset in its brick, and its index in the bricks.
+    offset: usize,
+    own: usize,
+    /// Index in the bricks of the cell below the origin cell along each axis.
+    outside: [usize; 3],
+}
+
+impl LeafNode {
+    /// The (sign, value) contexts and place of child `i` (`child_origin` order), read from
+    /// `map` as its siblings before it left it.
+    #[inline(always)]
+    pub(super) fn contexts(&self, map: &CellMap, i: u32) -> (usize, usize, CellPlace) {
+        let h = [
+            (i & 1) as usize,
+            (i >> 1 & 1) as usize,
+            (i >> 2 & 1) as usize,
+        ];
+        let within = h[0] + 4 * h[1] + 16 * h[2];
+        let cell = self.own + within;
+        // Along an axis where the child is the upper half, its neighbour is the sibling
+        // below it; else the cell outside the node, moved along the other two axes. Chosen
+        // by masks: the children present are as unpredictable as the data.
+        let neighbour = |a: usize, width: usize| -> u8 {
+            let upper = 0usize.wrapping_sub(h[a]);
+            let index = ((cell - width) & upper) | ((self.outside[a] + within) & !upper);
+            map.bricks[index]
+        };
+        let (sc, vc) = contexts_of_neighbours(neighbour(0, 1), neighbour(1, 4), neighbour(2, 16));
+        let at = CellPlace {
+            brick: self.brick,
+            offset: self.offset + within,
+        };
+        (sc, vc, at)
+    }
+}
+
+/// The (sign, value) contexts of a cell from its three lower neighbours' entries: their signs
+/// (base 3) and the value table of their count and summed magnitude classes.
+#[inline(always)]
+fn contexts_of_neighbours(vx: u8, vy: u8, vz: u8) -> (usize, usize) {
+    // 0 for no coefficient, 1 positive, 2 negative: a coded cell has bit 0 set and its sign
+    // in bit 1, an empty one is 0 (no branch: the signs are as unpredictable as the data).
+    let sign_of = |v: u8| (v & 1) as usize + ((v >> 1) & 1) as usize;
+    let present = (vx != 0) as usize + (vy != 0) as usize + (vz != 0) as usize;
+    let classes = (vx >> 2) as usize + (vy >> 2) as usize + (vz >> 2) as usize;
+    (
+        sign_of(vx) + 3 * sign_of(vy) + 9 * sign_of(vz),
+        value_table(present, classes),
+    )
+}
+
 /// Offset of a cell in its brick.
 #[inline(always)]
 fn brick_offset(c: [u32; 3]) -> usize {
@@ -126,14 +182,7 @@ impl CellMap {
     pub(super) fn insert_at(&mut self, c: [u32; 3], at: CellPlace, negative: bool, q: u64) {
         let v = 1 | (negative as u8) << 1 | bit_length_class(q) << 2;
         if self.use_directory {
-            let b = at.brick;
-            let mut slot = self.directory[b] as usize;
-            if slot == 0 {
-                slot = self.bricks.len() / 64;
-                self.bricks.resize(self.bricks.len() + 64, 0);
-                self.directory[b] = slot as u32;
-                self.used.push(b as u32);
-            }
+            let slot = self.allocate(at.brick);
             self.bricks[64 * slot + at.offset] = v;
         } else {
             self.sparse.insert(c, v);
@@ -193,17 +242,55 @@ impl CellMap {
             };
             (get(1, 0, 0), get(0, 1, 0), get(0, 0, 1))
         };
-        // 0 for no coefficient, 1 positive, 2 negative: a coded cell has bit 0 set and its
-        // sign in bit 1, an empty one is 0 (no branch: the signs are as unpredictable as the
-        // data).
-        let sign_of = |v: u8| (v & 1) as usize + ((v >> 1) & 1) as usize;
-        let present = (vx != 0) as usize + (vy != 0) as usize + (vz != 0) as usize;
-        let classes = (vx >> 2) as usize + (vy >> 2) as usize + (vz >> 2) as usize;
-        (
-            sign_of(vx) + 3 * sign_of(vy) + 9 * sign_of(vz),
-            value_table(present, classes),
-            at,
-        )
+        let (sc, vc) = contexts_of_neighbours(vx, vy, vz);
+        (sc, vc, at)
+    }
+
+    /// The node of 2×2×2 cells at `o` (even coordinates) made ready for its children's
+    /// [`LeafNode::contexts`]: its brick allocated and its lower neighbours outside it found
+    /// once for all its children. `None` for a hashed map (use [`CellMap::leaf_contexts`]).
+    #[inline(always)]
+    pub(super) fn leaf_node(&mut self, o: [u32; 3]) -> Option<LeafNode> {
+        if !self.use_directory {
+            return None;
+        }
+        let b = self.brick(o);
+        let offset = brick_offset(o);
+        let own = 64 * self.allocate(b) + offset;
+        // The cell below the node's origin cell along each axis: in the node's brick, in the
+        // brick below, or (at the region's lower face) in the empty brick (slot 0).
+        let outside = |v: u32, step: usize, width: usize| -> usize {
+            if v & 3 != 0 {
+                own - width
+            } else if v > 0 {
+                64 * self.directory[b - step] as usize + offset + 3 * width
+            } else {
+                offset
+            }
+        };
+        Some(LeafNode {
+            brick: b,
+            offset,
+            own,
+            outside: [
+                outside(o[0], 1, 1),
+                outside(o[1], self.stride[0], 4),
+                outside(o[2], self.stride[1], 16),
+            ],
+        })
+    }
+
+    /// The slot of brick `b`, allocated if none is coded yet.
+    #[inline(always)]
+    fn allocate(&mut self, b: usize) -> usize {
+        let mut slot = self.directory[b] as usize;
+        if slot == 0 {
+            slot = self.bricks.len() / 64;
+            self.bricks.resize(self.bricks.len() + 64, 0);
+            self.directory[b] = slot as u32;
+            self.used.push(b as u32);
+        }
+        slot
     }
 
     /// The leaf-mask table of the node of 2×2×2 cells at `o` (even coordinates): by the coded
@@ -470,8 +557,17 @@ mod tests {
                 let (ss, sv, _) = sparse.leaf_contexts(c);
                 assert_eq!((ds, dv), want, "round {round} {c:?}");
                 assert_eq!((ss, sv), want, "round {round} {c:?}");
-                // Faces of the node of 2×2×2 cells at the even corner below c.
+                // The node of 2×2×2 cells at the even corner below c gives c the same
+                // contexts and place as a child.
                 let o = c.map(|v| v & !1);
+                let i = (c[0] - o[0]) | (c[1] - o[1]) << 1 | (c[2] - o[2]) << 2;
+                let leaf = dense.leaf_node(o).expect("a directory map");
+                let (ls, lv, at) = leaf.contexts(&dense, i);
+                assert_eq!((ls, lv), want, "round {round} {c:?} as child {i} of {o:?}");
+                let place = dense.place(c);
+                assert_eq!((at.brick, at.offset), (place.brick, place.offset));
+                assert!(sparse.leaf_node(o).is_none());
+                // Faces of that node.
                 let table = brute_face_state(&truth, o, |_| true);
                 assert_eq!(dense.face_table(o), table, "round {round} {o:?}");
                 assert_eq!(sparse.face_table(o), table, "round {round} {o:?}");

@@ -243,11 +243,15 @@ impl<S: SymbolSource> PacketDecoder<'_, S> {
                 format!("the payload ends after {} coefficients", self.out.len()),
             ));
         }
+        let leaf = self.map.leaf_node(o);
         while m != 0 {
             let i = m.trailing_zeros();
             m &= m - 1;
             let cell = child_origin(o, i, 1);
-            let (sc, vc, at) = self.map.leaf_contexts(cell);
+            let (sc, vc, at) = match &leaf {
+                Some(leaf) => leaf.contexts(&self.map, i),
+                None => self.map.leaf_contexts(cell),
+            };
             let q = self.source.step(s.value_base + vc)?;
             let negative = self
                 .signs
