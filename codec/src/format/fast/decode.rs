@@ -201,13 +201,20 @@ impl<S: SymbolSource> PacketDecoder<'_, S> {
     /// Decodes the node of edge 2^`log` at `o`, known to be occupied.
     fn node(&mut self, s: &Substream, o: [u32; 3], log: u32) -> Result<(), FormatError> {
         let h = 1u32 << (log - 1);
+        // A node of 2×2×2 cells finds the cells around it once, for its mask's table and its
+        // children's contexts.
+        let leaf = if log == 1 {
+            self.map.leaf_node(o)
+        } else {
+            None
+        };
         let mask = if masks_bit_by_bit(s.sequential, log) {
             self.mask_bit_by_bit(s, o)?
         } else {
-            let table = if log > 1 {
-                LEAF_MASK_TABLES
-            } else {
-                self.map.face_table(o)
+            let table = match (&leaf, log) {
+                (_, 2..) => LEAF_MASK_TABLES,
+                (Some(leaf), _) => leaf.face_table(&self.map),
+                (None, _) => self.map.face_table(o),
             };
             let mask = self.source.mask(table)?;
             if mask == 0 || mask & !allowed_children(o, h, s.extent) != 0 {
@@ -243,7 +250,6 @@ impl<S: SymbolSource> PacketDecoder<'_, S> {
                 format!("the payload ends after {} coefficients", self.out.len()),
             ));
         }
-        let leaf = self.map.leaf_node(o);
         while m != 0 {
             let i = m.trailing_zeros();
             m &= m - 1;
