@@ -94,7 +94,7 @@ pub struct CompressArgs {
     #[arg(long, default_value_t = 8)]
     pub bits: u8,
     /// Entropy coder: sigmap (octree significance maps, arithmetic coded; smallest files),
-    /// fast (the same maps and contexts with static rANS tables: packets decode ~3.5× faster,
+    /// fast (the same maps and contexts with static rANS tables: packets decode ~3.8× faster,
     /// for 4–10 % more bytes at the same coefficients, 0.2–1 dB less Q_I at the same bytes),
     /// range (the paper's syntax, arithmetic coded) or huffman (the paper's syntax and
     /// static tables).
