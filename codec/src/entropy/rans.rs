@@ -120,11 +120,13 @@ pub struct RansTable {
     /// The levels' grid step, in quarter octaves (one of [`LEVEL_STEPS`]).
     step: u8,
     levels: Vec<u8>,
+    freq: Vec<u16>,
+    start: Vec<u16>,
     /// Each symbol's cost in 1/256 bits, for size breakdowns.
     cost: Vec<u16>,
     /// The symbol of each of the 2^12 slots (empty for an empty table).
     slots: Box<[u8]>,
-    /// Each symbol's frequency (bits 0–15) and cumulative start (bits 16–31).
+    /// Each symbol's frequency (bits 0–15) and start (bits 16–31), for the decoder.
     spans: Box<[u32]>,
 }
 
@@ -155,12 +157,10 @@ impl RansTable {
         let end = levels.iter().rposition(|&l| l > 0).map_or(0, |i| i + 1);
         let levels = levels[..end].to_vec();
         let freqs = frequencies_of_levels(&levels);
-        // A frequency is at most TOTAL = 2^12 and a used symbol starts below it: both fit 16
-        // bits.
-        let mut spans = Vec::with_capacity(freqs.len());
+        let mut start = Vec::with_capacity(freqs.len());
         let mut at = 0u32;
         for &f in &freqs {
-            spans.push(f | at << 16);
+            start.push(at as u16);
             at += f;
         }
         let mut slots = Vec::new();
@@ -170,9 +170,17 @@ impl RansTable {
                 slots.extend(std::iter::repeat_n(sym as u8, f as usize));
             }
         }
+        let spans = freqs
+            .iter()
+            .zip(&start)
+            .map(|(&f, &s)| f | (s as u32) << 16)
+            .collect();
         Ok(RansTable {
             step,
             levels,
+            // A frequency is at most TOTAL = 2^12: it fits 16 bits.
+            freq: freqs.iter().map(|&f| f as u16).collect(),
+            start,
             cost: freqs
                 .iter()
                 .map(|&f| {
@@ -184,7 +192,7 @@ impl RansTable {
                 })
                 .collect(),
             slots: slots.into_boxed_slice(),
-            spans: spans.into_boxed_slice(),
+            spans,
         })
     }
 
@@ -245,7 +253,7 @@ impl RansTable {
 
     /// The frequency of a symbol (out of [`TOTAL`]); 0 if it cannot be coded.
     pub fn frequency(&self, sym: usize) -> u32 {
-        self.spans.get(sym).map_or(0, |&s| s & 0xFFFF)
+        self.freq.get(sym).map_or(0, |&f| f as u32)
     }
 
     /// A symbol's cost in bits: −log2 of its probability (+∞ if it cannot be coded).
@@ -330,8 +338,7 @@ impl RansEncoder {
         assert!(f > 0, "symbol {sym} has no frequency in its rANS table");
         // f ≤ TOTAL = 2^12, and the start of a used symbol is below TOTAL: both fit 16 bits
         // (a frequency of 2^12 is stored as 4096, which fits u16).
-        self.symbols
-            .push(((table.spans[sym] >> 16) as u16, f as u16));
+        self.symbols.push((table.start[sym], f as u16));
     }
 
     /// Symbols appended so far.
