@@ -216,62 +216,44 @@ impl CellMap {
     /// [`CellMap::insert_at`].
     #[inline(always)]
     pub(super) fn leaf_contexts(&self, c: [u32; 3]) -> (usize, usize, CellPlace) {
+        if self.use_directory {
+            // As a child of its node of 2×2×2 cells.
+            let i = c[0] & 1 | (c[1] & 1) << 1 | (c[2] & 1) << 2;
+            return self.find_leaf(c.map(|v| v & !1)).contexts(self, i);
+        }
         let (x, y, z) = (c[0], c[1], c[2]);
-        let at = self.place(c);
-        let (vx, vy, vz) = if self.use_directory {
-            // Neighbours inside the cell's brick by offset, others from the brick below.
-            // Scalars rather than coordinate arrays: copying arrays through the stack stalled
-            // store forwarding here.
-            let b = at.brick;
-            let own = self.cells_of(b);
-            let o = at.offset;
-            let vx = if x & 3 != 0 {
-                own[o - 1]
-            } else if x > 0 {
-                self.cells_of(b - 1)[o + 3]
-            } else {
+        let get = |dx: u32, dy: u32, dz: u32| {
+            if x < dx || y < dy || z < dz {
                 0
-            };
-            let vy = if y & 3 != 0 {
-                own[o - 4]
-            } else if y > 0 {
-                self.cells_of(b - self.stride[0])[o + 12]
             } else {
-                0
-            };
-            let vz = if z & 3 != 0 {
-                own[o - 16]
-            } else if z > 0 {
-                self.cells_of(b - self.stride[1])[o + 48]
-            } else {
-                0
-            };
-            (vx, vy, vz)
-        } else {
-            let get = |dx: u32, dy: u32, dz: u32| {
-                if x < dx || y < dy || z < dz {
-                    0
-                } else {
-                    self.get([x - dx, y - dy, z - dz])
-                }
-            };
-            (get(1, 0, 0), get(0, 1, 0), get(0, 0, 1))
+                self.get([x - dx, y - dy, z - dz])
+            }
         };
-        let (sc, vc) = contexts_of_neighbours(vx, vy, vz);
-        (sc, vc, at)
+        let (sc, vc) = contexts_of_neighbours(get(1, 0, 0), get(0, 1, 0), get(0, 0, 1));
+        (sc, vc, self.place(c))
     }
 
     /// The node of 2×2×2 cells at `o` (even coordinates) made ready for its children's
-    /// [`LeafNode::contexts`]: its brick allocated and its lower neighbours outside it found
-    /// once for all its children. `None` for a hashed map (use [`CellMap::leaf_contexts`]).
+    /// [`LeafNode::contexts`] as they are inserted: its brick allocated (so that the node's
+    /// indices stay those of its cells) and its lower neighbours outside it found once for all
+    /// its children. `None` for a hashed map (use [`CellMap::leaf_contexts`]).
     #[inline(always)]
     pub(super) fn leaf_node(&mut self, o: [u32; 3]) -> Option<LeafNode> {
         if !self.use_directory {
             return None;
         }
+        self.allocate(self.brick(o));
+        Some(self.find_leaf(o))
+    }
+
+    /// The node of 2×2×2 cells at `o` (even coordinates) in a directory map, as it is now: a
+    /// brick not yet allocated reads as the empty brick, so nothing may be inserted into it
+    /// while this node is in use ([`CellMap::leaf_node`] allocates first).
+    #[inline(always)]
+    fn find_leaf(&self, o: [u32; 3]) -> LeafNode {
         let b = self.brick(o);
         let offset = brick_offset(o);
-        let own = 64 * self.allocate(b) + offset;
+        let own = 64 * self.directory[b] as usize + offset;
         // The cell below the node's origin cell along each axis: in the node's brick, in the
         // brick below, or (at the region's lower face) in the empty brick (slot 0).
         let outside = |v: u32, step: usize, width: usize| -> usize {
@@ -283,7 +265,7 @@ impl CellMap {
                 offset
             }
         };
-        Some(LeafNode {
+        LeafNode {
             brick: b,
             offset,
             own,
@@ -292,7 +274,7 @@ impl CellMap {
                 outside(o[1], self.stride[0], 4),
                 outside(o[2], self.stride[1], 16),
             ],
-        })
+        }
     }
 
     /// The slot of brick `b`, allocated if none is coded yet.
@@ -312,55 +294,25 @@ impl CellMap {
     /// cells just below its three lower faces (none, 1–2, 3–5, 6 or more).
     #[inline(always)]
     pub(super) fn face_table(&self, o: [u32; 3]) -> usize {
-        let (x, y, z) = (o[0], o[1], o[2]);
-        let n = if self.use_directory {
-            // A face's four cells lie in one brick (o is even, bricks are 4 cells wide), at
-            // offsets 0 and 1, 4 or 16 along the face's two axes.
-            let b = self.brick(o);
-            let i = brick_offset(o);
-            let face = |cells: &[u8], i: usize, u: usize, v: usize| {
-                (cells[i] != 0) as u32
-                    + (cells[i + u] != 0) as u32
-                    + (cells[i + v] != 0) as u32
-                    + (cells[i + u + v] != 0) as u32
-            };
-            let own = self.cells_of(b);
-            let mut n = 0;
-            if x & 3 != 0 {
-                n += face(own, i - 1, 4, 16);
-            } else if x > 0 {
-                n += face(self.cells_of(b - 1), i + 3, 4, 16);
+        if self.use_directory {
+            return self.find_leaf(o).face_table(self);
+        }
+        let mut n = 0;
+        for a in 0..3 {
+            if o[a] == 0 {
+                continue;
             }
-            if y & 3 != 0 {
-                n += face(own, i - 4, 1, 16);
-            } else if y > 0 {
-                n += face(self.cells_of(b - self.stride[0]), i + 12, 1, 16);
-            }
-            if z & 3 != 0 {
-                n += face(own, i - 16, 1, 4);
-            } else if z > 0 {
-                n += face(self.cells_of(b - self.stride[1]), i + 48, 1, 4);
-            }
-            n
-        } else {
-            let mut n = 0;
-            for a in 0..3 {
-                if o[a] == 0 {
-                    continue;
-                }
-                let (b, c) = ((a + 1) % 3, (a + 2) % 3);
-                for db in 0..2u32 {
-                    for dc in 0..2u32 {
-                        let mut p = o;
-                        p[a] -= 1;
-                        p[b] += db;
-                        p[c] += dc;
-                        n += (self.get(p) != 0) as u32;
-                    }
+            let (b, c) = ((a + 1) % 3, (a + 2) % 3);
+            for db in 0..2u32 {
+                for dc in 0..2u32 {
+                    let mut p = o;
+                    p[a] -= 1;
+                    p[b] += db;
+                    p[c] += dc;
+                    n += (self.get(p) != 0) as u32;
                 }
             }
-            n
-        };
+        }
         face_state_of_count(n)
     }
 }
