@@ -91,7 +91,9 @@ impl LeafNode {
         // by masks: the children present are as unpredictable as the data.
         let neighbour = |a: usize, width: usize| -> u8 {
             let upper = 0usize.wrapping_sub(h[a]);
-            let index = ((cell - width) & upper) | ((self.outside[a] + within) & !upper);
+            // (Wrapping: below an unallocated brick, read as the empty one, `cell` may be
+            // smaller than `width` where the mask discards it.)
+            let index = (cell.wrapping_sub(width) & upper) | ((self.outside[a] + within) & !upper);
             map.bricks[index]
         };
         let (sc, vc) = contexts_of_neighbours(neighbour(0, 1), neighbour(1, 4), neighbour(2, 16));
