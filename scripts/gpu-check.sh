@@ -6,15 +6,21 @@
 # ../shared/data lacks it), at 256², 512² and 1024²:
 #   - the image of the GPU backend against the CPU's (SNR, dB; goal > 100 dB: the same
 #     coefficients summed in another order),
-#   - splats per second of each backend in the one-pass render (splatting time alone),
+#   - splats per second of each backend in the one-pass render (its splatting stage: records
+#     made on the CPU, accumulated, the image read back),
 #   - the GPU's mean frame time in the progressive frame loop (frames at 16.6 ms budgets),
 # and `render FILE -o x.png` from process start to PNG (the default backend choice) against the
 # process floor (`wavesplat --version`). Prints a markdown table and writes gpu-check.csv.
+# With BACKEND_BENCH naming the viewer's `backend` bench binary (`cargo bench -p
+# wavesplat-viewer --bench backend --no-run` prints its path), it also times the display pass
+# (accumulated sums → the texture a window draws) at 256², 512² and 1024² and writes
+# display.csv.
 #
 #   bash scripts/gpu-check.sh [OUT_DIR] [--quick]
 #
 # --quick: the phantom at 64³, 256² only (what CI runs on lavapipe, the software Vulkan driver,
-# to keep the script working where there is no GPU). WAVESPLAT_BIN picks another build.
+# to keep the script working where there is no GPU). WAVESPLAT_BIN picks another build;
+# WAVESPLAT_VOLUME another volume (default ../shared/data/mni152_t1_1mm.nii.gz).
 # Exits non-zero when a render fails or the GPU's image differs from the CPU's by more than
 # summation order (below 60 dB; the > 100 dB goal is reported, not enforced).
 set -euo pipefail
@@ -24,7 +30,7 @@ QUICK="${2:-}"
 BIN="${WAVESPLAT_BIN:-$ROOT/target/release/wavesplat}"
 [ -x "$BIN" ] || (cd "$ROOT" && cargo build --release -q)
 mkdir -p "$OUT"
-VOL="$ROOT/../shared/data/mni152_t1_1mm.nii.gz"
+VOL="${WAVESPLAT_VOLUME:-$ROOT/../shared/data/mni152_t1_1mm.nii.gz}"
 SIZES="256 512 1024"
 FRACTIONS="0.0125 0.05"
 if [ "$QUICK" = "--quick" ]; then
@@ -94,6 +100,17 @@ floor=$(python3 -c "print(f'{$t1 - $t0:.1f}')")
 start=$(python3 -c "print(f'{$t2 - $t1:.1f}')")
 echo
 echo "device: ${DEVICE:-none found}"
+if [ -n "${BACKEND_BENCH:-}" ]; then
+  # Criterion prints each benchmark's name, then "time: [low median high]" (on the same line
+  # when the name is short).
+  "$BACKEND_BENCH" --bench display --warm-up-time 1 --measurement-time 3 2>/dev/null \
+    | python3 -c '
+import re, sys
+for m in re.finditer(r"^(display/\S+ [a-z ]+?)\s+time:\s+\[\S+ \S+ (\S+ \S+)", sys.stdin.read(), re.M):
+    print(f"{m.group(1)},{m.group(2)}")' > "$OUT/display.txt"
+  echo "display pass (median): $(tr '\n' ';' < "$OUT/display.txt")"
+  { echo "pass,median"; cat "$OUT/display.txt"; } > "$OUT/display.csv"
+fi
 echo "render start-up (process start → PNG, default backend, 256²): $start ms; process floor $floor ms"
 if python3 -c "import sys; sys.exit(0 if $WORST >= 60 else 1)"; then
   python3 -c "print('GPU against CPU: worst %.1f dB (goal > 100 dB: %s)' % ($WORST, 'met' if $WORST > 100 else 'not met'))"
