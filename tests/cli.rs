@@ -788,7 +788,7 @@ fn a_killed_colour_bricked_compression_at_a_byte_target_resumes() {
 
 /// The same without refinement (`--effort fast`) at a byte target, where the uninterrupted run
 /// codes every brick from the top its score pass kept, and the resumed one codes the bricks
-/// whose scores it takes from the checkpoint by transforming them again: both write one file.
+/// not yet coded from the tops the checkpoint kept (it says so): both write one file.
 #[test]
 fn a_killed_fast_bricked_compression_at_a_byte_target_resumes() {
     killed_and_resumed(&[
@@ -958,6 +958,7 @@ fn a_checkpoint_is_not_used_for_an_input_rewritten_with_the_same_length_and_time
 /// again (it resumes), then killed again and run with --no-resume (it starts over): both
 /// runs again write the uninterrupted file and leave no checkpoint or unfinished output.
 fn killed_and_resumed(options: &[&str]) {
+    let fast = options.contains(&"fast");
     let dir = tempfile::tempdir().unwrap();
     let path = |n: &str| dir.path().join(n).to_str().unwrap().to_string();
     let args = |out: &str| {
@@ -991,6 +992,14 @@ fn killed_and_resumed(options: &[&str]) {
         out(&resumed)
     );
     assert_eq!(std::fs::read(path("k.wsp")).unwrap(), want);
+    // Killed once a brick was coded, so after every brick was scored: without refinement
+    // every brick's top is in the checkpoint, and none of them is transformed again.
+    assert_eq!(
+        out(&resumed).contains("with their kept tops"),
+        fast,
+        "{}",
+        out(&resumed)
+    );
     assert!(
         !checkpoint.exists(),
         "the checkpoint is removed once the file is written"

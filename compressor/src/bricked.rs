@@ -1913,6 +1913,9 @@ impl BrickWork for LocalBricks<'_> {
                         }
                         if let Some(c) = self.checkpoint {
                             c.keep_summary(i, &s, energies);
+                            if let Some(top) = self.tops.get(&(0, plan.grid[i])) {
+                                c.keep_top(i, &top);
+                            }
                         }
                         s
                     }
@@ -1952,6 +1955,17 @@ impl LocalBricks<'_> {
                 let (file, kept) = match self.checkpoint.and_then(|c| c.coded(i, count)) {
                     Some(coded) => coded,
                     None => {
+                        // A run again after a kill: the top this brick's first pass kept, from
+                        // the checkpoint, where it is not in memory (then the brick is coded
+                        // without being read and transformed again).
+                        let key = (0, plan.grid[i]);
+                        if let (Some(c), Some(_)) = (self.checkpoint, count) {
+                            if self.tops.get(&key).is_none() && plan.top_cap(i).is_some() {
+                                if let Some(top) = c.top(i, &plan.base) {
+                                    self.tops.keep(key, top);
+                                }
+                            }
+                        }
                         let coded = plan.encode_from(self.source, i, count, &self.tops, 0)?;
                         if let Some(c) = self.checkpoint {
                             c.keep_coded(i, count, &coded.0);
@@ -3213,6 +3227,96 @@ mod tests {
                 crate::checkpoint::Checkpoint::open(dir.path(), &format!("{other:?}")).unwrap();
             assert!(replaced.replaced && !replaced.planned);
             assert_eq!(replaced.scored + replaced.coded, 0);
+        }
+    }
+
+    /// Where the bricks do not refine, the checkpoint keeps each brick's top as well: a run
+    /// again after the scores were kept but before a brick was coded codes it from its kept
+    /// top, reading nothing, into the same file; without the tops it reads those bricks
+    /// again (a byte target once per trial). A count target and a byte target (several trials, each brick's count its own
+    /// entry), on one thread and on two.
+    #[test]
+    fn a_run_again_codes_the_bricks_not_yet_coded_from_their_kept_tops() {
+        let v = Phantom::SheppLogan.generate([40, 36, 30]);
+        for threads in [1, 2] {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap();
+            for target in [Target::Coefficients(3_000), Target::Bytes(6_000)] {
+                let opts = CompressOptions {
+                    target,
+                    ..crate::encode::Effort::Fast.options()
+                };
+                let plan = BrickPlan::new(&v, &opts, 20).unwrap();
+                let bricks = plan.grid.len();
+                assert!(plan.top_cap(0).is_some(), "the bricks keep tops");
+                let dir = tempfile::tempdir().unwrap();
+                let key = format!("{opts:?}");
+                let run = |checkpoint: bool| {
+                    let source = Flaky {
+                        volume: &v,
+                        reads: Default::default(),
+                        fail_at: 0,
+                    };
+                    let (cp, resumed) = if checkpoint {
+                        let (cp, r) =
+                            crate::checkpoint::Checkpoint::open(dir.path(), &key).unwrap();
+                        (Some(cp), r)
+                    } else {
+                        (None, Default::default())
+                    };
+                    let mut out = Vec::new();
+                    pool.install(|| {
+                        compress_bricked_to(
+                            &source,
+                            &opts,
+                            20,
+                            &|_| {},
+                            None,
+                            cp.as_ref(),
+                            &mut out,
+                        )
+                    })
+                    .unwrap();
+                    (out, resumed, source.reads.into_inner())
+                };
+                let (whole, _, _) = run(false);
+                let (first, _, _) = run(true);
+                assert_eq!(first, whole);
+                // A kill after the scores and tops were kept, before any brick was coded.
+                let remove = |prefix: &str| {
+                    for e in std::fs::read_dir(dir.path()).unwrap() {
+                        let path = e.unwrap().path();
+                        let name = path.file_name().unwrap().to_string_lossy().to_string();
+                        if name.starts_with(prefix) {
+                            std::fs::remove_file(path).unwrap();
+                        }
+                    }
+                };
+                remove("brick-");
+                let (again, resumed, reads) = run(true);
+                assert_eq!(again, whole, "{target:?} {threads}");
+                assert_eq!(
+                    (resumed.scored, resumed.tops),
+                    (bricks, bricks),
+                    "{resumed:?}"
+                );
+                assert_eq!(resumed.coded, 0);
+                assert_eq!(reads, 0, "{target:?} {threads}: coded from the kept tops");
+                // Without the tops the bricks not coded are read and transformed again.
+                remove("brick-");
+                remove("top-");
+                let (again, resumed, reads) = run(true);
+                assert_eq!(again, whole, "{target:?} {threads}");
+                assert_eq!(resumed.tops, 0);
+                // Once per brick for a count; once per brick and trial for bytes (a brick
+                // transformed again keeps no top for the next trial).
+                assert!(reads >= bricks, "{target:?} {threads}: {reads}");
+                if matches!(target, Target::Coefficients(_)) {
+                    assert_eq!(reads, bricks, "{threads}");
+                }
+            }
         }
     }
 

@@ -2,7 +2,10 @@
 //! (2048³ on two cores: most of an hour), and a kill, a reboot or a full disk near the end
 //! should not cost the bricks already done. A [`Checkpoint`] is a directory that keeps, as
 //! they are made, the plan's choices (a byte target's depth, compared on a sample of the
-//! bricks), every brick's score summary (the first pass) and every coded brick (the second,
+//! bricks), every brick's score summary (the first pass), the top coefficients that pass kept
+//! where the bricks do not refine ([`crate::encode::KeptTop`], so that a run again codes the
+//! bricks not yet coded without reading and transforming them again; within
+//! [`TOP_DISK_SHARE`] of the free disk space) and every coded brick (the second,
 //! keyed by the count it kept, so a byte target's trials are kept apart). A run of the
 //! same compression finds them and does only what is missing; the result is the same file,
 //! byte for byte, since each brick's pass depends only on the brick, the options and its count.
@@ -14,8 +17,10 @@
 //! A checkpoint that cannot be written (a full disk, a name taken) is a warning, not an error:
 //! the compression goes on without it ([`Checkpoint::keep_summary`]).
 
-use crate::encode::ScoreSummary;
+use crate::bricked::TOP_DISK_SHARE;
+use crate::encode::{CompressOptions, KeptTop, ScoreSummary};
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering::Relaxed};
 
 /// The file naming the compression a checkpoint belongs to.
 const KEY_FILE: &str = "key";
@@ -29,7 +34,15 @@ const UNFINISHED_FILE: &str = "unfinished-output";
 pub struct Checkpoint {
     dir: PathBuf,
     /// Set by the first entry that could not be written: no more are tried.
-    unwritable: std::sync::atomic::AtomicBool,
+    unwritable: AtomicBool,
+    /// The bytes kept tops may take here: [`TOP_DISK_SHARE`] of the free space when the
+    /// first is kept (`None`: the space could not be read; no tops are kept).
+    top_budget: std::sync::OnceLock<Option<u64>>,
+    /// Bytes of the kept tops written so far.
+    top_bytes: AtomicU64,
+    /// Set by the first top that could not be written: no more are tried (the other
+    /// entries still are).
+    tops_given_up: AtomicBool,
 }
 
 /// What a checkpoint held when it was opened.
@@ -39,6 +52,8 @@ pub struct Resumed {
     pub planned: bool,
     /// Bricks whose score summary it held.
     pub scored: usize,
+    /// Bricks whose kept top it held.
+    pub tops: usize,
     /// Coded bricks it held (over every count).
     pub coded: usize,
     /// Whether it held another compression's entries, which were removed.
@@ -53,6 +68,9 @@ impl Checkpoint {
         let cp = Checkpoint {
             dir: dir.to_path_buf(),
             unwritable: Default::default(),
+            top_budget: Default::default(),
+            top_bytes: Default::default(),
+            tops_given_up: Default::default(),
         };
         let mut resumed = Resumed::default();
         let stored = std::fs::read(dir.join(KEY_FILE)).ok();
@@ -76,6 +94,8 @@ impl Checkpoint {
                 resumed.scored += 1;
             } else if name.starts_with("brick-") && !name.ends_with(".tmp") {
                 resumed.coded += 1;
+            } else if name.starts_with("top-") && !name.ends_with(".tmp") {
+                resumed.tops += 1;
             }
         }
         Ok((cp, resumed))
@@ -152,6 +172,54 @@ impl Checkpoint {
         self.write_checked(&coded_name(i, count), file)
     }
 
+    /// Brick `i`'s kept top, if kept, intact and valid for `opts` (the options of the run,
+    /// which the checkpoint's key ties to those it was scored with).
+    pub fn top(&self, i: usize, opts: &CompressOptions) -> Option<KeptTop> {
+        let bytes = self.read_checked(&format!("top-{i}"))?;
+        match KeptTop::from_bytes(&bytes, opts) {
+            Ok(top) => Some(top),
+            Err(e) => {
+                tracing::warn!(brick = i, error = %e, "a kept top in the checkpoint is not used");
+                None
+            }
+        }
+    }
+
+    /// Keeps brick `i`'s top while the tops take at most [`TOP_DISK_SHARE`] of the free
+    /// space (as it was at the first): they are 8–9 bytes a coefficient, tens of times the
+    /// output's size, and must not take the room the output and the coded bricks need. One
+    /// that cannot be written stops the tops (a warning), not the other entries.
+    pub fn keep_top(&self, i: usize, top: &KeptTop) {
+        if self.is_unwritable() || self.tops_given_up.load(Relaxed) {
+            return;
+        }
+        let budget = *self.top_budget.get_or_init(|| {
+            fs2::available_space(&self.dir)
+                .ok()
+                .map(|free| (free as f64 * TOP_DISK_SHARE) as u64)
+        });
+        let size = top.spilled_size() + 400;
+        let within = budget.is_some_and(|b| self.top_bytes.fetch_add(size, Relaxed) + size <= b);
+        if !within {
+            return;
+        }
+        let kept = top
+            .to_bytes()
+            .map_err(std::io::Error::other)
+            .and_then(|bytes| self.write_checked(&format!("top-{i}"), &bytes));
+        if let Err(e) = kept {
+            let _ = std::fs::remove_file(self.dir.join(format!("top-{i}.tmp")));
+            if !self.tops_given_up.swap(true, Relaxed) {
+                tracing::warn!(
+                    dir = %self.dir.display(),
+                    error = %e,
+                    "cannot keep the bricks' kept tops in the checkpoint: going on without them \
+                     (a run again transforms the bricks not yet coded)"
+                );
+            }
+        }
+    }
+
     /// Keeps brick `i`'s score summary as [`Checkpoint::save_summary`] does; one that cannot
     /// be written is a warning (the first time) and the compression goes on without the
     /// checkpoint, which is a convenience, never a reason to fail.
@@ -172,16 +240,13 @@ impl Checkpoint {
     }
 
     fn is_unwritable(&self) -> bool {
-        self.unwritable.load(std::sync::atomic::Ordering::Relaxed)
+        self.unwritable.load(Relaxed)
     }
 
     /// Warns of the first entry that could not be written, and stops writing.
     fn note(&self, kept: std::io::Result<()>) {
         if let Err(e) = kept {
-            if !self
-                .unwritable
-                .swap(true, std::sync::atomic::Ordering::Relaxed)
-            {
+            if !self.unwritable.swap(true, Relaxed) {
                 tracing::warn!(
                     dir = %self.dir.display(),
                     error = %e,
@@ -227,12 +292,15 @@ fn read_checked_at(path: &Path) -> Option<Vec<u8>> {
     (crc32fast::hash(&bytes) == stored).then_some(bytes)
 }
 
-/// Whether `path` is a checkpoint entry's file (a summary or a coded brick, or one being
+/// Whether `path` is a checkpoint entry's file (a summary, a kept top or a coded brick, or one being
 /// written): what a checkpoint of another key has removed, and nothing else of the directory.
 fn is_entry(path: &Path) -> bool {
     path.is_file()
         && path.file_name().and_then(|n| n.to_str()).is_some_and(|n| {
-            n.starts_with("score-") || n.starts_with("brick-") || n.starts_with(PLAN_FILE)
+            n.starts_with("score-")
+                || n.starts_with("brick-")
+                || n.starts_with("top-")
+                || n.starts_with(PLAN_FILE)
         })
 }
 

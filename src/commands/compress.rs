@@ -598,10 +598,14 @@ fn open_checkpoint(
     let fresh = resumed.replaced || !(resumed.planned || resumed.scored + resumed.coded > 0);
     if !fresh {
         outln!(
-            "resuming from {}: {}{} bricks scored and {} coded already",
+            "resuming from {}: {}{} bricks scored{} and {} coded already",
             dir.display(),
             if resumed.planned { "the plan, " } else { "" },
             resumed.scored,
+            match resumed.tops {
+                0 => String::new(),
+                t => format!(" ({t} with their kept tops: coded without being read again)"),
+            },
             resumed.coded
         );
     }

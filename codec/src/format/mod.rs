@@ -127,7 +127,8 @@ pub enum ColorKind {
 }
 
 impl ColorKind {
-    fn code(self) -> u8 {
+    /// The byte that stands for it in a header.
+    pub fn code(self) -> u8 {
         match self {
             ColorKind::Intensity => 0,
             ColorKind::Rgb => 1,
@@ -135,7 +136,8 @@ impl ColorKind {
             ColorKind::Pca => 3,
         }
     }
-    fn from_code(c: u8) -> Option<Self> {
+    /// The kind a header's byte stands for (`None`: no kind).
+    pub fn from_code(c: u8) -> Option<Self> {
         Some(match c {
             0 => ColorKind::Intensity,
             1 => ColorKind::Rgb,

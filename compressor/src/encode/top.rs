@@ -21,9 +21,13 @@ use super::summary::ScoreSummary;
 use super::{check_layer_growth, scored};
 use crate::scratch::ScratchFile;
 use crate::select::Histogram;
+use crate::visible::Visible;
 use std::borrow::Cow;
 use std::sync::Arc;
-use wavesplat_codec::volume::Volume;
+use wavesplat_codec::family::Family;
+use wavesplat_codec::format::{ColorInfo, ColorKind};
+use wavesplat_codec::layout::Geometry;
+use wavesplat_codec::volume::{Placement, Volume};
 
 /// A volume's oracle's top coefficients and what coding them needs, kept from its score pass
 /// ([`score_keeping_top`]).
@@ -249,6 +253,245 @@ impl KeptTop {
     }
 }
 
+/// The start of [`KeptTop::to_bytes`]: a tag and its version.
+const TOP_MAGIC: &[u8; 8] = b"WSTOP\x00\x00\x01";
+
+/// Why bytes are not a [`KeptTop`] for the options they are read with.
+#[derive(Debug, thiserror::Error)]
+#[error("not a kept top: {0}")]
+pub struct TopBytesError(String);
+
+/// Bounds-checked little-endian reads of [`KeptTop::to_bytes`]'s output.
+struct TopReader<'a>(&'a [u8]);
+
+impl TopReader<'_> {
+    fn take<const N: usize>(&mut self) -> Result<[u8; N], TopBytesError> {
+        let (head, rest) = self
+            .0
+            .split_at_checked(N)
+            .ok_or_else(|| TopBytesError("cut short".into()))?;
+        self.0 = rest;
+        Ok(head.try_into().unwrap_or([0; N]))
+    }
+    fn u8(&mut self) -> Result<u8, TopBytesError> {
+        Ok(self.take::<1>()?[0])
+    }
+    fn u64(&mut self) -> Result<u64, TopBytesError> {
+        Ok(u64::from_le_bytes(self.take()?))
+    }
+    fn usize(&mut self) -> Result<usize, TopBytesError> {
+        usize::try_from(self.u64()?).map_err(|_| TopBytesError("a size beyond memory".into()))
+    }
+    fn f32(&mut self) -> Result<f32, TopBytesError> {
+        Ok(f32::from_le_bytes(self.take()?))
+    }
+    fn f64(&mut self) -> Result<f64, TopBytesError> {
+        Ok(f64::from_le_bytes(self.take()?))
+    }
+    fn flag(&mut self) -> Result<bool, TopBytesError> {
+        match self.u8()? {
+            0 => Ok(false),
+            1 => Ok(true),
+            _ => Err(TopBytesError("a flag neither 0 nor 1".into())),
+        }
+    }
+}
+
+impl KeptTop {
+    /// The top written down, so that a compression run again after a kill codes the brick
+    /// from it instead of reading and transforming it again ([`crate::checkpoint`]): the
+    /// metadata coding needs (geometry, margin, colour information, value range, placement,
+    /// totals) and the coefficients, 8 bytes each and a channel byte each with colour. The
+    /// band norms and the seen-share tables are not written: they follow from the geometry.
+    /// The options are not either: [`KeptTop::from_bytes`] takes them from its caller.
+    pub fn to_bytes(&self) -> Result<Vec<u8>, CompressError> {
+        let p = &self.prepared;
+        let g = &p.geometry;
+        let mut out = Vec::with_capacity(400 + self.spilled_size() as usize);
+        out.extend_from_slice(TOP_MAGIC);
+        let u64s = |out: &mut Vec<u8>, v: &[usize]| {
+            for x in v {
+                out.extend_from_slice(&(*x as u64).to_le_bytes());
+            }
+        };
+        let f64s = |out: &mut Vec<u8>, v: &[f64]| {
+            for x in v {
+                out.extend_from_slice(&x.to_le_bytes());
+            }
+        };
+        u64s(&mut out, &g.dims);
+        u64s(&mut out, &g.padded);
+        u64s(&mut out, &g.origin);
+        u64s(&mut out, &[g.levels, p.margin, p.channels]);
+        out.push(g.family.code());
+        for v in g.spacing.iter().chain(&p.value_range) {
+            out.extend_from_slice(&v.to_le_bytes());
+        }
+        out.push(p.color.kind.code());
+        f64s(&mut out, p.color.basis.as_flattened());
+        f64s(&mut out, &p.color.mean);
+        f64s(&mut out, &p.color.importance);
+        out.push(u8::from(p.placement.is_some()));
+        let placement = p.placement.unwrap_or_else(Placement::identity);
+        f64s(&mut out, &placement.origin);
+        f64s(&mut out, placement.directions.as_flattened());
+        f64s(&mut out, &[p.total_energy, p.selectable_energy]);
+        out.extend_from_slice(&p.total_coefficients.to_le_bytes());
+        out.extend_from_slice(&p.nonzero.to_le_bytes());
+        out.push(u8::from(p.visible.is_some()));
+        out.push(u8::from(self.complete));
+        let (top, channels) = self.prefix(self.len())?;
+        out.extend_from_slice(&(top.len() as u64).to_le_bytes());
+        out.push(u8::from(!channels.is_empty()));
+        for &(index, value) in top.iter() {
+            out.extend_from_slice(&index.to_le_bytes());
+            out.extend_from_slice(&value.to_bits().to_le_bytes());
+        }
+        out.extend_from_slice(&channels);
+        Ok(out)
+    }
+
+    /// Reads [`KeptTop::to_bytes`]'s output back as a top scored with `opts`. Everything is
+    /// checked against what `opts` and the geometry imply (the geometry rebuilt from its
+    /// dimensions, depth and margin, the seen-share tables present exactly where `opts` pad
+    /// smoothly and the grid clips, indices within the grid, channels within the volume's,
+    /// finite values, totals that agree), so that a damaged or foreign entry is refused
+    /// rather than coded.
+    pub fn from_bytes(bytes: &[u8], opts: &CompressOptions) -> Result<KeptTop, TopBytesError> {
+        let bad = |what: &str| TopBytesError(what.to_string());
+        let mut r = TopReader(bytes);
+        if r.take::<8>()? != *TOP_MAGIC {
+            return Err(bad("wrong tag or version"));
+        }
+        let mut three =
+            || -> Result<[usize; 3], TopBytesError> { Ok([r.usize()?, r.usize()?, r.usize()?]) };
+        let (dims, padded, origin) = (three()?, three()?, three()?);
+        let (levels, margin, channels) = (r.usize()?, r.usize()?, r.usize()?);
+        let family = Family::from_code(r.u8()?).ok_or_else(|| bad("no such family"))?;
+        if family != opts.family {
+            return Err(bad("another family than the options'"));
+        }
+        let spacing = [r.f32()?, r.f32()?, r.f32()?];
+        let value_range = [r.f32()?, r.f32()?];
+        let geometry = Geometry::new(dims, family, levels, margin)
+            .and_then(|g| g.with_spacing(spacing))
+            .map_err(|e| TopBytesError(format!("geometry: {e}")))?;
+        if geometry.padded != padded || geometry.origin != origin {
+            return Err(bad("a grid its dimensions, depth and margin do not give"));
+        }
+        if !(1..=3).contains(&channels) {
+            return Err(bad("channels outside 1..=3"));
+        }
+        let kind = ColorKind::from_code(r.u8()?).ok_or_else(|| bad("no such colour kind"))?;
+        let mut nine = || -> Result<[[f64; 3]; 3], TopBytesError> {
+            let mut m = [[0.0; 3]; 3];
+            for v in m.as_flattened_mut() {
+                *v = r.f64()?;
+            }
+            Ok(m)
+        };
+        let basis = nine()?;
+        let mut three_f64 =
+            || -> Result<[f64; 3], TopBytesError> { Ok([r.f64()?, r.f64()?, r.f64()?]) };
+        let (mean, importance) = (three_f64()?, three_f64()?);
+        let color = ColorInfo {
+            kind,
+            basis,
+            mean,
+            importance,
+        };
+        let placed = r.flag()?;
+        let place_origin = [r.f64()?, r.f64()?, r.f64()?];
+        let mut directions = [[0.0; 3]; 3];
+        for v in directions.as_flattened_mut() {
+            *v = r.f64()?;
+        }
+        let placement = placed.then_some(Placement {
+            origin: place_origin,
+            directions,
+        });
+        let (total_energy, selectable_energy) = (r.f64()?, r.f64()?);
+        let (total_coefficients, nonzero) = (r.u64()?, r.u64()?);
+        let grid = geometry.coefficient_count();
+        if total_coefficients != grid as u64 * channels as u64 || nonzero > total_coefficients {
+            return Err(bad("totals that disagree with the grid"));
+        }
+        let energies_ok = [total_energy, selectable_energy]
+            .iter()
+            .all(|e| e.is_finite() && *e >= 0.0);
+        if !energies_ok {
+            return Err(bad("an energy negative or not finite"));
+        }
+        let visible = r.flag()?;
+        if visible != (opts.smooth_padding && geometry.clips_to_box()) {
+            return Err(bad(
+                "seen shares where the options have none, or none where they do",
+            ));
+        }
+        let complete = r.flag()?;
+        let len = r.usize()?;
+        let with_channels = r.flag()?;
+        if with_channels != (channels > 1) || len as u64 > nonzero {
+            return Err(bad("a top of another size or channel count"));
+        }
+        let per = 8 + usize::from(with_channels);
+        if len.checked_mul(per) != Some(r.0.len()) {
+            return Err(bad("a length that disagrees with the coefficients"));
+        }
+        let (pairs, channel_bytes) = r.0.split_at(len * 8);
+        let mut top = Vec::with_capacity(len);
+        for b in pairs.chunks_exact(8) {
+            let index = u32::from_le_bytes([b[0], b[1], b[2], b[3]]);
+            let value = f32::from_bits(u32::from_le_bytes([b[4], b[5], b[6], b[7]]));
+            if index as usize >= grid || !value.is_finite() {
+                return Err(bad("an index outside the grid or a value not finite"));
+            }
+            top.push((index, value));
+        }
+        if channel_bytes.iter().any(|c| usize::from(*c) >= channels) {
+            return Err(bad("a channel beyond the volume's"));
+        }
+        let norms = geometry
+            .bands()
+            .iter()
+            .map(|b| geometry.basis_norm2(*b))
+            .collect();
+        let prepared = Prepared {
+            visible: if visible {
+                Visible::new(&geometry)
+            } else {
+                None
+            },
+            geometry,
+            margin,
+            color,
+            channels,
+            value_range,
+            placement,
+            band_of: Vec::new(),
+            norms,
+            coefficients: Vec::new(),
+            histogram: Histogram::none(),
+            total_energy,
+            selectable_energy,
+            total_coefficients,
+            targets: Vec::new(),
+            views: Vec::new(),
+            nonzero,
+            scratch: Default::default(),
+        };
+        Ok(KeptTop {
+            prepared,
+            values: TopValues::Held {
+                top,
+                channels: channel_bytes.to_vec(),
+            },
+            complete,
+            opts: opts.clone(),
+        })
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -359,6 +602,86 @@ mod tests {
             }
             if top.len() == 900 {
                 assert!(top.compress(901).is_err());
+            }
+        }
+    }
+
+    /// A top written down and read back codes the files the original codes, byte for byte
+    /// (scalar and colour volumes, flat and bridged grids, anisotropic spacing, an empty
+    /// volume, one voxel), whether it was held or spilled when written; bytes cut short,
+    /// lengthened, with an index outside the grid, or read with other options are refused.
+    #[test]
+    fn a_top_written_down_reads_back_as_the_same_top() {
+        let file = Arc::new(ScratchFile::new(None).unwrap());
+        let slab = {
+            let head = Phantom::Ct.generate([33, 29, 21]);
+            let d = head.dims();
+            Volume::new(d, [1.0, 1.0, 2.5], head.into_channels()).unwrap()
+        };
+        for v in [
+            Phantom::SheppLogan.generate([40, 36, 30]),
+            slab,
+            Phantom::RgbHead.generate([24, 20, 17]),
+            Phantom::Zero.generate([9, 8, 7]),
+            Phantom::SheppLogan.generate([1, 1, 1]),
+        ] {
+            for bridged in [false, true] {
+                let opts = fast(&v, bridged);
+                let (_, top) = score_keeping_top(&v, &opts, 600, &|_, _| {}).unwrap();
+                let mut top = top.unwrap();
+                let bytes = top.to_bytes().unwrap();
+                let back = KeptTop::from_bytes(&bytes, &opts).unwrap();
+                assert_eq!(back.len(), top.len());
+                assert_eq!(back.covers(601), top.covers(601));
+                assert!(back.scored_with(&opts));
+                for c in [0u64, 1, 50, 599, 600, 700] {
+                    if !top.covers(c) {
+                        assert!(!back.covers(c));
+                        continue;
+                    }
+                    let want = top.compress(c).unwrap();
+                    let got = back.compress(c).unwrap();
+                    assert_eq!(got.bytes, want.bytes, "{:?} {bridged} {c}", v.dims());
+                    assert_eq!(got.stats.q_v.to_bits(), want.stats.q_v.to_bits());
+                }
+                top.spill(&file).unwrap();
+                assert_eq!(top.to_bytes().unwrap(), bytes, "spilled, written the same");
+
+                let refused = |b: &[u8], o: &CompressOptions| KeptTop::from_bytes(b, o).is_err();
+                let step = (bytes.len() / 97).max(1);
+                for cut in (0..bytes.len()).step_by(step) {
+                    assert!(refused(&bytes[..cut], &opts), "cut at {cut}");
+                }
+                let mut longer = bytes.clone();
+                longer.push(0);
+                assert!(refused(&longer, &opts));
+                let other = CompressOptions {
+                    smooth_padding: !bridged,
+                    ..opts.clone()
+                };
+                let clips = back.prepared.geometry.clips_to_box();
+                assert_eq!(refused(&bytes, &other), clips, "{:?} {bridged}", v.dims());
+                let other_family = CompressOptions {
+                    family: wavesplat_codec::family::Family::ALL
+                        .into_iter()
+                        .find(|f| *f != opts.family)
+                        .unwrap(),
+                    ..opts.clone()
+                };
+                assert!(refused(&bytes, &other_family));
+                if !top.is_empty() {
+                    let per = 8 + usize::from(v.channel_count() > 1);
+                    let first = bytes.len() - top.len() * per;
+                    let mut outside = bytes.clone();
+                    outside[first..first + 4].copy_from_slice(&u32::MAX.to_le_bytes());
+                    assert!(refused(&outside, &opts));
+                    let mut nan = bytes.clone();
+                    nan[first + 4..first + 8].copy_from_slice(&f32::NAN.to_bits().to_le_bytes());
+                    assert!(refused(&nan, &opts));
+                }
+                let mut tag = bytes.clone();
+                tag[7] = 2;
+                assert!(refused(&tag, &opts));
             }
         }
     }
