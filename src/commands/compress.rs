@@ -164,7 +164,10 @@ pub struct CompressArgs {
     /// Start a bricked compression over, discarding the checkpoint of an interrupted run. By
     /// default a bricked compression keeps its plan and each brick as it finishes in
     /// OUTPUT.checkpoint/ beside the output (about the output's size, once per trial of a byte
-    /// target's search) and removes it once the file is written; the same command run again
+    /// target's search; without refinement also each brick's kept top, 8 bytes a coefficient
+    /// within a quarter of the free disk, so that a run again codes the bricks scored before
+    /// the interruption without transforming them) and removes it once the file is written;
+    /// the same command run again
     /// after an interruption (a kill, a reboot, a full disk) goes on from there and writes the
     /// same file. A checkpoint of another input or other options is never used.
     #[arg(long)]
