@@ -267,19 +267,29 @@ impl Checkpoint {
         read_checked_at(&self.dir.join(name))
     }
 
-    /// Writes entry `name`: `bytes` and their CRC-32.
+    /// Writes entry `name`: `bytes` and their CRC-32 (a kept top is hundreds of MB on a
+    /// large volume: the two are written one after the other, not copied together).
     fn write_checked(&self, name: &str, bytes: &[u8]) -> std::io::Result<()> {
-        let mut with_crc = Vec::with_capacity(bytes.len() + 4);
-        with_crc.extend_from_slice(bytes);
-        with_crc.extend_from_slice(&crc32fast::hash(bytes).to_le_bytes());
-        self.write_atomic(name, &with_crc)
+        let crc = crc32fast::hash(bytes).to_le_bytes();
+        self.write_atomic_parts(name, &[bytes, &crc])
     }
 
     /// Writes `name` under a temporary name and renames it, so a kill leaves the old entry or
     /// none, never part of one.
     fn write_atomic(&self, name: &str, bytes: &[u8]) -> std::io::Result<()> {
+        self.write_atomic_parts(name, &[bytes])
+    }
+
+    /// [`Checkpoint::write_atomic`] of `parts` one after the other.
+    fn write_atomic_parts(&self, name: &str, parts: &[&[u8]]) -> std::io::Result<()> {
+        use std::io::Write;
         let tmp = self.dir.join(format!("{name}.tmp"));
-        std::fs::write(&tmp, bytes).and_then(|_| std::fs::rename(&tmp, self.dir.join(name)))
+        let mut file = std::fs::File::create(&tmp)?;
+        for part in parts {
+            file.write_all(part)?;
+        }
+        drop(file);
+        std::fs::rename(&tmp, self.dir.join(name))
     }
 }
 

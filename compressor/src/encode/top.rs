@@ -343,9 +343,11 @@ impl KeptTop {
         let (top, channels) = self.prefix(self.len())?;
         out.extend_from_slice(&(top.len() as u64).to_le_bytes());
         out.push(u8::from(!channels.is_empty()));
-        for &(index, value) in top.iter() {
-            out.extend_from_slice(&index.to_le_bytes());
-            out.extend_from_slice(&value.to_bits().to_le_bytes());
+        let start = out.len();
+        out.resize(start + top.len() * 8, 0);
+        for (b, &(index, value)) in out[start..].chunks_exact_mut(8).zip(top.iter()) {
+            b[..4].copy_from_slice(&index.to_le_bytes());
+            b[4..].copy_from_slice(&value.to_bits().to_le_bytes());
         }
         out.extend_from_slice(&channels);
         Ok(out)
