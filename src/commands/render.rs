@@ -439,11 +439,13 @@ pub fn run(a: RenderArgs) -> Result<()> {
             left_out(whole.stats.vanished)
         );
         outln!(
-            "opened in {:.1} ms, done {:.1} ms after the request (start-up included; decoding and planning together {:.1} ms, splatting {:.1} ms)",
+            "opened in {:.1} ms, done {:.1} ms after the request (start-up included; decoding and planning together {:.1} ms, splatting {:.1} ms: in the backend's accumulate {:.1} ms and read-back {:.1} ms, the rest making records)",
             opened_after.as_secs_f64() * 1e3,
             done_after.as_secs_f64() * 1e3,
             whole.decode_and_plan.as_secs_f64() * 1e3,
-            whole.splat.as_secs_f64() * 1e3
+            whole.splat.as_secs_f64() * 1e3,
+            whole.accumulate.as_secs_f64() * 1e3,
+            whole.read.as_secs_f64() * 1e3
         );
         report_quality(reference.as_ref(), image);
         return Ok(());

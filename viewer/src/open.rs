@@ -580,6 +580,64 @@ pub struct WholeFileImage {
     pub decode_and_plan: std::time::Duration,
     /// Wall time of the splatting after them (records and accumulation, display values).
     pub splat: std::time::Duration,
+    /// Of `splat`, the time inside the backend: its `begin` and `accumulate` calls (a GPU's
+    /// uploads and dispatches, which may return before the device is done) ...
+    pub accumulate: std::time::Duration,
+    /// ... and reading the image back (for a GPU, waiting for the device too). The rest of
+    /// `splat` is making the records on the host and the display values.
+    pub read: std::time::Duration,
+}
+
+/// A backend whose calls are timed ([`WholeFileImage::accumulate`], [`WholeFileImage::read`]).
+struct TimedBackend<'b> {
+    inner: &'b mut dyn crate::AccumulationBackend,
+    accumulate: std::time::Duration,
+    read: std::time::Duration,
+}
+
+impl crate::AccumulationBackend for TimedBackend<'_> {
+    fn name(&self) -> String {
+        self.inner.name()
+    }
+
+    fn begin(&mut self, layout: crate::backend::Layout) -> Result<(), crate::BackendError> {
+        let t = std::time::Instant::now();
+        let r = self.inner.begin(layout);
+        self.accumulate += t.elapsed();
+        r
+    }
+
+    fn accumulate(
+        &mut self,
+        atlas: &crate::backend::FootprintAtlas,
+        records: &[crate::backend::SplatRecord],
+    ) -> Result<u64, crate::BackendError> {
+        let t = std::time::Instant::now();
+        let r = self.inner.accumulate(atlas, records);
+        self.accumulate += t.elapsed();
+        r
+    }
+
+    fn read(&mut self) -> Result<Image, crate::BackendError> {
+        let t = std::time::Instant::now();
+        let r = self.inner.read();
+        self.read += t.elapsed();
+        r
+    }
+
+    fn prepare(
+        &mut self,
+        atlas: &crate::backend::FootprintAtlas,
+    ) -> Result<(), crate::BackendError> {
+        let t = std::time::Instant::now();
+        let r = self.inner.prepare(atlas);
+        self.accumulate += t.elapsed();
+        r
+    }
+
+    fn gpu(&mut self) -> Option<&mut crate::backend::gpu::GpuBackend> {
+        self.inner.gpu()
+    }
 }
 
 /// Work of a one-pass render, in coefficients times pixels over 256², per pool thread, up to
@@ -683,6 +741,12 @@ fn draw_whole_file_in_batches(
     })?;
     let decode_and_plan = start.elapsed();
     let splat_start = std::time::Instant::now();
+    let mut timed = TimedBackend {
+        inner: backend,
+        accumulate: Default::default(),
+        read: Default::default(),
+    };
+    let backend: &mut dyn crate::AccumulationBackend = &mut timed;
     backend.begin(plan.layout()).map_err(RenderError::Backend)?;
     let mut stats = crate::RenderStats::default();
     plan.splat_in_batches(
@@ -702,6 +766,8 @@ fn draw_whole_file_in_batches(
         stats,
         decode_and_plan,
         splat: splat_start.elapsed(),
+        accumulate: timed.accumulate,
+        read: timed.read,
     })
 }
 
@@ -771,6 +837,15 @@ mod tests {
         let whole = draw(usize::MAX);
         let file = parse_file(&bytes).unwrap();
         assert_eq!(whole.packets, file.packets.len());
+        // The backend's share of the splatting is measured inside it.
+        assert!(whole.accumulate > std::time::Duration::ZERO);
+        assert!(
+            whole.accumulate + whole.read <= whole.splat,
+            "{:?} + {:?} of {:?}",
+            whole.accumulate,
+            whole.read,
+            whole.splat
+        );
         assert!(whole.packets > 4, "the file should have several packets");
         let largest = file
             .packets
