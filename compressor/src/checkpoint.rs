@@ -372,6 +372,43 @@ mod tests {
 
     /// An entry that cannot be written (its name taken by a directory) leaves the checkpoint
     /// unwritten from then on, without an error; what was kept before still reads.
+    /// A kept top reads back as one that codes the same file; one cut short, changed, or
+    /// read with other options is not used; a count of them is given on opening.
+    #[test]
+    fn a_kept_top_reads_back_and_a_damaged_one_is_not_used() {
+        let dir = tempfile::tempdir().unwrap();
+        let (cp, _) = Checkpoint::open(dir.path(), "k").unwrap();
+        let v = Phantom::Spheres.generate([16, 16, 16]);
+        let opts = crate::encode::Effort::Fast.options();
+        let (_, top) = crate::encode::score_keeping_top(&v, &opts, 300, &|_, _| {}).unwrap();
+        let top = top.unwrap();
+        cp.keep_top(2, &top);
+        let back = cp.top(2, &opts).expect("kept and read back");
+        assert_eq!(
+            back.compress(200).unwrap().bytes,
+            top.compress(200).unwrap().bytes
+        );
+        assert!(cp.top(1, &opts).is_none());
+        let other = CompressOptions {
+            family: wavesplat_codec::family::Family::ALL
+                .into_iter()
+                .find(|f| *f != opts.family)
+                .unwrap(),
+            ..opts.clone()
+        };
+        assert!(cp.top(2, &other).is_none(), "other options");
+        let (_, resumed) = Checkpoint::open(dir.path(), "k").unwrap();
+        assert_eq!(resumed.tops, 1);
+        let path = dir.path().join("top-2");
+        let good = std::fs::read(&path).unwrap();
+        let mut flipped = good.clone();
+        flipped[good.len() / 2] ^= 0x10;
+        std::fs::write(&path, &flipped).unwrap();
+        assert!(cp.top(2, &opts).is_none(), "a byte changed");
+        std::fs::write(&path, &good[..good.len() - 9]).unwrap();
+        assert!(cp.top(2, &opts).is_none(), "cut short");
+    }
+
     #[test]
     fn an_unwritable_checkpoint_is_given_up_without_an_error() {
         let dir = tempfile::tempdir().unwrap();
@@ -395,11 +432,13 @@ mod tests {
         let at = dir.path().join("out.wsp.checkpoint");
         let (cp, _) = Checkpoint::open(&at, "first").unwrap();
         cp.write_checked("score-0", b"anything").unwrap();
+        cp.write_checked("top-0", b"anything").unwrap();
         std::fs::write(at.join("notes.txt"), b"mine").unwrap();
         let (cp, resumed) = Checkpoint::open(&at, "second").unwrap();
         assert!(resumed.replaced);
-        assert_eq!((resumed.scored, resumed.coded), (0, 0));
+        assert_eq!((resumed.scored, resumed.tops, resumed.coded), (0, 0, 0));
         assert!(!at.join("score-0").exists() && at.join("notes.txt").exists());
+        assert!(!at.join("top-0").exists());
         assert_eq!(std::fs::read(at.join(KEY_FILE)).unwrap(), b"second");
         cp.remove().unwrap();
         assert!(!at.exists());
