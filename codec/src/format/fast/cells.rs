@@ -257,15 +257,21 @@ impl CellMap {
         let offset = brick_offset(o);
         let own = 64 * self.directory[b] as usize + offset;
         // The cell below the node's origin cell along each axis: in the node's brick, in the
-        // brick below, or (at the region's lower face) in the empty brick (slot 0).
+        // brick below, or (at the region's lower face) in the empty brick (slot 0). Whether
+        // the node lies on its brick's lower face is even or odd with the data, so the choice
+        // is made by a mask over both candidates, not by a branch (which mispredicted on half
+        // the nodes: a fifth of the fast decoder's mispredictions). The brick below is read
+        // from the directory either way (the node's own brick where there is none below); the
+        // inside candidate wraps where it is discarded.
         let outside = |v: u32, step: usize, width: usize| -> usize {
-            if v & 3 != 0 {
-                own - width
-            } else if v > 0 {
-                64 * self.directory[b - step] as usize + offset + 3 * width
+            let below = b.wrapping_sub(step * usize::from(v >= 4));
+            let at_face = if v > 0 {
+                64 * self.directory[below] as usize + offset + 3 * width
             } else {
                 offset
-            }
+            };
+            let on_face = usize::from(v & 3 == 0).wrapping_neg();
+            (own.wrapping_sub(width) & !on_face) | (at_face & on_face)
         };
         LeafNode {
             brick: b,
