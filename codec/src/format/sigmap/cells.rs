@@ -308,13 +308,10 @@ impl CodedCells {
                 let first = cube & plane;
                 let shift = 1 << (2 * a);
                 let inside = lo[a] > 0;
-                let below = (!inside && b.lo[a] > 0) as usize;
+                let below = usize::from(lo[a] == 0) & usize::from(b.lo[a] > 0);
                 let word = self.coded[i - below * stride[a]];
-                let face = if inside {
-                    first >> shift
-                } else {
-                    first << (3 * shift)
-                };
+                let into = (u64::from(inside)).wrapping_neg();
+                let face = ((first >> shift) & into) | ((first << (3 * shift)) & !into);
                 // No face below the region's lower edge.
                 let keep = ((b.lo[a] > 0) as u64).wrapping_neg();
                 faces[a] = word & face & keep;
