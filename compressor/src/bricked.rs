@@ -1554,10 +1554,7 @@ pub const TOP_FLOOR: u64 = 1024;
 /// else they are dropped and their bricks transformed again.
 pub const TOP_BUDGET: u64 = 512 << 20;
 
-/// The share of the free disk space (where the temporary file goes, when the first top is
-/// spilled) that spilled tops may take: the rest is left to the output, the checkpoint and
-/// the trials' coded bricks.
-pub const TOP_DISK_SHARE: f64 = 0.25;
+pub use crate::encode::TOP_DISK_SHARE;
 
 /// Which brick a kept top is of: the volume (0; a time series' component) and the brick.
 pub(crate) type TopKey = (usize, GridBrick);

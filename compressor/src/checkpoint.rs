@@ -17,8 +17,7 @@
 //! A checkpoint that cannot be written (a full disk, a name taken) is a warning, not an error:
 //! the compression goes on without it ([`Checkpoint::keep_summary`]).
 
-use crate::bricked::TOP_DISK_SHARE;
-use crate::encode::{CompressOptions, KeptTop, ScoreSummary};
+use crate::encode::{CompressOptions, KeptTop, ScoreSummary, TOP_DISK_SHARE};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering::Relaxed};
 

@@ -39,7 +39,7 @@ pub use rate::worth_going_shallower;
 pub(crate) use rate::SHALLOWER_KEPT;
 use rate::{compress_to_bytes, expected_bytes};
 pub use summary::{ScoreSummary, SummaryBytesError, SummedScores};
-pub use top::{score_keeping_top, KeptTop, TopBytesError};
+pub use top::{score_keeping_top, KeptTop, TopBytesError, TOP_DISK_SHARE};
 use wavesplat_codec::volume::Volume;
 
 /// Compresses a volume. `progress(stage, fraction)` is called as work proceeds.

@@ -29,6 +29,13 @@ use wavesplat_codec::format::{ColorInfo, ColorKind};
 use wavesplat_codec::layout::Geometry;
 use wavesplat_codec::volume::{Placement, Volume};
 
+/// The share of the free disk space that kept tops may take where they are written: spilled
+/// beyond their memory budget (a bricked compression's temporary file, measured when the first
+/// top is spilled) and, separately, kept in a checkpoint ([`crate::checkpoint`], measured when
+/// the first is kept). The rest is left to the output, the checkpoint's other entries and the
+/// trials' coded bricks.
+pub const TOP_DISK_SHARE: f64 = 0.25;
+
 /// A volume's oracle's top coefficients and what coding them needs, kept from its score pass
 /// ([`score_keeping_top`]).
 pub struct KeptTop {
