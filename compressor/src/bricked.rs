@@ -1958,7 +1958,7 @@ impl LocalBricks<'_> {
                         let key = (0, plan.grid[i]);
                         if let (Some(c), Some(_)) = (self.checkpoint, count) {
                             if self.tops.get(&key).is_none() && plan.top_cap(i).is_some() {
-                                if let Some(top) = c.top(i, &plan.base) {
+                                if let Some(top) = c.top(i, plan.grid[i].1, &plan.base) {
                                     self.tops.keep(key, top);
                                 }
                             }

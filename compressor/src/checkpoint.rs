@@ -171,11 +171,11 @@ impl Checkpoint {
         self.write_checked(&coded_name(i, count), file)
     }
 
-    /// Brick `i`'s kept top, if kept, intact and valid for `opts` (the options of the run,
-    /// which the checkpoint's key ties to those it was scored with).
-    pub fn top(&self, i: usize, opts: &CompressOptions) -> Option<KeptTop> {
+    /// Brick `i`'s kept top, if kept, intact and valid for a brick of `dims` and `opts` (the
+    /// options of the run, which the checkpoint's key ties to those it was scored with).
+    pub fn top(&self, i: usize, dims: [usize; 3], opts: &CompressOptions) -> Option<KeptTop> {
         let bytes = self.read_checked(&format!("top-{i}"))?;
-        match KeptTop::from_bytes(&bytes, opts) {
+        match KeptTop::from_bytes(&bytes, dims, opts) {
             Ok(top) => Some(top),
             Err(e) => {
                 tracing::warn!(brick = i, error = %e, "a kept top in the checkpoint is not used");
@@ -382,12 +382,13 @@ mod tests {
         let (_, top) = crate::encode::score_keeping_top(&v, &opts, 300, &|_, _| {}).unwrap();
         let top = top.unwrap();
         cp.keep_top(2, &top);
-        let back = cp.top(2, &opts).expect("kept and read back");
+        let back = cp.top(2, v.dims(), &opts).expect("kept and read back");
         assert_eq!(
             back.compress(200).unwrap().bytes,
             top.compress(200).unwrap().bytes
         );
-        assert!(cp.top(1, &opts).is_none());
+        assert!(cp.top(1, v.dims(), &opts).is_none());
+        assert!(cp.top(2, [16, 16, 15], &opts).is_none(), "another size");
         let other = CompressOptions {
             family: wavesplat_codec::family::Family::ALL
                 .into_iter()
@@ -395,7 +396,7 @@ mod tests {
                 .unwrap(),
             ..opts.clone()
         };
-        assert!(cp.top(2, &other).is_none(), "other options");
+        assert!(cp.top(2, v.dims(), &other).is_none(), "other options");
         let (_, resumed) = Checkpoint::open(dir.path(), "k").unwrap();
         assert_eq!(resumed.tops, 1);
         let path = dir.path().join("top-2");
@@ -403,9 +404,9 @@ mod tests {
         let mut flipped = good.clone();
         flipped[good.len() / 2] ^= 0x10;
         std::fs::write(&path, &flipped).unwrap();
-        assert!(cp.top(2, &opts).is_none(), "a byte changed");
+        assert!(cp.top(2, v.dims(), &opts).is_none(), "a byte changed");
         std::fs::write(&path, &good[..good.len() - 9]).unwrap();
-        assert!(cp.top(2, &opts).is_none(), "cut short");
+        assert!(cp.top(2, v.dims(), &opts).is_none(), "cut short");
     }
 
     #[test]

@@ -360,13 +360,19 @@ impl KeptTop {
         Ok(out)
     }
 
-    /// Reads [`KeptTop::to_bytes`]'s output back as a top scored with `opts`. Everything is
-    /// checked against what `opts` and the geometry imply (the geometry rebuilt from its
+    /// Reads [`KeptTop::to_bytes`]'s output back as a top of a volume of `dims` scored with
+    /// `opts`. Everything is checked against what `dims`, `opts` and the geometry imply (the
+    /// dimensions the caller's, so that no entry makes it allocate for another size; the
+    /// geometry rebuilt from its
     /// dimensions, depth and margin, the seen-share tables present exactly where `opts` pad
     /// smoothly and the grid clips, indices within the grid, channels within the volume's,
     /// finite values, totals that agree), so that a damaged or foreign entry is refused
     /// rather than coded.
-    pub fn from_bytes(bytes: &[u8], opts: &CompressOptions) -> Result<KeptTop, TopBytesError> {
+    pub fn from_bytes(
+        bytes: &[u8],
+        dims: [usize; 3],
+        opts: &CompressOptions,
+    ) -> Result<KeptTop, TopBytesError> {
         let bad = |what: &str| TopBytesError(what.to_string());
         let mut r = TopReader(bytes);
         if r.take::<8>()? != *TOP_MAGIC {
@@ -374,7 +380,10 @@ impl KeptTop {
         }
         let mut three =
             || -> Result<[usize; 3], TopBytesError> { Ok([r.usize()?, r.usize()?, r.usize()?]) };
-        let (dims, padded, origin) = (three()?, three()?, three()?);
+        let (stored_dims, padded, origin) = (three()?, three()?, three()?);
+        if stored_dims != dims {
+            return Err(bad("a top of a volume of another size"));
+        }
         let (levels, margin, channels) = (r.usize()?, r.usize()?, r.usize()?);
         let family = Family::from_code(r.u8()?).ok_or_else(|| bad("no such family"))?;
         if family != opts.family {
@@ -639,7 +648,7 @@ mod tests {
                 let (_, top) = score_keeping_top(&v, &opts, 600, &|_, _| {}).unwrap();
                 let mut top = top.unwrap();
                 let bytes = top.to_bytes().unwrap();
-                let back = KeptTop::from_bytes(&bytes, &opts).unwrap();
+                let back = KeptTop::from_bytes(&bytes, v.dims(), &opts).unwrap();
                 assert_eq!(back.len(), top.len());
                 assert_eq!(back.covers(601), top.covers(601));
                 assert!(back.scored_with(&opts));
@@ -656,7 +665,10 @@ mod tests {
                 top.spill(&file).unwrap();
                 assert_eq!(top.to_bytes().unwrap(), bytes, "spilled, written the same");
 
-                let refused = |b: &[u8], o: &CompressOptions| KeptTop::from_bytes(b, o).is_err();
+                let refused =
+                    |b: &[u8], o: &CompressOptions| KeptTop::from_bytes(b, v.dims(), o).is_err();
+                let d = v.dims();
+                assert!(KeptTop::from_bytes(&bytes, [d[0] + 1, d[1], d[2]], &opts).is_err());
                 let step = (bytes.len() / 97).max(1);
                 for cut in (0..bytes.len()).step_by(step) {
                     assert!(refused(&bytes[..cut], &opts), "cut at {cut}");
