@@ -3230,8 +3230,8 @@ mod tests {
     /// Where the bricks do not refine, the checkpoint keeps each brick's top as well: a run
     /// again after the scores were kept but before a brick was coded codes it from its kept
     /// top, reading nothing, into the same file; without the tops it reads those bricks
-    /// again (a byte target once per trial). A count target and a byte target (several trials, each brick's count its own
-    /// entry), on one thread and on two.
+    /// again (a byte target once per trial). A count target and a byte target (several
+    /// trials, each brick's count its own entry), on one thread and on two.
     #[test]
     fn a_run_again_codes_the_bricks_not_yet_coded_from_their_kept_tops() {
         let v = Phantom::SheppLogan.generate([40, 36, 30]);

@@ -197,7 +197,7 @@ impl Checkpoint {
                 .ok()
                 .map(|free| (free as f64 * TOP_DISK_SHARE) as u64)
         });
-        let size = top.spilled_size() + 400;
+        let size = top.written_size();
         let within = budget.is_some_and(|b| self.top_bytes.fetch_add(size, Relaxed) + size <= b);
         if !within {
             return;
@@ -301,8 +301,9 @@ fn read_checked_at(path: &Path) -> Option<Vec<u8>> {
     (crc32fast::hash(&bytes) == stored).then_some(bytes)
 }
 
-/// Whether `path` is a checkpoint entry's file (a summary, a kept top or a coded brick, or one being
-/// written): what a checkpoint of another key has removed, and nothing else of the directory.
+/// Whether `path` is a checkpoint entry's file (a summary, a kept top or a coded brick, or one
+/// being written): what a checkpoint of another key has removed, and nothing else of the
+/// directory.
 fn is_entry(path: &Path) -> bool {
     path.is_file()
         && path.file_name().and_then(|n| n.to_str()).is_some_and(|n| {
@@ -369,8 +370,6 @@ mod tests {
         assert_eq!((resumed.scored, resumed.coded), (1, 0));
     }
 
-    /// An entry that cannot be written (its name taken by a directory) leaves the checkpoint
-    /// unwritten from then on, without an error; what was kept before still reads.
     /// A kept top reads back as one that codes the same file; one cut short, changed, or
     /// read with other options is not used; a count of them is given on opening.
     #[test]
@@ -409,6 +408,8 @@ mod tests {
         assert!(cp.top(2, v.dims(), &opts).is_none(), "cut short");
     }
 
+    /// An entry that cannot be written (its name taken by a directory) leaves the checkpoint
+    /// unwritten from then on, without an error; what was kept before still reads.
     #[test]
     fn an_unwritable_checkpoint_is_given_up_without_an_error() {
         let dir = tempfile::tempdir().unwrap();

@@ -394,11 +394,7 @@ pub(crate) fn refine_with(
 ) -> Refined {
     let k = kept.len();
     let channels = targets.len();
-    let norms: Vec<f64> = geometry
-        .bands()
-        .iter()
-        .map(|b| geometry.basis_norm2(*b))
-        .collect();
+    let norms = crate::encode::band_norms(geometry);
     // The oracle's score, counting only the seen energy where that is asked for.
     let score_of = |c: usize, i: usize, v: f32| {
         let v = v as f64;

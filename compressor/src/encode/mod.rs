@@ -33,6 +33,7 @@ pub use options::{
     DepthSearch, Effort, Stage, Target, TileChoice, LAYER_GROWTH,
 };
 pub(crate) use prepare::axis_views;
+pub(crate) use prepare::band_norms;
 use prepare::{code, prepare};
 pub use prepare::{default_margin, COARSE_LAYER_MIN_LEVELS, STRUCTURED_FACES};
 pub use rate::worth_going_shallower;

@@ -290,6 +290,16 @@ pub(super) fn code(
     Ok(coded)
 }
 
+/// ‖b‖² of each band of `geometry`, by band index (what a score multiplies a coefficient's
+/// square by).
+pub(crate) fn band_norms(geometry: &Geometry) -> Vec<f64> {
+    geometry
+        .bands()
+        .iter()
+        .map(|b| geometry.basis_norm2(*b))
+        .collect()
+}
+
 /// One depth's decomposition of the `coded` channels of `volume` (with the padded targets of
 /// the refinement when `with_targets`), scored for the oracle.
 pub(super) fn prepare(
@@ -335,11 +345,7 @@ pub(super) fn prepare(
     let color = coded.color;
     let (lo, hi) = volume.value_range();
     let mut planner = Dwt1d::new(opts.family);
-    let norms: Vec<f64> = geometry
-        .bands()
-        .iter()
-        .map(|b| geometry.basis_norm2(*b))
-        .collect();
+    let norms = band_norms(&geometry);
     let band_of = band_map(&geometry);
     let mut coefficients = Vec::with_capacity(channels.len());
     let bridged = opts.smooth_padding && geometry.clips_to_box();

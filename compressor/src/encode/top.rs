@@ -15,7 +15,7 @@
 //! same count, byte for byte.
 
 use super::options::{CompressError, CompressOptions, Compressed, Stage, Target};
-use super::prepare::{Prepared, Ranked, Scored};
+use super::prepare::{band_norms, Prepared, Ranked, Scored};
 use super::rate::expected_bytes;
 use super::summary::ScoreSummary;
 use super::{check_layer_growth, scored};
@@ -168,10 +168,7 @@ impl KeptTop {
             return Ok(());
         };
         let mut bytes = Vec::with_capacity(self.spilled_size() as usize);
-        for &(index, value) in top {
-            bytes.extend_from_slice(&index.to_le_bytes());
-            bytes.extend_from_slice(&value.to_bits().to_le_bytes());
-        }
+        push_pairs(&mut bytes, top);
         bytes.extend_from_slice(channels);
         let offset = file.append(&bytes)?;
         self.values = TopValues::Spilled {
@@ -199,14 +196,7 @@ impl KeptTop {
                 channels,
             } => {
                 let read = |at: u64, n: usize| file.read(at, n).map_err(CompressError::KeptTopRead);
-                let pairs = read(*offset, k * 8)?
-                    .chunks_exact(8)
-                    .map(|b| {
-                        let index = u32::from_le_bytes([b[0], b[1], b[2], b[3]]);
-                        let value = f32::from_bits(u32::from_le_bytes([b[4], b[5], b[6], b[7]]));
-                        (index, value)
-                    })
-                    .collect();
+                let pairs = read(*offset, k * 8)?.chunks_exact(8).map(pair_of).collect();
                 let channel_bytes = match channels {
                     true => read(offset + *len as u64 * 8, k)?,
                     false => Vec::new(),
@@ -263,6 +253,31 @@ impl KeptTop {
 /// The start of [`KeptTop::to_bytes`]: a tag and its version.
 const TOP_MAGIC: &[u8; 8] = b"WSTOP\x00\x00\x01";
 
+/// Bytes [`KeptTop::to_bytes`] writes before the coefficients: the tag, the geometry (nine
+/// sizes, depth, margin, channels, family, spacing), the value range, the colour (kind, basis,
+/// mean, importances), the placement (flag, origin, directions), energies, totals, two flags,
+/// the length and the channel flag.
+const TOP_HEADER_BYTES: u64 =
+    8 + 12 * 8 + 1 + 3 * 4 + 2 * 4 + 1 + 15 * 8 + 1 + 12 * 8 + 2 * 8 + 2 * 8 + 1 + 1 + 8 + 1;
+
+/// Appends `pairs` as [`KeptTop`] writes its coefficients (a scratch file, a checkpoint):
+/// each index then value, little-endian, 8 bytes.
+fn push_pairs(out: &mut Vec<u8>, pairs: &[(u32, f32)]) {
+    let start = out.len();
+    out.resize(start + pairs.len() * 8, 0);
+    for (b, &(index, value)) in out[start..].chunks_exact_mut(8).zip(pairs) {
+        b[..4].copy_from_slice(&index.to_le_bytes());
+        b[4..].copy_from_slice(&value.to_bits().to_le_bytes());
+    }
+}
+
+/// One coefficient of [`push_pairs`]' 8 bytes.
+fn pair_of(b: &[u8]) -> (u32, f32) {
+    let index = u32::from_le_bytes([b[0], b[1], b[2], b[3]]);
+    let value = f32::from_bits(u32::from_le_bytes([b[4], b[5], b[6], b[7]]));
+    (index, value)
+}
+
 /// Why bytes are not a [`KeptTop`] for the options they are read with.
 #[derive(Debug, thiserror::Error)]
 #[error("not a kept top: {0}")]
@@ -314,7 +329,7 @@ impl KeptTop {
     pub fn to_bytes(&self) -> Result<Vec<u8>, CompressError> {
         let p = &self.prepared;
         let g = &p.geometry;
-        let mut out = Vec::with_capacity(400 + self.spilled_size() as usize);
+        let mut out = Vec::with_capacity(self.written_size() as usize);
         out.extend_from_slice(TOP_MAGIC);
         let u64s = |out: &mut Vec<u8>, v: &[usize]| {
             for x in v {
@@ -350,24 +365,24 @@ impl KeptTop {
         let (top, channels) = self.prefix(self.len())?;
         out.extend_from_slice(&(top.len() as u64).to_le_bytes());
         out.push(u8::from(!channels.is_empty()));
-        let start = out.len();
-        out.resize(start + top.len() * 8, 0);
-        for (b, &(index, value)) in out[start..].chunks_exact_mut(8).zip(top.iter()) {
-            b[..4].copy_from_slice(&index.to_le_bytes());
-            b[4..].copy_from_slice(&value.to_bits().to_le_bytes());
-        }
+        push_pairs(&mut out, &top);
         out.extend_from_slice(&channels);
+        debug_assert_eq!(out.len() as u64, self.written_size());
         Ok(out)
+    }
+
+    /// Bytes [`KeptTop::to_bytes`] writes.
+    pub fn written_size(&self) -> u64 {
+        TOP_HEADER_BYTES + self.spilled_size()
     }
 
     /// Reads [`KeptTop::to_bytes`]'s output back as a top of a volume of `dims` scored with
     /// `opts`. Everything is checked against what `dims`, `opts` and the geometry imply (the
     /// dimensions the caller's, so that no entry makes it allocate for another size; the
-    /// geometry rebuilt from its
-    /// dimensions, depth and margin, the seen-share tables present exactly where `opts` pad
-    /// smoothly and the grid clips, indices within the grid, channels within the volume's,
-    /// finite values, totals that agree), so that a damaged or foreign entry is refused
-    /// rather than coded.
+    /// geometry rebuilt from its dimensions, depth and margin; the seen-share tables present
+    /// exactly where `opts` pad smoothly and the grid clips; indices within the grid, channels
+    /// within the volume's, finite values, totals that agree), so that a damaged or foreign
+    /// entry is refused rather than coded.
     pub fn from_bytes(
         bytes: &[u8],
         dims: [usize; 3],
@@ -458,9 +473,7 @@ impl KeptTop {
         }
         let (pairs, channel_bytes) = r.0.split_at(len * 8);
         let mut top = Vec::with_capacity(len);
-        for b in pairs.chunks_exact(8) {
-            let index = u32::from_le_bytes([b[0], b[1], b[2], b[3]]);
-            let value = f32::from_bits(u32::from_le_bytes([b[4], b[5], b[6], b[7]]));
+        for (index, value) in pairs.chunks_exact(8).map(pair_of) {
             if index as usize >= grid || !value.is_finite() {
                 return Err(bad("an index outside the grid or a value not finite"));
             }
@@ -469,11 +482,7 @@ impl KeptTop {
         if channel_bytes.iter().any(|c| usize::from(*c) >= channels) {
             return Err(bad("a channel beyond the volume's"));
         }
-        let norms = geometry
-            .bands()
-            .iter()
-            .map(|b| geometry.basis_norm2(*b))
-            .collect();
+        let norms = band_norms(&geometry);
         let prepared = Prepared {
             visible: if visible {
                 Visible::new(&geometry)
@@ -648,6 +657,7 @@ mod tests {
                 let (_, top) = score_keeping_top(&v, &opts, 600, &|_, _| {}).unwrap();
                 let mut top = top.unwrap();
                 let bytes = top.to_bytes().unwrap();
+                assert_eq!(bytes.len() as u64, top.written_size());
                 let back = KeptTop::from_bytes(&bytes, v.dims(), &opts).unwrap();
                 assert_eq!(back.len(), top.len());
                 assert_eq!(back.covers(601), top.covers(601));
