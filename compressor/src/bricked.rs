@@ -632,7 +632,7 @@ impl BrickPlan {
         check_depth(&grid, choices.levels)?;
         let mut plan = BrickPlan::build(source, opts, brick, grid, choices)?;
         // The sample's files are oracle files; refined ones hold more coefficients per byte.
-        plan.coefficients_per_byte = coefficients_per_byte.map(|r| match opts.refine {
+        plan.coefficients_per_byte = coefficients_per_byte.map(|r| match plan.base.refine {
             Some(_) => r * REFINED_PER_ORACLE,
             None => r,
         });
@@ -673,6 +673,9 @@ impl BrickPlan {
             smooth_padding: true,
             offset: choices.offset,
             color_transform: choices.color.clone(),
+            // The fast effort's one refined set is not worth a brick's second transform: its
+            // bricks are coded from the tops their scoring pass kept.
+            refine: opts.refine.filter(|r| !r.one_set),
             ..opts.clone()
         };
         // A brick that cannot be compressed within the memory limit is refused before any is

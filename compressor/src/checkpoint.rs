@@ -377,7 +377,11 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let (cp, _) = Checkpoint::open(dir.path(), "k").unwrap();
         let v = Phantom::Spheres.generate([16, 16, 16]);
-        let opts = crate::encode::Effort::Fast.options();
+        // A brick's options under the fast effort: no refinement.
+        let opts = CompressOptions {
+            refine: None,
+            ..crate::encode::Effort::Fast.options()
+        };
         let (_, top) = crate::encode::score_keeping_top(&v, &opts, 300, &|_, _| {}).unwrap();
         let top = top.unwrap();
         cp.keep_top(2, &top);

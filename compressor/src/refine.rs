@@ -53,6 +53,14 @@ pub struct RefineOptions {
     pub rounds: usize,
     /// Conjugate-gradient iterations per refit.
     pub cg_iterations: usize,
+    /// Refits after a prune, while the prune drops values (a last prune without refit may
+    /// follow): [`PRUNE_REFITS`] by default.
+    pub prune_refits: usize,
+    /// A byte target refines one set, of a size guessed from the unrefined file that fills it,
+    /// and fits that set to the target by the rate search (no pilot refit, no second set); the
+    /// bricks of a bricked volume do not refine (each is coded from the top its scoring pass
+    /// kept). [`RefineOptions::ONE_SET`], the fast effort's.
+    pub one_set: bool,
 }
 
 impl Default for RefineOptions {
@@ -60,8 +68,23 @@ impl Default for RefineOptions {
         RefineOptions {
             rounds: 3,
             cg_iterations: 2,
+            prune_refits: PRUNE_REFITS,
+            one_set: false,
         }
     }
+}
+
+impl RefineOptions {
+    /// The cheapest refinement that pays (`--effort fast`): one refit of one conjugate-gradient
+    /// step (four transforms), one prune, one set per byte target. On the test set it gains
+    /// 0.5–2.3 dB Q_I over the oracle's values for about a third more time (BENCHMARKS.md,
+    /// "Compression effort").
+    pub const ONE_SET: RefineOptions = RefineOptions {
+        rounds: 0,
+        cg_iterations: 1,
+        prune_refits: 0,
+        one_set: true,
+    };
 }
 
 /// A kept coefficient: channel, linear (Mallat) index and value.
@@ -82,7 +105,7 @@ const RESTART: usize = 16;
 /// third one (6 of the 42 transforms a refinement ran with it) moved Q_I by 0.01 dB on average
 /// over the test set (worst 0.08 dB, within what neighbouring set sizes give) for 13 % of the
 /// CPU.
-const PRUNE_REFITS: usize = 2;
+pub const PRUNE_REFITS: usize = 2;
 
 /// Σ over the periodic 1D grid of length `n` of the squared samples of the level-`level` φ
 /// (`wavelet` false) or ψ: the 1D factor of the diagonal of RᵀR.
@@ -524,11 +547,11 @@ pub(crate) fn refine_with(
         tracing::debug!(k, alive, "refinement round");
     }
     // Prune values that fell below the threshold and refit the rest, until nothing falls
-    // below (at most PRUNE_REFITS refits; a last prune without refit may follow).
+    // below (at most `prune_refits` refits; a last prune without refit may follow).
     // Whether the gradient in `grads` is that of the final values (a last prune without refit
     // leaves it stale).
     let mut gradient_current = true;
-    for pass in 0..=PRUNE_REFITS {
+    for pass in 0..=opts.prune_refits {
         let mut pruned = false;
         for c in 0..channels {
             let dropped: usize = values[c]
@@ -550,7 +573,7 @@ pub(crate) fn refine_with(
         if !pruned {
             break;
         }
-        if pass == PRUNE_REFITS {
+        if pass == opts.prune_refits {
             gradient_current = false;
             break;
         }

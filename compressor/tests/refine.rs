@@ -90,6 +90,7 @@ fn refit_matches_dense_least_squares() {
         let opts = RefineOptions {
             rounds: 0,
             cg_iterations: 300,
+            ..RefineOptions::default()
         };
         let out = refine_one(&g, &vol, &kept, &opts);
         assert!(
@@ -137,10 +138,16 @@ fn refit_matches_dense_least_squares() {
 }
 
 /// Refinement never sends more coefficients than asked, keeps every value above the oracle's
-/// threshold, and reconstructs the volume better than the oracle's own K coefficients.
+/// threshold, and reconstructs the volume better than the oracle's own K coefficients: the
+/// default refinement, and the fast effort's one refit of one conjugate-gradient step.
 #[test]
 fn refinement_beats_thresholding_at_equal_count() {
-    for family in [Family::Linear, Family::Cubic] {
+    for (family, opts) in [
+        (Family::Linear, RefineOptions::default()),
+        (Family::Cubic, RefineOptions::default()),
+        (Family::Linear, RefineOptions::ONE_SET),
+        (Family::Cubic, RefineOptions::ONE_SET),
+    ] {
         let dims = [24, 20, 16];
         let vol = Phantom::SheppLogan.generate(dims);
         let margin = Geometry::separating_margin(family, 2);
@@ -152,7 +159,7 @@ fn refinement_beats_thresholding_at_equal_count() {
             .iter()
             .map(|s| (s.value as f64).powi(2) * g.basis_norm2(g.locate(s.index as usize).0))
             .fold(f64::INFINITY, f64::min);
-        let out = refine_one(&g, &vol, &kept, &RefineOptions::default());
+        let out = refine_one(&g, &vol, &kept, &opts);
         assert!(out.len() <= k, "{family}: {} > {k}", out.len());
         for s in &out {
             let score = (s.value as f64).powi(2) * g.basis_norm2(g.locate(s.index as usize).0);

@@ -114,8 +114,9 @@ pub struct CompressArgs {
     /// coefficients)
     #[arg(long, default_value_t = wavesplat_codec::format::VERSION)]
     pub format_version: u16,
-    /// Compression effort: fast (the depth predicted from the rate instead of compared, no
-    /// least-squares refinement), default (depths compared, three refinement rounds) or best
+    /// Compression effort: fast (the depth predicted from the rate instead of compared, one
+    /// refit of the kept set by one conjugate-gradient step; the bricks of a bricked volume
+    /// are not refined), default (depths compared, three refinement rounds) or best
     /// (more refinement rounds and iterations). --levels, --refine-rounds,
     /// --refine-iterations and --no-refine given too override it. What each costs and buys:
     /// BENCHMARKS.md, "Compression effort".
@@ -814,6 +815,7 @@ pub fn refine_options(
     Some(RefineOptions {
         rounds: rounds.unwrap_or(base.rounds),
         cg_iterations: iterations.unwrap_or(base.cg_iterations),
+        ..base
     })
 }
 

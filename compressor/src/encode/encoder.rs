@@ -156,14 +156,21 @@ impl Prepared {
         // The rest of the oracle's order, without what the refinement picked up (iterative
         // hard thresholding moves coefficients from beyond rank k into the set) and below the
         // last score so far (the order must stay decreasing).
-        let mut picked: Vec<(u8, u32)> = sorted.iter().map(|r| (r.channel, r.index)).collect();
-        picked.par_sort_unstable();
+        // A bit per coefficient of every channel: the rest can be most of the grid's
+        // non-zero coefficients, and a search per entry in a sorted list of the picks cost
+        // 0.5 s on the MNI grid at 5.85 %.
+        let n = self.geometry.coefficient_count();
+        let mut picked = vec![0u64; (self.channels * n).div_ceil(64)];
+        let bit = |channel: u8, index: u32| channel as usize * n + index as usize;
+        for r in &sorted {
+            let b = bit(r.channel, r.index);
+            picked[b / 64] |= 1 << (b % 64);
+        }
         let floor = sorted.last().map_or(f64::INFINITY, |s| s.score);
-        sorted.extend(
-            ranked.sorted[k..].iter().filter(|s| {
-                s.score <= floor && picked.binary_search(&(s.channel, s.index)).is_err()
-            }),
-        );
+        sorted.extend(ranked.sorted[k..].iter().filter(|s| {
+            let b = bit(s.channel, s.index);
+            s.score <= floor && picked[b / 64] & (1 << (b % 64)) == 0
+        }));
         Ranked {
             sorted,
             complete: ranked.complete,

@@ -157,7 +157,8 @@ pub enum DepthSearch {
 /// (the depth search, the least-squares refinement), which flags given on top override.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum Effort {
-    /// The depth predicted, no refinement: the oracle's coefficients as the paper sends them.
+    /// The depth predicted, one cheap refinement ([`RefineOptions::ONE_SET`]); the bricks of
+    /// a bricked volume are not refined (the oracle's coefficients as the paper sends them).
     Fast,
     /// Depths compared, three rounds of refinement.
     #[default]
@@ -200,11 +201,12 @@ impl Effort {
     /// The refinement of this effort (`None`: none).
     pub fn refine(self) -> Option<RefineOptions> {
         match self {
-            Effort::Fast => None,
+            Effort::Fast => Some(RefineOptions::ONE_SET),
             Effort::Default => Some(RefineOptions::default()),
             Effort::Best => Some(RefineOptions {
                 rounds: 6,
                 cg_iterations: 4,
+                ..RefineOptions::default()
             }),
         }
     }

@@ -297,6 +297,18 @@ pub(super) fn compress_to_bytes(
     if k0 == 0 {
         return Ok(finish(&prepared, &ranked, plain));
     }
+    if r.one_set {
+        return refine_one_set_to_bytes(
+            &prepared,
+            ranked,
+            plain,
+            r,
+            opts,
+            target,
+            &mut trials,
+            progress,
+        );
+    }
     refine_to_bytes(
         &prepared,
         ranked,
@@ -482,10 +494,18 @@ fn oracle_to_bytes(
             }
             known = Some(first);
         }
+        // Where one refined set follows, this file is a size guide (and a fallback): a looser
+        // fill saves trials of the whole file.
+        let fill = if opts.refine.is_some_and(|r| r.one_set) {
+            GUIDE_FILL
+        } else {
+            FILE_FILL
+        };
         let search = RateSearch {
             target,
             guess,
             known,
+            fill,
         };
         let plain = fit_bytes(prepared, &ranked, opts, search, trials, progress)?;
         let len = ranked.sorted.len();
@@ -583,6 +603,7 @@ fn refine_to_bytes(
                 target,
                 guess: count,
                 known: Some(whole),
+                fill: FILE_FILL,
             };
             fit_bytes(prepared, &refined, opts, search, trials, progress)
         };
@@ -618,6 +639,78 @@ fn refine_to_bytes(
             if b.stats.bytes as f64 >= 0.98 * target as f64
                 || b.stats.bytes >= plain.stats.bytes =>
         {
+            Ok(finish(prepared, &refined, b))
+        }
+        _ => Ok(finish(prepared, &ranked, plain)),
+    }
+}
+
+/// The size of [`RefineOptions::one_set`]'s refined set over the count of the unrefined file
+/// that fills the target. A refit prunes about a fifth of a set and shrinks the rest, so the
+/// set codes to about the target; this much makes it overshoot a little at most points
+/// (cutting costs less than topping up: [`CLOSE_BELOW`]).
+const ONE_SET_GROWTH: f64 = 1.25;
+
+/// A byte target's refinement with [`RefineOptions::one_set`]: one refined set,
+/// [`ONE_SET_GROWTH`] times the unrefined file's count, fitted to the target by the rate search
+/// (cut, or topped up with the oracle's next coefficients). The unrefined file is kept where
+/// the refined one fills less than 98 % of the target and less than it.
+#[allow(clippy::too_many_arguments)]
+fn refine_one_set_to_bytes(
+    prepared: &Prepared,
+    mut ranked: Ranked,
+    plain: Compressed,
+    r: &RefineOptions,
+    opts: &CompressOptions,
+    target: u64,
+    trials: &mut usize,
+    progress: &(dyn Fn(Stage, f64) + Sync),
+) -> Result<Compressed, CompressError> {
+    let n = prepared.nonzero as usize;
+    // The count that would fill the target, from the guide's (searched to [`GUIDE_FILL`]).
+    let fill = target as f64 / plain.stats.bytes.max(1) as f64;
+    let k0 = ((plain.stats.kept as f64 * fill.powf(1.0 / SIZE_SLOPE)).round() as usize)
+        .clamp(plain.stats.kept as usize, n.max(1));
+    let k = ((k0 as f64 * ONE_SET_GROWTH).ceil() as usize).clamp(1, n.max(1));
+    progress(Stage::Refine, 0.0);
+    // A search cuts the set or tops it up by a few per cent: what lies further down the
+    // oracle's order (at high rates most of the grid) is not copied behind the refined set.
+    let room = (k + k / 4).max(k0);
+    if ranked.sorted.len() > room {
+        ranked.sorted.truncate(room);
+        ranked.complete = false;
+    }
+    let grown = (ranked.sorted.len() < k && !ranked.complete).then(|| prepared.ranked(k));
+    let source = grown.as_ref().unwrap_or(&ranked);
+    let k_set = k.min(source.sorted.len());
+    let refined = prepared.refined(source, k_set, r, 0);
+    // The refinement's arrays are not needed for the rate search.
+    prepared.scratch.clear();
+    let count = refined.refined;
+    if count == 0 {
+        return Ok(finish(prepared, &ranked, plain));
+    }
+    // Refined values code in about the bytes of as many exact ones (fewer at low rates, where
+    // the refit shrinks them more): the unrefined file's count is the first trial, or the
+    // whole set where the prune left fewer.
+    let search = RateSearch {
+        target,
+        guess: count.min(k0),
+        known: None,
+        fill: FILE_FILL,
+    };
+    match fit_bytes(prepared, &refined, opts, search, trials, progress) {
+        Ok(b)
+            if b.stats.bytes as f64 >= 0.98 * target as f64
+                || b.stats.bytes >= plain.stats.bytes =>
+        {
+            tracing::debug!(
+                k,
+                count,
+                bytes = b.stats.bytes,
+                target,
+                "one refined set fitted"
+            );
             Ok(finish(prepared, &refined, b))
         }
         _ => Ok(finish(prepared, &ranked, plain)),
@@ -705,6 +798,11 @@ const MAX_TRIALS: usize = 24;
 /// allows.
 const FILE_FILL: f64 = 0.998;
 
+/// How full the unrefined file is searched where [`RefineOptions::one_set`] refines after it:
+/// that file only sizes the refined set ([`refine_one_set_to_bytes`], which extrapolates its
+/// count to the target) and stands in only if the refinement fails.
+const GUIDE_FILL: f64 = 0.97;
+
 /// What a rate search ([`fit_bytes`]) looks for and where it starts.
 struct RateSearch {
     /// Bytes the file may take.
@@ -714,6 +812,8 @@ struct RateSearch {
     /// A file of this ranking already encoded (its prefix length is its kept count): it
     /// counts as the first trial.
     pub(super) known: Option<Compressed>,
+    /// How full a file ends the search ([`FILE_FILL`] but for a size guide).
+    pub(super) fill: f64,
 }
 
 /// The rate search: the largest prefix of `ranked` whose file fits `target` bytes, stopping
@@ -735,6 +835,7 @@ fn fit_bytes(
         target,
         guess,
         mut known,
+        fill,
     } = search;
     let len = ranked.sorted.len();
     let mut run = |k: usize| {
@@ -742,10 +843,10 @@ fn fit_bytes(
         progress(Stage::Encode(*trials), 0.0);
         prepared.encode(ranked, k, opts, target, false)
     };
-    let goal = FILE_FILL * target as f64;
+    let goal = fill * target as f64;
     // Steps aim at the middle of the accepted sizes: aiming at its lower edge, the secant
     // creeps up on it a few coefficients at a time.
-    let aim = (1.0 + FILE_FILL) / 2.0 * target as f64;
+    let aim = (1.0 + fill) / 2.0 * target as f64;
     // Fitting (k, bytes) and overflowing (k, bytes) bounds.
     let mut lo: Option<(usize, u64)> = None;
     let mut hi: Option<(usize, u64)> = None;

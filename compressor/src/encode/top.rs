@@ -532,6 +532,7 @@ mod tests {
             smooth_padding: bridged,
             margin: bridged.then_some(4),
             levels: (v.dims().iter().min() >= Some(&8)).then_some(2),
+            refine: None,
             ..Effort::Fast.options()
         }
     }
