@@ -343,6 +343,62 @@ mod tests {
         }
     }
 
+    /// Samples near ±f32::MAX give coarse coefficients beyond f32: compressing them is refused
+    /// with a typed error naming the samples' magnitude (it used to write a file whose header
+    /// no reader took), at every target and effort; samples a little smaller still compress
+    /// to a file that decodes to finite values.
+    #[test]
+    fn coefficients_beyond_f32_are_refused_not_written() {
+        let dims = [11, 10, 9];
+        let noise = |scale: f32| {
+            let mut state = 0x2545_f491_4f6c_dd1d_u64;
+            let samples: Vec<f32> = (0..dims.iter().product::<usize>())
+                .map(|_| {
+                    state = state
+                        .wrapping_mul(6_364_136_223_846_793_005)
+                        .wrapping_add(1);
+                    ((state >> 40) as f32 / (1u64 << 24) as f32 * 2.0 - 1.0) * scale
+                })
+                .collect();
+            Volume::new(dims, [1.0; 3], vec![samples]).unwrap()
+        };
+        let huge = noise(3.0e38);
+        for opts in [
+            Effort::Fast.options(),
+            Effort::Default.options(),
+            CompressOptions {
+                target: Target::All,
+                ..Effort::Fast.options()
+            },
+        ] {
+            let opts = CompressOptions {
+                target: match opts.target {
+                    Target::All => Target::All,
+                    _ => Target::Bytes(3_000),
+                },
+                ..opts
+            };
+            match compress(&huge, &opts, &|_, _| {}) {
+                Err(CompressError::CoefficientOverflow { largest }) => {
+                    assert!(largest > 2.9e38 && largest.is_finite(), "{largest}")
+                }
+                other => panic!("{:?}", other.map(|c| c.stats.bytes)),
+            }
+        }
+        let large = noise(1.0e36);
+        let c = compress(
+            &large,
+            &CompressOptions {
+                target: Target::Bytes(3_000),
+                ..Effort::Fast.options()
+            },
+            &|_, _| {},
+        )
+        .unwrap();
+        let d = crate::decode::decompress(&c.bytes).unwrap();
+        assert!(d.channel(0).iter().all(|v| v.is_finite()));
+    }
+
     /// The fast effort's depth, guessed from the target's bytes or from one probe of the
     /// default depth, is the depth its rule gives from the full search's count at each depth
     /// (searched one depth at a time, as before the shortcuts), on smooth data (few bits per

@@ -254,6 +254,18 @@ pub enum CompressError {
         /// What dominates the estimate.
         detail: String,
     },
+    /// The transform's coefficients do not fit the format's f32 values: samples near
+    /// ±f32::MAX grow past it in the coarse bands (a scaling coefficient of depth M is about
+    /// 2^(1.5·M) times its samples).
+    #[error(
+        "the volume's wavelet coefficients exceed the largest value the format stores \
+         (f32, about 3.4e38): its samples reach {largest:e} in magnitude; scale them down \
+         (by 1e-6, say) and compress again"
+    )]
+    CoefficientOverflow {
+        /// The largest sample magnitude.
+        largest: f64,
+    },
     /// A kept top's coefficients could not be read back from the temporary file they were
     /// moved to.
     #[error("reading a kept top back from its temporary file")]

@@ -364,7 +364,15 @@ pub(super) fn prepare(
         }
         samples_to_coefficients(&mut data, &geometry);
         forward_3d(&mut data, &geometry, &mut planner);
-        coefficients.push(data.into_par_iter().map(|v| v as f32).collect::<Vec<f32>>());
+        let coded: Vec<f32> = data.into_par_iter().map(|v| v as f32).collect();
+        // Samples near ±f32::MAX grow past it in the transform: refused here, not written
+        // as a file whose header no reader takes.
+        if !coded.par_iter().all(|v| v.is_finite()) {
+            return Err(CompressError::CoefficientOverflow {
+                largest: f64::from(lo.abs().max(hi.abs())),
+            });
+        }
+        coefficients.push(coded);
     }
     progress(Stage::Sort, 0.0);
     let n = geometry.coefficient_count();
