@@ -117,7 +117,7 @@ pub(super) fn compress_to_bytes(
     let depths = depth_candidates(volume.dims(), opts);
     let comparing = depths.len() > 1;
     let mut trials = 0usize;
-    let mut best: Option<(f64, Prepared, Ranked, Compressed)> = None;
+    let mut best: Option<(f64, Prepared, Ranked, Compressed, Option<f64>)> = None;
     let mut too_small: Option<CompressError> = None;
     let mut depths = depths;
     let mut next = 0;
@@ -166,8 +166,8 @@ pub(super) fn compress_to_bytes(
         let probe = predicting && !probed;
         probed = true;
         let searched = oracle_to_bytes(&prepared, &o, target, guess, probe, &mut trials, progress);
-        let (ranked, plain) = match searched {
-            Ok(Searched::Found(ranked, plain)) => {
+        let (ranked, plain, slope) = match searched {
+            Ok(Searched::Found(ranked, plain, slope)) => {
                 let plain = *plain;
                 fallback = None;
                 // A depth guessed from the bytes that the file's count would not have chosen
@@ -183,7 +183,7 @@ pub(super) fn compress_to_bytes(
                         continue;
                     }
                 }
-                (ranked, plain)
+                (ranked, plain, slope)
             }
             Ok(Searched::Shallower { levels, kept }) => {
                 tracing::debug!(from = m, to = levels, kept, "predicted depth from a probe");
@@ -225,7 +225,7 @@ pub(super) fn compress_to_bytes(
             } else {
                 m
             };
-            best = Some((0.0, prepared, ranked, plain));
+            best = Some((0.0, prepared, ranked, plain, slope));
             if to < m {
                 depths.push(to);
                 continue;
@@ -241,7 +241,7 @@ pub(super) fn compress_to_bytes(
             "depth candidate"
         );
         if best.as_ref().is_none_or(|b| error < b.0) {
-            best = Some((error, prepared, ranked, plain));
+            best = Some((error, prepared, ranked, plain, slope));
         }
         // The shallowest depth so far won: one level less may be better still, when its
         // coarse band is affordable. The deepest so far won over a shallower one: one level
@@ -250,7 +250,7 @@ pub(super) fn compress_to_bytes(
         if next == depths.len() {
             let deepest = depths.iter().copied().max().unwrap_or(m);
             let shallowest = depths.iter().copied().min().unwrap_or(m);
-            if let Some((_, p, _, c)) = &best {
+            if let Some((_, p, _, c, _)) = &best {
                 if p.geometry.levels == shallowest
                     && worth_going_shallower(c.stats.kept, p.channels, &p.geometry)
                 {
@@ -263,7 +263,7 @@ pub(super) fn compress_to_bytes(
             }
         }
     }
-    let Some((_, mut prepared, ranked, plain)) = best else {
+    let Some((_, mut prepared, ranked, plain, slope)) = best else {
         return Err(too_small.unwrap_or_else(|| {
             CompressError::InvalidOption("no decomposition depth to try".to_string())
         }));
@@ -302,6 +302,7 @@ pub(super) fn compress_to_bytes(
             &prepared,
             ranked,
             plain,
+            slope,
             r,
             opts,
             target,
@@ -435,13 +436,11 @@ fn depth_from_bytes(
 /// What [`oracle_to_bytes`] found: the ranking and its fullest file that fits, or (a probe
 /// for a predicted depth) the shallower depth the target's estimated count affords.
 enum Searched {
-    Found(Ranked, Box<Compressed>),
+    /// The ranking, its file, and the search's local size slope ([`Fitted::slope`]).
+    Found(Ranked, Box<Compressed>, Option<f64>),
     /// The depth to search instead, and the count the probe estimated for the target (the
     /// shallower search's first guess).
-    Shallower {
-        levels: usize,
-        kept: usize,
-    },
+    Shallower { levels: usize, kept: usize },
 }
 
 /// Log–log slope of a file's size against its count of kept coefficients that a single trial
@@ -506,11 +505,13 @@ fn oracle_to_bytes(
             guess,
             known,
             fill,
+            slope: SIZE_SLOPE,
         };
-        let plain = fit_bytes(prepared, &ranked, opts, search, trials, progress)?;
+        let Fitted { file: plain, slope } =
+            fit_bytes(prepared, &ranked, opts, search, trials, progress)?;
         let len = ranked.sorted.len();
         if ranked.complete || (plain.stats.kept as usize) < len || cap >= n {
-            return Ok(Searched::Found(ranked, Box::new(plain)));
+            return Ok(Searched::Found(ranked, Box::new(plain), slope));
         }
         cap = cap.saturating_mul(4).min(n);
     }
@@ -604,8 +605,9 @@ fn refine_to_bytes(
                 guess: count,
                 known: Some(whole),
                 fill: FILE_FILL,
+                slope: SIZE_SLOPE,
             };
-            fit_bytes(prepared, &refined, opts, search, trials, progress)
+            fit_bytes(prepared, &refined, opts, search, trials, progress).map(|f| f.file)
         };
         let candidate = if bytes <= target {
             if (bytes as f64) < 0.985 * target as f64 && (last || close) {
@@ -660,6 +662,7 @@ fn refine_one_set_to_bytes(
     prepared: &Prepared,
     mut ranked: Ranked,
     plain: Compressed,
+    slope: Option<f64>,
     r: &RefineOptions,
     opts: &CompressOptions,
     target: u64,
@@ -667,9 +670,11 @@ fn refine_one_set_to_bytes(
     progress: &(dyn Fn(Stage, f64) + Sync),
 ) -> Result<Compressed, CompressError> {
     let n = prepared.nonzero as usize;
-    // The count that would fill the target, from the guide's (searched to [`GUIDE_FILL`]).
+    // The count that would fill the target, from the guide's (searched to [`GUIDE_FILL`]) at
+    // the slope its search measured around the target.
+    let slope = slope.unwrap_or(SIZE_SLOPE);
     let fill = target as f64 / plain.stats.bytes.max(1) as f64;
-    let k0 = ((plain.stats.kept as f64 * fill.powf(1.0 / SIZE_SLOPE)).round() as usize)
+    let k0 = ((plain.stats.kept as f64 * fill.powf(1.0 / slope)).round() as usize)
         .clamp(plain.stats.kept as usize, n.max(1));
     let k = ((k0 as f64 * ONE_SET_GROWTH).ceil() as usize).clamp(1, n.max(1));
     progress(Stage::Refine, 0.0);
@@ -698,8 +703,9 @@ fn refine_one_set_to_bytes(
         guess: count.min(k0),
         known: None,
         fill: FILE_FILL,
+        slope,
     };
-    match fit_bytes(prepared, &refined, opts, search, trials, progress) {
+    match fit_bytes(prepared, &refined, opts, search, trials, progress).map(|f| f.file) {
         Ok(b)
             if b.stats.bytes as f64 >= 0.98 * target as f64
                 || b.stats.bytes >= plain.stats.bytes =>
@@ -814,6 +820,16 @@ struct RateSearch {
     pub(super) known: Option<Compressed>,
     /// How full a file ends the search ([`FILE_FILL`] but for a size guide).
     pub(super) fill: f64,
+    /// The log–log slope of size against count a step from one side takes ([`SIZE_SLOPE`]
+    /// unless an earlier search of the same volume measured it).
+    pub(super) slope: f64,
+}
+
+/// A rate search's result: the fullest file that fits, and the log–log slope of size against
+/// count between the closest trials on either side of the target (where there were both).
+pub(super) struct Fitted {
+    pub(super) file: Compressed,
+    pub(super) slope: Option<f64>,
 }
 
 /// The rate search: the largest prefix of `ranked` whose file fits `target` bytes, stopping
@@ -830,12 +846,13 @@ fn fit_bytes(
     search: RateSearch,
     trials: &mut usize,
     progress: &(dyn Fn(Stage, f64) + Sync),
-) -> Result<Compressed, CompressError> {
+) -> Result<Fitted, CompressError> {
     let RateSearch {
         target,
         guess,
         mut known,
         fill,
+        slope: one_sided,
     } = search;
     let len = ranked.sorted.len();
     let mut run = |k: usize| {
@@ -898,23 +915,33 @@ fn fit_bytes(
                 }
             }
             (Some((lk, lb)), None) => {
-                let x = log_k(lb, lk, 0.9).exp().ceil() as usize;
+                let x = log_k(lb, lk, one_sided).exp().ceil() as usize;
                 x.clamp(lk + 1, len)
             }
             (None, Some((hk, hb))) => {
-                let x = log_k(hb, hk, 0.9).exp().floor() as usize;
+                let x = log_k(hb, hk, one_sided).exp().floor() as usize;
                 x.clamp(1, hk - 1)
             }
             (None, None) => break,
         };
         k = next;
     }
+    let slope = match (lo, hi) {
+        (Some((lk, lb)), Some((hk, hb))) if hk > lk && hb > lb && lb > 0 => {
+            let s = ((hb as f64).ln() - (lb as f64).ln()) / ((hk as f64).ln() - (lk as f64).ln());
+            (s.is_finite() && s > 0.0).then_some(s.clamp(0.3, 3.0))
+        }
+        _ => None,
+    };
     match best {
-        Some(b) => Ok(b),
+        Some(file) => Ok(Fitted { file, slope }),
         None => {
             let smallest = run(len.min(1));
             if smallest.stats.bytes <= target {
-                Ok(smallest)
+                Ok(Fitted {
+                    file: smallest,
+                    slope,
+                })
             } else {
                 Err(CompressError::TargetTooSmall {
                     target,
