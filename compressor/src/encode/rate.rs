@@ -637,14 +637,17 @@ fn refine_to_bytes(
     // The refinements' arrays are not needed for the final file.
     prepared.scratch.clear();
     match best {
-        Some((b, refined))
-            if b.stats.bytes as f64 >= 0.98 * target as f64
-                || b.stats.bytes >= plain.stats.bytes =>
-        {
+        Some((b, refined)) if refined_file_stands(&b, &plain, target) => {
             Ok(finish(prepared, &refined, b))
         }
         _ => Ok(finish(prepared, &ranked, plain)),
     }
+}
+
+/// Whether a refined file is kept rather than the unrefined `plain` one: it fills 98 % of the
+/// target, or at least as much as `plain` does.
+fn refined_file_stands(refined: &Compressed, plain: &Compressed, target: u64) -> bool {
+    refined.stats.bytes as f64 >= 0.98 * target as f64 || refined.stats.bytes >= plain.stats.bytes
 }
 
 /// The size of [`RefineOptions::one_set`]'s refined set over the count of the unrefined file
@@ -706,10 +709,7 @@ fn refine_one_set_to_bytes(
         slope,
     };
     match fit_bytes(prepared, &refined, opts, search, trials, progress).map(|f| f.file) {
-        Ok(b)
-            if b.stats.bytes as f64 >= 0.98 * target as f64
-                || b.stats.bytes >= plain.stats.bytes =>
-        {
+        Ok(b) if refined_file_stands(&b, &plain, target) => {
             tracing::debug!(
                 k,
                 count,
