@@ -530,6 +530,8 @@ pub fn auto_brick(
         let brick_opts = CompressOptions {
             levels: Some(levels),
             margin: Some(bridge_margin(opts.family, levels)),
+            // As `BrickPlan::build`: bricks drop the fast effort's one refined set.
+            refine: opts.refine.filter(|r| !r.one_set),
             ..opts.clone()
         };
         memory_estimate(b, channels, &brick_opts).is_ok_and(|(n, _)| {

@@ -280,7 +280,7 @@ pub struct JobOptions {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Effort {
-    /// The depth predicted, no refinement.
+    /// The depth predicted, one cheap refinement (bricks unrefined).
     Fast,
     /// Depths compared, three refinement rounds.
     #[default]

@@ -808,6 +808,8 @@ pub fn refine_options(
     }
     let asked = rounds.is_some() || iterations.is_some();
     let base = match effort.refine() {
+        // Rounds or iterations asked of the fast effort: the full refinement with them.
+        Some(r) if r.one_set && asked => RefineOptions::default(),
         Some(r) => r,
         None if asked => RefineOptions::default(),
         None => return None,

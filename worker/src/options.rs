@@ -56,6 +56,11 @@ fn refine_options(effort: Effort, no_refine: bool, rounds: Option<usize>) -> Opt
         return None;
     }
     match (effort.refine(), rounds) {
+        // Rounds asked of the fast effort: the full refinement with them (as `compress`).
+        (Some(r), Some(rounds)) if r.one_set => Some(RefineOptions {
+            rounds,
+            ..RefineOptions::default()
+        }),
         (Some(r), rounds) => Some(RefineOptions {
             rounds: rounds.unwrap_or(r.rounds),
             ..r

@@ -688,7 +688,7 @@ fn refine_one_set_to_bytes(
         ranked.sorted.truncate(room);
         ranked.complete = false;
     }
-    let grown = (ranked.sorted.len() < k && !ranked.complete).then(|| prepared.ranked(k));
+    let grown = (ranked.sorted.len() < k && !ranked.complete).then(|| prepared.ranked(room));
     let source = grown.as_ref().unwrap_or(&ranked);
     let k_set = k.min(source.sorted.len());
     let refined = prepared.refined(source, k_set, r, 0);
