@@ -539,11 +539,17 @@ impl SeriesPlan {
                         origin: [0; 3],
                         source,
                     })?;
-                let c =
-                    compress(&v, &share, &|_, _| {}).map_err(|source| BrickError::Compress {
+                // The depth is chosen before any refinement, which this probe leaves out.
+                let depth_only = CompressOptions {
+                    refine: None,
+                    ..share.clone()
+                };
+                let c = compress(&v, &depth_only, &|_, _| {}).map_err(|source| {
+                    BrickError::Compress {
                         origin: [0; 3],
                         source: Box::new(source),
-                    })?;
+                    }
+                })?;
                 Some(c.header.geometry.levels)
             }
             (m, _) => m,
