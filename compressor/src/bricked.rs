@@ -841,7 +841,11 @@ impl BrickPlan {
 
     /// Brick `i` of volume `volume` compressed as [`BrickPlan::encode`] does: from its top
     /// kept in `tops` where that covers `count`, else read and transformed again (each counted
-    /// in `tops`).
+    /// in `tops`). A brick transformed again for a count, where a top of `cap` coefficients
+    /// is worth keeping (`Some`: [`BrickPlan::top_cap`]), keeps that top in `tops` on the way
+    /// (within their budget), so that the rate search's next trial codes it without
+    /// transforming it again (a run resumed from a checkpoint without its tops, a part retried
+    /// on another worker).
     pub fn encode_from(
         &self,
         source: &dyn BrickSource,
@@ -849,22 +853,29 @@ impl BrickPlan {
         count: Option<u64>,
         tops: &KeptTops,
         volume: usize,
+        cap: Option<u64>,
     ) -> Result<(Vec<u8>, u64), BrickError> {
         use std::sync::atomic::Ordering::Relaxed;
-        let kept = match (count, tops.get(&(volume, self.grid[i]))) {
+        let key = (volume, self.grid[i]);
+        let kept = match (count, tops.get(&key)) {
             (Some(count), Some(top)) => self.encode_kept(i, &top, count),
             _ => None,
         };
-        match kept {
-            Some(coded) => {
-                tops.reused.fetch_add(1, Relaxed);
-                coded
-            }
-            None => {
-                tops.transformed.fetch_add(1, Relaxed);
-                self.encode(source, i, count)
+        if let Some(coded) = kept {
+            tops.reused.fetch_add(1, Relaxed);
+            return coded;
+        }
+        tops.transformed.fetch_add(1, Relaxed);
+        if let (Some(count), Some(cap)) = (count, cap) {
+            if let (_, Some(top)) = self.score_keeping_top(source, i, cap)? {
+                let coded = self.encode_kept(i, &top, count);
+                tops.keep(key, top);
+                if let Some(coded) = coded {
+                    return coded;
+                }
             }
         }
+        self.encode(source, i, count)
     }
 
     /// Brick `i` compressed as a `.wsp` of its own, keeping its top `count` coefficients
@@ -1961,16 +1972,26 @@ impl LocalBricks<'_> {
                         // the checkpoint, where it is not in memory (then the brick is coded
                         // without being read and transformed again).
                         let key = (0, plan.grid[i]);
+                        let mut had_top = self.tops.get(&key).is_some();
                         if let (Some(c), Some(_)) = (self.checkpoint, count) {
-                            if self.tops.get(&key).is_none() && plan.top_cap(i).is_some() {
+                            if !had_top && plan.top_cap(i).is_some() {
                                 if let Some(top) = c.top(i, plan.grid[i].1, &plan.base) {
                                     self.tops.keep(key, top);
+                                    had_top = true;
                                 }
                             }
                         }
-                        let coded = plan.encode_from(self.source, i, count, &self.tops, 0)?;
+                        let cap = plan.top_cap(i);
+                        let coded = plan.encode_from(self.source, i, count, &self.tops, 0, cap)?;
                         if let Some(c) = self.checkpoint {
                             c.keep_coded(i, count, &coded.0);
+                            // A top kept on the way (the checkpoint had none): kept there too,
+                            // for a run after another kill.
+                            if !had_top {
+                                if let Some(top) = self.tops.get(&key) {
+                                    c.keep_top(i, &top);
+                                }
+                            }
                         }
                         coded
                     }
@@ -3235,8 +3256,9 @@ mod tests {
     /// Where the bricks do not refine, the checkpoint keeps each brick's top as well: a run
     /// again after the scores were kept but before a brick was coded codes it from its kept
     /// top, reading nothing, into the same file; without the tops it reads those bricks
-    /// again (a byte target once per trial). A count target and a byte target (several
-    /// trials, each brick's count its own entry), on one thread and on two.
+    /// again, once each (a byte target too, over its trials), and keeps their tops again. A
+    /// count target and a byte target (several trials, each brick's count its own entry), on
+    /// one thread and on two.
     #[test]
     fn a_run_again_codes_the_bricks_not_yet_coded_from_their_kept_tops() {
         let v = Phantom::SheppLogan.generate([40, 36, 30]);
@@ -3306,18 +3328,21 @@ mod tests {
                 );
                 assert_eq!(resumed.coded, 0);
                 assert_eq!(reads, 0, "{target:?} {threads}: coded from the kept tops");
-                // Without the tops the bricks not coded are read and transformed again.
+                // Without the tops the bricks not coded are read and transformed again, once
+                // each: a brick transformed again keeps its top for the rate search's next
+                // trial, and in the checkpoint.
                 remove("brick-");
                 remove("top-");
                 let (again, resumed, reads) = run(true);
                 assert_eq!(again, whole, "{target:?} {threads}");
                 assert_eq!(resumed.tops, 0);
-                // Once per brick for a count; once per brick and trial for bytes (a brick
-                // transformed again keeps no top for the next trial).
-                assert!(reads >= bricks, "{target:?} {threads}: {reads}");
-                if matches!(target, Target::Coefficients(_)) {
-                    assert_eq!(reads, bricks, "{threads}");
-                }
+                assert_eq!(reads, bricks, "{target:?} {threads}");
+                // Killed again before any brick was coded: the tops kept on the way serve.
+                remove("brick-");
+                let (again, resumed, reads) = run(true);
+                assert_eq!(again, whole, "{target:?} {threads}");
+                assert_eq!(resumed.tops, bricks, "{target:?} {threads}");
+                assert_eq!(reads, 0, "{target:?} {threads}");
             }
         }
     }

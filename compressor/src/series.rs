@@ -646,31 +646,38 @@ impl SeriesPlan {
         tops: &KeptTops,
     ) -> Result<ScoreSummary, BrickError> {
         let (c, i) = self.unit(u)?;
-        let plan = &self.plans[c];
-        // A group's low-pass component holds most of a slowly changing series and takes most
-        // of the kept coefficients: its top is sized as if the low-pass components shared the
-        // whole target; a detail component's as if every component did.
+        let cap = self.top_cap(c, i);
+        self.plans[c].score_into(&self.component(series, c), i, tops, c, cap)
+    }
+
+    /// How many top coefficients brick `i` of component `c` keeps for the second pass
+    /// ([`BrickPlan::top_cap`]). A group's low-pass component holds most of a slowly changing
+    /// series and takes most of the kept coefficients: its top is sized as if the low-pass
+    /// components shared the whole target; a detail component's as if every component did.
+    fn top_cap(&self, c: usize, i: usize) -> Option<u64> {
         let low_pass = |terms: &[(usize, f64)]| terms.iter().all(|(_, w)| *w > 0.0);
         let parts = match low_pass(&self.haar.components[c]) {
             true => self.haar.components.iter().filter(|t| low_pass(t)).count(),
             false => self.plans.len(),
         };
-        let cap = plan.top_cap_within(i, parts);
-        plan.score_into(&self.component(series, c), i, tops, c, cap)
+        self.plans[c].top_cap_within(i, parts)
     }
 
     /// Unit `u` compressed as a `.wsp` of its own keeping its top `count` coefficients
     /// (`None`: all), and the count it kept: from its top kept in `tops` where that covers
-    /// `count`, else read and transformed again ([`BrickPlan::encode_from`]).
+    /// `count`, else read and transformed again ([`BrickPlan::encode_from`]), keeping its top
+    /// in `tops` on the way where `keep_top`.
     pub fn encode_from(
         &self,
         series: &dyn SeriesSource,
         u: usize,
         count: Option<u64>,
         tops: &KeptTops,
+        keep_top: bool,
     ) -> Result<(Vec<u8>, u64), BrickError> {
         let (c, i) = self.unit(u)?;
-        self.plans[c].encode_from(&self.component(series, c), i, count, tops, c)
+        let cap = self.top_cap(c, i).filter(|_| keep_top);
+        self.plans[c].encode_from(&self.component(series, c), i, count, tops, c, cap)
     }
 
     /// The budget of the units' kept tops ([`KeptTops::for_plan`] of the first component).
@@ -923,7 +930,8 @@ pub fn compress_series_to(
             (0..of)
                 .into_par_iter()
                 .map(|u| {
-                    let (file, kept) = plan.encode_from(series, u, counts.map(|k| k[u]), &tops)?;
+                    let (file, kept) =
+                        plan.encode_from(series, u, counts.map(|k| k[u]), &tops, true)?;
                     let len = file.len() as u64;
                     let file = spill.push(&file)?;
                     tick(&|done| BrickStage::Compressed { done, of, trial });
@@ -1197,7 +1205,7 @@ mod tests {
                 (0..of)
                     .map(|u| {
                         let count = counts.map(|k| k[u]);
-                        let (file, kept) = plan.encode_from(s, u, count, tops)?;
+                        let (file, kept) = plan.encode_from(s, u, count, tops, true)?;
                         let len = file.len() as u64;
                         Ok(CodedBrick { len, file, kept })
                     })

@@ -427,7 +427,9 @@ fn compute_part(
                     .map_err(brick_failure)
             },
             |count| {
-                plan.encode_from(source, i, count, &tops, 0)
+                // A worker keeps a brick's top from its score part only (`None`): which
+                // encode parts find their scorer's top is what the queue's preference decides.
+                plan.encode_from(source, i, count, &tops, 0, None)
                     .map_err(brick_failure)
             },
         )
@@ -518,7 +520,7 @@ fn compute_series_part(
             part.step,
             || plan.score_into(series, u, &tops).map_err(brick_failure),
             |count| {
-                plan.encode_from(series, u, count, &tops)
+                plan.encode_from(series, u, count, &tops, false)
                     .map_err(brick_failure)
             },
         )
