@@ -841,11 +841,10 @@ impl BrickPlan {
 
     /// Brick `i` of volume `volume` compressed as [`BrickPlan::encode`] does: from its top
     /// kept in `tops` where that covers `count`, else read and transformed again (each counted
-    /// in `tops`). A brick transformed again for a count, where a top of `cap` coefficients
-    /// is worth keeping (`Some`: [`BrickPlan::top_cap`]), keeps that top in `tops` on the way
-    /// (within their budget), so that the rate search's next trial codes it without
-    /// transforming it again (a run resumed from a checkpoint without its tops, a part retried
-    /// on another worker).
+    /// in `tops`). A brick with no top kept, transformed again for a count within a top of
+    /// `cap` coefficients (`Some`: [`BrickPlan::top_cap`]), keeps that top in `tops` on the
+    /// way (within their budget), so that the rate search's next trial codes it without
+    /// transforming it again (a run resumed from a checkpoint without its tops).
     pub fn encode_from(
         &self,
         source: &dyn BrickSource,
@@ -857,8 +856,9 @@ impl BrickPlan {
     ) -> Result<(Vec<u8>, u64), BrickError> {
         use std::sync::atomic::Ordering::Relaxed;
         let key = (volume, self.grid[i]);
-        let kept = match (count, tops.get(&key)) {
-            (Some(count), Some(top)) => self.encode_kept(i, &top, count),
+        let held = tops.get(&key);
+        let kept = match (count, &held) {
+            (Some(count), Some(top)) => self.encode_kept(i, top, count),
             _ => None,
         };
         if let Some(coded) = kept {
@@ -866,12 +866,15 @@ impl BrickPlan {
             return coded;
         }
         tops.transformed.fetch_add(1, Relaxed);
-        if let (Some(count), Some(cap)) = (count, cap) {
-            if let (_, Some(top)) = self.score_keeping_top(source, i, cap)? {
-                let coded = self.encode_kept(i, &top, count);
-                tops.keep(key, top);
-                if let Some(coded) = coded {
-                    return coded;
+        // (A count beyond the cap needs the whole transform; a top already held that does not
+        // cover this count is not replaced.)
+        if let (Some(count), Some(cap), None) = (count, cap, &held) {
+            if count <= cap {
+                if let (_, Some(top)) = self.score_keeping_top(source, i, cap)? {
+                    if let Some(coded) = self.encode_kept(i, &top, count) {
+                        tops.keep(key, top);
+                        return coded;
+                    }
                 }
             }
         }
@@ -3251,6 +3254,48 @@ mod tests {
             assert!(replaced.replaced && !replaced.planned);
             assert_eq!(replaced.scored + replaced.coded, 0);
         }
+    }
+
+    /// A brick with no top kept, coded for a count within its cap, keeps its top on the way:
+    /// the next count is coded from it, reading nothing. Beyond its cap, or without a cap, it
+    /// is read once per count and keeps none. Every file is the one a fresh transform writes.
+    #[test]
+    fn a_brick_transformed_again_keeps_its_top_only_within_its_cap() {
+        use std::sync::atomic::Ordering::Relaxed;
+        let v = Phantom::Ct.generate([48, 48, 48]);
+        let opts = CompressOptions {
+            target: Target::Coefficients(600),
+            ..crate::encode::Effort::Fast.options()
+        };
+        let plan = BrickPlan::new(&v, &opts, 24).unwrap();
+        let cap = plan.top_cap(0).unwrap();
+        let source = Flaky {
+            volume: &v,
+            reads: Default::default(),
+            fail_at: 0,
+        };
+        let fresh = |count: u64| plan.encode(&v, 0, Some(count)).unwrap().0;
+        let key = (0, plan.grid[0]);
+        let tops = KeptTops::for_plan(&plan);
+        let code = |count: u64, cap: Option<u64>| {
+            plan.encode_from(&source, 0, Some(count), &tops, 0, cap)
+                .unwrap()
+                .0
+        };
+        assert_eq!(code(cap + 1, Some(cap)), fresh(cap + 1));
+        assert_eq!(code(cap / 2, None), fresh(cap / 2));
+        assert!(tops.get(&key).is_none());
+        assert_eq!(source.reads.load(Relaxed), 2);
+        assert_eq!(code(cap / 2, Some(cap)), fresh(cap / 2));
+        assert!(tops.get(&key).is_some());
+        assert_eq!(source.reads.load(Relaxed), 3);
+        assert_eq!(code(cap / 3, Some(cap)), fresh(cap / 3));
+        assert_eq!(
+            source.reads.load(Relaxed),
+            3,
+            "coded from the top kept on the way"
+        );
+        assert_eq!(tops.counts(), (1, 3));
     }
 
     /// Where the bricks do not refine, the checkpoint keeps each brick's top as well: a run

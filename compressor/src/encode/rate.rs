@@ -175,11 +175,11 @@ pub(super) fn compress_to_bytes(
                 // its own probe's rule after it.
                 if let Some(g) = unseen.take() {
                     let count = g.coefficient_count();
-                    if !affords_coarse_band(plain.stats.kept, volume.channel_count(), count, m + 1)
-                    {
-                        tracing::debug!(levels = m, kept = plain.stats.kept, "guessed too shallow");
+                    let kept = filling_count(&plain, slope, &o, target, prepared.nonzero);
+                    if !affords_coarse_band(kept, volume.channel_count(), count, m + 1) {
+                        tracing::debug!(levels = m, kept, "guessed too shallow");
                         depths.push(m + 1);
-                        guess = Some(plain.stats.kept as usize);
+                        guess = Some(kept as usize);
                         continue;
                     }
                 }
@@ -221,7 +221,8 @@ pub(super) fn compress_to_bytes(
             // A predicted depth goes shallower while the file affords the next coarse band
             // (the comparison's own rule for trying it), and takes it unseen.
             let to = if opts.depth_search == DepthSearch::Predict && opts.levels.is_none() {
-                predicted_depth(plain.stats.kept, prepared.channels, &prepared.geometry)
+                let kept = filling_count(&plain, slope, &o, target, prepared.nonzero);
+                predicted_depth(kept, prepared.channels, &prepared.geometry)
             } else {
                 m
             };
@@ -320,6 +321,27 @@ pub(super) fn compress_to_bytes(
         &mut trials,
         progress,
     )
+}
+
+/// The count of coefficients that fills `target` bytes, as the depth rules read it: the
+/// searched file's, or where that file is a size guide that may stop short of the target
+/// ([`GUIDE_BRACKET`]), its count extrapolated to the target at the measured `slope` (so that
+/// the depth does not depend on where the guide stopped).
+fn filling_count(
+    plain: &Compressed,
+    slope: Option<f64>,
+    opts: &CompressOptions,
+    target: u64,
+    nonzero: u64,
+) -> u64 {
+    let kept = plain.stats.kept;
+    let guide = opts.refine.is_some_and(|r| r.one_set) && opts.depth_search == DepthSearch::Predict;
+    if !guide || plain.stats.bytes == 0 {
+        return kept;
+    }
+    let fill = target as f64 / plain.stats.bytes as f64;
+    (count_at(kept as usize, fill, slope.unwrap_or(SIZE_SLOPE)) as u64)
+        .clamp(kept, nonzero.max(kept))
 }
 
 /// Finest quantizer step the search below tries, relative to the one `--step` gives.
@@ -494,7 +516,9 @@ fn oracle_to_bytes(
         }
         // Where one refined set follows, this file is a size guide (and a fallback): a looser
         // fill, or two trials closely either side of the target, save trials of the whole file.
-        let guide = opts.refine.is_some_and(|r| r.one_set);
+        // Not where depths are compared: their files' views are compared at equal bytes.
+        let guide =
+            opts.refine.is_some_and(|r| r.one_set) && opts.depth_search == DepthSearch::Predict;
         let search = RateSearch {
             target,
             guess,
@@ -672,10 +696,8 @@ fn refine_one_set_to_bytes(
     let n = prepared.nonzero as usize;
     // The count that would fill the target, from the guide's (searched to [`GUIDE_FILL`] or
     // [`GUIDE_BRACKET`]) at the slope its search measured around the target.
+    let k0 = filling_count(&plain, slope, opts, target, prepared.nonzero) as usize;
     let slope = slope.unwrap_or(SIZE_SLOPE);
-    let fill = target as f64 / plain.stats.bytes.max(1) as f64;
-    let k0 =
-        count_at(plain.stats.kept as usize, fill, slope).clamp(plain.stats.kept as usize, n.max(1));
     let k = ((k0 as f64 * ONE_SET_GROWTH).ceil() as usize).clamp(1, n.max(1));
     progress(Stage::Refine, 0.0);
     // A search cuts the set or tops it up by a few per cent: what lies further down the
@@ -845,9 +867,10 @@ const MAX_TRIALS: usize = 24;
 /// allows.
 const FILE_FILL: f64 = 0.998;
 
-/// How full the unrefined file is searched where [`RefineOptions::one_set`] refines after it:
-/// that file only sizes the refined set ([`refine_one_set_to_bytes`], which extrapolates its
-/// count to the target) and stands in only if the refinement fails.
+/// How full the unrefined file is searched where [`RefineOptions::one_set`] refines after it
+/// (with a predicted depth): that file only sizes the refined set ([`refine_one_set_to_bytes`],
+/// which extrapolates its count to the target); where the refined file falls short it is
+/// searched on to [`FILE_FILL`] before the two are weighed ([`guide_filled`]).
 const GUIDE_FILL: f64 = 0.97;
 
 /// A size guide's search also ends once a fitting and an overflowing trial lie within this
