@@ -691,12 +691,12 @@ async fn fast_bricked_jobs_in_flight_together_code_their_bricks_from_the_tops_th
     let scores = js.iter().filter(|j| is_part(j)).count() - encodes;
     assert_eq!(scores, 24, "3 × 2 × 2 bricks of each volume scored");
     assert!(encodes >= scores, "every brick coded: {encodes}");
-    // Per worker: the bricks it scored (parent, brick), its encode parts of those bricks, and
-    // the parts it coded from a kept top. Only a brick it scored can be coded from its top, and
-    // every such part is but where the brick's share is beyond the top kept, whichever job's
-    // part it ran before. How many of the encode parts find their scorer depends on timing (a
-    // worker that runs out of its own parts takes the other's): the queue's preference itself
-    // is tested in `queue_contract`.
+    // Per worker: its encode parts of bricks (parent, brick) it scored or coded in an earlier
+    // part, and the parts it coded from a kept top. Only such a brick can be coded from its
+    // top, and every such part is but where the brick's share is beyond the top kept, whichever
+    // job's part it ran before. How many of the encode parts find their scorer depends on
+    // timing (a worker that runs out of its own parts takes the other's): the queue's
+    // preference itself is tested in `queue_contract`.
     let field = |line: &str, name: &str| -> Option<u64> {
         line.split(&format!("{name}="))
             .nth(1)?
@@ -723,19 +723,19 @@ async fn fast_bricked_jobs_in_flight_together_code_their_bricks_from_the_tops_th
         let scored: HashSet<(u64, u32)> =
             running.iter().filter_map(|l| brick(l, "scoring")).collect();
         parents_run.extend(scored.iter().map(|(p, _)| *p));
-        let own = running
-            .iter()
-            .filter_map(|l| brick(l, "coding"))
-            .filter(|b| scored.contains(b))
-            .count();
+        let mut seen = scored.clone();
+        let mut own = 0;
+        for b in running.iter().filter_map(|l| brick(l, "coding")) {
+            own += usize::from(!seen.insert(b));
+        }
         let from_tops = text
             .lines()
             .filter(|l| l.contains("part coded from the top this worker kept"))
             .count();
         assert!(
             from_tops <= own && 4 * from_tops >= 3 * own,
-            "{}: {from_tops} of its {own} encode parts of bricks it scored coded from a \
-             kept top:\n{text}",
+            "{}: {from_tops} of its {own} encode parts of bricks it scored or coded before \
+             coded from a kept top:\n{text}",
             log.display()
         );
         from_tops_all += from_tops;
@@ -756,6 +756,98 @@ async fn fast_bricked_jobs_in_flight_together_code_their_bricks_from_the_tops_th
         .collect();
     let expected: Vec<&[u8]> = expected.iter().map(Vec::as_slice).collect();
     assert_cache_holds_only_these(&c, &expected).await;
+}
+
+/// A bricked byte target (several trials) whose only worker dies once every brick is scored:
+/// the worker that takes over scored none of them, so it transforms each brick once, on its
+/// first encode part of it, and codes the search's later trials from the top it kept then
+/// (before, it transformed every brick again in every trial); the volume is the file one
+/// process makes.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_worker_taking_over_bricks_it_did_not_score_transforms_each_once() {
+    use wavesplat_orchestrator_client::model::{Effort, JobOptions, TargetSpec};
+    let cl = TestCluster::start(&ORCH_TIMING);
+    let (o, c) = (cl.orch.url(), cl.cache.url());
+    let dims = [56, 48, 40];
+    let shared = cl.root.join("shared");
+    std::fs::create_dir_all(&shared).unwrap();
+    write_f32(
+        &shared.join(raw_name("handover", dims, "f32")),
+        &phantom(Phantom::Ct, dims),
+    );
+    let logs = [cl.root.join("w1.log"), cl.root.join("w2.log")];
+    let w1 = cl.worker("w1", 0, Some(&logs[0]));
+    let target = 9_000u64;
+    submit(
+        &shared,
+        &o,
+        &[
+            "--brick",
+            "24",
+            "--effort",
+            "fast",
+            "--target-bytes",
+            &target.to_string(),
+        ],
+    );
+    let is_encode = |j: &pb::Job| {
+        j.spec
+            .as_ref()
+            .and_then(|s| s.part.as_ref())
+            .is_some_and(|p| matches!(p.step, Some(pb::part_spec::Step::Encode(_))))
+    };
+    let bricks = 3 * 2 * 2;
+    wait_for(&o, 120, "every brick scored", |js| {
+        js.iter()
+            .filter(|j| is_part(j) && !is_encode(j) && state_name(j.state) == "done")
+            .count()
+            == bricks
+    })
+    .await;
+    w1.kill();
+    let _w2 = cl.worker("w2", 0, Some(&logs[1]));
+    let js = wait_for(&o, 180, "the bricked job done", |js| {
+        js.iter()
+            .any(|j| !is_part(j) && state_name(j.state) == "done")
+    })
+    .await;
+    for j in js.iter().filter(|j| !is_part(j)) {
+        assert_eq!(state_name(j.state), "done", "{}: {}", name(j), j.error);
+    }
+    let text = std::fs::read_to_string(&logs[1]).unwrap();
+    let coded: Vec<&str> = text
+        .lines()
+        .filter(|l| l.contains("running part") && l.contains("coding"))
+        .filter_map(|l| l.split("part=brick ").nth(1)?.split('/').next())
+        .collect();
+    let distinct: HashSet<&str> = coded.iter().copied().collect();
+    let again = coded.len() - distinct.len();
+    assert!(
+        again >= bricks,
+        "the search's later trials ran on the second worker: {} encode parts of {} bricks\n{text}",
+        coded.len(),
+        distinct.len()
+    );
+    let from_tops = text
+        .lines()
+        .filter(|l| l.contains("part coded from the top this worker kept"))
+        .count();
+    assert!(
+        from_tops <= again && 4 * from_tops >= 3 * again,
+        "{from_tops} of {again} encode parts of bricks coded before coded from a kept top\n{text}"
+    );
+    let options = JobOptions {
+        levels: Some(2),
+        brick: Some(24),
+        effort: Effort::Fast,
+        target: TargetSpec::Bytes(target),
+        ..Default::default()
+    };
+    assert_cache_holds_only(
+        &c,
+        &one_process_file_with(&Phantom::Ct.generate(dims), &options),
+    )
+    .await;
 }
 
 /// A job carries `archive submit --memory-limit` to its workers, which keep to it: a bricked

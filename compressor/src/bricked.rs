@@ -844,7 +844,8 @@ impl BrickPlan {
     /// in `tops`). A brick with no top kept, transformed again for a count within a top of
     /// `cap` coefficients (`Some`: [`BrickPlan::top_cap`]), keeps that top in `tops` on the
     /// way (within their budget), so that the rate search's next trial codes it without
-    /// transforming it again (a run resumed from a checkpoint without its tops).
+    /// transforming it again (a run resumed from a checkpoint without its tops, a worker's
+    /// part of a brick another worker scored).
     pub fn encode_from(
         &self,
         source: &dyn BrickSource,

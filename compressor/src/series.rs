@@ -665,18 +665,17 @@ impl SeriesPlan {
 
     /// Unit `u` compressed as a `.wsp` of its own keeping its top `count` coefficients
     /// (`None`: all), and the count it kept: from its top kept in `tops` where that covers
-    /// `count`, else read and transformed again ([`BrickPlan::encode_from`]), keeping its top
-    /// in `tops` on the way where `keep_top`.
+    /// `count`, else read and transformed again ([`BrickPlan::encode_from`], keeping its top
+    /// in `tops` on the way).
     pub fn encode_from(
         &self,
         series: &dyn SeriesSource,
         u: usize,
         count: Option<u64>,
         tops: &KeptTops,
-        keep_top: bool,
     ) -> Result<(Vec<u8>, u64), BrickError> {
         let (c, i) = self.unit(u)?;
-        let cap = self.top_cap(c, i).filter(|_| keep_top);
+        let cap = self.top_cap(c, i);
         self.plans[c].encode_from(&self.component(series, c), i, count, tops, c, cap)
     }
 
@@ -930,8 +929,7 @@ pub fn compress_series_to(
             (0..of)
                 .into_par_iter()
                 .map(|u| {
-                    let (file, kept) =
-                        plan.encode_from(series, u, counts.map(|k| k[u]), &tops, true)?;
+                    let (file, kept) = plan.encode_from(series, u, counts.map(|k| k[u]), &tops)?;
                     let len = file.len() as u64;
                     let file = spill.push(&file)?;
                     tick(&|done| BrickStage::Compressed { done, of, trial });
@@ -1205,7 +1203,7 @@ mod tests {
                 (0..of)
                     .map(|u| {
                         let count = counts.map(|k| k[u]);
-                        let (file, kept) = plan.encode_from(s, u, count, tops, true)?;
+                        let (file, kept) = plan.encode_from(s, u, count, tops)?;
                         let len = file.len() as u64;
                         Ok(CodedBrick { len, file, kept })
                     })

@@ -427,9 +427,9 @@ fn compute_part(
                     .map_err(brick_failure)
             },
             |count| {
-                // A worker keeps a brick's top from its score part only (`None`): which
-                // encode parts find their scorer's top is what the queue's preference decides.
-                plan.encode_from(source, i, count, &tops, 0, None)
+                // A brick this worker did not score (its scorer died, or was busy) keeps its
+                // top here on its first encode part, for the search's next trials.
+                plan.encode_from(source, i, count, &tops, 0, plan.top_cap(i))
                     .map_err(brick_failure)
             },
         )
@@ -466,7 +466,7 @@ fn with_tops(
         tracing::info!(
             parent = part.parent,
             part = %part.label(),
-            "part coded from the top this worker kept when it scored it"
+            "part coded from the top this worker kept when it scored or coded it"
         );
     }
     Ok(bytes)
@@ -520,7 +520,7 @@ fn compute_series_part(
             part.step,
             || plan.score_into(series, u, &tops).map_err(brick_failure),
             |count| {
-                plan.encode_from(series, u, count, &tops, false)
+                plan.encode_from(series, u, count, &tops)
                     .map_err(brick_failure)
             },
         )
