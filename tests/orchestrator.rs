@@ -115,6 +115,41 @@ fn is_part(j: &pb::Job) -> bool {
     j.spec.as_ref().is_some_and(|s| s.part.is_some())
 }
 
+/// Whether a listed job is an encode part of a bricked job (the other parts score).
+fn is_encode_part(j: &pb::Job) -> bool {
+    j.spec
+        .as_ref()
+        .and_then(|s| s.part.as_ref())
+        .is_some_and(|p| matches!(p.step, Some(pb::part_spec::Step::Encode(_))))
+}
+
+/// The fast bricked byte target the kept-top tests submit: 24³ bricks, `--effort fast`,
+/// `target` bytes (depth 2, as [`submit`] asks); and its job options, for the one-process file.
+fn submit_fast_bricked(
+    dir: &Path,
+    orch: &str,
+    target: u64,
+) -> wavesplat_orchestrator_client::model::JobOptions {
+    use wavesplat_orchestrator_client::model::{Effort, JobOptions, TargetSpec};
+    let bytes = target.to_string();
+    let args = [
+        "--brick",
+        "24",
+        "--effort",
+        "fast",
+        "--target-bytes",
+        &bytes,
+    ];
+    submit(dir, orch, &args);
+    JobOptions {
+        levels: Some(2),
+        brick: Some(24),
+        effort: Effort::Fast,
+        target: TargetSpec::Bytes(target),
+        ..Default::default()
+    }
+}
+
 /// The bricked file one process makes from `source` with a job's options (depth 2, as
 /// [`submit`] asks), bricks of `brick` and `target`.
 fn one_process_file(
@@ -644,7 +679,6 @@ async fn a_bricked_job_spreads_its_bricks_over_workers() {
 /// instead of transforming the brick again; each volume is the file one process makes.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn fast_bricked_jobs_in_flight_together_code_their_bricks_from_the_tops_their_workers_kept() {
-    use wavesplat_orchestrator_client::model::{Effort, JobOptions, TargetSpec};
     let cl = TestCluster::start(&ORCH_TIMING);
     let (o, c) = (cl.orch.url(), cl.cache.url());
     let volumes = [[56, 48, 40], [48, 56, 40]];
@@ -659,19 +693,7 @@ async fn fast_bricked_jobs_in_flight_together_code_their_bricks_from_the_tops_th
     let logs = [cl.root.join("w1.log"), cl.root.join("w2.log")];
     let _w1 = cl.worker("w1", 0, Some(&logs[0]));
     let _w2 = cl.worker("w2", 0, Some(&logs[1]));
-    let target = 9_000u64;
-    submit(
-        &shared,
-        &o,
-        &[
-            "--brick",
-            "24",
-            "--effort",
-            "fast",
-            "--target-bytes",
-            &target.to_string(),
-        ],
-    );
+    let options = submit_fast_bricked(&shared, &o, 9_000);
     let js = wait_for(&o, 180, "both bricked jobs done", |js| {
         js.iter()
             .filter(|j| !is_part(j) && state_name(j.state) == "done")
@@ -679,15 +701,7 @@ async fn fast_bricked_jobs_in_flight_together_code_their_bricks_from_the_tops_th
             == 2
     })
     .await;
-    let encodes = js
-        .iter()
-        .filter(|j| {
-            j.spec
-                .as_ref()
-                .and_then(|s| s.part.as_ref())
-                .is_some_and(|p| matches!(p.step, Some(pb::part_spec::Step::Encode(_))))
-        })
-        .count();
+    let encodes = js.iter().filter(|j| is_encode_part(j)).count();
     let scores = js.iter().filter(|j| is_part(j)).count() - encodes;
     assert_eq!(scores, 24, "3 × 2 × 2 bricks of each volume scored");
     assert!(encodes >= scores, "every brick coded: {encodes}");
@@ -743,13 +757,6 @@ async fn fast_bricked_jobs_in_flight_together_code_their_bricks_from_the_tops_th
     assert!(from_tops_all > 0, "no part coded from a kept top");
     assert_eq!(parents_run.len(), 2, "both jobs' bricks scored");
 
-    let options = JobOptions {
-        levels: Some(2),
-        brick: Some(24),
-        effort: Effort::Fast,
-        target: TargetSpec::Bytes(target),
-        ..Default::default()
-    };
     let expected: Vec<Vec<u8>> = volumes
         .iter()
         .map(|dims| one_process_file_with(&Phantom::Ct.generate(*dims), &options))
@@ -765,7 +772,6 @@ async fn fast_bricked_jobs_in_flight_together_code_their_bricks_from_the_tops_th
 /// process makes.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_worker_taking_over_bricks_it_did_not_score_transforms_each_once() {
-    use wavesplat_orchestrator_client::model::{Effort, JobOptions, TargetSpec};
     let cl = TestCluster::start(&ORCH_TIMING);
     let (o, c) = (cl.orch.url(), cl.cache.url());
     let dims = [56, 48, 40];
@@ -777,29 +783,11 @@ async fn a_worker_taking_over_bricks_it_did_not_score_transforms_each_once() {
     );
     let logs = [cl.root.join("w1.log"), cl.root.join("w2.log")];
     let w1 = cl.worker("w1", 0, Some(&logs[0]));
-    let target = 9_000u64;
-    submit(
-        &shared,
-        &o,
-        &[
-            "--brick",
-            "24",
-            "--effort",
-            "fast",
-            "--target-bytes",
-            &target.to_string(),
-        ],
-    );
-    let is_encode = |j: &pb::Job| {
-        j.spec
-            .as_ref()
-            .and_then(|s| s.part.as_ref())
-            .is_some_and(|p| matches!(p.step, Some(pb::part_spec::Step::Encode(_))))
-    };
+    let options = submit_fast_bricked(&shared, &o, 9_000);
     let bricks = 3 * 2 * 2;
     wait_for(&o, 120, "every brick scored", |js| {
         js.iter()
-            .filter(|j| is_part(j) && !is_encode(j) && state_name(j.state) == "done")
+            .filter(|j| is_part(j) && !is_encode_part(j) && state_name(j.state) == "done")
             .count()
             == bricks
     })
@@ -836,13 +824,6 @@ async fn a_worker_taking_over_bricks_it_did_not_score_transforms_each_once() {
         from_tops <= again && 4 * from_tops >= 3 * again,
         "{from_tops} of {again} encode parts of bricks coded before coded from a kept top\n{text}"
     );
-    let options = JobOptions {
-        levels: Some(2),
-        brick: Some(24),
-        effort: Effort::Fast,
-        target: TargetSpec::Bytes(target),
-        ..Default::default()
-    };
     assert_cache_holds_only(
         &c,
         &one_process_file_with(&Phantom::Ct.generate(dims), &options),
