@@ -1976,16 +1976,16 @@ impl LocalBricks<'_> {
                         // the checkpoint, where it is not in memory (then the brick is coded
                         // without being read and transformed again).
                         let key = (0, plan.grid[i]);
+                        let cap = plan.top_cap(i);
                         let mut had_top = self.tops.get(&key).is_some();
                         if let (Some(c), Some(_)) = (self.checkpoint, count) {
-                            if !had_top && plan.top_cap(i).is_some() {
+                            if !had_top && cap.is_some() {
                                 if let Some(top) = c.top(i, plan.grid[i].1, &plan.base) {
                                     self.tops.keep(key, top);
                                     had_top = true;
                                 }
                             }
                         }
-                        let cap = plan.top_cap(i);
                         let coded = plan.encode_from(self.source, i, count, &self.tops, 0, cap)?;
                         if let Some(c) = self.checkpoint {
                             c.keep_coded(i, count, &coded.0);

@@ -20,7 +20,6 @@ use wavesplat_compressor::order::Clustering;
 use wavesplat_compressor::phantom::{beating, Phantom, PhantomVolume};
 use wavesplat_compressor::reader::region::RegionReader;
 use wavesplat_compressor::reader::{read_volume, Endian, RawDtype, RawSpec};
-use wavesplat_compressor::refine::RefineOptions;
 use wavesplat_compressor::series::{TimePointSource, VolumeSeries};
 use wavesplat_harness::console::Progress;
 
@@ -789,35 +788,11 @@ pub fn options(a: &CompressArgs) -> Result<CompressOptions> {
         }),
         step: a.step,
         depth_search: a.effort.depth_search(),
-        refine: refine_options(a.effort, a.no_refine, a.refine_rounds, a.refine_iterations),
+        refine: a
+            .effort
+            .refine_with(a.no_refine, a.refine_rounds, a.refine_iterations),
         memory_limit: a.memory_limit,
         format_version: a.format_version,
-    })
-}
-
-/// The refinement `effort` runs, with the flags given on top: `--no-refine` none, a round or
-/// iteration count one (from the effort's, or the default's when the effort has none).
-pub fn refine_options(
-    effort: Effort,
-    no_refine: bool,
-    rounds: Option<usize>,
-    iterations: Option<usize>,
-) -> Option<RefineOptions> {
-    if no_refine {
-        return None;
-    }
-    let asked = rounds.is_some() || iterations.is_some();
-    let base = match effort.refine() {
-        // Rounds or iterations asked of the fast effort: the full refinement with them.
-        Some(r) if r.one_set && asked => RefineOptions::default(),
-        Some(r) => r,
-        None if asked => RefineOptions::default(),
-        None => return None,
-    };
-    Some(RefineOptions {
-        rounds: rounds.unwrap_or(base.rounds),
-        cg_iterations: iterations.unwrap_or(base.cg_iterations),
-        ..base
     })
 }
 

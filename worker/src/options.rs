@@ -4,7 +4,6 @@
 use wavesplat_compressor::colorspace::ColorSpaceKind;
 use wavesplat_compressor::encode::{CompressOptions, Effort, Target, TileChoice};
 use wavesplat_compressor::reader::{Endian, RawDtype, RawSpec};
-use wavesplat_compressor::refine::RefineOptions;
 use wavesplat_orchestrator_client::model::{
     self, ColorSpace, JobOptions, RawLayout, SampleType, TargetSpec,
 };
@@ -35,7 +34,7 @@ pub fn compress_options(o: &JobOptions) -> CompressOptions {
         layer_growth: o.layer_growth.unwrap_or(d.layer_growth),
         step: o.step,
         depth_search: effort.depth_search(),
-        refine: refine_options(effort, o.no_refine, o.refine_rounds),
+        refine: effort.refine_with(o.no_refine, o.refine_rounds, None),
         memory_limit: o.memory_limit,
         ..d
     }
@@ -47,29 +46,6 @@ pub fn effort(e: model::Effort) -> Effort {
         model::Effort::Fast => Effort::Fast,
         model::Effort::Default => Effort::Default,
         model::Effort::Best => Effort::Best,
-    }
-}
-
-/// The refinement of `effort` with a job's flags on top (as `compress` has it).
-fn refine_options(effort: Effort, no_refine: bool, rounds: Option<usize>) -> Option<RefineOptions> {
-    if no_refine {
-        return None;
-    }
-    match (effort.refine(), rounds) {
-        // Rounds asked of the fast effort: the full refinement with them (as `compress`).
-        (Some(r), Some(rounds)) if r.one_set => Some(RefineOptions {
-            rounds,
-            ..RefineOptions::default()
-        }),
-        (Some(r), rounds) => Some(RefineOptions {
-            rounds: rounds.unwrap_or(r.rounds),
-            ..r
-        }),
-        (None, Some(rounds)) => Some(RefineOptions {
-            rounds,
-            ..RefineOptions::default()
-        }),
-        (None, None) => None,
     }
 }
 

@@ -211,6 +211,32 @@ impl Effort {
         }
     }
 
+    /// The refinement of this effort with the flags of `compress` or a job on top: `no_refine`
+    /// none; a round or iteration count given, one with it (from the effort's refinement, or
+    /// the full default one where the effort has none or refines only its one set).
+    pub fn refine_with(
+        self,
+        no_refine: bool,
+        rounds: Option<usize>,
+        iterations: Option<usize>,
+    ) -> Option<RefineOptions> {
+        if no_refine {
+            return None;
+        }
+        let asked = rounds.is_some() || iterations.is_some();
+        let base = match self.refine() {
+            Some(r) if r.one_set && asked => RefineOptions::default(),
+            Some(r) => r,
+            None if asked => RefineOptions::default(),
+            None => return None,
+        };
+        Some(RefineOptions {
+            rounds: rounds.unwrap_or(base.rounds),
+            cg_iterations: iterations.unwrap_or(base.cg_iterations),
+            ..base
+        })
+    }
+
     /// The default options with this effort's choices.
     pub fn options(self) -> CompressOptions {
         CompressOptions {

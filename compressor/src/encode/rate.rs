@@ -323,6 +323,13 @@ pub(super) fn compress_to_bytes(
     )
 }
 
+/// Whether the unrefined file is searched as a size guide ([`GUIDE_FILL`], [`GUIDE_BRACKET`]):
+/// one refined set follows ([`RefineOptions::one_set`]) and the depth is predicted (compared
+/// depths' views are compared at equal bytes).
+fn sized_by_guide(opts: &CompressOptions) -> bool {
+    opts.refine.is_some_and(|r| r.one_set) && opts.depth_search == DepthSearch::Predict
+}
+
 /// The count of coefficients that fills `target` bytes, as the depth rules read it: the
 /// searched file's, or where that file is a size guide that may stop short of the target
 /// ([`GUIDE_BRACKET`]), its count extrapolated to the target at the measured `slope` (so that
@@ -335,8 +342,7 @@ fn filling_count(
     nonzero: u64,
 ) -> u64 {
     let kept = plain.stats.kept;
-    let guide = opts.refine.is_some_and(|r| r.one_set) && opts.depth_search == DepthSearch::Predict;
-    if !guide || plain.stats.bytes == 0 {
+    if !sized_by_guide(opts) || plain.stats.bytes == 0 {
         return kept;
     }
     let fill = target as f64 / plain.stats.bytes as f64;
@@ -517,8 +523,7 @@ fn oracle_to_bytes(
         // Where one refined set follows, this file is a size guide (and a fallback): a looser
         // fill, or two trials closely either side of the target, save trials of the whole file.
         // Not where depths are compared: their files' views are compared at equal bytes.
-        let guide =
-            opts.refine.is_some_and(|r| r.one_set) && opts.depth_search == DepthSearch::Predict;
+        let guide = sized_by_guide(opts);
         let search = RateSearch {
             target,
             guess,
@@ -668,7 +673,13 @@ fn refine_to_bytes(
 /// Whether a refined file is kept rather than the unrefined `plain` one: it fills 98 % of the
 /// target, or at least as much as `plain` does.
 fn refined_file_stands(refined: &Compressed, plain: &Compressed, target: u64) -> bool {
-    refined.stats.bytes as f64 >= 0.98 * target as f64 || refined.stats.bytes >= plain.stats.bytes
+    fills_most_of(refined, target) || refined.stats.bytes >= plain.stats.bytes
+}
+
+/// Whether a file fills 98 % of the target: a refined file that does stands whatever the
+/// unrefined one fills ([`refined_file_stands`]).
+fn fills_most_of(file: &Compressed, target: u64) -> bool {
+    file.stats.bytes as f64 >= 0.98 * target as f64
 }
 
 /// The size of [`RefineOptions::one_set`]'s refined set over the count of the unrefined file
@@ -734,7 +745,7 @@ fn refine_one_set_to_bytes(
     };
     let fitted = fit_bytes(prepared, &refined, opts, search, trials, progress).map(|f| f.file);
     if let Ok(b) = &fitted {
-        if b.stats.bytes as f64 >= 0.98 * target as f64 {
+        if fills_most_of(b, target) {
             tracing::debug!(
                 k,
                 count,
