@@ -831,6 +831,90 @@ async fn a_worker_taking_over_bricks_it_did_not_score_transforms_each_once() {
     .await;
 }
 
+/// When the scorer of every brick died, two workers share the takeover, and each keeps the
+/// tops of the bricks it codes: from the second trial of the search on, every encode part
+/// names the worker that coded its brick in the trial before (the one that holds its top) as
+/// the worker it prefers, not the dead scorer, as the orchestrator lists them. The job lands
+/// as the one-process file.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn bricks_taken_over_prefer_the_worker_that_coded_them_last() {
+    let cl = TestCluster::start(&ORCH_TIMING);
+    let (o, c) = (cl.orch.url(), cl.cache.url());
+    let dims = [56, 48, 40];
+    let shared = cl.root.join("shared");
+    std::fs::create_dir_all(&shared).unwrap();
+    write_f32(
+        &shared.join(raw_name("handover2", dims, "f32")),
+        &phantom(Phantom::Ct, dims),
+    );
+    let w1 = cl.worker("w1", 0, None);
+    let options = submit_fast_bricked(&shared, &o, 9_000);
+    let bricks = 3 * 2 * 2;
+    wait_for(&o, 120, "every brick scored", |js| {
+        js.iter()
+            .filter(|j| is_part(j) && !is_encode_part(j) && state_name(j.state) == "done")
+            .count()
+            == bricks
+    })
+    .await;
+    w1.kill();
+    let _w2 = cl.worker("w2", 0, None);
+    let _w3 = cl.worker("w3", 0, None);
+    let js = wait_for(&o, 180, "the bricked job done", |js| {
+        js.iter()
+            .any(|j| !is_part(j) && state_name(j.state) == "done")
+    })
+    .await;
+    for j in js.iter().filter(|j| !is_part(j)) {
+        assert_eq!(state_name(j.state), "done", "{}: {}", name(j), j.error);
+    }
+    // (brick, trial) → (preferred worker, the worker that finished it).
+    let mut parts = std::collections::BTreeMap::new();
+    for j in js.iter().filter(|j| is_encode_part(j)) {
+        let part = j.spec.as_ref().unwrap().part.as_ref().unwrap();
+        let Some(pb::part_spec::Step::Encode(e)) = &part.step else {
+            unreachable!()
+        };
+        assert_eq!(state_name(j.state), "done", "{}", name(j));
+        parts.insert(
+            (part.index, e.trial),
+            (part.prefer_worker.clone(), j.worker.clone()),
+        );
+    }
+    let trials: HashSet<u32> = parts.keys().map(|&(_, t)| t).collect();
+    assert!(
+        trials.len() >= 2,
+        "the search ran a second trial: {parts:?}"
+    );
+    let mut later = 0;
+    for (&(brick, trial), (prefer, _)) in &parts {
+        let Some((_, before)) = parts.get(&(brick, trial.wrapping_sub(1))) else {
+            // The first trial: every brick was scored by the worker that died.
+            assert_eq!(prefer, "w1", "brick {brick}, trial {trial}");
+            continue;
+        };
+        assert!(
+            before == "w2" || before == "w3",
+            "brick {brick}, trial {}: done by {before:?}",
+            trial - 1
+        );
+        assert_eq!(
+            prefer, before,
+            "brick {brick}, trial {trial}: prefers {prefer:?}, coded last by {before:?}"
+        );
+        later += 1;
+    }
+    assert!(
+        later >= bricks,
+        "{later} encode parts after the first trial"
+    );
+    assert_cache_holds_only(
+        &c,
+        &one_process_file_with(&Phantom::Ct.generate(dims), &options),
+    )
+    .await;
+}
+
 /// A job carries `archive submit --memory-limit` to its workers, which keep to it: a bricked
 /// job whose limit leaves nothing beside one brick has its bricks coded by transforming them
 /// again on a worker that would otherwise keep their tops, and lands as the one-process file;

@@ -331,8 +331,11 @@ pub fn job_to_pb(j: &Job, max_attempts: u32) -> pb::Job {
             pb::JobState::Running
         }
         JobState::Done {
-            delivery, run_ms, ..
+            delivery,
+            run_ms,
+            worker,
         } => {
+            p.worker = worker.clone();
             p.progress = 1.0;
             p.cache_volume_id = delivery.cache_volume_id;
             p.output_bytes = delivery.output_bytes;

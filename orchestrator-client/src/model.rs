@@ -474,9 +474,9 @@ pub struct PartSpec {
     /// `offset` a time point's.
     #[serde(default)]
     pub time_points: Option<u32>,
-    /// The worker that scored this brick, which may hold its kept top: a lease from it takes
-    /// this part before older ones, any worker's otherwise. Not part of the part's identity
-    /// ([`JobSpec::dedup_key`]): it steers the work, it does not change it.
+    /// The worker that last scored or coded this brick, which may hold its kept top: a lease
+    /// from it takes this part before older ones, any worker's otherwise. Not part of the
+    /// part's identity ([`JobSpec::dedup_key`]): it steers the work, it does not change it.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub prefer_worker: Option<String>,
 }

@@ -110,9 +110,9 @@ pub mod rules {
         matches!(job.state, JobState::Queued { not_before_ms } if not_before_ms <= now)
     }
 
-    /// The worker `job` prefers, if it is a part that names one (the worker that scored its
-    /// brick, which may hold what coding it needs): that worker's lease takes it before older
-    /// jobs.
+    /// The worker `job` prefers, if it is a part that names one (the worker that last scored
+    /// or coded its brick, which may hold what coding it needs): that worker's lease takes it
+    /// before older jobs.
     pub fn preferred_worker(job: &Job) -> Option<&str> {
         job.spec.part.as_ref()?.prefer_worker.as_deref()
     }

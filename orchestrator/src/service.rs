@@ -316,16 +316,12 @@ fn chunked(bytes: &[u8]) -> SourceStream {
 
 /// Where one part stands, for the worker that waits on it.
 fn part_state(job: &crate::model::Job) -> pb::PartState {
-    let j = convert::job_to_pb(job, 0);
     // A done part names the worker that finished it (whom the brick's next part prefers).
-    let worker = match &job.state {
-        JobState::Done { worker, .. } => worker.clone(),
-        _ => j.worker,
-    };
+    let j = convert::job_to_pb(job, 0);
     pb::PartState {
         id: j.id,
         state: j.state,
-        worker,
+        worker: j.worker,
         progress: j.progress,
         output_bytes: j.output_bytes,
         failure: j.failure,

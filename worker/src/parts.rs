@@ -56,7 +56,7 @@ pub(crate) struct PartRunner {
 /// The tops a worker's score parts kept, by the parent (bricked job) they are of, so that its
 /// encode parts of the same bricks code from them instead of reading and transforming the
 /// brick again (without refinement: `--effort fast`); the queue hands a brick's encode part to
-/// the worker that scored it first (`PartSpec::prefer_worker`). The tops of up to
+/// the worker that last scored or coded it (`PartSpec::prefer_worker`). The tops of up to
 /// [`TOPS_PARENTS`] parents are kept at once (a batch of bricked jobs runs on the same workers,
 /// their parts interleaved), all within one memory budget ([`TopMemory`], [`TOP_BUDGET`], or
 /// less where a held job's memory limit leaves less: then the others' tops are dropped until
@@ -633,9 +633,11 @@ struct RemoteBricks {
     time_points: Option<u32>,
     /// Why the parts could not finish, for the job's outcome.
     failure: std::sync::Mutex<Option<Failure>>,
-    /// The worker that scored each brick (empty: not known), whom its encode parts prefer:
-    /// it may hold the brick's kept top ([`PartTops`]).
-    scored_by: std::sync::Mutex<Vec<String>>,
+    /// The worker that last scored or coded each brick (empty: not known), whom its next
+    /// encode part prefers: it may hold the brick's kept top ([`PartTops`]). A worker that
+    /// codes a brick it holds no top of keeps one on the way (within the top's cap), so after
+    /// a scorer died or was busy, the brick's later trials go to the worker that took it over.
+    top_held_by: std::sync::Mutex<Vec<String>>,
 }
 
 /// A part that is done: its id, its result's size and the worker that finished it.
@@ -705,7 +707,7 @@ impl RemoteBricks {
             .map(|i| self.part(i, of, choices, PartStep::Score { energies }))
             .collect();
         let done = self.run_all(&parts, "scoring", 0.05, 0.3)?;
-        *self.scored_by.lock().unwrap_or_else(|p| p.into_inner()) =
+        *self.top_held_by.lock().unwrap_or_else(|p| p.into_inner()) =
             done.iter().map(|p| p.worker.clone()).collect();
         let mut summaries = Vec::with_capacity(done.len());
         for p in &done {
@@ -725,8 +727,8 @@ impl RemoteBricks {
         counts: Option<&[u64]>,
         trial: usize,
     ) -> Result<Vec<CodedBrick<u64>>, Stopped> {
-        let scored_by = self
-            .scored_by
+        let top_held_by = self
+            .top_held_by
             .lock()
             .unwrap_or_else(|p| p.into_inner())
             .clone();
@@ -737,7 +739,7 @@ impl RemoteBricks {
                     trial: trial as u32,
                 };
                 let mut spec = self.part(i, of, choices, step);
-                if let (Some(part), Some(w)) = (spec.part.as_mut(), scored_by.get(i)) {
+                if let (Some(part), Some(w)) = (spec.part.as_mut(), top_held_by.get(i)) {
                     part.prefer_worker = is_worker_name(w).then(|| w.clone());
                 }
                 spec
@@ -745,6 +747,8 @@ impl RemoteBricks {
             .collect();
         let stage = format!("coding (trial {trial})");
         let done = self.run_all(&parts, &stage, 0.3, 0.9)?;
+        *self.top_held_by.lock().unwrap_or_else(|p| p.into_inner()) =
+            done.iter().map(|p| p.worker.clone()).collect();
         Ok(done
             .into_iter()
             .map(|p| CodedBrick {
@@ -1025,7 +1029,7 @@ pub(crate) fn coordinate(
         handle,
         source_bytes: hashed,
         time_points: None,
-        scored_by: Default::default(),
+        top_held_by: Default::default(),
         parent: spec,
         parent_id,
         parent_attempt,
@@ -1092,7 +1096,7 @@ pub(crate) fn coordinate_series(
         handle,
         source_bytes: hashed,
         time_points: Some(points as u32),
-        scored_by: Default::default(),
+        top_held_by: Default::default(),
         parent: spec,
         parent_id,
         parent_attempt,
