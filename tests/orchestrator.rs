@@ -765,6 +765,36 @@ async fn fast_bricked_jobs_in_flight_together_code_their_bricks_from_the_tops_th
     assert_cache_holds_only_these(&c, &expected).await;
 }
 
+/// The setup of the takeover tests: the CT phantom of `dims` written as `name`, a fast
+/// bricked byte target of 9 000 B submitted (24³ bricks), its only worker `w1` (logging to
+/// `log`) SIGKILLed once every brick is scored. Returns the job's options and brick count.
+async fn scored_then_scorer_killed(
+    cl: &TestCluster,
+    name: &str,
+    dims: [usize; 3],
+    log: Option<&Path>,
+) -> (wavesplat_orchestrator_client::model::JobOptions, usize) {
+    let o = cl.orch.url();
+    let shared = cl.root.join("shared");
+    std::fs::create_dir_all(&shared).unwrap();
+    write_f32(
+        &shared.join(raw_name(name, dims, "f32")),
+        &phantom(Phantom::Ct, dims),
+    );
+    let w1 = cl.worker("w1", 0, log);
+    let options = submit_fast_bricked(&shared, &o, 9_000);
+    let bricks = dims.iter().map(|d| d.div_ceil(24)).product::<usize>();
+    wait_for(&o, 120, "every brick scored", |js| {
+        js.iter()
+            .filter(|j| is_part(j) && !is_encode_part(j) && state_name(j.state) == "done")
+            .count()
+            == bricks
+    })
+    .await;
+    w1.kill();
+    (options, bricks)
+}
+
 /// A bricked byte target (several trials) whose only worker dies once every brick is scored:
 /// the worker that takes over scored none of them, so it transforms each brick once, on its
 /// first encode part of it, and codes the search's later trials from the top it kept then
@@ -775,24 +805,8 @@ async fn a_worker_taking_over_bricks_it_did_not_score_transforms_each_once() {
     let cl = TestCluster::start(&ORCH_TIMING);
     let (o, c) = (cl.orch.url(), cl.cache.url());
     let dims = [56, 48, 40];
-    let shared = cl.root.join("shared");
-    std::fs::create_dir_all(&shared).unwrap();
-    write_f32(
-        &shared.join(raw_name("handover", dims, "f32")),
-        &phantom(Phantom::Ct, dims),
-    );
     let logs = [cl.root.join("w1.log"), cl.root.join("w2.log")];
-    let w1 = cl.worker("w1", 0, Some(&logs[0]));
-    let options = submit_fast_bricked(&shared, &o, 9_000);
-    let bricks = 3 * 2 * 2;
-    wait_for(&o, 120, "every brick scored", |js| {
-        js.iter()
-            .filter(|j| is_part(j) && !is_encode_part(j) && state_name(j.state) == "done")
-            .count()
-            == bricks
-    })
-    .await;
-    w1.kill();
+    let (options, bricks) = scored_then_scorer_killed(&cl, "handover", dims, Some(&logs[0])).await;
     let _w2 = cl.worker("w2", 0, Some(&logs[1]));
     let js = wait_for(&o, 180, "the bricked job done", |js| {
         js.iter()
@@ -841,23 +855,7 @@ async fn bricks_taken_over_prefer_the_worker_that_coded_them_last() {
     let cl = TestCluster::start(&ORCH_TIMING);
     let (o, c) = (cl.orch.url(), cl.cache.url());
     let dims = [56, 48, 40];
-    let shared = cl.root.join("shared");
-    std::fs::create_dir_all(&shared).unwrap();
-    write_f32(
-        &shared.join(raw_name("handover2", dims, "f32")),
-        &phantom(Phantom::Ct, dims),
-    );
-    let w1 = cl.worker("w1", 0, None);
-    let options = submit_fast_bricked(&shared, &o, 9_000);
-    let bricks = 3 * 2 * 2;
-    wait_for(&o, 120, "every brick scored", |js| {
-        js.iter()
-            .filter(|j| is_part(j) && !is_encode_part(j) && state_name(j.state) == "done")
-            .count()
-            == bricks
-    })
-    .await;
-    w1.kill();
+    let (options, bricks) = scored_then_scorer_killed(&cl, "handover2", dims, None).await;
     let _w2 = cl.worker("w2", 0, None);
     let _w3 = cl.worker("w3", 0, None);
     let js = wait_for(&o, 180, "the bricked job done", |js| {
