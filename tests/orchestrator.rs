@@ -767,7 +767,9 @@ async fn fast_bricked_jobs_in_flight_together_code_their_bricks_from_the_tops_th
 
 /// The setup of the takeover tests: the CT phantom of `dims` written as `name`, a fast
 /// bricked byte target of 9 000 B submitted (24³ bricks), its only worker `w1` (logging to
-/// `log`) SIGKILLed once every brick is scored. Returns the job's options and brick count.
+/// `log`) SIGKILLed once every brick is scored. `w1` pauses 400 ms before reporting each
+/// part, so that it has reported no encode part when it is killed (the poll that sees the
+/// last score part done comes within 100 ms). Returns the job's options and brick count.
 async fn scored_then_scorer_killed(
     cl: &TestCluster,
     name: &str,
@@ -781,7 +783,7 @@ async fn scored_then_scorer_killed(
         &shared.join(raw_name(name, dims, "f32")),
         &phantom(Phantom::Ct, dims),
     );
-    let w1 = cl.worker("w1", 0, log);
+    let w1 = cl.worker("w1", 400, log);
     let options = submit_fast_bricked(&shared, &o, 9_000);
     let bricks = dims.iter().map(|d| d.div_ceil(24)).product::<usize>();
     wait_for(&o, 120, "every brick scored", |js| {
@@ -846,10 +848,10 @@ async fn a_worker_taking_over_bricks_it_did_not_score_transforms_each_once() {
 }
 
 /// When the scorer of every brick died, two workers share the takeover, and each keeps the
-/// tops of the bricks it codes: from the second trial of the search on, every encode part
-/// names the worker that coded its brick in the trial before (the one that holds its top) as
-/// the worker it prefers, not the dead scorer, as the orchestrator lists them. The job lands
-/// as the one-process file.
+/// tops of the bricks it codes within their caps: as the orchestrator lists them, every
+/// encode part prefers the worker that holds its brick's top (the one that last coded it at a
+/// count within the brick's cap, else the dead scorer), and after the first trial most name
+/// a worker that took its brick over. The job lands as the one-process file.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn bricks_taken_over_prefer_the_worker_that_coded_them_last() {
     let cl = TestCluster::start(&ORCH_TIMING);
@@ -866,7 +868,7 @@ async fn bricks_taken_over_prefer_the_worker_that_coded_them_last() {
     for j in js.iter().filter(|j| !is_part(j)) {
         assert_eq!(state_name(j.state), "done", "{}: {}", name(j), j.error);
     }
-    // (brick, trial) → (preferred worker, the worker that finished it).
+    // (brick, trial) → (count, preferred worker, the worker that finished it).
     let mut parts = std::collections::BTreeMap::new();
     for j in js.iter().filter(|j| is_encode_part(j)) {
         let part = j.spec.as_ref().unwrap().part.as_ref().unwrap();
@@ -876,35 +878,49 @@ async fn bricks_taken_over_prefer_the_worker_that_coded_them_last() {
         assert_eq!(state_name(j.state), "done", "{}", name(j));
         parts.insert(
             (part.index, e.trial),
-            (part.prefer_worker.clone(), j.worker.clone()),
+            (e.count, part.prefer_worker.clone(), j.worker.clone()),
         );
     }
-    let trials: HashSet<u32> = parts.keys().map(|&(_, t)| t).collect();
+    let mut trials: Vec<u32> = parts.keys().map(|&(_, t)| t).collect();
+    trials.sort_unstable();
+    trials.dedup();
     assert!(
         trials.len() >= 2,
         "the search ran a second trial: {parts:?}"
     );
-    let mut later = 0;
-    for (&(brick, trial), (prefer, _)) in &parts {
-        let Some((_, before)) = parts.get(&(brick, trial.wrapping_sub(1))) else {
-            // The first trial: every brick was scored by the worker that died.
-            assert_eq!(prefer, "w1", "brick {brick}, trial {trial}");
-            continue;
-        };
-        assert!(
-            before == "w2" || before == "w3",
-            "brick {brick}, trial {}: done by {before:?}",
-            trial - 1
-        );
-        assert_eq!(
-            prefer, before,
-            "brick {brick}, trial {trial}: prefers {prefer:?}, coded last by {before:?}"
-        );
-        later += 1;
+    // A coder keeps a brick's top where the count is within the brick's cap (the plan's, as
+    // the planner computes it): the brick's holder then, whom its next part prefers.
+    let plan = wavesplat_compressor::bricked::BrickPlan::new(
+        &Phantom::Ct.generate(dims),
+        &wavesplat_worker::options::compress_options(&options),
+        24,
+    )
+    .unwrap();
+    let mut holder: Vec<String> = vec!["w1".into(); bricks];
+    let mut taken_over = 0;
+    for &t in &trials {
+        for brick in 0..bricks {
+            let (count, prefer, done_by) = &parts[&(brick as u32, t)];
+            assert_eq!(
+                prefer, &holder[brick],
+                "brick {brick}, trial {t}: prefers {prefer:?}, its top held by {:?}",
+                holder[brick]
+            );
+            taken_over += usize::from(holder[brick] != "w1");
+            assert!(
+                done_by == "w2" || done_by == "w3",
+                "brick {brick}, trial {t}: done by {done_by:?}"
+            );
+            let cap = plan.top_cap(brick).expect("fast bricks keep tops");
+            if count.is_some_and(|k| k <= cap) {
+                holder[brick] = done_by.clone();
+            }
+        }
     }
+    // Had the parts not followed the takeover, every one would prefer the dead scorer.
     assert!(
-        later >= bricks,
-        "{later} encode parts after the first trial"
+        taken_over >= bricks,
+        "{taken_over} encode parts preferred a worker that took its brick over"
     );
     assert_cache_holds_only(
         &c,

@@ -650,6 +650,14 @@ impl SeriesPlan {
         self.plans[c].score_into(&self.component(series, c), i, tops, c, cap)
     }
 
+    /// How many top coefficients unit `u` keeps for the second pass (`None`: none, as
+    /// [`BrickPlan::top_cap`]; also for a unit this plan does not have): what a worker coding
+    /// it without a top held keeps on the way.
+    pub fn unit_top_cap(&self, u: usize) -> Option<u64> {
+        let (c, i) = self.unit(u).ok()?;
+        self.top_cap(c, i)
+    }
+
     /// How many top coefficients brick `i` of component `c` keeps for the second pass
     /// ([`BrickPlan::top_cap`]). A group's low-pass component holds most of a slowly changing
     /// series and takes most of the kept coefficients: its top is sized as if the low-pass

@@ -720,12 +720,16 @@ impl RemoteBricks {
     }
 
     /// Every one of `of` parts coded keeping `counts` (`None`: all), in trial `trial`.
+    /// `top_cap(i)` is part `i`'s top cap (`None`: it keeps no top): a worker that codes the
+    /// brick at a count within it keeps its top, and the brick's next part prefers that
+    /// worker.
     fn encode_parts(
         &self,
         of: usize,
         choices: &SharedChoices,
         counts: Option<&[u64]>,
         trial: usize,
+        top_cap: &dyn Fn(usize) -> Option<u64>,
     ) -> Result<Vec<CodedBrick<u64>>, Stopped> {
         let top_held_by = self
             .top_held_by
@@ -747,8 +751,19 @@ impl RemoteBricks {
             .collect();
         let stage = format!("coding (trial {trial})");
         let done = self.run_all(&parts, &stage, 0.3, 0.9)?;
-        *self.top_held_by.lock().unwrap_or_else(|p| p.into_inner()) =
-            done.iter().map(|p| p.worker.clone()).collect();
+        {
+            // A coder keeps the brick's top where the count is within its cap (and the tops'
+            // budget allows, which the planner cannot see); else the brick's top stays where
+            // it was.
+            let mut held = self.top_held_by.lock().unwrap_or_else(|p| p.into_inner());
+            held.resize(of, String::new());
+            for (i, p) in done.iter().enumerate() {
+                let kept = counts.is_some_and(|k| top_cap(i).is_some_and(|cap| k[i] <= cap));
+                if kept {
+                    held[i] = p.worker.clone();
+                }
+            }
+        }
         Ok(done
             .into_iter()
             .map(|p| CodedBrick {
@@ -991,7 +1006,11 @@ impl BrickWork for RemoteBricks {
         counts: Option<&[u64]>,
         trial: usize,
     ) -> Result<Vec<CodedBrick<u64>>, BrickError> {
-        Ok(self.encode_parts(plan.grid.len(), &plan.choices, counts, trial)?)
+        Ok(
+            self.encode_parts(plan.grid.len(), &plan.choices, counts, trial, &|i| {
+                plan.top_cap(i)
+            })?,
+        )
     }
 }
 
@@ -1115,7 +1134,8 @@ pub(crate) fn coordinate_series(
             Ok(summaries)
         },
         |counts, trial| {
-            let coded = work.encode_parts(of, &plan.choices, counts, trial)?;
+            let coded =
+                work.encode_parts(of, &plan.choices, counts, trial, &|u| plan.unit_top_cap(u))?;
             Ok(coded)
         },
     )
