@@ -336,12 +336,19 @@ impl Prepared {
                 }
             }
         }
-        // Group by (layer, tile), keeping significance order inside each group.
-        let mut groups: std::collections::BTreeMap<(usize, usize), Vec<(Scored, Coefficient)>> =
-            Default::default();
+        // Group by (layer, tile), keeping significance order inside each group: each kept
+        // coefficient's group (layer-major, the packets' order), then a stable counting sort
+        // of the ranks by group. A rate search's trials group a million coefficients or more
+        // each; pushing them into a map of growing lists took a third of a trial.
+        let tile_count: usize = header.tile_counts().iter().product();
+        let mut group_of: Vec<u32> = located
+            .par_iter()
+            .map(|&(band, pos)| header.tile_of(band, pos) as u32)
+            .collect();
+        let mut members = vec![0usize; (first_score_layer + nl) * tile_count + 1];
         let mut score_layer = 0usize;
         let mut rank = 0usize;
-        for (i, s) in kept.iter().enumerate() {
+        for (i, group) in group_of.iter_mut().enumerate() {
             let layer = if in_coarse_layer(i) {
                 0
             } else {
@@ -351,39 +358,62 @@ impl Prepared {
                 rank += 1;
                 first_score_layer + score_layer
             };
-            let (band, pos) = located[i];
-            let t = header.tile_of(band, pos);
-            let c = Coefficient {
-                channel: s.channel,
+            *group += (layer * tile_count) as u32;
+            members[*group as usize + 1] += 1;
+        }
+        for g in 1..members.len() {
+            members[g] += members[g - 1];
+        }
+        // `members[g]..members[g + 1]` of `by_group` are group g's ranks, in order.
+        let mut by_group = vec![0u32; kept.len()];
+        let mut next = members.clone();
+        for (i, &group) in group_of.iter().enumerate() {
+            by_group[next[group as usize]] = i as u32;
+            next[group as usize] += 1;
+        }
+        // The sigmap and fast coders code positions as octree maps, so the order inside a
+        // packet carries no cost and clustering is skipped.
+        let clustering = opts
+            .clustering
+            .filter(|_| !opts.coder.quantizes_by_threshold());
+        let coefficient = |i: u32| {
+            let (band, pos) = located[i as usize];
+            Coefficient {
+                channel: kept[i as usize].channel,
                 band,
                 pos: [pos[0] as u32, pos[1] as u32, pos[2] as u32],
-                value: s.value,
-            };
-            groups.entry((layer, t)).or_default().push((*s, c));
-        }
-        let inputs: Vec<PacketInput> = groups
+                value: kept[i as usize].value,
+            }
+        };
+        let inputs: Vec<PacketInput> = (0..members.len() - 1)
             .into_par_iter()
-            .map(|((layer, tile), list)| {
-                let items: Vec<Item> = list
-                    .iter()
-                    .map(|(s, c)| {
-                        let l = c.band.level as u32;
-                        Item {
-                            score: s.score,
-                            voxel: [c.pos[0] << l, c.pos[1] << l, c.pos[2] << l],
-                        }
-                    })
-                    .collect();
-                // The sigmap and fast coders code positions as octree maps, so the order
-                // inside a packet carries no cost and clustering is skipped.
-                let clustering = opts
-                    .clustering
-                    .filter(|_| !opts.coder.quantizes_by_threshold());
-                let order = cluster_order(&items, clustering);
+            .filter(|&g| members[g + 1] > members[g])
+            .map(|g| {
+                let ranks = &by_group[members[g]..members[g + 1]];
+                let coefficients = match clustering {
+                    None => ranks.iter().map(|&i| coefficient(i)).collect(),
+                    Some(_) => {
+                        let items: Vec<Item> = ranks
+                            .iter()
+                            .map(|&i| {
+                                let (band, pos) = located[i as usize];
+                                let l = band.level as u32;
+                                Item {
+                                    score: kept[i as usize].score,
+                                    voxel: pos.map(|p| (p as u32) << l),
+                                }
+                            })
+                            .collect();
+                        cluster_order(&items, clustering)
+                            .into_iter()
+                            .map(|j| coefficient(ranks[j]))
+                            .collect()
+                    }
+                };
                 PacketInput {
-                    tile,
-                    layer,
-                    coefficients: order.into_iter().map(|i| list[i].1).collect(),
+                    tile: g % tile_count,
+                    layer: g / tile_count,
+                    coefficients,
                 }
             })
             .collect();
