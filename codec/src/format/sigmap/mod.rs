@@ -101,17 +101,22 @@ pub(crate) fn encode(
         }
         let band = bands[bi];
         let (origin, root) = region(header, tile, band.level, header.geometry.band_dims(band));
-        let mut pts: Vec<([u32; 3], f32)> = list
+        let cells: Vec<[u32; 3]> = list
             .iter()
-            .map(|c| {
-                let p = [0, 1, 2].map(|a| c.pos[a] - origin[a]);
-                (p, c.value)
-            })
+            .map(|c| [0, 1, 2].map(|a| c.pos[a] - origin[a]))
             .collect();
-        let cells: Vec<[u32; 3]> = pts.iter().map(|(p, _)| *p).collect();
+        // In Morton order, every box's points are one run and its children's runs follow
+        // in the children's order.
+        let log = root.scale.trailing_zeros();
+        let mut pts: Vec<Point> = list
+            .iter()
+            .zip(&cells)
+            .map(|(c, &p)| (morton_key(p, log), p, c.value))
+            .collect();
+        pts.sort_unstable_by_key(|p| p.0);
         let ctx = Ctx::new(header, layer, (sub, bi), band, origin, &hood);
         m.coded.reset(root.hi);
-        encode_box(&mut enc, &mut m, &ctx, root, &mut pts, &mut recon, &mut bd);
+        encode_box(&mut enc, &mut m, &ctx, root, &pts, &mut recon, &mut bd);
         hood.record(band, origin, &cells);
     }
     priors::record(m.arrays(), &bands);
@@ -157,69 +162,60 @@ impl<'a> Ctx<'a> {
     }
 }
 
-/// Codes the points of box `b` (any order: each ends in a leaf of its own, and leaves are
-/// coded in the boxes' order). They are grouped by child in place, so the recursion allocates
-/// nothing.
+/// A point to code: its Morton key (interleaved cell bits, x lowest), cell and value.
+type Point = (u64, [u32; 3], f32);
+
+/// Interleaves the low `log` bits of a cell's coordinates, x lowest.
+fn morton_key(cell: [u32; 3], log: u32) -> u64 {
+    let mut k = 0u64;
+    for bit in (0..log).rev() {
+        for a in (0..3).rev() {
+            k = k << 1 | ((cell[a] >> bit) & 1) as u64;
+        }
+    }
+    k
+}
+
+/// Codes the points of box `b`, in Morton order: each child's points are the run of those
+/// whose key has the child's bits at the split's level (a split halves the dyadic cube, so
+/// the child's lower corner carries them).
 fn encode_box(
     enc: &mut RangeEncoder,
     m: &mut Models,
     ctx: &Ctx,
     b: Box3,
-    pts: &mut [([u32; 3], f32)],
+    pts: &[Point],
     recon: &mut Vec<Coefficient>,
     bd: &mut SizeBreakdown,
 ) {
     if b.cells() == 1 {
         let cell = m.cell_contexts(ctx.bi, b.lo);
-        encode_leaf(enc, m, ctx, pts[0], cell, recon, bd);
+        encode_leaf(enc, m, ctx, (pts[0].1, pts[0].2), cell, recon, bd);
         return;
     }
     let (children, n) = b.children();
     let children = &children[..n];
-    // The children are the cells of a grid split at most once per axis (x fastest): a point's
-    // child follows from which side of each split it lies on.
-    let first = children[0];
-    let mut split = [(u32::MAX, 0usize); 3];
-    let mut stride = 1;
-    for a in 0..3 {
-        if first.hi[a] < b.hi[a] {
-            split[a] = (first.hi[a], stride);
-            stride *= 2;
-        }
-    }
-    let child_of = |p: [u32; 3]| -> usize {
+    let half = children[0].scale;
+    let shift = 3 * half.trailing_zeros();
+    let code_of_point = |p: &Point| (p.0 >> shift) & 7;
+    let code_of_child = |c: &Box3| {
         (0..3)
-            .filter(|a| p[*a] >= split[*a].0)
-            .map(|a| split[a].1)
-            .sum()
+            .map(|a| u64::from(c.lo[a] & half != 0) << a)
+            .sum::<u64>()
     };
-    // Group the points by child in place (an 8-bucket American flag sort): bounds[i] ..
-    // bounds[i + 1] holds child i's points.
     let mut bounds = [0usize; 9];
-    for (p, _) in pts.iter() {
-        bounds[child_of(*p) + 1] += 1;
+    for (i, child) in children.iter().enumerate() {
+        let code = code_of_child(child);
+        let start = bounds[i];
+        bounds[i + 1] = start + pts[start..].partition_point(|p| code_of_point(p) <= code);
     }
-    for i in 0..n {
-        bounds[i + 1] += bounds[i];
-    }
-    let mut next = bounds;
-    for i in 0..n {
-        while next[i] < bounds[i + 1] {
-            let j = child_of(pts[next[i]].0);
-            if j == i {
-                next[i] += 1;
-            } else {
-                pts.swap(next[i], next[j]);
-                next[j] += 1;
-            }
-        }
-    }
+    debug_assert_eq!(bounds[n], pts.len());
     debug_assert!((0..n).all(|i| pts[bounds[i]..bounds[i + 1]]
         .iter()
-        .all(|(p, _)| children[i].contains(*p))));
+        .all(|p| children[i].contains(p.1))));
     let mut any_before = false;
     for (i, &child) in children.iter().enumerate() {
-        let part = &mut pts[bounds[i]..bounds[i + 1]];
+        let part = &pts[bounds[i]..bounds[i + 1]];
         let occupied = !part.is_empty();
         let cells = child.cells();
         let single = (cells == 1).then(|| m.cell_contexts(ctx.bi, child.lo));
@@ -238,7 +234,7 @@ fn encode_box(
         any_before |= occupied;
         if occupied {
             match single {
-                Some(cell) => encode_leaf(enc, m, ctx, part[0], cell, recon, bd),
+                Some(cell) => encode_leaf(enc, m, ctx, (part[0].1, part[0].2), cell, recon, bd),
                 None => encode_box(enc, m, ctx, child, part, recon, bd),
             }
         }
