@@ -27,6 +27,7 @@ pub mod fast;
 mod file;
 mod header;
 pub mod index;
+pub(crate) mod morton;
 pub mod packet;
 mod paper;
 pub mod quant;

@@ -17,6 +17,7 @@ use crate::entropy::range::{BitModel, RangeEncoder};
 use crate::entropy::rans::{RansEncoder, RansTable};
 use crate::format::bytes::ByteWriter;
 use crate::format::coefficient::{region_extent, Coefficient, PacketInput, SizeBreakdown};
+use crate::format::morton;
 use crate::format::quant::Quantizer;
 use crate::format::Header;
 use crate::format::{FAST_CONTEXTS_VERSION, RANS_VERSION};
@@ -189,14 +190,14 @@ struct PacketCoder {
     recon: Vec<Coefficient>,
 }
 
-/// A coefficient to code: its octree key (interleaved cell bits, x lowest), cell and value.
-type Keyed = (u64, [u32; 3], f32);
+/// A coefficient to code: its cell and value (a substream's in Morton order).
+type Keyed = ([u32; 3], f32);
 
 impl PacketCoder {
     /// Codes the node of edge 2^`log` at `o` holding `pts` (at least one).
     fn node(&mut self, s: &Substream, pts: &[Keyed], o: [u32; 3], log: u32) {
-        let shift = 3 * (log - 1);
-        let child = |k: u64| ((k >> shift) & 7) as u32;
+        // The child holding a cell: its coordinates' bits at this node's split, x lowest.
+        let child = |c: [u32; 3]| (0..3).map(|a| (c[a] >> (log - 1) & 1) << a).sum::<u32>();
         let mask = pts.iter().fold(0u8, |m, p| m | 1 << child(p.0));
         let h = 1u32 << (log - 1);
         if masks_bit_by_bit(s.sequential, log) {
@@ -234,7 +235,7 @@ impl PacketCoder {
             }
             return;
         }
-        for &(_, cell, value) in pts {
+        for &(cell, value) in pts {
             let negative = value < 0.0;
             let (q, magnitude) = s.quant.quantize((value as f64).abs());
             let (sc, vc, at) = self.map.leaf_contexts(cell);
@@ -254,17 +255,6 @@ impl PacketCoder {
             ));
         }
     }
-}
-
-/// Interleaves the low `log` bits of a cell's coordinates, x lowest: octree order.
-fn octree_key(cell: [u32; 3], log: u32) -> u64 {
-    let mut k = 0u64;
-    for bit in (0..log).rev() {
-        for a in (0..3).rev() {
-            k = k << 1 | ((cell[a] >> bit) & 1) as u64;
-        }
-    }
-    k
 }
 
 /// A packet's symbolized form: prefix-coded symbols, the sign stream and the decoder's
@@ -309,12 +299,9 @@ fn symbolize(header: &Header, input: &PacketInput) -> Symbolized {
         let log = root_log(extent);
         let mut pts: Vec<Keyed> = list
             .iter()
-            .map(|c| {
-                let cell = [0, 1, 2].map(|a| c.pos[a] - origin[a]);
-                (octree_key(cell, log), cell, c.value)
-            })
+            .map(|c| ([0, 1, 2].map(|a| c.pos[a] - origin[a]), c.value))
             .collect();
-        pts.sort_unstable_by_key(|p| p.0);
+        morton::sort_by_cell(&mut pts, log, |p| p.0);
         let s = Substream {
             bi,
             sequential: header.version >= FAST_CONTEXTS_VERSION,
@@ -545,9 +532,9 @@ mod tests {
     }
 
     #[test]
-    fn octree_keys_order_children_like_the_decoder() {
+    fn morton_order_orders_children_like_the_decoder() {
         // The decoder visits child i at child_origin(o, i, h) in increasing i; the encoder's
-        // key order must be the same.
+        // Morton order must be the same.
         let log = 3;
         let mut cells = Vec::new();
         for z in 0..8u32 {
@@ -557,7 +544,7 @@ mod tests {
                 }
             }
         }
-        cells.sort_by_key(|&c| octree_key(c, log));
+        morton::sort_by_cell(&mut cells, log, |&c| c);
         let mut visit = Vec::new();
         fn walk(o: [u32; 3], log: u32, out: &mut Vec<[u32; 3]>) {
             if log == 0 {

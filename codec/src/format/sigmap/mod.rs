@@ -47,7 +47,7 @@ pub mod priors;
 use super::coefficient::PacketFraming;
 use super::coefficient::{Coefficient, SizeBreakdown};
 use super::quant::Quantizer;
-use super::{invalid, FormatError, Header};
+use super::{invalid, morton, FormatError, Header};
 use crate::entropy::range::{RangeDecoder, RangeEncoder};
 use crate::layout::Band;
 use cells::magnitude_class;
@@ -105,15 +105,8 @@ pub(crate) fn encode(
             .iter()
             .map(|c| [0, 1, 2].map(|a| c.pos[a] - origin[a]))
             .collect();
-        // In Morton order, every box's points are one run and its children's runs follow
-        // in the children's order.
-        let log = root.scale.trailing_zeros();
-        let mut pts: Vec<Point> = list
-            .iter()
-            .zip(&cells)
-            .map(|(c, &p)| (morton_key(p, log), p, c.value))
-            .collect();
-        pts.sort_unstable_by_key(|p| p.0);
+        let mut pts: Vec<Point> = cells.iter().zip(list).map(|(&p, c)| (p, c.value)).collect();
+        morton::sort_by_cell(&mut pts, root.scale.trailing_zeros(), |p| p.0);
         let ctx = Ctx::new(header, layer, (sub, bi), band, origin, &hood);
         m.coded.reset(root.hi);
         encode_box(&mut enc, &mut m, &ctx, root, &pts, &mut recon, &mut bd);
@@ -162,23 +155,30 @@ impl<'a> Ctx<'a> {
     }
 }
 
-/// A point to code: its Morton key (interleaved cell bits, x lowest), cell and value.
-type Point = (u64, [u32; 3], f32);
+/// A point to code: its cell and value.
+type Point = ([u32; 3], f32);
 
-/// Interleaves the low `log` bits of a cell's coordinates, x lowest.
-fn morton_key(cell: [u32; 3], log: u32) -> u64 {
-    let mut k = 0u64;
-    for bit in (0..log).rev() {
-        for a in (0..3).rev() {
-            k = k << 1 | ((cell[a] >> bit) & 1) as u64;
-        }
+/// Where each of box `children`' points lie in `pts` (Morton-sorted points of their parent):
+/// child i's are `bounds[i]..bounds[i + 1]`. A split halves the dyadic cube, so a child's
+/// lower corner has the split's bit set on each axis where it is the upper half, and so do
+/// its points.
+fn child_runs(children: &[Box3], pts: &[Point]) -> [usize; 9] {
+    let half = children[0].scale;
+    let code = |c: [u32; 3]| {
+        (0..3)
+            .map(|a| usize::from(c[a] & half != 0) << a)
+            .sum::<usize>()
+    };
+    let mut bounds = [0usize; 9];
+    for (i, child) in children.iter().enumerate() {
+        let mine = code(child.lo);
+        let start = bounds[i];
+        bounds[i + 1] = start + pts[start..].partition_point(|p| code(p.0) <= mine);
     }
-    k
+    bounds
 }
 
-/// Codes the points of box `b`, in Morton order: each child's points are the run of those
-/// whose key has the child's bits at the split's level (a split halves the dyadic cube, so
-/// the child's lower corner carries them).
+/// Codes the points of box `b`, in Morton order ([`morton::sort_by_cell`]).
 fn encode_box(
     enc: &mut RangeEncoder,
     m: &mut Models,
@@ -190,29 +190,16 @@ fn encode_box(
 ) {
     if b.cells() == 1 {
         let cell = m.cell_contexts(ctx.bi, b.lo);
-        encode_leaf(enc, m, ctx, (pts[0].1, pts[0].2), cell, recon, bd);
+        encode_leaf(enc, m, ctx, pts[0], cell, recon, bd);
         return;
     }
     let (children, n) = b.children();
     let children = &children[..n];
-    let half = children[0].scale;
-    let shift = 3 * half.trailing_zeros();
-    let code_of_point = |p: &Point| (p.0 >> shift) & 7;
-    let code_of_child = |c: &Box3| {
-        (0..3)
-            .map(|a| u64::from(c.lo[a] & half != 0) << a)
-            .sum::<u64>()
-    };
-    let mut bounds = [0usize; 9];
-    for (i, child) in children.iter().enumerate() {
-        let code = code_of_child(child);
-        let start = bounds[i];
-        bounds[i + 1] = start + pts[start..].partition_point(|p| code_of_point(p) <= code);
-    }
+    let bounds = child_runs(children, pts);
     debug_assert_eq!(bounds[n], pts.len());
     debug_assert!((0..n).all(|i| pts[bounds[i]..bounds[i + 1]]
         .iter()
-        .all(|p| children[i].contains(p.1))));
+        .all(|p| children[i].contains(p.0))));
     let mut any_before = false;
     for (i, &child) in children.iter().enumerate() {
         let part = &pts[bounds[i]..bounds[i + 1]];
@@ -234,7 +221,7 @@ fn encode_box(
         any_before |= occupied;
         if occupied {
             match single {
-                Some(cell) => encode_leaf(enc, m, ctx, (part[0].1, part[0].2), cell, recon, bd),
+                Some(cell) => encode_leaf(enc, m, ctx, part[0], cell, recon, bd),
                 None => encode_box(enc, m, ctx, child, part, recon, bd),
             }
         }
@@ -511,6 +498,59 @@ mod tests {
             assert!((0..3).all(|a| c.lo[a] >= b.lo[a] && c.hi[a] <= b.hi[a]));
             assert!((0..3).all(|a| c.hi[a] - c.lo[a] <= c.scale));
             leaves(*c, out);
+        }
+    }
+
+    /// Points sorted by [`morton::sort_by_cell`] split into one run per octree child at every
+    /// box, in the children's order, down to single cells: for regions whose key fits a `u64`
+    /// and for longer axes than it holds.
+    #[test]
+    fn morton_order_puts_each_childs_points_in_one_run() {
+        fn walk(b: Box3, pts: &[Point], leaves: &mut Vec<[u32; 3]>) {
+            if b.cells() == 1 {
+                assert_eq!(pts.len(), 1);
+                assert_eq!(pts[0].0, b.lo);
+                leaves.push(b.lo);
+                return;
+            }
+            let (children, n) = b.children();
+            let bounds = child_runs(&children[..n], pts);
+            assert_eq!(bounds[n], pts.len(), "points outside every child");
+            for (i, child) in children[..n].iter().enumerate() {
+                let run = &pts[bounds[i]..bounds[i + 1]];
+                assert!(run.iter().all(|p| child.contains(p.0)));
+                if !run.is_empty() {
+                    walk(*child, run, leaves);
+                }
+            }
+        }
+        let mut rng = ChaCha8Rng::seed_from_u64(31);
+        for extent in [
+            [1, 1, 1],
+            [5, 7, 3],
+            [64, 64, 64],
+            [33, 1, 70],
+            [1 << 21, 2, 3],
+            [(1 << 23) + 5, 3, 2],
+            [4, (1 << 22) + 1, 9],
+            [3, 5, u32::MAX / 2],
+        ] {
+            let mut cells = std::collections::HashSet::new();
+            let total: u64 = extent.iter().map(|&e| e as u64).product();
+            while (cells.len() as u64) < total.min(300) {
+                cells.insert([0, 1, 2].map(|a| rng.gen_range(0..extent[a])));
+            }
+            let mut pts: Vec<Point> = cells.iter().map(|&c| (c, 1.0)).collect();
+            let root = Box3::root(extent);
+            let log = root.scale.trailing_zeros();
+            morton::sort_by_cell(&mut pts, log, |p| p.0);
+            let mut leaves = Vec::new();
+            walk(root, &pts, &mut leaves);
+            assert_eq!(leaves.len(), pts.len(), "{extent:?}");
+            assert!(
+                leaves.iter().zip(&pts).all(|(l, p)| *l == p.0),
+                "leaves out of order"
+            );
         }
     }
 
