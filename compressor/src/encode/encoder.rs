@@ -365,10 +365,10 @@ impl Prepared {
             members[g] += members[g - 1];
         }
         // `members[g]..members[g + 1]` of `by_group` are group g's ranks, in order.
-        let mut by_group = vec![0u32; kept.len()];
+        let mut by_group = vec![0usize; kept.len()];
         let mut next = members.clone();
         for (i, &group) in group_of.iter().enumerate() {
-            by_group[next[group as usize]] = i as u32;
+            by_group[next[group as usize]] = i;
             next[group as usize] += 1;
         }
         // The sigmap and fast coders code positions as octree maps, so the order inside a
@@ -376,13 +376,13 @@ impl Prepared {
         let clustering = opts
             .clustering
             .filter(|_| !opts.coder.quantizes_by_threshold());
-        let coefficient = |i: u32| {
-            let (band, pos) = located[i as usize];
+        let coefficient = |i: usize| {
+            let (band, pos) = located[i];
             Coefficient {
-                channel: kept[i as usize].channel,
+                channel: kept[i].channel,
                 band,
                 pos: [pos[0] as u32, pos[1] as u32, pos[2] as u32],
-                value: kept[i as usize].value,
+                value: kept[i].value,
             }
         };
         let inputs: Vec<PacketInput> = (0..members.len() - 1)
@@ -396,10 +396,10 @@ impl Prepared {
                         let items: Vec<Item> = ranks
                             .iter()
                             .map(|&i| {
-                                let (band, pos) = located[i as usize];
+                                let (band, pos) = located[i];
                                 let l = band.level as u32;
                                 Item {
-                                    score: kept[i as usize].score,
+                                    score: kept[i].score,
                                     voxel: pos.map(|p| (p as u32) << l),
                                 }
                             })
