@@ -340,12 +340,11 @@ impl Prepared {
         // coefficient's group (layer-major, the packets' order), then a stable counting sort
         // of the ranks by group. A rate search's trials group a million coefficients or more
         // each; pushing them into a map of growing lists took a third of a trial.
-        let tile_count: usize = header.tile_counts().iter().product();
         let mut group_of: Vec<u32> = located
             .par_iter()
             .map(|&(band, pos)| header.tile_of(band, pos) as u32)
             .collect();
-        let mut members = vec![0usize; (first_score_layer + nl) * tile_count + 1];
+        let mut members = vec![0usize; (first_score_layer + nl) * tiles + 1];
         let mut score_layer = 0usize;
         let mut rank = 0usize;
         for (i, group) in group_of.iter_mut().enumerate() {
@@ -358,7 +357,7 @@ impl Prepared {
                 rank += 1;
                 first_score_layer + score_layer
             };
-            *group += (layer * tile_count) as u32;
+            *group += (layer * tiles) as u32;
             members[*group as usize + 1] += 1;
         }
         for g in 1..members.len() {
@@ -411,8 +410,8 @@ impl Prepared {
                     }
                 };
                 PacketInput {
-                    tile: g % tile_count,
-                    layer: g / tile_count,
+                    tile: g % tiles,
+                    layer: g / tiles,
                     coefficients,
                 }
             })
