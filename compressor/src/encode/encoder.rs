@@ -5,7 +5,7 @@
 
 use super::options::{CompressOptions, CompressStats, Compressed, TileChoice};
 use super::prepare::{
-    axis_views, choose_tiling, Prepared, Ranked, Scored, COARSE_LAYER_MIN_LEVELS,
+    axis_views, choose_tiling, Located, Prepared, Ranked, Scored, COARSE_LAYER_MIN_LEVELS,
 };
 use crate::order::{cluster_order, Item};
 use crate::refine::{refine_with, KeptValue, Output, RefineOptions, Refined};
@@ -115,11 +115,8 @@ impl Prepared {
                 value: self.coefficients[channel as usize][index as usize],
             })
             .collect();
-        Ranked {
-            complete: sorted.len() as u64 >= self.nonzero,
-            sorted,
-            refined: 0,
-        }
+        let complete = sorted.len() as u64 >= self.nonzero;
+        Ranked::new(sorted, complete, 0)
     }
 
     /// `ranked` with its top `k` replaced by their least-squares refinement (at most `k`
@@ -171,11 +168,7 @@ impl Prepared {
             let b = bit(s.channel, s.index);
             s.score <= floor && picked[b / 64] & (1 << (b % 64)) == 0
         }));
-        Ranked {
-            sorted,
-            complete: ranked.complete,
-            refined: count,
-        }
+        Ranked::new(sorted, ranked.complete, count)
     }
 
     /// How many of the top `k` of `ranked` reach the k-th score after one refit
@@ -253,12 +246,26 @@ impl Prepared {
         // The score layers (after the coarse layer, when there is one).
         let nl = nl.clamp(1, MAX_LAYERS - usize::from(coarse_layer));
         let first_score_layer = usize::from(coarse_layer);
-        // Band and position of every kept coefficient, found once (a rate search encodes
-        // prefixes of one ranking many times, and each pass below needs them).
-        let located: Vec<(wavesplat_codec::layout::Band, [usize; 3])> = kept
-            .par_iter()
-            .map(|s| g.locate(s.index as usize))
-            .collect();
+        // Band and position of every kept coefficient: kept with the ranking, whose prefixes
+        // a rate search codes many times, unless the set was re-sorted above.
+        let resorted: Vec<Located>;
+        let cached;
+        let located: &[Located] = match &self.visible {
+            None => {
+                cached = ranked.located(g, k);
+                &cached[..k]
+            }
+            Some(_) => {
+                resorted = kept
+                    .par_iter()
+                    .map(|s| {
+                        let (band, pos) = g.locate(s.index as usize);
+                        (band, pos.map(|p| p as u32))
+                    })
+                    .collect();
+                &resorted
+            }
+        };
         let in_coarse_layer = |i: usize| coarse_layer && located[i].0.kind == 0;
         // What the score layers split: the kept coefficients outside the coarse layer, in
         // significance order.
@@ -289,11 +296,16 @@ impl Prepared {
         }
         let nb = g.band_count();
         let nsub = self.channels * nb;
-        // Substream parameters: w0 = largest magnitude, Δ from the sorted magnitudes (eq. 15).
+        // Substream parameters: w0 = largest magnitude (a substream's first: its magnitudes
+        // never grow in score order), Δ from the threshold or from the sorted magnitudes (eq.
+        // 15); a threshold coder needs no more than the first of each.
         let mut mags: Vec<Vec<f64>> = vec![Vec::new(); nsub];
-        for (s, &(band, _)) in kept.iter().zip(&located) {
+        let first_only = opts.coder.quantizes_by_threshold();
+        for (s, &(band, _)) in kept.iter().zip(located) {
             let sub = s.channel as usize * nb + g.band_index(band).expect("band");
-            mags[sub].push((s.value as f64).abs());
+            if !first_only || mags[sub].is_empty() {
+                mags[sub].push((s.value as f64).abs());
+            }
         }
         // Smallest kept score: every kept coefficient's magnitude is at least the threshold.
         let score_threshold = kept.last().map_or(0.0, |s| s.score);
@@ -340,9 +352,14 @@ impl Prepared {
         // coefficient's group (layer-major, the packets' order), then a stable counting sort
         // of the ranks by group. A rate search's trials group a million coefficients or more
         // each; pushing them into a map of growing lists took a third of a trial.
+        let counts = header.tile_counts();
         let mut group_of: Vec<u32> = located
             .par_iter()
-            .map(|&(band, pos)| header.tile_of(band, pos) as u32)
+            .map(|&(band, pos)| {
+                let l = band.level;
+                let t = pos.map(|p| ((p as usize) << l) / tile);
+                (t[0] + counts[0] * (t[1] + counts[1] * t[2])) as u32
+            })
             .collect();
         let mut members = vec![0usize; (first_score_layer + nl) * tiles + 1];
         let mut score_layer = 0usize;
@@ -380,7 +397,7 @@ impl Prepared {
             Coefficient {
                 channel: kept[i].channel,
                 band,
-                pos: [pos[0] as u32, pos[1] as u32, pos[2] as u32],
+                pos,
                 value: kept[i].value,
             }
         };
@@ -399,7 +416,7 @@ impl Prepared {
                                 let l = band.level as u32;
                                 Item {
                                     score: kept[i].score,
-                                    voxel: pos.map(|p| (p as u32) << l),
+                                    voxel: pos.map(|p| p << l),
                                 }
                             })
                             .collect();

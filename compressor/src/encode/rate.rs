@@ -715,8 +715,7 @@ fn refine_one_set_to_bytes(
     // oracle's order (at high rates most of the grid) is not copied behind the refined set.
     let room = (k + k / 4).max(k0);
     if ranked.sorted.len() > room {
-        ranked.sorted.truncate(room);
-        ranked.complete = false;
+        ranked.truncate(room);
     }
     let grown = (ranked.sorted.len() < k && !ranked.complete).then(|| prepared.ranked(room));
     let source = grown.as_ref().unwrap_or(&ranked);

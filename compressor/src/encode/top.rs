@@ -241,11 +241,7 @@ impl KeptTop {
                 }
             })
             .collect();
-        let ranked = Ranked {
-            sorted,
-            complete: self.complete && k == self.len(),
-            refined: 0,
-        };
+        let ranked = Ranked::new(sorted, self.complete && k == self.len(), 0);
         Ok(p.encode(&ranked, k, &opts, expected_bytes(k, opts.coder), true))
     }
 }
