@@ -3,7 +3,7 @@
 //! trial of a rate search's entropy coding, and a loop to profile. The coded bytes must equal
 //! the file's packets (the coefficients are the decoder's, so quantization is exact).
 //!
-//! `cargo run --release -p wavesplat-codec --example encode -- FILE.wsp [REPEAT]`
+//! `cargo run --release -p wavesplat-codec --features rayon --example encode -- FILE.wsp [REPEAT]`
 
 use std::time::Instant;
 use wavesplat_codec::format::packet::{decode_packet, encode_packets, PacketInput};

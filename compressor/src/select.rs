@@ -291,17 +291,91 @@ where
     (parts, collected.into_inner())
 }
 
-/// The top `k` of the collected `parts`, sorted by [`pick_order`].
+/// The top `k` of the collected `parts`, sorted by [`pick_order`]: a counting sort by score bin
+/// (descending), then each bin sorted on its own as far as the top `k` reach. A score's bin
+/// never falls as the score grows, so bins in descending order, each in [`pick_order`], are
+/// the picks in [`pick_order`]. A byte target collects a few million candidates; one
+/// comparison sort of them all was half of a high-rate compression's scoring.
 fn best_of(parts: Vec<Vec<Pick>>, k: usize) -> Vec<Pick> {
-    let mut picks: Vec<Pick> = Vec::with_capacity(parts.iter().map(Vec::len).sum());
-    for p in parts {
-        picks.extend(p);
+    let total: usize = parts.iter().map(Vec::len).sum();
+    let zeroed = || {
+        let mut c = Vec::with_capacity(BINS);
+        c.resize(BINS, std::hint::black_box(0usize));
+        c
+    };
+    let counts = parts
+        .par_iter()
+        .fold(zeroed, |mut counts, part| {
+            for p in part {
+                counts[bin(p.0)] += 1;
+            }
+            counts
+        })
+        .reduce(zeroed, |mut a, b| {
+            for (a, b) in a.iter_mut().zip(&b) {
+                *a += b;
+            }
+            a
+        });
+    let (Some(lowest), Some(highest)) = (
+        counts.iter().position(|&c| c > 0),
+        counts.iter().rposition(|&c| c > 0),
+    ) else {
+        return Vec::new();
+    };
+    // Slot j holds bin `highest - j`; `starts[j]` is where its picks begin, `starts[slots]`
+    // is `total`.
+    let slots = highest - lowest + 1;
+    let mut starts = vec![0usize; slots + 1];
+    for j in 0..slots {
+        starts[j + 1] = starts[j] + counts[highest - j];
     }
-    if picks.len() > k {
-        picks.select_nth_unstable_by(k - 1, pick_order);
-        picks.truncate(k);
+    // Scattered by ranges of slots of about equal counts, one task each: every task reads
+    // all the picks and writes its own part of the output.
+    let mut picks: Vec<Pick> = vec![(0.0, 0, 0); total];
+    let tasks = rayon::current_num_threads().clamp(1, slots);
+    let mut bounds: Vec<usize> = (0..=tasks)
+        .map(|t| starts.partition_point(|&s| s < total * t / tasks))
+        .collect();
+    bounds[tasks] = slots;
+    bounds.dedup();
+    let mut ranges: Vec<(usize, usize, &mut [Pick])> = Vec::with_capacity(bounds.len());
+    let mut rest = &mut picks[..];
+    for w in bounds.windows(2) {
+        let (head, tail) = rest.split_at_mut(starts[w[1]] - starts[w[0]]);
+        ranges.push((w[0], w[1], head));
+        rest = tail;
     }
-    picks.par_sort_unstable_by(pick_order);
+    ranges.into_par_iter().for_each(|(from, to, out)| {
+        let base = starts[from];
+        let mut next: Vec<usize> = starts[from..to].iter().map(|s| s - base).collect();
+        for p in parts.iter().flatten() {
+            let j = highest - bin(p.0);
+            if (from..to).contains(&j) {
+                out[next[j - from]] = *p;
+                next[j - from] += 1;
+            }
+        }
+    });
+    drop(parts);
+    // The bins the top `k` reach, each sorted (the last one whole, then cut). `starts` begins
+    // at 0 and ends at `total`, so `reach` is a slot boundary.
+    let reach = starts.partition_point(|&s| s < k.min(total));
+    let mut bins: Vec<&mut [Pick]> = Vec::with_capacity(reach);
+    let mut rest = &mut picks[..starts[reach]];
+    for j in 0..reach {
+        let (head, tail) = rest.split_at_mut(starts[j + 1] - starts[j]);
+        bins.push(head);
+        rest = tail;
+    }
+    bins.into_par_iter().for_each(|b| {
+        if b.len() > CHUNK {
+            b.par_sort_unstable_by(pick_order);
+        } else {
+            b.sort_unstable_by(pick_order);
+        }
+    });
+    picks.truncate(k);
     picks
 }
 
@@ -372,11 +446,22 @@ mod tests {
 
     #[test]
     fn top_k_equals_a_full_sort() {
+        // Few distinct values: many ties, resolved by channel and index; with 3, bins of more
+        // than a chunk (sorted in parallel).
+        for distinct in [50, 3] {
+            top_k_equals_a_full_sort_with(distinct);
+        }
+    }
+
+    fn top_k_equals_a_full_sort_with(distinct: u32) {
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
         let n = 3 * CHUNK + 17;
-        // Few distinct values: many ties, resolved by channel and index.
         let values: Vec<Vec<f64>> = (0..2)
-            .map(|_| (0..n).map(|_| rng.gen_range(0..50) as f64 * 0.25).collect())
+            .map(|_| {
+                (0..n)
+                    .map(|_| rng.gen_range(0..distinct) as f64 * 0.25)
+                    .collect()
+            })
             .collect();
         let score = squared_scores(&values);
         let hist = histogram(2, n, &score, Some(&|c: usize, i: usize| values[c][i]));
