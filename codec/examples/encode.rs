@@ -6,7 +6,7 @@
 //! `cargo run --release -p wavesplat-codec --features rayon --example encode -- FILE.wsp [REPEAT]`
 
 use std::time::Instant;
-use wavesplat_codec::format::packet::{decode_packet, encode_packets, PacketInput};
+use wavesplat_codec::format::packet::{decoded_inputs, encode_packets};
 use wavesplat_codec::format::parse_file;
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
@@ -17,15 +17,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let repeat: usize = args.get(2).map_or(Ok(10), |s| s.parse())?.max(1);
     let bytes = std::fs::read(path)?;
     let file = parse_file(&bytes)?;
-    let mut inputs = Vec::with_capacity(file.packets.len());
-    for p in &file.packets {
-        let d = decode_packet(&file.header, p)?;
-        inputs.push(PacketInput {
-            tile: d.tile,
-            layer: d.layer,
-            coefficients: d.coefficients,
-        });
-    }
+    let inputs = decoded_inputs(&file)?;
     let count: usize = inputs.iter().map(|i| i.coefficients.len()).sum();
     let mut times = Vec::with_capacity(repeat);
     let mut same = true;

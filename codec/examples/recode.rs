@@ -8,7 +8,7 @@
 //! version coded for: the current one unless `--version` says; `--write PREFIX` writes each
 //! recoded file as PREFIX.CODER.wsp).
 
-use wavesplat_codec::format::packet::{decode_packet, encode_packets, Coefficient, PacketInput};
+use wavesplat_codec::format::packet::{decode_packet, decoded_inputs, encode_packets, Coefficient};
 use wavesplat_codec::format::{parse_file, write_file, CoderKind};
 
 /// FNV-1a over each coefficient's fields, packets in order, coefficients sorted within a
@@ -61,15 +61,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     }
     let bytes = std::fs::read(path)?;
     let file = parse_file(&bytes)?;
-    let mut inputs = Vec::with_capacity(file.packets.len());
-    for p in &file.packets {
-        let d = decode_packet(&file.header, p)?;
-        inputs.push(PacketInput {
-            tile: d.tile,
-            layer: d.layer,
-            coefficients: d.coefficients,
-        });
-    }
+    let inputs = decoded_inputs(&file)?;
     let count: usize = inputs.iter().map(|i| i.coefficients.len()).sum();
     let want: Vec<_> = inputs.iter().map(|i| i.coefficients.clone()).collect();
     let want_hash = hash_packets(&want);

@@ -325,6 +325,22 @@ pub fn decode_packet(header: &Header, bytes: &[u8]) -> Result<DecodedPacket, For
     decode_packet_within(header, bytes, &DecodeBudget::default())
 }
 
+/// Every packet of `file` decoded as an encoder's input (its tile, layer and coefficients):
+/// what coding a file's coefficients again takes (`codec/examples/recode.rs`, `encode.rs`).
+pub fn decoded_inputs(file: &super::WspFile<'_>) -> Result<Vec<PacketInput>, FormatError> {
+    file.packets
+        .iter()
+        .map(|p| {
+            let d = decode_packet(&file.header, p)?;
+            Ok(PacketInput {
+                tile: d.tile,
+                layer: d.layer,
+                coefficients: d.coefficients,
+            })
+        })
+        .collect()
+}
+
 /// Decodes one packet given the header, refusing it before decoding if its declared count is
 /// over `budget`.
 pub fn decode_packet_within(
