@@ -57,6 +57,18 @@ pub(crate) fn band_map(geometry: &Geometry) -> Vec<u8> {
     out
 }
 
+/// `len` zeros, written before anything reads them: a zeroed allocation (`vec![0; n]`,
+/// calloc) maps the kernel's zero page on the first read, and the first write to each of its
+/// pages then copies it and flushes the other threads' TLBs (a third of a small volume's
+/// scoring time went to those interrupts, for the accumulators below). The zero is opaque to
+/// the compiler, which would otherwise turn a fill with zeros back into a zeroed allocation.
+/// (`crate::refine::written` does the same for grid-sized arrays, writing in parallel.)
+fn written_zeros<T: Copy + Default>(len: usize) -> Vec<T> {
+    let mut v = Vec::with_capacity(len);
+    v.resize(len, std::hint::black_box(T::default()));
+    v
+}
+
 /// A selected coefficient: score, channel, index.
 pub(crate) type Pick = (f64, u8, u32);
 
@@ -96,20 +108,10 @@ where
     let jobs = channels * chunks;
     let energy_bins = if energy.is_some() { BINS } else { 0 };
     // One or two accumulators per thread, not one per chunk: each is 0.5 MB of counts (and as
-    // much of energies), and on a small volume making and merging them was most of the pass.
+    // much of energies), and on a small volume making and merging them was most of the pass;
+    // each written before it is read ([`written_zeros`]).
     let min_len = (jobs / (2 * rayon::current_num_threads())).max(1);
-    // An accumulator written before it is read: a zeroed allocation (`vec![0; n]`, calloc)
-    // maps the kernel's zero page on the first read, and the first write to each of its pages
-    // then copies it and flushes the other threads' TLBs (a third of a small volume's scoring
-    // time went to those interrupts). The zero is opaque to the compiler, which would
-    // otherwise turn an allocation filled with zeros back into a zeroed allocation.
-    let zeroed = || {
-        let mut counts = Vec::with_capacity(BINS);
-        counts.resize(BINS, std::hint::black_box(0u64));
-        let mut energies = Vec::with_capacity(energy_bins);
-        energies.resize(energy_bins, std::hint::black_box(0.0f64));
-        (counts, energies, Vec::new())
-    };
+    let zeroed = || (written_zeros(BINS), written_zeros(energy_bins), Vec::new());
     // Each job's energy sum is kept with its job number, so that the total is summed in job
     // order whatever thread summed each job.
     let (counts, energies, mut job_energies) = (0..jobs)
@@ -298,11 +300,7 @@ where
 /// comparison sort of them all was half of a high-rate compression's scoring.
 fn best_of(parts: Vec<Vec<Pick>>, k: usize) -> Vec<Pick> {
     let total: usize = parts.iter().map(Vec::len).sum();
-    let zeroed = || {
-        let mut c = Vec::with_capacity(BINS);
-        c.resize(BINS, std::hint::black_box(0usize));
-        c
-    };
+    let zeroed = || written_zeros::<usize>(BINS);
     let counts = parts
         .par_iter()
         .fold(zeroed, |mut counts, part| {
