@@ -37,7 +37,7 @@
 //! the transforms themselves are the codec's.
 
 use crate::select::{
-    histogram, pick_order, score_bin, top_k, top_k_from_floor, BINS_PER_OCTAVE, CHUNK,
+    all_sorted, histogram, pick_order, score_bin, top_k, top_k_from_floor, BINS_PER_OCTAVE, CHUNK,
 };
 use crate::visible::Visible;
 use rayon::prelude::*;
@@ -585,17 +585,23 @@ pub(crate) fn refine_with(
         seconds = started.elapsed().as_secs_f64(),
         "refinement"
     );
-    let out: Vec<KeptValue> = (0..channels)
-        .flat_map(|c| {
-            let (m, v) = (&masks[c], &values[c]);
-            (0..n).filter(move |i| m[*i]).map(move |i| KeptValue {
-                channel: c as u8,
-                index: i as u32,
-                value: v[i],
-            })
-        })
-        .collect();
-    let kept = sorted(&score_of, out);
+    // The set in score order. Its scores are at least the threshold (lower ones were pruned),
+    // so none is negative and `all_sorted` leaves none out.
+    let (values_now, masks_now) = (&*values, &*masks);
+    let kept: Vec<KeptValue> = all_sorted(channels, n, &|c, i| {
+        if masks_now[c][i] {
+            score_of(c, i, values_now[c][i])
+        } else {
+            -1.0
+        }
+    })
+    .into_par_iter()
+    .map(|(_, channel, index)| KeptValue {
+        channel,
+        index,
+        value: values_now[channel as usize][index as usize],
+    })
+    .collect();
     if extension == 0 || kept.is_empty() {
         return Refined {
             kept,

@@ -149,7 +149,7 @@ impl Prepared {
                 value: r.value,
             }
         };
-        let mut sorted: Vec<Scored> = kept.iter().chain(&extension).map(scored).collect();
+        let mut sorted: Vec<Scored> = kept.par_iter().chain(&extension).map(scored).collect();
         // The rest of the oracle's order, without what the refinement picked up (iterative
         // hard thresholding moves coefficients from beyond rank k into the set) and below the
         // last score so far (the order must stay decreasing).
