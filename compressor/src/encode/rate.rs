@@ -333,8 +333,8 @@ fn sized_by_guide(opts: &CompressOptions) -> bool {
 /// The count of coefficients that fills `target` bytes, as the depth rules read it: the
 /// searched file's, or where that file is a size guide that may stop short of the target or
 /// just over it ([`GUIDE_NEAR`], [`GUIDE_BRACKET`]), its count extrapolated to the target at
-/// the measured `slope` or [`GUIDE_SLOPE`] (so that the depth does not depend on where the
-/// guide stopped).
+/// the measured `slope` or [`THRESHOLD_SIZE_SLOPE`] (so that the depth does not depend on
+/// where the guide stopped).
 fn filling_count(
     plain: &Compressed,
     slope: Option<f64>,
@@ -347,7 +347,7 @@ fn filling_count(
         return kept;
     }
     let fill = target as f64 / plain.stats.bytes as f64;
-    (count_at(kept as usize, fill, slope.unwrap_or(GUIDE_SLOPE)) as u64)
+    (count_at(kept as usize, fill, slope.unwrap_or(THRESHOLD_SIZE_SLOPE)) as u64)
         .clamp(kept.min(1), nonzero.max(kept))
 }
 
@@ -474,7 +474,8 @@ enum Searched {
 }
 
 /// Log–log slope of a file's size against its count of kept coefficients that a single trial
-/// extrapolates with (the rate search's own first step, [`fit_bytes`]).
+/// extrapolates with where the coder is one of the paper's syntaxes ([`step_slope`]), and a
+/// probe for a predicted depth extrapolates its trial with (the depth rule was measured so).
 const SIZE_SLOPE: f64 = 0.9;
 
 /// The oracle's order searched for the largest prefix that fits `target` bytes, on a candidate
@@ -504,12 +505,11 @@ fn oracle_to_bytes(
     let mut cap = (target.saturating_mul(per_byte) as usize)
         .max(1024)
         .min(n.max(1));
-    // A size guide's first trial (`--effort fast`) at the bits per coefficient the depth is
-    // guessed with: 1 byte a coefficient started the MRI's searches at 0.07–0.15 % at 53–65 %
-    // of the target, a trial more. (The other searches keep the start their files were
-    // measured with.)
+    // A threshold coder's first trial at the bits per coefficient the depth is guessed with:
+    // 1 byte a coefficient started the MRI's searches at 0.07–0.15 % at 53–65 % of the
+    // target, and every depth's search at 0.6–0.7 at every rate, a trial more each.
     let guess = guess.unwrap_or_else(|| {
-        if sized_by_guide(opts) && opts.coder.quantizes_by_threshold() {
+        if opts.coder.quantizes_by_threshold() {
             (target as f64 * 8.0 / GUESSED_BITS_PER_COEFFICIENT) as usize
         } else {
             (target / bytes_per_coefficient_guess(opts.coder)) as usize
@@ -542,7 +542,7 @@ fn oracle_to_bytes(
             known,
             fill: if guide { GUIDE_FILL } else { FILE_FILL },
             guide,
-            slope: if guide { GUIDE_SLOPE } else { SIZE_SLOPE },
+            slope: step_slope(opts),
         };
         let Fitted { file: plain, slope } =
             fit_bytes(prepared, &ranked, opts, search, trials, progress)?;
@@ -643,7 +643,7 @@ fn refine_to_bytes(
                 known: Some(whole),
                 fill: FILE_FILL,
                 guide: false,
-                slope: SIZE_SLOPE,
+                slope: step_slope(opts),
             };
             fit_bytes(prepared, &refined, opts, search, trials, progress).map(|f| f.file)
         };
@@ -720,7 +720,7 @@ fn refine_one_set_to_bytes(
     // The count that would fill the target, from the guide's (searched to [`GUIDE_FILL`] or
     // [`GUIDE_BRACKET`]) at the slope its search measured around the target.
     let k0 = filling_count(&plain, slope, opts, target, prepared.nonzero) as usize;
-    let slope = slope.unwrap_or(GUIDE_SLOPE);
+    let slope = slope.unwrap_or(THRESHOLD_SIZE_SLOPE);
     let k = ((k0 as f64 * ONE_SET_GROWTH).ceil() as usize).clamp(1, n.max(1));
     progress(Stage::Refine, 0.0);
     // A search cuts the set or tops it up by a few per cent: what lies further down the
@@ -903,16 +903,27 @@ const REFINED_BYTES: f64 = 1.011;
 const GUIDE_FILL: f64 = 1.0 / GUIDE_NEAR;
 
 /// A size guide's search ends on a file this close to the target, under or over it: one trial
-/// extrapolated at [`GUIDE_SLOPE`] sizes the refined set within ~1 % wherever the local slope
-/// lies between 0.95 and 1.25 (what the effort study's volumes show), and at 1.25 % and 5.85 %
-/// of their bytes the first trial lands within 7 % at 11 of 16 points.
+/// extrapolated at [`THRESHOLD_SIZE_SLOPE`] sizes the refined set within ~1 % wherever the
+/// local slope lies between 0.95 and 1.25 (what the effort study's volumes show), and at
+/// 1.25 % and 5.85 % of their bytes the first trial lands within 7 % at 11 of 16 points.
 const GUIDE_NEAR: f64 = 1.08;
 
-/// Log–log slope of a file's size against its count of kept coefficients that a size guide
-/// extrapolates with, where its search did not measure one: the effort study's unrefined files
-/// grow as K^0.95 to K^1.37 around the target (median 1.05; the finer quantizer steps that more
-/// coefficients bring cost bits on every one), more steeply than [`SIZE_SLOPE`].
-const GUIDE_SLOPE: f64 = 1.05;
+/// Log–log slope of a file's size against its count of kept coefficients that the threshold
+/// coders' searches step with ([`step_slope`]), and a size guide extrapolates with where its
+/// search did not measure one: the effort study's unrefined files grow as K^0.95 to K^1.37
+/// around the target (median 1.05; the finer quantizer steps that more coefficients bring
+/// cost bits on every one), more steeply than [`SIZE_SLOPE`].
+const THRESHOLD_SIZE_SLOPE: f64 = 1.05;
+
+/// The slope a search's one-sided steps take: [`THRESHOLD_SIZE_SLOPE`] for the threshold
+/// coders (whose files grow so), [`SIZE_SLOPE`] for the paper's syntaxes.
+fn step_slope(opts: &CompressOptions) -> f64 {
+    if opts.coder.quantizes_by_threshold() {
+        THRESHOLD_SIZE_SLOPE
+    } else {
+        SIZE_SLOPE
+    }
+}
 
 /// A size guide's search also ends once a fitting and an overflowing trial lie within this
 /// factor of the target on either side: the count that fills the target is then interpolated
@@ -1116,7 +1127,7 @@ mod tests {
                 known: None,
                 fill: if guide { GUIDE_FILL } else { FILE_FILL },
                 guide,
-                slope: GUIDE_SLOPE,
+                slope: THRESHOLD_SIZE_SLOPE,
             };
             fit_bytes(&p, &ranked, &opts, search, trials, &none).unwrap()
         };
@@ -1148,7 +1159,7 @@ mod tests {
                 "{guess}: extrapolated {k0} against {k}"
             );
             let mut more = 0;
-            let slope = guided.slope.unwrap_or(GUIDE_SLOPE);
+            let slope = guided.slope.unwrap_or(THRESHOLD_SIZE_SLOPE);
             let taken_on = guide_filled(
                 &p,
                 &ranked,
