@@ -1172,7 +1172,7 @@ fn bracketed_step(lo: (usize, u64), hi: (usize, u64), aim: f64, same_side: i32) 
     } else {
         f0 *= stale;
     }
-    if !(f1 > f0) || !f0.is_finite() || !f1.is_finite() {
+    if !f0.is_finite() || !f1.is_finite() || f1 <= f0 {
         return lk + (hk - lk) / 2;
     }
     (x0 - f0 * (x1 - x0) / (f1 - f0)).exp().round() as usize
