@@ -244,12 +244,6 @@ pub(super) fn compress_to_bytes(
             view_error = error,
             "depth candidate"
         );
-        // The next depth's search starts at this file's count: at 1.25–5.85 % the depths
-        // compared code at nearly the same bits per coefficient (their counts 0.1–1.5 % apart
-        // over the effort study), where the target's guessed bits per coefficient miss by up
-        // to a fifth. (At 0.07–0.15 % a shallower depth's count is ~1.8× the deeper one's,
-        // and this start is as far off as the guess.)
-        guess = Some(plain.stats.kept as usize);
         if best.as_ref().is_none_or(|b| error < b.0) {
             best = Some((error, prepared, ranked, plain, slope));
         }
