@@ -104,7 +104,9 @@ pub(super) fn predicted_depth(kept: u64, channels: usize, geometry: &Geometry) -
 /// the largest prefix that fits ([`oracle_to_bytes`]) and that file's three axis X-ray views
 /// are compared with the volume's ([`Prepared::view_error`]); the depth whose views come closer
 /// is kept (the default on a tie); while the shallowest depth compared wins and its file
-/// affords the next coarse band ([`worth_going_shallower`]), one level less is compared too.
+/// affords the next coarse band ([`worth_going_shallower`]), one level less is compared too
+/// (where the target's bytes predict a depth two or more levels below the default, the
+/// comparison starts there instead: [`compared_from_bytes`]).
 /// The oracle's ranking of depths predicted the refined files' ranking at all but one point
 /// measured (BENCHMARKS.md), at the cost of one more oracle pass per depth. With refinement,
 /// [`refine_to_bytes`] then starts from the chosen prefix's size.
