@@ -908,8 +908,7 @@ pub(super) fn next_set_size(sizes: &[(usize, u64)], goal: f64, n: usize) -> usiz
     };
     let k = match (below, above) {
         (Some((lk, lb)), Some((hk, hb))) if hk > lk + 1 && hb > lb => {
-            let slope = ((hb as f64).ln() - (lb.max(1) as f64).ln())
-                / ((hk as f64).ln() - (lk.max(1) as f64).ln());
+            let slope = log_log_slope((lk.max(1), lb.max(1)), (hk, hb));
             (step((lk, lb), slope.clamp(0.3, 3.0)).round() as usize).clamp(lk + 1, hk - 1)
         }
         (Some(p), Some(_)) => p.0,
@@ -1094,15 +1093,7 @@ fn fit_bytes(
             (Some((lk, _)), _) if lk >= len => break,
             (_, Some((0 | 1, _))) => break,
             (Some((lk, _)), Some((hk, _))) if hk <= lk + 1 => break,
-            (Some((lk, lb)), Some((hk, hb))) => {
-                let mid = lk + (hk - lk) / 2;
-                let closing_in = misses[1] <= misses[0] / 2.0;
-                if (step % 3 == 2 && !closing_in) || hb <= lb {
-                    mid
-                } else {
-                    bracketed_step((lk, lb), (hk, hb), aim, same_side).clamp(lk + 1, hk - 1)
-                }
-            }
+            (Some(l), Some(h)) => bracket_next(l, h, aim, same_side, step, misses),
             (Some((lk, lb)), None) => {
                 let slope = one_sided_slope(lo_before, (lk, lb), one_sided);
                 let x = log_k(lb, lk, slope).exp().ceil() as usize;
@@ -1119,7 +1110,7 @@ fn fit_bytes(
     }
     let slope = match (lo, hi) {
         (Some((lk, lb)), Some((hk, hb))) if hk > lk && hb > lb && lb > 0 => {
-            let s = ((hb as f64).ln() - (lb as f64).ln()) / ((hk as f64).ln() - (lk as f64).ln());
+            let s = log_log_slope((lk, lb), (hk, hb));
             (s.is_finite() && s > 0.0).then_some(s.clamp(0.3, 3.0))
         }
         _ => None,
@@ -1141,6 +1132,33 @@ fn fit_bytes(
             }
         }
     }
+}
+
+/// A rate search's next count between a fitting trial `lo` and an overflowing one `hi` (at
+/// least two counts apart), at its `step` with the last two trials' `misses` (log distance to
+/// the aim): the middle every third step unless the last one halved its miss, or where the
+/// sizes do not grow across the bracket; else [`bracketed_step`], kept strictly inside.
+fn bracket_next(
+    lo: (usize, u64),
+    hi: (usize, u64),
+    aim: f64,
+    same_side: i32,
+    step: usize,
+    misses: [f64; 2],
+) -> usize {
+    let ((lk, lb), (hk, hb)) = (lo, hi);
+    let closing_in = misses[1] <= misses[0] / 2.0;
+    if (step % 3 == 2 && !closing_in) || hb <= lb {
+        lk + (hk - lk) / 2
+    } else {
+        bracketed_step(lo, hi, aim, same_side).clamp(lk + 1, hk - 1)
+    }
+}
+
+/// The log–log slope of size against count between two (count, bytes) trials (not finite
+/// where a count or a size is 0 or the counts are equal).
+fn log_log_slope((k0, b0): (usize, u64), (k1, b1): (usize, u64)) -> f64 {
+    ((b1 as f64).ln() - (b0 as f64).ln()) / ((k1 as f64).ln() - (k0 as f64).ln())
 }
 
 /// A rate search's step between a fitting trial `(lk, lb)` and an overflowing one `(hk, hb)`
@@ -1186,7 +1204,7 @@ fn one_sided_slope(before: Option<(usize, u64)>, at: (usize, u64), model: f64) -
     if pk == k || pb == 0 || b == 0 {
         return model;
     }
-    let measured = ((b as f64).ln() - (pb as f64).ln()) / ((k as f64).ln() - (pk as f64).ln());
+    let measured = log_log_slope((pk, pb), (k, b));
     if measured.is_finite() && measured > 0.0 {
         measured.clamp(0.3, model)
     } else {
@@ -1316,10 +1334,9 @@ mod tests {
     }
 
     /// A bracket across a jump in size (a 1.2 kB file that grows 8 % over 70 coefficients, as
-    /// aniso at 0.15 % does): the search's bracket phase, run with the same rules as
-    /// [`fit_bytes`]'s (steps kept strictly inside the bracket, a bisection every third step
-    /// unless the last one halved the miss), finds the largest fitting count in a few trials,
-    /// where a slope clamped to 3 crept down one coefficient per trial.
+    /// aniso at 0.15 % does): the search's bracket phase, stepped by [`fit_bytes`]'s own rule
+    /// ([`bracket_next`]), ends on a file that fills the target in a few trials, where a slope
+    /// clamped to 3 crept down one coefficient per trial.
     #[test]
     fn a_bracket_across_a_jump_in_size_closes_in_a_few_trials() {
         let size = |k: usize| -> u64 {
@@ -1339,12 +1356,7 @@ mod tests {
             if hi.0 <= lo.0 + 1 || lo.1 as f64 >= FILE_FILL * target as f64 {
                 break;
             }
-            let closing_in = misses[1] <= misses[0] / 2.0;
-            let k = if step % 3 == 2 && !closing_in {
-                lo.0 + (hi.0 - lo.0) / 2
-            } else {
-                bracketed_step(lo, hi, aim, same_side).clamp(lo.0 + 1, hi.0 - 1)
-            };
+            let k = bracket_next(lo, hi, aim, same_side, step, misses);
             trials += 1;
             let b = size(k);
             misses = [misses[1], (b as f64 / aim).ln().abs()];
