@@ -128,6 +128,10 @@ pub struct FrameLoop<B: AccumulationBackend, S: PacketSource> {
     pub source: S,
     /// The share of the budget the next frame's batches are planned to fill.
     fill: f64,
+    /// Whether the session dropped packets (memory bound) since the source last ranked.
+    dropped_since_rank: bool,
+    /// The session's [`SessionStats::exact_redraws`] when last looked at.
+    exact_redraws: u64,
 }
 
 impl<B: AccumulationBackend, S: PacketSource> FrameLoop<B, S> {
@@ -137,6 +141,8 @@ impl<B: AccumulationBackend, S: PacketSource> FrameLoop<B, S> {
             session,
             source,
             fill: FILL_START,
+            dropped_since_rank: false,
+            exact_redraws: 0,
         }
     }
 
@@ -155,6 +161,7 @@ impl<B: AccumulationBackend, S: PacketSource> FrameLoop<B, S> {
     ) -> Result<(), SessionError> {
         if report.pending == 0 && report.packets == 0 && !report.exact {
             self.session.wait_exact(timeout)?;
+            self.after_exact_redraw();
         }
         Ok(())
     }
@@ -182,6 +189,31 @@ impl<B: AccumulationBackend, S: PacketSource> FrameLoop<B, S> {
         let dropped = self.session.take_dropped();
         self.source.dropped(dropped);
         self.source.set_view(spec);
+        self.dropped_since_rank = false;
+        self.exact_redraws = self.session.stats().exact_redraws;
+    }
+
+    /// Hands the session's dropped packets to the source.
+    fn pass_dropped(&mut self) {
+        let dropped = self.session.take_dropped();
+        if !dropped.is_empty() {
+            self.dropped_since_rank = true;
+            self.source.dropped(dropped);
+        }
+    }
+
+    /// After the exact tables replaced a preview, the image is drawn again from what the
+    /// session holds: packets it dropped under the memory bound are asked for again, as after
+    /// a view change (else a bound below the volume's coefficients left the image blank).
+    fn after_exact_redraw(&mut self) {
+        let redraws = self.session.stats().exact_redraws;
+        if redraws != self.exact_redraws {
+            self.exact_redraws = redraws;
+            if self.dropped_since_rank {
+                let spec = *self.session.spec();
+                self.after_view_change(&spec);
+            }
+        }
     }
 
     /// One frame of at most about `budget` with the real clock.
@@ -205,6 +237,7 @@ impl<B: AccumulationBackend, S: PacketSource> FrameLoop<B, S> {
         let splat_deadline = start + budget.mul_f64(self.fill);
         let mut report = FrameReport::default();
         self.session.poll_exact()?;
+        self.after_exact_redraw();
         // Taking packets (decoding them) may use at most half of the frame while there is
         // something to splat: the image keeps refining (and is never left blank after a view
         // change) while a burst of packets arrives.
@@ -228,10 +261,7 @@ impl<B: AccumulationBackend, S: PacketSource> FrameLoop<B, S> {
                 self.session.add_from_source(p)?;
                 report.packets += 1;
             }
-            let dropped = self.session.take_dropped();
-            if !dropped.is_empty() {
-                self.source.dropped(dropped);
-            }
+            self.pass_dropped();
             let now = clock.now();
             // Past the deadline a frame still splats once if it has splatted nothing: taking a
             // packet (5–13 ms to decode) can outlast a short frame, and frames that each take
@@ -247,14 +277,12 @@ impl<B: AccumulationBackend, S: PacketSource> FrameLoop<B, S> {
             report.records += step.records;
             report.batches += step.batches;
             report.batches_past_deadline += usize::from(step.overran);
+            self.after_exact_redraw();
             if late || step.overran || clock.now() >= splat_deadline {
                 break;
             }
         }
-        let dropped = self.session.take_dropped();
-        if !dropped.is_empty() {
-            self.source.dropped(dropped);
-        }
+        self.pass_dropped();
         report.pending = self.session.pending();
         report.exact = self.session.is_exact();
         let end = clock.now();

@@ -430,6 +430,34 @@ fn the_memory_bound_holds_and_the_image_still_converges() {
     }
 }
 
+/// With previews on, the exact tables replace a preview by drawing the image again from what
+/// the session holds: what a memory bound dropped meanwhile is asked for again, so the image
+/// still converges to the one-shot image (a bound below the coefficients once left it blank).
+#[test]
+fn a_memory_bound_with_previews_still_draws_everything() {
+    let bytes = wsp(Phantom::SheppLogan, 48, 16);
+    let (header, coeffs) = all(&bytes);
+    let total_bytes = coeffs.len() * COEFFICIENT_BYTES;
+    let a = spec(0.66, 0.91);
+    let want = wavesplat_viewer::open::display_image(&header, &coeffs, &a).unwrap();
+    for bound in [0, total_bytes / 4] {
+        let options = SessionOptions {
+            memory_bound: Some(bound),
+            preview: Some(SessionOptions::default_preview()),
+            ..Default::default()
+        };
+        let mut f = file_loop(&bytes, &header, a, options);
+        run_to_end(&mut f);
+        let st = f.session.stats();
+        assert!(st.previews > 0, "bound {bound}: the view was not previewed");
+        assert!(st.exact_redraws > 0, "bound {bound}: no exact tables");
+        assert!(st.packets_dropped > 0, "bound {bound}: nothing dropped");
+        assert!(st.retained_bytes <= bound);
+        let e = f.session.image().unwrap().relative_difference(&want);
+        assert!(e <= 1e-5, "bound {bound}: {e:e}");
+    }
+}
+
 /// A clock advanced by the simulated backend, not by wall time.
 #[derive(Debug, Clone, Default)]
 struct SimClock(Arc<AtomicU64>);

@@ -151,6 +151,7 @@ impl<B: AccumulationBackend> RenderSession<B> {
         };
         self.exact = true;
         self.restart()?;
+        self.stats.exact_redraws += 1;
         self.shown_preview = preview;
         Ok(())
     }

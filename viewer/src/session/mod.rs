@@ -222,6 +222,9 @@ pub struct SessionStats {
     pub view_changes: u64,
     /// Views drawn with preview tables first (their exact tables built in the background).
     pub previews: u64,
+    /// Previews replaced by their exact tables: each restarts the image from the coefficients
+    /// held, so packets dropped under the memory bound must be delivered again.
+    pub exact_redraws: u64,
 }
 
 /// The first guess of the cost per unit of splat weight, before anything was measured (only
