@@ -1409,3 +1409,69 @@ fn an_interrupted_compress_leaves_no_unfinished_file() {
         );
     }
 }
+
+/// An output that is the input (by its name, or through a link) is refused before anything is
+/// written, the input left as it was; a bricked file decoded into a device writes in place and
+/// leaves the device a device; decoded through a link, the link stays a link.
+#[test]
+fn outputs_never_replace_the_input_or_a_device() {
+    use std::os::unix::fs::FileTypeExt;
+    let dir = tempfile::tempdir().unwrap();
+    let path = |n: &str| dir.path().join(n).to_str().unwrap().to_string();
+    let (raw, wsp) = phantom_files(dir.path());
+    let raw_before = std::fs::read(&raw).unwrap();
+    let wsp_before = std::fs::read(&wsp).unwrap();
+    std::os::unix::fs::symlink(&raw, path("raw-link")).unwrap();
+    let refused: [Vec<&str>; 6] = [
+        vec![
+            "compress", &raw, "--dims", "16,16,16", "--dtype", "f32", "-o", &raw,
+        ],
+        vec![
+            "compress", &raw, "--dims", "16,16,16", "--dtype", "f32", "-o",
+        ],
+        vec!["decompress", &wsp, "-o", &wsp],
+        vec!["publish", &wsp, "-o", &wsp],
+        vec!["render", &wsp, "--cpu", "--size", "8x8", "-o", &wsp],
+        vec![
+            "render", &wsp, "--cpu", "--size", "8x8", "-o", "x.png", "--raw", &wsp,
+        ],
+    ];
+    let link = path("raw-link");
+    for mut args in refused {
+        if args.last() == Some(&"-o") {
+            args.push(&link);
+        }
+        let o = run(&args);
+        assert!(!o.status.success(), "{args:?} succeeded");
+        assert!(err(&o).contains("is the input"), "{args:?}: {}", err(&o));
+    }
+    assert_eq!(std::fs::read(&raw).unwrap(), raw_before);
+    assert_eq!(std::fs::read(&wsp).unwrap(), wsp_before);
+    // A bricked file into a character device (a null device made here) and through a link.
+    let bricked = path("b.wsp");
+    let c = run(&[
+        "compress", &raw, "--dims", "16,16,16", "--dtype", "f32", "--brick", "8", "-o", &bricked,
+    ]);
+    assert!(c.status.success(), "{}", err(&c));
+    let device = path("null");
+    let made = Command::new("mknod")
+        .args([&device, "c", "1", "3"])
+        .status()
+        .is_ok_and(|s| s.success());
+    if made {
+        let d = run(&["decompress", &bricked, "-o", &device]);
+        assert!(d.status.success(), "{}", err(&d));
+        let meta = std::fs::symlink_metadata(&device).unwrap();
+        assert!(meta.file_type().is_char_device(), "{meta:?}");
+        assert!(!std::path::Path::new(&path("null.partial")).exists());
+    }
+    std::os::unix::fs::symlink(path("decoded.f32"), path("decoded-link")).unwrap();
+    let d = run(&["decompress", &bricked, "-o", &path("decoded-link")]);
+    assert!(d.status.success(), "{}", err(&d));
+    let meta = std::fs::symlink_metadata(path("decoded-link")).unwrap();
+    assert!(meta.file_type().is_symlink());
+    assert_eq!(
+        std::fs::metadata(path("decoded.f32")).unwrap().len(),
+        16 * 16 * 16 * 4
+    );
+}

@@ -805,6 +805,9 @@ fn parse_effort(s: &str) -> Result<Effort, String> {
 pub fn run(a: CompressArgs) -> Result<()> {
     let opts = options(&a)?;
     super::check_output(&a.output)?;
+    if let Some(input) = &a.input {
+        super::check_not_input(&a.output, input)?;
+    }
     let series = open_series(&a)?;
     let taken;
     let volume = match (&series, a.time_point) {

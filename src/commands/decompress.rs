@@ -22,6 +22,7 @@ pub struct DecompressArgs {
 /// Runs the subcommand.
 pub fn run(a: DecompressArgs) -> Result<()> {
     super::check_output(&a.output)?;
+    super::check_not_input(&a.output, &a.input)?;
     let bytes = super::read_wsp(&a.input)?;
     let series = wavesplat_codec::format::series::is_series(&bytes);
     if a.time_point.is_some() && !series {
@@ -64,7 +65,6 @@ pub fn run(a: DecompressArgs) -> Result<()> {
 
 /// Decodes a bricked file into the raw output brick by brick (rows written at their offsets).
 fn decompress_bricked(a: &DecompressArgs, bytes: &[u8]) -> Result<()> {
-    use std::os::unix::fs::FileExt;
     let manifest = wavesplat_codec::format::bricked::parse_bricked(bytes)
         .with_context(|| format!("reading {}", a.input.display()))?
         .manifest;
@@ -75,11 +75,30 @@ fn decompress_bricked(a: &DecompressArgs, bytes: &[u8]) -> Result<()> {
         .and_then(|v| v.checked_mul(nz))
         .and_then(|v| v.checked_mul(4 * c))
         .context("the volume's size overflows")?;
-    // Written beside the output and renamed over it once complete, so a failure leaves neither
-    // a half-written file nor a lost earlier one. Not sized up front: the bricks tile the
-    // whole, so the rows they write fill it, and a hostile manifest claiming a huge volume
-    // fails at its first brick before anything large exists on disk.
-    let mut partial = a.output.clone().into_os_string();
+    // A device (`-o /dev/null`) is written in place: a file renamed over it would replace it.
+    if std::fs::metadata(&a.output).is_ok_and(|m| !m.is_file()) {
+        let file = std::fs::File::options()
+            .write(true)
+            .open(&a.output)
+            .with_context(|| format!("opening {}", a.output.display()))?;
+        wavesplat_compressor::bricked::decode_bricks(bytes, &Default::default(), &|e, v| {
+            write_brick_rows(&file, &manifest, e, v)
+        })
+        .with_context(|| format!("decoding {} into {}", a.input.display(), a.output.display()))?;
+        outln!(
+            "wrote {} ({nx}x{ny}x{nz}, {c} channel(s), f32 LE), decoded brick by brick",
+            a.output.display()
+        );
+        return Ok(());
+    }
+    // Written beside the output (through a link, beside its target) and renamed over it once
+    // complete, so a failure leaves neither a half-written file nor a lost earlier one. Not
+    // sized up front: the bricks tile the whole, so the rows they write fill it, and a hostile
+    // manifest claiming a huge volume fails at its first brick before anything large exists on
+    // disk.
+    let target = super::output_target(&a.output)
+        .with_context(|| format!("reading the link {}", a.output.display()))?;
+    let mut partial = target.clone().into_os_string();
     partial.push(".partial");
     let partial = std::path::PathBuf::from(partial);
     let file = super::interrupt::Unfinished::register(&partial, || std::fs::File::create(&partial))
@@ -91,19 +110,7 @@ fn decompress_bricked(a: &DecompressArgs, bytes: &[u8]) -> Result<()> {
     let of = manifest.bricks.len();
     let decoded =
         wavesplat_compressor::bricked::decode_bricks(bytes, &Default::default(), &|e, v| {
-            let samples = v.to_interleaved();
-            let row = e.dims[0] * manifest.channels;
-            let mut bytes: Vec<u8> = Vec::with_capacity(4 * row);
-            for z in 0..e.dims[2] {
-                for y in 0..e.dims[1] {
-                    let at = &samples[(z * e.dims[1] + y) * row..][..row];
-                    bytes.clear();
-                    bytes.extend(at.iter().flat_map(|x| x.to_le_bytes()));
-                    let (gy, gz) = (e.origin[1] + y as u64, e.origin[2] + z as u64);
-                    let offset = ((gz * ny + gy) * nx + e.origin[0]) * 4 * c;
-                    file.write_all_at(&bytes, offset)?;
-                }
-            }
+            write_brick_rows(&file, &manifest, e, v)?;
             let n = done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
             progress.stage(&format!("decoded {n} of {of} bricks"));
             Ok(())
@@ -120,8 +127,8 @@ fn decompress_bricked(a: &DecompressArgs, bytes: &[u8]) -> Result<()> {
             "{} holds {written} bytes after every brick, {total} expected",
             partial.display()
         );
-        std::fs::rename(&partial, &a.output)
-            .with_context(|| format!("renaming {} to {}", partial.display(), a.output.display()))
+        std::fs::rename(&partial, &target)
+            .with_context(|| format!("renaming {} to {}", partial.display(), target.display()))
     });
     if let Err(e) = finished {
         let _ = std::fs::remove_file(&partial);
@@ -131,5 +138,31 @@ fn decompress_bricked(a: &DecompressArgs, bytes: &[u8]) -> Result<()> {
         "wrote {} ({nx}x{ny}x{nz}, {c} channel(s), f32 LE), decoded brick by brick ({of} bricks)",
         a.output.display()
     );
+    Ok(())
+}
+
+/// Writes one decoded brick's rows at their offsets in the whole's raw output.
+fn write_brick_rows(
+    file: &std::fs::File,
+    manifest: &wavesplat_codec::format::bricked::Manifest,
+    e: &wavesplat_codec::format::bricked::BrickEntry,
+    v: wavesplat_codec::volume::Volume,
+) -> std::io::Result<()> {
+    use std::os::unix::fs::FileExt;
+    let [nx, ny, _] = manifest.dims;
+    let c = manifest.channels as u64;
+    let samples = v.to_interleaved();
+    let row = e.dims[0] * manifest.channels;
+    let mut bytes: Vec<u8> = Vec::with_capacity(4 * row);
+    for z in 0..e.dims[2] {
+        for y in 0..e.dims[1] {
+            let at = &samples[(z * e.dims[1] + y) * row..][..row];
+            bytes.clear();
+            bytes.extend(at.iter().flat_map(|x| x.to_le_bytes()));
+            let (gy, gz) = (e.origin[1] + y as u64, e.origin[2] + z as u64);
+            let offset = ((gz * ny + gy) * nx + e.origin[0]) * 4 * c;
+            file.write_all_at(&bytes, offset)?;
+        }
+    }
     Ok(())
 }

@@ -116,6 +116,24 @@ pub fn check_output(path: &std::path::Path) -> Result<()> {
     Ok(())
 }
 
+/// Checks, before any work, that the output `path` is not the input `input` (the same file by
+/// another name or through a link included): writing it would replace what is being read.
+pub fn check_not_input(path: &std::path::Path, input: &std::path::Path) -> Result<()> {
+    use std::os::unix::fs::MetadataExt;
+    let (Ok(o), Ok(i)) = (std::fs::metadata(path), std::fs::metadata(input)) else {
+        return Ok(());
+    };
+    if o.is_file() && o.dev() == i.dev() && o.ino() == i.ino() {
+        bail!(
+            "the output {} is the input {}: writing it would destroy what is being read; give \
+             another output path",
+            path.display(),
+            input.display()
+        );
+    }
+    Ok(())
+}
+
 /// Writes the file `path` by `write`, which streams it to the writer it is given and may keep
 /// temporary files in the directory it is given (where the file goes): under a temporary name
 /// beside it, renamed over `path` when complete, so a failure leaves no partial file and
@@ -130,14 +148,7 @@ pub fn write_output<T>(
     use std::io::Write;
     let written =
         |e: std::io::Error| anyhow::Error::new(e).context(format!("writing {}", path.display()));
-    // Through a link to its target (a dangling link is written as a new file at its target).
-    let target = match std::fs::symlink_metadata(path) {
-        Ok(m) if m.file_type().is_symlink() => match std::fs::canonicalize(path) {
-            Ok(t) => t,
-            Err(_) => std::fs::read_link(path).map_err(written)?,
-        },
-        _ => path.to_path_buf(),
-    };
+    let target = output_target(path).map_err(written)?;
     let existing = std::fs::metadata(&target).ok();
     if existing.as_ref().is_some_and(|m| !m.is_file()) {
         let mut out = std::io::BufWriter::new(std::fs::File::create(&target).map_err(written)?);
@@ -174,6 +185,18 @@ pub fn write_output<T>(
     let partial = out.into_inner().map_err(|e| written(e.into_error()))?;
     partial.persist(&target).map_err(|e| written(e.error))?;
     Ok(t)
+}
+
+/// Where writing the output `path` goes: through a link to its target (a dangling link is
+/// written as a new file at its target), so the link stays a link.
+pub fn output_target(path: &std::path::Path) -> std::io::Result<std::path::PathBuf> {
+    Ok(match std::fs::symlink_metadata(path) {
+        Ok(m) if m.file_type().is_symlink() => match std::fs::canonicalize(path) {
+            Ok(t) => t,
+            Err(_) => std::fs::read_link(path)?,
+        },
+        _ => path.to_path_buf(),
+    })
 }
 
 /// Reads a compressed volume: a `.wsp`, or the indexed layout `publish` writes (`.wspx`: its

@@ -20,10 +20,14 @@ pub struct PublishArgs {
 /// Runs the subcommand.
 pub fn run(a: PublishArgs) -> Result<()> {
     super::check_output(&a.output)?;
+    super::check_not_input(&a.output, &a.input)?;
     let bytes = super::read_wsp(&a.input)?;
     let out = wavesplat_codec::format::index::indexed_layout(&bytes)
         .with_context(|| format!("indexing {}", a.input.display()))?;
-    std::fs::write(&a.output, &out).with_context(|| format!("writing {}", a.output.display()))?;
+    super::write_output(&a.output, |_, w| {
+        w.write_all(&out)
+            .with_context(|| format!("writing {}", a.output.display()))
+    })?;
     outln!(
         "wrote {} ({} bytes: an index of {} bytes in front of the {}-byte .wsp)",
         a.output.display(),

@@ -315,6 +315,11 @@ pub fn run(a: RenderArgs) -> Result<()> {
     if let Some(r) = &a.raw {
         super::check_output(r)?;
     }
+    if let Some(input) = &a.view.input {
+        for out in std::iter::once(&a.output).chain(&a.raw) {
+            super::check_not_input(out, input)?;
+        }
+    }
     if !(a.frame_ms.is_finite() && a.frame_ms > 0.0) {
         bail!(
             "--frame-ms must be a positive number of milliseconds, got {}",
