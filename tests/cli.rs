@@ -1475,3 +1475,50 @@ fn outputs_never_replace_the_input_or_a_device() {
         16 * 16 * 16 * 4
     );
 }
+
+/// Unfinished outputs that killed runs left beside the output are removed by the next run that
+/// writes there; one a live run holds (locked) stays, and so does a fresh one.
+#[test]
+fn unfinished_outputs_of_killed_runs_are_removed() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = |n: &str| dir.path().join(n).to_str().unwrap().to_string();
+    let (raw, _) = phantom_files(dir.path());
+    let old = |n: &str| {
+        std::fs::write(path(n), b"half a file").unwrap();
+        let t = std::time::SystemTime::now() - std::time::Duration::from_secs(3600);
+        std::fs::File::options()
+            .write(true)
+            .open(path(n))
+            .unwrap()
+            .set_modified(t)
+            .unwrap();
+    };
+    old(".wavesplat-killed.partial");
+    old(".wavesplat-live.partial");
+    let live = std::fs::File::open(path(".wavesplat-live.partial")).unwrap();
+    live.lock().unwrap();
+    std::fs::write(path(".wavesplat-fresh.partial"), b"just made").unwrap();
+    old("unrelated.partial");
+    let c = run(&[
+        "compress",
+        &raw,
+        "--dims",
+        "16,16,16",
+        "--dtype",
+        "f32",
+        "-o",
+        &path("out.wsp"),
+    ]);
+    assert!(c.status.success(), "{}", err(&c));
+    assert!(
+        out(&c).contains(".wavesplat-killed.partial, left by an interrupted run"),
+        "{}",
+        out(&c)
+    );
+    let exists = |n: &str| std::path::Path::new(&path(n)).exists();
+    assert!(!exists(".wavesplat-killed.partial"));
+    assert!(exists(".wavesplat-live.partial"));
+    assert!(exists(".wavesplat-fresh.partial"));
+    assert!(exists("unrelated.partial"));
+    drop(live);
+}

@@ -370,6 +370,12 @@ impl BrickError {
         matches!(self, BrickError::Compress { source, .. }
             if matches!(**source, CompressError::MemoryLimit { .. }))
     }
+
+    /// Whether this is an option refused before any work (an edge, a target, a depth that
+    /// cannot be): running again with the same options cannot succeed.
+    pub fn is_option_refusal(&self) -> bool {
+        matches!(self, BrickError::InvalidOption(_))
+    }
 }
 
 /// Decodes every brick of a bricked container to a volume and hands it, with its manifest
@@ -604,6 +610,8 @@ impl BrickPlan {
         brick: usize,
     ) -> Result<BrickPlan, BrickError> {
         check_options(opts, brick)?;
+        wavesplat_codec::format::bricked::check_bricking(source.dims(), brick)
+            .map_err(BrickError::InvalidOption)?;
         let grid = brick_grid(source.dims(), brick);
         // A depth asked for is checked before the whole's faces (and, for PCA, all of it) are
         // read.
@@ -650,6 +658,8 @@ impl BrickPlan {
         choices: SharedChoices,
     ) -> Result<BrickPlan, BrickError> {
         check_options(opts, brick)?;
+        wavesplat_codec::format::bricked::check_bricking(source.dims(), brick)
+            .map_err(BrickError::InvalidOption)?;
         let grid = brick_grid(source.dims(), brick);
         check_depth(&grid, choices.levels)?;
         BrickPlan::build(source, opts, brick, grid, choices)

@@ -530,6 +530,8 @@ impl SeriesPlan {
             },
             ..opts.clone()
         };
+        wavesplat_codec::format::bricked::check_bricking(series.dims(), brick)
+            .map_err(BrickError::InvalidOption)?;
         let single = wavesplat_codec::format::bricked::brick_grid(series.dims(), brick).len() == 1;
         let levels = match (opts.levels, opts.target) {
             (None, Target::Bytes(_)) if single => {

@@ -523,6 +523,16 @@ fn compress_bricks_of(
                      more, or a smaller --brick",
                 ))
             }
+            // An option refused: the same command cannot succeed, and a checkpoint made for it
+            // holds nothing.
+            (Err(e), Some(cp)) if e.is_option_refusal() => {
+                if fresh_checkpoint {
+                    if let Err(r) = cp.remove() {
+                        tracing::debug!("removing the checkpoint: {r}");
+                    }
+                }
+                Err(anyhow::Error::new(e).context("compressing"))
+            }
             (Err(e), Some(_)) => Err(anyhow::Error::new(e).context(format!(
                 "compressing (the bricks finished so far are kept in {}: run the same command \
                  again to go on from there, or with --no-resume to start over)",
@@ -883,8 +893,10 @@ fn compress_volume(a: &CompressArgs, mut opts: CompressOptions, volume: Volume) 
     };
     let c = compress(&volume, &opts, &report).context("compressing")?;
     progress.finish();
-    std::fs::write(&a.output, &c.bytes)
-        .with_context(|| format!("writing {}", a.output.display()))?;
+    super::write_output(&a.output, |_, w| {
+        w.write_all(&c.bytes)
+            .with_context(|| format!("writing {}", a.output.display()))
+    })?;
     print_summary(&volume, &c, &a.output);
     Ok(())
 }

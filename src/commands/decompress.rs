@@ -50,7 +50,10 @@ pub fn run(a: DecompressArgs) -> Result<()> {
         .iter()
         .flat_map(|x| x.to_le_bytes())
         .collect();
-    std::fs::write(&a.output, out).with_context(|| format!("writing {}", a.output.display()))?;
+    super::write_output(&a.output, |_, w| {
+        w.write_all(&out)
+            .with_context(|| format!("writing {}", a.output.display()))
+    })?;
     let d = v.dims();
     outln!(
         "wrote {} ({}x{}x{}, {} channel(s), f32 LE)",

@@ -160,8 +160,9 @@ pub fn write_output<T>(
         Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
         _ => std::path::PathBuf::from("."),
     };
+    remove_stale_partials(&dir);
     let mut builder = tempfile::Builder::new();
-    builder.prefix(".wavesplat-").suffix(".partial");
+    builder.prefix(PARTIAL_PREFIX).suffix(PARTIAL_SUFFIX);
     // Each name tried is registered before the file is made, so that an interrupt at any
     // moment removes it ([`interrupt`]).
     let partial = builder
@@ -174,6 +175,11 @@ pub fn write_output<T>(
         })
         .with_context(|| format!("creating a file in {}", dir.display()))?;
     let _unfinished = interrupt::Unfinished::guard(partial.path());
+    // Locked while this process lives (the lock goes with it, SIGKILL included), so that a
+    // later run tells a live run's file from one a killed run left.
+    if let Err(e) = partial.as_file().lock() {
+        tracing::debug!(file = %partial.path().display(), error = %e, "locking the unfinished output");
+    }
     if let Some(m) = &existing {
         partial
             .as_file()
@@ -185,6 +191,54 @@ pub fn write_output<T>(
     let partial = out.into_inner().map_err(|e| written(e.into_error()))?;
     partial.persist(&target).map_err(|e| written(e.error))?;
     Ok(t)
+}
+
+/// Names of [`write_output`]'s unfinished files: `.wavesplat-XXXXXX.partial`.
+const PARTIAL_PREFIX: &str = ".wavesplat-";
+const PARTIAL_SUFFIX: &str = ".partial";
+
+/// How old an unlocked unfinished file must be to be taken for a killed run's: a live run
+/// locks its file right after making it, so only that instant is unlocked.
+const STALE_PARTIAL_AGE: std::time::Duration = std::time::Duration::from_secs(10);
+
+/// Removes the unfinished output files that killed runs (SIGKILL, a power cut) left in `dir`:
+/// those [`write_output`] names that no live process holds locked and that are older than
+/// [`STALE_PARTIAL_AGE`]. Each is said; failures are only logged (the output is still written).
+fn remove_stale_partials(dir: &std::path::Path) {
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return;
+    };
+    for entry in entries.flatten() {
+        let name = entry.file_name();
+        let Some(name) = name.to_str() else { continue };
+        if !(name.starts_with(PARTIAL_PREFIX) && name.ends_with(PARTIAL_SUFFIX)) {
+            continue;
+        }
+        let path = entry.path();
+        let old = entry
+            .metadata()
+            .ok()
+            .filter(|m| m.is_file())
+            .and_then(|m| m.modified().ok())
+            .and_then(|t| t.elapsed().ok())
+            .is_some_and(|age| age >= STALE_PARTIAL_AGE);
+        if !old {
+            continue;
+        }
+        let Ok(file) = std::fs::File::open(&path) else {
+            continue;
+        };
+        // Held by a live run: leave it.
+        if file.try_lock().is_err() {
+            continue;
+        }
+        match std::fs::remove_file(&path) {
+            Ok(()) => outln!("removed {}, left by an interrupted run", path.display()),
+            Err(e) => {
+                tracing::debug!(file = %path.display(), error = %e, "removing a stale unfinished output")
+            }
+        }
+    }
 }
 
 /// Where writing the output `path` goes: through a link to its target (a dangling link is

@@ -242,6 +242,35 @@ pub fn split_axis(len: u64, brick: usize) -> Vec<(u64, usize)> {
     out
 }
 
+/// Whether a volume of `dims` split with edge `brick` can be a bricked file: the edge and every
+/// side at most [`MAX_SIDE`], at most [`MAX_BRICKS`] bricks. Checked before [`brick_grid`] is
+/// made (a tiny edge over a huge volume would be billions of bricks); the error says why.
+pub fn check_bricking(dims: [u64; 3], brick: usize) -> Result<(), String> {
+    if brick == 0 || brick as u64 > MAX_SIDE {
+        return Err(format!(
+            "brick edge {brick}; allowed 1..={MAX_SIDE} (a brick as large as the volume is \
+             the volume itself: leave out --brick)"
+        ));
+    }
+    if let Some(d) = dims.iter().find(|&&d| d == 0 || d > MAX_SIDE) {
+        return Err(format!(
+            "a side of {d} voxels; a bricked volume's sides are 1..={MAX_SIDE} voxels"
+        ));
+    }
+    let count: u128 = dims
+        .iter()
+        .map(|&d| u128::from(d.div_ceil(brick as u64).max(1)))
+        .product();
+    if count > MAX_BRICKS as u128 {
+        return Err(format!(
+            "{count} bricks of edge {brick} for {}x{}x{} voxels; at most {MAX_BRICKS}: give a \
+             larger brick edge",
+            dims[0], dims[1], dims[2]
+        ));
+    }
+    Ok(())
+}
+
 /// The bricks of a volume of `dims` split with edge `brick`: (origin, dims) in x-fastest
 /// order, the order [`write_bricked`] expects.
 pub fn brick_grid(dims: [u64; 3], brick: usize) -> Vec<([u64; 3], [usize; 3])> {
