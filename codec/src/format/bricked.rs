@@ -714,6 +714,34 @@ fn compact_entries(
 mod tests {
     use super::*;
 
+    /// What [`check_bricking`] lets through, a manifest can hold and its reader accepts; what
+    /// it refuses (an edge past the stored field, a side past [`MAX_SIDE`], too many bricks) is
+    /// refused without making the grid.
+    #[test]
+    fn bricking_is_checked_against_what_a_manifest_holds() {
+        for (dims, brick) in [
+            ([37, 53, 29], 16),
+            ([MAX_SIDE, 1, 1], 1 << 14),
+            ([5, 5, 5], 1 << 20),
+        ] {
+            check_bricking(dims, brick).unwrap();
+            let (mut m, bricks) = manifest(dims, brick);
+            let refs: Vec<&[u8]> = bricks.iter().map(|b| b.as_slice()).collect();
+            let bytes = write_bricked(&mut m, &refs).unwrap();
+            assert_eq!(parse_bricked(&bytes).unwrap().manifest.dims, dims);
+        }
+        for (dims, brick, says) in [
+            ([37, 53, 29], 0, "brick edge 0"),
+            ([37, 53, 29], (1 << 32) + 16, "brick edge"),
+            ([MAX_SIDE + 1, 1, 1], 4096, "a side of 1048577"),
+            ([20_000, 20_000, 20_000], 8, "15625000000 bricks"),
+            ([1 << 20, 1 << 20, 1], 1, "bricks"),
+        ] {
+            let e = check_bricking(dims, brick).unwrap_err();
+            assert!(e.contains(says), "{dims:?} / {brick}: {e}");
+        }
+    }
+
     /// A manifest of `dims` on the grid of `brick` in the compact version ([`BRICKED_VERSION`])
     /// and dummy bricks; `.version = EXPLICIT_BRICKED_VERSION` writes the old layout.
     fn manifest(dims: [u64; 3], brick: usize) -> (Manifest, Vec<Vec<u8>>) {
