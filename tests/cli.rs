@@ -1522,3 +1522,32 @@ fn unfinished_outputs_of_killed_runs_are_removed() {
     assert!(exists("unrelated.partial"));
     drop(live);
 }
+
+/// A bricked selection of every coefficient scores nothing and knows no totals: its summary
+/// says what it kept without a share of nothing.
+#[test]
+fn a_bricked_lossless_selection_says_what_it_kept() {
+    let dir = tempfile::tempdir().unwrap();
+    let (raw, _) = phantom_files(dir.path());
+    let o = dir.path().join("l.wsp");
+    let c = run(&[
+        "compress",
+        &raw,
+        "--dims",
+        "16,16,16",
+        "--dtype",
+        "f32",
+        "--brick",
+        "8",
+        "--lossless-selection",
+        "-o",
+        o.to_str().unwrap(),
+    ]);
+    assert!(c.status.success(), "{}", err(&c));
+    assert!(
+        out(&c).contains("coefficients (every non-zero one)"),
+        "{}",
+        out(&c)
+    );
+    assert!(!out(&c).contains(" of 0 coefficients"), "{}", out(&c));
+}

@@ -103,17 +103,14 @@ pub fn compress(
     );
     let per_point: Vec<u64> = (0..points).map(|t| m.point_bytes(t)).collect();
     outln!(
-        "volume {}x{}x{} x{} | {} M={} | kept {} of {} coefficients ({:.3} %) | a time point \
-         reads {}..{} bytes{}",
+        "volume {}x{}x{} x{} | {} M={} | kept {} | a time point reads {}..{} bytes{}",
         d[0],
         d[1],
         d[2],
         source.channels(),
         opts.family.name(),
         c.levels,
-        m.kept(),
-        c.total_coefficients,
-        100.0 * m.kept() as f64 / c.total_coefficients.max(1) as f64,
+        super::compress::kept_of(m.kept(), c.total_coefficients, None),
         per_point.iter().min().unwrap_or(&0),
         per_point.iter().max().unwrap_or(&0),
         match (m.times_known, m.points.get(1)) {
