@@ -309,12 +309,22 @@ impl Prepared {
         }
         // Smallest kept score: every kept coefficient's magnitude is at least the threshold.
         let score_threshold = kept.last().map_or(0.0, |s| s.score);
+        // A selection of every coefficient (no target to fill) has no rate to spare a coarse
+        // step for: there the step is also at most 2^−P of the substream's largest magnitude,
+        // so that values far above their band's smallest one (a slice's voxels, whose smallest
+        // may be a fifth of the largest) keep P bits instead of an error of half the smallest.
+        let every = matches!(opts.target, crate::encode::Target::All);
         let substreams: Vec<Option<SubstreamParams>> = mags
             .iter()
             .enumerate()
             .map(|(sub, m)| {
                 SubstreamParams::of_magnitudes(m, opts.coder, opts.bits, || {
-                    opts.step * magnitude_threshold(g, &self.color, score_threshold, sub)
+                    let step =
+                        opts.step * magnitude_threshold(g, &self.color, score_threshold, sub);
+                    match m.first() {
+                        Some(w0) if every => step.min(w0 * 2f64.powi(-i32::from(opts.bits))),
+                        _ => step,
+                    }
                 })
             })
             .collect();
