@@ -1551,3 +1551,32 @@ fn a_bricked_lossless_selection_says_what_it_kept() {
     );
     assert!(!out(&c).contains(" of 0 coefficients"), "{}", out(&c));
 }
+
+/// Options a bricked volume does not apply are named in a warning, not silently dropped.
+#[test]
+fn options_a_bricked_volume_ignores_are_named() {
+    let dir = tempfile::tempdir().unwrap();
+    let (raw, _) = phantom_files(dir.path());
+    let o = dir.path().join("m.wsp");
+    let c = run(&[
+        "compress",
+        &raw,
+        "--dims",
+        "16,16,16",
+        "--dtype",
+        "f32",
+        "--brick",
+        "8",
+        "--margin",
+        "0",
+        "--no-coarse-layer",
+        "-o",
+        o.to_str().unwrap(),
+    ]);
+    assert!(c.status.success(), "{}", err(&c));
+    assert!(
+        err(&c).contains("--margin, --no-coarse-layer not applied to a bricked volume"),
+        "{}",
+        err(&c)
+    );
+}

@@ -456,6 +456,19 @@ fn available_memory() -> Option<u64> {
     kib.checked_mul(1024)
 }
 
+/// The options given that a bricked volume does not apply (its bricks are coded without them).
+fn ignored_for_bricks(a: &CompressArgs) -> Vec<&'static str> {
+    [
+        (a.margin.is_some(), "--margin"),
+        (a.single_sequence, "--single-sequence"),
+        (a.layers.is_some(), "--layers"),
+        (a.no_coarse_layer, "--no-coarse-layer"),
+    ]
+    .into_iter()
+    .filter_map(|(given, name)| given.then_some(name))
+    .collect()
+}
+
 /// `compress --brick N`: the volume read brick by brick and written as one bricked file.
 fn run_bricked(a: &CompressArgs, opts: &CompressOptions, brick: usize) -> Result<()> {
     let input = input(a)?;
@@ -479,6 +492,14 @@ fn compress_bricks_of(
     source: &dyn BrickSource,
 ) -> Result<()> {
     let d = source.dims();
+    let ignored = ignored_for_bricks(a);
+    if !ignored.is_empty() {
+        tracing::warn!(
+            "{} not applied to a bricked volume: its bricks are coded without them (each \
+             brick's margin follows from its own faces)",
+            ignored.join(", ")
+        );
+    }
     let progress = Progress::new("compress");
     let report = |stage: BrickStage| progress.stage(&stage.to_string());
     let checkpoint_dir = checkpoint_dir(&a.output);
