@@ -1580,3 +1580,45 @@ fn options_a_bricked_volume_ignores_are_named() {
         err(&c)
     );
 }
+
+/// A bricked compression of samples that cannot be (NaN) says so once, names no brick it did
+/// not read, and leaves no checkpoint nor a hint to run again (it could not succeed).
+#[test]
+fn a_bricked_volume_with_nan_is_refused_once_without_a_checkpoint() {
+    let dir = tempfile::tempdir().unwrap();
+    let raw = dir.path().join("nan.raw");
+    let mut samples = vec![1f32; 20 * 20 * 20];
+    samples[10 + 20 * 10 + 400 * 11] = f32::NAN;
+    std::fs::write(
+        &raw,
+        samples
+            .iter()
+            .flat_map(|v| v.to_le_bytes())
+            .collect::<Vec<u8>>(),
+    )
+    .unwrap();
+    let o = dir.path().join("n.wsp");
+    let c = run(&[
+        "compress",
+        raw.to_str().unwrap(),
+        "--dims",
+        "20,20,20",
+        "--dtype",
+        "f32",
+        "--brick",
+        "8",
+        "-o",
+        o.to_str().unwrap(),
+    ]);
+    assert!(!c.status.success());
+    let e = err(&c);
+    assert_eq!(
+        e.matches("non-finite sample (NaN) at voxel (10, 10, 11)")
+            .count(),
+        1,
+        "{e}"
+    );
+    assert!(!e.contains("run the same command again"), "{e}");
+    assert!(!dir.path().join("n.wsp.checkpoint").exists());
+    assert!(!o.exists());
+}

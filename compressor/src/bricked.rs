@@ -313,10 +313,10 @@ pub fn crop(volume: &Volume, origin: [u64; 3], dims: [usize; 3]) -> Result<Volum
 #[derive(Debug, Error)]
 #[non_exhaustive]
 pub enum BrickError {
-    /// A brick could not be read.
-    #[error("reading the brick at {origin:?}")]
+    /// A brick, or a slab or face of the whole read before the bricks, could not be read.
+    #[error("reading the voxels from {origin:?} on")]
     Read {
-        /// Its origin in the whole.
+        /// Where the region read starts in the whole.
         origin: [u64; 3],
         /// Why.
         #[source]
@@ -371,10 +371,17 @@ impl BrickError {
             if matches!(**source, CompressError::MemoryLimit { .. }))
     }
 
-    /// Whether this is an option refused before any work (an edge, a target, a depth that
-    /// cannot be): running again with the same options cannot succeed.
-    pub fn is_option_refusal(&self) -> bool {
-        matches!(self, BrickError::InvalidOption(_))
+    /// Whether this refuses the options (an edge, a target, a depth that cannot be) or the
+    /// input's samples (NaN, Inf): running the same command again cannot succeed.
+    pub fn is_refusal(&self) -> bool {
+        matches!(
+            self,
+            BrickError::InvalidOption(_)
+                | BrickError::Read {
+                    source: ReadError::InvalidVolume { .. } | ReadError::Volume(_),
+                    ..
+                }
+        )
     }
 }
 

@@ -1188,7 +1188,10 @@ mod tests {
             };
             let c = compress_series(&s, &opts, 1, 8, &|_| {}).unwrap();
             let n = c.bytes.len() as u64;
-            assert!(n <= target && n as f64 >= 0.98 * target as f64, "{n} for {target}");
+            assert!(
+                n <= target && n as f64 >= 0.98 * target as f64,
+                "{n} for {target}"
+            );
         }
     }
 

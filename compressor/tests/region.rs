@@ -514,7 +514,7 @@ fn more_than_two_to_the_31_voxels_open_and_read_small_regions() {
         assert!(matches!(
             r.read_region([0; 3], size),
             Err(ReadError::InvalidVolume {
-                source: VolumeError::TooLarge { .. },
+                problem: VolumeError::TooLarge { .. },
                 ..
             })
         ));
@@ -688,7 +688,7 @@ fn non_finite_samples_are_refused_in_the_regions_that_hold_them() {
         matches!(
             e,
             ReadError::InvalidVolume {
-                source: VolumeError::NonFinite {
+                problem: VolumeError::NonFinite {
                     x: 3,
                     y: 2,
                     z: 1,

@@ -558,9 +558,9 @@ fn compress_bricks_of(
                      more, or a smaller --brick",
                 ))
             }
-            // An option refused: the same command cannot succeed, and a checkpoint made for it
-            // holds nothing.
-            (Err(e), Some(cp)) if e.is_option_refusal() => {
+            // Options or samples refused: the same command cannot succeed, and a checkpoint made
+            // for it holds nothing of use.
+            (Err(e), Some(cp)) if e.is_refusal() => {
                 if fresh_checkpoint {
                     if let Err(r) = cp.remove() {
                         tracing::debug!("removing the checkpoint: {r}");

@@ -32,7 +32,7 @@ pub enum FormatError {
     #[error("a time series (format version {}): each time point is a sum of volumes of its own, read through the series container", series::SERIES_VERSION)]
     Series,
     /// Input ended early.
-    #[error("truncated {what}: needed {needed} more bytes, {available} available")]
+    #[error("truncated {what}: needed {needed} bytes, {available} available")]
     Truncated {
         /// Structure being read.
         what: &'static str,

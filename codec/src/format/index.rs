@@ -401,7 +401,7 @@ pub fn wsp_of_indexed(object: &[u8]) -> Result<&[u8], FormatError> {
     let len = object.len() as u64;
     let truncated = |total: u64| FormatError::Truncated {
         what: "indexed layout",
-        needed: total.saturating_sub(len),
+        needed: total,
         available: len,
     };
     let (total, wsp_offset) = match read_indexed_head(object)? {

@@ -53,13 +53,13 @@ pub enum ReadError {
     #[error(transparent)]
     Volume(#[from] VolumeError),
     /// The decoded samples of a file do not form a valid volume.
-    #[error("{}: {source}", path.display())]
+    // Not a `source`: the message says it, and an error chain would say it twice.
+    #[error("{}: {problem}", path.display())]
     InvalidVolume {
         /// The file.
         path: PathBuf,
         /// What was wrong.
-        #[source]
-        source: VolumeError,
+        problem: VolumeError,
     },
     /// A raw file (or buffer) does not have exactly the size its description requires.
     #[error(
@@ -216,7 +216,7 @@ impl ReadError {
     pub(crate) fn volume(path: &Path, source: VolumeError) -> Self {
         ReadError::InvalidVolume {
             path: path.to_path_buf(),
-            source,
+            problem: source,
         }
     }
 }

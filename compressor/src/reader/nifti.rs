@@ -567,7 +567,7 @@ mod tests {
         assert!(matches!(
             read_volume(&path, None),
             Err(ReadError::InvalidVolume {
-                source: VolumeError::TooLarge { .. },
+                problem: VolumeError::TooLarge { .. },
                 ..
             })
         ));
@@ -619,7 +619,7 @@ mod tests {
         assert!(matches!(
             read_volume(&path, None),
             Err(ReadError::InvalidVolume {
-                source: VolumeError::NonFinite { .. },
+                problem: VolumeError::NonFinite { .. },
                 ..
             })
         ));

@@ -693,7 +693,7 @@ mod tests {
         assert!(matches!(
             read_volume(&p, None),
             Err(ReadError::InvalidVolume {
-                source: VolumeError::NonFinite { .. },
+                problem: VolumeError::NonFinite { .. },
                 ..
             })
         ));
