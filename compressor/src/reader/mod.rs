@@ -63,8 +63,9 @@ pub enum ReadError {
     },
     /// A raw file (or buffer) does not have exactly the size its description requires.
     #[error(
-        "{}raw data is {actual} bytes, but dims {dims:?} × {channels} channel(s) × {bytes_per_sample} byte(s) ({dtype}) need exactly {expected} bytes",
-        display_origin(path.as_deref())
+        "{}raw data is {actual} bytes, but dims {dims:?}{} × {channels} channel(s) × {bytes_per_sample} byte(s) ({dtype}) need exactly {expected} bytes",
+        display_origin(path.as_deref()),
+        display_time_points(*time_points)
     )]
     SizeMismatch {
         /// The file, if the data came from one.
@@ -81,6 +82,8 @@ pub enum ReadError {
         dtype: RawDtype,
         /// Bytes per sample of `dtype`.
         bytes_per_sample: usize,
+        /// The described time points (1: one volume).
+        time_points: usize,
     },
     /// The byte count of the described volume does not fit in memory addressing.
     #[error("a volume of {dims:?} voxels × {channels} channel(s) × {bytes_per_sample} byte(s) is too large to address")]
@@ -236,6 +239,15 @@ fn voxel_count(dims: [usize; 3]) -> Result<usize, VolumeError> {
             voxels: u128::MAX,
             max: MAX_VOXELS,
         })
+    }
+}
+
+/// " × T time points" of a series' raw size, nothing for one volume.
+fn display_time_points(t: usize) -> String {
+    if t > 1 {
+        format!(" × {t} time points")
+    } else {
+        String::new()
     }
 }
 

@@ -156,6 +156,7 @@ impl RawSpec {
             channels: self.channels,
             dtype: self.dtype,
             bytes_per_sample: self.dtype.size(),
+            time_points: self.time_points,
         }
     }
 }

@@ -52,6 +52,7 @@ pub(super) fn open_raw(path: &Path, spec: &RawSpec) -> Result<Opened, ReadError>
             channels: spec.channels,
             dtype: spec.dtype,
             bytes_per_sample: size,
+            time_points: spec.time_points,
         });
     }
     Ok(Opened {
