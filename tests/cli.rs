@@ -285,6 +285,24 @@ fn negative_pairs_parse_as_values() {
     let a = std::fs::read(png("c.png")).unwrap();
     let b = std::fs::read(png("p.png")).unwrap();
     assert_ne!(a, b, "the pan and the cue change the picture");
+    // A cue direction without cueing is refused, not ignored.
+    let dir_only = run(&[
+        "render",
+        &wsp,
+        "--cpu",
+        "--size",
+        "32x32",
+        "--cue-dir",
+        "-1.2,-0.3",
+        "-o",
+        &png("d.png"),
+    ]);
+    assert!(!dir_only.status.success());
+    assert!(
+        err(&dir_only).contains("give --cue-k"),
+        "{}",
+        err(&dir_only)
+    );
 }
 
 /// Logs carry no ANSI colour codes into files and pipes (a worker's log file), nor where

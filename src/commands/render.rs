@@ -208,6 +208,9 @@ impl ViewArgs {
             // A placeholder until the volume is known (`ViewRequest::spec_for`).
             CueK::FromVolume => (1.0, true),
         };
+        if k <= 0.0 && self.cue_dir.is_some() {
+            bail!("--cue-dir sets the direction of depth cueing, which is off: give --cue-k K (or auto) too");
+        }
         let cue = if k > 0.0 {
             let direction = match &self.cue_dir {
                 Some(s) => {
