@@ -1541,27 +1541,26 @@ fn unfinished_outputs_of_killed_runs_are_removed() {
     drop(live);
 }
 
+/// `compress` of the 16³ phantom of [`phantom_files`] in 8³ bricks with `flags`, into `dir`.
+fn compress_bricked_phantom(dir: &std::path::Path, flags: &[&str]) -> std::process::Output {
+    let (raw, _) = phantom_files(dir);
+    let o = dir.join("b.wsp");
+    let mut args = vec![
+        "compress", &raw, "--dims", "16,16,16", "--dtype", "f32", "--brick", "8",
+    ];
+    args.extend_from_slice(flags);
+    args.extend(["-o", o.to_str().unwrap()]);
+    let c = run(&args);
+    assert!(c.status.success(), "{}", err(&c));
+    c
+}
+
 /// A bricked selection of every coefficient scores nothing and knows no totals: its summary
 /// says what it kept without a share of nothing.
 #[test]
 fn a_bricked_lossless_selection_says_what_it_kept() {
     let dir = tempfile::tempdir().unwrap();
-    let (raw, _) = phantom_files(dir.path());
-    let o = dir.path().join("l.wsp");
-    let c = run(&[
-        "compress",
-        &raw,
-        "--dims",
-        "16,16,16",
-        "--dtype",
-        "f32",
-        "--brick",
-        "8",
-        "--lossless-selection",
-        "-o",
-        o.to_str().unwrap(),
-    ]);
-    assert!(c.status.success(), "{}", err(&c));
+    let c = compress_bricked_phantom(dir.path(), &["--lossless-selection"]);
     assert!(
         out(&c).contains("coefficients (every non-zero one)"),
         "{}",
@@ -1574,29 +1573,9 @@ fn a_bricked_lossless_selection_says_what_it_kept() {
 #[test]
 fn options_a_bricked_volume_ignores_are_named() {
     let dir = tempfile::tempdir().unwrap();
-    let (raw, _) = phantom_files(dir.path());
-    let o = dir.path().join("m.wsp");
-    let c = run(&[
-        "compress",
-        &raw,
-        "--dims",
-        "16,16,16",
-        "--dtype",
-        "f32",
-        "--brick",
-        "8",
-        "--margin",
-        "0",
-        "--no-coarse-layer",
-        "-o",
-        o.to_str().unwrap(),
-    ]);
-    assert!(c.status.success(), "{}", err(&c));
-    assert!(
-        err(&c).contains("--margin, --no-coarse-layer not applied to a bricked volume"),
-        "{}",
-        err(&c)
-    );
+    let c = compress_bricked_phantom(dir.path(), &["--margin", "0", "--no-coarse-layer"]);
+    let warned = "--margin, --no-coarse-layer not applied to a bricked volume";
+    assert!(err(&c).contains(warned), "{}", err(&c));
 }
 
 /// A bricked compression of samples that cannot be (NaN) says so once, names no brick it did
