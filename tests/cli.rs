@@ -1619,3 +1619,25 @@ fn a_bricked_volume_with_nan_is_refused_once_without_a_checkpoint() {
     assert!(!dir.path().join("n.wsp.checkpoint").exists());
     assert!(!o.exists());
 }
+
+/// A time point of a bricked volume that is no series is refused, as of a plain volume.
+#[test]
+fn a_time_point_of_a_bricked_volume_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    compress_bricked_phantom(dir.path(), &[]);
+    let b = dir.path().join("b.wsp");
+    let png = dir.path().join("t.png");
+    let r = run(&[
+        "render",
+        b.to_str().unwrap(),
+        "--cpu",
+        "--size",
+        "16x16",
+        "--time-point",
+        "5",
+        "-o",
+        png.to_str().unwrap(),
+    ]);
+    assert!(!r.status.success());
+    assert!(err(&r).contains("apply to a time series"), "{}", err(&r));
+}

@@ -345,6 +345,18 @@ pub fn run(a: RenderArgs) -> Result<()> {
         && a.view.client_memory.is_none();
     let series = matches!(&location, VolumeLocation::File { bytes, .. }
         if wavesplat_codec::format::series::is_series(bytes));
+    // A series in a cache or published: one time point, progressively (below). A time point
+    // of a volume that is no series is refused before any way of drawing it (bricked too).
+    let cached = matches!(
+        location,
+        VolumeLocation::Cache { .. } | VolumeLocation::Published { .. }
+    );
+    if cached && a.time_points.is_some() {
+        bail!("--time-points draws a local time series file; from a cache or a URL, render one --time-point N at a time (or `view` it to play)");
+    }
+    if !series && !cached && (a.view.time_point.is_some() || a.time_points.is_some()) {
+        bail!("--time-point and --time-points apply to a time series: a local file (one `compress` made from a 4D file, a directory of time steps or --phantom beating) or one in a cache or published");
+    }
     if let VolumeLocation::File { path, bytes } = &location {
         if series {
             if a.reference {
@@ -365,17 +377,6 @@ pub fn run(a: RenderArgs) -> Result<()> {
         if wavesplat_codec::format::bricked::is_bricked(bytes) && one_pass_asked && !a.reference {
             return render_bricked(&a, &view, path, bytes, request);
         }
-    }
-    // A series in a cache or published: one time point, progressively.
-    let cached = matches!(
-        location,
-        VolumeLocation::Cache { .. } | VolumeLocation::Published { .. }
-    );
-    if cached && a.time_points.is_some() {
-        bail!("--time-points draws a local time series file; from a cache or a URL, render one --time-point N at a time (or `view` it to play)");
-    }
-    if !series && !cached && (a.view.time_point.is_some() || a.time_points.is_some()) {
-        bail!("--time-point and --time-points apply to a time series: a local file (one `compress` made from a 4D file, a directory of time steps or --phantom beating) or one in a cache or published");
     }
     let volume = location.describe();
     let (header, opened, spec) = open(location, &view, a.bytes)?;
