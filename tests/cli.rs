@@ -1641,3 +1641,37 @@ fn a_time_point_of_a_bricked_volume_is_refused() {
     assert!(!r.status.success());
     assert!(err(&r).contains("apply to a time series"), "{}", err(&r));
 }
+
+/// A slice in bricks keeps every non-zero voxel by default, as a slice compressed whole does
+/// (it kept the default 5 %: the brightest pixels only).
+#[test]
+fn a_bricked_slice_keeps_every_voxel_by_default() {
+    let dir = tempfile::tempdir().unwrap();
+    let raw = dir.path().join("slice.f32");
+    let o = dir.path().join("s.wsp");
+    assert!(run(&[
+        "phantom",
+        "shepp-logan",
+        "--dims",
+        "1,40,30",
+        "-o",
+        raw.to_str().unwrap()
+    ])
+    .status
+    .success());
+    let c = run(&[
+        "compress",
+        raw.to_str().unwrap(),
+        "--dims",
+        "1,40,30",
+        "--dtype",
+        "f32",
+        "--brick",
+        "8",
+        "-o",
+        o.to_str().unwrap(),
+    ]);
+    assert!(c.status.success(), "{}", err(&c));
+    assert!(err(&c).contains("one voxel thin"), "{}", err(&c));
+    assert!(out(&c).contains("(every non-zero one)"), "{}", out(&c));
+}

@@ -492,6 +492,24 @@ fn compress_bricks_of(
     source: &dyn BrickSource,
 ) -> Result<()> {
     let d = source.dims();
+    // A slice has no transform level, in bricks as whole: every non-zero voxel is kept
+    // unless a target is given (see `compress_volume`).
+    let thin;
+    let opts = if !a.keep.is_given() && Geometry::max_levels(d.map(|v| v as usize)) == 0 {
+        eprintln!(
+            "note: {}x{}x{} is one voxel thin: the 3D transform has no level (M = 0) and its \
+             coefficients are the voxels, so every non-zero one is kept (lossless selection); \
+             give --target-fraction or --target-bytes to keep fewer",
+            d[0], d[1], d[2]
+        );
+        thin = CompressOptions {
+            target: Target::All,
+            ..opts.clone()
+        };
+        &thin
+    } else {
+        opts
+    };
     let ignored = ignored_for_bricks(a);
     if !ignored.is_empty() {
         tracing::warn!(
