@@ -89,7 +89,8 @@ pub struct CompressArgs {
     /// Colour space for RGB volumes: rgb, yiq, pca.
     #[arg(long, default_value = "pca")]
     pub colorspace: String,
-    /// Quantization bits P (1..=16) of the delta coder (paper eq. 15).
+    /// Quantization bits P (1..=16) of the delta coder (paper eq. 15); for the sigmap and fast
+    /// coders keeping every coefficient, the finest step is 2^-P of a band's largest magnitude.
     #[arg(long, default_value_t = 8)]
     pub bits: u8,
     /// Entropy coder: sigmap (octree significance maps, arithmetic coded; smallest files),
@@ -99,7 +100,9 @@ pub struct CompressArgs {
     /// static tables).
     #[arg(long, default_value = "sigmap")]
     pub coder: String,
-    /// Quantizer step of the sigmap coder relative to each band's smallest kept magnitude.
+    /// Quantizer step of the sigmap and fast coders relative to each band's smallest kept
+    /// magnitude; keeping every coefficient (--lossless-selection, a slice's default), the step
+    /// is also at most 2^-P (--bits) of the band's largest.
     #[arg(long, default_value_t = 1.0)]
     pub step: f64,
     /// Plain format version to write: 15 (the fast coder's occupancy contexts and steps in

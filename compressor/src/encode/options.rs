@@ -88,8 +88,9 @@ pub struct CompressOptions {
     pub coarse_layer: bool,
     /// Spatial clustering (`None`: pure significance order; Huffman and range coders only).
     pub clustering: Option<Clustering>,
-    /// Quantizer step of the sigmap coder, relative to each substream's smallest kept
-    /// magnitude (1 = coefficients at the threshold are known to ±½ threshold).
+    /// Quantizer step of the sigmap and fast coders, relative to each substream's smallest
+    /// kept magnitude (1 = coefficients at the threshold are known to ±½ threshold); with
+    /// [`Target::All`] also at most 2^−`bits` of the substream's largest.
     pub step: f64,
     /// Least-squares refinement of the kept set before quantization (`None`: send the
     /// oracle's coefficients unchanged, as the paper does). See [`crate::refine`].
