@@ -414,19 +414,6 @@ fn brick_side(
 
 /// Says why a volume of `dims` is bricked ([`BrickReason`]); `limit_given`: the limit is
 /// `--memory-limit`'s (else the memory available now).
-/// "N of T coefficients (P %; Z non-zero)" of a bricked volume or series; a selection of
-/// every coefficient scores nothing, so it knows no totals: "N coefficients (every non-zero
-/// one)".
-pub(super) fn kept_of(kept: u64, total: u64, nonzero: Option<u64>) -> String {
-    if total == 0 {
-        return format!("{kept} coefficients (every non-zero one)");
-    }
-    let share = 100.0 * kept as f64 / total as f64;
-    match nonzero {
-        Some(z) => format!("{kept} of {total} coefficients ({share:.3} %; {z} non-zero)"),
-        None => format!("{kept} of {total} coefficients ({share:.3} %)"),
-    }
-}
 
 fn brick_reason(dims: [usize; 3], reason: BrickReason, limit_given: bool) -> String {
     match reason {
@@ -625,7 +612,7 @@ fn compress_bricks_of(
         source.channels(),
         opts.family.name(),
         c.levels,
-        kept_of(c.manifest.kept(), c.total_coefficients, Some(c.nonzero))
+        super::kept_of(c.manifest.kept(), c.total_coefficients, Some(c.nonzero))
     );
     if let Some(note) = overhead_note(c.overhead, c.bytes, opts.coder) {
         outln!("{note}");

@@ -241,6 +241,20 @@ fn remove_stale_partials(dir: &std::path::Path) {
     }
 }
 
+/// "N of T coefficients (P %; Z non-zero)" of a bricked volume or series; a selection of
+/// every coefficient scores nothing, so it knows no totals: "N coefficients (every non-zero
+/// one)".
+pub fn kept_of(kept: u64, total: u64, nonzero: Option<u64>) -> String {
+    if total == 0 {
+        return format!("{kept} coefficients (every non-zero one)");
+    }
+    let share = 100.0 * kept as f64 / total as f64;
+    match nonzero {
+        Some(z) => format!("{kept} of {total} coefficients ({share:.3} %; {z} non-zero)"),
+        None => format!("{kept} of {total} coefficients ({share:.3} %)"),
+    }
+}
+
 /// Where writing the output `path` goes: through a link to its target (a dangling link is
 /// written as a new file at its target), so the link stays a link.
 pub fn output_target(path: &std::path::Path) -> std::io::Result<std::path::PathBuf> {

@@ -110,7 +110,7 @@ pub fn compress(
         source.channels(),
         opts.family.name(),
         c.levels,
-        super::compress::kept_of(m.kept(), c.total_coefficients, None),
+        super::kept_of(m.kept(), c.total_coefficients, None),
         per_point.iter().min().unwrap_or(&0),
         per_point.iter().max().unwrap_or(&0),
         match (m.times_known, m.points.get(1)) {
