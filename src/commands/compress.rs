@@ -414,7 +414,6 @@ fn brick_side(
 
 /// Says why a volume of `dims` is bricked ([`BrickReason`]); `limit_given`: the limit is
 /// `--memory-limit`'s (else the memory available now).
-
 fn brick_reason(dims: [usize; 3], reason: BrickReason, limit_given: bool) -> String {
     match reason {
         BrickReason::TooManyVoxels(voxels) => format!(
