@@ -386,7 +386,7 @@ fn the_wsp_inside_a_whole_indexed_object_is_given_back() {
     let whole = object.len() as u64;
     assert!(matches!(
         wsp_of_indexed(&object[..object.len() - 7]),
-        Err(FormatError::Truncated { needed, available }) if needed == whole && available == whole - 7
+        Err(FormatError::Truncated { needed, available, .. }) if needed == whole && available == whole - 7
     ));
     let mut longer = object.clone();
     longer.push(0);
