@@ -203,15 +203,20 @@ impl<B: AccumulationBackend, S: PacketSource> FrameLoop<B, S> {
     }
 
     /// After the exact tables replaced a preview, the image is drawn again from what the
-    /// session holds: packets it dropped under the memory bound are asked for again, as after
-    /// a view change (else a bound below the volume's coefficients left the image blank).
+    /// session holds: packets it dropped under the memory bound before that redraw are asked
+    /// for again, as after a view change (else a bound below the volume's coefficients left
+    /// the image blank). Those dropped after it are drawn already and wait for a later view
+    /// change (sent again now, they would be drawn twice).
     fn after_exact_redraw(&mut self) {
         let redraws = self.session.stats().exact_redraws;
         if redraws != self.exact_redraws {
             self.exact_redraws = redraws;
-            if self.dropped_since_rank {
+            let lost = self.session.take_dropped_before_redraw();
+            if self.dropped_since_rank || !lost.is_empty() {
+                self.source.dropped(lost);
                 let spec = *self.session.spec();
-                self.after_view_change(&spec);
+                self.source.set_view(&spec);
+                self.dropped_since_rank = false;
             }
         }
     }

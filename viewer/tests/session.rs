@@ -93,6 +93,10 @@ fn run_to_end<B: AccumulationBackend, S: PacketSource>(f: &mut FrameLoop<B, S>) 
         let r = f.frame(Duration::from_millis(50)).unwrap();
         frames += 1;
         assert!(r.batches_past_deadline <= 1);
+        // A preview drawn whole waits for the exact tables, as the viewer does (else the
+        // frames spin and the count below runs out before the planner thread is done).
+        f.wait_if_only_planning(&r, Duration::from_millis(50))
+            .unwrap();
         if r.idle() && f.source.status().done {
             return frames;
         }
@@ -456,6 +460,55 @@ fn a_memory_bound_with_previews_still_draws_everything() {
         let e = f.session.image().unwrap().relative_difference(&want);
         assert!(e <= 1e-5, "bound {bound}: {e:e}");
     }
+}
+
+/// Packets dropped after the exact tables replaced a preview were drawn with those tables:
+/// only those dropped before the redraw are asked for again (asking for all of them drew the
+/// later ones twice). The steps are taken by hand so that drops land on both sides of the
+/// redraw, which the frame loop only sees afterwards.
+#[test]
+fn packets_dropped_after_the_exact_redraw_are_not_drawn_twice() {
+    let bytes = wsp(Phantom::SheppLogan, 48, 16);
+    let (header, coeffs) = all(&bytes);
+    let (a, b) = (spec(0.66, 0.91), spec(1.9, 0.4));
+    let want = wavesplat_viewer::open::display_image(&header, &coeffs, &b).unwrap();
+    let options = SessionOptions {
+        memory_bound: Some(0),
+        preview: Some(SessionOptions::default_preview()),
+        ..Default::default()
+    };
+    let mut f = file_loop(&bytes, &header, a, options);
+    // Turning: drawn with the preview's tables, no exact tables built until it settles.
+    f.set_view_turning(b).unwrap();
+    while f.session.stats().packets_dropped < 3 {
+        f.frame(Duration::from_millis(20)).unwrap();
+        assert!(
+            !f.source.status().done,
+            "the file ran out before the redraw"
+        );
+    }
+    assert!(!f.session.is_exact());
+    f.settle();
+    // The first plan to arrive may be the opening view's (built before the turn).
+    for _ in 0..3 {
+        f.session.wait_exact(Duration::from_secs(60)).unwrap();
+    }
+    assert!(f.session.is_exact(), "no exact tables");
+    assert_eq!(f.session.stats().splatted_in_view, 0);
+    // Packets taken and drawn with the exact tables, then dropped (bound 0), before the frame
+    // loop has looked at the session again.
+    let before = f.session.stats().packets_dropped;
+    for _ in 0..4 {
+        let p = f.source.try_next().expect("a packet");
+        f.session.add_from_source(p).unwrap();
+    }
+    while f.session.pending() > 0 {
+        f.session.step(Duration::from_secs(1)).unwrap();
+    }
+    assert!(f.session.stats().packets_dropped > before);
+    run_to_end(&mut f);
+    let e = f.session.image().unwrap().relative_difference(&want);
+    assert!(e <= 1e-5, "{e:e}");
 }
 
 /// A clock advanced by the simulated backend, not by wall time.

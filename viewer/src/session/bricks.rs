@@ -265,6 +265,7 @@ impl<B: AccumulationBackend> RenderSession<B> {
         self.queue.clear();
         self.waiting.clear();
         self.dropped.clear();
+        self.dropped_before_redraw.clear();
         self.path_lengths = None;
         self.device_colour = None;
         self.shown_preview = None;

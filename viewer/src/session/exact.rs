@@ -151,6 +151,8 @@ impl<B: AccumulationBackend> RenderSession<B> {
         };
         self.exact = true;
         self.restart()?;
+        let mut lost = std::mem::take(&mut self.dropped);
+        self.dropped_before_redraw.append(&mut lost);
         self.stats.exact_redraws += 1;
         self.shown_preview = preview;
         Ok(())

@@ -300,6 +300,10 @@ pub struct RenderSession<B: AccumulationBackend> {
     /// restarts the accumulation, which would otherwise dip to a coarser image for a few frames.
     shown_preview: Option<(Image, u64)>,
     dropped: Vec<u32>,
+    /// Ids dropped before the exact tables last restarted the accumulation and not yet taken:
+    /// that restart threw away the image they were drawn in, so the source must send them
+    /// again (those dropped after it stay in the image, in `dropped`).
+    dropped_before_redraw: Vec<u32>,
     stats: SessionStats,
     /// Bytes of the packets taken and not yet wholly splatted since (what
     /// [`SessionOptions::transient_bytes`] bounds).
@@ -381,6 +385,7 @@ impl<B: AccumulationBackend> RenderSession<B> {
             device_colour: None,
             shown_preview: None,
             dropped: Vec::new(),
+            dropped_before_redraw: Vec::new(),
             stats: SessionStats::default(),
             fresh_bytes: 0,
             cost: [INITIAL_COST_PER_WEIGHT; 2],
@@ -465,7 +470,18 @@ impl<B: AccumulationBackend> RenderSession<B> {
     /// Packet ids dropped since the last call (to tell the source, which asks for them again
     /// after a view change).
     pub fn take_dropped(&mut self) -> Vec<u32> {
-        std::mem::take(&mut self.dropped)
+        let mut ids = std::mem::take(&mut self.dropped_before_redraw);
+        ids.append(&mut self.dropped);
+        ids
+    }
+
+    /// Packet ids dropped (and not yet taken) before the exact tables last replaced a preview:
+    /// that redraw started from what the session holds, so these are missing from the image
+    /// until the source sends them again. Those dropped after it are left for
+    /// [`RenderSession::take_dropped`]: they are in the image, and sending them again before
+    /// the next view change would draw them twice.
+    pub fn take_dropped_before_redraw(&mut self) -> Vec<u32> {
+        std::mem::take(&mut self.dropped_before_redraw)
     }
 
     /// Whether packet `id` is held.
