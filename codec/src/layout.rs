@@ -109,8 +109,9 @@ impl Geometry {
     /// whose supports tile the grid and never cross a period; for the splines half the support
     /// of the coarsest wavelet, ⌈(2j − 1)·2^M / 2⌉, so that the period is at least the volume
     /// plus that support and no two periodic images of one basis function reach the volume.
-    /// With less, the renderer clips basis functions to the volume's box; the compressor's
-    /// default is no margin (the zeros cost coefficients where structure crosses the faces).
+    /// With less, the transform bridges the padding ([`Geometry::clips_to_box`]); the
+    /// compressor's default is no margin (the zeros cost coefficients where structure crosses
+    /// the faces).
     pub fn separating_margin(family: Family, levels: usize) -> usize {
         match family {
             Family::Haar => 0,
@@ -118,15 +119,26 @@ impl Geometry {
         }
     }
 
-    /// Whether images of this geometry are clipped to the volume's box: some axis leaves less
-    /// room around the volume than [`Geometry::separating_margin`] on each side, so periodic
-    /// images of one basis function can reach the volume (never for Haar). Then nothing the
-    /// coefficients put outside the box is ever drawn; otherwise splats are drawn whole,
-    /// margin included.
+    /// Whether some axis leaves less room around the volume than
+    /// [`Geometry::separating_margin`] on each side, so that periodic images of one basis
+    /// function can reach the volume (never for Haar). The encoder then bridges the padding
+    /// and counts only what lies in the box as seen; the renderer clips to the box in any case
+    /// ([`Geometry::splats_clip_to_box`]).
     pub fn clips_to_box(&self) -> bool {
         let room = 2 * Geometry::separating_margin(self.family, self.levels);
         self.family != Family::Haar
             && (0..3).any(|a| self.padded[a] < self.dims[a].saturating_add(room))
+    }
+
+    /// Whether the renderer clips this geometry's basis functions to the volume's box: for
+    /// every family but Haar, whatever the margin. The volume is the box: a spline basis
+    /// function across a face draws, outside it, what the periodic transform put in the margin
+    /// and, past the padded grid, tails whose wrapped parts would have cancelled them. Drawn
+    /// whole, they put errors of 40 dB into oblique views, and into axis views around the box.
+    /// Haar's blocks never leave the padded grid, and what they put in the margin is what
+    /// the margin held.
+    pub fn splats_clip_to_box(&self) -> bool {
+        self.family != Family::Haar
     }
 
     /// Builds the geometry, padding each axis to `roundup(dim + 2·margin, 2^levels)` with the

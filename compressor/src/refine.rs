@@ -11,8 +11,9 @@
 //! rounds of iterative hard thresholding with refits 22.9 / 23.3 dB.
 //!
 //! Algorithm (on the padded voxel grid, per channel weighted by its colour importance; where
-//! the renderer clips to the volume's box, [`Geometry::clips_to_box`], the residual counts only
-//! the samples inside it, since nothing outside is ever drawn):
+//! the grid leaves less room than the separating margin, [`Geometry::clips_to_box`], the
+//! residual counts only the samples inside the box, since nothing outside is ever drawn; with
+//! a wider margin it counts the margin's too, which the renderer now clips as well):
 //! 1. refit: minimise ‖f − R c‖² over the values of the kept set S, where R is the synthesis to
 //!    voxel samples (inverse transform, then the cubic sampling FIR), by conjugate gradients on
 //!    the normal equations, Jacobi-preconditioned with the exact per-band diagonal of RᵀR;

@@ -1,5 +1,6 @@
-//! What of each basis function a clipped file shows: where the renderer clips to the volume's
-//! box ([`Geometry::clips_to_box`]) and the decoder crops to it, a coefficient whose basis
+//! What of each basis function a clipped file shows: where the grid leaves less room than the
+//! separating margin ([`Geometry::clips_to_box`]; the renderer clips every spline file to the
+//! volume's box) and the decoder crops to it, a coefficient whose basis
 //! function lies mostly in the padding (or wraps round to the far face) is mostly never seen.
 //! Its energy w²·‖b‖² overstates what keeping it buys; w²·‖b‖²·v, with v the fraction of
 //! ‖b‖² inside the box, does not. With smooth padding ([`crate::encode::CompressOptions`]'s

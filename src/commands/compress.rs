@@ -82,8 +82,7 @@ pub struct CompressArgs {
     /// Zero margin (voxels) around the volume before the periodic transform. Default: none when
     /// the data's faces cut through its content (zeros against them cost coefficients), else
     /// half the coarsest wavelet support, ceil((2j-1)·2^M/2). Every margin renders exactly
-    /// (below that one the viewer clips basis functions to the volume's box, at some cost in
-    /// render time).
+    /// (the viewer clips the basis functions across a face to the volume's box).
     #[arg(long)]
     pub margin: Option<usize>,
     /// Colour space for RGB volumes: rgb, yiq, pca.

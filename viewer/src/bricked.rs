@@ -110,7 +110,7 @@ pub fn draw_bricked_file(
                 .cue
                 .map(|c| resolve_cue(&c, &camera, &whole))
                 .transpose()?;
-            let reach = reach(&first.geometry, &camera);
+            let reach = reach(&camera);
             Ok((view, camera, cue, reach))
         })
         .collect::<Result<_, ViewError>>()

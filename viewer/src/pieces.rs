@@ -1,13 +1,14 @@
 //! The expansions of coefficients into splat pieces, a planning step of its own: clipping to the
-//! volume's box when periodic images of the basis functions reach it ([`BoxClip`]), and the
-//! depth-cue expansion (paper §3.2, [`expand`]).
+//! volume's box ([`BoxClip`]), and the depth-cue expansion (paper §3.2, [`expand`]).
 //!
-//! **Clipping.** The decomposition is periodic on the padded grid. When that grid leaves less
-//! room around the volume than the coarsest support (a small or zero margin), a basis function
-//! reaches the volume with more than one periodic image, and the one-image-per-coefficient
-//! splatting would draw parts of it outside the volume and miss its wrapped parts. The volume
-//! is then drawn as what it is: the spline of the level-0 coefficients of the periodic
-//! reconstruction that lie in the box. Along each axis every image of a basis function that
+//! **Clipping.** The decomposition is periodic on the padded grid. A basis function across a
+//! face of the volume's box draws, outside it, what the transform put in the margin; where the
+//! padded grid leaves less room around the volume than the coarsest support (a small or zero
+//! margin) it reaches the volume with more than one periodic image, and wherever its support
+//! leaves the padded grid its tail there stands for a wrapped part on the far side: drawn as
+//! one image per coefficient, such functions put errors of about 40 dB into oblique views
+//! whatever the margin ([`Geometry::splats_clip_to_box`]). The volume is drawn as what it is:
+//! the spline of the level-0 coefficients of the periodic reconstruction that lie in the box. Along each axis every image of a basis function that
 //! reaches the box is kept whole when all its level-0 B-splines lie in the box, dropped when
 //! none does, and otherwise split by the two-scale relation into φ one level finer, each tested
 //! again (coincident pieces merged). Every piece is then a whole φ or ψ at some level: no cut
@@ -294,6 +295,28 @@ impl BoxClip {
         merged
     }
 
+    /// The centre (volume coordinates) of coefficient `c` when its basis function lies wholly
+    /// in the box: its image on the padded grid has every level-0 B-spline of its refinement
+    /// in the box along every axis. Then no other image reaches the box (they lie a period,
+    /// at least the box's side, away) and it is one whole piece: what [`BoxClip::axes`] finds
+    /// for it, without the splitting's lists (most coefficients of a volume lie inside).
+    fn inside(&self, c: &Coefficient) -> Option<[f64; 3]> {
+        const EPS: f64 = 1e-9;
+        let g = &self.geometry;
+        let level = c.band.level as usize;
+        let mut centre = [0.0; 3];
+        for (a, out) in centre.iter_mut().enumerate() {
+            let wavelet = c.band.is_wavelet_along(a);
+            let x = g.raw_center_1d(level, c.pos[a] as usize, wavelet) - g.origin[a] as f64;
+            let r = self.reach[level][wavelet as usize];
+            if x - r < -EPS || x + r > g.dims[a] as f64 - 1.0 + EPS {
+                return None;
+            }
+            *out = x;
+        }
+        Some(centre)
+    }
+
     /// The pieces of coefficient `c` along each axis.
     fn axes(&self, c: &Coefficient) -> [Vec<AxisPiece>; 3] {
         let level = c.band.level as usize;
@@ -326,6 +349,9 @@ impl BoxClip {
     /// coarsest factor, which sets its footprint's size; a coefficient wholly inside the box
     /// weighs `weight(level)`, one wholly outside nothing): what drawing it costs.
     pub fn weigh(&self, c: &Coefficient, weight: impl Fn(u8) -> f64) -> f64 {
+        if self.inside(c).is_some() {
+            return weight(c.band.level);
+        }
         let axes = self.axes(c);
         let mut total = 0.0;
         for x in &axes[0] {
@@ -352,6 +378,11 @@ impl BoxClip {
             .par_iter()
             .enumerate()
             .map(|(i, c)| {
+                if cue.is_none() {
+                    if let Some(centre) = self.inside(c) {
+                        return (Clipped::Whole(centre), Vec::new());
+                    }
+                }
                 let level = c.band.level as usize;
                 let axes = self.axes(c);
                 if axes.iter().any(Vec::is_empty) {

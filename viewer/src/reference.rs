@@ -52,7 +52,7 @@ impl PaddedVolume {
         channels: usize,
     ) -> Result<PaddedVolume, RenderError> {
         let g = geometry;
-        if g.clips_to_box() {
+        if g.splats_clip_to_box() {
             // The periodic reconstruction, restricted to the box (what clipped splats draw).
             let mut data = vec![vec![0.0f64; g.coefficient_count()]; channels];
             for c in coefficients {
@@ -115,7 +115,7 @@ impl PaddedVolume {
                 d
             })
             .collect();
-        if geometry.clips_to_box() {
+        if geometry.splats_clip_to_box() {
             return boxed(&channels, geometry);
         }
         PaddedVolume {

@@ -182,15 +182,11 @@ pub fn on_screen(camera: &Camera, origin: [u64; 3], dims: [usize; 3], reach: f64
     hi[0] >= 0.0 && lo[0] <= camera.width as f64 && hi[1] >= 0.0 && lo[1] <= camera.height as f64
 }
 
-/// How far beyond a brick's box the splats of `g` reach on `camera`'s screen, in voxels:
-/// clipped splats draw nothing outside it (a pixel's margin); otherwise a basis function
-/// reaches (order/2)·2^M voxels beyond it at most.
-pub fn reach(g: &Geometry, camera: &Camera) -> f64 {
-    if g.clips_to_box() || g.family == Family::Haar {
-        1.0 / camera.zoom
-    } else {
-        0.5 * g.family.order() as f64 * (1u64 << g.levels) as f64
-    }
+/// How far beyond a brick's box the splats of `g` reach on `camera`'s screen, in voxels: a
+/// pixel's margin. The splines are clipped to the box ([`Geometry::splats_clip_to_box`]);
+/// Haar's blocks reach into a margin only with what the margin held (zeros, lossless).
+pub fn reach(camera: &Camera) -> f64 {
+    1.0 / camera.zoom
 }
 
 /// e^(−k·δ): what a brick at `origin` whose own cue is `own` scales its image by so that its
@@ -265,7 +261,7 @@ pub fn brick_frame(
     };
     if !cameras
         .iter()
-        .any(|c| on_screen(c, origin, geometry.dims, reach(geometry, c)))
+        .any(|c| on_screen(c, origin, geometry.dims, reach(c)))
     {
         return Ok(None);
     }

@@ -49,8 +49,8 @@ pub struct CompressOptions {
     /// How a byte target without a depth chooses one.
     pub depth_search: DepthSearch,
     /// Zero margin in voxels around the volume (`None`: [`default_margin`]). Every margin renders
-    /// exactly: below [`Geometry::separating_margin`] the renderer clips basis functions to the
-    /// volume's box.
+    /// exactly: the renderer clips basis functions to the volume's box
+    /// ([`Geometry::splats_clip_to_box`]).
     pub margin: Option<usize>,
     /// Fill the padding of a grid that is clipped to the box with a smooth periodic bridge
     /// instead of zeros ([`wavesplat_codec::dwt::bridge`]): faces that cut the content then

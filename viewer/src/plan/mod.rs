@@ -64,7 +64,7 @@ pub struct PlanOptions {
     pub max_fft: Option<usize>,
     /// Footprint sets kept in the planner's cache.
     pub cache_size: usize,
-    /// Clip coefficients to the volume's box when periodic images reach it (exact; see
+    /// Clip coefficients to the volume's box (exact, [`Geometry::splats_clip_to_box`]; see
     /// [`crate::pieces`]). Off, each coefficient is one splat at its image nearest the volume
     /// centre: what a preview draws (no factor tables to wait for).
     pub clip: bool,

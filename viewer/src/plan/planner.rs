@@ -228,7 +228,8 @@ impl Planner {
             cue,
             channels,
             expansions: cue.map(|_| Expansions::new(geometry)),
-            clip: (self.options.clip && geometry.clips_to_box()).then(|| BoxClip::new(geometry)),
+            clip: (self.options.clip && geometry.splats_clip_to_box())
+                .then(|| BoxClip::new(geometry)),
             factor_tables: vec![HashMap::default(); sets.len()],
             sets,
             atlas,

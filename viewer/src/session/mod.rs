@@ -449,6 +449,12 @@ impl<B: AccumulationBackend> RenderSession<B> {
         self.queue.len + self.waiting.len()
     }
 
+    /// Of [`RenderSession::pending`], the coefficients set aside until their factor tables
+    /// (depth-cued, or pieces clipped at the box's faces) are built in the background.
+    pub fn waiting_for_tables(&self) -> usize {
+        self.waiting.len()
+    }
+
     /// The running estimate of the cost of one unit of [`splat_weight`] with the current
     /// tables (preview or exact).
     pub fn cost_per_weight(&self) -> Duration {
