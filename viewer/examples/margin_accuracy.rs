@@ -38,7 +38,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         ] {
             let g = Geometry::new([n; 3], family, levels, margin)?;
             let coeffs = Coefficient::all_of(&g, 0, &decompose_channel(&v, &g));
-            let truth = PaddedVolume::from_volume(&[v.clone()], &g);
+            let truth = PaddedVolume::from_volume(std::slice::from_ref(&v), &g);
             let padded = PaddedVolume::from_coefficients(&coeffs, &g, 1)?;
             let mut renderer = Renderer::new(RenderOptions::default());
             for (a, b) in [(0.0, 0.0), (0.3, 0.2), (0.66, 0.91)] {

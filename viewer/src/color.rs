@@ -27,8 +27,9 @@ pub fn to_rgb(
     lengths.apply(image, header)
 }
 
-/// The path length through the voxel box of every pixel of an image (views side by side), for
-/// one view: what an offset or origin colour contributes per pixel. Computing it samples every
+/// The path length through the volume of every pixel of an image (views side by side), for
+/// one view: what an offset or origin colour contributes per pixel, the line integral of a
+/// constant in every voxel of the file's spline family ([`Camera::spline_chord`]). Computing it samples every
 /// silhouette pixel, so a session keeps it while the view and the image size stay the same
 /// ([`PathLengths::matches`]).
 #[derive(Debug, Clone)]
@@ -53,13 +54,13 @@ impl PathLengths {
         let views = cameras.len().max(1);
         let w = width / views;
         let dims = header.geometry.dims;
+        let order = header.geometry.family.order();
         let lengths = if has_offset(header) {
             cameras
                 .iter()
                 .map(|cam| {
-                    pixel_chords(w, height, |xs, ys| match cue {
-                        Some(c) => cam.cued_chord(dims, xs, ys, c),
-                        None => cam.chord(dims, xs, ys),
+                    pixel_chords(w, height, |xs, ys| {
+                        cam.spline_chord(dims, order, xs, ys, cue)
                     })
                 })
                 .collect()
@@ -194,12 +195,13 @@ pub fn to_rgb_for_spec(
 /// Sub-pixels per side where a pixel's chord is averaged by sampling.
 const CHORD_SAMPLES: usize = 16;
 
-/// The (cued) chord length `chord(xs, ys)` through the volume box averaged over each pixel of a
-/// `w`×`h` view (row major). The chord is continuous and piecewise linear in the screen
-/// position, with kinks along the projected box edges (the cued chord is smooth between them):
+/// The (cued) chord length `chord(xs, ys)` through the volume averaged over each pixel of a
+/// `w`×`h` view (row major). The chord is continuous in the screen position and linear away
+/// from the silhouette (Haar's voxel box: piecewise linear, with kinks along the projected box
+/// edges; a spline's profile: curved where the ray passes within order/2 voxels of a face):
 /// where it is linear across a pixel its average is its value at the centre, which then equals
 /// the mean of the corners; a pixel where the two differ by more than 1e-7 of the values holds a
-/// kink (or the curvature of a stiff cue) and is averaged on a 16×16 midpoint grid. (The value
+/// kink or a curve (or the curvature of a stiff cue) and is averaged on a 16×16 midpoint grid. (The value
 /// at the centre alone is off by up to half a pixel of chord slope on every silhouette pixel:
 /// 44 dB on a constant colour volume in PCA space, against 60+ dB with the average.)
 fn pixel_chords(w: usize, h: usize, chord: impl Fn(f64, f64) -> f64) -> Vec<f64> {

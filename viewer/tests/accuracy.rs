@@ -401,7 +401,7 @@ fn every_margin_draws_the_volume_s_own_line_integrals() {
             let g = Geometry::new([n; 3], family, levels, margin).unwrap();
             let coeffs =
                 Coefficient::all_of(&g, 0, &wavesplat_codec::dwt::decompose_channel(&vol, &g));
-            let of_voxels = PaddedVolume::from_volume(&[vol.clone()], &g);
+            let of_voxels = PaddedVolume::from_volume(std::slice::from_ref(&vol), &g);
             let of_coefficients = PaddedVolume::from_coefficients(&coeffs, &g, 1).unwrap();
             for (a, b) in [(0.0, 0.0), (0.3, 0.2), (0.66, 0.91)] {
                 let view = View::new(a, b, 48, 48);

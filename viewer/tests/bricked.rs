@@ -200,8 +200,10 @@ fn bricks_at_equal_bytes_draw_nearly_as_well_as_the_whole() {
             whole.bytes.len(),
             bricked.bytes.len()
         );
-        // Measured: 0.0–3.5 dB below the whole, 1.1 dB on average; with per-brick offsets and
-        // no bridge, 0.1–4.4 dB and 2.2 dB on average.
+        // Measured: 1.1–3.8 dB below the whole, 2.0 dB on average. Until the offset came back
+        // as the spline's line integral (2026-12-05) both drew a frame round the silhouette
+        // (32.7 dB along an axis) that hid part of the gap: then 0.0–3.5 dB, 1.1 on average;
+        // with per-brick offsets and no bridge, 0.1–4.4 dB and 2.2 dB on average.
         assert!(
             sb >= sw - 4.0,
             "{name}: whole {sw:.2} dB, bricked {sb:.2} dB"
@@ -210,7 +212,7 @@ fn bricks_at_equal_bytes_draw_nearly_as_well_as_the_whole() {
     }
     let mean = gaps.iter().sum::<f64>() / gaps.len() as f64;
     assert!(
-        mean <= 1.6,
+        mean <= 2.3,
         "bricked {mean:.2} dB below the whole on average: {gaps:?}"
     );
 }

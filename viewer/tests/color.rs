@@ -68,10 +68,9 @@ fn snr_against_reference(space: ColorSpaceKind, cue_k: Option<f64>, dims: [usize
 #[test]
 fn coded_colour_spaces_come_back_to_the_same_rgb_with_and_without_depth_cueing() {
     // RGB is coded without a mean, so it needs no path length; YIQ and PCA remove a mean that
-    // must come back as the (cued) path length through the voxel box. Without the cue in that
-    // length a cued PCA image is useless (negative SNR). The box's path length is itself an
-    // approximation of the spline-interpolated box (~27 dB at the silhouette), which bounds
-    // what a large mean allows: hence 20 dB, not the RGB figure.
+    // must come back as the (cued) line integral of a constant through the volume's spline.
+    // Without the cue in that length a cued PCA image is useless (negative SNR). 56–58 dB
+    // measured for every space.
     for (dims, k) in [
         ([20, 24, 16], None),
         ([20, 24, 16], Some(0.08)),
@@ -84,7 +83,7 @@ fn coded_colour_spaces_come_back_to_the_same_rgb_with_and_without_depth_cueing()
         ] {
             let snr = snr_against_reference(space, k, dims);
             assert!(
-                snr >= 20.0,
+                snr >= 50.0,
                 "{space:?} cue {k:?} on {dims:?}: SNR {snr:.1} dB against the reference"
             );
         }
@@ -93,7 +92,9 @@ fn coded_colour_spaces_come_back_to_the_same_rgb_with_and_without_depth_cueing()
 
 /// An intensity volume whose faces are air at −1000 is coded with that offset removed (the
 /// header's `color.mean[0]`); its images must come back to the original's, the offset entering
-/// each pixel as its (cued) path length through the voxel box, views on and off the axes.
+/// each pixel as the (cued) line integral of a constant through the volume's spline, views on
+/// and off the axes: 57–68 dB. Measured on the voxel box instead, the offset drew a frame
+/// around the silhouette: 28–43 dB.
 #[test]
 fn an_intensity_offset_comes_back_as_the_path_length() {
     for (dims, alpha, beta, k) in [
@@ -126,7 +127,7 @@ fn an_intensity_offset_comes_back_as_the_path_length() {
         let snr = snr_db(&reference.data, &img.data);
         let without = snr_db(&reference.data, &raw.data);
         assert!(
-            snr >= 20.0 && snr > without + 10.0,
+            snr >= 50.0 && snr > without + 10.0,
             "{dims:?} ({alpha}, {beta}) cue {k:?}: SNR {snr:.1} dB with the offset, \
              {without:.1} without"
         );
@@ -134,7 +135,7 @@ fn an_intensity_offset_comes_back_as_the_path_length() {
 }
 
 /// The offset in the three multiview images side by side: each image adds its own camera's
-/// path lengths.
+/// path lengths (60–63 dB; 40–41 dB on the voxel box).
 #[test]
 fn an_intensity_offset_in_multiview_images() {
     let volume = Phantom::Ct.generate([18, 16, 14]);
@@ -162,7 +163,7 @@ fn an_intensity_offset_in_multiview_images() {
         let snr = snr_db(&reference.data, &part(&img));
         let without = snr_db(&reference.data, &part(&raw));
         assert!(
-            snr >= 20.0 && snr > without + 10.0,
+            snr >= 50.0 && snr > without + 10.0,
             "multiview image {i}: SNR {snr:.1} dB with the offset, {without:.1} without"
         );
     }
