@@ -526,7 +526,7 @@ impl Camera {
         ys: f64,
         cue: Option<&ResolvedCue>,
     ) -> f64 {
-        if order < 2 {
+        if !(2..=8).contains(&order) {
             return match cue {
                 Some(c) => self.cued_chord(dims, xs, ys, c),
                 None => self.chord(dims, xs, ys),
@@ -540,7 +540,16 @@ impl Camera {
         let Some((t0, t1)) = clip_ray(p, r, lo, hi) else {
             return 0.0;
         };
-        let mut cuts = vec![t0, t1];
+        if cue.is_none() && single_face_shells(p, r, dims, h, (t0, t1)) {
+            // Each end crosses one face's ramp alone: a profile integrates over its ramp
+            // [−h, h − 1] to h − ½, what the voxel box's [−½, h − 1] measures.
+            return self.chord(dims, xs, ys);
+        }
+        // At most 2 ends and 2·order knots per axis (a stack array: this runs for every pixel).
+        let mut cuts = [0.0f64; 2 + 3 * 2 * 8];
+        let mut count = 2;
+        cuts[0] = t0;
+        cuts[1] = t1;
         for a in 0..3 {
             if r[a].abs() < 1e-300 {
                 continue;
@@ -551,13 +560,14 @@ impl Camera {
             let high = ((n - h) as i64)..=((n - 1.0 + h) as i64);
             for q in low.chain(high) {
                 let t = (q as f64 - p[a]) / r[a];
-                if t > t0 && t < t1 {
-                    cuts.push(t);
+                if t > t0 && t < t1 && count < cuts.len() {
+                    cuts[count] = t;
+                    count += 1;
                 }
             }
         }
-        cuts.sort_by(f64::total_cmp);
-        cuts.dedup_by(|b, a| (*b - *a).abs() <= 1e-12 * (1.0 + a.abs()));
+        let cuts = &mut cuts[..count];
+        cuts.sort_unstable_by(f64::total_cmp);
         let at = |t: f64| [p[0] + t * r[0], p[1] + t * r[1], p[2] + t * r[2]];
         let exponent = |x: [f64; 3]| cue.map_or(0.0, |c| c.k * c.dist(x).max(0.0));
         let inner = |x: [f64; 3]| (0..3).all(|a| x[a] >= h - 1.0 && x[a] <= dims[a] as f64 - h);
@@ -606,6 +616,35 @@ impl Camera {
         let b = cue.k * cue.dist(at(t1)).max(0.0);
         exp_segment(t1 - t0, a, b)
     }
+}
+
+/// Whether the ray p + t·r, inside the spline's outer box over (t0, t1), meets the ramps of
+/// one axis at a time at each end: it passes through the core box, where every profile is 1
+/// (per axis the slab [h − 1, n − h]), at most one axis enters its slab after t0, and at most
+/// one leaves it before t1.
+fn single_face_shells(p: [f64; 3], r: [f64; 3], dims: [usize; 3], h: f64, t: (f64, f64)) -> bool {
+    const EPS: f64 = 1e-9;
+    let (mut late, mut early) = (0, 0);
+    let (mut core_in, mut core_out) = (f64::NEG_INFINITY, f64::INFINITY);
+    for a in 0..3 {
+        let (lo, hi) = (h - 1.0, dims[a] as f64 - h);
+        if lo > hi {
+            return false;
+        }
+        if r[a].abs() < 1e-300 {
+            if p[a] < lo || p[a] > hi {
+                return false;
+            }
+            continue;
+        }
+        let (ta, tb) = ((lo - p[a]) / r[a], (hi - p[a]) / r[a]);
+        let (enter, leave) = (ta.min(tb), ta.max(tb));
+        core_in = core_in.max(enter);
+        core_out = core_out.min(leave);
+        late += usize::from(enter > t.0 + EPS);
+        early += usize::from(leave < t.1 - EPS);
+    }
+    core_in < core_out && late <= 1 && early <= 1
 }
 
 /// ∫ e^(−e(t)) over a segment of length `len` along which the exponent e runs linearly from
@@ -970,7 +1009,7 @@ mod spline_chord_tests {
         }
     }
 
-    /// The chord of every pixel against a 20 000-step midpoint sum of the profiles' product
+    /// The chord of rays across the image against a 5 000-step midpoint sum of the profiles' product
     /// along the ray (weighted by the cue), for both spline orders; on, near and off the axes;
     /// with no cue, a gentle one and a stiff one; 1-voxel, thin and non-cubic boxes.
     #[test]
@@ -989,7 +1028,11 @@ mod spline_chord_tests {
                             };
                             resolve_cue(&c, &cam, &g).unwrap()
                         });
-                        for (xs, ys) in [(6.0, 5.0), (3.3, 4.1), (1.7, 8.9), (9.2, 2.4)] {
+                        // Every 0.9 of a pixel: rays through the core, grazing an edge, in a
+                        // ramp only, and missing the volume.
+                        let points = (0..14 * 12)
+                            .map(|i| (0.3 + 0.9 * (i % 14) as f64, 0.2 + 0.9 * (i / 14) as f64));
+                        for (xs, ys) in points {
                             let got = cam.spline_chord(dims, order, xs, ys, cue.as_ref());
                             let want = brute_force(&cam, dims, order, xs, ys, cue.as_ref());
                             assert!(
@@ -1020,7 +1063,7 @@ mod spline_chord_tests {
         let Some((t0, t1)) = clip_ray(p, r, lo, hi) else {
             return 0.0;
         };
-        let steps = 20_000;
+        let steps = 5_000;
         let dt = (t1 - t0) / steps as f64;
         (0..steps)
             .map(|i| {
