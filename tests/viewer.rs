@@ -114,14 +114,27 @@ fn rendering_from_the_cache_equals_rendering_from_the_file() {
                     RenderSession::new(header.clone(), spec, CpuBackend::new(), unlimited).unwrap();
                 let got = drain(source, &mut s);
                 assert_eq!(got, file_source_count(&bytes), "{name}: packets delivered");
-                // One batch with everything: the same records in the same order.
+                // One batch with everything: the same records in the same order, but for the
+                // pieces clipped at the box's faces, which wait for their factor tables (built
+                // in the background) and are drawn when they arrive.
                 s.step(Duration::from_secs(3600)).unwrap();
-                assert_eq!(s.pending(), 0);
+                let start = Instant::now();
+                while s.pending() > 0 {
+                    assert_eq!(s.pending(), s.waiting_for_tables());
+                    assert!(
+                        start.elapsed() < Duration::from_secs(120),
+                        "no factor tables"
+                    );
+                    std::thread::sleep(Duration::from_millis(5));
+                    s.step(Duration::from_secs(3600)).unwrap();
+                }
                 images.push(s.image().unwrap());
             }
+            // The pieces waiting for tables are added in the order their tables arrive: f32
+            // sums in another order (a packet missing or twice is far above this).
             let e = images[0].relative_difference(&images[1]);
             assert!(
-                e <= 1e-6,
+                e <= 1e-5,
                 "{name} multiview={}: cache vs file {e:e}",
                 spec.multiview
             );
