@@ -281,6 +281,20 @@ mod tests {
         }
     }
 
+    /// The average of `chord` over pixel (x, y) on a 64×64 midpoint grid.
+    fn fine_average(chord: &dyn Fn(f64, f64) -> f64, x: usize, y: usize) -> f64 {
+        let n = 64;
+        let mut sum = 0.0;
+        for sy in 0..n {
+            for sx in 0..n {
+                let xs = x as f64 + (sx as f64 + 0.5) / n as f64;
+                let ys = y as f64 + (sy as f64 + 0.5) / n as f64;
+                sum += chord(xs, ys);
+            }
+        }
+        sum / (n * n) as f64
+    }
+
     /// A spline's smooth chord by 4×4 Gauss–Legendre points per curved pixel: against a
     /// 64×64 sampling of every pixel, within 1e-4 of the largest chord, for the linear and
     /// cubic profiles, with and without a cue, on anisotropic voxels.
@@ -309,16 +323,7 @@ mod tests {
                 assert!(peak > 0.0);
                 for y in 0..h {
                     for x in 0..w {
-                        let n = 64;
-                        let mut sum = 0.0;
-                        for sy in 0..n {
-                            for sx in 0..n {
-                                let xs = x as f64 + (sx as f64 + 0.5) / n as f64;
-                                let ys = y as f64 + (sy as f64 + 0.5) / n as f64;
-                                sum += chord(xs, ys);
-                            }
-                        }
-                        let avg = sum / (n * n) as f64;
+                        let avg = fine_average(&chord, x, y);
                         let got = chords[y * w + x];
                         assert!(
                             (got - avg).abs() < 1e-4 * peak,
@@ -349,16 +354,7 @@ mod tests {
         let mut total = 0.0;
         for y in 0..h {
             for x in 0..w {
-                let n = 64;
-                let mut sum = 0.0;
-                for sy in 0..n {
-                    for sx in 0..n {
-                        let xs = x as f64 + (sx as f64 + 0.5) / n as f64;
-                        let ys = y as f64 + (sy as f64 + 0.5) / n as f64;
-                        sum += cam.chord(dims, xs, ys);
-                    }
-                }
-                let avg = sum / (n * n) as f64;
+                let avg = fine_average(&|xs, ys| cam.chord(dims, xs, ys), x, y);
                 let got = chords[y * w + x];
                 assert!((got - avg).abs() < 2e-3, "pixel ({x}, {y}): {got} vs {avg}");
                 let centre = cam.chord(dims, x as f64 + 0.5, y as f64 + 0.5);

@@ -571,11 +571,6 @@ impl Camera {
         let at = |t: f64| [p[0] + t * r[0], p[1] + t * r[1], p[2] + t * r[2]];
         let exponent = |x: [f64; 3]| cue.map_or(0.0, |c| c.k * c.dist(x).max(0.0));
         let inner = |x: [f64; 3]| (0..3).all(|a| x[a] >= h - 1.0 && x[a] <= dims[a] as f64 - h);
-        let profile = |x: [f64; 3]| {
-            (0..3)
-                .map(|a| constant_profile(order, dims[a], x[a]))
-                .product::<f64>()
-        };
         let mut total = 0.0;
         for w in cuts.windows(2) {
             let (ta, tb) = (w[0], w[1]);
@@ -594,7 +589,7 @@ impl Camera {
                 let mid = ta + (i as f64 + 0.5) * step;
                 for (node, weight) in GAUSS_LEGENDRE_5 {
                     let x = at(mid + 0.5 * step * node);
-                    total += 0.5 * step * weight * profile(x) * (-exponent(x)).exp();
+                    total += 0.5 * step * weight * profiles(order, dims, x) * (-exponent(x)).exp();
                 }
             }
         }
@@ -681,6 +676,14 @@ pub fn constant_profile(order: usize, n: usize, x: f64) -> f64 {
     (first..=last)
         .map(|k| centred_bspline(order, x - k as f64))
         .sum()
+}
+
+/// The product of the three axes' [`constant_profile`]s at `x`: a constant of 1 in every
+/// voxel of a spline volume, evaluated there.
+fn profiles(order: usize, dims: [usize; 3], x: [f64; 3]) -> f64 {
+    (0..3)
+        .map(|a| constant_profile(order, dims[a], x[a]))
+        .product()
 }
 
 /// The centred cardinal B-spline of `order` at `x` (closed forms for the orders the families
@@ -1070,11 +1073,7 @@ mod spline_chord_tests {
                 let t = t0 + (i as f64 + 0.5) * dt;
                 let x = [p[0] + t * r[0], p[1] + t * r[1], p[2] + t * r[2]];
                 let w = cue.map_or(1.0, |c| (-c.k * c.dist(x).max(0.0)).exp());
-                (0..3)
-                    .map(|a| constant_profile(order, dims[a], x[a]))
-                    .product::<f64>()
-                    * w
-                    * dt
+                profiles(order, dims, x) * w * dt
             })
             .sum()
     }
