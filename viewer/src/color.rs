@@ -29,9 +29,9 @@ pub fn to_rgb(
 
 /// The path length through the volume of every pixel of an image (views side by side), for
 /// one view: what an offset or origin colour contributes per pixel, the line integral of a
-/// constant in every voxel of the file's spline family ([`Camera::spline_chord`]). Computing it samples every
-/// silhouette pixel, so a session keeps it while the view and the image size stay the same
-/// ([`PathLengths::matches`]).
+/// constant in every voxel of the file's spline family ([`Camera::spline_chord`]). Computing
+/// it samples every silhouette pixel, so a session keeps it while the view and the image size
+/// stay the same ([`PathLengths::matches`]).
 #[derive(Debug, Clone)]
 pub struct PathLengths {
     cameras: Vec<Camera>,

@@ -187,10 +187,16 @@ impl<B: AccumulationBackend, S: PacketSource> FrameLoop<B, S> {
 
     fn after_view_change(&mut self, spec: &ViewSpec) {
         let dropped = self.session.take_dropped();
+        self.rank_again(dropped, spec);
+        self.exact_redraws = self.session.stats().exact_redraws;
+    }
+
+    /// Hands `dropped` to the source and has it rank what it has not delivered (those
+    /// included) for `spec`.
+    fn rank_again(&mut self, dropped: Vec<u32>, spec: &ViewSpec) {
         self.source.dropped(dropped);
         self.source.set_view(spec);
         self.dropped_since_rank = false;
-        self.exact_redraws = self.session.stats().exact_redraws;
     }
 
     /// Hands the session's dropped packets to the source.
@@ -213,10 +219,8 @@ impl<B: AccumulationBackend, S: PacketSource> FrameLoop<B, S> {
             self.exact_redraws = redraws;
             let lost = self.session.take_dropped_before_redraw();
             if self.dropped_since_rank || !lost.is_empty() {
-                self.source.dropped(lost);
                 let spec = *self.session.spec();
-                self.source.set_view(&spec);
-                self.dropped_since_rank = false;
+                self.rank_again(lost, &spec);
             }
         }
     }

@@ -8,10 +8,10 @@
 //! leaves the padded grid its tail there stands for a wrapped part on the far side: drawn as
 //! one image per coefficient, such functions put errors of about 40 dB into oblique views
 //! whatever the margin ([`Geometry::splats_clip_to_box`]). The volume is drawn as what it is:
-//! the spline of the level-0 coefficients of the periodic reconstruction that lie in the box. Along each axis every image of a basis function that
-//! reaches the box is kept whole when all its level-0 B-splines lie in the box, dropped when
-//! none does, and otherwise split by the two-scale relation into φ one level finer, each tested
-//! again (coincident pieces merged). Every piece is then a whole φ or ψ at some level: no cut
+//! the spline of the level-0 coefficients of the periodic reconstruction that lie in the box.
+//! Along each axis every image of a basis function that reaches the box is kept whole when all
+//! its level-0 B-splines lie in the box, dropped when none does, and otherwise split by the
+//! two-scale relation into φ one level finer, each tested again (coincident pieces merged). Every piece is then a whole φ or ψ at some level: no cut
 //! factor is needed, and every piece lies behind the depth cue's planes.
 //!
 //! **Depth cue (no clipping).** The medium is the data: the cue is cut at the data's light-facing
@@ -216,6 +216,15 @@ pub enum Clipped {
     Split,
 }
 
+/// Slack on the box's faces for a level-0 B-spline centre that lies on one (rounding).
+const EDGE_EPS: f64 = 1e-9;
+
+/// Whether a function centred at `c` whose level-0 B-spline centres reach `r` either side
+/// lies wholly in a box of `n` voxels along an axis (those centres in [0, n − 1]).
+fn wholly_inside(c: f64, r: f64, n: f64) -> bool {
+    c - r >= -EDGE_EPS && c + r <= n - 1.0 + EDGE_EPS
+}
+
 /// One axis entry of a clipped coefficient: φ (or ψ at the coefficient's own level) at a level,
 /// centre, weight.
 type AxisPiece = (u8, bool, f64, f64);
@@ -301,15 +310,13 @@ impl BoxClip {
     /// at least the box's side, away) and it is one whole piece: what [`BoxClip::axes`] finds
     /// for it, without the splitting's lists (most coefficients of a volume lie inside).
     fn inside(&self, c: &Coefficient) -> Option<[f64; 3]> {
-        const EPS: f64 = 1e-9;
         let g = &self.geometry;
         let level = c.band.level as usize;
         let mut centre = [0.0; 3];
         for (a, out) in centre.iter_mut().enumerate() {
             let wavelet = c.band.is_wavelet_along(a);
             let x = g.raw_center_1d(level, c.pos[a] as usize, wavelet) - g.origin[a] as f64;
-            let r = self.reach[level][wavelet as usize];
-            if x - r < -EPS || x + r > g.dims[a] as f64 - 1.0 + EPS {
+            if !wholly_inside(x, self.reach[level][wavelet as usize], g.dims[a] as f64) {
                 return None;
             }
             *out = x;
@@ -330,12 +337,11 @@ impl BoxClip {
     }
 
     fn split(&self, level: usize, wavelet: bool, c: f64, w: f64, n: f64, out: &mut Vec<AxisPiece>) {
-        const EPS: f64 = 1e-9;
         let r = self.reach[level][wavelet as usize];
-        if c + r < -EPS || c - r > n - 1.0 + EPS {
+        if c + r < -EDGE_EPS || c - r > n - 1.0 + EDGE_EPS {
             return;
         }
-        if c - r >= -EPS && c + r <= n - 1.0 + EPS {
+        if wholly_inside(c, r, n) {
             out.push((level as u8, wavelet, c, w));
             return;
         }

@@ -570,7 +570,12 @@ impl Camera {
         cuts.sort_unstable_by(f64::total_cmp);
         let at = |t: f64| [p[0] + t * r[0], p[1] + t * r[1], p[2] + t * r[2]];
         let exponent = |x: [f64; 3]| cue.map_or(0.0, |c| c.k * c.dist(x).max(0.0));
-        let inner = |x: [f64; 3]| (0..3).all(|a| x[a] >= h - 1.0 && x[a] <= dims[a] as f64 - h);
+        let inner = |x: [f64; 3]| {
+            (0..3).all(|a| {
+                let (lo, hi) = core_slab(h, dims[a]);
+                (lo..=hi).contains(&x[a])
+            })
+        };
         let mut total = 0.0;
         for w in cuts.windows(2) {
             let (ta, tb) = (w[0], w[1]);
@@ -622,7 +627,7 @@ fn single_face_shells(p: [f64; 3], r: [f64; 3], dims: [usize; 3], h: f64, t: (f6
     let (mut late, mut early) = (0, 0);
     let (mut core_in, mut core_out) = (f64::NEG_INFINITY, f64::INFINITY);
     for a in 0..3 {
-        let (lo, hi) = (h - 1.0, dims[a] as f64 - h);
+        let (lo, hi) = core_slab(h, dims[a]);
         if lo > hi {
             return false;
         }
@@ -640,6 +645,12 @@ fn single_face_shells(p: [f64; 3], r: [f64; 3], dims: [usize; 3], h: f64, t: (f6
         early += usize::from(leave < t.1 - EPS);
     }
     core_in < core_out && late <= 1 && early <= 1
+}
+
+/// Where along an axis of `n` voxels the profile of half-support `h` is 1: [h − 1, n − h]
+/// (empty when the axis is shorter than the ramps).
+fn core_slab(h: f64, n: usize) -> (f64, f64) {
+    (h - 1.0, n as f64 - h)
 }
 
 /// ∫ e^(−e(t)) over a segment of length `len` along which the exponent e runs linearly from
