@@ -42,6 +42,8 @@ pub(crate) fn series_files(dir: &Path) -> Result<Vec<(String, PathBuf)>, ReadErr
         .map_err(|e| ReadError::io(dir, e))?;
     entries.sort_by_key(|e| e.file_name());
     let mut files = Vec::new();
+    // The first file that is not DICOM, and how many, for the error of a directory without.
+    let mut others: (Option<String>, usize, usize) = (None, 0, 0);
     for e in entries {
         let name = e.file_name().to_string_lossy().into_owned();
         let path = e.path();
@@ -54,6 +56,9 @@ pub(crate) fn series_files(dir: &Path) -> Result<Vec<(String, PathBuf)>, ReadErr
             continue;
         }
         if !is_dicom_file(&path).map_err(|x| ReadError::io(&path, x))? {
+            others.1 += 1;
+            others.2 += usize::from(name.to_ascii_lowercase().ends_with(".raw"));
+            others.0.get_or_insert(name);
             continue;
         }
         if files.len() == MAX_SOURCE_FILES {
@@ -67,10 +72,28 @@ pub(crate) fn series_files(dir: &Path) -> Result<Vec<(String, PathBuf)>, ReadErr
     if files.is_empty() {
         return Err(ReadError::Series {
             path: dir.to_path_buf(),
-            reason: "no DICOM files (files with the DICM preamble) in this directory".into(),
+            reason: without_dicom(others),
         });
     }
     Ok(files)
+}
+
+/// Why a directory with no DICOM file is refused, and what it could be read as instead:
+/// `others` is the first other file's name, the count of other files and of `.raw` ones.
+fn without_dicom((first, count, raws): (Option<String>, usize, usize)) -> String {
+    let base = "no DICOM files (files with the DICM preamble) in this directory";
+    match first {
+        None => format!("{base}: it holds no file"),
+        Some(_) if raws > 0 => format!(
+            "{base}; its {raws} .raw file(s) are read as a time series of raw steps with \
+             --dims X,Y,Z and --dtype"
+        ),
+        Some(name) => format!(
+            "{base}; its {count} other file(s) (`{name}`…) are not volume files of a time \
+             series either (.nii, .nii.gz, .nrrd, .nhdr, .mha, .mhd, or .raw with --dims and \
+             --dtype); name one file to compress it alone"
+        ),
+    }
 }
 
 /// Whether the file at `path` starts with the DICOM preamble (reads 132 bytes).

@@ -247,11 +247,19 @@ fn inconsistent_series_are_reported() {
     series(&d, [4, 4, 4], &tilted);
     expect_series_error(&d, "gantry tilt");
 
-    // An empty directory and one without DICOM files.
+    // An empty directory and ones without DICOM files: the error says what each holds and
+    // what it could be read as.
     let d = root.path().join("empty");
     std::fs::create_dir(&d).unwrap();
+    expect_series_error(&d, "holds no file");
     std::fs::write(d.join("notes.txt"), "hello").unwrap();
     expect_series_error(&d, "no DICOM files");
+    expect_series_error(&d, "(`notes.txt`…) are not volume files");
+    std::fs::write(d.join("step_0.raw"), [0u8; 64]).unwrap();
+    expect_series_error(
+        &d,
+        "1 .raw file(s) are read as a time series of raw steps with --dims",
+    );
 }
 
 /// An edit of a fixture's data set.
