@@ -692,6 +692,35 @@ fn a_volume_over_the_memory_limit_is_bricked_by_itself() {
     ]);
     assert!(r.status.success(), "{}", err(&r));
     assert!(out(&r).contains("8 of 8 bricks drawn"), "{}", out(&r));
+    // Below what even the smallest bricks need on two threads: refused, saying what they need
+    // and that one thread fits; run on one thread it compresses.
+    let on_threads = |threads: &str, limit: &str| {
+        Command::new(BIN)
+            .env("RAYON_NUM_THREADS", threads)
+            .args(["compress", &raw, "--memory-limit", limit, "-o"])
+            .arg(path("t.wsp"))
+            .output()
+            .unwrap()
+    };
+    let refused = on_threads("2", "120M");
+    assert!(!refused.status.success());
+    assert!(
+        err(&refused).contains("in the smallest bricks (32³, 2 at a time on 2 thread(s)")
+            && err(&refused).contains("give --memory-limit")
+            && err(&refused).contains("or one thread (RAYON_NUM_THREADS=1 needs"),
+        "{}",
+        err(&refused)
+    );
+    let one = on_threads("1", "120M");
+    assert!(one.status.success(), "{}", err(&one));
+    assert!(out(&one).contains("bricks"), "{}", out(&one));
+    let none = on_threads("1", "64M");
+    assert!(!none.status.success());
+    assert!(
+        err(&none).contains("give --memory-limit") && !err(&none).contains("or one thread"),
+        "{}",
+        err(&none)
+    );
     let w = run(&["compress", &raw, "-o", &path("w.wsp")]);
     assert!(w.status.success(), "{}", err(&w));
     assert!(!err(&w).contains("bricks of at most"), "{}", err(&w));

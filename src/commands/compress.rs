@@ -402,13 +402,58 @@ fn brick_side(
     let Some(AutoBrick { side, reason }) =
         wavesplat_compressor::bricked::auto_brick(dims, channels, opts, limit, threads)?
     else {
-        return Ok(None);
+        return refuse_without_bricks(dims, channels, opts, threads).map(|()| None);
     };
     let why = brick_reason(dims, reason, opts.memory_limit.is_some());
     if opts.family == Family::Cubic {
         bail!("{why}, and bricked volumes do not support the cubic family yet: use --family linear (the default) or haar");
     }
     Ok(Some((side, why)))
+}
+
+/// Where `--memory-limit` is below what compressing the volume whole needs and no brick fits
+/// either: an error that says what the smallest bricks need, on this many threads and on one,
+/// instead of the whole's estimate alone.
+fn refuse_without_bricks(
+    dims: [usize; 3],
+    channels: usize,
+    opts: &CompressOptions,
+    threads: u64,
+) -> Result<()> {
+    use wavesplat_compressor::bricked::{bricks_memory, AUTO_BRICK_SIDES};
+    let Some(limit) = opts.memory_limit else {
+        return Ok(());
+    };
+    let (whole, _) = wavesplat_compressor::encode::memory_estimate(dims, channels, opts)?;
+    if whole <= limit {
+        return Ok(());
+    }
+    let side = AUTO_BRICK_SIDES[AUTO_BRICK_SIDES.len() - 1];
+    let human = wavesplat_viewer::window::human_bytes;
+    let (Some(all), Some(one)) = (
+        bricks_memory(dims, channels, opts, side, threads),
+        bricks_memory(dims, channels, opts, side, 1),
+    ) else {
+        return Ok(());
+    };
+    let fewer = if threads > 1 && one <= limit {
+        format!(", or one thread (RAYON_NUM_THREADS=1 needs {})", human(one))
+    } else {
+        String::new()
+    };
+    bail!(
+        "compressing {}x{}x{} needs more memory than the {} of --memory-limit: about {} whole, \
+         and {} in the smallest bricks ({side}³, {threads} at a time on {threads} thread(s); \
+         {} of it the process's own); give --memory-limit {} or more{fewer}",
+        dims[0],
+        dims[1],
+        dims[2],
+        human(limit),
+        human(whole),
+        human(all),
+        human(wavesplat_compressor::encode::PROCESS_MEMORY),
+        human(all.min(whole)),
+    )
 }
 
 /// Says why a volume of `dims` is bricked ([`BrickReason`]); `limit_given`: the limit is
