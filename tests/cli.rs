@@ -1704,3 +1704,92 @@ fn a_bricked_slice_keeps_every_voxel_by_default() {
     assert!(err(&c).contains("one voxel thin"), "{}", err(&c));
     assert!(out(&c).contains("(every non-zero one)"), "{}", out(&c));
 }
+
+/// The coefficients `info --packets` lists, summed per brick (a bricked file) and over the
+/// components (a time series), against the counts the file's manifest gives.
+#[test]
+fn info_lists_the_packets_of_bricks_and_of_a_series_components() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = |n: &str| dir.path().join(n).to_str().unwrap().to_string();
+    let packet_coefficients = |line: &str| -> Option<u64> {
+        let words: Vec<&str> = line.split_whitespace().collect();
+        let at = words.iter().position(|w| *w == "coefficients")?;
+        (words.first() == Some(&"packet")).then(|| words[at - 1].parse().unwrap())
+    };
+    let c = run(&[
+        "compress",
+        "--phantom",
+        "ct",
+        "--dims",
+        "48,40,36",
+        "--brick",
+        "32",
+        "--target-coefficients",
+        "3000",
+        "-o",
+        &path("b.wsp"),
+    ]);
+    assert!(c.status.success(), "{}", err(&c));
+    let info = run(&["info", &path("b.wsp"), "--packets"]);
+    assert!(info.status.success(), "{}", err(&info));
+    // Each brick's line, then its packets: their counts sum to the brick's.
+    let (mut bricks, mut total) = (0, 0u64);
+    let mut current: Option<(u64, u64)> = None;
+    let mut check = |current: Option<(u64, u64)>| {
+        if let Some((kept, listed)) = current {
+            assert_eq!(listed, kept, "{}", out(&info));
+        }
+    };
+    for line in out(&info).lines() {
+        let t = line.trim_start();
+        if t.starts_with("brick ") && t.ends_with(" coefficients") {
+            check(current.take());
+            let kept = t.split_whitespace().rev().nth(1).unwrap().parse().unwrap();
+            current = Some((kept, 0));
+            bricks += 1;
+            total += kept;
+        } else if let Some(n) = packet_coefficients(t) {
+            current.as_mut().expect("a packet under a brick").1 += n;
+        }
+    }
+    check(current);
+    assert_eq!(bricks, 8, "{}", out(&info));
+    assert_eq!(total, 3000, "{}", out(&info));
+
+    let s = run(&[
+        "compress",
+        "--phantom",
+        "beating",
+        "--dims",
+        "24,24,12,4",
+        "-o",
+        &path("s.wsp"),
+    ]);
+    assert!(s.status.success(), "{}", err(&s));
+    let plain = run(&["info", &path("s.wsp")]);
+    let kept: u64 = out(&plain)
+        .lines()
+        .find(|l| l.starts_with("components"))
+        .and_then(|l| {
+            l.split(", ")
+                .last()?
+                .split_whitespace()
+                .next()?
+                .parse()
+                .ok()
+        })
+        .unwrap_or_else(|| panic!("{}", out(&plain)));
+    let info = run(&["info", &path("s.wsp"), "--packets"]);
+    assert!(info.status.success(), "{}", err(&info));
+    let listed: u64 = out(&info)
+        .lines()
+        .filter_map(|l| packet_coefficients(l.trim_start()))
+        .sum();
+    assert_eq!(listed, kept, "{}", out(&info));
+    assert_eq!(
+        out(&info).matches("component c").count(),
+        4,
+        "{}",
+        out(&info)
+    );
+}

@@ -13,7 +13,7 @@ pub struct InfoArgs {
     /// The .wsp file (or a time series source: a 4D NIfTI, a DICOM cine, a directory of time
     /// steps, whose time points are listed).
     pub input: PathBuf,
-    /// Also list every packet.
+    /// Also list every packet (of a bricked file: of each brick listed, under its line).
     #[arg(long)]
     pub packets: bool,
     /// For a bricked file, list every brick (otherwise the first 16); for a time series, every
@@ -128,6 +128,14 @@ pub fn run(a: InfoArgs) -> Result<()> {
                 b.length,
                 b.kept
             );
+            if a.packets {
+                let brick = f
+                    .brick_bytes(i)
+                    .and_then(parse_file)
+                    .with_context(|| format!("reading brick {i} of {}", a.input.display()))?;
+                packets_breakdown(&brick, &mut SizeBreakdown::default(), Some("    "))
+                    .with_context(|| format!("decoding brick {i}"))?;
+            }
         }
         if listed < m.bricks.len() {
             outln!(
@@ -154,7 +162,7 @@ pub fn run(a: InfoArgs) -> Result<()> {
                     .and_then(parse_file)
                     .with_context(|| format!("reading brick {i} of {}", a.input.display()))?;
                 let mut part = SizeBreakdown::default();
-                let counted = packets_breakdown(&brick, &mut part, false)
+                let counted = packets_breakdown(&brick, &mut part, None)
                     .with_context(|| format!("decoding brick {i}"))?;
                 Ok((part, brick.directory_bytes, counted.outside))
             })
@@ -181,7 +189,7 @@ pub fn run(a: InfoArgs) -> Result<()> {
     outln!("file        {} ({} bytes)", a.input.display(), bytes.len());
     print_header(h);
     let mut total = SizeBreakdown::default();
-    let coefficients = packets_breakdown(&file, &mut total, a.packets)?.coefficients;
+    let coefficients = packets_breakdown(&file, &mut total, a.packets.then_some(""))?.coefficients;
     outln!(
         "packets     {} holding {} coefficients (header says {})",
         file.packets.len(),
@@ -200,8 +208,12 @@ struct Counted {
 }
 
 /// Decodes `file`'s packets, adds where their bits went to `total` and counts their
-/// coefficients; `list` prints a line per packet.
-fn packets_breakdown(file: &WspFile<'_>, total: &mut SizeBreakdown, list: bool) -> Result<Counted> {
+/// coefficients; `list` prints a line per packet, after this indent.
+fn packets_breakdown(
+    file: &WspFile<'_>,
+    total: &mut SizeBreakdown,
+    list: Option<&str>,
+) -> Result<Counted> {
     let mut counted = Counted {
         coefficients: 0,
         outside: 0,
@@ -216,10 +228,10 @@ fn packets_breakdown(file: &WspFile<'_>, total: &mut SizeBreakdown, list: bool) 
             .filter(|c| g.cell_outside_box(c.band, c.pos))
             .count();
         add_breakdown(total, &d.breakdown);
-        if list {
+        if let Some(indent) = list {
             let energy: f64 = d.summary.iter().map(|(_, e)| e).sum();
             outln!(
-                "packet {i:5}  tile {:5}  layer {:2}  {:7} coefficients  {:8} bytes  energy {:.3e}",
+                "{indent}packet {i:5}  tile {:5}  layer {:2}  {:7} coefficients  {:8} bytes  energy {:.3e}",
                 d.tile,
                 d.layer,
                 d.coefficients.len(),
@@ -457,6 +469,40 @@ fn series_info(a: &InfoArgs, bytes: &[u8]) -> Result<()> {
     }
     if listed < n {
         outln!("  … and {} more (--bricks lists every one)", n - listed);
+    }
+    if a.packets {
+        for c in 0..m.components.len() {
+            let part = f
+                .component_bytes(c)
+                .with_context(|| format!("reading component {c} of {}", a.input.display()))?;
+            outln!("  component c{c}: {} bytes", part.len());
+            list_packets(part, "    ").with_context(|| format!("decoding component c{c}"))?;
+        }
+    }
+    Ok(())
+}
+
+/// Lists the packets of one volume's bytes (a series' component) after `indent`: a plain
+/// file's, or each brick's of a bricked one under a line naming the brick.
+fn list_packets(bytes: &[u8], indent: &str) -> Result<()> {
+    use wavesplat_codec::format::bricked::{is_bricked, parse_bricked};
+    let mut ignored = SizeBreakdown::default();
+    if !is_bricked(bytes) {
+        packets_breakdown(&parse_file(bytes)?, &mut ignored, Some(indent))?;
+        return Ok(());
+    }
+    let f = parse_bricked(bytes)?;
+    for (i, b) in f.manifest.bricks.iter().enumerate() {
+        outln!(
+            "{indent}brick {i}: at {},{},{}, {} coefficients",
+            b.origin[0],
+            b.origin[1],
+            b.origin[2],
+            b.kept
+        );
+        let brick = f.brick_bytes(i).and_then(parse_file)?;
+        packets_breakdown(&brick, &mut ignored, Some(&format!("{indent}  ")))
+            .with_context(|| format!("decoding brick {i}"))?;
     }
     Ok(())
 }
