@@ -278,9 +278,10 @@ fn more_bytes_give_better_images_and_volumes() {
 }
 
 /// A count target keeps exactly that many coefficients with least-squares refinement too:
-/// the refit prunes values whose score fell below the set's (a tenth of a small set), and the
-/// set is topped up with the coefficients that would join it next. At equal counts the refined
-/// file is closer to the volume than the oracle's exact values (the paper's selection).
+/// the refit prunes values whose score fell below the set's (a fifth of the set on MNI), so
+/// the set refined is grown by what a pilot refit keeps and its survivors cut or topped up to
+/// the count. At equal counts the refined file is closer to the volume than the oracle's exact
+/// values (the paper's selection).
 #[test]
 fn a_count_target_keeps_that_many_coefficients_after_refinement() {
     for (name, vol) in [

@@ -49,6 +49,28 @@ pub fn compress(
     opts: &CompressOptions,
     progress: &(dyn Fn(Stage, f64) + Sync),
 ) -> Result<Compressed, CompressError> {
+    compress_counting(volume, opts, progress, CountFill::Exact)
+}
+
+/// How a refined count target (a count, a fraction, a Q_V) meets its count.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum CountFill {
+    /// The count asked for: the set refined is grown by what a pilot refit keeps, and its
+    /// survivors cut or topped up to the count ([`count_set_size`]). A user's target.
+    Exact,
+    /// The refined top of the count, less what the refit prunes: a brick's share of a bricked
+    /// volume's allocation, whose rate search and its starting ratio count on the prune
+    /// (`bricked::REFINED_PER_ORACLE`).
+    Pruned,
+}
+
+/// [`compress`], with a count target met as `fill` says.
+pub(crate) fn compress_counting(
+    volume: &Volume,
+    opts: &CompressOptions,
+    progress: &(dyn Fn(Stage, f64) + Sync),
+    fill: CountFill,
+) -> Result<Compressed, CompressError> {
     let (needed, detail) = memory_estimate(volume.dims(), volume.channel_count(), opts)?;
     tracing::debug!(bytes = needed, detail, "memory estimate");
     if let Some(limit) = opts.memory_limit {
@@ -103,22 +125,50 @@ pub fn compress(
         }
         Target::Bytes(b) => return compress_to_bytes(volume, opts, b, progress),
     };
-    let ranked = prepared.ranked(k);
     let ranked = match &opts.refine {
+        Some(r) if k > 0 && k < n && fill == CountFill::Pruned => {
+            progress(Stage::Refine, 0.0);
+            prepared.refined(&prepared.ranked(k), k, r, 0)
+        }
         Some(r) if k > 0 && k < n => {
             progress(Stage::Refine, 0.0);
             // The prune drops the values whose refit scores fell below the set's smallest
-            // score (a tenth of a small set at low rates). A count is what the user asked
-            // for, so the set is topped up to it with the coefficients that would join it
-            // next, valued one gradient step from its fit, as a byte target tops up.
-            prepared.refined(&ranked, k, r, k)
+            // score: a fifth of the set on MNI. A count is what the user asked for, so the
+            // set refined is grown by what a pilot refit of the top k keeps, and its
+            // survivors are cut to k or topped up by the few that would join them next
+            // ([`count_set_size`]).
+            let pilot = prepared.ranked(k);
+            let survivors = prepared.pilot(&pilot, k, r);
+            let grown = count_set_size(k, survivors, n);
+            let ranked = if grown > k {
+                prepared.ranked(grown)
+            } else {
+                pilot
+            };
+            let refined = prepared.refined(&ranked, grown, r, k.div_ceil(8));
+            tracing::debug!(
+                k,
+                survivors,
+                grown,
+                refined = refined.refined,
+                "a count target's refined set"
+            );
+            refined
         }
-        _ => ranked,
+        _ => prepared.ranked(k),
     };
     let k = k.min(ranked.sorted.len());
     progress(Stage::Encode(0), 0.0);
     let expected = expected_bytes(k, opts.coder);
     Ok(prepared.encode(&ranked, k, opts, expected, true))
+}
+
+/// The size of the set a count target of `k` refines, where a pilot refit of the top `k` kept
+/// `survivors` of them above their smallest score: grown by their share (not below half, as
+/// [`rate::predicted_set_size`] trusts it), so that the refinement keeps about `k`.
+fn count_set_size(k: usize, survivors: usize, n: usize) -> usize {
+    let keep = (survivors as f64 / k.max(1) as f64).clamp(0.5, 1.0);
+    ((k as f64 / keep).ceil() as usize).clamp(k, n.max(k))
 }
 
 /// Refuses a layer growth that is not a finite number above 1.
