@@ -32,7 +32,7 @@ use wavesplat_codec::layout::Geometry;
 use wavesplat_codec::volume::{Placement, Volume, VolumeError};
 
 use crate::encode::{
-    axis_views, compress, deepest_compared, default_levels, memory_estimate, score_keeping_top,
+    axis_views, deepest_compared, default_levels, memory_estimate, score_keeping_top,
     score_summary, CompressError, CompressOptions, DepthSearch, KeptTop, ScoreSummary,
     SummedScores, Target, PROCESS_MEMORY, SHALLOWER_KEPT,
 };
@@ -2374,7 +2374,7 @@ fn per_brick_counts(summaries: &[ScoreSummary], whole: &SummedScores, k: u64) ->
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::encode::Effort;
+    use crate::encode::{compress, Effort};
     use crate::phantom::Phantom;
 
     /// A file's faces are read in one pass of slabs of whole rows, for files of any shape and
