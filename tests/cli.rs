@@ -1735,7 +1735,7 @@ fn info_lists_the_packets_of_bricks_and_of_a_series_components() {
     // Each brick's line, then its packets: their counts sum to the brick's.
     let (mut bricks, mut total) = (0, 0u64);
     let mut current: Option<(u64, u64)> = None;
-    let mut check = |current: Option<(u64, u64)>| {
+    let check = |current: Option<(u64, u64)>| {
         if let Some((kept, listed)) = current {
             assert_eq!(listed, kept, "{}", out(&info));
         }
