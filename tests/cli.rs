@@ -854,6 +854,16 @@ fn a_killed_fast_bricked_compression_at_a_byte_target_resumes() {
 
 /// Runs `wavesplat ARGS` and kills it (SIGKILL) once `checkpoint` holds a coded brick.
 fn kill_once_a_brick_is_coded(args: &[String], checkpoint: &std::path::Path) {
+    kill_once_the_checkpoint_holds(args, checkpoint, &["brick-"]);
+}
+
+/// Runs `args` and kills the run once its checkpoint holds an entry named with each of
+/// `prefixes`.
+fn kill_once_the_checkpoint_holds(
+    args: &[String],
+    checkpoint: &std::path::Path,
+    prefixes: &[&str],
+) {
     let mut child = Command::new(BIN)
         .args(args)
         .stdout(Stdio::null())
@@ -862,9 +872,14 @@ fn kill_once_a_brick_is_coded(args: &[String], checkpoint: &std::path::Path) {
         .unwrap();
     let coded = || {
         std::fs::read_dir(checkpoint).is_ok_and(|entries| {
-            entries
+            let names: Vec<String> = entries
                 .flatten()
-                .any(|e| e.file_name().to_string_lossy().starts_with("brick-"))
+                .map(|e| e.file_name().to_string_lossy().into_owned())
+                .filter(|n| !n.ends_with(".tmp"))
+                .collect();
+            prefixes
+                .iter()
+                .all(|p| names.iter().any(|n| n.starts_with(p)))
         })
     };
     let start = std::time::Instant::now();
@@ -999,6 +1014,70 @@ fn a_checkpoint_is_not_used_for_an_input_rewritten_with_the_same_length_and_time
         std::fs::read(path("k.wsp")).unwrap(),
         std::fs::read(path("fresh.wsp")).unwrap()
     );
+}
+
+/// A file input changed in one sample outside the blocks the checkpoint's key samples, its
+/// length and modification time kept: the run again reads the whole input, finds its digest
+/// changed and starts over, writing the new contents' file; unchanged, it resumes.
+#[test]
+fn a_checkpoint_is_resumed_only_from_an_input_of_the_same_bytes() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = |n: &str| dir.path().join(n).to_str().unwrap().to_string();
+    let raw = path("head_64x64x48_f32.raw");
+    let made = run(&["phantom", "shepp-logan", "--dims", "64,64,48", "-o", &raw]);
+    assert!(made.status.success(), "{}", err(&made));
+    let args = |out: &str| -> Vec<String> {
+        [
+            "compress",
+            &raw,
+            "--brick",
+            "16",
+            "--target-fraction",
+            "0.05",
+            "-o",
+            out,
+        ]
+        .iter()
+        .map(|s| s.to_string())
+        .collect()
+    };
+    let run_args = |args: Vec<String>| Command::new(BIN).args(args).output().unwrap();
+    let checkpoint = dir.path().join("k.wsp.checkpoint");
+    let kill = || {
+        kill_once_the_checkpoint_holds(&args(&path("k.wsp")), &checkpoint, &["brick-", "content"])
+    };
+    let fresh_of_now = |name: &str| {
+        let fresh = run_args(args(&path(name)));
+        assert!(fresh.status.success(), "{}", err(&fresh));
+        std::fs::read(path(name)).unwrap()
+    };
+    kill();
+    let again = run_args(args(&path("k.wsp")));
+    assert!(again.status.success(), "{}", err(&again));
+    assert!(out(&again).contains("resuming"), "{}", out(&again));
+    assert_eq!(std::fs::read(path("k.wsp")).unwrap(), fresh_of_now("a.wsp"));
+    std::fs::remove_file(path("k.wsp")).unwrap();
+
+    kill();
+    // One sample at byte 8 192: the key's 16 sampled blocks of 4 KiB over these 786 432
+    // bytes start at 0 and 52 155, so it lies in neither.
+    let modified = std::fs::metadata(&raw).unwrap().modified().unwrap();
+    let mut bytes = std::fs::read(&raw).unwrap();
+    let at = 8192;
+    let sample = f32::from_le_bytes(bytes[at..at + 4].try_into().unwrap());
+    bytes[at..at + 4].copy_from_slice(&(sample + 100.0).to_le_bytes());
+    std::fs::write(&raw, &bytes).unwrap();
+    let file = std::fs::File::options().write(true).open(&raw).unwrap();
+    file.set_modified(modified).unwrap();
+    drop(file);
+    let again = run_args(args(&path("k.wsp")));
+    assert!(again.status.success(), "{}", err(&again));
+    assert!(!out(&again).contains("resuming"), "{}", out(&again));
+    assert!(err(&again).contains("contents changed"), "{}", err(&again));
+    assert!(!checkpoint.exists());
+    let want = fresh_of_now("b.wsp");
+    assert_eq!(std::fs::read(path("k.wsp")).unwrap(), want);
+    assert_ne!(want, std::fs::read(path("a.wsp")).unwrap());
 }
 
 /// Compresses with `options` once uninterrupted, then killed once a brick is coded and run

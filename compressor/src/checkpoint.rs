@@ -27,6 +27,17 @@ const KEY_FILE: &str = "key";
 const PLAN_FILE: &str = "plan";
 /// The entry naming the unfinished output file of the run that made the checkpoint.
 const UNFINISHED_FILE: &str = "unfinished-output";
+/// The entry of a digest of every byte of the input, taken by the run that made the
+/// checkpoint ([`Checkpoint::record_content`]).
+const CONTENT_FILE: &str = "content";
+
+/// A digest of the input taken in the background: stopped and joined before the checkpoint
+/// is removed, so that it never writes into a directory being removed.
+#[derive(Debug)]
+struct ContentTask {
+    stop: std::sync::Arc<AtomicBool>,
+    handle: std::thread::JoinHandle<()>,
+}
 
 /// A directory of the finished passes of one bricked compression.
 #[derive(Debug)]
@@ -42,6 +53,8 @@ pub struct Checkpoint {
     /// Set by the first top that could not be written: no more are tried (the other
     /// entries still are).
     tops_given_up: AtomicBool,
+    /// The digest of the input being taken, if any ([`Checkpoint::record_content`]).
+    content_task: std::sync::Mutex<Option<ContentTask>>,
 }
 
 /// What a checkpoint held when it was opened.
@@ -70,6 +83,7 @@ impl Checkpoint {
             top_budget: Default::default(),
             top_bytes: Default::default(),
             tops_given_up: Default::default(),
+            content_task: Default::default(),
         };
         let mut resumed = Resumed::default();
         let stored = std::fs::read(dir.join(KEY_FILE)).ok();
@@ -139,6 +153,49 @@ impl Checkpoint {
                 let kept = self.write_checked(UNFINISHED_FILE, name.as_bytes());
                 self.note(kept);
             }
+        }
+    }
+
+    /// The digest of the input's bytes the run that made the checkpoint recorded
+    /// ([`Checkpoint::record_content`]), if it finished and is intact.
+    pub fn content(&self) -> Option<Vec<u8>> {
+        self.read_checked(CONTENT_FILE)
+    }
+
+    /// Takes a digest of the input (`digest`, which reads all of it and gives up, returning
+    /// `None`, once its flag is set) on a thread of its own while the compression runs, and
+    /// keeps it: a run again compares it with the input's digest then
+    /// ([`Checkpoint::content`]), so an input changed anywhere is not resumed from, whatever
+    /// its length and modification time. A run killed before the digest is kept leaves a
+    /// checkpoint that is not resumed from.
+    pub fn record_content(
+        &self,
+        digest: impl FnOnce(&AtomicBool) -> Option<Vec<u8>> + Send + 'static,
+    ) {
+        let stop = std::sync::Arc::new(AtomicBool::new(false));
+        let dir = self.dir.clone();
+        let flag = stop.clone();
+        let handle = std::thread::spawn(move || {
+            if let Some(bytes) = digest(&flag) {
+                if !flag.load(Relaxed) {
+                    let crc = crc32fast::hash(&bytes).to_le_bytes();
+                    if let Err(e) = write_atomic_at(&dir, CONTENT_FILE, &[&bytes, &crc]) {
+                        tracing::debug!(error = %e, "keeping the input's digest in the checkpoint");
+                    }
+                }
+            }
+        });
+        if let Ok(mut task) = self.content_task.lock() {
+            *task = Some(ContentTask { stop, handle });
+        }
+    }
+
+    /// Stops and joins the digest being taken, if any.
+    fn stop_content_task(&self) {
+        let task = self.content_task.lock().ok().and_then(|mut t| t.take());
+        if let Some(task) = task {
+            task.stop.store(true, Relaxed);
+            let _ = task.handle.join();
         }
     }
 
@@ -258,6 +315,7 @@ impl Checkpoint {
 
     /// Removes the checkpoint (once the file it served is written).
     pub fn remove(self) -> std::io::Result<()> {
+        self.stop_content_task();
         std::fs::remove_dir_all(&self.dir)
     }
 
@@ -281,15 +339,20 @@ impl Checkpoint {
 
     /// [`Checkpoint::write_atomic`] of `parts` one after the other.
     fn write_atomic_parts(&self, name: &str, parts: &[&[u8]]) -> std::io::Result<()> {
-        use std::io::Write;
-        let tmp = self.dir.join(format!("{name}.tmp"));
-        let mut file = std::fs::File::create(&tmp)?;
-        for part in parts {
-            file.write_all(part)?;
-        }
-        drop(file);
-        std::fs::rename(&tmp, self.dir.join(name))
+        write_atomic_at(&self.dir, name, parts)
     }
+}
+
+/// Writes `parts` to `name` in `dir` under a temporary name and renames it.
+fn write_atomic_at(dir: &Path, name: &str, parts: &[&[u8]]) -> std::io::Result<()> {
+    use std::io::Write;
+    let tmp = dir.join(format!("{name}.tmp"));
+    let mut file = std::fs::File::create(&tmp)?;
+    for part in parts {
+        file.write_all(part)?;
+    }
+    drop(file);
+    std::fs::rename(&tmp, dir.join(name))
 }
 
 /// The bytes of the entry at `path` less its CRC-32 trailer, if present and the CRC matches.
@@ -311,6 +374,7 @@ fn is_entry(path: &Path) -> bool {
                 || n.starts_with("brick-")
                 || n.starts_with("top-")
                 || n.starts_with(PLAN_FILE)
+                || n.starts_with(CONTENT_FILE)
         })
 }
 

@@ -4,6 +4,7 @@
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, Ordering};
 use wavesplat_codec::family::Family;
 use wavesplat_codec::format::CoderKind;
 use wavesplat_codec::layout::Geometry;
@@ -11,7 +12,7 @@ use wavesplat_codec::volume::{Volume, MAX_VOXELS};
 use wavesplat_compressor::bricked::{
     compress_bricked_to, AutoBrick, BrickReason, BrickSource, BrickStage,
 };
-use wavesplat_compressor::checkpoint::Checkpoint;
+use wavesplat_compressor::checkpoint::{Checkpoint, Resumed};
 use wavesplat_compressor::colorspace::ColorSpaceKind;
 use wavesplat_compressor::encode::{
     compress, CompressOptions, Compressed, Effort, Stage, Target, TileChoice,
@@ -683,15 +684,51 @@ fn open_checkpoint(
             .with_context(|| format!("removing the checkpoint {}", dir.display()))?;
     }
     let key = checkpoint_key(a, opts, brick)?;
-    let (cp, resumed) = Checkpoint::open(dir, &key)
-        .with_context(|| format!("opening the checkpoint {}", dir.display()))?;
+    let open = || {
+        Checkpoint::open(dir, &key)
+            .with_context(|| format!("opening the checkpoint {}", dir.display()))
+    };
+    let (mut cp, mut resumed) = open()?;
     if resumed.replaced {
         tracing::warn!(
             dir = %dir.display(),
             "the checkpoint was of another input or other options: starting over"
         );
     }
-    let fresh = resumed.replaced || !(resumed.planned || resumed.scored + resumed.coded > 0);
+    let holds_work = |r: &Resumed| r.planned || r.scored + r.coded > 0;
+    // A file or directory input: the checkpoint is resumed from only where the run that made
+    // it recorded a digest of every byte of the input and the input still gives it.
+    let input = a.input.clone().filter(|_| a.phantom.is_none());
+    if let Some(path) = &input {
+        if !resumed.replaced && holds_work(&resumed) {
+            let progress = Progress::new("checking the input against the checkpoint");
+            let now = input_digest(path, &AtomicBool::new(false));
+            progress.finish();
+            let recorded = cp.content();
+            if now.is_none() || recorded != now {
+                tracing::warn!(
+                    dir = %dir.display(),
+                    "{}: starting over",
+                    if recorded.is_none() {
+                        "the checkpoint has no digest of the input (its run was stopped before \
+                         it read the whole input)"
+                    } else {
+                        "the input's contents changed since the checkpoint was made"
+                    }
+                );
+                drop(cp);
+                std::fs::remove_dir_all(dir)
+                    .with_context(|| format!("removing the checkpoint {}", dir.display()))?;
+                (cp, resumed) = open()?;
+                resumed.replaced = true;
+            }
+        }
+        if cp.content().is_none() {
+            let path = path.clone();
+            cp.record_content(move |stop| input_digest(&path, stop));
+        }
+    }
+    let fresh = resumed.replaced || !holds_work(&resumed);
     if !fresh {
         outln!(
             "resuming from {}: {}{} bricks scored{} and {} coded already",
@@ -791,6 +828,42 @@ fn content_sample(path: &std::path::Path, len: u64) -> std::io::Result<u32> {
         next = start + take as u64;
     }
     Ok(crc.finalize())
+}
+
+/// A digest of every byte of the input at `path` (its files as `archive submit` uploads them:
+/// a DICOM series' files, a detached header's data files) and their length: the CRC-32 of the
+/// bytes, then their length, 12 bytes. `None` where they cannot be listed or read, or once
+/// `stop` is set. Streamed through, a piece at a time.
+fn input_digest(path: &std::path::Path, stop: &AtomicBool) -> Option<Vec<u8>> {
+    /// A writer that hashes what it is given, until it is told to stop.
+    struct Digest<'a> {
+        crc: crc32fast::Hasher,
+        len: u64,
+        stop: &'a AtomicBool,
+    }
+    impl std::io::Write for Digest<'_> {
+        fn write(&mut self, bytes: &[u8]) -> std::io::Result<usize> {
+            if self.stop.load(Ordering::Relaxed) {
+                return Err(std::io::Error::other("stopped"));
+            }
+            self.crc.update(bytes);
+            self.len += bytes.len() as u64;
+            Ok(bytes.len())
+        }
+        fn flush(&mut self) -> std::io::Result<()> {
+            Ok(())
+        }
+    }
+    let listing = wavesplat_compressor::reader::SourceListing::list(path, None).ok()?;
+    let mut digest = Digest {
+        crc: crc32fast::Hasher::new(),
+        len: 0,
+        stop,
+    };
+    listing.write_to(&mut digest).ok()?;
+    let mut bytes = digest.crc.finalize().to_le_bytes().to_vec();
+    bytes.extend_from_slice(&digest.len.to_le_bytes());
+    Some(bytes)
 }
 
 /// A bricked file whose manifest and brick headers take more than a fifth of it leaves little
