@@ -172,7 +172,9 @@ pub struct CompressArgs {
     /// the interruption without transforming them) and removes it once the file is written;
     /// the same command run again
     /// after an interruption (a kill, a reboot, a full disk) goes on from there and writes the
-    /// same file. A checkpoint of another input or other options is never used.
+    /// same file. A checkpoint of another input or other options is never used: a run again
+    /// first reads the whole input and compares its digest with the one the interrupted run
+    /// took (a run stopped before its digest was kept starts over).
     #[arg(long)]
     pub no_resume: bool,
     /// Tile edge in voxels (rounded up to a multiple of 2^M); default: chosen from the size.
