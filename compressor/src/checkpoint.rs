@@ -13,7 +13,10 @@
 //! Each entry is written to a temporary name and renamed, and carries a CRC-32 of its bytes,
 //! so an entry cut off by a kill is never read: a damaged or unreadable one is done again. The
 //! directory is tied to one compression by a key (the input's identity and the options, which
-//! the caller builds): a checkpoint of another compression is emptied before it is used.
+//! the caller builds): a checkpoint of another compression is emptied before it is used. The
+//! caller also has a digest of every byte of the input taken in the background
+//! ([`Checkpoint::record_content`]) and compares it with the input's when it runs again, since
+//! a key cannot read a large input whole.
 //! A checkpoint that cannot be written (a full disk, a name taken) is a warning, not an error:
 //! the compression goes on without it ([`Checkpoint::keep_summary`]).
 
