@@ -1525,6 +1525,10 @@ pub fn allocate_units<F>(
             let (mut fits_k, mut over_k) = (0u64, u64::MAX);
             // The smallest file tried: its bytes and its count (for the refusal below).
             let mut smallest = (u64::MAX, 0u64);
+            // The bytes at `fits_k` and at `over_k`, and whether the smallest count was tried
+            // because nothing fitted (see below).
+            let mut bracket_bytes = (0u64, u64::MAX);
+            let mut probed = false;
             for trial in 0..BYTE_TRIALS {
                 let b = encode_all(Some(&global_k(k)), trial)?;
                 let bytes: u64 = b.iter().map(|c| c.len).sum::<u64>() + manifest_guess;
@@ -1532,9 +1536,11 @@ pub fn allocate_units<F>(
                 smallest = smallest.min((bytes, k));
                 let fits = bytes <= target;
                 if fits {
-                    fits_k = fits_k.max(k);
-                } else {
-                    over_k = over_k.min(k);
+                    if k > fits_k {
+                        (fits_k, bracket_bytes.0) = (k, bytes);
+                    }
+                } else if k < over_k {
+                    (over_k, bracket_bytes.1) = (k, bytes);
                 }
                 if fits && best.as_ref().is_none_or(|(bb, _)| bytes > *bb) {
                     best = Some((bytes, b));
@@ -1543,17 +1549,35 @@ pub fn allocate_units<F>(
                     break;
                 }
                 let (lk, lb) = ((k as f64).ln(), (bytes as f64).ln());
-                let slope = match last {
-                    Some((pk, pb)) if (lk - pk).abs() > 1e-9 => {
-                        ((lb - pb) / (lk - pk)).clamp(0.3, 3.0)
-                    }
-                    _ => 1.0,
+                let measured = match last {
+                    Some((pk, pb)) if (lk - pk).abs() > 1e-9 => Some((lb - pb) / (lk - pk)),
+                    _ => None,
                 };
+                let slope = measured.map_or(1.0, |s| s.clamp(0.3, 3.0));
                 last = Some((lk, lb));
                 // Aim 1 % under the target; outside the bracket found so far, bisect it
                 // (geometrically) instead.
                 let guess = (lk + ((0.99 * target as f64).ln() - lb) / slope).exp();
                 let mut next = (guess.round() as u64).clamp(1, nonzero.max(1));
+                // Nothing fits after half the trials and the file hardly shrinks with the
+                // count: the parts' headers are most of it, and the steps above creep down a
+                // tenth at a time. The smallest count tells at once whether any file fits;
+                // if it does, the file is about linear in the count between it and the
+                // smallest count that overflows, and the rest of the search interpolates so.
+                if fits_k == 0
+                    && !fits
+                    && k > 1
+                    && trial + 1 >= BYTE_TRIALS / 2
+                    && measured.is_some_and(|s| s < 0.3)
+                {
+                    next = 1;
+                    probed = true;
+                } else if probed && fits_k > 0 && over_k != u64::MAX {
+                    let (lo, hi) = (bracket_bytes.0 as f64, bracket_bytes.1 as f64);
+                    let at = (0.99 * target as f64 - lo) / (hi - lo).max(1.0);
+                    next = (fits_k as f64 + at * (over_k - fits_k) as f64).round() as u64;
+                    next = next.clamp(fits_k + 1, over_k.saturating_sub(1).max(fits_k + 1));
+                }
                 if next <= fits_k || next >= over_k {
                     next = match over_k {
                         u64::MAX => (fits_k.max(1) * 2).min(nonzero.max(1)),
@@ -1571,7 +1595,7 @@ pub fn allocate_units<F>(
                     let (bytes, kept) = smallest;
                     return Err(BrickError::InvalidOption(format!(
                         "a target of {target} bytes is too small for {of} parts: the smallest \
-                         file tried, keeping {kept} coefficients in all, takes {bytes} bytes \
+                         file tried, keeping {kept} coefficient(s) in all, takes {bytes} bytes \
                          (every part's header and the container's manifest count)"
                     )));
                 }
