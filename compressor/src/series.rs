@@ -157,7 +157,11 @@ pub fn open_series_path(
 
 impl From<BrickError> for SeriesError {
     fn from(e: BrickError) -> SeriesError {
-        SeriesError::Brick(Box::new(e))
+        match e {
+            // Said of the series (a target too small for its parts), not of a bricked volume.
+            BrickError::InvalidOption(m) => SeriesError::InvalidOption(m),
+            e => SeriesError::Brick(Box::new(e)),
+        }
     }
 }
 
@@ -1245,7 +1249,11 @@ mod tests {
                 compress_series(&s, &opts, 4, 256, &|_| {})
             };
             let refused = at(0).unwrap_err().to_string();
-            assert!(refused.contains("keeping 1 coefficient(s)"), "{refused}");
+            assert!(
+                refused.starts_with("invalid option for a time series")
+                    && refused.contains("keeping 1 coefficient(s)"),
+                "{refused}"
+            );
             let smallest: u64 = refused
                 .split(" takes ")
                 .nth(1)
