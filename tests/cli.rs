@@ -1846,6 +1846,7 @@ fn info_lists_the_packets_of_bricks_and_of_a_series_components() {
         })
         .unwrap_or_else(|| panic!("{}", out(&info)));
     assert_eq!(total, kept, "{}", out(&info));
+    assert_eq!(kept, 3000, "{}", out(&info));
 
     let s = run(&[
         "compress",

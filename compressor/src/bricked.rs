@@ -925,9 +925,15 @@ impl BrickPlan {
             target: count.map_or(Target::All, Target::Coefficients),
             ..self.base.clone()
         };
-        let c =
-            crate::encode::compress_counting(&v, &o, &|_, _| {}, crate::encode::CountFill::Pruned)
-                .map_err(self.compress_error(i))?;
+        // A byte target's search counts on the refit's prune (`REFINED_PER_ORACLE`); a count
+        // the user gave (a count, a fraction, a Q_V) is kept whole, so the bricks' counts sum
+        // to it.
+        let fill = match self.target {
+            Target::Bytes(_) => crate::encode::CountFill::Pruned,
+            _ => crate::encode::CountFill::Exact,
+        };
+        let c = crate::encode::compress_counting(&v, &o, &|_, _| {}, fill)
+            .map_err(self.compress_error(i))?;
         Ok((c.bytes, c.header.kept))
     }
 
@@ -3630,8 +3636,10 @@ mod tests {
             let whole = compress(&v, &opts, &|_, _| {}).unwrap().stats.kept;
             let bricked = compress_bricked(&v, &opts, 16, &|_| {}).unwrap();
             let kept: u64 = bricked.manifest.bricks.iter().map(|b| b.kept).sum();
+            // 16³ bricks of this small volume keep 4.4 times the whole's count at 80 %: each
+            // brick's own coarse bands.
             assert!(
-                kept < bricked.nonzero / 2 && kept <= 4 * whole.max(25),
+                kept < bricked.nonzero / 2 && kept <= 5 * whole.max(25),
                 "Q_V {q} %: bricks keep {kept} of {}, the whole {whole}",
                 bricked.nonzero
             );

@@ -39,8 +39,7 @@ pub struct TargetArgs {
     /// grid, all channels (default 0.05; `compress` keeps every non-zero coefficient of a
     /// volume one voxel thin, whose transform has no level). Least-squares refinement prunes the
     /// values its refit moves below the set's smallest score, so it refines a set grown by what
-    /// a first refit keeps and cuts it to the count: the count kept is the target's (a bricked
-    /// volume's bricks keep their refined tops, up to a fifth fewer).
+    /// a first refit keeps and cuts it to the count: the count kept is the target's.
     #[arg(long, group = "target", allow_negative_numbers = true)]
     pub target_fraction: Option<f64>,
     /// Keep this many coefficients (all of them where the volume has fewer non-zero ones).

@@ -59,7 +59,7 @@ pub(crate) enum CountFill {
     /// survivors cut or topped up to the count ([`count_set_size`]). A user's target.
     Exact,
     /// The refined top of the count, less what the refit prunes: a brick's share of a bricked
-    /// volume's allocation, whose rate search and its starting ratio count on the prune
+    /// volume's byte target, whose rate search and its starting ratio count on the prune
     /// (`bricked::REFINED_PER_ORACLE`).
     Pruned,
 }
