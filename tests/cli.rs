@@ -953,72 +953,11 @@ fn a_memory_refusal_keeps_the_checkpoint_of_an_earlier_run() {
     );
 }
 
-/// An input rewritten in place between the killed run and the run again, with the same length
-/// and modification time (as a copy that keeps times would leave it), is not the checkpoint's:
-/// the run again starts over, and writes the file of the new contents.
-#[test]
-fn a_checkpoint_is_not_used_for_an_input_rewritten_with_the_same_length_and_time() {
-    let dir = tempfile::tempdir().unwrap();
-    let path = |n: &str| dir.path().join(n).to_str().unwrap().to_string();
-    let raw = path("head_64x64x48_f32.raw");
-    let made = run(&["phantom", "shepp-logan", "--dims", "64,64,48", "-o", &raw]);
-    assert!(made.status.success(), "{}", err(&made));
-    let args = |out: &str| -> Vec<String> {
-        [
-            "compress",
-            &raw,
-            "--brick",
-            "16",
-            "--target-fraction",
-            "0.05",
-            "-o",
-            out,
-        ]
-        .iter()
-        .map(|s| s.to_string())
-        .collect()
-    };
-    let checkpoint = dir.path().join("k.wsp.checkpoint");
-    kill_once_a_brick_is_coded(&args(&path("k.wsp")), &checkpoint);
-    // The same samples in the opposite order along x: other contents, the same length.
-    let modified = std::fs::metadata(&raw).unwrap().modified().unwrap();
-    let bytes = std::fs::read(&raw).unwrap();
-    let mut flipped = Vec::with_capacity(bytes.len());
-    for row in bytes.chunks(64 * 4) {
-        for sample in row.chunks(4).rev() {
-            flipped.extend_from_slice(sample);
-        }
-    }
-    assert_ne!(flipped, bytes);
-    std::fs::write(&raw, &flipped).unwrap();
-    let file = std::fs::File::options().write(true).open(&raw).unwrap();
-    file.set_modified(modified).unwrap();
-    drop(file);
-    assert_eq!(
-        std::fs::metadata(&raw).unwrap().modified().unwrap(),
-        modified
-    );
-    let again = Command::new(BIN)
-        .args(args(&path("k.wsp")))
-        .output()
-        .unwrap();
-    assert!(again.status.success(), "{}", err(&again));
-    assert!(!out(&again).contains("resuming"), "{}", out(&again));
-    assert!(!checkpoint.exists());
-    let fresh = Command::new(BIN)
-        .args(args(&path("fresh.wsp")))
-        .output()
-        .unwrap();
-    assert!(fresh.status.success(), "{}", err(&fresh));
-    assert_eq!(
-        std::fs::read(path("k.wsp")).unwrap(),
-        std::fs::read(path("fresh.wsp")).unwrap()
-    );
-}
-
-/// A file input changed in one sample outside the blocks the checkpoint's key samples, its
-/// length and modification time kept: the run again reads the whole input, finds its digest
-/// changed and starts over, writing the new contents' file; unchanged, it resumes.
+/// An input rewritten in place between the killed run and the run again, with its length and
+/// modification time kept (as a copy that keeps times would leave it), is not the checkpoint's:
+/// the run again reads the whole input, finds its digest changed, starts over and writes the
+/// new contents' file. Both a rewrite the key's 16 sampled blocks see (every row reversed) and
+/// one they do not (one sample between them). Unchanged, the input is resumed from.
 #[test]
 fn a_checkpoint_is_resumed_only_from_an_input_of_the_same_bytes() {
     let dir = tempfile::tempdir().unwrap();
@@ -1055,29 +994,55 @@ fn a_checkpoint_is_resumed_only_from_an_input_of_the_same_bytes() {
     let again = run_args(args(&path("k.wsp")));
     assert!(again.status.success(), "{}", err(&again));
     assert!(out(&again).contains("resuming"), "{}", out(&again));
-    assert_eq!(std::fs::read(path("k.wsp")).unwrap(), fresh_of_now("a.wsp"));
+    let mut before = fresh_of_now("a.wsp");
+    assert_eq!(std::fs::read(path("k.wsp")).unwrap(), before);
     std::fs::remove_file(path("k.wsp")).unwrap();
 
-    kill();
-    // One sample at byte 8 192: the key's 16 sampled blocks of 4 KiB over these 786 432
-    // bytes start at 0 and 52 155, so it lies in neither.
-    let modified = std::fs::metadata(&raw).unwrap().modified().unwrap();
-    let mut bytes = std::fs::read(&raw).unwrap();
-    let at = 8192;
-    let sample = f32::from_le_bytes(bytes[at..at + 4].try_into().unwrap());
-    bytes[at..at + 4].copy_from_slice(&(sample + 100.0).to_le_bytes());
-    std::fs::write(&raw, &bytes).unwrap();
-    let file = std::fs::File::options().write(true).open(&raw).unwrap();
-    file.set_modified(modified).unwrap();
-    drop(file);
-    let again = run_args(args(&path("k.wsp")));
-    assert!(again.status.success(), "{}", err(&again));
-    assert!(!out(&again).contains("resuming"), "{}", out(&again));
-    assert!(err(&again).contains("contents changed"), "{}", err(&again));
-    assert!(!checkpoint.exists());
-    let want = fresh_of_now("b.wsp");
-    assert_eq!(std::fs::read(path("k.wsp")).unwrap(), want);
-    assert_ne!(want, std::fs::read(path("a.wsp")).unwrap());
+    // Every row reversed along x; then one sample at byte 8 192 (the key's blocks of 4 KiB
+    // over these 786 432 bytes start at 0 and 52 155, so it lies in neither).
+    let reversed = |bytes: &mut Vec<u8>| {
+        let rows: Vec<u8> = bytes
+            .chunks(64 * 4)
+            .flat_map(|row| row.chunks(4).rev().flatten().copied().collect::<Vec<u8>>())
+            .collect();
+        *bytes = rows;
+    };
+    let one_sample = |bytes: &mut Vec<u8>| {
+        let at = 8192;
+        let sample = f32::from_le_bytes(bytes[at..at + 4].try_into().unwrap());
+        bytes[at..at + 4].copy_from_slice(&(sample + 100.0).to_le_bytes());
+    };
+    /// A change of the input's bytes in place.
+    type Rewrite<'a> = &'a dyn Fn(&mut Vec<u8>);
+    let rewrites: [Rewrite; 2] = [&reversed, &one_sample];
+    for (k, rewrite) in rewrites.into_iter().enumerate() {
+        kill();
+        let modified = std::fs::metadata(&raw).unwrap().modified().unwrap();
+        let mut bytes = std::fs::read(&raw).unwrap();
+        let old = bytes.clone();
+        rewrite(&mut bytes);
+        assert_ne!(bytes, old);
+        std::fs::write(&raw, &bytes).unwrap();
+        let file = std::fs::File::options().write(true).open(&raw).unwrap();
+        file.set_modified(modified).unwrap();
+        drop(file);
+        assert_eq!(
+            std::fs::metadata(&raw).unwrap().modified().unwrap(),
+            modified
+        );
+        let again = run_args(args(&path("k.wsp")));
+        assert!(again.status.success(), "{}", err(&again));
+        assert!(!out(&again).contains("resuming"), "{k}: {}", out(&again));
+        // The sampled blocks tell the first apart by the key; the second only the digest does.
+        let said = ["of another input", "contents changed"][k];
+        assert!(err(&again).contains(said), "{k}: {}", err(&again));
+        assert!(!checkpoint.exists());
+        let want = fresh_of_now("b.wsp");
+        assert_eq!(std::fs::read(path("k.wsp")).unwrap(), want, "{k}");
+        assert_ne!(want, before, "{k}");
+        before = want;
+        std::fs::remove_file(path("k.wsp")).unwrap();
+    }
 }
 
 /// Compresses with `options` once uninterrupted, then killed once a brick is coded and run
@@ -1833,18 +1798,21 @@ fn info_lists_the_packets_of_bricks_and_of_a_series_components() {
     }
     check(current);
     assert_eq!(bricks, 8, "{}", out(&info));
-    let kept: u64 = out(&info)
-        .lines()
-        .find(|l| l.starts_with("bricks "))
-        .and_then(|l| {
-            l.split(", ")
-                .last()?
-                .split_whitespace()
-                .next()?
-                .parse()
-                .ok()
-        })
-        .unwrap_or_else(|| panic!("{}", out(&info)));
+    // The count after the last comma of `info`'s line starting with `label`.
+    let kept_on = |text: &str, label: &str| -> u64 {
+        text.lines()
+            .find(|l| l.starts_with(label))
+            .and_then(|l| {
+                l.split(", ")
+                    .last()?
+                    .split_whitespace()
+                    .next()?
+                    .parse()
+                    .ok()
+            })
+            .unwrap_or_else(|| panic!("{text}"))
+    };
+    let kept = kept_on(&out(&info), "bricks ");
     assert_eq!(total, kept, "{}", out(&info));
     assert_eq!(kept, 3000, "{}", out(&info));
 
@@ -1859,18 +1827,7 @@ fn info_lists_the_packets_of_bricks_and_of_a_series_components() {
     ]);
     assert!(s.status.success(), "{}", err(&s));
     let plain = run(&["info", &path("s.wsp")]);
-    let kept: u64 = out(&plain)
-        .lines()
-        .find(|l| l.starts_with("components"))
-        .and_then(|l| {
-            l.split(", ")
-                .last()?
-                .split_whitespace()
-                .next()?
-                .parse()
-                .ok()
-        })
-        .unwrap_or_else(|| panic!("{}", out(&plain)));
+    let kept = kept_on(&out(&plain), "components");
     let info = run(&["info", &path("s.wsp"), "--packets"]);
     assert!(info.status.success(), "{}", err(&info));
     let listed: u64 = out(&info)
