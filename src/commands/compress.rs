@@ -702,6 +702,8 @@ fn open_checkpoint(
     // it recorded a digest of every byte of the input and the input still gives it.
     let input = a.input.clone().filter(|_| a.phantom.is_none());
     if let Some(path) = &input {
+        // The digest this run took before it starts over, kept instead of read again.
+        let mut taken = None;
         if !resumed.replaced && holds_work(&resumed) {
             let progress = Progress::new("checking the input against the checkpoint");
             let now = input_digest(path, &AtomicBool::new(false));
@@ -723,11 +725,12 @@ fn open_checkpoint(
                     .with_context(|| format!("removing the checkpoint {}", dir.display()))?;
                 (cp, resumed) = open()?;
                 resumed.replaced = true;
+                taken = now;
             }
         }
         if cp.content().is_none() {
             let path = path.clone();
-            cp.record_content(move |stop| input_digest(&path, stop));
+            cp.record_content(move |stop| taken.or_else(|| input_digest(&path, stop)));
         }
     }
     let fresh = resumed.replaced || !holds_work(&resumed);
