@@ -392,8 +392,9 @@ fn nodes_over_an_object_store_serve_series_alike() {
 
 /// A series' header message as a client checks it (read from the other side of the wire, as a
 /// hostile or broken server could send it): the cache's own is taken; bricks of components out
-/// of order, a brick outside the whole, an origin of two values, a component missing and a
-/// packet count that does not add up are each refused, naming the problem.
+/// of order, a brick outside the whole, an origin of two values, a component missing, a
+/// packet count that does not add up, and a component whose bricks overlap or leave a hole are
+/// each refused, naming the problem.
 #[test]
 fn a_clients_check_of_a_series_header_refuses_what_does_not_add_up() {
     use wavesplat_client::convert::volume_header;
@@ -437,4 +438,19 @@ fn a_clients_check_of_a_series_header_refuses_what_does_not_add_up() {
         "components; the manifest has",
     );
     refused(&|h| h.bricks[0].packets += 1, "packets, the volume");
+    // Component 0's second brick moved onto its first: the voxels still add up, but drawn the
+    // first would count twice and the second's place would stay empty.
+    assert_eq!(good.bricks[1].component, 0);
+    refused(
+        &|h| h.bricks[1].origin = h.bricks[0].origin.clone(),
+        "overlaps another",
+    );
+    // A brick dropped from component 0 (its packets moved to its neighbour): a hole.
+    refused(
+        &|h| {
+            let gone = h.bricks.remove(1);
+            h.bricks[0].packets += gone.packets;
+        },
+        "voxels",
+    );
 }

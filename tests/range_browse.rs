@@ -664,6 +664,12 @@ fn a_published_bricked_volume_browses_as_one() {
     let mut damaged = wspx.clone();
     damaged[30] ^= 0x40;
     assert!(read_indexed_head(&damaged).is_err(), "a damaged index");
+    // An index whose bricks do not tile the series (component 0's second brick moved onto its
+    // first, the index signed again) is refused: drawn, it would add one brick twice and
+    // leave a hole.
+    let moved = second_brick_on_the_first(&wspx);
+    let e = read_indexed_head(&moved).unwrap_err().to_string();
+    assert!(e.contains("overlaps") || e.contains("voxels"), "{e}");
     // Every packet the head places starts where its brick's bytes say.
     for (b, brick) in head.bricks.iter().enumerate() {
         let entry = &head.manifest.bricks[b];
@@ -756,6 +762,54 @@ fn a_published_bricked_volume_browses_as_one() {
             );
         }
     }
+}
+
+/// A series' indexed layout with component 0's second brick given its first brick's origin,
+/// the index's CRC made to match (the origins are one-byte varints here).
+fn second_brick_on_the_first(wspx: &[u8]) -> Vec<u8> {
+    use wavesplat_codec::format::index::INDEXED_HEAD_BYTES;
+    let index_len = u32::from_le_bytes(wspx[14..18].try_into().unwrap()) as usize;
+    let mut out = wspx.to_vec();
+    let index = &mut out[INDEXED_HEAD_BYTES..INDEXED_HEAD_BYTES + index_len];
+    let mut at = 0usize;
+    let varint = |at: &mut usize, index: &[u8]| {
+        let (mut v, mut shift) = (0u64, 0);
+        loop {
+            let b = index[*at];
+            *at += 1;
+            v |= u64::from(b & 0x7f) << shift;
+            shift += 7;
+            if b & 0x80 == 0 {
+                return v;
+            }
+        }
+    };
+    varint(&mut at, index); // components
+    at += 1; // component 0's kind
+    assert!(varint(&mut at, index) >= 2, "component 0 has two bricks");
+    let first = at;
+    for _ in 0..5 {
+        varint(&mut at, index); // origin, offset, length
+    }
+    for _ in 0..2 {
+        let len = varint(&mut at, index) as usize; // header section, packet index
+        at += len;
+    }
+    let second = at;
+    let origin: Vec<u8> = index[first..first + 3].to_vec();
+    assert!(origin
+        .iter()
+        .chain(&index[second..second + 3])
+        .all(|b| b & 0x80 == 0));
+    assert_ne!(
+        &index[second..second + 3],
+        &origin[..],
+        "the bricks' origins differ"
+    );
+    index[second..second + 3].copy_from_slice(&origin);
+    let crc = crc32fast::hash(index);
+    out[18..22].copy_from_slice(&crc.to_le_bytes());
+    out
 }
 
 /// A published time series (the indexed layout's version 3) browses one time point at a time:

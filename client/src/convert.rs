@@ -278,6 +278,17 @@ fn series_header(
             component,
         });
     }
+    // Each component's bricks tile the whole: drawn, overlapping bricks would add twice and
+    // a gap would draw nothing.
+    for c in 0..bricks.last().map_or(0, |b| b.component + 1) {
+        let boxes: Vec<([u64; 3], [usize; 3])> = bricks
+            .iter()
+            .filter(|b| b.component == c)
+            .map(|b| (b.origin, b.header.geometry.dims))
+            .collect();
+        wavesplat_codec::format::bricked::check_tiling(space.dims, &boxes)
+            .map_err(|e| bad(format!("component {c}: {e}")))?;
+    }
     let components = bricks.last().map_or(0, |b| b.component + 1);
     if components != manifest.components.len() {
         return Err(bad(format!(

@@ -131,7 +131,8 @@ pub fn draw_bricked_file(
                 // Only a brick that is drawn is checked, parsed and decoded.
                 let data = file.brick_bytes(i)?;
                 let f = parse_file(data)?;
-                check_brick(i, entry, &f.header, &first, first.channels)?;
+                // Against the manifest's channels, as every other reader checks them.
+                check_brick(i, entry, &f.header, &first, m.channels)?;
                 let d = decode_packets(&f.header, &f.packets, 0)?;
                 let n: usize = d.iter().map(Vec::len).sum();
                 check_kept(&f.header, n as u64)?;

@@ -143,6 +143,29 @@ fn cubic_bricks_are_refused_naming_the_family() {
     assert!(e.to_string().contains("cubic"), "{e}");
 }
 
+/// A manifest that claims three channels over bricks of one is refused when drawn in one pass,
+/// as the progressive reader refuses it, instead of drawing the bricks as if it had said one.
+#[test]
+fn a_manifest_whose_channels_are_not_its_bricks_is_refused() {
+    use wavesplat_codec::format::bricked::{parse_bricked, write_bricked};
+    let volume = Phantom::SheppLogan.generate([40, 36, 32]);
+    let opts = CompressOptions {
+        target: Target::Fraction(0.05),
+        ..CompressOptions::default()
+    };
+    let bytes = compress_bricked(&volume, &opts, 20, &|_| {}).unwrap().bytes;
+    let spec = ViewSpec::single(View::new(0.3, 0.2, 32, 32));
+    assert!(draw_bricked_file(&bytes, &spec, &mut CpuBackend::new()).is_ok());
+    let file = parse_bricked(&bytes).unwrap();
+    let bricks: Vec<&[u8]> = (0..file.manifest.bricks.len())
+        .map(|i| file.brick_bytes(i).unwrap())
+        .collect();
+    let mut liar = file.manifest.clone();
+    liar.channels = 3;
+    let lying = write_bricked(&mut liar, &bricks).unwrap();
+    assert!(draw_bricked_file(&lying, &spec, &mut CpuBackend::new()).is_err());
+}
+
 /// A view zoomed into one corner of the volume decodes and draws that corner's brick only.
 #[test]
 fn a_view_of_one_brick_draws_no_other() {

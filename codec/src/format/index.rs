@@ -300,8 +300,16 @@ pub fn index_file(bytes: &[u8]) -> Result<Vec<PacketMeta>, FormatError> {
 /// A `.wsp` file in the indexed layout (see the module documentation); a bricked container in
 /// its version 2, every brick's packets decoded once (which checks them).
 pub fn indexed_layout(wsp: &[u8]) -> Result<Vec<u8>, FormatError> {
+    let mut out = indexed_layout_prefix(wsp)?;
+    out.extend_from_slice(wsp);
+    Ok(out)
+}
+
+/// What [`indexed_layout`] puts in front of `wsp`: the head and the index (the layout is this,
+/// then `wsp` unchanged), for a writer that sends the two apart instead of copying the file.
+pub fn indexed_layout_prefix(wsp: &[u8]) -> Result<Vec<u8>, FormatError> {
     if crate::format::series::is_series(wsp) {
-        return series_indexed_layout(wsp);
+        return series_indexed_prefix(wsp);
     }
     if is_bricked(wsp) {
         let file = parse_bricked(wsp)?;
@@ -311,22 +319,19 @@ pub fn indexed_layout(wsp: &[u8]) -> Result<Vec<u8>, FormatError> {
             let brick = file.brick_bytes(i)?;
             write_brick_index(&mut w, brick)?;
         }
-        return layout_with(
+        return prefix_within(
             BRICKED_INDEXED_VERSION,
             "bricked packet index",
             &w.into_bytes(),
             wsp,
         );
     }
-    let packets = index_file(wsp)?;
-    let mut out = indexed_prefix(wsp.len() as u64, &packets)?;
-    out.extend_from_slice(wsp);
-    Ok(out)
+    indexed_prefix(wsp.len() as u64, &index_file(wsp)?)
 }
 
-/// [`indexed_layout`] of a series container (layout version 3): every component's bricks
-/// indexed, every packet decoded once.
-fn series_indexed_layout(container: &[u8]) -> Result<Vec<u8>, FormatError> {
+/// [`indexed_layout_prefix`] of a series container (layout version 3): every component's
+/// bricks indexed, every packet decoded once.
+fn series_indexed_prefix(container: &[u8]) -> Result<Vec<u8>, FormatError> {
     let file = crate::format::series::parse_series(container)?;
     let mut w = ByteWriter::new();
     w.varint(file.manifest.components.len() as u64);
@@ -354,7 +359,7 @@ fn series_indexed_layout(container: &[u8]) -> Result<Vec<u8>, FormatError> {
             write_brick_index(&mut w, &data[offset as usize..(offset + length) as usize])?;
         }
     }
-    layout_with(
+    prefix_within(
         SERIES_INDEXED_VERSION,
         "series packet index",
         &w.into_bytes(),
@@ -374,9 +379,9 @@ fn write_brick_index(w: &mut ByteWriter, brick: &[u8]) -> Result<(), FormatError
     Ok(())
 }
 
-/// A container in the indexed layout's `version` with `index` (bounded, `what` it is) in
-/// front of it.
-fn layout_with(
+/// The head and `index` (bounded, `what` it is) of a container in the indexed layout's
+/// `version`.
+fn prefix_within(
     version: u16,
     what: &'static str,
     index: &[u8],
@@ -389,9 +394,7 @@ fn layout_with(
             limit: MAX_INDEX_BYTES as u64,
         });
     }
-    let mut out = prefix_with(version, container.len() as u64, index);
-    out.extend_from_slice(container);
-    Ok(out)
+    Ok(prefix_with(version, container.len() as u64, index))
 }
 
 /// The `.wsp` inside a whole indexed object held in memory (what [`indexed_layout`] wrote, read
@@ -535,6 +538,9 @@ impl BrickedHead {
     }
 }
 
+/// Largest `.wsp` an indexed head may declare (an exbibyte).
+const MAX_WSP_BYTES: u64 = 1 << 60;
+
 /// Reads an indexed volume's head from the first bytes of its object: the header and index, or
 /// how many bytes from the start are needed for them.
 pub fn read_indexed_head(bytes: &[u8]) -> Result<HeadRead, FormatError> {
@@ -565,6 +571,13 @@ pub fn read_indexed_head(bytes: &[u8]) -> Result<HeadRead, FormatError> {
     if index_len > MAX_INDEX_BYTES {
         return Err(invalid(format!(
             "an index of {index_len} bytes (at most {MAX_INDEX_BYTES})"
+        )));
+    }
+    // Bounded so that the object's length (index and .wsp) and every offset in it fit in u64:
+    // the head's fields are not under the index's CRC.
+    if wsp_bytes > MAX_WSP_BYTES {
+        return Err(invalid(format!(
+            "a .wsp of {wsp_bytes} bytes (at most {MAX_WSP_BYTES})"
         )));
     }
     let wsp_offset = INDEXED_HEAD_BYTES + index_len as usize;
@@ -704,6 +717,7 @@ fn decode_series_index(
             return Err(invalid(format!("component {c} of {count} bricks")));
         }
         let mut end = 0u64;
+        let mut boxes = Vec::with_capacity(count.min(1 << 16));
         for k in 0..count {
             let origin = [r.varint()?, r.varint()?, r.varint()?];
             let offset = r.varint()?;
@@ -736,6 +750,7 @@ fn decode_series_index(
                     header.geometry.dims, header.channels, space.dims, space.channels
                 )));
             }
+            boxes.push((origin, header.geometry.dims));
             bricks.push(SeriesBrick {
                 component: c,
                 origin,
@@ -743,6 +758,10 @@ fn decode_series_index(
                 brick,
             });
         }
+        // The bricks (a plain component's one) tile the series' whole, as a bricked file's
+        // manifest is checked.
+        crate::format::bricked::check_tiling(space.dims, &boxes)
+            .map_err(|e| invalid(format!("component {c}: {e}")))?;
     }
     expect_end(&r)?;
     Ok((kinds, bricks))
@@ -893,6 +912,11 @@ mod tests {
         ));
         let prefix = indexed_prefix(100, &[]).unwrap();
         assert!(matches!(read_indexed_head(&prefix), Ok(HeadRead::Need(_))));
+        // A declared .wsp length past any real one (the head is not under the CRC) is
+        // refused before any sum with it can overflow.
+        let huge = indexed_prefix(u64::MAX, &[]).unwrap();
+        let e = read_indexed_head(&huge).unwrap_err().to_string();
+        assert!(e.contains("18446744073709551615"), "{e}");
         let mut bad = prefix.clone();
         bad[4] = 9;
         assert!(matches!(

@@ -75,7 +75,10 @@ pub struct SeriesManifest {
 impl SeriesManifest {
     /// Coefficients kept over all components.
     pub fn kept(&self) -> u64 {
-        self.components.iter().map(|c| c.kept).sum()
+        // Saturating: the entries' counts are the file's word, not checked against the parts.
+        self.components
+            .iter()
+            .fold(0, |t, c| t.saturating_add(c.kept))
     }
 
     /// Bytes of the components time point `t` needs (0 for a time point it does not hold).
@@ -447,6 +450,12 @@ mod tests {
         overlapping.components[1].offset -= 1;
         assert!(parse_manifest(&section(&overlapping), total).is_err());
         assert!(parse_manifest(&section(&good), total).is_ok());
+        // Counts of kept coefficients past any real one add up without overflowing.
+        let mut liar = good.clone();
+        liar.components[0].kept = u64::MAX;
+        liar.components[1].kept = u64::MAX;
+        let parsed = parse_manifest(&section(&liar), total).unwrap();
+        assert_eq!(parsed.kept(), u64::MAX);
         // A manifest whose CRC does not match.
         let mut flipped = bytes.clone();
         flipped[14] ^= 1;
