@@ -109,6 +109,34 @@ async fn ingest_list_stream_decode_round_trip() {
     let (_, first) = c.first_packets(&key, 2000).await.unwrap();
     assert!(!first.is_empty());
     assert!(first.iter().enumerate().all(|(i, p)| p.id == i as u32));
+    // The budget counts packets as they go on the wire, framing and all: a budget of the
+    // first three packets' data bytes sends two (their data alone would fit three).
+    let data: Vec<u64> = first.iter().map(|p| p.data.len() as u64).collect();
+    assert!(data.len() >= 3, "{} first packets", data.len());
+    let budget = data[..3].iter().sum::<u64>();
+    let wire = server
+        .wire()
+        .await
+        .first_packets(pb::FirstPacketsRequest {
+            volume: Some(volume_ref(&key)),
+            max_bytes: budget,
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    let sent: u64 = wire
+        .packets
+        .iter()
+        .map(|p| {
+            let len = prost::Message::encoded_len(p);
+            (1 + prost::length_delimiter_len(len) + len) as u64
+        })
+        .sum();
+    assert_eq!(wire.packets.len(), 2, "{sent} bytes on the wire");
+    assert!(
+        sent <= budget,
+        "{sent} bytes on the wire for a budget of {budget}"
+    );
 
     assert_eq!(c.delete(&key).await.unwrap(), info.id);
     assert!(volume_names(&mut c).await.is_empty());
@@ -921,6 +949,53 @@ async fn a_stream_sends_at_most_one_packet_beyond_the_credit_granted() {
     let ids: HashSet<u32> = got.iter().map(|p| p.id).collect();
     assert_eq!(ids.len(), got.len(), "a packet was sent twice");
     assert_eq!(ids.len(), info.packet_count as usize);
+    server.stop().await;
+}
+
+/// A raw client that grants a byte of credit and closes its request side at once can never
+/// grant more: its stream ends after the one packet the credit allowed, instead of waiting for
+/// ever on a client that cannot speak (each such stream kept one of its caller's 64 stream
+/// slots and its volume open until the server stopped). More streams than a caller has slots,
+/// one after another, are all served.
+#[tokio::test]
+async fn a_stream_out_of_credit_whose_requests_are_closed_ends() {
+    use std::time::Duration;
+    let bytes = test_file([48, 48, 48]);
+    let server = TestCache::start();
+    let info = server
+        .client()
+        .await
+        .ingest("v", &bytes)
+        .await
+        .unwrap()
+        .volume;
+    let key = VolumeKey::Id(info.id);
+    let mut start = refine_view(&key, wire_view(&View::new(0.3, 0.2, 32, 32)));
+    if let Some(pb::refine_request::Msg::Start(s)) = &mut start.msg {
+        s.credit_bytes = 1;
+    }
+    let wire = server.wire().await;
+    let slots = wavesplat_cache::service::Fairness::default().max_streams_per_caller;
+    for stream_no in 0..slots + 6 {
+        let mut stream = wire
+            .clone()
+            .refine(tokio_stream::iter(vec![start.clone()]))
+            .await
+            .unwrap_or_else(|e| panic!("stream {stream_no} refused: {e:?}"))
+            .into_inner();
+        let mut packets = 0;
+        let ended = tokio::time::timeout(Duration::from_secs(60), async {
+            while let Some(m) = stream.message().await.unwrap() {
+                packets += matches!(m.msg, Some(pb::refine_response::Msg::Packet(_))) as usize;
+            }
+        })
+        .await;
+        assert!(ended.is_ok(), "stream {stream_no} never ended");
+        assert_eq!(
+            packets, 1,
+            "stream {stream_no}: {packets} packets on 1 byte"
+        );
+    }
     server.stop().await;
 }
 

@@ -35,6 +35,49 @@ async fn names(c: &mut CacheClient) -> Vec<String> {
         .collect()
 }
 
+/// An upload that holds an upload slot and then sends nothing is ended after the idle limit,
+/// stores nothing, and frees its slot: the same caller's next upload (one slot per caller here)
+/// lands. Before, it waited for ever, and a few such callers held every upload slot.
+#[tokio::test]
+async fn an_idle_upload_ends_and_frees_its_slot() {
+    use wavesplat_cache::service::Fairness;
+    let server = TestCache::start_with(
+        Limits::default(),
+        wavesplat_cache::ServeOptions {
+            fairness: Fairness {
+                max_uploads_per_caller: 1,
+                upload_idle: Duration::from_secs(1),
+                ..Fairness::default()
+            },
+            ..Default::default()
+        },
+    );
+    let bytes = test_file([24, 24, 24], 0.05);
+    let messages = ingest_messages("v", &bytes, 1000);
+    let (tx, rx) = tokio::sync::mpsc::channel(8);
+    // The start and one chunk, then silence with the stream left open.
+    tx.send(messages[0].clone()).await.unwrap();
+    tx.send(messages[1].clone()).await.unwrap();
+    let mut wire = server.wire().await;
+    let idle = tokio::time::timeout(
+        Duration::from_secs(60),
+        wire.ingest(tokio_stream::wrappers::ReceiverStream::new(rx)),
+    )
+    .await
+    .expect("the idle upload never ended");
+    let status = idle.expect_err("an idle upload stored");
+    assert_eq!(status.code(), Code::DeadlineExceeded, "{status:?}");
+    drop(tx);
+    let mut c = server.client().await;
+    assert!(names(&mut c).await.is_empty());
+    let landed = tokio::time::timeout(Duration::from_secs(60), c.ingest("v", &bytes))
+        .await
+        .expect("the next upload waited on the idle one's slot");
+    assert!(!landed.unwrap().existed);
+    assert_eq!(names(&mut c).await, vec!["v".to_string()]);
+    server.stop().await;
+}
+
 /// Bytes of everything under `dir`.
 fn du(dir: &std::path::Path) -> u64 {
     let mut total = 0;

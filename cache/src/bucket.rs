@@ -631,7 +631,7 @@ impl Bucket {
         &self,
         name: &str,
         sha256: &[u8; 32],
-        object: Option<Bytes>,
+        object: Option<PutPayload>,
     ) -> Result<bool, CacheError> {
         if let Some(existing) = self.name_target(name).await? {
             if existing != *sha256 {
@@ -670,20 +670,20 @@ impl Bucket {
     }
 
     /// Writes a volume object unless it exists; true if this call wrote it.
-    async fn put_volume(&self, sha256: &[u8; 32], object: Bytes) -> Result<bool, CacheError> {
+    async fn put_volume(&self, sha256: &[u8; 32], object: PutPayload) -> Result<bool, CacheError> {
         self.create(&self.volume_path(sha256), object).await
     }
 
     /// Writes an object with `If-None-Match: *`; true if this call wrote it, false if it
     /// existed.
-    async fn create(&self, path: &ObjectPath, data: Bytes) -> Result<bool, CacheError> {
+    async fn create(
+        &self,
+        path: &ObjectPath,
+        data: impl Into<PutPayload>,
+    ) -> Result<bool, CacheError> {
         match self
             .store
-            .put_opts(
-                path,
-                PutPayload::from(data),
-                PutOptions::from(PutMode::Create),
-            )
+            .put_opts(path, data.into(), PutOptions::from(PutMode::Create))
             .await
         {
             Ok(_) => Ok(true),

@@ -52,6 +52,10 @@ pub struct Fairness {
     /// Uploads one caller may have in progress at once; more wait their turn (so one caller
     /// cannot take every upload slot).
     pub max_uploads_per_caller: usize,
+    /// Longest wait for an upload's next message once it holds an upload slot: an upload that
+    /// sends nothing for this long ends (`DeadlineExceeded`, nothing stored) and frees its
+    /// slot, so idle uploads cannot hold every slot for ever.
+    pub upload_idle: std::time::Duration,
 }
 
 impl Default for Fairness {
@@ -59,6 +63,7 @@ impl Default for Fairness {
         Fairness {
             max_streams_per_caller: 64,
             max_uploads_per_caller: 4,
+            upload_idle: std::time::Duration::from_secs(120),
         }
     }
 }
@@ -282,7 +287,19 @@ impl Cache for CacheService {
         let total = start.total_size;
         let mut upload = blocking(move || Upload::begin(&store, &name, declared, total)).await?;
         let mut held: Option<(u64, tokio::sync::OwnedSemaphorePermit)> = None;
-        while let Some(m) = next_message(&mut inbound).await? {
+        let idle = self.fairness.upload_idle;
+        loop {
+            let Ok(m) = tokio::time::timeout(idle, next_message(&mut inbound)).await else {
+                tracing::debug!(
+                    received = upload.received(),
+                    "an upload sent nothing for {idle:?}"
+                );
+                return Err(Status::deadline_exceeded(format!(
+                    "the upload sent nothing for {} s; nothing was stored",
+                    idle.as_secs_f64()
+                )));
+            };
+            let Some(m) = m? else { break };
             let chunk = match m.msg {
                 Some(pb::ingest_request::Msg::Chunk(c)) => c,
                 _ => {
@@ -433,20 +450,26 @@ impl Cache for CacheService {
                         .into(),
                 ));
             }
+            // The budget counts each packet as it goes on the wire (its fields and framing,
+            // ~10 bytes beside its data): counting the data alone let a response at the most
+            // a client may ask for outgrow the server's message limit on small packets.
             let mut packets = Vec::new();
             let mut used = 0u64;
             for (i, p) in volume.index.packets.iter().enumerate() {
-                if !packets.is_empty() && used + p.len as u64 > req.max_bytes {
-                    break;
-                }
-                used += p.len as u64;
-                packets.push(pb::Packet {
+                let packet = pb::Packet {
                     id: i as u32,
                     tile: p.tile,
                     layer: p.layer,
                     data: volume.packet(i as u32)?,
                     priority: 0.0,
-                });
+                };
+                let len = prost::Message::encoded_len(&packet);
+                let wire = (1 + prost::length_delimiter_len(len) + len) as u64;
+                if !packets.is_empty() && used + wire > req.max_bytes {
+                    break;
+                }
+                used += wire;
+                packets.push(packet);
             }
             Ok(pb::FirstPacketsResponse {
                 header: volume.index.header_bytes.clone(),
@@ -746,17 +769,63 @@ mod tests {
         let planners = Arc::new(Semaphore::new(1));
         let mut session = Session::new(volume.clone(), crate::VolumeKey::Id(1), 0, planners);
         session.unplanned();
-        let first = session.queue.last().expect("packets in file order").1;
+        let first = session.queue.peek().expect("packets in file order");
         session.hold(&[first]).unwrap();
         session.release(&[first]).unwrap();
         let spec = ViewSpec::single(wavesplat_codec::view::View::new(0.7, 0.4, 48, 48));
         let priority = Ranking::new(&volume.index, &spec, 0).unwrap();
         session.reorder(priority.clone());
-        assert!(!session.queue.iter().any(|(_, id)| *id == first));
+        assert!(!session.queue.contains(first));
         assert_eq!(session.queue.len(), volume.index.packets.len() - 1);
         session.change_view(priority);
-        assert!(session.queue.iter().any(|(_, id)| *id == first));
+        assert!(session.queue.contains(first));
         assert_eq!(session.queue.len(), volume.index.packets.len());
+    }
+
+    /// Holdings take packets out of the queue wherever they are in it, once however often
+    /// they are named (repeated, or again in later messages): the packets left go out in the
+    /// same order, none held goes out, and the count left is exact.
+    #[tokio::test]
+    async fn holdings_leave_the_rest_of_the_queue_in_order() {
+        let dir = tempfile::tempdir().unwrap();
+        let volume = open_test_volume(dir.path());
+        let n = volume.index.packets.len() as u32;
+        assert!(n >= 6, "{n} packets");
+        let planners = Arc::new(Semaphore::new(1));
+        let spec = ViewSpec::single(wavesplat_codec::view::View::new(0.7, 0.4, 48, 48));
+        let priority = Ranking::new(&volume.index, &spec, 0).unwrap();
+        let order = |held: &[u32]| {
+            let mut s = Session::new(volume.clone(), crate::VolumeKey::Id(1), 0, planners.clone());
+            s.hold(held).unwrap();
+            s.reorder(priority.clone());
+            std::iter::from_fn(|| s.queue.pop().map(|(_, id)| id)).collect::<Vec<_>>()
+        };
+        let all = order(&[]);
+        assert_eq!(all.len(), n as usize);
+        let (first, middle, last) = (all[0], all[all.len() / 2], all[all.len() - 1]);
+        let mut session =
+            Session::new(volume.clone(), crate::VolumeKey::Id(1), 0, planners.clone());
+        session.reorder(priority.clone());
+        session.hold(&[middle, middle, last]).unwrap();
+        session.hold(&[]).unwrap();
+        session.hold(&[middle, first]).unwrap();
+        assert_eq!(session.queue.len(), all.len() - 3);
+        assert!(!session.queue.contains(middle) && !session.queue.contains(first));
+        let mut left = Vec::new();
+        while let Some((_, id)) = session.queue.pop() {
+            left.push(id);
+        }
+        let expected: Vec<u32> = all
+            .iter()
+            .copied()
+            .filter(|id| ![first, middle, last].contains(id))
+            .collect();
+        assert_eq!(left, expected);
+        assert!(session.queue.is_empty());
+        assert!(
+            session.hold(&[n]).is_err(),
+            "an id past the volume's packets"
+        );
     }
 
     /// A bricked volume's stream sends nothing before its view is planned: its file order is

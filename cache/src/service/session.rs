@@ -129,6 +129,80 @@ fn credit_i64(bytes: u64) -> i64 {
     i64::try_from(bytes).unwrap_or(i64::MAX)
 }
 
+/// A stream's unsent packets in priority order, lowest first (the next one is popped from the
+/// end). A packet the client says it holds is unmarked in place and skipped when its turn
+/// comes, so a holdings message costs what it names, not a pass over the whole queue: a client
+/// sending holdings without end cannot make the server rescan a million-packet queue per message.
+#[derive(Debug, Default)]
+pub(super) struct SendQueue {
+    order: Vec<(f64, u32)>,
+    /// Per packet id: in `order` and still to be sent.
+    queued: Vec<bool>,
+    /// How many are.
+    pending: usize,
+}
+
+impl SendQueue {
+    /// The queue of `order` (distinct ids below `packets`, lowest priority first).
+    fn set(&mut self, order: Vec<(f64, u32)>, packets: usize) {
+        self.queued.clear();
+        self.queued.resize(packets, false);
+        for (_, id) in &order {
+            self.queued[*id as usize] = true;
+        }
+        self.pending = order.len();
+        self.order = order;
+    }
+
+    /// Takes `id` out, if it is queued.
+    fn remove(&mut self, id: u32) {
+        if let Some(q) = self.queued.get_mut(id as usize) {
+            if std::mem::take(q) {
+                self.pending -= 1;
+            }
+        }
+    }
+
+    /// The next packet to send and its priority.
+    pub(super) fn pop(&mut self) -> Option<(f64, u32)> {
+        while let Some((priority, id)) = self.order.pop() {
+            if std::mem::take(&mut self.queued[id as usize]) {
+                self.pending -= 1;
+                return Some((priority, id));
+            }
+        }
+        None
+    }
+
+    /// The id [`Self::pop`] would give.
+    #[cfg(test)]
+    pub(super) fn peek(&self) -> Option<u32> {
+        let queued = &self.queued;
+        self.order
+            .iter()
+            .rev()
+            .map(|(_, id)| *id)
+            .find(|id| queued[*id as usize])
+    }
+
+    /// Whether `id` is still to be sent.
+    #[cfg(test)]
+    pub(super) fn contains(&self, id: u32) -> bool {
+        self.queued.get(id as usize).copied().unwrap_or(false)
+    }
+
+    /// Packets still to be sent.
+    #[cfg(test)]
+    pub(super) fn len(&self) -> usize {
+        self.pending
+    }
+
+    /// Whether nothing is left to send.
+    pub(super) fn is_empty(&self) -> bool {
+        self.pending == 0
+    }
+}
+
 /// One refinement stream's state. It holds its volume open: a deletion during the stream does
 /// not cut it short.
 pub(super) struct Session {
@@ -139,8 +213,8 @@ pub(super) struct Session {
     /// Packets the client dropped since the last view change: queued again only by the next
     /// one (not by the first plan of the same view arriving after the drop).
     pub(super) released: HashSet<u32>,
-    /// Unsent packets, lowest priority first (the next one is popped from the end).
-    pub(super) queue: Vec<(f64, u32)>,
+    /// Unsent packets in the order they go.
+    pub(super) queue: SendQueue,
     pub(super) sent: u32,
     pub(super) bytes: u64,
     /// Byte credit, when the client pulls (`None`: no flow control): what it granted less what
@@ -170,7 +244,7 @@ impl Session {
             name,
             held: HashSet::new(),
             released: HashSet::new(),
-            queue: Vec::new(),
+            queue: SendQueue::default(),
             sent: 0,
             bytes: 0,
             credit: (credit_bytes > 0).then(|| credit_i64(credit_bytes)),
@@ -197,11 +271,12 @@ impl Session {
         );
         let held = &self.held;
         // Pops come from the end: file order is the reversed ids.
-        self.queue = (0..packets.len() as u32)
+        let order = (0..packets.len() as u32)
             .rev()
             .filter(|i| !held.contains(i))
             .map(|i| (0.0, i))
             .collect();
+        self.queue.set(order, packets.len());
     }
 
     /// Whether the queue may be sent from now: planned, or within the unplanned budget.
@@ -221,8 +296,10 @@ impl Session {
 
     pub(super) fn hold(&mut self, ids: &[u32]) -> Result<(), CacheError> {
         self.check_ids(ids, "held")?;
-        self.held.extend(ids.iter().copied());
-        self.queue.retain(|(_, id)| !self.held.contains(id));
+        for &id in ids {
+            self.held.insert(id);
+            self.queue.remove(id);
+        }
         Ok(())
     }
 
@@ -268,7 +345,7 @@ impl Session {
             .collect();
         // Ascending priority, ties: later file position first, so pops give file order.
         q.sort_by(|a, b| a.0.total_cmp(&b.0).then(b.1.cmp(&a.1)));
-        self.queue = q;
+        self.queue.set(q, index.packets.len());
         self.unplanned = None;
     }
 
@@ -390,6 +467,18 @@ impl Session {
                     return;
                 }
             }
+            if !inbound_open && !self.may_send() {
+                // Out of credit with the request side closed: no grant can come, so nothing
+                // more can be sent. The stream ends here (with what the credit allowed) rather
+                // than waiting on a client that can no longer speak, which kept the caller's
+                // stream slot and the volume open until the server stopped.
+                tracing::debug!(
+                    volume = self.volume.meta.id,
+                    sent = self.sent,
+                    "out of credit with the requests closed: the stream ends"
+                );
+                return;
+            }
             tokio::select! {
                 biased;
                 _ = async { stopping.wait_for(|s| *s).await.map(|_| ()) } => {
@@ -445,7 +534,7 @@ impl Session {
                         }
                     }
                 }
-                // Out of credit and the client can no longer grant any.
+                // Nothing left to wait for (no plan coming, no request, nothing to send).
                 else => return,
             }
         }

@@ -139,6 +139,10 @@ struct WspReader {
     /// Its brick (`None`: the upload is one volume).
     brick: Option<usize>,
     prelude_buf: Vec<u8>,
+    /// `prelude_buf`'s length when it was last parsed (and found short).
+    prelude_tried: usize,
+    /// Times the prelude was parsed.
+    prelude_parses: u32,
     prelude: Option<Prelude>,
     header_bytes: Vec<u8>,
     packet_buf: Vec<u8>,
@@ -157,6 +161,8 @@ impl WspReader {
             read: 0,
             brick,
             prelude_buf: Vec::new(),
+            prelude_tried: 0,
+            prelude_parses: 0,
             prelude: None,
             header_bytes: Vec::new(),
             packet_buf: Vec::new(),
@@ -203,6 +209,20 @@ impl WspReader {
         self.read += data.len() as u64;
         if self.prelude.is_none() {
             self.prelude_buf.extend_from_slice(data);
+            // Parsed again only once the bytes have grown by half (or 4 KiB) since the last
+            // try, at the end of this file's bytes, or at the size limit: an upload sent a byte
+            // a message would otherwise parse its whole header and directory again per byte
+            // (quadratic in a directory of millions of packets). Bytes past the prelude wait
+            // here until then and go to the packets below.
+            let len = self.prelude_buf.len();
+            let due = len >= self.prelude_tried + (self.prelude_tried / 2).max(4096)
+                || self.read >= self.len
+                || len as u64 >= limits.max_prelude_bytes;
+            if !due {
+                return Ok(());
+            }
+            self.prelude_tried = len;
+            self.prelude_parses += 1;
             let Some(p) = parse_prelude(&self.prelude_buf)? else {
                 if self.prelude_buf.len() as u64 > limits.max_prelude_bytes {
                     return Err(CacheError::TooLarge {
@@ -939,19 +959,23 @@ impl Upload {
                 // A bricked container or a series is published in its own version of the
                 // indexed layout.
                 let bricked = !matches!(s.volume.complete()?.2, Stored::Single(_));
-                let file = std::fs::read(&s.part).map_err(|e| io("reading an upload back", e))?;
-                let object = if bricked {
+                let file = bytes::Bytes::from(
+                    std::fs::read(&s.part).map_err(|e| io("reading an upload back", e))?,
+                );
+                // The object is the indexed layout's head and index, then the file as it was
+                // uploaded: sent as those two pieces, so the file is held once, not copied
+                // behind its index.
+                let prefix = if bricked {
                     // The published layout of a bricked volume or a series (versions 2 and 3
-                    // of the indexed layout): its manifest, every brick's header and index,
-                    // the container.
-                    wavesplat_codec::format::index::indexed_layout(&file)?
+                    // of the indexed layout): its manifest, every brick's header and index.
+                    wavesplat_codec::format::index::indexed_layout_prefix(&file)?
                 } else {
-                    let mut object =
-                        wavesplat_codec::format::index::indexed_prefix(self.total, &s.packets)?;
-                    object.extend_from_slice(&file);
-                    object
+                    wavesplat_codec::format::index::indexed_prefix(self.total, &s.packets)?
                 };
-                Some(bytes::Bytes::from(object))
+                Some(object_store::PutPayload::from_iter([
+                    bytes::Bytes::from(prefix),
+                    file,
+                ]))
             }
         };
         if let Some(e) = abandon() {
@@ -983,5 +1007,67 @@ pub(super) fn blank_meta(name: &str, sha256: [u8; 32]) -> VolumeMeta {
         layer_count: 0,
         tile: 0,
         coefficients: 0,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A file of many tiny tiles: a header and packet directory of several kilobytes.
+    fn many_packets() -> Vec<u8> {
+        use wavesplat_compressor::encode::{compress, CompressOptions, Target, TileChoice};
+        let vol = wavesplat_compressor::phantom::Phantom::SheppLogan.generate([40, 40, 40]);
+        compress(
+            &vol,
+            &CompressOptions {
+                target: Target::Fraction(0.2),
+                tile: TileChoice::Size(2),
+                levels: Some(1),
+                ..Default::default()
+            },
+            &|_, _| {},
+        )
+        .unwrap()
+        .bytes
+    }
+
+    /// A `.wsp` fed a byte at a time is indexed exactly as when fed whole, and its header and
+    /// directory are parsed a handful of times, not once per byte.
+    #[test]
+    fn a_file_fed_a_byte_at_a_time_is_indexed_the_same_parsing_its_prelude_a_few_times() {
+        let bytes = many_packets();
+        let limits = Limits::default();
+        let prelude = parse_prelude(&bytes).unwrap().unwrap();
+        assert!(
+            prelude.len() > 4 << 10,
+            "a prelude of {} bytes",
+            prelude.len()
+        );
+        let len = bytes.len() as u64;
+        let mut whole = WspReader::new(0, len, None);
+        let mut whole_packets = Vec::new();
+        whole.feed(&bytes, &limits, &mut whole_packets).unwrap();
+        let mut bytewise = WspReader::new(0, len, None);
+        let mut packets = Vec::new();
+        for b in bytes.chunks(1) {
+            bytewise.feed(b, &limits, &mut packets).unwrap();
+        }
+        assert_eq!(packets, whole_packets);
+        assert_eq!(packets.len(), prelude.packet_lengths.len());
+        let (_, header, count) = bytewise.complete().unwrap();
+        assert_eq!(count, packets.len());
+        assert_eq!(header, whole.complete().unwrap().1);
+        assert!(
+            bytewise.prelude_parses <= 16,
+            "the prelude of {} bytes parsed {} times",
+            prelude.len(),
+            bytewise.prelude_parses
+        );
+        // Cut short anywhere, it is incomplete, never accepted.
+        let mut cut = WspReader::new(0, len, None);
+        cut.feed(&bytes[..prelude.len() - 1], &limits, &mut Vec::new())
+            .unwrap();
+        assert!(cut.complete().is_err());
     }
 }
