@@ -115,9 +115,15 @@ fn encode(v: f64, dtype: RawDtype, endian: Endian, out: &mut Vec<u8>) {
     }
     match dtype {
         RawDtype::U8 => out.push(v as u8),
+        RawDtype::I8 => out.push(v as i8 as u8),
         RawDtype::U16 => put!(v as u16),
         RawDtype::I16 => put!(v as i16),
+        RawDtype::U32 => put!(v as u32),
+        RawDtype::I32 => put!(v as i32),
+        RawDtype::U64 => put!(v as u64),
+        RawDtype::I64 => put!(v as i64),
         RawDtype::F32 => put!(v as f32),
+        RawDtype::F64 => put!(v),
     }
 }
 
@@ -125,16 +131,22 @@ fn encode(v: f64, dtype: RawDtype, endian: Endian, out: &mut Vec<u8>) {
 fn raw_regions_match_the_whole_for_every_dtype_endian_and_channel_count() {
     let dir = tempfile::tempdir().unwrap();
     let n = DIMS.iter().product::<usize>();
-    for dtype in [RawDtype::U8, RawDtype::U16, RawDtype::I16, RawDtype::F32] {
+    for dtype in RawDtype::ALL {
         for endian in [Endian::Little, Endian::Big] {
             for channels in [1, 3] {
                 let value = |i: usize, c: usize| {
                     let v = ((i * 37 + c * 11) % 251) as f64;
                     match dtype {
                         RawDtype::U8 => v,
+                        RawDtype::I8 => v - 125.0,
                         RawDtype::U16 => v * 250.0,
                         RawDtype::I16 => v * 100.0 - 12000.0,
+                        RawDtype::U32 => v * 1000.0 + 70000.0,
+                        RawDtype::I32 => 5.0 - v * 1000.0,
+                        RawDtype::U64 => v * 3.0 + 1e6,
+                        RawDtype::I64 => v * 7.0 - 1e6,
                         RawDtype::F32 => v * 0.125 - 3.0,
+                        RawDtype::F64 => v * 0.25 - 7.5,
                     }
                 };
                 let mut bytes = Vec::new();

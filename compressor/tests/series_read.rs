@@ -1,5 +1,6 @@
-//! Time series read from files the tests write: a 4D NIfTI (plain and gzip), a 4D raw file and
-//! a directory of one volume per time step. Each time point reads back exactly as written, a
+//! Time series read from files the tests write: a 4D NIfTI (plain and gzip), a 4D NRRD (a time
+//! or Slicer `list` axis), a 4D MetaImage, a 4D raw file and a directory of one volume per time
+//! step. Each time point reads back exactly as written, a
 //! series read from a file compresses to the same bytes as the same time points held in
 //! memory, and bad series (a header lying about its size, missing, repeated or mismatched
 //! steps) are clear errors naming the problem.
@@ -255,6 +256,165 @@ fn a_4d_nrrd_with_a_time_axis_is_read_time_point_by_time_point() {
     .unwrap();
     let e = RegionReader::open_series(&p, None).unwrap_err();
     assert!(e.to_string().contains("short.nrrd"), "{e}");
+}
+
+/// `vols` placed at the origin along the LPS axes (as the headers below place them).
+fn placed(vols: &[Volume]) -> Vec<Volume> {
+    let p = wavesplat_codec::volume::Placement {
+        origin: [0.0; 3],
+        directions: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+    };
+    vols.iter()
+        .map(|v| v.clone().with_placement(p).unwrap())
+        .collect()
+}
+
+/// A 3D Slicer sequence NRRD: `kinds: domain domain domain list` (each time point's volume
+/// after the previous one) or, as older Slicer writes it, `list domain domain domain` (a
+/// voxel's time points after each other; raw and gzip), with `none` for the list axis' space
+/// direction: the list axis is time, every time point reads back exactly and compresses as the
+/// same time points held in memory do.
+#[test]
+fn a_slicer_sequence_nrrd_is_read_time_point_by_time_point() {
+    use std::io::Write;
+    let dir = tempfile::tempdir().unwrap();
+    let vols = points(4);
+    let [x, y, z] = DIMS;
+    let trailing: Vec<u8> = vols
+        .iter()
+        .flat_map(|v| v.channel(0).iter().flat_map(|s| s.to_le_bytes()))
+        .collect();
+    let n = DIMS.iter().product::<usize>();
+    let leading: Vec<u8> = (0..n)
+        .flat_map(|i| vols.iter().flat_map(move |v| v.channel(0)[i].to_le_bytes()))
+        .collect();
+    let header = |encoding: &str, sizes: &str, kinds: &str, dirs: &str| {
+        format!(
+            "NRRD0004\ntype: float\ndimension: 4\nspace: left-posterior-superior\n\
+             sizes: {sizes}\nspace directions: {dirs}\nkinds: {kinds}\nendian: little\n\
+             encoding: {encoding}\nspace origin: (0,0,0)\n\n"
+        )
+    };
+    let gzip = |data: &[u8]| {
+        let mut e = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::fast());
+        e.write_all(data).unwrap();
+        e.finish().unwrap()
+    };
+    let spatial = "(1,0,0) (0,1,0) (0,0,1)";
+    let last = (
+        format!("{x} {y} {z} 4"),
+        "domain domain domain list",
+        format!("{spatial} none"),
+    );
+    let first = (
+        format!("4 {x} {y} {z}"),
+        "list domain domain domain",
+        format!("none {spatial}"),
+    );
+    let files = [
+        ("last.seq.nrrd", "raw", &last, trailing.clone()),
+        ("first.seq.nrrd", "raw", &first, leading.clone()),
+        ("first_gz.seq.nrrd", "gzip", &first, gzip(&leading)),
+    ];
+    for (name, encoding, (sizes, kinds, dirs), data) in files {
+        let path = dir.path().join(name);
+        let h = header(encoding, sizes, kinds, dirs);
+        std::fs::write(&path, [h.into_bytes(), data].concat()).unwrap();
+        assert_eq!(
+            wavesplat_compressor::reader::time_points(&path, None).unwrap(),
+            4,
+            "{name}"
+        );
+        let e = wavesplat_compressor::reader::read_volume(&path, None).unwrap_err();
+        assert!(
+            matches!(e, ReadError::TimeSeries { points: 4, .. }),
+            "{name}: {e}"
+        );
+        let r = RegionReader::open_series(&path, None).unwrap();
+        assert_eq!((r.dims(), r.channels(), r.time_step()), (DIMS, 1, None));
+        assert!(r.placement().is_some(), "{name}");
+        reads_as(&r, &placed(&vols), None);
+        // A box of one time point, away from the origin.
+        let b = r.read_region_at(2, [1, 2, 3], [4, 3, 2]).unwrap();
+        for (i, s) in b.channel(0).iter().enumerate() {
+            let (bx, by, bz) = (i % 4 + 1, i / 4 % 3 + 2, i / 12 + 3);
+            assert_eq!(*s, vols[2].channel(0)[vols[2].index(bx, by, bz)], "{name}");
+        }
+    }
+}
+
+/// A 4D MetaImage (`NDims = 4`, the last size the time points, each volume after the previous
+/// one, as ITK writes a series): attached raw, zlib-compressed and detached (a data file whose
+/// name holds a space) read time point by time point; one volume's readers name it a series.
+#[test]
+fn a_4d_metaimage_is_read_time_point_by_time_point() {
+    use std::io::Write;
+    let dir = tempfile::tempdir().unwrap();
+    let vols = points(3);
+    let data: Vec<u8> = vols
+        .iter()
+        .flat_map(|v| v.channel(0).iter().flat_map(|s| s.to_le_bytes()))
+        .collect();
+    let zlib = {
+        let mut e = flate2::write::ZlibEncoder::new(Vec::new(), flate2::Compression::fast());
+        e.write_all(&data).unwrap();
+        e.finish().unwrap()
+    };
+    let header = |extra: &str, file: &str| {
+        format!(
+            "ObjectType = Image\nNDims = 4\nDimSize = {} {} {} 3\nElementType = MET_FLOAT\n\
+             ElementSpacing = 1 1 1 1\nOffset = 0 0 0 0\n\
+             TransformMatrix = 1 0 0 0 0 1 0 0 0 0 1 0 0 0 0 1\n{extra}ElementDataFile = {file}\n",
+            DIMS[0], DIMS[1], DIMS[2]
+        )
+    };
+    let attached = dir.path().join("cine.mha");
+    std::fs::write(
+        &attached,
+        [header("", "LOCAL").into_bytes(), data.clone()].concat(),
+    )
+    .unwrap();
+    let compressed = dir.path().join("cine_z.mha");
+    std::fs::write(
+        &compressed,
+        [
+            header("CompressedData = True\n", "LOCAL").into_bytes(),
+            zlib,
+        ]
+        .concat(),
+    )
+    .unwrap();
+    let detached = dir.path().join("cine.mhd");
+    std::fs::write(&detached, header("", "cine series.raw")).unwrap();
+    std::fs::write(dir.path().join("cine series.raw"), &data).unwrap();
+    for path in [&attached, &compressed, &detached] {
+        assert_eq!(
+            wavesplat_compressor::reader::time_points(path, None).unwrap(),
+            3,
+            "{path:?}"
+        );
+        let e = RegionReader::open(path, None).unwrap_err();
+        assert!(matches!(e, ReadError::TimeSeries { points: 3, .. }), "{e}");
+        let e = wavesplat_compressor::reader::read_volume(path, None).unwrap_err();
+        assert!(e.to_string().contains("3 time points"), "{e}");
+        let r = RegionReader::open_series(path, None).unwrap();
+        assert_eq!((r.dims(), r.time_step()), (DIMS, None));
+        assert!(r.placement().is_some());
+        reads_as(&r, &placed(&vols), None);
+    }
+    // One time point short of its header.
+    let short = dir.path().join("short.mha");
+    std::fs::write(
+        &short,
+        [
+            header("", "LOCAL").into_bytes(),
+            data[..data.len() * 2 / 3].to_vec(),
+        ]
+        .concat(),
+    )
+    .unwrap();
+    let e = RegionReader::open_series(&short, None).unwrap_err();
+    assert!(matches!(e, ReadError::Truncated { .. }), "{e}");
 }
 
 /// An enhanced multi-frame DICOM whose frames carry a temporal dimension (each frame's Frame

@@ -55,7 +55,7 @@ pub struct CompressArgs {
     /// each time point alone.
     #[arg(long, value_name = "G", default_value_t = 8)]
     pub time_group: usize,
-    /// Raw sample type: u8, u16, i16, f32.
+    /// Raw sample type: u8, i8, u16, i16, u32, i32, u64, i64, f32, f64 (read as f32 values).
     #[arg(long)]
     pub dtype: Option<String>,
     /// Raw byte order: little or big.

@@ -1,7 +1,10 @@
 //! MetaImage (ITK's `.mha` with the data after the header, `.mhd` with the data in the file
 //! named by `ElementDataFile`): `MET_(U)CHAR`/`SHORT`/`INT`/`LONG_LONG`, `MET_FLOAT`,
 //! `MET_DOUBLE`, 1 or 3 channels, raw or zlib-compressed (`CompressedData = True`), either
-//! byte order, `HeaderSize` (incl. -1: data at the end of the file). Spacing from
+//! byte order, `HeaderSize` (incl. -1: data at the end of the file), 1 to 4 dimensions (ITK
+//! writes `NDims = 4` with a last size of 1 for one volume; a last size of more is a time
+//! series, each time point's volume after the previous one). The data file's name may hold
+//! spaces, as MetaIO reads it. Spacing from
 //! `ElementSpacing` (else `ElementSize`), placement from `Offset` (or `Origin`, `Position`) and
 //! `TransformMatrix` (or `Rotation`, `Orientation`), whose rows are the axis directions in ITK's
 //! LPS frame, as ITK reads them (`AnatomicalOrientation` is informative only, and ignored as
@@ -103,13 +106,36 @@ fn data_file_name(path: &Path, h: &Header) -> Result<Option<String>, ReadError> 
     if v.eq_ignore_ascii_case("LOCAL") {
         return Ok(None);
     }
-    if v.eq_ignore_ascii_case("LIST") || v.contains('%') || v.split_whitespace().count() > 1 {
+    Ok(Some(single_data_file(path, v)?))
+}
+
+/// The one file an `ElementDataFile` value other than `LOCAL` names: any value but a list or a
+/// pattern, spaces allowed (`CT scan.raw`), as MetaIO reads it.
+pub(crate) fn single_data_file(path: &Path, v: &str) -> Result<String, ReadError> {
+    if text::names_several_files(v) {
         return Err(ReadError::unsupported(
             path,
             format!("ElementDataFile = {v}: only LOCAL or a single data file is supported (not LIST or a file name pattern)"),
         ));
     }
-    Ok(Some(v.to_string()))
+    if v.is_empty() {
+        return Err(bad(path, "ElementDataFile names no file"));
+    }
+    Ok(v.to_string())
+}
+
+/// The time points of a MetaImage file of `NDims = 4` whose last size is more than 1 (ITK
+/// writes a 4D series so, the time points one after another); `None` for any other file. The
+/// format gives the time axis no unit, so no time step is read.
+pub(crate) fn series_points(path: &Path, bytes: &[u8]) -> Result<Option<usize>, ReadError> {
+    let h = parse_header(path, bytes)?;
+    let sizes = match (h.get(&["NDims"]), h.get(&["DimSize"])) {
+        (Some((_, "4")), Some((_, d))) => text::sizes(d).filter(|s| s.len() == 4),
+        _ => None,
+    };
+    Ok(sizes
+        .map(|s| usize::try_from(s[3]).unwrap_or(usize::MAX))
+        .filter(|t| *t > 1))
 }
 
 /// The names of the data files a detached header refers to (relative to its directory).
@@ -161,10 +187,12 @@ pub(crate) fn decode(src: &SourceFiles) -> Result<Volume, ReadError> {
         Some((_, v)) => v
             .parse::<usize>()
             .ok()
-            .filter(|n| (1..=3).contains(n))
-            .ok_or_else(|| bad(&path, format!("NDims = {v:?}; 1, 2 or 3 supported")))?,
+            .filter(|n| (1..=4).contains(n))
+            .ok_or_else(|| bad(&path, format!("NDims = {v:?}; 1, 2, 3 or 4 supported")))?,
         None => return Err(bad(&path, "no NDims")),
     };
+    // The spatial axes; a fourth is time.
+    let sdims = ndims.min(3);
     let (_, dim_str) = h
         .get(&["DimSize"])
         .ok_or_else(|| bad(&path, "no DimSize"))?;
@@ -179,6 +207,16 @@ pub(crate) fn decode(src: &SourceFiles) -> Result<Volume, ReadError> {
     let mut dims = [1usize; 3];
     for (d, s) in dims.iter_mut().zip(&sizes) {
         *d = usize::try_from(*s).unwrap_or(usize::MAX);
+    }
+    match sizes.get(3) {
+        Some(0) => return Err(bad(&path, format!("DimSize = {dim_str:?}: a size of 0"))),
+        Some(t) if *t > 1 => {
+            return Err(ReadError::TimeSeries {
+                path: path.clone(),
+                points: usize::try_from(*t).unwrap_or(usize::MAX),
+            })
+        }
+        _ => {}
     }
     let voxels = voxel_count(dims).map_err(|e| ReadError::volume(&path, e))?;
     let channels = match h.get(&["ElementNumberOfChannels"]) {
@@ -252,9 +290,18 @@ pub(crate) fn decode(src: &SourceFiles) -> Result<Volume, ReadError> {
                 ),
             ));
         }
-        for a in 0..ndims {
+        // Of a 4D matrix, the spatial 3×3 block; time must not mix with space.
+        let mixed =
+            (0..ndims).any(|a| (0..ndims).any(|c| (a < 3) != (c < 3) && m[a * ndims + c] != 0.0));
+        if mixed {
+            return Err(ReadError::unsupported(
+                &path,
+                format!("TransformMatrix = {m:?} mixes the time axis with space"),
+            ));
+        }
+        for a in 0..sdims {
             for c in 0..3 {
-                vectors[a][c] = if c < ndims { m[a * ndims + c] } else { 0.0 };
+                vectors[a][c] = if c < sdims { m[a * ndims + c] } else { 0.0 };
             }
         }
     }
@@ -266,7 +313,7 @@ pub(crate) fn decode(src: &SourceFiles) -> Result<Volume, ReadError> {
                 format!("ElementSpacing has {} numbers, {ndims} expected", s.len()),
             ));
         }
-        for a in 0..ndims {
+        for a in 0..sdims {
             if !(s[a].is_finite() && s[a] > 0.0) {
                 return Err(bad(
                     &path,
@@ -284,7 +331,7 @@ pub(crate) fn decode(src: &SourceFiles) -> Result<Volume, ReadError> {
     let origin = match &origin {
         Some(o) => {
             let mut o3 = [0.0; 3];
-            o3[..ndims].copy_from_slice(&o[..ndims]);
+            o3[..sdims].copy_from_slice(&o[..sdims]);
             Some(origin3(&path, FORMAT, "Offset", &o3)?)
         }
         None => None,
@@ -577,5 +624,98 @@ mod tests {
         let v = read_volume(&p, None).unwrap();
         assert_eq!(v.channel(0), &[-2.0, 300.0]);
         assert!(v.placement().is_none());
+    }
+
+    /// `ElementDataFile = CT scan.raw`: MetaIO reads any value but LOCAL, LIST or a pattern as
+    /// one file name, spaces included; it reads through the listing that hashes it, gathering,
+    /// decoding and region reads. LIST and patterns are still refused, saying so.
+    #[test]
+    fn a_data_file_name_may_hold_spaces() {
+        use crate::reader::region::RegionReader;
+        use crate::reader::{decode_source, SourceFiles, SourceListing};
+        let dir = tempfile::tempdir().unwrap();
+        let data: Vec<u8> = (0..24u8).collect();
+        std::fs::write(dir.path().join("CT scan.raw"), &data).unwrap();
+        let h = dir.path().join("CT scan.mhd");
+        let base = "ObjectType = Image\nNDims = 3\nDimSize = 2 3 4\nElementType = MET_UCHAR\n";
+        std::fs::write(&h, format!("{base}ElementDataFile = CT scan.raw\n")).unwrap();
+        let v = read_volume(&h, None).unwrap();
+        let want: Vec<f32> = data.iter().map(|b| f32::from(*b)).collect();
+        assert_eq!(v.channel(0), &want[..]);
+        let listing = SourceListing::list(&h, None).unwrap();
+        assert_eq!(listing.files[1].0, "CT scan.raw");
+        let src = SourceFiles::gather(&h, None).unwrap();
+        assert_eq!(src.get("CT scan.raw"), Some(&data[..]));
+        let back = SourceFiles::from_bytes(src.to_bytes(), &h).unwrap();
+        assert_eq!(decode_source(&back, None).unwrap(), v);
+        let r = RegionReader::open(&h, None).unwrap();
+        assert_eq!(r.read_region([0; 3], [2, 3, 4]).unwrap(), v);
+        for list in ["LIST", "LIST 2D", "slice%03d.raw 1 4 1"] {
+            std::fs::write(&h, format!("{base}ElementDataFile = {list}\nCT scan.raw\n")).unwrap();
+            for e in [
+                read_volume(&h, None).unwrap_err(),
+                SourceListing::list(&h, None).unwrap_err(),
+                RegionReader::open(&h, None).unwrap_err(),
+            ] {
+                assert!(matches!(e, ReadError::Unsupported { .. }), "{list}: {e}");
+                assert!(
+                    e.to_string().contains("not LIST or a file name pattern"),
+                    "{e}"
+                );
+            }
+        }
+    }
+
+    /// ITK writes one volume as `NDims = 4` with a last size of 1 (and 4 spacings, a 4×4
+    /// matrix, 4 offsets): it reads as the 3D volume. A last size of more is a time series,
+    /// named as such; a matrix mixing time with space is refused.
+    #[test]
+    fn ndims_4_with_a_last_size_of_1_is_a_volume() {
+        use crate::reader::region::RegionReader;
+        let dir = tempfile::tempdir().unwrap();
+        let data: Vec<u8> = (0..24u8).collect();
+        let write = |name: &str, header: &str| {
+            let p = dir.path().join(name);
+            let mut b = format!(
+                "ObjectType = Image\nElementType = MET_UCHAR\n{header}ElementDataFile = LOCAL\n"
+            )
+            .into_bytes();
+            b.extend_from_slice(&data);
+            std::fs::write(&p, b).unwrap();
+            p
+        };
+        let three = write(
+            "three.mha",
+            "NDims = 3\nDimSize = 2 3 4\nElementSpacing = 0.5 0.75 2\nOffset = 10 -20 30\nTransformMatrix = 0 1 0 -1 0 0 0 0 1\n",
+        );
+        let four = write(
+            "four.mha",
+            "NDims = 4\nDimSize = 2 3 4 1\nElementSpacing = 0.5 0.75 2 1\nOffset = 10 -20 30 0\nTransformMatrix = 0 1 0 0 -1 0 0 0 0 0 1 0 0 0 0 1\n",
+        );
+        let want = read_volume(&three, None).unwrap();
+        assert!(want.placement().is_some());
+        assert_eq!(read_volume(&four, None).unwrap(), want);
+        assert_eq!(crate::reader::time_points(&four, None).unwrap(), 1);
+        let r = RegionReader::open(&four, None).unwrap();
+        assert_eq!(r.read_region([0; 3], [2, 3, 4]).unwrap(), want);
+
+        let series = write("series.mha", "NDims = 4\nDimSize = 2 3 2 2\n");
+        let e = read_volume(&series, None).unwrap_err();
+        assert!(matches!(e, ReadError::TimeSeries { points: 2, .. }), "{e}");
+        assert_eq!(crate::reader::time_points(&series, None).unwrap(), 2);
+        let mixed = write(
+            "mixed.mha",
+            "NDims = 4\nDimSize = 2 3 4 1\nTransformMatrix = 1 0 0 0.5 0 1 0 0 0 0 1 0 0 0 0 1\n",
+        );
+        let e = read_volume(&mixed, None).unwrap_err();
+        assert!(e.to_string().contains("mixes the time axis"), "{e}");
+        let zero = write("zero.mha", "NDims = 4\nDimSize = 2 3 4 0\n");
+        assert!(read_volume(&zero, None).is_err());
+        assert!(RegionReader::open_series(&zero, None).is_err());
+        let five = write("five.mha", "NDims = 5\nDimSize = 2 3 4 1 1\n");
+        assert!(read_volume(&five, None)
+            .unwrap_err()
+            .to_string()
+            .contains("NDims"));
     }
 }

@@ -99,7 +99,7 @@ pub enum ReadError {
     #[error("a raw volume has 1 (intensity) or 3 (interleaved RGB) channels, got {0}")]
     ChannelCount(usize),
     /// An unknown raw sample type name.
-    #[error("unknown raw sample type `{0}`, expected one of u8, u16, i16, f32")]
+    #[error("unknown raw sample type `{0}`, expected one of u8, i8, u16, i16, u32, i32, u64, i64, f32, f64")]
     UnknownDtype(String),
     /// An unknown byte order name.
     #[error("unknown byte order `{0}`, expected `little` (or `le`) or `big` (or `be`)")]
@@ -817,7 +817,8 @@ pub fn read_volume(path: &Path, raw: Option<&RawSpec>) -> Result<Volume, ReadErr
 }
 
 /// How many time points the volume file at `path` holds, from its header alone (a NIfTI's
-/// `dim[4]`, an NRRD's trailing time axis, a raw spec's time points); 1 for every other file and for directories (a
+/// `dim[4]`, an NRRD's time axis (`kinds` `time` or `list`, first or last), a 4D MetaImage's
+/// last size, a raw spec's time points); 1 for every other file and for directories (a
 /// directory of time steps is [`steps::StepSeries`]'s). Errors only when the file cannot be
 /// opened; a header that does not parse says 1 here and is reported by the reader.
 pub fn time_points(path: &Path, raw: Option<&RawSpec>) -> Result<usize, ReadError> {
@@ -839,16 +840,22 @@ pub fn time_points(path: &Path, raw: Option<&RawSpec>) -> Result<usize, ReadErro
         head
     };
     let format = by_name.or_else(|| Format::sniff(&head));
-    if format == Some(Format::Nrrd) {
-        // Its text header (up to 1 MiB): a trailing time axis says the time points.
+    if matches!(format, Some(Format::Nrrd | Format::MetaImage)) {
+        // Its text header (up to 1 MiB): an NRRD time axis, or a 4D MetaImage's last size,
+        // says the time points.
         let mut prefix = Vec::new();
         std::fs::File::open(path)
             .and_then(|f| f.take(1 << 20).read_to_end(&mut prefix))
             .map_err(|e| ReadError::io(path, e))?;
-        return Ok(nrrd::series_info(path, &prefix)
-            .ok()
-            .flatten()
-            .map_or(1, |(points, _)| points));
+        let points = if format == Some(Format::Nrrd) {
+            nrrd::series_info(path, &prefix)
+                .ok()
+                .flatten()
+                .map(|s| s.points)
+        } else {
+            metaimage::series_points(path, &prefix).ok().flatten()
+        };
+        return Ok(points.unwrap_or(1));
     }
     if format != Some(Format::Nifti) {
         return Ok(1);

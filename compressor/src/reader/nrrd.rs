@@ -1,7 +1,9 @@
 //! NRRD ("nearly raw raster data", teem / 3D Slicer / ITK): attached headers (`.nrrd`, data
 //! after the blank line that ends the header) and detached ones (`.nhdr`, data in the file
-//! named by `data file`), `raw`, `gzip` and `ascii` encodings, either byte order, 3D scalar
-//! volumes and 4D ones whose first axis holds 1 or 3 channels (RGB). Spacing and placement come
+//! named by `data file`, spaces allowed), `raw`, `gzip` and `ascii` encodings, either byte
+//! order, 3D scalar volumes and 4D ones whose first axis holds 1 or 3 channels (RGB), or whose
+//! first or last axis is time (`kinds` `time` or `list`: a Slicer sequence; read as a time
+//! series). Spacing and placement come
 //! from `space directions` and `space origin` (converted to LPS from `RAS`, `LAS` or `LPS`
 //! spaces; other spaces give spacing only), else from `spacings`.
 //!
@@ -126,7 +128,7 @@ fn parse_header(path: &Path, bytes: &[u8]) -> Result<Header, ReadError> {
             "line skip" => h.line_skip = value.parse().map_err(|_| fail("a number"))?,
             "data file" | "datafile" => {
                 h.data_file = Some(value.to_string());
-                if value == "LIST" {
+                if text::is_file_list(value) {
                     break; // the remaining lines name the data files
                 }
             }
@@ -136,28 +138,146 @@ fn parse_header(path: &Path, bytes: &[u8]) -> Result<Header, ReadError> {
     Ok(h)
 }
 
-/// Whether the header's last axis of four is time (`kinds: … time`, as Slicer and ITK write a
-/// 4D sequence: x fastest, time slowest).
-fn time_axis(h: &Header) -> bool {
-    h.dimension == Some(4)
-        && h.kinds
-            .as_ref()
-            .is_some_and(|k| k.len() == 4 && k[3] == "time")
+/// Kinds of a leading axis that make it a 4D volume's colour channels (a header without kinds
+/// keeps its leading axis of 1 or 3 with no space direction as channels too).
+const CHANNEL_KINDS: &[&str] = &[
+    "rgb-color",
+    "3-color",
+    "rgba-color",
+    "4-color",
+    "vector",
+    "3-vector",
+];
+
+/// Whether an axis kind makes it a time axis: `time`, or `list` (3D Slicer writes a sequence
+/// as `kinds: domain domain domain list`, older versions as `list domain domain domain`).
+fn is_time_kind(kind: &str) -> bool {
+    kind == "time" || kind == "list"
 }
 
-/// Of an NRRD file whose last axis is time (`kinds: … time`) with more than one sample: its
-/// time points and, when the header gives the axis a spacing and a unit of time (s, ms, us),
-/// the seconds between them. `None` for any other NRRD file.
-pub(crate) fn series_info(
-    path: &Path,
-    bytes: &[u8],
-) -> Result<Option<(usize, Option<f64>)>, ReadError> {
+/// The time axis of a 4D header: its last or its first axis, whichever (only one) has a time
+/// kind ([`is_time_kind`]).
+fn time_axis(h: &Header) -> Option<usize> {
+    let k = h.kinds.as_ref().filter(|k| k.len() == 4)?;
+    if h.dimension != Some(4) {
+        return None;
+    }
+    match (is_time_kind(&k[0]), is_time_kind(&k[3])) {
+        (false, true) => Some(3),
+        (true, false) => Some(0),
+        _ => None,
+    }
+}
+
+/// What the axes of a header hold.
+#[derive(Debug)]
+struct Axes {
+    dimension: usize,
+    sizes: Vec<u64>,
+    /// The spatial axes (x, y, z), in order.
+    spatial: Vec<usize>,
+    /// Channels (the leading axis of a 4D colour volume; else 1).
+    channels: usize,
+    /// The time axis of a 4D file and its time points (1: the axis is dropped).
+    time: Option<(usize, usize)>,
+}
+
+fn axes(path: &Path, h: &Header) -> Result<Axes, ReadError> {
+    let dimension = h
+        .dimension
+        .ok_or_else(|| bad(path, "no `dimension` field"))?;
+    let sizes = h
+        .sizes
+        .clone()
+        .ok_or_else(|| bad(path, "no `sizes` field"))?;
+    if !(1..=4).contains(&dimension) || sizes.len() != dimension {
+        return Err(bad(
+            path,
+            format!(
+                "dimension {dimension} with {} sizes; 1..=4 and one size per axis required",
+                sizes.len()
+            ),
+        ));
+    }
+    if let Some(z) = sizes.iter().position(|s| *s == 0) {
+        return Err(bad(path, format!("size of axis {z} is 0")));
+    }
+    // A 4D volume: a time axis first or last (by its kind), a leading channel axis (1 or 3,
+    // no space direction, a colour kind or no kinds), or a trailing axis of 1.
+    let mut spatial: Vec<usize> = (0..dimension).collect();
+    let mut channels = 1;
+    let mut time = None;
+    if let Some(t) = time_axis(h) {
+        spatial.remove(t);
+        time = Some((t, usize::try_from(sizes[t]).unwrap_or(usize::MAX)));
+    } else if dimension == 4 {
+        let first_none = h
+            .space_directions
+            .as_ref()
+            .is_some_and(|d| d.first().is_some_and(Option::is_none));
+        let colour_kind = match h.kinds.as_ref().and_then(|k| k.first()) {
+            None => true,
+            // `???` and `none` say nothing: as if no kind were given.
+            Some(k) => CHANNEL_KINDS.contains(&k.as_str()) || k == "???" || k == "none",
+        };
+        if (sizes[0] == 3 || sizes[0] == 1)
+            && (first_none || h.space_directions.is_none())
+            && colour_kind
+        {
+            channels = sizes[0] as usize;
+            spatial.remove(0);
+        } else if sizes[3] == 1 {
+            spatial.pop();
+        } else {
+            return Err(ReadError::unsupported(
+                path,
+                format!(
+                    "4D data of sizes {sizes:?}{}: only 3D volumes, a leading axis of 1 or 3 \
+                     channels (kind RGB-color, 3-color, vector or 3-vector, or no kinds), a \
+                     trailing axis of size 1, or a time axis first or last (`kinds: … time` or \
+                     `list`, as 3D Slicer writes a sequence) are supported",
+                    h.kinds
+                        .as_ref()
+                        .map(|k| format!(" and kinds {k:?}"))
+                        .unwrap_or_default()
+                ),
+            ));
+        }
+    }
+    Ok(Axes {
+        dimension,
+        sizes,
+        spatial,
+        channels,
+        time,
+    })
+}
+
+/// The time axis of a 4D NRRD file of more than one time point.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(crate) struct SeriesAxis {
+    /// The axis: 3 (the last: each time point's volume follows the previous one) or 0 (the
+    /// first: a voxel's time points follow each other).
+    pub axis: usize,
+    /// Time points.
+    pub points: usize,
+    /// Seconds between time points, when the header gives the axis a spacing and a unit of
+    /// time (s, ms, us).
+    pub step: Option<f64>,
+}
+
+/// Of an NRRD file whose first or last axis is time (`kinds` `time` or `list`) with more than
+/// one sample: that axis, its time points and their step. `None` for any other NRRD file (and
+/// for one whose axes the decoder refuses: it says why).
+pub(crate) fn series_info(path: &Path, bytes: &[u8]) -> Result<Option<SeriesAxis>, ReadError> {
     let h = parse_header(path, bytes)?;
-    let points = match (&h.sizes, time_axis(&h)) {
-        (Some(s), true) if s.len() == 4 && s[3] > 1 => usize::try_from(s[3]).unwrap_or(usize::MAX),
-        _ => return Ok(None),
+    let Some((axis, points)) = axes(path, &h).ok().and_then(|a| a.time) else {
+        return Ok(None);
     };
-    let unit = h.units.as_ref().and_then(|u| u.get(3)).and_then(|u| {
+    if points <= 1 {
+        return Ok(None);
+    }
+    let unit = h.units.as_ref().and_then(|u| u.get(axis)).and_then(|u| {
         match u.to_ascii_lowercase().as_str() {
             "s" | "sec" | "second" | "seconds" => Some(1.0),
             "ms" | "msec" => Some(1e-3),
@@ -168,12 +288,18 @@ pub(crate) fn series_info(
     let step = h
         .spacings
         .as_ref()
-        .and_then(|s| s.get(3))
+        .and_then(|s| s.get(axis))
         .copied()
         .filter(|s| s.is_finite() && *s > 0.0)
         .zip(unit)
         .map(|(s, u)| s * u);
-    Ok(Some((points, step)))
+    Ok(Some(SeriesAxis { axis, points, step }))
+}
+
+/// The spatial axes (x, y, z) of the NRRD file whose header is `bytes`, as the decoder takes
+/// them.
+pub(crate) fn spatial_axes(path: &Path, bytes: &[u8]) -> Result<Vec<usize>, ReadError> {
+    Ok(axes(path, &parse_header(path, bytes)?)?.spatial)
 }
 
 /// The names of the data files a detached header refers to (relative to its directory).
@@ -185,12 +311,17 @@ pub(crate) fn data_files(path: &Path, bytes: &[u8]) -> Result<Vec<String>, ReadE
     })
 }
 
-fn single_data_file(path: &Path, value: &str) -> Result<String, ReadError> {
-    if value == "LIST" || value.contains('%') || value.split_whitespace().count() > 1 {
+/// The one file a `data file` value names (any value but a list or a pattern, spaces
+/// allowed, as teem reads it).
+pub(crate) fn single_data_file(path: &Path, value: &str) -> Result<String, ReadError> {
+    if text::names_several_files(value) {
         return Err(ReadError::unsupported(
             path,
             format!("data file {value:?}: only a single data file is supported (not LIST or a file name pattern)"),
         ));
+    }
+    if value.is_empty() {
+        return Err(bad(path, "`data file` names no file"));
     }
     Ok(value.to_string())
 }
@@ -205,53 +336,18 @@ struct Layout {
 }
 
 fn layout(path: &Path, h: &Header) -> Result<Layout, ReadError> {
-    let dimension = h
-        .dimension
-        .ok_or_else(|| bad(path, "no `dimension` field"))?;
-    let sizes = h
-        .sizes
-        .as_ref()
-        .ok_or_else(|| bad(path, "no `sizes` field"))?;
-    if !(1..=4).contains(&dimension) || sizes.len() != dimension {
-        return Err(bad(
-            path,
-            format!(
-                "dimension {dimension} with {} sizes; 1..=4 and one size per axis required",
-                sizes.len()
-            ),
-        ));
-    }
-    if let Some(z) = sizes.iter().position(|s| *s == 0) {
-        return Err(bad(path, format!("size of axis {z} is 0")));
-    }
-    // A 4D volume: a leading channel axis (1 or 3, no space direction), or a trailing axis of 1;
-    // a trailing time axis of several time points is a time series, read by time point.
-    let mut spatial: Vec<usize> = (0..dimension).collect();
-    let mut channels = 1;
-    if time_axis(h) && sizes[3] > 1 {
+    let Axes {
+        dimension,
+        sizes,
+        spatial,
+        channels,
+        time,
+    } = axes(path, h)?;
+    if let Some((_, points)) = time.filter(|(_, points)| *points > 1) {
         return Err(ReadError::TimeSeries {
             path: path.to_path_buf(),
-            points: usize::try_from(sizes[3]).unwrap_or(usize::MAX),
+            points,
         });
-    }
-    if dimension == 4 && time_axis(h) {
-        spatial.pop();
-    } else if dimension == 4 {
-        let first_none = h
-            .space_directions
-            .as_ref()
-            .is_some_and(|d| d.first().is_some_and(Option::is_none));
-        if (sizes[0] == 3 || sizes[0] == 1) && (first_none || h.space_directions.is_none()) {
-            channels = sizes[0] as usize;
-            spatial.remove(0);
-        } else if sizes[3] == 1 {
-            spatial.pop();
-        } else {
-            return Err(ReadError::unsupported(
-                path,
-                format!("4D data of sizes {sizes:?}: only 3D volumes, a leading axis of 1 or 3 channels, a trailing axis of size 1, or a trailing time axis (`kinds: … time`) are supported"),
-            ));
-        }
     }
     let mut dims = [1usize; 3];
     for (i, a) in spatial.iter().enumerate() {
@@ -754,5 +850,193 @@ mod tests {
             let _ = read_volume(&p, None);
         }
         assert_eq!(Format::from_name(&p), Some(Format::Nrrd));
+    }
+
+    /// A detached header whose data file's name holds spaces (`data file: Patient 1.raw`, as
+    /// teem reads any value but LIST or a pattern as one name) reads, raw and gzip, through
+    /// every path: the listing that hashes it, gathering, decoding and region reads. LIST and
+    /// patterns are still refused, saying so.
+    #[test]
+    fn a_data_file_name_may_hold_spaces() {
+        use crate::reader::region::RegionReader;
+        use crate::reader::{decode_source, SourceFiles, SourceListing};
+        let dir = tempfile::tempdir().unwrap();
+        let data: Vec<u8> = (0..24u8).collect();
+        let gz = {
+            let mut e = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::fast());
+            std::io::Write::write_all(&mut e, &data).unwrap();
+            e.finish().unwrap()
+        };
+        std::fs::write(dir.path().join("Patient 1.raw"), &data).unwrap();
+        std::fs::write(dir.path().join("Patient 1.raw.gz"), &gz).unwrap();
+        for (encoding, file) in [("raw", "Patient 1.raw"), ("gzip", "Patient 1.raw.gz")] {
+            let h = dir.path().join(format!("scan {encoding}.nhdr"));
+            std::fs::write(
+                &h,
+                format!("NRRD0004\ntype: uint8\ndimension: 3\nsizes: 2 3 4\nencoding: {encoding}\ndata file: {file}\n"),
+            )
+            .unwrap();
+            let v = read_volume(&h, None).unwrap_or_else(|e| panic!("{file}: {e}"));
+            assert_eq!(v.dims(), [2, 3, 4]);
+            let want: Vec<f32> = data.iter().map(|b| f32::from(*b)).collect();
+            assert_eq!(v.channel(0), &want[..], "{file}");
+            let listing = SourceListing::list(&h, None).unwrap();
+            let names: Vec<&str> = listing.files.iter().map(|(n, _, _)| n.as_str()).collect();
+            assert_eq!(names[1..], [file], "{file}");
+            let src = SourceFiles::gather(&h, None).unwrap();
+            assert_eq!(
+                src.get(file),
+                Some(&std::fs::read(dir.path().join(file)).unwrap()[..])
+            );
+            assert_eq!(decode_source(&src, None).unwrap(), v);
+            let back = SourceFiles::from_bytes(src.to_bytes(), &h).unwrap();
+            assert_eq!(decode_source(&back, None).unwrap(), v);
+            let r = RegionReader::open(&h, None).unwrap();
+            assert_eq!(r.read_region([0; 3], [2, 3, 4]).unwrap(), v);
+        }
+        for list in ["LIST", "LIST 2", "scan%03d.raw 1 4 1"] {
+            let h = dir.path().join("list.nhdr");
+            std::fs::write(
+                &h,
+                format!("NRRD0004\ntype: uint8\ndimension: 3\nsizes: 2 3 4\nencoding: raw\ndata file: {list}\n{}", if list.starts_with("LIST") { "Patient 1.raw\n" } else { "" }),
+            )
+            .unwrap();
+            for e in [
+                read_volume(&h, None).unwrap_err(),
+                SourceListing::list(&h, None).unwrap_err(),
+                RegionReader::open(&h, None).unwrap_err(),
+            ] {
+                assert!(matches!(e, ReadError::Unsupported { .. }), "{list}: {e}");
+                assert!(
+                    e.to_string().contains("not LIST or a file name pattern"),
+                    "{e}"
+                );
+            }
+        }
+    }
+
+    fn nrrd_4d(dir: &Path, name: &str, fields: &str, data: &[u8]) -> PathBuf {
+        let p = dir.join(name);
+        let mut b =
+            format!("NRRD0004\ntype: uint8\ndimension: 4\nencoding: raw\nspace: RAS\n{fields}\n")
+                .into_bytes();
+        b.extend_from_slice(data);
+        std::fs::write(&p, b).unwrap();
+        p
+    }
+
+    /// A 3D Slicer sequence: its `list` axis, first (older Slicer) or last, is time, as a
+    /// `time` axis is; a leading axis of 3 with no space direction is colour only when its kind
+    /// says so (or no kinds are given), never when it is a `list`.
+    #[test]
+    fn slicer_list_axes_are_time_and_only_colour_kinds_are_channels() {
+        use crate::reader::region::RegionReader;
+        let dir = tempfile::tempdir().unwrap();
+        let dirs = "space directions: none (1,0,0) (0,1,0) (0,0,1)\n";
+        let data: Vec<u8> = (0..24u8).collect();
+        // `list domain domain domain`, 3 × 2×2×2: three time points, a voxel's after each
+        // other.
+        let lead = nrrd_4d(
+            dir.path(),
+            "lead.nrrd",
+            &format!("sizes: 3 2 2 2\nkinds: list domain domain domain\n{dirs}"),
+            &data,
+        );
+        let e = read_volume(&lead, None).unwrap_err();
+        assert!(matches!(e, ReadError::TimeSeries { points: 3, .. }), "{e}");
+        assert_eq!(crate::reader::time_points(&lead, None).unwrap(), 3);
+        let e = RegionReader::open(&lead, None).unwrap_err();
+        assert!(matches!(e, ReadError::TimeSeries { points: 3, .. }), "{e}");
+        let r = RegionReader::open_series(&lead, None).unwrap();
+        assert_eq!((r.time_points(), r.dims(), r.channels()), (3, [2, 2, 2], 1));
+        for t in 0..3 {
+            let want: Vec<f32> = (0..8).map(|i| (i * 3 + t) as f32).collect();
+            let v = r.read_region_at(t, [0; 3], [2, 2, 2]).unwrap();
+            assert_eq!(v.channel(0), &want[..], "time point {t}");
+            let v = r.read_region_at(t, [1, 0, 1], [1, 2, 1]).unwrap();
+            assert_eq!(v.channel(0), &[want[5], want[7]], "time point {t}");
+        }
+        // `domain domain domain list`, 2×2×2 × 3: each time point's volume after the other.
+        let trail = nrrd_4d(
+            dir.path(),
+            "trail.nrrd",
+            "sizes: 2 2 2 3\nkinds: domain domain domain list\nspace directions: (1,0,0) (0,1,0) (0,0,1) none\n",
+            &data,
+        );
+        let e = read_volume(&trail, None).unwrap_err();
+        assert!(matches!(e, ReadError::TimeSeries { points: 3, .. }), "{e}");
+        let r = RegionReader::open_series(&trail, None).unwrap();
+        assert_eq!((r.time_points(), r.dims()), (3, [2, 2, 2]));
+        for t in 0..3 {
+            let want: Vec<f32> = (0..8).map(|i| (t * 8 + i) as f32).collect();
+            assert_eq!(
+                r.read_region_at(t, [0; 3], [2, 2, 2]).unwrap().channel(0),
+                &want[..]
+            );
+        }
+        // A list of one is a volume, first or last.
+        for (name, fields) in [
+            (
+                "one_lead.nrrd",
+                format!("sizes: 1 2 2 2\nkinds: list domain domain domain\n{dirs}"),
+            ),
+            (
+                "one_trail.nrrd",
+                "sizes: 2 2 2 1\nkinds: domain domain domain list\n".to_string(),
+            ),
+        ] {
+            let p = nrrd_4d(dir.path(), name, &fields, &data[..8]);
+            let v = read_volume(&p, None).unwrap();
+            assert_eq!((v.dims(), v.channel_count()), ([2, 2, 2], 1), "{name}");
+            assert_eq!(
+                v.channel(0),
+                &(0..8).map(|i| i as f32).collect::<Vec<_>>()[..]
+            );
+        }
+        // Colour: by a colour kind, or with no kinds at all; not by a `domain` axis.
+        for kinds in [
+            "kinds: RGB-color domain domain domain\n",
+            "kinds: 3-color domain domain domain\n",
+            "kinds: vector domain domain domain\n",
+            "",
+        ] {
+            let p = nrrd_4d(
+                dir.path(),
+                "rgb.nrrd",
+                &format!("sizes: 3 2 2 2\n{kinds}{dirs}"),
+                &data,
+            );
+            let v = read_volume(&p, None).unwrap_or_else(|e| panic!("{kinds}: {e}"));
+            assert_eq!((v.dims(), v.channel_count()), ([2, 2, 2], 3), "{kinds}");
+            assert_eq!(v.channel(1)[1], 4.0, "{kinds}");
+            assert_eq!(
+                RegionReader::open(&p, None).unwrap().channels(),
+                3,
+                "{kinds}"
+            );
+        }
+        let p = nrrd_4d(
+            dir.path(),
+            "domain.nrrd",
+            &format!("sizes: 3 2 2 2\nkinds: domain domain domain domain\n{dirs}"),
+            &data,
+        );
+        let e = read_volume(&p, None).unwrap_err();
+        assert!(matches!(e, ReadError::Unsupported { .. }), "{e}");
+        // A list at both ends says neither which is time nor which is space.
+        let p = nrrd_4d(
+            dir.path(),
+            "both.nrrd",
+            &format!("sizes: 3 2 2 2\nkinds: list domain domain list\n{dirs}"),
+            &data,
+        );
+        assert!(read_volume(&p, None).is_err());
+        // Three dimensions whose first is a list of 3: never colour.
+        let p = dir.path().join("list3d.nrrd");
+        let mut b = b"NRRD0004\ntype: uint8\ndimension: 3\nsizes: 3 2 4\nencoding: raw\nkinds: list domain domain\n\n".to_vec();
+        b.extend_from_slice(&data);
+        std::fs::write(&p, b).unwrap();
+        let v = read_volume(&p, None).unwrap();
+        assert_eq!((v.dims(), v.channel_count()), ([3, 2, 4], 1));
     }
 }

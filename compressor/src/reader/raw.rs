@@ -1,4 +1,6 @@
-//! Headerless raw volumes: `u8`, `u16`, `i16`, `f32` samples in either byte order, 1 or 3
+//! Headerless raw volumes: 8-, 16-, 32- and 64-bit integer samples (`u8`, `i8`, `u16`, `i16`,
+//! `u32`, `i32`, `u64`, `i64`), `f32` and `f64` in either byte order (values become f32, as
+//! every reader's do), 1 or 3
 //! interleaved channels, x fastest, described by a [`RawSpec`] (from the command line or the
 //! archive's file-name convention). The size is checked against the description before
 //! anything is read.
@@ -16,48 +18,102 @@ use wavesplat_codec::volume::Volume;
 pub enum RawDtype {
     /// Unsigned 8-bit integer.
     U8,
+    /// Signed 8-bit integer (two's complement).
+    I8,
     /// Unsigned 16-bit integer.
     U16,
     /// Signed 16-bit integer (two's complement).
     I16,
+    /// Unsigned 32-bit integer (values above 2^24 are rounded to f32).
+    U32,
+    /// Signed 32-bit integer (two's complement; magnitudes above 2^24 are rounded to f32).
+    I32,
+    /// Unsigned 64-bit integer (rounded to f32).
+    U64,
+    /// Signed 64-bit integer (two's complement; rounded to f32).
+    I64,
     /// IEEE-754 32-bit float. NaN and Inf are rejected when the volume is built.
     F32,
+    /// IEEE-754 64-bit float, rounded to f32. NaN, Inf and values beyond f32's range are
+    /// rejected when the volume is built.
+    F64,
 }
 
 impl RawDtype {
-    /// Parses `u8`, `u16`, `i16` or `f32` (case-insensitive; `uint8`, `uint16`, `int16`,
-    /// `float32` and `float` are accepted too).
+    /// Every sample type, in the order of [`RawDtype::names`].
+    pub const ALL: [RawDtype; 10] = [
+        RawDtype::U8,
+        RawDtype::I8,
+        RawDtype::U16,
+        RawDtype::I16,
+        RawDtype::U32,
+        RawDtype::I32,
+        RawDtype::U64,
+        RawDtype::I64,
+        RawDtype::F32,
+        RawDtype::F64,
+    ];
+
+    /// Parses `u8`, `i8`, `u16`, `i16`, `u32`, `i32`, `u64`, `i64`, `f32` or `f64`
+    /// (case-insensitive; `uint8`, `int8`, …, `int64`, `float32`, `float`, `float64` and
+    /// `double` are accepted too).
     pub fn from_name(name: &str) -> Result<RawDtype, ReadError> {
         match name.trim().to_ascii_lowercase().as_str() {
             "u8" | "uint8" => Ok(RawDtype::U8),
+            "i8" | "int8" => Ok(RawDtype::I8),
             "u16" | "uint16" => Ok(RawDtype::U16),
             "i16" | "int16" => Ok(RawDtype::I16),
+            "u32" | "uint32" => Ok(RawDtype::U32),
+            "i32" | "int32" => Ok(RawDtype::I32),
+            "u64" | "uint64" => Ok(RawDtype::U64),
+            "i64" | "int64" => Ok(RawDtype::I64),
             "f32" | "float32" | "float" => Ok(RawDtype::F32),
+            "f64" | "float64" | "double" => Ok(RawDtype::F64),
             _ => Err(ReadError::UnknownDtype(name.to_string())),
         }
     }
 
     /// The canonical names accepted by [`RawDtype::from_name`].
     pub fn names() -> &'static [&'static str] {
-        &["u8", "u16", "i16", "f32"]
+        &[
+            "u8", "i8", "u16", "i16", "u32", "i32", "u64", "i64", "f32", "f64",
+        ]
     }
 
-    /// The canonical name (`u8`, `u16`, `i16`, `f32`).
+    /// The canonical name (`u8`, `i8`, `u16`, `i16`, `u32`, `i32`, `u64`, `i64`, `f32`, `f64`).
     pub fn name(self) -> &'static str {
         match self {
             RawDtype::U8 => "u8",
+            RawDtype::I8 => "i8",
             RawDtype::U16 => "u16",
             RawDtype::I16 => "i16",
+            RawDtype::U32 => "u32",
+            RawDtype::I32 => "i32",
+            RawDtype::U64 => "u64",
+            RawDtype::I64 => "i64",
             RawDtype::F32 => "f32",
+            RawDtype::F64 => "f64",
         }
     }
 
     /// Bytes per sample.
     pub fn size(self) -> usize {
+        self.sample().size()
+    }
+
+    /// The sample type the readers decode.
+    pub(crate) fn sample(self) -> SampleType {
         match self {
-            RawDtype::U8 => 1,
-            RawDtype::U16 | RawDtype::I16 => 2,
-            RawDtype::F32 => 4,
+            RawDtype::U8 => SampleType::U8,
+            RawDtype::I8 => SampleType::I8,
+            RawDtype::U16 => SampleType::U16,
+            RawDtype::I16 => SampleType::I16,
+            RawDtype::U32 => SampleType::U32,
+            RawDtype::I32 => SampleType::I32,
+            RawDtype::U64 => SampleType::U64,
+            RawDtype::I64 => SampleType::I64,
+            RawDtype::F32 => SampleType::F32,
+            RawDtype::F64 => SampleType::F64,
         }
     }
 }
@@ -201,13 +257,14 @@ pub fn decode_raw(bytes: &[u8], spec: &RawSpec) -> Result<Volume, ReadError> {
     if bytes.len() != expected {
         return Err(spec.mismatch(None, expected, bytes.len() as u64));
     }
-    let sample = match spec.dtype {
-        RawDtype::U8 => SampleType::U8,
-        RawDtype::U16 => SampleType::U16,
-        RawDtype::I16 => SampleType::I16,
-        RawDtype::F32 => SampleType::F32,
-    };
-    let channels = deinterleave(bytes, sample, spec.endian, spec.channels, 1.0, 0.0);
+    let channels = deinterleave(
+        bytes,
+        spec.dtype.sample(),
+        spec.endian,
+        spec.channels,
+        1.0,
+        0.0,
+    );
     Ok(Volume::new(spec.dims, spec.spacing, channels)?)
 }
 
@@ -234,8 +291,29 @@ mod tests {
             assert_eq!(RawDtype::from_name(n).unwrap().name(), *n);
         }
         assert_eq!(RawDtype::from_name("UINT16").unwrap(), RawDtype::U16);
+        assert_eq!(RawDtype::names().len(), RawDtype::ALL.len());
+        for (d, n) in RawDtype::ALL.iter().zip(RawDtype::names()) {
+            assert_eq!(d.name(), *n);
+        }
+        for (n, d, size) in [
+            ("f64", RawDtype::F64, 8),
+            ("double", RawDtype::F64, 8),
+            ("i32", RawDtype::I32, 4),
+            ("INT32", RawDtype::I32, 4),
+            ("u32", RawDtype::U32, 4),
+            ("i8", RawDtype::I8, 1),
+            ("uint64", RawDtype::U64, 8),
+            ("i64", RawDtype::I64, 8),
+        ] {
+            assert_eq!(RawDtype::from_name(n).unwrap(), d, "{n}");
+            assert_eq!(d.size(), size, "{n}");
+        }
         let e = RawDtype::from_name("u12").unwrap_err();
         assert!(e.to_string().contains("u12"), "{e}");
+        assert!(
+            e.to_string().contains("i32") && e.to_string().contains("f64"),
+            "{e}"
+        );
         assert_eq!(Endian::from_name("BE").unwrap(), Endian::Big);
         assert!(Endian::from_name("middle").is_err());
     }
@@ -285,6 +363,109 @@ mod tests {
             assert_eq!(v.channel(0), &f32s[..]);
             assert_eq!(v.spacing(), [1.0, 2.0, 0.5]);
         }
+    }
+
+    /// Bytes of `vals` in `endian`, each through `to` (its `to_le_bytes` / `to_be_bytes`).
+    fn bytes_of<T: Copy, const N: usize>(
+        vals: &[T],
+        endian: Endian,
+        le: fn(T) -> [u8; N],
+        be: fn(T) -> [u8; N],
+    ) -> Vec<u8> {
+        vals.iter()
+            .flat_map(|v| match endian {
+                Endian::Little => le(*v),
+                Endian::Big => be(*v),
+            })
+            .collect()
+    }
+
+    /// Raw f64 and i32 files (and i8, u32, u64, i64 data) read back to their values, in either
+    /// byte order; a file of the wrong size says the size its description needs.
+    #[test]
+    fn wide_integers_and_doubles_read_back() {
+        let dir = tempfile::tempdir().unwrap();
+        let dims = [3, 2, 1];
+        for endian in [Endian::Little, Endian::Big] {
+            let f64s = [-1.5f64, 0.0, 1e-3, 3.25, 1e30, -7.0];
+            let path = dir.path().join(format!("v_{endian:?}.f64"));
+            std::fs::write(
+                &path,
+                bytes_of(&f64s, endian, f64::to_le_bytes, f64::to_be_bytes),
+            )
+            .unwrap();
+            let s = spec(dims, RawDtype::from_name("f64").unwrap(), endian, 1);
+            let v = read_volume(&path, Some(&s)).unwrap();
+            let want: Vec<f32> = f64s.iter().map(|x| *x as f32).collect();
+            assert_eq!(v.channel(0), &want[..]);
+            assert_eq!(v.spacing(), [1.0, 2.0, 0.5]);
+
+            let i32s = [-2_000_000i32, -1, 0, 1, 16_777_216, i32::MIN];
+            let path = dir.path().join(format!("v_{endian:?}.i32"));
+            std::fs::write(
+                &path,
+                bytes_of(&i32s, endian, i32::to_le_bytes, i32::to_be_bytes),
+            )
+            .unwrap();
+            let s = spec(dims, RawDtype::from_name("i32").unwrap(), endian, 1);
+            let v = read_volume(&path, Some(&s)).unwrap();
+            let want: Vec<f32> = i32s.iter().map(|x| *x as f32).collect();
+            assert_eq!(v.channel(0), &want[..]);
+
+            let i8s = [-128i8, -1, 0, 1, 127, 5];
+            let b = bytes_of(&i8s, endian, i8::to_le_bytes, i8::to_be_bytes);
+            let v = decode_raw(&b, &spec(dims, RawDtype::I8, endian, 1)).unwrap();
+            assert_eq!(v.channel(0), &[-128.0, -1.0, 0.0, 1.0, 127.0, 5.0]);
+            let u32s = [0u32, 1, 70_000, 4_000_000, 16_777_216, 9];
+            let b = bytes_of(&u32s, endian, u32::to_le_bytes, u32::to_be_bytes);
+            let v = decode_raw(&b, &spec(dims, RawDtype::U32, endian, 1)).unwrap();
+            let want: Vec<f32> = u32s.iter().map(|x| *x as f32).collect();
+            assert_eq!(v.channel(0), &want[..]);
+            let u64s = [0u64, 1, 1 << 40, 300, 7, 65_536];
+            let b = bytes_of(&u64s, endian, u64::to_le_bytes, u64::to_be_bytes);
+            let v = decode_raw(&b, &spec(dims, RawDtype::U64, endian, 1)).unwrap();
+            let want: Vec<f32> = u64s.iter().map(|x| *x as f32).collect();
+            assert_eq!(v.channel(0), &want[..]);
+            let i64s = [-(1i64 << 40), -1, 0, 1, 123_456, -9];
+            let b = bytes_of(&i64s, endian, i64::to_le_bytes, i64::to_be_bytes);
+            let v = decode_raw(&b, &spec(dims, RawDtype::I64, endian, 1)).unwrap();
+            let want: Vec<f32> = i64s.iter().map(|x| *x as f32).collect();
+            assert_eq!(v.channel(0), &want[..]);
+        }
+        // 6 f64 samples need 48 bytes: a file of 40 is refused, saying so.
+        let path = dir.path().join("short.f64");
+        std::fs::write(&path, [0u8; 40]).unwrap();
+        let e =
+            read_volume(&path, Some(&spec(dims, RawDtype::F64, Endian::Little, 1))).unwrap_err();
+        assert!(
+            matches!(
+                e,
+                ReadError::SizeMismatch {
+                    expected: 48,
+                    actual: 40,
+                    dtype: RawDtype::F64,
+                    bytes_per_sample: 8,
+                    ..
+                }
+            ),
+            "{e}"
+        );
+        let msg = e.to_string();
+        assert!(
+            msg.contains("exactly 48 bytes") && msg.contains("(f64)"),
+            "{msg}"
+        );
+        // A double beyond f32's range is refused as non-finite, not read as infinity.
+        let b = bytes_of(
+            &[1e300f64],
+            Endian::Little,
+            f64::to_le_bytes,
+            f64::to_be_bytes,
+        );
+        assert!(matches!(
+            decode_raw(&b, &spec([1, 1, 1], RawDtype::F64, Endian::Little, 1)),
+            Err(ReadError::Volume(VolumeError::NonFinite { .. }))
+        ));
     }
 
     #[test]

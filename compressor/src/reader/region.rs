@@ -84,6 +84,9 @@ struct Stored {
     inter: f64,
     /// Bytes of one time point's samples (time points follow one another).
     frame: u64,
+    /// Time points stored within each voxel, one after another (an NRRD whose first axis is
+    /// time); 1 where each time point's volume follows the previous one (`frame` apart).
+    interleaved: usize,
 }
 
 /// What a format's opener found: the volume's metadata and its samples.
@@ -149,8 +152,10 @@ impl RegionReader {
     }
 
     /// Opens `path` as [`RegionReader::open`] does, and a time series too: a 4D NIfTI
-    /// (`dim[4]` time points, `pixdim[4]` in the unit of `xyzt_units` between them) or a raw
-    /// file of `raw.time_points` volumes one after another. Regions of any time point are
+    /// (`dim[4]` time points, `pixdim[4]` in the unit of `xyzt_units` between them), a 4D NRRD
+    /// whose first or last axis is `time` or `list` (a first one is read with every voxel's
+    /// time points, of which one is kept), a 4D MetaImage, or a raw file of `raw.time_points`
+    /// volumes one after another. Regions of any time point are
     /// read with [`RegionReader::read_region_at`]; [`RegionReader::read_region`] reads the
     /// selected one (the first, or [`RegionReader::select_time_point`]'s).
     pub fn open_series(path: &Path, raw: Option<&RawSpec>) -> Result<RegionReader, ReadError> {
@@ -317,7 +322,11 @@ impl RegionReader {
         size: [usize; 3],
         voxels: usize,
     ) -> Result<Vec<Vec<f32>>, ReadError> {
+        // Bytes of a voxel of one time point, and as stored (with every time point of the
+        // voxel when they are interleaved: then only time point `t`'s are kept).
         let voxel_bytes = self.channels * s.sample.size();
+        let il = s.interleaved.max(1);
+        let stored_voxel = voxel_bytes * il;
         let total = voxels.checked_mul(voxel_bytes).ok_or(ReadError::TooLarge {
             dims: size,
             channels: self.channels,
@@ -335,14 +344,14 @@ impl RegionReader {
         })?;
         buf.resize(total, 0);
         let [nx, ny, _] = self.dims.map(|d| d as u64);
+        let first = if il == 1 { t as u64 * s.frame } else { 0 };
         // Byte offset of voxel (x, y, z); within the file size checked at open, so no overflow.
         let at = |x: usize, y: usize, z: usize| {
-            s.offset
-                + t as u64 * s.frame
-                + ((z as u64 * ny + y as u64) * nx + x as u64) * voxel_bytes as u64
+            s.offset + first + ((z as u64 * ny + y as u64) * nx + x as u64) * stored_voxel as u64
         };
         let full_rows = size[0] == self.dims[0];
-        let full_slabs = full_rows && size[1] == self.dims[1];
+        // Interleaved time points are read a slab at a time at most, the slab with all of them.
+        let full_slabs = full_rows && size[1] == self.dims[1] && il == 1;
         let (run, runs): (usize, Vec<u64>) = if full_slabs {
             (total, vec![at(0, 0, origin[2])])
         } else if full_rows {
@@ -359,20 +368,36 @@ impl RegionReader {
                 .collect();
             (run, starts)
         };
+        let mut scratch = Vec::new();
         for (chunk, start) in buf.chunks_mut(run).zip(runs) {
-            read_at(&s.file, chunk, start).map_err(|e| {
+            let into: &mut [u8] = if il == 1 {
+                &mut *chunk
+            } else {
+                scratch.resize(chunk.len() * il, 0);
+                &mut scratch[..]
+            };
+            read_at(&s.file, into, start).map_err(|e| {
                 if e.kind() == io::ErrorKind::UnexpectedEof {
                     let len = s.file.metadata().map(|m| m.len()).unwrap_or(0);
                     ReadError::Truncated {
                         path: s.path.clone(),
                         offset: start,
-                        expected: chunk.len() as u64,
-                        actual: len.saturating_sub(start).min(chunk.len() as u64),
+                        expected: into.len() as u64,
+                        actual: len.saturating_sub(start).min(into.len() as u64),
                     }
                 } else {
                     ReadError::io(&s.path, e)
                 }
             })?;
+            if il > 1 {
+                let keep = t * voxel_bytes..(t + 1) * voxel_bytes;
+                for (dst, src) in chunk
+                    .chunks_exact_mut(voxel_bytes)
+                    .zip(scratch.chunks_exact(stored_voxel))
+                {
+                    dst.copy_from_slice(&src[keep.clone()]);
+                }
+            }
         }
         let planar = deinterleave(&buf, s.sample, s.endian, self.channels, s.slope, s.inter);
         Ok(planar)

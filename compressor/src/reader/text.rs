@@ -152,6 +152,26 @@ pub(crate) fn origin3(
     }
 }
 
+/// Whether a detached header's data-file value (NRRD `data file`, MetaImage
+/// `ElementDataFile`) is a list of files: `LIST`, optionally followed by the dimension of each
+/// file (NRRD `LIST 2`, MetaIO `LIST 2D`; the file names follow the header's last line).
+pub(crate) fn is_file_list(value: &str) -> bool {
+    let mut t = value.split_whitespace();
+    t.next().is_some_and(|f| f.eq_ignore_ascii_case("LIST"))
+        && t.next().is_none_or(|d| {
+            let d = d.strip_suffix(['D', 'd']).unwrap_or(d);
+            d.parse::<u64>().is_ok()
+        })
+        && t.next().is_none()
+}
+
+/// Whether a detached header's data-file value names several files: a list
+/// ([`is_file_list`]) or a printf pattern (`vol%03d.raw 1 10 1`). Any other value is one file
+/// name, spaces included (`CT scan.raw`), as teem and ITK's MetaIO read it.
+pub(crate) fn names_several_files(value: &str) -> bool {
+    is_file_list(value) || value.contains('%')
+}
+
 /// NRRD type names (all the spellings of the NRRD spec).
 pub(crate) fn nrrd_type(name: &str) -> Option<SampleType> {
     Some(match name.trim() {
@@ -206,5 +226,28 @@ mod tests {
         let (lines, end, found) = header_lines(b"a\r\nb\n\ndata", |l| l.is_empty(), false).unwrap();
         assert_eq!((lines, end, found), (vec!["a".into(), "b".into()], 6, true));
         assert!(header_lines(&[0xff, b'\n'], |_| false, false).is_none());
+    }
+
+    #[test]
+    fn one_data_file_name_may_hold_spaces() {
+        for one in [
+            "CT scan.raw",
+            "Patient 1.raw.gz",
+            "LIST of scans.raw",
+            "a.raw",
+            "LISTING",
+        ] {
+            assert!(!names_several_files(one), "{one}");
+        }
+        for several in [
+            "LIST",
+            "list",
+            "LIST 2",
+            "LIST 2D",
+            "vol%03d.raw 1 10 1",
+            "v%d.raw 0 4 1 2",
+        ] {
+            assert!(names_several_files(several), "{several}");
+        }
     }
 }

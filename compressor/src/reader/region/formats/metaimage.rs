@@ -1,6 +1,7 @@
 //! MetaImage: the text header is parsed for the sizes, element type, byte order, compression
 //! and data file (local or detached, with a header size to skip), and its meaning taken from
-//! the MetaImage decoder on a stand-in.
+//! the MetaImage decoder on a stand-in. A 4D file (`NDims = 4`) is a time series of its last
+//! size's time points, each volume after the previous one.
 
 use std::path::Path;
 
@@ -55,7 +56,7 @@ pub(super) fn open_metaimage(path: &Path) -> Result<Opened, ReadError> {
     };
     let ndims = get(&["NDims"])
         .and_then(|(_, v)| v.parse::<usize>().ok())
-        .filter(|n| (1..=3).contains(n));
+        .filter(|n| (1..=4).contains(n));
     let sizes = match (get(&["DimSize"]), ndims) {
         (Some((_, v)), Some(n)) => match text::sizes(&v).filter(|s| s.len() == n) {
             Some(s) => {
@@ -89,6 +90,12 @@ pub(super) fn open_metaimage(path: &Path) -> Result<Opened, ReadError> {
     for (d, s) in dims.iter_mut().zip(&sizes) {
         *d = usize::try_from(*s).unwrap_or(usize::MAX);
     }
+    // A fourth size is the time points (0 refused as the decoder refuses it).
+    let points = match sizes.get(3) {
+        None => 1,
+        Some(0) => return Err(bad(format!("DimSize = {sizes:?}: a size of 0"))),
+        Some(t) => usize::try_from(*t).unwrap_or(usize::MAX),
+    };
     let channels = meta.channel_count();
     let ty = get(&["ElementType"]).map(|(_, t)| t.to_ascii_uppercase());
     let sample = match ty.as_deref() {
@@ -131,18 +138,18 @@ pub(super) fn open_metaimage(path: &Path) -> Result<Opened, ReadError> {
             .filter(|s| *s >= -1)
             .ok_or_else(|| bad(format!("HeaderSize = {v:?}; -1 or ≥ 0 expected")))?,
     };
-    let expected = stored_bytes(path, dims, channels, sample.size())?;
+    let frame = stored_bytes(path, dims, channels, sample.size())?;
+    let expected = frame
+        .checked_mul(points as u64)
+        .ok_or(ReadError::TooLarge {
+            dims,
+            channels,
+            bytes_per_sample: sample.size(),
+        })?;
     let (data_path, base, data_len) = match get(&["ElementDataFile"]) {
         Some((_, v)) if v.eq_ignore_ascii_case("LOCAL") => (path.to_path_buf(), end as u64, len),
         Some((_, v)) => {
-            if v.eq_ignore_ascii_case("LIST") || v.contains('%') || v.split_whitespace().count() > 1
-            {
-                return Err(ReadError::unsupported(
-                    path,
-                    format!("ElementDataFile = {v}: only LOCAL or a single data file is supported (not LIST or a file name pattern)"),
-                ));
-            }
-            let p = parent(path).join(&v);
+            let p = parent(path).join(crate::reader::metaimage::single_data_file(path, &v)?);
             let l = std::fs::metadata(&p)
                 .map_err(|e| ReadError::io(&p, e))?
                 .len();
@@ -175,5 +182,10 @@ pub(super) fn open_metaimage(path: &Path) -> Result<Opened, ReadError> {
         };
         stored_at(&data_path, start, expected, sample, endian)?
     };
-    Ok(Opened::stored(&meta, dims, stored))
+    let mut stored = stored;
+    stored.frame = frame;
+    Ok(Opened {
+        time_points: points,
+        ..Opened::stored(&meta, dims, stored)
+    })
 }

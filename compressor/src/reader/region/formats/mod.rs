@@ -129,6 +129,7 @@ fn stored_at(
         slope: 1.0,
         inter: 0.0,
         frame: expected,
+        interleaved: 1,
     })
 }
 
@@ -199,6 +200,7 @@ fn spool(
         slope: 1.0,
         inter: 0.0,
         frame: expected,
+        interleaved: 1,
     })
 }
 

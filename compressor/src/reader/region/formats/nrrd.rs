@@ -36,7 +36,6 @@ pub(super) fn open_nrrd(path: &Path) -> Result<Opened, ReadError> {
     let mut encoding: Option<String> = None;
     let mut sample = None;
     let mut endian = None;
-    let mut first_direction_none = None;
     let (mut byte_skip, mut line_skip) = (0i64, 0u64);
     let mut data_file: Option<String> = None;
     for line in lines.iter().skip(1) {
@@ -69,11 +68,6 @@ pub(super) fn open_nrrd(path: &Path) -> Result<Opened, ReadError> {
                         };
                         true
                     }
-                    "space directions" => {
-                        first_direction_none = text::vector_items(value)
-                            .map(|d| d.first().is_some_and(Option::is_none));
-                        true
-                    }
                     "byte skip" => match value.parse() {
                         Ok(v) => {
                             byte_skip = v;
@@ -90,7 +84,7 @@ pub(super) fn open_nrrd(path: &Path) -> Result<Opened, ReadError> {
                     },
                     "data file" | "datafile" => {
                         data_file = Some(value.to_string());
-                        if value == "LIST" {
+                        if text::is_file_list(value) {
                             break;
                         }
                         false
@@ -104,12 +98,12 @@ pub(super) fn open_nrrd(path: &Path) -> Result<Opened, ReadError> {
             probe.push('\n');
         }
     }
-    // A trailing time axis (`kinds: … time`): the time points follow each other, each a
-    // volume; the stand-in has one.
+    // A time axis (`kinds` `time` or `list`): last, the time points follow each other, each a
+    // volume; first, a voxel's time points follow each other. The stand-in has one.
     let series = crate::reader::nrrd::series_info(path, &prefix)?;
     if let Some(e) = &encoding {
         if matches!(e.as_str(), "ascii" | "text" | "txt") {
-            if let Some((points, _)) = series {
+            if let Some(crate::reader::nrrd::SeriesAxis { points, .. }) = series {
                 return Err(ReadError::unsupported(
                     path,
                     format!("a time series of {points} time points in ASCII encoding; raw or gzip are read by time point"),
@@ -123,7 +117,7 @@ pub(super) fn open_nrrd(path: &Path) -> Result<Opened, ReadError> {
             .iter()
             .enumerate()
             .map(|(a, s)| match series {
-                Some(_) if a == 3 => "1".to_string(),
+                Some(t) if a == t.axis => "1".to_string(),
                 _ => nrrd_stand_in_size(*s).to_string(),
             })
             .collect();
@@ -142,16 +136,8 @@ pub(super) fn open_nrrd(path: &Path) -> Result<Opened, ReadError> {
         ));
     };
     let channels = meta.channel_count();
-    let mut spatial: Vec<usize> = (0..sizes.len()).collect();
-    if sizes.len() == 4 {
-        if series.is_some() {
-            spatial.pop();
-        } else if matches!(sizes[0], 1 | 3) && first_direction_none != Some(false) {
-            spatial.remove(0);
-        } else {
-            spatial.pop();
-        }
-    }
+    // The axes as the decoder takes them (the stand-in's layout is checked against them).
+    let spatial = crate::reader::nrrd::spatial_axes(path, &prefix)?;
     let mut dims = [1usize; 3];
     for (d, a) in dims.iter_mut().zip(&spatial) {
         *d = usize::try_from(sizes[*a]).unwrap_or(usize::MAX);
@@ -164,7 +150,7 @@ pub(super) fn open_nrrd(path: &Path) -> Result<Opened, ReadError> {
         )));
     }
     let frame = stored_bytes(path, dims, channels, sample.size())?;
-    let points = series.map_or(1, |(p, _)| p);
+    let points = series.map_or(1, |s| s.points);
     let expected = frame
         .checked_mul(points as u64)
         .ok_or(ReadError::TooLarge {
@@ -176,15 +162,10 @@ pub(super) fn open_nrrd(path: &Path) -> Result<Opened, ReadError> {
 
     // Where the data starts: the data file, or just past the blank line.
     let (data_path, mut offset) = match &data_file {
-        Some(f) => {
-            if f == "LIST" || f.contains('%') || f.split_whitespace().count() > 1 {
-                return Err(ReadError::unsupported(
-                    path,
-                    format!("data file {f:?}: only a single data file is supported (not LIST or a file name pattern)"),
-                ));
-            }
-            (parent(path).join(f), 0u64)
-        }
+        Some(f) => (
+            parent(path).join(crate::reader::nrrd::single_data_file(path, f)?),
+            0u64,
+        ),
         None if found => (path.to_path_buf(), end as u64),
         None => {
             return Err(bad(
@@ -239,9 +220,12 @@ pub(super) fn open_nrrd(path: &Path) -> Result<Opened, ReadError> {
     };
     let mut stored = stored;
     stored.frame = frame;
+    if series.is_some_and(|s| s.axis == 0) {
+        stored.interleaved = points;
+    }
     Ok(Opened {
         time_points: points,
-        time_step: series.and_then(|(_, step)| step),
+        time_step: series.and_then(|s| s.step),
         ..Opened::stored(&meta, dims, stored)
     })
 }

@@ -5,7 +5,7 @@ use std::path::Path;
 
 use super::super::{Opened, Source};
 use super::{stored_at, stored_bytes};
-use crate::reader::{RawDtype, RawSpec, ReadError, SampleType};
+use crate::reader::{RawSpec, ReadError};
 use wavesplat_codec::volume::VolumeError;
 
 pub(super) fn open_raw(path: &Path, spec: &RawSpec) -> Result<Opened, ReadError> {
@@ -33,12 +33,7 @@ pub(super) fn open_raw(path: &Path, spec: &RawSpec) -> Result<Opened, ReadError>
             channels: spec.channels,
             bytes_per_sample: size,
         })?;
-    let sample = match spec.dtype {
-        RawDtype::U8 => SampleType::U8,
-        RawDtype::U16 => SampleType::U16,
-        RawDtype::I16 => SampleType::I16,
-        RawDtype::F32 => SampleType::F32,
-    };
+    let sample = spec.dtype.sample();
     // A raw file must be exactly as large as its description (as `read_raw` requires).
     let len = std::fs::metadata(path)
         .map_err(|e| ReadError::io(path, e))?
