@@ -311,18 +311,32 @@ async fn failures_back_off_retry_and_stop(b: &mut dyn Backend) {
     assert_eq!(two.attempts, 1);
     // Retry gives a fresh budget and no stale error; cancel stops queued and running jobs.
     let r = q.retry(2).await.unwrap();
-    assert_eq!((r.attempts, r.last_failure.is_none()), (0, true));
+    assert_eq!(
+        (r.attempts - r.retried_at, r.last_failure.is_none()),
+        (0, true)
+    );
     let e = q.retry(2).await.unwrap_err();
     assert!(matches!(e, OrchestratorError::InvalidState { .. }), "{e}");
     let running = q.lease("w", false).await.unwrap().job.unwrap();
     assert_eq!(running.id, 2);
-    q.cancel(2).await.unwrap();
+    // The retried job's attempt number goes on (2), never handed out again: the worker of
+    // attempt 1 (cancelled while running, say) cannot take the new lease for its own.
+    assert_eq!(running.attempts, 2);
     let e = q.heartbeat(2, 1, 0.1, "s").await.unwrap_err();
+    assert!(lease_lost(&e), "{e}");
+    let e = q.finish(2, 1, delivered()).await.unwrap_err();
+    assert!(lease_lost(&e), "{e}");
+    q.heartbeat(2, 2, 0.1, "s").await.unwrap();
+    q.cancel(2).await.unwrap();
+    let e = q.heartbeat(2, 2, 0.1, "s").await.unwrap_err();
     assert!(lease_lost(&e) && e.to_string().contains("cancelled"), "{e}");
     let e = q.cancel(2).await.unwrap_err();
     assert!(matches!(e, OrchestratorError::InvalidState { .. }), "{e}");
     let c = q.counts().await.unwrap();
     assert_eq!((c.failed, c.cancelled, c.queued), (1, 1, 0));
+    // Retried again: its budget counts from here, its attempt numbers go on.
+    let r = q.retry(2).await.unwrap();
+    assert_eq!((r.attempts, r.retried_at), (2, 2));
 }
 
 async fn uploads_live_until_no_unfinished_job_needs_them(b: &mut dyn Backend) {
@@ -355,6 +369,16 @@ async fn uploads_live_until_no_unfinished_job_needs_them(b: &mut dyn Backend) {
     );
     let b2 = q.lease("w", false).await.unwrap().job.unwrap();
     q.finish(b2.id, 1, delivered()).await.unwrap();
+    assert_eq!(q.upload(&[1; 32]).await.unwrap(), None);
+    // A source that no job takes is not kept: a job refused as invalid, and one known and
+    // done already (submitted again with its upload).
+    assert!(q.submit(up("", 4, 3), Some(vec![1, 2, 3])).await.is_err());
+    assert_eq!(q.upload(&[4; 32]).await.unwrap(), None);
+    let again = q
+        .submit(up("a", 1, big.len()), Some(big.clone()))
+        .await
+        .unwrap();
+    assert!(again.existed);
     assert_eq!(q.upload(&[1; 32]).await.unwrap(), None);
 }
 
@@ -463,11 +487,33 @@ async fn parts_lease_apart_and_their_results_live_until_dropped(b: &mut dyn Back
         next.id, whole.id,
         "a plain lease takes the oldest job of any kind"
     );
-    q.put_result(parent.id, p0.id, vec![1; 10]).await.unwrap();
-    q.put_result(parent.id, p0.id, vec![2; 3]).await.unwrap();
-    q.put_result(parent.id + 100, p1.id, vec![9]).await.unwrap();
+    let got1 = q.lease("other", true).await.unwrap().job.unwrap();
+    assert_eq!(got1.id, p1.id);
+    q.put_result(parent.id, p0.id, 1, vec![1; 10])
+        .await
+        .unwrap();
+    q.put_result(parent.id, p0.id, 1, vec![2; 3]).await.unwrap();
+    q.put_result(parent.id + 100, p1.id, 1, vec![9])
+        .await
+        .unwrap();
     let big: Vec<u8> = (0..(3 << 20) + 5).map(|i| (i % 253) as u8).collect();
-    q.put_result(parent.id, p1.id, big.clone()).await.unwrap();
+    q.put_result(parent.id, p1.id, 1, big.clone())
+        .await
+        .unwrap();
+    assert_eq!(q.result(parent.id, p0.id).await.unwrap(), Some(vec![2; 3]));
+    // Only the attempt holding the part's live lease stores a result: not another attempt,
+    // not once the part is done (a stale worker cannot replace the finished part's result).
+    let e = q
+        .put_result(parent.id, p0.id, 2, vec![7])
+        .await
+        .unwrap_err();
+    assert!(lease_lost(&e), "{e}");
+    q.finish(p0.id, 1, delivered()).await.unwrap();
+    let e = q
+        .put_result(parent.id, p0.id, 1, vec![7])
+        .await
+        .unwrap_err();
+    assert!(lease_lost(&e), "{e}");
     assert_eq!(q.result(parent.id, p0.id).await.unwrap(), Some(vec![2; 3]));
     drop(q);
     let other = b.reopen(&clock).await;

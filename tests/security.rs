@@ -351,7 +351,7 @@ async fn every_orchestrator_rpc_checks_its_role_and_deliveries_are_confirmed() {
         assert_eq!(fetched.unwrap_err().code(), want);
         if token.is_some() {
             // Reading is allowed to `read` only (and admin).
-            let l = c.list_jobs(pb::ListJobsRequest {}).await;
+            let l = c.list_jobs(pb::ListJobsRequest::default()).await;
             assert_eq!(l.is_ok(), token == Some(READ));
         }
     }

@@ -108,11 +108,19 @@ pub async fn submit(
     Ok(client.submit(tokio_stream::iter(msgs)).await?.into_inner())
 }
 
-/// Every job.
+/// Every job, in id order (read page by page).
 pub async fn list(client: &mut Client) -> Result<Vec<pb::Job>, Status> {
-    Ok(client
-        .list_jobs(pb::ListJobsRequest {})
-        .await?
-        .into_inner()
-        .jobs)
+    let mut jobs: Vec<pb::Job> = Vec::new();
+    loop {
+        let after_id = jobs.last().map_or(0, |j| j.id);
+        let page = client
+            .list_jobs(pb::ListJobsRequest { after_id })
+            .await?
+            .into_inner();
+        let more = page.more && !page.jobs.is_empty();
+        jobs.extend(page.jobs);
+        if !more {
+            return Ok(jobs);
+        }
+    }
 }

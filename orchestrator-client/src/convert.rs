@@ -302,7 +302,7 @@ pub fn job_to_pb(j: &Job, max_attempts: u32) -> pb::Job {
     let mut p = pb::Job {
         id: j.id,
         spec: Some(spec_to_pb(&j.spec)),
-        attempts: j.attempts,
+        attempts: j.attempts.saturating_sub(j.retried_at),
         max_attempts,
         created_unix_ms: j.created_ms,
         updated_unix_ms: j.updated_ms,

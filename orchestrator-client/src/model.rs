@@ -789,8 +789,14 @@ pub struct Job {
     pub spec: JobSpec,
     /// Where it stands.
     pub state: JobState,
-    /// Attempts started (leases granted) since submission or the last retry.
+    /// Attempts started (leases granted) since submission; the current lease's attempt
+    /// number. Never reset, so a lease's (job, attempt) names one lease however often the job
+    /// is retried.
     pub attempts: u32,
+    /// `attempts` when the job was last retried: the retry budget counts only the attempts
+    /// after it.
+    #[serde(default)]
+    pub retried_at: u32,
     /// The last failure of an attempt (kept while the job is retried).
     pub last_failure: Option<Failure>,
     /// Unix ms.

@@ -106,11 +106,14 @@ pub trait JobStore: Send + Sync + 'static {
     async fn upload(&self, sha256: &[u8; 32]) -> Result<Option<Vec<u8>>, OrchestratorError>;
 
     /// Stores (durably) the result of part `id` of the bricked job `parent`, replacing any
-    /// earlier attempt's.
+    /// earlier attempt's, if `attempt` holds the part's live lease at that moment (checked and
+    /// stored as one step): a worker whose lease expired or was taken while it uploaded cannot
+    /// replace the result of the attempt that finished the part (`LeaseLost`).
     async fn put_result(
         &self,
         parent: JobId,
         id: JobId,
+        attempt: u32,
         bytes: Vec<u8>,
     ) -> Result<(), OrchestratorError>;
 
@@ -203,12 +206,21 @@ impl JobStore for EmbeddedQueue {
         upload: Option<Vec<u8>>,
     ) -> Result<Submitted, OrchestratorError> {
         let uploaded = upload.is_some();
-        if let Some(bytes) = &upload {
-            self.store.put_blob(&spec.sha256, bytes)?;
-        }
+        let sha256 = spec.sha256;
         let submitted = {
             let mut q = self.lock();
-            let s = q.submit(spec, self.now())?;
+            // The source is written under the queue's lock, so a job of the same source that
+            // finishes meanwhile cannot remove it between this write and this job's insert;
+            // and it is removed again where nothing takes it (an invalid job, or one known
+            // and done already), as the PostgreSQL store never writes it then.
+            if let Some(bytes) = &upload {
+                self.store.put_blob(&sha256, bytes)?;
+            }
+            let s = q.submit(spec, self.now());
+            if uploaded {
+                self.store.drop_blob_unless_needed(&sha256, q.jobs())?;
+            }
+            let s = s?;
             if !s.existed {
                 self.store.put(std::slice::from_ref(&s.job))?;
             }
@@ -304,9 +316,15 @@ impl JobStore for EmbeddedQueue {
         &self,
         parent: JobId,
         id: JobId,
+        attempt: u32,
         bytes: Vec<u8>,
     ) -> Result<(), OrchestratorError> {
-        self.store.put_result(parent, id, &bytes)?;
+        {
+            // Under the queue's lock: no lease can change between the check and the write.
+            let q = self.lock();
+            crate::queue::rules::check_held(q.get(id)?, attempt, self.now())?;
+            self.store.put_result(parent, id, &bytes)?;
+        }
         self.store.flush().await
     }
 

@@ -563,8 +563,13 @@ impl JobStore for PostgresQueue {
         &self,
         parent: JobId,
         id: JobId,
+        attempt: u32,
         bytes: Vec<u8>,
     ) -> Result<(), OrchestratorError> {
+        // The part's row locked for the check and the write: no lease changes in between.
+        let mut tx = self.begin().await?;
+        let job = Self::locked(&mut tx, id).await?;
+        rules::check_held(&job, attempt, self.now())?;
         sqlx::query(
             "INSERT INTO results (parent, job_id, data) VALUES ($1, $2, $3)
              ON CONFLICT (parent, job_id) DO UPDATE SET data = EXCLUDED.data",
@@ -572,9 +577,10 @@ impl JobStore for PostgresQueue {
         .bind(ms(parent))
         .bind(ms(id))
         .bind(bytes)
-        .execute(&self.pool)
+        .execute(&mut *tx)
         .await
         .map_err(db)?;
+        tx.commit().await.map_err(db)?;
         Ok(())
     }
 

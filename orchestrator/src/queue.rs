@@ -99,6 +99,7 @@ pub mod rules {
             spec,
             state: JobState::Queued { not_before_ms: now },
             attempts: 0,
+            retried_at: 0,
             last_failure: None,
             created_ms: now,
             updated_ms: now,
@@ -143,15 +144,16 @@ pub mod rules {
 
     /// Records a failed attempt: queued again with backoff, or failed for good.
     pub fn fail_attempt(cfg: &QueueOptions, job: &mut Job, failure: Failure, now: u64) {
-        job.state = if failure.kind.is_permanent() || job.attempts >= cfg.max_attempts {
+        let used = job.attempts.saturating_sub(job.retried_at);
+        job.state = if failure.kind.is_permanent() || used >= cfg.max_attempts {
             let mut f = failure.clone();
             if !failure.kind.is_permanent() {
-                f.message = format!("{} (after {} attempts)", f.message, job.attempts);
+                f.message = format!("{} (after {used} attempts)", f.message);
             }
             JobState::Failed(f)
         } else {
             JobState::Queued {
-                not_before_ms: now + cfg.backoff_ms(job.attempts),
+                not_before_ms: now + cfg.backoff_ms(used),
             }
         };
         job.last_failure = Some(failure);
@@ -273,12 +275,14 @@ pub mod rules {
         }
     }
 
-    /// Queues a failed or cancelled job again with a fresh attempt budget.
+    /// Queues a failed or cancelled job again with a fresh attempt budget. Its attempt count
+    /// goes on from where it was: a worker still holding an earlier attempt (cancelled while
+    /// running) must not find its attempt number handed out again.
     pub fn retry(job: &mut Job, now: u64) -> Result<(), OrchestratorError> {
         match job.state {
             JobState::Failed(_) | JobState::Cancelled => {
                 job.state = JobState::Queued { not_before_ms: now };
-                job.attempts = 0;
+                job.retried_at = job.attempts;
                 // The old failure is history: a retried job shows no error until it fails
                 // again (with the reason of that attempt).
                 job.last_failure = None;
@@ -662,7 +666,7 @@ mod tests {
         assert_eq!(j.state.name(), "failed");
         // Retry queues it again with a fresh budget.
         let j = q.retry(1, 10).unwrap();
-        assert_eq!(j.attempts, 0);
+        assert_eq!((j.attempts, j.retried_at), (1, 1));
         assert_eq!(j.state, JobState::Queued { not_before_ms: 10 });
         assert_eq!(j.last_failure, None, "a retried job keeps no old error");
         assert!(q.retry(1, 10).is_err());

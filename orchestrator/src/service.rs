@@ -155,6 +155,35 @@ impl OrchestratorService {
 
 type SourceStream = Pin<Box<dyn Stream<Item = Result<pb::SourceChunk, Status>> + Send>>;
 
+/// Most bytes of jobs one `ListJobs` reply carries (its page), well below the message limit:
+/// a queue of many thousand jobs (a large bricked job adds one per brick and trial) is listed
+/// page by page instead of failing as one reply over the limit.
+pub const LIST_PAGE_BYTES: usize = 1 << 20;
+
+/// The page of `jobs` (in id order) after `after`: whole jobs up to `page_bytes` as encoded
+/// (at least one), and whether more follow.
+fn list_page(
+    jobs: &[crate::model::Job],
+    after: u64,
+    max_attempts: u32,
+    page_bytes: usize,
+) -> pb::ListJobsResponse {
+    let mut page = pb::ListJobsResponse::default();
+    let mut bytes = 0usize;
+    for j in jobs.iter().filter(|j| j.id > after) {
+        let job = convert::job_to_pb(j, max_attempts);
+        let len = prost::Message::encoded_len(&job);
+        let wire = 1 + prost::length_delimiter_len(len) + len;
+        if !page.jobs.is_empty() && bytes + wire > page_bytes {
+            page.more = true;
+            break;
+        }
+        bytes += wire;
+        page.jobs.push(job);
+    }
+    page
+}
+
 /// Parts one `SubmitParts` call may name (its reply stays well below the message limit).
 pub const MAX_PARTS_PER_CALL: usize = 4096;
 
@@ -260,7 +289,9 @@ impl OrchestratorService {
                 "the result's SHA-256 does not match the announced one",
             ));
         }
-        self.store().put_result(part.parent, id, bytes).await?;
+        self.store()
+            .put_result(part.parent, id, attempt, bytes)
+            .await?;
         let delivery = crate::model::Delivery {
             cache_volume_id: 0,
             output_bytes: size,
@@ -325,9 +356,14 @@ fn part_state(job: &crate::model::Job) -> pb::PartState {
         progress: j.progress,
         output_bytes: j.output_bytes,
         failure: j.failure,
-        error: j.error,
+        // Cut to its first 240 characters (a failure's message may hold 4 000): a reply on
+        // 1 024 parts stays far below the message limit whatever their failures said.
+        error: j.error.chars().take(PART_ERROR_CHARS).collect(),
     }
 }
+
+/// Characters of a part's last failure a `PartState` carries.
+const PART_ERROR_CHARS: usize = 240;
 
 #[tonic::async_trait]
 impl Orchestrator for OrchestratorService {
@@ -342,16 +378,16 @@ impl Orchestrator for OrchestratorService {
 
     async fn list_jobs(
         &self,
-        _request: Request<pb::ListJobsRequest>,
+        request: Request<pb::ListJobsRequest>,
     ) -> Result<Response<pb::ListJobsResponse>, Status> {
-        let jobs = self
-            .store()
-            .list()
-            .await?
-            .iter()
-            .map(|j| convert::job_to_pb(j, self.max_attempts()))
-            .collect();
-        Ok(Response::new(pb::ListJobsResponse { jobs }))
+        let after = request.into_inner().after_id;
+        let jobs = self.store().list().await?;
+        Ok(Response::new(list_page(
+            &jobs,
+            after,
+            self.max_attempts(),
+            LIST_PAGE_BYTES,
+        )))
     }
 
     async fn get_job(&self, request: Request<pb::JobRef>) -> Result<Response<pb::Job>, Status> {
@@ -549,5 +585,69 @@ impl Orchestrator for OrchestratorService {
                 ))
             })?;
         Ok(Response::new(chunked(&bytes)))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::model::{Failure, FailureKind, JobOptions, JobSpec};
+    use crate::queue::rules;
+
+    fn job(id: u64) -> crate::model::Job {
+        let spec = JobSpec {
+            name: format!("volume {id} with a name of some length"),
+            source: Source::Path(format!("/archive/study/{id}.nii.gz").into()),
+            sha256: [id as u8; 32],
+            raw: None,
+            options: JobOptions::default(),
+            part: None,
+        };
+        rules::new_job(id, spec, 0)
+    }
+
+    /// A list longer than a page comes in pages of whole jobs within the page's bytes, in id
+    /// order, each page after the last one's id, the last saying nothing more follows.
+    #[test]
+    fn jobs_are_listed_in_pages_within_their_bytes() {
+        let jobs: Vec<_> = (1..=500).map(job).collect();
+        let page_bytes = 4096;
+        let (mut listed, mut after, mut pages) = (Vec::new(), 0, 0);
+        loop {
+            let page = list_page(&jobs, after, 3, page_bytes);
+            let bytes = prost::Message::encoded_len(&pb::ListJobsResponse {
+                jobs: page.jobs.clone(),
+                more: false,
+            });
+            assert!(bytes <= page_bytes, "a page of {bytes} bytes");
+            assert!(!page.jobs.is_empty());
+            pages += 1;
+            after = page.jobs.last().unwrap().id;
+            listed.extend(page.jobs.iter().map(|j| j.id));
+            if !page.more {
+                break;
+            }
+        }
+        assert!(pages > 10, "{pages} pages");
+        assert_eq!(listed, (1..=500).collect::<Vec<u64>>());
+        // A page smaller than one job still lists it; past the last id, nothing.
+        let one = list_page(&jobs, 0, 3, 1);
+        assert_eq!((one.jobs.len(), one.more), (1, true));
+        let none = list_page(&jobs, 500, 3, page_bytes);
+        assert_eq!((none.jobs.len(), none.more), (0, false));
+    }
+
+    /// A part's state carries only the start of a long failure message, so that a reply on
+    /// many parts stays small.
+    #[test]
+    fn a_parts_state_carries_the_start_of_its_failure() {
+        let mut j = job(7);
+        j.last_failure = Some(Failure {
+            kind: FailureKind::Worker,
+            message: "é".repeat(4000),
+        });
+        let s = part_state(&j);
+        assert_eq!(s.error.chars().count(), PART_ERROR_CHARS);
+        assert!(s.error.chars().all(|c| c == 'é'));
     }
 }

@@ -116,13 +116,23 @@ impl Store {
         if !matches!(job.spec.source, Source::Upload { .. }) {
             return Ok(());
         }
-        let needed = all.filter(|j| j.id != job.id).any(|j| {
-            j.spec.sha256 == job.spec.sha256
+        self.drop_blob_unless_needed(&job.spec.sha256, all.filter(|j| j.id != job.id))
+    }
+
+    /// Removes the uploaded source `sha256` unless one of `jobs` still needs it (an upload
+    /// job of that source not yet done).
+    pub fn drop_blob_unless_needed<'a>(
+        &self,
+        sha256: &[u8; 32],
+        mut jobs: impl Iterator<Item = &'a Job>,
+    ) -> Result<(), OrchestratorError> {
+        let needed = jobs.any(|j| {
+            j.spec.sha256 == *sha256
                 && matches!(j.spec.source, Source::Upload { .. })
                 && !matches!(j.state, JobState::Done { .. })
         });
         if !needed {
-            self.blobs.remove(job.spec.sha256)?;
+            self.blobs.remove(sha256)?;
         }
         Ok(())
     }
