@@ -130,6 +130,58 @@ fn first_hour_mistakes_are_explained() {
     let e = run(&["render", &wsp, "-o", "/nonexistent-dir/a.png"]);
     assert!(!e.status.success());
     assert!(err(&e).contains("does not exist"), "{}", err(&e));
+    // So are an output that is a directory, the PNG and the raw floats at one path, a frame
+    // time past what a clock can hold (it panicked), and a screenshot into no directory.
+    let d = dir.path().to_str().unwrap();
+    let png = dir.path().join("a.png");
+    let png = png.to_str().unwrap();
+    for (args, says) in [
+        (vec!["render", &wsp, "-o", d], "is a directory"),
+        (vec!["render", &wsp, "-o", png, "--raw", png], "both name"),
+        (
+            vec![
+                "render",
+                &wsp,
+                "-o",
+                png,
+                "--progressive",
+                "--frame-ms",
+                "1e23",
+            ],
+            "--frame-ms",
+        ),
+        (
+            vec![
+                "render",
+                &wsp,
+                "-o",
+                png,
+                "--progressive",
+                "--budget-ms",
+                "1e23",
+            ],
+            "--budget-ms",
+        ),
+        (
+            vec!["view", &wsp, "--screenshot", "/nonexistent-dir/s.png"],
+            "does not exist",
+        ),
+    ] {
+        let e = run(&args);
+        assert!(!e.status.success(), "{args:?}");
+        assert!(err(&e).contains(says), "{args:?}: {}", err(&e));
+        assert!(!err(&e).contains("panicked"), "{args:?}: {}", err(&e));
+    }
+    // A view panned off the volume draws an empty image and says why.
+    let off = run(&["render", &wsp, "-o", png, "--pan", "1000,0"]);
+    assert!(off.status.success(), "{}", err(&off));
+    assert!(
+        err(&off).contains("sees none of the volume"),
+        "{}",
+        err(&off)
+    );
+    let on = run(&["render", &wsp, "-o", png]);
+    assert!(!err(&on).contains("sees none"), "{}", err(&on));
 
     // A volume that is not compressed, given to info, render or decompress.
     std::fs::write(

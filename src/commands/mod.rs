@@ -100,8 +100,15 @@ pub fn database_error(
     }
 }
 
-/// Checks, before any work, that the file `path` can be created: its directory exists.
+/// Checks, before any work, that the file `path` can be created: it is not a directory and
+/// its directory exists.
 pub fn check_output(path: &std::path::Path) -> Result<()> {
+    if path.is_dir() {
+        bail!(
+            "cannot write {}: it is a directory (name a file in it)",
+            path.display()
+        );
+    }
     let dir = match path.parent() {
         Some(d) if !d.as_os_str().is_empty() => d,
         _ => return Ok(()),

@@ -317,21 +317,38 @@ pub fn run(a: RenderArgs) -> Result<()> {
     }
     if let Some(r) = &a.raw {
         super::check_output(r)?;
+        if a.time_points.is_some() {
+            bail!(
+                "--raw writes one image: it takes --time-point T, not --time-points (which \
+                 writes a PNG per time point and an animation)"
+            );
+        }
+        if *r == a.output {
+            bail!(
+                "--raw and -o both name {}: the raw floats would replace the PNG",
+                r.display()
+            );
+        }
     }
     if let Some(input) = &a.view.input {
         for out in std::iter::once(&a.output).chain(&a.raw) {
             super::check_not_input(out, input)?;
         }
     }
-    if !(a.frame_ms.is_finite() && a.frame_ms > 0.0) {
+    // Bounded (a day) so that a time in the future can be formed from them.
+    const MAX_MS: f64 = 86_400_000.0;
+    if !(a.frame_ms.is_finite() && a.frame_ms > 0.0 && a.frame_ms <= MAX_MS) {
         bail!(
-            "--frame-ms must be a positive number of milliseconds, got {}",
+            "--frame-ms must be a positive number of milliseconds up to {MAX_MS} (a day), got {}",
             a.frame_ms
         );
     }
     if let Some(b) = a.budget_ms {
-        if !(b.is_finite() && b >= 0.0) {
-            bail!("--budget-ms must be a non-negative number of milliseconds, got {b}");
+        if !(b.is_finite() && (0.0..=MAX_MS).contains(&b)) {
+            bail!(
+                "--budget-ms must be a non-negative number of milliseconds up to {MAX_MS} (a \
+                 day), got {b}"
+            );
         }
     }
     // The times printed count from here (the request), session start-up included and the
@@ -367,6 +384,7 @@ pub fn run(a: RenderArgs) -> Result<()> {
                 );
             }
             if one_pass_asked {
+                note_cpu_only(&a, "a time series");
                 return render_series(&a, &view, path, bytes, request);
             }
             if a.time_points.is_some() {
@@ -375,6 +393,7 @@ pub fn run(a: RenderArgs) -> Result<()> {
             // Drawn progressively below: the time point's components as one volume.
         }
         if wavesplat_codec::format::bricked::is_bricked(bytes) && one_pass_asked && !a.reference {
+            note_cpu_only(&a, "a bricked volume");
             return render_bricked(&a, &view, path, bytes, request);
         }
     }
@@ -447,6 +466,7 @@ pub fn run(a: RenderArgs) -> Result<()> {
             selected.backend.name(),
             left_out(whole.stats.vanished)
         );
+        warn_if_nothing_seen(whole.coefficients == 0 || whole.stats.splatted > 0);
         outln!(
             "opened in {:.1} ms, done {:.1} ms after the request (start-up included; decoding and planning together {:.1} ms, splatting {:.1} ms: in the backend's accumulate {:.1} ms and read-back {:.1} ms, the rest making records)",
             opened_after.as_secs_f64() * 1e3,
@@ -639,6 +659,27 @@ fn left_out(vanished: usize) -> String {
     }
 }
 
+/// Says that `--gpu` is not taken where the one-pass drawing of `what` runs on the CPU only.
+fn note_cpu_only(a: &RenderArgs, what: &str) {
+    if a.backend.choice() == BackendChoice::Gpu {
+        eprintln!(
+            "note: --gpu: {what} is drawn in one pass on the CPU (--progressive draws it with \
+             the backend asked for)"
+        );
+    }
+}
+
+/// Warns where the view saw nothing of the volume: the image is black because nothing is in
+/// it (a pan or zoom off the volume), not because the volume is empty.
+fn warn_if_nothing_seen(seen: bool) {
+    if !seen {
+        eprintln!(
+            "warning: the view sees none of the volume (nothing of it on screen): the image is \
+             empty; check --pan and --zoom"
+        );
+    }
+}
+
 /// `render` of a local bricked file in one pass: every brick the view sees, drawn on the CPU
 /// and added up ([`wavesplat_viewer::bricked`]). (Progressive runs go through the session, as
 /// any file.)
@@ -674,6 +715,7 @@ fn render_bricked(
         drawn.coefficients,
         request.elapsed().as_secs_f64() * 1e3
     );
+    warn_if_nothing_seen(drawn.drawn > 0);
     Ok(())
 }
 

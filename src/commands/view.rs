@@ -68,6 +68,16 @@ pub struct ViewWindowArgs {
 pub fn run(a: ViewWindowArgs) -> Result<()> {
     let request = a.view.request()?;
     request.spec()?;
+    // Checked now, not when the window closes with the session's image to write.
+    if let Some(shot) = &a.screenshot {
+        super::check_output(shot)?;
+    }
+    if !a.shot_dir.is_dir() {
+        bail!(
+            "--shot-dir {}: no such directory (screenshots taken with S go there)",
+            a.shot_dir.display()
+        );
+    }
     if !(a.frame_ms.is_finite() && a.frame_ms > 0.0 && a.frame_ms <= 10_000.0) {
         bail!(
             "--frame-ms must be a positive number of milliseconds (at most 10000), got {}",
