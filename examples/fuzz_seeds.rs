@@ -96,6 +96,23 @@ fn main() {
     let bricked =
         wavesplat_compressor::bricked::compress_bricked(&vol, &small, 8, &|_| {}).unwrap();
     put(&root.join("file"), "bricked.wsp", &bricked.bytes);
+    // The same bricks in the explicit manifest (format version 9, each brick's box and bytes
+    // listed), and both published (the indexed layout's versions 2 and, for a plain file, 1).
+    let parsed = wavesplat_codec::format::bricked::parse_bricked(&bricked.bytes).unwrap();
+    let bricks: Vec<&[u8]> = (0..parsed.manifest.bricks.len())
+        .map(|i| parsed.brick_bytes(i).unwrap())
+        .collect();
+    let mut explicit = parsed.manifest.clone();
+    explicit.version = wavesplat_codec::format::bricked::EXPLICIT_BRICKED_VERSION;
+    let explicit = wavesplat_codec::format::bricked::write_bricked(&mut explicit, &bricks).unwrap();
+    put(&root.join("file"), "bricked-explicit.wsp", &explicit);
+    let index = wavesplat_codec::format::index::indexed_layout;
+    put(
+        &root.join("file"),
+        "bricked.wspx",
+        &index(&bricked.bytes).unwrap(),
+    );
+    put(&root.join("file"), "plain.wspx", &index(bricks[0]).unwrap());
     let points = (0..3)
         .map(|t| wavesplat_compressor::phantom::beating([10, 8, 6], t, 3).unwrap())
         .collect();
@@ -104,7 +121,6 @@ fn main() {
         wavesplat_compressor::series::compress_series(&series, &small, 2, 256, &|_| {}).unwrap();
     put(&root.join("file"), "series.wsp", &series.bytes);
     // Published (the indexed layout's version 3): a series of plain and of bricked components.
-    let index = wavesplat_codec::format::index::indexed_layout;
     put(
         &root.join("file"),
         "plain-series.wspx",
