@@ -166,10 +166,60 @@ fn raw_regions_match_the_whole_for_every_dtype_endian_and_channel_count() {
                     channels,
                     spacing: [0.5, 1.0, 2.5],
                     time_points: 1,
+                    header_bytes: 0,
                 };
                 check(&path, Some(&spec));
             }
         }
+    }
+}
+
+/// A raw file with a 512-byte header before its samples (`header_bytes`) reads by region
+/// exactly as whole, as a volume and as a time series; a wrong header size is refused at open
+/// with the total the description needs.
+#[test]
+fn raw_regions_skip_a_header() {
+    let dir = tempfile::tempdir().unwrap();
+    let n = DIMS.iter().product::<usize>();
+    let mut bytes: Vec<u8> = (0..512).map(|i| (i % 7) as u8).collect();
+    for i in 0..2 * n {
+        encode(
+            i as f64 * 3.0 - 500.0,
+            RawDtype::I16,
+            Endian::Little,
+            &mut bytes,
+        );
+    }
+    let path = dir.path().join("with_header.dat");
+    std::fs::write(&path, &bytes).unwrap();
+    let mut spec = RawSpec::new(DIMS, RawDtype::I16);
+    spec.header_bytes = 512;
+    spec.time_points = 2;
+    let r = RegionReader::open_series(&path, Some(&spec)).unwrap();
+    assert_eq!(r.time_points(), 2);
+    let second = r.read_region_at(1, [0; 3], DIMS).unwrap();
+    assert_eq!(second.channel(0)[0], n as f32 * 3.0 - 500.0);
+    // One volume of the first half of those samples, after the same header.
+    let one = dir.path().join("one.dat");
+    std::fs::write(&one, &bytes[..512 + 2 * n]).unwrap();
+    spec.time_points = 1;
+    check(&one, Some(&spec));
+    assert_eq!(
+        read_volume(&one, Some(&spec)).unwrap().channel(0)[1],
+        -497.0
+    );
+    for wrong in [0u64, 511, 513] {
+        spec.header_bytes = wrong;
+        let e = RegionReader::open(&one, Some(&spec)).unwrap_err();
+        let total = wrong + 2 * n as u64;
+        assert!(
+            matches!(e, ReadError::SizeMismatch { expected, .. } if expected == total),
+            "{e}"
+        );
+        assert!(
+            e.to_string().contains(&format!("exactly {total} bytes")),
+            "{e}"
+        );
     }
 }
 

@@ -28,7 +28,8 @@ use wavesplat_harness::console::Progress;
 #[derive(Args, Debug)]
 pub struct CompressArgs {
     /// Input volume: a DICOM series directory or DICOM file, .nrrd / .nhdr, .mha / .mhd,
-    /// .nii / .nii.gz, or raw samples: named `NAME_XxYxZ_DTYPE[_rgb][_be].raw` as `archive
+    /// .nii / .nii.gz, a .hdr (+ the .img beside it: a NIfTI-1 pair or Analyze 7.5; .hdr.gz,
+    /// .img.gz too), or raw samples: named `NAME_XxYxZ_DTYPE[_rgb][_be].raw` as `archive
     /// submit` reads them (e.g. `head_256x256x128_u16.raw`), or any name with --dims and
     /// --dtype. Omit it to use --phantom.
     pub input: Option<PathBuf>,
@@ -67,6 +68,10 @@ pub struct CompressArgs {
     /// Raw voxel spacing X,Y,Z in mm (default 1,1,1); formats with a header give their own.
     #[arg(long, value_parser = parse_spacing)]
     pub spacing: Option<[f32; 3]>,
+    /// Raw input with a fixed-size header of another program's before the samples: skip its N
+    /// bytes (the file must then be N bytes longer than the samples).
+    #[arg(long, value_name = "N", default_value_t = 0)]
+    pub header_bytes: u64,
     /// Wavelet family: haar, linear, cubic.
     #[arg(long, default_value = "linear")]
     pub family: String,
@@ -260,6 +265,7 @@ fn input(a: &CompressArgs) -> Result<Input> {
             spec.time_points = d.t.unwrap_or(1);
             spec.endian = Endian::from_name(&a.endian)?;
             spec.channels = a.channels;
+            spec.header_bytes = a.header_bytes;
             if let Some(s) = a.spacing {
                 spec.spacing = s;
             }
@@ -275,6 +281,7 @@ fn input(a: &CompressArgs) -> Result<Input> {
             match named {
                 Some((_, layout)) => {
                     let mut spec = wavesplat_worker::options::raw_spec(&layout);
+                    spec.header_bytes = a.header_bytes;
                     if let Some(s) = a.spacing {
                         spec.spacing = s;
                     }
@@ -283,6 +290,9 @@ fn input(a: &CompressArgs) -> Result<Input> {
                 None => {
                     if a.spacing.is_some() {
                         bail!("--spacing applies to raw input (with --dims and --dtype); this file's header gives its spacing");
+                    }
+                    if a.header_bytes > 0 {
+                        bail!("--header-bytes applies to raw input (with --dims and --dtype)");
                     }
                     None
                 }
@@ -375,7 +385,12 @@ pub(crate) fn probe_file_for_bricks(
             })
             .unwrap_or(0)
     } else {
-        std::fs::metadata(path).map(|m| m.len()).unwrap_or(0)
+        // Every file the volume is made of: a detached header's data files, a `.hdr`'s `.img`
+        // (the header alone is a few hundred bytes).
+        wavesplat_compressor::reader::SourceListing::list(path, None)
+            .map(|l| l.files.iter().map(|f| f.2).sum())
+            .or_else(|_| std::fs::metadata(path).map(|m| m.len()))
+            .unwrap_or(0)
     };
     // A limit given is always checked; the memory available only for files large enough.
     let large = match (opts.memory_limit, limit) {

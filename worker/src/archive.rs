@@ -5,7 +5,10 @@
 //! - DICOM: a directory holding DICOM files (files with the `DICM` preamble, whatever their
 //!   name) is one volume, a series or a multi-frame file, named by the directory's path;
 //! - NRRD (`*.nrrd`, `*.nhdr` with its data file), MetaImage (`*.mha`, `*.mhd` with its data
-//!   file), NIfTI-1 (`*.nii`, `*.nii.gz`): the header describes the data;
+//!   file), NIfTI-1 (`*.nii`, `*.nii.gz`, and `*.hdr` + `*.img` pairs, Analyze 7.5 too; either
+//!   gzip-compressed): the header describes the data; a pair is one volume (its `.img` is not
+//!   a file of its own), and a `.hdr` that is no NIfTI or Analyze header (ENVI's, say) is
+//!   ignored;
 //! - headerless raw, described by its name: `NAME_XxYxZ_DTYPE[_rgb][_be].raw`, e.g.
 //!   `head_256x256x128_u16.raw`, `cells_64x64x64_u8_rgb.raw`, `ct_512x512x300_i16_be.raw`.
 //!   DTYPE is `u8`, `u16`, `i16` or `f32`; `_rgb` means 3 channels interleaved per voxel;
@@ -28,7 +31,7 @@ use std::collections::{BTreeSet, HashSet};
 use std::path::{Path, PathBuf};
 use wavesplat_compressor::reader::steps::{step_files, StepSeries};
 use wavesplat_compressor::reader::{
-    dicom::is_dicom_file, Format, ReadError, SourceFiles, SourceListing,
+    dicom::is_dicom_file, nifti, Format, ReadError, SourceFiles, SourceListing,
 };
 use wavesplat_orchestrator_client::model::{JobOptions, JobSpec, RawLayout, SampleType, Source};
 
@@ -192,6 +195,23 @@ pub fn scan_with(root: &Path, time_steps: bool) -> std::io::Result<Scan> {
                     }
                 }
             }
+            Some(Format::Nifti) if nifti::is_pair_header_path(path) => {
+                // A `.hdr` and the `.img` beside it are one volume; a `.hdr` of another kind
+                // is no volume.
+                if !nifti::is_pair_header(path) {
+                    taken.insert(path.clone());
+                    continue;
+                }
+                match nifti::pair_data_file(path) {
+                    Ok(data) => {
+                        taken.insert(data);
+                    }
+                    Err(e) => {
+                        scan.skipped.push((path.clone(), e.to_string()));
+                        taken.insert(path.clone());
+                    }
+                }
+            }
             Some(Format::Nifti) => {}
             Some(Format::Dicom) | None => {
                 if is_dicom_file(path)? {
@@ -231,7 +251,8 @@ pub fn scan_with(root: &Path, time_steps: bool) -> std::io::Result<Scan> {
             .map(|p| p.to_string_lossy().into_owned())
             .unwrap_or_default();
         let (base, raw) = if let Some(s) = [
-            ".nii.gz", ".nii", ".nrrd", ".nhdr", ".mha", ".mhd", ".dcm", ".dicom",
+            ".nii.gz", ".nii", ".hdr.gz", ".hdr", ".nrrd", ".nhdr", ".mha", ".mhd", ".dcm",
+            ".dicom",
         ]
         .iter()
         .find_map(|ext| lower.strip_suffix(ext))
@@ -456,6 +477,55 @@ mod tests {
         );
         assert!(s.found.iter().any(|f| f.path == r.join("study/series1")));
         assert_eq!(s.skipped.len(), 2, "{:?}", s.skipped);
+    }
+
+    /// A NIfTI-1 (or Analyze) `.hdr` + `.img` pair is one volume named by its header (`.hdr`
+    /// or `.hdr.gz`); its hash and upload cover the `.img` (the bundle decodes to the
+    /// volume); a `.hdr` without its `.img` is skipped naming the file looked for; a `.hdr`
+    /// that is no NIfTI header (ENVI's) and its `.img` are ignored, as before.
+    #[test]
+    fn a_nifti_pair_is_one_volume_with_its_img() {
+        let dir = tempfile::tempdir().unwrap();
+        let r = dir.path();
+        let mut h = vec![0u8; 348];
+        h[..4].copy_from_slice(&348i32.to_le_bytes());
+        for (i, d) in [3u16, 2, 2, 2, 1, 1, 1, 1].iter().enumerate() {
+            h[40 + 2 * i..42 + 2 * i].copy_from_slice(&d.to_le_bytes());
+        }
+        h[70..72].copy_from_slice(&2i16.to_le_bytes()); // uint8
+        h[72..74].copy_from_slice(&8i16.to_le_bytes());
+        h[344..348].copy_from_slice(b"ni1\0");
+        let data: Vec<u8> = (1..=8).collect();
+        std::fs::write(r.join("oasis.hdr"), &h).unwrap();
+        std::fs::write(r.join("oasis.img"), &data).unwrap();
+        std::fs::create_dir(r.join("fsl")).unwrap();
+        // The readers tell gzip by content: these names are what the scan goes by.
+        std::fs::write(r.join("fsl/pair.hdr.gz"), &h).unwrap();
+        std::fs::write(r.join("fsl/pair.img.gz"), &data).unwrap();
+        std::fs::write(r.join("lone.hdr"), &h).unwrap();
+        std::fs::write(r.join("envi.hdr"), b"ENVI\nsamples = 2\n").unwrap();
+        std::fs::write(r.join("envi.img"), &data).unwrap();
+        let s = scan(r).unwrap();
+        let names: Vec<&str> = s.found.iter().map(|f| f.name.as_str()).collect();
+        assert_eq!(names, vec!["fsl/pair", "oasis"]);
+        assert!(s.found.iter().all(|f| f.raw.is_none()));
+        assert_eq!(s.skipped.len(), 1, "{:?}", s.skipped);
+        assert_eq!(s.skipped[0].0, r.join("lone.hdr"));
+        assert!(s.skipped[0].1.contains("lone.img"), "{:?}", s.skipped);
+        for f in &s.found {
+            let listing = source_listing(&f.path, false).unwrap();
+            assert_eq!(listing.files.len(), 2, "{}", f.name);
+            let (spec, bytes) = job_spec(f, &JobOptions::default(), true).unwrap();
+            let bytes = bytes.unwrap();
+            assert_eq!(
+                source_digest(&f.path, false).unwrap().0.to_vec(),
+                spec.sha256
+            );
+            let src = SourceFiles::from_bytes(bytes, &f.path).unwrap();
+            let v = wavesplat_compressor::reader::decode_source(&src, None).unwrap();
+            assert_eq!(v.dims(), [2, 2, 2]);
+            assert_eq!(v.channel(0), &[1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0]);
+        }
     }
 
     /// A job names the same content whether its source is uploaded or named by path: files

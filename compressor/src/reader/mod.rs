@@ -1,7 +1,8 @@
 //! Volume readers for what hospitals and labs store: DICOM (a series directory, one file per
 //! slice, or multi-frame files; [`dicom`]), NRRD (attached `.nrrd` and detached `.nhdr`
 //! headers; [`nrrd`]), MetaImage (`.mha`, `.mhd` + data file; [`metaimage`]), NIfTI-1 (`.nii`,
-//! `.nii.gz`; [`nifti`]) and headerless raw files described by a [`RawSpec`] ([`raw`]). Every
+//! `.nii.gz`, and `.hdr` + `.img` pairs, which read Analyze 7.5 too; [`nifti`]) and raw files
+//! described by a [`RawSpec`] ([`raw`]; headerless, or after a header of a known size). Every
 //! reader keeps the voxel spacing and, where the format says, the grid's placement in patient
 //! space (origin and axis directions, converted to DICOM's LPS frame) on the [`Volume`];
 //! values keep their units (rescaled DICOM CT is in HU).
@@ -63,17 +64,21 @@ pub enum ReadError {
     },
     /// A raw file (or buffer) does not have exactly the size its description requires.
     #[error(
-        "{}raw data is {actual} bytes, but dims {dims:?}{} × {channels} channel(s) × {bytes_per_sample} byte(s) ({dtype}) need exactly {expected} bytes",
+        "{}raw data is {actual} bytes, but {}dims {dims:?}{} × {channels} channel(s) × {bytes_per_sample} byte(s) ({dtype}) need exactly {expected} bytes",
         display_origin(path.as_deref()),
+        display_header_bytes(*header_bytes),
         display_time_points(*time_points)
     )]
     SizeMismatch {
         /// The file, if the data came from one.
         path: Option<PathBuf>,
-        /// Bytes required by the description.
+        /// Bytes required by the description (the header's, when it has one, and the
+        /// samples').
         expected: u64,
         /// Bytes present.
         actual: u64,
+        /// Bytes of the header before the samples (`--header-bytes`; 0: none).
+        header_bytes: u64,
         /// The described dimensions.
         dims: [usize; 3],
         /// The described channel count.
@@ -81,7 +86,7 @@ pub enum ReadError {
         /// The described sample type.
         dtype: RawDtype,
         /// Bytes per sample of `dtype`.
-        bytes_per_sample: usize,
+        bytes_per_sample: u8,
         /// The described time points (1: one volume).
         time_points: usize,
     },
@@ -109,6 +114,18 @@ pub enum ReadError {
     MissingRawSpec {
         /// The file.
         path: PathBuf,
+    },
+    /// The data file of a `.hdr` header (a NIfTI-1 pair or Analyze 7.5) is not beside it.
+    #[error(
+        "{}: the samples of this .hdr header are in a .img file beside it, but there is no {}",
+        header.display(),
+        looked_for.iter().map(|p| p.display().to_string()).collect::<Vec<_>>().join(" nor ")
+    )]
+    MissingPairData {
+        /// The header.
+        header: PathBuf,
+        /// The data files looked for, in order.
+        looked_for: Vec<PathBuf>,
     },
     /// The NIfTI header could not be parsed.
     #[error("{} is not a readable NIfTI-1 file: {source}", path.display())]
@@ -246,6 +263,15 @@ fn voxel_count(dims: [usize; 3]) -> Result<usize, VolumeError> {
 fn display_time_points(t: usize) -> String {
     if t > 1 {
         format!(" × {t} time points")
+    } else {
+        String::new()
+    }
+}
+
+/// "a N-byte header + " of a raw size with a header, nothing without.
+fn display_header_bytes(n: u64) -> String {
+    if n > 0 {
+        format!("a {n}-byte header + ")
     } else {
         String::new()
     }
@@ -391,7 +417,8 @@ pub enum Format {
     Nrrd,
     /// MetaImage, attached (`.mha`) or detached (`.mhd`) header.
     MetaImage,
-    /// NIfTI-1 single file (`.nii`, `.nii.gz`).
+    /// NIfTI-1 single file (`.nii`, `.nii.gz`), or a `.hdr` + `.img` pair (NIfTI-1 or Analyze
+    /// 7.5; `.hdr.gz`, `.img.gz` too).
     Nifti,
 }
 
@@ -407,11 +434,11 @@ impl Format {
     }
 
     /// The format a file name says (`.dcm`, `.nrrd`/`.nhdr`, `.mha`/`.mhd`, `.nii`/`.nii.gz`,
-    /// case-insensitive), if any.
+    /// `.hdr`/`.hdr.gz` (a NIfTI-1 or Analyze 7.5 pair's header), case-insensitive), if any.
     pub fn from_name(path: &Path) -> Option<Format> {
         let name = path.file_name()?.to_string_lossy().to_ascii_lowercase();
         let ext = |e: &str| name.ends_with(e);
-        if ext(".nii") || ext(".nii.gz") {
+        if ext(".nii") || ext(".nii.gz") || ext(".hdr") || ext(".hdr.gz") {
             Some(Format::Nifti)
         } else if ext(".nrrd") || ext(".nhdr") {
             Some(Format::Nrrd)
@@ -426,7 +453,8 @@ impl Format {
 
     /// The format the first bytes of a file say: the DICOM preamble (`DICM` at offset 128),
     /// the NRRD magic (`NRRD000`), a MetaImage header line (`ObjectType =`, `NDims =`), or a
-    /// NIfTI-1 header (`sizeof_hdr` 348 and magic `n+1`; a gzip stream is taken as NIfTI).
+    /// NIfTI-1 header (`sizeof_hdr` 348 and magic `n+1`, or a pair's `ni1`; a gzip stream is
+    /// taken as NIfTI).
     pub fn sniff(head: &[u8]) -> Option<Format> {
         if dicom::has_preamble(head) {
             Some(Format::Dicom)
@@ -447,8 +475,9 @@ pub const MAX_SOURCE_FILES: usize = 1 << 16;
 
 /// The bytes of every file one volume is made of, by name: one file (NIfTI, `.nrrd`, `.mha`, a
 /// multi-frame DICOM file), a header and the data files it names (`.nhdr`, `.mhd`; named as the
-/// header names them), or the files of a DICOM series directory (by file name). The first file
-/// is the primary one (the header, or the first slice).
+/// header names them; a `.hdr` and the `.img` beside it), or the files of a DICOM series
+/// directory (by file name). The first file is the primary one (the header, or the first
+/// slice).
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct SourceFiles {
     /// Where the files came from (for messages): the primary file, or the series directory.
@@ -468,7 +497,8 @@ impl SourceFiles {
     /// Gathers the files of the volume at `path`: a directory is a DICOM series (every
     /// non-hidden regular file directly inside that starts with the DICOM preamble); a
     /// detached NRRD or MetaImage header brings the data file(s) it names (relative to the
-    /// header's directory); anything else is one file. `format` overrides detection.
+    /// header's directory), a NIfTI / Analyze `.hdr` the `.img` beside it
+    /// ([`nifti::pair_data_file`]); anything else is one file. `format` overrides detection.
     pub fn gather(path: &Path, format: Option<Format>) -> Result<SourceFiles, ReadError> {
         // The files are found as a listing finds them ([`SourceListing::list`]), so that the
         // bytes hashed by streaming a listing are the bytes gathered here.
@@ -663,6 +693,13 @@ impl SourceListing {
         let companions = match format {
             Some(Format::Nrrd) => nrrd::data_files(path, &head)?,
             Some(Format::MetaImage) => metaimage::data_files(path, &head)?,
+            Some(Format::Nifti) if nifti::is_pair_header_path(path) => {
+                let data = nifti::pair_data_file(path)?;
+                vec![data
+                    .file_name()
+                    .map(|n| n.to_string_lossy().into_owned())
+                    .unwrap_or_default()]
+            }
             _ => Vec::new(),
         };
         let dir = path.parent().unwrap_or(Path::new("."));
@@ -785,7 +822,17 @@ pub fn decode_source(src: &SourceFiles, raw: Option<&RawSpec>) -> Result<Volume,
         Some(Format::Dicom) => dicom::decode(src),
         Some(Format::Nrrd) => nrrd::decode(src),
         Some(Format::MetaImage) => metaimage::decode(src),
-        Some(Format::Nifti) => nifti::decode_nifti(&src.origin, &src.files[0].1),
+        Some(Format::Nifti) => match src.files.as_slice() {
+            [(_, bytes)] => nifti::decode_nifti(&src.origin, bytes),
+            // A `.hdr` and its `.img`.
+            [(_, header), (data, bytes)] => {
+                nifti::decode_nifti_pair(&src.origin, header, &src.path_of(data), bytes)
+            }
+            files => Err(ReadError::Bundle(format!(
+                "a NIfTI source is one file or a .hdr and its .img, not {} files",
+                files.len()
+            ))),
+        },
         None => match (raw, src.files.as_slice()) {
             (Some(spec), [(_, bytes)]) => decode_raw(bytes, spec).map_err(|mut e| {
                 // Name the file in a size mismatch that names none.
@@ -802,14 +849,19 @@ pub fn decode_source(src: &SourceFiles, raw: Option<&RawSpec>) -> Result<Volume,
 }
 
 /// Reads a volume from a path: a DICOM series directory, a DICOM, NRRD, MetaImage or NIfTI
-/// file (by extension, else by content), or else a headerless raw file described by `raw`.
-/// A `raw` spec given for a file of a known format is ignored (the header describes the data).
+/// file (by extension, else by content; a `.hdr` reads the `.img` beside it), or else a raw
+/// file described by `raw`. A `raw` spec given for a file of a known format is ignored (the
+/// header describes the data). The `.img` of a pair, given alone and without `raw`, is
+/// refused naming its header.
 pub fn read_volume(path: &Path, raw: Option<&RawSpec>) -> Result<Volume, ReadError> {
     let meta = std::fs::metadata(path).map_err(|e| ReadError::io(path, e))?;
     if meta.is_file() && Format::from_name(path).is_none() {
         if let Some(spec) = raw {
             // Raw data is never sniffed: its first bytes could look like anything.
             return read_raw(path, spec);
+        }
+        if let Some(header) = nifti::pair_header_of(path) {
+            return Err(nifti::pair_data_read_alone(path, &header));
         }
     }
     let src = SourceFiles::gather(path, None)?;
@@ -986,10 +1038,21 @@ mod tests {
             ("b.mha", Format::MetaImage),
             ("b.MHD", Format::MetaImage),
             ("c.dcm", Format::Dicom),
+            ("p.hdr", Format::Nifti),
+            ("p.HDR.gz", Format::Nifti),
         ] {
             assert_eq!(Format::from_name(Path::new(n)), Some(f), "{n}");
         }
         assert_eq!(Format::from_name(Path::new("x.raw")), None);
+        // A pair's data file is not a volume by name: its header is.
+        assert_eq!(Format::from_name(Path::new("p.img")), None);
+        let mut pair = vec![0u8; 348];
+        pair[..4].copy_from_slice(&348i32.to_le_bytes());
+        pair[344..348].copy_from_slice(b"ni1\0");
+        assert_eq!(Format::sniff(&pair), Some(Format::Nifti));
+        // Analyze 7.5 has no magic to sniff.
+        pair[344..348].copy_from_slice(&[0; 4]);
+        assert_eq!(Format::sniff(&pair), None);
         let mut dicm = vec![0u8; 128];
         dicm.extend_from_slice(b"DICM\x02\x00");
         assert_eq!(Format::sniff(&dicm), Some(Format::Dicom));

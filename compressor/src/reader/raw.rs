@@ -2,12 +2,13 @@
 //! `u32`, `i32`, `u64`, `i64`), `f32` and `f64` in either byte order (values become f32, as
 //! every reader's do), 1 or 3
 //! interleaved channels, x fastest, described by a [`RawSpec`] (from the command line or the
-//! archive's file-name convention). The size is checked against the description before
-//! anything is read.
+//! archive's file-name convention), optionally after a fixed-size header the spec skips
+//! ([`RawSpec::header_bytes`]). The size is checked against the description before anything
+//! is read.
 
 use std::fmt;
 use std::fs::File;
-use std::io::{self, Read};
+use std::io::{self, Read, Seek, SeekFrom};
 use std::path::Path;
 
 use super::{deinterleave, voxel_count, ReadError, SampleType};
@@ -161,6 +162,9 @@ pub struct RawSpec {
     pub spacing: [f32; 3],
     /// Time points stored one after another (a 4D raw file: x, y, z, t); 1 for a volume.
     pub time_points: usize,
+    /// Bytes before the samples (a fixed-size header of some other program's, skipped
+    /// unread); 0 for a headerless file. The file must hold exactly these and the samples.
+    pub header_bytes: u64,
 }
 
 impl RawSpec {
@@ -173,10 +177,13 @@ impl RawSpec {
             channels: 1,
             spacing: [1.0; 3],
             time_points: 1,
+            header_bytes: 0,
         }
     }
 
-    /// Exact byte size a file with this layout must have, validating dims and channel count.
+    /// Exact byte size of one volume's samples with this layout (a file holds
+    /// [`RawSpec::header_bytes`] more: [`RawSpec::file_len`]), validating dims and channel
+    /// count.
     pub fn byte_len(&self) -> Result<usize, ReadError> {
         if self.channels != 1 && self.channels != 3 {
             return Err(ReadError::ChannelCount(self.channels));
@@ -185,6 +192,19 @@ impl RawSpec {
         voxels
             .checked_mul(self.channels)
             .and_then(|s| s.checked_mul(self.dtype.size()))
+            .ok_or(ReadError::TooLarge {
+                dims: self.dims,
+                channels: self.channels,
+                bytes_per_sample: self.dtype.size(),
+            })
+    }
+
+    /// Exact byte size a file of one volume with this layout must have: the header's bytes
+    /// and the samples'.
+    pub fn file_len(&self) -> Result<u64, ReadError> {
+        let samples = self.byte_len()?;
+        (samples as u64)
+            .checked_add(self.header_bytes)
             .ok_or(ReadError::TooLarge {
                 dims: self.dims,
                 channels: self.channels,
@@ -203,33 +223,42 @@ impl RawSpec {
         })
     }
 
-    fn mismatch(&self, path: Option<&Path>, expected: usize, actual: u64) -> ReadError {
+    /// The size error of a file (or buffer) of `actual` bytes where `expected` (the header's
+    /// and the samples') are needed.
+    fn mismatch(&self, path: Option<&Path>, expected: u64, actual: u64) -> ReadError {
         ReadError::SizeMismatch {
             path: path.map(Path::to_path_buf),
-            expected: expected as u64,
+            expected,
             actual,
+            header_bytes: self.header_bytes,
             dims: self.dims,
             channels: self.channels,
             dtype: self.dtype,
-            bytes_per_sample: self.dtype.size(),
+            bytes_per_sample: self.dtype.size() as u8,
             time_points: self.time_points,
         }
     }
 }
 
-/// Reads a headerless raw volume. The file must be exactly as large as `spec` requires; its size
-/// is checked before anything is read.
+/// Reads a raw volume. The file must be exactly as large as `spec` requires (its
+/// [`RawSpec::header_bytes`] and the samples); its size is checked before anything is read,
+/// and the header's bytes are skipped unread.
 pub fn read_raw(path: &Path, spec: &RawSpec) -> Result<Volume, ReadError> {
     spec.one_time_point(Some(path))?;
     let expected = spec.byte_len()?;
+    let total = spec.file_len()?;
     let io_err = |source| ReadError::Io {
         path: path.to_path_buf(),
         source,
     };
-    let file = File::open(path).map_err(io_err)?;
+    let mut file = File::open(path).map_err(io_err)?;
     let len = file.metadata().map_err(io_err)?.len();
-    if len != expected as u64 {
-        return Err(spec.mismatch(Some(path), expected, len));
+    if len != total {
+        return Err(spec.mismatch(Some(path), total, len));
+    }
+    if spec.header_bytes > 0 {
+        file.seek(SeekFrom::Start(spec.header_bytes))
+            .map_err(io_err)?;
     }
     let mut bytes = Vec::new();
     bytes.try_reserve_exact(expected).map_err(|_| {
@@ -244,19 +273,25 @@ pub fn read_raw(path: &Path, spec: &RawSpec) -> Result<Volume, ReadError> {
         .read_to_end(&mut bytes)
         .map_err(io_err)?;
     if got != expected {
-        return Err(spec.mismatch(Some(path), expected, got as u64));
+        return Err(spec.mismatch(Some(path), total, spec.header_bytes + got as u64));
     }
-    decode_raw(&bytes, spec)
+    decode_samples(&bytes, spec)
 }
 
-/// Decodes a headerless raw volume from memory. `bytes` must be exactly as long as `spec`
-/// requires.
+/// Decodes a raw volume from memory: `bytes` are the file's whole contents, exactly as long as
+/// `spec` requires ([`RawSpec::file_len`]: its [`RawSpec::header_bytes`], skipped, then the
+/// samples).
 pub fn decode_raw(bytes: &[u8], spec: &RawSpec) -> Result<Volume, ReadError> {
     spec.one_time_point(None)?;
-    let expected = spec.byte_len()?;
-    if bytes.len() != expected {
-        return Err(spec.mismatch(None, expected, bytes.len() as u64));
+    let total = spec.file_len()?;
+    if bytes.len() as u64 != total {
+        return Err(spec.mismatch(None, total, bytes.len() as u64));
     }
+    decode_samples(&bytes[spec.header_bytes as usize..], spec)
+}
+
+/// Decodes the samples of one volume (`bytes`: exactly [`RawSpec::byte_len`] of them).
+fn decode_samples(bytes: &[u8], spec: &RawSpec) -> Result<Volume, ReadError> {
     let channels = deinterleave(
         bytes,
         spec.dtype.sample(),
@@ -282,6 +317,7 @@ mod tests {
             channels,
             spacing: [1.0, 2.0, 0.5],
             time_points: 1,
+            header_bytes: 0,
         }
     }
 
@@ -466,6 +502,54 @@ mod tests {
             decode_raw(&b, &spec([1, 1, 1], RawDtype::F64, Endian::Little, 1)),
             Err(ReadError::Volume(VolumeError::NonFinite { .. }))
         ));
+    }
+
+    /// A raw file with a 512-byte header of another program's before its samples reads back
+    /// exactly with `header_bytes` 512, from the file and from memory; a wrong header size is
+    /// the size error naming the total the description needs.
+    #[test]
+    fn a_header_before_the_samples_is_skipped() {
+        let dir = tempfile::tempdir().unwrap();
+        let u16s: Vec<u16> = (0..24u16).map(|i| i * 2700 + 1).collect();
+        let samples = bytes_of(&u16s, Endian::Big, u16::to_le_bytes, u16::to_be_bytes);
+        let header: Vec<u8> = (0..512).map(|i| (i * 31 % 256) as u8).collect();
+        let path = dir.path().join("scanner.dat");
+        std::fs::write(&path, [header.clone(), samples.clone()].concat()).unwrap();
+        let mut s = spec([2, 3, 4], RawDtype::U16, Endian::Big, 1);
+        s.header_bytes = 512;
+        assert_eq!(s.file_len().unwrap(), 512 + 48);
+        let want: Vec<f32> = u16s.iter().map(|v| f32::from(*v)).collect();
+        let v = read_raw(&path, &s).unwrap();
+        assert_eq!(v.channel(0), &want[..]);
+        assert_eq!(v.spacing(), [1.0, 2.0, 0.5]);
+        assert_eq!(read_volume(&path, Some(&s)).unwrap(), v);
+        let whole = std::fs::read(&path).unwrap();
+        assert_eq!(decode_raw(&whole, &s).unwrap(), v);
+        // Without the header's size the file is 512 bytes too long; with a wrong one, off.
+        for (n, expected) in [(0u64, 48u64), (500, 548), (600, 648)] {
+            s.header_bytes = n;
+            for e in [
+                read_raw(&path, &s).unwrap_err(),
+                read_volume(&path, Some(&s)).unwrap_err(),
+                decode_raw(&whole, &s).unwrap_err(),
+            ] {
+                assert!(
+                    matches!(
+                        e,
+                        ReadError::SizeMismatch { expected: x, actual: 560, header_bytes: h, .. }
+                            if x == expected && h == n
+                    ),
+                    "{e}"
+                );
+                let msg = e.to_string();
+                assert!(msg.contains(&format!("exactly {expected} bytes")), "{msg}");
+                assert_eq!(msg.contains(&format!("a {n}-byte header")), n > 0, "{msg}");
+            }
+        }
+        // A header larger than the file, or than memory addressing, is a size error too.
+        s.header_bytes = u64::MAX;
+        assert!(read_raw(&path, &s).is_err());
+        assert!(decode_raw(&whole, &s).is_err());
     }
 
     #[test]

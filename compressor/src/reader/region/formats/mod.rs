@@ -36,6 +36,11 @@ pub(super) fn open(path: &Path, raw: Option<&RawSpec>) -> Result<Opened, ReadErr
     if let (None, Some(spec)) = (by_name, raw) {
         return open_raw(path, spec);
     }
+    if by_name.is_none() {
+        if let Some(header) = crate::reader::nifti::pair_header_of(path) {
+            return Err(crate::reader::nifti::pair_data_read_alone(path, &header));
+        }
+    }
     let format = match by_name {
         Some(f) => Some(f),
         None => Format::sniff(&read_prefix(path, 512)?),

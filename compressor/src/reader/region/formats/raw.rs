@@ -1,5 +1,6 @@
-//! Raw files: the samples are the whole file, described by the caller's [`RawSpec`] (sizes,
-//! channels, sample type, byte order, spacing), which is validated here as the raw reader does.
+//! Raw files: the samples are the whole file after the spec's `header_bytes`, described by the
+//! caller's [`RawSpec`] (sizes, channels, sample type, byte order, spacing), which is validated
+//! here as the raw reader does.
 
 use std::path::Path;
 
@@ -34,19 +35,28 @@ pub(super) fn open_raw(path: &Path, spec: &RawSpec) -> Result<Opened, ReadError>
             bytes_per_sample: size,
         })?;
     let sample = spec.dtype.sample();
-    // A raw file must be exactly as large as its description (as `read_raw` requires).
+    // A raw file must be exactly as large as its description, its header's bytes and the
+    // samples (as `read_raw` requires).
+    let total = expected
+        .checked_add(spec.header_bytes)
+        .ok_or(ReadError::TooLarge {
+            dims: spec.dims,
+            channels: spec.channels,
+            bytes_per_sample: size,
+        })?;
     let len = std::fs::metadata(path)
         .map_err(|e| ReadError::io(path, e))?
         .len();
-    if len != expected {
+    if len != total {
         return Err(ReadError::SizeMismatch {
             path: Some(path.to_path_buf()),
-            expected,
+            expected: total,
             actual: len,
+            header_bytes: spec.header_bytes,
             dims: spec.dims,
             channels: spec.channels,
             dtype: spec.dtype,
-            bytes_per_sample: size,
+            bytes_per_sample: size as u8,
             time_points: spec.time_points,
         });
     }
@@ -57,7 +67,7 @@ pub(super) fn open_raw(path: &Path, spec: &RawSpec) -> Result<Opened, ReadError>
         placement: None,
         source: Source::Stored(super::super::Stored {
             frame,
-            ..stored_at(path, 0, expected, sample, spec.endian)?
+            ..stored_at(path, spec.header_bytes, expected, sample, spec.endian)?
         }),
         time_points: spec.time_points,
         time_step: None,
