@@ -857,14 +857,11 @@ fn assert_within_credit(got: &[pb::Packet], granted: u64, when: &str) {
     );
 }
 
-/// A raw client (the generated one: the domain client always renews by what it took) that
-/// grants 13 bytes in all — 1 at the start, then 1 byte twelve times — gets one packet, not one
-/// per grant: the first packet's overshoot is owed and paid back from later grants. A grant that
-/// only pays the debt sends nothing; one byte more sends exactly one packet; a window sends
-/// what fits plus at most one packet; and everything arrives once the credit covers it.
-#[tokio::test]
-async fn a_stream_sends_at_most_one_packet_beyond_the_credit_granted() {
-    use std::time::Duration;
+/// A node holding the 48³ test file, its volume, and a raw client's `start` of an oblique view
+/// of it granting `credit` bytes.
+async fn node_and_start_with_credit(
+    credit: u64,
+) -> (TestCache, wavesplat_client::VolumeInfo, pb::RefineRequest) {
     let bytes = test_file([48, 48, 48]);
     let server = TestCache::start();
     let info = server
@@ -875,14 +872,26 @@ async fn a_stream_sends_at_most_one_packet_beyond_the_credit_granted() {
         .unwrap()
         .volume;
     let key = VolumeKey::Id(info.id);
+    let mut start = refine_view(&key, wire_view(&View::new(0.3, 0.2, 32, 32)));
+    if let Some(pb::refine_request::Msg::Start(s)) = &mut start.msg {
+        s.credit_bytes = credit;
+    }
+    (server, info, start)
+}
+
+/// A raw client (the generated one: the domain client always renews by what it took) that
+/// grants 13 bytes in all — 1 at the start, then 1 byte twelve times — gets one packet, not one
+/// per grant: the first packet's overshoot is owed and paid back from later grants. A grant that
+/// only pays the debt sends nothing; one byte more sends exactly one packet; a window sends
+/// what fits plus at most one packet; and everything arrives once the credit covers it.
+#[tokio::test]
+async fn a_stream_sends_at_most_one_packet_beyond_the_credit_granted() {
+    use std::time::Duration;
+    let (server, info, start) = node_and_start_with_credit(1).await;
     let quiet = Duration::from_secs(1);
     let credit = |bytes: u64| pb::RefineRequest {
         msg: Some(pb::refine_request::Msg::Credit(pb::Credit { bytes })),
     };
-    let mut start = refine_view(&key, wire_view(&View::new(0.3, 0.2, 32, 32)));
-    if let Some(pb::refine_request::Msg::Start(s)) = &mut start.msg {
-        s.credit_bytes = 1;
-    }
     let (tx, rx) = tokio::sync::mpsc::channel(64);
     tx.send(start).await.unwrap();
     let mut stream = server
@@ -960,20 +969,7 @@ async fn a_stream_sends_at_most_one_packet_beyond_the_credit_granted() {
 #[tokio::test]
 async fn a_stream_out_of_credit_whose_requests_are_closed_ends() {
     use std::time::Duration;
-    let bytes = test_file([48, 48, 48]);
-    let server = TestCache::start();
-    let info = server
-        .client()
-        .await
-        .ingest("v", &bytes)
-        .await
-        .unwrap()
-        .volume;
-    let key = VolumeKey::Id(info.id);
-    let mut start = refine_view(&key, wire_view(&View::new(0.3, 0.2, 32, 32)));
-    if let Some(pb::refine_request::Msg::Start(s)) = &mut start.msg {
-        s.credit_bytes = 1;
-    }
+    let (server, _, start) = node_and_start_with_credit(1).await;
     let wire = server.wire().await;
     let slots = wavesplat_cache::service::Fairness::default().max_streams_per_caller;
     for stream_no in 0..slots + 6 {

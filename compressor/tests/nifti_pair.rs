@@ -5,11 +5,14 @@
 //! bundle carry the `.img`; Analyze reads with no placement; a missing `.img`, a `.img` given
 //! alone and a header of the wrong kind are clear errors naming the files.
 
+mod common;
+
+use common::cut;
 use std::fs::File;
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
-use wavesplat_codec::volume::{Placement, Volume};
+use wavesplat_codec::volume::Volume;
 use wavesplat_compressor::reader::region::RegionReader;
 use wavesplat_compressor::reader::{
     decode_source, read_volume, time_points, unpack_bundle, Format, ReadError, SourceFiles,
@@ -129,35 +132,6 @@ fn write_pair(
     write(&hdr, head, hdr_gz);
     write(&img, data, img_gz);
     hdr
-}
-
-/// The box of `v` at `o` of size `s`, placed where its first voxel lies.
-fn cut(v: &Volume, o: [usize; 3], s: [usize; 3]) -> Volume {
-    let channels = v
-        .channels()
-        .iter()
-        .map(|ch| {
-            let mut out = Vec::new();
-            for z in o[2]..o[2] + s[2] {
-                for y in o[1]..o[1] + s[1] {
-                    for x in o[0]..o[0] + s[0] {
-                        out.push(ch[v.index(x, y, z)]);
-                    }
-                }
-            }
-            out
-        })
-        .collect();
-    let b = Volume::new(s, v.spacing(), channels).unwrap();
-    match v.placement() {
-        Some(p) => b
-            .with_placement(Placement {
-                origin: p.position(v.spacing(), o.map(|c| c as f64)),
-                directions: p.directions,
-            })
-            .unwrap(),
-        None => b,
-    }
 }
 
 /// The region reader of `path` gives `want` whole and box by box, read from the files (not

@@ -4,6 +4,9 @@
 //! files, nothing large written or allocated) open and read small regions; truncated files,
 //! hostile headers and boxes outside the volume are clean errors.
 
+mod common;
+
+use common::cut;
 use std::fs::File;
 use std::io::Write;
 use std::os::unix::fs::FileExt;
@@ -31,35 +34,6 @@ fn regions(d: [usize; 3]) -> Vec<([usize; 3], [usize; 3])> {
         ([2, 0, d[2] - 1], [3, d[1], 1]),
     ];
     all.into_iter().filter(fits).collect()
-}
-
-/// The box of `v` as a volume, placed where its first voxel lies: what a region must equal.
-fn cut(v: &Volume, o: [usize; 3], s: [usize; 3]) -> Volume {
-    let channels = v
-        .channels()
-        .iter()
-        .map(|ch| {
-            let mut out = Vec::new();
-            for z in o[2]..o[2] + s[2] {
-                for y in o[1]..o[1] + s[1] {
-                    for x in o[0]..o[0] + s[0] {
-                        out.push(ch[v.index(x, y, z)]);
-                    }
-                }
-            }
-            out
-        })
-        .collect();
-    let b = Volume::new(s, v.spacing(), channels).unwrap();
-    match v.placement() {
-        Some(p) => b
-            .with_placement(Placement {
-                origin: p.position(v.spacing(), o.map(|c| c as f64)),
-                directions: p.directions,
-            })
-            .unwrap(),
-        None => b,
-    }
 }
 
 /// Opens `path` both ways and compares every box of [`regions`].
