@@ -209,13 +209,13 @@ impl WspReader {
         self.read += data.len() as u64;
         if self.prelude.is_none() {
             self.prelude_buf.extend_from_slice(data);
-            // Parsed again only once the bytes have grown by half (or 4 KiB) since the last
+            // Parsed again only once the bytes have grown by half (or 64 bytes) since the last
             // try, at the end of this file's bytes, or at the size limit: an upload sent a byte
             // a message would otherwise parse its whole header and directory again per byte
             // (quadratic in a directory of millions of packets). Bytes past the prelude wait
             // here until then and go to the packets below.
             let len = self.prelude_buf.len();
-            let due = len >= self.prelude_tried + (self.prelude_tried / 2).max(4096)
+            let due = len >= self.prelude_tried + (self.prelude_tried / 2).max(64)
                 || self.read >= self.len
                 || len as u64 >= limits.max_prelude_bytes;
             if !due {
