@@ -385,34 +385,33 @@ impl Session {
     }
 
     async fn next_packet(&mut self) -> Result<Option<pb::Packet>, CacheError> {
-        while let Some((priority, id)) = self.queue.pop() {
-            if self.held.contains(&id) {
-                continue;
-            }
-            // Read before marking it held: a read that fails (a bucket gone for a moment) ends
-            // the stream with an error, and the client's holdings on its next stream say what
-            // it has.
-            let data = self.volume.read_packet(id).await?.to_vec();
-            self.held.insert(id);
-            let p = &self.volume.index.packets[id as usize];
-            self.sent += 1;
-            self.bytes += data.len() as u64;
-            if let Some(credit) = &mut self.credit {
-                // Not forgiven below zero: the overshoot is owed.
-                *credit = credit.saturating_sub(credit_i64(data.len() as u64));
-            }
-            if let Some(budget) = &mut self.unplanned {
-                *budget = budget.saturating_sub(data.len() as u64);
-            }
-            return Ok(Some(pb::Packet {
-                id,
-                tile: p.tile,
-                layer: p.layer,
-                data,
-                priority,
-            }));
+        // Nothing queued is held: `hold` takes packets out of the queue, and an order is made
+        // of what is not held.
+        let Some((priority, id)) = self.queue.pop() else {
+            return Ok(None);
+        };
+        // Read before marking it held: a read that fails (a bucket gone for a moment) ends
+        // the stream with an error, and the client's holdings on its next stream say what it
+        // has.
+        let data = self.volume.read_packet(id).await?.to_vec();
+        self.held.insert(id);
+        let p = &self.volume.index.packets[id as usize];
+        self.sent += 1;
+        self.bytes += data.len() as u64;
+        if let Some(credit) = &mut self.credit {
+            // Not forgiven below zero: the overshoot is owed.
+            *credit = credit.saturating_sub(credit_i64(data.len() as u64));
         }
-        Ok(None)
+        if let Some(budget) = &mut self.unplanned {
+            *budget = budget.saturating_sub(data.len() as u64);
+        }
+        Ok(Some(pb::Packet {
+            id,
+            tile: p.tile,
+            layer: p.layer,
+            data,
+            priority,
+        }))
     }
 
     /// Serves the stream: the header (unless the client has it), then packets as the client
