@@ -127,10 +127,7 @@ async fn ingest_list_stream_decode_round_trip() {
     let sent: u64 = wire
         .packets
         .iter()
-        .map(|p| {
-            let len = prost::Message::encoded_len(p);
-            (1 + prost::length_delimiter_len(len) + len) as u64
-        })
+        .map(|p| wavesplat_proto::repeated_entry_len(p) as u64)
         .sum();
     assert_eq!(wire.packets.len(), 2, "{sent} bytes on the wire");
     assert!(

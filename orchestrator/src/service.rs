@@ -172,8 +172,7 @@ fn list_page(
     let mut bytes = 0usize;
     for j in jobs.iter().filter(|j| j.id > after) {
         let job = convert::job_to_pb(j, max_attempts);
-        let len = prost::Message::encoded_len(&job);
-        let wire = 1 + prost::length_delimiter_len(len) + len;
+        let wire = wavesplat_proto::repeated_entry_len(&job);
         if !page.jobs.is_empty() && bytes + wire > page_bytes {
             page.more = true;
             break;

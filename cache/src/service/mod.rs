@@ -463,8 +463,7 @@ impl Cache for CacheService {
                     data: volume.packet(i as u32)?,
                     priority: 0.0,
                 };
-                let len = prost::Message::encoded_len(&packet);
-                let wire = (1 + prost::length_delimiter_len(len) + len) as u64;
+                let wire = wavesplat_proto::repeated_entry_len(&packet) as u64;
                 if !packets.is_empty() && used + wire > req.max_bytes {
                     break;
                 }
