@@ -280,14 +280,14 @@ fn series_header(
     }
     // Each component's bricks tile the whole: drawn, overlapping bricks would add twice and
     // a gap would draw nothing.
-    for c in 0..bricks.last().map_or(0, |b| b.component + 1) {
-        let boxes: Vec<([u64; 3], [usize; 3])> = bricks
+    // (The bricks come component after component, checked above.)
+    for group in bricks.chunk_by(|a, b| a.component == b.component) {
+        let boxes: Vec<([u64; 3], [usize; 3])> = group
             .iter()
-            .filter(|b| b.component == c)
             .map(|b| (b.origin, b.header.geometry.dims))
             .collect();
         wavesplat_codec::format::bricked::check_tiling(space.dims, &boxes)
-            .map_err(|e| bad(format!("component {c}: {e}")))?;
+            .map_err(|e| bad(format!("component {}: {e}", group[0].component)))?;
     }
     let components = bricks.last().map_or(0, |b| b.component + 1);
     if components != manifest.components.len() {
