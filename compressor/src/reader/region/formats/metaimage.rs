@@ -138,14 +138,7 @@ pub(super) fn open_metaimage(path: &Path) -> Result<Opened, ReadError> {
             .filter(|s| *s >= -1)
             .ok_or_else(|| bad(format!("HeaderSize = {v:?}; -1 or ≥ 0 expected")))?,
     };
-    let frame = stored_bytes(path, dims, channels, sample.size())?;
-    let expected = frame
-        .checked_mul(points as u64)
-        .ok_or(ReadError::TooLarge {
-            dims,
-            channels,
-            bytes_per_sample: sample.size(),
-        })?;
+    let (frame, expected) = stored_bytes(path, dims, channels, sample.size(), points)?;
     let (data_path, base, data_len) = match get(&["ElementDataFile"]) {
         Some((_, v)) if v.eq_ignore_ascii_case("LOCAL") => (path.to_path_buf(), end as u64, len),
         Some((_, v)) => {

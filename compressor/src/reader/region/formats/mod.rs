@@ -80,26 +80,32 @@ fn read_prefix(path: &Path, limit: u64) -> Result<Vec<u8>, ReadError> {
     Ok(out)
 }
 
-/// Bytes of `dims` × `channels` samples of `sample`, checked (u128, then u64).
+/// Bytes of one time point, `dims` × `channels` samples of `size` bytes, and of `points` of
+/// them, checked (u128, then u64).
 fn stored_bytes(
     path: &Path,
     dims: [usize; 3],
     channels: usize,
     size: usize,
-) -> Result<u64, ReadError> {
+    points: usize,
+) -> Result<(u64, u64), ReadError> {
     if dims.contains(&0) {
         return Err(ReadError::volume(path, VolumeError::ZeroDimension(dims)));
     }
-    dims.iter()
+    let too_large = || ReadError::TooLarge {
+        dims,
+        channels,
+        bytes_per_sample: size,
+    };
+    let frame = dims
+        .iter()
         .chain([&channels, &size])
         .try_fold(1u128, |acc, d| acc.checked_mul(*d as u128))
         .and_then(|b| u64::try_from(b).ok())
         .filter(|b| *b <= i64::MAX as u64)
-        .ok_or(ReadError::TooLarge {
-            dims,
-            channels,
-            bytes_per_sample: size,
-        })
+        .ok_or_else(too_large)?;
+    let all = frame.checked_mul(points as u64).ok_or_else(too_large)?;
+    Ok((frame, all))
 }
 
 /// Samples stored uncompressed in `data_path` from `offset` on; the file must hold all

@@ -83,14 +83,7 @@ pub(super) fn open_nifti(path: &Path) -> Result<Opened, ReadError> {
         }
     };
     let channels = meta.channel_count();
-    let frame = stored_bytes(path, dims, channels, sample.size())?;
-    let expected = frame
-        .checked_mul(time_points as u64)
-        .ok_or(ReadError::TooLarge {
-            dims,
-            channels,
-            bytes_per_sample: sample.size(),
-        })?;
+    let (frame, expected) = stored_bytes(path, dims, channels, sample.size(), time_points)?;
     let vox_offset = nifti::data_offset(path, &header, flavour)?;
     let endian = nifti::endian(&header);
     // Where the samples are: this file after its header, or the pair's data file from its

@@ -149,15 +149,8 @@ pub(super) fn open_nrrd(path: &Path) -> Result<Opened, ReadError> {
             meta.dims()
         )));
     }
-    let frame = stored_bytes(path, dims, channels, sample.size())?;
     let points = series.map_or(1, |s| s.points);
-    let expected = frame
-        .checked_mul(points as u64)
-        .ok_or(ReadError::TooLarge {
-            dims,
-            channels,
-            bytes_per_sample: sample.size(),
-        })?;
+    let (frame, expected) = stored_bytes(path, dims, channels, sample.size(), points)?;
     let endian = endian.unwrap_or(Endian::Little);
 
     // Where the data starts: the data file, or just past the blank line.

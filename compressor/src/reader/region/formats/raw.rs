@@ -26,14 +26,7 @@ pub(super) fn open_raw(path: &Path, spec: &RawSpec) -> Result<Opened, ReadError>
         });
     }
     let size = spec.dtype.size();
-    let frame = stored_bytes(path, spec.dims, spec.channels, size)?;
-    let expected = frame
-        .checked_mul(spec.time_points as u64)
-        .ok_or(ReadError::TooLarge {
-            dims: spec.dims,
-            channels: spec.channels,
-            bytes_per_sample: size,
-        })?;
+    let (frame, expected) = stored_bytes(path, spec.dims, spec.channels, size, spec.time_points)?;
     let sample = spec.dtype.sample();
     // A raw file must be exactly as large as its description, its header's bytes and the
     // samples (as `read_raw` requires).
