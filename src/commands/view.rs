@@ -185,7 +185,8 @@ pub fn run(a: ViewWindowArgs) -> Result<()> {
     let state = match &a.view.view {
         Some(side) => state.with_context(|| format!("--view {side}"))?,
         None => state?,
-    };
+    }
+    .with_max_pixels_per_voxel(request.max_pixels_per_voxel);
     let bricked = opened.bricked_volume();
     let (state, playback) = match series {
         Some((bytes, points, times)) => {

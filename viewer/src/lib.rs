@@ -19,7 +19,8 @@
 //!   frame (the demo and `bench refine`);
 //! - [`splat`]: the one-shot [`Renderer`] (plan + a backend, the CPU one by default);
 //! - [`reference`]: the ground-truth ray caster on the reconstructed volume;
-//! - [`image`]: the [`Image`] type, PNG with window/level, raw f32 output.
+//! - [`image`]: the [`Image`] type, PNG with window/level, raw f32 output;
+//! - [`magnify`]: magnified views drawn at a bounded number of pixels a voxel, magnified back.
 //!
 //! ```no_run
 //! use wavesplat_viewer::{Renderer, RenderOptions, View};
@@ -36,6 +37,7 @@ pub mod color;
 pub mod footprint;
 pub mod frame;
 pub mod image;
+pub mod magnify;
 pub mod open;
 pub mod pieces;
 pub mod plan;

@@ -96,6 +96,9 @@ pub struct ViewRequest {
     pub cue_k_from_volume: bool,
     /// Of a time series, the time point shown (`None`: the first).
     pub time_point: Option<usize>,
+    /// The most pixels a view draws across the volume's finest voxel; a view magnified beyond
+    /// it is drawn smaller and magnified back ([`crate::magnify`]). `None`: every pixel drawn.
+    pub max_pixels_per_voxel: Option<f64>,
 }
 
 /// The azimuth α of a view when none is given: an oblique view that shows a volume's three
@@ -193,7 +196,24 @@ impl ViewRequest {
             spec.view = spec.view.with_zoom(fit);
         }
         spec.validate()?;
+        if let Some(max) = self.max_pixels_per_voxel {
+            if let Some(drawn) = crate::magnify::bounded(&spec, geometry, max)? {
+                tracing::debug!(
+                    asked = format!("{}x{}", spec.view.width, spec.view.height),
+                    drawn = format!("{}x{}", drawn.view.width, drawn.view.height),
+                    "a magnified view drawn smaller and magnified back"
+                );
+                spec = drawn;
+            }
+        }
         Ok(spec)
+    }
+
+    /// `image`, drawn for this request's [`ViewRequest::spec_for_volume`], at the size asked
+    /// for: magnified back where the view was drawn smaller ([`crate::magnify::magnify`]).
+    pub fn shown(&self, image: &Image) -> Image {
+        let panels = if self.multiview { 3 } else { 1 };
+        crate::magnify::magnify(image, panels, self.width, self.height)
     }
 
     /// For a source opened with `first` before the volume was known (a cache stream, range

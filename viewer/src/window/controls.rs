@@ -53,6 +53,9 @@ pub struct ViewState {
     pub level: f64,
     /// A time series' time point and playback (`None`: one volume).
     pub time: Option<TimeState>,
+    /// The most pixels a view draws across the volume's finest voxel before it is drawn
+    /// smaller and shown stretched ([`crate::magnify::bounded`]); `None`: no bound.
+    pub max_pixels_per_voxel: Option<f64>,
     initial: Option<Box<ViewState>>,
 }
 
@@ -130,10 +133,21 @@ impl ViewState {
             contrast: 1.0,
             level: 0.0,
             time: None,
+            max_pixels_per_voxel: None,
             initial: None,
         };
         s.initial = Some(Box::new(s.clone()));
         Ok(s)
+    }
+
+    /// This state with views bounded to `max` pixels across the finest voxel (`None`: every
+    /// pixel drawn), its reset state too.
+    pub fn with_max_pixels_per_voxel(mut self, max: Option<f64>) -> ViewState {
+        self.max_pixels_per_voxel = max;
+        if let Some(initial) = self.initial.as_mut() {
+            initial.max_pixels_per_voxel = max;
+        }
+        self
     }
 
     /// This state for a time series of `points` time points (at `times` seconds when known),
@@ -214,6 +228,14 @@ impl ViewState {
             multiview: self.multiview,
         };
         spec.validate().context("invalid view")?;
+        // A view magnified beyond the bound is drawn smaller; the display stretches it.
+        if let Some(max) = self.max_pixels_per_voxel {
+            if let Some(drawn) =
+                crate::magnify::bounded(&spec, geometry, max).context("invalid view")?
+            {
+                return Ok(drawn);
+            }
+        }
         Ok(spec)
     }
 }
@@ -656,6 +678,7 @@ mod tests {
             contrast: 1.0,
             level: 0.0,
             time: None,
+            max_pixels_per_voxel: None,
             initial: None,
         }
     }

@@ -1,5 +1,5 @@
 //! The window's display on a software graphics device: the host image, stretched to the window
-//! by nearest sample, written to the window's shared-memory buffer (softbuffer) instead of drawn
+//! by nearest sample (bilinear where it is magnified three times or more), written to the window's shared-memory buffer (softbuffer) instead of drawn
 //! as a texture over a wgpu surface. On Mesa's llvmpipe, drawing and presenting a 1920×1080
 //! surface cost 27–68 ms a frame, above a 60 Hz budget before anything was splatted; written
 //! here it costs 2–6 ms (the `present_ms` of the window's `image shown` trace events). It owns
@@ -83,7 +83,8 @@ fn failed(what: &str, e: softbuffer::SoftBufferError) -> WindowError {
 
 /// Fills `out` (`out_size`, row-major) with `image` (`size`) stretched by nearest sample: output
 /// pixel (x, y) takes the image pixel whose cell holds the output pixel's centre, as a texture
-/// drawn over the whole window with nearest filtering; black where there is no image.
+/// drawn over the whole window with nearest filtering; black where there is no image. Magnified
+/// [`BILINEAR_FROM`] times or more in both axes, it interpolates instead.
 pub(super) fn stretch(
     image: &[u32],
     size: (usize, usize),
@@ -95,6 +96,9 @@ pub(super) fn stretch(
     if w == 0 || h == 0 || image.len() < w * h {
         out.fill(0);
         return;
+    }
+    if ow >= BILINEAR_FROM * w && oh >= BILINEAR_FROM * h {
+        return stretch_bilinear(image, size, out, out_size);
     }
     let source = |o: usize, n: usize, on: usize| ((2 * o + 1) * n / (2 * on)).min(n - 1);
     let columns: Vec<usize> = (0..ow).map(|x| source(x, w, ow)).collect();
@@ -113,9 +117,79 @@ pub(super) fn stretch(
         });
 }
 
+/// The magnification (in both axes) from which [`stretch`] interpolates: below it a nearest
+/// sample's blocks are at most two pixels wide, and nearest costs a third of bilinear on the
+/// drag frames that show a half-size image.
+const BILINEAR_FROM: usize = 3;
+
+/// [`stretch`] by bilinear interpolation of each 8-bit channel, about the pixels' centres
+/// (the edge held beyond the outermost ones), as a texture drawn with linear filtering.
+fn stretch_bilinear(
+    image: &[u32],
+    size: (usize, usize),
+    out: &mut [u32],
+    out_size: (usize, usize),
+) {
+    let (w, h) = size;
+    let (ow, oh) = out_size;
+    // The lower source sample of output position `o` and the upper one's weight in 1/256.
+    let taps = |o: usize, n: usize, on: usize| -> (usize, usize, u32) {
+        let s = ((o as f64 + 0.5) * n as f64 / on as f64 - 0.5).clamp(0.0, (n - 1) as f64);
+        let lo = s.floor() as usize;
+        (
+            lo,
+            (lo + 1).min(n - 1),
+            ((s - lo as f64) * 256.0).round() as u32,
+        )
+    };
+    let columns: Vec<(usize, usize, u32)> = (0..ow).map(|x| taps(x, w, ow)).collect();
+    let mix = |a: u32, b: u32, t: u32| -> u32 {
+        let channel = |shift: u32| {
+            let (x, y) = ((a >> shift) & 0xff, (b >> shift) & 0xff);
+            ((x * (256 - t) + y * t + 128) >> 8) << shift
+        };
+        channel(16) | channel(8) | channel(0)
+    };
+    out.par_chunks_mut(ow.max(1))
+        .take(oh)
+        .enumerate()
+        .for_each(|(y, row)| {
+            let (y0, y1, ty) = taps(y, h, oh);
+            let (top, bottom) = (&image[y0 * w..][..w], &image[y1 * w..][..w]);
+            for (p, &(x0, x1, tx)) in row.iter_mut().zip(&columns) {
+                *p = mix(
+                    mix(top[x0], top[x1], tx),
+                    mix(bottom[x0], bottom[x1], tx),
+                    ty,
+                );
+            }
+        });
+}
+
 #[cfg(test)]
 mod tests {
     use super::stretch;
+
+    #[test]
+    fn a_large_magnification_interpolates_each_channel() {
+        // 2 × 1: black and white (grey levels in all three channels); magnified 4 × 4 times.
+        let image = [0x000000u32, 0xffffff];
+        let mut out = vec![0u32; 8 * 4];
+        stretch(&image, (2, 1), &mut out, (8, 4));
+        let grey = |p: u32| (p & 0xff, (p >> 8) & 0xff, (p >> 16) & 0xff);
+        for row in out.chunks(8) {
+            // Centres at 0.5 + k: the first and last two outputs hold the edges, between them
+            // a ramp (source position (x + 0.5) / 4 − 0.5).
+            assert_eq!(grey(row[0]), (0, 0, 0));
+            assert_eq!(grey(row[7]), (255, 255, 255));
+            let ramp: Vec<u32> = row.iter().map(|&p| p & 0xff).collect();
+            assert!(ramp.windows(2).all(|w| w[0] <= w[1]), "{ramp:?}");
+            assert_eq!(ramp[4] & 0xff, 159); // s = 0.625: 0.625 × 255
+            assert!(row
+                .iter()
+                .all(|&p| grey(p).0 == grey(p).1 && grey(p).1 == grey(p).2));
+        }
+    }
 
     #[test]
     fn stretching_takes_the_nearest_sample_and_keeps_an_equal_size() {

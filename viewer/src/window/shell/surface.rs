@@ -133,7 +133,11 @@ pub(super) fn open_display(
     if size.width > 0 && size.height > 0 {
         surface.configure(ctx.device(), &config);
     }
-    let blitter = wgpu::util::TextureBlitter::new(ctx.device(), format);
+    // Linear filtering: an image drawn smaller than the window (a drag, or a view magnified
+    // beyond `--max-pixels-per-voxel`) is shown interpolated, not in blocks.
+    let blitter = wgpu::util::TextureBlitterBuilder::new(ctx.device(), format)
+        .sample_type(wgpu::FilterMode::Linear)
+        .build();
     Ok(Gfx {
         soft: None,
         surface,
