@@ -29,6 +29,7 @@ use wavesplat_client::VolumeKey;
 use wavesplat_codec::volume::Volume;
 use wavesplat_compressor::encode::{compress, CompressOptions, Target, TileChoice};
 use wavesplat_compressor::phantom::Phantom;
+use wavesplat_net::digest::{hex, sha256};
 use wavesplat_proto::pb;
 use wavesplat_proto::pb::cache_client::CacheClient as WireClient;
 use wavesplat_viewer::source::CacheSourceOptions;
@@ -48,13 +49,13 @@ fn have_weed() -> bool {
         .is_ok_and(|o| o.status.success())
 }
 
-/// The keys of the objects under `prefix`, listed from the viewer host with the store's own
-/// credentials; `None` while the store refuses (starting, or the bucket not made yet).
-fn try_objects(net: &Net, prefix: &str) -> Option<Vec<String>> {
+/// Runs `f` on the bucket from the viewer host, with the store's own credentials.
+fn on_bucket<T: Send + 'static, F: std::future::Future<Output = T>>(
+    net: &Net,
+    f: impl FnOnce(object_store::aws::AmazonS3) -> F + Send + 'static,
+) -> T {
     let endpoint = format!("http://{}:8333", net.ip_of("bucket"));
-    let prefix = prefix.to_string();
     net.on_host("viewer", move || {
-        use futures_util::TryStreamExt;
         wavesplat_net::tls::install_crypto_provider();
         let store = object_store::aws::AmazonS3Builder::new()
             .with_endpoint(endpoint)
@@ -69,15 +70,34 @@ fn try_objects(net: &Net, prefix: &str) -> Option<Vec<String>> {
             .enable_all()
             .build()
             .unwrap();
-        runtime.block_on(async {
-            let p = object_store::path::Path::from(prefix.as_str());
-            let listed: Vec<object_store::ObjectMeta> =
-                object_store::ObjectStore::list(&store, Some(&p))
-                    .try_collect()
-                    .await
-                    .ok()?;
-            Some(listed.into_iter().map(|o| o.location.to_string()).collect())
-        })
+        runtime.block_on(f(store))
+    })
+}
+
+/// The keys of the objects under `prefix`, listed from the viewer host with the store's own
+/// credentials; `None` while the store refuses (starting, or the bucket not made yet).
+fn try_objects(net: &Net, prefix: &str) -> Option<Vec<String>> {
+    let prefix = prefix.to_string();
+    on_bucket(net, move |store| async move {
+        use futures_util::TryStreamExt;
+        let p = object_store::path::Path::from(prefix.as_str());
+        let listed: Vec<object_store::ObjectMeta> =
+            object_store::ObjectStore::list(&store, Some(&p))
+                .try_collect()
+                .await
+                .ok()?;
+        Some(listed.into_iter().map(|o| o.location.to_string()).collect())
+    })
+}
+
+/// Writes an object under `key` from the viewer host, as a node of any release would.
+fn put_object(net: &Net, key: &str, bytes: Vec<u8>) {
+    let key = key.to_string();
+    on_bucket(net, move |store| async move {
+        let path = object_store::path::Path::from(key.as_str());
+        object_store::ObjectStoreExt::put(&store, &path, bytes.into())
+            .await
+            .unwrap();
     })
 }
 
@@ -593,6 +613,51 @@ fn cache_nodes_share_one_bucket_across_hosts() {
     );
     let listed = cli(&net, &["cache", "list", "--cache", "http://node2:50051"]);
     assert!(listed.starts_with("brain\t"), "{listed}");
+
+    // A name of 255 bytes (3-byte characters) ingested through node 1, its key split into
+    // segments; and one of 127 bytes that an earlier release keyed by one segment of its whole
+    // hex (254 digits: SeaweedFS, like a file system, refuses a segment of more than 255 bytes,
+    // AWS S3 takes any up to its 1024-byte keys), written here as it wrote it: both listed,
+    // shown and removed through node 2; the short name's key as every release wrote it.
+    let long = "水".repeat(85);
+    cli(
+        &net,
+        &[
+            "cache",
+            "ingest",
+            "brain.wsp",
+            "--name",
+            &long,
+            "--cache",
+            "http://node1:50051",
+        ],
+    );
+    let old_long = format!("{}x", "é".repeat(63));
+    let old_key = format!("volumes-v1/names/{}", hex(old_long.as_bytes()));
+    let record = [&b"WSPN\x01"[..], &sha256(&brain)[..]].concat();
+    put_object(&net, &old_key, record);
+    let names = objects(&net, "volumes-v1/names/");
+    assert!(names.contains(&old_key), "{names:?}");
+    assert!(
+        names.iter().any(|k| k.split('/').count() == 5),
+        "the long name's key in three segments: {names:?}"
+    );
+    let listed = cli(&net, &["cache", "list", "--cache", "http://node2:50051"]);
+    for name in [&long, &old_long] {
+        assert!(listed.contains(&format!("\n{name}\t")), "{listed}");
+        cli(
+            &net,
+            &["cache", "show", name, "--cache", "http://node2:50051"],
+        );
+        cli(
+            &net,
+            &["cache", "rm", name, "--cache", "http://node2:50051"],
+        );
+    }
+    assert_eq!(
+        objects(&net, "volumes-v1/names/"),
+        vec![format!("volumes-v1/names/{}", hex(b"brain"))]
+    );
 
     // 16 concurrent ingests of one volume through both nodes, 8 under one name and 8 under
     // names of their own: one object, 9 names.

@@ -8,9 +8,18 @@
 //!   request (two when they are larger than the first request), then fetches packets by range;
 //!   a bricked volume is its container in the bricked indexed layout (version 2: the manifest,
 //!   then every brick's header and index), its packets numbered brick after brick;
-//! - `names/<hex of the name>`: one small object per name holding the content hash, written
+//! - `names/<key of the name>`: one small object per name holding the content hash, written
 //!   with `If-None-Match: *`, so two nodes that ingest the same volume at once store it once and
-//!   the same name cannot point at two contents.
+//!   the same name cannot point at two contents. The key is the name's bytes in lowercase hex:
+//!   one path segment for a name of up to 126 bytes (252 digits: with the local store's `#N`
+//!   staging suffix, within the 255 bytes a file system, or SeaweedFS, allows a segment); a
+//!   longer name's hex in segments of 200 digits, each but the last followed by `-`
+//!   (`names/<200 digits>-/<200 digits>-/<the rest>`), so that no segment is too long and no
+//!   name's file is another name's directory. A listing reads every name back from its key.
+//!   Earlier releases keyed every name by one segment, which AWS S3 takes for any valid name
+//!   (a file system refused names of 127 bytes or more, SeaweedFS of 128 or more): a long
+//!   name's record is also looked for, listed and deleted under that segment, where the
+//!   backend takes such a key.
 //!
 //! A volume's id is the first 63 bits of its SHA-256, the same on every node. Names are read
 //! from the bucket on every lookup (a delete on one node is seen by the others at once); what a
@@ -27,6 +36,7 @@ use crate::error::CacheError;
 use crate::model::{
     BrickedIndex, IndexBrick, PacketMeta, SeriesIndex, VolumeIndex, VolumeKey, VolumeMeta,
 };
+use crate::store::MAX_NAME_BYTES;
 use bytes::Bytes;
 use futures_util::{StreamExt, TryStreamExt};
 use object_store::path::Path as ObjectPath;
@@ -59,6 +69,16 @@ pub const WHOLE_READ_BYTES: u64 = 8 << 20;
 
 /// Magic of a name record.
 const NAME_MAGIC: &[u8; 4] = b"WSPN";
+
+/// A name whose hex has at most this many digits (a name of up to 126 bytes) is keyed by one
+/// path segment, as every release has keyed it: with the local store's staging suffix (`#N`)
+/// it stays within a file system's 255 bytes per file name.
+const SINGLE_SEGMENT_HEX: usize = 252;
+/// A longer name's hex is split into segments of this many digits.
+const SEGMENT_HEX: usize = 200;
+/// Ends every segment of a long name's key but the last (never a hex digit: a file's name is
+/// never a directory's).
+const SEGMENT_CONTINUES: char = '-';
 
 /// A volume stored in a bucket, as a node has it open.
 #[derive(Debug)]
@@ -274,7 +294,19 @@ impl Bucket {
             CacheError::Bucket("the object store must be opened within a tokio runtime".into())
         })?;
         let (store, prefix) = object_store_for(url)?;
-        let bucket = Bucket {
+        Ok(Bucket::over(store, prefix, url, runtime, read_cache_bytes))
+    }
+
+    /// A bucket over an opened object store: its keys under `prefix`, `url` naming it in
+    /// messages.
+    fn over(
+        store: Arc<dyn ObjectStore>,
+        prefix: ObjectPath,
+        url: &str,
+        runtime: tokio::runtime::Handle,
+        read_cache_bytes: u64,
+    ) -> Bucket {
+        Bucket {
             store,
             prefix,
             url: url.to_string(),
@@ -289,8 +321,7 @@ impl Bucket {
                 bytes: 0,
                 limit: read_cache_bytes,
             }),
-        };
-        Ok(bucket)
+        }
     }
 
     /// Lists the names once, so that a wrong endpoint, bucket or credentials fail at start.
@@ -320,16 +351,31 @@ impl Bucket {
         self.path(&format!("volumes/{}.wspx", hex(sha256)))
     }
 
+    /// Where a name's record is (see the module's layout).
     fn name_path(&self, name: &str) -> ObjectPath {
-        self.path(&format!("names/{}", hex(name.as_bytes())))
+        name_segments(name)
+            .into_iter()
+            .fold(self.path("names"), |p, segment| p.join(segment))
     }
 
+    /// Where earlier releases kept the record of a name too long for one segment now: one
+    /// segment of its whole hex. `None` for a name keyed by that segment still.
+    fn legacy_name_path(&self, name: &str) -> Option<ObjectPath> {
+        let digits = hex(name.as_bytes());
+        (digits.len() > SINGLE_SEGMENT_HEX).then(|| self.path("names").join(digits))
+    }
+
+    /// The error of a failed request to the store: a missing object as [`CacheError::NotFound`],
+    /// a failure that may pass when the request is repeated as [`CacheError::Bucket`], any other
+    /// (a key the backend cannot hold, no permission, a request it does not take) as
+    /// [`CacheError::BucketRefused`].
     fn failed(&self, what: &str, path: &ObjectPath, e: object_store::Error) -> CacheError {
         match e {
             object_store::Error::NotFound { .. } => {
                 CacheError::NotFound(format!("object {path} in {}", self.url))
             }
-            e => CacheError::Bucket(format!("{what} {path} in {}: {e}", self.url)),
+            e if transient(&e) => CacheError::Bucket(format!("{what} {path} in {}: {e}", self.url)),
+            e => CacheError::BucketRefused(format!("{what} {path} in {}: {e}", self.url)),
         }
     }
 
@@ -340,18 +386,67 @@ impl Bucket {
 
     /// The content a name points at, read from the bucket (never cached: deletes are seen).
     pub(crate) async fn name_target(&self, name: &str) -> Result<Option<[u8; 32]>, CacheError> {
+        Ok(self.find_name(name).await?.map(|(_, sha)| sha))
+    }
+
+    /// Where a name's record is and the content it points at, read from the bucket: under the
+    /// name's key, else (a long name) under the key earlier releases gave it, which a backend
+    /// that cannot hold such a key refuses. `None` where neither is, and for a name no volume
+    /// can have (empty or longer than [`MAX_NAME_BYTES`]), whose key is not asked for.
+    async fn find_name(&self, name: &str) -> Result<Option<(ObjectPath, [u8; 32])>, CacheError> {
+        if name.is_empty() || name.len() > MAX_NAME_BYTES {
+            return Ok(None);
+        }
         let path = self.name_path(name);
-        match self.store.get(&path).await {
+        if let Some(sha) = self.read_name(&path, name).await? {
+            return Ok(Some((path, sha)));
+        }
+        let Some(legacy) = self.legacy_name_path(name) else {
+            return Ok(None);
+        };
+        match self.read_name(&legacy, name).await {
+            Ok(found) => Ok(found.map(|sha| (legacy, sha))),
+            // A backend that refuses such a key (a file system, SeaweedFS) holds no record
+            // under it.
+            Err(CacheError::BucketRefused(_)) => Ok(None),
+            Err(e) => Err(e),
+        }
+    }
+
+    /// The content that the record of `name` at `path` points at; `None` where there is none.
+    async fn read_name(
+        &self,
+        path: &ObjectPath,
+        name: &str,
+    ) -> Result<Option<[u8; 32]>, CacheError> {
+        match self.store.get(path).await {
             Ok(r) => {
                 let bytes = r
                     .bytes()
                     .await
-                    .map_err(|e| self.failed("reading", &path, e))?;
+                    .map_err(|e| self.failed("reading", path, e))?;
                 Ok(Some(parse_name_record(&bytes, name)?))
             }
             Err(object_store::Error::NotFound { .. }) => Ok(None),
-            Err(e) => Err(self.failed("reading", &path, e)),
+            Err(e) => Err(self.failed("reading", path, e)),
         }
+    }
+
+    /// Deletes a name's record, under its key and (a long name) under the key earlier releases
+    /// gave it; a record already gone is no error.
+    async fn delete_name(&self, name: &str) -> Result<(), CacheError> {
+        let legacy = self.legacy_name_path(name);
+        for path in std::iter::once(self.name_path(name)).chain(legacy.clone()) {
+            match self.store.delete(&path).await {
+                Ok(()) | Err(object_store::Error::NotFound { .. }) => {}
+                Err(e) => match self.failed("deleting", &path, e) {
+                    // A key the backend cannot hold holds no record.
+                    CacheError::BucketRefused(_) if Some(&path) == legacy.as_ref() => {}
+                    e => return Err(e),
+                },
+            }
+        }
+        Ok(())
     }
 
     fn remember(&self, sha256: &[u8; 32]) {
@@ -404,18 +499,17 @@ impl Bucket {
             .map_err(|e| self.failed("listing", dir, e))
     }
 
-    /// Every name with the content it points at, ordered by name.
+    /// Every name with the content it points at, ordered by name, each read back from its key.
     async fn all_names(&self) -> Result<Vec<(String, [u8; 32])>, CacheError> {
         let dir = self.path("names");
         let listed = self.list_under(&dir).await?;
-        let mut out: Vec<(String, [u8; 32])> = futures_util::stream::iter(listed)
+        let dir = &dir;
+        let mut out: Vec<(String, bool, [u8; 32])> = futures_util::stream::iter(listed)
             .map(|o| async move {
-                let Some(name) = o
-                    .location
-                    .filename()
-                    .and_then(unhex)
-                    .and_then(|b| String::from_utf8(b).ok())
-                else {
+                let Some((name, current)) = o.location.prefix_match(dir).and_then(|parts| {
+                    let segments: Vec<String> = parts.map(|p| p.as_ref().to_string()).collect();
+                    name_of_key(&segments)
+                }) else {
                     tracing::warn!(object = %o.location, "an object under names/ that is not a name");
                     return Ok(None);
                 };
@@ -423,16 +517,16 @@ impl Bucket {
                 if let Some((etag, sha)) = self.names.lock().ok().and_then(|m| m.get(&key).cloned())
                 {
                     if etag.is_some() && etag == o.e_tag {
-                        return Ok(Some((name, sha)));
+                        return Ok(Some((name, current, sha)));
                     }
                 }
-                match self.name_target(&name).await? {
+                match self.read_name(&o.location, &name).await? {
                     Some(sha) => {
                         self.remember(&sha);
                         if let Ok(mut m) = self.names.lock() {
                             m.insert(key, (o.e_tag.clone(), sha));
                         }
-                        Ok(Some((name, sha)))
+                        Ok(Some((name, current, sha)))
                     }
                     // Deleted since the listing.
                     None => Ok(None),
@@ -442,8 +536,11 @@ impl Bucket {
             .try_filter_map(|x| async move { Ok::<_, CacheError>(x) })
             .try_collect()
             .await?;
-        out.sort();
-        Ok(out)
+        // A name under both its key and the one of earlier releases counts once, with the
+        // record a lookup finds first (its key's).
+        out.sort_by(|a, b| a.0.cmp(&b.0).then(b.1.cmp(&a.1)));
+        out.dedup_by(|later, first| later.0 == first.0);
+        Ok(out.into_iter().map(|(name, _, sha)| (name, sha)).collect())
     }
 
     /// Resolves a key to its content hash.
@@ -602,11 +699,7 @@ impl Bucket {
             VolumeKey::Id(_) => self.names_of(&sha).await?,
         };
         for n in &remove {
-            let path = self.name_path(n);
-            match self.store.delete(&path).await {
-                Ok(()) | Err(object_store::Error::NotFound { .. }) => {}
-                Err(e) => return Err(self.failed("deleting", &path, e)),
-            }
+            self.delete_name(n).await?;
         }
         let gone = self.names_of(&sha).await?.is_empty();
         if gone {
@@ -633,8 +726,9 @@ impl Bucket {
         sha256: &[u8; 32],
         object: Option<PutPayload>,
     ) -> Result<bool, CacheError> {
-        if let Some(existing) = self.name_target(name).await? {
-            if existing != *sha256 {
+        let found = self.find_name(name).await?;
+        if let Some((_, existing)) = &found {
+            if existing != sha256 {
                 return Err(CacheError::NameTaken(name.to_string()));
             }
         }
@@ -646,12 +740,19 @@ impl Bucket {
                 "the identical content was deleted during the upload; upload it again".into(),
             ));
         }
-        let path = self.name_path(name);
-        if !self.create(&path, Bytes::from(name_record(sha256))).await?
-            && self.name_target(name).await? != Some(*sha256)
-        {
-            return Err(CacheError::NameTaken(name.to_string()));
-        }
+        let path = match found {
+            // A long name that an earlier release keyed by one segment keeps that record.
+            Some((legacy, _)) if Some(&legacy) == self.legacy_name_path(name).as_ref() => legacy,
+            _ => {
+                let path = self.name_path(name);
+                if !self.create(&path, Bytes::from(name_record(sha256))).await?
+                    && self.name_target(name).await? != Some(*sha256)
+                {
+                    return Err(CacheError::NameTaken(name.to_string()));
+                }
+                path
+            }
+        };
         if !self.has_content(sha256).await? {
             match &object {
                 Some(object) => {
@@ -789,6 +890,44 @@ fn meta_of(v: &BucketVolume, names: Vec<String>) -> VolumeMeta {
     meta
 }
 
+/// The segments of a name's key under `names/` (see the module's layout).
+fn name_segments(name: &str) -> Vec<String> {
+    let digits = hex(name.as_bytes());
+    if digits.len() <= SINGLE_SEGMENT_HEX {
+        return vec![digits];
+    }
+    // Hex digits are ASCII: every split falls between characters.
+    let mut segments: Vec<String> = (0..digits.len())
+        .step_by(SEGMENT_HEX)
+        .map(|i| {
+            let mut s = digits[i..(i + SEGMENT_HEX).min(digits.len())].to_string();
+            s.push(SEGMENT_CONTINUES);
+            s
+        })
+        .collect();
+    if let Some(last) = segments.last_mut() {
+        last.pop();
+    }
+    segments
+}
+
+/// The name that a key's segments under `names/` hold, and whether they are its key (else the
+/// single segment earlier releases gave a long name); `None` for segments that are neither.
+fn name_of_key(segments: &[String]) -> Option<(String, bool)> {
+    let digits: String = segments
+        .iter()
+        .map(|s| s.strip_suffix(SEGMENT_CONTINUES).unwrap_or(s))
+        .collect();
+    let name = String::from_utf8(unhex(&digits)?).ok()?;
+    if name_segments(&name) == segments {
+        Some((name, true))
+    } else if segments.len() == 1 && segments[0] == hex(name.as_bytes()) {
+        Some((name, false))
+    } else {
+        None
+    }
+}
+
 fn name_record(sha256: &[u8; 32]) -> Vec<u8> {
     let mut out = Vec::with_capacity(37);
     out.extend_from_slice(NAME_MAGIC);
@@ -809,6 +948,54 @@ fn parse_name_record(bytes: &[u8], name: &str) -> Result<[u8; 32], CacheError> {
             bytes.len()
         ))),
     }
+}
+
+/// Whether a failed request to the store may succeed when repeated: the store did not answer,
+/// timed out or dropped the connection, or answered with a server error (5xx), a timeout (408)
+/// or too many requests (429). A client error status (a key too long, a bad request), a file
+/// system's refusal (a file name too long, a file where a directory should be, no space, no
+/// permission) and a request the backend does not take are not. A failure this cannot place
+/// counts as one that may pass.
+fn transient(e: &object_store::Error) -> bool {
+    if !matches!(e, object_store::Error::Generic { .. }) {
+        return false;
+    }
+    let mut cause: Option<&(dyn std::error::Error + 'static)> = Some(e);
+    while let Some(c) = cause {
+        if c.is::<object_store::client::HttpError>() {
+            return true;
+        }
+        if let Some(status) = http_status(c) {
+            return !(400..500).contains(&status) || status == 408 || status == 429;
+        }
+        if let Some(io) = c.downcast_ref::<std::io::Error>() {
+            use std::io::ErrorKind as K;
+            return matches!(
+                io.kind(),
+                K::TimedOut
+                    | K::Interrupted
+                    | K::WouldBlock
+                    | K::ConnectionRefused
+                    | K::ConnectionReset
+                    | K::ConnectionAborted
+                    | K::NotConnected
+                    | K::BrokenPipe
+                    | K::UnexpectedEof
+                    | K::ResourceBusy
+                    | K::StaleNetworkFileHandle
+            );
+        }
+        cause = c.source();
+    }
+    true
+}
+
+/// The status of the HTTP response that `cause` reports, as `object_store` words it (its
+/// request error type, which holds the code, is not public).
+fn http_status(cause: &dyn std::error::Error) -> Option<u16> {
+    let text = cause.to_string();
+    let rest = text.strip_prefix("Server returned non-2xx status code: ")?;
+    rest.get(..3)?.parse().ok()
 }
 
 /// The object store and prefix a URL names.
@@ -857,7 +1044,11 @@ fn object_store_for(url: &str) -> Result<(Arc<dyn ObjectStore>, ObjectPath), Cac
                     dir.display()
                 ))
             })?;
-            let store = object_store::local::LocalFileSystem::new_with_prefix(&dir).map_err(bad)?;
+            // Directories left empty by a delete go with it (a long name's key is a path of
+            // directories of its own).
+            let store = object_store::local::LocalFileSystem::new_with_prefix(&dir)
+                .map_err(bad)?
+                .with_automatic_cleanup(true);
             Ok((Arc::new(store), ObjectPath::default()))
         }
         other => Err(CacheError::InvalidRequest(format!(
@@ -880,6 +1071,329 @@ mod tests {
         assert!(parse_name_record(b"WSPN\x02", "n").is_err());
         assert_eq!(unhex(&hex(b"a/b c")).unwrap(), b"a/b c");
         assert!(unhex("abc").is_none());
+    }
+
+    /// Names of `len` bytes: ASCII and, where the length allows, 2-, 3- and 4-byte UTF-8
+    /// characters (with ASCII to make up the length), and a `/` and spaces.
+    fn names_of_length(len: usize) -> Vec<String> {
+        let mut out = vec!["a".repeat(len)];
+        for c in ['é', '水', '🌊'] {
+            let n = len / c.len_utf8();
+            if n > 0 {
+                out.push(format!(
+                    "{}{}",
+                    c.to_string().repeat(n),
+                    "x".repeat(len % c.len_utf8())
+                ));
+            }
+        }
+        if len >= 3 {
+            out.push(format!("a/ {}", "b".repeat(len - 3)));
+        }
+        for n in &out {
+            assert_eq!(n.len(), len, "{n}");
+        }
+        out
+    }
+
+    /// The layout of name keys, pinned: what earlier releases wrote stays, long names split.
+    #[test]
+    fn short_names_keep_their_key_and_long_ones_are_split() {
+        // The keys every release wrote: one segment of lowercase hex, up to 126 bytes.
+        assert_eq!(name_segments("a"), vec!["61".to_string()]);
+        assert_eq!(name_segments("a/b c"), vec![hex(b"a/b c")]);
+        assert_eq!(name_segments(&"z".repeat(126)), vec!["7a".repeat(126)]);
+        // Longer: segments of 200 digits, each but the last marked.
+        assert_eq!(
+            name_segments(&"z".repeat(127)),
+            vec![format!("{}-", "7a".repeat(100)), "7a".repeat(27)]
+        );
+        assert_eq!(
+            name_segments(&"z".repeat(255)),
+            vec![
+                format!("{}-", "7a".repeat(100)),
+                format!("{}-", "7a".repeat(100)),
+                "7a".repeat(55)
+            ]
+        );
+        for len in 1..=MAX_NAME_BYTES {
+            for name in names_of_length(len) {
+                let segments = name_segments(&name);
+                // With the local store's `#N` staging suffix, within a file name's 255 bytes.
+                assert!(segments.iter().all(|s| s.len() + 3 <= 255), "{name}");
+                assert_eq!(name_of_key(&segments), Some((name.clone(), true)));
+                let whole = vec![hex(name.as_bytes())];
+                assert_eq!(name_of_key(&whole), Some((name.clone(), len <= 126)));
+            }
+        }
+        // Keys that no name has: a segment marked last, a long name's segments unmarked, a
+        // short name split, a segment of odd length, uppercase, bytes that are not UTF-8.
+        let long = name_segments(&"z".repeat(200));
+        let unmarked: Vec<String> = long.iter().map(|s| s.replace('-', "")).collect();
+        for bad in [
+            vec!["61-".to_string()],
+            unmarked,
+            vec!["61-".to_string(), "62".to_string()],
+            vec!["6".to_string()],
+            vec!["6A".to_string()],
+            vec!["ff".to_string()],
+            vec![],
+        ] {
+            assert_eq!(name_of_key(&bad), None, "{bad:?}");
+        }
+    }
+
+    /// Which store failures are `Unavailable` (a retry may mend them) and which are refusals.
+    #[tokio::test]
+    async fn failures_that_a_retry_may_mend_are_told_from_refusals() {
+        use object_store::client::{HttpError, HttpErrorKind};
+        let generic =
+            |source: Box<dyn std::error::Error + Send + Sync>| object_store::Error::Generic {
+                store: "test",
+                source,
+            };
+        let io = |kind| Box::new(std::io::Error::new(kind, "test"));
+        for (e, retry) in [
+            (
+                generic(Box::new(HttpError::new(
+                    HttpErrorKind::Connect,
+                    io(std::io::ErrorKind::Other),
+                ))),
+                true,
+            ),
+            (
+                generic(Box::new(HttpError::new(
+                    HttpErrorKind::Timeout,
+                    io(std::io::ErrorKind::Other),
+                ))),
+                true,
+            ),
+            (generic(io(std::io::ErrorKind::TimedOut)), true),
+            (generic(io(std::io::ErrorKind::ConnectionReset)), true),
+            // A cause this cannot place.
+            (generic("something else".into()), true),
+            (generic(io(std::io::ErrorKind::InvalidFilename)), false),
+            (generic(io(std::io::ErrorKind::NotADirectory)), false),
+            (generic(io(std::io::ErrorKind::StorageFull)), false),
+            (
+                object_store::Error::PermissionDenied {
+                    path: "p".into(),
+                    source: io(std::io::ErrorKind::Other),
+                },
+                false,
+            ),
+            (
+                object_store::Error::NotImplemented {
+                    operation: "o".into(),
+                    implementer: "i".into(),
+                },
+                false,
+            ),
+        ] {
+            assert_eq!(transient(&e), retry, "{e}");
+        }
+
+        // A local store's refusal of a file name too long, as the bucket reports it: not
+        // `Unavailable`.
+        let dir = tempfile::tempdir().unwrap();
+        let url = format!("file://{}", dir.path().display());
+        let bucket = Bucket::open(&url, 0).unwrap();
+        let path = bucket.path(&"7a".repeat(200));
+        let e = bucket.store.get(&path).await.unwrap_err();
+        assert!(!transient(&e), "{e}");
+        let e = bucket.failed("reading", &path, e);
+        assert!(matches!(e, CacheError::BucketRefused(_)), "{e}");
+        assert_eq!(tonic::Status::from(e).code(), tonic::Code::Internal);
+        let e = CacheError::Bucket("down".into());
+        assert_eq!(tonic::Status::from(e).code(), tonic::Code::Unavailable);
+    }
+
+    /// An S3 endpoint that answers every request with `status` and an S3 error body.
+    async fn answering(status: &'static str) -> String {
+        use tokio::io::{AsyncReadExt, AsyncWriteExt};
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let url = format!("http://{}", listener.local_addr().unwrap());
+        tokio::spawn(async move {
+            while let Ok((mut conn, _)) = listener.accept().await {
+                tokio::spawn(async move {
+                    let mut request = Vec::new();
+                    let mut buf = [0u8; 4096];
+                    while !request.windows(4).any(|w| w == b"\r\n\r\n") {
+                        match conn.read(&mut buf).await {
+                            Ok(0) | Err(_) => return,
+                            Ok(n) => request.extend_from_slice(&buf[..n]),
+                        }
+                    }
+                    let body = "<?xml version=\"1.0\" encoding=\"UTF-8\"?>\n\
+                        <Error><Code>KeyTooLongError</Code><Message>test</Message></Error>";
+                    let response = format!(
+                        "HTTP/1.1 {status}\r\ncontent-type: application/xml\r\n\
+                         content-length: {}\r\nconnection: close\r\n\r\n{body}",
+                        body.len()
+                    );
+                    let _ = conn.write_all(response.as_bytes()).await;
+                });
+            }
+        });
+        url
+    }
+
+    /// How an S3 client's failures are placed, from real responses: a client error (a key too
+    /// long) is a refusal, a server error, a throttled request or no answer may pass.
+    #[tokio::test]
+    async fn s3_statuses_are_placed_by_their_code() {
+        let s3 = |endpoint: &str| {
+            object_store::aws::AmazonS3Builder::new()
+                .with_endpoint(endpoint)
+                .with_allow_http(true)
+                .with_region("us-east-1")
+                .with_bucket_name("archive")
+                .with_access_key_id("id")
+                .with_secret_access_key("secret")
+                .with_retry(object_store::RetryConfig {
+                    max_retries: 0,
+                    retry_timeout: std::time::Duration::from_secs(1),
+                    ..Default::default()
+                })
+                .build()
+                .unwrap()
+        };
+        let path = ObjectPath::from("names/61");
+        for (status, retry) in [
+            ("400 Bad Request", false),
+            ("405 Method Not Allowed", false),
+            ("429 Too Many Requests", true),
+            ("500 Internal Server Error", true),
+            ("503 Service Unavailable", true),
+        ] {
+            let store = s3(&answering(status).await);
+            let e = store.get(&path).await.unwrap_err();
+            assert!(
+                matches!(e, object_store::Error::Generic { .. }),
+                "{status}: {e}"
+            );
+            assert_eq!(transient(&e), retry, "{status}: {e}");
+            let e = store
+                .put(&path, PutPayload::from_static(b"x"))
+                .await
+                .unwrap_err();
+            assert_eq!(transient(&e), retry, "{status}: {e}");
+        }
+        // Nothing listening.
+        let closed = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let url = format!("http://{}", closed.local_addr().unwrap());
+        drop(closed);
+        let e = s3(&url).get(&path).await.unwrap_err();
+        assert!(transient(&e), "{e}");
+    }
+
+    /// A small volume's `.wsp` bytes.
+    fn small_volume() -> Vec<u8> {
+        use wavesplat_compressor::encode::{compress, CompressOptions, Target, TileChoice};
+        let vol = wavesplat_compressor::phantom::Phantom::SheppLogan.generate([16, 16, 16]);
+        let options = CompressOptions {
+            target: Target::Fraction(0.1),
+            tile: TileChoice::Size(8),
+            levels: Some(2),
+            ..Default::default()
+        };
+        compress(&vol, &options, &|_, _| {}).unwrap().bytes
+    }
+
+    /// A bucket as an earlier release left it on S3 (which takes a segment of any length up to
+    /// its 1024-byte keys): long names' records under one segment of their whole hex. Read,
+    /// listed once, described, kept when ingested again and deleted; names added beside them
+    /// are keyed in segments.
+    #[tokio::test]
+    async fn long_names_an_earlier_release_keyed_by_one_segment_are_read() {
+        let store: Arc<dyn ObjectStore> = Arc::new(object_store::memory::InMemory::new());
+        let prefix = ObjectPath::from("archive");
+        let bucket = || {
+            Bucket::over(
+                store.clone(),
+                prefix.clone(),
+                "memory://archive",
+                tokio::runtime::Handle::current(),
+                1 << 20,
+            )
+        };
+        let wsp = small_volume();
+        let sha = wavesplat_net::digest::sha256(&wsp);
+        let object = wavesplat_codec::format::index::indexed_layout(&wsp).unwrap();
+        let old_key = |name: &str| format!("archive/names/{}", hex(name.as_bytes()));
+        let old: Vec<String> = [1, 126, 127, 200, 255]
+            .into_iter()
+            .flat_map(names_of_length)
+            .collect();
+        store
+            .put(
+                &ObjectPath::from(format!("archive/volumes/{}.wspx", hex(&sha))),
+                object.into(),
+            )
+            .await
+            .unwrap();
+        for name in &old {
+            let key = ObjectPath::from(old_key(name));
+            store.put(&key, name_record(&sha).into()).await.unwrap();
+        }
+
+        let b = bucket();
+        let listed = b.list().await.unwrap();
+        let mut want = old.clone();
+        want.sort();
+        let names: Vec<String> = listed.iter().map(|m| m.name.clone()).collect();
+        assert_eq!(names, want);
+        assert!(listed.iter().all(|m| m.names == want));
+        for name in &old {
+            let key = VolumeKey::Name(name.clone());
+            assert_eq!(b.locate(&key).await.unwrap(), sha, "{name}");
+            assert_eq!(b.describe(&key).await.unwrap().name, *name);
+        }
+
+        // Ingested again under an old name: the record stays where it is, alone.
+        let long = &old[old.len() - 1];
+        assert!(b.commit(long, &sha, None).await.unwrap());
+        // Other content may not take it.
+        assert!(matches!(
+            b.commit(long, &[7; 32], Some(PutPayload::from_static(b"x")))
+                .await,
+            Err(CacheError::NameTaken(_))
+        ));
+        // A new long name is keyed in segments; both kinds are listed.
+        let new = "n".repeat(255);
+        assert!(b.commit(&new, &sha, None).await.unwrap());
+        let keys: Vec<String> = store
+            .list(Some(&ObjectPath::from("archive/names")))
+            .map_ok(|o| o.location.to_string())
+            .try_collect()
+            .await
+            .unwrap();
+        assert_eq!(keys.len(), old.len() + 1, "{keys:?}");
+        assert!(keys.contains(&old_key(long)), "{keys:?}");
+        let segments = name_segments(&new).join("/");
+        assert!(
+            keys.contains(&format!("archive/names/{segments}")),
+            "{keys:?}"
+        );
+        // A name under both keys (a node of each release naming it at once) counts once.
+        store
+            .put(&ObjectPath::from(old_key(&new)), name_record(&sha).into())
+            .await
+            .unwrap();
+        assert_eq!(bucket().list().await.unwrap().len(), old.len() + 1);
+
+        // Deleted under either key; the volume goes with the last name.
+        b.delete(&VolumeKey::Name(new.clone())).await.unwrap();
+        assert!(b.name_target(&new).await.unwrap().is_none());
+        for name in &old[1..] {
+            b.delete(&VolumeKey::Name(name.clone())).await.unwrap();
+            assert!(b.name_target(name).await.unwrap().is_none(), "{name}");
+        }
+        assert!(b.has_content(&sha).await.unwrap());
+        b.delete(&VolumeKey::Name(old[0].clone())).await.unwrap();
+        assert!(!b.has_content(&sha).await.unwrap());
+        let left: Vec<object_store::ObjectMeta> = store.list(None).try_collect().await.unwrap();
+        assert!(left.is_empty(), "{left:?}");
     }
 
     #[test]

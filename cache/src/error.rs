@@ -2,7 +2,8 @@
 //! request shape) is `InvalidArgument`, a missing volume `NotFound`, a name clash
 //! `AlreadyExists`, a concurrent change `Aborted`, a limit on concurrent work `ResourceExhausted`,
 //! an abandoned request `DeadlineExceeded` / `Cancelled`, an object store that fails or cannot
-//! be reached `Unavailable` (the client may retry), storage trouble `Internal`. Messages carry the bad value and the allowed range.
+//! be reached `Unavailable` (the client may retry), storage trouble `Internal` (so is an object
+//! store's refusal that a retry would not change). Messages carry the bad value and the allowed range.
 
 use thiserror::Error;
 use wavesplat_codec::format::FormatError;
@@ -48,6 +49,10 @@ pub enum CacheError {
     /// The object store failed or could not be reached; the request may be repeated.
     #[error("object store: {0}")]
     Bucket(String),
+    /// The object store refused a request for a reason that repeating it does not change (a
+    /// key the backend cannot hold, no permission, a request it does not take).
+    #[error("object store refused: {0}")]
+    BucketRefused(String),
     /// A concurrent change got in the way; the request may be repeated.
     #[error("conflict: {0}")]
     Conflict(String),
@@ -106,6 +111,7 @@ impl From<CacheError> for tonic::Status {
             CacheError::Storage(_)
             | CacheError::Corrupt(_)
             | CacheError::Io(_)
+            | CacheError::BucketRefused(_)
             | CacheError::Security(_)
             | CacheError::Transport(_) => {
                 tracing::error!(error = %msg, "internal error");
