@@ -54,7 +54,7 @@ pub enum RunError {
     #[error("{0}")]
     SourceFailed(String),
     /// The source stayed unreachable longer than the run's patience.
-    #[error("the cache has been unreachable for {} s: {problem}", .patience.as_secs())]
+    #[error("the source has been unreachable for {} s: {problem}", .patience.as_secs())]
     Unreachable {
         /// The patience that ran out.
         patience: Duration,

@@ -267,7 +267,7 @@ impl VolumeLocation {
     pub fn describe(&self) -> String {
         match self {
             VolumeLocation::File { path, .. } => path.display().to_string(),
-            VolumeLocation::Published { url, .. } => url.clone(),
+            VolumeLocation::Published { url, .. } => crate::remote::redacted(url),
             VolumeLocation::Cache { urls, name, .. } => format!("{name} at {urls}"),
         }
     }
@@ -319,7 +319,7 @@ impl Opened {
             Opened::File { source } => Ok(load_coefficients(source.file_bytes(), None, None)?.1),
             Opened::Remote { url, ca, .. } => {
                 let bytes = fetch_wsp(url, ca.as_deref()).map_err(|source| OpenError::Source {
-                    what: url.clone(),
+                    what: crate::remote::redacted(url),
                     source,
                 })?;
                 Ok(load_coefficients(&bytes, None, None)?.1)
@@ -359,7 +359,7 @@ impl Opened {
             }
             Opened::Remote { url, ca, source } if source.bricked_volume().is_some() => {
                 let bytes = fetch_wsp(url, ca.as_deref()).map_err(|source| OpenError::Source {
-                    what: url.clone(),
+                    what: crate::remote::redacted(url),
                     source,
                 })?;
                 return draw(&bytes);

@@ -3,11 +3,14 @@
 //! one range, a few requests in flight, each range checked and its packets decoded and queued
 //! for the session; view changes reorder what is not yet requested. A bricked volume's packets
 //! are ranked across its bricks as a bricked file's are (each brick by its own view of the
-//! whole); a brick the view does not see is not fetched.
+//! whole); a brick the view does not see is not fetched. A range that failed every attempt
+//! (the server unreachable, or busy) goes back to the head of the queue while the source reports
+//! itself not connected and waits, longer while it goes on; what cannot pass (another file, a
+//! status that says no, bytes that are not the volume's) stops the source.
 
 use super::head::Head;
-use super::object::Object;
-use super::{RangeError, RangeSourceOptions};
+use super::object::{backoff, Object, ReadError};
+use super::RangeSourceOptions;
 use crate::source::{Control, PacketSender, SourceError, SourcePacket, SourceStatus};
 use bytes::Bytes;
 use futures_util::stream::FuturesUnordered;
@@ -23,6 +26,7 @@ use wavesplat_codec::view::ViewSpec;
 
 /// The network task's state.
 pub(super) struct Fetch {
+    /// The URL as messages show it (redacted).
     pub(super) url: String,
     pub(super) object: Object,
     pub(super) options: RangeSourceOptions,
@@ -183,6 +187,15 @@ impl Fetch {
         })
     }
 
+    /// Puts the packets of a request that failed back at the head of the queue, in order, to
+    /// be asked for again.
+    fn put_back(&mut self, req: Request) {
+        for id in &req.packets {
+            self.requested.remove(id);
+        }
+        self.queue.splice(0..0, req.packets);
+    }
+
     fn apply(&mut self, c: Control) {
         match c {
             Control::View(spec) => {
@@ -202,8 +215,14 @@ impl Fetch {
     pub(super) async fn run(mut self, tx: PacketSender, mut ctl: mpsc::UnboundedReceiver<Control>) {
         let mut flight = FuturesUnordered::new();
         let mut first_packet = true;
+        // While the server cannot be reached: when to ask again, and the failures in a row.
+        let mut paused_until: Option<tokio::time::Instant> = None;
+        let mut outages = 0u32;
         loop {
-            while flight.len() < self.options.in_flight.max(1) {
+            if paused_until.is_some_and(|t| tokio::time::Instant::now() >= t) {
+                paused_until = None;
+            }
+            while paused_until.is_none() && flight.len() < self.options.in_flight.max(1) {
                 let Some(req) = self.next_request() else {
                     break;
                 };
@@ -232,26 +251,66 @@ impl Fetch {
             }
             let idle = flight.is_empty();
             self.update(|s| s.done = idle && self.queue.is_empty());
+            let resume = paused_until;
             tokio::select! {
                 c = ctl.recv() => match c {
                     Some(c) => self.apply(c),
                     None => return,
                 },
                 Some((req, got)) = flight.next(), if !idle => {
-                    match self.deliver(req, got, &tx, &mut first_packet).await {
-                        Ok(true) => {}
-                        Ok(false) => return,
-                        Err(e) => {
-                            tracing::error!(url = %self.url, error = %e, "range source stopped");
+                    let remote = !req.local();
+                    match got {
+                        Err(e) if !e.is_final() => {
+                            if paused_until.is_none() {
+                                outages += 1;
+                            }
+                            let pause = backoff(self.object.pacing.outage_pause, outages)
+                                .max(e.retry_after().unwrap_or_default());
+                            let until = tokio::time::Instant::now() + pause;
+                            paused_until = Some(paused_until.map_or(until, |t| t.max(until)));
+                            tracing::warn!(
+                                url = %self.url, error = %e, ?pause,
+                                "range requests failed; asking again after a pause"
+                            );
+                            let problem = format!(
+                                "{} unreachable, asking again in {:.1} s: {e}",
+                                self.url,
+                                pause.as_secs_f64()
+                            );
+                            self.put_back(req);
                             self.update(|s| {
                                 s.connected = false;
-                                s.problem = Some(e.clone());
-                                s.failed = Some(e);
+                                s.problem = Some(problem);
                             });
-                            return;
+                        }
+                        got => {
+                            if remote && got.is_ok() && outages > 0 {
+                                outages = 0;
+                                paused_until = None;
+                                self.update(|s| {
+                                    s.connected = true;
+                                    s.problem = None;
+                                    s.reconnects += 1;
+                                });
+                            }
+                            match self.deliver(req, got, &tx, &mut first_packet).await {
+                                Ok(true) => {}
+                                Ok(false) => return,
+                                Err(e) => {
+                                    tracing::error!(url = %self.url, error = %e, "range source stopped");
+                                    self.update(|s| {
+                                        s.connected = false;
+                                        s.problem = Some(e.clone());
+                                        s.failed = Some(e);
+                                    });
+                                    return;
+                                }
+                            }
                         }
                     }
                 }
+                _ = tokio::time::sleep_until(resume.unwrap_or_else(tokio::time::Instant::now)),
+                    if resume.is_some() => {}
             }
         }
     }
@@ -261,7 +320,7 @@ impl Fetch {
     async fn deliver(
         &mut self,
         req: Request,
-        got: Result<Bytes, RangeError>,
+        got: Result<Bytes, ReadError>,
         tx: &PacketSender,
         first_packet: &mut bool,
     ) -> Result<bool, String> {
@@ -348,10 +407,10 @@ mod tests {
         };
         Fetch {
             url: "test".into(),
-            object: Object::Store {
-                store: Arc::new(object_store::memory::InMemory::new()),
-                path: ObjectPath::from("v.wspx"),
-            },
+            object: Object::store(
+                Arc::new(object_store::memory::InMemory::new()),
+                ObjectPath::from("v.wspx"),
+            ),
             options: RangeSourceOptions::default(),
             requested: HashSet::new(),
             queue: Vec::new(),

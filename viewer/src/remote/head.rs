@@ -39,16 +39,16 @@ pub(super) struct Head {
     pub(super) indexed: bool,
 }
 
-/// Reads the head of the volume at `url`; of a time series, as time point `time_point` (0 for
-/// any other volume).
+/// Reads the head of the volume `object`; of a time series, as time point `time_point` (0 for
+/// any other volume). `url` names it in messages (redacted: [`super::redacted`]). Every read
+/// after the first is held to the object the first saw ([`Object::read`]).
 pub(super) async fn read_head(
     object: &Object,
     url: &str,
     status: &Mutex<SourceStatus>,
     time_point: usize,
 ) -> Result<Head, SourceError> {
-    let (first, object_bytes) = object.read(Some(0..HEAD_READ_BYTES)).await?;
-    let mut bytes = first.to_vec();
+    let (mut bytes, object_bytes) = object.read_vec(Some(0..HEAD_READ_BYTES)).await?;
     count(status, bytes.len() as u64);
     let corrupt = |e: FormatError| SourceError::Remote(format!("{url}: {e}"));
     if bytes.starts_with(wavesplat_codec::format::MAGIC) {

@@ -15,22 +15,35 @@
 //!
 //! `http(s)://` URLs are read with reqwest: plain GET with `Range`, TLS verified against the CA
 //! given (PEM, `--ca`) or else the system's roots. Only what may pass is tried again (a refused
-//! or dropped connection, a timeout, 5xx, 429), a few times with short pauses; what will not
-//! pass fails at once, saying why ([`RangeError`]): a status names its code (the server's page
-//! is not printed, at most a line of plain text), an `https://` URL to a server that does not
-//! speak TLS says so, a certificate from an unknown CA says to pass `--ca`. `s3://` URLs go
+//! or dropped connection, an answer silent for the read timeout, 5xx, 429), a few times with
+//! growing jittered pauses or after the server's `Retry-After`, a broken body from where it
+//! broke. When every attempt failed the source does not stop: it puts those packets back at the
+//! head of its queue, reports itself not connected with the problem, waits and goes on, and the
+//! frame loop gives up only after its patience ([`crate::frame::RunToEnd::patience`]). What
+//! will not pass fails at once, saying why ([`RangeError`]): a status names its code (the
+//! server's page is not printed, at most a line of plain text or an XML error's code and
+//! message), an `https://` URL to a server that does not speak TLS says so, a certificate from
+//! an unknown CA says to pass `--ca`, a file changed on the server since it was opened (another
+//! size or `ETag`) says to reopen it, a compressed body names its encoding. `s3://` URLs go
 //! through the object-store client (as the cache's bucket store does), which signs requests.
+//!
+//! A URL may carry credentials (a password, a presigned query): messages and logs show it
+//! [`redacted`].
 
 mod fetch;
 mod head;
 mod object;
+#[cfg(test)]
+mod stub;
+#[cfg(test)]
+mod stub_tests;
 
 use crate::session::BrickedVolume;
 pub use crate::source::RangeError;
 use crate::source::{packet_source_via_feed, Feed, SourceError, SourceStatus};
 use fetch::Fetch;
 use head::read_head;
-use object::Object;
+use object::{Object, Pacing};
 use std::collections::HashSet;
 use std::path::Path;
 use std::sync::{Arc, Mutex};
@@ -82,28 +95,67 @@ pub struct RangeSource {
 
 /// The `.wsp` bytes of the volume at `url` (the whole object, without the index in front when
 /// it is in the indexed layout): for a reference render of everything. `ca`: the PEM CA to
-/// trust for `https://`.
+/// trust for `https://`. A transfer that breaks goes on from where it broke.
 pub fn fetch_wsp(url: &str, ca: Option<&Path>) -> Result<Vec<u8>, SourceError> {
     let object = Object::open(url, ca)?;
     let runtime = tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()
         .map_err(|e| SourceError::Thread(e.to_string()))?;
-    let (bytes, _) = runtime.block_on(object.read(None))?;
+    let (mut bytes, _) = runtime.block_on(object.read_vec(None))?;
     if !bytes.starts_with(wavesplat_codec::format::index::INDEXED_MAGIC) {
-        return Ok(bytes.to_vec());
+        return Ok(bytes);
     }
-    // The head checked and the object's length held to what it declares, as for a local file.
-    wsp_of_indexed(&bytes)
-        .map(<[u8]>::to_vec)
-        .map_err(|e| SourceError::Remote(format!("{url}: {e}")))
+    // The head checked and the object's length held to what it declares, as for a local file;
+    // the `.wsp` is the object's tail, moved to the front in place.
+    let wsp = wsp_of_indexed(&bytes)
+        .map_err(|e| SourceError::Remote(format!("{}: {e}", redacted(url))))?
+        .len();
+    bytes.drain(..bytes.len() - wsp);
+    Ok(bytes)
 }
 
-/// Whether `s` names a volume to browse by range requests rather than a local file.
+/// Whether `s` names a volume to browse by range requests rather than a local file (its
+/// scheme in any case, as URLs allow).
 pub fn is_remote(s: &str) -> bool {
     ["http://", "https://", "s3://", "s3a://"]
         .iter()
-        .any(|p| s.starts_with(p))
+        .any(|p| s.get(..p.len()).is_some_and(|h| h.eq_ignore_ascii_case(p)))
+}
+
+/// `url` as messages and logs show it: a password replaced by `***`, every query value by
+/// `***` (the names kept: `X-Amz-Signature=***`; an item without a value is `***` whole), any
+/// fragment dropped. What does not parse as a URL is shown up to its query, without what
+/// precedes an `@` in its authority.
+pub fn redacted(url: &str) -> String {
+    let Ok(mut parsed) = url::Url::parse(url) else {
+        let cut = url.split(['?', '#']).next().unwrap_or_default();
+        return match cut.split_once("://") {
+            Some((scheme, rest)) => {
+                let (authority, path) = rest.split_at(rest.find('/').unwrap_or(rest.len()));
+                let host = authority.rsplit_once('@').map_or(authority, |(_, h)| h);
+                format!("{scheme}://{host}{path}")
+            }
+            None => cut.to_string(),
+        };
+    };
+    if parsed.password().is_some() {
+        // Only a URL that cannot have one refuses a password.
+        let _ = parsed.set_password(Some("***"));
+    }
+    if let Some(query) = parsed.query() {
+        let masked: Vec<String> = query
+            .split('&')
+            .filter_map(|item| match item.split_once('=') {
+                Some((name, _)) => Some(format!("{name}=***")),
+                None if item.is_empty() => None,
+                None => Some("***".to_string()),
+            })
+            .collect();
+        parsed.set_query(Some(&masked.join("&")));
+    }
+    parsed.set_fragment(None);
+    parsed.to_string()
 }
 
 impl RangeSource {
@@ -115,8 +167,20 @@ impl RangeSource {
         spec: ViewSpec,
         options: RangeSourceOptions,
     ) -> Result<(RangeSource, Header), SourceError> {
+        RangeSource::open_paced(url, ca, spec, options, Pacing::default())
+    }
+
+    /// [`RangeSource::open`] with the reads paced as `pacing` says.
+    fn open_paced(
+        url: &str,
+        ca: Option<&Path>,
+        spec: ViewSpec,
+        options: RangeSourceOptions,
+        pacing: Pacing,
+    ) -> Result<(RangeSource, Header), SourceError> {
         spec.validate()?;
-        let object = Object::open(url, ca)?;
+        let object = Object::open_paced(url, ca, pacing)?;
+        let shown = redacted(url);
         let runtime = tokio::runtime::Builder::new_current_thread()
             .enable_all()
             .build()
@@ -125,10 +189,10 @@ impl RangeSource {
             connected: true,
             ..Default::default()
         }));
-        let head = runtime.block_on(read_head(&object, url, &status, options.time_point))?;
+        let head = runtime.block_on(read_head(&object, &shown, &status, options.time_point))?;
         if !head.indexed {
             tracing::warn!(
-                %url,
+                url = %shown,
                 "a plain .wsp: every packet is fetched in file order (`wavesplat publish` writes \
                  the indexed layout, which lets a view fetch only what it sees)"
             );
@@ -141,7 +205,7 @@ impl RangeSource {
         let bricked = head.bricked_volume().map(Box::new);
         let series = head.series.clone();
         let mut fetch = Fetch {
-            url: url.to_string(),
+            url: shown,
             object,
             options,
             requested: HashSet::new(),
@@ -189,8 +253,12 @@ mod tests {
     fn remote_names_are_recognised() {
         assert!(is_remote("https://cdn.example/a/v.wspx"));
         assert!(is_remote("s3://bucket/v.wspx"));
+        assert!(is_remote("HTTPS://cdn.example/a/v.wspx"));
+        assert!(is_remote("Http://cdn.example/a/v.wspx"));
+        assert!(is_remote("S3://bucket/v.wspx"));
         assert!(!is_remote("v.wspx"));
         assert!(!is_remote("/data/http://x"));
+        assert!(!is_remote("ht"));
         let open = |url| Object::open(url, None);
         assert!(open("http://host/").is_err(), "no file name");
         assert!(open("ftp://host/v.wspx").is_err());
@@ -205,5 +273,30 @@ mod tests {
             Object::open("https://host/v.wspx", Some(ca)),
             Err(RangeError::Ca { .. })
         ));
+    }
+
+    /// Messages show a URL with its password and query values replaced, its query names kept.
+    #[test]
+    fn urls_are_shown_without_their_credentials() {
+        assert_eq!(
+            redacted(
+                "https://reader:pw@cdn.example/a/v.wspx?X-Amz-Signature=abc&X-Amz-Expires=300&t"
+            ),
+            "https://reader:***@cdn.example/a/v.wspx?X-Amz-Signature=***&X-Amz-Expires=***&***"
+        );
+        assert_eq!(
+            redacted("https://cdn.example/v.wspx?token="),
+            "https://cdn.example/v.wspx?token=***"
+        );
+        assert_eq!(redacted("s3://bucket/dir/v.wspx"), "s3://bucket/dir/v.wspx");
+        assert_eq!(
+            redacted("http://127.0.0.1:8080/v.wspx#key=1"),
+            "http://127.0.0.1:8080/v.wspx"
+        );
+        assert_eq!(
+            redacted("http://u:p@[::1/v.wspx?sig=1"),
+            "http://[::1/v.wspx"
+        );
+        assert_eq!(redacted("v.wspx?sig=1"), "v.wspx");
     }
 }
