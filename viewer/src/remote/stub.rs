@@ -2,7 +2,9 @@
 //! keep-alive): each request is answered by the test's script, given the request and its
 //! number, with bytes to write, pauses and an early close, so that a test can answer 503 with
 //! `Retry-After`, stall a body, send more bytes than asked, change the file between requests
-//! or break a body midway. Every request is kept for the test to look at.
+//! or break a body midway. Every request is kept for the test to look at. Written here because
+//! a server library (hyper, axum) answers with well-formed responses only: what these tests
+//! need is the malformed and stalled ones.
 
 use std::io::{Read, Write};
 use std::net::{TcpListener, TcpStream};
