@@ -130,7 +130,8 @@ pub struct RenderArgs {
     #[arg(long, default_value_t = 16.6)]
     pub frame_ms: f64,
     /// Also render every coefficient of the volume and report the image's quality against it
-    /// (Q_I in the paper's units and the conventional SNR).
+    /// (Q_I in the paper's units and the conventional SNR), both at the size drawn (before a
+    /// view magnified beyond --max-pixels-per-voxel is magnified back).
     #[arg(long)]
     pub reference: bool,
     /// Write per-frame figures (frames.csv) and frame PNGs (1, 2, 4, 8, … and the last) here.

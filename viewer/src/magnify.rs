@@ -26,12 +26,14 @@ pub const DEFAULT_MAX_PIXELS_PER_VOXEL: f64 = 16.0;
 
 /// The side of the volume's finest voxel in units of spacing: the smallest spacing over the
 /// axes the volume extends along (a volume one voxel thin has no detail across its thin axis);
-/// 1 for a single voxel.
+/// over all three for a single voxel.
 fn finest_voxel(geometry: &Geometry) -> f64 {
-    (0..3)
-        .filter(|&a| geometry.dims[a] > 1)
-        .map(|a| f64::from(geometry.spacing[a]))
-        .fold(None, |m: Option<f64>, s| Some(m.map_or(s, |m| m.min(s))))
+    let smallest = |axes: &mut dyn Iterator<Item = usize>| {
+        axes.map(|a| f64::from(geometry.spacing[a]))
+            .fold(None, |m: Option<f64>, s| Some(m.map_or(s, |m| m.min(s))))
+    };
+    smallest(&mut (0..3).filter(|&a| geometry.dims[a] > 1))
+        .or_else(|| smallest(&mut (0..3)))
         .unwrap_or(1.0)
 }
 
@@ -48,8 +50,8 @@ pub fn pixels_per_voxel(spec: &ViewSpec, geometry: &Geometry) -> Result<f64, Vie
 
 /// The view to draw for `spec` so that it covers at most `max_pixels` pixels across the
 /// finest voxel: the same orientation, pan and cue, with the image and the zoom shrunk by one
-/// factor f = width / drawn width, the drawn image covering at least the view asked for
-/// ([`magnify`] brings it back). `None` when the view draws at most `max_pixels` already, or
+/// factor f = width / drawn width, the drawn image covering the view asked for (its height to
+/// within half a drawn pixel; [`magnify`] brings it back). `None` when the view draws at most `max_pixels` already, or
 /// when `max_pixels` is not a positive finite number (no bound).
 pub fn bounded(
     spec: &ViewSpec,
@@ -72,7 +74,9 @@ pub fn bounded(
     if factor <= 1.0 {
         return Ok(None);
     }
-    let drawn_height = ((height as f64 / factor).ceil() as usize).clamp(1, height);
+    // Rounded: the displays stretch the drawn image over the window, so its shape should be
+    // the window's to within half a drawn pixel (`magnify` itself holds the edge beyond it).
+    let drawn_height = ((height as f64 / factor).round() as usize).clamp(1, height);
     let zoom = per_voxel / finest_voxel(geometry) / factor;
     let mut drawn = *spec;
     drawn.view.width = drawn_width;
@@ -176,6 +180,15 @@ mod tests {
         let drawn = bounded(&spec, &g, 8.0).unwrap().expect("bounded");
         assert!(drawn.view.width < 1024 && drawn.view.width >= 1024 / 3);
         assert!(pixels_per_voxel(&drawn, &g).unwrap() <= 8.0 + 1e-9);
+    }
+
+    #[test]
+    fn a_single_voxel_is_measured_by_its_spacing() {
+        // 1 × 1 × 1 at 0.1 units: 20 pixels a unit is 2 pixels across the voxel.
+        let g = geometry([1, 1, 1], [0.1, 0.2, 0.3]);
+        let spec = ViewSpec::single(View::new(0.0, 0.0, 64, 64).with_zoom(20.0));
+        assert!((pixels_per_voxel(&spec, &g).unwrap() - 2.0).abs() < 1e-6);
+        assert_eq!(bounded(&spec, &g, 8.0).unwrap(), None);
     }
 
     #[test]

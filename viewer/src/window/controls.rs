@@ -431,8 +431,10 @@ impl Controls {
                 if let (true, Some((px, py))) = (self.input.dragging, self.input.cursor) {
                     let (dx, dy) = (x - px, y - py);
                     if self.input.shift {
+                        // The content follows the cursor: screen x grows with pan u's
+                        // opposite, screen y (down) with pan v (`Camera::to_screen`).
                         self.state.pan[0] -= dx / zoom;
-                        self.state.pan[1] -= dy / zoom;
+                        self.state.pan[1] += dy / zoom;
                         self.state.pan = self.state.pan.map(|p| p.clamp(-1e5, 1e5));
                     } else {
                         self.state.alpha = wrap(self.state.alpha + dx * 0.01);
@@ -791,12 +793,12 @@ mod tests {
         assert!((c.state.beta - 0.05).abs() < 1e-12);
         c.apply(Input::Shift(true), 2.0);
         c.apply(Input::CursorMoved(40.0, 25.0), 2.0);
-        // 10 pixels at 2 pixels per unit: 5 units, against the motion.
-        assert_eq!(c.state.pan, [-5.0, -5.0]);
+        // 10 pixels at 2 pixels per unit: 5 units, the content following the cursor.
+        assert_eq!(c.state.pan, [-5.0, 5.0]);
         assert!((c.state.alpha - 0.1).abs() < 1e-12);
         c.apply(Input::LeftButton(false), 2.0);
         c.apply(Input::CursorMoved(90.0, 90.0), 2.0);
-        assert_eq!(c.state.pan, [-5.0, -5.0]);
+        assert_eq!(c.state.pan, [-5.0, 5.0]);
     }
 
     #[test]

@@ -49,8 +49,10 @@ impl SoftDisplay {
         self.height = height;
     }
 
-    /// Writes the image stretched over a window of `size` (black without an image) and shows it.
-    pub(super) fn present(&mut self, size: PhysicalSize<u32>) -> Result<()> {
+    /// Writes the image stretched over a window of `size` (black without an image) and shows it;
+    /// `smooth`: interpolated wherever it is magnified (a view at rest), else only from
+    /// [`BILINEAR_FROM`] times.
+    pub(super) fn present(&mut self, size: PhysicalSize<u32>, smooth: bool) -> Result<()> {
         let (Some(w), Some(h)) = (NonZeroU32::new(size.width), NonZeroU32::new(size.height)) else {
             return Ok(());
         };
@@ -66,6 +68,7 @@ impl SoftDisplay {
             (self.width, self.height),
             &mut buffer,
             (w.get() as usize, h.get() as usize),
+            smooth,
         );
         buffer
             .present()
@@ -84,12 +87,14 @@ fn failed(what: &str, e: softbuffer::SoftBufferError) -> WindowError {
 /// Fills `out` (`out_size`, row-major) with `image` (`size`) stretched by nearest sample: output
 /// pixel (x, y) takes the image pixel whose cell holds the output pixel's centre, as a texture
 /// drawn over the whole window with nearest filtering; black where there is no image. Magnified
-/// [`BILINEAR_FROM`] times or more in both axes, it interpolates instead.
+/// [`BILINEAR_FROM`] times or more in both axes, or at all when `smooth`, it interpolates
+/// instead.
 pub(super) fn stretch(
     image: &[u32],
     size: (usize, usize),
     out: &mut [u32],
     out_size: (usize, usize),
+    smooth: bool,
 ) {
     let (w, h) = size;
     let (ow, oh) = out_size;
@@ -97,7 +102,8 @@ pub(super) fn stretch(
         out.fill(0);
         return;
     }
-    if ow >= BILINEAR_FROM * w && oh >= BILINEAR_FROM * h {
+    let magnified = ow > w && oh > h;
+    if (smooth && magnified) || (ow >= BILINEAR_FROM * w && oh >= BILINEAR_FROM * h) {
         return stretch_bilinear(image, size, out, out_size);
     }
     let source = |o: usize, n: usize, on: usize| ((2 * o + 1) * n / (2 * on)).min(n - 1);
@@ -117,9 +123,9 @@ pub(super) fn stretch(
         });
 }
 
-/// The magnification (in both axes) from which [`stretch`] interpolates: below it a nearest
-/// sample's blocks are at most two pixels wide, and nearest costs a third of bilinear on the
-/// drag frames that show a half-size image.
+/// The magnification (in both axes) from which [`stretch`] interpolates on every frame: below
+/// it a nearest sample's blocks are at most two pixels wide, and nearest is cheaper on the drag
+/// frames that show a half-size image (a view at rest is interpolated at any magnification).
 const BILINEAR_FROM: usize = 3;
 
 /// [`stretch`] by bilinear interpolation of each 8-bit channel, about the pixels' centres
@@ -171,11 +177,27 @@ mod tests {
     use super::stretch;
 
     #[test]
+    fn a_view_at_rest_is_interpolated_at_any_magnification() {
+        let image = [0x000000u32, 0x808080, 0x000000, 0x808080]; // 2 × 2
+        let mut nearest = vec![0u32; 16];
+        stretch(&image, (2, 2), &mut nearest, (4, 4), false);
+        assert!(nearest.iter().all(|&p| p == 0 || p == 0x808080));
+        let mut smooth = vec![0u32; 16];
+        stretch(&image, (2, 2), &mut smooth, (4, 4), true);
+        // Columns 1 and 2 lie between the two samples: a quarter and three quarters of grey.
+        assert_eq!(&smooth[..4], &[0, 0x202020, 0x606060, 0x808080]);
+        // Not magnified: the same either way.
+        let mut same = vec![0u32; 4];
+        stretch(&image, (2, 2), &mut same, (2, 2), true);
+        assert_eq!(same, image);
+    }
+
+    #[test]
     fn a_large_magnification_interpolates_each_channel() {
         // 2 × 1: black and white (grey levels in all three channels); magnified 4 × 4 times.
         let image = [0x000000u32, 0xffffff];
         let mut out = vec![0u32; 8 * 4];
-        stretch(&image, (2, 1), &mut out, (8, 4));
+        stretch(&image, (2, 1), &mut out, (8, 4), false);
         let grey = |p: u32| (p & 0xff, (p >> 8) & 0xff, (p >> 16) & 0xff);
         for row in out.chunks(8) {
             // Centres at 0.5 + k: the first and last two outputs hold the edges, between them
@@ -195,24 +217,24 @@ mod tests {
     fn stretching_takes_the_nearest_sample_and_keeps_an_equal_size() {
         let image: Vec<u32> = (0..6).collect(); // 3 × 2
         let mut same = vec![9; 6];
-        stretch(&image, (3, 2), &mut same, (3, 2));
+        stretch(&image, (3, 2), &mut same, (3, 2), false);
         assert_eq!(same, image);
         let mut double = vec![9; 24]; // 6 × 4
-        stretch(&image, (3, 2), &mut double, (6, 4));
+        stretch(&image, (3, 2), &mut double, (6, 4), false);
         assert_eq!(
             double,
             [0, 0, 1, 1, 2, 2, 0, 0, 1, 1, 2, 2, 3, 3, 4, 4, 5, 5, 3, 3, 4, 4, 5, 5]
         );
         let mut shrunk = vec![9; 1];
-        stretch(&image, (3, 2), &mut shrunk, (1, 1));
+        stretch(&image, (3, 2), &mut shrunk, (1, 1), false);
         assert_eq!(shrunk, [4]);
         let mut odd = vec![9; 5 * 3];
-        stretch(&image, (3, 2), &mut odd, (5, 3));
+        stretch(&image, (3, 2), &mut odd, (5, 3), false);
         // Columns 0..5 of 5 map to 0, 0, 1, 2, 2; rows 0..3 of 3 to 0, 1, 1.
         assert_eq!(&odd[..5], &[0, 0, 1, 2, 2]);
         assert_eq!(&odd[10..], &[3, 3, 4, 5, 5]);
         let mut none = vec![9; 4];
-        stretch(&[], (0, 0), &mut none, (2, 2));
+        stretch(&[], (0, 0), &mut none, (2, 2), false);
         assert_eq!(none, [0; 4]);
     }
 }

@@ -3,7 +3,7 @@
 //! screenshots), and the event loop's pacing between frames.
 
 use super::{report, window_size, App};
-use crate::window::controls::{arrange, grid, Input, KeyPress, Reaction, HELP};
+use crate::window::controls::{arrange, grid, image_size, size_w, Input, KeyPress, Reaction, HELP};
 use crate::window::script::Command;
 use crate::window::{Context, Result, WindowError};
 use std::path::Path;
@@ -59,19 +59,30 @@ impl App {
             None => frames.session.image().context("reading the image")?,
         };
         let window = Some(self.controls.state.display_window(&image));
-        arrange(
-            image,
-            grid(window_size(self.view_size), self.controls.state.multiview),
-        )
-        .write_png(path, window)
-        .with_context(|| format!("writing {}", path.display()))
+        // At the image's size for the window, magnified back where the view was drawn
+        // smaller (`--max-pixels-per-voxel`).
+        let multiview = self.controls.state.multiview;
+        let (w, h) = image_size(window_size(self.view_size), multiview, self.view_max_image);
+        let image = crate::magnify::magnify(&image, if multiview { 3 } else { 1 }, w, h);
+        arrange(image, grid(window_size(self.view_size), multiview))
+            .write_png(path, window)
+            .with_context(|| format!("writing {}", path.display()))
     }
 
-    /// Pixels per voxel of the current view (for panning by the cursor).
+    /// Window pixels per unit of spacing of the current view (for panning by the cursor):
+    /// the camera's zoom scaled from its image to the window's panel, which differ where the
+    /// image is drawn smaller (a drag, `--max-image`, `--max-pixels-per-voxel`).
     fn current_zoom(&self) -> f64 {
+        let panel = size_w(window_size(self.view_size), self.controls.state.multiview);
         self.frames
             .as_ref()
-            .and_then(|f| f.session.plan().cameras.first().map(|c| c.zoom))
+            .and_then(|f| {
+                f.session
+                    .plan()
+                    .cameras
+                    .first()
+                    .map(|c| c.zoom * panel / c.width.max(1) as f64)
+            })
             .filter(|z| z.is_finite() && *z > 0.0)
             .unwrap_or(1.0)
     }

@@ -305,7 +305,7 @@ impl App {
             self.controls.image_changed = false;
         }
         let present_start = Instant::now();
-        present(g, size)?;
+        present(g, size, !self.controls.interacting())?;
         let display_ms = display_start.elapsed().as_secs_f64() * 1e3;
         tracing::trace!(
             interacting = self.controls.interacting(),
@@ -382,7 +382,7 @@ impl App {
             self.last_image = Some((w as usize, h as usize));
             self.controls.image_changed = false;
         }
-        present(g, size)?;
+        present(g, size, !self.controls.interacting())?;
         self.converged = true;
         self.drawn += 1;
         self.view_shown += 1;

@@ -175,9 +175,9 @@ pub(super) fn attach_soft_display(
 
 /// Draws the image texture over the whole surface and presents it, reconfiguring the surface
 /// when it is outdated and recreating it when it is lost.
-pub(super) fn present(g: &mut Gfx, size: PhysicalSize<u32>) -> Result<()> {
+pub(super) fn present(g: &mut Gfx, size: PhysicalSize<u32>, smooth: bool) -> Result<()> {
     if let Some(soft) = g.soft.as_mut() {
-        return soft.present(size);
+        return soft.present(size, smooth);
     }
     if (g.config.width, g.config.height) != (size.width, size.height) {
         g.config.width = size.width;
