@@ -123,7 +123,7 @@ pub fn is_remote(s: &str) -> bool {
         .any(|p| s.get(..p.len()).is_some_and(|h| h.eq_ignore_ascii_case(p)))
 }
 
-/// `url` as messages and logs show it: a password replaced by `***`, every query value by
+/// `url` as messages and logs show it: a user and password replaced by `***`, every query value by
 /// `***` (the names kept: `X-Amz-Signature=***`; an item without a value is `***` whole), any
 /// fragment dropped. What does not parse as a URL is shown up to its query, without what
 /// precedes an `@` in its authority.
@@ -142,6 +142,10 @@ pub fn redacted(url: &str) -> String {
     if parsed.password().is_some() {
         // Only a URL that cannot have one refuses a password.
         let _ = parsed.set_password(Some("***"));
+    }
+    if !parsed.username().is_empty() {
+        // A token is often given as the user name alone (`https://TOKEN@host/…`).
+        let _ = parsed.set_username("***");
     }
     if let Some(query) = parsed.query() {
         let masked: Vec<String> = query
@@ -275,14 +279,19 @@ mod tests {
         ));
     }
 
-    /// Messages show a URL with its password and query values replaced, its query names kept.
+    /// Messages show a URL with its user, password and query values replaced, its query names
+    /// kept.
     #[test]
     fn urls_are_shown_without_their_credentials() {
         assert_eq!(
             redacted(
                 "https://reader:pw@cdn.example/a/v.wspx?X-Amz-Signature=abc&X-Amz-Expires=300&t"
             ),
-            "https://reader:***@cdn.example/a/v.wspx?X-Amz-Signature=***&X-Amz-Expires=***&***"
+            "https://***:***@cdn.example/a/v.wspx?X-Amz-Signature=***&X-Amz-Expires=***&***"
+        );
+        assert_eq!(
+            redacted("https://ghp_secret@host.example/v.wspx"),
+            "https://***@host.example/v.wspx"
         );
         assert_eq!(
             redacted("https://cdn.example/v.wspx?token="),

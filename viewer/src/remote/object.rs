@@ -7,8 +7,9 @@
 //! `Content-Length` no longer than asked, the body as long as its `Content-Range`, read with a
 //! cap), a 200 only to a read of the whole object (or of a range from its start that holds all
 //! of it), never a compressed body. The object's size and strong `ETag` as first seen are kept:
-//! a later answer for another size or `ETag` (or a 412 to the `If-Match` sent) means the file
-//! changed on the server, which no retry mends. A body that breaks or stalls (no byte for the
+//! a later answer for another size or `ETag` means the file changed on the server, which no
+//! retry mends (no `If-Match` is sent: each answer's headers are compared instead, and some
+//! servers and S3 gateways answer 412 to an `ETag` that matches). A body that breaks or stalls (no byte for the
 //! read timeout) is asked for again from where it broke.
 
 use super::{redacted, RangeError};
@@ -115,7 +116,10 @@ pub(super) enum ReadError {
     Range(#[from] RangeError),
     /// The server could not be reached, or the transfer broke, every time it was tried: it
     /// may pass later.
-    #[error("{reason} (tried {attempts} times)")]
+    #[error(
+        "{reason} (tried {attempts} times{})",
+        .retry_after.map_or(String::new(), |w| format!("; the server asks to wait {} s", w.as_secs()))
+    )]
     Transfer {
         /// The last failure.
         reason: String,
@@ -631,8 +635,10 @@ impl Object {
             return Ok((Vec::new(), self.first.get().map_or(0, |v| v.size)));
         }
         let mut attempt = 1;
+        // The furthest byte any attempt reached: the count starts over only past it (a resume
+        // answered from the start again does not).
+        let mut furthest = 0;
         loop {
-            let before = got.buf.len();
             match self.http_once(client, url, ca, &mut got).await {
                 Ok(()) => {
                     if let Some(size) = got.done() {
@@ -646,10 +652,18 @@ impl Object {
                     reason,
                     retry_after,
                 }) => {
-                    if got.buf.len() > before {
+                    // A body that broke after its last byte is whole.
+                    if let Some(size) = got.done() {
+                        return Ok((got.buf, size));
+                    }
+                    if got.buf.len() > furthest {
+                        furthest = got.buf.len();
                         attempt = 1;
                     }
-                    if attempt >= self.pacing.attempts.max(1) {
+                    // A server that asks for a longer wait than a back-off's is not waited for
+                    // here, silently: the caller says so (a browse pauses, showing why).
+                    let long_wait = retry_after.is_some_and(|w| w > MAX_PAUSE);
+                    if attempt >= self.pacing.attempts.max(1) || long_wait {
                         return Err(ReadError::Transfer {
                             reason,
                             attempts: attempt,
@@ -692,10 +706,8 @@ impl Object {
         if let Some(end) = end {
             request = request.header(header::RANGE, format!("bytes={from}-{}", end - 1));
         }
-        let if_match = self.first.get().and_then(|v| v.etag.clone());
-        if let Some(tag) = &if_match {
-            request = request.header(header::IF_MATCH, tag);
-        }
+        // No If-Match: every answer's size and ETag are compared with the first's anyway
+        // (`check`), and some servers answer 412 to an ETag that matches.
         let mut response = request.send().await.map_err(|e| classify(e, ca))?;
         let status = response.status();
         match (status, end) {
@@ -758,15 +770,10 @@ impl Object {
                 }
                 Ok(())
             }
-            (reqwest::StatusCode::PRECONDITION_FAILED, _) if if_match.is_some() => {
-                Err(ReadError::Changed(format!(
-                    "the server answered {status} to If-Match {}",
-                    if_match.unwrap_or_default()
-                ))
-                .into())
-            }
             (s, _)
-                if s.is_server_error()
+                if (s.is_server_error()
+                    && s != reqwest::StatusCode::NOT_IMPLEMENTED
+                    && s != reqwest::StatusCode::HTTP_VERSION_NOT_SUPPORTED)
                     || s == reqwest::StatusCode::TOO_MANY_REQUESTS
                     || s == reqwest::StatusCode::REQUEST_TIMEOUT =>
             {
@@ -791,8 +798,8 @@ impl Object {
         }
     }
 
-    /// [`Object::read_vec`] from an object store (which retries on its own): `If-Match` the
-    /// first `ETag`, and the size held to the first.
+    /// [`Object::read_vec`] from an object store (which retries on its own): the size and
+    /// `ETag` held to the first (no `If-Match`: some S3 gateways refuse a matching one).
     async fn read_store(
         &self,
         store: &dyn ObjectStore,
@@ -801,7 +808,6 @@ impl Object {
     ) -> Result<(Vec<u8>, u64), ReadError> {
         let options = object_store::GetOptions {
             range: range.clone().map(object_store::GetRange::Bounded),
-            if_match: self.first.get().and_then(|v| v.etag.clone()),
             ..Default::default()
         };
         let failed = |e: object_store::Error| {

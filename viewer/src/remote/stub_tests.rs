@@ -18,6 +18,13 @@ const QUICK: Pacing = Pacing {
     outage_pause: Duration::from_millis(200),
 };
 
+/// [`QUICK`] with a read timeout that a loaded machine's scheduling cannot reach by accident,
+/// for the tests that time a stall against it.
+const PATIENT: Pacing = Pacing {
+    read_timeout: Duration::from_secs(1),
+    ..QUICK
+};
+
 /// Runs `f` to its end on a runtime of its own.
 fn block<F: std::future::Future>(f: F) -> F::Output {
     tokio::runtime::Builder::new_current_thread()
@@ -58,6 +65,32 @@ fn retry_after_is_waited_out() {
         "asked again after {waited:?}, the server said a second"
     );
     assert_eq!(stub.seen().len(), 2);
+}
+
+/// A `Retry-After` longer than a back-off's longest pause is not waited out silently inside the
+/// read: the read ends at once, saying how long the server asks to wait (capped), for the
+/// caller to show and wait (a browse pauses; an open fails with the reason).
+#[test]
+fn a_long_retry_after_ends_the_read_saying_so() {
+    let stub = Stub::start(|_, _| {
+        reply(
+            "503 Service Unavailable",
+            &["Retry-After: 120".into()],
+            b"maintenance",
+        )
+    });
+    let object = Object::open(&format!("{}/v.wspx", stub.base), None).unwrap();
+    let asked = Instant::now();
+    let e = block(object.read(Some(10..20))).unwrap_err();
+    assert!(
+        asked.elapsed() < Duration::from_secs(5),
+        "{:?}",
+        asked.elapsed()
+    );
+    assert!(!e.is_final(), "{e}");
+    assert_eq!(e.retry_after(), Some(Duration::from_secs(60)));
+    assert!(e.to_string().contains("asks to wait 60 s"), "{e}");
+    assert_eq!(stub.seen().len(), 1);
 }
 
 /// A whole-object read (`fetch_wsp`) whose body breaks midway asks for the rest from where it
@@ -114,18 +147,18 @@ fn a_stalled_body_is_asked_for_again_from_where_it_stalled() {
             head.extend_from_slice(&served[..400]);
             vec![
                 Action::Write(head),
-                Action::Sleep(Duration::from_secs(3)),
+                Action::Sleep(Duration::from_secs(8)),
                 Action::Close,
             ]
         } else {
             serve(&served, seen, &[])
         }
     });
-    let object = Object::open_paced(&format!("{}/v.wspx", stub.base), None, QUICK).unwrap();
+    let object = Object::open_paced(&format!("{}/v.wspx", stub.base), None, PATIENT).unwrap();
     let asked = Instant::now();
     let (bytes, total) = block(object.read(Some(0..1000))).unwrap();
     assert!(
-        asked.elapsed() < Duration::from_secs(2),
+        asked.elapsed() < Duration::from_secs(6),
         "{:?}",
         asked.elapsed()
     );
@@ -149,14 +182,14 @@ fn a_slow_steady_body_is_read_to_its_end() {
         )];
         for chunk in served.chunks(25) {
             actions.push(Action::Write(chunk.to_vec()));
-            actions.push(Action::Sleep(Duration::from_millis(50)));
+            actions.push(Action::Sleep(Duration::from_millis(100)));
         }
         actions
     });
-    let object = Object::open_paced(&format!("{}/v.wspx", stub.base), None, QUICK).unwrap();
+    let object = Object::open_paced(&format!("{}/v.wspx", stub.base), None, PATIENT).unwrap();
     let asked = Instant::now();
     let (bytes, _) = block(object.read(Some(0..1000))).unwrap();
-    assert!(asked.elapsed() > QUICK.read_timeout * 5);
+    assert!(asked.elapsed() > PATIENT.read_timeout * 3);
     assert_eq!(&bytes[..], &data[..]);
     assert_eq!(stub.seen().len(), 1);
 }
@@ -227,18 +260,18 @@ fn a_range_answered_with_more_than_asked_is_refused() {
 }
 
 /// A file changed on the server after it was opened is refused, saying so: another strong
-/// `ETag`, another size, or a 412 to the `If-Match` sent.
+/// `ETag` or another size (compared from each answer's headers: no `If-Match` is sent, which
+/// some servers answer with a 412 even when the `ETag` matches).
 #[test]
 fn a_file_changed_on_the_server_is_refused_saying_so() {
     type Answer = fn(&[u8], &super::stub::Seen) -> Vec<Action>;
-    let cases: [(&str, Answer); 3] = [
+    let cases: [(&str, Answer); 2] = [
         ("another ETag", |data, seen| {
             serve(data, seen, &["ETag: \"v2\"".into()])
         }),
         ("another size", |data, seen| {
             serve(&[data, data].concat(), seen, &["ETag: \"v1\"".into()])
         }),
-        ("412", |_, _| reply("412 Precondition Failed", &[], b"")),
     ];
     for (name, later) in cases {
         let stub = Stub::start(move |n, seen| {
@@ -261,7 +294,7 @@ fn a_file_changed_on_the_server_is_refused_saying_so() {
         );
         let seen = stub.seen();
         assert_eq!(seen.len(), 2, "{name}: a change is not asked again");
-        assert_eq!(seen[1].header("if-match"), Some("\"v1\""), "{name}");
+        assert_eq!(seen[1].header("if-match"), None, "{name}");
     }
 }
 
