@@ -274,11 +274,16 @@ fn the_readme_secure_deployment_runs_across_hosts() {
                 .into_inner()
                 .lease
                 .expect("a queued job to lease");
-            let finish = |outcome| pb::FinishRequest {
-                job_id: lease.job_id,
-                attempt: lease.attempt,
-                worker: "forger".into(),
-                outcome: Some(outcome),
+            // The forger holds this lease (its token too): what it cannot do is claim a
+            // delivery the cache does not confirm.
+            let held = client::HeldLease::of(&lease);
+            let finish = |outcome| {
+                held.request(pb::FinishRequest {
+                    job_id: lease.job_id,
+                    attempt: lease.attempt,
+                    worker: "forger".into(),
+                    outcome: Some(outcome),
+                })
             };
             let made_up = pb::Delivered {
                 cache_volume_id: 424242,

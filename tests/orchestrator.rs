@@ -1087,6 +1087,7 @@ async fn the_parts_rpcs_hold_their_rules_against_a_raw_client() {
         .lease
         .unwrap();
     let (pid, pat) = (lease.job_id, lease.attempt);
+    let held = client::HeldLease::of(&lease);
     let part = |index: u32| JobSpec {
         part: Some(PartSpec {
             parent: pid,
@@ -1102,10 +1103,12 @@ async fn the_parts_rpcs_hold_their_rules_against_a_raw_client() {
         }),
         ..parent_spec.clone()
     };
-    let ask = |attempt: u32, specs: Vec<JobSpec>| pb::SubmitPartsRequest {
-        parent_id: pid,
-        parent_attempt: attempt,
-        parts: specs.iter().map(convert::spec_to_pb).collect(),
+    let ask = |attempt: u32, specs: Vec<JobSpec>| {
+        held.request(pb::SubmitPartsRequest {
+            parent_id: pid,
+            parent_attempt: attempt,
+            parts: specs.iter().map(convert::spec_to_pb).collect(),
+        })
     };
     let code = |r: Result<tonic::Response<pb::SubmitPartsResponse>, tonic::Status>| {
         r.map(|_| ()).unwrap_err().code()
@@ -1175,8 +1178,9 @@ async fn the_parts_rpcs_hold_their_rules_against_a_raw_client() {
         .lease
         .unwrap();
     assert_eq!(p.job_id, states[0].id);
+    let held_part = client::HeldLease::of(&p);
     let finish = c
-        .finish(pb::FinishRequest {
+        .finish(held_part.request(pb::FinishRequest {
             job_id: p.job_id,
             attempt: p.attempt,
             worker: "w".into(),
@@ -1184,7 +1188,7 @@ async fn the_parts_rpcs_hold_their_rules_against_a_raw_client() {
                 sha256: "0".repeat(64),
                 ..Default::default()
             })),
-        })
+        }))
         .await;
     assert_eq!(
         finish.unwrap_err().code(),
@@ -1206,7 +1210,7 @@ async fn the_parts_rpcs_hold_their_rules_against_a_raw_client() {
         m.extend(chunks.into_iter().map(|c| pb::FinishPartRequest {
             msg: Some(pb::finish_part_request::Msg::Chunk(c)),
         }));
-        tokio_stream::iter(m)
+        held_part.request(tokio_stream::iter(m))
     };
     let sha = wavesplat_net::digest::sha256(&result).to_vec();
     let n = result.len() as u64;
@@ -1220,10 +1224,12 @@ async fn the_parts_rpcs_hold_their_rules_against_a_raw_client() {
         let r = c.finish_part(send(size, digest, chunks, attempt)).await;
         assert!(r.is_err(), "size {size}, attempt {attempt}: accepted");
     }
-    let fetch = |attempt: u32, part: u64| pb::FetchResultRequest {
-        parent_id: pid,
-        parent_attempt: attempt,
-        part_id: part,
+    let fetch = |attempt: u32, part: u64| {
+        held.request(pb::FetchResultRequest {
+            parent_id: pid,
+            parent_attempt: attempt,
+            part_id: part,
+        })
     };
     let none = c.fetch_result(fetch(pat, p.job_id)).await;
     assert_eq!(
@@ -1271,6 +1277,182 @@ async fn the_parts_rpcs_hold_their_rules_against_a_raw_client() {
         "cancelled",
         "a bricked job's parts go with it"
     );
+}
+
+/// Cancelling a bricked job while its worker adds parts over several connections at once: the
+/// cancel (the job and its parts) and each addition (checked against the job's lease) are one
+/// step each, so whatever was added before the cancel is cancelled with it and nothing is added
+/// after it: no part of the job is left to run.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn cancelling_a_bricked_job_while_its_parts_are_added_leaves_none_to_run() {
+    use tonic::Code;
+    use wavesplat_orchestrator_client::model::{JobOptions, JobSpec, PartSpec, PartStep, Source};
+    use wavesplat_orchestrator_client::{self as client, convert, HeldLease};
+    let cl = TestCluster::start(&ORCH_TIMING);
+    let url = cl.orch.url();
+    let mut c = client::connect(&url).await.unwrap();
+    let mut added = 0;
+    for round in 0..8u32 {
+        let parent_spec = JobSpec {
+            name: format!("large{round}"),
+            source: Source::Path(format!("/shared/large{round}_64x64x64_f32.raw").into()),
+            sha256: [round as u8 + 1; 32],
+            raw: None,
+            options: JobOptions {
+                brick: Some(32),
+                ..JobOptions::default()
+            },
+            part: None,
+        };
+        client::submit(&mut c, &parent_spec, None).await.unwrap();
+        let lease = c
+            .lease(pb::LeaseRequest {
+                worker: "coord".into(),
+                parts_only: false,
+            })
+            .await
+            .unwrap()
+            .into_inner()
+            .lease
+            .unwrap();
+        let held = HeldLease::of(&lease);
+        let pid = held.job_id;
+        let mut adders = Vec::new();
+        for w in 0..4u32 {
+            let (url, held, parent_spec) = (url.clone(), held.clone(), parent_spec.clone());
+            adders.push(tokio::spawn(async move {
+                let mut c = client::connect(&url).await.unwrap();
+                let part = |index: u32| JobSpec {
+                    part: Some(PartSpec {
+                        parent: held.job_id,
+                        index,
+                        of: 128,
+                        step: PartStep::Score { energies: false },
+                        levels: 2,
+                        offset: Some(0.0),
+                        color: None,
+                        source_bytes: None,
+                        time_points: None,
+                        prefer_worker: None,
+                    }),
+                    ..parent_spec.clone()
+                };
+                // Calls of eight parts each: a call whose lease was checked before the cancel
+                // must still add none after it.
+                for call in 0..4u32 {
+                    let first = w * 32 + call * 8;
+                    let req = pb::SubmitPartsRequest {
+                        parent_id: held.job_id,
+                        parent_attempt: held.attempt,
+                        parts: (first..first + 8)
+                            .map(|k| convert::spec_to_pb(&part(k)))
+                            .collect(),
+                    };
+                    if let Err(s) = c.submit_parts(held.request(req)).await {
+                        assert_eq!(s.code(), Code::FailedPrecondition, "{s:?}");
+                        return;
+                    }
+                }
+            }));
+        }
+        tokio::time::sleep(std::time::Duration::from_millis(u64::from(round) * 3)).await;
+        c.cancel_job(pb::JobRef { id: pid }).await.unwrap();
+        for a in adders {
+            a.await.unwrap();
+        }
+        let parts: Vec<pb::Job> = jobs(&url)
+            .await
+            .into_iter()
+            .filter(|j| {
+                j.spec
+                    .as_ref()
+                    .and_then(|s| s.part.as_ref())
+                    .is_some_and(|p| p.parent == pid)
+            })
+            .collect();
+        added += parts.len();
+        let live: Vec<u64> = parts
+            .iter()
+            .filter(|j| !matches!(state_name(j.state), "cancelled" | "failed" | "done"))
+            .map(|j| j.id)
+            .collect();
+        assert!(
+            live.is_empty(),
+            "round {round}: parts {live:?} live after their job was cancelled"
+        );
+    }
+    assert!(added > 0, "no part was added before a cancel in 8 rounds");
+    let left = c
+        .lease(pb::LeaseRequest {
+            worker: "late".into(),
+            parts_only: true,
+        })
+        .await
+        .unwrap()
+        .into_inner()
+        .lease;
+    assert!(left.is_none(), "a part to run: {left:?}");
+}
+
+/// A bricked job cancelled while its parts run goes with its parts in one step (none left to
+/// run, the done ones' results dropped); retried, its next attempt runs every part again and
+/// the volume lands, byte for byte the file one process makes.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_cancelled_bricked_job_retried_runs_its_parts_again_and_lands() {
+    use wavesplat_orchestrator_client::model::TargetSpec;
+    let cl = TestCluster::start(&ORCH_TIMING);
+    let (o, c) = (cl.orch.url(), cl.cache.url());
+    let dims = [48, 40, 36];
+    let shared = cl.root.join("shared");
+    std::fs::create_dir_all(&shared).unwrap();
+    write_f32(
+        &shared.join(raw_name("again", dims, "f32")),
+        &phantom(Phantom::SheppLogan, dims),
+    );
+    let slow_parts = ["--pause-before-part-report-ms", "400"];
+    let _w = Proc::worker_with(&o, &c, "w1", &slow_parts, None);
+    submit(&shared, &o, &["--brick", "24"]);
+    let js = wait_for(&o, 60, "some of the bricked job's parts done", |js| {
+        js.iter()
+            .filter(|j| is_part(j) && state_name(j.state) == "done")
+            .count()
+            >= 2
+    })
+    .await;
+    let parent = js.iter().find(|j| !is_part(j)).unwrap().id;
+    let mut orch = wavesplat_orchestrator_client::connect(&o).await.unwrap();
+    let cancelled = orch
+        .cancel_job(pb::JobRef { id: parent })
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(state_name(cancelled.state), "cancelled");
+    let js = jobs(&o).await;
+    let parts: Vec<&pb::Job> = js.iter().filter(|j| is_part(j)).collect();
+    assert!(
+        parts
+            .iter()
+            .all(|j| matches!(state_name(j.state), "done" | "cancelled")),
+        "a part left to run: {parts:?}"
+    );
+    let done_before = parts
+        .iter()
+        .filter(|j| state_name(j.state) == "done")
+        .count();
+    assert!(done_before >= 2, "{parts:?}");
+    // Let the worker learn of the cancel (at its next heartbeat), then retry.
+    tokio::time::sleep(std::time::Duration::from_millis(800)).await;
+    orch.retry_job(pb::JobRef { id: parent }).await.unwrap();
+    let js = wait_for(&o, 120, "the retried bricked job done", |js| {
+        js.iter()
+            .any(|j| j.id == parent && matches!(state_name(j.state), "done" | "failed"))
+    })
+    .await;
+    let job = js.iter().find(|j| j.id == parent).unwrap();
+    assert_eq!(state_name(job.state), "done", "{}", job.error);
+    let volume = Phantom::SheppLogan.generate(dims);
+    let expected = one_process_file(&volume, 24, TargetSpec::Fraction(0.05));
+    assert_cache_holds_only(&c, &expected).await;
 }
 
 /// The orchestrator is SIGKILLed and restarted while a bricked job's parts run: the worker

@@ -10,7 +10,7 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 use wavesplat_harness::postgres::PostgresServer;
 use wavesplat_orchestrator::model::{
-    Delivery, Failure, FailureKind, JobOptions, JobSpec, JobState, Outcome, Source,
+    Delivery, Failure, FailureKind, Job, JobOptions, JobSpec, JobState, Outcome, Source,
 };
 use wavesplat_orchestrator::queue::QueueOptions;
 use wavesplat_orchestrator::service::Clock;
@@ -152,6 +152,15 @@ fn lease_lost(e: &OrchestratorError) -> bool {
     matches!(e, OrchestratorError::LeaseLost { .. })
 }
 
+/// The token of the lease `j` was leased under (as the worker got it).
+fn tok(j: &Job) -> Vec<u8> {
+    j.state
+        .lease_token()
+        .expect("a leased job has a token")
+        .as_bytes()
+        .to_vec()
+}
+
 async fn submit_deduplicates_by_content_options_and_name(b: &mut dyn Backend) {
     let clock = TestClock::default();
     let q = b.open(&clock).await;
@@ -223,7 +232,10 @@ async fn an_expired_lease_is_reclaimed_and_the_stale_worker_refused(b: &mut dyn 
     q.submit(spec(1), None).await.unwrap();
     let job = q.lease("w1", false).await.unwrap().job.unwrap();
     clock.set(900);
-    other.heartbeat(job.id, 1, 0.5, "transform").await.unwrap();
+    other
+        .heartbeat(job.id, 1, &tok(&job), 0.5, "transform")
+        .await
+        .unwrap();
     clock.set(1500);
     assert_eq!(
         q.reap().await.unwrap(),
@@ -256,15 +268,27 @@ async fn an_expired_lease_is_reclaimed_and_the_stale_worker_refused(b: &mut dyn 
     clock.set(2000);
     let again = other.lease("w2", false).await.unwrap().job.unwrap();
     assert_eq!(again.attempts, 2);
-    let e = q.heartbeat(job.id, 1, 0.9, "x").await.unwrap_err();
+    let e = q
+        .heartbeat(job.id, 1, &tok(&job), 0.9, "x")
+        .await
+        .unwrap_err();
     assert!(lease_lost(&e), "{e}");
-    let e = q.finish(job.id, 1, delivered()).await.unwrap_err();
+    let e = q
+        .finish(job.id, 1, &tok(&job), delivered())
+        .await
+        .unwrap_err();
     assert!(lease_lost(&e), "{e}");
     clock.set(2010);
-    let done = other.finish(job.id, 2, delivered()).await.unwrap();
+    let done = other
+        .finish(job.id, 2, &tok(&again), delivered())
+        .await
+        .unwrap();
     assert!(matches!(done.state, JobState::Done { run_ms: 10, .. }));
     // A finished lease cannot be finished again (a duplicate report after a retry).
-    let e = q.finish(job.id, 2, delivered()).await.unwrap_err();
+    let e = q
+        .finish(job.id, 2, &tok(&again), delivered())
+        .await
+        .unwrap_err();
     assert!(lease_lost(&e), "{e}");
 }
 
@@ -274,12 +298,14 @@ async fn failures_back_off_retry_and_stop(b: &mut dyn Backend) {
     q.submit(spec(1), None).await.unwrap();
     q.submit(spec(2), None).await.unwrap();
     let mut now = 0;
+    // The token of job 2's first lease.
+    let mut stale = Vec::new();
     for attempt in 1..=3 {
         clock.set(now);
         let j = q.lease("w", false).await.unwrap().job.unwrap();
         assert_eq!((j.id, j.attempts), (1, attempt));
         let j = q
-            .finish(1, attempt, failed(FailureKind::CacheUnavailable))
+            .finish(1, attempt, &tok(&j), failed(FailureKind::CacheUnavailable))
             .await
             .unwrap();
         match j.state {
@@ -298,9 +324,10 @@ async fn failures_back_off_retry_and_stop(b: &mut dyn Backend) {
         if attempt == 1 {
             let two = q.lease("w", false).await.unwrap().job.unwrap();
             assert_eq!(two.id, 2);
-            q.finish(2, 1, failed(FailureKind::InvalidInput))
+            q.finish(2, 1, &tok(&two), failed(FailureKind::InvalidInput))
                 .await
                 .unwrap();
+            stale = tok(&two);
         }
     }
     let two = q.get(2).await.unwrap();
@@ -322,13 +349,16 @@ async fn failures_back_off_retry_and_stop(b: &mut dyn Backend) {
     // The retried job's attempt number goes on (2), never handed out again: the worker of
     // attempt 1 (cancelled while running, say) cannot take the new lease for its own.
     assert_eq!(running.attempts, 2);
-    let e = q.heartbeat(2, 1, 0.1, "s").await.unwrap_err();
+    let e = q.heartbeat(2, 1, &stale, 0.1, "s").await.unwrap_err();
     assert!(lease_lost(&e), "{e}");
-    let e = q.finish(2, 1, delivered()).await.unwrap_err();
+    let e = q.finish(2, 1, &stale, delivered()).await.unwrap_err();
     assert!(lease_lost(&e), "{e}");
-    q.heartbeat(2, 2, 0.1, "s").await.unwrap();
+    q.heartbeat(2, 2, &tok(&running), 0.1, "s").await.unwrap();
     q.cancel(2).await.unwrap();
-    let e = q.heartbeat(2, 2, 0.1, "s").await.unwrap_err();
+    let e = q
+        .heartbeat(2, 2, &tok(&running), 0.1, "s")
+        .await
+        .unwrap_err();
     assert!(lease_lost(&e) && e.to_string().contains("cancelled"), "{e}");
     let e = q.cancel(2).await.unwrap_err();
     assert!(matches!(e, OrchestratorError::InvalidState { .. }), "{e}");
@@ -362,13 +392,13 @@ async fn uploads_live_until_no_unfinished_job_needs_them(b: &mut dyn Backend) {
     assert_eq!(q.upload(&[2; 32]).await.unwrap(), Some(Vec::new()));
     assert_eq!(q.upload(&[3; 32]).await.unwrap(), None);
     let a = q.lease("w", false).await.unwrap().job.unwrap();
-    q.finish(a.id, 1, delivered()).await.unwrap();
+    q.finish(a.id, 1, &tok(&a), delivered()).await.unwrap();
     assert!(
         q.upload(&[1; 32]).await.unwrap().is_some(),
         "b still needs it"
     );
     let b2 = q.lease("w", false).await.unwrap().job.unwrap();
-    q.finish(b2.id, 1, delivered()).await.unwrap();
+    q.finish(b2.id, 1, &tok(&b2), delivered()).await.unwrap();
     assert_eq!(q.upload(&[1; 32]).await.unwrap(), None);
     // A source that no job takes is not kept: a job refused as invalid, and one known and
     // done already (submitted again with its upload).
@@ -389,7 +419,7 @@ async fn a_second_store_sees_every_acknowledged_change(b: &mut dyn Backend) {
         q.submit(spec(n), None).await.unwrap();
     }
     let j = q.lease("w", false).await.unwrap().job.unwrap();
-    q.finish(j.id, 1, delivered()).await.unwrap();
+    q.finish(j.id, 1, &tok(&j), delivered()).await.unwrap();
     q.cancel(3).await.unwrap();
     let held = q.lease("w", false).await.unwrap().job.unwrap();
     let before = q.list().await.unwrap();
@@ -421,8 +451,11 @@ async fn many_workers_finish_an_archive(b: &mut dyn Backend, stores: usize) {
         tasks.push(tokio::spawn(async move {
             let mut done = Vec::new();
             while let Some(j) = q.lease(&format!("w{w}"), false).await.unwrap().job {
-                q.heartbeat(j.id, j.attempts, 0.5, "half").await.unwrap();
-                q.finish(j.id, j.attempts, delivered()).await.unwrap();
+                let t = tok(&j);
+                q.heartbeat(j.id, j.attempts, &t, 0.5, "half")
+                    .await
+                    .unwrap();
+                q.finish(j.id, j.attempts, &t, delivered()).await.unwrap();
                 done.push(j.id);
             }
             done
@@ -489,28 +522,31 @@ async fn parts_lease_apart_and_their_results_live_until_dropped(b: &mut dyn Back
     );
     let got1 = q.lease("other", true).await.unwrap().job.unwrap();
     assert_eq!(got1.id, p1.id);
-    q.put_result(parent.id, p0.id, 1, vec![1; 10])
+    let (t0, t1) = (tok(&got), tok(&got1));
+    q.put_result(parent.id, p0.id, 1, &t0, vec![1; 10])
         .await
         .unwrap();
-    q.put_result(parent.id, p0.id, 1, vec![2; 3]).await.unwrap();
-    q.put_result(parent.id + 100, p1.id, 1, vec![9])
+    q.put_result(parent.id, p0.id, 1, &t0, vec![2; 3])
+        .await
+        .unwrap();
+    q.put_result(parent.id + 100, p1.id, 1, &t1, vec![9])
         .await
         .unwrap();
     let big: Vec<u8> = (0..(3 << 20) + 5).map(|i| (i % 253) as u8).collect();
-    q.put_result(parent.id, p1.id, 1, big.clone())
+    q.put_result(parent.id, p1.id, 1, &t1, big.clone())
         .await
         .unwrap();
     assert_eq!(q.result(parent.id, p0.id).await.unwrap(), Some(vec![2; 3]));
     // Only the attempt holding the part's live lease stores a result: not another attempt,
     // not once the part is done (a stale worker cannot replace the finished part's result).
     let e = q
-        .put_result(parent.id, p0.id, 2, vec![7])
+        .put_result(parent.id, p0.id, 2, &t0, vec![7])
         .await
         .unwrap_err();
     assert!(lease_lost(&e), "{e}");
-    q.finish(p0.id, 1, delivered()).await.unwrap();
+    q.finish(p0.id, 1, &t0, delivered()).await.unwrap();
     let e = q
-        .put_result(parent.id, p0.id, 1, vec![7])
+        .put_result(parent.id, p0.id, 1, &t0, vec![7])
         .await
         .unwrap_err();
     assert!(lease_lost(&e), "{e}");
@@ -596,7 +632,10 @@ async fn a_part_goes_first_to_the_worker_it_prefers(b: &mut dyn Backend) {
         w1.id, p3.id,
         "w1 takes w2's part when nothing else is queued"
     );
-    let done = q.finish(w1.id, w1.attempts, delivered()).await.unwrap();
+    let done = q
+        .finish(w1.id, w1.attempts, &tok(&w1), delivered())
+        .await
+        .unwrap();
     match done.state {
         JobState::Done { worker, .. } => assert_eq!(worker, "w1"),
         other => panic!("not done: {other:?}"),
@@ -610,6 +649,401 @@ async fn a_part_goes_first_to_the_worker_it_prefers(b: &mut dyn Backend) {
     );
 }
 
+/// A bricked job (bricks of 16) of `spec(n)`.
+fn bricked(n: u32) -> JobSpec {
+    JobSpec {
+        options: JobOptions {
+            brick: Some(16),
+            ..JobOptions::default()
+        },
+        ..spec(n)
+    }
+}
+
+/// Part `index` (a score step, of 128) of the bricked job `parent`, whose spec is `bricked(n)`.
+fn part_of(parent: u64, n: u32, index: u32) -> JobSpec {
+    use wavesplat_orchestrator::model::{PartSpec, PartStep};
+    JobSpec {
+        part: Some(PartSpec {
+            parent,
+            index,
+            of: 128,
+            step: PartStep::Score { energies: false },
+            levels: 2,
+            offset: Some(0.5),
+            color: None,
+            source_bytes: None,
+            time_points: None,
+            prefer_worker: None,
+        }),
+        ..bricked(n)
+    }
+}
+
+fn not_holder(e: &OrchestratorError) -> bool {
+    matches!(e, OrchestratorError::NotLeaseHolder { .. })
+}
+
+/// The parts of `parent` among `jobs`, by id.
+fn parts_of(jobs: Vec<Job>, parent: u64) -> Vec<Job> {
+    jobs.into_iter()
+        .filter(|j| j.spec.part.as_ref().is_some_and(|p| p.parent == parent))
+        .collect()
+}
+
+/// A lease is held by its token alone: the right job and attempt with no token, another
+/// lease's, a zeroed, a shortened, a lengthened or a changed one are refused as not the
+/// holder on every change on a lease (heartbeat, outcome, adding parts, a part's result) and
+/// change nothing; every lease draws its own; a restart (or another orchestrator) knows them.
+async fn a_lease_is_held_only_with_its_token(b: &mut dyn Backend) {
+    let clock = TestClock::default();
+    let q = b.open(&clock).await;
+    let parent = q.submit(bricked(1), None).await.unwrap().job;
+    q.submit(spec(2), None).await.unwrap();
+    let p = q.lease("coordinator", false).await.unwrap().job.unwrap();
+    assert_eq!(p.id, parent.id);
+    let other = q.lease("other", false).await.unwrap().job.unwrap();
+    let (tp, to) = (tok(&p), tok(&other));
+    assert_eq!(tp.len(), 16);
+    assert_ne!(tp, to, "each lease draws its own token");
+    assert_ne!(tp, vec![0; 16]);
+    let mut flipped = tp.clone();
+    flipped[15] ^= 1;
+    let wrong = [
+        Vec::new(),
+        vec![0; 16],
+        to.clone(),
+        tp[..15].to_vec(),
+        [tp.clone(), vec![0]].concat(),
+        flipped,
+    ];
+    for w in &wrong {
+        let e = q
+            .heartbeat(p.id, p.attempts, w, 0.9, "stolen")
+            .await
+            .unwrap_err();
+        assert!(not_holder(&e), "{e}");
+        let e = q
+            .finish(p.id, p.attempts, w, delivered())
+            .await
+            .unwrap_err();
+        assert!(not_holder(&e), "{e}");
+        let e = q
+            .finish(p.id, p.attempts, w, failed(FailureKind::InvalidInput))
+            .await
+            .unwrap_err();
+        assert!(not_holder(&e), "{e}");
+        let e = q
+            .submit_parts(p.id, p.attempts, w, vec![part_of(p.id, 1, 0)])
+            .await
+            .unwrap_err();
+        assert!(not_holder(&e), "{e}");
+    }
+    assert_eq!(q.get(p.id).await.unwrap(), p, "refused: nothing changed");
+    assert_eq!(q.list().await.unwrap().len(), 2, "no part added");
+    // The holder adds a part; the part's lease is held by its own token.
+    let parts = q
+        .submit_parts(p.id, p.attempts, &tp, vec![part_of(p.id, 1, 0)])
+        .await
+        .unwrap();
+    let x = q.lease("w", true).await.unwrap().job.unwrap();
+    assert_eq!(x.id, parts[0].id);
+    let tx = tok(&x);
+    for w in [&tp, &Vec::new()] {
+        let e = q
+            .put_result(p.id, x.id, x.attempts, w, vec![1, 2])
+            .await
+            .unwrap_err();
+        assert!(not_holder(&e), "{e}");
+    }
+    assert_eq!(q.result(p.id, x.id).await.unwrap(), None);
+    assert_eq!(q.get(x.id).await.unwrap(), x);
+    q.put_result(p.id, x.id, x.attempts, &tx, vec![1, 2])
+        .await
+        .unwrap();
+    q.heartbeat(p.id, p.attempts, &tp, 0.5, "parts")
+        .await
+        .unwrap();
+    // After a restart (or at another orchestrator) every lease's token is what it was.
+    drop(q);
+    let q = b.reopen(&clock).await;
+    let e = q
+        .heartbeat(other.id, other.attempts, &tp, 0.1, "s")
+        .await
+        .unwrap_err();
+    assert!(not_holder(&e), "{e}");
+    q.heartbeat(other.id, other.attempts, &to, 0.1, "s")
+        .await
+        .unwrap();
+    q.finish(x.id, x.attempts, &tx, delivered()).await.unwrap();
+    q.finish(other.id, other.attempts, &to, delivered())
+        .await
+        .unwrap();
+}
+
+/// Cancelling a bricked job cancels its queued and running parts and drops their results in
+/// the same step (a done part stays done, its result gone); the parent's worker adds no part
+/// after it, the part's worker stores no result; retried, the parent's next attempt (with a new
+/// token) adds the same parts again and every one runs again; once it lands, their results go.
+async fn cancelling_a_parent_settles_its_parts_and_a_retry_runs_them_again(b: &mut dyn Backend) {
+    let clock = TestClock::default();
+    clock.set(1000);
+    let q = b.open(&clock).await;
+    let parent = q.submit(bricked(1), None).await.unwrap().job;
+    let p = q.lease("coordinator", false).await.unwrap().job.unwrap();
+    let tp = tok(&p);
+    let specs = |n: u32| (0..n).map(|i| part_of(parent.id, 1, i)).collect::<Vec<_>>();
+    let parts = q
+        .submit_parts(p.id, p.attempts, &tp, specs(3))
+        .await
+        .unwrap();
+    assert!(parts.iter().all(|j| j.state.name() == "queued"));
+    let ids: Vec<u64> = parts.iter().map(|j| j.id).collect();
+    let done = q.lease("w1", true).await.unwrap().job.unwrap();
+    let td = tok(&done);
+    q.put_result(parent.id, done.id, done.attempts, &td, vec![5; 4])
+        .await
+        .unwrap();
+    q.finish(done.id, done.attempts, &td, delivered())
+        .await
+        .unwrap();
+    let running = q.lease("w2", true).await.unwrap().job.unwrap();
+    let tr = tok(&running);
+    assert_eq!(
+        q.cancel(parent.id).await.unwrap().state,
+        JobState::Cancelled
+    );
+    let states = |jobs: Vec<Job>| jobs.iter().map(|j| j.state.name()).collect::<Vec<_>>();
+    let now_parts = parts_of(q.list().await.unwrap(), parent.id);
+    assert_eq!(states(now_parts), ["done", "cancelled", "cancelled"]);
+    assert_eq!(
+        q.result(parent.id, done.id).await.unwrap(),
+        None,
+        "dropped with the parent"
+    );
+    let e = q
+        .put_result(parent.id, running.id, running.attempts, &tr, vec![1])
+        .await
+        .unwrap_err();
+    assert!(lease_lost(&e), "{e}");
+    assert_eq!(q.result(parent.id, running.id).await.unwrap(), None);
+    let e = q
+        .heartbeat(running.id, running.attempts, &tr, 0.5, "s")
+        .await
+        .unwrap_err();
+    assert!(lease_lost(&e), "{e}");
+    let e = q
+        .submit_parts(p.id, p.attempts, &tp, specs(4))
+        .await
+        .unwrap_err();
+    assert!(lease_lost(&e), "{e}");
+    assert_eq!(
+        q.list().await.unwrap().len(),
+        4,
+        "no part added after the cancel"
+    );
+    assert!(q.lease("any", false).await.unwrap().job.is_none());
+
+    clock.set(2000);
+    q.retry(parent.id).await.unwrap();
+    let p2 = q.lease("coordinator", false).await.unwrap().job.unwrap();
+    assert_eq!((p2.id, p2.attempts), (parent.id, 2));
+    let tp2 = tok(&p2);
+    assert_ne!(tp2, tp, "a new lease, a new token");
+    let e = q
+        .submit_parts(p2.id, p2.attempts, &tp, specs(3))
+        .await
+        .unwrap_err();
+    assert!(not_holder(&e), "{e}");
+    let again = q
+        .submit_parts(p2.id, p2.attempts, &tp2, specs(3))
+        .await
+        .unwrap();
+    assert_eq!(again.iter().map(|j| j.id).collect::<Vec<_>>(), ids);
+    assert_eq!(states(again), ["queued", "queued", "queued"]);
+    let mut ran = Vec::new();
+    while let Some(j) = q.lease("w", true).await.unwrap().job {
+        let t = tok(&j);
+        q.put_result(parent.id, j.id, j.attempts, &t, vec![j.id as u8])
+            .await
+            .unwrap();
+        q.finish(j.id, j.attempts, &t, delivered()).await.unwrap();
+        ran.push(j.id);
+    }
+    ran.sort_unstable();
+    assert_eq!(ran, ids, "every part ran again");
+    let polled = q
+        .submit_parts(p2.id, p2.attempts, &tp2, specs(3))
+        .await
+        .unwrap();
+    assert_eq!(states(polled), ["done", "done", "done"]);
+    for &id in &ids {
+        assert_eq!(q.result(parent.id, id).await.unwrap(), Some(vec![id as u8]));
+    }
+    q.finish(p2.id, p2.attempts, &tp2, delivered())
+        .await
+        .unwrap();
+    for &id in &ids {
+        assert_eq!(
+            q.result(parent.id, id).await.unwrap(),
+            None,
+            "the landed job's parts' results go"
+        );
+    }
+    drop(q);
+    let q = b.reopen(&clock).await;
+    assert_eq!(
+        states(parts_of(q.list().await.unwrap(), parent.id)),
+        ["done", "done", "done"]
+    );
+    assert_eq!(q.result(parent.id, ids[0]).await.unwrap(), None);
+}
+
+/// A bricked job that fails for good, by its worker's outcome or by its last lease lapsing,
+/// cancels its live parts and drops its parts' results in that step; a lapse it is retried
+/// after keeps them for its next attempt.
+async fn a_parent_that_fails_drops_its_parts_results(b: &mut dyn Backend) {
+    let clock = TestClock::default();
+    let q = b.open(&clock).await;
+    let a = q.submit(bricked(1), None).await.unwrap().job;
+    let pa = q.lease("coordinator", false).await.unwrap().job.unwrap();
+    let specs = |parent: u64, n: u32| vec![part_of(parent, n, 0), part_of(parent, n, 1)];
+    let parts = q
+        .submit_parts(a.id, pa.attempts, &tok(&pa), specs(a.id, 1))
+        .await
+        .unwrap();
+    let x = q.lease("w", true).await.unwrap().job.unwrap();
+    q.put_result(a.id, x.id, x.attempts, &tok(&x), vec![1; 8])
+        .await
+        .unwrap();
+    q.finish(x.id, x.attempts, &tok(&x), delivered())
+        .await
+        .unwrap();
+    let ended = q
+        .finish(
+            pa.id,
+            pa.attempts,
+            &tok(&pa),
+            failed(FailureKind::InvalidInput),
+        )
+        .await
+        .unwrap();
+    assert_eq!(ended.state.name(), "failed");
+    assert_eq!(q.result(a.id, x.id).await.unwrap(), None);
+    assert_eq!(q.get(parts[1].id).await.unwrap().state, JobState::Cancelled);
+
+    let c = q.submit(bricked(3), None).await.unwrap().job;
+    let mut now = 0;
+    let pc = q.lease("coordinator", false).await.unwrap().job.unwrap();
+    assert_eq!(pc.id, c.id);
+    let parts = q
+        .submit_parts(c.id, pc.attempts, &tok(&pc), specs(c.id, 3))
+        .await
+        .unwrap();
+    let y = q.lease("w", true).await.unwrap().job.unwrap();
+    q.put_result(c.id, y.id, y.attempts, &tok(&y), vec![2; 8])
+        .await
+        .unwrap();
+    q.finish(y.id, y.attempts, &tok(&y), delivered())
+        .await
+        .unwrap();
+    for attempt in 1..=3 {
+        now += 1000;
+        clock.set(now);
+        assert_eq!(q.reap().await.unwrap(), 1, "the parent alone lapsed");
+        match q.get(c.id).await.unwrap().state {
+            JobState::Queued { not_before_ms } => {
+                assert!(attempt < 3);
+                assert_eq!(
+                    q.result(c.id, y.id).await.unwrap(),
+                    Some(vec![2; 8]),
+                    "kept for the next attempt"
+                );
+                assert_eq!(q.get(parts[1].id).await.unwrap().state.name(), "queued");
+                now = not_before_ms;
+                clock.set(now);
+                let again = q.lease("coordinator", false).await.unwrap().job.unwrap();
+                assert_eq!(again.id, c.id);
+            }
+            JobState::Failed(f) => {
+                assert_eq!(attempt, 3, "{}", f.message);
+            }
+            s => panic!("{s:?}"),
+        }
+    }
+    assert_eq!(q.result(c.id, y.id).await.unwrap(), None);
+    assert_eq!(q.get(parts[1].id).await.unwrap().state, JobState::Cancelled);
+    assert!(q.lease("any", true).await.unwrap().job.is_none());
+}
+
+/// Cancelling a bricked job while its worker adds parts at once (over every store): whatever
+/// was added before the cancel is cancelled with it, nothing is added after it, and no part of
+/// the job is left to run.
+async fn cancel_racing_submit_parts_leaves_no_live_part(b: &mut dyn Backend, stores: usize) {
+    let clock = TestClock::default();
+    let mut qs = vec![b.open(&clock).await];
+    for _ in 1..stores {
+        qs.push(b.reopen(&clock).await);
+    }
+    // Parts added before their job's cancel, over every round (the race is run, not won by
+    // the cancel every time).
+    let mut added = 0;
+    for round in 0..12u32 {
+        let n = 10 + round;
+        let parent = qs[0].submit(bricked(n), None).await.unwrap().job.id;
+        let p = qs[0]
+            .lease("coordinator", false)
+            .await
+            .unwrap()
+            .job
+            .unwrap();
+        assert_eq!(p.id, parent);
+        let (attempt, token) = (p.attempts, tok(&p));
+        let mut adders = Vec::new();
+        for w in 0..4u32 {
+            let (q, token) = (qs[w as usize % qs.len()].clone(), token.clone());
+            adders.push(tokio::spawn(async move {
+                // Calls of eight parts each (the last one known already): a call whose lease
+                // was checked before the cancel must still add none after it.
+                for call in 0..4u32 {
+                    let first = w * 28 + call * 7;
+                    let mut specs: Vec<JobSpec> =
+                        (first..first + 7).map(|i| part_of(parent, n, i)).collect();
+                    specs.push(part_of(parent, n, 120 + w));
+                    match q.submit_parts(parent, attempt, &token, specs).await {
+                        Ok(_) => {}
+                        Err(e) => {
+                            assert!(lease_lost(&e), "{e}");
+                            return;
+                        }
+                    }
+                }
+            }));
+        }
+        let canceller = qs[qs.len() - 1].clone();
+        let cancel = tokio::spawn(async move {
+            tokio::task::yield_now().await;
+            canceller.cancel(parent).await.unwrap()
+        });
+        for a in adders {
+            a.await.unwrap();
+        }
+        assert_eq!(cancel.await.unwrap().state, JobState::Cancelled);
+        let live: Vec<u64> = parts_of(qs[0].list().await.unwrap(), parent)
+            .into_iter()
+            .filter(|j| !j.state.is_terminal())
+            .map(|j| j.id)
+            .collect();
+        assert!(
+            live.is_empty(),
+            "round {round}: parts {live:?} live after their job was cancelled"
+        );
+        added += parts_of(qs[0].list().await.unwrap(), parent).len();
+    }
+    assert!(added > 0, "no part was added before a cancel in 12 rounds");
+    assert!(qs[0].lease("late", true).await.unwrap().job.is_none());
+}
+
 async fn contract(b: &mut dyn Backend, stores: usize) {
     a_part_goes_first_to_the_worker_it_prefers(b).await;
     parts_lease_apart_and_their_results_live_until_dropped(b).await;
@@ -619,6 +1053,10 @@ async fn contract(b: &mut dyn Backend, stores: usize) {
     uploads_live_until_no_unfinished_job_needs_them(b).await;
     a_second_store_sees_every_acknowledged_change(b).await;
     many_workers_finish_an_archive(b, stores).await;
+    a_lease_is_held_only_with_its_token(b).await;
+    cancelling_a_parent_settles_its_parts_and_a_retry_runs_them_again(b).await;
+    a_parent_that_fails_drops_its_parts_results(b).await;
+    cancel_racing_submit_parts_leaves_no_live_part(b, stores).await;
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 4)]

@@ -14,7 +14,7 @@ use wavesplat_compressor::phantom::Phantom;
 use wavesplat_net::{Security, Tokens};
 use wavesplat_orchestrator::{DeliveryCheck, ServiceOptions};
 use wavesplat_orchestrator_client::model::{JobOptions, JobSpec, Source};
-use wavesplat_orchestrator_client::{self as client, Client};
+use wavesplat_orchestrator_client::{self as client, Client, HeldLease};
 use wavesplat_proto::pb;
 
 const READ: &str = "0123456789abcdef-read";
@@ -362,11 +362,14 @@ async fn every_orchestrator_rpc_checks_its_role_and_deliveries_are_confirmed() {
     // A worker lease, then a made-up delivery: refused, the job stays running.
     let mut w = orch_client(&url, Some(WORKER)).await;
     let l = w.lease(lease).await.unwrap().into_inner().lease.unwrap();
-    let finish = |d: pb::Delivered| pb::FinishRequest {
-        job_id: l.job_id,
-        attempt: l.attempt,
-        worker: "fake".into(),
-        outcome: Some(pb::finish_request::Outcome::Delivered(d)),
+    let held = HeldLease::of(&l);
+    let finish = |d: pb::Delivered| {
+        held.request(pb::FinishRequest {
+            job_id: l.job_id,
+            attempt: l.attempt,
+            worker: "fake".into(),
+            outcome: Some(pb::finish_request::Outcome::Delivered(d)),
+        })
     };
     let fake = pb::Delivered {
         cache_volume_id: 42,
@@ -404,6 +407,315 @@ async fn every_orchestrator_rpc_checks_its_role_and_deliveries_are_confirmed() {
     w.finish(finish(truth)).await.unwrap();
     assert_eq!(state(client::list(&mut admin).await.unwrap()), "done");
     cache.stop().await;
+}
+
+/// Job ids and attempts are public (any reader lists them), so a lease is held by its token
+/// alone: another client with a `worker` token that names a running lease (job and attempt, read
+/// with GetJob) without its token, or with a made-up one, is refused on every RPC that acts on
+/// a lease (PermissionDenied) and changes nothing; the token is in no job listing; the worker
+/// the lease was granted to goes on with it.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_worker_token_does_not_hold_another_workers_lease() {
+    use prost::Message;
+    use wavesplat_orchestrator_client::convert;
+    use wavesplat_orchestrator_client::model::{PartSpec, PartStep};
+    let dir = tempfile::tempdir().unwrap();
+    let store = wavesplat_orchestrator::Store::open(dir.path()).unwrap();
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let url = format!("http://{}", listener.local_addr().unwrap());
+    let opts = wavesplat_orchestrator::ServeOptions {
+        security: Security {
+            tokens: Some(tokens()),
+            ..Default::default()
+        },
+        delivery_check: None,
+    };
+    tokio::spawn(wavesplat_orchestrator::serve_with(
+        listener,
+        store,
+        ServiceOptions::default(),
+        opts,
+        std::future::pending(),
+    ));
+    let source = b"the uploaded volume".to_vec();
+    let uploaded = JobSpec {
+        name: "uploaded".into(),
+        source: Source::Upload {
+            size: source.len() as u64,
+        },
+        sha256: wavesplat_net::digest::sha256(&source),
+        raw: None,
+        options: JobOptions::default(),
+        part: None,
+    };
+    let bricked = JobSpec {
+        name: "bricked".into(),
+        source: Source::Path("/shared/large_64x64x64_f32.raw".into()),
+        sha256: [5; 32],
+        raw: None,
+        options: JobOptions {
+            brick: Some(32),
+            ..JobOptions::default()
+        },
+        part: None,
+    };
+    let mut admin = orch_client(&url, Some(ADMIN)).await;
+    client::submit(&mut admin, &uploaded, Some(&source))
+        .await
+        .unwrap();
+    client::submit(&mut admin, &bricked, None).await.unwrap();
+
+    // Worker A leases both jobs.
+    let mut a = orch_client(&url, Some(WORKER)).await;
+    let lease = || async {
+        let req = pb::LeaseRequest {
+            worker: "a".into(),
+            parts_only: false,
+        };
+        let l = orch_client(&url, Some(WORKER))
+            .await
+            .lease(req)
+            .await
+            .unwrap()
+            .into_inner()
+            .lease
+            .unwrap();
+        assert_eq!(l.lease_token.len(), 16);
+        l
+    };
+    let (l1, l2) = (lease().await, lease().await);
+    let (h1, h2) = (HeldLease::of(&l1), HeldLease::of(&l2));
+    assert_ne!(h1.token(), h2.token());
+
+    // A reader sees the leases' jobs and attempts, never their tokens.
+    let mut reader = orch_client(&url, Some(READ)).await;
+    let got = reader
+        .get_job(job_ref(l1.job_id))
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(
+        (got.attempts, convert::state_name(got.state)),
+        (1, "running")
+    );
+    let listed = reader
+        .list_jobs(pb::ListJobsRequest::default())
+        .await
+        .unwrap()
+        .into_inner();
+    for wire in [got.encode_to_vec(), listed.encode_to_vec()] {
+        for t in [h1.token(), h2.token()] {
+            assert!(
+                !wire.windows(t.len()).any(|w| w == t),
+                "a token in a job listing"
+            );
+        }
+    }
+
+    // Worker B names A's leases as read, with no token or a made-up one: refused.
+    let mut b = orch_client(&url, Some(WORKER)).await;
+    let before = client::list(&mut reader).await.unwrap();
+    let forged = [
+        HeldLease::new(l1.job_id, l1.attempt, Vec::new()),
+        HeldLease::new(l1.job_id, l1.attempt, vec![0; 16]),
+        HeldLease::new(l1.job_id, l1.attempt, h2.token().to_vec()),
+    ];
+    #[track_caller]
+    fn denied(r: Result<(), tonic::Status>) {
+        let e = r.unwrap_err();
+        assert_eq!(e.code(), Code::PermissionDenied, "{e:?}");
+    }
+    for f in &forged {
+        let hb = pb::HeartbeatRequest {
+            job_id: l1.job_id,
+            attempt: l1.attempt,
+            worker: "b".into(),
+            progress: 0.9,
+            stage: "stolen".into(),
+        };
+        // Without metadata at all, and with the forged token.
+        denied(b.heartbeat(hb.clone()).await.map(drop));
+        denied(b.heartbeat(f.request(hb)).await.map(drop));
+        for outcome in [
+            pb::finish_request::Outcome::Failure(pb::Failure {
+                kind: pb::FailureKind::InvalidInput as i32,
+                message: "stolen".into(),
+            }),
+            pb::finish_request::Outcome::Delivered(pb::Delivered {
+                cache_volume_id: 1,
+                output_bytes: 1,
+                voxels: 1,
+                existed: false,
+                sha256: "00".repeat(32),
+            }),
+        ] {
+            let fin = pb::FinishRequest {
+                job_id: l1.job_id,
+                attempt: l1.attempt,
+                worker: "b".into(),
+                outcome: Some(outcome),
+            };
+            denied(b.finish(f.request(fin)).await.map(drop));
+        }
+        let fetch = pb::FetchSourceRequest {
+            job_id: l1.job_id,
+            attempt: l1.attempt,
+        };
+        denied(b.fetch_source(f.request(fetch)).await.map(drop));
+        // The same forgeries on the bricked job's lease (another lease's token: the first's).
+        let forged_token = if f.token() == h2.token() {
+            h1.token()
+        } else {
+            f.token()
+        };
+        let on_parent = HeldLease::new(l2.job_id, l2.attempt, forged_token.to_vec());
+        let parts = pb::SubmitPartsRequest {
+            parent_id: l2.job_id,
+            parent_attempt: l2.attempt,
+            parts: Vec::new(),
+        };
+        denied(b.submit_parts(on_parent.request(parts)).await.map(drop));
+        let fetch = pb::FetchResultRequest {
+            parent_id: l2.job_id,
+            parent_attempt: l2.attempt,
+            part_id: l2.job_id,
+        };
+        denied(b.fetch_result(on_parent.request(fetch)).await.map(drop));
+    }
+    assert_eq!(
+        client::list(&mut reader).await.unwrap(),
+        before,
+        "refused: nothing changed"
+    );
+
+    // A adds a part and leases it; B cannot report it or read the parent's results.
+    let part = JobSpec {
+        part: Some(PartSpec {
+            parent: l2.job_id,
+            index: 0,
+            of: 8,
+            step: PartStep::Score { energies: false },
+            levels: 2,
+            offset: Some(0.0),
+            color: None,
+            source_bytes: None,
+            time_points: None,
+            prefer_worker: None,
+        }),
+        ..bricked.clone()
+    };
+    let add = pb::SubmitPartsRequest {
+        parent_id: l2.job_id,
+        parent_attempt: l2.attempt,
+        parts: vec![convert::spec_to_pb(&part)],
+    };
+    let states = a
+        .submit_parts(h2.request(add))
+        .await
+        .unwrap()
+        .into_inner()
+        .parts;
+    let x = a
+        .lease(pb::LeaseRequest {
+            worker: "a".into(),
+            parts_only: true,
+        })
+        .await
+        .unwrap()
+        .into_inner()
+        .lease
+        .unwrap();
+    assert_eq!(x.job_id, states[0].id);
+    let hx = HeldLease::of(&x);
+    let result = b"a brick's summary".to_vec();
+    let report = |held: &HeldLease| {
+        let head = pb::PartResult {
+            job_id: x.job_id,
+            attempt: x.attempt,
+            worker: "b".into(),
+            size: result.len() as u64,
+            sha256: wavesplat_net::digest::sha256(&result).to_vec(),
+            voxels: 1,
+        };
+        held.request(tokio_stream::iter(vec![
+            pb::FinishPartRequest {
+                msg: Some(pb::finish_part_request::Msg::Head(head)),
+            },
+            pb::FinishPartRequest {
+                msg: Some(pb::finish_part_request::Msg::Chunk(result.clone())),
+            },
+        ]))
+    };
+    for forged in [
+        HeldLease::new(x.job_id, x.attempt, Vec::new()),
+        HeldLease::new(x.job_id, x.attempt, h2.token().to_vec()),
+    ] {
+        denied(b.finish_part(report(&forged)).await.map(drop));
+    }
+    let part_now = reader
+        .get_job(job_ref(x.job_id))
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(convert::state_name(part_now.state), "running");
+    let done = a.finish_part(report(&hx)).await.unwrap().into_inner();
+    assert_eq!(convert::state_name(done.state), "done");
+    let fetch = pb::FetchResultRequest {
+        parent_id: l2.job_id,
+        parent_attempt: l2.attempt,
+        part_id: x.job_id,
+    };
+    denied(b.fetch_result(fetch).await.map(drop));
+    let mut got = Vec::new();
+    let mut s = a
+        .fetch_result(h2.request(fetch))
+        .await
+        .unwrap()
+        .into_inner();
+    while let Some(c) = s.message().await.unwrap() {
+        got.extend_from_slice(&c.data);
+    }
+    assert_eq!(got, result);
+
+    // A goes on with its own leases.
+    let hb = pb::HeartbeatRequest {
+        job_id: l1.job_id,
+        attempt: l1.attempt,
+        worker: "a".into(),
+        progress: 0.5,
+        stage: "working".into(),
+    };
+    assert!(
+        a.heartbeat(h1.request(hb))
+            .await
+            .unwrap()
+            .into_inner()
+            .keep_going
+    );
+    let mut src = a
+        .fetch_source(h1.request(pb::FetchSourceRequest {
+            job_id: l1.job_id,
+            attempt: l1.attempt,
+        }))
+        .await
+        .unwrap()
+        .into_inner();
+    let mut bytes = Vec::new();
+    while let Some(c) = src.message().await.unwrap() {
+        bytes.extend_from_slice(&c.data);
+    }
+    assert_eq!(bytes, source);
+    let fin = pb::FinishRequest {
+        job_id: l1.job_id,
+        attempt: l1.attempt,
+        worker: "a".into(),
+        outcome: Some(pb::finish_request::Outcome::Failure(pb::Failure {
+            kind: pb::FailureKind::InvalidInput as i32,
+            message: "not a volume".into(),
+        })),
+    };
+    let ended = a.finish(h1.request(fin)).await.unwrap().into_inner();
+    assert_eq!(convert::state_name(ended.state), "failed");
 }
 
 mod common;
@@ -530,7 +842,11 @@ fn the_orchestrator_binary_with_a_cache_url_starts_and_refuses_unconfirmed_deliv
             })),
         };
         // The cache cannot confirm it (it is unreachable): the job is not done.
-        assert!(c.finish(made_up).await.is_err());
+        let e = c
+            .finish(HeldLease::of(&l).request(made_up))
+            .await
+            .unwrap_err();
+        assert_eq!(e.code(), Code::Unavailable, "{e:?}");
         let jobs = client::list(&mut c).await.unwrap();
         assert_eq!(
             wavesplat_orchestrator_client::convert::state_name(jobs[0].state),

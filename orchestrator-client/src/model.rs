@@ -719,6 +719,73 @@ pub enum Outcome {
     Failed(Failure),
 }
 
+/// Bytes of a lease's token ([`LeaseToken`]).
+pub const LEASE_TOKEN_BYTES: usize = 16;
+
+/// The secret of one lease: random bytes the orchestrator draws when it grants the lease and
+/// hands only to the worker it leases to (`Lease.lease_token`), which every RPC acting on the
+/// lease must present. Kept with the running attempt in the store, never shown in a job's
+/// wire form. Its `Debug` shows no bytes; its stored form is lower-case hex.
+#[derive(Clone, Copy, PartialEq, Eq)]
+pub struct LeaseToken([u8; LEASE_TOKEN_BYTES]);
+
+impl LeaseToken {
+    /// The token of these bytes.
+    pub const fn from_bytes(bytes: [u8; LEASE_TOKEN_BYTES]) -> LeaseToken {
+        LeaseToken(bytes)
+    }
+
+    /// The token of a stored or presented byte string; `None` unless it is
+    /// [`LEASE_TOKEN_BYTES`] long.
+    pub fn from_slice(bytes: &[u8]) -> Option<LeaseToken> {
+        Some(LeaseToken(bytes.try_into().ok()?))
+    }
+
+    /// Its bytes.
+    pub fn as_bytes(&self) -> &[u8; LEASE_TOKEN_BYTES] {
+        &self.0
+    }
+
+    /// Whether `presented` is this token, compared in constant time over the token's bytes (a
+    /// presented string of another length is refused at once: the length is no secret).
+    pub fn matches(&self, presented: &[u8]) -> bool {
+        if presented.len() != LEASE_TOKEN_BYTES {
+            return false;
+        }
+        let diff = self
+            .0
+            .iter()
+            .zip(presented)
+            .fold(0u8, |d, (a, b)| d | (a ^ b));
+        std::hint::black_box(diff) == 0
+    }
+}
+
+impl std::fmt::Debug for LeaseToken {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("LeaseToken(..)")
+    }
+}
+
+impl Serialize for LeaseToken {
+    fn serialize<S: Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        s.serialize_str(&wavesplat_net::digest::hex(&self.0))
+    }
+}
+
+impl<'de> Deserialize<'de> for LeaseToken {
+    fn deserialize<D: Deserializer<'de>>(d: D) -> Result<LeaseToken, D::Error> {
+        let s = String::deserialize(d)?;
+        wavesplat_net::digest::unhex(&s)
+            .and_then(|b| LeaseToken::from_slice(&b))
+            .ok_or_else(|| {
+                serde::de::Error::custom(format!(
+                    "a lease token is {LEASE_TOKEN_BYTES} bytes in hex"
+                ))
+            })
+    }
+}
+
 /// Where a job stands.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub enum JobState {
@@ -741,6 +808,11 @@ pub enum JobState {
         progress: f32,
         /// Current stage.
         stage: String,
+        /// The lease's secret, which the holder presents on every RPC acting on it (`None` in
+        /// a lease stored before tokens: no worker can present it, so it runs out and the job
+        /// runs again).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        lease_token: Option<LeaseToken>,
     },
     /// Delivered.
     Done {
@@ -768,6 +840,15 @@ impl JobState {
             JobState::Done { .. } => "done",
             JobState::Failed(_) => "failed",
             JobState::Cancelled => "cancelled",
+        }
+    }
+
+    /// The token of a running lease (`None` when not running, or for a lease stored before
+    /// tokens).
+    pub fn lease_token(&self) -> Option<&LeaseToken> {
+        match self {
+            JobState::Running { lease_token, .. } => lease_token.as_ref(),
+            _ => None,
         }
     }
 
@@ -803,4 +884,30 @@ pub struct Job {
     pub created_ms: u64,
     /// Unix ms.
     pub updated_ms: u64,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A token matches only its own bytes, is stored as hex and back, and is never shown.
+    #[test]
+    fn a_lease_token_matches_only_itself_and_is_not_shown() {
+        let t = LeaseToken::from_bytes([0x5a; LEASE_TOKEN_BYTES]);
+        assert!(t.matches(&[0x5a; LEASE_TOKEN_BYTES]));
+        let mut other = [0x5a; LEASE_TOKEN_BYTES];
+        other[0] ^= 0x80;
+        assert!(!t.matches(&other));
+        assert!(!t.matches(&[]));
+        assert!(!t.matches(&[0x5a; LEASE_TOKEN_BYTES + 1]));
+        let json = serde_json::to_string(&t).unwrap();
+        assert_eq!(json, format!("\"{}\"", "5a".repeat(LEASE_TOKEN_BYTES)));
+        assert_eq!(serde_json::from_str::<LeaseToken>(&json).unwrap(), t);
+        assert!(serde_json::from_str::<LeaseToken>("\"5a5a\"").is_err());
+        assert_eq!(format!("{t:?}"), "LeaseToken(..)");
+        // A running lease stored before tokens has none.
+        let old = r#"{"Running":{"worker":"w","attempt":1,"lease_expires_ms":5,"started_ms":1,"progress":0.0,"stage":"s"}}"#;
+        let state: JobState = serde_json::from_str(old).unwrap();
+        assert_eq!(state.lease_token(), None);
+    }
 }

@@ -1,6 +1,7 @@
 //! The orchestrator's typed errors and their single mapping to gRPC statuses: bad requests are
 //! `InvalidArgument`, unknown jobs `NotFound`, actions the job's state forbids (and lost
-//! leases, deliveries the cache does not confirm) `FailedPrecondition`, an unreachable cache
+//! leases, deliveries the cache does not confirm) `FailedPrecondition`, a request on a running
+//! lease without its token `PermissionDenied`, an unreachable cache
 //! or queue database `Unavailable`, storage trouble `Internal`. Jobs are named by their id (`model::JobId`, a
 //! `u64`), so this module needs nothing from the others.
 
@@ -39,6 +40,18 @@ pub enum OrchestratorError {
         /// Why.
         reason: String,
     },
+    /// The caller names the running lease (job and attempt) but not its token: it is not the
+    /// worker the lease was granted to.
+    #[error("lease on job {id} attempt {attempt}: the lease token is missing or wrong")]
+    NotLeaseHolder {
+        /// The job.
+        id: u64,
+        /// The attempt claimed.
+        attempt: u32,
+    },
+    /// No randomness for a lease token (the operating system's generator failed).
+    #[error("drawing a lease token: {0}")]
+    Entropy(String),
     /// The store failed.
     #[error("storage: {0}")]
     Storage(#[from] sled::Error),
@@ -82,6 +95,7 @@ impl From<OrchestratorError> for tonic::Status {
         let msg = e.to_string();
         match e {
             OrchestratorError::NotFound(_) => tonic::Status::not_found(msg),
+            OrchestratorError::NotLeaseHolder { .. } => tonic::Status::permission_denied(msg),
             OrchestratorError::InvalidRequest(_) => tonic::Status::invalid_argument(msg),
             OrchestratorError::InvalidState { .. }
             | OrchestratorError::LeaseLost { .. }
@@ -92,6 +106,7 @@ impl From<OrchestratorError> for tonic::Status {
             OrchestratorError::Storage(_)
             | OrchestratorError::Security(_)
             | OrchestratorError::Corrupt(_)
+            | OrchestratorError::Entropy(_)
             | OrchestratorError::Transport(_) => {
                 tracing::error!(error = %msg, "internal error");
                 tonic::Status::internal(msg)

@@ -7,7 +7,7 @@
 
 use crate::error::OrchestratorError;
 use crate::model::{Job, JobId, JobSpec, JobState, Outcome};
-use crate::queue::{Clock, Queue, QueueOptions, Submitted};
+use crate::queue::{new_lease_token, rules, Clock, Queue, QueueOptions, Submitted};
 use crate::store::Store;
 use std::sync::{Mutex, MutexGuard};
 
@@ -52,6 +52,13 @@ impl StateCounts {
 /// (heartbeats excepted: a lost heartbeat costs at most a reclaimed lease), and concurrent
 /// callers (RPCs of one orchestrator, or several orchestrators over one database) never lease
 /// one job twice or apply an outcome to a lease that lapsed.
+///
+/// Every change on a lease presents the lease's token (`token`, as the worker sent it): the
+/// running lease named without it is refused ([`OrchestratorError::NotLeaseHolder`]) and
+/// nothing changes. A job with parts that ends (done, failed for good, cancelled) cancels its
+/// queued and running parts and drops their results in the same step
+/// ([`crate::queue::rules::ends_parts`]); parts are added only while their parent's lease is
+/// held, checked in the step that adds them ([`JobStore::submit_parts`]).
 #[tonic::async_trait]
 pub trait JobStore: Send + Sync + 'static {
     /// The timing and retry policy.
@@ -66,7 +73,8 @@ pub trait JobStore: Send + Sync + 'static {
     ) -> Result<Submitted, OrchestratorError>;
 
     /// Leases the oldest runnable job to `worker` (with `parts_only`, the oldest part of a
-    /// bricked job).
+    /// bricked job), with a new secret token (the leased job's
+    /// [`JobState::lease_token`]).
     async fn lease(&self, worker: &str, parts_only: bool) -> Result<Leased, OrchestratorError>;
 
     /// Extends a held lease and records progress.
@@ -74,26 +82,45 @@ pub trait JobStore: Send + Sync + 'static {
         &self,
         id: JobId,
         attempt: u32,
+        token: &[u8],
         progress: f32,
         stage: &str,
     ) -> Result<Job, OrchestratorError>;
 
     /// Records the outcome of a held attempt; a delivered job's uploaded source is dropped
-    /// unless another unfinished job needs it.
+    /// unless another unfinished job needs it, and a job with parts that ends settles them
+    /// (see the trait's docs).
     async fn finish(
         &self,
         id: JobId,
         attempt: u32,
+        token: &[u8],
         outcome: Outcome,
     ) -> Result<Job, OrchestratorError>;
 
-    /// Cancels a queued or running job.
+    /// Adds the parts `specs` of `parent`, whose lease `attempt` the caller holds (presenting
+    /// `token`), or polls them if known; returns them in the order asked. The lease and every
+    /// spec are checked in the same step that adds them, so nothing is added once the parent
+    /// was cancelled, failed or reclaimed, nor when any spec is refused. A known part that
+    /// ended under an earlier attempt of the parent runs again
+    /// ([`crate::queue::rules::revive_part`]).
+    async fn submit_parts(
+        &self,
+        parent: JobId,
+        attempt: u32,
+        token: &[u8],
+        specs: Vec<JobSpec>,
+    ) -> Result<Vec<Job>, OrchestratorError>;
+
+    /// Cancels a queued or running job, and with it (in the same step) its queued and running
+    /// parts and its parts' results.
     async fn cancel(&self, id: JobId) -> Result<Job, OrchestratorError>;
 
     /// Queues a failed or cancelled job again with a fresh attempt budget.
     async fn retry(&self, id: JobId) -> Result<Job, OrchestratorError>;
 
-    /// Reclaims every lapsed lease; returns how many.
+    /// Reclaims every lapsed lease (a job with parts that fails for good settles them, as in
+    /// [`JobStore::finish`]); returns how many.
     async fn reap(&self) -> Result<usize, OrchestratorError>;
 
     /// One job.
@@ -106,21 +133,24 @@ pub trait JobStore: Send + Sync + 'static {
     async fn upload(&self, sha256: &[u8; 32]) -> Result<Option<Vec<u8>>, OrchestratorError>;
 
     /// Stores (durably) the result of part `id` of the bricked job `parent`, replacing any
-    /// earlier attempt's, if `attempt` holds the part's live lease at that moment (checked and
-    /// stored as one step): a worker whose lease expired or was taken while it uploaded cannot
-    /// replace the result of the attempt that finished the part (`LeaseLost`).
+    /// earlier attempt's, if `attempt` (presenting `token`) holds the part's live lease at that
+    /// moment (checked and stored as one step): a worker whose lease expired or was taken while
+    /// it uploaded cannot replace the result of the attempt that finished the part
+    /// (`LeaseLost`), nor can a part cancelled with its parent store one.
     async fn put_result(
         &self,
         parent: JobId,
         id: JobId,
         attempt: u32,
+        token: &[u8],
         bytes: Vec<u8>,
     ) -> Result<(), OrchestratorError>;
 
     /// The result of part `id` of `parent`.
     async fn result(&self, parent: JobId, id: JobId) -> Result<Option<Vec<u8>>, OrchestratorError>;
 
-    /// Drops the results of `parent`'s parts (once it is done with them); returns how many.
+    /// Drops the results of `parent`'s parts; returns how many. (A job with parts that ends
+    /// drops them itself; this is for callers that are done with them earlier.)
     async fn drop_results(&self, parent: JobId) -> Result<usize, OrchestratorError>;
 
     /// Jobs by state.
@@ -148,7 +178,9 @@ pub struct EmbeddedQueue {
 
 impl EmbeddedQueue {
     /// Loads the queue from `store`; running leases get a fresh lease of grace, since their
-    /// workers could not heartbeat while no orchestrator was up.
+    /// workers could not heartbeat while no orchestrator was up. What a crash left of a parent's
+    /// end is finished: its live parts cancelled ([`Queue::restore`]), its parts' results
+    /// dropped.
     pub fn open(
         store: Store,
         cfg: QueueOptions,
@@ -158,6 +190,11 @@ impl EmbeddedQueue {
         let jobs = store.load()?;
         let (queue, changed) = Queue::restore(options, jobs, clock());
         store.put(&changed)?;
+        for parent in store.result_parents()? {
+            if queue.get(parent).is_ok_and(rules::ends_parts) {
+                store.drop_results(parent)?;
+            }
+        }
         Ok(EmbeddedQueue {
             options,
             queue: Mutex::new(queue),
@@ -176,14 +213,18 @@ impl EmbeddedQueue {
         (self.clock)()
     }
 
+    /// Applies `f` to the queue under its lock and writes the job it changed through, with
+    /// what ending it settles in the same step: its parts ([`Queue::settle_parts`]) and their
+    /// results, and a delivered job's uploaded source.
     async fn change(
         &self,
         f: impl FnOnce(&mut Queue, u64) -> Result<Job, OrchestratorError>,
     ) -> Result<Job, OrchestratorError> {
         let job = {
             let mut q = self.lock();
-            let job = f(&mut q, self.now())?;
-            self.store.put(std::slice::from_ref(&job))?;
+            let now = self.now();
+            let job = f(&mut q, now)?;
+            self.write_through(&mut q, std::slice::from_ref(&job), now)?;
             if matches!(job.state, JobState::Done { .. }) {
                 self.store.release_blob(&job, q.jobs())?;
             }
@@ -191,6 +232,27 @@ impl EmbeddedQueue {
         };
         self.store.flush().await?;
         Ok(job)
+    }
+
+    /// Writes `changed` through (under the queue's lock `q`), each job that ends its parts
+    /// ([`rules::ends_parts`]) followed by its settled parts and the drop of their results.
+    /// The parent is written first, so that a crash part-way leaves what [`Queue::restore`]
+    /// finishes; `changed` may already hold settled parts (a reap), which settle no further.
+    fn write_through(
+        &self,
+        q: &mut Queue,
+        changed: &[Job],
+        now: u64,
+    ) -> Result<(), OrchestratorError> {
+        for job in changed {
+            self.store.put(std::slice::from_ref(job))?;
+            if rules::ends_parts(job) {
+                let parts = q.settle_parts(job, now);
+                self.store.put(&parts)?;
+                self.store.drop_results(job.id)?;
+            }
+        }
+        Ok(())
     }
 }
 
@@ -234,11 +296,12 @@ impl JobStore for EmbeddedQueue {
     }
 
     async fn lease(&self, worker: &str, parts_only: bool) -> Result<Leased, OrchestratorError> {
+        let token = new_lease_token()?;
         let leased = {
             let mut q = self.lock();
             let now = self.now();
-            let (job, changed) = q.lease(worker, parts_only, now);
-            self.store.put(&changed)?;
+            let (job, changed) = q.lease(worker, parts_only, token, now);
+            self.write_through(&mut q, &changed, now)?;
             // Only an idle worker needs to know when the next backoff ends.
             let next_runnable_in = match job {
                 None => q.next_runnable_in(now),
@@ -259,11 +322,12 @@ impl JobStore for EmbeddedQueue {
         &self,
         id: JobId,
         attempt: u32,
+        token: &[u8],
         progress: f32,
         stage: &str,
     ) -> Result<Job, OrchestratorError> {
         let mut q = self.lock();
-        let job = q.heartbeat(id, attempt, progress, stage, self.now())?;
+        let job = q.heartbeat(id, attempt, token, progress, stage, self.now())?;
         // Not flushed: see the store's docs.
         self.store.put(std::slice::from_ref(&job))?;
         Ok(job)
@@ -273,10 +337,36 @@ impl JobStore for EmbeddedQueue {
         &self,
         id: JobId,
         attempt: u32,
+        token: &[u8],
         outcome: Outcome,
     ) -> Result<Job, OrchestratorError> {
-        self.change(|q, now| q.finish(id, attempt, outcome, now))
+        self.change(|q, now| q.finish(id, attempt, token, outcome, now))
             .await
+    }
+
+    async fn submit_parts(
+        &self,
+        parent: JobId,
+        attempt: u32,
+        token: &[u8],
+        specs: Vec<JobSpec>,
+    ) -> Result<Vec<Job>, OrchestratorError> {
+        let (parts, changed) = {
+            // Under the queue's lock, as every change: a cancel, a reap or an outcome of the
+            // parent comes wholly before this check or wholly after these parts are added
+            // (and then settles them).
+            let mut q = self.lock();
+            let with_results = self.store.result_ids(parent)?;
+            let (parts, changed) =
+                q.submit_parts(parent, attempt, token, specs, &with_results, self.now())?;
+            self.store.put(&changed)?;
+            (parts, changed)
+        };
+        // Parts all known and unchanged (a poll) wrote nothing.
+        if !changed.is_empty() {
+            self.store.flush().await?;
+        }
+        Ok(parts)
     }
 
     async fn cancel(&self, id: JobId) -> Result<Job, OrchestratorError> {
@@ -290,14 +380,20 @@ impl JobStore for EmbeddedQueue {
     async fn reap(&self) -> Result<usize, OrchestratorError> {
         let changed = {
             let mut q = self.lock();
-            let changed = q.reap(self.now());
-            self.store.put(&changed)?;
+            let now = self.now();
+            let changed = q.reap(now);
+            self.write_through(&mut q, &changed, now)?;
             changed
         };
         if !changed.is_empty() {
             self.store.flush().await?;
         }
-        Ok(changed.len())
+        // The leases reclaimed (queued again or failed), not the parts they cancelled.
+        let reclaimed = changed
+            .iter()
+            .filter(|j| !matches!(j.state, JobState::Cancelled))
+            .count();
+        Ok(reclaimed)
     }
 
     async fn get(&self, id: JobId) -> Result<Job, OrchestratorError> {
@@ -317,12 +413,13 @@ impl JobStore for EmbeddedQueue {
         parent: JobId,
         id: JobId,
         attempt: u32,
+        token: &[u8],
         bytes: Vec<u8>,
     ) -> Result<(), OrchestratorError> {
         {
             // Under the queue's lock: no lease can change between the check and the write.
             let q = self.lock();
-            crate::queue::rules::check_held(q.get(id)?, attempt, self.now())?;
+            rules::check_held(q.get(id)?, attempt, token, self.now())?;
             self.store.put_result(parent, id, &bytes)?;
         }
         self.store.flush().await
@@ -381,13 +478,77 @@ mod tests {
                 sha256: "ab".repeat(32),
             })
         };
-        q.finish(a.id, 1, delivered()).await.unwrap();
+        let token = |j: &Job| j.state.lease_token().unwrap().as_bytes().to_vec();
+        q.finish(a.id, 1, &token(&a), delivered()).await.unwrap();
         assert!(
             q.upload(&[7; 32]).await.unwrap().is_some(),
             "b still needs it"
         );
         let b = q.lease("w", false).await.unwrap().job.unwrap();
-        q.finish(b.id, 1, delivered()).await.unwrap();
+        q.finish(b.id, 1, &token(&b), delivered()).await.unwrap();
         assert!(q.upload(&[7; 32]).await.unwrap().is_none());
+    }
+
+    /// A crash between writing a cancelled parent and settling its parts leaves the parent
+    /// ended, a part queued and a part's result stored: opening the store finishes the step.
+    #[tokio::test]
+    async fn opening_finishes_what_a_crash_left_of_a_parents_end() {
+        use crate::model::{PartSpec, PartStep};
+        let dir = tempfile::tempdir().unwrap();
+        let parent = JobSpec {
+            name: "bricked".into(),
+            source: Source::Path("/shared/b.nii".into()),
+            sha256: [3; 32],
+            raw: None,
+            options: JobOptions {
+                brick: Some(16),
+                ..JobOptions::default()
+            },
+            part: None,
+        };
+        let part = |index: u32| JobSpec {
+            part: Some(PartSpec {
+                parent: 1,
+                index,
+                of: 2,
+                step: PartStep::Score { energies: false },
+                levels: 2,
+                offset: None,
+                color: None,
+                source_bytes: None,
+                time_points: None,
+                prefer_worker: None,
+            }),
+            ..parent.clone()
+        };
+        let (p0, p1) = (
+            crate::queue::rules::new_job(2, part(0), 10),
+            crate::queue::rules::new_job(3, part(1), 10),
+        );
+        let mut cancelled = crate::queue::rules::new_job(1, parent, 10);
+        cancelled.state = JobState::Cancelled;
+        {
+            let store = Store::open(dir.path()).unwrap();
+            store.put(&[cancelled, p0, p1]).unwrap();
+            store.put_result(1, 2, &[1, 2, 3]).unwrap();
+            store.put_result(9, 3, &[4]).unwrap();
+            store.flush().await.unwrap();
+        }
+        let q = EmbeddedQueue::open(
+            Store::open(dir.path()).unwrap(),
+            QueueOptions::default(),
+            Arc::new(|| 1000),
+        )
+        .unwrap();
+        for id in [2, 3] {
+            assert_eq!(q.get(id).await.unwrap().state, JobState::Cancelled);
+        }
+        assert_eq!(q.result(1, 2).await.unwrap(), None);
+        assert_eq!(
+            q.result(9, 3).await.unwrap(),
+            Some(vec![4]),
+            "results of a job not known to have ended stay"
+        );
+        assert!(q.lease("w", true).await.unwrap().job.is_none());
     }
 }

@@ -2,7 +2,10 @@
 //! stateless orchestrators share. Each change is one transaction that locks the rows it
 //! changes (`SELECT … FOR UPDATE`; leases and reaping with `SKIP LOCKED`, so orchestrators
 //! never wait on each other's rows), applies the same [`rules`] as the embedded store, and
-//! commits before the RPC is answered. Uploaded sources are rows of the `uploads` table.
+//! commits before the RPC is answered. A job with parts and its parts are locked parent
+//! first, in every transaction that touches both (adding parts, ending the parent: cancelling
+//! its live parts and dropping their results). A running lease's token is the `lease_token`
+//! column, never part of the `job` record. Uploaded sources are rows of the `uploads` table.
 //! The schema is created and upgraded at start by versioned migrations (`migrations/`, run
 //! under sqlx's advisory lock, so orchestrators starting together apply each once).
 //!
@@ -13,13 +16,14 @@
 
 use crate::error::OrchestratorError;
 use crate::jobstore::{JobStore, Leased, StateCounts};
-use crate::model::{Job, JobId, JobSpec, JobState, Outcome, Source};
-use crate::queue::{rules, system_clock, Clock, QueueOptions, Submitted};
+use crate::model::{Job, JobId, JobSpec, JobState, LeaseToken, Outcome, Source};
+use crate::queue::{new_lease_token, rules, system_clock, Clock, QueueOptions, Submitted};
 use sqlx::migrate::{Migration, MigrationSource, MigrationType, Migrator};
 use sqlx::postgres::{PgConnectOptions, PgPool, PgPoolOptions};
 use sqlx::types::Json;
 use sqlx::{Postgres, Row, Transaction};
 use std::borrow::Cow;
+use std::collections::HashSet;
 use std::future::Future;
 use std::pin::Pin;
 use std::str::FromStr;
@@ -78,6 +82,13 @@ impl<'s> MigrationSource<'s> for Migrations {
                     Cow::Borrowed(include_str!("../migrations/0003_preferred_parts.sql")),
                     false,
                 ),
+                Migration::new(
+                    4,
+                    Cow::Borrowed("lease tokens, and parts by their parent"),
+                    MigrationType::Simple,
+                    Cow::Borrowed(include_str!("../migrations/0004_lease_tokens.sql")),
+                    false,
+                ),
             ])
         })
     }
@@ -105,6 +116,25 @@ fn db(e: sqlx::Error) -> OrchestratorError {
 
 fn ms(v: u64) -> i64 {
     i64::try_from(v).unwrap_or(i64::MAX)
+}
+
+/// Commits `tx` when `result` is a success, else rolls it back at once (dropped, sqlx would
+/// roll it back only when the pool next hands out the connection, and until then its rows stay
+/// locked and every lease skips them).
+async fn end<T>(
+    tx: Transaction<'static, Postgres>,
+    result: Result<T, OrchestratorError>,
+) -> Result<T, OrchestratorError> {
+    match result {
+        Ok(v) => {
+            tx.commit().await.map_err(db)?;
+            Ok(v)
+        }
+        Err(e) => {
+            let _ = tx.rollback().await;
+            Err(e)
+        }
+    }
 }
 
 impl PostgresQueue {
@@ -195,11 +225,23 @@ impl PostgresQueue {
         self.pool.begin().await.map_err(db)
     }
 
-    /// Writes `job` back to its row with every derived column.
+    /// Writes `job` back to its row with every derived column; a running lease's token goes to
+    /// its own column (`lease_token`), not into the `job` record.
     async fn write(
         tx: &mut Transaction<'static, Postgres>,
         job: &Job,
     ) -> Result<(), OrchestratorError> {
+        let token = job.state.lease_token().map(|t| t.as_bytes().to_vec());
+        let record: Cow<'_, Job> = match token {
+            None => Cow::Borrowed(job),
+            Some(_) => {
+                let mut j = job.clone();
+                if let JobState::Running { lease_token, .. } = &mut j.state {
+                    *lease_token = None;
+                }
+                Cow::Owned(j)
+            }
+        };
         let (not_before, lease_expires, worker) = match &job.state {
             JobState::Queued { not_before_ms } => (Some(ms(*not_before_ms)), None, None),
             JobState::Running {
@@ -211,7 +253,7 @@ impl PostgresQueue {
         };
         sqlx::query(
             "UPDATE jobs SET state = $2, not_before_ms = $3, lease_expires_ms = $4, worker = $5,
-                 attempts = $6, error = $7, updated_ms = $8, job = $9
+                 attempts = $6, error = $7, updated_ms = $8, job = $9, lease_token = $10
              WHERE id = $1",
         )
         .bind(ms(job.id))
@@ -222,17 +264,22 @@ impl PostgresQueue {
         .bind(i32::try_from(job.attempts).unwrap_or(i32::MAX))
         .bind(job.last_failure.as_ref().map(|f| f.message.as_str()))
         .bind(ms(job.updated_ms))
-        .bind(Json(job))
+        .bind(Json(record.as_ref()))
+        .bind(token)
         .execute(&mut **tx)
         .await
         .map_err(db)?;
         Ok(())
     }
 
+    /// The job of a row selected with its `job` and `lease_token` columns.
     fn job_of(row: &sqlx::postgres::PgRow) -> Result<Job, OrchestratorError> {
-        let Json(job): Json<Job> = row
-            .try_get("job")
-            .map_err(|e| OrchestratorError::Corrupt(format!("job record: {e}")))?;
+        let corrupt = |e: sqlx::Error| OrchestratorError::Corrupt(format!("job record: {e}"));
+        let Json(mut job): Json<Job> = row.try_get("job").map_err(corrupt)?;
+        let token: Option<Vec<u8>> = row.try_get("lease_token").map_err(corrupt)?;
+        if let JobState::Running { lease_token, .. } = &mut job.state {
+            *lease_token = token.as_deref().and_then(LeaseToken::from_slice);
+        }
         Ok(job)
     }
 
@@ -241,7 +288,7 @@ impl PostgresQueue {
         tx: &mut Transaction<'static, Postgres>,
         id: JobId,
     ) -> Result<Job, OrchestratorError> {
-        let row = sqlx::query("SELECT job FROM jobs WHERE id = $1 FOR UPDATE")
+        let row = sqlx::query("SELECT job, lease_token FROM jobs WHERE id = $1 FOR UPDATE")
             .bind(ms(id))
             .fetch_optional(&mut **tx)
             .await
@@ -266,52 +313,203 @@ impl PostgresQueue {
         Ok(())
     }
 
-    /// Locks job `id`, applies `f` at the current time, writes it back and commits.
+    /// Locks job `id`, applies `f` at the current time, writes it back with what ending it
+    /// settles ([`PostgresQueue::settle`], a delivered upload's source) and commits: one
+    /// transaction, rolled back whole when any step fails.
     async fn change(
         &self,
         id: JobId,
         f: impl FnOnce(&mut Job, u64) -> Result<(), OrchestratorError> + Send,
     ) -> Result<Job, OrchestratorError> {
         let mut tx = self.begin().await?;
-        // A refused change ends its transaction here: dropped, sqlx would roll it back only
-        // when the pool next hands out the connection, and until then the row stays locked
-        // and every lease skips the job.
-        let mut job = match Self::locked(&mut tx, id).await {
-            Ok(job) => job,
-            Err(e) => {
-                let _ = tx.rollback().await;
-                return Err(e);
+        let now = self.now();
+        let t = &mut tx;
+        let result = async move {
+            let mut job = Self::locked(t, id).await?;
+            f(&mut job, now)?;
+            Self::write(t, &job).await?;
+            Self::settle(t, &job, now).await?;
+            if matches!(job.state, JobState::Done { .. })
+                && matches!(job.spec.source, Source::Upload { .. })
+            {
+                Self::lock_upload(t, &job.spec.sha256).await?;
+                sqlx::query(
+                    "DELETE FROM uploads WHERE sha256 = $1 AND NOT EXISTS (
+                         SELECT 1 FROM jobs
+                         WHERE sha256 = $1 AND upload AND state <> 'done' AND id <> $2)",
+                )
+                .bind(&job.spec.sha256[..])
+                .bind(ms(job.id))
+                .execute(&mut **t)
+                .await
+                .map_err(db)?;
             }
-        };
-        if let Err(e) = f(&mut job, self.now()) {
-            tx.rollback().await.map_err(db)?;
-            return Err(e);
+            Ok(job)
         }
-        Self::write(&mut tx, &job).await?;
-        if matches!(job.state, JobState::Done { .. })
-            && matches!(job.spec.source, Source::Upload { .. })
-        {
-            Self::lock_upload(&mut tx, &job.spec.sha256).await?;
-            sqlx::query(
-                "DELETE FROM uploads WHERE sha256 = $1 AND NOT EXISTS (
-                     SELECT 1 FROM jobs
-                     WHERE sha256 = $1 AND upload AND state <> 'done' AND id <> $2)",
-            )
-            .bind(&job.spec.sha256[..])
-            .bind(ms(job.id))
-            .execute(&mut *tx)
+        .await;
+        end(tx, result).await
+    }
+
+    /// If `parent` (locked and written in `tx`) has ended ([`rules::ends_parts`]): cancels its
+    /// queued and running parts, locked parent first (as every transaction that touches a
+    /// parent and its parts), and drops its parts' results, in `tx`.
+    async fn settle(
+        tx: &mut Transaction<'static, Postgres>,
+        parent: &Job,
+        now: u64,
+    ) -> Result<(), OrchestratorError> {
+        if !rules::ends_parts(parent) {
+            return Ok(());
+        }
+        // By the index `jobs_parts`.
+        let rows = sqlx::query(
+            "SELECT job, lease_token FROM jobs
+             WHERE job->'spec' ? 'part' AND (job->'spec'->'part'->>'parent')::bigint = $1
+                 AND state IN ('queued', 'running')
+             ORDER BY id FOR UPDATE",
+        )
+        .bind(ms(parent.id))
+        .fetch_all(&mut **tx)
+        .await
+        .map_err(db)?;
+        for row in rows {
+            let mut part = Self::job_of(&row)?;
+            if rules::settle_part(parent, &mut part, now) {
+                Self::write(tx, &part).await?;
+            }
+        }
+        sqlx::query("DELETE FROM results WHERE parent = $1")
+            .bind(ms(parent.id))
+            .execute(&mut **tx)
             .await
             .map_err(db)?;
+        Ok(())
+    }
+
+    /// Inserts `spec` (validated, whose key is `key`) as a new job in `tx`; `None` when a job
+    /// with that key was committed meanwhile.
+    async fn insert_new(
+        tx: &mut Transaction<'static, Postgres>,
+        spec: JobSpec,
+        key: &str,
+        now: u64,
+    ) -> Result<Option<Job>, OrchestratorError> {
+        let id: i64 = sqlx::query("SELECT nextval(pg_get_serial_sequence('jobs', 'id'))")
+            .fetch_one(&mut **tx)
+            .await
+            .and_then(|r| r.try_get(0))
+            .map_err(db)?;
+        let job = rules::new_job(id as u64, spec, now);
+        let inserted = sqlx::query(
+            "INSERT INTO jobs (id, dedup_key, name, state, not_before_ms, attempts, sha256,
+                               upload, created_ms, updated_ms, job)
+             VALUES ($1, $2, $3, 'queued', $4, 0, $5, $6, $4, $4, $7)
+             ON CONFLICT (dedup_key) DO NOTHING",
+        )
+        .bind(id)
+        .bind(key)
+        .bind(&job.spec.name)
+        .bind(ms(now))
+        .bind(&job.spec.sha256[..])
+        .bind(matches!(job.spec.source, Source::Upload { .. }))
+        .bind(Json(&job))
+        .execute(&mut **tx)
+        .await
+        .map_err(db)?
+        .rows_affected();
+        Ok((inserted > 0).then_some(job))
+    }
+
+    /// [`JobStore::submit_parts`] in `tx`: the parent locked and its lease checked, then every
+    /// spec, then the parts added or polled (locked in the order asked, after the parent).
+    async fn add_parts(
+        tx: &mut Transaction<'static, Postgres>,
+        parent: JobId,
+        attempt: u32,
+        token: &[u8],
+        specs: Vec<JobSpec>,
+        now: u64,
+    ) -> Result<Vec<Job>, OrchestratorError> {
+        let holder = Self::locked(tx, parent).await?;
+        rules::check_held(&holder, attempt, token, now)?;
+        for spec in &specs {
+            rules::check_part_of(&holder, spec)?;
         }
-        tx.commit().await.map_err(db)?;
-        Ok(job)
+        let started = rules::started_ms(&holder).unwrap_or(now);
+        let with_results: HashSet<i64> =
+            sqlx::query_scalar("SELECT job_id FROM results WHERE parent = $1")
+                .bind(ms(parent))
+                .fetch_all(&mut **tx)
+                .await
+                .map_err(db)?
+                .into_iter()
+                .collect();
+        let mut parts = Vec::with_capacity(specs.len());
+        for spec in specs {
+            let key = spec.dedup_key();
+            let known =
+                sqlx::query("SELECT job, lease_token FROM jobs WHERE dedup_key = $1 FOR UPDATE")
+                    .bind(&key)
+                    .fetch_optional(&mut **tx)
+                    .await
+                    .map_err(db)?;
+            let job = match known {
+                Some(row) => {
+                    let mut job = Self::job_of(&row)?;
+                    let has_result = with_results.contains(&ms(job.id));
+                    if rules::revive_part(&mut job, started, has_result, now) {
+                        Self::write(tx, &job).await?;
+                    }
+                    job
+                }
+                // Parts are added only under their parent's lock: no other transaction adds
+                // this one meanwhile.
+                None => Self::insert_new(tx, spec, &key, now)
+                    .await?
+                    .ok_or_else(|| {
+                        OrchestratorError::Database(format!("part {key} added twice at once"))
+                    })?,
+            };
+            parts.push(job);
+        }
+        Ok(parts)
+    }
+
+    /// Reclaims job `id` in `tx` if its lease lapsed by `now` and no other transaction holds
+    /// it; settles its parts if it failed for good. Returns whether it was reclaimed.
+    async fn reap_one(
+        tx: &mut Transaction<'static, Postgres>,
+        options: &QueueOptions,
+        id: i64,
+        now: u64,
+    ) -> Result<bool, OrchestratorError> {
+        let row = sqlx::query(
+            "SELECT job, lease_token FROM jobs
+             WHERE id = $1 AND state = 'running' AND lease_expires_ms <= $2
+             FOR UPDATE SKIP LOCKED",
+        )
+        .bind(id)
+        .bind(ms(now))
+        .fetch_optional(&mut **tx)
+        .await
+        .map_err(db)?;
+        let Some(row) = row else {
+            return Ok(false);
+        };
+        let mut job = Self::job_of(&row)?;
+        if !rules::expire(options, &mut job, now) {
+            return Ok(false);
+        }
+        Self::write(tx, &job).await?;
+        Self::settle(tx, &job, now).await?;
+        Ok(true)
     }
 
     async fn existing(
         tx: &mut Transaction<'static, Postgres>,
         key: &str,
     ) -> Result<Option<Job>, OrchestratorError> {
-        sqlx::query("SELECT job FROM jobs WHERE dedup_key = $1")
+        sqlx::query("SELECT job, lease_token FROM jobs WHERE dedup_key = $1")
             .bind(key)
             .fetch_optional(&mut **tx)
             .await
@@ -385,31 +583,8 @@ impl JobStore for PostgresQueue {
                 .map_err(db)?;
             }
         }
-        let id: i64 = sqlx::query("SELECT nextval(pg_get_serial_sequence('jobs', 'id'))")
-            .fetch_one(&mut *tx)
-            .await
-            .and_then(|r| r.try_get(0))
-            .map_err(db)?;
         let now = self.now();
-        let job = rules::new_job(id as u64, spec, now);
-        let inserted = sqlx::query(
-            "INSERT INTO jobs (id, dedup_key, name, state, not_before_ms, attempts, sha256,
-                               upload, created_ms, updated_ms, job)
-             VALUES ($1, $2, $3, 'queued', $4, 0, $5, $6, $4, $4, $7)
-             ON CONFLICT (dedup_key) DO NOTHING",
-        )
-        .bind(id)
-        .bind(&key)
-        .bind(&job.spec.name)
-        .bind(ms(now))
-        .bind(&job.spec.sha256[..])
-        .bind(matches!(job.spec.source, Source::Upload { .. }))
-        .bind(Json(&job))
-        .execute(&mut *tx)
-        .await
-        .map_err(db)?
-        .rows_affected();
-        if inserted == 0 {
+        let Some(job) = Self::insert_new(&mut tx, spec, &key, now).await? else {
             // Another orchestrator committed the same job since we looked.
             tx.rollback().await.map_err(db)?;
             let mut tx = self.begin().await?;
@@ -418,7 +593,7 @@ impl JobStore for PostgresQueue {
             })?;
             tx.commit().await.map_err(db)?;
             return Ok(Submitted { job, existed: true });
-        }
+        };
         tx.commit().await.map_err(db)?;
         Ok(Submitted {
             job,
@@ -427,12 +602,13 @@ impl JobStore for PostgresQueue {
     }
 
     async fn lease(&self, worker: &str, parts_only: bool) -> Result<Leased, OrchestratorError> {
+        let token = new_lease_token()?;
         let now = self.now();
         let mut tx = self.begin().await?;
         // The oldest part that prefers this worker (`rules::preferred_worker`; by the index
         // `jobs_queued_preferring`), else the oldest runnable job (by `jobs_queued`).
         let preferred = sqlx::query(
-            "SELECT job FROM jobs WHERE state = 'queued' AND not_before_ms <= $1
+            "SELECT job, lease_token FROM jobs WHERE state = 'queued' AND not_before_ms <= $1
                  AND job->'spec'->'part'->>'prefer_worker' = $2
              ORDER BY id LIMIT 1 FOR UPDATE SKIP LOCKED",
         )
@@ -444,7 +620,7 @@ impl JobStore for PostgresQueue {
         let row = match preferred {
             Some(row) => Some(row),
             None => sqlx::query(
-                "SELECT job FROM jobs WHERE state = 'queued' AND not_before_ms <= $1
+                "SELECT job, lease_token FROM jobs WHERE state = 'queued' AND not_before_ms <= $1
                      AND (NOT $2 OR job->'spec' ? 'part')
                  ORDER BY id LIMIT 1 FOR UPDATE SKIP LOCKED",
             )
@@ -457,7 +633,7 @@ impl JobStore for PostgresQueue {
         let job = match row {
             Some(row) => {
                 let mut job = Self::job_of(&row)?;
-                rules::start(&self.options, &mut job, worker, now);
+                rules::start(&self.options, &mut job, worker, token, now);
                 Self::write(&mut tx, &job).await?;
                 Some(job)
             }
@@ -484,13 +660,14 @@ impl JobStore for PostgresQueue {
         &self,
         id: JobId,
         attempt: u32,
+        token: &[u8],
         progress: f32,
         stage: &str,
     ) -> Result<Job, OrchestratorError> {
         let cfg = self.options;
         let stage = stage.to_string();
         self.change(id, move |job, now| {
-            rules::heartbeat(&cfg, job, attempt, progress, &stage, now)
+            rules::heartbeat(&cfg, job, attempt, token, progress, &stage, now)
         })
         .await
     }
@@ -499,13 +676,31 @@ impl JobStore for PostgresQueue {
         &self,
         id: JobId,
         attempt: u32,
+        token: &[u8],
         outcome: Outcome,
     ) -> Result<Job, OrchestratorError> {
         let cfg = self.options;
         self.change(id, move |job, now| {
-            rules::finish(&cfg, job, attempt, outcome, now)
+            rules::finish(&cfg, job, attempt, token, outcome, now)
         })
         .await
+    }
+
+    async fn submit_parts(
+        &self,
+        parent: JobId,
+        attempt: u32,
+        token: &[u8],
+        specs: Vec<JobSpec>,
+    ) -> Result<Vec<Job>, OrchestratorError> {
+        let specs = specs
+            .into_iter()
+            .map(|s| s.validate().map_err(OrchestratorError::from))
+            .collect::<Result<Vec<JobSpec>, OrchestratorError>>()?;
+        let now = self.now();
+        let mut tx = self.begin().await?;
+        let result = Self::add_parts(&mut tx, parent, attempt, token, specs, now).await;
+        end(tx, result).await
     }
 
     async fn cancel(&self, id: JobId) -> Result<Job, OrchestratorError> {
@@ -518,29 +713,28 @@ impl JobStore for PostgresQueue {
 
     async fn reap(&self) -> Result<usize, OrchestratorError> {
         let now = self.now();
-        let mut tx = self.begin().await?;
-        let rows = sqlx::query(
-            "SELECT job FROM jobs WHERE state = 'running' AND lease_expires_ms <= $1
-             ORDER BY id FOR UPDATE SKIP LOCKED",
+        // One transaction per lapsed lease: a parent that fails for good locks its parts
+        // after itself, as cancelling it does, and never while holding another job's row.
+        let ids: Vec<i64> = sqlx::query_scalar(
+            "SELECT id FROM jobs WHERE state = 'running' AND lease_expires_ms <= $1 ORDER BY id",
         )
         .bind(ms(now))
-        .fetch_all(&mut *tx)
+        .fetch_all(&self.pool)
         .await
         .map_err(db)?;
         let mut changed = 0;
-        for row in rows {
-            let mut job = Self::job_of(&row)?;
-            if rules::expire(&self.options, &mut job, now) {
-                Self::write(&mut tx, &job).await?;
+        for id in ids {
+            let mut tx = self.begin().await?;
+            let result = Self::reap_one(&mut tx, &self.options, id, now).await;
+            if end(tx, result).await? {
                 changed += 1;
             }
         }
-        tx.commit().await.map_err(db)?;
         Ok(changed)
     }
 
     async fn get(&self, id: JobId) -> Result<Job, OrchestratorError> {
-        let row = sqlx::query("SELECT job FROM jobs WHERE id = $1")
+        let row = sqlx::query("SELECT job, lease_token FROM jobs WHERE id = $1")
             .bind(ms(id))
             .fetch_optional(&self.pool)
             .await
@@ -550,7 +744,7 @@ impl JobStore for PostgresQueue {
     }
 
     async fn list(&self) -> Result<Vec<Job>, OrchestratorError> {
-        sqlx::query("SELECT job FROM jobs ORDER BY id")
+        sqlx::query("SELECT job, lease_token FROM jobs ORDER BY id")
             .fetch_all(&self.pool)
             .await
             .map_err(db)?
@@ -564,24 +758,32 @@ impl JobStore for PostgresQueue {
         parent: JobId,
         id: JobId,
         attempt: u32,
+        token: &[u8],
         bytes: Vec<u8>,
     ) -> Result<(), OrchestratorError> {
-        // The part's row locked for the check and the write: no lease changes in between.
+        // The part's row locked for the check and the write: no lease changes in between (and
+        // a parent that ends meanwhile cancels the part after this commits, dropping the
+        // result with it).
+        let now = self.now();
         let mut tx = self.begin().await?;
-        let job = Self::locked(&mut tx, id).await?;
-        rules::check_held(&job, attempt, self.now())?;
-        sqlx::query(
-            "INSERT INTO results (parent, job_id, data) VALUES ($1, $2, $3)
-             ON CONFLICT (parent, job_id) DO UPDATE SET data = EXCLUDED.data",
-        )
-        .bind(ms(parent))
-        .bind(ms(id))
-        .bind(bytes)
-        .execute(&mut *tx)
-        .await
-        .map_err(db)?;
-        tx.commit().await.map_err(db)?;
-        Ok(())
+        let t = &mut tx;
+        let result = async move {
+            let job = Self::locked(t, id).await?;
+            rules::check_held(&job, attempt, token, now)?;
+            sqlx::query(
+                "INSERT INTO results (parent, job_id, data) VALUES ($1, $2, $3)
+                 ON CONFLICT (parent, job_id) DO UPDATE SET data = EXCLUDED.data",
+            )
+            .bind(ms(parent))
+            .bind(ms(id))
+            .bind(bytes)
+            .execute(&mut **t)
+            .await
+            .map_err(db)?;
+            Ok(())
+        }
+        .await;
+        end(tx, result).await
     }
 
     async fn result(&self, parent: JobId, id: JobId) -> Result<Option<Vec<u8>>, OrchestratorError> {

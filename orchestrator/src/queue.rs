@@ -6,8 +6,8 @@
 //! persisted (see [`crate::store`]).
 
 use crate::error::OrchestratorError;
-use crate::model::{Job, JobId, JobSpec, JobState, Outcome};
-use std::collections::{BTreeMap, HashMap};
+use crate::model::{Job, JobId, JobSpec, JobState, LeaseToken, Outcome, LEASE_TOKEN_BYTES};
+use std::collections::{BTreeMap, HashMap, HashSet};
 use std::sync::Arc;
 use std::time::{SystemTime, UNIX_EPOCH};
 
@@ -21,6 +21,16 @@ pub fn system_clock() -> Clock {
             .duration_since(UNIX_EPOCH)
             .map_or(0, |d| d.as_millis() as u64)
     })
+}
+
+/// A new lease's token: 128 bits from the operating system's CSPRNG.
+pub fn new_lease_token() -> Result<LeaseToken, OrchestratorError> {
+    use rand::RngCore;
+    let mut bytes = [0u8; LEASE_TOKEN_BYTES];
+    rand::rngs::OsRng
+        .try_fill_bytes(&mut bytes)
+        .map_err(|e| OrchestratorError::Entropy(e.to_string()))?;
+    Ok(LeaseToken::from_bytes(bytes))
 }
 
 /// Timing and retry policy.
@@ -90,7 +100,7 @@ pub struct Submitted {
 pub mod rules {
     use super::QueueOptions;
     use crate::error::OrchestratorError;
-    use crate::model::{Failure, FailureKind, Job, JobId, JobSpec, JobState, Outcome};
+    use crate::model::{Failure, FailureKind, Job, JobId, JobSpec, JobState, LeaseToken, Outcome};
 
     /// A new job, queued now.
     pub fn new_job(id: JobId, spec: JobSpec, now: u64) -> Job {
@@ -160,8 +170,9 @@ pub mod rules {
         job.updated_ms = now;
     }
 
-    /// Leases a runnable `job` to `worker`: a new attempt, running until `now + lease_ms`.
-    pub fn start(cfg: &QueueOptions, job: &mut Job, worker: &str, now: u64) {
+    /// Leases a runnable `job` to `worker`: a new attempt with the secret `token`, running
+    /// until `now + lease_ms`.
+    pub fn start(cfg: &QueueOptions, job: &mut Job, worker: &str, token: LeaseToken, now: u64) {
         job.attempts += 1;
         job.state = JobState::Running {
             worker: worker.to_string(),
@@ -170,12 +181,16 @@ pub mod rules {
             started_ms: now,
             progress: 0.0,
             stage: "leased".into(),
+            lease_token: Some(token),
         };
         job.updated_ms = now;
     }
 
-    /// Checks that `attempt` holds `job`'s live lease.
-    pub fn check_held(job: &Job, attempt: u32, now: u64) -> Result<(), OrchestratorError> {
+    /// Checks that `attempt` is `job`'s running attempt and `token` that lease's token
+    /// (compared in constant time), expiry aside. A lease that is not running under `attempt`
+    /// is [`OrchestratorError::LeaseLost`]; the running one named without its token
+    /// [`OrchestratorError::NotLeaseHolder`].
+    pub fn check_holder(job: &Job, attempt: u32, token: &[u8]) -> Result<(), OrchestratorError> {
         let lost = |reason: String| OrchestratorError::LeaseLost {
             id: job.id,
             attempt,
@@ -184,13 +199,16 @@ pub mod rules {
         match &job.state {
             JobState::Running {
                 attempt: a,
-                lease_expires_ms,
+                lease_token,
                 ..
             } if *a == attempt => {
-                if *lease_expires_ms <= now {
-                    Err(lost("the lease expired".into()))
-                } else {
+                if lease_token.as_ref().is_some_and(|t| t.matches(token)) {
                     Ok(())
+                } else {
+                    Err(OrchestratorError::NotLeaseHolder {
+                        id: job.id,
+                        attempt,
+                    })
                 }
             }
             JobState::Running { attempt: a, .. } => Err(lost(format!(
@@ -201,16 +219,38 @@ pub mod rules {
         }
     }
 
+    /// Checks that `attempt`, presenting `token`, holds `job`'s live lease
+    /// ([`check_holder`], and the lease has not expired by `now`).
+    pub fn check_held(
+        job: &Job,
+        attempt: u32,
+        token: &[u8],
+        now: u64,
+    ) -> Result<(), OrchestratorError> {
+        check_holder(job, attempt, token)?;
+        match &job.state {
+            JobState::Running {
+                lease_expires_ms, ..
+            } if *lease_expires_ms <= now => Err(OrchestratorError::LeaseLost {
+                id: job.id,
+                attempt,
+                reason: "the lease expired".into(),
+            }),
+            _ => Ok(()),
+        }
+    }
+
     /// Extends a held lease and records progress.
     pub fn heartbeat(
         cfg: &QueueOptions,
         job: &mut Job,
         attempt: u32,
+        token: &[u8],
         progress: f32,
         stage: &str,
         now: u64,
     ) -> Result<(), OrchestratorError> {
-        check_held(job, attempt, now)?;
+        check_held(job, attempt, token, now)?;
         if let JobState::Running {
             lease_expires_ms,
             progress: p,
@@ -234,10 +274,11 @@ pub mod rules {
         cfg: &QueueOptions,
         job: &mut Job,
         attempt: u32,
+        token: &[u8],
         outcome: Outcome,
         now: u64,
     ) -> Result<(), OrchestratorError> {
-        check_held(job, attempt, now)?;
+        check_held(job, attempt, token, now)?;
         let (started, worker) = match &job.state {
             JobState::Running {
                 started_ms, worker, ..
@@ -281,12 +322,7 @@ pub mod rules {
     pub fn retry(job: &mut Job, now: u64) -> Result<(), OrchestratorError> {
         match job.state {
             JobState::Failed(_) | JobState::Cancelled => {
-                job.state = JobState::Queued { not_before_ms: now };
-                job.retried_at = job.attempts;
-                // The old failure is history: a retried job shows no error until it fails
-                // again (with the reason of that attempt).
-                job.last_failure = None;
-                job.updated_ms = now;
+                requeue(job, now);
                 Ok(())
             }
             _ => Err(OrchestratorError::InvalidState {
@@ -295,6 +331,87 @@ pub mod rules {
                 action: "retry",
                 allowed: "failed or cancelled",
             }),
+        }
+    }
+
+    /// Queues `job` now with a fresh attempt budget and no old error.
+    fn requeue(job: &mut Job, now: u64) {
+        job.state = JobState::Queued { not_before_ms: now };
+        job.retried_at = job.attempts;
+        // The old failure is history: a retried job shows no error until it fails again
+        // (with the reason of that attempt).
+        job.last_failure = None;
+        job.updated_ms = now;
+    }
+
+    /// Whether `job` is a job that may have parts (not a part itself) and has ended: done,
+    /// failed for good or cancelled. Its parts are then settled ([`settle_part`]) and their
+    /// results dropped, in the same step that ended it.
+    pub fn ends_parts(job: &Job) -> bool {
+        job.spec.part.is_none() && job.state.is_terminal()
+    }
+
+    /// Cancels `part` if it is queued or running and its parent `parent` has ended
+    /// ([`ends_parts`]): nobody will take its result. Returns whether it changed.
+    pub fn settle_part(parent: &Job, part: &mut Job, now: u64) -> bool {
+        let live = matches!(
+            part.state,
+            JobState::Queued { .. } | JobState::Running { .. }
+        );
+        if !(ends_parts(parent) && live) {
+            return false;
+        }
+        part.state = JobState::Cancelled;
+        part.updated_ms = now;
+        true
+    }
+
+    /// Checks that `spec` may be added as a part of `parent`: `parent` is no part itself, and
+    /// `spec` is its spec with `part` naming it.
+    pub fn check_part_of(parent: &Job, spec: &JobSpec) -> Result<(), OrchestratorError> {
+        if parent.spec.part.is_some() {
+            return Err(OrchestratorError::InvalidRequest(format!(
+                "job {} is a part: parts have no parts",
+                parent.id
+            )));
+        }
+        let ok = spec.part.as_ref().is_some_and(|p| p.parent == parent.id)
+            && parent.spec.is_parent_of(spec);
+        if !ok {
+            return Err(OrchestratorError::InvalidRequest(format!(
+                "a part of job {} must be its spec with `part` naming it",
+                parent.id
+            )));
+        }
+        Ok(())
+    }
+
+    /// Queues again a known `part` asked for by its parent's attempt that started at
+    /// `parent_started_ms`, if it ended under an earlier attempt of the parent (which runs
+    /// again: retried, or taken over after a crash) and its work is needed again: it failed or
+    /// was cancelled, or it was done but its result is gone (`has_result` false: dropped when
+    /// the parent failed or was cancelled). One that ended under this attempt stays as it is:
+    /// the worker polling it learns that it failed. Returns whether it changed.
+    pub fn revive_part(part: &mut Job, parent_started_ms: u64, has_result: bool, now: u64) -> bool {
+        if part.updated_ms >= parent_started_ms {
+            return false;
+        }
+        let again = match part.state {
+            JobState::Failed(_) | JobState::Cancelled => true,
+            JobState::Done { .. } => !has_result,
+            _ => false,
+        };
+        if again {
+            requeue(part, now);
+        }
+        again
+    }
+
+    /// When the running lease of `parent` started (`None`: not running).
+    pub fn started_ms(parent: &Job) -> Option<u64> {
+        match parent.state {
+            JobState::Running { started_ms, .. } => Some(started_ms),
+            _ => None,
         }
     }
 }
@@ -310,6 +427,9 @@ pub struct Queue {
     /// reads instead of scanning the queue. A part is dropped from it when a lease finds it
     /// out of the queue (it then goes to whoever leases it, should it be queued again).
     preferring: HashMap<String, std::collections::BTreeSet<JobId>>,
+    /// The parts of each job that has any, by the parent's id, in the order they were added:
+    /// what ending a parent settles ([`Queue::settle_parts`]).
+    parts: HashMap<JobId, Vec<JobId>>,
 }
 
 impl Queue {
@@ -321,12 +441,15 @@ impl Queue {
             keys: HashMap::new(),
             next_id: 1,
             preferring: HashMap::new(),
+            parts: HashMap::new(),
         }
     }
 
     /// Rebuilds the queue from stored jobs after a restart. Running leases get a fresh
-    /// `lease_ms` of grace, since their workers could not heartbeat while we were down.
-    /// Returns the queue and the jobs it changed.
+    /// `lease_ms` of grace, since their workers could not heartbeat while we were down. The
+    /// live parts of a job that ended are cancelled ([`Queue::settle_parts`]): ending a parent
+    /// writes the parent first, so a crash between its write and its parts' leaves exactly
+    /// this to finish. Returns the queue and the jobs it changed.
     pub fn restore(cfg: QueueOptions, jobs: Vec<Job>, now: u64) -> (Queue, Vec<Job>) {
         let mut q = Queue::new(cfg);
         let mut changed = Vec::new();
@@ -341,9 +464,53 @@ impl Queue {
             q.next_id = q.next_id.max(job.id + 1);
             q.keys.insert(job.spec.dedup_key(), job.id);
             q.note_preference(&job);
+            q.note_part(&job);
             q.jobs.insert(job.id, job);
         }
+        let ended: Vec<Job> = q
+            .parts
+            .keys()
+            .filter_map(|id| q.jobs.get(id))
+            .filter(|j| rules::ends_parts(j))
+            .cloned()
+            .collect();
+        let settled: Vec<Job> = ended
+            .iter()
+            .flat_map(|parent| q.settle_parts(parent, now))
+            .collect();
+        // A running part settled here was also given grace above: keep the later copy.
+        let ids: HashSet<JobId> = settled.iter().map(|j| j.id).collect();
+        changed.retain(|j| !ids.contains(&j.id));
+        changed.extend(settled);
         (q, changed)
+    }
+
+    /// Records `job` among its parent's parts, if it is a part.
+    fn note_part(&mut self, job: &Job) {
+        if let Some(p) = &job.spec.part {
+            self.parts.entry(p.parent).or_default().push(job.id);
+        }
+    }
+
+    /// Cancels the live parts of `parent` if it has ended ([`rules::settle_part`]); returns the
+    /// parts changed. The embedded store calls this under its lock in the step that ends the
+    /// parent (and drops the parts' results there too).
+    pub fn settle_parts(&mut self, parent: &Job, now: u64) -> Vec<Job> {
+        if !rules::ends_parts(parent) {
+            return Vec::new();
+        }
+        let Some(ids) = self.parts.get(&parent.id) else {
+            return Vec::new();
+        };
+        let mut changed = Vec::new();
+        for id in ids {
+            if let Some(part) = self.jobs.get_mut(id) {
+                if rules::settle_part(parent, part, now) {
+                    changed.push(part.clone());
+                }
+            }
+        }
+        changed
     }
 
     /// Records `job` under the worker it prefers, if it is a queued part that prefers one.
@@ -395,6 +562,7 @@ impl Queue {
         let job = rules::new_job(id, spec, now);
         self.keys.insert(key, id);
         self.note_preference(&job);
+        self.note_part(&job);
         self.jobs.insert(id, job.clone());
         Ok(Submitted {
             job,
@@ -402,20 +570,80 @@ impl Queue {
         })
     }
 
-    /// Reclaims every lease that expired by `now` (see [`rules::expire`]). Returns the
-    /// changed jobs.
+    /// Adds the parts `specs` of `parent` for its lease `attempt` presenting `token`, or polls
+    /// them if known, as one step: the lease is checked ([`rules::check_held`]) and every
+    /// spec ([`rules::check_part_of`]) before anything changes, so a refused call adds nothing.
+    /// A known part that ended under an earlier attempt of the parent runs again
+    /// ([`rules::revive_part`]; `with_results`: the parent's parts whose results are stored).
+    /// Returns the parts in the order asked and every job changed.
+    pub fn submit_parts(
+        &mut self,
+        parent: JobId,
+        attempt: u32,
+        token: &[u8],
+        specs: Vec<JobSpec>,
+        with_results: &HashSet<JobId>,
+        now: u64,
+    ) -> Result<(Vec<Job>, Vec<Job>), OrchestratorError> {
+        let holder = self.get(parent)?;
+        rules::check_held(holder, attempt, token, now)?;
+        let started = rules::started_ms(holder).unwrap_or(now);
+        let specs = specs
+            .into_iter()
+            .map(|spec| {
+                let spec = spec.validate()?;
+                rules::check_part_of(holder, &spec)?;
+                Ok(spec)
+            })
+            .collect::<Result<Vec<JobSpec>, OrchestratorError>>()?;
+        let (mut parts, mut changed) = (Vec::with_capacity(specs.len()), Vec::new());
+        for spec in specs {
+            let s = self.submit(spec, now)?;
+            if !s.existed {
+                changed.push(s.job.clone());
+                parts.push(s.job);
+                continue;
+            }
+            let job = self.get_mut(s.job.id)?;
+            let has_result = with_results.contains(&job.id);
+            if rules::revive_part(job, started, has_result, now) {
+                changed.push(job.clone());
+            }
+            parts.push(job.clone());
+        }
+        Ok((parts, changed))
+    }
+
+    /// Reclaims every lease that expired by `now` (see [`rules::expire`]); a job with parts
+    /// that fails for good settles them ([`Queue::settle_parts`]). Returns the changed jobs,
+    /// each parent before its parts.
     pub fn reap(&mut self, now: u64) -> Vec<Job> {
         let cfg = self.cfg;
-        self.jobs
+        let expired: Vec<Job> = self
+            .jobs
             .values_mut()
             .filter_map(|job| rules::expire(&cfg, job, now).then(|| job.clone()))
-            .collect()
+            .collect();
+        let mut changed = Vec::with_capacity(expired.len());
+        for job in expired {
+            let parts = self.settle_parts(&job, now);
+            changed.push(job);
+            changed.extend(parts);
+        }
+        changed
     }
 
     /// Leases the oldest runnable job (only parts of bricked jobs with `parts_only`) to
-    /// `worker` (reclaiming expired leases first), the oldest of the parts that prefer it
-    /// first ([`rules::preferred_worker`]). Returns the leased job (if any) and every job changed.
-    pub fn lease(&mut self, worker: &str, parts_only: bool, now: u64) -> (Option<Job>, Vec<Job>) {
+    /// `worker` with the secret `token` (reclaiming expired leases first), the oldest of the
+    /// parts that prefer it first ([`rules::preferred_worker`]). Returns the leased job (if
+    /// any) and every job changed.
+    pub fn lease(
+        &mut self,
+        worker: &str,
+        parts_only: bool,
+        token: LeaseToken,
+        now: u64,
+    ) -> (Option<Job>, Vec<Job>) {
         let mut changed = self.reap(now);
         let cfg = self.cfg;
         let takes = |j: &Job| rules::runnable(j, now) && (!parts_only || j.spec.part.is_some());
@@ -447,7 +675,7 @@ impl Queue {
                 }
             }
         }
-        rules::start(&cfg, job, worker, now);
+        rules::start(&cfg, job, worker, token, now);
         let job = job.clone();
         changed.push(job.clone());
         (Some(job), changed)
@@ -464,36 +692,40 @@ impl Queue {
             .min()
     }
 
-    /// Extends a lease and records progress.
+    /// Extends a lease (`attempt`, presenting `token`) and records progress.
     pub fn heartbeat(
         &mut self,
         id: JobId,
         attempt: u32,
+        token: &[u8],
         progress: f32,
         stage: &str,
         now: u64,
     ) -> Result<Job, OrchestratorError> {
         let cfg = self.cfg;
         let job = self.get_mut(id)?;
-        rules::heartbeat(&cfg, job, attempt, progress, stage, now)?;
+        rules::heartbeat(&cfg, job, attempt, token, progress, stage, now)?;
         Ok(job.clone())
     }
 
-    /// Records the outcome of a leased attempt.
+    /// Records the outcome of a leased attempt (presenting `token`). A job with parts that
+    /// ends leaves them to [`Queue::settle_parts`], which the store calls in the same step.
     pub fn finish(
         &mut self,
         id: JobId,
         attempt: u32,
+        token: &[u8],
         outcome: Outcome,
         now: u64,
     ) -> Result<Job, OrchestratorError> {
         let cfg = self.cfg;
         let job = self.get_mut(id)?;
-        rules::finish(&cfg, job, attempt, outcome, now)?;
+        rules::finish(&cfg, job, attempt, token, outcome, now)?;
         Ok(job.clone())
     }
 
-    /// Cancels a queued or running job.
+    /// Cancels a queued or running job (its parts: [`Queue::settle_parts`], as for
+    /// [`Queue::finish`]).
     pub fn cancel(&mut self, id: JobId, now: u64) -> Result<Job, OrchestratorError> {
         let job = self.get_mut(id)?;
         rules::cancel(job, now)?;
@@ -523,6 +755,10 @@ mod tests {
             part: None,
         }
     }
+
+    /// The token every lease in these tests gets, and its bytes.
+    const T: LeaseToken = LeaseToken::from_bytes([7; LEASE_TOKEN_BYTES]);
+    const TB: [u8; LEASE_TOKEN_BYTES] = [7; LEASE_TOKEN_BYTES];
 
     fn cfg() -> QueueOptions {
         QueueOptions {
@@ -573,9 +809,9 @@ mod tests {
         let mut q = Queue::new(cfg());
         q.submit(spec(1), 0).unwrap();
         q.submit(spec(2), 0).unwrap();
-        let (a, _) = q.lease("w1", false, 10);
-        let (b, _) = q.lease("w2", false, 10);
-        let (c, _) = q.lease("w3", false, 10);
+        let (a, _) = q.lease("w1", false, T, 10);
+        let (b, _) = q.lease("w2", false, T, 10);
+        let (c, _) = q.lease("w3", false, T, 10);
         assert_eq!(a.unwrap().id, 1);
         assert_eq!(b.unwrap().id, 2);
         assert!(c.is_none());
@@ -585,10 +821,10 @@ mod tests {
     fn expired_lease_is_reclaimed_and_the_stale_worker_is_refused() {
         let mut q = Queue::new(cfg());
         q.submit(spec(1), 0).unwrap();
-        let (job, _) = q.lease("w1", false, 0);
+        let (job, _) = q.lease("w1", false, T, 0);
         let job = job.unwrap();
         // Heartbeats keep it alive past the original expiry.
-        q.heartbeat(job.id, 1, 0.5, "transform", 900).unwrap();
+        q.heartbeat(job.id, 1, &TB, 0.5, "transform", 900).unwrap();
         assert!(q.reap(1500).is_empty());
         // Silence: expired at 1900.
         let changed = q.reap(1900);
@@ -604,16 +840,16 @@ mod tests {
             FailureKind::LeaseExpired
         );
         // Backoff: not runnable yet.
-        assert!(q.lease("w2", false, 1950).0.is_none());
-        let (again, _) = q.lease("w2", false, 2000);
+        assert!(q.lease("w2", false, T, 1950).0.is_none());
+        let (again, _) = q.lease("w2", false, T, 2000);
         assert_eq!(again.unwrap().attempts, 2);
         // The old worker's heartbeat and outcome are refused.
         assert!(matches!(
-            q.heartbeat(1, 1, 0.9, "x", 2010),
+            q.heartbeat(1, 1, &TB, 0.9, "x", 2010),
             Err(OrchestratorError::LeaseLost { .. })
         ));
-        assert!(q.finish(1, 1, delivered(), 2010).is_err());
-        let done = q.finish(1, 2, delivered(), 2020).unwrap();
+        assert!(q.finish(1, 1, &TB, delivered(), 2010).is_err());
+        let done = q.finish(1, 2, &TB, delivered(), 2020).unwrap();
         assert!(matches!(done.state, JobState::Done { run_ms: 20, .. }));
     }
 
@@ -629,9 +865,9 @@ mod tests {
         };
         let mut now = 0;
         for attempt in 1..=3u32 {
-            let (j, _) = q.lease("w", false, now);
+            let (j, _) = q.lease("w", false, T, now);
             assert_eq!(j.unwrap().attempts, attempt);
-            let j = q.finish(1, attempt, fail(), now).unwrap();
+            let j = q.finish(1, attempt, &TB, fail(), now).unwrap();
             match j.state {
                 JobState::Queued { not_before_ms } => {
                     assert_eq!(not_before_ms - now, 100 << (attempt - 1));
@@ -651,11 +887,12 @@ mod tests {
     fn permanent_failures_are_not_retried() {
         let mut q = Queue::new(cfg());
         q.submit(spec(1), 0).unwrap();
-        q.lease("w", false, 0);
+        q.lease("w", false, T, 0);
         let j = q
             .finish(
                 1,
                 1,
+                &TB,
                 Outcome::Failed(Failure {
                     kind: FailureKind::InvalidInput,
                     message: "NaN at voxel 3".into(),
@@ -677,13 +914,13 @@ mod tests {
         let mut q = Queue::new(cfg());
         q.submit(spec(1), 0).unwrap();
         q.submit(spec(2), 0).unwrap();
-        q.lease("w", false, 0);
+        q.lease("w", false, T, 0);
         q.cancel(1, 1).unwrap();
         q.cancel(2, 1).unwrap();
-        assert!(q.lease("w", false, 2).0.is_none());
-        let e = q.heartbeat(1, 1, 0.1, "s", 3).unwrap_err();
+        assert!(q.lease("w", false, T, 2).0.is_none());
+        let e = q.heartbeat(1, 1, &TB, 0.1, "s", 3).unwrap_err();
         assert!(e.to_string().contains("cancelled"), "{e}");
-        assert!(q.finish(1, 1, delivered(), 3).is_err());
+        assert!(q.finish(1, 1, &TB, delivered(), 3).is_err());
         assert!(matches!(
             q.cancel(1, 4),
             Err(OrchestratorError::InvalidState { .. })
@@ -691,17 +928,80 @@ mod tests {
         assert!(matches!(q.get(9), Err(OrchestratorError::NotFound(9))));
     }
 
+    /// The running lease named without its token is refused as not held by the caller and
+    /// changes nothing; a stale attempt is a lost lease whatever token it presents.
+    #[test]
+    fn a_lease_is_held_by_its_token() {
+        let mut q = Queue::new(cfg());
+        q.submit(spec(1), 0).unwrap();
+        let (job, _) = q.lease("w", false, T, 0);
+        let job = job.unwrap();
+        for wrong in [
+            &[][..],
+            &[7; 15][..],
+            &[8; LEASE_TOKEN_BYTES][..],
+            &[7; 17][..],
+        ] {
+            let e = q.heartbeat(1, 1, wrong, 0.5, "s", 10).unwrap_err();
+            assert!(
+                matches!(e, OrchestratorError::NotLeaseHolder { id: 1, attempt: 1 }),
+                "{e}"
+            );
+            let e = q.finish(1, 1, wrong, delivered(), 10).unwrap_err();
+            assert!(matches!(e, OrchestratorError::NotLeaseHolder { .. }), "{e}");
+        }
+        assert_eq!(q.get(1).unwrap(), &job, "nothing changed");
+        assert!(matches!(
+            q.heartbeat(1, 2, &TB, 0.5, "s", 10),
+            Err(OrchestratorError::LeaseLost { .. })
+        ));
+        q.heartbeat(1, 1, &TB, 0.5, "s", 10).unwrap();
+    }
+
+    /// A part runs again under its parent's next attempt if it ended under an earlier one and
+    /// its work is needed: failed or cancelled, or done without a stored result.
+    #[test]
+    fn a_part_is_revived_when_its_work_is_needed_again() {
+        let mut part = rules::new_job(2, spec(2), 0);
+        part.state = JobState::Done {
+            delivery: match delivered() {
+                Outcome::Delivered(d) => d,
+                Outcome::Failed(_) => unreachable!(),
+            },
+            run_ms: 1,
+            worker: "w".into(),
+        };
+        part.updated_ms = 50;
+        let mut kept = part.clone();
+        assert!(
+            !rules::revive_part(&mut kept, 100, true, 100),
+            "its result is kept"
+        );
+        assert!(
+            !rules::revive_part(&mut kept, 40, false, 100),
+            "done under this attempt"
+        );
+        assert!(rules::revive_part(&mut part, 100, false, 100));
+        assert_eq!(part.state, JobState::Queued { not_before_ms: 100 });
+        part.state = JobState::Cancelled;
+        part.updated_ms = 120;
+        assert!(
+            !rules::revive_part(&mut part, 100, false, 130),
+            "cancelled under this attempt"
+        );
+    }
+
     #[test]
     fn restore_keeps_states_and_gives_running_leases_grace() {
         let mut q = Queue::new(cfg());
         q.submit(spec(1), 0).unwrap();
         q.submit(spec(2), 0).unwrap();
-        q.lease("w", false, 0);
+        q.lease("w", false, T, 0);
         let jobs: Vec<Job> = q.jobs().cloned().collect();
         let (mut r, changed) = Queue::restore(cfg(), jobs, 5000);
         assert_eq!(changed.len(), 1);
         assert!(r.reap(5500).is_empty());
-        assert!(r.heartbeat(1, 1, 0.5, "s", 5600).is_ok());
+        assert!(r.heartbeat(1, 1, &TB, 0.5, "s", 5600).is_ok());
         assert_eq!(r.submit(spec(3), 5700).unwrap().job.id, 3);
         assert!(r.submit(spec(2), 5700).unwrap().existed);
     }

@@ -1,12 +1,14 @@
 //! The tonic service: each RPC converts and checks its request ([`crate::convert`]), asks the
 //! [`JobStore`] (which makes the change durable before returning) and converts the answer. It
 //! holds no queue state of its own, so orchestrators over one shared store are interchangeable.
+//! A worker RPC on a lease takes the lease's token from the request metadata
+//! ([`wavesplat_orchestrator_client::LEASE_TOKEN_METADATA`]) and the store checks it.
 
 use crate::check::DeliveryCheck;
 use crate::convert;
 use crate::error::OrchestratorError;
 use crate::jobstore::JobStore;
-use crate::model::{JobState, Outcome, Source};
+use crate::model::{Outcome, Source};
 use crate::queue::QueueOptions;
 use std::pin::Pin;
 use std::sync::Arc;
@@ -14,6 +16,7 @@ use tokio_stream::Stream;
 use tonic::{Request, Response, Status, Streaming};
 use wavesplat_net::digest::hex;
 use wavesplat_net::status::client_fault;
+use wavesplat_orchestrator_client::lease_token_of;
 use wavesplat_proto::pb;
 use wavesplat_proto::pb::orchestrator_server::Orchestrator;
 
@@ -187,22 +190,17 @@ fn list_page(
 pub const MAX_PARTS_PER_CALL: usize = 4096;
 
 impl OrchestratorService {
-    /// Refuses unless job `id` is running as `attempt`.
-    async fn held(&self, id: u64, attempt: u32) -> Result<crate::model::Job, Status> {
+    /// Refuses unless job `id` is running as `attempt` and `token` is that lease's
+    /// ([`crate::queue::rules::check_holder`]).
+    async fn held(&self, id: u64, attempt: u32, token: &[u8]) -> Result<crate::model::Job, Status> {
         let job = self.store().get(id).await?;
-        match job.state {
-            JobState::Running { attempt: a, .. } if a == attempt => Ok(job),
-            _ => Err(OrchestratorError::LeaseLost {
-                id,
-                attempt,
-                reason: format!("the job is {}", job.state.name()),
-            }
-            .into()),
-        }
+        crate::queue::rules::check_holder(&job, attempt, token)?;
+        Ok(job)
     }
 
     async fn submit_parts_inner(
         &self,
+        token: &[u8],
         r: pb::SubmitPartsRequest,
     ) -> Result<pb::SubmitPartsResponse, Status> {
         if r.parts.len() > MAX_PARTS_PER_CALL {
@@ -211,45 +209,27 @@ impl OrchestratorService {
                 r.parts.len()
             )));
         }
-        let parent = self.held(r.parent_id, r.parent_attempt).await?;
-        let JobState::Running { started_ms, .. } = parent.state else {
-            return Err(Status::internal("a held job that is not running"));
-        };
         // Which jobs are spread over parts is the worker's choice (a bricked volume, a time
-        // series: the orchestrator reads no source); only a part has none of its own.
-        if parent.spec.part.is_some() {
-            return Err(Status::invalid_argument(format!(
-                "job {} is a part: parts have no parts",
-                r.parent_id
-            )));
-        }
-        let mut parts = Vec::with_capacity(r.parts.len());
-        for p in r.parts {
-            let spec = convert::spec_from_pb(p).map_err(OrchestratorError::from)?;
-            let ok = spec.part.as_ref().is_some_and(|p| p.parent == parent.id)
-                && parent.spec.is_parent_of(&spec);
-            if !ok {
-                return Err(Status::invalid_argument(format!(
-                    "a part of job {} must be its spec with `part` naming it",
-                    parent.id
-                )));
-            }
-            let mut job = self.store().submit(spec, None).await?.job;
-            if matches!(job.state, JobState::Failed(_) | JobState::Cancelled)
-                && job.updated_ms < started_ms
-            {
-                // It ended under an earlier attempt of its bricked job, which runs again
-                // (retried, or taken over after a crash). One that ended under this attempt
-                // stays as it is: the worker polling it learns that it failed.
-                job = self.store().retry(job.id).await?;
-            }
-            parts.push(part_state(&job));
-        }
-        Ok(pb::SubmitPartsResponse { parts })
+        // series: the orchestrator reads no source). The store checks the parent's lease and
+        // that each spec is the parent's part in the step that adds them.
+        let specs = r
+            .parts
+            .into_iter()
+            .map(convert::spec_from_pb)
+            .collect::<Result<Vec<_>, _>>()
+            .map_err(OrchestratorError::from)?;
+        let parts = self
+            .store()
+            .submit_parts(r.parent_id, r.parent_attempt, token, specs)
+            .await?;
+        Ok(pb::SubmitPartsResponse {
+            parts: parts.iter().map(part_state).collect(),
+        })
     }
 
     async fn finish_part_inner(
         &self,
+        token: &[u8],
         mut stream: Streaming<pb::FinishPartRequest>,
     ) -> Result<pb::Job, Status> {
         let Some(pb::finish_part_request::Msg::Head(head)) = stream
@@ -263,7 +243,7 @@ impl OrchestratorService {
             ));
         };
         let (id, attempt) = (head.job_id, head.attempt);
-        let job = self.held(id, attempt).await?;
+        let job = self.held(id, attempt, token).await?;
         let Some(part) = &job.spec.part else {
             return Err(Status::invalid_argument(format!(
                 "job {id} is not a part of a bricked job"
@@ -289,7 +269,7 @@ impl OrchestratorService {
             ));
         }
         self.store()
-            .put_result(part.parent, id, attempt, bytes)
+            .put_result(part.parent, id, attempt, token, bytes)
             .await?;
         let delivery = crate::model::Delivery {
             cache_volume_id: 0,
@@ -300,7 +280,7 @@ impl OrchestratorService {
         };
         let job = self
             .store()
-            .finish(id, attempt, Outcome::Delivered(delivery))
+            .finish(id, attempt, token, Outcome::Delivered(delivery))
             .await?;
         tracing::debug!(job = id, attempt, worker = %head.worker, bytes = size, "part finished");
         Ok(convert::job_to_pb(&job, self.max_attempts()))
@@ -396,15 +376,10 @@ impl Orchestrator for OrchestratorService {
 
     async fn cancel_job(&self, request: Request<pb::JobRef>) -> Result<Response<pb::Job>, Status> {
         let id = request.into_inner().id;
+        // Its parts go with it, in the same step (the worker that held it stops at its next
+        // heartbeat).
         let job = self.store().cancel(id).await?;
         tracing::info!(job = id, "cancelled");
-        // Its parts go with it (the worker that held it stops at its next heartbeat).
-        for part in self.store().list().await? {
-            if part.spec.part.as_ref().is_some_and(|p| p.parent == id) && !part.state.is_terminal()
-            {
-                self.store().cancel(part.id).await?;
-            }
-        }
         Ok(Response::new(convert::job_to_pb(&job, self.max_attempts())))
     }
 
@@ -441,6 +416,11 @@ impl Orchestrator for OrchestratorService {
                 spec: Some(convert::spec_to_pb(&job.spec)),
                 lease_ms: cfg.lease_ms.min(u32::MAX as u64) as u32,
                 heartbeat_ms: cfg.heartbeat_ms.min(u32::MAX as u64) as u32,
+                lease_token: job
+                    .state
+                    .lease_token()
+                    .map(|t| t.as_bytes().to_vec())
+                    .unwrap_or_default(),
             }),
             retry_after_ms: 0,
         }))
@@ -450,10 +430,13 @@ impl Orchestrator for OrchestratorService {
         &self,
         request: Request<pb::HeartbeatRequest>,
     ) -> Result<Response<pb::HeartbeatResponse>, Status> {
+        let token = lease_token_of(&request);
         let r = request.into_inner();
+        // A stranger (no token, or another) is refused with an error; the holder of a lease
+        // that was lost is told to stop.
         let reply = match self
             .store()
-            .heartbeat(r.job_id, r.attempt, r.progress, &r.stage)
+            .heartbeat(r.job_id, r.attempt, &token, r.progress, &r.stage)
             .await
         {
             Ok(_) => pb::HeartbeatResponse {
@@ -475,11 +458,13 @@ impl Orchestrator for OrchestratorService {
         &self,
         request: Request<pb::FinishRequest>,
     ) -> Result<Response<pb::Job>, Status> {
+        let token = lease_token_of(&request);
         let r = request.into_inner();
         let outcome = convert::outcome_from_pb(r.outcome).map_err(OrchestratorError::from)?;
         let (id, attempt) = (r.job_id, r.attempt);
         if let Outcome::Delivered(d) = &outcome {
-            let spec = self.store().get(id).await?.spec;
+            // Only the holder gets a delivery checked with the cache.
+            let spec = self.held(id, attempt, &token).await?.spec;
             if spec.part.is_some() {
                 return Err(Status::invalid_argument(format!(
                     "job {id} is a part of a bricked job: its result comes with FinishPart"
@@ -492,14 +477,9 @@ impl Orchestrator for OrchestratorService {
                 }
             }
         }
-        let job = self.store().finish(id, attempt, outcome).await?;
-        if matches!(job.state, JobState::Done { .. }) && job.spec.part.is_none() {
-            // A job that landed needs its parts' results no more.
-            let dropped = self.store().drop_results(id).await?;
-            if dropped > 0 {
-                tracing::debug!(job = id, dropped, "parts' results dropped");
-            }
-        }
+        // A job with parts that ends (landed, or failed for good) drops their results in the
+        // same step.
+        let job = self.store().finish(id, attempt, &token, outcome).await?;
         tracing::info!(
             job = id,
             attempt,
@@ -517,8 +497,9 @@ impl Orchestrator for OrchestratorService {
         &self,
         request: Request<pb::FetchSourceRequest>,
     ) -> Result<Response<Self::FetchSourceStream>, Status> {
+        let token = lease_token_of(&request);
         let r = request.into_inner();
-        let job = self.held(r.job_id, r.attempt).await?;
+        let job = self.held(r.job_id, r.attempt, &token).await?;
         if !matches!(job.spec.source, Source::Upload { .. }) {
             return Err(Status::invalid_argument(format!(
                 "job {} reads its source from a path, not an upload",
@@ -538,8 +519,10 @@ impl Orchestrator for OrchestratorService {
         &self,
         request: Request<pb::SubmitPartsRequest>,
     ) -> Result<Response<pb::SubmitPartsResponse>, Status> {
+        let token = lease_token_of(&request);
         Ok(Response::new(
-            self.submit_parts_inner(request.into_inner()).await?,
+            self.submit_parts_inner(&token, request.into_inner())
+                .await?,
         ))
     }
 
@@ -547,8 +530,9 @@ impl Orchestrator for OrchestratorService {
         &self,
         request: Request<Streaming<pb::FinishPartRequest>>,
     ) -> Result<Response<pb::Job>, Status> {
+        let token = lease_token_of(&request);
         Ok(Response::new(
-            self.finish_part_inner(request.into_inner()).await?,
+            self.finish_part_inner(&token, request.into_inner()).await?,
         ))
     }
 
@@ -558,8 +542,9 @@ impl Orchestrator for OrchestratorService {
         &self,
         request: Request<pb::FetchResultRequest>,
     ) -> Result<Response<Self::FetchResultStream>, Status> {
+        let token = lease_token_of(&request);
         let r = request.into_inner();
-        self.held(r.parent_id, r.parent_attempt).await?;
+        self.held(r.parent_id, r.parent_attempt, &token).await?;
         let part = self.store().get(r.part_id).await?;
         if part
             .spec

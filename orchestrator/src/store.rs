@@ -7,6 +7,7 @@
 
 use crate::error::OrchestratorError;
 use crate::model::{Job, JobState, Source};
+use std::collections::{BTreeSet, HashSet};
 use std::path::Path;
 
 /// Handle to the store; cheap to clone.
@@ -94,6 +95,24 @@ impl Store {
         Ok(self.results.get(result_key(parent, id))?)
     }
 
+    /// The parts of `parent` whose results are stored.
+    pub fn result_ids(&self, parent: u64) -> Result<HashSet<u64>, OrchestratorError> {
+        self.results
+            .scan_prefix(parent.to_be_bytes())
+            .keys()
+            .map(|k| Ok(key_half(&k?, 8)))
+            .collect()
+    }
+
+    /// The jobs with any part's result stored.
+    pub fn result_parents(&self) -> Result<BTreeSet<u64>, OrchestratorError> {
+        self.results
+            .iter()
+            .keys()
+            .map(|k| Ok(key_half(&k?, 0)))
+            .collect()
+    }
+
     /// Drops every result of `parent`'s parts; returns how many.
     pub fn drop_results(&self, parent: u64) -> Result<usize, OrchestratorError> {
         let keys: Vec<sled::IVec> = self
@@ -136,6 +155,14 @@ impl Store {
         }
         Ok(())
     }
+}
+
+/// The id at byte `at` (0: the parent, 8: the part) of a `results` key; 0 for a key too short
+/// to hold it (none is written).
+fn key_half(key: &[u8], at: usize) -> u64 {
+    key.get(at..at + 8)
+        .and_then(|b| <[u8; 8]>::try_from(b).ok())
+        .map_or(0, u64::from_be_bytes)
 }
 
 fn result_key(parent: u64, id: u64) -> [u8; 16] {

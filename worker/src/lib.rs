@@ -50,7 +50,7 @@ use wavesplat_orchestrator_client::convert;
 use wavesplat_orchestrator_client::model::{
     Delivery, Failure, FailureKind, JobSpec, Outcome, Source,
 };
-use wavesplat_orchestrator_client::{self as client, Client};
+use wavesplat_orchestrator_client::{self as client, Client, HeldLease};
 use wavesplat_proto::pb;
 
 /// Worker settings.
@@ -223,7 +223,8 @@ impl Ctx {
 }
 
 async fn run_lease(ctx: &mut Ctx, lease: pb::Lease) {
-    let (id, attempt) = (lease.job_id, lease.attempt);
+    let held = HeldLease::of(&lease);
+    let (id, attempt) = (held.job_id, held.attempt);
     let spec = match lease.spec.clone().map(convert::spec_from_pb) {
         Some(Ok(s)) => Ok(s),
         Some(Err(e)) => Err(e.to_string()),
@@ -243,14 +244,13 @@ async fn run_lease(ctx: &mut Ctx, lease: pb::Lease) {
     let shared = Arc::new(Shared::default());
     let heartbeat = tokio::spawn(heartbeat_loop(
         ctx.orch.clone(),
-        id,
-        attempt,
+        held.clone(),
         ctx.cfg.id.clone(),
         Duration::from_millis(u64::from(lease.heartbeat_ms.max(50))),
         shared.clone(),
     ));
     let outcome = match spec {
-        Ok(spec) => execute(ctx, id, attempt, &spec, &shared).await,
+        Ok(spec) => execute(ctx, &held, &spec, &shared).await,
         Err(message) => Err(Failure {
             kind: FailureKind::Worker,
             message,
@@ -268,17 +268,19 @@ async fn run_lease(ctx: &mut Ctx, lease: pb::Lease) {
             Outcome::Failed(f)
         }
     };
-    report(&mut ctx.orch, &ctx.cfg.id, id, attempt, outcome).await;
+    report(&mut ctx.orch, &ctx.cfg.id, &held, outcome).await;
 }
 
+/// Heartbeats the lease `held` every `every` with the progress in `shared` until aborted, or
+/// until the orchestrator says the lease is lost (then `shared.lost` is set).
 async fn heartbeat_loop(
     mut orch: Client,
-    id: u64,
-    attempt: u32,
+    held: HeldLease,
     worker: String,
     every: Duration,
     shared: Arc<Shared>,
 ) {
+    let (id, attempt) = (held.job_id, held.attempt);
     loop {
         tokio::time::sleep(every).await;
         let (progress, stage) = shared
@@ -293,21 +295,30 @@ async fn heartbeat_loop(
             progress,
             stage,
         };
-        match orch.heartbeat(req).await {
+        match orch.heartbeat(held.request(req)).await {
             Ok(r) if !r.get_ref().keep_going => {
                 tracing::warn!(job = id, reason = %r.get_ref().reason, "lease lost");
                 shared.lost.store(true, Ordering::SeqCst);
                 return;
             }
             Ok(_) => {}
+            // The orchestrator does not take this worker for the lease's holder (its token is
+            // not the lease's): nothing it reports will be accepted.
+            Err(s) if s.code() == Code::PermissionDenied => {
+                tracing::warn!(job = id, attempt, error = %s.message(), "lease refused");
+                shared.lost.store(true, Ordering::SeqCst);
+                return;
+            }
             // The orchestrator may be restarting: keep working, keep trying.
             Err(s) => tracing::debug!(job = id, error = %s.message(), "heartbeat failed"),
         }
     }
 }
 
-/// Reports an outcome, retrying while the orchestrator is unreachable (it may be restarting).
-async fn report(orch: &mut Client, worker: &str, id: u64, attempt: u32, outcome: Outcome) {
+/// Reports the outcome of the lease `held`, retrying while the orchestrator is unreachable (it
+/// may be restarting).
+async fn report(orch: &mut Client, worker: &str, held: &HeldLease, outcome: Outcome) {
+    let (id, attempt) = (held.job_id, held.attempt);
     let outcome = match outcome {
         Outcome::Delivered(d) => pb::finish_request::Outcome::Delivered(pb::Delivered {
             cache_volume_id: d.cache_volume_id,
@@ -330,6 +341,7 @@ async fn report(orch: &mut Client, worker: &str, id: u64, attempt: u32, outcome:
     let orch = &*orch;
     until_answered(id, attempt, || {
         let (mut orch, req) = (orch.clone(), req.clone());
+        let req = held.request(req);
         async move { orch.finish(req).await.map(|r| r.into_inner()) }
     })
     .await;
@@ -337,7 +349,7 @@ async fn report(orch: &mut Client, worker: &str, id: u64, attempt: u32, outcome:
 
 /// Sends a job's outcome with `send`, again while the orchestrator does not answer (it may be
 /// restarting), for up to 10 minutes; a refusal (the lease lost, the job unknown, the request
-/// invalid) ends it. Logs how it ended.
+/// invalid, the lease or the worker not recognised) ends it. Logs how it ended.
 async fn until_answered<F, Fut>(id: u64, attempt: u32, mut send: F)
 where
     F: FnMut() -> Fut,
@@ -359,7 +371,10 @@ where
             Err(s)
                 if matches!(
                     s.code(),
-                    Code::FailedPrecondition | Code::NotFound | Code::InvalidArgument
+                    Code::FailedPrecondition
+                        | Code::NotFound
+                        | Code::InvalidArgument
+                        | Code::PermissionDenied
                 ) =>
             {
                 tracing::warn!(job = id, attempt, error = %s.message(), "outcome refused");
@@ -385,12 +400,7 @@ fn fail(kind: FailureKind, message: impl Into<String>) -> Failure {
     }
 }
 
-async fn fetch_source(
-    ctx: &mut Ctx,
-    id: u64,
-    attempt: u32,
-    spec: &JobSpec,
-) -> Result<Vec<u8>, Failure> {
+async fn fetch_source(ctx: &mut Ctx, held: &HeldLease, spec: &JobSpec) -> Result<Vec<u8>, Failure> {
     match &spec.source {
         Source::Path(p) => {
             let (p, raw) = (p.clone(), spec.raw.is_some());
@@ -406,7 +416,7 @@ async fn fetch_source(
             .map_err(|e| fail(FailureKind::Worker, format!("reading task: {e}")))?
         }
         Source::Upload { size } => {
-            let mut stream = upload_stream(ctx, id, attempt).await?;
+            let mut stream = upload_stream(ctx, held).await?;
             let mut bytes = Vec::with_capacity((*size).min(1 << 30) as usize);
             while let Some(c) = stream.message().await.map_err(upload_unavailable)? {
                 bytes.extend_from_slice(&c.data);
@@ -416,18 +426,17 @@ async fn fetch_source(
     }
 }
 
-/// The stream of a job's uploaded source from the orchestrator.
+/// The stream of the uploaded source of the job leased as `held` from the orchestrator.
 async fn upload_stream(
     ctx: &mut Ctx,
-    id: u64,
-    attempt: u32,
+    held: &HeldLease,
 ) -> Result<tonic::Streaming<pb::SourceChunk>, Failure> {
     Ok(ctx
         .orch
-        .fetch_source(pb::FetchSourceRequest {
-            job_id: id,
-            attempt,
-        })
+        .fetch_source(held.request(pb::FetchSourceRequest {
+            job_id: held.job_id,
+            attempt: held.attempt,
+        }))
         .await
         .map_err(upload_unavailable)?
         .into_inner())
@@ -629,8 +638,7 @@ const UPLOAD_LOCK: &str = ".lock";
 
 async fn fetch_upload_to_file(
     ctx: &mut Ctx,
-    id: u64,
-    attempt: u32,
+    held: &HeldLease,
     spec: &JobSpec,
     size: u64,
 ) -> Result<UploadedFile, Failure> {
@@ -655,7 +663,7 @@ async fn fetch_upload_to_file(
     });
     let mut digest = wavesplat_net::digest::Sha256Pieces::default();
     let received = async {
-        let mut stream = upload_stream(ctx, id, attempt).await?;
+        let mut stream = upload_stream(ctx, held).await?;
         let mut written = 0u64;
         while let Some(c) = stream.message().await.map_err(upload_unavailable)? {
             written = written.saturating_add(c.data.len() as u64);
@@ -872,11 +880,11 @@ fn uploaded_series_refused(name: &str, points: usize) -> Failure {
 
 async fn execute(
     ctx: &mut Ctx,
-    id: u64,
-    attempt: u32,
+    held: &HeldLease,
     spec: &JobSpec,
     shared: &Arc<Shared>,
 ) -> Result<Delivery, Failure> {
+    let id = held.job_id;
     shared.set(0.0, "reading");
     // A whole volume over the job's memory limit is refused before its bytes are read.
     let early = spec.clone();
@@ -896,10 +904,10 @@ async fn execute(
     let bytes = if in_place.is_some() {
         Vec::new()
     } else if let (Some(_), Source::Upload { size }) = (spec.options.brick, &spec.source) {
-        uploaded = Some(fetch_upload_to_file(ctx, id, attempt, spec, *size).await?);
+        uploaded = Some(fetch_upload_to_file(ctx, held, spec, *size).await?);
         Vec::new()
     } else {
-        fetch_source(ctx, id, attempt, spec).await?
+        fetch_source(ctx, held, spec).await?
     };
     let got = match &uploaded {
         Some(f) => f.sha256,
@@ -929,6 +937,7 @@ async fn execute(
     let pool = ctx.pool.clone();
     let sh = shared.clone();
     let (runner, handle) = (ctx.part_runner(), tokio::runtime::Handle::current());
+    let parent = held.clone();
     // The length of the source as hashed, which every part of a spread job checks the source
     // against (an uploaded source is never spread).
     let hashed = match &spec.source {
@@ -939,11 +948,11 @@ async fn execute(
         if runner.series_if(&job_spec)?.is_some() {
             // A time series on shared storage: its units spread over the workers.
             drop(bytes);
-            return parts::coordinate_series(runner, handle, job_spec, id, attempt, hashed, sh);
+            return parts::coordinate_series(runner, handle, job_spec, parent, hashed, sh);
         }
         if in_place.is_some() {
             // A bricked volume on shared storage: its bricks spread over the workers.
-            return parts::coordinate(runner, handle, job_spec, id, attempt, hashed, sh);
+            return parts::coordinate(runner, handle, job_spec, parent, hashed, sh);
         }
         if let Some(brick) = job_spec.options.brick {
             if let Some(f) = uploaded {

@@ -30,7 +30,7 @@ use wavesplat_compressor::series::{open_series_path, SeriesError, SeriesInput, S
 use wavesplat_orchestrator_client::model::{
     is_worker_name, Failure, FailureKind, JobSpec, PartColor, PartSpec, PartStep, Source,
 };
-use wavesplat_orchestrator_client::{convert, Client, CHUNK_BYTES};
+use wavesplat_orchestrator_client::{convert, Client, HeldLease, CHUNK_BYTES};
 use wavesplat_proto::pb;
 
 /// How often a coordinator with nothing to run asks after its parts: this, growing to
@@ -530,7 +530,8 @@ fn compute_series_part(
 
 /// Runs a leased part end to end: heartbeats, the work, and its result or failure reported.
 pub(crate) async fn run_part_lease(runner: &PartRunner, lease: pb::Lease, spec: JobSpec) {
-    let (id, attempt) = (lease.job_id, lease.attempt);
+    let held = HeldLease::of(&lease);
+    let (id, attempt) = (held.job_id, held.attempt);
     let Some(part) = spec.part.clone() else {
         return;
     };
@@ -545,8 +546,7 @@ pub(crate) async fn run_part_lease(runner: &PartRunner, lease: pb::Lease, spec: 
     shared.set(0.1, part.label());
     let heartbeat = tokio::spawn(heartbeat_loop(
         runner.orch.clone(),
-        id,
-        attempt,
+        held.clone(),
         runner.worker.clone(),
         Duration::from_millis(u64::from(lease.heartbeat_ms.max(50))),
         shared.clone(),
@@ -570,38 +570,32 @@ pub(crate) async fn run_part_lease(runner: &PartRunner, lease: pb::Lease, spec: 
         // Sent as any outcome is (refused, the lease lapses and the part runs again).
         Ok((bytes, voxels)) => {
             let worker = runner.worker.as_str();
-            let send = || finish_part(runner.orch.clone(), id, attempt, worker, &bytes, voxels);
+            let send = || finish_part(runner.orch.clone(), &held, worker, &bytes, voxels);
             crate::until_answered(id, attempt, send).await;
         }
-        Err(f) => fail_part(runner, id, attempt, f).await,
+        Err(f) => fail_part(runner, &held, f).await,
     }
 }
 
-/// Reports that part `id` failed.
-async fn fail_part(runner: &PartRunner, id: u64, attempt: u32, f: Failure) {
+/// Reports that the part leased as `held` failed.
+async fn fail_part(runner: &PartRunner, held: &HeldLease, f: Failure) {
+    let (id, attempt) = (held.job_id, held.attempt);
     tracing::warn!(job = id, attempt, kind = f.kind.name(), reason = %f.message, "part failed");
     let outcome = wavesplat_orchestrator_client::model::Outcome::Failed(f);
-    crate::report(
-        &mut runner.orch.clone(),
-        &runner.worker,
-        id,
-        attempt,
-        outcome,
-    )
-    .await;
+    crate::report(&mut runner.orch.clone(), &runner.worker, held, outcome).await;
 }
 
+/// Sends the result of the part leased as `held` (`FinishPart`).
 async fn finish_part(
     mut orch: Client,
-    id: u64,
-    attempt: u32,
+    held: &HeldLease,
     worker: &str,
     bytes: &[u8],
     voxels: u64,
 ) -> Result<pb::Job, tonic::Status> {
     let head = pb::PartResult {
-        job_id: id,
-        attempt,
+        job_id: held.job_id,
+        attempt: held.attempt,
         worker: worker.to_string(),
         size: bytes.len() as u64,
         sha256: wavesplat_net::digest::sha256(bytes).to_vec(),
@@ -614,7 +608,7 @@ async fn finish_part(
         msg: Some(pb::finish_part_request::Msg::Chunk(c.to_vec())),
     }));
     Ok(orch
-        .finish_part(tokio_stream::iter(messages))
+        .finish_part(held.request(tokio_stream::iter(messages)))
         .await?
         .into_inner())
 }
@@ -625,7 +619,8 @@ struct RemoteBricks {
     handle: tokio::runtime::Handle,
     parent: JobSpec,
     parent_id: u64,
-    parent_attempt: u32,
+    /// The parent's lease, which adding and polling parts and fetching their results present.
+    parent_lease: HeldLease,
     shared: Arc<Shared>,
     /// The source file's length when planned (every part checks it).
     source_bytes: Option<u64>,
@@ -847,11 +842,11 @@ impl RemoteBricks {
             let mut answered = true;
             for batch in open.chunks(1024) {
                 let mut orch = self.runner.orch.clone();
-                let req = pb::SubmitPartsRequest {
+                let req = self.parent_lease.request(pb::SubmitPartsRequest {
                     parent_id: self.parent_id,
-                    parent_attempt: self.parent_attempt,
+                    parent_attempt: self.parent_lease.attempt,
                     parts: batch.iter().map(|&i| specs[i].clone()).collect(),
-                };
+                });
                 match self.handle.block_on(orch.submit_parts(req)) {
                     Ok(r) => {
                         for (&i, p) in batch.iter().zip(r.into_inner().parts) {
@@ -863,7 +858,9 @@ impl RemoteBricks {
                     Err(s)
                         if matches!(
                             s.code(),
-                            tonic::Code::FailedPrecondition | tonic::Code::InvalidArgument
+                            tonic::Code::FailedPrecondition
+                                | tonic::Code::InvalidArgument
+                                | tonic::Code::PermissionDenied
                         ) =>
                     {
                         return Err(self.stop(fail(
@@ -945,7 +942,7 @@ impl RemoteBricks {
         let Some(lease) = reply.into_inner().lease else {
             return false;
         };
-        let (id, attempt) = (lease.job_id, lease.attempt);
+        let held = HeldLease::of(&lease);
         match lease.spec.clone().map(convert::spec_from_pb) {
             Some(Ok(spec)) => self
                 .handle
@@ -953,13 +950,11 @@ impl RemoteBricks {
             // As the worker's loop reports a lease it cannot read.
             Some(Err(e)) => {
                 let f = fail(FailureKind::Worker, e.to_string());
-                self.handle
-                    .block_on(fail_part(&self.runner, id, attempt, f));
+                self.handle.block_on(fail_part(&self.runner, &held, f));
             }
             None => {
                 let f = fail(FailureKind::Worker, "lease without a job spec");
-                self.handle
-                    .block_on(fail_part(&self.runner, id, attempt, f));
+                self.handle.block_on(fail_part(&self.runner, &held, f));
             }
         }
         true
@@ -968,11 +963,11 @@ impl RemoteBricks {
     /// The result of a done part.
     fn fetch(&self, part: u64) -> Result<Vec<u8>, Stopped> {
         let mut orch = self.runner.orch.clone();
-        let req = pb::FetchResultRequest {
+        let req = self.parent_lease.request(pb::FetchResultRequest {
             parent_id: self.parent_id,
-            parent_attempt: self.parent_attempt,
+            parent_attempt: self.parent_lease.attempt,
             part_id: part,
-        };
+        });
         let unavailable = |s: tonic::Status| {
             fail(
                 FailureKind::Worker,
@@ -1021,11 +1016,11 @@ pub(crate) fn coordinate(
     runner: PartRunner,
     handle: tokio::runtime::Handle,
     spec: JobSpec,
-    parent_id: u64,
-    parent_attempt: u32,
+    parent: HeldLease,
     hashed: Option<u64>,
     shared: Arc<Shared>,
 ) -> Result<(Output, u64), Failure> {
+    let parent_id = parent.job_id;
     let brick = spec
         .options
         .brick
@@ -1051,7 +1046,7 @@ pub(crate) fn coordinate(
         top_held_by: Default::default(),
         parent: spec,
         parent_id,
-        parent_attempt,
+        parent_lease: parent,
         shared: shared.clone(),
         failure: std::sync::Mutex::new(None),
     };
@@ -1086,11 +1081,11 @@ pub(crate) fn coordinate_series(
     runner: PartRunner,
     handle: tokio::runtime::Handle,
     spec: JobSpec,
-    parent_id: u64,
-    parent_attempt: u32,
+    parent: HeldLease,
     hashed: Option<u64>,
     shared: Arc<Shared>,
 ) -> Result<(Output, u64), Failure> {
+    let parent_id = parent.job_id;
     let input = runner.series(&spec)?;
     let series = input.source();
     let points = series.time_points();
@@ -1118,7 +1113,7 @@ pub(crate) fn coordinate_series(
         top_held_by: Default::default(),
         parent: spec,
         parent_id,
-        parent_attempt,
+        parent_lease: parent,
         shared: shared.clone(),
         failure: std::sync::Mutex::new(None),
     };

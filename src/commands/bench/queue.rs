@@ -109,12 +109,12 @@ async fn fake_worker(url: String, id: String, stop_when_idle: bool) -> Result<us
             tokio::time::sleep(Duration::from_millis(u64::from(r.retry_after_ms.max(1)))).await;
             continue;
         };
-        c.finish(pb::FinishRequest {
+        c.finish(client::HeldLease::of(&lease).request(pb::FinishRequest {
             job_id: lease.job_id,
             attempt: lease.attempt,
             worker: id.clone(),
             outcome: Some(delivered()),
-        })
+        }))
         .await?;
         n += 1;
     }
