@@ -32,48 +32,76 @@ pub enum Source {
 pub enum SampleType {
     /// Unsigned 8-bit.
     U8,
+    /// Signed 8-bit.
+    I8,
     /// Unsigned 16-bit.
     U16,
     /// Signed 16-bit.
     I16,
+    /// Unsigned 32-bit.
+    U32,
+    /// Signed 32-bit.
+    I32,
+    /// Unsigned 64-bit.
+    U64,
+    /// Signed 64-bit.
+    I64,
     /// IEEE-754 32-bit float.
     F32,
+    /// IEEE-754 64-bit float.
+    F64,
 }
 
 impl SampleType {
-    /// Parses `u8`, `u16`, `i16` or `f32` (case-insensitive; `uint8`, `uint16`, `int16`,
-    /// `float32` and `float` too).
+    /// Parses `u8`, `i8`, `u16`, `i16`, `u32`, `i32`, `u64`, `i64`, `f32` or `f64`
+    /// (case-insensitive; `uint8`, `int8`, …, `int64`, `float32`, `float`, `float64` and
+    /// `double` too: the names the raw reader takes).
     pub fn from_name(name: &str) -> Option<SampleType> {
         match name.trim().to_ascii_lowercase().as_str() {
             "u8" | "uint8" => Some(SampleType::U8),
+            "i8" | "int8" => Some(SampleType::I8),
             "u16" | "uint16" => Some(SampleType::U16),
             "i16" | "int16" => Some(SampleType::I16),
+            "u32" | "uint32" => Some(SampleType::U32),
+            "i32" | "int32" => Some(SampleType::I32),
+            "u64" | "uint64" => Some(SampleType::U64),
+            "i64" | "int64" => Some(SampleType::I64),
             "f32" | "float32" | "float" => Some(SampleType::F32),
+            "f64" | "float64" | "double" => Some(SampleType::F64),
             _ => None,
         }
     }
 
     /// The canonical names.
     pub fn names() -> &'static [&'static str] {
-        &["u8", "u16", "i16", "f32"]
+        &[
+            "u8", "i8", "u16", "i16", "u32", "i32", "u64", "i64", "f32", "f64",
+        ]
     }
 
     /// The canonical name.
     pub fn name(self) -> &'static str {
         match self {
             SampleType::U8 => "u8",
+            SampleType::I8 => "i8",
             SampleType::U16 => "u16",
             SampleType::I16 => "i16",
+            SampleType::U32 => "u32",
+            SampleType::I32 => "i32",
+            SampleType::U64 => "u64",
+            SampleType::I64 => "i64",
             SampleType::F32 => "f32",
+            SampleType::F64 => "f64",
         }
     }
 
     /// Bytes per sample.
     pub fn size(self) -> usize {
         match self {
-            SampleType::U8 => 1,
+            SampleType::U8 | SampleType::I8 => 1,
             SampleType::U16 | SampleType::I16 => 2,
-            SampleType::F32 => 4,
+            SampleType::U32 | SampleType::I32 | SampleType::F32 => 4,
+            SampleType::U64 | SampleType::I64 | SampleType::F64 => 8,
         }
     }
 }

@@ -205,7 +205,7 @@ pub enum ArchiveCommand {
     /// Supported: DICOM (a directory of DICOM files is one volume, named by its path), NRRD
     /// (`*.nrrd`, `*.nhdr` + data file), MetaImage (`*.mha`, `*.mhd` + data file), NIfTI-1
     /// (`*.nii`, `*.nii.gz`, scalar or RGB24) and headerless raw files named
-    /// `NAME_XxYxZ_DTYPE[_rgb][_be].raw` (DTYPE u8, u16, i16 or f32; `_rgb`: 3 channels
+    /// `NAME_XxYxZ_DTYPE[_rgb][_be].raw` (DTYPE u8, i8, u16, i16, u32, i32, u64, i64, f32 or f64; `_rgb`: 3 channels
     /// interleaved per voxel; `_be`: big-endian; x fastest), e.g. `head_256x256x128_u16.raw`.
     /// The cache name is the relative path without extension and layout suffix (`ct/head`).
     /// Each volume's files are hashed (SHA-256); one already submitted with the same options is

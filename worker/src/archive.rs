@@ -11,7 +11,7 @@
 //!   ignored;
 //! - headerless raw, described by its name: `NAME_XxYxZ_DTYPE[_rgb][_be].raw`, e.g.
 //!   `head_256x256x128_u16.raw`, `cells_64x64x64_u8_rgb.raw`, `ct_512x512x300_i16_be.raw`.
-//!   DTYPE is `u8`, `u16`, `i16` or `f32`; `_rgb` means 3 channels interleaved per voxel;
+//!   DTYPE is `u8`, `i8`, `u16`, `i16`, `u32`, `i32`, `u64`, `i64`, `f32` or `f64`; `_rgb` means 3 channels interleaved per voxel;
 //!   `_be` big-endian samples (little-endian otherwise); x varies fastest.
 //!
 //! With `time_steps` ([`scan_with`]), a directory whose volume files (NIfTI, NRRD, MetaImage)
@@ -426,6 +426,23 @@ mod tests {
         assert!(l.big_endian);
         let (n, l) = parse_raw_name("a_8x8x8_f32.raw").unwrap();
         assert_eq!((n.as_str(), l.channels, l.big_endian), ("a", 1, false));
+        // Every sample type the raw reader takes, by its name and its aliases.
+        for (name, dtype) in [
+            ("i8", SampleType::I8),
+            ("u32", SampleType::U32),
+            ("int32", SampleType::I32),
+            ("u64", SampleType::U64),
+            ("i64", SampleType::I64),
+            ("f64", SampleType::F64),
+            ("double", SampleType::F64),
+        ] {
+            let (_, l) = parse_raw_name(&format!("scan_4x5x6_{name}_be.raw")).unwrap();
+            assert_eq!(
+                (l.dtype, l.dims, l.big_endian),
+                (dtype, [4, 5, 6], true),
+                "{name}"
+            );
+        }
         for bad in [
             "a.raw",
             "a_8x8_u8.raw",

@@ -53,9 +53,15 @@ pub fn effort(e: model::Effort) -> Effort {
 pub fn raw_spec(l: &RawLayout) -> RawSpec {
     let dtype = match l.dtype {
         SampleType::U8 => RawDtype::U8,
+        SampleType::I8 => RawDtype::I8,
         SampleType::U16 => RawDtype::U16,
         SampleType::I16 => RawDtype::I16,
+        SampleType::U32 => RawDtype::U32,
+        SampleType::I32 => RawDtype::I32,
+        SampleType::U64 => RawDtype::U64,
+        SampleType::I64 => RawDtype::I64,
         SampleType::F32 => RawDtype::F32,
+        SampleType::F64 => RawDtype::F64,
     };
     let mut spec = RawSpec::new(l.dims, dtype);
     spec.endian = if l.big_endian {
@@ -70,6 +76,24 @@ pub fn raw_spec(l: &RawLayout) -> RawSpec {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn every_sample_type_of_a_job_is_the_raw_readers_of_its_name_and_size() {
+        for name in SampleType::names() {
+            let t = SampleType::from_name(name).unwrap();
+            let layout = RawLayout {
+                dims: [2, 3, 4],
+                dtype: t,
+                big_endian: false,
+                channels: 1,
+            };
+            let spec = raw_spec(&layout);
+            assert_eq!(spec.dtype.name(), *name);
+            assert_eq!(spec.dtype.size(), t.size(), "{name}");
+            assert_eq!(RawDtype::from_name(name).unwrap(), spec.dtype);
+        }
+        assert_eq!(SampleType::names().len(), RawDtype::names().len());
+    }
 
     #[test]
     fn default_job_options_are_the_compressors_defaults() {
