@@ -187,6 +187,45 @@ async fn submit_deduplicates_by_content_options_and_name(b: &mut dyn Backend) {
     ));
 }
 
+/// A page read from the store (`list_after`: what `ListJobs` pages by) is the whole list's
+/// slice after its cursor, in id order, at most its limit.
+async fn pages_read_from_the_store_are_slices_of_the_whole_list(b: &mut dyn Backend) {
+    let clock = TestClock::default();
+    let q = b.open(&clock).await;
+    for n in 100..107 {
+        q.submit(spec(n), None).await.unwrap();
+    }
+    let all: Vec<u64> = q.list().await.unwrap().iter().map(|j| j.id).collect();
+    assert_eq!(all.len(), 7);
+    for after in [0, all[2], all[6], all[6] + 1000, u64::MAX] {
+        for limit in [1, 3, 100] {
+            let page: Vec<u64> = q
+                .list_after(after, limit)
+                .await
+                .unwrap()
+                .iter()
+                .map(|j| j.id)
+                .collect();
+            let want: Vec<u64> = all
+                .iter()
+                .copied()
+                .filter(|&id| id > after)
+                .take(limit)
+                .collect();
+            assert_eq!(page, want, "after {after}, limit {limit}");
+        }
+    }
+    // Paging through with a cursor lists every job once.
+    let (mut cursor, mut seen) = (0, Vec::new());
+    loop {
+        let page = q.list_after(cursor, 2).await.unwrap();
+        let Some(last) = page.last() else { break };
+        cursor = last.id;
+        seen.extend(page.iter().map(|j| j.id));
+    }
+    assert_eq!(seen, all);
+}
+
 async fn leases_are_fifo_and_exclusive_across_stores(b: &mut dyn Backend, stores: usize) {
     let clock = TestClock::default();
     let first = b.open(&clock).await;
@@ -1048,6 +1087,7 @@ async fn contract(b: &mut dyn Backend, stores: usize) {
     a_part_goes_first_to_the_worker_it_prefers(b).await;
     parts_lease_apart_and_their_results_live_until_dropped(b).await;
     submit_deduplicates_by_content_options_and_name(b).await;
+    pages_read_from_the_store_are_slices_of_the_whole_list(b).await;
     leases_are_fifo_and_exclusive_across_stores(b, stores).await;
     failures_back_off_retry_and_stop(b).await;
     uploads_live_until_no_unfinished_job_needs_them(b).await;

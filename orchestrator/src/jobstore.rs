@@ -129,6 +129,10 @@ pub trait JobStore: Send + Sync + 'static {
     /// Every job, by id.
     async fn list(&self) -> Result<Vec<Job>, OrchestratorError>;
 
+    /// Up to `limit` jobs whose ids follow `after`, by id: a page of [`JobStore::list`] read
+    /// from the store as such (an index range), not cut from the whole list.
+    async fn list_after(&self, after: JobId, limit: usize) -> Result<Vec<Job>, OrchestratorError>;
+
     /// The uploaded source with this hash.
     async fn upload(&self, sha256: &[u8; 32]) -> Result<Option<Vec<u8>>, OrchestratorError>;
 
@@ -402,6 +406,10 @@ impl JobStore for EmbeddedQueue {
 
     async fn list(&self) -> Result<Vec<Job>, OrchestratorError> {
         Ok(self.lock().jobs().cloned().collect())
+    }
+
+    async fn list_after(&self, after: JobId, limit: usize) -> Result<Vec<Job>, OrchestratorError> {
+        Ok(self.lock().jobs_after(after).take(limit).cloned().collect())
     }
 
     async fn upload(&self, sha256: &[u8; 32]) -> Result<Option<Vec<u8>>, OrchestratorError> {

@@ -753,6 +753,23 @@ impl JobStore for PostgresQueue {
             .collect()
     }
 
+    async fn list_after(&self, after: JobId, limit: usize) -> Result<Vec<Job>, OrchestratorError> {
+        // Ids are BIGINT: nothing follows one past its range.
+        let Ok(after) = i64::try_from(after) else {
+            return Ok(Vec::new());
+        };
+        let limit = i64::try_from(limit).unwrap_or(i64::MAX);
+        sqlx::query("SELECT job, lease_token FROM jobs WHERE id > $1 ORDER BY id LIMIT $2")
+            .bind(after)
+            .bind(limit)
+            .fetch_all(&self.pool)
+            .await
+            .map_err(db)?
+            .iter()
+            .map(Self::job_of)
+            .collect()
+    }
+
     async fn put_result(
         &self,
         parent: JobId,

@@ -544,6 +544,14 @@ impl Queue {
         self.jobs.values()
     }
 
+    /// The jobs whose ids follow `after`, by id.
+    pub fn jobs_after(&self, after: JobId) -> impl Iterator<Item = &Job> {
+        use std::ops::Bound::{Excluded, Unbounded};
+        self.jobs
+            .range((Excluded(after), Unbounded))
+            .map(|(_, j)| j)
+    }
+
     /// Adds a job, or returns the known one with the same content hash, layout, options and
     /// name.
     pub fn submit(&mut self, spec: JobSpec, now: u64) -> Result<Submitted, OrchestratorError> {

@@ -163,8 +163,39 @@ type SourceStream = Pin<Box<dyn Stream<Item = Result<pb::SourceChunk, Status>> +
 /// page by page instead of failing as one reply over the limit.
 pub const LIST_PAGE_BYTES: usize = 1 << 20;
 
+/// Jobs read from the store at a time while a `ListJobs` page fills.
+const LIST_BATCH: usize = 256;
+
+/// Adds `jobs` (in id order, following the page's) to `page` while whole jobs fit
+/// `page_bytes` as encoded (at least one in a page); true once one did not (the page is full
+/// and `more` set).
+fn fill_page(
+    page: &mut pb::ListJobsResponse,
+    jobs: &[crate::model::Job],
+    max_attempts: u32,
+    page_bytes: usize,
+) -> bool {
+    let mut bytes: usize = page
+        .jobs
+        .iter()
+        .map(wavesplat_proto::repeated_entry_len)
+        .sum();
+    for j in jobs {
+        let job = convert::job_to_pb(j, max_attempts);
+        let wire = wavesplat_proto::repeated_entry_len(&job);
+        if !page.jobs.is_empty() && bytes + wire > page_bytes {
+            page.more = true;
+            return true;
+        }
+        bytes += wire;
+        page.jobs.push(job);
+    }
+    false
+}
+
 /// The page of `jobs` (in id order) after `after`: whole jobs up to `page_bytes` as encoded
 /// (at least one), and whether more follow.
+#[cfg(test)]
 fn list_page(
     jobs: &[crate::model::Job],
     after: u64,
@@ -172,17 +203,8 @@ fn list_page(
     page_bytes: usize,
 ) -> pb::ListJobsResponse {
     let mut page = pb::ListJobsResponse::default();
-    let mut bytes = 0usize;
-    for j in jobs.iter().filter(|j| j.id > after) {
-        let job = convert::job_to_pb(j, max_attempts);
-        let wire = wavesplat_proto::repeated_entry_len(&job);
-        if !page.jobs.is_empty() && bytes + wire > page_bytes {
-            page.more = true;
-            break;
-        }
-        bytes += wire;
-        page.jobs.push(job);
-    }
+    let after: Vec<_> = jobs.iter().filter(|j| j.id > after).cloned().collect();
+    fill_page(&mut page, &after, max_attempts, page_bytes);
     page
 }
 
@@ -359,14 +381,19 @@ impl Orchestrator for OrchestratorService {
         &self,
         request: Request<pb::ListJobsRequest>,
     ) -> Result<Response<pb::ListJobsResponse>, Status> {
-        let after = request.into_inner().after_id;
-        let jobs = self.store().list().await?;
-        Ok(Response::new(list_page(
-            &jobs,
-            after,
-            self.max_attempts(),
-            LIST_PAGE_BYTES,
-        )))
+        // The page is read from the store batch by batch from its cursor: a page costs the
+        // jobs it holds, not the whole queue.
+        let mut after = request.into_inner().after_id;
+        let mut page = pb::ListJobsResponse::default();
+        loop {
+            let batch = self.store().list_after(after, LIST_BATCH).await?;
+            if fill_page(&mut page, &batch, self.max_attempts(), LIST_PAGE_BYTES)
+                || batch.len() < LIST_BATCH
+            {
+                return Ok(Response::new(page));
+            }
+            after = batch.last().map_or(after, |j| j.id);
+        }
     }
 
     async fn get_job(&self, request: Request<pb::JobRef>) -> Result<Response<pb::Job>, Status> {
@@ -619,6 +646,53 @@ mod tests {
         assert_eq!((one.jobs.len(), one.more), (1, true));
         let none = list_page(&jobs, 500, 3, page_bytes);
         assert_eq!((none.jobs.len(), none.more), (0, false));
+    }
+
+    /// `ListJobs` reads its page from the store batch by batch from the cursor: a queue of
+    /// more jobs than a batch is listed whole, in id order, from any cursor.
+    #[tokio::test]
+    async fn list_jobs_reads_its_page_from_the_cursor_across_batches() {
+        use crate::jobstore::EmbeddedQueue;
+        use crate::store::Store;
+        let dir = tempfile::tempdir().unwrap();
+        let queue = EmbeddedQueue::open(
+            Store::open(dir.path()).unwrap(),
+            QueueOptions::default(),
+            Arc::new(|| 1000),
+        )
+        .unwrap();
+        let n = 2 * LIST_BATCH + 37;
+        for i in 0..n {
+            let mut spec = job(1).spec;
+            spec.name = format!("volume {i}");
+            spec.sha256 = [(i % 251) as u8; 32];
+            queue.submit(spec, None).await.unwrap();
+        }
+        let service = OrchestratorService::new(Arc::new(queue), ServiceOptions::default())
+            .await
+            .unwrap();
+        let list = |after: u64| {
+            let service = &service;
+            async move {
+                service
+                    .list_jobs(Request::new(pb::ListJobsRequest { after_id: after }))
+                    .await
+                    .unwrap()
+                    .into_inner()
+            }
+        };
+        let all = list(0).await;
+        assert!(!all.more);
+        let ids: Vec<u64> = all.jobs.iter().map(|j| j.id).collect();
+        assert_eq!(ids.len(), n);
+        assert!(ids.windows(2).all(|w| w[0] < w[1]));
+        let cursor = ids[LIST_BATCH + 5];
+        let rest = list(cursor).await;
+        assert_eq!(
+            rest.jobs.iter().map(|j| j.id).collect::<Vec<_>>(),
+            ids[LIST_BATCH + 6..].to_vec()
+        );
+        assert!(list(ids[n - 1]).await.jobs.is_empty());
     }
 
     /// A part's state carries only the start of a long failure message, so that a reply on
