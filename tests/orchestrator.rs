@@ -1053,6 +1053,35 @@ async fn a_job_keeps_to_its_memory_limit_on_the_workers() {
     assert_eq!(j.attempts, 1, "not retried: {}", j.error);
 }
 
+/// A bricked job (32³ bricks) of a 64³ f32 raw file on shared storage named after `name`.
+fn bricked_parent(name: &str, sha: u8) -> wavesplat_orchestrator_client::model::JobSpec {
+    use wavesplat_orchestrator_client::model::{JobOptions, JobSpec, Source};
+    JobSpec {
+        name: name.into(),
+        source: Source::Path(format!("/shared/{name}_64x64x64_f32.raw").into()),
+        sha256: [sha; 32],
+        raw: None,
+        options: JobOptions {
+            brick: Some(32),
+            ..JobOptions::default()
+        },
+        part: None,
+    }
+}
+
+/// The lease `worker` takes next (there must be a job to take).
+async fn lease_as(c: &mut wavesplat_orchestrator_client::Client, worker: &str) -> pb::Lease {
+    c.lease(pb::LeaseRequest {
+        worker: worker.into(),
+        parts_only: false,
+    })
+    .await
+    .unwrap()
+    .into_inner()
+    .lease
+    .expect("a job to lease")
+}
+
 /// The parts' RPCs from the other side of the wire, as a worker that does not follow the
 /// rules would call them: parts only for the job one holds, only as its spec; results only
 /// complete and as announced, only through `FinishPart`, only to the holder of the parent;
@@ -1060,32 +1089,13 @@ async fn a_job_keeps_to_its_memory_limit_on_the_workers() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_parts_rpcs_hold_their_rules_against_a_raw_client() {
     use tonic::Code;
-    use wavesplat_orchestrator_client::model::{JobOptions, JobSpec, PartSpec, PartStep, Source};
+    use wavesplat_orchestrator_client::model::{JobSpec, PartSpec, PartStep};
     use wavesplat_orchestrator_client::{self as client, convert};
     let cl = TestCluster::start(&ORCH_TIMING);
     let mut c = client::connect(&cl.orch.url()).await.unwrap();
-    let parent_spec = JobSpec {
-        name: "large".into(),
-        source: Source::Path("/shared/large_64x64x64_f32.raw".into()),
-        sha256: [5; 32],
-        raw: None,
-        options: JobOptions {
-            brick: Some(32),
-            ..JobOptions::default()
-        },
-        part: None,
-    };
+    let parent_spec = bricked_parent("large", 5);
     client::submit(&mut c, &parent_spec, None).await.unwrap();
-    let lease = c
-        .lease(pb::LeaseRequest {
-            worker: "coord".into(),
-            parts_only: false,
-        })
-        .await
-        .unwrap()
-        .into_inner()
-        .lease
-        .unwrap();
+    let lease = lease_as(&mut c, "coord").await;
     let (pid, pat) = (lease.job_id, lease.attempt);
     let held = client::HeldLease::of(&lease);
     let part = |index: u32| JobSpec {
@@ -1286,35 +1296,16 @@ async fn the_parts_rpcs_hold_their_rules_against_a_raw_client() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn cancelling_a_bricked_job_while_its_parts_are_added_leaves_none_to_run() {
     use tonic::Code;
-    use wavesplat_orchestrator_client::model::{JobOptions, JobSpec, PartSpec, PartStep, Source};
+    use wavesplat_orchestrator_client::model::{JobSpec, PartSpec, PartStep};
     use wavesplat_orchestrator_client::{self as client, convert, HeldLease};
     let cl = TestCluster::start(&ORCH_TIMING);
     let url = cl.orch.url();
     let mut c = client::connect(&url).await.unwrap();
     let mut added = 0;
     for round in 0..8u32 {
-        let parent_spec = JobSpec {
-            name: format!("large{round}"),
-            source: Source::Path(format!("/shared/large{round}_64x64x64_f32.raw").into()),
-            sha256: [round as u8 + 1; 32],
-            raw: None,
-            options: JobOptions {
-                brick: Some(32),
-                ..JobOptions::default()
-            },
-            part: None,
-        };
+        let parent_spec = bricked_parent(&format!("large{round}"), round as u8 + 1);
         client::submit(&mut c, &parent_spec, None).await.unwrap();
-        let lease = c
-            .lease(pb::LeaseRequest {
-                worker: "coord".into(),
-                parts_only: false,
-            })
-            .await
-            .unwrap()
-            .into_inner()
-            .lease
-            .unwrap();
+        let lease = lease_as(&mut c, "coord").await;
         let held = HeldLease::of(&lease);
         let pid = held.job_id;
         let mut adders = Vec::new();

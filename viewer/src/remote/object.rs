@@ -537,10 +537,11 @@ impl Object {
                     builder =
                         builder.with_client_options(options.with_no_system_certificates(true));
                 }
+                // The builder's errors quote the URL as given: they are shown with it redacted.
                 let store = builder
                     .with_url(url)
                     .build()
-                    .map_err(|e| RangeError::Store(e.to_string()))?;
+                    .map_err(|e| RangeError::Store(e.to_string().replace(url, &redacted(url))))?;
                 let path = ObjectPath::from_url_path(parsed.path())
                     .map_err(|e| RangeError::Url(format!("key: {e}")))?;
                 Kind::Store {
