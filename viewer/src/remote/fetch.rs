@@ -36,6 +36,10 @@ pub(super) struct Fetch {
     pub(super) queue: Vec<u32>,
     pub(super) status: Arc<Mutex<SourceStatus>>,
     pub(super) head: Head,
+    /// The view the queue was last planned for, and how many views were applied: a request
+    /// that failed after another view came is planned again with it, not put back first.
+    pub(super) view: Option<ViewSpec>,
+    pub(super) views: u64,
 }
 
 /// One coalesced request: its byte range in the object and the packets in it.
@@ -45,6 +49,8 @@ struct Request {
     /// Bytes at the range's start that came with the head: only the rest is requested (none
     /// when it is all of them).
     held: u64,
+    /// [`Fetch::views`] when it was made.
+    view: u64,
 }
 
 impl Request {
@@ -71,6 +77,7 @@ impl Fetch {
     /// request, and being the start of the file they are its most significant packets, so the
     /// first image needs no round trip after the head's.
     pub(super) fn plan(&mut self, spec: &ViewSpec) -> Result<(), SourceError> {
+        self.view = Some(*spec);
         self.plan_remote(spec)?;
         let (local, remote): (Vec<u32>, Vec<u32>) =
             self.queue.iter().partition(|&&i| self.is_local(i));
@@ -184,21 +191,35 @@ impl Fetch {
             range: start..end,
             packets,
             held,
+            view: self.views,
         })
     }
 
-    /// Puts the packets of a request that failed back at the head of the queue, in order, to
-    /// be asked for again.
-    fn put_back(&mut self, req: Request) {
+    /// Puts the packets of a request not made back at the head of the queue, in order.
+    fn unrequest(&mut self, req: Request) {
         for id in &req.packets {
             self.requested.remove(id);
         }
         self.queue.splice(0..0, req.packets);
     }
 
+    /// Puts the packets of a request that failed back to be asked for again: at the head of the
+    /// queue, or, where another view came since it was made, where that view's plan puts them
+    /// (it may not see them at all).
+    fn put_back(&mut self, req: Request) {
+        let replan = (req.view != self.views).then_some(self.view).flatten();
+        self.unrequest(req);
+        if let Some(spec) = replan {
+            if let Err(e) = self.plan(&spec) {
+                tracing::warn!(error = %e, "planning a view for range requests");
+            }
+        }
+    }
+
     fn apply(&mut self, c: Control) {
         match c {
             Control::View(spec) => {
+                self.views += 1;
                 if let Err(e) = self.plan(&spec) {
                     tracing::warn!(error = %e, "planning a view for range requests");
                 }
@@ -222,10 +243,15 @@ impl Fetch {
             if paused_until.is_some_and(|t| tokio::time::Instant::now() >= t) {
                 paused_until = None;
             }
-            while paused_until.is_none() && flight.len() < self.options.in_flight.max(1) {
+            while flight.len() < self.options.in_flight.max(1) {
                 let Some(req) = self.next_request() else {
                     break;
                 };
+                // While paused only what came with the head is handed on.
+                if paused_until.is_some() && !req.local() {
+                    self.unrequest(req);
+                    break;
+                }
                 let object = self.object.clone();
                 let first = self.head.first.clone();
                 flight.push(async move {
@@ -415,6 +441,8 @@ mod tests {
             requested: HashSet::new(),
             queue: Vec::new(),
             status: Arc::new(Mutex::new(SourceStatus::default())),
+            view: None,
+            views: 0,
             head: Head {
                 first: Bytes::copy_from_slice(&object[..first_bytes.min(object.len())]),
                 object_bytes: h.object_bytes(),
@@ -468,6 +496,33 @@ mod tests {
         f.apply(Control::Dropped(vec![dropped]));
         f.plan(&whole).unwrap();
         assert!(f.queue.contains(&dropped));
+    }
+
+    #[test]
+    fn a_failed_request_goes_back_first_or_where_a_newer_view_puts_it() {
+        let whole = ViewSpec::single(View::new(0.3, 0.2, 64, 64));
+        let mut corner_view = View::new(0.0, 0.0, 64, 64);
+        corner_view.zoom = Some(6.0);
+        corner_view.pan = [20.0, 20.0];
+        let corner = ViewSpec::single(corner_view);
+        // No view since it was made: back at the head of the queue, in order.
+        let mut f = fetch(0);
+        f.plan(&whole).unwrap();
+        let r = f.next_request().unwrap();
+        let packets = r.packets.clone();
+        f.put_back(r);
+        assert_eq!(&f.queue[..packets.len()], &packets[..]);
+        assert!(packets.iter().all(|p| !f.requested.contains(p)));
+        // Another view since: where that view's plan puts it, as if never asked for.
+        let mut f = fetch(0);
+        f.plan(&whole).unwrap();
+        let r = f.next_request().unwrap();
+        f.apply(Control::View(corner));
+        f.put_back(r);
+        let mut fresh = fetch(0);
+        fresh.plan(&corner).unwrap();
+        assert_eq!(f.queue, fresh.queue);
+        assert!(f.requested.is_empty());
     }
 
     #[test]

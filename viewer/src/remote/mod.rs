@@ -216,6 +216,8 @@ impl RangeSource {
             queue: Vec::new(),
             status: status.clone(),
             head,
+            view: None,
+            views: 0,
         };
         fetch.plan(&spec)?;
         let feed = Feed::start(
