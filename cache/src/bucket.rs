@@ -35,8 +35,8 @@
 use crate::error::CacheError;
 use crate::model::{
     BrickedIndex, IndexBrick, PacketMeta, SeriesIndex, VolumeIndex, VolumeKey, VolumeMeta,
+    MAX_NAME_BYTES,
 };
-use crate::store::MAX_NAME_BYTES;
 use bytes::Bytes;
 use futures_util::{StreamExt, TryStreamExt};
 use object_store::path::Path as ObjectPath;

@@ -11,6 +11,10 @@ use wavesplat_codec::format::{read_header_section, Header};
 
 pub use wavesplat_net::VolumeKey;
 
+/// Longest volume name (bytes): the store validates names against it, and the bucket's keys
+/// are laid out for names up to it.
+pub const MAX_NAME_BYTES: usize = 255;
+
 /// Facts about a stored volume (the commit record of an ingest).
 #[derive(Debug, Clone, PartialEq)]
 pub struct VolumeMeta {

@@ -42,8 +42,7 @@ impl Default for Limits {
     }
 }
 
-/// Longest volume name (bytes).
-pub const MAX_NAME_BYTES: usize = 255;
+pub use crate::model::MAX_NAME_BYTES;
 
 /// Checks a volume name: 1..=255 bytes, no control characters.
 pub fn validate_name(name: &str) -> Result<(), CacheError> {
