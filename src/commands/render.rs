@@ -107,7 +107,7 @@ pub struct ViewArgs {
     /// magnified to the size asked for by bilinear interpolation. The volume has no detail
     /// finer than a voxel: at 16 the image keeps to the splats' accuracy (≥ 50 dB against the
     /// exact line integrals), and the footprint tables and splats stop growing with the zoom
-    /// (×10 on an MRI at 1024²: 1.7 GB and 10 s with every pixel drawn, 0.3 GB and 1.2 s
+    /// (×10 on an MRI at 1024²: 1.7 GB and 9 s with every pixel drawn, 0.3 GB and 1.0 s
     /// bounded). Lower is faster and blurrier; 0 draws every pixel.
     #[arg(long, value_name = "N", default_value_t = wavesplat_viewer::magnify::DEFAULT_MAX_PIXELS_PER_VOXEL)]
     pub max_pixels_per_voxel: f64,
