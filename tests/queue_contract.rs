@@ -883,6 +883,10 @@ async fn cancelling_a_parent_settles_its_parts_and_a_retry_runs_them_again(b: &m
     );
     assert!(q.lease("any", false).await.unwrap().job.is_none());
 
+    // A part is not retried alone: its parent's retry runs it again.
+    let e = q.retry(running.id).await.unwrap_err();
+    assert!(matches!(e, OrchestratorError::InvalidRequest(_)), "{e}");
+
     clock.set(2000);
     q.retry(parent.id).await.unwrap();
     let p2 = q.lease("coordinator", false).await.unwrap().job.unwrap();

@@ -322,10 +322,13 @@ impl PostgresQueue {
         f: impl FnOnce(&mut Job, u64) -> Result<(), OrchestratorError> + Send,
     ) -> Result<Job, OrchestratorError> {
         let mut tx = self.begin().await?;
-        let now = self.now();
+        let clock = self.clock.clone();
         let t = &mut tx;
         let result = async move {
             let mut job = Self::locked(t, id).await?;
+            // The time once the row is ours: a change that waited for the lock is judged (a
+            // lease's expiry, its extension) at when it happens.
+            let now = clock();
             f(&mut job, now)?;
             Self::write(t, &job).await?;
             Self::settle(t, &job, now).await?;
@@ -447,18 +450,23 @@ impl PostgresQueue {
         let mut parts = Vec::with_capacity(specs.len());
         for spec in specs {
             let key = spec.dedup_key();
-            let known =
-                sqlx::query("SELECT job, lease_token FROM jobs WHERE dedup_key = $1 FOR UPDATE")
-                    .bind(&key)
-                    .fetch_optional(&mut **tx)
-                    .await
-                    .map_err(db)?;
+            // Read without a lock: a poll names every part, and locking them all would hide the
+            // queued ones from leases (SKIP LOCKED) until it commits. Only a part that this
+            // step changes is locked, and judged again under the lock.
+            let known = sqlx::query("SELECT job, lease_token FROM jobs WHERE dedup_key = $1")
+                .bind(&key)
+                .fetch_optional(&mut **tx)
+                .await
+                .map_err(db)?;
             let job = match known {
                 Some(row) => {
                     let mut job = Self::job_of(&row)?;
                     let has_result = with_results.contains(&ms(job.id));
-                    if rules::revive_part(&mut job, started, has_result, now) {
-                        Self::write(tx, &job).await?;
+                    if rules::revive_part(&mut job.clone(), started, has_result, now) {
+                        job = Self::locked(tx, job.id).await?;
+                        if rules::revive_part(&mut job, started, has_result, now) {
+                            Self::write(tx, &job).await?;
+                        }
                     }
                     job
                 }
@@ -726,8 +734,14 @@ impl JobStore for PostgresQueue {
         for id in ids {
             let mut tx = self.begin().await?;
             let result = Self::reap_one(&mut tx, &self.options, id, now).await;
-            if end(tx, result).await? {
-                changed += 1;
+            match end(tx, result).await {
+                Ok(true) => changed += 1,
+                Ok(false) => {}
+                // The database gone: the next pass tries them all again.
+                Err(e @ OrchestratorError::Database(_)) => return Err(e),
+                // One job that cannot be reclaimed (a record this build cannot read) does not
+                // keep the others' leases from lapsing.
+                Err(e) => tracing::warn!(job = id, error = %e, "a lapsed lease not reclaimed"),
             }
         }
         Ok(changed)

@@ -320,6 +320,14 @@ pub mod rules {
     /// goes on from where it was: a worker still holding an earlier attempt (cancelled while
     /// running) must not find its attempt number handed out again.
     pub fn retry(job: &mut Job, now: u64) -> Result<(), OrchestratorError> {
+        // A part runs again when its parent's next attempt asks for it (`revive_part`); one
+        // retried alone could store a result under a parent that has ended.
+        if let Some(part) = &job.spec.part {
+            return Err(OrchestratorError::InvalidRequest(format!(
+                "job {} is a part of job {}: retry that job, which runs again the parts it needs",
+                job.id, part.parent
+            )));
+        }
         match job.state {
             JobState::Failed(_) | JobState::Cancelled => {
                 requeue(job, now);
