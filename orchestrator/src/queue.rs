@@ -646,6 +646,16 @@ impl Queue {
             changed.push(job);
             changed.extend(parts);
         }
+        // A part whose lease lapsed with its parent's was cloned before the parent settled it:
+        // each job once (parents before their parts, as first seen), as it now stands, so
+        // that the store is written what the queue holds.
+        let mut seen = std::collections::HashSet::new();
+        changed.retain(|j| seen.insert(j.id));
+        for j in &mut changed {
+            if let Some(now_held) = self.jobs.get(&j.id) {
+                j.clone_from(now_held);
+            }
+        }
         changed
     }
 
@@ -972,6 +982,67 @@ mod tests {
             Err(OrchestratorError::LeaseLost { .. })
         ));
         q.heartbeat(1, 1, &TB, 0.5, "s", 10).unwrap();
+    }
+
+    /// A parent on its last attempt and one of its parts lapse in the same pass: the parent
+    /// fails for good and cancels the part, and what the pass hands to the store holds each
+    /// once, parent first, as the queue now has them (not the part's requeued copy after its
+    /// cancelled one).
+    #[test]
+    fn a_part_lapsing_with_its_failing_parent_is_written_once_as_settled() {
+        use crate::model::{PartSpec, PartStep};
+        let parent_spec = JobSpec {
+            options: JobOptions {
+                brick: Some(16),
+                ..JobOptions::default()
+            },
+            ..spec(1)
+        };
+        let mut q = Queue::new(cfg());
+        q.submit(parent_spec.clone(), 0).unwrap();
+        // Two lapsed attempts (reaped by the next lease), then the third.
+        let mut now = 0;
+        for attempt in 1..=3u32 {
+            let (j, _) = q.lease("coord", false, T, now);
+            assert_eq!(j.unwrap().attempts, attempt);
+            now += 1000;
+            if attempt < 3 {
+                q.reap(now);
+                now += 1000;
+            }
+        }
+        now -= 1000;
+        let part = JobSpec {
+            part: Some(PartSpec {
+                parent: 1,
+                index: 0,
+                of: 4,
+                step: PartStep::Score { energies: false },
+                levels: 2,
+                offset: Some(0.5),
+                color: None,
+                source_bytes: None,
+                time_points: None,
+                prefer_worker: None,
+            }),
+            ..parent_spec
+        };
+        let (parts, _) = q
+            .submit_parts(1, 3, &TB, vec![part], &HashSet::new(), now)
+            .unwrap();
+        let part_id = parts[0].id;
+        let (leased, _) = q.lease("w", true, T, now);
+        assert_eq!(leased.unwrap().id, part_id);
+        let changed = q.reap(now + 1000);
+        let ids: Vec<JobId> = changed.iter().map(|j| j.id).collect();
+        assert_eq!(ids, [1, part_id], "each once, the parent first");
+        assert_eq!(changed[0].state.name(), "failed");
+        assert_eq!(changed[1].state, JobState::Cancelled);
+        assert_eq!(
+            q.get(part_id).unwrap(),
+            &changed[1],
+            "the store gets what the queue has"
+        );
     }
 
     /// A part runs again under its parent's next attempt if it ended under an earlier one and
