@@ -194,7 +194,8 @@ impl EmbeddedQueue {
         let jobs = store.load()?;
         let (queue, changed) = Queue::restore(options, jobs, clock());
         store.put(&changed)?;
-        for parent in store.result_parents()? {
+        // The ended parents the queue knows parts of (not a scan of every stored result).
+        for parent in queue.parents_with_parts() {
             if queue.get(parent).is_ok_and(rules::ends_parts) {
                 store.drop_results(parent)?;
             }
@@ -360,7 +361,9 @@ impl JobStore for EmbeddedQueue {
             // parent comes wholly before this check or wholly after these parts are added
             // (and then settles them).
             let mut q = self.lock();
-            let with_results = self.store.result_ids(parent)?;
+            // Whether a result is stored matters only for a done part (`revive_part`).
+            let done = q.done_parts(parent);
+            let with_results = self.store.result_ids_among(parent, done)?;
             let (parts, changed) =
                 q.submit_parts(parent, attempt, token, specs, &with_results, self.now())?;
             self.store.put(&changed)?;

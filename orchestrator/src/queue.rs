@@ -521,6 +521,25 @@ impl Queue {
         changed
     }
 
+    /// The jobs that have parts.
+    pub fn parents_with_parts(&self) -> Vec<JobId> {
+        self.parts.keys().copied().collect()
+    }
+
+    /// The ids of `parent`'s parts that are done.
+    pub fn done_parts(&self, parent: JobId) -> Vec<JobId> {
+        self.parts.get(&parent).map_or_else(Vec::new, |ids| {
+            ids.iter()
+                .copied()
+                .filter(|id| {
+                    self.jobs
+                        .get(id)
+                        .is_some_and(|j| matches!(j.state, JobState::Done { .. }))
+                })
+                .collect()
+        })
+    }
+
     /// Records `job` under the worker it prefers, if it is a queued part that prefers one.
     fn note_preference(&mut self, job: &Job) {
         if let (Some(w), JobState::Queued { .. }) = (rules::preferred_worker(job), &job.state) {

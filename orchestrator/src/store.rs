@@ -7,7 +7,7 @@
 
 use crate::error::OrchestratorError;
 use crate::model::{Job, JobState, Source};
-use std::collections::{BTreeSet, HashSet};
+use std::collections::HashSet;
 use std::path::Path;
 
 /// Handle to the store; cheap to clone.
@@ -95,22 +95,20 @@ impl Store {
         Ok(self.results.get(result_key(parent, id))?)
     }
 
-    /// The parts of `parent` whose results are stored.
-    pub fn result_ids(&self, parent: u64) -> Result<HashSet<u64>, OrchestratorError> {
-        self.results
-            .scan_prefix(parent.to_be_bytes())
-            .keys()
-            .map(|k| Ok(key_half(&k?, 8)))
-            .collect()
-    }
-
-    /// The jobs with any part's result stored.
-    pub fn result_parents(&self) -> Result<BTreeSet<u64>, OrchestratorError> {
-        self.results
-            .iter()
-            .keys()
-            .map(|k| Ok(key_half(&k?, 0)))
-            .collect()
+    /// Of the parts `ids` of `parent`, those whose results are stored (by key alone: a poll
+    /// asks this of a parent's done parts, whose results may be large).
+    pub fn result_ids_among(
+        &self,
+        parent: u64,
+        ids: impl IntoIterator<Item = u64>,
+    ) -> Result<HashSet<u64>, OrchestratorError> {
+        let mut stored = HashSet::new();
+        for id in ids {
+            if self.results.contains_key(result_key(parent, id))? {
+                stored.insert(id);
+            }
+        }
+        Ok(stored)
     }
 
     /// Drops every result of `parent`'s parts; returns how many.
@@ -155,14 +153,6 @@ impl Store {
         }
         Ok(())
     }
-}
-
-/// The id at byte `at` (0: the parent, 8: the part) of a `results` key; 0 for a key too short
-/// to hold it (none is written).
-fn key_half(key: &[u8], at: usize) -> u64 {
-    key.get(at..at + 8)
-        .and_then(|b| <[u8; 8]>::try_from(b).ok())
-        .map_or(0, u64::from_be_bytes)
 }
 
 fn result_key(parent: u64, id: u64) -> [u8; 16] {
