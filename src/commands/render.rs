@@ -657,7 +657,7 @@ fn write_outputs(drawn: &Image, a: &RenderArgs, view: &ViewRequest) -> Result<()
 /// The size of the image written for `drawn`: the size asked for, and the size it was drawn at
 /// when the view was magnified beyond --max-pixels-per-voxel.
 fn output_size(drawn: &Image, view: &ViewRequest) -> String {
-    let panels = if view.multiview { 3 } else { 1 };
+    let panels = view.panels();
     let asked = format!("{}x{}", view.width * panels, view.height);
     if drawn.width == view.width * panels && drawn.height == view.height {
         asked

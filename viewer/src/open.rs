@@ -212,8 +212,16 @@ impl ViewRequest {
     /// `image`, drawn for this request's [`ViewRequest::spec_for_volume`], at the size asked
     /// for: magnified back where the view was drawn smaller ([`crate::magnify::magnify`]).
     pub fn shown(&self, image: &Image) -> Image {
-        let panels = if self.multiview { 3 } else { 1 };
-        crate::magnify::magnify(image, panels, self.width, self.height)
+        crate::magnify::magnify(image, self.panels(), self.width, self.height)
+    }
+
+    /// Views side by side in the image: three for multiview, else one.
+    pub fn panels(&self) -> usize {
+        if self.multiview {
+            3
+        } else {
+            1
+        }
     }
 
     /// For a source opened with `first` before the volume was known (a cache stream, range
