@@ -167,27 +167,23 @@ pub const LIST_PAGE_BYTES: usize = 1 << 20;
 const LIST_BATCH: usize = 256;
 
 /// Adds `jobs` (in id order, following the page's) to `page` while whole jobs fit
-/// `page_bytes` as encoded (at least one in a page); true once one did not (the page is full
-/// and `more` set).
+/// `page_bytes` as encoded (at least one in a page), `bytes` counting the page's so far; true
+/// once one did not (the page is full and `more` set).
 fn fill_page(
     page: &mut pb::ListJobsResponse,
+    bytes: &mut usize,
     jobs: &[crate::model::Job],
     max_attempts: u32,
     page_bytes: usize,
 ) -> bool {
-    let mut bytes: usize = page
-        .jobs
-        .iter()
-        .map(wavesplat_proto::repeated_entry_len)
-        .sum();
     for j in jobs {
         let job = convert::job_to_pb(j, max_attempts);
         let wire = wavesplat_proto::repeated_entry_len(&job);
-        if !page.jobs.is_empty() && bytes + wire > page_bytes {
+        if !page.jobs.is_empty() && *bytes + wire > page_bytes {
             page.more = true;
             return true;
         }
-        bytes += wire;
+        *bytes += wire;
         page.jobs.push(job);
     }
     false
@@ -204,7 +200,7 @@ fn list_page(
 ) -> pb::ListJobsResponse {
     let mut page = pb::ListJobsResponse::default();
     let after: Vec<_> = jobs.iter().filter(|j| j.id > after).cloned().collect();
-    fill_page(&mut page, &after, max_attempts, page_bytes);
+    fill_page(&mut page, &mut 0, &after, max_attempts, page_bytes);
     page
 }
 
@@ -384,11 +380,16 @@ impl Orchestrator for OrchestratorService {
         // The page is read from the store batch by batch from its cursor: a page costs the
         // jobs it holds, not the whole queue.
         let mut after = request.into_inner().after_id;
-        let mut page = pb::ListJobsResponse::default();
+        let (mut page, mut bytes) = (pb::ListJobsResponse::default(), 0);
         loop {
             let batch = self.store().list_after(after, LIST_BATCH).await?;
-            if fill_page(&mut page, &batch, self.max_attempts(), LIST_PAGE_BYTES)
-                || batch.len() < LIST_BATCH
+            if fill_page(
+                &mut page,
+                &mut bytes,
+                &batch,
+                self.max_attempts(),
+                LIST_PAGE_BYTES,
+            ) || batch.len() < LIST_BATCH
             {
                 return Ok(Response::new(page));
             }
