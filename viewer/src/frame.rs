@@ -70,6 +70,8 @@ pub struct FrameReport {
     pub packets: usize,
     /// Coefficients splatted.
     pub coefficients: usize,
+    /// Coefficients set aside to wait for their factor tables (built in the background).
+    pub deferred: usize,
     /// Splat records accumulated.
     pub records: usize,
     /// Batches run.
@@ -102,6 +104,7 @@ impl FrameReport {
         FrameReport {
             packets: self.packets + next.packets,
             coefficients: self.coefficients + next.coefficients,
+            deferred: self.deferred + next.deferred,
             records: self.records + next.records,
             batches: self.batches + next.batches,
             batches_past_deadline: self.batches_past_deadline + next.batches_past_deadline,
@@ -283,6 +286,7 @@ impl<B: AccumulationBackend, S: PacketSource> FrameLoop<B, S> {
                 .session
                 .step_with(splat_deadline.saturating_sub(now), clock)?;
             report.coefficients += step.coefficients;
+            report.deferred += step.deferred;
             report.records += step.records;
             report.batches += step.batches;
             report.batches_past_deadline += usize::from(step.overran);

@@ -55,10 +55,14 @@ impl<B: AccumulationBackend> RenderSession<B> {
     }
 
     /// Whether [`RenderSession::image`] shows the preview's last image now: until the exact
-    /// tables have drawn as many coefficients as it had, or everything queued.
+    /// tables have drawn as many coefficients as it had and none waits for its factor tables,
+    /// or everything queued. (The coefficients that wait are the pieces clipped at the box's
+    /// faces, the coarse levels among them: an exact image without them, however many others
+    /// it holds, drew 3.6 dB where the preview showed 35.8.)
     fn showing_preview(&mut self) -> bool {
         if let Some((_, drawn)) = &self.shown_preview {
-            if self.stats.splatted_in_view < *drawn && self.pending() > 0 {
+            let behind = self.stats.splatted_in_view < *drawn || !self.waiting.is_empty();
+            if behind && self.pending() > 0 {
                 return true;
             }
             self.shown_preview = None;

@@ -179,6 +179,8 @@ impl Clock for SystemClock {
 pub struct StepReport {
     /// Coefficients taken from the queue.
     pub coefficients: usize,
+    /// Coefficients set aside to wait for their factor tables (built in the background).
+    pub deferred: usize,
     /// Splat records accumulated.
     pub records: usize,
     /// Batches run.

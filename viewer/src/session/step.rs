@@ -99,6 +99,7 @@ impl<B: AccumulationBackend> RenderSession<B> {
             // What waits was not drawn: its weight is not part of what was timed.
             let waiting_weight: f64 = deferred.iter().map(|&i| weights[i]).sum();
             let weight = (weight - waiting_weight).max(0.0);
+            report.deferred += deferred.len();
             for &i in deferred.iter().rev() {
                 self.waiting.push(batch.swap_remove(i));
             }
