@@ -379,6 +379,68 @@ async fn a_killed_workers_lease_is_reclaimed_and_the_job_lands_once() {
     assert_eq!(cache_volumes_decode(&c).await, want);
 }
 
+/// A job cancelled while its worker compresses it stops there: the worker's compression ends
+/// at its next stage, not after running on for a result nobody takes, and the worker is free
+/// for the next job.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_job_cancelled_while_it_compresses_stops_its_worker() {
+    let cl = TestCluster::start(&ORCH_TIMING);
+    let (o, c) = (cl.orch.url(), cl.cache.url());
+    let big = cl.root.join("big");
+    std::fs::create_dir_all(&big).unwrap();
+    // Some seconds of work on one thread: two depths compared, six refinement rounds.
+    let dims = [160, 144, 128];
+    write_f32(
+        &big.join(raw_name("big", dims, "f32")),
+        &phantom(Phantom::SheppLogan, dims),
+    );
+    let args = ["--orchestrator", &o, "--detach", "--effort", "best"];
+    let mut submit_big = vec!["archive", "submit", big.to_str().unwrap()];
+    submit_big.extend_from_slice(&args);
+    submit_big.extend_from_slice(&["--target-bytes", "60000"]);
+    cli_ok(&submit_big);
+    let log = cl.root.join("worker.log");
+    let _w = cl.worker("w", 0, Some(&log));
+    let js = wait_for(&o, 60, "the job in its compression", |js| {
+        js.iter().any(|j| {
+            state_name(j.state) == "running"
+                && ["transform", "depth", "scoring", "refinement", "entropy"]
+                    .iter()
+                    .any(|s| j.stage.contains(s))
+        })
+    })
+    .await;
+    let id = js[0].id.to_string();
+    let out = cli_ok(&["jobs", "cancel", &id, "--orchestrator", &o]);
+    assert!(out.contains("cancelled"), "{out}");
+    // The worker says its compression stopped (before, it compressed to the end and then
+    // threw the result away).
+    let stopped = "compression stopped before it finished";
+    let end = std::time::Instant::now() + std::time::Duration::from_secs(120);
+    let text = loop {
+        let text = std::fs::read_to_string(&log).unwrap_or_default();
+        let ended = ["ended before it finished", "result discarded"];
+        if ended.iter().any(|e| text.contains(e)) || std::time::Instant::now() > end {
+            break text;
+        }
+        tokio::time::sleep(std::time::Duration::from_millis(100)).await;
+    };
+    assert!(text.contains(stopped), "the worker's log: {text}");
+    assert!(!text.contains("result discarded"), "{text}");
+    // The same worker takes the next job.
+    let small = cl.root.join("small");
+    let good = write_good(&small, "s", 1);
+    submit(&small, &o, &[]);
+    let js = wait_for(&o, 60, "the next job done", |js| {
+        js.iter()
+            .any(|j| name(j) == good[0] && state_name(j.state) == "done")
+    })
+    .await;
+    let big = js.iter().find(|j| j.id.to_string() == id).unwrap();
+    assert_eq!(state_name(big.state), "cancelled");
+    assert_eq!(cache_volumes_decode(&c).await, good);
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn orchestrator_restart_keeps_the_queue_and_cancel_retry_work() {
     let mut cl = TestCluster::start(&ORCH_TIMING);

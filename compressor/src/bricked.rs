@@ -859,6 +859,7 @@ impl BrickPlan {
         volume: usize,
         cap: Option<u64>,
     ) -> Result<ScoreSummary, BrickError> {
+        self.base.stop.check().map_err(self.compress_error(i))?;
         let Some(cap) = cap else {
             return self.score(source, i);
         };
@@ -886,6 +887,7 @@ impl BrickPlan {
         cap: Option<u64>,
     ) -> Result<(Vec<u8>, u64), BrickError> {
         use std::sync::atomic::Ordering::Relaxed;
+        self.base.stop.check().map_err(self.compress_error(i))?;
         let key = (volume, self.grid[i]);
         let held = tops.get(&key);
         let kept = match (count, &held) {

@@ -979,6 +979,7 @@ pub fn options(a: &CompressArgs) -> Result<CompressOptions> {
             .refine_with(a.no_refine, a.refine_rounds, a.refine_iterations),
         memory_limit: a.memory_limit,
         format_version: a.format_version,
+        stop: Default::default(),
     })
 }
 

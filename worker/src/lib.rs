@@ -1,8 +1,9 @@
 //! The wavesplat worker: a stateless loop that leases a job, heartbeats with progress while it reads,
 //! compresses (on its own rayon pool) and uploads the result to the cache, then reports the
 //! outcome. Every failure is classified ([`FailureKind`]) so the orchestrator knows whether a
-//! retry can help. A worker that loses its lease (expired, or the job was cancelled) discards
-//! its result; a worker killed mid-job simply stops heartbeating and the job runs elsewhere.
+//! retry can help. A worker that loses its lease (expired, or the job was cancelled) stops its
+//! compression at the next stage (the options' `StopFlag`) and reports nothing; a worker
+//! killed mid-job simply stops heartbeating and the job runs elsewhere.
 //! Cache ingest is idempotent by content hash and the compressor is deterministic, so a job
 //! that ran twice lands once. A job with a brick size compresses a bricked volume on the
 //! worker's pool; a file on shared storage is then hashed in pieces and read brick by brick,
@@ -40,7 +41,7 @@ use tonic::Code;
 use wavesplat_client::{CacheClient, ConnectOptions};
 use wavesplat_codec::volume::Volume;
 use wavesplat_compressor::bricked::{compress_bricked_to, BrickError, BrickSource, BrickStage};
-use wavesplat_compressor::encode::{compress, Stage};
+use wavesplat_compressor::encode::{compress, Stage, StopFlag};
 use wavesplat_compressor::reader::region::RegionReader;
 use wavesplat_compressor::reader::{
     decode_raw, decode_source, unpack_bundle, ReadError, SourceFiles, SourceListing,
@@ -180,14 +181,32 @@ pub async fn run(
     Ok(())
 }
 
-/// Progress shared between the job and its heartbeat task.
-#[derive(Default)]
+/// Progress shared between the job and its heartbeat task, and the lease's loss: the
+/// heartbeat raises `stop` with it, so that the compression ends at its next stage instead of
+/// running on for a result nobody takes (a cancelled job's worker is free again at once).
 pub(crate) struct Shared {
     progress: Mutex<(f32, String)>,
     lost: AtomicBool,
+    pub(crate) stop: StopFlag,
+}
+
+impl Default for Shared {
+    fn default() -> Shared {
+        Shared {
+            progress: Mutex::default(),
+            lost: AtomicBool::new(false),
+            stop: StopFlag::new(),
+        }
+    }
 }
 
 impl Shared {
+    /// The lease is lost: the result will not be taken, and the work stops.
+    fn lose(&self) {
+        self.lost.store(true, Ordering::SeqCst);
+        self.stop.stop();
+    }
+
     /// Reports a stage; the fraction never goes back (the compressor's stages repeat: a byte
     /// target's rate trials, a second decomposition depth).
     pub(crate) fn set(&self, p: f32, stage: impl Into<String>) {
@@ -258,7 +277,15 @@ async fn run_lease(ctx: &mut Ctx, lease: pb::Lease) {
     };
     heartbeat.abort();
     if shared.lost.load(Ordering::SeqCst) {
-        tracing::warn!(job = id, attempt, "lease lost; result discarded");
+        match &outcome {
+            Ok(_) => tracing::warn!(job = id, attempt, "lease lost; result discarded"),
+            Err(f) => tracing::warn!(
+                job = id,
+                attempt,
+                reason = %f.message,
+                "lease lost; work ended before it finished"
+            ),
+        }
         return;
     }
     let outcome = match outcome {
@@ -297,16 +324,16 @@ async fn heartbeat_loop(
         };
         match orch.heartbeat(held.request(req)).await {
             Ok(r) if !r.get_ref().keep_going => {
-                tracing::warn!(job = id, reason = %r.get_ref().reason, "lease lost");
-                shared.lost.store(true, Ordering::SeqCst);
+                tracing::warn!(job = id, reason = %r.get_ref().reason, "lease lost; stopping its work");
+                shared.lose();
                 return;
             }
             Ok(_) => {}
             // The orchestrator does not take this worker for the lease's holder (its token is
             // not the lease's): nothing it reports will be accepted.
             Err(s) if s.code() == Code::PermissionDenied => {
-                tracing::warn!(job = id, attempt, error = %s.message(), "lease refused");
-                shared.lost.store(true, Ordering::SeqCst);
+                tracing::warn!(job = id, attempt, error = %s.message(), "lease refused; stopping its work");
+                shared.lose();
                 return;
             }
             // The orchestrator may be restarting: keep working, keep trying.
@@ -932,7 +959,8 @@ async fn execute(
             ),
         ));
     }
-    let opts = options::compress_options(&spec.options);
+    let mut opts = options::compress_options(&spec.options);
+    opts.stop = shared.stop.clone();
     let job_spec = spec.clone();
     let pool = ctx.pool.clone();
     let sh = shared.clone();

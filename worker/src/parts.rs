@@ -24,7 +24,7 @@ use wavesplat_compressor::bricked::{
     SharedChoices, Spill, SpilledBrick, TopMemory, TOP_BUDGET,
 };
 use wavesplat_compressor::colorspace::ColorTransform;
-use wavesplat_compressor::encode::{ScoreSummary, Target};
+use wavesplat_compressor::encode::{ScoreSummary, StopFlag, Target};
 use wavesplat_compressor::reader::region::RegionReader;
 use wavesplat_compressor::series::{open_series_path, SeriesError, SeriesInput, SeriesPlan};
 use wavesplat_orchestrator_client::model::{
@@ -355,8 +355,10 @@ fn part_plan(
     spec: &JobSpec,
     part: &PartSpec,
     source: &dyn BrickSource,
+    stop: &StopFlag,
 ) -> Result<BrickPlan, Failure> {
-    let opts = options::compress_options(&spec.options);
+    let mut opts = options::compress_options(&spec.options);
+    opts.stop = stop.clone();
     let brick = spec.options.brick.ok_or_else(|| {
         fail(
             FailureKind::InvalidInput,
@@ -391,10 +393,12 @@ fn same_count(source_does: &str, found: usize, what: &str, planned: u32) -> Resu
 }
 
 /// Runs one part on the pool: its result's bytes and the brick's voxels.
+/// Computes a part; `stop` raised ends it at its next stage.
 fn compute_part(
     runner: &PartRunner,
     spec: &JobSpec,
     part: &PartSpec,
+    stop: &StopFlag,
 ) -> Result<(Vec<u8>, u64), Failure> {
     if let (Some(planned), now) = (part.source_bytes, source_bytes(spec)) {
         if now != Some(planned) {
@@ -408,11 +412,11 @@ fn compute_part(
         }
     }
     if let Some(points) = part.time_points {
-        return compute_series_part(runner, spec, part, points);
+        return compute_series_part(runner, spec, part, points, stop);
     }
     let source = runner.source(spec)?;
     let source: &RegionReader = &source;
-    let plan = part_plan(spec, part, source)?;
+    let plan = part_plan(spec, part, source, stop)?;
     let i = part.index as usize;
     let voxels = plan.grid[i].1.iter().map(|d| *d as u64).product();
     // A worker runs one part, one brick, at a time.
@@ -492,6 +496,7 @@ fn compute_series_part(
     spec: &JobSpec,
     part: &PartSpec,
     points: u32,
+    stop: &StopFlag,
 ) -> Result<(Vec<u8>, u64), Failure> {
     let input = runner.series(spec)?;
     let series = input.source();
@@ -502,7 +507,8 @@ fn compute_series_part(
         points,
     )?;
     let (group, brick) = series_shape(spec);
-    let opts = options::compress_options(&spec.options);
+    let mut opts = options::compress_options(&spec.options);
+    opts.stop = stop.clone();
     let choices = SharedChoices {
         levels: part.levels as usize,
         offset: part.offset,
@@ -551,9 +557,9 @@ pub(crate) async fn run_part_lease(runner: &PartRunner, lease: pb::Lease, spec: 
         Duration::from_millis(u64::from(lease.heartbeat_ms.max(50))),
         shared.clone(),
     ));
-    let (pool, r) = (runner.pool.clone(), runner.clone());
+    let (pool, r, stop) = (runner.pool.clone(), runner.clone(), shared.stop.clone());
     let result =
-        tokio::task::spawn_blocking(move || pool.install(|| compute_part(&r, &spec, &part)))
+        tokio::task::spawn_blocking(move || pool.install(|| compute_part(&r, &spec, &part, &stop)))
             .await
             .map_err(|e| fail(FailureKind::Worker, format!("part task: {e}")))
             .and_then(|r| r);
@@ -563,7 +569,15 @@ pub(crate) async fn run_part_lease(runner: &PartRunner, lease: pb::Lease, spec: 
     }
     heartbeat.abort();
     if shared.lost.load(Ordering::SeqCst) {
-        tracing::warn!(job = id, attempt, "lease lost; part's result discarded");
+        match &result {
+            Ok(_) => tracing::warn!(job = id, attempt, "lease lost; part's result discarded"),
+            Err(f) => tracing::warn!(
+                job = id,
+                attempt,
+                reason = %f.message,
+                "lease lost; part's work ended before it finished"
+            ),
+        }
         return;
     }
     match result {
@@ -1028,7 +1042,8 @@ pub(crate) fn coordinate(
     let source = runner.source(&spec)?;
     let voxels = BrickSource::dims(&*source).iter().product::<u64>();
     shared.set(0.02, "planning the bricks");
-    let opts = options::compress_options(&spec.options);
+    let mut opts = options::compress_options(&spec.options);
+    opts.stop = shared.stop.clone();
     let pool = runner.pool.clone();
     let plan = pool.install(|| BrickPlan::new(&*source, &opts, brick).map_err(brick_failure))?;
     drop(source);
@@ -1092,7 +1107,8 @@ pub(crate) fn coordinate_series(
     let voxels = series.dims().iter().product::<u64>() * points as u64;
     shared.set(0.02, format!("planning {points} time points"));
     let (group, brick) = series_shape(&spec);
-    let opts = options::compress_options(&spec.options);
+    let mut opts = options::compress_options(&spec.options);
+    opts.stop = shared.stop.clone();
     let pool = runner.pool.clone();
     let plan = pool
         .install(|| SeriesPlan::new(series, &opts, group, brick))

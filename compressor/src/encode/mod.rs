@@ -30,7 +30,7 @@ mod top;
 pub use memory::{memory_estimate, PROCESS_MEMORY};
 pub use options::{
     deepest_compared, default_levels, CompressError, CompressOptions, CompressStats, Compressed,
-    DepthSearch, Effort, Stage, Target, TileChoice, LAYER_GROWTH,
+    DepthSearch, Effort, Stage, StopFlag, Target, TileChoice, LAYER_GROWTH,
 };
 pub(crate) use prepare::axis_views;
 pub(crate) use prepare::band_norms;
@@ -43,13 +43,17 @@ pub use summary::{ScoreSummary, SummaryBytesError, SummedScores};
 pub use top::{score_keeping_top, KeptTop, TopBytesError, TOP_DISK_SHARE};
 use wavesplat_codec::volume::Volume;
 
-/// Compresses a volume. `progress(stage, fraction)` is called as work proceeds.
+/// Compresses a volume. `progress(stage, fraction)` is called as work proceeds. With the
+/// options' [`StopFlag`] raised before it returns, it ends with [`CompressError::Stopped`]
+/// (at the next stage: a stage under way finishes first).
 pub fn compress(
     volume: &Volume,
     opts: &CompressOptions,
     progress: &(dyn Fn(Stage, f64) + Sync),
 ) -> Result<Compressed, CompressError> {
-    compress_counting(volume, opts, progress, CountFill::Exact)
+    let compressed = compress_counting(volume, opts, progress, CountFill::Exact)?;
+    opts.stop.check()?;
+    Ok(compressed)
 }
 
 /// How a refined count target (a count, a fraction, a Q_V) meets its count.
@@ -125,6 +129,7 @@ pub(crate) fn compress_counting(
         }
         Target::Bytes(b) => return compress_to_bytes(volume, opts, b, progress),
     };
+    opts.stop.check()?;
     let ranked = match &opts.refine {
         Some(r) if k > 0 && k < n && fill == CountFill::Pruned => {
             progress(Stage::Refine, 0.0);
@@ -158,6 +163,7 @@ pub(crate) fn compress_counting(
         _ => prepared.ranked(k),
     };
     let k = k.min(ranked.sorted.len());
+    opts.stop.check()?;
     progress(Stage::Encode(0), 0.0);
     let expected = expected_bytes(k, opts.coder);
     Ok(prepared.encode(&ranked, k, opts, expected, true))

@@ -5,6 +5,8 @@
 use crate::colorspace::{ColorError, ColorSpaceKind, ColorTransform};
 use crate::order::Clustering;
 use crate::refine::RefineOptions;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
 use thiserror::Error;
 use wavesplat_codec::family::Family;
 use wavesplat_codec::format::packet::{Coefficient, SizeBreakdown};
@@ -108,6 +110,55 @@ pub struct CompressOptions {
     /// [`wavesplat_codec::format::LAST_UNPRIMED_VERSION`] for readers from before the sigmap
     /// coder's trained priors (its packets then start their models at ½, 2–5 % more bytes).
     pub format_version: u16,
+    /// Raised from another thread to end the compression at its next stage with
+    /// [`CompressError::Stopped`] (a worker whose lease was lost or whose job was cancelled).
+    pub stop: StopFlag,
+}
+
+/// A request to stop a compression early, raised from another thread: the compression checks
+/// it between its stages (each channel's transform, each trial encoding, each refinement,
+/// each brick) and ends with [`CompressError::Stopped`]. Clones share one request; the default
+/// is a flag nobody can raise ([`StopFlag::new`] makes one that can be).
+#[derive(Debug, Clone, Default)]
+pub struct StopFlag(Option<Arc<AtomicBool>>);
+
+impl StopFlag {
+    /// A flag not raised yet, which [`StopFlag::stop`] raises for every clone.
+    pub fn new() -> StopFlag {
+        StopFlag(Some(Arc::new(AtomicBool::new(false))))
+    }
+
+    /// Asks the compressions holding this flag (or a clone) to stop.
+    pub fn stop(&self) {
+        if let Some(f) = &self.0 {
+            f.store(true, Ordering::Release);
+        }
+    }
+
+    /// Whether [`StopFlag::stop`] was called.
+    pub fn is_stopped(&self) -> bool {
+        self.0.as_ref().is_some_and(|f| f.load(Ordering::Acquire))
+    }
+
+    /// [`CompressError::Stopped`] once the flag is raised.
+    pub fn check(&self) -> Result<(), CompressError> {
+        if self.is_stopped() {
+            Err(CompressError::Stopped)
+        } else {
+            Ok(())
+        }
+    }
+}
+
+/// Two flags are equal when they are one request (clones), or when neither can be raised.
+impl PartialEq for StopFlag {
+    fn eq(&self, other: &StopFlag) -> bool {
+        match (&self.0, &other.0) {
+            (None, None) => true,
+            (Some(a), Some(b)) => Arc::ptr_eq(a, b),
+            _ => false,
+        }
+    }
 }
 
 impl Default for CompressOptions {
@@ -136,6 +187,7 @@ impl Default for CompressOptions {
             refine: Some(RefineOptions::default()),
             memory_limit: None,
             format_version: wavesplat_codec::format::VERSION,
+            stop: StopFlag::default(),
         }
     }
 }
@@ -297,6 +349,9 @@ pub enum CompressError {
     /// moved to.
     #[error("reading a kept top back from its temporary file")]
     KeptTopRead(#[source] std::io::Error),
+    /// The caller raised the options' [`StopFlag`]: nothing was written.
+    #[error("compression stopped before it finished: it was asked to stop")]
+    Stopped,
 }
 
 /// Stages reported to a progress callback.

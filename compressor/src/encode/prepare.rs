@@ -395,6 +395,7 @@ pub(super) fn prepare(
     let with_targets = opts.refine.is_some() && with_targets;
     let mut targets = Vec::new();
     for (c, ch) in channels.iter().enumerate() {
+        opts.stop.check()?;
         progress(Stage::Transform(c), c as f64 / channels.len() as f64);
         let mut data = pad_channel(ch, &geometry);
         if bridged {
@@ -417,6 +418,7 @@ pub(super) fn prepare(
         }
         coefficients.push(coded);
     }
+    opts.stop.check()?;
     progress(Stage::Sort, 0.0);
     let n = geometry.coefficient_count();
     // Σ w²·‖b‖² in fixed chunks (thread-count independent).

@@ -162,6 +162,7 @@ pub(super) fn compress_to_bytes(
         };
         // Compared depths hold no padded targets (the scoring needs only the views): two
         // transforms are held at once, and the winner's targets are built afterwards.
+        opts.stop.check()?;
         if comparing {
             progress(Stage::Depth(m), 0.0);
         }
@@ -294,7 +295,7 @@ pub(super) fn compress_to_bytes(
             target,
             &mut trials,
             progress,
-        );
+        )?;
         return Ok(finish(&prepared, &ranked, plain));
     }
     let Some(r) = &opts.refine else {
@@ -379,19 +380,20 @@ fn finer_steps_to_bytes(
     target: u64,
     trials: &mut usize,
     progress: &(dyn Fn(Stage, f64) + Sync),
-) -> Compressed {
+) -> Result<Compressed, CompressError> {
     if !opts.coder.quantizes_by_threshold() || !leaves_room(plain.stats.bytes, target) {
-        return plain;
+        return Ok(plain);
     }
     let k = plain.stats.kept as usize;
     let mut run = |step: f64| {
+        opts.stop.check()?;
         *trials += 1;
         progress(Stage::Encode(*trials), 0.0);
         let o = CompressOptions {
             step,
             ..opts.clone()
         };
-        prepared.encode(ranked, k, &o, target, false)
+        Ok::<_, CompressError>(prepared.encode(ranked, k, &o, target, false))
     };
     // (step, file) that fits, and the coarsest step found to overflow.
     let mut fits = (opts.step, plain);
@@ -399,7 +401,7 @@ fn finer_steps_to_bytes(
     let mut step = opts.step;
     while step > opts.step * FINEST_STEP {
         step /= 2.0;
-        let c = run(step);
+        let c = run(step)?;
         tracing::debug!(step, bytes = c.stats.bytes, target, "finer quantizer");
         if c.stats.bytes > target {
             overflows = Some(step);
@@ -407,15 +409,15 @@ fn finer_steps_to_bytes(
         }
         fits = (step, c);
         if !leaves_room(fits.1.stats.bytes, target) {
-            return fits.1;
+            return Ok(fits.1);
         }
     }
     let Some(mut over) = overflows else {
-        return fits.1;
+        return Ok(fits.1);
     };
     for _ in 0..STEP_BISECTIONS {
         let step = (fits.0 * over).sqrt();
-        let c = run(step);
+        let c = run(step)?;
         tracing::debug!(step, bytes = c.stats.bytes, target, "finer quantizer");
         if c.stats.bytes > target {
             over = step;
@@ -426,7 +428,7 @@ fn finer_steps_to_bytes(
             }
         }
     }
-    fits.1
+    Ok(fits.1)
 }
 
 /// Whether a file of `bytes` leaves more than 3 % of `target` unused.
@@ -556,6 +558,7 @@ fn oracle_to_bytes(
     });
     let mut probe = probe;
     loop {
+        opts.stop.check()?;
         let ranked = prepared.ranked(cap);
         let mut known = None;
         if std::mem::take(&mut probe) && !ranked.sorted.is_empty() {
@@ -639,6 +642,7 @@ fn refine_to_bytes(
             .is_none_or(|(b, _)| c.stats.bytes > b.stats.bytes)
     };
     let k0 = plain.stats.kept as usize;
+    opts.stop.check()?;
     progress(Stage::Refine, 0.0);
     let mut k = predicted_set_size(
         k0,
@@ -658,6 +662,7 @@ fn refine_to_bytes(
             candidates = Some(prepared.ranked(wanted));
         }
         let source = candidates.as_ref().unwrap_or(&ranked);
+        opts.stop.check()?;
         progress(Stage::Refine, attempt as f64 / MAX_REFINEMENTS as f64);
         let k_set = k.min(source.sorted.len());
         let refined = prepared.refined(source, k_set, r, k_set.div_ceil(4));
@@ -665,6 +670,7 @@ fn refine_to_bytes(
         if count == 0 {
             break;
         }
+        opts.stop.check()?;
         *trials += 1;
         progress(Stage::Encode(*trials), 0.0);
         let whole = prepared.encode(&refined, count, opts, target, false);
@@ -761,6 +767,7 @@ fn refine_one_set_to_bytes(
     let k0 = filling_count(&plain, slope, opts, target, prepared.nonzero) as usize;
     let slope = slope.unwrap_or(THRESHOLD_SIZE_SLOPE);
     let k = ((k0 as f64 * ONE_SET_GROWTH).ceil() as usize).clamp(1, n.max(1));
+    opts.stop.check()?;
     progress(Stage::Refine, 0.0);
     // A search cuts the set or tops it up by a few per cent: what lies further down the
     // oracle's order (at high rates most of the grid) is not copied behind the refined set.
@@ -794,6 +801,7 @@ fn refine_one_set_to_bytes(
         slope,
     };
     let fitted = fit_bytes(prepared, &refined, opts, search, trials, progress).map(|f| f.file);
+    opts.stop.check()?;
     if let Ok(b) = &fitted {
         if fills_most_of(b, target) {
             tracing::debug!(
@@ -1046,6 +1054,7 @@ fn fit_bytes(
     // Trials in a row that moved the same bound (+ `lo`, − `hi`): the other one is stale.
     let mut same_side = 0i32;
     for step in 0..MAX_TRIALS {
+        opts.stop.check()?;
         let c = match known.take() {
             Some(c) if (c.stats.kept as usize) <= len => {
                 k = c.stats.kept as usize;
