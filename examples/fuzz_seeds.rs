@@ -269,6 +269,15 @@ fn readers(root: &Path) {
         let p = fixtures::write_nrrd(tmp.path(), name, &v, layout, enc, detached, "RAS");
         seed("nrrd", name, &p, Format::Nrrd);
     }
+    for (name, layout, lzw, per_slice) in [
+        ("multipage_u16", Layout::U16, false, false),
+        ("multipage_lzw_i16", Layout::I16, true, false),
+        ("multipage_f32", Layout::F32, false, false),
+        ("slices_lzw_u8", Layout::U8, true, true),
+    ] {
+        let p = fixtures::write_tiff_stack(tmp.path(), name, &v, layout, lzw, per_slice);
+        seed("tiff", name, &p, Format::Tiff);
+    }
     for (name, layout, compressed, detached) in [
         ("mha_u8", Layout::U8, false, false),
         ("mha_zlib_i16", Layout::I16, true, false),

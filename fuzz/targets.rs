@@ -176,6 +176,11 @@ pub fn metaimage(data: &[u8]) {
     source(data, "fuzz.mhd", Format::MetaImage);
 }
 
+/// A TIFF stack: a multi-page `.tif`, or a bundle of the slices of a stack directory.
+pub fn tiff(data: &[u8]) {
+    source(data, "fuzz.tif", Format::Tiff);
+}
+
 fn source(data: &[u8], origin: &str, format: Format) {
     use wavesplat_compressor::reader::{decode_source, SourceFiles};
     metered(data, || {

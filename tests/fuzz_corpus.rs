@@ -65,6 +65,7 @@ fn every_kept_input_of_every_target_is_handled() {
         ("dicom", targets::dicom),
         ("nrrd", targets::nrrd),
         ("metaimage", targets::metaimage),
+        ("tiff", targets::tiff),
         ("grpc", targets::grpc),
     ] {
         for (_, data) in corpus(target) {
@@ -116,6 +117,7 @@ fn the_reader_seeds_decode_to_volumes() {
         ("dicom", "series", Format::Dicom),
         ("nrrd", "fuzz.nhdr", Format::Nrrd),
         ("metaimage", "fuzz.mhd", Format::MetaImage),
+        ("tiff", "fuzz.tif", Format::Tiff),
     ] {
         let mut seeds = 0;
         for (p, data) in corpus(target) {

@@ -155,7 +155,7 @@ pub struct CompressArgs {
     pub keep: super::TargetArgs,
     /// Split the volume into bricks of at most N voxels a side (each axis in near-equal
     /// parts), each compressed on its own and read from the file brick by brick (raw, NIfTI,
-    /// NRRD, MetaImage and DICOM series without loading the whole; a phantom generated a
+    /// NRRD, MetaImage, TIFF stacks and DICOM series without loading the whole; a phantom generated a
     /// brick at a time), written as one bricked file (format version 11); the coded bricks wait
     /// in a temporary file beside the output (about the output's size, twice that during a
     /// byte target's search), so memory stays about one brick per thread whatever the file's
@@ -255,7 +255,7 @@ fn input(a: &CompressArgs) -> Result<Input> {
     {
         bail!(
             "{} is already a compressed wavesplat volume: render, view, info or decompress it \
-             (compress reads DICOM, NIfTI, NRRD, MetaImage and raw volumes)",
+             (compress reads DICOM, NIfTI, NRRD, MetaImage, TIFF and raw volumes)",
             input.display()
         );
     }

@@ -9,6 +9,9 @@
 //!   gzip-compressed): the header describes the data; a pair is one volume (its `.img` is not
 //!   a file of its own), and a `.hdr` that is no NIfTI or Analyze header (ENVI's, say) is
 //!   ignored;
+//! - TIFF (`*.tif`, `*.tiff`): a directory of single-page TIFFs is one volume, a stack of
+//!   slices in the natural order of their names (`z2` before `z10`), named by the directory's
+//!   path; a multi-page TIFF is a volume of its own;
 //! - headerless raw, described by its name: `NAME_XxYxZ_DTYPE[_rgb][_be].raw`, e.g.
 //!   `head_256x256x128_u16.raw`, `cells_64x64x64_u8_rgb.raw`, `ct_512x512x300_i16_be.raw`.
 //!   DTYPE is `u8`, `i8`, `u16`, `i16`, `u32`, `i32`, `u64`, `i64`, `f32` or `f64`; `_rgb` means 3 channels interleaved per voxel;
@@ -31,7 +34,7 @@ use std::collections::{BTreeSet, HashSet};
 use std::path::{Path, PathBuf};
 use wavesplat_compressor::reader::steps::{step_files, StepSeries};
 use wavesplat_compressor::reader::{
-    dicom::is_dicom_file, nifti, Format, ReadError, SourceFiles, SourceListing,
+    dicom::is_dicom_file, nifti, tiff_pages, Format, ReadError, SourceFiles, SourceListing,
 };
 use wavesplat_orchestrator_client::model::{JobOptions, JobSpec, RawLayout, SampleType, Source};
 
@@ -181,9 +184,10 @@ pub fn scan_with(root: &Path, time_steps: bool) -> std::io::Result<Scan> {
             }
         }
     }
-    // DICOM files make their directory a volume; data files of detached headers belong to
-    // their header.
-    let mut dicom_dirs = BTreeSet::new();
+    // DICOM files and single-page TIFFs make their directory a volume (a series, a stack of
+    // slices); data files of detached headers belong to their header; a multi-page TIFF is a
+    // volume of its own.
+    let mut stack_dirs = BTreeSet::new();
     let mut taken = HashSet::new();
     for path in &files {
         match Format::from_name(path) {
@@ -213,15 +217,26 @@ pub fn scan_with(root: &Path, time_steps: bool) -> std::io::Result<Scan> {
                 }
             }
             Some(Format::Nifti) => {}
+            Some(Format::Tiff) => match tiff_pages(path) {
+                Ok(1) => {
+                    stack_dirs.insert(path.parent().unwrap_or(root).to_path_buf());
+                    taken.insert(path.clone());
+                }
+                Ok(_) => {}
+                Err(e) => {
+                    scan.skipped.push((path.clone(), e.to_string()));
+                    taken.insert(path.clone());
+                }
+            },
             Some(Format::Dicom) | None => {
                 if is_dicom_file(path)? {
-                    dicom_dirs.insert(path.parent().unwrap_or(root).to_path_buf());
+                    stack_dirs.insert(path.parent().unwrap_or(root).to_path_buf());
                     taken.insert(path.clone());
                 }
             }
         }
     }
-    for dir in dicom_dirs {
+    for dir in stack_dirs {
         let name = dir_name(root, &dir, "dicom");
         if !names.insert(name.clone()) {
             scan.skipped.push((
@@ -252,7 +267,7 @@ pub fn scan_with(root: &Path, time_steps: bool) -> std::io::Result<Scan> {
             .unwrap_or_default();
         let (base, raw) = if let Some(s) = [
             ".nii.gz", ".nii", ".hdr.gz", ".hdr", ".nrrd", ".nhdr", ".mha", ".mhd", ".dcm",
-            ".dicom",
+            ".dicom", ".tiff", ".tif",
         ]
         .iter()
         .find_map(|ext| lower.strip_suffix(ext))
@@ -543,6 +558,51 @@ mod tests {
             assert_eq!(v.dims(), [2, 2, 2]);
             assert_eq!(v.channel(0), &[1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0]);
         }
+    }
+
+    /// A directory of single-page TIFFs is one volume (a stack, its slices in natural name
+    /// order), named by the directory; a multi-page TIFF beside it is a volume of its own; a
+    /// broken TIFF is skipped saying why. The stack's hash and upload cover its slices (the
+    /// bundle decodes to the volume).
+    #[test]
+    fn tiff_stacks_are_volumes_by_directory_or_by_file() {
+        use tiff::encoder::{colortype::Gray16, TiffEncoder};
+        let dir = tempfile::tempdir().unwrap();
+        let r = dir.path();
+        std::fs::create_dir_all(r.join("scope/stack")).unwrap();
+        // Slices 1..=10: slice10 is the last, not the second.
+        for z in 1..=10u16 {
+            let f = std::fs::File::create(r.join(format!("scope/stack/slice{z}.tif"))).unwrap();
+            let mut e = TiffEncoder::new(f).unwrap();
+            e.write_image::<Gray16>(3, 2, &[z; 6]).unwrap();
+        }
+        let f = std::fs::File::create(r.join("scope/vol.tif")).unwrap();
+        let mut e = TiffEncoder::new(f).unwrap();
+        for z in 0..4u16 {
+            e.write_image::<Gray16>(2, 2, &[z; 4]).unwrap();
+        }
+        drop(e);
+        std::fs::write(r.join("scope/broken.tif"), b"II*\0\x02\0\0\0").unwrap();
+        let s = scan(r).unwrap();
+        let names: Vec<&str> = s.found.iter().map(|f| f.name.as_str()).collect();
+        assert_eq!(names, vec!["scope/stack", "scope/vol"]);
+        assert_eq!(s.skipped.len(), 1, "{:?}", s.skipped);
+        assert_eq!(s.skipped[0].0, r.join("scope/broken.tif"));
+        let stack = &s.found[0];
+        assert_eq!(stack.path, r.join("scope/stack"));
+        assert_eq!(source_listing(&stack.path, false).unwrap().files.len(), 10);
+        let (spec, bytes) = job_spec(stack, &JobOptions::default(), true).unwrap();
+        assert_eq!(
+            source_digest(&stack.path, false).unwrap().0.to_vec(),
+            spec.sha256
+        );
+        let src = SourceFiles::from_bytes(bytes.unwrap(), &stack.path).unwrap();
+        let v = wavesplat_compressor::reader::decode_source(&src, None).unwrap();
+        assert_eq!(v.dims(), [3, 2, 10]);
+        let firsts: Vec<f32> = (0..10).map(|z| v.channel(0)[v.index(0, 0, z)]).collect();
+        assert_eq!(firsts, (1..=10u16).map(f32::from).collect::<Vec<_>>());
+        let v = wavesplat_compressor::reader::read_volume(&s.found[1].path, None).unwrap();
+        assert_eq!(v.dims(), [2, 2, 4]);
     }
 
     /// A job names the same content whether its source is uploaded or named by path: files

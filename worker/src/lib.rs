@@ -878,6 +878,7 @@ fn upload_file_name(raw: bool, job_name: &str, head: &[u8]) -> &'static str {
         Some(Format::Nrrd) => "source.nrrd",
         Some(Format::MetaImage) => "source.mha",
         Some(Format::Dicom) => "source.dcm",
+        Some(Format::Tiff) => "source.tif",
         None => "source.raw",
     }
 }

@@ -24,6 +24,7 @@ pub mod raw;
 pub mod region;
 pub mod steps;
 mod text;
+mod tiff_stack;
 pub mod unpack;
 
 use std::io::{self, Read};
@@ -420,6 +421,9 @@ pub enum Format {
     /// NIfTI-1 single file (`.nii`, `.nii.gz`), or a `.hdr` + `.img` pair (NIfTI-1 or Analyze
     /// 7.5; `.hdr.gz`, `.img.gz` too).
     Nifti,
+    /// A TIFF stack: a multi-page TIFF (`.tif`, `.tiff`, BigTIFF), or a directory of TIFF files
+    /// in the natural order of their names.
+    Tiff,
 }
 
 impl Format {
@@ -430,6 +434,7 @@ impl Format {
             Format::Nrrd => "nrrd",
             Format::MetaImage => "metaimage",
             Format::Nifti => "nifti",
+            Format::Tiff => "tiff",
         }
     }
 
@@ -446,6 +451,8 @@ impl Format {
             Some(Format::MetaImage)
         } else if ext(".dcm") || ext(".dicom") {
             Some(Format::Dicom)
+        } else if tiff_stack::is_tiff_name(&name) {
+            Some(Format::Tiff)
         } else {
             None
         }
@@ -464,6 +471,8 @@ impl Format {
             Some(Format::MetaImage)
         } else if head.starts_with(&[0x1f, 0x8b]) || nifti::looks_like_header(head) {
             Some(Format::Nifti)
+        } else if tiff_stack::looks_like_tiff(head) {
+            Some(Format::Tiff)
         } else {
             None
         }
@@ -666,7 +675,14 @@ impl SourceListing {
                 .map_err(|e| ReadError::io(p, e))
         };
         if meta.is_dir() {
-            let files = dicom::series_files(path)?
+            // A directory of TIFF files is a stack; any other a DICOM series.
+            let tiffs = tiff_stack::stack_files(path)?;
+            let (format, found) = if tiffs.is_empty() {
+                (Format::Dicom, dicom::series_files(path)?)
+            } else {
+                (Format::Tiff, tiffs)
+            };
+            let files = found
                 .into_iter()
                 .map(|(name, p)| {
                     let len = len_of(&p)?;
@@ -674,7 +690,7 @@ impl SourceListing {
                 })
                 .collect::<Result<_, ReadError>>()?;
             return Ok(SourceListing {
-                format: Some(Format::Dicom),
+                format: Some(format),
                 files,
             });
         }
@@ -780,6 +796,7 @@ pub(crate) fn bundle_format(name: &[u8]) -> Result<Option<Format>, ReadError> {
         b"nrrd" => Some(Format::Nrrd),
         b"metaimage" => Some(Format::MetaImage),
         b"nifti" => Some(Format::Nifti),
+        b"tiff" => Some(Format::Tiff),
         _ => {
             return Err(ReadError::Bundle(format!(
                 "unknown format name {:?}",
@@ -822,6 +839,7 @@ pub fn decode_source(src: &SourceFiles, raw: Option<&RawSpec>) -> Result<Volume,
         Some(Format::Dicom) => dicom::decode(src),
         Some(Format::Nrrd) => nrrd::decode(src),
         Some(Format::MetaImage) => metaimage::decode(src),
+        Some(Format::Tiff) => tiff_stack::decode(src),
         Some(Format::Nifti) => match src.files.as_slice() {
             [(_, bytes)] => nifti::decode_nifti(&src.origin, bytes),
             // A `.hdr` and its `.img`.
@@ -866,6 +884,12 @@ pub fn read_volume(path: &Path, raw: Option<&RawSpec>) -> Result<Volume, ReadErr
     }
     let src = SourceFiles::gather(path, None)?;
     decode_source(&src, raw)
+}
+
+/// The full-resolution pages of the TIFF file at `path` (an archive scan takes a directory of
+/// single-page TIFFs as one stack, and a multi-page TIFF as a volume of its own).
+pub fn tiff_pages(path: &Path) -> Result<usize, ReadError> {
+    tiff_stack::page_count(path)
 }
 
 /// How many time points the volume file at `path` holds, from its header alone (a NIfTI's

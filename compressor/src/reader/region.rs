@@ -67,6 +67,8 @@ enum Source {
     Whole(Volume),
     /// A DICOM series (or file) read by slice ranges.
     Series(super::dicom::SeriesRegions),
+    /// A TIFF stack read by slices, only the strips or tiles a region covers.
+    Tiff(super::tiff_stack::TiffRegions),
 }
 
 /// Samples stored in a file from `offset` on: x fastest, then y, then z, the channels of a
@@ -277,6 +279,7 @@ impl RegionReader {
         let (planar, data_path) = match &self.source {
             Source::Whole(v) => (cut(v, origin, size), &self.path),
             Source::Series(s) => (s.read(origin, size)?, &self.path),
+            Source::Tiff(s) => (s.read(origin, size)?, &self.path),
             Source::Stored(s) => (self.read_stored(s, t, origin, size, voxels)?, &s.path),
         };
         let volume = Volume::new(size, self.spacing, planar).map_err(|e| {

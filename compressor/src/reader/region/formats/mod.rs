@@ -30,7 +30,11 @@ use wavesplat_codec::volume::{Volume, VolumeError};
 pub(super) fn open(path: &Path, raw: Option<&RawSpec>) -> Result<Opened, ReadError> {
     let meta = std::fs::metadata(path).map_err(|e| ReadError::io(path, e))?;
     if meta.is_dir() {
-        return open_series(path); // a DICOM series
+        // A directory of TIFF files is a stack; any other a DICOM series.
+        if !crate::reader::tiff_stack::stack_files(path)?.is_empty() {
+            return open_tiff(path);
+        }
+        return open_series(path);
     }
     let by_name = Format::from_name(path);
     if let (None, Some(spec)) = (by_name, raw) {
@@ -50,6 +54,7 @@ pub(super) fn open(path: &Path, raw: Option<&RawSpec>) -> Result<Opened, ReadErr
         Some(Format::Nrrd) => open_nrrd(path),
         Some(Format::MetaImage) => open_metaimage(path),
         Some(Format::Nifti) => open_nifti(path),
+        Some(Format::Tiff) => open_tiff(path),
         None => Err(ReadError::MissingRawSpec {
             path: path.to_path_buf(),
         }),
@@ -65,6 +70,20 @@ fn open_series(path: &Path) -> Result<Opened, ReadError> {
         spacing: s.spacing(),
         placement: s.placement().copied(),
         source: super::Source::Series(s),
+        time_points: 1,
+        time_step: None,
+    })
+}
+
+/// A TIFF stack (a multi-page file or a directory of files), read by slices and chunks.
+fn open_tiff(path: &Path) -> Result<Opened, ReadError> {
+    let s = crate::reader::tiff_stack::TiffRegions::open(path)?;
+    Ok(Opened {
+        dims: s.dims(),
+        channels: s.channels(),
+        spacing: s.spacing(),
+        placement: None,
+        source: super::Source::Tiff(s),
         time_points: 1,
         time_step: None,
     })

@@ -1,0 +1,783 @@
+//! TIFF stacks, the format of microscopy, micro-CT and synchrotron volumes: a multi-page TIFF
+//! (BigTIFF included; ImageJ and OME-TIFF stacks) holds one slice per page, and a directory of
+//! TIFF files is one stack, its files in the natural order of their names (`z2` before `z10`),
+//! each file's pages in order. Grey samples of 8 to 64 bits (unsigned, signed or float, half
+//! floats too) and RGB, in every compression the `tiff` crate decodes (none, LZW, Deflate,
+//! PackBits, JPEG), in strips or tiles. Pages marked as reduced-resolution copies (thumbnails,
+//! pyramid levels) are skipped.
+//!
+//! Spacing, in mm: an ImageJ description's `spacing=` (z) and the resolution tags (x, y, pixels
+//! per unit) in its `unit=`, or OME-XML's `PhysicalSizeX/Y/Z` in their units; else 1 on every
+//! axis (the stack says nothing physical). Refused, saying why: stacks of several channels or
+//! time points (ImageJ hyperstacks, OME `SizeC`/`SizeT` > 1), palette, CMYK, YCbCr, alpha,
+//! inverted grey (`WhiteIsZero`), bilevel and planar colour pages, pages of different sizes or
+//! sample types, and ImageJ stacks over 4 GB whose pages after the first have no directory of
+//! their own (the description counts more images than the file has pages).
+//!
+//! Decoding is the `tiff` crate's (image-rs): this module picks the pages, checks that they form
+//! one volume, and reads a region's slices chunk by chunk (a strip or a tile), decoding only the
+//! chunks the region covers ([`TiffRegions`]), so that a stack larger than memory is read brick
+//! by brick.
+
+use std::fs::File;
+use std::io::{BufReader, Cursor, Read, Seek};
+use std::path::{Path, PathBuf};
+
+use ::tiff::decoder::{ChunkType, Decoder, DecodingResult, Limits};
+use ::tiff::tags::Tag;
+use ::tiff::ColorType;
+
+use super::{ReadError, SourceFiles};
+use wavesplat_codec::volume::{checked_voxels, Volume};
+
+const FORMAT: &str = "TIFF";
+
+/// Largest decoded chunk (a strip or a tile) and largest tag value (an OME-XML description
+/// of a large acquisition exceeds the crate's default MiB).
+const CHUNK_LIMIT: usize = 1 << 30;
+const TAG_LIMIT: usize = 64 << 20;
+
+/// Most sample bytes a file may declare per byte of its own (beyond [`DECLARED_SLACK`]): what
+/// Deflate reaches on constant data (1032), with room. A header declaring more is refused
+/// before anything that large is allocated (a few bytes must not claim a gigabyte image).
+const MAX_EXPANSION: u64 = 1100;
+const DECLARED_SLACK: u64 = 4 << 20;
+
+fn bad(path: &Path, reason: impl Into<String>) -> ReadError {
+    ReadError::bad_header(path, FORMAT, reason)
+}
+
+/// A decoding failure of the `tiff` crate, as a read error of `path`.
+fn failed(path: &Path, e: ::tiff::TiffError) -> ReadError {
+    match e {
+        ::tiff::TiffError::IoError(e) => ReadError::io(path, e),
+        ::tiff::TiffError::UnsupportedError(e) => ReadError::unsupported(path, e.to_string()),
+        ::tiff::TiffError::LimitsExceeded => ReadError::unsupported(
+            path,
+            format!("a strip or tile larger than {CHUNK_LIMIT} bytes"),
+        ),
+        e => bad(path, e.to_string()),
+    }
+}
+
+/// Whether a file name says TIFF (`.tif`, `.tiff`, any case).
+pub(crate) fn is_tiff_name(name: &str) -> bool {
+    let n = name.to_ascii_lowercase();
+    n.ends_with(".tif") || n.ends_with(".tiff")
+}
+
+/// Whether the first bytes are a TIFF's or a BigTIFF's (either byte order).
+pub(crate) fn looks_like_tiff(head: &[u8]) -> bool {
+    [b"II*\0", b"MM\0*", b"II+\0", b"MM\0+"]
+        .iter()
+        .any(|m| head.starts_with(*m))
+}
+
+/// The TIFF files directly inside `dir` (not hidden, regular), in the natural order of their
+/// names; empty when there are none.
+pub(crate) fn stack_files(dir: &Path) -> Result<Vec<(String, PathBuf)>, ReadError> {
+    let entries = std::fs::read_dir(dir).map_err(|e| ReadError::io(dir, e))?;
+    let mut files = Vec::new();
+    for entry in entries {
+        let entry = entry.map_err(|e| ReadError::io(dir, e))?;
+        let name = entry.file_name().to_string_lossy().into_owned();
+        if name.starts_with('.') || !is_tiff_name(&name) {
+            continue;
+        }
+        let path = entry.path();
+        if std::fs::metadata(&path).is_ok_and(|m| m.is_file()) {
+            files.push((name, path));
+        }
+    }
+    files.sort_by(|a, b| natural_order(&a.0, &b.0));
+    Ok(files)
+}
+
+/// Natural order of names: runs of digits compare as numbers (`z2` < `z10`), the rest as text.
+fn natural_order(a: &str, b: &str) -> std::cmp::Ordering {
+    fn runs(s: &str) -> Vec<(bool, &str)> {
+        let mut out = Vec::new();
+        let mut start = 0;
+        let bytes = s.as_bytes();
+        for i in 1..=bytes.len() {
+            if i == bytes.len() || bytes[i].is_ascii_digit() != bytes[start].is_ascii_digit() {
+                out.push((bytes[start].is_ascii_digit(), &s[start..i]));
+                start = i;
+            }
+        }
+        out
+    }
+    let (ra, rb) = (runs(a), runs(b));
+    for ((da, sa), (db, sb)) in ra.iter().zip(&rb) {
+        let o = if *da && *db {
+            let (ta, tb) = (sa.trim_start_matches('0'), sb.trim_start_matches('0'));
+            ta.len().cmp(&tb.len()).then_with(|| ta.cmp(tb))
+        } else {
+            sa.cmp(sb)
+        };
+        if o.is_ne() {
+            return o;
+        }
+    }
+    ra.len().cmp(&rb.len()).then_with(|| a.cmp(b))
+}
+
+/// What a page holds: its size, channels and sample kind.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct PageShape {
+    width: usize,
+    height: usize,
+    channels: usize,
+    /// Bits per sample.
+    bits: u8,
+    /// `SampleFormat`: 1 unsigned, 2 signed, 3 float.
+    format: u16,
+}
+
+impl PageShape {
+    fn describe(&self) -> String {
+        let kind = match self.format {
+            2 => "signed",
+            3 => "float",
+            _ => "unsigned",
+        };
+        format!(
+            "{}x{}, {} channel(s) of {}-bit {kind}",
+            self.width, self.height, self.channels, self.bits
+        )
+    }
+}
+
+/// What the first page's description and tags say of the whole stack.
+#[derive(Debug, Default, Clone, Copy)]
+struct StackMeta {
+    spacing: [Option<f64>; 3],
+    /// The images an ImageJ description counts.
+    imagej_images: Option<usize>,
+}
+
+fn decoder<R: Read + Seek>(reader: R, path: &Path) -> Result<Decoder<R>, ReadError> {
+    let mut limits = Limits::default();
+    limits.decoding_buffer_size = CHUNK_LIMIT;
+    limits.intermediate_buffer_size = CHUNK_LIMIT;
+    limits.ifd_value_size = TAG_LIMIT;
+    Ok(Decoder::new(reader)
+        .map_err(|e| failed(path, e))?
+        .with_limits(limits))
+}
+
+fn tag_u64<R: Read + Seek>(
+    d: &mut Decoder<R>,
+    tag: Tag,
+    path: &Path,
+) -> Result<Option<u64>, ReadError> {
+    match d.find_tag(tag).map_err(|e| failed(path, e))? {
+        None => Ok(None),
+        Some(v) => v
+            .into_u64()
+            .map(Some)
+            .map_err(|_| bad(path, format!("tag {tag:?} is not a number"))),
+    }
+}
+
+/// The shape of the current page, or `None` for a reduced-resolution copy (skipped).
+fn page_shape<R: Read + Seek>(
+    d: &mut Decoder<R>,
+    path: &Path,
+    page: usize,
+) -> Result<Option<PageShape>, ReadError> {
+    let at = |reason: String| bad(path, format!("page {page}: {reason}"));
+    let subfile = tag_u64(d, Tag::NewSubfileType, path)?.unwrap_or(0);
+    if subfile & 1 != 0 {
+        return Ok(None);
+    }
+    if subfile & 4 != 0 {
+        return Err(ReadError::unsupported(
+            path,
+            format!("page {page} is a transparency mask"),
+        ));
+    }
+    let (width, height) = d.dimensions().map_err(|e| failed(path, e))?;
+    let colour = d.colortype().map_err(|e| failed(path, e))?;
+    let photometric = tag_u64(d, Tag::PhotometricInterpretation, path)?;
+    let (channels, bits) = match colour {
+        ColorType::Gray(b) if photometric == Some(0) => {
+            return Err(ReadError::unsupported(
+                path,
+                format!("page {page} is inverted grey ({b}-bit WhiteIsZero); supported are BlackIsZero grey and RGB"),
+            ))
+        }
+        ColorType::Gray(b) => (1, b),
+        ColorType::RGB(b) => (3, b),
+        other => {
+            return Err(ReadError::unsupported(
+                path,
+                format!("page {page} is {other:?}; supported are grey and RGB samples (no palette, alpha, CMYK or YCbCr)"),
+            ))
+        }
+    };
+    if !matches!(bits, 8 | 16 | 32 | 64) {
+        return Err(ReadError::unsupported(
+            path,
+            format!("page {page} has {bits}-bit samples; supported are 8, 16, 32 and 64 bits"),
+        ));
+    }
+    let format = match d.find_tag(Tag::SampleFormat).map_err(|e| failed(path, e))? {
+        None => 1,
+        Some(v) => {
+            let all = v
+                .into_u16_vec()
+                .map_err(|_| at("SampleFormat is not a list of numbers".into()))?;
+            match all.first() {
+                Some(&f) if all.iter().all(|g| *g == f) && (1..=3).contains(&f) => f,
+                _ => return Err(ReadError::unsupported(
+                    path,
+                    format!("page {page} has SampleFormat {all:?}; supported are unsigned, signed and float samples, one kind for all channels"),
+                )),
+            }
+        }
+    };
+    if format == 3 && bits == 8 {
+        return Err(at("8-bit float samples".into()));
+    }
+    if channels > 1 && tag_u64(d, Tag::PlanarConfiguration, path)? == Some(2) {
+        return Err(ReadError::unsupported(
+            path,
+            format!("page {page} stores its colour channels in separate planes (PlanarConfiguration 2); supported are interleaved channels"),
+        ));
+    }
+    if width == 0 || height == 0 {
+        return Err(at(format!("an empty page ({width}x{height})")));
+    }
+    Ok(Some(PageShape {
+        width: width as usize,
+        height: height as usize,
+        channels,
+        bits,
+        format,
+    }))
+}
+
+/// A length in `unit` (ImageJ's or OME's spelling) in mm; `None` for no physical unit.
+fn unit_mm(unit: &str) -> Option<f64> {
+    Some(match unit.trim().trim_matches('"') {
+        // ImageJ writes the micro sign as the escape `\u00B5` in some versions.
+        "micron" | "microns" | "um" | "µm" | "\u{3bc}m" | "\\u00B5m" | "\\u00b5m"
+        | "micrometer" | "micrometre" => 1e-3,
+        "nm" | "nanometer" | "nanometre" => 1e-6,
+        "mm" | "millimeter" | "millimetre" => 1.0,
+        "cm" | "centimeter" | "centimetre" => 10.0,
+        "m" | "meter" | "metre" => 1e3,
+        "inch" | "in" => 25.4,
+        _ => return None,
+    })
+}
+
+/// The value of `key="…"` in an XML text.
+fn xml_attr<'a>(xml: &'a str, key: &str) -> Option<&'a str> {
+    let pat = format!(" {key}=\"");
+    let start = xml.find(&pat)? + pat.len();
+    let len = xml[start..].find('"')?;
+    Some(&xml[start..start + len])
+}
+
+/// Pixels per unit of a resolution tag, as a number.
+fn resolution<R: Read + Seek>(d: &mut Decoder<R>, tag: Tag) -> Option<f64> {
+    use ::tiff::decoder::ifd::Value;
+    let v = match d.find_tag(tag).ok()?? {
+        Value::Rational(n, q) => f64::from(n) / f64::from(q),
+        Value::Float(v) => f64::from(v),
+        Value::Double(v) => v,
+        other => other.into_u64().ok()? as f64,
+    };
+    (v.is_finite() && v > 0.0).then_some(v)
+}
+
+/// What the first page's description (ImageJ's or OME-XML) says of the stack: its spacing,
+/// and a refusal for several channels or time points.
+fn stack_meta<R: Read + Seek>(d: &mut Decoder<R>, path: &Path) -> Result<StackMeta, ReadError> {
+    let mut meta = StackMeta::default();
+    let description = match d.find_tag(Tag::ImageDescription) {
+        Ok(Some(v)) => v.into_string().unwrap_or_default(),
+        _ => String::new(),
+    };
+    if description.starts_with("ImageJ=") {
+        let field = |key: &str| {
+            description.lines().find_map(|l| {
+                let (k, v) = l.split_once('=')?;
+                (k.trim() == key).then(|| v.trim().to_string())
+            })
+        };
+        let count = |key: &str| field(key).and_then(|v| v.parse::<usize>().ok());
+        if let Some(c) = count("channels").filter(|c| *c > 1) {
+            return Err(ReadError::unsupported(
+                path,
+                format!("an ImageJ hyperstack of {c} channels; save one channel (Image > Color > Split Channels) or an RGB stack"),
+            ));
+        }
+        if let Some(t) = count("frames").filter(|t| *t > 1) {
+            return Err(ReadError::unsupported(
+                path,
+                format!("an ImageJ hyperstack of {t} time frames; save each frame as a stack of its own"),
+            ));
+        }
+        meta.imagej_images = count("images");
+        if let Some(mm) = field("unit").as_deref().and_then(unit_mm) {
+            let x = resolution(d, Tag::XResolution).map(|r| mm / r);
+            let y = resolution(d, Tag::YResolution).map(|r| mm / r);
+            let z = field("spacing")
+                .and_then(|v| v.parse::<f64>().ok())
+                .map(|s| s.abs() * mm);
+            meta.spacing = [x, y, z];
+        }
+    } else if description.contains("<OME") {
+        for key in ["SizeC", "SizeT"] {
+            if let Some(n) = xml_attr(&description, key).and_then(|v| v.parse::<usize>().ok()) {
+                if n > 1 {
+                    let what = if key == "SizeC" {
+                        "channels"
+                    } else {
+                        "time points"
+                    };
+                    return Err(ReadError::unsupported(
+                        path,
+                        format!("an OME-TIFF of {n} {what} ({key}); supported is one channel at one time point"),
+                    ));
+                }
+            }
+        }
+        for (axis, key) in ["PhysicalSizeX", "PhysicalSizeY", "PhysicalSizeZ"]
+            .iter()
+            .enumerate()
+        {
+            let unit = xml_attr(&description, &format!("{key}Unit")).unwrap_or("µm");
+            let size = xml_attr(&description, key).and_then(|v| v.parse::<f64>().ok());
+            meta.spacing[axis] = size.zip(unit_mm(unit)).map(|(s, mm)| s * mm);
+        }
+    }
+    for s in meta.spacing.iter_mut() {
+        if s.is_some_and(|v| !(v.is_finite() && v > 0.0 && v <= f32::MAX as f64)) {
+            *s = None;
+        }
+    }
+    Ok(meta)
+}
+
+/// The pages of one file: their index among the file's pages and their shape, and what its
+/// first page says of the stack.
+fn file_pages<R: Read + Seek>(
+    mut reader: R,
+    path: &Path,
+) -> Result<(Vec<(usize, PageShape)>, StackMeta), ReadError> {
+    let len = reader
+        .seek(std::io::SeekFrom::End(0))
+        .and_then(|n| reader.rewind().map(|()| n))
+        .map_err(|e| ReadError::io(path, e))?;
+    let mut d = decoder(reader, path)?;
+    let meta = stack_meta(&mut d, path)?;
+    let mut pages = Vec::new();
+    let mut index = 0;
+    loop {
+        if let Some(shape) = page_shape(&mut d, path, index)? {
+            pages.push((index, shape));
+        }
+        if !d.more_images() {
+            break;
+        }
+        d.next_image().map_err(|e| failed(path, e))?;
+        index += 1;
+    }
+    let declared = pages.iter().try_fold(0u64, |sum, (_, s)| {
+        let page = (s.width as u64)
+            .checked_mul(s.height as u64)?
+            .checked_mul(s.channels as u64 * u64::from(s.bits) / 8)?;
+        sum.checked_add(page)
+    });
+    let most = len
+        .saturating_mul(MAX_EXPANSION)
+        .saturating_add(DECLARED_SLACK);
+    if declared.is_none_or(|d| d > most) {
+        return Err(bad(
+            path,
+            format!(
+                "its {} pages declare {} bytes of samples, more than its {len} bytes can hold",
+                pages.len(),
+                declared.map_or("more than 2^64".into(), |d| d.to_string())
+            ),
+        ));
+    }
+    if let Some(n) = meta.imagej_images.filter(|n| *n > pages.len()) {
+        return Err(ReadError::unsupported(
+            path,
+            format!(
+                "ImageJ counts {n} images but the file has {} pages: an ImageJ stack over 4 GB \
+                 stores its later images without pages of their own; save it as a sequence of \
+                 TIFF files (File > Save As > Image Sequence) or as OME-TIFF",
+                pages.len()
+            ),
+        ));
+    }
+    Ok((pages, meta))
+}
+
+/// The full-resolution pages of the TIFF file at `path` (its page directories read, not its
+/// samples).
+pub(crate) fn page_count(path: &Path) -> Result<usize, ReadError> {
+    let file = File::open(path).map_err(|e| ReadError::io(path, e))?;
+    Ok(file_pages(BufReader::new(file), path)?.0.len())
+}
+
+/// A stack's slices: the file and page of each, in order, their common shape, and the spacing.
+#[derive(Debug, Clone)]
+struct Stack {
+    /// (file index, page index within the file) of each slice.
+    slices: Vec<(usize, usize)>,
+    shape: PageShape,
+    spacing: [f32; 3],
+}
+
+impl Stack {
+    /// The stack of `files` (each file's pages listed by `pages_of`), checking that every page
+    /// has the first's shape.
+    fn of(
+        names: &[PathBuf],
+        mut pages_of: impl FnMut(usize) -> Result<(Vec<(usize, PageShape)>, StackMeta), ReadError>,
+    ) -> Result<Stack, ReadError> {
+        let mut slices = Vec::new();
+        let mut first: Option<(PageShape, StackMeta, usize, usize)> = None;
+        for (f, path) in names.iter().enumerate() {
+            let (pages, meta) = pages_of(f)?;
+            for (p, shape) in pages {
+                match &first {
+                    None => first = Some((shape, meta, f, p)),
+                    Some((s, _, f0, p0)) if *s != shape => {
+                        return Err(ReadError::Series {
+                            path: path.clone(),
+                            reason: format!(
+                                "page {p} is {}, but page {p0} of {} is {}: the slices of a stack must agree",
+                                shape.describe(),
+                                names[*f0].display(),
+                                s.describe()
+                            ),
+                        });
+                    }
+                    Some(_) => {}
+                }
+                slices.push((f, p));
+            }
+        }
+        let Some((shape, meta, _, _)) = first else {
+            return Err(bad(
+                names.first().map_or(Path::new("."), PathBuf::as_path),
+                "no page holds an image at full resolution",
+            ));
+        };
+        let spacing = meta.spacing.map(|s| s.unwrap_or(1.0) as f32);
+        Ok(Stack {
+            slices,
+            shape,
+            spacing,
+        })
+    }
+
+    fn dims(&self) -> [usize; 3] {
+        [self.shape.width, self.shape.height, self.slices.len()]
+    }
+}
+
+/// Adds the samples of `data` (a chunk of `cw` × `ch` pixels at `(cx, cy)` of the page, channels
+/// interleaved) that fall in columns `x0..x1` and rows `y0..y1` to `out` (one plane per channel,
+/// rows of `x1 − x0` values, the slice starting at `base`).
+#[allow(clippy::too_many_arguments)]
+fn place(
+    data: &DecodingResult,
+    (cx, cy, cw, ch): (usize, usize, usize, usize),
+    (x0, x1, y0, y1): (usize, usize, usize, usize),
+    channels: usize,
+    out: &mut [Vec<f32>],
+    base: usize,
+) {
+    fn copy<T: Copy>(
+        v: &[T],
+        f: impl Fn(T) -> f32,
+        (cx, cy, cw, ch): (usize, usize, usize, usize),
+        (x0, x1, y0, y1): (usize, usize, usize, usize),
+        channels: usize,
+        out: &mut [Vec<f32>],
+        base: usize,
+    ) {
+        let (xa, xb) = (x0.max(cx), x1.min(cx + cw));
+        let (ya, yb) = (y0.max(cy), y1.min(cy + ch));
+        if xa >= xb || ya >= yb {
+            return;
+        }
+        let row = x1 - x0;
+        for y in ya..yb {
+            let src = ((y - cy) * cw + (xa - cx)) * channels;
+            let dst = base + (y - y0) * row + (xa - x0);
+            for (i, px) in v[src..src + (xb - xa) * channels]
+                .chunks_exact(channels)
+                .enumerate()
+            {
+                for (c, s) in px.iter().enumerate() {
+                    out[c][dst + i] = f(*s);
+                }
+            }
+        }
+    }
+    let (c, r) = ((cx, cy, cw, ch), (x0, x1, y0, y1));
+    match data {
+        DecodingResult::U8(v) => copy(v, f32::from, c, r, channels, out, base),
+        DecodingResult::U16(v) => copy(v, f32::from, c, r, channels, out, base),
+        DecodingResult::U32(v) => copy(v, |s| s as f32, c, r, channels, out, base),
+        DecodingResult::U64(v) => copy(v, |s| s as f32, c, r, channels, out, base),
+        DecodingResult::F16(v) => copy(v, |s| s.to_f32(), c, r, channels, out, base),
+        DecodingResult::F32(v) => copy(v, |s| s, c, r, channels, out, base),
+        DecodingResult::F64(v) => copy(v, |s| s as f32, c, r, channels, out, base),
+        DecodingResult::I8(v) => copy(v, f32::from, c, r, channels, out, base),
+        DecodingResult::I16(v) => copy(v, f32::from, c, r, channels, out, base),
+        DecodingResult::I32(v) => copy(v, |s| s as f32, c, r, channels, out, base),
+        DecodingResult::I64(v) => copy(v, |s| s as f32, c, r, channels, out, base),
+    }
+}
+
+fn samples(data: &DecodingResult) -> usize {
+    match data {
+        DecodingResult::U8(v) => v.len(),
+        DecodingResult::U16(v) => v.len(),
+        DecodingResult::U32(v) => v.len(),
+        DecodingResult::U64(v) => v.len(),
+        DecodingResult::F16(v) => v.len(),
+        DecodingResult::F32(v) => v.len(),
+        DecodingResult::F64(v) => v.len(),
+        DecodingResult::I8(v) => v.len(),
+        DecodingResult::I16(v) => v.len(),
+        DecodingResult::I32(v) => v.len(),
+        DecodingResult::I64(v) => v.len(),
+    }
+}
+
+/// Decodes the chunks of the current page that meet columns `x0..x1` and rows `y0..y1` into
+/// `out` (see [`place`]).
+fn read_page<R: Read + Seek>(
+    d: &mut Decoder<R>,
+    path: &Path,
+    page: usize,
+    shape: &PageShape,
+    (x0, x1, y0, y1): (usize, usize, usize, usize),
+    out: &mut [Vec<f32>],
+    base: usize,
+) -> Result<(), ReadError> {
+    let (cw, ch) = d.chunk_dimensions();
+    let (cw, ch) = (cw.max(1) as usize, ch.max(1) as usize);
+    let across = match d.get_chunk_type() {
+        ChunkType::Strip => 1,
+        ChunkType::Tile => shape.width.div_ceil(cw),
+    };
+    let chunks = match d.get_chunk_type() {
+        ChunkType::Strip => d.strip_count(),
+        ChunkType::Tile => d.tile_count(),
+    }
+    .map_err(|e| failed(path, e))? as usize;
+    let (col0, col1) = (x0 / cw, (x1 - 1) / cw);
+    let (row0, row1) = (y0 / ch, (y1 - 1) / ch);
+    for row in row0..=row1 {
+        for col in col0..=col1.min(across - 1) {
+            let i = row * across + col;
+            if i >= chunks {
+                return Err(bad(
+                    path,
+                    format!("page {page} has {chunks} strips or tiles; its size needs more"),
+                ));
+            }
+            let data = d.read_chunk(i as u32).map_err(|e| failed(path, e))?;
+            let (dw, dh) = d.chunk_data_dimensions(i as u32);
+            let (dw, dh) = (dw as usize, dh as usize);
+            if samples(&data) < dw * dh * shape.channels {
+                return Err(bad(
+                    path,
+                    format!("page {page}: a strip or tile holds fewer samples than its size"),
+                ));
+            }
+            let at = (col * cw, row * ch, dw, dh);
+            place(&data, at, (x0, x1, y0, y1), shape.channels, out, base);
+        }
+    }
+    Ok(())
+}
+
+/// Planes of `channels` × `n` zeros, refusing what cannot be allocated.
+fn planes(path: &Path, channels: usize, n: usize) -> Result<Vec<Vec<f32>>, ReadError> {
+    (0..channels)
+        .map(|_| {
+            let mut v = Vec::new();
+            v.try_reserve_exact(n).map_err(|_| {
+                ReadError::io(
+                    path,
+                    std::io::Error::new(
+                        std::io::ErrorKind::OutOfMemory,
+                        format!("cannot allocate {n} samples"),
+                    ),
+                )
+            })?;
+            v.resize(n, 0.0);
+            Ok(v)
+        })
+        .collect()
+}
+
+/// Decodes a TIFF stack from its gathered files (one multi-page file, or the files of a stack
+/// directory in order).
+pub(crate) fn decode(src: &SourceFiles) -> Result<Volume, ReadError> {
+    let paths: Vec<PathBuf> = src.files.iter().map(|(n, _)| src.path_of(n)).collect();
+    let stack = Stack::of(&paths, |f| {
+        file_pages(Cursor::new(src.files[f].1.as_slice()), &paths[f])
+    })?;
+    let dims = stack.dims();
+    let voxels = checked_voxels(dims).map_err(|e| ReadError::volume(&src.origin, e))?;
+    let mut out = planes(&src.origin, stack.shape.channels, voxels)?;
+    let slice = dims[0] * dims[1];
+    let mut open: Option<(usize, Decoder<Cursor<&[u8]>>)> = None;
+    for (z, &(f, p)) in stack.slices.iter().enumerate() {
+        if open.as_ref().is_none_or(|(g, _)| *g != f) {
+            open = Some((
+                f,
+                decoder(Cursor::new(src.files[f].1.as_slice()), &paths[f])?,
+            ));
+        }
+        let (_, d) = open.as_mut().expect("opened above");
+        d.seek_to_image(p).map_err(|e| failed(&paths[f], e))?;
+        let whole = (0, dims[0], 0, dims[1]);
+        read_page(d, &paths[f], p, &stack.shape, whole, &mut out, z * slice)?;
+    }
+    Volume::new(dims, stack.spacing, out).map_err(|e| ReadError::volume(&src.origin, e))
+}
+
+/// A TIFF stack opened for region reads: the pages of each slice, read from disk when a region
+/// needs them, only the strips or tiles the region covers.
+#[derive(Debug)]
+pub(crate) struct TiffRegions {
+    files: Vec<PathBuf>,
+    stack: Stack,
+}
+
+impl TiffRegions {
+    /// Opens a multi-page TIFF file, or the TIFF files of a directory, reading every page's
+    /// directory (not its samples).
+    pub(crate) fn open(path: &Path) -> Result<TiffRegions, ReadError> {
+        let files: Vec<PathBuf> = if path.is_dir() {
+            stack_files(path)?.into_iter().map(|(_, p)| p).collect()
+        } else {
+            vec![path.to_path_buf()]
+        };
+        if files.is_empty() {
+            return Err(bad(path, "the directory holds no .tif or .tiff file"));
+        }
+        let stack = Stack::of(&files, |f| {
+            let file = File::open(&files[f]).map_err(|e| ReadError::io(&files[f], e))?;
+            file_pages(BufReader::new(file), &files[f])
+        })?;
+        Ok(TiffRegions { files, stack })
+    }
+
+    pub(crate) fn dims(&self) -> [usize; 3] {
+        self.stack.dims()
+    }
+
+    pub(crate) fn channels(&self) -> usize {
+        self.stack.shape.channels
+    }
+
+    pub(crate) fn spacing(&self) -> [f32; 3] {
+        self.stack.spacing
+    }
+
+    /// The samples of the box at `origin` of `size` (within the volume: the caller checks),
+    /// one plane per channel.
+    pub(crate) fn read(
+        &self,
+        origin: [usize; 3],
+        size: [usize; 3],
+    ) -> Result<Vec<Vec<f32>>, ReadError> {
+        let n = checked_voxels(size).map_err(|e| ReadError::volume(&self.files[0], e))?;
+        let mut out = planes(&self.files[0], self.channels(), n)?;
+        let window = (
+            origin[0],
+            origin[0] + size[0],
+            origin[1],
+            origin[1] + size[1],
+        );
+        let mut open: Option<(usize, Decoder<BufReader<File>>)> = None;
+        for z in 0..size[2] {
+            let (f, p) = self.stack.slices[origin[2] + z];
+            let path = &self.files[f];
+            if open.as_ref().is_none_or(|(g, _)| *g != f) {
+                let file = File::open(path).map_err(|e| ReadError::io(path, e))?;
+                open = Some((f, decoder(BufReader::new(file), path)?));
+            }
+            let (_, d) = open.as_mut().expect("opened above");
+            d.seek_to_image(p).map_err(|e| failed(path, e))?;
+            // The page read at open may have changed since: its shape is checked again.
+            if page_shape(d, path, p)? != Some(self.stack.shape) {
+                return Err(ReadError::Series {
+                    path: path.clone(),
+                    reason: format!("page {p} changed since the stack was opened"),
+                });
+            }
+            let base = z * size[0] * size[1];
+            read_page(d, path, p, &self.stack.shape, window, &mut out, base)?;
+        }
+        Ok(out)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn names_sort_naturally() {
+        let mut names = vec![
+            "z10.tif",
+            "z2.tif",
+            "z1.tif",
+            "z002b.tif",
+            "a.tif",
+            "z02.tif",
+        ];
+        names.sort_by(|a, b| natural_order(a, b));
+        assert_eq!(
+            names,
+            [
+                "a.tif",
+                "z1.tif",
+                "z02.tif",
+                "z2.tif",
+                "z002b.tif",
+                "z10.tif"
+            ]
+        );
+    }
+
+    #[test]
+    fn magic_and_names_say_tiff() {
+        assert!(looks_like_tiff(b"II*\0\x08\0\0\0"));
+        assert!(looks_like_tiff(b"MM\0*"));
+        assert!(looks_like_tiff(b"II+\0\x08\0"));
+        assert!(!looks_like_tiff(b"NRRD0004"));
+        assert!(is_tiff_name("Stack.TIF") && is_tiff_name("a.tiff") && !is_tiff_name("a.tif.gz"));
+    }
+
+    #[test]
+    fn units_convert_to_mm() {
+        assert_eq!(unit_mm("micron"), Some(1e-3));
+        assert_eq!(unit_mm("\\u00B5m"), Some(1e-3));
+        assert_eq!(unit_mm("µm"), Some(1e-3));
+        assert_eq!(unit_mm("cm"), Some(10.0));
+        assert_eq!(unit_mm("pixel"), None);
+        let xml = r#"<Pixels SizeC="1" PhysicalSizeX="0.5" PhysicalSizeXUnit="nm">"#;
+        assert_eq!(xml_attr(xml, "PhysicalSizeX"), Some("0.5"));
+        assert_eq!(xml_attr(xml, "PhysicalSizeXUnit"), Some("nm"));
+        assert_eq!(xml_attr(xml, "SizeT"), None);
+    }
+}

@@ -1,0 +1,548 @@
+//! TIFF stacks: a multi-page file and a directory of single-page files (natural name order)
+//! read as the volume written, for every sample type and compression the writer here makes,
+//! whole and region by region (chunk by chunk, regions that cut strips); the spacing an ImageJ
+//! or OME description gives; and the refusals (pages that disagree, hyperstacks, alpha, an
+//! ImageJ stack whose images outnumber its pages), each naming the file.
+
+use std::io::{Seek, Write};
+use std::path::Path;
+use tiff::encoder::colortype::{self, ColorType};
+use tiff::encoder::{Compression, DeflateLevel, Rational, TiffEncoder, TiffValue};
+use tiff::tags::Tag;
+use wavesplat_codec::volume::Volume;
+use wavesplat_compressor::phantom::Phantom;
+use wavesplat_compressor::reader::region::RegionReader;
+use wavesplat_compressor::reader::{read_volume, Format, ReadError, SourceListing};
+
+const DIMS: [usize; 3] = [37, 29, 11];
+
+/// Values of a phantom as samples of `T` (scaled to `scale`).
+fn samples<T>(dims: [usize; 3], scale: f32, to: impl Fn(f32) -> T) -> Vec<T> {
+    Phantom::SheppLogan
+        .generate(dims)
+        .to_interleaved()
+        .iter()
+        .map(|v| to(v * scale))
+        .collect()
+}
+
+/// Writes `slices` (each `w·h` samples, channels interleaved) as pages of one TIFF, strips of
+/// `rows` rows, with `description` on the first page.
+fn write_pages<C: ColorType, W: Write + Seek>(
+    out: W,
+    compression: Compression,
+    (w, h): (usize, usize),
+    slices: &[&[C::Inner]],
+    rows: u32,
+    description: Option<&str>,
+) where
+    [C::Inner]: TiffValue,
+{
+    let mut enc = TiffEncoder::new(out).unwrap().with_compression(compression);
+    for (i, s) in slices.iter().enumerate() {
+        let mut image = enc.new_image::<C>(w as u32, h as u32).unwrap();
+        image.rows_per_strip(rows).unwrap();
+        if let (0, Some(d)) = (i, description) {
+            image.encoder().write_tag(Tag::ImageDescription, d).unwrap();
+        }
+        image.write_data(s).unwrap();
+    }
+}
+
+fn multipage<C: ColorType>(
+    path: &Path,
+    compression: Compression,
+    data: &[C::Inner],
+    channels: usize,
+    description: Option<&str>,
+) where
+    [C::Inner]: TiffValue,
+{
+    let slice = DIMS[0] * DIMS[1] * channels;
+    let slices: Vec<&[C::Inner]> = data.chunks(slice).collect();
+    let f = std::fs::File::create(path).unwrap();
+    write_pages::<C, _>(f, compression, (DIMS[0], DIMS[1]), &slices, 4, description);
+}
+
+/// The phantom as the reader should give it from samples `data`.
+fn expected(data: &[f32], channels: usize, spacing: [f32; 3]) -> Volume {
+    let n = DIMS[0] * DIMS[1] * DIMS[2];
+    let planar = (0..channels)
+        .map(|c| (0..n).map(|i| data[i * channels + c]).collect())
+        .collect();
+    Volume::new(DIMS, spacing, planar).unwrap()
+}
+
+fn same(got: &Volume, want: &Volume, what: &str) {
+    assert_eq!(got.dims(), want.dims(), "{what}");
+    assert_eq!(got.spacing(), want.spacing(), "{what}");
+    assert_eq!(got.channel_count(), want.channel_count(), "{what}");
+    for (a, b) in got.channels().iter().zip(want.channels()) {
+        assert!(a == b, "{what}: samples differ");
+    }
+}
+
+/// Regions that cut strips, rows and slices, read from `path` against the whole.
+fn regions_match(path: &Path, whole: &Volume) {
+    let r = RegionReader::open(path, None).unwrap();
+    assert_eq!(r.dims(), DIMS);
+    assert_eq!(r.channels(), whole.channel_count());
+    for (origin, size) in [
+        ([0, 0, 0], DIMS),
+        ([3, 5, 2], [10, 7, 4]),
+        ([36, 28, 10], [1, 1, 1]),
+        ([0, 3, 0], [37, 1, 11]),
+        ([11, 0, 5], [26, 29, 6]),
+    ] {
+        let got = r.read_region(origin, size).unwrap();
+        for c in 0..whole.channel_count() {
+            for z in 0..size[2] {
+                for y in 0..size[1] {
+                    for x in 0..size[0] {
+                        let g = got.channels()[c][got.index(x, y, z)];
+                        let w = whole.channels()[c]
+                            [whole.index(x + origin[0], y + origin[1], z + origin[2])];
+                        assert_eq!(g, w, "{} at {origin:?}+{:?}", path.display(), [x, y, z]);
+                    }
+                }
+            }
+        }
+    }
+}
+
+#[test]
+fn a_multipage_tiff_reads_as_the_volume_written_for_every_sample_type_and_compression() {
+    let dir = tempfile::tempdir().unwrap();
+    let compressions = [
+        ("none", Compression::Uncompressed),
+        ("lzw", Compression::Lzw),
+        ("deflate", Compression::Deflate(DeflateLevel::Fast)),
+        ("packbits", Compression::Packbits),
+    ];
+    for (name, compression) in compressions {
+        let path = dir.path().join(format!("u16_{name}.tif"));
+        let data = samples(DIMS, 4000.0, |v| v.round() as u16);
+        multipage::<colortype::Gray16>(&path, compression, &data, 1, None);
+        let f: Vec<f32> = data.iter().map(|v| *v as f32).collect();
+        let want = expected(&f, 1, [1.0; 3]);
+        same(&read_volume(&path, None).unwrap(), &want, name);
+        regions_match(&path, &want);
+    }
+    let path = dir.path().join("u8.tiff");
+    let data = samples(DIMS, 250.0, |v| v.round() as u8);
+    multipage::<colortype::Gray8>(&path, Compression::Lzw, &data, 1, None);
+    let f: Vec<f32> = data.iter().map(|v| *v as f32).collect();
+    same(
+        &read_volume(&path, None).unwrap(),
+        &expected(&f, 1, [1.0; 3]),
+        "u8",
+    );
+
+    let path = dir.path().join("i16.tif");
+    let data = samples(DIMS, 3000.0, |v| (v * 2.0 - 1000.0).round() as i16);
+    multipage::<colortype::GrayI16>(&path, Compression::Uncompressed, &data, 1, None);
+    let f: Vec<f32> = data.iter().map(|v| *v as f32).collect();
+    same(
+        &read_volume(&path, None).unwrap(),
+        &expected(&f, 1, [1.0; 3]),
+        "i16",
+    );
+
+    let path = dir.path().join("f32.tif");
+    let data = samples(DIMS, 1.0, |v| v * 1e-3 - 7.5);
+    multipage::<colortype::Gray32Float>(
+        &path,
+        Compression::Deflate(DeflateLevel::Fast),
+        &data,
+        1,
+        None,
+    );
+    let want = expected(&data, 1, [1.0; 3]);
+    same(&read_volume(&path, None).unwrap(), &want, "f32");
+    regions_match(&path, &want);
+
+    // RGB, 8 bits a channel.
+    let rgb: Vec<u8> = Phantom::RgbHead
+        .generate(DIMS)
+        .to_interleaved()
+        .iter()
+        .map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8)
+        .collect();
+    let path = dir.path().join("rgb.tif");
+    multipage::<colortype::RGB8>(&path, Compression::Lzw, &rgb, 3, None);
+    let f: Vec<f32> = rgb.iter().map(|v| *v as f32).collect();
+    let want = expected(&f, 3, [1.0; 3]);
+    same(&read_volume(&path, None).unwrap(), &want, "rgb");
+    regions_match(&path, &want);
+}
+
+#[test]
+fn a_directory_of_tiffs_is_one_stack_in_natural_name_order() {
+    let dir = tempfile::tempdir().unwrap();
+    let stack = dir.path().join("stack");
+    std::fs::create_dir(&stack).unwrap();
+    let data = samples(DIMS, 4000.0, |v| v.round() as u16);
+    let slice = DIMS[0] * DIMS[1];
+    // slice1.tif … slice11.tif: in byte order slice10 and slice11 would come before slice2.
+    for (z, s) in data.chunks(slice).enumerate() {
+        let f = std::fs::File::create(stack.join(format!("slice{}.tif", z + 1))).unwrap();
+        write_pages::<colortype::Gray16, _>(f, Compression::Lzw, (DIMS[0], DIMS[1]), &[s], 7, None);
+    }
+    std::fs::write(stack.join(".hidden.tif"), b"not a tiff").unwrap();
+    std::fs::write(stack.join("notes.txt"), b"acquisition notes").unwrap();
+    let f: Vec<f32> = data.iter().map(|v| *v as f32).collect();
+    let want = expected(&f, 1, [1.0; 3]);
+    same(&read_volume(&stack, None).unwrap(), &want, "stack");
+    regions_match(&stack, &want);
+    let listing = SourceListing::list(&stack, None).unwrap();
+    assert_eq!(listing.format, Some(Format::Tiff));
+    let names: Vec<&str> = listing.files.iter().map(|(n, _, _)| n.as_str()).collect();
+    let numbered: Vec<String> = (1..=DIMS[2]).map(|z| format!("slice{z}.tif")).collect();
+    assert_eq!(names, numbered);
+}
+
+#[test]
+fn imagej_and_ome_descriptions_give_the_spacing_in_mm() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = samples(DIMS, 4000.0, |v| v.round() as u16);
+    let f: Vec<f32> = data.iter().map(|v| *v as f32).collect();
+    let slice = DIMS[0] * DIMS[1];
+    let slices: Vec<&[u16]> = data.chunks(slice).collect();
+
+    // ImageJ: 4 pixels a micron across (0.25 µm), 2 µm between slices.
+    let path = dir.path().join("imagej.tif");
+    let mut enc = TiffEncoder::new(std::fs::File::create(&path).unwrap()).unwrap();
+    for (i, s) in slices.iter().enumerate() {
+        let mut image = enc
+            .new_image::<colortype::Gray16>(DIMS[0] as u32, DIMS[1] as u32)
+            .unwrap();
+        image.x_resolution(Rational { n: 4, d: 1 });
+        image.y_resolution(Rational { n: 5, d: 1 });
+        if i == 0 {
+            let d = format!(
+                "ImageJ=1.54f\nimages={}\nslices={}\nunit=micron\nspacing=2.0\n",
+                DIMS[2], DIMS[2]
+            );
+            image
+                .encoder()
+                .write_tag(Tag::ImageDescription, d.as_str())
+                .unwrap();
+        }
+        image.write_data(s).unwrap();
+    }
+    drop(enc);
+    let got = read_volume(&path, None).unwrap();
+    let want = [0.25e-3, 0.2e-3, 2e-3];
+    for a in 0..3 {
+        assert!(
+            (got.spacing()[a] - want[a]).abs() < 1e-9,
+            "{:?}",
+            got.spacing()
+        );
+    }
+    assert_eq!(
+        RegionReader::open(&path, None).unwrap().spacing(),
+        got.spacing()
+    );
+    same(&got, &expected(&f, 1, got.spacing()), "imagej");
+
+    // OME-XML: nanometres across, micrometres (the unit OME assumes) between slices.
+    let path = dir.path().join("stack.ome.tif");
+    let ome = r#"<?xml version="1.0"?><OME xmlns="http://www.openmicroscopy.org/Schemas/OME/2016-06"><Image ID="Image:0"><Pixels ID="Pixels:0" DimensionOrder="XYZCT" Type="uint16" SizeX="37" SizeY="29" SizeZ="11" SizeC="1" SizeT="1" PhysicalSizeX="500" PhysicalSizeXUnit="nm" PhysicalSizeY="500" PhysicalSizeYUnit="nm" PhysicalSizeZ="1.5"/></Image></OME>"#;
+    let file = std::fs::File::create(&path).unwrap();
+    write_pages::<colortype::Gray16, _>(
+        file,
+        Compression::Uncompressed,
+        (DIMS[0], DIMS[1]),
+        &slices,
+        29,
+        Some(ome),
+    );
+    let got = read_volume(&path, None).unwrap();
+    let want = [0.5e-3, 0.5e-3, 1.5e-3];
+    for a in 0..3 {
+        assert!(
+            (got.spacing()[a] - want[a]).abs() < 1e-9,
+            "{:?}",
+            got.spacing()
+        );
+    }
+}
+
+/// The message of a read that must fail.
+fn refusal(path: &Path) -> String {
+    let e: ReadError = read_volume(path, None).unwrap_err();
+    let r = RegionReader::open(path, None).unwrap_err().to_string();
+    let e = e.to_string();
+    assert_eq!(e, r, "the whole and the region reader refuse alike");
+    e
+}
+
+#[test]
+fn stacks_that_are_not_one_volume_are_refused_saying_why() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = samples(DIMS, 4000.0, |v| v.round() as u16);
+    let slice = DIMS[0] * DIMS[1];
+    let slices: Vec<&[u16]> = data.chunks(slice).collect();
+
+    // A page of another size among the files of a directory.
+    let mixed = dir.path().join("mixed");
+    std::fs::create_dir(&mixed).unwrap();
+    for (z, s) in slices.iter().take(3).enumerate() {
+        let f = std::fs::File::create(mixed.join(format!("z{z}.tif"))).unwrap();
+        write_pages::<colortype::Gray16, _>(
+            f,
+            Compression::Uncompressed,
+            (DIMS[0], DIMS[1]),
+            &[s],
+            8,
+            None,
+        );
+    }
+    let f = std::fs::File::create(mixed.join("z3.tif")).unwrap();
+    write_pages::<colortype::Gray16, _>(
+        f,
+        Compression::Uncompressed,
+        (DIMS[1], DIMS[0]),
+        &[slices[3]],
+        8,
+        None,
+    );
+    let e = refusal(&mixed);
+    assert!(
+        e.contains("z3.tif") && e.contains("29x37") && e.contains("37x29"),
+        "{e}"
+    );
+
+    // A page of 8 bits after pages of 16.
+    let path = dir.path().join("depths.tif");
+    {
+        let mut enc = TiffEncoder::new(std::fs::File::create(&path).unwrap()).unwrap();
+        enc.write_image::<colortype::Gray16>(DIMS[0] as u32, DIMS[1] as u32, slices[0])
+            .unwrap();
+        let bytes: Vec<u8> = slices[1].iter().map(|v| (*v >> 8) as u8).collect();
+        enc.write_image::<colortype::Gray8>(DIMS[0] as u32, DIMS[1] as u32, &bytes)
+            .unwrap();
+    }
+    let e = refusal(&path);
+    assert!(e.contains("8-bit") && e.contains("16-bit"), "{e}");
+
+    // An ImageJ hyperstack of two channels, and of three frames.
+    for (d, word) in [
+        ("channels=2\nslices=5\n", "channels"),
+        ("slices=3\nframes=3\n", "frames"),
+    ] {
+        let path = dir.path().join(format!("hyper_{word}.tif"));
+        let desc = format!("ImageJ=1.54f\nimages=9\n{d}hyperstack=true\n");
+        let file = std::fs::File::create(&path).unwrap();
+        write_pages::<colortype::Gray16, _>(
+            file,
+            Compression::Uncompressed,
+            (DIMS[0], DIMS[1]),
+            &slices[..9],
+            29,
+            Some(&desc),
+        );
+        let e = refusal(&path);
+        assert!(e.contains("hyperstack") && e.contains(word), "{e}");
+    }
+
+    // An ImageJ stack over 4 GB: the description counts more images than there are pages.
+    let path = dir.path().join("big_imagej.tif");
+    let desc = "ImageJ=1.54f\nimages=400\nslices=400\n";
+    let file = std::fs::File::create(&path).unwrap();
+    write_pages::<colortype::Gray16, _>(
+        file,
+        Compression::Uncompressed,
+        (DIMS[0], DIMS[1]),
+        &slices[..1],
+        29,
+        Some(desc),
+    );
+    let e = refusal(&path);
+    assert!(
+        e.contains("400 images") && e.contains("Image Sequence"),
+        "{e}"
+    );
+
+    // RGBA: an alpha channel.
+    let path = dir.path().join("rgba.tif");
+    {
+        let mut enc = TiffEncoder::new(std::fs::File::create(&path).unwrap()).unwrap();
+        enc.write_image::<colortype::RGBA8>(4, 3, &[7u8; 4 * 3 * 4])
+            .unwrap();
+    }
+    let e = refusal(&path);
+    assert!(
+        e.contains("RGBA") && e.contains("supported are grey and RGB"),
+        "{e}"
+    );
+
+    // Not a TIFF after its magic: refused, never a panic.
+    let path = dir.path().join("broken.tif");
+    std::fs::write(&path, b"II*\0\xff\xff\xff\x7f and nothing after").unwrap();
+    assert!(read_volume(&path, None).is_err());
+    assert!(RegionReader::open(&path, None).is_err());
+}
+
+/// Writes TIFFs with tifffile (an independent writer: tiles, BigTIFF, zlib, ImageJ metadata)
+/// and each volume as little-endian f64 samples (x fastest, channels interleaved), and the
+/// spacing it wrote in mm, for the Rust side to compare.
+const TIFFFILE_WRITER: &str = r#"
+import sys, json
+import numpy as np
+import tifffile
+out = sys.argv[1]
+rng = np.random.default_rng(7)
+z, y, x = 9, 45, 53
+cases = {}
+def case(name, data, **kw):
+    path = f"{out}/{name}.tif"
+    tifffile.imwrite(path, data, **kw)
+    data.astype("<f8").tofile(f"{out}/{name}.f64")
+    cases[name] = list(data.shape)
+case("tiled_u16_zlib", rng.integers(0, 65535, (z, y, x), dtype=np.uint16),
+     tile=(16, 32), compression="zlib")
+case("bigtiff_f32", rng.normal(3.0, 40.0, (z, y, x)).astype(np.float32), bigtiff=True)
+case("i16_strips", rng.integers(-30000, 30000, (z, y, x), dtype=np.int16),
+     rowsperstrip=5, compression="zlib")
+case("u32_tiled", rng.integers(0, 2**31, (z, y, x), dtype=np.uint32), tile=(16, 16))
+case("f64", rng.normal(0.0, 1e5, (z, y, x)), compression="zlib")
+case("rgb_tiled", rng.integers(0, 255, (z, y, x, 3), dtype=np.uint8),
+     photometric="rgb", tile=(32, 16), compression="zlib")
+case("imagej", rng.integers(0, 4000, (z, y, x), dtype=np.uint16), imagej=True,
+     resolution=(1 / 0.4, 1 / 0.5), metadata={"spacing": 1.25, "unit": "um", "axes": "ZYX"})
+json.dump(cases, open(f"{out}/cases.json", "w"))
+"#;
+
+/// A Python that imports tifffile and numpy, or `None` (the test then says why and passes
+/// only when `WAVESPLAT_REQUIRE_REFERENCE_TOOLS` is unset).
+fn tifffile_python() -> Option<&'static str> {
+    for python in ["python3", "/usr/bin/python3"] {
+        let ok = std::process::Command::new(python)
+            .args(["-c", "import tifffile, numpy"])
+            .output()
+            .is_ok_and(|o| o.status.success());
+        if ok {
+            return Some(python);
+        }
+    }
+    assert!(
+        std::env::var_os("WAVESPLAT_REQUIRE_REFERENCE_TOOLS").is_none(),
+        "tifffile is missing (apt-get install python3-tifffile python3-numpy)"
+    );
+    eprintln!("skipped the tifffile check: apt-get install python3-tifffile python3-numpy");
+    None
+}
+
+#[test]
+fn tiffs_written_by_tifffile_read_as_it_wrote_them() {
+    let Some(python) = tifffile_python() else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let script = dir.path().join("write.py");
+    std::fs::write(&script, TIFFFILE_WRITER).unwrap();
+    let o = std::process::Command::new(python)
+        .arg(&script)
+        .arg(dir.path())
+        .output()
+        .unwrap();
+    assert!(
+        o.status.success(),
+        "tifffile: {}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    for name in [
+        "tiled_u16_zlib",
+        "bigtiff_f32",
+        "i16_strips",
+        "u32_tiled",
+        "f64",
+        "rgb_tiled",
+        "imagej",
+    ] {
+        let path = dir.path().join(format!("{name}.tif"));
+        let reference: Vec<f64> = std::fs::read(dir.path().join(format!("{name}.f64")))
+            .unwrap()
+            .chunks_exact(8)
+            .map(|c| f64::from_le_bytes(c.try_into().unwrap()))
+            .collect();
+        let v = read_volume(&path, None).unwrap_or_else(|e| panic!("{name}: {e}"));
+        assert_eq!(v.dims(), [53, 45, 9], "{name}");
+        let nc = v.channel_count();
+        assert_eq!(nc, if name.starts_with("rgb") { 3 } else { 1 }, "{name}");
+        for (k, r) in reference.iter().enumerate() {
+            let (c, i) = (k % nc, k / nc);
+            let ours = f64::from(v.channels()[c][i]);
+            // Samples are f32 in a volume: equal to the reference rounded to f32.
+            assert_eq!(ours, f64::from(*r as f32), "{name}: sample {i} channel {c}");
+        }
+        // Region reads give the same samples.
+        let r = RegionReader::open(&path, None).unwrap();
+        let part = r.read_region([17, 20, 3], [30, 19, 5]).unwrap();
+        for z in 0..5 {
+            for y in 0..19 {
+                for x in 0..30 {
+                    for c in 0..nc {
+                        assert_eq!(
+                            part.channels()[c][part.index(x, y, z)],
+                            v.channels()[c][v.index(x + 17, y + 20, z + 3)],
+                            "{name}: region"
+                        );
+                    }
+                }
+            }
+        }
+        let spacing = if name == "imagej" {
+            [0.4e-3, 0.5e-3, 1.25e-3]
+        } else {
+            [1.0; 3]
+        };
+        for a in 0..3 {
+            assert!(
+                (f64::from(v.spacing()[a]) - spacing[a]).abs() < 1e-9,
+                "{name}: spacing {:?}",
+                v.spacing()
+            );
+        }
+    }
+}
+
+/// A few bytes that declare a huge image are refused before it is allocated, saying so.
+#[test]
+fn a_header_declaring_more_samples_than_its_bytes_hold_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("claims.tif");
+    // A 60000 × 60000 16-bit page (7.2 GB) in one strip of 4 bytes.
+    let mut b: Vec<u8> = b"II*\0".to_vec();
+    b.extend_from_slice(&8u32.to_le_bytes());
+    let entries: [(u16, u16, u32, u32); 8] = [
+        (256, 4, 1, 60000), // ImageWidth
+        (257, 4, 1, 60000), // ImageLength
+        (258, 3, 1, 16),    // BitsPerSample
+        (259, 3, 1, 1),     // Compression: none
+        (262, 3, 1, 1),     // BlackIsZero
+        (273, 4, 1, 200),   // StripOffsets
+        (278, 4, 1, 60000), // RowsPerStrip
+        (279, 4, 1, 4),     // StripByteCounts
+    ];
+    b.extend_from_slice(&(entries.len() as u16).to_le_bytes());
+    for (tag, ty, count, value) in entries {
+        b.extend_from_slice(&tag.to_le_bytes());
+        b.extend_from_slice(&ty.to_le_bytes());
+        b.extend_from_slice(&count.to_le_bytes());
+        match ty {
+            3 => {
+                b.extend_from_slice(&(value as u16).to_le_bytes());
+                b.extend_from_slice(&[0, 0]);
+            }
+            _ => b.extend_from_slice(&value.to_le_bytes()),
+        }
+    }
+    b.extend_from_slice(&0u32.to_le_bytes());
+    b.resize(204, 7);
+    std::fs::write(&path, &b).unwrap();
+    let e = refusal(&path);
+    assert!(e.contains("7200000000 bytes of samples"), "{e}");
+}
