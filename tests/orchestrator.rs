@@ -1762,9 +1762,11 @@ async fn a_compressed_nifti_bricked_job_spread_over_workers() {
 fn series_and_detached_header(
     dir: &Path,
     dims: [usize; 3],
-) -> (std::path::PathBuf, std::path::PathBuf) {
+) -> (std::path::PathBuf, std::path::PathBuf, std::path::PathBuf) {
     use wavesplat_codec::volume::Volume;
-    use wavesplat_fixtures::{write_dicom_series, write_metaimage, DicomOptions, Layout};
+    use wavesplat_fixtures::{
+        write_dicom_series, write_metaimage, write_tiff_stack, DicomOptions, Layout,
+    };
     let series = dir.join("ct");
     std::fs::create_dir_all(&series).unwrap();
     let samples: Vec<f32> = phantom(Phantom::SheppLogan, dims)
@@ -1778,11 +1780,13 @@ fn series_and_detached_header(
     };
     write_dicom_series(&series, &v, &dicom);
     let header = write_metaimage(dir, "head", &v, Layout::F32, false, true);
-    (series, header)
+    // A directory of TIFF slices, z1.tif … z30.tif.
+    let stack = write_tiff_stack(dir, "scope", &v, Layout::U16, true, true);
+    (series, header, stack)
 }
 
-/// A DICOM series directory and a detached MetaImage header (its data in another file) on
-/// shared storage: their bricked jobs are hashed file by file and spread over the workers like
+/// A DICOM series directory, a detached MetaImage header (its data in another file) and a
+/// directory of TIFF slices on shared storage: their bricked jobs are hashed file by file and spread over the workers like
 /// a single file's (parts read slice ranges and regions, nobody holds the volume), and each
 /// lands as the file one process makes from the same source.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -1793,7 +1797,7 @@ async fn a_dicom_series_and_a_detached_header_spread_their_bricks_over_workers()
     let (o, c) = (cl.orch.url(), cl.cache.url());
     let dims = [40, 36, 30];
     let shared = cl.root.join("shared");
-    let (series, header) = series_and_detached_header(&shared, dims);
+    let (series, header, stack) = series_and_detached_header(&shared, dims);
     assert!(
         shared.join("head.raw").is_file(),
         "a detached header's data file"
@@ -1802,9 +1806,9 @@ async fn a_dicom_series_and_a_detached_header_spread_their_bricks_over_workers()
     let _w1 = cl.worker("w1", 0, Some(&logs[0]));
     let _w2 = cl.worker("w2", 0, Some(&logs[1]));
     submit(&shared, &o, &["--brick", "20", "--target-fraction", "0.05"]);
-    let js = wait_for(&o, 120, "both bricked jobs done", all_finished).await;
+    let js = wait_for(&o, 180, "every bricked job done", all_finished).await;
     let (parts, js): (Vec<_>, Vec<_>) = js.into_iter().partition(is_part);
-    assert_eq!(js.len(), 2, "one job per volume");
+    assert_eq!(js.len(), 3, "one job per volume");
     for j in js.iter().chain(&parts) {
         assert_eq!(state_name(j.state), "done", "{}: {}", name(j), j.error);
     }
@@ -1824,8 +1828,8 @@ async fn a_dicom_series_and_a_detached_header_spread_their_bricks_over_workers()
     each_ran_a_part(&logs);
     let mut client = CacheClient::connect(&c).await.unwrap();
     let listed = client.list().await.unwrap();
-    assert_eq!(listed.len(), 2, "{listed:?}");
-    for (source, wanted) in [(&series, "ct"), (&header, "head")] {
+    assert_eq!(listed.len(), 3, "{listed:?}");
+    for (source, wanted) in [(&series, "ct"), (&header, "head"), (&stack, "scope")] {
         let reader = RegionReader::open(source, None).unwrap();
         let one = one_process_file(&reader, 20, TargetSpec::Fraction(0.05));
         let got = listed
@@ -1840,8 +1844,8 @@ async fn a_dicom_series_and_a_detached_header_spread_their_bricks_over_workers()
     }
 }
 
-/// Multi-file sources uploaded as bricked jobs (`--upload --brick`): a DICOM series and a
-/// detached MetaImage header are unpacked file by file into the worker's scratch directory as
+/// Multi-file sources uploaded as bricked jobs (`--upload --brick`): a DICOM series, a
+/// detached MetaImage header and a directory of TIFF slices are unpacked file by file into the worker's scratch directory as
 /// they stream (never held whole) and land as the file one process makes from the same
 /// source; an uploaded 4D NIfTI is refused with what to do instead, bricked or not. The
 /// worker, started with `--scratch-dir`, removes there the upload a dead worker left, and
@@ -1855,7 +1859,7 @@ async fn uploaded_bundles_unpack_as_they_stream_and_an_uploaded_series_is_refuse
     let (o, c) = (cl.orch.url(), cl.cache.url());
     let dims = [40, 36, 30];
     let up = cl.root.join("up");
-    let (series, header) = series_and_detached_header(&up, dims);
+    let (series, header, stack) = series_and_detached_header(&up, dims);
     // Time series: one submitted bricked, one whole.
     let cines = [cl.root.join("cine_b"), cl.root.join("cine_w")];
     let points: Vec<Vec<f32>> = (0..3)
@@ -1888,8 +1892,8 @@ async fn uploaded_bundles_unpack_as_they_stream_and_an_uploaded_series_is_refuse
     submit(&up, &o, &bricked);
     submit(&cines[0], &o, &bricked);
     submit(&cines[1], &o, &["--target-fraction", "0.05", "--upload"]);
-    let js = wait_for(&o, 120, "every uploaded job finished", |js| {
-        js.len() == 4 && all_finished(js)
+    let js = wait_for(&o, 180, "every uploaded job finished", |js| {
+        js.len() == 5 && all_finished(js)
     })
     .await;
     let state = |wanted: &str| {
@@ -1910,8 +1914,8 @@ async fn uploaded_bundles_unpack_as_they_stream_and_an_uploaded_series_is_refuse
     }
     let mut client = CacheClient::connect(&c).await.unwrap();
     let listed = client.list().await.unwrap();
-    assert_eq!(listed.len(), 2, "{listed:?}");
-    for (source, wanted) in [(&series, "ct"), (&header, "head")] {
+    assert_eq!(listed.len(), 3, "{listed:?}");
+    for (source, wanted) in [(&series, "ct"), (&header, "head"), (&stack, "scope")] {
         assert_eq!(state(wanted).0, "done", "{wanted}: {}", state(wanted).1);
         let reader = RegionReader::open(source, None).unwrap();
         let one = one_process_file(&reader, 20, TargetSpec::Fraction(0.05));
@@ -1925,8 +1929,8 @@ async fn uploaded_bundles_unpack_as_they_stream_and_an_uploaded_series_is_refuse
     let text = std::fs::read_to_string(&log).unwrap();
     assert_eq!(
         text.matches("uploaded bundle unpacked").count(),
-        2,
-        "both bundles unpacked as they streamed:\n{text}"
+        3,
+        "every bundle unpacked as it streamed:\n{text}"
     );
     assert!(
         !stale.exists(),

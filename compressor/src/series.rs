@@ -130,6 +130,10 @@ pub fn open_series_path(
     use crate::reader::steps::{step_files, StepSeries};
     if path.is_dir() {
         let files = step_files(path, raw)?;
+        // A directory of TIFF slices: one volume, a stack.
+        if files.is_empty() && !crate::reader::tiff_stack::stack_files(path)?.is_empty() {
+            return Ok(None);
+        }
         if files.is_empty() {
             // A DICOM series: a time series when its slices repeat at several times.
             let Some((volumes, times)) = read_time_series(path)? else {

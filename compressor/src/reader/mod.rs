@@ -24,7 +24,7 @@ pub mod raw;
 pub mod region;
 pub mod steps;
 mod text;
-mod tiff_stack;
+pub(crate) mod tiff_stack;
 pub mod unpack;
 
 use std::io::{self, Read};
