@@ -130,8 +130,8 @@ pub fn open_series_path(
     use crate::reader::steps::{step_files, StepSeries};
     if path.is_dir() {
         let files = step_files(path, raw)?;
-        // A directory of TIFF slices: one volume, a stack.
-        if files.is_empty() && !crate::reader::tiff_stack::stack_files(path)?.is_empty() {
+        // A directory of TIFF slices (and no DICOM file): one volume, a stack.
+        if files.is_empty() && crate::reader::is_tiff_directory(path)? {
             return Ok(None);
         }
         if files.is_empty() {

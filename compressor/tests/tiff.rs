@@ -404,6 +404,8 @@ def case(name, data, **kw):
 case("tiled_u16_zlib", rng.integers(0, 65535, (z, y, x), dtype=np.uint16),
      tile=(16, 32), compression="zlib")
 case("bigtiff_f32", rng.normal(3.0, 40.0, (z, y, x)).astype(np.float32), bigtiff=True)
+case("big_endian_i16", rng.integers(-30000, 30000, (z, y, x), dtype=np.int16), byteorder=">",
+     rowsperstrip=7)
 case("i16_strips", rng.integers(-30000, 30000, (z, y, x), dtype=np.int16),
      rowsperstrip=5, compression="zlib")
 case("u32_tiled", rng.integers(0, 2**31, (z, y, x), dtype=np.uint32), tile=(16, 16))
@@ -456,6 +458,7 @@ fn tiffs_written_by_tifffile_read_as_it_wrote_them() {
     for name in [
         "tiled_u16_zlib",
         "bigtiff_f32",
+        "big_endian_i16",
         "i16_strips",
         "u32_tiled",
         "f64",
@@ -545,4 +548,85 @@ fn a_header_declaring_more_samples_than_its_bytes_hold_is_refused() {
     std::fs::write(&path, &b).unwrap();
     let e = refusal(&path);
     assert!(e.contains("7200000000 bytes of samples"), "{e}");
+}
+
+/// A DICOM series beside a stray TIFF preview stays a DICOM series (whole and by regions).
+#[test]
+fn a_dicom_series_beside_a_tiff_preview_stays_a_series() {
+    use wavesplat_fixtures::{write_dicom_series, DicomOptions, Layout};
+    let dir = tempfile::tempdir().unwrap();
+    let series = dir.path().join("ct");
+    std::fs::create_dir(&series).unwrap();
+    let dims = [12, 10, 6];
+    let samples: Vec<f32> = Phantom::SheppLogan
+        .generate(dims)
+        .to_interleaved()
+        .iter()
+        .map(|v| v.round())
+        .collect();
+    let v = Volume::new(dims, [1.0; 3], vec![samples]).unwrap();
+    let options = DicomOptions {
+        layout: Layout::U16,
+        ..Default::default()
+    };
+    write_dicom_series(&series, &v, &options);
+    let f = std::fs::File::create(series.join("preview.tif")).unwrap();
+    write_pages::<colortype::Gray8, _>(f, Compression::Uncompressed, (4, 4), &[&[9; 16]], 4, None);
+    assert_eq!(
+        SourceListing::list(&series, None).unwrap().format,
+        Some(Format::Dicom)
+    );
+    assert_eq!(read_volume(&series, None).unwrap().dims(), dims);
+    assert_eq!(RegionReader::open(&series, None).unwrap().dims(), dims);
+}
+
+/// OME-TIFF: RGB pages count their samples in `SizeC` (3) and read; grey pages of several
+/// channels, and several images in one file, are refused saying so.
+#[test]
+fn ome_channels_and_images_are_told_apart() {
+    let dir = tempfile::tempdir().unwrap();
+    let ome = |size_c: usize, images: usize| {
+        let image = format!(
+            r#"<Image ID="Image:0"><Pixels ID="Pixels:0" DimensionOrder="XYZCT" Type="uint8" SizeX="4" SizeY="3" SizeZ="2" SizeC="{size_c}" SizeT="1"/></Image>"#
+        );
+        format!("<?xml version=\"1.0\"?><OME>{}</OME>", image.repeat(images))
+    };
+    let rgb = dir.path().join("rgb.ome.tif");
+    let f = std::fs::File::create(&rgb).unwrap();
+    let page = [50u8; 4 * 3 * 3];
+    write_pages::<colortype::RGB8, _>(
+        f,
+        Compression::Uncompressed,
+        (4, 3),
+        &[&page, &page],
+        3,
+        Some(&ome(3, 1)),
+    );
+    let v = read_volume(&rgb, None).unwrap();
+    assert_eq!((v.dims(), v.channel_count()), ([4, 3, 2], 3));
+    let grey = dir.path().join("two.ome.tif");
+    let f = std::fs::File::create(&grey).unwrap();
+    let page = [50u8; 4 * 3];
+    write_pages::<colortype::Gray8, _>(
+        f,
+        Compression::Uncompressed,
+        (4, 3),
+        &[&page, &page],
+        3,
+        Some(&ome(2, 1)),
+    );
+    let e = refusal(&grey);
+    assert!(e.contains("2 channels (SizeC)"), "{e}");
+    let many = dir.path().join("positions.ome.tif");
+    let f = std::fs::File::create(&many).unwrap();
+    write_pages::<colortype::Gray8, _>(
+        f,
+        Compression::Uncompressed,
+        (4, 3),
+        &[&page, &page],
+        3,
+        Some(&ome(1, 2)),
+    );
+    let e = refusal(&many);
+    assert!(e.contains("2 images"), "{e}");
 }

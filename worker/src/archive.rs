@@ -189,6 +189,10 @@ pub fn scan_with(root: &Path, time_steps: bool) -> std::io::Result<Scan> {
     // volume of its own.
     let mut stack_dirs = BTreeSet::new();
     let mut taken = HashSet::new();
+    // Single-page TIFFs by directory, and the directories that also hold a multi-page or an
+    // unreadable TIFF (their single pages are no stack).
+    let mut tiff_slices: std::collections::BTreeMap<PathBuf, Vec<PathBuf>> = Default::default();
+    let mut mixed_tiff_dirs = HashSet::new();
     for path in &files {
         match Format::from_name(path) {
             Some(Format::Nrrd | Format::MetaImage) => {
@@ -217,17 +221,29 @@ pub fn scan_with(root: &Path, time_steps: bool) -> std::io::Result<Scan> {
                 }
             }
             Some(Format::Nifti) => {}
-            Some(Format::Tiff) => match tiff_pages(path) {
-                Ok(1) => {
-                    stack_dirs.insert(path.parent().unwrap_or(root).to_path_buf());
-                    taken.insert(path.clone());
+            Some(Format::Tiff) => {
+                let dir = path.parent().unwrap_or(root).to_path_buf();
+                match tiff_pages(path) {
+                    Ok(1) => {
+                        tiff_slices.entry(dir).or_default().push(path.clone());
+                        taken.insert(path.clone());
+                    }
+                    Ok(0) => {
+                        let why = "no page holds an image at full resolution".to_string();
+                        scan.skipped.push((path.clone(), why));
+                        taken.insert(path.clone());
+                        mixed_tiff_dirs.insert(dir);
+                    }
+                    Ok(_) => {
+                        mixed_tiff_dirs.insert(dir);
+                    }
+                    Err(e) => {
+                        scan.skipped.push((path.clone(), e.to_string()));
+                        taken.insert(path.clone());
+                        mixed_tiff_dirs.insert(dir);
+                    }
                 }
-                Ok(_) => {}
-                Err(e) => {
-                    scan.skipped.push((path.clone(), e.to_string()));
-                    taken.insert(path.clone());
-                }
-            },
+            }
             Some(Format::Dicom) | None => {
                 if is_dicom_file(path)? {
                     stack_dirs.insert(path.parent().unwrap_or(root).to_path_buf());
@@ -236,8 +252,31 @@ pub fn scan_with(root: &Path, time_steps: bool) -> std::io::Result<Scan> {
             }
         }
     }
+    // A directory of single-page TIFFs is a stack, unless it is a DICOM series (the TIFFs are
+    // previews beside it) or holds other TIFFs too.
+    let mut tiff_dirs = HashSet::new();
+    for (dir, slices) in tiff_slices {
+        if stack_dirs.contains(&dir) {
+            continue;
+        }
+        if mixed_tiff_dirs.contains(&dir) {
+            for s in slices {
+                let why = "a single-page TIFF beside multi-page or unreadable ones: a stack's \
+                           directory holds its slices only";
+                scan.skipped.push((s, why.into()));
+            }
+            continue;
+        }
+        tiff_dirs.insert(dir.clone());
+        stack_dirs.insert(dir);
+    }
     for dir in stack_dirs {
-        let name = dir_name(root, &dir, "dicom");
+        let fallback = if tiff_dirs.contains(&dir) {
+            "stack"
+        } else {
+            "dicom"
+        };
+        let name = dir_name(root, &dir, fallback);
         if !names.insert(name.clone()) {
             scan.skipped.push((
                 dir,
@@ -561,9 +600,10 @@ mod tests {
     }
 
     /// A directory of single-page TIFFs is one volume (a stack, its slices in natural name
-    /// order), named by the directory; a multi-page TIFF beside it is a volume of its own; a
-    /// broken TIFF is skipped saying why. The stack's hash and upload cover its slices (the
-    /// bundle decodes to the volume).
+    /// order), named by the directory; a multi-page TIFF is a volume of its own; a broken TIFF
+    /// is skipped saying why, and so are single pages beside it (no stack); TIFFs beside a
+    /// DICOM series are previews, not a volume. The stack's hash and upload cover its slices
+    /// (the bundle decodes to the volume).
     #[test]
     fn tiff_stacks_are_volumes_by_directory_or_by_file() {
         use tiff::encoder::{colortype::Gray16, TiffEncoder};
@@ -583,12 +623,37 @@ mod tests {
         }
         drop(e);
         std::fs::write(r.join("scope/broken.tif"), b"II*\0\x02\0\0\0").unwrap();
+        let f = std::fs::File::create(r.join("scope/lonely.tif")).unwrap();
+        TiffEncoder::new(f)
+            .unwrap()
+            .write_image::<Gray16>(2, 2, &[1; 4])
+            .unwrap();
+        // A DICOM series with a TIFF preview beside its slices.
+        std::fs::create_dir_all(r.join("ct")).unwrap();
+        let mut dcm = vec![0u8; 128];
+        dcm.extend_from_slice(b"DICM");
+        std::fs::write(r.join("ct/IM1"), &dcm).unwrap();
+        let f = std::fs::File::create(r.join("ct/preview.tif")).unwrap();
+        TiffEncoder::new(f)
+            .unwrap()
+            .write_image::<Gray16>(2, 2, &[1; 4])
+            .unwrap();
         let s = scan(r).unwrap();
         let names: Vec<&str> = s.found.iter().map(|f| f.name.as_str()).collect();
-        assert_eq!(names, vec!["scope/stack", "scope/vol"]);
-        assert_eq!(s.skipped.len(), 1, "{:?}", s.skipped);
-        assert_eq!(s.skipped[0].0, r.join("scope/broken.tif"));
-        let stack = &s.found[0];
+        assert_eq!(names, vec!["ct", "scope/stack", "scope/vol"]);
+        let skipped: Vec<&Path> = s.skipped.iter().map(|(p, _)| p.as_path()).collect();
+        assert_eq!(
+            skipped,
+            [r.join("scope/broken.tif"), r.join("scope/lonely.tif")],
+            "{:?}",
+            s.skipped
+        );
+        assert!(
+            s.skipped[1].1.contains("single-page TIFF beside"),
+            "{:?}",
+            s.skipped
+        );
+        let stack = &s.found[1];
         assert_eq!(stack.path, r.join("scope/stack"));
         assert_eq!(source_listing(&stack.path, false).unwrap().files.len(), 10);
         let (spec, bytes) = job_spec(stack, &JobOptions::default(), true).unwrap();
@@ -601,7 +666,7 @@ mod tests {
         assert_eq!(v.dims(), [3, 2, 10]);
         let firsts: Vec<f32> = (0..10).map(|z| v.channel(0)[v.index(0, 0, z)]).collect();
         assert_eq!(firsts, (1..=10u16).map(f32::from).collect::<Vec<_>>());
-        let v = wavesplat_compressor::reader::read_volume(&s.found[1].path, None).unwrap();
+        let v = wavesplat_compressor::reader::read_volume(&s.found[2].path, None).unwrap();
         assert_eq!(v.dims(), [2, 2, 4]);
     }
 

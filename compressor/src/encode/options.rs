@@ -150,14 +150,12 @@ impl StopFlag {
     }
 }
 
-/// Two flags are equal when they are one request (clones), or when neither can be raised.
+/// Any two flags are equal: a stop request is no option of the file, and options that differ
+/// only in their flags compress alike (a brick's kept top, scored under one worker lease's
+/// flag, is reused by the part coding it under another's).
 impl PartialEq for StopFlag {
-    fn eq(&self, other: &StopFlag) -> bool {
-        match (&self.0, &other.0) {
-            (None, None) => true,
-            (Some(a), Some(b)) => Arc::ptr_eq(a, b),
-            _ => false,
-        }
+    fn eq(&self, _: &StopFlag) -> bool {
+        true
     }
 }
 

@@ -701,9 +701,12 @@ fn refine_to_bytes(
         } else {
             fit(whole, trials)
         };
-        // A refined set that cannot be cut to the target leaves the oracle's file standing.
-        let Ok(candidate) = candidate else {
-            break;
+        // A refined set that cannot be cut to the target leaves the oracle's file standing
+        // (a stop asked for ends the compression).
+        let candidate = match candidate {
+            Ok(c) => c,
+            Err(CompressError::Stopped) => return Err(CompressError::Stopped),
+            Err(_) => break,
         };
         if fuller(&best, &candidate) {
             best = Some((candidate, refined));

@@ -633,7 +633,8 @@ impl SourceFiles {
                 r.len()
             )));
         }
-        let base = if format == Some(Format::Dicom) {
+        // A directory's files (a series, a stack of slices) are named within it.
+        let base = if matches!(format, Some(Format::Dicom | Format::Tiff)) {
             origin.to_path_buf()
         } else {
             parent_of(origin)
@@ -675,12 +676,13 @@ impl SourceListing {
                 .map_err(|e| ReadError::io(p, e))
         };
         if meta.is_dir() {
-            // A directory of TIFF files is a stack; any other a DICOM series.
-            let tiffs = tiff_stack::stack_files(path)?;
-            let (format, found) = if tiffs.is_empty() {
-                (Format::Dicom, dicom::series_files(path)?)
-            } else {
-                (Format::Tiff, tiffs)
+            // A DICOM series, else a stack of TIFF files.
+            let (format, found) = match dicom::series_files(path) {
+                Ok(files) => (Format::Dicom, files),
+                Err(no_dicom) => match tiff_stack::stack_files(path)? {
+                    tiffs if tiffs.is_empty() => return Err(no_dicom),
+                    tiffs => (Format::Tiff, tiffs),
+                },
             };
             let files = found
                 .into_iter()
@@ -884,6 +886,12 @@ pub fn read_volume(path: &Path, raw: Option<&RawSpec>) -> Result<Volume, ReadErr
     }
     let src = SourceFiles::gather(path, None)?;
     decode_source(&src, raw)
+}
+
+/// Whether the directory `path` is a TIFF stack: it holds TIFF files and no DICOM file (a
+/// DICOM series beside a stray `.tif` preview stays a series).
+pub(crate) fn is_tiff_directory(path: &Path) -> Result<bool, ReadError> {
+    Ok(dicom::series_files(path).is_err() && !tiff_stack::stack_files(path)?.is_empty())
 }
 
 /// The full-resolution pages of the TIFF file at `path` (an archive scan takes a directory of

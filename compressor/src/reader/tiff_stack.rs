@@ -27,7 +27,7 @@ use ::tiff::decoder::{ChunkType, Decoder, DecodingResult, Limits};
 use ::tiff::tags::Tag;
 use ::tiff::ColorType;
 
-use super::{ReadError, SourceFiles};
+use super::{deinterleave, Endian, ReadError, SampleType, SourceFiles};
 use wavesplat_codec::volume::{checked_voxels, Volume};
 
 const FORMAT: &str = "TIFF";
@@ -154,13 +154,26 @@ struct StackMeta {
     spacing: [Option<f64>; 3],
     /// The images an ImageJ description counts.
     imagej_images: Option<usize>,
+    /// OME's `SizeC`: samples a pixel (3 for RGB pages), not only separate channels.
+    ome_size_c: Option<usize>,
 }
 
-fn decoder<R: Read + Seek>(reader: R, path: &Path) -> Result<Decoder<R>, ReadError> {
+/// A decoder of `reader`, whose buffers (a decoded chunk, a tag's value) are bounded by what
+/// the file's length can hold ([`MAX_EXPANSION`]), so that a few bytes cannot make it
+/// allocate a gigabyte.
+fn decoder<R: Read + Seek>(mut reader: R, path: &Path) -> Result<Decoder<R>, ReadError> {
+    let len = reader
+        .seek(std::io::SeekFrom::End(0))
+        .and_then(|n| reader.rewind().map(|()| n))
+        .map_err(|e| ReadError::io(path, e))?;
+    let bound = len
+        .saturating_mul(MAX_EXPANSION)
+        .saturating_add(DECLARED_SLACK);
+    let bound = usize::try_from(bound).unwrap_or(usize::MAX);
     let mut limits = Limits::default();
-    limits.decoding_buffer_size = CHUNK_LIMIT;
-    limits.intermediate_buffer_size = CHUNK_LIMIT;
-    limits.ifd_value_size = TAG_LIMIT;
+    limits.decoding_buffer_size = CHUNK_LIMIT.min(bound);
+    limits.intermediate_buffer_size = CHUNK_LIMIT.min(bound);
+    limits.ifd_value_size = TAG_LIMIT.min(bound);
     Ok(Decoder::new(reader)
         .map_err(|e| failed(path, e))?
         .with_limits(limits))
@@ -331,21 +344,21 @@ fn stack_meta<R: Read + Seek>(d: &mut Decoder<R>, path: &Path) -> Result<StackMe
             meta.spacing = [x, y, z];
         }
     } else if description.contains("<OME") {
-        for key in ["SizeC", "SizeT"] {
-            if let Some(n) = xml_attr(&description, key).and_then(|v| v.parse::<usize>().ok()) {
-                if n > 1 {
-                    let what = if key == "SizeC" {
-                        "channels"
-                    } else {
-                        "time points"
-                    };
-                    return Err(ReadError::unsupported(
-                        path,
-                        format!("an OME-TIFF of {n} {what} ({key}); supported is one channel at one time point"),
-                    ));
-                }
-            }
+        let images = description.matches("<Image ").count();
+        if images > 1 {
+            return Err(ReadError::unsupported(
+                path,
+                format!("an OME-TIFF of {images} images (series or positions); supported is one"),
+            ));
         }
+        let size = |key: &str| xml_attr(&description, key).and_then(|v| v.parse::<usize>().ok());
+        if let Some(t) = size("SizeT").filter(|t| *t > 1) {
+            return Err(ReadError::unsupported(
+                path,
+                format!("an OME-TIFF of {t} time points (SizeT); supported is one"),
+            ));
+        }
+        meta.ome_size_c = size("SizeC");
         for (axis, key) in ["PhysicalSizeX", "PhysicalSizeY", "PhysicalSizeZ"]
             .iter()
             .enumerate()
@@ -355,8 +368,9 @@ fn stack_meta<R: Read + Seek>(d: &mut Decoder<R>, path: &Path) -> Result<StackMe
             meta.spacing[axis] = size.zip(unit_mm(unit)).map(|(s, mm)| s * mm);
         }
     }
+    // Kept where it is a positive f32 (what a volume's spacing is): else 1.
     for s in meta.spacing.iter_mut() {
-        if s.is_some_and(|v| !(v.is_finite() && v > 0.0 && v <= f32::MAX as f64)) {
+        if s.is_some_and(|v| !((v as f32).is_finite() && v as f32 > 0.0)) {
             *s = None;
         }
     }
@@ -371,7 +385,6 @@ fn file_pages<R: Read + Seek>(
 ) -> Result<(Vec<(usize, PageShape)>, StackMeta), ReadError> {
     let len = reader
         .seek(std::io::SeekFrom::End(0))
-        .and_then(|n| reader.rewind().map(|()| n))
         .map_err(|e| ReadError::io(path, e))?;
     let mut d = decoder(reader, path)?;
     let meta = stack_meta(&mut d, path)?;
@@ -405,6 +418,18 @@ fn file_pages<R: Read + Seek>(
                 declared.map_or("more than 2^64".into(), |d| d.to_string())
             ),
         ));
+    }
+    if let (Some(c), Some((_, first))) = (meta.ome_size_c, pages.first()) {
+        if c > 1 && c != first.channels {
+            return Err(ReadError::unsupported(
+                path,
+                format!(
+                    "an OME-TIFF of {c} channels (SizeC) in pages of {}; supported is one \
+                     channel (or RGB pages)",
+                    first.channels
+                ),
+            ));
+        }
     }
     if let Some(n) = meta.imagej_images.filter(|n| *n > pages.len()) {
         return Err(ReadError::unsupported(
@@ -659,6 +684,69 @@ pub(crate) fn decode(src: &SourceFiles) -> Result<Volume, ReadError> {
 pub(crate) struct TiffRegions {
     files: Vec<PathBuf>,
     stack: Stack,
+    /// Where each slice's rows lie when its page is stored uncompressed in strips (read as
+    /// bytes, only the region's; `None`: decoded chunk by chunk).
+    raw: Vec<Option<RawStrips>>,
+    /// The samples' type and byte order, for the pages read as bytes.
+    sample: Option<(SampleType, Endian)>,
+}
+
+/// An uncompressed page in strips: where each strip starts and how many rows it holds.
+#[derive(Debug, Clone)]
+struct RawStrips {
+    offsets: Vec<u64>,
+    rows_per_strip: usize,
+}
+
+/// The sample type of `shape` as the raw reader converts it (`None`: half floats, decoded).
+fn raw_sample(shape: &PageShape) -> Option<SampleType> {
+    Some(match (shape.bits, shape.format) {
+        (8, 1) => SampleType::U8,
+        (8, 2) => SampleType::I8,
+        (16, 1) => SampleType::U16,
+        (16, 2) => SampleType::I16,
+        (32, 1) => SampleType::U32,
+        (32, 2) => SampleType::I32,
+        (32, 3) => SampleType::F32,
+        (64, 1) => SampleType::U64,
+        (64, 2) => SampleType::I64,
+        (64, 3) => SampleType::F64,
+        _ => return None,
+    })
+}
+
+/// Where the current page's rows lie, when it is stored uncompressed in strips that hold
+/// them all (else `None`: the page is decoded chunk by chunk).
+fn raw_strips<R: Read + Seek>(
+    d: &mut Decoder<R>,
+    shape: &PageShape,
+    path: &Path,
+) -> Option<RawStrips> {
+    if !matches!(d.get_chunk_type(), ChunkType::Strip) {
+        return None;
+    }
+    let tag = |d: &mut Decoder<R>, t: Tag| tag_u64(d, t, path).ok();
+    if tag(d, Tag::Compression)?.unwrap_or(1) != 1 || tag(d, Tag::Predictor)?.unwrap_or(1) != 1 {
+        return None;
+    }
+    let offsets = d.get_tag_u64_vec(Tag::StripOffsets).ok()?;
+    let counts = d.get_tag_u64_vec(Tag::StripByteCounts).ok()?;
+    let rows = (tag(d, Tag::RowsPerStrip)?.unwrap_or(u64::MAX) as usize).clamp(1, shape.height);
+    let row_bytes = (shape.width * shape.channels * usize::from(shape.bits) / 8) as u64;
+    let strips = shape.height.div_ceil(rows);
+    if offsets.len() < strips || counts.len() < strips {
+        return None;
+    }
+    for s in 0..strips {
+        let held = rows.min(shape.height - s * rows) as u64;
+        if counts[s] < held * row_bytes || offsets[s].checked_add(counts[s]).is_none() {
+            return None;
+        }
+    }
+    Some(RawStrips {
+        offsets,
+        rows_per_strip: rows,
+    })
 }
 
 impl TiffRegions {
@@ -677,7 +765,45 @@ impl TiffRegions {
             let file = File::open(&files[f]).map_err(|e| ReadError::io(&files[f], e))?;
             file_pages(BufReader::new(file), &files[f])
         })?;
-        Ok(TiffRegions { files, stack })
+        // Uncompressed pages in strips are read as bytes, only the region's: decoding a whole
+        // strip (often the whole page) for every brick across it would read each slice once
+        // per brick in the plane.
+        let sample = raw_sample(&stack.shape);
+        let mut raw = Vec::with_capacity(stack.slices.len());
+        let mut open: Option<(usize, Decoder<BufReader<File>>, bool)> = None;
+        for &(f, p) in &stack.slices {
+            if open.as_ref().is_none_or(|(g, _, _)| *g != f) {
+                let file = File::open(&files[f]).map_err(|e| ReadError::io(&files[f], e))?;
+                let d = decoder(BufReader::new(file), &files[f])?;
+                open = Some((f, d, false));
+            }
+            let (_, d, little) = open.as_mut().expect("opened above");
+            d.seek_to_image(p).map_err(|e| failed(&files[f], e))?;
+            *little = matches!(d.byte_order(), ::tiff::tags::ByteOrder::LittleEndian);
+            raw.push(sample.and_then(|_| raw_strips(d, &stack.shape, &files[f])));
+        }
+        let endian = match open.map(|(_, _, little)| little) {
+            Some(false) => Endian::Big,
+            _ => Endian::Little,
+        };
+        // One byte order for every file read as bytes: a stack mixing them is decoded.
+        let mut orders = files.iter().map(|p| {
+            let mut head = [0u8; 2];
+            File::open(p)
+                .and_then(|mut f| f.read_exact(&mut head))
+                .map(|()| head)
+                .ok()
+        });
+        let first = orders.next().flatten();
+        if first.is_none() || orders.any(|o| o != first) {
+            raw.iter_mut().for_each(|r| *r = None);
+        }
+        Ok(TiffRegions {
+            files,
+            stack,
+            raw,
+            sample: sample.map(|s| (s, endian)),
+        })
     }
 
     pub(crate) fn dims(&self) -> [usize; 3] {
@@ -708,9 +834,45 @@ impl TiffRegions {
             origin[1] + size[1],
         );
         let mut open: Option<(usize, Decoder<BufReader<File>>)> = None;
+        let mut bytes: Option<(usize, File)> = None;
+        let mut buf = Vec::new();
         for z in 0..size[2] {
             let (f, p) = self.stack.slices[origin[2] + z];
             let path = &self.files[f];
+            let base = z * size[0] * size[1];
+            if let (Some(raw), Some((sample, endian))) = (&self.raw[origin[2] + z], self.sample) {
+                if bytes.as_ref().is_none_or(|(g, _)| *g != f) {
+                    let file = File::open(path).map_err(|e| ReadError::io(path, e))?;
+                    bytes = Some((f, file));
+                }
+                let (_, file) = bytes.as_mut().expect("opened above");
+                let shape = &self.stack.shape;
+                let pixel = shape.channels * usize::from(shape.bits) / 8;
+                let row = size[0] * pixel;
+                buf.resize(row * size[1], 0);
+                for (j, y) in (window.2..window.3).enumerate() {
+                    let s = y / raw.rows_per_strip;
+                    let within = (y - s * raw.rows_per_strip) * shape.width + window.0;
+                    let at = raw.offsets[s] + (within * pixel) as u64;
+                    let into = &mut buf[j * row..(j + 1) * row];
+                    file.seek(std::io::SeekFrom::Start(at))
+                        .and_then(|_| file.read_exact(into))
+                        .map_err(|e| match e.kind() {
+                            std::io::ErrorKind::UnexpectedEof => ReadError::Truncated {
+                                path: path.clone(),
+                                offset: at,
+                                expected: row as u64,
+                                actual: 0,
+                            },
+                            _ => ReadError::io(path, e),
+                        })?;
+                }
+                let planes = deinterleave(&buf, sample, endian, shape.channels, 1.0, 0.0);
+                for (o, plane) in out.iter_mut().zip(planes) {
+                    o[base..base + plane.len()].copy_from_slice(&plane);
+                }
+                continue;
+            }
             if open.as_ref().is_none_or(|(g, _)| *g != f) {
                 let file = File::open(path).map_err(|e| ReadError::io(path, e))?;
                 open = Some((f, decoder(BufReader::new(file), path)?));
@@ -724,7 +886,6 @@ impl TiffRegions {
                     reason: format!("page {p} changed since the stack was opened"),
                 });
             }
-            let base = z * size[0] * size[1];
             read_page(d, path, p, &self.stack.shape, window, &mut out, base)?;
         }
         Ok(out)
@@ -757,6 +918,39 @@ mod tests {
                 "z10.tif"
             ]
         );
+    }
+
+    /// An uncompressed page in strips is read as bytes, only the region's rows, and gives what
+    /// decoding its strips gives.
+    #[test]
+    fn uncompressed_strips_are_read_as_bytes_alike() {
+        use ::tiff::encoder::{colortype::Gray16, TiffEncoder};
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("raw.tif");
+        let (w, h) = (13usize, 11usize);
+        {
+            let mut e = TiffEncoder::new(File::create(&path).unwrap()).unwrap();
+            for z in 0..3u16 {
+                let data: Vec<u16> = (0..(w * h) as u16).map(|i| i * 7 + z * 1000).collect();
+                let mut image = e.new_image::<Gray16>(w as u32, h as u32).unwrap();
+                image.rows_per_strip(2).unwrap();
+                image.write_data(&data).unwrap();
+            }
+        }
+        let by_bytes = TiffRegions::open(&path).unwrap();
+        assert!(by_bytes.raw.iter().all(Option::is_some), "read as bytes");
+        let mut decoded = TiffRegions::open(&path).unwrap();
+        decoded.raw.iter_mut().for_each(|r| *r = None);
+        for (origin, size) in [
+            ([0, 0, 0], [13, 11, 3]),
+            ([4, 3, 1], [6, 5, 2]),
+            ([12, 10, 2], [1, 1, 1]),
+        ] {
+            let a = by_bytes.read(origin, size).unwrap();
+            assert_eq!(a, decoded.read(origin, size).unwrap(), "{origin:?}");
+            let first = (origin[2] * 1000 + (origin[1] * w + origin[0]) * 7) as f32;
+            assert_eq!(a[0][0], first);
+        }
     }
 
     #[test]

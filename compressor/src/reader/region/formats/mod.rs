@@ -30,8 +30,8 @@ use wavesplat_codec::volume::{Volume, VolumeError};
 pub(super) fn open(path: &Path, raw: Option<&RawSpec>) -> Result<Opened, ReadError> {
     let meta = std::fs::metadata(path).map_err(|e| ReadError::io(path, e))?;
     if meta.is_dir() {
-        // A directory of TIFF files is a stack; any other a DICOM series.
-        if !crate::reader::tiff_stack::stack_files(path)?.is_empty() {
+        // A DICOM series, else a stack of TIFF files.
+        if crate::reader::is_tiff_directory(path)? {
             return open_tiff(path);
         }
         return open_series(path);
