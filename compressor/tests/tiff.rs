@@ -347,23 +347,38 @@ fn stacks_that_are_not_one_volume_are_refused_saying_why() {
         assert!(e.contains("hyperstack") && e.contains(word), "{e}");
     }
 
-    // An ImageJ stack over 4 GB: the description counts more images than there are pages.
+    // An ImageJ stack over 4 GB whose images are not all there: its description counts 400
+    // images after the first page's samples, the file holds one.
     let path = dir.path().join("big_imagej.tif");
     let desc = "ImageJ=1.54f\nimages=400\nslices=400\n";
-    let file = std::fs::File::create(&path).unwrap();
-    write_pages::<colortype::Gray16, _>(
-        file,
-        Compression::Uncompressed,
-        (DIMS[0], DIMS[1]),
-        &slices[..1],
-        29,
-        Some(desc),
-    );
-    let e = refusal(&path);
-    assert!(
-        e.contains("400 images") && e.contains("Image Sequence"),
-        "{e}"
-    );
+    for (compression, name) in [
+        (Compression::Uncompressed, "raw"),
+        (Compression::Lzw, "lzw"),
+    ] {
+        let path = path.with_extension(format!("{name}.tif"));
+        let file = std::fs::File::create(&path).unwrap();
+        write_pages::<colortype::Gray16, _>(
+            file,
+            compression,
+            (DIMS[0], DIMS[1]),
+            &slices[..1],
+            29,
+            Some(desc),
+        );
+        let e = refusal(&path);
+        if name == "raw" {
+            assert!(
+                e.contains("truncated") && e.contains(&(400 * slice * 2).to_string()),
+                "{e}"
+            );
+        } else {
+            // Compressed, its images cannot be found without their pages.
+            assert!(
+                e.contains("400 images") && e.contains("Image Sequence"),
+                "{e}"
+            );
+        }
+    }
 
     // RGBA: an alpha channel.
     let path = dir.path().join("rgba.tif");

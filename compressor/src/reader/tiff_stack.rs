@@ -4,20 +4,22 @@
 //! each file's pages in order. Grey samples of 8 to 64 bits (unsigned, signed or float, half
 //! floats too) and RGB, in every compression the `tiff` crate decodes (none, LZW, Deflate,
 //! PackBits, JPEG), in strips or tiles. Pages marked as reduced-resolution copies (thumbnails,
-//! pyramid levels) are skipped.
+//! pyramid levels) are skipped. An ImageJ stack over 4 GB (one page directory, its description
+//! counting the images that follow the first's samples) is read as ImageJ reads it.
 //!
 //! Spacing, in mm: an ImageJ description's `spacing=` (z) and the resolution tags (x, y, pixels
 //! per unit) in its `unit=`, or OME-XML's `PhysicalSizeX/Y/Z` in their units; else 1 on every
 //! axis (the stack says nothing physical). Refused, saying why: stacks of several channels or
 //! time points (ImageJ hyperstacks, OME `SizeC`/`SizeT` > 1), palette, CMYK, YCbCr, alpha,
 //! inverted grey (`WhiteIsZero`), bilevel and planar colour pages, pages of different sizes or
-//! sample types, and ImageJ stacks over 4 GB whose pages after the first have no directory of
-//! their own (the description counts more images than the file has pages).
+//! sample types, several OME images in one file, and a file whose ImageJ description counts
+//! more images than it has pages where they cannot follow the first (compressed), or do not
+//! (truncated).
 //!
 //! Decoding is the `tiff` crate's (image-rs): this module picks the pages, checks that they form
 //! one volume, and reads a region's slices chunk by chunk (a strip or a tile), decoding only the
-//! chunks the region covers ([`TiffRegions`]), so that a stack larger than memory is read brick
-//! by brick.
+//! chunks the region covers, and uncompressed strips as bytes, only the region's rows
+//! ([`TiffRegions`]), so that a stack larger than memory is read brick by brick.
 
 use std::fs::File;
 use std::io::{BufReader, Cursor, Read, Seek};
@@ -38,10 +40,12 @@ const CHUNK_LIMIT: usize = 1 << 30;
 const TAG_LIMIT: usize = 64 << 20;
 
 /// Most sample bytes a file may declare per byte of its own (beyond [`DECLARED_SLACK`]): what
-/// Deflate reaches on constant data (1032), with room. A header declaring more is refused
-/// before anything that large is allocated (a few bytes must not claim a gigabyte image).
-const MAX_EXPANSION: u64 = 1100;
-const DECLARED_SLACK: u64 = 4 << 20;
+/// TIFF's LZW reaches on constant data (about 1365: a blank slice; Deflate's limit is 1032,
+/// PackBits' 64), with room. A header declaring more is refused before anything that large is
+/// allocated (a few bytes must not claim a gigabyte image); only a JPEG-compressed blank page
+/// goes further.
+const MAX_EXPANSION: u64 = 1400;
+const DECLARED_SLACK: u64 = 1 << 20;
 
 fn bad(path: &Path, reason: impl Into<String>) -> ReadError {
     ReadError::bad_header(path, FORMAT, reason)
@@ -135,6 +139,11 @@ struct PageShape {
 }
 
 impl PageShape {
+    /// Bytes of the page's samples, uncompressed.
+    fn bytes(&self) -> u64 {
+        (self.width * self.height * self.channels * usize::from(self.bits) / 8) as u64
+    }
+
     fn describe(&self) -> String {
         let kind = match self.format {
             2 => "signed",
@@ -156,6 +165,31 @@ struct StackMeta {
     imagej_images: Option<usize>,
     /// OME's `SizeC`: samples a pixel (3 for RGB pages), not only separate channels.
     ome_size_c: Option<usize>,
+    /// An ImageJ stack over 4 GB: one page directory, every image's samples one after another.
+    contiguous: Option<Contiguous>,
+}
+
+/// Where the images of an ImageJ stack over 4 GB lie: ImageJ writes one page directory (32-bit
+/// offsets cannot reach further) and every image's uncompressed samples after the first's, as
+/// its description's `images=` counts them.
+#[derive(Debug, Clone, Copy)]
+struct Contiguous {
+    /// The first image's first byte.
+    offset: u64,
+    /// Bytes of one image.
+    page_bytes: u64,
+    endian: Endian,
+}
+
+impl Contiguous {
+    /// Where image `p` of the file lies.
+    fn strips(&self, p: usize, shape: &PageShape) -> RawStrips {
+        RawStrips {
+            offsets: vec![self.offset + p as u64 * self.page_bytes],
+            rows_per_strip: shape.height,
+            endian: self.endian,
+        }
+    }
 }
 
 /// A decoder of `reader`, whose buffers (a decoded chunk, a tag's value) are bounded by what
@@ -166,6 +200,8 @@ fn decoder<R: Read + Seek>(mut reader: R, path: &Path) -> Result<Decoder<R>, Rea
         .seek(std::io::SeekFrom::End(0))
         .and_then(|n| reader.rewind().map(|()| n))
         .map_err(|e| ReadError::io(path, e))?;
+    first_directory_fits(&mut reader, len, path)?;
+    reader.rewind().map_err(|e| ReadError::io(path, e))?;
     let bound = len
         .saturating_mul(MAX_EXPANSION)
         .saturating_add(DECLARED_SLACK);
@@ -177,6 +213,87 @@ fn decoder<R: Read + Seek>(mut reader: R, path: &Path) -> Result<Decoder<R>, Rea
     Ok(Decoder::new(reader)
         .map_err(|e| failed(path, e))?
         .with_limits(limits))
+}
+
+/// Checks that no entry of the first page directory declares more values than the file's `len`
+/// bytes hold. The `tiff` crate reads that directory when the decoder is made, before limits
+/// can be set, and reserves 32 bytes a declared value: a 300-byte file declaring a million
+/// strip offsets took 30 MB, four billion would abort. (Written here because the crate has no
+/// constructor taking limits; later directories are read within the decoder's.)
+fn first_directory_fits<R: Read + Seek>(r: &mut R, len: u64, path: &Path) -> Result<(), ReadError> {
+    let mut head = [0u8; 16];
+    let got = r.read(&mut head).map_err(|e| ReadError::io(path, e))?;
+    let little = match &head[..2] {
+        b"II" => true,
+        b"MM" => false,
+        _ => return Ok(()), // the crate refuses it
+    };
+    let u16_at = |b: &[u8]| {
+        let a = [b[0], b[1]];
+        u64::from(if little {
+            u16::from_le_bytes(a)
+        } else {
+            u16::from_be_bytes(a)
+        })
+    };
+    let u32_at = |b: &[u8]| {
+        let a = [b[0], b[1], b[2], b[3]];
+        u64::from(if little {
+            u32::from_le_bytes(a)
+        } else {
+            u32::from_be_bytes(a)
+        })
+    };
+    let u64_at = |b: &[u8]| {
+        let a: [u8; 8] = b[..8].try_into().expect("8 bytes");
+        if little {
+            u64::from_le_bytes(a)
+        } else {
+            u64::from_be_bytes(a)
+        }
+    };
+    if got < 8 {
+        return Ok(());
+    }
+    let big = u16_at(&head[2..4]) == 43;
+    let (first, count_bytes, entry_bytes, count_in) = match big {
+        false => (u32_at(&head[4..8]), 2, 12, 4..8),
+        true if got >= 16 => (u64_at(&head[8..16]), 8, 20, 4..12),
+        true => return Ok(()),
+    };
+    let mut count = [0u8; 8];
+    if r.seek(std::io::SeekFrom::Start(first)).is_err()
+        || r.read_exact(&mut count[..count_bytes]).is_err()
+    {
+        return Ok(()); // the crate reports it
+    }
+    let entries = if big { u64_at(&count) } else { u16_at(&count) };
+    let mut entry = [0u8; 20];
+    for _ in 0..entries.min(len / entry_bytes as u64) {
+        if r.read_exact(&mut entry[..entry_bytes]).is_err() {
+            return Ok(());
+        }
+        let (tag, kind) = (u16_at(&entry[0..2]), u16_at(&entry[2..4]));
+        let values = if big {
+            u64_at(&entry[count_in.clone()])
+        } else {
+            u32_at(&entry[count_in.clone()])
+        };
+        let size: u64 = match kind {
+            1 | 2 | 6 | 7 => 1,
+            3 | 8 => 2,
+            4 | 9 | 11 | 13 => 4,
+            5 | 10 | 12 | 16 | 17 | 18 => 8,
+            _ => 0,
+        };
+        if values.saturating_mul(size) > len {
+            return Err(bad(
+                path,
+                format!("tag {tag} of the first page declares {values} values, more than the file's {len} bytes hold"),
+            ));
+        }
+    }
+    Ok(())
 }
 
 fn tag_u64<R: Read + Seek>(
@@ -387,7 +504,7 @@ fn file_pages<R: Read + Seek>(
         .seek(std::io::SeekFrom::End(0))
         .map_err(|e| ReadError::io(path, e))?;
     let mut d = decoder(reader, path)?;
-    let meta = stack_meta(&mut d, path)?;
+    let mut meta = stack_meta(&mut d, path)?;
     let mut pages = Vec::new();
     let mut index = 0;
     loop {
@@ -432,15 +549,42 @@ fn file_pages<R: Read + Seek>(
         }
     }
     if let Some(n) = meta.imagej_images.filter(|n| *n > pages.len()) {
-        return Err(ReadError::unsupported(
-            path,
-            format!(
-                "ImageJ counts {n} images but the file has {} pages: an ImageJ stack over 4 GB \
-                 stores its later images without pages of their own; save it as a sequence of \
-                 TIFF files (File > Save As > Image Sequence) or as OME-TIFF",
-                pages.len()
-            ),
-        ));
+        // One page directory: the images follow one another after the first's samples.
+        let first = match pages.as_slice() {
+            [(0, shape)] => raw_strips(&mut d, shape, path)
+                .filter(|r| r.contiguous(shape) && raw_sample(shape).is_some())
+                .map(|r| (*shape, r)),
+            _ => None,
+        };
+        let Some((shape, strips)) = first else {
+            return Err(ReadError::unsupported(
+                path,
+                format!(
+                    "ImageJ counts {n} images but the file has {} pages, and its first image is \
+                     not stored uncompressed in one run as ImageJ stores a stack over 4 GB; save \
+                     it as a sequence of TIFF files (File > Save As > Image Sequence) or as OME-TIFF",
+                    pages.len()
+                ),
+            ));
+        };
+        let page_bytes = shape.bytes();
+        let end = (n as u64)
+            .checked_mul(page_bytes)
+            .and_then(|b| b.checked_add(strips.offsets[0]));
+        if end.is_none_or(|e| e > len) {
+            return Err(ReadError::Truncated {
+                path: path.to_path_buf(),
+                offset: strips.offsets[0],
+                expected: (n as u64).saturating_mul(page_bytes),
+                actual: len.saturating_sub(strips.offsets[0]),
+            });
+        }
+        meta.contiguous = Some(Contiguous {
+            offset: strips.offsets[0],
+            page_bytes,
+            endian: strips.endian,
+        });
+        pages.extend((1..n).map(|p| (p, shape)));
     }
     Ok((pages, meta))
 }
@@ -459,6 +603,9 @@ struct Stack {
     slices: Vec<(usize, usize)>,
     shape: PageShape,
     spacing: [f32; 3],
+    /// For each file, where its images lie when it is an ImageJ stack over 4 GB (one page
+    /// directory for them all).
+    contiguous: Vec<Option<Contiguous>>,
 }
 
 impl Stack {
@@ -469,9 +616,11 @@ impl Stack {
         mut pages_of: impl FnMut(usize) -> Result<(Vec<(usize, PageShape)>, StackMeta), ReadError>,
     ) -> Result<Stack, ReadError> {
         let mut slices = Vec::new();
+        let mut contiguous = Vec::with_capacity(names.len());
         let mut first: Option<(PageShape, StackMeta, usize, usize)> = None;
         for (f, path) in names.iter().enumerate() {
             let (pages, meta) = pages_of(f)?;
+            contiguous.push(meta.contiguous);
             for (p, shape) in pages {
                 match &first {
                     None => first = Some((shape, meta, f, p)),
@@ -502,6 +651,7 @@ impl Stack {
             slices,
             shape,
             spacing,
+            contiguous,
         })
     }
 
@@ -664,6 +814,17 @@ pub(crate) fn decode(src: &SourceFiles) -> Result<Volume, ReadError> {
     let slice = dims[0] * dims[1];
     let mut open: Option<(usize, Decoder<Cursor<&[u8]>>)> = None;
     for (z, &(f, p)) in stack.slices.iter().enumerate() {
+        if let (Some(c), Some(sample)) = (stack.contiguous[f], raw_sample(&stack.shape)) {
+            // An ImageJ stack over 4 GB: image `p`'s bytes (within the file: checked when its
+            // pages were listed).
+            let start = (c.offset + p as u64 * c.page_bytes) as usize;
+            let bytes = &src.files[f].1[start..start + c.page_bytes as usize];
+            let planes = deinterleave(bytes, sample, c.endian, stack.shape.channels, 1.0, 0.0);
+            for (o, plane) in out.iter_mut().zip(planes) {
+                o[z * slice..z * slice + plane.len()].copy_from_slice(&plane);
+            }
+            continue;
+        }
         if open.as_ref().is_none_or(|(g, _)| *g != f) {
             open = Some((
                 f,
@@ -687,15 +848,30 @@ pub(crate) struct TiffRegions {
     /// Where each slice's rows lie when its page is stored uncompressed in strips (read as
     /// bytes, only the region's; `None`: decoded chunk by chunk).
     raw: Vec<Option<RawStrips>>,
-    /// The samples' type and byte order, for the pages read as bytes.
-    sample: Option<(SampleType, Endian)>,
+    /// The samples' type, for the pages read as bytes.
+    sample: Option<SampleType>,
 }
 
-/// An uncompressed page in strips: where each strip starts and how many rows it holds.
+/// An uncompressed page in strips: where each strip starts, how many rows it holds, and the
+/// file's byte order.
 #[derive(Debug, Clone)]
 struct RawStrips {
     offsets: Vec<u64>,
     rows_per_strip: usize,
+    endian: Endian,
+}
+
+impl RawStrips {
+    /// Whether the strips follow one another without a gap: the page is one run of bytes.
+    fn contiguous(&self, shape: &PageShape) -> bool {
+        let row = shape.bytes() / shape.height as u64;
+        self.offsets.windows(2).enumerate().all(|(s, w)| {
+            let rows = self
+                .rows_per_strip
+                .min(shape.height - s * self.rows_per_strip);
+            w[0].checked_add(rows as u64 * row) == Some(w[1])
+        })
+    }
 }
 
 /// The sample type of `shape` as the raw reader converts it (`None`: half floats, decoded).
@@ -729,7 +905,7 @@ fn raw_strips<R: Read + Seek>(
     if tag(d, Tag::Compression)?.unwrap_or(1) != 1 || tag(d, Tag::Predictor)?.unwrap_or(1) != 1 {
         return None;
     }
-    let offsets = d.get_tag_u64_vec(Tag::StripOffsets).ok()?;
+    let mut offsets = d.get_tag_u64_vec(Tag::StripOffsets).ok()?;
     let counts = d.get_tag_u64_vec(Tag::StripByteCounts).ok()?;
     let rows = (tag(d, Tag::RowsPerStrip)?.unwrap_or(u64::MAX) as usize).clamp(1, shape.height);
     let row_bytes = (shape.width * shape.channels * usize::from(shape.bits) / 8) as u64;
@@ -737,15 +913,21 @@ fn raw_strips<R: Read + Seek>(
     if offsets.len() < strips || counts.len() < strips {
         return None;
     }
+    offsets.truncate(strips);
     for s in 0..strips {
         let held = rows.min(shape.height - s * rows) as u64;
         if counts[s] < held * row_bytes || offsets[s].checked_add(counts[s]).is_none() {
             return None;
         }
     }
+    let endian = match d.byte_order() {
+        ::tiff::tags::ByteOrder::LittleEndian => Endian::Little,
+        ::tiff::tags::ByteOrder::BigEndian => Endian::Big,
+    };
     Some(RawStrips {
         offsets,
         rows_per_strip: rows,
+        endian,
     })
 }
 
@@ -770,39 +952,29 @@ impl TiffRegions {
         // per brick in the plane.
         let sample = raw_sample(&stack.shape);
         let mut raw = Vec::with_capacity(stack.slices.len());
-        let mut open: Option<(usize, Decoder<BufReader<File>>, bool)> = None;
+        let mut open: Option<(usize, Decoder<BufReader<File>>)> = None;
         for &(f, p) in &stack.slices {
-            if open.as_ref().is_none_or(|(g, _, _)| *g != f) {
-                let file = File::open(&files[f]).map_err(|e| ReadError::io(&files[f], e))?;
-                let d = decoder(BufReader::new(file), &files[f])?;
-                open = Some((f, d, false));
+            if let Some(c) = stack.contiguous[f] {
+                raw.push(Some(c.strips(p, &stack.shape)));
+                continue;
             }
-            let (_, d, little) = open.as_mut().expect("opened above");
+            if sample.is_none() {
+                raw.push(None);
+                continue;
+            }
+            if open.as_ref().is_none_or(|(g, _)| *g != f) {
+                let file = File::open(&files[f]).map_err(|e| ReadError::io(&files[f], e))?;
+                open = Some((f, decoder(BufReader::new(file), &files[f])?));
+            }
+            let (_, d) = open.as_mut().expect("opened above");
             d.seek_to_image(p).map_err(|e| failed(&files[f], e))?;
-            *little = matches!(d.byte_order(), ::tiff::tags::ByteOrder::LittleEndian);
-            raw.push(sample.and_then(|_| raw_strips(d, &stack.shape, &files[f])));
-        }
-        let endian = match open.map(|(_, _, little)| little) {
-            Some(false) => Endian::Big,
-            _ => Endian::Little,
-        };
-        // One byte order for every file read as bytes: a stack mixing them is decoded.
-        let mut orders = files.iter().map(|p| {
-            let mut head = [0u8; 2];
-            File::open(p)
-                .and_then(|mut f| f.read_exact(&mut head))
-                .map(|()| head)
-                .ok()
-        });
-        let first = orders.next().flatten();
-        if first.is_none() || orders.any(|o| o != first) {
-            raw.iter_mut().for_each(|r| *r = None);
+            raw.push(raw_strips(d, &stack.shape, &files[f]));
         }
         Ok(TiffRegions {
             files,
             stack,
             raw,
-            sample: sample.map(|s| (s, endian)),
+            sample,
         })
     }
 
@@ -840,7 +1012,7 @@ impl TiffRegions {
             let (f, p) = self.stack.slices[origin[2] + z];
             let path = &self.files[f];
             let base = z * size[0] * size[1];
-            if let (Some(raw), Some((sample, endian))) = (&self.raw[origin[2] + z], self.sample) {
+            if let (Some(raw), Some(sample)) = (&self.raw[origin[2] + z], self.sample) {
                 if bytes.as_ref().is_none_or(|(g, _)| *g != f) {
                     let file = File::open(path).map_err(|e| ReadError::io(path, e))?;
                     bytes = Some((f, file));
@@ -867,7 +1039,7 @@ impl TiffRegions {
                             _ => ReadError::io(path, e),
                         })?;
                 }
-                let planes = deinterleave(&buf, sample, endian, shape.channels, 1.0, 0.0);
+                let planes = deinterleave(&buf, sample, raw.endian, shape.channels, 1.0, 0.0);
                 for (o, plane) in out.iter_mut().zip(planes) {
                     o[base..base + plane.len()].copy_from_slice(&plane);
                 }
