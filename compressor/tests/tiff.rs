@@ -411,10 +411,10 @@ out = sys.argv[1]
 rng = np.random.default_rng(7)
 z, y, x = 9, 45, 53
 cases = {}
-def case(name, data, **kw):
+def case(name, data, ref=None, **kw):
     path = f"{out}/{name}.tif"
     tifffile.imwrite(path, data, **kw)
-    data.astype("<f8").tofile(f"{out}/{name}.f64")
+    (data if ref is None else ref).astype("<f8").tofile(f"{out}/{name}.f64")
     cases[name] = list(data.shape)
 case("tiled_u16_zlib", rng.integers(0, 65535, (z, y, x), dtype=np.uint16),
      tile=(16, 32), compression="zlib")
@@ -427,6 +427,10 @@ case("u32_tiled", rng.integers(0, 2**31, (z, y, x), dtype=np.uint32), tile=(16, 
 case("f64", rng.normal(0.0, 1e5, (z, y, x)), compression="zlib")
 case("rgb_tiled", rng.integers(0, 255, (z, y, x, 3), dtype=np.uint8),
      photometric="rgb", tile=(32, 16), compression="zlib")
+# RGB and a fourth sample that is not alpha: read as RGB (uncompressed: as bytes).
+rgbx = rng.integers(0, 255, (z, y, x, 4), dtype=np.uint8)
+case("rgb_extra", rgbx, ref=rgbx[..., :3], photometric="rgb", extrasamples=["unspecified"],
+     rowsperstrip=8)
 case("imagej", rng.integers(0, 4000, (z, y, x), dtype=np.uint16), imagej=True,
      resolution=(1 / 0.4, 1 / 0.5), metadata={"spacing": 1.25, "unit": "um", "axes": "ZYX"})
 json.dump(cases, open(f"{out}/cases.json", "w"))
@@ -478,6 +482,7 @@ fn tiffs_written_by_tifffile_read_as_it_wrote_them() {
         "u32_tiled",
         "f64",
         "rgb_tiled",
+        "rgb_extra",
         "imagej",
     ] {
         let path = dir.path().join(format!("{name}.tif"));
@@ -644,4 +649,50 @@ fn ome_channels_and_images_are_told_apart() {
     );
     let e = refusal(&many);
     assert!(e.contains("2 images"), "{e}");
+}
+
+/// `RowsPerStrip` of 2^32 − 1 (the spec's default, "the whole image in one strip", written out
+/// by some writers) reads, compressed and not.
+#[test]
+fn rows_per_strip_of_the_default_reads() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = samples(DIMS, 4000.0, |v| v.round() as u16);
+    let slice = DIMS[0] * DIMS[1];
+    let slices: Vec<&[u16]> = data.chunks(slice).collect();
+    let f: Vec<f32> = data.iter().map(|v| *v as f32).collect();
+    let want = expected(&f, 1, [1.0; 3]);
+    for (name, compression) in [
+        ("raw", Compression::Uncompressed),
+        ("lzw", Compression::Lzw),
+    ] {
+        let path = dir.path().join(format!("rps_{name}.tif"));
+        let file = std::fs::File::create(&path).unwrap();
+        let rows = DIMS[1] as u32;
+        write_pages::<colortype::Gray16, _>(
+            file,
+            compression,
+            (DIMS[0], DIMS[1]),
+            &slices,
+            rows,
+            None,
+        );
+        // Every RowsPerStrip entry (tag 278, LONG, 1 value: `rows`) set to 2^32 − 1.
+        let mut bytes = std::fs::read(&path).unwrap();
+        let mut entry = Vec::new();
+        entry.extend_from_slice(&278u16.to_le_bytes());
+        entry.extend_from_slice(&4u16.to_le_bytes());
+        entry.extend_from_slice(&1u32.to_le_bytes());
+        entry.extend_from_slice(&rows.to_le_bytes());
+        let mut patched = 0;
+        for i in 0..bytes.len() - 12 {
+            if bytes[i..i + 12] == entry[..] {
+                bytes[i + 8..i + 12].copy_from_slice(&u32::MAX.to_le_bytes());
+                patched += 1;
+            }
+        }
+        assert_eq!(patched, DIMS[2], "{name}");
+        std::fs::write(&path, &bytes).unwrap();
+        same(&read_volume(&path, None).unwrap(), &want, name);
+        regions_match(&path, &want);
+    }
 }

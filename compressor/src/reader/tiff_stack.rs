@@ -34,10 +34,9 @@ use wavesplat_codec::volume::{checked_voxels, Volume};
 
 const FORMAT: &str = "TIFF";
 
-/// Largest decoded chunk (a strip or a tile) and largest tag value (an OME-XML description
-/// of a large acquisition exceeds the crate's default MiB).
+/// Largest decoded chunk (a strip or a tile), and of a tag's values (an OME-XML description of
+/// a large acquisition exceeds the crate's default MiB).
 const CHUNK_LIMIT: usize = 1 << 30;
-const TAG_LIMIT: usize = 64 << 20;
 
 /// Most sample bytes a file may declare per byte of its own (beyond [`DECLARED_SLACK`]): what
 /// TIFF's LZW reaches on constant data (about 1365: a blank slice; Deflate's limit is 1032,
@@ -200,7 +199,7 @@ fn decoder<R: Read + Seek>(mut reader: R, path: &Path) -> Result<Decoder<R>, Rea
         .seek(std::io::SeekFrom::End(0))
         .and_then(|n| reader.rewind().map(|()| n))
         .map_err(|e| ReadError::io(path, e))?;
-    first_directory_fits(&mut reader, len, path)?;
+    directories_fit(&mut reader, len, path)?;
     reader.rewind().map_err(|e| ReadError::io(path, e))?;
     let bound = len
         .saturating_mul(MAX_EXPANSION)
@@ -209,89 +208,84 @@ fn decoder<R: Read + Seek>(mut reader: R, path: &Path) -> Result<Decoder<R>, Rea
     let mut limits = Limits::default();
     limits.decoding_buffer_size = CHUNK_LIMIT.min(bound);
     limits.intermediate_buffer_size = CHUNK_LIMIT.min(bound);
-    limits.ifd_value_size = TAG_LIMIT.min(bound);
     Ok(Decoder::new(reader)
         .map_err(|e| failed(path, e))?
         .with_limits(limits))
 }
 
-/// Checks that no entry of the first page directory declares more values than the file's `len`
-/// bytes hold. The `tiff` crate reads that directory when the decoder is made, before limits
-/// can be set, and reserves 32 bytes a declared value: a 300-byte file declaring a million
-/// strip offsets took 30 MB, four billion would abort. (Written here because the crate has no
-/// constructor taking limits; later directories are read within the decoder's.)
-fn first_directory_fits<R: Read + Seek>(r: &mut R, len: u64, path: &Path) -> Result<(), ReadError> {
-    let mut head = [0u8; 16];
-    let got = r.read(&mut head).map_err(|e| ReadError::io(path, e))?;
-    let little = match &head[..2] {
-        b"II" => true,
-        b"MM" => false,
+/// Checks that no entry of any page directory declares more values than the file's `len`
+/// bytes hold. The `tiff` crate reserves about 32 bytes a declared value before reading them,
+/// bounded only by its decoding buffer limit, and reads the first directory when the decoder is
+/// made, before limits can be set: a 307-byte file declaring a million strip byte counts took
+/// 30 MB, four billion would abort. (Written here because the crate has no constructor taking
+/// limits and no limit of its own on a tag's values.)
+fn directories_fit<R: Read + Seek>(r: &mut R, len: u64, path: &Path) -> Result<(), ReadError> {
+    let mut head = Vec::with_capacity(16);
+    r.take(16)
+        .read_to_end(&mut head)
+        .map_err(|e| ReadError::io(path, e))?;
+    let little = match head.get(..2) {
+        Some(b"II") => true,
+        Some(b"MM") => false,
         _ => return Ok(()), // the crate refuses it
     };
-    let u16_at = |b: &[u8]| {
-        let a = [b[0], b[1]];
-        u64::from(if little {
-            u16::from_le_bytes(a)
-        } else {
-            u16::from_be_bytes(a)
-        })
-    };
-    let u32_at = |b: &[u8]| {
-        let a = [b[0], b[1], b[2], b[3]];
-        u64::from(if little {
-            u32::from_le_bytes(a)
-        } else {
-            u32::from_be_bytes(a)
-        })
-    };
-    let u64_at = |b: &[u8]| {
-        let a: [u8; 8] = b[..8].try_into().expect("8 bytes");
-        if little {
-            u64::from_le_bytes(a)
-        } else {
-            u64::from_be_bytes(a)
+    let int = |b: &[u8]| {
+        let mut v = 0u64;
+        for k in 0..b.len() {
+            let byte = if little { b[b.len() - 1 - k] } else { b[k] };
+            v = (v << 8) | u64::from(byte);
         }
+        v
     };
-    if got < 8 {
+    if head.len() < 8 {
         return Ok(());
     }
-    let big = u16_at(&head[2..4]) == 43;
-    let (first, count_bytes, entry_bytes, count_in) = match big {
-        false => (u32_at(&head[4..8]), 2, 12, 4..8),
-        true if got >= 16 => (u64_at(&head[8..16]), 8, 20, 4..12),
+    let big = int(&head[2..4]) == 43;
+    // (first directory, bytes of the entry count, of an entry, of the count field, of an offset)
+    let (mut at, count_bytes, entry_bytes, count_field, offset_bytes) = match big {
+        false => (int(&head[4..8]), 2, 12, 4, 4),
+        true if head.len() >= 16 => (int(&head[8..16]), 8, 20, 8, 8),
         true => return Ok(()),
     };
-    let mut count = [0u8; 8];
-    if r.seek(std::io::SeekFrom::Start(first)).is_err()
-        || r.read_exact(&mut count[..count_bytes]).is_err()
-    {
-        return Ok(()); // the crate reports it
-    }
-    let entries = if big { u64_at(&count) } else { u16_at(&count) };
-    let mut entry = [0u8; 20];
-    for _ in 0..entries.min(len / entry_bytes as u64) {
-        if r.read_exact(&mut entry[..entry_bytes]).is_err() {
-            return Ok(());
+    let mut seen = std::collections::HashSet::new();
+    let mut buf = [0u8; 20];
+    while at != 0 && at < len && seen.insert(at) {
+        if r.seek(std::io::SeekFrom::Start(at)).is_err()
+            || r.read_exact(&mut buf[..count_bytes]).is_err()
+        {
+            return Ok(()); // the crate reports it
         }
-        let (tag, kind) = (u16_at(&entry[0..2]), u16_at(&entry[2..4]));
-        let values = if big {
-            u64_at(&entry[count_in.clone()])
-        } else {
-            u32_at(&entry[count_in.clone()])
-        };
-        let size: u64 = match kind {
-            1 | 2 | 6 | 7 => 1,
-            3 | 8 => 2,
-            4 | 9 | 11 | 13 => 4,
-            5 | 10 | 12 | 16 | 17 | 18 => 8,
-            _ => 0,
-        };
-        if values.saturating_mul(size) > len {
+        let entries = int(&buf[..count_bytes]);
+        if entries.saturating_mul(entry_bytes as u64) > len {
             return Err(bad(
                 path,
-                format!("tag {tag} of the first page declares {values} values, more than the file's {len} bytes hold"),
+                format!("a page directory at byte {at} declares {entries} entries, more than the file's {len} bytes hold"),
             ));
         }
+        for _ in 0..entries {
+            if r.read_exact(&mut buf[..entry_bytes]).is_err() {
+                return Ok(());
+            }
+            let (tag, kind) = (int(&buf[0..2]), int(&buf[2..4]));
+            let values = int(&buf[4..4 + count_field]);
+            let size: u64 = match kind {
+                1 | 2 | 6 | 7 => 1,
+                3 | 8 => 2,
+                4 | 9 | 11 | 13 => 4,
+                5 | 10 | 12 | 16 | 17 | 18 => 8,
+                _ => 0,
+            };
+            if values.saturating_mul(size) > len {
+                return Err(bad(
+                    path,
+                    format!("tag {tag} in the page directory at byte {at} declares {values} values, more than the file's {len} bytes hold"),
+                ));
+            }
+        }
+        if r.read_exact(&mut buf[..offset_bytes]).is_err() {
+            return Ok(());
+        }
+        at = int(&buf[..offset_bytes]);
     }
     Ok(())
 }
@@ -551,7 +545,7 @@ fn file_pages<R: Read + Seek>(
     if let Some(n) = meta.imagej_images.filter(|n| *n > pages.len()) {
         // One page directory: the images follow one another after the first's samples.
         let first = match pages.as_slice() {
-            [(0, shape)] => raw_strips(&mut d, shape, path)
+            [(0, shape)] if d.seek_to_image(0).is_ok() => raw_strips(&mut d, shape, path)
                 .filter(|r| r.contiguous(shape) && raw_sample(shape).is_some())
                 .map(|r| (*shape, r)),
             _ => None,
@@ -749,11 +743,12 @@ fn read_page<R: Read + Seek>(
         ChunkType::Strip => 1,
         ChunkType::Tile => shape.width.div_ceil(cw),
     };
+    // Strips counted here: the crate's count overflows on RowsPerStrip 2^32 − 1 (the spec's
+    // default, written out by some writers).
     let chunks = match d.get_chunk_type() {
-        ChunkType::Strip => d.strip_count(),
-        ChunkType::Tile => d.tile_count(),
-    }
-    .map_err(|e| failed(path, e))? as usize;
+        ChunkType::Strip => shape.height.div_ceil(ch),
+        ChunkType::Tile => d.tile_count().map_err(|e| failed(path, e))? as usize,
+    };
     let (col0, col1) = (x0 / cw, (x1 - 1) / cw);
     let (row0, row1) = (y0 / ch, (y1 - 1) / ch);
     for row in row0..=row1 {
@@ -905,6 +900,11 @@ fn raw_strips<R: Read + Seek>(
     if tag(d, Tag::Compression)?.unwrap_or(1) != 1 || tag(d, Tag::Predictor)?.unwrap_or(1) != 1 {
         return None;
     }
+    // Extra samples a pixel (not alpha: RGB and one more) are dropped by the decoder; as bytes
+    // they would shift every pixel.
+    if tag(d, Tag::SamplesPerPixel)?.unwrap_or(1) != shape.channels as u64 {
+        return None;
+    }
     let mut offsets = d.get_tag_u64_vec(Tag::StripOffsets).ok()?;
     let counts = d.get_tag_u64_vec(Tag::StripByteCounts).ok()?;
     let rows = (tag(d, Tag::RowsPerStrip)?.unwrap_or(u64::MAX) as usize).clamp(1, shape.height);
@@ -1022,18 +1022,27 @@ impl TiffRegions {
                 let pixel = shape.channels * usize::from(shape.bits) / 8;
                 let row = size[0] * pixel;
                 buf.resize(row * size[1], 0);
-                for (j, y) in (window.2..window.3).enumerate() {
+                let (mut j, mut y) = (0, window.2);
+                while y < window.3 {
                     let s = y / raw.rows_per_strip;
-                    let within = (y - s * raw.rows_per_strip) * shape.width + window.0;
-                    let at = raw.offsets[s] + (within * pixel) as u64;
-                    let into = &mut buf[j * row..(j + 1) * row];
+                    let first = y - s * raw.rows_per_strip;
+                    // Whole rows follow one another within a strip: read together.
+                    let run = if size[0] == shape.width {
+                        (raw.rows_per_strip - first).min(window.3 - y)
+                    } else {
+                        1
+                    };
+                    let at = raw.offsets[s] + ((first * shape.width + window.0) * pixel) as u64;
+                    let into = &mut buf[j * row..(j + run) * row];
+                    let want = into.len() as u64;
+                    (j, y) = (j + run, y + run);
                     file.seek(std::io::SeekFrom::Start(at))
                         .and_then(|_| file.read_exact(into))
                         .map_err(|e| match e.kind() {
                             std::io::ErrorKind::UnexpectedEof => ReadError::Truncated {
                                 path: path.clone(),
                                 offset: at,
-                                expected: row as u64,
+                                expected: want,
                                 actual: 0,
                             },
                             _ => ReadError::io(path, e),
