@@ -273,6 +273,14 @@ fn directories_fit<R: Read + Seek>(r: &mut R, len: u64, path: &Path) -> Result<(
                 3 | 8 => 2,
                 4 | 9 | 11 | 13 => 4,
                 5 | 10 | 12 | 16 | 17 | 18 => 8,
+                // The crate skips an entry of unknown type by a classic entry's 8 bytes, not
+                // a BigTIFF entry's 16, and reads the rest of the directory out of step.
+                _ if big => {
+                    return Err(bad(
+                        path,
+                        format!("the page directory at byte {at} has an entry (tag {tag}) of unknown type {kind}"),
+                    ))
+                }
                 _ => 0,
             };
             if values.saturating_mul(size) > len {
