@@ -436,29 +436,11 @@ case("imagej", rng.integers(0, 4000, (z, y, x), dtype=np.uint16), imagej=True,
 json.dump(cases, open(f"{out}/cases.json", "w"))
 "#;
 
-/// A Python that imports tifffile and numpy, or `None` (the test then says why and passes
-/// only when `WAVESPLAT_REQUIRE_REFERENCE_TOOLS` is unset).
-fn tifffile_python() -> Option<&'static str> {
-    for python in ["python3", "/usr/bin/python3"] {
-        let ok = std::process::Command::new(python)
-            .args(["-c", "import tifffile, numpy"])
-            .output()
-            .is_ok_and(|o| o.status.success());
-        if ok {
-            return Some(python);
-        }
-    }
-    assert!(
-        std::env::var_os("WAVESPLAT_REQUIRE_REFERENCE_TOOLS").is_none(),
-        "tifffile is missing (apt-get install python3-tifffile python3-numpy)"
-    );
-    eprintln!("skipped the tifffile check: apt-get install python3-tifffile python3-numpy");
-    None
-}
-
 #[test]
 fn tiffs_written_by_tifffile_read_as_it_wrote_them() {
-    let Some(python) = tifffile_python() else {
+    let Some(python) =
+        wavesplat_fixtures::reference_python("tifffile, numpy", "python3-tifffile python3-numpy")
+    else {
         return;
     };
     let dir = tempfile::tempdir().unwrap();

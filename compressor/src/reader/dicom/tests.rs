@@ -1629,30 +1629,12 @@ slices.sort(key=lambda s: s[0])
 np.stack([s[1] for s in slices]).astype("<f8").tofile(out)
 "#;
 
-/// A Python that imports pydicom and numpy, or `None` (the test then says why and passes only
-/// when `WAVESPLAT_REQUIRE_REFERENCE_TOOLS` is unset).
-fn pydicom_python() -> Option<&'static str> {
-    for python in ["python3", "/usr/bin/python3"] {
-        let ok = std::process::Command::new(python)
-            .args(["-c", "import pydicom, numpy"])
-            .output()
-            .is_ok_and(|o| o.status.success());
-        if ok {
-            return Some(python);
-        }
-    }
-    assert!(
-        std::env::var_os("WAVESPLAT_REQUIRE_REFERENCE_TOOLS").is_none(),
-        "pydicom is missing (apt-get install python3-pydicom python3-numpy)"
-    );
-    eprintln!("skipped the pydicom check: apt-get install python3-pydicom python3-numpy");
-    None
-}
-
 /// Checks `v`, read from `files` by wavesplat, value by value against pydicom's reading of the
 /// same files (within `tolerance`, relative to 1 or the value's magnitude).
 fn check_against_pydicom(files: &[PathBuf], v: &Volume, tolerance: f64, what: &str) {
-    let Some(python) = pydicom_python() else {
+    let Some(python) =
+        wavesplat_fixtures::reference_python("pydicom, numpy", "python3-pydicom python3-numpy")
+    else {
         return;
     };
     let dir = tempfile::tempdir().unwrap();
