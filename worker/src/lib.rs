@@ -201,6 +201,31 @@ impl Default for Shared {
 }
 
 impl Shared {
+    /// Whether the lease was lost; if so, logs how the work of `job` ended (`part` for a part
+    /// of a spread job): its result discarded, or its work ended early (stopped or failed).
+    pub(crate) fn lost_after<T>(
+        &self,
+        job: u64,
+        attempt: u32,
+        outcome: &Result<T, Failure>,
+        part: bool,
+    ) -> bool {
+        if !self.lost.load(Ordering::SeqCst) {
+            return false;
+        }
+        let whose = if part { "part's " } else { "" };
+        match outcome {
+            Ok(_) => tracing::warn!(job, attempt, "lease lost; {whose}result discarded"),
+            Err(f) => tracing::warn!(
+                job,
+                attempt,
+                reason = %f.message,
+                "lease lost; {whose}work ended before it finished"
+            ),
+        }
+        true
+    }
+
     /// The lease is lost: the result will not be taken, and the work stops.
     fn lose(&self) {
         self.lost.store(true, Ordering::SeqCst);
@@ -276,16 +301,7 @@ async fn run_lease(ctx: &mut Ctx, lease: pb::Lease) {
         }),
     };
     heartbeat.abort();
-    if shared.lost.load(Ordering::SeqCst) {
-        match &outcome {
-            Ok(_) => tracing::warn!(job = id, attempt, "lease lost; result discarded"),
-            Err(f) => tracing::warn!(
-                job = id,
-                attempt,
-                reason = %f.message,
-                "lease lost; work ended before it finished"
-            ),
-        }
+    if shared.lost_after(id, attempt, &outcome, false) {
         return;
     }
     let outcome = match outcome {

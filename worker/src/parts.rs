@@ -568,16 +568,7 @@ pub(crate) async fn run_part_lease(runner: &PartRunner, lease: pb::Lease, spec: 
         tokio::time::sleep(Duration::from_millis(runner.pause_ms)).await;
     }
     heartbeat.abort();
-    if shared.lost.load(Ordering::SeqCst) {
-        match &result {
-            Ok(_) => tracing::warn!(job = id, attempt, "lease lost; part's result discarded"),
-            Err(f) => tracing::warn!(
-                job = id,
-                attempt,
-                reason = %f.message,
-                "lease lost; part's work ended before it finished"
-            ),
-        }
+    if shared.lost_after(id, attempt, &result, true) {
         return;
     }
     match result {
