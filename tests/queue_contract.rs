@@ -77,6 +77,9 @@ impl TestClock {
 trait Backend {
     async fn open(&mut self, clock: &TestClock) -> Arc<dyn JobStore>;
     async fn reopen(&mut self, clock: &TestClock) -> Arc<dyn JobStore>;
+    /// Everything the last queue opened keeps at rest, as bytes (its files; its tables' rows),
+    /// to look for what must not be there.
+    fn at_rest(&self) -> Vec<u8>;
 }
 
 struct Embedded {
@@ -115,6 +118,21 @@ impl Backend for Embedded {
         self.last = Some(q.clone());
         q
     }
+    fn at_rest(&self) -> Vec<u8> {
+        fn read_all(dir: &std::path::Path, out: &mut Vec<u8>) {
+            for entry in std::fs::read_dir(dir).unwrap() {
+                let path = entry.unwrap().path();
+                if path.is_dir() {
+                    read_all(&path, out);
+                } else {
+                    out.extend(std::fs::read(&path).unwrap());
+                }
+            }
+        }
+        let mut out = Vec::new();
+        read_all(self.dirs.last().unwrap().path(), &mut out);
+        out
+    }
 }
 
 struct Postgres {
@@ -146,6 +164,15 @@ impl Backend for Postgres {
             .with_clock(clock.clock());
         Arc::new(q)
     }
+    fn at_rest(&self) -> Vec<u8> {
+        self.server
+            .psql(
+                &format!("contract{}", self.databases),
+                "SELECT coalesce(encode(lease_token, 'hex'), '') || ' ' || job::text FROM jobs",
+            )
+            .unwrap()
+            .into_bytes()
+    }
 }
 
 fn lease_lost(e: &OrchestratorError) -> bool {
@@ -156,8 +183,8 @@ fn lease_lost(e: &OrchestratorError) -> bool {
 fn tok(j: &Job) -> Vec<u8> {
     j.state
         .lease_token()
-        .expect("a leased job has a token")
-        .as_bytes()
+        .and_then(|t| t.secret())
+        .expect("a job just leased holds its token's secret")
         .to_vec()
 }
 
@@ -803,9 +830,30 @@ async fn a_lease_is_held_only_with_its_token(b: &mut dyn Backend) {
     q.heartbeat(p.id, p.attempts, &tp, 0.5, "parts")
         .await
         .unwrap();
-    // After a restart (or at another orchestrator) every lease's token is what it was.
+    // After a restart (or at another orchestrator) every lease's token is what it was. The
+    // store keeps each token's digest, never its secret.
     drop(q);
     let q = b.reopen(&clock).await;
+    let rest = b.at_rest();
+    let holds = |needle: &[u8]| rest.windows(needle.len()).any(|w| w == needle);
+    for (job, secret) in [(&p, &tp), (&other, &to), (&x, &tx)] {
+        let hex = wavesplat_net::digest::hex(secret);
+        assert!(
+            !holds(secret) && !holds(hex.as_bytes()),
+            "job {}'s secret is stored",
+            job.id
+        );
+        let digest = wavesplat_net::digest::hex(&wavesplat_net::digest::sha256(secret));
+        assert!(
+            holds(digest.as_bytes()),
+            "job {}'s digest is not stored",
+            job.id
+        );
+        let read = q.get(job.id).await.unwrap();
+        let stored = read.state.lease_token().expect("running");
+        assert_eq!(stored.secret(), None);
+        assert!(stored.matches(secret));
+    }
     let e = q
         .heartbeat(other.id, other.attempts, &tp, 0.1, "s")
         .await
@@ -1140,6 +1188,58 @@ async fn the_postgres_store_keeps_the_contract_with_two_orchestrators() {
     }
 }
 
+/// A database written before tokens were stored as digests (schema version 4: a running
+/// lease's secret itself in `lease_token`) has them hashed by the next orchestrator to start,
+/// and the lease's holder goes on with the secret it has.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_lease_token_stored_by_an_older_build_is_hashed_at_start_and_still_held() {
+    let mut b = Postgres {
+        server: PostgresServer::start().unwrap(),
+        databases: 0,
+    };
+    let clock = TestClock::default();
+    let q = b.open(&clock).await;
+    let job = q.submit(spec(1), None).await.unwrap().job;
+    let leased = q.lease("w", false).await.unwrap().job.unwrap();
+    let secret = tok(&leased);
+    drop(q);
+    let db = format!("contract{}", b.databases);
+    let hex = wavesplat_net::digest::hex(&secret);
+    b.server
+        .psql(
+            &db,
+            &format!(
+                "UPDATE jobs SET lease_token = decode('{hex}', 'hex') WHERE id = {}; \
+                 DELETE FROM _sqlx_migrations WHERE version = 5",
+                job.id
+            ),
+        )
+        .unwrap();
+    let holds =
+        |rest: &[u8], needle: &str| rest.windows(needle.len()).any(|w| w == needle.as_bytes());
+    assert!(
+        holds(&b.at_rest(), &hex),
+        "the older build's form is in place"
+    );
+    let q = b.reopen(&clock).await;
+    let rest = b.at_rest();
+    let digest = wavesplat_net::digest::hex(&wavesplat_net::digest::sha256(&secret));
+    assert!(!holds(&rest, &hex) && holds(&rest, &digest));
+    q.heartbeat(job.id, leased.attempts, &secret, 0.5, "s")
+        .await
+        .unwrap();
+    let mut wrong = secret.clone();
+    wrong[0] ^= 1;
+    let e = q
+        .heartbeat(job.id, leased.attempts, &wrong, 0.5, "s")
+        .await
+        .unwrap_err();
+    assert!(matches!(e, OrchestratorError::NotLeaseHolder { .. }), "{e}");
+    q.finish(job.id, leased.attempts, &secret, delivered())
+        .await
+        .unwrap();
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn an_embedded_lease_lapses_and_is_reclaimed() {
     // The embedded store has one owner: "another orchestrator" is the same store here.
@@ -1151,6 +1251,9 @@ async fn an_embedded_lease_lapses_and_is_reclaimed() {
         }
         async fn reopen(&mut self, _clock: &TestClock) -> Arc<dyn JobStore> {
             self.0.last.clone().unwrap()
+        }
+        fn at_rest(&self) -> Vec<u8> {
+            self.0.at_rest()
         }
     }
     let mut b = Same(Embedded {

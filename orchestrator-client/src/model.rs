@@ -750,44 +750,81 @@ pub enum Outcome {
 /// Bytes of a lease's token ([`LeaseToken`]).
 pub const LEASE_TOKEN_BYTES: usize = 16;
 
+/// Bytes of the form a lease's token is stored in: its SHA-256.
+pub const LEASE_TOKEN_DIGEST_BYTES: usize = 32;
+
 /// The secret of one lease: random bytes the orchestrator draws when it grants the lease and
 /// hands only to the worker it leases to (`Lease.lease_token`), which every RPC acting on the
-/// lease must present. Kept with the running attempt in the store, never shown in a job's
-/// wire form. Its `Debug` shows no bytes; its stored form is lower-case hex.
-#[derive(Clone, Copy, PartialEq, Eq)]
-pub struct LeaseToken([u8; LEASE_TOKEN_BYTES]);
+/// lease must present. The store keeps only the secret's SHA-256 (with the running attempt;
+/// never in a job's wire form), so that whoever reads the store (a backup, an operator's
+/// query) learns nothing that acts on a lease; a presented token is hashed and compared with
+/// it. The secret itself is held only by the token the orchestrator has just drawn, to hand it
+/// out. Its `Debug` shows no bytes; its stored form is the digest in lower-case hex. Two
+/// tokens are equal when their digests are.
+#[derive(Clone, Copy)]
+pub struct LeaseToken {
+    digest: [u8; LEASE_TOKEN_DIGEST_BYTES],
+    secret: Option<[u8; LEASE_TOKEN_BYTES]>,
+}
 
 impl LeaseToken {
-    /// The token of these bytes.
-    pub const fn from_bytes(bytes: [u8; LEASE_TOKEN_BYTES]) -> LeaseToken {
-        LeaseToken(bytes)
+    /// The token of a freshly drawn secret.
+    pub fn from_secret(secret: [u8; LEASE_TOKEN_BYTES]) -> LeaseToken {
+        LeaseToken {
+            digest: wavesplat_net::digest::sha256(&secret),
+            secret: Some(secret),
+        }
     }
 
-    /// The token of a stored or presented byte string; `None` unless it is
-    /// [`LEASE_TOKEN_BYTES`] long.
-    pub fn from_slice(bytes: &[u8]) -> Option<LeaseToken> {
-        Some(LeaseToken(bytes.try_into().ok()?))
+    /// The token of its stored form: a digest ([`LEASE_TOKEN_DIGEST_BYTES`]), or the secret
+    /// itself as stores before digests kept it ([`LEASE_TOKEN_BYTES`]: it still matches, and
+    /// is stored as its digest when its job is next written); `None` for any other length.
+    pub fn from_stored(bytes: &[u8]) -> Option<LeaseToken> {
+        match bytes.len() {
+            LEASE_TOKEN_DIGEST_BYTES => Some(LeaseToken {
+                digest: bytes.try_into().ok()?,
+                secret: None,
+            }),
+            LEASE_TOKEN_BYTES => Some(LeaseToken::from_secret(bytes.try_into().ok()?)),
+            _ => None,
+        }
     }
 
-    /// Its bytes.
-    pub fn as_bytes(&self) -> &[u8; LEASE_TOKEN_BYTES] {
-        &self.0
+    /// What the store keeps: the secret's SHA-256.
+    pub fn stored(&self) -> &[u8; LEASE_TOKEN_DIGEST_BYTES] {
+        &self.digest
     }
 
-    /// Whether `presented` is this token, compared in constant time over the token's bytes (a
-    /// presented string of another length is refused at once: the length is no secret).
+    /// The secret, to hand to the worker the lease is granted to: only in a token drawn by
+    /// this process (`None` in one read back from the store).
+    pub fn secret(&self) -> Option<&[u8; LEASE_TOKEN_BYTES]> {
+        self.secret.as_ref()
+    }
+
+    /// Whether `presented` is this token's secret: its SHA-256 compared with the digest in
+    /// constant time (a presented string of another length is refused at once: the length is
+    /// no secret).
     pub fn matches(&self, presented: &[u8]) -> bool {
         if presented.len() != LEASE_TOKEN_BYTES {
             return false;
         }
+        let digest = wavesplat_net::digest::sha256(presented);
         let diff = self
-            .0
+            .digest
             .iter()
-            .zip(presented)
+            .zip(&digest)
             .fold(0u8, |d, (a, b)| d | (a ^ b));
         std::hint::black_box(diff) == 0
     }
 }
+
+impl PartialEq for LeaseToken {
+    fn eq(&self, other: &LeaseToken) -> bool {
+        self.digest == other.digest
+    }
+}
+
+impl Eq for LeaseToken {}
 
 impl std::fmt::Debug for LeaseToken {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
@@ -797,7 +834,7 @@ impl std::fmt::Debug for LeaseToken {
 
 impl Serialize for LeaseToken {
     fn serialize<S: Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
-        s.serialize_str(&wavesplat_net::digest::hex(&self.0))
+        s.serialize_str(&wavesplat_net::digest::hex(&self.digest))
     }
 }
 
@@ -805,10 +842,11 @@ impl<'de> Deserialize<'de> for LeaseToken {
     fn deserialize<D: Deserializer<'de>>(d: D) -> Result<LeaseToken, D::Error> {
         let s = String::deserialize(d)?;
         wavesplat_net::digest::unhex(&s)
-            .and_then(|b| LeaseToken::from_slice(&b))
+            .and_then(|b| LeaseToken::from_stored(&b))
             .ok_or_else(|| {
                 serde::de::Error::custom(format!(
-                    "a lease token is {LEASE_TOKEN_BYTES} bytes in hex"
+                    "a stored lease token is {LEASE_TOKEN_DIGEST_BYTES} bytes (its SHA-256) \
+                     or {LEASE_TOKEN_BYTES} in hex"
                 ))
             })
     }
@@ -918,20 +956,37 @@ pub struct Job {
 mod tests {
     use super::*;
 
-    /// A token matches only its own bytes, is stored as hex and back, and is never shown.
+    /// A token matches only its own secret, is stored as the secret's SHA-256 in hex and back
+    /// (the secret itself never stored), and is never shown.
     #[test]
-    fn a_lease_token_matches_only_itself_and_is_not_shown() {
-        let t = LeaseToken::from_bytes([0x5a; LEASE_TOKEN_BYTES]);
-        assert!(t.matches(&[0x5a; LEASE_TOKEN_BYTES]));
-        let mut other = [0x5a; LEASE_TOKEN_BYTES];
+    fn a_lease_token_matches_only_itself_and_is_stored_as_its_digest() {
+        let secret = [0x5a; LEASE_TOKEN_BYTES];
+        let t = LeaseToken::from_secret(secret);
+        assert_eq!(t.secret(), Some(&secret));
+        assert!(t.matches(&secret));
+        let mut other = secret;
         other[0] ^= 0x80;
         assert!(!t.matches(&other));
         assert!(!t.matches(&[]));
         assert!(!t.matches(&[0x5a; LEASE_TOKEN_BYTES + 1]));
+        // Presenting the stored digest is no use.
+        assert!(!t.matches(t.stored()));
         let json = serde_json::to_string(&t).unwrap();
-        assert_eq!(json, format!("\"{}\"", "5a".repeat(LEASE_TOKEN_BYTES)));
-        assert_eq!(serde_json::from_str::<LeaseToken>(&json).unwrap(), t);
+        let digest = wavesplat_net::digest::hex(&wavesplat_net::digest::sha256(&secret));
+        assert_eq!(json, format!("\"{digest}\""));
+        assert!(!json.contains(&"5a".repeat(4)), "{json}");
+        let back = serde_json::from_str::<LeaseToken>(&json).unwrap();
+        assert_eq!(back, t);
+        assert_eq!(back.secret(), None, "read back, the secret is not known");
+        assert!(back.matches(&secret) && !back.matches(&other));
+        // A store written before digests kept the secret: it still matches, and is written
+        // back as its digest.
+        let legacy: LeaseToken =
+            serde_json::from_str(&format!("\"{}\"", "5a".repeat(LEASE_TOKEN_BYTES))).unwrap();
+        assert!(legacy.matches(&secret) && !legacy.matches(&other));
+        assert_eq!(serde_json::to_string(&legacy).unwrap(), json);
         assert!(serde_json::from_str::<LeaseToken>("\"5a5a\"").is_err());
+        assert_eq!(LeaseToken::from_stored(&[0; 20]), None);
         assert_eq!(format!("{t:?}"), "LeaseToken(..)");
         // A running lease stored before tokens has none.
         let old = r#"{"Running":{"worker":"w","attempt":1,"lease_expires_ms":5,"started_ms":1,"progress":0.0,"stage":"s"}}"#;

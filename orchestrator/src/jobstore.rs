@@ -74,7 +74,8 @@ pub trait JobStore: Send + Sync + 'static {
 
     /// Leases the oldest runnable job to `worker` (with `parts_only`, the oldest part of a
     /// bricked job), with a new secret token (the leased job's
-    /// [`JobState::lease_token`]).
+    /// [`JobState::lease_token`], whose [`crate::model::LeaseToken::secret`] is known in the job returned
+    /// here only; the store keeps its digest).
     async fn lease(&self, worker: &str, parts_only: bool) -> Result<Leased, OrchestratorError>;
 
     /// Extends a held lease and records progress.
@@ -489,7 +490,7 @@ mod tests {
                 sha256: "ab".repeat(32),
             })
         };
-        let token = |j: &Job| j.state.lease_token().unwrap().as_bytes().to_vec();
+        let token = |j: &Job| j.state.lease_token().unwrap().secret().unwrap().to_vec();
         q.finish(a.id, 1, &token(&a), delivered()).await.unwrap();
         assert!(
             q.upload(&[7; 32]).await.unwrap().is_some(),

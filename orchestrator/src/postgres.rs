@@ -5,7 +5,7 @@
 //! commits before the RPC is answered. A job with parts and its parts are locked parent
 //! first, in every transaction that touches both (adding parts, ending the parent: cancelling
 //! its live parts and dropping their results). A running lease's token is the `lease_token`
-//! column, never part of the `job` record. Uploaded sources are rows of the `uploads` table.
+//! column (the SHA-256 of its secret), never part of the `job` record. Uploaded sources are rows of the `uploads` table.
 //! The schema is created and upgraded at start by versioned migrations (`migrations/`, run
 //! under sqlx's advisory lock, so orchestrators starting together apply each once).
 //!
@@ -87,6 +87,13 @@ impl<'s> MigrationSource<'s> for Migrations {
                     Cow::Borrowed("lease tokens, and parts by their parent"),
                     MigrationType::Simple,
                     Cow::Borrowed(include_str!("../migrations/0004_lease_tokens.sql")),
+                    false,
+                ),
+                Migration::new(
+                    5,
+                    Cow::Borrowed("lease tokens stored as their digests"),
+                    MigrationType::Simple,
+                    Cow::Borrowed(include_str!("../migrations/0005_lease_token_digests.sql")),
                     false,
                 ),
             ])
@@ -226,12 +233,13 @@ impl PostgresQueue {
     }
 
     /// Writes `job` back to its row with every derived column; a running lease's token goes to
-    /// its own column (`lease_token`), not into the `job` record.
+    /// its own column (`lease_token`, the secret's SHA-256: [`LeaseToken::stored`]), not into
+    /// the `job` record.
     async fn write(
         tx: &mut Transaction<'static, Postgres>,
         job: &Job,
     ) -> Result<(), OrchestratorError> {
-        let token = job.state.lease_token().map(|t| t.as_bytes().to_vec());
+        let token = job.state.lease_token().map(|t| t.stored().to_vec());
         let record: Cow<'_, Job> = match token {
             None => Cow::Borrowed(job),
             Some(_) => {
@@ -278,7 +286,7 @@ impl PostgresQueue {
         let Json(mut job): Json<Job> = row.try_get("job").map_err(corrupt)?;
         let token: Option<Vec<u8>> = row.try_get("lease_token").map_err(corrupt)?;
         if let JobState::Running { lease_token, .. } = &mut job.state {
-            *lease_token = token.as_deref().and_then(LeaseToken::from_slice);
+            *lease_token = token.as_deref().and_then(LeaseToken::from_stored);
         }
         Ok(job)
     }

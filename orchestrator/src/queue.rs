@@ -30,7 +30,7 @@ pub fn new_lease_token() -> Result<LeaseToken, OrchestratorError> {
     rand::rngs::OsRng
         .try_fill_bytes(&mut bytes)
         .map_err(|e| OrchestratorError::Entropy(e.to_string()))?;
-    Ok(LeaseToken::from_bytes(bytes))
+    Ok(LeaseToken::from_secret(bytes))
 }
 
 /// Timing and retry policy.
@@ -802,7 +802,8 @@ mod tests {
     }
 
     /// The token every lease in these tests gets, and its bytes.
-    const T: LeaseToken = LeaseToken::from_bytes([7; LEASE_TOKEN_BYTES]);
+    static T: std::sync::LazyLock<LeaseToken> =
+        std::sync::LazyLock::new(|| LeaseToken::from_secret(TB));
     const TB: [u8; LEASE_TOKEN_BYTES] = [7; LEASE_TOKEN_BYTES];
 
     fn cfg() -> QueueOptions {
@@ -854,9 +855,9 @@ mod tests {
         let mut q = Queue::new(cfg());
         q.submit(spec(1), 0).unwrap();
         q.submit(spec(2), 0).unwrap();
-        let (a, _) = q.lease("w1", false, T, 10);
-        let (b, _) = q.lease("w2", false, T, 10);
-        let (c, _) = q.lease("w3", false, T, 10);
+        let (a, _) = q.lease("w1", false, *T, 10);
+        let (b, _) = q.lease("w2", false, *T, 10);
+        let (c, _) = q.lease("w3", false, *T, 10);
         assert_eq!(a.unwrap().id, 1);
         assert_eq!(b.unwrap().id, 2);
         assert!(c.is_none());
@@ -866,7 +867,7 @@ mod tests {
     fn expired_lease_is_reclaimed_and_the_stale_worker_is_refused() {
         let mut q = Queue::new(cfg());
         q.submit(spec(1), 0).unwrap();
-        let (job, _) = q.lease("w1", false, T, 0);
+        let (job, _) = q.lease("w1", false, *T, 0);
         let job = job.unwrap();
         // Heartbeats keep it alive past the original expiry.
         q.heartbeat(job.id, 1, &TB, 0.5, "transform", 900).unwrap();
@@ -885,8 +886,8 @@ mod tests {
             FailureKind::LeaseExpired
         );
         // Backoff: not runnable yet.
-        assert!(q.lease("w2", false, T, 1950).0.is_none());
-        let (again, _) = q.lease("w2", false, T, 2000);
+        assert!(q.lease("w2", false, *T, 1950).0.is_none());
+        let (again, _) = q.lease("w2", false, *T, 2000);
         assert_eq!(again.unwrap().attempts, 2);
         // The old worker's heartbeat and outcome are refused.
         assert!(matches!(
@@ -910,7 +911,7 @@ mod tests {
         };
         let mut now = 0;
         for attempt in 1..=3u32 {
-            let (j, _) = q.lease("w", false, T, now);
+            let (j, _) = q.lease("w", false, *T, now);
             assert_eq!(j.unwrap().attempts, attempt);
             let j = q.finish(1, attempt, &TB, fail(), now).unwrap();
             match j.state {
@@ -932,7 +933,7 @@ mod tests {
     fn permanent_failures_are_not_retried() {
         let mut q = Queue::new(cfg());
         q.submit(spec(1), 0).unwrap();
-        q.lease("w", false, T, 0);
+        q.lease("w", false, *T, 0);
         let j = q
             .finish(
                 1,
@@ -959,10 +960,10 @@ mod tests {
         let mut q = Queue::new(cfg());
         q.submit(spec(1), 0).unwrap();
         q.submit(spec(2), 0).unwrap();
-        q.lease("w", false, T, 0);
+        q.lease("w", false, *T, 0);
         q.cancel(1, 1).unwrap();
         q.cancel(2, 1).unwrap();
-        assert!(q.lease("w", false, T, 2).0.is_none());
+        assert!(q.lease("w", false, *T, 2).0.is_none());
         let e = q.heartbeat(1, 1, &TB, 0.1, "s", 3).unwrap_err();
         assert!(e.to_string().contains("cancelled"), "{e}");
         assert!(q.finish(1, 1, &TB, delivered(), 3).is_err());
@@ -979,7 +980,7 @@ mod tests {
     fn a_lease_is_held_by_its_token() {
         let mut q = Queue::new(cfg());
         q.submit(spec(1), 0).unwrap();
-        let (job, _) = q.lease("w", false, T, 0);
+        let (job, _) = q.lease("w", false, *T, 0);
         let job = job.unwrap();
         for wrong in [
             &[][..],
@@ -1022,7 +1023,7 @@ mod tests {
         // Two lapsed attempts (reaped by the next lease), then the third.
         let mut now = 0;
         for attempt in 1..=3u32 {
-            let (j, _) = q.lease("coord", false, T, now);
+            let (j, _) = q.lease("coord", false, *T, now);
             assert_eq!(j.unwrap().attempts, attempt);
             now += 1000;
             if attempt < 3 {
@@ -1050,7 +1051,7 @@ mod tests {
             .submit_parts(1, 3, &TB, vec![part], &HashSet::new(), now)
             .unwrap();
         let part_id = parts[0].id;
-        let (leased, _) = q.lease("w", true, T, now);
+        let (leased, _) = q.lease("w", true, *T, now);
         assert_eq!(leased.unwrap().id, part_id);
         let changed = q.reap(now + 1000);
         let ids: Vec<JobId> = changed.iter().map(|j| j.id).collect();
@@ -1102,7 +1103,7 @@ mod tests {
         let mut q = Queue::new(cfg());
         q.submit(spec(1), 0).unwrap();
         q.submit(spec(2), 0).unwrap();
-        q.lease("w", false, T, 0);
+        q.lease("w", false, *T, 0);
         let jobs: Vec<Job> = q.jobs().cloned().collect();
         let (mut r, changed) = Queue::restore(cfg(), jobs, 5000);
         assert_eq!(changed.len(), 1);

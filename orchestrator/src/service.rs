@@ -8,7 +8,7 @@ use crate::check::DeliveryCheck;
 use crate::convert;
 use crate::error::OrchestratorError;
 use crate::jobstore::JobStore;
-use crate::model::{Outcome, Source};
+use crate::model::{LeaseToken, Outcome, Source};
 use crate::queue::QueueOptions;
 use std::pin::Pin;
 use std::sync::Arc;
@@ -435,6 +435,12 @@ impl Orchestrator for OrchestratorService {
                 retry_after_ms: retry_after.min(u32::MAX as u64) as u32,
             }));
         };
+        let Some(secret) = job.state.lease_token().and_then(LeaseToken::secret) else {
+            return Err(Status::internal(format!(
+                "job {} was leased without its token's secret",
+                job.id
+            )));
+        };
         tracing::info!(job = job.id, attempt = job.attempts, %worker, "leased");
         let cfg = self.store().options();
         Ok(Response::new(pb::LeaseResponse {
@@ -444,11 +450,7 @@ impl Orchestrator for OrchestratorService {
                 spec: Some(convert::spec_to_pb(&job.spec)),
                 lease_ms: cfg.lease_ms.min(u32::MAX as u64) as u32,
                 heartbeat_ms: cfg.heartbeat_ms.min(u32::MAX as u64) as u32,
-                lease_token: job
-                    .state
-                    .lease_token()
-                    .map(|t| t.as_bytes().to_vec())
-                    .unwrap_or_default(),
+                lease_token: secret.to_vec(),
             }),
             retry_after_ms: 0,
         }))
