@@ -757,6 +757,71 @@ fn parts_of(jobs: Vec<Job>, parent: u64) -> Vec<Job> {
         .collect()
 }
 
+/// Whether a part ended before its parent's running attempt asked for it is decided by attempt
+/// numbers, not by clocks: a part that fails for good at an orchestrator whose clock is 5 s
+/// behind the one that leased its parent, after the parent's attempt added it, stays failed
+/// when that attempt polls it (it was revived by the times); the parent's next attempt runs it
+/// again.
+async fn a_part_ended_under_its_parents_attempt_stays_ended_whatever_the_clocks(
+    b: &mut dyn Backend,
+) {
+    let (ahead, behind) = (TestClock::default(), TestClock::default());
+    ahead.set(10_000);
+    behind.set(5_000);
+    let q = b.open(&ahead).await;
+    let parent = q.submit(bricked(1), None).await.unwrap().job;
+    let p = q.lease("coordinator", false).await.unwrap().job.unwrap();
+    assert_eq!(p.id, parent.id);
+    let tp = tok(&p);
+    let asked = || vec![part_of(p.id, 1, 0)];
+    let added = q
+        .submit_parts(p.id, p.attempts, &tp, asked())
+        .await
+        .unwrap();
+    // The part's worker leases it, then reports through the orchestrator behind: the part fails
+    // for good there.
+    let x = q.lease("w", true).await.unwrap().job.unwrap();
+    assert_eq!(x.id, added[0].id);
+    drop(q);
+    let q = b.reopen(&behind).await;
+    q.finish(
+        x.id,
+        x.attempts,
+        &tok(&x),
+        failed(FailureKind::InvalidInput),
+    )
+    .await
+    .unwrap();
+    let ended = q.get(x.id).await.unwrap();
+    assert_eq!(ended.state.name(), "failed");
+    assert!(ended.updated_ms < 10_000, "written by the clock behind");
+    // The parent's worker polls through the orchestrator ahead: the part failed, and stays so.
+    drop(q);
+    let q = b.reopen(&ahead).await;
+    let polled = q
+        .submit_parts(p.id, p.attempts, &tp, asked())
+        .await
+        .unwrap();
+    assert_eq!(polled[0].id, x.id);
+    assert_eq!(
+        polled[0].state.name(),
+        "failed",
+        "a part that failed under this attempt of its parent was queued again"
+    );
+    assert_eq!(q.get(x.id).await.unwrap().state.name(), "failed");
+    // The parent's next attempt asks again, and the part runs again.
+    q.cancel(p.id).await.unwrap();
+    q.retry(p.id).await.unwrap();
+    let p2 = q.lease("coordinator", false).await.unwrap().job.unwrap();
+    assert_eq!((p2.id, p2.attempts), (p.id, 2));
+    let polled = q
+        .submit_parts(p2.id, p2.attempts, &tok(&p2), asked())
+        .await
+        .unwrap();
+    assert_eq!(polled[0].state.name(), "queued");
+    assert_eq!(polled[0].asked_by_attempt, 2);
+}
+
 /// A lease is held by its token alone: the right job and attempt with no token, another
 /// lease's, a zeroed, a shortened, a lengthened or a changed one are refused as not the
 /// holder on every change on a lease (heartbeat, outcome, adding parts, a part's result) and
@@ -1146,6 +1211,7 @@ async fn contract(b: &mut dyn Backend, stores: usize) {
     a_second_store_sees_every_acknowledged_change(b).await;
     many_workers_finish_an_archive(b, stores).await;
     a_lease_is_held_only_with_its_token(b).await;
+    a_part_ended_under_its_parents_attempt_stays_ended_whatever_the_clocks(b).await;
     cancelling_a_parent_settles_its_parts_and_a_retry_runs_them_again(b).await;
     a_parent_that_fails_drops_its_parts_results(b).await;
     cancel_racing_submit_parts_leaves_no_live_part(b, stores).await;

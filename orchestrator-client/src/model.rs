@@ -944,6 +944,13 @@ pub struct Job {
     /// after it.
     #[serde(default)]
     pub retried_at: u32,
+    /// For a part of a bricked job: the attempt of its parent that last asked for it (added
+    /// it, or polled it). A part that ended before the parent's running attempt asked for it
+    /// runs again when that attempt asks, if its work is needed; one that ends after stays as
+    /// it ended. Attempt numbers, not times: orchestrators sharing a database need not agree
+    /// on the clock. 0 for other jobs, and in parts stored before it was recorded.
+    #[serde(default)]
+    pub asked_by_attempt: u32,
     /// The last failure of an attempt (kept while the job is retried).
     pub last_failure: Option<Failure>,
     /// Unix ms.

@@ -103,8 +103,8 @@ pub trait JobStore: Send + Sync + 'static {
     /// `token`), or polls them if known; returns them in the order asked. The lease and every
     /// spec are checked in the same step that adds them, so nothing is added once the parent
     /// was cancelled, failed or reclaimed, nor when any spec is refused. A known part that
-    /// ended under an earlier attempt of the parent runs again
-    /// ([`crate::queue::rules::revive_part`]).
+    /// ended before this attempt of the parent first asked for it runs again
+    /// ([`crate::queue::rules::ask_for_part`]).
     async fn submit_parts(
         &self,
         parent: JobId,
@@ -362,7 +362,7 @@ impl JobStore for EmbeddedQueue {
             // parent comes wholly before this check or wholly after these parts are added
             // (and then settles them).
             let mut q = self.lock();
-            // Whether a result is stored matters only for a done part (`revive_part`).
+            // Whether a result is stored matters only for a done part (`ask_for_part`).
             let done = q.done_parts(parent);
             let with_results = self.store.result_ids_among(parent, done)?;
             let (parts, changed) =

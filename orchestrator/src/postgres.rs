@@ -397,12 +397,14 @@ impl PostgresQueue {
         Ok(())
     }
 
-    /// Inserts `spec` (validated, whose key is `key`) as a new job in `tx`; `None` when a job
-    /// with that key was committed meanwhile.
+    /// Inserts `spec` (validated, whose key is `key`) as a new job in `tx`, a part asked for
+    /// by its parent's attempt `asked_by_attempt` (0 for a job that is no part); `None` when a
+    /// job with that key was committed meanwhile.
     async fn insert_new(
         tx: &mut Transaction<'static, Postgres>,
         spec: JobSpec,
         key: &str,
+        asked_by_attempt: u32,
         now: u64,
     ) -> Result<Option<Job>, OrchestratorError> {
         let id: i64 = sqlx::query("SELECT nextval(pg_get_serial_sequence('jobs', 'id'))")
@@ -410,7 +412,10 @@ impl PostgresQueue {
             .await
             .and_then(|r| r.try_get(0))
             .map_err(db)?;
-        let job = rules::new_job(id as u64, spec, now);
+        let job = Job {
+            asked_by_attempt,
+            ..rules::new_job(id as u64, spec, now)
+        };
         let inserted = sqlx::query(
             "INSERT INTO jobs (id, dedup_key, name, state, not_before_ms, attempts, sha256,
                                upload, created_ms, updated_ms, job)
@@ -446,7 +451,6 @@ impl PostgresQueue {
         for spec in &specs {
             rules::check_part_of(&holder, spec)?;
         }
-        let started = rules::started_ms(&holder).unwrap_or(now);
         let with_results: HashSet<i64> =
             sqlx::query_scalar("SELECT job_id FROM results WHERE parent = $1")
                 .bind(ms(parent))
@@ -470,9 +474,9 @@ impl PostgresQueue {
                 Some(row) => {
                     let mut job = Self::job_of(&row)?;
                     let has_result = with_results.contains(&ms(job.id));
-                    if rules::revive_part(&mut job.clone(), started, has_result, now) {
+                    if rules::ask_for_part(&mut job.clone(), attempt, has_result, now) {
                         job = Self::locked(tx, job.id).await?;
-                        if rules::revive_part(&mut job, started, has_result, now) {
+                        if rules::ask_for_part(&mut job, attempt, has_result, now) {
                             Self::write(tx, &job).await?;
                         }
                     }
@@ -480,7 +484,7 @@ impl PostgresQueue {
                 }
                 // Parts are added only under their parent's lock: no other transaction adds
                 // this one meanwhile.
-                None => Self::insert_new(tx, spec, &key, now)
+                None => Self::insert_new(tx, spec, &key, attempt, now)
                     .await?
                     .ok_or_else(|| {
                         OrchestratorError::Database(format!("part {key} added twice at once"))
@@ -600,7 +604,7 @@ impl JobStore for PostgresQueue {
             }
         }
         let now = self.now();
-        let Some(job) = Self::insert_new(&mut tx, spec, &key, now).await? else {
+        let Some(job) = Self::insert_new(&mut tx, spec, &key, 0, now).await? else {
             // Another orchestrator committed the same job since we looked.
             tx.rollback().await.map_err(db)?;
             let mut tx = self.begin().await?;

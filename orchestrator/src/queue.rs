@@ -110,6 +110,7 @@ pub mod rules {
             state: JobState::Queued { not_before_ms: now },
             attempts: 0,
             retried_at: 0,
+            asked_by_attempt: 0,
             last_failure: None,
             created_ms: now,
             updated_ms: now,
@@ -320,7 +321,7 @@ pub mod rules {
     /// goes on from where it was: a worker still holding an earlier attempt (cancelled while
     /// running) must not find its attempt number handed out again.
     pub fn retry(job: &mut Job, now: u64) -> Result<(), OrchestratorError> {
-        // A part runs again when its parent's next attempt asks for it (`revive_part`); one
+        // A part runs again when its parent's next attempt asks for it (`ask_for_part`); one
         // retried alone could store a result under a parent that has ended.
         if let Some(part) = &job.spec.part {
             return Err(OrchestratorError::InvalidRequest(format!(
@@ -394,14 +395,16 @@ pub mod rules {
         Ok(())
     }
 
-    /// Queues again a known `part` asked for by its parent's attempt that started at
-    /// `parent_started_ms`, if it ended under an earlier attempt of the parent (which runs
-    /// again: retried, or taken over after a crash) and its work is needed again: it failed or
-    /// was cancelled, or it was done but its result is gone (`has_result` false: dropped when
-    /// the parent failed or was cancelled). One that ended under this attempt stays as it is:
-    /// the worker polling it learns that it failed. Returns whether it changed.
-    pub fn revive_part(part: &mut Job, parent_started_ms: u64, has_result: bool, now: u64) -> bool {
-        if part.updated_ms >= parent_started_ms {
+    /// Records that the running attempt `parent_attempt` of a part's parent asks for the known
+    /// `part` (adds or polls it), and queues it again if it ended before that attempt first
+    /// asked for it (under an earlier attempt of the parent, which runs again: retried, or
+    /// taken over after a crash) and its work is needed again: it failed or was cancelled, or
+    /// it was done but its result is gone (`has_result` false: dropped when the parent failed
+    /// or was cancelled). One that ended after this attempt asked for it stays as it is: the
+    /// worker polling it learns that it failed. Compares attempt numbers, never the times two
+    /// orchestrators' clocks wrote. Returns whether it changed (to be written).
+    pub fn ask_for_part(part: &mut Job, parent_attempt: u32, has_result: bool, now: u64) -> bool {
+        if part.asked_by_attempt >= parent_attempt {
             return false;
         }
         let again = match part.state {
@@ -412,15 +415,8 @@ pub mod rules {
         if again {
             requeue(part, now);
         }
-        again
-    }
-
-    /// When the running lease of `parent` started (`None`: not running).
-    pub fn started_ms(parent: &Job) -> Option<u64> {
-        match parent.state {
-            JobState::Running { started_ms, .. } => Some(started_ms),
-            _ => None,
-        }
+        part.asked_by_attempt = parent_attempt;
+        true
     }
 }
 
@@ -608,8 +604,8 @@ impl Queue {
     /// Adds the parts `specs` of `parent` for its lease `attempt` presenting `token`, or polls
     /// them if known, as one step: the lease is checked ([`rules::check_held`]) and every
     /// spec ([`rules::check_part_of`]) before anything changes, so a refused call adds nothing.
-    /// A known part that ended under an earlier attempt of the parent runs again
-    /// ([`rules::revive_part`]; `with_results`: the parent's parts whose results are stored).
+    /// A known part that ended before this attempt of the parent asked for it runs again
+    /// ([`rules::ask_for_part`]; `with_results`: the parent's parts whose results are stored).
     /// Returns the parts in the order asked and every job changed.
     pub fn submit_parts(
         &mut self,
@@ -622,7 +618,6 @@ impl Queue {
     ) -> Result<(Vec<Job>, Vec<Job>), OrchestratorError> {
         let holder = self.get(parent)?;
         rules::check_held(holder, attempt, token, now)?;
-        let started = rules::started_ms(holder).unwrap_or(now);
         let specs = specs
             .into_iter()
             .map(|spec| {
@@ -634,14 +629,15 @@ impl Queue {
         let (mut parts, mut changed) = (Vec::with_capacity(specs.len()), Vec::new());
         for spec in specs {
             let s = self.submit(spec, now)?;
+            let job = self.get_mut(s.job.id)?;
             if !s.existed {
-                changed.push(s.job.clone());
-                parts.push(s.job);
+                job.asked_by_attempt = attempt;
+                changed.push(job.clone());
+                parts.push(job.clone());
                 continue;
             }
-            let job = self.get_mut(s.job.id)?;
             let has_result = with_results.contains(&job.id);
-            if rules::revive_part(job, started, has_result, now) {
+            if rules::ask_for_part(job, attempt, has_result, now) {
                 changed.push(job.clone());
             }
             parts.push(job.clone());
@@ -1065,8 +1061,9 @@ mod tests {
         );
     }
 
-    /// A part runs again under its parent's next attempt if it ended under an earlier one and
-    /// its work is needed: failed or cancelled, or done without a stored result.
+    /// A part runs again when its parent's next attempt asks for it if it ended before (under
+    /// an earlier attempt) and its work is needed: failed or cancelled, or done without a
+    /// stored result; whatever the times say.
     #[test]
     fn a_part_is_revived_when_its_work_is_needed_again() {
         let mut part = rules::new_job(2, spec(2), 0);
@@ -1078,24 +1075,29 @@ mod tests {
             run_ms: 1,
             worker: "w".into(),
         };
-        part.updated_ms = 50;
+        part.asked_by_attempt = 1;
+        part.updated_ms = 500;
         let mut kept = part.clone();
         assert!(
-            !rules::revive_part(&mut kept, 100, true, 100),
-            "its result is kept"
+            !rules::ask_for_part(&mut kept, 1, false, 600),
+            "done after attempt 1 asked for it"
         );
         assert!(
-            !rules::revive_part(&mut kept, 40, false, 100),
-            "done under this attempt"
+            rules::ask_for_part(&mut kept, 2, true, 600),
+            "attempt 2 asks"
         );
-        assert!(rules::revive_part(&mut part, 100, false, 100));
+        assert_eq!(kept.state, part.state, "its result is kept");
+        assert_eq!(kept.asked_by_attempt, 2);
+        // Ended later than the parent's next attempt started by a clock, earlier by the
+        // attempts: it runs again.
+        assert!(rules::ask_for_part(&mut part, 2, false, 100));
         assert_eq!(part.state, JobState::Queued { not_before_ms: 100 });
         part.state = JobState::Cancelled;
-        part.updated_ms = 120;
         assert!(
-            !rules::revive_part(&mut part, 100, false, 130),
-            "cancelled under this attempt"
+            !rules::ask_for_part(&mut part, 2, false, 130),
+            "cancelled after attempt 2 asked for it"
         );
+        assert_eq!(part.state, JobState::Cancelled);
     }
 
     #[test]
