@@ -438,9 +438,10 @@ json.dump(cases, open(f"{out}/cases.json", "w"))
 
 #[test]
 fn tiffs_written_by_tifffile_read_as_it_wrote_them() {
-    let Some(python) =
-        wavesplat_fixtures::reference_python("tifffile, numpy", "python3-tifffile python3-numpy")
-    else {
+    let Some(python) = wavesplat_fixtures::reference_python(
+        "tifffile, numpy",
+        "apt-get install python3-tifffile python3-numpy",
+    ) else {
         return;
     };
     let dir = tempfile::tempdir().unwrap();

@@ -28,7 +28,8 @@ use wavesplat_harness::console::Progress;
 #[derive(Args, Debug)]
 pub struct CompressArgs {
     /// Input volume: a DICOM series directory or DICOM file, a TIFF stack (a multi-page .tif,
-    /// or a directory of .tif slices in the natural order of their names), .nrrd / .nhdr, .mha / .mhd,
+    /// or a directory of .tif slices in the natural order of their names), .nrrd / .nhdr, .mha / .mhd
+    /// (a detached header's samples in one file, or in many: a LIST or a slice%03d.raw pattern),
     /// .nii / .nii.gz, a .hdr (+ the .img beside it: a NIfTI-1 pair or Analyze 7.5; .hdr.gz,
     /// .img.gz too), or raw samples: named `NAME_XxYxZ_DTYPE[_rgb][_be].raw` as `archive
     /// submit` reads them (e.g. `head_256x256x128_u16.raw`), or any name with --dims and

@@ -34,7 +34,7 @@ use std::collections::{BTreeSet, HashSet};
 use std::path::{Path, PathBuf};
 use wavesplat_compressor::reader::steps::{step_files, StepSeries};
 use wavesplat_compressor::reader::{
-    dicom::is_dicom_file, nifti, tiff_pages, Format, ReadError, SourceFiles, SourceListing,
+    dicom::is_dicom_file, nifti, tiff_pages, Format, ReadError, SourceListing,
 };
 use wavesplat_orchestrator_client::model::{JobOptions, JobSpec, RawLayout, SampleType, Source};
 
@@ -196,10 +196,10 @@ pub fn scan_with(root: &Path, time_steps: bool) -> std::io::Result<Scan> {
     for path in &files {
         match Format::from_name(path) {
             Some(Format::Nrrd | Format::MetaImage) => {
-                if let Ok(src) = SourceFiles::gather(path, None) {
-                    let dir = path.parent().unwrap_or(Path::new(""));
-                    for (n, _) in src.files.iter().skip(1) {
-                        taken.insert(dir.join(n));
+                // Listed, not read: the data files may be many and large.
+                if let Ok(listing) = SourceListing::list(path, None) {
+                    for (_, data, _) in listing.files.iter().skip(1) {
+                        taken.insert(data.clone());
                     }
                 }
             }
@@ -469,6 +469,7 @@ pub fn job_spec(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use wavesplat_compressor::reader::SourceFiles;
 
     #[test]
     fn raw_names_follow_the_convention() {
@@ -532,6 +533,20 @@ mod tests {
         std::fs::write(r.join("v_4x4x4_u8.raw"), b"x").unwrap();
         std::fs::write(r.join("img.mhd"), "NDims = 3\nElementDataFile = img.data\n").unwrap();
         std::fs::write(r.join("img.data"), b"x").unwrap();
+        // So do the files of a list or a pattern (here named as raw volumes would be).
+        std::fs::write(
+            r.join("list.nhdr"),
+            "NRRD0004\nsizes: 2 2 2\ndata file: LIST\nl0_2x2x1_u8.raw\nl1_2x2x1_u8.raw\n",
+        )
+        .unwrap();
+        std::fs::write(
+            r.join("pat.mhd"),
+            "NDims = 3\nDimSize = 2 2 2\nElementDataFile = q%d_2x2x1_u8.raw 0 1 1\n",
+        )
+        .unwrap();
+        for f in ["l0", "l1", "q0", "q1"] {
+            std::fs::write(r.join(format!("{f}_2x2x1_u8.raw")), b"xxxx").unwrap();
+        }
         // DICOM files (by content) make their directory one volume.
         std::fs::create_dir_all(r.join("study/series1")).unwrap();
         let mut dcm = vec![0u8; 128];
@@ -544,7 +559,18 @@ mod tests {
         let names: Vec<&str> = s.found.iter().map(|f| f.name.as_str()).collect();
         assert_eq!(
             names,
-            vec!["a", "c", "ct", "img", "mr", "study/series1", "sub/b", "vol"]
+            vec![
+                "a",
+                "c",
+                "ct",
+                "img",
+                "list",
+                "mr",
+                "pat",
+                "study/series1",
+                "sub/b",
+                "vol"
+            ]
         );
         assert!(s.found.iter().any(|f| f.path == r.join("study/series1")));
         assert_eq!(s.skipped.len(), 2, "{:?}", s.skipped);

@@ -4,7 +4,9 @@
 //! byte order, `HeaderSize` (incl. -1: data at the end of the file), 1 to 4 dimensions (ITK
 //! writes `NDims = 4` with a last size of 1 for one volume; a last size of more is a time
 //! series, each time point's volume after the previous one). The data file's name may hold
-//! spaces, as MetaIO reads it. Spacing from
+//! spaces, as MetaIO reads it; the samples may be cut into many files (`LIST [DIM]` and the
+//! names on the lines after it, or a pattern `slice%03d.raw MIN MAX STEP`), each file with its
+//! own `HeaderSize` or its own zlib stream, as MetaIO reads them. Spacing from
 //! `ElementSpacing` (else `ElementSize`), placement from `Offset` (or `Origin`, `Position`) and
 //! `TransformMatrix` (or `Rotation`, `Orientation`), whose rows are the axis directions in ITK's
 //! LPS frame, as ITK reads them (`AnatomicalOrientation` is informative only, and ignored as
@@ -99,29 +101,66 @@ fn parse_header(path: &Path, bytes: &[u8]) -> Result<Header, ReadError> {
     Ok(h)
 }
 
-fn data_file_name(path: &Path, h: &Header) -> Result<Option<String>, ReadError> {
+/// The files `ElementDataFile` names (`None`: `LOCAL`, the data follows the header): one
+/// name, `LIST` and the names on the lines after it (`bytes` is the header file), or a
+/// pattern, as MetaIO reads them.
+fn data_file_names(
+    path: &Path,
+    h: &Header,
+    bytes: &[u8],
+) -> Result<Option<text::DataFileNames>, ReadError> {
     let (_, v) = h
         .get(&["ElementDataFile"])
         .ok_or_else(|| bad(path, "no ElementDataFile"))?;
     if v.eq_ignore_ascii_case("LOCAL") {
         return Ok(None);
     }
-    Ok(Some(single_data_file(path, v)?))
+    let listed = if text::is_file_list(v) {
+        let rest = bytes.get(h.data_offset..).unwrap_or(&[]);
+        header_lines(rest, |_| false, false)
+            .ok_or_else(|| {
+                bad(
+                    path,
+                    "the file names after ElementDataFile = LIST are not UTF-8 text or are longer than 1 MiB",
+                )
+            })?
+            .0
+    } else {
+        Vec::new()
+    };
+    text::data_file_names(v, &listed)
+        .map(Some)
+        .map_err(|e| bad(path, format!("ElementDataFile = {v}: {e}")))
 }
 
-/// The one file an `ElementDataFile` value other than `LOCAL` names: any value but a list or a
-/// pattern, spaces allowed (`CT scan.raw`), as MetaIO reads it.
-pub(crate) fn single_data_file(path: &Path, v: &str) -> Result<String, ReadError> {
-    if text::names_several_files(v) {
-        return Err(ReadError::unsupported(
-            path,
-            format!("ElementDataFile = {v}: only LOCAL or a single data file is supported (not LIST or a file name pattern)"),
-        ));
+/// The data files the header `bytes` of `path` names (`None`: `LOCAL`), and the length of each
+/// one's piece of the `total` bytes of samples (for a list or a pattern: each file one slice
+/// of the slowest axis, or of the dimension `LIST` gives).
+pub(crate) fn data_pieces(
+    path: &Path,
+    bytes: &[u8],
+    total: u64,
+) -> Result<Option<(Vec<String>, u64)>, ReadError> {
+    let h = parse_header(path, bytes)?;
+    let Some(d) = data_file_names(path, &h, bytes)? else {
+        return Ok(None);
+    };
+    let sizes = h
+        .get(&["DimSize"])
+        .and_then(|(_, v)| text::sizes(v))
+        .unwrap_or_default();
+    if d.single {
+        return Ok(Some((d.names, total)));
     }
-    if v.is_empty() {
-        return Err(bad(path, "ElementDataFile names no file"));
-    }
-    Ok(v.to_string())
+    let piece = text::piece_bytes(&sizes, d.file_dim, d.names.len(), total)
+        .map_err(|e| bad(path, format!("ElementDataFile: {e}")))?;
+    Ok(Some((d.names, piece)))
+}
+
+/// The names of the data files a detached header refers to (relative to its directory).
+pub(crate) fn data_files(path: &Path, bytes: &[u8]) -> Result<Vec<String>, ReadError> {
+    let h = parse_header(path, bytes)?;
+    Ok(data_file_names(path, &h, bytes)?.map_or_else(Vec::new, |d| d.names))
 }
 
 /// The time points of a MetaImage file of `NDims = 4` whose last size is more than 1 (ITK
@@ -136,12 +175,6 @@ pub(crate) fn series_points(path: &Path, bytes: &[u8]) -> Result<Option<usize>, 
     Ok(sizes
         .map(|s| usize::try_from(s[3]).unwrap_or(usize::MAX))
         .filter(|t| *t > 1))
-}
-
-/// The names of the data files a detached header refers to (relative to its directory).
-pub(crate) fn data_files(path: &Path, bytes: &[u8]) -> Result<Vec<String>, ReadError> {
-    let h = parse_header(path, bytes)?;
-    Ok(data_file_name(path, &h)?.into_iter().collect())
 }
 
 fn bool_field(path: &Path, h: &Header, keys: &[&str]) -> Result<Option<bool>, ReadError> {
@@ -354,22 +387,6 @@ pub(crate) fn decode(src: &SourceFiles) -> Result<Volume, ReadError> {
             channels,
             bytes_per_sample: sample.size(),
         })?;
-    let (data_path, data): (PathBuf, &[u8]) = match data_file_name(&path, &h)? {
-        None => (path.clone(), &header_bytes[h.data_offset..]),
-        Some(f) => {
-            let p = src.path_of(&f);
-            let b = src.get(&f).ok_or_else(|| {
-                ReadError::io(
-                    &p,
-                    std::io::Error::new(
-                        std::io::ErrorKind::NotFound,
-                        "the data file named by the MetaImage header is missing",
-                    ),
-                )
-            })?;
-            (p, b)
-        }
-    };
     let header_size = match h.get(&["HeaderSize"]) {
         None => 0i64,
         Some((_, v)) => v
@@ -378,55 +395,101 @@ pub(crate) fn decode(src: &SourceFiles) -> Result<Volume, ReadError> {
             .filter(|s| *s >= -1)
             .ok_or_else(|| bad(&path, format!("HeaderSize = {v:?}; -1 or ≥ 0 expected")))?,
     };
-    let bytes: Vec<u8>;
-    let raw: &[u8] = if compressed {
-        if header_size != 0 {
-            return Err(ReadError::unsupported(
-                &path,
-                "HeaderSize with CompressedData",
-            ));
-        }
-        let mut z = flate2::bufread::ZlibDecoder::new(data);
-        bytes =
-            read_exact_or_truncated(&mut z, expected, data.len(), &data_path, 0).map_err(|e| {
-                match e {
-                    ReadError::Io { source, .. } => {
-                        bad(&data_path, format!("the zlib data is corrupt: {source}"))
-                    }
-                    e => e,
-                }
-            })?;
-        &bytes
-    } else {
-        let skip = if header_size == -1 {
-            data.len()
-                .checked_sub(expected)
-                .ok_or(ReadError::Truncated {
-                    path: data_path.clone(),
-                    offset: 0,
-                    expected: expected as u64,
-                    actual: data.len() as u64,
-                })?
-        } else {
-            usize::try_from(header_size).unwrap_or(usize::MAX)
+    if compressed && header_size != 0 {
+        return Err(ReadError::unsupported(
+            &path,
+            "HeaderSize with CompressedData",
+        ));
+    }
+    // The data: after the header, or in the data files, each holding its piece of the samples
+    // (after its own HeaderSize; each compressed on its own), as MetaIO reads them.
+    let (pieces, piece): (Vec<(PathBuf, &[u8])>, usize) =
+        match data_pieces(&path, header_bytes, expected as u64)? {
+            None => (
+                vec![(path.clone(), &header_bytes[h.data_offset..])],
+                expected,
+            ),
+            Some((names, piece)) => (
+                names
+                    .iter()
+                    .map(|f| {
+                        let p = src.path_of(f);
+                        let b = src.get(f).ok_or_else(|| {
+                            ReadError::io(
+                                &p,
+                                std::io::Error::new(
+                                    std::io::ErrorKind::NotFound,
+                                    "a data file named by the MetaImage header is missing",
+                                ),
+                            )
+                        })?;
+                        Ok((p, b))
+                    })
+                    .collect::<Result<_, ReadError>>()?,
+                piece as usize,
+            ),
         };
-        let body = data.get(skip..).unwrap_or(&[]);
-        if body.len() < expected {
-            return Err(ReadError::Truncated {
-                path: data_path,
-                offset: skip as u64,
-                expected: expected as u64,
-                actual: body.len() as u64,
-            });
+    let data_path = pieces[0].0.clone();
+    let mut joined: Vec<u8> = Vec::new();
+    let mut single: Option<std::borrow::Cow<'_, [u8]>> = None;
+    for (data_path, data) in &pieces {
+        let body = piece_of(data_path, data, piece, compressed, header_size)?;
+        if pieces.len() == 1 {
+            single = Some(body);
+        } else {
+            joined.extend_from_slice(&body);
         }
-        &body[..expected]
-    };
+    }
+    let raw: &[u8] = single.as_deref().unwrap_or(&joined);
     let planar = deinterleave(raw, sample, endian, channels, 1.0, 0.0);
     let v = Volume::new(dims, spacing, planar).map_err(|e| ReadError::volume(&data_path, e))?;
     match placement {
         Some(p) => v.with_placement(p).map_err(|e| ReadError::volume(&path, e)),
         None => Ok(v),
     }
+}
+
+/// The `piece` bytes of samples a data file `data` (read from `data_path`) holds: inflated
+/// from its zlib stream, or after `header_size` bytes (-1: the last `piece` bytes).
+fn piece_of<'a>(
+    data_path: &Path,
+    data: &'a [u8],
+    piece: usize,
+    compressed: bool,
+    header_size: i64,
+) -> Result<std::borrow::Cow<'a, [u8]>, ReadError> {
+    if compressed {
+        let mut z = flate2::bufread::ZlibDecoder::new(data);
+        let bytes = read_exact_or_truncated(&mut z, piece, data.len(), data_path, 0).map_err(
+            |e| match e {
+                ReadError::Io { source, .. } => {
+                    bad(data_path, format!("the zlib data is corrupt: {source}"))
+                }
+                e => e,
+            },
+        )?;
+        return Ok(std::borrow::Cow::Owned(bytes));
+    }
+    let skip = if header_size == -1 {
+        data.len().checked_sub(piece).ok_or(ReadError::Truncated {
+            path: data_path.to_path_buf(),
+            offset: 0,
+            expected: piece as u64,
+            actual: data.len() as u64,
+        })?
+    } else {
+        usize::try_from(header_size).unwrap_or(usize::MAX)
+    };
+    let body = data.get(skip..).unwrap_or(&[]);
+    if body.len() < piece {
+        return Err(ReadError::Truncated {
+            path: data_path.to_path_buf(),
+            offset: skip as u64,
+            expected: piece as u64,
+            actual: body.len() as u64,
+        });
+    }
+    Ok(std::borrow::Cow::Borrowed(&body[..piece]))
 }
 
 #[cfg(test)]
@@ -600,10 +663,9 @@ mod tests {
             format!("{base}DimSize = 1 1 1\nElementDataFile = LIST\n"),
         )
         .unwrap();
-        assert!(matches!(
-            read_volume(&h, None),
-            Err(ReadError::Unsupported { .. })
-        ));
+        let e = read_volume(&h, None).unwrap_err();
+        assert!(matches!(e, ReadError::BadHeader { .. }), "{e}");
+        assert!(e.to_string().contains("LIST names no file"), "{e}");
         // NaN samples.
         let mut b =
             b"NDims = 1\nDimSize = 1\nElementType = MET_FLOAT\nElementDataFile = LOCAL\n".to_vec();
@@ -628,7 +690,7 @@ mod tests {
 
     /// `ElementDataFile = CT scan.raw`: MetaIO reads any value but LOCAL, LIST or a pattern as
     /// one file name, spaces included; it reads through the listing that hashes it, gathering,
-    /// decoding and region reads. LIST and patterns are still refused, saying so.
+    /// decoding and region reads.
     #[test]
     fn a_data_file_name_may_hold_spaces() {
         use crate::reader::region::RegionReader;
@@ -650,20 +712,24 @@ mod tests {
         assert_eq!(decode_source(&back, None).unwrap(), v);
         let r = RegionReader::open(&h, None).unwrap();
         assert_eq!(r.read_region([0; 3], [2, 3, 4]).unwrap(), v);
-        for list in ["LIST", "LIST 2D", "slice%03d.raw 1 4 1"] {
-            std::fs::write(&h, format!("{base}ElementDataFile = {list}\nCT scan.raw\n")).unwrap();
+        // A list or a pattern whose files are too few for the sizes is refused, saying so
+        // (`tests/data_files.rs` reads lists and patterns).
+        for list in [
+            "LIST\nCT scan.raw",
+            "LIST 2D\nCT scan.raw",
+            "CT scan.ra%c 1 1 1",
+        ] {
+            std::fs::write(&h, format!("{base}ElementDataFile = {list}\n")).unwrap();
             for e in [
                 read_volume(&h, None).unwrap_err(),
-                SourceListing::list(&h, None).unwrap_err(),
                 RegionReader::open(&h, None).unwrap_err(),
             ] {
-                assert!(matches!(e, ReadError::Unsupported { .. }), "{list}: {e}");
-                assert!(
-                    e.to_string().contains("not LIST or a file name pattern"),
-                    "{e}"
-                );
+                assert!(matches!(e, ReadError::BadHeader { .. }), "{list}: {e}");
             }
         }
+        std::fs::write(&h, format!("{base}ElementDataFile = LIST\nCT scan.raw\n")).unwrap();
+        let e = read_volume(&h, None).unwrap_err().to_string();
+        assert!(e.contains("1 files named"), "{e}");
     }
 
     /// ITK writes one volume as `NDims = 4` with a last size of 1 (and 4 spacings, a 4×4

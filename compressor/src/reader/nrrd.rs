@@ -1,6 +1,9 @@
 //! NRRD ("nearly raw raster data", teem / 3D Slicer / ITK): attached headers (`.nrrd`, data
 //! after the blank line that ends the header) and detached ones (`.nhdr`, data in the file
-//! named by `data file`, spaces allowed), `raw`, `gzip` and `ascii` encodings, either byte
+//! named by `data file`, spaces allowed, or in many: `LIST` and the names on the header's
+//! lines after it, or a pattern `slice%03d.raw MIN MAX STEP [DIM]`, each file holding its piece
+//! of the samples after its own skipped lines and bytes, or its own gzip stream, as teem reads
+//! them), `raw`, `gzip` and `ascii` encodings, either byte
 //! order, 3D scalar volumes and 4D ones whose first axis holds 1 or 3 channels (RGB), or whose
 //! first or last axis is time (`kinds` `time` or `list`: a Slicer sequence; read as a time
 //! series). Spacing and placement come
@@ -41,6 +44,8 @@ struct Header {
     byte_skip: i64,
     line_skip: u64,
     data_file: Option<String>,
+    /// The header's lines after `data file: LIST` (the data files' names).
+    listed: Vec<String>,
     /// Offset of the attached data (just past the blank line), if the header ended with one.
     data_offset: Option<usize>,
 }
@@ -129,7 +134,8 @@ fn parse_header(path: &Path, bytes: &[u8]) -> Result<Header, ReadError> {
             "data file" | "datafile" => {
                 h.data_file = Some(value.to_string());
                 if text::is_file_list(value) {
-                    break; // the remaining lines name the data files
+                    h.listed = lines[n + 1..].to_vec(); // the remaining lines name the data files
+                    break;
                 }
             }
             _ => {} // centers, labels, content, measurement frame, …
@@ -305,25 +311,38 @@ pub(crate) fn spatial_axes(path: &Path, bytes: &[u8]) -> Result<Vec<usize>, Read
 /// The names of the data files a detached header refers to (relative to its directory).
 pub(crate) fn data_files(path: &Path, bytes: &[u8]) -> Result<Vec<String>, ReadError> {
     let h = parse_header(path, bytes)?;
-    Ok(match h.data_file {
-        Some(f) => vec![single_data_file(path, &f)?],
-        None => Vec::new(),
-    })
+    Ok(data_file_names(path, &h)?.map_or_else(Vec::new, |d| d.names))
 }
 
-/// The one file a `data file` value names (any value but a list or a pattern, spaces
-/// allowed, as teem reads it).
-pub(crate) fn single_data_file(path: &Path, value: &str) -> Result<String, ReadError> {
-    if text::names_several_files(value) {
-        return Err(ReadError::unsupported(
-            path,
-            format!("data file {value:?}: only a single data file is supported (not LIST or a file name pattern)"),
-        ));
+/// The data files the header `bytes` of `path` names (`None`: the data follows the header),
+/// and the length of each one's piece of the `total` bytes of samples.
+pub(crate) fn data_pieces(
+    path: &Path,
+    bytes: &[u8],
+    total: u64,
+) -> Result<Option<(Vec<String>, u64)>, ReadError> {
+    let h = parse_header(path, bytes)?;
+    let Some(d) = data_file_names(path, &h)? else {
+        return Ok(None);
+    };
+    let sizes = h.sizes.as_deref().unwrap_or(&[]);
+    if d.single {
+        return Ok(Some((d.names, total)));
     }
-    if value.is_empty() {
-        return Err(bad(path, "`data file` names no file"));
-    }
-    Ok(value.to_string())
+    let piece = text::piece_bytes(sizes, d.file_dim, d.names.len(), total)
+        .map_err(|e| bad(path, format!("data file: {e}")))?;
+    Ok(Some((d.names, piece)))
+}
+
+/// The files the header's `data file` names (a name, a `LIST` or a pattern), as teem reads it.
+fn data_file_names(path: &Path, h: &Header) -> Result<Option<text::DataFileNames>, ReadError> {
+    h.data_file
+        .as_deref()
+        .map(|v| {
+            text::data_file_names(v, &h.listed)
+                .map_err(|e| bad(path, format!("data file {v:?}: {e}")))
+        })
+        .transpose()
 }
 
 /// The volume layout a header describes.
@@ -483,48 +502,6 @@ pub(crate) fn decode(src: &SourceFiles) -> Result<Volume, ReadError> {
                 channels: layout.channels,
                 bytes_per_sample: sample.size(),
             })?;
-    let (data_path, data): (PathBuf, &[u8]) = match &h.data_file {
-        Some(f) => {
-            let f = single_data_file(&path, f)?;
-            let p = src.path_of(&f);
-            let bytes = src.get(&f).ok_or_else(|| {
-                ReadError::io(
-                    &p,
-                    std::io::Error::new(
-                        std::io::ErrorKind::NotFound,
-                        "the data file named by the NRRD header is missing",
-                    ),
-                )
-            })?;
-            (p, bytes)
-        }
-        None => {
-            let off = h.data_offset.ok_or_else(|| {
-                bad(
-                    &path,
-                    "no blank line ends the header and no `data file` is named",
-                )
-            })?;
-            (path.clone(), &header_bytes[off..])
-        }
-    };
-    // Line skip, then byte skip (applied to the file as stored).
-    let mut data = data;
-    let mut offset = 0u64;
-    for _ in 0..h.line_skip {
-        match data.iter().position(|b| *b == b'\n') {
-            Some(i) => {
-                data = &data[i + 1..];
-                offset += i as u64 + 1;
-            }
-            None => {
-                return Err(bad(
-                    &path,
-                    format!("line skip {} passes the end of the data", h.line_skip),
-                ))
-            }
-        }
-    }
     let encoding = h.encoding.as_deref().unwrap_or("");
     let endian = match h.endian {
         Some(e) => e,
@@ -533,58 +510,135 @@ pub(crate) fn decode(src: &SourceFiles) -> Result<Volume, ReadError> {
         }
         None => return Err(bad(&path, "no `endian` field for multi-byte samples")),
     };
-    let bytes: Vec<u8>;
-    let raw: &[u8] = match encoding {
+    // The data: after the header, or in the data files, each holding its piece of the samples
+    // after its own skipped lines and bytes (as teem reads them).
+    let (pieces, piece): (Vec<(PathBuf, &[u8])>, usize) =
+        match data_pieces(&path, header_bytes, expected as u64)? {
+            Some((names, piece)) => (
+                names
+                    .iter()
+                    .map(|f| {
+                        let p = src.path_of(f);
+                        let bytes = src.get(f).ok_or_else(|| {
+                            ReadError::io(
+                                &p,
+                                std::io::Error::new(
+                                    std::io::ErrorKind::NotFound,
+                                    "a data file named by the NRRD header is missing",
+                                ),
+                            )
+                        })?;
+                        Ok((p, bytes))
+                    })
+                    .collect::<Result<_, ReadError>>()?,
+                piece as usize,
+            ),
+            None => {
+                let off = h.data_offset.ok_or_else(|| {
+                    bad(
+                        &path,
+                        "no blank line ends the header and no `data file` is named",
+                    )
+                })?;
+                (vec![(path.clone(), &header_bytes[off..])], expected)
+            }
+        };
+    let data_path = pieces[0].0.clone();
+    if matches!(encoding, "ascii" | "text" | "txt") {
+        if pieces.len() > 1 {
+            return Err(ReadError::unsupported(
+                &path,
+                "ASCII data in several data files",
+            ));
+        }
+        let data = skip_lines(&path, pieces[0].1, h.line_skip)?.1;
+        return ascii_volume(&path, &data_path, data, &layout, voxels, sample);
+    }
+    let mut joined: Vec<u8> = Vec::new();
+    let mut single: Option<std::borrow::Cow<'_, [u8]>> = None;
+    for (data_path, data) in &pieces {
+        let body = piece_of(&path, &h, encoding, data_path, data, piece)?;
+        if pieces.len() == 1 {
+            single = Some(body);
+        } else {
+            joined.extend_from_slice(&body);
+        }
+    }
+    let raw: &[u8] = single.as_deref().unwrap_or(&joined);
+    let planar = deinterleave(raw, sample, endian, layout.channels, 1.0, 0.0);
+    finish(&data_path, layout, planar)
+}
+
+/// The data after `lines` lines of `data` and the offset it starts at.
+fn skip_lines<'a>(path: &Path, data: &'a [u8], lines: u64) -> Result<(u64, &'a [u8]), ReadError> {
+    let (mut data, mut offset) = (data, 0u64);
+    for _ in 0..lines {
+        match data.iter().position(|b| *b == b'\n') {
+            Some(i) => {
+                data = &data[i + 1..];
+                offset += i as u64 + 1;
+            }
+            None => {
+                return Err(bad(
+                    path,
+                    format!("line skip {lines} passes the end of the data"),
+                ))
+            }
+        }
+    }
+    Ok((offset, data))
+}
+
+/// The `piece` bytes of samples a data file `data` (read from `data_path`) holds, after the
+/// header's line skip, then byte skip (applied to the file as stored; -1: the last `piece`
+/// bytes of raw data), raw or inflated.
+fn piece_of<'a>(
+    path: &Path,
+    h: &Header,
+    encoding: &str,
+    data_path: &Path,
+    data: &'a [u8],
+    piece: usize,
+) -> Result<std::borrow::Cow<'a, [u8]>, ReadError> {
+    let (offset, data) = skip_lines(data_path, data, h.line_skip)?;
+    match encoding {
         "raw" => {
             let skip = match h.byte_skip {
-                -1 => data
-                    .len()
-                    .checked_sub(expected)
-                    .ok_or(ReadError::Truncated {
-                        path: data_path.clone(),
-                        offset,
-                        expected: expected as u64,
-                        actual: data.len() as u64,
-                    })?,
+                -1 => data.len().checked_sub(piece).ok_or(ReadError::Truncated {
+                    path: data_path.to_path_buf(),
+                    offset,
+                    expected: piece as u64,
+                    actual: data.len() as u64,
+                })?,
                 s if s >= 0 => usize::try_from(s).unwrap_or(usize::MAX),
-                s => return Err(bad(&path, format!("byte skip {s}; -1 or ≥ 0 allowed"))),
+                s => return Err(bad(path, format!("byte skip {s}; -1 or ≥ 0 allowed"))),
             };
             let body = data.get(skip..).unwrap_or(&[]);
-            if body.len() < expected {
+            if body.len() < piece {
                 return Err(ReadError::Truncated {
-                    path: data_path,
+                    path: data_path.to_path_buf(),
                     offset: offset + skip as u64,
-                    expected: expected as u64,
+                    expected: piece as u64,
                     actual: body.len() as u64,
                 });
             }
-            &body[..expected]
+            Ok(std::borrow::Cow::Borrowed(&body[..piece]))
         }
         "gzip" | "gz" => {
             if h.byte_skip != 0 {
-                return Err(ReadError::unsupported(
-                    &path,
-                    "byte skip with gzip encoding",
-                ));
+                return Err(ReadError::unsupported(path, "byte skip with gzip encoding"));
             }
             let mut stream = flate2::bufread::MultiGzDecoder::new(data);
-            bytes = read_exact_or_truncated(&mut stream, expected, data.len(), &data_path, 0)
-                .map_err(|e| gzip_error(e, &data_path))?;
-            &bytes
+            let bytes = read_exact_or_truncated(&mut stream, piece, data.len(), data_path, 0)
+                .map_err(|e| gzip_error(e, data_path))?;
+            Ok(std::borrow::Cow::Owned(bytes))
         }
-        "ascii" | "text" | "txt" => {
-            return ascii_volume(&path, &data_path, data, &layout, voxels, sample);
-        }
-        "" => return Err(bad(&path, "no `encoding` field")),
-        e => {
-            return Err(ReadError::unsupported(
-                &path,
-                format!("encoding {e:?}; supported are raw, gzip and ascii"),
-            ))
-        }
-    };
-    let planar = deinterleave(raw, sample, endian, layout.channels, 1.0, 0.0);
-    finish(&data_path, layout, planar)
+        "" => Err(bad(path, "no `encoding` field")),
+        e => Err(ReadError::unsupported(
+            path,
+            format!("encoding {e:?}; supported are raw, gzip and ascii"),
+        )),
+    }
 }
 
 fn gzip_error(e: ReadError, path: &Path) -> ReadError {
@@ -832,10 +886,9 @@ mod tests {
             format!("NRRD0004\n{base}sizes: 2 2 2\ndata file: LIST\na.raw\n"),
         )
         .unwrap();
-        assert!(matches!(
-            read_volume(&h, None),
-            Err(ReadError::Unsupported { .. })
-        ));
+        let e = read_volume(&h, None).unwrap_err();
+        assert!(matches!(e, ReadError::Io { .. }), "{e}");
+        assert!(e.to_string().contains("a.raw"), "{e}");
         // Random bytes after the magic never panic.
         let mut seed = 12345u64;
         for len in 0..200 {
@@ -854,8 +907,7 @@ mod tests {
 
     /// A detached header whose data file's name holds spaces (`data file: Patient 1.raw`, as
     /// teem reads any value but LIST or a pattern as one name) reads, raw and gzip, through
-    /// every path: the listing that hashes it, gathering, decoding and region reads. LIST and
-    /// patterns are still refused, saying so.
+    /// every path: the listing that hashes it, gathering, decoding and region reads.
     #[test]
     fn a_data_file_name_may_hold_spaces() {
         use crate::reader::region::RegionReader;
@@ -894,23 +946,21 @@ mod tests {
             let r = RegionReader::open(&h, None).unwrap();
             assert_eq!(r.read_region([0; 3], [2, 3, 4]).unwrap(), v);
         }
-        for list in ["LIST", "LIST 2", "scan%03d.raw 1 4 1"] {
+        // A list whose files are too few for the sizes is refused, saying so
+        // (`tests/data_files.rs` reads lists and patterns).
+        for list in ["LIST", "LIST 2"] {
             let h = dir.path().join("list.nhdr");
             std::fs::write(
                 &h,
-                format!("NRRD0004\ntype: uint8\ndimension: 3\nsizes: 2 3 4\nencoding: raw\ndata file: {list}\n{}", if list.starts_with("LIST") { "Patient 1.raw\n" } else { "" }),
+                format!("NRRD0004\ntype: uint8\ndimension: 3\nsizes: 2 3 4\nencoding: raw\ndata file: {list}\nPatient 1.raw\n"),
             )
             .unwrap();
             for e in [
                 read_volume(&h, None).unwrap_err(),
-                SourceListing::list(&h, None).unwrap_err(),
                 RegionReader::open(&h, None).unwrap_err(),
             ] {
-                assert!(matches!(e, ReadError::Unsupported { .. }), "{list}: {e}");
-                assert!(
-                    e.to_string().contains("not LIST or a file name pattern"),
-                    "{e}"
-                );
+                assert!(matches!(e, ReadError::BadHeader { .. }), "{list}: {e}");
+                assert!(e.to_string().contains("1 files named"), "{e}");
             }
         }
     }

@@ -5,7 +5,8 @@
 //! spacing and placement, and where its samples lie. Headerless raw files, NIfTI-1 `.nii`,
 //! NRRD with `raw` encoding (attached or detached) and MetaImage with raw data (`.mha`,
 //! `.mhd` + data file) are read with positioned reads of just the bytes of the region (one
-//! read per row, per slab of full rows, or one for a run of full slabs). gzip and zlib data
+//! read per row, per slab of full rows, or one for a run of full slabs; samples cut into many
+//! data files, a slice or a row each, are read from the files the region's bytes lie in). gzip and zlib data
 //! (`.nii.gz`, NRRD `gzip`, MetaImage `CompressedData`) cannot be seeked into, and inflating
 //! the stream again from the start for every brick would cost time quadratic in the volume;
 //! so it is inflated once, streaming, into an anonymous temporary file in the system
@@ -71,8 +72,9 @@ enum Source {
     Tiff(super::tiff_stack::TiffRegions),
 }
 
-/// Samples stored in a file from `offset` on: x fastest, then y, then z, the channels of a
-/// voxel interleaved; value = `slope · sample + inter`.
+/// Samples stored in a file from `offset` on (or in several files, [`Stored::pieces`]): x
+/// fastest, then y, then z, the channels of a voxel interleaved; value = `slope · sample +
+/// inter`.
 #[derive(Debug)]
 struct Stored {
     file: File,
@@ -80,6 +82,10 @@ struct Stored {
     /// temporary one).
     path: PathBuf,
     offset: u64,
+    /// The sample stream cut into pieces of equal length, one per data file, in order (a
+    /// detached header's `LIST` or file name pattern): then `file` and `offset` are the first
+    /// piece's, and byte `b` of the stream is byte `b % len` of piece `b / len`.
+    pieces: Option<Pieces>,
     sample: SampleType,
     endian: Endian,
     slope: f64,
@@ -89,6 +95,40 @@ struct Stored {
     /// Time points stored within each voxel, one after another (an NRRD whose first axis is
     /// time); 1 where each time point's volume follows the previous one (`frame` apart).
     interleaved: usize,
+}
+
+/// A sample stream cut into equal pieces, each in its own file ([`Stored::pieces`]).
+#[derive(Debug)]
+struct Pieces {
+    /// Bytes of each piece.
+    len: u64,
+    /// Each piece's file, its path and where in it the piece starts.
+    files: Vec<(File, PathBuf, u64)>,
+}
+
+impl Stored {
+    /// Fills `buf` from byte `offset` of the stored bytes (counted from the file's start; for
+    /// pieces, from the first piece's start), reading across pieces as needed. An error names
+    /// the file it came from.
+    fn read_at(&self, buf: &mut [u8], offset: u64) -> Result<(), (io::Error, &Path, u64)> {
+        let Some(pieces) = &self.pieces else {
+            return read_at(&self.file, buf, offset).map_err(|e| (e, self.path.as_path(), offset));
+        };
+        let (mut buf, mut pos) = (buf, offset - self.offset);
+        while !buf.is_empty() {
+            let (index, within) = (pos / pieces.len, pos % pieces.len);
+            let n = (pieces.len - within).min(buf.len() as u64) as usize;
+            let (file, path, start) = pieces.files.get(index as usize).ok_or_else(|| {
+                let e = io::Error::new(io::ErrorKind::UnexpectedEof, "past the last data file");
+                (e, self.path.as_path(), pos)
+            })?;
+            let (now, rest) = buf.split_at_mut(n);
+            read_at(file, now, start + within).map_err(|e| (e, path.as_path(), start + within))?;
+            buf = rest;
+            pos += n as u64;
+        }
+        Ok(())
+    }
 }
 
 /// What a format's opener found: the volume's metadata and its samples.
@@ -379,17 +419,18 @@ impl RegionReader {
                 scratch.resize(chunk.len() * il, 0);
                 &mut scratch[..]
             };
-            read_at(&s.file, into, start).map_err(|e| {
+            let wanted = into.len() as u64;
+            s.read_at(into, start).map_err(|(e, path, at)| {
                 if e.kind() == io::ErrorKind::UnexpectedEof {
-                    let len = s.file.metadata().map(|m| m.len()).unwrap_or(0);
+                    let len = std::fs::metadata(path).map(|m| m.len()).unwrap_or(0);
                     ReadError::Truncated {
-                        path: s.path.clone(),
-                        offset: start,
-                        expected: into.len() as u64,
-                        actual: len.saturating_sub(start).min(into.len() as u64),
+                        path: path.to_path_buf(),
+                        offset: at,
+                        expected: wanted,
+                        actual: len.saturating_sub(at).min(wanted),
                     }
                 } else {
-                    ReadError::io(&s.path, e)
+                    ReadError::io(path, e)
                 }
             })?;
             if il > 1 {

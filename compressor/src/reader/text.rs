@@ -165,11 +165,205 @@ pub(crate) fn is_file_list(value: &str) -> bool {
         && t.next().is_none()
 }
 
-/// Whether a detached header's data-file value names several files: a list
-/// ([`is_file_list`]) or a printf pattern (`vol%03d.raw 1 10 1`). Any other value is one file
-/// name, spaces included (`CT scan.raw`), as teem and ITK's MetaIO read it.
-pub(crate) fn names_several_files(value: &str) -> bool {
-    is_file_list(value) || value.contains('%')
+/// Most data files one detached header may name (a list or a pattern): a slice per file of
+/// the largest volumes is tens of thousands; with the header, a volume's sources are at most
+/// [`super::MAX_SOURCE_FILES`].
+pub(crate) const MAX_DATA_FILES: usize = super::MAX_SOURCE_FILES - 1;
+
+/// The files a detached header's data-file value (NRRD `data file`, MetaImage
+/// `ElementDataFile`) names, in the order their samples follow one another.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub(crate) struct DataFileNames {
+    /// The names, relative to the header's directory.
+    pub names: Vec<String>,
+    /// The dimension of each file's data, when the value gives it (`LIST 2`, `LIST 2D`, a
+    /// pattern's fifth word); else each file of a list or a pattern holds one slice along the
+    /// slowest axis.
+    pub file_dim: Option<usize>,
+    /// Whether the value is one name (the file holds all the samples), not a list or a
+    /// pattern.
+    pub single: bool,
+}
+
+/// Reads a data-file value: one name (spaces allowed, as teem and MetaIO read it); `LIST`
+/// (optionally with each file's dimension) followed by one name per non-empty line of
+/// `following` (the header's lines after it); or a printf pattern `FORMAT MIN MAX STEP
+/// [DIM]`, whose format has one `%d` (`%i`, `%u`; a `0` flag and a width allowed; `%%` is a
+/// percent sign), expanded from MIN to MAX by STEP (which may be negative) as teem and MetaIO
+/// expand it. `Err` says what is wrong with the value.
+pub(crate) fn data_file_names(value: &str, following: &[String]) -> Result<DataFileNames, String> {
+    let dim_of = |d: &str| -> Result<usize, String> {
+        d.strip_suffix(['D', 'd'])
+            .unwrap_or(d)
+            .parse::<usize>()
+            .ok()
+            .filter(|d| *d >= 1)
+            .ok_or_else(|| format!("{d:?} is not a file dimension (1 or more)"))
+    };
+    if is_file_list(value) {
+        let file_dim = value.split_whitespace().nth(1).map(dim_of).transpose()?;
+        let names: Vec<String> = following
+            .iter()
+            .map(|l| l.trim_end().to_string())
+            .filter(|l| !l.trim().is_empty())
+            .collect();
+        if names.is_empty() {
+            return Err("LIST names no file on the lines after it".into());
+        }
+        if names.len() > MAX_DATA_FILES {
+            return Err(format!("LIST names more than {MAX_DATA_FILES} files"));
+        }
+        return Ok(DataFileNames {
+            names,
+            file_dim,
+            single: false,
+        });
+    }
+    if value.contains('%') {
+        let words: Vec<&str> = value.split_whitespace().collect();
+        if !(4..=5).contains(&words.len()) {
+            return Err(format!(
+                "{value:?}: a file name pattern is FORMAT MIN MAX STEP [DIM]"
+            ));
+        }
+        let number = |w: &str| {
+            w.parse::<i64>()
+                .map_err(|_| format!("{value:?}: {w:?} is not a whole number"))
+        };
+        let (min, max, step) = (number(words[1])?, number(words[2])?, number(words[3])?);
+        let file_dim = words.get(4).map(|d| dim_of(d)).transpose()?;
+        if step == 0 || (step > 0 && min > max) || (step < 0 && min < max) {
+            return Err(format!(
+                "{value:?}: from {min} by {step} never reaches {max}"
+            ));
+        }
+        let count = (max.abs_diff(min) / step.unsigned_abs()).saturating_add(1);
+        if count > MAX_DATA_FILES as u64 {
+            return Err(format!(
+                "{value:?} names {count} files, more than {MAX_DATA_FILES}"
+            ));
+        }
+        let format = PrintfInteger::parse(words[0]).map_err(|e| format!("{value:?}: {e}"))?;
+        let names = (0..count as i64)
+            .map(|k| format.format(min + k * step))
+            .collect();
+        return Ok(DataFileNames {
+            names,
+            file_dim,
+            single: false,
+        });
+    }
+    if value.is_empty() {
+        return Err("it names no file".into());
+    }
+    Ok(DataFileNames {
+        names: vec![value.to_string()],
+        file_dim: None,
+        single: true,
+    })
+}
+
+/// Bytes of each data file's piece when `files` files hold a sample stream of `total` bytes
+/// whose axes have `sizes` (fastest first), each file `file_dim` of the axes (by default all
+/// but the slowest): there must be one file per sample of the remaining axes. `Err` says what
+/// does not match.
+pub(crate) fn piece_bytes(
+    sizes: &[u64],
+    file_dim: Option<usize>,
+    files: usize,
+    total: u64,
+) -> Result<u64, String> {
+    let dim = file_dim.unwrap_or(sizes.len().saturating_sub(1).max(1));
+    if dim > sizes.len() {
+        return Err(format!(
+            "each file of {dim} dimensions, of a volume of {}",
+            sizes.len()
+        ));
+    }
+    let wanted = sizes[dim..]
+        .iter()
+        .try_fold(1u64, |acc, s| acc.checked_mul(*s))
+        .unwrap_or(u64::MAX);
+    if wanted != files as u64 {
+        return Err(format!(
+            "{files} files named, where sizes {sizes:?} in files of {dim} dimensions make {wanted}"
+        ));
+    }
+    Ok(total / wanted.max(1))
+}
+
+/// A printf format with one integer conversion (`%d`, `%i`, `%u`, with an optional `0` flag
+/// and width), the only kind teem's and MetaIO's file name patterns use. Written here: a
+/// format string from an untrusted header must not reach a C-style formatter, and no crate
+/// formats one integer into a runtime printf pattern safely.
+struct PrintfInteger {
+    before: String,
+    after: String,
+    zero: bool,
+    width: usize,
+}
+
+impl PrintfInteger {
+    fn parse(format: &str) -> Result<PrintfInteger, String> {
+        let mut parts = (String::new(), String::new());
+        let mut conversion: Option<(bool, usize)> = None;
+        let mut chars = format.chars().peekable();
+        while let Some(c) = chars.next() {
+            let out = if conversion.is_some() {
+                &mut parts.1
+            } else {
+                &mut parts.0
+            };
+            if c != '%' {
+                out.push(c);
+                continue;
+            }
+            if chars.peek() == Some(&'%') {
+                chars.next();
+                out.push('%');
+                continue;
+            }
+            if conversion.is_some() {
+                return Err("more than one % conversion".into());
+            }
+            let zero = chars.next_if_eq(&'0').is_some();
+            let mut width = 0usize;
+            while let Some(d) = chars.next_if(char::is_ascii_digit) {
+                width = width * 10 + d.to_digit(10).unwrap_or(0) as usize;
+                if width > 32 {
+                    return Err("a field width over 32".into());
+                }
+            }
+            match chars.next() {
+                Some('d' | 'i' | 'u') => conversion = Some((zero, width)),
+                other => {
+                    return Err(format!(
+                        "the conversion %{} is not an integer's (%d)",
+                        other.map(String::from).unwrap_or_default()
+                    ))
+                }
+            }
+        }
+        let (zero, width) = conversion.ok_or("no %d in the format")?;
+        Ok(PrintfInteger {
+            before: parts.0,
+            after: parts.1,
+            zero,
+            width,
+        })
+    }
+
+    fn format(&self, n: i64) -> String {
+        let digits = n.unsigned_abs().to_string();
+        let sign = if n < 0 { "-" } else { "" };
+        let pad = self.width.saturating_sub(sign.len() + digits.len());
+        let number = if self.zero {
+            format!("{sign}{}{digits}", "0".repeat(pad))
+        } else {
+            format!("{}{sign}{digits}", " ".repeat(pad))
+        };
+        format!("{}{number}{}", self.before, self.after)
+    }
 }
 
 /// NRRD type names (all the spellings of the NRRD spec).
@@ -205,6 +399,63 @@ pub(crate) fn nrrd_type(name: &str) -> Option<SampleType> {
 mod tests {
     use super::*;
 
+    /// Data-file values as teem and MetaIO read them: one name (spaces kept), a list with or
+    /// without each file's dimension, and printf patterns counting up or down; bad ones say
+    /// what is wrong.
+    #[test]
+    fn data_file_values_name_their_files_in_order() {
+        let lines = |l: &[&str]| l.iter().map(|s| s.to_string()).collect::<Vec<_>>();
+        let one = data_file_names("CT scan.raw", &[]).unwrap();
+        assert_eq!(
+            (one.names, one.file_dim),
+            (vec!["CT scan.raw".to_string()], None)
+        );
+        assert!(one.single);
+        let list = data_file_names("LIST", &lines(&["a.raw", "", "b c.raw  ", "c.raw"])).unwrap();
+        assert_eq!(list.names, ["a.raw", "b c.raw", "c.raw"]);
+        assert_eq!(list.file_dim, None);
+        assert!(!list.single);
+        assert_eq!(
+            data_file_names("LIST 2D", &lines(&["a"])).unwrap().file_dim,
+            Some(2)
+        );
+        assert_eq!(
+            data_file_names("LIST 3", &lines(&["a"])).unwrap().file_dim,
+            Some(3)
+        );
+        let up = data_file_names("s%03d.raw 1 10 4", &[]).unwrap();
+        assert_eq!(up.names, ["s001.raw", "s005.raw", "s009.raw"]);
+        let down = data_file_names("v%d_%%.raw 2 -1 -1 2", &[]).unwrap();
+        assert_eq!(
+            down.names,
+            ["v2_%.raw", "v1_%.raw", "v0_%.raw", "v-1_%.raw"]
+        );
+        assert_eq!(down.file_dim, Some(2));
+        assert_eq!(data_file_names("x%4i 7 7 1", &[]).unwrap().names, ["x   7"]);
+        assert_eq!(
+            data_file_names("x%03u -5 -5 1", &[]).unwrap().names,
+            ["x-05"]
+        );
+        for bad in [
+            "",
+            "s%03d.raw 1 10",
+            "s%03d.raw 1 10 0",
+            "s%03d.raw 10 1 1",
+            "s%03d.raw 1 10 -1",
+            "s%s.raw 1 2 1",
+            "s%d%d.raw 1 2 1",
+            "s.raw% 1 2 1",
+            "s%d.raw 1 2 1 0",
+            "s%d.raw 0 99999999 1",
+            "s%99d.raw 1 2 1",
+            "s%d.raw a 2 1",
+        ] {
+            assert!(data_file_names(bad, &[]).is_err(), "{bad:?} accepted");
+        }
+        assert!(data_file_names("LIST", &lines(&["", "  "])).is_err());
+        assert!(data_file_names("LIST 0", &lines(&["a"])).is_err());
+    }
+
     #[test]
     fn parses_lists_and_vectors() {
         assert_eq!(numbers(" 1 2.5\t-3 "), Some(vec![1.0, 2.5, -3.0]));
@@ -237,7 +488,8 @@ mod tests {
             "a.raw",
             "LISTING",
         ] {
-            assert!(!names_several_files(one), "{one}");
+            let d = data_file_names(one, &["x.raw".to_string()]).unwrap();
+            assert_eq!(d.names, [one], "{one}");
         }
         for several in [
             "LIST",
@@ -247,7 +499,8 @@ mod tests {
             "vol%03d.raw 1 10 1",
             "v%d.raw 0 4 1 2",
         ] {
-            assert!(names_several_files(several), "{several}");
+            let d = data_file_names(several, &["x.raw".into(), "y.raw".into()]).unwrap();
+            assert!(d.names.len() >= 2, "{several}");
         }
     }
 }

@@ -1632,9 +1632,10 @@ np.stack([s[1] for s in slices]).astype("<f8").tofile(out)
 /// Checks `v`, read from `files` by wavesplat, value by value against pydicom's reading of the
 /// same files (within `tolerance`, relative to 1 or the value's magnitude).
 fn check_against_pydicom(files: &[PathBuf], v: &Volume, tolerance: f64, what: &str) {
-    let Some(python) =
-        wavesplat_fixtures::reference_python("pydicom, numpy", "python3-pydicom python3-numpy")
-    else {
+    let Some(python) = wavesplat_fixtures::reference_python(
+        "pydicom, numpy",
+        "apt-get install python3-pydicom python3-numpy",
+    ) else {
         return;
     };
     let dir = tempfile::tempdir().unwrap();

@@ -6,7 +6,9 @@
 use std::path::Path;
 
 use super::super::Opened;
-use super::{file_name, parent, reader_at, spool, stand_in, stored_at, stored_bytes, text_header};
+use super::{
+    file_name, parent, reader_at, spool_pieces, stand_in, stored_bytes, stored_pieces, text_header,
+};
 use crate::reader::text::{self, header_lines};
 use crate::reader::{Endian, Format, ReadError, SampleType};
 
@@ -139,41 +141,61 @@ pub(super) fn open_metaimage(path: &Path) -> Result<Opened, ReadError> {
             .ok_or_else(|| bad(format!("HeaderSize = {v:?}; -1 or ≥ 0 expected")))?,
     };
     let (frame, expected) = stored_bytes(path, dims, channels, sample.size(), points)?;
-    let (data_path, base, data_len) = match get(&["ElementDataFile"]) {
-        Some((_, v)) if v.eq_ignore_ascii_case("LOCAL") => (path.to_path_buf(), end as u64, len),
-        Some((_, v)) => {
-            let p = parent(path).join(crate::reader::metaimage::single_data_file(path, &v)?);
-            let l = std::fs::metadata(&p)
-                .map_err(|e| ReadError::io(&p, e))?
+    // The data: after the header (`LOCAL`), or in the data files, each with its piece.
+    let pieces: Vec<(std::path::PathBuf, u64)> =
+        match crate::reader::metaimage::data_pieces(path, &prefix, expected)? {
+            None => vec![(path.to_path_buf(), expected)],
+            Some((names, piece)) => names
+                .into_iter()
+                .map(|f| (parent(path).join(f), piece))
+                .collect(),
+        };
+    let local = pieces.len() == 1 && pieces[0].0 == path;
+    if compressed && header_size != 0 {
+        return Err(ReadError::unsupported(
+            path,
+            "HeaderSize with CompressedData",
+        ));
+    }
+    // Where a file's piece starts: past the header (local data), then HeaderSize (-1: the
+    // piece ends the file).
+    let start_of = |data_path: &Path, piece: u64| -> Result<u64, ReadError> {
+        let (base, data_len) = if local {
+            (end as u64, len)
+        } else {
+            let l = std::fs::metadata(data_path)
+                .map_err(|e| ReadError::io(data_path, e))?
                 .len();
-            (p, 0, l)
-        }
-        None => return Err(bad("no ElementDataFile".into())),
-    };
-    let stored = if compressed {
-        if header_size != 0 {
-            return Err(ReadError::unsupported(
-                path,
-                "HeaderSize with CompressedData",
-            ));
-        }
-        let mut z = flate2::bufread::ZlibDecoder::new(reader_at(&data_path, base)?);
-        spool(&mut z, expected, &data_path, FORMAT, "zlib", sample, endian)?
-    } else {
-        let start = if header_size == -1 {
+            (0, l)
+        };
+        if header_size == -1 {
             data_len
-                .checked_sub(expected)
+                .checked_sub(piece)
                 .filter(|s| *s >= base)
                 .ok_or(ReadError::Truncated {
-                    path: data_path.clone(),
+                    path: data_path.to_path_buf(),
                     offset: 0,
-                    expected,
+                    expected: piece,
                     actual: data_len.saturating_sub(base),
-                })?
+                })
         } else {
-            base.saturating_add(header_size as u64)
-        };
-        stored_at(&data_path, start, expected, sample, endian)?
+            Ok(base.saturating_add(header_size as u64))
+        }
+    };
+    let stored = if compressed {
+        let streams = pieces.iter().map(|(p, piece)| {
+            let at = start_of(p, *piece)?;
+            let z: Box<dyn std::io::Read> =
+                Box::new(flate2::bufread::ZlibDecoder::new(reader_at(p, at)?));
+            Ok((p.clone(), *piece, z))
+        });
+        spool_pieces(streams, FORMAT, "zlib", sample, endian)?
+    } else {
+        let starts = pieces
+            .iter()
+            .map(|(p, piece)| Ok((p.clone(), start_of(p, *piece)?)))
+            .collect::<Result<Vec<_>, ReadError>>()?;
+        stored_pieces(&starts, pieces[0].1, sample, endian)?
     };
     let mut stored = stored;
     stored.frame = frame;

@@ -154,6 +154,7 @@ fn stored_at(
         file,
         path: data_path.to_path_buf(),
         offset,
+        pieces: None,
         sample,
         endian,
         slope: 1.0,
@@ -163,8 +164,9 @@ fn stored_at(
     })
 }
 
-/// Inflates exactly `expected` bytes of `stream` (the samples of `data_path`, compressed with
-/// `what`) into an anonymous temporary file, in 1 MiB steps.
+/// Inflates `stream` (`what` data: gzip, zlib) into a temporary file, which then holds the
+/// `expected` bytes of samples; a stream that ends early is [`ReadError::Truncated`], a corrupt
+/// one a bad header of `format`.
 fn spool(
     stream: &mut dyn Read,
     expected: u64,
@@ -174,19 +176,90 @@ fn spool(
     sample: SampleType,
     endian: Endian,
 ) -> Result<Stored, ReadError> {
-    let temp_err = |e: io::Error| {
-        ReadError::io(
-            &std::env::temp_dir(),
-            io::Error::new(
-                e.kind(),
-                format!(
-                    "writing the inflated samples of {} to a temporary file: {e}",
-                    data_path.display()
-                ),
-            ),
-        )
+    let mut file = temp_file(data_path)?;
+    spool_into(&mut file, stream, expected, data_path, format, what)?;
+    Ok(Stored {
+        file,
+        path: data_path.to_path_buf(),
+        offset: 0,
+        pieces: None,
+        sample,
+        endian,
+        slope: 1.0,
+        inter: 0.0,
+        frame: expected,
+        interleaved: 1,
+    })
+}
+
+/// [`spool`] of a sample stream cut into pieces, one per data file: each `(path, bytes,
+/// stream)` inflated in turn into one temporary file.
+fn spool_pieces(
+    pieces: impl Iterator<Item = Result<(PathBuf, u64, Box<dyn Read>), ReadError>>,
+    format: &'static str,
+    what: &str,
+    sample: SampleType,
+    endian: Endian,
+) -> Result<Stored, ReadError> {
+    let (mut file, mut first, mut total) = (None, None, 0u64);
+    for piece in pieces {
+        let (path, bytes, mut stream) = piece?;
+        let file = match &mut file {
+            Some(f) => f,
+            None => file.insert(temp_file(&path)?),
+        };
+        spool_into(file, &mut stream, bytes, &path, format, what)?;
+        total += bytes;
+        first.get_or_insert(path);
+    }
+    let (Some(file), Some(path)) = (file, first) else {
+        return Err(ReadError::io(
+            Path::new(""),
+            io::Error::new(io::ErrorKind::NotFound, "no data file"),
+        ));
     };
-    let mut file = tempfile::tempfile().map_err(temp_err)?;
+    Ok(Stored {
+        file,
+        path,
+        offset: 0,
+        pieces: None,
+        sample,
+        endian,
+        slope: 1.0,
+        inter: 0.0,
+        frame: total,
+        interleaved: 1,
+    })
+}
+
+/// The error of writing the inflated samples of `data_path` to a temporary file.
+fn temp_error(data_path: &Path, e: io::Error) -> ReadError {
+    ReadError::io(
+        &std::env::temp_dir(),
+        io::Error::new(
+            e.kind(),
+            format!(
+                "writing the inflated samples of {} to a temporary file: {e}",
+                data_path.display()
+            ),
+        ),
+    )
+}
+
+/// An anonymous temporary file for the inflated samples of `data_path`.
+fn temp_file(data_path: &Path) -> Result<File, ReadError> {
+    tempfile::tempfile().map_err(|e| temp_error(data_path, e))
+}
+
+/// Appends the `expected` bytes `stream` inflates to `file`.
+fn spool_into(
+    file: &mut File,
+    stream: &mut dyn Read,
+    expected: u64,
+    data_path: &Path,
+    format: &'static str,
+    what: &str,
+) -> Result<(), ReadError> {
     let mut buf = vec![0u8; 1 << 20];
     let mut done = 0u64;
     while done < expected {
@@ -209,7 +282,8 @@ fn spool(
             }
             Err(e) => return Err(ReadError::io(data_path, e)),
         };
-        file.write_all(&buf[..n]).map_err(temp_err)?;
+        file.write_all(&buf[..n])
+            .map_err(|e| temp_error(data_path, e))?;
         done += n as u64;
     }
     if done != expected {
@@ -220,16 +294,49 @@ fn spool(
             actual: done,
         });
     }
-    file.flush().map_err(temp_err)?;
+    file.flush().map_err(|e| temp_error(data_path, e))
+}
+
+/// The samples of a stream cut into pieces of `piece` bytes, each in the file `starts` names
+/// from the offset it gives (one piece: [`stored_at`]); every file is checked to hold its
+/// piece.
+fn stored_pieces(
+    starts: &[(PathBuf, u64)],
+    piece: u64,
+    sample: SampleType,
+    endian: Endian,
+) -> Result<Stored, ReadError> {
+    let Some((first, first_start)) = starts.first() else {
+        return Err(ReadError::io(
+            Path::new(""),
+            io::Error::new(io::ErrorKind::NotFound, "no data file"),
+        ));
+    };
+    if starts.len() == 1 {
+        return stored_at(first, *first_start, piece, sample, endian);
+    }
+    let files = starts
+        .iter()
+        .map(|(path, start)| {
+            let Stored { file, .. } = stored_at(path, *start, piece, sample, endian)?;
+            Ok((file, path.clone(), *start))
+        })
+        .collect::<Result<Vec<_>, ReadError>>()?;
+    let file = files[0]
+        .0
+        .try_clone()
+        .map_err(|e| ReadError::io(first, e))?;
+    let total = piece.saturating_mul(files.len() as u64);
     Ok(Stored {
         file,
-        path: data_path.to_path_buf(),
+        path: first.clone(),
         offset: 0,
+        pieces: Some(super::Pieces { len: piece, files }),
         sample,
         endian,
         slope: 1.0,
         inter: 0.0,
-        frame: expected,
+        frame: total,
         interleaved: 1,
     })
 }

@@ -7,7 +7,9 @@ use std::io::{self, BufRead, BufReader, Seek, SeekFrom};
 use std::path::Path;
 
 use super::super::{read_whole, Opened};
-use super::{file_name, parent, reader_at, spool, stand_in, stored_at, stored_bytes, text_header};
+use super::{
+    file_name, parent, reader_at, spool_pieces, stand_in, stored_bytes, stored_pieces, text_header,
+};
 use crate::reader::text::{self, header_lines};
 use crate::reader::{Endian, Format, ReadError};
 
@@ -37,7 +39,6 @@ pub(super) fn open_nrrd(path: &Path) -> Result<Opened, ReadError> {
     let mut sample = None;
     let mut endian = None;
     let (mut byte_skip, mut line_skip) = (0i64, 0u64);
-    let mut data_file: Option<String> = None;
     for line in lines.iter().skip(1) {
         let keep = match line.split_once(": ") {
             Some(_) if line.starts_with('#') || line.contains(":=") => true,
@@ -83,7 +84,7 @@ pub(super) fn open_nrrd(path: &Path) -> Result<Opened, ReadError> {
                         Err(_) => true,
                     },
                     "data file" | "datafile" => {
-                        data_file = Some(value.to_string());
+                        // Where the data is comes from the header's parser (`data_pieces`).
                         if text::is_file_list(value) {
                             break;
                         }
@@ -153,55 +154,76 @@ pub(super) fn open_nrrd(path: &Path) -> Result<Opened, ReadError> {
     let (frame, expected) = stored_bytes(path, dims, channels, sample.size(), points)?;
     let endian = endian.unwrap_or(Endian::Little);
 
-    // Where the data starts: the data file, or just past the blank line.
-    let (data_path, mut offset) = match &data_file {
-        Some(f) => (
-            parent(path).join(crate::reader::nrrd::single_data_file(path, f)?),
-            0u64,
-        ),
-        None if found => (path.to_path_buf(), end as u64),
-        None => {
-            return Err(bad(
-                "no blank line ends the header and no `data file` is named".into(),
-            ))
-        }
-    };
-    let data_len = if data_file.is_some() {
-        std::fs::metadata(&data_path)
-            .map_err(|e| ReadError::io(&data_path, e))?
-            .len()
-    } else {
-        len
-    };
-    if line_skip > 0 {
-        offset = skip_lines(&data_path, offset, line_skip).map_err(|e| match e {
-            Some(e) => ReadError::io(&data_path, e),
-            None => bad(format!("line skip {line_skip} passes the end of the data")),
-        })?;
-    }
-    let stored = match encoding.as_deref().unwrap_or("") {
-        "raw" => {
-            let start = match byte_skip {
-                -1 => data_len
-                    .checked_sub(expected)
-                    .filter(|s| *s >= offset)
-                    .ok_or(ReadError::Truncated {
-                        path: data_path.clone(),
-                        offset,
-                        expected,
-                        actual: data_len.saturating_sub(offset),
-                    })?,
-                s if s >= 0 => offset.saturating_add(s as u64),
-                s => return Err(bad(format!("byte skip {s}; -1 or ≥ 0 allowed"))),
+    // Where the data is: the data file(s), each with its piece of the samples, or just past
+    // the blank line.
+    let pieces: Vec<(std::path::PathBuf, u64)> =
+        match crate::reader::nrrd::data_pieces(path, &prefix, expected)? {
+            Some((names, piece)) => names
+                .into_iter()
+                .map(|f| (parent(path).join(f), piece))
+                .collect(),
+            None if found => vec![(path.to_path_buf(), expected)],
+            None => {
+                return Err(bad(
+                    "no blank line ends the header and no `data file` is named".into(),
+                ))
+            }
+        };
+    let attached = pieces.len() == 1 && pieces[0].0 == path;
+    let encoding = encoding.as_deref().unwrap_or("");
+    // Where a file's piece starts: past the header (attached data), then the skipped lines,
+    // then the skipped bytes (-1: the piece ends the file).
+    let start_of =
+        |data_path: &Path, piece: u64| -> Result<u64, ReadError> {
+            let mut offset = if attached { end as u64 } else { 0 };
+            let data_len = if attached {
+                len
+            } else {
+                std::fs::metadata(data_path)
+                    .map_err(|e| ReadError::io(data_path, e))?
+                    .len()
             };
-            stored_at(&data_path, start, expected, sample, endian)?
+            if line_skip > 0 {
+                offset = skip_lines(data_path, offset, line_skip).map_err(|e| match e {
+                    Some(e) => ReadError::io(data_path, e),
+                    None => ReadError::bad_header(
+                        data_path,
+                        FORMAT,
+                        format!("line skip {line_skip} passes the end of the data"),
+                    ),
+                })?;
+            }
+            match (encoding, byte_skip) {
+                ("raw", -1) => data_len.checked_sub(piece).filter(|s| *s >= offset).ok_or(
+                    ReadError::Truncated {
+                        path: data_path.to_path_buf(),
+                        offset,
+                        expected: piece,
+                        actual: data_len.saturating_sub(offset),
+                    },
+                ),
+                ("raw", s) if s >= 0 => Ok(offset.saturating_add(s as u64)),
+                ("raw", s) => Err(bad(format!("byte skip {s}; -1 or ≥ 0 allowed"))),
+                (_, 0) => Ok(offset),
+                _ => Err(ReadError::unsupported(path, "byte skip with gzip encoding")),
+            }
+        };
+    let stored = match encoding {
+        "raw" => {
+            let starts = pieces
+                .iter()
+                .map(|(p, piece)| Ok((p.clone(), start_of(p, *piece)?)))
+                .collect::<Result<Vec<_>, ReadError>>()?;
+            stored_pieces(&starts, pieces[0].1, sample, endian)?
         }
         "gzip" | "gz" => {
-            if byte_skip != 0 {
-                return Err(ReadError::unsupported(path, "byte skip with gzip encoding"));
-            }
-            let mut z = flate2::bufread::MultiGzDecoder::new(reader_at(&data_path, offset)?);
-            spool(&mut z, expected, &data_path, FORMAT, "gzip", sample, endian)?
+            let streams = pieces.iter().map(|(p, piece)| {
+                let at = start_of(p, *piece)?;
+                let z: Box<dyn std::io::Read> =
+                    Box::new(flate2::bufread::MultiGzDecoder::new(reader_at(p, at)?));
+                Ok((p.clone(), *piece, z))
+            });
+            spool_pieces(streams, FORMAT, "gzip", sample, endian)?
         }
         "" => return Err(bad("no `encoding` field".into())),
         e => {

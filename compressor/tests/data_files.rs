@@ -1,0 +1,326 @@
+//! Volumes whose samples lie in several files: a detached NRRD or MetaImage header whose data
+//! file is a `LIST` (the names on the header's lines after it) or a printf pattern, each file a
+//! slice (or a row, with a file dimension) of the sample stream, with its own skipped lines and
+//! bytes (`line skip`, `byte skip`, MetaImage `HeaderSize`) or its own gzip or zlib stream. Each
+//! is read as the samples written through every path: decoding whole, region by region
+//! (regions that cross files), the listing that hashes and uploads it, and a bundle decoded
+//! elsewhere; and against SimpleITK (ITK's readers) where it is installed. Names that do not
+//! match the sizes, a missing file and a short one are refused, naming what is wrong.
+
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use wavesplat_codec::volume::Volume;
+use wavesplat_compressor::reader::region::RegionReader;
+use wavesplat_compressor::reader::{
+    decode_source, read_volume, ReadError, SourceFiles, SourceListing,
+};
+
+const DIMS: [usize; 3] = [5, 4, 7];
+
+/// The samples written: u16, x fastest, distinct and not monotone.
+fn samples() -> Vec<u16> {
+    let n = DIMS.iter().product::<usize>();
+    (0..n).map(|i| ((i * 7919 + 13) % 65_521) as u16).collect()
+}
+
+fn le(values: &[u16]) -> Vec<u8> {
+    values.iter().flat_map(|v| v.to_le_bytes()).collect()
+}
+
+/// The bytes of slice `z` (or of row `(y, z)` when `rows`).
+fn piece(values: &[u16], k: usize, rows: bool) -> Vec<u8> {
+    let len = if rows { DIMS[0] } else { DIMS[0] * DIMS[1] };
+    le(&values[k * len..(k + 1) * len])
+}
+
+fn gzip(bytes: &[u8]) -> Vec<u8> {
+    let mut e = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::fast());
+    e.write_all(bytes).unwrap();
+    e.finish().unwrap()
+}
+
+fn zlib(bytes: &[u8]) -> Vec<u8> {
+    let mut e = flate2::write::ZlibEncoder::new(Vec::new(), flate2::Compression::fast());
+    e.write_all(bytes).unwrap();
+    e.finish().unwrap()
+}
+
+/// One way of cutting the samples into files: how each file is written, the header's
+/// data-file value and the names it lists.
+struct Case {
+    name: &'static str,
+    header: PathBuf,
+    /// The files, in the order their samples follow.
+    files: Vec<String>,
+}
+
+/// Writes the data files of a case: `names[k]` holds piece `k` wrapped by `wrap`.
+fn write_pieces(dir: &Path, names: &[String], rows: bool, wrap: impl Fn(Vec<u8>) -> Vec<u8>) {
+    let values = samples();
+    for (k, n) in names.iter().enumerate() {
+        std::fs::write(dir.join(n), wrap(piece(&values, k, rows))).unwrap();
+    }
+}
+
+fn nrrd_cases(dir: &Path) -> Vec<Case> {
+    let nz = DIMS[2];
+    let head = |fields: &str, data_file: &str| {
+        format!(
+            "NRRD0004\ntype: uint16\ndimension: 3\nsizes: {} {} {}\nendian: little\nspacings: 0.5 0.5 2\n{fields}data file: {data_file}\n",
+            DIMS[0], DIMS[1], DIMS[2]
+        )
+    };
+    let mut cases = Vec::new();
+    let mut case = |name: &'static str, header: String, files: Vec<String>| {
+        let p = dir.join(format!("{name}.nhdr"));
+        std::fs::write(&p, header).unwrap();
+        cases.push(Case {
+            name,
+            header: p,
+            files,
+        });
+    };
+    // A list of slices, names with spaces, each after two lines and three bytes of its own.
+    let names: Vec<String> = (0..nz).map(|z| format!("list slice {z}.raw")).collect();
+    write_pieces(dir, &names, false, |b| [b"a\nbb\nxyz".to_vec(), b].concat());
+    case(
+        "nrrd-list",
+        head("encoding: raw\nline skip: 2\nbyte skip: 3\n", "LIST") + &names.join("\n") + "\n",
+        names,
+    );
+    // A list of rows (each file of one dimension).
+    let names: Vec<String> = (0..nz * DIMS[1]).map(|k| format!("row{k}.raw")).collect();
+    write_pieces(dir, &names, true, |b| b);
+    case(
+        "nrrd-rows",
+        head("encoding: raw\n", "LIST 1") + &names.join("\n") + "\n",
+        names,
+    );
+    // A pattern counting down, each slice at the end of its file.
+    let names: Vec<String> = (0..nz).map(|k| format!("down{:02}.raw", 9 - k)).collect();
+    write_pieces(dir, &names, false, |b| [vec![7u8; 11], b].concat());
+    case(
+        "nrrd-pattern",
+        head("encoding: raw\nbyte skip: -1\n", "down%02d.raw 9 3 -1"),
+        names,
+    );
+    // A pattern of gzip files.
+    let names: Vec<String> = (0..nz).map(|k| format!("g{}.raw.gz", 1 + 2 * k)).collect();
+    write_pieces(dir, &names, false, |b| gzip(&b));
+    case(
+        "nrrd-gzip",
+        head(
+            "encoding: gzip\n",
+            &format!("g%d.raw.gz 1 {} 2", 2 * nz - 1),
+        ),
+        names,
+    );
+    cases
+}
+
+fn metaimage_cases(dir: &Path) -> Vec<Case> {
+    let nz = DIMS[2];
+    let head = |fields: &str, data_file: &str| {
+        format!(
+            "ObjectType = Image\nNDims = 3\nDimSize = {} {} {}\nElementSpacing = 0.5 0.5 2\nElementType = MET_USHORT\n{fields}ElementDataFile = {data_file}\n",
+            DIMS[0], DIMS[1], DIMS[2]
+        )
+    };
+    let mut cases = Vec::new();
+    let mut case = |name: &'static str, header: String, files: Vec<String>| {
+        let p = dir.join(format!("{name}.mhd"));
+        std::fs::write(&p, header).unwrap();
+        cases.push(Case {
+            name,
+            header: p,
+            files,
+        });
+    };
+    // A list, each slice after a header of 6 bytes of its own.
+    let names: Vec<String> = (0..nz).map(|z| format!("m slice {z}.raw")).collect();
+    write_pieces(dir, &names, false, |b| [b"HEADER".to_vec(), b].concat());
+    case(
+        "mha-list",
+        head("HeaderSize = 6\n", "LIST") + &names.join("\n") + "\n",
+        names,
+    );
+    // A list of rows, each at the end of its file.
+    let names: Vec<String> = (0..nz * DIMS[1]).map(|k| format!("mrow{k}.raw")).collect();
+    write_pieces(dir, &names, true, |b| [vec![1u8; 3], b].concat());
+    case(
+        "mha-rows",
+        head("HeaderSize = -1\n", "LIST 1D") + &names.join("\n") + "\n",
+        names,
+    );
+    // A pattern.
+    let names: Vec<String> = (0..nz).map(|k| format!("p{:03}.raw", k + 1)).collect();
+    write_pieces(dir, &names, false, |b| b);
+    case(
+        "mha-pattern",
+        head("", &format!("p%03d.raw 1 {nz} 1")),
+        names,
+    );
+    // A list of zlib streams, one per file.
+    let names: Vec<String> = (0..nz).map(|z| format!("z{z}.zraw")).collect();
+    write_pieces(dir, &names, false, |b| zlib(&b));
+    case(
+        "mha-zlib",
+        head("CompressedData = True\n", "LIST") + &names.join("\n") + "\n",
+        names,
+    );
+    cases
+}
+
+/// The box `origin`, `size` of `v`'s one channel.
+fn cut(v: &Volume, origin: [usize; 3], size: [usize; 3]) -> Vec<f32> {
+    let mut out = Vec::new();
+    for z in origin[2]..origin[2] + size[2] {
+        for y in origin[1]..origin[1] + size[1] {
+            let i = v.index(origin[0], y, z);
+            out.extend_from_slice(&v.channel(0)[i..i + size[0]]);
+        }
+    }
+    out
+}
+
+#[test]
+fn samples_in_listed_or_patterned_files_read_as_written_through_every_path() {
+    let dir = tempfile::tempdir().unwrap();
+    let want: Vec<f32> = samples().iter().map(|v| f32::from(*v)).collect();
+    let cases: Vec<Case> = nrrd_cases(dir.path())
+        .into_iter()
+        .chain(metaimage_cases(dir.path()))
+        .collect();
+    for c in &cases {
+        let v = read_volume(&c.header, None).unwrap_or_else(|e| panic!("{}: {e}", c.name));
+        assert_eq!(v.dims(), DIMS, "{}", c.name);
+        assert_eq!(v.spacing(), [0.5, 0.5, 2.0], "{}", c.name);
+        assert_eq!(v.channel(0), &want[..], "{}", c.name);
+
+        // The listing names the header, then every data file in order.
+        let listing = SourceListing::list(&c.header, None).unwrap();
+        let names: Vec<&str> = listing.files.iter().map(|(n, _, _)| n.as_str()).collect();
+        assert_eq!(names[1..], c.files, "{}", c.name);
+        // Gathered and bundled, decoded elsewhere.
+        let src = SourceFiles::gather(&c.header, None).unwrap();
+        assert_eq!(src.files.len(), c.files.len() + 1, "{}", c.name);
+        let back = SourceFiles::from_bytes(src.to_bytes(), Path::new("elsewhere/h")).unwrap();
+        assert_eq!(decode_source(&back, None).unwrap(), v, "{}", c.name);
+
+        // Regions: the whole, whole slabs, whole rows and a box, each crossing files.
+        let r = RegionReader::open(&c.header, None).unwrap_or_else(|e| panic!("{}: {e}", c.name));
+        assert_eq!(r.dims(), DIMS);
+        assert_eq!(r.read_region([0; 3], DIMS).unwrap(), v, "{}", c.name);
+        for (origin, size) in [
+            ([0, 0, 2], [5, 4, 3]),
+            ([0, 1, 1], [5, 2, 5]),
+            ([1, 1, 0], [3, 3, 7]),
+            ([4, 3, 6], [1, 1, 1]),
+        ] {
+            let region = r.read_region(origin, size).unwrap();
+            assert_eq!(
+                region.channel(0),
+                &cut(&v, origin, size)[..],
+                "{}: region {origin:?} {size:?}",
+                c.name
+            );
+        }
+    }
+}
+
+#[test]
+fn data_files_that_do_not_match_the_header_are_refused_by_name() {
+    let dir = tempfile::tempdir().unwrap();
+    let cases: Vec<Case> = nrrd_cases(dir.path())
+        .into_iter()
+        .chain(metaimage_cases(dir.path()))
+        .collect();
+    let open_all = |h: &Path| {
+        [
+            read_volume(h, None).map(|_| ()),
+            RegionReader::open(h, None).map(|_| ()),
+        ]
+    };
+    for c in &cases {
+        let text = std::fs::read_to_string(&c.header).unwrap();
+        let ext = c.header.extension().unwrap().to_str().unwrap();
+        // One name short (a list), or a pattern one file short.
+        let short = if text.contains("LIST") {
+            let last = c.files.last().unwrap();
+            text.replace(&format!("{last}\n"), "")
+        } else if c.name == "nrrd-pattern" {
+            text.replace("9 3 -1", "9 4 -1")
+        } else if c.name == "nrrd-gzip" {
+            text.replace("1 13 2", "1 11 2")
+        } else {
+            text.replace("1 7 1", "1 6 1")
+        };
+        assert_ne!(short, text, "{}", c.name);
+        let h = dir.path().join(format!("short-{}.{ext}", c.name));
+        std::fs::write(&h, &short).unwrap();
+        for e in open_all(&h) {
+            let e = e.expect_err(c.name).to_string();
+            assert!(e.contains("files named"), "{}: {e}", c.name);
+        }
+        // A data file missing.
+        let gone = dir.path().join(&c.files[2]);
+        let kept = std::fs::read(&gone).unwrap();
+        std::fs::remove_file(&gone).unwrap();
+        for e in open_all(&c.header) {
+            let e = e.expect_err(c.name);
+            assert!(matches!(e, ReadError::Io { .. }), "{}: {e}", c.name);
+            assert!(e.to_string().contains(&c.files[2]), "{}: {e}", c.name);
+        }
+        assert!(SourceListing::list(&c.header, None).is_err(), "{}", c.name);
+        // The same file cut short.
+        std::fs::write(&gone, &kept[..3]).unwrap();
+        for e in open_all(&c.header) {
+            let e = e.expect_err(c.name);
+            let message = e.to_string();
+            assert!(message.contains(&c.files[2]), "{}: {message}", c.name);
+        }
+        std::fs::write(&gone, &kept).unwrap();
+        assert!(read_volume(&c.header, None).is_ok(), "{}", c.name);
+    }
+}
+
+/// SimpleITK (ITK's NRRD and MetaImage readers) reads each case to the same samples.
+#[test]
+fn simpleitk_reads_the_same_samples() {
+    let Some(python) = wavesplat_fixtures::reference_python(
+        "SimpleITK, numpy",
+        "python3 -m pip install SimpleITK",
+    ) else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let want = le(&samples());
+    for c in nrrd_cases(dir.path())
+        .into_iter()
+        .chain(metaimage_cases(dir.path()))
+    {
+        let out = dir.path().join(format!("{}.itk", c.name));
+        let script = "import sys, SimpleITK as sitk, numpy as np\n\
+                      a = sitk.GetArrayFromImage(sitk.ReadImage(sys.argv[1]))\n\
+                      open(sys.argv[2], 'wb').write(a.astype('<u2').tobytes() + bytes(str(a.shape), 'ascii'))\n";
+        let status = std::process::Command::new(python)
+            .args(["-c", script])
+            .arg(&c.header)
+            .arg(&out)
+            .status()
+            .unwrap();
+        assert!(status.success(), "{}: SimpleITK failed", c.name);
+        let got = std::fs::read(&out).unwrap();
+        let shape = format!("({}, {}, {})", DIMS[2], DIMS[1], DIMS[0]);
+        assert_eq!(&got[want.len()..], shape.as_bytes(), "{}", c.name);
+        assert_eq!(
+            &got[..want.len()],
+            &want[..],
+            "{}: SimpleITK reads other samples",
+            c.name
+        );
+        let ours = read_volume(&c.header, None).unwrap();
+        let ours: Vec<u16> = ours.channel(0).iter().map(|v| *v as u16).collect();
+        assert_eq!(le(&ours), want, "{}", c.name);
+    }
+}
