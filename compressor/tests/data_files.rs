@@ -324,3 +324,86 @@ fn simpleitk_reads_the_same_samples() {
         assert_eq!(le(&ours), want, "{}", c.name);
     }
 }
+
+/// A list of more files than a process may hold open (1 500 rows, each its own file) reads
+/// region by region as written: the reader opens the files a region needs, a few at a time.
+#[test]
+fn a_list_of_thousands_of_files_reads_region_by_region() {
+    let dir = tempfile::tempdir().unwrap();
+    let dims = [4usize, 300, 5];
+    let n = dims.iter().product::<usize>();
+    let values: Vec<u16> = (0..n).map(|i| (i * 31 % 60_001) as u16).collect();
+    let rows = dims[1] * dims[2];
+    let names: Vec<String> = (0..rows).map(|k| format!("r/{k:05}.raw")).collect();
+    std::fs::create_dir(dir.path().join("r")).unwrap();
+    for (k, name) in names.iter().enumerate() {
+        let row = &values[k * dims[0]..(k + 1) * dims[0]];
+        std::fs::write(dir.path().join(name), le(row)).unwrap();
+    }
+    let h = dir.path().join("rows.nhdr");
+    std::fs::write(
+        &h,
+        format!(
+            "NRRD0004\ntype: uint16\ndimension: 3\nsizes: {} {} {}\nendian: little\nencoding: raw\ndata file: LIST 1\n{}\n",
+            dims[0],
+            dims[1],
+            dims[2],
+            names.join("\n")
+        ),
+    )
+    .unwrap();
+    let want: Vec<f32> = values.iter().map(|v| f32::from(*v)).collect();
+    let r = RegionReader::open(&h, None).unwrap();
+    let whole = r.read_region([0; 3], dims).unwrap();
+    assert_eq!(whole.channel(0), &want[..]);
+    assert_eq!(read_volume(&h, None).unwrap(), whole);
+    let part = r.read_region([1, 250, 3], [2, 50, 2]).unwrap();
+    assert_eq!(part.channel(0), &cut(&whole, [1, 250, 3], [2, 50, 2])[..]);
+}
+
+/// A header that names itself as its data file (its `byte skip` counted from the file's start,
+/// as for every other data file) is read alike whole and by region; a MetaImage list of names longer
+/// than a header may be is refused alike by every path, not cut where one of them stops.
+#[test]
+fn every_path_reads_the_same_header() {
+    let dir = tempfile::tempdir().unwrap();
+    let values = samples();
+    let h = dir.path().join("self.nhdr");
+    // The samples just after the header: skipped to from the file's start.
+    let header = |skip: usize| {
+        format!(
+            "NRRD0004\ntype: uint16\ndimension: 3\nsizes: {} {} {}\nendian: little\nencoding: raw\nbyte skip: {skip:06}\ndata file: self.nhdr\n\n",
+            DIMS[0], DIMS[1], DIMS[2]
+        )
+    };
+    let mut bytes = header(header(0).len()).into_bytes();
+    bytes.extend(le(&values));
+    std::fs::write(&h, bytes).unwrap();
+    let v = read_volume(&h, None).unwrap();
+    let want: Vec<f32> = values.iter().map(|v| f32::from(*v)).collect();
+    assert_eq!(v.channel(0), &want[..]);
+    let r = RegionReader::open(&h, None).unwrap();
+    assert_eq!(r.read_region([0; 3], DIMS).unwrap(), v);
+
+    // 40 000 names of 30 bytes: 1.2 MB after the header.
+    let names: Vec<String> = (0..40_000)
+        .map(|k| format!("slices/a-long-name-{k:07}.raw"))
+        .collect();
+    let h = dir.path().join("long.mhd");
+    std::fs::write(
+        &h,
+        format!(
+            "ObjectType = Image\nNDims = 3\nDimSize = 1 1 40000\nElementType = MET_UCHAR\nElementDataFile = LIST\n{}\n",
+            names.join("\n")
+        ),
+    )
+    .unwrap();
+    let errors = [
+        read_volume(&h, None).unwrap_err(),
+        RegionReader::open(&h, None).unwrap_err(),
+        SourceListing::list(&h, None).unwrap_err(),
+    ];
+    for e in errors {
+        assert!(e.to_string().contains("longer than"), "{e}");
+    }
+}

@@ -269,6 +269,76 @@ fn imagej_and_ome_descriptions_give_the_spacing_in_mm() {
     }
 }
 
+/// An ImageJ hyperstack of time frames (one channel; each frame's slices after the previous
+/// frame's) is a time series: read whole it says so, and each time point reads as written,
+/// region by region, from uncompressed pages (read as bytes) and Deflate ones (decoded).
+#[test]
+fn an_imagej_hyperstack_of_time_frames_is_a_time_series() {
+    let dir = tempfile::tempdir().unwrap();
+    let frames: Vec<Vec<u16>> = (0..2u16)
+        .map(|t| samples(DIMS, 1000.0, |v| (v as u16).saturating_add(1000 * t)))
+        .collect();
+    let slice = DIMS[0] * DIMS[1];
+    let pages: Vec<&[u16]> = frames.iter().flat_map(|f| f.chunks(slice)).collect();
+    let desc = format!(
+        "ImageJ=1.54f\nimages={}\nslices={}\nframes=2\nhyperstack=true\n",
+        pages.len(),
+        DIMS[2]
+    );
+    for (name, compression) in [
+        ("raw", Compression::Uncompressed),
+        ("deflate", Compression::Deflate(DeflateLevel::Fast)),
+    ] {
+        let path = dir.path().join(format!("frames_{name}.tif"));
+        let file = std::fs::File::create(&path).unwrap();
+        write_pages::<colortype::Gray16, _>(
+            file,
+            compression,
+            (DIMS[0], DIMS[1]),
+            &pages,
+            5,
+            Some(&desc),
+        );
+        assert!(
+            matches!(
+                read_volume(&path, None),
+                Err(ReadError::TimeSeries { points: 2, .. })
+            ),
+            "{name}"
+        );
+        assert!(matches!(
+            RegionReader::open(&path, None),
+            Err(ReadError::TimeSeries { points: 2, .. })
+        ));
+        assert_eq!(
+            wavesplat_compressor::reader::time_points(&path, None).unwrap(),
+            2
+        );
+        let r = RegionReader::open_series(&path, None).unwrap();
+        assert_eq!((r.time_points(), r.dims()), (2, DIMS), "{name}");
+        for (t, frame) in frames.iter().enumerate() {
+            let whole = Volume::new(
+                DIMS,
+                [1.0; 3],
+                vec![frame.iter().map(|v| f32::from(*v)).collect()],
+            )
+            .unwrap();
+            for (origin, size) in [([0, 0, 0], DIMS), ([3, 5, 2], [10, 7, 4])] {
+                let got = r.read_region_at(t, origin, size).unwrap();
+                for z in 0..size[2] {
+                    for y in 0..size[1] {
+                        for x in 0..size[0] {
+                            let w = whole.channel(0)
+                                [whole.index(x + origin[0], y + origin[1], z + origin[2])];
+                            assert_eq!(got.channel(0)[got.index(x, y, z)], w, "{name} t {t}");
+                        }
+                    }
+                }
+            }
+        }
+    }
+}
+
 /// The message of a read that must fail.
 fn refusal(path: &Path) -> String {
     let e: ReadError = read_volume(path, None).unwrap_err();
@@ -327,10 +397,10 @@ fn stacks_that_are_not_one_volume_are_refused_saying_why() {
     let e = refusal(&path);
     assert!(e.contains("8-bit") && e.contains("16-bit"), "{e}");
 
-    // An ImageJ hyperstack of two channels, and of three frames.
+    // An ImageJ hyperstack of two channels, and one whose 9 images are not 2 frames' slices.
     for (d, word) in [
         ("channels=2\nslices=5\n", "channels"),
-        ("slices=3\nframes=3\n", "frames"),
+        ("slices=4\nframes=2\n", "frames"),
     ] {
         let path = dir.path().join(format!("hyper_{word}.tif"));
         let desc = format!("ImageJ=1.54f\nimages=9\n{d}hyperstack=true\n");
@@ -343,7 +413,9 @@ fn stacks_that_are_not_one_volume_are_refused_saying_why() {
             29,
             Some(&desc),
         );
-        let e = refusal(&path);
+        let e = RegionReader::open_series(&path, None)
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("hyperstack") && e.contains(word), "{e}");
     }
 
@@ -433,6 +505,9 @@ case("rgb_extra", rgbx, ref=rgbx[..., :3], photometric="rgb", extrasamples=["uns
      rowsperstrip=8)
 case("imagej", rng.integers(0, 4000, (z, y, x), dtype=np.uint16), imagej=True,
      resolution=(1 / 0.4, 1 / 0.5), metadata={"spacing": 1.25, "unit": "um", "axes": "ZYX"})
+# A hyperstack of 3 time frames of 3 slices: a time series.
+case("imagej_frames", rng.integers(0, 4000, (3, 3, y, x), dtype=np.uint16), imagej=True,
+     metadata={"axes": "TZYX"})
 json.dump(cases, open(f"{out}/cases.json", "w"))
 "#;
 
@@ -512,6 +587,25 @@ fn tiffs_written_by_tifffile_read_as_it_wrote_them() {
                 v.spacing()
             );
         }
+    }
+    // The hyperstack of time frames: a series of 3 time points of 3 slices, each as written.
+    let path = dir.path().join("imagej_frames.tif");
+    let reference: Vec<f64> = std::fs::read(dir.path().join("imagej_frames.f64"))
+        .unwrap()
+        .chunks_exact(8)
+        .map(|c| f64::from_le_bytes(c.try_into().unwrap()))
+        .collect();
+    assert_eq!(
+        wavesplat_compressor::reader::time_points(&path, None).unwrap(),
+        3
+    );
+    let r = RegionReader::open_series(&path, None).unwrap();
+    assert_eq!((r.time_points(), r.dims()), (3, [53, 45, 3]));
+    for t in 0..3 {
+        let frame = r.read_region_at(t, [0; 3], [53, 45, 3]).unwrap();
+        let want = &reference[t * 53 * 45 * 3..(t + 1) * 53 * 45 * 3];
+        let got: Vec<f64> = frame.channel(0).iter().map(|v| f64::from(*v)).collect();
+        assert_eq!(got, want, "time point {t}");
     }
 }
 

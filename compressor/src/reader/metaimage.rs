@@ -116,6 +116,17 @@ fn data_file_names(
         return Ok(None);
     }
     let listed = if text::is_file_list(v) {
+        // The names run to the end of the file: all of it must lie within what every reader
+        // of the header reads of it.
+        if bytes.len() > text::MAX_TEXT_HEADER {
+            return Err(bad(
+                path,
+                format!(
+                    "ElementDataFile = {v}: the header and its file names are longer than {} bytes",
+                    text::MAX_TEXT_HEADER
+                ),
+            ));
+        }
         let rest = bytes.get(h.data_offset..).unwrap_or(&[]);
         header_lines(rest, |_| false, false)
             .ok_or_else(|| {

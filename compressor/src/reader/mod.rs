@@ -661,8 +661,10 @@ pub struct SourceListing {
 }
 
 /// How much of a primary file [`SourceListing::list`] reads to find the data files it names:
-/// a detached header is a few hundred bytes, and an attached one names none.
-const LISTING_HEAD: u64 = 1 << 20;
+/// as much as the region reader reads of a text header ([`text::TEXT_HEADER_WINDOW`]), so that
+/// both find the same names (a header's lines start within [`text::MAX_TEXT_HEADER`] and are
+/// at most that long; a list of file names after a MetaImage header ends within it).
+const LISTING_HEAD: u64 = text::TEXT_HEADER_WINDOW;
 
 impl SourceListing {
     /// Lists the files of the volume at `path` as [`SourceFiles::gather`] would gather them
@@ -902,7 +904,7 @@ pub fn tiff_pages(path: &Path) -> Result<usize, ReadError> {
 
 /// How many time points the volume file at `path` holds, from its header alone (a NIfTI's
 /// `dim[4]`, an NRRD's time axis (`kinds` `time` or `list`, first or last), a 4D MetaImage's
-/// last size, a raw spec's time points); 1 for every other file and for directories (a
+/// last size, an ImageJ hyperstack's frames, a raw spec's time points); 1 for every other file and for directories (a
 /// directory of time steps is [`steps::StepSeries`]'s). Errors only when the file cannot be
 /// opened; a header that does not parse says 1 here and is reported by the reader.
 pub fn time_points(path: &Path, raw: Option<&RawSpec>) -> Result<usize, ReadError> {
@@ -924,6 +926,10 @@ pub fn time_points(path: &Path, raw: Option<&RawSpec>) -> Result<usize, ReadErro
         head
     };
     let format = by_name.or_else(|| Format::sniff(&head));
+    if format == Some(Format::Tiff) {
+        // An ImageJ hyperstack's frames (a file that does not parse says 1 here).
+        return Ok(tiff_stack::time_points(path).unwrap_or(1));
+    }
     if matches!(format, Some(Format::Nrrd | Format::MetaImage)) {
         // Its text header (up to 1 MiB): an NRRD time axis, or a 4D MetaImage's last size,
         // says the time points.
@@ -1004,8 +1010,8 @@ mod tests {
                 detached,
             ));
         }
-        // Attached headers whose files are larger than what listing reads of them (1 MiB).
-        let big = crate::phantom::Phantom::SheppLogan.generate([72, 72, 60]);
+        // Attached headers whose files are larger than what listing reads of them (2 MiB).
+        let big = crate::phantom::Phantom::SheppLogan.generate([96, 96, 64]);
         let big_nrrd = write_nrrd(
             dir.path(),
             "big",

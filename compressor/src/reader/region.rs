@@ -83,8 +83,8 @@ struct Stored {
     path: PathBuf,
     offset: u64,
     /// The sample stream cut into pieces of equal length, one per data file, in order (a
-    /// detached header's `LIST` or file name pattern): then `file` and `offset` are the first
-    /// piece's, and byte `b` of the stream is byte `b % len` of piece `b / len`.
+    /// detached header's `LIST` or file name pattern): then `file` is the first piece's,
+    /// `offset` is 0, and byte `b` of the stream is byte `b % len` of piece `b / len`.
     pieces: Option<Pieces>,
     sample: SampleType,
     endian: Endian,
@@ -102,28 +102,66 @@ struct Stored {
 struct Pieces {
     /// Bytes of each piece.
     len: u64,
-    /// Each piece's file, its path and where in it the piece starts.
-    files: Vec<(File, PathBuf, u64)>,
+    /// Each piece's file and where in it the piece starts (each checked at open to hold its
+    /// piece).
+    files: Vec<(PathBuf, u64)>,
+    /// The files opened last, the latest first, at most [`OPEN_PIECES`]: a list of thousands
+    /// of slices is not held open at once (the process's limit on open files is often 1024),
+    /// and a region's rows, read slice after slice, find theirs open.
+    open: std::sync::Mutex<Vec<(usize, std::sync::Arc<File>)>>,
+}
+
+/// Most piece files a reader keeps open ([`Pieces::open`]).
+const OPEN_PIECES: usize = 16;
+
+impl Pieces {
+    fn new(len: u64, files: Vec<(PathBuf, u64)>) -> Pieces {
+        Pieces {
+            len,
+            files,
+            open: std::sync::Mutex::new(Vec::new()),
+        }
+    }
+
+    /// Piece `index`'s file, opened (or found open).
+    fn file(&self, index: usize) -> io::Result<std::sync::Arc<File>> {
+        // A poisoned lock holds only open files: still usable.
+        let mut open = self.open.lock().unwrap_or_else(|e| e.into_inner());
+        if let Some(k) = open.iter().position(|(i, _)| *i == index) {
+            let entry = open.remove(k);
+            let file = entry.1.clone();
+            open.insert(0, entry);
+            return Ok(file);
+        }
+        let file = std::sync::Arc::new(File::open(&self.files[index].0)?);
+        open.insert(0, (index, file.clone()));
+        open.truncate(OPEN_PIECES);
+        Ok(file)
+    }
 }
 
 impl Stored {
     /// Fills `buf` from byte `offset` of the stored bytes (counted from the file's start; for
     /// pieces, from the first piece's start), reading across pieces as needed. An error names
-    /// the file it came from.
+    /// the file it came from and the offset in it.
     fn read_at(&self, buf: &mut [u8], offset: u64) -> Result<(), (io::Error, &Path, u64)> {
         let Some(pieces) = &self.pieces else {
             return read_at(&self.file, buf, offset).map_err(|e| (e, self.path.as_path(), offset));
         };
         let (mut buf, mut pos) = (buf, offset - self.offset);
         while !buf.is_empty() {
-            let (index, within) = (pos / pieces.len, pos % pieces.len);
+            let (index, within) = ((pos / pieces.len) as usize, pos % pieces.len);
             let n = (pieces.len - within).min(buf.len() as u64) as usize;
-            let (file, path, start) = pieces.files.get(index as usize).ok_or_else(|| {
+            let Some((path, start)) = pieces.files.get(index) else {
                 let e = io::Error::new(io::ErrorKind::UnexpectedEof, "past the last data file");
-                (e, self.path.as_path(), pos)
-            })?;
+                return Err((e, self.path.as_path(), pos));
+            };
+            let at = start + within;
             let (now, rest) = buf.split_at_mut(n);
-            read_at(file, now, start + within).map_err(|e| (e, path.as_path(), start + within))?;
+            pieces
+                .file(index)
+                .and_then(|f| read_at(&f, now, at))
+                .map_err(|e| (e, path.as_path(), at))?;
             buf = rest;
             pos += n as u64;
         }
@@ -319,7 +357,7 @@ impl RegionReader {
         let (planar, data_path) = match &self.source {
             Source::Whole(v) => (cut(v, origin, size), &self.path),
             Source::Series(s) => (s.read(origin, size)?, &self.path),
-            Source::Tiff(s) => (s.read(origin, size)?, &self.path),
+            Source::Tiff(s) => (s.read(t, origin, size)?, &self.path),
             Source::Stored(s) => (self.read_stored(s, t, origin, size, voxels)?, &s.path),
         };
         let volume = Volume::new(size, self.spacing, planar).map_err(|e| {

@@ -10,6 +10,11 @@ use wavesplat_codec::volume::{Placement, PLACEMENT_TOLERANCE};
 /// Largest text header accepted (bytes); real headers are a few hundred bytes.
 pub(crate) const MAX_TEXT_HEADER: usize = 1 << 20;
 
+/// How much of a file every reader of a text header reads to parse it (the listing, the
+/// region reader): enough for a last line that starts within [`MAX_TEXT_HEADER`] and is that
+/// long, and one byte more, so that a line cut by the window is seen to be too long.
+pub(crate) const TEXT_HEADER_WINDOW: u64 = 2 * MAX_TEXT_HEADER as u64 + 2;
+
 /// Splits `bytes` into header lines up to (not including) the line for which `is_end` holds
 /// (that line is consumed) or the end of the input; returns the lines (without `\r\n` / `\n`)
 /// and the offset just past the last consumed line. `None` if the header is not valid UTF-8
@@ -244,8 +249,10 @@ pub(crate) fn data_file_names(value: &str, following: &[String]) -> Result<DataF
             ));
         }
         let format = PrintfInteger::parse(words[0]).map_err(|e| format!("{value:?}: {e}"))?;
-        let names = (0..count as i64)
-            .map(|k| format.format(min + k * step))
+        // Each number lies between MIN and MAX; the steps to it are counted in i128, where
+        // they cannot overflow.
+        let names = (0..count)
+            .map(|k| format.format(i128::from(min) + i128::from(k) * i128::from(step)))
             .collect();
         return Ok(DataFileNames {
             names,
@@ -353,7 +360,7 @@ impl PrintfInteger {
         })
     }
 
-    fn format(&self, n: i64) -> String {
+    fn format(&self, n: i128) -> String {
         let digits = n.unsigned_abs().to_string();
         let sign = if n < 0 { "-" } else { "" };
         let pad = self.width.saturating_sub(sign.len() + digits.len());

@@ -9,8 +9,10 @@
 //!
 //! Spacing, in mm: an ImageJ description's `spacing=` (z) and the resolution tags (x, y, pixels
 //! per unit) in its `unit=`, or OME-XML's `PhysicalSizeX/Y/Z` in their units; else 1 on every
-//! axis (the stack says nothing physical). Refused, saying why: stacks of several channels or
-//! time points (ImageJ hyperstacks, OME `SizeC`/`SizeT` > 1), palette, CMYK, YCbCr, alpha,
+//! axis (the stack says nothing physical). An ImageJ hyperstack of several time frames (one
+//! channel) is a time series, each frame's slices after the previous frame's. Refused, saying
+//! why: stacks of several channels (ImageJ hyperstacks, OME `SizeC` > 1), OME time points
+//! (`SizeT` > 1), palette, CMYK, YCbCr, alpha,
 //! inverted grey (`WhiteIsZero`), bilevel and planar colour pages, pages of different sizes or
 //! sample types, several OME images in one file, and a file whose ImageJ description counts
 //! more images than it has pages where they cannot follow the first (compressed), or do not
@@ -162,6 +164,9 @@ struct StackMeta {
     spacing: [Option<f64>; 3],
     /// The images an ImageJ description counts.
     imagej_images: Option<usize>,
+    /// The time frames of an ImageJ hyperstack (more than 1): its pages are each frame's slices
+    /// in turn.
+    imagej_frames: Option<usize>,
     /// OME's `SizeC`: samples a pixel (3 for RGB pages), not only separate channels.
     ome_size_c: Option<usize>,
     /// An ImageJ stack over 4 GB: one page directory, every image's samples one after another.
@@ -447,12 +452,7 @@ fn stack_meta<R: Read + Seek>(d: &mut Decoder<R>, path: &Path) -> Result<StackMe
                 format!("an ImageJ hyperstack of {c} channels; save one channel (Image > Color > Split Channels) or an RGB stack"),
             ));
         }
-        if let Some(t) = count("frames").filter(|t| *t > 1) {
-            return Err(ReadError::unsupported(
-                path,
-                format!("an ImageJ hyperstack of {t} time frames; save each frame as a stack of its own"),
-            ));
-        }
+        meta.imagej_frames = count("frames").filter(|t| *t > 1);
         meta.imagej_images = count("images");
         if let Some(mm) = field("unit").as_deref().and_then(unit_mm) {
             let x = resolution(d, Tag::XResolution).map(|r| mm / r);
@@ -591,6 +591,14 @@ fn file_pages<R: Read + Seek>(
     Ok((pages, meta))
 }
 
+/// The time points of the TIFF file at `path`: an ImageJ hyperstack's frames (its first page's
+/// description read), else 1.
+pub(crate) fn time_points(path: &Path) -> Result<usize, ReadError> {
+    let file = File::open(path).map_err(|e| ReadError::io(path, e))?;
+    let mut d = decoder(BufReader::new(file), path)?;
+    Ok(stack_meta(&mut d, path)?.imagej_frames.unwrap_or(1))
+}
+
 /// The full-resolution pages of the TIFF file at `path` (its page directories read, not its
 /// samples).
 pub(crate) fn page_count(path: &Path) -> Result<usize, ReadError> {
@@ -608,6 +616,9 @@ struct Stack {
     /// For each file, where its images lie when it is an ImageJ stack over 4 GB (one page
     /// directory for them all).
     contiguous: Vec<Option<Contiguous>>,
+    /// Time points: an ImageJ hyperstack's frames (each frame's slices after the previous
+    /// frame's), else 1.
+    time_points: usize,
 }
 
 impl Stack {
@@ -649,16 +660,47 @@ impl Stack {
             ));
         };
         let spacing = meta.spacing.map(|s| s.unwrap_or(1.0) as f32);
+        let time_points = meta.imagej_frames.unwrap_or(1);
+        if time_points > 1 && (names.len() > 1 || slices.len() % time_points != 0) {
+            let path = names.first().map_or(Path::new("."), PathBuf::as_path);
+            return Err(ReadError::unsupported(
+                path,
+                if names.len() > 1 {
+                    format!(
+                        "an ImageJ hyperstack of {time_points} time frames among {} files; one \
+                         hyperstack file, or a stack per time point, is read",
+                        names.len()
+                    )
+                } else {
+                    format!(
+                        "an ImageJ hyperstack of {time_points} time frames in {} images, which \
+                         do not divide among them",
+                        slices.len()
+                    )
+                },
+            ));
+        }
         Ok(Stack {
             slices,
             shape,
             spacing,
             contiguous,
+            time_points,
         })
     }
 
+    /// The dimensions of one time point.
     fn dims(&self) -> [usize; 3] {
-        [self.shape.width, self.shape.height, self.slices.len()]
+        [
+            self.shape.width,
+            self.shape.height,
+            self.slices.len() / self.time_points,
+        ]
+    }
+
+    /// Index in [`Stack::slices`] of slice `z` of time point `t`.
+    fn slice_index(&self, t: usize, z: usize) -> usize {
+        t * (self.slices.len() / self.time_points) + z
     }
 }
 
@@ -811,6 +853,12 @@ pub(crate) fn decode(src: &SourceFiles) -> Result<Volume, ReadError> {
     let stack = Stack::of(&paths, |f| {
         file_pages(Cursor::new(src.files[f].1.as_slice()), &paths[f])
     })?;
+    if stack.time_points > 1 {
+        return Err(ReadError::TimeSeries {
+            path: src.origin.clone(),
+            points: stack.time_points,
+        });
+    }
     let dims = stack.dims();
     let voxels = checked_voxels(dims).map_err(|e| ReadError::volume(&src.origin, e))?;
     let mut out = planes(&src.origin, stack.shape.channels, voxels)?;
@@ -990,6 +1038,11 @@ impl TiffRegions {
         self.stack.dims()
     }
 
+    /// Time points: an ImageJ hyperstack's frames, else 1.
+    pub(crate) fn time_points(&self) -> usize {
+        self.stack.time_points
+    }
+
     pub(crate) fn channels(&self) -> usize {
         self.stack.shape.channels
     }
@@ -998,10 +1051,11 @@ impl TiffRegions {
         self.stack.spacing
     }
 
-    /// The samples of the box at `origin` of `size` (within the volume: the caller checks),
-    /// one plane per channel.
+    /// The samples of the box at `origin` of `size` of time point `t` (within the volume: the
+    /// caller checks), one plane per channel.
     pub(crate) fn read(
         &self,
+        t: usize,
         origin: [usize; 3],
         size: [usize; 3],
     ) -> Result<Vec<Vec<f32>>, ReadError> {
@@ -1017,10 +1071,11 @@ impl TiffRegions {
         let mut bytes: Option<(usize, File)> = None;
         let mut buf = Vec::new();
         for z in 0..size[2] {
-            let (f, p) = self.stack.slices[origin[2] + z];
+            let slice = self.stack.slice_index(t, origin[2] + z);
+            let (f, p) = self.stack.slices[slice];
             let path = &self.files[f];
             let base = z * size[0] * size[1];
-            if let (Some(raw), Some(sample)) = (&self.raw[origin[2] + z], self.sample) {
+            if let (Some(raw), Some(sample)) = (&self.raw[slice], self.sample) {
                 if bytes.as_ref().is_none_or(|(g, _)| *g != f) {
                     let file = File::open(path).map_err(|e| ReadError::io(path, e))?;
                     bytes = Some((f, file));
@@ -1135,8 +1190,8 @@ mod tests {
             ([4, 3, 1], [6, 5, 2]),
             ([12, 10, 2], [1, 1, 1]),
         ] {
-            let a = by_bytes.read(origin, size).unwrap();
-            assert_eq!(a, decoded.read(origin, size).unwrap(), "{origin:?}");
+            let a = by_bytes.read(0, origin, size).unwrap();
+            assert_eq!(a, decoded.read(0, origin, size).unwrap(), "{origin:?}");
             let first = (origin[2] * 1000 + (origin[1] * w + origin[0]) * 7) as f32;
             assert_eq!(a[0][0], first);
         }

@@ -142,15 +142,17 @@ pub(super) fn open_metaimage(path: &Path) -> Result<Opened, ReadError> {
     };
     let (frame, expected) = stored_bytes(path, dims, channels, sample.size(), points)?;
     // The data: after the header (`LOCAL`), or in the data files, each with its piece.
-    let pieces: Vec<(std::path::PathBuf, u64)> =
+    let (pieces, local): (Vec<(std::path::PathBuf, u64)>, bool) =
         match crate::reader::metaimage::data_pieces(path, &prefix, expected)? {
-            None => vec![(path.to_path_buf(), expected)],
-            Some((names, piece)) => names
-                .into_iter()
-                .map(|f| (parent(path).join(f), piece))
-                .collect(),
+            None => (vec![(path.to_path_buf(), expected)], true),
+            Some((names, piece)) => (
+                names
+                    .into_iter()
+                    .map(|f| (parent(path).join(f), piece))
+                    .collect(),
+                false,
+            ),
         };
-    let local = pieces.len() == 1 && pieces[0].0 == path;
     if compressed && header_size != 0 {
         return Err(ReadError::unsupported(
             path,

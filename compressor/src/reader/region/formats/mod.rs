@@ -22,7 +22,7 @@ use self::nifti::open_nifti;
 use self::nrrd::open_nrrd;
 use self::raw::open_raw;
 use super::{Opened, Stored};
-use crate::reader::text::MAX_TEXT_HEADER;
+use crate::reader::text::TEXT_HEADER_WINDOW;
 use crate::reader::{Endian, Format, RawSpec, ReadError, SampleType, SourceFiles};
 use wavesplat_codec::volume::{Volume, VolumeError};
 
@@ -83,8 +83,8 @@ fn open_tiff(path: &Path) -> Result<Opened, ReadError> {
         channels: s.channels(),
         spacing: s.spacing(),
         placement: None,
+        time_points: s.time_points(),
         source: super::Source::Tiff(s),
-        time_points: 1,
         time_step: None,
     })
 }
@@ -315,23 +315,18 @@ fn stored_pieces(
     if starts.len() == 1 {
         return stored_at(first, *first_start, piece, sample, endian);
     }
-    let files = starts
-        .iter()
-        .map(|(path, start)| {
-            let Stored { file, .. } = stored_at(path, *start, piece, sample, endian)?;
-            Ok((file, path.clone(), *start))
-        })
-        .collect::<Result<Vec<_>, ReadError>>()?;
-    let file = files[0]
-        .0
-        .try_clone()
-        .map_err(|e| ReadError::io(first, e))?;
-    let total = piece.saturating_mul(files.len() as u64);
+    // Each file is checked to hold its piece, and closed again: a reader opens the files a
+    // region needs, a few at a time.
+    for (path, start) in &starts[1..] {
+        stored_at(path, *start, piece, sample, endian)?;
+    }
+    let Stored { file, .. } = stored_at(first, *first_start, piece, sample, endian)?;
+    let total = piece.saturating_mul(starts.len() as u64);
     Ok(Stored {
         file,
         path: first.clone(),
         offset: 0,
-        pieces: Some(super::Pieces { len: piece, files }),
+        pieces: Some(super::Pieces::new(piece, starts.to_vec())),
         sample,
         endian,
         slope: 1.0,
@@ -375,10 +370,10 @@ fn parent(path: &Path) -> PathBuf {
 }
 
 /// The text header of `path`: the bytes up to where a header that the decoders accept can
-/// end (each line within [`MAX_TEXT_HEADER`], starting within it), and the file's length.
+/// end (each line within [`MAX_TEXT_HEADER`](crate::reader::text::MAX_TEXT_HEADER), starting within it), and the file's length.
 fn text_header(path: &Path) -> Result<(Vec<u8>, u64), ReadError> {
     let len = std::fs::metadata(path)
         .map_err(|e| ReadError::io(path, e))?
         .len();
-    Ok((read_prefix(path, 2 * MAX_TEXT_HEADER as u64 + 2)?, len))
+    Ok((read_prefix(path, TEXT_HEADER_WINDOW)?, len))
 }

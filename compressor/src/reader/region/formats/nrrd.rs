@@ -156,20 +156,22 @@ pub(super) fn open_nrrd(path: &Path) -> Result<Opened, ReadError> {
 
     // Where the data is: the data file(s), each with its piece of the samples, or just past
     // the blank line.
-    let pieces: Vec<(std::path::PathBuf, u64)> =
+    let (pieces, attached): (Vec<(std::path::PathBuf, u64)>, bool) =
         match crate::reader::nrrd::data_pieces(path, &prefix, expected)? {
-            Some((names, piece)) => names
-                .into_iter()
-                .map(|f| (parent(path).join(f), piece))
-                .collect(),
-            None if found => vec![(path.to_path_buf(), expected)],
+            Some((names, piece)) => (
+                names
+                    .into_iter()
+                    .map(|f| (parent(path).join(f), piece))
+                    .collect(),
+                false,
+            ),
+            None if found => (vec![(path.to_path_buf(), expected)], true),
             None => {
                 return Err(bad(
                     "no blank line ends the header and no `data file` is named".into(),
                 ))
             }
         };
-    let attached = pieces.len() == 1 && pieces[0].0 == path;
     let encoding = encoding.as_deref().unwrap_or("");
     // Where a file's piece starts: past the header (attached data), then the skipped lines,
     // then the skipped bytes (-1: the piece ends the file).
