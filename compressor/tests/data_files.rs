@@ -407,3 +407,68 @@ fn every_path_reads_the_same_header() {
         assert!(e.to_string().contains("longer than"), "{e}");
     }
 }
+
+/// A 4D NRRD time series cut into files: a volume per file (the time axis last), and a slice
+/// per file holding every time point of each voxel (the time axis first); each time point
+/// reads as written, region by region.
+#[test]
+fn a_time_series_cut_into_files_reads_by_time_point() {
+    let dir = tempfile::tempdir().unwrap();
+    let points = 3usize;
+    // Time point t's samples: the volume's, plus 1000·t.
+    let at = |t: usize| -> Vec<u16> {
+        samples()
+            .iter()
+            .map(|v| v % 60_000 + 1000 * t as u16)
+            .collect()
+    };
+    let head = |sizes: String, kinds: &str, list: &[String]| {
+        format!(
+            "NRRD0004\ntype: uint16\ndimension: 4\nsizes: {sizes}\nkinds: {kinds}\nendian: little\nencoding: raw\ndata file: LIST\n{}\n",
+            list.join("\n")
+        )
+    };
+    // Time last: one file per time point.
+    let names: Vec<String> = (0..points).map(|t| format!("t{t}.raw")).collect();
+    for (t, name) in names.iter().enumerate() {
+        std::fs::write(dir.path().join(name), le(&at(t))).unwrap();
+    }
+    let last = dir.path().join("last.nhdr");
+    let sizes = format!("{} {} {} {points}", DIMS[0], DIMS[1], DIMS[2]);
+    std::fs::write(&last, head(sizes, "domain domain domain time", &names)).unwrap();
+    // Time first: one file per slice, each voxel's time points together.
+    let names: Vec<String> = (0..DIMS[2]).map(|z| format!("z{z}.raw")).collect();
+    let slice = DIMS[0] * DIMS[1];
+    for (z, name) in names.iter().enumerate() {
+        let mut voxels = Vec::with_capacity(slice * points);
+        for i in z * slice..(z + 1) * slice {
+            voxels.extend((0..points).map(|t| at(t)[i]));
+        }
+        std::fs::write(dir.path().join(name), le(&voxels)).unwrap();
+    }
+    let first = dir.path().join("first.nhdr");
+    let sizes = format!("{points} {} {} {}", DIMS[0], DIMS[1], DIMS[2]);
+    std::fs::write(&first, head(sizes, "time domain domain domain", &names)).unwrap();
+    for h in [&last, &first] {
+        let r = RegionReader::open_series(h, None).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(
+            (r.time_points(), r.dims()),
+            (points, DIMS),
+            "{}",
+            h.display()
+        );
+        for t in 0..points {
+            let want: Vec<f32> = at(t).iter().map(|v| f32::from(*v)).collect();
+            let whole = r.read_region_at(t, [0; 3], DIMS).unwrap();
+            assert_eq!(whole.channel(0), &want[..], "{} t {t}", h.display());
+            let (origin, size) = ([1, 1, 2], [3, 2, 4]);
+            let part = r.read_region_at(t, origin, size).unwrap();
+            assert_eq!(
+                part.channel(0),
+                &cut(&whole, origin, size)[..],
+                "{}",
+                h.display()
+            );
+        }
+    }
+}
