@@ -269,6 +269,60 @@ fn readers(root: &Path) {
         let p = fixtures::write_nrrd(tmp.path(), name, &v, layout, enc, detached, "RAS");
         seed("nrrd", name, &p, Format::Nrrd);
     }
+    // Samples cut into files: a list of slices (each after a skipped line and bytes), a
+    // pattern of gzip slices, a MetaImage list of rows and a pattern of zlib slices.
+    let slices: Vec<Vec<u8>> = (0..2u8)
+        .map(|z| (0..24u8).map(|b| b ^ (z * 7)).collect())
+        .collect();
+    let gz = |b: &[u8]| {
+        let mut e = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::fast());
+        std::io::Write::write_all(&mut e, b).unwrap();
+        e.finish().unwrap()
+    };
+    let zl = |b: &[u8]| {
+        let mut e = flate2::write::ZlibEncoder::new(Vec::new(), flate2::Compression::fast());
+        std::io::Write::write_all(&mut e, b).unwrap();
+        e.finish().unwrap()
+    };
+    for (z, s) in slices.iter().enumerate() {
+        std::fs::write(
+            tmp.path().join(format!("ls{z}.raw")),
+            [b"#\nxy".to_vec(), s.clone()].concat(),
+        )
+        .unwrap();
+        std::fs::write(tmp.path().join(format!("gs{z}.raw.gz")), gz(s)).unwrap();
+        std::fs::write(tmp.path().join(format!("zs{z}.raw")), zl(s)).unwrap();
+        for (y, row) in s.chunks(8).enumerate() {
+            std::fs::write(tmp.path().join(format!("mr{z}_{y}.raw")), row).unwrap();
+        }
+    }
+    let nrrd_head = "NRRD0004\ntype: uint8\ndimension: 3\nsizes: 4 6 2\n";
+    for (name, text) in [
+        ("list_skips", format!("{nrrd_head}encoding: raw\nline skip: 1\nbyte skip: 2\ndata file: LIST\nls0.raw\nls1.raw\n")),
+        ("pattern_gzip", format!("{nrrd_head}encoding: gzip\ndata file: gs%d.raw.gz 0 1 1\n")),
+    ] {
+        let p = tmp.path().join(format!("{name}.nhdr"));
+        std::fs::write(&p, text).unwrap();
+        seed("nrrd", name, &p, Format::Nrrd);
+    }
+    let mha_head = "ObjectType = Image\nNDims = 3\nDimSize = 8 3 2\nElementType = MET_UCHAR\n";
+    let rows: Vec<String> = (0..2)
+        .flat_map(|z| (0..3).map(move |y| format!("mr{z}_{y}.raw")))
+        .collect();
+    for (name, text) in [
+        (
+            "list_rows",
+            format!("{mha_head}ElementDataFile = LIST 1D\n{}\n", rows.join("\n")),
+        ),
+        (
+            "pattern_zlib",
+            format!("{mha_head}CompressedData = True\nElementDataFile = zs%d.raw 0 1 1\n"),
+        ),
+    ] {
+        let p = tmp.path().join(format!("{name}.mhd"));
+        std::fs::write(&p, text).unwrap();
+        seed("metaimage", name, &p, Format::MetaImage);
+    }
     for (name, layout, lzw, per_slice) in [
         ("multipage_u16", Layout::U16, false, false),
         ("multipage_lzw_i16", Layout::I16, true, false),
