@@ -9,10 +9,10 @@
 //!
 //! Spacing, in mm: an ImageJ description's `spacing=` (z) and the resolution tags (x, y, pixels
 //! per unit) in its `unit=`, or OME-XML's `PhysicalSizeX/Y/Z` in their units; else 1 on every
-//! axis (the stack says nothing physical). An ImageJ hyperstack of several time frames (one
-//! channel) is a time series, each frame's slices after the previous frame's. Refused, saying
-//! why: stacks of several channels (ImageJ hyperstacks, OME `SizeC` > 1), OME time points
-//! (`SizeT` > 1), palette, CMYK, YCbCr, alpha,
+//! axis (the stack says nothing physical). An ImageJ hyperstack of several time frames, or an
+//! OME-TIFF of several time points (`SizeT`, its planes in its `DimensionOrder`, seconds between
+//! them from `TimeIncrement`), one channel, is a time series. Refused, saying why: stacks of
+//! several channels (ImageJ hyperstacks, OME `SizeC` > 1), palette, CMYK, YCbCr, alpha,
 //! inverted grey (`WhiteIsZero`), bilevel and planar colour pages, pages of different sizes or
 //! sample types, several OME images in one file, and a file whose ImageJ description counts
 //! more images than it has pages where they cannot follow the first (compressed), or do not
@@ -164,9 +164,13 @@ struct StackMeta {
     spacing: [Option<f64>; 3],
     /// The images an ImageJ description counts.
     imagej_images: Option<usize>,
-    /// The time frames of an ImageJ hyperstack (more than 1): its pages are each frame's slices
-    /// in turn.
-    imagej_frames: Option<usize>,
+    /// The time points of an ImageJ hyperstack or an OME-TIFF (`SizeT`), when more than 1.
+    frames: Option<usize>,
+    /// Whether a time point's slices follow one another (ImageJ; OME's `DimensionOrder` with
+    /// Z before T), else each slice's time points do.
+    time_major: bool,
+    /// Seconds between time points (OME's `TimeIncrement`), when given.
+    time_step: Option<f64>,
     /// OME's `SizeC`: samples a pixel (3 for RGB pages), not only separate channels.
     ome_size_c: Option<usize>,
     /// An ImageJ stack over 4 GB: one page directory, every image's samples one after another.
@@ -410,6 +414,19 @@ fn unit_mm(unit: &str) -> Option<f64> {
     })
 }
 
+/// Seconds in an OME time unit.
+fn time_unit_s(unit: &str) -> Option<f64> {
+    Some(match unit {
+        "s" => 1.0,
+        "ms" => 1e-3,
+        "µs" | "us" => 1e-6,
+        "ns" => 1e-9,
+        "min" => 60.0,
+        "h" => 3600.0,
+        _ => return None,
+    })
+}
+
 /// The value of `key="…"` in an XML text.
 fn xml_attr<'a>(xml: &'a str, key: &str) -> Option<&'a str> {
     let pat = format!(" {key}=\"");
@@ -452,7 +469,8 @@ fn stack_meta<R: Read + Seek>(d: &mut Decoder<R>, path: &Path) -> Result<StackMe
                 format!("an ImageJ hyperstack of {c} channels; save one channel (Image > Color > Split Channels) or an RGB stack"),
             ));
         }
-        meta.imagej_frames = count("frames").filter(|t| *t > 1);
+        meta.frames = count("frames").filter(|t| *t > 1);
+        meta.time_major = true;
         meta.imagej_images = count("images");
         if let Some(mm) = field("unit").as_deref().and_then(unit_mm) {
             let x = resolution(d, Tag::XResolution).map(|r| mm / r);
@@ -471,12 +489,18 @@ fn stack_meta<R: Read + Seek>(d: &mut Decoder<R>, path: &Path) -> Result<StackMe
             ));
         }
         let size = |key: &str| xml_attr(&description, key).and_then(|v| v.parse::<usize>().ok());
-        if let Some(t) = size("SizeT").filter(|t| *t > 1) {
-            return Err(ReadError::unsupported(
-                path,
-                format!("an OME-TIFF of {t} time points (SizeT); supported is one"),
-            ));
-        }
+        meta.frames = size("SizeT").filter(|t| *t > 1);
+        // The planes' order, fastest first after X and Y: Z before T keeps a time point's
+        // slices together (channels are one here: several are refused).
+        let order = xml_attr(&description, "DimensionOrder").unwrap_or("XYZCT");
+        meta.time_major = order.find('Z') < order.find('T');
+        meta.time_step = xml_attr(&description, "TimeIncrement")
+            .and_then(|v| v.parse::<f64>().ok())
+            .zip(time_unit_s(
+                xml_attr(&description, "TimeIncrementUnit").unwrap_or("s"),
+            ))
+            .map(|(v, s)| v * s)
+            .filter(|v| v.is_finite() && *v > 0.0);
         meta.ome_size_c = size("SizeC");
         for (axis, key) in ["PhysicalSizeX", "PhysicalSizeY", "PhysicalSizeZ"]
             .iter()
@@ -591,12 +615,12 @@ fn file_pages<R: Read + Seek>(
     Ok((pages, meta))
 }
 
-/// The time points of the TIFF file at `path`: an ImageJ hyperstack's frames (its first page's
-/// description read), else 1.
+/// The time points of the TIFF file at `path`: an ImageJ hyperstack's frames or an OME-TIFF's
+/// `SizeT` (its first page's description read), else 1.
 pub(crate) fn time_points(path: &Path) -> Result<usize, ReadError> {
     let file = File::open(path).map_err(|e| ReadError::io(path, e))?;
     let mut d = decoder(BufReader::new(file), path)?;
-    Ok(stack_meta(&mut d, path)?.imagej_frames.unwrap_or(1))
+    Ok(stack_meta(&mut d, path)?.frames.unwrap_or(1))
 }
 
 /// The full-resolution pages of the TIFF file at `path` (its page directories read, not its
@@ -616,9 +640,13 @@ struct Stack {
     /// For each file, where its images lie when it is an ImageJ stack over 4 GB (one page
     /// directory for them all).
     contiguous: Vec<Option<Contiguous>>,
-    /// Time points: an ImageJ hyperstack's frames (each frame's slices after the previous
-    /// frame's), else 1.
+    /// Time points: an ImageJ hyperstack's frames or an OME-TIFF's `SizeT`, else 1.
     time_points: usize,
+    /// Whether a time point's slices follow one another in `slices` (else each slice's time
+    /// points do).
+    time_major: bool,
+    /// Seconds between time points, when the description says.
+    time_step: Option<f64>,
 }
 
 impl Stack {
@@ -660,21 +688,21 @@ impl Stack {
             ));
         };
         let spacing = meta.spacing.map(|s| s.unwrap_or(1.0) as f32);
-        let time_points = meta.imagej_frames.unwrap_or(1);
+        let time_points = meta.frames.unwrap_or(1);
         if time_points > 1 && (names.len() > 1 || slices.len() % time_points != 0) {
             let path = names.first().map_or(Path::new("."), PathBuf::as_path);
             return Err(ReadError::unsupported(
                 path,
                 if names.len() > 1 {
                     format!(
-                        "an ImageJ hyperstack of {time_points} time frames among {} files; one \
-                         hyperstack file, or a stack per time point, is read",
+                        "a stack of {time_points} time points among {} files; one file of them \
+                         all, or a stack per time point, is read",
                         names.len()
                     )
                 } else {
                     format!(
-                        "an ImageJ hyperstack of {time_points} time frames in {} images, which \
-                         do not divide among them",
+                        "a stack of {time_points} time points in {} images, which do not \
+                         divide among them",
                         slices.len()
                     )
                 },
@@ -686,6 +714,8 @@ impl Stack {
             spacing,
             contiguous,
             time_points,
+            time_major: meta.time_major,
+            time_step: meta.time_step.filter(|_| time_points > 1),
         })
     }
 
@@ -700,7 +730,11 @@ impl Stack {
 
     /// Index in [`Stack::slices`] of slice `z` of time point `t`.
     fn slice_index(&self, t: usize, z: usize) -> usize {
-        t * (self.slices.len() / self.time_points) + z
+        if self.time_major {
+            t * (self.slices.len() / self.time_points) + z
+        } else {
+            z * self.time_points + t
+        }
     }
 }
 
@@ -1038,9 +1072,14 @@ impl TiffRegions {
         self.stack.dims()
     }
 
-    /// Time points: an ImageJ hyperstack's frames, else 1.
+    /// Time points: an ImageJ hyperstack's frames or an OME-TIFF's `SizeT`, else 1.
     pub(crate) fn time_points(&self) -> usize {
         self.stack.time_points
+    }
+
+    /// Seconds between time points, when an OME description says.
+    pub(crate) fn time_step(&self) -> Option<f64> {
+        self.stack.time_step
     }
 
     pub(crate) fn channels(&self) -> usize {

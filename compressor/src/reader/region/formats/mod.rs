@@ -84,8 +84,8 @@ fn open_tiff(path: &Path) -> Result<Opened, ReadError> {
         spacing: s.spacing(),
         placement: None,
         time_points: s.time_points(),
+        time_step: s.time_step(),
         source: super::Source::Tiff(s),
-        time_step: None,
     })
 }
 
