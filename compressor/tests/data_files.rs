@@ -472,3 +472,43 @@ fn a_time_series_cut_into_files_reads_by_time_point() {
         }
     }
 }
+
+/// NRRD files of the volume's own dimension are slabs of the slowest axis, as teem reads them:
+/// 3 files of 2 slices each read as the 6 slices written; 4 files for 6 slices are refused.
+#[test]
+fn nrrd_files_of_every_axis_are_slabs() {
+    let dir = tempfile::tempdir().unwrap();
+    let dims = [5usize, 4, 6];
+    let n = dims.iter().product::<usize>();
+    let values: Vec<u16> = (0..n).map(|i| (i * 97 % 50_000) as u16).collect();
+    let slab = n / 3;
+    for k in 0..3 {
+        std::fs::write(
+            dir.path().join(format!("slab{k}.raw")),
+            le(&values[k * slab..(k + 1) * slab]),
+        )
+        .unwrap();
+    }
+    let head =
+        "NRRD0004\ntype: uint16\ndimension: 3\nsizes: 5 4 6\nendian: little\nencoding: raw\n";
+    let h = dir.path().join("slabs.nhdr");
+    std::fs::write(&h, format!("{head}data file: slab%d.raw 0 2 1 3\n")).unwrap();
+    let want: Vec<f32> = values.iter().map(|v| f32::from(*v)).collect();
+    let v = read_volume(&h, None).unwrap();
+    assert_eq!(v.channel(0), &want[..]);
+    let r = RegionReader::open(&h, None).unwrap();
+    assert_eq!(r.read_region([0; 3], dims).unwrap(), v);
+    let (origin, size) = ([1, 0, 1], [3, 4, 4]);
+    assert_eq!(
+        r.read_region(origin, size).unwrap().channel(0),
+        &cut(&v, origin, size)[..]
+    );
+    std::fs::write(dir.path().join("slab3.raw"), b"").unwrap();
+    std::fs::write(&h, format!("{head}data file: slab%d.raw 0 3 1 3\n")).unwrap();
+    for e in [
+        read_volume(&h, None).unwrap_err(),
+        RegionReader::open(&h, None).unwrap_err(),
+    ] {
+        assert!(e.to_string().contains("do not divide"), "{e}");
+    }
+}

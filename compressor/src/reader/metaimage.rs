@@ -163,7 +163,7 @@ pub(crate) fn data_pieces(
     if d.single {
         return Ok(Some((d.names, total)));
     }
-    let piece = text::piece_bytes(&sizes, d.file_dim, d.names.len(), total)
+    let piece = text::piece_bytes(&sizes, d.file_dim, d.names.len(), total, false)
         .map_err(|e| bad(path, format!("ElementDataFile: {e}")))?;
     Ok(Some((d.names, piece)))
 }

@@ -329,7 +329,7 @@ pub(crate) fn data_pieces(
     if d.single {
         return Ok(Some((d.names, total)));
     }
-    let piece = text::piece_bytes(sizes, d.file_dim, d.names.len(), total)
+    let piece = text::piece_bytes(sizes, d.file_dim, d.names.len(), total, true)
         .map_err(|e| bad(path, format!("data file: {e}")))?;
     Ok(Some((d.names, piece)))
 }

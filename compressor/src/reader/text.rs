@@ -272,13 +272,15 @@ pub(crate) fn data_file_names(value: &str, following: &[String]) -> Result<DataF
 
 /// Bytes of each data file's piece when `files` files hold a sample stream of `total` bytes
 /// whose axes have `sizes` (fastest first), each file `file_dim` of the axes (by default all
-/// but the slowest): there must be one file per sample of the remaining axes. `Err` says what
-/// does not match.
+/// but the slowest): there must be one file per sample of the remaining axes. With `slabs`
+/// (NRRD, as teem reads it), files of every axis are slabs: the slowest axis divides evenly
+/// among them. `Err` says what does not match.
 pub(crate) fn piece_bytes(
     sizes: &[u64],
     file_dim: Option<usize>,
     files: usize,
     total: u64,
+    slabs: bool,
 ) -> Result<u64, String> {
     let dim = file_dim.unwrap_or(sizes.len().saturating_sub(1).max(1));
     if dim > sizes.len() {
@@ -286,6 +288,16 @@ pub(crate) fn piece_bytes(
             "each file of {dim} dimensions, of a volume of {}",
             sizes.len()
         ));
+    }
+    if slabs && dim == sizes.len() && files > 1 {
+        let slowest = sizes.last().copied().unwrap_or(1);
+        if slowest % files as u64 != 0 {
+            return Err(format!(
+                "{files} files named, each a slab of the slowest axis, whose {slowest} samples \
+                 do not divide among them"
+            ));
+        }
+        return Ok(total / files as u64);
     }
     let wanted = sizes[dim..]
         .iter()
