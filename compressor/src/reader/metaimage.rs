@@ -19,7 +19,8 @@ use std::path::{Path, PathBuf};
 
 use super::text::{self, grid_from_vectors, header_lines, origin3};
 use super::{
-    deinterleave, read_exact_or_truncated, voxel_count, Endian, ReadError, SampleType, SourceFiles,
+    deinterleave, join_pieces, read_exact_or_truncated, voxel_count, Endian, ReadError, SampleType,
+    SourceFiles,
 };
 use wavesplat_codec::volume::Volume;
 
@@ -420,38 +421,13 @@ pub(crate) fn decode(src: &SourceFiles) -> Result<Volume, ReadError> {
                 vec![(path.clone(), &header_bytes[h.data_offset..])],
                 expected,
             ),
-            Some((names, piece)) => (
-                names
-                    .iter()
-                    .map(|f| {
-                        let p = src.path_of(f);
-                        let b = src.get(f).ok_or_else(|| {
-                            ReadError::io(
-                                &p,
-                                std::io::Error::new(
-                                    std::io::ErrorKind::NotFound,
-                                    "a data file named by the MetaImage header is missing",
-                                ),
-                            )
-                        })?;
-                        Ok((p, b))
-                    })
-                    .collect::<Result<_, ReadError>>()?,
-                piece as usize,
-            ),
+            Some((names, piece)) => (src.data_files(&names, FORMAT)?, piece as usize),
         };
     let data_path = pieces[0].0.clone();
-    let mut joined: Vec<u8> = Vec::new();
-    let mut single: Option<std::borrow::Cow<'_, [u8]>> = None;
-    for (data_path, data) in &pieces {
-        let body = piece_of(data_path, data, piece, compressed, header_size)?;
-        if pieces.len() == 1 {
-            single = Some(body);
-        } else {
-            joined.extend_from_slice(&body);
-        }
-    }
-    let raw: &[u8] = single.as_deref().unwrap_or(&joined);
+    let raw = join_pieces(&pieces, |p, data| {
+        piece_of(p, data, piece, compressed, header_size)
+    })?;
+    let raw: &[u8] = &raw;
     let planar = deinterleave(raw, sample, endian, channels, 1.0, 0.0);
     let v = Volume::new(dims, spacing, planar).map_err(|e| ReadError::volume(&data_path, e))?;
     match placement {

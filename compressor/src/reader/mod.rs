@@ -543,6 +543,29 @@ impl SourceFiles {
         self.base.join(name)
     }
 
+    /// The data files `names` (as a header of `format` names them) with their paths; one not
+    /// gathered is an I/O error naming it.
+    pub(crate) fn data_files(
+        &self,
+        names: &[String],
+        format: &str,
+    ) -> Result<Vec<(PathBuf, &[u8])>, ReadError> {
+        names
+            .iter()
+            .map(|name| {
+                let path = self.path_of(name);
+                let bytes = self.get(name).ok_or_else(|| {
+                    let why = format!("a data file named by the {format} header is missing");
+                    ReadError::io(
+                        &path,
+                        std::io::Error::new(std::io::ErrorKind::NotFound, why),
+                    )
+                })?;
+                Ok((path, bytes))
+            })
+            .collect()
+    }
+
     /// Serialises the files for hashing and upload: a single file is its own bytes (so its
     /// hash is the file's); several files are a bundle: [`BUNDLE_MAGIC`], the format name
     /// (u8 length + bytes), the file count (u32 LE), then per file its name (u16 LE length +
@@ -834,6 +857,22 @@ pub(crate) fn read_file(path: &Path) -> Result<Vec<u8>, ReadError> {
     f.read_to_end(&mut bytes)
         .map_err(|e| ReadError::io(path, e))?;
     Ok(bytes)
+}
+
+/// The samples of a stream cut into pieces, one per data file: each file's piece as `piece_of`
+/// takes it from the file's bytes, joined in order (one piece: as `piece_of` gives it).
+pub(crate) fn join_pieces<'a>(
+    pieces: &[(PathBuf, &'a [u8])],
+    mut piece_of: impl FnMut(&Path, &'a [u8]) -> Result<std::borrow::Cow<'a, [u8]>, ReadError>,
+) -> Result<std::borrow::Cow<'a, [u8]>, ReadError> {
+    if let [(path, data)] = pieces {
+        return piece_of(path, data);
+    }
+    let mut joined = Vec::new();
+    for (path, data) in pieces {
+        joined.extend_from_slice(&piece_of(path, data)?);
+    }
+    Ok(std::borrow::Cow::Owned(joined))
 }
 
 /// Decodes a volume from its gathered files, by their format (or, for an unknown format, as

@@ -18,7 +18,8 @@ use std::path::{Path, PathBuf};
 
 use super::text::{self, grid_from_vectors, header_lines, nrrd_type, origin3};
 use super::{
-    deinterleave, read_exact_or_truncated, voxel_count, Endian, ReadError, SampleType, SourceFiles,
+    deinterleave, join_pieces, read_exact_or_truncated, voxel_count, Endian, ReadError, SampleType,
+    SourceFiles,
 };
 use wavesplat_codec::volume::{Placement, Volume};
 
@@ -514,25 +515,7 @@ pub(crate) fn decode(src: &SourceFiles) -> Result<Volume, ReadError> {
     // after its own skipped lines and bytes (as teem reads them).
     let (pieces, piece): (Vec<(PathBuf, &[u8])>, usize) =
         match data_pieces(&path, header_bytes, expected as u64)? {
-            Some((names, piece)) => (
-                names
-                    .iter()
-                    .map(|f| {
-                        let p = src.path_of(f);
-                        let bytes = src.get(f).ok_or_else(|| {
-                            ReadError::io(
-                                &p,
-                                std::io::Error::new(
-                                    std::io::ErrorKind::NotFound,
-                                    "a data file named by the NRRD header is missing",
-                                ),
-                            )
-                        })?;
-                        Ok((p, bytes))
-                    })
-                    .collect::<Result<_, ReadError>>()?,
-                piece as usize,
-            ),
+            Some((names, piece)) => (src.data_files(&names, FORMAT)?, piece as usize),
             None => {
                 let off = h.data_offset.ok_or_else(|| {
                     bad(
@@ -554,17 +537,10 @@ pub(crate) fn decode(src: &SourceFiles) -> Result<Volume, ReadError> {
         let data = skip_lines(&path, pieces[0].1, h.line_skip)?.1;
         return ascii_volume(&path, &data_path, data, &layout, voxels, sample);
     }
-    let mut joined: Vec<u8> = Vec::new();
-    let mut single: Option<std::borrow::Cow<'_, [u8]>> = None;
-    for (data_path, data) in &pieces {
-        let body = piece_of(&path, &h, encoding, data_path, data, piece)?;
-        if pieces.len() == 1 {
-            single = Some(body);
-        } else {
-            joined.extend_from_slice(&body);
-        }
-    }
-    let raw: &[u8] = single.as_deref().unwrap_or(&joined);
+    let raw = join_pieces(&pieces, |p, data| {
+        piece_of(&path, &h, encoding, p, data, piece)
+    })?;
+    let raw: &[u8] = &raw;
     let planar = deinterleave(raw, sample, endian, layout.channels, 1.0, 0.0);
     finish(&data_path, layout, planar)
 }

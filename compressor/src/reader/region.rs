@@ -141,6 +141,30 @@ impl Pieces {
 }
 
 impl Stored {
+    /// Samples of one time point (`frame` bytes) stored as they are in `file` from `offset` on,
+    /// not rescaled.
+    fn plain(
+        file: File,
+        path: PathBuf,
+        offset: u64,
+        sample: SampleType,
+        endian: Endian,
+        frame: u64,
+    ) -> Stored {
+        Stored {
+            file,
+            path,
+            offset,
+            pieces: None,
+            sample,
+            endian,
+            slope: 1.0,
+            inter: 0.0,
+            frame,
+            interleaved: 1,
+        }
+    }
+
     /// Fills `buf` from byte `offset` of the stored bytes (counted from the file's start; for
     /// pieces, from the first piece's start), reading across pieces as needed. An error names
     /// the file it came from and the offset in it.

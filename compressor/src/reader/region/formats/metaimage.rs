@@ -6,9 +6,7 @@
 use std::path::Path;
 
 use super::super::Opened;
-use super::{
-    file_name, parent, reader_at, spool_pieces, stand_in, stored_bytes, stored_pieces, text_header,
-};
+use super::{file_name, parent, spool_pieces, stand_in, stored_bytes, stored_pieces, text_header};
 use crate::reader::text::{self, header_lines};
 use crate::reader::{Endian, Format, ReadError, SampleType};
 
@@ -185,19 +183,11 @@ pub(super) fn open_metaimage(path: &Path) -> Result<Opened, ReadError> {
         }
     };
     let stored = if compressed {
-        let streams = pieces.iter().map(|(p, piece)| {
-            let at = start_of(p, *piece)?;
-            let z: Box<dyn std::io::Read> =
-                Box::new(flate2::bufread::ZlibDecoder::new(reader_at(p, at)?));
-            Ok((p.clone(), *piece, z))
-        });
-        spool_pieces(streams, FORMAT, "zlib", sample, endian)?
+        let inflate =
+            |r| -> Box<dyn std::io::Read> { Box::new(flate2::bufread::ZlibDecoder::new(r)) };
+        spool_pieces(&pieces, start_of, inflate, FORMAT, "zlib", sample, endian)?
     } else {
-        let starts = pieces
-            .iter()
-            .map(|(p, piece)| Ok((p.clone(), start_of(p, *piece)?)))
-            .collect::<Result<Vec<_>, ReadError>>()?;
-        stored_pieces(&starts, pieces[0].1, sample, endian)?
+        stored_pieces(&pieces, start_of, sample, endian)?
     };
     let mut stored = stored;
     stored.frame = frame;

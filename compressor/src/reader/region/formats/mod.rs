@@ -150,18 +150,14 @@ fn stored_at(
             actual,
         });
     }
-    Ok(Stored {
+    Ok(Stored::plain(
         file,
-        path: data_path.to_path_buf(),
+        data_path.to_path_buf(),
         offset,
-        pieces: None,
         sample,
         endian,
-        slope: 1.0,
-        inter: 0.0,
-        frame: expected,
-        interleaved: 1,
-    })
+        expected,
+    ))
 }
 
 /// Inflates `stream` (`what` data: gzip, zlib) into a temporary file, which then holds the
@@ -178,58 +174,41 @@ fn spool(
 ) -> Result<Stored, ReadError> {
     let mut file = temp_file(data_path)?;
     spool_into(&mut file, stream, expected, data_path, format, what)?;
-    Ok(Stored {
+    Ok(Stored::plain(
         file,
-        path: data_path.to_path_buf(),
-        offset: 0,
-        pieces: None,
+        data_path.to_path_buf(),
+        0,
         sample,
         endian,
-        slope: 1.0,
-        inter: 0.0,
-        frame: expected,
-        interleaved: 1,
-    })
+        expected,
+    ))
 }
 
-/// [`spool`] of a sample stream cut into pieces, one per data file: each `(path, bytes,
-/// stream)` inflated in turn into one temporary file.
+/// [`spool`] of a sample stream cut into pieces, one per data file (`(path, bytes)`): each
+/// inflated by `inflate` from where `start_of` says its data starts, in turn into one
+/// temporary file.
 fn spool_pieces(
-    pieces: impl Iterator<Item = Result<(PathBuf, u64, Box<dyn Read>), ReadError>>,
+    pieces: &[(PathBuf, u64)],
+    start_of: impl Fn(&Path, u64) -> Result<u64, ReadError>,
+    inflate: impl Fn(BufReader<File>) -> Box<dyn Read>,
     format: &'static str,
     what: &str,
     sample: SampleType,
     endian: Endian,
 ) -> Result<Stored, ReadError> {
-    let (mut file, mut first, mut total) = (None, None, 0u64);
-    for piece in pieces {
-        let (path, bytes, mut stream) = piece?;
-        let file = match &mut file {
-            Some(f) => f,
-            None => file.insert(temp_file(&path)?),
-        };
-        spool_into(file, &mut stream, bytes, &path, format, what)?;
-        total += bytes;
-        first.get_or_insert(path);
-    }
-    let (Some(file), Some(path)) = (file, first) else {
+    let Some((first, _)) = pieces.first() else {
         return Err(ReadError::io(
             Path::new(""),
             io::Error::new(io::ErrorKind::NotFound, "no data file"),
         ));
     };
-    Ok(Stored {
-        file,
-        path,
-        offset: 0,
-        pieces: None,
-        sample,
-        endian,
-        slope: 1.0,
-        inter: 0.0,
-        frame: total,
-        interleaved: 1,
-    })
+    let mut file = temp_file(first)?;
+    for (path, bytes) in pieces {
+        let mut stream = inflate(reader_at(path, start_of(path, *bytes)?)?);
+        spool_into(&mut file, &mut stream, *bytes, path, format, what)?;
+    }
+    let frame = pieces.iter().map(|(_, b)| b).sum();
+    Ok(Stored::plain(file, first.clone(), 0, sample, endian, frame))
 }
 
 /// The error of writing the inflated samples of `data_path` to a temporary file.
@@ -297,21 +276,26 @@ fn spool_into(
     file.flush().map_err(|e| temp_error(data_path, e))
 }
 
-/// The samples of a stream cut into pieces of `piece` bytes, each in the file `starts` names
-/// from the offset it gives (one piece: [`stored_at`]); every file is checked to hold its
-/// piece.
+/// The samples of a stream cut into pieces, one per data file (`(path, bytes)`, all of one
+/// length), each from where `start_of` says its data starts (one piece: [`stored_at`]); every
+/// file is checked to hold its piece.
 fn stored_pieces(
-    starts: &[(PathBuf, u64)],
-    piece: u64,
+    pieces: &[(PathBuf, u64)],
+    start_of: impl Fn(&Path, u64) -> Result<u64, ReadError>,
     sample: SampleType,
     endian: Endian,
 ) -> Result<Stored, ReadError> {
-    let Some((first, first_start)) = starts.first() else {
+    let starts = pieces
+        .iter()
+        .map(|(p, bytes)| Ok((p.clone(), start_of(p, *bytes)?)))
+        .collect::<Result<Vec<_>, ReadError>>()?;
+    let (Some((first, first_start)), Some((_, piece))) = (starts.first(), pieces.first()) else {
         return Err(ReadError::io(
             Path::new(""),
             io::Error::new(io::ErrorKind::NotFound, "no data file"),
         ));
     };
+    let piece = *piece;
     if starts.len() == 1 {
         return stored_at(first, *first_start, piece, sample, endian);
     }
@@ -322,17 +306,10 @@ fn stored_pieces(
     }
     let Stored { file, .. } = stored_at(first, *first_start, piece, sample, endian)?;
     let total = piece.saturating_mul(starts.len() as u64);
+    let first = first.clone();
     Ok(Stored {
-        file,
-        path: first.clone(),
-        offset: 0,
-        pieces: Some(super::Pieces::new(piece, starts.to_vec())),
-        sample,
-        endian,
-        slope: 1.0,
-        inter: 0.0,
-        frame: total,
-        interleaved: 1,
+        pieces: Some(super::Pieces::new(piece, starts)),
+        ..Stored::plain(file, first, 0, sample, endian, total)
     })
 }
 

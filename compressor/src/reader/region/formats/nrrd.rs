@@ -7,9 +7,7 @@ use std::io::{self, BufRead, BufReader, Seek, SeekFrom};
 use std::path::Path;
 
 use super::super::{read_whole, Opened};
-use super::{
-    file_name, parent, reader_at, spool_pieces, stand_in, stored_bytes, stored_pieces, text_header,
-};
+use super::{file_name, parent, spool_pieces, stand_in, stored_bytes, stored_pieces, text_header};
 use crate::reader::text::{self, header_lines};
 use crate::reader::{Endian, Format, ReadError};
 
@@ -211,22 +209,16 @@ pub(super) fn open_nrrd(path: &Path) -> Result<Opened, ReadError> {
             }
         };
     let stored = match encoding {
-        "raw" => {
-            let starts = pieces
-                .iter()
-                .map(|(p, piece)| Ok((p.clone(), start_of(p, *piece)?)))
-                .collect::<Result<Vec<_>, ReadError>>()?;
-            stored_pieces(&starts, pieces[0].1, sample, endian)?
-        }
-        "gzip" | "gz" => {
-            let streams = pieces.iter().map(|(p, piece)| {
-                let at = start_of(p, *piece)?;
-                let z: Box<dyn std::io::Read> =
-                    Box::new(flate2::bufread::MultiGzDecoder::new(reader_at(p, at)?));
-                Ok((p.clone(), *piece, z))
-            });
-            spool_pieces(streams, FORMAT, "gzip", sample, endian)?
-        }
+        "raw" => stored_pieces(&pieces, start_of, sample, endian)?,
+        "gzip" | "gz" => spool_pieces(
+            &pieces,
+            start_of,
+            |r| Box::new(flate2::bufread::MultiGzDecoder::new(r)),
+            FORMAT,
+            "gzip",
+            sample,
+            endian,
+        )?,
         "" => return Err(bad("no `encoding` field".into())),
         e => {
             return Err(ReadError::unsupported(
