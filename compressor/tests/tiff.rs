@@ -415,10 +415,12 @@ fn stacks_that_are_not_one_volume_are_refused_saying_why() {
     let e = refusal(&path);
     assert!(e.contains("8-bit") && e.contains("16-bit"), "{e}");
 
-    // An ImageJ hyperstack of two channels, and one whose 9 images are not 2 frames' slices.
+    // An ImageJ hyperstack of two channels, one whose 9 images are not 2 frames' slices, and
+    // one whose 9 images are 3 frames' but not of the 4 slices it counts.
     for (d, word) in [
         ("channels=2\nslices=5\n", "channels"),
-        ("slices=4\nframes=2\n", "time points in 9"),
+        ("slices=4\nframes=2\n", "in 9 images"),
+        ("slices=4\nframes=3\n", "3 time points of 4 slices in 9"),
     ] {
         let path = dir.path().join(format!("hyper_{}.tif", word.len()));
         let desc = format!("ImageJ=1.54f\nimages=9\n{d}hyperstack=true\n");

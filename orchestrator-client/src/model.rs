@@ -795,8 +795,9 @@ impl LeaseToken {
         &self.digest
     }
 
-    /// The secret, to hand to the worker the lease is granted to: only in a token drawn by
-    /// this process (`None` in one read back from the store).
+    /// The secret, to hand to the worker the lease is granted to: known in a token drawn by
+    /// this process, and in one an older build stored as itself; `None` in one read back as a
+    /// digest.
     pub fn secret(&self) -> Option<&[u8; LEASE_TOKEN_BYTES]> {
         self.secret.as_ref()
     }

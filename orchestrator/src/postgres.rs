@@ -464,7 +464,9 @@ impl PostgresQueue {
             let key = spec.dedup_key();
             // Read without a lock: a poll names every part, and locking them all would hide the
             // queued ones from leases (SKIP LOCKED) until it commits. Only a part that this
-            // step changes is locked, and judged again under the lock.
+            // step changes is locked (each part once an attempt, when the attempt first asks
+            // for it), and judged again under the lock, with whether its result is stored read
+            // again too: its worker may have stored it and finished since.
             let known = sqlx::query("SELECT job, lease_token FROM jobs WHERE dedup_key = $1")
                 .bind(&key)
                 .fetch_optional(&mut **tx)
@@ -476,6 +478,14 @@ impl PostgresQueue {
                     let has_result = with_results.contains(&ms(job.id));
                     if rules::ask_for_part(&mut job.clone(), attempt, has_result, now) {
                         job = Self::locked(tx, job.id).await?;
+                        let has_result: bool = sqlx::query_scalar(
+                            "SELECT EXISTS (SELECT 1 FROM results WHERE parent = $1 AND job_id = $2)",
+                        )
+                        .bind(ms(parent))
+                        .bind(ms(job.id))
+                        .fetch_one(&mut **tx)
+                        .await
+                        .map_err(db)?;
                         if rules::ask_for_part(&mut job, attempt, has_result, now) {
                             Self::write(tx, &job).await?;
                         }

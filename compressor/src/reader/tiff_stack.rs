@@ -171,6 +171,8 @@ struct StackMeta {
     time_major: bool,
     /// Seconds between time points (OME's `TimeIncrement`), when given.
     time_step: Option<f64>,
+    /// The slices of one time point the description gives (ImageJ's `slices`, OME's `SizeZ`).
+    slices: Option<usize>,
     /// OME's `SizeC`: samples a pixel (3 for RGB pages), not only separate channels.
     ome_size_c: Option<usize>,
     /// An ImageJ stack over 4 GB: one page directory, every image's samples one after another.
@@ -470,6 +472,7 @@ fn stack_meta<R: Read + Seek>(d: &mut Decoder<R>, path: &Path) -> Result<StackMe
             ));
         }
         meta.frames = count("frames").filter(|t| *t > 1);
+        meta.slices = count("slices");
         meta.time_major = true;
         meta.imagej_images = count("images");
         if let Some(mm) = field("unit").as_deref().and_then(unit_mm) {
@@ -490,6 +493,7 @@ fn stack_meta<R: Read + Seek>(d: &mut Decoder<R>, path: &Path) -> Result<StackMe
         }
         let size = |key: &str| xml_attr(&description, key).and_then(|v| v.parse::<usize>().ok());
         meta.frames = size("SizeT").filter(|t| *t > 1);
+        meta.slices = size("SizeZ");
         // The planes' order, fastest first after X and Y: Z before T keeps a time point's
         // slices together (channels are one here: several are refused).
         let order = xml_attr(&description, "DimensionOrder").unwrap_or("XYZCT");
@@ -689,7 +693,11 @@ impl Stack {
         };
         let spacing = meta.spacing.map(|s| s.unwrap_or(1.0) as f32);
         let time_points = meta.frames.unwrap_or(1);
-        if time_points > 1 && (names.len() > 1 || slices.len() % time_points != 0) {
+        // Each time point's slices as the description counts them, else as the pages divide.
+        let per_point = meta.slices.unwrap_or(slices.len() / time_points.max(1));
+        if time_points > 1
+            && (names.len() > 1 || per_point.checked_mul(time_points) != Some(slices.len()))
+        {
             let path = names.first().map_or(Path::new("."), PathBuf::as_path);
             return Err(ReadError::unsupported(
                 path,
@@ -701,8 +709,8 @@ impl Stack {
                     )
                 } else {
                     format!(
-                        "a stack of {time_points} time points in {} images, which do not \
-                         divide among them",
+                        "a stack of {time_points} time points of {per_point} slices in {} \
+                         images (a part of a dataset of several files?)",
                         slices.len()
                     )
                 },
