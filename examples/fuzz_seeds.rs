@@ -271,8 +271,9 @@ fn readers(root: &Path) {
     }
     // Samples cut into files: a list of slices (each after a skipped line and bytes), a
     // pattern of gzip slices, a MetaImage list of rows and a pattern of zlib slices.
+    // Every reader seed is a volume of 4 × 3 × 2 samples.
     let slices: Vec<Vec<u8>> = (0..2u8)
-        .map(|z| (0..24u8).map(|b| b ^ (z * 7)).collect())
+        .map(|z| (0..12u8).map(|b| b ^ (z * 7)).collect())
         .collect();
     let gz = |b: &[u8]| {
         let mut e = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::fast());
@@ -292,11 +293,11 @@ fn readers(root: &Path) {
         .unwrap();
         std::fs::write(tmp.path().join(format!("gs{z}.raw.gz")), gz(s)).unwrap();
         std::fs::write(tmp.path().join(format!("zs{z}.raw")), zl(s)).unwrap();
-        for (y, row) in s.chunks(8).enumerate() {
+        for (y, row) in s.chunks(4).enumerate() {
             std::fs::write(tmp.path().join(format!("mr{z}_{y}.raw")), row).unwrap();
         }
     }
-    let nrrd_head = "NRRD0004\ntype: uint8\ndimension: 3\nsizes: 4 6 2\n";
+    let nrrd_head = "NRRD0004\ntype: uint8\ndimension: 3\nsizes: 4 3 2\n";
     for (name, text) in [
         ("list_skips", format!("{nrrd_head}encoding: raw\nline skip: 1\nbyte skip: 2\ndata file: LIST\nls0.raw\nls1.raw\n")),
         ("pattern_gzip", format!("{nrrd_head}encoding: gzip\ndata file: gs%d.raw.gz 0 1 1\n")),
@@ -305,7 +306,7 @@ fn readers(root: &Path) {
         std::fs::write(&p, text).unwrap();
         seed("nrrd", name, &p, Format::Nrrd);
     }
-    let mha_head = "ObjectType = Image\nNDims = 3\nDimSize = 8 3 2\nElementType = MET_UCHAR\n";
+    let mha_head = "ObjectType = Image\nNDims = 3\nDimSize = 4 3 2\nElementType = MET_UCHAR\n";
     let rows: Vec<String> = (0..2)
         .flat_map(|z| (0..3).map(move |y| format!("mr{z}_{y}.raw")))
         .collect();
