@@ -285,7 +285,7 @@ fn hyperstacks_of_time_points_are_time_series() {
         .flat_map(|z| frames.iter().map(move |f| &f[z * slice..(z + 1) * slice]))
         .collect();
     let imagej = format!(
-        "ImageJ=1.54f\nimages={}\nslices={}\nframes=2\nhyperstack=true\n",
+        "ImageJ=1.54f\nimages={}\nslices={}\nframes=2\nhyperstack=true\nfinterval=1.5\ntunit=min\n",
         time_major.len(),
         DIMS[2]
     );
@@ -295,7 +295,7 @@ fn hyperstacks_of_time_points_are_time_series() {
         )
     };
     let cases = [
-        ("imagej", imagej, &time_major, None),
+        ("imagej", imagej, &time_major, Some(90.0)),
         ("ome_zt", ome("XYZCT"), &time_major, Some(0.25)),
         ("ome_tz", ome("XYTZC"), &slice_major, Some(0.25)),
     ];

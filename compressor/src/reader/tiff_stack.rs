@@ -169,7 +169,7 @@ struct StackMeta {
     /// Whether a time point's slices follow one another (ImageJ; OME's `DimensionOrder` with
     /// Z before T), else each slice's time points do.
     time_major: bool,
-    /// Seconds between time points (OME's `TimeIncrement`), when given.
+    /// Seconds between time points (OME's `TimeIncrement`, ImageJ's `finterval`), when given.
     time_step: Option<f64>,
     /// The slices of one time point the description gives (ImageJ's `slices`, OME's `SizeZ`).
     slices: Option<usize>,
@@ -416,15 +416,15 @@ fn unit_mm(unit: &str) -> Option<f64> {
     })
 }
 
-/// Seconds in an OME time unit.
+/// Seconds in an OME or ImageJ time unit.
 fn time_unit_s(unit: &str) -> Option<f64> {
     Some(match unit {
-        "s" => 1.0,
+        "s" | "sec" => 1.0,
         "ms" => 1e-3,
         "µs" | "us" => 1e-6,
         "ns" => 1e-9,
         "min" => 60.0,
-        "h" => 3600.0,
+        "h" | "hr" => 3600.0,
         _ => return None,
     })
 }
@@ -474,6 +474,13 @@ fn stack_meta<R: Read + Seek>(d: &mut Decoder<R>, path: &Path) -> Result<StackMe
         meta.frames = count("frames").filter(|t| *t > 1);
         meta.slices = count("slices");
         meta.time_major = true;
+        // The frame interval, in `tunit` (ImageJ's default: seconds).
+        let tunit = field("tunit").unwrap_or_else(|| "sec".into());
+        meta.time_step = field("finterval")
+            .and_then(|v| v.parse::<f64>().ok())
+            .zip(time_unit_s(&tunit))
+            .map(|(v, s)| v * s)
+            .filter(|v| v.is_finite() && *v > 0.0);
         meta.imagej_images = count("images");
         if let Some(mm) = field("unit").as_deref().and_then(unit_mm) {
             let x = resolution(d, Tag::XResolution).map(|r| mm / r);
