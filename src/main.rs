@@ -45,7 +45,8 @@ enum Command {
     /// against a ray-cast reference, written up in report.html (under a minute on 2 cores).
     Demo(commands::demo::DemoArgs),
     /// Compress a volume (DICOM series or multi-frame file, NIfTI, NRRD, MetaImage, a TIFF
-    /// stack (multi-page file or directory of slices), raw, or a built-in phantom) into a .wsp
+    /// stack (multi-page file or directory of slices), a Zarr store, raw, or a built-in phantom)
+    /// into a .wsp
     /// file.
     Compress(Box<commands::compress::CompressArgs>),
     /// Show a .wsp file's header, tiles, packets and size breakdown.

@@ -1,6 +1,7 @@
 //! End-to-end tests of the readers through the real `wavesplat` binary: an archive mixing
 //! DICOM (a series directory and a multi-frame file), NRRD (attached gzip, detached raw),
-//! MetaImage (`.mha`, `.mhd` + raw), NIfTI and raw files is compressed through the
+//! MetaImage (`.mha`, `.mhd` + raw), NIfTI, Zarr (an OME-Zarr image; an array uploaded) and
+//! raw files is compressed through the
 //! orchestrator (path sources, and a bundle upload), the unreadable volumes fail their jobs
 //! with the reason and the rest land in the cache with their spacing and placement; and
 //! `compress` + `info` show the geometry of a DICOM series.
@@ -15,7 +16,7 @@ use wavesplat_codec::volume::{Placement, Volume};
 use wavesplat_compressor::phantom::Phantom;
 use wavesplat_fixtures::{
     write_dicom_multiframe, write_dicom_series, write_metaimage, write_nifti, write_nrrd,
-    DicomEncoding, DicomOptions, Layout, NrrdEncoding,
+    write_zarr, DicomEncoding, DicomOptions, Layout, NrrdEncoding,
 };
 use wavesplat_orchestrator_client as client;
 use wavesplat_orchestrator_client::convert::state_name;
@@ -123,6 +124,12 @@ fn write_archive(dir: &Path) -> (Vec<(String, Volume)>, Vec<(String, &'static st
     std::fs::write(dir.join("raw_16x16x15_f32.raw"), bytes).unwrap();
     good.push(("raw".into(), p));
 
+    // An OME-Zarr image (its spacing in its scale), read chunk by chunk.
+    let c = ct([18, 14, 11], [0.4, 0.4, 1.6]);
+    let v = Volume::new(c.dims(), c.spacing(), vec![c.channel(0).to_vec()]).unwrap();
+    write_zarr(&dir.join("scope/cells.ome.zarr"), &v, [8, 8, 4], true);
+    good.push(("scope/cells".into(), v));
+
     // Unreadable: a series with a missing slice, an NRRD claiming a huge volume, a MetaImage
     // with zero spacing.
     let v = ct([8, 8, 6], [1.0, 1.0, 2.0]);
@@ -218,11 +225,14 @@ async fn an_archive_of_every_format_compresses_and_bad_volumes_fail_alone() {
         out.contains(&format!("{} submitted", good.len() + bad.len())),
         "{out}"
     );
+    // A Zarr array travels as one bundle of its metadata and chunks.
+    let v_zarr = Phantom::Spheres.generate([13, 11, 9]);
+    write_zarr(&up.join("plain.zarr"), &v_zarr, [5, 5, 5], false);
     let mut args = vec!["archive", "submit", up.to_str().unwrap(), "--upload"];
     args.extend_from_slice(&common);
     cli_ok(&args);
 
-    let n = good.len() + bad.len() + 1;
+    let n = good.len() + bad.len() + 2;
     let js = wait_all_finished(&o, n, 120).await;
     for j in &js {
         let name = j.spec.as_ref().unwrap().name.as_str();
@@ -239,6 +249,7 @@ async fn an_archive_of_every_format_compresses_and_bad_volumes_fail_alone() {
     let mut cache = CacheClient::connect(&c).await.unwrap();
     let mut expect: Vec<(String, Volume)> = good.clone();
     expect.push(("series".into(), v_up));
+    expect.push(("plain".into(), v_zarr));
     for (name, v) in &expect {
         let h = cache
             .header(&VolumeKey::Name(name.clone()))
@@ -521,4 +532,73 @@ fn named_views_and_zoom_in_millimetres() {
         err.contains("orientation in the patient is unknown"),
         "{err}"
     );
+}
+
+/// `compress` reads a Zarr array as it reads the same samples in a NIfTI file: the same file,
+/// byte for byte, whole and in bricks read chunk by chunk; and a Zarr array with a time axis
+/// as the same series a 4D NIfTI holds.
+#[test]
+fn a_zarr_array_compresses_as_the_same_samples_in_nifti() {
+    let tmp = tempfile::tempdir().unwrap();
+    let d = tmp.path();
+    let v = Phantom::SheppLogan.generate([21, 19, 17]);
+    write_zarr(&d.join("v.zarr"), &v, [8, 8, 8], false);
+    write_nifti(&d.join("v.nii"), v.dims(), v.channel(0));
+    for bricks in [&[][..], &["--brick", "8"][..]] {
+        let mut outputs = Vec::new();
+        for input in ["v.zarr", "v.nii"] {
+            let out = d.join(format!(
+                "{input}.{}",
+                if bricks.is_empty() { "wsp" } else { "wspx" }
+            ));
+            let mut args = vec![
+                "compress".to_string(),
+                d.join(input).to_str().unwrap().into(),
+            ];
+            args.extend(["-o".into(), out.to_str().unwrap().into()]);
+            args.extend(bricks.iter().map(|s| s.to_string()));
+            let args: Vec<&str> = args.iter().map(String::as_str).collect();
+            cli_ok(&args);
+            outputs.push(std::fs::read(&out).unwrap());
+        }
+        assert!(
+            outputs[0] == outputs[1],
+            "{bricks:?}: the Zarr array's file differs"
+        );
+    }
+    // Two time points, z, y, x each, one chunk each (the Zarr v2 layout, uncompressed).
+    let series = d.join("s.zarr");
+    std::fs::create_dir_all(&series).unwrap();
+    let [nx, ny, nz] = v.dims();
+    std::fs::write(
+        series.join(".zarray"),
+        format!(
+            r#"{{"zarr_format": 2, "shape": [2, {nz}, {ny}, {nx}], "chunks": [1, {nz}, {ny}, {nx}],
+                "dtype": "<f4", "compressor": null, "fill_value": 0.0, "order": "C",
+                "filters": null}}"#
+        ),
+    )
+    .unwrap();
+    let points: Vec<Vec<f32>> = (0..2)
+        .map(|t| v.channel(0).iter().map(|s| s + 100.0 * t as f32).collect())
+        .collect();
+    for (t, p) in points.iter().enumerate() {
+        let bytes: Vec<u8> = p.iter().flat_map(|s| s.to_le_bytes()).collect();
+        std::fs::write(series.join(format!("{t}.0.0.0")), bytes).unwrap();
+    }
+    wavesplat_fixtures::write_nifti_series(&d.join("s.nii"), v.dims(), &points, None, false);
+    let mut outputs = Vec::new();
+    for input in ["s.zarr", "s.nii"] {
+        let out = d.join(format!("{input}.wsp"));
+        cli_ok(&[
+            "compress",
+            d.join(input).to_str().unwrap(),
+            "-o",
+            out.to_str().unwrap(),
+        ]);
+        let info = cli_ok(&["info", out.to_str().unwrap()]);
+        assert!(info.contains("time points 2"), "{input}: {info}");
+        outputs.push(std::fs::read(&out).unwrap());
+    }
+    assert!(outputs[0] == outputs[1], "the Zarr series' file differs");
 }

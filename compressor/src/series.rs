@@ -120,7 +120,8 @@ impl SeriesInput {
 
 /// The time series at `path`, when it is one (read from headers where the format allows;
 /// `None` for one volume): a directory of time steps, a DICOM series whose slices repeat at
-/// several times or a multi-frame DICOM cine (decoded here), a 4D NIfTI or NRRD, or a raw file
+/// several times or a multi-frame DICOM cine (decoded here), a 4D NIfTI or NRRD, a Zarr array
+/// with a time axis, or a raw file
 /// whose spec has several time points.
 pub fn open_series_path(
     path: &std::path::Path,
@@ -128,6 +129,14 @@ pub fn open_series_path(
 ) -> Result<Option<SeriesInput>, SeriesError> {
     use crate::reader::dicom::read_time_series;
     use crate::reader::steps::{step_files, StepSeries};
+    if path.is_dir() && crate::reader::zarr::is_store(path) {
+        // A Zarr array: a series when it has a time axis of several points.
+        if crate::reader::time_points(path, raw)? <= 1 {
+            return Ok(None);
+        }
+        let reader = crate::reader::region::RegionReader::open_series(path, raw)?;
+        return Ok(Some(SeriesInput::File(Box::new(reader))));
+    }
     if path.is_dir() {
         let files = step_files(path, raw)?;
         // A directory of TIFF slices (and no DICOM file): one volume, a stack.

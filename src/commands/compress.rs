@@ -31,7 +31,8 @@ pub struct CompressArgs {
     /// or a directory of .tif slices in the natural order of their names), .nrrd / .nhdr, .mha / .mhd
     /// (a detached header's samples in one file, or in many: a LIST or a slice%03d.raw pattern),
     /// .nii / .nii.gz, a .hdr (+ the .img beside it: a NIfTI-1 pair or Analyze 7.5; .hdr.gz,
-    /// .img.gz too), or raw samples: named `NAME_XxYxZ_DTYPE[_rgb][_be].raw` as `archive
+    /// .img.gz too), a Zarr store (a directory: a v2 or v3 array, or an OME-Zarr image), or raw
+    /// samples: named `NAME_XxYxZ_DTYPE[_rgb][_be].raw` as `archive
     /// submit` reads them (e.g. `head_256x256x128_u16.raw`), or any name with --dims and
     /// --dtype. Omit it to use --phantom.
     pub input: Option<PathBuf>,
@@ -157,7 +158,8 @@ pub struct CompressArgs {
     pub keep: super::TargetArgs,
     /// Split the volume into bricks of at most N voxels a side (each axis in near-equal
     /// parts), each compressed on its own and read from the file brick by brick (raw, NIfTI,
-    /// NRRD, MetaImage, TIFF stacks and DICOM series without loading the whole; a phantom generated a
+    /// NRRD, MetaImage, TIFF stacks, Zarr arrays and DICOM series without loading the whole; a
+    /// phantom generated a
     /// brick at a time), written as one bricked file (format version 11); the coded bricks wait
     /// in a temporary file beside the output (about the output's size, twice that during a
     /// byte target's search), so memory stays about one brick per thread whatever the file's
@@ -257,7 +259,7 @@ fn input(a: &CompressArgs) -> Result<Input> {
     {
         bail!(
             "{} is already a compressed wavesplat volume: render, view, info or decompress it \
-             (compress reads DICOM, NIfTI, NRRD, MetaImage, TIFF and raw volumes)",
+             (compress reads DICOM, NIfTI, NRRD, MetaImage, TIFF, Zarr and raw volumes)",
             input.display()
         );
     }
@@ -376,8 +378,8 @@ pub(crate) fn probe_file_for_bricks(
     threads: u64,
 ) -> Result<Option<(usize, String)>> {
     let limit = opts.memory_limit.or_else(available_memory);
-    // A DICOM series directory: the bytes of its files.
-    let on_disk = if path.is_dir() {
+    // A DICOM series directory: the bytes of its files (a Zarr store's are nested: listed).
+    let on_disk = if path.is_dir() && !wavesplat_compressor::reader::zarr::is_store(path) {
         std::fs::read_dir(path)
             .map(|entries| {
                 entries

@@ -317,6 +317,7 @@ fn read_wsp_or_indexed(path: &std::path::Path) -> Result<Vec<u8>> {
                     wavesplat_compressor::reader::Format::MetaImage => "MetaImage",
                     wavesplat_compressor::reader::Format::Nifti => "NIfTI",
                     wavesplat_compressor::reader::Format::Tiff => "TIFF",
+                    wavesplat_compressor::reader::Format::Zarr => "Zarr",
                 },
                 path.display()
             );

@@ -12,6 +12,9 @@
 //! - TIFF (`*.tif`, `*.tiff`): a directory of single-page TIFFs is one volume, a stack of
 //!   slices in the natural order of their names (`z2` before `z10`), named by the directory's
 //!   path; a multi-page TIFF is a volume of its own;
+//! - Zarr (a directory holding `zarr.json`, `.zarray` or `.zgroup`: an array, v2 or v3, or an
+//!   OME-Zarr image): one volume, or a time series when the array has a time axis, named by
+//!   the directory's path without `.zarr` / `.ome.zarr`; its chunks are not scanned;
 //! - headerless raw, described by its name: `NAME_XxYxZ_DTYPE[_rgb][_be].raw`, e.g.
 //!   `head_256x256x128_u16.raw`, `cells_64x64x64_u8_rgb.raw`, `ct_512x512x300_i16_be.raw`.
 //!   DTYPE is `u8`, `i8`, `u16`, `i16`, `u32`, `i32`, `u64`, `i64`, `f32` or `f64`; `_rgb` means 3 channels interleaved per voxel;
@@ -34,7 +37,7 @@ use std::collections::{BTreeSet, HashSet};
 use std::path::{Path, PathBuf};
 use wavesplat_compressor::reader::steps::{step_files, StepSeries};
 use wavesplat_compressor::reader::{
-    dicom::is_dicom_file, nifti, tiff_pages, Format, ReadError, SourceListing,
+    dicom::is_dicom_file, nifti, tiff_pages, zarr, Format, ReadError, SourceListing,
 };
 use wavesplat_orchestrator_client::model::{JobOptions, JobSpec, RawLayout, SampleType, Source};
 
@@ -98,7 +101,9 @@ pub fn parse_raw_name(file_name: &str) -> Option<(String, RawLayout)> {
     ))
 }
 
-fn walk(dir: &Path, out: &mut Vec<PathBuf>) -> std::io::Result<()> {
+/// Every visible file under `dir`, in name order; a Zarr store found on the way goes to
+/// `stores`, whole, its chunks not listed.
+fn walk(dir: &Path, out: &mut Vec<PathBuf>, stores: &mut Vec<PathBuf>) -> std::io::Result<()> {
     let mut entries: Vec<_> = std::fs::read_dir(dir)?.collect::<Result<_, _>>()?;
     entries.sort_by_key(|e| e.file_name());
     for e in entries {
@@ -106,8 +111,10 @@ fn walk(dir: &Path, out: &mut Vec<PathBuf>) -> std::io::Result<()> {
             continue;
         }
         let ty = e.file_type()?;
-        if ty.is_dir() {
-            walk(&e.path(), out)?;
+        if ty.is_dir() && zarr::is_store(&e.path()) {
+            stores.push(e.path());
+        } else if ty.is_dir() {
+            walk(&e.path(), out, stores)?;
         } else {
             out.push(e.path());
         }
@@ -140,10 +147,34 @@ fn dir_name(root: &Path, dir: &Path, fallback: &str) -> String {
 /// Scans `root` recursively; with `time_steps`, a directory of numbered time steps is one time
 /// series (see the module documentation).
 pub fn scan_with(root: &Path, time_steps: bool) -> std::io::Result<Scan> {
-    let mut files = Vec::new();
-    walk(root, &mut files)?;
+    let (mut files, mut stores) = (Vec::new(), Vec::new());
+    if zarr::is_store(root) {
+        stores.push(root.to_path_buf());
+    } else {
+        walk(root, &mut files, &mut stores)?;
+    }
     let mut scan = Scan::default();
     let mut names = HashSet::new();
+    // Zarr stores: each one volume (or series), named by its path without `.zarr`.
+    for store in stores {
+        let name = dir_name(root, &store, "zarr");
+        let lower = name.to_ascii_lowercase();
+        let name = [".ome.zarr", ".zarr"]
+            .iter()
+            .find_map(|ext| lower.strip_suffix(ext))
+            .filter(|stem| !stem.is_empty() && !stem.ends_with('/'))
+            .map_or(name.clone(), |stem| name[..stem.len()].to_string());
+        if names.insert(name.clone()) {
+            scan.found.push(Found {
+                path: store,
+                name,
+                raw: None,
+            });
+        } else {
+            let why = format!("another volume already uses the name {name:?}");
+            scan.skipped.push((store, why));
+        }
+    }
     // Directories of time steps: each one series, every file in it taken.
     let mut step_dirs: BTreeSet<PathBuf> = BTreeSet::new();
     if time_steps {
@@ -220,7 +251,7 @@ pub fn scan_with(root: &Path, time_steps: bool) -> std::io::Result<Scan> {
                     }
                 }
             }
-            Some(Format::Nifti) => {}
+            Some(Format::Nifti | Format::Zarr) => {}
             Some(Format::Tiff) => {
                 let dir = path.parent().unwrap_or(root).to_path_buf();
                 match tiff_pages(path) {
@@ -423,7 +454,9 @@ pub fn source_digest(path: &Path, raw: bool) -> std::io::Result<([u8; 32], u64)>
 /// NIfTI, a DICOM cine). What both the submission (a series is not bricked by size) and the
 /// worker (a series is read in place) ask.
 pub fn is_series_source(path: &Path, raw: Option<&wavesplat_compressor::reader::RawSpec>) -> bool {
-    if path.is_dir() {
+    if path.is_dir() && zarr::is_store(path) {
+        wavesplat_compressor::reader::time_points(path, raw).is_ok_and(|t| t > 1)
+    } else if path.is_dir() {
         step_files(path, raw).is_ok_and(|s| !s.is_empty())
     } else {
         wavesplat_compressor::reader::time_points(path, raw).is_ok_and(|t| t > 1)
@@ -694,6 +727,65 @@ mod tests {
         assert_eq!(firsts, (1..=10u16).map(f32::from).collect::<Vec<_>>());
         let v = wavesplat_compressor::reader::read_volume(&s.found[2].path, None).unwrap();
         assert_eq!(v.dims(), [2, 2, 4]);
+    }
+
+    /// A Zarr store is one volume named by its directory without `.zarr`, its chunks neither
+    /// volumes nor skipped files; one with a time axis is a series; its listing is its
+    /// metadata and chunks, and the bundle an upload carries decodes to the volume.
+    #[test]
+    fn zarr_stores_are_volumes_and_their_chunks_are_not() {
+        let dir = tempfile::tempdir().unwrap();
+        let r = dir.path();
+        // A v2 array of 2 × 3 × 4 u8 samples (z, y, x) in two uncompressed chunks along z.
+        let store = |path: &Path, shape: &str, chunks: &str, keys: &[&str]| {
+            std::fs::create_dir_all(path).unwrap();
+            let meta = format!(
+                r#"{{"zarr_format": 2, "shape": [{shape}], "chunks": [{chunks}], "dtype": "|u1",
+                    "compressor": null, "fill_value": 0, "order": "C", "filters": null}}"#
+            );
+            std::fs::write(path.join(".zarray"), meta).unwrap();
+            for (k, key) in keys.iter().enumerate() {
+                let samples: Vec<u8> = (0..12).map(|i| (12 * k + i) as u8).collect();
+                let file = path.join(key);
+                std::fs::create_dir_all(file.parent().unwrap()).unwrap();
+                std::fs::write(file, samples).unwrap();
+            }
+        };
+        store(
+            &r.join("scope/cells.ome.zarr"),
+            "2, 3, 4",
+            "1, 3, 4",
+            &["0.0.0", "1.0.0"],
+        );
+        store(
+            &r.join("sim.zarr"),
+            "2, 1, 3, 4",
+            "1, 1, 3, 4",
+            &["0.0.0.0", "1.0.0.0"],
+        );
+        std::fs::write(r.join("scope/notes.txt"), "not a volume").unwrap();
+        let s = scan(r).unwrap();
+        let names: Vec<&str> = s.found.iter().map(|f| f.name.as_str()).collect();
+        assert_eq!(names, vec!["scope/cells", "sim"]);
+        assert!(s.skipped.is_empty(), "{:?}", s.skipped);
+        assert!(!is_series_source(&s.found[0].path, None));
+        assert!(is_series_source(&s.found[1].path, None));
+        let listing = source_listing(&s.found[0].path, false).unwrap();
+        let files: Vec<&str> = listing.files.iter().map(|f| f.0.as_str()).collect();
+        assert_eq!(files, [".zarray", "0.0.0", "1.0.0"]);
+        let (spec, bytes) = job_spec(&s.found[0], &JobOptions::default(), true).unwrap();
+        assert_eq!(
+            source_digest(&s.found[0].path, false).unwrap().0.to_vec(),
+            spec.sha256
+        );
+        let src = SourceFiles::from_bytes(bytes.unwrap(), Path::new("cells")).unwrap();
+        let v = wavesplat_compressor::reader::decode_source(&src, None).unwrap();
+        assert_eq!(v.dims(), [4, 3, 2]);
+        assert_eq!(v.channel(0), (0..24u8).map(f32::from).collect::<Vec<_>>());
+        // A store given as the archive's root is its one volume.
+        let s = scan(&r.join("sim.zarr")).unwrap();
+        assert_eq!(s.found.len(), 1, "{:?}", s.found);
+        assert_eq!(s.found[0].name, "sim");
     }
 
     /// A job names the same content whether its source is uploaded or named by path: files

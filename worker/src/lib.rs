@@ -895,6 +895,8 @@ fn upload_file_name(raw: bool, job_name: &str, head: &[u8]) -> &'static str {
         Some(Format::MetaImage) => "source.mha",
         Some(Format::Dicom) => "source.dcm",
         Some(Format::Tiff) => "source.tif",
+        // A store is several files, uploaded as a bundle; one alone is no volume.
+        Some(Format::Zarr) => "source.zarr",
         None => "source.raw",
     }
 }

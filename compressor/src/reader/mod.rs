@@ -2,7 +2,8 @@
 //! slice, or multi-frame files; [`dicom`]), NRRD (attached `.nrrd` and detached `.nhdr`
 //! headers; [`nrrd`]), MetaImage (`.mha`, `.mhd` + data file; [`metaimage`]), NIfTI-1 (`.nii`,
 //! `.nii.gz`, and `.hdr` + `.img` pairs, which read Analyze 7.5 too; [`nifti`]) and raw files
-//! described by a [`RawSpec`] ([`raw`]; headerless, or after a header of a known size). Every
+//! described by a [`RawSpec`] ([`raw`]; headerless, or after a header of a known size), TIFF
+//! stacks and Zarr arrays (v2, v3 and OME-Zarr images; [`zarr`]). Every
 //! reader keeps the voxel spacing and, where the format says, the grid's placement in patient
 //! space (origin and axis directions, converted to DICOM's LPS frame) on the [`Volume`];
 //! values keep their units (rescaled DICOM CT is in HU).
@@ -26,6 +27,7 @@ pub mod steps;
 mod text;
 pub(crate) mod tiff_stack;
 pub mod unpack;
+pub mod zarr;
 
 use std::io::{self, Read};
 use std::path::{Path, PathBuf};
@@ -424,6 +426,8 @@ pub enum Format {
     /// A TIFF stack: a multi-page TIFF (`.tif`, `.tiff`, BigTIFF), or a directory of TIFF files
     /// in the natural order of their names.
     Tiff,
+    /// A Zarr store (a directory): an array (v2 or v3) or an OME-Zarr image group.
+    Zarr,
 }
 
 impl Format {
@@ -435,6 +439,7 @@ impl Format {
             Format::MetaImage => "metaimage",
             Format::Nifti => "nifti",
             Format::Tiff => "tiff",
+            Format::Zarr => "zarr",
         }
     }
 
@@ -453,6 +458,8 @@ impl Format {
             Some(Format::Dicom)
         } else if tiff_stack::is_tiff_name(&name) {
             Some(Format::Tiff)
+        } else if ext(".zarr") || ext(".ome.zarr") {
+            Some(Format::Zarr)
         } else {
             None
         }
@@ -657,7 +664,7 @@ impl SourceFiles {
             )));
         }
         // A directory's files (a series, a stack of slices) are named within it.
-        let base = if matches!(format, Some(Format::Dicom | Format::Tiff)) {
+        let base = if matches!(format, Some(Format::Dicom | Format::Tiff | Format::Zarr)) {
             origin.to_path_buf()
         } else {
             parent_of(origin)
@@ -701,13 +708,17 @@ impl SourceListing {
                 .map_err(|e| ReadError::io(p, e))
         };
         if meta.is_dir() {
-            // A DICOM series, else a stack of TIFF files.
-            let (format, found) = match dicom::series_files(path) {
-                Ok(files) => (Format::Dicom, files),
-                Err(no_dicom) => match tiff_stack::stack_files(path)? {
-                    tiffs if tiffs.is_empty() => return Err(no_dicom),
-                    tiffs => (Format::Tiff, tiffs),
-                },
+            // A Zarr store, a DICOM series, else a stack of TIFF files.
+            let (format, found) = if zarr::is_store(path) || format == Some(Format::Zarr) {
+                (Format::Zarr, zarr::store_files(path)?)
+            } else {
+                match dicom::series_files(path) {
+                    Ok(files) => (Format::Dicom, files),
+                    Err(no_dicom) => match tiff_stack::stack_files(path)? {
+                        tiffs if tiffs.is_empty() => return Err(no_dicom),
+                        tiffs => (Format::Tiff, tiffs),
+                    },
+                }
             };
             let files = found
                 .into_iter()
@@ -824,6 +835,7 @@ pub(crate) fn bundle_format(name: &[u8]) -> Result<Option<Format>, ReadError> {
         b"metaimage" => Some(Format::MetaImage),
         b"nifti" => Some(Format::Nifti),
         b"tiff" => Some(Format::Tiff),
+        b"zarr" => Some(Format::Zarr),
         _ => {
             return Err(ReadError::Bundle(format!(
                 "unknown format name {:?}",
@@ -883,6 +895,7 @@ pub fn decode_source(src: &SourceFiles, raw: Option<&RawSpec>) -> Result<Volume,
         Some(Format::Nrrd) => nrrd::decode(src),
         Some(Format::MetaImage) => metaimage::decode(src),
         Some(Format::Tiff) => tiff_stack::decode(src),
+        Some(Format::Zarr) => zarr::decode(src),
         Some(Format::Nifti) => match src.files.as_slice() {
             [(_, bytes)] => nifti::decode_nifti(&src.origin, bytes),
             // A `.hdr` and its `.img`.
@@ -943,11 +956,16 @@ pub fn tiff_pages(path: &Path) -> Result<usize, ReadError> {
 
 /// How many time points the volume file at `path` holds, from its header alone (a NIfTI's
 /// `dim[4]`, an NRRD's time axis (`kinds` `time` or `list`, first or last), a 4D MetaImage's
-/// last size, an ImageJ hyperstack's frames, a raw spec's time points); 1 for every other file and for directories (a
+/// last size, an ImageJ hyperstack's frames, a Zarr array's time axis, a raw spec's time points);
+/// 1 for every other file and for other directories (a
 /// directory of time steps is [`steps::StepSeries`]'s). Errors only when the file cannot be
 /// opened; a header that does not parse says 1 here and is reported by the reader.
 pub fn time_points(path: &Path, raw: Option<&RawSpec>) -> Result<usize, ReadError> {
     let meta = std::fs::metadata(path).map_err(|e| ReadError::io(path, e))?;
+    if meta.is_dir() && zarr::is_store(path) {
+        // A Zarr array's time axis (a store that does not open says 1 here).
+        return Ok(zarr::time_points(path).unwrap_or(1));
+    }
     if !meta.is_file() {
         return Ok(1);
     }

@@ -14,7 +14,8 @@
 //! memory stays bounded, at the cost of disk space equal to the decompressed samples. A DICOM
 //! series (or multi-frame file) is read by slice ranges: opening reads every file's header
 //! (and keeps no bytes), and a region decodes only the frames of its slices, with the series
-//! decoder's own validation and ordering. ASCII NRRD is read whole through [`read_volume`] and
+//! decoder's own validation and ordering. A Zarr array decodes only the chunks a region
+//! touches. ASCII NRRD is read whole through [`read_volume`] and
 //! cut in memory: it opens only when the whole volume fits within
 //! [`MAX_VOXELS`](wavesplat_codec::volume::MAX_VOXELS). The meaning of each header
 //! (its validation, the spacing, the placement, the channel layout) comes from the format's
@@ -70,6 +71,8 @@ enum Source {
     Series(super::dicom::SeriesRegions),
     /// A TIFF stack read by slices, only the strips or tiles a region covers.
     Tiff(super::tiff_stack::TiffRegions),
+    /// A Zarr array read by the chunks a region covers.
+    Zarr(Box<super::zarr::ZarrVolume>),
 }
 
 /// Samples stored in a file from `offset` on (or in several files, [`Stored::pieces`]): x
@@ -382,6 +385,7 @@ impl RegionReader {
             Source::Whole(v) => (cut(v, origin, size), &self.path),
             Source::Series(s) => (s.read(origin, size)?, &self.path),
             Source::Tiff(s) => (s.read(t, origin, size)?, &self.path),
+            Source::Zarr(s) => (vec![s.read(t, origin, size)?], &self.path),
             Source::Stored(s) => (self.read_stored(s, t, origin, size, voxels)?, &s.path),
         };
         let volume = Volume::new(size, self.spacing, planar).map_err(|e| {

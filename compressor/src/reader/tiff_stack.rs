@@ -401,13 +401,16 @@ fn page_shape<R: Read + Seek>(
     }))
 }
 
-/// A length in `unit` (ImageJ's or OME's spelling) in mm; `None` for no physical unit.
-fn unit_mm(unit: &str) -> Option<f64> {
+/// A length in `unit` (ImageJ's, OME-XML's or OME-Zarr's spelling) in mm; `None` for no
+/// physical unit.
+pub(crate) fn unit_mm(unit: &str) -> Option<f64> {
     Some(match unit.trim().trim_matches('"') {
         // ImageJ writes the micro sign as the escape `\u00B5` in some versions.
         "micron" | "microns" | "um" | "µm" | "\u{3bc}m" | "\\u00B5m" | "\\u00b5m"
         | "micrometer" | "micrometre" => 1e-3,
         "nm" | "nanometer" | "nanometre" => 1e-6,
+        "pm" | "picometer" | "picometre" => 1e-9,
+        "Å" | "angstrom" => 1e-7,
         "mm" | "millimeter" | "millimetre" => 1.0,
         "cm" | "centimeter" | "centimetre" => 10.0,
         "m" | "meter" | "metre" => 1e3,
@@ -416,15 +419,16 @@ fn unit_mm(unit: &str) -> Option<f64> {
     })
 }
 
-/// Seconds in an OME or ImageJ time unit.
-fn time_unit_s(unit: &str) -> Option<f64> {
+/// Seconds in an OME (XML or Zarr) or ImageJ time unit.
+pub(crate) fn time_unit_s(unit: &str) -> Option<f64> {
     Some(match unit {
-        "s" | "sec" => 1.0,
-        "ms" => 1e-3,
-        "µs" | "us" => 1e-6,
-        "ns" => 1e-9,
-        "min" => 60.0,
-        "h" | "hr" => 3600.0,
+        "s" | "sec" | "second" => 1.0,
+        "ms" | "millisecond" => 1e-3,
+        "µs" | "us" | "microsecond" => 1e-6,
+        "ns" | "nanosecond" => 1e-9,
+        "min" | "minute" => 60.0,
+        "h" | "hr" | "hour" => 3600.0,
+        "day" => 86400.0,
         _ => return None,
     })
 }

@@ -102,7 +102,7 @@ pub fn unpack_bundle(r: &mut dyn Read, dir: &Path) -> Result<UnpackedBundle, Rea
         return Err(bad("trailing bytes after the last file".into()));
     }
     let primary = match format {
-        Some(Format::Dicom | Format::Tiff) => dir.to_path_buf(),
+        Some(Format::Dicom | Format::Tiff | Format::Zarr) => dir.to_path_buf(),
         _ => primary.expect("count ≥ 1"),
     };
     Ok(UnpackedBundle {

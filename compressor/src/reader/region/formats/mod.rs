@@ -30,7 +30,10 @@ use wavesplat_codec::volume::{Volume, VolumeError};
 pub(super) fn open(path: &Path, raw: Option<&RawSpec>) -> Result<Opened, ReadError> {
     let meta = std::fs::metadata(path).map_err(|e| ReadError::io(path, e))?;
     if meta.is_dir() {
-        // A DICOM series, else a stack of TIFF files.
+        // A Zarr store, a DICOM series, else a stack of TIFF files.
+        if crate::reader::zarr::is_store(path) {
+            return open_zarr(path);
+        }
         if crate::reader::is_tiff_directory(path)? {
             return open_tiff(path);
         }
@@ -55,6 +58,7 @@ pub(super) fn open(path: &Path, raw: Option<&RawSpec>) -> Result<Opened, ReadErr
         Some(Format::MetaImage) => open_metaimage(path),
         Some(Format::Nifti) => open_nifti(path),
         Some(Format::Tiff) => open_tiff(path),
+        Some(Format::Zarr) => open_zarr(path),
         None => Err(ReadError::MissingRawSpec {
             path: path.to_path_buf(),
         }),
@@ -86,6 +90,20 @@ fn open_tiff(path: &Path) -> Result<Opened, ReadError> {
         time_points: s.time_points(),
         time_step: s.time_step(),
         source: super::Source::Tiff(s),
+    })
+}
+
+/// A Zarr array, read by chunks.
+fn open_zarr(path: &Path) -> Result<Opened, ReadError> {
+    let z = crate::reader::zarr::open_regions(path)?;
+    Ok(Opened {
+        dims: z.dims(),
+        channels: 1,
+        spacing: z.spacing(),
+        placement: None,
+        time_points: z.time_points(),
+        time_step: z.time_step(),
+        source: super::Source::Zarr(Box::new(z)),
     })
 }
 

@@ -1,0 +1,720 @@
+//! Zarr arrays, the chunked format of large microscopy (OME-Zarr), synchrotron and simulation
+//! volumes: a directory holding an array (Zarr v3 `zarr.json`, or v2 `.zarray`) or an OME-Zarr
+//! image group (`multiscales`, of which the first dataset, the full resolution, is read).
+//! Decoding (the chunk grid, chunk keys, codecs such as Blosc, Zstd, gzip, zlib, sharding and
+//! transposition, fill values of missing chunks) is the `zarrs` crate's; this module finds the
+//! array, decides which of its axes are x, y, z, time and channel, reads a region's samples and
+//! converts them to f32.
+//!
+//! Axes come from OME-Zarr's `axes` (their `type`, else their name), else from the array's
+//! dimension names (v3 `dimension_names`, xarray's `_ARRAY_DIMENSIONS`: `x`, `y`, `z`, `t` or
+//! `time`, `c` or `channel`), else from the count: `z, y, x` for three, `t, z, y, x` for four and
+//! OME's `t, c, z, y, x` for five. The spatial axes may come in any order; a channel axis must
+//! hold one channel; any other axis must be of size 1. Spacing, in mm: OME's `scale`
+//! transformations of the first dataset (and of the whole multiscale) in each axis's `unit`
+//! (a scale without a unit is taken as mm), else 1; the seconds between time points from the
+//! time axis's scale and unit. Samples: unsigned and signed integers of 8 to 64 bits, 32- and
+//! 64-bit floats and booleans; others are refused naming the type. A chunk larger than
+//! [`MAX_CHUNK_BYTES`] is refused (a region decodes every chunk it touches whole). The store
+//! is untrusted: metadata that does not parse, chunks that do not decode and non-finite samples
+//! (a float array's NaN fill value where chunks are missing, too) are typed errors naming it.
+
+use std::ops::Range;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+use serde_json::Value;
+use zarrs::array::{data_type, Array};
+use zarrs::storage::{ReadableStorage, ReadableStorageTraits, StoreKey, WritableStorageTraits};
+
+use super::{ReadError, SourceFiles};
+use wavesplat_codec::volume::{checked_voxels, Volume};
+
+const FORMAT: &str = "Zarr";
+
+/// Largest decoded chunk, in bytes.
+pub const MAX_CHUNK_BYTES: u64 = 1 << 30;
+
+/// The metadata files that make a directory a Zarr store (an array or a group).
+const METADATA_FILES: [&str; 3] = ["zarr.json", ".zarray", ".zgroup"];
+
+/// Whether `path` is a directory holding Zarr metadata at its top.
+pub fn is_store(path: &Path) -> bool {
+    path.is_dir() && METADATA_FILES.iter().any(|m| path.join(m).is_file())
+}
+
+/// What an axis of the array is.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Role {
+    /// x, y or z (0, 1, 2).
+    Space(usize),
+    /// Spatial, its letter not said (taken in `z, y, x` order among the unnamed).
+    SpaceUnnamed,
+    Time,
+    Channel,
+    /// Anything else: must be of size 1.
+    Other,
+}
+
+/// An OME-Zarr axis, or an array's dimension name.
+#[derive(Debug, Clone, Default)]
+struct Axis {
+    name: String,
+    kind: Option<String>,
+    unit: Option<String>,
+}
+
+/// Where the array is inside the store, and what its image metadata says.
+#[derive(Debug, Clone)]
+struct Target {
+    /// The array's node path (`/`, or `/0` for an OME-Zarr image's first dataset).
+    array: String,
+    /// OME-Zarr's axes, when an image group names them.
+    axes: Option<Vec<Axis>>,
+    /// The product of OME-Zarr's scale transformations, per axis.
+    scale: Option<Vec<f64>>,
+}
+
+/// The sample types read, each converted to f32.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Sample {
+    Bool,
+    U8,
+    I8,
+    U16,
+    I16,
+    U32,
+    I32,
+    U64,
+    I64,
+    F32,
+    F64,
+}
+
+impl Sample {
+    fn bytes(self) -> u64 {
+        match self {
+            Sample::Bool | Sample::U8 | Sample::I8 => 1,
+            Sample::U16 | Sample::I16 => 2,
+            Sample::U32 | Sample::I32 | Sample::F32 => 4,
+            Sample::U64 | Sample::I64 | Sample::F64 => 8,
+        }
+    }
+}
+
+/// A Zarr array opened as a volume (or a time series of volumes), read by region.
+pub(crate) struct ZarrVolume {
+    /// The store (for messages).
+    path: PathBuf,
+    array: Array<dyn ReadableStorageTraits>,
+    sample: Sample,
+    /// For x, y, z: the array axis holding it.
+    space_axes: [usize; 3],
+    /// The array axis of time, if any.
+    time_axis: Option<usize>,
+    dims: [usize; 3],
+    time_points: usize,
+    spacing: [f32; 3],
+    time_step: Option<f64>,
+}
+
+impl std::fmt::Debug for ZarrVolume {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("ZarrVolume")
+            .field("path", &self.path)
+            .field("dims", &self.dims)
+            .field("time_points", &self.time_points)
+            .finish_non_exhaustive()
+    }
+}
+
+fn bad(path: &Path, reason: impl Into<String>) -> ReadError {
+    ReadError::bad_header(path, FORMAT, reason)
+}
+
+impl ZarrVolume {
+    /// Opens the store at `path` (a directory) as a volume.
+    pub(crate) fn open(path: &Path) -> Result<ZarrVolume, ReadError> {
+        let store = zarrs::filesystem::FilesystemStore::new(path)
+            .map_err(|e| ReadError::io(path, std::io::Error::other(e.to_string())))?;
+        ZarrVolume::of_store(path, Arc::new(store))
+    }
+
+    /// Opens a store's gathered files (names relative to the store, `/`-separated).
+    fn of_files(src: &SourceFiles) -> Result<ZarrVolume, ReadError> {
+        let store = zarrs::storage::store::MemoryStore::new();
+        for (name, bytes) in &src.files {
+            let key = StoreKey::new(name.as_str())
+                .map_err(|e| bad(&src.path_of(name), format!("not a store key: {e}")))?;
+            store
+                .set(&key, bytes.clone().into())
+                .map_err(|e| bad(&src.path_of(name), e.to_string()))?;
+        }
+        ZarrVolume::of_store(&src.origin, Arc::new(store))
+    }
+
+    fn of_store(path: &Path, store: ReadableStorage) -> Result<ZarrVolume, ReadError> {
+        let target = locate(path, &store)?;
+        let array = guarded(path, || Array::open(store, &target.array))?
+            .map_err(|e| bad(path, format!("array {}: {e}", target.array)))?;
+        let dt = array.data_type();
+        let sample = [
+            (data_type::bool(), Sample::Bool),
+            (data_type::uint8(), Sample::U8),
+            (data_type::int8(), Sample::I8),
+            (data_type::uint16(), Sample::U16),
+            (data_type::int16(), Sample::I16),
+            (data_type::uint32(), Sample::U32),
+            (data_type::int32(), Sample::I32),
+            (data_type::uint64(), Sample::U64),
+            (data_type::int64(), Sample::I64),
+            (data_type::float32(), Sample::F32),
+            (data_type::float64(), Sample::F64),
+        ]
+        .into_iter()
+        .find(|(d, _)| d == dt)
+        .map(|(_, s)| s)
+        .ok_or_else(|| {
+            ReadError::unsupported(
+                path,
+                format!(
+                    "samples of type {}: Zarr arrays of booleans, integers of 8 to 64 bits \
+                     and 32- or 64-bit floats are read",
+                    serde_json::to_value(array.metadata())
+                        .ok()
+                        .and_then(|m| m.get("data_type").or(m.get("dtype")).cloned())
+                        .unwrap_or(Value::Null)
+                ),
+            )
+        })?;
+        let shape = array.shape().to_vec();
+        let axes = match &target.axes {
+            Some(axes) => axes.clone(),
+            None => dimension_names(&array),
+        };
+        let roles = roles(path, &shape, &axes)?;
+        let mut space_axes = [usize::MAX; 3];
+        let mut unnamed = Vec::new();
+        let (mut time_axis, mut channel_axis) = (None, None);
+        for (i, role) in roles.iter().enumerate() {
+            match *role {
+                Role::Space(k) if space_axes[k] == usize::MAX => space_axes[k] = i,
+                Role::Space(k) => {
+                    return Err(bad(path, format!("two axes are {}", ["x", "y", "z"][k])));
+                }
+                Role::SpaceUnnamed => unnamed.push(i),
+                Role::Time if time_axis.is_none() => time_axis = Some(i),
+                Role::Channel if channel_axis.is_none() => channel_axis = Some(i),
+                Role::Time | Role::Channel => {
+                    return Err(bad(path, format!("two {role:?} axes").to_lowercase()));
+                }
+                Role::Other => {}
+            }
+        }
+        // The unnamed spatial axes fill the letters left, slowest first: z, y, x.
+        let free: Vec<usize> = (0..3)
+            .rev()
+            .filter(|k| space_axes[*k] == usize::MAX)
+            .collect();
+        for (k, i) in free.into_iter().zip(unnamed) {
+            space_axes[k] = i;
+        }
+        if space_axes.contains(&usize::MAX) {
+            return Err(ReadError::unsupported(
+                path,
+                format!(
+                    "an array of shape {shape:?} with axes {:?}: a volume has three spatial \
+                     axes (x, y, z)",
+                    axes.iter().map(|a| a.name.as_str()).collect::<Vec<_>>()
+                ),
+            ));
+        }
+        for (i, role) in roles.iter().enumerate() {
+            let single = matches!(role, Role::Channel | Role::Other);
+            if single && shape[i] != 1 {
+                let what = if *role == Role::Channel {
+                    "channels"
+                } else {
+                    "entries along a non-spatial axis"
+                };
+                return Err(ReadError::unsupported(
+                    path,
+                    format!(
+                        "{} {what} (axis {i} of shape {shape:?}): one channel is read; write \
+                         each channel as an array of its own",
+                        shape[i]
+                    ),
+                ));
+            }
+        }
+        let size = |i: usize| {
+            usize::try_from(shape[i]).map_err(|_| bad(path, format!("size {} too large", shape[i])))
+        };
+        let dims = [
+            size(space_axes[0])?,
+            size(space_axes[1])?,
+            size(space_axes[2])?,
+        ];
+        let time_points = time_axis.map(size).transpose()?.unwrap_or(1);
+        if dims.contains(&0) || time_points == 0 {
+            return Err(ReadError::volume(
+                path,
+                wavesplat_codec::volume::VolumeError::ZeroDimension(dims),
+            ));
+        }
+        // A region decodes each chunk it touches whole: bound a chunk's bytes.
+        let origin = vec![0u64; shape.len()];
+        let chunk = array
+            .chunk_shape(&origin)
+            .map_err(|e| bad(path, format!("chunk grid: {e}")))?;
+        let chunk_bytes = chunk
+            .iter()
+            .try_fold(sample.bytes() as u128, |acc, d| {
+                acc.checked_mul(u128::from(d.get()))
+            })
+            .unwrap_or(u128::MAX);
+        if chunk_bytes > u128::from(MAX_CHUNK_BYTES) {
+            return Err(ReadError::unsupported(
+                path,
+                format!(
+                    "chunks of {:?} samples ({chunk_bytes} bytes): at most {MAX_CHUNK_BYTES} \
+                     bytes a chunk are decoded",
+                    chunk.iter().map(|d| d.get()).collect::<Vec<_>>()
+                ),
+            ));
+        }
+        let scale_of = |i: usize| target.scale.as_ref().and_then(|s| s.get(i)).copied();
+        let mut spacing = [1.0f32; 3];
+        for (k, &i) in space_axes.iter().enumerate() {
+            if let Some(s) = scale_of(i) {
+                let mm = axes
+                    .get(i)
+                    .and_then(|a| a.unit.as_deref())
+                    .and_then(super::tiff_stack::unit_mm)
+                    .unwrap_or(1.0);
+                let v = (s * mm) as f32;
+                if !(v.is_finite() && v > 0.0) {
+                    return Err(bad(
+                        path,
+                        format!("scale {s} of axis {i} is no positive spacing"),
+                    ));
+                }
+                spacing[k] = v;
+            }
+        }
+        let time_step = time_axis.and_then(|i| {
+            let s = scale_of(i)?;
+            let unit = axes
+                .get(i)
+                .and_then(|a| a.unit.as_deref())
+                .unwrap_or("second");
+            let step = s * super::tiff_stack::time_unit_s(unit)?;
+            (step.is_finite() && step > 0.0).then_some(step)
+        });
+        Ok(ZarrVolume {
+            path: path.to_path_buf(),
+            array,
+            sample,
+            space_axes,
+            time_axis,
+            dims,
+            time_points,
+            spacing,
+            time_step,
+        })
+    }
+
+    pub(crate) fn dims(&self) -> [usize; 3] {
+        self.dims
+    }
+
+    pub(crate) fn time_points(&self) -> usize {
+        self.time_points
+    }
+
+    pub(crate) fn time_step(&self) -> Option<f64> {
+        self.time_step
+    }
+
+    pub(crate) fn spacing(&self) -> [f32; 3] {
+        self.spacing
+    }
+
+    /// The samples of the box at `origin` of `size` at time point `t`, x fastest (one channel).
+    pub(crate) fn read(
+        &self,
+        t: usize,
+        origin: [usize; 3],
+        size: [usize; 3],
+    ) -> Result<Vec<f32>, ReadError> {
+        let n = checked_voxels(size).map_err(|e| ReadError::volume(&self.path, e))?;
+        let rank = self.array.dimensionality();
+        let mut ranges: Vec<Range<u64>> = vec![0..1; rank];
+        for k in 0..3 {
+            let (o, s) = (origin[k] as u64, size[k] as u64);
+            ranges[self.space_axes[k]] = o..o + s;
+        }
+        if let Some(i) = self.time_axis {
+            ranges[i] = t as u64..t as u64 + 1;
+        }
+        // Strides of the box's array axes (C order), for x, y and z.
+        let extent: Vec<usize> = ranges.iter().map(|r| (r.end - r.start) as usize).collect();
+        let mut stride = vec![1usize; rank];
+        for i in (0..rank.saturating_sub(1)).rev() {
+            stride[i] = stride[i + 1] * extent[i + 1];
+        }
+        let s = self.space_axes.map(|i| stride[i]);
+        let failed = |e: zarrs::array::ArrayError| {
+            ReadError::bad_header(&self.path, FORMAT, format!("reading {ranges:?}: {e}"))
+        };
+        let mut out = Vec::new();
+        out.try_reserve_exact(n).map_err(|_| {
+            ReadError::io(
+                &self.path,
+                std::io::Error::new(
+                    std::io::ErrorKind::OutOfMemory,
+                    format!("cannot allocate {n} samples"),
+                ),
+            )
+        })?;
+        macro_rules! gather {
+            ($t:ty, $conv:expr) => {{
+                let v: Vec<$t> = guarded(&self.path, || self.array.retrieve_array_subset(&ranges))?
+                    .map_err(failed)?;
+                let conv = $conv;
+                for z in 0..size[2] {
+                    for y in 0..size[1] {
+                        let row = z * s[2] + y * s[1];
+                        out.extend((0..size[0]).map(|x| conv(v[row + x * s[0]])));
+                    }
+                }
+            }};
+        }
+        match self.sample {
+            Sample::Bool => gather!(bool, |v: bool| f32::from(u8::from(v))),
+            Sample::U8 => gather!(u8, f32::from),
+            Sample::I8 => gather!(i8, f32::from),
+            Sample::U16 => gather!(u16, f32::from),
+            Sample::I16 => gather!(i16, f32::from),
+            Sample::U32 => gather!(u32, |v: u32| v as f32),
+            Sample::I32 => gather!(i32, |v: i32| v as f32),
+            Sample::U64 => gather!(u64, |v: u64| v as f32),
+            Sample::I64 => gather!(i64, |v: i64| v as f32),
+            Sample::F32 => gather!(f32, |v: f32| v),
+            Sample::F64 => gather!(f64, |v: f64| v as f32),
+        }
+        Ok(out)
+    }
+}
+
+/// Runs a call into `zarrs` on the store's bytes, a panic in it (an arithmetic overflow on a
+/// corrupt shard index, say) becoming an error: the bytes are untrusted, and one hostile store
+/// must not bring down a worker serving others.
+fn guarded<T>(path: &Path, f: impl FnOnce() -> T) -> Result<T, ReadError> {
+    std::panic::catch_unwind(std::panic::AssertUnwindSafe(f)).map_err(|panic| {
+        let what = panic
+            .downcast_ref::<&str>()
+            .map(|s| s.to_string())
+            .or_else(|| panic.downcast_ref::<String>().cloned())
+            .unwrap_or_default();
+        bad(
+            path,
+            format!("the Zarr decoder failed on the store ({what})"),
+        )
+    })
+}
+
+/// The axes an array's own metadata names (v3 `dimension_names`, xarray's
+/// `_ARRAY_DIMENSIONS`), or none.
+fn dimension_names(array: &Array<dyn ReadableStorageTraits>) -> Vec<Axis> {
+    let named = |names: Vec<String>| {
+        names
+            .into_iter()
+            .map(|name| Axis {
+                name,
+                ..Axis::default()
+            })
+            .collect()
+    };
+    if let Some(names) = array.dimension_names() {
+        if names.iter().all(Option::is_some) {
+            return named(names.iter().flatten().cloned().collect());
+        }
+    }
+    if let Some(Value::Array(names)) = array.attributes().get("_ARRAY_DIMENSIONS") {
+        let names: Option<Vec<String>> = names
+            .iter()
+            .map(|n| n.as_str().map(str::to_string))
+            .collect();
+        if let Some(names) = names {
+            return named(names);
+        }
+    }
+    Vec::new()
+}
+
+/// Each array axis's role, from its axis (`axes`, as many as the shape, or none).
+fn roles(path: &Path, shape: &[u64], axes: &[Axis]) -> Result<Vec<Role>, ReadError> {
+    if axes.is_empty() {
+        return match shape.len() {
+            3 => Ok(vec![Role::Space(2), Role::Space(1), Role::Space(0)]),
+            4 => Ok(vec![
+                Role::Time,
+                Role::Space(2),
+                Role::Space(1),
+                Role::Space(0),
+            ]),
+            5 => Ok(vec![
+                Role::Time,
+                Role::Channel,
+                Role::Space(2),
+                Role::Space(1),
+                Role::Space(0),
+            ]),
+            n => Err(ReadError::unsupported(
+                path,
+                format!(
+                    "an array of {n} dimensions (shape {shape:?}) naming none: a volume has \
+                     three spatial axes, in z, y, x; t, z, y, x; or t, c, z, y, x"
+                ),
+            )),
+        };
+    }
+    if axes.len() != shape.len() {
+        return Err(bad(
+            path,
+            format!(
+                "{} axes for an array of {} dimensions",
+                axes.len(),
+                shape.len()
+            ),
+        ));
+    }
+    Ok(axes
+        .iter()
+        .map(|a| {
+            let name = a.name.to_ascii_lowercase();
+            let by_name = match name.as_str() {
+                "x" => Some(Role::Space(0)),
+                "y" => Some(Role::Space(1)),
+                "z" => Some(Role::Space(2)),
+                "t" | "time" => Some(Role::Time),
+                "c" | "channel" | "channels" => Some(Role::Channel),
+                _ => None,
+            };
+            match a.kind.as_deref() {
+                Some("space") => match by_name {
+                    Some(Role::Space(k)) => Role::Space(k),
+                    _ => Role::SpaceUnnamed,
+                },
+                Some("time") => Role::Time,
+                Some("channel") => Role::Channel,
+                Some(_) => Role::Other,
+                None => by_name.unwrap_or(Role::Other),
+            }
+        })
+        .collect())
+}
+
+/// Reads a metadata document of the store, if present.
+fn json(path: &Path, store: &ReadableStorage, key: &str) -> Result<Option<Value>, ReadError> {
+    let k = StoreKey::new(key).expect("a valid key");
+    let Some(bytes) = store
+        .get(&k)
+        .map_err(|e| ReadError::io(&path.join(key), std::io::Error::other(e.to_string())))?
+    else {
+        return Ok(None);
+    };
+    serde_json::from_slice(&bytes)
+        .map(Some)
+        .map_err(|e| bad(&path.join(key), format!("not JSON: {e}")))
+}
+
+/// The array to read in the store at `path`: the store's own array, or the first (full
+/// resolution) dataset of an OME-Zarr image group.
+fn locate(path: &Path, store: &ReadableStorage) -> Result<Target, ReadError> {
+    let plain = |array: &str| Target {
+        array: array.to_string(),
+        axes: None,
+        scale: None,
+    };
+    let attributes = if let Some(root) = json(path, store, "zarr.json")? {
+        match root.get("node_type").and_then(Value::as_str) {
+            Some("array") => return Ok(plain("/")),
+            Some("group") => root.get("attributes").cloned().unwrap_or(Value::Null),
+            other => {
+                return Err(bad(
+                    &path.join("zarr.json"),
+                    format!("node_type {other:?}: an array or a group"),
+                ))
+            }
+        }
+    } else if json(path, store, ".zarray")?.is_some() {
+        return Ok(plain("/"));
+    } else if json(path, store, ".zgroup")?.is_some() {
+        json(path, store, ".zattrs")?.unwrap_or(Value::Null)
+    } else {
+        return Err(bad(
+            path,
+            "no zarr.json, .zarray or .zgroup: not a Zarr store".to_string(),
+        ));
+    };
+    // OME-Zarr 0.5 nests its metadata under `ome`; earlier versions do not.
+    let ome = attributes.get("ome").unwrap_or(&attributes);
+    let Some(multiscale) = ome
+        .get("multiscales")
+        .and_then(Value::as_array)
+        .and_then(|m| m.first())
+    else {
+        return Err(ReadError::unsupported(
+            path,
+            "a Zarr group that is no OME-Zarr image (no `multiscales`): give the directory of \
+             the array to read",
+        ));
+    };
+    let dataset = multiscale
+        .get("datasets")
+        .and_then(Value::as_array)
+        .and_then(|d| d.first())
+        .ok_or_else(|| bad(path, "an OME-Zarr multiscale with no datasets"))?;
+    let array_path = dataset
+        .get("path")
+        .and_then(Value::as_str)
+        .filter(|p| !p.is_empty() && !p.split('/').any(|c| c.is_empty() || c == "." || c == ".."))
+        .ok_or_else(|| bad(path, "an OME-Zarr dataset without a plain relative path"))?;
+    let axes = multiscale
+        .get("axes")
+        .and_then(Value::as_array)
+        .map(|axes| {
+            axes.iter()
+                .map(|a| match a {
+                    // OME-Zarr 0.3 lists names only.
+                    Value::String(name) => Axis {
+                        name: name.clone(),
+                        ..Axis::default()
+                    },
+                    a => Axis {
+                        name: a
+                            .get("name")
+                            .and_then(Value::as_str)
+                            .unwrap_or("")
+                            .to_string(),
+                        kind: a.get("type").and_then(Value::as_str).map(str::to_string),
+                        unit: a.get("unit").and_then(Value::as_str).map(str::to_string),
+                    },
+                })
+                .collect()
+        });
+    let mut scale: Option<Vec<f64>> = None;
+    for transforms in [
+        dataset.get("coordinateTransformations"),
+        multiscale.get("coordinateTransformations"),
+    ]
+    .into_iter()
+    .flatten()
+    .filter_map(Value::as_array)
+    {
+        for t in transforms {
+            if t.get("type").and_then(Value::as_str) != Some("scale") {
+                continue;
+            }
+            let Some(s) = t.get("scale").and_then(Value::as_array) else {
+                return Err(bad(
+                    path,
+                    "a scale transformation given by path is not read",
+                ));
+            };
+            let s: Vec<f64> = s
+                .iter()
+                .map(|v| v.as_f64())
+                .collect::<Option<_>>()
+                .ok_or_else(|| bad(path, "a scale that is not numbers"))?;
+            scale = Some(match scale {
+                None => s,
+                Some(prev) if prev.len() == s.len() => {
+                    prev.iter().zip(&s).map(|(a, b)| a * b).collect()
+                }
+                Some(_) => return Err(bad(path, "scales of different lengths")),
+            });
+        }
+    }
+    Ok(Target {
+        array: format!("/{array_path}"),
+        axes,
+        scale,
+    })
+}
+
+/// The files of the store at `path` that its volume is read from, as (name relative to the
+/// store, `/`-separated; path), sorted by name: the store's top metadata and every file under
+/// the array read (an OME-Zarr image's lower resolutions are left out).
+pub(crate) fn store_files(path: &Path) -> Result<Vec<(String, PathBuf)>, ReadError> {
+    let store: ReadableStorage = Arc::new(
+        zarrs::filesystem::FilesystemStore::new(path)
+            .map_err(|e| ReadError::io(path, std::io::Error::other(e.to_string())))?,
+    );
+    let target = locate(path, &store)?;
+    let mut files: Vec<(String, PathBuf)> = METADATA_FILES
+        .iter()
+        .chain([&".zattrs"])
+        .filter(|m| path.join(m).is_file())
+        .map(|m| (m.to_string(), path.join(m)))
+        .collect();
+    if target.array != "/" {
+        let rel = target.array.trim_start_matches('/');
+        walk(&path.join(rel), rel, &mut files)?;
+    } else {
+        let top: Vec<String> = files.iter().map(|(n, _)| n.clone()).collect();
+        let mut all = Vec::new();
+        walk(path, "", &mut all)?;
+        files.extend(all.into_iter().filter(|(n, _)| !top.contains(n)));
+    }
+    files.sort_by(|a, b| a.0.cmp(&b.0));
+    files.dedup_by(|a, b| a.0 == b.0);
+    Ok(files)
+}
+
+/// Every regular file under `dir`, named `prefix/…`.
+fn walk(dir: &Path, prefix: &str, out: &mut Vec<(String, PathBuf)>) -> Result<(), ReadError> {
+    let entries = std::fs::read_dir(dir).map_err(|e| ReadError::io(dir, e))?;
+    for e in entries {
+        let e = e.map_err(|e| ReadError::io(dir, e))?;
+        let name = e.file_name().to_string_lossy().into_owned();
+        let rel = if prefix.is_empty() {
+            name
+        } else {
+            format!("{prefix}/{name}")
+        };
+        let kind = e.file_type().map_err(|err| ReadError::io(&e.path(), err))?;
+        if kind.is_dir() {
+            walk(&e.path(), &rel, out)?;
+        } else if kind.is_file() {
+            out.push((rel, e.path()));
+        }
+    }
+    Ok(())
+}
+
+/// How many time points the store at `path` holds (1 for a volume).
+pub(crate) fn time_points(path: &Path) -> Result<usize, ReadError> {
+    Ok(ZarrVolume::open(path)?.time_points())
+}
+
+/// Decodes a gathered store whole (one time point; a series is refused as
+/// [`ReadError::TimeSeries`]).
+pub(crate) fn decode(src: &SourceFiles) -> Result<Volume, ReadError> {
+    let z = ZarrVolume::of_files(src)?;
+    if z.time_points > 1 {
+        return Err(ReadError::TimeSeries {
+            path: src.origin.clone(),
+            points: z.time_points,
+        });
+    }
+    let samples = z.read(0, [0; 3], z.dims)?;
+    Volume::new(z.dims, z.spacing, vec![samples]).map_err(|e| ReadError::volume(&src.origin, e))
+}
+
+/// Opens the store at `path` for region reads.
+pub(crate) fn open_regions(path: &Path) -> Result<ZarrVolume, ReadError> {
+    ZarrVolume::open(path)
+}

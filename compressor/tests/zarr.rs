@@ -1,0 +1,489 @@
+//! Zarr stores read as volumes: arrays written by zarr-python (the format's reference
+//! implementation; v2 and v3, Blosc, Zstd, zlib, sharding, Fortran order, big-endian samples,
+//! OME-Zarr 0.4 and 0.5 images and a time series) read to the samples it wrote, whole, region by
+//! region and through a bundle; stores written here by hand from the specification (uncompressed
+//! v2 chunks) check the axes, missing chunks and what is refused, with no Python.
+
+use std::path::{Path, PathBuf};
+use wavesplat_compressor::reader::region::RegionReader;
+use wavesplat_compressor::reader::{
+    decode_source, read_volume, time_points, unpack_bundle, Format, ReadError, SourceFiles,
+    SourceListing,
+};
+
+/// zarr-python's version the CI installs.
+const INSTALL: &str = "python3 -m pip install zarr==3.1.6";
+
+/// The stores zarr-python writes (name, what it is), every one holding the same 28 × 24 × 20
+/// u16-valued samples (`reference.f64`, x fastest) but the series, whose time point t is the
+/// same samples plus 1000 t.
+const WRITTEN: [&str; 9] = [
+    "v3_zstd.zarr",
+    "v3_sharded.zarr",
+    "v2_blosc.zarr",
+    "v2_zlib_nested_fortran.zarr",
+    "v2_big_endian_i2.zarr",
+    "v3_float64.zarr",
+    "ome04.zarr",
+    "ome05.ome.zarr",
+    "xarray_xyz.zarr",
+];
+
+const SCRIPT: &str = r#"
+import sys, numpy as np, zarr, numcodecs
+from zarr.codecs import BloscCodec, ZstdCodec
+out = sys.argv[1]
+z, y, x = 20, 24, 28
+g = np.mgrid[0:z, 0:y, 0:x]
+a = (1000 + 37 * g[0] + 3 * g[1] * g[1] + 11 * g[2] + (g[0] * g[1] * g[2]) % 17).astype(np.uint16)
+a[:8, :8, :8] = 0   # a chunk of the fill value: zarr-python leaves it unwritten
+a.astype('<f8').tofile(out + '/reference.f64')
+def v3(name, **kw):
+    zarr.create_array(out + '/' + name, shape=a.shape, chunks=(8, 8, 8), dtype=kw.pop('dtype', a.dtype), **kw)[:] = a
+v3('v3_zstd.zarr')
+v3('v3_sharded.zarr', shards=(16, 16, 16), compressors=BloscCodec(cname='zstd', shuffle='bitshuffle'))
+v3('v3_float64.zarr', dtype='f8', compressors=ZstdCodec(level=3, checksum=True))
+zarr.create_array(out + '/v2_blosc.zarr', shape=a.shape, chunks=(8, 8, 8), dtype=a.dtype, zarr_format=2,
+                  compressors=numcodecs.Blosc(cname='lz4', shuffle=numcodecs.Blosc.SHUFFLE))[:] = a
+zarr.create_array(out + '/v2_zlib_nested_fortran.zarr', shape=a.shape, chunks=(8, 8, 8), dtype=a.dtype, zarr_format=2,
+                  compressors=numcodecs.Zlib(level=6), chunk_key_encoding={'name': 'v2', 'separator': '/'}, order='F')[:] = a
+zarr.create_array(out + '/v2_big_endian_i2.zarr', shape=a.shape, chunks=(8, 8, 8), dtype='>i2', zarr_format=2)[:] = a.astype('>i2')
+# xarray's layout: dimension names in _ARRAY_DIMENSIONS, here x slowest.
+t = zarr.create_array(out + '/xarray_xyz.zarr', shape=(x, y, z), chunks=(8, 8, 8), dtype=a.dtype, zarr_format=2)
+t[:] = a.transpose(2, 1, 0)
+t.attrs['_ARRAY_DIMENSIONS'] = ['x', 'y', 'z']
+axes = [{'name': 'z', 'type': 'space', 'unit': 'micrometer'}, {'name': 'y', 'type': 'space', 'unit': 'micrometer'},
+        {'name': 'x', 'type': 'space', 'unit': 'micrometer'}]
+datasets = [{'path': '0', 'coordinateTransformations': [{'type': 'scale', 'scale': [2.0, 0.5, 0.25]}]},
+            {'path': '1', 'coordinateTransformations': [{'type': 'scale', 'scale': [4.0, 1.0, 0.5]}]}]
+for name, fmt in [('ome04.zarr', 2), ('ome05.ome.zarr', 3)]:
+    g0 = zarr.open_group(out + '/' + name, mode='w', zarr_format=fmt)
+    g0.create_array('0', shape=a.shape, chunks=(8, 8, 8), dtype=a.dtype)[:] = a
+    g0.create_array('1', shape=(10, 12, 14), chunks=(8, 8, 8), dtype=a.dtype)[:] = a[::2, ::2, ::2]
+    ms = [{'version': '0.4', 'axes': axes, 'datasets': datasets}]
+    if fmt == 2:
+        g0.attrs['multiscales'] = ms
+    else:
+        ms[0].pop('version')
+        g0.attrs['ome'] = {'version': '0.5', 'multiscales': ms}
+# A series: t, z, y, x, 3 time points 1.5 s apart (a time scale in milliseconds).
+s = zarr.open_group(out + '/series.zarr', mode='w', zarr_format=2)
+s.create_array('0', shape=(3,) + a.shape, chunks=(1, 8, 8, 8), dtype=a.dtype)[:] = np.stack([a + 1000 * k for k in range(3)])
+s.attrs['multiscales'] = [{'version': '0.4', 'axes': [{'name': 't', 'type': 'time', 'unit': 'millisecond'}] + axes,
+                           'datasets': [{'path': '0', 'coordinateTransformations': [{'type': 'scale', 'scale': [1500.0, 2.0, 0.5, 0.25]}]}]}]
+"#;
+
+const DIMS: [usize; 3] = [28, 24, 20];
+
+/// The Python that has zarr-python: `WAVESPLAT_ZARR_PYTHON` (the venv `.ci/run` makes), else
+/// `python3`'s where it has it.
+fn zarr_python() -> Option<String> {
+    if let Some(p) = std::env::var_os("WAVESPLAT_ZARR_PYTHON") {
+        return Some(p.to_string_lossy().into_owned());
+    }
+    wavesplat_fixtures::reference_python("zarr, numcodecs, numpy", INSTALL).map(str::to_string)
+}
+
+/// Writes the stores with zarr-python into `dir`; `None` where it is not installed.
+fn written(dir: &Path) -> Option<Vec<f32>> {
+    let python = zarr_python()?;
+    let status = std::process::Command::new(&python)
+        .args(["-c", SCRIPT])
+        .arg(dir)
+        .status()
+        .unwrap();
+    assert!(status.success(), "zarr-python failed");
+    let bytes = std::fs::read(dir.join("reference.f64")).unwrap();
+    Some(
+        bytes
+            .chunks_exact(8)
+            .map(|b| f64::from_le_bytes(b.try_into().unwrap()) as f32)
+            .collect(),
+    )
+}
+
+/// The reference's samples of the box at `o` of size `s`.
+fn cut(all: &[f32], o: [usize; 3], s: [usize; 3]) -> Vec<f32> {
+    let mut out = Vec::new();
+    for z in o[2]..o[2] + s[2] {
+        for y in o[1]..o[1] + s[1] {
+            let row = (z * DIMS[1] + y) * DIMS[0];
+            out.extend_from_slice(&all[row + o[0]..row + o[0] + s[0]]);
+        }
+    }
+    out
+}
+
+/// Regions that cross chunk faces, touch the far faces, and one voxel.
+const REGIONS: [([usize; 3], [usize; 3]); 4] = [
+    ([0, 0, 0], [28, 24, 20]),
+    ([5, 7, 3], [13, 11, 9]),
+    ([20, 16, 12], [8, 8, 8]),
+    ([27, 0, 19], [1, 1, 1]),
+];
+
+#[test]
+fn stores_written_by_zarr_python_read_as_written() {
+    let dir = tempfile::tempdir().unwrap();
+    let Some(want) = written(dir.path()) else {
+        return;
+    };
+    for name in WRITTEN {
+        let path = dir.path().join(name);
+        assert_eq!(Format::from_name(&path), Some(Format::Zarr), "{name}");
+        let whole = read_volume(&path, None).unwrap_or_else(|e| panic!("{name}: {e}"));
+        assert_eq!(whole.dims(), DIMS, "{name}");
+        assert_eq!(whole.channel(0), &want[..], "{name}: other samples");
+        let ome = name.starts_with("ome");
+        let spacing = if ome {
+            [0.00025, 0.0005, 0.002]
+        } else {
+            [1.0; 3]
+        };
+        assert_eq!(whole.spacing(), spacing, "{name}");
+        let reader = RegionReader::open(&path, None).unwrap_or_else(|e| panic!("{name}: {e}"));
+        assert!(!reader.in_memory(), "{name}: read whole, not by region");
+        assert_eq!((reader.dims(), reader.spacing()), (DIMS, spacing), "{name}");
+        for (o, s) in REGIONS {
+            let region = reader.read_region(o, s).unwrap();
+            assert_eq!(
+                region.channel(0),
+                &cut(&want, o, s)[..],
+                "{name} {o:?} {s:?}"
+            );
+        }
+        // The listing that hashes and uploads it, as a bundle decoded elsewhere and unpacked
+        // to files.
+        let listing = SourceListing::list(&path, None).unwrap();
+        assert_eq!(listing.format, Some(Format::Zarr));
+        if ome {
+            // The full resolution's chunks, not the lower level's.
+            assert!(
+                listing.files.iter().all(|f| !f.0.starts_with("1/")),
+                "{name}"
+            );
+        }
+        let mut streamed = Vec::new();
+        listing.write_to(&mut streamed).unwrap();
+        let gathered = SourceFiles::gather(&path, None).unwrap();
+        assert_eq!(gathered.to_bytes(), streamed, "{name}");
+        let elsewhere = SourceFiles::from_bytes(streamed.clone(), Path::new("upload")).unwrap();
+        let decoded = decode_source(&elsewhere, None).unwrap();
+        assert_eq!(decoded.channel(0), &want[..], "{name}: from the bundle");
+        let unpacked = tempfile::tempdir().unwrap();
+        let u = unpack_bundle(&mut streamed.as_slice(), unpacked.path()).unwrap();
+        assert_eq!(u.primary, unpacked.path(), "{name}");
+        let r = RegionReader::open(&u.primary, None).unwrap();
+        let (o, s) = REGIONS[1];
+        assert_eq!(
+            r.read_region(o, s).unwrap().channel(0),
+            &cut(&want, o, s)[..]
+        );
+    }
+}
+
+#[test]
+fn an_ome_zarr_time_axis_is_a_series() {
+    let dir = tempfile::tempdir().unwrap();
+    let Some(want) = written(dir.path()) else {
+        return;
+    };
+    let path = dir.path().join("series.zarr");
+    assert_eq!(time_points(&path, None).unwrap(), 3);
+    match read_volume(&path, None) {
+        Err(ReadError::TimeSeries { points: 3, .. }) => {}
+        other => panic!("one volume read of a series: {other:?}"),
+    }
+    let reader = RegionReader::open_series(&path, None).unwrap();
+    assert_eq!(reader.time_points(), 3);
+    assert_eq!(reader.time_step(), Some(1.5));
+    assert_eq!(reader.spacing(), [0.00025, 0.0005, 0.002]);
+    for t in 0..3 {
+        let (o, s) = REGIONS[1];
+        let got = reader.read_region_at(t, o, s).unwrap();
+        let shifted: Vec<f32> = cut(&want, o, s)
+            .iter()
+            .map(|v| v + 1000.0 * t as f32)
+            .collect();
+        assert_eq!(got.channel(0), &shifted[..], "time point {t}");
+    }
+}
+
+/// A v2 array written by hand from the specification: `.zarray` with no compressor, each
+/// chunk its samples in C order (little-endian u16), a chunk left out where `skip` says.
+fn hand_written(
+    dir: &Path,
+    name: &str,
+    shape: &[usize],
+    chunks: &[usize],
+    attrs: Option<&str>,
+    value: impl Fn(&[usize]) -> u16,
+    skip: impl Fn(&[usize]) -> bool,
+) -> PathBuf {
+    let path = dir.join(name);
+    std::fs::create_dir_all(&path).unwrap();
+    let list = |v: &[usize]| {
+        v.iter()
+            .map(|d| d.to_string())
+            .collect::<Vec<_>>()
+            .join(", ")
+    };
+    let meta = format!(
+        r#"{{"zarr_format": 2, "shape": [{}], "chunks": [{}], "dtype": "<u2", "compressor": null,
+            "fill_value": 7, "order": "C", "filters": null}}"#,
+        list(shape),
+        list(chunks)
+    );
+    std::fs::write(path.join(".zarray"), meta).unwrap();
+    if let Some(a) = attrs {
+        std::fs::write(path.join(".zattrs"), a).unwrap();
+    }
+    let grid: Vec<usize> = shape
+        .iter()
+        .zip(chunks)
+        .map(|(s, c)| s.div_ceil(*c))
+        .collect();
+    let count: usize = grid.iter().product();
+    for k in 0..count {
+        // The chunk's index, the last axis fastest.
+        let mut idx = vec![0; grid.len()];
+        let mut r = k;
+        for a in (0..grid.len()).rev() {
+            idx[a] = r % grid[a];
+            r /= grid[a];
+        }
+        if skip(&idx) {
+            continue;
+        }
+        let n: usize = chunks.iter().product();
+        let mut bytes = Vec::with_capacity(2 * n);
+        for e in 0..n {
+            let mut pos = vec![0; chunks.len()];
+            let mut r = e;
+            for a in (0..chunks.len()).rev() {
+                pos[a] = idx[a] * chunks[a] + r % chunks[a];
+                r /= chunks[a];
+            }
+            // Samples past the array's edge in a chunk are stored too (and never read).
+            bytes.extend_from_slice(&value(&pos).to_le_bytes());
+        }
+        let key = list(&idx).replace(", ", ".");
+        std::fs::write(path.join(key), bytes).unwrap();
+    }
+    path
+}
+
+#[test]
+fn axes_come_from_names_and_missing_chunks_are_the_fill_value() {
+    let dir = tempfile::tempdir().unwrap();
+    // z, y, x by count; x, y, z by xarray's names; and a fifth axis of one channel.
+    let zyx = |p: &[usize]| (p[2] + 10 * p[1] + 100 * p[0]) as u16;
+    let missing = |i: &[usize]| i.iter().all(|c| *c == 1);
+    let plain = hand_written(
+        dir.path(),
+        "zyx",
+        &[5, 6, 7],
+        &[3, 4, 5],
+        None,
+        zyx,
+        missing,
+    );
+    let names = Some(r#"{"_ARRAY_DIMENSIONS": ["x", "y", "z"]}"#);
+    let xyz = |p: &[usize]| (p[0] + 10 * p[1] + 100 * p[2]) as u16;
+    let named = hand_written(
+        dir.path(),
+        "xyz",
+        &[7, 6, 5],
+        &[5, 4, 3],
+        names,
+        xyz,
+        |_| false,
+    );
+    let tczyx = |p: &[usize]| zyx(&p[2..]);
+    let five = hand_written(
+        dir.path(),
+        "tczyx",
+        &[1, 1, 5, 6, 7],
+        &[1, 1, 3, 4, 5],
+        None,
+        tczyx,
+        |_| false,
+    );
+    for (path, gap) in [(&plain, true), (&named, false), (&five, false)] {
+        let v = read_volume(path, None).unwrap();
+        assert_eq!(v.dims(), [7, 6, 5], "{}", path.display());
+        for z in 0..5 {
+            for y in 0..6 {
+                for x in 0..7 {
+                    // The left-out chunk (1, 1, 1) holds z 3..5, y 4..6, x 5..7.
+                    let filled = gap && z >= 3 && y >= 4 && x >= 5;
+                    let want = if filled { 7 } else { x + 10 * y + 100 * z };
+                    let got = v.channel(0)[(z * 6 + y) * 7 + x];
+                    assert_eq!(got, want as f32, "{} at {x},{y},{z}", path.display());
+                }
+            }
+        }
+    }
+}
+
+#[test]
+fn what_is_no_volume_is_refused_saying_why() {
+    let dir = tempfile::tempdir().unwrap();
+    let flat = hand_written(dir.path(), "flat", &[6, 7], &[3, 3], None, |_| 1, |_| false);
+    let channels = hand_written(
+        dir.path(),
+        "channels",
+        &[1, 2, 3, 4, 5],
+        &[1, 1, 3, 4, 5],
+        None,
+        |_| 1,
+        |_| false,
+    );
+    // A chunk of 2 000³ u16 samples (16 GB) is refused from its metadata alone.
+    let huge = dir.path().join("huge");
+    std::fs::create_dir_all(&huge).unwrap();
+    std::fs::write(
+        huge.join(".zarray"),
+        r#"{"zarr_format": 2, "shape": [2000, 2000, 2000], "chunks": [2000, 2000, 2000],
+            "dtype": "<u2", "compressor": null, "fill_value": 0, "order": "C", "filters": null}"#,
+    )
+    .unwrap();
+    let complex = dir.path().join("complex");
+    std::fs::create_dir_all(&complex).unwrap();
+    std::fs::write(
+        complex.join(".zarray"),
+        r#"{"zarr_format": 2, "shape": [2, 2, 2], "chunks": [2, 2, 2], "dtype": "<f2",
+            "compressor": null, "fill_value": 0, "order": "C", "filters": null}"#,
+    )
+    .unwrap();
+    let group = dir.path().join("group");
+    std::fs::create_dir_all(&group).unwrap();
+    std::fs::write(group.join(".zgroup"), r#"{"zarr_format": 2}"#).unwrap();
+    let garbled = dir.path().join("garbled");
+    std::fs::create_dir_all(&garbled).unwrap();
+    std::fs::write(garbled.join("zarr.json"), "{ not json").unwrap();
+    // A chunk cut short.
+    let short = hand_written(
+        dir.path(),
+        "short",
+        &[4, 4, 4],
+        &[2, 2, 2],
+        None,
+        |_| 3,
+        |_| false,
+    );
+    std::fs::write(short.join("1.1.1"), [0u8; 5]).unwrap();
+    let cases: [(&Path, &str); 7] = [
+        (&flat, "three spatial axes"),
+        (&channels, "2 channels"),
+        (&huge, "bytes a chunk"),
+        (&complex, "samples of type"),
+        (&group, "no OME-Zarr image"),
+        (&garbled, "not JSON"),
+        (&short, "reading"),
+    ];
+    for (path, why) in cases {
+        let e = read_volume(path, None).expect_err(why).to_string();
+        assert!(e.contains(why), "{}: {e}", path.display());
+        assert!(e.contains(&path.display().to_string()), "{e}");
+        if why != "reading" {
+            let e = RegionReader::open(path, None).expect_err(why).to_string();
+            assert!(e.contains(why), "{}: {e}", path.display());
+        }
+    }
+    let r = RegionReader::open(&short, None).unwrap();
+    assert!(r.read_region([0, 0, 0], [2, 2, 2]).is_ok());
+    let e = r.read_region([1, 1, 1], [3, 3, 3]).unwrap_err().to_string();
+    assert!(e.contains("reading"), "{e}");
+}
+
+/// A float array's NaN fill value where chunks are missing is refused as NaN samples are.
+#[test]
+fn a_nan_fill_value_in_a_region_read_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("nan");
+    std::fs::create_dir_all(&path).unwrap();
+    std::fs::write(
+        path.join(".zarray"),
+        r#"{"zarr_format": 2, "shape": [2, 2, 4], "chunks": [2, 2, 2], "dtype": "<f4",
+            "compressor": null, "fill_value": "NaN", "order": "C", "filters": null}"#,
+    )
+    .unwrap();
+    let chunk: Vec<u8> = [1.5f32; 8].iter().flat_map(|v| v.to_le_bytes()).collect();
+    std::fs::write(path.join("0.0.0"), chunk).unwrap();
+    let r = RegionReader::open(&path, None).unwrap();
+    let v = r.read_region([0, 0, 0], [2, 2, 2]).unwrap();
+    assert!(v.channel(0).iter().all(|s| *s == 1.5));
+    let e = r.read_region([0, 0, 0], [4, 2, 2]).unwrap_err().to_string();
+    assert!(e.to_lowercase().contains("nan"), "{e}");
+    assert!(read_volume(&path, None).is_err());
+}
+
+/// Stores whose metadata and chunks are corrupted byte by byte (zarr-python's stores, and one
+/// written here) are read to a volume or refused with an error, never a panic: the store is
+/// untrusted input.
+#[test]
+fn corrupted_stores_are_refused_or_read_never_a_panic() {
+    use rand::{Rng, SeedableRng};
+    let dir = tempfile::tempdir().unwrap();
+    let mut stores = vec![hand_written(
+        dir.path(),
+        "hand",
+        &[5, 6, 7],
+        &[3, 4, 5],
+        Some(r#"{"_ARRAY_DIMENSIONS": ["z", "y", "x"]}"#),
+        |p| p.iter().sum::<usize>() as u16,
+        |i| i[0] == 1,
+    )];
+    if written(dir.path()).is_some() {
+        stores.extend(WRITTEN.iter().map(|n| dir.path().join(n)));
+        stores.push(dir.path().join("series.zarr"));
+    }
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(57);
+    for store in &stores {
+        let files: Vec<PathBuf> = SourceListing::list(store, None)
+            .unwrap()
+            .files
+            .into_iter()
+            .map(|f| f.1)
+            .collect();
+        for round in 0..24 {
+            let victim = &files[rng.gen_range(0..files.len())];
+            let kept = std::fs::read(victim).unwrap();
+            let mut bytes = kept.clone();
+            match round % 3 {
+                // A few bytes changed.
+                0 | 1 if !bytes.is_empty() => {
+                    for _ in 0..rng.gen_range(1..4) {
+                        let i = rng.gen_range(0..bytes.len());
+                        bytes[i] = rng.gen();
+                    }
+                }
+                // Cut short.
+                _ => bytes.truncate(rng.gen_range(0..=bytes.len())),
+            }
+            std::fs::write(victim, &bytes).unwrap();
+            let outcome = std::panic::catch_unwind(|| {
+                let _ = read_volume(store, None);
+                if let Ok(r) = RegionReader::open_series(store, None) {
+                    let [nx, ny, nz] = r.dims();
+                    let _ = r.read_region([0, 0, 0], [nx.min(9), ny.min(9), nz.min(9)]);
+                }
+            });
+            assert!(
+                outcome.is_ok(),
+                "{} with {} corrupted (round {round})",
+                store.display(),
+                victim.display()
+            );
+            std::fs::write(victim, &kept).unwrap();
+        }
+    }
+    if stores.len() > 1 {
+        // A shard cut shorter than its index (zarrs 0.23 overflows on it, and would panic).
+        let store = dir.path().join("v3_sharded.zarr");
+        std::fs::write(store.join("c/1/1/1"), [0u8; 5]).unwrap();
+        let e = read_volume(&store, None).unwrap_err().to_string();
+        assert!(e.contains("v3_sharded.zarr"), "{e}");
+    }
+}
