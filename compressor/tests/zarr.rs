@@ -487,3 +487,117 @@ fn corrupted_stores_are_refused_or_read_never_a_panic() {
         assert!(e.contains("v3_sharded.zarr"), "{e}");
     }
 }
+
+/// Writes an OME-Zarr 0.4 group's metadata at `group` naming the array `0` with `axes` and
+/// `scale` (JSON text).
+fn ome_group(group: &Path, axes: &str, scale: &str) {
+    std::fs::write(group.join(".zgroup"), r#"{"zarr_format": 2}"#).unwrap();
+    let attrs = format!(
+        r#"{{"multiscales": [{{"version": "0.4", "axes": {axes}, "datasets": [{{"path": "0",
+            "coordinateTransformations": [{{"type": "scale", "scale": {scale}}}]}}]}}]}}"#
+    );
+    std::fs::write(group.join(".zattrs"), attrs).unwrap();
+}
+
+#[test]
+fn layouts_met_in_the_wild_and_the_limits_on_them() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let zyx = |p: &[usize]| (p[2] + 10 * p[1] + 100 * p[0]) as u16;
+    let check = |path: &Path, what: &str| {
+        let v = read_volume(path, None).unwrap_or_else(|e| panic!("{what}: {e}"));
+        assert_eq!(v.dims(), [7, 6, 5], "{what}");
+        assert_eq!(v.channel(0)[(4 * 6 + 5) * 7 + 6], 456.0, "{what}");
+        let mut bundle = Vec::new();
+        SourceListing::list(path, None)
+            .unwrap()
+            .write_to(&mut bundle)
+            .unwrap();
+        let src = SourceFiles::from_bytes(bundle, Path::new("elsewhere")).unwrap();
+        let again = decode_source(&src, None).unwrap_or_else(|e| panic!("{what}: {e}"));
+        assert_eq!(again.channel(0), v.channel(0), "{what}: from its bundle");
+    };
+    // xarray's default names say nothing: read as z, y, x.
+    let dims = Some(r#"{"_ARRAY_DIMENSIONS": ["dim_0", "dim_1", "dim_2"]}"#);
+    let p = hand_written(d, "xr", &[5, 6, 7], &[3, 4, 5], dims, zyx, |_| false);
+    check(&p, "xarray's default names");
+    // bioformats2raw's layout: the image is group 0 of the root.
+    let root = d.join("b2r.zarr");
+    std::fs::create_dir_all(root.join("0")).unwrap();
+    std::fs::write(root.join(".zgroup"), r#"{"zarr_format": 2}"#).unwrap();
+    std::fs::write(root.join(".zattrs"), r#"{"bioformats2raw.layout": 3}"#).unwrap();
+    let axes = r#"[{"name": "z", "type": "space"}, {"name": "y", "type": "space"},
+                   {"name": "x", "type": "space"}]"#;
+    ome_group(&root.join("0"), axes, "[1, 1, 1]");
+    hand_written(
+        &root.join("0"),
+        "0",
+        &[5, 6, 7],
+        &[3, 4, 5],
+        None,
+        zyx,
+        |_| false,
+    );
+    check(&root, "bioformats2raw");
+    let names: Vec<String> = SourceListing::list(&root, None)
+        .unwrap()
+        .files
+        .into_iter()
+        .map(|f| f.0)
+        .collect();
+    assert!(names.contains(&"0/.zattrs".to_string()), "{names:?}");
+    // Every chunk a symbolic link (a DataLad or git-annex checkout).
+    let linked = hand_written(d, "linked", &[5, 6, 7], &[3, 4, 5], None, zyx, |_| false);
+    let annex = d.join("annex");
+    std::fs::create_dir_all(&annex).unwrap();
+    for e in std::fs::read_dir(&linked).unwrap() {
+        let e = e.unwrap();
+        let name = e.file_name();
+        if name.to_string_lossy().contains('.') && !name.to_string_lossy().starts_with('.') {
+            std::fs::rename(e.path(), annex.join(&name)).unwrap();
+            std::os::unix::fs::symlink(annex.join(&name), e.path()).unwrap();
+        }
+    }
+    check(&linked, "linked chunks");
+    // Every chunk the fill value, none written: the metadata alone is the store.
+    let empty = hand_written(d, "empty", &[5, 6, 7], &[3, 4, 5], None, zyx, |_| true);
+    let listing = SourceListing::list(&empty, None).unwrap();
+    assert_eq!(listing.files.len(), 1);
+    let mut bundle = Vec::new();
+    listing.write_to(&mut bundle).unwrap();
+    assert_eq!(bundle.len() as u64, listing.byte_len());
+    let src = SourceFiles::from_bytes(bundle, Path::new("elsewhere")).unwrap();
+    let v = decode_source(&src, None).unwrap();
+    assert!(v.channel(0).iter().all(|s| *s == 7.0));
+    // Refused: too many time points, a scale of the wrong length, a unit of no length.
+    let many = d.join("many");
+    std::fs::create_dir_all(&many).unwrap();
+    std::fs::write(
+        many.join(".zarray"),
+        r#"{"zarr_format": 2, "shape": [1099511627776, 1, 1, 1], "chunks": [1, 1, 1, 1],
+            "dtype": "|u1", "compressor": null, "fill_value": 0, "order": "C", "filters": null}"#,
+    )
+    .unwrap();
+    let short_scale = d.join("short_scale");
+    std::fs::create_dir_all(&short_scale).unwrap();
+    ome_group(&short_scale, axes, "[1, 1]");
+    hand_written(&short_scale, "0", &[5, 6, 7], &[3, 4, 5], None, zyx, |_| {
+        false
+    });
+    let parsec = d.join("parsec");
+    std::fs::create_dir_all(&parsec).unwrap();
+    let far = r#"[{"name": "z", "type": "space", "unit": "parsec"}, {"name": "y", "type": "space"},
+                  {"name": "x", "type": "space"}]"#;
+    ome_group(&parsec, far, "[1, 1, 1]");
+    hand_written(&parsec, "0", &[5, 6, 7], &[3, 4, 5], None, zyx, |_| false);
+    for (path, why) in [
+        (&many, "time points"),
+        (&short_scale, "a scale of 2 values for 3 axes"),
+        (&parsec, "\"parsec\""),
+    ] {
+        let e = RegionReader::open_series(path, None)
+            .expect_err(why)
+            .to_string();
+        assert!(e.contains(why), "{e}");
+    }
+}

@@ -164,7 +164,11 @@ pub fn scan_with(root: &Path, time_steps: bool) -> std::io::Result<Scan> {
             .find_map(|ext| lower.strip_suffix(ext))
             .filter(|stem| !stem.is_empty() && !stem.ends_with('/'))
             .map_or(name.clone(), |stem| name[..stem.len()].to_string());
-        if names.insert(name.clone()) {
+        if let Err(e) = SourceListing::list(&store, None) {
+            // Not an image or array this reader takes (a plate, a group of other data): said
+            // here, as a bad file is, rather than failing the submission when it is listed.
+            scan.skipped.push((store, e.to_string()));
+        } else if names.insert(name.clone()) {
             scan.found.push(Found {
                 path: store,
                 name,
@@ -390,7 +394,8 @@ pub fn source_listing(path: &Path, raw: bool) -> std::io::Result<SourceListing> 
             files: vec![(name(path), path.to_path_buf(), len)],
         });
     }
-    if path.is_dir() && step_files(path, None).is_ok_and(|s| !s.is_empty()) {
+    let store = path.is_dir() && zarr::is_store(path);
+    if !store && path.is_dir() && step_files(path, None).is_ok_and(|s| !s.is_empty()) {
         // Every visible file: the steps and their data files, in name order.
         let mut entries: Vec<_> = std::fs::read_dir(path)?.collect::<Result<_, _>>()?;
         entries.sort_by_key(|e| e.file_name());
@@ -764,10 +769,19 @@ mod tests {
             &["0.0.0.0", "1.0.0.0"],
         );
         std::fs::write(r.join("scope/notes.txt"), "not a volume").unwrap();
+        // A group that is no image (a plate, say): skipped with the reason, not fatal.
+        std::fs::create_dir_all(r.join("plate.zarr")).unwrap();
+        std::fs::write(r.join("plate.zarr/.zgroup"), r#"{"zarr_format": 2}"#).unwrap();
         let s = scan(r).unwrap();
         let names: Vec<&str> = s.found.iter().map(|f| f.name.as_str()).collect();
         assert_eq!(names, vec!["scope/cells", "sim"]);
-        assert!(s.skipped.is_empty(), "{:?}", s.skipped);
+        assert_eq!(s.skipped.len(), 1, "{:?}", s.skipped);
+        assert_eq!(s.skipped[0].0, r.join("plate.zarr"));
+        assert!(
+            s.skipped[0].1.contains("no OME-Zarr image"),
+            "{:?}",
+            s.skipped
+        );
         assert!(!is_series_source(&s.found[0].path, None));
         assert!(is_series_source(&s.found[1].path, None));
         let listing = source_listing(&s.found[0].path, false).unwrap();

@@ -149,6 +149,16 @@ pub enum ReadError {
         /// Which field, its value and what was expected.
         reason: String,
     },
+    /// Samples that cannot be decoded (a corrupt or truncated chunk of a Zarr array).
+    #[error("{}: {format} samples cannot be decoded: {reason}", path.display())]
+    Data {
+        /// The file (or store).
+        path: PathBuf,
+        /// The format.
+        format: &'static str,
+        /// What failed.
+        reason: String,
+    },
     /// The file is valid but uses a feature this reader does not support.
     #[error("{}: unsupported: {reason}", path.display())]
     Unsupported {
@@ -574,11 +584,12 @@ impl SourceFiles {
     }
 
     /// Serialises the files for hashing and upload: a single file is its own bytes (so its
-    /// hash is the file's); several files are a bundle: [`BUNDLE_MAGIC`], the format name
+    /// hash is the file's), but for a Zarr store (a directory, whose one file may be its
+    /// metadata alone when every chunk is the fill value); several files are a bundle: [`BUNDLE_MAGIC`], the format name
     /// (u8 length + bytes), the file count (u32 LE), then per file its name (u16 LE length +
     /// UTF-8) and bytes (u64 LE length + bytes), in order.
     pub fn to_bytes(&self) -> Vec<u8> {
-        if self.files.len() == 1 {
+        if self.files.len() == 1 && self.format != Some(Format::Zarr) {
             return self.files[0].1.clone();
         }
         let total: usize = self.files.iter().map(|(n, b)| n.len() + b.len() + 10).sum();
@@ -771,7 +782,7 @@ impl SourceListing {
     /// The length of [`SourceListing::write_to`]'s bytes.
     pub fn byte_len(&self) -> u64 {
         match self.files.as_slice() {
-            [(_, _, len)] => *len,
+            [(_, _, len)] if self.format != Some(Format::Zarr) => *len,
             files => {
                 let f = self.format.map_or(0, |f| f.name().len() as u64);
                 BUNDLE_MAGIC.len() as u64
@@ -804,7 +815,7 @@ impl SourceListing {
             Ok(())
         };
         let written = |e: io::Error| ReadError::io(Path::new("(output)"), e);
-        if let [(_, p, len)] = self.files.as_slice() {
+        if let ([(_, p, len)], false) = (self.files.as_slice(), self.format == Some(Format::Zarr)) {
             return copy(out, p, *len);
         }
         let f = self.format.map_or("", Format::name);

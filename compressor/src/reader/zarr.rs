@@ -24,10 +24,11 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use serde_json::Value;
-use zarrs::array::{data_type, Array};
+use zarrs::array::{data_type, Array, ArrayShardedExt};
 use zarrs::storage::{ReadableStorage, ReadableStorageTraits, StoreKey, WritableStorageTraits};
 
 use super::{ReadError, SourceFiles};
+use wavesplat_codec::format::series::MAX_TIME_POINTS;
 use wavesplat_codec::volume::{checked_voxels, Volume};
 
 const FORMAT: &str = "Zarr";
@@ -216,8 +217,13 @@ impl ZarrVolume {
             .rev()
             .filter(|k| space_axes[*k] == usize::MAX)
             .collect();
-        for (k, i) in free.into_iter().zip(unnamed) {
-            space_axes[k] = i;
+        let mut roles = roles;
+        for (n, i) in unnamed.into_iter().enumerate() {
+            match free.get(n) {
+                Some(&k) => space_axes[k] = i,
+                // A spatial axis beyond three: of size 1, or refused below.
+                None => roles[i] = Role::Other,
+            }
         }
         if space_axes.contains(&usize::MAX) {
             return Err(ReadError::unsupported(
@@ -232,19 +238,21 @@ impl ZarrVolume {
         for (i, role) in roles.iter().enumerate() {
             let single = matches!(role, Role::Channel | Role::Other);
             if single && shape[i] != 1 {
-                let what = if *role == Role::Channel {
-                    "channels"
-                } else {
-                    "entries along a non-spatial axis"
-                };
-                return Err(ReadError::unsupported(
-                    path,
+                let why = if *role == Role::Channel {
                     format!(
-                        "{} {what} (axis {i} of shape {shape:?}): one channel is read; write \
+                        "{} channels (axis {i} of shape {shape:?}): one channel is read; write \
                          each channel as an array of its own",
                         shape[i]
-                    ),
-                ));
+                    )
+                } else {
+                    let name = axes.get(i).map_or("", |a| a.name.as_str());
+                    format!(
+                        "{} entries along axis {i} ({name:?}) of shape {shape:?}, which is no \
+                         spatial, time or channel axis: such an axis must be of size 1",
+                        shape[i]
+                    )
+                };
+                return Err(ReadError::unsupported(path, why));
             }
         }
         let size = |i: usize| {
@@ -256,17 +264,38 @@ impl ZarrVolume {
             size(space_axes[2])?,
         ];
         let time_points = time_axis.map(size).transpose()?.unwrap_or(1);
+        if time_points > MAX_TIME_POINTS {
+            return Err(ReadError::unsupported(
+                path,
+                format!("{time_points} time points: at most {MAX_TIME_POINTS} are read"),
+            ));
+        }
         if dims.contains(&0) || time_points == 0 {
             return Err(ReadError::volume(
                 path,
                 wavesplat_codec::volume::VolumeError::ZeroDimension(dims),
             ));
         }
-        // A region decodes each chunk it touches whole: bound a chunk's bytes.
+        // A region decodes each chunk it touches whole (of a sharded array with no other codec,
+        // each inner chunk): bound a chunk's bytes. Only regular grids: every chunk is the
+        // first's shape.
+        let grid = serde_json::to_value(array.metadata())
+            .ok()
+            .and_then(|m| m.get("chunk_grid").cloned())
+            .and_then(|g| g.get("name").and_then(Value::as_str).map(str::to_string));
+        if let Some(name) = grid.filter(|n| n != "regular") {
+            return Err(ReadError::unsupported(
+                path,
+                format!("a {name:?} chunk grid: regular grids are read"),
+            ));
+        }
         let origin = vec![0u64; shape.len()];
-        let chunk = array
-            .chunk_shape(&origin)
-            .map_err(|e| bad(path, format!("chunk grid: {e}")))?;
+        let chunk = match array.effective_subchunk_shape() {
+            Some(inner) if array.is_exclusively_sharded() => inner,
+            _ => array
+                .chunk_shape(&origin)
+                .map_err(|e| bad(path, format!("chunk grid: {e}")))?,
+        };
         let chunk_bytes = chunk
             .iter()
             .try_fold(sample.bytes() as u128, |acc, d| {
@@ -283,15 +312,25 @@ impl ZarrVolume {
                 ),
             ));
         }
+        if let Some(s) = target.scale.as_ref().filter(|s| s.len() != shape.len()) {
+            let why = format!("a scale of {} values for {} axes", s.len(), shape.len());
+            return Err(bad(path, why));
+        }
         let scale_of = |i: usize| target.scale.as_ref().and_then(|s| s.get(i)).copied();
         let mut spacing = [1.0f32; 3];
         for (k, &i) in space_axes.iter().enumerate() {
             if let Some(s) = scale_of(i) {
-                let mm = axes
-                    .get(i)
-                    .and_then(|a| a.unit.as_deref())
-                    .and_then(super::tiff_stack::unit_mm)
-                    .unwrap_or(1.0);
+                let unit = axes.get(i).and_then(|a| a.unit.as_deref());
+                let mm = match unit.map(|u| (u, super::tiff_stack::unit_mm(u))) {
+                    None => 1.0,
+                    Some((_, Some(mm))) => mm,
+                    Some((u, None)) => {
+                        return Err(bad(
+                            path,
+                            format!("axis {i}'s unit {u:?} is no length this reader knows"),
+                        ))
+                    }
+                };
                 let v = (s * mm) as f32;
                 if !(v.is_finite() && v > 0.0) {
                     return Err(bad(
@@ -364,8 +403,10 @@ impl ZarrVolume {
             stride[i] = stride[i + 1] * extent[i + 1];
         }
         let s = self.space_axes.map(|i| stride[i]);
-        let failed = |e: zarrs::array::ArrayError| {
-            ReadError::bad_header(&self.path, FORMAT, format!("reading {ranges:?}: {e}"))
+        let failed = |e: zarrs::array::ArrayError| ReadError::Data {
+            path: self.path.clone(),
+            format: FORMAT,
+            reason: format!("reading the box {ranges:?} of the array: {e}"),
         };
         let mut out = Vec::new();
         out.try_reserve_exact(n).map_err(|_| {
@@ -417,10 +458,11 @@ fn guarded<T>(path: &Path, f: impl FnOnce() -> T) -> Result<T, ReadError> {
             .map(|s| s.to_string())
             .or_else(|| panic.downcast_ref::<String>().cloned())
             .unwrap_or_default();
-        bad(
-            path,
-            format!("the Zarr decoder failed on the store ({what})"),
-        )
+        ReadError::Data {
+            path: path.to_path_buf(),
+            format: FORMAT,
+            reason: format!("the Zarr decoder failed on the store ({what})"),
+        }
     })
 }
 
@@ -455,6 +497,15 @@ fn dimension_names(array: &Array<dyn ReadableStorageTraits>) -> Vec<Axis> {
 
 /// Each array axis's role, from its axis (`axes`, as many as the shape, or none).
 fn roles(path: &Path, shape: &[u64], axes: &[Axis]) -> Result<Vec<Role>, ReadError> {
+    // Names none of which says an axis (xarray's `dim_0`, …), and no types: as if unnamed.
+    let known = |a: &Axis| {
+        a.kind.is_some()
+            || matches!(
+                a.name.to_ascii_lowercase().as_str(),
+                "x" | "y" | "z" | "t" | "time" | "c" | "channel" | "channels"
+            )
+    };
+    let axes = if axes.iter().any(known) { axes } else { &[] };
     if axes.is_empty() {
         return match shape.len() {
             3 => Ok(vec![Role::Space(2), Role::Space(1), Role::Space(0)]),
@@ -533,31 +584,40 @@ fn json(path: &Path, store: &ReadableStorage, key: &str) -> Result<Option<Value>
 /// The array to read in the store at `path`: the store's own array, or the first (full
 /// resolution) dataset of an OME-Zarr image group.
 fn locate(path: &Path, store: &ReadableStorage) -> Result<Target, ReadError> {
-    let plain = |array: &str| Target {
-        array: array.to_string(),
+    locate_in(path, store, "")
+}
+
+/// [`locate`] in the group at `prefix` (`""`: the store's root; else `0/`, as
+/// bioformats2raw's layout puts its first image).
+fn locate_in(path: &Path, store: &ReadableStorage, prefix: &str) -> Result<Target, ReadError> {
+    let plain = || Target {
+        array: "/".to_string(),
         axes: None,
         scale: None,
     };
-    let attributes = if let Some(root) = json(path, store, "zarr.json")? {
+    let key = |name: &str| format!("{prefix}{name}");
+    let attributes = if let Some(root) = json(path, store, &key("zarr.json"))? {
         match root.get("node_type").and_then(Value::as_str) {
-            Some("array") => return Ok(plain("/")),
+            Some("array") if prefix.is_empty() => return Ok(plain()),
             Some("group") => root.get("attributes").cloned().unwrap_or(Value::Null),
             other => {
                 return Err(bad(
-                    &path.join("zarr.json"),
-                    format!("node_type {other:?}: an array or a group"),
+                    &path.join(key("zarr.json")),
+                    format!("node_type {other:?}: an OME-Zarr image or an array was expected"),
                 ))
             }
         }
-    } else if json(path, store, ".zarray")?.is_some() {
-        return Ok(plain("/"));
-    } else if json(path, store, ".zgroup")?.is_some() {
-        json(path, store, ".zattrs")?.unwrap_or(Value::Null)
-    } else {
+    } else if prefix.is_empty() && json(path, store, ".zarray")?.is_some() {
+        return Ok(plain());
+    } else if json(path, store, &key(".zgroup"))?.is_some() {
+        json(path, store, &key(".zattrs"))?.unwrap_or(Value::Null)
+    } else if prefix.is_empty() {
         return Err(bad(
             path,
             "no zarr.json, .zarray or .zgroup: not a Zarr store".to_string(),
         ));
+    } else {
+        return Err(bad(path, format!("no group at {prefix}")));
     };
     // OME-Zarr 0.5 nests its metadata under `ome`; earlier versions do not.
     let ome = attributes.get("ome").unwrap_or(&attributes);
@@ -566,10 +626,14 @@ fn locate(path: &Path, store: &ReadableStorage) -> Result<Target, ReadError> {
         .and_then(Value::as_array)
         .and_then(|m| m.first())
     else {
+        // bioformats2raw's layout: the images are groups 0, 1, …; the first is read.
+        if prefix.is_empty() && ome.get("bioformats2raw.layout").is_some() {
+            return locate_in(path, store, "0/");
+        }
         return Err(ReadError::unsupported(
             path,
             "a Zarr group that is no OME-Zarr image (no `multiscales`): give the directory of \
-             the array to read",
+             an OME-Zarr image, or of an array",
         ));
     };
     let dataset = multiscale
@@ -639,7 +703,7 @@ fn locate(path: &Path, store: &ReadableStorage) -> Result<Target, ReadError> {
         }
     }
     Ok(Target {
-        array: format!("/{array_path}"),
+        array: format!("/{prefix}{array_path}"),
         axes,
         scale,
     })
@@ -654,28 +718,42 @@ pub(crate) fn store_files(path: &Path) -> Result<Vec<(String, PathBuf)>, ReadErr
             .map_err(|e| ReadError::io(path, std::io::Error::other(e.to_string())))?,
     );
     let target = locate(path, &store)?;
-    let mut files: Vec<(String, PathBuf)> = METADATA_FILES
-        .iter()
-        .chain([&".zattrs"])
-        .filter(|m| path.join(m).is_file())
-        .map(|m| (m.to_string(), path.join(m)))
-        .collect();
-    if target.array != "/" {
-        let rel = target.array.trim_start_matches('/');
-        walk(&path.join(rel), rel, &mut files)?;
-    } else {
-        let top: Vec<String> = files.iter().map(|(n, _)| n.clone()).collect();
-        let mut all = Vec::new();
-        walk(path, "", &mut all)?;
-        files.extend(all.into_iter().filter(|(n, _)| !top.contains(n)));
+    let rel = target.array.trim_start_matches('/');
+    // The metadata of every group from the root down to the array, then the array's files.
+    let mut files = Vec::new();
+    let mut group = String::new();
+    for part in rel.split('/').filter(|p| !p.is_empty()) {
+        for m in METADATA_FILES.iter().chain([&".zattrs"]) {
+            let name = format!("{group}{m}");
+            if path.join(&name).is_file() {
+                files.push((name.clone(), path.join(&name)));
+            }
+        }
+        group = format!("{group}{part}/");
     }
+    walk(&path.join(rel), rel, 0, &mut files)?;
     files.sort_by(|a, b| a.0.cmp(&b.0));
     files.dedup_by(|a, b| a.0 == b.0);
     Ok(files)
 }
 
-/// Every regular file under `dir`, named `prefix/…`.
-fn walk(dir: &Path, prefix: &str, out: &mut Vec<(String, PathBuf)>) -> Result<(), ReadError> {
+/// Most directories below an array's (a chunk key's parts, a sharded array's too).
+const MAX_DEPTH: usize = 32;
+
+/// Every file under `dir`, named `prefix/…`, symbolic links followed (a DataLad or git-annex
+/// checkout links every file: a chunk left out would read as the fill value).
+fn walk(
+    dir: &Path,
+    prefix: &str,
+    depth: usize,
+    out: &mut Vec<(String, PathBuf)>,
+) -> Result<(), ReadError> {
+    if depth > MAX_DEPTH {
+        return Err(ReadError::unsupported(
+            dir,
+            format!("directories nested more than {MAX_DEPTH} deep (a link loop?)"),
+        ));
+    }
     let entries = std::fs::read_dir(dir).map_err(|e| ReadError::io(dir, e))?;
     for e in entries {
         let e = e.map_err(|e| ReadError::io(dir, e))?;
@@ -685,10 +763,10 @@ fn walk(dir: &Path, prefix: &str, out: &mut Vec<(String, PathBuf)>) -> Result<()
         } else {
             format!("{prefix}/{name}")
         };
-        let kind = e.file_type().map_err(|err| ReadError::io(&e.path(), err))?;
-        if kind.is_dir() {
-            walk(&e.path(), &rel, out)?;
-        } else if kind.is_file() {
+        let meta = std::fs::metadata(e.path()).map_err(|err| ReadError::io(&e.path(), err))?;
+        if meta.is_dir() {
+            walk(&e.path(), &rel, depth + 1, out)?;
+        } else if meta.is_file() {
             out.push((rel, e.path()));
         }
     }
