@@ -396,12 +396,16 @@ pub(crate) fn probe_file_for_bricks(
             .or_else(|_| std::fs::metadata(path).map(|m| m.len()))
             .unwrap_or(0)
     };
-    // A limit given is always checked; the memory available only for files large enough.
-    let large = match (opts.memory_limit, limit) {
-        (Some(_), _) => true,
-        (None, Some(l)) => on_disk.saturating_mul(PROBE_FRACTION) >= l,
-        (None, None) => on_disk >= 1 << 30,
-    };
+    // A limit given is always checked; the memory available only for files large enough, and
+    // for Zarr stores, whose chunks may be far smaller than their samples (chunks of the fill
+    // value are not stored; their dimensions are in their metadata, read at once).
+    let zarr = path.is_dir() && wavesplat_compressor::reader::zarr::is_store(path);
+    let large = zarr
+        || match (opts.memory_limit, limit) {
+            (Some(_), _) => true,
+            (None, Some(l)) => on_disk.saturating_mul(PROBE_FRACTION) >= l,
+            (None, None) => on_disk >= 1 << 30,
+        };
     if !large {
         return Ok(None);
     }

@@ -38,6 +38,7 @@ use std::path::{Path, PathBuf};
 use wavesplat_compressor::reader::steps::{step_files, StepSeries};
 use wavesplat_compressor::reader::{
     dicom::is_dicom_file, nifti, tiff_pages, zarr, Format, ReadError, SourceListing,
+    MAX_SOURCE_FILES,
 };
 use wavesplat_orchestrator_client::model::{JobOptions, JobSpec, RawLayout, SampleType, Source};
 
@@ -429,6 +430,15 @@ fn io_error(e: ReadError) -> std::io::Error {
 /// [`SourceFiles::to_bytes`] makes them: a single file's own bytes, or a bundle), in memory.
 pub fn source_bytes(path: &Path, raw: bool) -> std::io::Result<Vec<u8>> {
     let listing = source_listing(path, raw)?;
+    if listing.files.len() > MAX_SOURCE_FILES {
+        // Refused here, before it is read, rather than by the worker after the upload.
+        return Err(std::io::Error::other(format!(
+            "{}: {} files, more than the {MAX_SOURCE_FILES} an upload carries; submit it by path \
+             (on storage the workers read)",
+            path.display(),
+            listing.files.len()
+        )));
+    }
     let mut bytes = Vec::new();
     bytes
         .try_reserve_exact(usize::try_from(listing.byte_len()).unwrap_or(usize::MAX))
