@@ -27,7 +27,7 @@ use serde_json::Value;
 use zarrs::array::{data_type, Array, ArrayShardedExt};
 use zarrs::storage::{ReadableStorage, ReadableStorageTraits, StoreKey, WritableStorageTraits};
 
-use super::{ReadError, SourceFiles};
+use super::{ReadError, SampleType, SourceFiles};
 use wavesplat_codec::format::series::MAX_TIME_POINTS;
 use wavesplat_codec::volume::{checked_voxels, Volume};
 
@@ -76,39 +76,13 @@ struct Target {
     scale: Option<Vec<f64>>,
 }
 
-/// The sample types read, each converted to f32.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-enum Sample {
-    Bool,
-    U8,
-    I8,
-    U16,
-    I16,
-    U32,
-    I32,
-    U64,
-    I64,
-    F32,
-    F64,
-}
-
-impl Sample {
-    fn bytes(self) -> u64 {
-        match self {
-            Sample::Bool | Sample::U8 | Sample::I8 => 1,
-            Sample::U16 | Sample::I16 => 2,
-            Sample::U32 | Sample::I32 | Sample::F32 => 4,
-            Sample::U64 | Sample::I64 | Sample::F64 => 8,
-        }
-    }
-}
-
 /// A Zarr array opened as a volume (or a time series of volumes), read by region.
 pub(crate) struct ZarrVolume {
     /// The store (for messages).
     path: PathBuf,
     array: Array<dyn ReadableStorageTraits>,
-    sample: Sample,
+    /// The sample type, as the other readers name it; `None` for booleans.
+    sample: Option<SampleType>,
     /// For x, y, z: the array axis holding it.
     space_axes: [usize; 3],
     /// The array axis of time, if any.
@@ -160,17 +134,17 @@ impl ZarrVolume {
             .map_err(|e| bad(path, format!("array {}: {e}", target.array)))?;
         let dt = array.data_type();
         let sample = [
-            (data_type::bool(), Sample::Bool),
-            (data_type::uint8(), Sample::U8),
-            (data_type::int8(), Sample::I8),
-            (data_type::uint16(), Sample::U16),
-            (data_type::int16(), Sample::I16),
-            (data_type::uint32(), Sample::U32),
-            (data_type::int32(), Sample::I32),
-            (data_type::uint64(), Sample::U64),
-            (data_type::int64(), Sample::I64),
-            (data_type::float32(), Sample::F32),
-            (data_type::float64(), Sample::F64),
+            (data_type::bool(), None),
+            (data_type::uint8(), Some(SampleType::U8)),
+            (data_type::int8(), Some(SampleType::I8)),
+            (data_type::uint16(), Some(SampleType::U16)),
+            (data_type::int16(), Some(SampleType::I16)),
+            (data_type::uint32(), Some(SampleType::U32)),
+            (data_type::int32(), Some(SampleType::I32)),
+            (data_type::uint64(), Some(SampleType::U64)),
+            (data_type::int64(), Some(SampleType::I64)),
+            (data_type::float32(), Some(SampleType::F32)),
+            (data_type::float64(), Some(SampleType::F64)),
         ]
         .into_iter()
         .find(|(d, _)| d == dt)
@@ -298,7 +272,7 @@ impl ZarrVolume {
         };
         let chunk_bytes = chunk
             .iter()
-            .try_fold(sample.bytes() as u128, |acc, d| {
+            .try_fold(sample.map_or(1, SampleType::size) as u128, |acc, d| {
                 acc.checked_mul(u128::from(d.get()))
             })
             .unwrap_or(u128::MAX);
@@ -432,17 +406,17 @@ impl ZarrVolume {
             }};
         }
         match self.sample {
-            Sample::Bool => gather!(bool, |v: bool| f32::from(u8::from(v))),
-            Sample::U8 => gather!(u8, f32::from),
-            Sample::I8 => gather!(i8, f32::from),
-            Sample::U16 => gather!(u16, f32::from),
-            Sample::I16 => gather!(i16, f32::from),
-            Sample::U32 => gather!(u32, |v: u32| v as f32),
-            Sample::I32 => gather!(i32, |v: i32| v as f32),
-            Sample::U64 => gather!(u64, |v: u64| v as f32),
-            Sample::I64 => gather!(i64, |v: i64| v as f32),
-            Sample::F32 => gather!(f32, |v: f32| v),
-            Sample::F64 => gather!(f64, |v: f64| v as f32),
+            None => gather!(bool, |v: bool| f32::from(u8::from(v))),
+            Some(SampleType::U8) => gather!(u8, f32::from),
+            Some(SampleType::I8) => gather!(i8, f32::from),
+            Some(SampleType::U16) => gather!(u16, f32::from),
+            Some(SampleType::I16) => gather!(i16, f32::from),
+            Some(SampleType::U32) => gather!(u32, |v: u32| v as f32),
+            Some(SampleType::I32) => gather!(i32, |v: i32| v as f32),
+            Some(SampleType::U64) => gather!(u64, |v: u64| v as f32),
+            Some(SampleType::I64) => gather!(i64, |v: i64| v as f32),
+            Some(SampleType::F32) => gather!(f32, |v: f32| v),
+            Some(SampleType::F64) => gather!(f64, |v: f64| v as f32),
         }
         Ok(out)
     }
