@@ -512,3 +512,54 @@ fn nrrd_files_of_every_axis_are_slabs() {
         assert!(e.to_string().contains("do not divide"), "{e}");
     }
 }
+
+/// A NaN in the third of five slice files is refused naming that file, not the first, whole
+/// and by region, for NRRD and MetaImage alike.
+#[test]
+fn a_non_finite_sample_is_refused_naming_the_file_that_holds_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let [nx, ny, nz] = [4usize, 3, 5];
+    let mut names = Vec::new();
+    for z in 0..nz {
+        let mut slice = vec![1.0f32; nx * ny];
+        if z == 2 {
+            slice[nx + 2] = f32::NAN; // voxel (2, 1, 2)
+        }
+        let name = format!("s{z}.raw");
+        let bytes: Vec<u8> = slice.iter().flat_map(|v| v.to_le_bytes()).collect();
+        std::fs::write(d.join(&name), bytes).unwrap();
+        names.push(name);
+    }
+    let list = names.join("\n");
+    std::fs::write(
+        d.join("v.nhdr"),
+        format!(
+            "NRRD0004\ntype: float\ndimension: 3\nsizes: {nx} {ny} {nz}\nendian: little\n\
+             encoding: raw\ndata file: LIST\n{list}\n"
+        ),
+    )
+    .unwrap();
+    std::fs::write(
+        d.join("v.mhd"),
+        format!(
+            "ObjectType = Image\nNDims = 3\nDimSize = {nx} {ny} {nz}\nElementType = MET_FLOAT\n\
+             ElementDataFile = s%d.raw 0 {} 1\n",
+            nz - 1
+        ),
+    )
+    .unwrap();
+    for header in ["v.nhdr", "v.mhd"] {
+        let path = d.join(header);
+        let whole = read_volume(&path, None).unwrap_err().to_string();
+        let reader = RegionReader::open(&path, None).unwrap();
+        let region = reader
+            .read_region([0, 0, 1], [nx, ny, 3])
+            .unwrap_err()
+            .to_string();
+        for e in [whole, region] {
+            assert!(e.contains("s2.raw"), "{header}: {e}");
+            assert!(!e.contains("s0.raw"), "{header}: {e}");
+        }
+    }
+}

@@ -19,8 +19,8 @@ use std::path::{Path, PathBuf};
 
 use super::text::{self, grid_from_vectors, header_lines, origin3};
 use super::{
-    deinterleave, join_pieces, read_exact_or_truncated, voxel_count, Endian, ReadError, SampleType,
-    SourceFiles,
+    deinterleave, in_piece, join_pieces, read_exact_or_truncated, voxel_count, Endian, ReadError,
+    SampleType, SourceFiles,
 };
 use wavesplat_codec::volume::Volume;
 
@@ -153,18 +153,24 @@ pub(crate) fn data_pieces(
     bytes: &[u8],
     total: u64,
 ) -> Result<Option<(Vec<String>, u64)>, ReadError> {
-    let h = parse_header(path, bytes)?;
-    let Some(d) = data_file_names(path, &h, bytes)? else {
+    pieces_of(path, &parse_header(path, bytes)?, bytes, total)
+}
+
+/// [`data_pieces`] of a parsed header (`bytes`: the file's, holding a `LIST`'s names).
+fn pieces_of(
+    path: &Path,
+    h: &Header,
+    bytes: &[u8],
+    total: u64,
+) -> Result<Option<(Vec<String>, u64)>, ReadError> {
+    let Some(d) = data_file_names(path, h, bytes)? else {
         return Ok(None);
     };
     let sizes = h
         .get(&["DimSize"])
         .and_then(|(_, v)| text::sizes(v))
         .unwrap_or_default();
-    if d.single {
-        return Ok(Some((d.names, total)));
-    }
-    let piece = text::piece_bytes(&sizes, d.file_dim, d.names.len(), total, false)
+    let piece = text::piece_bytes(&sizes, &d, total, false)
         .map_err(|e| bad(path, format!("ElementDataFile: {e}")))?;
     Ok(Some((d.names, piece)))
 }
@@ -416,7 +422,7 @@ pub(crate) fn decode(src: &SourceFiles) -> Result<Volume, ReadError> {
     // The data: after the header, or in the data files, each holding its piece of the samples
     // (after its own HeaderSize; each compressed on its own), as MetaIO reads them.
     let (pieces, piece): (Vec<(PathBuf, &[u8])>, usize) =
-        match data_pieces(&path, header_bytes, expected as u64)? {
+        match pieces_of(&path, &h, header_bytes, expected as u64)? {
             None => (
                 vec![(path.clone(), &header_bytes[h.data_offset..])],
                 expected,
@@ -429,7 +435,17 @@ pub(crate) fn decode(src: &SourceFiles) -> Result<Volume, ReadError> {
     })?;
     let raw: &[u8] = &raw;
     let planar = deinterleave(raw, sample, endian, channels, 1.0, 0.0);
-    let v = Volume::new(dims, spacing, planar).map_err(|e| ReadError::volume(&data_path, e))?;
+    let v = Volume::new(dims, spacing, planar).map_err(|e| {
+        let e = ReadError::volume(&data_path, e);
+        in_piece(
+            e,
+            &pieces,
+            piece,
+            [dims[0], dims[1]],
+            channels,
+            sample.size(),
+        )
+    })?;
     match placement {
         Some(p) => v.with_placement(p).map_err(|e| ReadError::volume(&path, e)),
         None => Ok(v),

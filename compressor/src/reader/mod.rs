@@ -898,6 +898,37 @@ pub(crate) fn join_pieces<'a>(
     Ok(std::borrow::Cow::Owned(joined))
 }
 
+/// `e` naming, for a non-finite sample, the data file that holds it, where the samples (x
+/// fastest, `channels` interleaved, `size` bytes each, of a volume `nx` × `ny` wide) are cut
+/// into `pieces` of `piece` bytes each; any other error as it is.
+pub(crate) fn in_piece(
+    e: ReadError,
+    pieces: &[(PathBuf, &[u8])],
+    piece: usize,
+    [nx, ny]: [usize; 2],
+    channels: usize,
+    size: usize,
+) -> ReadError {
+    match e {
+        ReadError::InvalidVolume {
+            problem:
+                problem @ VolumeError::NonFinite {
+                    channel, x, y, z, ..
+                },
+            path,
+        } => {
+            let voxel = (z as u128 * ny as u128 + y as u128) * nx as u128 + x as u128;
+            let byte = (voxel * channels as u128 + channel as u128) * size as u128;
+            let file = usize::try_from(byte / piece.max(1) as u128).unwrap_or(usize::MAX);
+            ReadError::InvalidVolume {
+                path: pieces.get(file).map_or(path, |(p, _)| p.clone()),
+                problem,
+            }
+        }
+        e => e,
+    }
+}
+
 /// Decodes a volume from its gathered files, by their format (or, for an unknown format, as
 /// raw samples described by `raw`).
 pub fn decode_source(src: &SourceFiles, raw: Option<&RawSpec>) -> Result<Volume, ReadError> {

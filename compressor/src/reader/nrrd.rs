@@ -18,8 +18,8 @@ use std::path::{Path, PathBuf};
 
 use super::text::{self, grid_from_vectors, header_lines, nrrd_type, origin3};
 use super::{
-    deinterleave, join_pieces, read_exact_or_truncated, voxel_count, Endian, ReadError, SampleType,
-    SourceFiles,
+    deinterleave, in_piece, join_pieces, read_exact_or_truncated, voxel_count, Endian, ReadError,
+    SampleType, SourceFiles,
 };
 use wavesplat_codec::volume::{Placement, Volume};
 
@@ -322,15 +322,16 @@ pub(crate) fn data_pieces(
     bytes: &[u8],
     total: u64,
 ) -> Result<Option<(Vec<String>, u64)>, ReadError> {
-    let h = parse_header(path, bytes)?;
-    let Some(d) = data_file_names(path, &h)? else {
+    pieces_of(path, &parse_header(path, bytes)?, total)
+}
+
+/// [`data_pieces`] of a parsed header.
+fn pieces_of(path: &Path, h: &Header, total: u64) -> Result<Option<(Vec<String>, u64)>, ReadError> {
+    let Some(d) = data_file_names(path, h)? else {
         return Ok(None);
     };
     let sizes = h.sizes.as_deref().unwrap_or(&[]);
-    if d.single {
-        return Ok(Some((d.names, total)));
-    }
-    let piece = text::piece_bytes(sizes, d.file_dim, d.names.len(), total, true)
+    let piece = text::piece_bytes(sizes, &d, total, true)
         .map_err(|e| bad(path, format!("data file: {e}")))?;
     Ok(Some((d.names, piece)))
 }
@@ -514,7 +515,7 @@ pub(crate) fn decode(src: &SourceFiles) -> Result<Volume, ReadError> {
     // The data: after the header, or in the data files, each holding its piece of the samples
     // after its own skipped lines and bytes (as teem reads them).
     let (pieces, piece): (Vec<(PathBuf, &[u8])>, usize) =
-        match data_pieces(&path, header_bytes, expected as u64)? {
+        match pieces_of(&path, &h, expected as u64)? {
             Some((names, piece)) => (src.data_files(&names, FORMAT)?, piece as usize),
             None => {
                 let off = h.data_offset.ok_or_else(|| {
@@ -542,7 +543,9 @@ pub(crate) fn decode(src: &SourceFiles) -> Result<Volume, ReadError> {
     })?;
     let raw: &[u8] = &raw;
     let planar = deinterleave(raw, sample, endian, layout.channels, 1.0, 0.0);
+    let wide = [layout.dims[0], layout.dims[1]];
     finish(&data_path, layout, planar)
+        .map_err(|e| in_piece(e, &pieces, piece, wide, layout.channels, sample.size()))
 }
 
 /// The data after `lines` lines of `data` and the offset it starts at.

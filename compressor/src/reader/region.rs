@@ -114,6 +114,32 @@ struct Pieces {
     open: std::sync::Mutex<Vec<(usize, std::sync::Arc<File>)>>,
 }
 
+impl Stored {
+    /// The data file holding the sample of `channel` of voxel `at` at time point `t`, where
+    /// the samples are cut into files of a volume `dims` wide; `None` for one file, or time
+    /// points interleaved within a voxel.
+    fn piece_path(
+        &self,
+        t: usize,
+        at: [usize; 3],
+        channel: usize,
+        dims: [usize; 3],
+        channels: usize,
+    ) -> Option<&Path> {
+        let pieces = self.pieces.as_ref()?;
+        if self.interleaved != 1 {
+            return None;
+        }
+        let voxel =
+            (at[2] as u128 * dims[1] as u128 + at[1] as u128) * dims[0] as u128 + at[0] as u128;
+        let size = self.sample.size() as u128;
+        let byte =
+            self.frame as u128 * t as u128 + (voxel * channels as u128 + channel as u128) * size;
+        let file = usize::try_from(byte / u128::from(pieces.len.max(1))).ok()?;
+        pieces.files.get(file).map(|(p, _)| p.as_path())
+    }
+}
+
 /// Most piece files a reader keeps open ([`Pieces::open`]).
 const OPEN_PIECES: usize = 16;
 
@@ -405,7 +431,19 @@ impl RegionReader {
                 },
                 e => e,
             };
-            ReadError::volume(data_path, e)
+            match (&self.source, &e) {
+                // Samples cut into files: the file holding the sample.
+                (
+                    Source::Stored(s),
+                    VolumeError::NonFinite {
+                        channel, x, y, z, ..
+                    },
+                ) => {
+                    let at = s.piece_path(t, [*x, *y, *z], *channel, self.dims, self.channels);
+                    ReadError::volume(at.unwrap_or(data_path), e)
+                }
+                _ => ReadError::volume(data_path, e),
+            }
         })?;
         match &self.placement {
             Some(p) => {

@@ -270,19 +270,24 @@ pub(crate) fn data_file_names(value: &str, following: &[String]) -> Result<DataF
     })
 }
 
-/// Bytes of each data file's piece when `files` files hold a sample stream of `total` bytes
-/// whose axes have `sizes` (fastest first), each file `file_dim` of the axes (by default all
-/// but the slowest): there must be one file per sample of the remaining axes. With `slabs`
-/// (NRRD, as teem reads it), files of every axis are slabs: the slowest axis divides evenly
-/// among them. `Err` says what does not match.
+/// Bytes of each data file's piece when the files `named` hold a sample stream of `total`
+/// bytes whose axes have `sizes` (fastest first): all of it for one named file; else each file
+/// holds `file_dim` of the axes (by default all but the slowest), and there must be one file
+/// per sample of the remaining axes. With `slabs` (NRRD, as teem reads it), files of every axis
+/// are slabs: the slowest axis divides evenly among them. `Err` says what does not match.
 pub(crate) fn piece_bytes(
     sizes: &[u64],
-    file_dim: Option<usize>,
-    files: usize,
+    named: &DataFileNames,
     total: u64,
     slabs: bool,
 ) -> Result<u64, String> {
-    let dim = file_dim.unwrap_or(sizes.len().saturating_sub(1).max(1));
+    if named.single {
+        return Ok(total);
+    }
+    let files = named.names.len();
+    let dim = named
+        .file_dim
+        .unwrap_or(sizes.len().saturating_sub(1).max(1));
     if dim > sizes.len() {
         return Err(format!(
             "each file of {dim} dimensions, of a volume of {}",
