@@ -601,3 +601,47 @@ fn layouts_met_in_the_wild_and_the_limits_on_them() {
         assert!(e.contains(why), "{e}");
     }
 }
+
+/// A chunk whose codec header claims far more bytes than a chunk holds (a Zstd frame declaring
+/// 1 TiB in 17 bytes, a Blosc header declaring 4 GiB) is refused before anything that large is
+/// allocated.
+#[test]
+fn a_chunk_claiming_more_than_a_chunk_holds_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let zstd = dir.path().join("zstd");
+    std::fs::create_dir_all(zstd.join("c/0/0")).unwrap();
+    std::fs::write(
+        zstd.join("zarr.json"),
+        r#"{"zarr_format": 3, "node_type": "array", "shape": [4, 4, 4], "data_type": "uint16",
+            "chunk_grid": {"name": "regular", "configuration": {"chunk_shape": [4, 4, 4]}},
+            "chunk_key_encoding": {"name": "default", "configuration": {"separator": "/"}},
+            "fill_value": 0, "codecs": [{"name": "bytes", "configuration": {"endian": "little"}},
+            {"name": "zstd", "configuration": {"level": 0, "checksum": false}}]}"#,
+    )
+    .unwrap();
+    // Magic; a single segment with an 8-byte content size of 2^40; one empty last raw block.
+    let mut frame = vec![0x28, 0xb5, 0x2f, 0xfd, 0xe0];
+    frame.extend_from_slice(&(1u64 << 40).to_le_bytes());
+    frame.extend_from_slice(&[0x01, 0x00, 0x00]);
+    std::fs::write(zstd.join("c/0/0/0"), &frame).unwrap();
+    let blosc = dir.path().join("blosc");
+    std::fs::create_dir_all(&blosc).unwrap();
+    std::fs::write(
+        blosc.join(".zarray"),
+        r#"{"zarr_format": 2, "shape": [4, 4, 4], "chunks": [4, 4, 4], "dtype": "<u2",
+            "compressor": {"id": "blosc", "cname": "lz4", "clevel": 5, "shuffle": 1,
+            "blocksize": 0}, "fill_value": 0, "order": "C", "filters": null}"#,
+    )
+    .unwrap();
+    let header = [
+        2u8, 1, 1, 2, 0xff, 0xff, 0xff, 0xff, 0, 0, 1, 0, 16, 0, 0, 0,
+    ];
+    std::fs::write(blosc.join("0.0.0"), header).unwrap();
+    for store in [&zstd, &blosc] {
+        let e = read_volume(store, None).unwrap_err().to_string();
+        assert!(e.contains("declares"), "{}: {e}", store.display());
+        let r = RegionReader::open(store, None).unwrap();
+        let e = r.read_region([0, 0, 0], [2, 2, 2]).unwrap_err().to_string();
+        assert!(e.contains("declares"), "{}: {e}", store.display());
+    }
+}

@@ -21,11 +21,16 @@
 
 use std::ops::Range;
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::Arc;
 
 use serde_json::Value;
 use zarrs::array::{data_type, Array, ArrayShardedExt};
-use zarrs::storage::{ReadableStorage, ReadableStorageTraits, StoreKey, WritableStorageTraits};
+use zarrs::storage::byte_range::ByteRangeIterator;
+use zarrs::storage::{
+    MaybeBytesIterator, ReadableStorage, ReadableStorageTraits, StorageError, StoreKey,
+    WritableStorageTraits,
+};
 
 use super::{ReadError, SampleType, SourceFiles};
 use wavesplat_codec::format::series::MAX_TIME_POINTS;
@@ -130,6 +135,8 @@ impl ZarrVolume {
 
     fn of_store(path: &Path, store: ReadableStorage) -> Result<ZarrVolume, ReadError> {
         let target = locate(path, &store)?;
+        let bounded = Arc::new(Bounded::new(store));
+        let store: ReadableStorage = bounded.clone();
         let array = guarded(path, || Array::open(store, &target.array))?
             .map_err(|e| bad(path, format!("array {}: {e}", target.array)))?;
         let dt = array.data_type();
@@ -290,6 +297,12 @@ impl ZarrVolume {
             let why = format!("a scale of {} values for {} axes", s.len(), shape.len());
             return Err(bad(path, why));
         }
+        let codecs = serde_json::to_string(array.metadata()).unwrap_or_default();
+        bounded.arm(
+            chunk_bytes as u64,
+            codecs.contains("\"zstd\""),
+            codecs.contains("\"blosc\""),
+        );
         let scale_of = |i: usize| target.scale.as_ref().and_then(|s| s.get(i)).copied();
         let mut spacing = [1.0f32; 3];
         for (k, &i) in space_axes.iter().enumerate() {
@@ -419,6 +432,94 @@ impl ZarrVolume {
             Some(SampleType::F64) => gather!(f64, |v: f64| v as f32),
         }
         Ok(out)
+    }
+}
+
+/// A store whose chunks are checked before `zarrs` decodes them: a Zstd frame (by its declared
+/// content size, which zarrs allocates at once) or a Blosc buffer (by its header's size) that
+/// claims more than twice a chunk's bytes and a MiB is refused, so that a few hostile bytes
+/// cannot make the process allocate terabytes (an allocation failure aborts; no
+/// `catch_unwind` catches it). zarrs has no such limit; this wrapper is the narrowest place
+/// for one. gzip and zlib chunks inflate at most ~1 032 times their bytes, as every gzip
+/// stream the readers take does.
+struct Bounded {
+    inner: ReadableStorage,
+    /// Most decoded bytes a chunk may claim; 0 until the array's metadata is read.
+    limit: AtomicU64,
+    zstd: AtomicBool,
+    blosc: AtomicBool,
+}
+
+impl Bounded {
+    fn new(inner: ReadableStorage) -> Bounded {
+        Bounded {
+            inner,
+            limit: AtomicU64::new(0),
+            zstd: AtomicBool::new(false),
+            blosc: AtomicBool::new(false),
+        }
+    }
+
+    /// Checks chunks from now on: `chunk_bytes` a chunk, the codecs the array names.
+    fn arm(&self, chunk_bytes: u64, zstd: bool, blosc: bool) {
+        self.zstd.store(zstd, Ordering::Relaxed);
+        self.blosc.store(blosc, Ordering::Relaxed);
+        let limit = chunk_bytes.saturating_mul(2).saturating_add(1 << 20);
+        self.limit.store(limit, Ordering::Relaxed);
+    }
+
+    fn check(&self, key: &StoreKey, bytes: &[u8]) -> Result<(), StorageError> {
+        let limit = self.limit.load(Ordering::Relaxed);
+        if limit == 0 {
+            return Ok(());
+        }
+        const ZSTD_MAGIC: [u8; 4] = [0x28, 0xb5, 0x2f, 0xfd];
+        let declared = if self.zstd.load(Ordering::Relaxed) && bytes.starts_with(&ZSTD_MAGIC) {
+            zstd::bulk::Decompressor::upper_bound(bytes).map(|b| b as u64)
+        } else if self.blosc.load(Ordering::Relaxed) && bytes.len() >= 16 {
+            // Blosc's header: version, codec version, flags, type size, then the decoded,
+            // block and compressed bytes (u32, little-endian). Only a whole Blosc buffer (its
+            // compressed size its length) is one: a shard's index is not.
+            let word =
+                |i: usize| u32::from_le_bytes([bytes[i], bytes[i + 1], bytes[i + 2], bytes[i + 3]]);
+            (word(12) as usize == bytes.len()).then(|| u64::from(word(4)))
+        } else {
+            None
+        };
+        match declared {
+            Some(d) if d > limit => Err(StorageError::Other(format!(
+                "chunk {key} declares {d} bytes decoded, more than a chunk of this array holds"
+            ))),
+            _ => Ok(()),
+        }
+    }
+}
+
+impl ReadableStorageTraits for Bounded {
+    fn get_partial_many<'a>(
+        &'a self,
+        key: &StoreKey,
+        byte_ranges: ByteRangeIterator<'a>,
+    ) -> Result<MaybeBytesIterator<'a>, StorageError> {
+        let key = key.clone();
+        Ok(self
+            .inner
+            .get_partial_many(&key, byte_ranges)?
+            .map(|parts| {
+                Box::new(parts.map(move |part| {
+                    let bytes = part?;
+                    self.check(&key, &bytes)?;
+                    Ok(bytes)
+                })) as _
+            }))
+    }
+
+    fn size_key(&self, key: &StoreKey) -> Result<Option<u64>, StorageError> {
+        self.inner.size_key(key)
+    }
+
+    fn supports_get_partial(&self) -> bool {
+        self.inner.supports_get_partial()
     }
 }
 
