@@ -590,6 +590,13 @@ fn layouts_met_in_the_wild_and_the_limits_on_them() {
                   {"name": "x", "type": "space"}]"#;
     ome_group(&parsec, far, "[1, 1, 1]");
     hand_written(&parsec, "0", &[5, 6, 7], &[3, 4, 5], None, zyx, |_| false);
+    // Two links to their own directory: a walk following them visits 2^depth directories.
+    let looped = hand_written(d, "looped", &[5, 6, 7], &[3, 4, 5], None, zyx, |_| false);
+    std::os::unix::fs::symlink(&looped, looped.join("again")).unwrap();
+    std::os::unix::fs::symlink(&looped, looped.join("also")).unwrap();
+    let e = SourceListing::list(&looped, None).unwrap_err().to_string();
+    assert!(e.contains("reached twice"), "{e}");
+    assert!(read_volume(&looped, None).is_err());
     for (path, why) in [
         (&many, "time points"),
         (&short_scale, "a scale of 2 values for 3 axes"),

@@ -378,8 +378,12 @@ pub(crate) fn probe_file_for_bricks(
     threads: u64,
 ) -> Result<Option<(usize, String)>> {
     let limit = opts.memory_limit.or_else(available_memory);
-    // A DICOM series directory: the bytes of its files (a Zarr store's are nested: listed).
-    let on_disk = if path.is_dir() && !wavesplat_compressor::reader::zarr::is_store(path) {
+    // A Zarr store is always probed (below): its files are not counted.
+    let zarr = path.is_dir() && wavesplat_compressor::reader::zarr::is_store(path);
+    // A DICOM series directory: the bytes of its files.
+    let on_disk = if zarr {
+        0
+    } else if path.is_dir() {
         std::fs::read_dir(path)
             .map(|entries| {
                 entries
@@ -399,7 +403,6 @@ pub(crate) fn probe_file_for_bricks(
     // A limit given is always checked; the memory available only for files large enough, and
     // for Zarr stores, whose chunks may be far smaller than their samples (chunks of the fill
     // value are not stored; their dimensions are in their metadata, read at once).
-    let zarr = path.is_dir() && wavesplat_compressor::reader::zarr::is_store(path);
     let large = zarr
         || match (opts.memory_limit, limit) {
             (Some(_), _) => true,

@@ -435,13 +435,14 @@ impl ZarrVolume {
     }
 }
 
-/// A store whose chunks are checked before `zarrs` decodes them: a Zstd frame (by its declared
-/// content size, which zarrs allocates at once) or a Blosc buffer (by its header's size) that
-/// claims more than twice a chunk's bytes and a MiB is refused, so that a few hostile bytes
-/// cannot make the process allocate terabytes (an allocation failure aborts; no
-/// `catch_unwind` catches it). zarrs has no such limit; this wrapper is the narrowest place
-/// for one. gzip and zlib chunks inflate at most ~1 032 times their bytes, as every gzip
-/// stream the readers take does.
+/// A store whose chunks are checked before `zarrs` decodes them: a chunk that is one Zstd
+/// frame (by its declared content size, which zarrs allocates at once) or one Blosc buffer (by
+/// its header's size) and claims more than twice a chunk's bytes and a MiB is refused, so that
+/// a few hostile bytes cannot make the process allocate terabytes (an allocation failure
+/// aborts; no `catch_unwind` catches it). zarrs has no such limit. This covers a chunk read
+/// on its own only: a whole shard read at once, a skippable frame or a checksum before the
+/// frame, and Zstd frames of no declared size (decoded by streaming) pass unchecked; bounding
+/// those needs the decoding itself bounded (a codec of our own in place of zarrs' Zstd).
 struct Bounded {
     inner: ReadableStorage,
     /// Most decoded bytes a chunk may claim; 0 until the array's metadata is read.
@@ -816,17 +817,41 @@ pub(crate) fn store_files(path: &Path) -> Result<Vec<(String, PathBuf)>, ReadErr
 const MAX_DEPTH: usize = 32;
 
 /// Every file under `dir`, named `prefix/…`, symbolic links followed (a DataLad or git-annex
-/// checkout links every file: a chunk left out would read as the fill value).
+/// checkout links every file: a chunk left out would read as the fill value). A directory
+/// reached twice (a link to itself or to a parent) is refused: the walk would not end.
 fn walk(
     dir: &Path,
     prefix: &str,
     depth: usize,
     out: &mut Vec<(String, PathBuf)>,
 ) -> Result<(), ReadError> {
+    walk_once(
+        dir,
+        prefix,
+        depth,
+        out,
+        &mut std::collections::HashSet::new(),
+    )
+}
+
+fn walk_once(
+    dir: &Path,
+    prefix: &str,
+    depth: usize,
+    out: &mut Vec<(String, PathBuf)>,
+    seen: &mut std::collections::HashSet<PathBuf>,
+) -> Result<(), ReadError> {
     if depth > MAX_DEPTH {
         return Err(ReadError::unsupported(
             dir,
-            format!("directories nested more than {MAX_DEPTH} deep (a link loop?)"),
+            format!("directories nested more than {MAX_DEPTH} deep"),
+        ));
+    }
+    let real = std::fs::canonicalize(dir).map_err(|e| ReadError::io(dir, e))?;
+    if !seen.insert(real) {
+        return Err(ReadError::unsupported(
+            dir,
+            "a directory reached twice through symbolic links (a link loop)",
         ));
     }
     let entries = std::fs::read_dir(dir).map_err(|e| ReadError::io(dir, e))?;
@@ -840,7 +865,7 @@ fn walk(
         };
         let meta = std::fs::metadata(e.path()).map_err(|err| ReadError::io(&e.path(), err))?;
         if meta.is_dir() {
-            walk(&e.path(), &rel, depth + 1, out)?;
+            walk_once(&e.path(), &rel, depth + 1, out, seen)?;
         } else if meta.is_file() {
             out.push((rel, e.path()));
         }
