@@ -514,7 +514,7 @@ fn nrrd_files_of_every_axis_are_slabs() {
 }
 
 /// A NaN in the third of five slice files is refused naming that file, not the first, whole
-/// and by region, for NRRD and MetaImage alike.
+/// and by region, for NRRD and MetaImage alike, raw or compressed.
 #[test]
 fn a_non_finite_sample_is_refused_naming_the_file_that_holds_it() {
     let dir = tempfile::tempdir().unwrap();
@@ -528,9 +528,31 @@ fn a_non_finite_sample_is_refused_naming_the_file_that_holds_it() {
         }
         let name = format!("s{z}.raw");
         let bytes: Vec<u8> = slice.iter().flat_map(|v| v.to_le_bytes()).collect();
+        std::fs::write(d.join(format!("s{z}.raw.gz")), gzip(&bytes)).unwrap();
+        std::fs::write(d.join(format!("s{z}.zraw")), zlib(&bytes)).unwrap();
         std::fs::write(d.join(&name), bytes).unwrap();
         names.push(name);
     }
+    // The same slices compressed, each file on its own (inflated into one temporary file
+    // for region reads).
+    std::fs::write(
+        d.join("gz.nhdr"),
+        format!(
+            "NRRD0004\ntype: float\ndimension: 3\nsizes: {nx} {ny} {nz}\nendian: little\n\
+             encoding: gzip\ndata file: s%d.raw.gz 0 {} 1\n",
+            nz - 1
+        ),
+    )
+    .unwrap();
+    std::fs::write(
+        d.join("z.mhd"),
+        format!(
+            "ObjectType = Image\nNDims = 3\nDimSize = {nx} {ny} {nz}\nElementType = MET_FLOAT\n\
+             CompressedData = True\nElementDataFile = s%d.zraw 0 {} 1\n",
+            nz - 1
+        ),
+    )
+    .unwrap();
     let list = names.join("\n");
     std::fs::write(
         d.join("v.nhdr"),
@@ -549,7 +571,7 @@ fn a_non_finite_sample_is_refused_naming_the_file_that_holds_it() {
         ),
     )
     .unwrap();
-    for header in ["v.nhdr", "v.mhd"] {
+    for header in ["v.nhdr", "v.mhd", "gz.nhdr", "z.mhd"] {
         let path = d.join(header);
         let whole = read_volume(&path, None).unwrap_err().to_string();
         let reader = RegionReader::open(&path, None).unwrap();
@@ -558,8 +580,8 @@ fn a_non_finite_sample_is_refused_naming_the_file_that_holds_it() {
             .unwrap_err()
             .to_string();
         for e in [whole, region] {
-            assert!(e.contains("s2.raw"), "{header}: {e}");
-            assert!(!e.contains("s0.raw"), "{header}: {e}");
+            assert!(e.contains("s2."), "{header}: {e}");
+            assert!(!e.contains("s0."), "{header}: {e}");
         }
     }
 }

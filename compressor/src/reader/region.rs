@@ -89,6 +89,9 @@ struct Stored {
     /// detached header's `LIST` or file name pattern): then `file` is the first piece's,
     /// `offset` is 0, and byte `b` of the stream is byte `b % len` of piece `b / len`.
     pieces: Option<Pieces>,
+    /// The data files whose pieces, inflated, follow one another in a temporary `file` (their
+    /// length; the files in order): for messages only.
+    spooled: Option<(u64, Vec<PathBuf>)>,
     sample: SampleType,
     endian: Endian,
     slope: f64,
@@ -126,7 +129,11 @@ impl Stored {
         dims: [usize; 3],
         channels: usize,
     ) -> Option<&Path> {
-        let pieces = self.pieces.as_ref()?;
+        let (len, files): (u64, Vec<&Path>) = match (&self.pieces, &self.spooled) {
+            (Some(p), _) => (p.len, p.files.iter().map(|(f, _)| f.as_path()).collect()),
+            (None, Some((len, files))) => (*len, files.iter().map(PathBuf::as_path).collect()),
+            (None, None) => return None,
+        };
         if self.interleaved != 1 {
             return None;
         }
@@ -135,8 +142,8 @@ impl Stored {
         let size = self.sample.size() as u128;
         let byte =
             self.frame as u128 * t as u128 + (voxel * channels as u128 + channel as u128) * size;
-        let file = usize::try_from(byte / u128::from(pieces.len.max(1))).ok()?;
-        pieces.files.get(file).map(|(p, _)| p.as_path())
+        let file = usize::try_from(byte / u128::from(len.max(1))).ok()?;
+        files.get(file).copied()
     }
 }
 
@@ -185,6 +192,7 @@ impl Stored {
             path,
             offset,
             pieces: None,
+            spooled: None,
             sample,
             endian,
             slope: 1.0,

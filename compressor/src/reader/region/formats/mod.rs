@@ -226,7 +226,14 @@ fn spool_pieces(
         spool_into(&mut file, &mut stream, *bytes, path, format, what)?;
     }
     let frame = pieces.iter().map(|(_, b)| b).sum();
-    Ok(Stored::plain(file, first.clone(), 0, sample, endian, frame))
+    let spooled = (pieces.len() > 1).then(|| {
+        let files = pieces.iter().map(|(p, _)| p.clone()).collect();
+        (pieces[0].1, files)
+    });
+    Ok(Stored {
+        spooled,
+        ..Stored::plain(file, first.clone(), 0, sample, endian, frame)
+    })
 }
 
 /// The error of writing the inflated samples of `data_path` to a temporary file.
