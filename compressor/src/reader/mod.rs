@@ -589,7 +589,7 @@ impl SourceFiles {
     /// (u8 length + bytes), the file count (u32 LE), then per file its name (u16 LE length +
     /// UTF-8) and bytes (u64 LE length + bytes), in order.
     pub fn to_bytes(&self) -> Vec<u8> {
-        if self.files.len() == 1 && self.format != Some(Format::Zarr) {
+        if is_bare(self.format, self.files.len()) {
             return self.files[0].1.clone();
         }
         let total: usize = self.files.iter().map(|(n, b)| n.len() + b.len() + 10).sum();
@@ -782,7 +782,7 @@ impl SourceListing {
     /// The length of [`SourceListing::write_to`]'s bytes.
     pub fn byte_len(&self) -> u64 {
         match self.files.as_slice() {
-            [(_, _, len)] if self.format != Some(Format::Zarr) => *len,
+            [(_, _, len)] if is_bare(self.format, 1) => *len,
             files => {
                 let f = self.format.map_or(0, |f| f.name().len() as u64);
                 BUNDLE_MAGIC.len() as u64
@@ -815,7 +815,7 @@ impl SourceListing {
             Ok(())
         };
         let written = |e: io::Error| ReadError::io(Path::new("(output)"), e);
-        if let ([(_, p, len)], false) = (self.files.as_slice(), self.format == Some(Format::Zarr)) {
+        if let ([(_, p, len)], true) = (self.files.as_slice(), is_bare(self.format, 1)) {
             return copy(out, p, *len);
         }
         let f = self.format.map_or("", Format::name);
@@ -835,6 +835,13 @@ impl SourceListing {
         }
         Ok(())
     }
+}
+
+/// Whether a source of `files` files in `format` travels as its one file's own bytes rather
+/// than as a bundle ([`SourceFiles::to_bytes`], [`SourceListing::write_to`]): one file, but for
+/// a Zarr store (a directory, whose one file may be its metadata alone).
+fn is_bare(format: Option<Format>, files: usize) -> bool {
+    files == 1 && format != Some(Format::Zarr)
 }
 
 /// The format a bundle names ([`Format::name`]; empty: none).
@@ -898,6 +905,19 @@ pub(crate) fn join_pieces<'a>(
     Ok(std::borrow::Cow::Owned(joined))
 }
 
+/// The byte of the sample of `channel` at voxel `at` in a stream of samples x fastest,
+/// `channels` interleaved, `size` bytes each, of a volume `nx` × `ny` wide.
+pub(crate) fn sample_byte(
+    at: [usize; 3],
+    channel: usize,
+    [nx, ny]: [usize; 2],
+    channels: usize,
+    size: usize,
+) -> u128 {
+    let voxel = (at[2] as u128 * ny as u128 + at[1] as u128) * nx as u128 + at[0] as u128;
+    (voxel * channels as u128 + channel as u128) * size as u128
+}
+
 /// `e` naming, for a non-finite sample, the data file that holds it, where the samples (x
 /// fastest, `channels` interleaved, `size` bytes each, of a volume `nx` × `ny` wide) are cut
 /// into `pieces` of `piece` bytes each; any other error as it is.
@@ -917,8 +937,7 @@ pub(crate) fn in_piece(
                 },
             path,
         } => {
-            let voxel = (z as u128 * ny as u128 + y as u128) * nx as u128 + x as u128;
-            let byte = (voxel * channels as u128 + channel as u128) * size as u128;
+            let byte = sample_byte([x, y, z], channel, [nx, ny], channels, size);
             let file = usize::try_from(byte / piece.max(1) as u128).unwrap_or(usize::MAX);
             ReadError::InvalidVolume {
                 path: pieces.get(file).map_or(path, |(p, _)| p.clone()),

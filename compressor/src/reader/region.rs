@@ -137,11 +137,14 @@ impl Stored {
         if self.interleaved != 1 {
             return None;
         }
-        let voxel =
-            (at[2] as u128 * dims[1] as u128 + at[1] as u128) * dims[0] as u128 + at[0] as u128;
-        let size = self.sample.size() as u128;
-        let byte =
-            self.frame as u128 * t as u128 + (voxel * channels as u128 + channel as u128) * size;
+        let within = super::sample_byte(
+            at,
+            channel,
+            [dims[0], dims[1]],
+            channels,
+            self.sample.size(),
+        );
+        let byte = self.frame as u128 * t as u128 + within;
         let file = usize::try_from(byte / u128::from(len.max(1))).ok()?;
         files.get(file).copied()
     }

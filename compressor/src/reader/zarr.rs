@@ -891,8 +891,3 @@ pub(crate) fn decode(src: &SourceFiles) -> Result<Volume, ReadError> {
     let samples = z.read(0, [0; 3], z.dims)?;
     Volume::new(z.dims, z.spacing, vec![samples]).map_err(|e| ReadError::volume(&src.origin, e))
 }
-
-/// Opens the store at `path` for region reads.
-pub(crate) fn open_regions(path: &Path) -> Result<ZarrVolume, ReadError> {
-    ZarrVolume::open(path)
-}

@@ -95,7 +95,7 @@ fn open_tiff(path: &Path) -> Result<Opened, ReadError> {
 
 /// A Zarr array, read by chunks.
 fn open_zarr(path: &Path) -> Result<Opened, ReadError> {
-    let z = crate::reader::zarr::open_regions(path)?;
+    let z = crate::reader::zarr::ZarrVolume::open(path)?;
     Ok(Opened {
         dims: z.dims(),
         channels: 1,
