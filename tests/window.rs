@@ -41,57 +41,65 @@ struct Xvfb {
 
 impl Drop for Xvfb {
     fn drop(&mut self) {
+        // SIGTERM, so that the server removes its lock file and socket (after SIGKILL they
+        // stay behind, and a later server must tell them from live ones).
+        let pid = rustix::process::Pid::from_child(&self.child);
+        let _ = rustix::process::kill_process(pid, rustix::process::Signal::TERM);
+        let deadline = Instant::now() + Duration::from_secs(5);
+        while matches!(self.child.try_wait(), Ok(None)) && Instant::now() < deadline {
+            std::thread::sleep(Duration::from_millis(20));
+        }
         let _ = self.child.kill();
         let _ = self.child.wait();
     }
 }
 
 impl Xvfb {
-    /// Starts Xvfb on the first free display number from a per-process start (tests run in
-    /// parallel, and other users of the machine may run X servers too).
+    /// Starts Xvfb on a display number it picks itself (`-displayfd`): the server takes the
+    /// first number whose lock file it can create, and writes it once it accepts connections.
+    /// Choosing the number here instead raced with the tests running beside this one (two
+    /// servers started for one number, one exits, and its test draws on the other's server
+    /// until that test ends: "XIO: fatal IO error 11").
     fn start() -> Option<Xvfb> {
         if !on_path("Xvfb") {
             return None;
         }
-        // Tests of one process run in parallel: each takes its own range of numbers.
-        static NEXT: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
-        let turn = NEXT.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
-        let first = 100 + (std::process::id() as usize % 40) * 20 + (turn % 4) * 5;
-        for n in (first..first + 5).chain(900..960) {
-            if Path::new(&format!("/tmp/.X{n}-lock")).exists()
-                || Path::new(&format!("/tmp/.X11-unix/X{n}")).exists()
-            {
-                continue;
-            }
-            let Ok(mut child) = Command::new("Xvfb")
-                .arg(format!(":{n}"))
-                .args(["-screen", "0", "1024x768x24", "-nolisten", "tcp"])
-                .stdout(Stdio::null())
-                .stderr(Stdio::null())
-                .spawn()
-            else {
-                return None;
-            };
-            let deadline = Instant::now() + Duration::from_secs(15);
-            loop {
-                let alive = matches!(child.try_wait(), Ok(None));
-                if alive && Path::new(&format!("/tmp/.X11-unix/X{n}")).exists() {
-                    // The socket exists a moment before the server accepts.
-                    std::thread::sleep(Duration::from_millis(200));
-                    return Some(Xvfb {
-                        child,
-                        display: format!(":{n}"),
-                    });
-                }
-                if matches!(child.try_wait(), Ok(Some(_))) || Instant::now() > deadline {
-                    let _ = child.kill();
-                    let _ = child.wait();
-                    break; // taken meanwhile, or broken: try the next number
-                }
-                std::thread::sleep(Duration::from_millis(50));
-            }
-        }
-        None
+        let mut child = Command::new("Xvfb")
+            .args([
+                "-displayfd",
+                "1",
+                "-screen",
+                "0",
+                "1024x768x24",
+                "-nolisten",
+                "tcp",
+            ])
+            .stdin(Stdio::null())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::null())
+            .spawn()
+            .ok()?;
+        let stdout = child.stdout.take()?;
+        let (sender, receiver) = std::sync::mpsc::channel();
+        std::thread::spawn(move || {
+            use std::io::BufRead;
+            let mut line = String::new();
+            let _ = std::io::BufReader::new(stdout).read_line(&mut line);
+            let _ = sender.send(line);
+        });
+        let display = receiver
+            .recv_timeout(Duration::from_secs(20))
+            .ok()
+            .and_then(|line| line.trim().parse::<u32>().ok());
+        let Some(n) = display else {
+            let _ = child.kill();
+            let _ = child.wait();
+            return None;
+        };
+        Some(Xvfb {
+            child,
+            display: format!(":{n}"),
+        })
     }
 }
 
