@@ -652,3 +652,203 @@ fn a_chunk_claiming_more_than_a_chunk_holds_is_refused() {
         assert!(e.contains("declares"), "{}: {e}", store.display());
     }
 }
+
+/// CRC-32C (Castagnoli, reflected), as Zarr v3's `crc32c` codec appends it: a test's own
+/// bitwise reference, so that the hostile chunks below pass zarrs' checksum check.
+fn crc32c(bytes: &[u8]) -> u32 {
+    let mut crc = !0u32;
+    for &b in bytes {
+        crc ^= u32::from(b);
+        for _ in 0..8 {
+            crc = if crc & 1 == 1 {
+                (crc >> 1) ^ 0x82f6_3b78
+            } else {
+                crc >> 1
+            };
+        }
+    }
+    !crc
+}
+
+/// A v3 array of 4×4×4 u16 samples in one chunk (or one shard) with these codecs, its chunk
+/// (or shard) file holding `chunk`.
+fn v3_store(dir: &Path, name: &str, codecs: &str, chunk: &[u8]) -> PathBuf {
+    let path = dir.join(name);
+    std::fs::create_dir_all(path.join("c/0/0")).unwrap();
+    let meta = format!(
+        r#"{{"zarr_format": 3, "node_type": "array", "shape": [4, 4, 4], "data_type": "uint16",
+            "chunk_grid": {{"name": "regular", "configuration": {{"chunk_shape": [4, 4, 4]}}}},
+            "chunk_key_encoding": {{"name": "default", "configuration": {{"separator": "/"}}}},
+            "fill_value": 0, "codecs": {codecs}}}"#
+    );
+    std::fs::write(path.join("zarr.json"), meta).unwrap();
+    std::fs::write(path.join("c/0/0/0"), chunk).unwrap();
+    path
+}
+
+/// A v2 array of 4×4×4 u16 samples in one chunk compressed by `compressor`, holding `chunk`.
+fn v2_store(dir: &Path, name: &str, compressor: &str, chunk: &[u8]) -> PathBuf {
+    let path = dir.join(name);
+    std::fs::create_dir_all(&path).unwrap();
+    let meta = format!(
+        r#"{{"zarr_format": 2, "shape": [4, 4, 4], "chunks": [4, 4, 4], "dtype": "<u2",
+            "compressor": {compressor}, "fill_value": 0, "order": "C", "filters": null}}"#
+    );
+    std::fs::write(path.join(".zarray"), meta).unwrap();
+    std::fs::write(path.join("0.0.0"), chunk).unwrap();
+    path
+}
+
+/// Chunks that decode to far more than a chunk holds without declaring it in a header zarrs
+/// trusts are refused before zarrs decodes them: a Zstd frame of 32 MiB (RLE blocks, no
+/// declared size) with a byte after it (no whole frames, so zarrs decodes by streaming), a
+/// frame declaring 1 TiB followed by its CRC-32C (zarrs strips the checksum and allocates the
+/// declared size: the process aborts), gzip and zlib streams of 32 MiB of zeros (zarrs
+/// inflates them whole), and a shard read whole whose first inner chunk declares 1 TiB.
+#[test]
+fn chunks_that_decode_past_a_chunk_are_refused_before_they_are_decoded() {
+    let dir = tempfile::tempdir().unwrap();
+    // Magic; no declared size, not a single segment, a window of 128 KiB; 256 RLE blocks of
+    // 128 KiB of one byte, the last one marked last.
+    let mut streamed = vec![0x28, 0xb5, 0x2f, 0xfd, 0x00, 0x38];
+    for k in 0..256u32 {
+        let header = (131_072 << 3) | (1 << 1) | u32::from(k == 255);
+        streamed.extend_from_slice(&header.to_le_bytes()[..3]);
+        streamed.push(7);
+    }
+    let whole = zstd::decode_all(&streamed[..]).unwrap();
+    assert_eq!(whole.len(), 32 << 20, "the frame inflates to 32 MiB");
+    streamed.push(0);
+    let mut declared = vec![0x28, 0xb5, 0x2f, 0xfd, 0xe0];
+    declared.extend_from_slice(&(1u64 << 40).to_le_bytes());
+    declared.extend_from_slice(&[0x01, 0x00, 0x00]);
+    let mut checked = declared.clone();
+    checked.extend_from_slice(&crc32c(&declared).to_le_bytes());
+    let zeros = vec![0u8; 32 << 20];
+    let gzip = {
+        use std::io::Write;
+        let mut e = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::best());
+        e.write_all(&zeros).unwrap();
+        e.finish().unwrap()
+    };
+    let zlib = {
+        use std::io::Write;
+        let mut e = flate2::write::ZlibEncoder::new(Vec::new(), flate2::Compression::best());
+        e.write_all(&zeros).unwrap();
+        e.finish().unwrap()
+    };
+    // A shard of 2×2×2 inner chunks: the first the 1 TiB frame, the others missing; its index
+    // (offset, length) pairs at the end with their CRC-32C.
+    let mut shard = declared.clone();
+    let mut index = Vec::new();
+    index.extend_from_slice(&0u64.to_le_bytes());
+    index.extend_from_slice(&(declared.len() as u64).to_le_bytes());
+    for _ in 1..8 {
+        index.extend_from_slice(&u64::MAX.to_le_bytes());
+        index.extend_from_slice(&u64::MAX.to_le_bytes());
+    }
+    let crc = crc32c(&index);
+    shard.extend_from_slice(&index);
+    shard.extend_from_slice(&crc.to_le_bytes());
+    let zstd_codecs = r#"[{"name": "bytes", "configuration": {"endian": "little"}},
+        {"name": "zstd", "configuration": {"level": 0, "checksum": false}}]"#;
+    let checked_codecs = r#"[{"name": "bytes", "configuration": {"endian": "little"}},
+        {"name": "zstd", "configuration": {"level": 0, "checksum": false}},
+        {"name": "crc32c"}]"#;
+    let shard_codecs = format!(
+        r#"[{{"name": "sharding_indexed", "configuration": {{"chunk_shape": [2, 2, 2],
+            "codecs": {zstd_codecs},
+            "index_codecs": [{{"name": "bytes", "configuration": {{"endian": "little"}}}},
+                {{"name": "crc32c"}}], "index_location": "end"}}}}]"#
+    );
+    let stores = [
+        v3_store(dir.path(), "streamed", zstd_codecs, &streamed),
+        v3_store(dir.path(), "checked", checked_codecs, &checked),
+        v2_store(dir.path(), "gzip", r#"{"id": "gzip", "level": 9}"#, &gzip),
+        v2_store(dir.path(), "zlib", r#"{"id": "zlib", "level": 9}"#, &zlib),
+        v3_store(dir.path(), "shard", &shard_codecs, &shard),
+    ];
+    for store in &stores {
+        let e = read_volume(store, None).unwrap_err().to_string();
+        assert!(e.contains("declares"), "{}: {e}", store.display());
+        let r = RegionReader::open(store, None).unwrap();
+        let e = r.read_region([0, 0, 0], [4, 4, 4]).unwrap_err().to_string();
+        assert!(e.contains("declares"), "{}: {e}", store.display());
+    }
+    // The same codecs on honest chunks still read: the checks refuse only what overflows.
+    let samples: Vec<u8> = (0..64u16).flat_map(|v| (v * 3).to_le_bytes()).collect();
+    let framed = zstd::encode_all(&samples[..], 3).unwrap();
+    let mut framed_checked = framed.clone();
+    framed_checked.extend_from_slice(&crc32c(&framed).to_le_bytes());
+    let deflated = {
+        use std::io::Write;
+        let mut e = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::best());
+        e.write_all(&samples).unwrap();
+        e.finish().unwrap()
+    };
+    let honest = [
+        v3_store(
+            dir.path(),
+            "honest-checked",
+            checked_codecs,
+            &framed_checked,
+        ),
+        v2_store(
+            dir.path(),
+            "honest-gzip",
+            r#"{"id": "gzip", "level": 9}"#,
+            &deflated,
+        ),
+    ];
+    let want: Vec<f32> = (0..64u16).map(|v| f32::from(v * 3)).collect();
+    for store in &honest {
+        let v = read_volume(store, None).unwrap();
+        assert_eq!(v.channel(0), &want[..], "{}", store.display());
+    }
+    // A whole shard that decodes to far more than one of its inner chunks (2 MiB of 32 inner
+    // chunks of 64 KiB) is checked chunk by chunk, not as one.
+    let (shape, inner) = ([64usize, 128, 128], [32usize, 32, 32]);
+    let value = |z: usize, y: usize, x: usize| ((z * 7 + y * 3 + x * 5) % 4099) as u16;
+    let (mut data, mut index) = (Vec::new(), Vec::new());
+    for cz in 0..shape[0] / inner[0] {
+        for cy in 0..shape[1] / inner[1] {
+            for cx in 0..shape[2] / inner[2] {
+                let mut samples = Vec::new();
+                for z in 0..inner[0] {
+                    for y in 0..inner[1] {
+                        for x in 0..inner[2] {
+                            let v = value(cz * inner[0] + z, cy * inner[1] + y, cx * inner[2] + x);
+                            samples.extend_from_slice(&v.to_le_bytes());
+                        }
+                    }
+                }
+                let frame = zstd::encode_all(&samples[..], 1).unwrap();
+                index.extend_from_slice(&(data.len() as u64).to_le_bytes());
+                index.extend_from_slice(&(frame.len() as u64).to_le_bytes());
+                data.extend_from_slice(&frame);
+            }
+        }
+    }
+    let crc = crc32c(&index);
+    data.extend_from_slice(&index);
+    data.extend_from_slice(&crc.to_le_bytes());
+    let path = dir.path().join("honest-shard");
+    std::fs::create_dir_all(path.join("c/0/0")).unwrap();
+    let meta = format!(
+        r#"{{"zarr_format": 3, "node_type": "array", "shape": {shape:?}, "data_type": "uint16",
+            "chunk_grid": {{"name": "regular", "configuration": {{"chunk_shape": {shape:?}}}}},
+            "chunk_key_encoding": {{"name": "default", "configuration": {{"separator": "/"}}}},
+            "fill_value": 0, "codecs": [{{"name": "sharding_indexed", "configuration": {{
+            "chunk_shape": {inner:?}, "codecs": {zstd_codecs},
+            "index_codecs": [{{"name": "bytes", "configuration": {{"endian": "little"}}}},
+                {{"name": "crc32c"}}], "index_location": "end"}}}}]}}"#
+    );
+    std::fs::write(path.join("zarr.json"), meta).unwrap();
+    std::fs::write(path.join("c/0/0/0"), &data).unwrap();
+    let v = read_volume(&path, None).unwrap();
+    assert_eq!(v.dims(), [128, 128, 64]);
+    for (i, got) in v.channel(0).iter().enumerate() {
+        let (x, y, z) = (i % 128, (i / 128) % 128, i / (128 * 128));
+        assert_eq!(*got, f32::from(value(z, y, x)), "sample {i}");
+    }
+}

@@ -19,9 +19,10 @@
 //! is untrusted: metadata that does not parse, chunks that do not decode and non-finite samples
 //! (a float array's NaN fill value where chunks are missing, too) are typed errors naming it.
 
+use std::io::Read;
 use std::ops::Range;
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 
 use serde_json::Value;
@@ -297,12 +298,8 @@ impl ZarrVolume {
             let why = format!("a scale of {} values for {} axes", s.len(), shape.len());
             return Err(bad(path, why));
         }
-        let codecs = serde_json::to_string(array.metadata()).unwrap_or_default();
-        bounded.arm(
-            chunk_bytes as u64,
-            codecs.contains("\"zstd\""),
-            codecs.contains("\"blosc\""),
-        );
+        let metadata = serde_json::to_value(array.metadata()).unwrap_or_default();
+        bounded.arm(chunk_bytes as u64, &metadata);
         let scale_of = |i: usize| target.scale.as_ref().and_then(|s| s.get(i)).copied();
         let mut spacing = [1.0f32; 3];
         for (k, &i) in space_axes.iter().enumerate() {
@@ -435,20 +432,138 @@ impl ZarrVolume {
     }
 }
 
-/// A store whose chunks are checked before `zarrs` decodes them: a chunk that is one Zstd
-/// frame (by its declared content size, which zarrs allocates at once) or one Blosc buffer (by
-/// its header's size) and claims more than twice a chunk's bytes and a MiB is refused, so that
-/// a few hostile bytes cannot make the process allocate terabytes (an allocation failure
-/// aborts; no `catch_unwind` catches it). zarrs has no such limit. This covers a chunk read
-/// on its own only: a whole shard read at once, a skippable frame or a checksum before the
-/// frame, and Zstd frames of no declared size (decoded by streaming) pass unchecked; bounding
-/// those needs the decoding itself bounded (a codec of our own in place of zarrs' Zstd).
+/// A store whose chunks are checked before `zarrs` decodes them, so that a few hostile bytes
+/// cannot make the process allocate far more than a chunk (an allocation failure aborts; no
+/// `catch_unwind` catches it; zarrs has no limit of its own). A chunk may decode to at most
+/// twice a chunk's bytes and a MiB:
+/// - Zstd: the bound of its frames (each frame's declared content size, which zarrs allocates
+///   at once, or its blocks' most), over the whole frames it begins with, skippable frames and
+///   a trailing CRC-32C included; where the bytes are not whole frames (zarrs then decodes by
+///   streaming, as far as they go), they are decoded here first into nothing, up to the limit;
+/// - Blosc: its header's decoded size (only a whole Blosc buffer, its compressed size its
+///   length, is one);
+/// - gzip and zlib: inflated here first into nothing, up to the limit, where the chunk is long
+///   enough to inflate past it (Deflate's most is 1 032 times its input). zarrs inflates with
+///   no bound; a codec of our own in its place is not possible (zarrs picks a codec by name),
+///   so such chunks are inflated twice;
+/// - a whole shard read at once (a region covering a shard): each inner chunk, located by the
+///   shard's index (`bytes` and `crc32c` index codecs), as above.
 struct Bounded {
     inner: ReadableStorage,
     /// Most decoded bytes a chunk may claim; 0 until the array's metadata is read.
     limit: AtomicU64,
-    zstd: AtomicBool,
-    blosc: AtomicBool,
+    codecs: std::sync::OnceLock<Codecs>,
+}
+
+/// What the array's codecs say about the bytes of its chunks.
+#[derive(Default)]
+struct Codecs {
+    zstd: bool,
+    blosc: bool,
+    deflate: bool,
+    /// A CRC-32C follows the compressed bytes.
+    crc32c: bool,
+    shard: Option<ShardIndex>,
+}
+
+/// Where a shard's inner chunks lie: its index of (offset, length) pairs, little-endian u64s.
+struct ShardIndex {
+    chunks: usize,
+    at_end: bool,
+    crc32c: bool,
+}
+
+impl Codecs {
+    /// The codecs of an array's metadata (v2 or v3, as JSON).
+    fn of(metadata: &Value) -> Codecs {
+        let text = metadata.to_string();
+        let named = |n: &str| text.contains(&format!("\"{n}\""));
+        Codecs {
+            zstd: named("zstd"),
+            blosc: named("blosc"),
+            deflate: named("gzip") || named("zlib"),
+            crc32c: named("crc32c"),
+            shard: ShardIndex::of(metadata),
+        }
+    }
+}
+
+impl ShardIndex {
+    fn of(metadata: &Value) -> Option<ShardIndex> {
+        let codecs = metadata.get("codecs")?.as_array()?;
+        let sharding = codecs
+            .iter()
+            .find(|c| c.get("name").and_then(Value::as_str) == Some("sharding_indexed"))?;
+        let config = sharding.get("configuration")?;
+        let shard = metadata
+            .get("chunk_grid")?
+            .get("configuration")?
+            .get("chunk_shape")?
+            .as_array()?;
+        let inner = config.get("chunk_shape")?.as_array()?;
+        if shard.len() != inner.len() {
+            return None;
+        }
+        let mut chunks = 1usize;
+        for (s, i) in shard.iter().zip(inner) {
+            let (s, i) = (s.as_u64()?, i.as_u64()?);
+            if i == 0 {
+                return None;
+            }
+            chunks = chunks.checked_mul(usize::try_from(s.div_ceil(i)).ok()?)?;
+        }
+        // Only an index of plain little-endian words, perhaps with a CRC-32C, is read here.
+        let mut crc32c = false;
+        for c in config.get("index_codecs")?.as_array()? {
+            match c.get("name").and_then(Value::as_str)? {
+                "bytes" => {
+                    let endian = c
+                        .get("configuration")
+                        .and_then(|c| c.get("endian"))
+                        .and_then(Value::as_str);
+                    if !matches!(endian, None | Some("little")) {
+                        return None;
+                    }
+                }
+                "crc32c" => crc32c = true,
+                _ => return None,
+            }
+        }
+        let at_end = config.get("index_location").and_then(Value::as_str) != Some("start");
+        Some(ShardIndex {
+            chunks,
+            at_end,
+            crc32c,
+        })
+    }
+
+    /// The inner chunks of `bytes` if they are a whole shard (its index where it should be,
+    /// every entry inside the data or empty), else `None` (a part of a shard).
+    fn inner_chunks<'a>(&self, bytes: &'a [u8]) -> Option<Vec<&'a [u8]>> {
+        let len = self.chunks.checked_mul(16)? + if self.crc32c { 4 } else { 0 };
+        if bytes.len() < len {
+            return None;
+        }
+        let (index, data) = if self.at_end {
+            (&bytes[bytes.len() - len..], 0..bytes.len() - len)
+        } else {
+            (&bytes[..len], len..bytes.len())
+        };
+        let word = |i: usize| u64::from_le_bytes(index[8 * i..8 * i + 8].try_into().unwrap());
+        let mut inner = Vec::new();
+        for k in 0..self.chunks {
+            let (offset, length) = (word(2 * k), word(2 * k + 1));
+            if offset == u64::MAX && length == u64::MAX {
+                continue;
+            }
+            let end = offset.checked_add(length)?;
+            if offset < data.start as u64 || end > data.end as u64 {
+                return None;
+            }
+            inner.push(&bytes[offset as usize..end as usize]);
+        }
+        Some(inner)
+    }
 }
 
 impl Bounded {
@@ -456,42 +571,97 @@ impl Bounded {
         Bounded {
             inner,
             limit: AtomicU64::new(0),
-            zstd: AtomicBool::new(false),
-            blosc: AtomicBool::new(false),
+            codecs: std::sync::OnceLock::new(),
         }
     }
 
-    /// Checks chunks from now on: `chunk_bytes` a chunk, the codecs the array names.
-    fn arm(&self, chunk_bytes: u64, zstd: bool, blosc: bool) {
-        self.zstd.store(zstd, Ordering::Relaxed);
-        self.blosc.store(blosc, Ordering::Relaxed);
+    /// Checks chunks from now on: `chunk_bytes` a chunk (an inner chunk of a shard), the codecs
+    /// of the array's `metadata`.
+    fn arm(&self, chunk_bytes: u64, metadata: &Value) {
+        let _ = self.codecs.set(Codecs::of(metadata));
         let limit = chunk_bytes.saturating_mul(2).saturating_add(1 << 20);
-        self.limit.store(limit, Ordering::Relaxed);
+        self.limit.store(limit, Ordering::Release);
     }
 
     fn check(&self, key: &StoreKey, bytes: &[u8]) -> Result<(), StorageError> {
-        let limit = self.limit.load(Ordering::Relaxed);
-        if limit == 0 {
+        let limit = self.limit.load(Ordering::Acquire);
+        let Some(codecs) = self.codecs.get().filter(|_| limit != 0) else {
             return Ok(());
-        }
-        const ZSTD_MAGIC: [u8; 4] = [0x28, 0xb5, 0x2f, 0xfd];
-        let declared = if self.zstd.load(Ordering::Relaxed) && bytes.starts_with(&ZSTD_MAGIC) {
-            zstd::bulk::Decompressor::upper_bound(bytes).map(|b| b as u64)
-        } else if self.blosc.load(Ordering::Relaxed) && bytes.len() >= 16 {
-            // Blosc's header: version, codec version, flags, type size, then the decoded,
-            // block and compressed bytes (u32, little-endian). Only a whole Blosc buffer (its
-            // compressed size its length) is one: a shard's index is not.
-            let word =
-                |i: usize| u32::from_le_bytes([bytes[i], bytes[i + 1], bytes[i + 2], bytes[i + 3]]);
-            (word(12) as usize == bytes.len()).then(|| u64::from(word(4)))
-        } else {
-            None
         };
-        match declared {
-            Some(d) if d > limit => Err(StorageError::Other(format!(
-                "chunk {key} declares {d} bytes decoded, more than a chunk of this array holds"
-            ))),
-            _ => Ok(()),
+        let refuse = |d: u64| {
+            StorageError::Other(format!(
+                "chunk {key} declares {d} bytes decoded (or inflates past them), more than a \
+                 chunk of this array holds"
+            ))
+        };
+        // A whole shard is checked chunk by chunk; anything else (a chunk, an inner chunk's
+        // range, a shard's index) as one chunk.
+        let chunks = codecs
+            .shard
+            .as_ref()
+            .and_then(|s| s.inner_chunks(bytes))
+            .unwrap_or_else(|| vec![bytes]);
+        for chunk in chunks {
+            if let Some(d) = decoded_bound(codecs, chunk, limit).filter(|d| *d > limit) {
+                return Err(refuse(d));
+            }
+        }
+        Ok(())
+    }
+}
+
+/// The most bytes a chunk's `bytes` may decode to, as far as the `codecs` tell, where it
+/// matters against `limit` (a bound at or below it may be given as `None`).
+fn decoded_bound(codecs: &Codecs, bytes: &[u8], limit: u64) -> Option<u64> {
+    const ZSTD_MAGIC: [u8; 4] = [0x28, 0xb5, 0x2f, 0xfd];
+    let skippable = |b: &[u8]| b.len() >= 4 && b[0] & 0xf0 == 0x50 && b[1..4] == [0x2a, 0x4d, 0x18];
+    if codecs.zstd && (bytes.starts_with(&ZSTD_MAGIC) || skippable(bytes)) {
+        let whole = |b: &[u8]| zstd::zstd_safe::decompress_bound(b).ok();
+        let frames = whole(bytes).or_else(|| {
+            let n = bytes.len().checked_sub(4).filter(|_| codecs.crc32c)?;
+            whole(&bytes[..n])
+        });
+        return frames.or_else(|| {
+            // Not whole frames: zarrs streams them, as far as they decode.
+            let decoder = zstd::stream::read::Decoder::with_buffer(bytes).ok()?;
+            Some(inflated(decoder, limit))
+        });
+    }
+    if codecs.blosc && bytes.len() >= 16 {
+        // Blosc's header: version, codec version, flags, type size, then the decoded, block
+        // and compressed bytes (u32, little-endian). Only a whole Blosc buffer (its compressed
+        // size its length) is one: a shard's index is not.
+        let word =
+            |i: usize| u32::from_le_bytes([bytes[i], bytes[i + 1], bytes[i + 2], bytes[i + 3]]);
+        if word(12) as usize == bytes.len() {
+            return Some(u64::from(word(4)));
+        }
+    }
+    // Deflate decodes at most 1 032 bytes a byte of input (a 258-byte match in 2 bits).
+    let gzip = bytes.starts_with(&[0x1f, 0x8b]);
+    let zlib = bytes.len() >= 2
+        && bytes[0] & 0x0f == 8
+        && (u16::from(bytes[0]) << 8 | u16::from(bytes[1])) % 31 == 0;
+    if codecs.deflate && (gzip || zlib) && (bytes.len() as u64).saturating_mul(1032) > limit {
+        return Some(if gzip {
+            inflated(flate2::read::GzDecoder::new(bytes), limit)
+        } else {
+            inflated(flate2::read::ZlibDecoder::new(bytes), limit)
+        });
+    }
+    None
+}
+
+/// How many bytes `decoder` gives before its end or its first error, counted up to one past
+/// `limit` (written nowhere).
+fn inflated(decoder: impl std::io::Read, limit: u64) -> u64 {
+    let mut counted = 0u64;
+    let mut reader = decoder.take(limit.saturating_add(1));
+    let mut buf = vec![0u8; 64 << 10];
+    loop {
+        match reader.read(&mut buf) {
+            Ok(0) | Err(_) => return counted,
+            Ok(n) => counted += n as u64,
         }
     }
 }
