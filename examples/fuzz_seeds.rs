@@ -2,7 +2,8 @@
 //! packet targets decode against (`fuzz/corpus/headers/CODER.wsp`): small phantoms compressed
 //! with each coder, their packets, raw and NIfTI volumes, DICOM, NRRD and MetaImage volumes (the
 //! [`SourceFiles::to_bytes`] of each: one file, or a bundle of a header and its data file or of
-//! a series' slices), and one message of every gRPC request.
+//! a series' slices), Zarr stores (bundles of their files), and one message of every gRPC
+//! request.
 //! The corpora are kept in the repository; rerun this only to reseed.
 //!
 //! `cargo run --example fuzz_seeds`
@@ -387,6 +388,223 @@ fn readers(root: &Path) {
         seed("dicom", name, &p, Format::Dicom);
     }
     hostile(root, &tmp.path().join("series_i16"));
+    zarr(root);
+}
+
+/// Zarr stores of the readers' 4 × 3 × 2 volume (u16 samples, written by hand from the
+/// specifications): v2 uncompressed, gzip, zlib and Blosc (a copied buffer) chunks, v3 Zstd
+/// chunks with a CRC-32C, a v3 shard of Zstd inner chunks, an OME-Zarr image; and the hostile
+/// chunks of the reader's test (`oom_*`), which zarrs decoded past a chunk's size before the
+/// reader checked them.
+fn zarr(root: &Path) {
+    use std::io::Write;
+    let tmp = tempfile::tempdir().unwrap();
+    // z, y, x = 2, 3, 4; the sample at (z, y, x) is i = (z·3 + y)·4 + x.
+    let value = |i: usize| ((i * 37) % 101) as u16;
+    let chunk_bytes = |shape: [usize; 3], at: [usize; 3]| -> Vec<u8> {
+        let mut out = Vec::new();
+        for z in 0..shape[0] {
+            for y in 0..shape[1] {
+                for x in 0..shape[2] {
+                    let (z, y, x) = (at[0] + z, at[1] + y, at[2] + x);
+                    // Past the array's edge a chunk still holds samples, never read.
+                    let v = if z < 2 && y < 3 && x < 4 {
+                        value((z * 3 + y) * 4 + x)
+                    } else {
+                        0
+                    };
+                    out.extend_from_slice(&v.to_le_bytes());
+                }
+            }
+        }
+        out
+    };
+    let gzip = |b: &[u8]| {
+        let mut e = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::fast());
+        e.write_all(b).unwrap();
+        e.finish().unwrap()
+    };
+    let zlib = |b: &[u8]| {
+        let mut e = flate2::write::ZlibEncoder::new(Vec::new(), flate2::Compression::fast());
+        e.write_all(b).unwrap();
+        e.finish().unwrap()
+    };
+    // Blosc's header (version 2, codec version 1, flags: copied, type size 2; decoded, block
+    // and compressed bytes), then the bytes themselves.
+    let blosc = |b: &[u8]| {
+        let mut out = vec![2u8, 1, 0x02, 2];
+        for n in [b.len(), b.len(), b.len() + 16] {
+            out.extend_from_slice(&(n as u32).to_le_bytes());
+        }
+        out.extend_from_slice(b);
+        out
+    };
+    let crc32c = |bytes: &[u8]| {
+        let mut crc = !0u32;
+        for &b in bytes {
+            crc ^= u32::from(b);
+            for _ in 0..8 {
+                crc = if crc & 1 == 1 {
+                    (crc >> 1) ^ 0x82f6_3b78
+                } else {
+                    crc >> 1
+                };
+            }
+        }
+        !crc
+    };
+    let with_crc = |b: Vec<u8>| {
+        let c = crc32c(&b);
+        [b, c.to_le_bytes().to_vec()].concat()
+    };
+    let write = |dir: &Path, files: &[(&str, Vec<u8>)]| {
+        for (name, bytes) in files {
+            let p = dir.join(name);
+            std::fs::create_dir_all(p.parent().unwrap()).unwrap();
+            std::fs::write(p, bytes).unwrap();
+        }
+    };
+    let seed = |name: &str, files: &[(&str, Vec<u8>)]| {
+        let dir = tmp.path().join(name);
+        write(&dir, files);
+        let src = SourceFiles::gather(&dir, Some(Format::Zarr)).unwrap();
+        put(&root.join("zarr"), name, &src.to_bytes());
+    };
+    let v2 = |chunks: [usize; 3], compressor: &str| {
+        format!(
+            r#"{{"zarr_format": 2, "shape": [2, 3, 4], "chunks": {chunks:?}, "dtype": "<u2",
+                "compressor": {compressor}, "fill_value": 0, "order": "C", "filters": null}}"#
+        )
+        .into_bytes()
+    };
+    let v2_chunks = |chunks: [usize; 3], code: &dyn Fn(&[u8]) -> Vec<u8>| {
+        let mut files = Vec::new();
+        for cz in 0..2usize.div_ceil(chunks[0]) {
+            for cy in 0..3usize.div_ceil(chunks[1]) {
+                for cx in 0..4usize.div_ceil(chunks[2]) {
+                    let at = [cz * chunks[0], cy * chunks[1], cx * chunks[2]];
+                    files.push((format!("{cz}.{cy}.{cx}"), code(&chunk_bytes(chunks, at))));
+                }
+            }
+        }
+        files
+    };
+    for (name, chunks, compressor, code) in [
+        (
+            "v2_raw",
+            [2, 3, 4],
+            "null",
+            &(|b: &[u8]| b.to_vec()) as &dyn Fn(&[u8]) -> Vec<u8>,
+        ),
+        ("v2_gzip", [1, 2, 3], r#"{"id": "gzip", "level": 1}"#, &gzip),
+        ("v2_zlib", [2, 2, 2], r#"{"id": "zlib", "level": 1}"#, &zlib),
+        (
+            "v2_blosc",
+            [1, 3, 4],
+            r#"{"id": "blosc", "cname": "lz4", "clevel": 5, "shuffle": 0, "blocksize": 0}"#,
+            &blosc,
+        ),
+    ] {
+        let chunk_files = v2_chunks(chunks, code);
+        let mut files: Vec<(&str, Vec<u8>)> = vec![(".zarray", v2(chunks, compressor))];
+        files.extend(chunk_files.iter().map(|(n, b)| (n.as_str(), b.clone())));
+        seed(name, &files);
+    }
+    let v3 = |chunk: &str, codecs: &str| {
+        format!(
+            r#"{{"zarr_format": 3, "node_type": "array", "shape": [2, 3, 4], "data_type": "uint16",
+                "chunk_grid": {{"name": "regular", "configuration": {{"chunk_shape": {chunk}}}}},
+                "chunk_key_encoding": {{"name": "default", "configuration": {{"separator": "/"}}}},
+                "fill_value": 0, "codecs": {codecs}, "dimension_names": ["z", "y", "x"]}}"#
+        )
+        .into_bytes()
+    };
+    let zstd_codecs = r#"[{"name": "bytes", "configuration": {"endian": "little"}},
+        {"name": "zstd", "configuration": {"level": 1, "checksum": false}}]"#;
+    let zstd = |b: &[u8]| zstd::encode_all(b, 1).unwrap();
+    seed(
+        "v3_zstd_crc32c",
+        &[
+            (
+                "zarr.json",
+                v3(
+                    "[2, 3, 4]",
+                    r#"[{"name": "bytes", "configuration": {"endian": "little"}},
+                        {"name": "zstd", "configuration": {"level": 1, "checksum": true}},
+                        {"name": "crc32c"}]"#,
+                ),
+            ),
+            ("c/0/0/0", with_crc(zstd(&chunk_bytes([2, 3, 4], [0; 3])))),
+        ],
+    );
+    let shard_codecs = format!(
+        r#"[{{"name": "sharding_indexed", "configuration": {{"chunk_shape": [1, 3, 2],
+            "codecs": {zstd_codecs},
+            "index_codecs": [{{"name": "bytes", "configuration": {{"endian": "little"}}}},
+                {{"name": "crc32c"}}], "index_location": "end"}}}}]"#
+    );
+    let (mut shard, mut index) = (Vec::new(), Vec::new());
+    for cz in 0..2 {
+        for cx in 0..2 {
+            let frame = zstd(&chunk_bytes([1, 3, 2], [cz, 0, 2 * cx]));
+            index.extend_from_slice(&(shard.len() as u64).to_le_bytes());
+            index.extend_from_slice(&(frame.len() as u64).to_le_bytes());
+            shard.extend_from_slice(&frame);
+        }
+    }
+    shard.extend(with_crc(index));
+    seed(
+        "v3_sharded",
+        &[
+            ("zarr.json", v3("[2, 3, 4]", &shard_codecs)),
+            ("c/0/0/0", shard),
+        ],
+    );
+    let attrs = r#"{"multiscales": [{"version": "0.4", "axes": [
+        {"name": "z", "type": "space", "unit": "millimeter"},
+        {"name": "y", "type": "space", "unit": "micrometer"},
+        {"name": "x", "type": "space"}],
+        "datasets": [{"path": "0", "coordinateTransformations":
+            [{"type": "scale", "scale": [2.0, 750.0, 0.5]}]}]}]}"#;
+    seed(
+        "ome_image",
+        &[
+            (".zgroup", br#"{"zarr_format": 2}"#.to_vec()),
+            (".zattrs", attrs.as_bytes().to_vec()),
+            ("0/.zarray", v2([2, 3, 4], "null")),
+            ("0/0.0.0", chunk_bytes([2, 3, 4], [0; 3])),
+        ],
+    );
+    // Hostile chunks: a Zstd frame declaring 1 TiB behind its CRC-32C, 4 MiB of zeros as gzip.
+    let mut declared = vec![0x28, 0xb5, 0x2f, 0xfd, 0xe0];
+    declared.extend_from_slice(&(1u64 << 40).to_le_bytes());
+    declared.extend_from_slice(&[0x01, 0x00, 0x00]);
+    seed(
+        "oom_zstd_behind_crc32c",
+        &[
+            (
+                "zarr.json",
+                v3(
+                    "[2, 3, 4]",
+                    r#"[{"name": "bytes", "configuration": {"endian": "little"}},
+                        {"name": "zstd", "configuration": {"level": 1, "checksum": false}},
+                        {"name": "crc32c"}]"#,
+                ),
+            ),
+            ("c/0/0/0", with_crc(declared)),
+        ],
+    );
+    seed(
+        "oom_gzip_bomb",
+        &[
+            (".zarray", v2([2, 3, 4], r#"{"id": "gzip", "level": 9}"#)),
+            ("0.0.0", {
+                let mut e = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::best());
+                e.write_all(&vec![0u8; 4 << 20]).unwrap();
+                e.finish().unwrap()
+            }),
+        ],
+    );
 }
 
 /// Small inputs whose headers declare far more than their bytes hold (`oom_*`: each made a

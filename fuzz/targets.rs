@@ -181,6 +181,40 @@ pub fn tiff(data: &[u8]) {
     source(data, "fuzz.tif", Format::Tiff);
 }
 
+/// A Zarr store: a bundle of its files (metadata, chunks). A store may declare far more than
+/// its bytes hold (a missing chunk is its fill value), so the heap is bounded by
+/// [`alloc_bound`] plus what its metadata declares (`zarr::declared_bytes`); a store declaring
+/// more than 64 MiB is decoded no further than its metadata (slow executions teach the fuzzer
+/// nothing a small declaration does not).
+pub fn zarr(data: &[u8]) {
+    use wavesplat_compressor::reader::{decode_source, zarr, SourceFiles};
+    let Ok(mut src) = SourceFiles::from_bytes(data.to_vec(), Path::new("fuzz.zarr")) else {
+        return;
+    };
+    src.format = Some(Format::Zarr);
+    let mut declared = 0;
+    let peak = crate::meter::peak_during(|| match zarr::declared_bytes(&src) {
+        Ok(d) => declared = d,
+        Err(_) => declared = 0,
+    });
+    assert!(
+        peak <= alloc_bound(data.len()),
+        "metadata alone took {peak} bytes of heap"
+    );
+    if declared > 64 << 20 {
+        return;
+    }
+    let bound = alloc_bound(data.len()) + 2 * declared as usize;
+    let peak = crate::meter::peak_during(|| {
+        let _ = decode_source(&src, None);
+    });
+    assert!(
+        peak <= bound,
+        "a {}-byte store declaring {declared} bytes took {peak} bytes of heap (bound {bound})",
+        data.len()
+    );
+}
+
 fn source(data: &[u8], origin: &str, format: Format) {
     use wavesplat_compressor::reader::{decode_source, SourceFiles};
     metered(data, || {

@@ -66,6 +66,7 @@ fn every_kept_input_of_every_target_is_handled() {
         ("nrrd", targets::nrrd),
         ("metaimage", targets::metaimage),
         ("tiff", targets::tiff),
+        ("zarr", targets::zarr),
         ("grpc", targets::grpc),
     ] {
         for (_, data) in corpus(target) {
@@ -118,6 +119,7 @@ fn the_reader_seeds_decode_to_volumes() {
         ("nrrd", "fuzz.nhdr", Format::Nrrd),
         ("metaimage", "fuzz.mhd", Format::MetaImage),
         ("tiff", "fuzz.tif", Format::Tiff),
+        ("zarr", "fuzz.zarr", Format::Zarr),
     ] {
         let mut seeds = 0;
         for (p, data) in corpus(target) {
