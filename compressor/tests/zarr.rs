@@ -761,18 +761,40 @@ fn chunks_that_decode_past_a_chunk_are_refused_before_they_are_decoded() {
             "index_codecs": [{{"name": "bytes", "configuration": {{"endian": "little"}}}},
                 {{"name": "crc32c"}}], "index_location": "end"}}}}]"#
     );
+    // A shard whose first entry reaches one byte into its index (zarrs only checks that an
+    // entry ends within the shard): a byte, then the 32 MiB frame, then the index.
+    let mut overlapping = vec![0u8];
+    overlapping.extend_from_slice(&streamed[..streamed.len() - 1]);
+    let mut index = Vec::new();
+    index.extend_from_slice(&1u64.to_le_bytes());
+    index.extend_from_slice(&(streamed.len() as u64).to_le_bytes());
+    for _ in 1..8 {
+        index.extend_from_slice(&u64::MAX.to_le_bytes());
+        index.extend_from_slice(&u64::MAX.to_le_bytes());
+    }
+    let crc = crc32c(&index);
+    overlapping.extend_from_slice(&index);
+    overlapping.extend_from_slice(&crc.to_le_bytes());
+    let v3_zlib = r#"[{"name": "bytes", "configuration": {"endian": "little"}},
+        {"name": "numcodecs.zlib", "configuration": {"level": 9}}]"#;
     let stores = [
         v3_store(dir.path(), "streamed", zstd_codecs, &streamed),
         v3_store(dir.path(), "checked", checked_codecs, &checked),
         v2_store(dir.path(), "gzip", r#"{"id": "gzip", "level": 9}"#, &gzip),
         v2_store(dir.path(), "zlib", r#"{"id": "zlib", "level": 9}"#, &zlib),
+        v3_store(dir.path(), "v3-zlib", v3_zlib, &zlib),
         v3_store(dir.path(), "shard", &shard_codecs, &shard),
+        v3_store(dir.path(), "overlapping-shard", &shard_codecs, &overlapping),
     ];
     for store in &stores {
         let e = read_volume(store, None).unwrap_err().to_string();
         assert!(e.contains("declares"), "{}: {e}", store.display());
         let r = RegionReader::open(store, None).unwrap();
         let e = r.read_region([0, 0, 0], [4, 4, 4]).unwrap_err().to_string();
+        assert!(e.contains("declares"), "{}: {e}", store.display());
+        // A box inside the first chunk (of a shard: its first inner chunk alone, read by its
+        // range in the shard).
+        let e = r.read_region([0, 0, 0], [2, 2, 2]).unwrap_err().to_string();
         assert!(e.contains("declares"), "{}: {e}", store.display());
     }
     // The same codecs on honest chunks still read: the checks refuse only what overflows.
@@ -843,12 +865,136 @@ fn chunks_that_decode_past_a_chunk_are_refused_before_they_are_decoded() {
             "index_codecs": [{{"name": "bytes", "configuration": {{"endian": "little"}}}},
                 {{"name": "crc32c"}}], "index_location": "end"}}}}]}}"#
     );
-    std::fs::write(path.join("zarr.json"), meta).unwrap();
+    std::fs::write(path.join("zarr.json"), &meta).unwrap();
     std::fs::write(path.join("c/0/0/0"), &data).unwrap();
-    let v = read_volume(&path, None).unwrap();
-    assert_eq!(v.dims(), [128, 128, 64]);
-    for (i, got) in v.channel(0).iter().enumerate() {
-        let (x, y, z) = (i % 128, (i / 128) % 128, i / (128 * 128));
-        assert_eq!(*got, f32::from(value(z, y, x)), "sample {i}");
+    // The same shard with its index first: the offsets move by the index's length.
+    let first = dir.path().join("honest-shard-index-first");
+    std::fs::create_dir_all(first.join("c/0/0")).unwrap();
+    let index_len = index.len() + 4;
+    let moved: Vec<u8> = index
+        .chunks(8)
+        .enumerate()
+        .flat_map(|(i, w)| {
+            let v = u64::from_le_bytes(w.try_into().unwrap());
+            let v = if i % 2 == 0 { v + index_len as u64 } else { v };
+            v.to_le_bytes()
+        })
+        .collect();
+    let mut shard_first = moved.clone();
+    shard_first.extend_from_slice(&crc32c(&moved).to_le_bytes());
+    shard_first.extend_from_slice(&data[..data.len() - index_len]);
+    std::fs::write(
+        first.join("zarr.json"),
+        meta.replace(r#""index_location": "end""#, r#""index_location": "start""#),
+    )
+    .unwrap();
+    std::fs::write(first.join("c/0/0/0"), &shard_first).unwrap();
+    for store in [&path, &first] {
+        let v = read_volume(store, None).unwrap();
+        assert_eq!(v.dims(), [128, 128, 64]);
+        for (i, got) in v.channel(0).iter().enumerate() {
+            let (x, y, z) = (i % 128, (i / 128) % 128, i / (128 * 128));
+            assert_eq!(
+                *got,
+                f32::from(value(z, y, x)),
+                "{}: sample {i}",
+                store.display()
+            );
+        }
+        let r = RegionReader::open(store, None).unwrap();
+        let part = r.read_region([40, 10, 20], [30, 50, 20]).unwrap();
+        assert_eq!(
+            part.channel(0)[0],
+            f32::from(value(20, 10, 40)),
+            "{}",
+            store.display()
+        );
+    }
+}
+
+/// Chains of codecs whose chunks' decoded sizes the reader cannot check before zarrs decodes
+/// them are refused when the array is opened, saying which: two compressors in a row (the
+/// inner one's input is never seen by the store), a compressor after a shard's codec (the
+/// inner chunks are decoded in memory), a shard inside a shard, a v2 compressor used as a
+/// filter; a v2 CRC-32C in the compressor's place (its checksum before the data) is refused
+/// by zarrs itself.
+#[test]
+fn codec_chains_the_reader_cannot_see_through_are_refused_saying_which() {
+    let dir = tempfile::tempdir().unwrap();
+    let bytes = r#"{"name": "bytes", "configuration": {"endian": "little"}}"#;
+    let zstd = r#"{"name": "zstd", "configuration": {"level": 1, "checksum": false}}"#;
+    let gzip = r#"{"name": "gzip", "configuration": {"level": 1}}"#;
+    let index = format!(r#""index_codecs": [{bytes}], "index_location": "end""#);
+    let sharding = |codecs: &str| {
+        format!(
+            r#"{{"name": "sharding_indexed", "configuration": {{"chunk_shape": [2, 2, 2],
+                "codecs": {codecs}, {index}}}}}"#
+        )
+    };
+    let cases = [
+        (
+            v3_store(
+                dir.path(),
+                "two",
+                &format!("[{bytes}, {zstd}, {gzip}]"),
+                &[],
+            ),
+            "two compressors",
+        ),
+        (
+            v3_store(
+                dir.path(),
+                "after-shard",
+                &format!("[{}, {zstd}]", sharding(&format!("[{bytes}]"))),
+                &[],
+            ),
+            "after sharding_indexed",
+        ),
+        (
+            v3_store(
+                dir.path(),
+                "nested",
+                &format!(
+                    "[{}]",
+                    sharding(&format!("[{}]", sharding(&format!("[{bytes}]"))))
+                ),
+                &[],
+            ),
+            "a shard inside a shard",
+        ),
+        (
+            v2_store(dir.path(), "filter", r#"null"#, &[]),
+            "the filter \"zstd\"",
+        ),
+        (
+            v2_store(
+                dir.path(),
+                "crc-first",
+                r#"{"id": "crc32c", "location": "start"}"#,
+                &[],
+            ),
+            "crc32c",
+        ),
+    ];
+    // The filter case: a v2 array whose filters hold a compressor.
+    let zarray = dir.path().join("filter/.zarray");
+    let meta = std::fs::read_to_string(&zarray).unwrap();
+    std::fs::write(
+        &zarray,
+        meta.replace(
+            r#""filters": null"#,
+            r#""filters": [{"id": "zstd", "level": 1}]"#,
+        ),
+    )
+    .unwrap();
+    for (store, why) in &cases {
+        let e = read_volume(store, None).unwrap_err().to_string();
+        assert!(e.contains(why), "{}: {e}", store.display());
+        let e = RegionReader::open(store, None).err().map(|e| e.to_string());
+        assert!(
+            e.as_ref().is_some_and(|e| e.contains(why)),
+            "{}: {e:?}",
+            store.display()
+        );
     }
 }
