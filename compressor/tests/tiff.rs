@@ -267,6 +267,22 @@ fn imagej_and_ome_descriptions_give_the_spacing_in_mm() {
             got.spacing()
         );
     }
+
+    // The same XML in a file of 5 of the 11 slices (the first file of a multi-file OME-TIFF,
+    // or a truncated one) is refused, not read as a volume of 5 slices.
+    let part = dir.path().join("part.ome.tif");
+    write_pages::<colortype::Gray16, _>(
+        std::fs::File::create(&part).unwrap(),
+        Compression::Uncompressed,
+        (DIMS[0], DIMS[1]),
+        &slices[..5],
+        29,
+        Some(ome),
+    );
+    let e = read_volume(&part, None).unwrap_err().to_string();
+    assert!(e.contains("counts 11 slices but it holds 5"), "{e}");
+    let e = RegionReader::open(&part, None).err().map(|e| e.to_string());
+    assert!(e.is_some_and(|e| e.contains("counts 11 slices")));
 }
 
 /// An ImageJ hyperstack of time frames, and an OME-TIFF of several time points (one channel),

@@ -710,6 +710,23 @@ impl Stack {
         };
         let spacing = meta.spacing.map(|s| s.unwrap_or(1.0) as f32);
         let time_points = meta.frames.unwrap_or(1);
+        // A file whose description counts more slices than it holds is a part (a multi-file
+        // OME-TIFF, whose XML in the first file describes all of them) or a truncated file:
+        // read as a volume of its own slices, the rest would be lost without a word.
+        if let (1, Some(z)) = (names.len(), meta.slices) {
+            if time_points == 1 && z > slices.len() {
+                return Err(ReadError::unsupported(
+                    &names[0],
+                    format!(
+                        "its description counts {z} slices but it holds {}: a part of a \
+                         dataset of several files (a multi-file OME-TIFF, whose XML names the \
+                         others), or a truncated file; write the dataset as one file or a Zarr \
+                         store (e.g. with Bio-Formats' bfconvert)",
+                        slices.len()
+                    ),
+                ));
+            }
+        }
         // Each time point's slices as the description counts them, else as the pages divide.
         let per_point = meta.slices.unwrap_or(slices.len() / time_points.max(1));
         if time_points > 1
