@@ -418,6 +418,30 @@ fn stacks_that_are_not_one_volume_are_refused_saying_why() {
         "{e}"
     );
 
+    // Slice files numbered with a gap (z5.tif missing among z0 to z6): read, the volume would
+    // close the gap without a word.
+    let gap = dir.path().join("gap");
+    std::fs::create_dir(&gap).unwrap();
+    for (z, s) in slices.iter().enumerate().take(7).filter(|(z, _)| *z != 5) {
+        let f = std::fs::File::create(gap.join(format!("z{z}.tif"))).unwrap();
+        write_pages::<colortype::Gray16, _>(
+            f,
+            Compression::Uncompressed,
+            (DIMS[0], DIMS[1]),
+            &[s],
+            8,
+            None,
+        );
+    }
+    let e = refusal(&gap);
+    assert!(
+        e.contains("between \"z4.tif\" and \"z6.tif\" are missing"),
+        "{e}"
+    );
+    assert!(RegionReader::open(&gap, None).is_err());
+    std::fs::rename(gap.join("z6.tif"), gap.join("z5.tif")).unwrap();
+    assert_eq!(read_volume(&gap, None).unwrap().dims()[2], 6);
+
     // A page of 8 bits after pages of 16.
     let path = dir.path().join("depths.tif");
     {

@@ -98,6 +98,79 @@ pub(crate) fn stack_files(dir: &Path) -> Result<Vec<(String, PathBuf)>, ReadErro
     Ok(files)
 }
 
+/// Why the numbers of a stack's slice files, in their order, leave a slice out, if they do:
+/// files named alike but for one number (`slice_0049.tif`, `slice_0051.tif`; other numbers the
+/// same in every name) whose values do not go up in one step (a file missing, which would
+/// close the gap in the volume without a word) or repeat (`z1.tif` beside `z01.tif`). Names
+/// numbered otherwise are not judged.
+fn numbering_gap(names: &[PathBuf]) -> Option<String> {
+    if names.len() < 3 {
+        return None;
+    }
+    let file = |i: usize| {
+        names[i]
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+    };
+    // Each name as its runs of digits and of other characters.
+    let runs = |name: &str| -> Vec<String> {
+        let mut out: Vec<String> = Vec::new();
+        for c in name.chars() {
+            match out.last_mut() {
+                Some(r) if r.starts_with(|d: char| d.is_ascii_digit()) == c.is_ascii_digit() => {
+                    r.push(c)
+                }
+                _ => out.push(c.to_string()),
+            }
+        }
+        out
+    };
+    let all: Vec<Vec<String>> = (0..names.len())
+        .map(|i| Some(runs(&file(i)?)))
+        .collect::<Option<_>>()?;
+    let first = &all[0];
+    if all.iter().any(|r| r.len() != first.len()) {
+        return None;
+    }
+    // The one run that differs between names must be a number; every other run the same.
+    let differing: Vec<usize> = (0..first.len())
+        .filter(|&k| all.iter().any(|r| r[k] != first[k]))
+        .collect();
+    let [k] = differing[..] else {
+        return None;
+    };
+    let numbers: Vec<u128> = all
+        .iter()
+        .map(|r| r[k].parse().ok())
+        .collect::<Option<_>>()?;
+    let step = numbers
+        .windows(2)
+        .map(|w| w[1].saturating_sub(w[0]))
+        .min()?;
+    if step == 0 {
+        let i = numbers.windows(2).position(|w| w[0] == w[1])?;
+        return Some(format!(
+            "the slice files {:?} and {:?} have the same number",
+            file(i)?,
+            file(i + 1)?
+        ));
+    }
+    let i = numbers.windows(2).position(|w| w[1] - w[0] != step)?;
+    let missing = (numbers[i + 1] - numbers[i]) / step - 1;
+    Some(format!(
+        "the slice files are numbered in steps of {step}, but {} slice(s) between {:?} and {:?} \
+         are missing (there are {} files, numbered {} to {}): the stack would close the gap \
+         without a word; add the missing files, or number the files without the gap if none is \
+         meant",
+        missing.max(1),
+        file(i)?,
+        file(i + 1)?,
+        names.len(),
+        numbers[0],
+        numbers[numbers.len() - 1]
+    ))
+}
+
 /// Natural order of names: runs of digits compare as numbers (`z2` < `z10`), the rest as text.
 fn natural_order(a: &str, b: &str) -> std::cmp::Ordering {
     fn runs(s: &str) -> Vec<(bool, &str)> {
@@ -677,6 +750,13 @@ impl Stack {
         names: &[PathBuf],
         mut pages_of: impl FnMut(usize) -> Result<(Vec<(usize, PageShape)>, StackMeta), ReadError>,
     ) -> Result<Stack, ReadError> {
+        if let Some(reason) = numbering_gap(names) {
+            let dir = names[0].parent().unwrap_or(Path::new("."));
+            return Err(ReadError::Series {
+                path: dir.to_path_buf(),
+                reason,
+            });
+        }
         let mut slices = Vec::new();
         let mut contiguous = Vec::with_capacity(names.len());
         let mut first: Option<(PageShape, StackMeta, usize, usize)> = None;
@@ -1220,6 +1300,39 @@ impl TiffRegions {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_gap_in_the_slice_files_numbers_is_found_and_other_names_are_not_judged() {
+        let paths = |names: &[&str]| -> Vec<PathBuf> {
+            names.iter().map(|n| Path::new("/d").join(n)).collect()
+        };
+        let gap = numbering_gap(&paths(&[
+            "s_0001.tif",
+            "s_0002.tif",
+            "s_0004.tif",
+            "s_0005.tif",
+        ]));
+        let gap = gap.expect("a missing file");
+        assert!(
+            gap.contains("1 slice(s) between \"s_0002.tif\" and \"s_0004.tif\""),
+            "{gap}"
+        );
+        let twice = numbering_gap(&paths(&["z1.tif", "z01.tif", "z2.tif"])).expect("a repeat");
+        assert!(twice.contains("the same number"), "{twice}");
+        for fine in [
+            &["s_0001.tif", "s_0002.tif", "s_0003.tif"][..],
+            // Every other slice kept: one step all along.
+            &["s_000.tif", "s_002.tif", "s_004.tif", "s_006.tif"],
+            // A number that is the same in every name (a date) beside the slice's.
+            &["scan_2024_z7.tif", "scan_2024_z8.tif", "scan_2024_z9.tif"],
+            // Names numbered otherwise are not judged.
+            &["a.tif", "b.tif", "c.tif"],
+            &["t1_z1.tif", "t1_z2.tif", "t2_z1.tif"],
+            &["s_1.tif", "s_3.tif"],
+        ] {
+            assert_eq!(numbering_gap(&paths(fine)), None, "{fine:?}");
+        }
+    }
 
     #[test]
     fn names_sort_naturally() {
