@@ -143,10 +143,11 @@ fn numbering_gap(names: &[PathBuf]) -> Option<String> {
         .iter()
         .map(|r| r[k].parse().ok())
         .collect::<Option<_>>()?;
-    let step = numbers
-        .windows(2)
-        .map(|w| w[1].saturating_sub(w[0]))
-        .min()?;
+    // Files listed out of order (a bundle names its files in its own order) are not judged.
+    if numbers.windows(2).any(|w| w[1] < w[0]) {
+        return None;
+    }
+    let step = numbers.windows(2).map(|w| w[1] - w[0]).min()?;
     if step == 0 {
         let i = numbers.windows(2).position(|w| w[0] == w[1])?;
         return Some(format!(
@@ -1329,6 +1330,7 @@ mod tests {
             &["a.tif", "b.tif", "c.tif"],
             &["t1_z1.tif", "t1_z2.tif", "t2_z1.tif"],
             &["s_1.tif", "s_3.tif"],
+            &["s_3.tif", "s_1.tif", "s_2.tif"],
         ] {
             assert_eq!(numbering_gap(&paths(fine)), None, "{fine:?}");
         }
