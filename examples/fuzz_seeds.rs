@@ -439,22 +439,8 @@ fn zarr(root: &Path) {
         out.extend_from_slice(b);
         out
     };
-    let crc32c = |bytes: &[u8]| {
-        let mut crc = !0u32;
-        for &b in bytes {
-            crc ^= u32::from(b);
-            for _ in 0..8 {
-                crc = if crc & 1 == 1 {
-                    (crc >> 1) ^ 0x82f6_3b78
-                } else {
-                    crc >> 1
-                };
-            }
-        }
-        !crc
-    };
     let with_crc = |b: Vec<u8>| {
-        let c = crc32c(&b);
+        let c = crc32c::crc32c(&b);
         [b, c.to_le_bytes().to_vec()].concat()
     };
     let write = |dir: &Path, files: &[(&str, Vec<u8>)]| {

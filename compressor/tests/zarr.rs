@@ -653,23 +653,6 @@ fn a_chunk_claiming_more_than_a_chunk_holds_is_refused() {
     }
 }
 
-/// CRC-32C (Castagnoli, reflected), as Zarr v3's `crc32c` codec appends it: a test's own
-/// bitwise reference, so that the hostile chunks below pass zarrs' checksum check.
-fn crc32c(bytes: &[u8]) -> u32 {
-    let mut crc = !0u32;
-    for &b in bytes {
-        crc ^= u32::from(b);
-        for _ in 0..8 {
-            crc = if crc & 1 == 1 {
-                (crc >> 1) ^ 0x82f6_3b78
-            } else {
-                crc >> 1
-            };
-        }
-    }
-    !crc
-}
-
 /// A v3 array of 4×4×4 u16 samples in one chunk (or one shard) with these codecs, its chunk
 /// (or shard) file holding `chunk`.
 fn v3_store(dir: &Path, name: &str, codecs: &str, chunk: &[u8]) -> PathBuf {
@@ -723,7 +706,7 @@ fn chunks_that_decode_past_a_chunk_are_refused_before_they_are_decoded() {
     declared.extend_from_slice(&(1u64 << 40).to_le_bytes());
     declared.extend_from_slice(&[0x01, 0x00, 0x00]);
     let mut checked = declared.clone();
-    checked.extend_from_slice(&crc32c(&declared).to_le_bytes());
+    checked.extend_from_slice(&crc32c::crc32c(&declared).to_le_bytes());
     let zeros = vec![0u8; 32 << 20];
     let gzip = {
         use std::io::Write;
@@ -747,7 +730,7 @@ fn chunks_that_decode_past_a_chunk_are_refused_before_they_are_decoded() {
         index.extend_from_slice(&u64::MAX.to_le_bytes());
         index.extend_from_slice(&u64::MAX.to_le_bytes());
     }
-    let crc = crc32c(&index);
+    let crc = crc32c::crc32c(&index);
     shard.extend_from_slice(&index);
     shard.extend_from_slice(&crc.to_le_bytes());
     let zstd_codecs = r#"[{"name": "bytes", "configuration": {"endian": "little"}},
@@ -772,7 +755,7 @@ fn chunks_that_decode_past_a_chunk_are_refused_before_they_are_decoded() {
         index.extend_from_slice(&u64::MAX.to_le_bytes());
         index.extend_from_slice(&u64::MAX.to_le_bytes());
     }
-    let crc = crc32c(&index);
+    let crc = crc32c::crc32c(&index);
     overlapping.extend_from_slice(&index);
     overlapping.extend_from_slice(&crc.to_le_bytes());
     let v3_zlib = r#"[{"name": "bytes", "configuration": {"endian": "little"}},
@@ -801,7 +784,7 @@ fn chunks_that_decode_past_a_chunk_are_refused_before_they_are_decoded() {
     let samples: Vec<u8> = (0..64u16).flat_map(|v| (v * 3).to_le_bytes()).collect();
     let framed = zstd::encode_all(&samples[..], 3).unwrap();
     let mut framed_checked = framed.clone();
-    framed_checked.extend_from_slice(&crc32c(&framed).to_le_bytes());
+    framed_checked.extend_from_slice(&crc32c::crc32c(&framed).to_le_bytes());
     let deflated = {
         use std::io::Write;
         let mut e = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::best());
@@ -851,7 +834,7 @@ fn chunks_that_decode_past_a_chunk_are_refused_before_they_are_decoded() {
             }
         }
     }
-    let crc = crc32c(&index);
+    let crc = crc32c::crc32c(&index);
     data.extend_from_slice(&index);
     data.extend_from_slice(&crc.to_le_bytes());
     let path = dir.path().join("honest-shard");
@@ -881,7 +864,7 @@ fn chunks_that_decode_past_a_chunk_are_refused_before_they_are_decoded() {
         })
         .collect();
     let mut shard_first = moved.clone();
-    shard_first.extend_from_slice(&crc32c(&moved).to_le_bytes());
+    shard_first.extend_from_slice(&crc32c::crc32c(&moved).to_le_bytes());
     shard_first.extend_from_slice(&data[..data.len() - index_len]);
     std::fs::write(
         first.join("zarr.json"),
