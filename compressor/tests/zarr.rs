@@ -768,6 +768,16 @@ fn chunks_that_decode_past_a_chunk_are_refused_before_they_are_decoded() {
         v3_store(dir.path(), "v3-zlib", v3_zlib, &zlib),
         v3_store(dir.path(), "shard", &shard_codecs, &shard),
         v3_store(dir.path(), "overlapping-shard", &shard_codecs, &overlapping),
+        // The 1 TiB shard with a CRC-32C of the whole shard after it.
+        v3_store(
+            dir.path(),
+            "checksummed-shard",
+            &shard_codecs.replace(
+                r#""index_location": "end"}}]"#,
+                r#""index_location": "end"}}, {"name": "crc32c"}]"#,
+            ),
+            &[shard.clone(), crc32c::crc32c(&shard).to_le_bytes().to_vec()].concat(),
+        ),
     ];
     for store in &stores {
         let e = read_volume(store, None).unwrap_err().to_string();
@@ -872,7 +882,24 @@ fn chunks_that_decode_past_a_chunk_are_refused_before_they_are_decoded() {
     )
     .unwrap();
     std::fs::write(first.join("c/0/0/0"), &shard_first).unwrap();
-    for store in [&path, &first] {
+    // The same shard followed by a CRC-32C of it (`[sharding_indexed, crc32c]`).
+    let checksummed = dir.path().join("honest-shard-checksummed");
+    std::fs::create_dir_all(checksummed.join("c/0/0")).unwrap();
+    std::fs::write(
+        checksummed.join("zarr.json"),
+        meta.replace(
+            r#""index_location": "end"}}]"#,
+            r#""index_location": "end"}}, {"name": "crc32c"}]"#,
+        ),
+    )
+    .unwrap();
+    let crc = crc32c::crc32c(&data);
+    std::fs::write(
+        checksummed.join("c/0/0/0"),
+        [data.clone(), crc.to_le_bytes().to_vec()].concat(),
+    )
+    .unwrap();
+    for store in [&path, &first, &checksummed] {
         let v = read_volume(store, None).unwrap();
         assert_eq!(v.dims(), [128, 128, 64]);
         for (i, got) in v.channel(0).iter().enumerate() {

@@ -494,6 +494,8 @@ struct ShardIndex {
     chunks: usize,
     at_end: bool,
     crc32c: bool,
+    /// A CRC-32C of the whole shard follows it (zarrs checks and strips it first).
+    checksummed: bool,
     inner: Chain,
 }
 
@@ -565,10 +567,13 @@ impl Codecs {
             if codec_name(&list[at]) != "sharding_indexed" {
                 return Ok(Codecs { chain, shard: None });
             }
-            if !list[at + 1..].is_empty() {
-                return Err("codecs after sharding_indexed are not read".into());
+            // After a shard's codec only a CRC-32C of the whole shard is read: a compressor
+            // there would decode the inner chunks in memory, out of the store's sight.
+            if chain.compressor != Compressor::None {
+                return Err("a compressor after sharding_indexed is not read".into());
             }
-            let shard = ShardIndex::of(metadata, &list[at])?;
+            let mut shard = ShardIndex::of(metadata, &list[at])?;
+            shard.checksummed = !list[at + 1..].is_empty();
             return Ok(Codecs {
                 chain,
                 shard: Some(shard),
@@ -656,6 +661,7 @@ impl ShardIndex {
             chunks,
             at_end: config.get("index_location").and_then(Value::as_str) != Some("start"),
             crc32c,
+            checksummed: false,
             inner: Chain::of(&codecs[at + 1..])?,
         })
     }
@@ -664,6 +670,10 @@ impl ShardIndex {
     /// within the shard's bytes (zarrs' own test; it may overlap the index); `None` if the
     /// bytes are shorter than the index.
     fn inner_chunks<'a>(&self, bytes: &'a [u8]) -> Option<Vec<&'a [u8]>> {
+        let bytes = match self.checksummed {
+            true => &bytes[..bytes.len().checked_sub(4)?],
+            false => bytes,
+        };
         let len = self.chunks.checked_mul(16)? + if self.crc32c { 4 } else { 0 };
         let index = if self.at_end {
             bytes.get(bytes.len().checked_sub(len)?..)?
