@@ -25,12 +25,11 @@
 use std::io::Read;
 use std::ops::Range;
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::Arc;
+use std::sync::{Arc, OnceLock};
 
 use serde_json::Value;
 use zarrs::array::{data_type, Array, ArrayShardedExt};
-use zarrs::storage::byte_range::{ByteRange, ByteRangeIterator};
+use zarrs::storage::byte_range::{ByteRange, ByteRangeIterator, InvalidByteRangeError};
 use zarrs::storage::{
     MaybeBytesIterator, ReadableStorage, ReadableStorageTraits, StorageError, StoreKey,
     WritableStorageTraits,
@@ -460,9 +459,9 @@ impl ZarrVolume {
 /// from it and panic (seen in the in-memory store by the fuzz target).
 struct Bounded {
     inner: ReadableStorage,
-    /// Most decoded bytes a chunk may claim; 0 until the array's metadata is read.
-    limit: AtomicU64,
-    codecs: std::sync::OnceLock<Codecs>,
+    /// The most decoded bytes a chunk may claim and the array's codecs, once its metadata is
+    /// read; until then nothing is checked.
+    armed: OnceLock<(u64, Codecs)>,
 }
 
 /// The one compressor of a chain of bytes-to-bytes codecs.
@@ -508,6 +507,20 @@ fn codec_name(codec: &Value) -> &str {
         .or_else(|| codec.get("id").and_then(Value::as_str))
         .unwrap_or("");
     name.strip_prefix("numcodecs.").unwrap_or(name)
+}
+
+/// Where a v3 list of codecs (array-to-array ones such as transposition, one array-to-bytes
+/// codec, then bytes-to-bytes ones) has its array-to-bytes codec.
+fn array_to_bytes(codecs: &[Value]) -> Option<usize> {
+    codecs
+        .iter()
+        .position(|c| matches!(codec_name(c), "bytes" | "sharding_indexed"))
+}
+
+/// `bytes` without the CRC-32C that ends them where `checksum` says one does; `None` when
+/// they are shorter than one.
+fn before_checksum(bytes: &[u8], checksum: bool) -> Option<&[u8]> {
+    bytes.get(..bytes.len().checked_sub(if checksum { 4 } else { 0 })?)
 }
 
 fn compressor_named(name: &str) -> Option<Compressor> {
@@ -558,10 +571,7 @@ impl Codecs {
     /// the chunks' sizes could not be checked before zarrs decodes them.
     fn of(metadata: &Value) -> Result<Codecs, String> {
         if let Some(list) = metadata.get("codecs").and_then(Value::as_array) {
-            // Array-to-array codecs (transposition), one array-to-bytes codec, then bytes.
-            let at = list
-                .iter()
-                .position(|c| matches!(codec_name(c), "bytes" | "sharding_indexed"))
+            let at = array_to_bytes(list)
                 .ok_or("no array-to-bytes codec (bytes or sharding_indexed)")?;
             let chain = Chain::of(&list[at + 1..])?;
             if codec_name(&list[at]) != "sharding_indexed" {
@@ -650,10 +660,7 @@ impl ShardIndex {
         }
         let codecs = config.get("codecs").and_then(Value::as_array);
         let codecs = codecs.map(Vec::as_slice).unwrap_or_default();
-        let at = codecs
-            .iter()
-            .position(|c| matches!(codec_name(c), "bytes" | "sharding_indexed"))
-            .ok_or("inner chunks without an array-to-bytes codec")?;
+        let at = array_to_bytes(codecs).ok_or("inner chunks without an array-to-bytes codec")?;
         if codec_name(&codecs[at]) == "sharding_indexed" {
             return Err("a shard inside a shard is not read".into());
         }
@@ -670,10 +677,7 @@ impl ShardIndex {
     /// within the shard's bytes (zarrs' own test; it may overlap the index); `None` if the
     /// bytes are shorter than the index.
     fn inner_chunks<'a>(&self, bytes: &'a [u8]) -> Option<Vec<&'a [u8]>> {
-        let bytes = match self.checksummed {
-            true => &bytes[..bytes.len().checked_sub(4)?],
-            false => bytes,
-        };
+        let bytes = before_checksum(bytes, self.checksummed)?;
         let len = self.chunks.checked_mul(16)? + if self.crc32c { 4 } else { 0 };
         let index = if self.at_end {
             bytes.get(bytes.len().checked_sub(len)?..)?
@@ -696,25 +700,23 @@ impl Bounded {
     fn new(inner: ReadableStorage) -> Bounded {
         Bounded {
             inner,
-            limit: AtomicU64::new(0),
-            codecs: std::sync::OnceLock::new(),
+            armed: OnceLock::new(),
         }
     }
 
     /// Checks chunks from now on: `chunk_bytes` a chunk (an inner chunk of a shard), with the
     /// array's `codecs`.
     fn arm(&self, chunk_bytes: u64, codecs: Codecs) {
-        let _ = self.codecs.set(codecs);
         let limit = chunk_bytes.saturating_mul(2).saturating_add(1 << 20);
-        self.limit.store(limit, Ordering::Release);
+        let _ = self.armed.set((limit, codecs));
     }
 
     /// Checks the `bytes` of a chunk `key` read at `range`.
     fn check(&self, key: &StoreKey, range: &ByteRange, bytes: &[u8]) -> Result<(), StorageError> {
-        let limit = self.limit.load(Ordering::Acquire);
-        let Some(codecs) = self.codecs.get().filter(|_| limit != 0) else {
+        let Some((limit, codecs)) = self.armed.get() else {
             return Ok(());
         };
+        let limit = *limit;
         let name = key.as_str().rsplit('/').next().unwrap_or("");
         if METADATA_FILES.contains(&name) || matches!(name, ".zattrs" | ".zmetadata") {
             return Ok(());
@@ -751,10 +753,7 @@ impl Bounded {
 /// The most bytes `bytes` may decode to through `chain`, where it matters against `limit`
 /// (a bound at or below it may be given as `None`).
 fn decoded_bound(chain: Chain, bytes: &[u8], limit: u64) -> Option<u64> {
-    let bytes = match chain.crc32c_after {
-        true => &bytes[..bytes.len().checked_sub(4)?],
-        false => bytes,
-    };
+    let bytes = before_checksum(bytes, chain.crc32c_after)?;
     match chain.compressor {
         Compressor::None => None,
         Compressor::Zstd => zstd::zstd_safe::decompress_bound(bytes).ok().or_else(|| {
@@ -803,6 +802,7 @@ impl ReadableStorageTraits for Bounded {
         let key = key.clone();
         let ranges: Vec<ByteRange> = byte_ranges.collect();
         if let Some(size) = self.inner.size_key(&key)? {
+            // zarrs_storage's own test of a range is private (and its sum overflows).
             let fits = |r: &ByteRange| match *r {
                 ByteRange::FromStart(offset, None) => offset <= size,
                 ByteRange::FromStart(offset, Some(length)) => {
@@ -811,9 +811,7 @@ impl ReadableStorageTraits for Bounded {
                 ByteRange::Suffix(length) => length <= size,
             };
             if let Some(r) = ranges.iter().find(|r| !fits(r)) {
-                return Err(StorageError::Other(format!(
-                    "chunk {key}: bytes {r} asked of its {size} bytes"
-                )));
+                return Err(InvalidByteRangeError::new(*r, size).into());
             }
         }
         let parts = self
