@@ -107,27 +107,11 @@ fn numbering_gap(names: &[PathBuf]) -> Option<String> {
     if names.len() < 3 {
         return None;
     }
-    let file = |i: usize| {
-        names[i]
-            .file_name()
-            .map(|n| n.to_string_lossy().into_owned())
-    };
-    // Each name as its runs of digits and of other characters.
-    let runs = |name: &str| -> Vec<String> {
-        let mut out: Vec<String> = Vec::new();
-        for c in name.chars() {
-            match out.last_mut() {
-                Some(r) if r.starts_with(|d: char| d.is_ascii_digit()) == c.is_ascii_digit() => {
-                    r.push(c)
-                }
-                _ => out.push(c.to_string()),
-            }
-        }
-        out
-    };
-    let all: Vec<Vec<String>> = (0..names.len())
-        .map(|i| Some(runs(&file(i)?)))
+    let files: Vec<String> = names
+        .iter()
+        .map(|p| Some(p.file_name()?.to_string_lossy().into_owned()))
         .collect::<Option<_>>()?;
+    let all: Vec<Vec<(bool, &str)>> = files.iter().map(|f| digit_runs(f)).collect();
     let first = &all[0];
     if all.iter().any(|r| r.len() != first.len()) {
         return None;
@@ -141,7 +125,7 @@ fn numbering_gap(names: &[PathBuf]) -> Option<String> {
     };
     let numbers: Vec<u128> = all
         .iter()
-        .map(|r| r[k].parse().ok())
+        .map(|r| r[k].1.parse().ok())
         .collect::<Option<_>>()?;
     // Files listed out of order (a bundle names its files in its own order) are not judged.
     if numbers.windows(2).any(|w| w[1] < w[0]) {
@@ -152,8 +136,8 @@ fn numbering_gap(names: &[PathBuf]) -> Option<String> {
         let i = numbers.windows(2).position(|w| w[0] == w[1])?;
         return Some(format!(
             "the slice files {:?} and {:?} have the same number",
-            file(i)?,
-            file(i + 1)?
+            files[i],
+            files[i + 1]
         ));
     }
     let i = numbers.windows(2).position(|w| w[1] - w[0] != step)?;
@@ -164,29 +148,31 @@ fn numbering_gap(names: &[PathBuf]) -> Option<String> {
          without a word; add the missing files, or number the files without the gap if none is \
          meant",
         missing.max(1),
-        file(i)?,
-        file(i + 1)?,
+        files[i],
+        files[i + 1],
         names.len(),
         numbers[0],
         numbers[numbers.len() - 1]
     ))
 }
 
+/// A name as its runs of digits and of other characters, each with whether it is digits.
+fn digit_runs(s: &str) -> Vec<(bool, &str)> {
+    let mut out = Vec::new();
+    let mut start = 0;
+    let bytes = s.as_bytes();
+    for i in 1..=bytes.len() {
+        if i == bytes.len() || bytes[i].is_ascii_digit() != bytes[start].is_ascii_digit() {
+            out.push((bytes[start].is_ascii_digit(), &s[start..i]));
+            start = i;
+        }
+    }
+    out
+}
+
 /// Natural order of names: runs of digits compare as numbers (`z2` < `z10`), the rest as text.
 fn natural_order(a: &str, b: &str) -> std::cmp::Ordering {
-    fn runs(s: &str) -> Vec<(bool, &str)> {
-        let mut out = Vec::new();
-        let mut start = 0;
-        let bytes = s.as_bytes();
-        for i in 1..=bytes.len() {
-            if i == bytes.len() || bytes[i].is_ascii_digit() != bytes[start].is_ascii_digit() {
-                out.push((bytes[start].is_ascii_digit(), &s[start..i]));
-                start = i;
-            }
-        }
-        out
-    }
-    let (ra, rb) = (runs(a), runs(b));
+    let (ra, rb) = (digit_runs(a), digit_runs(b));
     for ((da, sa), (db, sb)) in ra.iter().zip(&rb) {
         let o = if *da && *db {
             let (ta, tb) = (sa.trim_start_matches('0'), sb.trim_start_matches('0'));
