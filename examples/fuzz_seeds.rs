@@ -508,18 +508,18 @@ fn zarr(root: &Path) {
     let zstd_codecs = r#"[{"name": "bytes", "configuration": {"endian": "little"}},
         {"name": "zstd", "configuration": {"level": 1, "checksum": false}}]"#;
     let zstd = |b: &[u8]| zstd::encode_all(b, 1).unwrap();
+    // Zstd chunks followed by their CRC-32C; `checksum`: Zstd's own checksum in each frame.
+    let checked_zstd = |checksum: bool| {
+        format!(
+            r#"[{{"name": "bytes", "configuration": {{"endian": "little"}}}},
+                        {{"name": "zstd", "configuration": {{"level": 1, "checksum": {checksum}}}}},
+                        {{"name": "crc32c"}}]"#
+        )
+    };
     seed(
         "v3_zstd_crc32c",
         &[
-            (
-                "zarr.json",
-                v3(
-                    "[2, 3, 4]",
-                    r#"[{"name": "bytes", "configuration": {"endian": "little"}},
-                        {"name": "zstd", "configuration": {"level": 1, "checksum": true}},
-                        {"name": "crc32c"}]"#,
-                ),
-            ),
+            ("zarr.json", v3("[2, 3, 4]", &checked_zstd(true))),
             ("c/0/0/0", with_crc(zstd(&chunk_bytes([2, 3, 4], [0; 3])))),
         ],
     );
@@ -568,15 +568,7 @@ fn zarr(root: &Path) {
     seed(
         "oom_zstd_behind_crc32c",
         &[
-            (
-                "zarr.json",
-                v3(
-                    "[2, 3, 4]",
-                    r#"[{"name": "bytes", "configuration": {"endian": "little"}},
-                        {"name": "zstd", "configuration": {"level": 1, "checksum": false}},
-                        {"name": "crc32c"}]"#,
-                ),
-            ),
+            ("zarr.json", v3("[2, 3, 4]", &checked_zstd(false))),
             ("c/0/0/0", with_crc(declared)),
         ],
     );

@@ -193,26 +193,14 @@ pub fn zarr(data: &[u8]) {
     };
     src.format = Some(Format::Zarr);
     let mut declared = 0;
-    let peak = crate::meter::peak_during(|| match zarr::declared_bytes(&src) {
-        Ok(d) => declared = d,
-        Err(_) => declared = 0,
-    });
-    assert!(
-        peak <= alloc_bound(data.len()),
-        "metadata alone took {peak} bytes of heap"
-    );
+    metered(data, || declared = zarr::declared_bytes(&src).unwrap_or(0));
     if declared > 64 << 20 {
         return;
     }
     let bound = alloc_bound(data.len()) + 2 * declared as usize;
-    let peak = crate::meter::peak_during(|| {
+    metered_within(data, bound, || {
         let _ = decode_source(&src, None);
     });
-    assert!(
-        peak <= bound,
-        "a {}-byte store declaring {declared} bytes took {peak} bytes of heap (bound {bound})",
-        data.len()
-    );
 }
 
 fn source(data: &[u8], origin: &str, format: Format) {
@@ -237,12 +225,16 @@ pub fn alloc_bound(len: usize) -> usize {
 
 /// Runs a reader on `data` and checks its peak heap against [`alloc_bound`].
 fn metered(data: &[u8], f: impl FnOnce()) {
+    metered_within(data, alloc_bound(data.len()), f);
+}
+
+/// Runs a reader on `data` and checks its peak heap against `bound`.
+fn metered_within(data: &[u8], bound: usize, f: impl FnOnce()) {
     let peak = crate::meter::peak_during(f);
     assert!(
-        peak <= alloc_bound(data.len()),
-        "a {}-byte input took {peak} bytes of heap (bound {})",
-        data.len(),
-        alloc_bound(data.len())
+        peak <= bound,
+        "a {}-byte input took {peak} bytes of heap (bound {bound})",
+        data.len()
     );
 }
 

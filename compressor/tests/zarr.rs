@@ -653,6 +653,19 @@ fn a_chunk_claiming_more_than_a_chunk_holds_is_refused() {
     }
 }
 
+/// A shard's index at its end: each inner chunk's (offset, length) as little-endian u64s
+/// (`u64::MAX` twice for a missing chunk), then their CRC-32C.
+fn shard_index(entries: &[(u64, u64)]) -> Vec<u8> {
+    let mut index: Vec<u8> = entries
+        .iter()
+        .flat_map(|(o, l)| [o.to_le_bytes(), l.to_le_bytes()])
+        .flatten()
+        .collect();
+    let crc = crc32c::crc32c(&index);
+    index.extend_from_slice(&crc.to_le_bytes());
+    index
+}
+
 /// A v3 array of 4×4×4 u16 samples in one chunk (or one shard) with these codecs, its chunk
 /// (or shard) file holding `chunk`.
 fn v3_store(dir: &Path, name: &str, codecs: &str, chunk: &[u8]) -> PathBuf {
@@ -722,17 +735,12 @@ fn chunks_that_decode_past_a_chunk_are_refused_before_they_are_decoded() {
     };
     // A shard of 2×2×2 inner chunks: the first the 1 TiB frame, the others missing; its index
     // (offset, length) pairs at the end with their CRC-32C.
-    let mut shard = declared.clone();
-    let mut index = Vec::new();
-    index.extend_from_slice(&0u64.to_le_bytes());
-    index.extend_from_slice(&(declared.len() as u64).to_le_bytes());
-    for _ in 1..8 {
-        index.extend_from_slice(&u64::MAX.to_le_bytes());
-        index.extend_from_slice(&u64::MAX.to_le_bytes());
-    }
-    let crc = crc32c::crc32c(&index);
-    shard.extend_from_slice(&index);
-    shard.extend_from_slice(&crc.to_le_bytes());
+    let first_of_eight = |offset: u64, length: u64| {
+        let mut entries = vec![(u64::MAX, u64::MAX); 8];
+        entries[0] = (offset, length);
+        shard_index(&entries)
+    };
+    let shard = [declared.clone(), first_of_eight(0, declared.len() as u64)].concat();
     let zstd_codecs = r#"[{"name": "bytes", "configuration": {"endian": "little"}},
         {"name": "zstd", "configuration": {"level": 0, "checksum": false}}]"#;
     let checked_codecs = r#"[{"name": "bytes", "configuration": {"endian": "little"}},
@@ -746,18 +754,12 @@ fn chunks_that_decode_past_a_chunk_are_refused_before_they_are_decoded() {
     );
     // A shard whose first entry reaches one byte into its index (zarrs only checks that an
     // entry ends within the shard): a byte, then the 32 MiB frame, then the index.
-    let mut overlapping = vec![0u8];
-    overlapping.extend_from_slice(&streamed[..streamed.len() - 1]);
-    let mut index = Vec::new();
-    index.extend_from_slice(&1u64.to_le_bytes());
-    index.extend_from_slice(&(streamed.len() as u64).to_le_bytes());
-    for _ in 1..8 {
-        index.extend_from_slice(&u64::MAX.to_le_bytes());
-        index.extend_from_slice(&u64::MAX.to_le_bytes());
-    }
-    let crc = crc32c::crc32c(&index);
-    overlapping.extend_from_slice(&index);
-    overlapping.extend_from_slice(&crc.to_le_bytes());
+    let overlapping = [
+        vec![0u8],
+        streamed[..streamed.len() - 1].to_vec(),
+        first_of_eight(1, streamed.len() as u64),
+    ]
+    .concat();
     let v3_zlib = r#"[{"name": "bytes", "configuration": {"endian": "little"}},
         {"name": "numcodecs.zlib", "configuration": {"level": 9}}]"#;
     let stores = [
@@ -824,7 +826,7 @@ fn chunks_that_decode_past_a_chunk_are_refused_before_they_are_decoded() {
     // chunks of 64 KiB) is checked chunk by chunk, not as one.
     let (shape, inner) = ([64usize, 128, 128], [32usize, 32, 32]);
     let value = |z: usize, y: usize, x: usize| ((z * 7 + y * 3 + x * 5) % 4099) as u16;
-    let (mut data, mut index) = (Vec::new(), Vec::new());
+    let (mut frames, mut entries) = (Vec::new(), Vec::new());
     for cz in 0..shape[0] / inner[0] {
         for cy in 0..shape[1] / inner[1] {
             for cx in 0..shape[2] / inner[2] {
@@ -838,15 +840,12 @@ fn chunks_that_decode_past_a_chunk_are_refused_before_they_are_decoded() {
                     }
                 }
                 let frame = zstd::encode_all(&samples[..], 1).unwrap();
-                index.extend_from_slice(&(data.len() as u64).to_le_bytes());
-                index.extend_from_slice(&(frame.len() as u64).to_le_bytes());
-                data.extend_from_slice(&frame);
+                entries.push((frames.len() as u64, frame.len() as u64));
+                frames.extend_from_slice(&frame);
             }
         }
     }
-    let crc = crc32c::crc32c(&index);
-    data.extend_from_slice(&index);
-    data.extend_from_slice(&crc.to_le_bytes());
+    let data = [frames.clone(), shard_index(&entries)].concat();
     let path = dir.path().join("honest-shard");
     std::fs::create_dir_all(path.join("c/0/0")).unwrap();
     let meta = format!(
@@ -863,19 +862,9 @@ fn chunks_that_decode_past_a_chunk_are_refused_before_they_are_decoded() {
     // The same shard with its index first: the offsets move by the index's length.
     let first = dir.path().join("honest-shard-index-first");
     std::fs::create_dir_all(first.join("c/0/0")).unwrap();
-    let index_len = index.len() + 4;
-    let moved: Vec<u8> = index
-        .chunks(8)
-        .enumerate()
-        .flat_map(|(i, w)| {
-            let v = u64::from_le_bytes(w.try_into().unwrap());
-            let v = if i % 2 == 0 { v + index_len as u64 } else { v };
-            v.to_le_bytes()
-        })
-        .collect();
-    let mut shard_first = moved.clone();
-    shard_first.extend_from_slice(&crc32c::crc32c(&moved).to_le_bytes());
-    shard_first.extend_from_slice(&data[..data.len() - index_len]);
+    let index_len = 16 * entries.len() as u64 + 4;
+    let moved: Vec<(u64, u64)> = entries.iter().map(|(o, l)| (o + index_len, *l)).collect();
+    let shard_first = [shard_index(&moved), frames].concat();
     std::fs::write(
         first.join("zarr.json"),
         meta.replace(r#""index_location": "end""#, r#""index_location": "start""#),
