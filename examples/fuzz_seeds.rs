@@ -218,6 +218,7 @@ fn main() {
                     ..Default::default()
                 }),
                 part: None,
+                channel: None,
             })),
         }
         .encode_to_vec(),

@@ -16,7 +16,7 @@ use wavesplat_codec::volume::{Placement, Volume};
 use wavesplat_compressor::phantom::Phantom;
 use wavesplat_fixtures::{
     write_dicom_multiframe, write_dicom_series, write_metaimage, write_nifti, write_nrrd,
-    write_zarr, DicomEncoding, DicomOptions, Layout, NrrdEncoding,
+    write_zarr, write_zarr_channels, DicomEncoding, DicomOptions, Layout, NrrdEncoding,
 };
 use wavesplat_orchestrator_client as client;
 use wavesplat_orchestrator_client::convert::state_name;
@@ -129,6 +129,20 @@ fn write_archive(dir: &Path) -> (Vec<(String, Volume)>, Vec<(String, &'static st
     let v = Volume::new(c.dims(), c.spacing(), vec![c.channel(0).to_vec()]).unwrap();
     write_zarr(&dir.join("scope/cells.ome.zarr"), &v, [8, 8, 4], true);
     good.push(("scope/cells".into(), v));
+    // An OME-Zarr image of two channels (c, z, y, x): a volume per channel, each its own
+    // values (their ranges tell them apart in the cache).
+    let c0 = ct([12, 10, 9], [0.5, 0.5, 1.0]);
+    let c0 = Volume::new(c0.dims(), c0.spacing(), vec![c0.channel(0).to_vec()]).unwrap();
+    let c1: Vec<f32> = c0.channel(0).iter().map(|v| 3.0 * v + 5000.0).collect();
+    let c1 = Volume::new(c0.dims(), c0.spacing(), vec![c1]).unwrap();
+    write_zarr_channels(
+        &dir.join("scope/two.ome.zarr"),
+        &[&c0, &c1],
+        [8, 8, 4],
+        true,
+    );
+    good.push(("scope/two/c0".into(), c0));
+    good.push(("scope/two/c1".into(), c1));
 
     // Unreadable: a series with a missing slice, an NRRD claiming a huge volume, a MetaImage
     // with zero spacing.
@@ -277,19 +291,117 @@ async fn an_archive_of_every_format_compresses_and_bad_volumes_fail_alone() {
             (None, None) => {}
             (w, g) => panic!("{name}: placement {w:?} vs {g:?}"),
         }
-        // Values keep their units: the CT volumes' range is in HU.
-        if name.starts_with("ct/") || name.starts_with("nrrd") || name == "series" {
+        // Values keep their units: the CT volumes' range is in HU; each channel of a Zarr
+        // array its own.
+        if name.starts_with("ct/")
+            || name.starts_with("nrrd")
+            || name == "series"
+            || name.starts_with("scope/two/")
+        {
             let (lo, hi) = v.value_range();
             assert!(
                 (h.value_range[0] - lo).abs() < 1e-3 && (h.value_range[1] - hi).abs() < 1e-3,
                 "{name}: {:?}",
                 h.value_range
             );
-            assert!(lo <= -1000.0, "{name}");
+            assert!(lo <= -1000.0 || name == "scope/two/c1", "{name}");
         }
     }
     let stored = cache.list().await.unwrap();
     assert_eq!(stored.len(), expect.len());
+}
+
+/// The channels of a Zarr array submitted as bricked jobs to one worker, which keeps a source
+/// open between parts: each channel's bricks read its own channel (their value ranges in the
+/// cache are the channel's).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn bricked_jobs_of_the_channels_of_a_zarr_array_each_read_their_own() {
+    let tmp = tempfile::tempdir().unwrap();
+    let archive = tmp.path().join("archive");
+    let c0 = ct([20, 18, 12], [0.5, 0.5, 1.0]);
+    let c0 = Volume::new(c0.dims(), c0.spacing(), vec![c0.channel(0).to_vec()]).unwrap();
+    // Another picture, not the first's samples scaled (which code to the same packets).
+    let spheres = Phantom::Spheres.generate(c0.dims());
+    let c1: Vec<f32> = spheres
+        .channel(0)
+        .iter()
+        .map(|v| 400.0 * v + 9000.0)
+        .collect();
+    let c1 = Volume::new(c0.dims(), c0.spacing(), vec![c1]).unwrap();
+    write_zarr_channels(&archive.join("two.ome.zarr"), &[&c0, &c1], [8, 8, 8], true);
+    let cluster = common::TestCluster::start(&["--poll-ms", "100"]);
+    let (o, c) = (cluster.orch.url(), cluster.cache.url());
+    let _worker = cluster.worker("w", 0, None);
+    let out = cli_ok(&[
+        "archive",
+        "submit",
+        archive.to_str().unwrap(),
+        "--orchestrator",
+        &o,
+        "--detach",
+        "--brick",
+        "8",
+        "--levels",
+        "1",
+    ]);
+    assert!(out.contains("2 submitted"), "{out}");
+    // The two bricked jobs (their parts are jobs too) finished.
+    let end = Instant::now() + Duration::from_secs(120);
+    let parents = loop {
+        let mut cl = client::connect(&o).await.unwrap();
+        let parents: Vec<pb::Job> = client::list(&mut cl)
+            .await
+            .unwrap()
+            .into_iter()
+            .filter(|j| j.spec.as_ref().is_some_and(|s| s.part.is_none()))
+            .collect();
+        let finished = |j: &pb::Job| matches!(state_name(j.state), "done" | "failed" | "cancelled");
+        if parents.len() == 2 && parents.iter().all(finished) {
+            break parents;
+        }
+        assert!(Instant::now() < end, "timed out: {parents:#?}");
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    };
+    for j in &parents {
+        let spec = j.spec.as_ref().unwrap();
+        assert_eq!(state_name(j.state), "done", "{}: {}", spec.name, j.error);
+        assert_eq!(spec.channel, Some(u32::from(spec.name == "two/c1")));
+    }
+    let mut cache = CacheClient::connect(&c).await.unwrap();
+    // Each is the file `compress --channel` makes of its channel, byte for byte.
+    let listed = cache.list().await.unwrap();
+    for (ch, name) in ["two/c0", "two/c1"].iter().enumerate() {
+        let file = tmp.path().join(format!("c{ch}.wspx"));
+        cli_ok(&[
+            "compress",
+            archive.join("two.ome.zarr").to_str().unwrap(),
+            "--channel",
+            &ch.to_string(),
+            "--brick",
+            "8",
+            "--levels",
+            "1",
+            "-o",
+            file.to_str().unwrap(),
+        ]);
+        let sha = wavesplat_net::digest::sha256(&std::fs::read(&file).unwrap());
+        let cached = listed.iter().find(|v| v.name == *name).expect("cached");
+        assert_eq!(cached.sha256, wavesplat_net::digest::hex(&sha), "{name}");
+    }
+    for (name, v) in [("two/c0", &c0), ("two/c1", &c1)] {
+        let h = cache
+            .header(&VolumeKey::Name(name.into()))
+            .await
+            .unwrap_or_else(|e| panic!("{name}: {e}"))
+            .header;
+        assert_eq!(h.geometry.dims, v.dims(), "{name}");
+        let (lo, hi) = v.value_range();
+        assert!(
+            (h.value_range[0] - lo).abs() < 1e-3 && (h.value_range[1] - hi).abs() < 1e-3,
+            "{name}: {:?} against {lo}..{hi}",
+            h.value_range
+        );
+    }
 }
 
 #[test]
@@ -532,6 +644,64 @@ fn named_views_and_zoom_in_millimetres() {
         err.contains("orientation in the patient is unknown"),
         "{err}"
     );
+}
+
+/// `compress --channel C` of a Zarr array of several channels writes what the same channel
+/// in a NIfTI file writes, byte for byte, whole and in bricks; without a choice, or with a
+/// channel it lacks, it is refused saying how many it holds.
+#[test]
+fn a_channel_of_a_zarr_array_compresses_as_that_channel_in_nifti() {
+    let tmp = tempfile::tempdir().unwrap();
+    let d = tmp.path();
+    let dims = [17, 13, 11];
+    let channels = [
+        Phantom::SheppLogan.generate(dims),
+        Phantom::Spheres.generate(dims),
+        Phantom::Blobs.generate(dims),
+    ];
+    let refs: Vec<&Volume> = channels.iter().collect();
+    let store = d.join("three.ome.zarr");
+    write_zarr_channels(&store, &refs, [8, 8, 8], true);
+    let store_s = store.to_str().unwrap();
+    let out = d.join("x.wsp");
+    for (extra, want) in [
+        (&[][..], "3 channels"),
+        (&["--channel", "3"][..], "channel 3"),
+    ] {
+        let mut args = vec!["compress", store_s, "-o", out.to_str().unwrap()];
+        args.extend_from_slice(extra);
+        let o = cli(&args);
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(!o.status.success(), "{extra:?}");
+        assert!(
+            err.contains(want) && err.contains("--channel"),
+            "{extra:?}: {err}"
+        );
+        assert!(!out.exists(), "{extra:?}: an output was written");
+    }
+    for c in [1, 2] {
+        let nii = d.join(format!("c{c}.nii"));
+        write_nifti(&nii, dims, channels[c].channel(0));
+        for bricks in [&[][..], &["--brick", "8"][..]] {
+            let ext = if bricks.is_empty() { "wsp" } else { "wspx" };
+            let mut outputs = Vec::new();
+            for (input, chosen) in [(store_s, Some(c)), (nii.to_str().unwrap(), None)] {
+                let out = d.join(format!("{c}-{}.{ext}", outputs.len()));
+                let c_arg = c.to_string();
+                let mut args = vec!["compress", input, "-o", out.to_str().unwrap()];
+                if chosen.is_some() {
+                    args.extend(["--channel", c_arg.as_str()]);
+                }
+                args.extend_from_slice(bricks);
+                cli_ok(&args);
+                outputs.push(std::fs::read(&out).unwrap());
+            }
+            assert!(
+                outputs[0] == outputs[1],
+                "channel {c} {bricks:?}: the Zarr array's file differs"
+            );
+        }
+    }
 }
 
 /// `compress` reads a Zarr array as it reads the same samples in a NIfTI file: the same file,

@@ -1123,6 +1123,7 @@ fn bricked_parent(name: &str, sha: u8) -> wavesplat_orchestrator_client::model::
         source: Source::Path(format!("/shared/{name}_64x64x64_f32.raw").into()),
         sha256: [sha; 32],
         raw: None,
+        channel: None,
         options: JobOptions {
             brick: Some(32),
             ..JobOptions::default()

@@ -35,6 +35,7 @@ fn spec(n: u32) -> JobSpec {
         source: Source::Path(format!("/data/v{n}.nii").into()),
         sha256: sha,
         raw: None,
+        channel: None,
         options: JobOptions::default(),
         part: None,
     }
@@ -444,6 +445,7 @@ async fn uploads_live_until_no_unfinished_job_needs_them(b: &mut dyn Backend) {
         source: Source::Upload { size: size as u64 },
         sha256: [sha; 32],
         raw: None,
+        channel: None,
         options: JobOptions::default(),
         part: None,
     };

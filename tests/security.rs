@@ -278,6 +278,7 @@ async fn every_orchestrator_rpc_checks_its_role_and_deliveries_are_confirmed() {
         source: Source::Path("/nonexistent/vol_16x16x16_f32.raw".into()),
         sha256: [9; 32],
         raw: None,
+        channel: None,
         options: JobOptions::default(),
         part: None,
     };
@@ -445,6 +446,7 @@ async fn a_worker_token_does_not_hold_another_workers_lease() {
         },
         sha256: wavesplat_net::digest::sha256(&source),
         raw: None,
+        channel: None,
         options: JobOptions::default(),
         part: None,
     };
@@ -453,6 +455,7 @@ async fn a_worker_token_does_not_hold_another_workers_lease() {
         source: Source::Path("/shared/large_64x64x64_f32.raw".into()),
         sha256: [5; 32],
         raw: None,
+        channel: None,
         options: JobOptions {
             brick: Some(32),
             ..JobOptions::default()
@@ -815,6 +818,7 @@ fn the_orchestrator_binary_with_a_cache_url_starts_and_refuses_unconfirmed_deliv
             source: Source::Path("/nonexistent/vol_16x16x16_f32.raw".into()),
             sha256: [9; 32],
             raw: None,
+            channel: None,
             options: JobOptions::default(),
             part: None,
         };

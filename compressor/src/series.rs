@@ -127,16 +127,35 @@ pub fn open_series_path(
     path: &std::path::Path,
     raw: Option<&crate::reader::RawSpec>,
 ) -> Result<Option<SeriesInput>, SeriesError> {
+    open_series_path_channel(path, raw, None)
+}
+
+/// [`open_series_path`] with a channel chosen
+/// ([`crate::reader::region::RegionReader::open_channel`]): of a Zarr array, or of a single
+/// file of several channels; a directory of time steps and a DICOM series are read with every
+/// channel, so a choice there is refused.
+pub fn open_series_path_channel(
+    path: &std::path::Path,
+    raw: Option<&crate::reader::RawSpec>,
+    channel: Option<usize>,
+) -> Result<Option<SeriesInput>, SeriesError> {
     use crate::reader::dicom::read_time_series;
+    use crate::reader::region::RegionReader;
     use crate::reader::steps::{step_files, StepSeries};
     if path.is_dir() && crate::reader::zarr::is_store(path) {
         // A Zarr array: a series when it has a time axis of several points.
         if crate::reader::time_points(path, raw)? <= 1 {
             return Ok(None);
         }
-        let reader = crate::reader::region::RegionReader::open_series(path, raw)?;
+        let reader = RegionReader::open_series_channel(path, raw, channel)?;
         return Ok(Some(SeriesInput::File(Box::new(reader))));
     }
+    let refuse_channel = |what: &str| match channel {
+        Some(c) => Err(SeriesError::InvalidOption(format!(
+            "channel {c} chosen of {what}, which is read with all its channels"
+        ))),
+        None => Ok(()),
+    };
     if path.is_dir() {
         let files = step_files(path, raw)?;
         // A directory of TIFF slices (and no DICOM file): one volume, a stack.
@@ -148,15 +167,21 @@ pub fn open_series_path(
             let Some((volumes, times)) = read_time_series(path)? else {
                 return Ok(None);
             };
+            refuse_channel("a DICOM time series")?;
             return Ok(Some(SeriesInput::Memory(VolumeSeries::new(
                 volumes, times,
             )?)));
         }
+        refuse_channel("a directory of time steps")?;
         return Ok(Some(SeriesInput::Steps(StepSeries::open(path, raw)?)));
     }
     if raw.is_none() && crate::reader::dicom::is_dicom_file(path).unwrap_or(false) {
         // A multi-frame cine: its frames are the time points.
-        return Ok(crate::reader::dicom::read_cine_file(path)?
+        let cine = crate::reader::dicom::read_cine_file(path)?;
+        if cine.is_some() {
+            refuse_channel("a DICOM cine")?;
+        }
+        return Ok(cine
             .map(|(volumes, times)| VolumeSeries::new(volumes, times))
             .transpose()?
             .map(SeriesInput::Memory));
@@ -164,7 +189,7 @@ pub fn open_series_path(
     if crate::reader::time_points(path, raw)? <= 1 {
         return Ok(None);
     }
-    let reader = crate::reader::region::RegionReader::open_series(path, raw)?;
+    let reader = RegionReader::open_series_channel(path, raw, channel)?;
     Ok(Some(SeriesInput::File(Box::new(reader))))
 }
 

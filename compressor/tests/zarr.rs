@@ -997,3 +997,137 @@ fn codec_chains_the_reader_cannot_see_through_are_refused_saying_which() {
         );
     }
 }
+
+/// The sample of the hand-written channel arrays at time `t`, channel `c`, voxel `x, y, z`.
+fn channel_sample(t: usize, c: usize, x: usize, y: usize, z: usize) -> f32 {
+    (x + 10 * y + 100 * z + 1000 * c + 5000 * t) as f32
+}
+
+/// Of an array of several channels one is read, the one chosen, by every way in (a path, a
+/// region reader, a bundle, a time series); none chosen, or one it lacks, is refused naming
+/// the count; a source read with all its channels together (raw RGB) keeps the one chosen.
+#[test]
+fn a_channel_of_several_is_read_as_chosen_and_none_chosen_is_refused() {
+    use wavesplat_compressor::reader::zarr::channels;
+    use wavesplat_compressor::reader::{decode_source_channel, read_volume_channel};
+    use wavesplat_compressor::series::{open_series_path, open_series_path_channel};
+    let dir = tempfile::tempdir().unwrap();
+    // t, c, z, y, x by count: one time point of three channels, and two of three.
+    let value = |p: &[usize]| channel_sample(p[0], p[1], p[4], p[3], p[2]) as u16;
+    let one = hand_written(
+        dir.path(),
+        "three",
+        &[1, 3, 5, 6, 7],
+        &[1, 1, 3, 4, 5],
+        None,
+        value,
+        |_| false,
+    );
+    let series = hand_written(
+        dir.path(),
+        "series",
+        &[2, 3, 5, 6, 7],
+        &[1, 2, 3, 4, 5],
+        None,
+        value,
+        |_| false,
+    );
+    let want = |t: usize, c: usize, o: [usize; 3], s: [usize; 3]| {
+        let mut out = Vec::new();
+        for z in o[2]..o[2] + s[2] {
+            for y in o[1]..o[1] + s[1] {
+                for x in o[0]..o[0] + s[0] {
+                    out.push(channel_sample(t, c, x, y, z));
+                }
+            }
+        }
+        out
+    };
+    assert_eq!(channels(&one).unwrap(), 3);
+    assert_eq!(channels(&series).unwrap(), 3);
+    let refused = |e: ReadError, what: &str| {
+        assert!(
+            matches!(e, ReadError::Channels { channels: 3, .. }),
+            "{e:?}"
+        );
+        let e = e.to_string();
+        assert!(e.contains("3 channels") && e.contains(what), "{e}");
+        assert!(e.contains("from 0 to 2") && e.contains("--channel"), "{e}");
+    };
+    refused(read_volume(&one, None).unwrap_err(), "axis 1");
+    refused(RegionReader::open(&one, None).unwrap_err(), "axis 1");
+    let bundle = SourceFiles::gather(&one, None).unwrap();
+    refused(decode_source(&bundle, None).unwrap_err(), "axis 1");
+    for (c, none) in [(3, "channel 3"), (17, "channel 17")] {
+        refused(read_volume_channel(&one, None, Some(c)).unwrap_err(), none);
+        let e = RegionReader::open_channel(&one, None, Some(c)).unwrap_err();
+        refused(e, none);
+    }
+    let (o, s) = ([2, 1, 1], [5, 4, 3]);
+    for c in 0..3 {
+        let whole = read_volume_channel(&one, None, Some(c)).unwrap();
+        assert_eq!(whole.dims(), [7, 6, 5]);
+        assert_eq!(whole.channel_count(), 1);
+        assert_eq!(
+            whole.channel(0),
+            &want(0, c, [0; 3], [7, 6, 5])[..],
+            "channel {c}"
+        );
+        let bundled = decode_source_channel(&bundle, None, Some(c)).unwrap();
+        assert_eq!(bundled, whole, "channel {c} from a bundle");
+        let r = RegionReader::open_channel(&one, None, Some(c)).unwrap();
+        assert_eq!(r.channels(), 1);
+        assert_eq!(
+            r.read_region(o, s).unwrap().channel(0),
+            &want(0, c, o, s)[..]
+        );
+    }
+    // A time series of channels: each time point's region of the channel chosen.
+    match open_series_path(&series, None) {
+        Err(wavesplat_compressor::series::SeriesError::Read(e)) => refused(*e, "axis 1"),
+        Err(e) => panic!("{e}"),
+        Ok(_) => panic!("a series of three channels read without a choice"),
+    }
+    let input = open_series_path_channel(&series, None, Some(2))
+        .unwrap()
+        .expect("a series");
+    let source = input.source();
+    assert_eq!(source.time_points(), 2);
+    for t in 0..2 {
+        let got = source.read_at(t, o.map(|v| v as u64), s).unwrap();
+        assert_eq!(got.channel(0), &want(t, 2, o, s)[..], "time point {t}");
+    }
+
+    // Raw RGB, read with its channels together: the one chosen kept, as one channel.
+    use wavesplat_compressor::reader::{RawDtype, RawSpec};
+    let dims = [4, 3, 2];
+    let rgb: Vec<u8> = (0..24 * 3).map(|i| (i * 7 % 251) as u8).collect();
+    let raw_path = dir.path().join("rgb.bin");
+    std::fs::write(&raw_path, &rgb).unwrap();
+    let mut spec = RawSpec::new(dims, RawDtype::from_name("u8").unwrap());
+    spec.channels = 3;
+    let all = read_volume(&raw_path, Some(&spec)).unwrap();
+    assert_eq!(all.channel_count(), 3);
+    for c in 0..3 {
+        let kept = read_volume_channel(&raw_path, Some(&spec), Some(c)).unwrap();
+        assert_eq!(kept.channel_count(), 1);
+        assert_eq!(kept.channel(0), all.channel(c), "RGB channel {c}");
+        let r = RegionReader::open_channel(&raw_path, Some(&spec), Some(c)).unwrap();
+        assert_eq!(r.channels(), 1);
+        let region = r.read_region([1, 1, 0], [2, 2, 2]).unwrap();
+        let whole = r.read_region([0, 0, 0], dims).unwrap();
+        assert_eq!(whole.channel(0), all.channel(c));
+        assert_eq!(region.channel(0)[0], all.channel(c)[all.index(1, 1, 0)]);
+    }
+    let e = read_volume_channel(&raw_path, Some(&spec), Some(3)).unwrap_err();
+    assert!(matches!(e, ReadError::Channels { channels: 3, .. }), "{e}");
+    let e = RegionReader::open_channel(&raw_path, Some(&spec), Some(3)).unwrap_err();
+    assert!(matches!(e, ReadError::Channels { channels: 3, .. }), "{e}");
+    // One channel: 0 is it, 1 is refused.
+    spec.channels = 1;
+    std::fs::write(&raw_path, &rgb[..24]).unwrap();
+    let single = read_volume_channel(&raw_path, Some(&spec), Some(0)).unwrap();
+    assert_eq!(single, read_volume(&raw_path, Some(&spec)).unwrap());
+    let e = read_volume_channel(&raw_path, Some(&spec), Some(1)).unwrap_err();
+    assert!(e.to_string().contains("1 channel,"), "{e}");
+}

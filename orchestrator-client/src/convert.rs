@@ -64,6 +64,7 @@ pub fn spec_from_pb(p: pb::JobSpec) -> Result<JobSpec, ClientError> {
         source,
         sha256,
         raw,
+        channel: p.channel,
         options,
         part,
     })
@@ -219,6 +220,7 @@ pub fn spec_to_pb(s: &JobSpec) -> pb::JobSpec {
             big_endian: r.big_endian,
             channels: u32_of(r.channels),
         }),
+        channel: s.channel,
         options: Some(pb::CompressOptions {
             family: o.family.name().into(),
             levels: o.levels.map(u32_of),
@@ -382,6 +384,7 @@ mod tests {
                 big_endian: false,
                 channels: 3,
             }),
+            channel: None,
             options: JobOptions {
                 levels: Some(2),
                 target: TargetSpec::All,
@@ -410,6 +413,17 @@ mod tests {
         assert_eq!(spec_from_pb(spec_to_pb(&limited)).unwrap(), limited);
         assert_ne!(limited.dedup_key(), spec.dedup_key());
         assert!(!serde_json::to_string(&default).unwrap().contains("memory"));
+        // A channel chosen round-trips and is part of the job's identity; none is stored and
+        // keyed as before channels.
+        let mut one_channel = spec.clone();
+        one_channel.channel = Some(2);
+        assert_eq!(spec_from_pb(spec_to_pb(&one_channel)).unwrap(), one_channel);
+        assert_ne!(one_channel.dedup_key(), spec.dedup_key());
+        assert!(!spec.dedup_key().contains("|channel:"));
+        assert!(!serde_json::to_string(&spec).unwrap().contains("\"channel\""));
+        assert!(serde_json::to_string(&one_channel)
+            .unwrap()
+            .contains("\"channel\":2"));
         limited.options.memory_limit = Some(0);
         assert!(spec_from_pb(spec_to_pb(&limited))
             .and_then(|s| s.validate())

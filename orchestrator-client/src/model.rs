@@ -465,6 +465,13 @@ pub struct JobSpec {
     pub sha256: [u8; 32],
     /// Raw layout (`None`: a format with a header — DICOM, NRRD, MetaImage, NIfTI).
     pub raw: Option<RawLayout>,
+    /// The one channel read of a source of several (a Zarr array's channel axis; of RGB, one
+    /// of its three), as a volume of one channel; `None`: every channel, and an array of
+    /// several is refused. Left out of the stored form when unset, so that a job's identity
+    /// is what it was before channels were chosen; a worker that predates it refuses such a
+    /// source rather than read another channel.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub channel: Option<u32>,
     /// Compressor options.
     pub options: JobOptions,
     /// Set for one brick's share of a bricked volume's job (its parent): what the worker
@@ -662,8 +669,12 @@ impl JobSpec {
                 format!("|part:{}", serde_json::to_string(&work).unwrap_or_default())
             }
         };
+        // Only a chosen channel is said: the keys of jobs without one stay what they were.
+        let channel = self
+            .channel
+            .map_or(String::new(), |c| format!("|channel:{c}"));
         format!(
-            "{}|{opts}|{}{part}",
+            "{}|{opts}|{}{part}{channel}",
             wavesplat_net::digest::hex(&self.sha256),
             self.name
         )

@@ -474,6 +474,7 @@ mod tests {
             source: Source::Upload { size: 3 },
             sha256: [7; 32],
             raw: None,
+            channel: None,
             options: JobOptions::default(),
             part: None,
         };
@@ -512,6 +513,7 @@ mod tests {
             source: Source::Path("/shared/b.nii".into()),
             sha256: [3; 32],
             raw: None,
+            channel: None,
             options: JobOptions {
                 brick: Some(16),
                 ..JobOptions::default()

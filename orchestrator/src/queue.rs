@@ -792,6 +792,7 @@ mod tests {
             source: Source::Path(format!("/data/v{n}.nii").into()),
             sha256: [n; 32],
             raw: None,
+            channel: None,
             options: JobOptions::default(),
             part: None,
         }

@@ -614,6 +614,7 @@ mod tests {
             source: Source::Path(format!("/archive/study/{id}.nii.gz").into()),
             sha256: [id as u8; 32],
             raw: None,
+            channel: None,
             options: JobOptions::default(),
             part: None,
         };

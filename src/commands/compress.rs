@@ -20,7 +20,7 @@ use wavesplat_compressor::encode::{
 use wavesplat_compressor::order::Clustering;
 use wavesplat_compressor::phantom::{beating, Phantom, PhantomVolume};
 use wavesplat_compressor::reader::region::RegionReader;
-use wavesplat_compressor::reader::{read_volume, Endian, RawDtype, RawSpec};
+use wavesplat_compressor::reader::{read_volume_channel, Endian, RawDtype, RawSpec};
 use wavesplat_compressor::series::{TimePointSource, VolumeSeries};
 use wavesplat_harness::console::Progress;
 
@@ -53,6 +53,11 @@ pub struct CompressArgs {
     /// volume per time step), compress only time point N (counting from 0) as one volume.
     #[arg(long, value_name = "N")]
     pub time_point: Option<usize>,
+    /// Compress only channel C (counting from 0) as a volume of one channel: of a Zarr array
+    /// with a channel axis (OME-Zarr's `c`: fluorescence channels, say), which is refused
+    /// without it when it holds several; of an RGB volume, its red, green or blue samples.
+    #[arg(long, value_name = "C", conflicts_with = "phantom")]
+    pub channel: Option<usize>,
     /// A time series is compressed whole into one file: its time points go through a Haar
     /// wavelet along time in groups of G (a power of two), so what a group's time points share
     /// is stored once; a viewer of one time point reads its group's bytes only. 1 compresses
@@ -221,6 +226,8 @@ enum Input {
     File {
         path: PathBuf,
         raw: Option<RawSpec>,
+        /// The one channel read (`--channel`).
+        channel: Option<usize>,
     },
 }
 
@@ -229,9 +236,8 @@ fn load(a: &CompressArgs) -> Result<Volume> {
         Input::Phantom(p) => p.phantom.try_generate(p.dims.map(|d| d as usize)).context(
             "generating the phantom (give --brick N for a phantom larger than one volume)",
         ),
-        Input::File { path, raw } => {
-            read_volume(&path, raw.as_ref()).map_err(|e| super::read_error(&path, e))
-        }
+        Input::File { path, raw, channel } => read_volume_channel(&path, raw.as_ref(), channel)
+            .map_err(|e| super::read_error(&path, e)),
     }
 }
 
@@ -307,6 +313,7 @@ fn input(a: &CompressArgs) -> Result<Input> {
     Ok(Input::File {
         path: input.clone(),
         raw,
+        channel: a.channel,
     })
 }
 
@@ -326,10 +333,10 @@ fn open_series(a: &CompressArgs) -> Result<Option<super::series::SeriesInput>> {
     if a.phantom.is_some() {
         return Ok(None);
     }
-    let Input::File { path, raw } = input(a)? else {
+    let Input::File { path, raw, channel } = input(a)? else {
         return Ok(None);
     };
-    super::series::open_path(&path, raw.as_ref())
+    super::series::open_path(&path, raw.as_ref(), channel)
 }
 
 /// Without `--memory-limit`, files smaller than this fraction of the memory available are not
@@ -357,10 +364,10 @@ fn auto_brick(a: &CompressArgs, opts: &CompressOptions) -> Result<Option<(usize,
             brick_side(dims, p.phantom.channel_count(), opts, limit, threads)
         }
         (Some(_), None) => {
-            let Input::File { path, raw } = input(a)? else {
+            let Input::File { path, raw, channel } = input(a)? else {
                 return Ok(None);
             };
-            probe_file_for_bricks(&path, raw.as_ref(), opts, threads)
+            probe_file_for_bricks(&path, raw.as_ref(), channel, opts, threads)
         }
         (None, None) => Ok(None),
     }
@@ -374,6 +381,7 @@ fn auto_brick(a: &CompressArgs, opts: &CompressOptions) -> Result<Option<(usize,
 pub(crate) fn probe_file_for_bricks(
     path: &std::path::Path,
     raw: Option<&RawSpec>,
+    channel: Option<usize>,
     opts: &CompressOptions,
     threads: u64,
 ) -> Result<Option<(usize, String)>> {
@@ -412,7 +420,8 @@ pub(crate) fn probe_file_for_bricks(
     if !large {
         return Ok(None);
     }
-    let reader = RegionReader::open(path, raw).map_err(|e| super::read_error(path, e))?;
+    let reader =
+        RegionReader::open_channel(path, raw, channel).map_err(|e| super::read_error(path, e))?;
     if reader.in_memory() {
         return Ok(None);
     }
@@ -537,9 +546,9 @@ fn run_bricked(a: &CompressArgs, opts: &CompressOptions, brick: usize) -> Result
     let reader;
     let source: &dyn BrickSource = match &input {
         Input::Phantom(p) => p,
-        Input::File { path, raw } => {
-            reader =
-                RegionReader::open(path, raw.as_ref()).map_err(|e| super::read_error(path, e))?;
+        Input::File { path, raw, channel } => {
+            reader = RegionReader::open_channel(path, raw.as_ref(), *channel)
+                .map_err(|e| super::read_error(path, e))?;
             &reader
         }
     };

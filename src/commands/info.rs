@@ -41,7 +41,7 @@ pub fn run(a: InfoArgs) -> Result<()> {
         std::io::Read::read_exact(&mut f, &mut head).map(|_| head)
     });
     if !matches!(&head, Ok(h) if h == wavesplat_codec::format::MAGIC) {
-        if let Some(series) = super::series::open_path(&a.input, None)? {
+        if let Some(series) = super::series::open_path(&a.input, None, None)? {
             outln!(
                 "{}",
                 super::series::describe_source(&a.input, series.source())

@@ -496,7 +496,7 @@ fn submit_options(
     }
     // A file that cannot be probed is submitted as it is: its worker says what is wrong with it
     // (as for any job).
-    let probed = super::compress::probe_file_for_bricks(&f.path, raw.as_ref(), &opts, 1)
+    let probed = super::compress::probe_file_for_bricks(&f.path, raw.as_ref(), f.channel, &opts, 1)
         .unwrap_or_else(|e| {
             tracing::debug!(path = %f.path.display(), "not probed for bricks: {e:#}");
             None

@@ -12,13 +12,16 @@ use wavesplat_harness::console::Progress;
 
 pub use wavesplat_compressor::series::SeriesInput;
 
-/// The time series at `path`, when it is one ([`wavesplat_compressor::series::open_series_path`]),
+/// The time series at `path`, when it is one ([`wavesplat_compressor::series::open_series_path`];
+/// of its channels, `channel` when one is chosen),
 /// its read errors reported with the path.
 pub fn open_path(
     path: &std::path::Path,
     raw: Option<&wavesplat_compressor::reader::RawSpec>,
+    channel: Option<usize>,
 ) -> Result<Option<SeriesInput>> {
-    wavesplat_compressor::series::open_series_path(path, raw).map_err(|e| match e {
+    use wavesplat_compressor::series::open_series_path_channel;
+    open_series_path_channel(path, raw, channel).map_err(|e| match e {
         wavesplat_compressor::series::SeriesError::Read(r) => super::read_error(path, *r),
         e => anyhow::Error::new(e).context(format!("reading {}", path.display())),
     })

@@ -14,7 +14,8 @@
 //!   path; a multi-page TIFF is a volume of its own;
 //! - Zarr (a directory holding `zarr.json`, `.zarray` or `.zgroup`: an array, v2 or v3, or an
 //!   OME-Zarr image): one volume, or a time series when the array has a time axis, named by
-//!   the directory's path without `.zarr` / `.ome.zarr`; its chunks are not scanned;
+//!   the directory's path without `.zarr` / `.ome.zarr` (an array of several channels: a
+//!   volume per channel, `NAME/c0`, `NAME/c1`, …); its chunks are not scanned;
 //! - headerless raw, described by its name: `NAME_XxYxZ_DTYPE[_rgb][_be].raw`, e.g.
 //!   `head_256x256x128_u16.raw`, `cells_64x64x64_u8_rgb.raw`, `ct_512x512x300_i16_be.raw`.
 //!   DTYPE is `u8`, `i8`, `u16`, `i16`, `u32`, `i32`, `u64`, `i64`, `f32` or `f64`; `_rgb` means 3 channels interleaved per voxel;
@@ -51,6 +52,9 @@ pub struct Found {
     pub name: String,
     /// Raw layout (`None`: a format with a header, or a DICOM directory).
     pub raw: Option<RawLayout>,
+    /// The one channel read, for each channel of a Zarr array of several (`None`: every
+    /// channel).
+    pub channel: Option<usize>,
 }
 
 /// What a scan found.
@@ -101,6 +105,10 @@ pub fn parse_raw_name(file_name: &str) -> Option<(String, RawLayout)> {
         },
     ))
 }
+
+/// Most channels of one Zarr array submitted as volumes of their own (a spectral or
+/// hyperspectral array of hundreds is rather compressed channel by channel, as chosen).
+pub const MAX_CHANNEL_VOLUMES: usize = 64;
 
 /// Every visible file under `dir`, in name order; a Zarr store found on the way goes to
 /// `stores`, whole, its chunks not listed.
@@ -165,19 +173,44 @@ pub fn scan_with(root: &Path, time_steps: bool) -> std::io::Result<Scan> {
             .find_map(|ext| lower.strip_suffix(ext))
             .filter(|stem| !stem.is_empty() && !stem.ends_with('/'))
             .map_or(name.clone(), |stem| name[..stem.len()].to_string());
-        if let Err(e) = SourceListing::list(&store, None) {
-            // Not an image or array this reader takes (a plate, a group of other data): said
-            // here, as a bad file is, rather than failing the submission when it is listed.
-            scan.skipped.push((store, e.to_string()));
-        } else if names.insert(name.clone()) {
-            scan.found.push(Found {
-                path: store,
-                name,
-                raw: None,
-            });
-        } else {
-            let why = format!("another volume already uses the name {name:?}");
+        // Its metadata only is read here (the array opened as the reader opens it), not its
+        // chunks listed: a store may hold millions, and the submission lists them once to hash
+        // them. Not an image or array this reader takes (a plate, a group of other data): said
+        // here, as a bad file is, rather than failing the submission.
+        let channels = match zarr::channels(&store) {
+            Ok(n) => n,
+            Err(e) => {
+                scan.skipped.push((store, e.to_string()));
+                continue;
+            }
+        };
+        // An array of several channels is a volume per channel, `NAME/cC`.
+        let volumes: Vec<(String, Option<usize>)> = if channels == 1 {
+            vec![(name, None)]
+        } else if channels > MAX_CHANNEL_VOLUMES {
+            let why = format!(
+                "{channels} channels, more than the {MAX_CHANNEL_VOLUMES} submitted as volumes \
+                 of their own: compress the ones wanted with `compress --channel C`"
+            );
             scan.skipped.push((store, why));
+            continue;
+        } else {
+            (0..channels)
+                .map(|c| (format!("{name}/c{c}"), Some(c)))
+                .collect()
+        };
+        for (name, channel) in volumes {
+            if names.insert(name.clone()) {
+                scan.found.push(Found {
+                    path: store.clone(),
+                    name,
+                    raw: None,
+                    channel,
+                });
+            } else {
+                let why = format!("another volume already uses the name {name:?}");
+                scan.skipped.push((store.clone(), why));
+            }
         }
     }
     // Directories of time steps: each one series, every file in it taken.
@@ -199,6 +232,7 @@ pub fn scan_with(root: &Path, time_steps: bool) -> std::io::Result<Scan> {
                         path: dir.clone(),
                         name,
                         raw: None,
+                        channel: None,
                     });
                     step_dirs.insert(dir);
                 }
@@ -324,6 +358,7 @@ pub fn scan_with(root: &Path, time_steps: bool) -> std::io::Result<Scan> {
             path: dir,
             name,
             raw: None,
+            channel: None,
         });
     }
     for path in files {
@@ -372,7 +407,12 @@ pub fn scan_with(root: &Path, time_steps: bool) -> std::io::Result<Scan> {
                 .push((path, format!("another file already uses the name {name:?}")));
             continue;
         }
-        scan.found.push(Found { path, name, raw });
+        scan.found.push(Found {
+            path,
+            name,
+            raw,
+            channel: None,
+        });
     }
     scan.found.sort_by(|a, b| a.path.cmp(&b.path));
     Ok(scan)
@@ -508,6 +548,7 @@ pub fn job_spec(
         source,
         sha256,
         raw: found.raw.clone(),
+        channel: found.channel.map(|c| c as u32),
         options: options.clone(),
         part: None,
     };
@@ -810,6 +851,73 @@ mod tests {
         let s = scan(&r.join("sim.zarr")).unwrap();
         assert_eq!(s.found.len(), 1, "{:?}", s.found);
         assert_eq!(s.found[0].name, "sim");
+    }
+
+    /// A Zarr array of several channels is a volume per channel, `NAME/cC`, each job reading
+    /// its own; one of more channels than are submitted alone is skipped saying how to take
+    /// them.
+    #[test]
+    fn a_zarr_array_of_several_channels_is_a_volume_per_channel() {
+        let dir = tempfile::tempdir().unwrap();
+        let r = dir.path();
+        // c, z, y, x by xarray's names: u8 samples, each channel's 24 its own.
+        let store = |name: &str, c: usize| {
+            let path = r.join(name);
+            std::fs::create_dir_all(&path).unwrap();
+            let meta = format!(
+                r#"{{"zarr_format": 2, "shape": [{c}, 2, 3, 4], "chunks": [1, 2, 3, 4],
+                    "dtype": "|u1", "compressor": null, "fill_value": 0, "order": "C",
+                    "filters": null}}"#
+            );
+            std::fs::write(path.join(".zarray"), meta).unwrap();
+            let names = r#"{"_ARRAY_DIMENSIONS": ["c", "z", "y", "x"]}"#;
+            std::fs::write(path.join(".zattrs"), names).unwrap();
+            for k in 0..c.min(3) {
+                let samples: Vec<u8> = (0..24).map(|i| (50 * k + i) as u8).collect();
+                std::fs::write(path.join(format!("{k}.0.0.0")), samples).unwrap();
+            }
+        };
+        store("multi.zarr", 3);
+        store("spectral.zarr", MAX_CHANNEL_VOLUMES + 1);
+        let s = scan(r).unwrap();
+        let found: Vec<(&str, Option<usize>)> = s
+            .found
+            .iter()
+            .map(|f| (f.name.as_str(), f.channel))
+            .collect();
+        assert_eq!(
+            found,
+            [
+                ("multi/c0", Some(0)),
+                ("multi/c1", Some(1)),
+                ("multi/c2", Some(2))
+            ]
+        );
+        assert_eq!(s.skipped.len(), 1, "{:?}", s.skipped);
+        assert_eq!(s.skipped[0].0, r.join("spectral.zarr"));
+        assert!(s.skipped[0].1.contains("--channel"), "{:?}", s.skipped);
+        for (c, f) in s.found.iter().enumerate() {
+            let (spec, bytes) = job_spec(f, &JobOptions::default(), true).unwrap();
+            assert_eq!(spec.channel, Some(c as u32));
+            let src = SourceFiles::from_bytes(bytes.unwrap(), Path::new("multi")).unwrap();
+            let v =
+                wavesplat_compressor::reader::decode_source_channel(&src, None, Some(c)).unwrap();
+            assert_eq!(v.dims(), [4, 3, 2]);
+            let want: Vec<f32> = (0..24).map(|i| (50 * c + i) as f32).collect();
+            assert_eq!(v.channel(0), want, "channel {c}");
+        }
+        // The three jobs hash the same bytes; their keys differ by their names and channels.
+        let keys: std::collections::HashSet<String> = s
+            .found
+            .iter()
+            .map(|f| {
+                job_spec(f, &JobOptions::default(), false)
+                    .unwrap()
+                    .0
+                    .dedup_key()
+            })
+            .collect();
+        assert_eq!(keys.len(), 3);
     }
 
     /// A job names the same content whether its source is uploaded or named by path: files

@@ -44,7 +44,8 @@ use wavesplat_compressor::bricked::{compress_bricked_to, BrickError, BrickSource
 use wavesplat_compressor::encode::{compress, Stage, StopFlag};
 use wavesplat_compressor::reader::region::RegionReader;
 use wavesplat_compressor::reader::{
-    decode_raw, decode_source, unpack_bundle, ReadError, SourceFiles, SourceListing,
+    decode_raw, decode_source_channel, keep_channel, unpack_bundle, ReadError, SourceFiles,
+    SourceListing,
 };
 use wavesplat_net::digest::sha256;
 use wavesplat_orchestrator_client::convert;
@@ -492,12 +493,20 @@ fn upload_unavailable(s: tonic::Status) -> Failure {
     )
 }
 
+/// The one channel a job reads of its source, if it chose one.
+pub(crate) fn channel(spec: &JobSpec) -> Option<usize> {
+    spec.channel.map(|c| c as usize)
+}
+
 fn decode(spec: &JobSpec, bytes: Vec<u8>) -> Result<Volume, Failure> {
     let invalid = |e: &dyn std::fmt::Display| fail(FailureKind::InvalidInput, e.to_string());
     match (&spec.raw, &spec.source) {
         (Some(layout), _) => {
             let raw = options::raw_spec(layout);
-            decode_raw(&bytes, &raw).map_err(|e| invalid(&e))
+            let origin = std::path::PathBuf::from(&spec.name);
+            decode_raw(&bytes, &raw)
+                .and_then(|v| keep_channel(v, channel(spec), &origin))
+                .map_err(|e| invalid(&e))
         }
         // A file with a header, or a bundle of a volume's files; read from the verified bytes.
         (None, source) => {
@@ -506,7 +515,7 @@ fn decode(spec: &JobSpec, bytes: Vec<u8>) -> Result<Volume, Failure> {
                 Source::Upload { .. } => std::path::PathBuf::from(&spec.name),
             };
             let src = SourceFiles::from_bytes(bytes, &origin).map_err(|e| invalid(&e))?;
-            decode_source(&src, None).map_err(|e| match (e, source) {
+            decode_source_channel(&src, None, channel(spec)).map_err(|e| match (e, source) {
                 (ReadError::TimeSeries { points, .. }, Source::Upload { .. }) => {
                     uploaded_series_refused(&origin.display().to_string(), points)
                 }
@@ -532,6 +541,7 @@ fn refuse_over_memory_limit(spec: &JobSpec) -> Result<(), Failure> {
         return Ok(());
     }
     let (dims, channels) = match &spec.raw {
+        Some(r) if spec.channel.is_some() => (r.dims, 1),
         Some(r) => (r.dims, r.channels),
         None if path
             .extension()
@@ -539,7 +549,7 @@ fn refuse_over_memory_limit(spec: &JobSpec) -> Result<(), Failure> {
         {
             return Ok(())
         }
-        None => match RegionReader::open(path, None) {
+        None => match RegionReader::open_channel(path, None, channel(spec)) {
             Ok(r) => (r.dims(), r.channels()),
             Err(_) => return Ok(()),
         },
@@ -905,7 +915,7 @@ fn upload_file_name(raw: bool, job_name: &str, head: &[u8]) -> &'static str {
 fn open_upload(spec: &JobSpec, f: &UploadedFile) -> Result<RegionReader, Failure> {
     confined(&f.path, &f.source, spec.raw.is_some())?;
     let raw = spec.raw.as_ref().map(options::raw_spec);
-    RegionReader::open(&f.path, raw.as_ref()).map_err(|e| match e {
+    RegionReader::open_channel(&f.path, raw.as_ref(), channel(spec)).map_err(|e| match e {
         ReadError::TimeSeries { points, .. } => uploaded_series_refused(&spec.name, points),
         e => fail(FailureKind::InvalidInput, format!("{}: {e}", spec.name)),
     })
@@ -1128,6 +1138,7 @@ mod tests {
             source: Source::Path(path),
             sha256: [0; 32],
             raw,
+            channel: None,
             options: JobOptions {
                 memory_limit: limit,
                 brick,

@@ -26,7 +26,9 @@ use wavesplat_compressor::bricked::{
 use wavesplat_compressor::colorspace::ColorTransform;
 use wavesplat_compressor::encode::{ScoreSummary, StopFlag, Target};
 use wavesplat_compressor::reader::region::RegionReader;
-use wavesplat_compressor::series::{open_series_path, SeriesError, SeriesInput, SeriesPlan};
+use wavesplat_compressor::series::{
+    open_series_path_channel, SeriesError, SeriesInput, SeriesPlan,
+};
 use wavesplat_orchestrator_client::model::{
     is_worker_name, Failure, FailureKind, JobSpec, PartColor, PartSpec, PartStep, Source,
 };
@@ -179,11 +181,12 @@ pub(crate) struct OpenedSource {
     opened: Opened,
 }
 
-/// What a source is kept open under: the file, its hash and layout, and how it was opened.
+/// What a source is kept open under: the file, its hash, layout and channel, and how it was
+/// opened.
 fn opened_key(spec: &JobSpec, series: bool) -> String {
     format!(
-        "{:?}|{:?}|{:?}|{series}",
-        spec.source, spec.sha256, spec.raw
+        "{:?}|{:?}|{:?}|{:?}|{series}",
+        spec.source, spec.sha256, spec.raw, spec.channel
     )
 }
 
@@ -241,7 +244,8 @@ impl PartRunner {
             return Ok(None);
         };
         let raw = spec.raw.as_ref().map(options::raw_spec);
-        let Some(input) = open_series_path(p, raw.as_ref()).map_err(series_failure)? else {
+        let input = open_series_path_channel(p, raw.as_ref(), crate::channel(spec));
+        let Some(input) = input.map_err(series_failure)? else {
             return Ok(None);
         };
         let input = Arc::new(input);
@@ -283,7 +287,7 @@ fn open_source(spec: &JobSpec) -> Result<RegionReader, Failure> {
         ));
     };
     let raw = spec.raw.as_ref().map(options::raw_spec);
-    RegionReader::open(p, raw.as_ref()).map_err(|e| {
+    RegionReader::open_channel(p, raw.as_ref(), crate::channel(spec)).map_err(|e| {
         let kind = if p.is_file() {
             FailureKind::InvalidInput
         } else {
@@ -303,7 +307,7 @@ pub(crate) fn open_series(spec: &JobSpec) -> Result<SeriesInput, Failure> {
         ));
     };
     let raw = spec.raw.as_ref().map(options::raw_spec);
-    match open_series_path(p, raw.as_ref()) {
+    match open_series_path_channel(p, raw.as_ref(), crate::channel(spec)) {
         Ok(Some(s)) => Ok(s),
         Ok(None) => Err(fail(
             FailureKind::InvalidInput,

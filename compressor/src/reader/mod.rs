@@ -159,6 +159,24 @@ pub enum ReadError {
         /// What failed.
         reason: String,
     },
+    /// An array of several channels opened without choosing one (Zarr arrays: every other
+    /// source is one channel, or three of RGB read together), or a channel chosen that the
+    /// source does not hold.
+    #[error(
+        "{}: {channels} {}, {why}: choose one from 0 to {} (`compress --channel C`; \
+         `archive submit` makes each channel a volume of its own)",
+        path.display(),
+        if *channels == 1 { "channel" } else { "channels" },
+        channels.saturating_sub(1)
+    )]
+    Channels {
+        /// The store.
+        path: PathBuf,
+        /// Channels it holds (1: a source without a channel axis).
+        channels: u64,
+        /// Where they are, or what was chosen.
+        why: String,
+    },
     /// The file is valid but uses a feature this reader does not support.
     #[error("{}: unsupported: {reason}", path.display())]
     Unsupported {
@@ -956,7 +974,7 @@ pub fn decode_source(src: &SourceFiles, raw: Option<&RawSpec>) -> Result<Volume,
         Some(Format::Nrrd) => nrrd::decode(src),
         Some(Format::MetaImage) => metaimage::decode(src),
         Some(Format::Tiff) => tiff_stack::decode(src),
-        Some(Format::Zarr) => zarr::decode(src),
+        Some(Format::Zarr) => zarr::decode(src, zarr::ChannelChoice::Only),
         Some(Format::Nifti) => match src.files.as_slice() {
             [(_, bytes)] => nifti::decode_nifti(&src.origin, bytes),
             // A `.hdr` and its `.img`.
@@ -983,24 +1001,73 @@ pub fn decode_source(src: &SourceFiles, raw: Option<&RawSpec>) -> Result<Volume,
     }
 }
 
+/// [`decode_source`] with a channel chosen: of a Zarr array with a channel axis, the one read;
+/// of any other source, one of its channels (of RGB, 0 to 2) kept as a volume of one channel.
+/// `None` reads the source as [`decode_source`] does.
+pub fn decode_source_channel(
+    src: &SourceFiles,
+    raw: Option<&RawSpec>,
+    channel: Option<usize>,
+) -> Result<Volume, ReadError> {
+    match src.format {
+        Some(Format::Zarr) => zarr::decode(src, channel.into()),
+        _ => keep_channel(decode_source(src, raw)?, channel, &src.origin),
+    }
+}
+
+/// Volume `v` (read from `path`) with only channel `channel` kept, when one is chosen.
+pub fn keep_channel(v: Volume, channel: Option<usize>, path: &Path) -> Result<Volume, ReadError> {
+    let Some(c) = channel else {
+        return Ok(v);
+    };
+    if c >= v.channel_count() {
+        return Err(ReadError::Channels {
+            path: path.to_path_buf(),
+            channels: v.channel_count() as u64,
+            why: format!("channel {c} was chosen"),
+        });
+    }
+    if v.channel_count() == 1 {
+        return Ok(v);
+    }
+    let (dims, spacing, placement) = (v.dims(), v.spacing(), v.placement().copied());
+    let kept = v.into_channels().swap_remove(c);
+    let one = Volume::new(dims, spacing, vec![kept]).map_err(|e| ReadError::volume(path, e))?;
+    match placement {
+        Some(p) => one
+            .with_placement(p)
+            .map_err(|e| ReadError::volume(path, e)),
+        None => Ok(one),
+    }
+}
+
 /// Reads a volume from a path: a DICOM series directory, a DICOM, NRRD, MetaImage or NIfTI
 /// file (by extension, else by content; a `.hdr` reads the `.img` beside it), or else a raw
 /// file described by `raw`. A `raw` spec given for a file of a known format is ignored (the
 /// header describes the data). The `.img` of a pair, given alone and without `raw`, is
 /// refused naming its header.
 pub fn read_volume(path: &Path, raw: Option<&RawSpec>) -> Result<Volume, ReadError> {
+    read_volume_channel(path, raw, None)
+}
+
+/// [`read_volume`] with a channel chosen, as [`decode_source_channel`] chooses it.
+pub fn read_volume_channel(
+    path: &Path,
+    raw: Option<&RawSpec>,
+    channel: Option<usize>,
+) -> Result<Volume, ReadError> {
     let meta = std::fs::metadata(path).map_err(|e| ReadError::io(path, e))?;
     if meta.is_file() && Format::from_name(path).is_none() {
         if let Some(spec) = raw {
             // Raw data is never sniffed: its first bytes could look like anything.
-            return read_raw(path, spec);
+            return keep_channel(read_raw(path, spec)?, channel, path);
         }
         if let Some(header) = nifti::pair_header_of(path) {
             return Err(nifti::pair_data_read_alone(path, &header));
         }
     }
     let src = SourceFiles::gather(path, None)?;
-    decode_source(&src, raw)
+    decode_source_channel(&src, raw, channel)
 }
 
 /// Whether the directory `path` is a TIFF stack: it holds TIFF files and no DICOM file (a

@@ -58,6 +58,10 @@ pub struct RegionReader {
     time_step: Option<f64>,
     /// The time point [`RegionReader::read_region`] reads.
     selected: usize,
+    /// The one channel kept of a source of several read together (RGB), when one was chosen
+    /// ([`RegionReader::open_channel`]); `channels` stays the source's, and regions hold this
+    /// one. A Zarr array's channel is chosen when it is opened, and only it is read.
+    kept_channel: Option<usize>,
 }
 
 /// Where the samples of an opened volume are.
@@ -303,7 +307,49 @@ impl RegionReader {
     /// read with [`RegionReader::read_region_at`]; [`RegionReader::read_region`] reads the
     /// selected one (the first, or [`RegionReader::select_time_point`]'s).
     pub fn open_series(path: &Path, raw: Option<&RawSpec>) -> Result<RegionReader, ReadError> {
-        let opened = formats::open(path, raw)?;
+        RegionReader::open_series_channel(path, raw, None)
+    }
+
+    /// [`RegionReader::open`] with a channel chosen: of a Zarr array with a channel axis, the
+    /// one read (an array of several is refused without a choice, as
+    /// [`ReadError::Channels`]); of any other source, one of the channels it reads together
+    /// (of RGB, 0 to 2), kept as a volume of one channel. `None` opens as
+    /// [`RegionReader::open`] does.
+    pub fn open_channel(
+        path: &Path,
+        raw: Option<&RawSpec>,
+        channel: Option<usize>,
+    ) -> Result<RegionReader, ReadError> {
+        let reader = RegionReader::open_series_channel(path, raw, channel)?;
+        if reader.time_points > 1 {
+            return Err(ReadError::TimeSeries {
+                path: path.to_path_buf(),
+                points: reader.time_points,
+            });
+        }
+        Ok(reader)
+    }
+
+    /// [`RegionReader::open_series`] with a channel chosen, as [`RegionReader::open_channel`]
+    /// chooses it.
+    pub fn open_series_channel(
+        path: &Path,
+        raw: Option<&RawSpec>,
+        channel: Option<usize>,
+    ) -> Result<RegionReader, ReadError> {
+        let opened = formats::open(path, raw, channel.into())?;
+        let zarr = matches!(opened.source, Source::Zarr(_));
+        let kept_channel = match channel {
+            Some(c) if !zarr && c >= opened.channels => {
+                return Err(ReadError::Channels {
+                    path: path.to_path_buf(),
+                    channels: opened.channels as u64,
+                    why: format!("channel {c} was chosen"),
+                })
+            }
+            Some(c) if !zarr && opened.channels > 1 => Some(c),
+            _ => None,
+        };
         Ok(RegionReader {
             path: path.to_path_buf(),
             dims: opened.dims,
@@ -314,6 +360,7 @@ impl RegionReader {
             time_points: opened.time_points,
             time_step: opened.time_step,
             selected: 0,
+            kept_channel,
         })
     }
 
@@ -354,9 +401,13 @@ impl RegionReader {
         self.dims.iter().map(|d| *d as u128).product()
     }
 
-    /// Number of channels (1 or 3).
+    /// Number of channels a region holds (1 or 3; 1 where one was chosen).
     pub fn channels(&self) -> usize {
-        self.channels
+        if self.kept_channel.is_some() {
+            1
+        } else {
+            self.channels
+        }
     }
 
     /// Voxel spacing (x, y, z), as [`read_volume`] gives it.
@@ -425,6 +476,10 @@ impl RegionReader {
             Source::Zarr(s) => (vec![s.read(t, origin, size)?], &self.path),
             Source::Stored(s) => (self.read_stored(s, t, origin, size, voxels)?, &s.path),
         };
+        let planar = match self.kept_channel {
+            Some(c) => planar.into_iter().nth(c).into_iter().collect(),
+            None => planar,
+        };
         let volume = Volume::new(size, self.spacing, planar).map_err(|e| {
             let e = match e {
                 VolumeError::NonFinite {
@@ -434,7 +489,8 @@ impl RegionReader {
                     z,
                     value,
                 } => VolumeError::NonFinite {
-                    channel,
+                    // The source's channel, where one of several was kept.
+                    channel: self.kept_channel.unwrap_or(channel),
                     x: x + origin[0],
                     y: y + origin[1],
                     z: z + origin[2],

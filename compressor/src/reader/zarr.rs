@@ -9,8 +9,10 @@
 //! Axes come from OME-Zarr's `axes` (their `type`, else their name), else from the array's
 //! dimension names (v3 `dimension_names`, xarray's `_ARRAY_DIMENSIONS`: `x`, `y`, `z`, `t` or
 //! `time`, `c` or `channel`), else from the count: `z, y, x` for three, `t, z, y, x` for four and
-//! OME's `t, c, z, y, x` for five. The spatial axes may come in any order; a channel axis must
-//! hold one channel; any other axis must be of size 1. Spacing, in mm: OME's `scale`
+//! OME's `t, c, z, y, x` for five. The spatial axes may come in any order; of a channel axis
+//! of several channels one is read, the one chosen ([`ChannelChoice`]; an array of several
+//! channels opened without a choice is refused, saying how many it holds); any other axis must
+//! be of size 1. Spacing, in mm: OME's `scale`
 //! transformations of the first dataset (and of the whole multiscale) in each axis's `unit`
 //! (a scale without a unit is taken as mm), else 1; the seconds between time points from the
 //! time axis's scale and unit. Samples: unsigned and signed integers of 8 to 64 bits, 32- and
@@ -95,6 +97,10 @@ pub(crate) struct ZarrVolume {
     space_axes: [usize; 3],
     /// The array axis of time, if any.
     time_axis: Option<usize>,
+    /// The array axis of channels, if any, and the channel read along it.
+    channel_axis: Option<(usize, u64)>,
+    /// Channels along the channel axis (1 without one).
+    channels: usize,
     dims: [usize; 3],
     time_points: usize,
     spacing: [f32; 3],
@@ -117,16 +123,31 @@ fn bad(path: &Path, reason: impl Into<String>) -> ReadError {
     ReadError::bad_header(path, FORMAT, reason)
 }
 
+/// Which channel of an array with a channel axis is read.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ChannelChoice {
+    /// The only one: an array of several channels is refused.
+    Only,
+    /// This one (counted from 0).
+    Index(usize),
+}
+
+impl From<Option<usize>> for ChannelChoice {
+    fn from(c: Option<usize>) -> ChannelChoice {
+        c.map_or(ChannelChoice::Only, ChannelChoice::Index)
+    }
+}
+
 impl ZarrVolume {
-    /// Opens the store at `path` (a directory) as a volume.
-    pub(crate) fn open(path: &Path) -> Result<ZarrVolume, ReadError> {
+    /// Opens the store at `path` (a directory) as a volume, the channel `channel` of it.
+    pub(crate) fn open(path: &Path, channel: ChannelChoice) -> Result<ZarrVolume, ReadError> {
         let store = zarrs::filesystem::FilesystemStore::new(path)
             .map_err(|e| ReadError::io(path, std::io::Error::other(e.to_string())))?;
-        ZarrVolume::of_store(path, Arc::new(store))
+        ZarrVolume::of_store(path, Arc::new(store), channel)
     }
 
     /// Opens a store's gathered files (names relative to the store, `/`-separated).
-    fn of_files(src: &SourceFiles) -> Result<ZarrVolume, ReadError> {
+    fn of_files(src: &SourceFiles, channel: ChannelChoice) -> Result<ZarrVolume, ReadError> {
         let store = zarrs::storage::store::MemoryStore::new();
         for (name, bytes) in &src.files {
             let key = StoreKey::new(name.as_str())
@@ -135,10 +156,14 @@ impl ZarrVolume {
                 .set(&key, bytes.clone().into())
                 .map_err(|e| bad(&src.path_of(name), e.to_string()))?;
         }
-        ZarrVolume::of_store(&src.origin, Arc::new(store))
+        ZarrVolume::of_store(&src.origin, Arc::new(store), channel)
     }
 
-    fn of_store(path: &Path, store: ReadableStorage) -> Result<ZarrVolume, ReadError> {
+    fn of_store(
+        path: &Path,
+        store: ReadableStorage,
+        channel: ChannelChoice,
+    ) -> Result<ZarrVolume, ReadError> {
         let target = locate(path, &store)?;
         let bounded = Arc::new(Bounded::new(store));
         let store: ReadableStorage = bounded.clone();
@@ -222,25 +247,37 @@ impl ZarrVolume {
             ));
         }
         for (i, role) in roles.iter().enumerate() {
-            let single = matches!(role, Role::Channel | Role::Other);
-            if single && shape[i] != 1 {
-                let why = if *role == Role::Channel {
-                    format!(
-                        "{} channels (axis {i} of shape {shape:?}): one channel is read; write \
-                         each channel as an array of its own",
-                        shape[i]
-                    )
-                } else {
-                    let name = axes.get(i).map_or("", |a| a.name.as_str());
-                    format!(
-                        "{} entries along axis {i} ({name:?}) of shape {shape:?}, which is no \
-                         spatial, time or channel axis: such an axis must be of size 1",
-                        shape[i]
-                    )
-                };
+            if *role == Role::Other && shape[i] != 1 {
+                let name = axes.get(i).map_or("", |a| a.name.as_str());
+                let why = format!(
+                    "{} entries along axis {i} ({name:?}) of shape {shape:?}, which is no \
+                     spatial, time or channel axis: such an axis must be of size 1",
+                    shape[i]
+                );
                 return Err(ReadError::unsupported(path, why));
             }
         }
+        let channels = channel_axis.map_or(1, |i| shape[i]);
+        let channel_axis = match (channel_axis, channel) {
+            (None, ChannelChoice::Only | ChannelChoice::Index(0)) => None,
+            (Some(i), ChannelChoice::Only) if channels == 1 => Some((i, 0)),
+            (Some(i), ChannelChoice::Index(c)) if (c as u64) < channels => Some((i, c as u64)),
+            (Some(i), ChannelChoice::Only) => {
+                return Err(ReadError::Channels {
+                    path: path.to_path_buf(),
+                    channels,
+                    why: format!("axis {i} of shape {shape:?} holds them; one is read"),
+                });
+            }
+            (_, ChannelChoice::Index(c)) => {
+                return Err(ReadError::Channels {
+                    path: path.to_path_buf(),
+                    channels,
+                    why: format!("channel {c} was chosen"),
+                });
+            }
+        };
+        let channels = usize::try_from(channels).unwrap_or(usize::MAX);
         let size = |i: usize| {
             usize::try_from(shape[i]).map_err(|_| bad(path, format!("size {} too large", shape[i])))
         };
@@ -345,6 +382,8 @@ impl ZarrVolume {
             sample,
             space_axes,
             time_axis,
+            channel_axis,
+            channels,
             dims,
             time_points,
             spacing,
@@ -359,6 +398,11 @@ impl ZarrVolume {
 
     pub(crate) fn time_points(&self) -> usize {
         self.time_points
+    }
+
+    /// Channels along the array's channel axis (1 without one), of which one is read.
+    pub(crate) fn channels(&self) -> usize {
+        self.channels
     }
 
     pub(crate) fn time_step(&self) -> Option<f64> {
@@ -385,6 +429,9 @@ impl ZarrVolume {
         }
         if let Some(i) = self.time_axis {
             ranges[i] = t as u64..t as u64 + 1;
+        }
+        if let Some((i, c)) = self.channel_axis {
+            ranges[i] = c..c + 1;
         }
         // Strides of the box's array axes (C order), for x, y and z.
         let extent: Vec<usize> = ranges.iter().map(|r| (r.end - r.start) as usize).collect();
@@ -1186,7 +1233,13 @@ fn walk_once(
 
 /// How many time points the store at `path` holds (1 for a volume).
 pub(crate) fn time_points(path: &Path) -> Result<usize, ReadError> {
-    Ok(ZarrVolume::open(path)?.time_points())
+    Ok(ZarrVolume::open(path, ChannelChoice::Index(0))?.time_points())
+}
+
+/// How many channels the array of the store at `path` holds along its channel axis (1
+/// without one), each a volume ([`ChannelChoice`]); its metadata only is read.
+pub fn channels(path: &Path) -> Result<usize, ReadError> {
+    Ok(ZarrVolume::open(path, ChannelChoice::Index(0))?.channels())
 }
 
 /// What decoding a gathered store whole ([`decode`]) may hold at once by what its metadata
@@ -1195,7 +1248,7 @@ pub(crate) fn time_points(path: &Path) -> Result<usize, ReadError> {
 /// this, not the store's size, is what reading it costs; the fuzz target bounds the reader's
 /// heap by it.
 pub fn declared_bytes(src: &SourceFiles) -> Result<u64, ReadError> {
-    let z = ZarrVolume::of_files(src)?;
+    let z = ZarrVolume::of_files(src, ChannelChoice::Index(0))?;
     let voxels = checked_voxels(z.dims).map_err(|e| ReadError::volume(&src.origin, e))? as u64;
     let sample = z.sample.map_or(1, SampleType::size) as u64;
     Ok(voxels
@@ -1203,10 +1256,10 @@ pub fn declared_bytes(src: &SourceFiles) -> Result<u64, ReadError> {
         .saturating_add(z.chunk_bytes))
 }
 
-/// Decodes a gathered store whole (one time point; a series is refused as
-/// [`ReadError::TimeSeries`]).
-pub(crate) fn decode(src: &SourceFiles) -> Result<Volume, ReadError> {
-    let z = ZarrVolume::of_files(src)?;
+/// Decodes a gathered store whole, the channel `channel` of it (one time point; a series is
+/// refused as [`ReadError::TimeSeries`]).
+pub(crate) fn decode(src: &SourceFiles, channel: ChannelChoice) -> Result<Volume, ReadError> {
+    let z = ZarrVolume::of_files(src, channel)?;
     if z.time_points > 1 {
         return Err(ReadError::TimeSeries {
             path: src.origin.clone(),

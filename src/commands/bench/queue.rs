@@ -58,6 +58,7 @@ fn spec(i: usize, tag: &str) -> JobSpec {
         source: Source::Path(format!("/archive/{tag}{i}.nii").into()),
         sha256: sha,
         raw: None,
+        channel: None,
         options: JobOptions::default(),
         part: None,
     }

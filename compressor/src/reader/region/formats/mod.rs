@@ -23,16 +23,22 @@ use self::nrrd::open_nrrd;
 use self::raw::open_raw;
 use super::{Opened, Stored};
 use crate::reader::text::TEXT_HEADER_WINDOW;
+use crate::reader::zarr::ChannelChoice;
 use crate::reader::{Endian, Format, RawSpec, ReadError, SampleType, SourceFiles};
 use wavesplat_codec::volume::{Volume, VolumeError};
 
-/// Opens `path` by format, as [`crate::reader::read_volume`] dispatches.
-pub(super) fn open(path: &Path, raw: Option<&RawSpec>) -> Result<Opened, ReadError> {
+/// Opens `path` by format, as [`crate::reader::read_volume`] dispatches (of a Zarr array, the
+/// channel `channel`; other formats read every channel).
+pub(super) fn open(
+    path: &Path,
+    raw: Option<&RawSpec>,
+    channel: ChannelChoice,
+) -> Result<Opened, ReadError> {
     let meta = std::fs::metadata(path).map_err(|e| ReadError::io(path, e))?;
     if meta.is_dir() {
         // A Zarr store, a DICOM series, else a stack of TIFF files.
         if crate::reader::zarr::is_store(path) {
-            return open_zarr(path);
+            return open_zarr(path, channel);
         }
         if crate::reader::is_tiff_directory(path)? {
             return open_tiff(path);
@@ -58,7 +64,7 @@ pub(super) fn open(path: &Path, raw: Option<&RawSpec>) -> Result<Opened, ReadErr
         Some(Format::MetaImage) => open_metaimage(path),
         Some(Format::Nifti) => open_nifti(path),
         Some(Format::Tiff) => open_tiff(path),
-        Some(Format::Zarr) => open_zarr(path),
+        Some(Format::Zarr) => open_zarr(path, channel),
         None => Err(ReadError::MissingRawSpec {
             path: path.to_path_buf(),
         }),
@@ -93,9 +99,9 @@ fn open_tiff(path: &Path) -> Result<Opened, ReadError> {
     })
 }
 
-/// A Zarr array, read by chunks.
-fn open_zarr(path: &Path) -> Result<Opened, ReadError> {
-    let z = crate::reader::zarr::ZarrVolume::open(path)?;
+/// A Zarr array, read by chunks (of its channels, the one chosen).
+fn open_zarr(path: &Path, channel: ChannelChoice) -> Result<Opened, ReadError> {
+    let z = crate::reader::zarr::ZarrVolume::open(path, channel)?;
     Ok(Opened {
         dims: z.dims(),
         channels: 1,
