@@ -312,8 +312,8 @@ async fn an_archive_of_every_format_compresses_and_bad_volumes_fail_alone() {
 }
 
 /// The channels of a Zarr array submitted as bricked jobs to one worker, which keeps a source
-/// open between parts: each channel's bricks read its own channel (their value ranges in the
-/// cache are the channel's).
+/// open between parts: each channel's bricks read its own channel (the cache holds the files
+/// `compress --channel` makes); a store that cannot be listed is said and the rest submitted.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn bricked_jobs_of_the_channels_of_a_zarr_array_each_read_their_own() {
     let tmp = tempfile::tempdir().unwrap();
@@ -329,10 +329,15 @@ async fn bricked_jobs_of_the_channels_of_a_zarr_array_each_read_their_own() {
         .collect();
     let c1 = Volume::new(c0.dims(), c0.spacing(), vec![c1]).unwrap();
     write_zarr_channels(&archive.join("two.ome.zarr"), &[&c0, &c1], [8, 8, 8], true);
+    // A store whose files cannot be listed (a link back to itself): its metadata opens, so the
+    // scan finds it, but it cannot be hashed; said, and the rest submitted.
+    let looped = archive.join("loop.zarr");
+    write_zarr(&looped, &c0, [8, 8, 8], false);
+    std::os::unix::fs::symlink(&looped, looped.join("again")).unwrap();
     let cluster = common::TestCluster::start(&["--poll-ms", "100"]);
     let (o, c) = (cluster.orch.url(), cluster.cache.url());
     let _worker = cluster.worker("w", 0, None);
-    let out = cli_ok(&[
+    let submitted = cli(&[
         "archive",
         "submit",
         archive.to_str().unwrap(),
@@ -344,7 +349,18 @@ async fn bricked_jobs_of_the_channels_of_a_zarr_array_each_read_their_own() {
         "--levels",
         "1",
     ]);
-    assert!(out.contains("2 submitted"), "{out}");
+    let out = String::from_utf8_lossy(&submitted.stdout);
+    let err = String::from_utf8_lossy(&submitted.stderr);
+    assert!(!submitted.status.success(), "{out}\n{err}");
+    assert!(
+        out.contains("2 submitted") && out.contains("1 not read"),
+        "{out}"
+    );
+    assert!(out.contains("as two/c1 submitted as job"), "{out}");
+    assert!(
+        err.contains("loop.zarr") && err.contains("not submitted"),
+        "{err}"
+    );
     // The two bricked jobs (their parts are jobs too) finished.
     let end = Instant::now() + Duration::from_secs(120);
     let parents = loop {

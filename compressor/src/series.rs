@@ -131,9 +131,9 @@ pub fn open_series_path(
 }
 
 /// [`open_series_path`] with a channel chosen
-/// ([`crate::reader::region::RegionReader::open_channel`]): of a Zarr array, or of a single
-/// file of several channels; a directory of time steps and a DICOM series are read with every
-/// channel, so a choice there is refused.
+/// ([`crate::reader::region::RegionReader::open_channel`]): of a Zarr array, of a file of
+/// several channels, of each time point of a DICOM series or cine; a directory of time steps
+/// is read with every channel, so only channel 0 of grey steps is taken there.
 pub fn open_series_path_channel(
     path: &std::path::Path,
     raw: Option<&crate::reader::RawSpec>,
@@ -150,11 +150,12 @@ pub fn open_series_path_channel(
         let reader = RegionReader::open_series_channel(path, raw, channel)?;
         return Ok(Some(SeriesInput::File(Box::new(reader))));
     }
-    let refuse_channel = |what: &str| match channel {
-        Some(c) => Err(SeriesError::InvalidOption(format!(
-            "channel {c} chosen of {what}, which is read with all its channels"
-        ))),
-        None => Ok(()),
+    // Time points read whole (a DICOM series or cine): the channel chosen kept of each.
+    let keep = |volumes: Vec<wavesplat_codec::volume::Volume>| {
+        volumes
+            .into_iter()
+            .map(|v| crate::reader::keep_channel(v, channel, path))
+            .collect::<Result<Vec<_>, _>>()
     };
     if path.is_dir() {
         let files = step_files(path, raw)?;
@@ -167,24 +168,31 @@ pub fn open_series_path_channel(
             let Some((volumes, times)) = read_time_series(path)? else {
                 return Ok(None);
             };
-            refuse_channel("a DICOM time series")?;
             return Ok(Some(SeriesInput::Memory(VolumeSeries::new(
-                volumes, times,
+                keep(volumes)?,
+                times,
             )?)));
         }
-        refuse_channel("a directory of time steps")?;
-        return Ok(Some(SeriesInput::Steps(StepSeries::open(path, raw)?)));
+        let steps = StepSeries::open(path, raw)?;
+        // Steps are read with all their channels: a channel is chosen of grey steps only (0).
+        if let Some(c) = channel.filter(|&c| c > 0 || steps.channels() > 1) {
+            return Err(SeriesError::InvalidOption(format!(
+                "channel {c} chosen of a directory of time steps of {} channel(s), which are \
+                 read with all their channels",
+                steps.channels()
+            )));
+        }
+        return Ok(Some(SeriesInput::Steps(steps)));
     }
     if raw.is_none() && crate::reader::dicom::is_dicom_file(path).unwrap_or(false) {
         // A multi-frame cine: its frames are the time points.
-        let cine = crate::reader::dicom::read_cine_file(path)?;
-        if cine.is_some() {
-            refuse_channel("a DICOM cine")?;
-        }
-        return Ok(cine
-            .map(|(volumes, times)| VolumeSeries::new(volumes, times))
-            .transpose()?
-            .map(SeriesInput::Memory));
+        let Some((volumes, times)) = crate::reader::dicom::read_cine_file(path)? else {
+            return Ok(None);
+        };
+        return Ok(Some(SeriesInput::Memory(VolumeSeries::new(
+            keep(volumes)?,
+            times,
+        )?)));
     }
     if crate::reader::time_points(path, raw)? <= 1 {
         return Ok(None);

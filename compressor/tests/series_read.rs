@@ -486,3 +486,60 @@ fn an_enhanced_multiframe_dicom_with_a_temporal_dimension_is_a_series() {
     let e = open_series_path(&path, None).unwrap_err().to_string();
     assert!(e.contains("Temporal Position Index 2"), "{e}");
 }
+
+/// A channel chosen of a series read with all its channels: of grey time steps only channel
+/// 0 is there (1 is refused, saying so); of a DICOM series read whole, each time point keeps
+/// the channel chosen (0 of grey frames: the same series), and one it lacks is refused.
+#[test]
+fn a_channel_chosen_of_steps_and_of_a_dicom_cine_is_taken_or_refused() {
+    use wavesplat_compressor::series::{open_series_path, open_series_path_channel, SeriesError};
+    use wavesplat_fixtures::{write_dicom_enhanced_series, DicomOptions, Layout};
+    let dir = tempfile::tempdir().unwrap();
+    let vols = points(3);
+    write_steps(dir.path(), &["s_0.nii", "s_1.nii", "s_2.nii"], &vols);
+    let taken = open_series_path_channel(dir.path(), None, Some(0))
+        .unwrap()
+        .expect("a series");
+    reads_as(taken.source(), &vols, None);
+    match open_series_path_channel(dir.path(), None, Some(1)) {
+        Err(SeriesError::InvalidOption(why)) => {
+            assert!(
+                why.contains("channel 1") && why.contains("1 channel(s)"),
+                "{why}"
+            )
+        }
+        Err(e) => panic!("{e}"),
+        Ok(_) => panic!("channel 1 of grey steps taken"),
+    }
+    let cine_dir = tempfile::tempdir().unwrap();
+    let grey: Vec<Volume> = vols
+        .iter()
+        .map(|v| {
+            let data = v.channel(0).iter().map(|x| x.max(0.0).round()).collect();
+            Volume::new(DIMS, [1.0, 1.0, 1.0], vec![data]).unwrap()
+        })
+        .collect();
+    let path = cine_dir.path().join("cine.dcm");
+    let o = DicomOptions {
+        layout: Layout::U16,
+        ..Default::default()
+    };
+    write_dicom_enhanced_series(&path, &grey, &[0.0, 40.0, 80.0], &o);
+    let all = open_series_path(&path, None).unwrap().expect("a series");
+    let zero = open_series_path_channel(&path, None, Some(0))
+        .unwrap()
+        .expect("a series");
+    for t in 0..3 {
+        let whole = |s: &wavesplat_compressor::series::SeriesInput| {
+            s.source().read_at(t, [0; 3], DIMS).unwrap()
+        };
+        assert_eq!(whole(&zero), whole(&all), "time point {t}");
+    }
+    match open_series_path_channel(&path, None, Some(2)) {
+        Err(SeriesError::Read(e)) => {
+            assert!(matches!(*e, ReadError::Channels { channels: 1, .. }), "{e}")
+        }
+        Err(e) => panic!("{e}"),
+        Ok(_) => panic!("channel 2 of grey frames taken"),
+    }
+}

@@ -420,7 +420,9 @@ mod tests {
         assert_eq!(spec_from_pb(spec_to_pb(&one_channel)).unwrap(), one_channel);
         assert_ne!(one_channel.dedup_key(), spec.dedup_key());
         assert!(!spec.dedup_key().contains("|channel:"));
-        assert!(!serde_json::to_string(&spec).unwrap().contains("\"channel\""));
+        assert!(!serde_json::to_string(&spec)
+            .unwrap()
+            .contains("\"channel\""));
         assert!(serde_json::to_string(&one_channel)
             .unwrap()
             .contains("\"channel\":2"));
@@ -457,6 +459,10 @@ mod tests {
         let back = spec_from_pb(spec_to_pb(&part)).unwrap();
         assert_eq!(back, part);
         assert!(spec.is_parent_of(&back.clone().validate().unwrap()));
+        // A part of another channel is no part of it.
+        let mut other_channel = back.clone();
+        other_channel.channel = Some(1);
+        assert!(!spec.is_parent_of(&other_channel));
         assert_ne!(part.dedup_key(), spec.dedup_key());
         let mut p = spec_to_pb(&part);
         p.part.as_mut().unwrap().color.as_mut().unwrap().basis.pop();

@@ -466,10 +466,11 @@ pub struct JobSpec {
     /// Raw layout (`None`: a format with a header — DICOM, NRRD, MetaImage, NIfTI).
     pub raw: Option<RawLayout>,
     /// The one channel read of a source of several (a Zarr array's channel axis; of RGB, one
-    /// of its three), as a volume of one channel; `None`: every channel, and an array of
+    /// of its three), as a volume of one channel; `None`: every channel, and a Zarr array of
     /// several is refused. Left out of the stored form when unset, so that a job's identity
-    /// is what it was before channels were chosen; a worker that predates it refuses such a
-    /// source rather than read another channel.
+    /// is what it was before channels were chosen. A worker that predates it refuses a Zarr
+    /// array of several channels (the only jobs `archive submit` gives a channel), but would
+    /// read every channel of an RGB source given one through the API.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub channel: Option<u32>,
     /// Compressor options.
@@ -650,6 +651,7 @@ impl JobSpec {
             && self.source == part.source
             && self.sha256 == part.sha256
             && self.raw == part.raw
+            && self.channel == part.channel
             && self.options == part.options
     }
 

@@ -517,19 +517,46 @@ fn submit_options(
     })
 }
 
+/// A source's bytes, uploaded with each job that reads it (a Zarr store's channels).
+type SharedBytes = std::sync::Arc<Vec<u8>>;
+
 async fn submit_all(a: SubmitArgs, scan: &archive::Scan, options: &JobOptions) -> Result<()> {
     let mut c = connect(&a.orchestrator, &a.security).await?;
     let mut ids = HashSet::new();
-    let (mut new, mut known) = (0, 0);
+    let (mut new, mut known, mut unreadable) = (0, 0, 0);
+    // The last source hashed (and its bytes, when uploaded): the channels of one Zarr store
+    // follow one another, and it is listed and hashed once for all of them.
+    let mut hashed: Option<(PathBuf, model::JobSpec, Option<SharedBytes>)> = None;
     for f in &scan.found {
         let f = &archive::Found {
             name: format!("{}{}{}", a.name_prefix, f.name, a.name_suffix),
             ..f.clone()
         };
         let options = &submit_options(f, options, a.memory_limit)?;
-        let (spec, bytes) = archive::job_spec(f, options, a.upload)
-            .with_context(|| format!("reading {}", f.path.display()))?;
-        let r = client::submit(&mut c, &spec, bytes.as_deref())
+        let (spec, bytes) = match &hashed {
+            Some((path, spec, bytes)) if *path == f.path && f.channel.is_some() => (
+                model::JobSpec {
+                    name: f.name.clone(),
+                    channel: f.channel.map(|c| c as u32),
+                    options: options.clone(),
+                    ..spec.clone()
+                },
+                bytes.clone(),
+            ),
+            _ => match archive::job_spec(f, options, a.upload) {
+                Ok((spec, bytes)) => (spec, bytes.map(std::sync::Arc::new)),
+                Err(e) => {
+                    // Said, and the rest submitted: one unreadable volume (a store whose files
+                    // cannot be listed, a file gone) does not hold back the archive.
+                    eprintln!("error: reading {}: {e}; not submitted", f.path.display());
+                    unreadable += 1;
+                    continue;
+                }
+            },
+        };
+        hashed = Some((f.path.clone(), spec.clone(), bytes.clone()));
+        let bytes = bytes.as_deref().map(Vec::as_slice);
+        let r = client::submit(&mut c, &spec, bytes)
             .await
             .with_context(|| format!("submitting {}", f.path.display()))?;
         let job = r.job.context("the orchestrator returned no job")?;
@@ -540,19 +567,34 @@ async fn submit_all(a: SubmitArgs, scan: &archive::Scan, options: &JobOptions) -
             new += 1;
             "submitted as"
         };
+        // A channel of a store is told by its name.
+        let channel = match f.channel {
+            Some(_) => format!(" as {}", f.name),
+            None => String::new(),
+        };
         outln!(
-            "{} {what} job {} ({})",
+            "{}{channel} {what} job {} ({})",
             f.path.display(),
             job.id,
             state_name(job.state)
         );
         ids.insert(job.id);
     }
-    outln!("{new} submitted, {known} already known");
-    if a.detach {
-        return Ok(());
+    let unread = match unreadable {
+        0 => String::new(),
+        n => format!(", {n} not read (said above)"),
+    };
+    outln!("{new} submitted, {known} already known{unread}");
+    let watched = if a.detach {
+        Ok(())
+    } else {
+        watch(&mut c, Some(&ids), &mut crate::Stdout).await
+    };
+    if unreadable > 0 {
+        watched?;
+        bail!("{unreadable} volume(s) could not be read and were not submitted (said above)");
     }
-    watch(&mut c, Some(&ids), &mut crate::Stdout).await
+    watched
 }
 
 /// Runs `wavesplat jobs …`.

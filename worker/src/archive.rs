@@ -174,9 +174,9 @@ pub fn scan_with(root: &Path, time_steps: bool) -> std::io::Result<Scan> {
             .filter(|stem| !stem.is_empty() && !stem.ends_with('/'))
             .map_or(name.clone(), |stem| name[..stem.len()].to_string());
         // Its metadata only is read here (the array opened as the reader opens it), not its
-        // chunks listed: a store may hold millions, and the submission lists them once to hash
-        // them. Not an image or array this reader takes (a plate, a group of other data): said
-        // here, as a bad file is, rather than failing the submission.
+        // chunks listed: a store may hold millions, and the submission lists them to hash
+        // them (a store whose files cannot be listed is skipped then). Not an image or array
+        // this reader takes (a plate, a group of other data): said here, as a bad file is.
         let channels = match zarr::channels(&store) {
             Ok(n) => n,
             Err(e) => {
@@ -199,18 +199,20 @@ pub fn scan_with(root: &Path, time_steps: bool) -> std::io::Result<Scan> {
                 .map(|c| (format!("{name}/c{c}"), Some(c)))
                 .collect()
         };
+        // Taken whole or skipped whole: never some of its channels.
+        if let Some((name, _)) = volumes.iter().find(|(n, _)| names.contains(n)) {
+            let why = format!("another volume already uses the name {name:?}");
+            scan.skipped.push((store, why));
+            continue;
+        }
         for (name, channel) in volumes {
-            if names.insert(name.clone()) {
-                scan.found.push(Found {
-                    path: store.clone(),
-                    name,
-                    raw: None,
-                    channel,
-                });
-            } else {
-                let why = format!("another volume already uses the name {name:?}");
-                scan.skipped.push((store.clone(), why));
-            }
+            names.insert(name.clone());
+            scan.found.push(Found {
+                path: store.clone(),
+                name,
+                raw: None,
+                channel,
+            });
         }
     }
     // Directories of time steps: each one series, every file in it taken.
@@ -879,6 +881,10 @@ mod tests {
         };
         store("multi.zarr", 3);
         store("spectral.zarr", MAX_CHANNEL_VOLUMES + 1);
+        // Two stores named `dup`: the second's names `dup/c0`, `dup/c1` are taken by the
+        // first's, so it is skipped, once, not submitted in part.
+        store("dup.ome.zarr", 3);
+        store("dup.zarr", 2);
         let s = scan(r).unwrap();
         let found: Vec<(&str, Option<usize>)> = s
             .found
@@ -888,15 +894,24 @@ mod tests {
         assert_eq!(
             found,
             [
+                ("dup/c0", Some(0)),
+                ("dup/c1", Some(1)),
+                ("dup/c2", Some(2)),
                 ("multi/c0", Some(0)),
                 ("multi/c1", Some(1)),
                 ("multi/c2", Some(2))
             ]
         );
-        assert_eq!(s.skipped.len(), 1, "{:?}", s.skipped);
-        assert_eq!(s.skipped[0].0, r.join("spectral.zarr"));
-        assert!(s.skipped[0].1.contains("--channel"), "{:?}", s.skipped);
-        for (c, f) in s.found.iter().enumerate() {
+        let skipped: Vec<&Path> = s.skipped.iter().map(|(p, _)| p.as_path()).collect();
+        assert_eq!(
+            skipped,
+            [r.join("dup.zarr"), r.join("spectral.zarr")],
+            "{:?}",
+            s.skipped
+        );
+        assert!(s.skipped[0].1.contains("\"dup/c0\""), "{:?}", s.skipped);
+        assert!(s.skipped[1].1.contains("--channel"), "{:?}", s.skipped);
+        for (c, f) in s.found[3..].iter().enumerate() {
             let (spec, bytes) = job_spec(f, &JobOptions::default(), true).unwrap();
             assert_eq!(spec.channel, Some(c as u32));
             let src = SourceFiles::from_bytes(bytes.unwrap(), Path::new("multi")).unwrap();
@@ -907,8 +922,7 @@ mod tests {
             assert_eq!(v.channel(0), want, "channel {c}");
         }
         // The three jobs hash the same bytes; their keys differ by their names and channels.
-        let keys: std::collections::HashSet<String> = s
-            .found
+        let keys: std::collections::HashSet<String> = s.found[3..]
             .iter()
             .map(|f| {
                 job_spec(f, &JobOptions::default(), false)

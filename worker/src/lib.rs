@@ -493,6 +493,23 @@ fn upload_unavailable(s: tonic::Status) -> Failure {
     )
 }
 
+/// The whole volume of a job's source on shared storage, read in place by region (the job's
+/// channel of it).
+fn read_in_place(spec: &JobSpec) -> Result<Volume, Failure> {
+    let Source::Path(path) = &spec.source else {
+        return Err(fail(FailureKind::Worker, "an upload read in place"));
+    };
+    let invalid = |e: ReadError| {
+        fail(
+            FailureKind::InvalidInput,
+            format!("{}: {e}", path.display()),
+        )
+    };
+    let raw = spec.raw.as_ref().map(options::raw_spec);
+    let reader = RegionReader::open_channel(path, raw.as_ref(), channel(spec)).map_err(invalid)?;
+    reader.read_region([0; 3], reader.dims()).map_err(invalid)
+}
+
 /// The one channel a job reads of its source, if it chose one.
 pub(crate) fn channel(spec: &JobSpec) -> Option<usize> {
     spec.channel.map(|c| c as usize)
@@ -541,7 +558,7 @@ fn refuse_over_memory_limit(spec: &JobSpec) -> Result<(), Failure> {
         return Ok(());
     }
     let (dims, channels) = match &spec.raw {
-        Some(r) if spec.channel.is_some() => (r.dims, 1),
+        // Raw samples are decoded with all their channels, one kept after.
         Some(r) => (r.dims, r.channels),
         None if path
             .extension()
@@ -570,17 +587,21 @@ fn refuse_over_memory_limit(spec: &JobSpec) -> Result<(), Failure> {
 }
 
 /// Whether the job's source is on shared storage, read in place (a bricked volume brick by
-/// brick, or a time series time point by time point) and hashes, streamed file by file
-/// ([`archive::source_digest`]), to the submitted SHA-256: its bytes are then never held
-/// whole. Any source on a path: a raw or single-file volume, a detached header and its data,
-/// a DICOM series directory (read by slice ranges), a 4D file or a directory of time steps.
-/// Returns the length of the bytes hashed when they match (`None`: not read in place).
+/// brick, a time series time point by time point, a Zarr store by its chunks) and hashes,
+/// streamed file by file ([`archive::source_digest`]), to the submitted SHA-256: its bytes are
+/// then never held whole. Any source on a path: a raw or single-file volume, a detached
+/// header and its data, a DICOM series directory (read by slice ranges), a 4D file or a
+/// directory of time steps. A Zarr store compressed whole is read in place too: gathered, its
+/// files would be held twice (as bytes and as a store in memory), all its channels for the
+/// one a job reads. Returns the length of the bytes hashed when they match (`None`: not read
+/// in place).
 async fn hashed_in_place(spec: &JobSpec) -> Option<u64> {
     let Source::Path(p) = &spec.source else {
         return None;
     };
     let raw = spec.raw.as_ref().map(options::raw_spec);
-    if spec.options.brick.is_none() && !archive::is_series_source(p, raw.as_ref()) {
+    let zarr = spec.raw.is_none() && p.is_dir() && wavesplat_compressor::reader::zarr::is_store(p);
+    if spec.options.brick.is_none() && !zarr && !archive::is_series_source(p, raw.as_ref()) {
         return None;
     }
     let (p, raw) = (p.clone(), spec.raw.is_some());
@@ -1007,7 +1028,7 @@ async fn execute(
             drop(bytes);
             return parts::coordinate_series(runner, handle, job_spec, parent, hashed, sh);
         }
-        if in_place.is_some() {
+        if in_place.is_some() && job_spec.options.brick.is_some() {
             // A bricked volume on shared storage: its bricks spread over the workers.
             return parts::coordinate(runner, handle, job_spec, parent, hashed, sh);
         }
@@ -1019,7 +1040,11 @@ async fn execute(
             let volume = decode(&job_spec, bytes)?;
             return pool.install(|| compress_bricked_job(&volume, brick, &opts, &sh));
         }
-        let volume = decode(&job_spec, bytes)?;
+        let volume = match in_place {
+            // A Zarr store on shared storage, verified: read in place, its channel only.
+            Some(_) => read_in_place(&job_spec)?,
+            None => decode(&job_spec, bytes)?,
+        };
         let voxels = volume.voxel_count() as u64;
         sh.set(0.05, "compressing");
         let progress = |stage: Stage, f: f64| {

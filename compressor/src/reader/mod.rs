@@ -163,8 +163,7 @@ pub enum ReadError {
     /// source is one channel, or three of RGB read together), or a channel chosen that the
     /// source does not hold.
     #[error(
-        "{}: {channels} {}, {why}: choose one from 0 to {} (`compress --channel C`; \
-         `archive submit` makes each channel a volume of its own)",
+        "{}: {channels} {}, {why}: choose one from 0 to {} (`compress --channel C`)",
         path.display(),
         if *channels == 1 { "channel" } else { "channels" },
         channels.saturating_sub(1)

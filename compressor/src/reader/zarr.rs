@@ -258,6 +258,12 @@ impl ZarrVolume {
             }
         }
         let channels = channel_axis.map_or(1, |i| shape[i]);
+        if channels == 0 {
+            return Err(ReadError::unsupported(
+                path,
+                format!("a channel axis of no channel (shape {shape:?})"),
+            ));
+        }
         let channel_axis = match (channel_axis, channel) {
             (None, ChannelChoice::Only | ChannelChoice::Index(0)) => None,
             (Some(i), ChannelChoice::Only) if channels == 1 => Some((i, 0)),
@@ -266,7 +272,10 @@ impl ZarrVolume {
                 return Err(ReadError::Channels {
                     path: path.to_path_buf(),
                     channels,
-                    why: format!("axis {i} of shape {shape:?} holds them; one is read"),
+                    why: format!(
+                        "axis {i} of shape {shape:?} holds them; one is read (`archive \
+                         submit` makes each a volume of its own)"
+                    ),
                 });
             }
             (_, ChannelChoice::Index(c)) => {
