@@ -547,6 +547,25 @@ fn zarr(root: &Path) {
             ("c/0/0/0", shard),
         ],
     );
+    // Three channels (c, z, y, x), a Zstd chunk each: a channel is read as chosen.
+    let channels = format!(
+        r#"{{"zarr_format": 3, "node_type": "array", "shape": [3, 2, 3, 4], "data_type": "uint16",
+            "chunk_grid": {{"name": "regular", "configuration": {{"chunk_shape": [1, 2, 3, 4]}}}},
+            "chunk_key_encoding": {{"name": "default", "configuration": {{"separator": "/"}}}},
+            "fill_value": 0, "codecs": {zstd_codecs}, "dimension_names": ["c", "z", "y", "x"]}}"#
+    );
+    let channel_chunks: Vec<(String, Vec<u8>)> = (0..3)
+        .map(|c| {
+            let samples: Vec<u8> = chunk_bytes([2, 3, 4], [0; 3])
+                .chunks_exact(2)
+                .flat_map(|v| (u16::from_le_bytes([v[0], v[1]]) + 200 * c).to_le_bytes())
+                .collect();
+            (format!("c/{c}/0/0/0"), zstd(&samples))
+        })
+        .collect();
+    let mut files: Vec<(&str, Vec<u8>)> = vec![("zarr.json", channels.into_bytes())];
+    files.extend(channel_chunks.iter().map(|(n, b)| (n.as_str(), b.clone())));
+    seed("v3_channels", &files);
     let attrs = r#"{"multiscales": [{"version": "0.4", "axes": [
         {"name": "z", "type": "space", "unit": "millimeter"},
         {"name": "y", "type": "space", "unit": "micrometer"},

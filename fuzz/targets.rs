@@ -185,9 +185,9 @@ pub fn tiff(data: &[u8]) {
 /// its bytes hold (a missing chunk is its fill value), so the heap is bounded by
 /// [`alloc_bound`] plus what its metadata declares (`zarr::declared_bytes`); a store declaring
 /// more than 64 MiB is decoded no further than its metadata (slow executions teach the fuzzer
-/// nothing a small declaration does not).
+/// nothing a small declaration does not). Decoded as a whole, then with a channel chosen.
 pub fn zarr(data: &[u8]) {
-    use wavesplat_compressor::reader::{decode_source, zarr, SourceFiles};
+    use wavesplat_compressor::reader::{decode_source, decode_source_channel, zarr, SourceFiles};
     let Ok(mut src) = SourceFiles::from_bytes(data.to_vec(), Path::new("fuzz.zarr")) else {
         return;
     };
@@ -200,6 +200,11 @@ pub fn zarr(data: &[u8]) {
     let bound = alloc_bound(data.len()) + 2 * declared as usize;
     metered_within(data, bound, || {
         let _ = decode_source(&src, None);
+    });
+    // A channel chosen (by the input's last byte) of a store of several, as a job reads it.
+    let channel = usize::from(data.last().copied().unwrap_or(0) % 4);
+    metered_within(data, bound, || {
+        let _ = decode_source_channel(&src, None, Some(channel));
     });
 }
 
