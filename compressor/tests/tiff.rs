@@ -741,7 +741,8 @@ fn a_dicom_series_beside_a_tiff_preview_stays_a_series() {
 }
 
 /// OME-TIFF: RGB pages count their samples in `SizeC` (3) and read; grey pages of several
-/// channels, and several images in one file, are refused saying so.
+/// channels are refused without a channel chosen, and several images in one file are refused,
+/// saying so.
 #[test]
 fn ome_channels_and_images_are_told_apart() {
     let dir = tempfile::tempdir().unwrap();
@@ -775,8 +776,9 @@ fn ome_channels_and_images_are_told_apart() {
         3,
         Some(&ome(2, 1)),
     );
+    // Grey pages of two channels: one is read, as chosen.
     let e = refusal(&grey);
-    assert!(e.contains("2 channels (SizeC)"), "{e}");
+    assert!(e.contains("2 channels") && e.contains("--channel"), "{e}");
     let many = dir.path().join("positions.ome.tif");
     let f = std::fs::File::create(&many).unwrap();
     write_pages::<colortype::Gray8, _>(
@@ -834,5 +836,126 @@ fn rows_per_strip_of_the_default_reads() {
         std::fs::write(&path, &bytes).unwrap();
         same(&read_volume(&path, None).unwrap(), &want, name);
         regions_match(&path, &want);
+    }
+}
+
+/// Channels stored as planes of their own (an ImageJ hyperstack of channels, and of channels
+/// and time frames; OME-TIFFs of `SizeC` 2 in two plane orders): none chosen is refused
+/// naming the count; each channel chosen reads as written, whole, by region, from a bundle
+/// and as a time series; a channel the file lacks is refused.
+#[test]
+fn channels_stored_as_planes_are_read_one_at_a_time_as_chosen() {
+    use wavesplat_compressor::reader::{
+        decode_source_channel, read_volume_channel, tiff_channels, SourceFiles,
+    };
+    use wavesplat_compressor::series::open_series_path_channel;
+    let dir = tempfile::tempdir().unwrap();
+    // volume[t][c]: each its own values.
+    let volume = |t: usize, c: usize| -> Vec<u16> {
+        samples(DIMS, 1000.0, |v| (v as u16).min(1000))
+            .iter()
+            .map(|v| v + 2000 * c as u16 + 7000 * t as u16)
+            .collect()
+    };
+    let slice = DIMS[0] * DIMS[1];
+    let vols: Vec<Vec<Vec<u16>>> = (0..2)
+        .map(|t| (0..2).map(|c| volume(t, c)).collect())
+        .collect();
+    let plane = |t: usize, c: usize, z: usize| &vols[t][c][z * slice..(z + 1) * slice];
+    // The planes in an order, fastest axis first, of `frames` time points.
+    let ordered = |order: &[u8; 3], frames: usize| -> Vec<&[u16]> {
+        let size = |a: u8| match a {
+            b'Z' => DIMS[2],
+            b'C' => 2,
+            _ => frames,
+        };
+        let n = DIMS[2] * 2 * frames;
+        (0..n)
+            .map(|i| {
+                let (mut rest, mut at) = (i, [0usize; 3]);
+                for &a in order {
+                    let k = b"ZCT".iter().position(|b| *b == a).unwrap();
+                    at[k] = rest % size(a);
+                    rest /= size(a);
+                }
+                plane(at[2], at[1], at[0])
+            })
+            .collect()
+    };
+    let imagej = |frames: usize| {
+        format!(
+            "ImageJ=1.54f\nimages={}\nchannels=2\nslices={}\nframes={frames}\nhyperstack=true\n",
+            2 * DIMS[2] * frames,
+            DIMS[2]
+        )
+    };
+    let ome = |order: &str| {
+        format!(
+            r#"<?xml version="1.0"?><OME xmlns="http://www.openmicroscopy.org/Schemas/OME/2016-06"><Image ID="Image:0"><Pixels ID="Pixels:0" DimensionOrder="{order}" Type="uint16" SizeX="37" SizeY="29" SizeZ="11" SizeC="2" SizeT="1"/></Image></OME>"#
+        )
+    };
+    let cases = [
+        ("imagej", imagej(1), ordered(b"CZT", 1)),
+        ("ome_zct", ome("XYZCT"), ordered(b"ZCT", 1)),
+        ("ome_czt", ome("XYCZT"), ordered(b"CZT", 1)),
+    ];
+    for (name, desc, pages) in &cases {
+        let path = dir.path().join(format!("{name}.tif"));
+        let file = std::fs::File::create(&path).unwrap();
+        write_pages::<colortype::Gray16, _>(
+            file,
+            Compression::Deflate(DeflateLevel::Fast),
+            (DIMS[0], DIMS[1]),
+            pages,
+            5,
+            Some(desc),
+        );
+        assert_eq!(tiff_channels(&path).unwrap(), 2, "{name}");
+        let e = read_volume(&path, None).unwrap_err();
+        assert!(
+            matches!(e, ReadError::Channels { channels: 2, .. }),
+            "{name}: {e}"
+        );
+        assert!(e.to_string().contains("--channel"), "{e}");
+        let e = RegionReader::open(&path, None).unwrap_err();
+        assert!(matches!(e, ReadError::Channels { channels: 2, .. }), "{e}");
+        let e = RegionReader::open_channel(&path, None, Some(2)).unwrap_err();
+        assert!(e.to_string().contains("channel 2 was chosen"), "{e}");
+        let bundle = SourceFiles::gather(&path, None).unwrap();
+        for c in 0..2 {
+            let want: Vec<f32> = vols[0][c].iter().map(|v| f32::from(*v)).collect();
+            let whole = read_volume_channel(&path, None, Some(c)).unwrap();
+            assert_eq!(whole.dims(), DIMS, "{name}");
+            assert_eq!(whole.channel(0), &want[..], "{name} channel {c}");
+            let bundled = decode_source_channel(&bundle, None, Some(c)).unwrap();
+            assert_eq!(bundled, whole, "{name} channel {c} from a bundle");
+            let r = RegionReader::open_channel(&path, None, Some(c)).unwrap();
+            assert_eq!(r.channels(), 1);
+            let (o, s) = ([3, 5, 2], [10, 7, 4]);
+            let got = r.read_region(o, s).unwrap();
+            let at = |x: usize, y: usize, z: usize| want[whole.index(x, y, z)];
+            assert_eq!(got.channel(0)[got.index(0, 0, 0)], at(3, 5, 2), "{name}");
+            assert_eq!(got.channel(0)[got.index(9, 6, 3)], at(12, 11, 5), "{name}");
+        }
+    }
+    // Channels and time frames: each time point of the channel chosen.
+    let path = dir.path().join("imagej_ct.tif");
+    let file = std::fs::File::create(&path).unwrap();
+    write_pages::<colortype::Gray16, _>(
+        file,
+        Compression::Uncompressed,
+        (DIMS[0], DIMS[1]),
+        &ordered(b"CZT", 2),
+        5,
+        Some(&imagej(2)),
+    );
+    let input = open_series_path_channel(&path, None, Some(1))
+        .unwrap()
+        .expect("a series");
+    assert_eq!(input.source().time_points(), 2);
+    for t in 0..2 {
+        let got = input.source().read_at(t, [0; 3], DIMS).unwrap();
+        let want: Vec<f32> = vols[t][1].iter().map(|v| f32::from(*v)).collect();
+        assert_eq!(got.channel(0), &want[..], "time point {t}");
     }
 }

@@ -54,8 +54,9 @@ pub struct CompressArgs {
     #[arg(long, value_name = "N")]
     pub time_point: Option<usize>,
     /// Compress only channel C (counting from 0) as a volume of one channel: of a Zarr array
-    /// with a channel axis (OME-Zarr's `c`: fluorescence channels, say), which is refused
-    /// without it when it holds several; of an RGB volume, its red, green or blue samples.
+    /// with a channel axis (OME-Zarr's `c`: fluorescence channels, say) or a TIFF storing
+    /// channels as planes of their own (an ImageJ hyperstack, an OME-TIFF), which are refused
+    /// without it when they hold several; of an RGB volume, its red, green or blue samples.
     #[arg(long, value_name = "C", conflicts_with = "phantom")]
     pub channel: Option<usize>,
     /// A time series is compressed whole into one file: its time points go through a Haar

@@ -11,7 +11,8 @@
 //!   ignored;
 //! - TIFF (`*.tif`, `*.tiff`): a directory of single-page TIFFs is one volume, a stack of
 //!   slices in the natural order of their names (`z2` before `z10`), named by the directory's
-//!   path; a multi-page TIFF is a volume of its own;
+//!   path; a multi-page TIFF is a volume of its own (of channels stored as planes of their
+//!   own, an ImageJ hyperstack's or an OME-TIFF's, a volume per channel, `NAME/cC`);
 //! - Zarr (a directory holding `zarr.json`, `.zarray` or `.zgroup`: an array, v2 or v3, or an
 //!   OME-Zarr image): one volume, or a time series when the array has a time axis, named by
 //!   the directory's path without `.zarr` / `.ome.zarr` (an array of several channels: a
@@ -38,7 +39,7 @@ use std::collections::{BTreeSet, HashSet};
 use std::path::{Path, PathBuf};
 use wavesplat_compressor::reader::steps::{step_files, StepSeries};
 use wavesplat_compressor::reader::{
-    dicom::is_dicom_file, nifti, tiff_pages, zarr, Format, ReadError, SourceListing,
+    dicom::is_dicom_file, nifti, tiff_channels, tiff_pages, zarr, Format, ReadError, SourceListing,
     MAX_SOURCE_FILES,
 };
 use wavesplat_orchestrator_client::model::{JobOptions, JobSpec, RawLayout, SampleType, Source};
@@ -184,36 +185,7 @@ pub fn scan_with(root: &Path, time_steps: bool) -> std::io::Result<Scan> {
                 continue;
             }
         };
-        // An array of several channels is a volume per channel, `NAME/cC`.
-        let volumes: Vec<(String, Option<usize>)> = if channels == 1 {
-            vec![(name, None)]
-        } else if channels > MAX_CHANNEL_VOLUMES {
-            let why = format!(
-                "{channels} channels, more than the {MAX_CHANNEL_VOLUMES} submitted as volumes \
-                 of their own: compress the ones wanted with `compress --channel C`"
-            );
-            scan.skipped.push((store, why));
-            continue;
-        } else {
-            (0..channels)
-                .map(|c| (format!("{name}/c{c}"), Some(c)))
-                .collect()
-        };
-        // Taken whole or skipped whole: never some of its channels.
-        if let Some((name, _)) = volumes.iter().find(|(n, _)| names.contains(n)) {
-            let why = format!("another volume already uses the name {name:?}");
-            scan.skipped.push((store, why));
-            continue;
-        }
-        for (name, channel) in volumes {
-            names.insert(name.clone());
-            scan.found.push(Found {
-                path: store.clone(),
-                name,
-                raw: None,
-                channel,
-            });
-        }
+        push_channels(&mut scan, &mut names, store, name, None, channels);
     }
     // Directories of time steps: each one series, every file in it taken.
     let mut step_dirs: BTreeSet<PathBuf> = BTreeSet::new();
@@ -404,20 +376,60 @@ pub fn scan_with(root: &Path, time_steps: bool) -> std::io::Result<Scan> {
         } else {
             format!("{rel_dir}/{base}")
         };
-        if !names.insert(name.clone()) {
-            scan.skipped
-                .push((path, format!("another file already uses the name {name:?}")));
-            continue;
-        }
-        scan.found.push(Found {
-            path,
-            name,
-            raw,
-            channel: None,
-        });
+        // A TIFF storing channels as planes of their own (an ImageJ hyperstack, an OME-TIFF):
+        // a volume per channel, as a Zarr array's (one unreadable is submitted, to fail
+        // saying why).
+        let tiff = lower.ends_with(".tif") || lower.ends_with(".tiff");
+        let channels = if tiff {
+            tiff_channels(&path).unwrap_or(1)
+        } else {
+            1
+        };
+        push_channels(&mut scan, &mut names, path, name, raw, channels);
     }
     scan.found.sort_by(|a, b| a.path.cmp(&b.path));
     Ok(scan)
+}
+
+/// Adds the volume at `path` named `name`: one, or one per channel of `channels` (`NAME/cC`),
+/// all of them or none (its names taken, or more channels than are submitted alone: skipped,
+/// saying why).
+fn push_channels(
+    scan: &mut Scan,
+    names: &mut HashSet<String>,
+    path: PathBuf,
+    name: String,
+    raw: Option<RawLayout>,
+    channels: usize,
+) {
+    let volumes: Vec<(String, Option<usize>)> = if channels <= 1 {
+        vec![(name, None)]
+    } else if channels > MAX_CHANNEL_VOLUMES {
+        let why = format!(
+            "{channels} channels, more than the {MAX_CHANNEL_VOLUMES} submitted as volumes of \
+             their own: compress the ones wanted with `compress --channel C`"
+        );
+        scan.skipped.push((path, why));
+        return;
+    } else {
+        (0..channels)
+            .map(|c| (format!("{name}/c{c}"), Some(c)))
+            .collect()
+    };
+    if let Some((name, _)) = volumes.iter().find(|(n, _)| names.contains(n)) {
+        let why = format!("another volume already uses the name {name:?}");
+        scan.skipped.push((path, why));
+        return;
+    }
+    for (name, channel) in volumes {
+        names.insert(name.clone());
+        scan.found.push(Found {
+            path: path.clone(),
+            name,
+            raw: raw.clone(),
+            channel,
+        });
+    }
 }
 
 /// The files a job's hash covers and an upload carries, listed, not read: a raw file, the
@@ -932,6 +944,61 @@ mod tests {
             })
             .collect();
         assert_eq!(keys.len(), 3);
+    }
+
+    /// A multi-page TIFF storing channels as planes of their own (an ImageJ hyperstack) is a
+    /// volume per channel, each job reading its own; a grey multi-page TIFF stays one volume.
+    #[test]
+    fn a_tiff_hyperstack_of_channels_is_a_volume_per_channel() {
+        use tiff::encoder::{colortype::Gray16, TiffEncoder};
+        use tiff::tags::Tag;
+        let dir = tempfile::tempdir().unwrap();
+        let r = dir.path();
+        // Two channels of three slices of 2 × 2, ImageJ's order (channels fastest).
+        let f = std::fs::File::create(r.join("cells.tif")).unwrap();
+        let mut e = TiffEncoder::new(f).unwrap();
+        for z in 0..3u16 {
+            for c in 0..2u16 {
+                let mut image = e.new_image::<Gray16>(2, 2).unwrap();
+                if z == 0 && c == 0 {
+                    let desc = "ImageJ=1.54f\nimages=6\nchannels=2\nslices=3\nhyperstack=true\n";
+                    image
+                        .encoder()
+                        .write_tag(Tag::ImageDescription, desc)
+                        .unwrap();
+                }
+                image.write_data(&[100 * c + z; 4]).unwrap();
+            }
+        }
+        drop(e);
+        let f = std::fs::File::create(r.join("grey.tif")).unwrap();
+        let mut e = TiffEncoder::new(f).unwrap();
+        for z in 0..2u16 {
+            e.write_image::<Gray16>(2, 2, &[z; 4]).unwrap();
+        }
+        drop(e);
+        let s = scan(r).unwrap();
+        let found: Vec<(&str, Option<usize>)> = s
+            .found
+            .iter()
+            .map(|f| (f.name.as_str(), f.channel))
+            .collect();
+        assert_eq!(
+            found,
+            [("cells/c0", Some(0)), ("cells/c1", Some(1)), ("grey", None)],
+            "{:?}",
+            s.skipped
+        );
+        for (c, f) in s.found[..2].iter().enumerate() {
+            let (spec, bytes) = job_spec(f, &JobOptions::default(), true).unwrap();
+            assert_eq!(spec.channel, Some(c as u32));
+            let src = SourceFiles::from_bytes(bytes.unwrap(), Path::new("cells.tif")).unwrap();
+            let v =
+                wavesplat_compressor::reader::decode_source_channel(&src, None, Some(c)).unwrap();
+            assert_eq!(v.dims(), [2, 2, 3]);
+            let want: Vec<f32> = (0..3).flat_map(|z| [(100 * c + z) as f32; 4]).collect();
+            assert_eq!(v.channel(0), want, "channel {c}");
+        }
     }
 
     /// A job names the same content whether its source is uploaded or named by path: files

@@ -1000,8 +1000,9 @@ pub fn decode_source(src: &SourceFiles, raw: Option<&RawSpec>) -> Result<Volume,
     }
 }
 
-/// [`decode_source`] with a channel chosen: of a Zarr array with a channel axis, the one read;
-/// of any other source, one of its channels (of RGB, 0 to 2) kept as a volume of one channel.
+/// [`decode_source`] with a channel chosen: of a Zarr array with a channel axis, or of a TIFF
+/// storing channels as planes of their own, the one read; of any other source, one of its
+/// channels (of RGB, 0 to 2) kept as a volume of one channel.
 /// `None` reads the source as [`decode_source`] does.
 pub fn decode_source_channel(
     src: &SourceFiles,
@@ -1010,6 +1011,10 @@ pub fn decode_source_channel(
 ) -> Result<Volume, ReadError> {
     match src.format {
         Some(Format::Zarr) => zarr::decode(src, channel.into()),
+        Some(Format::Tiff) => match tiff_stack::decode_channel(src, channel)? {
+            (v, true) => Ok(v),
+            (v, false) => keep_channel(v, channel, &src.origin),
+        },
         _ => keep_channel(decode_source(src, raw)?, channel, &src.origin),
     }
 }
@@ -1073,6 +1078,13 @@ pub fn read_volume_channel(
 /// DICOM series beside a stray `.tif` preview stays a series).
 pub(crate) fn is_tiff_directory(path: &Path) -> Result<bool, ReadError> {
     Ok(dicom::series_files(path).is_err() && !tiff_stack::stack_files(path)?.is_empty())
+}
+
+/// The channels the TIFF file at `path` stores as planes of their own (an ImageJ hyperstack, an
+/// OME-TIFF of several `SizeC` over grey pages), each a volume a channel chosen reads; 1 where
+/// none.
+pub fn tiff_channels(path: &Path) -> Result<usize, ReadError> {
+    tiff_stack::channel_planes(path)
 }
 
 /// The full-resolution pages of the TIFF file at `path` (an archive scan takes a directory of

@@ -60,7 +60,8 @@ pub struct RegionReader {
     selected: usize,
     /// The one channel kept of a source of several read together (RGB), when one was chosen
     /// ([`RegionReader::open_channel`]); `channels` stays the source's, and regions hold this
-    /// one. A Zarr array's channel is chosen when it is opened, and only it is read.
+    /// one. A Zarr array's channel, and one of a TIFF's channels stored as planes of their own,
+    /// is chosen when it is opened, and only it is read.
     kept_channel: Option<usize>,
 }
 
@@ -310,11 +311,11 @@ impl RegionReader {
         RegionReader::open_series_channel(path, raw, None)
     }
 
-    /// [`RegionReader::open`] with a channel chosen: of a Zarr array with a channel axis, the
-    /// one read (an array of several is refused without a choice, as
-    /// [`ReadError::Channels`]); of any other source, one of the channels it reads together
-    /// (of RGB, 0 to 2), kept as a volume of one channel. `None` opens as
-    /// [`RegionReader::open`] does.
+    /// [`RegionReader::open`] with a channel chosen: of a Zarr array with a channel axis, or
+    /// of a TIFF storing channels as planes of their own (an ImageJ hyperstack, an OME-TIFF),
+    /// the one read (several are refused without a choice, as [`ReadError::Channels`]); of any
+    /// other source, one of the channels it reads together (of RGB, 0 to 2), kept as a volume
+    /// of one channel. `None` opens as [`RegionReader::open`] does.
     pub fn open_channel(
         path: &Path,
         raw: Option<&RawSpec>,
@@ -338,16 +339,21 @@ impl RegionReader {
         channel: Option<usize>,
     ) -> Result<RegionReader, ReadError> {
         let opened = formats::open(path, raw, channel.into())?;
-        let zarr = matches!(opened.source, Source::Zarr(_));
+        // Whether the format chose the channel when it opened (only its samples are read).
+        let chosen = match &opened.source {
+            Source::Zarr(_) => true,
+            Source::Tiff(t) => t.channel_chosen(),
+            _ => false,
+        };
         let kept_channel = match channel {
-            Some(c) if !zarr && c >= opened.channels => {
+            Some(c) if !chosen && c >= opened.channels => {
                 return Err(ReadError::Channels {
                     path: path.to_path_buf(),
                     channels: opened.channels as u64,
                     why: format!("channel {c} was chosen"),
                 })
             }
-            Some(c) if !zarr && opened.channels > 1 => Some(c),
+            Some(c) if !chosen && opened.channels > 1 => Some(c),
             _ => None,
         };
         Ok(RegionReader {

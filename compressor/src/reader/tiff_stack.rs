@@ -11,8 +11,10 @@
 //! per unit) in its `unit=`, or OME-XML's `PhysicalSizeX/Y/Z` in their units; else 1 on every
 //! axis (the stack says nothing physical). An ImageJ hyperstack of several time frames, or an
 //! OME-TIFF of several time points (`SizeT`, its planes in its `DimensionOrder`, seconds between
-//! them from `TimeIncrement`), one channel, is a time series. Refused, saying why: stacks of
-//! several channels (ImageJ hyperstacks, OME `SizeC` > 1), palette, CMYK, YCbCr, alpha,
+//! them from `TimeIncrement`), is a time series. Channels stored as planes of their own (an
+//! ImageJ hyperstack's `channels`, OME's `SizeC` over grey pages, in ImageJ's or the
+//! `DimensionOrder`'s plane order) are read one at a time, the one chosen; none chosen is
+//! refused, naming the count. Refused, saying why: palette, CMYK, YCbCr, alpha,
 //! inverted grey (`WhiteIsZero`), bilevel and planar colour pages, pages of different sizes or
 //! sample types, several OME images in one file, and a file whose ImageJ description counts
 //! more images than it has pages where they cannot follow the first (compressed), or do not
@@ -235,6 +237,12 @@ struct StackMeta {
     slices: Option<usize>,
     /// OME's `SizeC`: samples a pixel (3 for RGB pages), not only separate channels.
     ome_size_c: Option<usize>,
+    /// Channels stored as planes of their own (an ImageJ hyperstack's `channels`, an
+    /// OME-TIFF's `SizeC` over pages of one sample), when more than 1: one is read.
+    channels: Option<usize>,
+    /// The planes' order, fastest first: a permutation of `b"ZCT"` (ImageJ's is C, Z, T; OME's
+    /// its `DimensionOrder` after X and Y).
+    plane_order: [u8; 3],
     /// An ImageJ stack over 4 GB: one page directory, every image's samples one after another.
     contiguous: Option<Contiguous>,
 }
@@ -535,12 +543,8 @@ fn stack_meta<R: Read + Seek>(d: &mut Decoder<R>, path: &Path) -> Result<StackMe
             })
         };
         let count = |key: &str| field(key).and_then(|v| v.parse::<usize>().ok());
-        if let Some(c) = count("channels").filter(|c| *c > 1) {
-            return Err(ReadError::unsupported(
-                path,
-                format!("an ImageJ hyperstack of {c} channels; save one channel (Image > Color > Split Channels) or an RGB stack"),
-            ));
-        }
+        meta.channels = count("channels").filter(|c| *c > 1);
+        meta.plane_order = *b"CZT";
         meta.frames = count("frames").filter(|t| *t > 1);
         meta.slices = count("slices");
         meta.time_major = true;
@@ -572,9 +576,16 @@ fn stack_meta<R: Read + Seek>(d: &mut Decoder<R>, path: &Path) -> Result<StackMe
         meta.frames = size("SizeT").filter(|t| *t > 1);
         meta.slices = size("SizeZ");
         // The planes' order, fastest first after X and Y: Z before T keeps a time point's
-        // slices together (channels are one here: several are refused).
+        // slices together (of channels stored as planes, one is kept: `Stack::of`).
         let order = xml_attr(&description, "DimensionOrder").unwrap_or("XYZCT");
         meta.time_major = order.find('Z') < order.find('T');
+        if let Some(o) = order.as_bytes().strip_prefix(b"XY").filter(|o| {
+            let mut sorted = o.to_vec();
+            sorted.sort_unstable();
+            sorted == b"CTZ"
+        }) {
+            meta.plane_order.copy_from_slice(o);
+        }
         meta.time_step = xml_attr(&description, "TimeIncrement")
             .and_then(|v| v.parse::<f64>().ok())
             .zip(time_unit_s(
@@ -644,7 +655,10 @@ fn file_pages<R: Read + Seek>(
         ));
     }
     if let (Some(c), Some((_, first))) = (meta.ome_size_c, pages.first()) {
-        if c > 1 && c != first.channels {
+        if c > 1 && first.channels == 1 {
+            // Channels as planes of their own.
+            meta.channels = Some(c);
+        } else if c > 1 && c != first.channels {
             return Err(ReadError::unsupported(
                 path,
                 format!(
@@ -704,6 +718,17 @@ pub(crate) fn time_points(path: &Path) -> Result<usize, ReadError> {
     Ok(stack_meta(&mut d, path)?.frames.unwrap_or(1))
 }
 
+/// The channels the TIFF file at `path` stores as planes of their own (an ImageJ hyperstack's
+/// `channels`, an OME-TIFF's `SizeC` over pages of one sample), each a volume; 1 where none
+/// (grey or RGB pages). Its page directories are read, not its samples.
+pub(crate) fn channel_planes(path: &Path) -> Result<usize, ReadError> {
+    let file = File::open(path).map_err(|e| ReadError::io(path, e))?;
+    Ok(file_pages(BufReader::new(file), path)?
+        .1
+        .channels
+        .unwrap_or(1))
+}
+
 /// The full-resolution pages of the TIFF file at `path` (its page directories read, not its
 /// samples).
 pub(crate) fn page_count(path: &Path) -> Result<usize, ReadError> {
@@ -728,14 +753,19 @@ struct Stack {
     time_major: bool,
     /// Seconds between time points, when the description says.
     time_step: Option<f64>,
+    /// Whether the file stores channels as planes of their own, of which `slices` holds the
+    /// one chosen.
+    channel_planes: bool,
 }
 
 impl Stack {
     /// The stack of `files` (each file's pages listed by `pages_of`), checking that every page
-    /// has the first's shape.
+    /// has the first's shape; of channels stored as planes of their own, the planes of
+    /// `channel` (none chosen: refused as [`ReadError::Channels`]).
     fn of(
         names: &[PathBuf],
         mut pages_of: impl FnMut(usize) -> Result<(Vec<(usize, PageShape)>, StackMeta), ReadError>,
+        channel: Option<usize>,
     ) -> Result<Stack, ReadError> {
         if let Some(reason) = numbering_gap(names) {
             let dir = names[0].parent().unwrap_or(Path::new("."));
@@ -777,6 +807,9 @@ impl Stack {
         };
         let spacing = meta.spacing.map(|s| s.unwrap_or(1.0) as f32);
         let time_points = meta.frames.unwrap_or(1);
+        if let Some(count) = meta.channels {
+            slices = planes_of_channel(names, slices, &meta, count, channel)?;
+        }
         // A file whose description counts more slices than it holds is a part (a multi-file
         // OME-TIFF, whose XML in the first file describes all of them) or a truncated file:
         // read as a volume of its own slices, the rest would be lost without a word.
@@ -825,6 +858,7 @@ impl Stack {
             time_points,
             time_major: meta.time_major,
             time_step: meta.time_step.filter(|_| time_points > 1),
+            channel_planes: meta.channels.is_some(),
         })
     }
 
@@ -845,6 +879,76 @@ impl Stack {
             z * self.time_points + t
         }
     }
+}
+
+/// Of the planes `slices` of a file storing `count` channels as planes of their own (in
+/// `meta.plane_order`), those of channel `channel`, in their order.
+fn planes_of_channel(
+    names: &[PathBuf],
+    slices: Vec<(usize, usize)>,
+    meta: &StackMeta,
+    count: usize,
+    channel: Option<usize>,
+) -> Result<Vec<(usize, usize)>, ReadError> {
+    let path = names.first().map_or(Path::new("."), PathBuf::as_path);
+    let refused = |why: String| ReadError::Channels {
+        path: path.to_path_buf(),
+        channels: count as u64,
+        why,
+    };
+    let c = match channel {
+        None => {
+            return Err(refused(
+                "stored as planes of their own; one is read (`archive submit` makes each a \
+                 volume of its own)"
+                    .into(),
+            ))
+        }
+        Some(c) if c >= count => return Err(refused(format!("channel {c} was chosen"))),
+        Some(c) => c,
+    };
+    let frames = meta.frames.unwrap_or(1);
+    let z = meta
+        .slices
+        .unwrap_or(slices.len() / (count * frames).max(1));
+    if names.len() > 1 || z.checked_mul(count * frames) != Some(slices.len()) {
+        return Err(ReadError::unsupported(
+            path,
+            format!(
+                "{count} channels of {z} slices and {frames} time point(s) in {} images{}",
+                slices.len(),
+                if names.len() > 1 {
+                    " among several files: one file of them all is read"
+                } else {
+                    ": they do not add up"
+                }
+            ),
+        ));
+    }
+    let order = if meta.plane_order == [0; 3] {
+        *b"ZCT"
+    } else {
+        meta.plane_order
+    };
+    Ok(slices
+        .into_iter()
+        .enumerate()
+        .filter(|&(i, _)| {
+            // Plane i's index along each axis, fastest first.
+            let mut rest = i;
+            order.iter().any(|&axis| {
+                let size = match axis {
+                    b'Z' => z,
+                    b'C' => count,
+                    _ => frames,
+                };
+                let at = rest % size;
+                rest /= size;
+                axis == b'C' && at == c
+            })
+        })
+        .map(|(_, s)| s)
+        .collect())
 }
 
 /// Adds the samples of `data` (a chunk of `cw` × `ch` pixels at `(cx, cy)` of the page, channels
@@ -992,10 +1096,21 @@ fn planes(path: &Path, channels: usize, n: usize) -> Result<Vec<Vec<f32>>, ReadE
 /// Decodes a TIFF stack from its gathered files (one multi-page file, or the files of a stack
 /// directory in order).
 pub(crate) fn decode(src: &SourceFiles) -> Result<Volume, ReadError> {
+    Ok(decode_channel(src, None)?.0)
+}
+
+/// [`decode`] with a channel chosen of channels stored as planes of their own; says whether
+/// the file stored them so (else every channel of its pages is read: RGB's three).
+pub(crate) fn decode_channel(
+    src: &SourceFiles,
+    channel: Option<usize>,
+) -> Result<(Volume, bool), ReadError> {
     let paths: Vec<PathBuf> = src.files.iter().map(|(n, _)| src.path_of(n)).collect();
-    let stack = Stack::of(&paths, |f| {
-        file_pages(Cursor::new(src.files[f].1.as_slice()), &paths[f])
-    })?;
+    let stack = Stack::of(
+        &paths,
+        |f| file_pages(Cursor::new(src.files[f].1.as_slice()), &paths[f]),
+        channel,
+    )?;
     if stack.time_points > 1 {
         return Err(ReadError::TimeSeries {
             path: src.origin.clone(),
@@ -1030,7 +1145,9 @@ pub(crate) fn decode(src: &SourceFiles) -> Result<Volume, ReadError> {
         let whole = (0, dims[0], 0, dims[1]);
         read_page(d, &paths[f], p, &stack.shape, whole, &mut out, z * slice)?;
     }
-    Volume::new(dims, stack.spacing, out).map_err(|e| ReadError::volume(&src.origin, e))
+    Volume::new(dims, stack.spacing, out)
+        .map(|v| (v, stack.channel_planes))
+        .map_err(|e| ReadError::volume(&src.origin, e))
 }
 
 /// A TIFF stack opened for region reads: the pages of each slice, read from disk when a region
@@ -1133,7 +1250,7 @@ fn raw_strips<R: Read + Seek>(
 impl TiffRegions {
     /// Opens a multi-page TIFF file, or the TIFF files of a directory, reading every page's
     /// directory (not its samples).
-    pub(crate) fn open(path: &Path) -> Result<TiffRegions, ReadError> {
+    pub(crate) fn open(path: &Path, channel: Option<usize>) -> Result<TiffRegions, ReadError> {
         let files: Vec<PathBuf> = if path.is_dir() {
             stack_files(path)?.into_iter().map(|(_, p)| p).collect()
         } else {
@@ -1142,10 +1259,11 @@ impl TiffRegions {
         if files.is_empty() {
             return Err(bad(path, "the directory holds no .tif or .tiff file"));
         }
-        let stack = Stack::of(&files, |f| {
+        let pages_of = |f: usize| {
             let file = File::open(&files[f]).map_err(|e| ReadError::io(&files[f], e))?;
             file_pages(BufReader::new(file), &files[f])
-        })?;
+        };
+        let stack = Stack::of(&files, pages_of, channel)?;
         // Uncompressed pages in strips are read as bytes, only the region's: decoding a whole
         // strip (often the whole page) for every brick across it would read each slice once
         // per brick in the plane.
@@ -1193,6 +1311,11 @@ impl TiffRegions {
 
     pub(crate) fn channels(&self) -> usize {
         self.stack.shape.channels
+    }
+
+    /// Whether the file stores channels as planes of their own, one of them chosen at open.
+    pub(crate) fn channel_chosen(&self) -> bool {
+        self.stack.channel_planes
     }
 
     pub(crate) fn spacing(&self) -> [f32; 3] {
@@ -1363,9 +1486,9 @@ mod tests {
                 image.write_data(&data).unwrap();
             }
         }
-        let by_bytes = TiffRegions::open(&path).unwrap();
+        let by_bytes = TiffRegions::open(&path, None).unwrap();
         assert!(by_bytes.raw.iter().all(Option::is_some), "read as bytes");
-        let mut decoded = TiffRegions::open(&path).unwrap();
+        let mut decoded = TiffRegions::open(&path, None).unwrap();
         decoded.raw.iter_mut().for_each(|r| *r = None);
         for (origin, size) in [
             ([0, 0, 0], [13, 11, 3]),

@@ -41,7 +41,7 @@ pub(super) fn open(
             return open_zarr(path, channel);
         }
         if crate::reader::is_tiff_directory(path)? {
-            return open_tiff(path);
+            return open_tiff(path, channel);
         }
         return open_series(path);
     }
@@ -63,7 +63,7 @@ pub(super) fn open(
         Some(Format::Nrrd) => open_nrrd(path),
         Some(Format::MetaImage) => open_metaimage(path),
         Some(Format::Nifti) => open_nifti(path),
-        Some(Format::Tiff) => open_tiff(path),
+        Some(Format::Tiff) => open_tiff(path, channel),
         Some(Format::Zarr) => open_zarr(path, channel),
         None => Err(ReadError::MissingRawSpec {
             path: path.to_path_buf(),
@@ -85,9 +85,14 @@ fn open_series(path: &Path) -> Result<Opened, ReadError> {
     })
 }
 
-/// A TIFF stack (a multi-page file or a directory of files), read by slices and chunks.
-fn open_tiff(path: &Path) -> Result<Opened, ReadError> {
-    let s = crate::reader::tiff_stack::TiffRegions::open(path)?;
+/// A TIFF stack (a multi-page file or a directory of files), read by slices and chunks (of
+/// channels stored as planes of their own, the one chosen).
+fn open_tiff(path: &Path, channel: ChannelChoice) -> Result<Opened, ReadError> {
+    let channel = match channel {
+        ChannelChoice::Only => None,
+        ChannelChoice::Index(c) => Some(c),
+    };
+    let s = crate::reader::tiff_stack::TiffRegions::open(path, channel)?;
     Ok(Opened {
         dims: s.dims(),
         channels: s.channels(),
