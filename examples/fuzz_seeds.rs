@@ -335,6 +335,34 @@ fn readers(root: &Path) {
         let p = fixtures::write_tiff_stack(tmp.path(), name, &v, layout, lzw, per_slice);
         seed("tiff", name, &p, Format::Tiff);
     }
+    // An ImageJ hyperstack of two channels (planes channel fastest): a channel is read as
+    // chosen.
+    {
+        use tiff::encoder::{colortype::Gray16, TiffEncoder};
+        let [nx, ny, nz] = v.dims();
+        let p = tmp.path().join("hyperstack_channels.tif");
+        let mut e = TiffEncoder::new(std::fs::File::create(&p).unwrap()).unwrap();
+        for z in 0..nz {
+            for c in 0..2u16 {
+                let mut image = e.new_image::<Gray16>(nx as u32, ny as u32).unwrap();
+                if z == 0 && c == 0 {
+                    let desc = format!(
+                        "ImageJ=1.54f\nimages={}\nchannels=2\nslices={nz}\nhyperstack=true\n",
+                        2 * nz
+                    );
+                    let tag = tiff::tags::Tag::ImageDescription;
+                    image.encoder().write_tag(tag, desc.as_str()).unwrap();
+                }
+                let plane: Vec<u16> = v.channel(0)[z * nx * ny..(z + 1) * nx * ny]
+                    .iter()
+                    .map(|s| (s * 100.0) as u16 + 500 * c)
+                    .collect();
+                image.write_data(&plane).unwrap();
+            }
+        }
+        drop(e);
+        seed("tiff", "hyperstack_channels", &p, Format::Tiff);
+    }
     for (name, layout, compressed, detached) in [
         ("mha_u8", Layout::U8, false, false),
         ("mha_zlib_i16", Layout::I16, true, false),

@@ -176,9 +176,18 @@ pub fn metaimage(data: &[u8]) {
     source(data, "fuzz.mhd", Format::MetaImage);
 }
 
-/// A TIFF stack: a multi-page `.tif`, or a bundle of the slices of a stack directory.
+/// A TIFF stack: a multi-page `.tif`, or a bundle of the slices of a stack directory; read
+/// whole, then with a channel chosen (by the input's last byte) of channels stored as planes.
 pub fn tiff(data: &[u8]) {
     source(data, "fuzz.tif", Format::Tiff);
+    use wavesplat_compressor::reader::{decode_source_channel, SourceFiles};
+    let channel = usize::from(data.last().copied().unwrap_or(0) % 4);
+    metered(data, || {
+        if let Ok(mut src) = SourceFiles::from_bytes(data.to_vec(), Path::new("fuzz.tif")) {
+            src.format = Some(Format::Tiff);
+            let _ = decode_source_channel(&src, None, Some(channel));
+        }
+    });
 }
 
 /// A Zarr store: a bundle of its files (metadata, chunks). A store may declare far more than
