@@ -776,9 +776,12 @@ fn ome_channels_and_images_are_told_apart() {
         3,
         Some(&ome(2, 1)),
     );
-    // Grey pages of two channels: one is read, as chosen.
+    // Grey pages of two channels (of two slices each, in two pages: a part of a dataset).
     let e = refusal(&grey);
-    assert!(e.contains("2 channels") && e.contains("--channel"), "{e}");
+    assert!(
+        e.contains("2 channels") && e.contains("do not add up"),
+        "{e}"
+    );
     let many = dir.path().join("positions.ome.tif");
     let f = std::fs::File::create(&many).unwrap();
     write_pages::<colortype::Gray8, _>(
@@ -846,7 +849,7 @@ fn rows_per_strip_of_the_default_reads() {
 #[test]
 fn channels_stored_as_planes_are_read_one_at_a_time_as_chosen() {
     use wavesplat_compressor::reader::{
-        decode_source_channel, read_volume_channel, tiff_channels, SourceFiles,
+        decode_source_channel, read_volume_channel, tiff_pages_and_channels, SourceFiles,
     };
     use wavesplat_compressor::series::open_series_path_channel;
     let dir = tempfile::tempdir().unwrap();
@@ -910,7 +913,8 @@ fn channels_stored_as_planes_are_read_one_at_a_time_as_chosen() {
             5,
             Some(desc),
         );
-        assert_eq!(tiff_channels(&path).unwrap(), 2, "{name}");
+        let planes = (2 * DIMS[2], 2);
+        assert_eq!(tiff_pages_and_channels(&path).unwrap(), planes, "{name}");
         let e = read_volume(&path, None).unwrap_err();
         assert!(
             matches!(e, ReadError::Channels { channels: 2, .. }),
@@ -957,5 +961,79 @@ fn channels_stored_as_planes_are_read_one_at_a_time_as_chosen() {
         let got = input.source().read_at(t, [0; 3], DIMS).unwrap();
         let want: Vec<f32> = vols[t][1].iter().map(|v| f32::from(*v)).collect();
         assert_eq!(got.channel(0), &want[..], "time point {t}");
+    }
+}
+
+/// Channel descriptions that do not fit their pages are refused, never read in part or as
+/// something else: ImageJ channels over RGB pages (unless they are the pages' three samples),
+/// counts that do not multiply to the pages (or overflow), an unknown OME plane order.
+#[test]
+fn channel_descriptions_that_do_not_fit_their_pages_are_refused() {
+    use wavesplat_compressor::reader::{read_volume_channel, tiff_pages_and_channels};
+    let dir = tempfile::tempdir().unwrap();
+    let rgb_page = [40u8; 4 * 3 * 3];
+    let grey_page = [40u8; 4 * 3];
+    let write = |name: &str, rgb: bool, pages: usize, desc: &str| {
+        let path = dir.path().join(name);
+        let f = std::fs::File::create(&path).unwrap();
+        if rgb {
+            let all: Vec<&[u8]> = (0..pages).map(|_| &rgb_page[..]).collect();
+            write_pages::<colortype::RGB8, _>(
+                f,
+                Compression::Uncompressed,
+                (4, 3),
+                &all,
+                3,
+                Some(desc),
+            );
+        } else {
+            let all: Vec<&[u8]> = (0..pages).map(|_| &grey_page[..]).collect();
+            write_pages::<colortype::Gray8, _>(
+                f,
+                Compression::Uncompressed,
+                (4, 3),
+                &all,
+                3,
+                Some(desc),
+            );
+        }
+        path
+    };
+    let ij = |d: &str| format!("ImageJ=1.54f\n{d}hyperstack=true\n");
+    // The three channels of RGB pages are their samples: one RGB volume.
+    let rgb3 = write("rgb3.tif", true, 2, &ij("images=2\nchannels=3\nslices=2\n"));
+    assert_eq!(tiff_pages_and_channels(&rgb3).unwrap(), (2, 1));
+    let v = read_volume(&rgb3, None).unwrap();
+    assert_eq!((v.dims(), v.channel_count()), ([4, 3, 2], 3));
+    let cases = [
+        ("rgb2.tif", true, 4, ij("images=4\nchannels=2\nslices=2\n"), "pages of 3 samples"),
+        ("short.tif", false, 4, ij("images=4\nchannels=2\nslices=3\n"), "do not add up"),
+        (
+            "huge.tif",
+            false,
+            4,
+            ij("images=4\nchannels=4294967297\nframes=4294967297\n"),
+            "do not add up",
+        ),
+        (
+            "order.tif",
+            false,
+            2,
+            r#"<?xml version="1.0"?><OME xmlns="http://www.openmicroscopy.org/Schemas/OME/2016-06"><Image ID="Image:0"><Pixels ID="Pixels:0" DimensionOrder="XYQRS" Type="uint8" SizeX="4" SizeY="3" SizeZ="1" SizeC="2" SizeT="1"/></Image></OME>"#.to_string(),
+            "DimensionOrder",
+        ),
+    ];
+    for (name, rgb, pages, desc, why) in cases {
+        let path = write(name, rgb, pages, &desc);
+        let e = tiff_pages_and_channels(&path).unwrap_err().to_string();
+        assert!(e.contains(why), "{name}: {e}");
+        for c in [None, Some(0)] {
+            let e = read_volume_channel(&path, None, c).unwrap_err().to_string();
+            assert!(e.contains(why), "{name} {c:?}: {e}");
+            let e = RegionReader::open_channel(&path, None, c)
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains(why), "{name} {c:?}: {e}");
+        }
     }
 }

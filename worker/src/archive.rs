@@ -39,7 +39,7 @@ use std::collections::{BTreeSet, HashSet};
 use std::path::{Path, PathBuf};
 use wavesplat_compressor::reader::steps::{step_files, StepSeries};
 use wavesplat_compressor::reader::{
-    dicom::is_dicom_file, nifti, tiff_channels, tiff_pages, zarr, Format, ReadError, SourceListing,
+    dicom::is_dicom_file, nifti, tiff_pages_and_channels, zarr, Format, ReadError, SourceListing,
     MAX_SOURCE_FILES,
 };
 use wavesplat_orchestrator_client::model::{JobOptions, JobSpec, RawLayout, SampleType, Source};
@@ -237,6 +237,8 @@ pub fn scan_with(root: &Path, time_steps: bool) -> std::io::Result<Scan> {
     // unreadable TIFF (their single pages are no stack).
     let mut tiff_slices: std::collections::BTreeMap<PathBuf, Vec<PathBuf>> = Default::default();
     let mut mixed_tiff_dirs = HashSet::new();
+    // Multi-page TIFFs storing several channels as planes of their own, and how many.
+    let mut tiff_channel_counts: std::collections::HashMap<PathBuf, usize> = Default::default();
     for path in &files {
         match Format::from_name(path) {
             Some(Format::Nrrd | Format::MetaImage) => {
@@ -267,7 +269,14 @@ pub fn scan_with(root: &Path, time_steps: bool) -> std::io::Result<Scan> {
             Some(Format::Nifti | Format::Zarr) => {}
             Some(Format::Tiff) => {
                 let dir = path.parent().unwrap_or(root).to_path_buf();
-                match tiff_pages(path) {
+                // Its pages and channels stored as planes, read once (a file whose channel
+                // planes do not add up is skipped, saying why).
+                match tiff_pages_and_channels(path).map(|(pages, channels)| {
+                    if channels > 1 {
+                        tiff_channel_counts.insert(path.clone(), channels);
+                    }
+                    pages
+                }) {
                     Ok(1) => {
                         tiff_slices.entry(dir).or_default().push(path.clone());
                         taken.insert(path.clone());
@@ -377,14 +386,8 @@ pub fn scan_with(root: &Path, time_steps: bool) -> std::io::Result<Scan> {
             format!("{rel_dir}/{base}")
         };
         // A TIFF storing channels as planes of their own (an ImageJ hyperstack, an OME-TIFF):
-        // a volume per channel, as a Zarr array's (one unreadable is submitted, to fail
-        // saying why).
-        let tiff = lower.ends_with(".tif") || lower.ends_with(".tiff");
-        let channels = if tiff {
-            tiff_channels(&path).unwrap_or(1)
-        } else {
-            1
-        };
+        // a volume per channel, as a Zarr array's.
+        let channels = tiff_channel_counts.get(&path).copied().unwrap_or(1);
         push_channels(&mut scan, &mut names, path, name, raw, channels);
     }
     scan.found.sort_by(|a, b| a.path.cmp(&b.path));
@@ -977,7 +980,28 @@ mod tests {
             e.write_image::<Gray16>(2, 2, &[z; 4]).unwrap();
         }
         drop(e);
+        // Single pages each describing two channels: no stack, skipped saying why.
+        std::fs::create_dir_all(r.join("split")).unwrap();
+        for z in 0..2u16 {
+            let f = std::fs::File::create(r.join(format!("split/p{z}.tif"))).unwrap();
+            let mut e = TiffEncoder::new(f).unwrap();
+            let mut image = e.new_image::<Gray16>(2, 2).unwrap();
+            let desc = "ImageJ=1.54f\nimages=1\nchannels=2\nslices=1\nhyperstack=true\n";
+            image
+                .encoder()
+                .write_tag(Tag::ImageDescription, desc)
+                .unwrap();
+            image.write_data(&[z; 4]).unwrap();
+        }
         let s = scan(r).unwrap();
+        assert_eq!(s.skipped.len(), 2, "{:?}", s.skipped);
+        assert!(
+            s.skipped
+                .iter()
+                .all(|(p, why)| p.starts_with(r.join("split")) && why.contains("do not add up")),
+            "{:?}",
+            s.skipped
+        );
         let found: Vec<(&str, Option<usize>)> = s
             .found
             .iter()

@@ -1080,17 +1080,13 @@ pub(crate) fn is_tiff_directory(path: &Path) -> Result<bool, ReadError> {
     Ok(dicom::series_files(path).is_err() && !tiff_stack::stack_files(path)?.is_empty())
 }
 
-/// The channels the TIFF file at `path` stores as planes of their own (an ImageJ hyperstack, an
-/// OME-TIFF of several `SizeC` over grey pages), each a volume a channel chosen reads; 1 where
-/// none.
-pub fn tiff_channels(path: &Path) -> Result<usize, ReadError> {
-    tiff_stack::channel_planes(path)
-}
-
 /// The full-resolution pages of the TIFF file at `path` (an archive scan takes a directory of
-/// single-page TIFFs as one stack, and a multi-page TIFF as a volume of its own).
-pub fn tiff_pages(path: &Path) -> Result<usize, ReadError> {
-    tiff_stack::page_count(path)
+/// single-page TIFFs as one stack, and a multi-page TIFF as a volume of its own) and the
+/// channels it stores as planes of their own (1: none; an ImageJ hyperstack's, an OME-TIFF's
+/// `SizeC` over grey pages), each a volume a channel chosen reads. A file whose channel planes
+/// do not add up is refused, as the reader refuses it.
+pub fn tiff_pages_and_channels(path: &Path) -> Result<(usize, usize), ReadError> {
+    tiff_stack::pages_and_channels(path)
 }
 
 /// How many time points the volume file at `path` holds, from its header alone (a NIfTI's

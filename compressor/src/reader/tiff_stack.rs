@@ -586,6 +586,8 @@ fn stack_meta<R: Read + Seek>(d: &mut Decoder<R>, path: &Path) -> Result<StackMe
         }) {
             meta.plane_order.copy_from_slice(o);
         }
+        // Left all zeros for an order that is none of OME's: channels stored as planes are
+        // then refused (`channel_layout`).
         meta.time_step = xml_attr(&description, "TimeIncrement")
             .and_then(|v| v.parse::<f64>().ok())
             .zip(time_unit_s(
@@ -669,6 +671,21 @@ fn file_pages<R: Read + Seek>(
             ));
         }
     }
+    if let (Some(c), Some((_, first))) = (meta.channels, pages.first()) {
+        if first.channels == c {
+            // An RGB hyperstack: its channels are each page's samples, read together.
+            meta.channels = None;
+        } else if first.channels != 1 {
+            return Err(ReadError::unsupported(
+                path,
+                format!(
+                    "an ImageJ hyperstack of {c} channels in pages of {} samples each; \
+                     supported are grey pages (a channel a plane) or RGB pages",
+                    first.channels
+                ),
+            ));
+        }
+    }
     if let Some(n) = meta.imagej_images.filter(|n| *n > pages.len()) {
         // One page directory: the images follow one another after the first's samples.
         let first = match pages.as_slice() {
@@ -718,22 +735,20 @@ pub(crate) fn time_points(path: &Path) -> Result<usize, ReadError> {
     Ok(stack_meta(&mut d, path)?.frames.unwrap_or(1))
 }
 
-/// The channels the TIFF file at `path` stores as planes of their own (an ImageJ hyperstack's
-/// `channels`, an OME-TIFF's `SizeC` over pages of one sample), each a volume; 1 where none
-/// (grey or RGB pages). Its page directories are read, not its samples.
-pub(crate) fn channel_planes(path: &Path) -> Result<usize, ReadError> {
+/// The full-resolution pages of the TIFF file at `path` and the channels it stores as planes of
+/// their own (1: none), its page directories read once; a file whose channel planes do not add
+/// up is refused here, as the reader refuses it.
+pub(crate) fn pages_and_channels(path: &Path) -> Result<(usize, usize), ReadError> {
     let file = File::open(path).map_err(|e| ReadError::io(path, e))?;
-    Ok(file_pages(BufReader::new(file), path)?
-        .1
-        .channels
-        .unwrap_or(1))
-}
-
-/// The full-resolution pages of the TIFF file at `path` (its page directories read, not its
-/// samples).
-pub(crate) fn page_count(path: &Path) -> Result<usize, ReadError> {
-    let file = File::open(path).map_err(|e| ReadError::io(path, e))?;
-    Ok(file_pages(BufReader::new(file), path)?.0.len())
+    let (pages, meta) = file_pages(BufReader::new(file), path)?;
+    let channels = match meta.channels {
+        Some(c) => {
+            channel_layout(path, 1, pages.len(), &meta, c)?;
+            c
+        }
+        None => 1,
+    };
+    Ok((pages.len(), channels))
 }
 
 /// A stack's slices: the file and page of each, in order, their common shape, and the spacing.
@@ -881,6 +896,49 @@ impl Stack {
     }
 }
 
+/// The slices a time point and the time points of a stack of `planes` planes in `files` files
+/// storing `count` channels as planes of their own: one file, in a known plane order, whose
+/// counts multiply to its planes (else refused: a part of a multi-file dataset, a truncated
+/// file, a description that lies).
+fn channel_layout(
+    path: &Path,
+    files: usize,
+    planes: usize,
+    meta: &StackMeta,
+    count: usize,
+) -> Result<(usize, usize), ReadError> {
+    if files > 1 {
+        return Err(ReadError::unsupported(
+            path,
+            format!(
+                "{count} channels stored as planes among {files} files: one file of them all \
+                 is read"
+            ),
+        ));
+    }
+    if meta.plane_order == [0; 3] {
+        return Err(ReadError::unsupported(
+            path,
+            format!("{count} channels in planes whose DimensionOrder is not one of OME's"),
+        ));
+    }
+    let frames = meta.frames.unwrap_or(1);
+    let per_slice = count.checked_mul(frames);
+    let z = meta
+        .slices
+        .unwrap_or(planes / per_slice.unwrap_or(usize::MAX).max(1));
+    if per_slice.and_then(|n| n.checked_mul(z)) != Some(planes) || z == 0 {
+        return Err(ReadError::unsupported(
+            path,
+            format!(
+                "{count} channels of {z} slices and {frames} time point(s) in {planes} images: \
+                 they do not add up (a part of a dataset of several files, or a truncated file)"
+            ),
+        ));
+    }
+    Ok((z, frames))
+}
+
 /// Of the planes `slices` of a file storing `count` channels as planes of their own (in
 /// `meta.plane_order`), those of channel `channel`, in their order.
 fn planes_of_channel(
@@ -891,6 +949,7 @@ fn planes_of_channel(
     channel: Option<usize>,
 ) -> Result<Vec<(usize, usize)>, ReadError> {
     let path = names.first().map_or(Path::new("."), PathBuf::as_path);
+    let (z, frames) = channel_layout(path, names.len(), slices.len(), meta, count)?;
     let refused = |why: String| ReadError::Channels {
         path: path.to_path_buf(),
         channels: count as u64,
@@ -907,29 +966,7 @@ fn planes_of_channel(
         Some(c) if c >= count => return Err(refused(format!("channel {c} was chosen"))),
         Some(c) => c,
     };
-    let frames = meta.frames.unwrap_or(1);
-    let z = meta
-        .slices
-        .unwrap_or(slices.len() / (count * frames).max(1));
-    if names.len() > 1 || z.checked_mul(count * frames) != Some(slices.len()) {
-        return Err(ReadError::unsupported(
-            path,
-            format!(
-                "{count} channels of {z} slices and {frames} time point(s) in {} images{}",
-                slices.len(),
-                if names.len() > 1 {
-                    " among several files: one file of them all is read"
-                } else {
-                    ": they do not add up"
-                }
-            ),
-        ));
-    }
-    let order = if meta.plane_order == [0; 3] {
-        *b"ZCT"
-    } else {
-        meta.plane_order
-    };
+    let order = meta.plane_order;
     Ok(slices
         .into_iter()
         .enumerate()
