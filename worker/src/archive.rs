@@ -870,6 +870,28 @@ mod tests {
         assert_eq!(s.found[0].name, "sim");
     }
 
+    /// The names and channels a scan found, in order.
+    fn names_and_channels(s: &Scan) -> Vec<(&str, Option<usize>)> {
+        s.found
+            .iter()
+            .map(|f| (f.name.as_str(), f.channel))
+            .collect()
+    }
+
+    /// The jobs of `found`, the channels of one source in order: job `c` carries channel `c`,
+    /// and its upload decodes, with that channel, to `dims` voxels of `want(c)`.
+    fn channel_jobs_read(found: &[Found], dims: [usize; 3], want: impl Fn(usize) -> Vec<f32>) {
+        for (c, f) in found.iter().enumerate() {
+            let (spec, bytes) = job_spec(f, &JobOptions::default(), true).unwrap();
+            assert_eq!(spec.channel, Some(c as u32));
+            let src = SourceFiles::from_bytes(bytes.unwrap(), &f.path).unwrap();
+            let v =
+                wavesplat_compressor::reader::decode_source_channel(&src, None, Some(c)).unwrap();
+            assert_eq!(v.dims(), dims, "{}", f.name);
+            assert_eq!(v.channel(0), want(c), "{}", f.name);
+        }
+    }
+
     /// A Zarr array of several channels is a volume per channel, `NAME/cC`, each job reading
     /// its own; one of more channels than are submitted alone is skipped saying how to take
     /// them.
@@ -901,11 +923,7 @@ mod tests {
         store("dup.ome.zarr", 3);
         store("dup.zarr", 2);
         let s = scan(r).unwrap();
-        let found: Vec<(&str, Option<usize>)> = s
-            .found
-            .iter()
-            .map(|f| (f.name.as_str(), f.channel))
-            .collect();
+        let found = names_and_channels(&s);
         assert_eq!(
             found,
             [
@@ -926,16 +944,9 @@ mod tests {
         );
         assert!(s.skipped[0].1.contains("\"dup/c0\""), "{:?}", s.skipped);
         assert!(s.skipped[1].1.contains("--channel"), "{:?}", s.skipped);
-        for (c, f) in s.found[3..].iter().enumerate() {
-            let (spec, bytes) = job_spec(f, &JobOptions::default(), true).unwrap();
-            assert_eq!(spec.channel, Some(c as u32));
-            let src = SourceFiles::from_bytes(bytes.unwrap(), Path::new("multi")).unwrap();
-            let v =
-                wavesplat_compressor::reader::decode_source_channel(&src, None, Some(c)).unwrap();
-            assert_eq!(v.dims(), [4, 3, 2]);
-            let want: Vec<f32> = (0..24).map(|i| (50 * c + i) as f32).collect();
-            assert_eq!(v.channel(0), want, "channel {c}");
-        }
+        channel_jobs_read(&s.found[3..], [4, 3, 2], |c| {
+            (0..24).map(|i| (50 * c + i) as f32).collect()
+        });
         // The three jobs hash the same bytes; their keys differ by their names and channels.
         let keys: std::collections::HashSet<String> = s.found[3..]
             .iter()
@@ -1002,27 +1013,16 @@ mod tests {
             "{:?}",
             s.skipped
         );
-        let found: Vec<(&str, Option<usize>)> = s
-            .found
-            .iter()
-            .map(|f| (f.name.as_str(), f.channel))
-            .collect();
+        let found = names_and_channels(&s);
         assert_eq!(
             found,
             [("cells/c0", Some(0)), ("cells/c1", Some(1)), ("grey", None)],
             "{:?}",
             s.skipped
         );
-        for (c, f) in s.found[..2].iter().enumerate() {
-            let (spec, bytes) = job_spec(f, &JobOptions::default(), true).unwrap();
-            assert_eq!(spec.channel, Some(c as u32));
-            let src = SourceFiles::from_bytes(bytes.unwrap(), Path::new("cells.tif")).unwrap();
-            let v =
-                wavesplat_compressor::reader::decode_source_channel(&src, None, Some(c)).unwrap();
-            assert_eq!(v.dims(), [2, 2, 3]);
-            let want: Vec<f32> = (0..3).flat_map(|z| [(100 * c + z) as f32; 4]).collect();
-            assert_eq!(v.channel(0), want, "channel {c}");
-        }
+        channel_jobs_read(&s.found[..2], [2, 2, 3], |c| {
+            (0..3).flat_map(|z| [(100 * c + z) as f32; 4]).collect()
+        });
     }
 
     /// A job names the same content whether its source is uploaded or named by path: files
