@@ -159,9 +159,9 @@ pub enum ReadError {
         /// What failed.
         reason: String,
     },
-    /// An array of several channels opened without choosing one (Zarr arrays: every other
-    /// source is one channel, or three of RGB read together), or a channel chosen that the
-    /// source does not hold.
+    /// An array of several channels opened without choosing one (a Zarr array, a TIFF storing
+    /// channels as planes of their own: every other source is one channel, or three of RGB
+    /// read together), or a channel chosen that the source does not hold.
     #[error(
         "{}: {channels} {}, {why}: choose one from 0 to {} (`compress --channel C`)",
         path.display(),
@@ -241,6 +241,15 @@ pub enum ReadError {
 }
 
 impl ReadError {
+    /// A channel chosen (`channel`) that the source at `path`, of `channels`, does not hold.
+    pub(crate) fn channel_not_held(path: &Path, channels: u64, channel: usize) -> ReadError {
+        ReadError::Channels {
+            path: path.to_path_buf(),
+            channels,
+            why: format!("channel {channel} was chosen"),
+        }
+    }
+
     pub(crate) fn bad_header(path: &Path, format: &'static str, reason: impl Into<String>) -> Self {
         ReadError::BadHeader {
             path: path.to_path_buf(),
@@ -973,7 +982,7 @@ pub fn decode_source(src: &SourceFiles, raw: Option<&RawSpec>) -> Result<Volume,
         Some(Format::Nrrd) => nrrd::decode(src),
         Some(Format::MetaImage) => metaimage::decode(src),
         Some(Format::Tiff) => tiff_stack::decode(src),
-        Some(Format::Zarr) => zarr::decode(src, zarr::ChannelChoice::Only),
+        Some(Format::Zarr) => zarr::decode(src, None),
         Some(Format::Nifti) => match src.files.as_slice() {
             [(_, bytes)] => nifti::decode_nifti(&src.origin, bytes),
             // A `.hdr` and its `.img`.
@@ -1010,7 +1019,7 @@ pub fn decode_source_channel(
     channel: Option<usize>,
 ) -> Result<Volume, ReadError> {
     match src.format {
-        Some(Format::Zarr) => zarr::decode(src, channel.into()),
+        Some(Format::Zarr) => zarr::decode(src, channel),
         Some(Format::Tiff) => match tiff_stack::decode_channel(src, channel)? {
             (v, true) => Ok(v),
             (v, false) => keep_channel(v, channel, &src.origin),
@@ -1019,21 +1028,25 @@ pub fn decode_source_channel(
     }
 }
 
+/// Which of the `channels` a source reads together a choice of `channel` keeps: `None` where
+/// all are (none chosen, or the source has one), refused where it lacks the one chosen.
+pub(crate) fn channel_to_keep(
+    path: &Path,
+    channels: usize,
+    channel: Option<usize>,
+) -> Result<Option<usize>, ReadError> {
+    match channel {
+        Some(c) if c >= channels => Err(ReadError::channel_not_held(path, channels as u64, c)),
+        Some(c) if channels > 1 => Ok(Some(c)),
+        _ => Ok(None),
+    }
+}
+
 /// Volume `v` (read from `path`) with only channel `channel` kept, when one is chosen.
 pub fn keep_channel(v: Volume, channel: Option<usize>, path: &Path) -> Result<Volume, ReadError> {
-    let Some(c) = channel else {
+    let Some(c) = channel_to_keep(path, v.channel_count(), channel)? else {
         return Ok(v);
     };
-    if c >= v.channel_count() {
-        return Err(ReadError::Channels {
-            path: path.to_path_buf(),
-            channels: v.channel_count() as u64,
-            why: format!("channel {c} was chosen"),
-        });
-    }
-    if v.channel_count() == 1 {
-        return Ok(v);
-    }
     let (dims, spacing, placement) = (v.dims(), v.spacing(), v.placement().copied());
     let kept = v.into_channels().swap_remove(c);
     let one = Volume::new(dims, spacing, vec![kept]).map_err(|e| ReadError::volume(path, e))?;

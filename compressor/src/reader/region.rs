@@ -338,23 +338,17 @@ impl RegionReader {
         raw: Option<&RawSpec>,
         channel: Option<usize>,
     ) -> Result<RegionReader, ReadError> {
-        let opened = formats::open(path, raw, channel.into())?;
+        let opened = formats::open(path, raw, channel)?;
         // Whether the format chose the channel when it opened (only its samples are read).
         let chosen = match &opened.source {
             Source::Zarr(_) => true,
             Source::Tiff(t) => t.channel_chosen(),
             _ => false,
         };
-        let kept_channel = match channel {
-            Some(c) if !chosen && c >= opened.channels => {
-                return Err(ReadError::Channels {
-                    path: path.to_path_buf(),
-                    channels: opened.channels as u64,
-                    why: format!("channel {c} was chosen"),
-                })
-            }
-            Some(c) if !chosen && opened.channels > 1 => Some(c),
-            _ => None,
+        let kept_channel = if chosen {
+            None
+        } else {
+            super::channel_to_keep(path, opened.channels, channel)?
         };
         Ok(RegionReader {
             path: path.to_path_buf(),

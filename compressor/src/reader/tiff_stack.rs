@@ -950,20 +950,17 @@ fn planes_of_channel(
 ) -> Result<Vec<(usize, usize)>, ReadError> {
     let path = names.first().map_or(Path::new("."), PathBuf::as_path);
     let (z, frames) = channel_layout(path, names.len(), slices.len(), meta, count)?;
-    let refused = |why: String| ReadError::Channels {
-        path: path.to_path_buf(),
-        channels: count as u64,
-        why,
-    };
     let c = match channel {
         None => {
-            return Err(refused(
-                "stored as planes of their own; one is read (`archive submit` makes each a \
-                 volume of its own)"
+            return Err(ReadError::Channels {
+                path: path.to_path_buf(),
+                channels: count as u64,
+                why: "stored as planes of their own; one is read (`archive submit` makes each \
+                      a volume of its own)"
                     .into(),
-            ))
+            })
         }
-        Some(c) if c >= count => return Err(refused(format!("channel {c} was chosen"))),
+        Some(c) if c >= count => return Err(ReadError::channel_not_held(path, count as u64, c)),
         Some(c) => c,
     };
     let order = meta.plane_order;

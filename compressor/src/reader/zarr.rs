@@ -10,8 +10,8 @@
 //! dimension names (v3 `dimension_names`, xarray's `_ARRAY_DIMENSIONS`: `x`, `y`, `z`, `t` or
 //! `time`, `c` or `channel`), else from the count: `z, y, x` for three, `t, z, y, x` for four and
 //! OME's `t, c, z, y, x` for five. The spatial axes may come in any order; of a channel axis
-//! of several channels one is read, the one chosen ([`ChannelChoice`]; an array of several
-//! channels opened without a choice is refused, saying how many it holds); any other axis must
+//! of several channels one is read, the one chosen (an array of several channels opened
+//! without a choice is refused, saying how many it holds); any other axis must
 //! be of size 1. Spacing, in mm: OME's `scale`
 //! transformations of the first dataset (and of the whole multiscale) in each axis's `unit`
 //! (a scale without a unit is taken as mm), else 1; the seconds between time points from the
@@ -123,31 +123,17 @@ fn bad(path: &Path, reason: impl Into<String>) -> ReadError {
     ReadError::bad_header(path, FORMAT, reason)
 }
 
-/// Which channel of an array with a channel axis is read.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum ChannelChoice {
-    /// The only one: an array of several channels is refused.
-    Only,
-    /// This one (counted from 0).
-    Index(usize),
-}
-
-impl From<Option<usize>> for ChannelChoice {
-    fn from(c: Option<usize>) -> ChannelChoice {
-        c.map_or(ChannelChoice::Only, ChannelChoice::Index)
-    }
-}
-
 impl ZarrVolume {
-    /// Opens the store at `path` (a directory) as a volume, the channel `channel` of it.
-    pub(crate) fn open(path: &Path, channel: ChannelChoice) -> Result<ZarrVolume, ReadError> {
+    /// Opens the store at `path` (a directory) as a volume, the channel `channel` of it
+    /// (`None`: the only one; an array of several channels is refused).
+    pub(crate) fn open(path: &Path, channel: Option<usize>) -> Result<ZarrVolume, ReadError> {
         let store = zarrs::filesystem::FilesystemStore::new(path)
             .map_err(|e| ReadError::io(path, std::io::Error::other(e.to_string())))?;
         ZarrVolume::of_store(path, Arc::new(store), channel)
     }
 
     /// Opens a store's gathered files (names relative to the store, `/`-separated).
-    fn of_files(src: &SourceFiles, channel: ChannelChoice) -> Result<ZarrVolume, ReadError> {
+    fn of_files(src: &SourceFiles, channel: Option<usize>) -> Result<ZarrVolume, ReadError> {
         let store = zarrs::storage::store::MemoryStore::new();
         for (name, bytes) in &src.files {
             let key = StoreKey::new(name.as_str())
@@ -162,7 +148,7 @@ impl ZarrVolume {
     fn of_store(
         path: &Path,
         store: ReadableStorage,
-        channel: ChannelChoice,
+        channel: Option<usize>,
     ) -> Result<ZarrVolume, ReadError> {
         let target = locate(path, &store)?;
         let bounded = Arc::new(Bounded::new(store));
@@ -265,10 +251,10 @@ impl ZarrVolume {
             ));
         }
         let channel_axis = match (channel_axis, channel) {
-            (None, ChannelChoice::Only | ChannelChoice::Index(0)) => None,
-            (Some(i), ChannelChoice::Only) if channels == 1 => Some((i, 0)),
-            (Some(i), ChannelChoice::Index(c)) if (c as u64) < channels => Some((i, c as u64)),
-            (Some(i), ChannelChoice::Only) => {
+            (None, None | Some(0)) => None,
+            (Some(i), None) if channels == 1 => Some((i, 0)),
+            (Some(i), Some(c)) if (c as u64) < channels => Some((i, c as u64)),
+            (Some(i), None) => {
                 return Err(ReadError::Channels {
                     path: path.to_path_buf(),
                     channels,
@@ -278,13 +264,7 @@ impl ZarrVolume {
                     ),
                 });
             }
-            (_, ChannelChoice::Index(c)) => {
-                return Err(ReadError::Channels {
-                    path: path.to_path_buf(),
-                    channels,
-                    why: format!("channel {c} was chosen"),
-                });
-            }
+            (_, Some(c)) => return Err(ReadError::channel_not_held(path, channels, c)),
         };
         let channels = usize::try_from(channels).unwrap_or(usize::MAX);
         let size = |i: usize| {
@@ -1242,13 +1222,13 @@ fn walk_once(
 
 /// How many time points the store at `path` holds (1 for a volume).
 pub(crate) fn time_points(path: &Path) -> Result<usize, ReadError> {
-    Ok(ZarrVolume::open(path, ChannelChoice::Index(0))?.time_points())
+    Ok(ZarrVolume::open(path, Some(0))?.time_points())
 }
 
 /// How many channels the array of the store at `path` holds along its channel axis (1
 /// without one), each a volume ([`ChannelChoice`]); its metadata only is read.
 pub fn channels(path: &Path) -> Result<usize, ReadError> {
-    Ok(ZarrVolume::open(path, ChannelChoice::Index(0))?.channels())
+    Ok(ZarrVolume::open(path, Some(0))?.channels())
 }
 
 /// What decoding a gathered store whole ([`decode`]) may hold at once by what its metadata
@@ -1257,7 +1237,7 @@ pub fn channels(path: &Path) -> Result<usize, ReadError> {
 /// this, not the store's size, is what reading it costs; the fuzz target bounds the reader's
 /// heap by it.
 pub fn declared_bytes(src: &SourceFiles) -> Result<u64, ReadError> {
-    let z = ZarrVolume::of_files(src, ChannelChoice::Index(0))?;
+    let z = ZarrVolume::of_files(src, Some(0))?;
     let voxels = checked_voxels(z.dims).map_err(|e| ReadError::volume(&src.origin, e))? as u64;
     let sample = z.sample.map_or(1, SampleType::size) as u64;
     Ok(voxels
@@ -1267,7 +1247,7 @@ pub fn declared_bytes(src: &SourceFiles) -> Result<u64, ReadError> {
 
 /// Decodes a gathered store whole, the channel `channel` of it (one time point; a series is
 /// refused as [`ReadError::TimeSeries`]).
-pub(crate) fn decode(src: &SourceFiles, channel: ChannelChoice) -> Result<Volume, ReadError> {
+pub(crate) fn decode(src: &SourceFiles, channel: Option<usize>) -> Result<Volume, ReadError> {
     let z = ZarrVolume::of_files(src, channel)?;
     if z.time_points > 1 {
         return Err(ReadError::TimeSeries {

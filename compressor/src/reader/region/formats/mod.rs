@@ -23,16 +23,16 @@ use self::nrrd::open_nrrd;
 use self::raw::open_raw;
 use super::{Opened, Stored};
 use crate::reader::text::TEXT_HEADER_WINDOW;
-use crate::reader::zarr::ChannelChoice;
 use crate::reader::{Endian, Format, RawSpec, ReadError, SampleType, SourceFiles};
 use wavesplat_codec::volume::{Volume, VolumeError};
 
 /// Opens `path` by format, as [`crate::reader::read_volume`] dispatches (of a Zarr array, the
-/// channel `channel`; other formats read every channel).
+/// channel `channel`, and of a TIFF storing channels as planes of their own; other formats
+/// read every channel: `None` there).
 pub(super) fn open(
     path: &Path,
     raw: Option<&RawSpec>,
-    channel: ChannelChoice,
+    channel: Option<usize>,
 ) -> Result<Opened, ReadError> {
     let meta = std::fs::metadata(path).map_err(|e| ReadError::io(path, e))?;
     if meta.is_dir() {
@@ -87,11 +87,7 @@ fn open_series(path: &Path) -> Result<Opened, ReadError> {
 
 /// A TIFF stack (a multi-page file or a directory of files), read by slices and chunks (of
 /// channels stored as planes of their own, the one chosen).
-fn open_tiff(path: &Path, channel: ChannelChoice) -> Result<Opened, ReadError> {
-    let channel = match channel {
-        ChannelChoice::Only => None,
-        ChannelChoice::Index(c) => Some(c),
-    };
+fn open_tiff(path: &Path, channel: Option<usize>) -> Result<Opened, ReadError> {
     let s = crate::reader::tiff_stack::TiffRegions::open(path, channel)?;
     Ok(Opened {
         dims: s.dims(),
@@ -105,7 +101,7 @@ fn open_tiff(path: &Path, channel: ChannelChoice) -> Result<Opened, ReadError> {
 }
 
 /// A Zarr array, read by chunks (of its channels, the one chosen).
-fn open_zarr(path: &Path, channel: ChannelChoice) -> Result<Opened, ReadError> {
+fn open_zarr(path: &Path, channel: Option<usize>) -> Result<Opened, ReadError> {
     let z = crate::reader::zarr::ZarrVolume::open(path, channel)?;
     Ok(Opened {
         dims: z.dims(),
