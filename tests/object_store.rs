@@ -105,34 +105,95 @@ fn objects(net: &Net, prefix: &str) -> Vec<String> {
     try_objects(net, prefix).expect("listing the bucket")
 }
 
-/// The bucket server, killed with what it started when dropped (also by a test that fails).
-struct StoreServer(Child);
+/// Writes an object under `key` from the viewer host; the store's error, or that it took more
+/// than `limit`, when it did not.
+fn try_put_object(net: &Net, key: &str, limit: Duration) -> Result<(), String> {
+    let key = key.to_string();
+    on_bucket(net, move |store| async move {
+        let path = object_store::path::Path::from(key.as_str());
+        let put = object_store::ObjectStoreExt::put(&store, &path, b"ready".to_vec().into());
+        match tokio::time::timeout(limit, put).await {
+            Ok(Ok(_)) => Ok(()),
+            Ok(Err(e)) => Err(e.to_string()),
+            Err(_) => Err(format!("no answer in {limit:?}")),
+        }
+    })
+}
+
+/// The bucket server, killed with what it started when dropped (also by a test that fails),
+/// and the directory of its data when that is not the test's (removed after it).
+struct StoreServer {
+    child: Child,
+    _data: Option<tempfile::TempDir>,
+}
 
 impl std::ops::Deref for StoreServer {
     type Target = Child;
     fn deref(&self) -> &Child {
-        &self.0
+        &self.child
     }
 }
 
 impl std::ops::DerefMut for StoreServer {
     fn deref_mut(&mut self) -> &mut Child {
-        &mut self.0
+        &mut self.child
     }
 }
 
 impl Drop for StoreServer {
     fn drop(&mut self) {
-        if let Ok(None) = self.0.try_wait() {
-            kill_tree(&mut self.0);
+        if let Ok(None) = self.child.try_wait() {
+            kill_tree(&mut self.child);
         }
     }
 }
 
-/// Starts the bucket server and waits until its S3 endpoint answers.
-fn start_bucket(net: &mut Net, dir: &Path) -> StoreServer {
+/// The size and the free space of the file system that holds `path`, in KiB (`df`).
+fn file_system_kib(path: &Path) -> Option<(u64, u64)> {
+    let out = Command::new("df").arg("-Pk").arg(path).output().ok()?;
+    let text = String::from_utf8_lossy(&out.stdout).to_string();
+    let fields: Vec<&str> = text.lines().nth(1)?.split_whitespace().collect();
+    Some((fields.get(1)?.parse().ok()?, fields.get(3)?.parse().ok()?))
+}
+
+/// Where the store keeps its data: a directory of its own in `/dev/shm` (a tmpfs) where that
+/// has room, else `dir/data`. SeaweedFS takes no writes on a file system with less than 1 % of
+/// its size free, and a build machine's disk, large and nearly full of build outputs, can be
+/// just that: every PUT then waits until it times out (seen in CI). The tests store a few MB.
+fn store_data_dir(dir: &Path) -> (std::path::PathBuf, Option<tempfile::TempDir>) {
+    let shm = Path::new("/dev/shm");
+    let roomy = |p: &Path| {
+        file_system_kib(p).is_some_and(|(size, free)| free >= 256 << 10 && free * 10 >= size)
+    };
+    if roomy(shm) {
+        if let Ok(own) = tempfile::tempdir_in(shm) {
+            return (own.path().to_path_buf(), Some(own));
+        }
+    }
     let data = dir.join("data");
     std::fs::create_dir_all(&data).unwrap();
+    (data, None)
+}
+
+/// What the store said of itself (the end of its log) and the space left where it keeps its
+/// data: for the message of a test that the store failed.
+fn store_report(dir: &Path) -> String {
+    let log = std::fs::read_to_string(dir.join("weed.log")).unwrap_or_default();
+    let lines: Vec<&str> = log.lines().filter(|l| !l.trim().is_empty()).collect();
+    let tail = lines[lines.len().saturating_sub(40)..].join("\n");
+    let data = std::fs::read_to_string(dir.join("data-dir")).unwrap_or_default();
+    let df = Command::new("df")
+        .args(["-h", data.trim()])
+        .output()
+        .map(|o| String::from_utf8_lossy(&o.stdout).to_string())
+        .unwrap_or_default();
+    format!("store data in {data}:\n{df}\nstore log (end):\n{tail}")
+}
+
+/// Starts the bucket server and waits until its S3 endpoint answers and takes a write.
+fn start_bucket(net: &mut Net, dir: &Path) -> StoreServer {
+    let (data, own_data) = store_data_dir(dir);
+    std::fs::write(dir.join("data-dir"), data.display().to_string()).unwrap();
     let mut cmd = net.program(
         "bucket",
         dir,
@@ -156,15 +217,17 @@ fn start_bucket(net: &mut Net, dir: &Path) -> StoreServer {
     // take turns (`ONE_STORE`).
     let sockets = dir.join("tmp");
     std::fs::create_dir_all(&sockets).unwrap();
-    let child = StoreServer(
-        cmd.env("TMPDIR", &sockets)
+    let child = StoreServer {
+        child: cmd
+            .env("TMPDIR", &sockets)
             .env("AWS_ACCESS_KEY_ID", KEY_ID)
             .env("AWS_SECRET_ACCESS_KEY", SECRET)
             .stdout(log.try_clone().unwrap())
             .stderr(log)
             .spawn()
             .unwrap(),
-    );
+        _data: own_data,
+    };
     let started = Instant::now();
     loop {
         let probe = net
@@ -184,14 +247,22 @@ fn start_bucket(net: &mut Net, dir: &Path) -> StoreServer {
             .output()
             .unwrap();
         let code = String::from_utf8_lossy(&probe.stdout).to_string();
-        // The bucket exists once a signed listing works.
-        if (code == "403" || code == "200") && try_objects(net, "x").is_some() {
+        // The bucket exists once a signed listing works, and the store is ready once it
+        // takes a write (a store without a writable volume lists, and holds every PUT).
+        let answered = code == "403" || code == "200";
+        let written = if answered && try_objects(net, "x").is_some() {
+            try_put_object(net, "ready/probe", Duration::from_secs(10))
+        } else {
+            Err(format!("HTTP {code}"))
+        };
+        if written.is_ok() {
             break;
         }
         assert!(
             started.elapsed() < Duration::from_secs(90),
-            "the S3 server did not start: {}",
-            std::fs::read_to_string(dir.join("weed.log")).unwrap_or_default()
+            "the S3 server did not start or take a write ({}): {}",
+            written.unwrap_err(),
+            store_report(dir)
         );
         std::thread::sleep(Duration::from_millis(250));
     }
@@ -379,8 +450,9 @@ fn a_store_outage_ends_a_refinement_stream_as_unavailable() {
         }
         assert!(
             text(&ingested).contains("Unavailable") && started.elapsed() < Duration::from_secs(60),
-            "{}",
-            text(&ingested)
+            "{}\n{}",
+            text(&ingested),
+            store_report(&bucket_dir)
         );
         std::thread::sleep(Duration::from_secs(1));
     }
@@ -594,7 +666,12 @@ fn cache_nodes_share_one_bucket_across_hosts() {
     net.keep(node2);
     let cli = |net: &Net, args: &[&str]| {
         let o = net.run("viewer", &viewer_dir, args, None);
-        assert!(o.status.success(), "{}", text(&o));
+        assert!(
+            o.status.success(),
+            "{}\n{}",
+            text(&o),
+            store_report(&bucket_dir)
+        );
         String::from_utf8_lossy(&o.stdout).to_string()
     };
 
