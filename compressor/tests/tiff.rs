@@ -1,8 +1,9 @@
 //! TIFF stacks: a multi-page file and a directory of single-page files (natural name order)
 //! read as the volume written, for every sample type and compression the writer here makes,
 //! whole and region by region (chunk by chunk, regions that cut strips); the spacing an ImageJ
-//! or OME description gives; and the refusals (pages that disagree, hyperstacks, alpha, an
-//! ImageJ stack whose images outnumber its pages), each naming the file.
+//! or OME description gives; one channel of a hyperstack as chosen (files written here and by
+//! tifffile); and the refusals (pages that disagree, hyperstacks, alpha, an ImageJ stack whose
+//! images outnumber its pages), each naming the file.
 
 use std::io::{Seek, Write};
 use std::path::Path;
@@ -961,6 +962,124 @@ fn channels_stored_as_planes_are_read_one_at_a_time_as_chosen() {
         let got = input.source().read_at(t, [0; 3], DIMS).unwrap();
         let want: Vec<f32> = vols[t][1].iter().map(|v| f32::from(*v)).collect();
         assert_eq!(got.channel(0), &want[..], "time point {t}");
+    }
+}
+
+/// Writes hyperstacks of channels with tifffile (ImageJ's plane order, and OME-TIFFs whose
+/// DimensionOrder puts Z or C first), and each channel as little-endian f64 samples (x fastest,
+/// then y, z and time), for the Rust side to compare.
+const TIFFFILE_CHANNELS_WRITER: &str = r#"
+import sys, json
+import numpy as np
+import tifffile
+out = sys.argv[1]
+rng = np.random.default_rng(11)
+z, y, x = 5, 21, 19
+cases = {}
+def case(name, data, channel_axis, time_axis=None, **kw):
+    tifffile.imwrite(f"{out}/{name}.tif", data, photometric="minisblack", **kw)
+    channels = data.shape[channel_axis]
+    for c in range(channels):
+        np.take(data, c, axis=channel_axis).astype("<f8").tofile(f"{out}/{name}_c{c}.f64")
+    cases[name] = [channels, 1 if time_axis is None else data.shape[time_axis]]
+def values(shape):
+    return rng.integers(0, 4000, shape, dtype=np.uint16)
+case("imagej_zc", values((z, 2, y, x)), 1, imagej=True, metadata={"axes": "ZCYX"})
+case("imagej_tzc", values((2, z, 3, y, x)), 2, 0, imagej=True, metadata={"axes": "TZCYX"})
+case("ome_cz", values((3, z, y, x)), 0, ome=True, metadata={"axes": "CZYX"})
+case("ome_zc", values((z, 2, y, x)), 1, ome=True, metadata={"axes": "ZCYX"})
+case("ome_cz_f32_tiled", rng.normal(0, 100, (2, z, y, x)).astype(np.float32), 0, ome=True,
+     metadata={"axes": "CZYX"}, compression="zlib", tile=(16, 16))
+json.dump(cases, open(f"{out}/cases.json", "w"))
+"#;
+
+/// Hyperstacks of channels written by tifffile, an independent writer: each channel read as
+/// it wrote it (whole, by regions, and each time point of a series), none chosen refused.
+#[test]
+fn channels_written_by_tifffile_read_as_it_wrote_them() {
+    use wavesplat_compressor::reader::{read_volume_channel, tiff_pages_and_channels};
+    use wavesplat_compressor::series::open_series_path_channel;
+    let Some(python) = wavesplat_fixtures::reference_python(
+        "tifffile, numpy",
+        "apt-get install python3-tifffile python3-numpy",
+    ) else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let script = dir.path().join("write.py");
+    std::fs::write(&script, TIFFFILE_CHANNELS_WRITER).unwrap();
+    let o = std::process::Command::new(python)
+        .arg(&script)
+        .arg(dir.path())
+        .output()
+        .unwrap();
+    assert!(
+        o.status.success(),
+        "tifffile: {}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    let dims = [19, 21, 5];
+    let cases = [
+        ("imagej_zc", 2, 1),
+        ("imagej_tzc", 3, 2),
+        ("ome_cz", 3, 1),
+        ("ome_zc", 2, 1),
+        ("ome_cz_f32_tiled", 2, 1),
+    ];
+    let written = std::fs::read_to_string(dir.path().join("cases.json")).unwrap();
+    for (name, channels, frames) in cases {
+        assert!(
+            written.contains(&format!("\"{name}\": [{channels}, {frames}]")),
+            "{name}: {written}"
+        );
+        let path = dir.path().join(format!("{name}.tif"));
+        assert_eq!(
+            tiff_pages_and_channels(&path).unwrap(),
+            (channels * frames * dims[2], channels),
+            "{name}"
+        );
+        let e = read_volume(&path, None).unwrap_err();
+        assert!(
+            matches!(e, ReadError::Channels { channels: n, .. } if n == channels as u64),
+            "{name}: {e}"
+        );
+        for c in 0..channels {
+            let reference: Vec<f32> = std::fs::read(dir.path().join(format!("{name}_c{c}.f64")))
+                .unwrap()
+                .chunks_exact(8)
+                .map(|b| f64::from_le_bytes(b.try_into().unwrap()) as f32)
+                .collect();
+            let voxels = dims.iter().product::<usize>();
+            assert_eq!(reference.len(), voxels * frames, "{name}");
+            if frames == 1 {
+                let v = read_volume_channel(&path, None, Some(c))
+                    .unwrap_or_else(|e| panic!("{name} channel {c}: {e}"));
+                assert_eq!(v.dims(), dims, "{name}");
+                assert_eq!(v.channel(0), &reference[..], "{name} channel {c}");
+                let r = RegionReader::open_channel(&path, None, Some(c)).unwrap();
+                let part = r.read_region([4, 7, 1], [11, 9, 3]).unwrap();
+                for (z, y, x) in [(0, 0, 0), (2, 8, 10), (1, 3, 5)] {
+                    assert_eq!(
+                        part.channel(0)[part.index(x, y, z)],
+                        reference[v.index(x + 4, y + 7, z + 1)],
+                        "{name} channel {c}: region"
+                    );
+                }
+            } else {
+                let input = open_series_path_channel(&path, None, Some(c))
+                    .unwrap()
+                    .expect("a series");
+                assert_eq!(input.source().time_points(), frames, "{name}");
+                for t in 0..frames {
+                    let got = input.source().read_at(t, [0; 3], dims).unwrap();
+                    assert_eq!(
+                        got.channel(0),
+                        &reference[t * voxels..(t + 1) * voxels],
+                        "{name} channel {c} time point {t}"
+                    );
+                }
+            }
+        }
     }
 }
 
