@@ -363,6 +363,39 @@ fn readers(root: &Path) {
         drop(e);
         seed("tiff", "hyperstack_channels", &p, Format::Tiff);
     }
+    // A multi-file OME-TIFF of two channels, a file each, the first's XML placing both (a
+    // bundle of the two files).
+    {
+        use tiff::encoder::{colortype::Gray16, TiffEncoder};
+        let [nx, ny, nz] = v.dims();
+        let dir = tmp.path().join("ome_multi_file");
+        std::fs::create_dir_all(&dir).unwrap();
+        let xml = format!(
+            r#"<OME><Image ID="Image:0"><Pixels DimensionOrder="XYZCT" SizeX="{nx}" SizeY="{ny}" SizeZ="{nz}" SizeC="2" SizeT="1"><TiffData IFD="0" PlaneCount="{nz}"><UUID FileName="a.ome.tif">urn:uuid:a</UUID></TiffData><TiffData FirstC="1" IFD="0" PlaneCount="{nz}"><UUID FileName="b.ome.tif">urn:uuid:b</UUID></TiffData></Pixels></Image></OME>"#
+        );
+        for (c, name) in [(0u16, "a.ome.tif"), (1, "b.ome.tif")] {
+            let f = std::fs::File::create(dir.join(name)).unwrap();
+            let mut e = TiffEncoder::new(f).unwrap();
+            for z in 0..nz {
+                let mut image = e.new_image::<Gray16>(nx as u32, ny as u32).unwrap();
+                if z == 0 && c == 0 {
+                    let tag = tiff::tags::Tag::ImageDescription;
+                    image.encoder().write_tag(tag, xml.as_str()).unwrap();
+                }
+                let plane: Vec<u16> = v.channel(0)[z * nx * ny..(z + 1) * nx * ny]
+                    .iter()
+                    .map(|s| (s * 100.0) as u16 + 500 * c)
+                    .collect();
+                image.write_data(&plane).unwrap();
+            }
+        }
+        seed(
+            "tiff",
+            "ome_multi_file",
+            &dir.join("a.ome.tif"),
+            Format::Tiff,
+        );
+    }
     for (name, layout, compressed, detached) in [
         ("mha_u8", Layout::U8, false, false),
         ("mha_zlib_i16", Layout::I16, true, false),

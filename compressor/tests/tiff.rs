@@ -1156,3 +1156,273 @@ fn channel_descriptions_that_do_not_fit_their_pages_are_refused() {
         }
     }
 }
+
+/// The OME-XML of a multi-file OME-TIFF of `DIMS` in two channels (`DimensionOrder` XYZCT:
+/// channel 0's slices, then channel 1's), placing its 22 planes in three files: nine in
+/// `acq.ome.tif` and nine in `acq_1.ome.tif` by one `TiffData` each, the last four in
+/// `acq_2.ome.tif` one `TiffData` a plane (as Micro-Manager writes them), each file's `UUID`
+/// ending in its number (1 to 3), the XML's own that of file `own`. `extra` is added among the
+/// `TiffData` elements.
+fn multi_file_ome_xml(extra: &str, own: u32) -> String {
+    let uuid = |file: &str, n: u32| {
+        format!(r#"<UUID FileName="{file}">urn:uuid:00000000-0000-0000-0000-00000000000{n}</UUID>"#)
+    };
+    let mut tiff_data = format!(
+        r#"<TiffData FirstZ="0" FirstC="0" FirstT="0" IFD="0" PlaneCount="9">{}</TiffData><TiffData FirstZ="9" FirstC="0" IFD="0" PlaneCount="9">{}</TiffData>"#,
+        uuid("acq.ome.tif", 1),
+        uuid("acq_1.ome.tif", 2)
+    );
+    for k in 0..4 {
+        tiff_data += &format!(
+            r#"<TiffData FirstZ="{}" FirstC="1" IFD="{k}">{}</TiffData>"#,
+            7 + k,
+            uuid("acq_2.ome.tif", 3)
+        );
+    }
+    tiff_data += extra;
+    format!(
+        r#"<?xml version="1.0" encoding="UTF-8"?><OME xmlns="http://www.openmicroscopy.org/Schemas/OME/2016-06" UUID="urn:uuid:00000000-0000-0000-0000-00000000000{own}"><Image ID="Image:0"><Pixels ID="Pixels:0" DimensionOrder="XYZCT" Type="uint16" SizeX="37" SizeY="29" SizeZ="11" SizeC="2" SizeT="1" PhysicalSizeX="0.5" PhysicalSizeY="0.5" PhysicalSizeZ="2"><Channel ID="Channel:0:0" SamplesPerPixel="1"/><Channel ID="Channel:0:1" SamplesPerPixel="1"/>{tiff_data}</Pixels></Image></OME>"#
+    )
+}
+
+/// Writes the multi-file OME-TIFF of [`multi_file_ome_xml`] into `dir`, its XML in the first
+/// file and the others' descriptions `part(n)` (a `BinaryOnly` pointer, or the XML again as
+/// file `n` holds it); returns each channel's samples.
+fn write_multi_file_ome(dir: &Path, xml: &str, part: &dyn Fn(u32) -> String) -> Vec<Vec<u16>> {
+    let channel = |c: u16| -> Vec<u16> {
+        samples(DIMS, 1000.0, |v| (v as u16).min(1000))
+            .iter()
+            .map(|v| v + 3000 * c)
+            .collect()
+    };
+    let volumes = vec![channel(0), channel(1)];
+    let slice = DIMS[0] * DIMS[1];
+    // Planes in the DimensionOrder: channel 0's slices, then channel 1's.
+    let planes: Vec<&[u16]> = volumes.iter().flat_map(|v| v.chunks(slice)).collect();
+    for (name, range, description) in [
+        ("acq.ome.tif", 0..9, xml.to_string()),
+        ("acq_1.ome.tif", 9..18, part(2)),
+        ("acq_2.ome.tif", 18..22, part(3)),
+    ] {
+        let file = std::fs::File::create(dir.join(name)).unwrap();
+        write_pages::<colortype::Gray16, _>(
+            file,
+            Compression::Deflate(DeflateLevel::Fast),
+            (DIMS[0], DIMS[1]),
+            &planes[range],
+            8,
+            Some(&description),
+        );
+    }
+    volumes
+}
+
+/// Reads a multi-file OME-TIFF with tifffile (an independent reader), each channel's samples as
+/// little-endian f64 into `out`_cC.f64 (x fastest).
+const TIFFFILE_MULTI_FILE_READER: &str = r#"
+import sys
+import numpy as np
+import tifffile
+with tifffile.TiffFile(sys.argv[1]) as t:
+    series = t.series[0]
+    data = series.asarray()
+    axes = series.axes
+data = np.transpose(data, [axes.index(a) for a in "CZYX"])
+for c in range(data.shape[0]):
+    data[c].astype("<f8").tofile(f"{sys.argv[2]}_c{c}.f64")
+print(axes, data.shape)
+"#;
+
+/// A multi-file OME-TIFF (one acquisition over several files, its XML in the first placing
+/// every plane by `TiffData` elements) is read from its first file as one volume, each channel
+/// as tifffile reads it, whole, by regions and from a bundle of its files; a part alone is
+/// refused naming the file to read; XML that places planes twice, nowhere, past the files'
+/// pages or outside the directory is refused; a one-file OME-TIFF renamed is still one file.
+#[test]
+fn a_multi_file_ome_tiff_is_read_as_one_volume_from_the_file_holding_its_xml() {
+    use wavesplat_compressor::reader::{
+        decode_source_channel, read_volume_channel, tiff_dataset_holder, tiff_pages_and_channels,
+        SourceFiles,
+    };
+    let xml = multi_file_ome_xml("", 1);
+    let binary_only = |_: u32| {
+        r#"<?xml version="1.0" encoding="UTF-8"?><OME xmlns="http://www.openmicroscopy.org/Schemas/OME/2016-06"><BinaryOnly MetadataFile="acq.ome.tif" UUID="urn:uuid:00000000-0000-0000-0000-000000000001"/></OME>"#.to_string()
+    };
+    let xml_again = |n: u32| multi_file_ome_xml("", n);
+    let reference_python = wavesplat_fixtures::reference_python(
+        "tifffile, numpy",
+        "apt-get install python3-tifffile python3-numpy",
+    );
+    // Parts pointing at the XML (Micro-Manager), and parts holding the XML too (Bio-Formats).
+    let styles: [(&str, &dyn Fn(u32) -> String); 2] = [
+        ("binary-only parts", &binary_only),
+        ("XML in every part", &xml_again),
+    ];
+    for (style, part) in styles {
+        let dir = tempfile::tempdir().unwrap();
+        let volumes = write_multi_file_ome(dir.path(), &xml, part);
+        let holder = dir.path().join("acq.ome.tif");
+        assert_eq!(
+            tiff_pages_and_channels(&holder).unwrap(),
+            (22, 2),
+            "{style}"
+        );
+        let e = read_volume(&holder, None).unwrap_err();
+        assert!(
+            matches!(e, ReadError::Channels { channels: 2, .. }),
+            "{style}: {e}"
+        );
+        let listing = SourceListing::list(&holder, None).unwrap();
+        let names: Vec<&str> = listing.files.iter().map(|(n, _, _)| n.as_str()).collect();
+        assert_eq!(
+            names,
+            ["acq.ome.tif", "acq_1.ome.tif", "acq_2.ome.tif"],
+            "{style}"
+        );
+        let bundle = SourceFiles::gather(&holder, None).unwrap();
+        let tifffile_read = reference_python.map(|python| {
+            let script = dir.path().join("read.py");
+            std::fs::write(&script, TIFFFILE_MULTI_FILE_READER).unwrap();
+            let o = std::process::Command::new(python)
+                .arg(&script)
+                .arg(&holder)
+                .arg(dir.path().join("tifffile"))
+                .output()
+                .unwrap();
+            assert!(
+                o.status.success(),
+                "tifffile: {}",
+                String::from_utf8_lossy(&o.stderr)
+            );
+            (0..2)
+                .map(|c| {
+                    std::fs::read(dir.path().join(format!("tifffile_c{c}.f64")))
+                        .unwrap()
+                        .chunks_exact(8)
+                        .map(|b| f64::from_le_bytes(b.try_into().unwrap()) as f32)
+                        .collect::<Vec<f32>>()
+                })
+                .collect::<Vec<_>>()
+        });
+        for (c, volume) in volumes.iter().enumerate() {
+            let want: Vec<f32> = volume.iter().map(|v| f32::from(*v)).collect();
+            if let Some(read) = &tifffile_read {
+                assert_eq!(read[c], want, "{style}: tifffile's channel {c}");
+            }
+            let whole = read_volume_channel(&holder, None, Some(c))
+                .unwrap_or_else(|e| panic!("{style}: {e}"));
+            assert_eq!(whole.dims(), DIMS, "{style}");
+            assert_eq!(whole.channel(0), &want[..], "{style}: channel {c}");
+            assert_eq!(whole.spacing(), [0.5e-3, 0.5e-3, 2e-3], "{style}");
+            let bundled = decode_source_channel(&bundle, None, Some(c)).unwrap();
+            assert_eq!(bundled, whole, "{style}: channel {c} from a bundle");
+            let r = RegionReader::open_channel(&holder, None, Some(c)).unwrap();
+            assert_eq!(r.dims(), DIMS, "{style}");
+            // Slices 6 to 9 of channel 1 lie in all three files.
+            let (o, size) = ([3, 5, 6], [20, 9, 4]);
+            let part = r.read_region(o, size).unwrap();
+            for (x, y, z) in [(0, 0, 0), (19, 8, 3), (7, 2, 1), (11, 4, 2)] {
+                assert_eq!(
+                    part.channel(0)[part.index(x, y, z)],
+                    want[whole.index(x + o[0], y + o[1], z + o[2])],
+                    "{style}: channel {c} region"
+                );
+            }
+        }
+        // A part alone: refused, naming the file the dataset is read from.
+        for name in ["acq_1.ome.tif", "acq_2.ome.tif"] {
+            let path = dir.path().join(name);
+            assert_eq!(tiff_dataset_holder(&path).unwrap(), Some(holder.clone()));
+            let e = read_volume_channel(&path, None, Some(0))
+                .unwrap_err()
+                .to_string();
+            assert!(
+                e.contains("part of a multi-file OME-TIFF") && e.contains("acq.ome.tif"),
+                "{style}: {e}"
+            );
+            assert!(RegionReader::open_channel(&path, None, Some(0)).is_err());
+        }
+        assert_eq!(tiff_dataset_holder(&holder).unwrap(), None);
+        // A part missing: refused, naming it.
+        std::fs::remove_file(dir.path().join("acq_2.ome.tif")).unwrap();
+        let e = read_volume_channel(&holder, None, Some(0))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("acq_2.ome.tif"), "{style}: {e}");
+    }
+    // XML that does not place every plane once, in a page a file of the directory holds.
+    for (extra, says) in [
+        (
+            r#"<TiffData FirstZ="3" FirstC="0" IFD="0"><UUID FileName="acq_2.ome.tif">u</UUID></TiffData>"#,
+            "places plane 3 twice",
+        ),
+        (
+            r#"<TiffData FirstZ="0" FirstC="2" IFD="0"><UUID FileName="acq_1.ome.tif">u</UUID></TiffData>"#,
+            "places a plane at C 2 of 2",
+        ),
+        (
+            r#"<TiffData FirstZ="0" FirstC="0" IFD="0" PlaneCount="18446744073709551615"><UUID FileName="acq_1.ome.tif">u</UUID></TiffData>"#,
+            "twice",
+        ),
+        (
+            r#"<TiffData FirstZ="0" FirstC="0" IFD="0"><UUID FileName="../acq_1.ome.tif">u</UUID></TiffData>"#,
+            "supported are files beside it",
+        ),
+        (
+            r#"<TiffData FirstZ="0" FirstC="0" IFD="x"><UUID FileName="acq_1.ome.tif">u</UUID></TiffData>"#,
+            "IFD is not a count",
+        ),
+    ] {
+        let dir = tempfile::tempdir().unwrap();
+        let xml = multi_file_ome_xml(extra, 1);
+        write_multi_file_ome(dir.path(), &xml, &binary_only);
+        let holder = dir.path().join("acq.ome.tif");
+        let e = read_volume_channel(&holder, None, Some(0))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains(says), "{says}: {e}");
+        assert!(tiff_pages_and_channels(&holder).is_err(), "{says}");
+    }
+    // A page a file does not hold, planes past the count, and planes placed nowhere.
+    let dir = tempfile::tempdir().unwrap();
+    let xml = multi_file_ome_xml("", 1).replace(r#"IFD="3">"#, r#"IFD="4">"#);
+    write_multi_file_ome(dir.path(), &xml, &binary_only);
+    let e = read_volume_channel(&dir.path().join("acq.ome.tif"), None, Some(1))
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("places plane 21 in page 4 of acq_2.ome.tif"),
+        "{e}"
+    );
+    let xml = multi_file_ome_xml("", 1).replace(r#"IFD="3">"#, r#"IFD="3" PlaneCount="2">"#);
+    write_multi_file_ome(dir.path(), &xml, &binary_only);
+    let e = read_volume_channel(&dir.path().join("acq.ome.tif"), None, Some(1))
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("places planes past the 22"), "{e}");
+    let xml = multi_file_ome_xml("", 1).replace(r#"PlaneCount="9">"#, r#"PlaneCount="8">"#);
+    write_multi_file_ome(dir.path(), &xml, &binary_only);
+    let e = read_volume_channel(&dir.path().join("acq.ome.tif"), None, Some(1))
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("places plane 8 of 22 nowhere"), "{e}");
+    // A one-file OME-TIFF renamed since it was written: its XML names the file by its old name
+    // and its UUID, which is the file's own: it is read.
+    let data = samples(DIMS, 1000.0, |v| (v as u16).min(1000));
+    let renamed = |root_uuid: &str| {
+        let xml = format!(
+            r#"<OME{root_uuid}><Image ID="Image:0"><Pixels DimensionOrder="XYZCT" SizeX="37" SizeY="29" SizeZ="11" SizeC="1" SizeT="1"><TiffData IFD="0" PlaneCount="11"><UUID FileName="old.ome.tif">urn:uuid:7</UUID></TiffData></Pixels></Image></OME>"#
+        );
+        let path = dir.path().join("renamed.ome.tif");
+        multipage::<colortype::Gray16>(&path, Compression::Uncompressed, &data, 1, Some(&xml));
+        path
+    };
+    let path = renamed(r#" UUID="urn:uuid:7""#);
+    let v = read_volume(&path, None).unwrap();
+    let want: Vec<f32> = data.iter().map(|v| f32::from(*v)).collect();
+    assert_eq!(v.channel(0), &want[..]);
+    assert_eq!(SourceListing::list(&path, None).unwrap().files.len(), 1);
+    // Without its own UUID, the XML places its planes in the old name's file: a part of that.
+    let e = read_volume(&renamed(""), None).unwrap_err().to_string();
+    assert!(e.contains("read from old.ome.tif"), "{e}");
+}

@@ -39,8 +39,8 @@ use std::collections::{BTreeSet, HashSet};
 use std::path::{Path, PathBuf};
 use wavesplat_compressor::reader::steps::{step_files, StepSeries};
 use wavesplat_compressor::reader::{
-    dicom::is_dicom_file, nifti, tiff_pages_and_channels, zarr, Format, ReadError, SourceListing,
-    MAX_SOURCE_FILES,
+    dicom::is_dicom_file, nifti, tiff_dataset_holder, tiff_pages_and_channels, zarr, Format,
+    ReadError, SourceListing, MAX_SOURCE_FILES,
 };
 use wavesplat_orchestrator_client::model::{JobOptions, JobSpec, RawLayout, SampleType, Source};
 
@@ -269,6 +269,28 @@ pub fn scan_with(root: &Path, time_steps: bool) -> std::io::Result<Scan> {
             Some(Format::Nifti | Format::Zarr) => {}
             Some(Format::Tiff) => {
                 let dir = path.parent().unwrap_or(root).to_path_buf();
+                // A part of a multi-file OME-TIFF belongs to the file its dataset is read from.
+                match tiff_dataset_holder(path) {
+                    Ok(None) => {}
+                    Ok(Some(holder)) => {
+                        taken.insert(path.clone());
+                        if !holder.is_file() {
+                            let why = format!(
+                                "a part of a multi-file OME-TIFF read from {}, which is not there",
+                                holder.display()
+                            );
+                            scan.skipped.push((path.clone(), why));
+                        }
+                        mixed_tiff_dirs.insert(dir);
+                        continue;
+                    }
+                    Err(e) => {
+                        scan.skipped.push((path.clone(), e.to_string()));
+                        taken.insert(path.clone());
+                        mixed_tiff_dirs.insert(dir);
+                        continue;
+                    }
+                }
                 // Its pages and channels stored as planes, read once (a file whose channel
                 // planes do not add up is skipped, saying why).
                 match tiff_pages_and_channels(path).map(|(pages, channels)| {
@@ -890,6 +912,59 @@ mod tests {
             assert_eq!(v.dims(), dims, "{}", f.name);
             assert_eq!(v.channel(0), want(c), "{}", f.name);
         }
+    }
+
+    /// A multi-file OME-TIFF is one volume, named by the file holding its XML, whose job
+    /// carries every file; its parts are no volumes (nor slices of a stack), and a part whose
+    /// dataset's file is gone is skipped saying so.
+    #[test]
+    fn a_multi_file_ome_tiff_is_one_volume_of_all_its_files() {
+        use tiff::encoder::{colortype::Gray16, TiffEncoder};
+        use tiff::tags::Tag;
+        let dir = tempfile::tempdir().unwrap();
+        let r = dir.path();
+        std::fs::create_dir_all(r.join("acq")).unwrap();
+        std::fs::create_dir_all(r.join("lost")).unwrap();
+        let uuid = |f: &str| format!(r#"<UUID FileName="{f}">urn:uuid:{f}</UUID>"#);
+        let xml = format!(
+            r#"<OME><Image ID="Image:0"><Pixels DimensionOrder="XYZCT" SizeX="2" SizeY="2" SizeZ="4" SizeC="1" SizeT="1"><TiffData IFD="0" PlaneCount="2">{}</TiffData><TiffData FirstZ="2" IFD="0">{}</TiffData><TiffData FirstZ="3" IFD="0">{}</TiffData></Pixels></Image></OME>"#,
+            uuid("acq.ome.tif"),
+            uuid("acq_1.ome.tif"),
+            uuid("acq_2.ome.tif")
+        );
+        let part_of = |f: &str| format!(r#"<OME><BinaryOnly MetadataFile="{f}"/></OME>"#);
+        let write = |path: &Path, slices: std::ops::Range<u16>, desc: &str| {
+            let mut e = TiffEncoder::new(std::fs::File::create(path).unwrap()).unwrap();
+            for z in slices.clone() {
+                let mut image = e.new_image::<Gray16>(2, 2).unwrap();
+                if z == slices.start {
+                    let tag = Tag::ImageDescription;
+                    image.encoder().write_tag(tag, desc).unwrap();
+                }
+                image.write_data(&[10 * z; 4]).unwrap();
+            }
+        };
+        write(&r.join("acq/acq.ome.tif"), 0..2, &xml);
+        write(&r.join("acq/acq_1.ome.tif"), 2..3, &part_of("acq.ome.tif"));
+        write(&r.join("acq/acq_2.ome.tif"), 3..4, &part_of("acq.ome.tif"));
+        write(&r.join("lost/part.ome.tif"), 0..1, &part_of("gone.ome.tif"));
+        let s = scan(r).unwrap();
+        assert_eq!(names_and_channels(&s), [("acq/acq.ome", None)]);
+        assert_eq!(s.skipped.len(), 1, "{:?}", s.skipped);
+        let (path, why) = &s.skipped[0];
+        assert_eq!(path, &r.join("lost/part.ome.tif"));
+        assert!(
+            why.contains("gone.ome.tif") && why.contains("not there"),
+            "{why}"
+        );
+        // The job's upload carries the three files, read as the four slices.
+        let (_, bytes) = job_spec(&s.found[0], &JobOptions::default(), true).unwrap();
+        let src = SourceFiles::from_bytes(bytes.unwrap(), &s.found[0].path).unwrap();
+        assert_eq!(src.files.len(), 3);
+        let v = wavesplat_compressor::reader::decode_source(&src, None).unwrap();
+        assert_eq!(v.dims(), [2, 2, 4]);
+        let want: Vec<f32> = (0..4).flat_map(|z| [10.0 * z as f32; 4]).collect();
+        assert_eq!(v.channel(0), &want[..]);
     }
 
     /// A Zarr array of several channels is a volume per channel, `NAME/cC`, each job reading

@@ -550,7 +550,8 @@ impl SourceFiles {
     /// non-hidden regular file directly inside that starts with the DICOM preamble); a
     /// detached NRRD or MetaImage header brings the data file(s) it names (relative to the
     /// header's directory), a NIfTI / Analyze `.hdr` the `.img` beside it
-    /// ([`nifti::pair_data_file`]); anything else is one file. `format` overrides detection.
+    /// ([`nifti::pair_data_file`]), a TIFF holding a multi-file OME-TIFF's XML the dataset's
+    /// other files; anything else is one file. `format` overrides detection.
     pub fn gather(path: &Path, format: Option<Format>) -> Result<SourceFiles, ReadError> {
         // The files are found as a listing finds them ([`SourceListing::list`]), so that the
         // bytes hashed by streaming a listing are the bytes gathered here.
@@ -791,6 +792,8 @@ impl SourceListing {
                     .map(|n| n.to_string_lossy().into_owned())
                     .unwrap_or_default()]
             }
+            // The other files of a multi-file OME-TIFF whose XML this file holds.
+            Some(Format::Tiff) => tiff_stack::dataset_files(path)?,
             _ => Vec::new(),
         };
         let dir = path.parent().unwrap_or(Path::new("."));
@@ -1096,10 +1099,18 @@ pub(crate) fn is_tiff_directory(path: &Path) -> Result<bool, ReadError> {
 /// The full-resolution pages of the TIFF file at `path` (an archive scan takes a directory of
 /// single-page TIFFs as one stack, and a multi-page TIFF as a volume of its own) and the
 /// channels it stores as planes of their own (1: none; an ImageJ hyperstack's, an OME-TIFF's
-/// `SizeC` over grey pages), each a volume a channel chosen reads. A file whose channel planes
-/// do not add up is refused, as the reader refuses it.
+/// `SizeC` over grey pages), each a volume a channel chosen reads; of a multi-file OME-TIFF
+/// whose XML the file holds, the planes of all its files. A file whose channel planes do not
+/// add up is refused, as the reader refuses it.
 pub fn tiff_pages_and_channels(path: &Path) -> Result<(usize, usize), ReadError> {
     tiff_stack::pages_and_channels(path)
+}
+
+/// For a TIFF file that is a part of a multi-file OME-TIFF (its planes placed by the XML of
+/// another file, or its own XML in another: `BinaryOnly`), the file the dataset is read from;
+/// `None` for any other TIFF file.
+pub fn tiff_dataset_holder(path: &Path) -> Result<Option<PathBuf>, ReadError> {
+    tiff_stack::dataset_holder(path)
 }
 
 /// How many time points the volume file at `path` holds, from its header alone (a NIfTI's

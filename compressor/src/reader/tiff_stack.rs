@@ -14,7 +14,12 @@
 //! them from `TimeIncrement`), is a time series. Channels stored as planes of their own (an
 //! ImageJ hyperstack's `channels`, OME's `SizeC` over grey pages, in ImageJ's or the
 //! `DimensionOrder`'s plane order) are read one at a time, the one chosen; none chosen is
-//! refused, naming the count. Refused, saying why: palette, CMYK, YCbCr, alpha,
+//! refused, naming the count. A multi-file OME-TIFF (one acquisition over several files, as
+//! Micro-Manager and Bio-Formats write one over 4 GB or a file a plane) is read from the file
+//! holding its first plane and an XML whose `TiffData` elements place every plane in a page of
+//! a file beside it, each plane once; a part given alone (its XML placing the first plane
+//! elsewhere, or a `BinaryOnly` pointer to the XML) is refused naming the file to read. Refused,
+//! saying why: palette, CMYK, YCbCr, alpha,
 //! inverted grey (`WhiteIsZero`), bilevel and planar colour pages, pages of different sizes or
 //! sample types, several OME images in one file, and a file whose ImageJ description counts
 //! more images than it has pages where they cannot follow the first (compressed), or do not
@@ -221,7 +226,7 @@ impl PageShape {
 }
 
 /// What the first page's description and tags say of the whole stack.
-#[derive(Debug, Default, Clone, Copy)]
+#[derive(Debug, Default, Clone)]
 struct StackMeta {
     spacing: [Option<f64>; 3],
     /// The images an ImageJ description counts.
@@ -245,6 +250,227 @@ struct StackMeta {
     plane_order: [u8; 3],
     /// An ImageJ stack over 4 GB: one page directory, every image's samples one after another.
     contiguous: Option<Contiguous>,
+    /// The file's place in a multi-file OME-TIFF, when it is one's.
+    ome: Option<std::sync::Arc<OmeRole>>,
+}
+
+/// One `TiffData` element of OME-XML: the planes from (`FirstZ`, `FirstC`, `FirstT`) on, in
+/// the `DimensionOrder`, lie in the pages from `IFD` on of the file its `UUID` child names
+/// (none: the file holding the XML), `PlaneCount` of them.
+#[derive(Debug, Clone, PartialEq)]
+struct TiffData {
+    /// The `UUID` child's `FileName` and its text (the file's UUID).
+    file: Option<String>,
+    uuid: Option<String>,
+    /// `IFD`, when the element gives it (default 0).
+    ifd: Option<usize>,
+    /// `FirstZ`, `FirstC`, `FirstT` (default 0).
+    first: [usize; 3],
+    /// `PlaneCount`, when given (default: 1 with an `IFD`, else every page of the file).
+    count: Option<usize>,
+}
+
+/// A multi-file OME-TIFF (one acquisition written over several TIFF files, as Micro-Manager
+/// and Bio-Formats write one over 4 GB or per plane): its files, the one holding the XML (and
+/// the dataset's first plane) first, then the others in the order the XML names them, and
+/// where the planes lie, each `TiffData` with its file's index.
+#[derive(Debug, Clone, PartialEq)]
+struct OmeDataset {
+    files: Vec<String>,
+    tiff_data: Vec<(usize, TiffData)>,
+}
+
+/// A TIFF file's place in a multi-file OME-TIFF.
+#[derive(Debug, Clone, PartialEq)]
+enum OmeRole {
+    /// It holds the dataset's first plane (and an XML placing every plane): the dataset is
+    /// read from it.
+    Holds(OmeDataset),
+    /// A part: the dataset is read from the named file (the one holding its first plane, or
+    /// its XML: `BinaryOnly`'s `MetadataFile`).
+    PartOf(String),
+}
+
+/// The value of attribute `key` of an XML element (namespace prefixes aside).
+fn xml_element_attr(
+    e: &quick_xml::events::BytesStart<'_>,
+    key: &[u8],
+) -> Result<Option<String>, String> {
+    for a in e.attributes() {
+        let a = a.map_err(|err| format!("OME-XML: {err}"))?;
+        if a.key.local_name().as_ref() == key {
+            let v = a
+                .normalized_value(quick_xml::XmlVersion::Implicit1_0)
+                .map_err(|err| format!("OME-XML: {err}"))?;
+            return Ok(Some(v.into_owned()));
+        }
+    }
+    Ok(None)
+}
+
+/// A count attribute of a `TiffData` element.
+fn tiff_data_count(
+    e: &quick_xml::events::BytesStart<'_>,
+    key: &str,
+) -> Result<Option<usize>, String> {
+    xml_element_attr(e, key.as_bytes())?
+        .map(|v| {
+            v.trim()
+                .parse::<usize>()
+                .map_err(|_| format!("a TiffData element's {key} is not a count: {v:?}"))
+        })
+        .transpose()
+}
+
+/// Where an OME-XML text's planes lie: its `TiffData` elements, and its `BinaryOnly`
+/// element's metadata file (the XML lies there).
+struct OmePlacement {
+    tiff_data: Vec<TiffData>,
+    metadata_file: Option<String>,
+    /// The `OME` element's `UUID`: the file's own, whatever its name now.
+    own_uuid: Option<String>,
+}
+
+/// The [`OmePlacement`] of an OME-XML text; `None` for a text that is not well-formed XML
+/// (nothing is placed then; the stack is read as its pages come, as before placements were
+/// read).
+fn ome_placement(xml: &str) -> Result<Option<OmePlacement>, String> {
+    use quick_xml::events::Event;
+    let mut reader = quick_xml::Reader::from_str(xml);
+    let (mut placed, mut metadata_file, mut own_uuid) = (Vec::new(), None, None);
+    // A `TiffData` element whose children (its `UUID`) are being read, and whether its
+    // `UUID`'s text is.
+    let mut open: Option<TiffData> = None;
+    let mut in_uuid = false;
+    loop {
+        let event = match reader.read_event() {
+            Ok(e) => e,
+            Err(_) => return Ok(None),
+        };
+        match &event {
+            Event::Start(e) | Event::Empty(e) => match e.local_name().as_ref() {
+                b"TiffData" => {
+                    let first = ["FirstZ", "FirstC", "FirstT"]
+                        .map(|k| tiff_data_count(e, k).map(|v| v.unwrap_or(0)));
+                    let [z, c, t] = first;
+                    let data = TiffData {
+                        file: None,
+                        uuid: None,
+                        ifd: tiff_data_count(e, "IFD")?,
+                        first: [z?, c?, t?],
+                        count: tiff_data_count(e, "PlaneCount")?,
+                    };
+                    if matches!(event, Event::Empty(_)) {
+                        placed.push(data);
+                    } else {
+                        open = Some(data);
+                    }
+                }
+                b"UUID" => {
+                    if let Some(data) = open.as_mut() {
+                        data.file = xml_element_attr(e, b"FileName")?;
+                        in_uuid = matches!(event, Event::Start(_));
+                    }
+                }
+                b"BinaryOnly" => metadata_file = xml_element_attr(e, b"MetadataFile")?,
+                b"OME" => own_uuid = xml_element_attr(e, b"UUID")?,
+                _ => {}
+            },
+            Event::Text(t) if in_uuid => {
+                if let (Some(data), Ok(text)) = (open.as_mut(), t.decode()) {
+                    data.uuid = Some(text.trim().to_string());
+                }
+            }
+            Event::End(e) => match e.local_name().as_ref() {
+                b"TiffData" => placed.extend(open.take()),
+                b"UUID" => in_uuid = false,
+                _ => {}
+            },
+            Event::Eof => break,
+            _ => {}
+        }
+    }
+    Ok(Some(OmePlacement {
+        tiff_data: placed,
+        metadata_file,
+        own_uuid,
+    }))
+}
+
+/// A file name an OME-XML gives, checked to name a file beside the one holding the XML (a
+/// path elsewhere is refused: a worker reads the files of a volume from one directory).
+fn sibling_name(name: &str) -> Result<&str, String> {
+    let plain = !name.is_empty()
+        && name != "."
+        && name != ".."
+        && !name.contains(['/', '\\'])
+        && !name.contains('\0');
+    if plain {
+        Ok(name)
+    } else {
+        Err(format!(
+            "its OME-XML names the file {name:?}; supported are files beside it"
+        ))
+    }
+}
+
+/// The place of the file named `own` in a multi-file OME-TIFF, from its OME-XML `xml`: none
+/// for a file whose planes all lie in itself.
+fn ome_role(xml: &str, own: &str) -> Result<Option<OmeRole>, String> {
+    let Some(OmePlacement {
+        tiff_data: placed,
+        metadata_file,
+        own_uuid,
+    }) = ome_placement(xml)?
+    else {
+        return Ok(None);
+    };
+    if let Some(m) = metadata_file.filter(|m| m != own) {
+        return Ok(Some(OmeRole::PartOf(sibling_name(&m)?.to_string())));
+    }
+    // A `TiffData`'s file: this one when its UUID is this file's (a file renamed since it was
+    // written keeps its UUID) or it names none, else the file it names.
+    let file_of = |d: &TiffData| -> Result<String, String> {
+        if d.uuid.is_some() && d.uuid == own_uuid {
+            return Ok(own.to_string());
+        }
+        match (&d.file, &d.uuid) {
+            (Some(f), _) => Ok(f.clone()),
+            (None, None) => Ok(own.to_string()),
+            (None, Some(u)) => Err(format!(
+                "its OME-XML names a file by its UUID only ({u}); supported are files named"
+            )),
+        }
+    };
+    let mut mine = true;
+    for d in &placed {
+        mine &= file_of(d)? == own;
+    }
+    if mine {
+        return Ok(None);
+    }
+    let holder = placed
+        .iter()
+        .find(|d| d.first == [0; 3])
+        .map(file_of)
+        .ok_or("its OME-XML places planes in other files but none at the first plane")??;
+    if holder != own {
+        return Ok(Some(OmeRole::PartOf(sibling_name(&holder)?.to_string())));
+    }
+    let mut files = vec![own.to_string()];
+    let mut tiff_data = Vec::with_capacity(placed.len());
+    for d in placed {
+        let name = file_of(&d)?;
+        let f = match files.iter().position(|n| *n == name) {
+            Some(f) => f,
+            None => {
+                files.push(sibling_name(&name)?.to_string());
+                files.len() - 1
+            }
+        };
+        tiff_data.push((f, d));
+    }
+    Ok(Some(OmeRole::Holds(OmeDataset { files, tiff_data })))
 }
 
 /// Where the images of an ImageJ stack over 4 GB lie: ImageJ writes one page directory (32-bit
@@ -596,6 +822,13 @@ fn stack_meta<R: Read + Seek>(d: &mut Decoder<R>, path: &Path) -> Result<StackMe
             .map(|(v, s)| v * s)
             .filter(|v| v.is_finite() && *v > 0.0);
         meta.ome_size_c = size("SizeC");
+        let own = path
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_default();
+        meta.ome = ome_role(&description, &own)
+            .map_err(|reason| bad(path, reason))?
+            .map(std::sync::Arc::new);
         for (axis, key) in ["PhysicalSizeX", "PhysicalSizeY", "PhysicalSizeZ"]
             .iter()
             .enumerate()
@@ -739,8 +972,18 @@ pub(crate) fn time_points(path: &Path) -> Result<usize, ReadError> {
 /// their own (1: none), its page directories read once; a file whose channel planes do not add
 /// up is refused here, as the reader refuses it.
 pub(crate) fn pages_and_channels(path: &Path) -> Result<(usize, usize), ReadError> {
-    let file = File::open(path).map_err(|e| ReadError::io(path, e))?;
-    let (pages, meta) = file_pages(BufReader::new(file), path)?;
+    let (pages, meta) = open_file_pages(path)?;
+    if meta.ome.is_some() {
+        // A multi-file OME-TIFF's planes: every file's, placed (a part alone is refused).
+        let paths = stack_paths(path)?;
+        let count = meta.channels.unwrap_or(1);
+        let stack = Stack::of(
+            &paths,
+            |f| open_file_pages(&paths[f]),
+            meta.channels.map(|_| 0),
+        )?;
+        return Ok((stack.slices.len() * count, count));
+    }
     let channels = match meta.channels {
         Some(c) => {
             channel_layout(path, 1, pages.len(), &meta, c)?;
@@ -749,6 +992,54 @@ pub(crate) fn pages_and_channels(path: &Path) -> Result<(usize, usize), ReadErro
         None => 1,
     };
     Ok((pages.len(), channels))
+}
+
+/// [`file_pages`] of the file at `path`.
+fn open_file_pages(path: &Path) -> Result<(Vec<(usize, PageShape)>, StackMeta), ReadError> {
+    let file = File::open(path).map_err(|e| ReadError::io(path, e))?;
+    file_pages(BufReader::new(file), path)
+}
+
+/// The place of the TIFF file at `path` in a multi-file OME-TIFF (its first page's
+/// description read), if it has one.
+fn ome_role_of(path: &Path) -> Result<Option<std::sync::Arc<OmeRole>>, ReadError> {
+    let file = File::open(path).map_err(|e| ReadError::io(path, e))?;
+    let mut d = decoder(BufReader::new(file), path)?;
+    Ok(stack_meta(&mut d, path)?.ome)
+}
+
+/// The other files of the multi-file OME-TIFF whose XML and first plane the TIFF file at
+/// `path` holds (beside it, by name, in the order its XML names them); none for a file of its
+/// own or a part.
+pub(crate) fn dataset_files(path: &Path) -> Result<Vec<String>, ReadError> {
+    Ok(match ome_role_of(path)?.as_deref() {
+        Some(OmeRole::Holds(dataset)) => dataset.files[1..].to_vec(),
+        _ => Vec::new(),
+    })
+}
+
+/// The file a TIFF file at `path` that is a part of a multi-file OME-TIFF is read from (the
+/// one holding the dataset's first plane or its XML); `None` for any other file.
+pub(crate) fn dataset_holder(path: &Path) -> Result<Option<PathBuf>, ReadError> {
+    Ok(match ome_role_of(path)?.as_deref() {
+        Some(OmeRole::PartOf(holder)) => Some(path.with_file_name(holder)),
+        _ => None,
+    })
+}
+
+/// The files of the stack at `path`: a directory's TIFF files in order; a file, then the other
+/// files of the multi-file OME-TIFF whose XML it holds ([`dataset_files`]).
+fn stack_paths(path: &Path) -> Result<Vec<PathBuf>, ReadError> {
+    if path.is_dir() {
+        return Ok(stack_files(path)?.into_iter().map(|(_, p)| p).collect());
+    }
+    let mut files = vec![path.to_path_buf()];
+    files.extend(
+        dataset_files(path)?
+            .into_iter()
+            .map(|n| path.with_file_name(n)),
+    );
+    Ok(files)
 }
 
 /// A stack's slices: the file and page of each, in order, their common shape, and the spacing.
@@ -782,22 +1073,18 @@ impl Stack {
         mut pages_of: impl FnMut(usize) -> Result<(Vec<(usize, PageShape)>, StackMeta), ReadError>,
         channel: Option<usize>,
     ) -> Result<Stack, ReadError> {
-        if let Some(reason) = numbering_gap(names) {
-            let dir = names[0].parent().unwrap_or(Path::new("."));
-            return Err(ReadError::Series {
-                path: dir.to_path_buf(),
-                reason,
-            });
-        }
         let mut slices = Vec::new();
         let mut contiguous = Vec::with_capacity(names.len());
         let mut first: Option<(PageShape, StackMeta, usize, usize)> = None;
+        // The full-resolution pages of each file.
+        let mut held: Vec<Vec<usize>> = Vec::with_capacity(names.len());
         for (f, path) in names.iter().enumerate() {
             let (pages, meta) = pages_of(f)?;
             contiguous.push(meta.contiguous);
+            held.push(pages.iter().map(|(p, _)| *p).collect());
             for (p, shape) in pages {
                 match &first {
-                    None => first = Some((shape, meta, f, p)),
+                    None => first = Some((shape, meta.clone(), f, p)),
                     Some((s, _, f0, p0)) if *s != shape => {
                         return Err(ReadError::Series {
                             path: path.clone(),
@@ -820,15 +1107,41 @@ impl Stack {
                 "no page holds an image at full resolution",
             ));
         };
+        // The files of a multi-file OME-TIFF hold its planes as one file of them all would.
+        let files = match meta.ome.as_deref() {
+            Some(OmeRole::PartOf(holder)) => {
+                return Err(ReadError::unsupported(
+                    &names[0],
+                    format!(
+                        "a part of a multi-file OME-TIFF: the dataset is read from {holder} \
+                         beside it (the file holding its first plane or its XML)"
+                    ),
+                ));
+            }
+            Some(OmeRole::Holds(dataset)) => {
+                slices = dataset_planes(names, &held, &meta, dataset)?;
+                1
+            }
+            None => {
+                if let Some(reason) = numbering_gap(names) {
+                    let dir = names[0].parent().unwrap_or(Path::new("."));
+                    return Err(ReadError::Series {
+                        path: dir.to_path_buf(),
+                        reason,
+                    });
+                }
+                names.len()
+            }
+        };
         let spacing = meta.spacing.map(|s| s.unwrap_or(1.0) as f32);
         let time_points = meta.frames.unwrap_or(1);
         if let Some(count) = meta.channels {
-            slices = planes_of_channel(names, slices, &meta, count, channel)?;
+            slices = planes_of_channel(names, files, slices, &meta, count, channel)?;
         }
         // A file whose description counts more slices than it holds is a part (a multi-file
         // OME-TIFF, whose XML in the first file describes all of them) or a truncated file:
         // read as a volume of its own slices, the rest would be lost without a word.
-        if let (1, Some(z)) = (names.len(), meta.slices) {
+        if let (1, Some(z)) = (files, meta.slices) {
             if time_points == 1 && z > slices.len() {
                 return Err(ReadError::unsupported(
                     &names[0],
@@ -845,12 +1158,12 @@ impl Stack {
         // Each time point's slices as the description counts them, else as the pages divide.
         let per_point = meta.slices.unwrap_or(slices.len() / time_points.max(1));
         if time_points > 1
-            && (names.len() > 1 || per_point.checked_mul(time_points) != Some(slices.len()))
+            && (files > 1 || per_point.checked_mul(time_points) != Some(slices.len()))
         {
             let path = names.first().map_or(Path::new("."), PathBuf::as_path);
             return Err(ReadError::unsupported(
                 path,
-                if names.len() > 1 {
+                if files > 1 {
                     format!(
                         "a stack of {time_points} time points among {} files; one file of them \
                          all, or a stack per time point, is read",
@@ -939,17 +1252,133 @@ fn channel_layout(
     Ok((z, frames))
 }
 
+/// The planes of a multi-file OME-TIFF in its `DimensionOrder` (as one file of them all would
+/// hold them in turn): each plane's file (its index in `names`, found by name) and page, as
+/// the `TiffData` elements place them, `held` being each file's full-resolution pages. Every
+/// plane is placed once, in a page its file holds; else refused, saying which.
+fn dataset_planes(
+    names: &[PathBuf],
+    held: &[Vec<usize>],
+    meta: &StackMeta,
+    dataset: &OmeDataset,
+) -> Result<Vec<(usize, usize)>, ReadError> {
+    let path = &names[0];
+    let refuse = |reason: String| {
+        ReadError::unsupported(path, format!("a multi-file OME-TIFF whose XML {reason}"))
+    };
+    let name_of = |p: &PathBuf| {
+        p.file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_default()
+    };
+    let mut index = Vec::with_capacity(dataset.files.len());
+    for file in &dataset.files {
+        match names.iter().position(|n| name_of(n) == *file) {
+            Some(i) => index.push(i),
+            None => {
+                let why = "a file of the multi-file OME-TIFF is missing";
+                return Err(ReadError::io(
+                    &path.with_file_name(file),
+                    std::io::Error::new(std::io::ErrorKind::NotFound, why),
+                ));
+            }
+        }
+    }
+    if names.len() != dataset.files.len() {
+        return Err(refuse(format!(
+            "names {} files, read among {}",
+            dataset.files.len(),
+            names.len()
+        )));
+    }
+    if meta.plane_order == [0; 3] {
+        return Err(refuse(
+            "gives a DimensionOrder that is none of OME's".into(),
+        ));
+    }
+    let Some(z) = meta.slices else {
+        return Err(refuse("gives no SizeZ".into()));
+    };
+    let size = |axis: u8| match axis {
+        b'Z' => z,
+        b'C' => meta.channels.unwrap_or(1),
+        _ => meta.frames.unwrap_or(1),
+    };
+    let pages: usize = held.iter().map(Vec::len).sum();
+    let total = b"ZCT"
+        .iter()
+        .try_fold(1usize, |n, &a| n.checked_mul(size(a)))
+        .filter(|n| (1..=pages).contains(n))
+        .ok_or_else(|| {
+            refuse(format!(
+                "counts {z} slices, {} channels and {} time points, and its files hold {pages} \
+                 pages",
+                size(b'C'),
+                size(b'T')
+            ))
+        })?;
+    let mut slots: Vec<Option<(usize, usize)>> = vec![None; total];
+    for (f, data) in &dataset.tiff_data {
+        let file = index[*f];
+        let pages = &held[file];
+        let ifd = data.ifd.unwrap_or(0);
+        // Without an IFD, every page of the file; with one, one page.
+        let count = data.count.unwrap_or(match data.ifd {
+            Some(_) => 1,
+            None => pages.len(),
+        });
+        // The element's first plane, in the DimensionOrder (fastest axis first).
+        let mut start = 0usize;
+        for &axis in meta.plane_order.iter().rev() {
+            let at = data.first[b"ZCT".iter().position(|a| *a == axis).unwrap_or(0)];
+            if at >= size(axis) {
+                return Err(refuse(format!(
+                    "places a plane at {} {at} of {}",
+                    axis as char,
+                    size(axis)
+                )));
+            }
+            start = start * size(axis) + at;
+        }
+        for k in 0..count {
+            let plane = (start + k < total)
+                .then_some(start + k)
+                .ok_or_else(|| refuse(format!("places planes past the {total} it counts")))?;
+            let page = ifd
+                .checked_add(k)
+                .filter(|p| pages.binary_search(p).is_ok())
+                .ok_or_else(|| {
+                    refuse(format!(
+                        "places plane {plane} in page {} of {}, which holds no such page at \
+                         full resolution",
+                        ifd.saturating_add(k),
+                        dataset.files[*f]
+                    ))
+                })?;
+            if slots[plane].replace((file, page)).is_some() {
+                return Err(refuse(format!("places plane {plane} twice")));
+            }
+        }
+    }
+    slots
+        .into_iter()
+        .enumerate()
+        .map(|(i, s)| s.ok_or_else(|| refuse(format!("places plane {i} of {total} nowhere"))))
+        .collect()
+}
+
 /// Of the planes `slices` of a file storing `count` channels as planes of their own (in
 /// `meta.plane_order`), those of channel `channel`, in their order.
 fn planes_of_channel(
     names: &[PathBuf],
+    files: usize,
     slices: Vec<(usize, usize)>,
     meta: &StackMeta,
     count: usize,
     channel: Option<usize>,
 ) -> Result<Vec<(usize, usize)>, ReadError> {
     let path = names.first().map_or(Path::new("."), PathBuf::as_path);
-    let (z, frames) = channel_layout(path, names.len(), slices.len(), meta, count)?;
+    let (z, frames) = channel_layout(path, files, slices.len(), meta, count)?;
     let c = match channel {
         None => {
             return Err(ReadError::Channels {
@@ -1285,11 +1714,7 @@ impl TiffRegions {
     /// Opens a multi-page TIFF file, or the TIFF files of a directory, reading every page's
     /// directory (not its samples).
     pub(crate) fn open(path: &Path, channel: Option<usize>) -> Result<TiffRegions, ReadError> {
-        let files: Vec<PathBuf> = if path.is_dir() {
-            stack_files(path)?.into_iter().map(|(_, p)| p).collect()
-        } else {
-            vec![path.to_path_buf()]
-        };
+        let files = stack_paths(path)?;
         if files.is_empty() {
             return Err(bad(path, "the directory holds no .tif or .tiff file"));
         }
