@@ -39,8 +39,8 @@ use std::collections::{BTreeSet, HashSet};
 use std::path::{Path, PathBuf};
 use wavesplat_compressor::reader::steps::{step_files, StepSeries};
 use wavesplat_compressor::reader::{
-    dicom::is_dicom_file, nifti, tiff_dataset_holder, tiff_pages_and_channels, zarr, Format,
-    ReadError, SourceListing, MAX_SOURCE_FILES,
+    dicom::is_dicom_file, nifti, tiff_dataset_holder, tiff_pages_and_channels,
+    tiff_part_of_dataset, zarr, Format, ReadError, SourceListing, MAX_SOURCE_FILES,
 };
 use wavesplat_orchestrator_client::model::{JobOptions, JobSpec, RawLayout, SampleType, Source};
 
@@ -274,12 +274,21 @@ pub fn scan_with(root: &Path, time_steps: bool) -> std::io::Result<Scan> {
                     Ok(None) => {}
                     Ok(Some(holder)) => {
                         taken.insert(path.clone());
+                        let name = holder
+                            .file_name()
+                            .map(|n| n.to_string_lossy().into_owned())
+                            .unwrap_or_default();
+                        let read = Format::from_name(&holder) == Some(Format::Tiff);
                         if !holder.is_file() {
                             let why = format!(
                                 "a part of a multi-file OME-TIFF read from {}, which is not there",
                                 holder.display()
                             );
                             scan.skipped.push((path.clone(), why));
+                        } else if !read {
+                            // Its XML in a file no reader takes: said, once a part.
+                            scan.skipped
+                                .push((path.clone(), tiff_part_of_dataset(&name)));
                         }
                         mixed_tiff_dirs.insert(dir);
                         continue;
@@ -948,10 +957,21 @@ mod tests {
         write(&r.join("acq/acq_1.ome.tif"), 2..3, &part_of("acq.ome.tif"));
         write(&r.join("acq/acq_2.ome.tif"), 3..4, &part_of("acq.ome.tif"));
         write(&r.join("lost/part.ome.tif"), 0..1, &part_of("gone.ome.tif"));
+        // Parts whose XML is in an OME companion file (not read): each skipped, saying so.
+        std::fs::create_dir_all(r.join("companion")).unwrap();
+        std::fs::write(r.join("companion/set.companion.ome"), &xml).unwrap();
+        write(
+            &r.join("companion/p.ome.tif"),
+            0..2,
+            &part_of("set.companion.ome"),
+        );
         let s = scan(r).unwrap();
         assert_eq!(names_and_channels(&s), [("acq/acq.ome", None)]);
-        assert_eq!(s.skipped.len(), 1, "{:?}", s.skipped);
+        assert_eq!(s.skipped.len(), 2, "{:?}", s.skipped);
         let (path, why) = &s.skipped[0];
+        assert_eq!(path, &r.join("companion/p.ome.tif"));
+        assert!(why.contains("OME companion file"), "{why}");
+        let (path, why) = &s.skipped[1];
         assert_eq!(path, &r.join("lost/part.ome.tif"));
         assert!(
             why.contains("gone.ome.tif") && why.contains("not there"),

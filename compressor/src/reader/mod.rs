@@ -1113,6 +1113,12 @@ pub fn tiff_dataset_holder(path: &Path) -> Result<Option<PathBuf>, ReadError> {
     tiff_stack::dataset_holder(path)
 }
 
+/// Why a part of a multi-file OME-TIFF whose dataset is read from `holder` (its file name) is
+/// no volume of its own, and what to read instead.
+pub fn tiff_part_of_dataset(holder: &str) -> String {
+    tiff_stack::part_of_dataset(holder)
+}
+
 /// How many time points the volume file at `path` holds, from its header alone (a NIfTI's
 /// `dim[4]`, an NRRD's time axis (`kinds` `time` or `list`, first or last), a 4D MetaImage's
 /// last size, an ImageJ hyperstack's frames, a Zarr array's time axis, a raw spec's time points);

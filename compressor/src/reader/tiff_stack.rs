@@ -1018,6 +1018,22 @@ pub(crate) fn dataset_files(path: &Path) -> Result<Vec<String>, ReadError> {
     })
 }
 
+/// Why a part of a multi-file OME-TIFF whose dataset is read from `holder` is not read alone.
+pub(crate) fn part_of_dataset(holder: &str) -> String {
+    if is_tiff_name(&holder.to_ascii_lowercase()) {
+        format!(
+            "a part of a multi-file OME-TIFF: the dataset is read from {holder} beside it (the \
+             file holding its first plane or its XML)"
+        )
+    } else {
+        format!(
+            "a part of a multi-file OME-TIFF whose XML is in {holder}, an OME companion file, \
+             which is not read; convert the dataset to one OME-TIFF or a Zarr store (e.g. with \
+             Bio-Formats' bfconvert)"
+        )
+    }
+}
+
 /// The file a TIFF file at `path` that is a part of a multi-file OME-TIFF is read from (the
 /// one holding the dataset's first plane or its XML); `None` for any other file.
 pub(crate) fn dataset_holder(path: &Path) -> Result<Option<PathBuf>, ReadError> {
@@ -1110,13 +1126,7 @@ impl Stack {
         // The files of a multi-file OME-TIFF hold its planes as one file of them all would.
         let files = match meta.ome.as_deref() {
             Some(OmeRole::PartOf(holder)) => {
-                return Err(ReadError::unsupported(
-                    &names[0],
-                    format!(
-                        "a part of a multi-file OME-TIFF: the dataset is read from {holder} \
-                         beside it (the file holding its first plane or its XML)"
-                    ),
-                ));
+                return Err(ReadError::unsupported(&names[0], part_of_dataset(holder)));
             }
             Some(OmeRole::Holds(dataset)) => {
                 slices = dataset_planes(names, &held, &meta, dataset)?;
