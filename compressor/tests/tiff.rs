@@ -1237,12 +1237,13 @@ print(axes, data.shape)
 /// every plane by `TiffData` elements) is read from its first file as one volume, each channel
 /// as tifffile reads it, whole, by regions and from a bundle of its files; a part alone is
 /// refused naming the file to read; XML that places planes twice, nowhere, past the files'
-/// pages or outside the directory is refused; a one-file OME-TIFF renamed is still one file.
+/// pages, outside the directory or in a file that is no TIFF is refused; a one-file OME-TIFF
+/// renamed is still one file.
 #[test]
 fn a_multi_file_ome_tiff_is_read_as_one_volume_from_the_file_holding_its_xml() {
     use wavesplat_compressor::reader::{
-        decode_source_channel, read_volume_channel, tiff_dataset_holder, tiff_pages_and_channels,
-        SourceFiles,
+        decode_source_channel, read_volume_channel, tiff_dataset, tiff_pages_and_channels,
+        SourceFiles, TiffDataset,
     };
     let xml = multi_file_ome_xml("", 1);
     let binary_only = |_: u32| {
@@ -1332,7 +1333,10 @@ fn a_multi_file_ome_tiff_is_read_as_one_volume_from_the_file_holding_its_xml() {
         // A part alone: refused, naming the file the dataset is read from.
         for name in ["acq_1.ome.tif", "acq_2.ome.tif"] {
             let path = dir.path().join(name);
-            assert_eq!(tiff_dataset_holder(&path).unwrap(), Some(holder.clone()));
+            assert_eq!(
+                tiff_dataset(&path).unwrap(),
+                TiffDataset::PartOf(holder.clone())
+            );
             let e = read_volume_channel(&path, None, Some(0))
                 .unwrap_err()
                 .to_string();
@@ -1342,7 +1346,15 @@ fn a_multi_file_ome_tiff_is_read_as_one_volume_from_the_file_holding_its_xml() {
             );
             assert!(RegionReader::open_channel(&path, None, Some(0)).is_err());
         }
-        assert_eq!(tiff_dataset_holder(&holder).unwrap(), None);
+        let parts = ["acq_1.ome.tif", "acq_2.ome.tif"].map(|n| dir.path().join(n));
+        assert_eq!(
+            tiff_dataset(&holder).unwrap(),
+            TiffDataset::Holds(parts.to_vec())
+        );
+        // The directory of the dataset's files is the dataset, read from its holder.
+        let v = read_volume_channel(dir.path(), None, Some(1)).unwrap();
+        let want: Vec<f32> = volumes[1].iter().map(|v| f32::from(*v)).collect();
+        assert_eq!(v.channel(0), &want[..], "{style}: the directory");
         // A part missing: refused, naming it.
         std::fs::remove_file(dir.path().join("acq_2.ome.tif")).unwrap();
         let e = read_volume_channel(&holder, None, Some(0))
@@ -1366,11 +1378,17 @@ fn a_multi_file_ome_tiff_is_read_as_one_volume_from_the_file_holding_its_xml() {
         ),
         (
             r#"<TiffData FirstZ="0" FirstC="0" IFD="0"><UUID FileName="../acq_1.ome.tif">u</UUID></TiffData>"#,
-            "supported are files beside it",
+            "supported are TIFF files beside it",
         ),
         (
+            r#"<TiffData FirstZ="0" FirstC="1" IFD="0"><UUID FileName=".env">u</UUID></TiffData>"#,
+            "supported are TIFF files beside it",
+        ),
+        // Placements not read (a count that is no number): the file read alone, whose planes
+        // do not add up to its description's.
+        (
             r#"<TiffData FirstZ="0" FirstC="0" IFD="x"><UUID FileName="acq_1.ome.tif">u</UUID></TiffData>"#,
-            "IFD is not a count",
+            "do not add up",
         ),
     ] {
         let dir = tempfile::tempdir().unwrap();
@@ -1382,6 +1400,12 @@ fn a_multi_file_ome_tiff_is_read_as_one_volume_from_the_file_holding_its_xml() {
             .to_string();
         assert!(e.contains(says), "{says}: {e}");
         assert!(tiff_pages_and_channels(&holder).is_err(), "{says}");
+        // Nothing the XML names beyond what it may is listed (or uploaded).
+        let listed = SourceListing::list(&holder, None).unwrap().files.len();
+        assert!(
+            listed == 3 || (listed == 1 && !says.contains("twice")),
+            "{says}"
+        );
     }
     // A page a file does not hold, planes past the count, and planes placed nowhere.
     let dir = tempfile::tempdir().unwrap();
@@ -1422,7 +1446,7 @@ fn a_multi_file_ome_tiff_is_read_as_one_volume_from_the_file_holding_its_xml() {
     let want: Vec<f32> = data.iter().map(|v| f32::from(*v)).collect();
     assert_eq!(v.channel(0), &want[..]);
     assert_eq!(SourceListing::list(&path, None).unwrap().files.len(), 1);
-    // Without its own UUID, the XML places its planes in the old name's file: a part of that.
-    let e = read_volume(&renamed(""), None).unwrap_err().to_string();
-    assert!(e.contains("read from old.ome.tif"), "{e}");
+    // Without its own UUID too: the XML names one file for all its planes, this one.
+    let v = read_volume(&renamed(""), None).unwrap();
+    assert_eq!(v.channel(0), &want[..]);
 }

@@ -39,8 +39,8 @@ use std::collections::{BTreeSet, HashSet};
 use std::path::{Path, PathBuf};
 use wavesplat_compressor::reader::steps::{step_files, StepSeries};
 use wavesplat_compressor::reader::{
-    dicom::is_dicom_file, nifti, tiff_dataset_holder, tiff_pages_and_channels,
-    tiff_part_of_dataset, zarr, Format, ReadError, SourceListing, MAX_SOURCE_FILES,
+    dicom::is_dicom_file, nifti, tiff_dataset, tiff_pages_and_channels, tiff_part_of_dataset, zarr,
+    Format, ReadError, SourceListing, TiffDataset, MAX_SOURCE_FILES,
 };
 use wavesplat_orchestrator_client::model::{JobOptions, JobSpec, RawLayout, SampleType, Source};
 
@@ -239,6 +239,21 @@ pub fn scan_with(root: &Path, time_steps: bool) -> std::io::Result<Scan> {
     let mut mixed_tiff_dirs = HashSet::new();
     // Multi-page TIFFs storing several channels as planes of their own, and how many.
     let mut tiff_channel_counts: std::collections::HashMap<PathBuf, usize> = Default::default();
+    // Each TIFF's place in a multi-file OME-TIFF, and the parts the files holding a dataset's
+    // XML name.
+    let datasets: std::collections::HashMap<PathBuf, Result<TiffDataset, ReadError>> = files
+        .iter()
+        .filter(|p| Format::from_name(p) == Some(Format::Tiff))
+        .map(|p| (p.clone(), tiff_dataset(p)))
+        .collect();
+    let claimed: HashSet<&PathBuf> = datasets
+        .values()
+        .filter_map(|d| match d {
+            Ok(TiffDataset::Holds(parts)) => Some(parts),
+            _ => None,
+        })
+        .flatten()
+        .collect();
     for path in &files {
         match Format::from_name(path) {
             Some(Format::Nrrd | Format::MetaImage) => {
@@ -269,36 +284,44 @@ pub fn scan_with(root: &Path, time_steps: bool) -> std::io::Result<Scan> {
             Some(Format::Nifti | Format::Zarr) => {}
             Some(Format::Tiff) => {
                 let dir = path.parent().unwrap_or(root).to_path_buf();
-                // A part of a multi-file OME-TIFF belongs to the file its dataset is read from.
-                match tiff_dataset_holder(path) {
-                    Ok(None) => {}
-                    Ok(Some(holder)) => {
+                // A part of a multi-file OME-TIFF belongs to the file its dataset is read from,
+                // when that file's XML names it; else it is skipped, saying why.
+                match datasets.get(path) {
+                    Some(Ok(TiffDataset::PartOf(holder))) => {
                         taken.insert(path.clone());
+                        mixed_tiff_dirs.insert(dir);
+                        if claimed.contains(path) {
+                            continue;
+                        }
                         let name = holder
                             .file_name()
                             .map(|n| n.to_string_lossy().into_owned())
                             .unwrap_or_default();
-                        let read = Format::from_name(&holder) == Some(Format::Tiff);
-                        if !holder.is_file() {
-                            let why = format!(
+                        let why = if !holder.is_file() {
+                            format!(
                                 "a part of a multi-file OME-TIFF read from {}, which is not there",
                                 holder.display()
-                            );
-                            scan.skipped.push((path.clone(), why));
-                        } else if !read {
-                            // Its XML in a file no reader takes: said, once a part.
-                            scan.skipped
-                                .push((path.clone(), tiff_part_of_dataset(&name)));
-                        }
-                        mixed_tiff_dirs.insert(dir);
+                            )
+                        } else if Format::from_name(holder) != Some(Format::Tiff) {
+                            // Its XML in a file no reader takes.
+                            tiff_part_of_dataset(&name)
+                        } else {
+                            format!(
+                                "a part of a multi-file OME-TIFF read from {}, whose XML does not \
+                                 name it",
+                                holder.display()
+                            )
+                        };
+                        scan.skipped.push((path.clone(), why));
                         continue;
                     }
-                    Err(e) => {
+                    Some(Err(e)) => {
                         scan.skipped.push((path.clone(), e.to_string()));
                         taken.insert(path.clone());
                         mixed_tiff_dirs.insert(dir);
                         continue;
                     }
+                    _ => {}
                 }
                 // Its pages and channels stored as planes, read once (a file whose channel
                 // planes do not add up is skipped, saying why).
@@ -925,7 +948,8 @@ mod tests {
 
     /// A multi-file OME-TIFF is one volume, named by the file holding its XML, whose job
     /// carries every file; its parts are no volumes (nor slices of a stack), and a part whose
-    /// dataset's file is gone is skipped saying so.
+    /// dataset's file is gone, does not name it or is an OME companion file is skipped saying
+    /// so.
     #[test]
     fn a_multi_file_ome_tiff_is_one_volume_of_all_its_files() {
         use tiff::encoder::{colortype::Gray16, TiffEncoder};
@@ -957,6 +981,8 @@ mod tests {
         write(&r.join("acq/acq_1.ome.tif"), 2..3, &part_of("acq.ome.tif"));
         write(&r.join("acq/acq_2.ome.tif"), 3..4, &part_of("acq.ome.tif"));
         write(&r.join("lost/part.ome.tif"), 0..1, &part_of("gone.ome.tif"));
+        // A part pointing at a file whose XML does not name it: skipped, saying so.
+        write(&r.join("acq/acq_9.ome.tif"), 9..10, &part_of("acq.ome.tif"));
         // Parts whose XML is in an OME companion file (not read): each skipped, saying so.
         std::fs::create_dir_all(r.join("companion")).unwrap();
         std::fs::write(r.join("companion/set.companion.ome"), &xml).unwrap();
@@ -967,11 +993,14 @@ mod tests {
         );
         let s = scan(r).unwrap();
         assert_eq!(names_and_channels(&s), [("acq/acq.ome", None)]);
-        assert_eq!(s.skipped.len(), 2, "{:?}", s.skipped);
+        assert_eq!(s.skipped.len(), 3, "{:?}", s.skipped);
         let (path, why) = &s.skipped[0];
+        assert_eq!(path, &r.join("acq/acq_9.ome.tif"));
+        assert!(why.contains("whose XML does not name it"), "{why}");
+        let (path, why) = &s.skipped[1];
         assert_eq!(path, &r.join("companion/p.ome.tif"));
         assert!(why.contains("OME companion file"), "{why}");
-        let (path, why) = &s.skipped[1];
+        let (path, why) = &s.skipped[2];
         assert_eq!(path, &r.join("lost/part.ome.tif"));
         assert!(
             why.contains("gone.ome.tif") && why.contains("not there"),

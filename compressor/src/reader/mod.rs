@@ -737,7 +737,8 @@ const LISTING_HEAD: u64 = text::TEXT_HEADER_WINDOW;
 impl SourceListing {
     /// Lists the files of the volume at `path` as [`SourceFiles::gather`] would gather them
     /// (the same detection, the same order), reading only a DICOM file's preamble and at most
-    /// the first MiB of a primary file.
+    /// the first MiB of a primary file (of a TIFF, its page directories and first description:
+    /// a multi-file OME-TIFF's XML names its other files).
     pub fn list(path: &Path, format: Option<Format>) -> Result<SourceListing, ReadError> {
         let meta = std::fs::metadata(path).map_err(|e| ReadError::io(path, e))?;
         let len_of = |p: &Path| {
@@ -792,8 +793,9 @@ impl SourceListing {
                     .map(|n| n.to_string_lossy().into_owned())
                     .unwrap_or_default()]
             }
-            // The other files of a multi-file OME-TIFF whose XML this file holds.
-            Some(Format::Tiff) => tiff_stack::dataset_files(path)?,
+            // The other files of a multi-file OME-TIFF whose XML this file holds (a file whose
+            // description is not read lists alone: the reader says why).
+            Some(Format::Tiff) => tiff_stack::dataset_files(path).unwrap_or_default(),
             _ => Vec::new(),
         };
         let dir = path.parent().unwrap_or(Path::new("."));
@@ -1106,11 +1108,23 @@ pub fn tiff_pages_and_channels(path: &Path) -> Result<(usize, usize), ReadError>
     tiff_stack::pages_and_channels(path)
 }
 
-/// For a TIFF file that is a part of a multi-file OME-TIFF (its planes placed by the XML of
-/// another file, or its own XML in another: `BinaryOnly`), the file the dataset is read from;
-/// `None` for any other TIFF file.
-pub fn tiff_dataset_holder(path: &Path) -> Result<Option<PathBuf>, ReadError> {
-    tiff_stack::dataset_holder(path)
+/// A TIFF file's place in a multi-file OME-TIFF (one acquisition over several files, read
+/// from the file holding its XML and first plane).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum TiffDataset {
+    /// A file of its own.
+    Alone,
+    /// It holds a dataset's XML and first plane; the dataset's other files, beside it.
+    Holds(Vec<PathBuf>),
+    /// A part (its planes placed by the XML of another file, or its own XML in another:
+    /// `BinaryOnly`); the file the dataset is read from.
+    PartOf(PathBuf),
+}
+
+/// The place of the TIFF file at `path` in a multi-file OME-TIFF (its first page's description
+/// read).
+pub fn tiff_dataset(path: &Path) -> Result<TiffDataset, ReadError> {
+    tiff_stack::dataset(path)
 }
 
 /// Why a part of a multi-file OME-TIFF whose dataset is read from `holder` (its file name) is

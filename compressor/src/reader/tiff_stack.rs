@@ -331,10 +331,16 @@ struct OmePlacement {
     own_uuid: Option<String>,
 }
 
-/// The [`OmePlacement`] of an OME-XML text; `None` for a text that is not well-formed XML
-/// (nothing is placed then; the stack is read as its pages come, as before placements were
-/// read).
-fn ome_placement(xml: &str) -> Result<Option<OmePlacement>, String> {
+/// The [`OmePlacement`] of an OME-XML text; `None` for a text that is not well-formed XML or
+/// whose placing elements are not read (an attribute malformed, a count that is no number):
+/// nothing is placed then, and the stack is read as its pages come, as before placements were
+/// read (its counts still checked against its pages).
+fn ome_placement(xml: &str) -> Option<OmePlacement> {
+    read_ome_placement(xml).ok().flatten()
+}
+
+/// [`ome_placement`], saying why not.
+fn read_ome_placement(xml: &str) -> Result<Option<OmePlacement>, String> {
     use quick_xml::events::Event;
     let mut reader = quick_xml::Reader::from_str(xml);
     let (mut placed, mut metadata_file, mut own_uuid) = (Vec::new(), None, None);
@@ -398,20 +404,30 @@ fn ome_placement(xml: &str) -> Result<Option<OmePlacement>, String> {
 }
 
 /// A file name an OME-XML gives, checked to name a file beside the one holding the XML (a
-/// path elsewhere is refused: a worker reads the files of a volume from one directory).
-fn sibling_name(name: &str) -> Result<&str, String> {
-    let plain = !name.is_empty()
-        && name != "."
-        && name != ".."
-        && !name.contains(['/', '\\'])
-        && !name.contains('\0');
-    if plain {
+/// path elsewhere is refused: a worker reads the files of a volume from one directory), and,
+/// where the file is to be read (`tiff`), a visible TIFF file: an XML naming `.env` or a
+/// socket must not have it listed, hashed and uploaded.
+fn sibling_name(name: &str, tiff: bool) -> Result<&str, String> {
+    let plain =
+        !name.is_empty() && name != "." && name != ".." && !name.contains(['/', '\\', '\0']);
+    if plain && (!tiff || (!name.starts_with('.') && is_tiff_name(name))) {
         Ok(name)
     } else {
         Err(format!(
-            "its OME-XML names the file {name:?}; supported are files beside it"
+            "its OME-XML names the file {name:?}; supported are {} beside it",
+            if tiff { "TIFF files" } else { "files" }
         ))
     }
+}
+
+/// The file a `TiffData` element places its planes in.
+#[derive(Debug, Clone, PartialEq, Eq, Hash)]
+enum PlaneFile {
+    /// The file holding the XML.
+    Own,
+    Named(String),
+    /// A file named by its UUID only.
+    Uuid(String),
 }
 
 /// The place of the file named `own` in a multi-file OME-TIFF, from its OME-XML `xml`: none
@@ -421,50 +437,64 @@ fn ome_role(xml: &str, own: &str) -> Result<Option<OmeRole>, String> {
         tiff_data: placed,
         metadata_file,
         own_uuid,
-    }) = ome_placement(xml)?
+    }) = ome_placement(xml)
     else {
         return Ok(None);
     };
     if let Some(m) = metadata_file.filter(|m| m != own) {
-        return Ok(Some(OmeRole::PartOf(sibling_name(&m)?.to_string())));
+        return Ok(Some(OmeRole::PartOf(sibling_name(&m, false)?.to_string())));
     }
     // A `TiffData`'s file: this one when its UUID is this file's (a file renamed since it was
-    // written keeps its UUID) or it names none, else the file it names.
-    let file_of = |d: &TiffData| -> Result<String, String> {
-        if d.uuid.is_some() && d.uuid == own_uuid {
-            return Ok(own.to_string());
-        }
-        match (&d.file, &d.uuid) {
-            (Some(f), _) => Ok(f.clone()),
-            (None, None) => Ok(own.to_string()),
-            (None, Some(u)) => Err(format!(
-                "its OME-XML names a file by its UUID only ({u}); supported are files named"
-            )),
-        }
-    };
-    let mut mine = true;
-    for d in &placed {
-        mine &= file_of(d)? == own;
-    }
-    if mine {
+    // written keeps its UUID), it names this one or it names none.
+    let keys: Vec<PlaneFile> = placed
+        .iter()
+        .map(|d| match (&d.file, &d.uuid) {
+            _ if d.uuid.is_some() && d.uuid == own_uuid => PlaneFile::Own,
+            (Some(f), _) if f == own => PlaneFile::Own,
+            (Some(f), _) => PlaneFile::Named(f.clone()),
+            (None, None) => PlaneFile::Own,
+            (None, Some(u)) => PlaneFile::Uuid(u.clone()),
+        })
+        .collect();
+    // Planes all in one file, whatever the XML calls it (this file renamed, or read under
+    // another name, as an upload is): this file's own.
+    let distinct: std::collections::HashSet<&PlaneFile> = keys.iter().collect();
+    if distinct.len() <= 1 {
         return Ok(None);
     }
+    if distinct.len() > super::MAX_SOURCE_FILES {
+        return Err(format!(
+            "its OME-XML places planes in {} files, more than the {} of a volume",
+            distinct.len(),
+            super::MAX_SOURCE_FILES
+        ));
+    }
+    let by_uuid_only = |u: &str| {
+        format!("its OME-XML names a file by its UUID only ({u}); supported are files named")
+    };
     let holder = placed
         .iter()
-        .find(|d| d.first == [0; 3])
-        .map(file_of)
-        .ok_or("its OME-XML places planes in other files but none at the first plane")??;
-    if holder != own {
-        return Ok(Some(OmeRole::PartOf(sibling_name(&holder)?.to_string())));
+        .position(|d| d.first == [0; 3])
+        .map(|i| &keys[i])
+        .ok_or("its OME-XML places planes in other files but none at the first plane")?;
+    match holder {
+        PlaneFile::Own => {}
+        PlaneFile::Named(h) => return Ok(Some(OmeRole::PartOf(sibling_name(h, true)?.into()))),
+        PlaneFile::Uuid(u) => return Err(by_uuid_only(u)),
     }
     let mut files = vec![own.to_string()];
+    let mut index = std::collections::HashMap::from([(PlaneFile::Own, 0)]);
     let mut tiff_data = Vec::with_capacity(placed.len());
-    for d in placed {
-        let name = file_of(&d)?;
-        let f = match files.iter().position(|n| *n == name) {
-            Some(f) => f,
+    for (d, key) in placed.into_iter().zip(keys) {
+        let f = match index.get(&key) {
+            Some(f) => *f,
             None => {
-                files.push(sibling_name(&name)?.to_string());
+                match &key {
+                    PlaneFile::Named(n) => files.push(sibling_name(n, true)?.to_string()),
+                    PlaneFile::Uuid(u) => return Err(by_uuid_only(u)),
+                    PlaneFile::Own => unreachable!("indexed first"),
+                }
+                index.insert(key, files.len() - 1);
                 files.len() - 1
             }
         };
@@ -1034,12 +1064,19 @@ pub(crate) fn part_of_dataset(holder: &str) -> String {
     }
 }
 
-/// The file a TIFF file at `path` that is a part of a multi-file OME-TIFF is read from (the
-/// one holding the dataset's first plane or its XML); `None` for any other file.
-pub(crate) fn dataset_holder(path: &Path) -> Result<Option<PathBuf>, ReadError> {
+/// The place of the TIFF file at `path` in a multi-file OME-TIFF: the other files of the
+/// dataset whose XML and first plane it holds, or the file the dataset it is a part of is read
+/// from (the one holding its first plane or its XML).
+pub(crate) fn dataset(path: &Path) -> Result<super::TiffDataset, ReadError> {
     Ok(match ome_role_of(path)?.as_deref() {
-        Some(OmeRole::PartOf(holder)) => Some(path.with_file_name(holder)),
-        _ => None,
+        Some(OmeRole::Holds(dataset)) => super::TiffDataset::Holds(
+            dataset.files[1..]
+                .iter()
+                .map(|n| path.with_file_name(n))
+                .collect(),
+        ),
+        Some(OmeRole::PartOf(holder)) => super::TiffDataset::PartOf(path.with_file_name(holder)),
+        None => super::TiffDataset::Alone,
     })
 }
 
@@ -1092,12 +1129,15 @@ impl Stack {
         let mut slices = Vec::new();
         let mut contiguous = Vec::with_capacity(names.len());
         let mut first: Option<(PageShape, StackMeta, usize, usize)> = None;
-        // The full-resolution pages of each file.
+        // The full-resolution pages of each file, and the place of each in a multi-file
+        // OME-TIFF.
         let mut held: Vec<Vec<usize>> = Vec::with_capacity(names.len());
+        let mut roles = Vec::with_capacity(names.len());
         for (f, path) in names.iter().enumerate() {
             let (pages, meta) = pages_of(f)?;
             contiguous.push(meta.contiguous);
             held.push(pages.iter().map(|(p, _)| *p).collect());
+            roles.push(meta.ome.clone());
             for (p, shape) in pages {
                 match &first {
                     None => first = Some((shape, meta.clone(), f, p)),
@@ -1117,22 +1157,43 @@ impl Stack {
                 slices.push((f, p));
             }
         }
-        let Some((shape, meta, _, _)) = first else {
+        let Some((shape, mut meta, _, _)) = first else {
             return Err(bad(
                 names.first().map_or(Path::new("."), PathBuf::as_path),
                 "no page holds an image at full resolution",
             ));
         };
-        // The files of a multi-file OME-TIFF hold its planes as one file of them all would.
-        let files = match meta.ome.as_deref() {
-            Some(OmeRole::PartOf(holder)) => {
-                return Err(ReadError::unsupported(&names[0], part_of_dataset(holder)));
+        // The files of a multi-file OME-TIFF hold its planes as one file of them all would,
+        // read from the file holding its XML and first plane (in a directory of its files,
+        // wherever that sorts); a part without it is refused.
+        let holder = roles
+            .iter()
+            .position(|r| matches!(r.as_deref(), Some(OmeRole::Holds(_))));
+        let part = roles
+            .iter()
+            .enumerate()
+            .find_map(|(f, r)| match r.as_deref() {
+                Some(OmeRole::PartOf(h)) => Some((f, h.clone())),
+                _ => None,
+            });
+        let files = match (holder, part) {
+            (None, Some((f, h))) => {
+                return Err(ReadError::unsupported(&names[f], part_of_dataset(&h)));
             }
-            Some(OmeRole::Holds(dataset)) => {
+            (Some(h), _) => {
+                let holds = roles[h].clone();
+                let Some(OmeRole::Holds(dataset)) = holds.as_deref() else {
+                    unreachable!("found holding above")
+                };
+                // The holder's description counts the dataset (a part's may say nothing).
+                if h != 0 {
+                    let (_, holder_meta) = pages_of(h)?;
+                    meta = holder_meta;
+                }
                 slices = dataset_planes(names, &held, &meta, dataset)?;
                 1
             }
-            None => {
+            (None, None) => {
                 if let Some(reason) = numbering_gap(names) {
                     let dir = names[0].parent().unwrap_or(Path::new("."));
                     return Err(ReadError::Series {
@@ -1276,15 +1337,18 @@ fn dataset_planes(
     let refuse = |reason: String| {
         ReadError::unsupported(path, format!("a multi-file OME-TIFF whose XML {reason}"))
     };
-    let name_of = |p: &PathBuf| {
-        p.file_name()
-            .map(|n| n.to_string_lossy().into_owned())
-            .unwrap_or_default()
-    };
+    let by_name: std::collections::HashMap<String, usize> = names
+        .iter()
+        .enumerate()
+        .map(|(i, p)| {
+            let name = p.file_name().map(|n| n.to_string_lossy().into_owned());
+            (name.unwrap_or_default(), i)
+        })
+        .collect();
     let mut index = Vec::with_capacity(dataset.files.len());
     for file in &dataset.files {
-        match names.iter().position(|n| name_of(n) == *file) {
-            Some(i) => index.push(i),
+        match by_name.get(file) {
+            Some(i) => index.push(*i),
             None => {
                 let why = "a file of the multi-file OME-TIFF is missing";
                 return Err(ReadError::io(
