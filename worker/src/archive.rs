@@ -284,15 +284,19 @@ pub fn scan_with(root: &Path, time_steps: bool) -> std::io::Result<Scan> {
             Some(Format::Nifti | Format::Zarr) => {}
             Some(Format::Tiff) => {
                 let dir = path.parent().unwrap_or(root).to_path_buf();
+                // A file a multi-file OME-TIFF's XML names is a part of that volume, whatever
+                // its own description says (a writer may give its parts none).
+                if claimed.contains(path) {
+                    taken.insert(path.clone());
+                    mixed_tiff_dirs.insert(dir);
+                    continue;
+                }
                 // A part of a multi-file OME-TIFF belongs to the file its dataset is read from,
                 // when that file's XML names it; else it is skipped, saying why.
                 match datasets.get(path) {
                     Some(Ok(TiffDataset::PartOf(holder))) => {
                         taken.insert(path.clone());
                         mixed_tiff_dirs.insert(dir);
-                        if claimed.contains(path) {
-                            continue;
-                        }
                         let name = holder
                             .file_name()
                             .map(|n| n.to_string_lossy().into_owned())
@@ -979,7 +983,8 @@ mod tests {
         };
         write(&r.join("acq/acq.ome.tif"), 0..2, &xml);
         write(&r.join("acq/acq_1.ome.tif"), 2..3, &part_of("acq.ome.tif"));
-        write(&r.join("acq/acq_2.ome.tif"), 3..4, &part_of("acq.ome.tif"));
+        // A part with no OME description of its own: a part all the same.
+        write(&r.join("acq/acq_2.ome.tif"), 3..4, "a plane");
         write(&r.join("lost/part.ome.tif"), 0..1, &part_of("gone.ome.tif"));
         // A part pointing at a file whose XML does not name it: skipped, saying so.
         write(&r.join("acq/acq_9.ome.tif"), 9..10, &part_of("acq.ome.tif"));
