@@ -1237,8 +1237,8 @@ print(axes, data.shape)
 /// every plane by `TiffData` elements) is read from its first file as one volume, each channel
 /// as tifffile reads it, whole, by regions and from a bundle of its files; a part alone is
 /// refused naming the file to read; XML that places planes twice, nowhere, past the files'
-/// pages, outside the directory or in a file that is no TIFF is refused; a one-file OME-TIFF
-/// renamed is still one file.
+/// pages, outside the directory or in a file that is no TIFF is refused; the same dataset's XML
+/// in an OME companion file is read from it; a one-file OME-TIFF renamed is still one file.
 #[test]
 fn a_multi_file_ome_tiff_is_read_as_one_volume_from_the_file_holding_its_xml() {
     use wavesplat_compressor::reader::{
@@ -1430,6 +1430,47 @@ fn a_multi_file_ome_tiff_is_read_as_one_volume_from_the_file_holding_its_xml() {
         .unwrap_err()
         .to_string();
     assert!(e.contains("places plane 8 of 22 nowhere"), "{e}");
+    // The XML in an OME companion file beside the TIFFs, each a `BinaryOnly` pointer to it.
+    let dir = tempfile::tempdir().unwrap();
+    let pointer = |_: u32| {
+        r#"<OME><BinaryOnly MetadataFile="set.companion.ome" UUID="urn:uuid:0"/></OME>"#.to_string()
+    };
+    let volumes = write_multi_file_ome(dir.path(), &pointer(1), &pointer);
+    let companion = dir.path().join("set.companion.ome");
+    std::fs::write(&companion, multi_file_ome_xml("", 0)).unwrap();
+    assert_eq!(tiff_pages_and_channels(&companion).unwrap(), (22, 2));
+    let files = ["acq.ome.tif", "acq_1.ome.tif", "acq_2.ome.tif"].map(|n| dir.path().join(n));
+    assert_eq!(
+        tiff_dataset(&companion).unwrap(),
+        TiffDataset::Holds(files.to_vec())
+    );
+    let listing = SourceListing::list(&companion, None).unwrap();
+    assert_eq!(listing.files.len(), 4);
+    assert_eq!(listing.format, Some(Format::Tiff));
+    let bundle = SourceFiles::gather(&companion, None).unwrap();
+    for (c, volume) in volumes.iter().enumerate() {
+        let want: Vec<f32> = volume.iter().map(|v| f32::from(*v)).collect();
+        let whole = read_volume_channel(&companion, None, Some(c)).unwrap();
+        assert_eq!(whole.channel(0), &want[..], "companion: channel {c}");
+        assert_eq!(whole.spacing(), [0.5e-3, 0.5e-3, 2e-3]);
+        let bundled = decode_source_channel(&bundle, None, Some(c)).unwrap();
+        assert_eq!(bundled, whole, "companion: channel {c} from a bundle");
+        let r = RegionReader::open_channel(&companion, None, Some(c)).unwrap();
+        let part = r.read_region([3, 5, 6], [20, 9, 4]).unwrap();
+        assert_eq!(
+            part.channel(0)[part.index(19, 8, 3)],
+            want[whole.index(22, 13, 9)],
+            "companion: channel {c} region"
+        );
+    }
+    assert_eq!(
+        tiff_dataset(&files[0]).unwrap(),
+        TiffDataset::PartOf(companion.clone())
+    );
+    let e = read_volume_channel(&files[0], None, Some(0))
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("read from set.companion.ome"), "{e}");
     // A one-file OME-TIFF renamed since it was written: its XML names the file by its old name
     // and its UUID, which is the file's own: it is read.
     let data = samples(DIMS, 1000.0, |v| (v as u16).min(1000));

@@ -417,8 +417,19 @@ pub fn scan_with(root: &Path, time_steps: bool) -> std::io::Result<Scan> {
             .map(|p| p.to_string_lossy().into_owned())
             .unwrap_or_default();
         let (base, raw) = if let Some(s) = [
-            ".nii.gz", ".nii", ".hdr.gz", ".hdr", ".nrrd", ".nhdr", ".mha", ".mhd", ".dcm",
-            ".dicom", ".tiff", ".tif",
+            ".nii.gz",
+            ".nii",
+            ".hdr.gz",
+            ".hdr",
+            ".nrrd",
+            ".nhdr",
+            ".mha",
+            ".mhd",
+            ".dcm",
+            ".dicom",
+            ".tiff",
+            ".tif",
+            ".companion.ome",
         ]
         .iter()
         .find_map(|ext| lower.strip_suffix(ext))
@@ -951,9 +962,9 @@ mod tests {
     }
 
     /// A multi-file OME-TIFF is one volume, named by the file holding its XML, whose job
-    /// carries every file; its parts are no volumes (nor slices of a stack), and a part whose
-    /// dataset's file is gone, does not name it or is an OME companion file is skipped saying
-    /// so.
+    /// carries every file, or by its OME companion file; its parts are no volumes (nor slices
+    /// of a stack), and a part whose dataset's file is gone, does not name it or is neither a
+    /// TIFF nor a companion file is skipped saying so.
     #[test]
     fn a_multi_file_ome_tiff_is_one_volume_of_all_its_files() {
         use tiff::encoder::{colortype::Gray16, TiffEncoder};
@@ -988,24 +999,41 @@ mod tests {
         write(&r.join("lost/part.ome.tif"), 0..1, &part_of("gone.ome.tif"));
         // A part pointing at a file whose XML does not name it: skipped, saying so.
         write(&r.join("acq/acq_9.ome.tif"), 9..10, &part_of("acq.ome.tif"));
-        // Parts whose XML is in an OME companion file (not read): each skipped, saying so.
+        // An OME companion file and the two files it places planes in: one volume named by it.
         std::fs::create_dir_all(r.join("companion")).unwrap();
-        std::fs::write(r.join("companion/set.companion.ome"), &xml).unwrap();
+        let companion_xml = format!(
+            r#"<OME><Image ID="Image:0"><Pixels DimensionOrder="XYZCT" SizeX="2" SizeY="2" SizeZ="3" SizeC="1" SizeT="1"><TiffData IFD="0" PlaneCount="2">{}</TiffData><TiffData FirstZ="2" IFD="0">{}</TiffData></Pixels></Image></OME>"#,
+            uuid("p.ome.tif"),
+            uuid("q.ome.tif")
+        );
+        std::fs::write(r.join("companion/set.companion.ome"), companion_xml).unwrap();
         write(
             &r.join("companion/p.ome.tif"),
             0..2,
             &part_of("set.companion.ome"),
         );
+        write(
+            &r.join("companion/q.ome.tif"),
+            2..3,
+            &part_of("set.companion.ome"),
+        );
+        // A part pointing at XML in a file that is neither: skipped, saying so.
+        std::fs::create_dir_all(r.join("other")).unwrap();
+        std::fs::write(r.join("other/set.xml"), "<OME/>").unwrap();
+        write(&r.join("other/p.ome.tif"), 0..2, &part_of("set.xml"));
         let s = scan(r).unwrap();
-        assert_eq!(names_and_channels(&s), [("acq/acq.ome", None)]);
+        assert_eq!(
+            names_and_channels(&s),
+            [("acq/acq.ome", None), ("companion/set", None)]
+        );
         assert_eq!(s.skipped.len(), 3, "{:?}", s.skipped);
         let (path, why) = &s.skipped[0];
         assert_eq!(path, &r.join("acq/acq_9.ome.tif"));
         assert!(why.contains("whose XML does not name it"), "{why}");
-        let (path, why) = &s.skipped[1];
-        assert_eq!(path, &r.join("companion/p.ome.tif"));
-        assert!(why.contains("OME companion file"), "{why}");
         let (path, why) = &s.skipped[2];
+        assert_eq!(path, &r.join("other/p.ome.tif"));
+        assert!(why.contains("neither a TIFF nor an OME companion"), "{why}");
+        let (path, why) = &s.skipped[1];
         assert_eq!(path, &r.join("lost/part.ome.tif"));
         assert!(
             why.contains("gone.ome.tif") && why.contains("not there"),
@@ -1019,6 +1047,13 @@ mod tests {
         assert_eq!(v.dims(), [2, 2, 4]);
         let want: Vec<f32> = (0..4).flat_map(|z| [10.0 * z as f32; 4]).collect();
         assert_eq!(v.channel(0), &want[..]);
+        // The companion's job carries it and both files.
+        let (_, bytes) = job_spec(&s.found[1], &JobOptions::default(), true).unwrap();
+        let src = SourceFiles::from_bytes(bytes.unwrap(), &s.found[1].path).unwrap();
+        assert_eq!(src.files.len(), 3);
+        let v = wavesplat_compressor::reader::decode_source(&src, None).unwrap();
+        assert_eq!(v.dims(), [2, 2, 3]);
+        assert_eq!(v.channel(0), &want[..12]);
     }
 
     /// A Zarr array of several channels is a volume per channel, `NAME/cC`, each job reading

@@ -492,7 +492,7 @@ impl Format {
             Some(Format::MetaImage)
         } else if ext(".dcm") || ext(".dicom") {
             Some(Format::Dicom)
-        } else if tiff_stack::is_tiff_name(&name) {
+        } else if tiff_stack::is_tiff_name(&name) || tiff_stack::is_companion_name(&name) {
             Some(Format::Tiff)
         } else if ext(".zarr") || ext(".ome.zarr") {
             Some(Format::Zarr)

@@ -17,7 +17,8 @@
 //! refused, naming the count. A multi-file OME-TIFF (one acquisition over several files, as
 //! Micro-Manager and Bio-Formats write one over 4 GB or a file a plane) is read from the file
 //! holding its first plane and an XML whose `TiffData` elements place every plane in a page of
-//! a file beside it, each plane once; a part given alone (its XML placing the first plane
+//! a file beside it, each plane once, or from its OME companion file (`NAME.companion.ome`, the
+//! XML alone, as Bio-Formats writes one); a part given alone (its XML placing the first plane
 //! elsewhere, or a `BinaryOnly` pointer to the XML) is refused naming the file to read. Refused,
 //! saying why: palette, CMYK, YCbCr, alpha,
 //! inverted grey (`WhiteIsZero`), bilevel and planar colour pages, pages of different sizes or
@@ -792,6 +793,123 @@ fn stack_meta<R: Read + Seek>(d: &mut Decoder<R>, path: &Path) -> Result<StackMe
         _ => String::new(),
     };
     if description.starts_with("ImageJ=") {
+        imagej_meta(d, &description, &mut meta);
+    } else if description.contains("<OME") {
+        ome_meta(&description, path, &mut meta)?;
+        let own = path
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_default();
+        meta.ome = ome_role(&description, &own)
+            .map_err(|reason| bad(path, reason))?
+            .map(std::sync::Arc::new);
+    }
+    physical_spacing(&mut meta);
+    Ok(meta)
+}
+
+/// Keeps a spacing where it is a positive f32 (what a volume's spacing is): else 1.
+fn physical_spacing(meta: &mut StackMeta) {
+    for s in meta.spacing.iter_mut() {
+        if s.is_some_and(|v| !((v as f32).is_finite() && v as f32 > 0.0)) {
+            *s = None;
+        }
+    }
+}
+
+/// Largest OME companion file read (its XML alone).
+const COMPANION_LIMIT: u64 = 256 << 20;
+
+/// Whether a file name is an OME companion file's (`NAME.companion.ome`, any case).
+pub(crate) fn is_companion_name(name: &str) -> bool {
+    name.to_ascii_lowercase().ends_with(".companion.ome")
+}
+
+/// An OME companion file: an OME-XML file of its own (as Bio-Formats writes one beside a
+/// multi-file OME-TIFF whose TIFFs hold `BinaryOnly` pointers to it): what it says of the
+/// stack, and where it places the planes, every one in a TIFF file beside it.
+#[derive(Debug, Clone)]
+struct Companion {
+    meta: StackMeta,
+    dataset: OmeDataset,
+}
+
+impl Companion {
+    /// The companion file at `path` whose bytes are `bytes`.
+    fn of(bytes: &[u8], path: &Path) -> Result<Companion, ReadError> {
+        let xml = std::str::from_utf8(bytes)
+            .map_err(|_| bad(path, "an OME companion file that is not UTF-8 text"))?;
+        if !xml.contains("<OME") {
+            return Err(bad(path, "an OME companion file without an OME element"));
+        }
+        let mut meta = StackMeta::default();
+        ome_meta(xml, path, &mut meta)?;
+        physical_spacing(&mut meta);
+        let dataset = companion_dataset(xml).map_err(|reason| bad(path, reason))?;
+        Ok(Companion { meta, dataset })
+    }
+
+    /// Reads the companion file at `path` (at most [`COMPANION_LIMIT`] bytes).
+    fn read(path: &Path) -> Result<Companion, ReadError> {
+        let file = File::open(path).map_err(|e| ReadError::io(path, e))?;
+        let mut bytes = Vec::new();
+        file.take(COMPANION_LIMIT + 1)
+            .read_to_end(&mut bytes)
+            .map_err(|e| ReadError::io(path, e))?;
+        if bytes.len() as u64 > COMPANION_LIMIT {
+            return Err(bad(
+                path,
+                format!("an OME companion file of more than {COMPANION_LIMIT} bytes"),
+            ));
+        }
+        Companion::of(&bytes, path)
+    }
+}
+
+/// Where an OME companion file's XML places its planes: every `TiffData` in a TIFF file beside
+/// it, named (the files in the order the XML names them).
+fn companion_dataset(xml: &str) -> Result<OmeDataset, String> {
+    let placement = read_ome_placement(xml)?.ok_or("its XML is not well-formed")?;
+    let mut files: Vec<String> = Vec::new();
+    let mut index: std::collections::HashMap<String, usize> = Default::default();
+    let mut tiff_data = Vec::with_capacity(placement.tiff_data.len());
+    for d in placement.tiff_data {
+        let name = match (&d.file, &d.uuid) {
+            (Some(f), _) => f.clone(),
+            (None, Some(u)) => {
+                return Err(format!(
+                    "its XML names a file by its UUID only ({u}); supported are files named"
+                ))
+            }
+            (None, None) => return Err("a TiffData element of its XML names no file".into()),
+        };
+        let f = match index.get(&name) {
+            Some(f) => *f,
+            None => {
+                sibling_name(&name, true)?;
+                if files.len() == super::MAX_SOURCE_FILES {
+                    return Err(format!(
+                        "its XML places planes in more than the {} files of a volume",
+                        super::MAX_SOURCE_FILES
+                    ));
+                }
+                files.push(name.clone());
+                index.insert(name, files.len() - 1);
+                files.len() - 1
+            }
+        };
+        tiff_data.push((f, d));
+    }
+    if files.is_empty() {
+        return Err("its XML places no plane in a TIFF file".into());
+    }
+    Ok(OmeDataset { files, tiff_data })
+}
+
+/// What an ImageJ description says of the stack (its spacing from the page's resolution tags
+/// in its `unit`).
+fn imagej_meta<R: Read + Seek>(d: &mut Decoder<R>, description: &str, meta: &mut StackMeta) {
+    {
         let field = |key: &str| {
             description.lines().find_map(|l| {
                 let (k, v) = l.split_once('=')?;
@@ -820,7 +938,12 @@ fn stack_meta<R: Read + Seek>(d: &mut Decoder<R>, path: &Path) -> Result<StackMe
                 .map(|s| s.abs() * mm);
             meta.spacing = [x, y, z];
         }
-    } else if description.contains("<OME") {
+    }
+}
+
+/// What an OME-XML description (of the file at `path`) says of the stack.
+fn ome_meta(description: &str, path: &Path, meta: &mut StackMeta) -> Result<(), ReadError> {
+    {
         let images = description.matches("<Image ").count();
         if images > 1 {
             return Err(ReadError::unsupported(
@@ -852,13 +975,6 @@ fn stack_meta<R: Read + Seek>(d: &mut Decoder<R>, path: &Path) -> Result<StackMe
             .map(|(v, s)| v * s)
             .filter(|v| v.is_finite() && *v > 0.0);
         meta.ome_size_c = size("SizeC");
-        let own = path
-            .file_name()
-            .map(|n| n.to_string_lossy().into_owned())
-            .unwrap_or_default();
-        meta.ome = ome_role(&description, &own)
-            .map_err(|reason| bad(path, reason))?
-            .map(std::sync::Arc::new);
         for (axis, key) in ["PhysicalSizeX", "PhysicalSizeY", "PhysicalSizeZ"]
             .iter()
             .enumerate()
@@ -868,13 +984,48 @@ fn stack_meta<R: Read + Seek>(d: &mut Decoder<R>, path: &Path) -> Result<StackMe
             meta.spacing[axis] = size.zip(unit_mm(unit)).map(|(s, mm)| s * mm);
         }
     }
-    // Kept where it is a positive f32 (what a volume's spacing is): else 1.
-    for s in meta.spacing.iter_mut() {
-        if s.is_some_and(|v| !((v as f32).is_finite() && v as f32 > 0.0)) {
-            *s = None;
+    Ok(())
+}
+
+/// The channels a description says (OME's `SizeC`, ImageJ's `channels`) against the first
+/// page's samples: channels stored as planes of their own over grey pages, or the samples of
+/// RGB pages (then none stored as planes); else refused.
+fn settle_channels(
+    meta: &mut StackMeta,
+    first: Option<&PageShape>,
+    path: &Path,
+) -> Result<(), ReadError> {
+    if let (Some(c), Some(first)) = (meta.ome_size_c, first) {
+        if c > 1 && first.channels == 1 {
+            // Channels as planes of their own.
+            meta.channels = Some(c);
+        } else if c > 1 && c != first.channels {
+            return Err(ReadError::unsupported(
+                path,
+                format!(
+                    "an OME-TIFF of {c} channels (SizeC) in pages of {}; supported is one \
+                     channel (or RGB pages)",
+                    first.channels
+                ),
+            ));
         }
     }
-    Ok(meta)
+    if let (Some(c), Some(first)) = (meta.channels, first) {
+        if first.channels == c {
+            // An RGB hyperstack: its channels are each page's samples, read together.
+            meta.channels = None;
+        } else if first.channels != 1 {
+            return Err(ReadError::unsupported(
+                path,
+                format!(
+                    "an ImageJ hyperstack of {c} channels in pages of {} samples each; \
+                     supported are grey pages (a channel a plane) or RGB pages",
+                    first.channels
+                ),
+            ));
+        }
+    }
+    Ok(())
 }
 
 /// The pages of one file: their index among the file's pages and their shape, and what its
@@ -919,36 +1070,7 @@ fn file_pages<R: Read + Seek>(
             ),
         ));
     }
-    if let (Some(c), Some((_, first))) = (meta.ome_size_c, pages.first()) {
-        if c > 1 && first.channels == 1 {
-            // Channels as planes of their own.
-            meta.channels = Some(c);
-        } else if c > 1 && c != first.channels {
-            return Err(ReadError::unsupported(
-                path,
-                format!(
-                    "an OME-TIFF of {c} channels (SizeC) in pages of {}; supported is one \
-                     channel (or RGB pages)",
-                    first.channels
-                ),
-            ));
-        }
-    }
-    if let (Some(c), Some((_, first))) = (meta.channels, pages.first()) {
-        if first.channels == c {
-            // An RGB hyperstack: its channels are each page's samples, read together.
-            meta.channels = None;
-        } else if first.channels != 1 {
-            return Err(ReadError::unsupported(
-                path,
-                format!(
-                    "an ImageJ hyperstack of {c} channels in pages of {} samples each; \
-                     supported are grey pages (a channel a plane) or RGB pages",
-                    first.channels
-                ),
-            ));
-        }
-    }
+    settle_channels(&mut meta, pages.first().map(|(_, shape)| shape), path)?;
     if let Some(n) = meta.imagej_images.filter(|n| *n > pages.len()) {
         // One page directory: the images follow one another after the first's samples.
         let first = match pages.as_slice() {
@@ -993,6 +1115,9 @@ fn file_pages<R: Read + Seek>(
 /// The time points of the TIFF file at `path`: an ImageJ hyperstack's frames or an OME-TIFF's
 /// `SizeT` (its first page's description read), else 1.
 pub(crate) fn time_points(path: &Path) -> Result<usize, ReadError> {
+    if is_companion_path(path) {
+        return Ok(Companion::read(path)?.meta.frames.unwrap_or(1));
+    }
     let file = File::open(path).map_err(|e| ReadError::io(path, e))?;
     let mut d = decoder(BufReader::new(file), path)?;
     Ok(stack_meta(&mut d, path)?.frames.unwrap_or(1))
@@ -1002,18 +1127,13 @@ pub(crate) fn time_points(path: &Path) -> Result<usize, ReadError> {
 /// their own (1: none), its page directories read once; a file whose channel planes do not add
 /// up is refused here, as the reader refuses it.
 pub(crate) fn pages_and_channels(path: &Path) -> Result<(usize, usize), ReadError> {
-    let (pages, meta) = open_file_pages(path)?;
-    if meta.ome.is_some() {
+    if is_companion_path(path) || ome_role_of(path)?.is_some() {
         // A multi-file OME-TIFF's planes: every file's, placed (a part alone is refused).
-        let paths = stack_paths(path)?;
-        let count = meta.channels.unwrap_or(1);
-        let stack = Stack::of(
-            &paths,
-            |f| open_file_pages(&paths[f]),
-            meta.channels.map(|_| 0),
-        )?;
+        let (_, stack) = open_stack(path, Some(0))?;
+        let count = stack.planes_per_slice;
         return Ok((stack.slices.len() * count, count));
     }
+    let (pages, meta) = open_file_pages(path)?;
     let channels = match meta.channels {
         Some(c) => {
             channel_layout(path, 1, pages.len(), &meta, c)?;
@@ -1042,6 +1162,9 @@ fn ome_role_of(path: &Path) -> Result<Option<std::sync::Arc<OmeRole>>, ReadError
 /// `path` holds (beside it, by name, in the order its XML names them); none for a file of its
 /// own or a part.
 pub(crate) fn dataset_files(path: &Path) -> Result<Vec<String>, ReadError> {
+    if is_companion_path(path) {
+        return Ok(Companion::read(path)?.dataset.files);
+    }
     Ok(match ome_role_of(path)?.as_deref() {
         Some(OmeRole::Holds(dataset)) => dataset.files[1..].to_vec(),
         _ => Vec::new(),
@@ -1050,16 +1173,16 @@ pub(crate) fn dataset_files(path: &Path) -> Result<Vec<String>, ReadError> {
 
 /// Why a part of a multi-file OME-TIFF whose dataset is read from `holder` is not read alone.
 pub(crate) fn part_of_dataset(holder: &str) -> String {
-    if is_tiff_name(&holder.to_ascii_lowercase()) {
+    if is_tiff_name(&holder.to_ascii_lowercase()) || is_companion_name(holder) {
         format!(
             "a part of a multi-file OME-TIFF: the dataset is read from {holder} beside it (the \
              file holding its first plane or its XML)"
         )
     } else {
         format!(
-            "a part of a multi-file OME-TIFF whose XML is in {holder}, an OME companion file, \
-             which is not read; convert the dataset to one OME-TIFF or a Zarr store (e.g. with \
-             Bio-Formats' bfconvert)"
+            "a part of a multi-file OME-TIFF whose XML is in {holder}, which is neither a TIFF \
+             nor an OME companion file (`.companion.ome`); convert the dataset to one OME-TIFF \
+             or a Zarr store (e.g. with Bio-Formats' bfconvert)"
         )
     }
 }
@@ -1068,6 +1191,11 @@ pub(crate) fn part_of_dataset(holder: &str) -> String {
 /// dataset whose XML and first plane it holds, or the file the dataset it is a part of is read
 /// from (the one holding its first plane or its XML).
 pub(crate) fn dataset(path: &Path) -> Result<super::TiffDataset, ReadError> {
+    if is_companion_path(path) {
+        let files = Companion::read(path)?.dataset.files;
+        let files = files.iter().map(|n| path.with_file_name(n)).collect();
+        return Ok(super::TiffDataset::Holds(files));
+    }
     Ok(match ome_role_of(path)?.as_deref() {
         Some(OmeRole::Holds(dataset)) => super::TiffDataset::Holds(
             dataset.files[1..]
@@ -1078,6 +1206,40 @@ pub(crate) fn dataset(path: &Path) -> Result<super::TiffDataset, ReadError> {
         Some(OmeRole::PartOf(holder)) => super::TiffDataset::PartOf(path.with_file_name(holder)),
         None => super::TiffDataset::Alone,
     })
+}
+
+/// The stack at `path` (a TIFF file, a directory of them, or an OME companion file) and its
+/// files, read from disk.
+fn open_stack(path: &Path, channel: Option<usize>) -> Result<(Vec<PathBuf>, Stack), ReadError> {
+    let companion = is_companion_path(path)
+        .then(|| Companion::read(path))
+        .transpose()?;
+    let files = match &companion {
+        Some(c) => c
+            .dataset
+            .files
+            .iter()
+            .map(|n| path.with_file_name(n))
+            .collect(),
+        None => stack_paths(path)?,
+    };
+    if files.is_empty() {
+        return Err(bad(path, "the directory holds no .tif or .tiff file"));
+    }
+    let stack = Stack::of(
+        &files,
+        |f| open_file_pages(&files[f]),
+        channel,
+        companion.as_ref(),
+    )?;
+    Ok((files, stack))
+}
+
+/// Whether `path` names an OME companion file (not a directory).
+fn is_companion_path(path: &Path) -> bool {
+    path.file_name()
+        .is_some_and(|n| is_companion_name(&n.to_string_lossy()))
+        && !path.is_dir()
 }
 
 /// The files of the stack at `path`: a directory's TIFF files in order; a file, then the other
@@ -1115,16 +1277,20 @@ struct Stack {
     /// Whether the file stores channels as planes of their own, of which `slices` holds the
     /// one chosen.
     channel_planes: bool,
+    /// The channels stored as planes of their own (1: none).
+    planes_per_slice: usize,
 }
 
 impl Stack {
     /// The stack of `files` (each file's pages listed by `pages_of`), checking that every page
     /// has the first's shape; of channels stored as planes of their own, the planes of
-    /// `channel` (none chosen: refused as [`ReadError::Channels`]).
+    /// `channel` (none chosen: refused as [`ReadError::Channels`]). With a `companion`, the
+    /// files are its dataset's, placed as its XML says.
     fn of(
         names: &[PathBuf],
         mut pages_of: impl FnMut(usize) -> Result<(Vec<(usize, PageShape)>, StackMeta), ReadError>,
         channel: Option<usize>,
+        companion: Option<&Companion>,
     ) -> Result<Stack, ReadError> {
         let mut slices = Vec::new();
         let mut contiguous = Vec::with_capacity(names.len());
@@ -1177,6 +1343,14 @@ impl Stack {
                 _ => None,
             });
         let files = match (holder, part) {
+            // The files of an OME companion file, whatever their own descriptions say.
+            _ if companion.is_some() => {
+                let companion = companion.expect("matched");
+                meta = companion.meta.clone();
+                settle_channels(&mut meta, Some(&shape), &names[0])?;
+                slices = dataset_planes(names, &held, &meta, &companion.dataset)?;
+                1
+            }
             (None, Some((f, h))) => {
                 return Err(ReadError::unsupported(&names[f], part_of_dataset(&h)));
             }
@@ -1258,6 +1432,7 @@ impl Stack {
             time_major: meta.time_major,
             time_step: meta.time_step.filter(|_| time_points > 1),
             channel_planes: meta.channels.is_some(),
+            planes_per_slice: meta.channels.unwrap_or(1),
         })
     }
 
@@ -1642,11 +1817,20 @@ pub(crate) fn decode_channel(
     src: &SourceFiles,
     channel: Option<usize>,
 ) -> Result<(Volume, bool), ReadError> {
-    let paths: Vec<PathBuf> = src.files.iter().map(|(n, _)| src.path_of(n)).collect();
+    // An OME companion file first: its XML places the planes of the TIFF files after it.
+    let companion = match src.files.first() {
+        Some((name, bytes)) if is_companion_name(name) => {
+            Some(Companion::of(bytes, &src.path_of(name))?)
+        }
+        _ => None,
+    };
+    let files = &src.files[usize::from(companion.is_some())..];
+    let paths: Vec<PathBuf> = files.iter().map(|(n, _)| src.path_of(n)).collect();
     let stack = Stack::of(
         &paths,
-        |f| file_pages(Cursor::new(src.files[f].1.as_slice()), &paths[f]),
+        |f| file_pages(Cursor::new(files[f].1.as_slice()), &paths[f]),
         channel,
+        companion.as_ref(),
     )?;
     if stack.time_points > 1 {
         return Err(ReadError::TimeSeries {
@@ -1664,7 +1848,7 @@ pub(crate) fn decode_channel(
             // An ImageJ stack over 4 GB: image `p`'s bytes (within the file: checked when its
             // pages were listed).
             let start = (c.offset + p as u64 * c.page_bytes) as usize;
-            let bytes = &src.files[f].1[start..start + c.page_bytes as usize];
+            let bytes = &files[f].1[start..start + c.page_bytes as usize];
             let planes = deinterleave(bytes, sample, c.endian, stack.shape.channels, 1.0, 0.0);
             for (o, plane) in out.iter_mut().zip(planes) {
                 o[z * slice..z * slice + plane.len()].copy_from_slice(&plane);
@@ -1672,10 +1856,7 @@ pub(crate) fn decode_channel(
             continue;
         }
         if open.as_ref().is_none_or(|(g, _)| *g != f) {
-            open = Some((
-                f,
-                decoder(Cursor::new(src.files[f].1.as_slice()), &paths[f])?,
-            ));
+            open = Some((f, decoder(Cursor::new(files[f].1.as_slice()), &paths[f])?));
         }
         let (_, d) = open.as_mut().expect("opened above");
         d.seek_to_image(p).map_err(|e| failed(&paths[f], e))?;
@@ -1788,15 +1969,7 @@ impl TiffRegions {
     /// Opens a multi-page TIFF file, or the TIFF files of a directory, reading every page's
     /// directory (not its samples).
     pub(crate) fn open(path: &Path, channel: Option<usize>) -> Result<TiffRegions, ReadError> {
-        let files = stack_paths(path)?;
-        if files.is_empty() {
-            return Err(bad(path, "the directory holds no .tif or .tiff file"));
-        }
-        let pages_of = |f: usize| {
-            let file = File::open(&files[f]).map_err(|e| ReadError::io(&files[f], e))?;
-            file_pages(BufReader::new(file), &files[f])
-        };
-        let stack = Stack::of(&files, pages_of, channel)?;
+        let (files, stack) = open_stack(path, channel)?;
         // Uncompressed pages in strips are read as bytes, only the region's: decoding a whole
         // strip (often the whole page) for every brick across it would read each slice once
         // per brick in the plane.
