@@ -909,80 +909,76 @@ fn companion_dataset(xml: &str) -> Result<OmeDataset, String> {
 /// What an ImageJ description says of the stack (its spacing from the page's resolution tags
 /// in its `unit`).
 fn imagej_meta<R: Read + Seek>(d: &mut Decoder<R>, description: &str, meta: &mut StackMeta) {
-    {
-        let field = |key: &str| {
-            description.lines().find_map(|l| {
-                let (k, v) = l.split_once('=')?;
-                (k.trim() == key).then(|| v.trim().to_string())
-            })
-        };
-        let count = |key: &str| field(key).and_then(|v| v.parse::<usize>().ok());
-        meta.channels = count("channels").filter(|c| *c > 1);
-        meta.plane_order = *b"CZT";
-        meta.frames = count("frames").filter(|t| *t > 1);
-        meta.slices = count("slices");
-        meta.time_major = true;
-        // The frame interval, in `tunit` (ImageJ's default: seconds).
-        let tunit = field("tunit").unwrap_or_else(|| "sec".into());
-        meta.time_step = field("finterval")
+    let field = |key: &str| {
+        description.lines().find_map(|l| {
+            let (k, v) = l.split_once('=')?;
+            (k.trim() == key).then(|| v.trim().to_string())
+        })
+    };
+    let count = |key: &str| field(key).and_then(|v| v.parse::<usize>().ok());
+    meta.channels = count("channels").filter(|c| *c > 1);
+    meta.plane_order = *b"CZT";
+    meta.frames = count("frames").filter(|t| *t > 1);
+    meta.slices = count("slices");
+    meta.time_major = true;
+    // The frame interval, in `tunit` (ImageJ's default: seconds).
+    let tunit = field("tunit").unwrap_or_else(|| "sec".into());
+    meta.time_step = field("finterval")
+        .and_then(|v| v.parse::<f64>().ok())
+        .zip(time_unit_s(&tunit))
+        .map(|(v, s)| v * s)
+        .filter(|v| v.is_finite() && *v > 0.0);
+    meta.imagej_images = count("images");
+    if let Some(mm) = field("unit").as_deref().and_then(unit_mm) {
+        let x = resolution(d, Tag::XResolution).map(|r| mm / r);
+        let y = resolution(d, Tag::YResolution).map(|r| mm / r);
+        let z = field("spacing")
             .and_then(|v| v.parse::<f64>().ok())
-            .zip(time_unit_s(&tunit))
-            .map(|(v, s)| v * s)
-            .filter(|v| v.is_finite() && *v > 0.0);
-        meta.imagej_images = count("images");
-        if let Some(mm) = field("unit").as_deref().and_then(unit_mm) {
-            let x = resolution(d, Tag::XResolution).map(|r| mm / r);
-            let y = resolution(d, Tag::YResolution).map(|r| mm / r);
-            let z = field("spacing")
-                .and_then(|v| v.parse::<f64>().ok())
-                .map(|s| s.abs() * mm);
-            meta.spacing = [x, y, z];
-        }
+            .map(|s| s.abs() * mm);
+        meta.spacing = [x, y, z];
     }
 }
 
 /// What an OME-XML description (of the file at `path`) says of the stack.
 fn ome_meta(description: &str, path: &Path, meta: &mut StackMeta) -> Result<(), ReadError> {
+    let images = description.matches("<Image ").count();
+    if images > 1 {
+        return Err(ReadError::unsupported(
+            path,
+            format!("an OME-TIFF of {images} images (series or positions); supported is one"),
+        ));
+    }
+    let size = |key: &str| xml_attr(description, key).and_then(|v| v.parse::<usize>().ok());
+    meta.frames = size("SizeT").filter(|t| *t > 1);
+    meta.slices = size("SizeZ");
+    // The planes' order, fastest first after X and Y: Z before T keeps a time point's
+    // slices together (of channels stored as planes, one is kept: `Stack::of`).
+    let order = xml_attr(description, "DimensionOrder").unwrap_or("XYZCT");
+    meta.time_major = order.find('Z') < order.find('T');
+    if let Some(o) = order.as_bytes().strip_prefix(b"XY").filter(|o| {
+        let mut sorted = o.to_vec();
+        sorted.sort_unstable();
+        sorted == b"CTZ"
+    }) {
+        meta.plane_order.copy_from_slice(o);
+    }
+    // Left all zeros for an order that is none of OME's: channels stored as planes are
+    // then refused (`channel_layout`).
+    meta.time_step = xml_attr(description, "TimeIncrement")
+        .and_then(|v| v.parse::<f64>().ok())
+        .zip(time_unit_s(
+            xml_attr(description, "TimeIncrementUnit").unwrap_or("s"),
+        ))
+        .map(|(v, s)| v * s)
+        .filter(|v| v.is_finite() && *v > 0.0);
+    meta.ome_size_c = size("SizeC");
+    for (axis, key) in ["PhysicalSizeX", "PhysicalSizeY", "PhysicalSizeZ"]
+        .iter()
+        .enumerate()
     {
-        let images = description.matches("<Image ").count();
-        if images > 1 {
-            return Err(ReadError::unsupported(
-                path,
-                format!("an OME-TIFF of {images} images (series or positions); supported is one"),
-            ));
-        }
-        let size = |key: &str| xml_attr(&description, key).and_then(|v| v.parse::<usize>().ok());
-        meta.frames = size("SizeT").filter(|t| *t > 1);
-        meta.slices = size("SizeZ");
-        // The planes' order, fastest first after X and Y: Z before T keeps a time point's
-        // slices together (of channels stored as planes, one is kept: `Stack::of`).
-        let order = xml_attr(&description, "DimensionOrder").unwrap_or("XYZCT");
-        meta.time_major = order.find('Z') < order.find('T');
-        if let Some(o) = order.as_bytes().strip_prefix(b"XY").filter(|o| {
-            let mut sorted = o.to_vec();
-            sorted.sort_unstable();
-            sorted == b"CTZ"
-        }) {
-            meta.plane_order.copy_from_slice(o);
-        }
-        // Left all zeros for an order that is none of OME's: channels stored as planes are
-        // then refused (`channel_layout`).
-        meta.time_step = xml_attr(&description, "TimeIncrement")
-            .and_then(|v| v.parse::<f64>().ok())
-            .zip(time_unit_s(
-                xml_attr(&description, "TimeIncrementUnit").unwrap_or("s"),
-            ))
-            .map(|(v, s)| v * s)
-            .filter(|v| v.is_finite() && *v > 0.0);
-        meta.ome_size_c = size("SizeC");
-        for (axis, key) in ["PhysicalSizeX", "PhysicalSizeY", "PhysicalSizeZ"]
-            .iter()
-            .enumerate()
-        {
-            let unit = xml_attr(&description, &format!("{key}Unit")).unwrap_or("µm");
-            let size = xml_attr(&description, key).and_then(|v| v.parse::<f64>().ok());
-            meta.spacing[axis] = size.zip(unit_mm(unit)).map(|(s, mm)| s * mm);
-        }
+        let unit = xml_attr(description, &format!("{key}Unit")).unwrap_or("µm");
+        let size = xml_attr(description, key).and_then(|v| v.parse::<f64>().ok());
+        meta.spacing[axis] = size.zip(unit_mm(unit)).map(|(s, mm)| s * mm);
     }
     Ok(())
 }
