@@ -395,6 +395,14 @@ fn readers(root: &Path) {
             &dir.join("a.ome.tif"),
             Format::Tiff,
         );
+        // The same planes placed by an OME companion file (a bundle of it and both files).
+        let companion = dir.join("set.companion.ome");
+        std::fs::write(
+            &companion,
+            xml.replace("<OME>", r#"<OME UUID="urn:uuid:c">"#),
+        )
+        .unwrap();
+        seed("tiff", "ome_companion", &companion, Format::Tiff);
     }
     for (name, layout, compressed, detached) in [
         ("mha_u8", Layout::U8, false, false),
