@@ -1435,7 +1435,12 @@ fn a_multi_file_ome_tiff_is_read_as_one_volume_from_the_file_holding_its_xml() {
     let pointer = |_: u32| {
         r#"<OME><BinaryOnly MetadataFile="set.companion.ome" UUID="urn:uuid:0"/></OME>"#.to_string()
     };
-    let volumes = write_multi_file_ome(dir.path(), &pointer(1), &pointer);
+    // The last part's own pointer is one no reader takes alone (a path): it is not read here.
+    let part_pointer = |n: u32| match n {
+        3 => r#"<OME><BinaryOnly MetadataFile="./set.companion.ome"/></OME>"#.to_string(),
+        _ => pointer(n),
+    };
+    let volumes = write_multi_file_ome(dir.path(), &pointer(1), &part_pointer);
     let companion = dir.path().join("set.companion.ome");
     std::fs::write(&companion, multi_file_ome_xml("", 0)).unwrap();
     assert_eq!(tiff_pages_and_channels(&companion).unwrap(), (22, 2));
@@ -1463,10 +1468,24 @@ fn a_multi_file_ome_tiff_is_read_as_one_volume_from_the_file_holding_its_xml() {
             "companion: channel {c} region"
         );
     }
+    // Uploaded as a bundle and unpacked (as a worker reads a bricked job's upload): read from
+    // the companion file, by regions.
+    let unpacked = tempfile::tempdir().unwrap();
+    let bytes = bundle.to_bytes();
+    let u = wavesplat_compressor::reader::unpack_bundle(&mut bytes.as_slice(), unpacked.path())
+        .unwrap();
+    assert_eq!(u.primary, unpacked.path().join("set.companion.ome"));
+    let r = RegionReader::open_channel(&u.primary, None, Some(1)).unwrap();
+    let whole = read_volume_channel(&companion, None, Some(1)).unwrap();
+    assert_eq!(r.read_region([0; 3], DIMS).unwrap(), whole);
     assert_eq!(
         tiff_dataset(&files[0]).unwrap(),
         TiffDataset::PartOf(companion.clone())
     );
+    let e = read_volume_channel(&files[2], None, Some(0))
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("supported are files beside it"), "{e}");
     let e = read_volume_channel(&files[0], None, Some(0))
         .unwrap_err()
         .to_string();

@@ -329,13 +329,15 @@ pub fn scan_with(root: &Path, time_steps: bool) -> std::io::Result<Scan> {
                 }
                 // Its pages and channels stored as planes, read once (a file whose channel
                 // planes do not add up is skipped, saying why).
+                // A file holding a dataset (an OME companion file of one plane too) is a volume.
+                let holds = matches!(datasets.get(path), Some(Ok(TiffDataset::Holds(_))));
                 match tiff_pages_and_channels(path).map(|(pages, channels)| {
                     if channels > 1 {
                         tiff_channel_counts.insert(path.clone(), channels);
                     }
                     pages
                 }) {
-                    Ok(1) => {
+                    Ok(1) if !holds => {
                         tiff_slices.entry(dir).or_default().push(path.clone());
                         taken.insert(path.clone());
                     }
@@ -1017,6 +1019,18 @@ mod tests {
             2..3,
             &part_of("set.companion.ome"),
         );
+        // A companion of one plane in one file: a volume too.
+        std::fs::create_dir_all(r.join("single")).unwrap();
+        let one_xml = format!(
+            r#"<OME><Image ID="Image:0"><Pixels DimensionOrder="XYZCT" SizeX="2" SizeY="2" SizeZ="1" SizeC="1" SizeT="1"><TiffData IFD="0">{}</TiffData></Pixels></Image></OME>"#,
+            uuid("x.ome.tif")
+        );
+        std::fs::write(r.join("single/one.companion.ome"), one_xml).unwrap();
+        write(
+            &r.join("single/x.ome.tif"),
+            0..1,
+            &part_of("one.companion.ome"),
+        );
         // A part pointing at XML in a file that is neither: skipped, saying so.
         std::fs::create_dir_all(r.join("other")).unwrap();
         std::fs::write(r.join("other/set.xml"), "<OME/>").unwrap();
@@ -1024,7 +1038,11 @@ mod tests {
         let s = scan(r).unwrap();
         assert_eq!(
             names_and_channels(&s),
-            [("acq/acq.ome", None), ("companion/set", None)]
+            [
+                ("acq/acq.ome", None),
+                ("companion/set", None),
+                ("single/one", None)
+            ]
         );
         assert_eq!(s.skipped.len(), 3, "{:?}", s.skipped);
         let (path, why) = &s.skipped[0];

@@ -737,8 +737,9 @@ const LISTING_HEAD: u64 = text::TEXT_HEADER_WINDOW;
 impl SourceListing {
     /// Lists the files of the volume at `path` as [`SourceFiles::gather`] would gather them
     /// (the same detection, the same order), reading only a DICOM file's preamble and at most
-    /// the first MiB of a primary file (of a TIFF, its page directories and first description:
-    /// a multi-file OME-TIFF's XML names its other files).
+    /// the first MiB of a primary file (of a TIFF, its page directories and first description,
+    /// and an OME companion file whole, up to 64 MiB: a multi-file OME-TIFF's XML names its
+    /// other files).
     pub fn list(path: &Path, format: Option<Format>) -> Result<SourceListing, ReadError> {
         let meta = std::fs::metadata(path).map_err(|e| ReadError::io(path, e))?;
         let len_of = |p: &Path| {

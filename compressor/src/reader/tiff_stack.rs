@@ -253,6 +253,9 @@ struct StackMeta {
     contiguous: Option<Contiguous>,
     /// The file's place in a multi-file OME-TIFF, when it is one's.
     ome: Option<std::sync::Arc<OmeRole>>,
+    /// Why its XML's placing of planes is refused (said where its place matters: not for a
+    /// part of a dataset an OME companion file places).
+    ome_refusal: Option<std::sync::Arc<str>>,
 }
 
 /// One `TiffData` element of OME-XML: the planes from (`FirstZ`, `FirstC`, `FirstT`) on, in
@@ -367,6 +370,11 @@ fn read_ome_placement(xml: &str) -> Result<Option<OmePlacement>, String> {
                         first: [z?, c?, t?],
                         count: tiff_data_count(e, "PlaneCount")?,
                     };
+                    if placed.len() == MAX_TIFF_DATA {
+                        return Err(format!(
+                            "its OME-XML has more than {MAX_TIFF_DATA} TiffData elements"
+                        ));
+                    }
                     if matches!(event, Event::Empty(_)) {
                         placed.push(data);
                     } else {
@@ -800,9 +808,10 @@ fn stack_meta<R: Read + Seek>(d: &mut Decoder<R>, path: &Path) -> Result<StackMe
             .file_name()
             .map(|n| n.to_string_lossy().into_owned())
             .unwrap_or_default();
-        meta.ome = ome_role(&description, &own)
-            .map_err(|reason| bad(path, reason))?
-            .map(std::sync::Arc::new);
+        match ome_role(&description, &own) {
+            Ok(role) => meta.ome = role.map(std::sync::Arc::new),
+            Err(reason) => meta.ome_refusal = Some(reason.into()),
+        }
     }
     physical_spacing(&mut meta);
     Ok(meta)
@@ -817,8 +826,13 @@ fn physical_spacing(meta: &mut StackMeta) {
     }
 }
 
-/// Largest OME companion file read (its XML alone).
-const COMPANION_LIMIT: u64 = 256 << 20;
+/// Largest OME companion file read (its XML alone: kilobytes to tens of megabytes for a file a
+/// plane of a long acquisition).
+const COMPANION_LIMIT: u64 = 64 << 20;
+
+/// Most `TiffData` elements read of one OME-XML (a million planes placed one by one; each
+/// element costs about 200 bytes once parsed).
+const MAX_TIFF_DATA: usize = 1 << 20;
 
 /// Whether a file name is an OME companion file's (`NAME.companion.ome`, any case).
 pub(crate) fn is_companion_name(name: &str) -> bool {
@@ -837,6 +851,12 @@ struct Companion {
 impl Companion {
     /// The companion file at `path` whose bytes are `bytes`.
     fn of(bytes: &[u8], path: &Path) -> Result<Companion, ReadError> {
+        if bytes.len() as u64 > COMPANION_LIMIT {
+            return Err(bad(
+                path,
+                format!("an OME companion file of more than {COMPANION_LIMIT} bytes"),
+            ));
+        }
         let xml = std::str::from_utf8(bytes)
             .map_err(|_| bad(path, "an OME companion file that is not UTF-8 text"))?;
         if !xml.contains("<OME") {
@@ -872,7 +892,7 @@ fn companion_dataset(xml: &str) -> Result<OmeDataset, String> {
     let placement = read_ome_placement(xml)?.ok_or("its XML is not well-formed")?;
     let mut files: Vec<String> = Vec::new();
     let mut index: std::collections::HashMap<String, usize> = Default::default();
-    let mut tiff_data = Vec::with_capacity(placement.tiff_data.len());
+    let mut tiff_data = Vec::new();
     for d in placement.tiff_data {
         let name = match (&d.file, &d.uuid) {
             (Some(f), _) => f.clone(),
@@ -1123,13 +1143,16 @@ pub(crate) fn time_points(path: &Path) -> Result<usize, ReadError> {
 /// their own (1: none), its page directories read once; a file whose channel planes do not add
 /// up is refused here, as the reader refuses it.
 pub(crate) fn pages_and_channels(path: &Path) -> Result<(usize, usize), ReadError> {
-    if is_companion_path(path) || ome_role_of(path)?.is_some() {
+    let (pages, meta) = match is_companion_path(path) {
+        true => (Vec::new(), StackMeta::default()),
+        false => open_file_pages(path)?,
+    };
+    if is_companion_path(path) || meta.ome.is_some() || meta.ome_refusal.is_some() {
         // A multi-file OME-TIFF's planes: every file's, placed (a part alone is refused).
         let (_, stack) = open_stack(path, Some(0))?;
         let count = stack.planes_per_slice;
         return Ok((stack.slices.len() * count, count));
     }
-    let (pages, meta) = open_file_pages(path)?;
     let channels = match meta.channels {
         Some(c) => {
             channel_layout(path, 1, pages.len(), &meta, c)?;
@@ -1151,7 +1174,11 @@ fn open_file_pages(path: &Path) -> Result<(Vec<(usize, PageShape)>, StackMeta), 
 fn ome_role_of(path: &Path) -> Result<Option<std::sync::Arc<OmeRole>>, ReadError> {
     let file = File::open(path).map_err(|e| ReadError::io(path, e))?;
     let mut d = decoder(BufReader::new(file), path)?;
-    Ok(stack_meta(&mut d, path)?.ome)
+    let meta = stack_meta(&mut d, path)?;
+    match meta.ome_refusal {
+        Some(reason) => Err(bad(path, reason.to_string())),
+        None => Ok(meta.ome),
+    }
 }
 
 /// The other files of the multi-file OME-TIFF whose XML and first plane the TIFF file at
@@ -1295,11 +1322,15 @@ impl Stack {
         // OME-TIFF.
         let mut held: Vec<Vec<usize>> = Vec::with_capacity(names.len());
         let mut roles = Vec::with_capacity(names.len());
+        let mut refusal = None;
         for (f, path) in names.iter().enumerate() {
             let (pages, meta) = pages_of(f)?;
             contiguous.push(meta.contiguous);
             held.push(pages.iter().map(|(p, _)| *p).collect());
             roles.push(meta.ome.clone());
+            if let (None, Some(reason)) = (&refusal, &meta.ome_refusal) {
+                refusal = Some((f, reason.clone()));
+            }
             for (p, shape) in pages {
                 match &first {
                     None => first = Some((shape, meta.clone(), f, p)),
@@ -1325,6 +1356,11 @@ impl Stack {
                 "no page holds an image at full resolution",
             ));
         };
+        // A file whose XML places planes as no reader may (unless an OME companion file places
+        // them: its own XML is not read then).
+        if let (None, Some((f, reason))) = (companion, refusal) {
+            return Err(bad(&names[f], reason.to_string()));
+        }
         // The files of a multi-file OME-TIFF hold its planes as one file of them all would,
         // read from the file holding its XML and first plane (in a directory of its files,
         // wherever that sorts); a part without it is refused.

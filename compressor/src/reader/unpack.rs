@@ -101,9 +101,16 @@ pub fn unpack_bundle(r: &mut dyn Read, dir: &Path) -> Result<UnpackedBundle, Rea
     if read_some(r, &mut one)? > 0 {
         return Err(bad("trailing bytes after the last file".into()));
     }
-    let primary = match format {
-        Some(Format::Dicom | Format::Tiff | Format::Zarr) => dir.to_path_buf(),
-        _ => primary.expect("count ≥ 1"),
+    let primary = match (format, primary) {
+        // An OME companion file first: the dataset is read from it (its TIFFs are parts).
+        (Some(Format::Tiff), Some(p))
+            if p.file_name()
+                .is_some_and(|n| super::tiff_stack::is_companion_name(&n.to_string_lossy())) =>
+        {
+            p
+        }
+        (Some(Format::Dicom | Format::Tiff | Format::Zarr), _) => dir.to_path_buf(),
+        (_, p) => p.expect("count ≥ 1"),
     };
     Ok(UnpackedBundle {
         format,
