@@ -574,20 +574,18 @@ case("ome_frames", rng.integers(0, 4000, (3, 3, y, x), dtype=np.uint16), ome=Tru
 json.dump(cases, open(f"{out}/cases.json", "w"))
 "#;
 
-#[test]
-fn tiffs_written_by_tifffile_read_as_it_wrote_them() {
-    let Some(python) = wavesplat_fixtures::reference_python(
+/// Runs the tifffile `script` in `dir` with `args` by the reference Python (asserting it
+/// succeeded); `None`, the check skipped saying why, where tifffile is not installed.
+fn run_tifffile(dir: &Path, script: &str, args: &[&Path]) -> Option<()> {
+    let python = wavesplat_fixtures::reference_python(
         "tifffile, numpy",
         "apt-get install python3-tifffile python3-numpy",
-    ) else {
-        return;
-    };
-    let dir = tempfile::tempdir().unwrap();
-    let script = dir.path().join("write.py");
-    std::fs::write(&script, TIFFFILE_WRITER).unwrap();
+    )?;
+    let path = dir.join("tifffile_script.py");
+    std::fs::write(&path, script).unwrap();
     let o = std::process::Command::new(python)
-        .arg(&script)
-        .arg(dir.path())
+        .arg(&path)
+        .args(args)
         .output()
         .unwrap();
     assert!(
@@ -595,6 +593,24 @@ fn tiffs_written_by_tifffile_read_as_it_wrote_them() {
         "tifffile: {}",
         String::from_utf8_lossy(&o.stderr)
     );
+    Some(())
+}
+
+/// Little-endian f64 samples a tifffile script wrote.
+fn read_f64(path: &Path) -> Vec<f64> {
+    std::fs::read(path)
+        .unwrap()
+        .chunks_exact(8)
+        .map(|b| f64::from_le_bytes(b.try_into().unwrap()))
+        .collect()
+}
+
+#[test]
+fn tiffs_written_by_tifffile_read_as_it_wrote_them() {
+    let dir = tempfile::tempdir().unwrap();
+    if run_tifffile(dir.path(), TIFFFILE_WRITER, &[dir.path()]).is_none() {
+        return;
+    }
     for name in [
         "tiled_u16_zlib",
         "bigtiff_f32",
@@ -607,11 +623,7 @@ fn tiffs_written_by_tifffile_read_as_it_wrote_them() {
         "imagej",
     ] {
         let path = dir.path().join(format!("{name}.tif"));
-        let reference: Vec<f64> = std::fs::read(dir.path().join(format!("{name}.f64")))
-            .unwrap()
-            .chunks_exact(8)
-            .map(|c| f64::from_le_bytes(c.try_into().unwrap()))
-            .collect();
+        let reference = read_f64(&dir.path().join(format!("{name}.f64")));
         let v = read_volume(&path, None).unwrap_or_else(|e| panic!("{name}: {e}"));
         assert_eq!(v.dims(), [53, 45, 9], "{name}");
         let nc = v.channel_count();
@@ -655,11 +667,7 @@ fn tiffs_written_by_tifffile_read_as_it_wrote_them() {
     // slices, each as written.
     for name in ["imagej_frames", "ome_frames"] {
         let path = dir.path().join(format!("{name}.tif"));
-        let reference: Vec<f64> = std::fs::read(dir.path().join(format!("{name}.f64")))
-            .unwrap()
-            .chunks_exact(8)
-            .map(|c| f64::from_le_bytes(c.try_into().unwrap()))
-            .collect();
+        let reference = read_f64(&dir.path().join(format!("{name}.f64")));
         let points = wavesplat_compressor::reader::time_points(&path, None).unwrap();
         assert_eq!(points, 3, "{name}");
         let r = RegionReader::open_series(&path, None).unwrap();
@@ -999,25 +1007,10 @@ json.dump(cases, open(f"{out}/cases.json", "w"))
 fn channels_written_by_tifffile_read_as_it_wrote_them() {
     use wavesplat_compressor::reader::{read_volume_channel, tiff_pages_and_channels};
     use wavesplat_compressor::series::open_series_path_channel;
-    let Some(python) = wavesplat_fixtures::reference_python(
-        "tifffile, numpy",
-        "apt-get install python3-tifffile python3-numpy",
-    ) else {
-        return;
-    };
     let dir = tempfile::tempdir().unwrap();
-    let script = dir.path().join("write.py");
-    std::fs::write(&script, TIFFFILE_CHANNELS_WRITER).unwrap();
-    let o = std::process::Command::new(python)
-        .arg(&script)
-        .arg(dir.path())
-        .output()
-        .unwrap();
-    assert!(
-        o.status.success(),
-        "tifffile: {}",
-        String::from_utf8_lossy(&o.stderr)
-    );
+    if run_tifffile(dir.path(), TIFFFILE_CHANNELS_WRITER, &[dir.path()]).is_none() {
+        return;
+    }
     let dims = [19, 21, 5];
     let cases = [
         ("imagej_zc", 2, 1),
@@ -1044,10 +1037,9 @@ fn channels_written_by_tifffile_read_as_it_wrote_them() {
             "{name}: {e}"
         );
         for c in 0..channels {
-            let reference: Vec<f32> = std::fs::read(dir.path().join(format!("{name}_c{c}.f64")))
-                .unwrap()
-                .chunks_exact(8)
-                .map(|b| f64::from_le_bytes(b.try_into().unwrap()) as f32)
+            let reference: Vec<f32> = read_f64(&dir.path().join(format!("{name}_c{c}.f64")))
+                .into_iter()
+                .map(|v| v as f32)
                 .collect();
             let voxels = dims.iter().product::<usize>();
             assert_eq!(reference.len(), voxels * frames, "{name}");
@@ -1250,10 +1242,6 @@ fn a_multi_file_ome_tiff_is_read_as_one_volume_from_the_file_holding_its_xml() {
         r#"<?xml version="1.0" encoding="UTF-8"?><OME xmlns="http://www.openmicroscopy.org/Schemas/OME/2016-06"><BinaryOnly MetadataFile="acq.ome.tif" UUID="urn:uuid:00000000-0000-0000-0000-000000000001"/></OME>"#.to_string()
     };
     let xml_again = |n: u32| multi_file_ome_xml("", n);
-    let reference_python = wavesplat_fixtures::reference_python(
-        "tifffile, numpy",
-        "apt-get install python3-tifffile python3-numpy",
-    );
     // Parts pointing at the XML (Micro-Manager), and parts holding the XML too (Bio-Formats).
     let styles: [(&str, &dyn Fn(u32) -> String); 2] = [
         ("binary-only parts", &binary_only),
@@ -1281,30 +1269,18 @@ fn a_multi_file_ome_tiff_is_read_as_one_volume_from_the_file_holding_its_xml() {
             "{style}"
         );
         let bundle = SourceFiles::gather(&holder, None).unwrap();
-        let tifffile_read = reference_python.map(|python| {
-            let script = dir.path().join("read.py");
-            std::fs::write(&script, TIFFFILE_MULTI_FILE_READER).unwrap();
-            let o = std::process::Command::new(python)
-                .arg(&script)
-                .arg(&holder)
-                .arg(dir.path().join("tifffile"))
-                .output()
-                .unwrap();
-            assert!(
-                o.status.success(),
-                "tifffile: {}",
-                String::from_utf8_lossy(&o.stderr)
-            );
-            (0..2)
-                .map(|c| {
-                    std::fs::read(dir.path().join(format!("tifffile_c{c}.f64")))
-                        .unwrap()
-                        .chunks_exact(8)
-                        .map(|b| f64::from_le_bytes(b.try_into().unwrap()) as f32)
-                        .collect::<Vec<f32>>()
-                })
-                .collect::<Vec<_>>()
-        });
+        let prefix = dir.path().join("tifffile");
+        let tifffile_read =
+            run_tifffile(dir.path(), TIFFFILE_MULTI_FILE_READER, &[&holder, &prefix]).map(|()| {
+                (0..2)
+                    .map(|c| {
+                        read_f64(&dir.path().join(format!("tifffile_c{c}.f64")))
+                            .into_iter()
+                            .map(|v| v as f32)
+                            .collect::<Vec<f32>>()
+                    })
+                    .collect::<Vec<_>>()
+            });
         for (c, volume) in volumes.iter().enumerate() {
             let want: Vec<f32> = volume.iter().map(|v| f32::from(*v)).collect();
             if let Some(read) = &tifffile_read {
