@@ -720,6 +720,125 @@ fn a_channel_of_a_zarr_array_compresses_as_that_channel_in_nifti() {
     }
 }
 
+/// Writes `channels` (f32 volumes of `dims`) as a multi-file OME-TIFF in `dir`: the planes in
+/// the `DimensionOrder` XYZCT (each channel's slices in turn) split over three files, placed by
+/// `xml_file`'s XML (`acq.ome.tif`, the first, or an OME companion file beside them); the other
+/// files hold `BinaryOnly` pointers to it. Returns the path to read the dataset from.
+fn write_multi_file_ome(
+    dir: &Path,
+    dims: [usize; 3],
+    channels: &[Vec<f32>],
+    xml_file: &str,
+) -> PathBuf {
+    use tiff::encoder::{colortype::Gray32Float, TiffEncoder};
+    let [nx, ny, nz] = dims;
+    let planes: Vec<&[f32]> = channels.iter().flat_map(|c| c.chunks(nx * ny)).collect();
+    let cut = [0, planes.len() / 3, 2 * planes.len() / 3, planes.len()];
+    let names = ["acq.ome.tif", "acq_1.ome.tif", "acq_2.ome.tif"];
+    let tiff_data: String = (0..3)
+        .map(|f| {
+            let (c, z) = (cut[f] / nz, cut[f] % nz);
+            format!(
+                r#"<TiffData FirstZ="{z}" FirstC="{c}" IFD="0" PlaneCount="{}"><UUID FileName="{}">urn:uuid:{f}</UUID></TiffData>"#,
+                cut[f + 1] - cut[f],
+                names[f]
+            )
+        })
+        .collect();
+    let xml = format!(
+        r#"<?xml version="1.0" encoding="UTF-8"?><OME UUID="urn:uuid:x"><Image ID="Image:0"><Pixels ID="Pixels:0" DimensionOrder="XYZCT" Type="float" SizeX="{nx}" SizeY="{ny}" SizeZ="{nz}" SizeC="{}" SizeT="1" PhysicalSizeX="1000" PhysicalSizeY="1000" PhysicalSizeZ="1000">{tiff_data}</Pixels></Image></OME>"#,
+        channels.len()
+    );
+    let pointer = format!(r#"<OME><BinaryOnly MetadataFile="{xml_file}"/></OME>"#);
+    for f in 0..3 {
+        let file = std::fs::File::create(dir.join(names[f])).unwrap();
+        let mut e = TiffEncoder::new(file).unwrap();
+        for (k, plane) in planes[cut[f]..cut[f + 1]].iter().enumerate() {
+            let mut image = e.new_image::<Gray32Float>(nx as u32, ny as u32).unwrap();
+            if k == 0 {
+                let desc = if names[f] == xml_file { &xml } else { &pointer };
+                let tag = tiff::tags::Tag::ImageDescription;
+                image.encoder().write_tag(tag, desc.as_str()).unwrap();
+            }
+            image.write_data(plane).unwrap();
+        }
+    }
+    if !names.contains(&xml_file) {
+        std::fs::write(dir.join(xml_file), &xml).unwrap();
+    }
+    dir.join(xml_file)
+}
+
+/// `compress` reads a channel of a multi-file OME-TIFF, from the file holding its XML or from
+/// its OME companion file, as it reads the same samples in a NIfTI file: the same file, byte
+/// for byte, whole and in bricks (each brick's slices read from whichever file holds them); a
+/// part given alone is refused, naming the file to read.
+#[test]
+fn a_channel_of_a_multi_file_ome_tiff_compresses_as_that_channel_in_nifti() {
+    let tmp = tempfile::tempdir().unwrap();
+    let d = tmp.path();
+    let dims = [17, 13, 11];
+    let channels: Vec<Vec<f32>> = [Phantom::SheppLogan, Phantom::Blobs]
+        .iter()
+        .map(|p| p.generate(dims).channel(0).to_vec())
+        .collect();
+    let mut inputs = Vec::new();
+    for (dir, xml_file) in [
+        ("holder", "acq.ome.tif"),
+        ("companion", "set.companion.ome"),
+    ] {
+        std::fs::create_dir_all(d.join(dir)).unwrap();
+        inputs.push(write_multi_file_ome(
+            &d.join(dir),
+            dims,
+            &channels,
+            xml_file,
+        ));
+    }
+    for c in 0..2 {
+        let nii = d.join(format!("c{c}.nii"));
+        write_nifti(&nii, dims, &channels[c]);
+        for bricks in [&[][..], &["--brick", "8"][..]] {
+            let ext = if bricks.is_empty() { "wsp" } else { "wspx" };
+            let mut outputs = Vec::new();
+            let c_arg = c.to_string();
+            for input in inputs.iter().chain([&nii]) {
+                let out = d.join(format!("{c}-{}.{ext}", outputs.len()));
+                let mut args = vec![
+                    "compress",
+                    input.to_str().unwrap(),
+                    "-o",
+                    out.to_str().unwrap(),
+                ];
+                if input != &nii {
+                    args.extend(["--channel", c_arg.as_str()]);
+                }
+                args.extend_from_slice(bricks);
+                cli_ok(&args);
+                outputs.push(std::fs::read(&out).unwrap());
+            }
+            assert!(
+                outputs[0] == outputs[2] && outputs[1] == outputs[2],
+                "channel {c} {bricks:?}: the OME-TIFF's file differs from the NIfTI's"
+            );
+        }
+    }
+    let part = d.join("holder/acq_1.ome.tif");
+    let o = cli(&[
+        "compress",
+        part.to_str().unwrap(),
+        "--channel",
+        "0",
+        "-o",
+        d.join("p.wsp").to_str().unwrap(),
+    ]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        !o.status.success() && err.contains("read from acq.ome.tif"),
+        "{err}"
+    );
+}
+
 /// `compress` reads a Zarr array as it reads the same samples in a NIfTI file: the same file,
 /// byte for byte, whole and in bricks read chunk by chunk; and a Zarr array with a time axis
 /// as the same series a 4D NIfTI holds.
