@@ -796,7 +796,14 @@ impl SourceListing {
             }
             // The other files of a multi-file OME-TIFF whose XML this file holds (a file whose
             // description is not read lists alone: the reader says why).
-            Some(Format::Tiff) => tiff_stack::dataset_files(path).unwrap_or_default(),
+            Some(Format::Tiff) => match tiff_stack::dataset(path) {
+                Ok(TiffDataset::Holds(parts)) => parts
+                    .iter()
+                    .filter_map(|p| p.file_name())
+                    .map(|n| n.to_string_lossy().into_owned())
+                    .collect(),
+                _ => Vec::new(),
+            },
             _ => Vec::new(),
         };
         let dir = path.parent().unwrap_or(Path::new("."));

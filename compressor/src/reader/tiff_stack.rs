@@ -453,18 +453,7 @@ fn ome_role(xml: &str, own: &str) -> Result<Option<OmeRole>, String> {
     if let Some(m) = metadata_file.filter(|m| m != own) {
         return Ok(Some(OmeRole::PartOf(sibling_name(&m, false)?.to_string())));
     }
-    // A `TiffData`'s file: this one when its UUID is this file's (a file renamed since it was
-    // written keeps its UUID), it names this one or it names none.
-    let keys: Vec<PlaneFile> = placed
-        .iter()
-        .map(|d| match (&d.file, &d.uuid) {
-            _ if d.uuid.is_some() && d.uuid == own_uuid => PlaneFile::Own,
-            (Some(f), _) if f == own => PlaneFile::Own,
-            (Some(f), _) => PlaneFile::Named(f.clone()),
-            (None, None) => PlaneFile::Own,
-            (None, Some(u)) => PlaneFile::Uuid(u.clone()),
-        })
-        .collect();
+    let keys = plane_files(&placed, Some(own), own_uuid.as_deref());
     // Planes all in one file, whatever the XML calls it (this file renamed, or read under
     // another name, as an upload is): this file's own.
     let distinct: std::collections::HashSet<&PlaneFile> = keys.iter().collect();
@@ -478,9 +467,6 @@ fn ome_role(xml: &str, own: &str) -> Result<Option<OmeRole>, String> {
             super::MAX_SOURCE_FILES
         ));
     }
-    let by_uuid_only = |u: &str| {
-        format!("its OME-XML names a file by its UUID only ({u}); supported are files named")
-    };
     let holder = placed
         .iter()
         .position(|d| d.first == [0; 3])
@@ -491,17 +477,61 @@ fn ome_role(xml: &str, own: &str) -> Result<Option<OmeRole>, String> {
         PlaneFile::Named(h) => return Ok(Some(OmeRole::PartOf(sibling_name(h, true)?.into()))),
         PlaneFile::Uuid(u) => return Err(by_uuid_only(u)),
     }
-    let mut files = vec![own.to_string()];
-    let mut index = std::collections::HashMap::from([(PlaneFile::Own, 0)]);
+    Ok(Some(OmeRole::Holds(dataset_of(placed, keys, Some(own))?)))
+}
+
+/// Why a `TiffData` naming a file by its UUID alone is refused.
+fn by_uuid_only(uuid: &str) -> String {
+    format!("its OME-XML names a file by its UUID only ({uuid}); supported are files named")
+}
+
+/// Each `TiffData`'s file, as the XML of the file named `own` (none: an OME companion file,
+/// which holds no plane) says: this one when its UUID is the file's own (`own_uuid`: a file
+/// renamed since it was written keeps its UUID), when it names this one, or when it names none.
+fn plane_files(placed: &[TiffData], own: Option<&str>, own_uuid: Option<&str>) -> Vec<PlaneFile> {
+    placed
+        .iter()
+        .map(|d| match (&d.file, &d.uuid) {
+            (_, Some(u)) if Some(u.as_str()) == own_uuid => PlaneFile::Own,
+            (Some(f), _) if Some(f.as_str()) == own => PlaneFile::Own,
+            (Some(f), _) => PlaneFile::Named(f.clone()),
+            (None, None) => PlaneFile::Own,
+            (None, Some(u)) => PlaneFile::Uuid(u.clone()),
+        })
+        .collect()
+}
+
+/// The dataset of the `TiffData` elements `placed`, each in the file `keys` says: the file
+/// holding the XML first where it holds planes (`own`), then the others in the order the XML
+/// names them, each a TIFF file beside it, at most [`super::MAX_SOURCE_FILES`] of them.
+fn dataset_of(
+    placed: Vec<TiffData>,
+    keys: Vec<PlaneFile>,
+    own: Option<&str>,
+) -> Result<OmeDataset, String> {
+    let mut files: Vec<String> = own.map(str::to_string).into_iter().collect();
+    let mut index: std::collections::HashMap<PlaneFile, usize> =
+        own.map(|_| (PlaneFile::Own, 0)).into_iter().collect();
     let mut tiff_data = Vec::with_capacity(placed.len());
     for (d, key) in placed.into_iter().zip(keys) {
         let f = match index.get(&key) {
             Some(f) => *f,
             None => {
                 match &key {
-                    PlaneFile::Named(n) => files.push(sibling_name(n, true)?.to_string()),
+                    PlaneFile::Named(n) => {
+                        sibling_name(n, true)?;
+                        if files.len() == super::MAX_SOURCE_FILES {
+                            return Err(format!(
+                                "its OME-XML places planes in more than the {} files of a volume",
+                                super::MAX_SOURCE_FILES
+                            ));
+                        }
+                        files.push(n.clone());
+                    }
                     PlaneFile::Uuid(u) => return Err(by_uuid_only(u)),
-                    PlaneFile::Own => unreachable!("indexed first"),
+                    PlaneFile::Own => {
+                        return Err("a TiffData element of its XML names no file".into())
+                    }
                 }
                 index.insert(key, files.len() - 1);
                 files.len() - 1
@@ -509,7 +539,10 @@ fn ome_role(xml: &str, own: &str) -> Result<Option<OmeRole>, String> {
         };
         tiff_data.push((f, d));
     }
-    Ok(Some(OmeRole::Holds(OmeDataset { files, tiff_data })))
+    if files.is_empty() {
+        return Err("its XML places no plane in a TIFF file".into());
+    }
+    Ok(OmeDataset { files, tiff_data })
 }
 
 /// Where the images of an ImageJ stack over 4 GB lie: ImageJ writes one page directory (32-bit
@@ -890,40 +923,8 @@ impl Companion {
 /// it, named (the files in the order the XML names them).
 fn companion_dataset(xml: &str) -> Result<OmeDataset, String> {
     let placement = read_ome_placement(xml)?.ok_or("its XML is not well-formed")?;
-    let mut files: Vec<String> = Vec::new();
-    let mut index: std::collections::HashMap<String, usize> = Default::default();
-    let mut tiff_data = Vec::new();
-    for d in placement.tiff_data {
-        let name = match (&d.file, &d.uuid) {
-            (Some(f), _) => f.clone(),
-            (None, Some(u)) => {
-                return Err(format!(
-                    "its XML names a file by its UUID only ({u}); supported are files named"
-                ))
-            }
-            (None, None) => return Err("a TiffData element of its XML names no file".into()),
-        };
-        let f = match index.get(&name) {
-            Some(f) => *f,
-            None => {
-                sibling_name(&name, true)?;
-                if files.len() == super::MAX_SOURCE_FILES {
-                    return Err(format!(
-                        "its XML places planes in more than the {} files of a volume",
-                        super::MAX_SOURCE_FILES
-                    ));
-                }
-                files.push(name.clone());
-                index.insert(name, files.len() - 1);
-                files.len() - 1
-            }
-        };
-        tiff_data.push((f, d));
-    }
-    if files.is_empty() {
-        return Err("its XML places no plane in a TIFF file".into());
-    }
-    Ok(OmeDataset { files, tiff_data })
+    let keys = plane_files(&placement.tiff_data, None, None);
+    dataset_of(placement.tiff_data, keys, None)
 }
 
 /// What an ImageJ description says of the stack (its spacing from the page's resolution tags
@@ -1143,15 +1144,18 @@ pub(crate) fn time_points(path: &Path) -> Result<usize, ReadError> {
 /// their own (1: none), its page directories read once; a file whose channel planes do not add
 /// up is refused here, as the reader refuses it.
 pub(crate) fn pages_and_channels(path: &Path) -> Result<(usize, usize), ReadError> {
-    let (pages, meta) = match is_companion_path(path) {
-        true => (Vec::new(), StackMeta::default()),
-        false => open_file_pages(path)?,
-    };
-    if is_companion_path(path) || meta.ome.is_some() || meta.ome_refusal.is_some() {
-        // A multi-file OME-TIFF's planes: every file's, placed (a part alone is refused).
+    // A multi-file OME-TIFF's planes: every file's, placed (a part alone is refused).
+    let of_dataset = || {
         let (_, stack) = open_stack(path, Some(0))?;
         let count = stack.planes_per_slice;
-        return Ok((stack.slices.len() * count, count));
+        Ok((stack.slices.len() * count, count))
+    };
+    if is_companion_path(path) {
+        return of_dataset();
+    }
+    let (pages, meta) = open_file_pages(path)?;
+    if meta.ome.is_some() || meta.ome_refusal.is_some() {
+        return of_dataset();
     }
     let channels = match meta.channels {
         Some(c) => {
@@ -1181,19 +1185,6 @@ fn ome_role_of(path: &Path) -> Result<Option<std::sync::Arc<OmeRole>>, ReadError
     }
 }
 
-/// The other files of the multi-file OME-TIFF whose XML and first plane the TIFF file at
-/// `path` holds (beside it, by name, in the order its XML names them); none for a file of its
-/// own or a part.
-pub(crate) fn dataset_files(path: &Path) -> Result<Vec<String>, ReadError> {
-    if is_companion_path(path) {
-        return Ok(Companion::read(path)?.dataset.files);
-    }
-    Ok(match ome_role_of(path)?.as_deref() {
-        Some(OmeRole::Holds(dataset)) => dataset.files[1..].to_vec(),
-        _ => Vec::new(),
-    })
-}
-
 /// Why a part of a multi-file OME-TIFF whose dataset is read from `holder` is not read alone.
 pub(crate) fn part_of_dataset(holder: &str) -> String {
     if is_tiff_name(&holder.to_ascii_lowercase()) || is_companion_name(holder) {
@@ -1211,8 +1202,9 @@ pub(crate) fn part_of_dataset(holder: &str) -> String {
 }
 
 /// The place of the TIFF file at `path` in a multi-file OME-TIFF: the other files of the
-/// dataset whose XML and first plane it holds, or the file the dataset it is a part of is read
-/// from (the one holding its first plane or its XML).
+/// dataset whose XML and first plane it holds (beside it, in the order its XML names them; of
+/// an OME companion file, all of them), or the file the dataset it is a part of is read from
+/// (the one holding its first plane or its XML).
 pub(crate) fn dataset(path: &Path) -> Result<super::TiffDataset, ReadError> {
     if is_companion_path(path) {
         let files = Companion::read(path)?.dataset.files;
@@ -1266,17 +1258,15 @@ fn is_companion_path(path: &Path) -> bool {
 }
 
 /// The files of the stack at `path`: a directory's TIFF files in order; a file, then the other
-/// files of the multi-file OME-TIFF whose XML it holds ([`dataset_files`]).
+/// files of the multi-file OME-TIFF whose XML it holds ([`dataset`]).
 fn stack_paths(path: &Path) -> Result<Vec<PathBuf>, ReadError> {
     if path.is_dir() {
         return Ok(stack_files(path)?.into_iter().map(|(_, p)| p).collect());
     }
     let mut files = vec![path.to_path_buf()];
-    files.extend(
-        dataset_files(path)?
-            .into_iter()
-            .map(|n| path.with_file_name(n)),
-    );
+    if let super::TiffDataset::Holds(parts) = dataset(path)? {
+        files.extend(parts);
+    }
     Ok(files)
 }
 
@@ -1297,10 +1287,8 @@ struct Stack {
     time_major: bool,
     /// Seconds between time points, when the description says.
     time_step: Option<f64>,
-    /// Whether the file stores channels as planes of their own, of which `slices` holds the
-    /// one chosen.
-    channel_planes: bool,
-    /// The channels stored as planes of their own (1: none).
+    /// The channels stored as planes of their own (1: none), of which `slices` holds the one
+    /// chosen.
     planes_per_slice: usize,
 }
 
@@ -1316,25 +1304,18 @@ impl Stack {
         companion: Option<&Companion>,
     ) -> Result<Stack, ReadError> {
         let mut slices = Vec::new();
-        let mut contiguous = Vec::with_capacity(names.len());
-        let mut first: Option<(PageShape, StackMeta, usize, usize)> = None;
-        // The full-resolution pages of each file, and the place of each in a multi-file
-        // OME-TIFF.
+        let mut first: Option<(PageShape, usize, usize)> = None;
+        // The full-resolution pages of each file, and what its first page says.
         let mut held: Vec<Vec<usize>> = Vec::with_capacity(names.len());
-        let mut roles = Vec::with_capacity(names.len());
-        let mut refusal = None;
+        let mut metas: Vec<StackMeta> = Vec::with_capacity(names.len());
         for (f, path) in names.iter().enumerate() {
             let (pages, meta) = pages_of(f)?;
-            contiguous.push(meta.contiguous);
+            metas.push(meta);
             held.push(pages.iter().map(|(p, _)| *p).collect());
-            roles.push(meta.ome.clone());
-            if let (None, Some(reason)) = (&refusal, &meta.ome_refusal) {
-                refusal = Some((f, reason.clone()));
-            }
             for (p, shape) in pages {
                 match &first {
-                    None => first = Some((shape, meta.clone(), f, p)),
-                    Some((s, _, f0, p0)) if *s != shape => {
+                    None => first = Some((shape, f, p)),
+                    Some((s, f0, p0)) if *s != shape => {
                         return Err(ReadError::Series {
                             path: path.clone(),
                             reason: format!(
@@ -1350,30 +1331,31 @@ impl Stack {
                 slices.push((f, p));
             }
         }
-        let Some((shape, mut meta, _, _)) = first else {
+        let Some((shape, f0, _)) = first else {
             return Err(bad(
                 names.first().map_or(Path::new("."), PathBuf::as_path),
                 "no page holds an image at full resolution",
             ));
         };
+        let mut meta = metas[f0].clone();
         // A file whose XML places planes as no reader may (unless an OME companion file places
         // them: its own XML is not read then).
+        let refusal = metas
+            .iter()
+            .enumerate()
+            .find_map(|(f, m)| m.ome_refusal.as_ref().map(|r| (f, r)));
         if let (None, Some((f, reason))) = (companion, refusal) {
             return Err(bad(&names[f], reason.to_string()));
         }
         // The files of a multi-file OME-TIFF hold its planes as one file of them all would,
         // read from the file holding its XML and first plane (in a directory of its files,
         // wherever that sorts); a part without it is refused.
-        let holder = roles
-            .iter()
-            .position(|r| matches!(r.as_deref(), Some(OmeRole::Holds(_))));
-        let part = roles
-            .iter()
-            .enumerate()
-            .find_map(|(f, r)| match r.as_deref() {
-                Some(OmeRole::PartOf(h)) => Some((f, h.clone())),
-                _ => None,
-            });
+        let role = |f: usize| metas[f].ome.as_deref();
+        let holder = (0..names.len()).find(|&f| matches!(role(f), Some(OmeRole::Holds(_))));
+        let part = (0..names.len()).find_map(|f| match role(f) {
+            Some(OmeRole::PartOf(h)) => Some((f, h)),
+            _ => None,
+        });
         let files = match (holder, part) {
             // The files of an OME companion file, whatever their own descriptions say.
             _ if companion.is_some() => {
@@ -1384,18 +1366,14 @@ impl Stack {
                 1
             }
             (None, Some((f, h))) => {
-                return Err(ReadError::unsupported(&names[f], part_of_dataset(&h)));
+                return Err(ReadError::unsupported(&names[f], part_of_dataset(h)));
             }
             (Some(h), _) => {
-                let holds = roles[h].clone();
-                let Some(OmeRole::Holds(dataset)) = holds.as_deref() else {
+                let Some(OmeRole::Holds(dataset)) = role(h) else {
                     unreachable!("found holding above")
                 };
                 // The holder's description counts the dataset (a part's may say nothing).
-                if h != 0 {
-                    let (_, holder_meta) = pages_of(h)?;
-                    meta = holder_meta;
-                }
+                meta = metas[h].clone();
                 slices = dataset_planes(names, &held, &meta, dataset)?;
                 1
             }
@@ -1459,13 +1437,18 @@ impl Stack {
             slices,
             shape,
             spacing,
-            contiguous,
+            contiguous: metas.iter().map(|m| m.contiguous).collect(),
             time_points,
             time_major: meta.time_major,
             time_step: meta.time_step.filter(|_| time_points > 1),
-            channel_planes: meta.channels.is_some(),
             planes_per_slice: meta.channels.unwrap_or(1),
         })
+    }
+
+    /// Whether the file stores channels as planes of their own, of which `slices` holds the
+    /// one chosen.
+    fn channel_planes(&self) -> bool {
+        self.planes_per_slice > 1
     }
 
     /// The dimensions of one time point.
@@ -1896,7 +1879,7 @@ pub(crate) fn decode_channel(
         read_page(d, &paths[f], p, &stack.shape, whole, &mut out, z * slice)?;
     }
     Volume::new(dims, stack.spacing, out)
-        .map(|v| (v, stack.channel_planes))
+        .map(|v| (v, stack.channel_planes()))
         .map_err(|e| ReadError::volume(&src.origin, e))
 }
 
@@ -2053,7 +2036,7 @@ impl TiffRegions {
 
     /// Whether the file stores channels as planes of their own, one of them chosen at open.
     pub(crate) fn channel_chosen(&self) -> bool {
-        self.stack.channel_planes
+        self.stack.channel_planes()
     }
 
     pub(crate) fn spacing(&self) -> [f32; 3] {
