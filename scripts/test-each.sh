@@ -1,0 +1,76 @@
+#!/usr/bin/env bash
+# The workspace's tests, as `cargo test --workspace ARGS` runs them, one test binary at a time,
+# each binary deleted once it passed: the disk then holds the dependencies, the workspace's
+# libraries and one test binary at a time, not all ~60 test binaries (each links wgpu, tonic
+# and rustls; a whole `cargo test --workspace` target is several GB more than this one's peak).
+# Every invocation selects the whole workspace, so features unify as in one `cargo test
+# --workspace` and no dependency is built twice.
+#
+#   bash scripts/test-each.sh [CARGO TEST ARGS, e.g. --features jpeg-ls]
+#
+# Steps: the libraries' and binaries' unit tests (and the examples, built as `cargo test`
+# builds them), each integration test by name, then the doc tests. Stops at the first failing
+# step with its exit code; each step's target size is printed.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+target_dir() {
+  cargo metadata --format-version 1 --no-deps | python3 -c 'import json,sys; print(json.load(sys.stdin)["target_directory"])'
+}
+
+# The integration tests' names across the workspace's members, each once (two members may
+# have a test of the same name: `--test NAME` then runs both).
+integration_tests() {
+  cargo metadata --format-version 1 --no-deps | python3 -c '
+import json, sys
+meta = json.load(sys.stdin)
+members = set(meta["workspace_members"])
+names = sorted({t["name"] for p in meta["packages"] if p["id"] in members
+                for t in p["targets"] if "test" in t["kind"]})
+print("\n".join(names))'
+}
+
+# Builds one selection's test binaries (cargo's arguments only: the test binaries' are
+# `test_args`), runs them through cargo (its environment and working
+# directory, as `cargo test` gives them), then deletes them.
+run_step() {
+  local executables
+  executables=$(cargo test --workspace "$@" --no-run --message-format=json-render-diagnostics |
+    python3 -c '
+import json, sys
+for line in sys.stdin:
+    try:
+        msg = json.loads(line)
+    except ValueError:
+        continue
+    if msg.get("reason") == "compiler-artifact" and msg.get("profile", {}).get("test") and msg.get("executable"):
+        print(msg["executable"])')
+  cargo test --workspace "$@" -- "${test_args[@]}"
+  if [ -n "$executables" ]; then
+    while IFS= read -r exe; do
+      rm -f -- "$exe" "${exe}.d"
+    done <<<"$executables"
+  fi
+  echo "test-each: after ${*}: target $(du -sh "$TARGET" 2>/dev/null | cut -f1), disk $(df -h "$TARGET" | tail -1 | awk '{print $4}') free"
+}
+
+TARGET=$(target_dir)
+# Cargo's own arguments (features) come before `--`; the test binaries' after it.
+cargo_args=()
+test_args=()
+seen_dashes=0
+for a in "$@"; do
+  if [ "$seen_dashes" -eq 1 ]; then
+    test_args+=("$a")
+  elif [ "$a" = "--" ]; then
+    seen_dashes=1
+  else
+    cargo_args+=("$a")
+  fi
+done
+
+run_step "${cargo_args[@]}" --lib --bins --examples
+while IFS= read -r name; do
+  run_step "${cargo_args[@]}" --test "$name"
+done < <(integration_tests)
+cargo test --workspace "${cargo_args[@]}" --doc -- "${test_args[@]}"
