@@ -8,9 +8,10 @@
 #
 #   bash scripts/test-each.sh [CARGO TEST ARGS, e.g. --features jpeg-ls]
 #
-# Steps: the libraries' and binaries' unit tests (and the examples, built as `cargo test`
-# builds them), each integration test by name, then the doc tests. Stops at the first failing
-# step with its exit code; each step's target size is printed.
+# Steps: the libraries' and binaries' unit tests, each integration test by name, then the doc
+# tests. Stops at the first failing step with its exit code; each step's target size is
+# printed. Examples, which plain `cargo test` only builds, are left out: selected explicitly
+# they would be built and run as test binaries; `cargo clippy --all-targets` (CI) checks them.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -35,7 +36,7 @@ print("\n".join(names))'
 # directory, as `cargo test` gives them), then deletes them.
 run_step() {
   local executables
-  executables=$(cargo test --workspace "$@" --no-run --message-format=json-render-diagnostics |
+  executables=$(cargo test --workspace "$@" --no-run --message-format=json-render-diagnostics </dev/null |
     python3 -c '
 import json, sys
 for line in sys.stdin:
@@ -45,7 +46,8 @@ for line in sys.stdin:
         continue
     if msg.get("reason") == "compiler-artifact" and msg.get("profile", {}).get("test") and msg.get("executable"):
         print(msg["executable"])')
-  cargo test --workspace "$@" -- "${test_args[@]}"
+  # stdin closed: nothing a test starts reads the caller's input.
+  cargo test --workspace "$@" -- ${test_args[@]+"${test_args[@]}"} </dev/null
   if [ -n "$executables" ]; then
     while IFS= read -r exe; do
       rm -f -- "$exe" "${exe}.d"
@@ -69,8 +71,15 @@ for a in "$@"; do
   fi
 done
 
-run_step "${cargo_args[@]}" --lib --bins --examples
+# Listed before the loop, so that a failing `cargo metadata` stops the script rather than
+# leaving the loop empty.
+names=$(integration_tests)
+if [ -z "$names" ]; then
+  echo "test-each: no integration tests found in the workspace" >&2
+  exit 1
+fi
+run_step ${cargo_args[@]+"${cargo_args[@]}"} --lib --bins
 while IFS= read -r name; do
-  run_step "${cargo_args[@]}" --test "$name"
-done < <(integration_tests)
-cargo test --workspace "${cargo_args[@]}" --doc -- "${test_args[@]}"
+  run_step ${cargo_args[@]+"${cargo_args[@]}"} --test "$name"
+done <<<"$names"
+cargo test --workspace ${cargo_args[@]+"${cargo_args[@]}"} --doc -- ${test_args[@]+"${test_args[@]}"} </dev/null
