@@ -15,20 +15,17 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-target_dir() {
-  cargo metadata --format-version 1 --no-deps | python3 -c 'import json,sys; print(json.load(sys.stdin)["target_directory"])'
-}
-
-# The integration tests' names across the workspace's members, each once (two members may
-# have a test of the same name: `--test NAME` then runs both).
-integration_tests() {
+# The target directory, then the integration tests' names across the workspace's members,
+# each once (two members may have a test of the same name: `--test NAME` then runs both), from
+# one `cargo metadata`.
+target_and_tests() {
   cargo metadata --format-version 1 --no-deps | python3 -c '
 import json, sys
 meta = json.load(sys.stdin)
 members = set(meta["workspace_members"])
 names = sorted({t["name"] for p in meta["packages"] if p["id"] in members
                 for t in p["targets"] if "test" in t["kind"]})
-print("\n".join(names))'
+print("\n".join([meta["target_directory"]] + names))'
 }
 
 # Builds one selection's test binaries (cargo's arguments only: the test binaries' are
@@ -56,7 +53,6 @@ for line in sys.stdin:
   echo "test-each: after ${*}: target $(du -sh "$TARGET" 2>/dev/null | cut -f1), disk $(df -h "$TARGET" | tail -1 | awk '{print $4}') free"
 }
 
-TARGET=$(target_dir)
 # Cargo's own arguments (features) come before `--`; the test binaries' after it.
 cargo_args=()
 test_args=()
@@ -73,7 +69,9 @@ done
 
 # Listed before the loop, so that a failing `cargo metadata` stops the script rather than
 # leaving the loop empty.
-names=$(integration_tests)
+listing=$(target_and_tests)
+TARGET=$(head -n 1 <<<"$listing")
+names=$(tail -n +2 <<<"$listing")
 if [ -z "$names" ]; then
   echo "test-each: no integration tests found in the workspace" >&2
   exit 1
