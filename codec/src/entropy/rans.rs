@@ -381,26 +381,28 @@ impl RansEncoder {
 /// Reads a stream written by [`RansEncoder::finish`] from untrusted bytes.
 #[derive(Debug)]
 pub struct RansDecoder<'a> {
-    bytes: &'a [u8],
+    /// The stream's 16-bit words (little-endian).
+    words: &'a [[u8; 2]],
+    /// The next word to read: past the end (an overrun) once a symbol needed a word the
+    /// stream does not have.
     pos: usize,
     state: u32,
-    overrun: bool,
 }
 
 impl<'a> RansDecoder<'a> {
     /// A decoder of `bytes`: empty (a stream whose symbols cost nothing), or at least the
     /// state, a whole number of words, the state at least 2^16.
     pub fn new(bytes: &'a [u8]) -> Result<RansDecoder<'a>, EntropyError> {
+        let (words, odd) = bytes.as_chunks::<2>();
         let mut d = RansDecoder {
-            bytes,
+            words,
             pos: 0,
             state: LOWER,
-            overrun: false,
         };
         if bytes.is_empty() {
             return Ok(d);
         }
-        if bytes.len() < 4 || !bytes.len().is_multiple_of(2) {
+        if bytes.len() < 4 || !odd.is_empty() {
             return Err(EntropyError::InvalidTable(format!(
                 "rANS stream of {} bytes: not a whole number of 16-bit words, or shorter than \
                  its state",
@@ -419,16 +421,13 @@ impl<'a> RansDecoder<'a> {
 
     /// `x` with the next word shifted in if it fell below [`LOWER`] (one word always
     /// suffices), without a branch on that: whether a symbol needs a word is as unpredictable
-    /// as its cost. The word is read either way (0 past the end, an overrun only if taken).
+    /// as its cost. The word is read either way (0 past the end, where taking it is an
+    /// overrun: the position moves past the end).
     #[inline(always)]
     fn renormalized(&mut self, x: u32) -> u32 {
         let need = x < LOWER;
-        let (word, in_bounds) = match self.bytes.get(self.pos..self.pos + 2) {
-            Some(w) => (u16::from_le_bytes([w[0], w[1]]) as u32, true),
-            None => (0, false),
-        };
-        self.overrun |= need & !in_bounds;
-        self.pos += 2 * usize::from(need & in_bounds);
+        let word = u16::from_le_bytes(self.words.get(self.pos).copied().unwrap_or([0; 2])) as u32;
+        self.pos += usize::from(need);
         if need {
             x << 16 | word
         } else {
@@ -438,16 +437,9 @@ impl<'a> RansDecoder<'a> {
 
     #[inline(always)]
     fn word(&mut self) -> u16 {
-        match self.bytes.get(self.pos..self.pos + 2) {
-            Some(w) => {
-                self.pos += 2;
-                u16::from_le_bytes([w[0], w[1]])
-            }
-            None => {
-                self.overrun = true;
-                0
-            }
-        }
+        let word = u16::from_le_bytes(self.words.get(self.pos).copied().unwrap_or([0; 2]));
+        self.pos += 1;
+        word
     }
 
     /// Decodes one symbol with `table`; `None` if the table is empty (no symbol can come from
@@ -479,13 +471,13 @@ impl<'a> RansDecoder<'a> {
 
     /// Whether a read went past the end of the stream.
     pub fn overrun(&self) -> bool {
-        self.overrun
+        self.pos > self.words.len()
     }
 
     /// Whether the stream ended exactly where its encoder began: every word read, nothing
     /// read past the end, the state at its initial value.
     pub fn is_complete(&self) -> bool {
-        !self.overrun && self.pos == self.bytes.len() && self.state == LOWER
+        self.pos == self.words.len() && self.state == LOWER
     }
 }
 

@@ -3,7 +3,7 @@
 //! encoder and the decoder both read from them: a coefficient's sign and value contexts and a
 //! leaf node's mask table.
 
-use super::{bit_length_class, value_table};
+use super::bit_length_class;
 use rustc_hash::FxHashMap;
 use std::cell::RefCell;
 
@@ -48,75 +48,124 @@ pub(super) struct CellPlace {
 }
 
 /// A node of 2×2×2 cells in a directory map, ready to give its children's contexts
-/// ([`CellMap::leaf_node`]): the same as [`CellMap::leaf_contexts`] gives, from indices into
-/// the bricks found once a node rather than once a child.
+/// ([`CellMap::leaf_node`]): the same as [`CellMap::leaf_contexts`] gives, read from a copy of
+/// the node's cells and of the cells just below its lower faces made once a node, which its
+/// children's entries join as they are decoded ([`LeafNode::set`]).
 pub(super) struct LeafNode {
-    brick: usize,
-    /// The node's origin cell's offset in its brick, and its index in the bricks.
-    offset: usize,
+    /// Index in the bricks of the node's origin cell.
     own: usize,
-    /// Index in the bricks of the cell below the origin cell along each axis.
-    outside: [usize; 3],
+    /// The node's 2×2×2 cells and the 3×4 below its lower faces, cell (x, y, z) of the 3×3×3
+    /// block at x + 3y + 9z, the node's own cells at 1 and 2 along every axis (a child's lower
+    /// neighbour along an axis is then at a constant offset, 1, 3 or 9, below it: no case for
+    /// whether it lies in the node). 32 bytes, so that masked indices need no bounds check.
+    block: [u8; 32],
+}
+
+/// Where child `i` (`child_origin` order) of a node of 2×2×2 cells lies in
+/// [`LeafNode::block`].
+#[inline(always)]
+fn block_of_child(i: u32) -> usize {
+    // (1 + x) + 3 (1 + y) + 9 (1 + z) for the child's bits x, y, z.
+    const BLOCK: [u8; 8] = [13, 14, 16, 17, 22, 23, 25, 26];
+    BLOCK[(i & 7) as usize] as usize
+}
+
+/// Where child `i` of a node of 2×2×2 cells lies in its 4×4×4-cell brick, from the node's
+/// origin cell.
+#[inline(always)]
+fn brick_offset_of_child(i: u32) -> usize {
+    // x + 4y + 16z for the child's bits x, y, z.
+    const OFFSET: [u8; 8] = [0, 1, 4, 5, 16, 17, 20, 21];
+    OFFSET[(i & 7) as usize] as usize
 }
 
 impl LeafNode {
-    /// [`CellMap::face_table`] of the node: its lower faces' cells read from the cells
-    /// outside it found once, without a case for where they lie.
+    /// [`CellMap::face_table`] of the node: its lower faces' cells, counted in the block.
     #[inline(always)]
-    pub(super) fn face_table(&self, map: &CellMap) -> usize {
-        let face = |a: usize, u: usize, v: usize| {
-            let at = self.outside[a];
-            let cells = &map.bricks[at..at + u + v + 1];
-            (cells[0] != 0) as u32
-                + (cells[u] != 0) as u32
-                + (cells[v] != 0) as u32
-                + (cells[u + v] != 0) as u32
-        };
-        face_state_of_count(face(0, 4, 16) + face(1, 1, 16) + face(2, 1, 4))
+    pub(super) fn face_table(&self) -> usize {
+        // x = 0: (0, 1..2, 1..2); y = 0: (1..2, 0, 1..2); z = 0: (1..2, 1..2, 0).
+        const FACES: [usize; 12] = [12, 15, 21, 24, 10, 11, 19, 20, 4, 5, 7, 8];
+        let n = FACES
+            .iter()
+            .map(|&k| (self.block[k] != 0) as u32)
+            .sum::<u32>();
+        face_state_of_count(n)
     }
 
-    /// The (sign, value) contexts and place of child `i` (`child_origin` order), read from
-    /// `map` as its siblings before it left it.
+    /// The (sign, value) contexts of child `i` (`child_origin` order) and its index in the
+    /// bricks, read from its siblings before it and the cells below the node.
     #[inline(always)]
-    pub(super) fn contexts(&self, map: &CellMap, i: u32) -> (usize, usize, CellPlace) {
-        let h = [
-            (i & 1) as usize,
-            (i >> 1 & 1) as usize,
-            (i >> 2 & 1) as usize,
-        ];
-        let within = h[0] + 4 * h[1] + 16 * h[2];
-        let cell = self.own + within;
-        // Along an axis where the child is the upper half, its neighbour is the sibling
-        // below it; else the cell outside the node, moved along the other two axes. Chosen
-        // by masks: the children present are as unpredictable as the data.
-        let neighbour = |a: usize, width: usize| -> u8 {
-            let upper = 0usize.wrapping_sub(h[a]);
-            // (Wrapping: below an unallocated brick, read as the empty one, `cell` may be
-            // smaller than `width` where the mask discards it.)
-            let index = (cell.wrapping_sub(width) & upper) | ((self.outside[a] + within) & !upper);
-            map.bricks[index]
-        };
-        let (sc, vc) = contexts_of_neighbours(neighbour(0, 1), neighbour(1, 4), neighbour(2, 16));
-        let at = CellPlace {
-            brick: self.brick,
-            offset: self.offset + within,
-        };
-        (sc, vc, at)
+    pub(super) fn contexts(&self, i: u32) -> (usize, usize, usize) {
+        let b = block_of_child(i);
+        let (sc, vc) = contexts_of_neighbours(
+            self.block[(b - 1) & 31],
+            self.block[(b - 3) & 31],
+            self.block[(b - 9) & 31],
+        );
+        (sc, vc, self.own + brick_offset_of_child(i))
+    }
+
+    /// Enters child `i`'s map entry `v` ([`cell_entry`]) in the block, for its later siblings.
+    #[inline(always)]
+    pub(super) fn set(&mut self, i: u32, v: u8) {
+        self.block[block_of_child(i) & 31] = v;
     }
 }
 
+/// A cell's map entry: 1 | negative << 1 | class << 2, below 128 (the class is at most 31).
+#[inline(always)]
+pub(super) fn cell_entry(negative: bool, q: u64) -> u8 {
+    1 | (negative as u8) << 1 | bit_length_class(q) << 2
+}
+
+/// One lower neighbour's part of its cell's contexts, by its map entry, for the neighbour
+/// along x, y and z: its sign (0 none, 1 positive, 2 negative) times 1, 3 or 9 in bits 0–4,
+/// whether it is coded in bits 5–6, its magnitude class in bits 7 on. The three parts of a
+/// cell add up to its sign context, its coded neighbours' count and their classes' sum
+/// without a carry from one field into the next (26, 3 and 93 at most).
+static NEIGHBOUR_TERMS: [[u32; 128]; 3] = {
+    let mut t = [[0u32; 128]; 3];
+    let weights = [1, 3, 9];
+    let mut a = 0;
+    while a < 3 {
+        let mut v = 1;
+        while v < 128 {
+            let sign = (v & 1) + ((v >> 1) & 1);
+            t[a][v] = (weights[a] * sign + (1 << 5) + ((v >> 2) << 7)) as u32;
+            v += 1;
+        }
+        a += 1;
+    }
+    t
+};
+
+/// [`super::VALUE_TABLE_OF`] by the count and class sum fields of summed [`NEIGHBOUR_TERMS`]
+/// (`sum >> 5`: count + 4 × classes).
+static VALUE_TABLE_OF_TERMS: [u8; 512] = {
+    let mut t = [0u8; 512];
+    let mut k = 0;
+    while k < 512 {
+        let (n, classes) = (k & 3, k >> 2);
+        if classes <= super::MAX_CLASS_SUM {
+            t[k] = super::VALUE_TABLE_OF[n][classes];
+        }
+        k += 1;
+    }
+    t
+};
+
 /// The (sign, value) contexts of a cell from its three lower neighbours' entries: their signs
-/// (base 3) and the value table of their count and summed magnitude classes.
+/// (base 3) and the value table of their count and summed magnitude classes. By table: the
+/// signs and counts are as unpredictable as the data, and three lookups and two additions
+/// replace the fields' arithmetic.
 #[inline(always)]
 fn contexts_of_neighbours(vx: u8, vy: u8, vz: u8) -> (usize, usize) {
-    // 0 for no coefficient, 1 positive, 2 negative: a coded cell has bit 0 set and its sign
-    // in bit 1, an empty one is 0 (no branch: the signs are as unpredictable as the data).
-    let sign_of = |v: u8| (v & 1) as usize + ((v >> 1) & 1) as usize;
-    let present = (vx != 0) as usize + (vy != 0) as usize + (vz != 0) as usize;
-    let classes = (vx >> 2) as usize + (vy >> 2) as usize + (vz >> 2) as usize;
+    let sum = NEIGHBOUR_TERMS[0][(vx & 127) as usize]
+        + NEIGHBOUR_TERMS[1][(vy & 127) as usize]
+        + NEIGHBOUR_TERMS[2][(vz & 127) as usize];
     (
-        sign_of(vx) + 3 * sign_of(vy) + 9 * sign_of(vz),
-        value_table(present, classes),
+        (sum & 31) as usize,
+        VALUE_TABLE_OF_TERMS[(sum >> 5) as usize & 511] as usize,
     )
 }
 
@@ -197,13 +246,20 @@ impl CellMap {
     /// [`CellMap::insert`] at the place [`CellMap::leaf_contexts`] gave for `c`.
     #[inline(always)]
     pub(super) fn insert_at(&mut self, c: [u32; 3], at: CellPlace, negative: bool, q: u64) {
-        let v = 1 | (negative as u8) << 1 | bit_length_class(q) << 2;
+        let v = cell_entry(negative, q);
         if self.use_directory {
             let slot = self.allocate(at.brick);
             self.bricks[64 * slot + at.offset] = v;
         } else {
             self.sparse.insert(c, v);
         }
+    }
+
+    /// Enters entry `v` ([`cell_entry`]) at index `index` of the bricks, a child's of a
+    /// [`CellMap::leaf_node`] (whose brick that allocated).
+    #[inline(always)]
+    pub(super) fn set_at(&mut self, index: usize, v: u8) {
+        self.bricks[index] = v;
     }
 
     /// The cells of the brick at directory index `b` (the empty brick if none is coded).
@@ -221,7 +277,9 @@ impl CellMap {
         if self.use_directory {
             // As a child of its node of 2×2×2 cells.
             let i = c[0] & 1 | (c[1] & 1) << 1 | (c[2] & 1) << 2;
-            return self.find_leaf(c.map(|v| v & !1)).contexts(self, i);
+            let (sc, vc, _) = self.find_leaf(c.map(|v| v & !1), true).contexts(i);
+            // (Its brick may not be allocated yet: the insertion finds it.)
+            return (sc, vc, self.place(c));
         }
         let (x, y, z) = (c[0], c[1], c[2]);
         let get = |dx: u32, dy: u32, dz: u32| {
@@ -245,14 +303,17 @@ impl CellMap {
             return None;
         }
         self.allocate(self.brick(o));
-        Some(self.find_leaf(o))
+        // A node is walked once: none of its cells is coded yet.
+        Some(self.find_leaf(o, false))
     }
 
     /// The node of 2×2×2 cells at `o` (even coordinates) in a directory map, as it is now: a
     /// brick not yet allocated reads as the empty brick, so nothing may be inserted into it
     /// while this node is in use ([`CellMap::leaf_node`] allocates first).
     #[inline(always)]
-    fn find_leaf(&self, o: [u32; 3]) -> LeafNode {
+    /// `with_own`: whether to read the node's own cells too (the encoder's per-cell contexts
+    /// need its siblings coded before; a node being walked has none).
+    fn find_leaf(&self, o: [u32; 3], with_own: bool) -> LeafNode {
         let b = self.brick(o);
         let offset = brick_offset(o);
         let own = 64 * self.directory[b] as usize + offset;
@@ -273,16 +334,29 @@ impl CellMap {
             let on_face = usize::from(v & 3 == 0).wrapping_neg();
             (own.wrapping_sub(width) & !on_face) | (at_face & on_face)
         };
-        LeafNode {
-            brick: b,
-            offset,
-            own,
-            outside: [
-                outside(o[0], 1, 1),
-                outside(o[1], self.stride[0], 4),
-                outside(o[2], self.stride[1], 16),
-            ],
+        let [x, y, z] = [
+            outside(o[0], 1, 1),
+            outside(o[1], self.stride[0], 4),
+            outside(o[2], self.stride[1], 16),
+        ];
+        let cells = &self.bricks;
+        let mut block = [0u8; 32];
+        // Below the face x = 0: (0, y, z) for y, z in 1..=2; below y = 0 and z = 0 alike.
+        for (k, d) in [(12, 0), (15, 4), (21, 16), (24, 20)] {
+            block[k] = cells[x + d];
         }
+        for (k, d) in [(10, 0), (11, 1), (19, 16), (20, 17)] {
+            block[k] = cells[y + d];
+        }
+        for (k, d) in [(4, 0), (5, 1), (7, 4), (8, 5)] {
+            block[k] = cells[z + d];
+        }
+        if with_own {
+            for i in 0..8 {
+                block[block_of_child(i)] = cells[own + brick_offset_of_child(i)];
+            }
+        }
+        LeafNode { own, block }
     }
 
     /// The slot of brick `b`, allocated if none is coded yet.
@@ -303,7 +377,7 @@ impl CellMap {
     #[inline(always)]
     pub(super) fn face_table(&self, o: [u32; 3]) -> usize {
         if self.use_directory {
-            return self.find_leaf(o).face_table(self);
+            return self.find_leaf(o, false).face_table();
         }
         let mut n = 0;
         for a in 0..3 {
@@ -431,8 +505,10 @@ impl CellMap {
 fn face_state_of_count(n: u32) -> usize {
     // Looked up rather than matched: the count is as unpredictable as the data. A box of
     // 2×2×2 cells has 12 cells below its faces.
-    const STATE: [u8; 13] = [0, 1, 1, 2, 2, 2, 3, 3, 3, 3, 3, 3, 3];
-    STATE[n.min(12) as usize] as usize
+    // (n is at most 12; the table's 16 entries make that check a mask.)
+    const STATE: [u8; 16] = [0, 1, 1, 2, 2, 2, 3, 3, 3, 3, 3, 3, 3, 3, 3, 3];
+    debug_assert!(n <= 12);
+    STATE[(n & 15) as usize] as usize
 }
 
 impl Drop for CellMap {
@@ -450,7 +526,7 @@ impl Drop for CellMap {
 
 #[cfg(test)]
 mod tests {
-    use super::super::VALUE_TABLES;
+    use super::super::{child_origin, VALUE_TABLES};
     use super::*;
     use rand::{Rng, SeedableRng};
     use rand_chacha::ChaCha8Rng;
@@ -534,16 +610,22 @@ mod tests {
                 // contexts and place as a child.
                 let o = c.map(|v| v & !1);
                 let i = (c[0] - o[0]) | (c[1] - o[1]) << 1 | (c[2] - o[2]) << 2;
-                let leaf = dense.leaf_node(o).expect("a directory map");
-                let (ls, lv, at) = leaf.contexts(&dense, i);
+                let mut leaf = dense.leaf_node(o).expect("a directory map");
+                // A walked node starts with its cells empty and learns them as its children
+                // are decoded: here, those the map holds.
+                for j in 0..8 {
+                    leaf.set(j, dense.get(child_origin(o, j, 1)));
+                }
+                let (ls, lv, index) = leaf.contexts(i);
                 assert_eq!((ls, lv), want, "round {round} {c:?} as child {i} of {o:?}");
                 let place = dense.place(c);
-                assert_eq!((at.brick, at.offset), (place.brick, place.offset));
+                let slot = dense.directory[place.brick] as usize;
+                assert_eq!(index, 64 * slot + place.offset);
                 assert!(sparse.leaf_node(o).is_none());
                 // Faces of that node.
                 let table = brute_face_state(&truth, o, |_| true);
                 assert_eq!(dense.face_table(o), table, "round {round} {o:?}");
-                assert_eq!(leaf.face_table(&dense), table, "round {round} {o:?}");
+                assert_eq!(leaf.face_table(), table, "round {round} {o:?}");
                 assert_eq!(sparse.face_table(o), table, "round {round} {o:?}");
             }
             // The face states of the children of a node of 4×4×4 cells: the coded cells

@@ -3,7 +3,7 @@
 //! walking each present substream's octree, and checks that the streams hold exactly the
 //! coefficients the packet declares.
 
-use super::cells::CellMap;
+use super::cells::{cell_entry, CellMap};
 use super::{
     allowed_children, child_origin, masks_bit_by_bit, occupancy_table, occupied_lower_siblings,
     raw_bits, root_log, step_of, value_base, Decoders, StepTable, Substream, Tables,
@@ -198,46 +198,50 @@ struct PacketDecoder<'a, S> {
 }
 
 impl<S: SymbolSource> PacketDecoder<'_, S> {
-    /// Decodes the node of edge 2^`log` at `o`, known to be occupied.
+    /// Decodes the node of edge 2^`log` at `o` (`log` ≥ 2; a root of 2×2×2 cells is a
+    /// [`PacketDecoder::leaf`]), known to be occupied.
     fn node(&mut self, s: &Substream, o: [u32; 3], log: u32) -> Result<(), FormatError> {
         let h = 1u32 << (log - 1);
-        // A node of 2×2×2 cells finds the cells around it once, for its mask's table and its
-        // children's contexts.
-        let leaf = if log == 1 {
-            self.map.leaf_node(o)
-        } else {
-            None
-        };
         let mask = if masks_bit_by_bit(s.sequential, log) {
             self.mask_bit_by_bit(s, o)?
         } else {
-            let table = match (&leaf, log) {
-                (_, 2..) => LEAF_MASK_TABLES,
-                (Some(leaf), _) => leaf.face_table(&self.map),
-                (None, _) => self.map.face_table(o),
-            };
-            let mask = self.source.mask(table)?;
-            if mask == 0 || mask & !allowed_children(o, h, s.extent) != 0 {
-                return Err(invalid(
-                    "packet",
-                    format!(
-                        "occupancy mask {mask:#04x} at {o:?} (edge {}) outside the tile's band \
-                         region",
-                        2 * h
-                    ),
-                ));
-            }
+            let mask = self.source.mask(LEAF_MASK_TABLES)?;
+            check_mask(mask, o, h, s.extent)?;
             mask
         };
         let mut m = mask as u32;
-        if log > 1 {
+        // The nodes of 2×2×2 cells below a node of 4×4×4 are decoded in its loop rather than
+        // by a call each (their count is most of the nodes').
+        if log == 2 {
+            while m != 0 {
+                let i = m.trailing_zeros();
+                m &= m - 1;
+                self.leaf(s, child_origin(o, i, h))?;
+            }
+        } else {
             while m != 0 {
                 let i = m.trailing_zeros();
                 m &= m - 1;
                 self.node(s, child_origin(o, i, h), log - 1)?;
             }
-            return Ok(());
         }
+        Ok(())
+    }
+
+    /// Decodes the node of 2×2×2 cells at `o`, known to be occupied: its mask, then each
+    /// present cell's step and sign.
+    #[inline(always)]
+    fn leaf(&mut self, s: &Substream, o: [u32; 3]) -> Result<(), FormatError> {
+        // The node finds the cells around it once, for its mask's table and its children's
+        // contexts (a directory map; a hashed one looks each up).
+        let mut leaf = self.map.leaf_node(o);
+        let table = match &leaf {
+            Some(leaf) => leaf.face_table(),
+            None => self.map.face_table(o),
+        };
+        let mask = self.source.mask(table)?;
+        check_mask(mask, o, 1, s.extent)?;
+        let mut m = mask as u32;
         if self.out.len() + m.count_ones() as usize > self.count {
             return Err(invalid(
                 "packet",
@@ -250,19 +254,26 @@ impl<S: SymbolSource> PacketDecoder<'_, S> {
                 format!("the payload ends after {} coefficients", self.out.len()),
             ));
         }
+        let models = &mut self.sign_models[s.bi * SIGN_CONTEXTS..][..SIGN_CONTEXTS];
         while m != 0 {
             let i = m.trailing_zeros();
             m &= m - 1;
             let cell = child_origin(o, i, 1);
-            let (sc, vc, at) = match &leaf {
-                Some(leaf) => leaf.contexts(&self.map, i),
-                None => self.map.leaf_contexts(cell),
+            let (q, negative) = if let Some(leaf) = &mut leaf {
+                let (sc, vc, index) = leaf.contexts(i);
+                let q = self.source.step(s.value_base + vc)?;
+                let negative = self.signs.decode_bit(&mut models[sc]);
+                let v = cell_entry(negative, q);
+                leaf.set(i, v);
+                self.map.set_at(index, v);
+                (q, negative)
+            } else {
+                let (sc, vc, at) = self.map.leaf_contexts(cell);
+                let q = self.source.step(s.value_base + vc)?;
+                let negative = self.signs.decode_bit(&mut models[sc]);
+                self.map.insert_at(cell, at, negative, q);
+                (q, negative)
             };
-            let q = self.source.step(s.value_base + vc)?;
-            let negative = self
-                .signs
-                .decode_bit(&mut self.sign_models[s.bi * SIGN_CONTEXTS + sc]);
-            self.map.insert_at(cell, at, negative, q);
             let value = s.quant.signed_value(q, negative)?;
             self.out.push(Coefficient::in_region(
                 s.channel, s.band, s.origin, cell, value,
@@ -291,6 +302,27 @@ impl<S: SymbolSource> PacketDecoder<'_, S> {
         }
         Ok(mask as u8)
     }
+}
+
+/// Refuses an occupancy mask that is empty or names a child outside the region, of the node
+/// of children of edge `h` at `o`.
+#[inline(always)]
+fn check_mask(mask: u8, o: [u32; 3], h: u32, extent: [u32; 3]) -> Result<(), FormatError> {
+    if mask == 0 || mask & !allowed_children(o, h, extent) != 0 {
+        return Err(mask_outside_region(mask, o, h));
+    }
+    Ok(())
+}
+
+#[cold]
+fn mask_outside_region(mask: u8, o: [u32; 3], h: u32) -> FormatError {
+    invalid(
+        "packet",
+        format!(
+            "occupancy mask {mask:#04x} at {o:?} (edge {}) outside the tile's band region",
+            2 * h
+        ),
+    )
 }
 
 /// Decodes a fast-coded payload of `packet.count` coefficients (a
@@ -407,7 +439,10 @@ fn decode_with<S: SymbolSource>(
             band,
         };
         d.map.reset(extent);
-        d.node(&s, [0; 3], root_log(extent))?;
+        match root_log(extent) {
+            1 => d.leaf(&s, [0; 3])?,
+            log => d.node(&s, [0; 3], log)?,
+        }
     }
     if d.out.len() != count {
         return Err(invalid(

@@ -18,7 +18,7 @@
 //! tables, chosen by how many coded cells of the substream touch its three lower faces; larger
 //! nodes share one table. A node of 2×2×2 cells is followed by its coefficients in bit order:
 //! for each, its step symbol from the value table chosen by the mean bit length of its coded
-//! lower neighbours' steps (`value_table`), then its sign in the sign stream (context: band and
+//! lower neighbours' steps (`VALUE_TABLE_OF`), then its sign in the sign stream (context: band and
 //! the signs of its three lower neighbours, as the sigmap coder). A step symbol is q itself for
 //! q < 14, otherwise 13 + e followed by the e − 1 low bits of q − 13, which has e bits. Steps
 //! and reconstruction are the sigmap coder's ([`super::sigmap`]). The tables live in the header
@@ -82,7 +82,7 @@ pub const LEAF_MASK_TABLES: usize = 4;
 /// Mask tables: the leaf tables, then one for larger nodes.
 pub const MASK_TABLES: usize = LEAF_MASK_TABLES + 1;
 /// Value tables: no coded lower neighbour, or 1 + the mean magnitude class of those coded
-/// (`value_table`). (Separate tables for the finest and the coarser bands saved 0.15 % on
+/// (`VALUE_TABLE_OF`). (Separate tables for the finest and the coarser bands saved 0.15 % on
 /// the decode bench's file, less than their header cost on small files.)
 pub const VALUE_TABLES: usize = 16;
 /// Groups of value tables in rANS-coded files ([`RANS_VERSION`] on): the scaling band, the
@@ -326,19 +326,13 @@ fn bit_length_class(q: u64) -> u8 {
     (u64::BITS - q.leading_zeros()).min(31) as u8
 }
 
-/// The value table of a coefficient from its present lower neighbours' count `n` and summed
-/// magnitude classes: 0 without neighbours, else 1 + their rounded mean class (at most
-/// `VALUE_TABLES` − 2).
-#[inline(always)]
-fn value_table(n: usize, sum: usize) -> usize {
-    // Looked up rather than computed by cases: the count is as unpredictable as the data.
-    VALUE_TABLE_OF[n.min(3)][sum.min(MAX_CLASS_SUM)] as usize
-}
-
 /// The largest sum of three neighbours' magnitude classes ([`bit_length_class`]).
 const MAX_CLASS_SUM: usize = 3 * 31;
 
-/// [`value_table`] for every count and sum.
+/// The value table of a coefficient by its present lower neighbours' count `n` (first index)
+/// and summed magnitude classes (second): 0 without neighbours, else 1 + their rounded mean
+/// class (at most `VALUE_TABLES` − 2). Looked up rather than computed by cases: the count is
+/// as unpredictable as the data.
 static VALUE_TABLE_OF: [[u8; MAX_CLASS_SUM + 1]; 4] = {
     let mut t = [[0u8; MAX_CLASS_SUM + 1]; 4];
     let mut n = 1;
@@ -501,9 +495,23 @@ fn occupancy_table(face: usize, occupied_lower_siblings: u32) -> usize {
 /// bits cleared) are set in `mask`.
 #[inline(always)]
 fn occupied_lower_siblings(i: u32, mask: u32) -> u32 {
-    (i & 1 & (mask >> (i ^ 1)))
-        + (i >> 1 & 1 & (mask >> (i ^ 2)))
-        + (i >> 2 & 1 & (mask >> (i ^ 4)))
+    // Looked up: a load in place of a dozen instructions for every occupancy bit.
+    static TABLE: [[u8; 256]; 8] = {
+        let mut t = [[0u8; 256]; 8];
+        let mut i = 0;
+        while i < 8 {
+            let mut mask = 0;
+            while mask < 256 {
+                t[i][mask] = ((i & 1 & (mask >> (i ^ 1)))
+                    + (i >> 1 & 1 & (mask >> (i ^ 2)))
+                    + (i >> 2 & 1 & (mask >> (i ^ 4)))) as u8;
+                mask += 1;
+            }
+            i += 1;
+        }
+        t
+    };
+    TABLE[(i & 7) as usize][(mask & 255) as usize] as u32
 }
 
 /// Whether a node of edge 2^`log` codes its children's occupancy bit by bit: nodes of 4×4×4
@@ -550,7 +558,8 @@ fn child_origin(o: [u32; 3], i: u32, h: u32) -> [u32; 3] {
     ]
 }
 
-/// log2 of the root node's edge: the region's power-of-two bounding cube, at least 2.
+/// log2 of the root node's edge: the region's power-of-two bounding cube, an edge of at
+/// least 2 (a log of at least 1: a root of 2×2×2 cells for a region of at most 2 a side).
 fn root_log(extent: [u32; 3]) -> u32 {
     let side = extent.iter().copied().max().unwrap_or(1).max(2);
     u32::BITS - (side - 1).leading_zeros()
