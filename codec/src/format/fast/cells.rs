@@ -237,7 +237,7 @@ impl CellMap {
         }
     }
 
-    #[cfg(test)]
+    /// Enters cell `c`'s coefficient (its sign and step).
     pub(super) fn insert(&mut self, c: [u32; 3], negative: bool, q: u64) {
         let at = self.place(c);
         self.insert_at(c, at, negative, q);

@@ -3,7 +3,7 @@
 //! symbols, then writes each payload.
 
 use super::builtin;
-use super::cells::CellMap;
+use super::cells::{cell_entry, CellMap};
 use super::{
     allowed_children, child_origin, masks_bit_by_bit, occupancy_table, occupied_lower_siblings,
     raw_bits, raw_bits_halves, root_log, step_symbol, step_symbol_halves, value_base, FastTables,
@@ -200,6 +200,12 @@ impl PacketCoder {
         let child = |c: [u32; 3]| (0..3).map(|a| (c[a] >> (log - 1) & 1) << a).sum::<u32>();
         let mask = pts.iter().fold(0u8, |m, p| m | 1 << child(p.0));
         let h = 1u32 << (log - 1);
+        // As the decoder's: a node of 2×2×2 cells finds the cells around it once.
+        let mut leaf = if log == 1 {
+            self.map.leaf_node(o)
+        } else {
+            None
+        };
         if masks_bit_by_bit(s.sequential, log) {
             // As the decoder's `mask_bit_by_bit`.
             let faces = self.map.node4_face_states(o);
@@ -218,10 +224,10 @@ impl PacketCoder {
             }
             debug_assert_eq!(coded, mask as u32);
         } else {
-            let table = if log > 1 {
-                LEAF_MASK_TABLES
-            } else {
-                self.map.face_table(o)
+            let table = match (&leaf, log) {
+                (_, 2..) => LEAF_MASK_TABLES,
+                (Some(leaf), _) => leaf.face_table(),
+                (None, _) => self.map.face_table(o),
             };
             self.symbols.push(Symbol::mask(table, mask));
         }
@@ -238,7 +244,16 @@ impl PacketCoder {
         for &(cell, value) in pts {
             let negative = value < 0.0;
             let (q, magnitude) = s.quant.quantize((value as f64).abs());
-            let (sc, vc, at) = self.map.leaf_contexts(cell);
+            let (sc, vc, index) = match &leaf {
+                Some(leaf) => {
+                    let (sc, vc, index) = leaf.contexts(child(cell));
+                    (sc, vc, Some(index))
+                }
+                None => {
+                    let (sc, vc, _) = self.map.leaf_contexts(cell);
+                    (sc, vc, None)
+                }
+            };
             let (symbol, raw) = if s.sequential {
                 step_symbol_halves(q)
             } else {
@@ -248,7 +263,14 @@ impl PacketCoder {
                 .push(Symbol::step(s.value_base + vc, symbol, raw));
             self.signs
                 .encode_bit(&mut self.sign_models[s.bi * SIGN_CONTEXTS + sc], negative);
-            self.map.insert_at(cell, at, negative, q);
+            match (&mut leaf, index) {
+                (Some(leaf), Some(index)) => {
+                    let v = cell_entry(negative, q);
+                    leaf.set(child(cell), v);
+                    self.map.set_at(index, v);
+                }
+                _ => self.map.insert(cell, negative, q),
+            }
             let value = if negative { -magnitude } else { magnitude } as f32;
             self.recon.push(Coefficient::in_region(
                 s.channel, s.band, s.origin, cell, value,
