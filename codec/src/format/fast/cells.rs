@@ -270,8 +270,9 @@ impl CellMap {
     }
 
     /// The (sign, value) contexts of a cell: its three lower neighbours' signs (base 3) and the
-    /// bucketed sum of their (1 + magnitude class); and the cell's place, for
-    /// [`CellMap::insert_at`].
+    /// value table of their count and summed magnitude classes; and the cell's place, for
+    /// [`CellMap::insert_at`]. The coders walk a directory map's nodes of 2×2×2 cells as
+    /// [`CellMap::leaf_node`]s; this looks a cell up alone (a hashed map's cells, the tests).
     #[inline(always)]
     pub(super) fn leaf_contexts(&self, c: [u32; 3]) -> (usize, usize, CellPlace) {
         if self.use_directory {
@@ -309,10 +310,11 @@ impl CellMap {
 
     /// The node of 2×2×2 cells at `o` (even coordinates) in a directory map, as it is now: a
     /// brick not yet allocated reads as the empty brick, so nothing may be inserted into it
-    /// while this node is in use ([`CellMap::leaf_node`] allocates first).
+    /// while this node is in use ([`CellMap::leaf_node`] allocates first). `with_own`: whether
+    /// to read the node's own cells too (a cell's contexts looked up alone,
+    /// [`CellMap::leaf_contexts`], need its siblings coded before it; a node being walked has
+    /// none).
     #[inline(always)]
-    /// `with_own`: whether to read the node's own cells too (the encoder's per-cell contexts
-    /// need its siblings coded before; a node being walked has none).
     fn find_leaf(&self, o: [u32; 3], with_own: bool) -> LeafNode {
         let b = self.brick(o);
         let offset = brick_offset(o);
