@@ -426,7 +426,7 @@ impl<'a> RansDecoder<'a> {
     #[inline(always)]
     fn renormalized(&mut self, x: u32) -> u32 {
         let need = x < LOWER;
-        let word = u16::from_le_bytes(self.words.get(self.pos).copied().unwrap_or([0; 2])) as u32;
+        let word = self.peek_word() as u32;
         self.pos += usize::from(need);
         if need {
             x << 16 | word
@@ -435,9 +435,15 @@ impl<'a> RansDecoder<'a> {
         }
     }
 
+    /// The word at the position, 0 past the end.
+    #[inline(always)]
+    fn peek_word(&self) -> u16 {
+        u16::from_le_bytes(self.words.get(self.pos).copied().unwrap_or([0; 2]))
+    }
+
     #[inline(always)]
     fn word(&mut self) -> u16 {
-        let word = u16::from_le_bytes(self.words.get(self.pos).copied().unwrap_or([0; 2]));
+        let word = self.peek_word();
         self.pos += 1;
         word
     }

@@ -40,13 +40,6 @@ pub(super) struct CellMap {
     stride: [usize; 2],
 }
 
-/// A cell's place in the brick directory ([`CellMap::leaf_contexts`]).
-#[derive(Debug, Clone, Copy)]
-pub(super) struct CellPlace {
-    brick: usize,
-    offset: usize,
-}
-
 /// A node of 2×2×2 cells in a directory map, ready to give its children's contexts
 /// ([`CellMap::leaf_node`]): the same as [`CellMap::leaf_contexts`] gives, read from a copy of
 /// the node's cells and of the cells just below its lower faces made once a node, which its
@@ -226,30 +219,12 @@ impl CellMap {
         }
     }
 
-    /// Where cell `c` lives in the directory: its brick's index and its offset in the brick
-    /// (meaningless for a hashed map). [`CellMap::leaf_contexts`] returns it, so that the
-    /// insertion that follows does not compute it again.
-    #[inline(always)]
-    fn place(&self, c: [u32; 3]) -> CellPlace {
-        CellPlace {
-            brick: self.brick(c),
-            offset: brick_offset(c),
-        }
-    }
-
     /// Enters cell `c`'s coefficient (its sign and step).
     pub(super) fn insert(&mut self, c: [u32; 3], negative: bool, q: u64) {
-        let at = self.place(c);
-        self.insert_at(c, at, negative, q);
-    }
-
-    /// [`CellMap::insert`] at the place [`CellMap::leaf_contexts`] gave for `c`.
-    #[inline(always)]
-    pub(super) fn insert_at(&mut self, c: [u32; 3], at: CellPlace, negative: bool, q: u64) {
         let v = cell_entry(negative, q);
         if self.use_directory {
-            let slot = self.allocate(at.brick);
-            self.bricks[64 * slot + at.offset] = v;
+            let slot = self.allocate(self.brick(c));
+            self.bricks[64 * slot + brick_offset(c)] = v;
         } else {
             self.sparse.insert(c, v);
         }
@@ -270,17 +245,16 @@ impl CellMap {
     }
 
     /// The (sign, value) contexts of a cell: its three lower neighbours' signs (base 3) and the
-    /// value table of their count and summed magnitude classes; and the cell's place, for
-    /// [`CellMap::insert_at`]. The coders walk a directory map's nodes of 2×2×2 cells as
-    /// [`CellMap::leaf_node`]s; this looks a cell up alone (a hashed map's cells, the tests).
+    /// value table of their count and summed magnitude classes. The coders walk a directory
+    /// map's nodes of 2×2×2 cells as [`CellMap::leaf_node`]s; this looks a cell up alone (a
+    /// hashed map's cells, the tests).
     #[inline(always)]
-    pub(super) fn leaf_contexts(&self, c: [u32; 3]) -> (usize, usize, CellPlace) {
+    pub(super) fn leaf_contexts(&self, c: [u32; 3]) -> (usize, usize) {
         if self.use_directory {
             // As a child of its node of 2×2×2 cells.
             let i = c[0] & 1 | (c[1] & 1) << 1 | (c[2] & 1) << 2;
             let (sc, vc, _) = self.find_leaf(c.map(|v| v & !1), true).contexts(i);
-            // (Its brick may not be allocated yet: the insertion finds it.)
-            return (sc, vc, self.place(c));
+            return (sc, vc);
         }
         let (x, y, z) = (c[0], c[1], c[2]);
         let get = |dx: u32, dy: u32, dz: u32| {
@@ -290,8 +264,7 @@ impl CellMap {
                 self.get([x - dx, y - dy, z - dz])
             }
         };
-        let (sc, vc) = contexts_of_neighbours(get(1, 0, 0), get(0, 1, 0), get(0, 0, 1));
-        (sc, vc, self.place(c))
+        contexts_of_neighbours(get(1, 0, 0), get(0, 1, 0), get(0, 0, 1))
     }
 
     /// The node of 2×2×2 cells at `o` (even coordinates) made ready for its children's
@@ -604,8 +577,8 @@ mod tests {
                     1 + ((mean + 0.5).floor() as usize).min(VALUE_TABLES - 2)
                 };
                 let want = (sign, table);
-                let (ds, dv, _) = dense.leaf_contexts(c);
-                let (ss, sv, _) = sparse.leaf_contexts(c);
+                let (ds, dv) = dense.leaf_contexts(c);
+                let (ss, sv) = sparse.leaf_contexts(c);
                 assert_eq!((ds, dv), want, "round {round} {c:?}");
                 assert_eq!((ss, sv), want, "round {round} {c:?}");
                 // The node of 2×2×2 cells at the even corner below c gives c the same
@@ -620,9 +593,8 @@ mod tests {
                 }
                 let (ls, lv, index) = leaf.contexts(i);
                 assert_eq!((ls, lv), want, "round {round} {c:?} as child {i} of {o:?}");
-                let place = dense.place(c);
-                let slot = dense.directory[place.brick] as usize;
-                assert_eq!(index, 64 * slot + place.offset);
+                let slot = dense.directory[dense.brick(c)] as usize;
+                assert_eq!(index, 64 * slot + brick_offset(c));
                 assert!(sparse.leaf_node(o).is_none());
                 // Faces of that node.
                 let table = brute_face_state(&truth, o, |_| true);

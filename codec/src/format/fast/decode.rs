@@ -259,21 +259,26 @@ impl<S: SymbolSource> PacketDecoder<'_, S> {
             let i = m.trailing_zeros();
             m &= m - 1;
             let cell = child_origin(o, i, 1);
-            let (q, negative) = if let Some(leaf) = &mut leaf {
-                let (sc, vc, index) = leaf.contexts(i);
-                let q = self.source.step(s.value_base + vc)?;
-                let negative = self.signs.decode_bit(&mut models[sc]);
-                let v = cell_entry(negative, q);
-                leaf.set(i, v);
-                self.map.set_at(index, v);
-                (q, negative)
-            } else {
-                let (sc, vc, at) = self.map.leaf_contexts(cell);
-                let q = self.source.step(s.value_base + vc)?;
-                let negative = self.signs.decode_bit(&mut models[sc]);
-                self.map.insert_at(cell, at, negative, q);
-                (q, negative)
+            let (sc, vc, index) = match &leaf {
+                Some(leaf) => {
+                    let (sc, vc, index) = leaf.contexts(i);
+                    (sc, vc, Some(index))
+                }
+                None => {
+                    let (sc, vc) = self.map.leaf_contexts(cell);
+                    (sc, vc, None)
+                }
             };
+            let q = self.source.step(s.value_base + vc)?;
+            let negative = self.signs.decode_bit(&mut models[sc]);
+            match (&mut leaf, index) {
+                (Some(leaf), Some(index)) => {
+                    let v = cell_entry(negative, q);
+                    leaf.set(i, v);
+                    self.map.set_at(index, v);
+                }
+                _ => self.map.insert(cell, negative, q),
+            }
             let value = s.quant.signed_value(q, negative)?;
             self.out.push(Coefficient::in_region(
                 s.channel, s.band, s.origin, cell, value,

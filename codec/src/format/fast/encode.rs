@@ -244,13 +244,14 @@ impl PacketCoder {
         for &(cell, value) in pts {
             let negative = value < 0.0;
             let (q, magnitude) = s.quant.quantize((value as f64).abs());
+            let i = child(cell);
             let (sc, vc, index) = match &leaf {
                 Some(leaf) => {
-                    let (sc, vc, index) = leaf.contexts(child(cell));
+                    let (sc, vc, index) = leaf.contexts(i);
                     (sc, vc, Some(index))
                 }
                 None => {
-                    let (sc, vc, _) = self.map.leaf_contexts(cell);
+                    let (sc, vc) = self.map.leaf_contexts(cell);
                     (sc, vc, None)
                 }
             };
@@ -266,7 +267,7 @@ impl PacketCoder {
             match (&mut leaf, index) {
                 (Some(leaf), Some(index)) => {
                     let v = cell_entry(negative, q);
-                    leaf.set(child(cell), v);
+                    leaf.set(i, v);
                     self.map.set_at(index, v);
                 }
                 _ => self.map.insert(cell, negative, q),
