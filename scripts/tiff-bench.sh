@@ -1,9 +1,11 @@
 #!/usr/bin/env bash
 # Compresses one generated volume from a raw file, a directory of TIFF slices (Deflate), a
-# multi-page BigTIFF (uncompressed) and a multi-file OME-TIFF (four uncompressed files, the
-# first's OME-XML placing every plane, as Micro-Manager writes one), brick by brick, and prints
-# each run's wall time and peak RSS: what reading a TIFF stack costs against raw samples. Needs
-# python3 with numpy and tifffile (Debian: python3-numpy python3-tifffile) and a release build.
+# multi-page BigTIFF (uncompressed), a multi-file OME-TIFF (four uncompressed files, the
+# first's OME-XML placing every plane, as Micro-Manager writes one) and a multi-page BigTIFF
+# whose pages are one Deflate strip each (as some writers store a compressed page), brick by
+# brick, and prints each run's wall time and peak RSS: what reading a TIFF stack costs against
+# raw samples. Needs python3 with numpy and tifffile (Debian: python3-numpy python3-tifffile)
+# and a release build.
 #
 #   bash scripts/tiff-bench.sh [SIDE=512] [DEPTH=SIDE] [BRICK=256] [OUT=/tmp/wavesplat-tiff-bench]
 set -euo pipefail
@@ -39,6 +41,7 @@ xml = (f'<?xml version="1.0" encoding="UTF-8"?><OME UUID="urn:uuid:0"><Image ID=
        f'<Pixels ID="Pixels:0" DimensionOrder="XYZCT" Type="uint16" SizeX="{side}" '
        f'SizeY="{side}" SizeZ="{depth}" SizeC="1" SizeT="1">{tiff_data}</Pixels></Image></OME>')
 ome = None
+strip = tifffile.TiffWriter(f"{out}/one_strip.tif", bigtiff=True)
 with tifffile.TiffWriter(f"{out}/multi.tif", bigtiff=True) as multi:
     for z in range(depth):
         t = z / depth
@@ -49,6 +52,7 @@ with tifffile.TiffWriter(f"{out}/multi.tif", bigtiff=True) as multi:
         raw.write(s.tobytes())
         tifffile.imwrite(f"{out}/slices/slice_{z}.tif", s, compression="zlib")
         multi.write(s, contiguous=False)
+        strip.write(s, compression="zlib", rowsperstrip=side, contiguous=False)
         if z % per == 0:
             if ome is not None:
                 ome.close()
@@ -59,10 +63,11 @@ with tifffile.TiffWriter(f"{out}/multi.tif", bigtiff=True) as multi:
         else:
             ome.write(s, contiguous=False, metadata=None)
 ome.close()
+strip.close()
 raw.close()
 EOF
 fi
-for input in "$raw" "$out/slices" "$out/multi.tif" "$out/ome/acq.ome.tif"; do
+for input in "$raw" "$out/slices" "$out/multi.tif" "$out/ome/acq.ome.tif" "$out/one_strip.tif"; do
   /usr/bin/time -f "%e s wall, %M kB peak" "$bin" compress "$input" --brick "$brick" \
     --target-fraction 0.01 --effort fast -o "$out/out.wsp" 2> "$out/time.txt" > /dev/null
   echo "$(basename "$input"): $(tail -1 "$out/time.txt"), $(stat -c %s "$out/out.wsp") bytes"

@@ -29,7 +29,9 @@
 //! Decoding is the `tiff` crate's (image-rs): this module picks the pages, checks that they form
 //! one volume, and reads a region's slices chunk by chunk (a strip or a tile), decoding only the
 //! chunks the region covers, and uncompressed strips as bytes, only the region's rows
-//! ([`TiffRegions`]), so that a stack larger than memory is read brick by brick.
+//! ([`TiffRegions`]), so that a stack larger than memory is read brick by brick. A compressed
+//! chunk that several regions share (a page in one strip under all the bricks of a plane) is
+//! decoded into a temporary file once they share it, not again for each (`spool`).
 
 use std::fs::File;
 use std::io::{BufReader, Cursor, Read, Seek};
@@ -39,6 +41,9 @@ use ::tiff::decoder::{ChunkType, Decoder, DecodingResult, Limits};
 use ::tiff::tags::Tag;
 use ::tiff::ColorType;
 
+mod spool;
+
+use self::spool::ChunkSpool;
 use super::{deinterleave, Endian, ReadError, SampleType, SourceFiles};
 use wavesplat_codec::volume::{checked_voxels, Volume};
 
@@ -1751,7 +1756,9 @@ fn samples(data: &DecodingResult) -> usize {
 }
 
 /// Decodes the chunks of the current page that meet columns `x0..x1` and rows `y0..y1` into
-/// `out` (see [`place`]).
+/// `out` (see [`place`]). With a spool (and the page's slice), a chunk reaching outside those
+/// columns or rows is decoded once for all the regions that share it ([`ChunkSpool`]).
+#[allow(clippy::too_many_arguments)]
 fn read_page<R: Read + Seek>(
     d: &mut Decoder<R>,
     path: &Path,
@@ -1760,6 +1767,7 @@ fn read_page<R: Read + Seek>(
     (x0, x1, y0, y1): (usize, usize, usize, usize),
     out: &mut [Vec<f32>],
     base: usize,
+    spool: Option<(&ChunkSpool, usize)>,
 ) -> Result<(), ReadError> {
     let (cw, ch) = d.chunk_dimensions();
     let (cw, ch) = (cw.max(1) as usize, ch.max(1) as usize);
@@ -1784,17 +1792,42 @@ fn read_page<R: Read + Seek>(
                     format!("page {page} has {chunks} strips or tiles; its size needs more"),
                 ));
             }
-            let data = d.read_chunk(i as u32).map_err(|e| failed(path, e))?;
             let (dw, dh) = d.chunk_data_dimensions(i as u32);
             let (dw, dh) = (dw as usize, dh as usize);
-            if samples(&data) < dw * dh * shape.channels {
-                return Err(bad(
-                    path,
-                    format!("page {page}: a strip or tile holds fewer samples than its size"),
-                ));
+            let (cx, cy) = (col * cw, row * ch);
+            let mut decode = || -> Result<DecodingResult, ReadError> {
+                if let Some((spool, _)) = spool {
+                    spool.count_decoded();
+                }
+                let data = d.read_chunk(i as u32).map_err(|e| failed(path, e))?;
+                if samples(&data) < dw * dh * shape.channels {
+                    return Err(bad(
+                        path,
+                        format!("page {page}: a strip or tile holds fewer samples than its size"),
+                    ));
+                }
+                Ok(data)
+            };
+            let shared = cx < x0 || cx + dw > x1 || cy < y0 || cy + dh > y1;
+            if let (Some((spool, slice)), true) = (spool, shared) {
+                let size = (dw * shape.channels, dh);
+                let spooled = spool.get_or_spool(slice, i as u32, size, || decode().ok());
+                let (ya, yb) = (y0.max(cy), y1.min(cy + dh));
+                if let Some(rows) = spooled.and_then(|s| spool.rows(&s, ya - cy, yb - cy)) {
+                    let at = (cx, ya, dw, yb - ya);
+                    place(&rows, at, (x0, x1, y0, y1), shape.channels, out, base);
+                    continue;
+                }
             }
-            let at = (col * cw, row * ch, dw, dh);
-            place(&data, at, (x0, x1, y0, y1), shape.channels, out, base);
+            let data = decode()?;
+            place(
+                &data,
+                (cx, cy, dw, dh),
+                (x0, x1, y0, y1),
+                shape.channels,
+                out,
+                base,
+            );
         }
     }
     Ok(())
@@ -1876,7 +1909,16 @@ pub(crate) fn decode_channel(
         let (_, d) = open.as_mut().expect("opened above");
         d.seek_to_image(p).map_err(|e| failed(&paths[f], e))?;
         let whole = (0, dims[0], 0, dims[1]);
-        read_page(d, &paths[f], p, &stack.shape, whole, &mut out, z * slice)?;
+        read_page(
+            d,
+            &paths[f],
+            p,
+            &stack.shape,
+            whole,
+            &mut out,
+            z * slice,
+            None,
+        )?;
     }
     Volume::new(dims, stack.spacing, out)
         .map(|v| (v, stack.channel_planes()))
@@ -1894,6 +1936,9 @@ pub(crate) struct TiffRegions {
     raw: Vec<Option<RawStrips>>,
     /// The samples' type, for the pages read as bytes.
     sample: Option<SampleType>,
+    /// Chunks shared by regions (a page in one compressed strip, under bricks side by side),
+    /// decoded once.
+    spool: ChunkSpool,
 }
 
 /// An uncompressed page in strips: where each strip starts, how many rows it holds, and the
@@ -2013,6 +2058,7 @@ impl TiffRegions {
             stack,
             raw,
             sample,
+            spool: ChunkSpool::default(),
         })
     }
 
@@ -2122,7 +2168,8 @@ impl TiffRegions {
                     reason: format!("page {p} changed since the stack was opened"),
                 });
             }
-            read_page(d, path, p, &self.stack.shape, window, &mut out, base)?;
+            let spool = Some((&self.spool, slice));
+            read_page(d, path, p, &self.stack.shape, window, &mut out, base, spool)?;
         }
         Ok(out)
     }
@@ -2220,6 +2267,83 @@ mod tests {
             assert_eq!(a, decoded.read(0, origin, size).unwrap(), "{origin:?}");
             let first = (origin[2] * 1000 + (origin[1] * w + origin[0]) * 7) as f32;
             assert_eq!(a[0][0], first);
+        }
+    }
+
+    /// A compressed strip under several regions (a page in one Deflate strip, or strips of
+    /// full rows under bricks side by side) is decoded twice for all of them (the second time
+    /// into the spool), from threads at once too, and the regions read what decoding the whole
+    /// gives; a reader of one region spools nothing.
+    #[test]
+    fn a_compressed_strip_shared_by_regions_is_decoded_twice_for_all() {
+        use ::tiff::encoder::{colortype::Gray16, Compression, DeflateLevel, TiffEncoder};
+        let dir = tempfile::tempdir().unwrap();
+        let (w, h, pages) = (13usize, 11usize, 4usize);
+        for rows in [h, 4] {
+            let path = dir.path().join(format!("deflate_{rows}.tif"));
+            {
+                let file = File::create(&path).unwrap();
+                let mut e = TiffEncoder::new(file)
+                    .unwrap()
+                    .with_compression(Compression::Deflate(DeflateLevel::Fast));
+                for z in 0..pages as u16 {
+                    let data: Vec<u16> = (0..(w * h) as u16).map(|i| i * 7 + z * 1000).collect();
+                    let mut image = e.new_image::<Gray16>(w as u32, h as u32).unwrap();
+                    image.rows_per_strip(rows as u32).unwrap();
+                    image.write_data(&data).unwrap();
+                }
+            }
+            let whole = TiffRegions::open(&path, None).unwrap();
+            assert!(whole.raw.iter().all(Option::is_none), "compressed: decoded");
+            let all = whole.read(0, [0, 0, 0], [w, h, pages]).unwrap().remove(0);
+            let strips = pages * h.div_ceil(rows);
+            assert_eq!(whole.spool.decoded(), strips, "the whole: each strip once");
+            assert!(!whole.spool.has_file(), "nothing shared, nothing spooled");
+            // Bricks of 5 × 4 × 3 voxels over the volume, read by two threads at once.
+            let bricks = TiffRegions::open(&path, None).unwrap();
+            let mut boxes = Vec::new();
+            for z0 in (0..pages).step_by(3) {
+                for y0 in (0..h).step_by(4) {
+                    for x0 in (0..w).step_by(5) {
+                        let size = [(w - x0).min(5), (h - y0).min(4), (pages - z0).min(3)];
+                        boxes.push(([x0, y0, z0], size));
+                    }
+                }
+            }
+            let (even, odd): (Vec<_>, Vec<_>) =
+                boxes.iter().enumerate().partition(|(i, _)| i % 2 == 0);
+            std::thread::scope(|scope| {
+                for half in [even, odd] {
+                    let (bricks, all) = (&bricks, &all);
+                    scope.spawn(move || {
+                        for (_, &(origin, size)) in half {
+                            let got = bricks.read(0, origin, size).unwrap().remove(0);
+                            for (j, v) in got.iter().enumerate() {
+                                let (x, y, z) =
+                                    (j % size[0], j / size[0] % size[1], j / size[0] / size[1]);
+                                let at = ((origin[2] + z) * h + origin[1] + y) * w + origin[0] + x;
+                                assert_eq!(*v, all[at], "{rows} rows a strip, {origin:?} {size:?}");
+                            }
+                        }
+                    });
+                }
+            });
+            assert_eq!(
+                bricks.spool.decoded(),
+                2 * strips,
+                "{rows} rows a strip: each strip twice"
+            );
+            assert!(bricks.spool.has_file());
+            // One brick of a reader of its own (a worker's brick job) spools nothing.
+            let one = TiffRegions::open(&path, None).unwrap();
+            let brick = one.read(0, [5, 4, 0], [5, 4, pages]).unwrap().remove(0);
+            assert_eq!(brick[0], all[4 * w + 5]);
+            // Rows 4..8 lie in one strip of a page at either strip height.
+            assert_eq!(one.spool.decoded(), pages);
+            assert!(
+                !one.spool.has_file(),
+                "{rows} rows a strip: one region, no spool"
+            );
         }
     }
 
