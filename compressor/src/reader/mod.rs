@@ -23,6 +23,7 @@ pub mod nifti;
 pub mod nrrd;
 pub mod raw;
 pub mod region;
+mod spool;
 pub mod steps;
 mod text;
 pub(crate) mod tiff_stack;

@@ -31,7 +31,7 @@
 //! chunks the region covers, and uncompressed strips as bytes, only the region's rows
 //! ([`TiffRegions`]), so that a stack larger than memory is read brick by brick. A compressed
 //! chunk that several regions share (a page in one strip under all the bricks of a plane) is
-//! decoded into a temporary file once they share it, not again for each (`spool`).
+//! decoded into a temporary file once they share it, not again for each (`crate::reader::spool`).
 
 use std::fs::File;
 use std::io::{BufReader, Cursor, Read, Seek};
@@ -41,9 +41,9 @@ use ::tiff::decoder::{ChunkType, Decoder, DecodingResult, Limits};
 use ::tiff::tags::Tag;
 use ::tiff::ColorType;
 
-mod spool;
+mod spooled;
 
-use self::spool::ChunkSpool;
+use self::spooled::TiffSpool;
 use super::{deinterleave, Endian, ReadError, SampleType, SourceFiles};
 use wavesplat_codec::volume::{checked_voxels, Volume};
 
@@ -1757,7 +1757,7 @@ fn samples(data: &DecodingResult) -> usize {
 
 /// Decodes the chunks of the current page that meet columns `x0..x1` and rows `y0..y1` into
 /// `out` (see [`place`]). With a spool (and the page's slice), a chunk reaching outside those
-/// columns or rows is decoded once for all the regions that share it ([`ChunkSpool`]).
+/// columns or rows is decoded once for all the regions that share it ([`spooled`]).
 #[allow(clippy::too_many_arguments)]
 fn read_page<R: Read + Seek>(
     d: &mut Decoder<R>,
@@ -1767,7 +1767,7 @@ fn read_page<R: Read + Seek>(
     (x0, x1, y0, y1): (usize, usize, usize, usize),
     out: &mut [Vec<f32>],
     base: usize,
-    spool: Option<(&ChunkSpool, usize)>,
+    spool: Option<(&TiffSpool, usize)>,
 ) -> Result<(), ReadError> {
     let (cw, ch) = d.chunk_dimensions();
     let (cw, ch) = (cw.max(1) as usize, ch.max(1) as usize);
@@ -1810,10 +1810,12 @@ fn read_page<R: Read + Seek>(
             };
             let shared = cx < x0 || cx + dw > x1 || cy < y0 || cy + dh > y1;
             if let (Some((spool, slice)), true) = (spool, shared) {
-                let size = (dw * shape.channels, dh);
-                let spooled = spool.get_or_spool(slice, i as u32, size, || decode().ok());
+                let spooled = spool.get_or_spool((slice, i as u32), || {
+                    spooled::to_spool(&decode().ok()?, dw * shape.channels, dh)
+                });
                 let (ya, yb) = (y0.max(cy), y1.min(cy + dh));
-                if let Some(rows) = spooled.and_then(|s| spool.rows(&s, ya - cy, yb - cy)) {
+                let rows = spooled.and_then(|s| spooled::rows(spool, &s, ya - cy, yb - cy));
+                if let Some(rows) = rows {
                     let at = (cx, ya, dw, yb - ya);
                     place(&rows, at, (x0, x1, y0, y1), shape.channels, out, base);
                     continue;
@@ -1938,7 +1940,7 @@ pub(crate) struct TiffRegions {
     sample: Option<SampleType>,
     /// Chunks shared by regions (a page in one compressed strip, under bricks side by side),
     /// decoded once.
-    spool: ChunkSpool,
+    spool: TiffSpool,
 }
 
 /// An uncompressed page in strips: where each strip starts, how many rows it holds, and the
@@ -2058,7 +2060,7 @@ impl TiffRegions {
             stack,
             raw,
             sample,
-            spool: ChunkSpool::default(),
+            spool: TiffSpool::default(),
         })
     }
 
