@@ -30,13 +30,14 @@ use std::path::{Path, PathBuf};
 use std::sync::{Arc, OnceLock};
 
 use serde_json::Value;
-use zarrs::array::{data_type, Array, ArrayShardedExt};
+use zarrs::array::{data_type, Array, ArrayShardedExt, ArraySubset};
 use zarrs::storage::byte_range::{ByteRange, ByteRangeIterator, InvalidByteRangeError};
 use zarrs::storage::{
     MaybeBytesIterator, ReadableStorage, ReadableStorageTraits, StorageError, StoreKey,
     WritableStorageTraits,
 };
 
+use super::spool::{ChunkSpool, NativeBytes};
 use super::{ReadError, SampleType, SourceFiles};
 use wavesplat_codec::format::series::MAX_TIME_POINTS;
 use wavesplat_codec::volume::{checked_voxels, Volume};
@@ -107,6 +108,9 @@ pub(crate) struct ZarrVolume {
     time_step: Option<f64>,
     /// A decoded chunk's bytes (an inner chunk's, of an array sharded and nothing else).
     chunk_bytes: u64,
+    /// Chunks that several regions share (a chunk of one whole plane under bricks side by
+    /// side), decoded once they share them, by their grid indices.
+    spool: ChunkSpool<Vec<u64>, ()>,
 }
 
 impl std::fmt::Debug for ZarrVolume {
@@ -378,6 +382,7 @@ impl ZarrVolume {
             spacing,
             time_step,
             chunk_bytes: chunk_bytes as u64,
+            spool: ChunkSpool::default(),
         })
     }
 
@@ -444,8 +449,16 @@ impl ZarrVolume {
                 ),
             )
         })?;
+        let shared = self.shared_chunks(&ranges)?;
         macro_rules! gather {
             ($t:ty, $conv:expr) => {{
+                if let Some(chunks) = &shared {
+                    out.resize(n, 0.0);
+                    for chunk in chunks {
+                        self.read_chunk::<$t>(chunk, &ranges, origin, size, &mut out, $conv)?;
+                    }
+                    return Ok(out);
+                }
                 let v: Vec<$t> = guarded(&self.path, || self.array.retrieve_array_subset(&ranges))?
                     .map_err(failed)?;
                 let conv = $conv;
@@ -458,7 +471,17 @@ impl ZarrVolume {
             }};
         }
         match self.sample {
-            None => gather!(bool, |v: bool| f32::from(u8::from(v))),
+            None => {
+                let v: Vec<bool> =
+                    guarded(&self.path, || self.array.retrieve_array_subset(&ranges))?
+                        .map_err(failed)?;
+                for z in 0..size[2] {
+                    for y in 0..size[1] {
+                        let row = z * s[2] + y * s[1];
+                        out.extend((0..size[0]).map(|x| f32::from(u8::from(v[row + x * s[0]]))));
+                    }
+                }
+            }
             Some(SampleType::U8) => gather!(u8, f32::from),
             Some(SampleType::I8) => gather!(i8, f32::from),
             Some(SampleType::U16) => gather!(u16, f32::from),
@@ -471,6 +494,199 @@ impl ZarrVolume {
             Some(SampleType::F64) => gather!(f64, |v: f64| v as f32),
         }
         Ok(out)
+    }
+}
+
+impl ZarrVolume {
+    /// The chunks the box `ranges` meets, where some of them reach outside it and other
+    /// regions will decode them too (`None`: the box is read in one call, as `zarrs` reads it).
+    /// Arrays of booleans, sharded arrays (a shard decodes by its inner chunks) and boxes of
+    /// more than [`MAX_CHUNKS_ONE_BY_ONE`] chunks are read in one call.
+    fn shared_chunks(&self, ranges: &[Range<u64>]) -> Result<Option<Vec<Vec<u64>>>, ReadError> {
+        if self.sample.is_none() || self.array.is_sharded() {
+            return Ok(None);
+        }
+        let grid = |e: &dyn std::fmt::Display| ReadError::Data {
+            path: self.path.clone(),
+            format: FORMAT,
+            reason: format!("the chunks of the box {ranges:?}: {e}"),
+        };
+        let subset = ArraySubset::new_with_ranges(ranges);
+        let Some(within) = self
+            .array
+            .chunks_in_array_subset(&subset)
+            .map_err(|e| grid(&e))?
+        else {
+            return Ok(None);
+        };
+        if within.num_elements() > MAX_CHUNKS_ONE_BY_ONE {
+            return Ok(None);
+        }
+        let mut chunks = Vec::new();
+        let mut reaches_out = false;
+        for c in &within.indices() {
+            let chunk = self.array.chunk_subset_bounded(&c).map_err(|e| grid(&e))?;
+            reaches_out |= chunk
+                .to_ranges()
+                .iter()
+                .zip(ranges)
+                .any(|(c, r)| c.start < r.start || c.end > r.end);
+            chunks.push(c.to_vec());
+        }
+        Ok(reaches_out.then_some(chunks))
+    }
+
+    /// Adds the samples of chunk `chunk` inside the box `ranges` (a region at `origin` of
+    /// `size`) to `out` (x fastest): from the spool where the chunk reaches outside the box and
+    /// another region has needed it, else decoded by `zarrs`, only the part inside the box.
+    fn read_chunk<T: NativeBytes + zarrs::array::ElementOwned>(
+        &self,
+        chunk: &[u64],
+        ranges: &[Range<u64>],
+        origin: [usize; 3],
+        size: [usize; 3],
+        out: &mut [f32],
+        conv: impl Fn(T) -> f32,
+    ) -> Result<(), ReadError> {
+        let failed = |e: &dyn std::fmt::Display| ReadError::Data {
+            path: self.path.clone(),
+            format: FORMAT,
+            reason: format!("reading chunk {chunk:?} of the array: {e}"),
+        };
+        // The chunk's own grid (beyond the array's end at its edge, as zarrs decodes it).
+        let whole = self
+            .array
+            .chunk_subset(chunk)
+            .map_err(|e| failed(&e))?
+            .to_ranges();
+        let inside: Vec<Range<u64>> = whole
+            .iter()
+            .zip(ranges)
+            .map(|(c, r)| c.start.max(r.start)..c.end.min(r.end))
+            .collect();
+        if inside.iter().any(|r| r.start >= r.end) {
+            return Ok(());
+        }
+        let bounded = self
+            .array
+            .chunk_subset_bounded(chunk)
+            .map_err(|e| failed(&e))?;
+        let reaches_out = bounded
+            .to_ranges()
+            .iter()
+            .zip(ranges)
+            .any(|(c, r)| c.start < r.start || c.end > r.end);
+        let place = Placing {
+            space_axes: self.space_axes,
+            origin,
+            size,
+        };
+        if reaches_out {
+            let spooled = self.spool.get_or_spool(chunk.to_vec(), || {
+                self.spool.count_decoded();
+                let v: Vec<T> = guarded(&self.path, || self.array.retrieve_chunk(chunk))
+                    .ok()?
+                    .ok()?;
+                Some(((), T::to_bytes(&v)))
+            });
+            if let Some(s) = spooled {
+                // The bytes from the box's first sample in the chunk to its last.
+                let strides = c_strides(&whole);
+                let at = |corner: &dyn Fn(&Range<u64>) -> u64| -> usize {
+                    (0..whole.len())
+                        .map(|d| (corner(&inside[d]) - whole[d].start) as usize * strides[d])
+                        .sum()
+                };
+                let (first, last) = (at(&|r| r.start), at(&|r| r.end - 1));
+                let mut bytes = vec![0u8; (last + 1 - first) * T::SIZE];
+                if self
+                    .spool
+                    .read(&s, (first * T::SIZE) as u64, &mut bytes)
+                    .is_some()
+                {
+                    let v = T::from_bytes(&bytes);
+                    place.copy(&v, first, &whole, &inside, out, &conv);
+                    return Ok(());
+                }
+            }
+        }
+        self.spool.count_decoded();
+        let v: Vec<T> = guarded(&self.path, || self.array.retrieve_array_subset(&inside))?
+            .map_err(|e| failed(&e))?;
+        place.copy(&v, 0, &inside, &inside, out, &conv);
+        Ok(())
+    }
+}
+
+/// Chunks a box may meet and still be read one chunk at a time (beyond it, one call to
+/// `zarrs`, which decodes its chunks in parallel).
+const MAX_CHUNKS_ONE_BY_ONE: u64 = 4096;
+
+/// Strides of a C-order block over `block`.
+fn c_strides(block: &[Range<u64>]) -> Vec<usize> {
+    let mut strides = vec![1usize; block.len()];
+    for d in (0..block.len().saturating_sub(1)).rev() {
+        strides[d] = strides[d + 1] * (block[d + 1].end - block[d + 1].start) as usize;
+    }
+    strides
+}
+
+/// Where the array's samples go in a region (x fastest).
+struct Placing {
+    /// For x, y, z: the array axis holding it.
+    space_axes: [usize; 3],
+    origin: [usize; 3],
+    size: [usize; 3],
+}
+
+impl Placing {
+    /// Copies the samples of the box `inside` from `src`, a C-order block over `block` whose
+    /// first `skip` samples are left out, into `out`.
+    fn copy<T: Copy>(
+        &self,
+        src: &[T],
+        skip: usize,
+        block: &[Range<u64>],
+        inside: &[Range<u64>],
+        out: &mut [f32],
+        conv: &impl Fn(T) -> f32,
+    ) {
+        let rank = block.len();
+        let strides = c_strides(block);
+        let mut out_stride = vec![0usize; rank];
+        let mut out_origin = vec![0u64; rank];
+        let region = [1, self.size[0], self.size[0] * self.size[1]];
+        for k in 0..3 {
+            out_stride[self.space_axes[k]] = region[k];
+            out_origin[self.space_axes[k]] = self.origin[k] as u64;
+        }
+        let last = rank - 1;
+        let run = (inside[last].end - inside[last].start) as usize;
+        let mut at: Vec<u64> = inside.iter().map(|r| r.start).collect();
+        loop {
+            let (mut s, mut o) = (0usize, 0usize);
+            for d in 0..rank {
+                s += (at[d] - block[d].start) as usize * strides[d];
+                o += at[d].saturating_sub(out_origin[d]) as usize * out_stride[d];
+            }
+            let s = s - skip;
+            for (j, v) in src[s..s + run].iter().enumerate() {
+                out[o + j * out_stride[last]] = conv(*v);
+            }
+            // The next row of the box: the axes before the last, the last of them fastest.
+            let mut d = last;
+            loop {
+                if d == 0 {
+                    return;
+                }
+                d -= 1;
+                at[d] += 1;
+                if at[d] < inside[d].end {
+                    break;
+                }
+                at[d] = inside[d].start;
+            }
+        }
     }
 }
 
@@ -1257,4 +1473,166 @@ pub(crate) fn decode(src: &SourceFiles, channel: Option<usize>) -> Result<Volume
     }
     let samples = z.read(0, [0; 3], z.dims)?;
     Volume::new(z.dims, z.spacing, vec![samples]).map_err(|e| ReadError::volume(&src.origin, e))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A Zarr v2 array of u16 samples `value(position)` (array axes, C order), uncompressed,
+    /// with `attrs` as its `.zattrs`.
+    fn store(dir: &Path, shape: &[u64], chunks: &[u64], attrs: &str, value: fn(&[u64]) -> u16) {
+        let list = |v: &[u64]| v.iter().map(u64::to_string).collect::<Vec<_>>().join(", ");
+        let meta = format!(
+            r#"{{"zarr_format": 2, "shape": [{}], "chunks": [{}], "dtype": "<u2",
+                "compressor": null, "fill_value": 0, "order": "C", "filters": null}}"#,
+            list(shape),
+            list(chunks)
+        );
+        std::fs::create_dir_all(dir).unwrap();
+        std::fs::write(dir.join(".zarray"), meta).unwrap();
+        std::fs::write(dir.join(".zattrs"), attrs).unwrap();
+        let grid: Vec<u64> = shape
+            .iter()
+            .zip(chunks)
+            .map(|(s, c)| s.div_ceil(*c))
+            .collect();
+        for c in &ArraySubset::new_with_shape(grid).indices() {
+            let start: Vec<u64> = c.iter().zip(chunks).map(|(i, n)| i * n).collect();
+            let ranges: Vec<Range<u64>> =
+                start.iter().zip(chunks).map(|(s, n)| *s..s + n).collect();
+            let mut bytes = Vec::new();
+            for p in &ArraySubset::new_with_ranges(&ranges).indices() {
+                bytes.extend_from_slice(&value(&p).to_le_bytes());
+            }
+            let key = c.iter().map(u64::to_string).collect::<Vec<_>>().join(".");
+            std::fs::write(dir.join(key), bytes).unwrap();
+        }
+    }
+
+    /// Chunks that reach outside the regions read (whole planes, chunks across the bricks'
+    /// faces, chunks past the array's edge) are decoded twice for all the regions that share
+    /// them, the second time into the spool, from threads at once too; each region reads what
+    /// the samples are, in every axis order; a region that holds its chunks whole reads them
+    /// as before, and one region alone spools nothing.
+    #[test]
+    fn chunks_shared_by_regions_are_decoded_twice_for_all() {
+        let dir = tempfile::tempdir().unwrap();
+        let zyx = |p: &[u64]| (p[0] * 1000 + p[1] * 40 + p[2]) as u16;
+        let xyz = |p: &[u64]| (p[2] * 1000 + p[1] * 40 + p[0]) as u16;
+        let tzyx = |p: &[u64]| (p[0] * 20000 + p[1] * 1000 + p[2] * 40 + p[3]) as u16;
+        let names = |n: &str| format!(r#"{{"_ARRAY_DIMENSIONS": [{n}]}}"#);
+        // (name, shape, chunks, axis names, value, time point read, chunks in the grid)
+        #[allow(clippy::type_complexity)]
+        let cases: [(
+            &str,
+            Vec<u64>,
+            Vec<u64>,
+            String,
+            fn(&[u64]) -> u16,
+            usize,
+            usize,
+        ); 4] = [
+            (
+                "planes",
+                vec![5, 11, 13],
+                vec![1, 11, 13],
+                names(r#""z", "y", "x""#),
+                zyx,
+                0,
+                5,
+            ),
+            (
+                "x_slowest",
+                vec![13, 11, 5],
+                vec![13, 11, 1],
+                names(r#""x", "y", "z""#),
+                xyz,
+                0,
+                5,
+            ),
+            (
+                "ragged",
+                vec![5, 11, 13],
+                vec![2, 6, 8],
+                names(r#""z", "y", "x""#),
+                zyx,
+                0,
+                12,
+            ),
+            (
+                "time",
+                vec![2, 5, 11, 13],
+                vec![1, 1, 11, 13],
+                names(r#""t", "z", "y", "x""#),
+                tzyx,
+                1,
+                5,
+            ),
+        ];
+        for (name, shape, chunks, attrs, value, t, count) in cases {
+            let path = dir.path().join(name);
+            store(&path, &shape, &chunks, &attrs, value);
+            let z = ZarrVolume::open(&path, None).unwrap();
+            assert_eq!(z.dims(), [13, 11, 5], "{name}");
+            let sample = |x: usize, y: usize, zz: usize| -> f32 {
+                let p: Vec<u64> = match name {
+                    "x_slowest" => vec![x as u64, y as u64, zz as u64],
+                    "time" => vec![t as u64, zz as u64, y as u64, x as u64],
+                    _ => vec![zz as u64, y as u64, x as u64],
+                };
+                f32::from(value(&p))
+            };
+            let check = |origin: [usize; 3], size: [usize; 3], got: &[f32]| {
+                for (j, v) in got.iter().enumerate() {
+                    let (x, y, zz) = (j % size[0], j / size[0] % size[1], j / size[0] / size[1]);
+                    let want = sample(origin[0] + x, origin[1] + y, origin[2] + zz);
+                    assert_eq!(*v, want, "{name}: {origin:?} {size:?} at {j}");
+                }
+            };
+            let whole = z.read(t, [0; 3], [13, 11, 5]).unwrap();
+            check([0; 3], [13, 11, 5], &whole);
+            assert!(!z.spool.has_file(), "{name}: the whole holds its chunks");
+            // Bricks of 5 × 4 × 3 voxels, read by two threads at once.
+            let bricks = ZarrVolume::open(&path, None).unwrap();
+            let mut boxes = Vec::new();
+            for z0 in (0..5).step_by(3) {
+                for y0 in (0..11).step_by(4) {
+                    for x0 in (0..13).step_by(5) {
+                        boxes.push((
+                            [x0, y0, z0],
+                            [(13 - x0).min(5), (11 - y0).min(4), (5 - z0).min(3)],
+                        ));
+                    }
+                }
+            }
+            let (even, odd): (Vec<_>, Vec<_>) =
+                boxes.iter().enumerate().partition(|(i, _)| i % 2 == 0);
+            std::thread::scope(|scope| {
+                for half in [even, odd] {
+                    let (bricks, check) = (&bricks, &check);
+                    scope.spawn(move || {
+                        for (_, &(origin, size)) in half {
+                            check(origin, size, &bricks.read(t, origin, size).unwrap());
+                        }
+                    });
+                }
+            });
+            assert!(bricks.spool.has_file(), "{name}");
+            // Every chunk of this time point lies under several bricks.
+            assert_eq!(
+                bricks.spool.decoded(),
+                2 * count,
+                "{name}: each chunk twice"
+            );
+            // One brick of a reader of its own spools nothing.
+            let one = ZarrVolume::open(&path, None).unwrap();
+            check(
+                [5, 4, 0],
+                [5, 4, 5],
+                &one.read(t, [5, 4, 0], [5, 4, 5]).unwrap(),
+            );
+            assert!(!one.spool.has_file(), "{name}: one region, no spool");
+        }
+    }
 }
