@@ -30,7 +30,7 @@ pub(crate) struct ChunkSpool<K, M> {
     end: Mutex<u64>,
     /// Each chunk a region has needed: `None` once needed, then set once, by the second region
     /// that needs it, while the others needing it wait (`None` inside: it was not spooled).
-    chunks: Mutex<HashMap<K, Option<Arc<OnceLock<Option<Spooled<M>>>>>>>,
+    chunks: Mutex<HashMap<K, Option<SpoolCell<M>>>>,
     /// Chunks decoded so far, by any region (what the spool saves is seen here).
     decoded: AtomicUsize,
 }
@@ -45,6 +45,9 @@ impl<K, M> Default for ChunkSpool<K, M> {
         }
     }
 }
+
+/// A chunk's place in the spool, set once (`None` inside: it was not spooled).
+type SpoolCell<M> = Arc<OnceLock<Option<Spooled<M>>>>;
 
 /// Where a spooled chunk's bytes lie, and what its reader noted of it.
 #[derive(Debug, Clone, Copy)]

@@ -17,7 +17,9 @@
 //! (a scale without a unit is taken as mm), else 1; the seconds between time points from the
 //! time axis's scale and unit. Samples: unsigned and signed integers of 8 to 64 bits, 32- and
 //! 64-bit floats and booleans; others are refused naming the type. A chunk larger than
-//! [`MAX_CHUNK_BYTES`] is refused (a region decodes every chunk it touches whole). The store
+//! [`MAX_CHUNK_BYTES`] is refused (a region decodes every chunk it touches whole; a chunk that
+//! reaches outside the region, such as a chunk of one whole plane under bricks side by side,
+//! is decoded into a temporary file once regions share it: [`super::spool`]). The store
 //! is untrusted: every chunk's decoded size is checked before zarrs decodes it (`Bounded`),
 //! and codec chains that check cannot see through (two compressors, a compressor after a
 //! shard, a shard in a shard) are refused; metadata that does not parse, chunks that do not
