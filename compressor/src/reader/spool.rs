@@ -10,24 +10,22 @@
 //! Memory stays one chunk per reading thread; the disk holds the decoded samples of the shared
 //! chunks, as the gzip readers' spool holds a whole volume's. Where the temporary file cannot
 //! be made or written, a chunk is decoded for each region as before. (Written here: the caches
-//! on crates.io keep their values in memory, and these values add up to the volume.)
+//! on crates.io keep their values in memory, and these values add up to the volume; the file
+//! is a [`ScratchFile`].)
 
 use std::collections::hash_map::{Entry, HashMap};
-use std::fs::File;
 use std::hash::Hash;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, OnceLock, PoisonError};
 
-use crate::reader::region::{read_at, write_at};
+use crate::scratch::ScratchFile;
 
 /// Chunks decoded once for the regions that share them, in a temporary file; each found by
 /// its key `K` (its place in the file), with what its reader needs to know of it, `M`.
 #[derive(Debug)]
 pub(crate) struct ChunkSpool<K, M> {
     /// The temporary file, made at the first chunk spooled (`None` inside: it could not be).
-    file: OnceLock<Option<File>>,
-    /// The end of what is written (or reserved for a write under way) in the file.
-    end: Mutex<u64>,
+    file: OnceLock<Option<ScratchFile>>,
     /// Each chunk a region has needed: `None` once needed, then set once, by the second region
     /// that needs it, while the others needing it wait (`None` inside: it was not spooled).
     chunks: Mutex<HashMap<K, Option<SpoolCell<M>>>>,
@@ -39,7 +37,6 @@ impl<K, M> Default for ChunkSpool<K, M> {
     fn default() -> Self {
         ChunkSpool {
             file: OnceLock::new(),
-            end: Mutex::new(0),
             chunks: Mutex::new(HashMap::new()),
             decoded: AtomicUsize::new(0),
         }
@@ -104,7 +101,7 @@ impl<K: Hash + Eq, M: Copy> ChunkSpool<K, M> {
     fn store(&self, bytes: &[u8], meta: M) -> Option<Spooled<M>> {
         let file = self
             .file
-            .get_or_init(|| match tempfile::tempfile() {
+            .get_or_init(|| match ScratchFile::new(None) {
                 Ok(f) => Some(f),
                 Err(e) => {
                     tracing::warn!(error = %e, "no temporary file for decoded chunks: \
@@ -114,14 +111,8 @@ impl<K: Hash + Eq, M: Copy> ChunkSpool<K, M> {
             })
             .as_ref()?;
         let len = bytes.len() as u64;
-        let offset = {
-            let mut end = self.end.lock().unwrap_or_else(PoisonError::into_inner);
-            let offset = *end;
-            *end = offset.checked_add(len)?;
-            offset
-        };
-        match write_at(file, bytes, offset) {
-            Ok(()) => Some(Spooled { offset, len, meta }),
+        match file.append(bytes) {
+            Ok(offset) => Some(Spooled { offset, len, meta }),
             Err(e) => {
                 tracing::debug!(error = %e, "a decoded chunk not spooled");
                 None
@@ -129,14 +120,14 @@ impl<K: Hash + Eq, M: Copy> ChunkSpool<K, M> {
         }
     }
 
-    /// Bytes `at..at + buf.len()` of a spooled chunk into `buf` (`None`: past its end, or the
-    /// file could not be read; the caller decodes the chunk).
-    pub(crate) fn read(&self, s: &Spooled<M>, at: u64, buf: &mut [u8]) -> Option<()> {
+    /// Bytes `at..at + len` of a spooled chunk (`None`: past its end, or the file could not
+    /// be read; the caller decodes the chunk).
+    pub(crate) fn read(&self, s: &Spooled<M>, at: u64, len: usize) -> Option<Vec<u8>> {
         let file = self.file.get()?.as_ref()?;
-        if at.checked_add(buf.len() as u64)? > s.len {
+        if at.checked_add(len as u64)? > s.len {
             return None;
         }
-        read_at(file, buf, s.offset + at).ok()
+        file.read(s.offset + at, len).ok()
     }
 }
 
@@ -184,11 +175,9 @@ mod tests {
             .get_or_spool(7, || Some((3, f32::to_bytes(&samples))))
             .expect("spooled the second time");
         assert_eq!(s.meta, 3);
-        let mut back = vec![0u8; 8];
-        spool.read(&s, 16, &mut back).expect("the last two samples");
-        let back = f32::from_bytes(&back);
-        assert_eq!(back, [3.5, -2.25]);
-        assert!(spool.read(&s, 17, &mut [0u8; 8]).is_none(), "past the end");
+        let back = spool.read(&s, 16, 8).expect("the last two samples");
+        assert_eq!(f32::from_bytes(&back), [3.5, -2.25]);
+        assert!(spool.read(&s, 17, 8).is_none(), "past the end");
         // Spooled once: later requests do not decode it again.
         let again = spool.get_or_spool(7, || panic!("decoded a third time"));
         assert_eq!(again.map(|s| s.meta), Some(3));

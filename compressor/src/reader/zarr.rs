@@ -600,12 +600,8 @@ impl ZarrVolume {
                         .sum()
                 };
                 let (first, last) = (at(&|r| r.start), at(&|r| r.end - 1));
-                let mut bytes = vec![0u8; (last + 1 - first) * T::SIZE];
-                if self
-                    .spool
-                    .read(&s, (first * T::SIZE) as u64, &mut bytes)
-                    .is_some()
-                {
+                let span = (last + 1 - first) * T::SIZE;
+                if let Some(bytes) = self.spool.read(&s, (first * T::SIZE) as u64, span) {
                     let v = T::from_bytes(&bytes);
                     place.copy(&v, first, &whole, &inside, out, &conv);
                     return Ok(());

@@ -41,8 +41,11 @@ pub(super) fn rows(
         return None;
     }
     let size = c.kind.size();
-    let mut bytes = vec![0u8; (end - first) * c.row * size];
-    spool.read(s, (first * c.row * size) as u64, &mut bytes)?;
+    let bytes = spool.read(
+        s,
+        (first * c.row * size) as u64,
+        (end - first) * c.row * size,
+    )?;
     Some(from_bytes(c.kind, &bytes))
 }
 
