@@ -24,8 +24,11 @@ use crate::scratch::ScratchFile;
 /// its key `K` (its place in the file), with what its reader needs to know of it, `M`.
 #[derive(Debug)]
 pub(crate) struct ChunkSpool<K, M> {
-    /// The temporary file, made at the first chunk spooled (`None` inside: it could not be).
-    file: OnceLock<Option<ScratchFile>>,
+    /// The temporary file and the bytes it may hold, made at the first chunk spooled (`None`
+    /// inside: it could not be).
+    file: OnceLock<Option<(ScratchFile, u64)>>,
+    /// The bytes the file may hold, where not [`SPOOL_DISK_SHARE`] of the free space (tests).
+    budget: Option<u64>,
     /// Each chunk a region has needed: `None` once needed, then set once, by the second region
     /// that needs it, while the others needing it wait (`None` inside: it was not spooled).
     chunks: Mutex<HashMap<K, Option<SpoolCell<M>>>>,
@@ -37,11 +40,17 @@ impl<K, M> Default for ChunkSpool<K, M> {
     fn default() -> Self {
         ChunkSpool {
             file: OnceLock::new(),
+            budget: None,
             chunks: Mutex::new(HashMap::new()),
             decoded: AtomicUsize::new(0),
         }
     }
 }
+
+/// The share of the temporary directory's free space (when the spool's file is made) that
+/// the spool may fill, as the kept tops may theirs ([`crate::encode::TOP_DISK_SHARE`]):
+/// beyond it, chunks are decoded for each region that needs them.
+pub(crate) const SPOOL_DISK_SHARE: f64 = 0.25;
 
 /// A chunk's place in the spool, set once (`None` inside: it was not spooled).
 type SpoolCell<M> = Arc<OnceLock<Option<Spooled<M>>>>;
@@ -72,6 +81,15 @@ impl<K: Hash + Eq, M: Copy> ChunkSpool<K, M> {
         self.file.get().is_some_and(Option::is_some)
     }
 
+    /// A spool whose file may hold `bytes`.
+    #[cfg(test)]
+    pub(crate) fn with_budget(bytes: u64) -> Self {
+        ChunkSpool {
+            budget: Some(bytes),
+            ..ChunkSpool::default()
+        }
+    }
+
     /// The chunk `key`, spooled: by `decode` (what to note of it and its bytes, or `None`
     /// where it fails) if no region has spooled it yet, while other regions wanting it wait.
     /// `None` the first time the chunk is asked for, and where it could not be decoded or
@@ -99,18 +117,34 @@ impl<K: Hash + Eq, M: Copy> ChunkSpool<K, M> {
 
     /// Writes `bytes` to the file.
     fn store(&self, bytes: &[u8], meta: M) -> Option<Spooled<M>> {
-        let file = self
+        let (file, budget) = self
             .file
-            .get_or_init(|| match ScratchFile::new(None) {
-                Ok(f) => Some(f),
-                Err(e) => {
-                    tracing::warn!(error = %e, "no temporary file for decoded chunks: \
-                                   each region decodes the chunks it shares with others");
-                    None
+            .get_or_init(|| {
+                let made = ScratchFile::new(None).and_then(|f| {
+                    let budget = match self.budget {
+                        Some(b) => b,
+                        None => {
+                            let free = fs2::available_space(tempfile::env::temp_dir())?;
+                            (free as f64 * SPOOL_DISK_SHARE) as u64
+                        }
+                    };
+                    Ok((f, budget))
+                });
+                match made {
+                    Ok(spool) => Some(spool),
+                    Err(e) => {
+                        tracing::warn!(error = %e, "no temporary file for decoded chunks: \
+                                       each region decodes the chunks it shares with others");
+                        None
+                    }
                 }
             })
             .as_ref()?;
         let len = bytes.len() as u64;
+        if file.len().saturating_add(len) > *budget {
+            tracing::debug!(budget, "the spool of decoded chunks is full");
+            return None;
+        }
         match file.append(bytes) {
             Ok(offset) => Some(Spooled { offset, len, meta }),
             Err(e) => {
@@ -123,7 +157,7 @@ impl<K: Hash + Eq, M: Copy> ChunkSpool<K, M> {
     /// Bytes `at..at + len` of a spooled chunk (`None`: past its end, or the file could not
     /// be read; the caller decodes the chunk).
     pub(crate) fn read(&self, s: &Spooled<M>, at: u64, len: usize) -> Option<Vec<u8>> {
-        let file = self.file.get()?.as_ref()?;
+        let (file, _) = self.file.get()?.as_ref()?;
         if at.checked_add(len as u64)? > s.len {
             return None;
         }
@@ -160,6 +194,39 @@ macro_rules! native_bytes {
 
 native_bytes!(u8, u16, u32, u64, i8, i16, i32, i64, f32, f64);
 
+/// For the readers' tests: the boxes of `brick` voxels over a volume of `dims` (cut at its far
+/// faces), each passed to `read` (which reads and checks it), by two threads at once.
+#[cfg(test)]
+pub(crate) fn read_bricks_from_two_threads(
+    dims: [usize; 3],
+    brick: [usize; 3],
+    read: impl Fn([usize; 3], [usize; 3]) + Sync,
+) {
+    let mut boxes = Vec::new();
+    for z in (0..dims[2]).step_by(brick[2]) {
+        for y in (0..dims[1]).step_by(brick[1]) {
+            for x in (0..dims[0]).step_by(brick[0]) {
+                let size = [
+                    (dims[0] - x).min(brick[0]),
+                    (dims[1] - y).min(brick[1]),
+                    (dims[2] - z).min(brick[2]),
+                ];
+                boxes.push(([x, y, z], size));
+            }
+        }
+    }
+    std::thread::scope(|scope| {
+        for first in 0..2 {
+            let (boxes, read) = (&boxes, &read);
+            scope.spawn(move || {
+                for &(origin, size) in boxes.iter().skip(first).step_by(2) {
+                    read(origin, size);
+                }
+            });
+        }
+    });
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -192,6 +259,21 @@ mod tests {
             })
             .is_none());
         assert!(!asked, "the failure is kept: its caller decodes it itself");
+    }
+
+    /// Beyond its share of the disk the spool takes no more chunks: their regions decode them.
+    #[test]
+    fn a_full_spool_takes_no_more_chunks() {
+        let spool: ChunkSpool<u32, ()> = ChunkSpool::with_budget(40);
+        let chunk = || Some(((), vec![7u8; 24]));
+        for key in [1, 2] {
+            assert!(spool
+                .get_or_spool(key, || panic!("decoded the first time"))
+                .is_none());
+        }
+        assert!(spool.get_or_spool(1, chunk).is_some(), "24 of 40 bytes");
+        assert!(spool.get_or_spool(2, chunk).is_none(), "48 of 40 bytes");
+        assert!(spool.get_or_spool(1, || panic!("spooled")).is_some());
     }
 
     #[test]

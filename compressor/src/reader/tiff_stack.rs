@@ -2278,6 +2278,7 @@ mod tests {
     /// gives; a reader of one region spools nothing.
     #[test]
     fn a_compressed_strip_shared_by_regions_is_decoded_twice_for_all() {
+        use crate::reader::spool::read_bricks_from_two_threads;
         use ::tiff::encoder::{colortype::Gray16, Compression, DeflateLevel, TiffEncoder};
         let dir = tempfile::tempdir().unwrap();
         let (w, h, pages) = (13usize, 11usize, 4usize);
@@ -2303,31 +2304,12 @@ mod tests {
             assert!(!whole.spool.has_file(), "nothing shared, nothing spooled");
             // Bricks of 5 × 4 × 3 voxels over the volume, read by two threads at once.
             let bricks = TiffRegions::open(&path, None).unwrap();
-            let mut boxes = Vec::new();
-            for z0 in (0..pages).step_by(3) {
-                for y0 in (0..h).step_by(4) {
-                    for x0 in (0..w).step_by(5) {
-                        let size = [(w - x0).min(5), (h - y0).min(4), (pages - z0).min(3)];
-                        boxes.push(([x0, y0, z0], size));
-                    }
-                }
-            }
-            let (even, odd): (Vec<_>, Vec<_>) =
-                boxes.iter().enumerate().partition(|(i, _)| i % 2 == 0);
-            std::thread::scope(|scope| {
-                for half in [even, odd] {
-                    let (bricks, all) = (&bricks, &all);
-                    scope.spawn(move || {
-                        for (_, &(origin, size)) in half {
-                            let got = bricks.read(0, origin, size).unwrap().remove(0);
-                            for (j, v) in got.iter().enumerate() {
-                                let (x, y, z) =
-                                    (j % size[0], j / size[0] % size[1], j / size[0] / size[1]);
-                                let at = ((origin[2] + z) * h + origin[1] + y) * w + origin[0] + x;
-                                assert_eq!(*v, all[at], "{rows} rows a strip, {origin:?} {size:?}");
-                            }
-                        }
-                    });
+            read_bricks_from_two_threads([w, h, pages], [5, 4, 3], |origin, size| {
+                let got = bricks.read(0, origin, size).unwrap().remove(0);
+                for (j, v) in got.iter().enumerate() {
+                    let (x, y, z) = (j % size[0], j / size[0] % size[1], j / size[0] / size[1]);
+                    let at = ((origin[2] + z) * h + origin[1] + y) * w + origin[0] + x;
+                    assert_eq!(*v, all[at], "{rows} rows a strip, {origin:?} {size:?}");
                 }
             });
             assert_eq!(

@@ -1515,6 +1515,7 @@ mod tests {
     /// as before, and one region alone spools nothing.
     #[test]
     fn chunks_shared_by_regions_are_decoded_twice_for_all() {
+        use crate::reader::spool::read_bricks_from_two_threads;
         let dir = tempfile::tempdir().unwrap();
         let zyx = |p: &[u64]| (p[0] * 1000 + p[1] * 40 + p[2]) as u16;
         let xyz = |p: &[u64]| (p[2] * 1000 + p[1] * 40 + p[0]) as u16;
@@ -1593,28 +1594,8 @@ mod tests {
             assert!(!z.spool.has_file(), "{name}: the whole holds its chunks");
             // Bricks of 5 × 4 × 3 voxels, read by two threads at once.
             let bricks = ZarrVolume::open(&path, None).unwrap();
-            let mut boxes = Vec::new();
-            for z0 in (0..5).step_by(3) {
-                for y0 in (0..11).step_by(4) {
-                    for x0 in (0..13).step_by(5) {
-                        boxes.push((
-                            [x0, y0, z0],
-                            [(13 - x0).min(5), (11 - y0).min(4), (5 - z0).min(3)],
-                        ));
-                    }
-                }
-            }
-            let (even, odd): (Vec<_>, Vec<_>) =
-                boxes.iter().enumerate().partition(|(i, _)| i % 2 == 0);
-            std::thread::scope(|scope| {
-                for half in [even, odd] {
-                    let (bricks, check) = (&bricks, &check);
-                    scope.spawn(move || {
-                        for (_, &(origin, size)) in half {
-                            check(origin, size, &bricks.read(t, origin, size).unwrap());
-                        }
-                    });
-                }
+            read_bricks_from_two_threads([13, 11, 5], [5, 4, 3], |origin, size| {
+                check(origin, size, &bricks.read(t, origin, size).unwrap());
             });
             assert!(bricks.spool.has_file(), "{name}");
             // Every chunk of this time point lies under several bricks.
