@@ -15,7 +15,7 @@
 
 use std::collections::hash_map::{Entry, HashMap};
 use std::hash::Hash;
-use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, OnceLock, PoisonError};
 
 use crate::scratch::ScratchFile;
@@ -34,6 +34,9 @@ pub(crate) struct ChunkSpool<K, M> {
     chunks: Mutex<HashMap<K, Option<SpoolCell<M>>>>,
     /// Chunks decoded so far, by any region (what the spool saves is seen here).
     decoded: AtomicUsize,
+    /// Set when a chunk could not be spooled (its budget spent, no file, a failed write):
+    /// no chunk is decoded for the spool after that, only by the regions themselves.
+    refused: AtomicBool,
 }
 
 impl<K, M> Default for ChunkSpool<K, M> {
@@ -43,6 +46,7 @@ impl<K, M> Default for ChunkSpool<K, M> {
             budget: None,
             chunks: Mutex::new(HashMap::new()),
             decoded: AtomicUsize::new(0),
+            refused: AtomicBool::new(false),
         }
     }
 }
@@ -92,8 +96,9 @@ impl<K: Hash + Eq, M: Copy> ChunkSpool<K, M> {
 
     /// The chunk `key`, spooled: by `decode` (what to note of it and its bytes, or `None`
     /// where it fails) if no region has spooled it yet, while other regions wanting it wait.
-    /// `None` the first time the chunk is asked for, and where it could not be decoded or
-    /// spooled: the caller decodes it itself (and reports a failure).
+    /// `None` the first time the chunk is asked for, where it could not be decoded or
+    /// spooled, and once any chunk could not be stored: the caller decodes it itself (and
+    /// reports a failure).
     pub(crate) fn get_or_spool(
         &self,
         key: K,
@@ -110,8 +115,15 @@ impl<K: Hash + Eq, M: Copy> ChunkSpool<K, M> {
             }
         };
         *cell.get_or_init(|| {
+            if self.refused.load(Ordering::Relaxed) {
+                return None;
+            }
             let (meta, bytes) = decode()?;
-            self.store(&bytes, meta)
+            let stored = self.store(&bytes, meta);
+            if stored.is_none() {
+                self.refused.store(true, Ordering::Relaxed);
+            }
+            stored
         })
     }
 
@@ -274,6 +286,11 @@ mod tests {
         assert!(spool.get_or_spool(1, chunk).is_some(), "24 of 40 bytes");
         assert!(spool.get_or_spool(2, chunk).is_none(), "48 of 40 bytes");
         assert!(spool.get_or_spool(1, || panic!("spooled")).is_some());
+        // Once full, a chunk is no longer decoded for the spool (only by its regions).
+        assert!(spool.get_or_spool(3, || panic!("the first time")).is_none());
+        assert!(spool
+            .get_or_spool(3, || panic!("decoded for a full spool"))
+            .is_none());
     }
 
     #[test]

@@ -110,6 +110,9 @@ pub(crate) struct ZarrVolume {
     time_step: Option<f64>,
     /// A decoded chunk's bytes (an inner chunk's, of an array sharded and nothing else).
     chunk_bytes: u64,
+    /// Whether the chunks are compressed (else a region reads only its own bytes of them,
+    /// and nothing is spooled).
+    compressed: bool,
     /// Chunks that several regions share (a chunk of one whole plane under bricks side by
     /// side), decoded once they share them, by their grid indices.
     spool: ChunkSpool<Vec<u64>, ()>,
@@ -336,6 +339,7 @@ impl ZarrVolume {
         }
         let metadata = serde_json::to_value(array.metadata()).unwrap_or_default();
         let codecs = Codecs::of(&metadata).map_err(|why| ReadError::unsupported(path, why))?;
+        let compressed = codecs.chain.compressor != Compressor::None;
         bounded.arm(chunk_bytes as u64, codecs);
         let scale_of = |i: usize| target.scale.as_ref().and_then(|s| s.get(i)).copied();
         let mut spacing = [1.0f32; 3];
@@ -384,6 +388,7 @@ impl ZarrVolume {
             spacing,
             time_step,
             chunk_bytes: chunk_bytes as u64,
+            compressed,
             spool: ChunkSpool::default(),
         })
     }
@@ -502,10 +507,11 @@ impl ZarrVolume {
 impl ZarrVolume {
     /// The chunks the box `ranges` meets, where some of them reach outside it and other
     /// regions will decode them too (`None`: the box is read in one call, as `zarrs` reads it).
-    /// Arrays of booleans, sharded arrays (a shard decodes by its inner chunks) and boxes of
-    /// more than [`MAX_CHUNKS_ONE_BY_ONE`] chunks are read in one call.
+    /// Arrays of booleans, uncompressed and sharded arrays (whose regions read only their own
+    /// bytes, or a shard's inner chunks) and boxes of more than [`MAX_CHUNKS_ONE_BY_ONE`]
+    /// chunks are read in one call.
     fn shared_chunks(&self, ranges: &[Range<u64>]) -> Result<Option<Vec<Vec<u64>>>, ReadError> {
-        if self.sample.is_none() || self.array.is_sharded() {
+        if self.sample.is_none() || !self.compressed || self.array.is_sharded() {
             return Ok(None);
         }
         let grid = |e: &dyn std::fmt::Display| ReadError::Data {
@@ -528,14 +534,19 @@ impl ZarrVolume {
         let mut reaches_out = false;
         for c in &within.indices() {
             let chunk = self.array.chunk_subset_bounded(&c).map_err(|e| grid(&e))?;
-            reaches_out |= chunk
-                .to_ranges()
-                .iter()
-                .zip(ranges)
-                .any(|(c, r)| c.start < r.start || c.end > r.end);
+            reaches_out |= self.reaches_out(&chunk.to_ranges(), ranges);
             chunks.push(c.to_vec());
         }
         Ok(reaches_out.then_some(chunks))
+    }
+
+    /// Whether the chunk over `chunk` (within the array) reaches outside the box `ranges` along
+    /// an axis other regions read along: space or time (not channels, of which one is read).
+    fn reaches_out(&self, chunk: &[Range<u64>], ranges: &[Range<u64>]) -> bool {
+        let channel = self.channel_axis.map(|(a, _)| a);
+        (0..ranges.len()).any(|d| {
+            Some(d) != channel && (chunk[d].start < ranges[d].start || chunk[d].end > ranges[d].end)
+        })
     }
 
     /// Adds the samples of chunk `chunk` inside the box `ranges` (a region at `origin` of
@@ -573,11 +584,7 @@ impl ZarrVolume {
             .array
             .chunk_subset_bounded(chunk)
             .map_err(|e| failed(&e))?;
-        let reaches_out = bounded
-            .to_ranges()
-            .iter()
-            .zip(ranges)
-            .any(|(c, r)| c.start < r.start || c.end > r.end);
+        let reaches_out = self.reaches_out(&bounded.to_ranges(), ranges);
         let place = Placing {
             space_axes: self.space_axes,
             origin,
@@ -1477,15 +1484,27 @@ pub(crate) fn decode(src: &SourceFiles, channel: Option<usize>) -> Result<Volume
 mod tests {
     use super::*;
 
-    /// A Zarr v2 array of u16 samples `value(position)` (array axes, C order), uncompressed,
-    /// with `attrs` as its `.zattrs`.
-    fn store(dir: &Path, shape: &[u64], chunks: &[u64], attrs: &str, value: fn(&[u64]) -> u16) {
+    /// A Zarr v2 array of u16 samples `value(position)` (array axes, C order), its chunks
+    /// zlib-compressed (`compressed`) or not, with `attrs` as its `.zattrs`.
+    fn store(
+        dir: &Path,
+        shape: &[u64],
+        chunks: &[u64],
+        attrs: &str,
+        value: fn(&[u64]) -> u16,
+        compressed: bool,
+    ) {
         let list = |v: &[u64]| v.iter().map(u64::to_string).collect::<Vec<_>>().join(", ");
         let meta = format!(
             r#"{{"zarr_format": 2, "shape": [{}], "chunks": [{}], "dtype": "<u2",
-                "compressor": null, "fill_value": 0, "order": "C", "filters": null}}"#,
+                "compressor": {}, "fill_value": 0, "order": "C", "filters": null}}"#,
             list(shape),
-            list(chunks)
+            list(chunks),
+            if compressed {
+                r#"{"id": "zlib", "level": 1}"#
+            } else {
+                "null"
+            }
         );
         std::fs::create_dir_all(dir).unwrap();
         std::fs::write(dir.join(".zarray"), meta).unwrap();
@@ -1502,6 +1521,13 @@ mod tests {
             let mut bytes = Vec::new();
             for p in &ArraySubset::new_with_ranges(&ranges).indices() {
                 bytes.extend_from_slice(&value(&p).to_le_bytes());
+            }
+            if compressed {
+                use std::io::Write;
+                let mut z =
+                    flate2::write::ZlibEncoder::new(Vec::new(), flate2::Compression::fast());
+                z.write_all(&bytes).unwrap();
+                bytes = z.finish().unwrap();
             }
             let key = c.iter().map(u64::to_string).collect::<Vec<_>>().join(".");
             std::fs::write(dir.join(key), bytes).unwrap();
@@ -1531,7 +1557,7 @@ mod tests {
             fn(&[u64]) -> u16,
             usize,
             usize,
-        ); 4] = [
+        ); 6] = [
             (
                 "planes",
                 vec![5, 11, 13],
@@ -1568,16 +1594,37 @@ mod tests {
                 1,
                 5,
             ),
+            // Chunks holding both time points: the second one's samples lie past the first's.
+            (
+                "time_chunks",
+                vec![2, 5, 11, 13],
+                vec![2, 1, 11, 13],
+                names(r#""t", "z", "y", "x""#),
+                tzyx,
+                1,
+                5,
+            ),
+            // Uncompressed chunks: a region reads its own bytes of them, nothing is spooled.
+            (
+                "uncompressed",
+                vec![5, 11, 13],
+                vec![1, 11, 13],
+                names(r#""z", "y", "x""#),
+                zyx,
+                0,
+                0,
+            ),
         ];
         for (name, shape, chunks, attrs, value, t, count) in cases {
             let path = dir.path().join(name);
-            store(&path, &shape, &chunks, &attrs, value);
+            let compressed = name != "uncompressed";
+            store(&path, &shape, &chunks, &attrs, value, compressed);
             let z = ZarrVolume::open(&path, None).unwrap();
             assert_eq!(z.dims(), [13, 11, 5], "{name}");
             let sample = |x: usize, y: usize, zz: usize| -> f32 {
                 let p: Vec<u64> = match name {
                     "x_slowest" => vec![x as u64, y as u64, zz as u64],
-                    "time" => vec![t as u64, zz as u64, y as u64, x as u64],
+                    "time" | "time_chunks" => vec![t as u64, zz as u64, y as u64, x as u64],
                     _ => vec![zz as u64, y as u64, x as u64],
                 };
                 f32::from(value(&p))
@@ -1597,7 +1644,7 @@ mod tests {
             read_bricks_from_two_threads([13, 11, 5], [5, 4, 3], |origin, size| {
                 check(origin, size, &bricks.read(t, origin, size).unwrap());
             });
-            assert!(bricks.spool.has_file(), "{name}");
+            assert_eq!(bricks.spool.has_file(), compressed, "{name}");
             // Every chunk of this time point lies under several bricks.
             assert_eq!(
                 bricks.spool.decoded(),
