@@ -457,15 +457,9 @@ impl ZarrVolume {
             )
         })?;
         let shared = self.shared_chunks(&ranges)?;
-        macro_rules! gather {
+        // The box in one call to zarrs.
+        macro_rules! whole {
             ($t:ty, $conv:expr) => {{
-                if let Some(chunks) = &shared {
-                    out.resize(n, 0.0);
-                    for chunk in chunks {
-                        self.read_chunk::<$t>(chunk, &ranges, origin, size, &mut out, $conv)?;
-                    }
-                    return Ok(out);
-                }
                 let v: Vec<$t> = guarded(&self.path, || self.array.retrieve_array_subset(&ranges))?
                     .map_err(failed)?;
                 let conv = $conv;
@@ -477,18 +471,22 @@ impl ZarrVolume {
                 }
             }};
         }
-        match self.sample {
-            None => {
-                let v: Vec<bool> =
-                    guarded(&self.path, || self.array.retrieve_array_subset(&ranges))?
-                        .map_err(failed)?;
-                for z in 0..size[2] {
-                    for y in 0..size[1] {
-                        let row = z * s[2] + y * s[1];
-                        out.extend((0..size[0]).map(|x| f32::from(u8::from(v[row + x * s[0]]))));
+        // Chunk by chunk where the box's chunks are shared with other regions, else whole.
+        macro_rules! gather {
+            ($t:ty, $conv:expr) => {{
+                if let Some(chunks) = &shared {
+                    out.resize(n, 0.0);
+                    for (chunk, reaches_out) in chunks {
+                        let at = (chunk.as_slice(), *reaches_out);
+                        self.read_chunk::<$t>(at, &ranges, origin, size, &mut out, $conv)?;
                     }
+                    return Ok(out);
                 }
-            }
+                whole!($t, $conv)
+            }};
+        }
+        match self.sample {
+            None => whole!(bool, |v: bool| f32::from(u8::from(v))),
             Some(SampleType::U8) => gather!(u8, f32::from),
             Some(SampleType::I8) => gather!(i8, f32::from),
             Some(SampleType::U16) => gather!(u16, f32::from),
@@ -505,12 +503,17 @@ impl ZarrVolume {
 }
 
 impl ZarrVolume {
-    /// The chunks the box `ranges` meets, where some of them reach outside it and other
-    /// regions will decode them too (`None`: the box is read in one call, as `zarrs` reads it).
+    /// The chunks the box `ranges` meets, each with whether it reaches outside the box (other
+    /// regions will decode it too), where some of them do (`None`: the box is read in one
+    /// call, as `zarrs` reads it).
     /// Arrays of booleans, uncompressed and sharded arrays (whose regions read only their own
     /// bytes, or a shard's inner chunks) and boxes of more than [`MAX_CHUNKS_ONE_BY_ONE`]
     /// chunks are read in one call.
-    fn shared_chunks(&self, ranges: &[Range<u64>]) -> Result<Option<Vec<Vec<u64>>>, ReadError> {
+    #[allow(clippy::type_complexity)]
+    fn shared_chunks(
+        &self,
+        ranges: &[Range<u64>],
+    ) -> Result<Option<Vec<(Vec<u64>, bool)>>, ReadError> {
         if self.sample.is_none() || !self.compressed || self.array.is_sharded() {
             return Ok(None);
         }
@@ -531,13 +534,11 @@ impl ZarrVolume {
             return Ok(None);
         }
         let mut chunks = Vec::new();
-        let mut reaches_out = false;
         for c in &within.indices() {
             let chunk = self.array.chunk_subset_bounded(&c).map_err(|e| grid(&e))?;
-            reaches_out |= self.reaches_out(&chunk.to_ranges(), ranges);
-            chunks.push(c.to_vec());
+            chunks.push((c.to_vec(), self.reaches_out(&chunk.to_ranges(), ranges)));
         }
-        Ok(reaches_out.then_some(chunks))
+        Ok(chunks.iter().any(|(_, out)| *out).then_some(chunks))
     }
 
     /// Whether the chunk over `chunk` (within the array) reaches outside the box `ranges` along
@@ -550,11 +551,12 @@ impl ZarrVolume {
     }
 
     /// Adds the samples of chunk `chunk` inside the box `ranges` (a region at `origin` of
-    /// `size`) to `out` (x fastest): from the spool where the chunk reaches outside the box and
-    /// another region has needed it, else decoded by `zarrs`, only the part inside the box.
+    /// `size`) to `out` (x fastest): from the spool where the chunk reaches outside the box
+    /// (`reaches_out`, [`ZarrVolume::shared_chunks`]) and another region has needed it, else
+    /// decoded by `zarrs`, only the part inside the box.
     fn read_chunk<T: NativeBytes + zarrs::array::ElementOwned>(
         &self,
-        chunk: &[u64],
+        (chunk, reaches_out): (&[u64], bool),
         ranges: &[Range<u64>],
         origin: [usize; 3],
         size: [usize; 3],
@@ -580,11 +582,6 @@ impl ZarrVolume {
         if inside.iter().any(|r| r.start >= r.end) {
             return Ok(());
         }
-        let bounded = self
-            .array
-            .chunk_subset_bounded(chunk)
-            .map_err(|e| failed(&e))?;
-        let reaches_out = self.reaches_out(&bounded.to_ranges(), ranges);
         let place = Placing {
             space_axes: self.space_axes,
             origin,
