@@ -562,6 +562,11 @@ case("rgb_tiled", rng.integers(0, 255, (z, y, x, 3), dtype=np.uint8),
      photometric="rgb", tile=(32, 16), compression="zlib")
 # RGB and a fourth sample that is not alpha: read as RGB (uncompressed: as bytes).
 rgbx = rng.integers(0, 255, (z, y, x, 4), dtype=np.uint8)
+# Pages in one compressed strip each, grey and colour: every brick across a page shares it.
+case("u16_one_strip", rng.integers(0, 65535, (z, y, x), dtype=np.uint16),
+     rowsperstrip=y, compression="zlib")
+case("rgb_one_strip", rng.integers(0, 255, (z, y, x, 3), dtype=np.uint8),
+     photometric="rgb", rowsperstrip=y, compression="zlib")
 case("rgb_extra", rgbx, ref=rgbx[..., :3], photometric="rgb", extrasamples=["unspecified"],
      rowsperstrip=8)
 case("imagej", rng.integers(0, 4000, (z, y, x), dtype=np.uint16), imagej=True,
@@ -620,6 +625,8 @@ fn tiffs_written_by_tifffile_read_as_it_wrote_them() {
         "f64",
         "rgb_tiled",
         "rgb_extra",
+        "u16_one_strip",
+        "rgb_one_strip",
         "imagej",
     ] {
         let path = dir.path().join(format!("{name}.tif"));
@@ -646,6 +653,26 @@ fn tiffs_written_by_tifffile_read_as_it_wrote_them() {
                             v.channels()[c][v.index(x + 17, y + 20, z + 3)],
                             "{name}: region"
                         );
+                    }
+                }
+            }
+        }
+        // Bricks over the whole from one reader: strips and tiles under several of them are
+        // decoded into the reader's spool and read back from it.
+        let bricks = RegionReader::open(&path, None).unwrap();
+        let brick = [17, 16, 4];
+        for z0 in (0..9).step_by(brick[2]) {
+            for y0 in (0..45).step_by(brick[1]) {
+                for x0 in (0..53).step_by(brick[0]) {
+                    let o = [x0, y0, z0];
+                    let s = [0, 1, 2].map(|a| brick[a].min([53, 45, 9][a] - o[a]));
+                    let got = bricks.read_region(o, s).unwrap();
+                    for c in 0..nc {
+                        for (j, g) in got.channels()[c].iter().enumerate() {
+                            let (x, y, z) = (j % s[0], j / s[0] % s[1], j / s[0] / s[1]);
+                            let w = v.channels()[c][v.index(x + x0, y + y0, z + z0)];
+                            assert_eq!(*g, w, "{name}: brick {o:?} channel {c} at {j}");
+                        }
                     }
                 }
             }

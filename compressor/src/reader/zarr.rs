@@ -1543,6 +1543,7 @@ mod tests {
         let zyx = |p: &[u64]| (p[0] * 1000 + p[1] * 40 + p[2]) as u16;
         let xyz = |p: &[u64]| (p[2] * 1000 + p[1] * 40 + p[0]) as u16;
         let tzyx = |p: &[u64]| (p[0] * 20000 + p[1] * 1000 + p[2] * 40 + p[3]) as u16;
+        let czyx = |p: &[u64]| (p[0] * 10000 + p[1] * 1000 + p[2] * 40 + p[3]) as u16;
         let names = |n: &str| format!(r#"{{"_ARRAY_DIMENSIONS": [{n}]}}"#);
         // (name, shape, chunks, axis names, value, time point read, chunks in the grid)
         #[allow(clippy::type_complexity)]
@@ -1554,7 +1555,7 @@ mod tests {
             fn(&[u64]) -> u16,
             usize,
             usize,
-        ); 6] = [
+        ); 8] = [
             (
                 "planes",
                 vec![5, 11, 13],
@@ -1601,6 +1602,26 @@ mod tests {
                 1,
                 5,
             ),
+            // Channels, channel 1 chosen: in chunks holding all three (the others' samples
+            // lie beside it in every chunk) and in chunks of one channel.
+            (
+                "channel_chunks",
+                vec![3, 5, 11, 13],
+                vec![3, 1, 11, 13],
+                names(r#""c", "z", "y", "x""#),
+                czyx,
+                0,
+                5,
+            ),
+            (
+                "channel_planes",
+                vec![3, 5, 11, 13],
+                vec![1, 1, 11, 13],
+                names(r#""c", "z", "y", "x""#),
+                czyx,
+                0,
+                5,
+            ),
             // Uncompressed chunks: a region reads its own bytes of them, nothing is spooled.
             (
                 "uncompressed",
@@ -1616,12 +1637,14 @@ mod tests {
             let path = dir.path().join(name);
             let compressed = name != "uncompressed";
             store(&path, &shape, &chunks, &attrs, value, compressed);
-            let z = ZarrVolume::open(&path, None).unwrap();
+            let channel = name.starts_with("channel").then_some(1);
+            let z = ZarrVolume::open(&path, channel).unwrap();
             assert_eq!(z.dims(), [13, 11, 5], "{name}");
             let sample = |x: usize, y: usize, zz: usize| -> f32 {
                 let p: Vec<u64> = match name {
                     "x_slowest" => vec![x as u64, y as u64, zz as u64],
                     "time" | "time_chunks" => vec![t as u64, zz as u64, y as u64, x as u64],
+                    "channel_chunks" | "channel_planes" => vec![1, zz as u64, y as u64, x as u64],
                     _ => vec![zz as u64, y as u64, x as u64],
                 };
                 f32::from(value(&p))
@@ -1637,7 +1660,7 @@ mod tests {
             check([0; 3], [13, 11, 5], &whole);
             assert!(!z.spool.has_file(), "{name}: the whole holds its chunks");
             // Bricks of 5 × 4 × 3 voxels, read by two threads at once.
-            let bricks = ZarrVolume::open(&path, None).unwrap();
+            let bricks = ZarrVolume::open(&path, channel).unwrap();
             read_bricks_from_two_threads([13, 11, 5], [5, 4, 3], |origin, size| {
                 check(origin, size, &bricks.read(t, origin, size).unwrap());
             });
@@ -1649,7 +1672,7 @@ mod tests {
                 "{name}: each chunk twice"
             );
             // One brick of a reader of its own spools nothing.
-            let one = ZarrVolume::open(&path, None).unwrap();
+            let one = ZarrVolume::open(&path, channel).unwrap();
             check(
                 [5, 4, 0],
                 [5, 4, 5],
