@@ -36,6 +36,30 @@ impl ScratchFile {
         Ok(offset)
     }
 
+    /// Gives the disk space of the `len` bytes appended at `offset` back to the file system
+    /// (a hole punched in the file; its length and other records stay). Reading them after
+    /// gives zeros. An error where the file system cannot punch holes: nothing was freed.
+    pub fn release(&self, offset: u64, len: u64) -> std::io::Result<()> {
+        let g = self.file.lock().unwrap_or_else(|p| p.into_inner());
+        if offset.checked_add(len).is_none_or(|end| end > g.1) {
+            return Err(std::io::Error::other(format!(
+                "{len} bytes at {offset} released of a temporary file of {}",
+                g.1
+            )));
+        }
+        #[cfg(target_os = "linux")]
+        {
+            use rustix::fs::{fallocate, FallocateFlags};
+            let flags = FallocateFlags::PUNCH_HOLE | FallocateFlags::KEEP_SIZE;
+            fallocate(&g.0, flags, offset, len).map_err(std::io::Error::from)
+        }
+        #[cfg(not(target_os = "linux"))]
+        Err(std::io::Error::new(
+            std::io::ErrorKind::Unsupported,
+            "holes are punched in temporary files on Linux only",
+        ))
+    }
+
     /// Bytes appended so far.
     pub fn len(&self) -> u64 {
         self.file.lock().unwrap_or_else(|p| p.into_inner()).1
@@ -105,5 +129,29 @@ mod tests {
         assert!(f.read(f.len() - 1, 2).is_err());
         assert!(f.read(u64::MAX, 1).is_err());
         assert_eq!(f.read(f.len(), 0).unwrap(), Vec::<u8>::new());
+    }
+
+    /// A record released gives its blocks back and reads as zeros; the records around it
+    /// read as written, and a release past the end is refused.
+    #[test]
+    fn a_released_record_gives_its_disk_space_back() {
+        use std::os::unix::fs::MetadataExt;
+        let f = ScratchFile::new(None).unwrap();
+        let mib = 1 << 20;
+        let offsets: Vec<u64> = (1..=3u8)
+            .map(|i| f.append(&vec![i; mib]).unwrap())
+            .collect();
+        let blocks = || f.file.lock().unwrap().0.metadata().unwrap().blocks();
+        let before = blocks();
+        assert!(f.release(f.len(), 1).is_err());
+        assert!(f.release(u64::MAX, 2).is_err());
+        // Linux's file systems for temporary files (tmpfs, ext4, xfs, btrfs) punch holes.
+        f.release(offsets[1], mib as u64).expect("a hole punched");
+        // 512-byte blocks: the megabyte's 2048 of them, give or take the edges' blocks.
+        assert!(blocks() + 1800 <= before, "{} of {before} blocks", blocks());
+        assert!(f.read(offsets[1], mib).unwrap().iter().all(|b| *b == 0));
+        assert_eq!(f.len(), 3 * mib as u64);
+        assert_eq!(f.read(offsets[0], mib).unwrap(), vec![1; mib]);
+        assert_eq!(f.read(offsets[2], mib).unwrap(), vec![3; mib]);
     }
 }

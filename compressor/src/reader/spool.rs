@@ -7,15 +7,18 @@
 //! file (in the system's temporary directory, gone when the reader is dropped), and every
 //! region after reads back only the bytes it needs. Not the first time: a reader that reads one
 //! region (a worker's brick job opens its own) would write whole chunks it never reads again.
-//! Memory stays one chunk per reading thread; the disk holds the decoded samples of the shared
-//! chunks, as the gzip readers' spool holds a whole volume's. Where the temporary file cannot
-//! be made or written, a chunk is decoded for each region as before. (Written here: the caches
-//! on crates.io keep their values in memory, and these values add up to the volume; the file
-//! is a [`ScratchFile`].)
+//! Once the regions have read every sample of a chunk, its bytes are released (a hole punched
+//! in the file), so the disk holds the shared chunks of the bricks being read, a layer of
+//! bricks, not the volume's; a later pass over the volume spools a released chunk again the
+//! first time it needs it. Memory stays one chunk per reading thread. Where the temporary file
+//! cannot be made or written, or its share of the disk is spent, a chunk is decoded for each
+//! region as before. (Written here: the caches on crates.io keep their values in memory, and
+//! these values add up to the volume; the file is a [`ScratchFile`].)
 
+use std::borrow::Borrow;
 use std::collections::hash_map::{Entry, HashMap};
 use std::hash::Hash;
-use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, OnceLock, PoisonError};
 
 use crate::scratch::ScratchFile;
@@ -29,14 +32,36 @@ pub(crate) struct ChunkSpool<K, M> {
     file: OnceLock<Option<(ScratchFile, u64)>>,
     /// The bytes the file may hold, where not [`SPOOL_DISK_SHARE`] of the free space (tests).
     budget: Option<u64>,
-    /// Each chunk a region has needed: `None` once needed, then set once, by the second region
-    /// that needs it, while the others needing it wait (`None` inside: it was not spooled).
-    chunks: Mutex<HashMap<K, Option<SpoolCell<M>>>>,
+    /// Each chunk a region has needed, and where it stands ([`Slot`]).
+    chunks: Mutex<HashMap<K, Slot<M>>>,
     /// Chunks decoded so far, by any region (what the spool saves is seen here).
     decoded: AtomicUsize,
-    /// Set when a chunk could not be spooled (its budget spent, no file, a failed write):
-    /// no chunk is decoded for the spool after that, only by the regions themselves.
+    /// Bytes of spooled chunks not yet released: what the budget bounds.
+    held: AtomicU64,
+    /// The most bytes held at once.
+    peak: AtomicU64,
+    /// The size of the last chunk decoded for the spool: the next is not decoded where one
+    /// of this size would not fit (the chunks of a file are mostly of one size).
+    last_len: AtomicU64,
+    /// Set when the file could not be made or written: no chunk is decoded for the spool
+    /// after that, only by the regions themselves.
     refused: AtomicBool,
+    /// Set when a hole could not be punched: spooled chunks stay to the end.
+    keep_all: AtomicBool,
+}
+
+/// Where a chunk stands in the spool.
+#[derive(Debug)]
+enum Slot<M> {
+    /// Needed and not spooled, with the samples of it the regions that decoded it themselves
+    /// have read: the next region needing it spools it.
+    Seen(u64),
+    /// Spooled (or being spooled, or not spooled: `None` in the cell), with the samples of it
+    /// that regions have read back so far.
+    Spool(SpoolCell<M>, u64),
+    /// Read back whole by the regions and released: a region needing it again (another pass
+    /// over the volume) spools it again.
+    Released,
 }
 
 impl<K, M> Default for ChunkSpool<K, M> {
@@ -46,14 +71,32 @@ impl<K, M> Default for ChunkSpool<K, M> {
             budget: None,
             chunks: Mutex::new(HashMap::new()),
             decoded: AtomicUsize::new(0),
+            held: AtomicU64::new(0),
+            peak: AtomicU64::new(0),
+            last_len: AtomicU64::new(0),
             refused: AtomicBool::new(false),
+            keep_all: AtomicBool::new(false),
+        }
+    }
+}
+
+impl<K, M> Drop for ChunkSpool<K, M> {
+    fn drop(&mut self) {
+        if let Some(Some((file, _))) = self.file.get() {
+            tracing::debug!(
+                chunks_decoded = self.decoded.load(Ordering::Relaxed),
+                bytes_written = file.len(),
+                peak_bytes_held = self.peak.load(Ordering::Relaxed),
+                bytes_held = self.held.load(Ordering::Relaxed),
+                "spool of decoded chunks closed"
+            );
         }
     }
 }
 
 /// The share of the temporary directory's free space (when the spool's file is made) that
 /// the spool may fill, as the kept tops may theirs ([`crate::encode::TOP_DISK_SHARE`]):
-/// beyond it, chunks are decoded for each region that needs them.
+/// beyond it, chunks are decoded for each region that needs them until others are released.
 pub(crate) const SPOOL_DISK_SHARE: f64 = 0.25;
 
 /// A chunk's place in the spool, set once (`None` inside: it was not spooled).
@@ -67,7 +110,15 @@ pub(crate) struct Spooled<M> {
     pub(crate) meta: M,
 }
 
-impl<K: Hash + Eq, M: Copy> ChunkSpool<K, M> {
+/// Why a chunk was not spooled.
+enum NotSpooled {
+    /// It could not be decoded: its regions decode it themselves (and report the failure).
+    Failed,
+    /// The budget was spent: a later region may spool it once others are released.
+    Full,
+}
+
+impl<K: Hash + Eq + Clone, M: Copy> ChunkSpool<K, M> {
     /// Counts one decoding of a chunk.
     pub(crate) fn count_decoded(&self) {
         self.decoded.fetch_add(1, Ordering::Relaxed);
@@ -85,95 +136,195 @@ impl<K: Hash + Eq, M: Copy> ChunkSpool<K, M> {
         self.file.get().is_some_and(Option::is_some)
     }
 
+    /// Bytes spooled and not yet released, and the most there were at once.
+    #[cfg(test)]
+    pub(crate) fn held(&self) -> (u64, u64) {
+        (
+            self.held.load(Ordering::Relaxed),
+            self.peak.load(Ordering::Relaxed),
+        )
+    }
+
     /// A spool whose file may hold `bytes`.
     #[cfg(test)]
     pub(crate) fn with_budget(bytes: u64) -> Self {
-        ChunkSpool {
-            budget: Some(bytes),
-            ..ChunkSpool::default()
-        }
+        let mut spool = ChunkSpool::default();
+        spool.budget = Some(bytes);
+        spool
     }
 
     /// The chunk `key`, spooled: by `decode` (what to note of it and its bytes, or `None`
     /// where it fails) if no region has spooled it yet, while other regions wanting it wait.
     /// `None` the first time the chunk is asked for, where it could not be decoded or
-    /// spooled, and once any chunk could not be stored: the caller decodes it itself (and
-    /// reports a failure).
+    /// spooled, and once the file could not be made or written: the caller decodes it itself
+    /// (and reports a failure). `samples`: what the caller reads of the chunk (in the unit of
+    /// [`ChunkSpool::read`]'s total), counted here where it decodes the chunk itself.
     pub(crate) fn get_or_spool(
         &self,
         key: K,
+        samples: u64,
         decode: impl FnOnce() -> Option<(M, Vec<u8>)>,
     ) -> Option<Spooled<M>> {
         let cell = {
             let mut chunks = self.chunks.lock().unwrap_or_else(PoisonError::into_inner);
-            match chunks.entry(key) {
+            match chunks.entry(key.clone()) {
                 Entry::Vacant(v) => {
-                    v.insert(None);
+                    v.insert(Slot::Seen(samples));
                     return None;
                 }
-                Entry::Occupied(mut o) => Arc::clone(o.get_mut().get_or_insert_default()),
-            }
-        };
-        *cell.get_or_init(|| {
-            if self.refused.load(Ordering::Relaxed) {
-                return None;
-            }
-            let (meta, bytes) = decode()?;
-            let stored = self.store(&bytes, meta);
-            if stored.is_none() {
-                self.refused.store(true, Ordering::Relaxed);
-            }
-            stored
-        })
-    }
-
-    /// Writes `bytes` to the file.
-    fn store(&self, bytes: &[u8], meta: M) -> Option<Spooled<M>> {
-        let (file, budget) = self
-            .file
-            .get_or_init(|| {
-                let made = ScratchFile::new(None).and_then(|f| {
-                    let budget = match self.budget {
-                        Some(b) => b,
-                        None => {
-                            let free = fs2::available_space(tempfile::env::temp_dir())?;
-                            (free as f64 * SPOOL_DISK_SHARE) as u64
-                        }
-                    };
-                    Ok((f, budget))
-                });
-                match made {
-                    Ok(spool) => Some(spool),
-                    Err(e) => {
-                        tracing::warn!(error = %e, "no temporary file for decoded chunks: \
-                                       each region decodes the chunks it shares with others");
-                        None
+                Entry::Occupied(mut o) => {
+                    let slot = o.get_mut();
+                    match slot {
+                        Slot::Seen(read) => *slot = Slot::Spool(SpoolCell::default(), *read),
+                        Slot::Released => *slot = Slot::Spool(SpoolCell::default(), 0),
+                        Slot::Spool(..) => {}
+                    }
+                    match slot {
+                        Slot::Spool(cell, _) => Arc::clone(cell),
+                        _ => unreachable!("set just above"),
                     }
                 }
-            })
-            .as_ref()?;
-        let len = bytes.len() as u64;
-        if file.len().saturating_add(len) > *budget {
-            tracing::debug!(budget, "the spool of decoded chunks is full");
-            return None;
+            }
+        };
+        let mut full = false;
+        let got = *cell.get_or_init(|| match self.spool(decode) {
+            Ok(s) => Some(s),
+            Err(NotSpooled::Full) => {
+                full = true;
+                None
+            }
+            Err(NotSpooled::Failed) => None,
+        });
+        if full {
+            // Asked for again, it is spooled if the budget has room by then.
+            let mut chunks = self.chunks.lock().unwrap_or_else(PoisonError::into_inner);
+            if let Some(slot) = chunks.get_mut(&key) {
+                if let Slot::Spool(c, read) = slot {
+                    if Arc::ptr_eq(c, &cell) {
+                        *slot = Slot::Seen(read.saturating_add(samples));
+                    }
+                }
+            }
         }
-        match file.append(bytes) {
-            Ok(offset) => Some(Spooled { offset, len, meta }),
+        got
+    }
+
+    /// Decodes a chunk by `decode` and writes it to the file, within the budget.
+    fn spool(
+        &self,
+        decode: impl FnOnce() -> Option<(M, Vec<u8>)>,
+    ) -> Result<Spooled<M>, NotSpooled> {
+        if self.refused.load(Ordering::Relaxed) {
+            return Err(NotSpooled::Failed);
+        }
+        let Some((file, budget)) = self.file() else {
+            self.refused.store(true, Ordering::Relaxed);
+            return Err(NotSpooled::Failed);
+        };
+        // Not decoded where a chunk like the last would not fit.
+        let like_last = self.last_len.load(Ordering::Relaxed).max(1);
+        if self.held.load(Ordering::Relaxed).saturating_add(like_last) > budget {
+            return Err(NotSpooled::Full);
+        }
+        let (meta, bytes) = decode().ok_or(NotSpooled::Failed)?;
+        let len = bytes.len() as u64;
+        self.last_len.store(len, Ordering::Relaxed);
+        // The bytes are reserved before they are written: threads at once stay within it.
+        let reserved = self
+            .held
+            .fetch_update(Ordering::AcqRel, Ordering::Acquire, |held| {
+                held.checked_add(len).filter(|h| *h <= budget)
+            });
+        let held = match reserved {
+            Ok(before) => before + len,
+            Err(_) => {
+                tracing::debug!(budget, "the spool of decoded chunks is full");
+                return Err(NotSpooled::Full);
+            }
+        };
+        match file.append(&bytes) {
+            Ok(offset) => {
+                self.peak.fetch_max(held, Ordering::Relaxed);
+                Ok(Spooled { offset, len, meta })
+            }
             Err(e) => {
                 tracing::debug!(error = %e, "a decoded chunk not spooled");
-                None
+                self.held.fetch_sub(len, Ordering::AcqRel);
+                self.refused.store(true, Ordering::Relaxed);
+                Err(NotSpooled::Failed)
             }
         }
     }
 
-    /// Bytes `at..at + len` of a spooled chunk (`None`: past its end, or the file could not
-    /// be read; the caller decodes the chunk).
-    pub(crate) fn read(&self, s: &Spooled<M>, at: u64, len: usize) -> Option<Vec<u8>> {
+    /// The file and its budget, made the first time (`None`: it could not be).
+    fn file(&self) -> Option<(&ScratchFile, u64)> {
+        let made = self.file.get_or_init(|| {
+            let made = ScratchFile::new(None).and_then(|f| {
+                let budget = match self.budget {
+                    Some(b) => b,
+                    None => {
+                        let free = fs2::available_space(tempfile::env::temp_dir())?;
+                        (free as f64 * SPOOL_DISK_SHARE) as u64
+                    }
+                };
+                Ok((f, budget))
+            });
+            match made {
+                Ok(spool) => Some(spool),
+                Err(e) => {
+                    tracing::warn!(error = %e, "no temporary file for decoded chunks: \
+                                   each region decodes the chunks it shares with others");
+                    None
+                }
+            }
+        });
+        made.as_ref().map(|(f, b)| (f, *b))
+    }
+
+    /// Bytes `at..at + len` of the spooled chunk `key` (`s`, as [`ChunkSpool::get_or_spool`]
+    /// gave it), for a region that reads `samples` of the chunk's `total` (in any unit, the
+    /// same for every region). Once the regions have read `total`, the chunk is released: its
+    /// disk space given back, and a region needing it again spools it again. `None`: past its
+    /// end, released, or the file could not be read; the caller decodes the chunk.
+    pub(crate) fn read<Q>(
+        &self,
+        key: &Q,
+        s: &Spooled<M>,
+        (at, len): (u64, usize),
+        (samples, total): (u64, u64),
+    ) -> Option<Vec<u8>>
+    where
+        K: Borrow<Q>,
+        Q: Hash + Eq + ?Sized,
+    {
         let (file, _) = self.file.get()?.as_ref()?;
         if at.checked_add(len as u64)? > s.len {
             return None;
         }
-        file.read(s.offset + at, len).ok()
+        // Under the lock of the chunks, so that no region releases the chunk in between.
+        let mut chunks = self.chunks.lock().unwrap_or_else(PoisonError::into_inner);
+        let slot = chunks.get_mut(key)?;
+        let Slot::Spool(cell, read) = slot else {
+            return None;
+        };
+        if !matches!(cell.get(), Some(Some(c)) if c.offset == s.offset) {
+            return None;
+        }
+        let bytes = file.read(s.offset + at, len).ok()?;
+        *read = read.saturating_add(samples);
+        if *read >= total && !self.keep_all.load(Ordering::Relaxed) {
+            match file.release(s.offset, s.len) {
+                Ok(()) => {
+                    self.held.fetch_sub(s.len, Ordering::AcqRel);
+                    *slot = Slot::Released;
+                }
+                Err(e) => {
+                    tracing::debug!(error = %e, "spooled chunks kept to the end");
+                    self.keep_all.store(true, Ordering::Relaxed);
+                }
+            }
+        }
+        Some(bytes)
     }
 }
 
@@ -246,26 +397,35 @@ mod tests {
     #[test]
     fn a_chunk_is_spooled_the_second_time_and_read_back_as_written() {
         let spool: ChunkSpool<u32, u8> = ChunkSpool::default();
-        let first = spool.get_or_spool(7, || panic!("decoded the first time"));
+        let first = spool.get_or_spool(7, 0, || panic!("decoded the first time"));
         assert!(first.is_none(), "not spooled the first time");
         assert!(!spool.has_file());
         let samples = [f32::NAN, -0.0, 1e-38, f32::INFINITY, 3.5, -2.25];
         let s = spool
-            .get_or_spool(7, || Some((3, f32::to_bytes(&samples))))
+            .get_or_spool(7, 0, || Some((3, f32::to_bytes(&samples))))
             .expect("spooled the second time");
         assert_eq!(s.meta, 3);
-        let back = spool.read(&s, 16, 8).expect("the last two samples");
+        let back = spool
+            .read(&7, &s, (16, 8), (2, 6))
+            .expect("the last two samples");
         assert_eq!(f32::from_bytes(&back), [3.5, -2.25]);
-        assert!(spool.read(&s, 17, 8).is_none(), "past the end");
+        assert!(
+            spool.read(&7, &s, (17, 8), (2, 6)).is_none(),
+            "past the end"
+        );
+        assert!(
+            spool.read(&6, &s, (0, 8), (2, 6)).is_none(),
+            "another chunk"
+        );
         // Spooled once: later requests do not decode it again.
-        let again = spool.get_or_spool(7, || panic!("decoded a third time"));
+        let again = spool.get_or_spool(7, 0, || panic!("decoded a third time"));
         assert_eq!(again.map(|s| s.meta), Some(3));
         // A chunk that fails to decode is not spooled, and its later requests decode it.
-        assert!(spool.get_or_spool(8, || None).is_none());
-        assert!(spool.get_or_spool(8, || None).is_none());
+        assert!(spool.get_or_spool(8, 0, || None).is_none());
+        assert!(spool.get_or_spool(8, 0, || None).is_none());
         let mut asked = false;
         assert!(spool
-            .get_or_spool(8, || {
+            .get_or_spool(8, 0, || {
                 asked = true;
                 None
             })
@@ -273,24 +433,74 @@ mod tests {
         assert!(!asked, "the failure is kept: its caller decodes it itself");
     }
 
-    /// Beyond its share of the disk the spool takes no more chunks: their regions decode them.
+    /// Beyond its share of the disk the spool takes no more chunks (their regions decode
+    /// them) until chunks read whole by their regions are released.
     #[test]
-    fn a_full_spool_takes_no_more_chunks() {
+    fn a_full_spool_takes_no_more_chunks_until_others_are_released() {
         let spool: ChunkSpool<u32, ()> = ChunkSpool::with_budget(40);
         let chunk = || Some(((), vec![7u8; 24]));
-        for key in [1, 2] {
+        for key in [1, 2, 3] {
             assert!(spool
-                .get_or_spool(key, || panic!("decoded the first time"))
+                .get_or_spool(key, 0, || panic!("decoded the first time"))
                 .is_none());
         }
-        assert!(spool.get_or_spool(1, chunk).is_some(), "24 of 40 bytes");
-        assert!(spool.get_or_spool(2, chunk).is_none(), "48 of 40 bytes");
-        assert!(spool.get_or_spool(1, || panic!("spooled")).is_some());
-        // Once full, a chunk is no longer decoded for the spool (only by its regions).
-        assert!(spool.get_or_spool(3, || panic!("the first time")).is_none());
+        let one = spool.get_or_spool(1, 0, chunk).expect("24 of 40 bytes");
+        assert!(spool.get_or_spool(2, 0, chunk).is_none(), "48 of 40 bytes");
+        assert!(spool.get_or_spool(1, 0, || panic!("spooled")).is_some());
+        // Full: a chunk is no longer decoded for the spool (only by its regions).
         assert!(spool
-            .get_or_spool(3, || panic!("decoded for a full spool"))
+            .get_or_spool(3, 0, || panic!("decoded for a full spool"))
             .is_none());
+        assert_eq!(spool.held(), (24, 24));
+        // Chunk 1 read whole by two regions (12 samples of 24 each): released.
+        assert!(spool.read(&1, &one, (0, 12), (12, 24)).is_some());
+        assert_eq!(spool.held().0, 24);
+        assert!(spool.read(&1, &one, (12, 12), (12, 24)).is_some());
+        assert_eq!(spool.held(), (0, 24), "released");
+        assert!(spool.read(&1, &one, (0, 4), (4, 24)).is_none(), "gone");
+        // Now there is room for chunk 2.
+        let two = spool.get_or_spool(2, 0, chunk).expect("room again");
+        assert!(two.offset >= 24, "appended after the first");
+        assert_eq!(spool.held(), (24, 24));
+        assert_eq!(spool.read(&2, &two, (0, 24), (24, 24)), Some(vec![7u8; 24]));
+        assert_eq!(spool.held().0, 0);
+    }
+
+    /// A chunk released after a pass over the volume is spooled again by the next pass the
+    /// first time it is needed, and every read back gives its samples, from threads at once.
+    #[test]
+    fn a_released_chunk_is_spooled_again_by_the_next_pass() {
+        let spool: ChunkSpool<u32, ()> = ChunkSpool::default();
+        let samples: Vec<u16> = (0..64).map(|i| i * 3 + 1).collect();
+        let decoded = AtomicUsize::new(0);
+        let chunk = || {
+            decoded.fetch_add(1, Ordering::Relaxed);
+            Some(((), u16::to_bytes(&samples)))
+        };
+        assert!(
+            spool.get_or_spool(9, 0, chunk).is_none(),
+            "the first sighting"
+        );
+        for pass in 1..=3 {
+            // Four regions of 16 samples, two threads.
+            std::thread::scope(|scope| {
+                for t in 0..2u64 {
+                    let (spool, samples, chunk) = (&spool, &samples, &chunk);
+                    scope.spawn(move || {
+                        for quarter in [t, t + 2] {
+                            let s = spool.get_or_spool(9, 0, chunk).expect("spooled");
+                            let at = (quarter * 32, 32);
+                            // Released only once all four are read: never before a read.
+                            let got = spool.read(&9, &s, at, (16, 64)).expect("read back");
+                            let q = quarter as usize * 16;
+                            assert_eq!(u16::from_bytes(&got), samples[q..q + 16]);
+                        }
+                    });
+                }
+            });
+            assert_eq!(spool.held().0, 0, "pass {pass}: released");
+            assert_eq!(decoded.load(Ordering::Relaxed), pass, "once a pass");
+        }
     }
 
     #[test]

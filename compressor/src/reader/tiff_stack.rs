@@ -31,7 +31,8 @@
 //! chunks the region covers, and uncompressed strips as bytes, only the region's rows
 //! ([`TiffRegions`]), so that a stack larger than memory is read brick by brick. A compressed
 //! chunk that several regions share (a page in one strip under all the bricks of a plane) is
-//! decoded into a temporary file once they share it, not again for each (`crate::reader::spool`).
+//! decoded into a temporary file once they share it, not again for each, and its bytes released
+//! once they have all read it (`crate::reader::spool`).
 
 use std::fs::File;
 use std::io::{BufReader, Cursor, Read, Seek};
@@ -1810,11 +1811,16 @@ fn read_page<R: Read + Seek>(
             };
             let shared = cx < x0 || cx + dw > x1 || cy < y0 || cy + dh > y1;
             if let (Some((spool, slice)), true) = (spool, shared) {
-                let spooled = spool.get_or_spool((slice, i as u32), || {
+                let key = (slice, i as u32);
+                let (ya, yb) = (y0.max(cy), y1.min(cy + dh));
+                // The chunk's pixels this region reads (it is released once all are read).
+                let pixels = (x1.min(cx + dw) - x0.max(cx)) * (yb - ya);
+                let spooled = spool.get_or_spool(key, pixels as u64, || {
                     spooled::to_spool(&decode().ok()?, dw * shape.channels, dh)
                 });
-                let (ya, yb) = (y0.max(cy), y1.min(cy + dh));
-                let rows = spooled.and_then(|s| spooled::rows(spool, &s, ya - cy, yb - cy));
+                let rows = spooled.and_then(|s| {
+                    spooled::rows(spool, (&key, &s), (ya - cy, yb - cy), (pixels, dw * dh))
+                });
                 if let Some(rows) = rows {
                     let at = (cx, ya, dw, yb - ya);
                     place(&rows, at, (x0, x1, y0, y1), shape.channels, out, base);
@@ -2318,6 +2324,34 @@ mod tests {
                 "{rows} rows a strip: each strip twice"
             );
             assert!(bricks.spool.has_file());
+            assert_eq!(bricks.spool.held().0, 0, "every strip read whole: released");
+            // Two passes of bricks in order on one thread: a strip is released once the
+            // bricks across it have read it, so the spool holds one layer of bricks' strips
+            // at most; the second pass spools each strip again, once.
+            let passes = TiffRegions::open(&path, None).unwrap();
+            for _ in 0..2 {
+                for z in (0..pages).step_by(3) {
+                    for y in (0..h).step_by(4) {
+                        for x in (0..w).step_by(5) {
+                            let size = [5.min(w - x), 4.min(h - y), 3.min(pages - z)];
+                            let got = passes.read(0, [x, y, z], size).unwrap().remove(0);
+                            let at = (z * h + y) * w + x;
+                            assert_eq!(got[0], all[at], "{rows} rows a strip, {x} {y} {z}");
+                        }
+                    }
+                }
+            }
+            assert_eq!(
+                passes.spool.decoded(),
+                3 * strips,
+                "{rows} rows a strip: passes"
+            );
+            let strip_bytes = w * rows * 2;
+            assert_eq!(
+                passes.spool.held(),
+                (0, 3 * strip_bytes as u64),
+                "{rows} rows a strip: three pages' strips of a band at most"
+            );
             // One brick of a reader of its own (a worker's brick job) spools nothing.
             let one = TiffRegions::open(&path, None).unwrap();
             let brick = one.read(0, [5, 4, 0], [5, 4, pages]).unwrap().remove(0);

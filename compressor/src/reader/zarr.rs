@@ -588,7 +588,22 @@ impl ZarrVolume {
             size,
         };
         if reaches_out {
-            let spooled = self.spool.get_or_spool(chunk.to_vec(), || {
+            // The chunk's samples (of the channel read) this box reads, and all of them within
+            // the array: it is released once the regions have read them all.
+            let bounded = self
+                .array
+                .chunk_subset_bounded(chunk)
+                .map_err(|e| failed(&e))?
+                .to_ranges();
+            let channel = self.channel_axis.map(|(a, _)| a);
+            let count = |block: &[Range<u64>]| -> u64 {
+                (0..block.len())
+                    .filter(|d| Some(*d) != channel)
+                    .map(|d| block[d].end - block[d].start)
+                    .product()
+            };
+            let samples = (count(&inside), count(&bounded));
+            let spooled = self.spool.get_or_spool(chunk.to_vec(), samples.0, || {
                 self.spool.count_decoded();
                 let v: Vec<T> = guarded(&self.path, || self.array.retrieve_chunk(chunk))
                     .ok()?
@@ -605,7 +620,8 @@ impl ZarrVolume {
                 };
                 let (first, last) = (at(&|r| r.start), at(&|r| r.end - 1));
                 let span = (last + 1 - first) * T::SIZE;
-                if let Some(bytes) = self.spool.read(&s, (first * T::SIZE) as u64, span) {
+                let at = ((first * T::SIZE) as u64, span);
+                if let Some(bytes) = self.spool.read(chunk, &s, at, samples) {
                     let v = T::from_bytes(&bytes);
                     place.copy(&v, first, &whole, &inside, out, &conv);
                     return Ok(());
@@ -1670,6 +1686,20 @@ mod tests {
                 bricks.spool.decoded(),
                 2 * count,
                 "{name}: each chunk twice"
+            );
+            // Read whole by the bricks, each chunk is released; the chunks of two time points
+            // are half read (one time point is) and stay.
+            let halves = name == "time_chunks";
+            assert_eq!(bricks.spool.held().0 == 0, !halves, "{name}: released");
+            // A second pass spools the released chunks again, once each.
+            read_bricks_from_two_threads([13, 11, 5], [5, 4, 3], |origin, size| {
+                check(origin, size, &bricks.read(t, origin, size).unwrap());
+            });
+            let again = if halves { 2 } else { 3 };
+            assert_eq!(
+                bricks.spool.decoded(),
+                again * count,
+                "{name}: a second pass"
             );
             // One brick of a reader of its own spools nothing.
             let one = ZarrVolume::open(&path, channel).unwrap();

@@ -28,24 +28,22 @@ pub(super) fn to_spool(
     Some((TiffChunk { kind, row, rows }, bytes))
 }
 
-/// Rows `first..end` of a spooled chunk, as the decoder gave them (`None`: past its rows, or
-/// the file could not be read; the caller decodes the chunk).
+/// Rows `first..end` of the spooled chunk `key` (`s`), as the decoder gave them, for a region
+/// that reads `pixels` of its `total` (`None`: past its rows, released, or the file could not
+/// be read; the caller decodes the chunk).
 pub(super) fn rows(
     spool: &TiffSpool,
-    s: &Spooled<TiffChunk>,
-    first: usize,
-    end: usize,
+    (key, s): (&(usize, u32), &Spooled<TiffChunk>),
+    (first, end): (usize, usize),
+    (pixels, total): (usize, usize),
 ) -> Option<DecodingResult> {
     let c = s.meta;
     if first >= end || end > c.rows {
         return None;
     }
     let size = c.kind.size();
-    let bytes = spool.read(
-        s,
-        (first * c.row * size) as u64,
-        (end - first) * c.row * size,
-    )?;
+    let at = ((first * c.row * size) as u64, (end - first) * c.row * size);
+    let bytes = spool.read(key, s, at, (pixels as u64, total as u64))?;
     Some(from_bytes(c.kind, &bytes))
 }
 
@@ -122,17 +120,20 @@ mod tests {
         ];
         for (i, make) in chunks.iter().enumerate() {
             // Three samples a row, two rows; spooled the second time it is asked for.
-            assert!(spool.get_or_spool((i, 0), || None).is_none());
+            assert!(spool.get_or_spool((i, 0), 0, || None).is_none());
             let s = spool
-                .get_or_spool((i, 0), || to_spool(&make(), 3, 2))
+                .get_or_spool((i, 0), 0, || to_spool(&make(), 3, 2))
                 .expect("spooled");
-            let back = rows(&spool, &s, 0, 2).expect("read back");
+            let back = rows(&spool, (&(i, 0), &s), (0, 2), (0, 6)).expect("read back");
             assert_eq!(listed(&back), listed(&make()), "{i}");
             // The second row alone: the last three samples of the six, of the same type.
             let (kind, all) = listed(&make());
-            let second = rows(&spool, &s, 1, 2).expect("the second row");
+            let second = rows(&spool, (&(i, 0), &s), (1, 2), (0, 6)).expect("the second row");
             assert_eq!(listed(&second), (kind, all[3..].to_vec()), "{i}");
-            assert!(rows(&spool, &s, 2, 3).is_none(), "past the chunk's rows");
+            assert!(
+                rows(&spool, (&(i, 0), &s), (2, 3), (0, 6)).is_none(),
+                "past the chunk's rows"
+            );
         }
         // A chunk that holds fewer samples than its size says is not spooled.
         assert!(to_spool(&DecodingResult::U8(vec![1; 8]), 3, 3).is_none());
@@ -146,11 +147,11 @@ mod tests {
             .map(::half::f16::from_f32)
             .collect();
         let want: Vec<f32> = halves.iter().map(|h| h.to_f32()).collect();
-        assert!(spool.get_or_spool((0, 0), || None).is_none());
+        assert!(spool.get_or_spool((0, 0), 0, || None).is_none());
         let s = spool
-            .get_or_spool((0, 0), || to_spool(&DecodingResult::F16(halves), 2, 2))
+            .get_or_spool((0, 0), 0, || to_spool(&DecodingResult::F16(halves), 2, 2))
             .expect("spooled");
-        match rows(&spool, &s, 0, 2) {
+        match rows(&spool, (&(0, 0), &s), (0, 2), (4, 4)) {
             Some(DecodingResult::F32(v)) => assert_eq!(v, want),
             other => panic!("{other:?}"),
         }
