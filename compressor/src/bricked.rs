@@ -1980,32 +1980,28 @@ impl BrickWork for LocalBricks<'_> {
 
     fn score_all(&self, plan: &BrickPlan) -> Result<Vec<ScoreSummary>, BrickError> {
         let (of, counter) = (plan.grid.len(), std::sync::atomic::AtomicUsize::new(0));
-        (0..of)
-            .into_par_iter()
-            .map(|i| {
-                let energies = matches!(plan.target, Target::QvPercent(_));
-                let s = match self.checkpoint.and_then(|c| c.summary(i)) {
-                    Some(s) => s,
-                    None => {
-                        let mut s =
-                            plan.score_into(self.source, i, &self.tops, 0, plan.top_cap(i))?;
-                        if !energies {
-                            s = s.without_energies();
-                        }
-                        if let Some(c) = self.checkpoint {
-                            c.keep_summary(i, &s, energies);
-                            if let Some(top) = self.tops.get(&(0, plan.grid[i])) {
-                                c.keep_top(i, &top);
-                            }
-                        }
-                        s
+        in_grid_order(of, |i| {
+            let energies = matches!(plan.target, Target::QvPercent(_));
+            let s = match self.checkpoint.and_then(|c| c.summary(i)) {
+                Some(s) => s,
+                None => {
+                    let mut s = plan.score_into(self.source, i, &self.tops, 0, plan.top_cap(i))?;
+                    if !energies {
+                        s = s.without_energies();
                     }
-                };
-                let done = counter.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
-                (self.progress)(BrickStage::Scored { done, of });
-                Ok(s)
-            })
-            .collect()
+                    if let Some(c) = self.checkpoint {
+                        c.keep_summary(i, &s, energies);
+                        if let Some(top) = self.tops.get(&(0, plan.grid[i])) {
+                            c.keep_top(i, &top);
+                        }
+                    }
+                    s
+                }
+            };
+            let done = counter.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
+            (self.progress)(BrickStage::Scored { done, of });
+            Ok(s)
+        })
     }
 
     fn encode_all(
@@ -2029,49 +2025,91 @@ impl LocalBricks<'_> {
         keep: &(dyn Fn(Vec<u8>) -> Result<F, BrickError> + Sync),
     ) -> Result<Vec<CodedBrick<F>>, BrickError> {
         let (of, counter) = (plan.grid.len(), std::sync::atomic::AtomicUsize::new(0));
-        (0..of)
-            .into_par_iter()
-            .map(|i| {
-                let count = counts.map(|k| k[i]);
-                let (file, kept) = match self.checkpoint.and_then(|c| c.coded(i, count)) {
-                    Some(coded) => coded,
-                    None => {
-                        // A run again after a kill: the top this brick's first pass kept, from
-                        // the checkpoint, where it is not in memory (then the brick is coded
-                        // without being read and transformed again).
-                        let key = (0, plan.grid[i]);
-                        let cap = plan.top_cap(i);
-                        let mut had_top = self.tops.get(&key).is_some();
-                        if let (Some(c), Some(_)) = (self.checkpoint, count) {
-                            if !had_top && cap.is_some() {
-                                if let Some(top) = c.top(i, plan.grid[i].1, &plan.base) {
-                                    self.tops.keep(key, top);
-                                    had_top = true;
-                                }
+        in_grid_order(of, |i| {
+            let count = counts.map(|k| k[i]);
+            let (file, kept) = match self.checkpoint.and_then(|c| c.coded(i, count)) {
+                Some(coded) => coded,
+                None => {
+                    // A run again after a kill: the top this brick's first pass kept, from
+                    // the checkpoint, where it is not in memory (then the brick is coded
+                    // without being read and transformed again).
+                    let key = (0, plan.grid[i]);
+                    let cap = plan.top_cap(i);
+                    let mut had_top = self.tops.get(&key).is_some();
+                    if let (Some(c), Some(_)) = (self.checkpoint, count) {
+                        if !had_top && cap.is_some() {
+                            if let Some(top) = c.top(i, plan.grid[i].1, &plan.base) {
+                                self.tops.keep(key, top);
+                                had_top = true;
                             }
                         }
-                        let coded = plan.encode_from(self.source, i, count, &self.tops, 0, cap)?;
-                        if let Some(c) = self.checkpoint {
-                            c.keep_coded(i, count, &coded.0);
-                            // A top kept on the way (the checkpoint had none): kept there too,
-                            // for a run after another kill.
-                            if !had_top {
-                                if let Some(top) = self.tops.get(&key) {
-                                    c.keep_top(i, &top);
-                                }
-                            }
-                        }
-                        coded
                     }
-                };
-                let len = file.len() as u64;
-                let file = keep(file)?;
-                let done = counter.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
-                (self.progress)(BrickStage::Compressed { done, of, trial });
-                Ok(CodedBrick { len, file, kept })
-            })
-            .collect()
+                    let coded = plan.encode_from(self.source, i, count, &self.tops, 0, cap)?;
+                    if let Some(c) = self.checkpoint {
+                        c.keep_coded(i, count, &coded.0);
+                        // A top kept on the way (the checkpoint had none): kept there too,
+                        // for a run after another kill.
+                        if !had_top {
+                            if let Some(top) = self.tops.get(&key) {
+                                c.keep_top(i, &top);
+                            }
+                        }
+                    }
+                    coded
+                }
+            };
+            let len = file.len() as u64;
+            let file = keep(file)?;
+            let done = counter.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
+            (self.progress)(BrickStage::Compressed { done, of, trial });
+            Ok(CodedBrick { len, file, kept })
+        })
     }
+}
+
+/// `work` for every brick `0..of` on the rayon pool, the bricks started in their grid order
+/// (x fastest, then y, then z) by whichever thread is free, and the results in that order;
+/// the first error stops new bricks from starting and is returned. Not rayon's split of the
+/// range into a part per thread: its threads would each read a different layer of bricks at
+/// once, and a reader's chunks shared by a layer (a TIFF page in one strip, a Zarr chunk of a
+/// plane, [`crate::reader::spool`]) are released only once the layer has read them, so the
+/// disk they take would grow with the threads. In order, the threads share one layer.
+fn in_grid_order<T: Send, E: Send>(
+    of: usize,
+    work: impl Fn(usize) -> Result<T, E> + Sync,
+) -> Result<Vec<T>, E> {
+    use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+    let (next, failed) = (AtomicUsize::new(0), AtomicBool::new(false));
+    let done: Vec<std::sync::Mutex<Option<T>>> =
+        (0..of).map(|_| std::sync::Mutex::new(None)).collect();
+    let first_error = std::sync::Mutex::new(None);
+    let threads = rayon::current_num_threads().clamp(1, of.max(1));
+    (0..threads).into_par_iter().for_each(|_| loop {
+        let i = next.fetch_add(1, Ordering::Relaxed);
+        if i >= of || failed.load(Ordering::Relaxed) {
+            return;
+        }
+        match work(i) {
+            Ok(t) => *done[i].lock().unwrap_or_else(|p| p.into_inner()) = Some(t),
+            Err(e) => {
+                failed.store(true, Ordering::Relaxed);
+                let mut first = first_error.lock().unwrap_or_else(|p| p.into_inner());
+                first.get_or_insert(e);
+                return;
+            }
+        }
+    });
+    if let Some(e) = first_error.into_inner().unwrap_or_else(|p| p.into_inner()) {
+        return Err(e);
+    }
+    Ok(done
+        .into_iter()
+        .map(|m| {
+            m.into_inner()
+                .unwrap_or_else(|p| p.into_inner())
+                .expect("every brick done without an error")
+        })
+        .collect())
 }
 
 /// A trial's coded bricks kept on disk instead of in memory ([`SpillingBricks`]): an unnamed
@@ -2408,6 +2446,44 @@ mod tests {
     use super::*;
     use crate::encode::{compress, Effort};
     use crate::phantom::Phantom;
+
+    /// Bricks run in grid order give their results in that order, each brick once, from a
+    /// pool of several threads; an error stops the bricks not yet started and is returned;
+    /// no brick at all is no work.
+    #[test]
+    fn bricks_in_grid_order_come_back_in_order_and_stop_at_an_error() {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(3)
+            .build()
+            .unwrap();
+        pool.install(|| {
+            let calls = std::sync::atomic::AtomicUsize::new(0);
+            let got = in_grid_order(100, |i| {
+                calls.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                Ok::<_, String>(i * i)
+            })
+            .unwrap();
+            assert_eq!(got, (0..100).map(|i| i * i).collect::<Vec<_>>());
+            assert_eq!(calls.into_inner(), 100);
+            let started = std::sync::Mutex::new(Vec::new());
+            let e = in_grid_order(100, |i| {
+                started.lock().unwrap().push(i);
+                if i == 10 {
+                    return Err(format!("brick {i}"));
+                }
+                std::thread::sleep(std::time::Duration::from_millis(20));
+                Ok(i)
+            })
+            .unwrap_err();
+            assert_eq!(e, "brick 10");
+            let started = started.into_inner().unwrap();
+            // Started in order, and none after the failure but what was under way: 20 ms a
+            // brick, the 89 after brick 10 would take the other two threads 0.9 s.
+            assert!((0..=10).all(|i| started.contains(&i)), "{started:?}");
+            assert!(started.len() < 30, "{started:?}");
+            assert_eq!(in_grid_order(0, |_| Ok::<u8, ()>(1)), Ok(vec![]));
+        });
+    }
 
     /// A file's faces are read in one pass of slabs of whole rows, for files of any shape and
     /// any slab size (several planes, a band of rows, a row), and give the same samples as
