@@ -134,6 +134,7 @@ mod tests {
     /// A record released gives its blocks back and reads as zeros; the records around it
     /// read as written, and a release past the end is refused.
     #[test]
+    #[cfg(target_os = "linux")]
     fn a_released_record_gives_its_disk_space_back() {
         use std::os::unix::fs::MetadataExt;
         let f = ScratchFile::new(None).unwrap();

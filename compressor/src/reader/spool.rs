@@ -10,13 +10,15 @@
 //! Once the regions have read every sample of a chunk, its bytes are released (a hole punched
 //! in the file), so the disk holds the shared chunks of the bricks being read, a layer of
 //! bricks, not the volume's; a later pass over the volume spools a released chunk again the
-//! first time it needs it. Memory stays one chunk per reading thread. Where the temporary file
-//! cannot be made or written, or its share of the disk is spent, a chunk is decoded for each
-//! region as before. (Written here: the caches on crates.io keep their values in memory, and
+//! first time it needs it. Where its share of the disk is spent (regions that read a chunk
+//! twice, or not at all, throw its count off; a worker reads only some of the bricks), the
+//! oldest chunks are released to make room. Memory stays one chunk per reading thread. Where
+//! the temporary file cannot be made or written, a chunk is decoded for each region as before. (Written here: the caches on crates.io keep their values in memory, and
 //! these values add up to the volume; the file is a [`ScratchFile`].)
 
 use std::borrow::Borrow;
 use std::collections::hash_map::{Entry, HashMap};
+use std::collections::VecDeque;
 use std::hash::Hash;
 use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, OnceLock, PoisonError};
@@ -32,22 +34,34 @@ pub(crate) struct ChunkSpool<K, M> {
     file: OnceLock<Option<(ScratchFile, u64)>>,
     /// The bytes the file may hold, where not [`SPOOL_DISK_SHARE`] of the free space (tests).
     budget: Option<u64>,
-    /// Each chunk a region has needed, and where it stands ([`Slot`]).
-    chunks: Mutex<HashMap<K, Slot<M>>>,
+    /// Each chunk a region has needed, and where it stands, and the spooled ones in the order
+    /// they were written.
+    chunks: Mutex<Chunks<K, M>>,
     /// Chunks decoded so far, by any region (what the spool saves is seen here).
     decoded: AtomicUsize,
     /// Bytes of spooled chunks not yet released: what the budget bounds.
     held: AtomicU64,
     /// The most bytes held at once.
     peak: AtomicU64,
-    /// The size of the last chunk decoded for the spool: the next is not decoded where one
-    /// of this size would not fit (the chunks of a file are mostly of one size).
+    /// The size of the last chunk spooled: the next is not decoded where no room can be made
+    /// for one of this size (the chunks of a file are mostly of one size).
     last_len: AtomicU64,
     /// Set when the file could not be made or written: no chunk is decoded for the spool
     /// after that, only by the regions themselves.
     refused: AtomicBool,
     /// Set when a hole could not be punched: spooled chunks stay to the end.
     keep_all: AtomicBool,
+}
+
+/// The chunks a spool knows of.
+#[derive(Debug)]
+struct Chunks<K, M> {
+    /// Each chunk a region has needed, and where it stands.
+    slots: HashMap<K, Slot<M>>,
+    /// The chunks written, oldest first, by their key and offset (an entry whose chunk was
+    /// released since is passed over): where the budget is spent, the oldest are released
+    /// to make room, as the regions are read in order and have mostly done with them.
+    written: VecDeque<(K, u64)>,
 }
 
 /// Where a chunk stands in the spool.
@@ -69,7 +83,10 @@ impl<K, M> Default for ChunkSpool<K, M> {
         ChunkSpool {
             file: OnceLock::new(),
             budget: None,
-            chunks: Mutex::new(HashMap::new()),
+            chunks: Mutex::new(Chunks {
+                slots: HashMap::new(),
+                written: VecDeque::new(),
+            }),
             decoded: AtomicUsize::new(0),
             held: AtomicU64::new(0),
             peak: AtomicU64::new(0),
@@ -167,7 +184,7 @@ impl<K: Hash + Eq + Clone, M: Copy> ChunkSpool<K, M> {
     ) -> Option<Spooled<M>> {
         let cell = {
             let mut chunks = self.chunks.lock().unwrap_or_else(PoisonError::into_inner);
-            match chunks.entry(key.clone()) {
+            match chunks.slots.entry(key.clone()) {
                 Entry::Vacant(v) => {
                     v.insert(Slot::Seen(samples));
                     return None;
@@ -187,7 +204,7 @@ impl<K: Hash + Eq + Clone, M: Copy> ChunkSpool<K, M> {
             }
         };
         let mut full = false;
-        let got = *cell.get_or_init(|| match self.spool(decode) {
+        let got = *cell.get_or_init(|| match self.spool(&key, decode) {
             Ok(s) => Some(s),
             Err(NotSpooled::Full) => {
                 full = true;
@@ -195,23 +212,31 @@ impl<K: Hash + Eq + Clone, M: Copy> ChunkSpool<K, M> {
             }
             Err(NotSpooled::Failed) => None,
         });
-        if full {
-            // Asked for again, it is spooled if the budget has room by then.
+        if got.is_none() {
+            // The caller decodes the chunk itself: its samples count. Where the budget was
+            // spent, the chunk is spooled when asked for again if there is room by then.
             let mut chunks = self.chunks.lock().unwrap_or_else(PoisonError::into_inner);
-            if let Some(slot) = chunks.get_mut(&key) {
-                if let Slot::Spool(c, read) = slot {
-                    if Arc::ptr_eq(c, &cell) {
-                        *slot = Slot::Seen(read.saturating_add(samples));
+            if let Some(slot) = chunks.slots.get_mut(&key) {
+                match slot {
+                    Slot::Spool(c, read) if Arc::ptr_eq(c, &cell) => {
+                        *read = read.saturating_add(samples);
+                        if full {
+                            *slot = Slot::Seen(*read);
+                        }
                     }
+                    Slot::Seen(read) => *read = read.saturating_add(samples),
+                    _ => {}
                 }
             }
         }
         got
     }
 
-    /// Decodes a chunk by `decode` and writes it to the file, within the budget.
+    /// Decodes chunk `key` by `decode` and writes it to the file, within the budget (the
+    /// oldest chunks released to make room).
     fn spool(
         &self,
+        key: &K,
         decode: impl FnOnce() -> Option<(M, Vec<u8>)>,
     ) -> Result<Spooled<M>, NotSpooled> {
         if self.refused.load(Ordering::Relaxed) {
@@ -221,30 +246,40 @@ impl<K: Hash + Eq + Clone, M: Copy> ChunkSpool<K, M> {
             self.refused.store(true, Ordering::Relaxed);
             return Err(NotSpooled::Failed);
         };
-        // Not decoded where a chunk like the last would not fit.
+        // Not decoded where a chunk like the last spooled would not fit the whole budget, or
+        // no room can be made for it.
         let like_last = self.last_len.load(Ordering::Relaxed).max(1);
-        if self.held.load(Ordering::Relaxed).saturating_add(like_last) > budget {
+        if self.held.load(Ordering::Relaxed).saturating_add(like_last) > budget
+            && !self.make_room(like_last, budget)
+        {
             return Err(NotSpooled::Full);
         }
         let (meta, bytes) = decode().ok_or(NotSpooled::Failed)?;
         let len = bytes.len() as u64;
-        self.last_len.store(len, Ordering::Relaxed);
         // The bytes are reserved before they are written: threads at once stay within it.
-        let reserved = self
-            .held
-            .fetch_update(Ordering::AcqRel, Ordering::Acquire, |held| {
-                held.checked_add(len).filter(|h| *h <= budget)
-            });
-        let held = match reserved {
-            Ok(before) => before + len,
-            Err(_) => {
-                tracing::debug!(budget, "the spool of decoded chunks is full");
-                return Err(NotSpooled::Full);
+        let held = loop {
+            let reserved = self
+                .held
+                .fetch_update(Ordering::AcqRel, Ordering::Acquire, |held| {
+                    held.checked_add(len).filter(|h| *h <= budget)
+                });
+            match reserved {
+                Ok(before) => {
+                    self.last_len.store(len, Ordering::Relaxed);
+                    break before + len;
+                }
+                Err(_) if self.make_room(len, budget) => {}
+                Err(_) => {
+                    tracing::debug!(budget, "the spool of decoded chunks is full");
+                    return Err(NotSpooled::Full);
+                }
             }
         };
         match file.append(&bytes) {
             Ok(offset) => {
                 self.peak.fetch_max(held, Ordering::Relaxed);
+                let mut chunks = self.chunks.lock().unwrap_or_else(PoisonError::into_inner);
+                chunks.written.push_back((key.clone(), offset));
                 Ok(Spooled { offset, len, meta })
             }
             Err(e) => {
@@ -252,6 +287,53 @@ impl<K: Hash + Eq + Clone, M: Copy> ChunkSpool<K, M> {
                 self.held.fetch_sub(len, Ordering::AcqRel);
                 self.refused.store(true, Ordering::Relaxed);
                 Err(NotSpooled::Failed)
+            }
+        }
+    }
+
+    /// Releases the oldest chunks still spooled until `len` more bytes fit the budget; whether
+    /// they do (not where every chunk is released already, or no hole can be punched).
+    fn make_room(&self, len: u64, budget: u64) -> bool {
+        let Some(Some((file, _))) = self.file.get() else {
+            return false;
+        };
+        if len > budget {
+            return false;
+        }
+        let mut chunks = self.chunks.lock().unwrap_or_else(PoisonError::into_inner);
+        let Chunks { slots, written } = &mut *chunks;
+        while self.held.load(Ordering::Acquire).saturating_add(len) > budget {
+            if self.keep_all.load(Ordering::Relaxed) {
+                return false;
+            }
+            let Some((key, offset)) = written.pop_front() else {
+                return false;
+            };
+            let Some(slot) = slots.get_mut(&key) else {
+                continue;
+            };
+            let spooled = match &*slot {
+                Slot::Spool(cell, _) => *cell.get().unwrap_or(&None),
+                _ => None,
+            };
+            if let Some(s) = spooled.filter(|s| s.offset == offset) {
+                self.release(file, &s, slot);
+            }
+        }
+        true
+    }
+
+    /// Releases the spooled chunk `s` in `slot` (a hole punched in `file`), or keeps every
+    /// chunk from now on where no hole can be punched.
+    fn release(&self, file: &ScratchFile, s: &Spooled<M>, slot: &mut Slot<M>) {
+        match file.release(s.offset, s.len) {
+            Ok(()) => {
+                self.held.fetch_sub(s.len, Ordering::AcqRel);
+                *slot = Slot::Released;
+            }
+            Err(e) => {
+                tracing::debug!(error = %e, "spooled chunks kept to the end");
+                self.keep_all.store(true, Ordering::Relaxed);
             }
         }
     }
@@ -303,7 +385,7 @@ impl<K: Hash + Eq + Clone, M: Copy> ChunkSpool<K, M> {
         }
         // Under the lock of the chunks, so that no region releases the chunk in between.
         let mut chunks = self.chunks.lock().unwrap_or_else(PoisonError::into_inner);
-        let slot = chunks.get_mut(key)?;
+        let slot = chunks.slots.get_mut(key)?;
         let Slot::Spool(cell, read) = slot else {
             return None;
         };
@@ -313,16 +395,7 @@ impl<K: Hash + Eq + Clone, M: Copy> ChunkSpool<K, M> {
         let bytes = file.read(s.offset + at, len).ok()?;
         *read = read.saturating_add(samples);
         if *read >= total && !self.keep_all.load(Ordering::Relaxed) {
-            match file.release(s.offset, s.len) {
-                Ok(()) => {
-                    self.held.fetch_sub(s.len, Ordering::AcqRel);
-                    *slot = Slot::Released;
-                }
-                Err(e) => {
-                    tracing::debug!(error = %e, "spooled chunks kept to the end");
-                    self.keep_all.store(true, Ordering::Relaxed);
-                }
-            }
+            self.release(file, s, slot);
         }
         Some(bytes)
     }
@@ -433,36 +506,43 @@ mod tests {
         assert!(!asked, "the failure is kept: its caller decodes it itself");
     }
 
-    /// Beyond its share of the disk the spool takes no more chunks (their regions decode
-    /// them) until chunks read whole by their regions are released.
+    /// Where its share of the disk is spent, the spool releases its oldest chunks to make
+    /// room for a new one (a region then reading one released decodes it itself); a chunk
+    /// larger than the whole share is not spooled; chunks read whole by their regions are
+    /// released without waiting for that.
     #[test]
-    fn a_full_spool_takes_no_more_chunks_until_others_are_released() {
+    fn a_full_spool_releases_its_oldest_chunks_to_make_room() {
         let spool: ChunkSpool<u32, ()> = ChunkSpool::with_budget(40);
-        let chunk = || Some(((), vec![7u8; 24]));
-        for key in [1, 2, 3] {
+        let chunk = |b: u8| move || Some(((), vec![b; 24]));
+        for key in [1, 2, 3, 4] {
             assert!(spool
                 .get_or_spool(key, 0, || panic!("decoded the first time"))
                 .is_none());
         }
-        let one = spool.get_or_spool(1, 0, chunk).expect("24 of 40 bytes");
-        assert!(spool.get_or_spool(2, 0, chunk).is_none(), "48 of 40 bytes");
+        let one = spool.get_or_spool(1, 0, chunk(1)).expect("24 of 40 bytes");
         assert!(spool.get_or_spool(1, 0, || panic!("spooled")).is_some());
-        // Full: a chunk is no longer decoded for the spool (only by its regions).
-        assert!(spool
-            .get_or_spool(3, 0, || panic!("decoded for a full spool"))
-            .is_none());
-        assert_eq!(spool.held(), (24, 24));
-        // Chunk 1 read whole by two regions (12 samples of 24 each): released.
-        assert!(spool.read(&1, &one, (0, 12), (12, 24)).is_some());
+        let two = spool.get_or_spool(2, 0, chunk(2)).expect("room made");
+        assert_eq!(spool.held(), (24, 24), "the first released");
+        assert!(spool.read(&1, &one, (0, 4), (4, 24)).is_none(), "released");
+        assert_eq!(spool.read(&2, &two, (0, 2), (2, 24)), Some(vec![2, 2]));
+        // Asked for again, the first is spooled again (the second released for it).
+        let again = spool.get_or_spool(1, 0, chunk(1)).expect("spooled again");
+        assert!(again.offset >= 48, "appended after both");
+        assert!(spool.read(&2, &two, (0, 2), (2, 24)).is_none(), "released");
+        // Chunk 1 read whole by two regions (12 samples of 24 each): released at once.
+        assert!(spool.read(&1, &again, (0, 12), (12, 24)).is_some());
         assert_eq!(spool.held().0, 24);
-        assert!(spool.read(&1, &one, (12, 12), (12, 24)).is_some());
+        assert!(spool.read(&1, &again, (12, 12), (12, 24)).is_some());
         assert_eq!(spool.held(), (0, 24), "released");
-        assert!(spool.read(&1, &one, (0, 4), (4, 24)).is_none(), "gone");
-        // Now there is room for chunk 2.
-        let two = spool.get_or_spool(2, 0, chunk).expect("room again");
-        assert!(two.offset >= 24, "appended after the first");
-        assert_eq!(spool.held(), (24, 24));
-        assert_eq!(spool.read(&2, &two, (0, 24), (24, 24)), Some(vec![7u8; 24]));
+        // Larger than the whole share: not spooled.
+        let big = || Some(((), vec![3u8; 48]));
+        assert!(spool.get_or_spool(3, 0, big).is_none());
+        assert_eq!(spool.held().0, 0);
+        let four = spool.get_or_spool(4, 0, chunk(4)).expect("room");
+        assert_eq!(
+            spool.read(&4, &four, (0, 24), (24, 24)),
+            Some(vec![4u8; 24])
+        );
         assert_eq!(spool.held().0, 0);
     }
 

@@ -2325,6 +2325,22 @@ mod tests {
             );
             assert!(bricks.spool.has_file());
             assert_eq!(bricks.spool.held().0, 0, "every strip read whole: released");
+            // A spool of two strips' room, from two threads: the oldest strips are released
+            // to make room, and every brick still reads what the whole gives.
+            let mut tight = TiffRegions::open(&path, None).unwrap();
+            tight.spool = TiffSpool::with_budget((2 * w * rows * 2) as u64);
+            read_bricks_from_two_threads([w, h, pages], [5, 4, 3], |origin, size| {
+                let got = tight.read(0, origin, size).unwrap().remove(0);
+                for (j, v) in got.iter().enumerate() {
+                    let (x, y, z) = (j % size[0], j / size[0] % size[1], j / size[0] / size[1]);
+                    let at = ((origin[2] + z) * h + origin[1] + y) * w + origin[0] + x;
+                    assert_eq!(
+                        *v, all[at],
+                        "{rows} rows a strip, tight, {origin:?} {size:?}"
+                    );
+                }
+            });
+            assert!(tight.spool.held().1 <= (2 * w * rows * 2) as u64);
             // Two passes of bricks in order on one thread: a strip is released once the
             // bricks across it have read it, so the spool holds one layer of bricks' strips
             // at most; the second pass spools each strip again, once.
