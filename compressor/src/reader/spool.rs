@@ -13,8 +13,9 @@
 //! first time it needs it. Where its share of the disk is spent (regions that read a chunk
 //! twice, or not at all, throw its count off; a worker reads only some of the bricks), the
 //! oldest chunks are released to make room. Memory stays one chunk per reading thread. Where
-//! the temporary file cannot be made or written, a chunk is decoded for each region as before. (Written here: the caches on crates.io keep their values in memory, and
-//! these values add up to the volume; the file is a [`ScratchFile`].)
+//! the temporary file cannot be made or written, a chunk is decoded for each region as before.
+//! (Written here: the caches on crates.io keep their values in memory, and these values add up
+//! to the volume; the file is a [`ScratchFile`].)
 
 use std::borrow::Borrow;
 use std::collections::hash_map::{Entry, HashMap};
@@ -182,7 +183,7 @@ impl<K: Hash + Eq + Clone, M: Copy> ChunkSpool<K, M> {
         samples: u64,
         decode: impl FnOnce() -> Option<(M, Vec<u8>)>,
     ) -> Option<Spooled<M>> {
-        let cell = {
+        let cell = 'cell: {
             let mut chunks = self.chunks.lock().unwrap_or_else(PoisonError::into_inner);
             match chunks.slots.entry(key.clone()) {
                 Entry::Vacant(v) => {
@@ -191,15 +192,14 @@ impl<K: Hash + Eq + Clone, M: Copy> ChunkSpool<K, M> {
                 }
                 Entry::Occupied(mut o) => {
                     let slot = o.get_mut();
-                    match slot {
-                        Slot::Seen(read) => *slot = Slot::Spool(SpoolCell::default(), *read),
-                        Slot::Released => *slot = Slot::Spool(SpoolCell::default(), 0),
-                        Slot::Spool(..) => {}
-                    }
-                    match slot {
-                        Slot::Spool(cell, _) => Arc::clone(cell),
-                        _ => unreachable!("set just above"),
-                    }
+                    let read = match slot {
+                        Slot::Spool(cell, _) => break 'cell Arc::clone(cell),
+                        Slot::Seen(read) => *read,
+                        Slot::Released => 0,
+                    };
+                    let cell = SpoolCell::default();
+                    *slot = Slot::Spool(Arc::clone(&cell), read);
+                    cell
                 }
             }
         };
@@ -250,7 +250,7 @@ impl<K: Hash + Eq + Clone, M: Copy> ChunkSpool<K, M> {
         // no room can be made for it.
         let like_last = self.last_len.load(Ordering::Relaxed).max(1);
         if self.held.load(Ordering::Relaxed).saturating_add(like_last) > budget
-            && !self.make_room(like_last, budget)
+            && !self.make_room(file, like_last, budget)
         {
             return Err(NotSpooled::Full);
         }
@@ -268,7 +268,7 @@ impl<K: Hash + Eq + Clone, M: Copy> ChunkSpool<K, M> {
                     self.last_len.store(len, Ordering::Relaxed);
                     break before + len;
                 }
-                Err(_) if self.make_room(len, budget) => {}
+                Err(_) if self.make_room(file, len, budget) => {}
                 Err(_) => {
                     tracing::debug!(budget, "the spool of decoded chunks is full");
                     return Err(NotSpooled::Full);
@@ -293,10 +293,7 @@ impl<K: Hash + Eq + Clone, M: Copy> ChunkSpool<K, M> {
 
     /// Releases the oldest chunks still spooled until `len` more bytes fit the budget; whether
     /// they do (not where every chunk is released already, or no hole can be punched).
-    fn make_room(&self, len: u64, budget: u64) -> bool {
-        let Some(Some((file, _))) = self.file.get() else {
-            return false;
-        };
+    fn make_room(&self, file: &ScratchFile, len: u64, budget: u64) -> bool {
         if len > budget {
             return false;
         }

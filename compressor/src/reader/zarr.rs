@@ -476,8 +476,8 @@ impl ZarrVolume {
             ($t:ty, $conv:expr) => {{
                 if let Some(chunks) = &shared {
                     out.resize(n, 0.0);
-                    for (chunk, reaches_out) in chunks {
-                        let at = (chunk.as_slice(), *reaches_out);
+                    for (chunk, shared) in chunks {
+                        let at = (chunk.as_slice(), *shared);
                         self.read_chunk::<$t>(at, &ranges, origin, size, &mut out, $conv)?;
                     }
                     return Ok(out);
@@ -503,9 +503,10 @@ impl ZarrVolume {
 }
 
 impl ZarrVolume {
-    /// The chunks the box `ranges` meets, each with whether it reaches outside the box (other
-    /// regions will decode it too), where some of them do (`None`: the box is read in one
-    /// call, as `zarrs` reads it).
+    /// The chunks the box `ranges` meets, each with its samples within the array
+    /// ([`ZarrVolume::samples_read`]) where it reaches outside the box (other regions will
+    /// decode it too), where some of them do (`None`: the box is read in one call, as `zarrs`
+    /// reads it).
     /// Arrays of booleans, uncompressed and sharded arrays (whose regions read only their own
     /// bytes, or a shard's inner chunks) and boxes of more than [`MAX_CHUNKS_ONE_BY_ONE`]
     /// chunks are read in one call.
@@ -513,7 +514,7 @@ impl ZarrVolume {
     fn shared_chunks(
         &self,
         ranges: &[Range<u64>],
-    ) -> Result<Option<Vec<(Vec<u64>, bool)>>, ReadError> {
+    ) -> Result<Option<Vec<(Vec<u64>, Option<u64>)>>, ReadError> {
         if self.sample.is_none() || !self.compressed || self.array.is_sharded() {
             return Ok(None);
         }
@@ -536,9 +537,23 @@ impl ZarrVolume {
         let mut chunks = Vec::new();
         for c in &within.indices() {
             let chunk = self.array.chunk_subset_bounded(&c).map_err(|e| grid(&e))?;
-            chunks.push((c.to_vec(), self.reaches_out(&chunk.to_ranges(), ranges)));
+            let chunk = chunk.to_ranges();
+            let shared = self
+                .reaches_out(&chunk, ranges)
+                .then(|| self.samples_read(&chunk));
+            chunks.push((c.to_vec(), shared));
         }
-        Ok(chunks.iter().any(|(_, out)| *out).then_some(chunks))
+        Ok(chunks.iter().any(|(_, s)| s.is_some()).then_some(chunks))
+    }
+
+    /// The samples of `block` a region reads: along space and time, not channels (of which
+    /// one is read).
+    fn samples_read(&self, block: &[Range<u64>]) -> u64 {
+        let channel = self.channel_axis.map(|(a, _)| a);
+        (0..block.len())
+            .filter(|d| Some(*d) != channel)
+            .map(|d| block[d].end - block[d].start)
+            .product()
     }
 
     /// Whether the chunk over `chunk` (within the array) reaches outside the box `ranges` along
@@ -552,11 +567,11 @@ impl ZarrVolume {
 
     /// Adds the samples of chunk `chunk` inside the box `ranges` (a region at `origin` of
     /// `size`) to `out` (x fastest): from the spool where the chunk reaches outside the box
-    /// (`reaches_out`, [`ZarrVolume::shared_chunks`]) and another region has needed it, else
-    /// decoded by `zarrs`, only the part inside the box.
+    /// (`shared`: its samples within the array, [`ZarrVolume::shared_chunks`]) and another
+    /// region has needed it, else decoded by `zarrs`, only the part inside the box.
     fn read_chunk<T: NativeBytes + zarrs::array::ElementOwned>(
         &self,
-        (chunk, reaches_out): (&[u64], bool),
+        (chunk, shared): (&[u64], Option<u64>),
         ranges: &[Range<u64>],
         origin: [usize; 3],
         size: [usize; 3],
@@ -587,22 +602,10 @@ impl ZarrVolume {
             origin,
             size,
         };
-        if reaches_out {
-            // The chunk's samples (of the channel read) this box reads, and all of them within
-            // the array: it is released once the regions have read them all.
-            let bounded = self
-                .array
-                .chunk_subset_bounded(chunk)
-                .map_err(|e| failed(&e))?
-                .to_ranges();
-            let channel = self.channel_axis.map(|(a, _)| a);
-            let count = |block: &[Range<u64>]| -> u64 {
-                (0..block.len())
-                    .filter(|d| Some(*d) != channel)
-                    .map(|d| block[d].end - block[d].start)
-                    .product()
-            };
-            let samples = (count(&inside), count(&bounded));
+        if let Some(total) = shared {
+            // The chunk's samples this box reads, of its `total`: it is released once the
+            // regions have read them all.
+            let samples = (self.samples_read(&inside), total);
             let spooled = self.spool.get_or_spool(chunk.to_vec(), samples.0, || {
                 self.spool.count_decoded();
                 let v: Vec<T> = guarded(&self.path, || self.array.retrieve_chunk(chunk))
