@@ -161,13 +161,27 @@ fn view() -> View {
     View::new(0.66, 0.91, 100, 84)
 }
 
-/// GPU = CPU within 50 dB for `spec` and every family; returns the SNRs.
-fn check_families(ctx: &Arc<GpuContext>, spec: &ViewSpec, channels: usize) -> Vec<f64> {
+/// The most significant cubic coefficients the views other than the plain single one draw.
+/// All 129 024 cubic coefficients are 29 M records a view (their footprints' pieces), two
+/// minutes on lavapipe, six for multiview; the 12 000 largest are ~1 M records a view.
+const CUBIC_SUBSET: usize = 12_000;
+
+/// GPU = CPU within 50 dB for `spec` and every family; returns the SNRs. `cubic_subset`: draw
+/// only the most significant cubic coefficients (every one otherwise).
+fn check_families(
+    ctx: &Arc<GpuContext>,
+    spec: &ViewSpec,
+    channels: usize,
+    cubic_subset: Option<usize>,
+) -> Vec<f64> {
     let mut out = Vec::new();
     for family in Family::ALL {
-        let (g, coeffs) = coefficients(family, channels);
+        let (g, mut coeffs) = coefficients(family, channels);
         let nonzero = coeffs.iter().filter(|c| c.value != 0.0).count();
         assert!(nonzero >= 100_000, "{nonzero} non-zero coefficients");
+        if let (Family::Cubic, Some(n)) = (family, cubic_subset) {
+            coeffs.truncate(n);
+        }
         let p = plan(&g, &coeffs, spec, channels);
         let (cpu, gpu, records) = render_both(ctx, &p);
         assert!(records >= 100_000);
@@ -190,10 +204,10 @@ fn check_families(ctx: &Arc<GpuContext>, spec: &ViewSpec, channels: usize) -> Ve
 #[test]
 fn gpu_matches_cpu_for_every_family() {
     let Some(ctx) = gpu() else { return };
-    check_families(&ctx, &ViewSpec::single(view()), 1);
+    check_families(&ctx, &ViewSpec::single(view()), 1, None);
 }
 
-/// Multiview (three views side by side), every family.
+/// Multiview (three views side by side), every family (the cubic one's `CUBIC_SUBSET`).
 #[test]
 fn gpu_matches_cpu_multiview() {
     let Some(ctx) = gpu() else { return };
@@ -201,10 +215,11 @@ fn gpu_matches_cpu_multiview() {
         view: view(),
         multiview: true,
     };
-    check_families(&ctx, &spec, 1);
+    check_families(&ctx, &spec, 1, Some(CUBIC_SUBSET));
 }
 
-/// Depth cueing (the atlas grows while the view lasts), every family.
+/// Depth cueing (the atlas grows while the view lasts), every family (the cubic one's
+/// `CUBIC_SUBSET`).
 #[test]
 fn gpu_matches_cpu_depth_cued() {
     let Some(ctx) = gpu() else { return };
@@ -215,7 +230,7 @@ fn gpu_matches_cpu_depth_cued() {
             beta: 1.2,
         },
     }));
-    check_families(&ctx, &spec, 1);
+    check_families(&ctx, &spec, 1, Some(CUBIC_SUBSET));
 }
 
 /// Three channels (RGB), multiview, linear family.
@@ -242,7 +257,7 @@ fn gpu_matches_cpu_rgb() {
 fn gpu_sums_are_order_and_chunk_independent() {
     let Some(ctx) = gpu() else { return };
     let (g, coeffs) = coefficients(Family::Cubic, 1);
-    let p = plan(&g, &coeffs[..30_000], &ViewSpec::single(view()), 1);
+    let p = plan(&g, &coeffs[..CUBIC_SUBSET], &ViewSpec::single(view()), 1);
     let records: Vec<SplatRecord> = p.batches.iter().flat_map(|b| b.1.clone()).collect();
     let layout = p.plan.layout();
     let mut a = GpuBackend::new(ctx.clone()).unwrap();

@@ -7,6 +7,7 @@
 //! dicom-pixeldata).
 
 use std::panic::{catch_unwind, AssertUnwindSafe};
+use std::path::Path;
 
 use dicom_dictionary_std::tags;
 use dicom_object::DefaultDicomObject;
@@ -40,20 +41,30 @@ fn encapsulated_frame(
     })
 }
 
-/// Checks the transfer syntax and the pixel data's size before anything is decoded.
-pub(super) fn check_pixel_data(img: &Image, obj: &DefaultDicomObject) -> Result<(), ReadError> {
-    let path = &img.path;
-    let ts_uid = transfer_syntax(obj).to_string();
+/// The refusal of a JPEG-LS transfer syntax by a build that leaves CharLS out
+/// (`reads_jpeg_ls` false: the default-off `jpeg-ls` feature), naming the feature that reads
+/// it; `None` for any other syntax, or where the build reads JPEG-LS. A function of its own so
+/// that a build with the feature tests the refusal too.
+pub(super) fn jpeg_ls_refusal(path: &Path, ts_uid: &str, reads_jpeg_ls: bool) -> Option<ReadError> {
     let jpeg_ls = ts_uid == dicom_dictionary_std::uids::JPEGLS_LOSSLESS
         || ts_uid == dicom_dictionary_std::uids::JPEGLS_NEAR_LOSSLESS;
-    if jpeg_ls && !cfg!(feature = "jpeg-ls") {
-        return Err(dicom_err(
+    (jpeg_ls && !reads_jpeg_ls).then(|| {
+        dicom_err(
             path,
             Some(tags::TRANSFER_SYNTAX_UID),
             format!(
                 "JPEG-LS ({ts_uid}) needs CharLS, which this build leaves out: rebuild with `--features jpeg-ls` (needs cmake and a C++ compiler), or transcode the series to another syntax"
             ),
-        ));
+        )
+    })
+}
+
+/// Checks the transfer syntax and the pixel data's size before anything is decoded.
+pub(super) fn check_pixel_data(img: &Image, obj: &DefaultDicomObject) -> Result<(), ReadError> {
+    let path = &img.path;
+    let ts_uid = transfer_syntax(obj).to_string();
+    if let Some(refused) = jpeg_ls_refusal(path, &ts_uid, cfg!(feature = "jpeg-ls")) {
+        return Err(refused);
     }
     let ts = TransferSyntaxRegistry.get(&ts_uid).ok_or_else(|| {
         dicom_err(

@@ -1120,6 +1120,32 @@ fn lossy_rgb_jpeg_keeps_its_colours(adobe_marked: bool) {
     );
 }
 
+/// A build without CharLS refuses both JPEG-LS syntaxes naming the feature that reads them,
+/// and nothing else; a build with it refuses neither. Runs in every build (CI's has the
+/// feature), where the end-to-end refusal below runs only in a build without it.
+#[test]
+fn jpeg_ls_refusal_names_the_feature_only_where_it_is_left_out() {
+    use dicom_dictionary_std::uids;
+    let path = Path::new("series/1.dcm");
+    for ts in [uids::JPEGLS_LOSSLESS, uids::JPEGLS_NEAR_LOSSLESS] {
+        let err = super::pixels::jpeg_ls_refusal(path, ts, false)
+            .expect("refused without the feature")
+            .to_string();
+        assert!(
+            err.contains("JPEG-LS") && err.contains("--features jpeg-ls") && err.contains(ts),
+            "{ts}: {err}"
+        );
+        assert!(super::pixels::jpeg_ls_refusal(path, ts, true).is_none());
+    }
+    for ts in [
+        uids::EXPLICIT_VR_LITTLE_ENDIAN,
+        uids::JPEG_LOSSLESS_SV1,
+        uids::JPEG2000_LOSSLESS,
+    ] {
+        assert!(super::pixels::jpeg_ls_refusal(path, ts, false).is_none());
+    }
+}
+
 /// Without the `jpeg-ls` feature a JPEG-LS file is refused before decoding, naming the
 /// feature that reads it (not a panic, not a generic "cannot be decoded").
 #[cfg(not(feature = "jpeg-ls"))]
