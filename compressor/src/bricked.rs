@@ -2073,8 +2073,9 @@ impl LocalBricks<'_> {
 /// range into a part per thread: its threads would each read a different layer of bricks at
 /// once, and a reader's chunks shared by a layer (a TIFF page in one strip, a Zarr chunk of a
 /// plane, [`crate::reader::spool`]) are released only once the layer has read them, so the
-/// disk they take would grow with the threads. In order, the threads share one layer.
-fn in_grid_order<T: Send, E: Send>(
+/// disk they take would grow with the threads. In order, the threads share one layer. A time
+/// series' units (each component's bricks, [`crate::series`]) start in their order the same way.
+pub(crate) fn in_grid_order<T: Send, E: Send>(
     of: usize,
     work: impl Fn(usize) -> Result<T, E> + Sync,
 ) -> Result<Vec<T>, E> {

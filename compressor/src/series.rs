@@ -14,7 +14,6 @@
 //! read by region ([`crate::reader::region::RegionReader`]), or one file per time step
 //! ([`crate::reader::steps::StepSeries`]).
 
-use rayon::prelude::*;
 use thiserror::Error;
 use wavesplat_codec::format::bricked::Space;
 use wavesplat_codec::format::series::{
@@ -25,8 +24,8 @@ use wavesplat_codec::format::FormatError;
 use wavesplat_codec::volume::{Placement, Volume, VolumeError};
 
 use crate::bricked::{
-    allocate_units, BrickError, BrickPlan, BrickSource, BrickStage, CodedBrick, KeptTops,
-    SharedChoices, Spill, SpilledBrick,
+    allocate_units, in_grid_order, BrickError, BrickPlan, BrickSource, BrickStage, CodedBrick,
+    KeptTops, SharedChoices, Spill, SpilledBrick,
 };
 use crate::encode::{compress, CompressOptions, ScoreSummary, Target};
 use crate::reader::ReadError;
@@ -954,28 +953,22 @@ pub fn compress_series_to(
         None,
         || {
             counter.store(0, std::sync::atomic::Ordering::Relaxed);
-            (0..of)
-                .into_par_iter()
-                .map(|u| {
-                    let s = plan.score_into(series, u, &tops)?;
-                    tick(&|done| BrickStage::Scored { done, of });
-                    Ok(s)
-                })
-                .collect()
+            in_grid_order(of, |u| {
+                let s = plan.score_into(series, u, &tops)?;
+                tick(&|done| BrickStage::Scored { done, of });
+                Ok(s)
+            })
         },
         |counts, trial| {
             counter.store(0, std::sync::atomic::Ordering::Relaxed);
             let spill = std::sync::Arc::new(Spill::new(spill_dir)?);
-            (0..of)
-                .into_par_iter()
-                .map(|u| {
-                    let (file, kept) = plan.encode_from(series, u, counts.map(|k| k[u]), &tops)?;
-                    let len = file.len() as u64;
-                    let file = spill.push(&file)?;
-                    tick(&|done| BrickStage::Compressed { done, of, trial });
-                    Ok(CodedBrick { len, file, kept })
-                })
-                .collect()
+            in_grid_order(of, |u| {
+                let (file, kept) = plan.encode_from(series, u, counts.map(|k| k[u]), &tops)?;
+                let len = file.len() as u64;
+                let file = spill.push(&file)?;
+                tick(&|done| BrickStage::Compressed { done, of, trial });
+                Ok(CodedBrick { len, file, kept })
+            })
         },
     )?;
     let (from_kept_top, transformed_again) = tops.counts();
