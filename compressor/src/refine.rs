@@ -589,7 +589,7 @@ pub(crate) fn refine_with(
     // The set in score order. Its scores are at least the threshold (lower ones were pruned),
     // so none is negative and `all_sorted` leaves none out.
     let (values_now, masks_now) = (&*values, &*masks);
-    let kept: Vec<KeptValue> = all_sorted(channels, n, &|c, i| {
+    let kept: Vec<KeptValue> = all_sorted(channels, n, &|c: usize, i: usize| {
         if masks_now[c][i] {
             score_of(c, i, values_now[c][i])
         } else {

@@ -69,6 +69,29 @@ fn written_zeros<T: Copy + Default>(len: usize) -> Vec<T> {
     v
 }
 
+/// The scores a selection ranks: `score(c, i)` of coefficient `i` of channel `c` (negative:
+/// never selected). Any `Fn(usize, usize) -> f64` is one; a scorer that finds a coefficient's
+/// position from its index can walk a run of them instead ([`Scores::for_each`]).
+pub(crate) trait Scores: Sync {
+    /// The score of coefficient `i` of channel `c`.
+    fn score(&self, c: usize, i: usize) -> f64;
+
+    /// `f(i, self.score(c, i))` for every `i` of `range`, in order, with the same scores.
+    #[inline]
+    fn for_each(&self, c: usize, range: std::ops::Range<usize>, mut f: impl FnMut(usize, f64)) {
+        for i in range {
+            f(i, self.score(c, i));
+        }
+    }
+}
+
+impl<F: Fn(usize, usize) -> f64 + Sync> Scores for F {
+    #[inline]
+    fn score(&self, c: usize, i: usize) -> f64 {
+        self(c, i)
+    }
+}
+
 /// A selected coefficient: score, channel, index.
 pub(crate) type Pick = (f64, u8, u32);
 
@@ -101,7 +124,7 @@ pub(crate) struct Histogram {
 /// rather than `dyn`, so that the closures are inlined into the pass over every coefficient.
 pub(crate) fn histogram<S, E>(channels: usize, n: usize, score: &S, energy: Option<&E>) -> Histogram
 where
-    S: Fn(usize, usize) -> f64 + Sync,
+    S: Scores,
     E: Fn(usize, usize) -> f64 + Sync,
 {
     let chunks = n.div_ceil(CHUNK);
@@ -123,8 +146,7 @@ where
                 let (c, chunk) = (job / chunks, job % chunks);
                 let range = chunk * CHUNK..((chunk + 1) * CHUNK).min(n);
                 let mut job_energy = 0.0f64;
-                for i in range {
-                    let s = score(c, i);
+                score.for_each(c, range, |i, s| {
                     if s >= 0.0 {
                         let b = bin(s);
                         counts[b] += 1;
@@ -134,7 +156,7 @@ where
                             job_energy += e;
                         }
                     }
-                }
+                });
                 if energy.is_some() {
                     job_energies.push((job, job_energy));
                 }
@@ -246,7 +268,7 @@ pub(crate) fn top_k<S>(
     score: &S,
 ) -> Vec<Pick>
 where
-    S: Fn(usize, usize) -> f64 + Sync,
+    S: Scores,
 {
     if k == 0 {
         return Vec::new();
@@ -267,7 +289,7 @@ fn collect_from<S>(
     score: &S,
 ) -> (Vec<Vec<Pick>>, usize)
 where
-    S: Fn(usize, usize) -> f64 + Sync,
+    S: Scores,
 {
     use std::sync::atomic::{AtomicUsize, Ordering};
     let collected = AtomicUsize::new(0);
@@ -280,12 +302,11 @@ where
             }
             let (c, chunk) = (job / chunks, job % chunks);
             let mut out = Vec::new();
-            for i in chunk * CHUNK..((chunk + 1) * CHUNK).min(n) {
-                let s = score(c, i);
+            score.for_each(c, chunk * CHUNK..((chunk + 1) * CHUNK).min(n), |i, s| {
                 if s >= 0.0 && bin(s) >= floor_bin {
                     out.push((s, c as u8, i as u32));
                 }
-            }
+            });
             collected.fetch_add(out.len(), Ordering::Relaxed);
             out
         })
@@ -383,7 +404,7 @@ fn best_of(parts: Vec<Vec<Pick>>, k: usize) -> Vec<Pick> {
 /// pass of the masks and 90 ms to sort by comparisons on this 2-core machine.
 pub(crate) fn all_sorted<S>(channels: usize, n: usize, score: &S) -> Vec<Pick>
 where
-    S: Fn(usize, usize) -> f64 + Sync,
+    S: Scores,
 {
     let (parts, total) = collect_from(channels, n, 0, usize::MAX, score);
     best_of(parts, total)
@@ -407,7 +428,7 @@ pub(crate) fn top_k_from_floor<S>(
     score: &S,
 ) -> Option<Vec<Pick>>
 where
-    S: Fn(usize, usize) -> f64 + Sync,
+    S: Scores,
 {
     if k == 0 {
         return Some(Vec::new());

@@ -27,6 +27,9 @@ pub struct Visible {
     /// compression's time.
     row: StrengthReducedUsize,
     column: StrengthReducedUsize,
+    /// The same lengths, for [`VisibleWalk`]'s steps.
+    row_len: usize,
+    column_len: usize,
     levels: Vec<u8>,
     tables: [Vec<Vec<f32>>; 3],
 }
@@ -59,6 +62,8 @@ impl Visible {
         Some(Visible {
             row: StrengthReducedUsize::new(geometry.padded[0]),
             column: StrengthReducedUsize::new(geometry.padded[1]),
+            row_len: geometry.padded[0],
+            column_len: geometry.padded[1],
             levels: geometry.bands().iter().map(|b| b.level).collect(),
             tables,
         })
@@ -85,14 +90,67 @@ impl Visible {
     /// The seen fraction of coefficient `index` (Mallat layout) of band index `band`.
     #[inline]
     pub fn fraction(&self, index: usize, band: u8) -> f64 {
+        self.fraction_at(self.position(index), band)
+    }
+
+    /// The grid position (x, y, z) of coefficient `index`.
+    #[inline]
+    fn position(&self, index: usize) -> [usize; 3] {
         let (plane_and_row, x) = StrengthReducedUsize::div_rem(index, self.row);
         let (z, y) = StrengthReducedUsize::div_rem(plane_and_row, self.column);
+        [x, y, z]
+    }
+
+    /// The seen fraction of the coefficient at grid position `at` of band index `band`: the
+    /// one product every path takes, x first, so that a walk and a lookup agree to the bit.
+    #[inline]
+    fn fraction_at(&self, at: [usize; 3], band: u8) -> f64 {
         let l = self.levels[band as usize] as usize;
         let mut v = 1.0f64;
-        for (table, c) in self.tables.iter().zip([x, y, z]) {
+        for (table, c) in self.tables.iter().zip(at) {
             v *= f64::from(table[l][c]);
         }
         v
+    }
+
+    /// A walk over consecutive coefficients from `index` on: their fractions without a
+    /// position taken from each index (two divisions each, a tenth of a bricked compression's
+    /// scoring time).
+    pub fn walk(&self, index: usize) -> VisibleWalk<'_> {
+        VisibleWalk {
+            visible: self,
+            at: self.position(index),
+        }
+    }
+}
+
+/// [`Visible::walk`]: the fractions of consecutive coefficients, x fastest.
+pub struct VisibleWalk<'a> {
+    visible: &'a Visible,
+    at: [usize; 3],
+}
+
+impl VisibleWalk<'_> {
+    /// The seen fraction of the current coefficient, of band index `band`: what
+    /// [`Visible::fraction`] gives for its index.
+    #[inline]
+    pub fn fraction(&self, band: u8) -> f64 {
+        self.visible.fraction_at(self.at, band)
+    }
+
+    /// Moves on to the next coefficient.
+    #[inline]
+    pub fn advance(&mut self) {
+        let v = self.visible;
+        self.at[0] += 1;
+        if self.at[0] == v.row_len {
+            self.at[0] = 0;
+            self.at[1] += 1;
+            if self.at[1] == v.column_len {
+                self.at[1] = 0;
+                self.at[2] += 1;
+            }
+        }
     }
 }
 
@@ -163,5 +221,37 @@ mod tests {
         }
         // Unclipped geometries need no fractions.
         assert!(Visible::new(&Geometry::new([10, 7, 5], Family::Linear, 2, 6).unwrap()).is_none());
+    }
+
+    /// A walk from any coefficient on gives each following coefficient the fraction
+    /// [`Visible::fraction`] gives its index, to the bit, across rows and planes, for every
+    /// family and a depth whose grid is padded unevenly.
+    #[test]
+    fn a_walk_agrees_with_the_fractions_by_index() {
+        for (family, dims, levels) in [
+            (Family::Linear, [10, 7, 5], 2),
+            (Family::Cubic, [9, 6, 11], 1),
+            (Family::Linear, [13, 4, 3], 1),
+        ] {
+            let g = Geometry::new(dims, family, levels, 1).unwrap();
+            let v = Visible::new(&g).expect("a clipped grid");
+            let band_of = crate::select::band_map(&g);
+            let n = g.coefficient_count();
+            let mut partial = 0;
+            for start in [0, 1, g.padded[0] - 1, g.padded[0] * g.padded[1] - 1, n / 2] {
+                let mut walk = v.walk(start);
+                for (i, &band) in band_of.iter().enumerate().skip(start) {
+                    let want = v.fraction(i, band);
+                    assert_eq!(
+                        walk.fraction(band).to_bits(),
+                        want.to_bits(),
+                        "{family:?} {dims:?}: index {i} from {start}"
+                    );
+                    partial += usize::from(want < 1.0);
+                    walk.advance();
+                }
+            }
+            assert!(partial > 0, "{family:?} {dims:?}: nothing clipped");
+        }
     }
 }

@@ -9,7 +9,7 @@ use super::prepare::{
 };
 use crate::order::{cluster_order, Item};
 use crate::refine::{refine_with, KeptValue, Output, RefineOptions, Refined};
-use crate::select::{pick_order, top_k};
+use crate::select::{pick_order, top_k, Scores};
 use crate::visible::Visible;
 use rayon::prelude::*;
 use wavesplat_codec::dwt::fast::FastTransform;
@@ -18,6 +18,41 @@ use wavesplat_codec::format::{
     magnitude_threshold, write_file, Header, SubstreamParams, COMPACT_HEADER_VERSION, MAX_LAYERS,
 };
 use wavesplat_codec::metrics::{q_e_percent, q_v_percent};
+
+/// [`Prepared::score`] as a selection's [`Scores`]: a run of coefficients of a clipped grid
+/// walks their seen fractions ([`Visible::walk`]) instead of finding each one's position from
+/// its index. The same scores, to the bit.
+pub(super) struct PreparedScores<'a>(pub(super) &'a Prepared);
+
+impl Scores for PreparedScores<'_> {
+    #[inline]
+    fn score(&self, c: usize, i: usize) -> f64 {
+        self.0.score(c, i)
+    }
+
+    #[inline]
+    fn for_each(&self, c: usize, range: std::ops::Range<usize>, mut f: impl FnMut(usize, f64)) {
+        let p = self.0;
+        let Some(visible) = p.visible.as_ref() else {
+            for i in range {
+                f(i, p.score(c, i));
+            }
+            return;
+        };
+        let values = &p.coefficients[c][range.clone()];
+        let bands = &p.band_of[range.clone()];
+        let mut walk = visible.walk(range.start);
+        for ((i, &w), &band) in range.zip(values).zip(bands) {
+            let s = if w == 0.0 {
+                -1.0
+            } else {
+                p.score_seen(c, w, band, walk.fraction(band))
+            };
+            f(i, s);
+            walk.advance();
+        }
+    }
+}
 
 impl Prepared {
     /// The oracle's score S = E·I of coefficient `i` of channel `c` (−1 for a zero coefficient,
@@ -34,7 +69,12 @@ impl Prepared {
     /// band index `band` are known.
     #[inline]
     pub(super) fn score_in_band(&self, c: usize, i: usize, w: f32, band: u8) -> f64 {
-        let seen = Visible::share(self.visible.as_ref(), i, band);
+        self.score_seen(c, w, band, Visible::share(self.visible.as_ref(), i, band))
+    }
+
+    /// [`Prepared::score_in_band`] of a coefficient whose seen fraction `seen` is known.
+    #[inline]
+    fn score_seen(&self, c: usize, w: f32, band: u8, seen: f64) -> f64 {
         if seen == 0.0 {
             // Wholly outside the box: never drawn, never decoded.
             return -1.0;
@@ -103,9 +143,13 @@ impl Prepared {
     /// The oracle's top `cap` coefficients (all non-zero ones when `cap` reaches them).
     pub(super) fn ranked(&self, cap: usize) -> Ranked {
         let n = self.geometry.coefficient_count();
-        let picks = top_k(&self.histogram, self.channels, n, cap, &|c, i| {
-            self.score(c, i)
-        });
+        let picks = top_k(
+            &self.histogram,
+            self.channels,
+            n,
+            cap,
+            &PreparedScores(self),
+        );
         let sorted: Vec<Scored> = picks
             .into_par_iter()
             .map(|(score, channel, index)| Scored {
@@ -520,4 +564,52 @@ pub(super) fn finish(prepared: &Prepared, ranked: &Ranked, mut c: Compressed) ->
         (a.2 as f64, b.1 as f64, norm)
     }));
     c
+}
+
+#[cfg(test)]
+mod tests {
+    use super::PreparedScores;
+    use crate::encode::prepare::{code, prepare};
+    use crate::encode::{CompressOptions, Stage};
+    use crate::phantom::Phantom;
+    use crate::select::Scores;
+
+    /// A run of scores walked over a clipped grid (a brick's smooth padding) is every
+    /// coefficient's score by its index, to the bit: from chunk starts inside rows and across
+    /// planes, with clipped coefficients among them.
+    #[test]
+    fn walked_scores_are_the_scores_by_index() {
+        let v = Phantom::SheppLogan.generate([21, 14, 9]);
+        let opts = CompressOptions {
+            levels: Some(2),
+            margin: Some(1),
+            smooth_padding: true,
+            ..CompressOptions::default()
+        };
+        let none = |_: Stage, _: f64| {};
+        let coded = code(&v, &opts, false, &none).unwrap();
+        let p = prepare(&v, &opts, &coded, false, &none).unwrap();
+        assert!(p.visible.is_some(), "the grid is not clipped");
+        let n = p.geometry.coefficient_count();
+        let row = p.geometry.padded[0];
+        let visible = p.visible.as_ref().unwrap();
+        let mut clipped = 0;
+        for (start, end) in [
+            (0, n),
+            (row - 3, 5 * row + 2),
+            (n / 3, n / 3 + 700),
+            (n - 1, n),
+        ] {
+            let mut next = start;
+            PreparedScores(&p).for_each(0, start..end, |i, s| {
+                assert_eq!(i, next);
+                next += 1;
+                let want = p.score(0, i);
+                assert_eq!(s.to_bits(), want.to_bits(), "index {i} from {start}");
+                clipped += usize::from(visible.fraction(i, p.band_of[i]) < 1.0);
+            });
+            assert_eq!(next, end);
+        }
+        assert!(clipped > 0, "nothing clipped");
+    }
 }

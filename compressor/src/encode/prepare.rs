@@ -462,7 +462,7 @@ pub(super) fn prepare(
         histogram(
             p.channels,
             n,
-            &|c, i| p.score(c, i),
+            &super::encoder::PreparedScores(p),
             Some(&|c: usize, i: usize| p.energy(c, i)),
         )
     };
