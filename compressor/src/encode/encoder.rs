@@ -5,11 +5,12 @@
 
 use super::options::{CompressOptions, CompressStats, Compressed, TileChoice};
 use super::prepare::{
-    axis_views, choose_tiling, Located, Prepared, Ranked, Scored, COARSE_LAYER_MIN_LEVELS,
+    axis_views, choose_tiling, Located, Prepared, PreparedScores, Ranked, Scored,
+    COARSE_LAYER_MIN_LEVELS,
 };
 use crate::order::{cluster_order, Item};
 use crate::refine::{refine_with, KeptValue, Output, RefineOptions, Refined};
-use crate::select::{pick_order, top_k, Scores};
+use crate::select::{pick_order, top_k};
 use crate::visible::Visible;
 use rayon::prelude::*;
 use wavesplat_codec::dwt::fast::FastTransform;
@@ -18,41 +19,6 @@ use wavesplat_codec::format::{
     magnitude_threshold, write_file, Header, SubstreamParams, COMPACT_HEADER_VERSION, MAX_LAYERS,
 };
 use wavesplat_codec::metrics::{q_e_percent, q_v_percent};
-
-/// [`Prepared::score`] as a selection's [`Scores`]: a run of coefficients of a clipped grid
-/// walks their seen fractions ([`Visible::walk`]) instead of finding each one's position from
-/// its index. The same scores, to the bit.
-pub(super) struct PreparedScores<'a>(pub(super) &'a Prepared);
-
-impl Scores for PreparedScores<'_> {
-    #[inline]
-    fn score(&self, c: usize, i: usize) -> f64 {
-        self.0.score(c, i)
-    }
-
-    #[inline]
-    fn for_each(&self, c: usize, range: std::ops::Range<usize>, mut f: impl FnMut(usize, f64)) {
-        let p = self.0;
-        let Some(visible) = p.visible.as_ref() else {
-            for i in range {
-                f(i, p.score(c, i));
-            }
-            return;
-        };
-        let values = &p.coefficients[c][range.clone()];
-        let bands = &p.band_of[range.clone()];
-        let mut walk = visible.walk(range.start);
-        for ((i, &w), &band) in range.zip(values).zip(bands) {
-            let s = if w == 0.0 {
-                -1.0
-            } else {
-                p.score_seen(c, w, band, walk.fraction(band))
-            };
-            f(i, s);
-            walk.advance();
-        }
-    }
-}
 
 impl Prepared {
     /// The oracle's score S = E·I of coefficient `i` of channel `c` (−1 for a zero coefficient,
@@ -74,7 +40,7 @@ impl Prepared {
 
     /// [`Prepared::score_in_band`] of a coefficient whose seen fraction `seen` is known.
     #[inline]
-    fn score_seen(&self, c: usize, w: f32, band: u8, seen: f64) -> f64 {
+    pub(super) fn score_seen(&self, c: usize, w: f32, band: u8, seen: f64) -> f64 {
         if seen == 0.0 {
             // Wholly outside the box: never drawn, never decoded.
             return -1.0;
@@ -568,8 +534,7 @@ pub(super) fn finish(prepared: &Prepared, ranked: &Ranked, mut c: Compressed) ->
 
 #[cfg(test)]
 mod tests {
-    use super::PreparedScores;
-    use crate::encode::prepare::{code, prepare};
+    use crate::encode::prepare::{code, prepare, PreparedScores};
     use crate::encode::{CompressOptions, Stage};
     use crate::phantom::Phantom;
     use crate::select::Scores;

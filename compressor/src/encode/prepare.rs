@@ -5,7 +5,7 @@
 use super::options::{default_levels, CompressError, CompressOptions, Stage, TileChoice};
 use crate::colorspace::{face_activity, face_median, ColorSpaceKind, ColorTransform};
 use crate::refine::{pad_f32, KeptValue, Scratch};
-use crate::select::{band_map, histogram, Histogram, CHUNK};
+use crate::select::{band_map, histogram, Histogram, Scores, CHUNK};
 use crate::visible::Visible;
 use rayon::prelude::*;
 use wavesplat_codec::dwt::bridge::bridge_padding;
@@ -462,7 +462,7 @@ pub(super) fn prepare(
         histogram(
             p.channels,
             n,
-            &super::encoder::PreparedScores(p),
+            &PreparedScores(p),
             Some(&|c: usize, i: usize| p.energy(c, i)),
         )
     };
@@ -530,6 +530,41 @@ pub(super) fn choose_tiling(
                 t *= 2;
             }
             (t.min(single), nl)
+        }
+    }
+}
+
+/// [`Prepared::score`] as a selection's [`Scores`]: a run of coefficients of a clipped grid
+/// walks their seen fractions ([`Visible::walk`]) instead of finding each one's position from
+/// its index. The same scores, to the bit.
+pub(super) struct PreparedScores<'a>(pub(super) &'a Prepared);
+
+impl Scores for PreparedScores<'_> {
+    #[inline]
+    fn score(&self, c: usize, i: usize) -> f64 {
+        self.0.score(c, i)
+    }
+
+    #[inline]
+    fn for_each(&self, c: usize, range: std::ops::Range<usize>, mut f: impl FnMut(usize, f64)) {
+        let p = self.0;
+        let Some(visible) = p.visible.as_ref() else {
+            for i in range {
+                f(i, p.score(c, i));
+            }
+            return;
+        };
+        let values = &p.coefficients[c][range.clone()];
+        let bands = &p.band_of[range.clone()];
+        let mut walk = visible.walk(range.start);
+        for ((i, &w), &band) in range.zip(values).zip(bands) {
+            let s = if w == 0.0 {
+                -1.0
+            } else {
+                p.score_seen(c, w, band, walk.fraction(band))
+            };
+            f(i, s);
+            walk.advance();
         }
     }
 }
