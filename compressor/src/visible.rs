@@ -27,9 +27,6 @@ pub struct Visible {
     /// compression's time.
     row: StrengthReducedUsize,
     column: StrengthReducedUsize,
-    /// The same lengths, for [`VisibleWalk`]'s steps.
-    row_len: usize,
-    column_len: usize,
     levels: Vec<u8>,
     tables: [Vec<Vec<f32>>; 3],
 }
@@ -62,8 +59,6 @@ impl Visible {
         Some(Visible {
             row: StrengthReducedUsize::new(geometry.padded[0]),
             column: StrengthReducedUsize::new(geometry.padded[1]),
-            row_len: geometry.padded[0],
-            column_len: geometry.padded[1],
             levels: geometry.bands().iter().map(|b| b.level).collect(),
             tables,
         })
@@ -143,10 +138,10 @@ impl VisibleWalk<'_> {
     pub fn advance(&mut self) {
         let v = self.visible;
         self.at[0] += 1;
-        if self.at[0] == v.row_len {
+        if self.at[0] == v.row.get() {
             self.at[0] = 0;
             self.at[1] += 1;
-            if self.at[1] == v.column_len {
+            if self.at[1] == v.column.get() {
                 self.at[1] = 0;
                 self.at[2] += 1;
             }

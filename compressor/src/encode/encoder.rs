@@ -554,10 +554,9 @@ mod tests {
         let none = |_: Stage, _: f64| {};
         let coded = code(&v, &opts, false, &none).unwrap();
         let p = prepare(&v, &opts, &coded, false, &none).unwrap();
-        assert!(p.visible.is_some(), "the grid is not clipped");
+        let visible = p.visible.as_ref().expect("the grid is not clipped");
         let n = p.geometry.coefficient_count();
         let row = p.geometry.padded[0];
-        let visible = p.visible.as_ref().unwrap();
         let mut clipped = 0;
         for (start, end) in [
             (0, n),
